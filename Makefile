@@ -1,0 +1,29 @@
+# PB3A: `make demo` and `make test` each create .venv from setup.cfg when it is missing.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: demo test lint bench clean
+
+$(STAMP): setup.cfg pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[test]'
+	@command -v dot >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null \
+	  && (apt-get update -qq && apt-get install -y -qq graphviz >/dev/null) \
+	  || echo "note: graphviz's 'dot' is missing; 'pb3a graph' will write DOT only"; }
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/pb3a run examples/pipeline.toml --for 5
+
+test: $(STAMP)
+	$(BIN)/ruff check pb3a tests examples bench
+	$(BIN)/python -m pytest -q
+
+bench: $(STAMP)
+	$(BIN)/python bench/local_link.py
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -1,0 +1,43 @@
+"""PB3A: self-adaptive software from port-based modules.
+
+Modules with typed ports run in parallel as actors in worker processes; a
+running system can be inspected, retuned, rewired and have modules swapped
+while it runs. See README.md for a tour and docs/architecture.md for how.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from pb3a.errors import (
+    ConfigError,
+    ModuleNotFound,
+    PB3AError,
+    RuntimeFailure,
+    RuntimeTimeout,
+)
+from pb3a.kernel.agent import Agent
+from pb3a.kernel.macro import Macro
+from pb3a.kernel.module import Module
+from pb3a.kernel.ports import Input, InputPort, Output, OutputPort
+from pb3a.runtime.running import Running
+from pb3a.system import System
+
+__all__ = [
+    "Agent",
+    "ConfigError",
+    "Input",
+    "InputPort",
+    "Macro",
+    "Module",
+    "ModuleNotFound",
+    "Output",
+    "OutputPort",
+    "PB3AError",
+    "Running",
+    "RuntimeFailure",
+    "RuntimeTimeout",
+    "System",
+]
+
+logging.getLogger("pb3a").addHandler(logging.NullHandler())

@@ -1,0 +1,219 @@
+"""``ModuleActor``: one module instance as an actor inside a worker process.
+
+The actor owns the module's lock. Its thread (when the module has a period)
+calls ``step``; the worker's ``EventPool`` calls ``on_input``; state capture and
+swaps take the same lock, so none of them ever overlap.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+import traceback
+from collections import deque
+from typing import TYPE_CHECKING, Any
+
+from pb3a.kernel.ports import InputPort, OutputPort
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from pb3a.kernel.module import Module
+
+log = logging.getLogger("pb3a.module")
+
+_EVENT_BUDGET = 64   # events handled per pool task before yielding to other modules
+
+
+class EventPool:
+    """The per-process worker pool that runs event-driven bodies."""
+
+    def __init__(self, threads: int = 4) -> None:
+        self._tasks: queue.SimpleQueue[Callable[[], None] | None] = queue.SimpleQueue()
+        self._threads = [threading.Thread(target=self._run, name=f"pb3a-event-{i}", daemon=True)
+                         for i in range(threads)]
+        for thread in self._threads:
+            thread.start()
+
+    def submit(self, task: Callable[[], None]) -> None:
+        self._tasks.put(task)
+
+    def _run(self) -> None:
+        while (task := self._tasks.get()) is not None:
+            task()
+
+    def close(self, timeout: float = 2.0) -> None:
+        for _ in self._threads:
+            self._tasks.put(None)
+        deadline = time.monotonic() + timeout
+        for thread in self._threads:
+            thread.join(max(0.0, deadline - time.monotonic()))
+
+
+class ModuleActor:
+    """Runs one module: its lock, its step thread, its event dispatch and counters."""
+
+    def __init__(self, name: str, module: Module, pool: EventPool, period: float | None,
+                 ports: dict[str, InputPort | OutputPort] | None = None) -> None:
+        self.name = name
+        self.module = module
+        self.period = period
+        self.lock = threading.Lock()
+        self.steps = self.events = self.errors = 0
+        self.cpu = 0.0
+        self.last_error = ""
+        self.running = False
+        self._pool = pool
+        self._pending: deque[InputPort] = deque()
+        self._scheduled = False
+        self._sched_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        if ports is None:
+            ports = module._pb3a_bind_ports(name)
+        else:
+            module._pb3a_adopt_ports(ports)
+        self.ports = ports
+        for port in self.inputs.values():
+            port._notify = self._on_port_event
+
+    @property
+    def inputs(self) -> dict[str, InputPort]:
+        return {n: p for n, p in self.ports.items() if isinstance(p, InputPort)}
+
+    @property
+    def outputs(self) -> dict[str, OutputPort]:
+        return {n: p for n, p in self.ports.items() if isinstance(p, OutputPort)}
+
+    # -- life cycle --------------------------------------------------------
+    def start(self) -> None:
+        """Run ``setup``, then start stepping (threaded) and dispatching (event-driven)."""
+        self.call(self.module.setup)
+        self.running = True
+        self._stop.clear()
+        if self.period is not None:
+            self._thread = threading.Thread(target=self._loop, name=f"pb3a-step-{self.name}",
+                                            daemon=True)
+            self._thread.start()
+        with self._sched_lock:   # values that arrived before start
+            kick = bool(self._pending) and not self._scheduled
+            self._scheduled = self._scheduled or kick
+        if kick:
+            self._pool.submit(self._dispatch)
+
+    def stop(self, timeout: float = 5.0) -> bool:
+        """Stop stepping and dispatching, then run ``teardown``. False if a body overran."""
+        self.running = False
+        self._stop.set()
+        finished = True
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout)
+            finished = not self._thread.is_alive()
+            self._thread = None
+        if self.lock.acquire(timeout=timeout):
+            self.lock.release()
+            self.call(self.module.teardown)
+        else:
+            finished = False
+        return finished
+
+    def _loop(self) -> None:
+        period = self.period or 0.0
+        while not self._stop.is_set():
+            if self.call(self.module.step):
+                self.steps += 1
+            if period:
+                self._stop.wait(period)
+
+    # -- calls under the lock ---------------------------------------------
+    def call(self, fn: Callable[..., Any], *args: Any) -> bool:
+        """Call a module hook under the module lock; log and count what it raises."""
+        with self.lock:
+            start = time.thread_time()
+            try:
+                fn(*args)
+                return True
+            except Exception as exc:
+                self.errors += 1
+                self.last_error = f"{type(exc).__name__}: {exc}"
+                log.error("module %r raised in %s:\n%s", self.name, getattr(fn, "__name__", fn),
+                          traceback.format_exc())
+                return False
+            finally:
+                self.cpu += time.thread_time() - start
+
+    def _on_port_event(self, port: InputPort) -> None:
+        if not type(self.module).is_event_driven():
+            return
+        with self._sched_lock:
+            self._pending.append(port)
+            if self._scheduled or not self.running:
+                return
+            self._scheduled = True
+        self._pool.submit(self._dispatch)
+
+    def _dispatch(self) -> None:
+        for _ in range(_EVENT_BUDGET):
+            with self._sched_lock:
+                if not self._pending or not self.running:
+                    self._scheduled = False
+                    return
+                port = self._pending.popleft()
+            if port.take_event() and self.call(self.module.on_input, port):
+                self.events += 1
+        self._pool.submit(self._dispatch)   # more to do: let other modules have a turn
+
+    # -- state and swap ----------------------------------------------------
+    def capture(self) -> dict[str, Any]:
+        """The module's state, taken under its lock."""
+        with self.lock:
+            return self.module.get_state()
+
+    def apply(self, state: dict[str, Any]) -> None:
+        """Set state under the module lock (KeyError for unknown names)."""
+        with self.lock:
+            self.module.set_state(state)
+
+    def swap(self, new: Module) -> list[str]:
+        """Replace the module by ``new`` keeping ports, queued values and matching state.
+
+        Returns the names of the state attributes carried over.
+        """
+        with self.lock:
+            old = self.module
+            try:
+                old.teardown()
+            except Exception:
+                log.exception("module %r raised in teardown during swap", self.name)
+            state = old.get_state()
+            for name, spec in (*type(new).inputs.items(), *type(new).outputs.items()):
+                port = self.ports.get(name)
+                if port is None:
+                    port = self.ports[name] = (InputPort(spec, self.name) if name in type(new).inputs
+                                               else OutputPort(spec, self.name))
+                    if isinstance(port, InputPort):
+                        port._notify = self._on_port_event
+                port.spec = spec
+            new._pb3a_adopt_ports(self.ports)
+            accepted = set(type(new).state_names()) | set(new.get_state())
+            kept = {k: v for k, v in state.items() if k in accepted}
+            new.set_state(kept)
+            self.module = new
+        self.call(new.setup)
+        return sorted(kept)
+
+    def statistics(self) -> dict[str, Any]:
+        """Counters of the module and of its inputs."""
+        inputs = {}
+        for name, port in self.inputs.items():
+            inputs[name] = {"received": port.received, "drops": port.drops,
+                            "pending": port.pending, "latency": port.latency,
+                            "rate": port.current_rate(), "link_failures": port.link_failures,
+                            "policy": str(port.policy)}
+        outputs = {name: {"written": port.written} for name, port in self.outputs.items()}
+        return {"class": f"{type(self.module).__module__}:{type(self.module).__qualname__}",
+                "steps": self.steps, "events": self.events, "errors": self.errors,
+                "cpu": self.cpu, "last_error": self.last_error, "running": self.running,
+                "inputs": inputs, "outputs": outputs}

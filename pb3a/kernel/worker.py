@@ -1,0 +1,308 @@
+"""The worker process: hosts one or more module actors for its executor.
+
+A worker has three kinds of threads: the control thread (requests from the
+executor over a private pipe, answered in order), the receiver (drains every
+inbound ring, sleeping on the process's doorbell when all are empty), and the
+event pool plus one step thread per threaded module. The worker exits when the
+executor says so or when the pipe closes (the executor died).
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import os
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import cloudpickle
+
+from pb3a.kernel.actor import EventPool, ModuleActor
+from pb3a.kernel.agent import Agent, RuntimeClient
+from pb3a.kernel.ports import InputPort, Policy
+from pb3a.transport.codec import local_copy
+from pb3a.transport.doorbell import BellPull, Doorbell
+from pb3a.transport.ring import ShmRing
+
+log = logging.getLogger("pb3a.worker")
+
+GUARD_TIMEOUT = 0.05     # longest sleep of the receiver: bounds a lost wake-up (see ring.py)
+WRITE_TIMEOUT = 0.1      # how long a writer waits for ring space before dropping
+
+
+@dataclass
+class _Inbound:
+    """One inbound ring and the input it feeds; closed under its lock."""
+
+    ring: ShmRing
+    port: InputPort
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    closed: bool = False
+
+    def drain(self) -> int:
+        with self.lock:
+            if self.closed:
+                return 0
+            count, gaps = self.ring.drain(self._deliver)
+        if gaps:
+            self.port.drops += gaps
+        return count
+
+    def _deliver(self, value: Any, seq: int, sent_at: float) -> None:
+        self.port.deliver(value, sent_at)
+
+    def set_waiting(self, flag: bool) -> bool:
+        """Announce (or end) the reader's sleep; True if data is already there."""
+        with self.lock:
+            if self.closed:
+                return False
+            self.ring.set_waiting(flag)
+            return self.ring.has_data()
+
+    def close(self) -> int:
+        """Deliver everything left in the ring, then detach."""
+        drained = 0
+        while count := self.drain():
+            drained += count
+        with self.lock:
+            self.closed = True
+            self.ring.close()
+        return drained
+
+
+class Worker:
+    """Everything one worker process runs; ``serve`` is its control loop."""
+
+    def __init__(self, conn: Any, key: str, bell_name: str, checkpoint_s: float) -> None:
+        self.conn = conn
+        self.key = key
+        self.actors: dict[str, ModuleActor] = {}
+        self.restart_policy: dict[str, str] = {}
+        self.pool = EventPool()
+        self.bell = Doorbell(bell_name)
+        self._wake = BellPull(bell_name)
+        self.inbound: dict[str, _Inbound] = {}
+        self.outbound: dict[str, tuple[str, str, ShmRing | None, BellPull | None]] = {}
+        self._send_lock = threading.Lock()
+        self._requests: dict[int, tuple[threading.Event, list[Any]]] = {}
+        self._paused: set[str] = set()
+        self._request_ids = itertools.count()
+        self._closing = threading.Event()
+        self._checkpoint_s = checkpoint_s
+        self._threads = [threading.Thread(target=self._receive, name="pb3a-receiver", daemon=True),
+                         threading.Thread(target=self._checkpoint, name="pb3a-checkpoint",
+                                          daemon=True)]
+        for thread in self._threads:
+            thread.start()
+
+    # -- control loop ------------------------------------------------------
+    def serve(self) -> None:
+        while True:
+            try:
+                message = self.conn.recv()
+            except (EOFError, OSError):
+                break                                   # the executor is gone
+            if message is None:
+                break
+            req_id, op, args = message
+            if req_id is None:                          # an answer to one of our requests
+                self._answer(**args)
+                continue
+            try:
+                result = getattr(self, f"op_{op}")(**args)
+                reply = (req_id, True, result)
+            except Exception as exc:
+                log.debug("request %s failed", op, exc_info=True)
+                reply = (req_id, False, f"{type(exc).__name__}: {exc}")
+            self.send(reply)
+        self.shutdown()
+
+    def send(self, message: Any) -> None:
+        with self._send_lock:
+            try:
+                self.conn.send(message)
+            except (OSError, EOFError, BrokenPipeError):
+                self._closing.set()
+
+    def shutdown(self) -> None:
+        self._closing.set()
+        for name in reversed(list(self.actors)):
+            self.actors[name].stop(timeout=1.0)
+        self.pool.close(timeout=1.0)
+        for link in list(self.inbound.values()):
+            link.close()
+        for _, _, ring, pull in self.outbound.values():
+            if ring is not None:
+                ring.close()
+            if pull is not None:
+                pull.close()
+        self.bell.close()
+        self._wake.close()
+
+    # -- requests from the executor ----------------------------------------
+    def op_ping(self) -> int:
+        return os.getpid()
+
+    def op_add(self, name: str, cls: bytes, period: float | None, restart: str,
+               state: dict[str, Any], policies: dict[str, str],
+               queued: dict[str, list[Any]] | None = None) -> None:
+        module = cloudpickle.loads(cls)()
+        self._give_runtime(name, module)
+        if state:
+            module.set_state(state)
+        actor = ModuleActor(name, module, self.pool, period)
+        for port_name, policy in policies.items():
+            actor.inputs[port_name].set_policy(Policy.parse(policy))
+        for port_name, values in (queued or {}).items():
+            actor.inputs[port_name].restore(values)
+        self.actors[name] = actor
+        self.restart_policy[name] = restart
+
+    def op_start(self, names: list[str]) -> None:
+        for name in names:
+            self.actors[name].start()
+
+    def op_stop(self, name: str, grace: float) -> bool:
+        return self.actors[name].stop(grace)
+
+    def op_pause(self, name: str, timeout: float) -> None:
+        """Hold the module's lock so it neither steps nor handles events (for rewiring)."""
+        if not self.actors[name].lock.acquire(timeout=timeout):
+            raise TimeoutError(f"module {name!r} did not finish its call within {timeout} s")
+        self._paused.add(name)
+
+    def op_resume(self, name: str) -> None:
+        if name in self._paused:
+            self._paused.discard(name)
+            self.actors[name].lock.release()
+
+    def op_remove(self, name: str) -> None:
+        actor = self.actors.pop(name)
+        if actor.running:
+            actor.stop(timeout=1.0)
+        self.restart_policy.pop(name, None)
+
+    def op_link_in(self, key: str, dst: str, dst_port: str, ring: str) -> None:
+        shm_ring = ShmRing.attach(ring)
+        shm_ring.resume_reader()   # a restarted reader continues where the last one stopped
+        self.inbound[key] = _Inbound(shm_ring, self.actors[dst].inputs[dst_port])
+        self.bell_self()
+
+    def op_unlink_in(self, key: str) -> int:
+        link = self.inbound.pop(key, None)
+        return 0 if link is None else link.close()
+
+    def op_link_out(self, key: str, src: str, src_port: str, ring: str | None = None,
+                    bell: str | None = None, dst: str | None = None,
+                    dst_port: str | None = None) -> None:
+        port = self.actors[src].outputs[src_port]
+        if ring is None:                                 # both ends in this process
+            target = self.actors[dst].inputs[dst_port]   # type: ignore[index]
+
+            def sink(value: Any, target: InputPort = target) -> None:
+                target.deliver(local_copy(value), time.monotonic())
+            self.outbound[key] = (src, src_port, None, None)
+        else:
+            shm_ring, pull = ShmRing.attach(ring), BellPull(bell)   # type: ignore[arg-type]
+
+            def sink(value: Any, shm_ring: ShmRing = shm_ring, pull: BellPull = pull) -> None:
+                shm_ring.write(value, WRITE_TIMEOUT)
+                if shm_ring.reader_waiting:
+                    pull.ring()
+            self.outbound[key] = (src, src_port, shm_ring, pull)
+        port.connect(key, sink)
+
+    def op_unlink_out(self, key: str) -> None:
+        entry = self.outbound.pop(key, None)
+        if entry is None:
+            return
+        src, src_port, ring, pull = entry
+        if src in self.actors:
+            self.actors[src].outputs[src_port].disconnect(key)
+        if ring is not None:
+            ring.close()
+        if pull is not None:
+            pull.ring()      # the reader drains what is left
+            pull.close()
+
+    def op_get_state(self, name: str) -> dict[str, Any]:
+        return self.actors[name].capture()
+
+    def op_set_state(self, name: str, state: dict[str, Any]) -> None:
+        self.actors[name].apply(state)
+
+    def op_swap(self, name: str, cls: bytes) -> list[str]:
+        module = cloudpickle.loads(cls)()
+        self._give_runtime(name, module)
+        return self.actors[name].swap(module)
+
+    def op_stats(self) -> dict[str, Any]:
+        modules = {name: actor.statistics() for name, actor in self.actors.items()}
+        links = {key: link.ring.statistics() for key, link in self.inbound.items()}
+        return {"pid": os.getpid(), "modules": modules, "rings": links}
+
+    # -- agents' requests to the executor ----------------------------------
+    def _give_runtime(self, name: str, module: Any) -> None:
+        if isinstance(module, Agent):
+            module.__dict__["_pb3a_runtime"] = RuntimeClient(name, self.request)
+
+    def request(self, op: str, args: dict[str, Any], timeout: float = 10.0) -> Any:
+        """Ask the executor to apply a configuration change; wait for the answer."""
+        req_id = next(self._request_ids)
+        done = threading.Event()
+        self._requests[req_id] = (done, [])
+        self.send((None, "request", {"id": req_id, "op": op, "args": cloudpickle.dumps(args)}))
+        try:
+            if not done.wait(timeout):
+                raise TimeoutError(f"the executor did not answer {op!r} within {timeout} s")
+            ok, result = self._requests[req_id][1]
+        finally:
+            self._requests.pop(req_id, None)
+        if not ok:
+            raise RuntimeError(result)
+        return result
+
+    def _answer(self, id: int, ok: bool, result: Any) -> None:  # noqa: A002
+        entry = self._requests.get(id)
+        if entry is not None:
+            entry[1].extend((ok, result))
+            entry[0].set()
+
+    # -- receiver ----------------------------------------------------------
+    def bell_self(self) -> None:
+        self._wake.ring()
+
+    def _receive(self) -> None:
+        while not self._closing.is_set():
+            try:
+                links = list(self.inbound.values())
+                if sum(link.drain() for link in links):
+                    continue
+                ready = [link.set_waiting(True) for link in links]
+                if not any(ready):
+                    self.bell.wait(GUARD_TIMEOUT)
+                for link in links:
+                    link.set_waiting(False)
+            except Exception:
+                log.exception("receiver: unexpected error; going on")
+
+    def _checkpoint(self) -> None:
+        while not self._closing.wait(self._checkpoint_s):
+            for name, policy in list(self.restart_policy.items()):
+                actor = self.actors.get(name)
+                if policy == "last-state" and actor is not None and actor.running:
+                    try:
+                        blob = cloudpickle.dumps(actor.capture())
+                    except Exception:
+                        log.exception("cannot checkpoint module %r", name)
+                        continue
+                    self.send((None, "checkpoint", {"name": name, "state": blob}))
+
+
+def worker_main(conn: Any, key: str, bell_name: str, checkpoint_s: float, level: int) -> None:
+    """Entry point of a worker process."""
+    logging.basicConfig(level=level, format=f"%(asctime)s pb3a[{key}] %(levelname)s %(message)s")
+    worker = Worker(conn, key, bell_name, checkpoint_s)
+    worker.serve()

@@ -1,0 +1,429 @@
+"""``Executor``: the node supervisor (the paper's NetExecutor).
+
+It owns everything on its node: the worker processes (one per module, or a
+few packed ones), every shared-memory ring, and the module records. A single
+monitor thread reads every worker pipe and process sentinel; requests wait on
+futures with deadlines; a crashed worker is restarted by its modules'
+``restart`` policies. Shutdown stops modules in reverse start order, then the
+processes (terminate, then kill), then unlinks every segment.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import logging
+import multiprocessing
+import multiprocessing.connection
+import os
+import socket
+import threading
+import time
+from collections import deque
+from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
+from dataclasses import dataclass, field
+from multiprocessing import spawn
+from typing import TYPE_CHECKING, Any
+
+import cloudpickle
+import numpy as np
+
+from pb3a.errors import RuntimeFailure, RuntimeTimeout
+from pb3a.kernel.config import FlatLink, FlatModule
+from pb3a.kernel.worker import worker_main
+from pb3a.transport.ring import ShmRing
+from pb3a.transport.shm import reap_orphans, segment_name
+
+if TYPE_CHECKING:
+    from collections.abc import Iterator
+
+log = logging.getLogger("pb3a.executor")
+
+REQUEST_TIMEOUT = 10.0
+RESTART_INTENSITY = (5, 30.0)   # at most 5 restarts of one worker in 30 s (Erlang's MaxR/MaxT)
+SMALL_RING = 1 << 20
+LARGE_RING = 16 << 20
+
+_context = multiprocessing.get_context("forkserver")
+_context.set_forkserver_preload(["pb3a.kernel.worker", "numpy", "cloudpickle"])
+_run_ids = itertools.count()
+
+
+@dataclass
+class WorkerHandle:
+    key: str
+    bell: str
+    process: Any = None
+    conn: Any = None
+    modules: list[str] = field(default_factory=list)
+    restarts: deque[float] = field(default_factory=deque)
+    alive: bool = False
+    pid: int = 0
+    send_lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def send(self, message: Any) -> None:
+        """Send on the worker's pipe; several threads may send at once."""
+        with self.send_lock:
+            self.conn.send(message)
+
+
+@dataclass
+class ModuleRecord:
+    spec: FlatModule
+    worker: str
+    blob: bytes
+    status: str = "starting"          # starting | running | failed | stopped
+    checkpoint: bytes | None = None
+    restarts: int = 0
+
+
+class Executor:
+    """Runs a node's share of a system; thread-safe; every request has a deadline."""
+
+    def __init__(self, node: str, *, workers: dict[str, int] | None = None,
+                 checkpoint_s: float = 1.0,
+                 log_level: int = logging.WARNING) -> None:
+        self.node = node
+        self.packing = workers or {}        # node name -> packed worker processes (0: one each)
+        self.checkpoint_s = checkpoint_s
+        self.log_level = log_level
+        self.modules: dict[str, ModuleRecord] = {}
+        self.links: dict[str, FlatLink] = {}
+        self.rings: dict[str, ShmRing] = {}
+        self.workers: dict[str, WorkerHandle] = {}
+        self.failures: list[str] = []                 # what went wrong, for stats and logs
+        self.handler: Any = None                      # applies agents' requests (op, args)
+        self._run = f"{os.getpid()}-{next(_run_ids)}"
+        self._futures: dict[int, Future[Any]] = {}
+        self._ids = itertools.count()
+        self._lock = threading.RLock()
+        self._stopping = threading.Event()
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._deaths: deque[str] = deque()
+        self._monitor = threading.Thread(target=self._watch, name="pb3a-monitor", daemon=True)
+        reap_orphans()
+        self._monitor.start()
+
+    # -- placement and processes -------------------------------------------
+    def place(self, spec: FlatModule) -> str:
+        """The worker key a module runs in: its group, its own process, or a packed one."""
+        if spec.group:
+            return f"g-{spec.group}"
+        packing = self.packing.get(spec.node, 0)
+        if not packing:
+            return f"m-{spec.name.replace('/', '.')}"
+        counts = {f"{spec.node}-p{i}": 0 for i in range(packing)}
+        for record in self.modules.values():
+            if record.worker in counts:
+                counts[record.worker] += 1
+        return min(counts, key=counts.__getitem__)
+
+    def _spawn(self, handle: WorkerHandle) -> None:
+        parent, child = _context.Pipe()
+        process = _context.Process(
+            target=worker_main, name=f"pb3a-worker-{handle.key}", daemon=True,
+            args=(child, handle.key, handle.bell, self.checkpoint_s, self.log_level))
+        _start_without_main(process)
+        child.close()
+        handle.process, handle.conn, handle.alive, handle.pid = process, parent, True, process.pid
+        self._poke()
+
+    def ensure_worker(self, key: str) -> WorkerHandle:
+        handle = self.workers.get(key)
+        if handle is None:
+            handle = WorkerHandle(key, bell=f"pb3a-{self._run}-{key}")
+            self.workers[key] = handle
+            self._spawn(handle)
+        return handle
+
+    # -- requests ------------------------------------------------------------
+    def call(self, worker: str, op: str, timeout: float = REQUEST_TIMEOUT, /,
+             **args: Any) -> Any:
+        """Send one request to a worker and wait for its answer."""
+        return self.result(self.submit(worker, op, **args), op, worker, timeout)
+
+    def submit(self, worker: str, op: str, /, **args: Any) -> Future[Any]:
+        """Send one request to a worker; the future holds its answer."""
+        key = worker
+        handle = self.workers[key]
+        future: Future[Any] = Future()
+        if not handle.alive:
+            future.set_exception(RuntimeFailure(f"worker {key!r} is not running"))
+            return future
+        req_id = next(self._ids)
+        self._futures[req_id] = future
+        future.pb3a_worker = key   # type: ignore[attr-defined]
+        try:
+            handle.send((req_id, op, args))
+        except (OSError, ValueError) as exc:
+            self._futures.pop(req_id, None)
+            future.set_exception(RuntimeFailure(f"worker {key!r} is gone: {exc}"))
+        return future
+
+    @staticmethod
+    def result(future: Future[Any], op: str, key: str, timeout: float) -> Any:
+        try:
+            return future.result(timeout)
+        except FutureTimeout:
+            raise RuntimeTimeout(f"worker {key!r} did not answer {op!r} within {timeout} s") from None
+
+    # -- modules and links ---------------------------------------------------
+    def add_module(self, spec: FlatModule, *, state: dict[str, Any] | None = None,
+                   queued: dict[str, list[Any]] | None = None) -> None:
+        """Instantiate a module in its worker (not started yet)."""
+        key = self.place(spec)
+        handle = self.ensure_worker(key)
+        record = ModuleRecord(spec, key, cloudpickle.dumps(spec.cls))
+        self.modules[spec.name] = record
+        handle.modules.append(spec.name)
+        self._instantiate(record, spec.state if state is None else state, queued)
+
+    def _instantiate(self, record: ModuleRecord, state: dict[str, Any],
+                     queued: dict[str, list[Any]] | None = None) -> None:
+        spec = record.spec
+        policies = {link.dst_port: str(link.policy) for link in self.links.values()
+                    if link.dst == spec.name}
+        self.call(record.worker, "add", name=spec.name, cls=record.blob, period=spec.period,
+                  restart=spec.restart, state=state, policies=policies, queued=queued)
+
+    def start_modules(self, names: list[str]) -> None:
+        """Run ``setup`` and start the modules, in order."""
+        for name in names:
+            record = self.modules[name]
+            self.call(record.worker, "start", names=[name])
+            record.status = "running"
+
+    def connect(self, link: FlatLink) -> None:
+        """Wire one link: in memory inside a worker, else through a new ring."""
+        self.links[link.key] = link
+        self.attach_reader(link)
+        self.attach_writer(link)
+
+    def attach_reader(self, link: FlatLink) -> None:
+        """The reading side: attach the link's ring (created here) in the reader's worker."""
+        src, dst = self.modules[link.src], self.modules[link.dst]
+        if src.worker == dst.worker:
+            return
+        ring = self.rings.get(link.key)
+        if ring is None:
+            ring = ShmRing.create(segment_name("ring"), _ring_bytes(src.spec.cls, link.src_port))
+            self.rings[link.key] = ring
+        self.call(dst.worker, "link_in", key=link.key, dst=link.dst, dst_port=link.dst_port,
+                  ring=ring.name)
+
+    def attach_writer(self, link: FlatLink) -> None:
+        """The writing side: connect the output to the ring, or straight to the input."""
+        src, dst = self.modules[link.src], self.modules[link.dst]
+        if src.worker == dst.worker:
+            self.call(src.worker, "link_out", key=link.key, src=link.src, src_port=link.src_port,
+                      dst=link.dst, dst_port=link.dst_port)
+        else:
+            self.call(src.worker, "link_out", key=link.key, src=link.src, src_port=link.src_port,
+                      ring=self.rings[link.key].name, bell=self.workers[dst.worker].bell)
+
+    @contextlib.contextmanager
+    def paused(self, names: list[str], timeout: float = REQUEST_TIMEOUT) -> Iterator[None]:
+        """Hold the modules' locks (no step, no event) while the block rewires them."""
+        held = []
+        try:
+            for name in dict.fromkeys(names):
+                record = self.modules.get(name)
+                if record is not None and self.workers[record.worker].alive:
+                    self.call(record.worker, "pause", timeout + 1.0, name=name, timeout=timeout)
+                    held.append(record)
+            yield
+        finally:
+            for record in reversed(held):
+                if self.workers[record.worker].alive:
+                    self.call(record.worker, "resume", name=record.spec.name)
+
+    def disconnect(self, key: str) -> None:
+        """Unwire a link: the writer stops first, then the reader drains what is left."""
+        link = self.links.pop(key)
+        src, dst = self.modules.get(link.src), self.modules.get(link.dst)
+        if src is not None and self.workers[src.worker].alive:
+            self.call(src.worker, "unlink_out", key=key)
+        if dst is not None and self.workers[dst.worker].alive:
+            self.call(dst.worker, "unlink_in", key=key)
+        ring = self.rings.pop(key, None)
+        if ring is not None:
+            ring.close()
+
+    def stop_module(self, name: str, timeout: float = 5.0) -> None:
+        """Stop stepping and dispatching, then run the module's ``teardown``."""
+        record = self.modules[name]
+        if record.status == "running" and self.workers[record.worker].alive:
+            self.call(record.worker, "stop", timeout + 1.0, name=name, grace=timeout)
+        record.status = "stopped"
+
+    def remove_module(self, name: str) -> None:
+        """Stop a module, drop its links, and stop its worker if it hosted nothing else."""
+        for key in [k for k, link in self.links.items() if name in (link.src, link.dst)]:
+            self.disconnect(key)
+        record = self.modules.pop(name)
+        handle = self.workers[record.worker]
+        if handle.alive:
+            self.call(record.worker, "remove", name=name)
+        handle.modules.remove(name)
+        if not handle.modules:
+            self._stop_worker(handle, timeout=2.0)
+            del self.workers[handle.key]
+
+    # -- monitor -------------------------------------------------------------
+    def _poke(self) -> None:
+        with contextlib.suppress(OSError):
+            self._wake_w.send(b"\x01")
+
+    def _watch(self) -> None:
+        while not self._stopping.is_set():
+            handles = [h for h in list(self.workers.values()) if h.alive]
+            by_conn = {h.conn: h for h in handles}
+            by_sentinel = {h.process.sentinel: h for h in handles}
+            ready = multiprocessing.connection.wait(
+                [self._wake_r, *by_conn, *by_sentinel], timeout=1.0)
+            for item in ready:
+                if item is self._wake_r:
+                    with contextlib.suppress(BlockingIOError):
+                        self._wake_r.recv(4096)
+                elif item in by_conn:
+                    self._read(by_conn[item])
+            for item in ready:
+                if item in by_sentinel and by_sentinel[item].alive:
+                    self._read(by_sentinel[item])      # replies sent before it died
+                    self._died(by_sentinel[item])
+
+    def _read(self, handle: WorkerHandle) -> None:
+        try:
+            while handle.conn.poll():
+                req_id, ok, result = handle.conn.recv()
+                if req_id is None:
+                    self._notice(handle, ok, result)
+                    continue
+                future = self._futures.pop(req_id, None)
+                if future is None:
+                    continue
+                if ok is True:
+                    future.set_result(result)
+                else:
+                    future.set_exception(RuntimeFailure(f"worker {handle.key!r}: {result}"))
+        except (EOFError, OSError):
+            pass
+
+    def _notice(self, handle: WorkerHandle, kind: str, args: dict[str, Any]) -> None:
+        if kind == "checkpoint":
+            record = self.modules.get(args["name"])
+            if record is not None:
+                record.checkpoint = args["state"]
+        elif kind == "request":
+            threading.Thread(target=self._serve_request, args=(handle, args), daemon=True,
+                             name="pb3a-agent-request").start()
+
+    def _serve_request(self, handle: WorkerHandle, request: dict[str, Any]) -> None:
+        """Apply an agent's request through ``handler`` and send the answer back."""
+        try:
+            args = cloudpickle.loads(request["args"])
+            if self.handler is None:
+                raise RuntimeFailure("this executor takes no requests from agents")
+            answer = {"id": request["id"], "ok": True, "result": self.handler(request["op"], args)}
+        except Exception as exc:
+            answer = {"id": request["id"], "ok": False, "result": f"{type(exc).__name__}: {exc}"}
+        with contextlib.suppress(OSError, ValueError):
+            handle.send((None, "answer", answer))
+
+    def _died(self, handle: WorkerHandle) -> None:
+        handle.alive = False
+        with contextlib.suppress(OSError):
+            handle.conn.close()
+        for req_id, future in list(self._futures.items()):
+            if getattr(future, "pb3a_worker", None) == handle.key:
+                self._futures.pop(req_id, None)
+                future.set_exception(RuntimeFailure(f"worker {handle.key!r} died"))
+        if self._stopping.is_set():
+            return
+        code = handle.process.exitcode
+        log.warning("worker %s (pid %s, modules %s) died with exit code %s",
+                    handle.key, handle.pid, ", ".join(handle.modules), code)
+        threading.Thread(target=self._recover, args=(handle, code), daemon=True,
+                         name=f"pb3a-restart-{handle.key}").start()
+
+    def _recover(self, handle: WorkerHandle, code: int | None) -> None:
+        from pb3a.runtime.recovery import recover  # the restart policy lives there
+        with self._lock:
+            recover(self, handle, code)
+
+    # -- shutdown ------------------------------------------------------------
+    def _stop_worker(self, handle: WorkerHandle, timeout: float) -> None:
+        handle.alive = False
+        if handle.process is None:
+            return
+        with contextlib.suppress(OSError, ValueError):
+            handle.conn.send(None)
+        handle.process.join(timeout)
+        if handle.process.is_alive():
+            handle.process.terminate()
+            handle.process.join(1.0)
+        if handle.process.is_alive():
+            handle.process.kill()
+            handle.process.join(1.0)
+        with contextlib.suppress(OSError):
+            handle.conn.close()
+        self._poke()
+
+    def shutdown(self, timeout: float = 10.0) -> None:
+        """Stop modules in reverse start order, then workers, then free every ring."""
+        deadline = time.monotonic() + timeout
+        with self._lock:
+            for name in reversed(list(self.modules)):
+                left = max(0.1, deadline - time.monotonic())
+                try:
+                    self.stop_module(name, timeout=min(2.0, left))
+                except (RuntimeFailure, RuntimeTimeout) as exc:
+                    log.warning("stopping module %r: %s", name, exc)
+            self._stopping.set()
+            for handle in reversed(list(self.workers.values())):
+                self._stop_worker(handle, timeout=max(0.1, min(2.0, deadline - time.monotonic())))
+            for ring in self.rings.values():
+                ring.close()
+            self.rings.clear()
+        self._poke()
+        self._monitor.join(2.0)
+        self._wake_r.close()
+        self._wake_w.close()
+
+
+_start_lock = threading.Lock()
+
+
+def _start_without_main(process: Any) -> None:
+    """Start a worker without re-running the user's ``__main__`` in it.
+
+    multiprocessing re-imports the main script in every child, which breaks
+    scripts without an ``if __name__ == "__main__"`` guard. Workers never need
+    it: module classes travel with cloudpickle (by value when defined in main).
+    """
+    original = spawn.get_preparation_data
+
+    def preparation(name: str) -> dict[str, Any]:
+        data = original(name)
+        data.pop("init_main_from_path", None)
+        data.pop("init_main_from_name", None)
+        return data
+
+    with _start_lock:
+        spawn.get_preparation_data = preparation
+        try:
+            process.start()
+        finally:
+            spawn.get_preparation_data = original
+
+
+def _ring_bytes(cls: type, port: str) -> int:
+    """Ring size for a link: room for 8 values of a pinned array, else a default."""
+    spec = cls.outputs[port]
+    if spec.shape is not None and spec.dtype is not None:
+        item = int(np.prod(spec.shape)) * spec.dtype.itemsize + 128
+        return max(SMALL_RING, 8 * item)
+    if issubclass(spec.type, np.ndarray) or spec.type is object:
+        return LARGE_RING
+    return SMALL_RING

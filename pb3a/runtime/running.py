@@ -1,0 +1,236 @@
+"""``Running``: the handle ``System.launch()`` returns, and the live operations.
+
+Every change to the running configuration (state edits, swaps, relinks,
+additions, removals) goes through one configuration lock, so changes from the
+API, the command line and agents are applied one at a time and each sees the
+configuration the previous one left.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import replace
+from typing import Any
+
+import cloudpickle
+
+from pb3a.errors import ConfigError, ModuleNotFound
+from pb3a.kernel.config import FlatLink, FlatModule, Plan
+from pb3a.kernel.loading import resolve_class
+from pb3a.kernel.module import RESTART_POLICIES, Module
+from pb3a.kernel.ports import Policy
+from pb3a.runtime.executor import Executor
+
+log = logging.getLogger("pb3a")
+
+
+def launch(plan: Plan, **options: Any) -> Running:
+    """Start every module of ``plan`` on this machine and return the running handle."""
+    running = Running(plan, **options)
+    running.start()
+    return running
+
+
+class Running:
+    """A launched system. Use it as a context manager: leaving the block stops everything."""
+
+    def __init__(self, plan: Plan, *, checkpoint_s: float = 1.0,
+                 log_level: int = logging.WARNING) -> None:
+        self.plan = plan
+        self.name = plan.name
+        packing = {name: node.workers for name, node in plan.nodes.items()}
+        self._executor = Executor("local", workers=packing, checkpoint_s=checkpoint_s,
+                                  log_level=log_level)
+        self._lock = self._executor._lock        # the global configuration lock
+        self._executor.handler = self._agent_request
+        self._stopped = threading.Event()
+
+    # -- life cycle ------------------------------------------------------------
+    def start(self) -> None:
+        """Instantiate every module, wire every link, then run ``setup`` in order."""
+        ex = self._executor
+        try:
+            with self._lock:
+                for spec in self.plan.modules.values():
+                    ex.links.update({link.key: link for link in self.plan.links
+                                     if link.dst == spec.name})
+                    ex.add_module(spec)
+                for link in self.plan.links:
+                    ex.connect(link)
+                ex.start_modules(list(self.plan.modules))
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self, timeout: float = 10.0) -> None:
+        """Stop every module (reverse start order) and worker; free every segment."""
+        if not self._stopped.is_set():
+            self._stopped.set()
+            self._executor.shutdown(timeout)
+
+    stop = close
+
+    def __enter__(self) -> Running:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until ``timeout`` seconds pass or the system stops; True if it stopped."""
+        return self._stopped.wait(timeout)
+
+    @property
+    def running(self) -> bool:
+        return not self._stopped.is_set()
+
+    # -- state -------------------------------------------------------------------
+    def _record(self, name: str) -> Any:
+        record = self._executor.modules.get(name)
+        if record is None:
+            known = ", ".join(self._executor.modules) or "(none)"
+            raise ModuleNotFound(f"no module {name!r} in system {self.name!r}; modules: {known}")
+        return record
+
+    def state(self, name: str) -> dict[str, Any]:
+        """The module's live state (taken under its lock)."""
+        record = self._record(name)
+        return self._executor.call(record.worker, "get_state", name=name)
+
+    def set_state(self, name: str, **state: Any) -> None:
+        """Set state attributes of a running module, between two of its calls."""
+        with self._lock:
+            record = self._record(name)
+            self._executor.call(record.worker, "set_state", name=name, state=state)
+
+    # -- reconfiguration -----------------------------------------------------------
+    def swap(self, name: str, cls: type | str) -> list[str]:
+        """Replace a module's class, keeping its ports, queued inputs and matching state.
+
+        ``setup`` runs again on the new instance. Returns the state names carried over.
+        """
+        new_cls = resolve_class(cls)
+        with self._lock:
+            record = self._record(name)
+            problems = _swap_problems(name, record.spec.cls, new_cls, self._executor.links,
+                                      self._executor.modules)
+            if problems:
+                raise ConfigError(problems)
+            blob = cloudpickle.dumps(new_cls)
+            kept = self._executor.call(record.worker, "swap", name=name, cls=blob)
+            record.spec = replace(record.spec, cls=new_cls)
+            record.blob = blob
+            return kept
+
+    def relink(self, src: str, dst: str, *, policy: str | None = None) -> None:
+        """Feed input ``dst`` ("module.port") from output ``src``, replacing its old source."""
+        with self._lock:
+            link = self._new_link(src, dst, policy)
+            ex = self._executor
+            olds = [old for old in ex.links.values()
+                    if (old.dst, old.dst_port) == (link.dst, link.dst_port)]
+            # Writers pause so that nothing is written while the input changes
+            # source; the reader drains the old link before the new one opens.
+            with ex.paused([link.src, *(old.src for old in olds)]):
+                for old in olds:
+                    ex.disconnect(old.key)
+                ex.connect(link)
+
+    def link(self, src: str, dst: str, *, policy: str | None = None) -> None:
+        """Add a link while running; the input must not be fed yet."""
+        with self._lock:
+            link = self._new_link(src, dst, policy)
+            for old in self._executor.links.values():
+                if (old.dst, old.dst_port) == (link.dst, link.dst_port):
+                    raise ConfigError([f"input {dst} is fed by {old.src}.{old.src_port} "
+                                       "already; use relink() to replace its source"])
+            self._executor.connect(link)
+
+    def _new_link(self, src: str, dst: str, policy: str | None) -> FlatLink:
+        problems = []
+        ends = []
+        for text, side in ((src, "outputs"), (dst, "inputs")):
+            module, _, port = text.rpartition(".")
+            record = self._executor.modules.get(module)
+            if record is None:
+                problems.append(f"link {src} -> {dst}: no module {module!r}")
+            elif port not in getattr(record.spec.cls, side):
+                names = ", ".join(getattr(record.spec.cls, side)) or "(none)"
+                problems.append(f"link {src} -> {dst}: {module} has no {side[:-1]} {port!r}; "
+                                f"its {side}: {names}")
+            ends.append((module, port, record))
+        if problems:
+            raise ConfigError(problems)
+        (smod, sport, srec), (dmod, dport, drec) = ends
+        out_spec, in_spec = srec.spec.cls.outputs[sport], drec.spec.cls.inputs[dport]
+        why = in_spec.accepts(out_spec)
+        if why:
+            raise ConfigError([f"link {src} -> {dst}: incompatible types: {why}"])
+        try:
+            parsed = Policy.parse(policy) if policy is not None else in_spec.policy
+        except ValueError as exc:
+            raise ConfigError([f"link {src} -> {dst}: {exc}"]) from None
+        return FlatLink(smod, sport, dmod, dport, parsed)
+
+    def add(self, name: str, cls: type | str, *, state: dict[str, Any] | None = None,
+            period: float | None = None, restart: str | None = None, group: str | None = None,
+            node: str | None = None) -> None:
+        """Start a new module while the system runs (link it with ``link``)."""
+        module_cls = resolve_class(cls)
+        if not (isinstance(module_cls, type) and issubclass(module_cls, Module)):
+            raise ConfigError([f"module {name}: {module_cls!r} is not a pb3a.Module subclass"])
+        restart = restart or module_cls.restart
+        if restart not in RESTART_POLICIES:
+            raise ConfigError([f"module {name}: restart must be one of {RESTART_POLICIES}"])
+        with self._lock:
+            if name in self._executor.modules:
+                raise ConfigError([f"module {name}: a module of that name runs already"])
+            spec = FlatModule(name, module_cls, node or next(iter(self.plan.nodes)),
+                              period if period is not None else module_cls.period,
+                              dict(state or {}), restart, group)
+            self._executor.add_module(spec)
+            self._executor.start_modules([name])
+
+    def remove(self, name: str) -> None:
+        """Stop a module (``teardown`` runs), drop its links, free its process."""
+        with self._lock:
+            self._record(name)
+            self._executor.stop_module(name)
+            self._executor.remove_module(name)
+
+    def _agent_request(self, op: str, args: dict[str, Any]) -> Any:
+        """Apply a request an agent made through ``self.runtime``."""
+        if op not in ("state", "set_state", "swap", "relink", "link", "add", "remove", "stats"):
+            raise ValueError(f"unknown runtime operation {op!r}")
+        if op == "set_state":
+            return self.set_state(args["name"], **args["state"])
+        return getattr(self, op)(**args)
+
+    # -- figures ---------------------------------------------------------------------
+    def stats(self) -> dict[str, Any]:
+        """Per module: steps, events, CPU time, errors; per link: values, drops, latency, rate."""
+        from pb3a.runtime.stats import collect
+        return collect(self._executor)
+
+
+def _swap_problems(name: str, old: type, new: type, links: dict[str, FlatLink],
+                   modules: dict[str, Any]) -> list[str]:
+    problems = []
+    if not (isinstance(new, type) and issubclass(new, Module)):
+        return [f"swap {name}: {new!r} is not a pb3a.Module subclass"]
+    for side in ("inputs", "outputs"):
+        missing = sorted(set(getattr(old, side)) - set(getattr(new, side)))
+        if missing:
+            problems.append(f"swap {name}: {new.__name__} lacks the {side} "
+                            f"{', '.join(missing)} that {old.__name__} has")
+    for link in links.values():
+        if link.dst == name and link.dst_port in new.inputs:
+            why = new.inputs[link.dst_port].accepts(modules[link.src].spec.cls.outputs[link.src_port])
+            if why:
+                problems.append(f"swap {name}: input {link.dst_port} fed by {link.src}: {why}")
+        if link.src == name and link.src_port in new.outputs:
+            why = modules[link.dst].spec.cls.inputs[link.dst_port].accepts(new.outputs[link.src_port])
+            if why:
+                problems.append(f"swap {name}: output {link.src_port} feeds {link.dst}: {why}")
+    return problems

@@ -1,0 +1,65 @@
+"""How a value becomes bytes in a ring record, and back.
+
+numpy arrays travel as raw bytes plus dtype and shape, so a reader can map
+them without unpickling; ``bytes`` travel raw; everything else is pickled
+(protocol 5). Local rings live in segments only this user can open, so
+pickling is safe here; remote links authenticate before they decode.
+"""
+
+from __future__ import annotations
+
+import pickle
+from typing import Any
+
+import numpy as np
+
+PAD, PICKLE, ARRAY, BYTES = 0, 1, 2, 3
+
+
+def encode(value: Any) -> tuple[int, bytes, Any]:
+    """Return ``(kind, meta, payload)``; payload supports the buffer protocol."""
+    if type(value) is np.ndarray and not value.dtype.hasobject:
+        array = np.ascontiguousarray(value)
+        meta = f"{array.dtype.str};{','.join(map(str, array.shape))}".encode()
+        return ARRAY, meta, array
+    if type(value) is bytes:
+        return BYTES, b"", value
+    return PICKLE, b"", pickle.dumps(value, protocol=5)
+
+
+def payload_size(kind: int, payload: Any) -> int:
+    """Bytes the payload takes in the ring."""
+    return payload.nbytes if kind == ARRAY else len(payload)
+
+
+def array_meta(meta: bytes) -> tuple[np.dtype, tuple[int, ...]]:
+    """dtype and shape from an ARRAY record's meta."""
+    dtype, _, shape = meta.decode().partition(";")
+    return np.dtype(dtype), tuple(int(n) for n in shape.split(",") if n)
+
+
+def decode_small(kind: int, meta: bytes, payload: memoryview) -> Any:
+    """Decode into a value that owns its memory (the ring slot may be reused at once)."""
+    if kind == PICKLE:
+        return pickle.loads(payload)
+    if kind == BYTES:
+        return bytes(payload)
+    dtype, shape = array_meta(meta)
+    array = np.frombuffer(payload, dtype=dtype).reshape(shape).copy()
+    array.flags.writeable = False
+    return array
+
+
+def local_copy(value: Any) -> Any:
+    """What a reader in the same process gets: the same isolation a ring gives.
+
+    Immutable scalars pass as they are; arrays are copied read-only; other
+    objects are copied through pickle, exactly as across processes.
+    """
+    if value is None or type(value) in (int, float, bool, str, bytes, complex):
+        return value
+    if type(value) is np.ndarray and not value.dtype.hasobject:
+        array = value.copy()
+        array.flags.writeable = False
+        return array
+    return pickle.loads(pickle.dumps(value, protocol=5))

@@ -1,0 +1,237 @@
+"""``ShmRing``: a single-producer, single-consumer byte ring in shared memory.
+
+One ring carries one local link between two worker processes. Records are
+variable-sized and 64-byte aligned; a record that would straddle the end is
+preceded by a pad record. Large arrays are handed to the reader as read-only
+views into the ring (zero copy); the bytes stay reserved until the last view
+is garbage-collected, then the reader releases them.
+
+Memory ordering. Counters are 8-byte aligned words read and written through a
+``memoryview`` cast to ``'Q'``: each access is one plain load or store. The
+writer stores the record, then the new ``head``; the reader loads ``head``,
+then the record. This is correct on x86-64 (TSO: stores are not reordered with
+stores, loads not with loads). Weaker memory models (ARM) would need fences,
+which CPython cannot issue; PB3A refuses to create rings there (see
+``ShmRing.create``). The sleep hand-shake (``waiting`` flag, then a doorbell)
+is a store-then-load on both sides, which TSO may reorder; a lost wake-up is
+therefore bounded by the reader's guard timeout rather than prevented.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import platform
+import struct
+import threading
+import time
+import weakref
+from collections import deque
+from typing import Any
+
+import numpy as np
+
+from pb3a.transport import codec
+from pb3a.transport.shm import attach_segment, close_segment, create_segment, unlink_segment
+
+_MAGIC = 0x50423341_52494E47  # "PB3ARING"
+_DATA = 512                      # header size; data starts here (page offset 512: 64-aligned)
+# word indexes (offset / 8) of the header fields, one cache line each
+_W_MAGIC, _W_CAP, _W_HEAD, _W_TAIL, _W_RPOS, _W_SEQ, _W_WAITING = 0, 1, 8, 16, 24, 32, 40
+_REC = struct.Struct("<IHHQd")   # length, kind, meta length, seq, sent_at (monotonic)
+ZERO_COPY_MIN = 64 * 1024        # arrays at least this large are read as views
+_ALIGN = 64
+
+
+def _align(n: int, to: int = _ALIGN) -> int:
+    return (n + to - 1) & ~(to - 1)
+
+
+class RingFull(Exception):
+    """The reader did not free space in time; the value was dropped."""
+
+
+class ShmRing:
+    """One local link. The executor creates it; the writer and reader attach."""
+
+    def __init__(self, segment: Any, owner: bool) -> None:
+        self._seg = segment
+        self._owner = owner
+        self._words = segment.buf[:_DATA].cast("Q")
+        self.capacity = self._words[_W_CAP]
+        self._data = segment.buf[_DATA:_DATA + self.capacity]
+        self.name = segment.name.lstrip("/")
+        # reader-side bookkeeping (only the reading process uses these)
+        self._rpos = self._words[_W_RPOS]
+        self._leases: deque[list[int]] = deque()   # [start, end, released] per leased record
+        self._lease_lock = threading.Lock()
+        self.expected_seq = -1
+
+    # -- life cycle ---------------------------------------------------------
+    @classmethod
+    def create(cls, name: str, capacity: int) -> ShmRing:
+        """Create a ring of ``capacity`` data bytes (rounded up to 64)."""
+        if platform.machine().lower() not in ("x86_64", "amd64"):
+            raise RuntimeError(
+                "PB3A's shared-memory rings rely on x86-64 store ordering; "
+                f"this machine is {platform.machine()}")
+        capacity = _align(max(capacity, 4096))
+        segment = create_segment(name, _DATA + capacity)
+        words = segment.buf[:_DATA].cast("Q")
+        words[_W_CAP] = capacity
+        words[_W_MAGIC] = _MAGIC
+        words.release()
+        return cls(segment, owner=True)
+
+    @classmethod
+    def attach(cls, name: str) -> ShmRing:
+        """Attach to a ring the executor created."""
+        segment = attach_segment(name)
+        if segment.buf[:8].cast("Q")[0] != _MAGIC:
+            close_segment(segment)
+            raise ValueError(f"shared-memory segment {name!r} is not a PB3A ring")
+        return cls(segment, owner=False)
+
+    def close(self) -> None:
+        """Drop this process's mapping (the owner also unlinks the segment)."""
+        for view in (self._words, self._data):
+            with contextlib.suppress(BufferError):   # array views still alive
+                view.release()
+        if self._owner:
+            unlink_segment(self._seg)
+        else:
+            close_segment(self._seg)
+
+    # -- writer -------------------------------------------------------------
+    def write(self, value: Any, timeout: float = 0.1) -> bool:
+        """Append one value; waits up to ``timeout`` for space, then drops it.
+
+        Returns False when dropped. The sequence number advances either way, so
+        the reader sees the gap and counts the drop.
+        """
+        words = self._words
+        seq = words[_W_SEQ]
+        words[_W_SEQ] = seq + 1
+        kind, meta, payload = codec.encode(value)
+        size = codec.payload_size(kind, payload)
+        body = _align(_REC.size + len(meta), _ALIGN if kind == codec.ARRAY else 8)
+        length = _align(body + size)
+        cap = self.capacity
+        if length > cap:
+            raise ValueError(
+                f"a value of {size} bytes does not fit this link's {cap}-byte ring; "
+                "declare shape= and dtype= on the ports, or raise ring_bytes")
+        head = words[_W_HEAD]
+        offset = head % cap
+        pad = cap - offset if offset + length > cap else 0
+        if head + pad + length - words[_W_TAIL] > cap and not self._wait_space(
+                head + pad + length - cap, timeout):
+            return False
+        data = self._data
+        if pad:
+            _REC.pack_into(data, offset, pad, codec.PAD, 0, 0, 0.0)
+            offset = 0
+        _REC.pack_into(data, offset, length, kind, len(meta), seq, time.monotonic())
+        if meta:
+            data[offset + _REC.size:offset + _REC.size + len(meta)] = meta
+        start = offset + body
+        if kind == codec.ARRAY:
+            target = np.ndarray(payload.shape, payload.dtype, buffer=data, offset=start)
+            np.copyto(target, payload)
+            del target
+        else:
+            data[start:start + size] = payload
+        words[_W_HEAD] = head + pad + length          # publish: after the record (TSO)
+        return True
+
+    def _wait_space(self, needed_tail: int, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        pause = 20e-6
+        while self._words[_W_TAIL] < needed_tail:
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(pause)
+            pause = min(pause * 2, 1e-3)
+        return True
+
+    @property
+    def reader_waiting(self) -> bool:
+        """True when the reader announced it is going to sleep (ring the doorbell)."""
+        return self._words[_W_WAITING] != 0
+
+    # -- reader -------------------------------------------------------------
+    def set_waiting(self, flag: bool) -> None:
+        """Reader: announce sleep (True) before the last check of ``has_data``."""
+        self._words[_W_WAITING] = 1 if flag else 0
+
+    def has_data(self) -> bool:
+        return self._words[_W_HEAD] != self._rpos
+
+    def drain(self, deliver: Any, limit: int = 1024) -> tuple[int, int]:
+        """Decode up to ``limit`` records and call ``deliver(value, seq, sent_at)``.
+
+        Returns ``(delivered, gaps)``: gaps are values the writer dropped.
+        """
+        words, data, cap = self._words, self._data, self.capacity
+        head = words[_W_HEAD]
+        rpos = self._rpos
+        count = gaps = 0
+        while rpos != head and count < limit:
+            offset = rpos % cap
+            length, kind, meta_len, seq, sent_at = _REC.unpack_from(data, offset)
+            start = rpos
+            rpos += length
+            if kind == codec.PAD:
+                continue
+            meta = bytes(data[offset + _REC.size:offset + _REC.size + meta_len])
+            body = _align(_REC.size + meta_len, _ALIGN if kind == codec.ARRAY else 8)
+            payload = data[offset + body:offset + length]
+            if kind == codec.ARRAY and length - body >= ZERO_COPY_MIN:
+                value = self._lease_view(meta, payload, start, rpos)
+            else:
+                value = codec.decode_small(kind, meta, payload)
+            if self.expected_seq >= 0 and seq > self.expected_seq:
+                gaps += seq - self.expected_seq
+            self.expected_seq = seq + 1
+            count += 1
+            self._rpos = rpos
+            words[_W_RPOS] = rpos
+            deliver(value, seq, sent_at)
+        self._rpos = rpos
+        words[_W_RPOS] = rpos
+        self._release()
+        return count, gaps
+
+    def _lease_view(self, meta: bytes, payload: memoryview, start: int, end: int) -> np.ndarray:
+        dtype, shape = codec.array_meta(meta)
+        view = np.frombuffer(payload, dtype=dtype, count=int(np.prod(shape))).reshape(shape)
+        view.flags.writeable = False
+        lease = [start, end, 0]
+        with self._lease_lock:
+            self._leases.append(lease)
+        weakref.finalize(view, self._return_lease, lease)
+        return view
+
+    def _return_lease(self, lease: list[int]) -> None:
+        lease[2] = 1
+        self._release()
+
+    def _release(self) -> None:
+        # The tail may pass only records nobody still views, in ring order.
+        with self._lease_lock:
+            leases = self._leases
+            while leases and leases[0][2]:
+                leases.popleft()
+            tail = leases[0][0] if leases else self._rpos
+        if tail > self._words[_W_TAIL]:
+            self._words[_W_TAIL] = tail
+
+    def resume_reader(self) -> None:
+        """A new reader process takes over: views held by a dead reader are gone."""
+        self._rpos = self._words[_W_RPOS]
+        self._words[_W_TAIL] = self._rpos
+
+    def statistics(self) -> dict[str, int]:
+        """Bytes in use and counters, for ``stats()``."""
+        words = self._words
+        return {"capacity": self.capacity, "used": words[_W_HEAD] - words[_W_TAIL],
+                "written": words[_W_SEQ]}

@@ -1,0 +1,85 @@
+"""Shared-memory segments with one owner.
+
+The executor creates and unlinks every segment (``create_segment``); workers
+only attach (``attach_segment``) and never register with CPython's resource
+tracker, which would otherwise unlink a segment another process still uses
+(cpython#82300). Names carry the owner's pid, so ``reap_orphans`` can remove
+segments whose owner died without cleaning up.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import os
+import sys
+from multiprocessing import resource_tracker, shared_memory
+
+import psutil
+
+PREFIX = "pb3a_"
+_SHM_DIR = "/dev/shm"
+_counter = itertools.count()
+
+
+def segment_name(kind: str) -> str:
+    """A fresh segment name owned by this process: ``pb3a_<pid>_<kind><n>``."""
+    return f"{PREFIX}{os.getpid()}_{kind}{next(_counter)}"
+
+
+def create_segment(name: str, size: int) -> shared_memory.SharedMemory:
+    """Create a segment (owner side). The resource tracker unlinks it if we die."""
+    return shared_memory.SharedMemory(name=name, create=True, size=size)
+
+
+def attach_segment(name: str) -> shared_memory.SharedMemory:
+    """Attach to an existing segment without registering it with the resource tracker."""
+    if sys.version_info >= (3, 13):
+        return shared_memory.SharedMemory(name=name, track=False)  # type: ignore[call-arg]
+    register = resource_tracker.register
+    resource_tracker.register = lambda *args, **kwargs: None  # type: ignore[assignment]
+    try:
+        return shared_memory.SharedMemory(name=name)
+    finally:
+        resource_tracker.register = register  # type: ignore[assignment]
+
+
+def close_segment(segment: shared_memory.SharedMemory) -> None:
+    """Close our mapping; if array views still use it, leave it to the garbage collector."""
+    with contextlib.suppress(BufferError):
+        segment.close()
+
+
+def unlink_segment(segment: shared_memory.SharedMemory) -> None:
+    """Close and unlink (owner side); a segment already gone is fine."""
+    close_segment(segment)
+    with contextlib.suppress(FileNotFoundError):
+        segment.unlink()
+
+
+def reap_orphans() -> list[str]:
+    """Unlink PB3A segments whose owning process is gone; returns their names."""
+    reaped = []
+    try:
+        names = os.listdir(_SHM_DIR)
+    except FileNotFoundError:
+        return reaped
+    for name in names:
+        if not name.startswith(PREFIX):
+            continue
+        pid = name[len(PREFIX):].split("_", 1)[0]
+        if pid.isdigit() and not psutil.pid_exists(int(pid)):
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(os.path.join(_SHM_DIR, name))
+                reaped.append(name)
+    return reaped
+
+
+def live_segments(owner: int | None = None) -> list[str]:
+    """Names of PB3A segments in /dev/shm, optionally only those owned by ``owner``."""
+    try:
+        names = os.listdir(_SHM_DIR)
+    except FileNotFoundError:
+        return []
+    prefix = f"{PREFIX}{owner}_" if owner is not None else PREFIX
+    return sorted(n for n in names if n.startswith(prefix))

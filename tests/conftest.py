@@ -1,0 +1,60 @@
+"""Shared fixtures: every test must leave no worker process and no shm segment behind."""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import psutil
+import pytest
+
+from pb3a.transport.shm import live_segments
+
+
+def eventually(check: Callable[[], Any], timeout: float = 10.0, what: str = "condition") -> Any:
+    """Poll ``check`` until it returns a truthy value; fail after ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = check()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout} s waiting for {what}; last value {value!r}")
+        time.sleep(0.02)
+
+
+def _workers() -> set[int]:
+    me = psutil.Process()
+    found = set()
+    for child in me.children(recursive=True):
+        try:
+            cmdline = " ".join(child.cmdline())
+            helper = "forkserver" in cmdline or "resource_tracker" in cmdline
+            if not helper and child.status() != "zombie":
+                found.add(child.pid)
+        except psutil.Error:
+            continue
+    return found
+
+
+@pytest.fixture(autouse=True)
+def no_leaks() -> Iterator[None]:
+    """Fail a test that leaves worker processes or shared-memory segments behind."""
+    before_pids = _workers()
+    yield
+    deadline = time.monotonic() + 10
+    while True:
+        leaked_pids = _workers() - before_pids
+        leaked_segments = live_segments(os.getpid())
+        if not leaked_pids and not leaked_segments:
+            return
+        if time.monotonic() > deadline:
+            for pid in leaked_pids:
+                try:
+                    psutil.Process(pid).kill()
+                except psutil.Error:
+                    pass
+            pytest.fail(f"leaked processes {sorted(leaked_pids)} / segments {leaked_segments}")
+        time.sleep(0.05)

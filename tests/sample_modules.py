@@ -1,0 +1,192 @@
+"""Modules the runtime tests launch (importable, so workers load them by reference)."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+
+from pb3a import Agent, Input, Macro, Module, Output
+
+
+class Counter(Module):
+    """Writes 1, 2, 3, ... every period until it has written ``limit`` values (0: forever)."""
+
+    out = Output(int)
+    period = 0.0
+    count = 0
+    limit = 0
+
+    def step(self) -> None:
+        if self.limit and self.count >= self.limit:
+            return
+        self.count += 1
+        self.out.write(self.count)
+
+
+class Burst(Module):
+    """Writes ``limit`` values as fast as it can in one step, then idles."""
+
+    out = Output(int)
+    period = 0.01
+    limit = 0
+    sent = 0
+
+    def step(self) -> None:
+        while self.sent < self.limit:
+            self.sent += 1
+            self.out.write(self.sent)
+
+
+class Collector(Module):
+    """Checks the values it receives are 1, 2, 3, ... in order, counting any violation."""
+
+    x = Input(int, policy="queue:1000000")
+    received = 0
+    last = 0
+    out_of_order = 0
+    duplicates = 0
+    delay = 0.0
+
+    def on_input(self, port) -> None:
+        value = port.read()
+        if value == self.last:
+            self.duplicates += 1
+        elif value < self.last:
+            self.out_of_order += 1
+        self.last = value
+        self.received += 1
+        if self.delay:
+            time.sleep(self.delay)
+
+
+class Scale(Module):
+    x = Input(float)
+    y = Output(float)
+    gain = 2.0
+    setups = 0
+
+    def setup(self) -> None:
+        self.setups += 1
+
+    def on_input(self, port) -> None:
+        self.y.write(port.read() * self.gain)
+
+
+class FastScale(Scale):
+    """Same ports and state as Scale, a different body: adds one."""
+
+    def on_input(self, port) -> None:
+        self.y.write(port.read() * self.gain + 1.0)
+
+
+class Offset(Module):
+    """Incompatible with Scale: its input carries str."""
+
+    x = Input(str)
+    y = Output(float)
+
+
+class FloatSource(Module):
+    out = Output(float)
+    period = 0.005
+    value = 1.0
+
+    def step(self) -> None:
+        self.out.write(float(self.value))
+
+
+class Last(Module):
+    """Keeps the latest float it received."""
+
+    x = Input(float)
+    value = 0.0
+    seen = 0
+
+    def on_input(self, port) -> None:
+        self.value = port.read()
+        self.seen += 1
+
+
+class Pid(Module):
+    """Reports the process it runs in."""
+
+    period = 0.05
+    pid = 0
+
+    def step(self) -> None:
+        self.pid = os.getpid()
+
+
+class Faulty(Module):
+    """Raises in every other step; counts the steps that went through."""
+
+    period = 0.005
+    calls = 0
+    good = 0
+
+    def step(self) -> None:
+        self.calls += 1
+        if self.calls % 2:
+            raise ValueError("odd step")
+        self.good += 1
+
+
+class Idle(Module):
+    """An event-driven module that never receives anything."""
+
+    x = Input(int)
+
+    def on_input(self, port) -> None:
+        port.read()
+
+
+class Doubler(Agent):
+    """An agent that raises another module's gain each time it is told to."""
+
+    go = Input(int)
+    target = "scale"
+
+    def on_input(self, port) -> None:
+        port.read()
+        gain = self.runtime.state(self.target)["gain"]
+        self.runtime.set_state(self.target, gain=gain * 2)
+
+
+class ArraySource(Module):
+    out = Output(np.ndarray, shape=(1024, 128), dtype="float64")
+    period = 0.01
+    n = 0
+
+    def step(self) -> None:
+        self.n += 1
+        self.out.write(np.full((1024, 128), float(self.n)))
+
+
+class ArraySink(Module):
+    x = Input(np.ndarray, shape=(1024, 128), dtype="float64")
+    sums_ok = 0
+    writable = False
+
+    def on_input(self, port) -> None:
+        arr = port.read()
+        self.writable = bool(arr.flags.writeable)
+        if float(arr[0, 0]) * arr.size == float(arr.sum()):
+            self.sums_ok += 1
+
+
+class Chain(Macro):
+    """scale -> scale, exporting the first input and the last output."""
+
+    modules = {"a": Scale, "b": {"class": Scale, "state": {"gain": 3.0}}}
+    links = [("a.y", "b.x")]
+    exports = {"x": "a.x", "y": "b.y"}
+
+
+class Outer(Macro):
+    """A macro holding a macro: x -> chain -> last."""
+
+    modules = {"chain": Chain, "tail": Scale}
+    links = [("chain.y", "tail.x")]
+    exports = {"x": "chain.x", "y": "tail.y"}

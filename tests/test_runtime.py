@@ -1,0 +1,206 @@
+"""The executor on one node: execution modes, links, live operations."""
+
+from __future__ import annotations
+
+import pytest
+from conftest import eventually
+from sample_modules import (
+    ArraySink, ArraySource, Burst, Chain, Collector, Counter, Doubler, FastScale, FloatSource,
+    Last, Offset, Outer, Pid, Scale)
+
+from pb3a import ConfigError, ModuleNotFound, System
+
+pytestmark = pytest.mark.timeout(90)
+
+
+def pipeline(workers: int = 0) -> System:
+    system = System("pipe", workers=workers)
+    system.add("src", FloatSource, state={"value": 1.5})
+    system.add("scale", Scale)
+    system.add("sink", Last)
+    system.link("src.out", "scale.x")
+    system.link("scale.y", "sink.x")
+    return system
+
+
+@pytest.mark.parametrize("workers", [0, 1, 2])
+def test_modules_run_in_either_execution_mode(workers: int) -> None:
+    system = System("modes", workers=workers)
+    for i in range(3):
+        system.add(f"p{i}", Pid)
+    with system.launch() as run:
+        pids = [eventually(lambda i=i: run.state(f"p{i}")["pid"], what="a step") for i in range(3)]
+        figures = run.stats()["modules"]
+    distinct = len(set(pids))
+    assert distinct == (3 if workers == 0 else workers)
+    assert {figures[f"p{i}"]["pid"] for i in range(3)} == set(pids)
+
+
+@pytest.mark.parametrize("workers", [0, 1])
+def test_values_flow_through_threaded_and_event_driven_modules(workers: int) -> None:
+    with pipeline(workers).launch() as run:
+        eventually(lambda: run.state("sink")["value"] == 3.0, what="1.5 * 2 at the sink")
+        stats = run.stats()
+    assert stats["modules"]["src"]["steps"] > 0
+    assert stats["modules"]["scale"]["events"] > 0
+    link = stats["links"]["scale.y->sink.x"]
+    assert link["transport"] == ("shm" if workers == 0 else "memory")
+    assert link["values"] > 0 and link["rate"] > 0
+    assert 0 <= link["latency"] < 0.5
+
+
+@pytest.mark.parametrize("workers", [0, 1])
+def test_queue_link_keeps_order_without_loss_or_duplicates(workers: int) -> None:
+    n = 100_000
+    system = System("bulk", workers=workers)
+    system.add("src", Burst, state={"limit": n})
+    system.add("dst", Collector)
+    system.link("src.out", "dst.x", policy=f"queue:{n}")
+    with system.launch() as run:
+        state = eventually(lambda: (s := run.state("dst"))["received"] == n and s, timeout=60,
+                           what=f"{n} values")
+        link = run.stats()["links"]["src.out->dst.x"]
+    assert state["last"] == n
+    assert state["out_of_order"] == 0 and state["duplicates"] == 0
+    assert link["drops"] == 0 and link["values"] == n
+
+
+def test_queue_overflow_drops_oldest_and_counts_it() -> None:
+    system = System("overflow")
+    system.add("src", Burst, state={"limit": 2000})
+    system.add("dst", Collector, state={"delay": 0.002})
+    system.link("src.out", "dst.x", policy="queue:10")
+    with system.launch() as run:
+        def settled():
+            link = run.stats()["links"]["src.out->dst.x"]
+            return link["values"] == 2000 and link["pending"] == 0 and link
+        link = eventually(settled, timeout=30, what="all values handled")
+        state = run.state("dst")
+    assert link["drops"] > 0
+    assert state["received"] + link["drops"] == 2000
+    assert state["out_of_order"] == 0 and state["duplicates"] == 0
+    assert state["last"] == 2000          # the newest value survives; the oldest were dropped
+
+
+def test_latest_policy_gives_the_newest_value() -> None:
+    system = System("latest")
+    system.add("src", Counter, state={"limit": 500}, period=0.0)
+    system.add("dst", Collector)
+    system.link("src.out", "dst.x", policy="latest")
+    with system.launch() as run:
+        state = eventually(lambda: (s := run.state("dst"))["last"] == 500 and s, what="500")
+    assert state["out_of_order"] == 0 and state["duplicates"] == 0
+    assert state["received"] <= 500
+
+
+def test_large_arrays_arrive_read_only_and_intact() -> None:
+    system = System("arrays")
+    system.add("src", ArraySource)
+    system.add("dst", ArraySink)
+    system.link("src.out", "dst.x")
+    with system.launch() as run:
+        state = eventually(lambda: (s := run.state("dst"))["sums_ok"] >= 20 and s, what="arrays")
+    assert state["writable"] is False
+
+
+def test_state_read_and_live_edit() -> None:
+    with pipeline().launch() as run:
+        assert run.state("scale")["gain"] == 2.0
+        run.set_state("scale", gain=5.0)
+        assert run.state("scale")["gain"] == 5.0
+        eventually(lambda: run.state("sink")["value"] == 7.5, what="1.5 * 5 at the sink")
+        with pytest.raises(Exception, match="gian"):
+            run.set_state("scale", gian=1.0)
+        with pytest.raises(ModuleNotFound, match="nope"):
+            run.state("nope")
+
+
+def test_swap_keeps_ports_and_state_and_runs_setup_again() -> None:
+    with pipeline().launch() as run:
+        run.set_state("scale", gain=4.0)
+        eventually(lambda: run.state("sink")["value"] == 6.0, what="1.5 * 4")
+        kept = run.swap("scale", FastScale)
+        assert "gain" in kept
+        eventually(lambda: run.state("sink")["value"] == 7.0, what="1.5 * 4 + 1 after swap")
+        state = run.state("scale")
+        assert state["gain"] == 4.0 and state["setups"] == 2
+        with pytest.raises(ConfigError, match="str"):
+            run.swap("scale", Offset)
+        assert run.stats()["modules"]["scale"]["class"].endswith("FastScale")
+
+
+def test_relink_moves_an_input_to_another_output() -> None:
+    system = pipeline()
+    system.add("other", FloatSource, state={"value": 10.0})
+    with system.launch() as run:
+        eventually(lambda: run.state("sink")["value"] == 3.0, what="3.0")
+        run.relink("other.out", "scale.x")
+        eventually(lambda: run.state("sink")["value"] == 20.0, what="10 * 2 after relink")
+        links = run.stats()["links"]
+        assert "other.out->scale.x" in links and "src.out->scale.x" not in links
+        with pytest.raises(ConfigError, match="no output"):
+            run.relink("src.nope", "scale.x")
+
+
+def test_relink_of_a_queue_link_keeps_order_and_loses_nothing() -> None:
+    n = 20_000
+    system = System("relink-order")
+    system.add("a", Burst, state={"limit": n})
+    system.add("dst", Collector)
+    system.add("b", Counter, state={"limit": 0}, period=None)
+    system.link("a.out", "dst.x", policy=f"queue:{n}")
+    with system.launch() as run:
+        eventually(lambda: run.state("dst")["received"] >= n // 4, what="some values")
+        run.relink("a.out", "dst.x", policy=f"queue:{n}")     # re-wire the same pair live
+        state = eventually(lambda: (s := run.state("dst"))["received"] == n and s, timeout=60,
+                           what="every value")
+    assert state["out_of_order"] == 0 and state["duplicates"] == 0 and state["last"] == n
+
+
+def test_add_and_remove_modules_while_running() -> None:
+    with pipeline().launch() as run:
+        run.add("probe", Last)
+        run.link("scale.y", "probe.x")
+        eventually(lambda: run.state("probe")["value"] == 3.0, what="value at the new module")
+        with pytest.raises(ConfigError, match="relink"):
+            run.link("src.out", "probe.x")
+        run.remove("sink")
+        assert "sink" not in run.stats()["modules"]
+        with pytest.raises(ModuleNotFound):
+            run.state("sink")
+        seen = run.state("probe")["seen"]
+        eventually(lambda: run.state("probe")["seen"] > seen, what="flow goes on")
+
+
+def test_nested_macros_run_with_exported_ports() -> None:
+    system = System("macros")
+    system.add("src", FloatSource, state={"value": 1.0})
+    system.add("m", Outer)
+    system.add("sink", Last)
+    system.link("src.out", "m.x")
+    system.link("m.y", "sink.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("sink")["value"] == 12.0, what="1 * 2 * 3 * 2")
+        names = set(run.stats()["modules"])
+    assert {"m/chain/a", "m/chain/b", "m/tail"} <= names
+
+
+def test_macro_class_exports_resolve_in_single_use() -> None:
+    system = System("chain")
+    system.add("src", FloatSource, state={"value": 2.0})
+    system.add("c", Chain)
+    system.add("sink", Last)
+    system.link("src.out", "c.x")
+    system.link("c.y", "sink.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("sink")["value"] == 12.0, what="2 * 2 * 3")
+
+
+def test_an_agent_adapts_another_module_through_its_runtime() -> None:
+    system = pipeline()
+    system.add("agent", Doubler)
+    system.add("trigger", Counter, state={"limit": 3}, period=0.05)
+    system.link("trigger.out", "agent.go", policy="queue:8")
+    with system.launch() as run:
+        eventually(lambda: run.state("scale")["gain"] == 16.0, what="gain doubled 3 times")
+        eventually(lambda: run.state("sink")["value"] == 24.0, what="the new gain in effect")
