@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from collections.abc import Callable, Iterator
@@ -52,9 +53,7 @@ def no_leaks() -> Iterator[None]:
             return
         if time.monotonic() > deadline:
             for pid in leaked_pids:
-                try:
+                with contextlib.suppress(psutil.Error):
                     psutil.Process(pid).kill()
-                except psutil.Error:
-                    pass
             pytest.fail(f"leaked processes {sorted(leaked_pids)} / segments {leaked_segments}")
         time.sleep(0.05)

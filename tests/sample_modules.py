@@ -190,3 +190,24 @@ class Outer(Macro):
     modules = {"chain": Chain, "tail": Scale}
     links = [("chain.y", "tail.x")]
     exports = {"x": "chain.x", "y": "tail.y"}
+
+
+class Steady(Module):
+    """Counts its steps; restart tests read ``count`` to see which state came back."""
+
+    period = 0.01
+    count = 0
+    pid = 0
+
+    def step(self) -> None:
+        self.pid = os.getpid()
+        self.count += 1
+
+
+class SlowTeardown(Module):
+    """A module whose teardown never finishes in time."""
+
+    period = 0.05
+
+    def teardown(self) -> None:
+        time.sleep(60)

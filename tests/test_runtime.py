@@ -5,8 +5,21 @@ from __future__ import annotations
 import pytest
 from conftest import eventually
 from sample_modules import (
-    ArraySink, ArraySource, Burst, Chain, Collector, Counter, Doubler, FastScale, FloatSource,
-    Last, Offset, Outer, Pid, Scale)
+    ArraySink,
+    ArraySource,
+    Burst,
+    Chain,
+    Collector,
+    Counter,
+    Doubler,
+    FastScale,
+    FloatSource,
+    Last,
+    Offset,
+    Outer,
+    Pid,
+    Scale,
+)
 
 from pb3a import ConfigError, ModuleNotFound, System
 

@@ -56,8 +56,10 @@ class ModuleActor:
     """Runs one module: its lock, its step thread, its event dispatch and counters."""
 
     def __init__(self, name: str, module: Module, pool: EventPool, period: float | None,
-                 ports: dict[str, InputPort | OutputPort] | None = None) -> None:
+                 ports: dict[str, InputPort | OutputPort] | None = None,
+                 on_error: Callable[[ModuleActor, str, str], None] | None = None) -> None:
         self.name = name
+        self.on_error = on_error
         self.module = module
         self.period = period
         self.lock = threading.Lock()
@@ -138,8 +140,12 @@ class ModuleActor:
             except Exception as exc:
                 self.errors += 1
                 self.last_error = f"{type(exc).__name__}: {exc}"
-                log.error("module %r raised in %s:\n%s", self.name, getattr(fn, "__name__", fn),
-                          traceback.format_exc())
+                where = getattr(fn, "__name__", str(fn))
+                if self.on_error is not None:
+                    self.on_error(self, where, traceback.format_exc())
+                else:
+                    log.error("module %r raised in %s:\n%s", self.name, where,
+                              traceback.format_exc())
                 return False
             finally:
                 self.cpu += time.thread_time() - start
@@ -191,8 +197,8 @@ class ModuleActor:
             for name, spec in (*type(new).inputs.items(), *type(new).outputs.items()):
                 port = self.ports.get(name)
                 if port is None:
-                    port = self.ports[name] = (InputPort(spec, self.name) if name in type(new).inputs
-                                               else OutputPort(spec, self.name))
+                    kind = InputPort if name in type(new).inputs else OutputPort
+                    port = self.ports[name] = kind(spec, self.name)
                     if isinstance(port, InputPort):
                         port._notify = self._on_port_event
                 port.spec = spec

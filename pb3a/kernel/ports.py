@@ -41,7 +41,8 @@ class Policy:
         if isinstance(text, Policy):
             return text
         if not isinstance(text, str):
-            raise ValueError(f"policy must be a string such as 'latest' or 'queue:64', got {text!r}")
+            raise ValueError(
+                f"policy must be a string such as 'latest' or 'queue:64', got {text!r}")
         if text == "latest":
             return cls("latest", 1)
         if text == "queue":
@@ -287,7 +288,7 @@ class OutputPort:
         self._lock = threading.Lock()
 
     def write(self, value: Any) -> None:
-        """Send ``value`` on every link of this output; TypeError (nothing sent) if it does not fit."""
+        """Send ``value`` on every link; TypeError (and nothing sent) if it does not fit."""
         self.spec.check(value)
         with self._lock:
             self.written += 1

@@ -30,6 +30,7 @@ log = logging.getLogger("pb3a.worker")
 
 GUARD_TIMEOUT = 0.05     # longest sleep of the receiver: bounds a lost wake-up (see ring.py)
 WRITE_TIMEOUT = 0.1      # how long a writer waits for ring space before dropping
+ERROR_REPORT_S = 1.0     # a module's exceptions are reported at most this often (all counted)
 
 
 @dataclass
@@ -88,6 +89,7 @@ class Worker:
         self._send_lock = threading.Lock()
         self._requests: dict[int, tuple[threading.Event, list[Any]]] = {}
         self._paused: set[str] = set()
+        self._error_times: dict[str, tuple[float, int]] = {}
         self._request_ids = itertools.count()
         self._closing = threading.Event()
         self._checkpoint_s = checkpoint_s
@@ -152,7 +154,7 @@ class Worker:
         self._give_runtime(name, module)
         if state:
             module.set_state(state)
-        actor = ModuleActor(name, module, self.pool, period)
+        actor = ModuleActor(name, module, self.pool, period, on_error=self._report_error)
         for port_name, policy in policies.items():
             actor.inputs[port_name].set_policy(Policy.parse(policy))
         for port_name, values in (queued or {}).items():
@@ -243,6 +245,17 @@ class Worker:
         links = {key: link.ring.statistics() for key, link in self.inbound.items()}
         return {"pid": os.getpid(), "modules": modules, "rings": links}
 
+    def _report_error(self, actor: ModuleActor, where: str, trace: str) -> None:
+        """Tell the executor (which logs it) about an exception, at most once a second each."""
+        now = time.monotonic()
+        last, suppressed = self._error_times.get(actor.name, (0.0, 0))
+        if now - last < ERROR_REPORT_S:
+            self._error_times[actor.name] = (last, suppressed + 1)
+            return
+        self._error_times[actor.name] = (now, 0)
+        self.send((None, "error", {"name": actor.name, "where": where, "trace": trace,
+                                   "suppressed": suppressed}))
+
     # -- agents' requests to the executor ----------------------------------
     def _give_runtime(self, name: str, module: Any) -> None:
         if isinstance(module, Agent):
@@ -264,7 +277,7 @@ class Worker:
             raise RuntimeError(result)
         return result
 
-    def _answer(self, id: int, ok: bool, result: Any) -> None:  # noqa: A002
+    def _answer(self, id: int, ok: bool, result: Any) -> None:
         entry = self._requests.get(id)
         if entry is not None:
             entry[1].extend((ok, result))

@@ -166,7 +166,8 @@ class Executor:
         try:
             return future.result(timeout)
         except FutureTimeout:
-            raise RuntimeTimeout(f"worker {key!r} did not answer {op!r} within {timeout} s") from None
+            raise RuntimeTimeout(
+                f"worker {key!r} did not answer {op!r} within {timeout} s") from None
 
     # -- modules and links ---------------------------------------------------
     def add_module(self, spec: FlatModule, *, state: dict[str, Any] | None = None,
@@ -315,6 +316,11 @@ class Executor:
             record = self.modules.get(args["name"])
             if record is not None:
                 record.checkpoint = args["state"]
+        elif kind == "error":
+            count = args["suppressed"]
+            more = f" ({count} more since the last report)" if count else ""
+            logging.getLogger("pb3a.module").error(
+                "module %r raised in %s%s:\n%s", args["name"], args["where"], more, args["trace"])
         elif kind == "request":
             threading.Thread(target=self._serve_request, args=(handle, args), daemon=True,
                              name="pb3a-agent-request").start()

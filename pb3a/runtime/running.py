@@ -226,11 +226,13 @@ def _swap_problems(name: str, old: type, new: type, links: dict[str, FlatLink],
                             f"{', '.join(missing)} that {old.__name__} has")
     for link in links.values():
         if link.dst == name and link.dst_port in new.inputs:
-            why = new.inputs[link.dst_port].accepts(modules[link.src].spec.cls.outputs[link.src_port])
+            feeder = modules[link.src].spec.cls.outputs[link.src_port]
+            why = new.inputs[link.dst_port].accepts(feeder)
             if why:
                 problems.append(f"swap {name}: input {link.dst_port} fed by {link.src}: {why}")
         if link.src == name and link.src_port in new.outputs:
-            why = modules[link.dst].spec.cls.inputs[link.dst_port].accepts(new.outputs[link.src_port])
+            reader = modules[link.dst].spec.cls.inputs[link.dst_port]
+            why = reader.accepts(new.outputs[link.src_port])
             if why:
                 problems.append(f"swap {name}: output {link.src_port} feeds {link.dst}: {why}")
     return problems

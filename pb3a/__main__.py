@@ -1,0 +1,7 @@
+"""``python -m pb3a``: the same as the ``pb3a`` command."""
+
+from __future__ import annotations
+
+from pb3a.runtime.cli import main
+
+raise SystemExit(main())

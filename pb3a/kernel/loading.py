@@ -1,0 +1,70 @@
+"""Loading code by reference: turn ``"package.module:Class"`` into the class.
+
+Configurations name module classes as strings so that a TOML file, a running
+system and a module server can all refer to the same code. Only the colon form
+is accepted: it says unambiguously where the importable module ends and the
+attribute path inside it begins (``"pkg.mod:Outer.Inner"`` works too).
+"""
+
+from __future__ import annotations
+
+import difflib
+import importlib
+import re
+
+_REF = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_][\w.]*$")
+
+
+def class_ref(cls: type) -> str:
+    """The ``"module:QualName"`` reference that ``resolve_class`` turns back into ``cls``."""
+    return f"{cls.__module__}:{cls.__qualname__}"
+
+
+def resolve_class(ref: str | type) -> type:
+    """The class ``ref`` names: a class is returned as is, a ``"module:Class"`` is imported.
+
+    Raises ValueError for a malformed reference, ImportError when the module cannot
+    be imported, LookupError when it has no such attribute and TypeError when the
+    attribute is not a class; each message says what to change.
+    """
+    if isinstance(ref, type):
+        return ref
+    if not isinstance(ref, str):
+        raise TypeError(f"a class reference must be a class or a 'module:Class' string, "
+                        f"got {ref!r}")
+    if not _REF.match(ref):
+        hint = "e.g. 'examples.pipeline:Ticker'"
+        if ":" not in ref and "." in ref:
+            module, _, name = ref.rpartition(".")
+            hint = f"here probably '{module}:{name}'"
+        raise ValueError(f"bad class reference {ref!r}: use 'module:Class', {hint}")
+    module_name, _, attr_path = ref.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise ImportError(f"cannot import module {module_name!r} for {ref!r}: {exc}; "
+                          "check the module path and that it is installed or on sys.path") from exc
+    except Exception as exc:  # a module that fails while importing: say which and why
+        raise ImportError(f"importing module {module_name!r} for {ref!r} failed: "
+                          f"{type(exc).__name__}: {exc}") from exc
+    target: object = module
+    where = f"module {module_name!r}"
+    for part in attr_path.split("."):
+        if not hasattr(target, part):
+            raise LookupError(f"{where} has no class {part!r}{_suggest(target, part)}")
+        target = getattr(target, part)
+        where = f"class {part!r}"
+    if not isinstance(target, type):
+        raise TypeError(f"{ref!r} is a {type(target).__name__}, not a class")
+    return target
+
+
+def _suggest(namespace: object, name: str) -> str:
+    classes = sorted(k for k, v in vars(namespace).items()
+                     if isinstance(v, type) and not k.startswith("_"))
+    close = difflib.get_close_matches(name, classes, n=1)
+    if close:
+        return f" (did you mean {close[0]!r}?)"
+    if classes:
+        return f"; it has: {', '.join(classes)}"
+    return ""

@@ -1,0 +1,89 @@
+"""``System``: build a system description in Python (or load one from TOML), check it, draw it.
+
+The builder only records what it is told (as a ``SystemSpec``); problems are
+found all at once by ``check()``/``plan()``, exactly as for a file, except for
+a duplicate module name, which ``add`` refuses at once. ``launch()`` hands
+the plan to the runtime.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from pb3a.kernel.config import (
+    LinkSpec,
+    ModuleSpec,
+    NodeSpec,
+    Plan,
+    SystemSpec,
+    build_plan,
+    load_toml,
+    validate,
+)
+from pb3a.kernel.drawing import plan_to_dot
+
+
+class System:
+    """A system under construction: nodes, modules (or macros) and links between their ports."""
+
+    def __init__(self, name: str, *, module_servers: list[str] | None = None,
+                 workers: int = 0) -> None:
+        self._spec = SystemSpec(name, module_servers=list(module_servers or []), workers=workers)
+
+    @classmethod
+    def load(cls, path: str | Path) -> System:
+        """Read a TOML system description (see ``pb3a check`` for its problems)."""
+        system = cls.__new__(cls)
+        system._spec = load_toml(path)
+        return system
+
+    @property
+    def name(self) -> str:
+        return self._spec.name
+
+    def node(self, name: str, *, address: str | None = None, workers: int = 0) -> System:
+        """Declare a node; without any, everything runs on ``"local"``."""
+        if name in self._spec.nodes:
+            raise ValueError(f"system {self.name!r} already has a node {name!r}")
+        self._spec.nodes[name] = NodeSpec(name, address, workers)
+        return self
+
+    def add(self, name: str, cls: type | str, *, node: str | None = None,
+            state: dict[str, Any] | None = None, period: float | None = None,
+            restart: str | None = None, group: str | None = None) -> System:
+        """Add a module (a class or ``"module:Class"``) or a Python ``Macro`` subclass."""
+        if name in self._spec.modules:
+            raise ValueError(f"system {self.name!r} already has a module {name!r}; "
+                             "choose another instance name")
+        self._spec.modules[name] = ModuleSpec(name, cls=cls, node=node, period=period,
+                                             state=dict(state or {}), restart=restart,
+                                             group=group)
+        return self
+
+    def link(self, src: str, dst: str, *, policy: str | None = None) -> System:
+        """Link output ``src`` (``"module.port"``) to input ``dst``; ``policy`` overrides."""
+        self._spec.links.append(LinkSpec(src, dst, policy))
+        return self
+
+    def check(self) -> list[str]:
+        """Every problem of the configuration, each naming the entry and the fix; empty if valid."""
+        return validate(self._spec)
+
+    def plan(self) -> Plan:
+        """The flat plan the runtime executes; ConfigError listing every problem if invalid."""
+        return build_plan(self._spec)
+
+    def to_dot(self) -> str:
+        """Graphviz DOT: a cluster per node, modules with their ports, links between them."""
+        return plan_to_dot(self.plan())
+
+    def launch(self, **kwargs: Any) -> Any:
+        """Start the system (see ``pb3a.runtime.running.launch``); use it as a context manager."""
+        from pb3a.runtime.running import launch
+
+        return launch(self.plan(), **kwargs)
+
+    def __repr__(self) -> str:
+        return (f"System({self.name!r}, {len(self._spec.modules)} modules, "
+                f"{len(self._spec.links)} links)")

@@ -1,0 +1,688 @@
+"""The configuration layer: loading classes, TOML and Python descriptions, macros, validation."""
+
+from __future__ import annotations
+
+import sys
+import textwrap
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+import examples.pipeline
+from examples.pipeline import FastScale, Scale, Ticker
+from pb3a.errors import ConfigError
+from pb3a.kernel.config import FlatLink, NodeSpec, Plan, SystemSpec, build_plan, load_toml, validate
+from pb3a.kernel.loading import resolve_class
+from pb3a.kernel.ports import Policy
+from pb3a.system import System
+
+PIPELINE = Path(examples.pipeline.__file__).with_name("pipeline.toml")
+
+# A module of parts the TOML fixtures name as "parts_cfg:Class"; written to a temporary
+# directory on sys.path so that it is importable by reference, as user code would be.
+PARTS = '''
+from pb3a.kernel.macro import Macro
+from pb3a.kernel.module import Module
+from pb3a.kernel.ports import Input, Output
+
+
+class Src(Module):
+    out = Output(float)
+    period = 0.1
+    value = 1.0
+
+
+class Words(Module):
+    out = Output(str)
+
+
+class Sink(Module):
+    x = Input(float)
+    y = Output(float)
+    seen = 0
+
+
+class Queued(Module):
+    x = Input(float, policy="queue:4")
+
+
+class Custom(Module):
+    x = Input(float)
+
+    def get_state(self):
+        return {"anything": 1}
+
+    def set_state(self, state):
+        pass
+
+
+class NotAModule:
+    pass
+
+
+def helper():
+    return 1
+
+
+class Filter(Macro):
+    modules = {"lp": Sink,
+               "gain": {"class": "parts_cfg:Sink", "state": {"seen": 2}, "period": 0.01},
+               "tail": "parts_cfg:Sink"}
+    links = [("lp.y", "gain.x"), {"from": "gain.y", "to": "tail.x", "policy": "queue:8"}]
+    exports = {"x": "lp.x", "y": "tail.y"}
+
+
+class Twice(Macro):
+    modules = {"first": Filter, "second": {"class": Filter}}
+    links = [("first.y", "second.x")]
+    exports = {"x": "first.x", "y": "second.y"}
+
+
+class BadMacro(Macro):
+    modules = {"s": {"class": Sink, "perod": 1}}
+    links = [("s.y", "s.nope")]
+    exports = {"x": "s.x"}
+'''
+
+
+@pytest.fixture(scope="module", autouse=True)
+def parts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    folder = tmp_path_factory.mktemp("parts")
+    (folder / "parts_cfg.py").write_text(PARTS)
+    (folder / "parts_boom.py").write_text("raise RuntimeError('boom')\n")
+    sys.path.insert(0, str(folder))
+    yield
+    sys.path.remove(str(folder))
+    sys.modules.pop("parts_cfg", None)
+    sys.modules.pop("parts_boom", None)
+
+
+def write(tmp_path: Path, text: str, name: str = "sys.toml") -> Path:
+    path = tmp_path / name
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+def problems_of(tmp_path: Path, text: str) -> list[str]:
+    """The problems of a description, its file named as if given relative to its folder."""
+    problems = validate(load_toml(write(tmp_path, text)))
+    return [p.replace(f"{tmp_path}/", "") for p in problems]
+
+
+def only(problems: list[str], *needles: str) -> str:
+    """The one problem containing every needle (fails listing all problems otherwise)."""
+    found = [p for p in problems if all(n in p for n in needles)]
+    assert len(found) == 1, f"expected one problem with {needles}, got:\n" + "\n".join(problems)
+    return found[0]
+
+
+TWO = """
+    [modules.src]
+    class = "parts_cfg:Src"
+    [modules.sink]
+    class = "parts_cfg:Sink"
+"""
+
+
+# -- resolve_class ------------------------------------------------------------
+def test_resolve_class_accepts_a_class_or_a_colon_reference() -> None:
+    assert resolve_class(Scale) is Scale
+    assert resolve_class("examples.pipeline:FastScale") is FastScale
+
+
+def test_resolve_class_errors_say_what_to_change() -> None:
+    with pytest.raises(LookupError, match=r"module 'examples\.pipeline' has no class 'Tickr'"):
+        resolve_class("examples.pipeline:Tickr")
+    with pytest.raises(ValueError, match=r"use 'module:Class'.*'examples\.pipeline:Ticker'"):
+        resolve_class("examples.pipeline.Ticker")
+    with pytest.raises(ImportError, match=r"cannot import module 'no_such_pkg\.mod'"):
+        resolve_class("no_such_pkg.mod:Thing")
+    with pytest.raises(TypeError, match="not a class"):
+        resolve_class("parts_cfg:helper")
+    with pytest.raises(ImportError, match=r"importing module 'parts_boom'.*RuntimeError: boom"):
+        resolve_class("parts_boom:Thing")
+
+
+# -- valid descriptions -------------------------------------------------------
+def test_the_pipeline_example_becomes_a_plan() -> None:
+    plan = build_plan(load_toml(PIPELINE))
+    assert isinstance(plan, Plan)
+    assert plan.name == "pipeline"
+    assert list(plan.nodes) == ["local"]
+    assert plan.nodes["local"].workers == 0
+    assert list(plan.modules) == ["tick", "scale"]
+    tick, scale = plan.modules["tick"], plan.modules["scale"]
+    assert (tick.cls, tick.node, tick.period, tick.state, tick.restart, tick.group) == (
+        Ticker, "local", 0.005, {"count": 0}, "never", None)
+    assert (scale.cls, scale.period, scale.state) == (Scale, None, {"gain": 3.0})
+    assert plan.links == [FlatLink("tick", "out", "scale", "x", Policy("queue", 64))]
+    assert plan.links[0].key == "tick.out->scale.x"
+
+
+def test_a_link_without_policy_takes_the_inputs_own(tmp_path: Path) -> None:
+    plan = build_plan(load_toml(write(tmp_path, """
+        [modules.src]
+        class = "parts_cfg:Src"
+        [modules.q]
+        class = "parts_cfg:Queued"
+        [modules.s]
+        class = "parts_cfg:Sink"
+        [[links]]
+        from = "src.out"
+        to = "q.x"
+        [[links]]
+        from = "src.out"
+        to = "s.x"
+        policy = "queue"
+    """)))
+    assert [str(link.policy) for link in plan.links] == ["queue:4", "queue:64"]
+
+
+def test_nodes_workers_and_the_default_node(tmp_path: Path) -> None:
+    plan = build_plan(load_toml(write(tmp_path, """
+        module_servers = ["tcp://127.0.0.1:7300"]
+        [nodes.a]
+        workers = 2
+        [nodes.b]
+        address = "tcp://10.0.0.7:7100"
+        [modules.src]
+        class = "parts_cfg:Src"
+        node = "b"
+        period = 0
+        restart = "last-state"
+        [modules.sink]
+        class = "parts_cfg:Sink"
+        group = "g"
+    """)))
+    assert plan.nodes == {"a": NodeSpec("a", None, 2), "b": NodeSpec("b", "tcp://10.0.0.7:7100")}
+    assert plan.modules["src"].node == "b"
+    assert plan.modules["src"].period == 0
+    assert plan.modules["src"].restart == "last-state"
+    assert plan.modules["sink"].node == "a"          # no node: the first declared one
+    assert plan.modules["sink"].group == "g"
+    assert plan.module_servers == ["tcp://127.0.0.1:7300"]
+    local = build_plan(load_toml(write(tmp_path, "workers = 3\n" + TWO, "w.toml")))
+    assert local.nodes == {"local": NodeSpec("local", None, 3)}
+
+
+FILE_MACROS = """
+    name = "nested"
+    [nodes.a]
+    [nodes.b]
+
+    [macros.pair]
+    modules = { a = { class = "parts_cfg:Sink", node = "a" }, b = { class = "parts_cfg:Sink" } }
+    links = [ { from = "a.y", to = "b.x" } ]
+    exports = { in = "a.x", out = "b.y" }
+
+    [macros.outer]
+    modules = { first = { macro = "pair" }, last = { class = "parts_cfg:Sink", group = "g" } }
+    exports = { in = "first.in", out = "last.y" }
+    [[macros.outer.links]]
+    from = "first.out"
+    to = "last.x"
+    policy = "queue:8"
+
+    [modules.src]
+    class = "parts_cfg:Src"
+    [modules.m]
+    macro = "outer"
+    node = "b"
+    [modules.sink]
+    class = "parts_cfg:Sink"
+
+    [[links]]
+    from = "src.out"
+    to = "m.in"
+    [[links]]
+    from = "m.out"
+    to = "sink.x"
+"""
+
+
+def test_file_macros_expand_in_place_and_links_resolve_through_exports(tmp_path: Path) -> None:
+    plan = build_plan(load_toml(write(tmp_path, FILE_MACROS)))
+    assert list(plan.modules) == ["src", "m/first/a", "m/first/b", "m/last", "sink"]
+    assert {link.key: str(link.policy) for link in plan.links} == {
+        "m/first/a.y->m/first/b.x": "latest",
+        "m/first/b.y->m/last.x": "queue:8",
+        "src.out->m/first/a.x": "latest",
+        "m/last.y->sink.x": "latest",
+    }
+
+
+def test_macro_children_inherit_node_and_group_unless_they_set_their_own(tmp_path: Path) -> None:
+    modules = build_plan(load_toml(write(tmp_path, FILE_MACROS))).modules
+    assert modules["m/first/a"].node == "a"          # its own
+    assert modules["m/first/b"].node == "b"          # from the macro instance m
+    assert modules["m/last"].node == "b"
+    assert modules["src"].node == "a"
+    # a group named inside a macro is scoped by the macro instance
+    assert modules["m/last"].group == "m/g"
+    assert modules["m/first/a"].group is None
+
+
+def test_python_macro_subclasses_expand_like_file_macros() -> None:
+    import parts_cfg
+
+    system = (System("py").add("src", "parts_cfg:Src").add("f", parts_cfg.Twice, group="w")
+              .add("sink", parts_cfg.Sink).link("src.out", "f.x").link("f.y", "sink.x"))
+    assert system.check() == []
+    plan = system.plan()
+    assert list(plan.modules) == ["src", "f/first/lp", "f/first/gain", "f/first/tail",
+                                  "f/second/lp", "f/second/gain", "f/second/tail", "sink"]
+    gain = plan.modules["f/second/gain"]
+    assert (gain.cls, gain.state, gain.period) == (parts_cfg.Sink, {"seen": 2}, 0.01)
+    keys = {link.key: str(link.policy) for link in plan.links}
+    assert keys["f/first/gain.y->f/first/tail.x"] == "queue:8"
+    assert keys["f/first/tail.y->f/second/lp.x"] == "latest"
+    assert keys["src.out->f/first/lp.x"] == "latest"
+    assert keys["f/second/tail.y->sink.x"] == "latest"
+    assert len(keys) == 7
+    # a group given to a macro instance is inherited by all its modules
+    assert {m.group for name, m in plan.modules.items() if name.startswith("f/")} == {"w"}
+    assert plan.modules["src"].group is None
+
+
+def test_macro_subclasses_own_their_tables_and_may_be_given_as_macro() -> None:
+    import parts_cfg
+
+    class Wider(parts_cfg.Filter):
+        pass
+
+    Wider.modules["extra"] = parts_cfg.Sink
+    assert "extra" not in parts_cfg.Filter.modules
+    plan = System("w").add("a", "parts_cfg:Src").add("f", Wider).link("a.out", "f.x").plan()
+    assert "f/extra" in plan.modules
+
+    class Holder(parts_cfg.Macro):
+        modules = {"inner": {"macro": parts_cfg.Filter}}
+        exports = {"x": "inner.x"}
+
+    held = System("k").add("a", "parts_cfg:Src").add("h", Holder).link("a.out", "h.x").plan()
+    assert held.links[-1].key == "a.out->h/inner/lp.x"
+
+
+def test_a_python_macro_can_be_the_class_of_a_toml_entry(tmp_path: Path) -> None:
+    plan = build_plan(load_toml(write(tmp_path, """
+        [modules.src]
+        class = "parts_cfg:Src"
+        [modules.f]
+        class = "parts_cfg:Filter"
+        [[links]]
+        from = "src.out"
+        to = "f.x"
+    """)))
+    assert list(plan.modules) == ["src", "f/lp", "f/gain", "f/tail"]
+    assert plan.links[-1].key == "src.out->f/lp.x"
+
+
+def test_the_system_builder_chains_and_refuses_duplicate_names() -> None:
+    system = System("demo")
+    assert system.node("a", workers=2).add("t", Ticker, node="a") is system
+    with pytest.raises(ValueError, match="already has a module 't'"):
+        system.add("t", Scale)
+    with pytest.raises(ValueError, match="already has a node 'a'"):
+        system.node("a")
+    system.add("s", "examples.pipeline:Scale", node="a", state={"gain": 4.0}, period=0.5,
+               restart="fresh", group="g").link("t.out", "s.x", policy="queue:2")
+    plan = system.plan()
+    assert plan.modules["s"].state == {"gain": 4.0}
+    assert plan.modules["s"].restart == "fresh"
+    assert plan.links[0].policy == Policy("queue", 2)
+
+
+def test_to_dot_draws_nodes_modules_ports_and_links() -> None:
+    dot = (System("drawn").node("a").node("b", address="tcp://10.0.0.7:7100")
+           .add("tick", Ticker, node="a").add("scale", Scale, node="b")
+           .add("fast", FastScale, node="b")
+           .link("tick.out", "scale.x", policy="queue:64").link("scale.y", "fast.x").to_dot())
+    assert dot.startswith('digraph "drawn" {')
+    assert 'subgraph "cluster_a"' in dot
+    assert 'subgraph "cluster_b"' in dot
+    assert "tcp://10.0.0.7:7100" in dot
+    assert '"scale" [label="{{<i_x> x}|scale\\nScale|{<o_y> y}}"];' in dot
+    assert '"tick":"o_out" -> "scale":"i_x" [label="queue:64"];' in dot
+    assert '"scale":"o_y" -> "fast":"i_x";' in dot           # default policy: no label
+
+
+# -- every problem, with its place and its fix --------------------------------
+def test_unknown_class_import_error_and_not_a_module(tmp_path: Path) -> None:
+    problems = problems_of(tmp_path, """
+        [modules.a]
+        class = "examples.pipeline:Tickr"
+        [modules.b]
+        class = "no_such_pkg.mod:Thing"
+        [modules.c]
+        class = "parts_cfg:NotAModule"
+        [modules.d]
+        class = "examples.pipeline.Ticker"
+    """)
+    assert len(problems) == 4
+    only(problems, "sys.toml [modules.a]:", "has no class 'Tickr'", "did you mean 'Ticker'")
+    only(problems, "sys.toml [modules.b]:", "cannot import module 'no_such_pkg.mod'")
+    only(problems, "sys.toml [modules.c]:", "not a Module or Macro subclass",
+         "subclasses pb3a.Module")
+    only(problems, "sys.toml [modules.d]:", "use 'module:Class'", "'examples.pipeline:Ticker'")
+
+
+def test_unknown_ports_modules_and_malformed_endpoints(tmp_path: Path) -> None:
+    problems = problems_of(tmp_path, TWO + """
+        [[links]]
+        from = "src.outt"
+        to = "sink.x"
+        [[links]]
+        from = "snk.y"
+        to = "sink"
+        [[links]]
+        from = "src.out.x"
+    """)
+    assert len(problems) == 5
+    only(problems, "sys.toml [[links]] #1 (src.outt -> sink.x):", "module 'src' (parts_cfg:Src)",
+         "has no port 'outt'", "did you mean 'out'", "its ports: out (output)")
+    only(problems, "[[links]] #2 (snk.y -> sink):", "has no module 'snk'",
+         "did you mean 'sink'", "its modules: src, sink")
+    only(problems, "[[links]] #2 (snk.y -> sink):", "'to' must be \"module.port\"")
+    only(problems, "[[links]] #3 (src.out.x -> ?):", "'from' must be \"module.port\"")
+    only(problems, "[[links]] #3 (src.out.x -> ?):", "'to' is missing")
+
+
+def test_wrong_direction(tmp_path: Path) -> None:
+    problems = problems_of(tmp_path, TWO + """
+        [[links]]
+        from = "sink.x"
+        to = "src.out"
+    """)
+    assert len(problems) == 2
+    only(problems, "[[links]] #1 (sink.x -> src.out):", "'from' = 'sink.x' is an input",
+         "swap 'from' and 'to'")
+    only(problems, "[[links]] #1 (sink.x -> src.out):", "'to' = 'src.out' is an output")
+
+
+def test_an_input_fed_twice(tmp_path: Path) -> None:
+    problems = problems_of(tmp_path, TWO + """
+        [[links]]
+        from = "src.out"
+        to = "sink.x"
+        [[links]]
+        from = "sink.y"
+        to = "sink.x"
+    """)
+    assert problems == [
+        "sys.toml [[links]] #2 (sink.y -> sink.x): input sink.x is fed twice: it is already fed "
+        "by sys.toml [[links]] #1 (src.out -> sink.x); an input takes at most one link, so "
+        "remove one of them or feed another input"]
+
+
+def test_incompatible_types(tmp_path: Path) -> None:
+    problems = problems_of(tmp_path, """
+        [modules.w]
+        class = "parts_cfg:Words"
+        [modules.sink]
+        class = "parts_cfg:Sink"
+        [[links]]
+        from = "w.out"
+        to = "sink.x"
+    """)
+    assert len(problems) == 1
+    only(problems, "[[links]] #1 (w.out -> sink.x): incompatible types", "gives str",
+         "takes float", "change one port's type")
+
+
+def test_unknown_node(tmp_path: Path) -> None:
+    problems = problems_of(tmp_path, """
+        [nodes.a]
+        [nodes.b]
+        [modules.src]
+        class = "parts_cfg:Src"
+        node = "c"
+    """)
+    assert problems == ["sys.toml [modules.src]: unknown node 'c'; declared nodes: a, b "
+                        "(add [nodes.c] or use one of them)"]
+    problems = problems_of(tmp_path, TWO.replace('Src"', 'Src"\nnode = "a"'))
+    only(problems, "[modules.src]: unknown node 'a'", "declares no nodes", "add a [nodes.a]")
+
+
+def test_bad_policy(tmp_path: Path) -> None:
+    problems = problems_of(tmp_path, TWO + """
+        [[links]]
+        from = "src.out"
+        to = "sink.x"
+        policy = "queue:0"
+    """)
+    assert len(problems) == 1
+    only(problems, "[[links]] #1 (src.out -> sink.x): bad policy 'queue:0'",
+         "use 'latest', 'queue' or 'queue:N'")
+
+
+def test_unknown_macro(tmp_path: Path) -> None:
+    problems = problems_of(tmp_path, """
+        [macros.pair]
+        modules = { a = { class = "parts_cfg:Sink" } }
+        [modules.m]
+        macro = "piar"
+    """)
+    assert problems == ["sys.toml [modules.m]: unknown macro 'piar' (did you mean 'pair'?); "
+                        "defined macros: pair (define [macros.piar] or fix the name)"]
+
+
+def test_recursive_macros_and_export_cycles(tmp_path: Path) -> None:
+    problems = problems_of(tmp_path, """
+        [macros.ra]
+        modules = { inner = { macro = "rb" } }
+        exports = { x = "inner.x" }
+        [macros.rb]
+        modules = { inner = { macro = "ra" } }
+        exports = { x = "inner.x" }
+        [macros.self]
+        modules = { me = { macro = "self" } }
+        [modules.r]
+        macro = "ra"
+    """)
+    assert len(problems) == 3
+    only(problems, "sys.toml [macros.ra.exports.x]: export chain macro 'ra'.x -> macro 'rb'.x "
+         "-> macro 'ra'.x is a cycle", "must lead to a port of a module")
+    only(problems, "sys.toml [macros.rb.modules.inner]: recursive macro: macro 'ra' -> "
+         "macro 'rb' -> macro 'ra'", "cannot contain itself")
+    only(problems, "sys.toml [macros.self.modules.me]: recursive macro: macro 'self' -> "
+         "macro 'self'")
+
+
+def test_exports_naming_unknown_children_or_ports(tmp_path: Path) -> None:
+    problems = problems_of(tmp_path, """
+        [macros.f]
+        modules = { a = { class = "parts_cfg:Sink" } }
+        exports = { x = "a.x", y = "b.y", z = "a.q", w = "a" }
+        [modules.src]
+        class = "parts_cfg:Src"
+        [modules.m]
+        macro = "f"
+        [[links]]
+        from = "src.out"
+        to = "m.v"
+    """)
+    assert len(problems) == 4
+    only(problems, "[macros.f.exports.y]: macro 'f' has no module 'b'", "its modules: a")
+    only(problems, "[macros.f.exports.z]: module 'a' (parts_cfg:Sink) has no port 'q'")
+    only(problems, "[macros.f.exports.w]: the export must be \"module.port\"")
+    only(problems, "[[links]] #1 (src.out -> m.v): macro 'm' (macro 'f') exports no port 'v'",
+         "it exports: x, y, z, w", "add it to the macro's exports")
+
+
+def test_bad_period_restart_and_state(tmp_path: Path) -> None:
+    problems = problems_of(tmp_path, """
+        [modules.a]
+        class = "examples.pipeline:Scale"
+        period = "fast"
+        restart = "always"
+        state = { gian = 2.0 }
+        [modules.b]
+        class = "examples.pipeline:Ticker"
+        period = -1
+        state = 3
+        [modules.c]
+        class = "parts_cfg:Custom"
+        state = { anything = 1, whatever = 2 }
+    """)
+    assert len(problems) == 5
+    only(problems, "[modules.a]: period must be a non-negative number of seconds", "'fast'")
+    only(problems, "[modules.a]: restart must be one of 'never', 'fresh', 'last-state'",
+         "'always'")
+    only(problems, "[modules.a]: examples.pipeline:Scale has no state 'gian'",
+         "did you mean 'gain'", "its state is: gain")
+    only(problems, "[modules.b]: period must be a non-negative number", "got -1")
+    only(problems, "[modules.b]: state must be a table")
+
+
+def test_unknown_keys_everywhere(tmp_path: Path) -> None:
+    problems = problems_of(tmp_path, """
+        modulez = 1
+        [nodes.a]
+        adress = "tcp://x:1"
+        [macros.m]
+        modules = { s = { class = "parts_cfg:Sink" } }
+        export = { x = "s.x" }
+        [modules.src]
+        class = "parts_cfg:Src"
+        node = "a"
+        perod = 0.1
+        [modules.m]
+        macro = "m"
+        [[links]]
+        from = "src.out"
+        to = "m.x"
+        polcy = "latest"
+    """)
+    only(problems, "sys.toml: unknown top-level key 'modulez' (did you mean 'modules'?)",
+         "allowed keys: name, module_servers, nodes, modules, links, macros, workers")
+    only(problems, "[nodes.a]: unknown key 'adress' (did you mean 'address'?)")
+    only(problems, "[macros.m]: unknown key 'export' (did you mean 'exports'?)")
+    only(problems, "[modules.src]: unknown key 'perod' (did you mean 'period'?); allowed keys: "
+         "class, macro, node, period, state, restart, group")
+    only(problems, "[[links]] #1 (src.out -> m.x): unknown key 'polcy' (did you mean 'policy'?)")
+    only(problems, "[[links]] #1 (src.out -> m.x): macro 'm' (macro 'm') exports no port 'x'")
+    assert len(problems) == 6
+
+
+def test_bad_instance_names_and_class_macro_choice(tmp_path: Path) -> None:
+    problems = problems_of(tmp_path, """
+        [macros.pair]
+        modules = { a = { class = "parts_cfg:Sink" } }
+        [modules."my.tick"]
+        class = "parts_cfg:Src"
+        [modules."a b"]
+        class = "parts_cfg:Src"
+        [modules.both]
+        class = "parts_cfg:Src"
+        macro = "pair"
+        [modules.neither]
+        period = 1
+        [modules.m]
+        macro = "pair"
+        period = 1
+        state = { x = 1 }
+    """)
+    assert len(problems) == 6
+    only(problems, 'sys.toml [modules."my.tick"]: bad module instance name', "letters, digits")
+    only(problems, 'sys.toml [modules."a b"]: bad module instance name')
+    only(problems, "[modules.both]: give exactly one of 'class'", "it has both")
+    only(problems, "[modules.neither]: give exactly one of 'class'", "'macro' (the name of")
+    only(problems, "[modules.m]: 'period' applies to modules, not to a macro")
+    only(problems, "[modules.m]: 'state' applies to modules, not to a macro")
+
+
+def test_bad_workers_and_node_values(tmp_path: Path) -> None:
+    problems = problems_of(tmp_path, """
+        workers = 2
+        [nodes.a]
+        workers = -1
+        [nodes.b]
+        workers = "two"
+        [nodes."c.d"]
+        address = 7
+    """)
+    assert len(problems) == 5
+    only(problems, "[nodes.a]: workers must be a whole number >= 0", "got -1")
+    only(problems, "[nodes.b]: workers must be a whole number >= 0", "got 'two'")
+    only(problems, '[nodes."c.d"]: bad node name')
+    only(problems, '[nodes."c.d"]: address must be a string')
+    only(problems, "sys.toml: top-level workers = 2 is for the default node 'local'",
+         "set workers in their [nodes.NAME] tables")
+    bad = problems_of(tmp_path, "workers = true\n" + TWO)
+    assert bad == [("sys.toml: top-level workers must be a whole number >= 0 (0 = one process "
+                    "per module, N = pack the node's modules into N processes), got True")]
+
+
+def test_a_group_cannot_span_nodes(tmp_path: Path) -> None:
+    problems = problems_of(tmp_path, """
+        [nodes.a]
+        [nodes.b]
+        [modules.src]
+        class = "parts_cfg:Src"
+        group = "g"
+        node = "a"
+        [modules.sink]
+        class = "parts_cfg:Sink"
+        group = "g"
+        node = "b"
+    """)
+    assert len(problems) == 1
+    only(problems, "[modules.sink]: group 'g' would span nodes 'a' (src) and 'b' (sink)",
+         "give them the same node or different groups")
+
+
+def test_every_problem_is_reported_at_once(tmp_path: Path) -> None:
+    path = write(tmp_path, """
+        [modules.tick]
+        class = "examples.pipeline:Ticker"
+        perod = 0.1
+        [modules.scale]
+        class = "examples.pipeline:Scale"
+        node = "far"
+        [[links]]
+        from = "tick.out"
+        to = "scale.z"
+        policy = "lifo"
+    """, "pipeline.toml")
+    with pytest.raises(ConfigError) as caught:
+        build_plan(load_toml(path))
+    problems = caught.value.problems
+    assert len(problems) == 4
+    assert all(p.startswith(f"{path} [") for p in problems)
+    assert problems == validate(load_toml(path))
+    assert "4 problems" in str(caught.value)
+
+
+def test_python_systems_and_macros_name_themselves_in_problems() -> None:
+    import parts_cfg
+
+    system = (System("demo").add("t", "examples.pipeline:Tickr").add("b", parts_cfg.BadMacro)
+              .add("s", Scale, period=-2).link("t.out", "s.x"))
+    problems = system.check()
+    assert len(problems) == 4
+    only(problems, "system 'demo' [modules.t]: module 'examples.pipeline' has no class 'Tickr'")
+    only(problems, "system 'demo' [modules.s]: period must be a non-negative number")
+    only(problems, "macro parts_cfg:BadMacro [modules.s]: unknown key 'perod'")
+    only(problems, "macro parts_cfg:BadMacro [[links]] #1 (s.y -> s.nope): module 's' "
+         "(parts_cfg:Sink) has no port 'nope'")
+    with pytest.raises(ConfigError) as caught:
+        system.plan()
+    assert caught.value.problems == problems
+
+
+def test_a_file_that_is_not_toml(tmp_path: Path) -> None:
+    path = write(tmp_path, "[modules.tick\nclass = 1\n", "broken.toml")
+    with pytest.raises(ConfigError, match=r"broken\.toml: not valid TOML"):
+        load_toml(path)
+
+
+def test_structural_mistakes_in_the_file_are_reported(tmp_path: Path) -> None:
+    spec = load_toml(write(tmp_path, 'modules = 3\nlinks = "a.b"\nnodes = { a = 1 }\n'))
+    assert isinstance(spec, SystemSpec)
+    assert spec.name == "sys"
+    problems = validate(spec)
+    assert len(problems) == 3
+    only(problems, "sys.toml: 'modules' must be a table")
+    only(problems, "sys.toml [[links]]: must be an array of tables")
+    only(problems, "sys.toml [nodes.a]: must be a table")

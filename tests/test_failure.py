@@ -1,0 +1,161 @@
+"""Failure on one node: exceptions in bodies, killed workers, bounded shutdown, no leaks."""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import psutil
+import pytest
+from conftest import eventually
+from sample_modules import Faulty, FloatSource, Last, Scale, SlowTeardown, Steady
+
+from pb3a import System
+from pb3a.transport.shm import live_segments
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def test_exception_in_step_is_logged_counted_and_contained(caplog) -> None:
+    caplog.set_level(logging.ERROR, logger="pb3a.module")
+    system = System("faults")
+    system.add("faulty", Faulty)
+    system.add("src", FloatSource)
+    system.add("scale", Scale)
+    system.add("sink", Last)
+    system.link("src.out", "scale.x")
+    system.link("scale.y", "sink.x")
+    with system.launch() as run:
+        state = eventually(lambda: (s := run.state("faulty"))["good"] >= 10 and s, what="steps")
+        eventually(lambda: run.state("sink")["value"] == 2.0, what="others unaffected")
+        figures = eventually(lambda: (f := run.stats()["modules"]["faulty"])["errors"] >= 5 and f,
+                             what="errors counted")
+        eventually(lambda: "odd step" in caplog.text, what="the error in the log")
+    assert figures["last_error"] == "ValueError: odd step"
+    assert figures["status"] == "running"
+    assert state["calls"] >= state["good"] * 2 - 1
+    assert "'faulty'" in caplog.text and "step" in caplog.text
+
+
+def _kill_worker(run, name: str) -> int:
+    pid = eventually(lambda: run.stats()["modules"][name]["pid"], what="a worker pid")
+    os.kill(pid, signal.SIGKILL)
+    return pid
+
+
+def test_sigkill_with_restart_never_leaves_module_failed_and_others_running() -> None:
+    system = System("never")
+    system.add("victim", Steady, restart="never")
+    system.add("other", Steady)
+    with system.launch() as run:
+        eventually(lambda: run.state("victim")["count"] > 3, what="steps")
+        _kill_worker(run, "victim")
+        figures = eventually(lambda: (m := run.stats()["modules"])["victim"]["status"] == "failed"
+                             and m, what="failure detected")
+        before = run.state("other")["count"]
+        eventually(lambda: run.state("other")["count"] > before, what="the other module goes on")
+        assert any("victim" in f for f in run.stats()["failures"])
+    assert figures["victim"]["restarts"] == 0
+
+
+def test_sigkill_with_restart_fresh_starts_from_the_configured_state() -> None:
+    system = System("fresh")
+    system.add("victim", Steady, restart="fresh", state={"count": 1000})
+    with system.launch() as run:
+        eventually(lambda: run.state("victim")["count"] > 1020, what="steps")
+        old = _kill_worker(run, "victim")
+        figures = eventually(lambda: (m := run.stats()["modules"]["victim"])["restarts"] == 1
+                             and m["status"] == "running" and m, what="restart")
+        state = eventually(lambda: (s := run.state("victim"))["pid"] not in (0, old) and s,
+                           what="steps in the new process")
+    assert figures["pid"] != old
+    assert 1000 < state["count"] < 1020
+
+
+def test_sigkill_with_restart_last_state_resumes_from_a_checkpoint() -> None:
+    system = System("last")
+    system.add("victim", Steady, restart="last-state")
+    with system.launch(checkpoint_s=0.1) as run:
+        eventually(lambda: run.state("victim")["count"] > 40, what="steps and checkpoints")
+        old = _kill_worker(run, "victim")
+        eventually(lambda: run.stats()["modules"]["victim"]["restarts"] == 1, what="restart")
+        state = eventually(lambda: (s := run.state("victim"))["pid"] not in (0, old) and s,
+                           what="steps in the new process")
+    assert state["count"] > 30            # resumed from a checkpoint, not from 0
+
+
+def test_links_survive_a_restart_of_the_reading_worker() -> None:
+    system = System("relinked")
+    system.add("src", FloatSource, state={"value": 2.0})
+    system.add("sink", Last, restart="fresh")
+    system.link("src.out", "sink.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("sink")["value"] == 2.0, what="first value")
+        _kill_worker(run, "sink")
+        eventually(lambda: run.stats()["modules"]["sink"]["restarts"] == 1, what="restart")
+        eventually(lambda: run.state("sink")["value"] == 2.0, what="values after restart")
+
+
+def test_shutdown_is_bounded_even_when_teardown_hangs() -> None:
+    system = System("slow")
+    system.add("slow", SlowTeardown)
+    system.add("ok", Steady)
+    run = system.launch()
+    eventually(lambda: run.state("ok")["count"] > 2, what="steps")
+    started = time.monotonic()
+    run.close(timeout=3.0)
+    assert time.monotonic() - started < 10.0
+
+
+_CRASHING_LAUNCHER = textwrap.dedent("""
+    import sys, time
+    from pb3a import System, Module, Output, Input
+
+    class Tick(Module):
+        out = Output(int)
+        period = 0.01
+        n = 0
+        def step(self):
+            self.n += 1
+            self.out.write(self.n)
+
+    class Sink(Module):
+        x = Input(int)
+        def on_input(self, port):
+            port.read()
+
+    system = System("orphans")
+    system.add("tick", Tick)
+    system.add("sink", Sink)
+    system.link("tick.out", "sink.x")
+    run = system.launch()
+    pids = [m["pid"] for m in run.stats()["modules"].values()]
+    print(" ".join(map(str, pids)), flush=True)
+    time.sleep(120)
+""")
+
+
+def test_no_processes_or_segments_survive_a_killed_launcher(tmp_path: Path) -> None:
+    script = tmp_path / "launcher.py"
+    script.write_text(_CRASHING_LAUNCHER)
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+        pids = [int(p) for p in line.split()]
+        assert len(pids) == 2
+        assert live_segments(proc.pid)
+        proc.kill()
+        proc.wait(10)
+        eventually(lambda: not any(psutil.pid_exists(p) and psutil.Process(p).status() != "zombie"
+                                   for p in pids), timeout=15, what="workers to exit")
+        eventually(lambda: not live_segments(proc.pid), timeout=15, what="segments unlinked")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.stdout.close()
