@@ -23,7 +23,7 @@ def encode(value: Any) -> tuple[int, bytes, Any]:
         meta = f"{array.dtype.str};{','.join(map(str, array.shape))}".encode()
         return ARRAY, meta, array
     if type(value) is bytes:
-        return BYTES, b"", value
+        return BYTES, b"%d" % len(value), value
     return PICKLE, b"", pickle.dumps(value, protocol=5)
 
 
@@ -43,7 +43,7 @@ def decode_small(kind: int, meta: bytes, payload: memoryview) -> Any:
     if kind == PICKLE:
         return pickle.loads(payload)
     if kind == BYTES:
-        return bytes(payload)
+        return bytes(payload[:int(meta)])
     dtype, shape = array_meta(meta)
     array = np.frombuffer(payload, dtype=dtype).reshape(shape).copy()
     array.flags.writeable = False

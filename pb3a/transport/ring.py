@@ -12,14 +12,17 @@ writer stores the record, then the new ``head``; the reader loads ``head``,
 then the record. This is correct on x86-64 (TSO: stores are not reordered with
 stores, loads not with loads). Weaker memory models (ARM) would need fences,
 which CPython cannot issue; PB3A refuses to create rings there (see
-``ShmRing.create``). The sleep hand-shake (``waiting`` flag, then a doorbell)
-is a store-then-load on both sides, which TSO may reorder; a lost wake-up is
-therefore bounded by the reader's guard timeout rather than prevented.
+``ShmRing.create``). The sleep hand-shake is Dekker's: the
+reader stores ``waiting`` then loads ``head``; the writer stores ``head`` then
+loads ``waiting``. TSO may reorder a store with a later load, so both sides
+put a full fence between them (``_fence``: a lock acquire is a locked
+instruction), and a wake-up cannot be lost.
 """
 
 from __future__ import annotations
 
 import contextlib
+import pickle
 import platform
 import struct
 import threading
@@ -46,8 +49,13 @@ def _align(n: int, to: int = _ALIGN) -> int:
     return (n + to - 1) & ~(to - 1)
 
 
-class RingFull(Exception):
-    """The reader did not free space in time; the value was dropped."""
+_fence_lock = threading.Lock()
+
+
+def _fence() -> None:
+    """A full memory barrier: acquiring a lock executes a locked (fencing) instruction."""
+    _fence_lock.acquire()
+    _fence_lock.release()
 
 
 class ShmRing:
@@ -65,6 +73,7 @@ class ShmRing:
         self._leases: deque[list[int]] = deque()   # [start, end, released] per leased record
         self._lease_lock = threading.Lock()
         self.expected_seq = -1
+        self.attach_writer()
 
     # -- life cycle ---------------------------------------------------------
     @classmethod
@@ -102,15 +111,23 @@ class ShmRing:
             close_segment(self._seg)
 
     # -- writer -------------------------------------------------------------
+    # The writer keeps head, seq and the last tail it saw in local variables:
+    # after an idle millisecond every access to the shared segment costs
+    # microseconds (cold caches), so the hot path touches it four times.
+    def attach_writer(self) -> None:
+        """Become the link's (only) writer: continue from the counters in the segment."""
+        words = self._words
+        self._head, self._seq, self._tail = words[_W_HEAD], words[_W_SEQ], words[_W_TAIL]
+
     def write(self, value: Any, timeout: float = 0.1) -> bool:
         """Append one value; waits up to ``timeout`` for space, then drops it.
 
         Returns False when dropped. The sequence number advances either way, so
         the reader sees the gap and counts the drop.
         """
-        words = self._words
-        seq = words[_W_SEQ]
-        words[_W_SEQ] = seq + 1
+        seq = self._seq
+        self._seq = seq + 1
+        self._words[_W_SEQ] = seq + 1
         kind, meta, payload = codec.encode(value)
         size = codec.payload_size(kind, payload)
         body = _align(_REC.size + len(meta), _ALIGN if kind == codec.ARRAY else 8)
@@ -120,48 +137,60 @@ class ShmRing:
             raise ValueError(
                 f"a value of {size} bytes does not fit this link's {cap}-byte ring; "
                 "declare shape= and dtype= on the ports, or raise ring_bytes")
-        head = words[_W_HEAD]
+        head = self._head
         offset = head % cap
         pad = cap - offset if offset + length > cap else 0
-        if head + pad + length - words[_W_TAIL] > cap and not self._wait_space(
-                head + pad + length - cap, timeout):
-            return False
+        end = head + pad + length
+        if end - self._tail > cap:
+            self._tail = self._words[_W_TAIL]
+            if end - self._tail > cap and not self._wait_space(end - cap, timeout):
+                return False
         data = self._data
         if pad:
             _REC.pack_into(data, offset, pad, codec.PAD, 0, 0, 0.0)
             offset = 0
-        _REC.pack_into(data, offset, length, kind, len(meta), seq, time.monotonic())
-        if meta:
-            data[offset + _REC.size:offset + _REC.size + len(meta)] = meta
-        start = offset + body
+        header = _REC.pack(length, kind, len(meta), seq, time.monotonic())
+        record = header + meta
         if kind == codec.ARRAY:
-            target = np.ndarray(payload.shape, payload.dtype, buffer=data, offset=start)
+            data[offset:offset + len(record)] = record
+            target = np.ndarray(payload.shape, payload.dtype, buffer=data, offset=offset + body)
             np.copyto(target, payload)
             del target
+        elif len(record) == body and size <= 4096:     # one copy into the segment
+            data[offset:offset + body + size] = record + payload
         else:
-            data[start:start + size] = payload
-        words[_W_HEAD] = head + pad + length          # publish: after the record (TSO)
+            data[offset:offset + len(record)] = record
+            data[offset + body:offset + body + size] = payload
+        self._head = end
+        self._words[_W_HEAD] = end          # publish: after the record (TSO)
         return True
 
     def _wait_space(self, needed_tail: int, timeout: float) -> bool:
         deadline = time.monotonic() + timeout
         pause = 20e-6
-        while self._words[_W_TAIL] < needed_tail:
+        while (tail := self._words[_W_TAIL]) < needed_tail:
             if time.monotonic() >= deadline:
                 return False
             time.sleep(pause)
             pause = min(pause * 2, 1e-3)
+        self._tail = tail
         return True
 
     @property
     def reader_waiting(self) -> bool:
-        """True when the reader announced it is going to sleep (ring the doorbell)."""
+        """True when the reader announced it is going to sleep (ring the doorbell).
+
+        Call after ``write``: the fence orders the head store before this load.
+        """
+        _fence()
         return self._words[_W_WAITING] != 0
 
     # -- reader -------------------------------------------------------------
     def set_waiting(self, flag: bool) -> None:
         """Reader: announce sleep (True) before the last check of ``has_data``."""
         self._words[_W_WAITING] = 1 if flag else 0
+        if flag:
+            _fence()     # the waiting store must be visible before we load head
 
     def has_data(self) -> bool:
         return self._words[_W_HEAD] != self._rpos
@@ -173,32 +202,36 @@ class ShmRing:
         """
         words, data, cap = self._words, self._data, self.capacity
         head = words[_W_HEAD]
-        rpos = self._rpos
+        rpos = start = self._rpos
         count = gaps = 0
+        unpack = _REC.unpack_from
         while rpos != head and count < limit:
             offset = rpos % cap
-            length, kind, meta_len, seq, sent_at = _REC.unpack_from(data, offset)
-            start = rpos
+            length, kind, meta_len, seq, sent_at = unpack(data, offset)
+            begin = rpos
             rpos += length
             if kind == codec.PAD:
                 continue
-            meta = bytes(data[offset + _REC.size:offset + _REC.size + meta_len])
-            body = _align(_REC.size + meta_len, _ALIGN if kind == codec.ARRAY else 8)
-            payload = data[offset + body:offset + length]
-            if kind == codec.ARRAY and length - body >= ZERO_COPY_MIN:
-                value = self._lease_view(meta, payload, start, rpos)
+            if kind == codec.PICKLE and not meta_len:
+                value = pickle.loads(data[offset + _REC.size:offset + length])
             else:
-                value = codec.decode_small(kind, meta, payload)
-            if self.expected_seq >= 0 and seq > self.expected_seq:
+                meta = bytes(data[offset + _REC.size:offset + _REC.size + meta_len])
+                body = _align(_REC.size + meta_len, _ALIGN if kind == codec.ARRAY else 8)
+                payload = data[offset + body:offset + length]
+                if kind == codec.ARRAY and length - body >= ZERO_COPY_MIN:
+                    value = self._lease_view(meta, payload, begin, rpos)
+                else:
+                    value = codec.decode_small(kind, meta, payload)
+            if seq != self.expected_seq and self.expected_seq >= 0:
                 gaps += seq - self.expected_seq
             self.expected_seq = seq + 1
             count += 1
             self._rpos = rpos
-            words[_W_RPOS] = rpos
             deliver(value, seq, sent_at)
         self._rpos = rpos
-        words[_W_RPOS] = rpos
-        self._release()
+        if rpos != start:
+            words[_W_RPOS] = rpos
+            self._release()
         return count, gaps
 
     def _lease_view(self, meta: bytes, payload: memoryview, start: int, end: int) -> np.ndarray:

@@ -1,0 +1,73 @@
+"""``pb3a run`` as a user runs it: a live table, a bounded run, a clean stop on SIGTERM."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import psutil
+import pytest
+from conftest import eventually
+
+from pb3a.transport.shm import live_segments
+
+REPO = Path(__file__).resolve().parent.parent
+PIPELINE = REPO / "examples" / "pipeline.toml"
+
+pytestmark = pytest.mark.timeout(90)
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
+    return env
+
+
+def _workers_of(launcher: psutil.Process) -> list[int]:
+    """Worker processes are the children of the launcher's forkserver."""
+    return [child.pid for server in launcher.children()
+            if "forkserver" in " ".join(server.cmdline()) for child in server.children()]
+
+
+def test_run_for_seconds_shows_the_table_and_stops_cleanly(tmp_path: Path) -> None:
+    done = subprocess.run([sys.executable, "-m", "pb3a", "run", str(PIPELINE), "--for", "2"],
+                          cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=60,
+                          check=False)
+    assert done.returncode == 0, done.stderr
+    out = done.stdout
+    assert "tick" in out and "scale" in out and "tick.out -> scale.x" in out
+    assert "stopped cleanly" in out
+
+
+def test_sigterm_stops_everything_and_leaves_nothing_behind(tmp_path: Path) -> None:
+    proc = subprocess.Popen([sys.executable, "-m", "pb3a", "run", str(PIPELINE)], cwd=tmp_path,
+                            env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert "running" in proc.stdout.readline()
+        launcher = psutil.Process(proc.pid)
+        workers = eventually(lambda: _workers_of(launcher), what="worker processes")
+        assert live_segments(proc.pid)
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    assert "stopped cleanly" in out
+    assert not live_segments(proc.pid)
+    assert not [p for p in workers if psutil.pid_exists(p)
+                and psutil.Process(p).status() != psutil.STATUS_ZOMBIE]
+
+
+def test_run_reports_an_invalid_file_and_starts_nothing(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text('name = "bad"\n[modules.x]\nclass = "examples.pipeline:Nope"\n')
+    done = subprocess.run([sys.executable, "-m", "pb3a", "run", str(bad), "--for", "1"],
+                          cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=60,
+                          check=False)
+    assert done.returncode == 1
+    assert "Nope" in done.stdout + done.stderr

@@ -1,0 +1,151 @@
+"""Ports and modules without a runtime: types, policies, counters, state reflection."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pb3a import Input, Module, Output
+from pb3a.kernel.ports import Policy
+
+
+class Sensor(Module):
+    ranges = Output(np.ndarray, shape=(16,), dtype="float32")
+    label = Output(str)
+    anything = Output(object)
+
+
+class Reader(Module):
+    latest = Input(float)
+    queued = Input(int, policy="queue:3")
+    gain = 2.0
+    history: list = []
+    _private = 5
+
+    def helper(self) -> int:
+        return 1
+
+
+class Child(Reader):
+    extra = Input(float)
+    offset = 1
+
+
+def test_write_type_checks_in_the_writer_and_sends_nothing_on_error() -> None:
+    sensor = Sensor()
+    seen: list = []
+    sensor.label.connect("probe", seen.append)
+    with pytest.raises(TypeError, match="label.*str.*int"):
+        sensor.label.write(3)
+    assert seen == [] and sensor.label.written == 0
+    sensor.label.write("ok")
+    assert seen == ["ok"]
+
+
+def test_write_checks_array_shape_and_dtype() -> None:
+    sensor = Sensor()
+    sensor.ranges.write(np.zeros(16, dtype="float32"))
+    with pytest.raises(TypeError, match="shape"):
+        sensor.ranges.write(np.zeros(8, dtype="float32"))
+    with pytest.raises(TypeError, match="dtype"):
+        sensor.ranges.write(np.zeros(16, dtype="float64"))
+    with pytest.raises(TypeError, match="ndarray"):
+        sensor.ranges.write([0.0] * 16)
+    sensor.anything.write({"any": "thing"})
+
+
+def test_shape_and_dtype_only_for_arrays() -> None:
+    with pytest.raises(TypeError, match="np.ndarray"):
+        Output(float, shape=(3,))
+    with pytest.raises(TypeError, match="class"):
+        Input("float")
+
+
+def test_compatibility_follows_subclasses() -> None:
+    class Base:
+        pass
+
+    class Derived(Base):
+        pass
+
+    assert Input(Base).accepts(Output(Derived)) is None
+    assert Input(object).accepts(Output(str)) is None
+    assert "not" in Input(Derived).accepts(Output(Base))
+    assert Input(str).accepts(Output(float)) is not None
+
+
+def test_latest_policy_keeps_the_newest_value() -> None:
+    port = Reader().latest
+    assert not port.has_value and port.pending == 0
+    with pytest.raises(LookupError, match="has no value"):
+        port.read()
+    assert port.read(default=None) is None
+    for value in (1.0, 2.0, 3.0):
+        port.deliver(value)
+    assert port.pending == 1 and port.read() == 3.0
+    assert port.pending == 0 and port.has_value and port.read() == 3.0
+    assert port.received == 3 and port.drops == 0
+
+
+def test_queue_policy_keeps_order_and_counts_overflow() -> None:
+    port = Reader().queued
+    for value in range(5):
+        port.deliver(value)
+    assert port.pending == 3 and port.drops == 2
+    assert [port.read(), port.read(), port.read()] == [2, 3, 4]
+    assert not port.has_value
+
+
+def test_one_event_per_queued_value_and_one_per_latest_change() -> None:
+    reader = Reader()
+    for value in range(5):
+        reader.queued.deliver(value)
+    events = 0
+    while reader.queued.take_event():
+        events += 1
+    assert events == 3                  # the two dropped values get no call
+    for value in (1.0, 2.0):
+        reader.latest.deliver(value)
+    assert reader.latest.take_event() and not reader.latest.take_event()
+
+
+def test_policies_parse_and_reject_bad_text() -> None:
+    assert Policy.parse("latest") == Policy("latest", 1)
+    assert Policy.parse("queue:16") == Policy("queue", 16)
+    assert str(Policy.parse("queue")) == "queue:64"
+    for bad in ("queue:0", "queue:-1", "fifo", "queue:x", 3):
+        with pytest.raises(ValueError, match="latest"):
+            Policy.parse(bad)
+
+
+def test_state_is_reflected_from_public_attributes() -> None:
+    reader = Child()
+    state = reader.get_state()
+    assert state == {"gain": 2.0, "history": [], "offset": 1}
+    reader.note = "instance attributes count too"
+    assert reader.get_state()["note"] == "instance attributes count too"
+    reader.set_state({"gain": 4.0, "offset": 2})
+    assert reader.gain == 4.0 and reader.offset == 2
+    with pytest.raises(KeyError, match="gian.*its state is"):
+        reader.set_state({"gian": 1.0})
+
+
+def test_mutable_defaults_are_not_shared_between_instances() -> None:
+    a, b = Reader(), Reader()
+    a.history.append(1)
+    assert b.history == [] and Reader.history == []
+
+
+def test_ports_are_collected_through_inheritance_and_cannot_be_assigned() -> None:
+    assert set(Child.inputs) == {"latest", "queued", "extra"}
+    assert set(Sensor.outputs) == {"ranges", "label", "anything"}
+    with pytest.raises(AttributeError, match="cannot be assigned"):
+        Child().latest = 3.0
+
+
+def test_event_driven_is_detected_from_on_input() -> None:
+    class Driven(Module):
+        def on_input(self, port) -> None:
+            pass
+
+    assert Driven.is_event_driven() and not Reader.is_event_driven()

@@ -1,0 +1,111 @@
+"""ShmRing on its own: wrap-around, gaps, zero-copy leases, limits, ownership."""
+
+from __future__ import annotations
+
+import gc
+
+import numpy as np
+import pytest
+
+from pb3a.transport.ring import ShmRing
+from pb3a.transport.shm import live_segments, segment_name
+
+
+@pytest.fixture
+def ring():
+    owner = ShmRing.create(segment_name("ring"), 64 * 1024)
+    reader = ShmRing.attach(owner.name)
+    writer = ShmRing.attach(owner.name)
+    yield owner, writer, reader
+    reader.close()
+    writer.close()
+    owner.close()
+
+
+def _drain(reader: ShmRing) -> tuple[list, int]:
+    got: list = []
+    total_gaps = 0
+    while True:
+        count, gaps = reader.drain(lambda value, seq, sent_at: got.append(value))
+        total_gaps += gaps
+        if not count:
+            return got, total_gaps
+
+
+def test_values_wrap_around_in_order(ring) -> None:
+    _, writer, reader = ring
+    expected = []
+    for i in range(5000):                       # many times the ring's capacity
+        value = ("x" * (i % 300), i) if i % 7 else b"raw bytes %d" % i
+        assert writer.write(value, timeout=0.0) or _drain(reader)
+        expected.append(value)
+        if i % 50 == 0:
+            got, gaps = _drain(reader)
+            assert gaps == 0
+            assert got == expected
+            expected.clear()
+    got, gaps = _drain(reader)
+    assert got == expected and gaps == 0
+
+
+def test_a_full_ring_drops_the_value_and_the_reader_counts_the_gap(ring) -> None:
+    _, writer, reader = ring
+    sent = 0
+    while writer.write(sent, timeout=0.0):
+        sent += 1
+    assert not writer.write("dropped", timeout=0.0)
+    got, _ = _drain(reader)
+    assert got == list(range(sent))
+    assert writer.write("after", timeout=0.0)
+    got, gaps = _drain(reader)
+    assert got == ["after"] and gaps == 2        # the failed probe and "dropped"
+
+
+def test_large_arrays_are_zero_copy_views_held_until_released() -> None:
+    owner = ShmRing.create(segment_name("ring"), 4 << 20)
+    reader, writer = ShmRing.attach(owner.name), ShmRing.attach(owner.name)
+    try:
+        array = np.arange(1 << 17, dtype=np.float64)           # 1 MiB
+        views = []
+        while writer.write(array, timeout=0.0):
+            pass
+        reader.drain(lambda value, seq, sent_at: views.append(value))
+        assert len(views) >= 3
+        assert not views[0].flags.writeable and not views[0].flags.owndata
+        assert all(np.array_equal(v, array) for v in views)
+        assert not writer.write(array, timeout=0.0)             # views still hold the space
+        views.clear()
+        gc.collect()
+        assert writer.write(array, timeout=0.0)                 # released
+    finally:
+        views = None
+        gc.collect()
+        reader.close()
+        writer.close()
+        owner.close()
+
+
+def test_oversized_value_names_the_fix(ring) -> None:
+    _, writer, _ = ring
+    with pytest.raises(ValueError, match="shape= and dtype="):
+        writer.write(np.zeros(1 << 20))
+
+
+def test_attach_refuses_a_segment_that_is_not_a_ring() -> None:
+    from pb3a.transport.shm import create_segment, unlink_segment
+    segment = create_segment(segment_name("other"), 4096)
+    try:
+        with pytest.raises(ValueError, match="not a PB3A ring"):
+            ShmRing.attach(segment.name.lstrip("/"))
+    finally:
+        unlink_segment(segment)
+
+
+def test_owner_unlinks_and_readers_only_detach() -> None:
+    owner = ShmRing.create(segment_name("ring"), 4096)
+    name = owner.name
+    reader = ShmRing.attach(name)
+    reader.close()
+    assert name in live_segments()
+    owner.close()
+    assert name not in live_segments()
