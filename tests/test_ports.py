@@ -35,7 +35,7 @@ def test_write_type_checks_in_the_writer_and_sends_nothing_on_error() -> None:
     sensor = Sensor()
     seen: list = []
     sensor.label.connect("probe", seen.append)
-    with pytest.raises(TypeError, match="label.*str.*int"):
+    with pytest.raises(TypeError, match=r"label.*str.*int"):
         sensor.label.write(3)
     assert seen == [] and sensor.label.written == 0
     sensor.label.write("ok")
@@ -55,7 +55,7 @@ def test_write_checks_array_shape_and_dtype() -> None:
 
 
 def test_shape_and_dtype_only_for_arrays() -> None:
-    with pytest.raises(TypeError, match="np.ndarray"):
+    with pytest.raises(TypeError, match=r"np\.ndarray"):
         Output(float, shape=(3,))
     with pytest.raises(TypeError, match="class"):
         Input("float")
@@ -126,7 +126,7 @@ def test_state_is_reflected_from_public_attributes() -> None:
     assert reader.get_state()["note"] == "instance attributes count too"
     reader.set_state({"gain": 4.0, "offset": 2})
     assert reader.gain == 4.0 and reader.offset == 2
-    with pytest.raises(KeyError, match="gian.*its state is"):
+    with pytest.raises(KeyError, match=r"gian.*its state is"):
         reader.set_state({"gian": 1.0})
 
 
