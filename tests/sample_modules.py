@@ -211,3 +211,41 @@ class SlowTeardown(Module):
 
     def teardown(self) -> None:
         time.sleep(60)
+
+
+class CollectorV2(Collector):
+    """Collector with another body, for swaps in the middle of a stream."""
+
+    swapped_in = 0
+
+    def setup(self) -> None:
+        self.swapped_in += 1
+
+
+class Overlap(Module):
+    """Both threaded and event-driven; counts any overlap of its two bodies."""
+
+    x = Input(int, policy="queue:100000")
+    period = 0.0
+    busy = False
+    overlaps = 0
+    steps = 0
+    events = 0
+
+    def step(self) -> None:
+        self._enter()
+        self.steps += 1
+        time.sleep(0.0002)
+        self.busy = False
+
+    def on_input(self, port) -> None:
+        self._enter()
+        port.read()
+        self.events += 1
+        time.sleep(0.0001)
+        self.busy = False
+
+    def _enter(self) -> None:
+        if self.busy:
+            self.overlaps += 1
+        self.busy = True

@@ -10,6 +10,7 @@ from sample_modules import (
     Burst,
     Chain,
     Collector,
+    CollectorV2,
     Counter,
     Doubler,
     FastScale,
@@ -17,6 +18,7 @@ from sample_modules import (
     Last,
     Offset,
     Outer,
+    Overlap,
     Pid,
     Scale,
 )
@@ -217,3 +219,30 @@ def test_an_agent_adapts_another_module_through_its_runtime() -> None:
     with system.launch() as run:
         eventually(lambda: run.state("scale")["gain"] == 16.0, what="gain doubled 3 times")
         eventually(lambda: run.state("sink")["value"] == 24.0, what="the new gain in effect")
+
+
+def test_swap_in_the_middle_of_a_stream_keeps_order_and_loses_nothing() -> None:
+    n = 30_000
+    system = System("swap-stream")
+    system.add("src", Burst, state={"limit": n})
+    system.add("dst", Collector, state={"delay": 0.00002})
+    system.link("src.out", "dst.x", policy=f"queue:{n}")
+    with system.launch() as run:
+        eventually(lambda: run.state("dst")["received"] >= 1000, what="some values")
+        kept = run.swap("dst", CollectorV2)
+        assert {"received", "last"} <= set(kept)
+        state = eventually(lambda: (s := run.state("dst"))["received"] == n and s, timeout=60,
+                           what="every value")
+    assert state["swapped_in"] == 1 and state["last"] == n
+    assert state["out_of_order"] == 0 and state["duplicates"] == 0
+
+
+def test_step_and_on_input_of_one_module_never_overlap() -> None:
+    system = System("exclusive")
+    system.add("src", Burst, state={"limit": 3000})
+    system.add("both", Overlap)
+    system.link("src.out", "both.x")
+    with system.launch() as run:
+        state = eventually(lambda: (s := run.state("both"))["events"] >= 100
+                           and s["steps"] >= 100 and s, timeout=30, what="steps and events")
+    assert state["overlaps"] == 0

@@ -92,7 +92,7 @@ class ModuleActor:
     # -- life cycle --------------------------------------------------------
     def start(self) -> None:
         """Run ``setup``, then start stepping (threaded) and dispatching (event-driven)."""
-        self.call(self.module.setup)
+        self.call("setup")
         self.running = True
         self._stop.clear()
         if self.period is not None:
@@ -116,7 +116,7 @@ class ModuleActor:
             self._thread = None
         if self.lock.acquire(timeout=timeout):
             self.lock.release()
-            self.call(self.module.teardown)
+            self.call("teardown")
         else:
             finished = False
         return finished
@@ -124,27 +124,30 @@ class ModuleActor:
     def _loop(self) -> None:
         period = self.period or 0.0
         while not self._stop.is_set():
-            if self.call(self.module.step):
+            if self.call("step"):
                 self.steps += 1
             if period:
                 self._stop.wait(period)
 
     # -- calls under the lock ---------------------------------------------
-    def call(self, fn: Callable[..., Any], *args: Any) -> bool:
-        """Call a module hook under the module lock; log and count what it raises."""
+    def call(self, hook: str, *args: Any) -> bool:
+        """Call a module hook by name under the module lock; log and count what it raises.
+
+        The hook is looked up after the lock is taken, so a call that waited for a
+        swap runs on the new instance.
+        """
         with self.lock:
             start = time.thread_time()
             try:
-                fn(*args)
+                getattr(self.module, hook)(*args)
                 return True
             except Exception as exc:
                 self.errors += 1
                 self.last_error = f"{type(exc).__name__}: {exc}"
-                where = getattr(fn, "__name__", str(fn))
                 if self.on_error is not None:
-                    self.on_error(self, where, traceback.format_exc())
+                    self.on_error(self, hook, traceback.format_exc())
                 else:
-                    log.error("module %r raised in %s:\n%s", self.name, where,
+                    log.error("module %r raised in %s:\n%s", self.name, hook,
                               traceback.format_exc())
                 return False
             finally:
@@ -167,7 +170,7 @@ class ModuleActor:
                     self._scheduled = False
                     return
                 port = self._pending.popleft()
-            if port.take_event() and self.call(self.module.on_input, port):
+            if port.take_event() and self.call("on_input", port):
                 self.events += 1
         self._pool.submit(self._dispatch)   # more to do: let other modules have a turn
 
@@ -207,7 +210,7 @@ class ModuleActor:
             kept = {k: v for k, v in state.items() if k in accepted}
             new.set_state(kept)
             self.module = new
-        self.call(new.setup)
+        self.call("setup")
         return sorted(kept)
 
     def statistics(self) -> dict[str, Any]:

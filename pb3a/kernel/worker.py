@@ -28,7 +28,7 @@ from pb3a.transport.ring import ShmRing
 
 log = logging.getLogger("pb3a.worker")
 
-GUARD_TIMEOUT = 0.05     # longest sleep of the receiver: bounds a lost wake-up (see ring.py)
+GUARD_TIMEOUT = 0.5      # longest sleep of the receiver (a guard; wake-ups are not lost)
 WRITE_TIMEOUT = 0.1      # how long a writer waits for ring space before dropping
 ERROR_REPORT_S = 1.0     # a module's exceptions are reported at most this often (all counted)
 
