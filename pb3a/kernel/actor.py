@@ -55,7 +55,8 @@ class EventPool:
 class ModuleActor:
     """Runs one module: its lock, its step thread, its event dispatch and counters."""
 
-    def __init__(self, name: str, module: Module, pool: EventPool, period: float | None,
+    def __init__(self, name: str, module: Module, schedule: Callable[[Callable[[], None]], None],
+                 period: float | None,
                  ports: dict[str, InputPort | OutputPort] | None = None,
                  on_error: Callable[[ModuleActor, str, str], None] | None = None) -> None:
         self.name = name
@@ -67,7 +68,7 @@ class ModuleActor:
         self.cpu = 0.0
         self.last_error = ""
         self.running = False
-        self._pool = pool
+        self._schedule = schedule     # runs a dispatch task: the event pool, or inline
         self._pending: deque[InputPort] = deque()
         self._scheduled = False
         self._sched_lock = threading.Lock()
@@ -78,6 +79,7 @@ class ModuleActor:
         else:
             module._pb3a_adopt_ports(ports)
         self.ports = ports
+        self._event_driven = type(module).is_event_driven()
         for port in self.inputs.values():
             port._notify = self._on_port_event
 
@@ -103,7 +105,7 @@ class ModuleActor:
             kick = bool(self._pending) and not self._scheduled
             self._scheduled = self._scheduled or kick
         if kick:
-            self._pool.submit(self._dispatch)
+            self._schedule(self._dispatch)
 
     def stop(self, timeout: float = 5.0) -> bool:
         """Stop stepping and dispatching, then run ``teardown``. False if a body overran."""
@@ -154,14 +156,14 @@ class ModuleActor:
                 self.cpu += time.thread_time() - start
 
     def _on_port_event(self, port: InputPort) -> None:
-        if not type(self.module).is_event_driven():
+        if not self._event_driven:
             return
         with self._sched_lock:
             self._pending.append(port)
             if self._scheduled or not self.running:
                 return
             self._scheduled = True
-        self._pool.submit(self._dispatch)
+        self._schedule(self._dispatch)
 
     def _dispatch(self) -> None:
         for _ in range(_EVENT_BUDGET):
@@ -172,7 +174,7 @@ class ModuleActor:
                 port = self._pending.popleft()
             if port.take_event() and self.call("on_input", port):
                 self.events += 1
-        self._pool.submit(self._dispatch)   # more to do: let other modules have a turn
+        self._schedule(self._dispatch)   # more to do: let other modules have a turn
 
     # -- state and swap ----------------------------------------------------
     def capture(self) -> dict[str, Any]:
@@ -210,6 +212,7 @@ class ModuleActor:
             kept = {k: v for k, v in state.items() if k in accepted}
             new.set_state(kept)
             self.module = new
+            self._event_driven = type(new).is_event_driven()
         self.call("setup")
         return sorted(kept)
 

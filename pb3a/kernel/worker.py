@@ -15,7 +15,7 @@ import os
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cloudpickle
 
@@ -25,6 +25,9 @@ from pb3a.kernel.ports import InputPort, Policy
 from pb3a.transport.codec import local_copy
 from pb3a.transport.doorbell import BellPull, Doorbell
 from pb3a.transport.ring import ShmRing
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
 
 log = logging.getLogger("pb3a.worker")
 
@@ -90,6 +93,7 @@ class Worker:
         self._requests: dict[int, tuple[threading.Event, list[Any]]] = {}
         self._paused: set[str] = set()
         self._error_times: dict[str, tuple[float, int]] = {}
+        self._ready: list[Callable[[], None]] = []
         self._request_ids = itertools.count()
         self._closing = threading.Event()
         self._checkpoint_s = checkpoint_s
@@ -154,7 +158,7 @@ class Worker:
         self._give_runtime(name, module)
         if state:
             module.set_state(state)
-        actor = ModuleActor(name, module, self.pool, period, on_error=self._report_error)
+        actor = ModuleActor(name, module, self._schedule, period, on_error=self._report_error)
         for port_name, policy in policies.items():
             actor.inputs[port_name].set_policy(Policy.parse(policy))
         for port_name, values in (queued or {}).items():
@@ -287,11 +291,34 @@ class Worker:
     def bell_self(self) -> None:
         self._wake.ring()
 
+    def _schedule(self, task: Callable[[], None]) -> None:
+        """Run a module's event dispatch: inline on the receiver when it is alone here.
+
+        A worker hosting a single module saves the hand-off to a pool thread (tens
+        of microseconds after an idle period); with several modules the pool runs
+        them in parallel, so one slow handler does not delay another's delivery.
+        """
+        if threading.current_thread() is self._threads[0] and len(self.actors) == 1:
+            self._ready.append(task)
+        else:
+            self.pool.submit(task)
+
+    def _run_ready(self) -> None:
+        tasks, self._ready = self._ready, []
+        for task in tasks:
+            if task.__self__.lock.locked():      # type: ignore[attr-defined]
+                self.pool.submit(task)           # busy stepping: do not block the receiver
+            else:
+                task()
+
     def _receive(self) -> None:
         while not self._closing.is_set():
             try:
                 links = list(self.inbound.values())
-                if sum(link.drain() for link in links):
+                count = sum(link.drain() for link in links)
+                if self._ready:
+                    self._run_ready()
+                if count or self._ready:          # more to deliver or to dispatch
                     continue
                 ready = [link.set_waiting(True) for link in links]
                 if not any(ready):
