@@ -149,3 +149,16 @@ def test_event_driven_is_detected_from_on_input() -> None:
             pass
 
     assert Driven.is_event_driven() and not Reader.is_event_driven()
+
+
+def test_changing_the_policy_carries_held_values_over() -> None:
+    port = Reader().queued
+    for value in (1, 2, 3):
+        port.deliver(value)
+    port.set_policy(Policy.parse("queue:2"))
+    assert port.pending == 2 and port.drops == 1
+    port.set_policy(Policy.parse("latest"))
+    assert port.pending == 1 and port.read() == 3
+    port.deliver(4)
+    port.set_policy(Policy.parse("queue:8"))
+    assert port.read() == 4 and not port.has_value

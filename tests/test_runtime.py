@@ -246,3 +246,20 @@ def test_step_and_on_input_of_one_module_never_overlap() -> None:
         state = eventually(lambda: (s := run.state("both"))["events"] >= 100
                            and s["steps"] >= 100 and s, timeout=30, what="steps and events")
     assert state["overlaps"] == 0
+
+
+def test_relink_may_change_the_input_policy() -> None:
+    system = System("policy")
+    system.add("src", Counter, state={"limit": 0}, period=0.001)
+    system.add("dst", Collector)
+    system.link("src.out", "dst.x", policy="queue:1000")
+    with system.launch() as run:
+        eventually(lambda: run.state("dst")["received"] > 10, what="values")
+        run.relink("src.out", "dst.x", policy="latest")
+        link = run.stats()["links"]["src.out->dst.x"]
+        assert link["policy"] == "latest"
+        figures = eventually(lambda: (m := run.stats()["modules"]["dst"])["inputs"]["x"]
+                             ["policy"] == "latest" and m, what="the new policy in the worker")
+        before = run.state("dst")["received"]
+        eventually(lambda: run.state("dst")["received"] > before, what="values after relink")
+    assert figures["errors"] == 0

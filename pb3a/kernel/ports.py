@@ -256,24 +256,24 @@ class InputPort:
         idle = now - self._last_arrival
         return min(self.rate, 1.0 / idle) if idle > _RATE_WINDOW else self.rate
 
-    def snapshot(self) -> list[Any]:
-        """Values held and unread, oldest first, for state capture."""
-        with self._lock:
-            if self.policy.kind == "queue":
-                return list(self._values)
-            return [self._latest] if self._latest is not _MISSING else []
-
-    def restore(self, values: list[Any]) -> None:
-        """Put back values from ``snapshot()`` (after a swap or a restart)."""
-        with self._lock:
-            if self.policy.kind == "queue":
-                self._values.extend(values[-self.policy.size:])
-            elif values:
-                self._latest = values[-1]
-
     def set_policy(self, policy: Policy) -> None:
-        """Change the policy (a link may override the declared one) before values flow."""
-        self.policy = policy
+        """Change the policy (a link may override the declared one); held values carry over."""
+        with self._lock:
+            if policy.kind == self.policy.kind:
+                while len(self._values) > policy.size:
+                    self._values.popleft()
+                    self.drops += 1
+            elif policy.kind == "latest":              # queue -> latest: keep the newest
+                if self._values:
+                    self._latest, self._fresh = self._values[-1], True
+                self._values.clear()
+            elif self._fresh:                           # latest -> queue: the unread value
+                self._values.append(self._latest)
+            self._undispatched = min(self._undispatched, self._pending_for(policy))
+            self.policy = policy
+
+    def _pending_for(self, policy: Policy) -> int:
+        return len(self._values) if policy.kind == "queue" else int(self._fresh)
 
 
 class OutputPort:

@@ -152,17 +152,12 @@ class Worker:
         return os.getpid()
 
     def op_add(self, name: str, cls: bytes, period: float | None, restart: str,
-               state: dict[str, Any], policies: dict[str, str],
-               queued: dict[str, list[Any]] | None = None) -> None:
+               state: dict[str, Any]) -> None:
         module = cloudpickle.loads(cls)()
         self._give_runtime(name, module)
         if state:
             module.set_state(state)
         actor = ModuleActor(name, module, self._schedule, period, on_error=self._report_error)
-        for port_name, policy in policies.items():
-            actor.inputs[port_name].set_policy(Policy.parse(policy))
-        for port_name, values in (queued or {}).items():
-            actor.inputs[port_name].restore(values)
         self.actors[name] = actor
         self.restart_policy[name] = restart
 
@@ -190,10 +185,12 @@ class Worker:
             actor.stop(timeout=1.0)
         self.restart_policy.pop(name, None)
 
-    def op_link_in(self, key: str, dst: str, dst_port: str, ring: str) -> None:
+    def op_link_in(self, key: str, dst: str, dst_port: str, ring: str, policy: str) -> None:
+        port = self.actors[dst].inputs[dst_port]
+        port.set_policy(Policy.parse(policy))
         shm_ring = ShmRing.attach(ring)
         shm_ring.resume_reader()   # a restarted reader continues where the last one stopped
-        self.inbound[key] = _Inbound(shm_ring, self.actors[dst].inputs[dst_port])
+        self.inbound[key] = _Inbound(shm_ring, port)
         self.bell_self()
 
     def op_unlink_in(self, key: str) -> int:
@@ -202,10 +199,11 @@ class Worker:
 
     def op_link_out(self, key: str, src: str, src_port: str, ring: str | None = None,
                     bell: str | None = None, dst: str | None = None,
-                    dst_port: str | None = None) -> None:
+                    dst_port: str | None = None, policy: str | None = None) -> None:
         port = self.actors[src].outputs[src_port]
         if ring is None:                                 # both ends in this process
             target = self.actors[dst].inputs[dst_port]   # type: ignore[index]
+            target.set_policy(Policy.parse(policy))      # type: ignore[arg-type]
 
             def sink(value: Any, target: InputPort = target) -> None:
                 target.deliver(local_copy(value), time.monotonic())

@@ -170,23 +170,19 @@ class Executor:
                 f"worker {key!r} did not answer {op!r} within {timeout} s") from None
 
     # -- modules and links ---------------------------------------------------
-    def add_module(self, spec: FlatModule, *, state: dict[str, Any] | None = None,
-                   queued: dict[str, list[Any]] | None = None) -> None:
+    def add_module(self, spec: FlatModule, *, state: dict[str, Any] | None = None) -> None:
         """Instantiate a module in its worker (not started yet)."""
         key = self.place(spec)
         handle = self.ensure_worker(key)
         record = ModuleRecord(spec, key, cloudpickle.dumps(spec.cls))
         self.modules[spec.name] = record
         handle.modules.append(spec.name)
-        self._instantiate(record, spec.state if state is None else state, queued)
+        self._instantiate(record, spec.state if state is None else state)
 
-    def _instantiate(self, record: ModuleRecord, state: dict[str, Any],
-                     queued: dict[str, list[Any]] | None = None) -> None:
+    def _instantiate(self, record: ModuleRecord, state: dict[str, Any]) -> None:
         spec = record.spec
-        policies = {link.dst_port: str(link.policy) for link in self.links.values()
-                    if link.dst == spec.name}
         self.call(record.worker, "add", name=spec.name, cls=record.blob, period=spec.period,
-                  restart=spec.restart, state=state, policies=policies, queued=queued)
+                  restart=spec.restart, state=state)
 
     def start_modules(self, names: list[str]) -> None:
         """Run ``setup`` and start the modules, in order."""
@@ -211,14 +207,14 @@ class Executor:
             ring = ShmRing.create(segment_name("ring"), _ring_bytes(src.spec.cls, link.src_port))
             self.rings[link.key] = ring
         self.call(dst.worker, "link_in", key=link.key, dst=link.dst, dst_port=link.dst_port,
-                  ring=ring.name)
+                  ring=ring.name, policy=str(link.policy))
 
     def attach_writer(self, link: FlatLink) -> None:
         """The writing side: connect the output to the ring, or straight to the input."""
         src, dst = self.modules[link.src], self.modules[link.dst]
         if src.worker == dst.worker:
             self.call(src.worker, "link_out", key=link.key, src=link.src, src_port=link.src_port,
-                      dst=link.dst, dst_port=link.dst_port)
+                      dst=link.dst, dst_port=link.dst_port, policy=str(link.policy))
         else:
             self.call(src.worker, "link_out", key=link.key, src=link.src, src_port=link.src_port,
                       ring=self.rings[link.key].name, bell=self.workers[dst.worker].bell)

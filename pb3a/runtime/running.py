@@ -53,8 +53,6 @@ class Running:
         try:
             with self._lock:
                 for spec in self.plan.modules.values():
-                    ex.links.update({link.key: link for link in self.plan.links
-                                     if link.dst == spec.name})
                     ex.add_module(spec)
                 for link in self.plan.links:
                     ex.connect(link)
