@@ -34,7 +34,7 @@ class Child(Reader):
 def test_write_type_checks_in_the_writer_and_sends_nothing_on_error() -> None:
     sensor = Sensor()
     seen: list = []
-    sensor.label.connect("probe", seen.append)
+    sensor.label.connect("probe", seen.extend)
     with pytest.raises(TypeError, match=r"label.*str.*int"):
         sensor.label.write(3)
     assert seen == [] and sensor.label.written == 0
@@ -162,3 +162,23 @@ def test_changing_the_policy_carries_held_values_over() -> None:
     port.deliver(4)
     port.set_policy(Policy.parse("queue:8"))
     assert port.read() == 4 and not port.has_value
+
+
+def test_write_many_checks_every_value_before_sending_any() -> None:
+    sensor = Sensor()
+    seen: list = []
+    sensor.label.connect("probe", seen.extend)
+    with pytest.raises(TypeError, match="label"):
+        sensor.label.write_many(["a", "b", 3])
+    assert seen == [] and sensor.label.written == 0
+    sensor.label.write_many(iter(["a", "b"]))
+    assert seen == ["a", "b"] and sensor.label.written == 2
+
+
+def test_deliver_many_applies_the_policy_once_per_batch() -> None:
+    reader = Reader()
+    reader.queued.deliver_many(list(range(10)), sent_at=None)
+    assert reader.queued.read_all() == [7, 8, 9] and reader.queued.drops == 7
+    assert reader.queued.take_events(10) == 3
+    reader.latest.deliver_many([1.0, 2.0, 3.0])
+    assert reader.latest.read() == 3.0 and reader.latest.take_events(10) == 1

@@ -26,9 +26,10 @@ def _drain(reader: ShmRing) -> tuple[list, int]:
     got: list = []
     total_gaps = 0
     while True:
-        count, gaps = reader.drain(lambda value, seq, sent_at: got.append(value))
+        values, _, gaps = reader.drain()
+        got += values
         total_gaps += gaps
-        if not count:
+        if not values:
             return got, total_gaps
 
 
@@ -66,10 +67,9 @@ def test_large_arrays_are_zero_copy_views_held_until_released() -> None:
     reader, writer = ShmRing.attach(owner.name), ShmRing.attach(owner.name)
     try:
         array = np.arange(1 << 17, dtype=np.float64)           # 1 MiB
-        views = []
         while writer.write(array, timeout=0.0):
             pass
-        reader.drain(lambda value, seq, sent_at: views.append(value))
+        views, _, _ = reader.drain()
         assert len(views) >= 3
         assert not views[0].flags.writeable and not views[0].flags.owndata
         assert all(np.array_equal(v, array) for v in views)
@@ -109,3 +109,17 @@ def test_owner_unlinks_and_readers_only_detach() -> None:
     assert name in live_segments()
     owner.close()
     assert name not in live_segments()
+
+
+def test_write_many_publishes_in_order_and_counts_what_did_not_fit(ring) -> None:
+    _, writer, reader = ring
+    assert writer.write_many(list(range(100))) == 100
+    got, gaps = _drain(reader)
+    assert got == list(range(100)) and gaps == 0
+    fitted = writer.write_many(list(range(5000)), timeout=0.0)
+    assert 0 < fitted < 5000
+    got, gaps = _drain(reader)
+    assert got == list(range(fitted))
+    writer.write("next")
+    got, gaps = _drain(reader)
+    assert got == ["next"] and gaps == 5000 - fitted

@@ -55,7 +55,8 @@ def test_modules_run_in_either_execution_mode(workers: int) -> None:
 def test_values_flow_through_threaded_and_event_driven_modules(workers: int) -> None:
     with pipeline(workers).launch() as run:
         eventually(lambda: run.state("sink")["value"] == 3.0, what="1.5 * 2 at the sink")
-        stats = run.stats()
+        stats = eventually(lambda: (s := run.stats())["links"]["scale.y->sink.x"]["values"] >= 5
+                           and s, what="a few values")
     assert stats["modules"]["src"]["steps"] > 0
     assert stats["modules"]["scale"]["events"] > 0
     link = stats["links"]["scale.y->sink.x"]

@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("pb3a.module")
 
-_EVENT_BUDGET = 64   # events handled per pool task before yielding to other modules
+_EVENT_BUDGET = 256  # events handled per dispatch task before yielding to other modules
 
 
 class EventPool:
@@ -138,42 +138,58 @@ class ModuleActor:
         The hook is looked up after the lock is taken, so a call that waited for a
         swap runs on the new instance.
         """
+        return self.call_many(hook, 1, *args) == 1
+
+    def call_many(self, hook: str, times: int, *args: Any) -> int:
+        """Call a hook ``times`` times under one hold of the lock; returns the calls that
+        returned normally. Taking the lock (and the CPU clock) once per batch is what
+        lets a busy input run at hundreds of thousands of values per second."""
+        done = 0
         with self.lock:
             start = time.thread_time()
-            try:
-                getattr(self.module, hook)(*args)
-                return True
-            except Exception as exc:
-                self.errors += 1
-                self.last_error = f"{type(exc).__name__}: {exc}"
-                if self.on_error is not None:
-                    self.on_error(self, hook, traceback.format_exc())
-                else:
-                    log.error("module %r raised in %s:\n%s", self.name, hook,
-                              traceback.format_exc())
-                return False
-            finally:
-                self.cpu += time.thread_time() - start
+            fn = getattr(self.module, hook)
+            for _ in range(times):
+                try:
+                    fn(*args)
+                    done += 1
+                except Exception as exc:
+                    self.errors += 1
+                    self.last_error = f"{type(exc).__name__}: {exc}"
+                    if self.on_error is not None:
+                        self.on_error(self, hook, traceback.format_exc())
+                    else:
+                        log.error("module %r raised in %s:\n%s", self.name, hook,
+                                  traceback.format_exc())
+            self.cpu += time.thread_time() - start
+        return done
 
     def _on_port_event(self, port: InputPort) -> None:
         if not self._event_driven:
             return
         with self._sched_lock:
-            self._pending.append(port)
+            if port not in self._pending:
+                self._pending.append(port)
             if self._scheduled or not self.running:
                 return
             self._scheduled = True
         self._schedule(self._dispatch)
 
     def _dispatch(self) -> None:
-        for _ in range(_EVENT_BUDGET):
+        budget = _EVENT_BUDGET
+        while budget > 0:
             with self._sched_lock:
                 if not self._pending or not self.running:
                     self._scheduled = False
                     return
                 port = self._pending.popleft()
-            if port.take_event() and self.call("on_input", port):
-                self.events += 1
+            claimed = port.take_events(budget)
+            budget -= claimed
+            if claimed:
+                self.events += self.call_many("on_input", claimed, port)
+            if port.owes_calls:
+                with self._sched_lock:
+                    if port not in self._pending:
+                        self._pending.append(port)
         self._schedule(self._dispatch)   # more to do: let other modules have a turn
 
     # -- state and swap ----------------------------------------------------

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
+    from collections.abc import Callable, Iterable, Sequence
 
 _MISSING: Any = object()
 
@@ -207,30 +207,38 @@ class InputPort:
     # -- the runtime's side ------------------------------------------------
     def deliver(self, value: Any, sent_at: float | None = None) -> None:
         """Accept one value from the link (or a test). Thread-safe."""
+        self.deliver_many((value,), sent_at)
+
+    def deliver_many(self, values: Sequence[Any], sent_at: float | None = None) -> None:
+        """Accept values in link order; ``sent_at`` is when the newest was written."""
+        count = len(values)
         now = time.monotonic()
         with self._lock:
-            self.received += 1
+            self.received += count
             if sent_at is not None:
                 lat = max(0.0, now - sent_at)
                 self.latency = lat if math.isnan(self.latency) else 0.9 * self.latency + 0.1 * lat
             # rate: values counted over windows of at least _RATE_WINDOW seconds
             if math.isnan(self._window_start):
-                self._window_start = now
-            elif now - self._window_start >= _RATE_WINDOW:
-                self.rate = (self._window_count + 1) / (now - self._window_start)
-                self._window_start, self._window_count = now, -1
-            self._window_count += 1
+                self._window_start = now          # the first arrival opens the window
+            else:
+                self._window_count += count
+            if now - self._window_start >= _RATE_WINDOW:
+                self.rate = self._window_count / (now - self._window_start)
+                self._window_start, self._window_count = now, 0
             self._last_arrival = now
             if self.policy.kind == "queue":
-                if len(self._values) >= self.policy.size:
-                    self._values.popleft()
-                    self.drops += 1
-                    self._undispatched = min(self._undispatched, len(self._values))
-                self._values.append(value)
-                self._undispatched += 1
+                held = self._values
+                held.extend(values)
+                overflow = len(held) - self.policy.size
+                if overflow > 0:
+                    for _ in range(overflow):
+                        held.popleft()
+                    self.drops += overflow
+                self._undispatched = min(self._undispatched + count, len(held))
                 notify = True
             else:
-                self._latest = value
+                self._latest = values[-1]
                 self._fresh = True
                 # One undispatched call is enough: it will read the newest value.
                 notify = self._undispatched == 0
@@ -238,13 +246,21 @@ class InputPort:
         if notify and self._notify is not None:
             self._notify(self)
 
+    def take_events(self, most: int) -> int:
+        """Claim up to ``most`` ``on_input`` calls for this port; returns how many."""
+        with self._lock:
+            claimed = min(most, self._undispatched)
+            self._undispatched -= claimed
+            return claimed
+
+    @property
+    def owes_calls(self) -> bool:
+        """True while values are waiting for their ``on_input`` call."""
+        return self._undispatched > 0
+
     def take_event(self) -> bool:
         """Claim one ``on_input`` call for this port; False if nothing is left to dispatch."""
-        with self._lock:
-            if self._undispatched <= 0:
-                return False
-            self._undispatched -= 1
-            return True
+        return self.take_events(1) == 1
 
     def current_rate(self) -> float:
         """Values per second over the last window; decays once values stop arriving."""
@@ -277,30 +293,48 @@ class InputPort:
 
 
 class OutputPort:
-    """An output bound to one module instance. ``write`` checks the type, then fans out."""
+    """An output bound to one module instance. ``write`` checks the type, then fans out.
+
+    A link's sink receives a sequence of values: one for ``write``, all of them
+    for ``write_many``, which saves the per-value cost of the transport.
+    """
 
     def __init__(self, spec: Output, owner: str = "") -> None:
         self.spec = spec
         self.name = spec.name
         self.owner = owner
         self.written = 0
-        self._sinks: dict[str, Callable[[Any], None]] = {}
+        self._sinks: dict[str, Callable[[Sequence[Any]], None]] = {}
         self._lock = threading.Lock()
 
     def write(self, value: Any) -> None:
         """Send ``value`` on every link; TypeError (and nothing sent) if it does not fit."""
         self.spec.check(value)
+        batch = (value,)
         with self._lock:
             self.written += 1
             for sink in self._sinks.values():
-                sink(value)
+                sink(batch)
 
-    def connect(self, key: str, sink: Callable[[Any], None]) -> None:
-        """Add a link: ``sink(value)`` is called on every write, in write order."""
+    def write_many(self, values: Iterable[Any]) -> None:
+        """Send values in order, as repeated ``write`` would, but faster; all are checked first."""
+        batch = list(values)
+        check = self.spec.check
+        for value in batch:
+            check(value)
+        if not batch:
+            return
+        with self._lock:
+            self.written += len(batch)
+            for sink in self._sinks.values():
+                sink(batch)
+
+    def connect(self, key: str, sink: Callable[[Sequence[Any]], None]) -> None:
+        """Add a link: ``sink(values)`` is called on every write, in write order."""
         with self._lock:
             self._sinks[key] = sink
 
-    def disconnect(self, key: str) -> Callable[[Any], None] | None:
+    def disconnect(self, key: str) -> Callable[[Sequence[Any]], None] | None:
         """Remove a link; returns its sink, or None if there was none."""
         with self._lock:
             return self._sinks.pop(key, None)

@@ -27,7 +27,7 @@ from pb3a.transport.doorbell import BellPull, Doorbell
 from pb3a.transport.ring import ShmRing
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
+    from collections.abc import Callable, Sequence
 
 log = logging.getLogger("pb3a.worker")
 
@@ -49,13 +49,12 @@ class _Inbound:
         with self.lock:
             if self.closed:
                 return 0
-            count, gaps = self.ring.drain(self._deliver)
+            values, sent_at, gaps = self.ring.drain()
         if gaps:
             self.port.drops += gaps
-        return count
-
-    def _deliver(self, value: Any, seq: int, sent_at: float) -> None:
-        self.port.deliver(value, sent_at)
+        if values:
+            self.port.deliver_many(values, sent_at)
+        return len(values)
 
     def set_waiting(self, flag: bool) -> bool:
         """Announce (or end) the reader's sleep; True if data is already there."""
@@ -205,14 +204,15 @@ class Worker:
             target = self.actors[dst].inputs[dst_port]   # type: ignore[index]
             target.set_policy(Policy.parse(policy))      # type: ignore[arg-type]
 
-            def sink(value: Any, target: InputPort = target) -> None:
-                target.deliver(local_copy(value), time.monotonic())
+            def sink(values: Sequence[Any], target: InputPort = target) -> None:
+                target.deliver_many([local_copy(v) for v in values], time.monotonic())
             self.outbound[key] = (src, src_port, None, None)
         else:
             shm_ring, pull = ShmRing.attach(ring), BellPull(bell)   # type: ignore[arg-type]
 
-            def sink(value: Any, shm_ring: ShmRing = shm_ring, pull: BellPull = pull) -> None:
-                shm_ring.write(value, WRITE_TIMEOUT)
+            def sink(values: Sequence[Any], shm_ring: ShmRing = shm_ring,
+                     pull: BellPull = pull) -> None:
+                shm_ring.write_many(values, WRITE_TIMEOUT)
                 if shm_ring.reader_waiting:
                     pull.ring()
             self.outbound[key] = (src, src_port, shm_ring, pull)

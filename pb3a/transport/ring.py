@@ -29,12 +29,15 @@ import threading
 import time
 import weakref
 from collections import deque
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from pb3a.transport import codec
 from pb3a.transport.shm import attach_segment, close_segment, create_segment, unlink_segment
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
 
 _MAGIC = 0x50423341_52494E47  # "PB3ARING"
 _DATA = 512                      # header size; data starts here (page offset 512: 64-aligned)
@@ -125,45 +128,60 @@ class ShmRing:
         Returns False when dropped. The sequence number advances either way, so
         the reader sees the gap and counts the drop.
         """
+        return self.write_many((value,), timeout) == 1
+
+    def write_many(self, values: Sequence[Any], timeout: float = 0.1) -> int:
+        """Append values in order and publish them at once; returns how many fit."""
+        words, data, cap = self._words, self._data, self.capacity
         seq = self._seq
-        self._seq = seq + 1
-        self._words[_W_SEQ] = seq + 1
-        kind, meta, payload = codec.encode(value)
-        size = codec.payload_size(kind, payload)
-        body = _align(_REC.size + len(meta), _ALIGN if kind == codec.ARRAY else 8)
-        length = _align(body + size)
-        cap = self.capacity
-        if length > cap:
-            raise ValueError(
-                f"a value of {size} bytes does not fit this link's {cap}-byte ring; "
-                "declare shape= and dtype= on the ports, or raise ring_bytes")
+        self._seq = seq + len(values)
+        words[_W_SEQ] = self._seq
         head = self._head
-        offset = head % cap
-        pad = cap - offset if offset + length > cap else 0
-        end = head + pad + length
-        if end - self._tail > cap:
-            self._tail = self._words[_W_TAIL]
-            if end - self._tail > cap and not self._wait_space(end - cap, timeout):
-                return False
-        data = self._data
-        if pad:
-            _REC.pack_into(data, offset, pad, codec.PAD, 0, 0, 0.0)
-            offset = 0
-        header = _REC.pack(length, kind, len(meta), seq, time.monotonic())
-        record = header + meta
-        if kind == codec.ARRAY:
-            data[offset:offset + len(record)] = record
-            target = np.ndarray(payload.shape, payload.dtype, buffer=data, offset=offset + body)
-            np.copyto(target, payload)
-            del target
-        elif len(record) == body and size <= 4096:     # one copy into the segment
-            data[offset:offset + body + size] = record + payload
-        else:
-            data[offset:offset + len(record)] = record
-            data[offset + body:offset + body + size] = payload
-        self._head = end
-        self._words[_W_HEAD] = end          # publish: after the record (TSO)
-        return True
+        written = 0
+        for value in values:
+            kind, meta, payload = codec.encode(value)
+            size = codec.payload_size(kind, payload)
+            body = _align(_REC.size + len(meta), _ALIGN if kind == codec.ARRAY else 8)
+            length = _align(body + size)
+            if length > cap:
+                raise ValueError(
+                    f"a value of {size} bytes does not fit this link's {cap}-byte ring; "
+                    "declare shape= and dtype= on the ports, or raise ring_bytes")
+            offset = head % cap
+            pad = cap - offset if offset + length > cap else 0
+            end = head + pad + length
+            if end - self._tail > cap:
+                self._tail = words[_W_TAIL]
+                if end - self._tail > cap:
+                    self._publish(head)          # let the reader see what is there
+                    if not self._wait_space(end - cap, timeout):
+                        seq += 1
+                        continue                 # dropped: the reader sees the gap
+            if pad:
+                _REC.pack_into(data, offset, pad, codec.PAD, 0, 0, 0.0)
+                offset = 0
+            record = _REC.pack(length, kind, len(meta), seq, time.monotonic()) + meta
+            if kind == codec.ARRAY:
+                data[offset:offset + len(record)] = record
+                target = np.ndarray(payload.shape, payload.dtype, buffer=data,
+                                    offset=offset + body)
+                np.copyto(target, payload)
+                del target
+            elif len(record) == body and size <= 4096:     # one copy into the segment
+                data[offset:offset + body + size] = record + payload
+            else:
+                data[offset:offset + len(record)] = record
+                data[offset + body:offset + body + size] = payload
+            head = end
+            seq += 1
+            written += 1
+        self._publish(head)
+        return written
+
+    def _publish(self, head: int) -> None:
+        if head != self._head:
+            self._head = head
+            self._words[_W_HEAD] = head          # after the records (TSO: store order)
 
     def _wait_space(self, needed_tail: int, timeout: float) -> bool:
         deadline = time.monotonic() + timeout
@@ -195,17 +213,22 @@ class ShmRing:
     def has_data(self) -> bool:
         return self._words[_W_HEAD] != self._rpos
 
-    def drain(self, deliver: Any, limit: int = 1024) -> tuple[int, int]:
-        """Decode up to ``limit`` records and call ``deliver(value, seq, sent_at)``.
+    def drain(self, limit: int = 1024) -> tuple[list[Any], float, int]:
+        """Decode up to ``limit`` values.
 
-        Returns ``(delivered, gaps)``: gaps are values the writer dropped.
+        Returns ``(values, sent_at, gaps)``: ``sent_at`` is when the newest value
+        was written (monotonic clock), ``gaps`` how many values the writer dropped.
         """
         words, data, cap = self._words, self._data, self.capacity
         head = words[_W_HEAD]
         rpos = start = self._rpos
-        count = gaps = 0
+        values: list[Any] = []
+        append = values.append
+        gaps = 0
+        sent_at = 0.0
+        expected = self.expected_seq
         unpack = _REC.unpack_from
-        while rpos != head and count < limit:
+        while rpos != head and len(values) < limit:
             offset = rpos % cap
             length, kind, meta_len, seq, sent_at = unpack(data, offset)
             begin = rpos
@@ -213,26 +236,24 @@ class ShmRing:
             if kind == codec.PAD:
                 continue
             if kind == codec.PICKLE and not meta_len:
-                value = pickle.loads(data[offset + _REC.size:offset + length])
+                append(pickle.loads(data[offset + _REC.size:offset + length]))
             else:
                 meta = bytes(data[offset + _REC.size:offset + _REC.size + meta_len])
                 body = _align(_REC.size + meta_len, _ALIGN if kind == codec.ARRAY else 8)
                 payload = data[offset + body:offset + length]
                 if kind == codec.ARRAY and length - body >= ZERO_COPY_MIN:
-                    value = self._lease_view(meta, payload, begin, rpos)
+                    append(self._lease_view(meta, payload, begin, rpos))
                 else:
-                    value = codec.decode_small(kind, meta, payload)
-            if seq != self.expected_seq and self.expected_seq >= 0:
-                gaps += seq - self.expected_seq
-            self.expected_seq = seq + 1
-            count += 1
-            self._rpos = rpos
-            deliver(value, seq, sent_at)
+                    append(codec.decode_small(kind, meta, payload))
+            if seq != expected and expected >= 0:
+                gaps += seq - expected
+            expected = seq + 1
+        self.expected_seq = expected
         self._rpos = rpos
         if rpos != start:
             words[_W_RPOS] = rpos
             self._release()
-        return count, gaps
+        return values, sent_at, gaps
 
     def _lease_view(self, meta: bytes, payload: memoryview, start: int, end: int) -> np.ndarray:
         dtype, shape = codec.array_meta(meta)
