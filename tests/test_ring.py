@@ -123,3 +123,17 @@ def test_write_many_publishes_in_order_and_counts_what_did_not_fit(ring) -> None
     writer.write("next")
     got, gaps = _drain(reader)
     assert got == ["next"] and gaps == 5000 - fitted
+
+
+def test_scalars_keep_their_exact_type_and_value(ring) -> None:
+    _, writer, reader = ring
+    values = [0, -1, 2**63 - 1, -(2**63), 2**63, 10**30, True, False, 1.5, -0.0,
+              float("inf"), 3 + 4j, None, "text"]
+    assert writer.write_many(values) == len(values)
+    got, gaps = _drain(reader)
+    assert gaps == 0
+    assert [type(v) for v in got] == [type(v) for v in values]
+    assert got == values
+    writer.write(float("nan"))
+    (nan,), _ = _drain(reader)
+    assert nan != nan

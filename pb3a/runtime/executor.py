@@ -44,6 +44,7 @@ REQUEST_TIMEOUT = 10.0
 RESTART_INTENSITY = (5, 30.0)   # at most 5 restarts of one worker in 30 s (Erlang's MaxR/MaxT)
 SMALL_RING = 1 << 20
 LARGE_RING = 16 << 20
+ARRAYS_PER_RING = 8      # a link of pinned arrays holds this many in flight (8 MiB: stays in L3)
 
 _context = multiprocessing.get_context("forkserver")
 _context.set_forkserver_preload(["pb3a.kernel.worker", "numpy", "cloudpickle"])
@@ -421,11 +422,11 @@ def _start_without_main(process: Any) -> None:
 
 
 def _ring_bytes(cls: type, port: str) -> int:
-    """Ring size for a link: room for 8 values of a pinned array, else a default."""
+    """Ring size for a link: room for ARRAYS_PER_RING pinned arrays, else a default."""
     spec = cls.outputs[port]
     if spec.shape is not None and spec.dtype is not None:
         item = int(np.prod(spec.shape)) * spec.dtype.itemsize + 128
-        return max(SMALL_RING, 8 * item)
+        return max(SMALL_RING, ARRAYS_PER_RING * item)
     if issubclass(spec.type, np.ndarray) or spec.type is object:
         return LARGE_RING
     return SMALL_RING

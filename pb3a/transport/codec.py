@@ -1,7 +1,8 @@
 """How a value becomes bytes in a ring record, and back.
 
 numpy arrays travel as raw bytes plus dtype and shape, so a reader can map
-them without unpickling; ``bytes`` travel raw; everything else is pickled
+them without unpickling; ``bytes`` travel raw; ``int`` (64-bit) and ``float``
+are packed into the record header by the ring itself; everything else is pickled
 (protocol 5). Local rings live in segments only this user can open, so
 pickling is safe here; remote links authenticate before they decode.
 """
@@ -13,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-PAD, PICKLE, ARRAY, BYTES = 0, 1, 2, 3
+PAD, PICKLE, ARRAY, BYTES, INT, FLOAT = 0, 1, 2, 3, 4, 5
 
 
 def encode(value: Any) -> tuple[int, bytes, Any]:

@@ -44,6 +44,11 @@ _DATA = 512                      # header size; data starts here (page offset 51
 # word indexes (offset / 8) of the header fields, one cache line each
 _W_MAGIC, _W_CAP, _W_HEAD, _W_TAIL, _W_RPOS, _W_SEQ, _W_WAITING = 0, 1, 8, 16, 24, 32, 40
 _REC = struct.Struct("<IHHQd")   # length, kind, meta length, seq, sent_at (monotonic)
+_REC_INT = struct.Struct("<IHHQdq")     # a record holding an int64 right after the header
+_REC_FLOAT = struct.Struct("<IHHQdd")   # ... or a float64
+_F64 = struct.Struct("<d")
+_SCALARS = {int: codec.INT, float: codec.FLOAT}
+_I64_MIN, _I64_MAX = -(1 << 63), (1 << 63) - 1
 ZERO_COPY_MIN = 64 * 1024        # arrays at least this large are read as views
 _ALIGN = 64
 
@@ -76,6 +81,7 @@ class ShmRing:
         self._leases: deque[list[int]] = deque()   # [start, end, released] per leased record
         self._lease_lock = threading.Lock()
         self.expected_seq = -1
+        self._closed = False
         self.attach_writer()
 
     # -- life cycle ---------------------------------------------------------
@@ -105,6 +111,7 @@ class ShmRing:
 
     def close(self) -> None:
         """Drop this process's mapping (the owner also unlinks the segment)."""
+        self._closed = True
         for view in (self._words, self._data):
             with contextlib.suppress(BufferError):   # array views still alive
                 view.release()
@@ -137,12 +144,38 @@ class ShmRing:
         self._seq = seq + len(values)
         words[_W_SEQ] = self._seq
         head = self._head
+        now = time.monotonic()                 # one write time for the whole batch
         written = 0
         for value in values:
-            kind, meta, payload = codec.encode(value)
-            size = codec.payload_size(kind, payload)
+            kind = _SCALARS.get(type(value))
+            if kind is not None and (kind == codec.FLOAT or _I64_MIN <= value <= _I64_MAX):
+                offset = head % cap             # ints and floats: one record of 64 bytes
+                pad = cap - offset if offset + _ALIGN > cap else 0
+                end = head + pad + _ALIGN
+                if end - self._tail > cap:
+                    self._tail = words[_W_TAIL]
+                    if end - self._tail > cap:
+                        self._publish(head)
+                        if not self._wait_space(end - cap, timeout):
+                            seq += 1
+                            continue
+                if pad:
+                    _REC.pack_into(data, offset, pad, codec.PAD, 0, 0, 0.0)
+                    offset = 0
+                (_REC_INT if kind == codec.INT else _REC_FLOAT).pack_into(
+                    data, offset, _ALIGN, kind, 0, seq, now, value)
+                head = end
+                seq += 1
+                written += 1
+                continue
+            if type(value) is np.ndarray or type(value) is bytes:
+                kind, meta, payload = codec.encode(value)
+                size = codec.payload_size(kind, payload)
+            else:
+                kind, meta, payload = codec.PICKLE, b"", pickle.dumps(value, 5)
+                size = len(payload)
             body = _align(_REC.size + len(meta), _ALIGN if kind == codec.ARRAY else 8)
-            length = _align(body + size)
+            length = (body + size + _ALIGN - 1) & ~(_ALIGN - 1)
             if length > cap:
                 raise ValueError(
                     f"a value of {size} bytes does not fit this link's {cap}-byte ring; "
@@ -160,7 +193,7 @@ class ShmRing:
             if pad:
                 _REC.pack_into(data, offset, pad, codec.PAD, 0, 0, 0.0)
                 offset = 0
-            record = _REC.pack(length, kind, len(meta), seq, time.monotonic()) + meta
+            record = _REC.pack(length, kind, len(meta), seq, now) + meta
             if kind == codec.ARRAY:
                 data[offset:offset + len(record)] = record
                 target = np.ndarray(payload.shape, payload.dtype, buffer=data,
@@ -227,15 +260,19 @@ class ShmRing:
         gaps = 0
         sent_at = 0.0
         expected = self.expected_seq
-        unpack = _REC.unpack_from
+        unpack = _REC_INT.unpack_from
         while rpos != head and len(values) < limit:
             offset = rpos % cap
-            length, kind, meta_len, seq, sent_at = unpack(data, offset)
+            length, kind, meta_len, seq, sent_at, number = unpack(data, offset)
             begin = rpos
             rpos += length
-            if kind == codec.PAD:
+            if kind == codec.INT:
+                append(number)
+            elif kind == codec.FLOAT:
+                append(_F64.unpack_from(data, offset + _REC.size)[0])
+            elif kind == codec.PAD:
                 continue
-            if kind == codec.PICKLE and not meta_len:
+            elif kind == codec.PICKLE and not meta_len:
                 append(pickle.loads(data[offset + _REC.size:offset + length]))
             else:
                 meta = bytes(data[offset + _REC.size:offset + _REC.size + meta_len])
@@ -267,7 +304,8 @@ class ShmRing:
 
     def _return_lease(self, lease: list[int]) -> None:
         lease[2] = 1
-        self._release()
+        if not self._closed:          # a view may outlive the link it came from
+            self._release()
 
     def _release(self) -> None:
         # The tail may pass only records nobody still views, in ring order.

@@ -1,0 +1,144 @@
+"""Modules the benchmarks launch. Importable (not ``__main__``), so that worker
+processes load them by reference, as they would a user's modules.
+
+Benchmarks drive them through state: ``run.set_state(...)`` to start a burst or a
+recording, ``run.state(...)`` to read the figures back.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from pb3a import Input, InputPort, Module, Output
+
+ARRAY_SHAPE = (131072,)        # 1 MiB of float64
+IDLE_S = 0.02                  # how long an idle burst writer sleeps inside step()
+
+
+class IntBurst(Module):
+    """Writes ``count`` values as fast as it can each time ``go`` is raised, then idles.
+
+    ``started`` and ``finished`` are ``time.monotonic()`` just before the burst's first
+    write and just after its last.
+    """
+
+    out = Output(int)
+    period = 0.0
+    count = 1000
+    batch = 0       # 0: one write() per value; N: write_many() of N values at a time
+    go = 0          # bursts asked for (the benchmark raises it)
+    done = 0        # bursts written
+    started = math.nan
+    finished = math.nan
+
+    def step(self) -> None:
+        if self.done >= self.go:
+            time.sleep(IDLE_S)     # period 0 would otherwise spin a core between bursts
+            return
+        write, value, batch = self.out.write, self._value, self.batch
+        self.started = time.monotonic()
+        if batch:
+            for first in range(0, self.count, batch):
+                self.out.write_many([value(i) for i in range(first, min(first + batch,
+                                                                          self.count))])
+        else:
+            for i in range(self.count):
+                write(value(i))
+        self.finished = time.monotonic()
+        self.done += 1
+
+    def _value(self, i: int) -> object:
+        return i
+
+
+class ArrayBurst(IntBurst):
+    """``IntBurst`` writing the same 1 MiB float64 array every time."""
+
+    out = Output(np.ndarray, shape=ARRAY_SHAPE, dtype="float64")
+
+    def setup(self) -> None:
+        self._payload = np.ones(ARRAY_SHAPE)
+
+    def _value(self, i: int) -> object:
+        return self._payload
+
+
+class IntCounter(Module):
+    """Counts the values it receives and records when the first and last arrived.
+
+    ``drops`` is the input's cumulative drop counter as of the last value; ``views``
+    counts values that arrived as read-only views not owning their data (arrays).
+    """
+
+    x = Input(int, policy="queue:100000")
+    count = 0
+    drops = 0
+    views = 0
+    first = math.nan
+    last = math.nan
+
+    def on_input(self, port: InputPort) -> None:
+        port.read()
+        self._arrived(port)
+
+    def _arrived(self, port: InputPort) -> None:
+        now = time.monotonic()
+        if not self.count:
+            self.first = now
+        self.last = now
+        self.count += 1
+        self.drops = port.drops
+
+
+class ArrayCounter(IntCounter):
+    """``IntCounter`` for 1 MiB arrays: reads one element of each, never copies it."""
+
+    x = Input(np.ndarray, shape=ARRAY_SHAPE, dtype="float64", policy="queue:8")
+    touched = 0.0
+
+    def on_input(self, port: InputPort) -> None:
+        array = port.read()
+        self.touched = float(array[0])
+        if not array.flags.writeable and not array.flags.owndata:
+            self.views += 1
+        del array                  # hand the ring slot back at once
+        self._arrived(port)
+
+
+class Clock(Module):
+    """Writes ``time.monotonic()`` every ``period`` seconds (threaded)."""
+
+    out = Output(float)
+    period = 0.001
+
+    def step(self) -> None:
+        self.out.write(time.monotonic())
+
+
+class LatencyProbe(Module):
+    """Event-driven: while ``recording``, stores ``now - value`` (seconds), up to ``limit``."""
+
+    x = Input(float, policy="queue:64")
+    recording = False
+    limit = 3000
+    samples: list[float] = []
+
+    def on_input(self, port: InputPort) -> None:
+        sent = port.read()
+        now = time.monotonic()
+        if self.recording and len(self.samples) < self.limit:
+            self.samples.append(now - sent)
+
+
+class Gain(Module):
+    """Event-driven: writes ``x * gain`` on ``y``."""
+
+    x = Input(float)
+    y = Output(float)
+    gain = 1.0
+
+    def on_input(self, port: InputPort) -> None:
+        self.y.write(port.read() * self.gain)

@@ -1,0 +1,243 @@
+"""Throughput of one local link: PB3A against multiprocessing.Queue and raw ZeroMQ.
+
+What is measured: values delivered / (receiver's last receipt - sender's first send),
+both read from CLOCK_MONOTONIC, which all processes share. Two payloads:
+
+- small: Python ints ``0..N-1``;
+- array: one 1 MiB float64 array, written N times; the reader touches one element of
+  each (PB3A hands it a read-only view into the ring: zero copy) and reports GB/s.
+
+How: PB3A goes through the public API only: ``System`` with a writer module
+(``IntBurst``/``ArrayBurst``: period 0, one burst of N writes inside ``step``) and an
+event-driven reader (``IntCounter``/``ArrayCounter``, a ``queue`` input), each in its
+own worker process (the default). The reader records first/last arrival and the count
+in its state; ``run.state`` reads them back. One system is launched per payload and
+stays up: each repetition is one burst, after a warm-up burst.
+
+The baselines run in the same script, with the same counts, in fork-started child
+pairs: ``multiprocessing.Queue`` (put/get, pickling) and pyzmq PUSH/PULL over ipc
+(ints as 8 raw bytes; arrays sent ``copy=False`` and read as ``np.frombuffer`` views
+of the received frame). Every trial warms up first; repetitions run round robin
+(rep-major) so machine noise spreads evenly; figures are medians with min/max, and
+ratios are between medians of this run.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import multiprocessing
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import numpy as np
+import zmq
+from _common import (
+    machine,
+    main_guard,
+    run_forked,
+    steal_report,
+    steal_seconds,
+    summary,
+    wait_for,
+)
+from _modules import ARRAY_SHAPE, ArrayBurst, ArrayCounter, IntBurst, IntCounter
+
+from pb3a import Module, System
+
+REPS = 5
+BATCH = 64                 # values per write_many() call in the batched PB3A row
+SMALL_N, SMALL_WARM = 50_000, 2_000
+ARRAY_N, ARRAY_WARM = 1_000, 50
+ARRAY_BYTES = int(np.prod(ARRAY_SHAPE)) * 8
+TIMEOUT = 30.0             # bound of any one trial (seconds)
+RECV_TIMEOUT = 10.0        # bound of any one blocking receive in a baseline child
+GOALS = {"small": ("pb3a >= 5x mp.Queue (msgs/s)", 5.0),
+         "array": ("pb3a >= 10 GB/s with zero-copy views", 10.0)}
+
+
+# -- PB3A ---------------------------------------------------------------------------
+class Pb3aLink:
+    """A launched writer -> reader system; every ``burst(n)`` is one trial."""
+
+    def __init__(self, writer: type[Module], reader: type[Module], batch: int = 0) -> None:
+        system = System(f"bench-{writer.__name__.lower()}")
+        system.add("reader", reader)     # added (so started) first: ready before values flow
+        system.add("writer", writer, state={"batch": batch})
+        system.link("writer.out", "reader.x")
+        self.run = system.launch()
+        self.bursts = 0
+        self.drops = 0
+
+    def burst(self, n: int) -> dict[str, Any]:
+        """Write ``n`` values in one burst; wait until all are delivered (or dropped)."""
+        run = self.run
+        run.set_state("reader", count=0, views=0, first=math.nan, last=math.nan)
+        self.bursts += 1
+        run.set_state("writer", count=n, go=self.bursts)
+        drops_before = self.drops
+
+        def finished() -> dict[str, Any] | None:
+            state = run.state("reader")
+            return state if state["count"] + state["drops"] - drops_before >= n else None
+
+        try:
+            reader = wait_for(finished, TIMEOUT, f"{n} values at the reader", poll=0.05)
+        except TimeoutError as exc:
+            state = {k: v for k, v in run.state("reader").items() if k != "touched"}
+            raise TimeoutError(f"{exc}; reader state: {state}") from None
+        self.drops = reader["drops"]
+        writer = run.state("writer")
+        return {"count": reader["count"], "seconds": reader["last"] - writer["started"],
+                "drops": reader["drops"] - drops_before, "views": reader["views"],
+                "writer_seconds": writer["finished"] - writer["started"]}
+
+    def close(self) -> None:
+        self.run.close()
+
+
+# -- baselines (each function runs in a forked child) -------------------------------
+def _endpoints(kind: str, channel: Any, role: str, array: bool) -> tuple[Any, Any]:
+    """``(io, close)`` of one end: ``io(value)`` sends (role "send"), ``io()`` receives."""
+    if kind == "mp_queue":
+        if role == "send":
+            return channel.put, lambda: None
+        return (lambda: channel.get(timeout=RECV_TIMEOUT)), lambda: None
+    context = zmq.Context()
+    sock = context.socket(zmq.PUSH if role == "send" else zmq.PULL)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.setsockopt(zmq.SNDTIMEO if role == "send" else zmq.RCVTIMEO, int(RECV_TIMEOUT * 1000))
+    (sock.connect if role == "send" else sock.bind)(channel)
+
+    def close() -> None:
+        sock.close(linger=0)
+        context.term()
+
+    if role == "send" and array:
+        return (lambda value: sock.send(value, copy=False)), close
+    if role == "send":
+        return (lambda value: sock.send(value.to_bytes(8, "little", signed=True))), close
+    if array:
+        return (lambda: np.frombuffer(sock.recv(copy=False).buffer, np.float64)), close
+    return (lambda: int.from_bytes(sock.recv(), "little", signed=True)), close
+
+
+def _sender(kind: str, channel: Any, array: bool, n: int, warm: int, warmed: Any,
+            finished: Any, conn: Any) -> None:
+    send, close = _endpoints(kind, channel, "send", array)
+    payload = np.ones(ARRAY_SHAPE) if array else None
+    for i in range(warm):
+        send(payload if array else i)
+    warmed.wait(RECV_TIMEOUT)
+    started = time.monotonic()
+    for i in range(n):
+        send(payload if array else i)
+    conn.send(started)
+    finished.wait(TIMEOUT)        # keep the channel open until everything is received
+    close()
+
+
+def _receiver(kind: str, channel: Any, array: bool, n: int, warm: int, warmed: Any,
+              finished: Any, conn: Any) -> None:
+    receive, close = _endpoints(kind, channel, "recv", array)
+    for _ in range(warm):
+        receive()
+    warmed.set()
+    count, first, last, touched = 0, math.nan, math.nan, 0.0
+    with contextlib.suppress(Exception):           # a timeout ends the trial short
+        for _ in range(n):
+            value = receive()
+            if array:
+                touched += value[0]                 # touch the array, do not copy it
+            last = time.monotonic()
+            if not count:
+                first = last
+            count += 1
+    finished.set()
+    conn.send({"count": count, "first": first, "last": last})
+    close()
+
+
+def baseline(kind: str, array: bool, n: int, warm: int, tmp: str) -> dict[str, Any]:
+    """One trial of a baseline transport in a fresh pair of forked processes."""
+    ctx = multiprocessing.get_context("fork")
+    warmed, finished = ctx.Event(), ctx.Event()
+    channel: Any = ctx.Queue() if kind == "mp_queue" else (
+        f"ipc://{tmp}/link-{os.getpid()}-{time.monotonic_ns()}")
+    received, started = run_forked(
+        [(_receiver, (kind, channel, array, n, warm, warmed, finished)),
+         (_sender, (kind, channel, array, n, warm, warmed, finished))], TIMEOUT)
+    if kind == "mp_queue":
+        channel.close()
+        channel.cancel_join_thread()
+    if started is None or received is None:
+        raise RuntimeError(f"{kind} trial failed (a child timed out or died)")
+    return {"count": received["count"], "seconds": received["last"] - started, "drops": 0}
+
+
+# -- the suite ----------------------------------------------------------------------
+def suite(payload: str, tmp: str) -> dict[str, Any]:
+    """All repetitions of one payload ("small" or "array"), round robin over methods."""
+    array = payload == "array"
+    n, warm = (ARRAY_N, ARRAY_WARM) if array else (SMALL_N, SMALL_WARM)
+    links = {"pb3a": Pb3aLink(ArrayBurst, ArrayCounter) if array
+             else Pb3aLink(IntBurst, IntCounter)}
+    if not array:   # the same link written with write_many(), 64 values per call
+        links["pb3a_write_many"] = Pb3aLink(IntBurst, IntCounter, batch=BATCH)
+    trials: dict[str, list[dict[str, Any]]] = {name: [] for name in links}
+    trials.update(mp_queue=[], zmq_ipc=[])
+    steal0, t0 = steal_seconds(), time.monotonic()
+    try:
+        for link in links.values():
+            link.burst(warm)
+        for _ in range(REPS):
+            for name, link in links.items():
+                trials[name].append(link.burst(n))
+            for kind in ("mp_queue", "zmq_ipc"):
+                trials[kind].append(baseline(kind, array, n, warm, tmp))
+    finally:
+        for link in links.values():
+            link.close()
+    wall = time.monotonic() - t0
+
+    unit, scale = ("gb_per_s", ARRAY_BYTES / 1e9) if array else ("msgs_per_s", 1.0)
+    digits = 3 if array else 0
+
+    def rates(runs: list[dict[str, Any]], seconds: str = "seconds") -> dict[str, Any]:
+        return summary([t["count"] * scale / t[seconds] for t in runs], digits)
+
+    figures = {name: rates(runs) for name, runs in trials.items()}
+    ratio = {f"{mine}/{name}": round(figures[mine]["median"] / figures[name]["median"], 2)
+             for mine in links for name in ("mp_queue", "zmq_ipc")}
+    goal_text, goal = GOALS[payload]
+    measured = figures["pb3a"]["median"] if array else ratio["pb3a/mp_queue"]
+    delivered = sum(t["count"] for t in trials["pb3a"])
+    return {
+        "payload": "float64[131072] (1 MiB)" if array else "int 0..N-1",
+        "values_per_trial": n, "warm_up_values": warm, "reps": REPS,
+        unit: figures, "ratios_of_medians": ratio,
+        "goal": {"text": goal_text, "measured": measured, "met": measured >= goal},
+        # how fast the PB3A writer got rid of the burst (its write() calls alone)
+        f"pb3a_writer_side_{unit}": rates(trials["pb3a"], "writer_seconds"),
+        "pb3a_drops": sum(t["drops"] for t in trials["pb3a"]),
+        "pb3a_read_only_view_share": round(
+            sum(t["views"] for t in trials["pb3a"]) / max(1, delivered), 3),
+        "steal": steal_report(steal_seconds() - steal0, wall),
+    }
+
+
+def body(result: dict[str, Any]) -> None:
+    result.update(benchmark="local_link", machine=machine())
+    with tempfile.TemporaryDirectory(prefix="pb3a-bench-") as tmp:
+        result["small_int"] = suite("small", tmp)
+        result["array_1mib"] = suite("array", tmp)
+
+
+if __name__ == "__main__":
+    main_guard(body)
