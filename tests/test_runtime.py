@@ -264,3 +264,22 @@ def test_relink_may_change_the_input_policy() -> None:
         before = run.state("dst")["received"]
         eventually(lambda: run.state("dst")["received"] > before, what="values after relink")
     assert figures["errors"] == 0
+
+
+def test_packed_modules_fill_workers_in_declaration_order() -> None:
+    system = System("packed", workers=2)
+    for chain in range(4):
+        system.add(f"src{chain}", FloatSource, state={"value": 1.0})
+        for i in range(9):
+            system.add(f"c{chain}s{i}", Scale, state={"gain": 1.0})
+        system.link(f"src{chain}.out", f"c{chain}s0.x")
+        for i in range(8):
+            system.link(f"c{chain}s{i}.y", f"c{chain}s{i + 1}.x")
+    system.add("tail", Last)
+    system.link("c3s8.y", "tail.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("tail")["value"] == 1.0, what="the end of the last chain")
+        stats = run.stats()
+    assert len({m["pid"] for m in stats["modules"].values()}) == 2
+    transports = [link["transport"] for link in stats["links"].values()]
+    assert transports.count("shm") <= 1            # only a chain cut by the split

@@ -87,6 +87,7 @@ class Executor:
                  log_level: int = logging.WARNING) -> None:
         self.node = node
         self.packing = workers or {}        # node name -> packed worker processes (0: one each)
+        self.quota: dict[str, int] = {}     # node name -> modules per packed worker at start
         self.checkpoint_s = checkpoint_s
         self.log_level = log_level
         self.modules: dict[str, ModuleRecord] = {}
@@ -108,7 +109,12 @@ class Executor:
 
     # -- placement and processes -------------------------------------------
     def place(self, spec: FlatModule) -> str:
-        """The worker key a module runs in: its group, its own process, or a packed one."""
+        """The worker key a module runs in: its group, its own process, or a packed one.
+
+        Packed modules fill the node's workers in declaration order, so modules
+        declared together (usually linked together) share a process and their links
+        stay in memory; modules added later go to the least-loaded worker.
+        """
         if spec.group:
             return f"g-{spec.group}"
         packing = self.packing.get(spec.node, 0)
@@ -118,6 +124,10 @@ class Executor:
         for record in self.modules.values():
             if record.worker in counts:
                 counts[record.worker] += 1
+        quota = self.quota.get(spec.node, 0)
+        for key, count in counts.items():
+            if count < quota:
+                return key
         return min(counts, key=counts.__getitem__)
 
     def _spawn(self, handle: WorkerHandle) -> None:

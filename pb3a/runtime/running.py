@@ -50,6 +50,10 @@ class Running:
     def start(self) -> None:
         """Instantiate every module, wire every link, then run ``setup`` in order."""
         ex = self._executor
+        for node, packing in ex.packing.items():
+            if packing:
+                count = sum(1 for m in self.plan.modules.values() if m.node == node and not m.group)
+                ex.quota[node] = -(-count // packing)
         try:
             with self._lock:
                 for spec in self.plan.modules.values():
