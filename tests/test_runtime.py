@@ -59,6 +59,7 @@ def test_values_flow_through_threaded_and_event_driven_modules(workers: int) -> 
                            and s, what="a few values")
     assert stats["modules"]["src"]["steps"] > 0
     assert stats["modules"]["scale"]["events"] > 0
+    assert stats["modules"]["src"]["cpu"] > 0 and stats["modules"]["scale"]["cpu"] > 0
     link = stats["links"]["scale.y->sink.x"]
     assert link["transport"] == ("shm" if workers == 0 else "memory")
     assert link["values"] > 0 and link["rate"] > 0
