@@ -32,7 +32,6 @@ if TYPE_CHECKING:
 log = logging.getLogger("pb3a.worker")
 
 GUARD_TIMEOUT = 0.5      # longest sleep of the receiver (a guard; wake-ups are not lost)
-WRITE_TIMEOUT = 0.1      # how long a writer waits for ring space before dropping
 ERROR_REPORT_S = 1.0     # a module's exceptions are reported at most this often (all counted)
 
 
@@ -209,12 +208,8 @@ class Worker:
             self.outbound[key] = (src, src_port, None, None)
         else:
             shm_ring, pull = ShmRing.attach(ring), BellPull(bell)   # type: ignore[arg-type]
-
-            def sink(values: Sequence[Any], shm_ring: ShmRing = shm_ring,
-                     pull: BellPull = pull) -> None:
-                shm_ring.write_many(values, WRITE_TIMEOUT)
-                if shm_ring.reader_waiting:
-                    pull.ring()
+            shm_ring.wake = pull.ring
+            sink = shm_ring.write_many
             self.outbound[key] = (src, src_port, shm_ring, pull)
         port.connect(key, sink)
 

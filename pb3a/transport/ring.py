@@ -37,7 +37,7 @@ from pb3a.transport import codec
 from pb3a.transport.shm import attach_segment, close_segment, create_segment, unlink_segment
 
 if TYPE_CHECKING:
-    from collections.abc import Sequence
+    from collections.abc import Callable, Sequence
 
 _MAGIC = 0x50423341_52494E47  # "PB3ARING"
 _DATA = 512                      # header size; data starts here (page offset 512: 64-aligned)
@@ -50,6 +50,7 @@ _F64 = struct.Struct("<d")
 _SCALARS = {int: codec.INT, float: codec.FLOAT}
 _I64_MIN, _I64_MAX = -(1 << 63), (1 << 63) - 1
 ZERO_COPY_MIN = 64 * 1024        # arrays at least this large are read as views
+WRITE_TIMEOUT = 0.1              # how long a writer waits for space before dropping a value
 _ALIGN = 64
 
 
@@ -82,6 +83,7 @@ class ShmRing:
         self._lease_lock = threading.Lock()
         self.expected_seq = -1
         self._closed = False
+        self.wake: Callable[[], None] | None = None   # the writer's doorbell pull
         self.attach_writer()
 
     # -- life cycle ---------------------------------------------------------
@@ -129,7 +131,7 @@ class ShmRing:
         words = self._words
         self._head, self._seq, self._tail = words[_W_HEAD], words[_W_SEQ], words[_W_TAIL]
 
-    def write(self, value: Any, timeout: float = 0.1) -> bool:
+    def write(self, value: Any, timeout: float = WRITE_TIMEOUT) -> bool:
         """Append one value; waits up to ``timeout`` for space, then drops it.
 
         Returns False when dropped. The sequence number advances either way, so
@@ -137,7 +139,7 @@ class ShmRing:
         """
         return self.write_many((value,), timeout) == 1
 
-    def write_many(self, values: Sequence[Any], timeout: float = 0.1) -> int:
+    def write_many(self, values: Sequence[Any], timeout: float = WRITE_TIMEOUT) -> int:
         """Append values in order and publish them at once; returns how many fit."""
         words, data, cap = self._words, self._data, self.capacity
         seq = self._seq
@@ -215,6 +217,10 @@ class ShmRing:
         if head != self._head:
             self._head = head
             self._words[_W_HEAD] = head          # after the records (TSO: store order)
+            if self.wake is not None:
+                _fence()                         # order the head store before this load
+                if self._words[_W_WAITING]:
+                    self.wake()                  # the reader said it is going to sleep
 
     def _wait_space(self, needed_tail: int, timeout: float) -> bool:
         deadline = time.monotonic() + timeout
@@ -226,15 +232,6 @@ class ShmRing:
             pause = min(pause * 2, 1e-3)
         self._tail = tail
         return True
-
-    @property
-    def reader_waiting(self) -> bool:
-        """True when the reader announced it is going to sleep (ring the doorbell).
-
-        Call after ``write``: the fence orders the head store before this load.
-        """
-        _fence()
-        return self._words[_W_WAITING] != 0
 
     # -- reader -------------------------------------------------------------
     def set_waiting(self, flag: bool) -> None:
