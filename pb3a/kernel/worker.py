@@ -146,9 +146,6 @@ class Worker:
         self._wake.close()
 
     # -- requests from the executor ----------------------------------------
-    def op_ping(self) -> int:
-        return os.getpid()
-
     def op_add(self, name: str, cls: bytes, period: float | None, restart: str,
                state: dict[str, Any]) -> None:
         module = cloudpickle.loads(cls)()

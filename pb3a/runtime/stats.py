@@ -40,12 +40,14 @@ def collect(executor: Executor, timeout: float = 5.0) -> dict[str, Any]:
         src = executor.modules.get(link.src)
         dst = executor.modules.get(link.dst)
         transport = "memory" if src and dst and src.worker == dst.worker else "shm"
+        ring = reports.get(dst.worker, {}).get("rings", {}).get(key, {}) if dst else {}
         links[key] = {"src": f"{link.src}.{link.src_port}", "dst": f"{link.dst}.{link.dst_port}",
                       "policy": str(link.policy), "transport": transport,
                       "values": figures.get("received", 0), "drops": figures.get("drops", 0),
                       "pending": figures.get("pending", 0),
                       "latency": figures.get("latency", float("nan")),
                       "rate": figures.get("rate", 0.0),
-                      "link_failures": figures.get("link_failures", 0)}
+                      "link_failures": figures.get("link_failures", 0),
+                      "ring_bytes_used": ring.get("used", 0)}
     return {"system": executor.node, "modules": modules, "links": links,
             "failures": list(executor.failures)}

@@ -141,34 +141,23 @@ class ShmRing:
 
     def write_many(self, values: Sequence[Any], timeout: float = WRITE_TIMEOUT) -> int:
         """Append values in order and publish them at once; returns how many fit."""
-        words, data, cap = self._words, self._data, self.capacity
+        data, cap = self._data, self.capacity
         seq = self._seq
         self._seq = seq + len(values)
-        words[_W_SEQ] = self._seq
+        self._words[_W_SEQ] = self._seq
         head = self._head
         now = time.monotonic()                 # one write time for the whole batch
         written = 0
         for value in values:
             kind = _SCALARS.get(type(value))
             if kind is not None and (kind == codec.FLOAT or _I64_MIN <= value <= _I64_MAX):
-                offset = head % cap             # ints and floats: one record of 64 bytes
-                pad = cap - offset if offset + _ALIGN > cap else 0
-                end = head + pad + _ALIGN
-                if end - self._tail > cap:
-                    self._tail = words[_W_TAIL]
-                    if end - self._tail > cap:
-                        self._publish(head)
-                        if not self._wait_space(end - cap, timeout):
-                            seq += 1
-                            continue
-                if pad:
-                    _REC.pack_into(data, offset, pad, codec.PAD, 0, 0, 0.0)
-                    offset = 0
-                (_REC_INT if kind == codec.INT else _REC_FLOAT).pack_into(
-                    data, offset, _ALIGN, kind, 0, seq, now, value)
-                head = end
+                start = self._reserve(head, _ALIGN, timeout)   # the value rides in the header
+                if start >= 0:
+                    (_REC_INT if kind == codec.INT else _REC_FLOAT).pack_into(
+                        data, start % cap, _ALIGN, kind, 0, seq, now, value)
+                    head = start + _ALIGN
+                    written += 1
                 seq += 1
-                written += 1
                 continue
             if type(value) is np.ndarray or type(value) is bytes:
                 kind, meta, payload = codec.encode(value)
@@ -177,24 +166,16 @@ class ShmRing:
                 kind, meta, payload = codec.PICKLE, b"", pickle.dumps(value, 5)
                 size = len(payload)
             body = _align(_REC.size + len(meta), _ALIGN if kind == codec.ARRAY else 8)
-            length = (body + size + _ALIGN - 1) & ~(_ALIGN - 1)
+            length = _align(body + size)
             if length > cap:
                 raise ValueError(
                     f"a value of {size} bytes does not fit this link's {cap}-byte ring; "
                     "declare shape= and dtype= on the ports, or raise ring_bytes")
-            offset = head % cap
-            pad = cap - offset if offset + length > cap else 0
-            end = head + pad + length
-            if end - self._tail > cap:
-                self._tail = words[_W_TAIL]
-                if end - self._tail > cap:
-                    self._publish(head)          # let the reader see what is there
-                    if not self._wait_space(end - cap, timeout):
-                        seq += 1
-                        continue                 # dropped: the reader sees the gap
-            if pad:
-                _REC.pack_into(data, offset, pad, codec.PAD, 0, 0, 0.0)
-                offset = 0
+            start = self._reserve(head, length, timeout)
+            if start < 0:
+                seq += 1
+                continue                       # dropped: the reader sees the gap
+            offset = start % cap
             record = _REC.pack(length, kind, len(meta), seq, now) + meta
             if kind == codec.ARRAY:
                 data[offset:offset + len(record)] = record
@@ -207,11 +188,28 @@ class ShmRing:
             else:
                 data[offset:offset + len(record)] = record
                 data[offset + body:offset + body + size] = payload
-            head = end
+            head = start + length
             seq += 1
             written += 1
         self._publish(head)
         return written
+
+    def _reserve(self, head: int, length: int, timeout: float) -> int:
+        """Room for a ``length``-byte record at ``head``: its start position (after a pad
+        record if it would straddle the end), or -1 if no room came within ``timeout``."""
+        cap = self.capacity
+        offset = head % cap
+        pad = cap - offset if offset + length > cap else 0
+        end = head + pad + length
+        if end - self._tail > cap:
+            self._tail = self._words[_W_TAIL]
+            if end - self._tail > cap:
+                self._publish(head)            # let the reader see what is there
+                if not self._wait_space(end - cap, timeout):
+                    return -1
+        if pad:
+            _REC.pack_into(self._data, offset, pad, codec.PAD, 0, 0, 0.0)
+        return head + pad
 
     def _publish(self, head: int) -> None:
         if head != self._head:
