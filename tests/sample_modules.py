@@ -249,3 +249,21 @@ class Overlap(Module):
         if self.busy:
             self.overlaps += 1
         self.busy = True
+
+
+class Journal(Module):
+    """Appends its name to ``path`` in ``setup`` and ``teardown`` (start and stop order)."""
+
+    period = 0.05
+    path = ""
+    label = ""
+
+    def setup(self) -> None:
+        self._note("start")
+
+    def teardown(self) -> None:
+        self._note("stop")
+
+    def _note(self, what: str) -> None:
+        with open(self.path, "a") as journal:
+            journal.write(f"{what} {self.label}\n")

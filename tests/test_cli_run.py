@@ -10,7 +10,7 @@ from pathlib import Path
 
 import psutil
 import pytest
-from conftest import eventually
+from conftest import alive, eventually
 
 from pb3a.transport.shm import live_segments
 
@@ -42,15 +42,20 @@ def test_run_for_seconds_shows_the_table_and_stops_cleanly(tmp_path: Path) -> No
     assert "stopped cleanly" in out
 
 
-def test_sigterm_stops_everything_and_leaves_nothing_behind(tmp_path: Path) -> None:
+@pytest.mark.parametrize("how", ["SIGTERM", "Ctrl-C"])
+def test_a_signal_stops_everything_and_leaves_nothing_behind(tmp_path: Path, how: str) -> None:
     proc = subprocess.Popen([sys.executable, "-m", "pb3a", "run", str(PIPELINE)], cwd=tmp_path,
-                            env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
     try:
         assert "running" in proc.stdout.readline()
         launcher = psutil.Process(proc.pid)
         workers = eventually(lambda: _workers_of(launcher), what="worker processes")
         assert live_segments(proc.pid)
-        proc.send_signal(signal.SIGTERM)
+        if how == "SIGTERM":
+            proc.send_signal(signal.SIGTERM)
+        else:                     # a terminal's Ctrl-C: SIGINT to the whole process group
+            os.killpg(proc.pid, signal.SIGINT)
         out, err = proc.communicate(timeout=30)
     finally:
         if proc.poll() is None:
@@ -58,9 +63,9 @@ def test_sigterm_stops_everything_and_leaves_nothing_behind(tmp_path: Path) -> N
             proc.communicate()
     assert proc.returncode == 0, err
     assert "stopped cleanly" in out
+    assert "Traceback" not in err and "died" not in err
     assert not live_segments(proc.pid)
-    assert not [p for p in workers if psutil.pid_exists(p)
-                and psutil.Process(p).status() != psutil.STATUS_ZOMBIE]
+    assert not [p for p in workers if alive(p)]
 
 
 def test_run_reports_an_invalid_file_and_starts_nothing(tmp_path: Path) -> None:

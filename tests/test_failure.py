@@ -11,10 +11,9 @@ import textwrap
 import time
 from pathlib import Path
 
-import psutil
 import pytest
-from conftest import eventually
-from sample_modules import Faulty, FloatSource, Last, Scale, SlowTeardown, Steady
+from conftest import alive, eventually
+from sample_modules import Faulty, FloatSource, Journal, Last, Scale, SlowTeardown, Steady
 
 from pb3a import System
 from pb3a.transport.shm import live_segments
@@ -152,10 +151,34 @@ def test_no_processes_or_segments_survive_a_killed_launcher(tmp_path: Path) -> N
         assert live_segments(proc.pid)
         proc.kill()
         proc.wait(10)
-        eventually(lambda: not any(psutil.pid_exists(p) and psutil.Process(p).status() != "zombie"
-                                   for p in pids), timeout=15, what="workers to exit")
+        eventually(lambda: not any(alive(p) for p in pids), timeout=15, what="workers to exit")
         eventually(lambda: not live_segments(proc.pid), timeout=15, what="segments unlinked")
     finally:
         if proc.poll() is None:
             proc.kill()
         proc.stdout.close()
+
+
+def test_a_worker_stopped_by_sigterm_is_stopped_not_restarted() -> None:
+    system = System("terminated")
+    system.add("victim", Steady, restart="fresh")
+    system.add("other", Steady)
+    with system.launch() as run:
+        pid = eventually(lambda: run.stats()["modules"]["victim"]["pid"], what="a pid")
+        os.kill(pid, signal.SIGTERM)
+        figures = eventually(lambda: (m := run.stats()["modules"]["victim"])["status"]
+                             == "stopped" and m, what="the stop seen")
+        before = run.state("other")["count"]
+        eventually(lambda: run.state("other")["count"] > before, what="the other goes on")
+    assert figures["restarts"] == 0
+
+
+def test_modules_start_in_order_and_stop_in_reverse_order(tmp_path: Path) -> None:
+    journal = tmp_path / "journal.txt"
+    system = System("order")
+    for name in ("a", "b", "c"):
+        system.add(name, Journal, state={"path": str(journal), "label": name})
+    with system.launch():
+        pass
+    assert journal.read_text().split("\n")[:-1] == [
+        "start a", "start b", "start c", "stop c", "stop b", "stop a"]

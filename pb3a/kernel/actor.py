@@ -75,6 +75,7 @@ class ModuleActor:
         self._stop = threading.Lock()
         self._step_clock: int | None = None
         self._step_cpu = 0.0
+        self._stopped = False
         self._thread: threading.Thread | None = None
         if ports is None:
             ports = module._pb3a_bind_ports(name)
@@ -110,7 +111,10 @@ class ModuleActor:
             self._schedule(self._dispatch)
 
     def stop(self, timeout: float = 5.0) -> bool:
-        """Stop stepping and dispatching, then run ``teardown``. False if a body overran."""
+        """Stop stepping and dispatching, then run ``teardown`` (once). False if a body overran."""
+        if self._stopped:
+            return True
+        self._stopped = True
         was_running, self.running = self.running, False
         if was_running and self._stop.locked():
             self._stop.release()                # wakes a step thread between two steps

@@ -12,6 +12,7 @@ from __future__ import annotations
 import itertools
 import logging
 import os
+import signal
 import threading
 import time
 from dataclasses import dataclass, field
@@ -94,6 +95,7 @@ class Worker:
         self._ready: list[Callable[[], None]] = []
         self._request_ids = itertools.count()
         self._closing = threading.Event()
+        self._shut_down = False
         self._checkpoint_s = checkpoint_s
         self._threads = [threading.Thread(target=self._receive, name="pb3a-receiver", daemon=True),
                          threading.Thread(target=self._checkpoint, name="pb3a-checkpoint",
@@ -131,6 +133,9 @@ class Worker:
                 self._closing.set()
 
     def shutdown(self) -> None:
+        if self._shut_down:
+            return
+        self._shut_down = True
         self._closing.set()
         for name in reversed(list(self.actors)):
             self.actors[name].stop(timeout=1.0)
@@ -331,8 +336,26 @@ class Worker:
                     self.send((None, "checkpoint", {"name": name, "state": blob}))
 
 
+class _Terminated(Exception):
+    """SIGTERM arrived: stop the modules and exit cleanly."""
+
+
+def _on_sigterm(signum: int, frame: object) -> None:
+    raise _Terminated
+
+
 def worker_main(conn: Any, key: str, bell_name: str, checkpoint_s: float, level: int) -> None:
-    """Entry point of a worker process."""
+    """Entry point of a worker process.
+
+    Ctrl-C in a terminal reaches every process of the group: workers ignore it and
+    let their launcher stop them in order. SIGTERM stops the worker's modules and
+    exits with status 0, which the executor takes as a stop, not a crash.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _on_sigterm)
     logging.basicConfig(level=level, format=f"%(asctime)s pb3a[{key}] %(levelname)s %(message)s")
     worker = Worker(conn, key, bell_name, checkpoint_s)
-    worker.serve()
+    try:
+        worker.serve()
+    except _Terminated:
+        worker.shutdown()

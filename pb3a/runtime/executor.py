@@ -355,6 +355,12 @@ class Executor:
         if self._stopping.is_set():
             return
         code = handle.process.exitcode
+        if code == 0:                 # stopped on purpose (SIGTERM): not a crash
+            log.warning("worker %s (pid %s) stopped; its modules %s are stopped", handle.key,
+                        handle.pid, ", ".join(handle.modules))
+            for name in handle.modules:
+                self.modules[name].status = "stopped"
+            return
         log.warning("worker %s (pid %s, modules %s) died with exit code %s",
                     handle.key, handle.pid, ", ".join(handle.modules), code)
         threading.Thread(target=self._recover, args=(handle, code), daemon=True,
