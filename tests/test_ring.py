@@ -137,3 +137,16 @@ def test_scalars_keep_their_exact_type_and_value(ring) -> None:
     writer.write(float("nan"))
     (nan,), _ = _drain(reader)
     assert nan != nan
+
+
+def test_arrays_of_any_plain_dtype_and_shape_survive(ring) -> None:
+    _, writer, reader = ring
+    values = [np.float32(1.5) * np.ones((3, 4), dtype="float32"), np.array(7),
+              np.arange(5, dtype=">i4"), np.array(["2024-01-01"], dtype="datetime64[D]"),
+              np.zeros(2, dtype=[("x", "f8"), ("n", "i2")]), np.ones((2, 3))[:, 1]]
+    assert writer.write_many(values) == len(values)
+    got, _ = _drain(reader)
+    for sent, received in zip(values, got, strict=True):
+        assert received.dtype == sent.dtype and received.shape == sent.shape
+        assert np.array_equal(received, sent)
+        assert received.flags.writeable == (sent.dtype.names is not None)   # pickled: a copy

@@ -1,14 +1,17 @@
 """How a value becomes bytes in a ring record, and back.
 
-numpy arrays travel as raw bytes plus dtype and shape, so a reader can map
-them without unpickling; ``bytes`` travel raw; ``int`` (64-bit) and ``float``
-are packed into the record header by the ring itself; everything else is pickled
-(protocol 5). Local rings live in segments only this user can open, so
-pickling is safe here; remote links authenticate before they decode.
+numpy arrays of plain dtypes travel as raw bytes plus dtype and shape, so a
+reader can map them without unpickling (structured arrays are pickled);
+``bytes`` travel raw; 64-bit ``int`` and ``float`` are packed into the record
+header by the ring itself; everything else is pickled (protocol 5). Local
+rings live in segments only this user can open, so pickling is safe here;
+remote links authenticate before they decode.
 """
 
 from __future__ import annotations
 
+import functools
+import math
 import pickle
 from typing import Any
 
@@ -19,10 +22,9 @@ PAD, PICKLE, ARRAY, BYTES, INT, FLOAT = 0, 1, 2, 3, 4, 5
 
 def encode(value: Any) -> tuple[int, bytes, Any]:
     """Return ``(kind, meta, payload)``; payload supports the buffer protocol."""
-    if type(value) is np.ndarray and not value.dtype.hasobject:
-        array = np.ascontiguousarray(value)
-        meta = f"{array.dtype.str};{','.join(map(str, array.shape))}".encode()
-        return ARRAY, meta, array
+    if type(value) is np.ndarray and value.dtype.names is None and not value.dtype.hasobject:
+        array = np.ascontiguousarray(value)     # (makes 0-d arrays 1-d: keep value.shape)
+        return ARRAY, _array_meta_bytes(array.dtype.str, value.shape), array
     if type(value) is bytes:
         return BYTES, b"%d" % len(value), value
     return PICKLE, b"", pickle.dumps(value, protocol=5)
@@ -33,10 +35,17 @@ def payload_size(kind: int, payload: Any) -> int:
     return payload.nbytes if kind == ARRAY else len(payload)
 
 
-def array_meta(meta: bytes) -> tuple[np.dtype, tuple[int, ...]]:
-    """dtype and shape from an ARRAY record's meta."""
-    dtype, _, shape = meta.decode().partition(";")
-    return np.dtype(dtype), tuple(int(n) for n in shape.split(",") if n)
+@functools.lru_cache(maxsize=256)       # a link carries few distinct dtypes and shapes
+def _array_meta_bytes(dtype: str, shape: tuple[int, ...]) -> bytes:
+    return f"{dtype};{','.join(map(str, shape))}".encode()
+
+
+@functools.lru_cache(maxsize=256)
+def array_meta(meta: bytes) -> tuple[np.dtype, tuple[int, ...], int]:
+    """dtype, shape and element count from an ARRAY record's meta."""
+    dtype, _, text = meta.decode().partition(";")
+    shape = tuple(int(n) for n in text.split(",") if n)
+    return np.dtype(dtype), shape, math.prod(shape)
 
 
 def decode_small(kind: int, meta: bytes, payload: memoryview) -> Any:
@@ -45,8 +54,8 @@ def decode_small(kind: int, meta: bytes, payload: memoryview) -> Any:
         return pickle.loads(payload)
     if kind == BYTES:
         return bytes(payload[:int(meta)])
-    dtype, shape = array_meta(meta)
-    array = np.frombuffer(payload, dtype=dtype).reshape(shape).copy()
+    dtype, shape, count = array_meta(meta)
+    array = np.frombuffer(payload, dtype=dtype, count=count).reshape(shape).copy()
     array.flags.writeable = False
     return array
 

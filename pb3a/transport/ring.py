@@ -79,7 +79,7 @@ class ShmRing:
         self.name = segment.name.lstrip("/")
         # reader-side bookkeeping (only the reading process uses these)
         self._rpos = self._words[_W_RPOS]
-        self._leases: deque[list[int]] = deque()   # [start, end, released] per leased record
+        self._leases: deque[list[Any]] = deque()   # [start, end, released, ref] per lease
         self._lease_lock = threading.Lock()
         self.expected_seq = -1
         self._closed = False
@@ -181,7 +181,7 @@ class ShmRing:
                 data[offset:offset + len(record)] = record
                 target = np.ndarray(payload.shape, payload.dtype, buffer=data,
                                     offset=offset + body)
-                np.copyto(target, payload)
+                np.copyto(target, payload)      # any dtype, 0-d included
                 del target
             elif len(record) == body and size <= 4096:     # one copy into the segment
                 data[offset:offset + body + size] = record + payload
@@ -288,17 +288,19 @@ class ShmRing:
         return values, sent_at, gaps
 
     def _lease_view(self, meta: bytes, payload: memoryview, start: int, end: int) -> np.ndarray:
-        dtype, shape = codec.array_meta(meta)
-        view = np.frombuffer(payload, dtype=dtype, count=int(np.prod(shape))).reshape(shape)
+        dtype, shape, count = codec.array_meta(meta)
+        view = np.frombuffer(payload, dtype=dtype, count=count).reshape(shape)
         view.flags.writeable = False
-        lease = [start, end, 0]
+        lease: list[Any] = [start, end, 0, None]
+        # When the last reference to the view goes, the weak reference's callback
+        # returns the lease (the ref itself lives in the lease until then).
+        lease[3] = weakref.ref(view, lambda _, lease=lease: self._return_lease(lease))
         with self._lease_lock:
             self._leases.append(lease)
-        weakref.finalize(view, self._return_lease, lease)
         return view
 
-    def _return_lease(self, lease: list[int]) -> None:
-        lease[2] = 1
+    def _return_lease(self, lease: list[Any]) -> None:
+        lease[2], lease[3] = 1, None
         if not self._closed:          # a view may outlive the link it came from
             self._release()
 
