@@ -34,7 +34,7 @@ class Child(Reader):
 def test_write_type_checks_in_the_writer_and_sends_nothing_on_error() -> None:
     sensor = Sensor()
     seen: list = []
-    sensor.label.connect("probe", seen.extend)
+    sensor.label.connect("probe", seen.append)
     with pytest.raises(TypeError, match=r"label.*str.*int"):
         sensor.label.write(3)
     assert seen == [] and sensor.label.written == 0
@@ -167,7 +167,7 @@ def test_changing_the_policy_carries_held_values_over() -> None:
 def test_write_many_checks_every_value_before_sending_any() -> None:
     sensor = Sensor()
     seen: list = []
-    sensor.label.connect("probe", seen.extend)
+    sensor.label.connect("probe", seen.append)
     with pytest.raises(TypeError, match="label"):
         sensor.label.write_many(["a", "b", 3])
     assert seen == [] and sensor.label.written == 0

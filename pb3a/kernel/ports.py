@@ -297,7 +297,7 @@ class InputPort:
 class OutputPort:
     """An output bound to one module instance. ``write`` checks the type, then fans out.
 
-    A link's sink receives a sequence of values: one for ``write``, all of them
+    Each link is a pair of sinks: ``one(value)`` for ``write`` and ``many(values)``
     for ``write_many``, which saves the per-value cost of the transport.
     """
 
@@ -306,18 +306,17 @@ class OutputPort:
         self.name = spec.name
         self.owner = owner
         self.written = 0
-        self._sinks: dict[str, Callable[[Sequence[Any]], None]] = {}
+        self._sinks: dict[str, tuple[Callable[[Any], Any], Callable[[Sequence[Any]], Any]]] = {}
         self._lock = threading.Lock()
 
     def write(self, value: Any) -> None:
         """Send ``value`` on every link; TypeError (and nothing sent) if it does not fit."""
         if type(value) is not self.spec.plain_type:
             self.spec.check(value)
-        batch = (value,)
         with self._lock:
             self.written += 1
-            for sink in self._sinks.values():
-                sink(batch)
+            for one, _ in self._sinks.values():
+                one(value)
 
     def write_many(self, values: Iterable[Any]) -> None:
         """Send values in order, as repeated ``write`` would, but faster; all are checked first."""
@@ -329,18 +328,23 @@ class OutputPort:
             return
         with self._lock:
             self.written += len(batch)
-            for sink in self._sinks.values():
-                sink(batch)
+            for _, many in self._sinks.values():
+                many(batch)
 
-    def connect(self, key: str, sink: Callable[[Sequence[Any]], None]) -> None:
-        """Add a link: ``sink(values)`` is called on every write, in write order."""
+    def connect(self, key: str, one: Callable[[Any], Any],
+                many: Callable[[Sequence[Any]], Any] | None = None) -> None:
+        """Add a link: ``one(value)`` / ``many(values)`` are called in write order."""
+        if many is None:
+            def many(values: Sequence[Any]) -> None:
+                for value in values:
+                    one(value)
         with self._lock:
-            self._sinks[key] = sink
+            self._sinks[key] = (one, many)
 
-    def disconnect(self, key: str) -> Callable[[Sequence[Any]], None] | None:
-        """Remove a link; returns its sink, or None if there was none."""
+    def disconnect(self, key: str) -> bool:
+        """Remove a link; False if there was none. No write is in progress on return."""
         with self._lock:
-            return self._sinks.pop(key, None)
+            return self._sinks.pop(key, None) is not None
 
     @property
     def links(self) -> list[str]:

@@ -205,15 +205,18 @@ class Worker:
             target = self.actors[dst].inputs[dst_port]   # type: ignore[index]
             target.set_policy(Policy.parse(policy))      # type: ignore[arg-type]
 
-            def sink(values: Sequence[Any], target: InputPort = target) -> None:
+            def one(value: Any, target: InputPort = target) -> None:
+                target.deliver(local_copy(value), time.monotonic())
+
+            def many(values: Sequence[Any], target: InputPort = target) -> None:
                 target.deliver_many([local_copy(v) for v in values], time.monotonic())
+            port.connect(key, one, many)
             self.outbound[key] = (src, src_port, None, None)
         else:
             shm_ring, pull = ShmRing.attach(ring), BellPull(bell)   # type: ignore[arg-type]
             shm_ring.wake = pull.ring
-            sink = shm_ring.write_many
+            port.connect(key, shm_ring.write, shm_ring.write_many)
             self.outbound[key] = (src, src_port, shm_ring, pull)
-        port.connect(key, sink)
 
     def op_unlink_out(self, key: str) -> None:
         entry = self.outbound.pop(key, None)

@@ -137,7 +137,17 @@ class ShmRing:
         Returns False when dropped. The sequence number advances either way, so
         the reader sees the gap and counts the drop.
         """
-        return self.write_many((value,), timeout) == 1
+        kind = _SCALARS.get(type(value))
+        if kind is None or (kind == codec.INT and not _I64_MIN <= value <= _I64_MAX):
+            return self.write_many((value,), timeout) == 1
+        seq = self._seq                        # the common case, kept short
+        self._seq = seq + 1
+        self._words[_W_SEQ] = seq + 1
+        head = self._put_scalar(self._head, seq, kind, value, time.monotonic(), timeout)
+        if head < 0:
+            return False
+        self._publish(head)
+        return True
 
     def write_many(self, values: Sequence[Any], timeout: float = WRITE_TIMEOUT) -> int:
         """Append values in order and publish them at once; returns how many fit."""
@@ -151,11 +161,9 @@ class ShmRing:
         for value in values:
             kind = _SCALARS.get(type(value))
             if kind is not None and (kind == codec.FLOAT or _I64_MIN <= value <= _I64_MAX):
-                start = self._reserve(head, _ALIGN, timeout)   # the value rides in the header
-                if start >= 0:
-                    (_REC_INT if kind == codec.INT else _REC_FLOAT).pack_into(
-                        data, start % cap, _ALIGN, kind, 0, seq, now, value)
-                    head = start + _ALIGN
+                end = self._put_scalar(head, seq, kind, value, now, timeout)
+                if end >= 0:
+                    head = end
                     written += 1
                 seq += 1
                 continue
@@ -193,6 +201,17 @@ class ShmRing:
             written += 1
         self._publish(head)
         return written
+
+    def _put_scalar(self, head: int, seq: int, kind: int, value: int | float, now: float,
+                    timeout: float) -> int:
+        """Write an int64 or float64 record (the value rides in the header); the new
+        head, or -1 if there was no room."""
+        start = self._reserve(head, _ALIGN, timeout)
+        if start < 0:
+            return -1
+        (_REC_INT if kind == codec.INT else _REC_FLOAT).pack_into(
+            self._data, start % self.capacity, _ALIGN, kind, 0, seq, now, value)
+        return start + _ALIGN
 
     def _reserve(self, head: int, length: int, timeout: float) -> int:
         """Room for a ``length``-byte record at ``head``: its start position (after a pad
