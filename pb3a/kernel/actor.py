@@ -1,8 +1,9 @@
 """``ModuleActor``: one module instance as an actor inside a worker process.
 
 The actor owns the module's lock. Its thread (when the module has a period)
-calls ``step``; the worker's ``EventPool`` calls ``on_input``; state capture and
-swaps take the same lock, so none of them ever overlap.
+calls ``step``; a dispatch task, run by the worker's ``EventPool`` or inline by
+its receiver, calls ``on_input``; state capture and swaps take the same lock,
+so none of them ever overlap.
 """
 
 from __future__ import annotations
@@ -57,7 +58,6 @@ class ModuleActor:
 
     def __init__(self, name: str, module: Module, schedule: Callable[[Callable[[], None]], None],
                  period: float | None,
-                 ports: dict[str, InputPort | OutputPort] | None = None,
                  on_error: Callable[[ModuleActor, str, str], None] | None = None) -> None:
         self.name = name
         self.on_error = on_error
@@ -77,11 +77,7 @@ class ModuleActor:
         self._step_cpu = 0.0
         self._stopped = False
         self._thread: threading.Thread | None = None
-        if ports is None:
-            ports = module._pb3a_bind_ports(name)
-        else:
-            module._pb3a_adopt_ports(ports)
-        self.ports = ports
+        self.ports = module._pb3a_bind_ports(name)
         self._event_driven = type(module).is_event_driven()
         for port in self.inputs.values():
             port._notify = self._on_port_event
@@ -223,6 +219,7 @@ class ModuleActor:
     def swap(self, new: Module) -> list[str]:
         """Replace the module by ``new`` keeping ports, queued values and matching state.
 
+        The new instance runs with the period the module was configured with.
         Returns the names of the state attributes carried over.
         """
         with self.lock:

@@ -3,7 +3,8 @@
 A worker has three kinds of threads: the control thread (requests from the
 executor over a private pipe, answered in order), the receiver (drains every
 inbound ring, sleeping on the process's doorbell when all are empty), and the
-event pool plus one step thread per threaded module. The worker exits when the
+event pool (or the receiver itself, when the worker hosts a single module) plus
+one step thread per threaded module. The worker exits when the
 executor says so or when the pipe closes (the executor died).
 """
 

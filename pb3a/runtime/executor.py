@@ -80,12 +80,11 @@ class ModuleRecord:
 
 
 class Executor:
-    """Runs a node's share of a system; thread-safe; every request has a deadline."""
+    """Runs modules in worker processes on this machine; thread-safe; every request has a
+    deadline. (Until the distributed runtime lands, one executor runs every node's share.)"""
 
-    def __init__(self, node: str, *, workers: dict[str, int] | None = None,
-                 checkpoint_s: float = 1.0,
+    def __init__(self, *, workers: dict[str, int] | None = None, checkpoint_s: float = 1.0,
                  log_level: int = logging.WARNING) -> None:
-        self.node = node
         self.packing = workers or {}        # node name -> packed worker processes (0: one each)
         self.quota: dict[str, int] = {}     # node name -> modules per packed worker at start
         self.checkpoint_s = checkpoint_s
@@ -102,7 +101,6 @@ class Executor:
         self._lock = threading.RLock()
         self._stopping = threading.Event()
         self._wake_r, self._wake_w = socket.socketpair()
-        self._deaths: deque[str] = deque()
         self._monitor = threading.Thread(target=self._watch, name="pb3a-monitor", daemon=True)
         reap_orphans()
         self._monitor.start()

@@ -21,6 +21,7 @@ from pb3a.kernel.loading import resolve_class
 from pb3a.kernel.module import RESTART_POLICIES, Module
 from pb3a.kernel.ports import Policy
 from pb3a.runtime.executor import Executor
+from pb3a.runtime.stats import collect
 
 log = logging.getLogger("pb3a")
 
@@ -40,7 +41,7 @@ class Running:
         self.plan = plan
         self.name = plan.name
         packing = {name: node.workers for name, node in plan.nodes.items()}
-        self._executor = Executor("local", workers=packing, checkpoint_s=checkpoint_s,
+        self._executor = Executor(workers=packing, checkpoint_s=checkpoint_s,
                                   log_level=log_level)
         self._lock = self._executor._lock        # the global configuration lock
         self._executor.handler = self._agent_request
@@ -212,8 +213,7 @@ class Running:
     # -- figures ---------------------------------------------------------------------
     def stats(self) -> dict[str, Any]:
         """Per module: steps, events, CPU time, errors; per link: values, drops, latency, rate."""
-        from pb3a.runtime.stats import collect
-        return collect(self._executor)
+        return {"system": self.name, **collect(self._executor)}
 
 
 def _swap_problems(name: str, old: type, new: type, links: dict[str, FlatLink],

@@ -49,5 +49,4 @@ def collect(executor: Executor, timeout: float = 5.0) -> dict[str, Any]:
                       "rate": figures.get("rate", 0.0),
                       "link_failures": figures.get("link_failures", 0),
                       "ring_bytes_used": ring.get("used", 0)}
-    return {"system": executor.node, "modules": modules, "links": links,
-            "failures": list(executor.failures)}
+    return {"modules": modules, "links": links, "failures": list(executor.failures)}
