@@ -98,7 +98,7 @@ class Executor:
         self._run = f"{os.getpid()}-{next(_run_ids)}"
         self._futures: dict[int, Future[Any]] = {}
         self._ids = itertools.count()
-        self._lock = threading.RLock()
+        self.lock = threading.RLock()                 # the global configuration lock
         self._stopping = threading.Event()
         self._wake_r, self._wake_w = socket.socketpair()
         self._monitor = threading.Thread(target=self._watch, name="pb3a-monitor", daemon=True)
@@ -127,6 +127,13 @@ class Executor:
             if count < quota:
                 return key
         return min(counts, key=counts.__getitem__)
+
+    def expect(self, specs: list[FlatModule]) -> None:
+        """Size the packed workers for the modules about to be added, in their order."""
+        for node, packing in self.packing.items():
+            if packing:
+                count = sum(1 for spec in specs if spec.node == node and not spec.group)
+                self.quota[node] = -(-count // packing)
 
     def _spawn(self, handle: WorkerHandle) -> None:
         parent, child = _context.Pipe()
@@ -366,7 +373,7 @@ class Executor:
 
     def _recover(self, handle: WorkerHandle, code: int | None) -> None:
         from pb3a.runtime.recovery import recover  # the restart policy lives there
-        with self._lock:
+        with self.lock:
             recover(self, handle, code)
 
     # -- shutdown ------------------------------------------------------------
@@ -390,7 +397,7 @@ class Executor:
     def shutdown(self, timeout: float = 10.0) -> None:
         """Stop modules in reverse start order, then workers, then free every ring."""
         deadline = time.monotonic() + timeout
-        with self._lock:
+        with self.lock:
             for name in reversed(list(self.modules)):
                 left = max(0.1, deadline - time.monotonic())
                 try:

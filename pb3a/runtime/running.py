@@ -43,7 +43,7 @@ class Running:
         packing = {name: node.workers for name, node in plan.nodes.items()}
         self._executor = Executor(workers=packing, checkpoint_s=checkpoint_s,
                                   log_level=log_level)
-        self._lock = self._executor._lock        # the global configuration lock
+        self._lock = self._executor.lock         # the global configuration lock
         self._executor.handler = self._agent_request
         self._stopped = threading.Event()
 
@@ -51,10 +51,7 @@ class Running:
     def start(self) -> None:
         """Instantiate every module, wire every link, then run ``setup`` in order."""
         ex = self._executor
-        for node, packing in ex.packing.items():
-            if packing:
-                count = sum(1 for m in self.plan.modules.values() if m.node == node and not m.group)
-                ex.quota[node] = -(-count // packing)
+        ex.expect(list(self.plan.modules.values()))
         try:
             with self._lock:
                 for spec in self.plan.modules.values():
