@@ -23,7 +23,7 @@ from collections import deque
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass, field
-from multiprocessing import spawn
+from multiprocessing import spawn as mp_spawn
 from typing import TYPE_CHECKING, Any
 
 import cloudpickle
@@ -135,7 +135,8 @@ class Executor:
                 count = sum(1 for spec in specs if spec.node == node and not spec.group)
                 self.quota[node] = -(-count // packing)
 
-    def _spawn(self, handle: WorkerHandle) -> None:
+    def spawn(self, handle: WorkerHandle) -> None:
+        """Start (or restart) the worker process behind ``handle``."""
         parent, child = _context.Pipe()
         process = _context.Process(
             target=worker_main, name=f"pb3a-worker-{handle.key}", daemon=True,
@@ -150,7 +151,7 @@ class Executor:
         if handle is None:
             handle = WorkerHandle(key, bell=f"pb3a-{self._run}-{key}")
             self.workers[key] = handle
-            self._spawn(handle)
+            self.spawn(handle)
         return handle
 
     # -- requests ------------------------------------------------------------
@@ -193,9 +194,10 @@ class Executor:
         record = ModuleRecord(spec, key, cloudpickle.dumps(spec.cls))
         self.modules[spec.name] = record
         handle.modules.append(spec.name)
-        self._instantiate(record, spec.state if state is None else state)
+        self.instantiate(record, spec.state if state is None else state)
 
-    def _instantiate(self, record: ModuleRecord, state: dict[str, Any]) -> None:
+    def instantiate(self, record: ModuleRecord, state: dict[str, Any]) -> None:
+        """Create the module in its worker with ``state`` (not started)."""
         spec = record.spec
         self.call(record.worker, "add", name=spec.name, cls=record.blob, period=spec.period,
                   restart=spec.restart, state=state)
@@ -426,7 +428,7 @@ def _start_without_main(process: Any) -> None:
     scripts without an ``if __name__ == "__main__"`` guard. Workers never need
     it: module classes travel with cloudpickle (by value when defined in main).
     """
-    original = spawn.get_preparation_data
+    original = mp_spawn.get_preparation_data
 
     def preparation(name: str) -> dict[str, Any]:
         data = original(name)
@@ -435,11 +437,11 @@ def _start_without_main(process: Any) -> None:
         return data
 
     with _start_lock:
-        spawn.get_preparation_data = preparation
+        mp_spawn.get_preparation_data = preparation
         try:
             process.start()
         finally:
-            spawn.get_preparation_data = original
+            mp_spawn.get_preparation_data = original
 
 
 def _ring_bytes(cls: type, port: str) -> int:

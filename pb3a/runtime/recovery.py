@@ -45,13 +45,13 @@ def recover(executor: Executor, handle: WorkerHandle, code: int | None) -> None:
     if not revive:
         return
     try:
-        executor._spawn(handle)
+        executor.spawn(handle)
         for name in revive:
             record = executor.modules[name]
             state = record.spec.state
             if record.spec.restart == "last-state" and record.checkpoint is not None:
                 state = cloudpickle.loads(record.checkpoint)
-            executor._instantiate(record, state)
+            executor.instantiate(record, state)
             record.restarts += 1
         revived = set(revive)
         links = list(executor.links.values())
