@@ -311,17 +311,23 @@ class Worker:
                 task()
 
     def _receive(self) -> None:
+        # Drain every ring, run what became ready, then announce sleep and look once
+        # more (the announcement and the look are the reader's half of the ring's
+        # wake-up hand-shake) before sleeping on the doorbell.
         while not self._closing.is_set():
             try:
                 links = list(self.inbound.values())
-                count = sum(link.drain() for link in links)
+                for link in links:
+                    link.drain()
                 if self._ready:
                     self._run_ready()
-                if count or self._ready:          # more to deliver or to dispatch
-                    continue
-                ready = [link.set_waiting(True) for link in links]
-                if not any(ready):
-                    self.bell.wait(GUARD_TIMEOUT)
+                    if self._ready:               # a module has more to do: drain first
+                        continue
+                if any(link.set_waiting(True) for link in links):
+                    for link in links:
+                        link.set_waiting(False)
+                    continue                      # more arrived meanwhile
+                self.bell.wait(GUARD_TIMEOUT)
                 for link in links:
                     link.set_waiting(False)
             except Exception:
