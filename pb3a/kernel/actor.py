@@ -66,6 +66,9 @@ class ModuleActor:
         self.lock = threading.Lock()
         self.steps = self.events = self.errors = 0
         self.cpu = 0.0
+        # Per-call CPU timing costs two system calls; a worker hosting one module
+        # turns it off and reports its whole process's CPU time instead.
+        self.timed = True
         self.last_error = ""
         self.running = False
         self._schedule = schedule     # runs a dispatch task: the event pool, or inline
@@ -152,11 +155,12 @@ class ModuleActor:
         """
         return self.call_many(hook, 1, *args) == 1
 
-    def call_many(self, hook: str, times: int, *args: Any, timed: bool = True) -> int:
+    def call_many(self, hook: str, times: int, *args: Any, timed: bool | None = None) -> int:
         """Call a hook ``times`` times under one hold of the lock; returns the calls that
         returned normally. Taking the lock (and the CPU clock) once per batch is what
         lets a busy input run at hundreds of thousands of values per second."""
         done = 0
+        timed = self.timed if timed is None else timed
         with self.lock:
             start = time.thread_time() if timed else 0.0
             fn = getattr(self.module, hook)
