@@ -267,3 +267,24 @@ class Journal(Module):
     def _note(self, what: str) -> None:
         with open(self.path, "a") as journal:
             journal.write(f"{what} {self.label}\n")
+
+
+class Spawner(Agent):
+    """On its first value spawns a probe, links it, then removes it on the next one."""
+
+    go = Input(int, policy="queue:8")
+    seen = 0
+    error = ""
+
+    def on_input(self, port) -> None:
+        port.read()
+        self.seen += 1
+        if self.seen == 1:
+            self.runtime.spawn("probe", Last)
+            self.runtime.link("scale.y", "probe.x")
+            try:
+                self.runtime.set_state("agent", seen=0)
+            except ValueError as exc:
+                self.error = str(exc)
+        elif self.seen == 2:
+            self.runtime.remove("probe")

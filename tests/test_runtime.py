@@ -21,6 +21,7 @@ from sample_modules import (
     Overlap,
     Pid,
     Scale,
+    Spawner,
 )
 
 from pb3a import ConfigError, ModuleNotFound, System
@@ -284,3 +285,16 @@ def test_packed_modules_fill_workers_in_declaration_order() -> None:
     assert len({m["pid"] for m in stats["modules"].values()}) == 2
     transports = [link["transport"] for link in stats["links"].values()]
     assert transports.count("shm") <= 1            # only a chain cut by the split
+
+
+def test_an_agent_spawns_links_and_removes_modules() -> None:
+    system = pipeline()
+    system.add("agent", Spawner)
+    system.add("trigger", Counter, state={"limit": 1}, period=0.05)
+    system.link("trigger.out", "agent.go")
+    with system.launch() as run:
+        eventually(lambda: "probe" in run.stats()["modules"], what="the spawned module")
+        eventually(lambda: run.state("probe")["value"] == 3.0, what="values at the probe")
+        assert "cannot set_state itself" in run.state("agent")["error"]
+        run.set_state("trigger", limit=2)
+        eventually(lambda: "probe" not in run.stats()["modules"], what="the probe removed")
