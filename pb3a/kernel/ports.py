@@ -307,6 +307,7 @@ class OutputPort:
         self.owner = owner
         self.written = 0
         self._sinks: dict[str, tuple[Callable[[Any], Any], Callable[[Sequence[Any]], Any]]] = {}
+        self._ones: tuple[Callable[[Any], Any], ...] = ()     # the write() path, prebuilt
         self._lock = threading.Lock()
 
     def write(self, value: Any) -> None:
@@ -315,7 +316,7 @@ class OutputPort:
             self.spec.check(value)
         with self._lock:
             self.written += 1
-            for one, _ in self._sinks.values():
+            for one in self._ones:
                 one(value)
 
     def write_many(self, values: Iterable[Any]) -> None:
@@ -340,11 +341,14 @@ class OutputPort:
                     one(value)
         with self._lock:
             self._sinks[key] = (one, many)
+            self._ones = tuple(pair[0] for pair in self._sinks.values())
 
     def disconnect(self, key: str) -> bool:
         """Remove a link; False if there was none. No write is in progress on return."""
         with self._lock:
-            return self._sinks.pop(key, None) is not None
+            found = self._sinks.pop(key, None) is not None
+            self._ones = tuple(pair[0] for pair in self._sinks.values())
+            return found
 
     @property
     def links(self) -> list[str]:

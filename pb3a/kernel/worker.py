@@ -34,7 +34,7 @@ if TYPE_CHECKING:
 log = logging.getLogger("pb3a.worker")
 
 GUARD_TIMEOUT = 0.5      # longest sleep of the receiver (a guard; wake-ups are not lost)
-SPIN_S = 100e-6          # poll this long for more values right after a busy spell
+SPIN_S = 100e-6          # values closer than this count as dense; poll this long for the next
 ERROR_REPORT_S = 1.0     # a module's exceptions are reported at most this often (all counted)
 
 
@@ -324,17 +324,18 @@ class Worker:
         # Drain every ring, run what became ready, then announce sleep and look once
         # more (the announcement and the look are the reader's half of the ring's
         # wake-up hand-shake) before sleeping on the doorbell.
-        last_busy = 0.0
+        gap = last = 0.0                   # time between the last two deliveries
         while not self._closing.is_set():
             try:
                 links = list(self.inbound.values())
                 if sum([link.drain() for link in links]):
-                    last_busy = time.monotonic()
+                    now = time.monotonic()
+                    gap, last = now - last, now
                 if self._ready:
                     self._run_ready()
                     if self._ready:               # a module has more to do: drain first
                         continue
-                if last_busy and self._spin(links, last_busy):
+                if gap < SPIN_S and self._spin(links):
                     continue
                 if any(link.set_waiting(True) for link in links):
                     for link in links:
@@ -347,14 +348,11 @@ class Worker:
                 log.exception("receiver: unexpected error; going on")
 
     @staticmethod
-    def _spin(links: list[_Inbound], last_busy: float) -> bool:
+    def _spin(links: list[_Inbound]) -> bool:
         """While values flow densely, poll briefly before sleeping: the next value is
         likely microseconds away, and sleeping would make its writer ring (a system
         call) and its reader wake (tens of microseconds). Sparse traffic never spins."""
-        now = time.monotonic()
-        if now - last_busy > SPIN_S:
-            return False
-        deadline = now + SPIN_S
+        deadline = time.monotonic() + SPIN_S
         while time.monotonic() < deadline:
             if any(link.ring.has_data() for link in links):
                 return True
