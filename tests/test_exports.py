@@ -1,0 +1,24 @@
+"""The public API is exactly what ``pb3a.__all__`` says, and each name is importable."""
+
+from __future__ import annotations
+
+import pb3a
+
+
+def test_public_names_are_exactly_the_documented_ones() -> None:
+    assert pb3a.__all__ == sorted(pb3a.__all__)
+    assert set(pb3a.__all__) == {
+        "Agent", "ConfigError", "Input", "InputPort", "Macro", "Module", "ModuleNotFound",
+        "Output", "OutputPort", "PB3AError", "Running", "RuntimeFailure", "RuntimeTimeout",
+        "System"}
+    for name in pb3a.__all__:
+        assert getattr(pb3a, name).__doc__, f"{name} has no docstring"
+
+
+def test_errors_subclass_the_nearest_builtin() -> None:
+    assert issubclass(pb3a.ConfigError, ValueError)
+    assert issubclass(pb3a.ModuleNotFound, LookupError)
+    assert issubclass(pb3a.RuntimeTimeout, TimeoutError)
+    assert issubclass(pb3a.RuntimeFailure, RuntimeError)
+    assert all(issubclass(e, pb3a.PB3AError) for e in (
+        pb3a.ConfigError, pb3a.ModuleNotFound, pb3a.RuntimeTimeout, pb3a.RuntimeFailure))
