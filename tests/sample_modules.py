@@ -288,3 +288,12 @@ class Spawner(Agent):
                 self.error = str(exc)
         elif self.seen == 2:
             self.runtime.remove("probe")
+
+
+class Crasher(Module):
+    """Kills its own worker process on its first step: a crash loop."""
+
+    period = 0.01
+
+    def step(self) -> None:
+        os._exit(3)

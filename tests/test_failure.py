@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 from conftest import alive, eventually
-from sample_modules import Faulty, FloatSource, Journal, Last, Scale, SlowTeardown, Steady
+from sample_modules import Crasher, Faulty, FloatSource, Journal, Last, Scale, SlowTeardown, Steady
 
 from pb3a import System
 from pb3a.transport.shm import live_segments
@@ -182,3 +182,17 @@ def test_modules_start_in_order_and_stop_in_reverse_order(tmp_path: Path) -> Non
         pass
     assert journal.read_text().split("\n")[:-1] == [
         "start a", "start b", "start c", "stop c", "stop b", "stop a"]
+
+
+def test_a_crash_loop_gives_up_after_the_restart_intensity() -> None:
+    system = System("crash-loop")
+    system.add("crasher", Crasher, restart="fresh")
+    system.add("other", Steady)
+    with system.launch() as run:
+        figures = eventually(lambda: (m := run.stats()["modules"]["crasher"])["status"]
+                             == "failed" and m, timeout=30, what="giving up")
+        failures = run.stats()["failures"]
+        before = run.state("other")["count"]
+        eventually(lambda: run.state("other")["count"] > before, what="the other goes on")
+    assert figures["restarts"] == 5
+    assert any("gave up" in failure and "crasher" in failure for failure in failures)

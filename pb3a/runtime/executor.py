@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import itertools
 import logging
+import math
 import multiprocessing
 import multiprocessing.connection
 import os
@@ -32,6 +33,7 @@ import numpy as np
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.kernel.config import FlatLink, FlatModule
 from pb3a.kernel.worker import worker_main
+from pb3a.runtime.recovery import recover
 from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import reap_orphans, segment_name
 
@@ -41,7 +43,6 @@ if TYPE_CHECKING:
 log = logging.getLogger("pb3a.executor")
 
 REQUEST_TIMEOUT = 10.0
-RESTART_INTENSITY = (5, 30.0)   # at most 5 restarts of one worker in 30 s (Erlang's MaxR/MaxT)
 SMALL_RING = 1 << 20
 LARGE_RING = 16 << 20
 ARRAYS_PER_RING = 8      # a link of pinned arrays holds this many in flight (8 MiB: stays in L3)
@@ -162,20 +163,19 @@ class Executor:
 
     def submit(self, worker: str, op: str, /, **args: Any) -> Future[Any]:
         """Send one request to a worker; the future holds its answer."""
-        key = worker
-        handle = self.workers[key]
+        handle = self.workers[worker]
         future: Future[Any] = Future()
         if not handle.alive:
-            future.set_exception(RuntimeFailure(f"worker {key!r} is not running"))
+            future.set_exception(RuntimeFailure(f"worker {worker!r} is not running"))
             return future
         req_id = next(self._ids)
         self._futures[req_id] = future
-        future.pb3a_worker = key   # type: ignore[attr-defined]
+        future.pb3a_worker = worker   # type: ignore[attr-defined]
         try:
             handle.send((req_id, op, args))
         except (OSError, ValueError) as exc:
             self._futures.pop(req_id, None)
-            future.set_exception(RuntimeFailure(f"worker {key!r} is gone: {exc}"))
+            future.set_exception(RuntimeFailure(f"worker {worker!r} is gone: {exc}"))
         return future
 
     @staticmethod
@@ -203,10 +203,20 @@ class Executor:
                   restart=spec.restart, state=state)
 
     def start_modules(self, names: list[str]) -> None:
-        """Run ``setup`` and start the modules, in order."""
+        """Run ``setup`` and start the modules, in order.
+
+        A worker that dies meanwhile is left to its modules' restart policies.
+        """
         for name in names:
             record = self.modules[name]
-            self.call(record.worker, "start", names=[name])
+            try:
+                self.call(record.worker, "start", names=[name])
+            except RuntimeFailure:
+                process = self.workers[record.worker].process
+                process.join(1.0)          # a pipe error may come before the death is seen
+                if process.is_alive():
+                    raise
+                continue
             record.status = "running"
 
     def connect(self, link: FlatLink) -> None:
@@ -323,7 +333,7 @@ class Executor:
                 else:
                     future.set_exception(RuntimeFailure(f"worker {handle.key!r}: {result}"))
         except (EOFError, OSError):
-            pass
+            return                                     # it died: the sentinel reports it
 
     def _notice(self, handle: WorkerHandle, kind: str, args: dict[str, Any]) -> None:
         if kind == "checkpoint":
@@ -374,9 +384,9 @@ class Executor:
                          name=f"pb3a-restart-{handle.key}").start()
 
     def _recover(self, handle: WorkerHandle, code: int | None) -> None:
-        from pb3a.runtime.recovery import recover  # the restart policy lives there
         with self.lock:
-            recover(self, handle, code)
+            if not self._stopping.is_set():     # a shutdown may have come first
+                recover(self, handle, code)
 
     # -- shutdown ------------------------------------------------------------
     def _stop_worker(self, handle: WorkerHandle, timeout: float) -> None:
@@ -448,7 +458,7 @@ def _ring_bytes(cls: type, port: str) -> int:
     """Ring size for a link: room for ARRAYS_PER_RING pinned arrays, else a default."""
     spec = cls.outputs[port]
     if spec.shape is not None and spec.dtype is not None:
-        item = int(np.prod(spec.shape)) * spec.dtype.itemsize + 128
+        item = math.prod(spec.shape) * spec.dtype.itemsize + 128
         return max(SMALL_RING, ARRAYS_PER_RING * item)
     if issubclass(spec.type, np.ndarray) or spec.type is object:
         return LARGE_RING

@@ -22,10 +22,11 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("pb3a.executor")
 
+RESTART_INTENSITY = (5, 30.0)   # at most 5 restarts of one worker in 30 s (Erlang's MaxR/MaxT)
+
 
 def recover(executor: Executor, handle: WorkerHandle, code: int | None) -> None:
     """Apply the restart policy of every module that ran in the dead worker."""
-    from pb3a.runtime.executor import RESTART_INTENSITY
     limit, window = RESTART_INTENSITY
     now = time.monotonic()
     handle.restarts.append(now)
