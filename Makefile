@@ -23,7 +23,10 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)
-	$(BIN)/python bench/local_link.py
+	mkdir -p bench/results
+	for b in local_link latency startup; do \
+	  $(BIN)/python bench/$$b.py > bench/results/$$b.json || exit 1; done
+	@echo "results in bench/results/*.json"
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache
