@@ -17,6 +17,7 @@ import signal
 import threading
 import time
 from dataclasses import dataclass, field
+from multiprocessing import reduction
 from typing import TYPE_CHECKING, Any
 
 import cloudpickle
@@ -80,14 +81,14 @@ class _Inbound:
 class Worker:
     """Everything one worker process runs; ``serve`` is its control loop."""
 
-    def __init__(self, conn: Any, key: str, bell_name: str, checkpoint_s: float) -> None:
+    def __init__(self, conn: Any, key: str, bell: int, checkpoint_s: float) -> None:
         self.conn = conn
         self.key = key
         self.actors: dict[str, ModuleActor] = {}
         self.restart_policy: dict[str, str] = {}
         self.pool = EventPool()
-        self.bell = Doorbell(bell_name)
-        self._wake = BellPull(bell_name)
+        self.bell = Doorbell(bell)
+        self._wake = BellPull(os.dup(bell))
         self.inbound: dict[str, _Inbound] = {}
         self.outbound: dict[str, tuple[str, str, ShmRing | None, BellPull | None]] = {}
         self._send_lock = threading.Lock()
@@ -207,7 +208,7 @@ class Worker:
         return 0 if link is None else link.close()
 
     def op_link_out(self, key: str, src: str, src_port: str, ring: str | None = None,
-                    bell: str | None = None, dst: str | None = None,
+                    dst: str | None = None,
                     dst_port: str | None = None, policy: str | None = None) -> None:
         port = self.actors[src].outputs[src_port]
         if ring is None:                                 # both ends in this process
@@ -222,7 +223,8 @@ class Worker:
             port.connect(key, one, many)
             self.outbound[key] = (src, src_port, None, None)
         else:
-            shm_ring, pull = ShmRing.attach(ring), BellPull(bell)   # type: ignore[arg-type]
+            # The reader's doorbell follows this request on the pipe (SCM_RIGHTS).
+            shm_ring, pull = ShmRing.attach(ring), BellPull(reduction.recv_handle(self.conn))
             shm_ring.wake = pull.ring
             port.connect(key, shm_ring.write, shm_ring.write_many)
             self.outbound[key] = (src, src_port, shm_ring, pull)
@@ -380,7 +382,7 @@ def _on_sigterm(signum: int, frame: object) -> None:
     raise _Terminated
 
 
-def worker_main(conn: Any, key: str, bell_name: str, checkpoint_s: float, level: int) -> None:
+def worker_main(conn: Any, key: str, checkpoint_s: float, level: int) -> None:
     """Entry point of a worker process.
 
     Ctrl-C in a terminal reaches every process of the group: workers ignore it and
@@ -390,7 +392,8 @@ def worker_main(conn: Any, key: str, bell_name: str, checkpoint_s: float, level:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _on_sigterm)
     logging.basicConfig(level=level, format=f"%(asctime)s pb3a[{key}] %(levelname)s %(message)s")
-    worker = Worker(conn, key, bell_name, checkpoint_s)
+    bell = reduction.recv_handle(conn)          # the executor sends our doorbell first
+    worker = Worker(conn, key, bell, checkpoint_s)
     try:
         worker.serve()
     except _Terminated:

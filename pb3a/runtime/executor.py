@@ -24,6 +24,7 @@ from collections import deque
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass, field
+from multiprocessing import reduction
 from multiprocessing import spawn as mp_spawn
 from typing import TYPE_CHECKING, Any
 
@@ -34,6 +35,7 @@ from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.kernel.config import FlatLink, FlatModule
 from pb3a.kernel.worker import worker_main
 from pb3a.runtime.recovery import recover
+from pb3a.transport.doorbell import new_bell
 from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import reap_orphans, segment_name
 
@@ -49,13 +51,12 @@ ARRAYS_PER_RING = 8      # a link of pinned arrays holds this many in flight (8 
 
 _context = multiprocessing.get_context("forkserver")
 _context.set_forkserver_preload(["pb3a.kernel.worker", "numpy", "cloudpickle"])
-_run_ids = itertools.count()
 
 
 @dataclass
 class WorkerHandle:
     key: str
-    bell: str
+    bell: int = field(default_factory=new_bell)    # the worker's doorbell (an eventfd)
     process: Any = None
     conn: Any = None
     modules: list[str] = field(default_factory=list)
@@ -64,10 +65,12 @@ class WorkerHandle:
     pid: int = 0
     send_lock: threading.Lock = field(default_factory=threading.Lock)
 
-    def send(self, message: Any) -> None:
-        """Send on the worker's pipe; several threads may send at once."""
-        with self.send_lock:
+    def send(self, message: Any, fd: int | None = None) -> None:
+        """Send on the worker's pipe, with a descriptor right behind it if given."""
+        with self.send_lock:                     # several threads may send at once
             self.conn.send(message)
+            if fd is not None:
+                reduction.send_handle(self.conn, fd, self.pid)
 
 
 @dataclass
@@ -96,7 +99,6 @@ class Executor:
         self.workers: dict[str, WorkerHandle] = {}
         self.failures: list[str] = []                 # what went wrong, for stats and logs
         self.handler: Any = None                      # applies agents' requests (op, args)
-        self._run = f"{os.getpid()}-{next(_run_ids)}"
         self._futures: dict[int, Future[Any]] = {}
         self._ids = itertools.count()
         self.lock = threading.RLock()                 # the global configuration lock
@@ -141,16 +143,17 @@ class Executor:
         parent, child = _context.Pipe()
         process = _context.Process(
             target=worker_main, name=f"pb3a-worker-{handle.key}", daemon=True,
-            args=(child, handle.key, handle.bell, self.checkpoint_s, self.log_level))
+            args=(child, handle.key, self.checkpoint_s, self.log_level))
         _start_without_main(process)
         child.close()
         handle.process, handle.conn, handle.alive, handle.pid = process, parent, True, process.pid
+        reduction.send_handle(parent, handle.bell, process.pid)   # the worker's first read
         self._poke()
 
     def ensure_worker(self, key: str) -> WorkerHandle:
         handle = self.workers.get(key)
         if handle is None:
-            handle = WorkerHandle(key, bell=f"pb3a-{self._run}-{key}")
+            handle = WorkerHandle(key)
             self.workers[key] = handle
             self.spawn(handle)
         return handle
@@ -161,8 +164,9 @@ class Executor:
         """Send one request to a worker and wait for its answer."""
         return self.result(self.submit(worker, op, **args), op, worker, timeout)
 
-    def submit(self, worker: str, op: str, /, **args: Any) -> Future[Any]:
-        """Send one request to a worker; the future holds its answer."""
+    def submit(self, worker: str, op: str, /, _fd: int | None = None, **args: Any) -> Future[Any]:
+        """Send one request to a worker (and a descriptor after it); the future holds
+        its answer."""
         handle = self.workers[worker]
         future: Future[Any] = Future()
         if not handle.alive:
@@ -172,7 +176,7 @@ class Executor:
         self._futures[req_id] = future
         future.pb3a_worker = worker   # type: ignore[attr-defined]
         try:
-            handle.send((req_id, op, args))
+            handle.send((req_id, op, args), _fd)
         except (OSError, ValueError) as exc:
             self._futures.pop(req_id, None)
             future.set_exception(RuntimeFailure(f"worker {worker!r} is gone: {exc}"))
@@ -245,7 +249,7 @@ class Executor:
                       dst=link.dst, dst_port=link.dst_port, policy=str(link.policy))
         else:
             self.call(src.worker, "link_out", key=link.key, src=link.src, src_port=link.src_port,
-                      ring=self.rings[link.key].name, bell=self.workers[dst.worker].bell)
+                      ring=self.rings[link.key].name, _fd=self.workers[dst.worker].bell)
 
     @contextlib.contextmanager
     def paused(self, names: list[str], timeout: float = REQUEST_TIMEOUT) -> Iterator[None]:
@@ -391,6 +395,8 @@ class Executor:
     # -- shutdown ------------------------------------------------------------
     def _stop_worker(self, handle: WorkerHandle, timeout: float) -> None:
         handle.alive = False
+        with contextlib.suppress(OSError):
+            os.close(handle.bell)              # writers hold their own duplicates
         if handle.process is None:
             return
         with contextlib.suppress(OSError, ValueError):
