@@ -8,8 +8,9 @@ the plan to the runtime.
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pb3a.kernel.config import (
     LinkSpec,
@@ -22,6 +23,9 @@ from pb3a.kernel.config import (
     validate,
 )
 from pb3a.kernel.drawing import plan_to_dot
+
+if TYPE_CHECKING:
+    from pb3a.runtime.running import Running
 
 
 class System:
@@ -78,11 +82,15 @@ class System:
         """Graphviz DOT: a cluster per node, modules with their ports, links between them."""
         return plan_to_dot(self.plan())
 
-    def launch(self, **kwargs: Any) -> Any:
-        """Start the system (see ``pb3a.runtime.running.launch``); use it as a context manager."""
+    def launch(self, *, checkpoint_s: float = 1.0, log_level: int = logging.WARNING) -> Running:
+        """Validate, then start every module on this machine; use it as a context manager.
+
+        ``checkpoint_s`` is how often ``restart = "last-state"`` modules are
+        checkpointed; ``log_level`` applies to the worker processes' logs.
+        """
         from pb3a.runtime.running import launch
 
-        return launch(self.plan(), **kwargs)
+        return launch(self.plan(), checkpoint_s=checkpoint_s, log_level=log_level)
 
     def __repr__(self) -> str:
         return (f"System({self.name!r}, {len(self._spec.modules)} modules, "
