@@ -81,12 +81,15 @@ def test_sigkill_with_restart_last_state_resumes_from_a_checkpoint() -> None:
     system = System("last")
     system.add("victim", Steady, restart="last-state")
     with system.launch(checkpoint_s=0.1) as run:
-        eventually(lambda: run.state("victim")["count"] > 40, what="steps and checkpoints")
+        eventually(lambda: run.state("victim")["count"] > 40, what="steps")
+        taken = run.stats()["modules"]["victim"]["checkpoints"]
+        eventually(lambda: run.stats()["modules"]["victim"]["checkpoints"] > taken,
+                   what="a checkpoint taken after 40 steps")
         old = _kill_worker(run, "victim")
         eventually(lambda: run.stats()["modules"]["victim"]["restarts"] == 1, what="restart")
         state = eventually(lambda: (s := run.state("victim"))["pid"] not in (0, old) and s,
                            what="steps in the new process")
-    assert state["count"] > 30            # resumed from a checkpoint, not from 0
+    assert state["count"] > 40            # resumed from the checkpoint, not from 0
 
 
 def test_links_survive_a_restart_of_the_reading_worker() -> None:

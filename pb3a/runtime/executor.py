@@ -80,6 +80,7 @@ class ModuleRecord:
     blob: bytes
     status: str = "starting"          # starting | running | failed | stopped
     checkpoint: bytes | None = None
+    checkpoints: int = 0              # checkpoints received (restart = "last-state")
     restarts: int = 0
 
 
@@ -344,6 +345,7 @@ class Executor:
             record = self.modules.get(args["name"])
             if record is not None:
                 record.checkpoint = args["state"]
+                record.checkpoints += 1
         elif kind == "error":
             count = args["suppressed"]
             more = f" ({count} more since the last report)" if count else ""

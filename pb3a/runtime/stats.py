@@ -24,8 +24,9 @@ def collect(executor: Executor, timeout: float = 5.0) -> dict[str, Any]:
     ports: dict[tuple[str, str], Any] = {}
     for name, record in executor.modules.items():
         entry = {"node": record.spec.node, "worker": record.worker, "status": record.status,
-                 "restarts": record.restarts, "pid": None, "steps": 0, "events": 0,
-                 "errors": 0, "cpu": 0.0, "last_error": "", "inputs": {}, "outputs": {}}
+                 "restarts": record.restarts, "checkpoints": record.checkpoints, "pid": None,
+                 "steps": 0, "events": 0, "errors": 0, "cpu": 0.0, "last_error": "",
+                 "inputs": {}, "outputs": {}}
         report = reports.get(record.worker)
         if report is not None and name in report["modules"]:
             entry.update(report["modules"][name])
