@@ -297,3 +297,9 @@ class Crasher(Module):
 
     def step(self) -> None:
         os._exit(3)
+
+
+class ArrayHolder(Module):
+    """Keeps up to 10 arrays as zero-copy views and never reads them."""
+
+    x = Input(np.ndarray, shape=(1024, 128), dtype="float64", policy="queue:10")

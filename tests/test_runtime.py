@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 from conftest import eventually
 from sample_modules import (
+    ArrayHolder,
     ArraySink,
     ArraySource,
     Burst,
@@ -298,3 +299,15 @@ def test_an_agent_spawns_links_and_removes_modules() -> None:
         assert "cannot set_state itself" in run.state("agent")["error"]
         run.set_state("trigger", limit=2)
         eventually(lambda: "probe" not in run.stats()["modules"], what="the probe removed")
+
+
+def test_an_input_may_hold_its_whole_queue_of_zero_copy_arrays() -> None:
+    system = System("held")
+    system.add("src", ArraySource)
+    system.add("hold", ArrayHolder)
+    system.link("src.out", "hold.x")
+    with system.launch() as run:
+        figures = eventually(lambda: (i := run.stats()["modules"]["hold"]["inputs"]["x"])
+                             ["received"] >= 25 and i, timeout=30, what="25 arrays")
+    assert figures["pending"] == 10                   # ten views held in the ring at once
+    assert figures["drops"] == figures["received"] - 10   # only queue overflow, no ring gaps

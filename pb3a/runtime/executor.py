@@ -33,6 +33,7 @@ import numpy as np
 
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.kernel.config import FlatLink, FlatModule
+from pb3a.kernel.ports import Policy
 from pb3a.kernel.worker import worker_main
 from pb3a.runtime.recovery import recover
 from pb3a.transport.doorbell import new_bell
@@ -47,7 +48,8 @@ log = logging.getLogger("pb3a.executor")
 REQUEST_TIMEOUT = 10.0
 SMALL_RING = 1 << 20
 LARGE_RING = 16 << 20
-ARRAYS_PER_RING = 8      # a link of pinned arrays holds this many in flight (8 MiB: stays in L3)
+ARRAYS_PER_RING = 4       # pinned arrays in flight on a link, at least
+MAX_ARRAYS_PER_RING = 64  # ... and at most (64 MiB for 1 MiB arrays)
 
 _context = multiprocessing.get_context("forkserver")
 _context.set_forkserver_preload(["pb3a.kernel.worker", "numpy", "cloudpickle"])
@@ -237,7 +239,8 @@ class Executor:
             return
         ring = self.rings.get(link.key)
         if ring is None:
-            ring = ShmRing.create(segment_name("ring"), _ring_bytes(src.spec.cls, link.src_port))
+            ring = ShmRing.create(segment_name("ring"),
+                                  _ring_bytes(src.spec.cls, link.src_port, link.policy))
             self.rings[link.key] = ring
         self.call(dst.worker, "link_in", key=link.key, dst=link.dst, dst_port=link.dst_port,
                   ring=ring.name, policy=str(link.policy))
@@ -462,12 +465,16 @@ def _start_without_main(process: Any) -> None:
             mp_spawn.get_preparation_data = original
 
 
-def _ring_bytes(cls: type, port: str) -> int:
-    """Ring size for a link: room for ARRAYS_PER_RING pinned arrays, else a default."""
+def _ring_bytes(cls: type, port: str, policy: Policy) -> int:
+    """Ring size for a link. Pinned arrays: room for the values the input may hold as
+    zero-copy views (its queue) plus a few in flight, at least ARRAYS_PER_RING and at
+    most MAX_ARRAYS_PER_RING; a small ring stays in cache. Other values: a default."""
     spec = cls.outputs[port]
     if spec.shape is not None and spec.dtype is not None:
         item = math.prod(spec.shape) * spec.dtype.itemsize + 128
-        return max(SMALL_RING, ARRAYS_PER_RING * item)
+        held = policy.size + 2 if policy.kind == "queue" else 0
+        count = min(max(ARRAYS_PER_RING, held), MAX_ARRAYS_PER_RING)
+        return max(SMALL_RING, count * item)
     if issubclass(spec.type, np.ndarray) or spec.type is object:
         return LARGE_RING
     return SMALL_RING
