@@ -212,26 +212,40 @@ class Worker:
         return 0 if link is None else link.close()
 
     def op_link_out(self, key: str, src: str, src_port: str, ring: str | None = None,
-                    dst: str | None = None,
-                    dst_port: str | None = None, policy: str | None = None) -> None:
-        port = self.actors[src].outputs[src_port]
+                    dst: str = "", dst_port: str = "", policy: str = "latest") -> None:
         if ring is None:                                 # both ends in this process
-            target = self.actors[dst].inputs[dst_port]   # type: ignore[index]
-            target.set_policy(Policy.parse(policy))      # type: ignore[arg-type]
+            self._link_out_memory(key, src, src_port, dst, dst_port, policy)
+            return
+        # The reader's doorbell follows this request on the pipe (SCM_RIGHTS): take it
+        # before anything can fail, or the next request would read it as its own.
+        pull = BellPull(reduction.recv_handle(self.conn))
+        try:
+            self._link_out_ring(key, src, src_port, ring, pull)
+        except BaseException:
+            pull.close()
+            raise
 
-            def one(value: Any, target: InputPort = target) -> None:
-                target.deliver(local_copy(value), time.monotonic())
+    def _link_out_memory(self, key: str, src: str, src_port: str, dst: str, dst_port: str,
+                         policy: str) -> None:
+        port = self.actors[src].outputs[src_port]
+        target = self.actors[dst].inputs[dst_port]
+        target.set_policy(Policy.parse(policy))
 
-            def many(values: Sequence[Any], target: InputPort = target) -> None:
-                target.deliver_many([local_copy(v) for v in values], time.monotonic())
-            port.connect(key, one, many)
-            self.outbound[key] = (src, src_port, None, None)
-        else:
-            # The reader's doorbell follows this request on the pipe (SCM_RIGHTS).
-            shm_ring, pull = ShmRing.attach(ring), BellPull(reduction.recv_handle(self.conn))
-            shm_ring.wake = pull.ring
-            port.connect(key, shm_ring.write, shm_ring.write_many)
-            self.outbound[key] = (src, src_port, shm_ring, pull)
+        def one(value: Any, target: InputPort = target) -> None:
+            target.deliver(local_copy(value), time.monotonic())
+
+        def many(values: Sequence[Any], target: InputPort = target) -> None:
+            target.deliver_many([local_copy(v) for v in values], time.monotonic())
+        port.connect(key, one, many)
+        self.outbound[key] = (src, src_port, None, None)
+
+    def _link_out_ring(self, key: str, src: str, src_port: str, ring: str,
+                       pull: BellPull) -> None:
+        port = self.actors[src].outputs[src_port]
+        shm_ring = ShmRing.attach(ring)
+        shm_ring.wake = pull.ring
+        port.connect(key, shm_ring.write, shm_ring.write_many)
+        self.outbound[key] = (src, src_port, shm_ring, pull)
 
     def op_unlink_out(self, key: str) -> None:
         entry = self.outbound.pop(key, None)
