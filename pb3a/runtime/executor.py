@@ -149,8 +149,9 @@ class Executor:
             args=(child, handle.key, self.checkpoint_s, self.log_level))
         _start_without_main(process)
         child.close()
+        # The doorbell is the worker's first read: send it before anyone can send a request.
+        reduction.send_handle(parent, handle.bell, process.pid)
         handle.process, handle.conn, handle.alive, handle.pid = process, parent, True, process.pid
-        reduction.send_handle(parent, handle.bell, process.pid)   # the worker's first read
         self._poke()
 
     def ensure_worker(self, key: str) -> WorkerHandle:
