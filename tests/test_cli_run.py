@@ -76,3 +76,11 @@ def test_run_reports_an_invalid_file_and_starts_nothing(tmp_path: Path) -> None:
                           check=False)
     assert done.returncode == 1
     assert "Nope" in done.stdout + done.stderr
+
+
+def test_the_readme_quickstart_runs_as_a_plain_script(tmp_path: Path) -> None:
+    done = subprocess.run([sys.executable, str(REPO / "examples" / "quickstart.py")],
+                          cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=60,
+                          check=False)
+    assert done.returncode == 0, done.stderr
+    assert "'gain': 10.0" in done.stdout and "tick.out" in done.stdout
