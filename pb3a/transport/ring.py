@@ -142,24 +142,11 @@ class ShmRing:
             return self.write_many((value,), timeout) == 1
         seq = self._seq                        # the common case, kept short
         self._seq = seq + 1
-        words = self._words
-        words[_W_SEQ] = seq + 1
-        head = self._head
-        offset = head % self.capacity
-        if offset + _ALIGN <= self.capacity and head + _ALIGN - self._tail <= self.capacity:
-            (_REC_INT if kind == codec.INT else _REC_FLOAT).pack_into(
-                self._data, offset, _ALIGN, kind, 0, seq, time.monotonic(), value)
-            head += _ALIGN                     # room right here: no pad, no wait
-        else:
-            head = self._put_scalar(head, seq, kind, value, time.monotonic(), timeout)
-            if head < 0:
-                return False
-        self._head = head
-        words[_W_HEAD] = head                  # publish: after the record (TSO)
-        if self.wake is not None:
-            _fence()                           # order the head store before this load
-            if words[_W_WAITING]:
-                self.wake()
+        self._words[_W_SEQ] = seq + 1
+        head = self._put_scalar(self._head, seq, kind, value, time.monotonic(), timeout)
+        if head < 0:
+            return False
+        self._publish(head)
         return True
 
     def write_many(self, values: Sequence[Any], timeout: float = WRITE_TIMEOUT) -> int:
