@@ -27,7 +27,7 @@ from pb3a.kernel.agent import Agent, RuntimeClient
 from pb3a.kernel.ports import InputPort, Policy
 from pb3a.transport.codec import local_copy
 from pb3a.transport.doorbell import BellPull, Doorbell
-from pb3a.transport.ring import ShmRing
+from pb3a.transport.ring import ShmRing, sleep
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Sequence
@@ -58,18 +58,6 @@ class _Inbound:
         if values:
             self.port.deliver_many(values, sent_at)
         return len(values)
-
-    def set_waiting(self, flag: bool) -> bool:
-        """Announce (or end) the reader's sleep; True if data is already there.
-
-        Only the receiver calls this; it takes no lock, and a ring closed under it
-        by the control thread just reports no data.
-        """
-        try:
-            self.ring.set_waiting(flag)
-            return self.ring.has_data()
-        except ValueError:                     # released memory: the link is gone
-            return False
 
     def close(self) -> int:
         """Deliver everything left in the ring, then detach."""
@@ -243,7 +231,7 @@ class Worker:
                        pull: BellPull) -> None:
         port = self.actors[src].outputs[src_port]
         shm_ring = ShmRing.attach(ring)
-        shm_ring.wake = pull.ring
+        shm_ring.set_bell(pull.fileno())
         port.connect(key, shm_ring.write, shm_ring.write_many)
         self.outbound[key] = (src, src_port, shm_ring, pull)
 
@@ -357,13 +345,7 @@ class Worker:
                         continue
                 if gap < SPIN_S and self._spin(links):
                     continue
-                if any(link.set_waiting(True) for link in links):
-                    for link in links:
-                        link.set_waiting(False)
-                    continue                      # more arrived meanwhile
-                self.bell.wait(GUARD_TIMEOUT)
-                for link in links:
-                    link.set_waiting(False)
+                sleep(self.bell.fileno(), [link.ring.core for link in links], GUARD_TIMEOUT)
             except Exception:
                 log.exception("receiver: unexpected error; going on")
 

@@ -11,9 +11,7 @@ so a busy link costs no system calls.
 
 from __future__ import annotations
 
-import contextlib
 import os
-import select
 
 
 def new_bell() -> int:
@@ -22,19 +20,14 @@ def new_bell() -> int:
 
 
 class Doorbell:
-    """The reader's end: ``wait`` blocks until rung or until the timeout."""
+    """The reader's end. The receiver blocks on it in ``ring.sleep``, which announces the
+    sleep on every inbound ring first (the reader's half of the wake-up hand-shake)."""
 
     def __init__(self, fd: int) -> None:
         self._fd = fd
 
-    def wait(self, timeout: float) -> bool:
-        """Block up to ``timeout`` seconds; True if rung. Clears every pending ring."""
-        ready, _, _ = select.select([self._fd], [], [], timeout)
-        if not ready:
-            return False
-        with contextlib.suppress(BlockingIOError):   # another waiter took it first
-            os.eventfd_read(self._fd)
-        return True
+    def fileno(self) -> int:
+        return self._fd
 
     def close(self) -> None:
         os.close(self._fd)
@@ -48,6 +41,9 @@ class BellPull:
 
     def ring(self) -> None:
         os.eventfd_write(self._fd, 1)
+
+    def fileno(self) -> int:
+        return self._fd
 
     def close(self) -> None:
         os.close(self._fd)

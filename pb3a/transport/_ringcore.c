@@ -1,0 +1,518 @@
+/* The hot path of ShmRing in C: header-word access with real memory ordering,
+ * the scalar write, the drain loop and the reader's sleep hand-shake.
+ *
+ * Why C: a value crossing a link after an idle millisecond runs every step with
+ * cold caches, where each Python operation costs microseconds; and CPython cannot
+ * issue fences, so the pure-Python ring was correct on x86-64 (TSO) only. Here
+ * the writer publishes `head` with a release store and the reader loads it with
+ * an acquire load (records are visible before the head that covers them); the
+ * reader hands bytes back with a release store of `tail`, which the writer loads
+ * with acquire. The sleep hand-shake is Dekker's (store own flag, full fence,
+ * load the other side's word), so a wake-up cannot be lost on any architecture.
+ *
+ * Layout (see ring.py): a 512-byte header of 64-bit words, one cache line
+ * each, then `capacity` data bytes of 64-byte aligned records:
+ *   u32 length | u16 kind | u16 meta length | u64 seq | f64 sent_at | ...
+ * Ints and floats ride right after that 24-byte header in a 64-byte record.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <structmember.h>
+#include <errno.h>
+#include <poll.h>
+#include <stdint.h>
+#include <string.h>
+#include <time.h>
+#include <unistd.h>
+
+#define HEADER 512
+#define W_CAP 1
+#define W_HEAD 8
+#define W_TAIL 16
+#define W_RPOS 24
+#define W_SEQ 32
+#define W_WAITING 40
+#define REC_HEAD 24
+#define SCALAR_LEN 64
+enum { K_PAD = 0, K_INT = 4, K_FLOAT = 5 };
+
+#define LOAD_ACQ(p) __atomic_load_n((p), __ATOMIC_ACQUIRE)
+#define STORE_REL(p, v) __atomic_store_n((p), (v), __ATOMIC_RELEASE)
+#define STORE_RLX(p, v) __atomic_store_n((p), (v), __ATOMIC_RELAXED)
+#define FENCE() __atomic_thread_fence(__ATOMIC_SEQ_CST)
+
+typedef struct {
+    PyObject_HEAD
+    Py_buffer view;          /* the whole segment; held until release() */
+    uint64_t *words;         /* NULL once released */
+    unsigned char *data;
+    unsigned long long cap;
+    /* the writer's private copies (only the writing process uses them) */
+    unsigned long long head, published, seq, tail;
+    /* the reader's */
+    unsigned long long rpos;
+    long long expected;      /* next sequence number expected, -1 before the first */
+    int leases;              /* array views outstanding: the tail then moves in Python */
+    int bell;                /* the reader's doorbell (eventfd) for the writer; -1: none */
+} RingCore;
+
+static double monotonic_now(void) {
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (double)ts.tv_sec + (double)ts.tv_nsec * 1e-9;
+}
+
+static int check_open(RingCore *self) {
+    if (self->words == NULL) {
+        PyErr_SetString(PyExc_ValueError, "the ring is closed");
+        return -1;
+    }
+    return 0;
+}
+
+static void put_header(unsigned char *at, uint32_t length, uint16_t kind, uint16_t meta_len,
+                       uint64_t seq, double sent_at) {
+    memcpy(at, &length, 4);
+    memcpy(at + 4, &kind, 2);
+    memcpy(at + 6, &meta_len, 2);
+    memcpy(at + 8, &seq, 8);
+    memcpy(at + 16, &sent_at, 8);
+}
+
+static int RingCore_init(RingCore *self, PyObject *args, PyObject *kwds) {
+    PyObject *segment;
+    if (!PyArg_ParseTuple(args, "O", &segment))
+        return -1;
+    if (PyObject_GetBuffer(segment, &self->view, PyBUF_WRITABLE) < 0)
+        return -1;
+    if (self->view.len < HEADER + 64) {
+        PyBuffer_Release(&self->view);
+        PyErr_SetString(PyExc_ValueError, "segment too small for a ring");
+        return -1;
+    }
+    self->words = (uint64_t *)self->view.buf;
+    self->data = (unsigned char *)self->view.buf + HEADER;
+    self->cap = self->words[W_CAP];
+    if (self->cap == 0 || self->cap % 64 || (Py_ssize_t)(HEADER + self->cap) > self->view.len) {
+        PyBuffer_Release(&self->view);
+        self->words = NULL;
+        PyErr_SetString(PyExc_ValueError, "segment header holds a bad capacity");
+        return -1;
+    }
+    self->head = self->published = LOAD_ACQ(&self->words[W_HEAD]);
+    self->seq = self->words[W_SEQ];
+    self->tail = LOAD_ACQ(&self->words[W_TAIL]);
+    self->rpos = LOAD_ACQ(&self->words[W_RPOS]);
+    self->expected = -1;
+    self->leases = 0;
+    self->bell = -1;
+    return 0;
+}
+
+static void RingCore_dealloc(RingCore *self) {
+    if (self->words != NULL)
+        PyBuffer_Release(&self->view);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static PyObject *RingCore_release(RingCore *self, PyObject *unused) {
+    if (self->words != NULL) {
+        self->words = NULL;
+        self->data = NULL;
+        PyBuffer_Release(&self->view);
+    }
+    Py_RETURN_NONE;
+}
+
+/* -- writer ------------------------------------------------------------- */
+
+/* Store the writer's head after the records (release), then, if the reader said
+ * it is going to sleep, ring its bell. The fence orders the head store before the
+ * load of `waiting` (the writer's half of the hand-shake). */
+static void publish(RingCore *self) {
+    if (self->head == self->published)
+        return;
+    self->published = self->head;
+    STORE_REL(&self->words[W_HEAD], self->head);
+    if (self->bell >= 0) {
+        FENCE();
+        if (__atomic_load_n(&self->words[W_WAITING], __ATOMIC_RELAXED)) {
+            uint64_t one = 1;
+            ssize_t done = write(self->bell, &one, 8);  /* EAGAIN: already rung enough */
+            (void)done;
+        }
+    }
+}
+
+/* Room for `length` bytes at the writer's head: the record's start (after a pad
+ * record if it would straddle the end), or -1 when the reader has not freed enough. */
+static long long reserve(RingCore *self, unsigned long long length) {
+    unsigned long long cap = self->cap, head = self->head;
+    unsigned long long offset = head % cap;
+    unsigned long long pad = offset + length > cap ? cap - offset : 0;
+    unsigned long long end = head + pad + length;
+    if (end - self->tail > cap) {
+        self->tail = LOAD_ACQ(&self->words[W_TAIL]);
+        if (end - self->tail > cap)
+            return -1;
+    }
+    if (pad)
+        put_header(self->data + offset, (uint32_t)pad, K_PAD, 0, 0, 0.0);
+    return (long long)(head + pad);
+}
+
+static PyObject *RingCore_reserve(RingCore *self, PyObject *arg) {
+    if (check_open(self) < 0)
+        return NULL;
+    unsigned long long length = PyLong_AsUnsignedLongLong(arg);
+    if (PyErr_Occurred())
+        return NULL;
+    return PyLong_FromLongLong(reserve(self, length));
+}
+
+static PyObject *RingCore_publish(RingCore *self, PyObject *unused) {
+    if (check_open(self) < 0)
+        return NULL;
+    STORE_RLX(&self->words[W_SEQ], self->seq);
+    publish(self);
+    Py_RETURN_NONE;
+}
+
+/* Write an int64 or float64 record at the head: 1 written, 0 no room (nothing
+ * changed), -1 not such a value (nothing changed), -2 error. */
+static int put_scalar(RingCore *self, PyObject *value) {
+    uint16_t kind;
+    int64_t number = 0;
+    double real = 0.0;
+    if (PyLong_CheckExact(value)) {
+        int overflow;
+        number = PyLong_AsLongLongAndOverflow(value, &overflow);
+        if (overflow)
+            return -1;
+        kind = K_INT;
+    } else if (PyFloat_CheckExact(value)) {
+        real = PyFloat_AS_DOUBLE(value);
+        kind = K_FLOAT;
+    } else {
+        return -1;
+    }
+    if (check_open(self) < 0)
+        return -2;
+    long long start = reserve(self, SCALAR_LEN);
+    if (start < 0)
+        return 0;
+    unsigned char *at = self->data + (unsigned long long)start % self->cap;
+    put_header(at, SCALAR_LEN, kind, 0, self->seq, monotonic_now());
+    if (kind == K_INT)
+        memcpy(at + REC_HEAD, &number, 8);
+    else
+        memcpy(at + REC_HEAD, &real, 8);
+    self->seq += 1;
+    self->head = (unsigned long long)start + SCALAR_LEN;
+    return 1;
+}
+
+/* put(value) -> 1, 0 or -1 as put_scalar; a written value is published at once. */
+static PyObject *RingCore_put(RingCore *self, PyObject *value) {
+    int done = put_scalar(self, value);
+    if (done == -2)
+        return NULL;
+    if (done == 1) {
+        STORE_RLX(&self->words[W_SEQ], self->seq);
+        publish(self);
+    }
+    return PyLong_FromLong(done);
+}
+
+/* stage(value): as put, but leaves publishing to publish() (a batch publishes once). */
+static PyObject *RingCore_stage(RingCore *self, PyObject *value) {
+    int done = put_scalar(self, value);
+    return done == -2 ? NULL : PyLong_FromLong(done);
+}
+
+static PyObject *RingCore_put_header(RingCore *self, PyObject *const *args, Py_ssize_t nargs) {
+    /* put_header(offset, length, kind, meta_len, seq, sent_at): a record's header */
+    if (nargs != 6) {
+        PyErr_SetString(PyExc_TypeError, "put_header takes 6 arguments");
+        return NULL;
+    }
+    if (check_open(self) < 0)
+        return NULL;
+    unsigned long long offset = PyLong_AsUnsignedLongLong(args[0]);
+    unsigned long length = PyLong_AsUnsignedLong(args[1]);
+    long kind = PyLong_AsLong(args[2]);
+    long meta_len = PyLong_AsLong(args[3]);
+    unsigned long long seq = PyLong_AsUnsignedLongLong(args[4]);
+    double sent_at = PyFloat_AsDouble(args[5]);
+    if (PyErr_Occurred())
+        return NULL;
+    if (offset + REC_HEAD > self->cap) {
+        PyErr_SetString(PyExc_ValueError, "record header outside the ring");
+        return NULL;
+    }
+    put_header(self->data + offset, (uint32_t)length, (uint16_t)kind, (uint16_t)meta_len, seq,
+               sent_at);
+    Py_RETURN_NONE;
+}
+
+static PyObject *RingCore_load_tail(RingCore *self, PyObject *unused) {
+    if (check_open(self) < 0)
+        return NULL;
+    self->tail = LOAD_ACQ(&self->words[W_TAIL]);
+    return PyLong_FromUnsignedLongLong(self->tail);
+}
+
+/* -- reader ------------------------------------------------------------- */
+
+static int has_data(RingCore *self) {
+    return LOAD_ACQ(&self->words[W_HEAD]) != self->rpos;
+}
+
+static PyObject *RingCore_has_data(RingCore *self, PyObject *unused) {
+    if (self->words == NULL)
+        Py_RETURN_FALSE;
+    return PyBool_FromLong(has_data(self));
+}
+
+static PyObject *RingCore_store_tail(RingCore *self, PyObject *arg) {
+    if (check_open(self) < 0)
+        return NULL;
+    unsigned long long tail = PyLong_AsUnsignedLongLong(arg);
+    if (PyErr_Occurred())
+        return NULL;
+    if (tail > self->words[W_TAIL])
+        STORE_REL(&self->words[W_TAIL], tail);
+    Py_RETURN_NONE;
+}
+
+static PyObject *RingCore_counters(RingCore *self, PyObject *unused) {
+    /* (head, tail, values written) as stored in the header, for statistics */
+    if (check_open(self) < 0)
+        return NULL;
+    return Py_BuildValue("KKK", LOAD_ACQ(&self->words[W_HEAD]), LOAD_ACQ(&self->words[W_TAIL]),
+                         __atomic_load_n(&self->words[W_SEQ], __ATOMIC_RELAXED));
+}
+
+static PyObject *RingCore_resume_reader(RingCore *self, PyObject *unused) {
+    /* a new reader takes over: views held by a dead reader are gone */
+    if (check_open(self) < 0)
+        return NULL;
+    self->rpos = LOAD_ACQ(&self->words[W_RPOS]);
+    STORE_REL(&self->words[W_TAIL], self->rpos);
+    Py_RETURN_NONE;
+}
+
+/* drain(limit, decode) -> (values, sent_at, gaps)
+ * Ints, floats and pads are decoded here; any other record is handed to
+ * decode(kind, offset, length, meta_len, start) in Python, which returns its value.
+ * Without array views outstanding the tail follows the read position at once. */
+static PyObject *RingCore_drain(RingCore *self, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "drain takes (limit, decode)");
+        return NULL;
+    }
+    if (check_open(self) < 0)
+        return NULL;
+    Py_ssize_t limit = PyLong_AsSsize_t(args[0]);
+    if (limit == -1 && PyErr_Occurred())
+        return NULL;
+    PyObject *decode = args[1];
+    PyObject *values = PyList_New(0);
+    if (values == NULL)
+        return NULL;
+    unsigned long long head = LOAD_ACQ(&self->words[W_HEAD]);
+    unsigned long long rpos = self->rpos, start = rpos, cap = self->cap;
+    long long expected = self->expected, gaps = 0;
+    double sent_at = 0.0;
+    while (rpos != head && PyList_GET_SIZE(values) < limit) {
+        unsigned long long offset = rpos % cap;
+        unsigned char *at = self->data + offset;
+        uint32_t length;
+        uint16_t kind, meta_len;
+        uint64_t seq;
+        memcpy(&length, at, 4);
+        memcpy(&kind, at + 4, 2);
+        memcpy(&meta_len, at + 6, 2);
+        memcpy(&seq, at + 8, 8);
+        if (length == 0 || length % 8 || offset + length > cap) {
+            PyErr_Format(PyExc_RuntimeError,
+                         "corrupt ring record at %llu (length %u): the writer misbehaved",
+                         rpos, (unsigned)length);
+            goto fail;
+        }
+        unsigned long long begin = rpos;
+        rpos += length;
+        if (kind == K_PAD)
+            continue;
+        memcpy(&sent_at, at + 16, 8);
+        PyObject *item;
+        if (kind == K_INT) {
+            int64_t number;
+            memcpy(&number, at + REC_HEAD, 8);
+            item = PyLong_FromLongLong(number);
+        } else if (kind == K_FLOAT) {
+            double real;
+            memcpy(&real, at + REC_HEAD, 8);
+            item = PyFloat_FromDouble(real);
+        } else {
+            /* Python code may drop the last array view, whose callback moves the
+             * tail up to rpos: everything before this record is consumed. */
+            self->rpos = begin;
+            item = PyObject_CallFunction(decode, "iKIHK", (int)kind, offset, (unsigned)length,
+                                         meta_len, begin);
+        }
+        if (item == NULL)
+            goto fail;
+        int failed = PyList_Append(values, item);
+        Py_DECREF(item);
+        if (failed)
+            goto fail;
+        if (expected >= 0 && (long long)seq != expected)
+            gaps += (long long)seq - expected;
+        expected = (long long)seq + 1;
+    }
+    self->expected = expected;
+    self->rpos = rpos;
+    if (rpos != start) {
+        STORE_RLX(&self->words[W_RPOS], rpos);
+        if (self->leases == 0)
+            STORE_REL(&self->words[W_TAIL], rpos);
+    }
+    return Py_BuildValue("NdL", values, sent_at, gaps);
+fail:
+    self->rpos = start;
+    Py_DECREF(values);
+    return NULL;
+}
+
+/* -- the reader's sleep ------------------------------------------------- */
+
+static void set_waiting(PyObject *rings, uint64_t flag) {
+    Py_ssize_t n = PyList_GET_SIZE(rings);
+    for (Py_ssize_t i = 0; i < n; i++) {
+        RingCore *ring = (RingCore *)PyList_GET_ITEM(rings, i);
+        if (ring->words != NULL)
+            __atomic_store_n(&ring->words[W_WAITING], flag, __ATOMIC_RELAXED);
+    }
+}
+
+static PyTypeObject RingCoreType;
+
+/* sleep(bell, rings, timeout) -> bool: announce sleep on every ring, look once
+ * more, then block on the doorbell (eventfd) without the GIL. True if woken or
+ * data was already there. Rings closed meanwhile (by another thread, which needs
+ * the GIL to do it) are skipped: ring memory is only touched while holding it. */
+static PyObject *ringcore_sleep(PyObject *module, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 3 || !PyList_CheckExact(args[1])) {
+        PyErr_SetString(PyExc_TypeError, "sleep takes (bell fd, list of RingCore, timeout)");
+        return NULL;
+    }
+    int fd = PyLong_AsLong(args[0]);
+    PyObject *rings = args[1];
+    double timeout = PyFloat_AsDouble(args[2]);
+    if (PyErr_Occurred())
+        return NULL;
+    Py_ssize_t n = PyList_GET_SIZE(rings);
+    for (Py_ssize_t i = 0; i < n; i++) {
+        if (!PyObject_TypeCheck(PyList_GET_ITEM(rings, i), &RingCoreType)) {
+            PyErr_SetString(PyExc_TypeError, "sleep: rings must be RingCore objects");
+            return NULL;
+        }
+    }
+    set_waiting(rings, 1);
+    FENCE();     /* our waiting stores before the loads of head (Dekker) */
+    int ready = 0;
+    for (Py_ssize_t i = 0; i < n && !ready; i++) {
+        RingCore *ring = (RingCore *)PyList_GET_ITEM(rings, i);
+        ready = ring->words != NULL && has_data(ring);
+    }
+    if (!ready) {
+        struct pollfd pfd = {.fd = fd, .events = POLLIN};
+        int got;
+        Py_BEGIN_ALLOW_THREADS
+        got = poll(&pfd, 1, timeout < 0 ? -1 : (int)(timeout * 1000.0 + 0.999));
+        if (got > 0) {
+            uint64_t count;
+            ssize_t done = read(fd, &count, 8);   /* EAGAIN: another waiter took it */
+            (void)done;
+        }
+        Py_END_ALLOW_THREADS
+        if (got < 0 && errno != EINTR)
+            return PyErr_SetFromErrno(PyExc_OSError);
+        ready = got > 0;
+    }
+    set_waiting(rings, 0);
+    return PyBool_FromLong(ready);
+}
+
+static PyObject *ringcore_fence(PyObject *module, PyObject *unused) {
+    FENCE();
+    Py_RETURN_NONE;
+}
+
+static PyMemberDef RingCore_members[] = {
+    {"capacity", T_ULONGLONG, offsetof(RingCore, cap), READONLY, "data bytes"},
+    {"head", T_ULONGLONG, offsetof(RingCore, head), 0, "the writer's head"},
+    {"seq", T_ULONGLONG, offsetof(RingCore, seq), 0, "the writer's next sequence number"},
+    {"tail", T_ULONGLONG, offsetof(RingCore, tail), 0, "the tail the writer last saw"},
+    {"rpos", T_ULONGLONG, offsetof(RingCore, rpos), 0, "the reader's position"},
+    {"expected_seq", T_LONGLONG, offsetof(RingCore, expected), 0,
+     "the sequence number the reader expects next (-1: any)"},
+    {"leases", T_INT, offsetof(RingCore, leases), 0, "array views outstanding"},
+    {"bell", T_INT, offsetof(RingCore, bell), 0, "the reader's eventfd, or -1"},
+    {NULL}};
+
+static PyMethodDef RingCore_methods[] = {
+    {"release", (PyCFunction)RingCore_release, METH_NOARGS, "stop using the segment"},
+    {"put", (PyCFunction)RingCore_put, METH_O, "write an int64 or float64 and publish it"},
+    {"reserve", (PyCFunction)RingCore_reserve, METH_O, "room for a record, or -1"},
+    {"stage", (PyCFunction)RingCore_stage, METH_O, "write an int64 or float64, unpublished"},
+    {"publish", (PyCFunction)RingCore_publish, METH_NOARGS, "make records up to head visible"},
+    {"put_header", (PyCFunction)(void (*)(void))RingCore_put_header, METH_FASTCALL,
+     "write a record header"},
+    {"load_tail", (PyCFunction)RingCore_load_tail, METH_NOARGS, "the reader's tail"},
+    {"has_data", (PyCFunction)RingCore_has_data, METH_NOARGS, "unread records?"},
+    {"store_tail", (PyCFunction)RingCore_store_tail, METH_O, "hand bytes back to the writer"},
+    {"resume_reader", (PyCFunction)RingCore_resume_reader, METH_NOARGS,
+     "continue after a dead reader"},
+    {"counters", (PyCFunction)RingCore_counters, METH_NOARGS, "(head, tail, written)"},
+    {"drain", (PyCFunction)(void (*)(void))RingCore_drain, METH_FASTCALL, "decode records"},
+    {NULL}};
+
+static PyTypeObject RingCoreType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "pb3a.transport._ringcore.RingCore",
+    .tp_doc = "The C half of a ShmRing: header words, scalar writes, drain.",
+    .tp_basicsize = sizeof(RingCore),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)RingCore_init,
+    .tp_dealloc = (destructor)RingCore_dealloc,
+    .tp_members = RingCore_members,
+    .tp_methods = RingCore_methods,
+};
+
+static PyMethodDef module_methods[] = {
+    {"sleep", (PyCFunction)(void (*)(void))ringcore_sleep, METH_FASTCALL,
+     "announce sleep on rings, look once more, block on the doorbell"},
+    {"fence", ringcore_fence, METH_NOARGS, "a full memory barrier"},
+    {NULL}};
+
+static struct PyModuleDef ringcore_module = {
+    PyModuleDef_HEAD_INIT, "_ringcore", "The C hot path of PB3A's shared-memory rings.", -1,
+    module_methods};
+
+PyMODINIT_FUNC PyInit__ringcore(void) {
+    if (PyType_Ready(&RingCoreType) < 0)
+        return NULL;
+    PyObject *m = PyModule_Create(&ringcore_module);
+    if (m == NULL)
+        return NULL;
+    Py_INCREF(&RingCoreType);
+    if (PyModule_AddObject(m, "RingCore", (PyObject *)&RingCoreType) < 0) {
+        Py_DECREF(&RingCoreType);
+        Py_DECREF(m);
+        return NULL;
+    }
+    return m;
+}
