@@ -155,7 +155,7 @@ class InputPort:
         self._fresh = False
         self._undispatched = 0
         self._last_arrival = math.nan
-        self._window_start = math.nan
+        self._window_start = -math.inf
         self._window_count = 0
         self._lock = threading.Lock()
         self._notify: Callable[[InputPort], None] | None = None
@@ -218,17 +218,16 @@ class InputPort:
         with self._lock:
             self.received += count
             if sent_at is not None:
-                lat = max(0.0, now - sent_at)
-                self.latency = lat if math.isnan(self.latency) else 0.9 * self.latency + 0.1 * lat
-            # rate: values counted over windows of at least _RATE_WINDOW seconds
-            if math.isnan(self._window_start):
-                self._window_start = now          # the first arrival opens the window
-            else:
-                self._window_count += count
+                lat = now - sent_at if now > sent_at else 0.0
+                old = self.latency
+                self.latency = lat if old != old else old + 0.1 * (lat - old)  # NaN: the first
+            # rate: values counted over windows of at least _RATE_WINDOW seconds; the
+            # first arrival only opens the first window (it started at -inf: rate 0)
+            self._window_count += count
+            self._last_arrival = now
             if now - self._window_start >= _RATE_WINDOW:
                 self.rate = self._window_count / (now - self._window_start)
                 self._window_start, self._window_count = now, 0
-            self._last_arrival = now
             if self.policy.kind == "queue":
                 held = self._values
                 held.extend(values)

@@ -80,8 +80,11 @@ class Worker:
         self.restart_policy: dict[str, str] = {}
         self.pool = EventPool()
         self.bell = Doorbell(bell)
+        self._bell_fd = bell
         self._wake = BellPull(os.dup(bell))
         self.inbound: dict[str, _Inbound] = {}
+        # what the receiver loops over, replaced (never mutated) when links change
+        self._receiving: tuple[list[_Inbound], list[Any]] = ([], [])
         self.outbound: dict[str, tuple[str, str, ShmRing | None, BellPull | None]] = {}
         self._send_lock = threading.Lock()
         self._requests: dict[int, tuple[threading.Event, list[Any]]] = {}
@@ -132,6 +135,7 @@ class Worker:
             return
         self._shut_down = True
         self._closing.set()
+        self.bell_self()                      # the receiver leaves its sleep and its loop
         for name in reversed(list(self.actors)):
             self.actors[name].stop(timeout=1.0)
         self.pool.close(timeout=1.0)
@@ -142,6 +146,7 @@ class Worker:
                 ring.close()
             if pull is not None:
                 pull.close()
+        self._threads[0].join(1.0)            # (before its doorbell's descriptor goes)
         self.bell.close()
         self._wake.close()
 
@@ -193,11 +198,19 @@ class Worker:
         shm_ring = ShmRing.attach(ring)
         shm_ring.resume_reader()   # a restarted reader continues where the last one stopped
         self.inbound[key] = _Inbound(shm_ring, port)
-        self.bell_self()
+        self._inbound_changed()
 
     def op_unlink_in(self, key: str) -> int:
         link = self.inbound.pop(key, None)
-        return 0 if link is None else link.close()
+        if link is None:
+            return 0
+        self._inbound_changed()
+        return link.close()
+
+    def _inbound_changed(self) -> None:
+        links = list(self.inbound.values())
+        self._receiving = (links, [link.ring.core for link in links])
+        self.bell_self()
 
     def op_link_out(self, key: str, src: str, src_port: str, ring: str | None = None,
                     dst: str = "", dst_port: str = "", policy: str = "latest") -> None:
@@ -335,7 +348,7 @@ class Worker:
         gap = last = 0.0                   # time between the last two deliveries
         while not self._closing.is_set():
             try:
-                links = list(self.inbound.values())
+                links, cores = self._receiving
                 if sum([link.drain() for link in links]):
                     now = time.monotonic()
                     gap, last = now - last, now
@@ -345,7 +358,7 @@ class Worker:
                         continue
                 if gap < SPIN_S and self._spin(links):
                     continue
-                sleep(self.bell.fileno(), [link.ring.core for link in links], GUARD_TIMEOUT)
+                sleep(self._bell_fd, cores, GUARD_TIMEOUT)
             except Exception:
                 log.exception("receiver: unexpected error; going on")
 
