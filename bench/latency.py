@@ -90,6 +90,9 @@ def pb3a_trial() -> dict[str, Any]:
             state = run.state("probe")
             return state if len(state["samples"]) >= SAMPLES else None
 
+        # Reading the probe's state takes its lock and pickles the samples: each poll
+        # delays the values behind it. So wait the nominal recording time first.
+        time.sleep(SAMPLES * PERIOD)
         state = wait_for(recorded, TRIAL_TIMEOUT, f"{SAMPLES} samples", poll=0.25)
         wall = time.monotonic() - t0
         cpu = {side: 100.0 * (_cpu_seconds(p) - cpu0[side]) / wall for side, p in workers.items()}

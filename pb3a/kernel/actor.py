@@ -161,7 +161,8 @@ class ModuleActor:
         lets a busy input run at hundreds of thousands of values per second."""
         done = 0
         timed = self.timed if timed is None else timed
-        with self.lock:
+        self.lock.acquire()
+        try:
             start = time.thread_time() if timed else 0.0
             fn = getattr(self.module, hook)
             for _ in range(times):
@@ -178,27 +179,36 @@ class ModuleActor:
                                   traceback.format_exc())
             if timed:
                 self.cpu += time.thread_time() - start
+        finally:
+            self.lock.release()
         return done
 
+    # On the per-value path (a port's event, its dispatch, the call) locks are taken
+    # with explicit acquire/release around bodies that cannot raise: half the cost
+    # of ``with`` here, paid several times per value.
     def _on_port_event(self, port: InputPort) -> None:
         if not self._event_driven:
             return
-        with self._sched_lock:
-            if port not in self._pending:
-                self._pending.append(port)
-            if self._scheduled or not self.running:
-                return
-            self._scheduled = True
-        self._schedule(self._dispatch)
+        self._sched_lock.acquire()
+        if port not in self._pending:
+            self._pending.append(port)
+        start = self.running and not self._scheduled
+        self._scheduled = self._scheduled or start
+        self._sched_lock.release()
+        if start:
+            self._schedule(self._dispatch)
 
     def _dispatch(self) -> None:
         budget = _EVENT_BUDGET
+        lock, pending = self._sched_lock, self._pending
         while budget > 0:
-            with self._sched_lock:
-                if not self._pending or not self.running:
-                    self._scheduled = False
-                    return
-                port = self._pending.popleft()
+            lock.acquire()
+            if not pending or not self.running:
+                self._scheduled = False
+                lock.release()
+                return
+            port = pending.popleft()
+            lock.release()
             claimed = port.take_events(budget)
             budget -= claimed
             if claimed:

@@ -180,13 +180,16 @@ class InputPort:
 
         Without a value, returns ``default`` if given, else raises LookupError.
         """
-        with self._lock:
+        self._lock.acquire()
+        try:
             if self.policy.kind == "queue":
                 if self._values:
                     return self._values.popleft()
             elif self._latest is not _MISSING:
                 self._fresh = False
                 return self._latest
+        finally:
+            self._lock.release()
         if default is not _MISSING:
             return default
         raise LookupError(
@@ -215,7 +218,8 @@ class InputPort:
         """Accept values in link order; ``sent_at`` is when the newest was written."""
         count = len(values)
         now = time.monotonic()
-        with self._lock:
+        self._lock.acquire()
+        try:
             self.received += count
             if sent_at is not None:
                 lat = now - sent_at if now > sent_at else 0.0
@@ -244,15 +248,18 @@ class InputPort:
                 # One undispatched call is enough: it will read the newest value.
                 notify = self._undispatched == 0
                 self._undispatched = 1
+        finally:
+            self._lock.release()
         if notify and self._notify is not None:
             self._notify(self)
 
     def take_events(self, most: int) -> int:
         """Claim up to ``most`` ``on_input`` calls for this port; returns how many."""
-        with self._lock:
-            claimed = min(most, self._undispatched)
-            self._undispatched -= claimed
-            return claimed
+        self._lock.acquire()
+        claimed = most if most < self._undispatched else self._undispatched
+        self._undispatched -= claimed
+        self._lock.release()
+        return claimed
 
     @property
     def owes_calls(self) -> bool:
@@ -313,10 +320,13 @@ class OutputPort:
         """Send ``value`` on every link; TypeError (and nothing sent) if it does not fit."""
         if type(value) is not self.spec.plain_type:
             self.spec.check(value)
-        with self._lock:
+        self._lock.acquire()            # (not ``with``: half the cost, paid per value)
+        try:
             self.written += 1
             for one in self._ones:
                 one(value)
+        finally:
+            self._lock.release()
 
     def write_many(self, values: Iterable[Any]) -> None:
         """Send values in order, as repeated ``write`` would, but faster; all are checked first."""

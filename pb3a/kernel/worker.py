@@ -49,10 +49,13 @@ class _Inbound:
     closed: bool = False
 
     def drain(self) -> int:
-        with self.lock:
+        self.lock.acquire()
+        try:
             if self.closed:
                 return 0
             values, sent_at, gaps = self.ring.drain()
+        finally:
+            self.lock.release()
         if gaps:
             self.port.drops += gaps
         if values:
@@ -98,8 +101,10 @@ class Worker:
         self._threads = [threading.Thread(target=self._receive, name="pb3a-receiver", daemon=True),
                          threading.Thread(target=self._checkpoint, name="pb3a-checkpoint",
                                           daemon=True)]
+        self._solo = False                     # one module here: dispatch inline
         for thread in self._threads:
             thread.start()
+        self._receiver_id = self._threads[0].ident
 
     # -- control loop ------------------------------------------------------
     def serve(self) -> None:
@@ -163,7 +168,7 @@ class Worker:
         self._retime()
 
     def _retime(self) -> None:
-        solo = len(self.actors) == 1
+        self._solo = solo = len(self.actors) == 1
         for actor in self.actors.values():
             actor.timed = not solo
 
@@ -328,7 +333,7 @@ class Worker:
         of microseconds after an idle period); with several modules the pool runs
         them in parallel, so one slow handler does not delay another's delivery.
         """
-        if threading.current_thread() is self._threads[0] and len(self.actors) == 1:
+        if self._solo and threading.get_ident() == self._receiver_id:
             self._ready.append(task)
         else:
             self.pool.submit(task)
@@ -349,7 +354,10 @@ class Worker:
         while not self._closing.is_set():
             try:
                 links, cores = self._receiving
-                if sum([link.drain() for link in links]):
+                count = 0
+                for link in links:
+                    count += link.drain()
+                if count:
                     now = time.monotonic()
                     gap, last = now - last, now
                 if self._ready:
