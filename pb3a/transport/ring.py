@@ -164,13 +164,9 @@ class ShmRing:
             offset = start % cap
             core.put_header(offset, length, kind, len(meta), core.seq, now)
             data[offset + _REC.size:offset + _REC.size + len(meta)] = meta
-            if kind == codec.ARRAY:
-                target = np.ndarray(payload.shape, payload.dtype, buffer=data,
-                                    offset=offset + body)
-                np.copyto(target, payload)      # any dtype, 0-d included
-                del target
-            else:
-                data[offset + body:offset + body + size] = payload
+            if kind == codec.ARRAY:                # its raw bytes: one memcpy
+                payload = payload.reshape(-1).view(np.uint8)
+            data[offset + body:offset + body + size] = payload
             core.head = start + length
             core.seq += 1
             written += 1
