@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import gc
+import os
+import threading
 
 import numpy as np
 import pytest
 
-from pb3a.transport.ring import ShmRing
+from pb3a.transport.doorbell import new_bell
+from pb3a.transport.ring import ShmRing, sleep
 from pb3a.transport.shm import live_segments, segment_name
 
 
@@ -150,3 +153,54 @@ def test_arrays_of_any_plain_dtype_and_shape_survive(ring) -> None:
         assert received.dtype == sent.dtype and received.shape == sent.shape
         assert np.array_equal(received, sent)
         assert received.flags.writeable == (sent.dtype.names is not None)   # pickled: a copy
+
+
+def test_the_reader_sleeps_until_rung_and_not_when_data_is_there(ring) -> None:
+    _, writer, reader = ring
+    bell = new_bell()
+    try:
+        writer.set_bell(bell)
+        assert not sleep(bell, [reader.core], 0.01)        # nothing written: times out
+        writer.write(1)                                    # nobody asleep: no ring
+        assert sleep(bell, [reader.core], 5.0)             # data there: returns at once
+        assert reader.drain()[0] == [1]
+
+        woke = threading.Event()
+
+        def sleeper() -> None:
+            if sleep(bell, [reader.core], 5.0):
+                woke.set()
+        thread = threading.Thread(target=sleeper)
+        thread.start()
+        # The writer rings only once the reader has announced its sleep; whichever
+        # order the two take, the sleeper must wake (Dekker's hand-shake).
+        writer.write(2)
+        assert woke.wait(5.0)
+        thread.join(5.0)
+        assert reader.drain()[0] == [2]
+    finally:
+        os.close(bell)
+
+
+def test_sleep_skips_a_ring_closed_meanwhile() -> None:
+    owner = ShmRing.create(segment_name("ring"), 4096)
+    reader = ShmRing.attach(owner.name)
+    core = reader.core
+    reader.close()
+    owner.close()
+    bell = new_bell()
+    try:
+        assert not sleep(bell, [core], 0.01)
+        assert not core.has_data()
+        with pytest.raises(ValueError, match="closed"):
+            core.drain(10, None)
+    finally:
+        os.close(bell)
+
+
+def test_a_corrupt_record_is_reported_not_followed(ring) -> None:
+    owner, writer, reader = ring
+    writer.write(1)
+    owner._data[0:4] = b"\x00\x00\x00\x00"        # record length 0: a broken writer
+    with pytest.raises(RuntimeError, match="corrupt ring record"):
+        reader.drain()

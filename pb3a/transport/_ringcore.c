@@ -363,6 +363,11 @@ static PyObject *RingCore_drain(RingCore *self, PyObject *const *args, Py_ssize_
         }
         if (item == NULL)
             goto fail;
+        if (self->words == NULL) {        /* released while Python ran: stop here */
+            Py_DECREF(item);
+            PyErr_SetString(PyExc_ValueError, "the ring was closed while draining");
+            goto fail_closed;
+        }
         int failed = PyList_Append(values, item);
         Py_DECREF(item);
         if (failed)
@@ -381,6 +386,7 @@ static PyObject *RingCore_drain(RingCore *self, PyObject *const *args, Py_ssize_
     return Py_BuildValue("NdL", values, sent_at, gaps);
 fail:
     self->rpos = start;
+fail_closed:
     Py_DECREF(values);
     return NULL;
 }
