@@ -10,8 +10,9 @@ How: PB3A goes through the public API only: a threaded ``Clock`` module (period
 0.001 s: write, then sleep a period) feeds an event-driven ``LatencyProbe`` that
 stores ``now - value`` in its state while ``recording``; each module runs in its own
 worker process (the default). Each repetition launches a fresh system; after a
-warm-up the bench starts a recording with ``run.set_state``, waits for the samples,
-reads them with ``run.state``, and shuts the system down. CPU is psutil's
+warm-up the bench starts a recording with ``run.set_state``, waits the nominal
+recording time (reading the probe's state takes its lock, so polling early would
+delay values), then reads the samples with ``run.state``, and shuts the system down. CPU is psutil's
 user+system time of the two worker processes (pids from ``run.stats()``) over the
 recording window.
 
