@@ -230,29 +230,48 @@ static PyObject *RingCore_stage(RingCore *self, PyObject *value) {
     return done == -2 ? NULL : PyLong_FromLong(done);
 }
 
-static PyObject *RingCore_put_header(RingCore *self, PyObject *const *args, Py_ssize_t nargs) {
-    /* put_header(offset, length, kind, meta_len, seq, sent_at): a record's header */
-    if (nargs != 6) {
-        PyErr_SetString(PyExc_TypeError, "put_header takes 6 arguments");
+/* stage_record(kind, meta, payload, body, length, sent_at) -> 1 written, 0 no room:
+ * one whole record (header, meta at 24, payload at `body`), unpublished, in one
+ * call: for a large array this is the copy and nothing else. */
+static PyObject *RingCore_stage_record(RingCore *self, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 6 || !PyBytes_Check(args[1])) {
+        PyErr_SetString(PyExc_TypeError,
+                        "stage_record takes (kind, meta bytes, payload, body, length, sent_at)");
         return NULL;
     }
     if (check_open(self) < 0)
         return NULL;
-    unsigned long long offset = PyLong_AsUnsignedLongLong(args[0]);
-    unsigned long length = PyLong_AsUnsignedLong(args[1]);
-    long kind = PyLong_AsLong(args[2]);
-    long meta_len = PyLong_AsLong(args[3]);
-    unsigned long long seq = PyLong_AsUnsignedLongLong(args[4]);
+    long kind = PyLong_AsLong(args[0]);
+    unsigned long long body = PyLong_AsUnsignedLongLong(args[3]);
+    unsigned long long length = PyLong_AsUnsignedLongLong(args[4]);
     double sent_at = PyFloat_AsDouble(args[5]);
     if (PyErr_Occurred())
         return NULL;
-    if (offset + REC_HEAD > self->cap) {
-        PyErr_SetString(PyExc_ValueError, "record header outside the ring");
+    Py_ssize_t meta_len = PyBytes_GET_SIZE(args[1]);
+    Py_buffer payload;
+    if (PyObject_GetBuffer(args[2], &payload, PyBUF_SIMPLE) < 0)
         return NULL;
+    PyObject *result = NULL;
+    if (meta_len > 0xFFFF || body < REC_HEAD + (unsigned long long)meta_len
+            || length < body + (unsigned long long)payload.len || length % 64 || length > self->cap) {
+        PyErr_SetString(PyExc_ValueError, "stage_record: inconsistent record sizes");
+        goto done;
     }
-    put_header(self->data + offset, (uint32_t)length, (uint16_t)kind, (uint16_t)meta_len, seq,
-               sent_at);
-    Py_RETURN_NONE;
+    long long start = reserve(self, length);
+    if (start < 0) {
+        result = PyLong_FromLong(0);
+        goto done;
+    }
+    unsigned char *at = self->data + (unsigned long long)start % self->cap;
+    put_header(at, (uint32_t)length, (uint16_t)kind, (uint16_t)meta_len, self->seq, sent_at);
+    memcpy(at + REC_HEAD, PyBytes_AS_STRING(args[1]), (size_t)meta_len);
+    memcpy(at + body, payload.buf, (size_t)payload.len);
+    self->seq += 1;
+    self->head = (unsigned long long)start + length;
+    result = PyLong_FromLong(1);
+done:
+    PyBuffer_Release(&payload);
+    return result;
 }
 
 static PyObject *RingCore_load_tail(RingCore *self, PyObject *unused) {
@@ -474,8 +493,8 @@ static PyMethodDef RingCore_methods[] = {
     {"reserve", (PyCFunction)RingCore_reserve, METH_O, "room for a record, or -1"},
     {"stage", (PyCFunction)RingCore_stage, METH_O, "write an int64 or float64, unpublished"},
     {"publish", (PyCFunction)RingCore_publish, METH_NOARGS, "make records up to head visible"},
-    {"put_header", (PyCFunction)(void (*)(void))RingCore_put_header, METH_FASTCALL,
-     "write a record header"},
+    {"stage_record", (PyCFunction)(void (*)(void))RingCore_stage_record, METH_FASTCALL,
+     "write a whole record, unpublished"},
     {"load_tail", (PyCFunction)RingCore_load_tail, METH_NOARGS, "the reader's tail"},
     {"has_data", (PyCFunction)RingCore_has_data, METH_NOARGS, "unread records?"},
     {"store_tail", (PyCFunction)RingCore_store_tail, METH_O, "hand bytes back to the writer"},

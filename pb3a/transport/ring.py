@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import contextlib
 import pickle
-import struct
 import threading
 import time
 import weakref
@@ -43,7 +42,7 @@ _MAGIC = 0x50423341_52494E47  # "PB3ARING"
 _DATA = 512                      # header size; data starts here (page offset 512: 64-aligned)
 # word indexes (offset / 8) of the header fields, one cache line each
 _W_MAGIC, _W_CAP, _W_HEAD, _W_TAIL, _W_RPOS, _W_SEQ, _W_WAITING = 0, 1, 8, 16, 24, 32, 40
-_REC = struct.Struct("<IHHQd")   # length, kind, meta length, seq, sent_at (monotonic)
+_REC_HEAD = 24                   # u32 length, u16 kind, u16 meta length, u64 seq, f64 sent_at
 ZERO_COPY_MIN = 64 * 1024        # arrays at least this large are read as views
 WRITE_TIMEOUT = 0.1              # how long a writer waits for space before dropping a value
 _ALIGN = 64
@@ -129,7 +128,7 @@ class ShmRing:
 
     def write_many(self, values: Sequence[Any], timeout: float = WRITE_TIMEOUT) -> int:
         """Append values in order and publish them at once; returns how many fit."""
-        core, data, cap = self._core, self._data, self.capacity
+        core, cap = self._core, self.capacity
         now = time.monotonic()                 # one write time for the whole batch
         written = 0
         for value in values:
@@ -149,27 +148,18 @@ class ShmRing:
             else:
                 kind, meta, payload = codec.PICKLE, b"", pickle.dumps(value, 5)
                 size = len(payload)
-            body = _align(_REC.size + len(meta), _ALIGN if kind == codec.ARRAY else 8)
+            body = _align(_REC_HEAD + len(meta), _ALIGN if kind == codec.ARRAY else 8)
             length = _align(body + size)
             if length > cap:
                 raise ValueError(
                     f"a value of {size} bytes does not fit this link's {cap}-byte ring; "
                     "declare shape= and dtype= on the ports, or raise ring_bytes")
-            start = core.reserve(length)
-            if start < 0 and self._wait_space(length, timeout):
-                start = core.reserve(length)
-            if start < 0:
+            if core.stage_record(kind, meta, payload, body, length, now) or (
+                    self._wait_space(length, timeout)
+                    and core.stage_record(kind, meta, payload, body, length, now)):
+                written += 1
+            else:
                 self._skip()                   # dropped: the reader sees the gap
-                continue
-            offset = start % cap
-            core.put_header(offset, length, kind, len(meta), core.seq, now)
-            data[offset + _REC.size:offset + _REC.size + len(meta)] = meta
-            if kind == codec.ARRAY:                # its raw bytes: one memcpy
-                payload = payload.reshape(-1).view(np.uint8)
-            data[offset + body:offset + body + size] = payload
-            core.head = start + length
-            core.seq += 1
-            written += 1
         core.publish()
         return written
 
@@ -208,9 +198,9 @@ class ShmRing:
         """A record the C half does not decode itself (anything but int and float)."""
         data = self._data
         if kind == codec.PICKLE and not meta_len:
-            return pickle.loads(data[offset + _REC.size:offset + length])
-        meta = bytes(data[offset + _REC.size:offset + _REC.size + meta_len])
-        body = _align(_REC.size + meta_len, _ALIGN if kind == codec.ARRAY else 8)
+            return pickle.loads(data[offset + _REC_HEAD:offset + length])
+        meta = bytes(data[offset + _REC_HEAD:offset + _REC_HEAD + meta_len])
+        body = _align(_REC_HEAD + meta_len, _ALIGN if kind == codec.ARRAY else 8)
         payload = data[offset + body:offset + length]
         if kind == codec.ARRAY and length - body >= ZERO_COPY_MIN:
             return self._lease_view(meta, payload, start, start + length)
