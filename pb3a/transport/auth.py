@@ -1,0 +1,219 @@
+"""Authenticated frames: every control and replication message carries a tag made
+with the cluster key, and is checked before any byte of it is interpreted.
+
+A message is a list of ZeroMQ frames. ``Sealer.seal`` puts a fixed header in front
+(magic, version, kind, epoch, sender, counter, send time) and a 16-byte tag behind.
+The tag is GMAC (AES-256-GCM over the header and the length-prefixed frames as
+associated data): OpenSSL runs it at about 15-19 GB/s here, so a 1 MiB array frame
+costs ~60 us, where HMAC-SHA256 would cost over a millisecond. Each sender draws a
+random 16-byte id per incarnation and signs with its own key, derived from the
+cluster key and that id (HKDF), so its 96-bit counter nonces can never collide with
+another sender's.
+
+``Opener.open`` refuses, counts and never decodes: wrong frame count or size, a
+malformed header, an unknown version, a stale epoch, a send time outside the
+freshness window, a counter not above the last one seen from that sender (replay),
+and any tag that does not verify. Only then does a caller unpickle anything.
+"""
+
+from __future__ import annotations
+
+import collections
+import hashlib
+import os
+import secrets
+import struct
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from cryptography.hazmat.primitives import hashes
+from cryptography.hazmat.primitives.ciphers import Cipher, algorithms, modes
+from cryptography.hazmat.primitives.ciphers.aead import AESGCM
+from cryptography.hazmat.primitives.kdf.hkdf import HKDF
+
+from pb3a.errors import PB3AError
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+KEY_ENV, KEY_FILE_ENV = "PB3A_KEY", "PB3A_KEY_FILE"
+DEFAULT_KEY_FILE = Path("~/.pb3a/cluster.key")
+
+_MAGIC = b"PB3A"
+_VERSION = 1
+# magic, version, kind, frame count, epoch, sender id, counter, send time (unix s)
+_HEADER = struct.Struct("<4sBBHQ16sQd")
+_TAG = 16
+_LEN = struct.Struct("<Q")
+_ONE_SHOT_MAX = 64 * 1024        # below this the frames are joined for a one-shot tag
+MAX_BYTES = 256 * 1024 * 1024    # default bound on one message (all its frames)
+MAX_FRAMES = 64
+FRESH_S = 60.0                   # a message older (or newer) than this is refused
+_SENDERS = 4096                  # senders remembered (their derived keys and counters)
+
+
+class ClusterKeyError(PB3AError, ValueError):
+    """The cluster key is missing, unreadable or too short."""
+
+
+class Rejected(PB3AError):
+    """A message failed authentication or validation; ``reason`` says which check."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class ClusterKey:
+    """The shared secret of one PB3A cluster (at least 32 bytes of key material)."""
+
+    secret: bytes
+
+    @classmethod
+    def load(cls, environ: dict[str, str] | None = None, home: Path | None = None) -> ClusterKey:
+        """From ``PB3A_KEY``, else the file named by ``PB3A_KEY_FILE``, else
+        ``~/.pb3a/cluster.key``, which is created (mode 0600) on first use."""
+        env = os.environ if environ is None else environ
+        if env.get(KEY_ENV):
+            return cls._checked(env[KEY_ENV].encode(), f"${KEY_ENV}")
+        if env.get(KEY_FILE_ENV):
+            path = Path(env[KEY_FILE_ENV]).expanduser()
+            try:
+                return cls._checked(path.read_bytes().strip(), str(path))
+            except OSError as exc:
+                raise ClusterKeyError(f"cannot read the cluster key file {path} named by "
+                                f"${KEY_FILE_ENV}: {exc.strerror}") from None
+        path = (home / ".pb3a" / "cluster.key") if home else DEFAULT_KEY_FILE.expanduser()
+        if not path.exists():
+            path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+            try:      # O_EXCL: two processes starting at once agree on one key
+                fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            except FileExistsError:
+                pass
+            else:
+                with os.fdopen(fd, "wb") as out:
+                    out.write(secrets.token_hex(32).encode() + b"\n")
+        return cls._checked(path.read_bytes().strip(), str(path))
+
+    @classmethod
+    def _checked(cls, material: bytes, where: str) -> ClusterKey:
+        if len(material) < 32:
+            raise ClusterKeyError(f"the cluster key from {where} is {len(material)} bytes; "
+                            "use at least 32 (e.g. `python -c 'import secrets; "
+                            "print(secrets.token_hex(32))'`)")
+        return cls(hashlib.sha256(b"pb3a cluster key\0" + material).digest())
+
+    def derive(self, sender: bytes) -> bytes:
+        """The signing key of one sender incarnation (HKDF-SHA256)."""
+        return HKDF(hashes.SHA256(), 32, salt=None, info=b"pb3a sender\0" + sender).derive(
+            self.secret)
+
+
+def _tag(key: AESGCM, raw: bytes, nonce: bytes, header: bytes, frames: Sequence[Any]) -> bytes:
+    """GMAC over the header and the length-prefixed frames."""
+    views = [memoryview(frame).cast("B") for frame in frames]   # (arrays: their bytes)
+    if sum(view.nbytes for view in views) <= _ONE_SHOT_MAX:
+        parts = [header]
+        for view in views:
+            parts += (_LEN.pack(view.nbytes), view)
+        return key.encrypt(nonce, b"", b"".join(parts))
+    # Large frames: stream them into the tag instead of joining (no copy).
+    encryptor = Cipher(algorithms.AES(raw), modes.GCM(nonce)).encryptor()
+    encryptor.authenticate_additional_data(header)
+    for view in views:
+        encryptor.authenticate_additional_data(_LEN.pack(view.nbytes))
+        encryptor.authenticate_additional_data(view)
+    encryptor.finalize()
+    return encryptor.tag
+
+
+class Sealer:
+    """Signs the messages of one sender (one socket: counters must arrive in order)."""
+
+    def __init__(self, key: ClusterKey, epoch: int = 0) -> None:
+        self.epoch = epoch
+        self.sender = secrets.token_bytes(16)
+        self._raw = key.derive(self.sender)
+        self._key = AESGCM(self._raw)
+        self._counter = 0
+
+    def seal(self, kind: int, frames: Sequence[Any] = ()) -> list[Any]:
+        """``[header, *frames, tag]``, ready for ``send_multipart``."""
+        self._counter += 1
+        header = _HEADER.pack(_MAGIC, _VERSION, kind, len(frames), self.epoch, self.sender,
+                              self._counter, time.time())
+        nonce = self._counter.to_bytes(12, "little")
+        return [header, *frames, _tag(self._key, self._raw, nonce, header, frames)]
+
+
+@dataclass(frozen=True)
+class Message:
+    """An authenticated message: who sent it, and its frames (not yet decoded)."""
+
+    kind: int
+    epoch: int
+    sender: bytes
+    counter: int
+    frames: list[Any]
+
+
+class Opener:
+    """Checks messages from any number of senders; counts what it refuses by reason."""
+
+    def __init__(self, key: ClusterKey, *, epoch: int = 0, max_bytes: int = MAX_BYTES,
+                 max_frames: int = MAX_FRAMES, fresh_s: float = FRESH_S) -> None:
+        self._key = key
+        self.epoch = epoch                    # messages of older epochs are stale
+        self.max_bytes = max_bytes
+        self.max_frames = max_frames
+        self.fresh_s = fresh_s
+        self.rejected: collections.Counter[str] = collections.Counter()
+        # sender id -> [raw key, AESGCM, last counter], least recently used first. A
+        # sender evicted from this bounded table could replay within ``fresh_s``.
+        self._senders: collections.OrderedDict[bytes, list[Any]] = collections.OrderedDict()
+
+    def open(self, frames: Sequence[Any]) -> Message:
+        """The authenticated message, or ``Rejected`` (counted) with the failed check."""
+        try:
+            return self._open(frames)
+        except Rejected as exc:
+            self.rejected[exc.reason] += 1
+            raise
+
+    def _open(self, frames: Sequence[Any]) -> Message:
+        if not 2 <= len(frames) <= self.max_frames + 2:
+            raise Rejected("frame count")
+        views = [memoryview(frame) for frame in frames]
+        if sum(view.nbytes for view in views) > self.max_bytes:
+            raise Rejected("too large")
+        header, body, tag = views[0], views[1:-1], views[-1]
+        if header.nbytes != _HEADER.size or tag.nbytes != _TAG:
+            raise Rejected("malformed")
+        magic, version, kind, count, epoch, sender, counter, sent = _HEADER.unpack(header)
+        if magic != _MAGIC or count != len(body):
+            raise Rejected("malformed")
+        if version != _VERSION:
+            raise Rejected("version")
+        if epoch < self.epoch:
+            raise Rejected("stale epoch")
+        if not abs(time.time() - sent) <= self.fresh_s:
+            raise Rejected("not fresh")
+        known = self._senders.get(sender)
+        if known is not None and counter <= known[2]:
+            raise Rejected("replay")
+        if known is None:
+            raw = self._key.derive(sender)
+            known = [raw, AESGCM(raw), 0]
+        expected = _tag(known[1], known[0], counter.to_bytes(12, "little"), bytes(header), body)
+        if not secrets.compare_digest(expected, bytes(tag)):
+            raise Rejected("bad tag")
+        known[2] = counter                    # only an authentic message moves the counter
+        self._senders[sender] = known
+        self._senders.move_to_end(sender)
+        if len(self._senders) > _SENDERS:
+            self._senders.popitem(last=False)
+        return Message(kind, epoch, sender, counter, list(frames[1:-1]))
+

@@ -1,0 +1,130 @@
+"""Authenticated frames: the cluster key, sealing, and everything the opener refuses."""
+
+from __future__ import annotations
+
+import random
+import stat
+
+import numpy as np
+import pytest
+import zmq
+
+from pb3a.transport import auth
+from pb3a.transport.auth import ClusterKey, ClusterKeyError, Opener, Rejected, Sealer
+
+KEY = ClusterKey.load({"PB3A_KEY": "k" * 40})
+
+
+def _rejected(opener: Opener, frames: list, reason: str) -> None:
+    before = opener.rejected[reason]
+    with pytest.raises(Rejected) as caught:
+        opener.open(frames)
+    assert caught.value.reason == reason
+    assert opener.rejected[reason] == before + 1
+
+
+# -- the key ------------------------------------------------------------------------
+def test_the_key_comes_from_the_environment_then_the_key_file_then_home(tmp_path) -> None:
+    key_file = tmp_path / "cluster.key"
+    key_file.write_text("f" * 64 + "\n")
+    from_env = ClusterKey.load({"PB3A_KEY": "e" * 64, "PB3A_KEY_FILE": str(key_file)})
+    from_file = ClusterKey.load({"PB3A_KEY_FILE": str(key_file)})
+    assert from_env == ClusterKey.load({"PB3A_KEY": "e" * 64})
+    assert from_file == ClusterKey.load({"PB3A_KEY": "f" * 64})     # newline stripped
+    assert from_env != from_file
+
+
+def test_a_missing_home_key_is_created_private_and_then_reused(tmp_path) -> None:
+    first = ClusterKey.load({}, home=tmp_path)
+    path = tmp_path / ".pb3a" / "cluster.key"
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600
+    assert stat.S_IMODE(path.parent.stat().st_mode) == 0o700
+    assert ClusterKey.load({}, home=tmp_path) == first
+
+
+def test_bad_keys_name_where_they_came_from(tmp_path) -> None:
+    with pytest.raises(ClusterKeyError, match=r"\$PB3A_KEY is 5 bytes; use at least 32"):
+        ClusterKey.load({"PB3A_KEY": "short"})
+    missing = tmp_path / "nope.key"
+    with pytest.raises(ClusterKeyError, match=f"cannot read the cluster key file {missing}"):
+        ClusterKey.load({"PB3A_KEY_FILE": str(missing)})
+
+
+# -- sealing and opening ------------------------------------------------------------
+def test_sealed_messages_open_with_their_frames_intact() -> None:
+    sealer, opener = Sealer(KEY, epoch=3), Opener(KEY, epoch=3)
+    array = np.arange(1 << 17, dtype=np.float64)               # 1 MiB: the streamed tag
+    for frames in ([], [b"small"], [b"a", b"", b"c" * 70_000], [b"meta", array]):
+        message = opener.open(sealer.seal(7, frames))
+        assert message.kind == 7 and message.epoch == 3 and message.sender == sealer.sender
+        assert [bytes(f) for f in message.frames] == [bytes(memoryview(f)) for f in frames]
+    assert not opener.rejected
+
+
+def test_zmq_frames_are_accepted_as_they_arrive() -> None:
+    sealer, opener = Sealer(KEY), Opener(KEY)
+    frames = [zmq.Frame(bytes(f)) for f in sealer.seal(1, [b"x" * 100_000, b"y"])]
+    assert bytes(opener.open(frames).frames[1]) == b"y"
+
+
+def test_another_key_a_flipped_bit_and_garbage_are_refused() -> None:
+    opener = Opener(KEY)
+    other = Sealer(ClusterKey.load({"PB3A_KEY": "o" * 40}))
+    _rejected(opener, other.seal(1, [b"payload"]), "bad tag")
+    sealer = Sealer(KEY)
+    for index in (0, 1, 2):                   # header, payload, tag
+        frames = [bytearray(f) for f in sealer.seal(1, [b"payload"])]
+        frames[index][-1] ^= 0x01
+        with pytest.raises(Rejected):
+            opener.open(frames)
+    _rejected(opener, [b"garbage"], "frame count")
+    _rejected(opener, [b"garbage", b"more", b"x" * 16], "malformed")
+
+
+def test_replays_and_old_counters_are_refused() -> None:
+    sealer, opener = Sealer(KEY), Opener(KEY)
+    first, second = sealer.seal(1, [b"a"]), sealer.seal(1, [b"b"])
+    opener.open(second)
+    _rejected(opener, second, "replay")
+    _rejected(opener, first, "replay")        # an older counter, though never seen
+    opener.open(sealer.seal(1, [b"c"]))
+
+
+def test_stale_epochs_and_stale_times_are_refused(monkeypatch) -> None:
+    opener = Opener(KEY, epoch=5, fresh_s=10.0)
+    _rejected(opener, Sealer(KEY, epoch=4).seal(1), "stale epoch")
+    opener.open(Sealer(KEY, epoch=6).seal(1))
+    old = Sealer(KEY, epoch=5).seal(1)
+    now = auth.time.time()
+    monkeypatch.setattr(auth.time, "time", lambda: now + 11.0)
+    _rejected(opener, old, "not fresh")
+
+
+def test_size_and_frame_count_are_bounded_before_anything_else() -> None:
+    sealer, opener = Sealer(KEY), Opener(KEY, max_bytes=1000, max_frames=3)
+    _rejected(opener, sealer.seal(1, [b"x" * 2000]), "too large")
+    _rejected(opener, sealer.seal(1, [b"1", b"2", b"3", b"4"]), "frame count")
+    opener.open(sealer.seal(1, [b"1", b"2", b"3"]))
+
+
+def test_random_corruption_is_always_refused_cleanly() -> None:
+    rng = random.Random(1234)
+    sealer, opener = Sealer(KEY), Opener(KEY)
+    for _ in range(2000):
+        frames = [bytearray(f) for f in sealer.seal(rng.randrange(256), [b"payload" * 20])]
+        mutation = rng.randrange(4)
+        if mutation == 0:                    # flip a random bit somewhere
+            frame = rng.choice(frames)
+            frame[rng.randrange(len(frame))] ^= 1 << rng.randrange(8)
+        elif mutation == 1:                  # truncate a frame
+            frame = rng.choice(frames)
+            del frame[rng.randrange(len(frame)):]
+        elif mutation == 2:                  # drop or duplicate a frame
+            index = rng.randrange(len(frames))
+            frames[index:index + 1] = [] if rng.random() < 0.5 else [frames[index]] * 2
+        else:                                # replace everything with noise
+            frames = [bytearray(rng.randbytes(rng.randrange(80))) for _ in range(3)]
+        with pytest.raises(Rejected):
+            opener.open(frames)
+    assert sum(opener.rejected.values()) == 2000
+    opener.open(sealer.seal(1, [b"still fine"]))
