@@ -72,12 +72,21 @@ def test_another_key_a_flipped_bit_and_garbage_are_refused() -> None:
     other = Sealer(ClusterKey.load({"PB3A_KEY": "o" * 40}))
     _rejected(opener, other.seal(1, [b"payload"]), "bad tag")
     sealer = Sealer(KEY)
-    for index in (0, 1, 2):                   # header, payload, tag
-        frames = [bytearray(f) for f in sealer.seal(1, [b"payload"])]
+    (packed,) = sealer.seal(1, [b"payload"])                # a small message: one frame
+    for index in (0, 30, 60, len(packed) - 1):              # header, sender, part, tag
+        frame = bytearray(packed)
+        frame[index] ^= 0x01
+        with pytest.raises(Rejected):
+            opener.open([frame])
+    split = sealer.seal(1, [b"x" * 100_000])                # a large one: header, part, tag
+    assert len(split) == 3
+    for index in range(3):
+        frames = [bytearray(f) for f in split]
         frames[index][-1] ^= 0x01
         with pytest.raises(Rejected):
             opener.open(frames)
-    _rejected(opener, [b"garbage"], "frame count")
+    _rejected(opener, [], "frame count")
+    _rejected(opener, [b"garbage"], "malformed")
     _rejected(opener, [b"garbage", b"more", b"x" * 16], "malformed")
 
 
@@ -111,13 +120,14 @@ def test_random_corruption_is_always_refused_cleanly() -> None:
     rng = random.Random(1234)
     sealer, opener = Sealer(KEY), Opener(KEY)
     for _ in range(2000):
-        frames = [bytearray(f) for f in sealer.seal(rng.randrange(256), [b"payload" * 20])]
+        payload = b"payload" * (20 if rng.random() < 0.8 else 10_000)   # packed or split
+        frames = [bytearray(f) for f in sealer.seal(rng.randrange(256), [payload, b"m"])]
         mutation = rng.randrange(4)
         if mutation == 0:                    # flip a random bit somewhere
-            frame = rng.choice(frames)
+            frame = rng.choice([f for f in frames if f])
             frame[rng.randrange(len(frame))] ^= 1 << rng.randrange(8)
         elif mutation == 1:                  # truncate a frame
-            frame = rng.choice(frames)
+            frame = rng.choice([f for f in frames if f])
             del frame[rng.randrange(len(frame)):]
         elif mutation == 2:                  # drop or duplicate a frame
             index = rng.randrange(len(frames))

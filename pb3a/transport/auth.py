@@ -1,9 +1,11 @@
 """Authenticated frames: every control and replication message carries a tag made
 with the cluster key, and is checked before any byte of it is interpreted.
 
-A message is a list of ZeroMQ frames. ``Sealer.seal`` puts a fixed header in front
-(magic, version, kind, epoch, sender, counter, send time) and a 16-byte tag behind.
-The tag is GMAC (AES-256-GCM over the header and the length-prefixed frames as
+A message is a kind and a list of parts. ``Sealer.seal`` puts a fixed header in
+front (magic, version, kind, epoch, sender, counter, send time) and a 16-byte tag
+behind. A small message travels as one ZeroMQ frame (pyzmq costs microseconds per
+frame); a large one as ``[header, *parts, tag]``, so that big arrays go without a
+copy. The tag is GMAC (AES-256-GCM over the header and the length-prefixed parts as
 associated data): OpenSSL runs it at about 15-19 GB/s here, so a 1 MiB array frame
 costs ~60 us, where HMAC-SHA256 would cost over a millisecond. Each sender draws a
 random 16-byte id per incarnation and signs with its own key, derived from the
@@ -43,11 +45,13 @@ DEFAULT_KEY_FILE = Path("~/.pb3a/cluster.key")
 
 _MAGIC = b"PB3A"
 _VERSION = 1
-# magic, version, kind, frame count, epoch, sender id, counter, send time (unix s)
-_HEADER = struct.Struct("<4sBBHQ16sQd")
+# magic, version, kind, flags, (reserved), part count, epoch, sender id, counter,
+# send time (unix s)
+_HEADER = struct.Struct("<4sBBBxHQ16sQd")
+_PACKED = 0x01                   # flag: header, parts and tag travel as one frame
 _TAG = 16
 _LEN = struct.Struct("<Q")
-_ONE_SHOT_MAX = 64 * 1024        # below this the frames are joined for a one-shot tag
+_PACK_MAX = 64 * 1024            # messages up to this size travel as one frame
 MAX_BYTES = 256 * 1024 * 1024    # default bound on one message (all its frames)
 MAX_FRAMES = 64
 FRESH_S = 60.0                   # a message older (or newer) than this is refused
@@ -112,22 +116,31 @@ class ClusterKey:
             self.secret)
 
 
-def _tag(key: AESGCM, raw: bytes, nonce: bytes, header: bytes, frames: Sequence[Any]) -> bytes:
-    """GMAC over the header and the length-prefixed frames."""
-    views = [memoryview(frame).cast("B") for frame in frames]   # (arrays: their bytes)
-    if sum(view.nbytes for view in views) <= _ONE_SHOT_MAX:
-        parts = [header]
-        for view in views:
-            parts += (_LEN.pack(view.nbytes), view)
-        return key.encrypt(nonce, b"", b"".join(parts))
-    # Large frames: stream them into the tag instead of joining (no copy).
+def _flat(part: Any) -> Any:
+    """A part as plain bytes, or a byte view of it (an array's raw memory)."""
+    return part if type(part) is bytes else memoryview(part).cast("B")
+
+
+def _prefixed(views: list[Any]) -> bytes:
+    parts = []
+    for view in views:
+        parts += (_LEN.pack(len(view)), view)
+    return b"".join(parts)
+
+
+def _streamed_tag(raw: bytes, nonce: bytes, header: Any, views: list[Any]) -> bytes:
+    """GMAC over the header and the length-prefixed parts, without joining them."""
     encryptor = Cipher(algorithms.AES(raw), modes.GCM(nonce)).encryptor()
     encryptor.authenticate_additional_data(header)
     for view in views:
-        encryptor.authenticate_additional_data(_LEN.pack(view.nbytes))
+        encryptor.authenticate_additional_data(_LEN.pack(len(view)))
         encryptor.authenticate_additional_data(view)
     encryptor.finalize()
     return encryptor.tag
+
+
+def _nonce(counter: int) -> bytes:
+    return counter.to_bytes(12, "little")
 
 
 class Sealer:
@@ -140,13 +153,18 @@ class Sealer:
         self._key = AESGCM(self._raw)
         self._counter = 0
 
-    def seal(self, kind: int, frames: Sequence[Any] = ()) -> list[Any]:
-        """``[header, *frames, tag]``, ready for ``send_multipart``."""
+    def seal(self, kind: int, parts: Sequence[Any] = ()) -> list[Any]:
+        """The frames to send: ``[packed]`` or ``[header, *parts, tag]``."""
         self._counter += 1
-        header = _HEADER.pack(_MAGIC, _VERSION, kind, len(frames), self.epoch, self.sender,
-                              self._counter, time.time())
-        nonce = self._counter.to_bytes(12, "little")
-        return [header, *frames, _tag(self._key, self._raw, nonce, header, frames)]
+        views = [_flat(part) for part in parts]
+        packed = sum(map(len, views)) <= _PACK_MAX
+        header = _HEADER.pack(_MAGIC, _VERSION, kind, _PACKED if packed else 0, len(parts),
+                              self.epoch, self.sender, self._counter, time.time())
+        nonce = _nonce(self._counter)
+        if packed:
+            signed = header + _prefixed(views)
+            return [signed + self._key.encrypt(nonce, b"", signed)]
+        return [header, *parts, _streamed_tag(self._raw, nonce, header, views)]
 
 
 @dataclass(frozen=True)
@@ -184,19 +202,27 @@ class Opener:
             raise
 
     def _open(self, frames: Sequence[Any]) -> Message:
-        if not 2 <= len(frames) <= self.max_frames + 2:
+        if not 1 <= len(frames) <= self.max_frames + 2:
             raise Rejected("frame count")
-        views = [memoryview(frame) for frame in frames]
+        views = [memoryview(_flat(frame)) for frame in frames]
         if sum(view.nbytes for view in views) > self.max_bytes:
             raise Rejected("too large")
-        header, body, tag = views[0], views[1:-1], views[-1]
-        if header.nbytes != _HEADER.size or tag.nbytes != _TAG:
-            raise Rejected("malformed")
-        magic, version, kind, count, epoch, sender, counter, sent = _HEADER.unpack(header)
-        if magic != _MAGIC or count != len(body):
+        packed = len(views) == 1
+        if packed:                            # header + prefixed parts + tag in one frame
+            if views[0].nbytes < _HEADER.size + _TAG:
+                raise Rejected("malformed")
+            header, tag = views[0][:_HEADER.size], views[0][-_TAG:]
+        else:
+            header, tag = views[0], views[-1]
+            if header.nbytes != _HEADER.size or tag.nbytes != _TAG:
+                raise Rejected("malformed")
+        magic, version, kind, flags, count, epoch, sender, counter, sent = _HEADER.unpack(header)
+        if magic != _MAGIC or bool(flags & _PACKED) != packed:
             raise Rejected("malformed")
         if version != _VERSION:
             raise Rejected("version")
+        if count > self.max_frames or (not packed and count != len(views) - 2):
+            raise Rejected("frame count")
         if epoch < self.epoch:
             raise Rejected("stale epoch")
         if not abs(time.time() - sent) <= self.fresh_s:
@@ -207,13 +233,33 @@ class Opener:
         if known is None:
             raw = self._key.derive(sender)
             known = [raw, AESGCM(raw), 0]
-        expected = _tag(known[1], known[0], counter.to_bytes(12, "little"), bytes(header), body)
+        if packed:
+            expected = known[1].encrypt(_nonce(counter), b"", views[0][:-_TAG])
+        else:
+            expected = _streamed_tag(known[0], _nonce(counter), header, views[1:-1])
         if not secrets.compare_digest(expected, bytes(tag)):
             raise Rejected("bad tag")
+        parts = _split(views[0][_HEADER.size:-_TAG], count) if packed else list(frames[1:-1])
         known[2] = counter                    # only an authentic message moves the counter
         self._senders[sender] = known
         self._senders.move_to_end(sender)
         if len(self._senders) > _SENDERS:
             self._senders.popitem(last=False)
-        return Message(kind, epoch, sender, counter, list(frames[1:-1]))
+        return Message(kind, epoch, sender, counter, parts)
 
+
+def _split(body: memoryview, count: int) -> list[memoryview]:
+    """The parts of a packed message (authentic, but checked all the same)."""
+    parts, at = [], 0
+    for _ in range(count):
+        if at + _LEN.size > body.nbytes:
+            raise Rejected("malformed")
+        (size,) = _LEN.unpack_from(body, at)
+        at += _LEN.size
+        if size > body.nbytes - at:
+            raise Rejected("malformed")
+        parts.append(body[at:at + size])
+        at += size
+    if at != body.nbytes:
+        raise Rejected("malformed")
+    return parts

@@ -60,6 +60,17 @@ def decode_small(kind: int, meta: bytes, payload: memoryview) -> Any:
     return array
 
 
+def decode_owned(kind: int, meta: bytes, payload: Any) -> Any:
+    """Decode a value that may keep its bytes (a received ZeroMQ frame): an array
+    becomes a read-only view of them, no copy."""
+    if kind == ARRAY:
+        dtype, shape, count = array_meta(meta)
+        array = np.frombuffer(payload, dtype=dtype, count=count).reshape(shape)
+        array.flags.writeable = False
+        return array
+    return decode_small(kind, meta, memoryview(payload))
+
+
 def local_copy(value: Any) -> Any:
     """What a reader in the same process gets: the same isolation a ring gives.
 

@@ -1,0 +1,449 @@
+"""Remote links: an output's values replicated to other nodes over ZeroMQ PUB/SUB.
+
+A ``Replicator`` sends the outputs of one process: each value is published once on
+its output's topic, however many nodes (and inputs there) read it, and kept in a
+bounded replay buffer. A ``Follower`` receives on one node: one SUB socket for all
+the topics it follows, and a DEALER per sender for the hand-shake and repairs.
+
+Every value carries (sender incarnation, topic, sequence number). The follower
+delivers each topic's values in sequence order, exactly once:
+
+- Slow joiners. A SUB socket misses what is published before its subscription
+  reaches the publisher. So the follower says HELLO (topic, first sequence number
+  it needs) on the DEALER until the publisher answers by publishing a SYNC on the
+  topic; the first SYNC or value that arrives proves the subscription is live, and
+  everything older is fetched from the replay buffer. No sleeping.
+- Gaps (the publisher's high-water mark dropped values for a slow follower, or a
+  reconnect lost some) are repaired the same way; values beyond a gap wait. What
+  the replay buffer no longer holds is counted as a link failure, loudly.
+- Fencing. A follower accepts one incarnation per topic. Values from any other (a
+  sender that was migrated away, or a stale restart) are counted and dropped.
+
+Every message is sealed (``auth``) and opened before anything in it is decoded.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import secrets
+import struct
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import zmq
+
+from pb3a.transport import codec
+from pb3a.transport.auth import ClusterKey, Opener, Rejected, Sealer
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+log = logging.getLogger("pb3a.replication")
+
+# message kinds
+VALUE, SYNC, HELLO, REPAIR, WELCOME, REPLAYED = 1, 2, 3, 4, 5, 6
+_INFO = struct.Struct("<16sQdB")        # incarnation, sequence number, sent at, codec kind
+_ASK = struct.Struct("<qq")             # HELLO: first needed (-1: from now); REPAIR: first, last
+_ANSWER = struct.Struct("<16sqq")       # WELCOME: incarnation, next; REPLAYED: first, gone
+HWM = 10_000                            # messages queued per peer before ZeroMQ drops
+MAX_MESSAGE = 256 * 1024 * 1024         # bytes; larger frames are refused by ZeroMQ itself
+REPLAY_VALUES = 4096                    # per topic, at most ...
+REPLAY_BYTES = 64 * 1024 * 1024         # ... and at most this many bytes
+HELLO_EVERY = 0.05                      # seconds between unanswered HELLOs
+POLL_MS = 50
+ZERO_COPY_MIN = 64 * 1024               # frames at least this large are sent without a copy
+
+
+def _name(topic: str) -> bytes:
+    """A topic on the wire: NUL-terminated, because SUB sockets match prefixes."""
+    return topic.encode() + b"\0"
+
+
+def _topic(name: bytes) -> str:
+    return name[:-1].decode()
+
+
+def _send(sock: zmq.Socket, frames: list[Any]) -> None:
+    """Send a multipart message: small frames copied (cheaper than a frame object),
+    large ones zero-copy. (``send_multipart`` costs microseconds more per frame.)"""
+    last = len(frames) - 1
+    for index, frame in enumerate(frames):
+        big = type(frame) is not bytes and memoryview(frame).nbytes >= ZERO_COPY_MIN
+        sock.send(frame, zmq.SNDMORE if index < last else 0, copy=not big)
+
+
+def _secure(sock: zmq.Socket, max_bytes: int = MAX_MESSAGE) -> zmq.Socket:
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.setsockopt(zmq.MAXMSGSIZE, max_bytes)
+    sock.setsockopt(zmq.SNDHWM, HWM)
+    sock.setsockopt(zmq.RCVHWM, HWM)
+    return sock
+
+
+# -- the sending side ---------------------------------------------------------------
+@dataclass
+class _Stream:
+    """One published output: its next sequence number and its replay buffer."""
+
+    next_seq: int = 0
+    replay: collections.deque[tuple[int, list[Any], int]] = field(
+        default_factory=collections.deque)      # (seq, [info, meta, payload], bytes)
+    replay_bytes: int = 0
+
+
+class Replicator:
+    """Publishes the outputs of one process (PUB) and answers hand-shakes and repairs
+    (ROUTER) on its own thread. ``publish`` may be called from any thread."""
+
+    def __init__(self, key: ClusterKey, host: str = "127.0.0.1", *, epoch: int = 0,
+                 context: zmq.Context | None = None) -> None:
+        self.incarnation = secrets.token_bytes(16)
+        self._context = context or zmq.Context.instance()
+        self._pub = _secure(self._context.socket(zmq.PUB))
+        self._router = _secure(self._context.socket(zmq.ROUTER))
+        self._pub.bind(f"tcp://{host}:*")
+        self._router.bind(f"tcp://{host}:*")
+        self.data_address = self._pub.getsockopt_string(zmq.LAST_ENDPOINT)
+        self.control_address = self._router.getsockopt_string(zmq.LAST_ENDPOINT)
+        self._pub_sealer = Sealer(key, epoch)
+        self._router_sealer = Sealer(key, epoch)
+        self._opener = Opener(key, epoch=epoch)
+        self._streams: dict[bytes, _Stream] = {}
+        self._lock = threading.Lock()            # the PUB socket and the streams
+        self._closing = threading.Event()
+        self._thread = threading.Thread(target=self._serve, name="pb3a-replicator",
+                                        daemon=True)
+        self._thread.start()
+
+    @property
+    def rejected(self) -> collections.Counter[str]:
+        """Messages refused on the control socket, by reason."""
+        return self._opener.rejected
+
+    def add(self, topic: str, next_seq: int = 0) -> None:
+        """Start publishing ``topic``; ``next_seq`` continues a migrated stream."""
+        with self._lock:
+            self._streams.setdefault(_name(topic), _Stream(next_seq))
+
+    def sequence(self, topic: str) -> int:
+        """The sequence number the next value on ``topic`` will get."""
+        with self._lock:
+            return self._streams[_name(topic)].next_seq
+
+    def publish(self, topic: str, value: Any) -> int:
+        """Send one value; returns its sequence number.
+
+        An array is copied once (the writer may reuse it at once); from there on its
+        bytes go out as a zero-copy frame and stay in the replay buffer as they are."""
+        kind, meta, payload = codec.encode(value)
+        if kind == codec.ARRAY and payload is value:
+            payload = payload.copy()
+        name = _name(topic)
+        with self._lock:
+            stream = self._streams[name]
+            seq = stream.next_seq
+            stream.next_seq += 1
+            parts = [_INFO.pack(self.incarnation, seq, time.monotonic(), kind), meta, payload]
+            size = codec.payload_size(kind, payload) + 64
+            stream.replay.append((seq, parts, size))
+            stream.replay_bytes += size
+            while stream.replay and (len(stream.replay) > REPLAY_VALUES
+                                     or stream.replay_bytes > REPLAY_BYTES):
+                stream.replay_bytes -= stream.replay.popleft()[2]
+            self._send_pub(name, VALUE, parts)
+        return seq
+
+    def _send_pub(self, name: bytes, kind: int, parts: list[Any]) -> None:
+        # topic first (SUB filters on it), then the sealed message, which holds the
+        # topic again so that it is authenticated too
+        _send(self._pub, [name, *self._pub_sealer.seal(kind, [name, *parts])])
+
+    def _serve(self) -> None:
+        router = self._router
+        while not self._closing.is_set():
+            try:
+                if not router.poll(POLL_MS):
+                    continue
+                peer, *frames = router.recv_multipart(copy=False)
+            except zmq.ZMQError:
+                if self._closing.is_set():
+                    return
+                log.exception("replicator: control socket error")
+                continue
+            try:
+                message = self._opener.open(frames)
+                self._answer(peer, message)
+            except Rejected:
+                continue                         # counted by the opener
+            except Exception:
+                log.exception("replicator: a request failed")
+
+    def _answer(self, peer: Any, message: Any) -> None:
+        if message.kind not in (HELLO, REPAIR) or len(message.frames) != 2:
+            raise Rejected("unexpected")
+        name = bytes(message.frames[0])
+        first, last = _ASK.unpack(message.frames[1])
+        with self._lock:
+            stream = self._streams.get(name)
+            if stream is None:
+                return                           # not (yet) published here: they retry
+            if message.kind == HELLO:
+                nxt = stream.next_seq
+                self._send_router(peer, WELCOME, [name, _ANSWER.pack(self.incarnation, nxt, 0)])
+                self._send_pub(name, SYNC, [_ANSWER.pack(self.incarnation, nxt, 0)])
+                if first >= 0:                   # (an empty replay still says so)
+                    self._replay(peer, name, stream, first, nxt - 1)
+            else:
+                self._replay(peer, name, stream, first, last)
+
+    def _replay(self, peer: Any, name: bytes, stream: _Stream, first: int, last: int) -> None:
+        """Values ``first..last`` from the buffer, then how many of them are gone."""
+        oldest = stream.replay[0][0] if stream.replay else stream.next_seq
+        gone = max(0, min(last + 1, oldest) - first)
+        for seq, parts, _ in stream.replay:
+            if first <= seq <= last:
+                self._send_router(peer, VALUE, [name, *parts])
+        self._send_router(peer, REPLAYED, [name, _ANSWER.pack(self.incarnation, first, gone)])
+
+    def _send_router(self, peer: Any, kind: int, parts: list[Any]) -> None:
+        _send(self._router, [peer, *self._router_sealer.seal(kind, parts)])
+
+    def close(self) -> None:
+        self._closing.set()
+        self._thread.join(2.0)
+        with self._lock:
+            self._pub.close(0)
+        self._router.close(0)
+
+
+# -- the receiving side -------------------------------------------------------------
+@dataclass
+class _Follow:
+    """What a follower knows of one topic."""
+
+    topic: bytes
+    control: zmq.Socket                       # DEALER to the topic's replicator
+    next_seq: int                             # the next sequence number to deliver (-1: any)
+    incarnation: bytes | None                 # the accepted sender (None: the first to answer)
+    live: bool = False                        # a SYNC or value came through the SUB socket
+    held: dict[int, tuple[Any, float]] = field(default_factory=dict)   # beyond a gap
+    asked: float = 0.0                        # when we last sent HELLO or REPAIR
+    repairing: bool = False
+
+
+class Follower:
+    """Receives the topics one node follows and delivers each in order, once.
+
+    ``deliver(topic, values, sent_at)`` is called on the follower's thread.
+    Counters: ``link_failures`` (values lost for good, per topic), ``fenced`` (values
+    from a sender that is not the accepted one), ``duplicates`` (dropped)."""
+
+    def __init__(self, key: ClusterKey, deliver: Callable[[str, list[Any], float], None], *,
+                 epoch: int = 0, context: zmq.Context | None = None) -> None:
+        self._key = key
+        self._deliver = deliver
+        self._context = context or zmq.Context.instance()
+        self._sub = _secure(self._context.socket(zmq.SUB))
+        self._opener = Opener(key, epoch=epoch)
+        self._sealer = Sealer(key, epoch)        # used only on the follower's thread
+        self._follows: dict[bytes, _Follow] = {}
+        self._controls: dict[str, zmq.Socket] = {}   # control address -> DEALER
+        self._connected: set[str] = set()
+        self._requests: collections.deque[Callable[[], None]] = collections.deque()
+        self._wake_r = self._context.socket(zmq.PULL)
+        self._wake_w = self._context.socket(zmq.PUSH)
+        address = f"inproc://pb3a-follower-{id(self)}-{secrets.token_hex(4)}"
+        self._wake_r.bind(address)
+        self._wake_w.connect(address)
+        self._wake_lock = threading.Lock()
+        self.link_failures: collections.Counter[str] = collections.Counter()
+        self.fenced: collections.Counter[str] = collections.Counter()
+        self.duplicates: collections.Counter[str] = collections.Counter()
+        self._closing = threading.Event()
+        self._thread = threading.Thread(target=self._serve, name="pb3a-follower", daemon=True)
+        self._thread.start()
+
+    @property
+    def rejected(self) -> collections.Counter[str]:
+        """Messages refused on any socket of this follower, by reason."""
+        return self._opener.rejected
+
+    def follow(self, topic: str, data_address: str, control_address: str, *,
+               from_seq: int = -1, incarnation: bytes | None = None) -> None:
+        """Receive ``topic`` from the replicator at these addresses, starting at
+        ``from_seq`` (-1: whatever comes next). With ``incarnation``, only that sender
+        is accepted (a hand-over after migration); following again re-points."""
+        self._call(lambda: self._follow(_name(topic), data_address, control_address,
+                                        from_seq, incarnation))
+
+    def unfollow(self, topic: str) -> None:
+        self._call(lambda: self._unfollow(_name(topic)))
+
+    def _call(self, request: Callable[[], None]) -> None:
+        self._requests.append(request)
+        with self._wake_lock:
+            self._wake_w.send(b"")
+
+    def _follow(self, name: bytes, data: str, control: str, from_seq: int,
+                incarnation: bytes | None) -> None:
+        if data not in self._connected:
+            self._sub.connect(data)
+            self._connected.add(data)
+        dealer = self._controls.get(control)
+        if dealer is None:
+            dealer = _secure(self._context.socket(zmq.DEALER))
+            dealer.connect(control)
+            self._controls[control] = dealer
+        old = self._follows.get(name)
+        if old is None:
+            self._sub.setsockopt(zmq.SUBSCRIBE, name)
+        elif from_seq < 0:
+            from_seq = old.next_seq               # re-pointed: go on where we are
+        self._follows[name] = _Follow(name, dealer, from_seq, incarnation)
+        self._hello(self._follows[name])
+
+    def _unfollow(self, name: bytes) -> None:
+        if self._follows.pop(name, None) is not None:
+            self._sub.setsockopt(zmq.UNSUBSCRIBE, name)
+
+    def _hello(self, follow: _Follow) -> None:
+        follow.asked = time.monotonic()
+        follow.repairing = follow.next_seq >= 0   # the answer replays what we miss
+        self._ask(follow, HELLO, follow.next_seq, -1)
+
+    def _ask(self, follow: _Follow, kind: int, first: int, last: int) -> None:
+        _send(follow.control, self._sealer.seal(kind, [follow.topic, _ASK.pack(first, last)]))
+
+    # -- the follower's thread --------------------------------------------------
+    def _serve(self) -> None:
+        poller = zmq.Poller()
+        poller.register(self._sub, zmq.POLLIN)
+        poller.register(self._wake_r, zmq.POLLIN)
+        registered: set[zmq.Socket] = set()
+        while not self._closing.is_set():
+            for dealer in self._controls.values():
+                if dealer not in registered:
+                    poller.register(dealer, zmq.POLLIN)
+                    registered.add(dealer)
+            try:
+                ready = dict(poller.poll(POLL_MS))
+            except zmq.ZMQError:
+                if self._closing.is_set():
+                    return
+                raise
+            if self._wake_r in ready:
+                while self._wake_r.poll(0):
+                    self._wake_r.recv()
+                while self._requests:
+                    self._requests.popleft()()
+            if self._sub in ready:
+                self._drain(self._sub, live=True)
+            for dealer in registered:
+                if dealer in ready:
+                    self._drain(dealer, live=False)
+            self._retry()
+
+    def _drain(self, sock: zmq.Socket, live: bool) -> None:
+        while sock.poll(0):
+            frames = sock.recv_multipart(copy=False)
+            if live:
+                if len(frames) < 2:
+                    self._opener.rejected["frame count"] += 1
+                    continue
+                frames = frames[1:]              # the topic prefix (authenticated inside)
+            try:
+                message = self._opener.open(frames)
+                self._handle(message, live)
+            except Rejected:
+                continue
+            except Exception:
+                log.exception("follower: a message could not be handled")
+
+    def _handle(self, message: Any, live: bool) -> None:
+        if not message.frames:
+            raise Rejected("unexpected")
+        follow = self._follows.get(bytes(message.frames[0]))
+        if follow is None:
+            return                               # unfollowed meanwhile
+        if message.kind in (SYNC, WELCOME):
+            incarnation, nxt, _ = _ANSWER.unpack(message.frames[1])
+            if not self._accept(follow, incarnation):
+                return
+            if follow.next_seq < 0:
+                follow.next_seq = nxt           # from now on
+            follow.live = follow.live or live
+            self._advance(follow)
+        elif message.kind == VALUE:
+            incarnation, seq, sent_at, kind = _INFO.unpack(message.frames[1])
+            if not self._accept(follow, incarnation):
+                return
+            follow.live = follow.live or live
+            if follow.next_seq < 0:             # joined from now: this is the first
+                follow.next_seq = seq
+            if seq < follow.next_seq or seq in follow.held:
+                self.duplicates[_topic(follow.topic)] += 1
+                return
+            meta, payload = bytes(message.frames[2]), message.frames[3]
+            follow.held[seq] = (codec.decode_owned(kind, meta, payload), sent_at)
+            self._advance(follow)
+        elif message.kind == REPLAYED:
+            incarnation, first, gone = _ANSWER.unpack(message.frames[1])
+            if not self._accept(follow, incarnation):
+                return
+            follow.repairing = False
+            if gone and follow.next_seq < first + gone:
+                lost = first + gone - follow.next_seq
+                self.link_failures[_topic(follow.topic)] += lost
+                log.error("remote link %s lost %d values (gone from the sender's replay "
+                          "buffer)", _topic(follow.topic), lost)
+                follow.next_seq = first + gone
+            self._advance(follow)
+        else:
+            raise Rejected("unexpected")
+
+    def _accept(self, follow: _Follow, incarnation: bytes) -> bool:
+        if follow.incarnation is None:
+            follow.incarnation = incarnation
+        if incarnation != follow.incarnation:
+            self.fenced[_topic(follow.topic)] += 1
+            return False
+        return True
+
+    def _advance(self, follow: _Follow) -> None:
+        """Deliver what is in order; ask for a repair when a gap blocks the rest."""
+        values, sent_at = [], 0.0
+        while follow.next_seq in follow.held:
+            value, sent_at = follow.held.pop(follow.next_seq)
+            values.append(value)
+            follow.next_seq += 1
+        if values:
+            self._deliver(_topic(follow.topic), values, sent_at)
+        if follow.held and follow.live and not follow.repairing:
+            follow.repairing = True
+            follow.asked = time.monotonic()
+            self._ask(follow, REPAIR, follow.next_seq, min(follow.held) - 1)
+
+    def _retry(self) -> None:
+        now = time.monotonic()
+        for follow in self._follows.values():
+            if now - follow.asked < HELLO_EVERY:
+                continue
+            if not follow.live:
+                self._hello(follow)              # the slow-joiner hand-shake
+            elif follow.repairing and now - follow.asked > 1.0:
+                follow.repairing = False         # lost request: ask again
+                self._advance(follow)
+
+    def close(self) -> None:
+        self._closing.set()
+        self._thread.join(2.0)
+        with self._wake_lock:
+            self._wake_w.close(0)
+        self._wake_r.close(0)
+        self._sub.close(0)
+        for dealer in self._controls.values():
+            dealer.close(0)
+

@@ -1,0 +1,185 @@
+"""Remote links on loopback: order, no loss, no duplicates, slow joiners, repairs,
+fencing, arrays as frames, and forged or garbage frames refused."""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+import numpy as np
+import pytest
+import zmq
+
+from pb3a.transport import replication
+from pb3a.transport.auth import ClusterKey, Sealer
+from pb3a.transport.replication import Follower, Replicator
+
+KEY = ClusterKey.load({"PB3A_KEY": "r" * 40})
+TIMEOUT = 20.0
+
+
+class Inbox:
+    """What a follower delivered, per topic, and a wait for a count."""
+
+    def __init__(self) -> None:
+        self.values: dict[str, list[Any]] = {}
+        self._cond = threading.Condition()
+
+    def __call__(self, topic: str, values: list[Any], sent_at: float) -> None:
+        with self._cond:
+            self.values.setdefault(topic, []).extend(values)
+            self._cond.notify_all()
+
+    def wait(self, topic: str, count: int, timeout: float = TIMEOUT) -> list[Any]:
+        with self._cond:
+            if not self._cond.wait_for(lambda: len(self.values.get(topic, [])) >= count,
+                                       timeout):
+                got = len(self.values.get(topic, []))
+                raise AssertionError(f"{topic}: {got} of {count} values arrived")
+            return self.values.get(topic, [])
+
+
+@pytest.fixture
+def link():
+    replicator = Replicator(KEY)
+    inbox = Inbox()
+    follower = Follower(KEY, inbox)
+    yield replicator, follower, inbox
+    follower.close()
+    replicator.close()
+
+
+def _follow(follower: Follower, replicator: Replicator, topic: str, **kwargs: Any) -> None:
+    follower.follow(topic, replicator.data_address, replicator.control_address, **kwargs)
+
+
+def test_100000_values_arrive_in_order_once_even_for_a_late_joiner(link) -> None:
+    replicator, follower, inbox = link
+    replicator.add("a.out")
+    for i in range(1000):                     # published before anyone listens
+        replicator.publish("a.out", i)
+    _follow(follower, replicator, "a.out", from_seq=0)
+    for start in range(1000, 100_000, 1000):
+        # keep within what the high-water marks and the replay buffer can absorb
+        inbox.wait("a.out", start - 3000)
+        for i in range(start, start + 1000):
+            replicator.publish("a.out", i)
+    assert inbox.wait("a.out", 100_000) == list(range(100_000))
+    assert not follower.link_failures and not follower.fenced and not follower.rejected
+
+
+def test_a_follower_from_now_gets_what_comes_next_and_topics_do_not_mix(link) -> None:
+    replicator, follower, inbox = link
+    replicator.add("a.out")
+    replicator.add("a.out2")                  # a prefix of it must not match
+    replicator.publish("a.out", "old")
+    _follow(follower, replicator, "a.out")
+    # the hand-shake is done once a SYNC came through; values written after it count
+    for i in range(200):
+        replicator.publish("a.out2", -i)
+        replicator.publish("a.out", i)
+    first = inbox.wait("a.out", 1)[0]
+    assert inbox.wait("a.out", 200 - first) == list(range(first, 200))
+    assert "a.out2" not in inbox.values
+
+
+def test_values_the_subscriber_missed_are_repaired_from_the_replay_buffer(link,
+                                                                           monkeypatch) -> None:
+    replicator, follower, inbox = link
+    replicator.add("t")
+    _follow(follower, replicator, "t", from_seq=0)
+    send = replicator._send_pub
+
+    def lossy(name: bytes, kind: int, parts: list[Any]) -> None:
+        seq = replication._INFO.unpack(parts[0])[1] if kind == replication.VALUE else -1
+        if seq % 7 != 3:                      # every seventh value never goes out
+            send(name, kind, parts)
+    monkeypatch.setattr(replicator, "_send_pub", lossy)
+    for i in range(2000):
+        replicator.publish("t", i)
+    assert inbox.wait("t", 2000) == list(range(2000))
+    assert not follower.link_failures
+    assert follower.duplicates["t"] >= 0      # (a repair may race a live value: dropped)
+
+
+def test_values_gone_from_the_replay_buffer_are_counted_as_link_failures(link,
+                                                                         monkeypatch) -> None:
+    replicator, follower, inbox = link
+    monkeypatch.setattr(replication, "REPLAY_VALUES", 10)
+    replicator.add("t")
+    for i in range(100):                      # only the last 10 stay replayable
+        replicator.publish("t", i)
+    _follow(follower, replicator, "t", from_seq=0)
+    assert inbox.wait("t", 10) == list(range(90, 100))
+    replicator.publish("t", 100)
+    assert inbox.wait("t", 11)[-1] == 100
+    assert follower.link_failures["t"] == 90
+
+
+def test_only_the_accepted_sender_is_delivered(link) -> None:
+    replicator, follower, inbox = link
+    impostor = Replicator(KEY)                # same key, another incarnation
+    try:
+        replicator.add("t")
+        impostor.add("t")
+        impostor.add("other")
+        _follow(follower, replicator, "t", from_seq=0, incarnation=replicator.incarnation)
+        _follow(follower, impostor, "other", from_seq=0)   # its SUB now reaches impostor
+        impostor.publish("other", "x")
+        inbox.wait("other", 1)
+        impostor.publish("t", "forged")
+        replicator.publish("t", "real")
+        assert inbox.wait("t", 1) == ["real"]
+        impostor.publish("t", "forged again")
+        replicator.publish("t", "real 2")
+        assert inbox.wait("t", 2) == ["real", "real 2"]
+        assert follower.fenced["t"] >= 1
+    finally:
+        impostor.close()
+
+
+def test_arrays_travel_as_frames_and_keep_the_value_they_had_when_written(link) -> None:
+    replicator, follower, inbox = link
+    replicator.add("img")
+    _follow(follower, replicator, "img", from_seq=0)
+    image = np.arange(1 << 17, dtype=np.float64)      # 1 MiB
+    replicator.publish("img", image)
+    image[:] = -1                                     # the writer reuses its buffer
+    (received,) = inbox.wait("img", 1)
+    assert np.array_equal(received, np.arange(1 << 17, dtype=np.float64))
+    assert not received.flags.writeable
+
+
+def test_forged_garbage_and_oversized_frames_are_refused_without_harm(link,
+                                                                      monkeypatch) -> None:
+    replicator, follower, inbox = link
+    replicator.add("t")
+    context = zmq.Context.instance()
+    # 1. at the replicator's control socket: garbage, a wrong key, a pickle bomb
+    attacker = context.socket(zmq.DEALER)
+    attacker.setsockopt(zmq.LINGER, 0)
+    attacker.connect(replicator.control_address)
+    wrong = Sealer(ClusterKey.load({"PB3A_KEY": "w" * 40}))
+    bomb = b"cos\nsystem\n(S'touch /tmp/pwned'\ntR."
+    attacker.send_multipart([b"garbage"])
+    attacker.send_multipart(wrong.seal(replication.HELLO, [b"t\0", bomb]))
+    attacker.send_multipart([bomb] * 5)
+    # 2. at the follower's SUB socket: a fake publisher it was told to follow
+    fake = context.socket(zmq.PUB)
+    fake.setsockopt(zmq.LINGER, 0)
+    port = fake.bind_to_random_port("tcp://127.0.0.1")
+    follower.follow("t", f"tcp://127.0.0.1:{port}", replicator.control_address, from_seq=0)
+    _follow(follower, replicator, "t", from_seq=0)    # (the real one too)
+    replicator.publish("t", "first")
+    assert inbox.wait("t", 1) == ["first"]
+    for frames in ([b"t\0", b"garbage"], [b"t\0", *wrong.seal(replication.VALUE, [b"x"])],
+                   [b"t\0", bomb, bomb, bomb], [b"t\0", b"x" * (2 << 20)]):
+        fake.send_multipart(frames)
+    sealed = Sealer(KEY)                      # a genuine key holder may still be refused
+    fake.send_multipart([b"t\0", *sealed.seal(replication.VALUE, [b"t\0"])])  # malformed
+    replicator.publish("t", "second")
+    assert inbox.wait("t", 2) == ["first", "second"]
+    assert sum(replicator.rejected.values()) >= 3
+    assert sum(follower.rejected.values()) >= 3
+    attacker.close(0)
+    fake.close(0)
