@@ -74,12 +74,11 @@ def test_a_follower_from_now_gets_what_comes_next_and_topics_do_not_mix(link) ->
     replicator.add("a.out2")                  # a prefix of it must not match
     replicator.publish("a.out", "old")
     _follow(follower, replicator, "a.out")
-    # the hand-shake is done once a SYNC came through; values written after it count
+    assert follower.wait_ready("a.out", TIMEOUT)      # from here on nothing is missed
     for i in range(200):
         replicator.publish("a.out2", -i)
         replicator.publish("a.out", i)
-    first = inbox.wait("a.out", 1)[0]
-    assert inbox.wait("a.out", 200 - first) == list(range(first, 200))
+    assert inbox.wait("a.out", 200) == list(range(200))
     assert "a.out2" not in inbox.values
 
 
@@ -183,3 +182,39 @@ def test_forged_garbage_and_oversized_frames_are_refused_without_harm(link,
     assert sum(follower.rejected.values()) >= 3
     attacker.close(0)
     fake.close(0)
+
+
+def test_oversized_values_are_refused_at_the_sender_and_frames_at_the_receiver() -> None:
+    replicator, inbox = Replicator(KEY, max_bytes=1 << 20), Inbox()
+    follower = Follower(KEY, inbox, max_bytes=1 << 20)
+    fake = zmq.Context.instance().socket(zmq.PUB)
+    fake.setsockopt(zmq.LINGER, 0)
+    try:
+        replicator.add("t")
+        with pytest.raises(ValueError, match="exceeds the 1048576-byte message limit"):
+            replicator.publish("t", np.zeros(1 << 18))            # 2 MiB
+        port = fake.bind_to_random_port("tcp://127.0.0.1")
+        follower.follow("t", f"tcp://127.0.0.1:{port}", replicator.control_address)
+        _follow(follower, replicator, "t", from_seq=0)
+        fake.send_multipart([b"t\0", b"x" * (2 << 20)])            # ZeroMQ drops the peer
+        replicator.publish("t", 1)
+        assert inbox.wait("t", 1) == [1]                          # the follower goes on
+    finally:
+        fake.close(0)
+        follower.close()
+        replicator.close()
+
+
+def test_values_lost_at_the_end_of_a_burst_are_found_by_the_heartbeat(link,
+                                                                       monkeypatch) -> None:
+    replicator, follower, inbox = link
+    replicator.add("t")
+    _follow(follower, replicator, "t", from_seq=0)
+    assert follower.wait_ready("t", TIMEOUT)
+    send = replicator._send_pub
+    monkeypatch.setattr(replicator, "_send_pub",
+                        lambda name, kind, parts: kind != replication.VALUE
+                        and send(name, kind, parts))       # every value lost on the way
+    for i in range(5):
+        replicator.publish("t", i)
+    assert inbox.wait("t", 5) == list(range(5))           # repaired after a heartbeat

@@ -53,7 +53,9 @@ MAX_MESSAGE = 256 * 1024 * 1024         # bytes; larger frames are refused by Ze
 REPLAY_VALUES = 4096                    # per topic, at most ...
 REPLAY_BYTES = 64 * 1024 * 1024         # ... and at most this many bytes
 HELLO_EVERY = 0.05                      # seconds between unanswered HELLOs
+HEARTBEAT_S = 0.5                       # how often a replicator announces its topics
 POLL_MS = 50
+DRAIN_BATCH = 1024                      # messages taken in before delivering them
 ZERO_COPY_MIN = 64 * 1024               # frames at least this large are sent without a copy
 
 
@@ -99,18 +101,19 @@ class Replicator:
     (ROUTER) on its own thread. ``publish`` may be called from any thread."""
 
     def __init__(self, key: ClusterKey, host: str = "127.0.0.1", *, epoch: int = 0,
-                 context: zmq.Context | None = None) -> None:
+                 max_bytes: int = MAX_MESSAGE, context: zmq.Context | None = None) -> None:
         self.incarnation = secrets.token_bytes(16)
+        self._max_bytes = max_bytes
         self._context = context or zmq.Context.instance()
-        self._pub = _secure(self._context.socket(zmq.PUB))
-        self._router = _secure(self._context.socket(zmq.ROUTER))
+        self._pub = _secure(self._context.socket(zmq.PUB), max_bytes)
+        self._router = _secure(self._context.socket(zmq.ROUTER), max_bytes)
         self._pub.bind(f"tcp://{host}:*")
         self._router.bind(f"tcp://{host}:*")
         self.data_address = self._pub.getsockopt_string(zmq.LAST_ENDPOINT)
         self.control_address = self._router.getsockopt_string(zmq.LAST_ENDPOINT)
         self._pub_sealer = Sealer(key, epoch)
         self._router_sealer = Sealer(key, epoch)
-        self._opener = Opener(key, epoch=epoch)
+        self._opener = Opener(key, epoch=epoch, max_bytes=max_bytes)
         self._streams: dict[bytes, _Stream] = {}
         self._lock = threading.Lock()            # the PUB socket and the streams
         self._closing = threading.Event()
@@ -139,6 +142,10 @@ class Replicator:
         An array is copied once (the writer may reuse it at once); from there on its
         bytes go out as a zero-copy frame and stay in the replay buffer as they are."""
         kind, meta, payload = codec.encode(value)
+        if codec.payload_size(kind, payload) + 1024 > self._max_bytes:
+            raise ValueError(
+                f"a value of {codec.payload_size(kind, payload)} bytes exceeds the "
+                f"{self._max_bytes}-byte message limit of remote links; raise the limit")
         if kind == codec.ARRAY and payload is value:
             payload = payload.copy()
         name = _name(topic)
@@ -163,7 +170,11 @@ class Replicator:
 
     def _serve(self) -> None:
         router = self._router
+        beat = time.monotonic()
         while not self._closing.is_set():
+            if time.monotonic() - beat >= HEARTBEAT_S:
+                beat = time.monotonic()
+                self._heartbeat()
             try:
                 if not router.poll(POLL_MS):
                     continue
@@ -180,6 +191,13 @@ class Replicator:
                 continue                         # counted by the opener
             except Exception:
                 log.exception("replicator: a request failed")
+
+    def _heartbeat(self) -> None:
+        """Announce every topic's next sequence number: a follower that missed the last
+        values of a burst learns of them here and asks for a repair."""
+        with self._lock:
+            for name, stream in self._streams.items():
+                self._send_pub(name, SYNC, [_ANSWER.pack(self.incarnation, stream.next_seq, 0)])
 
     def _answer(self, peer: Any, message: Any) -> None:
         if message.kind not in (HELLO, REPAIR) or len(message.frames) != 2:
@@ -232,6 +250,8 @@ class _Follow:
     held: dict[int, tuple[Any, float]] = field(default_factory=dict)   # beyond a gap
     asked: float = 0.0                        # when we last sent HELLO or REPAIR
     repairing: bool = False
+    announced: int = -1                       # the sender's next sequence number, as last heard
+    ready: threading.Event = field(default_factory=threading.Event)   # live, start known
 
 
 class Follower:
@@ -242,12 +262,14 @@ class Follower:
     from a sender that is not the accepted one), ``duplicates`` (dropped)."""
 
     def __init__(self, key: ClusterKey, deliver: Callable[[str, list[Any], float], None], *,
-                 epoch: int = 0, context: zmq.Context | None = None) -> None:
+                 epoch: int = 0, max_bytes: int = MAX_MESSAGE,
+                 context: zmq.Context | None = None) -> None:
         self._key = key
         self._deliver = deliver
+        self._max_bytes = max_bytes
         self._context = context or zmq.Context.instance()
-        self._sub = _secure(self._context.socket(zmq.SUB))
-        self._opener = Opener(key, epoch=epoch)
+        self._sub = _secure(self._context.socket(zmq.SUB), max_bytes)
+        self._opener = Opener(key, epoch=epoch, max_bytes=max_bytes)
         self._sealer = Sealer(key, epoch)        # used only on the follower's thread
         self._follows: dict[bytes, _Follow] = {}
         self._controls: dict[str, zmq.Socket] = {}   # control address -> DEALER
@@ -279,13 +301,32 @@ class Follower:
         self._call(lambda: self._follow(_name(topic), data_address, control_address,
                                         from_seq, incarnation))
 
+    def wait_ready(self, topic: str, timeout: float) -> bool:
+        """Block until the hand-shake for ``topic`` is done: from then on nothing
+        written is missed. False if it did not finish within ``timeout``."""
+        follow = self._follows.get(_name(topic))
+        return follow is not None and follow.ready.wait(timeout)
+
     def unfollow(self, topic: str) -> None:
         self._call(lambda: self._unfollow(_name(topic)))
 
-    def _call(self, request: Callable[[], None]) -> None:
-        self._requests.append(request)
+    def _call(self, request: Callable[[], None], timeout: float = 5.0) -> None:
+        """Run ``request`` on the follower's thread (it owns the sockets) and wait."""
+        if threading.current_thread() is self._thread:
+            request()                            # (called from a delivery)
+            return
+        done = threading.Event()
+
+        def run() -> None:
+            try:
+                request()
+            finally:
+                done.set()
+        self._requests.append(run)
         with self._wake_lock:
             self._wake_w.send(b"")
+        if not done.wait(timeout):
+            raise TimeoutError(f"the follower thread did not take the request in {timeout} s")
 
     def _follow(self, name: bytes, data: str, control: str, from_seq: int,
                 incarnation: bytes | None) -> None:
@@ -294,7 +335,7 @@ class Follower:
             self._connected.add(data)
         dealer = self._controls.get(control)
         if dealer is None:
-            dealer = _secure(self._context.socket(zmq.DEALER))
+            dealer = _secure(self._context.socket(zmq.DEALER), self._max_bytes)
             dealer.connect(control)
             self._controls[control] = dealer
         old = self._follows.get(name)
@@ -347,7 +388,11 @@ class Follower:
             self._retry()
 
     def _drain(self, sock: zmq.Socket, live: bool) -> None:
-        while sock.poll(0):
+        """Take in what has arrived (a bounded batch), then deliver per topic at once."""
+        touched: dict[bytes, _Follow] = {}
+        for _ in range(DRAIN_BATCH):
+            if not sock.poll(0):
+                break
             frames = sock.recv_multipart(copy=False)
             if live:
                 if len(frames) < 2:
@@ -355,44 +400,50 @@ class Follower:
                     continue
                 frames = frames[1:]              # the topic prefix (authenticated inside)
             try:
-                message = self._opener.open(frames)
-                self._handle(message, live)
+                follow = self._handle(self._opener.open(frames), live)
             except Rejected:
                 continue
             except Exception:
                 log.exception("follower: a message could not be handled")
+                continue
+            if follow is not None:
+                touched[follow.topic] = follow
+        for follow in touched.values():
+            self._advance(follow)
 
-    def _handle(self, message: Any, live: bool) -> None:
+    def _handle(self, message: Any, live: bool) -> _Follow | None:
+        """Take one message in; the follow it touched (its values are delivered later)."""
         if not message.frames:
             raise Rejected("unexpected")
         follow = self._follows.get(bytes(message.frames[0]))
         if follow is None:
-            return                               # unfollowed meanwhile
+            return None                          # unfollowed meanwhile
         if message.kind in (SYNC, WELCOME):
             incarnation, nxt, _ = _ANSWER.unpack(message.frames[1])
             if not self._accept(follow, incarnation):
-                return
+                return None
             if follow.next_seq < 0:
                 follow.next_seq = nxt           # from now on
+            follow.announced = max(follow.announced, nxt)
             follow.live = follow.live or live
-            self._advance(follow)
-        elif message.kind == VALUE:
+            return follow
+        if message.kind == VALUE:
             incarnation, seq, sent_at, kind = _INFO.unpack(message.frames[1])
             if not self._accept(follow, incarnation):
-                return
+                return None
             follow.live = follow.live or live
             if follow.next_seq < 0:             # joined from now: this is the first
                 follow.next_seq = seq
             if seq < follow.next_seq or seq in follow.held:
                 self.duplicates[_topic(follow.topic)] += 1
-                return
+                return None
             meta, payload = bytes(message.frames[2]), message.frames[3]
             follow.held[seq] = (codec.decode_owned(kind, meta, payload), sent_at)
-            self._advance(follow)
-        elif message.kind == REPLAYED:
+            return follow
+        if message.kind == REPLAYED:
             incarnation, first, gone = _ANSWER.unpack(message.frames[1])
             if not self._accept(follow, incarnation):
-                return
+                return None
             follow.repairing = False
             if gone and follow.next_seq < first + gone:
                 lost = first + gone - follow.next_seq
@@ -400,9 +451,8 @@ class Follower:
                 log.error("remote link %s lost %d values (gone from the sender's replay "
                           "buffer)", _topic(follow.topic), lost)
                 follow.next_seq = first + gone
-            self._advance(follow)
-        else:
-            raise Rejected("unexpected")
+            return follow
+        raise Rejected("unexpected")
 
     def _accept(self, follow: _Follow, incarnation: bytes) -> bool:
         if follow.incarnation is None:
@@ -414,6 +464,8 @@ class Follower:
 
     def _advance(self, follow: _Follow) -> None:
         """Deliver what is in order; ask for a repair when a gap blocks the rest."""
+        if follow.live and follow.next_seq >= 0:
+            follow.ready.set()
         values, sent_at = [], 0.0
         while follow.next_seq in follow.held:
             value, sent_at = follow.held.pop(follow.next_seq)
@@ -421,10 +473,13 @@ class Follower:
             follow.next_seq += 1
         if values:
             self._deliver(_topic(follow.topic), values, sent_at)
-        if follow.held and follow.live and not follow.repairing:
+        # a gap before held values, or behind what the sender announced (values lost
+        # at the end of a burst show up only in its heartbeat)
+        last = min(follow.held) - 1 if follow.held else follow.announced - 1
+        if follow.live and not follow.repairing and 0 <= follow.next_seq <= last:
             follow.repairing = True
             follow.asked = time.monotonic()
-            self._ask(follow, REPAIR, follow.next_seq, min(follow.held) - 1)
+            self._ask(follow, REPAIR, follow.next_seq, last)
 
     def _retry(self) -> None:
         now = time.monotonic()
