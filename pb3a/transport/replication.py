@@ -37,6 +37,7 @@ import zmq
 
 from pb3a.transport import codec
 from pb3a.transport.auth import ClusterKey, Opener, Rejected, Sealer
+from pb3a.transport.loop import SocketLoop
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -54,7 +55,6 @@ REPLAY_VALUES = 4096                    # per topic, at most ...
 REPLAY_BYTES = 64 * 1024 * 1024         # ... and at most this many bytes
 HELLO_EVERY = 0.05                      # seconds between unanswered HELLOs
 HEARTBEAT_S = 0.5                       # how often a replicator announces its topics
-POLL_MS = 50
 DRAIN_BATCH = 1024                      # messages taken in before delivering them
 ZERO_COPY_MIN = 64 * 1024               # frames at least this large are sent without a copy
 
@@ -116,10 +116,9 @@ class Replicator:
         self._opener = Opener(key, epoch=epoch, max_bytes=max_bytes)
         self._streams: dict[bytes, _Stream] = {}
         self._lock = threading.Lock()            # the PUB socket and the streams
-        self._closing = threading.Event()
-        self._thread = threading.Thread(target=self._serve, name="pb3a-replicator",
-                                        daemon=True)
-        self._thread.start()
+        self._loop = SocketLoop("pb3a-replicator", self._context)
+        self._loop.register(self._router, self._on_request)
+        self._loop.every(HEARTBEAT_S, self._heartbeat)
 
     @property
     def rejected(self) -> collections.Counter[str]:
@@ -168,29 +167,15 @@ class Replicator:
         # topic again so that it is authenticated too
         _send(self._pub, [name, *self._pub_sealer.seal(kind, [name, *parts])])
 
-    def _serve(self) -> None:
-        router = self._router
-        beat = time.monotonic()
-        while not self._closing.is_set():
-            if time.monotonic() - beat >= HEARTBEAT_S:
-                beat = time.monotonic()
-                self._heartbeat()
+    def _on_request(self, router: zmq.Socket) -> None:
+        for _ in range(DRAIN_BATCH):
+            if not router.poll(0):
+                return
+            peer, *frames = router.recv_multipart(copy=False)
             try:
-                if not router.poll(POLL_MS):
-                    continue
-                peer, *frames = router.recv_multipart(copy=False)
-            except zmq.ZMQError:
-                if self._closing.is_set():
-                    return
-                log.exception("replicator: control socket error")
-                continue
-            try:
-                message = self._opener.open(frames)
-                self._answer(peer, message)
+                self._answer(peer, self._opener.open(frames))
             except Rejected:
                 continue                         # counted by the opener
-            except Exception:
-                log.exception("replicator: a request failed")
 
     def _heartbeat(self) -> None:
         """Announce every topic's next sequence number: a follower that missed the last
@@ -230,8 +215,7 @@ class Replicator:
         _send(self._router, [peer, *self._router_sealer.seal(kind, parts)])
 
     def close(self) -> None:
-        self._closing.set()
-        self._thread.join(2.0)
+        self._loop.close()
         with self._lock:
             self._pub.close(0)
         self._router.close(0)
@@ -274,19 +258,12 @@ class Follower:
         self._follows: dict[bytes, _Follow] = {}
         self._controls: dict[str, zmq.Socket] = {}   # control address -> DEALER
         self._connected: set[str] = set()
-        self._requests: collections.deque[Callable[[], None]] = collections.deque()
-        self._wake_r = self._context.socket(zmq.PULL)
-        self._wake_w = self._context.socket(zmq.PUSH)
-        address = f"inproc://pb3a-follower-{id(self)}-{secrets.token_hex(4)}"
-        self._wake_r.bind(address)
-        self._wake_w.connect(address)
-        self._wake_lock = threading.Lock()
         self.link_failures: collections.Counter[str] = collections.Counter()
         self.fenced: collections.Counter[str] = collections.Counter()
         self.duplicates: collections.Counter[str] = collections.Counter()
-        self._closing = threading.Event()
-        self._thread = threading.Thread(target=self._serve, name="pb3a-follower", daemon=True)
-        self._thread.start()
+        self._loop = SocketLoop("pb3a-follower", self._context)
+        self._loop.register(self._sub, self._on_data)
+        self._loop.every(HELLO_EVERY, self._retry)
 
     @property
     def rejected(self) -> collections.Counter[str]:
@@ -298,8 +275,8 @@ class Follower:
         """Receive ``topic`` from the replicator at these addresses, starting at
         ``from_seq`` (-1: whatever comes next). With ``incarnation``, only that sender
         is accepted (a hand-over after migration); following again re-points."""
-        self._call(lambda: self._follow(_name(topic), data_address, control_address,
-                                        from_seq, incarnation))
+        self._loop.call(lambda: self._follow(_name(topic), data_address, control_address,
+                                             from_seq, incarnation))
 
     def wait_ready(self, topic: str, timeout: float) -> bool:
         """Block until the hand-shake for ``topic`` is done: from then on nothing
@@ -308,25 +285,7 @@ class Follower:
         return follow is not None and follow.ready.wait(timeout)
 
     def unfollow(self, topic: str) -> None:
-        self._call(lambda: self._unfollow(_name(topic)))
-
-    def _call(self, request: Callable[[], None], timeout: float = 5.0) -> None:
-        """Run ``request`` on the follower's thread (it owns the sockets) and wait."""
-        if threading.current_thread() is self._thread:
-            request()                            # (called from a delivery)
-            return
-        done = threading.Event()
-
-        def run() -> None:
-            try:
-                request()
-            finally:
-                done.set()
-        self._requests.append(run)
-        with self._wake_lock:
-            self._wake_w.send(b"")
-        if not done.wait(timeout):
-            raise TimeoutError(f"the follower thread did not take the request in {timeout} s")
+        self._loop.call(lambda: self._unfollow(_name(topic)))
 
     def _follow(self, name: bytes, data: str, control: str, from_seq: int,
                 incarnation: bytes | None) -> None:
@@ -338,6 +297,7 @@ class Follower:
             dealer = _secure(self._context.socket(zmq.DEALER), self._max_bytes)
             dealer.connect(control)
             self._controls[control] = dealer
+            self._loop.register(dealer, self._on_control)
         old = self._follows.get(name)
         if old is None:
             self._sub.setsockopt(zmq.SUBSCRIBE, name)
@@ -359,33 +319,11 @@ class Follower:
         _send(follow.control, self._sealer.seal(kind, [follow.topic, _ASK.pack(first, last)]))
 
     # -- the follower's thread --------------------------------------------------
-    def _serve(self) -> None:
-        poller = zmq.Poller()
-        poller.register(self._sub, zmq.POLLIN)
-        poller.register(self._wake_r, zmq.POLLIN)
-        registered: set[zmq.Socket] = set()
-        while not self._closing.is_set():
-            for dealer in self._controls.values():
-                if dealer not in registered:
-                    poller.register(dealer, zmq.POLLIN)
-                    registered.add(dealer)
-            try:
-                ready = dict(poller.poll(POLL_MS))
-            except zmq.ZMQError:
-                if self._closing.is_set():
-                    return
-                raise
-            if self._wake_r in ready:
-                while self._wake_r.poll(0):
-                    self._wake_r.recv()
-                while self._requests:
-                    self._requests.popleft()()
-            if self._sub in ready:
-                self._drain(self._sub, live=True)
-            for dealer in registered:
-                if dealer in ready:
-                    self._drain(dealer, live=False)
-            self._retry()
+    def _on_data(self, sock: zmq.Socket) -> None:
+        self._drain(sock, live=True)
+
+    def _on_control(self, sock: zmq.Socket) -> None:
+        self._drain(sock, live=False)
 
     def _drain(self, sock: zmq.Socket, live: bool) -> None:
         """Take in what has arrived (a bounded batch), then deliver per topic at once."""
@@ -493,11 +431,7 @@ class Follower:
                 self._advance(follow)
 
     def close(self) -> None:
-        self._closing.set()
-        self._thread.join(2.0)
-        with self._wake_lock:
-            self._wake_w.close(0)
-        self._wake_r.close(0)
+        self._loop.close()
         self._sub.close(0)
         for dealer in self._controls.values():
             dealer.close(0)

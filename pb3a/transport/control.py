@@ -1,0 +1,165 @@
+"""Control requests between PB3A processes on different nodes: authenticated RPC.
+
+A ``ControlClient`` sends ``(op, args)`` to a ``ControlServer`` and waits for the
+answer. Every request and reply is sealed with the cluster key and opened (``auth``)
+before it is unpickled: an unauthenticated frame is never deserialized. The server
+takes requests in on its socket loop and runs them one at a time on a handler thread
+(in arrival order, so operations never interleave); ``ping`` is answered at once,
+so heartbeats are not held up by a long operation.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import pickle
+import queue
+import struct
+import threading
+from typing import TYPE_CHECKING, Any
+
+import cloudpickle
+import zmq
+
+from pb3a.errors import RuntimeFailure, RuntimeTimeout
+from pb3a.transport.auth import ClusterKey, Opener, Rejected, Sealer
+from pb3a.transport.loop import SocketLoop
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+log = logging.getLogger("pb3a.control")
+
+REQUEST, REPLY = 10, 11
+_ID = struct.Struct("<Q")
+MAX_MESSAGE = 64 * 1024 * 1024          # control messages carry states and code, not streams
+DEFAULT_TIMEOUT = 10.0
+
+
+def _socket(context: zmq.Context, kind: int) -> zmq.Socket:
+    sock = context.socket(kind)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.setsockopt(zmq.MAXMSGSIZE, MAX_MESSAGE)
+    return sock
+
+
+class ControlServer:
+    """Serves ``handler(op, args) -> result`` on a ROUTER socket bound to ``host``."""
+
+    def __init__(self, key: ClusterKey, handler: Callable[[str, dict[str, Any]], Any],
+                 host: str = "127.0.0.1", port: int = 0, *, epoch: int = 0,
+                 name: str = "pb3a-control") -> None:
+        self._handler = handler
+        self._loop = SocketLoop(f"{name}-io")
+        self._router = _socket(self._loop.context, zmq.ROUTER)
+        self._router.bind(f"tcp://{host}:{port or '*'}")
+        self.address = self._router.getsockopt_string(zmq.LAST_ENDPOINT)
+        self._sealer = Sealer(key, epoch)
+        self._opener = Opener(key, epoch=epoch, max_bytes=MAX_MESSAGE)
+        self._work: queue.SimpleQueue[tuple[Any, bytes, str, dict[str, Any]] | None] = (
+            queue.SimpleQueue())
+        self._worker = threading.Thread(target=self._serve, name=name, daemon=True)
+        self._worker.start()
+        self._loop.register(self._router, self._on_request)
+
+    @property
+    def rejected(self) -> Any:
+        """Frames refused (unauthenticated, malformed, replayed ...), by reason."""
+        return self._opener.rejected
+
+    def _on_request(self, router: zmq.Socket) -> None:
+        while router.poll(0):
+            peer, *frames = router.recv_multipart(copy=False)
+            try:
+                message = self._opener.open(frames)
+                if message.kind != REQUEST or len(message.frames) != 2:
+                    raise Rejected("unexpected")
+                request_id = bytes(message.frames[0])
+                op, args = pickle.loads(message.frames[1])     # authenticated: safe
+            except Rejected:
+                continue
+            except Exception:
+                self._opener.rejected["undecodable"] += 1
+                continue
+            if op == "ping":
+                self._reply(peer, request_id, True, "pong")
+            else:
+                self._work.put((peer, request_id, op, args))
+
+    def _serve(self) -> None:
+        while (item := self._work.get()) is not None:
+            peer, request_id, op, args = item
+            try:
+                result, ok = self._handler(op, args), True
+            except Exception as exc:
+                log.debug("request %s failed", op, exc_info=True)
+                result, ok = f"{type(exc).__name__}: {exc}", False
+            self._loop.submit(lambda p=peer, r=request_id, k=ok, v=result: self._reply(p, r, k, v))
+
+    def _reply(self, peer: Any, request_id: bytes, ok: bool, result: Any) -> None:
+        try:
+            blob = cloudpickle.dumps((ok, result), protocol=5)
+        except Exception as exc:
+            blob = cloudpickle.dumps((False, f"the result could not be pickled: {exc}"))
+        self._router.send_multipart([peer, *self._sealer.seal(REPLY, [request_id, blob])])
+
+    def close(self) -> None:
+        self._work.put(None)
+        self._worker.join(5.0)
+        self._loop.close()
+        self._router.close(0)
+
+
+class ControlClient:
+    """Calls one ``ControlServer``; ``call`` may be used from any number of threads."""
+
+    def __init__(self, key: ClusterKey, address: str, *, epoch: int = 0) -> None:
+        self.address = address
+        self._loop = SocketLoop("pb3a-control-client")
+        self._dealer = _socket(self._loop.context, zmq.DEALER)
+        self._dealer.connect(address)
+        self._sealer = Sealer(key, epoch)
+        self._opener = Opener(key, epoch=epoch, max_bytes=MAX_MESSAGE)
+        self._ids = itertools.count(1)
+        self._waiting: dict[bytes, tuple[threading.Event, list[Any]]] = {}
+        self._loop.register(self._dealer, self._on_reply)
+
+    def call(self, op: str, timeout: float = DEFAULT_TIMEOUT, **args: Any) -> Any:
+        """Run ``op`` at the server; its result, or ``RuntimeFailure`` with its error,
+        or ``RuntimeTimeout`` when no answer came within ``timeout`` seconds."""
+        request_id = _ID.pack(next(self._ids))
+        blob = cloudpickle.dumps((op, args), protocol=5)
+        done, box = threading.Event(), [False, None]
+        self._waiting[request_id] = (done, box)
+        try:
+            self._loop.submit(lambda: self._dealer.send_multipart(
+                self._sealer.seal(REQUEST, [request_id, blob])))
+            if not done.wait(timeout):
+                raise RuntimeTimeout(f"{self.address} did not answer {op!r} within {timeout} s")
+        finally:
+            self._waiting.pop(request_id, None)
+        ok, result = box
+        if not ok:
+            raise RuntimeFailure(f"{op} at {self.address} failed: {result}")
+        return result
+
+    def _on_reply(self, dealer: zmq.Socket) -> None:
+        while dealer.poll(0):
+            frames = dealer.recv_multipart(copy=False)
+            try:
+                message = self._opener.open(frames)
+                if message.kind != REPLY or len(message.frames) != 2:
+                    raise Rejected("unexpected")
+                waiter = self._waiting.get(bytes(message.frames[0]))
+                if waiter is None:
+                    continue                     # answered after its caller gave up
+                waiter[1][:] = pickle.loads(message.frames[1])   # authenticated: safe
+                waiter[0].set()
+            except Rejected:
+                continue
+            except Exception:
+                self._opener.rejected["undecodable"] += 1
+
+    def close(self) -> None:
+        self._loop.close()
+        self._dealer.close(0)

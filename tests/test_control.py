@@ -1,0 +1,104 @@
+"""Control RPC: answers, errors, time-outs, concurrency, and forged frames refused
+before anything is unpickled."""
+
+from __future__ import annotations
+
+import pickle
+import threading
+from typing import Any
+
+import pytest
+import zmq
+
+from pb3a import RuntimeFailure, RuntimeTimeout
+from pb3a.transport.auth import ClusterKey, Sealer
+from pb3a.transport.control import REQUEST, ControlClient, ControlServer
+
+KEY = ClusterKey.load({"PB3A_KEY": "c" * 40})
+release = threading.Event()
+
+
+def handler(op: str, args: dict[str, Any]) -> Any:
+    if op == "add":
+        return args["a"] + args["b"]
+    if op == "fail":
+        raise ValueError("no such module 'x'")
+    if op == "block":
+        release.wait(10.0)
+        return "released"
+    raise KeyError(op)
+
+
+@pytest.fixture
+def rpc():
+    server = ControlServer(KEY, handler)
+    client = ControlClient(KEY, server.address)
+    yield server, client
+    release.set()
+    client.close()
+    server.close()
+    release.clear()
+
+
+def test_calls_return_results_and_errors_name_the_operation(rpc) -> None:
+    _, client = rpc
+    assert client.call("add", a=2, b=3) == 5
+    with pytest.raises(RuntimeFailure, match=r"fail at tcp://.* failed: ValueError: no such"):
+        client.call("fail")
+
+
+def test_a_slow_operation_times_out_and_pings_still_get_through(rpc) -> None:
+    _, client = rpc
+    blocked = threading.Thread(target=lambda: client.call("block", timeout=10.0))
+    blocked.start()
+    assert client.call("ping", timeout=5.0) == "pong"       # answered on the I/O thread
+    with pytest.raises(RuntimeTimeout, match=r"did not answer .add. within 0\.2 s"):
+        client.call("add", timeout=0.2, a=1, b=1)            # queued behind "block"
+    release.set()
+    blocked.join(10.0)
+    assert client.call("add", a=1, b=1) == 2
+
+
+def test_many_threads_share_one_client(rpc) -> None:
+    _, client = rpc
+    results: dict[int, list[int]] = {}
+
+    def caller(n: int) -> None:
+        results[n] = [client.call("add", a=n, b=i) for i in range(50)]
+    threads = [threading.Thread(target=caller, args=(n,)) for n in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(30.0)
+    assert results == {n: [n + i for i in range(50)] for n in range(4)}
+
+
+class Bomb:
+    """Unpickling this would append to ``exploded``: proof of deserialization."""
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (exploded.append, ("boom",))
+
+
+exploded: list[str] = []
+
+
+def test_forged_and_garbage_requests_are_never_unpickled(rpc) -> None:
+    server, client = rpc
+    bomb = pickle.dumps(("add", Bomb()))
+    attacker = zmq.Context.instance().socket(zmq.DEALER)
+    attacker.setsockopt(zmq.LINGER, 0)
+    attacker.connect(server.address)
+    wrong = Sealer(ClusterKey.load({"PB3A_KEY": "w" * 40}))
+    attacker.send_multipart([b"garbage"])
+    attacker.send_multipart([b"\0" * 8, bomb])
+    attacker.send_multipart(wrong.seal(REQUEST, [b"\0" * 8, bomb]))
+    attacker.send_multipart([bomb] * 200)
+    genuine = Sealer(KEY).seal(REQUEST, [b"\1" * 8, pickle.dumps(("add", {"a": 1, "b": 2}))])
+    attacker.send_multipart(genuine)
+    attacker.send_multipart(genuine)                         # a replay
+    assert client.call("add", a=40, b=2) == 42
+    assert exploded == []
+    assert sum(server.rejected.values()) >= 5
+    assert server.rejected["replay"] == 1
+    attacker.close(0)
