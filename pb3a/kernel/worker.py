@@ -25,6 +25,7 @@ import cloudpickle
 from pb3a.kernel.actor import EventPool, ModuleActor
 from pb3a.kernel.agent import Agent, RuntimeClient
 from pb3a.kernel.ports import InputPort, Policy
+from pb3a.kernel.publishing import Publications
 from pb3a.transport.codec import local_copy
 from pb3a.transport.doorbell import BellPull, Doorbell
 from pb3a.transport.ring import ShmRing, sleep
@@ -89,6 +90,7 @@ class Worker:
         # what the receiver loops over, replaced (never mutated) when links change
         self._receiving: tuple[list[_Inbound], list[Any]] = ([], [])
         self.outbound: dict[str, tuple[str, str, ShmRing | None, BellPull | None]] = {}
+        self.publications = Publications()       # outputs replicated to other nodes
         self._send_lock = threading.Lock()
         self._requests: dict[int, tuple[threading.Event, list[Any]]] = {}
         self._paused: set[str] = set()
@@ -151,6 +153,7 @@ class Worker:
                 ring.close()
             if pull is not None:
                 pull.close()
+        self.publications.close()
         self._threads[0].join(1.0)            # (before its doorbell's descriptor goes)
         self.bell.close()
         self._wake.close()
@@ -265,6 +268,16 @@ class Worker:
         if pull is not None:
             pull.ring()      # the reader drains what is left
             pull.close()
+
+    def op_publish_out(self, key: str, src: str, src_port: str, secret: bytes,
+                       host: str) -> tuple[str, str, bytes]:
+        """Replicate an output to another node: (data address, control address,
+        incarnation) for the reading node to follow."""
+        return self.publications.add(key, f"{src}.{src_port}",
+                                     self.actors[src].outputs[src_port], secret, host)
+
+    def op_unpublish_out(self, key: str) -> int:
+        return self.publications.remove(key)
 
     def op_get_state(self, name: str) -> dict[str, Any]:
         return self.actors[name].capture()

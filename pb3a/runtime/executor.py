@@ -35,7 +35,9 @@ from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.kernel.config import FlatLink, FlatModule
 from pb3a.kernel.ports import Policy
 from pb3a.kernel.worker import worker_main
+from pb3a.runtime.bridge import Bridge
 from pb3a.runtime.recovery import recover
+from pb3a.transport.auth import ClusterKey
 from pb3a.transport.doorbell import new_bell
 from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import reap_orphans, segment_name
@@ -102,6 +104,7 @@ class Executor:
         self.workers: dict[str, WorkerHandle] = {}
         self.failures: list[str] = []                 # what went wrong, for stats and logs
         self.handler: Any = None                      # applies agents' requests (op, args)
+        self._bridge: Bridge | None = None            # remote links in (made on first use)
         self._futures: dict[int, Future[Any]] = {}
         self._ids = itertools.count()
         self.lock = threading.RLock()                 # the global configuration lock
@@ -110,6 +113,13 @@ class Executor:
         self._monitor = threading.Thread(target=self._watch, name="pb3a-monitor", daemon=True)
         reap_orphans()
         self._monitor.start()
+
+    @property
+    def bridge(self) -> Bridge:
+        """The receiving end of remote links (the cluster key is loaded on first use)."""
+        if self._bridge is None:
+            self._bridge = Bridge(ClusterKey.load())
+        return self._bridge
 
     # -- placement and processes -------------------------------------------
     def place(self, spec: FlatModule) -> str:
@@ -233,8 +243,13 @@ class Executor:
         self.attach_reader(link)
         self.attach_writer(link)
 
+    def remote(self, link: FlatLink) -> bool:
+        """True if the link joins two nodes (it then goes over ZeroMQ)."""
+        return self.modules[link.src].spec.node != self.modules[link.dst].spec.node
+
     def attach_reader(self, link: FlatLink) -> None:
-        """The reading side: attach the link's ring (created here) in the reader's worker."""
+        """The reading side: attach the link's ring (created here) in the reader's worker;
+        for a remote link the bridge writes into that ring."""
         src, dst = self.modules[link.src], self.modules[link.dst]
         if src.worker == dst.worker:
             return
@@ -245,11 +260,20 @@ class Executor:
             self.rings[link.key] = ring
         self.call(dst.worker, "link_in", key=link.key, dst=link.dst, dst_port=link.dst_port,
                   ring=ring.name, policy=str(link.policy))
+        if self.remote(link):
+            self.bridge.open(link.key, _topic(link), ring.name, self.workers[dst.worker].bell)
 
     def attach_writer(self, link: FlatLink) -> None:
-        """The writing side: connect the output to the ring, or straight to the input."""
+        """The writing side: connect the output to the ring, or straight to the input, or
+        (remote) publish it and have the bridge follow it."""
         src, dst = self.modules[link.src], self.modules[link.dst]
-        if src.worker == dst.worker:
+        if self.remote(link):
+            bridge = self.bridge
+            data, control, incarnation = self.call(
+                src.worker, "publish_out", key=link.key, src=link.src, src_port=link.src_port,
+                secret=bridge.key.secret, host="127.0.0.1")
+            bridge.follow(_topic(link), data, control, incarnation)
+        elif src.worker == dst.worker:
             self.call(src.worker, "link_out", key=link.key, src=link.src, src_port=link.src_port,
                       dst=link.dst, dst_port=link.dst_port, policy=str(link.policy))
         else:
@@ -272,12 +296,27 @@ class Executor:
                 if self.workers[record.worker].alive:
                     self.call(record.worker, "resume", name=record.spec.name)
 
+    def unhook_writer(self, link: FlatLink) -> None:
+        """Stop feeding a link whose reader is gone for good (its ring stays until removed)."""
+        src = self.modules[link.src]
+        if self.remote(link):
+            self.call(src.worker, "unpublish_out", key=link.key)
+            self.bridge.close(link.key)
+        else:
+            self.call(src.worker, "unlink_out", key=link.key)
+
     def disconnect(self, key: str) -> None:
         """Unwire a link: the writer stops first, then the reader drains what is left."""
-        link = self.links.pop(key)
+        link = self.links[key]
         src, dst = self.modules.get(link.src), self.modules.get(link.dst)
-        if src is not None and self.workers[src.worker].alive:
+        if src is not None and dst is not None and self.remote(link):
+            reached = 0
+            if self.workers[src.worker].alive:
+                reached = self.call(src.worker, "unpublish_out", key=key)
+            self.bridge.close(key, reached if self.workers[src.worker].alive else 0)
+        elif src is not None and self.workers[src.worker].alive:
             self.call(src.worker, "unlink_out", key=key)
+        del self.links[key]
         if dst is not None and self.workers[dst.worker].alive:
             self.call(dst.worker, "unlink_in", key=key)
         ring = self.rings.pop(key, None)
@@ -431,6 +470,8 @@ class Executor:
             self._stopping.set()
             for handle in reversed(list(self.workers.values())):
                 self._stop_worker(handle, timeout=max(0.1, min(2.0, deadline - time.monotonic())))
+            if self._bridge is not None:
+                self._bridge.shutdown()
             for ring in self.rings.values():
                 ring.close()
             self.rings.clear()
@@ -464,6 +505,11 @@ def _start_without_main(process: Any) -> None:
             process.start()
         finally:
             mp_spawn.get_preparation_data = original
+
+
+def _topic(link: FlatLink) -> str:
+    """The topic a remote link's output is published under."""
+    return f"{link.src}.{link.src_port}"
 
 
 def _ring_bytes(cls: type, port: str, policy: Policy) -> int:

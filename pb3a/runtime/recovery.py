@@ -78,4 +78,4 @@ def _fail(executor: Executor, name: str, code: int | None) -> None:
     for link in list(executor.links.values()):
         src = executor.modules.get(link.src)
         if link.dst == name and src is not None and executor.workers[src.worker].alive:
-            executor.call(src.worker, "unlink_out", key=link.key)
+            executor.unhook_writer(link)

@@ -40,7 +40,10 @@ def collect(executor: Executor, timeout: float = 5.0) -> dict[str, Any]:
         figures = ports.get((link.dst, link.dst_port), {})
         src = executor.modules.get(link.src)
         dst = executor.modules.get(link.dst)
-        transport = "memory" if src and dst and src.worker == dst.worker else "shm"
+        remote = bool(src and dst and executor.remote(link))
+        transport = ("zmq" if remote else
+                     "memory" if src and dst and src.worker == dst.worker else "shm")
+        lost = executor.bridge.link_failures(f"{link.src}.{link.src_port}") if remote else 0
         ring = reports.get(dst.worker, {}).get("rings", {}).get(key, {}) if dst else {}
         links[key] = {"src": f"{link.src}.{link.src_port}", "dst": f"{link.dst}.{link.dst_port}",
                       "policy": str(link.policy), "transport": transport,
@@ -48,6 +51,6 @@ def collect(executor: Executor, timeout: float = 5.0) -> dict[str, Any]:
                       "pending": figures.get("pending", 0),
                       "latency": figures.get("latency", float("nan")),
                       "rate": figures.get("rate", 0.0),
-                      "link_failures": figures.get("link_failures", 0),
+                      "link_failures": figures.get("link_failures", 0) + lost,
                       "ring_bytes_used": ring.get("used", 0)}
     return {"modules": modules, "links": links, "failures": list(executor.failures)}

@@ -180,7 +180,7 @@ static PyObject *RingCore_publish(RingCore *self, PyObject *unused) {
 
 /* Write an int64 or float64 record at the head: 1 written, 0 no room (nothing
  * changed), -1 not such a value (nothing changed), -2 error. */
-static int put_scalar(RingCore *self, PyObject *value) {
+static int put_scalar(RingCore *self, PyObject *value, double sent_at) {
     uint16_t kind;
     int64_t number = 0;
     double real = 0.0;
@@ -202,7 +202,7 @@ static int put_scalar(RingCore *self, PyObject *value) {
     if (start < 0)
         return 0;
     unsigned char *at = self->data + (unsigned long long)start % self->cap;
-    put_header(at, SCALAR_LEN, kind, 0, self->seq, monotonic_now());
+    put_header(at, SCALAR_LEN, kind, 0, self->seq, sent_at);
     if (kind == K_INT)
         memcpy(at + REC_HEAD, &number, 8);
     else
@@ -214,7 +214,7 @@ static int put_scalar(RingCore *self, PyObject *value) {
 
 /* put(value) -> 1, 0 or -1 as put_scalar; a written value is published at once. */
 static PyObject *RingCore_put(RingCore *self, PyObject *value) {
-    int done = put_scalar(self, value);
+    int done = put_scalar(self, value, monotonic_now());
     if (done == -2)
         return NULL;
     if (done == 1) {
@@ -224,9 +224,17 @@ static PyObject *RingCore_put(RingCore *self, PyObject *value) {
     return PyLong_FromLong(done);
 }
 
-/* stage(value): as put, but leaves publishing to publish() (a batch publishes once). */
-static PyObject *RingCore_stage(RingCore *self, PyObject *value) {
-    int done = put_scalar(self, value);
+/* stage(value, sent_at): as put, but leaves publishing to publish() (a batch
+ * publishes once), and the write time is given (monotonic seconds). */
+static PyObject *RingCore_stage(RingCore *self, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "stage takes (value, sent_at)");
+        return NULL;
+    }
+    double sent_at = PyFloat_AsDouble(args[1]);
+    if (sent_at == -1.0 && PyErr_Occurred())
+        return NULL;
+    int done = put_scalar(self, args[0], sent_at);
     return done == -2 ? NULL : PyLong_FromLong(done);
 }
 
@@ -491,7 +499,8 @@ static PyMethodDef RingCore_methods[] = {
     {"release", (PyCFunction)RingCore_release, METH_NOARGS, "stop using the segment"},
     {"put", (PyCFunction)RingCore_put, METH_O, "write an int64 or float64 and publish it"},
     {"reserve", (PyCFunction)RingCore_reserve, METH_O, "room for a record, or -1"},
-    {"stage", (PyCFunction)RingCore_stage, METH_O, "write an int64 or float64, unpublished"},
+    {"stage", (PyCFunction)(void (*)(void))RingCore_stage, METH_FASTCALL,
+     "write an int64 or float64, unpublished"},
     {"publish", (PyCFunction)RingCore_publish, METH_NOARGS, "make records up to head visible"},
     {"stage_record", (PyCFunction)(void (*)(void))RingCore_stage_record, METH_FASTCALL,
      "write a whole record, unpublished"},

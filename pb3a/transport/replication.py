@@ -45,12 +45,18 @@ if TYPE_CHECKING:
 log = logging.getLogger("pb3a.replication")
 
 # message kinds
-VALUE, SYNC, HELLO, REPAIR, WELCOME, REPLAYED = 1, 2, 3, 4, 5, 6
-_INFO = struct.Struct("<16sQdB")        # incarnation, sequence number, sent at, codec kind
-_ASK = struct.Struct("<qq")             # HELLO: first needed (-1: from now); REPAIR: first, last
+VALUE, SYNC, HELLO, REPAIR, WELCOME, REPLAYED, ACK = 1, 2, 3, 4, 5, 6, 7
+_INFO = struct.Struct("<16sQdB")        # incarnation, sequence number, sent at (unix), codec kind
+_ASK = struct.Struct("<qq")             # HELLO: first needed (-1: from now); REPAIR: first,
+                                        # last; ACK: delivered up to (exclusive), unused
 _ANSWER = struct.Struct("<16sqq")       # WELCOME: incarnation, next; REPLAYED: first, gone
 HWM = 10_000                            # messages queued per peer before ZeroMQ drops
 MAX_MESSAGE = 256 * 1024 * 1024         # bytes; larger frames are refused by ZeroMQ itself
+WINDOW = 2048                           # values a publisher may be ahead of its slowest follower
+WINDOW_WAIT = 0.1                       # seconds it waits for acknowledgements, then goes on
+ACK_EVERY = 256                         # a follower acknowledges after this many values ...
+ACK_IDLE_S = 0.5                        # ... or this long after its last acknowledgement
+FOLLOWER_TIMEOUT = 3.0                  # silent this long: no longer holds a publisher back
 REPLAY_VALUES = 4096                    # per topic, at most ...
 REPLAY_BYTES = 64 * 1024 * 1024         # ... and at most this many bytes
 HELLO_EVERY = 0.05                      # seconds between unanswered HELLOs
@@ -94,6 +100,12 @@ class _Stream:
     replay: collections.deque[tuple[int, list[Any], int]] = field(
         default_factory=collections.deque)      # (seq, [info, meta, payload], bytes)
     replay_bytes: int = 0
+    acks: dict[bytes, tuple[int, float]] = field(default_factory=dict)  # peer -> (seq, when)
+
+    def acknowledged(self, now: float) -> int | None:
+        """Where the slowest live follower is (None: nobody follows)."""
+        live = [seq for seq, when in self.acks.values() if now - when < FOLLOWER_TIMEOUT]
+        return min(live) if live else None
 
 
 class Replicator:
@@ -116,6 +128,7 @@ class Replicator:
         self._opener = Opener(key, epoch=epoch, max_bytes=max_bytes)
         self._streams: dict[bytes, _Stream] = {}
         self._lock = threading.Lock()            # the PUB socket and the streams
+        self._acked = threading.Condition(self._lock)
         self._loop = SocketLoop("pb3a-replicator", self._context)
         self._loop.register(self._router, self._on_request)
         self._loop.every(HEARTBEAT_S, self._heartbeat)
@@ -138,8 +151,12 @@ class Replicator:
     def publish(self, topic: str, value: Any) -> int:
         """Send one value; returns its sequence number.
 
-        An array is copied once (the writer may reuse it at once); from there on its
-        bytes go out as a zero-copy frame and stay in the replay buffer as they are."""
+        Flow control: a publisher more than ``WINDOW`` values ahead of its slowest
+        follower waits for it (up to ``WINDOW_WAIT``, then goes on and lets the repair
+        or the link-failure count deal with it), so a burst never overruns the
+        high-water marks. An array is copied once (the writer may reuse it at once);
+        from there on its bytes go out as a zero-copy frame and stay in the replay
+        buffer as they are."""
         kind, meta, payload = codec.encode(value)
         if codec.payload_size(kind, payload) + 1024 > self._max_bytes:
             raise ValueError(
@@ -150,9 +167,16 @@ class Replicator:
         name = _name(topic)
         with self._lock:
             stream = self._streams[name]
+            deadline = None
+            while (acked := stream.acknowledged(time.monotonic())) is not None \
+                    and stream.next_seq - acked >= WINDOW:
+                deadline = deadline or time.monotonic() + WINDOW_WAIT
+                if not self._acked.wait(deadline - time.monotonic()) \
+                        and time.monotonic() >= deadline:
+                    break
             seq = stream.next_seq
             stream.next_seq += 1
-            parts = [_INFO.pack(self.incarnation, seq, time.monotonic(), kind), meta, payload]
+            parts = [_INFO.pack(self.incarnation, seq, time.time(), kind), meta, payload]
             size = codec.payload_size(kind, payload) + 64
             stream.replay.append((seq, parts, size))
             stream.replay_bytes += size
@@ -185,7 +209,7 @@ class Replicator:
                 self._send_pub(name, SYNC, [_ANSWER.pack(self.incarnation, stream.next_seq, 0)])
 
     def _answer(self, peer: Any, message: Any) -> None:
-        if message.kind not in (HELLO, REPAIR) or len(message.frames) != 2:
+        if message.kind not in (HELLO, REPAIR, ACK) or len(message.frames) != 2:
             raise Rejected("unexpected")
         name = bytes(message.frames[0])
         first, last = _ASK.unpack(message.frames[1])
@@ -193,8 +217,13 @@ class Replicator:
             stream = self._streams.get(name)
             if stream is None:
                 return                           # not (yet) published here: they retry
-            if message.kind == HELLO:
+            peer_id = bytes(peer)
+            if message.kind == ACK:
+                stream.acks[peer_id] = (first, time.monotonic())
+                self._acked.notify_all()
+            elif message.kind == HELLO:
                 nxt = stream.next_seq
+                stream.acks[peer_id] = (first if first >= 0 else nxt, time.monotonic())
                 self._send_router(peer, WELCOME, [name, _ANSWER.pack(self.incarnation, nxt, 0)])
                 self._send_pub(name, SYNC, [_ANSWER.pack(self.incarnation, nxt, 0)])
                 if first >= 0:                   # (an empty replay still says so)
@@ -235,13 +264,16 @@ class _Follow:
     asked: float = 0.0                        # when we last sent HELLO or REPAIR
     repairing: bool = False
     announced: int = -1                       # the sender's next sequence number, as last heard
+    acked: int = -1                           # what we last acknowledged
+    acked_at: float = 0.0
     ready: threading.Event = field(default_factory=threading.Event)   # live, start known
 
 
 class Follower:
     """Receives the topics one node follows and delivers each in order, once.
 
-    ``deliver(topic, values, sent_at)`` is called on the follower's thread.
+    ``deliver(topic, values, sent_at)`` is called on the follower's thread; ``sent_at``
+    is when the newest value was written, in the sender's wall-clock seconds.
     Counters: ``link_failures`` (values lost for good, per topic), ``fenced`` (values
     from a sender that is not the accepted one), ``duplicates`` (dropped)."""
 
@@ -261,6 +293,7 @@ class Follower:
         self.link_failures: collections.Counter[str] = collections.Counter()
         self.fenced: collections.Counter[str] = collections.Counter()
         self.duplicates: collections.Counter[str] = collections.Counter()
+        self._progress = threading.Condition()   # notified after every delivery
         self._loop = SocketLoop("pb3a-follower", self._context)
         self._loop.register(self._sub, self._on_data)
         self._loop.every(HELLO_EVERY, self._retry)
@@ -284,6 +317,13 @@ class Follower:
         follow = self._follows.get(_name(topic))
         return follow is not None and follow.ready.wait(timeout)
 
+    def wait_delivered(self, topic: str, seq: int, timeout: float) -> bool:
+        """Block until every value of ``topic`` before ``seq`` has been delivered."""
+        name = _name(topic)
+        with self._progress:
+            return self._progress.wait_for(
+                lambda: (f := self._follows.get(name)) is None or f.next_seq >= seq, timeout)
+
     def unfollow(self, topic: str) -> None:
         self._loop.call(lambda: self._unfollow(_name(topic)))
 
@@ -301,8 +341,8 @@ class Follower:
         old = self._follows.get(name)
         if old is None:
             self._sub.setsockopt(zmq.SUBSCRIBE, name)
-        elif from_seq < 0:
-            from_seq = old.next_seq               # re-pointed: go on where we are
+        elif from_seq < 0 and incarnation in (None, old.incarnation):
+            from_seq = old.next_seq               # the same sender: go on where we are
         self._follows[name] = _Follow(name, dealer, from_seq, incarnation)
         self._hello(self._follows[name])
 
@@ -411,6 +451,10 @@ class Follower:
             follow.next_seq += 1
         if values:
             self._deliver(_topic(follow.topic), values, sent_at)
+            with self._progress:
+                self._progress.notify_all()
+            if follow.next_seq - follow.acked >= ACK_EVERY:
+                self._acknowledge(follow)
         # a gap before held values, or behind what the sender announced (values lost
         # at the end of a burst show up only in its heartbeat)
         last = min(follow.held) - 1 if follow.held else follow.announced - 1
@@ -419,9 +463,17 @@ class Follower:
             follow.asked = time.monotonic()
             self._ask(follow, REPAIR, follow.next_seq, last)
 
+    def _acknowledge(self, follow: _Follow) -> None:
+        """Tell the publisher how far we are: it may run at most WINDOW values ahead."""
+        follow.acked, follow.acked_at = follow.next_seq, time.monotonic()
+        self._ask(follow, ACK, follow.next_seq, -1)
+
     def _retry(self) -> None:
         now = time.monotonic()
         for follow in self._follows.values():
+            if follow.live and follow.next_seq >= 0 and (
+                    follow.next_seq != follow.acked or now - follow.acked_at > ACK_IDLE_S):
+                self._acknowledge(follow)
             if now - follow.asked < HELLO_EVERY:
                 continue
             if not follow.live:

@@ -126,16 +126,20 @@ class ShmRing:
                 self._skip()
         return bool(done)
 
-    def write_many(self, values: Sequence[Any], timeout: float = WRITE_TIMEOUT) -> int:
-        """Append values in order and publish them at once; returns how many fit."""
+    def write_many(self, values: Sequence[Any], timeout: float = WRITE_TIMEOUT,
+                   sent_at: float | None = None) -> int:
+        """Append values in order and publish them at once; returns how many fit.
+
+        ``sent_at`` (monotonic) is when they were written, if not now: values that
+        came from another node keep their time for the reader's latency figure."""
         core, cap = self._core, self.capacity
-        now = time.monotonic()                 # one write time for the whole batch
+        now = time.monotonic() if sent_at is None else sent_at   # one time for the batch
         written = 0
         for value in values:
             if type(value) is int or type(value) is float:
-                done = core.stage(value)
+                done = core.stage(value, now)
                 if not done:
-                    done = self._wait_space(_ALIGN, timeout) and core.stage(value)
+                    done = self._wait_space(_ALIGN, timeout) and core.stage(value, now)
                     if not done:
                         self._skip()
                         continue

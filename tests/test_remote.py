@@ -1,0 +1,87 @@
+"""Links between nodes (embedded nodes on this machine): they go over ZeroMQ with the
+same guarantees as local links."""
+
+from __future__ import annotations
+
+import os
+import signal
+
+from conftest import eventually
+from sample_modules import Burst, Collector, Counter
+
+from pb3a import System
+
+
+def _two_nodes(name: str) -> System:
+    system = System(name)
+    system.node("a")
+    system.node("b")
+    return system
+
+
+def test_100000_values_cross_nodes_in_order_without_loss_or_duplicates() -> None:
+    n = 100_000
+    system = _two_nodes("remote-bulk")
+    system.add("src", Burst, node="a", state={"limit": n})
+    system.add("dst", Collector, node="b")
+    system.link("src.out", "dst.x", policy=f"queue:{n}")
+    with system.launch() as run:
+        state = eventually(lambda: (s := run.state("dst"))["received"] == n and s, timeout=90,
+                           what=f"{n} values across nodes")
+        link = run.stats()["links"]["src.out->dst.x"]
+    assert state["last"] == n
+    assert state["out_of_order"] == 0 and state["duplicates"] == 0
+    assert link["transport"] == "zmq"
+    assert link["values"] == n and link["drops"] == 0 and link["link_failures"] == 0
+
+
+def test_an_output_crosses_once_per_node_however_many_inputs_read_it_there() -> None:
+    n = 5000
+    system = _two_nodes("remote-fanout")
+    system.add("src", Burst, node="a", state={"limit": n})
+    for name, node in (("b1", "b"), ("b2", "b"), ("a1", "a")):
+        system.add(name, Collector, node=node)
+        system.link("src.out", f"{name}.x")
+    with system.launch() as run:
+        for name in ("b1", "b2", "a1"):
+            state = eventually(lambda name=name: (s := run.state(name))["received"] == n and s,
+                               timeout=60, what=f"{n} values at {name}")
+            assert state["out_of_order"] == 0 and state["duplicates"] == 0
+        followed = run._executor.bridge.followed()
+        transports = {key: link["transport"] for key, link in run.stats()["links"].items()}
+    assert followed == {"src.out": ["src.out->b1.x", "src.out->b2.x"]}
+    assert transports == {"src.out->b1.x": "zmq", "src.out->b2.x": "zmq",
+                          "src.out->a1.x": "shm"}
+
+
+def test_links_across_nodes_can_be_added_and_removed_while_running() -> None:
+    system = _two_nodes("remote-live")
+    system.add("src", Counter, node="a", period=0.001)
+    system.add("first", Collector, node="b")
+    system.link("src.out", "first.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("first")["received"] > 10, what="values at first")
+        run.add("second", Collector, node="b")
+        run.link("src.out", "second.x")
+        eventually(lambda: run.state("second")["received"] > 10, what="values at second")
+        run.remove("first")
+        state = run.state("second")
+        eventually(lambda: run.state("second")["received"] > state["received"] + 10,
+                   what="values go on after the other reader left")
+        state = run.state("second")
+    assert state["out_of_order"] == 0 and state["duplicates"] == 0
+    assert run._executor.bridge.followed() == {}
+
+
+def test_a_restarted_writer_feeds_its_remote_readers_again() -> None:
+    system = _two_nodes("remote-restart")
+    system.add("src", Counter, node="a", period=0.001, restart="fresh")
+    system.add("dst", Collector, node="b")
+    system.link("src.out", "dst.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("dst")["received"] > 10, what="first values")
+        os.kill(run.stats()["modules"]["src"]["pid"], signal.SIGKILL)
+        eventually(lambda: run.stats()["modules"]["src"]["restarts"] == 1, what="a restart")
+        before = run.state("dst")["received"]
+        eventually(lambda: run.state("dst")["received"] > before + 10,
+                   what="values from the restarted writer")
