@@ -303,3 +303,38 @@ class ArrayHolder(Module):
     """Keeps up to 10 arrays as zero-copy views and never reads them."""
 
     x = Input(np.ndarray, shape=(1024, 128), dtype="float64", policy="queue:10")
+
+
+class Relay(Module):
+    """Passes every value on, counting them (the module the migration tests move)."""
+
+    x = Input(int, policy="queue:100000")
+    out = Output(int)
+    relayed = 0
+    setups = 0
+
+    def setup(self) -> None:
+        self.setups += 1
+
+    def on_input(self, port) -> None:
+        self.out.write(port.read())
+        self.relayed += 1
+
+
+class Wanderer(Agent):
+    """An agent that moves itself to node ``to`` once it has seen ``after`` values."""
+
+    x = Input(int, policy="queue:100000")
+    seen = 0
+    after = 20
+    to = "b"
+    asked = False
+
+    def on_input(self, port) -> None:
+        port.read()
+        self.seen += 1
+        if self.seen >= self.after and not self.asked:
+            self.asked = True
+            self.runtime.migrate(self.name_in_system, self.to)
+
+    name_in_system = "wanderer"

@@ -25,6 +25,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("pb3a.module")
 
+_BODIES = ("step", "on_input")   # hooks that run only while the module runs
 _EVENT_BUDGET = 256  # events handled per dispatch task before yielding to other modules
 
 
@@ -155,14 +156,23 @@ class ModuleActor:
         """
         return self.call_many(hook, 1, *args) == 1
 
-    def call_many(self, hook: str, times: int, *args: Any, timed: bool | None = None) -> int:
+    def call_many(self, hook: str, times: int, *args: Any, timed: bool | None = None,
+                  claim: InputPort | None = None) -> int:
         """Call a hook ``times`` times under one hold of the lock; returns the calls that
         returned normally. Taking the lock (and the CPU clock) once per batch is what
-        lets a busy input run at hundreds of thousands of values per second."""
+        lets a busy input run at hundreds of thousands of values per second.
+
+        With ``claim``, the calls are first claimed from that port's owed ``on_input``
+        calls (at most ``times``), under the lock: a module paused for migration has
+        no claimed-but-unrun call, so what it owes travels with it."""
         done = 0
         timed = self.timed if timed is None else timed
         self.lock.acquire()
         try:
+            if not self.running and hook in _BODIES:
+                return 0                        # stopped or migrated while waiting
+            if claim is not None:
+                times = claim.take_events(times)
             start = time.thread_time() if timed else 0.0
             fn = getattr(self.module, hook)
             for _ in range(times):
@@ -209,11 +219,10 @@ class ModuleActor:
                 return
             port = pending.popleft()
             lock.release()
-            claimed = port.take_events(budget)
-            budget -= claimed
-            if claimed:
-                self.events += self.call_many("on_input", claimed, port)
-            if port.owes_calls:
+            done = self.call_many("on_input", budget, port, claim=port)
+            self.events += done
+            budget -= max(done, 1)
+            if port.owes_calls and self.running:
                 with self._sched_lock:
                     if port not in self._pending:
                         self._pending.append(port)
@@ -224,6 +233,41 @@ class ModuleActor:
         """The module's state, taken under its lock."""
         with self.lock:
             return self.module.get_state()
+
+    def retire(self) -> dict[str, Any]:
+        """Leave this process (migration); the caller holds the module lock (paused).
+
+        Runs ``teardown``, then captures the state and every input's unconsumed values.
+        No body of this instance runs after it: a step or event waiting for the lock
+        finds the module no longer running and returns.
+        """
+        self.running = False
+        self._stopped = True
+        if self._stop.locked():
+            self._stop.release()                # the step thread leaves its loop
+        try:
+            self.module.teardown()
+        except Exception:
+            log.exception("module %r raised in teardown before migrating", self.name)
+        return {"state": self.module.get_state(),
+                "inputs": {name: port.export() for name, port in self.inputs.items()}}
+
+    def join(self, timeout: float) -> bool:
+        """Wait until the step thread has ended (after ``retire``); False on time-out."""
+        thread = self._thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout)
+            return not thread.is_alive()
+        return True
+
+    def restore(self, captured: dict[str, Any]) -> None:
+        """Take over what ``retire`` captured elsewhere (before ``start``)."""
+        with self.lock:
+            self.module.set_state(captured["state"])
+        for name, held in captured["inputs"].items():
+            port = self.inputs.get(name)
+            if port is not None:
+                port.restore(held)
 
     def apply(self, state: dict[str, Any]) -> None:
         """Set state under the module lock (KeyError for unknown names)."""

@@ -64,6 +64,14 @@ class RuntimeClient:
         """The figures of the whole system, as ``Running.stats()``."""
         return self._call("stats")
 
+    def migrate(self, name: str, to: str) -> Any:
+        """Move a module (or macro) to node ``to``; its ``MigrationReport``. An agent may
+        move itself (or its own macro): the move then happens right after the current
+        step or event returns, and this returns None."""
+        if name == self._agent or self._agent.startswith(f"{name}/"):
+            return self._request("migrate_self", {"name": name, "to": to})
+        return self._call("migrate", name, to=to)
+
 
 class Agent(Module):
     """A port-based agent: a module that measures itself and adapts the system."""

@@ -296,6 +296,28 @@ class InputPort:
             self._undispatched = min(self._undispatched, self._pending_for(policy))
             self.policy = policy
 
+    def export(self) -> dict[str, Any]:
+        """Unconsumed values and counters, for a migration (see ``restore``)."""
+        with self._lock:
+            return {"values": list(self._values), "fresh": self._fresh,
+                    "latest": None if self._latest is _MISSING else (self._latest,),
+                    "undispatched": self._undispatched, "received": self.received,
+                    "drops": self.drops, "link_failures": self.link_failures}
+
+    def restore(self, held: dict[str, Any]) -> None:
+        """Take over an exported port: its values come before anything delivered later."""
+        with self._lock:
+            self._values.extend(held["values"])
+            if held["latest"] is not None:
+                self._latest, self._fresh = held["latest"][0], held["fresh"]
+            self._undispatched = min(held["undispatched"], self._pending_for(self.policy))
+            self.received += held["received"]
+            self.drops += held["drops"]
+            self.link_failures += held["link_failures"]
+            owed = self._undispatched > 0
+        if owed and self._notify is not None:
+            self._notify(self)
+
     def _pending_for(self, policy: Policy) -> int:
         return len(self._values) if policy.kind == "queue" else int(self._fresh)
 

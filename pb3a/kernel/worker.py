@@ -193,6 +193,23 @@ class Worker:
             self._paused.discard(name)
             self.actors[name].lock.release()
 
+    def op_migrate_out(self, name: str) -> bytes:
+        """Retire a paused module for its move: its state and unconsumed inputs."""
+        if name not in self._paused:
+            raise RuntimeError(f"module {name!r} must be paused before it migrates")
+        actor = self.actors.pop(name)
+        captured = actor.retire()
+        self._paused.discard(name)
+        actor.lock.release()
+        actor.join(timeout=1.0)
+        self.restart_policy.pop(name, None)
+        self._retime()
+        return cloudpickle.dumps(captured, protocol=5)
+
+    def op_migrate_in(self, name: str, captured: bytes) -> None:
+        """Take over a module's state and unconsumed inputs (added, not yet started)."""
+        self.actors[name].restore(cloudpickle.loads(captured))
+
     def op_remove(self, name: str) -> None:
         actor = self.actors.pop(name)
         if actor.running:

@@ -130,10 +130,10 @@ class Executor:
         stay in memory; modules added later go to the least-loaded worker.
         """
         if spec.group:
-            return f"g-{spec.group}"
+            return f"{spec.node}/g-{spec.group}"
         packing = self.packing.get(spec.node, 0)
         if not packing:
-            return f"m-{spec.name.replace('/', '.')}"
+            return f"{spec.node}/m-{spec.name.replace('/', '.')}"
         counts = {f"{spec.node}-p{i}": 0 for i in range(packing)}
         for record in self.modules.values():
             if record.worker in counts:
@@ -306,8 +306,14 @@ class Executor:
             self.call(src.worker, "unlink_out", key=link.key)
 
     def disconnect(self, key: str) -> None:
-        """Unwire a link: the writer stops first, then the reader drains what is left."""
-        link = self.links[key]
+        """Unwire a link and forget it."""
+        self.detach(self.links[key])
+        del self.links[key]
+
+    def detach(self, link: FlatLink) -> None:
+        """Unwire a link (it stays known): the writer stops first, then the reader
+        takes in everything still on the way, so a new wiring cannot overtake it."""
+        key = link.key
         src, dst = self.modules.get(link.src), self.modules.get(link.dst)
         if src is not None and dst is not None and self.remote(link):
             reached = 0
@@ -316,7 +322,6 @@ class Executor:
             self.bridge.close(key, reached if self.workers[src.worker].alive else 0)
         elif src is not None and self.workers[src.worker].alive:
             self.call(src.worker, "unlink_out", key=key)
-        del self.links[key]
         if dst is not None and self.workers[dst.worker].alive:
             self.call(dst.worker, "unlink_in", key=key)
         ring = self.rings.pop(key, None)
@@ -335,9 +340,13 @@ class Executor:
         for key in [k for k, link in self.links.items() if name in (link.src, link.dst)]:
             self.disconnect(key)
         record = self.modules.pop(name)
-        handle = self.workers[record.worker]
-        if handle.alive:
+        if self.workers[record.worker].alive:
             self.call(record.worker, "remove", name=name)
+        self.vacate(record.worker, name)
+
+    def vacate(self, key: str, name: str) -> None:
+        """``name`` no longer runs in worker ``key``; stop the worker if it is empty now."""
+        handle = self.workers[key]
         handle.modules.remove(name)
         if not handle.modules:
             self._stop_worker(handle, timeout=2.0)

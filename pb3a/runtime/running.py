@@ -21,6 +21,7 @@ from pb3a.kernel.loading import resolve_class
 from pb3a.kernel.module import RESTART_POLICIES, Module
 from pb3a.kernel.ports import Policy
 from pb3a.runtime.executor import Executor
+from pb3a.runtime.migration import MigrationReport, migrate
 from pb3a.runtime.stats import collect
 
 log = logging.getLogger("pb3a")
@@ -103,6 +104,30 @@ class Running:
         with self._lock:
             record = self._record(name)
             self._executor.call(record.worker, "set_state", name=name, state=state)
+
+    # -- migration -------------------------------------------------------------------
+    def migrate(self, name: str, to: str) -> MigrationReport:
+        """Move a module, or every module of a macro, to node ``to`` while it runs.
+
+        State, unconsumed inputs and links go with it; no value on any link is
+        lost, duplicated or reordered. A macro's modules move one after another; its
+        report sums their state and links and gives the longest single pause.
+        """
+        with self._lock:
+            if to not in self.plan.nodes:
+                raise ConfigError([f"migrate {name}: no node {to!r}; nodes: "
+                                   f"{', '.join(self.plan.nodes)}"])
+            names = [name] if name in self._executor.modules else [
+                child for child in self._executor.modules if child.startswith(f"{name}/")]
+            if not names:
+                self._record(name)                     # raises ModuleNotFound
+            reports = [migrate(self._executor, child, to) for child in names]
+        if len(reports) == 1:
+            return reports[0]
+        return MigrationReport(name, ",".join(sorted({r.source for r in reports})), to,
+                               max(r.pause_s for r in reports),
+                               sum(r.state_bytes for r in reports),
+                               sum(r.links for r in reports))
 
     # -- reconfiguration -----------------------------------------------------------
     def swap(self, name: str, cls: type | str) -> list[str]:
@@ -201,11 +226,25 @@ class Running:
 
     def _agent_request(self, op: str, args: dict[str, Any]) -> Any:
         """Apply a request an agent made through ``self.runtime``."""
-        if op not in ("state", "set_state", "swap", "relink", "link", "add", "remove", "stats"):
+        if op not in ("state", "set_state", "swap", "relink", "link", "add", "remove", "stats",
+                      "migrate", "migrate_self"):
             raise ValueError(f"unknown runtime operation {op!r}")
         if op == "set_state":
             return self.set_state(args["name"], **args["state"])
+        if op == "migrate_self":
+            # The agent waits for this answer inside its own step, holding its lock;
+            # the move has to pause it, so it happens once the step has returned.
+            threading.Thread(target=self._migrate_quietly, args=(args["name"], args["to"]),
+                             name="pb3a-self-migration", daemon=True).start()
+            return None
         return getattr(self, op)(**args)
+
+    def _migrate_quietly(self, name: str, to: str) -> None:
+        try:
+            report = self.migrate(name, to)
+            log.info("agent %s moved to %s (paused %.1f ms)", name, to, report.pause_s * 1e3)
+        except Exception:
+            log.exception("agent %s could not move to %s", name, to)
 
     # -- figures ---------------------------------------------------------------------
     def stats(self) -> dict[str, Any]:

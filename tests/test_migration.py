@@ -1,0 +1,109 @@
+"""Live migration between embedded nodes: state and queued inputs move, links follow
+(shared memory <-> ZeroMQ), and no value is lost, duplicated or reordered."""
+
+from __future__ import annotations
+
+import pytest
+from conftest import eventually
+from sample_modules import Chain, Collector, Counter, Relay, Wanderer
+
+from pb3a import ConfigError, ModuleNotFound, System
+
+
+def _nodes(system: System, *names: str) -> System:
+    for name in names:
+        system.node(name)
+    return system
+
+
+def _clean(state: dict, at_least: int) -> bool:
+    return (state["received"] >= at_least and state["out_of_order"] == 0
+            and state["duplicates"] == 0)
+
+
+def test_a_module_moves_with_its_state_and_its_links_follow() -> None:
+    system = _nodes(System("move-one"), "a", "b")
+    system.add("src", Counter, node="a", period=0.001)
+    system.add("relay", Relay, node="a")
+    system.add("sink", Collector, node="a")
+    system.link("src.out", "relay.x")
+    system.link("relay.out", "sink.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")
+        before = run.state("relay")["relayed"]
+        report = run.migrate("relay", to="b")
+        after = run.stats()
+        eventually(lambda: run.state("relay")["relayed"] > before + 20, what="values after it")
+        state = run.state("relay")
+        sink = run.state("sink")
+    assert (report.module, report.source, report.destination) == ("relay", "a", "b")
+    assert 0 < report.pause_s < 5 and report.state_bytes > 0 and report.links == 2
+    assert after["modules"]["relay"]["node"] == "b"
+    assert {key: link["transport"] for key, link in after["links"].items()} == {
+        "src.out->relay.x": "zmq", "relay.out->sink.x": "zmq"}
+    assert state["relayed"] >= before and state["setups"] == 2       # setup again after it
+    assert sink["out_of_order"] == 0 and sink["duplicates"] == 0
+    assert sink["last"] == sink["received"]                          # 1, 2, 3, ... no gap
+
+
+def test_100_migrations_under_a_steady_flow_lose_duplicate_and_reorder_nothing() -> None:
+    n = 4000
+    system = _nodes(System("move-many"), "a", "b", "c")
+    system.add("src", Counter, node="a", period=0.0005, state={"limit": n})
+    system.add("relay", Relay, node="a")
+    system.add("direct", Collector, node="c")          # fan-out of src to another node
+    system.link("src.out", "relay.x")
+    system.link("src.out", "direct.x")
+    for name, node in (("on_a", "a"), ("on_b", "b"), ("on_c", "c")):
+        system.add(name, Collector, node=node)          # fan-out of relay to every node
+        system.link("relay.out", f"{name}.x")
+    with system.launch() as run:
+        nodes = ["b", "c", "a"]
+        pauses = []
+        for i in range(100):
+            pauses.append(run.migrate("relay", to=nodes[i % 3]).pause_s)
+        assert run.stats()["modules"]["relay"]["node"] == nodes[99 % 3]
+        for name in ("direct", "on_a", "on_b", "on_c"):
+            state = eventually(lambda name=name: (s := run.state(name))["received"] >= n and s,
+                               timeout=60, what=f"{n} values at {name}")
+            assert _clean(state, n) and state["received"] == n and state["last"] == n, name
+        assert run.state("relay")["relayed"] == n
+        links = run.stats()["links"]
+    assert all(link["link_failures"] == 0 and link["drops"] == 0 for link in links.values())
+    assert len(pauses) == 100 and max(pauses) < 5
+
+
+def test_a_macro_moves_as_a_whole() -> None:
+    system = _nodes(System("move-macro"), "a", "b")
+    system.add("chain", Chain, node="a")
+    with system.launch() as run:
+        run.set_state("chain/a", gain=5.0)
+        report = run.migrate("chain", to="b")
+        modules = run.stats()["modules"]
+        gain = run.state("chain/a")["gain"]
+    assert {modules["chain/a"]["node"], modules["chain/b"]["node"]} == {"b"}
+    assert report.destination == "b" and report.links == 2 and gain == 5.0
+
+
+def test_an_agent_moves_itself_and_goes_on_where_it_was() -> None:
+    system = _nodes(System("wander"), "a", "b")
+    system.add("src", Counter, node="a", period=0.001)
+    system.add("wanderer", Wanderer, node="a")
+    system.link("src.out", "wanderer.x")
+    with system.launch() as run:
+        eventually(lambda: run.stats()["modules"]["wanderer"]["node"] == "b",
+                   what="the agent on node b")
+        seen = run.state("wanderer")["seen"]
+        eventually(lambda: run.state("wanderer")["seen"] > seen + 10, what="values at b")
+        assert run.state("wanderer")["asked"] is True
+
+
+def test_migration_to_an_unknown_node_or_of_an_unknown_module_is_refused() -> None:
+    system = _nodes(System("move-bad"), "a", "b")
+    system.add("relay", Relay, node="a")
+    with system.launch() as run:
+        with pytest.raises(ConfigError, match="no node 'z'; nodes: a, b"):
+            run.migrate("relay", to="z")
+        with pytest.raises(ModuleNotFound, match="no module 'ghost'"):
+            run.migrate("ghost", to="b")
+        assert run.stats()["modules"]["relay"]["node"] == "a"
