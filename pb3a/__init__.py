@@ -17,18 +17,22 @@ from pb3a.errors import (
     RuntimeTimeout,
 )
 from pb3a.kernel.agent import Agent
+from pb3a.kernel.environment import Environment
 from pb3a.kernel.macro import Macro
 from pb3a.kernel.module import Module
 from pb3a.kernel.ports import Input, InputPort, Output, OutputPort
+from pb3a.runtime.migration import MigrationReport
 from pb3a.runtime.running import Running
 from pb3a.system import System
 
 __all__ = [
     "Agent",
     "ConfigError",
+    "Environment",
     "Input",
     "InputPort",
     "Macro",
+    "MigrationReport",
     "Module",
     "ModuleNotFound",
     "Output",

@@ -46,11 +46,13 @@ class System:
     def name(self) -> str:
         return self._spec.name
 
-    def node(self, name: str, *, address: str | None = None, workers: int = 0) -> System:
-        """Declare a node; without any, everything runs on ``"local"``."""
+    def node(self, name: str, *, address: str | None = None, workers: int = 0,
+             cpus: list[int] | None = None) -> System:
+        """Declare a node; without any, everything runs on ``"local"``. ``cpus`` pins
+        the node's workers to those CPUs (nodes sharing a machine then share no core)."""
         if name in self._spec.nodes:
             raise ValueError(f"system {self.name!r} already has a node {name!r}")
-        self._spec.nodes[name] = NodeSpec(name, address, workers)
+        self._spec.nodes[name] = NodeSpec(name, address, workers, cpus=cpus)
         return self
 
     def add(self, name: str, cls: type | str, *, node: str | None = None,

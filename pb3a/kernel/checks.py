@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import difflib
 import math
+import os
 import re
 from collections.abc import Iterable
 from typing import Any
@@ -80,6 +81,19 @@ def state(cls: type[Module], value: Any) -> list[str]:
     return [f"{class_ref(cls)} has no state {key!r}{did_you_mean(key, names)}; its state is: "
             f"{listing(names)} (fix the key, or declare the attribute on the class)"
             for key in value if key not in names]
+
+
+def cpus(value: Any) -> list[str]:
+    """Left out (any CPU) or a non-empty list of this machine's CPU numbers."""
+    if value is None:
+        return []
+    count = os.cpu_count() or 1
+    if isinstance(value, list) and value and all(
+            isinstance(cpu, int) and not isinstance(cpu, bool) and 0 <= cpu < count
+            for cpu in value):
+        return []
+    return [(f"cpus must be a non-empty list of CPU numbers from 0 to {count - 1} (the CPUs "
+             f"the node's workers may run on), got {value!r}")]
 
 
 def address(value: Any) -> list[str]:

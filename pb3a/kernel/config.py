@@ -35,8 +35,9 @@ class NodeSpec:
     address: str | None = None
     workers: int = 0
     extra: dict[str, Any] = field(default_factory=dict)  # unknown keys, reported by validation
+    cpus: list[int] | None = None     # CPUs the node's workers may run on (None: any)
 
-    KEYS: ClassVar[tuple[str, ...]] = ("address", "workers")
+    KEYS: ClassVar[tuple[str, ...]] = ("address", "workers", "cpus")
 
 
 @dataclass
@@ -215,9 +216,11 @@ def _read_system(data: dict[str, Any], source: str, default_name: str) -> System
     for name, entry in _table(data, "nodes", source, spec.problems).items():
         if isinstance(entry, dict):
             spec.nodes[name] = NodeSpec(name, entry.get("address"), entry.get("workers", 0),
-                                        {k: v for k, v in entry.items() if k not in NodeSpec.KEYS})
+                                        {k: v for k, v in entry.items() if k not in NodeSpec.KEYS},
+                                        entry.get("cpus"))
         else:
-            spec.problems.append(f"{source} [nodes.{name}]: must be a table (address, workers)")
+            spec.problems.append(f"{source} [nodes.{name}]: must be a table (address, workers, "
+                                 "cpus)")
     spec.modules = _read_modules(_table(data, "modules", source, spec.problems))
     spec.links = _read_links(data.get("links", []), f"{source} [[links]]", spec.problems)
     for name, entry in _table(data, "macros", source, spec.problems).items():

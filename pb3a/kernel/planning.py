@@ -36,6 +36,7 @@ from pb3a.kernel.config import (
     Plan,
     SystemSpec,
 )
+from pb3a.kernel.environment import Environment, env_name
 from pb3a.kernel.loading import class_ref, resolve_class
 from pb3a.kernel.macro import Macro
 from pb3a.kernel.module import Module
@@ -99,7 +100,8 @@ class _Planner:
         spec = self.spec
         nodes = self.check_system()
         top = self.define(Definition(f"system {spec.name!r}", spec.origin, "",
-                                     spec.modules, spec.links, {}))
+                                     {**spec.modules, **self.env_modules(nodes)}, spec.links,
+                                     {}))
         for name in spec.macros:
             self.file_macro(name)
         resolver = LinkResolver(self.problems)
@@ -140,10 +142,11 @@ class _Planner:
             self.report(label, checks.unknown_keys(node.extra, NodeSpec.KEYS))
             self.report(label, checks.address(node.address))
             self.report(label, checks.workers(node.workers))
+            self.report(label, checks.cpus(node.cpus))
         if not spec.nodes:
             workers = spec.workers if not checks.workers(spec.workers) else 0
             return {DEFAULT_NODE: NodeSpec(DEFAULT_NODE, None, workers)}
-        nodes = {name: NodeSpec(name, node.address, node.workers)
+        nodes = {name: NodeSpec(name, node.address, node.workers, cpus=node.cpus)
                  for name, node in spec.nodes.items()}
         if spec.workers and not checks.workers(spec.workers):
             if DEFAULT_NODE in nodes and not nodes[DEFAULT_NODE].workers:
@@ -154,6 +157,19 @@ class _Planner:
                                      f"({checks.listing(nodes)}): set workers in their "
                                      "[nodes.NAME] tables instead")])
         return nodes
+
+    def env_modules(self, nodes: dict[str, NodeSpec]) -> dict[str, ModuleSpec]:
+        """The built-in ``env-NODE`` modules that some link reads (and that the system
+        does not define itself)."""
+        wanted = {}
+        for node in nodes.values():
+            name = env_name(node.name)
+            if name in self.spec.modules:
+                continue
+            if any(isinstance(link.src, str) and link.src.startswith(f"{name}.")
+                   for link in self.spec.links):
+                wanted[name] = ModuleSpec(name, cls=Environment, node=node.name)
+        return wanted
 
     # -- phase 1: definitions ---------------------------------------------
     def define(self, definition: Definition) -> Definition:

@@ -433,13 +433,16 @@ def _on_sigterm(signum: int, frame: object) -> None:
     raise _Terminated
 
 
-def worker_main(conn: Any, key: str, checkpoint_s: float, level: int) -> None:
+def worker_main(conn: Any, key: str, checkpoint_s: float, level: int,
+                cpus: list[int] | None = None) -> None:
     """Entry point of a worker process.
 
     Ctrl-C in a terminal reaches every process of the group: workers ignore it and
     let their launcher stop them in order. SIGTERM stops the worker's modules and
     exits with status 0, which the executor takes as a stop, not a crash.
     """
+    if cpus:
+        os.sched_setaffinity(0, cpus)           # before any thread: they all inherit it
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _on_sigterm)
     logging.basicConfig(level=level, format=f"%(asctime)s pb3a[{key}] %(levelname)s %(message)s")

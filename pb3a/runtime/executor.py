@@ -60,6 +60,7 @@ _context.set_forkserver_preload(["pb3a.kernel.worker", "numpy", "cloudpickle"])
 @dataclass
 class WorkerHandle:
     key: str
+    node: str
     bell: int = field(default_factory=new_bell)    # the worker's doorbell (an eventfd)
     process: Any = None
     conn: Any = None
@@ -92,9 +93,11 @@ class Executor:
     """Runs modules in worker processes on this machine; thread-safe; every request has a
     deadline. (Until the distributed runtime lands, one executor runs every node's share.)"""
 
-    def __init__(self, *, workers: dict[str, int] | None = None, checkpoint_s: float = 1.0,
+    def __init__(self, *, workers: dict[str, int] | None = None,
+                 cpus: dict[str, list[int]] | None = None, checkpoint_s: float = 1.0,
                  log_level: int = logging.WARNING) -> None:
         self.packing = workers or {}        # node name -> packed worker processes (0: one each)
+        self.cpus = cpus or {}              # node name -> the CPUs its workers run on
         self.quota: dict[str, int] = {}     # node name -> modules per packed worker at start
         self.checkpoint_s = checkpoint_s
         self.log_level = log_level
@@ -156,7 +159,8 @@ class Executor:
         parent, child = _context.Pipe()
         process = _context.Process(
             target=worker_main, name=f"pb3a-worker-{handle.key}", daemon=True,
-            args=(child, handle.key, self.checkpoint_s, self.log_level))
+            args=(child, handle.key, self.checkpoint_s, self.log_level,
+                  self.cpus.get(handle.node)))
         _start_without_main(process)
         child.close()
         # The doorbell is the worker's first read: send it before anyone can send a request.
@@ -164,10 +168,10 @@ class Executor:
         handle.process, handle.conn, handle.alive, handle.pid = process, parent, True, process.pid
         self._poke()
 
-    def ensure_worker(self, key: str) -> WorkerHandle:
+    def ensure_worker(self, key: str, node: str) -> WorkerHandle:
         handle = self.workers.get(key)
         if handle is None:
-            handle = WorkerHandle(key)
+            handle = WorkerHandle(key, node)
             self.workers[key] = handle
             self.spawn(handle)
         return handle
@@ -208,7 +212,7 @@ class Executor:
     def add_module(self, spec: FlatModule, *, state: dict[str, Any] | None = None) -> None:
         """Instantiate a module in its worker (not started yet)."""
         key = self.place(spec)
-        handle = self.ensure_worker(key)
+        handle = self.ensure_worker(key, spec.node)
         record = ModuleRecord(spec, key, cloudpickle.dumps(spec.cls))
         self.modules[spec.name] = record
         handle.modules.append(spec.name)

@@ -57,7 +57,7 @@ def migrate(executor: Executor, name: str, node: str) -> MigrationReport:
     # 1. the destination, ready before anything pauses
     spec = replace(record.spec, node=node)
     target = executor.place(spec)
-    executor.ensure_worker(target).modules.append(name)
+    executor.ensure_worker(target, node).modules.append(name)
     try:
         executor.call(target, "add", name=name, cls=record.blob, period=spec.period,
                       restart=spec.restart, state={})

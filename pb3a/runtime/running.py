@@ -42,7 +42,8 @@ class Running:
         self.plan = plan
         self.name = plan.name
         packing = {name: node.workers for name, node in plan.nodes.items()}
-        self._executor = Executor(workers=packing, checkpoint_s=checkpoint_s,
+        cpus = {name: node.cpus for name, node in plan.nodes.items() if node.cpus}
+        self._executor = Executor(workers=packing, cpus=cpus, checkpoint_s=checkpoint_s,
                                   log_level=log_level)
         self._lock = self._executor.lock         # the global configuration lock
         self._executor.handler = self._agent_request

@@ -1,0 +1,85 @@
+"""The built-in env module of each node, and nodes pinned to CPUs."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+from conftest import eventually
+
+from pb3a import ConfigError, Environment, Input, InputPort, Module, System
+
+
+class Watcher(Module):
+    """Keeps the newest environment figures it was sent."""
+
+    cpu = Input(float)
+    per_core = Input(np.ndarray)
+    memory = Input(float)
+    load = Input(np.ndarray)
+    seen = 0
+    last_cpu = -1.0
+    cores = 0
+    memory_bytes = 0.0
+    pinned_to: list[int] = []
+
+    def setup(self) -> None:
+        self.pinned_to = sorted(os.sched_getaffinity(0))
+
+    def on_input(self, port: InputPort) -> None:
+        value = port.read()
+        if port is self.cpu:
+            self.last_cpu, self.seen = value, self.seen + 1
+        elif port is self.per_core:
+            self.cores = len(value)
+        elif port is self.memory:
+            self.memory_bytes = value
+
+
+def test_a_node_s_env_module_starts_when_read_and_reports_its_cpus() -> None:
+    system = System("env")
+    system.node("a", cpus=[0])
+    system.node("b")
+    system.add("env-a", Environment, node="a", period=0.05)     # a faster rate than 1 Hz
+    system.add("watcher", Watcher, node="b")
+    system.link("env-a.cpu", "watcher.cpu")
+    system.link("env-a.cpu_per_core", "watcher.per_core")
+    system.link("env-a.memory_available", "watcher.memory")
+    system.link("env-a.load", "watcher.load")
+    with system.launch() as run:
+        state = eventually(lambda: (s := run.state("watcher"))["seen"] >= 3 and s,
+                           what="three env samples")
+        modules = run.stats()["modules"]
+    assert 0.0 <= state["last_cpu"] <= 100.0
+    assert state["cores"] == 1                       # node a is pinned to one CPU
+    assert state["memory_bytes"] > 0
+    assert modules["env-a"]["node"] == "a" and "env-b" not in modules
+    assert state["pinned_to"] == sorted(os.sched_getaffinity(0))     # b is not pinned
+
+
+def test_the_env_module_is_there_without_being_declared() -> None:
+    system = System("env-implicit")
+    system.add("watcher", Watcher)
+    system.link("env-local.cpu", "watcher.cpu")
+    with system.launch() as run:
+        eventually(lambda: run.state("watcher")["seen"] >= 1, timeout=10, what="a sample")
+        assert run.stats()["modules"]["env-local"]["node"] == "local"
+
+
+def test_workers_of_a_pinned_node_run_on_its_cpus_only() -> None:
+    system = System("pinned")
+    system.node("a", cpus=[0])
+    system.add("watcher", Watcher, node="a")
+    with system.launch() as run:
+        assert run.state("watcher")["pinned_to"] == [0]
+
+
+def test_bad_cpu_lists_are_reported() -> None:
+    system = System("bad-cpus")
+    system.node("a", cpus=[os.cpu_count() + 3])
+    system.add("watcher", Watcher, node="a")
+    (problem,) = system.check()
+    assert "[nodes.a]: cpus must be a non-empty list of CPU numbers" in problem
+    with pytest.raises(ConfigError, match="cpus must be"):
+        system.plan()
