@@ -3,6 +3,7 @@
     pb3a check FILE               validate; print every problem; exit 1 on any
     pb3a graph FILE [-o OUT]      draw the configuration (DOT, and SVG/PNG/PDF via Graphviz)
     pb3a run FILE [--for SECONDS] launch, show live status, stop on Ctrl-C or after SECONDS
+    pb3a scenario NAME [ARGS...]  run one of the bundled applications (``scenarios/``)
 
 Each subcommand is a function taking the parsed arguments and returning the
 exit code; heavy imports (the runtime) happen inside the function that needs them.
@@ -129,4 +130,26 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--for", dest="seconds", type=float, metavar="SECONDS",
                      help="stop after this many seconds (default: until Ctrl-C)")
     run.set_defaults(handler=run_command)
+
+    scenario = commands.add_parser("scenario", help="run a bundled application",
+                                   description="Bundled applications: " + ", ".join(SCENARIOS))
+    scenario.add_argument("name", metavar="NAME", help=", ".join(SCENARIOS))
+    scenario.add_argument("args", nargs=argparse.REMAINDER,
+                          help="the scenario's own options (NAME --help lists them)")
+    scenario.set_defaults(handler=scenario_command)
     return parser
+
+
+SCENARIOS = {"self-migration": "scenarios.self_migration"}
+
+
+def scenario_command(args: argparse.Namespace) -> int:
+    """``pb3a scenario NAME [ARGS]``: hand over to the scenario's own ``main``."""
+    module = SCENARIOS.get(args.name)
+    if module is None:
+        print(f"pb3a scenario: no scenario {args.name!r}; the scenarios: "
+              f"{', '.join(SCENARIOS)}", file=sys.stderr)
+        return 2
+    import importlib
+
+    return int(importlib.import_module(module).main(args.args) or 0)

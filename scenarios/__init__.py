@@ -1,0 +1,1 @@
+"""PB3A applications: each runnable as a script and with ``pb3a scenario NAME``."""

@@ -1,0 +1,267 @@
+"""Self-migration under CPU load: an agent watches its nodes' ``env`` ports and moves a
+compute-heavy module away from the node that stress processes load.
+
+Two nodes share this machine, each pinned to one CPU (``a`` to CPU 0, ``b`` to CPU 1),
+so each ``env`` module reports its own node. A source on ``b`` emits a time stamp
+every 5 ms; ``compute`` (on ``a``) spends a fixed amount of CPU time on each and
+passes it on; the sink on ``b`` records each value's arrival and end-to-end latency.
+After a quiet phase, stress processes pinned to CPU 0 load node ``a``; the ``Mover``
+agent sees node ``a`` busy and node ``b`` not, and migrates ``compute`` to ``b``. The
+same run with the agent disabled is the baseline.
+
+Run it: ``python -m scenarios.self_migration [--out DIR] [--quick]`` (or ``pb3a
+scenario self-migration``). It prints a JSON report (throughput and latency before,
+during and after the load, with and without adaptation) and writes
+``self_migration.png`` and ``self_migration.json`` to DIR.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from pb3a import Agent, Environment, Input, InputPort, Module, Output, System
+
+RATE_HZ = 200.0
+WORK_S = 0.002                 # CPU seconds of work per value in ``compute``
+WINDOW_S = 0.5                 # throughput and latency are reported per window
+PHASES = {"full": (5.0, 10.0, 5.0), "quick": (2.0, 5.0, 2.0)}   # quiet, loaded, after
+STRESS_PROCESSES = 2
+
+
+class Source(Module):
+    """Emits ``time.monotonic()`` every period."""
+
+    out = Output(float)
+    period = 1.0 / RATE_HZ
+
+    def step(self) -> None:
+        self.out.write(time.monotonic())
+
+
+class Compute(Module):
+    """Spends ``work_s`` of its own CPU time on every value, then passes it on."""
+
+    x = Input(float, policy="queue:10000")
+    y = Output(float)
+    work_s = WORK_S
+    handled = 0
+
+    def on_input(self, port: InputPort) -> None:
+        stamp = port.read()
+        end = time.thread_time() + self.work_s
+        while time.thread_time() < end:       # CPU work, the same however busy the core
+            pass
+        self.handled += 1
+        self.y.write(stamp)
+
+
+class Sink(Module):
+    """Records when each value arrived and how long it took from the source."""
+
+    x = Input(float, policy="queue:100000")
+    arrivals: list[float] = []
+    latencies: list[float] = []
+
+    def on_input(self, port: InputPort) -> None:
+        stamp = port.read()
+        now = time.monotonic()
+        self.arrivals.append(now)
+        self.latencies.append(now - stamp)
+
+
+class Mover(Agent):
+    """Moves ``target`` to the least loaded node when its own node stays busy.
+
+    Busy means above ``busy_pct`` for ``patience`` samples in a row while the other
+    node is at least ``margin_pct`` less busy."""
+
+    cpu_a = Input(float)
+    cpu_b = Input(float)
+    target = "compute"
+    enabled = True
+    busy_pct = 75.0
+    margin_pct = 25.0
+    patience = 2
+    strikes = 0
+    moved_at: list[float] = []
+    location = "a"
+
+    def on_input(self, port: InputPort) -> None:
+        load = {"a": self.cpu_a.read(0.0), "b": self.cpu_b.read(0.0)}
+        here = self.location
+        there = min(load, key=load.__getitem__)
+        if load[here] > self.busy_pct and load[there] < load[here] - self.margin_pct:
+            self.strikes += 1
+        else:
+            self.strikes = 0
+        if self.enabled and self.strikes >= self.patience and there != here:
+            self.runtime.migrate(self.target, there)
+            self.location, self.strikes = there, 0
+            self.moved_at.append(time.monotonic())
+
+
+def build(adaptive: bool, env_period: float = 0.25) -> System:
+    system = System("self-migration")
+    system.node("a", cpus=[0])
+    system.node("b", cpus=[1 % (os.cpu_count() or 1)])
+    for node in ("a", "b"):
+        system.add(f"env-{node}", Environment, node=node, period=env_period)
+    system.add("source", Source, node="b")
+    system.add("compute", Compute, node="a")
+    system.add("sink", Sink, node="b")
+    system.add("mover", Mover, node="b", state={"enabled": adaptive})
+    system.link("source.out", "compute.x")
+    system.link("compute.y", "sink.x")
+    system.link("env-a.cpu", "mover.cpu_a")
+    system.link("env-b.cpu", "mover.cpu_b")
+    return system
+
+
+def _burn(cpu: int, stop: Any) -> None:
+    os.sched_setaffinity(0, [cpu])
+    while not stop.is_set():
+        for _ in range(100_000):
+            pass
+
+
+def run_once(adaptive: bool, phases: tuple[float, float, float]) -> dict[str, Any]:
+    """One run: quiet, loaded (stress on CPU 0), after; the sink's records and events."""
+    quiet, loaded, after = phases
+    context = multiprocessing.get_context("fork")
+    stop = context.Event()
+    stress = [context.Process(target=_burn, args=(0, stop), daemon=True)
+              for _ in range(STRESS_PROCESSES)]
+    with build(adaptive).launch() as run:
+        start = time.monotonic()
+        _sleep_until(start + quiet)
+        load_on = time.monotonic()
+        for process in stress:
+            process.start()
+        try:
+            _sleep_until(load_on + loaded)
+        finally:
+            stop.set()
+            for process in stress:
+                process.join(5.0)
+                if process.is_alive():
+                    process.kill()
+        load_off = time.monotonic()
+        _sleep_until(load_off + after)
+        sink, mover = run.state("sink"), run.state("mover")
+        node = run.stats()["modules"]["compute"]["node"]
+    return {"start": start, "load_on": load_on, "load_off": load_off,
+            "end": load_off + after, "arrivals": sink["arrivals"],
+            "latencies": sink["latencies"], "moved_at": mover["moved_at"],
+            "compute_node_at_end": node}
+
+
+def _sleep_until(deadline: float) -> None:
+    # The scenario's own clock: phases last what they say (this is not synchronisation).
+    while (left := deadline - time.monotonic()) > 0:
+        time.sleep(min(left, 0.5))
+
+
+def windows(record: dict[str, Any]) -> list[dict[str, float]]:
+    """Throughput (values/s) and median latency (ms) per window, from the start."""
+    start, end = record["start"], record["end"]
+    count = int((end - start) / WINDOW_S)
+    buckets: list[list[float]] = [[] for _ in range(count)]
+    for arrival, latency in zip(record["arrivals"], record["latencies"], strict=True):
+        index = int((arrival - start) / WINDOW_S)
+        if 0 <= index < count:
+            buckets[index].append(latency)
+    return [{"t": (i + 0.5) * WINDOW_S, "rate": len(b) / WINDOW_S,
+             "latency_ms": 1e3 * statistics.median(b) if b else float("nan")}
+            for i, b in enumerate(buckets)]
+
+
+def phase_figures(record: dict[str, Any]) -> dict[str, dict[str, float]]:
+    """Per phase: values per second, and latency median and p95 in ms."""
+    bounds = {"before": (record["start"], record["load_on"]),
+              "during": (record["load_on"], record["load_off"]),
+              "after": (record["load_off"], record["end"])}
+    figures = {}
+    for phase, (lo, hi) in bounds.items():
+        lat = sorted(1e3 * latency for arrival, latency in
+                     zip(record["arrivals"], record["latencies"], strict=True)
+                     if lo <= arrival < hi)
+        figures[phase] = {
+            "values_per_s": round(len(lat) / (hi - lo), 1),
+            "latency_median_ms": round(statistics.median(lat), 2) if lat else None,
+            "latency_p95_ms": round(lat[int(0.95 * (len(lat) - 1))], 2) if lat else None}
+    return figures
+
+
+def plot(records: dict[str, dict[str, Any]], path: Path) -> bool:
+    """Throughput and latency over time for both runs; False if matplotlib is missing."""
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return False
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    styles = {"adaptive": ("tab:blue", "agent on (migrates)"),
+              "static": ("tab:red", "agent off")}
+    for name, record in records.items():
+        colour, label = styles[name]
+        series = windows(record)
+        t = [w["t"] for w in series]
+        top.plot(t, [w["rate"] for w in series], color=colour, label=label)
+        bottom.plot(t, [w["latency_ms"] for w in series], color=colour, label=label)
+        for moved in record["moved_at"]:
+            for axis in (top, bottom):
+                axis.axvline(moved - record["start"], color=colour, linestyle=":")
+    record = records["adaptive"]
+    for axis in (top, bottom):
+        axis.axvspan(record["load_on"] - record["start"], record["load_off"] - record["start"],
+                     color="0.85", label="CPU 0 under stress")
+    top.set_ylabel("values / s")
+    bottom.set_ylabel("latency, median (ms)")
+    bottom.set_yscale("log")
+    bottom.set_xlabel("time (s)")
+    top.set_title("compute under CPU load on its node: migrating vs staying")
+    top.legend(loc="lower left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return True
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="self_migration", description=__doc__.split("\n")[0])
+    parser.add_argument("--out", default=".", help="directory for the PNG and JSON")
+    parser.add_argument("--quick", action="store_true", help="shorter phases (2/5/2 s)")
+    args = parser.parse_args(argv)
+    if (os.cpu_count() or 1) < 2:
+        print("self_migration needs two CPUs (one per node)", file=sys.stderr)
+        return 2
+    phases = PHASES["quick" if args.quick else "full"]
+    records = {"adaptive": run_once(True, phases), "static": run_once(False, phases)}
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    report = {"scenario": "self-migration", "phases_s": dict(zip(
+        ("quiet", "loaded", "after"), phases, strict=True)),
+        "rate_hz": RATE_HZ, "work_ms_per_value": WORK_S * 1e3,
+        "runs": {name: {"phases": phase_figures(r),
+                        "migrated_after_load_s": [round(m - r["load_on"], 2)
+                                                  for m in r["moved_at"]],
+                        "compute_node_at_end": r["compute_node_at_end"]}
+                 for name, r in records.items()}}
+    if plot(records, out / "self_migration.png"):
+        report["plot"] = str(out / "self_migration.png")
+    (out / "self_migration.json").write_text(json.dumps(report, indent=2))
+    print(json.dumps(report, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
