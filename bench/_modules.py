@@ -142,3 +142,34 @@ class Gain(Module):
 
     def on_input(self, port: InputPort) -> None:
         self.y.write(port.read() * self.gain)
+
+
+class MigrationRelay(Module):
+    """Event-driven: passes every value on (the module the migration bench moves)."""
+
+    x = Input(float, policy="queue:10000")
+    out = Output(float)
+    relayed = 0
+
+    def on_input(self, port: InputPort) -> None:
+        self.out.write(port.read())
+        self.relayed += 1
+
+
+class OrderedReader(Module):
+    """Counts values and checks they only grow (``Clock`` writes increasing times)."""
+
+    x = Input(float, policy="queue:100000")
+    count = 0
+    last = -1.0
+    out_of_order = 0
+    duplicates = 0
+
+    def on_input(self, port: InputPort) -> None:
+        value = port.read()
+        if value == self.last:
+            self.duplicates += 1
+        elif value < self.last:
+            self.out_of_order += 1
+        self.last = value
+        self.count += 1
