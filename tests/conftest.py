@@ -13,6 +13,10 @@ import pytest
 
 from pb3a.transport.shm import live_segments
 
+# Every process of the test run (workers inherit it) uses a throw-away cluster key,
+# never the user's ~/.pb3a/cluster.key.
+os.environ.setdefault("PB3A_KEY", os.urandom(32).hex())
+
 
 def eventually(check: Callable[[], Any], timeout: float = 10.0, what: str = "condition") -> Any:
     """Poll ``check`` until it returns a truthy value; fail after ``timeout`` seconds."""

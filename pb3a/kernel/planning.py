@@ -41,6 +41,7 @@ from pb3a.kernel.loading import class_ref, resolve_class
 from pb3a.kernel.macro import Macro
 from pb3a.kernel.module import Module
 from pb3a.kernel.ports import Policy
+from pb3a.kernel.served import use_module_servers
 from pb3a.kernel.wiring import LinkResolver, PortRef
 
 
@@ -135,6 +136,8 @@ class _Planner:
         if not isinstance(servers, list) or not all(isinstance(s, str) for s in servers):
             self.report(origin, [("module_servers must be a list of addresses such as "
                                  f"['tcp://127.0.0.1:7300'], got {servers!r}")])
+        else:
+            use_module_servers(servers)   # classes below may only be found there
         self.report(origin, [f"top-level {p}" for p in checks.workers(spec.workers)])
         for name, node in spec.nodes.items():
             label = f"{origin} [nodes.{toml_key(name)}]"

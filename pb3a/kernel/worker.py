@@ -26,6 +26,7 @@ from pb3a.kernel.actor import EventPool, ModuleActor
 from pb3a.kernel.agent import Agent, RuntimeClient
 from pb3a.kernel.ports import InputPort, Policy
 from pb3a.kernel.publishing import Publications
+from pb3a.kernel.served import forget, use_module_servers
 from pb3a.transport.codec import local_copy
 from pb3a.transport.doorbell import BellPull, Doorbell
 from pb3a.transport.ring import ShmRing, sleep
@@ -296,6 +297,10 @@ class Worker:
     def op_unpublish_out(self, key: str) -> int:
         return self.publications.remove(key)
 
+    def op_forget(self, module: str) -> list[str]:
+        """Drop cached copies of ``module``: the next load or swap gets the new code."""
+        return forget(module)
+
     def op_get_state(self, name: str) -> dict[str, Any]:
         return self.actors[name].capture()
 
@@ -434,7 +439,7 @@ def _on_sigterm(signum: int, frame: object) -> None:
 
 
 def worker_main(conn: Any, key: str, checkpoint_s: float, level: int,
-                cpus: list[int] | None = None) -> None:
+                cpus: list[int] | None = None, module_servers: list[str] | None = None) -> None:
     """Entry point of a worker process.
 
     Ctrl-C in a terminal reaches every process of the group: workers ignore it and
@@ -447,6 +452,7 @@ def worker_main(conn: Any, key: str, checkpoint_s: float, level: int,
     signal.signal(signal.SIGTERM, _on_sigterm)
     logging.basicConfig(level=level, format=f"%(asctime)s pb3a[{key}] %(levelname)s %(message)s")
     bell = reduction.recv_handle(conn)          # the executor sends our doorbell first
+    use_module_servers(module_servers or [])
     worker = Worker(conn, key, bell, checkpoint_s)
     try:
         worker.serve()

@@ -4,6 +4,7 @@
     pb3a graph FILE [-o OUT]      draw the configuration (DOT, and SVG/PNG/PDF via Graphviz)
     pb3a run FILE [--for SECONDS] launch, show live status, stop on Ctrl-C or after SECONDS
     pb3a scenario NAME [ARGS...]  run one of the bundled applications (``scenarios/``)
+    pb3a modules serve DIR [--listen ADDR]   serve module code to the nodes (until signalled)
 
 Each subcommand is a function taking the parsed arguments and returning the
 exit code; heavy imports (the runtime) happen inside the function that needs them.
@@ -137,10 +138,44 @@ def _parser() -> argparse.ArgumentParser:
     scenario.add_argument("args", nargs=argparse.REMAINDER,
                           help="the scenario's own options (NAME --help lists them)")
     scenario.set_defaults(handler=scenario_command)
+
+    modules = commands.add_parser("modules", help="the module server")
+    modules_commands = modules.add_subparsers(title="commands", metavar="COMMAND")
+    serve = modules_commands.add_parser("serve", help="serve the Python modules under DIR")
+    serve.add_argument("dir", metavar="DIR", help="the directory of module files")
+    serve.add_argument("--listen", default="tcp://127.0.0.1:7300", metavar="ADDR",
+                       help="address to listen on (default tcp://127.0.0.1:7300; port 0: any)")
+    serve.set_defaults(handler=modules_serve_command)
     return parser
 
 
 SCENARIOS = {"self-migration": "scenarios.self_migration"}
+
+
+def modules_serve_command(args: argparse.Namespace) -> int:
+    """``pb3a modules serve DIR --listen ADDR``: serve until SIGINT or SIGTERM."""
+    import signal
+    import threading
+
+    from pb3a.runtime.module_server import ModuleServer
+    from pb3a.transport.auth import ClusterKey, ClusterKeyError
+
+    host, _, port = args.listen.removeprefix("tcp://").rpartition(":")
+    try:
+        server = ModuleServer(args.dir, ClusterKey.load(), host or "127.0.0.1", int(port or 0))
+    except (OSError, ValueError, ClusterKeyError) as exc:
+        print(f"pb3a modules serve: {exc}", file=sys.stderr)
+        return 1
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    print(f"serving {server.root} at {server.address}", flush=True)
+    try:
+        while not stop.wait(1.0):
+            pass
+    finally:
+        server.close()
+    return 0
 
 
 def scenario_command(args: argparse.Namespace) -> int:

@@ -95,7 +95,9 @@ class Executor:
 
     def __init__(self, *, workers: dict[str, int] | None = None,
                  cpus: dict[str, list[int]] | None = None, checkpoint_s: float = 1.0,
-                 log_level: int = logging.WARNING) -> None:
+                 log_level: int = logging.WARNING,
+                 module_servers: list[str] | None = None) -> None:
+        self.module_servers = list(module_servers or [])   # workers import from these too
         self.packing = workers or {}        # node name -> packed worker processes (0: one each)
         self.cpus = cpus or {}              # node name -> the CPUs its workers run on
         self.quota: dict[str, int] = {}     # node name -> modules per packed worker at start
@@ -160,7 +162,7 @@ class Executor:
         process = _context.Process(
             target=worker_main, name=f"pb3a-worker-{handle.key}", daemon=True,
             args=(child, handle.key, self.checkpoint_s, self.log_level,
-                  self.cpus.get(handle.node)))
+                  self.cpus.get(handle.node), self.module_servers))
         _start_without_main(process)
         child.close()
         # The doorbell is the worker's first read: send it before anyone can send a request.

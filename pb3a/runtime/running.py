@@ -20,6 +20,7 @@ from pb3a.kernel.config import FlatLink, FlatModule, Plan
 from pb3a.kernel.loading import resolve_class
 from pb3a.kernel.module import RESTART_POLICIES, Module
 from pb3a.kernel.ports import Policy
+from pb3a.kernel.served import forget
 from pb3a.runtime.executor import Executor
 from pb3a.runtime.migration import MigrationReport, migrate
 from pb3a.runtime.stats import collect
@@ -44,7 +45,7 @@ class Running:
         packing = {name: node.workers for name, node in plan.nodes.items()}
         cpus = {name: node.cpus for name, node in plan.nodes.items() if node.cpus}
         self._executor = Executor(workers=packing, cpus=cpus, checkpoint_s=checkpoint_s,
-                                  log_level=log_level)
+                                  log_level=log_level, module_servers=plan.module_servers)
         self._lock = self._executor.lock         # the global configuration lock
         self._executor.handler = self._agent_request
         self._stopped = threading.Event()
@@ -129,6 +130,17 @@ class Running:
                                max(r.pause_s for r in reports),
                                sum(r.state_bytes for r in reports),
                                sum(r.links for r in reports))
+
+    def reload(self, module: str) -> None:
+        """Drop every cached copy of Python module ``module`` (and its submodules), here
+        and in every worker: the next load or ``swap`` naming one of its classes gets
+        the file as it is now (from a module server, or the local path). Running
+        instances keep their code until swapped."""
+        with self._lock:
+            forget(module)
+            for key, handle in list(self._executor.workers.items()):
+                if handle.alive:
+                    self._executor.call(key, "forget", module=module)
 
     # -- reconfiguration -----------------------------------------------------------
     def swap(self, name: str, cls: type | str) -> list[str]:

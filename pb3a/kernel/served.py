@@ -1,0 +1,89 @@
+"""Importing modules from module servers: a finder at the end of ``sys.meta_path``.
+
+Once ``use_module_servers`` has run in a process (the launcher when it plans a
+configuration that names ``module_servers``, every worker at start), an import that
+the local path cannot satisfy asks each server in turn. ``forget`` drops cached
+modules so that the next import (or a ``swap`` naming the class) gets the new code.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.abc
+import importlib.util
+import sys
+import threading
+from typing import TYPE_CHECKING, Any
+
+from pb3a.errors import RuntimeFailure, RuntimeTimeout
+from pb3a.transport.auth import ClusterKey
+from pb3a.transport.control import ControlClient
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+    from importlib.machinery import ModuleSpec
+    from types import ModuleType
+
+FIND_TIMEOUT = 5.0
+_lock = threading.Lock()
+
+
+class ServedModuleFinder(importlib.abc.MetaPathFinder):
+    """Finds modules on module servers (after every local finder failed)."""
+
+    def __init__(self, key: ClusterKey) -> None:
+        self._key = key
+        self.clients: dict[str, ControlClient] = {}
+
+    def add(self, address: str) -> None:
+        if address not in self.clients:
+            self.clients[address] = ControlClient(self._key, address)
+
+    def find_spec(self, fullname: str, path: Any = None, target: Any = None) -> ModuleSpec | None:
+        for client in list(self.clients.values()):
+            try:
+                found = client.call("find", timeout=FIND_TIMEOUT, name=fullname)
+            except (RuntimeFailure, RuntimeTimeout):
+                continue                          # that server is down: try the next
+            if found is not None:
+                loader = _SourceLoader(found["source"], found["origin"])
+                return importlib.util.spec_from_loader(
+                    fullname, loader, origin=found["origin"], is_package=found["package"])
+        return None
+
+
+class _SourceLoader(importlib.abc.Loader):
+    def __init__(self, source: bytes, origin: str) -> None:
+        self._source, self._origin = source, origin
+
+    def create_module(self, spec: ModuleSpec) -> ModuleType | None:
+        return None                                # the default module object
+
+    def exec_module(self, module: ModuleType) -> None:
+        module.__file__ = self._origin
+        if module.__spec__ is not None and module.__spec__.submodule_search_locations is not None:
+            module.__path__ = []                   # a package: submodules come from servers
+        exec(compile(self._source, self._origin, "exec"), module.__dict__)
+
+
+def use_module_servers(addresses: Sequence[str], key: ClusterKey | None = None) -> None:
+    """Let this process import from these servers (idempotent)."""
+    if not addresses:
+        return
+    with _lock:
+        finder = next((f for f in sys.meta_path if isinstance(f, ServedModuleFinder)), None)
+        if finder is None:
+            finder = ServedModuleFinder(key or ClusterKey.load())
+            sys.meta_path.append(finder)
+        for address in addresses:
+            finder.add(address)
+
+
+def forget(module: str) -> list[str]:
+    """Drop ``module`` and its submodules from this process's cache; the names dropped."""
+    dropped = [name for name in list(sys.modules)
+               if name == module or name.startswith(f"{module}.")]
+    for name in dropped:
+        del sys.modules[name]
+    importlib.invalidate_caches()
+    return dropped

@@ -1,0 +1,63 @@
+"""The module server: code on demand (``pb3a modules serve DIR --listen ADDR``).
+
+Nodes import a module class from their own import path first, then from the module
+servers the configuration names (``module_servers``). The server answers ``find``
+requests for dotted module names with the source of ``DIR/a/b.py`` or
+``DIR/a/b/__init__.py``, read at each request, so new and overwritten files are
+served without a restart. Requests are authenticated (``ControlServer``); names
+are identifiers only, and a file whose real path (symbolic links resolved) leaves DIR
+is never served.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+from pb3a.transport.auth import ClusterKey
+from pb3a.transport.control import ControlServer
+
+log = logging.getLogger("pb3a.modules")
+
+
+class ModuleServer:
+    """Serves the Python modules under ``root``."""
+
+    def __init__(self, root: str | Path, key: ClusterKey, host: str = "127.0.0.1",
+                 port: int = 0) -> None:
+        self.root = Path(root).resolve(strict=True)
+        if not self.root.is_dir():
+            raise NotADirectoryError(f"module server root {root} is not a directory")
+        self._server = ControlServer(key, self._handle, host, port, name="pb3a-modules")
+        self.address = self._server.address
+
+    def find(self, name: str) -> dict[str, Any] | None:
+        """The source of module ``name`` and whether it is a package; None if not here."""
+        parts = name.split(".")
+        if not name or not all(part.isidentifier() for part in parts):
+            return None
+        base = self.root.joinpath(*parts)
+        for path, package in ((base / "__init__.py", True), (base.with_suffix(".py"), False)):
+            try:
+                real = path.resolve(strict=True)
+            except (FileNotFoundError, RuntimeError):
+                continue
+            if not real.is_relative_to(self.root) or not real.is_file():
+                log.warning("refused %s: %s is outside %s", name, real, self.root)
+                return None
+            return {"source": real.read_bytes(), "package": package,
+                    "origin": f"{self.address}/{real.relative_to(self.root)}"}
+        return None
+
+    def _handle(self, op: str, args: dict[str, Any]) -> Any:
+        if op == "find":
+            return self.find(str(args.get("name", "")))
+        raise ValueError(f"the module server has no operation {op!r}")
+
+    @property
+    def rejected(self) -> Any:
+        return self._server.rejected
+
+    def close(self) -> None:
+        self._server.close()

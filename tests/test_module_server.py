@@ -1,0 +1,100 @@
+"""The module server: code on demand, new and changed files without a restart,
+reload with the state kept, and nothing served from outside its directory."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+from conftest import eventually
+
+from pb3a import System
+from pb3a.runtime.module_server import ModuleServer
+from pb3a.transport.auth import ClusterKey
+
+TICKER = '''
+from pb3a import Module, Output
+
+class Ticker(Module):
+    out = Output(int)
+    period = 0.005
+    count = 0
+    step_size = 1
+
+    def step(self):
+        self.count += self.step_size * {factor}     # the code, not the state, changes
+'''
+
+
+@pytest.fixture
+def served(tmp_path):
+    root = tmp_path / "code"
+    root.mkdir()
+    server = ModuleServer(root, ClusterKey.load())
+    yield root, server
+    server.close()
+
+
+def _write(path: Path, text: str) -> None:
+    path.write_text(textwrap.dedent(text))
+    os.utime(path)                             # (a new mtime, whatever the clock's grain)
+
+
+def test_a_class_only_the_server_has_runs_and_a_changed_file_is_swapped_in(served) -> None:
+    root, server = served
+    _write(root / "pb3a_served_ticker.py", TICKER.format(factor=1))
+    system = System("served", module_servers=[server.address])
+    system.add("t", "pb3a_served_ticker:Ticker")
+    with system.launch() as run:
+        eventually(lambda: run.state("t")["count"] > 5, what="the served class stepping")
+        _write(root / "pb3a_served_ticker.py", TICKER.format(factor=1000))
+        run.reload("pb3a_served_ticker")
+        before = run.state("t")["count"]
+        run.swap("t", "pb3a_served_ticker:Ticker")       # the new file, state kept
+        eventually(lambda: run.state("t")["count"] >= before + 2000,
+                   what="the new code stepping, from the count the old one reached")
+
+
+def test_new_files_are_served_without_a_restart(served) -> None:
+    root, server = served
+    assert server.find("pb3a_served_new") is None
+    _write(root / "pb3a_served_new.py", "VALUE = 42\n")
+    found = server.find("pb3a_served_new")
+    assert found is not None and b"VALUE = 42" in found["source"]
+    (root / "pkg").mkdir()
+    _write(root / "pkg" / "__init__.py", "")
+    _write(root / "pkg" / "inner.py", "X = 1\n")
+    assert server.find("pkg")["package"] and not server.find("pkg.inner")["package"]
+
+
+def test_nothing_outside_the_directory_is_served(served, tmp_path) -> None:
+    root, server = served
+    secret = tmp_path / "secret.py"
+    secret.write_text("PASSWORD = 'x'\n")
+    (root / "escape.py").symlink_to(secret)
+    (root / "escdir").symlink_to(tmp_path)
+    for name in ("escape", "escdir.secret", "..secret", "../secret", "/etc/passwd", "",
+                 "os.path", "a..b"):
+        assert server.find(name) is None, name
+
+
+def test_the_command_line_serves_until_signalled(tmp_path) -> None:
+    (tmp_path / "m.py").write_text("X = 1\n")
+    process = subprocess.Popen(
+        [sys.executable, "-m", "pb3a", "modules", "serve", str(tmp_path),
+         "--listen", "tcp://127.0.0.1:0"], stdout=subprocess.PIPE, text=True)
+    try:
+        line = process.stdout.readline()
+        assert line.startswith(f"serving {tmp_path.resolve()} at tcp://127.0.0.1:")
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=10) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(5)
+        process.stdout.close()
