@@ -5,6 +5,7 @@
     pb3a run FILE [--for SECONDS] launch, show live status, stop on Ctrl-C or after SECONDS
     pb3a scenario NAME [ARGS...]  run one of the bundled applications (``scenarios/``)
     pb3a modules serve DIR [--listen ADDR]   serve module code to the nodes (until signalled)
+    pb3a node start --name N [--listen ADDR] run a node controller (until signalled)
 
 Each subcommand is a function taking the parsed arguments and returning the
 exit code; heavy imports (the runtime) happen inside the function that needs them.
@@ -18,6 +19,7 @@ import subprocess
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from pb3a.errors import ConfigError
 from pb3a.kernel.config import Plan
@@ -146,6 +148,18 @@ def _parser() -> argparse.ArgumentParser:
     serve.add_argument("--listen", default="tcp://127.0.0.1:7300", metavar="ADDR",
                        help="address to listen on (default tcp://127.0.0.1:7300; port 0: any)")
     serve.set_defaults(handler=modules_serve_command)
+
+    node = commands.add_parser("node", help="the node controller")
+    node_commands = node.add_subparsers(title="commands", metavar="COMMAND")
+    start = node_commands.add_parser("start", help="run this machine's node controller")
+    start.add_argument("--name", required=True, help="the node's name in configurations")
+    start.add_argument("--listen", default="tcp://127.0.0.1:7100", metavar="ADDR",
+                       help="address to listen on (default tcp://127.0.0.1:7100; port 0: any)")
+    start.add_argument("--max-cpu", type=float, default=90.0, metavar="PERCENT",
+                       help="refuse work while the CPU is busier than this (default 90)")
+    start.add_argument("--min-memory", type=int, default=256, metavar="MIB",
+                       help="refuse work that would leave less memory available (default 256)")
+    start.set_defaults(handler=node_start_command)
     return parser
 
 
@@ -154,27 +168,48 @@ SCENARIOS = {"self-migration": "scenarios.self_migration"}
 
 def modules_serve_command(args: argparse.Namespace) -> int:
     """``pb3a modules serve DIR --listen ADDR``: serve until SIGINT or SIGTERM."""
+    from pb3a.runtime.module_server import ModuleServer
+
+    def start(key: Any, host: str, port: int) -> Any:
+        server = ModuleServer(args.dir, key, host, port)
+        return server, f"serving {server.root} at {server.address}"
+    return _serve_until_signalled("pb3a modules serve", args.listen, start)
+
+
+def node_start_command(args: argparse.Namespace) -> int:
+    """``pb3a node start --name N --listen ADDR``: a node controller until signalled."""
+    from pb3a.runtime.node import Limits, NodeController
+
+    def start(key: Any, host: str, port: int) -> Any:
+        limits = Limits(args.max_cpu, args.min_memory << 20)
+        controller = NodeController(args.name, key, host, port, limits)
+        return controller, f"node {args.name} at {controller.address}"
+    return _serve_until_signalled("pb3a node start", args.listen, start)
+
+
+def _serve_until_signalled(command: str, listen: str,
+                           start: Callable[[Any, str, int], tuple[Any, str]]) -> int:
+    """Start a daemon on ``listen``, print where, and run until SIGINT or SIGTERM."""
     import signal
     import threading
 
-    from pb3a.runtime.module_server import ModuleServer
     from pb3a.transport.auth import ClusterKey, ClusterKeyError
 
-    host, _, port = args.listen.removeprefix("tcp://").rpartition(":")
+    host, _, port = listen.removeprefix("tcp://").rpartition(":")
     try:
-        server = ModuleServer(args.dir, ClusterKey.load(), host or "127.0.0.1", int(port or 0))
+        daemon, banner = start(ClusterKey.load(), host or "127.0.0.1", int(port or 0))
     except (OSError, ValueError, ClusterKeyError) as exc:
-        print(f"pb3a modules serve: {exc}", file=sys.stderr)
+        print(f"{command}: {exc}", file=sys.stderr)
         return 1
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
-    print(f"serving {server.root} at {server.address}", flush=True)
+    print(banner, flush=True)
     try:
         while not stop.wait(1.0):
             pass
     finally:
-        server.close()
+        daemon.close()
     return 0
 
 

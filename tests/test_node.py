@@ -1,0 +1,102 @@
+"""The node controller: admission by resources, one executor per configuration,
+graceful and forced stops, the command line, and frames it must refuse."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+
+import pytest
+import zmq
+from conftest import eventually
+from sample_modules import Counter
+
+from pb3a import RuntimeFailure
+from pb3a.kernel.config import FlatModule
+from pb3a.runtime.node import Limits, NodeController
+from pb3a.transport.auth import ClusterKey
+from pb3a.transport.control import ControlClient
+
+KEY = ClusterKey.load()
+
+
+@pytest.fixture
+def node():
+    controller = NodeController("n1", KEY)
+    client = ControlClient(KEY, controller.address)
+    yield controller, client
+    client.close()
+    controller.close()
+
+
+def _counter() -> FlatModule:
+    return FlatModule("tick", Counter, "n1", 0.001, {}, "never")
+
+
+def test_one_executor_per_configuration_runs_modules_and_stops_cleanly(node) -> None:
+    _, client = node
+    address = client.call("start_executor", timeout=60, config="demo")
+    assert client.call("start_executor", timeout=60, config="demo") == address   # again: same
+    executor = ControlClient(KEY, address)
+    try:
+        executor.call("add_module", spec=_counter())
+        executor.call("start_modules", names=["tick"])
+        eventually(lambda: executor.call("state", name="tick")["count"] > 10,
+                   what="the module counting in the node's executor")
+        assert executor.call("describe") == {"config": "demo", "node": "n1",
+                                             "modules": ["tick"]}
+        assert client.call("status")["executors"] == {"demo": address}
+        assert client.call("stop_executor", config="demo") is True
+        assert client.call("status")["executors"] == {}
+        assert not client.call("stop_executor", config="demo")
+    finally:
+        executor.close()
+
+
+def test_a_forced_stop_kills_the_executor(node) -> None:
+    controller, client = node
+    client.call("start_executor", timeout=60, config="doomed")
+    assert client.call("stop_executor", config="doomed", force=True) is True
+    assert controller.executors() == {}
+
+
+def test_work_is_refused_with_the_reason_when_resources_are_short() -> None:
+    for limits, reason in ((Limits(min_memory_bytes=1 << 60), "of memory available, below"),
+                           (Limits(max_cpu_percent=-1.0), "CPU .* busy, above its limit")):
+        controller = NodeController("tight", KEY, limits=limits)
+        client = ControlClient(KEY, controller.address)
+        try:
+            with pytest.raises(RuntimeFailure, match=f"node tight refuses .*{reason}"):
+                client.call("start_executor", config="demo")
+            assert controller.executors() == {}
+        finally:
+            client.close()
+            controller.close()
+
+
+def test_garbage_and_forged_frames_do_not_disturb_the_controller(node) -> None:
+    controller, client = node
+    attacker = zmq.Context.instance().socket(zmq.DEALER)
+    attacker.setsockopt(zmq.LINGER, 0)
+    attacker.connect(controller.address)
+    attacker.send_multipart([b"garbage"])
+    attacker.send_multipart([b"\x00" * 50, b"x", b"y" * 16])
+    eventually(lambda: sum(controller.rejected.values()) >= 2, what="the frames refused")
+    attacker.close(0)
+    assert client.call("status")["node"] == "n1"
+
+
+def test_the_command_line_runs_a_node_until_signalled() -> None:
+    process = subprocess.Popen(
+        [sys.executable, "-m", "pb3a", "node", "start", "--name", "cli",
+         "--listen", "tcp://127.0.0.1:0"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert process.stdout.readline().startswith("node cli at tcp://127.0.0.1:")
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=10) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(5)
+        process.stdout.close()
