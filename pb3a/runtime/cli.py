@@ -4,6 +4,7 @@
     pb3a graph FILE [-o OUT]      draw the configuration (DOT, and SVG/PNG/PDF via Graphviz)
     pb3a run FILE [--for SECONDS] launch, show live status, stop on Ctrl-C or after SECONDS
     pb3a scenario NAME [ARGS...]  run one of the bundled applications (``scenarios/``)
+    pb3a status|state|migrate|swap ADDR ...  act on a running system through its launcher
     pb3a modules serve DIR [--listen ADDR]   serve module code to the nodes (until signalled)
     pb3a node start --name N [--listen ADDR] run a node controller (until signalled)
 
@@ -88,13 +89,44 @@ def run_command(args: argparse.Namespace) -> int:
 
     try:
         system = System.load(args.file)
-        return run_with_status(system, args.seconds)
+        return run_with_status(system, args.seconds, listen=args.listen)
     except OSError as exc:
         print(f"pb3a run: cannot read {args.file}: {exc.strerror or exc}", file=sys.stderr)
     except ConfigError as exc:
         for problem in exc.problems:
             print(problem)
     return 1
+
+
+def launcher_command(args: argparse.Namespace) -> int:
+    """``pb3a status / state / migrate / swap ADDR ...``: one request to a launcher."""
+    import json
+
+    from pb3a.errors import RuntimeFailure, RuntimeTimeout
+    from pb3a.runtime.status import format_table
+    from pb3a.transport.auth import ClusterKey
+    from pb3a.transport.control import ControlClient
+
+    client = ControlClient(ClusterKey.load(), args.address)
+    try:
+        if args.op == "status":
+            print(format_table(client.call("stats")))
+        elif args.op == "state":
+            print(json.dumps(client.call("state", name=args.module), indent=2, default=repr))
+        elif args.op == "migrate":
+            report = client.call("migrate", timeout=60.0, name=args.module, to=args.node)
+            print(f"{report['module']}: {report['source']} -> {report['destination']}, paused "
+                  f"{report['pause_s'] * 1e3:.1f} ms, {report['state_bytes']} bytes of state, "
+                  f"{report['links']} links re-wired")
+        else:
+            kept = client.call("swap", timeout=60.0, name=args.module, cls=args.cls)
+            print(f"{args.module} is now {args.cls}; state kept: {', '.join(kept) or '(none)'}")
+        return 0
+    except (RuntimeFailure, RuntimeTimeout) as exc:
+        print(f"pb3a {args.op}: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        client.close()
 
 
 def _load_plan(file: str, command: str) -> Plan | None:
@@ -132,7 +164,21 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("file", metavar="FILE", help="a system description (.toml)")
     run.add_argument("--for", dest="seconds", type=float, metavar="SECONDS",
                      help="stop after this many seconds (default: until Ctrl-C)")
+    run.add_argument("--listen", default="tcp://127.0.0.1:0", metavar="ADDR",
+                     help="where the launcher takes `pb3a status ADDR` etc. (default: any port)")
     run.set_defaults(handler=run_command)
+
+    for name, extra, helptext in (
+            ("status", (), "the live status table of a running system"),
+            ("state", ("module",), "a module's live state"),
+            ("migrate", ("module", "node"), "move a module (or macro) to another node"),
+            ("swap", ("module", "cls"), "swap a module's class ('module:Class')")):
+        sub = commands.add_parser(name, help=f"{helptext}, through its launcher")
+        sub.add_argument("address", metavar="ADDR", help="the launcher's address "
+                         "(`pb3a run` prints it)")
+        for arg in extra:
+            sub.add_argument(arg, metavar=arg.upper())
+        sub.set_defaults(handler=launcher_command, op=name)
 
     scenario = commands.add_parser("scenario", help="run a bundled application",
                                    description="Bundled applications: " + ", ".join(SCENARIOS))

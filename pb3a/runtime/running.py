@@ -24,6 +24,8 @@ from pb3a.kernel.served import forget
 from pb3a.runtime.executor import Executor
 from pb3a.runtime.migration import MigrationReport, migrate
 from pb3a.runtime.stats import collect
+from pb3a.transport.auth import ClusterKey
+from pb3a.transport.control import ControlServer
 
 log = logging.getLogger("pb3a")
 
@@ -49,6 +51,8 @@ class Running:
         self._lock = self._executor.lock         # the global configuration lock
         self._executor.handler = self._agent_request
         self._stopped = threading.Event()
+        self._server: ControlServer | None = None
+        self.address: str | None = None       # where `pb3a status ADDR` etc. reach it
 
     # -- life cycle ------------------------------------------------------------
     def start(self) -> None:
@@ -70,7 +74,20 @@ class Running:
         """Stop every module (reverse start order) and worker; free every segment."""
         if not self._stopped.is_set():
             self._stopped.set()
+            if self._server is not None:
+                self._server.close()
             self._executor.shutdown(timeout)
+
+    def listen(self, address: str = "tcp://127.0.0.1:0") -> str:
+        """Take authenticated requests (``pb3a status / state / migrate / swap``) at
+        ``address``; returns the address bound."""
+        host, _, port = address.removeprefix("tcp://").rpartition(":")
+        if self._server is None:
+            self._server = ControlServer(ClusterKey.load(), self._remote_request,
+                                         host or "127.0.0.1", int(port or 0),
+                                         name="pb3a-launcher")
+            self.address = self._server.address
+        return self.address
 
     stop = close
 
@@ -251,6 +268,14 @@ class Running:
                              name="pb3a-self-migration", daemon=True).start()
             return None
         return getattr(self, op)(**args)
+
+    def _remote_request(self, op: str, args: dict[str, Any]) -> Any:
+        """A request from the command line (``pb3a status ADDR`` ...)."""
+        if op == "migrate":
+            return vars(self.migrate(args["name"], args["to"]))
+        if op in ("state", "stats", "swap", "set_state", "relink"):
+            return self._agent_request(op, args)
+        raise ValueError(f"the launcher has no operation {op!r}")
 
     def _migrate_quietly(self, name: str, to: str) -> None:
         try:

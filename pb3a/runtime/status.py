@@ -47,15 +47,19 @@ def _columns(rows: list[tuple[str, ...]]) -> list[str]:
             for row in rows]
 
 
-def run_with_status(system: System, seconds: float | None, out: TextIO = sys.stdout) -> int:
-    """Run ``system`` until ``seconds`` pass (None: until Ctrl-C or SIGTERM); 0 on a clean stop."""
+def run_with_status(system: System, seconds: float | None, out: TextIO = sys.stdout,
+                    listen: str = "tcp://127.0.0.1:0") -> int:
+    """Run ``system`` until ``seconds`` pass (None: until Ctrl-C or SIGTERM); 0 on a clean
+    stop. The launcher takes ``pb3a status / state / migrate / swap`` at ``listen``."""
     previous = signal.signal(signal.SIGTERM, _interrupt)
     live = out.isatty()
     started = time.monotonic()
     try:
         with system.launch() as run:
+            address = run.listen(listen)
             out.write(f"pb3a: system {run.name!r} running"
-                      f"{f' for {seconds:g} s' if seconds else ''}; Ctrl-C stops it\n")
+                      f"{f' for {seconds:g} s' if seconds else ''}; Ctrl-C stops it; "
+                      f"launcher at {address}\n")
             try:
                 while seconds is None or time.monotonic() - started < seconds:
                     left = REFRESH_S if seconds is None else min(
