@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -69,3 +72,20 @@ def no_leaks() -> Iterator[None]:
                     psutil.Process(pid).kill()
             pytest.fail(f"leaked processes {sorted(leaked_pids)} / segments {leaked_segments}")
         time.sleep(0.05)
+
+
+def daemon_banner_then_clean_exit(*args: str) -> str:
+    """Run ``pb3a ARGS`` (a daemon), read the line it prints when ready, SIGTERM it, and
+    check it exits 0; returns that line. The process is killed if anything fails."""
+    process = subprocess.Popen([sys.executable, "-m", "pb3a", *args],
+                               stdout=subprocess.PIPE, text=True)
+    try:
+        line = process.stdout.readline()
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=10) == 0
+        return line
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(5)
+        process.stdout.close()

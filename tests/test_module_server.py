@@ -4,14 +4,11 @@ reload with the state kept, and nothing served from outside its directory."""
 from __future__ import annotations
 
 import os
-import signal
-import subprocess
-import sys
 import textwrap
 from pathlib import Path
 
 import pytest
-from conftest import eventually
+from conftest import daemon_banner_then_clean_exit, eventually
 
 from pb3a import System
 from pb3a.runtime.module_server import ModuleServer
@@ -85,16 +82,6 @@ def test_nothing_outside_the_directory_is_served(served, tmp_path) -> None:
 
 def test_the_command_line_serves_until_signalled(tmp_path) -> None:
     (tmp_path / "m.py").write_text("X = 1\n")
-    process = subprocess.Popen(
-        [sys.executable, "-m", "pb3a", "modules", "serve", str(tmp_path),
-         "--listen", "tcp://127.0.0.1:0"], stdout=subprocess.PIPE, text=True)
-    try:
-        line = process.stdout.readline()
-        assert line.startswith(f"serving {tmp_path.resolve()} at tcp://127.0.0.1:")
-        process.send_signal(signal.SIGTERM)
-        assert process.wait(timeout=10) == 0
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait(5)
-        process.stdout.close()
+    line = daemon_banner_then_clean_exit("modules", "serve", str(tmp_path),
+                                         "--listen", "tcp://127.0.0.1:0")
+    assert line.startswith(f"serving {tmp_path.resolve()} at tcp://127.0.0.1:")
