@@ -7,7 +7,7 @@ import pytest
 from conftest import eventually
 from sample_modules import Chain, Collector, Counter, Relay, Wanderer
 
-from pb3a import ConfigError, ModuleNotFound, System
+from pb3a import ConfigError, ModuleNotFound, RuntimeFailure, System
 
 
 def _nodes(system: System, *names: str) -> System:
@@ -107,3 +107,33 @@ def test_migration_to_an_unknown_node_or_of_an_unknown_module_is_refused() -> No
         with pytest.raises(ModuleNotFound, match="no module 'ghost'"):
             run.migrate("ghost", to="b")
         assert run.stats()["modules"]["relay"]["node"] == "a"
+
+
+def test_a_failed_landing_puts_the_module_back_where_it_was(monkeypatch) -> None:
+    system = _nodes(System("move-fail"), "a", "b")
+    system.add("src", Counter, node="a", period=0.001)
+    system.add("relay", Relay, node="a")
+    system.add("sink", Collector, node="a")
+    system.link("src.out", "relay.x")
+    system.link("relay.out", "sink.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")
+        executor = run._executor
+        real_call = type(executor).call
+        failures = []
+
+        def flaky(self, worker, op, *args, **kwargs):
+            if op == "migrate_in" and worker.startswith("b/") and not failures:
+                failures.append(worker)
+                raise RuntimeFailure(f"worker {worker!r} died")
+            return real_call(self, worker, op, *args, **kwargs)
+        monkeypatch.setattr(type(executor), "call", flaky)
+        before = run.state("relay")["relayed"]
+        with pytest.raises(RuntimeFailure, match="runs on node a again, with its state"):
+            run.migrate("relay", to="b")
+        assert run.stats()["modules"]["relay"]["node"] == "a"
+        assert run.state("relay")["relayed"] >= before
+        eventually(lambda: run.state("relay")["relayed"] > before + 20, what="values again")
+        sink = run.state("sink")
+    assert failures and sink["out_of_order"] == 0 and sink["duplicates"] == 0
+    assert sink["last"] == sink["received"]

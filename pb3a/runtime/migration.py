@@ -20,7 +20,9 @@ The hand-over, under the global configuration lock:
    let the writers go on.
 
 ``pause_s`` is the time from step 2 (the module's pause) to its start at the
-destination.
+destination. If step 5 fails (the destination worker died, say), the module is put
+back on its source node the same way, with what was captured, and the migration
+raises ``RuntimeFailure``: the module is never lost.
 """
 
 from __future__ import annotations
@@ -29,8 +31,11 @@ import time
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
+from pb3a.errors import RuntimeFailure, RuntimeTimeout
+
 if TYPE_CHECKING:
-    from pb3a.runtime.executor import Executor
+    from pb3a.kernel.config import FlatLink, FlatModule
+    from pb3a.runtime.executor import Executor, ModuleRecord
 
 
 @dataclass(frozen=True)
@@ -56,14 +61,7 @@ def migrate(executor: Executor, name: str, node: str) -> MigrationReport:
 
     # 1. the destination, ready before anything pauses
     spec = replace(record.spec, node=node)
-    target = executor.place(spec)
-    executor.ensure_worker(target, node).modules.append(name)
-    try:
-        executor.call(target, "add", name=name, cls=record.blob, period=spec.period,
-                      restart=spec.restart, state={})
-    except BaseException:
-        executor.vacate(target, name)
-        raise
+    target = _prepare(executor, record, spec)
 
     with executor.paused(writers):
         # 2. and 3. pause the module, unwire it
@@ -74,13 +72,43 @@ def migrate(executor: Executor, name: str, node: str) -> MigrationReport:
         # 4. the fence: retired at the source
         captured = executor.call(record.worker, "migrate_out", name=name)
         executor.vacate(record.worker, name)
+        home = record.spec
         record.worker, record.spec = target, spec
-        # 5. restored, re-wired, started
-        executor.call(target, "migrate_in", name=name, captured=captured)
-        for link in links:
-            executor.attach_reader(link)
-        for link in links:
-            executor.attach_writer(link)
-        executor.start_modules([name])
+        # 5. restored, re-wired, started (or, failing that, the same back home)
+        try:
+            _land(executor, record, captured, links)
+        except (RuntimeFailure, RuntimeTimeout) as exc:
+            for link in links:
+                executor.detach(link)
+            executor.vacate(record.worker, name)
+            record.worker, record.spec = _prepare(executor, record, home), home
+            _land(executor, record, captured, links)
+            raise RuntimeFailure(f"migration of {name} to node {node} failed ({exc}); it runs "
+                                 f"on node {source} again, with its state") from exc
         pause = time.monotonic() - paused_at
     return MigrationReport(name, source, node, pause, len(captured), len(links))
+
+
+def _prepare(executor: Executor, record: ModuleRecord, spec: FlatModule) -> str:
+    """A worker on ``spec.node`` with the module instantiated (not started): its key."""
+    target = executor.place(spec)
+    executor.ensure_worker(target, spec.node).modules.append(spec.name)
+    try:
+        executor.call(target, "add", name=spec.name, cls=record.blob, period=spec.period,
+                      restart=spec.restart, state={})
+    except BaseException:
+        executor.vacate(target, spec.name)
+        raise
+    return target
+
+
+def _land(executor: Executor, record: ModuleRecord, captured: bytes,
+          links: list[FlatLink]) -> None:
+    """Restore what was captured in the module's (new) worker, re-wire it, start it."""
+    name = record.spec.name
+    executor.call(record.worker, "migrate_in", name=name, captured=captured)
+    for link in links:
+        executor.attach_reader(link)
+    for link in links:
+        executor.attach_writer(link)
+    executor.start_modules([name])

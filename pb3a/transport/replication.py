@@ -14,8 +14,12 @@ delivers each topic's values in sequence order, exactly once:
   topic; the first SYNC or value that arrives proves the subscription is live, and
   everything older is fetched from the replay buffer. No sleeping.
 - Gaps (the publisher's high-water mark dropped values for a slow follower, or a
-  reconnect lost some) are repaired the same way; values beyond a gap wait. What
-  the replay buffer no longer holds is counted as a link failure, loudly.
+  reconnect lost some) are repaired the same way; values beyond a gap wait; a
+  heartbeat (SYNC every 0.5 s with the next sequence number) reveals values lost at
+  the end of a burst. What the replay buffer no longer holds is counted as a link
+  failure, loudly.
+- Flow control. Followers acknowledge (ACK) how far they are; a publisher more than
+  ``WINDOW`` values ahead of its slowest live follower waits for it, briefly.
 - Fencing. A follower accepts one incarnation per topic. Values from any other (a
   sender that was migrated away, or a stale restart) are counted and dropped.
 
