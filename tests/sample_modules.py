@@ -335,6 +335,4 @@ class Wanderer(Agent):
         self.seen += 1
         if self.seen >= self.after and not self.asked:
             self.asked = True
-            self.runtime.migrate(self.name_in_system, self.to)
-
-    name_in_system = "wanderer"
+            self.runtime.migrate(self.runtime.name, self.to)

@@ -9,8 +9,10 @@ import textwrap
 from pathlib import Path
 
 import pytest
+from conftest import eventually
 
 import examples.pipeline
+from pb3a import System
 from pb3a.runtime.cli import main
 
 REPO = Path(examples.pipeline.__file__).resolve().parent.parent
@@ -113,3 +115,13 @@ def test_main_in_process(capsys: pytest.CaptureFixture[str]) -> None:
     assert capsys.readouterr().out.startswith('digraph "pipeline"')
     assert main([]) == 2
     assert "check" in capsys.readouterr().out
+
+
+def test_the_two_node_example_is_valid_and_runs_across_nodes(capsys) -> None:
+    example = REPO / "examples" / "two_nodes.toml"
+    assert main(["check", str(example)]) == 0
+    assert capsys.readouterr().out == "ok: 2 modules, 1 links\n"
+    with System.load(example).launch() as run:
+        eventually(lambda: run.stats()["links"]["tick.out->scale.x"]["values"] > 5,
+                   what="values at node b")
+        assert run.stats()["links"]["tick.out->scale.x"]["transport"] == "zmq"

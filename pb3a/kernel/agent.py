@@ -24,6 +24,11 @@ class RuntimeClient:
         self._agent = agent
         self._request = request
 
+    @property
+    def name(self) -> str:
+        """This agent's instance name in the system (e.g. to move itself)."""
+        return self._agent
+
     def _call(self, op: str, target: str | None = None, **args: Any) -> Any:
         if target is not None:
             if target == self._agent:

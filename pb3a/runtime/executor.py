@@ -198,8 +198,10 @@ class Executor:
         try:
             handle.send((req_id, op, args), _fd)
         except (OSError, ValueError) as exc:
-            self._futures.pop(req_id, None)
-            future.set_exception(RuntimeFailure(f"worker {worker!r} is gone: {exc}"))
+            # Whoever pops a future completes it: the monitor may have done so already
+            # (the worker's death seen meanwhile).
+            if self._futures.pop(req_id, None) is not None:
+                future.set_exception(RuntimeFailure(f"worker {worker!r} is gone: {exc}"))
         return future
 
     @staticmethod
@@ -325,7 +327,7 @@ class Executor:
             reached = 0
             if self.workers[src.worker].alive:
                 reached = self.call(src.worker, "unpublish_out", key=key)
-            self.bridge.close(key, reached if self.workers[src.worker].alive else 0)
+            self.bridge.close(key, reached)
         elif src is not None and self.workers[src.worker].alive:
             self.call(src.worker, "unlink_out", key=key)
         if dst is not None and self.workers[dst.worker].alive:
@@ -430,8 +432,8 @@ class Executor:
         with contextlib.suppress(OSError):
             handle.conn.close()
         for req_id, future in list(self._futures.items()):
-            if getattr(future, "pb3a_worker", None) == handle.key:
-                self._futures.pop(req_id, None)
+            if getattr(future, "pb3a_worker", None) == handle.key \
+                    and self._futures.pop(req_id, None) is not None:
                 future.set_exception(RuntimeFailure(f"worker {handle.key!r} died"))
         if self._stopping.is_set():
             return
