@@ -21,14 +21,19 @@ def _clean(state: dict, at_least: int) -> bool:
             and state["duplicates"] == 0)
 
 
-def test_a_module_moves_with_its_state_and_its_links_follow() -> None:
-    system = _nodes(System("move-one"), "a", "b")
+def _src_relay_sink(name: str) -> System:
+    """src -> relay -> sink, all on node a of nodes a and b."""
+    system = _nodes(System(name), "a", "b")
     system.add("src", Counter, node="a", period=0.001)
     system.add("relay", Relay, node="a")
     system.add("sink", Collector, node="a")
     system.link("src.out", "relay.x")
     system.link("relay.out", "sink.x")
-    with system.launch() as run:
+    return system
+
+
+def test_a_module_moves_with_its_state_and_its_links_follow() -> None:
+    with _src_relay_sink("move-one").launch() as run:
         eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")
         before = run.state("relay")["relayed"]
         report = run.migrate("relay", to="b")
@@ -110,13 +115,7 @@ def test_migration_to_an_unknown_node_or_of_an_unknown_module_is_refused() -> No
 
 
 def test_a_failed_landing_puts_the_module_back_where_it_was(monkeypatch) -> None:
-    system = _nodes(System("move-fail"), "a", "b")
-    system.add("src", Counter, node="a", period=0.001)
-    system.add("relay", Relay, node="a")
-    system.add("sink", Collector, node="a")
-    system.link("src.out", "relay.x")
-    system.link("relay.out", "sink.x")
-    with system.launch() as run:
+    with _src_relay_sink("move-fail").launch() as run:
         eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")
         executor = run._executor
         real_call = type(executor).call
