@@ -49,11 +49,13 @@ if TYPE_CHECKING:
 log = logging.getLogger("pb3a.replication")
 
 # message kinds
-VALUE, SYNC, HELLO, REPAIR, WELCOME, REPLAYED, ACK = 1, 2, 3, 4, 5, 6, 7
+VALUE, SYNC, HELLO, REPAIR, WELCOME, REPLAYED, ACK, VALUES = 1, 2, 3, 4, 5, 6, 7, 8
 _INFO = struct.Struct("<16sQdB")        # incarnation, sequence number, sent at (unix), codec kind
 _ASK = struct.Struct("<qq")             # HELLO: first needed (-1: from now); REPAIR: first,
                                         # last; ACK: delivered up to (exclusive), unused
 _ANSWER = struct.Struct("<16sqq")       # WELCOME: incarnation, next; REPLAYED: first, gone
+_ENTRY = struct.Struct("<HI")           # VALUES: each entry's meta and payload lengths
+BATCH_VALUES = 1024                     # small values of one topic sent as one message, at most
 HWM = 10_000                            # messages queued per peer before ZeroMQ drops
 MAX_MESSAGE = 256 * 1024 * 1024         # bytes; larger frames are refused by ZeroMQ itself
 WINDOW = 2048                           # values a publisher may be ahead of its slowest follower
@@ -131,8 +133,9 @@ class Replicator:
         self._router_sealer = Sealer(key, epoch)
         self._opener = Opener(key, epoch=epoch, max_bytes=max_bytes)
         self._streams: dict[bytes, _Stream] = {}
-        self._lock = threading.Lock()            # the PUB socket and the streams
+        self._lock = threading.Lock()            # the PUB socket, the streams, the outbox
         self._acked = threading.Condition(self._lock)
+        self._outbox: list[tuple[bytes, list[Any]]] = []   # published, not sent yet
         self._loop = SocketLoop("pb3a-replicator", self._context)
         self._loop.register(self._router, self._on_request)
         self._loop.every(HEARTBEAT_S, self._heartbeat)
@@ -187,8 +190,44 @@ class Replicator:
             while stream.replay and (len(stream.replay) > REPLAY_VALUES
                                      or stream.replay_bytes > REPLAY_BYTES):
                 stream.replay_bytes -= stream.replay.popleft()[2]
-            self._send_pub(name, VALUE, parts)
+            # The loop thread sends: what piles up meanwhile goes as one message.
+            self._outbox.append((name, parts))
+            wake = len(self._outbox) == 1
+        if wake:
+            self._loop.submit(self._flush)
         return seq
+
+    def _flush(self) -> None:
+        with self._lock:
+            self._flush_locked()
+
+    def _flush_locked(self) -> None:
+        """Send the outbox in order: runs of small values of one topic as one VALUES
+        message (a seal and a send for many values), large ones as zero-copy frames."""
+        outbox, self._outbox = self._outbox, []
+        name, run = b"", []
+        for entry_name, parts in outbox:
+            large = memoryview(parts[2]).nbytes >= ZERO_COPY_MIN
+            if run and (large or entry_name != name or len(run) >= BATCH_VALUES):
+                self._send_run(name, run)
+                run = []
+            if large:
+                self._send_pub(entry_name, VALUE, parts)
+            else:
+                name = entry_name
+                run.append(parts)
+        if run:
+            self._send_run(name, run)
+
+    def _send_run(self, name: bytes, run: list[list[Any]]) -> None:
+        if len(run) == 1:
+            self._send_pub(name, VALUE, run[0])
+            return
+        blob = []
+        for info, meta, payload in run:
+            body = memoryview(payload).cast("B")
+            blob += (_ENTRY.pack(len(meta), body.nbytes), info, meta, body)
+        self._send_pub(name, VALUES, [b"".join(blob)])
 
     def _send_pub(self, name: bytes, kind: int, parts: list[Any]) -> None:
         # topic first (SUB filters on it), then the sealed message, which holds the
@@ -209,6 +248,7 @@ class Replicator:
         """Announce every topic's next sequence number: a follower that missed the last
         values of a burst learns of them here and asks for a repair."""
         with self._lock:
+            self._flush_locked()                 # (what it announces has gone out first)
             for name, stream in self._streams.items():
                 self._send_pub(name, SYNC, [_ANSWER.pack(self.incarnation, stream.next_seq, 0)])
 
@@ -226,6 +266,7 @@ class Replicator:
                 stream.acks[peer_id] = (first, time.monotonic())
                 self._acked.notify_all()
             elif message.kind == HELLO:
+                self._flush_locked()
                 nxt = stream.next_seq
                 stream.acks[peer_id] = (first if first >= 0 else nxt, time.monotonic())
                 self._send_router(peer, WELCOME, [name, _ANSWER.pack(self.incarnation, nxt, 0)])
@@ -404,24 +445,30 @@ class Follower:
             incarnation, nxt, _ = _ANSWER.unpack(message.frames[1])
             if not self._accept(follow, incarnation):
                 return None
-            if follow.next_seq < 0:
-                follow.next_seq = nxt           # from now on
+            if follow.next_seq < 0:             # from now on: what came earlier goes
+                follow.next_seq = nxt
+                for seq in [seq for seq in follow.held if seq < nxt]:
+                    del follow.held[seq]
             follow.announced = max(follow.announced, nxt)
             follow.live = follow.live or live
             return follow
         if message.kind == VALUE:
-            incarnation, seq, sent_at, kind = _INFO.unpack(message.frames[1])
-            if not self._accept(follow, incarnation):
-                return None
-            follow.live = follow.live or live
-            if follow.next_seq < 0:             # joined from now: this is the first
-                follow.next_seq = seq
-            if seq < follow.next_seq or seq in follow.held:
-                self.duplicates[_topic(follow.topic)] += 1
-                return None
-            meta, payload = bytes(message.frames[2]), message.frames[3]
-            follow.held[seq] = (codec.decode_owned(kind, meta, payload), sent_at)
-            return follow
+            info, meta, payload = message.frames[1:4]
+            return follow if self._take(follow, info, bytes(meta), payload, live) else None
+        if message.kind == VALUES:
+            blob, at, taken = memoryview(message.frames[1]), 0, False
+            while at < blob.nbytes:
+                if at + _ENTRY.size + _INFO.size > blob.nbytes:
+                    raise Rejected("malformed")
+                meta_len, size = _ENTRY.unpack_from(blob, at)
+                start = at + _ENTRY.size + _INFO.size
+                at = start + meta_len + size
+                if at > blob.nbytes:
+                    raise Rejected("malformed")
+                taken |= self._take(follow, blob[start - _INFO.size:start],
+                                    bytes(blob[start:start + meta_len]),
+                                    blob[start + meta_len:at], live)
+            return follow if taken else None
         if message.kind == REPLAYED:
             incarnation, first, gone = _ANSWER.unpack(message.frames[1])
             if not self._accept(follow, incarnation):
@@ -435,6 +482,19 @@ class Follower:
                 follow.next_seq = first + gone
             return follow
         raise Rejected("unexpected")
+
+    def _take(self, follow: _Follow, info: Any, meta: bytes, payload: Any, live: bool) -> bool:
+        """Hold one value for in-order delivery; False if it is fenced or a duplicate."""
+        incarnation, seq, sent_at, kind = _INFO.unpack(info)
+        if not self._accept(follow, incarnation):
+            return False
+        follow.live = follow.live or live
+        # (joined "from now": values wait until the hand-shake says where now is)
+        if 0 <= seq < follow.next_seq or seq in follow.held:
+            self.duplicates[_topic(follow.topic)] += 1
+            return False
+        follow.held[seq] = (codec.decode_owned(kind, meta, payload), sent_at)
+        return True
 
     def _accept(self, follow: _Follow, incarnation: bytes) -> bool:
         if follow.incarnation is None:
