@@ -59,6 +59,7 @@ def test_100000_values_arrive_in_order_once_even_for_a_late_joiner(link) -> None
     replicator.add("a.out")
     for i in range(1000):                     # published before anyone listens
         replicator.publish("a.out", i)
+    replicator.flush()
     _follow(follower, replicator, "a.out", from_seq=0)
     assert follower.wait_ready("a.out", TIMEOUT)
     for i in range(1000, 100_000):            # one burst: flow control paces it
@@ -116,6 +117,7 @@ def test_values_gone_from_the_replay_buffer_are_counted_as_link_failures(link,
     replicator.add("t")
     for i in range(100):                      # only the last 10 stay replayable
         replicator.publish("t", i)
+    replicator.flush()                        # all sent before anyone listens
     _follow(follower, replicator, "t", from_seq=0)
     assert inbox.wait("t", 10) == list(range(90, 100))
     replicator.publish("t", 100)

@@ -197,6 +197,10 @@ class Replicator:
             self._loop.submit(self._flush)
         return seq
 
+    def flush(self) -> None:
+        """Send everything published so far now (it goes soon anyway); waits for it."""
+        self._loop.call(self._flush)
+
     def _flush(self) -> None:
         with self._lock:
             self._flush_locked()
@@ -289,8 +293,10 @@ class Replicator:
         _send(self._router, [peer, *self._router_sealer.seal(kind, parts)])
 
     def close(self) -> None:
+        """Send what is still queued, then close."""
         self._loop.close()
         with self._lock:
+            self._flush_locked()
             self._pub.close(0)
         self._router.close(0)
 
