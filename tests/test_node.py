@@ -59,7 +59,8 @@ def test_a_forced_stop_kills_the_executor(node) -> None:
 
 
 def test_work_is_refused_with_the_reason_when_resources_are_short() -> None:
-    for limits, reason in ((Limits(min_memory_bytes=1 << 60), "of memory available, below"),
+    for limits, reason in ((Limits(max_cpu_percent=101.0, min_memory_bytes=1 << 60),
+                            "of memory available, below"),
                            (Limits(max_cpu_percent=-1.0), "CPU .* busy, above its limit")):
         controller = NodeController("tight", KEY, limits=limits)
         client = ControlClient(KEY, controller.address)
