@@ -56,6 +56,7 @@ _ASK = struct.Struct("<qq")             # HELLO: first needed (-1: from now); RE
 _ANSWER = struct.Struct("<16sqq")       # WELCOME: incarnation, next; REPLAYED: first, gone
 _ENTRY = struct.Struct("<HI")           # VALUES: each entry's meta and payload lengths
 BATCH_VALUES = 1024                     # small values of one topic sent as one message, at most
+BATCH_BYTES = 1 << 20                   # ... and at most this many bytes of them
 HWM = 10_000                            # messages queued per peer before ZeroMQ drops
 MAX_MESSAGE = 256 * 1024 * 1024         # bytes; larger frames are refused by ZeroMQ itself
 WINDOW = 2048                           # values a publisher may be ahead of its slowest follower
@@ -209,17 +210,21 @@ class Replicator:
         """Send the outbox in order: runs of small values of one topic as one VALUES
         message (a seal and a send for many values), large ones as zero-copy frames."""
         outbox, self._outbox = self._outbox, []
-        name, run = b"", []
+        budget = min(BATCH_BYTES, self._max_bytes // 2)
+        name, run, run_bytes = b"", [], 0
         for entry_name, parts in outbox:
-            large = memoryview(parts[2]).nbytes >= ZERO_COPY_MIN
-            if run and (large or entry_name != name or len(run) >= BATCH_VALUES):
+            size = memoryview(parts[2]).nbytes
+            large = size >= ZERO_COPY_MIN
+            if run and (large or entry_name != name or len(run) >= BATCH_VALUES
+                        or run_bytes + size > budget):
                 self._send_run(name, run)
-                run = []
+                run, run_bytes = [], 0
             if large:
                 self._send_pub(entry_name, VALUE, parts)
             else:
                 name = entry_name
                 run.append(parts)
+                run_bytes += size
         if run:
             self._send_run(name, run)
 
