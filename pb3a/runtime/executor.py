@@ -224,8 +224,11 @@ class Executor:
 
     def instantiate(self, record: ModuleRecord, state: dict[str, Any]) -> None:
         """Create the module in its worker with ``state`` (not started)."""
-        spec = record.spec
-        self.call(record.worker, "add", name=spec.name, cls=record.blob, period=spec.period,
+        self.load(record.worker, record.spec, record.blob, state)
+
+    def load(self, worker: str, spec: FlatModule, blob: bytes, state: dict[str, Any]) -> None:
+        """Instantiate ``spec``'s class (pickled as ``blob``) in ``worker``, not started."""
+        self.call(worker, "add", name=spec.name, cls=blob, period=spec.period,
                   restart=spec.restart, state=state)
 
     def start_modules(self, names: list[str]) -> None:

@@ -94,8 +94,7 @@ def _prepare(executor: Executor, record: ModuleRecord, spec: FlatModule) -> str:
     target = executor.place(spec)
     executor.ensure_worker(target, spec.node).modules.append(spec.name)
     try:
-        executor.call(target, "add", name=spec.name, cls=record.blob, period=spec.period,
-                      restart=spec.restart, state={})
+        executor.load(target, spec, record.blob, {})
     except BaseException:
         executor.vacate(target, spec.name)
         raise

@@ -166,10 +166,11 @@ class Replicator:
         from there on its bytes go out as a zero-copy frame and stay in the replay
         buffer as they are."""
         kind, meta, payload = codec.encode(value)
-        if codec.payload_size(kind, payload) + 1024 > self._max_bytes:
+        nbytes = codec.payload_size(kind, payload)
+        if nbytes + 1024 > self._max_bytes:
             raise ValueError(
-                f"a value of {codec.payload_size(kind, payload)} bytes exceeds the "
-                f"{self._max_bytes}-byte message limit of remote links; raise the limit")
+                f"a value of {nbytes} bytes exceeds the {self._max_bytes}-byte message "
+                "limit of remote links; raise the limit")
         if kind == codec.ARRAY and payload is value:
             payload = payload.copy()
         name = _name(topic)
@@ -185,7 +186,7 @@ class Replicator:
             seq = stream.next_seq
             stream.next_seq += 1
             parts = [_INFO.pack(self.incarnation, seq, time.time(), kind), meta, payload]
-            size = codec.payload_size(kind, payload) + 64
+            size = nbytes + 64
             stream.replay.append((seq, parts, size))
             stream.replay_bytes += size
             while stream.replay and (len(stream.replay) > REPLAY_VALUES

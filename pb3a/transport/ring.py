@@ -59,8 +59,7 @@ class ShmRing:
         self._seg = segment
         self._owner = owner
         self.core = RingCore(segment.buf)     # the C half (the worker's sleep uses it)
-        self._core = self.core
-        self.capacity = self._core.capacity
+        self.capacity = self.core.capacity
         self._data = segment.buf[_DATA:_DATA + self.capacity]
         self.name = segment.name.lstrip("/")
         # reader-side bookkeeping (only the reading process uses these)
@@ -95,7 +94,7 @@ class ShmRing:
     def close(self) -> None:
         """Drop this process's mapping (the owner also unlinks the segment)."""
         self._closed = True
-        self._core.release()
+        self.core.release()
         with contextlib.suppress(BufferError):   # array views still alive
             self._data.release()
         if self._owner:
@@ -109,7 +108,7 @@ class ShmRing:
     # (cold caches), so the hot path touches it as little as it can.
     def set_bell(self, fd: int) -> None:
         """Ring this eventfd after publishing when the reader said it is going to sleep."""
-        self._core.bell = fd
+        self.core.bell = fd
 
     def write(self, value: Any, timeout: float = WRITE_TIMEOUT) -> bool:
         """Append one value; waits up to ``timeout`` for space, then drops it.
@@ -117,11 +116,11 @@ class ShmRing:
         Returns False when dropped. The sequence number advances either way, so
         the reader sees the gap and counts the drop.
         """
-        done = self._core.put(value)           # ints and floats: all in C
+        done = self.core.put(value)           # ints and floats: all in C
         if done < 0:
             return self.write_many((value,), timeout) == 1
         if not done:
-            done = self._wait_space(_ALIGN, timeout) and self._core.put(value) > 0
+            done = self._wait_space(_ALIGN, timeout) and self.core.put(value) > 0
             if not done:
                 self._skip()
         return bool(done)
@@ -132,7 +131,7 @@ class ShmRing:
 
         ``sent_at`` (monotonic) is when they were written, if not now: values that
         came from another node keep their time for the reader's latency figure."""
-        core, cap = self._core, self.capacity
+        core, cap = self.core, self.capacity
         now = time.monotonic() if sent_at is None else sent_at   # one time for the batch
         written = 0
         for value in values:
@@ -169,13 +168,13 @@ class ShmRing:
 
     def _skip(self) -> None:
         """A value dropped for want of space: its sequence number is a gap the reader counts."""
-        self._core.seq += 1
-        self._core.publish()
+        self.core.seq += 1
+        self.core.publish()
 
     def _wait_space(self, length: int, timeout: float) -> bool:
         """Publish what is there, then wait up to ``timeout`` until a ``length``-byte
         record (and a pad before it) fits."""
-        core = self._core
+        core = self.core
         core.publish()
         deadline = time.monotonic() + timeout
         pause = 20e-6
@@ -188,7 +187,7 @@ class ShmRing:
 
     # -- reader -------------------------------------------------------------
     def has_data(self) -> bool:
-        return self._core.has_data()
+        return self.core.has_data()
 
     def drain(self, limit: int = 1024) -> tuple[list[Any], float, int]:
         """Decode up to ``limit`` values.
@@ -196,7 +195,7 @@ class ShmRing:
         Returns ``(values, sent_at, gaps)``: ``sent_at`` is when the newest value
         was written (monotonic clock), ``gaps`` how many values the writer dropped.
         """
-        return self._core.drain(limit, self._decode)
+        return self.core.drain(limit, self._decode)
 
     def _decode(self, kind: int, offset: int, length: int, meta_len: int, start: int) -> Any:
         """A record the C half does not decode itself (anything but int and float)."""
@@ -220,7 +219,7 @@ class ShmRing:
         lease[3] = weakref.ref(view, lambda _, lease=lease: self._return_lease(lease))
         with self._lease_lock:
             self._leases.append(lease)
-            self._core.leases = len(self._leases)   # the C drain stops moving the tail
+            self.core.leases = len(self._leases)   # the C drain stops moving the tail
         return view
 
     def _return_lease(self, lease: list[Any]) -> None:
@@ -234,14 +233,14 @@ class ShmRing:
             leases = self._leases
             while leases and leases[0][2]:
                 leases.popleft()
-            self._core.leases = len(leases)
-            self._core.store_tail(leases[0][0] if leases else self._core.rpos)
+            self.core.leases = len(leases)
+            self.core.store_tail(leases[0][0] if leases else self.core.rpos)
 
     def resume_reader(self) -> None:
         """A new reader process takes over: views held by a dead reader are gone."""
-        self._core.resume_reader()
+        self.core.resume_reader()
 
     def statistics(self) -> dict[str, int]:
         """Bytes in use and counters, for ``stats()``."""
-        head, tail, written = self._core.counters()
+        head, tail, written = self.core.counters()
         return {"capacity": self.capacity, "used": head - tail, "written": written}
