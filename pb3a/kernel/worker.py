@@ -28,7 +28,7 @@ from pb3a.kernel.ports import InputPort, Policy
 from pb3a.kernel.publishing import Publications
 from pb3a.kernel.served import forget, use_module_servers
 from pb3a.transport.codec import local_copy
-from pb3a.transport.doorbell import BellPull, Doorbell
+from pb3a.transport.doorbell import BellPull
 from pb3a.transport.ring import ShmRing, sleep
 
 if TYPE_CHECKING:
@@ -84,8 +84,7 @@ class Worker:
         self.actors: dict[str, ModuleActor] = {}
         self.restart_policy: dict[str, str] = {}
         self.pool = EventPool()
-        self.bell = Doorbell(bell)
-        self._bell_fd = bell
+        self._bell_fd = bell                     # ours to close; the receiver sleeps on it
         self._wake = BellPull(os.dup(bell))
         self.inbound: dict[str, _Inbound] = {}
         # what the receiver loops over, replaced (never mutated) when links change
@@ -156,7 +155,7 @@ class Worker:
                 pull.close()
         self.publications.close()
         self._threads[0].join(1.0)            # (before its doorbell's descriptor goes)
-        self.bell.close()
+        os.close(self._bell_fd)
         self._wake.close()
 
     # -- requests from the executor ----------------------------------------

@@ -1,7 +1,8 @@
 """Doorbells: how a writer wakes a sleeping reader process.
 
-Each worker process has one ``Doorbell``, an eventfd that its executor creates
-and hands over the worker's control pipe (SCM_RIGHTS); writers get a duplicate
+Each worker process has one doorbell, an eventfd that its executor creates and
+hands over the worker's control pipe (SCM_RIGHTS); its receiver sleeps on it in
+``ring.sleep``, and writers get a duplicate
 of the same descriptor for each link into that worker. An eventfd is the
 cheapest wake-up Linux offers (a counter in the kernel: half the cost of a
 datagram here), and it outlives a worker's restart, so writers keep ringing
@@ -17,20 +18,6 @@ import os
 def new_bell() -> int:
     """A fresh eventfd for a worker's doorbell (the executor owns and closes it)."""
     return os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
-
-
-class Doorbell:
-    """The reader's end. The receiver blocks on it in ``ring.sleep``, which announces the
-    sleep on every inbound ring first (the reader's half of the wake-up hand-shake)."""
-
-    def __init__(self, fd: int) -> None:
-        self._fd = fd
-
-    def fileno(self) -> int:
-        return self._fd
-
-    def close(self) -> None:
-        os.close(self._fd)
 
 
 class BellPull:
