@@ -117,7 +117,7 @@ def test_migration_to_an_unknown_node_or_of_an_unknown_module_is_refused() -> No
 def test_a_failed_landing_puts_the_module_back_where_it_was(monkeypatch) -> None:
     with _src_relay_sink("move-fail").launch() as run:
         eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")
-        executor = run._executor
+        executor = run._launcher.nodes["b"]
         real_call = type(executor).call
         failures = []
 

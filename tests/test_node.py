@@ -36,10 +36,15 @@ def test_one_executor_per_configuration_runs_modules_and_stops_cleanly(node) -> 
     address = client.call("start_executor", timeout=60, config="demo")
     assert client.call("start_executor", timeout=60, config="demo") == address   # again: same
     executor = ControlClient(KEY, address)
+
+    def apply(op, *args, **kwargs):
+        return executor.call("executor", method=op, args=args, kwargs=kwargs)
     try:
-        executor.call("add_module", spec=_counter())
-        executor.call("start_modules", names=["tick"])
-        eventually(lambda: executor.call("state", name="tick")["count"] > 10,
+        with pytest.raises(RuntimeFailure, match="no operation 'shutdown_everything'"):
+            apply("shutdown_everything")
+        apply("add_module", _counter())
+        apply("start_modules", ["tick"])
+        eventually(lambda: apply("call_module", "tick", "get_state")["count"] > 10,
                    what="the module counting in the node's executor")
         assert executor.call("describe") == {"config": "demo", "node": "n1",
                                              "modules": ["tick"]}

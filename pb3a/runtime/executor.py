@@ -1,7 +1,11 @@
-"""``Executor``: the node supervisor (the paper's NetExecutor).
+"""``Executor``: the supervisor of one node (the paper's NetExecutor).
 
 It owns everything on its node: the worker processes (one per module, or a
-few packed ones), every shared-memory ring, and the module records. A single
+few packed ones), every shared-memory ring, the bridge that receives remote
+links, and the records of the modules that run here. Links with both ends here
+are wired by ``connect``; a remote link is wired in halves (``publish`` at the
+writer's node, ``open_inbound`` and ``follow`` at the reader's) by the
+``Launcher``, which alone sees every node. A single
 monitor thread reads every worker pipe and process sentinel; requests wait on
 futures with deadlines; a crashed worker is restarted by its modules'
 ``restart`` policies. Shutdown stops modules in reverse start order, then the
@@ -26,7 +30,7 @@ from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass, field
 from multiprocessing import reduction
 from multiprocessing import spawn as mp_spawn
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import cloudpickle
 import numpy as np
@@ -34,16 +38,15 @@ import numpy as np
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.kernel.config import FlatLink, FlatModule
 from pb3a.kernel.ports import Policy
+from pb3a.kernel.served import forget
 from pb3a.kernel.worker import worker_main
 from pb3a.runtime.bridge import Bridge
 from pb3a.runtime.recovery import recover
+from pb3a.runtime.stats import node_report
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.doorbell import new_bell
 from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import reap_orphans, segment_name
-
-if TYPE_CHECKING:
-    from collections.abc import Iterator
 
 log = logging.getLogger("pb3a.executor")
 
@@ -90,29 +93,36 @@ class ModuleRecord:
 
 
 class Executor:
-    """Runs modules in worker processes on this machine; thread-safe; every request has a
-    deadline. (Until the distributed runtime lands, one executor runs every node's share.)"""
+    """Runs one node's modules in worker processes on this machine; thread-safe; every
+    request has a deadline."""
 
-    def __init__(self, *, workers: dict[str, int] | None = None,
-                 cpus: dict[str, list[int]] | None = None, checkpoint_s: float = 1.0,
-                 log_level: int = logging.WARNING,
-                 module_servers: list[str] | None = None) -> None:
+    def __init__(self, node: str, *, workers: int = 0, cpus: list[int] | None = None,
+                 checkpoint_s: float = 1.0, log_level: int = logging.WARNING,
+                 module_servers: list[str] | None = None, host: str = "127.0.0.1",
+                 lock: threading.RLock | None = None) -> None:
+        self.node = node
         self.module_servers = list(module_servers or [])   # workers import from these too
-        self.packing = workers or {}        # node name -> packed worker processes (0: one each)
-        self.cpus = cpus or {}              # node name -> the CPUs its workers run on
-        self.quota: dict[str, int] = {}     # node name -> modules per packed worker at start
+        self.packing = workers              # packed worker processes (0: one per module)
+        self.cpus = cpus                    # the CPUs the node's workers run on (None: all)
+        self.quota = 0                      # modules per packed worker at start
+        self.host = host                    # where remote readers reach this node's outputs
         self.checkpoint_s = checkpoint_s
         self.log_level = log_level
         self.modules: dict[str, ModuleRecord] = {}
-        self.links: dict[str, FlatLink] = {}
+        self.links: dict[str, FlatLink] = {}          # links with both ends here
+        self.inbound: dict[str, FlatLink] = {}        # remote links read here
+        self.outbound: dict[str, FlatLink] = {}       # remote links written here
         self.rings: dict[str, ShmRing] = {}
         self.workers: dict[str, WorkerHandle] = {}
         self.failures: list[str] = []                 # what went wrong, for stats and logs
         self.handler: Any = None                      # applies agents' requests (op, args)
+        self.republished: Any = None                  # told (link, endpoint) after a restart
         self._bridge: Bridge | None = None            # remote links in (made on first use)
         self._futures: dict[int, Future[Any]] = {}
         self._ids = itertools.count()
-        self.lock = threading.RLock()                 # the global configuration lock
+        # Held by a restart and by whoever changes the configuration (the launcher's
+        # global lock when the executor runs in the launcher's process).
+        self.lock = lock or threading.RLock()
         self._stopping = threading.Event()
         self._wake_r, self._wake_w = socket.socketpair()
         self._monitor = threading.Thread(target=self._watch, name="pb3a-monitor", daemon=True)
@@ -136,25 +146,22 @@ class Executor:
         """
         if spec.group:
             return f"{spec.node}/g-{spec.group}"
-        packing = self.packing.get(spec.node, 0)
-        if not packing:
+        if not self.packing:
             return f"{spec.node}/m-{spec.name.replace('/', '.')}"
-        counts = {f"{spec.node}-p{i}": 0 for i in range(packing)}
+        counts = {f"{spec.node}-p{i}": 0 for i in range(self.packing)}
         for record in self.modules.values():
             if record.worker in counts:
                 counts[record.worker] += 1
-        quota = self.quota.get(spec.node, 0)
         for key, count in counts.items():
-            if count < quota:
+            if count < self.quota:
                 return key
         return min(counts, key=counts.__getitem__)
 
     def expect(self, specs: list[FlatModule]) -> None:
         """Size the packed workers for the modules about to be added, in their order."""
-        for node, packing in self.packing.items():
-            if packing:
-                count = sum(1 for spec in specs if spec.node == node and not spec.group)
-                self.quota[node] = -(-count // packing)
+        if self.packing:
+            count = sum(1 for spec in specs if not spec.group)
+            self.quota = -(-count // self.packing)
 
     def spawn(self, handle: WorkerHandle) -> None:
         """Start (or restart) the worker process behind ``handle``."""
@@ -162,7 +169,7 @@ class Executor:
         process = _context.Process(
             target=worker_main, name=f"pb3a-worker-{handle.key}", daemon=True,
             args=(child, handle.key, self.checkpoint_s, self.log_level,
-                  self.cpus.get(handle.node), self.module_servers))
+                  self.cpus, self.module_servers))
         _start_without_main(process)
         child.close()
         # The doorbell is the worker's first read: send it before anyone can send a request.
@@ -183,6 +190,11 @@ class Executor:
              **args: Any) -> Any:
         """Send one request to a worker and wait for its answer."""
         return self.result(self.submit(worker, op, **args), op, worker, timeout)
+
+    def call_module(self, name: str, op: str, timeout: float = REQUEST_TIMEOUT, /,
+                    **args: Any) -> Any:
+        """Send one request about module ``name`` to its worker and wait for the answer."""
+        return self.call(self.modules[name].worker, op, timeout, name=name, **args)
 
     def submit(self, worker: str, op: str, /, _fd: int | None = None, **args: Any) -> Future[Any]:
         """Send one request to a worker (and a descriptor after it); the future holds
@@ -212,23 +224,25 @@ class Executor:
             raise RuntimeTimeout(
                 f"worker {key!r} did not answer {op!r} within {timeout} s") from None
 
-    # -- modules and links ---------------------------------------------------
+    # -- modules -------------------------------------------------------------
     def add_module(self, spec: FlatModule, *, state: dict[str, Any] | None = None) -> None:
-        """Instantiate a module in its worker (not started yet)."""
+        """Instantiate a module in its worker (not started)."""
         key = self.place(spec)
         handle = self.ensure_worker(key, spec.node)
         record = ModuleRecord(spec, key, cloudpickle.dumps(spec.cls))
         self.modules[spec.name] = record
         handle.modules.append(spec.name)
-        self.instantiate(record, spec.state if state is None else state)
+        try:
+            self.instantiate(record, spec.state if state is None else state)
+        except BaseException:
+            del self.modules[spec.name]
+            self.vacate(key, spec.name)
+            raise
 
     def instantiate(self, record: ModuleRecord, state: dict[str, Any]) -> None:
         """Create the module in its worker with ``state`` (not started)."""
-        self.load(record.worker, record.spec, record.blob, state)
-
-    def load(self, worker: str, spec: FlatModule, blob: bytes, state: dict[str, Any]) -> None:
-        """Instantiate ``spec``'s class (pickled as ``blob``) in ``worker``, not started."""
-        self.call(worker, "add", name=spec.name, cls=blob, period=spec.period,
+        spec = record.spec
+        self.call(record.worker, "add", name=spec.name, cls=record.blob, period=spec.period,
                   restart=spec.restart, state=state)
 
     def start_modules(self, names: list[str]) -> None:
@@ -248,96 +262,27 @@ class Executor:
                 continue
             record.status = "running"
 
-    def connect(self, link: FlatLink) -> None:
-        """Wire one link: in memory inside a worker, else through a new ring."""
-        self.links[link.key] = link
-        self.attach_reader(link)
-        self.attach_writer(link)
+    def swap(self, name: str, spec: FlatModule) -> list[str]:
+        """Replace a module's class by ``spec.cls`` in place; the state names kept."""
+        record = self.modules[name]
+        blob = cloudpickle.dumps(spec.cls)
+        kept = self.call(record.worker, "swap", name=name, cls=blob)
+        record.spec, record.blob = spec, blob
+        return kept
 
-    def remote(self, link: FlatLink) -> bool:
-        """True if the link joins two nodes (it then goes over ZeroMQ)."""
-        return self.modules[link.src].spec.node != self.modules[link.dst].spec.node
+    def pause(self, name: str, timeout: float = REQUEST_TIMEOUT) -> bool:
+        """Hold a module's lock (no step, no event) until ``resume``; False if it does not
+        run here (any more)."""
+        record = self.modules.get(name)
+        if record is None or not self.workers[record.worker].alive:
+            return False
+        self.call(record.worker, "pause", timeout + 1.0, name=name, timeout=timeout)
+        return True
 
-    def attach_reader(self, link: FlatLink) -> None:
-        """The reading side: attach the link's ring (created here) in the reader's worker;
-        for a remote link the bridge writes into that ring."""
-        src, dst = self.modules[link.src], self.modules[link.dst]
-        if src.worker == dst.worker:
-            return
-        ring = self.rings.get(link.key)
-        if ring is None:
-            ring = ShmRing.create(segment_name("ring"),
-                                  _ring_bytes(src.spec.cls, link.src_port, link.policy))
-            self.rings[link.key] = ring
-        self.call(dst.worker, "link_in", key=link.key, dst=link.dst, dst_port=link.dst_port,
-                  ring=ring.name, policy=str(link.policy))
-        if self.remote(link):
-            self.bridge.open(link.key, _topic(link), ring.name, self.workers[dst.worker].bell)
-
-    def attach_writer(self, link: FlatLink) -> None:
-        """The writing side: connect the output to the ring, or straight to the input, or
-        (remote) publish it and have the bridge follow it."""
-        src, dst = self.modules[link.src], self.modules[link.dst]
-        if self.remote(link):
-            bridge = self.bridge
-            data, control, incarnation = self.call(
-                src.worker, "publish_out", key=link.key, src=link.src, src_port=link.src_port,
-                secret=bridge.key.secret, host="127.0.0.1")
-            bridge.follow(_topic(link), data, control, incarnation)
-        elif src.worker == dst.worker:
-            self.call(src.worker, "link_out", key=link.key, src=link.src, src_port=link.src_port,
-                      dst=link.dst, dst_port=link.dst_port, policy=str(link.policy))
-        else:
-            self.call(src.worker, "link_out", key=link.key, src=link.src, src_port=link.src_port,
-                      ring=self.rings[link.key].name, _fd=self.workers[dst.worker].bell)
-
-    @contextlib.contextmanager
-    def paused(self, names: list[str], timeout: float = REQUEST_TIMEOUT) -> Iterator[None]:
-        """Hold the modules' locks (no step, no event) while the block rewires them."""
-        held = []
-        try:
-            for name in dict.fromkeys(names):
-                record = self.modules.get(name)
-                if record is not None and self.workers[record.worker].alive:
-                    self.call(record.worker, "pause", timeout + 1.0, name=name, timeout=timeout)
-                    held.append(record)
-            yield
-        finally:
-            for record in reversed(held):
-                if self.workers[record.worker].alive:
-                    self.call(record.worker, "resume", name=record.spec.name)
-
-    def unhook_writer(self, link: FlatLink) -> None:
-        """Stop feeding a link whose reader is gone for good (its ring stays until removed)."""
-        src = self.modules[link.src]
-        if self.remote(link):
-            self.call(src.worker, "unpublish_out", key=link.key)
-            self.bridge.close(link.key)
-        else:
-            self.call(src.worker, "unlink_out", key=link.key)
-
-    def disconnect(self, key: str) -> None:
-        """Unwire a link and forget it."""
-        self.detach(self.links[key])
-        del self.links[key]
-
-    def detach(self, link: FlatLink) -> None:
-        """Unwire a link (it stays known): the writer stops first, then the reader
-        takes in everything still on the way, so a new wiring cannot overtake it."""
-        key = link.key
-        src, dst = self.modules.get(link.src), self.modules.get(link.dst)
-        if src is not None and dst is not None and self.remote(link):
-            reached = 0
-            if self.workers[src.worker].alive:
-                reached = self.call(src.worker, "unpublish_out", key=key)
-            self.bridge.close(key, reached)
-        elif src is not None and self.workers[src.worker].alive:
-            self.call(src.worker, "unlink_out", key=key)
-        if dst is not None and self.workers[dst.worker].alive:
-            self.call(dst.worker, "unlink_in", key=key)
-        ring = self.rings.pop(key, None)
-        if ring is not None:
-            ring.close()
+    def resume(self, name: str) -> None:
+        record = self.modules.get(name)
+        if record is not None and self.workers[record.worker].alive:
+            self.call(record.worker, "resume", name=name)
 
     def stop_module(self, name: str, timeout: float = 5.0) -> None:
         """Stop stepping and dispatching, then run the module's ``teardown``."""
@@ -347,13 +292,24 @@ class Executor:
         record.status = "stopped"
 
     def remove_module(self, name: str) -> None:
-        """Stop a module, drop its links, and stop its worker if it hosted nothing else."""
-        for key in [k for k, link in self.links.items() if name in (link.src, link.dst)]:
-            self.disconnect(key)
+        """Drop a module (its links are gone) and stop its worker if it hosted nothing else."""
         record = self.modules.pop(name)
         if self.workers[record.worker].alive:
             self.call(record.worker, "remove", name=name)
         self.vacate(record.worker, name)
+
+    def retire(self, name: str) -> bytes:
+        """The migration fence: ``teardown``, then capture the module's state and unconsumed
+        inputs and drop it here; it runs nowhere until restored (``land``)."""
+        record = self.modules[name]
+        captured = self.call(record.worker, "migrate_out", name=name)
+        del self.modules[name]
+        self.vacate(record.worker, name)
+        return captured
+
+    def land(self, name: str, captured: bytes) -> None:
+        """Restore what ``retire`` captured into the (instantiated, not started) module."""
+        self.call_module(name, "migrate_in", captured=captured)
 
     def vacate(self, key: str, name: str) -> None:
         """``name`` no longer runs in worker ``key``; stop the worker if it is empty now."""
@@ -362,6 +318,107 @@ class Executor:
         if not handle.modules:
             self._stop_worker(handle, timeout=2.0)
             del self.workers[handle.key]
+
+    def forget(self, module: str) -> None:
+        """Drop cached copies of Python module ``module`` here and in every worker."""
+        forget(module)
+        for key, handle in list(self.workers.items()):
+            if handle.alive:
+                self.call(key, "forget", module=module)
+
+    # -- links with both ends here ---------------------------------------------
+    def connect(self, link: FlatLink) -> None:
+        """Wire one link: in memory inside a worker, else through a new ring."""
+        self.links[link.key] = link
+        self.attach_reader(link)
+        self.attach_writer(link)
+
+    def attach_reader(self, link: FlatLink) -> None:
+        """The reading side: attach the link's ring (created here) in the reader's worker."""
+        src, dst = self.modules[link.src], self.modules[link.dst]
+        if src.worker == dst.worker:
+            return
+        ring = self._ring(link.key, ring_bytes(src.spec.cls, link.src_port, link.policy))
+        self.call(dst.worker, "link_in", key=link.key, dst=link.dst, dst_port=link.dst_port,
+                  ring=ring.name, policy=str(link.policy))
+
+    def attach_writer(self, link: FlatLink) -> None:
+        """The writing side: connect the output to the ring, or straight to the input."""
+        src, dst = self.modules[link.src], self.modules[link.dst]
+        if src.worker == dst.worker:
+            self.call(src.worker, "link_out", key=link.key, src=link.src, src_port=link.src_port,
+                      dst=link.dst, dst_port=link.dst_port, policy=str(link.policy))
+        else:
+            self.call(src.worker, "link_out", key=link.key, src=link.src, src_port=link.src_port,
+                      ring=self.rings[link.key].name, _fd=self.workers[dst.worker].bell)
+
+    def unhook_writer(self, link: FlatLink) -> None:
+        """Stop feeding a link whose reader is gone for good (its ring stays until removed)."""
+        self.call(self.modules[link.src].worker, "unlink_out", key=link.key)
+
+    def detach(self, link: FlatLink) -> None:
+        """Unwire a link: the writer stops first, then the reader takes in everything
+        still on the way, so a new wiring cannot overtake it."""
+        self.links.pop(link.key, None)
+        src = self.modules.get(link.src)
+        if src is not None and self.workers[src.worker].alive:
+            self.call(src.worker, "unlink_out", key=link.key)
+        self._unlink_in(link)
+
+    def _unlink_in(self, link: FlatLink) -> None:
+        dst = self.modules.get(link.dst)
+        if dst is not None and self.workers[dst.worker].alive:
+            self.call(dst.worker, "unlink_in", key=link.key)
+        ring = self.rings.pop(link.key, None)
+        if ring is not None:
+            ring.close()
+
+    def _ring(self, key: str, size: int) -> ShmRing:
+        ring = self.rings.get(key)
+        if ring is None:
+            ring = self.rings[key] = ShmRing.create(segment_name("ring"), size)
+        return ring
+
+    # -- remote links, one half each ---------------------------------------------------
+    def publish(self, link: FlatLink) -> tuple[str, str, bytes]:
+        """The writing half: publish the output (once per output, whoever reads it);
+        returns the endpoint (data address, control address, sender incarnation)."""
+        self.outbound[link.key] = link
+        data, control, incarnation = self.call(
+            self.modules[link.src].worker, "publish_out", key=link.key, src=link.src,
+            src_port=link.src_port, secret=self.bridge.key.secret, host=self.host)
+        return data, control, incarnation
+
+    def unpublish(self, link: FlatLink) -> int:
+        """Stop publishing for ``link``; the sequence number the sender reached."""
+        self.outbound.pop(link.key, None)
+        src = self.modules.get(link.src)
+        if src is None or not self.workers[src.worker].alive:
+            return 0
+        return self.call(src.worker, "unpublish_out", key=link.key)
+
+    def open_inbound(self, link: FlatLink, ring_bytes: int) -> None:
+        """The reading half: a ring into the reader's worker, which the bridge fills."""
+        self.inbound[link.key] = link
+        dst = self.modules[link.dst]
+        ring = self._ring(link.key, ring_bytes)
+        self.call(dst.worker, "link_in", key=link.key, dst=link.dst, dst_port=link.dst_port,
+                  ring=ring.name, policy=str(link.policy))
+        self.bridge.open(link.key, _topic(link), ring.name, self.workers[dst.worker].bell)
+
+    def follow(self, link: FlatLink, endpoint: tuple[str, str, bytes]) -> None:
+        """Receive ``link``'s output from the sender at ``endpoint`` (see ``publish``)."""
+        self.bridge.follow(_topic(link), *endpoint)
+
+    def close_inbound(self, link: FlatLink, reached: int = 0) -> None:
+        """Stop receiving ``link`` once the values before ``reached`` are in."""
+        self.inbound.pop(link.key, None)
+        self.bridge.close(link.key, reached)
+        self._unlink_in(link)
+
+    def report(self) -> dict[str, Any]:
+        """This node's figures (see ``stats.node_report``)."""
+        return node_report(self)
 
     # -- monitor -------------------------------------------------------------
     def _poke(self) -> None:
@@ -532,7 +589,7 @@ def _topic(link: FlatLink) -> str:
     return f"{link.src}.{link.src_port}"
 
 
-def _ring_bytes(cls: type, port: str, policy: Policy) -> int:
+def ring_bytes(cls: type, port: str, policy: Policy) -> int:
     """Ring size for a link. Pinned arrays: room for the values the input may hold as
     zero-copy views (its queue) plus a few in flight, at least ARRAYS_PER_RING and at
     most MAX_ARRAYS_PER_RING; a small ring stays in cache. Other values: a default."""

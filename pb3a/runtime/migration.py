@@ -3,8 +3,8 @@ inputs, and no value on any of its links is lost, duplicated or reordered.
 
 The hand-over, under the global configuration lock:
 
-1. Prepare the destination first: a worker there with the module's code loaded
-   (instantiated, not started). Nothing has paused yet.
+1. Prepare the destination first: a worker on the destination node with the
+   module's code loaded (instantiated, not started). Nothing has paused yet.
 2. Pause the writers of the module's inputs, then the module itself (its lock is
    held: no step or event is running or will start).
 3. Detach every link of the module. Each writer stops first; each reader then takes
@@ -13,7 +13,8 @@ The hand-over, under the global configuration lock:
    the module's input queues, or, for its outputs, at their readers.
 4. Retire the module at the source: ``teardown``, then its state and every input's
    unconsumed values are captured (cloudpickle, protocol 5). From here on it runs
-   nowhere: the fence.
+   nowhere: the fence. The captured bytes travel source node -> launcher ->
+   destination node over authenticated control.
 5. Restore them at the destination, re-attach every link (a link becomes shared
    memory or ZeroMQ by where its ends now are; a remote reader follows the new
    sender incarnation and refuses the old one), start the module (``setup``), then
@@ -27,15 +28,18 @@ raises ``RuntimeFailure``: the module is never lost.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 
 if TYPE_CHECKING:
-    from pb3a.kernel.config import FlatLink, FlatModule
-    from pb3a.runtime.executor import Executor, ModuleRecord
+    from collections.abc import Callable
+
+    from pb3a.kernel.config import FlatLink
+    from pb3a.runtime.launcher import Launcher
 
 
 @dataclass(frozen=True)
@@ -50,64 +54,56 @@ class MigrationReport:
     links: int                # links re-wired
 
 
-def migrate(executor: Executor, name: str, node: str) -> MigrationReport:
+def migrate(launcher: Launcher, name: str, node: str) -> MigrationReport:
     """Move module ``name`` to ``node`` (the caller holds the configuration lock)."""
-    record = executor.modules[name]
-    source = record.spec.node
+    home = launcher.specs[name]
+    source = home.node
     if source == node:
         return MigrationReport(name, source, node, 0.0, 0, 0)
-    links = [link for link in executor.links.values() if name in (link.src, link.dst)]
+    links = [link for link in launcher.links.values() if name in (link.src, link.dst)]
     writers = sorted({link.src for link in links if link.dst == name and link.src != name})
 
     # 1. the destination, ready before anything pauses
-    spec = replace(record.spec, node=node)
-    target = _prepare(executor, record, spec)
-
-    with executor.paused(writers):
+    moved = replace(home, node=node)
+    launcher.nodes[node].add_module(moved, state={})
+    with launcher.paused(writers):
         # 2. and 3. pause the module, unwire it
-        executor.call(record.worker, "pause", name=name, timeout=5.0)
-        paused_at = time.monotonic()
-        for link in links:
-            executor.detach(link)
-        # 4. the fence: retired at the source
-        captured = executor.call(record.worker, "migrate_out", name=name)
-        executor.vacate(record.worker, name)
-        home = record.spec
-        record.worker, record.spec = target, spec
+        try:
+            launcher.nodes[source].pause(name, 5.0)
+            paused_at = time.monotonic()
+            for link in links:
+                launcher.detach(link)
+            # 4. the fence: retired at the source
+            captured = launcher.nodes[source].retire(name)
+        except BaseException:
+            launcher.nodes[node].remove_module(name)
+            raise
+        launcher.specs[name] = moved
         # 5. restored, re-wired, started (or, failing that, the same back home)
         try:
-            _land(executor, record, captured, links)
+            _land(launcher, name, captured, links)
         except (RuntimeFailure, RuntimeTimeout) as exc:
             for link in links:
-                executor.detach(link)
-            executor.vacate(record.worker, name)
-            record.worker, record.spec = _prepare(executor, record, home), home
-            _land(executor, record, captured, links)
+                _quietly(launcher.detach, link)
+            _quietly(launcher.nodes[node].remove_module, name)
+            launcher.specs[name] = home
+            launcher.nodes[source].add_module(home, state={})
+            _land(launcher, name, captured, links)
             raise RuntimeFailure(f"migration of {name} to node {node} failed ({exc}); it runs "
                                  f"on node {source} again, with its state") from exc
         pause = time.monotonic() - paused_at
     return MigrationReport(name, source, node, pause, len(captured), len(links))
 
 
-def _prepare(executor: Executor, record: ModuleRecord, spec: FlatModule) -> str:
-    """A worker on ``spec.node`` with the module instantiated (not started): its key."""
-    target = executor.place(spec)
-    executor.ensure_worker(target, spec.node).modules.append(spec.name)
-    try:
-        executor.load(target, spec, record.blob, {})
-    except BaseException:
-        executor.vacate(target, spec.name)
-        raise
-    return target
-
-
-def _land(executor: Executor, record: ModuleRecord, captured: bytes,
-          links: list[FlatLink]) -> None:
+def _land(launcher: Launcher, name: str, captured: bytes, links: list[FlatLink]) -> None:
     """Restore what was captured in the module's (new) worker, re-wire it, start it."""
-    name = record.spec.name
-    executor.call(record.worker, "migrate_in", name=name, captured=captured)
+    node = launcher.node_of(name)
+    node.land(name, captured)
     for link in links:
-        executor.attach_reader(link)
-    for link in links:
-        executor.attach_writer(link)
-    executor.start_modules([name])
+        launcher.attach(link)
+    node.start_modules([name])
+
+
+def _quietly(action: Callable[..., Any], *args: Any) -> None:
+    with contextlib.suppress(RuntimeFailure, RuntimeTimeout):   # its node may be gone
+        action(*args)

@@ -1,10 +1,14 @@
 """The executor process of one node share: an ``Executor`` behind an authenticated
 control server.
 
-A node controller starts one per configuration on its node; the launcher then talks
-to it directly. The process exits when told to (``shutdown``), when its controller
-stops it (SIGTERM: modules stop in reverse start order first), or when its
-controller dies (its parent-death pipe closes), so it never outlives its owner.
+A node controller starts one per configuration on its node; the launcher then
+talks to it directly (``RemoteNode``): ``bind`` says where the launcher is, then
+every ``executor`` request applies one ``Executor`` operation under the executor's
+lock. Agents' requests and restarted writers go back to the launcher. The process
+exits when told to (``shutdown``), when its controller stops it (SIGTERM: modules
+stop in reverse start order first), when its controller dies (its parent-death
+pipe closes), or when its launcher has not answered a ping for ``ORPHAN_S``: it
+never outlives its owners.
 """
 
 from __future__ import annotations
@@ -13,44 +17,46 @@ import contextlib
 import logging
 import signal
 import threading
+import time
 from typing import Any
 
+from pb3a.errors import RuntimeFailure, RuntimeTimeout
+from pb3a.kernel.served import use_module_servers
 from pb3a.runtime.executor import Executor
+from pb3a.runtime.remote_node import OPERATIONS
 from pb3a.transport.auth import ClusterKey
-from pb3a.transport.control import ControlServer
+from pb3a.transport.control import ControlClient, ControlServer
 
 log = logging.getLogger("pb3a.node")
 
+ORPHAN_S = 10.0           # a launcher silent this long is gone: stop
+AGENT_TIMEOUT = 120.0     # an agent's request to the launcher (a migration, say)
+
 
 class NodeExecutor:
-    """What the launcher may ask of a node share (the control server's handler)."""
+    """What a launcher may ask of a node share (the control server's handler)."""
 
     def __init__(self, config: str, node: str, workers: int = 0,
-                 cpus: list[int] | None = None) -> None:
+                 cpus: list[int] | None = None, host: str = "127.0.0.1") -> None:
         self.config, self.node = config, node
-        self.executor = Executor(workers={node: workers}, cpus={node: cpus} if cpus else {})
+        self.key = ClusterKey.load()
+        self.executor = Executor(node, workers=workers, cpus=cpus, host=host)
+        self.executor.handler = self._agent_request
+        self.executor.republished = self._republished
+        self.launcher: ControlClient | None = None
         self.stopped = threading.Event()
 
     def handle(self, op: str, args: dict[str, Any]) -> Any:
         ex = self.executor
-        if op == "add_module":
+        if op == "executor":
+            if args["method"] not in OPERATIONS:
+                raise ValueError(f"a node executor has no operation {args['method']!r}")
             with ex.lock:
-                ex.expect([args["spec"]])
-                ex.add_module(args["spec"], state=args.get("state"))
+                return getattr(ex, args["method"])(*args["args"], **args["kwargs"])
+        if op == "bind":
+            self.bind(args["launcher"], args["checkpoint_s"], args["log_level"],
+                      args["module_servers"])
             return None
-        if op == "start_modules":
-            with ex.lock:
-                ex.start_modules(args["names"])
-            return None
-        if op == "state":
-            return ex.call(ex.modules[args["name"]].worker, "get_state", name=args["name"])
-        if op == "set_state":
-            with ex.lock:
-                return ex.call(ex.modules[args["name"]].worker, "set_state",
-                               name=args["name"], state=args["state"])
-        if op == "stats":
-            from pb3a.runtime.stats import collect
-            return collect(ex)
         if op == "describe":
             return {"config": self.config, "node": self.node, "modules": sorted(ex.modules)}
         if op == "shutdown":
@@ -58,13 +64,57 @@ class NodeExecutor:
             return None
         raise ValueError(f"a node executor has no operation {op!r}")
 
+    def bind(self, launcher: str, checkpoint_s: float, log_level: int,
+             module_servers: list[str]) -> None:
+        """Work for the launcher at ``launcher`` (before any module is added)."""
+        if self.launcher is not None:
+            raise RuntimeFailure(f"node {self.node} already works for {self.launcher.address}")
+        ex = self.executor
+        ex.checkpoint_s, ex.log_level, ex.module_servers = checkpoint_s, log_level, module_servers
+        if module_servers:
+            use_module_servers(module_servers, self.key)
+        self.launcher = ControlClient(self.key, launcher)
+        threading.Thread(target=self._watch_launcher, name="pb3a-launcher-watch",
+                         daemon=True).start()
+
+    def _agent_request(self, op: str, args: dict[str, Any]) -> Any:
+        if self.launcher is None:
+            raise RuntimeFailure(f"node {self.node} has no launcher to ask")
+        return self.launcher.call("agent", AGENT_TIMEOUT, op=op, args=args)
+
+    def _republished(self, link: Any, endpoint: tuple[str, str, bytes]) -> None:
+        # Called during a restart, under the executor's lock: the launcher may be
+        # waiting for that lock, so it is told from another thread.
+        def tell() -> None:
+            if self.launcher is not None:
+                with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+                    self.launcher.call("republished", link=link, endpoint=endpoint)
+        threading.Thread(target=tell, name="pb3a-republished", daemon=True).start()
+
+    def _watch_launcher(self) -> None:
+        last = time.monotonic()
+        while not self.stopped.wait(1.0) and self.launcher is not None:
+            try:
+                self.launcher.call("ping", 1.0)
+                last = time.monotonic()
+            except (RuntimeFailure, RuntimeTimeout):
+                if time.monotonic() - last > ORPHAN_S:
+                    log.error("launcher at %s silent for %.0f s: stopping",
+                              self.launcher.address, ORPHAN_S)
+                    self.stopped.set()
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        if self.launcher is not None:
+            self.launcher.close()
+
 
 def executor_main(config: str, node: str, workers: int, cpus: list[int] | None,
                   host: str, conn: Any, level: int = logging.WARNING) -> None:
     """Entry point of an executor process: serve until shut down, signalled or orphaned."""
     logging.basicConfig(level=level, format=f"%(asctime)s pb3a[{config}@{node}] "
                                             "%(levelname)s %(message)s")
-    share = NodeExecutor(config, node, workers, cpus)
+    share = NodeExecutor(config, node, workers, cpus, host)
     server = ControlServer(ClusterKey.load(), share.handle, host, name="pb3a-node-executor")
     signal.signal(signal.SIGTERM, lambda *_: share.stopped.set())
     signal.signal(signal.SIGINT, signal.SIG_IGN)         # the controller decides
@@ -76,7 +126,7 @@ def executor_main(config: str, node: str, workers: int, cpus: list[int] | None,
             pass
     finally:
         server.close()
-        share.executor.shutdown()
+        share.close()
 
 
 def _watch_parent(conn: Any, stopped: threading.Event) -> None:

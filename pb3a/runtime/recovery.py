@@ -3,7 +3,9 @@
 ``never`` leaves the module failed and unhooks writers that fed it; ``fresh``
 starts it again with its configured state; ``last-state`` with the state of its
 last checkpoint. Links keep their rings, so a restarted reader resumes where
-the dead one stopped. More than ``RESTART_INTENSITY`` restarts of one worker
+the dead one stopped; a restarted writer of a remote link publishes again under a
+new incarnation, and the executor's ``republished`` hook has the reader's node
+follow it. More than ``RESTART_INTENSITY`` restarts of one worker
 in its window gives up (Erlang's MaxR/MaxT), so a crash loop cannot spin.
 """
 
@@ -62,6 +64,14 @@ def recover(executor: Executor, handle: WorkerHandle, code: int | None) -> None:
         for link in links:
             if link.src in revived and executor.modules[link.dst].status != "failed":
                 executor.attach_writer(link)
+        for link in list(executor.inbound.values()):
+            if link.dst in revived:
+                executor.open_inbound(link, 0)             # the ring is kept: no size needed
+        for link in list(executor.outbound.values()):
+            if link.src in revived:
+                endpoint = executor.publish(link)
+                if executor.republished is not None:
+                    executor.republished(link, endpoint)
         executor.start_modules(revive)
         log.warning("restarted %s (exit code %s)", ", ".join(revive), code)
     except (RuntimeFailure, RuntimeTimeout) as exc:
@@ -79,3 +89,6 @@ def _fail(executor: Executor, name: str, code: int | None) -> None:
         src = executor.modules.get(link.src)
         if link.dst == name and src is not None and executor.workers[src.worker].alive:
             executor.unhook_writer(link)
+    for link in list(executor.inbound.values()):
+        if link.dst == name:
+            executor.bridge.close(link.key)

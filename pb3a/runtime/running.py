@@ -9,21 +9,19 @@ configuration the previous one left.
 from __future__ import annotations
 
 import logging
+import socket
 import threading
 from dataclasses import replace
 from typing import Any
 
-import cloudpickle
-
-from pb3a.errors import ConfigError, ModuleNotFound
+from pb3a.errors import ConfigError
 from pb3a.kernel.config import FlatLink, FlatModule, Plan
 from pb3a.kernel.loading import resolve_class
 from pb3a.kernel.module import RESTART_POLICIES, Module
 from pb3a.kernel.ports import Policy
 from pb3a.kernel.served import forget
-from pb3a.runtime.executor import Executor
+from pb3a.runtime.launcher import Launcher
 from pb3a.runtime.migration import MigrationReport, migrate
-from pb3a.runtime.stats import collect
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlServer
 
@@ -44,28 +42,30 @@ class Running:
                  log_level: int = logging.WARNING) -> None:
         self.plan = plan
         self.name = plan.name
-        packing = {name: node.workers for name, node in plan.nodes.items()}
-        cpus = {name: node.cpus for name, node in plan.nodes.items() if node.cpus}
-        self._executor = Executor(workers=packing, cpus=cpus, checkpoint_s=checkpoint_s,
-                                  log_level=log_level, module_servers=plan.module_servers)
-        self._lock = self._executor.lock         # the global configuration lock
-        self._executor.handler = self._agent_request
+        self._launcher = Launcher(plan, checkpoint_s=checkpoint_s, log_level=log_level)
+        self._lock = self._launcher.lock         # the global configuration lock
+        self._launcher.handler = self._agent_request
         self._stopped = threading.Event()
         self._server: ControlServer | None = None
         self.address: str | None = None       # where `pb3a status ADDR` etc. reach it
 
     # -- life cycle ------------------------------------------------------------
     def start(self) -> None:
-        """Instantiate every module, wire every link, then run ``setup`` in order."""
-        ex = self._executor
-        ex.expect(list(self.plan.modules.values()))
+        """Start every node's executor, instantiate every module, wire every link, then
+        run ``setup`` in order."""
+        launcher = self._launcher
         try:
             with self._lock:
+                remote = [node.address for node in self.plan.nodes.values() if node.address]
+                launcher.start_nodes(self.listen(_reachable_from(remote[0])) if remote else None)
+                launcher.expect(list(self.plan.modules.values()))
                 for spec in self.plan.modules.values():
-                    ex.add_module(spec)
+                    launcher.add_module(spec)
                 for link in self.plan.links:
-                    ex.connect(link)
-                ex.start_modules(list(self.plan.modules))
+                    launcher.connect(link)
+                for name in self.plan.modules:
+                    launcher.node_of(name).start_modules([name])
+                launcher.update_env()
         except BaseException:
             self.close()
             raise
@@ -74,9 +74,9 @@ class Running:
         """Stop every module (reverse start order) and worker; free every segment."""
         if not self._stopped.is_set():
             self._stopped.set()
+            self._launcher.shutdown(timeout)
             if self._server is not None:
                 self._server.close()
-            self._executor.shutdown(timeout)
 
     def listen(self, address: str = "tcp://127.0.0.1:0") -> str:
         """Take authenticated requests (``pb3a status / state / migrate / swap``) at
@@ -106,23 +106,14 @@ class Running:
         return not self._stopped.is_set()
 
     # -- state -------------------------------------------------------------------
-    def _record(self, name: str) -> Any:
-        record = self._executor.modules.get(name)
-        if record is None:
-            known = ", ".join(self._executor.modules) or "(none)"
-            raise ModuleNotFound(f"no module {name!r} in system {self.name!r}; modules: {known}")
-        return record
-
     def state(self, name: str) -> dict[str, Any]:
         """The module's live state (taken under its lock)."""
-        record = self._record(name)
-        return self._executor.call(record.worker, "get_state", name=name)
+        return self._launcher.call(name, "get_state")
 
     def set_state(self, name: str, **state: Any) -> None:
         """Set state attributes of a running module, between two of its calls."""
         with self._lock:
-            record = self._record(name)
-            self._executor.call(record.worker, "set_state", name=name, state=state)
+            self._launcher.call(name, "set_state", state=state)
 
     # -- migration -------------------------------------------------------------------
     def migrate(self, name: str, to: str) -> MigrationReport:
@@ -136,11 +127,12 @@ class Running:
             if to not in self.plan.nodes:
                 raise ConfigError([f"migrate {name}: no node {to!r}; nodes: "
                                    f"{', '.join(self.plan.nodes)}"])
-            names = [name] if name in self._executor.modules else [
-                child for child in self._executor.modules if child.startswith(f"{name}/")]
+            specs = self._launcher.specs
+            names = [name] if name in specs else [
+                child for child in specs if child.startswith(f"{name}/")]
             if not names:
-                self._record(name)                     # raises ModuleNotFound
-            reports = [migrate(self._executor, child, to) for child in names]
+                self._launcher.node_of(name)           # raises ModuleNotFound
+            reports = [migrate(self._launcher, child, to) for child in names]
         if len(reports) == 1:
             return reports[0]
         return MigrationReport(name, ",".join(sorted({r.source for r in reports})), to,
@@ -155,9 +147,8 @@ class Running:
         instances keep their code until swapped."""
         with self._lock:
             forget(module)
-            for key, handle in list(self._executor.workers.items()):
-                if handle.alive:
-                    self._executor.call(key, "forget", module=module)
+            for node in self._launcher.nodes.values():
+                node.forget(module)
 
     # -- reconfiguration -----------------------------------------------------------
     def swap(self, name: str, cls: type | str) -> list[str]:
@@ -167,58 +158,58 @@ class Running:
         """
         new_cls = resolve_class(cls)
         with self._lock:
-            record = self._record(name)
-            problems = _swap_problems(name, record.spec.cls, new_cls, self._executor.links,
-                                      self._executor.modules)
+            launcher = self._launcher
+            node = launcher.node_of(name)
+            spec = launcher.specs[name]
+            problems = _swap_problems(name, spec.cls, new_cls, launcher.links, launcher.specs)
             if problems:
                 raise ConfigError(problems)
-            blob = cloudpickle.dumps(new_cls)
-            kept = self._executor.call(record.worker, "swap", name=name, cls=blob)
-            record.spec = replace(record.spec, cls=new_cls)
-            record.blob = blob
+            spec = replace(spec, cls=new_cls)
+            kept = node.swap(name, spec)
+            launcher.specs[name] = spec
             return kept
 
     def relink(self, src: str, dst: str, *, policy: str | None = None) -> None:
         """Feed input ``dst`` ("module.port") from output ``src``, replacing its old source."""
         with self._lock:
             link = self._new_link(src, dst, policy)
-            ex = self._executor
-            olds = [old for old in ex.links.values()
+            launcher = self._launcher
+            olds = [old for old in launcher.links.values()
                     if (old.dst, old.dst_port) == (link.dst, link.dst_port)]
             # Writers pause so that nothing is written while the input changes
             # source; the reader drains the old link before the new one opens.
-            with ex.paused([link.src, *(old.src for old in olds)]):
+            with launcher.paused([link.src, *(old.src for old in olds)]):
                 for old in olds:
-                    ex.disconnect(old.key)
-                ex.connect(link)
+                    launcher.disconnect(old.key)
+                launcher.connect(link)
 
     def link(self, src: str, dst: str, *, policy: str | None = None) -> None:
         """Add a link while running; the input must not be fed yet."""
         with self._lock:
             link = self._new_link(src, dst, policy)
-            for old in self._executor.links.values():
+            for old in self._launcher.links.values():
                 if (old.dst, old.dst_port) == (link.dst, link.dst_port):
                     raise ConfigError([f"input {dst} is fed by {old.src}.{old.src_port} "
                                        "already; use relink() to replace its source"])
-            self._executor.connect(link)
+            self._launcher.connect(link)
 
     def _new_link(self, src: str, dst: str, policy: str | None) -> FlatLink:
         problems = []
         ends = []
         for text, side in ((src, "outputs"), (dst, "inputs")):
             module, _, port = text.rpartition(".")
-            record = self._executor.modules.get(module)
-            if record is None:
+            spec = self._launcher.specs.get(module)
+            if spec is None:
                 problems.append(f"link {src} -> {dst}: no module {module!r}")
-            elif port not in getattr(record.spec.cls, side):
-                names = ", ".join(getattr(record.spec.cls, side)) or "(none)"
+            elif port not in getattr(spec.cls, side):
+                names = ", ".join(getattr(spec.cls, side)) or "(none)"
                 problems.append(f"link {src} -> {dst}: {module} has no {side[:-1]} {port!r}; "
                                 f"its {side}: {names}")
-            ends.append((module, port, record))
+            ends.append((module, port, spec))
         if problems:
             raise ConfigError(problems)
-        (smod, sport, srec), (dmod, dport, drec) = ends
-        out_spec, in_spec = srec.spec.cls.outputs[sport], drec.spec.cls.inputs[dport]
+        (smod, sport, sspec), (dmod, dport, dspec) = ends
+        out_spec, in_spec = sspec.cls.outputs[sport], dspec.cls.inputs[dport]
         why = in_spec.accepts(out_spec)
         if why:
             raise ConfigError([f"link {src} -> {dst}: incompatible types: {why}"])
@@ -239,20 +230,22 @@ class Running:
         if restart not in RESTART_POLICIES:
             raise ConfigError([f"module {name}: restart must be one of {RESTART_POLICIES}"])
         with self._lock:
-            if name in self._executor.modules:
+            if name in self._launcher.specs:
                 raise ConfigError([f"module {name}: a module of that name runs already"])
-            spec = FlatModule(name, module_cls, node or next(iter(self.plan.nodes)),
+            node = node or next(iter(self.plan.nodes))
+            if node not in self._launcher.nodes:
+                raise ConfigError([f"module {name}: no node {node!r}; nodes: "
+                                   f"{', '.join(self._launcher.nodes)}"])
+            spec = FlatModule(name, module_cls, node,
                               period if period is not None else module_cls.period,
                               dict(state or {}), restart, group)
-            self._executor.add_module(spec)
-            self._executor.start_modules([name])
+            self._launcher.add_module(spec)
+            self._launcher.node_of(name).start_modules([name])
 
     def remove(self, name: str) -> None:
         """Stop a module (``teardown`` runs), drop its links, free its process."""
         with self._lock:
-            self._record(name)
-            self._executor.stop_module(name)
-            self._executor.remove_module(name)
+            self._launcher.remove_module(name)
 
     def _agent_request(self, op: str, args: dict[str, Any]) -> Any:
         """Apply a request an agent made through ``self.runtime``."""
@@ -273,6 +266,12 @@ class Running:
         """A request from the command line (``pb3a status ADDR`` ...)."""
         if op == "migrate":
             return vars(self.migrate(args["name"], args["to"]))
+        if op == "agent":                      # an agent on a remote node
+            return self._agent_request(args["op"], args["args"])
+        if op == "republished":                # a writer restarted on a remote node
+            threading.Thread(target=self._launcher.republished, daemon=True,
+                             args=(args["link"], args["endpoint"])).start()
+            return None
         if op in ("state", "stats", "swap", "set_state", "relink"):
             return self._agent_request(op, args)
         raise ValueError(f"the launcher has no operation {op!r}")
@@ -287,11 +286,20 @@ class Running:
     # -- figures ---------------------------------------------------------------------
     def stats(self) -> dict[str, Any]:
         """Per module: steps, events, CPU time, errors; per link: values, drops, latency, rate."""
-        return {"system": self.name, **collect(self._executor)}
+        return {"system": self.name, **self._launcher.stats()}
+
+
+def _reachable_from(address: str) -> str:
+    """The address to listen on so that a peer at ``address`` can call back: the
+    interface this machine reaches that peer through (no packet is sent)."""
+    host = address.removeprefix("tcp://").rpartition(":")[0]
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.connect((host, 9))
+        return f"tcp://{probe.getsockname()[0]}:0"
 
 
 def _swap_problems(name: str, old: type, new: type, links: dict[str, FlatLink],
-                   modules: dict[str, Any]) -> list[str]:
+                   modules: dict[str, FlatModule]) -> list[str]:
     problems = []
     if not (isinstance(new, type) and issubclass(new, Module)):
         return [f"swap {name}: {new!r} is not a pb3a.Module subclass"]
@@ -302,12 +310,12 @@ def _swap_problems(name: str, old: type, new: type, links: dict[str, FlatLink],
                             f"{', '.join(missing)} that {old.__name__} has")
     for link in links.values():
         if link.dst == name and link.dst_port in new.inputs:
-            feeder = modules[link.src].spec.cls.outputs[link.src_port]
+            feeder = modules[link.src].cls.outputs[link.src_port]
             why = new.inputs[link.dst_port].accepts(feeder)
             if why:
                 problems.append(f"swap {name}: input {link.dst_port} fed by {link.src}: {why}")
         if link.src == name and link.src_port in new.outputs:
-            reader = modules[link.dst].spec.cls.inputs[link.dst_port]
+            reader = modules[link.dst].cls.inputs[link.dst_port]
             why = reader.accepts(new.outputs[link.src_port])
             if why:
                 problems.append(f"swap {name}: output {link.src_port} feeds {link.dst}: {why}")

@@ -1,4 +1,5 @@
-"""Gathering ``Running.stats()``: one request to every worker, merged per module and link."""
+"""Gathering ``Running.stats()``: each node reports its modules and inputs (one request
+to each of its workers); the launcher joins the reports into the per-link table."""
 
 from __future__ import annotations
 
@@ -7,11 +8,12 @@ from typing import TYPE_CHECKING, Any
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 
 if TYPE_CHECKING:
+    from pb3a.kernel.config import FlatLink
     from pb3a.runtime.executor import Executor
 
 
-def collect(executor: Executor, timeout: float = 5.0) -> dict[str, Any]:
-    """Figures of every module and link of one executor."""
+def node_report(executor: Executor, timeout: float = 5.0) -> dict[str, Any]:
+    """Figures of every module of one node, its rings and its remote links' losses."""
     futures = {key: executor.submit(key, "stats")
                for key, handle in list(executor.workers.items()) if handle.alive}
     reports: dict[str, Any] = {}
@@ -21,7 +23,6 @@ def collect(executor: Executor, timeout: float = 5.0) -> dict[str, Any]:
         except (RuntimeFailure, RuntimeTimeout):
             continue
     modules: dict[str, Any] = {}
-    ports: dict[tuple[str, str], Any] = {}
     for name, record in executor.modules.items():
         entry = {"node": record.spec.node, "worker": record.worker, "status": record.status,
                  "restarts": record.restarts, "checkpoints": record.checkpoints, "pid": None,
@@ -32,25 +33,32 @@ def collect(executor: Executor, timeout: float = 5.0) -> dict[str, Any]:
             entry.update(report["modules"][name])
             entry["pid"] = report["pid"]
             entry["running"] = entry["running"] and record.status == "running"
-        for port, figures in entry["inputs"].items():
-            ports[(name, port)] = figures
         modules[name] = entry
-    links = {}
-    for key, link in executor.links.items():
-        figures = ports.get((link.dst, link.dst_port), {})
-        src = executor.modules.get(link.src)
-        dst = executor.modules.get(link.dst)
-        remote = bool(src and dst and executor.remote(link))
-        transport = ("zmq" if remote else
-                     "memory" if src and dst and src.worker == dst.worker else "shm")
-        lost = executor.bridge.link_failures(f"{link.src}.{link.src_port}") if remote else 0
-        ring = reports.get(dst.worker, {}).get("rings", {}).get(key, {}) if dst else {}
-        links[key] = {"src": f"{link.src}.{link.src_port}", "dst": f"{link.dst}.{link.dst_port}",
+    rings = {key: ring.get("used", 0) for report in reports.values()
+             for key, ring in report.get("rings", {}).items()}
+    lost = {key: executor.bridge.link_failures(f"{link.src}.{link.src_port}")
+            for key, link in executor.inbound.items()}
+    return {"modules": modules, "rings": rings, "lost": lost,
+            "failures": list(executor.failures)}
+
+
+def link_table(links: dict[str, FlatLink], modules: dict[str, Any],
+               reports: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per link: values, drops, pending, latency, rate, transport, from the reader's node."""
+    rings = {key: used for report in reports for key, used in report["rings"].items()}
+    lost = {key: count for report in reports for key, count in report["lost"].items()}
+    table = {}
+    for key, link in links.items():
+        src, dst = modules.get(link.src), modules.get(link.dst)
+        figures = dst["inputs"].get(link.dst_port, {}) if dst else {}
+        transport = ("zmq" if src and dst and src["node"] != dst["node"] else
+                     "memory" if src and dst and src["worker"] == dst["worker"] else "shm")
+        table[key] = {"src": f"{link.src}.{link.src_port}", "dst": f"{link.dst}.{link.dst_port}",
                       "policy": str(link.policy), "transport": transport,
                       "values": figures.get("received", 0), "drops": figures.get("drops", 0),
                       "pending": figures.get("pending", 0),
                       "latency": figures.get("latency", float("nan")),
                       "rate": figures.get("rate", 0.0),
-                      "link_failures": figures.get("link_failures", 0) + lost,
-                      "ring_bytes_used": ring.get("used", 0)}
-    return {"modules": modules, "links": links, "failures": list(executor.failures)}
+                      "link_failures": figures.get("link_failures", 0) + lost.get(key, 0),
+                      "ring_bytes_used": rings.get(key, 0)}
+    return table

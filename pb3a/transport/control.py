@@ -160,6 +160,13 @@ class ControlClient:
             except Exception:
                 self._opener.rejected["undecodable"] += 1
 
+    def fail_pending(self, reason: str) -> None:
+        """Make every call waiting for an answer fail now with ``reason`` (the server is
+        known to be gone: nobody should wait out a deadline for it)."""
+        for done, box in list(self._waiting.values()):
+            box[:] = [False, reason]
+            done.set()
+
     def close(self) -> None:
         self._loop.close()
         self._dealer.close(0)

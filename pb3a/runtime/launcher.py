@@ -1,0 +1,270 @@
+"""``Launcher``: the one place that sees every node of a running system.
+
+It splits the plan into node shares and starts one executor per node: in this
+process for a node without an ``address`` (the embedded default), through the node
+controller at its address otherwise (``RemoteNode``). It wires every link (a link
+inside a node by that node; a remote link in halves: published at the writer's
+node, followed at the reader's) and applies every change under one global
+configuration lock. A watchdog pings every remote node; one that does not answer
+for ``LOSS_S`` is declared lost: its modules and their links are dropped, the rest
+goes on, and each node's ``env`` module reports it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from typing import TYPE_CHECKING, Any
+
+from pb3a.errors import ModuleNotFound, RuntimeFailure, RuntimeTimeout
+from pb3a.kernel.environment import env_name
+from pb3a.runtime.executor import REQUEST_TIMEOUT, Executor, ring_bytes
+from pb3a.runtime.remote_node import RemoteNode
+from pb3a.runtime.stats import link_table
+
+if TYPE_CHECKING:
+    from collections.abc import Iterator
+
+    from pb3a.kernel.config import FlatLink, FlatModule, Plan
+
+log = logging.getLogger("pb3a.launcher")
+
+HEARTBEAT_S = 0.25      # how often the launcher pings each remote node
+LOSS_S = 2.0            # no answer for this long: the node is lost (reported within 3 s)
+ENV_EVERY = 4           # heartbeats between two updates of the env modules' node table
+
+
+class Launcher:
+    """Every node's executor, where each module runs, every link; thread-safe."""
+
+    def __init__(self, plan: Plan, *, checkpoint_s: float = 1.0,
+                 log_level: int = logging.WARNING) -> None:
+        self.plan = plan
+        self.checkpoint_s, self.log_level = checkpoint_s, log_level
+        self.lock = threading.RLock()                 # the global configuration lock
+        self.nodes: dict[str, Executor | RemoteNode] = {}
+        self.specs: dict[str, FlatModule] = {}       # every module; its node is spec.node
+        self.links: dict[str, FlatLink] = {}
+        self.failures: list[str] = []
+        self.handler: Any = None                      # applies agents' requests (op, args)
+        self.health: dict[str, dict[str, Any]] = {}   # node -> up, rtt, address
+        self.changed = threading.Condition()          # notified when a node's health changes
+        self._stopping = threading.Event()
+        self._watchdog: threading.Thread | None = None
+
+    # -- nodes ----------------------------------------------------------------------
+    def start_nodes(self, callback: str | None) -> None:
+        """One executor per node; ``callback`` is where remote executors reach this
+        launcher (agents' requests, restarts), needed when any node has an address."""
+        for name, node in self.plan.nodes.items():
+            if node.address is None:
+                executor = Executor(name, workers=node.workers, cpus=node.cpus,
+                                    checkpoint_s=self.checkpoint_s, log_level=self.log_level,
+                                    module_servers=self.plan.module_servers, lock=self.lock)
+                executor.handler = self._agent_request
+                executor.republished = self.republished
+                self.nodes[name] = executor
+                self.health[name] = {"up": True, "rtt": 0.0, "address": None}
+            else:
+                assert callback is not None, "remote nodes call the launcher back"
+                self.nodes[name] = RemoteNode(
+                    name, node.address, config=self.plan.name, launcher=callback,
+                    workers=node.workers, cpus=node.cpus, checkpoint_s=self.checkpoint_s,
+                    log_level=self.log_level, module_servers=self.plan.module_servers)
+                self.health[name] = {"up": True, "rtt": float("nan"), "address": node.address}
+        if any(isinstance(node, RemoteNode) for node in self.nodes.values()):
+            self._watchdog = threading.Thread(target=self._watch, name="pb3a-heartbeat",
+                                              daemon=True)
+            self._watchdog.start()
+
+    def _agent_request(self, op: str, args: dict[str, Any]) -> Any:
+        if self.handler is None:
+            raise RuntimeFailure("this system takes no requests from agents")
+        return self.handler(op, args)
+
+    def node_of(self, name: str) -> Executor | RemoteNode:
+        """The executor of the node module ``name`` runs on."""
+        spec = self.specs.get(name)
+        if spec is None:
+            known = ", ".join(self.specs) or "(none)"
+            raise ModuleNotFound(f"no module {name!r} in system {self.plan.name!r}; "
+                                 f"modules: {known}")
+        return self.nodes[spec.node]
+
+    def remote(self, link: FlatLink) -> bool:
+        """True if the link joins two nodes (it then goes over ZeroMQ)."""
+        return self.specs[link.src].node != self.specs[link.dst].node
+
+    # -- modules ----------------------------------------------------------------------
+    def expect(self, specs: list[FlatModule]) -> None:
+        for name, node in self.nodes.items():
+            node.expect([spec for spec in specs if spec.node == name])
+
+    def add_module(self, spec: FlatModule, *, state: dict[str, Any] | None = None) -> None:
+        """Instantiate a module on its node (not started)."""
+        self.nodes[spec.node].add_module(spec, state=state)
+        self.specs[spec.name] = spec
+
+    def call(self, name: str, op: str, timeout: float = REQUEST_TIMEOUT, /,
+             **args: Any) -> Any:
+        """One request about module ``name`` to its worker, wherever it runs."""
+        return self.node_of(name).call_module(name, op, timeout, **args)
+
+    def remove_module(self, name: str) -> None:
+        """Stop a module, drop its links, free its process."""
+        node = self.node_of(name)
+        node.stop_module(name)
+        for key in [k for k, link in self.links.items() if name in (link.src, link.dst)]:
+            self.disconnect(key)
+        node.remove_module(name)
+        del self.specs[name]
+
+    @contextlib.contextmanager
+    def paused(self, names: list[str], timeout: float = REQUEST_TIMEOUT) -> Iterator[None]:
+        """Hold the modules' locks (no step, no event) while the block rewires them."""
+        held = []
+        try:
+            for name in dict.fromkeys(names):
+                if name in self.specs and self.node_of(name).pause(name, timeout):
+                    held.append(name)
+            yield
+        finally:
+            for name in reversed(held):
+                if name in self.specs:
+                    self.node_of(name).resume(name)
+
+    # -- links ------------------------------------------------------------------------
+    def connect(self, link: FlatLink) -> None:
+        """Add and wire a link."""
+        self.links[link.key] = link
+        self.attach(link)
+
+    def attach(self, link: FlatLink) -> None:
+        """Wire a known link where its ends run now: shared memory or in memory inside a
+        node; across nodes, the reader's ring first, then the writer publishes, then
+        the reader follows (so nothing published is missed)."""
+        if not self.remote(link):
+            self.node_of(link.src).connect(link)
+            return
+        reader, writer = self.node_of(link.dst), self.node_of(link.src)
+        reader.open_inbound(link, ring_bytes(self.specs[link.src].cls, link.src_port,
+                                             link.policy))
+        reader.follow(link, writer.publish(link))
+
+    def detach(self, link: FlatLink) -> None:
+        """Unwire a link (it stays known): the writer stops first, then the reader takes
+        in everything still on the way."""
+        if not self.remote(link):
+            self.node_of(link.src).detach(link)
+            return
+        reached = self.node_of(link.src).unpublish(link)
+        self.node_of(link.dst).close_inbound(link, reached)
+
+    def disconnect(self, key: str) -> None:
+        """Unwire a link and forget it."""
+        self.detach(self.links[key])
+        del self.links[key]
+
+    def republished(self, link: FlatLink, endpoint: tuple[str, str, bytes]) -> None:
+        """A restarted writer publishes ``link`` anew: its reader follows the new sender."""
+        with self.lock:
+            if self.links.get(link.key) == link and link.dst in self.specs:
+                self.node_of(link.dst).follow(link, endpoint)
+
+    # -- figures ----------------------------------------------------------------------
+    def stats(self) -> dict[str, Any]:
+        reports = []
+        for name, node in list(self.nodes.items()):
+            if not self.health[name]["up"]:
+                continue
+            try:
+                reports.append(node.report())
+            except (RuntimeFailure, RuntimeTimeout) as exc:
+                self.failures.append(f"node {name} did not report: {exc}")
+        # a module being migrated is on two nodes for a moment: the launcher says where
+        modules = {name: entry for report in reports for name, entry in report["modules"].items()
+                   if name in self.specs and entry["node"] == self.specs[name].node}
+        failures = [*self.failures, *(f for report in reports for f in report["failures"])]
+        return {"modules": modules, "links": link_table(self.links, modules, reports),
+                "failures": failures, "nodes": {n: dict(h) for n, h in self.health.items()}}
+
+    # -- heartbeats -------------------------------------------------------------------
+    def _watch(self) -> None:
+        remotes = {name: node for name, node in self.nodes.items()
+                   if isinstance(node, RemoteNode)}
+        last = dict.fromkeys(remotes, time.monotonic())
+        beats = 0
+        while not self._stopping.wait(HEARTBEAT_S):
+            for name, node in remotes.items():
+                if not self.health[name]["up"]:
+                    continue
+                started = time.monotonic()
+                if node.ping(timeout=HEARTBEAT_S * 2):
+                    last[name] = time.monotonic()
+                    self.health[name]["rtt"] = last[name] - started
+                elif time.monotonic() - last[name] > LOSS_S and not self._stopping.is_set():
+                    self._lose(name, time.monotonic() - last[name])
+            beats += 1
+            if beats % ENV_EVERY == 0:
+                self.update_env()
+
+    def _lose(self, node: str, silent_s: float) -> None:
+        """Declare ``node`` lost: every call to it fails at once from now on; its modules
+        and their links are dropped; the env modules say so."""
+        self.nodes[node].lose()
+        with self.changed:
+            self.health[node]["up"] = False
+            self.changed.notify_all()
+        gone = sorted(name for name, spec in self.specs.items() if spec.node == node)
+        self.failures.append(f"node {node} lost (no heartbeat for {silent_s:.1f} s); its "
+                             f"modules {', '.join(gone) or '(none)'} are gone")
+        log.error(self.failures[-1])
+        with self.lock:
+            for key, link in list(self.links.items()):
+                if link.src in gone or link.dst in gone:
+                    with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+                        self._drop_half(link, gone)
+                    del self.links[key]
+            for name in gone:
+                del self.specs[name]
+            self.update_env()
+
+    def _drop_half(self, link: FlatLink, gone: list[str]) -> None:
+        """Unwire the surviving half of a link whose other end was on a lost node."""
+        if link.src in gone and link.dst not in gone:
+            self.node_of(link.dst).close_inbound(link)
+        elif link.dst in gone and link.src not in gone:
+            self.node_of(link.src).unpublish(link)
+
+    def update_env(self) -> None:
+        """Tell every node's env module the health of every node (set as its state)."""
+        table = {name: {"up": h["up"], "rtt": h["rtt"]} for name, h in self.health.items()}
+        for name in self.nodes:
+            env = env_name(name)
+            if env in self.specs and self.health[name]["up"]:
+                with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+                    self.call(env, "set_state", state={"nodes": table})
+
+    def wait_health(self, node: str, up: bool, timeout: float) -> bool:
+        """Block until ``node`` is (not) up; False on timeout."""
+        with self.changed:
+            return self.changed.wait_for(lambda: self.health[node]["up"] == up, timeout)
+
+    # -- shutdown ---------------------------------------------------------------------
+    def shutdown(self, timeout: float = 10.0) -> None:
+        """Stop modules in reverse start order (across nodes), then every node."""
+        deadline = time.monotonic() + timeout
+        self._stopping.set()
+        if self._watchdog is not None:
+            self._watchdog.join(2.0)
+        with self.lock:
+            for name in reversed(list(self.specs)):
+                left = max(0.1, deadline - time.monotonic())
+                try:
+                    self.node_of(name).stop_module(name, min(2.0, left))
+                except (RuntimeFailure, RuntimeTimeout) as exc:
+                    log.warning("stopping module %r: %s", name, exc)
+            for node in reversed(list(self.nodes.values())):
+                node.shutdown(max(0.5, deadline - time.monotonic()))
