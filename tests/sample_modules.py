@@ -336,3 +336,13 @@ class Wanderer(Agent):
         if self.seen >= self.after and not self.asked:
             self.asked = True
             self.runtime.migrate(self.runtime.name, self.to)
+
+
+class LossWatcher(Agent):
+    """Records the nodes its env module reports lost (the failure event)."""
+
+    lost = Input(str, policy="queue:10")
+    seen: list = []
+
+    def on_input(self, port) -> None:
+        self.seen.append(port.read())

@@ -245,7 +245,7 @@ class Launcher:
             env = env_name(name)
             if env in self.specs and self.health[name]["up"]:
                 with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
-                    self.call(env, "set_state", state={"nodes": table})
+                    self.call(env, "set_state", state={"health": table})
 
     def wait_health(self, node: str, up: bool, timeout: float) -> bool:
         """Block until ``node`` is (not) up; False on timeout."""

@@ -21,6 +21,7 @@ import psutil
 from pb3a.runtime.node_executor import executor_main
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlServer
+from pb3a.transport.shm import reap_orphans
 
 log = logging.getLogger("pb3a.node")
 
@@ -115,6 +116,7 @@ class NodeController:
             process.kill()
             process.join(5.0)
         pipe.close()
+        reap_orphans()              # the segments of an executor that could not free them
         return True
 
     def executors(self) -> dict[str, str]:

@@ -1,0 +1,94 @@
+"""Nodes with an address: their share runs in an executor process that their node
+controller starts; links, migration and shutdown span them; a node that dies is
+detected within 3 s and reported (env value and event) while the rest goes on."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+import pytest
+from conftest import alive, eventually
+from sample_modules import Collector, Counter, LossWatcher, Relay
+
+from pb3a import ModuleNotFound, System
+from pb3a.runtime.node import Limits, NodeController
+from pb3a.transport.auth import ClusterKey
+from pb3a.transport.shm import live_segments
+
+
+@pytest.fixture
+def controllers():
+    # (no CPU limit: a busy test machine must not make these tests refuse work)
+    made = {name: NodeController(name, ClusterKey.load(), limits=Limits(max_cpu_percent=101.0))
+            for name in ("b", "c")}
+    yield made
+    for controller in made.values():
+        controller.close()
+
+
+def _clean(state: dict) -> bool:
+    return state["out_of_order"] == 0 and state["duplicates"] == 0
+
+
+def test_a_system_spans_node_controllers_and_migrates_across_them(controllers) -> None:
+    system = System("spanning").node("a")
+    for name, controller in controllers.items():
+        system.node(name, address=controller.address)
+    system.add("src", Counter, node="a", period=0.001)
+    system.add("relay", Relay, node="b")
+    system.add("far", Collector, node="c")
+    system.add("near", Collector, node="a")
+    system.link("src.out", "relay.x")
+    system.link("relay.out", "far.x")
+    system.link("relay.out", "near.x")
+    with system.launch() as run:
+        executors = {name: c.executors() for name, c in controllers.items()}
+        eventually(lambda: run.state("far")["received"] > 50, timeout=30, what="values at c")
+        for to in ("c", "a", "b", "a", "c", "b"):
+            assert run.migrate("relay", to=to).destination == to
+        relayed = run.state("relay")["relayed"]
+        for name in ("far", "near"):
+            eventually(lambda name=name: run.state(name)["received"] > relayed, timeout=30,
+                       what=f"values at {name} after the moves")
+        stats = run.stats()
+        far, near = run.state("far"), run.state("near")
+        pids = {name: stats["modules"][name]["pid"] for name in ("relay", "far", "near")}
+    assert all(list(found) == ["spanning"] for found in executors.values())
+    assert _clean(far) and _clean(near) and far["last"] == far["received"]
+    assert stats["modules"]["relay"]["node"] == "b" and stats["nodes"]["b"]["up"]
+    assert {link["transport"] for link in stats["links"].values()} == {"zmq"}
+    assert pids["far"] != pids["near"] != os.getpid()
+    assert all(c.executors() == {} for c in controllers.values())      # stopped with the run
+    assert not any(alive(pid) for pid in pids.values())
+
+
+def test_a_lost_node_is_detected_within_3_s_and_reported_while_the_rest_goes_on(
+        controllers) -> None:
+    system = System("lossy").node("a").node("b", address=controllers["b"].address)
+    system.add("src", Counter, node="a", period=0.001)
+    system.add("far", Collector, node="b")
+    system.add("near", Collector, node="a")
+    system.add("watcher", LossWatcher, node="a")
+    system.link("src.out", "far.x")
+    system.link("src.out", "near.x")
+    system.link("env-a.node_lost", "watcher.lost")
+    with system.launch() as run:
+        eventually(lambda: run.state("far")["received"] > 10, timeout=30, what="values at b")
+        process = controllers["b"]._executors["lossy"][0]
+        killed = time.monotonic()
+        os.kill(process.pid, signal.SIGKILL)
+        assert run._launcher.wait_health("b", up=False, timeout=10)
+        detected = time.monotonic() - killed
+        eventually(lambda: run.state("watcher")["seen"] == ["b"], what="the event at an agent")
+        stats = run.stats()
+        with pytest.raises(ModuleNotFound, match="no module 'far'"):
+            run.state("far")
+        before = run.state("near")["received"]
+        eventually(lambda: run.state("near")["received"] > before + 50, what="values go on")
+    assert detected < 3.0, f"node loss detected after {detected:.2f} s"
+    assert stats["nodes"]["b"]["up"] is False and stats["nodes"]["a"]["up"] is True
+    assert "far" not in stats["modules"] and "src.out->far.x" not in stats["links"]
+    assert any("node b lost" in failure for failure in stats["failures"])
+    assert live_segments(process.pid) == []     # the dead executor's rings, reaped
