@@ -346,3 +346,13 @@ class LossWatcher(Agent):
 
     def on_input(self, port) -> None:
         self.seen.append(port.read())
+
+
+class NodeTable(Module):
+    """Keeps the last node table an env module sent (health and round-trip times)."""
+
+    nodes = Input(dict)
+    table: dict = {}
+
+    def on_input(self, port) -> None:
+        self.table = port.read()

@@ -94,3 +94,15 @@ def test_the_command_line_runs_a_node_until_signalled() -> None:
     line = daemon_banner_then_clean_exit("node", "start", "--name", "cli",
                                          "--listen", "tcp://127.0.0.1:0")
     assert line.startswith("node cli at tcp://127.0.0.1:")
+
+
+def test_an_executor_whose_launcher_is_gone_stops(node) -> None:
+    controller, client = node
+    address = client.call("start_executor", timeout=60, config="orphan")
+    executor = ControlClient(KEY, address)
+    try:
+        executor.call("bind", launcher="tcp://127.0.0.1:9", checkpoint_s=1.0, log_level=30,
+                      module_servers=[], orphan_s=0.5)        # nobody listens there
+        eventually(lambda: controller.executors() == {}, what="the orphaned executor gone")
+    finally:
+        executor.close()

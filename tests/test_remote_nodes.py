@@ -10,7 +10,7 @@ import time
 
 import pytest
 from conftest import alive, eventually
-from sample_modules import Collector, Counter, LossWatcher, Relay
+from sample_modules import Collector, Counter, LossWatcher, NodeTable, Relay
 
 from pb3a import ModuleNotFound, System
 from pb3a.runtime.node import Limits, NodeController
@@ -43,6 +43,8 @@ def test_a_system_spans_node_controllers_and_migrates_across_them(controllers) -
     system.link("src.out", "relay.x")
     system.link("relay.out", "far.x")
     system.link("relay.out", "near.x")
+    system.add("table", NodeTable, node="a")
+    system.link("env-b.nodes", "table.nodes")
     with system.launch() as run:
         executors = {name: c.executors() for name, c in controllers.items()}
         eventually(lambda: run.state("far")["received"] > 50, timeout=30, what="values at c")
@@ -52,20 +54,26 @@ def test_a_system_spans_node_controllers_and_migrates_across_them(controllers) -
         for name in ("far", "near"):
             eventually(lambda name=name: run.state(name)["received"] > relayed, timeout=30,
                        what=f"values at {name} after the moves")
+        table = eventually(lambda: (t := run.state("table")["table"]).keys() == {"a", "b", "c"}
+                           and t["a"]["rtt"] > 0 and t["c"]["rtt"] > 0 and t, timeout=15,
+                           what="node b's round-trip times to a and c in its env")
         stats = run.stats()
         far, near = run.state("far"), run.state("near")
         pids = {name: stats["modules"][name]["pid"] for name in ("relay", "far", "near")}
     assert all(list(found) == ["spanning"] for found in executors.values())
     assert _clean(far) and _clean(near) and far["last"] == far["received"]
     assert stats["modules"]["relay"]["node"] == "b" and stats["nodes"]["b"]["up"]
+    assert all(entry["up"] for entry in table.values()) and table["b"]["rtt"] == 0.0
+    assert max(table["a"]["rtt"], table["c"]["rtt"]) < 1.0
     assert {link["transport"] for link in stats["links"].values()} == {"zmq"}
     assert pids["far"] != pids["near"] != os.getpid()
     assert all(c.executors() == {} for c in controllers.values())      # stopped with the run
     assert not any(alive(pid) for pid in pids.values())
 
 
+@pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGSTOP], ids=["dies", "is-cut-off"])
 def test_a_lost_node_is_detected_within_3_s_and_reported_while_the_rest_goes_on(
-        controllers) -> None:
+        controllers, how) -> None:
     system = System("lossy").node("a").node("b", address=controllers["b"].address)
     system.add("src", Counter, node="a", period=0.001)
     system.add("far", Collector, node="b")
@@ -78,7 +86,7 @@ def test_a_lost_node_is_detected_within_3_s_and_reported_while_the_rest_goes_on(
         eventually(lambda: run.state("far")["received"] > 10, timeout=30, what="values at b")
         process = controllers["b"]._executors["lossy"][0]
         killed = time.monotonic()
-        os.kill(process.pid, signal.SIGKILL)
+        os.kill(process.pid, how)
         assert run._launcher.wait_health("b", up=False, timeout=10)
         detected = time.monotonic() - killed
         eventually(lambda: run.state("watcher")["seen"] == ["b"], what="the event at an agent")

@@ -29,7 +29,6 @@ from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass, field
 from multiprocessing import reduction
-from multiprocessing import spawn as mp_spawn
 from typing import Any
 
 import cloudpickle
@@ -41,6 +40,7 @@ from pb3a.kernel.ports import Policy
 from pb3a.kernel.served import forget
 from pb3a.kernel.worker import worker_main
 from pb3a.runtime.bridge import Bridge
+from pb3a.runtime.processes import start_without_main
 from pb3a.runtime.recovery import recover
 from pb3a.runtime.stats import node_report
 from pb3a.transport.auth import ClusterKey
@@ -170,7 +170,7 @@ class Executor:
             target=worker_main, name=f"pb3a-worker-{handle.key}", daemon=True,
             args=(child, handle.key, self.checkpoint_s, self.log_level,
                   self.cpus, self.module_servers))
-        _start_without_main(process)
+        start_without_main(process)
         child.close()
         # The doorbell is the worker's first read: send it before anyone can send a request.
         reduction.send_handle(parent, handle.bell, process.pid)
@@ -556,32 +556,6 @@ class Executor:
         self._monitor.join(2.0)
         self._wake_r.close()
         self._wake_w.close()
-
-
-_start_lock = threading.Lock()
-
-
-def _start_without_main(process: Any) -> None:
-    """Start a worker without re-running the user's ``__main__`` in it.
-
-    multiprocessing re-imports the main script in every child, which breaks
-    scripts without an ``if __name__ == "__main__"`` guard. Workers never need
-    it: module classes travel with cloudpickle (by value when defined in main).
-    """
-    original = mp_spawn.get_preparation_data
-
-    def preparation(name: str) -> dict[str, Any]:
-        data = original(name)
-        data.pop("init_main_from_path", None)
-        data.pop("init_main_from_name", None)
-        return data
-
-    with _start_lock:
-        mp_spawn.get_preparation_data = preparation
-        try:
-            process.start()
-        finally:
-            mp_spawn.get_preparation_data = original
 
 
 def _topic(link: FlatLink) -> str:

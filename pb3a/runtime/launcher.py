@@ -73,8 +73,13 @@ class Launcher:
                     name, node.address, config=self.plan.name, launcher=callback,
                     workers=node.workers, cpus=node.cpus, checkpoint_s=self.checkpoint_s,
                     log_level=self.log_level, module_servers=self.plan.module_servers)
-                self.health[name] = {"up": True, "rtt": float("nan"), "address": node.address}
-        if any(isinstance(node, RemoteNode) for node in self.nodes.values()):
+                self.health[name] = {"up": True, "rtt": float("nan"), "address": node.address,
+                                     "controller": True}
+        remotes = [node for node in self.nodes.values() if isinstance(node, RemoteNode)]
+        for node in remotes:               # the launcher stands for its embedded nodes
+            node.meet({name: other.address if isinstance(other, RemoteNode) else callback
+                       for name, other in self.nodes.items() if other is not node})
+        if remotes:
             self._watchdog = threading.Thread(target=self._watch, name="pb3a-heartbeat",
                                               daemon=True)
             self._watchdog.start()
@@ -208,6 +213,9 @@ class Launcher:
                     self._lose(name, time.monotonic() - last[name])
             beats += 1
             if beats % ENV_EVERY == 0:
+                for name, node in remotes.items():
+                    if self.health[name]["up"]:
+                        self.health[name]["controller"] = node.controller_answers(HEARTBEAT_S)
                 self.update_env()
 
     def _lose(self, node: str, silent_s: float) -> None:
@@ -239,13 +247,26 @@ class Launcher:
             self.node_of(link.src).unpublish(link)
 
     def update_env(self) -> None:
-        """Tell every node's env module the health of every node (set as its state)."""
-        table = {name: {"up": h["up"], "rtt": h["rtt"]} for name, h in self.health.items()}
-        for name in self.nodes:
+        """Tell every node's env module the health of every node and its round-trip
+        time to each (set as the module's state)."""
+        for name, node in self.nodes.items():
             env = env_name(name)
-            if env in self.specs and self.health[name]["up"]:
-                with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
-                    self.call(env, "set_state", state={"health": table})
+            if env not in self.specs or not self.health[name]["up"]:
+                continue
+            with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+                rtts = self._rtts_from(name, node)
+                table = {peer: {"up": health["up"], "rtt": rtts.get(peer, float("nan"))}
+                         for peer, health in self.health.items()}
+                self.call(env, "set_state", state={"health": table})
+
+    def _rtts_from(self, name: str, node: Executor | RemoteNode) -> dict[str, float]:
+        """Round-trip times from node ``name`` to every node: measured by the node itself
+        if it is remote; for an embedded node, this process's (it runs here): 0 to the
+        other embedded nodes, the heartbeat's to the remote ones."""
+        if isinstance(node, RemoteNode):
+            return {**node.rtts(), name: 0.0}
+        return {peer: 0.0 if isinstance(other, Executor) else self.health[peer]["rtt"]
+                for peer, other in self.nodes.items()}
 
     def wait_health(self, node: str, up: bool, timeout: float) -> bool:
         """Block until ``node`` is (not) up; False on timeout."""

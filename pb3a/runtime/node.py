@@ -19,6 +19,7 @@ from typing import Any
 import psutil
 
 from pb3a.runtime.node_executor import executor_main
+from pb3a.runtime.processes import start_without_main
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlServer
 from pb3a.transport.shm import reap_orphans
@@ -88,7 +89,7 @@ class NodeController:
             process = _context.Process(
                 target=executor_main, name=f"pb3a-executor-{config}",
                 args=(config, self.name, workers, cpus, host, child))
-            process.start()
+            start_without_main(process)
             child.close()
             if not parent.poll(START_TIMEOUT):
                 process.kill()

@@ -44,6 +44,8 @@ class NodeExecutor:
         self.executor.handler = self._agent_request
         self.executor.republished = self._republished
         self.launcher: ControlClient | None = None
+        self.peers: dict[str, ControlClient] = {}     # other nodes, pinged for their RTT
+        self.rtts: dict[str, float] = {}
         self.stopped = threading.Event()
 
     def handle(self, op: str, args: dict[str, Any]) -> Any:
@@ -55,8 +57,13 @@ class NodeExecutor:
                 return getattr(ex, args["method"])(*args["args"], **args["kwargs"])
         if op == "bind":
             self.bind(args["launcher"], args["checkpoint_s"], args["log_level"],
-                      args["module_servers"])
+                      args["module_servers"], args.get("orphan_s", ORPHAN_S))
             return None
+        if op == "peers":
+            self.meet(args["peers"])
+            return None
+        if op == "rtts":
+            return dict(self.rtts)
         if op == "describe":
             return {"config": self.config, "node": self.node, "modules": sorted(ex.modules)}
         if op == "shutdown":
@@ -65,7 +72,7 @@ class NodeExecutor:
         raise ValueError(f"a node executor has no operation {op!r}")
 
     def bind(self, launcher: str, checkpoint_s: float, log_level: int,
-             module_servers: list[str]) -> None:
+             module_servers: list[str], orphan_s: float = ORPHAN_S) -> None:
         """Work for the launcher at ``launcher`` (before any module is added)."""
         if self.launcher is not None:
             raise RuntimeFailure(f"node {self.node} already works for {self.launcher.address}")
@@ -74,8 +81,16 @@ class NodeExecutor:
         if module_servers:
             use_module_servers(module_servers, self.key)
         self.launcher = ControlClient(self.key, launcher)
-        threading.Thread(target=self._watch_launcher, name="pb3a-launcher-watch",
-                         daemon=True).start()
+        threading.Thread(target=self._watch_launcher, args=(orphan_s,),
+                         name="pb3a-launcher-watch", daemon=True).start()
+
+    def meet(self, peers: dict[str, str]) -> None:
+        """Measure the round-trip time to each other node (name -> control address) from
+        now on; the launcher stands for the nodes embedded in it."""
+        for client in self.peers.values():
+            client.close()
+        self.peers = {name: ControlClient(self.key, address) for name, address in peers.items()}
+        self.rtts = {}
 
     def _agent_request(self, op: str, args: dict[str, Any]) -> Any:
         if self.launcher is None:
@@ -91,22 +106,35 @@ class NodeExecutor:
                     self.launcher.call("republished", link=link, endpoint=endpoint)
         threading.Thread(target=tell, name="pb3a-republished", daemon=True).start()
 
-    def _watch_launcher(self) -> None:
+    def _watch_launcher(self, orphan_s: float) -> None:
+        """Ping the launcher (stop when it stays silent) and every peer (their RTTs)."""
         last = time.monotonic()
-        while not self.stopped.wait(1.0) and self.launcher is not None:
-            try:
-                self.launcher.call("ping", 1.0)
+        while not self.stopped.wait(min(1.0, orphan_s / 4)) and self.launcher is not None:
+            if _ping(self.launcher) is not None:
                 last = time.monotonic()
-            except (RuntimeFailure, RuntimeTimeout):
-                if time.monotonic() - last > ORPHAN_S:
-                    log.error("launcher at %s silent for %.0f s: stopping",
-                              self.launcher.address, ORPHAN_S)
-                    self.stopped.set()
+            elif time.monotonic() - last > orphan_s:
+                log.error("launcher at %s silent for %.0f s: stopping",
+                          self.launcher.address, orphan_s)
+                self.stopped.set()
+            for name, client in list(self.peers.items()):
+                rtt = _ping(client)
+                if rtt is not None:
+                    self.rtts[name] = rtt
 
     def close(self) -> None:
         self.executor.shutdown()
-        if self.launcher is not None:
-            self.launcher.close()
+        for client in [*self.peers.values(), *filter(None, [self.launcher])]:
+            client.close()
+
+
+def _ping(client: ControlClient, timeout: float = 1.0) -> float | None:
+    """The round-trip time of one ping, or None without an answer in ``timeout``."""
+    started = time.monotonic()
+    try:
+        client.call("ping", timeout)
+    except (RuntimeFailure, RuntimeTimeout):
+        return None
+    return time.monotonic() - started
 
 
 def executor_main(config: str, node: str, workers: int, cpus: list[int] | None,

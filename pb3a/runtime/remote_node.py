@@ -55,13 +55,22 @@ class RemoteNode:
 
     def ping(self, timeout: float) -> bool:
         """True if the executor answered within ``timeout`` seconds."""
-        if self.client is None:
-            return False
-        try:
-            self.client.call("ping", timeout)
-        except (RuntimeFailure, RuntimeTimeout):
-            return False
-        return True
+        return self.client is not None and _answers(self.client, timeout)
+
+    def controller_answers(self, timeout: float) -> bool:
+        """True if the node's controller answered within ``timeout`` seconds."""
+        return _answers(self.controller, timeout)
+
+    def meet(self, peers: dict[str, str]) -> None:
+        """Have the node measure its RTT to each peer (name -> control address)."""
+        if self.client is not None and not self.lost:
+            self.client.call("peers", peers=peers)
+
+    def rtts(self) -> dict[str, float]:
+        """The node's last measured round-trip times to its peers."""
+        if self.client is None or self.lost:
+            return {}
+        return self.client.call("rtts", 2.0)
 
     def lose(self) -> None:
         """The node is gone: every waiting call fails now, and every later one at once."""
@@ -81,6 +90,14 @@ class RemoteNode:
         self.controller.close()
         if self.client is not None:
             self.client.close()
+
+
+def _answers(client: ControlClient, timeout: float) -> bool:
+    try:
+        client.call("ping", timeout)
+    except (RuntimeFailure, RuntimeTimeout):
+        return False
+    return True
 
 
 def _forwarding(op: str) -> Any:
