@@ -12,9 +12,10 @@ import pytest
 from conftest import alive, eventually
 from sample_modules import Collector, Counter, LossWatcher, NodeTable, Relay
 
-from pb3a import ModuleNotFound, System
+from pb3a import ModuleNotFound, RuntimeTimeout, System
 from pb3a.runtime.node import Limits, NodeController
 from pb3a.transport.auth import ClusterKey
+from pb3a.transport.control import ControlClient
 from pb3a.transport.shm import live_segments
 
 
@@ -100,3 +101,21 @@ def test_a_lost_node_is_detected_within_3_s_and_reported_while_the_rest_goes_on(
     assert "far" not in stats["modules"] and "src.out->far.x" not in stats["links"]
     assert any("node b lost" in failure for failure in stats["failures"])
     assert live_segments(process.pid) == []     # the dead executor's rings, reaped
+
+
+def test_a_node_executor_refuses_requests_of_an_earlier_epoch(controllers) -> None:
+    system = System("epochs").node("a").node("b", address=controllers["b"].address)
+    system.add("far", Collector, node="b")
+    with system.launch() as run:
+        address = controllers["b"].executors()["epochs"]
+        stale = ControlClient(ClusterKey.load(), address, epoch=run._launcher.epoch - 1)
+        current = ControlClient(ClusterKey.load(), address, epoch=run._launcher.epoch)
+        try:
+            with pytest.raises(RuntimeTimeout):
+                stale.call("shutdown", 1.0)                     # refused: never applied
+            described = current.call("describe")
+        finally:
+            stale.close()
+            current.close()
+        received = run.state("far")["received"]
+    assert described["modules"] == ["far"] and received == 0

@@ -243,3 +243,23 @@ def test_a_follower_that_went_silent_holds_the_publisher_back_only_briefly(
     for i in range(3 * replication.WINDOW):
         replicator.publish("t", i)
     assert time.monotonic() - started < 5.0
+
+
+def test_a_sender_of_an_earlier_epoch_is_refused_as_stale() -> None:
+    old, current, inbox = Replicator(KEY, epoch=4), Replicator(KEY, epoch=5), Inbox()
+    follower = Follower(KEY, inbox, epoch=5)
+    try:
+        old.add("stale")
+        current.add("fresh")
+        follower.follow("stale", old.data_address, old.control_address)
+        _follow(follower, current, "fresh", from_seq=0)
+        for value in range(3):
+            old.publish("stale", value)
+            current.publish("fresh", value)
+        assert inbox.wait("fresh", 3) == [0, 1, 2]
+        assert follower.wait_ready("stale", 0.5) is False      # no hand-shake either
+        assert "stale" not in inbox.values and follower.rejected["stale epoch"] > 0
+    finally:
+        follower.close()
+        old.close()
+        current.close()

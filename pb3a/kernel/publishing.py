@@ -24,11 +24,12 @@ class Publications:
         self._readers: dict[str, set[str]] = {}      # topic -> keys of the links reading it
         self._ports: dict[str, OutputPort] = {}
 
-    def add(self, key: str, topic: str, port: OutputPort, secret: bytes,
-            host: str) -> tuple[str, str, bytes]:
-        """Publish ``port`` for the link ``key``; the addresses and incarnation to follow."""
+    def add(self, key: str, topic: str, port: OutputPort, secret: bytes, host: str,
+            epoch: int = 0) -> tuple[str, str, bytes]:
+        """Publish ``port`` for the link ``key``; the addresses and incarnation to follow.
+        Messages carry the system's ``epoch``; older ones are refused as stale."""
         if self.replicator is None:
-            self.replicator = Replicator(ClusterKey(secret), host)
+            self.replicator = Replicator(ClusterKey(secret), host, epoch=epoch)
         replicator = self.replicator
         readers = self._readers.setdefault(topic, set())
         if not readers:

@@ -287,11 +287,11 @@ class Worker:
             pull.close()
 
     def op_publish_out(self, key: str, src: str, src_port: str, secret: bytes,
-                       host: str) -> tuple[str, str, bytes]:
+                       host: str, epoch: int = 0) -> tuple[str, str, bytes]:
         """Replicate an output to another node: (data address, control address,
         incarnation) for the reading node to follow."""
         return self.publications.add(key, f"{src}.{src_port}",
-                                     self.actors[src].outputs[src_port], secret, host)
+                                     self.actors[src].outputs[src_port], secret, host, epoch)
 
     def op_unpublish_out(self, key: str) -> int:
         return self.publications.remove(key)

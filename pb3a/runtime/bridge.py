@@ -23,13 +23,13 @@ READY_TIMEOUT = 10.0
 class Bridge:
     """Follows remote outputs and fans their values out into local rings."""
 
-    def __init__(self, key: ClusterKey) -> None:
+    def __init__(self, key: ClusterKey, epoch: int = 0) -> None:
         self.key = key
         self._lock = threading.Lock()
         self._rings: dict[str, dict[str, ShmRing]] = {}     # topic -> link key -> ring
         self._topics: dict[str, str] = {}                   # link key -> topic
         self._senders: dict[str, bytes] = {}                # topic -> incarnation followed
-        self._follower = Follower(key, self._deliver)
+        self._follower = Follower(key, self._deliver, epoch=epoch)
 
     def open(self, link: str, topic: str, ring: str, bell: int) -> None:
         """Write ``topic``'s values into ``ring`` (the link's, read by a local worker

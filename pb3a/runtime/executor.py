@@ -99,8 +99,9 @@ class Executor:
     def __init__(self, node: str, *, workers: int = 0, cpus: list[int] | None = None,
                  checkpoint_s: float = 1.0, log_level: int = logging.WARNING,
                  module_servers: list[str] | None = None, host: str = "127.0.0.1",
-                 lock: threading.RLock | None = None) -> None:
+                 lock: threading.RLock | None = None, epoch: int = 0) -> None:
         self.node = node
+        self.epoch = epoch                  # the system's: older replication is refused
         self.module_servers = list(module_servers or [])   # workers import from these too
         self.packing = workers              # packed worker processes (0: one per module)
         self.cpus = cpus                    # the CPUs the node's workers run on (None: all)
@@ -133,7 +134,7 @@ class Executor:
     def bridge(self) -> Bridge:
         """The receiving end of remote links (the cluster key is loaded on first use)."""
         if self._bridge is None:
-            self._bridge = Bridge(ClusterKey.load())
+            self._bridge = Bridge(ClusterKey.load(), self.epoch)
         return self._bridge
 
     # -- placement and processes -------------------------------------------
@@ -386,7 +387,8 @@ class Executor:
         self.outbound[link.key] = link
         data, control, incarnation = self.call(
             self.modules[link.src].worker, "publish_out", key=link.key, src=link.src,
-            src_port=link.src_port, secret=self.bridge.key.secret, host=self.host)
+            src_port=link.src_port, secret=self.bridge.key.secret, host=self.host,
+            epoch=self.epoch)
         return data, control, incarnation
 
     def unpublish(self, link: FlatLink) -> int:

@@ -44,6 +44,9 @@ class Launcher:
         self.plan = plan
         self.checkpoint_s, self.log_level = checkpoint_s, log_level
         self.lock = threading.RLock()                 # the global configuration lock
+        # Stamped on replication and launcher <-> executor messages: frames of an
+        # earlier run of a system (a lower epoch) are refused as stale.
+        self.epoch = time.time_ns() // 1_000_000
         self.nodes: dict[str, Executor | RemoteNode] = {}
         self.specs: dict[str, FlatModule] = {}       # every module; its node is spec.node
         self.links: dict[str, FlatLink] = {}
@@ -62,7 +65,8 @@ class Launcher:
             if node.address is None:
                 executor = Executor(name, workers=node.workers, cpus=node.cpus,
                                     checkpoint_s=self.checkpoint_s, log_level=self.log_level,
-                                    module_servers=self.plan.module_servers, lock=self.lock)
+                                    module_servers=self.plan.module_servers, lock=self.lock,
+                                    epoch=self.epoch)
                 executor.handler = self._agent_request
                 executor.republished = self.republished
                 self.nodes[name] = executor
@@ -72,7 +76,8 @@ class Launcher:
                 self.nodes[name] = RemoteNode(
                     name, node.address, config=self.plan.name, launcher=callback,
                     workers=node.workers, cpus=node.cpus, checkpoint_s=self.checkpoint_s,
-                    log_level=self.log_level, module_servers=self.plan.module_servers)
+                    log_level=self.log_level, module_servers=self.plan.module_servers,
+                    epoch=self.epoch)
                 self.health[name] = {"up": True, "rtt": float("nan"), "address": node.address,
                                      "controller": True}
         remotes = [node for node in self.nodes.values() if isinstance(node, RemoteNode)]

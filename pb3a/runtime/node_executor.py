@@ -44,6 +44,7 @@ class NodeExecutor:
         self.executor.handler = self._agent_request
         self.executor.republished = self._republished
         self.launcher: ControlClient | None = None
+        self.server: ControlServer | None = None
         self.peers: dict[str, ControlClient] = {}     # other nodes, pinged for their RTT
         self.rtts: dict[str, float] = {}
         self.stopped = threading.Event()
@@ -57,7 +58,8 @@ class NodeExecutor:
                 return getattr(ex, args["method"])(*args["args"], **args["kwargs"])
         if op == "bind":
             self.bind(args["launcher"], args["checkpoint_s"], args["log_level"],
-                      args["module_servers"], args.get("orphan_s", ORPHAN_S))
+                      args["module_servers"], args.get("orphan_s", ORPHAN_S),
+                      args.get("epoch", 0))
             return None
         if op == "peers":
             self.meet(args["peers"])
@@ -72,12 +74,16 @@ class NodeExecutor:
         raise ValueError(f"a node executor has no operation {op!r}")
 
     def bind(self, launcher: str, checkpoint_s: float, log_level: int,
-             module_servers: list[str], orphan_s: float = ORPHAN_S) -> None:
-        """Work for the launcher at ``launcher`` (before any module is added)."""
+             module_servers: list[str], orphan_s: float = ORPHAN_S, epoch: int = 0) -> None:
+        """Work for the launcher at ``launcher`` (before any module is added), in its
+        system's ``epoch``: older requests and replication are refused from now on."""
         if self.launcher is not None:
             raise RuntimeFailure(f"node {self.node} already works for {self.launcher.address}")
         ex = self.executor
         ex.checkpoint_s, ex.log_level, ex.module_servers = checkpoint_s, log_level, module_servers
+        ex.epoch = epoch
+        if self.server is not None:
+            self.server.advance_epoch(epoch)
         if module_servers:
             use_module_servers(module_servers, self.key)
         self.launcher = ControlClient(self.key, launcher)
@@ -89,7 +95,8 @@ class NodeExecutor:
         now on; the launcher stands for the nodes embedded in it."""
         for client in self.peers.values():
             client.close()
-        self.peers = {name: ControlClient(self.key, address) for name, address in peers.items()}
+        self.peers = {name: ControlClient(self.key, address, epoch=self.executor.epoch)
+                      for name, address in peers.items()}
         self.rtts = {}
 
     def _agent_request(self, op: str, args: dict[str, Any]) -> Any:
@@ -143,7 +150,8 @@ def executor_main(config: str, node: str, workers: int, cpus: list[int] | None,
     logging.basicConfig(level=level, format=f"%(asctime)s pb3a[{config}@{node}] "
                                             "%(levelname)s %(message)s")
     share = NodeExecutor(config, node, workers, cpus, host)
-    server = ControlServer(ClusterKey.load(), share.handle, host, name="pb3a-node-executor")
+    server = share.server = ControlServer(ClusterKey.load(), share.handle, host,
+                                          name="pb3a-node-executor")
     signal.signal(signal.SIGTERM, lambda *_: share.stopped.set())
     signal.signal(signal.SIGINT, signal.SIG_IGN)         # the controller decides
     conn.send(server.address)

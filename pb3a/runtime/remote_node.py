@@ -29,7 +29,8 @@ class RemoteNode:
 
     def __init__(self, name: str, address: str, *, config: str, launcher: str,
                  workers: int = 0, cpus: list[int] | None = None, checkpoint_s: float = 1.0,
-                 log_level: int = 30, module_servers: list[str] | None = None) -> None:
+                 log_level: int = 30, module_servers: list[str] | None = None,
+                 epoch: int = 0) -> None:
         self.name, self.config = name, config
         key = ClusterKey.load()
         self.controller = ControlClient(key, address)
@@ -39,9 +40,10 @@ class RemoteNode:
         try:
             executor = self.controller.call("start_executor", START_TIMEOUT, config=config,
                                             workers=workers, cpus=cpus, host=host)
-            self.client = ControlClient(key, executor)
+            self.client = ControlClient(key, executor, epoch=epoch)
             self.client.call("bind", launcher=launcher, checkpoint_s=checkpoint_s,
-                             log_level=log_level, module_servers=list(module_servers or []))
+                             log_level=log_level, module_servers=list(module_servers or []),
+                             epoch=epoch)
         except (RuntimeFailure, RuntimeTimeout) as exc:
             self.close()
             raise RuntimeFailure(f"node {name} at {address} did not start an executor for "

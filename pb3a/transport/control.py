@@ -67,6 +67,11 @@ class ControlServer:
         """Frames refused (unauthenticated, malformed, replayed ...), by reason."""
         return self._opener.rejected
 
+    def advance_epoch(self, epoch: int) -> None:
+        """Refuse requests of epochs before ``epoch`` from now on; answer in it."""
+        self._opener.epoch = max(self._opener.epoch, epoch)
+        self._sealer.epoch = self._opener.epoch
+
     def _on_request(self, router: zmq.Socket) -> None:
         while router.poll(0):
             peer, *frames = router.recv_multipart(copy=False)
@@ -119,7 +124,9 @@ class ControlClient:
         self._dealer = _socket(self._loop.context, zmq.DEALER)
         self._dealer.connect(address)
         self._sealer = Sealer(key, epoch)
-        self._opener = Opener(key, epoch=epoch, max_bytes=MAX_MESSAGE)
+        # Replies count only if they answer a request this client is waiting for; the
+        # epoch is the server's check (a launcher's server also answers the CLI in 0).
+        self._opener = Opener(key, max_bytes=MAX_MESSAGE)
         self._ids = itertools.count(1)
         self._waiting: dict[bytes, tuple[threading.Event, list[Any]]] = {}
         self._loop.register(self._dealer, self._on_reply)
