@@ -9,11 +9,13 @@ import pickle
 import random
 
 import psutil
+import pytest
 import zmq
 from conftest import eventually
 from sample_modules import Collector, Counter
 
 from pb3a import System
+from pb3a.runtime.node import Limits, NodeController
 from pb3a.transport.auth import ClusterKey, Sealer
 
 exploded: list[str] = []
@@ -34,30 +36,36 @@ def _listening(pids: set[int]) -> list[str]:
 def _frames(rng: random.Random, genuine: list[bytes]) -> list[list[bytes]]:
     bomb = pickle.dumps(Bomb())
     wrong = Sealer(ClusterKey.load({"PB3A_KEY": "w" * 40}))
+    stale = Sealer(ClusterKey.load(), epoch=1)
     return [
         [b"garbage"], [bomb], [b"\0"], [b""] * 3, [bomb] * 70,
         [rng.randbytes(rng.randrange(1, 200)) for _ in range(rng.randrange(1, 5))],
         wrong.seal(1, [b"t\0", bomb]), wrong.seal(10, [b"\0" * 8, bomb]),
         genuine, genuine,                                  # genuine once, then replayed
+        stale.seal(10, [b"\2" * 8, pickle.dumps(("shutdown", {}))]),   # an earlier epoch
         [b"x" * (3 << 20)],                                # large, unsigned
     ]
 
 
-def test_every_listening_socket_refuses_bad_frames_and_the_system_goes_on() -> None:
+@pytest.mark.parametrize("remote", [False, True], ids=["embedded", "node-controller"])
+def test_every_listening_socket_refuses_bad_frames_and_the_system_goes_on(remote) -> None:
+    controller = NodeController("b", ClusterKey.load(), limits=Limits(max_cpu_percent=101.0))
     system = System("fuzzed")
     system.node("a")
-    system.node("b")
+    system.node("b", address=controller.address if remote else None)
     system.add("src", Counter, node="a", period=0.002)
     system.add("dst", Collector, node="b")
     system.link("src.out", "dst.x")
     rng = random.Random(7)
-    with system.launch() as run:
+    with contextlib.closing(controller), system.launch() as run:
         run.listen()
         eventually(lambda: run.state("dst")["received"] > 10, what="values flowing")
         me = psutil.Process()
         pids = {me.pid, *(child.pid for child in me.children(recursive=True))}
         addresses = _listening(pids)
         assert run.address in addresses and len(addresses) >= 3    # launcher, PUB, ROUTER
+        assert controller.address in addresses                   # ... the controller too
+        assert len(addresses) >= (5 if remote else 4)            # ... and b's executor
         context = zmq.Context.instance()
         genuine = Sealer(ClusterKey.load()).seal(10, [b"\1" * 8, pickle.dumps(("stats", {}))])
         for address in addresses:

@@ -5,15 +5,17 @@ detected within 3 s and reported (env value and event) while the rest goes on.""
 from __future__ import annotations
 
 import os
+import re
 import signal
 import time
 
 import pytest
 from conftest import alive, eventually
-from sample_modules import Collector, Counter, LossWatcher, NodeTable, Relay
+from sample_modules import Collector, Counter, LossWatcher, NodeTable, Relay, Wanderer
 
 from pb3a import ModuleNotFound, RuntimeTimeout, System
 from pb3a.runtime.node import Limits, NodeController
+from pb3a.runtime.status import format_table
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 from pb3a.transport.shm import live_segments
@@ -66,6 +68,8 @@ def test_a_system_spans_node_controllers_and_migrates_across_them(controllers) -
     assert stats["modules"]["relay"]["node"] == "b" and stats["nodes"]["b"]["up"]
     assert all(entry["up"] for entry in table.values()) and table["b"]["rtt"] == 0.0
     assert max(table["a"]["rtt"], table["c"]["rtt"]) < 1.0
+    shown = format_table(stats)                                      # pb3a run's table
+    assert re.search(r"^c +tcp://127\.0\.0\.1:\d+ +up +[\d.]+ ms$", shown, re.M), shown
     assert {link["transport"] for link in stats["links"].values()} == {"zmq"}
     assert pids["far"] != pids["near"] != os.getpid()
     assert all(c.executors() == {} for c in controllers.values())      # stopped with the run
@@ -119,3 +123,23 @@ def test_a_node_executor_refuses_requests_of_an_earlier_epoch(controllers) -> No
             current.close()
         received = run.state("far")["received"]
     assert described["modules"] == ["far"] and received == 0
+
+
+def test_on_a_remote_node_a_restarted_writer_feeds_its_readers_and_agents_can_move(
+        controllers) -> None:
+    system = System("remote-life").node("a").node("b", address=controllers["b"].address)
+    system.add("src", Counter, node="b", period=0.001, restart="fresh")
+    system.add("dst", Collector, node="a")
+    system.add("wanderer", Wanderer, node="b", state={"to": "a"})
+    system.link("src.out", "dst.x")
+    system.link("src.out", "wanderer.x")
+    with system.launch() as run:
+        eventually(lambda: run.stats()["modules"]["wanderer"]["node"] == "a", timeout=30,
+                   what="the agent moved itself from b to a")
+        os.kill(run.stats()["modules"]["src"]["pid"], signal.SIGKILL)
+        eventually(lambda: run.stats()["modules"]["src"]["restarts"] == 1, what="a restart")
+        before = {name: run.state(name)["received" if name == "dst" else "seen"]
+                  for name in ("dst", "wanderer")}
+        eventually(lambda: run.state("dst")["received"] > before["dst"] + 10
+                   and run.state("wanderer")["seen"] > before["wanderer"] + 10,
+                   timeout=30, what="values from the restarted writer on node b")

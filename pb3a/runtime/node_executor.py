@@ -102,7 +102,7 @@ class NodeExecutor:
     def _agent_request(self, op: str, args: dict[str, Any]) -> Any:
         if self.launcher is None:
             raise RuntimeFailure(f"node {self.node} has no launcher to ask")
-        return self.launcher.call("agent", AGENT_TIMEOUT, op=op, args=args)
+        return self.launcher.call("agent", AGENT_TIMEOUT, request=op, args=args)
 
     def _republished(self, link: Any, endpoint: tuple[str, str, bytes]) -> None:
         # Called during a restart, under the executor's lock: the launcher may be

@@ -267,7 +267,7 @@ class Running:
         if op == "migrate":
             return vars(self.migrate(args["name"], args["to"]))
         if op == "agent":                      # an agent on a remote node
-            return self._agent_request(args["op"], args["args"])
+            return self._agent_request(args["request"], args["args"])
         if op == "republished":                # a writer restarted on a remote node
             threading.Thread(target=self._launcher.republished, daemon=True,
                              args=(args["link"], args["endpoint"])).start()

@@ -19,7 +19,7 @@ REFRESH_S = 1.0
 
 
 def format_table(stats: dict[str, Any]) -> str:
-    """The status table: one row per module, then one per link."""
+    """The status table: one row per module, one per link, one per remote node."""
     rows = [("module", "node", "pid", "status", "steps", "events", "cpu s", "errors")]
     for name, m in stats["modules"].items():
         status = m["status"] + (f" (restarts {m['restarts']})" if m["restarts"] else "")
@@ -36,6 +36,15 @@ def format_table(stats: dict[str, Any]) -> str:
                               str(link["drops"]),
                               "-" if math.isnan(latency) else f"{latency * 1e6:.0f} us"))
         lines += _columns(link_rows)
+    remote = {name: h for name, h in stats.get("nodes", {}).items() if h.get("address")}
+    if remote:
+        lines.append("")
+        node_rows = [("node", "address", "health", "rtt")]
+        for name, health in remote.items():
+            rtt = health["rtt"]
+            node_rows.append((name, health["address"], "up" if health["up"] else "LOST",
+                              "-" if math.isnan(rtt) else f"{rtt * 1e3:.1f} ms"))
+        lines += _columns(node_rows)
     for failure in stats["failures"][-5:]:
         lines.append(f"! {failure}")
     return "\n".join(lines)
