@@ -10,10 +10,14 @@ reader got every value once and in order.
 
 Baseline in the same run: a ``swap`` of the same module (an in-place change of code
 with the same pause-and-resume, but no new process and no re-wiring).
+
+``--controller``: node ``b`` runs behind a node controller (its own executor process,
+every operation an authenticated request) instead of being embedded.
 """
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import time
 from pathlib import Path
@@ -25,15 +29,29 @@ from _common import machine, main_guard, percentile, steal_report, steal_seconds
 from _modules import Clock, MigrationRelay, OrderedReader
 
 from pb3a import System
+from pb3a.runtime.node import Limits, NodeController
+from pb3a.transport.auth import ClusterKey
 
 REPS = 40
 
 
 def body(result: dict[str, Any]) -> None:
-    result.update(benchmark="migration", machine=machine(), reps=REPS)
+    remote = "--controller" in sys.argv
+    with contextlib.ExitStack() as stack:
+        address = None
+        if remote:
+            controller = NodeController("b", ClusterKey.load(), limits=Limits(101.0))
+            stack.callback(controller.close)
+            address = controller.address
+        measure(result, address)
+
+
+def measure(result: dict[str, Any], address: str | None) -> None:
+    result.update(benchmark="migration", machine=machine(), reps=REPS,
+                  node_b="node controller" if address else "embedded")
     system = System("bench-migration")
     system.node("a")
-    system.node("b")
+    system.node("b", address=address)
     system.add("clock", Clock, node="a", period=0.001)
     system.add("relay", MigrationRelay, node="a")
     system.add("reader", OrderedReader, node="a")
