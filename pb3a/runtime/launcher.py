@@ -34,6 +34,7 @@ log = logging.getLogger("pb3a.launcher")
 HEARTBEAT_S = 0.25      # how often the launcher pings each remote node
 LOSS_S = 2.0            # no answer for this long: the node is lost (reported within 3 s)
 ENV_EVERY = 4           # heartbeats between two updates of the env modules' node table
+SETTLE_S = 1.0          # how long a read waits for a change in progress
 
 
 class Launcher:
@@ -93,6 +94,19 @@ class Launcher:
         if self.handler is None:
             raise RuntimeFailure("this system takes no requests from agents")
         return self.handler(op, args)
+
+    @contextlib.contextmanager
+    def settled(self, timeout: float = SETTLE_S) -> Iterator[None]:
+        """Hold the configuration lock for a read if it comes within ``timeout``, so that
+        a read does not see a change (a migration, say) half done. A read an agent
+        makes while its own module is being moved must not wait for that move (it
+        waits for the agent), so after ``timeout`` the read goes on without it."""
+        held = self.lock.acquire(timeout=timeout)
+        try:
+            yield
+        finally:
+            if held:
+                self.lock.release()
 
     def node_of(self, name: str) -> Executor | RemoteNode:
         """The executor of the node module ``name`` runs on."""

@@ -108,7 +108,8 @@ class Running:
     # -- state -------------------------------------------------------------------
     def state(self, name: str) -> dict[str, Any]:
         """The module's live state (taken under its lock)."""
-        return self._launcher.call(name, "get_state")
+        with self._launcher.settled():
+            return self._launcher.call(name, "get_state")
 
     def set_state(self, name: str, **state: Any) -> None:
         """Set state attributes of a running module, between two of its calls."""
@@ -286,7 +287,8 @@ class Running:
     # -- figures ---------------------------------------------------------------------
     def stats(self) -> dict[str, Any]:
         """Per module: steps, events, CPU time, errors; per link: values, drops, latency, rate."""
-        return {"system": self.name, **self._launcher.stats()}
+        with self._launcher.settled():
+            return {"system": self.name, **self._launcher.stats()}
 
 
 def _reachable_from(address: str) -> str:
