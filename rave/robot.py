@@ -1,0 +1,153 @@
+"""``Robot``: one robot as a controller sees it, whichever back end serves it.
+
+The same calls drive a simulated robot and a hardware one (``backend`` is chosen at
+``add_robot`` and may be swapped while running: the controller keeps its
+``Robot`` and notices nothing but the physics). ``gps`` and ``others`` are virtual
+sensors with no physical analogue.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from rave import camera
+from rave.hardware import FAULTS, HardwareBody
+from rave.odometry import Odometer
+from rave.simulated import SimulatedBody
+
+if TYPE_CHECKING:
+    from rave.world import World
+
+BACKENDS = ("sim", "hardware")
+MAX_SPEED = 1.5                     # m/s (a Pioneer 3-DX does 1.2 with a margin)
+MAX_TURN = math.radians(300.0)      # rad/s
+
+
+class Robot:
+    """Drive it, read its sensors; ``swap`` its back end while it runs."""
+
+    def __init__(self, world: World, name: str, pose: tuple[float, float, float], *,
+                 backend: str, color: str, index: int) -> None:
+        _check_backend(name, backend)
+        camera.rgb(color)                                   # a clear error now, not later
+        self.world, self.name, self.color = world, name, color
+        self.rng = np.random.default_rng([world.seed, index])
+        self.odometer = Odometer(pose, self.rng)
+        self._command = (0.0, 0.0)
+        self._body = self._make(backend, pose, self._command)
+
+    def _make(self, backend: str, pose: tuple[float, float, float],
+              velocity: tuple[float, float]) -> SimulatedBody | HardwareBody:
+        if backend == "sim":
+            body: SimulatedBody | HardwareBody = SimulatedBody(self.world, self.name, pose,
+                                                               velocity)
+        else:
+            body = HardwareBody(self.world, self.name, pose, self.rng, velocity)
+        body.command(*self._command)
+        return body
+
+    @property
+    def backend(self) -> str:
+        """``"sim"`` or ``"hardware"``."""
+        return self._body.kind
+
+    # -- actuators -------------------------------------------------------------------
+    def drive(self, v: float, w: float) -> None:
+        """Go at ``v`` m/s forward and turn at ``w`` rad/s (left positive), clipped to
+        the robot's limits; the command holds until the next one."""
+        if not (math.isfinite(v) and math.isfinite(w)):
+            raise ValueError(f"robot {self.name}: drive({v}, {w}) needs finite speeds")
+        self._command = (max(-MAX_SPEED, min(MAX_SPEED, v)), max(-MAX_TURN, min(MAX_TURN, w)))
+        self._body.command(*self._command)
+
+    def stop(self) -> None:
+        self.drive(0.0, 0.0)
+
+    # -- sensors ---------------------------------------------------------------------
+    def sonar(self) -> np.ndarray:
+        """16 ranges in metres, Pioneer ring order (0-7 front, left to right; 8-15
+        rear, right round to left), 0.1-5 m; 5 m means no echo."""
+        return self._body.sonar(self.rng)
+
+    def odometry(self) -> tuple[float, float, float]:
+        """Dead-reckoned (x, y, heading) from the wheels, drifting as real ones do."""
+        return self.odometer.pose()
+
+    def camera(self, hue: float | None = None, tolerance: float = 15.0) -> list[camera.Blob]:
+        """Colour blobs in view (60 degrees, 8 m), nearest first; only those within
+        ``tolerance`` degrees of ``hue`` when given."""
+        return camera.look(self.gps(), self.world.targets(exclude=self.name),
+                           self.world.segments(), hue, tolerance)
+
+    def gps(self) -> tuple[float, float, float]:
+        """(Virtual) the robot's pose in the world: exact for a simulated robot, as
+        reported by the localization system for a hardware one."""
+        return self._body.pose()
+
+    def velocity(self) -> tuple[float, float, float]:
+        """(Virtual) (vx, vy, angular velocity) in the world frame."""
+        return self._body.velocity()
+
+    def others(self) -> dict[str, tuple[float, float, float, float]]:
+        """(Virtual) every other robot's (x, y, vx, vy)."""
+        return {name: (*robot.gps()[:2], *robot.velocity()[:2])
+                for name, robot in self.world.robots.items() if name != self.name}
+
+    # -- back ends and faults ----------------------------------------------------------
+    def swap(self, backend: str) -> None:
+        """Serve this robot by the other back end from now on, at its current pose and
+        speed; commands, odometry and the controller's handle carry over."""
+        _check_backend(self.name, backend)
+        if backend == self.backend:
+            return
+        pose, (vx, vy, w) = self._body.pose(), self._body.velocity()
+        self._body.close()
+        self._body = self._make(backend, pose, (math.hypot(vx, vy), w))
+
+    def inject(self, fault: str, **params: Any) -> None:
+        """Inject a fault into a hardware robot: ``motors_off``, ``sonar_dead``
+        (``sonars=[i, ...]``, all by default) or ``odometry_bias`` (``bias`` rad/m)."""
+        emulator = self._emulator(fault)
+        if fault == "sonar_dead":
+            emulator.faults[fault] = tuple(params.get("sonars", range(16)))
+        elif fault == "odometry_bias":
+            self.odometer.bias = float(params.get("bias", 0.05))
+            emulator.faults[fault] = self.odometer.bias
+        else:
+            emulator.faults[fault] = True
+
+    def clear(self, fault: str | None = None) -> None:
+        """Remove one fault, or all of them."""
+        emulator = self._emulator(fault)
+        for name in [fault] if fault else list(emulator.faults):
+            emulator.faults.pop(name, None)
+            if name == "odometry_bias":
+                self.odometer.bias = 0.0
+
+    def _emulator(self, fault: str | None) -> Any:
+        if fault is not None and fault not in FAULTS:
+            raise ValueError(f"robot {self.name}: unknown fault {fault!r}; faults: "
+                             f"{', '.join(FAULTS)}")
+        if not isinstance(self._body, HardwareBody):
+            raise ValueError(f"robot {self.name} is simulated: faults are injected into "
+                             "hardware robots (swap it to 'hardware' first)")
+        return self._body.emulator
+
+    # -- the world's step -------------------------------------------------------------
+    def _advance(self, dt: float) -> None:
+        self._body.advance(dt)
+
+    def _moved(self, dt: float) -> None:
+        self.odometer.advance(*self._body.moved(dt))
+
+    def _close(self) -> None:
+        self._body.close()
+
+
+def _check_backend(name: str, backend: str) -> None:
+    if backend not in BACKENDS:
+        raise ValueError(f"robot {name}: backend must be one of {', '.join(BACKENDS)}, "
+                         f"not {backend!r}")

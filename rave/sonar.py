@@ -1,0 +1,81 @@
+"""The Pioneer 3-DX sonar ring and the sonar model: a cone of rays per transducer.
+
+Order follows the Pioneer ring: 0-7 the front array from +90 deg (left) to -90 deg
+(right), 8-15 the rear array from -90 deg round to +90 deg. Each reading is the
+nearest echo among ``RAYS`` rays spread over the transducer's ``CONE``; on a
+hardware robot a ray striking a smooth surface beyond ``SPECULAR_DEG`` from its
+normal returns no echo (specular reflection), so a grazing wall may read as
+nothing at all. Ranges are clipped to [``MIN_RANGE``, ``MAX_RANGE``]; no echo reads
+``MAX_RANGE``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from rave import raycast
+
+# (x mm, y mm, heading deg) of each transducer in the robot's frame (ARIA p3dx.p)
+RING_MM = np.array([
+    (69, 136, 90), (114, 119, 50), (148, 78, 30), (166, 27, 10),
+    (166, -27, -10), (148, -78, -30), (114, -119, -50), (69, -136, -90),
+    (-157, -136, -90), (-203, -119, -130), (-237, -78, -150), (-255, -27, -170),
+    (-255, 27, 170), (-237, 78, 150), (-203, 119, 130), (-157, 136, 90),
+], dtype=np.float64)
+RING = np.column_stack([RING_MM[:, :2] / 1000.0, np.radians(RING_MM[:, 2])])
+COUNT = len(RING)
+MIN_RANGE, MAX_RANGE = 0.1, 5.0
+CONE = math.radians(30.0)
+RAYS = 5
+SPECULAR_DEG = 20.0
+_SPREAD = np.linspace(-CONE / 2, CONE / 2, RAYS)
+
+
+@dataclass
+class SonarNoise:
+    """How a reading departs from the geometric range."""
+
+    sigma0: float = 0.01          # m
+    sigma_per_m: float = 0.01     # m of standard deviation per m of range
+    dropout: float = 0.0          # probability that a reading returns no echo
+    specular: bool = False        # grazing rays return no echo
+    quantum: float = 0.001        # readings are whole millimetres
+
+
+def rays(pose: tuple[float, float, float], which: np.ndarray | None = None,
+         ) -> tuple[np.ndarray, np.ndarray]:
+    """Origins and unit directions of the cone rays of transducers ``which`` (all by
+    default) for a robot at ``pose``: shape (len(which) * RAYS, 2) each."""
+    x, y, theta = pose
+    ring = RING if which is None else RING[which]
+    c, s = math.cos(theta), math.sin(theta)
+    ox = x + c * ring[:, 0] - s * ring[:, 1]
+    oy = y + s * ring[:, 0] + c * ring[:, 1]
+    angles = (theta + ring[:, 2])[:, None] + _SPREAD[None, :]
+    origins = np.repeat(np.column_stack([ox, oy]), RAYS, axis=0)
+    directions = np.column_stack([np.cos(angles).ravel(), np.sin(angles).ravel()])
+    return origins, directions
+
+
+def read(pose: tuple[float, float, float], segments: np.ndarray, discs: np.ndarray | None,
+         noise: SonarNoise, rng: np.random.Generator, which: np.ndarray | None = None,
+         ) -> np.ndarray:
+    """The readings of transducers ``which`` (all by default) against ``segments`` and
+    ``discs``, in metres."""
+    origins, directions = rays(pose, which)
+    hits = raycast.cast(origins, directions, MAX_RANGE, segments, discs)
+    ranges = hits.ranges
+    if noise.specular:
+        grazing = hits.incidence_cos < math.cos(math.radians(SPECULAR_DEG))
+        ranges = np.where(grazing, np.inf, ranges)
+    nearest = ranges.reshape(-1, RAYS).min(axis=1)
+    echo = np.isfinite(nearest)
+    sigma = noise.sigma0 + noise.sigma_per_m * np.where(echo, nearest, 0.0)
+    noisy = nearest + rng.normal(0.0, 1.0, len(nearest)) * sigma
+    if noise.dropout:
+        echo &= rng.random(len(nearest)) >= noise.dropout
+    readings = np.where(echo, np.clip(noisy, MIN_RANGE, MAX_RANGE), MAX_RANGE)
+    return np.round(readings / noise.quantum) * noise.quantum

@@ -1,0 +1,183 @@
+"""``World``: RAVE's world model, a 2D world in pymunk stepped at a fixed rate.
+
+It holds the walls and obstacles (each real or ``virtual``: a virtual one exists only
+here, so simulated robots and the virtual half of hybrid sensors sense it, and real
+robots' bodies pass through it), the simulated robots, and where the hardware robots
+report to be. Stepping is deterministic for a given seed: the same calls give the
+same poses and readings.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pymunk
+
+from rave.camera import Target
+from rave.hardware import HardwareBody
+from rave.layers import REAL, VIRTUAL, WALL_RADIUS
+from rave.robot import Robot
+from rave.simulated import RADIUS
+
+PHYSICS_DT = 0.01                    # s: physics runs at 100 Hz whatever step() is given
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    """A wall (two points) or a closed polygon (box or polygon), real or virtual."""
+
+    points: tuple[tuple[float, float], ...]
+    closed: bool
+    virtual: bool = False
+    color: str | None = None
+
+    def edges(self) -> list[tuple[float, float, float, float]]:
+        pts = list(self.points) + ([self.points[0]] if self.closed else [])
+        return [(*a, *b) for a, b in itertools.pairwise(pts)]
+
+
+class World:
+    """Walls, obstacles and robots; ``step(dt)`` advances simulated time."""
+
+    def __init__(self, size: tuple[float, float] = (10.0, 8.0), seed: int = 0,
+                 name: str = "world") -> None:
+        self.size, self.seed, self.name = (float(size[0]), float(size[1])), int(seed), name
+        self.space = pymunk.Space()
+        self.obstacles: list[Obstacle] = []
+        self.robots: dict[str, Robot] = {}
+        self.time = 0.0
+        self._steps = 0
+        self._debt = 0.0
+        self._segments: dict[tuple[bool, bool], np.ndarray] = {}
+
+    @classmethod
+    def load(cls, path: str | Path, seed: int = 0) -> World:
+        """A world from a TOML world file (see ``rave/worldfile.py``)."""
+        from rave.worldfile import load
+        return load(Path(path), seed)
+
+    # -- building -----------------------------------------------------------------
+    def add_wall(self, start: tuple[float, float], end: tuple[float, float], *,
+                 virtual: bool = False) -> None:
+        self._add(Obstacle((_point(start), _point(end)), closed=False, virtual=virtual))
+
+    def add_box(self, center: tuple[float, float], size: tuple[float, float], *,
+                angle: float = 0.0, virtual: bool = False, color: str | None = None) -> None:
+        """A rectangle of ``size`` (width, height) around ``center``, turned by ``angle``
+        radians."""
+        (cx, cy), (w, h) = _point(center), _point(size)
+        c, s = math.cos(angle), math.sin(angle)
+        corners = [(dx * w / 2, dy * h / 2) for dx, dy in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+        points = tuple((cx + c * x - s * y, cy + s * x + c * y) for x, y in corners)
+        self._add(Obstacle(points, closed=True, virtual=virtual, color=color))
+
+    def add_polygon(self, points: list[tuple[float, float]], *, virtual: bool = False,
+                    color: str | None = None) -> None:
+        if len(points) < 3:
+            raise ValueError(f"a polygon needs at least 3 points, not {len(points)}")
+        self._add(Obstacle(tuple(_point(p) for p in points), closed=True, virtual=virtual,
+                           color=color))
+
+    def _add(self, obstacle: Obstacle) -> None:
+        layer = VIRTUAL if obstacle.virtual else REAL
+        for x0, y0, x1, y1 in obstacle.edges():
+            shape = pymunk.Segment(self.space.static_body, (x0, y0), (x1, y1), WALL_RADIUS)
+            shape.filter = pymunk.ShapeFilter(categories=layer)
+            shape.friction = 0.0
+            self.space.add(shape)
+        self.obstacles.append(obstacle)
+        self._segments.clear()
+        if not obstacle.virtual:                 # hardware robots' physical worlds too
+            edges = np.array(obstacle.edges(), dtype=np.float64)
+            for robot in self.robots.values():
+                if isinstance(robot._body, HardwareBody):
+                    robot._body.emulator.add_walls(edges)
+
+    def add_robot(self, name: str, pose: tuple[float, float, float], *, backend: str = "sim",
+                  color: str = "red") -> Robot:
+        """A robot at ``pose`` (x, y, heading in radians) served by ``backend`` ("sim" or
+        "hardware")."""
+        if name in self.robots:
+            raise ValueError(f"world {self.name} has a robot {name!r} already")
+        robot = Robot(self, name, (float(pose[0]), float(pose[1]), float(pose[2])),
+                      backend=backend, color=color, index=len(self.robots))
+        self.robots[name] = robot
+        return robot
+
+    def remove_robot(self, name: str) -> None:
+        self.robot(name)._close()
+        del self.robots[name]
+
+    def robot(self, name: str) -> Robot:
+        try:
+            return self.robots[name]
+        except KeyError:
+            raise KeyError(f"world {self.name} has no robot {name!r}; robots: "
+                           f"{', '.join(self.robots) or '(none)'}") from None
+
+    # -- time ---------------------------------------------------------------------
+    def step(self, dt: float) -> None:
+        """Advance simulated time by ``dt`` seconds in fixed physics steps (a remainder
+        shorter than one is carried to the next call)."""
+        if not dt >= 0:
+            raise ValueError(f"step({dt}): time only goes forward")
+        self._debt += dt
+        while self._debt >= PHYSICS_DT - 1e-12:
+            self._debt -= PHYSICS_DT
+            robots = list(self.robots.values())
+            for robot in robots:
+                robot._advance(PHYSICS_DT)
+            self.space.step(PHYSICS_DT)
+            for robot in robots:
+                robot._moved(PHYSICS_DT)
+            self._steps += 1
+            self.time = self._steps * PHYSICS_DT
+
+    # -- what sensors see -----------------------------------------------------------------
+    def pose(self, name: str) -> tuple[float, float, float]:
+        """Ground truth (x, y, heading) of a robot (a hardware robot's reported pose)."""
+        return self.robot(name).gps()
+
+    def segments(self, real: bool = True, virtual: bool = True) -> np.ndarray:
+        """Every edge of the obstacles of the chosen layers, shape (n, 4)."""
+        key = (real, virtual)
+        cached = self._segments.get(key)
+        if cached is None:
+            edges = [edge for o in self.obstacles if (virtual if o.virtual else real)
+                     for edge in o.edges()]
+            cached = self._segments[key] = np.array(edges, dtype=np.float64).reshape(-1, 4)
+        return cached
+
+    def discs(self, exclude: str | None = None) -> np.ndarray:
+        """Every robot but ``exclude`` as (x, y, radius), shape (m, 3)."""
+        return np.array([(*robot.gps()[:2], RADIUS) for name, robot in self.robots.items()
+                         if name != exclude], dtype=np.float64).reshape(-1, 3)
+
+    def targets(self, exclude: str | None = None) -> list[Target]:
+        """What cameras may see: every other robot, and coloured obstacles (as discs)."""
+        found = [Target(*robot.gps()[:2], RADIUS, robot.color)
+                 for name, robot in self.robots.items() if name != exclude]
+        for obstacle in self.obstacles:
+            if obstacle.color is not None:
+                pts = np.asarray(obstacle.points)
+                center = pts.mean(axis=0)
+                radius = float(np.hypot(*(pts - center).T).max())
+                found.append(Target(float(center[0]), float(center[1]), radius, obstacle.color))
+        return found
+
+    def describe(self) -> dict[str, Any]:
+        """The world as plain data (for rendering and robot servers)."""
+        return {"name": self.name, "size": self.size, "time": self.time,
+                "obstacles": [vars(o) for o in self.obstacles],
+                "robots": {name: {"pose": r.gps(), "backend": r.backend, "color": r.color}
+                           for name, r in self.robots.items()}}
+
+
+def _point(value: Any) -> tuple[float, float]:
+    x, y = value
+    return (float(x), float(y))

@@ -1,0 +1,232 @@
+"""RAVE's simulator core: sonar geometry, hybrid sensing, the two back ends, faults,
+back-end swap, the camera, world files and determinism."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from rave import World, WorldError, sonar
+from rave.sonar import SonarNoise
+
+EXACT = SonarNoise(sigma0=0.0, sigma_per_m=0.0)
+POSE = (2.0, 2.0, 0.0)
+
+
+def _expected(transducer: int, wall_x: float, pose=POSE) -> float:
+    """The nearest cone ray's range to the vertical wall x = wall_x, computed apart."""
+    x, _, theta = pose
+    ox, oy, heading = sonar.RING[transducer]
+    angles = theta + heading + np.radians(np.linspace(-15, 15, 5))
+    origin_x = x + ox * math.cos(theta) - oy * math.sin(theta)
+    ranges = (wall_x - origin_x) / np.cos(angles)
+    ranges = ranges[(ranges > 0) & (ranges <= 5.0)]
+    return float(ranges.min()) if len(ranges) else 5.0
+
+
+def test_sonar_ranges_match_the_geometry_of_walls_the_cone_and_the_maximum_range() -> None:
+    wall = np.array([[4.0, -10.0, 4.0, 10.0]])
+    readings = sonar.read(POSE, wall, None, EXACT, np.random.default_rng(0))
+    for transducer in range(8):
+        assert readings[transducer] == pytest.approx(_expected(transducer, 4.0), abs=0.0011)
+    assert readings[3] == pytest.approx(1.836, abs=0.001)      # 10 deg: the cone's -5..25
+    assert readings[0] == readings[7] == sonar.MAX_RANGE        # parallel: beyond 5 m
+    assert (readings[8:] == sonar.MAX_RANGE).all()              # the rear sees nothing
+    turned = sonar.read((2.0, 2.0, math.radians(40)), wall, None, EXACT,
+                        np.random.default_rng(0))
+    assert turned[5] == pytest.approx(_expected(5, 4.0, (2.0, 2.0, math.radians(40))),
+                                      abs=0.0011)               # a wall seen at an angle
+    near = sonar.read((3.8, 2.0, 0.0), wall, None, EXACT, np.random.default_rng(0))
+    assert near[3] == sonar.MIN_RANGE                           # closer than 0.1 m
+
+
+def test_a_grazing_wall_returns_no_echo_on_hardware_but_does_in_simulation() -> None:
+    corridor = np.array([[-10.0, 2.5, 10.0, 2.5]])              # along the heading
+    specular = SonarNoise(sigma0=0.0, sigma_per_m=0.0, specular=True)
+    rng = np.random.default_rng(0)
+    ideal = sonar.read(POSE, corridor, None, EXACT, rng)
+    real = sonar.read(POSE, corridor, None, specular, rng)
+    assert ideal[2] == pytest.approx(0.597, abs=0.002)          # 30 deg: grazing rays
+    assert real[2] == sonar.MAX_RANGE                           # ... reflected away
+    assert real[0] == pytest.approx(2.5 - 2.136, abs=0.002)     # head-on still echoes
+
+
+def test_hybrid_sonar_is_the_nearer_of_real_and_virtual_and_the_real_part_ignores_virtual(
+        ) -> None:
+    world = World(size=(10, 8), seed=4)
+    world.add_wall((6, 0), (6, 8))                              # real
+    world.add_wall((4, 0), (4, 8), virtual=True)                # only in the world model
+    robot = world.add_robot("hw", POSE, backend="hardware")
+    world.step(0.5)                                             # every transducer fired
+    real = robot._body.emulator.sonar()
+    hybrid = robot.sonar()
+    assert min(real[3], real[4]) == pytest.approx(_expected(3, 6.0), abs=0.15)
+    assert min(hybrid[3], hybrid[4]) == pytest.approx(_expected(3, 4.0), abs=0.05)
+    assert (hybrid <= real).all()
+    far = World(size=(10, 8), seed=4)
+    far.add_wall((6, 0), (6, 8))
+    far.add_wall((7, 0), (7, 8), virtual=True)                  # behind the real wall
+    robot = far.add_robot("hw", POSE, backend="hardware")
+    far.step(0.5)
+    np.testing.assert_array_equal(robot.sonar()[:8], robot._body.emulator.sonar()[:8])
+
+
+def test_a_simulated_robot_stops_at_a_virtual_wall_that_a_hardware_robot_passes() -> None:
+    world = World(size=(10, 8), seed=1)
+    world.add_wall((4, 0), (4, 8), virtual=True)
+    sim = world.add_robot("sim", (2.0, 2.0, 0.0), backend="sim")
+    hw = world.add_robot("hw", (2.0, 5.0, 0.0), backend="hardware")
+    world.step(0.5)
+    sensed = min(hw.sonar()[3:5])          # its hybrid sonar does see the virtual wall
+    for robot in (sim, hw):
+        robot.drive(0.5, 0.0)
+    world.step(8.0)
+    assert sensed == pytest.approx(_expected(3, 4.0, (2.0, 5.0, 0.0)), abs=0.05)
+    assert world.pose("sim")[0] == pytest.approx(4.0 - 0.02 - 0.25, abs=0.02)
+    assert world.pose("hw")[0] > 5.0                            # its body passed
+
+
+def test_step_response_is_immediate_in_simulation_and_second_order_on_hardware() -> None:
+    world = World(size=(40, 8), seed=2)
+    sim = world.add_robot("sim", (1.0, 2.0, 0.0), backend="sim")
+    hw = world.add_robot("hw", (1.0, 6.0, 0.0), backend="hardware")
+    sim.drive(0.5, 0.0)
+    hw.drive(0.5, 0.0)
+    speeds = []
+    for _ in range(400):
+        world.step(0.01)
+        speeds.append((sim.velocity()[0], hw.velocity()[0]))
+    sim_v, hw_v = np.array(speeds).T
+    assert np.allclose(sim_v, 0.5)                              # from the first step
+    assert hw_v[9] < 0.05                                       # 0.1 s: barely started
+    assert np.all(np.diff(hw_v[:150]) <= 0.3 * 0.01 * 1.1)      # acceleration limit (+slip)
+    assert hw_v[-1] == pytest.approx(0.5, rel=0.03)              # settles, slip aside
+    assert hw_v.max() <= 0.5 + 1e-9                              # no overshoot
+
+
+def test_motors_off_leaves_the_robot_still_while_odometry_and_commands_go_on() -> None:
+    world = World(size=(20, 8), seed=3)
+    robot = world.add_robot("hw", (1.0, 4.0, 0.0), backend="hardware")
+    robot.drive(0.4, 0.0)
+    world.step(3.0)
+    robot.inject("motors_off")
+    world.step(0.05)                        # (the step it is injected in still moves)
+    still, odometry = world.pose("hw"), robot.odometry()
+    robot.drive(0.6, 0.2)                   # commands are still taken
+    world.step(2.0)
+    assert world.pose("hw") == pytest.approx(still, abs=1e-6)
+    assert robot.odometry() == pytest.approx(odometry, abs=1e-6)
+    assert len(robot.sonar()) == 16
+    robot.clear("motors_off")
+    world.step(2.0)
+    assert world.pose("hw")[0] > still[0] + 0.3                 # the last command resumes
+    with pytest.raises(ValueError, match="unknown fault 'smoke'"):
+        robot.inject("smoke")
+    with pytest.raises(ValueError, match="faults are injected into hardware robots"):
+        world.add_robot("sim", (5.0, 2.0, 0.0)).inject("motors_off")
+
+
+def test_dead_sonars_and_odometry_bias_are_injected_and_cleared() -> None:
+    world = World(size=(10, 8), seed=3)
+    world.add_wall((4, 0), (4, 8))
+    robot = world.add_robot("hw", POSE, backend="hardware")
+    world.step(0.5)
+    robot.inject("sonar_dead", sonars=[3, 4])
+    assert robot.sonar()[3] == robot.sonar()[4] == sonar.MAX_RANGE
+    assert robot.sonar()[2] < sonar.MAX_RANGE
+    robot.inject("odometry_bias", bias=0.2)
+    robot.drive(0.5, 0.0)
+    world.step(2.0)
+    assert abs(robot.odometry()[2] - world.pose("hw")[2]) > 0.1  # heading drifts per metre
+    robot.clear()
+    assert robot.sonar()[3] < sonar.MAX_RANGE
+
+
+def test_a_back_end_swap_mid_run_leaves_the_controller_untouched() -> None:
+    world = World(size=(20, 20), seed=5)
+    robot = world.add_robot("r", (10.0, 10.0, 0.0), backend="sim")
+
+    def controller(seconds: float) -> None:              # knows only its Robot handle
+        for _ in range(int(seconds * 10)):
+            robot.drive(0.3, 0.3 if min(robot.sonar()[2:6]) > 1.0 else 1.0)
+            world.step(0.1)
+
+    controller(2.0)
+    before = world.pose("r")
+    robot.swap("hardware")
+    assert robot.backend == "hardware" and world.pose("r") == pytest.approx(before)
+    controller(2.0)
+    moved = world.pose("r")
+    robot.swap("sim")
+    controller(1.0)
+    assert robot.backend == "sim"
+    assert math.dist(before[:2], moved[:2]) > 0.3
+    assert math.dist(moved[:2], world.pose("r")[:2]) > 0.1
+    with pytest.raises(ValueError, match="backend must be one of sim, hardware"):
+        robot.swap("quantum")
+
+
+def test_the_camera_finds_a_coloured_robot_at_its_bearing_unless_hidden() -> None:
+    world = World(size=(10, 8), seed=6)
+    watcher = world.add_robot("watcher", POSE, color="red")
+    world.add_robot("target", (4.0, 3.0, 0.0), color="blue")
+    (blob,) = watcher.camera()
+    assert blob.bearing == pytest.approx(math.atan2(1.0, 2.0), abs=1e-9)
+    assert blob.hue == pytest.approx(240.0)
+    assert blob.size == pytest.approx(2 * math.asin(0.25 / math.hypot(2.0, 1.0)))
+    assert watcher.camera(hue=240.0) == [blob] and watcher.camera(hue=0.0) == []
+    world.add_wall((3.0, 2.0), (3.0, 4.0))
+    assert watcher.camera() == []                               # behind a wall
+    assert watcher.others()["target"][:2] == pytest.approx((4.0, 3.0))
+
+
+def test_the_same_seed_gives_the_same_run_and_another_seed_other_noise() -> None:
+    def run(seed: int) -> np.ndarray:
+        world = World.load("rave/worlds/arena.toml", seed=seed)
+        readings = []
+        for i in range(30):
+            for robot in world.robots.values():
+                robot.drive(0.4, 0.5 if i % 10 < 5 else -0.5)
+                readings.append(robot.sonar())
+            world.step(0.1)
+            readings.append(np.array([c for r in world.robots for c in world.pose(r)]))
+        return np.concatenate(readings)
+
+    assert np.array_equal(run(5), run(5))
+    assert not np.array_equal(run(5), run(6))
+
+
+def test_bundled_worlds_load_and_a_bad_world_file_reports_every_problem(tmp_path) -> None:
+    for name in ("arena", "lab"):
+        world = World.load(f"rave/worlds/{name}.toml")
+        assert world.obstacles and world.robots
+        assert any(o.virtual for o in world.obstacles)
+    bad = tmp_path / "bad.toml"
+    bad.write_text("""
+size = [10, -1]
+colour = "red"
+[[walls]]
+from = [0, 0]
+[[boxes]]
+center = [1, 1]
+size = [1, 1]
+color = "mauve"
+[[robots]]
+name = "r1"
+pose = [1, 1]
+backend = "holographic"
+[[robots]]
+name = "r1"
+pose = [2, 2, 0]
+""")
+    with pytest.raises(WorldError) as error:
+        World.load(bad)
+    problems = error.value.problems
+    for expected in ("unknown key 'colour'", "size must be [width, height]",
+                     "walls[0]: to must be [x, y]", "boxes[0]: unknown colour 'mauve'",
+                     "robots[0]: pose must be [x, y, heading in degrees]",
+                     "robots[0]: backend must be one of sim, hardware",
+                     "robots[1]: a robot named 'r1' comes earlier"):
+        assert any(expected in p for p in problems), (expected, problems)
