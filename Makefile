@@ -24,7 +24,7 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	mkdir -p bench/results
-	for b in local_link latency startup migration; do \
+	for b in local_link latency startup migration rave_world; do \
 	  $(BIN)/python bench/$$b.py > bench/results/$$b.json || exit 1; done
 	@echo "results in bench/results/*.json"
 

@@ -24,10 +24,12 @@ import numpy as np
 import pymunk
 
 from rave import sonar
+from rave.fleet import NOISE
 from rave.layers import REAL, ROBOT, WALL_RADIUS
-from rave.simulated import MASS, NOISE, RADIUS
+from rave.simulated import MASS, RADIUS
 
 if TYPE_CHECKING:
+    from rave.odometry import Odometer
     from rave.world import World
 
 FAULTS = ("motors_off", "sonar_dead", "odometry_bias")
@@ -141,14 +143,15 @@ class HardwareBody:
     kind = "hardware"
 
     def __init__(self, world: World, name: str, pose: tuple[float, float, float],
-                 rng: np.random.Generator, velocity: tuple[float, float] = (0.0, 0.0)) -> None:
-        self.world, self.name = world, name
+                 odometer: Odometer, rng: np.random.Generator,
+                 velocity: tuple[float, float] = (0.0, 0.0)) -> None:
+        self.world, self.name, self.odometer = world, name, odometer
         self.emulator = Emulator(world.segments(virtual=False), pose, rng, velocity)
         self.body = pymunk.Body(body_type=pymunk.Body.KINEMATIC)
         self.shape = pymunk.Circle(self.body, RADIUS)
         self.shape.filter = pymunk.ShapeFilter(categories=ROBOT, mask=ROBOT)
         world.space.add(self.body, self.shape)
-        self._measured = (0.0, 0.0)
+        world.hardware.append(self)
         self._place()
 
     def _place(self) -> None:
@@ -162,15 +165,14 @@ class HardwareBody:
         self.emulator.command(v, w)
 
     def advance(self, dt: float) -> None:
-        """Step the physical robot. Its stand-in in the world model is placed where the
-        robot was, moving as it was, so the world's step carries it to about where
-        the robot now is (kinematic bodies push simulated ones by their velocity)."""
+        """Step the physical robot and its odometry. Its stand-in in the world model is
+        placed where the robot was, moving as it was, so the world's step carries it
+        to about where the robot now is (kinematic bodies push by their velocity)."""
         self._place()
-        self._measured = self.emulator.step(dt)
+        self.odometer.advance(*self.emulator.step(dt))
 
-    def moved(self, dt: float) -> tuple[float, float]:
-        """What the wheel encoders measured over the last step (distance, rotation)."""
-        return self._measured
+    def odometry(self) -> tuple[float, float, float]:
+        return self.odometer.pose()
 
     def pose(self) -> tuple[float, float, float]:
         return self.emulator.pose()
@@ -186,4 +188,5 @@ class HardwareBody:
         return np.minimum(self.emulator.sonar(), virtual)
 
     def close(self) -> None:
+        self.world.hardware.remove(self)
         self.world.space.remove(self.body, self.shape)

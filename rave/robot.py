@@ -42,10 +42,10 @@ class Robot:
     def _make(self, backend: str, pose: tuple[float, float, float],
               velocity: tuple[float, float]) -> SimulatedBody | HardwareBody:
         if backend == "sim":
-            body: SimulatedBody | HardwareBody = SimulatedBody(self.world, self.name, pose,
-                                                               velocity)
+            body: SimulatedBody | HardwareBody = SimulatedBody(
+                self.world, self.name, pose, self.odometer, velocity)
         else:
-            body = HardwareBody(self.world, self.name, pose, self.rng, velocity)
+            body = HardwareBody(self.world, self.name, pose, self.odometer, self.rng, velocity)
         body.command(*self._command)
         return body
 
@@ -74,7 +74,7 @@ class Robot:
 
     def odometry(self) -> tuple[float, float, float]:
         """Dead-reckoned (x, y, heading) from the wheels, drifting as real ones do."""
-        return self.odometer.pose()
+        return self._body.odometry()
 
     def camera(self, hue: float | None = None, tolerance: float = 15.0) -> list[camera.Blob]:
         """Colour blobs in view (60 degrees, 8 m), nearest first; only those within
@@ -135,13 +135,6 @@ class Robot:
             raise ValueError(f"robot {self.name} is simulated: faults are injected into "
                              "hardware robots (swap it to 'hardware' first)")
         return self._body.emulator
-
-    # -- the world's step -------------------------------------------------------------
-    def _advance(self, dt: float) -> None:
-        self._body.advance(dt)
-
-    def _moved(self, dt: float) -> None:
-        self.odometer.advance(*self._body.moved(dt))
 
     def _close(self) -> None:
         self._body.close()

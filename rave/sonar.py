@@ -71,11 +71,28 @@ def read(pose: tuple[float, float, float], segments: np.ndarray, discs: np.ndarr
     if noise.specular:
         grazing = hits.incidence_cos < math.cos(math.radians(SPECULAR_DEG))
         ranges = np.where(grazing, np.inf, ranges)
-    nearest = ranges.reshape(-1, RAYS).min(axis=1)
+    return finish(ranges.reshape(-1, RAYS).min(axis=1), noise, rng)
+
+
+def finish(nearest: np.ndarray, noise: SonarNoise, rng: np.random.Generator) -> np.ndarray:
+    """Readings from each transducer's nearest echo (``inf``: none): noise, dropouts,
+    clipping to the sensor's range, millimetres."""
     echo = np.isfinite(nearest)
     sigma = noise.sigma0 + noise.sigma_per_m * np.where(echo, nearest, 0.0)
-    noisy = nearest + rng.normal(0.0, 1.0, len(nearest)) * sigma
+    noisy = nearest + rng.normal(0.0, 1.0, nearest.shape) * sigma
     if noise.dropout:
-        echo &= rng.random(len(nearest)) >= noise.dropout
+        echo &= rng.random(nearest.shape) >= noise.dropout
     readings = np.where(echo, np.clip(noisy, MIN_RANGE, MAX_RANGE), MAX_RANGE)
     return np.round(readings / noise.quantum) * noise.quantum
+
+
+def ring_rays(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For robots at ``poses`` (R, 3): each transducer's origin (R, 16, 2) and heading
+    (R, 16), and the unit directions of its cone's rays (R, 16, RAYS, 2)."""
+    x, y, theta = poses[:, 0:1], poses[:, 1:2], poses[:, 2:3]
+    c, s = np.cos(theta), np.sin(theta)
+    origins = np.stack([x + c * RING[:, 0] - s * RING[:, 1],
+                        y + s * RING[:, 0] + c * RING[:, 1]], axis=-1)
+    headings = theta + RING[:, 2]
+    angles = headings[:, :, None] + _SPREAD
+    return origins, headings, np.stack([np.cos(angles), np.sin(angles)], axis=-1)

@@ -19,6 +19,7 @@ import numpy as np
 import pymunk
 
 from rave.camera import Target
+from rave.fleet import Fleet
 from rave.hardware import HardwareBody
 from rave.layers import REAL, VIRTUAL, WALL_RADIUS
 from rave.robot import Robot
@@ -54,6 +55,8 @@ class World:
         self._steps = 0
         self._debt = 0.0
         self._segments: dict[tuple[bool, bool], np.ndarray] = {}
+        self.fleet = Fleet(self)                     # the simulated robots, as arrays
+        self.hardware: list[HardwareBody] = []       # the hardware robots' bodies
 
     @classmethod
     def load(cls, path: str | Path, seed: int = 0) -> World:
@@ -129,12 +132,11 @@ class World:
         self._debt += dt
         while self._debt >= PHYSICS_DT - 1e-12:
             self._debt -= PHYSICS_DT
-            robots = list(self.robots.values())
-            for robot in robots:
-                robot._advance(PHYSICS_DT)
+            for hardware in self.hardware:
+                hardware.advance(PHYSICS_DT)
+            self.fleet.before_step()
             self.space.step(PHYSICS_DT)
-            for robot in robots:
-                robot._moved(PHYSICS_DT)
+            self.fleet.after_step(PHYSICS_DT)
             self._steps += 1
             self.time = self._steps * PHYSICS_DT
 
@@ -152,6 +154,13 @@ class World:
                      for edge in o.edges()]
             cached = self._segments[key] = np.array(edges, dtype=np.float64).reshape(-1, 4)
         return cached
+
+    def all_discs(self) -> np.ndarray:
+        """Every robot as (x, y, radius): the simulated ones first, in fleet order,
+        then the hardware ones."""
+        return np.vstack([
+            np.column_stack([self.fleet.pose[:, 0:2], np.full(len(self.fleet.pose), RADIUS)]),
+            np.array([(*h.pose()[:2], RADIUS) for h in self.hardware]).reshape(-1, 3)])
 
     def discs(self, exclude: str | None = None) -> np.ndarray:
         """Every robot but ``exclude`` as (x, y, radius), shape (m, 3)."""

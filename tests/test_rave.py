@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from rave import World, WorldError, sonar
+from rave import World, WorldError, raycast, sonar
 from rave.sonar import SonarNoise
 
 EXACT = SonarNoise(sigma0=0.0, sigma_per_m=0.0)
@@ -230,3 +230,28 @@ pose = [2, 2, 0]
                      "robots[0]: backend must be one of sim, hardware",
                      "robots[1]: a robot named 'r1' comes earlier"):
         assert any(expected in p for p in problems), (expected, problems)
+
+
+def test_the_batched_scan_of_a_crowd_equals_casting_every_ray_against_everything() -> None:
+    world = World(size=(12, 12), seed=8)
+    for i in range(4):
+        world.add_box(center=(2.0 + 3 * i, 6.0), size=(0.5, 1.5), angle=0.3 * i,
+                      virtual=i % 2 == 0)
+    world.add_wall((0, 0), (12, 0))
+    rng = np.random.default_rng(8)
+    for i in range(24):
+        world.add_robot(f"r{i}", (*rng.uniform(0.5, 11.5, 2), rng.uniform(-3, 3)))
+    world.step(0.1)
+    poses = world.fleet.pose
+    reach = sonar.MAX_RANGE + 0.3
+    origins, headings, directions = sonar.ring_rays(poses)
+    batched = raycast.cast_rings(
+        origins, headings, directions, sonar.CONE / 2, sonar.MAX_RANGE,
+        world.fleet.segment_candidates(poses[:, 0:2], reach),
+        world.fleet._disc_candidates(poses[:, 0:2], reach))
+    for slot, name in enumerate(world.robots):
+        o, d = sonar.rays(tuple(poses[slot]))
+        each = raycast.cast(o, d, sonar.MAX_RANGE, world.segments(),
+                            world.discs(exclude=name)).ranges.reshape(16, sonar.RAYS)
+        np.testing.assert_allclose(batched[slot], each, rtol=1e-9, err_msg=name)
+    assert np.isfinite(batched).mean() > 0.2          # the crowd does see things
