@@ -19,7 +19,7 @@ demo: $(STAMP)
 	$(BIN)/pb3a run examples/pipeline.toml --for 5
 
 test: $(STAMP)
-	$(BIN)/ruff check pb3a rave tests examples bench scenarios setup.py
+	$(BIN)/ruff check pb3a rave agents tests examples bench scenarios setup.py
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)

@@ -17,6 +17,7 @@ from pb3a.errors import (
     RuntimeTimeout,
 )
 from pb3a.kernel.agent import Agent
+from pb3a.kernel.driver import Driver
 from pb3a.kernel.environment import Environment
 from pb3a.kernel.macro import Macro
 from pb3a.kernel.module import Module
@@ -28,6 +29,7 @@ from pb3a.system import System
 __all__ = [
     "Agent",
     "ConfigError",
+    "Driver",
     "Environment",
     "Input",
     "InputPort",

@@ -181,11 +181,14 @@ class HardwareBody:
         return self.emulator.velocity()
 
     def sonar(self, rng: np.random.Generator) -> np.ndarray:
-        """Hybrid: per transducer, the nearer of the real and the virtual reading."""
+        """Hybrid: per transducer, the nearer of the real and the virtual reading (a
+        dead transducer senses nothing, virtual or real)."""
         world = self.world
         virtual = sonar.read(self.pose(), world.segments(real=False),
                              world.discs(exclude=self.name), NOISE, rng)
-        return np.minimum(self.emulator.sonar(), virtual)
+        hybrid = np.minimum(self.emulator.sonar(), virtual)
+        hybrid[list(self.emulator.faults.get("sonar_dead", ()))] = sonar.MAX_RANGE
+        return hybrid
 
     def close(self) -> None:
         self.world.hardware.remove(self)

@@ -356,3 +356,19 @@ class NodeTable(Module):
 
     def on_input(self, port) -> None:
         self.table = port.read()
+
+
+class Cruise(Module):
+    """Drives straight at ``speed`` and counts the sonar scans it receives."""
+
+    sonar = Input(np.ndarray, shape=(16,), dtype="float64")
+    command = Output(np.ndarray, shape=(2,), dtype="float64")
+    period = 0.05
+    speed = 0.3
+    scans = 0
+
+    def step(self) -> None:
+        if self.sonar.pending:
+            self.sonar.read()
+            self.scans += 1
+        self.command.write(np.array([self.speed, 0.0]))

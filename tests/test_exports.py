@@ -8,7 +8,8 @@ import pb3a
 def test_public_names_are_exactly_the_documented_ones() -> None:
     assert pb3a.__all__ == sorted(pb3a.__all__)
     assert set(pb3a.__all__) == {
-        "Agent", "ConfigError", "Environment", "Input", "InputPort", "Macro", "MigrationReport",
+        "Agent", "ConfigError", "Driver", "Environment", "Input", "InputPort", "Macro",
+        "MigrationReport",
         "Module", "ModuleNotFound", "Output", "OutputPort", "PB3AError", "Running",
         "RuntimeFailure", "RuntimeTimeout", "System"}
     for name in pb3a.__all__:

@@ -214,49 +214,25 @@ SCENARIOS = {"self-migration": "scenarios.self_migration"}
 
 def modules_serve_command(args: argparse.Namespace) -> int:
     """``pb3a modules serve DIR --listen ADDR``: serve until SIGINT or SIGTERM."""
+    from pb3a.runtime.daemon import serve_until_signalled
     from pb3a.runtime.module_server import ModuleServer
 
     def start(key: Any, host: str, port: int) -> Any:
         server = ModuleServer(args.dir, key, host, port)
         return server, f"serving {server.root} at {server.address}"
-    return _serve_until_signalled("pb3a modules serve", args.listen, start)
+    return serve_until_signalled("pb3a modules serve", args.listen, start)
 
 
 def node_start_command(args: argparse.Namespace) -> int:
     """``pb3a node start --name N --listen ADDR``: a node controller until signalled."""
+    from pb3a.runtime.daemon import serve_until_signalled
     from pb3a.runtime.node import Limits, NodeController
 
     def start(key: Any, host: str, port: int) -> Any:
         limits = Limits(args.max_cpu, args.min_memory << 20)
         controller = NodeController(args.name, key, host, port, limits)
         return controller, f"node {args.name} at {controller.address}"
-    return _serve_until_signalled("pb3a node start", args.listen, start)
-
-
-def _serve_until_signalled(command: str, listen: str,
-                           start: Callable[[Any, str, int], tuple[Any, str]]) -> int:
-    """Start a daemon on ``listen``, print where, and run until SIGINT or SIGTERM."""
-    import signal
-    import threading
-
-    from pb3a.transport.auth import ClusterKey, ClusterKeyError
-
-    host, _, port = listen.removeprefix("tcp://").rpartition(":")
-    try:
-        daemon, banner = start(ClusterKey.load(), host or "127.0.0.1", int(port or 0))
-    except (OSError, ValueError, ClusterKeyError) as exc:
-        print(f"{command}: {exc}", file=sys.stderr)
-        return 1
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
-    print(banner, flush=True)
-    try:
-        while not stop.wait(1.0):
-            pass
-    finally:
-        daemon.close()
-    return 0
+    return serve_until_signalled("pb3a node start", args.listen, start)
 
 
 def scenario_command(args: argparse.Namespace) -> int:

@@ -1,0 +1,1 @@
+"""Reusable PB3A modules and agents: drivers, controllers, monitors."""

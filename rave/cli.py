@@ -1,0 +1,124 @@
+"""The ``rave`` command: serve a world and its robots, inject faults, render.
+
+    rave start WORLD [--seed N] [--listen HOST] [--rate R]
+                                      step WORLD in real time and start one robot
+                                      server per robot; prints every address
+    rave fault ROBOT_ADDR FAULT [--sonars I ...] [--bias B] [--clear]
+                                      inject (or clear) a fault in a hardware robot
+    rave render WORLD [-o FILE]       draw the world (PNG, SVG or PDF by suffix)
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    return int(args.handler(args))
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="rave", description=__doc__.split("\n")[0])
+    commands = parser.add_subparsers(required=True, metavar="COMMAND")
+    start = commands.add_parser("start", help="serve a world and one server per robot")
+    start.add_argument("world", help="a world file (TOML)")
+    start.add_argument("--seed", type=int, default=0)
+    start.add_argument("--listen", default="127.0.0.1", metavar="HOST",
+                       help="the interface to serve on (default 127.0.0.1)")
+    start.add_argument("--rate", type=float, default=1.0,
+                       help="simulated seconds per wall-clock second (default 1)")
+    start.set_defaults(handler=start_command)
+    fault = commands.add_parser("fault", help="inject or clear a fault in a hardware robot")
+    fault.add_argument("robot", metavar="ROBOT_ADDR", help="the robot server's address")
+    fault.add_argument("fault", choices=("motors_off", "sonar_dead", "odometry_bias"))
+    fault.add_argument("--sonars", type=int, nargs="+", help="for sonar_dead (default all)")
+    fault.add_argument("--bias", type=float, default=0.05, help="odometry_bias, rad per m")
+    fault.add_argument("--clear", action="store_true", help="clear the fault instead")
+    fault.set_defaults(handler=fault_command)
+    render = commands.add_parser("render", help="draw a world to an image")
+    render.add_argument("world", help="a world file (TOML)")
+    render.add_argument("-o", "--output", default=None, help="image file (default WORLD.png)")
+    render.set_defaults(handler=render_command)
+    return parser
+
+
+def start_command(args: argparse.Namespace) -> int:
+    from pb3a.runtime.daemon import serve_until_signalled
+    from rave.server import RobotServers, WorldServer
+    from rave.world import World
+    from rave.worldfile import WorldError
+
+    try:
+        world = World.load(args.world, seed=args.seed)
+    except WorldError as exc:
+        print(f"rave start: {exc}", file=sys.stderr)
+        return 1
+
+    def start(key: Any, host: str, port: int) -> tuple[Any, str]:
+        served = _Served(WorldServer(world, host, port, rate=args.rate))
+        served.robots = RobotServers(served.world.address, list(world.robots), host)
+        lines = [f"world {world.name} at {served.world.address}"]
+        lines += [f"robot {name} at {address}"
+                  for name, address in served.robots.addresses.items()]
+        return served, "\n".join(lines)
+    return serve_until_signalled("rave start", f"tcp://{args.listen}:0", start)
+
+
+class _Served:
+    """A world server and its robot servers, closed together (robots first)."""
+
+    def __init__(self, world: Any) -> None:
+        self.world, self.robots = world, None
+
+    def close(self) -> None:
+        if self.robots is not None:
+            self.robots.close()
+        self.world.close()
+
+
+def fault_command(args: argparse.Namespace) -> int:
+    from pb3a.errors import RuntimeFailure, RuntimeTimeout
+    from pb3a.transport.auth import ClusterKey
+    from pb3a.transport.control import ControlClient
+
+    client = ControlClient(ClusterKey.load(), args.robot)
+    try:
+        if args.clear:
+            client.call("clear", fault=args.fault)
+        else:
+            params = {"sonar_dead": {"sonars": args.sonars} if args.sonars else {},
+                      "odometry_bias": {"bias": args.bias}}.get(args.fault, {})
+            client.call("inject", fault=args.fault, params=params)
+    except (RuntimeFailure, RuntimeTimeout) as exc:
+        print(f"rave fault: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        client.close()
+    print(f"{'cleared' if args.clear else 'injected'} {args.fault} at {args.robot}")
+    return 0
+
+
+def render_command(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from rave.render import render
+    from rave.world import World
+    from rave.worldfile import WorldError
+
+    try:
+        world = World.load(args.world)
+    except WorldError as exc:
+        print(f"rave render: {exc}", file=sys.stderr)
+        return 1
+    output = Path(args.output or Path(args.world).with_suffix(".png").name)
+    render(world, output)
+    print(f"wrote {output}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

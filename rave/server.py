@@ -1,0 +1,172 @@
+"""Serving a running world: ``WorldServer`` steps a world in real time, and one robot
+server process per robot (the paper's shell program) relays a controller's requests
+over the robot's TCP resource port.
+
+Every port speaks PB3A's authenticated control protocol (the cluster key; nothing
+is unpickled before the frame is authenticated), so a PB3A ``Driver`` connects to a
+robot server directly, from this machine or another. A robot server adds its
+robot's name and forwards each request to the world server; the controller never
+learns which back end serves the robot, and the back end can be swapped under it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import multiprocessing
+import signal
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from pb3a.runtime.processes import start_without_main
+from pb3a.transport.auth import ClusterKey
+from pb3a.transport.control import ControlClient, ControlServer
+from rave.world import PHYSICS_DT, World
+
+log = logging.getLogger("rave.server")
+
+_context = multiprocessing.get_context("spawn")
+START_TIMEOUT = 30.0
+RELAY_TIMEOUT = 2.0
+ROBOT_OPS = ("drive", "stop", "sensors", "camera", "inject", "clear", "swap")
+
+
+class WorldServer:
+    """A world stepped at ``rate`` times real time, and its robots' requests answered
+    between two physics steps."""
+
+    def __init__(self, world: World, host: str = "127.0.0.1", port: int = 0,
+                 rate: float = 1.0) -> None:
+        self.world, self.rate = world, rate
+        self._lock = threading.Lock()                      # the world is not thread-safe
+        self._stopping = threading.Event()
+        self._server = ControlServer(ClusterKey.load(), self._handle, host, port,
+                                     name="rave-world")
+        self.address = self._server.address
+        self._stepper = threading.Thread(target=self._run, name="rave-world-step",
+                                         daemon=True)
+        self._stepper.start()
+
+    def _run(self) -> None:
+        period = PHYSICS_DT / self.rate
+        next_at = time.monotonic()
+        while not self._stopping.is_set():
+            with self._lock:
+                self.world.step(PHYSICS_DT)
+            next_at += period
+            # a real-time loop: wait for the next tick (or for the stop), never drift
+            self._stopping.wait(max(0.0, next_at - time.monotonic()))
+
+    def _handle(self, op: str, args: dict[str, Any]) -> Any:
+        with self._lock:
+            if op == "describe":
+                return self.world.describe()
+            if op not in ROBOT_OPS:
+                raise ValueError(f"the world server has no operation {op!r}; robot "
+                                 f"operations: {', '.join(ROBOT_OPS)}")
+            return _apply(self.world.robot(args.pop("robot")), op, args, self.world.time)
+
+    def close(self) -> None:
+        self._stopping.set()
+        self._stepper.join(2.0)
+        self._server.close()
+
+
+def _apply(robot: Any, op: str, args: dict[str, Any], now: float) -> Any:
+    if op == "sensors":
+        return {"time": now, "sonar": robot.sonar().tolist(), "odometry": robot.odometry(),
+                "gps": robot.gps(), "velocity": robot.velocity(), "backend": robot.backend}
+    if op == "camera":
+        return [vars(blob) for blob in robot.camera(args.get("hue"),
+                                                     args.get("tolerance", 15.0))]
+    if op == "drive":
+        robot.drive(float(args["v"]), float(args["w"]))
+    elif op == "stop":
+        robot.stop()
+    elif op == "inject":
+        robot.inject(args["fault"], **args.get("params", {}))
+    elif op == "clear":
+        robot.clear(args.get("fault"))
+    elif op == "swap":
+        robot.swap(args["backend"])
+    return None
+
+
+class RobotServers:
+    """One robot server process per robot of a served world; stops them all."""
+
+    def __init__(self, world_address: str, robots: list[str], host: str = "127.0.0.1") -> None:
+        self.addresses: dict[str, str] = {}
+        self._processes: list[Any] = []
+        self._pipes: list[Any] = []        # held open: a server stops when its closes
+        try:
+            for name in robots:
+                parent, child = _context.Pipe()
+                process = _context.Process(target=robot_server_main, daemon=True,
+                                           name=f"rave-robot-{name}",
+                                           args=(name, world_address, host, child))
+                start_without_main(process)
+                child.close()
+                self._processes.append(process)
+                if not parent.poll(START_TIMEOUT):
+                    raise RuntimeError(f"the robot server of {name} did not start within "
+                                       f"{START_TIMEOUT} s")
+                self.addresses[name] = parent.recv()
+                self._pipes.append(parent)
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self, timeout: float = 5.0) -> None:
+        for process in self._processes:
+            if process.is_alive():
+                process.terminate()
+        for process in self._processes:
+            process.join(timeout)
+            if process.is_alive():
+                process.kill()
+                process.join(1.0)
+        self._processes.clear()
+        for pipe in self._pipes:
+            pipe.close()
+        self._pipes.clear()
+
+
+def robot_server_main(name: str, world_address: str, host: str, conn: Any) -> None:
+    """A robot server process: relay requests for robot ``name`` to the world server."""
+    key = ClusterKey.load()
+    world = ControlClient(key, world_address)
+    stopped = threading.Event()
+
+    def relay(op: str, args: dict[str, Any]) -> Any:
+        if op not in ROBOT_OPS:
+            raise ValueError(f"robot {name} has no operation {op!r}; operations: "
+                             f"{', '.join(ROBOT_OPS)}")
+        return world.call(op, RELAY_TIMEOUT, robot=name, **args)
+
+    server = ControlServer(key, relay, host, name=f"rave-robot-{name}")
+    signal.signal(signal.SIGTERM, lambda *_: stopped.set())
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    conn.send(server.address)
+    threading.Thread(target=_watch_parent, args=(conn, stopped), daemon=True).start()
+    try:
+        while not stopped.wait(1.0):           # (a timed wait lets signal handlers run)
+            pass
+    finally:
+        server.close()
+        world.close()
+
+
+def _watch_parent(conn: Any, stopped: threading.Event) -> None:
+    with contextlib.suppress(EOFError, OSError):
+        conn.recv()                                 # nothing is sent: EOF when it dies
+    stopped.set()
+
+
+def readings(answer: dict[str, Any]) -> dict[str, np.ndarray]:
+    """A ``sensors`` answer's numbers as arrays."""
+    return {key: np.asarray(answer[key], dtype=np.float64)
+            for key in ("sonar", "odometry", "gps", "velocity")}

@@ -1,0 +1,124 @@
+"""RAVE served: a world stepped in real time, one robot server process per robot on
+an authenticated resource port, and a PB3A driver module that drives a robot through
+it and can be re-pointed to another robot while running."""
+
+from __future__ import annotations
+
+import math
+import signal
+import subprocess
+import sys
+
+import pytest
+from conftest import alive, eventually
+from sample_modules import Cruise
+
+from pb3a import RuntimeFailure, System
+from pb3a.transport.auth import ClusterKey
+from pb3a.transport.control import ControlClient
+from rave import World, cli, render
+from rave.server import RobotServers, WorldServer
+
+
+@pytest.fixture
+def served():
+    world = World.load("rave/worlds/arena.toml", seed=2)       # r1 sim, r2 hardware
+    server = WorldServer(world)
+    robots = RobotServers(server.address, list(world.robots))
+    clients = {name: ControlClient(ClusterKey.load(), address)
+               for name, address in robots.addresses.items()}
+    yield robots, clients
+    for client in clients.values():
+        client.close()
+    robots.close()
+    server.close()
+
+
+def _gps(client: ControlClient) -> tuple[float, float, float]:
+    return tuple(client.call("sensors")["gps"])
+
+
+def test_a_robot_server_relays_commands_sensors_and_faults(served) -> None:
+    robots, clients = served
+    sensed = clients["r1"].call("sensors")
+    assert len(sensed["sonar"]) == 16 and sensed["backend"] == "sim"
+    start = _gps(clients["r1"])
+    clients["r1"].call("drive", v=0.5, w=0.0)
+    eventually(lambda: _gps(clients["r1"])[0] > start[0] + 0.2, what="r1 driving")
+    clients["r2"].call("inject", fault="motors_off", params={})
+    clients["r2"].call("drive", v=0.5, w=0.0)
+    still = _gps(clients["r2"])
+    after = clients["r1"].call("sensors")["time"] + 0.5
+    eventually(lambda: clients["r1"].call("sensors")["time"] > after, what="0.5 s of time")
+    assert _gps(clients["r2"]) == pytest.approx(still, abs=1e-6)
+    with pytest.raises(RuntimeFailure, match="faults are injected into hardware robots"):
+        clients["r1"].call("inject", fault="motors_off", params={})
+    with pytest.raises(RuntimeFailure, match="robot r1 has no operation 'describe'"):
+        clients["r1"].call("describe")
+    pids = [process.pid for process in robots._processes]
+    robots.close()
+    assert not any(alive(pid) for pid in pids)
+
+
+def test_a_driver_module_drives_a_robot_and_is_re_pointed_while_running(served) -> None:
+    robots, clients = served
+    system = System("driven")
+    system.add("driver", "agents.robot_driver:RobotDriver",
+               state={"resource": robots.addresses["r1"]})
+    system.add("pilot", Cruise)
+    system.link("driver.sonar", "pilot.sonar")
+    system.link("pilot.command", "driver.command")
+    with system.launch() as run:
+        r1, r2 = _gps(clients["r1"]), _gps(clients["r2"])
+        eventually(lambda: math.dist(_gps(clients["r1"])[:2], r1[:2]) > 0.2,
+                   timeout=15, what="r1 driven through its server")
+        assert run.state("pilot")["scans"] > 0
+        run.set_state("driver", resource=robots.addresses["r2"])
+        eventually(lambda: math.dist(_gps(clients["r2"])[:2], r2[:2]) > 0.1,
+                   timeout=15, what="r2 driven after the driver was re-pointed")
+        left = _gps(clients["r1"])
+        after = clients["r1"].call("sensors")["time"] + 0.5
+        eventually(lambda: clients["r1"].call("sensors")["time"] > after, what="time passing")
+        state = run.state("driver")
+    assert math.dist(_gps(clients["r1"])[:2], left[:2]) < 0.01        # released: stopped
+    assert state["failures"] == 0
+
+
+def test_the_rave_command_serves_a_world_injects_faults_and_renders(tmp_path, capsys) -> None:
+    process = subprocess.Popen([sys.executable, "-m", "rave.cli", "start",
+                                "rave/worlds/arena.toml"], stdout=subprocess.PIPE, text=True)
+    try:
+        lines = [process.stdout.readline().strip() for _ in range(3)]
+        assert lines[0].startswith("world arena at tcp://127.0.0.1:")
+        robots = dict(line.split()[1::2] for line in lines[1:])     # name -> address
+        assert set(robots) == {"r1", "r2"}
+        assert cli.main(["fault", robots["r2"], "sonar_dead", "--sonars", "3", "4"]) == 0
+        client = ControlClient(ClusterKey.load(), robots["r2"])
+        try:
+            sonar = client.call("sensors")["sonar"]
+        finally:
+            client.close()
+        assert sonar[3] == sonar[4] == 5.0
+        assert cli.main(["fault", robots["r1"], "motors_off"]) == 1        # simulated
+        assert "faults are injected into hardware robots" in capsys.readouterr().err
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=15) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(5)
+        process.stdout.close()
+    assert cli.main(["render", "rave/worlds/lab.toml", "-o", str(tmp_path / "lab.png")]) == 0
+    assert (tmp_path / "lab.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_a_recorded_run_becomes_an_animated_gif(tmp_path) -> None:
+    world = World.load("rave/worlds/arena.toml", seed=1)
+    world.robot("r1").drive(0.5, 0.3)
+    frames = []
+    for _ in range(5):
+        world.step(0.2)
+        frames.append(render.snapshot(world))
+    path = render.animate(frames, tmp_path / "run.gif", fps=5)
+    assert path.read_bytes()[:6] == b"GIF89a"
+    assert frames[0].world["robots"]["r1"]["pose"] != frames[-1].world["robots"]["r1"]["pose"]
