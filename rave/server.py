@@ -11,17 +11,15 @@ learns which back end serves the robot, and the back end can be swapped under it
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import multiprocessing
-import signal
 import threading
 import time
 from typing import Any
 
 import numpy as np
 
-from pb3a.runtime.processes import start_without_main
+from pb3a.runtime.processes import serve_as_child, start_without_main
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient, ControlServer
 from rave.world import PHYSICS_DT, World
@@ -148,22 +146,11 @@ def robot_server_main(name: str, world_address: str, host: str, conn: Any) -> No
         return world.call(op, RELAY_TIMEOUT, robot=name, **args)
 
     server = ControlServer(key, relay, host, name=f"rave-robot-{name}")
-    signal.signal(signal.SIGTERM, lambda *_: stopped.set())
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    conn.send(server.address)
-    threading.Thread(target=_watch_parent, args=(conn, stopped), daemon=True).start()
     try:
-        while not stopped.wait(1.0):           # (a timed wait lets signal handlers run)
-            pass
+        serve_as_child(conn, server.address, stopped)
     finally:
         server.close()
         world.close()
-
-
-def _watch_parent(conn: Any, stopped: threading.Event) -> None:
-    with contextlib.suppress(EOFError, OSError):
-        conn.recv()                                 # nothing is sent: EOF when it dies
-    stopped.set()
 
 
 def readings(answer: dict[str, Any]) -> dict[str, np.ndarray]:

@@ -81,7 +81,8 @@ class Mover(Agent):
     """Moves ``target`` to the least loaded node when its own node stays busy.
 
     Busy means above ``busy_pct`` for ``patience`` samples in a row while the other
-    node is at least ``margin_pct`` less busy."""
+    node is at least ``margin_pct`` less busy. The first ``warmup_s`` after it starts
+    are ignored: the system's own start-up loads the CPUs then."""
 
     cpu_a = Input(float)
     cpu_b = Input(float)
@@ -92,10 +93,17 @@ class Mover(Agent):
     patience = 2
     strikes = 0
     moved_at: list[float] = []
+    moved_to: list[str] = []
     location = "a"
+    warmup_s = 1.0
+
+    def setup(self) -> None:
+        self._started = time.monotonic()
 
     def on_input(self, port: InputPort) -> None:
         load = {"a": self.cpu_a.read(0.0), "b": self.cpu_b.read(0.0)}
+        if time.monotonic() - self._started < self.warmup_s:
+            return
         here = self.location
         there = min(load, key=load.__getitem__)
         if load[here] > self.busy_pct and load[there] < load[here] - self.margin_pct:
@@ -106,6 +114,7 @@ class Mover(Agent):
             self.runtime.migrate(self.target, there)
             self.location, self.strikes = there, 0
             self.moved_at.append(time.monotonic())
+            self.moved_to.append(there)
 
 
 def build(adaptive: bool, env_period: float = 0.25) -> System:
@@ -160,6 +169,7 @@ def run_once(adaptive: bool, phases: tuple[float, float, float]) -> dict[str, An
     return {"start": start, "load_on": load_on, "load_off": load_off,
             "end": load_off + after, "arrivals": sink["arrivals"],
             "latencies": sink["latencies"], "moved_at": mover["moved_at"],
+            "moved_to": mover["moved_to"],
             "compute_node_at_end": node}
 
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import signal
 import threading
 import time
 from typing import Any
@@ -23,6 +22,7 @@ from typing import Any
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.kernel.served import use_module_servers
 from pb3a.runtime.executor import Executor
+from pb3a.runtime.processes import serve_as_child
 from pb3a.runtime.remote_node import OPERATIONS
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient, ControlServer
@@ -152,20 +152,8 @@ def executor_main(config: str, node: str, workers: int, cpus: list[int] | None,
     share = NodeExecutor(config, node, workers, cpus, host)
     server = share.server = ControlServer(ClusterKey.load(), share.handle, host,
                                           name="pb3a-node-executor")
-    signal.signal(signal.SIGTERM, lambda *_: share.stopped.set())
-    signal.signal(signal.SIGINT, signal.SIG_IGN)         # the controller decides
-    conn.send(server.address)
-    orphaned = threading.Thread(target=_watch_parent, args=(conn, share.stopped), daemon=True)
-    orphaned.start()
     try:
-        while not share.stopped.wait(1.0):      # (a timed wait lets signal handlers run)
-            pass
+        serve_as_child(conn, server.address, share.stopped)
     finally:
         server.close()
         share.close()
-
-
-def _watch_parent(conn: Any, stopped: threading.Event) -> None:
-    with contextlib.suppress(EOFError, OSError):
-        conn.recv()                                      # nothing is ever sent: EOF on death
-    stopped.set()

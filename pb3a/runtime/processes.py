@@ -1,7 +1,10 @@
-"""Starting PB3A's own processes (workers, node executors) from any script."""
+"""Starting PB3A's own processes (workers, node executors) from any script, and
+serving in one as the child of its owner."""
 
 from __future__ import annotations
 
+import contextlib
+import signal
 import threading
 from multiprocessing import spawn as mp_spawn
 from typing import Any
@@ -30,3 +33,23 @@ def start_without_main(process: Any) -> None:
             process.start()
         finally:
             mp_spawn.get_preparation_data = original
+
+
+def serve_as_child(conn: Any, address: str, stopped: threading.Event) -> None:
+    """In a child that serves at ``address`` (an executor, a robot server): tell the
+    parent where (over ``conn``), then block until ``stopped`` is set, which SIGTERM
+    and the parent's death (its end of ``conn`` closing) both do. SIGINT is ignored:
+    the parent decides."""
+    signal.signal(signal.SIGTERM, lambda *_: stopped.set())
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    conn.send(address)
+    threading.Thread(target=_watch_parent, args=(conn, stopped), daemon=True,
+                     name="pb3a-parent-watch").start()
+    while not stopped.wait(1.0):                  # (a timed wait lets signal handlers run)
+        pass
+
+
+def _watch_parent(conn: Any, stopped: threading.Event) -> None:
+    with contextlib.suppress(EOFError, OSError):
+        conn.recv()                               # nothing is ever sent: EOF on death
+    stopped.set()
