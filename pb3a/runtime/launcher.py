@@ -224,10 +224,10 @@ class Launcher:
             for name, node in remotes.items():
                 if not self.health[name]["up"]:
                     continue
-                started = time.monotonic()
-                if node.ping(timeout=HEARTBEAT_S * 2):
+                rtt = node.ping(timeout=HEARTBEAT_S * 2)
+                if rtt is not None:
                     last[name] = time.monotonic()
-                    self.health[name]["rtt"] = last[name] - started
+                    self.health[name]["rtt"] = rtt
                 elif time.monotonic() - last[name] > LOSS_S and not self._stopping.is_set():
                     self._lose(name, time.monotonic() - last[name])
             beats += 1

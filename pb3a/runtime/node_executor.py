@@ -117,14 +117,14 @@ class NodeExecutor:
         """Ping the launcher (stop when it stays silent) and every peer (their RTTs)."""
         last = time.monotonic()
         while not self.stopped.wait(min(1.0, orphan_s / 4)) and self.launcher is not None:
-            if _ping(self.launcher) is not None:
+            if self.launcher.ping(1.0) is not None:
                 last = time.monotonic()
             elif time.monotonic() - last > orphan_s:
                 log.error("launcher at %s silent for %.0f s: stopping",
                           self.launcher.address, orphan_s)
                 self.stopped.set()
             for name, client in list(self.peers.items()):
-                rtt = _ping(client)
+                rtt = client.ping(1.0)
                 if rtt is not None:
                     self.rtts[name] = rtt
 
@@ -133,15 +133,6 @@ class NodeExecutor:
         for client in [*self.peers.values(), *filter(None, [self.launcher])]:
             client.close()
 
-
-def _ping(client: ControlClient, timeout: float = 1.0) -> float | None:
-    """The round-trip time of one ping, or None without an answer in ``timeout``."""
-    started = time.monotonic()
-    try:
-        client.call("ping", timeout)
-    except (RuntimeFailure, RuntimeTimeout):
-        return None
-    return time.monotonic() - started
 
 
 def executor_main(config: str, node: str, workers: int, cpus: list[int] | None,

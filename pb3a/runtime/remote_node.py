@@ -55,13 +55,13 @@ class RemoteNode:
             raise RuntimeFailure(f"node {self.name} is lost")
         return self.client.call("executor", CALL_TIMEOUT, method=op, args=args, kwargs=kwargs)
 
-    def ping(self, timeout: float) -> bool:
-        """True if the executor answered within ``timeout`` seconds."""
-        return self.client is not None and _answers(self.client, timeout)
+    def ping(self, timeout: float) -> float | None:
+        """The executor's round-trip time, or None without an answer in ``timeout``."""
+        return None if self.client is None else self.client.ping(timeout)
 
     def controller_answers(self, timeout: float) -> bool:
         """True if the node's controller answered within ``timeout`` seconds."""
-        return _answers(self.controller, timeout)
+        return self.controller.ping(timeout) is not None
 
     def meet(self, peers: dict[str, str]) -> None:
         """Have the node measure its RTT to each peer (name -> control address)."""
@@ -92,14 +92,6 @@ class RemoteNode:
         self.controller.close()
         if self.client is not None:
             self.client.close()
-
-
-def _answers(client: ControlClient, timeout: float) -> bool:
-    try:
-        client.call("ping", timeout)
-    except (RuntimeFailure, RuntimeTimeout):
-        return False
-    return True
 
 
 def _forwarding(op: str) -> Any:

@@ -16,6 +16,7 @@ import pickle
 import queue
 import struct
 import threading
+import time
 from typing import TYPE_CHECKING, Any
 
 import cloudpickle
@@ -166,6 +167,16 @@ class ControlClient:
                 continue
             except Exception:
                 self._opener.rejected["undecodable"] += 1
+
+    def ping(self, timeout: float) -> float | None:
+        """The round-trip time of one ping (answered by the server's socket thread, so a
+        long request cannot delay it), or None without an answer within ``timeout``."""
+        started = time.monotonic()
+        try:
+            self.call("ping", timeout)
+        except (RuntimeFailure, RuntimeTimeout):
+            return None
+        return time.monotonic() - started
 
     def fail_pending(self, reason: str) -> None:
         """Make every call waiting for an answer fail now with ``reason`` (the server is
