@@ -22,6 +22,7 @@ import pymunk.batch
 
 from rave import sonar
 from rave.neighbours import CellIndex, boxes_of_segments, segment_distances, within
+from rave.odometry import dead_reckon
 from rave.raycast import cast_rings
 
 if TYPE_CHECKING:
@@ -124,11 +125,7 @@ class Fleet:
         distance = (self.velocity[:, 0] * np.cos(heading)
                     + self.velocity[:, 1] * np.sin(heading)) * dt
         rotation = self.velocity[:, 2] * dt * self.odometry_scale[:, 2]
-        odo, scale = self.odometry, self.odometry_scale
-        middle = odo[:, 2] + rotation / 2.0
-        odo[:, 0] += distance * np.cos(middle) * scale[:, 0]
-        odo[:, 1] += distance * np.sin(middle) * scale[:, 1]
-        odo[:, 2] = np.remainder(odo[:, 2] + rotation + math.pi, math.tau) - math.pi
+        dead_reckon(self.odometry, self.odometry_scale, distance, rotation)
 
     # -- sonar ---------------------------------------------------------------------------
     def sonar(self, slot: int) -> np.ndarray:
@@ -161,7 +158,7 @@ class Fleet:
         index = self._segments[1]
         padded = np.vstack([all_segments, np.full((1, 4), np.nan)])
         near = index.near(centers)
-        near = within(centers, near, segment_distances(centers, padded[near]), reach)
+        near = within(near, segment_distances(centers, padded[near]), reach)
         return padded[near]
 
     def _disc_candidates(self, centers: np.ndarray, reach: float) -> np.ndarray:
@@ -175,5 +172,5 @@ class Fleet:
         padded = np.vstack([discs, np.full((1, 3), np.nan)])
         found = padded[near]
         gap = np.hypot(found[..., 0] - centers[:, None, 0], found[..., 1] - centers[:, None, 1])
-        near = within(centers, near, gap - found[..., 2], reach)
+        near = within(near, gap - found[..., 2], reach)
         return padded[near]

@@ -53,8 +53,7 @@ def boxes_of_segments(segments: np.ndarray) -> np.ndarray:
     return np.column_stack([xs.min(1), ys.min(1), xs.max(1), ys.max(1)])
 
 
-def within(points: np.ndarray, candidates: np.ndarray, distances: np.ndarray,
-           reach: float) -> np.ndarray:
+def within(candidates: np.ndarray, distances: np.ndarray, reach: float) -> np.ndarray:
     """``candidates`` cut to those whose ``distances`` (same shape) are within
     ``reach``, packed to the left and padded with -1 to the widest row."""
     keep = (candidates >= 0) & (distances <= reach)

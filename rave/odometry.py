@@ -4,6 +4,7 @@ systematic error every real odometer has (Stage's ``odom_error`` model)."""
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -17,16 +18,24 @@ class Odometer:
 
     def __init__(self, pose: tuple[float, float, float], rng: np.random.Generator,
                  error: tuple[float, float, float] = ERROR) -> None:
-        self.x, self.y, self.theta = pose
+        self.state = np.array(pose, dtype=np.float64)     # x, y, heading
         self.scale = 1.0 + rng.uniform(-1.0, 1.0, 3) * np.asarray(error)
         self.bias = 0.0                  # rad per m (a fault)
 
     def advance(self, distance: float, rotation: float) -> None:
-        rotation = rotation * self.scale[2] + self.bias * abs(distance)
-        heading = self.theta + rotation / 2.0
-        self.x += distance * math.cos(heading) * self.scale[0]
-        self.y += distance * math.sin(heading) * self.scale[1]
-        self.theta = math.remainder(self.theta + rotation, math.tau)
+        dead_reckon(self.state, self.scale, distance,
+                    rotation * self.scale[2] + self.bias * abs(distance))
 
     def pose(self) -> tuple[float, float, float]:
-        return (float(self.x), float(self.y), float(self.theta))
+        x, y, theta = self.state
+        return (float(x), float(y), float(theta))
+
+
+def dead_reckon(state: np.ndarray, scale: np.ndarray, distance: Any, rotation: Any) -> None:
+    """Advance poses ``state`` (x, y, heading in the last axis: one robot's or a
+    fleet's) in place by wheel ``distance`` and (already scaled) ``rotation``; the
+    position increments are scaled by ``scale``'s x and y errors."""
+    middle = state[..., 2] + rotation / 2.0
+    state[..., 0] += distance * np.cos(middle) * scale[..., 0]
+    state[..., 1] += distance * np.sin(middle) * scale[..., 1]
+    state[..., 2] = np.remainder(state[..., 2] + rotation + math.pi, math.tau) - math.pi

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rave.neighbours import boxes_of_segments
+
 _EPS = 1e-12
 
 
@@ -44,9 +46,8 @@ def _near(segments: np.ndarray, origins: np.ndarray, reach: float) -> np.ndarray
     """The segments within ``reach`` of any origin (a cheap bounding-box test)."""
     low = origins.min(axis=0) - reach
     high = origins.max(axis=0) + reach
-    xs, ys = segments[:, [0, 2]], segments[:, [1, 3]]
-    keep = ((xs.max(axis=1) >= low[0]) & (xs.min(axis=1) <= high[0])
-            & (ys.max(axis=1) >= low[1]) & (ys.min(axis=1) <= high[1]))
+    boxes = boxes_of_segments(segments)
+    keep = (boxes[:, 2:4] >= low).all(axis=1) & (boxes[:, 0:2] <= high).all(axis=1)
     return segments[keep]
 
 

@@ -72,6 +72,6 @@ class SimulatedBody:
 
     def close(self) -> None:
         """Leave the world; the odometer goes on from where the fleet had it."""
-        self.odometer.x, self.odometer.y, self.odometer.theta = self.odometry()
+        self.odometer.state[:] = self.odometry()
         self.fleet.remove(self)
         self.world.space.remove(self.body, self.shape, self.control, *self.joints)

@@ -97,9 +97,8 @@ class World:
         self._segments.clear()
         if not obstacle.virtual:                 # hardware robots' physical worlds too
             edges = np.array(obstacle.edges(), dtype=np.float64)
-            for robot in self.robots.values():
-                if isinstance(robot._body, HardwareBody):
-                    robot._body.emulator.add_walls(edges)
+            for body in self.hardware:
+                body.emulator.add_walls(edges)
 
     def add_robot(self, name: str, pose: tuple[float, float, float], *, backend: str = "sim",
                   color: str = "red") -> Robot:
