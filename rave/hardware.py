@@ -152,6 +152,7 @@ class HardwareBody:
         self.shape.filter = pymunk.ShapeFilter(categories=ROBOT, mask=ROBOT)
         world.space.add(self.body, self.shape)
         world.hardware.append(self)
+        world.fleet.bodies_changed()
         self._place()
 
     def _place(self) -> None:
@@ -163,6 +164,9 @@ class HardwareBody:
 
     def command(self, v: float, w: float) -> None:
         self.emulator.command(v, w)
+
+    def commanded(self) -> tuple[float, float]:
+        return (self.emulator.command_v, self.emulator.command_w)
 
     def advance(self, dt: float) -> None:
         """Step the physical robot and its odometry. Its stand-in in the world model is
@@ -193,3 +197,4 @@ class HardwareBody:
     def close(self) -> None:
         self.world.hardware.remove(self)
         self.world.space.remove(self.body, self.shape)
+        self.world.fleet.bodies_changed()

@@ -4,7 +4,6 @@ systematic error every real odometer has (Stage's ``odom_error`` model)."""
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 
@@ -23,19 +22,22 @@ class Odometer:
         self.bias = 0.0                  # rad per m (a fault)
 
     def advance(self, distance: float, rotation: float) -> None:
-        dead_reckon(self.state, self.scale, distance,
-                    rotation * self.scale[2] + self.bias * abs(distance))
+        dead_reckon(self.state, self.scale, np.array([distance]),
+                    np.array([rotation * self.scale[2] + self.bias * abs(distance)]))
 
     def pose(self) -> tuple[float, float, float]:
         x, y, theta = self.state
         return (float(x), float(y), float(theta))
 
 
-def dead_reckon(state: np.ndarray, scale: np.ndarray, distance: Any, rotation: Any) -> None:
+def dead_reckon(state: np.ndarray, scale: np.ndarray, distance: np.ndarray,
+                rotation: np.ndarray) -> None:
     """Advance poses ``state`` (x, y, heading in the last axis: one robot's or a
-    fleet's) in place by wheel ``distance`` and (already scaled) ``rotation``; the
-    position increments are scaled by ``scale``'s x and y errors."""
-    middle = state[..., 2] + rotation / 2.0
-    state[..., 0] += distance * np.cos(middle) * scale[..., 0]
-    state[..., 1] += distance * np.sin(middle) * scale[..., 1]
-    state[..., 2] = np.remainder(state[..., 2] + rotation + math.pi, math.tau) - math.pi
+    fleet's) in place by a run of steps, each a wheel ``distance`` and an (already
+    scaled) ``rotation``: shape (steps, *state.shape[:-1]). The position increments
+    are scaled by ``scale``'s x and y errors."""
+    turned = np.cumsum(rotation, axis=0)
+    middle = state[..., 2] + turned - rotation / 2.0         # heading midway through each
+    state[..., 0] += (distance * np.cos(middle)).sum(axis=0) * scale[..., 0]
+    state[..., 1] += (distance * np.sin(middle)).sum(axis=0) * scale[..., 1]
+    state[..., 2] = np.remainder(state[..., 2] + turned[-1] + math.pi, math.tau) - math.pi

@@ -8,11 +8,12 @@ the rays can reach are culled first.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from rave.neighbours import boxes_of_segments
+from rave.neighbours import boxes_of_segments, expand
 
 _EPS = 1e-12
 
@@ -53,23 +54,14 @@ def _near(segments: np.ndarray, origins: np.ndarray, reach: float) -> np.ndarray
 
 def _against_segments(origins: np.ndarray, directions: np.ndarray, max_range: float,
                       segments: np.ndarray, ranges: np.ndarray, cosines: np.ndarray) -> None:
-    # origin + t*direction = p + u*(q - p): solved with 2D cross products, for every
-    # (ray, segment) pair at once.
-    p = segments[None, :, 0:2]
-    e = segments[None, :, 2:4] - segments[None, :, 0:2]
-    d = directions[:, None, :]
-    w = p - origins[:, None, :]
-    denom = d[..., 0] * e[..., 1] - d[..., 1] * e[..., 0]
-    parallel = np.abs(denom) < _EPS
-    denom = np.where(parallel, 1.0, denom)
-    t = (w[..., 0] * e[..., 1] - w[..., 1] * e[..., 0]) / denom
-    u = (w[..., 0] * d[..., 1] - w[..., 1] * d[..., 0]) / denom
-    t = np.where(~parallel & (t >= 0) & (t <= max_range) & (u >= 0) & (u <= 1), t, np.inf)
+    t = segment_hits(origins[:, None, 0], origins[:, None, 1], directions[:, None, 0],
+                     directions[:, None, 1], segments[None, :, 0], segments[None, :, 1],
+                     segments[None, :, 2] - segments[None, :, 0],
+                     segments[None, :, 3] - segments[None, :, 1], max_range)
     nearest = np.argmin(t, axis=1)
-    rows = np.arange(len(origins))
-    best = t[rows, nearest]
+    best = t[np.arange(len(origins)), nearest]
     closer = best < ranges
-    edge = e[0, nearest]
+    edge = segments[nearest, 2:4] - segments[nearest, 0:2]
     length = np.maximum(np.hypot(edge[:, 0], edge[:, 1]), _EPS)
     cos = np.abs(directions[:, 0] * edge[:, 1] - directions[:, 1] * edge[:, 0]) / length
     ranges[closer] = best[closer]
@@ -78,16 +70,11 @@ def _against_segments(origins: np.ndarray, directions: np.ndarray, max_range: fl
 
 def _against_discs(origins: np.ndarray, directions: np.ndarray, max_range: float,
                    discs: np.ndarray, ranges: np.ndarray, cosines: np.ndarray) -> None:
-    m = origins[:, None, :] - discs[None, :, 0:2]
-    b = np.einsum("rnk,rk->rn", m, directions)
-    c = np.einsum("rnk,rnk->rn", m, m) - discs[None, :, 2] ** 2
-    disc = b * b - c
-    root = np.sqrt(np.maximum(disc, 0.0))
-    t = -b - root
-    t = np.where((disc >= 0) & (c > 0) & (t >= 0) & (t <= max_range), t, np.inf)
+    t = disc_hits(origins[:, None, 0], origins[:, None, 1], directions[:, None, 0],
+                  directions[:, None, 1], discs[None, :, 0], discs[None, :, 1],
+                  discs[None, :, 2], max_range)
     nearest = np.argmin(t, axis=1)
-    rows = np.arange(len(origins))
-    best = t[rows, nearest]
+    best = t[np.arange(len(origins)), nearest]
     closer = best < ranges
     hit = origins + directions * np.where(np.isfinite(best), best, 0.0)[:, None]
     normal = hit - discs[nearest, 0:2]
@@ -97,110 +84,195 @@ def _against_discs(origins: np.ndarray, directions: np.ndarray, max_range: float
     cosines[closer] = cos[closer]
 
 
-CHUNK = 128                 # robots per pass: keeps the temporaries in cache
-
-
-def cast_rings(origins: np.ndarray, headings: np.ndarray, directions: np.ndarray,
-               half_angle: float, max_range: float, segments: np.ndarray,
-               discs: np.ndarray) -> np.ndarray:
-    """Ranges for many robots' sensor rings at once: ``origins`` (R, T, 2) and
-    ``headings`` (R, T), one per transducer; ``directions`` (R, T, N, 2), N rays each
-    within ``half_angle`` of the heading; each robot's own candidate ``segments``
-    (R, K, 4) and ``discs`` (R, D, 3), NaN-padded. Returns (R, T, N), ``inf`` where
-    nothing is hit.
-
-    Each transducer first keeps only what can meet its cone (a segment or disc wholly
-    outside one edge of the cone, or behind it, cannot), so the rays are tested
-    against a few candidates instead of all those around the robot."""
-    out = np.empty(directions.shape[:3])
-    for start in range(0, len(origins), CHUNK):
-        part = slice(start, start + CHUNK)
-        o, h, d = origins[part], headings[part], directions[part]
-        cone = _Cone(o, h, half_angle)
-        ranges = _ring_segments(o, d, max_range, cone.segments(segments[part]))
-        if discs.shape[1]:
-            np.minimum(ranges, _ring_discs(o, d, max_range, cone.discs(discs[part])),
-                       out=ranges)
-        out[part] = ranges
-    return out
-
-
-class _Cone:
-    """The cones of a batch of transducers, and what each may meet."""
-
-    def __init__(self, origins: np.ndarray, headings: np.ndarray, half_angle: float) -> None:
-        self.origins = origins
-        # unit vectors of each cone's two edges and of its axis, (R, T) each
-        self.left = (np.cos(headings + half_angle), np.sin(headings + half_angle))
-        self.right = (np.cos(headings - half_angle), np.sin(headings - half_angle))
-        self.axis = (np.cos(headings), np.sin(headings))
-
-    def _sides(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, ...]:
-        """For points (R, T, K) relative to the origins: how far left of the left edge,
-        right of the right edge, and ahead along the axis."""
-        lx, ly = (v[..., None] for v in self.left)
-        rx, ry = (v[..., None] for v in self.right)
-        ax, ay = (v[..., None] for v in self.axis)
-        return lx * y - ly * x, ry * x - rx * y, ax * x + ay * y
-
-    def segments(self, segments: np.ndarray) -> np.ndarray:
-        """Per transducer, the segments that may cross its cone: (R, T, k, 4)."""
-        ox, oy = self.origins[..., 0, None], self.origins[..., 1, None]
-        ax, ay = segments[:, None, :, 0] - ox, segments[:, None, :, 1] - oy
-        bx, by = segments[:, None, :, 2] - ox, segments[:, None, :, 3] - oy
-        left_a, right_a, ahead_a = self._sides(ax, ay)
-        left_b, right_b, ahead_b = self._sides(bx, by)
-        keep = ~(((left_a > 0) & (left_b > 0)) | ((right_a > 0) & (right_b > 0))
-                 | ((ahead_a < 0) & (ahead_b < 0)) | np.isnan(ax))
-        return _packed(segments, keep)
-
-    def discs(self, discs: np.ndarray) -> np.ndarray:
-        """Per transducer, the discs that may reach into its cone: (R, T, k, 3)."""
-        x = discs[:, None, :, 0] - self.origins[..., 0, None]
-        y = discs[:, None, :, 1] - self.origins[..., 1, None]
-        left, right, ahead = self._sides(x, y)
-        radius = discs[:, None, :, 2]
-        keep = ~((left > radius) | (right > radius) | (ahead < -radius) | np.isnan(x))
-        return _packed(discs, keep)
-
-
-def _packed(items: np.ndarray, keep: np.ndarray) -> np.ndarray:
-    """``items`` (R, K, f) chosen per transducer by ``keep`` (R, T, K), packed to the
-    left: (R, T, k, f), NaN-padded."""
-    width = int(keep.sum(axis=2).max(initial=0))
-    order = np.argsort(~keep, axis=2, kind="stable")[..., :width]
-    kept = np.take_along_axis(keep, order, axis=2)
-    chosen = items[np.arange(len(items))[:, None, None], order]
-    chosen[~kept] = np.nan
-    return chosen
-
-
-def _ring_segments(o: np.ndarray, d: np.ndarray, max_range: float,
-                   seg: np.ndarray) -> np.ndarray:
-    # t = (w x e) / (d x e) and u = (w x d) / (d x e) with w = p - o: the numerator
-    # of t depends on the transducer, not the ray, so it is computed once per origin.
-    px, py = seg[..., 0], seg[..., 1]                           # (R, T, k)
-    ex, ey = seg[..., 2] - px, seg[..., 3] - py
-    wx, wy = px - o[..., 0, None], py - o[..., 1, None]
-    nt = (wx * ey - wy * ex)[:, :, None, :]
-    dx, dy = d[..., 0, None], d[..., 1, None]                   # (R, T, N, 1)
-    ex, ey, wx, wy = ex[:, :, None], ey[:, :, None], wx[:, :, None], wy[:, :, None]
+def segment_hits(ox: np.ndarray, oy: np.ndarray, dx: np.ndarray, dy: np.ndarray,
+                 px: np.ndarray, py: np.ndarray, ex: np.ndarray, ey: np.ndarray,
+                 max_range: float) -> np.ndarray:
+    """How far along rays ``o + t d`` (unit ``d``) each meets segment ``p + u e``
+    (0 <= u <= 1), ``inf`` where it does not within ``max_range``; arrays broadcast."""
+    # Solved with 2D cross products: t = (w x e) / (d x e), u = (w x d) / (d x e),
+    # w = p - o. The sign and size tests on u's numerator spare a division.
+    wx, wy = px - ox, py - oy
     denom = dx * ey - dy * ex
     nu = wx * dy - wy * dx
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = nt / denom
-    hit = (t >= 0) & (t <= max_range) & (nu * denom >= 0) & (np.abs(nu) <= np.abs(denom))
-    return np.where(hit, t, np.inf).min(axis=3, initial=np.inf)
+        t = (wx * ey - wy * ex) / denom
+    miss = ~((np.abs(denom) >= _EPS) & (t >= 0) & (t <= max_range) & (nu * denom >= 0)
+             & (np.abs(nu) <= np.abs(denom)))
+    t[miss] = np.inf
+    return t
 
 
-def _ring_discs(o: np.ndarray, d: np.ndarray, max_range: float,
-                discs: np.ndarray) -> np.ndarray:
-    mx = (o[..., 0, None] - discs[..., 0])[:, :, None, :]
-    my = (o[..., 1, None] - discs[..., 1])[:, :, None, :]
-    c = mx * mx + my * my - (discs[..., 2] ** 2)[:, :, None, :]
-    b = mx * d[..., 0, None] + my * d[..., 1, None]
+def disc_hits(ox: np.ndarray, oy: np.ndarray, dx: np.ndarray, dy: np.ndarray,
+              cx: np.ndarray, cy: np.ndarray, radius: np.ndarray, max_range: float,
+              ) -> np.ndarray:
+    """How far along rays ``o + t d`` (unit ``d``) each meets the disc at ``c`` from
+    outside, ``inf`` where it does not within ``max_range``; arrays broadcast."""
+    mx, my = ox - cx, oy - cy
+    b = mx * dx + my * dy
+    c = mx * mx + my * my - radius * radius
     disc = b * b - c
     with np.errstate(invalid="ignore"):
         t = -b - np.sqrt(disc)
-    hit = (disc >= 0) & (c > 0) & (t >= 0) & (t <= max_range)
-    return np.where(hit, t, np.inf).min(axis=3, initial=np.inf)
+    t[~((disc >= 0) & (c > 0) & (t >= 0) & (t <= max_range))] = np.inf
+    return t
+
+
+class RingCaster:
+    """One sensor ring's rays, fixed in the robot's frame, cast for many robots at once.
+
+    Dense casting tests every ray against every obstacle near its robot; most of
+    those tests miss because the obstacle lies at another bearing. Here each
+    (robot, obstacle) pair first becomes the run of rays that can meet it: the
+    obstacle's bearing interval seen from the robot's centre, widened by how far a
+    transducer sits off the centre, selects a run of the ring's rays sorted by
+    bearing. Only those (pair, ray) combinations are intersected, as flat arrays
+    in the robot's frame (where the ring's rays are constants), and each ray keeps
+    its nearest hit. The result is that of casting every ray against everything.
+    """
+
+    BINS = 720                    # bearing bins of the run look-up (0.5 deg each)
+    CHUNK = 8192                  # (robot, obstacle) pairs cast together
+
+    def __init__(self, offsets: np.ndarray, bearings: np.ndarray, max_range: float) -> None:
+        """``offsets`` (M, 2) and ``bearings`` (M,): each ray's origin and direction
+        in the robot's frame."""
+        bearings = np.remainder(bearings, math.tau)
+        self.order = np.argsort(bearings, kind="stable")          # by bearing
+        self.count = len(bearings)
+        ox, oy = offsets[self.order, 0], offsets[self.order, 1]
+        dx, dy = np.cos(bearings[self.order]), np.sin(bearings[self.order])
+        # A ray from within ``radius`` of the centre that points away from it meets a
+        # point at distance r from the centre within asin(radius / r) of that point's
+        # bearing: the widening below. (Pointing away keeps the angle under 90 deg.)
+        if np.any(ox * dx + oy * dy < 0):
+            raise ValueError("every ray of a ring must point away from the robot's centre")
+        self._rays = np.stack([ox, oy, dx, dy])               # (4, M)
+        self.radius = float(np.sqrt(ox * ox + oy * oy).max(initial=0.0))
+        self.max_range = max_range
+        # How many rays (sorted, the ring twice round) lie below each bin's edge: a
+        # run from bearing a to b is taken as whole bins, a superset found by two
+        # table look-ups instead of binary searches.
+        twice = np.concatenate([bearings[self.order], bearings[self.order] + math.tau])
+        edges = np.arange(2 * self.BINS + 2) * (math.tau / self.BINS)
+        self._below = np.searchsorted(twice, edges, side="left")
+
+    def cast(self, poses: np.ndarray, segments: np.ndarray,
+             segment_pairs: tuple[np.ndarray, np.ndarray], discs: np.ndarray,
+             disc_pairs: tuple[np.ndarray, np.ndarray], depths: np.ndarray | None = None,
+             ) -> np.ndarray:
+        """Ranges (R, M) of the rays of robots at ``poses`` (R, 3), ``inf`` where a ray
+        meets nothing, against the ``segments`` (n, 4) and ``discs`` (m, 3) paired with
+        each robot by (robot index, item index) arrays; unpaired items are not seen.
+        ``depths`` (n,), as ``World.depths``, let a robot skip the far sides of convex
+        obstacles it is well outside of."""
+        if depths is None:
+            depths = np.full(len(segments), np.inf)
+        nearest = np.full(len(poses) * self.count, np.inf)
+        frames = _Frames(poses)
+        # In slices of pairs: the temporaries of a slice stay in the CPU's cache.
+        for part in _slices(len(segment_pairs[0]), len(disc_pairs[0]), self.CHUNK):
+            seg_robot, seg_item = segment_pairs[0][part[0]], segment_pairs[1][part[0]]
+            disc_robot, disc_item = disc_pairs[0][part[1]], disc_pairs[1][part[1]]
+            # Each segment's and disc's ends in its robot's frame, its bearings there and
+            # its nearest point's distance from the robot's centre.
+            ends = np.take(segments, seg_item, axis=0)
+            frame = frames.of(seg_robot)
+            ax, ay = frame.local(ends[:, 0], ends[:, 1])
+            bx, by = frame.local(ends[:, 2], ends[:, 3])
+            ex, ey = bx - ax, by - ay
+            length = np.sqrt(ex * ex + ey * ey)
+            along = -(ax * ex + ay * ey) / np.maximum(length * length, _EPS)
+            np.clip(along, 0.0, 1.0, out=along)
+            gx, gy = ax + along * ex, ay + along * ey
+            gap = np.sqrt(gx * gx + gy * gy)
+            # Far sides: the centre lies more than the obstacle's depth plus the ring's
+            # radius behind the edge, so every transducer is outside the obstacle and on
+            # the edge's inner side; any ray reaching the edge meets a near side first.
+            behind = (ey * ax - ex * ay) > (np.take(depths, seg_item) + self.radius) * length
+            gap[behind] = np.inf
+            first = np.arctan2(ay, ax)
+            turn = _wrapped(np.arctan2(by, bx) - first + math.pi) - math.pi
+            disc = np.take(discs, disc_item, axis=0)
+            cx, cy = frames.of(disc_robot).local(disc[:, 0], disc[:, 1])
+            radius = disc[:, 2]
+            distance = np.sqrt(cx * cx + cy * cy)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                half = np.arcsin(np.clip(radius / distance, 0.0, 1.0))
+            pair, ray = self._runs(
+                np.concatenate([np.where(turn >= 0, first, first + turn),
+                                np.arctan2(cy, cx) - half]),
+                np.concatenate([np.abs(turn), 2 * half]),
+                np.concatenate([gap, distance - radius]))
+            # The runs come in pair order: the segments' first.
+            split = int(np.searchsorted(pair, len(seg_item)))
+            ox, oy, dx, dy = np.take(self._rays, ray, axis=1)
+            px, py, ex, ey = np.take(np.stack([ax, ay, ex, ey]), pair[:split], axis=1)
+            cx, cy, radius = np.take(np.stack([cx, cy, radius]), pair[split:] - len(seg_item),
+                                     axis=1)
+            now = slice(0, split), slice(split, None)
+            t = np.concatenate([
+                segment_hits(ox[now[0]], oy[now[0]], dx[now[0]], dy[now[0]], px, py, ex, ey,
+                             self.max_range),
+                disc_hits(ox[now[1]], oy[now[1]], dx[now[1]], dy[now[1]], cx, cy, radius,
+                          self.max_range)])
+            robots = np.take(np.concatenate([seg_robot, disc_robot]), pair)
+            hit = t < np.inf
+            np.minimum.at(nearest, (robots * self.count + ray)[hit], t[hit])
+        out = np.empty((len(poses), self.count))
+        out[:, self.order] = nearest.reshape(len(poses), self.count)
+        return out
+
+    def _runs(self, low: np.ndarray, width: np.ndarray, gap: np.ndarray,
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """For items seen from the centre over bearings ``low`` to ``low + width``
+        whose nearest point is ``gap`` away: every (item, ray) that can meet,
+        rays as indices into the bearing order."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            widen = np.arcsin(np.clip(self.radius / gap, 0.0, 1.0)) + 1e-9
+        scale = self.BINS / math.tau
+        start = _wrapped(low - widen) * scale
+        end = np.minimum(start + (width + 2 * widen) * scale, 2 * self.BINS)
+        first = np.take(self._below, start.astype(np.intp))
+        count = np.minimum(np.take(self._below, end.astype(np.intp) + 1) - first, self.count)
+        whole = gap <= self.radius                    # a transducer may be inside it
+        first[whole], count[whole] = 0, self.count
+        count[gap > self.max_range + self.radius] = 0
+        pair, offset = expand(count)
+        return pair, (np.take(first, pair) + offset) % self.count
+
+class _Frames:
+    """Robots' frames, for moving world points into them."""
+
+    def __init__(self, poses: np.ndarray) -> None:
+        self.x, self.y = poses[:, 0], poses[:, 1]
+        self.cos, self.sin = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+
+    def of(self, robot: np.ndarray) -> _Frame:
+        """The frames of robots ``robot[i]``, one per point to move."""
+        return _Frame(*(np.take(v, robot) for v in (self.x, self.y, self.cos, self.sin)))
+
+
+@dataclass
+class _Frame:
+    x: np.ndarray
+    y: np.ndarray
+    cos: np.ndarray
+    sin: np.ndarray
+
+    def local(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World points (x, y), one per frame, in their frames."""
+        x, y = x - self.x, y - self.y
+        return self.cos * x + self.sin * y, self.cos * y - self.sin * x
+
+
+def _slices(segments: int, discs: int, size: int) -> list[tuple[slice, slice]]:
+    """Slices of both pair lists, about ``size`` pairs in all each."""
+    parts = max(1, -(-(segments + discs) // size))
+    seg, disc = -(-segments // parts), -(-discs // parts)
+    return [(slice(i * seg, (i + 1) * seg), slice(i * disc, (i + 1) * disc))
+            for i in range(parts)]
+
+
+def _wrapped(angle: np.ndarray) -> np.ndarray:
+    """Angles brought into [0, 2 pi) (cheaper here than ``np.remainder``)."""
+    return angle - math.tau * np.floor(angle / math.tau)

@@ -16,14 +16,12 @@ import numpy as np
 from rave import camera
 from rave.hardware import FAULTS, HardwareBody
 from rave.odometry import Odometer
-from rave.simulated import SimulatedBody
+from rave.simulated import MAX_SPEED, MAX_TURN, SimulatedBody
 
 if TYPE_CHECKING:
     from rave.world import World
 
 BACKENDS = ("sim", "hardware")
-MAX_SPEED = 1.5                     # m/s (a Pioneer 3-DX does 1.2 with a margin)
-MAX_TURN = math.radians(300.0)      # rad/s
 
 
 class Robot:
@@ -36,17 +34,17 @@ class Robot:
         self.world, self.name, self.color = world, name, color
         self.rng = np.random.default_rng([world.seed, index])
         self.odometer = Odometer(pose, self.rng)
-        self._command = (0.0, 0.0)
-        self._body = self._make(backend, pose, self._command)
+        self._body = self._make(backend, pose, (0.0, 0.0), (0.0, 0.0))
 
     def _make(self, backend: str, pose: tuple[float, float, float],
-              velocity: tuple[float, float]) -> SimulatedBody | HardwareBody:
+              velocity: tuple[float, float], command: tuple[float, float],
+              ) -> SimulatedBody | HardwareBody:
         if backend == "sim":
             body: SimulatedBody | HardwareBody = SimulatedBody(
                 self.world, self.name, pose, self.odometer, velocity)
         else:
             body = HardwareBody(self.world, self.name, pose, self.odometer, self.rng, velocity)
-        body.command(*self._command)
+        body.command(*command)
         return body
 
     @property
@@ -60,8 +58,7 @@ class Robot:
         the robot's limits; the command holds until the next one."""
         if not (math.isfinite(v) and math.isfinite(w)):
             raise ValueError(f"robot {self.name}: drive({v}, {w}) needs finite speeds")
-        self._command = (max(-MAX_SPEED, min(MAX_SPEED, v)), max(-MAX_TURN, min(MAX_TURN, w)))
-        self._body.command(*self._command)
+        self._body.command(max(-MAX_SPEED, min(MAX_SPEED, v)), max(-MAX_TURN, min(MAX_TURN, w)))
 
     def stop(self) -> None:
         self.drive(0.0, 0.0)
@@ -104,8 +101,9 @@ class Robot:
         if backend == self.backend:
             return
         pose, (vx, vy, w) = self._body.pose(), self._body.velocity()
+        command = self._body.commanded()
         self._body.close()
-        self._body = self._make(backend, pose, (math.hypot(vx, vy), w))
+        self._body = self._make(backend, pose, (math.hypot(vx, vy), w), command)
 
     def inject(self, fault: str, **params: Any) -> None:
         """Inject a fault into a hardware robot: ``motors_off``, ``sonar_dead``

@@ -21,6 +21,8 @@ if TYPE_CHECKING:
     from rave.world import World
 
 RADIUS = 0.25            # Pioneer 3-DX, m
+MAX_SPEED = 1.5          # m/s (a Pioneer 3-DX does 1.2 with a margin)
+MAX_TURN = math.radians(300.0)      # rad/s
 MASS = 9.0               # kg
 GRIP = 2000.0            # N: what the control joints may exert: 1.5 m/s within a step,
                          # yet less than a wall pushes back (contacts win)
@@ -54,6 +56,10 @@ class SimulatedBody:
 
     def command(self, v: float, w: float) -> None:
         self.fleet.command[self.slot] = (v, w)
+
+    def commanded(self) -> tuple[float, float]:
+        v, w = self.fleet.command[self.slot]
+        return (float(v), float(w))
 
     def pose(self) -> tuple[float, float, float]:
         x, y, theta = self.fleet.pose[self.slot]

@@ -32,6 +32,9 @@ CONE = math.radians(30.0)
 RAYS = 5
 SPECULAR_DEG = 20.0
 _SPREAD = np.linspace(-CONE / 2, CONE / 2, RAYS)
+# every ray of the ring (transducer by transducer), cast for whole fleets at once
+CASTER = raycast.RingCaster(np.repeat(RING[:, 0:2], RAYS, axis=0),
+                            (RING[:, 2:3] + _SPREAD).ravel(), MAX_RANGE)
 
 
 @dataclass

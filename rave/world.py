@@ -41,6 +41,21 @@ class Obstacle:
         pts = list(self.points) + ([self.points[0]] if self.closed else [])
         return [(*a, *b) for a, b in itertools.pairwise(pts)]
 
+    def depths(self) -> list[float]:
+        """Per edge, how far the obstacle lies behind it, on its left (the inside of a
+        convex polygon wound anticlockwise); ``inf`` where an edge has no inside (walls,
+        polygons not convex or wound clockwise). A ray from beyond that depth behind
+        an edge is outside the obstacle and meets another of its edges first."""
+        edges = np.array(self.edges(), dtype=np.float64)
+        points = np.array(self.points, dtype=np.float64)
+        e = edges[:, 2:4] - edges[:, 0:2]
+        rel = points[None, :, :] - edges[:, None, 0:2]
+        left = (e[:, None, 0] * rel[..., 1] - e[:, None, 1] * rel[..., 0]) / np.hypot(
+            e[:, 0], e[:, 1])[:, None]                       # each vertex, from each edge
+        if not self.closed or (left < -1e-9).any():
+            return [math.inf] * len(edges)
+        return left.max(axis=1).tolist()
+
 
 class World:
     """Walls, obstacles and robots; ``step(dt)`` advances simulated time."""
@@ -54,7 +69,7 @@ class World:
         self.time = 0.0
         self._steps = 0
         self._debt = 0.0
-        self._segments: dict[tuple[bool, bool], np.ndarray] = {}
+        self._segments: dict[tuple[bool, bool], tuple[np.ndarray, np.ndarray]] = {}
         self.fleet = Fleet(self)                     # the simulated robots, as arrays
         self.hardware: list[HardwareBody] = []       # the hardware robots' bodies
 
@@ -83,8 +98,10 @@ class World:
                     color: str | None = None) -> None:
         if len(points) < 3:
             raise ValueError(f"a polygon needs at least 3 points, not {len(points)}")
-        self._add(Obstacle(tuple(_point(p) for p in points), closed=True, virtual=virtual,
-                           color=color))
+        corners = [_point(p) for p in points]
+        if _signed_area(corners) < 0:
+            corners.reverse()                   # anticlockwise: the inside on the left
+        self._add(Obstacle(tuple(corners), closed=True, virtual=virtual, color=color))
 
     def _add(self, obstacle: Obstacle) -> None:
         layer = VIRTUAL if obstacle.virtual else REAL
@@ -131,9 +148,9 @@ class World:
         self._debt += dt
         while self._debt >= PHYSICS_DT - 1e-12:
             self._debt -= PHYSICS_DT
+            self.fleet.before_step()
             for hardware in self.hardware:
                 hardware.advance(PHYSICS_DT)
-            self.fleet.before_step()
             self.space.step(PHYSICS_DT)
             self.fleet.after_step(PHYSICS_DT)
             self._steps += 1
@@ -146,12 +163,21 @@ class World:
 
     def segments(self, real: bool = True, virtual: bool = True) -> np.ndarray:
         """Every edge of the obstacles of the chosen layers, shape (n, 4)."""
+        return self._edges(real, virtual)[0]
+
+    def depths(self, real: bool = True, virtual: bool = True) -> np.ndarray:
+        """How far each of ``segments()`` has its obstacle behind it (``Obstacle.depths``)."""
+        return self._edges(real, virtual)[1]
+
+    def _edges(self, real: bool, virtual: bool) -> tuple[np.ndarray, np.ndarray]:
         key = (real, virtual)
         cached = self._segments.get(key)
         if cached is None:
-            edges = [edge for o in self.obstacles if (virtual if o.virtual else real)
-                     for edge in o.edges()]
-            cached = self._segments[key] = np.array(edges, dtype=np.float64).reshape(-1, 4)
+            chosen = [o for o in self.obstacles if (virtual if o.virtual else real)]
+            edges = [edge for o in chosen for edge in o.edges()]
+            depths = [depth for o in chosen for depth in o.depths()]
+            cached = self._segments[key] = (np.array(edges, dtype=np.float64).reshape(-1, 4),
+                                            np.array(depths, dtype=np.float64))
         return cached
 
     def all_discs(self) -> np.ndarray:
@@ -184,6 +210,12 @@ class World:
                 "obstacles": [vars(o) for o in self.obstacles],
                 "robots": {name: {"pose": r.gps(), "backend": r.backend, "color": r.color}
                            for name, r in self.robots.items()}}
+
+
+def _signed_area(points: list[tuple[float, float]]) -> float:
+    """Twice the area enclosed, positive when the points go round anticlockwise."""
+    return sum(x0 * y1 - x1 * y0 for (x0, y0), (x1, y1)
+               in itertools.pairwise([*points, points[0]]))
 
 
 def _point(value: Any) -> tuple[float, float]:

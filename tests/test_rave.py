@@ -243,12 +243,7 @@ def test_the_batched_scan_of_a_crowd_equals_casting_every_ray_against_everything
         world.add_robot(f"r{i}", (*rng.uniform(0.5, 11.5, 2), rng.uniform(-3, 3)))
     world.step(0.1)
     poses = world.fleet.pose
-    reach = sonar.MAX_RANGE + 0.3
-    origins, headings, directions = sonar.ring_rays(poses)
-    batched = raycast.cast_rings(
-        origins, headings, directions, sonar.CONE / 2, sonar.MAX_RANGE,
-        world.fleet.segment_candidates(poses[:, 0:2], reach),
-        world.fleet._disc_candidates(poses[:, 0:2], reach))
+    batched = world.fleet.ranges().reshape(len(poses), sonar.COUNT, sonar.RAYS)
     for slot, name in enumerate(world.robots):
         o, d = sonar.rays(tuple(poses[slot]))
         each = raycast.cast(o, d, sonar.MAX_RANGE, world.segments(),
