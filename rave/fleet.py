@@ -174,9 +174,13 @@ class Fleet:
     def drive_all(self, v: np.ndarray | float, w: np.ndarray | float) -> None:
         """Command every simulated robot at once (arrays in slot order, or one value
         for all), clipped to the robots' limits as ``Robot.drive`` does."""
-        command = np.column_stack(np.broadcast_arrays(np.asarray(v, dtype=np.float64),
-                                                      np.asarray(w, dtype=np.float64),
-                                                      np.zeros(len(self.members))))[:, 0:2]
+        try:
+            command = np.column_stack(np.broadcast_arrays(
+                np.asarray(v, dtype=np.float64), np.asarray(w, dtype=np.float64),
+                np.zeros(len(self.members))))[:, 0:2]
+        except ValueError:
+            raise ValueError(f"drive_all: v and w must be single values or "
+                             f"{len(self.members)} values each, in slot order") from None
         if not np.isfinite(command).all():
             raise ValueError("drive_all needs finite speeds")
         np.clip(command, -_LIMITS, _LIMITS, out=command)

@@ -233,20 +233,61 @@ pose = [2, 2, 0]
 
 
 def test_the_batched_scan_of_a_crowd_equals_casting_every_ray_against_everything() -> None:
+    """Also after the robots have wandered (the neighbour lists are kept from scan to
+    scan), with a concave polygon, a hardware robot among them, and a robot hugging a
+    box (where no side of it may be skipped)."""
     world = World(size=(12, 12), seed=8)
     for i in range(4):
         world.add_box(center=(2.0 + 3 * i, 6.0), size=(0.5, 1.5), angle=0.3 * i,
                       virtual=i % 2 == 0)
+    world.add_polygon([(1, 1), (4, 1), (4, 3), (3, 2), (1, 3)])          # concave
     world.add_wall((0, 0), (12, 0))
     rng = np.random.default_rng(8)
     for i in range(24):
         world.add_robot(f"r{i}", (*rng.uniform(0.5, 11.5, 2), rng.uniform(-3, 3)))
-    world.step(0.1)
+    world.add_robot("hugger", (2.0, 5.0, 0.0))                # 0.25 m off a box's side
+    world.add_robot("h", (6.0, 9.0, 1.0), backend="hardware")
+    fleet = world.fleet
+    start = fleet.pose.copy()
+    for tick in range(30):
+        world.step(0.1)
+        blocked = fleet.sonar_all()[:, 1:7].min(axis=1) < 0.8
+        fleet.drive_all(0.8, np.where(blocked, 2.0, rng.uniform(-0.5, 0.5, len(blocked))))
+        if tick in (0, 14, 29):
+            _assert_scan_equals_casting_every_ray(world)
+    moved = np.hypot(*(fleet.pose[:, 0:2] - start[:, 0:2]).T)
+    assert np.median(moved) > 1.0                # well past the lists' skin
+
+
+def _assert_scan_equals_casting_every_ray(world: World) -> None:
     poses = world.fleet.pose
     batched = world.fleet.ranges().reshape(len(poses), sonar.COUNT, sonar.RAYS)
-    for slot, name in enumerate(world.robots):
+    for slot, name in enumerate(world.fleet.names):
         o, d = sonar.rays(tuple(poses[slot]))
         each = raycast.cast(o, d, sonar.MAX_RANGE, world.segments(),
                             world.discs(exclude=name)).ranges.reshape(16, sonar.RAYS)
         np.testing.assert_allclose(batched[slot], each, rtol=1e-9, err_msg=name)
     assert np.isfinite(batched).mean() > 0.2          # the crowd does see things
+
+
+def test_the_fleet_reads_and_drives_every_simulated_robot_at_once() -> None:
+    world = World(size=(10, 10), seed=2)
+    world.add_wall((6, 0), (6, 10))
+    for i in range(3):
+        world.add_robot(f"r{i}", (2.0, 2.0 + 2 * i, 0.0))
+    fleet = world.fleet
+    assert fleet.names == ["r0", "r1", "r2"]
+    fleet.drive_all([0.5, 9.0, -9.0], 0.0)                    # clipped as drive() clips
+    assert fleet.command[:, 0].tolist() == [0.5, 1.5, -1.5]
+    world.step(1.0)
+    speeds = [world.robot(n).velocity()[0] for n in fleet.names]
+    assert speeds == pytest.approx([0.5, 1.5, -1.5], abs=0.01)
+    readings = fleet.sonar_all()
+    assert readings.shape == (3, 16)
+    np.testing.assert_array_equal(readings[1], world.robot("r1").sonar())
+    ahead = [6.0 - world.robot(n).gps()[0] - 0.166 for n in fleet.names]   # transducer 3
+    assert readings[:, 3] == pytest.approx([ahead[0], ahead[1], 5.0], abs=0.05)
+    with pytest.raises(ValueError, match="finite"):
+        fleet.drive_all(np.nan, 0.0)
+    with pytest.raises(ValueError, match="3 values each"):
+        fleet.drive_all([1.0, 2.0], 0.0)
