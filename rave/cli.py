@@ -115,7 +115,8 @@ def render_command(args: argparse.Namespace) -> int:
         print(f"rave render: {exc}", file=sys.stderr)
         return 1
     output = Path(args.output or Path(args.world).with_suffix(".png").name)
-    render(world, output)
+    with world:
+        render(world, output)
     print(f"wrote {output}")
     return 0
 

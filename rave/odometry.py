@@ -21,9 +21,10 @@ class Odometer:
         self.scale = 1.0 + rng.uniform(-1.0, 1.0, 3) * np.asarray(error)
         self.bias = 0.0                  # rad per m (a fault)
 
-    def advance(self, distance: float, rotation: float) -> None:
-        dead_reckon(self.state, self.scale, np.array([distance]),
-                    np.array([rotation * self.scale[2] + self.bias * abs(distance)]))
+    def advance(self, distance: np.ndarray, rotation: np.ndarray) -> None:
+        """Advance by a run of steps, each a wheel ``distance`` and ``rotation``."""
+        dead_reckon(self.state, self.scale, distance,
+                    rotation * self.scale[2] + self.bias * np.abs(distance))
 
     def pose(self) -> tuple[float, float, float]:
         x, y, theta = self.state

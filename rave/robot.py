@@ -14,7 +14,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from rave import camera
-from rave.hardware import FAULTS, HardwareBody
+from rave.emulator import FAULTS
+from rave.hardware import HardwareBody
 from rave.odometry import Odometer
 from rave.simulated import MAX_SPEED, MAX_TURN, SimulatedBody
 
@@ -108,31 +109,31 @@ class Robot:
     def inject(self, fault: str, **params: Any) -> None:
         """Inject a fault into a hardware robot: ``motors_off``, ``sonar_dead``
         (``sonars=[i, ...]``, all by default) or ``odometry_bias`` (``bias`` rad/m)."""
-        emulator = self._emulator(fault)
+        body = self._hardware(fault)
         if fault == "sonar_dead":
-            emulator.faults[fault] = tuple(params.get("sonars", range(16)))
+            body.inject(fault, tuple(params.get("sonars", range(16))))
         elif fault == "odometry_bias":
             self.odometer.bias = float(params.get("bias", 0.05))
-            emulator.faults[fault] = self.odometer.bias
+            body.inject(fault, self.odometer.bias)
         else:
-            emulator.faults[fault] = True
+            body.inject(fault, True)
 
     def clear(self, fault: str | None = None) -> None:
         """Remove one fault, or all of them."""
-        emulator = self._emulator(fault)
-        for name in [fault] if fault else list(emulator.faults):
-            emulator.faults.pop(name, None)
+        body = self._hardware(fault)
+        for name in [fault] if fault else list(body.faults):
+            body.clear(name)
             if name == "odometry_bias":
                 self.odometer.bias = 0.0
 
-    def _emulator(self, fault: str | None) -> Any:
+    def _hardware(self, fault: str | None) -> HardwareBody:
         if fault is not None and fault not in FAULTS:
             raise ValueError(f"robot {self.name}: unknown fault {fault!r}; faults: "
                              f"{', '.join(FAULTS)}")
         if not isinstance(self._body, HardwareBody):
             raise ValueError(f"robot {self.name} is simulated: faults are injected into "
                              "hardware robots (swap it to 'hardware' first)")
-        return self._body.emulator
+        return self._body
 
     def _close(self) -> None:
         self._body.close()

@@ -68,9 +68,11 @@ class WorldServer:
             return _apply(self.world.robot(args.pop("robot")), op, args, self.world.time)
 
     def close(self) -> None:
+        """Stop stepping and serving, and close the world (it is this server's now)."""
         self._stopping.set()
         self._stepper.join(2.0)
         self._server.close()
+        self.world.close()
 
 
 def _apply(robot: Any, op: str, args: dict[str, Any], now: float) -> Any:

@@ -128,6 +128,17 @@ class World:
         self.robots[name] = robot
         return robot
 
+    def close(self) -> None:
+        """Stop the hardware robots' emulator processes (also on leaving a ``with``)."""
+        for hardware in list(self.hardware):
+            hardware.emulator.close()
+
+    def __enter__(self) -> World:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
     def remove_robot(self, name: str) -> None:
         self.robot(name)._close()
         del self.robots[name]
@@ -145,16 +156,38 @@ class World:
         shorter than one is carried to the next call)."""
         if not dt >= 0:
             raise ValueError(f"step({dt}): time only goes forward")
-        self._debt += dt
-        while self._debt >= PHYSICS_DT - 1e-12:
-            self._debt -= PHYSICS_DT
+        due = int((self._debt + dt + 1e-12) / PHYSICS_DT)
+        if due:
+            self._advance_hardware(due)
+        self._debt += dt - due * PHYSICS_DT
+        for step in range(due):
             self.fleet.before_step()
             for hardware in self.hardware:
-                hardware.advance(PHYSICS_DT)
+                hardware.place(step)
             self.space.step(PHYSICS_DT)
             self.fleet.after_step(PHYSICS_DT)
-            self._steps += 1
-            self.time = self._steps * PHYSICS_DT
+        self._steps += due
+        self.time = self._steps * PHYSICS_DT
+
+    def _advance_hardware(self, steps: int) -> None:
+        """Step the hardware robots first, all at once in their emulators' processes:
+        nothing in the world model pushes a physical robot. Their stand-ins then follow
+        the reported poses step by step, pushing simulated robots. Every answer asked
+        for is taken, even when one robot fails, so that none is read out of turn."""
+        asked, failure = [], None
+        for hardware in self.hardware:
+            try:
+                hardware.emulator.begin_advance(steps, PHYSICS_DT)
+                asked.append(hardware)
+            except (RuntimeError, TimeoutError) as exc:
+                failure = failure or exc
+        for hardware in asked:
+            try:
+                hardware.end_advance()
+            except (RuntimeError, TimeoutError) as exc:
+                failure = failure or exc
+        if failure is not None:
+            raise failure
 
     # -- what sensors see -----------------------------------------------------------------
     def pose(self, name: str) -> tuple[float, float, float]:

@@ -4,14 +4,34 @@ back-end swap, the camera, world files and determinism."""
 from __future__ import annotations
 
 import math
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
+import psutil
 import pytest
+from conftest import alive, eventually
 
 from rave import World, WorldError, raycast, sonar
 from rave.sonar import SonarNoise
 
 EXACT = SonarNoise(sigma0=0.0, sigma_per_m=0.0)
+WorldMaker = Callable[..., World]
+
+
+@pytest.fixture
+def world_of(request: pytest.FixtureRequest) -> WorldMaker:
+    """``World(...)``, closed (its hardware robots' emulator processes stopped) when
+    the test ends."""
+    def make(*args: Any, **kwargs: Any) -> World:
+        world = World(*args, **kwargs)
+        request.addfinalizer(world.close)
+        return world
+    return make
 POSE = (2.0, 2.0, 0.0)
 
 
@@ -54,27 +74,28 @@ def test_a_grazing_wall_returns_no_echo_on_hardware_but_does_in_simulation() -> 
 
 
 def test_hybrid_sonar_is_the_nearer_of_real_and_virtual_and_the_real_part_ignores_virtual(
-        ) -> None:
-    world = World(size=(10, 8), seed=4)
+        world_of: WorldMaker) -> None:
+    world = world_of(size=(10, 8), seed=4)
     world.add_wall((6, 0), (6, 8))                              # real
     world.add_wall((4, 0), (4, 8), virtual=True)                # only in the world model
     robot = world.add_robot("hw", POSE, backend="hardware")
     world.step(0.5)                                             # every transducer fired
-    real = robot._body.emulator.sonar()
+    real = robot._body.real_sonar()
     hybrid = robot.sonar()
     assert min(real[3], real[4]) == pytest.approx(_expected(3, 6.0), abs=0.15)
     assert min(hybrid[3], hybrid[4]) == pytest.approx(_expected(3, 4.0), abs=0.05)
     assert (hybrid <= real).all()
-    far = World(size=(10, 8), seed=4)
+    far = world_of(size=(10, 8), seed=4)
     far.add_wall((6, 0), (6, 8))
     far.add_wall((7, 0), (7, 8), virtual=True)                  # behind the real wall
     robot = far.add_robot("hw", POSE, backend="hardware")
     far.step(0.5)
-    np.testing.assert_array_equal(robot.sonar()[:8], robot._body.emulator.sonar()[:8])
+    np.testing.assert_array_equal(robot.sonar()[:8], robot._body.real_sonar()[:8])
 
 
-def test_a_simulated_robot_stops_at_a_virtual_wall_that_a_hardware_robot_passes() -> None:
-    world = World(size=(10, 8), seed=1)
+def test_a_simulated_robot_stops_at_a_virtual_wall_that_a_hardware_robot_passes(
+        world_of: WorldMaker) -> None:
+    world = world_of(size=(10, 8), seed=1)
     world.add_wall((4, 0), (4, 8), virtual=True)
     sim = world.add_robot("sim", (2.0, 2.0, 0.0), backend="sim")
     hw = world.add_robot("hw", (2.0, 5.0, 0.0), backend="hardware")
@@ -88,8 +109,9 @@ def test_a_simulated_robot_stops_at_a_virtual_wall_that_a_hardware_robot_passes(
     assert world.pose("hw")[0] > 5.0                            # its body passed
 
 
-def test_step_response_is_immediate_in_simulation_and_second_order_on_hardware() -> None:
-    world = World(size=(40, 8), seed=2)
+def test_step_response_is_immediate_in_simulation_and_second_order_on_hardware(
+        world_of: WorldMaker) -> None:
+    world = world_of(size=(40, 8), seed=2)
     sim = world.add_robot("sim", (1.0, 2.0, 0.0), backend="sim")
     hw = world.add_robot("hw", (1.0, 6.0, 0.0), backend="hardware")
     sim.drive(0.5, 0.0)
@@ -106,8 +128,9 @@ def test_step_response_is_immediate_in_simulation_and_second_order_on_hardware()
     assert hw_v.max() <= 0.5 + 1e-9                              # no overshoot
 
 
-def test_motors_off_leaves_the_robot_still_while_odometry_and_commands_go_on() -> None:
-    world = World(size=(20, 8), seed=3)
+def test_motors_off_leaves_the_robot_still_while_odometry_and_commands_go_on(
+        world_of: WorldMaker) -> None:
+    world = world_of(size=(20, 8), seed=3)
     robot = world.add_robot("hw", (1.0, 4.0, 0.0), backend="hardware")
     robot.drive(0.4, 0.0)
     world.step(3.0)
@@ -128,8 +151,50 @@ def test_motors_off_leaves_the_robot_still_while_odometry_and_commands_go_on() -
         world.add_robot("sim", (5.0, 2.0, 0.0)).inject("motors_off")
 
 
-def test_dead_sonars_and_odometry_bias_are_injected_and_cleared() -> None:
-    world = World(size=(10, 8), seed=3)
+def test_a_hardware_robot_is_emulated_in_a_process_of_its_own_that_goes_with_it(
+        world_of: WorldMaker) -> None:
+    world = world_of(size=(10, 8), seed=1)
+    robot = world.add_robot("hw", POSE, backend="hardware")
+    first = robot._body.emulator.pid
+    assert psutil.Process(first).ppid() == os.getpid()
+    robot.drive(0.5, 0.0)
+    world.step(2.0)
+    assert world.pose("hw")[0] > POSE[0] + 0.4                 # it answers the world
+    robot.swap("sim")
+    eventually(lambda: not alive(first), timeout=5, what="the emulator to stop on swap")
+    robot.swap("hardware")
+    second = robot._body.emulator.pid
+    os.kill(second, signal.SIGKILL)                              # the "robot" dies
+    with pytest.raises(RuntimeError, match=r"emulator of robot hw is gone .*exited with -9"):
+        world.step(0.1)
+    robot.swap("sim")                                            # ... and is replaced
+    world.step(0.1)
+    other = world.add_robot("hw2", (6.0, 2.0, 0.0), backend="hardware")
+    third = other._body.emulator.pid
+    world.close()
+    assert not alive(third)
+
+
+def test_an_emulator_outlives_no_world_process_even_killed() -> None:
+    parent = subprocess.Popen(
+        [sys.executable, "-c", "from rave import World; import sys, time;"
+         "w = World(); r = w.add_robot('hw', (2, 2, 0), backend='hardware');"
+         "print(r._body.emulator.pid, flush=True); time.sleep(60)"],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        emulator = int(parent.stdout.readline())
+        assert alive(emulator)
+        parent.kill()
+        parent.wait(5)
+        eventually(lambda: not alive(emulator), timeout=5, what="the orphan to stop")
+    finally:
+        parent.kill()
+        parent.wait(5)
+        parent.stdout.close()
+
+
+def test_dead_sonars_and_odometry_bias_are_injected_and_cleared(world_of: WorldMaker) -> None:
+    world = world_of(size=(10, 8), seed=3)
     world.add_wall((4, 0), (4, 8))
     robot = world.add_robot("hw", POSE, backend="hardware")
     world.step(0.5)
@@ -144,8 +209,8 @@ def test_dead_sonars_and_odometry_bias_are_injected_and_cleared() -> None:
     assert robot.sonar()[3] < sonar.MAX_RANGE
 
 
-def test_a_back_end_swap_mid_run_leaves_the_controller_untouched() -> None:
-    world = World(size=(20, 20), seed=5)
+def test_a_back_end_swap_mid_run_leaves_the_controller_untouched(world_of: WorldMaker) -> None:
+    world = world_of(size=(20, 20), seed=5)
     robot = world.add_robot("r", (10.0, 10.0, 0.0), backend="sim")
 
     def controller(seconds: float) -> None:              # knows only its Robot handle
@@ -184,14 +249,14 @@ def test_the_camera_finds_a_coloured_robot_at_its_bearing_unless_hidden() -> Non
 
 def test_the_same_seed_gives_the_same_run_and_another_seed_other_noise() -> None:
     def run(seed: int) -> np.ndarray:
-        world = World.load("rave/worlds/arena.toml", seed=seed)
         readings = []
-        for i in range(30):
-            for robot in world.robots.values():
-                robot.drive(0.4, 0.5 if i % 10 < 5 else -0.5)
-                readings.append(robot.sonar())
-            world.step(0.1)
-            readings.append(np.array([c for r in world.robots for c in world.pose(r)]))
+        with World.load("rave/worlds/arena.toml", seed=seed) as world:  # one hardware robot
+            for i in range(30):
+                for robot in world.robots.values():
+                    robot.drive(0.4, 0.5 if i % 10 < 5 else -0.5)
+                    readings.append(robot.sonar())
+                world.step(0.1)
+                readings.append(np.array([c for r in world.robots for c in world.pose(r)]))
         return np.concatenate(readings)
 
     assert np.array_equal(run(5), run(5))
@@ -200,9 +265,9 @@ def test_the_same_seed_gives_the_same_run_and_another_seed_other_noise() -> None
 
 def test_bundled_worlds_load_and_a_bad_world_file_reports_every_problem(tmp_path) -> None:
     for name in ("arena", "lab"):
-        world = World.load(f"rave/worlds/{name}.toml")
-        assert world.obstacles and world.robots
-        assert any(o.virtual for o in world.obstacles)
+        with World.load(f"rave/worlds/{name}.toml") as world:
+            assert world.obstacles and world.robots
+            assert any(o.virtual for o in world.obstacles)
     bad = tmp_path / "bad.toml"
     bad.write_text("""
 size = [10, -1]
@@ -232,11 +297,12 @@ pose = [2, 2, 0]
         assert any(expected in p for p in problems), (expected, problems)
 
 
-def test_the_batched_scan_of_a_crowd_equals_casting_every_ray_against_everything() -> None:
+def test_the_batched_scan_of_a_crowd_equals_casting_every_ray_against_everything(
+        world_of: WorldMaker) -> None:
     """Also after the robots have wandered (the neighbour lists are kept from scan to
     scan), with a concave polygon, a hardware robot among them, and a robot hugging a
     box (where no side of it may be skipped)."""
-    world = World(size=(12, 12), seed=8)
+    world = world_of(size=(12, 12), seed=8)
     for i in range(4):
         world.add_box(center=(2.0 + 3 * i, 6.0), size=(0.5, 1.5), angle=0.3 * i,
                       virtual=i % 2 == 0)

@@ -113,12 +113,12 @@ def test_the_rave_command_serves_a_world_injects_faults_and_renders(tmp_path, ca
 
 
 def test_a_recorded_run_becomes_an_animated_gif(tmp_path) -> None:
-    world = World.load("rave/worlds/arena.toml", seed=1)
-    world.robot("r1").drive(0.5, 0.3)
     frames = []
-    for _ in range(5):
-        world.step(0.2)
-        frames.append(render.snapshot(world))
+    with World.load("rave/worlds/arena.toml", seed=1) as world:
+        world.robot("r1").drive(0.5, 0.3)
+        for _ in range(5):
+            world.step(0.2)
+            frames.append(render.snapshot(world))
     path = render.animate(frames, tmp_path / "run.gif", fps=5)
     assert path.read_bytes()[:6] == b"GIF89a"
     assert frames[0].world["robots"]["r1"]["pose"] != frames[-1].world["robots"]["r1"]["pose"]
