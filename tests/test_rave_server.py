@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from conftest import alive, eventually
 from sample_modules import Cruise
@@ -122,3 +123,22 @@ def test_a_recorded_run_becomes_an_animated_gif(tmp_path) -> None:
     path = render.animate(frames, tmp_path / "run.gif", fps=5)
     assert path.read_bytes()[:6] == b"GIF89a"
     assert frames[0].world["robots"]["r1"]["pose"] != frames[-1].world["robots"]["r1"]["pose"]
+
+
+def test_an_occupancy_map_is_drawn_under_the_world(tmp_path) -> None:
+    import matplotlib.image
+
+    world = World(size=(8, 6), seed=1)
+    world.add_wall((0, 0), (8, 0))
+    world.add_robot("r", (2.0, 3.0, 0.0))
+    bare = render.render(world, tmp_path / "bare.png", with_sonar=False)
+    grid = np.zeros((6, 8))
+    grid[:, 4:] = 1.0                                        # the right half occupied
+    mapped = render.render(world, tmp_path / "mapped.png", with_sonar=False,
+                           occupancy=(grid, (0.0, 8.0, 0.0, 6.0)))
+    before, after = (matplotlib.image.imread(p)[..., :3].mean(axis=2) for p in (bare, mapped))
+    assert before.shape == after.shape
+    width = before.shape[1]
+    right, left = slice(width * 5 // 8, width * 7 // 8), slice(width // 8, width * 3 // 8)
+    assert after[:, right].mean() < before[:, right].mean() - 0.2   # darkened: occupied
+    assert after[:, left].mean() == pytest.approx(before[:, left].mean(), abs=0.05)
