@@ -173,47 +173,20 @@ class RingCaster:
         for part in _slices(len(segment_pairs[0]), len(disc_pairs[0]), self.CHUNK):
             seg_robot, seg_item = segment_pairs[0][part[0]], segment_pairs[1][part[0]]
             disc_robot, disc_item = disc_pairs[0][part[1]], disc_pairs[1][part[1]]
-            # Each segment's and disc's ends in its robot's frame, its bearings there and
-            # its nearest point's distance from the robot's centre.
-            ends = np.take(segments, seg_item, axis=0)
-            frame = frames.of(seg_robot)
-            ax, ay = frame.local(ends[:, 0], ends[:, 1])
-            bx, by = frame.local(ends[:, 2], ends[:, 3])
-            ex, ey = bx - ax, by - ay
-            length = np.sqrt(ex * ex + ey * ey)
-            along = -(ax * ex + ay * ey) / np.maximum(length * length, _EPS)
-            np.clip(along, 0.0, 1.0, out=along)
-            gx, gy = ax + along * ex, ay + along * ey
-            gap = np.sqrt(gx * gx + gy * gy)
-            # Far sides: the centre lies more than the obstacle's depth plus the ring's
-            # radius behind the edge, so every transducer is outside the obstacle and on
-            # the edge's inner side; any ray reaching the edge meets a near side first.
-            behind = (ey * ax - ex * ay) > (np.take(depths, seg_item) + self.radius) * length
-            gap[behind] = np.inf
-            first = np.arctan2(ay, ax)
-            turn = _wrapped(np.arctan2(by, bx) - first + math.pi) - math.pi
-            disc = np.take(discs, disc_item, axis=0)
-            cx, cy = frames.of(disc_robot).local(disc[:, 0], disc[:, 1])
-            radius = disc[:, 2]
-            distance = np.sqrt(cx * cx + cy * cy)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                half = np.arcsin(np.clip(radius / distance, 0.0, 1.0))
-            pair, ray = self._runs(
-                np.concatenate([np.where(turn >= 0, first, first + turn),
-                                np.arctan2(cy, cx) - half]),
-                np.concatenate([np.abs(turn), 2 * half]),
-                np.concatenate([gap, distance - radius]))
-            # The runs come in pair order: the segments' first.
-            split = int(np.searchsorted(pair, len(seg_item)))
+            edges = self._segments_seen(frames.of(seg_robot),
+                                        np.take(segments, seg_item, axis=0),
+                                        np.take(depths, seg_item))
+            rounds = self._discs_seen(frames.of(disc_robot), np.take(discs, disc_item, axis=0))
+            pair, ray = self._runs(*(np.concatenate([a, b]) for a, b in zip(
+                edges.bearings, rounds.bearings, strict=True)))
+            split = int(np.searchsorted(pair, len(seg_item)))    # the edges' runs first
             ox, oy, dx, dy = np.take(self._rays, ray, axis=1)
-            px, py, ex, ey = np.take(np.stack([ax, ay, ex, ey]), pair[:split], axis=1)
-            cx, cy, radius = np.take(np.stack([cx, cy, radius]), pair[split:] - len(seg_item),
-                                     axis=1)
-            now = slice(0, split), slice(split, None)
+            ours, theirs = slice(0, split), slice(split, None)
             t = np.concatenate([
-                segment_hits(ox[now[0]], oy[now[0]], dx[now[0]], dy[now[0]], px, py, ex, ey,
-                             self.max_range),
-                disc_hits(ox[now[1]], oy[now[1]], dx[now[1]], dy[now[1]], cx, cy, radius,
+                segment_hits(ox[ours], oy[ours], dx[ours], dy[ours],
+                             *np.take(edges.shape, pair[ours], axis=1), self.max_range),
+                disc_hits(ox[theirs], oy[theirs], dx[theirs], dy[theirs],
+                          *np.take(rounds.shape, pair[theirs] - len(seg_item), axis=1),
                           self.max_range)])
             robots = np.take(np.concatenate([seg_robot, disc_robot]), pair)
             hit = t < np.inf
@@ -221,6 +194,34 @@ class RingCaster:
         out = np.empty((len(poses), self.count))
         out[:, self.order] = nearest.reshape(len(poses), self.count)
         return out
+
+    def _segments_seen(self, frame: _Frame, ends: np.ndarray, depths: np.ndarray) -> _Seen:
+        ax, ay = frame.local(ends[:, 0], ends[:, 1])
+        bx, by = frame.local(ends[:, 2], ends[:, 3])
+        ex, ey = bx - ax, by - ay
+        length = np.sqrt(ex * ex + ey * ey)
+        along = -(ax * ex + ay * ey) / np.maximum(length * length, _EPS)
+        np.clip(along, 0.0, 1.0, out=along)
+        gx, gy = ax + along * ex, ay + along * ey
+        gap = np.sqrt(gx * gx + gy * gy)
+        # Far sides: the centre lies more than the obstacle's depth plus the ring's
+        # radius behind the edge, so every transducer is outside the obstacle and on
+        # the edge's inner side; any ray reaching the edge meets a near side first.
+        gap[(ey * ax - ex * ay) > (depths + self.radius) * length] = np.inf
+        first = np.arctan2(ay, ax)
+        turn = _wrapped(np.arctan2(by, bx) - first + math.pi) - math.pi
+        return _Seen((np.where(turn >= 0, first, first + turn), np.abs(turn), gap),
+                     np.stack([ax, ay, ex, ey]))
+
+    @staticmethod
+    def _discs_seen(frame: _Frame, discs: np.ndarray) -> _Seen:
+        cx, cy = frame.local(discs[:, 0], discs[:, 1])
+        radius = discs[:, 2]
+        distance = np.sqrt(cx * cx + cy * cy)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            half = np.arcsin(np.clip(radius / distance, 0.0, 1.0))
+        return _Seen((np.arctan2(cy, cx) - half, 2 * half, distance - radius),
+                     np.stack([cx, cy, radius]))
 
     def _runs(self, low: np.ndarray, width: np.ndarray, gap: np.ndarray,
               ) -> tuple[np.ndarray, np.ndarray]:
@@ -239,6 +240,17 @@ class RingCaster:
         count[gap > self.max_range + self.radius] = 0
         pair, offset = expand(count)
         return pair, (np.take(first, pair) + offset) % self.count
+
+
+@dataclass
+class _Seen:
+    """Obstacles as robots see them: ``bearings`` (from, width, gap to the nearest
+    point), each (P,), and their ``shape`` in the robot's frame, (k, P): a segment's
+    start and direction, or a disc's centre and radius."""
+
+    bearings: tuple[np.ndarray, np.ndarray, np.ndarray]
+    shape: np.ndarray
+
 
 class _Frames:
     """Robots' frames, for moving world points into them."""
