@@ -357,3 +357,14 @@ def test_the_fleet_reads_and_drives_every_simulated_robot_at_once() -> None:
         fleet.drive_all(np.nan, 0.0)
     with pytest.raises(ValueError, match="3 values each"):
         fleet.drive_all([1.0, 2.0], 0.0)
+
+
+def test_a_simulated_robot_turning_steadily_drives_a_circle_back_to_its_start() -> None:
+    world = World(size=(10, 10), seed=1)
+    robot = world.add_robot("r", (5.0, 3.0, 0.0))
+    robot.drive(0.5, 0.5)                                   # a 1 m radius, 4 pi s round
+    world.step(2 * math.pi)
+    assert world.pose("r")[:2] == pytest.approx((5.0, 5.0), abs=0.03)   # half way: top
+    assert robot.odometry()[:2] == pytest.approx((5.0, 5.0), abs=0.3)  # (it drifts)
+    world.step(2 * math.pi)
+    assert world.pose("r")[:2] == pytest.approx((5.0, 3.0), abs=0.05)
