@@ -5,10 +5,10 @@ fleet works on arrays. Each simulated robot is a dynamic disc pulled by a kinema
 control body through a pivot joint and a gear joint that correct velocity only
 (``max_bias = 0``, pymunk's tank pattern): the solver, not our code, gives the
 robot its velocity, so contacts still stop it, and commands take effect within
-the step (zeroth order). Before each step one batch call reads every body and
-one writes the control bodies' velocities; after it one batch call reads poses
-and velocities back, and odometry advances for all at once. Sonar is scanned for
-all of them together, at most once per ``SONAR_PERIOD`` of simulated time.
+the step (zeroth order). Before each step one batch call writes the control
+bodies' velocities; after it one batch call reads every body back, and dead
+reckoning is done for many steps at once. Sonar is scanned for all of them
+together, at most once per ``SONAR_PERIOD`` of simulated time.
 """
 
 from __future__ import annotations
@@ -90,6 +90,7 @@ class Fleet:
         """Bodies came into the space or left it: re-map batch rows at the next step."""
         self._state = None
         self._scanned = -1
+        self.neighbours.forget()
 
     # -- physics -------------------------------------------------------------------------
     def _read(self) -> np.ndarray:

@@ -61,14 +61,19 @@ class NeighbourLists:
         self.reach, self.skin, self.segment_cell = reach, skin, segment_cell
         self._segments: tuple[np.ndarray, CellLists] | None = None
         self._centers = self._discs = np.zeros((0, 2))
-        self._pairs: tuple[tuple[np.ndarray, np.ndarray], ...] = ()
+        self._pairs: tuple[tuple[np.ndarray, np.ndarray],
+                           tuple[np.ndarray, np.ndarray]] | None = None
 
     def pairs(self, centers: np.ndarray, segments: np.ndarray, discs: np.ndarray,
               ) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
         """(robot, segment) and (robot, disc) index pairs for robots at ``centers``."""
-        if self._stale(centers, segments, discs):
-            self._build(centers, segments, discs)
-        return self._pairs                                           # type: ignore[return-value]
+        if self._pairs is None or self._stale(centers, segments, discs):
+            self._pairs = self._build(centers, segments, discs)
+        return self._pairs
+
+    def forget(self) -> None:
+        """Robots came or went (rows now stand for others): find the pairs anew."""
+        self._pairs = None
 
     def _stale(self, centers: np.ndarray, segments: np.ndarray, discs: np.ndarray) -> bool:
         if (self._segments is None or self._segments[0] is not segments
@@ -77,15 +82,16 @@ class NeighbourLists:
         moved = max(_farthest(centers - self._centers), _farthest(discs[:, 0:2] - self._discs))
         return moved > self.skin / 2
 
-    def _build(self, centers: np.ndarray, segments: np.ndarray, discs: np.ndarray) -> None:
+    def _build(self, centers: np.ndarray, segments: np.ndarray, discs: np.ndarray,
+               ) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
         reach = self.reach + self.skin
         if self._segments is None or self._segments[0] is not segments:   # they stand still
             self._segments = (segments, CellLists(boxes_of_segments(segments), reach,
                                                   self.segment_cell))
         robot, disc = CellLists(boxes_of_discs(discs), reach, reach / 2).pairs(centers)
         other = robot != disc
-        self._pairs = (self._segments[1].pairs(centers), (robot[other], disc[other]))
         self._centers, self._discs = centers.copy(), discs[:, 0:2].copy()
+        return self._segments[1].pairs(centers), (robot[other], disc[other])
 
 
 def _farthest(moves: np.ndarray) -> float:
