@@ -25,6 +25,11 @@ pairs: ``multiprocessing.Queue`` (put/get, pickling) and pyzmq PUSH/PULL over ip
 of the received frame). Every trial warms up first; repetitions run round robin
 (rep-major) so machine noise spreads evenly; figures are medians with min/max, and
 ratios are between medians of this run.
+
+For arrays the script also measures the writer's ceiling in the same run: one process
+copying the array ``N`` times, round robin, into a shared-memory area the size of the
+link's ring (``copy_ceiling``). A local link cannot beat one copy per value; the
+ratio says how close to it PB3A gets, whatever this host's memory speed that minute.
 """
 
 from __future__ import annotations
@@ -56,6 +61,8 @@ from _common import (
 from _modules import ARRAY_SHAPE, ArrayBurst, ArrayCounter, IntBurst, IntCounter
 
 from pb3a import Module, System
+from pb3a.runtime.executor import ring_bytes
+from pb3a.transport.shm import create_segment, unlink_segment
 
 REPS = 5
 BATCH = 64                 # values per write_many() call in the batched PB3A row
@@ -202,6 +209,32 @@ def baseline(kind: str, array: bool, n: int, warm: int, tmp: str) -> dict[str, A
     return {"count": received["count"], "seconds": received["last"] - started, "drops": 0}
 
 
+def _copy_ceiling(n: int, warm: int, conn: Any) -> None:
+    """The writer's limit: copy the array ``n`` times into a ring-sized shared area."""
+    area = ring_bytes(ArrayBurst, "out", ArrayCounter.inputs["x"].policy)
+    segment = create_segment(f"pb3a-bench-copy-{os.getpid()}", area)
+    try:
+        slots = np.ndarray((area // ARRAY_BYTES, *ARRAY_SHAPE), np.float64, segment.buf)
+        payload = np.ones(ARRAY_SHAPE)
+        for i in range(warm):
+            np.copyto(slots[i % len(slots)], payload)
+        started = time.monotonic()
+        for i in range(n):
+            np.copyto(slots[i % len(slots)], payload)
+        conn.send({"count": n, "seconds": time.monotonic() - started, "drops": 0})
+        del slots
+    finally:
+        unlink_segment(segment)
+
+
+def copy_ceiling(n: int, warm: int) -> dict[str, Any]:
+    """One trial of ``_copy_ceiling`` in a fresh forked process."""
+    (result,) = run_forked([(_copy_ceiling, (n, warm))], TIMEOUT)
+    if result is None:
+        raise RuntimeError("copy ceiling trial failed (the child timed out or died)")
+    return result
+
+
 # -- the suite ----------------------------------------------------------------------
 def suite(payload: str, tmp: str, remote: bool = False) -> dict[str, Any]:
     """All repetitions of one payload ("small" or "array"), round robin over methods."""
@@ -213,7 +246,9 @@ def suite(payload: str, tmp: str, remote: bool = False) -> dict[str, Any]:
              else Pb3aLink(IntBurst, IntCounter, remote=remote)}
     if not array:   # the same link written with write_many(), 64 values per call
         links["pb3a_write_many"] = Pb3aLink(IntBurst, IntCounter, batch=BATCH, remote=remote)
-    baselines = ("zmq_tcp",) if remote else ("mp_queue", "zmq_ipc")
+    baselines: tuple[str, ...] = ("zmq_tcp",) if remote else ("mp_queue", "zmq_ipc")
+    if array and not remote:
+        baselines += ("copy_ceiling",)
     trials: dict[str, list[dict[str, Any]]] = {name: [] for name in links}
     trials.update({kind: [] for kind in baselines})
     steal0, t0 = steal_seconds(), time.monotonic()
@@ -224,7 +259,8 @@ def suite(payload: str, tmp: str, remote: bool = False) -> dict[str, Any]:
             for name, link in links.items():
                 trials[name].append(link.burst(n))
             for kind in baselines:
-                trials[kind].append(baseline(kind, array, n, warm, tmp))
+                trials[kind].append(copy_ceiling(n, warm) if kind == "copy_ceiling"
+                                    else baseline(kind, array, n, warm, tmp))
     finally:
         for link in links.values():
             link.close()

@@ -46,6 +46,7 @@ _REC_HEAD = 24                   # u32 length, u16 kind, u16 meta length, u64 se
 ZERO_COPY_MIN = 64 * 1024        # arrays at least this large are read as views
 WRITE_TIMEOUT = 0.1              # how long a writer waits for space before dropping a value
 _ALIGN = 64
+_LAYOUTS = 64                    # array record layouts a writer remembers
 
 
 def _align(n: int, to: int = _ALIGN) -> int:
@@ -66,6 +67,8 @@ class ShmRing:
         self._leases: deque[list[Any]] = deque()   # [start, end, released, ref] per lease
         self._lease_lock = threading.Lock()
         self._closed = False
+        # writer side: record layout of each array (dtype, shape) this link has carried
+        self._layouts: dict[tuple[np.dtype, tuple[int, ...]], tuple[int, bytes, int, int]] = {}
 
     # -- life cycle ---------------------------------------------------------
     @classmethod
@@ -116,11 +119,13 @@ class ShmRing:
         Returns False when dropped. The sequence number advances either way, so
         the reader sees the gap and counts the drop.
         """
-        done = self.core.put(value)           # ints and floats: all in C
+        core = self.core
+        done = core.put(value)                # ints and floats: all in C
         if done < 0:
-            return self.write_many((value,), timeout) == 1
-        if not done:
-            done = self._wait_space(_ALIGN, timeout) and self.core.put(value) > 0
+            done = self._stage(value, time.monotonic(), timeout)
+            core.publish()
+        elif not done:
+            done = self._wait_space(_ALIGN, timeout) and core.put(value) > 0
             if not done:
                 self._skip()
         return bool(done)
@@ -131,40 +136,54 @@ class ShmRing:
 
         ``sent_at`` (monotonic) is when they were written, if not now: values that
         came from another node keep their time for the reader's latency figure."""
-        core, cap = self.core, self.capacity
+        core = self.core
         now = time.monotonic() if sent_at is None else sent_at   # one time for the batch
         written = 0
         for value in values:
-            if type(value) is int or type(value) is float:
-                done = core.stage(value, now)
+            done = core.stage(value, now)      # ints and floats: all in C
+            if done < 0:                       # (-1 also for an int beyond 64 bits)
+                done = self._stage(value, now, timeout)
+            elif not done:
+                done = self._wait_space(_ALIGN, timeout) and core.stage(value, now) > 0
                 if not done:
-                    done = self._wait_space(_ALIGN, timeout) and core.stage(value, now)
-                    if not done:
-                        self._skip()
-                        continue
-                if done > 0:
-                    written += 1
-                    continue                   # (-1: an int beyond 64 bits is pickled)
-            if type(value) is np.ndarray or type(value) is bytes:
-                kind, meta, payload = codec.encode(value)
-                size = codec.payload_size(kind, payload)
-            else:
-                kind, meta, payload = codec.PICKLE, b"", pickle.dumps(value, 5)
-                size = len(payload)
-            body = _align(_REC_HEAD + len(meta), _ALIGN if kind == codec.ARRAY else 8)
-            length = _align(body + size)
-            if length > cap:
-                raise ValueError(
-                    f"a value of {size} bytes does not fit this link's {cap}-byte ring; "
-                    "declare shape= and dtype= on the ports, or raise ring_bytes")
-            if core.stage_record(kind, meta, payload, body, length, now) or (
-                    self._wait_space(length, timeout)
-                    and core.stage_record(kind, meta, payload, body, length, now)):
-                written += 1
-            else:
-                self._skip()                   # dropped: the reader sees the gap
+                    self._skip()
+            written += bool(done)
         core.publish()
         return written
+
+    def _stage(self, value: Any, now: float, timeout: float) -> bool:
+        """Stage one record for anything but an int or float (unpublished); False when
+        dropped. An array is copied once, straight from its own buffer, into the ring."""
+        layout = None
+        if type(value) is np.ndarray and value.flags.c_contiguous:
+            layout = self._layouts.get((value.dtype, value.shape))
+        if layout is None:
+            kind, meta, payload = codec.encode(value)
+            layout = self._layout(kind, meta, codec.payload_size(kind, payload))
+            if kind == codec.ARRAY and payload is value:   # the same for every such array
+                if len(self._layouts) >= _LAYOUTS:           # (shapes that keep changing)
+                    self._layouts.clear()
+                self._layouts[value.dtype, value.shape] = layout
+        else:
+            payload = value
+        kind, meta, body, length = layout
+        core = self.core
+        if core.stage_record(kind, meta, payload, body, length, now) or (
+                self._wait_space(length, timeout)
+                and core.stage_record(kind, meta, payload, body, length, now)):
+            return True
+        self._skip()                           # dropped: the reader sees the gap
+        return False
+
+    def _layout(self, kind: int, meta: bytes, size: int) -> tuple[int, bytes, int, int]:
+        """``(kind, meta, body, length)`` of a record: where its payload starts, its size."""
+        body = _align(_REC_HEAD + len(meta), _ALIGN if kind == codec.ARRAY else 8)
+        length = _align(body + size)
+        if length > self.capacity:
+            raise ValueError(
+                f"a value of {size} bytes does not fit this link's {self.capacity}-byte "
+                "ring; declare shape= and dtype= on the ports, or raise ring_bytes")
+        return kind, meta, body, length
 
     def _skip(self) -> None:
         """A value dropped for want of space: its sequence number is a gap the reader counts."""
