@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 
 .PHONY: demo test lint bench clean
 
-$(STAMP): setup.cfg setup.py pyproject.toml pb3a/transport/_ringcore.c
+$(STAMP): setup.cfg setup.py pyproject.toml pb3a/transport/_ringcore.c rave/_raycore.c
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test]'

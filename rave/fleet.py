@@ -2,18 +2,17 @@
 
 A thousand robots cannot each run Python code at every 10 ms physics step, so the
 fleet works on arrays. Each simulated robot is a dynamic disc pulled by a kinematic
-control body through a pivot joint and a gear joint that correct velocity only
-(``max_bias = 0``, pymunk's tank pattern): the solver, not our code, gives the
-robot its velocity, so contacts still stop it, and commands take effect within
-the step (zeroth order). Before each step one batch call writes the control
-bodies' velocities; after it one batch call reads every body back, and dead
+control body through a pivot joint that corrects velocity only (``max_bias = 0``,
+pymunk's tank pattern): the solver, not our code, gives the robot its velocity, so
+contacts still stop it, and commands take effect within the step (zeroth order).
+Before each step one batch call writes the control bodies' velocities and the
+robots' turn rates; after it one batch call reads every body back, and dead
 reckoning is done for many steps at once. Sonar is scanned for all of them
 together, at most once per ``SONAR_PERIOD`` of simulated time.
 """
 
 from __future__ import annotations
 
-import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -45,7 +44,7 @@ class Fleet:
         self.world = world
         self.members: list[SimulatedBody] = []
         self.command = np.zeros((0, 2))          # v, w
-        self.pose = np.zeros((0, 3))             # x, y, heading (after the last step)
+        self.pose = np.zeros((0, 3))             # x, y, heading as turned (not wrapped)
         self.velocity = np.zeros((0, 3))         # vx, vy, w
         self.odometry_scale = np.ones((0, 3))
         self.readings = np.zeros((0, sonar.COUNT))
@@ -56,10 +55,11 @@ class Fleet:
         self._scanned = -1                       # the sonar tick the readings are from
         self._buffer = pymunk.batch.Buffer()       # read into (pymunk owns its memory)
         self._writing = pymunk.batch.Buffer()      # written from ``_out``, kept alive
-        self._out: np.ndarray | None = None
-        self._state: np.ndarray | None = None    # every body after the last step
-        self._ids = np.zeros(0, dtype=np.uintp)  # body ids in the space's batch order
-        self._rows = self._controls = np.zeros(0, dtype=np.intp)
+        self._out = np.zeros((0, 3))             # every body's velocity for the next step
+        self._mine = np.zeros((0, 6))            # the robots' rows of the last read
+        self._mapped = False                     # the rows below fit the space's bodies
+        self._rows: slice | np.ndarray = slice(0, 0)       # the robots' batch rows
+        self._controls: slice | np.ndarray = slice(0, 0)   # their control bodies' rows
         self.neighbours = NeighbourLists(sonar.MAX_RANGE + sonar.CASTER.radius)
 
     # -- membership --------------------------------------------------------------------
@@ -88,46 +88,51 @@ class Fleet:
 
     def bodies_changed(self) -> None:
         """Bodies came into the space or left it: re-map batch rows at the next step."""
-        self._state = None
+        self._mapped = False
         self._scanned = -1
         self.neighbours.forget()
 
     # -- physics -------------------------------------------------------------------------
     def _read(self) -> np.ndarray:
+        """Every body of the space after the last step, (B, 6): a view of pymunk's
+        buffer, good until the next read."""
         buffer = self._buffer
         buffer.clear()
         pymunk.batch.get_space_bodies(self.world.space, _READ, buffer)
-        ids = np.frombuffer(buffer.int_buf(), dtype=np.uintp)
-        if not np.array_equal(ids, self._ids):
-            self._ids = ids.copy()
-            row = {int(body_id): i for i, body_id in enumerate(self._ids)}
-            self._rows = np.array([row[m.body.id] for m in self.members], dtype=np.intp)
-            self._controls = np.array([row[m.control.id] for m in self.members], dtype=np.intp)
-        return np.frombuffer(buffer.float_buf(), dtype=np.float64).reshape(-1, 6).copy()
+        state = np.frombuffer(buffer.float_buf(), dtype=np.float64).reshape(-1, 6)
+        # The space's batch order changes only when bodies come or go (we are told,
+        # or someone else added to the space: the count then differs).
+        if not self._mapped or len(state) != len(self._out):
+            self._map(np.frombuffer(buffer.int_buf(), dtype=np.uintp))
+        return state
+
+    def _map(self, ids: np.ndarray) -> None:
+        """Find the robots' and their control bodies' rows among the space's bodies."""
+        row = {int(body_id): i for i, body_id in enumerate(ids)}
+        self._rows = _progression([row[m.body.id] for m in self.members])
+        self._controls = _progression([row[m.control.id] for m in self.members])
+        self._out = np.empty((len(row), 3))
+        # Memory numpy owns, which pymunk only reads: it would free or realloc a
+        # buffer of its own that it cleared or grew.
+        self._writing.set_float_buf(self._out.ravel())
+        self._mapped = True
 
     def before_step(self) -> None:
-        """Give each control body its robot's commanded velocity (world frame).
+        """Give every robot its commanded velocity: its control body the speed along
+        its heading (world frame), the robot itself the turn rate.
 
         Nothing moves a body between two steps but the world's hardware robots, which
-        place their stand-ins after this, so the bodies as the last step left them
-        are read only once, after that step."""
+        place their stand-ins after this, so the bodies are read once, after each
+        step, and every other body is written back the velocity it had then."""
         if not self.members:
             return
-        if self._state is None:
-            self._state = self._read()
-        state = self._state
-        heading = state[self._rows, 2]
-        out = self._out
-        if out is None or out.shape != state[:, 3:6].shape:
-            # Memory numpy owns, which pymunk only reads: it would free or realloc a
-            # buffer of its own that it cleared or grew.
-            out = self._out = np.empty_like(state[:, 3:6])
-            self._writing.set_float_buf(out.ravel())
-        out[:] = state[:, 3:6]                    # every other body keeps its velocity
-        v = self.command[:, 0]
-        out[self._controls, 0] = v * np.cos(heading)
-        out[self._controls, 1] = v * np.sin(heading)
-        out[self._controls, 2] = self.command[:, 1]
+        if not self._mapped:
+            self._keep(self._read())
+        out, controls, v = self._out, self._controls, self.command[:, 0]
+        heading = self.pose[:, 2]
+        out[controls, 0] = v * np.cos(heading)
+        out[controls, 1] = v * np.sin(heading)
+        out[self._rows, 2] = self.command[:, 1]
         pymunk.batch.set_space_bodies(self.world.space, _WRITE, self._writing)
 
     def after_step(self, dt: float) -> None:
@@ -135,15 +140,18 @@ class Fleet:
         the wheels did for dead reckoning, done for many steps at once."""
         if not self.members:
             return
-        self._state = self._read()
-        mine = self._state[self._rows]
-        self.pose = mine[:, 0:3]
-        self.pose[:, 2] = np.remainder(self.pose[:, 2] + math.pi, math.tau) - math.pi
-        self.velocity = mine[:, 3:6]
-        self._wheels.append(mine[:, 2:6])                    # heading, vx, vy, w
+        self._keep(self._read())
+        self._wheels.append(self._mine[:, 2:6])                    # heading, vx, vy, w
         self._dt = dt
         if len(self._wheels) >= WHEEL_STEPS:
             self._dead_reckon()
+
+    def _keep(self, state: np.ndarray) -> None:
+        """Take the robots' rows of a read, and every body's velocity to write back."""
+        np.copyto(self._out, state[:, 3:6])
+        mine = self._mine = state[self._rows].copy()   # (a view when rows are a slice)
+        self.pose = mine[:, 0:3]
+        self.velocity = mine[:, 3:6]
 
     @property
     def odometry(self) -> np.ndarray:
@@ -212,3 +220,14 @@ class Fleet:
         segment_pairs, disc_pairs = self.neighbours.pairs(self.pose[:, 0:2], segments, discs)
         return sonar.CASTER.cast(self.pose, segments, segment_pairs, discs, disc_pairs,
                                  self.world.depths())
+
+
+def _progression(rows: list[int]) -> slice | np.ndarray:
+    """Rows as a slice when they are evenly spaced (robots added one after another
+    are), which numpy indexes much faster than an index array."""
+    if len(rows) < 2:
+        return slice(rows[0], rows[0] + 1) if rows else slice(0, 0)
+    step = rows[1] - rows[0]
+    if step > 0 and rows == list(range(rows[0], rows[-1] + 1, step)):
+        return slice(rows[0], rows[-1] + 1, step)
+    return np.array(rows, dtype=np.intp)

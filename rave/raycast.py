@@ -3,7 +3,8 @@
 Every range sensor in RAVE (sonar cones, camera line of sight, the hybrid
 sensors' virtual component) is a batch of rays cast here at once: one numpy
 expression per batch instead of a pymunk query per ray. Segments farther than
-the rays can reach are culled first.
+the rays can reach are culled first. A whole fleet's sonar rings go through
+``RingCaster``, whose pair loop is C.
 """
 
 from __future__ import annotations
@@ -13,7 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rave.neighbours import boxes_of_segments, expand
+from rave import _raycore
+from rave.neighbours import boxes_of_segments
 
 _EPS = 1e-12
 
@@ -125,19 +127,20 @@ class RingCaster:
     (robot, obstacle) pair first becomes the run of rays that can meet it: the
     obstacle's bearing interval seen from the robot's centre, widened by how far a
     transducer sits off the centre, selects a run of the ring's rays sorted by
-    bearing. Only those (pair, ray) combinations are intersected, as flat arrays
-    in the robot's frame (where the ring's rays are constants), and each ray keeps
-    its nearest hit. The result is that of casting every ray against everything.
+    bearing. Only those (pair, ray) combinations are intersected, in the robot's
+    frame (where the ring's rays are constants), and each ray keeps its nearest
+    hit. The result is that of casting every ray against everything. The pair loop
+    is C (``_raycore.c``, the formulas of ``segment_hits`` and ``disc_hits``):
+    as numpy expressions its fixed cost per call bounded a fleet's scan.
     """
 
     BINS = 720                    # bearing bins of the run look-up (0.5 deg each)
-    CHUNK = 8192                  # (robot, obstacle) pairs cast together
 
     def __init__(self, offsets: np.ndarray, bearings: np.ndarray, max_range: float) -> None:
         """``offsets`` (M, 2) and ``bearings`` (M,): each ray's origin and direction
         in the robot's frame."""
         bearings = np.remainder(bearings, math.tau)
-        self.order = np.argsort(bearings, kind="stable")          # by bearing
+        self.order = np.argsort(bearings, kind="stable").astype(np.intp)   # by bearing
         self.count = len(bearings)
         ox, oy = offsets[self.order, 0], offsets[self.order, 1]
         dx, dy = np.cos(bearings[self.order]), np.sin(bearings[self.order])
@@ -167,124 +170,17 @@ class RingCaster:
         obstacles it is well outside of."""
         if depths is None:
             depths = np.full(len(segments), np.inf)
-        nearest = np.full(len(poses) * self.count, np.inf)
-        frames = _Frames(poses)
-        # In slices of pairs: the temporaries of a slice stay in the CPU's cache.
-        for part in _slices(len(segment_pairs[0]), len(disc_pairs[0]), self.CHUNK):
-            seg_robot, seg_item = segment_pairs[0][part[0]], segment_pairs[1][part[0]]
-            disc_robot, disc_item = disc_pairs[0][part[1]], disc_pairs[1][part[1]]
-            edges = self._segments_seen(frames.of(seg_robot),
-                                        np.take(segments, seg_item, axis=0),
-                                        np.take(depths, seg_item))
-            rounds = self._discs_seen(frames.of(disc_robot), np.take(discs, disc_item, axis=0))
-            pair, ray = self._runs(*(np.concatenate([a, b]) for a, b in zip(
-                edges.bearings, rounds.bearings, strict=True)))
-            split = int(np.searchsorted(pair, len(seg_item)))    # the edges' runs first
-            ox, oy, dx, dy = np.take(self._rays, ray, axis=1)
-            ours, theirs = slice(0, split), slice(split, None)
-            t = np.concatenate([
-                segment_hits(ox[ours], oy[ours], dx[ours], dy[ours],
-                             *np.take(edges.shape, pair[ours], axis=1), self.max_range),
-                disc_hits(ox[theirs], oy[theirs], dx[theirs], dy[theirs],
-                          *np.take(rounds.shape, pair[theirs] - len(seg_item), axis=1),
-                          self.max_range)])
-            robots = np.take(np.concatenate([seg_robot, disc_robot]), pair)
-            hit = t < np.inf
-            np.minimum.at(nearest, (robots * self.count + ray)[hit], t[hit])
-        out = np.empty((len(poses), self.count))
-        out[:, self.order] = nearest.reshape(len(poses), self.count)
-        return out
-
-    def _segments_seen(self, frame: _Frame, ends: np.ndarray, depths: np.ndarray) -> _Seen:
-        ax, ay = frame.local(ends[:, 0], ends[:, 1])
-        bx, by = frame.local(ends[:, 2], ends[:, 3])
-        ex, ey = bx - ax, by - ay
-        length = np.sqrt(ex * ex + ey * ey)
-        along = -(ax * ex + ay * ey) / np.maximum(length * length, _EPS)
-        np.clip(along, 0.0, 1.0, out=along)
-        gx, gy = ax + along * ex, ay + along * ey
-        gap = np.sqrt(gx * gx + gy * gy)
-        # Far sides: the centre lies more than the obstacle's depth plus the ring's
-        # radius behind the edge, so every transducer is outside the obstacle and on
-        # the edge's inner side; any ray reaching the edge meets a near side first.
-        gap[(ey * ax - ex * ay) > (depths + self.radius) * length] = np.inf
-        first = np.arctan2(ay, ax)
-        turn = _wrapped(np.arctan2(by, bx) - first + math.pi) - math.pi
-        return _Seen((np.where(turn >= 0, first, first + turn), np.abs(turn), gap),
-                     np.stack([ax, ay, ex, ey]))
-
-    @staticmethod
-    def _discs_seen(frame: _Frame, discs: np.ndarray) -> _Seen:
-        cx, cy = frame.local(discs[:, 0], discs[:, 1])
-        radius = discs[:, 2]
-        distance = np.sqrt(cx * cx + cy * cy)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            half = np.arcsin(np.clip(radius / distance, 0.0, 1.0))
-        return _Seen((np.arctan2(cy, cx) - half, 2 * half, distance - radius),
-                     np.stack([cx, cy, radius]))
-
-    def _runs(self, low: np.ndarray, width: np.ndarray, gap: np.ndarray,
-              ) -> tuple[np.ndarray, np.ndarray]:
-        """For items seen from the centre over bearings ``low`` to ``low + width``
-        whose nearest point is ``gap`` away: every (item, ray) that can meet,
-        rays as indices into the bearing order."""
-        with np.errstate(divide="ignore", invalid="ignore"):
-            widen = np.arcsin(np.clip(self.radius / gap, 0.0, 1.0)) + 1e-9
-        scale = self.BINS / math.tau
-        start = _wrapped(low - widen) * scale
-        end = np.minimum(start + (width + 2 * widen) * scale, 2 * self.BINS)
-        first = np.take(self._below, start.astype(np.intp))
-        count = np.minimum(np.take(self._below, end.astype(np.intp) + 1) - first, self.count)
-        whole = gap <= self.radius                    # a transducer may be inside it
-        first[whole], count[whole] = 0, self.count
-        count[gap > self.max_range + self.radius] = 0
-        pair, offset = expand(count)
-        return pair, (np.take(first, pair) + offset) % self.count
+        nearest = np.full((len(poses), self.count), np.inf)
+        _raycore.cast_pairs(_floats(poses), self._rays, self.order, self._below,
+                            _floats(segments), _floats(depths), *map(_indices, segment_pairs),
+                            _floats(discs), *map(_indices, disc_pairs), nearest, self.radius,
+                            self.max_range)
+        return nearest
 
 
-@dataclass
-class _Seen:
-    """Obstacles as robots see them: ``bearings`` (from, width, gap to the nearest
-    point), each (P,), and their ``shape`` in the robot's frame, (k, P): a segment's
-    start and direction, or a disc's centre and radius."""
-
-    bearings: tuple[np.ndarray, np.ndarray, np.ndarray]
-    shape: np.ndarray
+def _floats(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.float64)
 
 
-class _Frames:
-    """Robots' frames, for moving world points into them."""
-
-    def __init__(self, poses: np.ndarray) -> None:
-        self.x, self.y = poses[:, 0], poses[:, 1]
-        self.cos, self.sin = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-
-    def of(self, robot: np.ndarray) -> _Frame:
-        """The frames of robots ``robot[i]``, one per point to move."""
-        return _Frame(*(np.take(v, robot) for v in (self.x, self.y, self.cos, self.sin)))
-
-
-@dataclass
-class _Frame:
-    x: np.ndarray
-    y: np.ndarray
-    cos: np.ndarray
-    sin: np.ndarray
-
-    def local(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """World points (x, y), one per frame, in their frames."""
-        x, y = x - self.x, y - self.y
-        return self.cos * x + self.sin * y, self.cos * y - self.sin * x
-
-
-def _slices(segments: int, discs: int, size: int) -> list[tuple[slice, slice]]:
-    """Slices of both pair lists, about ``size`` pairs in all each."""
-    parts = max(1, -(-(segments + discs) // size))
-    seg, disc = -(-segments // parts), -(-discs // parts)
-    return [(slice(i * seg, (i + 1) * seg), slice(i * disc, (i + 1) * disc))
-            for i in range(parts)]
-
-
-def _wrapped(angle: np.ndarray) -> np.ndarray:
-    """Angles brought into [0, 2 pi) (cheaper here than ``np.remainder``)."""
-    return angle - math.tau * np.floor(angle / math.tau)
+def _indices(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.intp)

@@ -24,7 +24,7 @@ RADIUS = 0.25            # Pioneer 3-DX, m
 MAX_SPEED = 1.5          # m/s (a Pioneer 3-DX does 1.2 with a margin)
 MAX_TURN = math.radians(300.0)      # rad/s
 MASS = 9.0               # kg
-GRIP = 2000.0            # N: what the control joints may exert: 1.5 m/s within a step,
+GRIP = 2000.0            # N: what the control joint may exert: 1.5 m/s within a step,
                          # yet less than a wall pushes back (contacts win)
 
 
@@ -41,13 +41,16 @@ class SimulatedBody:
         self.shape = pymunk.Circle(self.body, RADIUS)
         self.shape.filter = pymunk.ShapeFilter(categories=ROBOT, mask=SEES_ALL)
         self.shape.friction = 0.0              # contacts push, never spin it
+        # The control body carries the commanded velocity; the joint pulls the robot
+        # along inside the physics step's solver, where contacts can stop it. (A
+        # velocity written straight onto the robot would move it before the solver
+        # saw its contacts, and it would sink into walls.) The turn rate is written
+        # straight onto the robot: a turning disc without friction pushes nothing.
         self.control = pymunk.Body(body_type=pymunk.Body.KINEMATIC)
         self.control.position = pose[:2]
-        self.joints = (pymunk.PivotJoint(self.control, self.body, (0, 0), (0, 0)),
-                       pymunk.GearJoint(self.control, self.body, 0.0, 1.0))
-        for joint in self.joints:
-            joint.max_bias, joint.max_force = 0.0, GRIP
-        world.space.add(self.body, self.shape, self.control, *self.joints)
+        self.joint = pymunk.PivotJoint(self.control, self.body, (0, 0), (0, 0))
+        self.joint.max_bias, self.joint.max_force = 0.0, GRIP
+        world.space.add(self.body, self.shape, self.control, self.joint)
         v, w = velocity
         start = (v * math.cos(pose[2]), v * math.sin(pose[2]), w)
         self.fleet = world.fleet
@@ -63,7 +66,7 @@ class SimulatedBody:
 
     def pose(self) -> tuple[float, float, float]:
         x, y, theta = self.fleet.pose[self.slot]
-        return (float(x), float(y), float(theta))
+        return (float(x), float(y), math.remainder(theta, math.tau))
 
     def velocity(self) -> tuple[float, float, float]:
         vx, vy, w = self.fleet.velocity[self.slot]
@@ -80,4 +83,4 @@ class SimulatedBody:
         """Leave the world; the odometer goes on from where the fleet had it."""
         self.odometer.state[:] = self.odometry()
         self.fleet.remove(self)
-        self.world.space.remove(self.body, self.shape, self.control, *self.joints)
+        self.world.space.remove(self.body, self.shape, self.control, self.joint)
