@@ -1,5 +1,6 @@
 /* The inner loop of RingCaster in C: every (robot, obstacle) pair's run of rays,
- * intersected, each ray keeping its nearest hit.
+ * intersected, each ray keeping its nearest hit; and the sonar's readings made
+ * from those hits (noise, dropouts, clipping, quanta).
  *
  * Why C: a sonar scan of a fleet is a few thousand small pairs. As numpy array
  * expressions it took about sixty calls per scan, and at 100 robots the calls'
@@ -287,14 +288,88 @@ done:
     return result;
 }
 
+/* readings(ranges, rays, normal, dropped, readings, sigma0, sigma_per_m, quantum,
+ *          min_range, max_range)
+ * Fills readings with sonar readings, each from the nearest of `rays` consecutive
+ * ray ranges (inf: no echo), as sonar.readings describes: noise (standard normal
+ * draws scaled by sigma0 + sigma_per_m * range), dropouts (dropped: a byte per
+ * reading, nonzero where the echo is lost; or None), clipping, whole quanta
+ * (rounded half to even, as numpy). One pass instead of a dozen numpy calls, the
+ * slowest a reduction over axes of five. */
+static PyObject *readings(PyObject *Py_UNUSED(module), PyObject *const *args,
+                          Py_ssize_t nargs) {
+    if (nargs != 10) {
+        PyErr_SetString(PyExc_TypeError, "readings takes 10 arguments");
+        return NULL;
+    }
+    Py_ssize_t rays = PyLong_AsSsize_t(args[1]);
+    double sigma0 = PyFloat_AsDouble(args[5]), sigma_per_m = PyFloat_AsDouble(args[6]);
+    double quantum = PyFloat_AsDouble(args[7]), low = PyFloat_AsDouble(args[8]);
+    double high = PyFloat_AsDouble(args[9]);
+    if (PyErr_Occurred())
+        return NULL;
+    if (!(quantum > 0) || rays < 1) {
+        PyErr_SetString(PyExc_ValueError, "readings: quantum and rays must be positive");
+        return NULL;
+    }
+    Py_buffer ranges = {0}, normal = {0}, dropped = {0}, out = {0};
+    PyObject *result = NULL;
+    if (get(args[0], &ranges, 'd', -1, rays, "ranges") < 0)
+        return NULL;
+    Py_ssize_t n = ranges.len / (Py_ssize_t)sizeof(double) / rays;
+    if (get(args[2], &normal, 'd', n, 1, "normal") < 0
+            || get(args[4], &out, 'd', n, 1, "readings") < 0)
+        goto done;
+    if (args[3] != Py_None) {
+        if (PyObject_GetBuffer(args[3], &dropped, PyBUF_C_CONTIGUOUS) < 0)
+            goto done;
+        if (dropped.len != n) {
+            PyErr_SetString(PyExc_ValueError, "readings: dropped must hold a byte per reading");
+            goto done;
+        }
+    }
+    if (out.readonly) {
+        PyErr_SetString(PyExc_ValueError, "readings: readings must be writable");
+        goto done;
+    }
+    const double *range = ranges.buf, *draw = normal.buf;
+    const unsigned char *lost = dropped.buf;
+    double *reading = out.buf;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        double r = range[i * rays];
+        for (Py_ssize_t k = 1; k < rays; k++)
+            r = MIN(r, range[i * rays + k]);
+        if (r < INFINITY && !(lost && lost[i])) {
+            r += draw[i] * (sigma0 + sigma_per_m * r);
+            r = MIN(MAX(r, low), high);
+        } else {
+            r = high;
+        }
+        reading[i] = nearbyint(r / quantum) * quantum;
+    }
+    result = Py_NewRef(Py_None);
+done:
+    PyBuffer_Release(&ranges);
+    if (normal.obj != NULL)
+        PyBuffer_Release(&normal);
+    if (dropped.obj != NULL)
+        PyBuffer_Release(&dropped);
+    if (out.obj != NULL)
+        PyBuffer_Release(&out);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"cast_pairs", (PyCFunction)(void (*)(void))cast_pairs, METH_FASTCALL,
      "lower each ray's nearest hit by the paired segments and discs' runs of rays"},
+    {"readings", (PyCFunction)(void (*)(void))readings, METH_FASTCALL,
+     "sonar readings from the rays' ranges and noise draws"},
     {NULL, NULL, 0, NULL},
 };
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_raycore",
-                                    "RingCaster's pair loop in C.", -1, methods};
+                                    "RingCaster's pair loop and the sonar's readings in C.",
+                                    -1, methods};
 
 PyMODINIT_FUNC PyInit__raycore(void) {
     return PyModule_Create(&module);

@@ -60,7 +60,9 @@ class Fleet:
         self._mapped = False                     # the rows below fit the space's bodies
         self._rows: slice | np.ndarray = slice(0, 0)       # the robots' batch rows
         self._controls: slice | np.ndarray = slice(0, 0)   # their control bodies' rows
-        self.neighbours = NeighbourLists(sonar.MAX_RANGE + sonar.CASTER.radius)
+        # A wide skin: pairs found beyond the reach cost the caster one distance
+        # test each, far less than finding the lists again more often.
+        self.neighbours = NeighbourLists(sonar.MAX_RANGE + sonar.CASTER.radius, skin=1.0)
 
     # -- membership --------------------------------------------------------------------
     def add(self, member: SimulatedBody, pose: tuple[float, float, float],
@@ -210,8 +212,7 @@ class Fleet:
     def scan(self) -> None:
         """Every simulated robot's 16 transducers against every layer and every other
         robot, in one batch."""
-        nearest = self.ranges().reshape(-1, sonar.COUNT, sonar.RAYS).min(axis=2)
-        self.readings = sonar.finish(nearest, NOISE, self.rng)
+        self.readings = sonar.readings(self.ranges(), NOISE, self.rng)
 
     def ranges(self) -> np.ndarray:
         """Every robot's sonar rays (R, 16 x RAYS, ring order), noiseless: the range to

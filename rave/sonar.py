@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rave import raycast
+from rave import _raycore, raycast
 
 # (x mm, y mm, heading deg) of each transducer in the robot's frame (ARIA p3dx.p)
 RING_MM = np.array([
@@ -74,19 +74,21 @@ def read(pose: tuple[float, float, float], segments: np.ndarray, discs: np.ndarr
     if noise.specular:
         grazing = hits.incidence_cos < math.cos(math.radians(SPECULAR_DEG))
         ranges = np.where(grazing, np.inf, ranges)
-    return finish(ranges.reshape(-1, RAYS).min(axis=1), noise, rng)
+    return readings(ranges, noise, rng)
 
 
-def finish(nearest: np.ndarray, noise: SonarNoise, rng: np.random.Generator) -> np.ndarray:
-    """Readings from each transducer's nearest echo (``inf``: none): noise, dropouts,
-    clipping to the sensor's range, millimetres."""
-    echo = np.isfinite(nearest)
-    sigma = noise.sigma0 + noise.sigma_per_m * np.where(echo, nearest, 0.0)
-    noisy = nearest + rng.normal(0.0, 1.0, nearest.shape) * sigma
-    if noise.dropout:
-        echo &= rng.random(nearest.shape) >= noise.dropout
-    readings = np.where(echo, np.clip(noisy, MIN_RANGE, MAX_RANGE), MAX_RANGE)
-    return np.round(readings / noise.quantum) * noise.quantum
+def readings(ranges: np.ndarray, noise: SonarNoise, rng: np.random.Generator) -> np.ndarray:
+    """Readings from the ranges of each transducer's ``RAYS`` rays (consecutive in the
+    last axis; ``inf``: no echo): the nearest echo, noise, dropouts, clipping to the
+    sensor's range, millimetres."""
+    ranges = np.ascontiguousarray(ranges, dtype=np.float64)
+    shape = (*ranges.shape[:-1], ranges.shape[-1] // RAYS)
+    normal = rng.normal(0.0, 1.0, shape)
+    dropped = rng.random(shape) < noise.dropout if noise.dropout else None
+    out = np.empty(shape)
+    _raycore.readings(ranges, RAYS, normal, dropped, out, noise.sigma0, noise.sigma_per_m,
+                      noise.quantum, MIN_RANGE, MAX_RANGE)
+    return out
 
 
 def ring_rays(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -216,9 +216,13 @@ class World:
     def all_discs(self) -> np.ndarray:
         """Every robot as (x, y, radius): the simulated ones first, in fleet order,
         then the hardware ones."""
-        return np.vstack([
-            np.column_stack([self.fleet.pose[:, 0:2], np.full(len(self.fleet.pose), RADIUS)]),
-            np.array([(*h.pose()[:2], RADIUS) for h in self.hardware]).reshape(-1, 3)])
+        simulated = len(self.fleet.pose)
+        discs = np.empty((simulated + len(self.hardware), 3))
+        discs[:simulated, 0:2] = self.fleet.pose[:, 0:2]
+        for row, hardware in enumerate(self.hardware, simulated):
+            discs[row, 0:2] = hardware.pose()[:2]
+        discs[:, 2] = RADIUS
+        return discs
 
     def discs(self, exclude: str | None = None) -> np.ndarray:
         """Every robot but ``exclude`` as (x, y, radius), shape (m, 3)."""
