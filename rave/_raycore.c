@@ -26,7 +26,6 @@
  * do not need: a NaN gap or range fails every comparison made with it anyway) */
 #define MIN(a, b) ((a) < (b) ? (a) : (b))
 #define MAX(a, b) ((a) > (b) ? (a) : (b))
-#define BEARING_ERR 1e-4   /* runs' margin for fast_atan2's error (below 1.2e-5 rad) */
 
 typedef struct {
     const double *rays;      /* (4, M) */
@@ -38,29 +37,7 @@ typedef struct {
     double *nearest;         /* (R, M), in the ring's order */
 } Ring;
 
-/* atan2(y, x) within 1.2e-5 rad: an odd polynomial (fitted minimax on [0, 1]) on
- * one octant, five times cheaper than libm's. Only the bounds of runs use it,
- * widened by BEARING_ERR; hits are computed exactly. */
-static double fast_atan2(double y, double x) {
-    double ax = fabs(x), ay = fabs(y), big = MAX(ax, ay);
-    if (big == 0)
-        return 0.0;
-    double a = MIN(ax, ay) / big, s = a * a;
-    double r = a * (0.99986633 + s * (-0.33030478 + s * (0.18015926
-                                                         + s * (-0.08515629 + s * 0.02084508))));
-    if (ay > ax)
-        r = M_PI_2 - r;
-    if (x < 0)
-        r = M_PI - r;
-    return y < 0 ? -r : r;
-}
-
-/* asin(s) for s in [0, 1], as fast_atan2 (same error). */
-static double fast_asin(double s) {
-    return fast_atan2(s, sqrt(MAX(0.0, 1.0 - s * s)));
-}
-
-/* Angles into [0, 2 pi), as raycast._wrapped does. */
+/* Angles into [0, 2 pi). */
 static double wrapped(double angle) {
     return angle - TAU * floor(angle / TAU);
 }
@@ -75,7 +52,7 @@ static void run_of(const Ring *ring, double low, double width, double gap,
         *count = ring->m;
         return;
     }
-    double widen = fast_asin(MIN(ring->radius / gap, 1.0)) + BEARING_ERR;
+    double widen = asin(MIN(ring->radius / gap, 1.0)) + 1e-9;
     double scale = (double)ring->bins / TAU;
     double start = wrapped(low - widen) * scale;
     double end = MIN(start + (width + 2.0 * widen) * scale, 2.0 * (double)ring->bins);
@@ -110,13 +87,13 @@ static void cast_segment(const Ring *ring, double *row, double ax, double ay,
     double along = -(ax * ex + ay * ey) / MAX(length2, EPS);
     along = MIN(MAX(along, 0.0), 1.0);
     double gx = ax + along * ex, gy = ay + along * ey;
+    double gap = sqrt(gx * gx + gy * gy);
     /* Far side: the centre lies more than the obstacle's depth plus the ring's
      * radius behind the edge; any ray reaching it meets a near side first. */
-    double gap = sqrt(gx * gx + gy * gy);
     if (ey * ax - ex * ay > (depth + ring->radius) * length || beyond(ring, gap))
         return;
-    double first_bearing = fast_atan2(ay, ax);
-    double turn = wrapped(fast_atan2(by, bx) - first_bearing + M_PI) - M_PI;
+    double first_bearing = atan2(ay, ax);
+    double turn = wrapped(atan2(by, bx) - first_bearing + M_PI) - M_PI;
     Py_ssize_t j, count;
     run_of(ring, turn >= 0 ? first_bearing : first_bearing + turn, fabs(turn), gap, &j, &count);
     for (Py_ssize_t k = 0; k < count; k++, j = next_ray(ring, j)) {
@@ -138,9 +115,9 @@ static void cast_disc(const Ring *ring, double *row, double cx, double cy, doubl
     double distance = sqrt(cx * cx + cy * cy);
     if (beyond(ring, distance - r))
         return;
-    double half = distance > 0 ? fast_asin(MIN(MAX(r / distance, 0.0), 1.0)) : M_PI / 2;
+    double half = distance > 0 ? asin(MIN(MAX(r / distance, 0.0), 1.0)) : M_PI / 2;
     Py_ssize_t j, count;
-    run_of(ring, fast_atan2(cy, cx) - half, 2.0 * half, distance - r, &j, &count);
+    run_of(ring, atan2(cy, cx) - half, 2.0 * half, distance - r, &j, &count);
     for (Py_ssize_t k = 0; k < count; k++, j = next_ray(ring, j)) {
         double mx = ox[j] - cx, my = oy[j] - cy;
         double b = mx * dx[j] + my * dy[j];

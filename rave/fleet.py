@@ -32,7 +32,7 @@ SONAR_PERIOD = 0.1                       # s: simulated sonar refresh (10 Hz)
 WHEEL_STEPS = 50                         # physics steps dead-reckoned at once, at most
 NOISE = sonar.SonarNoise(sigma0=0.005, sigma_per_m=0.005)
 _F = pymunk.batch.BodyFields
-_READ = _F.BODY_ID | _F.POSITION | _F.ANGLE | _F.VELOCITY | _F.ANGULAR_VELOCITY
+_READ = _F.POSITION | _F.ANGLE | _F.VELOCITY | _F.ANGULAR_VELOCITY
 _WRITE = _F.VELOCITY | _F.ANGULAR_VELOCITY
 _LIMITS = np.array([MAX_SPEED, MAX_TURN])
 
@@ -105,12 +105,15 @@ class Fleet:
         # The space's batch order changes only when bodies come or go (we are told,
         # or someone else added to the space: the count then differs).
         if not self._mapped or len(state) != len(self._out):
-            self._map(np.frombuffer(buffer.int_buf(), dtype=np.uintp))
+            self._map()
         return state
 
-    def _map(self, ids: np.ndarray) -> None:
+    def _map(self) -> None:
         """Find the robots' and their control bodies' rows among the space's bodies."""
-        row = {int(body_id): i for i, body_id in enumerate(ids)}
+        ids = pymunk.batch.Buffer()
+        pymunk.batch.get_space_bodies(self.world.space, _F.BODY_ID, ids)
+        row = {int(body_id): i for i, body_id in enumerate(np.frombuffer(ids.int_buf(),
+                                                                         dtype=np.uintp))}
         self._rows = _progression([row[m.body.id] for m in self.members])
         self._controls = _progression([row[m.control.id] for m in self.members])
         self._out = np.empty((len(row), 3))
