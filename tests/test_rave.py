@@ -359,6 +359,25 @@ def test_the_fleet_reads_and_drives_every_simulated_robot_at_once() -> None:
         fleet.drive_all([1.0, 2.0], 0.0)
 
 
+def test_robots_leaving_and_joining_mid_run_leave_the_others_driving_as_commanded() -> None:
+    world = World(size=(20, 8), seed=3)
+    for i in range(3):
+        world.add_robot(f"r{i}", (2.0 + 4 * i, 3.0, 0.0)).drive(0.5, 0.0)
+    world.step(1.0)
+    world.remove_robot("r1")                     # the fleet's rows close up behind it
+    world.add_robot("r3", (2.0, 6.0, 0.0)).drive(0.0, 1.0)
+    world.robot("r2").drive(0.0, -1.0)
+    world.step(1.0)
+    assert list(world.robots) == ["r0", "r2", "r3"] and world.fleet.names == ["r0", "r2", "r3"]
+    assert world.pose("r0") == pytest.approx((3.0, 3.0, 0.0), abs=0.01)
+    assert world.pose("r2") == pytest.approx((10.5, 3.0, -1.0), abs=0.01)
+    assert world.pose("r3") == pytest.approx((2.0, 6.0, 1.0), abs=0.01)
+    for name in world.fleet.names:                 # each row still stands for its robot
+        body = world.robot(name)._body.body
+        assert world.pose(name)[:2] == pytest.approx(tuple(body.position), abs=1e-9)
+    assert world.robot("r0").sonar()[3] == pytest.approx(5.0)    # r1 gone: nothing ahead
+
+
 def test_a_simulated_robot_turning_steadily_drives_a_circle_back_to_its_start() -> None:
     world = World(size=(10, 10), seed=1)
     robot = world.add_robot("r", (5.0, 3.0, 0.0))
