@@ -42,3 +42,24 @@ def dead_reckon(state: np.ndarray, scale: np.ndarray, distance: np.ndarray,
     state[..., 0] += (distance * np.cos(middle)).sum(axis=0) * scale[..., 0]
     state[..., 1] += (distance * np.sin(middle)).sum(axis=0) * scale[..., 1]
     state[..., 2] = np.remainder(state[..., 2] + turned[-1] + math.pi, math.tau) - math.pi
+
+
+def dead_reckon_arcs(state: np.ndarray, scale: np.ndarray, distance: np.ndarray,
+                     rotation: np.ndarray, steps: int) -> None:
+    """``dead_reckon`` for runs of ``steps`` equal steps, one run per pose (each a
+    wheel ``distance`` and a scaled ``rotation`` per step), in closed form: the
+    steps' midway headings are evenly spaced, so their sum is one chord."""
+    half = rotation / 2.0
+    heading = state[..., 2] + steps * half                   # midway through the run
+    length = distance * chord_sum(steps, half)
+    state[..., 0] += length * np.cos(heading) * scale[..., 0]
+    state[..., 1] += length * np.sin(heading) * scale[..., 1]
+    state[..., 2] = np.remainder(state[..., 2] + steps * rotation + math.pi, math.tau) - math.pi
+
+
+def chord_sum(steps: int, half_turn: np.ndarray) -> np.ndarray:
+    """Length of the sum of ``steps`` unit vectors, each turned ``2 * half_turn`` from
+    the one before: ``sin(steps * half_turn) / sin(half_turn)``. It points midway
+    between the first and the last."""
+    return np.divide(np.sin(steps * half_turn), np.sin(half_turn),
+                     out=np.full_like(half_turn, float(steps)), where=np.abs(half_turn) > 1e-9)

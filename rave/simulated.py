@@ -46,6 +46,8 @@ class SimulatedBody:
         # velocity written straight onto the robot would move it before the solver
         # saw its contacts, and it would sink into walls.) The turn rate is written
         # straight onto the robot: a turning disc without friction pushes nothing.
+        # The fleet turns the control body about the robot's centre of curvature,
+        # so it carries a command without being written at every step.
         self.control = pymunk.Body(body_type=pymunk.Body.KINEMATIC)
         self.control.position = pose[:2]
         self.joint = pymunk.PivotJoint(self.control, self.body, (0, 0), (0, 0))
@@ -58,7 +60,7 @@ class SimulatedBody:
         self.command(v, w)
 
     def command(self, v: float, w: float) -> None:
-        self.fleet.command[self.slot] = (v, w)
+        self.fleet.drive(self.slot, v, w)
 
     def commanded(self) -> tuple[float, float]:
         v, w = self.fleet.command[self.slot]

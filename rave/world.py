@@ -165,7 +165,7 @@ class World:
             for hardware in self.hardware:
                 hardware.place(step)
             self.space.step(PHYSICS_DT)
-            self.fleet.after_step(PHYSICS_DT)
+            self.fleet.after_step()
         self._steps += due
         self.time = self._steps * PHYSICS_DT
 

@@ -16,7 +16,8 @@ import psutil
 import pytest
 from conftest import alive, eventually
 
-from rave import World, WorldError, raycast, sonar
+from rave import World, WorldError, odometry, raycast, sonar
+from rave import fleet as fleet_module
 from rave.sonar import SonarNoise
 
 EXACT = SonarNoise(sigma0=0.0, sigma_per_m=0.0)
@@ -345,6 +346,8 @@ def test_the_fleet_reads_and_drives_every_simulated_robot_at_once() -> None:
     assert fleet.names == ["r0", "r1", "r2"]
     fleet.drive_all([0.5, 9.0, -9.0], 0.0)                    # clipped as drive() clips
     assert fleet.command[:, 0].tolist() == [0.5, 1.5, -1.5]
+    with pytest.raises(ValueError, match="read-only"):          # commands go through drive
+        fleet.command[0] = (0.0, 0.0)
     world.step(1.0)
     speeds = [world.robot(n).velocity()[0] for n in fleet.names]
     assert speeds == pytest.approx([0.5, 1.5, -1.5], abs=0.01)
@@ -387,3 +390,74 @@ def test_a_simulated_robot_turning_steadily_drives_a_circle_back_to_its_start() 
     assert robot.odometry()[:2] == pytest.approx((5.0, 5.0), abs=0.3)  # (it drifts)
     world.step(2 * math.pi)
     assert world.pose("r")[:2] == pytest.approx((5.0, 3.0), abs=0.05)
+
+
+def test_a_perfect_odometer_follows_the_true_path_however_seldom_it_is_read() -> None:
+    """The fleet writes bodies only when commands change and reads them only when
+    asked, dead-reckoning each stretch between reads: reading changes no motion,
+    and an odometer without error stays on the true path."""
+    plan = [(0.5, 0.0), (0.5, 0.8), (0.0, -2.0), (-0.3, 0.4), (1.2, -0.2)]
+
+    def run(read_every: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        world = World(size=(20, 20), seed=4)
+        robot = world.add_robot("r", (10.0, 10.0, 0.3))
+        world.fleet.odometry_scale[:] = 1.0                        # no odometry error
+        for tick in range(60):
+            robot.drive(*plan[tick // 12])
+            world.step(0.1)
+            if tick % read_every == 0:
+                robot.velocity()
+        return world.pose("r"), robot.odometry()
+
+    pose, reckoned = run(read_every=1)
+    seldom = run(read_every=7)
+    assert seldom[0] == pose                                    # bit for bit
+    # A stretch is taken for equal steps; the first step after a command change
+    # still moves as the one before did: some millimetres over 4.5 m of path.
+    assert seldom[1] == pytest.approx(reckoned, abs=3e-3)
+    assert reckoned == pytest.approx(pose, abs=0.02)
+
+
+def test_dead_reckoning_runs_of_equal_steps_in_closed_form_equals_step_by_step() -> None:
+    rng = np.random.default_rng(1)
+    start = rng.uniform(-3.0, 3.0, (5, 3))
+    scale = rng.uniform(0.95, 1.05, (5, 3))
+    distance, rotation = rng.uniform(-0.02, 0.02, 5), rng.uniform(-0.05, 0.05, 5)
+    rotation[0] = 0.0                                           # straight
+    by_steps, closed = start.copy(), start.copy()
+    odometry.dead_reckon(by_steps, scale, np.tile(distance, (40, 1)), np.tile(rotation, (40, 1)))
+    odometry.dead_reckon_arcs(closed, scale, distance, rotation, 40)
+    np.testing.assert_allclose(closed, by_steps, rtol=0, atol=1e-12)
+
+
+def test_a_turning_robot_keeps_its_turn_rate_when_another_robot_shoves_it() -> None:
+    world = World(size=(10, 10), seed=2)
+    turner = world.add_robot("turner", (5.0, 5.0, 0.0))
+    world.add_robot("pusher", (3.0, 5.0, 0.0)).drive(1.0, 0.0)
+    turner.drive(0.0, 1.0)                                      # turning on the spot
+    world.step(2.0)                                             # shoved from 1.5 s on
+    assert world.pose("turner")[0] > 5.2                        # it was pushed
+    assert turner.velocity()[2] == pytest.approx(1.0, abs=1e-9)
+    assert world.pose("turner")[2] == pytest.approx(2.0, abs=0.011)
+
+
+@pytest.mark.parametrize("changing", [3, 30])
+def test_new_commands_move_robots_alike_set_one_by_one_or_in_one_batch(
+        monkeypatch: pytest.MonkeyPatch, changing: int) -> None:
+    def run(one_by_one: int) -> np.ndarray:
+        monkeypatch.setattr(fleet_module, "ONE_BY_ONE", one_by_one)
+        world = World(size=(30, 30), seed=5)
+        for i in range(30):
+            world.add_robot(f"r{i}", (3.0 + 4 * (i % 6), 3.0 + 4 * (i // 6), i / 5))
+        rng = np.random.default_rng(1)
+        v, w = np.zeros(30), np.zeros(30)
+        for _ in range(30):
+            chosen = rng.choice(30, changing, replace=False)
+            v[chosen], w[chosen] = rng.uniform(-1, 1, changing), rng.uniform(-2, 2, changing)
+            world.fleet.drive_all(v, w)
+            world.step(0.1)
+        return np.array([world.pose(name) for name in world.fleet.names])
+
+    one_by_one, batched = run(one_by_one=1000), run(one_by_one=0)
+    np.testing.assert_array_equal(one_by_one, batched)
+    assert np.ptp(one_by_one[:, 0]) > 15                        # they did move
