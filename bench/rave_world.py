@@ -40,7 +40,7 @@ from rave.neighbours import NeighbourLists
 
 GOALS = {100: 50.0, 1000: 2.0}
 SIMULATED_S = {100: 5.0, 1000: 1.0}
-REPS = 3
+REPS = 5
 
 
 def crowd(n: int, seed: int = 1) -> World:
