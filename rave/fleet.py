@@ -221,7 +221,9 @@ class Fleet:
         change is a sum of equal chords, turned by equal angles, which gives that
         distance. (Reading every ``WHEEL_STEPS`` keeps a stretch's turn well short of
         a half circle, where the sum would vanish.) Where something held a robot
-        back, the distance is the stretch's mean."""
+        back, the distance is the stretch's mean; so is it for the first step after
+        a command change, which pymunk still moves with the velocity solved before
+        (it moves bodies before it solves): millimetres over metres."""
         k, start = self._steps, self._pose
         half = (pose[:, 2] - start[:, 2]) / (2 * k)          # half the turn per step
         along = start[:, 2] + (k - 1) * half                # the chords' sum points along
