@@ -41,7 +41,7 @@ def dead_reckon(state: np.ndarray, scale: np.ndarray, distance: np.ndarray,
     middle = state[..., 2] + turned - rotation / 2.0         # heading midway through each
     state[..., 0] += (distance * np.cos(middle)).sum(axis=0) * scale[..., 0]
     state[..., 1] += (distance * np.sin(middle)).sum(axis=0) * scale[..., 1]
-    state[..., 2] = np.remainder(state[..., 2] + turned[-1] + math.pi, math.tau) - math.pi
+    state[..., 2] = _wrapped(state[..., 2] + turned[-1])
 
 
 def dead_reckon_arcs(state: np.ndarray, scale: np.ndarray, distance: np.ndarray,
@@ -54,7 +54,7 @@ def dead_reckon_arcs(state: np.ndarray, scale: np.ndarray, distance: np.ndarray,
     length = distance * chord_sum(steps, half)
     state[..., 0] += length * np.cos(heading) * scale[..., 0]
     state[..., 1] += length * np.sin(heading) * scale[..., 1]
-    state[..., 2] = np.remainder(state[..., 2] + steps * rotation + math.pi, math.tau) - math.pi
+    state[..., 2] = _wrapped(state[..., 2] + steps * rotation)
 
 
 def chord_sum(steps: int, half_turn: np.ndarray) -> np.ndarray:
@@ -63,3 +63,8 @@ def chord_sum(steps: int, half_turn: np.ndarray) -> np.ndarray:
     between the first and the last."""
     return np.divide(np.sin(steps * half_turn), np.sin(half_turn),
                      out=np.full_like(half_turn, float(steps)), where=np.abs(half_turn) > 1e-9)
+
+
+def _wrapped(heading: np.ndarray) -> np.ndarray:
+    """Headings into [-pi, pi)."""
+    return np.remainder(heading + math.pi, math.tau) - math.pi
