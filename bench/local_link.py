@@ -27,9 +27,11 @@ of the received frame). Every trial warms up first; repetitions run round robin
 ratios are between medians of this run.
 
 For arrays the script also measures the writer's ceiling in the same run: one process
-copying the array ``N`` times, round robin, into a shared-memory area the size of the
-link's ring (``copy_ceiling``). A local link cannot beat one copy per value; the
-ratio says how close to it PB3A gets, whatever this host's memory speed that minute.
+copying the array ``N`` times into shared memory, alternating between two slots
+(``copy_ceiling``): the fewest with which a writer can fill one while its reader
+holds the other, and the most cache-friendly. A local link cannot beat one copy per
+value; the ratio says how close to it PB3A gets, whatever this host's memory speed
+that minute.
 """
 
 from __future__ import annotations
@@ -61,7 +63,6 @@ from _common import (
 from _modules import ARRAY_SHAPE, ArrayBurst, ArrayCounter, IntBurst, IntCounter
 
 from pb3a import Module, System
-from pb3a.runtime.executor import ring_bytes
 from pb3a.transport.shm import create_segment, unlink_segment
 
 REPS = 5
@@ -210,11 +211,10 @@ def baseline(kind: str, array: bool, n: int, warm: int, tmp: str) -> dict[str, A
 
 
 def _copy_ceiling(n: int, warm: int, conn: Any) -> None:
-    """The writer's limit: copy the array ``n`` times into a ring-sized shared area."""
-    area = ring_bytes(ArrayBurst, "out", ArrayCounter.inputs["x"].policy)
-    segment = create_segment(f"pb3a-bench-copy-{os.getpid()}", area)
+    """The writer's limit: copy the array ``n`` times into two shared slots in turn."""
+    segment = create_segment(f"pb3a-bench-copy-{os.getpid()}", 2 * ARRAY_BYTES)
     try:
-        slots = np.ndarray((area // ARRAY_BYTES, *ARRAY_SHAPE), np.float64, segment.buf)
+        slots = np.ndarray((2, *ARRAY_SHAPE), np.float64, segment.buf)
         payload = np.ones(ARRAY_SHAPE)
         for i in range(warm):
             np.copyto(slots[i % len(slots)], payload)

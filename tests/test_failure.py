@@ -13,7 +13,18 @@ from pathlib import Path
 
 import pytest
 from conftest import alive, eventually
-from sample_modules import Crasher, Faulty, FloatSource, Journal, Last, Scale, SlowTeardown, Steady
+from sample_modules import (
+    ArrayHolder,
+    ArraySource,
+    Crasher,
+    Faulty,
+    FloatSource,
+    Journal,
+    Last,
+    Scale,
+    SlowTeardown,
+    Steady,
+)
 
 from pb3a import System
 from pb3a.transport.shm import live_segments
@@ -102,6 +113,21 @@ def test_links_survive_a_restart_of_the_reading_worker() -> None:
         _kill_worker(run, "sink")
         eventually(lambda: run.stats()["modules"]["sink"]["restarts"] == 1, what="restart")
         eventually(lambda: run.state("sink")["value"] == 2.0, what="values after restart")
+
+
+def test_a_restarted_reader_gets_back_the_array_slots_its_predecessor_held() -> None:
+    system = System("held")
+    system.add("src", ArraySource)
+    system.add("hold", ArrayHolder, restart="fresh")   # holds ten views, never reads
+    system.link("src.out", "hold.x")                   # a pool of twelve 1 MiB slots
+    with system.launch() as run:
+        def held() -> int:
+            return run.stats()["modules"]["hold"]["inputs"]["x"]["pending"]
+        eventually(lambda: held() == 10, timeout=30, what="ten views held")
+        _kill_worker(run, "hold")
+        eventually(lambda: run.stats()["modules"]["hold"]["restarts"] == 1, what="restart")
+        # ten slots would still be taken by the dead reader, leaving two
+        eventually(lambda: held() == 10, timeout=30, what="ten views held again")
 
 
 def test_shutdown_is_bounded_even_when_teardown_hangs() -> None:

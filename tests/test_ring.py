@@ -9,6 +9,7 @@ import threading
 import numpy as np
 import pytest
 
+from pb3a.transport import codec
 from pb3a.transport.doorbell import new_bell
 from pb3a.transport.ring import ShmRing, sleep
 from pb3a.transport.shm import live_segments, segment_name
@@ -206,4 +207,107 @@ def test_a_corrupt_record_is_reported_not_followed(ring) -> None:
     writer.write(1)
     owner._data[0:4] = b"\x00\x00\x00\x00"        # record length 0: a broken writer
     with pytest.raises(RuntimeError, match="corrupt ring record"):
+        reader.drain()
+
+
+@pytest.fixture
+def pool():
+    """A ring with a pool of four 1 MiB slots, as a link of pinned 1 MiB arrays gets."""
+    owner = ShmRing.create(segment_name("ring"), 64 * 1024, slots=4, slot_bytes=1 << 20)
+    reader = ShmRing.attach(owner.name)
+    writer = ShmRing.attach(owner.name)
+    yield owner, writer, reader
+    gc.collect()
+    reader.close()
+    writer.close()
+    owner.close()
+
+
+def _slot_of(view: np.ndarray, ring: ShmRing) -> int:
+    pool = np.frombuffer(ring._pool, dtype=np.uint8)
+    return (view.__array_interface__["data"][0] - pool.ctypes.data) // ring.core.stride
+
+
+def test_pinned_arrays_travel_in_slots_freed_in_any_order_lowest_first(pool) -> None:
+    _, writer, reader = pool
+    arrays = [np.full(1 << 17, float(i)) for i in range(6)]
+    assert all(writer.write(a, timeout=0.0) for a in arrays[:4])
+    assert writer.statistics()["used"] >= 4 << 20      # the bytes sit in the slots
+    views, _, _ = reader.drain()
+    assert [v[7] for v in views] == [0.0, 1.0, 2.0, 3.0]
+    assert not views[0].flags.writeable and not views[0].flags.owndata
+    assert [_slot_of(v, reader) for v in views] == [0, 1, 2, 3]
+    assert not writer.write(arrays[4], timeout=0.0)      # every slot viewed: dropped
+    del views[2]                                        # slot 2 first, then slot 0
+    del views[0]
+    gc.collect()
+    assert writer.write(arrays[4], timeout=0.0) and writer.write(arrays[5], timeout=0.0)
+    fresh, _, gaps = reader.drain()
+    assert gaps == 1                                    # the dropped array, counted
+    assert [v[0] for v in fresh] == [4.0, 5.0]
+    assert [_slot_of(v, reader) for v in fresh] == [0, 2]   # the lowest free slot first
+    assert [v[9] for v in views] == [1.0, 3.0]          # held views were not overwritten
+
+
+def test_a_writer_waits_for_a_slot_until_a_view_goes(pool) -> None:
+    _, writer, reader = pool
+    array = np.ones(1 << 17)
+    for _ in range(4):
+        writer.write(array)
+    views, _, _ = reader.drain()
+    released = threading.Timer(0.05, views.clear)
+    released.start()
+    try:
+        assert writer.write(array, timeout=5.0)          # a slot comes back meanwhile
+    finally:
+        released.join()
+    assert len(reader.drain()[0]) == 1
+
+
+def test_a_new_reader_gets_back_the_slots_a_dead_one_held_but_not_unread_ones(pool) -> None:
+    owner, writer, reader = pool
+    array = np.ones(1 << 17)
+    for _ in range(2):
+        writer.write(array)
+    held, _, _ = reader.drain()               # the reader "dies" holding two views
+    writer.write(array * 3)                   # ... and one array it never read
+    successor = ShmRing.attach(owner.name)
+    try:
+        successor.resume_reader()
+        assert successor.core.slots_used() == 1
+        (unread,), _, _ = successor.drain()
+        assert unread[0] == 3.0
+    finally:
+        unread = None
+        gc.collect()
+        successor.close()
+    assert len(held) == 2
+
+
+def test_a_new_writer_gets_back_slots_a_dead_one_took_but_never_published(pool) -> None:
+    owner, writer, reader = pool
+    array = np.ones(1 << 17)
+    writer.write(array)
+    kind, meta, body, length = writer._layout(codec.ARRAY, b"<f8;131072", array.nbytes)
+    assert kind == codec.SLOT
+    # a second array staged in a slot, and the writer dies before publishing it
+    assert writer.core.stage_record(kind, meta, array, body, length, 0.0)
+    assert writer.core.slots_used() == 2
+    successor = ShmRing.attach(owner.name)
+    try:
+        successor.resume_writer()
+        assert successor.core.slots_used() == 1    # the published one stays taken
+        (view,), _, _ = reader.drain()
+        assert view[0] == 1.0
+    finally:
+        view = None
+        successor.close()
+
+
+def test_a_record_naming_a_slot_that_is_not_there_is_reported(pool) -> None:
+    owner, writer, reader = pool
+    writer.write(np.ones(1 << 17))
+    body = 40                                 # after the header and "<f8;131072", 8-aligned
+    owner._data[body:body + 8] = (99).to_bytes(8, "little")
+    with pytest.raises(RuntimeError, match="slot 99 of 4"):
         reader.drain()

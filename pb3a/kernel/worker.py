@@ -269,6 +269,7 @@ class Worker:
                        pull: BellPull) -> None:
         port = self.actors[src].outputs[src_port]
         shm_ring = ShmRing.attach(ring)
+        shm_ring.resume_writer()   # a restarted writer gets back slots it never published
         shm_ring.set_bell(pull.fileno())
         port.connect(key, shm_ring.write, shm_ring.write_many)
         self.outbound[key] = (src, src_port, shm_ring, pull)

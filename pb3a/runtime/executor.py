@@ -45,7 +45,7 @@ from pb3a.runtime.recovery import recover
 from pb3a.runtime.stats import node_report
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.doorbell import new_bell
-from pb3a.transport.ring import ShmRing
+from pb3a.transport.ring import ZERO_COPY_MIN, RingSize, ShmRing
 from pb3a.transport.shm import reap_orphans, segment_name
 
 log = logging.getLogger("pb3a.executor")
@@ -55,6 +55,7 @@ SMALL_RING = 1 << 20
 LARGE_RING = 16 << 20
 ARRAYS_PER_RING = 4       # pinned arrays in flight on a link, at least
 MAX_ARRAYS_PER_RING = 64  # ... and at most (64 MiB for 1 MiB arrays)
+SLOT_RECORDS_RING = 64 << 10   # a pool's ring carries only the records naming slots
 
 _context = multiprocessing.get_context("forkserver")
 _context.set_forkserver_preload(["pb3a.kernel.worker", "numpy", "cloudpickle"])
@@ -339,7 +340,7 @@ class Executor:
         src, dst = self.modules[link.src], self.modules[link.dst]
         if src.worker == dst.worker:
             return
-        ring = self._ring(link.key, ring_bytes(src.spec.cls, link.src_port, link.policy))
+        ring = self._ring(link.key, ring_size(src.spec.cls, link.src_port, link.policy))
         self.call(dst.worker, "link_in", key=link.key, dst=link.dst, dst_port=link.dst_port,
                   ring=ring.name, policy=str(link.policy))
 
@@ -374,10 +375,12 @@ class Executor:
         if ring is not None:
             ring.close()
 
-    def _ring(self, key: str, size: int) -> ShmRing:
+    def _ring(self, key: str, size: RingSize | None) -> ShmRing:
         ring = self.rings.get(key)
         if ring is None:
-            ring = self.rings[key] = ShmRing.create(segment_name("ring"), size)
+            if size is None:
+                raise RuntimeError(f"link {key} has no ring to reopen")
+            ring = self.rings[key] = ShmRing.create(segment_name("ring"), *size)
         return ring
 
     # -- remote links, one half each ---------------------------------------------------
@@ -399,11 +402,12 @@ class Executor:
             return 0
         return self.call(src.worker, "unpublish_out", key=link.key)
 
-    def open_inbound(self, link: FlatLink, ring_bytes: int) -> None:
-        """The reading half: a ring into the reader's worker, which the bridge fills."""
+    def open_inbound(self, link: FlatLink, size: RingSize | None) -> None:
+        """The reading half: a ring into the reader's worker, which the bridge fills
+        (``size`` None: the link's ring exists already)."""
         self.inbound[link.key] = link
         dst = self.modules[link.dst]
-        ring = self._ring(link.key, ring_bytes)
+        ring = self._ring(link.key, size)
         self.call(dst.worker, "link_in", key=link.key, dst=link.dst, dst_port=link.dst_port,
                   ring=ring.name, policy=str(link.policy))
         self.bridge.open(link.key, _topic(link), ring.name, self.workers[dst.worker].bell)
@@ -565,16 +569,19 @@ def _topic(link: FlatLink) -> str:
     return f"{link.src}.{link.src_port}"
 
 
-def ring_bytes(cls: type, port: str, policy: Policy) -> int:
-    """Ring size for a link. Pinned arrays: room for the values the input may hold as
+def ring_size(cls: type, port: str, policy: Policy) -> RingSize:
+    """The ring for a link. Pinned arrays: room for the values the input may hold as
     zero-copy views (its queue) plus a few in flight, at least ARRAYS_PER_RING and at
-    most MAX_ARRAYS_PER_RING; a small ring stays in cache. Other values: a default."""
+    most MAX_ARRAYS_PER_RING; large ones (read as views) in a pool of slots beside a
+    small ring. Other values: a ring of a default size."""
     spec = cls.outputs[port]
     if spec.shape is not None and spec.dtype is not None:
-        item = math.prod(spec.shape) * spec.dtype.itemsize + 128
+        nbytes = math.prod(spec.shape) * spec.dtype.itemsize
         held = policy.size + 2 if policy.kind == "queue" else 0
         count = min(max(ARRAYS_PER_RING, held), MAX_ARRAYS_PER_RING)
-        return max(SMALL_RING, count * item)
+        if nbytes >= ZERO_COPY_MIN:
+            return RingSize(SLOT_RECORDS_RING, count, nbytes)
+        return RingSize(max(SMALL_RING, count * (nbytes + 128)))
     if issubclass(spec.type, np.ndarray) or spec.type is object:
-        return LARGE_RING
-    return SMALL_RING
+        return RingSize(LARGE_RING)
+    return RingSize(SMALL_RING)

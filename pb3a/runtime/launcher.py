@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 from pb3a.errors import ModuleNotFound, RuntimeFailure, RuntimeTimeout
 from pb3a.kernel.environment import env_name
-from pb3a.runtime.executor import REQUEST_TIMEOUT, Executor, ring_bytes
+from pb3a.runtime.executor import REQUEST_TIMEOUT, Executor, ring_size
 from pb3a.runtime.remote_node import RemoteNode
 from pb3a.runtime.stats import link_table
 
@@ -173,8 +173,8 @@ class Launcher:
             self.node_of(link.src).connect(link)
             return
         reader, writer = self.node_of(link.dst), self.node_of(link.src)
-        reader.open_inbound(link, ring_bytes(self.specs[link.src].cls, link.src_port,
-                                             link.policy))
+        reader.open_inbound(link, ring_size(self.specs[link.src].cls, link.src_port,
+                                            link.policy))
         reader.follow(link, writer.publish(link))
 
     def detach(self, link: FlatLink) -> None:

@@ -66,7 +66,7 @@ def recover(executor: Executor, handle: WorkerHandle, code: int | None) -> None:
                 executor.attach_writer(link)
         for link in list(executor.inbound.values()):
             if link.dst in revived:
-                executor.open_inbound(link, 0)             # the ring is kept: no size needed
+                executor.open_inbound(link, None)          # the ring is kept: no size needed
         for link in list(executor.outbound.values()):
             if link.src in revived:
                 endpoint = executor.publish(link)

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 PAD, PICKLE, ARRAY, BYTES, INT, FLOAT = 0, 1, 2, 3, 4, 5
+SLOT = 6        # an ARRAY record whose bytes are in the ring's slot pool (ring.py)
 
 
 def encode(value: Any) -> tuple[int, bytes, Any]:

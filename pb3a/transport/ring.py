@@ -6,6 +6,11 @@ preceded by a pad record. Large arrays are handed to the reader as read-only
 views into the ring (zero copy); the bytes stay reserved until the last view
 is garbage-collected, then the reader releases them.
 
+A link of pinned large arrays (one shape and dtype) also gets a pool of equal
+slots: each array is copied into the lowest free slot and the ring carries only
+a small record naming it. Slots come back in any order as their views go, so a
+writer whose reader keeps up reuses the same few slots, which stay in cache.
+
 Memory ordering. Every access to the header words goes through the C half,
 ``_ringcore.RingCore``: the writer stores a record, then publishes ``head`` with
 a release store; the reader loads ``head`` with acquire, then reads the records
@@ -25,28 +30,36 @@ import threading
 import time
 import weakref
 from collections import deque
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
 from pb3a.transport import codec
-from pb3a.transport._ringcore import RingCore, sleep
+from pb3a.transport._ringcore import RingCore, segment_size, sleep
 from pb3a.transport.shm import attach_segment, close_segment, create_segment, unlink_segment
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
-__all__ = ["ZERO_COPY_MIN", "ShmRing", "sleep"]
+__all__ = ["ZERO_COPY_MIN", "RingSize", "ShmRing", "sleep"]
 
 _MAGIC = 0x50423341_52494E47  # "PB3ARING"
 _DATA = 512                      # header size; data starts here (page offset 512: 64-aligned)
-# word indexes (offset / 8) of the header fields, one cache line each
-_W_MAGIC, _W_CAP, _W_HEAD, _W_TAIL, _W_RPOS, _W_SEQ, _W_WAITING = 0, 1, 8, 16, 24, 32, 40
+# word indexes (offset / 8) of the header fields the creator sets (the rest: _ringcore.c)
+_W_MAGIC, _W_CAP, _W_SLOTS, _W_SLOT_BYTES = 0, 1, 2, 3
 _REC_HEAD = 24                   # u32 length, u16 kind, u16 meta length, u64 seq, f64 sent_at
 ZERO_COPY_MIN = 64 * 1024        # arrays at least this large are read as views
 WRITE_TIMEOUT = 0.1              # how long a writer waits for space before dropping a value
 _ALIGN = 64
 _LAYOUTS = 64                    # array record layouts a writer remembers
+
+
+class RingSize(NamedTuple):
+    """What a link's segment holds: ring bytes, and a pool of slots for large arrays."""
+
+    capacity: int
+    slots: int = 0
+    slot_bytes: int = 0
 
 
 def _align(n: int, to: int = _ALIGN) -> int:
@@ -62,6 +75,10 @@ class ShmRing:
         self.core = RingCore(segment.buf)     # the C half (the worker's sleep uses it)
         self.capacity = self.core.capacity
         self._data = segment.buf[_DATA:_DATA + self.capacity]
+        core = self.core
+        self._pool = segment.buf[core.pool_offset:core.pool_offset + core.slots * core.stride]
+        self._slot_min = min(ZERO_COPY_MIN, core.slot_bytes) if core.slots else 1 << 63
+        self._slot_views: dict[int, weakref.ref[np.ndarray]] = {}   # reader: slot -> view
         self.name = segment.name.lstrip("/")
         # reader-side bookkeeping (only the reading process uses these)
         self._leases: deque[list[Any]] = deque()   # [start, end, released, ref] per lease
@@ -72,12 +89,15 @@ class ShmRing:
 
     # -- life cycle ---------------------------------------------------------
     @classmethod
-    def create(cls, name: str, capacity: int) -> ShmRing:
-        """Create a ring of ``capacity`` data bytes (rounded up to 64)."""
+    def create(cls, name: str, capacity: int, slots: int = 0, slot_bytes: int = 0) -> ShmRing:
+        """Create a ring of ``capacity`` data bytes (rounded up to 64), with a pool of
+        ``slots`` slots of ``slot_bytes`` each for arrays that fit one."""
         capacity = _align(max(capacity, 4096))
-        segment = create_segment(name, _DATA + capacity)
+        segment = create_segment(name, segment_size(capacity, slots, slot_bytes))
         words = segment.buf[:_DATA].cast("Q")
         words[_W_CAP] = capacity
+        words[_W_SLOTS] = slots
+        words[_W_SLOT_BYTES] = slot_bytes
         words[_W_MAGIC] = _MAGIC
         words.release()
         return cls(segment, owner=True)
@@ -100,6 +120,8 @@ class ShmRing:
         self.core.release()
         with contextlib.suppress(BufferError):   # array views still alive
             self._data.release()
+        with contextlib.suppress(BufferError):
+            self._pool.release()
         if self._owner:
             unlink_segment(self._seg)
         else:
@@ -112,6 +134,10 @@ class ShmRing:
     def set_bell(self, fd: int) -> None:
         """Ring this eventfd after publishing when the reader said it is going to sleep."""
         self.core.bell = fd
+
+    def resume_writer(self) -> None:
+        """A new writer takes over: slots a dead writer took but never published are free."""
+        self.core.resume_writer()
 
     def write(self, value: Any, timeout: float = WRITE_TIMEOUT) -> bool:
         """Append one value; waits up to ``timeout`` for space, then drops it.
@@ -169,20 +195,24 @@ class ShmRing:
         kind, meta, body, length = layout
         core = self.core
         if core.stage_record(kind, meta, payload, body, length, now) or (
-                self._wait_space(length, timeout)
+                self._wait_space(length, timeout, kind == codec.SLOT)
                 and core.stage_record(kind, meta, payload, body, length, now)):
             return True
         self._skip()                           # dropped: the reader sees the gap
         return False
 
     def _layout(self, kind: int, meta: bytes, size: int) -> tuple[int, bytes, int, int]:
-        """``(kind, meta, body, length)`` of a record: where its payload starts, its size."""
+        """``(kind, meta, body, length)`` of a record: where its payload starts, its size.
+        An array that fits a slot becomes a SLOT record, whose body is the slot's index."""
+        if kind == codec.ARRAY and self._slot_min <= size <= self.core.slot_bytes:
+            body = _align(_REC_HEAD + len(meta), 8)
+            return codec.SLOT, meta, body, _align(body + 8)
         body = _align(_REC_HEAD + len(meta), _ALIGN if kind == codec.ARRAY else 8)
         length = _align(body + size)
         if length > self.capacity:
             raise ValueError(
                 f"a value of {size} bytes does not fit this link's {self.capacity}-byte "
-                "ring; declare shape= and dtype= on the ports, or raise ring_bytes")
+                "ring; declare shape= and dtype= on the ports")
         return kind, meta, body, length
 
     def _skip(self) -> None:
@@ -190,14 +220,14 @@ class ShmRing:
         self.core.seq += 1
         self.core.publish()
 
-    def _wait_space(self, length: int, timeout: float) -> bool:
+    def _wait_space(self, length: int, timeout: float, slot: bool = False) -> bool:
         """Publish what is there, then wait up to ``timeout`` until a ``length``-byte
-        record (and a pad before it) fits."""
+        record (and a pad before it) fits, and a slot is free if ``slot``."""
         core = self.core
         core.publish()
         deadline = time.monotonic() + timeout
         pause = 20e-6
-        while core.reserve(length) < 0:
+        while not core.room(length, slot):
             if time.monotonic() >= deadline:
                 return False
             time.sleep(pause)
@@ -222,6 +252,9 @@ class ShmRing:
         if kind == codec.PICKLE and not meta_len:
             return pickle.loads(data[offset + _REC_HEAD:offset + length])
         meta = bytes(data[offset + _REC_HEAD:offset + _REC_HEAD + meta_len])
+        if kind == codec.SLOT:
+            body = offset + _align(_REC_HEAD + meta_len, 8)
+            return self._slot_view(meta, int.from_bytes(data[body:body + 8], "little"))
         body = _align(_REC_HEAD + meta_len, _ALIGN if kind == codec.ARRAY else 8)
         payload = data[offset + body:offset + length]
         if kind == codec.ARRAY and length - body >= ZERO_COPY_MIN:
@@ -240,6 +273,23 @@ class ShmRing:
             self._leases.append(lease)
             self.core.leases = len(self._leases)   # the C drain stops moving the tail
         return view
+
+    def _slot_view(self, meta: bytes, slot: int) -> np.ndarray:
+        dtype, shape, count = codec.array_meta(meta)
+        if slot >= self.core.slots or count * dtype.itemsize > self.core.slot_bytes:
+            raise RuntimeError(f"corrupt ring record: slot {slot} of {self.core.slots} "
+                               f"cannot hold {count} x {dtype}: the writer misbehaved")
+        start = slot * self.core.stride
+        view = np.frombuffer(self._pool, dtype=dtype, count=count, offset=start).reshape(shape)
+        view.flags.writeable = False
+        # When the last reference to the view goes, the callback frees the slot.
+        self._slot_views[slot] = weakref.ref(view, lambda ref: self._free_slot(ref, slot))
+        return view
+
+    def _free_slot(self, ref: weakref.ref[np.ndarray], slot: int) -> None:
+        if self._slot_views.get(slot) is ref:
+            del self._slot_views[slot]
+            self.core.free_slot(slot)      # (does nothing once the ring is closed)
 
     def _return_lease(self, lease: list[Any]) -> None:
         lease[2], lease[3] = 1, None
@@ -261,5 +311,8 @@ class ShmRing:
 
     def statistics(self) -> dict[str, int]:
         """Bytes in use and counters, for ``stats()``."""
-        head, tail, written = self.core.counters()
-        return {"capacity": self.capacity, "used": head - tail, "written": written}
+        core = self.core
+        head, tail, written = core.counters()
+        slots = core.slots_used() if core.slots else 0
+        return {"capacity": self.capacity + core.slots * core.slot_bytes,
+                "used": head - tail + slots * core.slot_bytes, "written": written}
