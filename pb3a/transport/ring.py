@@ -77,7 +77,6 @@ class ShmRing:
         self._data = segment.buf[_DATA:_DATA + self.capacity]
         core = self.core
         self._pool = segment.buf[core.pool_offset:core.pool_offset + core.slots * core.stride]
-        self._slot_min = min(ZERO_COPY_MIN, core.slot_bytes) if core.slots else 1 << 63
         self._slot_views: dict[int, weakref.ref[np.ndarray]] = {}   # reader: slot -> view
         self.name = segment.name.lstrip("/")
         # reader-side bookkeeping (only the reading process uses these)
@@ -204,7 +203,7 @@ class ShmRing:
     def _layout(self, kind: int, meta: bytes, size: int) -> tuple[int, bytes, int, int]:
         """``(kind, meta, body, length)`` of a record: where its payload starts, its size.
         An array that fits a slot becomes a SLOT record, whose body is the slot's index."""
-        if kind == codec.ARRAY and self._slot_min <= size <= self.core.slot_bytes:
+        if kind == codec.ARRAY and ZERO_COPY_MIN <= size <= self.core.slot_bytes:
             body = _align(_REC_HEAD + len(meta), 8)
             return codec.SLOT, meta, body, _align(body + 8)
         body = _align(_REC_HEAD + len(meta), _ALIGN if kind == codec.ARRAY else 8)
