@@ -7,7 +7,7 @@ import os
 import signal
 
 from conftest import eventually
-from sample_modules import Burst, Collector, Counter
+from sample_modules import ArraySink, ArraySource, Burst, Collector, Counter
 
 from pb3a import System
 
@@ -33,6 +33,19 @@ def test_100000_values_cross_nodes_in_order_without_loss_or_duplicates() -> None
     assert state["out_of_order"] == 0 and state["duplicates"] == 0
     assert link["transport"] == "zmq"
     assert link["values"] == n and link["drops"] == 0 and link["link_failures"] == 0
+
+
+def test_large_arrays_cross_nodes_intact_and_read_only() -> None:
+    system = _two_nodes("remote-arrays")
+    system.add("src", ArraySource, node="a")
+    system.add("dst", ArraySink, node="b")
+    system.link("src.out", "dst.x")
+    with system.launch() as run:
+        state = eventually(lambda: (s := run.state("dst"))["sums_ok"] >= 20 and s,
+                           timeout=30, what="20 arrays across nodes")
+        link = run.stats()["links"]["src.out->dst.x"]
+    assert state["writable"] is False
+    assert link["transport"] == "zmq" and link["link_failures"] == 0
 
 
 def test_an_output_crosses_once_per_node_however_many_inputs_read_it_there() -> None:
