@@ -15,15 +15,21 @@ from pb3a.transport.ring import ShmRing, sleep
 from pb3a.transport.shm import live_segments, segment_name
 
 
-@pytest.fixture
-def ring():
-    owner = ShmRing.create(segment_name("ring"), 64 * 1024)
+def _ends(slots: int = 0, slot_bytes: int = 0):
+    """A 64 KiB ring (with a pool, if asked) and its writer and reader ends."""
+    owner = ShmRing.create(segment_name("ring"), 64 * 1024, slots, slot_bytes)
     reader = ShmRing.attach(owner.name)
     writer = ShmRing.attach(owner.name)
     yield owner, writer, reader
+    gc.collect()                      # views first: their callbacks touch the ring
     reader.close()
     writer.close()
     owner.close()
+
+
+@pytest.fixture
+def ring():
+    yield from _ends()
 
 
 def _drain(reader: ShmRing) -> tuple[list, int]:
@@ -213,14 +219,7 @@ def test_a_corrupt_record_is_reported_not_followed(ring) -> None:
 @pytest.fixture
 def pool():
     """A ring with a pool of four 1 MiB slots, as a link of pinned 1 MiB arrays gets."""
-    owner = ShmRing.create(segment_name("ring"), 64 * 1024, slots=4, slot_bytes=1 << 20)
-    reader = ShmRing.attach(owner.name)
-    writer = ShmRing.attach(owner.name)
-    yield owner, writer, reader
-    gc.collect()
-    reader.close()
-    writer.close()
-    owner.close()
+    yield from _ends(slots=4, slot_bytes=1 << 20)
 
 
 def _slot_of(view: np.ndarray, ring: ShmRing) -> int:
