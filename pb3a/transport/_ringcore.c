@@ -352,7 +352,9 @@ done:
 
 /* A writer (re)starts: slots a dead writer took for records it never published
  * (their seq is at or past the published count) are free again. Only one writer
- * may be attached; the reader never takes slots, so this cannot race with it. */
+ * may be attached; the reader never takes slots, so this cannot race with it.
+ * (A writer that died between storing W_SEQ and W_HEAD in publish() leaves the
+ * slots of that last batch taken until the reader restarts: a two-store window.) */
 static PyObject *RingCore_resume_writer(RingCore *self, PyObject *unused) {
     if (check_open(self) < 0)
         return NULL;
