@@ -66,6 +66,11 @@ def _align(n: int, to: int = _ALIGN) -> int:
     return (n + to - 1) & ~(to - 1)
 
 
+def _body(kind: int, meta_len: int) -> int:
+    """Where a record's payload starts (a SLOT record's: the slot's index)."""
+    return _align(_REC_HEAD + meta_len, _ALIGN if kind == codec.ARRAY else 8)
+
+
 class ShmRing:
     """One local link. The executor creates it; the writer and reader attach."""
 
@@ -204,9 +209,9 @@ class ShmRing:
         """``(kind, meta, body, length)`` of a record: where its payload starts, its size.
         An array that fits a slot becomes a SLOT record, whose body is the slot's index."""
         if kind == codec.ARRAY and ZERO_COPY_MIN <= size <= self.core.slot_bytes:
-            body = _align(_REC_HEAD + len(meta), 8)
+            body = _body(codec.SLOT, len(meta))
             return codec.SLOT, meta, body, _align(body + 8)
-        body = _align(_REC_HEAD + len(meta), _ALIGN if kind == codec.ARRAY else 8)
+        body = _body(kind, len(meta))
         length = _align(body + size)
         if length > self.capacity:
             raise ValueError(
@@ -251,12 +256,11 @@ class ShmRing:
         if kind == codec.PICKLE and not meta_len:
             return pickle.loads(data[offset + _REC_HEAD:offset + length])
         meta = bytes(data[offset + _REC_HEAD:offset + _REC_HEAD + meta_len])
+        body = offset + _body(kind, meta_len)
         if kind == codec.SLOT:
-            body = offset + _align(_REC_HEAD + meta_len, 8)
             return self._slot_view(meta, int.from_bytes(data[body:body + 8], "little"))
-        body = _align(_REC_HEAD + meta_len, _ALIGN if kind == codec.ARRAY else 8)
-        payload = data[offset + body:offset + length]
-        if kind == codec.ARRAY and length - body >= ZERO_COPY_MIN:
+        payload = data[body:offset + length]
+        if kind == codec.ARRAY and offset + length - body >= ZERO_COPY_MIN:
             return self._lease_view(meta, payload, start, start + length)
         return codec.decode_small(kind, meta, payload)
 
