@@ -251,6 +251,17 @@ class Overlap(Module):
         self.busy = True
 
 
+class Busy(Module):
+    """Period 0: steps back to back, each step holding the module lock for 5 ms."""
+
+    period = 0.0
+    steps = 0
+
+    def step(self) -> None:
+        self.steps += 1
+        time.sleep(0.005)
+
+
 class Journal(Module):
     """Appends its name to ``path`` in ``setup`` and ``teardown`` (start and stop order)."""
 

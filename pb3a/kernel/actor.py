@@ -27,6 +27,50 @@ log = logging.getLogger("pb3a.module")
 
 _BODIES = ("step", "on_input")   # hooks that run only while the module runs
 _EVENT_BUDGET = 256  # events handled per dispatch task before yielding to other modules
+_HAND_OVER_S = 0.01  # longest a step loop waits for a waiter to take the lock it left
+
+
+class HandOverLock:
+    """The module lock: a plain lock whose step loop can hand it to waiting threads.
+
+    Locks are not fair: a module with period 0 releases its lock after a step and
+    takes it again before a waiting state request, swap or event has even woken up,
+    starving them for hundreds of steps. Every taker counts itself while it waits,
+    and the step loop hands over between two steps.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._waiting: list[None] = []    # one entry per waiting thread (append/pop are atomic)
+
+    def acquire(self, timeout: float = -1) -> bool:
+        waiting = self._waiting
+        waiting.append(None)
+        try:
+            return self._lock.acquire(timeout=timeout)
+        finally:
+            waiting.pop()
+
+    def release(self) -> None:
+        self._lock.release()
+
+    def locked(self) -> bool:
+        return self._lock.locked()
+
+    def __enter__(self) -> HandOverLock:
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._lock.release()
+
+    def hand_over(self) -> None:
+        """Called without the lock: let the threads waiting for it take it first."""
+        if not self._waiting:
+            return
+        deadline = time.monotonic() + _HAND_OVER_S
+        while self._waiting and time.monotonic() < deadline:
+            time.sleep(0)             # (releases the GIL: the waiter can run)
 
 
 class EventPool:
@@ -64,7 +108,7 @@ class ModuleActor:
         self.on_error = on_error
         self.module = module
         self.period = period
-        self.lock = threading.Lock()
+        self.lock = HandOverLock()
         self.steps = self.events = self.errors = 0
         self.cpu = 0.0
         # Per-call CPU timing costs two system calls; a worker hosting one module
@@ -140,6 +184,7 @@ class ModuleActor:
             while self.running:
                 if self.call_many("step", 1, timed=False):
                     self.steps += 1
+                self.lock.hand_over()
                 if period and self._stop.acquire(timeout=period):
                     self._stop.release()        # stopped while sleeping
                     break
