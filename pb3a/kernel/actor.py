@@ -42,20 +42,18 @@ class HandOverLock:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._waiting: list[None] = []    # one entry per waiting thread (append/pop are atomic)
+        self.release = self._lock.release
+        self.locked = self._lock.locked
 
     def acquire(self, timeout: float = -1) -> bool:
+        if self._lock.acquire(False):     # free: nobody to count (the per-value path)
+            return True
         waiting = self._waiting
         waiting.append(None)
         try:
             return self._lock.acquire(timeout=timeout)
         finally:
             waiting.pop()
-
-    def release(self) -> None:
-        self._lock.release()
-
-    def locked(self) -> bool:
-        return self._lock.locked()
 
     def __enter__(self) -> HandOverLock:
         self.acquire()
