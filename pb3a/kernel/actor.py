@@ -8,6 +8,7 @@ so none of them ever overlap.
 
 from __future__ import annotations
 
+import functools
 import logging
 import queue
 import threading
@@ -44,10 +45,10 @@ class HandOverLock:
         self._waiting: list[None] = []    # one entry per waiting thread (append/pop are atomic)
         self.release = self._lock.release
         self.locked = self._lock.locked
+        # the per-value path: one C call when the lock is free (then nobody waits)
+        self.try_acquire = functools.partial(self._lock.acquire, False)
 
     def acquire(self, timeout: float = -1) -> bool:
-        if self._lock.acquire(False):     # free: nobody to count (the per-value path)
-            return True
         waiting = self._waiting
         waiting.append(None)
         try:
@@ -210,7 +211,9 @@ class ModuleActor:
         no claimed-but-unrun call, so what it owes travels with it."""
         done = 0
         timed = self.timed if timed is None else timed
-        self.lock.acquire()
+        lock = self.lock
+        if not lock.try_acquire():
+            lock.acquire()
         try:
             if not self.running and hook in _BODIES:
                 return 0                        # stopped or migrated while waiting
