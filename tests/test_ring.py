@@ -283,7 +283,8 @@ def test_a_new_reader_gets_back_the_slots_a_dead_one_held_but_not_unread_ones(po
     assert len(held) == 2
 
 
-def test_a_new_writer_gets_back_slots_a_dead_one_took_but_never_published(pool) -> None:
+@pytest.mark.parametrize("died", ["before publishing", "between its two publishing stores"])
+def test_a_new_writer_gets_back_slots_a_dead_one_took_but_never_published(pool, died) -> None:
     owner, writer, reader = pool
     array = np.ones(1 << 17)
     writer.write(array)
@@ -291,15 +292,21 @@ def test_a_new_writer_gets_back_slots_a_dead_one_took_but_never_published(pool) 
     assert kind == codec.SLOT
     # a second array staged in a slot, and the writer dies before publishing it
     assert writer.core.stage_record(kind, meta, array, body, length, 0.0)
+    if died == "between its two publishing stores":     # the count out, the head not
+        words = owner._seg.buf[:512].cast("Q")
+        words[32] = writer.core.seq                      # W_SEQ (see _ringcore.c)
+        words.release()
     assert writer.core.slots_used() == 2
     successor = ShmRing.attach(owner.name)
     try:
         successor.resume_writer()
         assert successor.core.slots_used() == 1    # the published one stays taken
-        (view,), _, _ = reader.drain()
-        assert view[0] == 1.0
+        assert successor.write(array * 5, timeout=0.0)
+        views, _, gaps = reader.drain()
+        assert [v[0] for v in views] == [1.0, 5.0]
+        assert gaps == (died != "before publishing")   # a lost value that was counted
     finally:
-        view = None
+        views = []
         successor.close()
 
 

@@ -350,15 +350,42 @@ done:
     return result;
 }
 
+/* The sequence number after the last record a dead writer published: the seq of
+ * the last record before W_HEAD plus one. W_SEQ alone could overstate it: a writer
+ * that died between its two publishing stores (W_SEQ, then W_HEAD) counted a batch
+ * the reader will never see. Records from the reader's position up to W_HEAD stay
+ * as they are while no writer runs; with none left, the reader has read everything
+ * published and W_RSEQ says where that ended (stored before W_RPOS, which is
+ * released after it). A record that makes no sense ends the walk at W_SEQ. */
+static uint64_t last_published(RingCore *self) {
+    unsigned long long head = LOAD_ACQ(&self->words[W_HEAD]);
+    unsigned long long pos = LOAD_ACQ(&self->words[W_RPOS]);
+    uint64_t published = __atomic_load_n(&self->words[W_RSEQ], __ATOMIC_RELAXED);
+    while (pos != head) {
+        unsigned char *at = self->data + pos % self->cap;
+        uint32_t length;
+        uint16_t kind;
+        uint64_t seq;
+        memcpy(&length, at, 4);
+        memcpy(&kind, at + 4, 2);
+        memcpy(&seq, at + 8, 8);
+        if (length == 0 || length % 8 || pos % self->cap + length > self->cap
+                || head - pos < length)
+            return self->words[W_SEQ];
+        if (kind != K_PAD)
+            published = seq + 1;
+        pos += length;
+    }
+    return published;
+}
+
 /* A writer (re)starts: slots a dead writer took for records it never published
- * (their seq is at or past the published count) are free again. Only one writer
- * may be attached; the reader never takes slots, so this cannot race with it.
- * (A writer that died between storing W_SEQ and W_HEAD in publish() leaves the
- * slots of that last batch taken until the reader restarts: a two-store window.) */
+ * are free again. Only one writer may be attached; the reader never takes slots,
+ * so this cannot race with it. */
 static PyObject *RingCore_resume_writer(RingCore *self, PyObject *unused) {
     if (check_open(self) < 0)
         return NULL;
-    uint64_t published = __atomic_load_n(&self->words[W_SEQ], __ATOMIC_RELAXED);
+    uint64_t published = last_published(self);
     for (unsigned long long i = 0; i < self->slots; i++) {
         uint64_t state = LOAD_ACQ(&self->states[i]);
         if (state > published)
@@ -514,7 +541,7 @@ static PyObject *RingCore_drain(RingCore *self, PyObject *const *args, Py_ssize_
     if (rpos != start) {
         if (expected >= 0)
             STORE_RLX(&self->words[W_RSEQ], (uint64_t)expected);
-        STORE_RLX(&self->words[W_RPOS], rpos);
+        STORE_REL(&self->words[W_RPOS], rpos);     /* after W_RSEQ: see last_published */
         if (self->leases == 0)
             STORE_REL(&self->words[W_TAIL], rpos);
     }
