@@ -361,6 +361,8 @@ static uint64_t last_published(RingCore *self) {
     unsigned long long head = LOAD_ACQ(&self->words[W_HEAD]);
     unsigned long long pos = LOAD_ACQ(&self->words[W_RPOS]);
     uint64_t published = __atomic_load_n(&self->words[W_RSEQ], __ATOMIC_RELAXED);
+    if (head - pos > self->cap)
+        return self->words[W_SEQ];
     while (pos != head) {
         unsigned char *at = self->data + pos % self->cap;
         uint32_t length;
