@@ -103,6 +103,18 @@ static void put_header(unsigned char *at, uint32_t length, uint16_t kind, uint16
     memcpy(at + 16, &sent_at, 8);
 }
 
+/* The header of the record at `offset`; 0 if its length cannot be a record's there
+ * (a broken writer). */
+static int get_header(RingCore *self, unsigned long long offset, uint32_t *length,
+                      uint16_t *kind, uint16_t *meta_len, uint64_t *seq) {
+    unsigned char *at = self->data + offset;
+    memcpy(length, at, 4);
+    memcpy(kind, at + 4, 2);
+    memcpy(meta_len, at + 6, 2);
+    memcpy(seq, at + 8, 8);
+    return *length != 0 && *length % 8 == 0 && offset + *length <= self->cap;
+}
+
 static int RingCore_init(RingCore *self, PyObject *args, PyObject *kwds) {
     PyObject *segment;
     if (!PyArg_ParseTuple(args, "O", &segment))
@@ -350,6 +362,16 @@ done:
     return result;
 }
 
+/* Free the slots whose state (the seq of their record + 1) is in (above, upto]:
+ * what a restarted reader or writer knows its dead predecessor left taken. */
+static void free_slots(RingCore *self, uint64_t above, uint64_t upto) {
+    for (unsigned long long i = 0; i < self->slots; i++) {
+        uint64_t state = LOAD_ACQ(&self->states[i]);
+        if (state > above && state <= upto)
+            STORE_REL(&self->states[i], 0);
+    }
+}
+
 /* The sequence number after the last record a dead writer published: the seq of
  * the last record before W_HEAD plus one. W_SEQ alone could overstate it: a writer
  * that died between its two publishing stores (W_SEQ, then W_HEAD) counted a batch
@@ -364,14 +386,10 @@ static uint64_t last_published(RingCore *self) {
     if (head - pos > self->cap)
         return self->words[W_SEQ];
     while (pos != head) {
-        unsigned char *at = self->data + pos % self->cap;
         uint32_t length;
-        uint16_t kind;
+        uint16_t kind, meta_len;
         uint64_t seq;
-        memcpy(&length, at, 4);
-        memcpy(&kind, at + 4, 2);
-        memcpy(&seq, at + 8, 8);
-        if (length == 0 || length % 8 || pos % self->cap + length > self->cap
+        if (!get_header(self, pos % self->cap, &length, &kind, &meta_len, &seq)
                 || head - pos < length)
             return self->words[W_SEQ];
         if (kind != K_PAD)
@@ -387,12 +405,7 @@ static uint64_t last_published(RingCore *self) {
 static PyObject *RingCore_resume_writer(RingCore *self, PyObject *unused) {
     if (check_open(self) < 0)
         return NULL;
-    uint64_t published = last_published(self);
-    for (unsigned long long i = 0; i < self->slots; i++) {
-        uint64_t state = LOAD_ACQ(&self->states[i]);
-        if (state > published)
-            STORE_REL(&self->states[i], 0);
-    }
+    free_slots(self, last_published(self), UINT64_MAX);
     Py_RETURN_NONE;
 }
 
@@ -454,12 +467,7 @@ static PyObject *RingCore_resume_reader(RingCore *self, PyObject *unused) {
     if (check_open(self) < 0)
         return NULL;
     self->rpos = LOAD_ACQ(&self->words[W_RPOS]);
-    uint64_t read = __atomic_load_n(&self->words[W_RSEQ], __ATOMIC_RELAXED);
-    for (unsigned long long i = 0; i < self->slots; i++) {
-        uint64_t state = LOAD_ACQ(&self->states[i]);
-        if (state && state <= read)
-            STORE_REL(&self->states[i], 0);
-    }
+    free_slots(self, 0, __atomic_load_n(&self->words[W_RSEQ], __ATOMIC_RELAXED));
     STORE_REL(&self->words[W_TAIL], self->rpos);
     Py_RETURN_NONE;
 }
@@ -492,11 +500,7 @@ static PyObject *RingCore_drain(RingCore *self, PyObject *const *args, Py_ssize_
         uint32_t length;
         uint16_t kind, meta_len;
         uint64_t seq;
-        memcpy(&length, at, 4);
-        memcpy(&kind, at + 4, 2);
-        memcpy(&meta_len, at + 6, 2);
-        memcpy(&seq, at + 8, 8);
-        if (length == 0 || length % 8 || offset + length > cap) {
+        if (!get_header(self, offset, &length, &kind, &meta_len, &seq)) {
             PyErr_Format(PyExc_RuntimeError,
                          "corrupt ring record at %llu (length %u): the writer misbehaved",
                          rpos, (unsigned)length);
