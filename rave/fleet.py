@@ -75,7 +75,8 @@ class Fleet:
     def add(self, member: SimulatedBody, pose: tuple[float, float, float],
             velocity: tuple[float, float, float], odometry: tuple[float, ...],
             scale: np.ndarray) -> int:
-        self._refresh()                  # the others' odometry, up to now
+        if self._steps:                  # the others' odometry, up to now (with no step
+            self._refresh()              # since the last read, the bodies have not moved)
         self.members.append(member)
         self._command = np.vstack([self._command, [0.0, 0.0]])
         self._applied = np.vstack([self._applied, [np.nan, np.nan]])    # (never equal)
@@ -88,7 +89,8 @@ class Fleet:
         return len(self.members) - 1
 
     def remove(self, member: SimulatedBody) -> None:
-        self._refresh()
+        if self._steps:                  # (as in add)
+            self._refresh()
         slot = self.members.index(member)
         del self.members[slot]
         for name in ("_command", "_applied", "_pose", "_velocity", "_odometry",
