@@ -57,7 +57,6 @@ class SimulatedBody:
         start = (v * math.cos(pose[2]), v * math.sin(pose[2]), w)
         self.fleet = world.fleet
         self.slot = self.fleet.add(self, pose, start, odometer.pose(), odometer.scale)
-        self.command(v, w)
 
     def command(self, v: float, w: float) -> None:
         self.fleet.drive(self.slot, v, w)

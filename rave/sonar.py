@@ -52,15 +52,9 @@ def rays(pose: tuple[float, float, float], which: np.ndarray | None = None,
          ) -> tuple[np.ndarray, np.ndarray]:
     """Origins and unit directions of the cone rays of transducers ``which`` (all by
     default) for a robot at ``pose``: shape (len(which) * RAYS, 2) each."""
-    x, y, theta = pose
-    ring = RING if which is None else RING[which]
-    c, s = math.cos(theta), math.sin(theta)
-    ox = x + c * ring[:, 0] - s * ring[:, 1]
-    oy = y + s * ring[:, 0] + c * ring[:, 1]
-    angles = (theta + ring[:, 2])[:, None] + _SPREAD[None, :]
-    origins = np.repeat(np.column_stack([ox, oy]), RAYS, axis=0)
-    directions = np.column_stack([np.cos(angles).ravel(), np.sin(angles).ravel()])
-    return origins, directions
+    origins, _, directions = ring_rays(np.asarray([pose], dtype=np.float64))
+    chosen = slice(None) if which is None else which
+    return np.repeat(origins[0, chosen], RAYS, axis=0), directions[0, chosen].reshape(-1, 2)
 
 
 def read(pose: tuple[float, float, float], segments: np.ndarray, discs: np.ndarray | None,
