@@ -63,7 +63,7 @@ from _common import (
 from _modules import ARRAY_SHAPE, ArrayBurst, ArrayCounter, IntBurst, IntCounter
 
 from pb3a import Module, System
-from pb3a.transport.shm import create_segment, unlink_segment
+from pb3a.transport.shm import create_segment, segment_name, unlink_segment
 
 REPS = 5
 BATCH = 64                 # values per write_many() call in the batched PB3A row
@@ -212,7 +212,7 @@ def baseline(kind: str, array: bool, n: int, warm: int, tmp: str) -> dict[str, A
 
 def _copy_ceiling(n: int, warm: int, conn: Any) -> None:
     """The writer's limit: copy the array ``n`` times into two shared slots in turn."""
-    segment = create_segment(f"pb3a-bench-copy-{os.getpid()}", 2 * ARRAY_BYTES)
+    segment = create_segment(segment_name("benchcopy"), 2 * ARRAY_BYTES)
     try:
         slots = np.ndarray((2, *ARRAY_SHAPE), np.float64, segment.buf)
         payload = np.ones(ARRAY_SHAPE)

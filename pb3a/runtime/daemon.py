@@ -10,14 +10,14 @@ from collections.abc import Callable
 from typing import Any
 
 from pb3a.transport.auth import ClusterKey, ClusterKeyError
+from pb3a.transport.control import bind_address
 
 
 def serve_until_signalled(command: str, listen: str,
                            start: Callable[[Any, str, int], tuple[Any, str]]) -> int:
     """Start a daemon on ``listen``, print where, and run until SIGINT or SIGTERM."""
-    host, _, port = listen.removeprefix("tcp://").rpartition(":")
     try:
-        daemon, banner = start(ClusterKey.load(), host or "127.0.0.1", int(port or 0))
+        daemon, banner = start(ClusterKey.load(), *bind_address(listen))
     except (OSError, ValueError, ClusterKeyError) as exc:
         print(f"{command}: {exc}", file=sys.stderr)
         return 1

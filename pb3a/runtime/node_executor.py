@@ -134,7 +134,6 @@ class NodeExecutor:
             client.close()
 
 
-
 def executor_main(config: str, node: str, workers: int, cpus: list[int] | None,
                   host: str, conn: Any, level: int = logging.WARNING) -> None:
     """Entry point of an executor process: serve until shut down, signalled or orphaned."""

@@ -23,7 +23,7 @@ from pb3a.kernel.served import forget
 from pb3a.runtime.launcher import Launcher
 from pb3a.runtime.migration import MigrationReport, migrate
 from pb3a.transport.auth import ClusterKey
-from pb3a.transport.control import ControlServer
+from pb3a.transport.control import ControlServer, bind_address
 
 log = logging.getLogger("pb3a")
 
@@ -81,11 +81,9 @@ class Running:
     def listen(self, address: str = "tcp://127.0.0.1:0") -> str:
         """Take authenticated requests (``pb3a status / state / migrate / swap``) at
         ``address``; returns the address bound."""
-        host, _, port = address.removeprefix("tcp://").rpartition(":")
         if self._server is None:
             self._server = ControlServer(ClusterKey.load(), self._remote_request,
-                                         host or "127.0.0.1", int(port or 0),
-                                         name="pb3a-launcher")
+                                         *bind_address(address), name="pb3a-launcher")
             self.address = self._server.address
         return self.address
 

@@ -44,6 +44,13 @@ def _socket(context: zmq.Context, kind: int) -> zmq.Socket:
     return sock
 
 
+def bind_address(address: str) -> tuple[str, int]:
+    """The host and port a server binds for ``"[tcp://][host]:[port]"``: by default
+    the loopback interface and any free port."""
+    host, _, port = address.removeprefix("tcp://").rpartition(":")
+    return host or "127.0.0.1", int(port or 0)
+
+
 class ControlServer:
     """Serves ``handler(op, args) -> result`` on a ROUTER socket bound to ``host``."""
 
