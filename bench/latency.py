@@ -78,11 +78,11 @@ def pb3a_trial() -> dict[str, Any]:
     system.add("clock", Clock, period=PERIOD)
     system.link("clock.out", "probe.x")
     with system.launch() as run:
-        modules = run.stats()["modules"]
-        workers = {"reader": psutil.Process(modules["probe"]["pid"]),
-                   "writer": psutil.Process(modules["clock"]["pid"])}
+        modules = run.stats().modules
+        workers = {"reader": psutil.Process(modules["probe"].pid),
+                   "writer": psutil.Process(modules["clock"].pid)}
         time.sleep(WARM_SAMPLES * PERIOD)           # warm-up: values flow, none recorded
-        values0 = run.stats()["links"]["clock.out->probe.x"]["values"]
+        values0 = run.stats().links["clock.out->probe.x"].values
         cpu0 = {side: _cpu_seconds(p) for side, p in workers.items()}
         t0 = time.monotonic()
         run.set_state("probe", samples=[], recording=True)
@@ -97,7 +97,7 @@ def pb3a_trial() -> dict[str, Any]:
         state = wait_for(recorded, TRIAL_TIMEOUT, f"{SAMPLES} samples", poll=0.25)
         wall = time.monotonic() - t0
         cpu = {side: 100.0 * (_cpu_seconds(p) - cpu0[side]) / wall for side, p in workers.items()}
-        values = run.stats()["links"]["clock.out->probe.x"]["values"] - values0
+        values = run.stats().links["clock.out->probe.x"].values - values0
         rate = values / (time.monotonic() - t0)
     return {"samples": state["samples"], "cpu_pct": cpu, "rate_hz": rate}
 

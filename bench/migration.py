@@ -29,7 +29,7 @@ from _common import machine, main_guard, percentile, steal_report, steal_seconds
 from _modules import Clock, MigrationRelay, OrderedReader
 
 from pb3a import System
-from pb3a.runtime.node import Limits, NodeController
+from pb3a.daemons.node_controller import Limits, NodeController
 from pb3a.transport.auth import ClusterKey
 
 REPS = 40
@@ -72,9 +72,9 @@ def measure(result: dict[str, Any], address: str | None) -> None:
             run.swap("relay", MigrationRelay)
             swaps.append(time.monotonic() - started)
         run.remove("clock")                         # its link drains into the relay
-        relay = wait_for(lambda: (s := run.stats()["modules"]["relay"])["inputs"]["x"][
+        relay = wait_for(lambda: (s := run.stats().modules["relay"]).inputs["x"][
             "pending"] == 0 and s, 10.0, "the relay drained")
-        written = relay["inputs"]["x"]["received"]
+        written = relay.inputs["x"].received
         reader = wait_for(lambda: (s := run.state("reader"))["count"] >= written and s,
                           10.0, "every value at the reader")
     ms = [p * 1e3 for p in pauses]

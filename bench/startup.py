@@ -90,21 +90,21 @@ def measure(modules: int) -> dict[str, Any]:
     try:
         time.sleep(SETTLE_S)
         stats = run.stats()
-        workers = {m["pid"] for m in stats["modules"].values() if m["pid"]}
+        workers = {m.pid for m in stats.modules.values() if m.pid}
         mem = memory(workers)
-        ends = [m for name, m in stats["modules"].items() if name.endswith(f"m{CHAIN - 1}")]
-        transports = [link["transport"] for link in stats["links"].values()]
+        ends = [m for name, m in stats.modules.items() if name.endswith(f"m{CHAIN - 1}")]
+        transports = [link.transport for link in stats.links.values()]
     finally:
         t1 = time.monotonic()
         run.close()
         shutdown_s = time.monotonic() - t1
     return {
-        "modules": len(stats["modules"]), "worker_processes": len(workers),
+        "modules": len(stats.modules), "worker_processes": len(workers),
         "links": {"shm": transports.count("shm"), "memory": transports.count("memory")},
         "launch_s": round(launch_s, 3),
         "launch_ms_per_module": round(1000 * launch_s / modules, 2),
         "memory_after_settle": mem,
-        "chains_delivering_to_their_end": sum(1 for m in ends if m["events"] > 0),
+        "chains_delivering_to_their_end": sum(1 for m in ends if m.events > 0),
         "chains": len(ends),
         "shutdown_s": round(shutdown_s, 3),
         "steal": steal_report(steal_seconds() - steal0, time.monotonic() - t_all),

@@ -7,8 +7,8 @@ running system can swap one for the other (``run.swap("scale",
 
 from __future__ import annotations
 
-from pb3a.kernel.module import Module
-from pb3a.kernel.ports import Input, InputPort, Output
+from pb3a.model.module import Module
+from pb3a.model.ports import Input, InputPort, Output
 
 
 class Scale(Module):

@@ -37,4 +37,4 @@ with system.launch() as run:           # one worker process per module
     run.swap("scale", Offset)          # new code, same ports, gain kept
     run.wait(0.5)
     print(run.state("tick"), run.state("scale"))
-    print(run.stats()["links"]["tick.out->scale.x"])
+    print(run.stats().links["tick.out->scale.x"])

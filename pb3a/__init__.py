@@ -16,14 +16,14 @@ from pb3a.errors import (
     RuntimeFailure,
     RuntimeTimeout,
 )
-from pb3a.kernel.agent import Agent
-from pb3a.kernel.driver import Driver
-from pb3a.kernel.environment import Environment
-from pb3a.kernel.macro import Macro
-from pb3a.kernel.module import Module
-from pb3a.kernel.ports import Input, InputPort, Output, OutputPort
-from pb3a.runtime.migration import MigrationReport
-from pb3a.runtime.running import Running
+from pb3a.launch.migration import MigrationReport
+from pb3a.launch.running import Running
+from pb3a.model.agent import Agent
+from pb3a.model.driver import Driver
+from pb3a.model.environment import Environment
+from pb3a.model.macro import Macro
+from pb3a.model.module import Module
+from pb3a.model.ports import Input, InputPort, Output, OutputPort
 from pb3a.system import System
 
 __all__ = [

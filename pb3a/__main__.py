@@ -2,6 +2,6 @@
 
 from __future__ import annotations
 
-from pb3a.runtime.cli import main
+from pb3a.cli.main import main
 
 raise SystemExit(main())

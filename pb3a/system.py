@@ -10,22 +10,13 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-from pb3a.kernel.config import (
-    LinkSpec,
-    ModuleSpec,
-    NodeSpec,
-    Plan,
-    SystemSpec,
-    build_plan,
-    load_toml,
-    validate,
-)
-from pb3a.kernel.drawing import plan_to_dot
-
-if TYPE_CHECKING:
-    from pb3a.runtime.running import Running
+from pb3a.config.compiler import build_plan, validate
+from pb3a.config.description import LinkSpec, ModuleSpec, NodeSpec, SystemSpec, load_toml
+from pb3a.config.dot import plan_to_dot
+from pb3a.config.plan import Plan
+from pb3a.launch.running import Running, launch
 
 
 class System:
@@ -90,8 +81,6 @@ class System:
         ``checkpoint_s`` is how often ``restart = "last-state"`` modules are
         checkpointed; ``log_level`` applies to the worker processes' logs.
         """
-        from pb3a.runtime.running import launch
-
         return launch(self.plan(), checkpoint_s=checkpoint_s, log_level=log_level)
 
     def __repr__(self) -> str:

@@ -47,7 +47,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def start_command(args: argparse.Namespace) -> int:
-    from pb3a.runtime.daemon import serve_until_signalled
+    from pb3a.cli.daemons import serve_until_signalled
     from rave.server import RobotServers, WorldServer
     from rave.world import World
     from rave.worldfile import WorldError

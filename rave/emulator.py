@@ -35,7 +35,7 @@ import pymunk
 
 from rave import sonar
 from rave.layers import REAL, ROBOT, WALL_RADIUS
-from rave.simulated import MASS, RADIUS
+from rave.pioneer import MASS, RADIUS
 
 START_TIMEOUT = 30.0                # s: a child imports numpy and pymunk first
 ANSWER_TIMEOUT = 5.0

@@ -14,7 +14,7 @@ all of them together, at most once per ``SONAR_PERIOD`` of simulated time.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 import pymunk
@@ -23,30 +23,35 @@ import pymunk.batch
 from rave import sonar
 from rave.neighbours import NeighbourLists
 from rave.odometry import chord_sum, dead_reckon_arcs
-from rave.simulated import MAX_SPEED, MAX_TURN
-
-if TYPE_CHECKING:
-    from rave.simulated import SimulatedBody
-    from rave.world import World
+from rave.pioneer import MAX_SPEED, MAX_TURN
+from rave.scene import Scene
 
 SONAR_PERIOD = 0.1                       # s: simulated sonar refresh (10 Hz)
 WHEEL_STEPS = 50                         # physics steps dead-reckoned at once, at most
 FAR = 1e6                                # m: a turn wider than this is driven straight
 ONE_BY_ONE = 16                          # new commands set body by body, at most (else
                                          # one batch write of every body is cheaper)
-NOISE = sonar.SonarNoise(sigma0=0.005, sigma_per_m=0.005)
 _F = pymunk.batch.BodyFields
 _READ = _F.POSITION | _F.ANGLE | _F.VELOCITY | _F.ANGULAR_VELOCITY
 _WRITE = _F.VELOCITY | _F.ANGULAR_VELOCITY
 _LIMITS = np.array([MAX_SPEED, MAX_TURN])
 
 
+class Member(Protocol):
+    """A simulated robot as its fleet holds it (``SimulatedBody``)."""
+
+    name: str
+    slot: int                   # its row in the fleet's arrays
+    body: pymunk.Body           # the robot's disc
+    control: pymunk.Body        # the kinematic body that pulls it
+
+
 class Fleet:
     """Every simulated robot of one world, as rows of arrays (one slot each)."""
 
-    def __init__(self, world: World) -> None:
+    def __init__(self, world: Scene) -> None:
         self.world = world
-        self.members: list[SimulatedBody] = []
+        self.members: list[Member] = []
         self._command = np.zeros((0, 2))         # v, w
         self._commanded = False                  # since the last step
         self.odometry_scale = np.ones((0, 3))
@@ -72,7 +77,7 @@ class Fleet:
         self.neighbours = NeighbourLists(sonar.MAX_RANGE + sonar.CASTER.radius, skin=1.0)
 
     # -- membership --------------------------------------------------------------------
-    def add(self, member: SimulatedBody, pose: tuple[float, float, float],
+    def add(self, member: Member, pose: tuple[float, float, float],
             velocity: tuple[float, float, float], odometry: tuple[float, ...],
             scale: np.ndarray) -> int:
         if self._steps:                  # the others' odometry, up to now (with no step
@@ -88,7 +93,7 @@ class Fleet:
         self.bodies_changed()
         return len(self.members) - 1
 
-    def remove(self, member: SimulatedBody) -> None:
+    def remove(self, member: Member) -> None:
         if self._steps:                  # (as in add)
             self._refresh()
         slot = self.members.index(member)
@@ -292,7 +297,7 @@ class Fleet:
     def scan(self) -> None:
         """Every simulated robot's 16 transducers against every layer and every other
         robot, in one batch."""
-        self.readings = sonar.readings(self.ranges(), NOISE, self.rng)
+        self.readings = sonar.readings(self.ranges(), sonar.MODEL_NOISE, self.rng)
 
     def ranges(self) -> np.ndarray:
         """Every robot's sonar rays (R, 16 x RAYS, ring order), noiseless: the range to

@@ -10,20 +10,28 @@ never reach the real component.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import pymunk
 
 from rave import sonar
 from rave.emulator import EmulatorProcess
-from rave.fleet import NOISE
 from rave.layers import ROBOT
-from rave.simulated import RADIUS
+from rave.pioneer import RADIUS
+from rave.scene import Scene
 
 if TYPE_CHECKING:
+    from rave.fleet import Fleet
     from rave.odometry import Odometer
-    from rave.world import World
+
+
+class HardwareHost(Scene, Protocol):
+    """A world that hardware robots join (``World``): it steps those in ``hardware``,
+    and its ``fleet``, which senses them, is told when one comes or goes."""
+
+    fleet: Fleet
+    hardware: list[HardwareBody]
 
 
 class HardwareBody:
@@ -31,7 +39,7 @@ class HardwareBody:
 
     kind = "hardware"
 
-    def __init__(self, world: World, name: str, pose: tuple[float, float, float],
+    def __init__(self, world: HardwareHost, name: str, pose: tuple[float, float, float],
                  odometer: Odometer, rng: np.random.Generator,
                  velocity: tuple[float, float] = (0.0, 0.0)) -> None:
         self.world, self.name, self.odometer = world, name, odometer
@@ -99,7 +107,7 @@ class HardwareBody:
         dead transducer senses nothing, virtual or real)."""
         world = self.world
         virtual = sonar.read(self.pose(), world.segments(real=False),
-                             world.discs(exclude=self.name), NOISE, rng)
+                             world.discs(exclude=self.name), sonar.MODEL_NOISE, rng)
         hybrid = np.minimum(self.real_sonar(), virtual)
         hybrid[list(self.faults.get("sonar_dead", ()))] = sonar.MAX_RANGE
         return hybrid

@@ -18,7 +18,7 @@ import numpy as np
 
 from rave import sonar
 from rave.camera import rgb
-from rave.simulated import RADIUS
+from rave.pioneer import RADIUS
 
 if TYPE_CHECKING:
     from rave.world import World

@@ -9,26 +9,30 @@ sensors with no physical analogue.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from rave import camera
 from rave.emulator import FAULTS
-from rave.hardware import HardwareBody
+from rave.hardware import HardwareBody, HardwareHost
 from rave.odometry import Odometer
-from rave.simulated import MAX_SPEED, MAX_TURN, SimulatedBody
-
-if TYPE_CHECKING:
-    from rave.world import World
+from rave.pioneer import MAX_SPEED, MAX_TURN
+from rave.simulated import SimulatedBody
 
 BACKENDS = ("sim", "hardware")
+
+
+class RobotHost(HardwareHost, Protocol):
+    """A world that robots join (``World``), each by name in ``robots``."""
+
+    robots: dict[str, Robot]
 
 
 class Robot:
     """Drive it, read its sensors; ``swap`` its back end while it runs."""
 
-    def __init__(self, world: World, name: str, pose: tuple[float, float, float], *,
+    def __init__(self, world: RobotHost, name: str, pose: tuple[float, float, float], *,
                  backend: str, color: str, index: int) -> None:
         _check_backend(name, backend)
         camera.rgb(color)                                   # a clear error now, not later
@@ -42,7 +46,7 @@ class Robot:
               ) -> SimulatedBody | HardwareBody:
         if backend == "sim":
             body: SimulatedBody | HardwareBody = SimulatedBody(
-                self.world, self.name, pose, self.odometer, velocity)
+                self.world.fleet, self.name, pose, self.odometer, velocity)
         else:
             body = HardwareBody(self.world, self.name, pose, self.odometer, self.rng, velocity)
         body.command(*command)

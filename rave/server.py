@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from pb3a.runtime.processes import serve_as_child, start_without_main
+from pb3a.processes import serve_as_child, start_without_main
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient, ControlServer
 from rave.world import PHYSICS_DT, World

@@ -15,27 +15,26 @@ import numpy as np
 import pymunk
 
 from rave.layers import ROBOT, SEES_ALL
+from rave.pioneer import MASS, RADIUS
 
 if TYPE_CHECKING:
+    from rave.fleet import Fleet
     from rave.odometry import Odometer
-    from rave.world import World
 
-RADIUS = 0.25            # Pioneer 3-DX, m
-MAX_SPEED = 1.5          # m/s (a Pioneer 3-DX does 1.2 with a margin)
-MAX_TURN = math.radians(300.0)      # rad/s
-MASS = 9.0               # kg
 GRIP = 2000.0            # N: what the control joint may exert: 1.5 m/s within a step,
                          # yet less than a wall pushes back (contacts win)
 
 
 class SimulatedBody:
-    """A robot body in the world model that moves as commanded."""
+    """A robot body in the world model that moves as commanded: one slot of its
+    world's ``fleet``."""
 
     kind = "sim"
 
-    def __init__(self, world: World, name: str, pose: tuple[float, float, float],
+    def __init__(self, fleet: Fleet, name: str, pose: tuple[float, float, float],
                  odometer: Odometer, velocity: tuple[float, float] = (0.0, 0.0)) -> None:
-        self.world, self.name, self.odometer = world, name, odometer
+        self.fleet, self.name, self.odometer = fleet, name, odometer
+        self.space = fleet.world.space
         self.body = pymunk.Body(MASS, pymunk.moment_for_circle(MASS, 0.0, RADIUS))
         self.body.position, self.body.angle = pose[:2], pose[2]
         self.shape = pymunk.Circle(self.body, RADIUS)
@@ -52,11 +51,10 @@ class SimulatedBody:
         self.control.position = pose[:2]
         self.joint = pymunk.PivotJoint(self.control, self.body, (0, 0), (0, 0))
         self.joint.max_bias, self.joint.max_force = 0.0, GRIP
-        world.space.add(self.body, self.shape, self.control, self.joint)
+        self.space.add(self.body, self.shape, self.control, self.joint)
         v, w = velocity
         start = (v * math.cos(pose[2]), v * math.sin(pose[2]), w)
-        self.fleet = world.fleet
-        self.slot = self.fleet.add(self, pose, start, odometer.pose(), odometer.scale)
+        self.slot = fleet.add(self, pose, start, odometer.pose(), odometer.scale)
 
     def command(self, v: float, w: float) -> None:
         self.fleet.drive(self.slot, v, w)
@@ -84,4 +82,4 @@ class SimulatedBody:
         """Leave the world; the odometer goes on from where the fleet had it."""
         self.odometer.state[:] = self.odometry()
         self.fleet.remove(self)
-        self.world.space.remove(self.body, self.shape, self.control, self.joint)
+        self.space.remove(self.body, self.shape, self.control, self.joint)

@@ -48,6 +48,11 @@ class SonarNoise:
     quantum: float = 0.001        # readings are whole millimetres
 
 
+# Readings computed from the world model (a simulated robot's ring, the virtual half
+# of a hardware robot's hybrid one): a little noise, every echo heard.
+MODEL_NOISE = SonarNoise(sigma0=0.005, sigma_per_m=0.005)
+
+
 def rays(pose: tuple[float, float, float], which: np.ndarray | None = None,
          ) -> tuple[np.ndarray, np.ndarray]:
     """Origins and unit directions of the cone rays of transducers ``which`` (all by

@@ -18,12 +18,13 @@ from typing import Any
 import numpy as np
 import pymunk
 
+from rave import worldfile
 from rave.camera import Target
 from rave.fleet import Fleet
 from rave.hardware import HardwareBody
 from rave.layers import REAL, VIRTUAL, WALL_RADIUS
+from rave.pioneer import RADIUS
 from rave.robot import Robot
-from rave.simulated import RADIUS
 
 PHYSICS_DT = 0.01                    # s: physics runs at 100 Hz whatever step() is given
 
@@ -76,8 +77,17 @@ class World:
     @classmethod
     def load(cls, path: str | Path, seed: int = 0) -> World:
         """A world from a TOML world file (see ``rave/worldfile.py``)."""
-        from rave.worldfile import load
-        return load(Path(path), seed)
+        plan = worldfile.read(Path(path))
+        world = cls(plan.size, seed, plan.name)
+        for wall in plan.walls:
+            world.add_wall(**wall)
+        for box in plan.boxes:
+            world.add_box(**box)
+        for polygon in plan.polygons:
+            world.add_polygon(**polygon)
+        for robot in plan.robots:
+            world.add_robot(**robot)
+        return world
 
     # -- building -----------------------------------------------------------------
     def add_wall(self, start: tuple[float, float], end: tuple[float, float], *,

@@ -1,4 +1,4 @@
-"""World files: a world in TOML, checked whole before anything is built.
+"""World files: a world in TOML, read and checked whole before anything is built.
 
 ```toml
 name = "arena"
@@ -25,19 +25,20 @@ backend = "sim"                        # or "hardware"
 color = "red"
 ```
 
-Every problem is reported at once (``WorldError``), each naming the entry.
+``read`` turns a file into a ``Plan``, plain data that ``World.load`` builds. Every
+problem is reported at once (``WorldError``), each naming the entry.
 """
 
 from __future__ import annotations
 
 import math
 import tomllib
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from rave.camera import rgb
 from rave.robot import BACKENDS
-from rave.world import World
 
 TOP = ("name", "size", "walls", "boxes", "polygons", "robots")
 KEYS = {"walls": ("from", "to", "virtual"),
@@ -54,8 +55,22 @@ class WorldError(ValueError):
         super().__init__("\n".join(problems))
 
 
-def load(path: Path, seed: int = 0) -> World:
-    """Read, check, then build the world in ``path``."""
+@dataclass(frozen=True)
+class Plan:
+    """A checked world file in the API's units (radians): the world's name and size,
+    and the keyword arguments of each of its ``add_wall``, ``add_box``,
+    ``add_polygon`` and ``add_robot`` calls, in the order they are to be made."""
+
+    name: str
+    size: tuple[float, float]
+    walls: list[dict[str, Any]]
+    boxes: list[dict[str, Any]]
+    polygons: list[dict[str, Any]]
+    robots: list[dict[str, Any]]
+
+
+def read(path: Path) -> Plan:
+    """Read and check the world file at ``path``."""
     try:
         data = tomllib.loads(path.read_text())
     except (OSError, tomllib.TOMLDecodeError) as exc:
@@ -63,20 +78,24 @@ def load(path: Path, seed: int = 0) -> World:
     problems = check(data, str(path))
     if problems:
         raise WorldError(problems)
-    world = World(tuple(data.get("size", (10.0, 8.0))), seed, data.get("name", path.stem))
-    for wall in data.get("walls", []):
-        world.add_wall(wall["from"], wall["to"], virtual=wall.get("virtual", False))
-    for box in data.get("boxes", []):
-        world.add_box(box["center"], box["size"], angle=math.radians(box.get("angle", 0.0)),
-                      virtual=box.get("virtual", False), color=box.get("color"))
-    for polygon in data.get("polygons", []):
-        world.add_polygon(polygon["points"], virtual=polygon.get("virtual", False),
-                          color=polygon.get("color"))
-    for robot in data.get("robots", []):
-        x, y, heading = robot["pose"]
-        world.add_robot(robot["name"], (x, y, math.radians(heading)),
-                        backend=robot.get("backend", "sim"), color=robot.get("color", "red"))
-    return world
+    return Plan(
+        name=data.get("name", path.stem), size=tuple(data.get("size", (10.0, 8.0))),
+        walls=[{"start": wall["from"], "end": wall["to"], "virtual": wall.get("virtual", False)}
+               for wall in data.get("walls", [])],
+        boxes=[{"center": box["center"], "size": box["size"],
+                "angle": math.radians(box.get("angle", 0.0)),
+                "virtual": box.get("virtual", False), "color": box.get("color")}
+               for box in data.get("boxes", [])],
+        polygons=[{"points": polygon["points"], "virtual": polygon.get("virtual", False),
+                   "color": polygon.get("color")} for polygon in data.get("polygons", [])],
+        robots=[{"name": robot["name"], "pose": _pose(robot["pose"]),
+                 "backend": robot.get("backend", "sim"), "color": robot.get("color", "red")}
+                for robot in data.get("robots", [])])
+
+
+def _pose(pose: list[float]) -> tuple[float, float, float]:
+    x, y, heading = pose
+    return (x, y, math.radians(heading))
 
 
 def check(data: dict[str, Any], source: str) -> list[str]:

@@ -165,7 +165,7 @@ def run_once(adaptive: bool, phases: tuple[float, float, float]) -> dict[str, An
         load_off = time.monotonic()
         _sleep_until(load_off + after)
         sink, mover = run.state("sink"), run.state("mover")
-        node = run.stats()["modules"]["compute"]["node"]
+        node = run.stats().modules["compute"].node
     return {"start": start, "load_on": load_on, "load_off": load_off,
             "end": load_off + after, "arrivals": sink["arrivals"],
             "latencies": sink["latencies"], "moved_at": mover["moved_at"],

@@ -13,7 +13,7 @@ from conftest import eventually
 
 import examples.pipeline
 from pb3a import System
-from pb3a.runtime.cli import main
+from pb3a.cli.main import main
 
 REPO = Path(examples.pipeline.__file__).resolve().parent.parent
 PIPELINE = REPO / "examples" / "pipeline.toml"
@@ -122,6 +122,6 @@ def test_the_two_node_example_is_valid_and_runs_across_nodes(capsys) -> None:
     assert main(["check", str(example)]) == 0
     assert capsys.readouterr().out == "ok: 2 modules, 1 links\n"
     with System.load(example).launch() as run:
-        eventually(lambda: run.stats()["links"]["tick.out->scale.x"]["values"] > 5,
+        eventually(lambda: run.stats().links["tick.out->scale.x"].values > 5,
                    what="values at node b")
-        assert run.stats()["links"]["tick.out->scale.x"]["transport"] == "zmq"
+        assert run.stats().links["tick.out->scale.x"].transport == "zmq"

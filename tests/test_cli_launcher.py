@@ -7,7 +7,7 @@ from conftest import eventually
 from sample_modules import Counter, FastScale, Relay, Scale
 
 from pb3a import System
-from pb3a.runtime.cli import main
+from pb3a.cli.main import main
 
 
 def test_the_command_line_reads_and_changes_a_running_system(capsys) -> None:
@@ -28,7 +28,7 @@ def test_the_command_line_reads_and_changes_a_running_system(capsys) -> None:
         assert '"gain": 2.0' in capsys.readouterr().out
         assert main(["migrate", address, "relay", "b"]) == 0
         assert "relay: a -> b, paused" in capsys.readouterr().out
-        assert run.stats()["modules"]["relay"]["node"] == "b"
+        assert run.stats().modules["relay"].node == "b"
         ref = f"{FastScale.__module__}:FastScale"
         assert main(["swap", address, "scale", ref]) == 0
         assert "state kept: gain, setups" in capsys.readouterr().out

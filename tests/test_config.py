@@ -11,10 +11,12 @@ import pytest
 
 import examples.pipeline
 from examples.pipeline import FastScale, Scale, Ticker
+from pb3a.config.compiler import build_plan, validate
+from pb3a.config.description import NodeSpec, SystemSpec, load_toml
+from pb3a.config.plan import FlatLink, Plan
 from pb3a.errors import ConfigError
-from pb3a.kernel.config import FlatLink, NodeSpec, Plan, SystemSpec, build_plan, load_toml, validate
-from pb3a.kernel.loading import resolve_class
-from pb3a.kernel.ports import Policy
+from pb3a.loading.references import resolve_class
+from pb3a.model.ports import Policy
 from pb3a.system import System
 
 PIPELINE = Path(examples.pipeline.__file__).with_name("pipeline.toml")
@@ -22,9 +24,9 @@ PIPELINE = Path(examples.pipeline.__file__).with_name("pipeline.toml")
 # A module of parts the TOML fixtures name as "parts_cfg:Class"; written to a temporary
 # directory on sys.path so that it is importable by reference, as user code would be.
 PARTS = '''
-from pb3a.kernel.macro import Macro
-from pb3a.kernel.module import Module
-from pb3a.kernel.ports import Input, Output
+from pb3a.model.macro import Macro
+from pb3a.model.module import Module
+from pb3a.model.ports import Input, Output
 
 
 class Src(Module):

@@ -50,11 +50,11 @@ def test_a_node_s_env_module_starts_when_read_and_reports_its_cpus() -> None:
     with system.launch() as run:
         state = eventually(lambda: (s := run.state("watcher"))["seen"] >= 3 and s,
                            what="three env samples")
-        modules = run.stats()["modules"]
+        modules = run.stats().modules
     assert 0.0 <= state["last_cpu"] <= 100.0
     assert state["cores"] == 1                       # node a is pinned to one CPU
     assert state["memory_bytes"] > 0
-    assert modules["env-a"]["node"] == "a" and "env-b" not in modules
+    assert modules["env-a"].node == "a" and "env-b" not in modules
     assert state["pinned_to"] == sorted(os.sched_getaffinity(0))     # b is not pinned
 
 
@@ -64,7 +64,7 @@ def test_the_env_module_is_there_without_being_declared() -> None:
     system.link("env-local.cpu", "watcher.cpu")
     with system.launch() as run:
         eventually(lambda: run.state("watcher")["seen"] >= 1, timeout=10, what="a sample")
-        assert run.stats()["modules"]["env-local"]["node"] == "local"
+        assert run.stats().modules["env-local"].node == "local"
 
 
 def test_workers_of_a_pinned_node_run_on_its_cpus_only() -> None:

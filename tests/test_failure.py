@@ -44,17 +44,17 @@ def test_exception_in_step_is_logged_counted_and_contained(caplog) -> None:
     with system.launch() as run:
         state = eventually(lambda: (s := run.state("faulty"))["good"] >= 10 and s, what="steps")
         eventually(lambda: run.state("sink")["value"] == 2.0, what="others unaffected")
-        figures = eventually(lambda: (f := run.stats()["modules"]["faulty"])["errors"] >= 5 and f,
+        figures = eventually(lambda: (f := run.stats().modules["faulty"]).errors >= 5 and f,
                              what="errors counted")
         eventually(lambda: "odd step" in caplog.text, what="the error in the log")
-    assert figures["last_error"] == "ValueError: odd step"
-    assert figures["status"] == "running"
+    assert figures.last_error == "ValueError: odd step"
+    assert figures.status == "running"
     assert state["calls"] >= state["good"] * 2 - 1
     assert "'faulty'" in caplog.text and "step" in caplog.text
 
 
 def _kill_worker(run, name: str) -> int:
-    pid = eventually(lambda: run.stats()["modules"][name]["pid"], what="a worker pid")
+    pid = eventually(lambda: run.stats().modules[name].pid, what="a worker pid")
     os.kill(pid, signal.SIGKILL)
     return pid
 
@@ -66,12 +66,12 @@ def test_sigkill_with_restart_never_leaves_module_failed_and_others_running() ->
     with system.launch() as run:
         eventually(lambda: run.state("victim")["count"] > 3, what="steps")
         _kill_worker(run, "victim")
-        figures = eventually(lambda: (m := run.stats()["modules"])["victim"]["status"] == "failed"
+        figures = eventually(lambda: (m := run.stats().modules)["victim"].status == "failed"
                              and m, what="failure detected")
         before = run.state("other")["count"]
         eventually(lambda: run.state("other")["count"] > before, what="the other module goes on")
-        assert any("victim" in f for f in run.stats()["failures"])
-    assert figures["victim"]["restarts"] == 0
+        assert any("victim" in f for f in run.stats().failures)
+    assert figures["victim"].restarts == 0
 
 
 def test_sigkill_with_restart_fresh_starts_from_the_configured_state() -> None:
@@ -80,11 +80,11 @@ def test_sigkill_with_restart_fresh_starts_from_the_configured_state() -> None:
     with system.launch() as run:
         eventually(lambda: run.state("victim")["count"] > 1100, what="steps")
         old = _kill_worker(run, "victim")
-        figures = eventually(lambda: (m := run.stats()["modules"]["victim"])["restarts"] == 1
-                             and m["status"] == "running" and m, what="restart")
+        figures = eventually(lambda: (m := run.stats().modules["victim"]).restarts == 1
+                             and m.status == "running" and m, what="restart")
         state = eventually(lambda: (s := run.state("victim"))["pid"] not in (0, old) and s,
                            what="steps in the new process")
-    assert figures["pid"] != old
+    assert figures.pid != old
     assert 1000 < state["count"] < 1100       # from the configured state, not from 1100
 
 
@@ -93,11 +93,11 @@ def test_sigkill_with_restart_last_state_resumes_from_a_checkpoint() -> None:
     system.add("victim", Steady, restart="last-state")
     with system.launch(checkpoint_s=0.1) as run:
         eventually(lambda: run.state("victim")["count"] > 40, what="steps")
-        taken = run.stats()["modules"]["victim"]["checkpoints"]
-        eventually(lambda: run.stats()["modules"]["victim"]["checkpoints"] > taken,
+        taken = run.stats().modules["victim"].checkpoints
+        eventually(lambda: run.stats().modules["victim"].checkpoints > taken,
                    what="a checkpoint taken after 40 steps")
         old = _kill_worker(run, "victim")
-        eventually(lambda: run.stats()["modules"]["victim"]["restarts"] == 1, what="restart")
+        eventually(lambda: run.stats().modules["victim"].restarts == 1, what="restart")
         state = eventually(lambda: (s := run.state("victim"))["pid"] not in (0, old) and s,
                            what="steps in the new process")
     assert state["count"] > 40            # resumed from the checkpoint, not from 0
@@ -111,7 +111,7 @@ def test_links_survive_a_restart_of_the_reading_worker() -> None:
     with system.launch() as run:
         eventually(lambda: run.state("sink")["value"] == 2.0, what="first value")
         _kill_worker(run, "sink")
-        eventually(lambda: run.stats()["modules"]["sink"]["restarts"] == 1, what="restart")
+        eventually(lambda: run.stats().modules["sink"].restarts == 1, what="restart")
         eventually(lambda: run.state("sink")["value"] == 2.0, what="values after restart")
 
 
@@ -122,10 +122,10 @@ def test_a_restarted_reader_gets_back_the_array_slots_its_predecessor_held() -> 
     system.link("src.out", "hold.x")                   # a pool of twelve 1 MiB slots
     with system.launch() as run:
         def held() -> int:
-            return run.stats()["modules"]["hold"]["inputs"]["x"]["pending"]
+            return run.stats().modules["hold"].inputs["x"].pending
         eventually(lambda: held() == 10, timeout=30, what="ten views held")
         _kill_worker(run, "hold")
-        eventually(lambda: run.stats()["modules"]["hold"]["restarts"] == 1, what="restart")
+        eventually(lambda: run.stats().modules["hold"].restarts == 1, what="restart")
         # ten slots would still be taken by the dead reader, leaving two
         eventually(lambda: held() == 10, timeout=30, what="ten views held again")
 
@@ -163,7 +163,7 @@ _CRASHING_LAUNCHER = textwrap.dedent("""
     system.add("sink", Sink)
     system.link("tick.out", "sink.x")
     run = system.launch()
-    pids = [m["pid"] for m in run.stats()["modules"].values()]
+    pids = [m.pid for m in run.stats().modules.values()]
     print(" ".join(map(str, pids)), flush=True)
     time.sleep(120)
 """)
@@ -193,13 +193,13 @@ def test_a_worker_stopped_by_sigterm_is_stopped_not_restarted() -> None:
     system.add("victim", Steady, restart="fresh")
     system.add("other", Steady)
     with system.launch() as run:
-        pid = eventually(lambda: run.stats()["modules"]["victim"]["pid"], what="a pid")
+        pid = eventually(lambda: run.stats().modules["victim"].pid, what="a pid")
         os.kill(pid, signal.SIGTERM)
-        figures = eventually(lambda: (m := run.stats()["modules"]["victim"])["status"]
+        figures = eventually(lambda: (m := run.stats().modules["victim"]).status
                              == "stopped" and m, what="the stop seen")
         before = run.state("other")["count"]
         eventually(lambda: run.state("other")["count"] > before, what="the other goes on")
-    assert figures["restarts"] == 0
+    assert figures.restarts == 0
 
 
 def test_modules_start_in_order_and_stop_in_reverse_order(tmp_path: Path) -> None:
@@ -218,10 +218,10 @@ def test_a_crash_loop_gives_up_after_the_restart_intensity() -> None:
     system.add("crasher", Crasher, restart="fresh")
     system.add("other", Steady)
     with system.launch() as run:
-        figures = eventually(lambda: (m := run.stats()["modules"]["crasher"])["status"]
+        figures = eventually(lambda: (m := run.stats().modules["crasher"]).status
                              == "failed" and m, timeout=30, what="giving up")
-        failures = run.stats()["failures"]
+        failures = run.stats().failures
         before = run.state("other")["count"]
         eventually(lambda: run.state("other")["count"] > before, what="the other goes on")
-    assert figures["restarts"] == 5
+    assert figures.restarts == 5
     assert any("gave up" in failure and "crasher" in failure for failure in failures)

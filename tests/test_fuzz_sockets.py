@@ -15,7 +15,7 @@ from conftest import eventually
 from sample_modules import Collector, Counter
 
 from pb3a import System
-from pb3a.runtime.node import Limits, NodeController
+from pb3a.daemons.node_controller import Limits, NodeController
 from pb3a.transport.auth import ClusterKey, Sealer
 
 exploded: list[str] = []

@@ -27,8 +27,8 @@ def test_ten_idle_modules_use_under_five_percent_of_a_core() -> None:
     for i in range(10):
         system.add(f"idle{i}", Idle)
     with system.launch() as run:
-        pids = eventually(lambda: [m["pid"] for m in run.stats()["modules"].values()
-                                   if m["pid"]], what="worker pids")
+        pids = eventually(lambda: [m.pid for m in run.stats().modules.values()
+                                   if m.pid], what="worker pids")
         assert len(set(pids)) == 10
         time.sleep(0.5)                      # let start-up work finish before measuring
         before, started = _cpu_seconds(pids), time.monotonic()

@@ -43,8 +43,8 @@ def test_a_module_moves_with_its_state_and_its_links_follow() -> None:
         sink = run.state("sink")
     assert (report.module, report.source, report.destination) == ("relay", "a", "b")
     assert 0 < report.pause_s < 5 and report.state_bytes > 0 and report.links == 2
-    assert after["modules"]["relay"]["node"] == "b"
-    assert {key: link["transport"] for key, link in after["links"].items()} == {
+    assert after.modules["relay"].node == "b"
+    assert {key: link.transport for key, link in after.links.items()} == {
         "src.out->relay.x": "zmq", "relay.out->sink.x": "zmq"}
     assert state["relayed"] >= before and state["setups"] == 2       # setup again after it
     assert sink["out_of_order"] == 0 and sink["duplicates"] == 0
@@ -67,14 +67,14 @@ def test_100_migrations_under_a_steady_flow_lose_duplicate_and_reorder_nothing()
         pauses = []
         for i in range(100):
             pauses.append(run.migrate("relay", to=nodes[i % 3]).pause_s)
-        assert run.stats()["modules"]["relay"]["node"] == nodes[99 % 3]
+        assert run.stats().modules["relay"].node == nodes[99 % 3]
         for name in ("direct", "on_a", "on_b", "on_c"):
             state = eventually(lambda name=name: (s := run.state(name))["received"] >= n and s,
                                timeout=60, what=f"{n} values at {name}")
             assert _clean(state, n) and state["received"] == n and state["last"] == n, name
         assert run.state("relay")["relayed"] == n
-        links = run.stats()["links"]
-    assert all(link["link_failures"] == 0 and link["drops"] == 0 for link in links.values())
+        links = run.stats().links
+    assert all(link.link_failures == 0 and link.drops == 0 for link in links.values())
     assert len(pauses) == 100 and max(pauses) < 5
 
 
@@ -84,9 +84,9 @@ def test_a_macro_moves_as_a_whole() -> None:
     with system.launch() as run:
         run.set_state("chain/a", gain=5.0)
         report = run.migrate("chain", to="b")
-        modules = run.stats()["modules"]
+        modules = run.stats().modules
         gain = run.state("chain/a")["gain"]
-    assert {modules["chain/a"]["node"], modules["chain/b"]["node"]} == {"b"}
+    assert {modules["chain/a"].node, modules["chain/b"].node} == {"b"}
     assert report.destination == "b" and report.links == 2 and gain == 5.0
 
 
@@ -96,7 +96,7 @@ def test_an_agent_moves_itself_and_goes_on_where_it_was() -> None:
     system.add("wanderer", Wanderer, node="a")
     system.link("src.out", "wanderer.x")
     with system.launch() as run:
-        eventually(lambda: run.stats()["modules"]["wanderer"]["node"] == "b",
+        eventually(lambda: run.stats().modules["wanderer"].node == "b",
                    what="the agent on node b")
         seen = run.state("wanderer")["seen"]
         eventually(lambda: run.state("wanderer")["seen"] > seen + 10, what="values at b")
@@ -111,7 +111,7 @@ def test_migration_to_an_unknown_node_or_of_an_unknown_module_is_refused() -> No
             run.migrate("relay", to="z")
         with pytest.raises(ModuleNotFound, match="no module 'ghost'"):
             run.migrate("ghost", to="b")
-        assert run.stats()["modules"]["relay"]["node"] == "a"
+        assert run.stats().modules["relay"].node == "a"
 
 
 def test_a_failed_landing_puts_the_module_back_where_it_was(monkeypatch) -> None:
@@ -130,7 +130,7 @@ def test_a_failed_landing_puts_the_module_back_where_it_was(monkeypatch) -> None
         before = run.state("relay")["relayed"]
         with pytest.raises(RuntimeFailure, match="runs on node a again, with its state"):
             run.migrate("relay", to="b")
-        assert run.stats()["modules"]["relay"]["node"] == "a"
+        assert run.stats().modules["relay"].node == "a"
         assert run.state("relay")["relayed"] >= before
         eventually(lambda: run.state("relay")["relayed"] > before + 20, what="values again")
         sink = run.state("sink")

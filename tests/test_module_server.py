@@ -11,7 +11,7 @@ import pytest
 from conftest import daemon_banner_then_clean_exit, eventually
 
 from pb3a import System
-from pb3a.runtime.module_server import ModuleServer
+from pb3a.daemons.module_server import ModuleServer
 from pb3a.transport.auth import ClusterKey
 
 TICKER = '''

@@ -9,8 +9,8 @@ from conftest import daemon_banner_then_clean_exit, eventually
 from sample_modules import Counter
 
 from pb3a import RuntimeFailure
-from pb3a.kernel.config import FlatModule
-from pb3a.runtime.node import Limits, NodeController
+from pb3a.config.plan import FlatModule
+from pb3a.daemons.node_controller import Limits, NodeController
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 

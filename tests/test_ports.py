@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pb3a import Input, Module, Output
-from pb3a.kernel.ports import Policy
+from pb3a.model.ports import Policy
 
 
 class Sensor(Module):

@@ -28,11 +28,11 @@ def test_100000_values_cross_nodes_in_order_without_loss_or_duplicates() -> None
     with system.launch() as run:
         state = eventually(lambda: (s := run.state("dst"))["received"] == n and s, timeout=90,
                            what=f"{n} values across nodes")
-        link = run.stats()["links"]["src.out->dst.x"]
+        link = run.stats().links["src.out->dst.x"]
     assert state["last"] == n
     assert state["out_of_order"] == 0 and state["duplicates"] == 0
-    assert link["transport"] == "zmq"
-    assert link["values"] == n and link["drops"] == 0 and link["link_failures"] == 0
+    assert link.transport == "zmq"
+    assert link.values == n and link.drops == 0 and link.link_failures == 0
 
 
 def test_large_arrays_cross_nodes_intact_and_read_only() -> None:
@@ -43,9 +43,9 @@ def test_large_arrays_cross_nodes_intact_and_read_only() -> None:
     with system.launch() as run:
         state = eventually(lambda: (s := run.state("dst"))["sums_ok"] >= 20 and s,
                            timeout=30, what="20 arrays across nodes")
-        link = run.stats()["links"]["src.out->dst.x"]
+        link = run.stats().links["src.out->dst.x"]
     assert state["writable"] is False
-    assert link["transport"] == "zmq" and link["link_failures"] == 0
+    assert link.transport == "zmq" and link.link_failures == 0
 
 
 def test_an_output_crosses_once_per_node_however_many_inputs_read_it_there() -> None:
@@ -61,7 +61,7 @@ def test_an_output_crosses_once_per_node_however_many_inputs_read_it_there() -> 
                                timeout=60, what=f"{n} values at {name}")
             assert state["out_of_order"] == 0 and state["duplicates"] == 0
         followed = run._launcher.nodes["b"].bridge.followed()
-        transports = {key: link["transport"] for key, link in run.stats()["links"].items()}
+        transports = {key: link.transport for key, link in run.stats().links.items()}
     assert followed == {"src.out": ["src.out->b1.x", "src.out->b2.x"]}
     assert transports == {"src.out->b1.x": "zmq", "src.out->b2.x": "zmq",
                           "src.out->a1.x": "shm"}
@@ -94,8 +94,8 @@ def test_a_restarted_writer_feeds_its_remote_readers_again() -> None:
     system.link("src.out", "dst.x")
     with system.launch() as run:
         eventually(lambda: run.state("dst")["received"] > 10, what="first values")
-        os.kill(run.stats()["modules"]["src"]["pid"], signal.SIGKILL)
-        eventually(lambda: run.stats()["modules"]["src"]["restarts"] == 1, what="a restart")
+        os.kill(run.stats().modules["src"].pid, signal.SIGKILL)
+        eventually(lambda: run.stats().modules["src"].restarts == 1, what="a restart")
         before = run.state("dst")["received"]
         eventually(lambda: run.state("dst")["received"] > before + 10,
                    what="values from the restarted writer")

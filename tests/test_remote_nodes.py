@@ -14,8 +14,8 @@ from conftest import alive, eventually
 from sample_modules import Collector, Counter, LossWatcher, NodeTable, Relay, Wanderer
 
 from pb3a import ModuleNotFound, RuntimeTimeout, System
-from pb3a.runtime.node import Limits, NodeController
-from pb3a.runtime.status import format_table
+from pb3a.cli.status import format_table
+from pb3a.daemons.node_controller import Limits, NodeController
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 from pb3a.transport.shm import live_segments
@@ -62,15 +62,15 @@ def test_a_system_spans_node_controllers_and_migrates_across_them(controllers) -
                            what="node b's round-trip times to a and c in its env")
         stats = run.stats()
         far, near = run.state("far"), run.state("near")
-        pids = {name: stats["modules"][name]["pid"] for name in ("relay", "far", "near")}
+        pids = {name: stats.modules[name].pid for name in ("relay", "far", "near")}
     assert all(list(found) == ["spanning"] for found in executors.values())
     assert _clean(far) and _clean(near) and far["last"] == far["received"]
-    assert stats["modules"]["relay"]["node"] == "b" and stats["nodes"]["b"]["up"]
+    assert stats.modules["relay"].node == "b" and stats.nodes["b"].up
     assert all(entry["up"] for entry in table.values()) and table["b"]["rtt"] == 0.0
     assert max(table["a"]["rtt"], table["c"]["rtt"]) < 1.0
     shown = format_table(stats)                                      # pb3a run's table
     assert re.search(r"^c +tcp://127\.0\.0\.1:\d+ +up +[\d.]+ ms$", shown, re.M), shown
-    assert {link["transport"] for link in stats["links"].values()} == {"zmq"}
+    assert {link.transport for link in stats.links.values()} == {"zmq"}
     assert pids["far"] != pids["near"] != os.getpid()
     assert all(c.executors() == {} for c in controllers.values())      # stopped with the run
     assert not any(alive(pid) for pid in pids.values())
@@ -101,9 +101,9 @@ def test_a_lost_node_is_detected_within_3_s_and_reported_while_the_rest_goes_on(
         before = run.state("near")["received"]
         eventually(lambda: run.state("near")["received"] > before + 50, what="values go on")
     assert detected < 3.0, f"node loss detected after {detected:.2f} s"
-    assert stats["nodes"]["b"]["up"] is False and stats["nodes"]["a"]["up"] is True
-    assert "far" not in stats["modules"] and "src.out->far.x" not in stats["links"]
-    assert any("node b lost" in failure for failure in stats["failures"])
+    assert stats.nodes["b"].up is False and stats.nodes["a"].up is True
+    assert "far" not in stats.modules and "src.out->far.x" not in stats.links
+    assert any("node b lost" in failure for failure in stats.failures)
     assert live_segments(process.pid) == []     # the dead executor's rings, reaped
 
 
@@ -134,10 +134,10 @@ def test_on_a_remote_node_a_restarted_writer_feeds_its_readers_and_agents_can_mo
     system.link("src.out", "dst.x")
     system.link("src.out", "wanderer.x")
     with system.launch() as run:
-        eventually(lambda: run.stats()["modules"]["wanderer"]["node"] == "a", timeout=30,
+        eventually(lambda: run.stats().modules["wanderer"].node == "a", timeout=30,
                    what="the agent moved itself from b to a")
-        os.kill(run.stats()["modules"]["src"]["pid"], signal.SIGKILL)
-        eventually(lambda: run.stats()["modules"]["src"]["restarts"] == 1, what="a restart")
+        os.kill(run.stats().modules["src"].pid, signal.SIGKILL)
+        eventually(lambda: run.stats().modules["src"].restarts == 1, what="a restart")
         before = {name: run.state(name)["received" if name == "dst" else "seen"]
                   for name in ("dst", "wanderer")}
         eventually(lambda: run.state("dst")["received"] > before["dst"] + 10

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import json
 
 import pytest
 from conftest import eventually
@@ -29,6 +30,7 @@ from sample_modules import (
 )
 
 from pb3a import ConfigError, ModuleNotFound, System
+from pb3a.stats import InputStats, LinkStats, ModuleStats, NodeStats, SystemStats
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -50,25 +52,42 @@ def test_modules_run_in_either_execution_mode(workers: int) -> None:
         system.add(f"p{i}", Pid)
     with system.launch() as run:
         pids = [eventually(lambda i=i: run.state(f"p{i}")["pid"], what="a step") for i in range(3)]
-        figures = run.stats()["modules"]
+        figures = run.stats().modules
     distinct = len(set(pids))
     assert distinct == (3 if workers == 0 else workers)
-    assert {figures[f"p{i}"]["pid"] for i in range(3)} == set(pids)
+    assert {figures[f"p{i}"].pid for i in range(3)} == set(pids)
 
 
 @pytest.mark.parametrize("workers", [0, 1])
 def test_values_flow_through_threaded_and_event_driven_modules(workers: int) -> None:
     with pipeline(workers).launch() as run:
         eventually(lambda: run.state("sink")["value"] == 3.0, what="1.5 * 2 at the sink")
-        stats = eventually(lambda: (s := run.stats())["links"]["scale.y->sink.x"]["values"] >= 5
+        stats = eventually(lambda: (s := run.stats()).links["scale.y->sink.x"].values >= 5
                            and s, what="a few values")
-    assert stats["modules"]["src"]["steps"] > 0
-    assert stats["modules"]["scale"]["events"] > 0
-    assert stats["modules"]["src"]["cpu"] > 0 and stats["modules"]["scale"]["cpu"] > 0
-    link = stats["links"]["scale.y->sink.x"]
-    assert link["transport"] == ("shm" if workers == 0 else "memory")
-    assert link["values"] > 0 and link["rate"] > 0
-    assert 0 <= link["latency"] < 0.5
+    assert stats.modules["src"].steps > 0
+    assert stats.modules["scale"].events > 0
+    assert stats.modules["src"].cpu > 0 and stats.modules["scale"].cpu > 0
+    link = stats.links["scale.y->sink.x"]
+    assert link.transport == ("shm" if workers == 0 else "memory")
+    assert link.values > 0 and link.rate > 0
+    assert 0 <= link.latency < 0.5
+
+
+def test_stats_are_typed_records_with_a_json_form() -> None:
+    with pipeline().launch() as run:
+        stats = eventually(lambda: (s := run.stats()).links["scale.y->sink.x"].values >= 2
+                           and s, what="a few values")
+    assert isinstance(stats, SystemStats) and stats.system == "pipe"
+    assert isinstance(stats.modules["scale"], ModuleStats)
+    assert stats.modules["scale"].cls == f"{Scale.__module__}:Scale"
+    assert isinstance(stats.modules["scale"].inputs["x"], InputStats)
+    assert stats.modules["src"].inputs == {} and stats.modules["src"].outputs["out"] >= 2
+    assert isinstance(stats.links["src.out->scale.x"], LinkStats)
+    assert stats.nodes["local"] == NodeStats(up=True, rtt=0.0, address=None)
+    plain = stats.to_json()
+    text = json.dumps(plain, allow_nan=False)          # NaN (no latency yet) is null
+    assert json.loads(text)["links"]["scale.y->sink.x"]["values"] >= 2
+    assert plain["modules"]["src"]["inputs"] == {} and plain["failures"] == []
 
 
 @pytest.mark.parametrize("workers", [0, 1])
@@ -81,10 +100,10 @@ def test_queue_link_keeps_order_without_loss_or_duplicates(workers: int) -> None
     with system.launch() as run:
         state = eventually(lambda: (s := run.state("dst"))["received"] == n and s, timeout=60,
                            what=f"{n} values")
-        link = run.stats()["links"]["src.out->dst.x"]
+        link = run.stats().links["src.out->dst.x"]
     assert state["last"] == n
     assert state["out_of_order"] == 0 and state["duplicates"] == 0
-    assert link["drops"] == 0 and link["values"] == n
+    assert link.drops == 0 and link.values == n
 
 
 def test_queue_overflow_drops_oldest_and_counts_it() -> None:
@@ -94,12 +113,12 @@ def test_queue_overflow_drops_oldest_and_counts_it() -> None:
     system.link("src.out", "dst.x", policy="queue:10")
     with system.launch() as run:
         def settled():
-            link = run.stats()["links"]["src.out->dst.x"]
-            return link["values"] == 2000 and link["pending"] == 0 and link
+            link = run.stats().links["src.out->dst.x"]
+            return link.values == 2000 and link.pending == 0 and link
         link = eventually(settled, timeout=30, what="all values handled")
         state = run.state("dst")
-    assert link["drops"] > 0
-    assert state["received"] + link["drops"] == 2000
+    assert link.drops > 0
+    assert state["received"] + link.drops == 2000
     assert state["out_of_order"] == 0 and state["duplicates"] == 0
     assert state["last"] == 2000          # the newest value survives; the oldest were dropped
 
@@ -148,7 +167,7 @@ def test_swap_keeps_ports_and_state_and_runs_setup_again() -> None:
         assert state["gain"] == 4.0 and state["setups"] == 2
         with pytest.raises(ConfigError, match="str"):
             run.swap("scale", Offset)
-        assert run.stats()["modules"]["scale"]["class"].endswith("FastScale")
+        assert run.stats().modules["scale"].cls.endswith("FastScale")
 
 
 def test_relink_moves_an_input_to_another_output() -> None:
@@ -158,7 +177,7 @@ def test_relink_moves_an_input_to_another_output() -> None:
         eventually(lambda: run.state("sink")["value"] == 3.0, what="3.0")
         run.relink("other.out", "scale.x")
         eventually(lambda: run.state("sink")["value"] == 20.0, what="10 * 2 after relink")
-        links = run.stats()["links"]
+        links = run.stats().links
         assert "other.out->scale.x" in links and "src.out->scale.x" not in links
         with pytest.raises(ConfigError, match="no output"):
             run.relink("src.nope", "scale.x")
@@ -187,7 +206,7 @@ def test_add_and_remove_modules_while_running() -> None:
         with pytest.raises(ConfigError, match="relink"):
             run.link("src.out", "probe.x")
         run.remove("sink")
-        assert "sink" not in run.stats()["modules"]
+        assert "sink" not in run.stats().modules
         with pytest.raises(ModuleNotFound):
             run.state("sink")
         seen = run.state("probe")["seen"]
@@ -203,7 +222,7 @@ def test_nested_macros_run_with_exported_ports() -> None:
     system.link("m.y", "sink.x")
     with system.launch() as run:
         eventually(lambda: run.state("sink")["value"] == 12.0, what="1 * 2 * 3 * 2")
-        names = set(run.stats()["modules"])
+        names = set(run.stats().modules)
     assert {"m/chain/a", "m/chain/b", "m/tail"} <= names
 
 
@@ -280,13 +299,13 @@ def test_relink_may_change_the_input_policy() -> None:
     with system.launch() as run:
         eventually(lambda: run.state("dst")["received"] > 10, what="values")
         run.relink("src.out", "dst.x", policy="latest")
-        link = run.stats()["links"]["src.out->dst.x"]
-        assert link["policy"] == "latest"
-        figures = eventually(lambda: (m := run.stats()["modules"]["dst"])["inputs"]["x"]
-                             ["policy"] == "latest" and m, what="the new policy in the worker")
+        link = run.stats().links["src.out->dst.x"]
+        assert link.policy == "latest"
+        figures = eventually(lambda: (m := run.stats().modules["dst"]).inputs["x"]
+                             .policy == "latest" and m, what="the new policy in the worker")
         before = run.state("dst")["received"]
         eventually(lambda: run.state("dst")["received"] > before, what="values after relink")
-    assert figures["errors"] == 0
+    assert figures.errors == 0
 
 
 def test_packed_modules_fill_workers_in_declaration_order() -> None:
@@ -303,8 +322,8 @@ def test_packed_modules_fill_workers_in_declaration_order() -> None:
     with system.launch() as run:
         eventually(lambda: run.state("tail")["value"] == 1.0, what="the end of the last chain")
         stats = run.stats()
-    assert len({m["pid"] for m in stats["modules"].values()}) == 2
-    transports = [link["transport"] for link in stats["links"].values()]
+    assert len({m.pid for m in stats.modules.values()}) == 2
+    transports = [link.transport for link in stats.links.values()]
     assert transports.count("shm") <= 1            # only a chain cut by the split
 
 
@@ -314,11 +333,11 @@ def test_an_agent_spawns_links_and_removes_modules() -> None:
     system.add("trigger", Counter, state={"limit": 1}, period=0.05)
     system.link("trigger.out", "agent.go")
     with system.launch() as run:
-        eventually(lambda: "probe" in run.stats()["modules"], what="the spawned module")
+        eventually(lambda: "probe" in run.stats().modules, what="the spawned module")
         eventually(lambda: run.state("probe")["value"] == 3.0, what="values at the probe")
         assert "cannot set_state itself" in run.state("agent")["error"]
         run.set_state("trigger", limit=2)
-        eventually(lambda: "probe" not in run.stats()["modules"], what="the probe removed")
+        eventually(lambda: "probe" not in run.stats().modules, what="the probe removed")
 
 
 def test_an_input_may_hold_its_whole_queue_of_zero_copy_arrays() -> None:
@@ -327,7 +346,7 @@ def test_an_input_may_hold_its_whole_queue_of_zero_copy_arrays() -> None:
     system.add("hold", ArrayHolder)
     system.link("src.out", "hold.x")
     with system.launch() as run:
-        figures = eventually(lambda: (i := run.stats()["modules"]["hold"]["inputs"]["x"])
-                             ["received"] >= 25 and i, timeout=30, what="25 arrays")
-    assert figures["pending"] == 10                   # ten views held in the ring at once
-    assert figures["drops"] == figures["received"] - 10   # only queue overflow, no ring gaps
+        figures = eventually(lambda: (i := run.stats().modules["hold"].inputs["x"])
+                             .received >= 25 and i, timeout=30, what="25 arrays")
+    assert figures.pending == 10                   # ten views held in the ring at once
+    assert figures.drops == figures.received - 10   # only queue overflow, no ring gaps

@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from pb3a.runtime.cli import main
+from pb3a.cli.main import main
 from scenarios import self_migration
 
 

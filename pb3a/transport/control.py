@@ -14,6 +14,7 @@ import itertools
 import logging
 import pickle
 import queue
+import socket
 import struct
 import threading
 import time
@@ -49,6 +50,15 @@ def bind_address(address: str) -> tuple[str, int]:
     the loopback interface and any free port."""
     host, _, port = address.removeprefix("tcp://").rpartition(":")
     return host or "127.0.0.1", int(port or 0)
+
+
+def reachable_from(peer: str) -> str:
+    """The address to listen on so that a peer at ``peer`` can call back: the interface
+    this machine reaches that peer through, any port (no packet is sent)."""
+    host = peer.removeprefix("tcp://").rpartition(":")[0]
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.connect((host, 9))
+        return f"tcp://{probe.getsockname()[0]}:0"
 
 
 class ControlServer:

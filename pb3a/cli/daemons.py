@@ -1,0 +1,79 @@
+"""The daemons' commands, ``pb3a node start`` and ``pb3a modules serve``, and how any
+daemon runs from a command line (``rave start`` too): start it, print where it
+listens, serve until SIGINT or SIGTERM, then close it."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+from collections.abc import Callable
+from typing import Any
+
+from pb3a.transport.auth import ClusterKey, ClusterKeyError
+from pb3a.transport.control import bind_address
+
+
+def serve_until_signalled(command: str, listen: str,
+                           start: Callable[[Any, str, int], tuple[Any, str]]) -> int:
+    """Start a daemon on ``listen``, print where, and run until SIGINT or SIGTERM."""
+    try:
+        daemon, banner = start(ClusterKey.load(), *bind_address(listen))
+    except (OSError, ValueError, ClusterKeyError) as exc:
+        print(f"{command}: {exc}", file=sys.stderr)
+        return 1
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    print(banner, flush=True)
+    try:
+        while not stop.wait(1.0):
+            pass
+    finally:
+        daemon.close()
+    return 0
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    """Add ``modules serve`` and ``node start``."""
+    modules = commands.add_parser("modules", help="the module server")
+    modules_commands = modules.add_subparsers(title="commands", metavar="COMMAND")
+    serve = modules_commands.add_parser("serve", help="serve the Python modules under DIR")
+    serve.add_argument("dir", metavar="DIR", help="the directory of module files")
+    serve.add_argument("--listen", default="tcp://127.0.0.1:7300", metavar="ADDR",
+                       help="address to listen on (default tcp://127.0.0.1:7300; port 0: any)")
+    serve.set_defaults(handler=modules_serve_command)
+
+    node = commands.add_parser("node", help="the node controller")
+    node_commands = node.add_subparsers(title="commands", metavar="COMMAND")
+    start = node_commands.add_parser("start", help="run this machine's node controller")
+    start.add_argument("--name", required=True, help="the node's name in configurations")
+    start.add_argument("--listen", default="tcp://127.0.0.1:7100", metavar="ADDR",
+                       help="address to listen on (default tcp://127.0.0.1:7100; port 0: any)")
+    start.add_argument("--max-cpu", type=float, default=90.0, metavar="PERCENT",
+                       help="refuse work while the CPU is busier than this (default 90)")
+    start.add_argument("--min-memory", type=int, default=256, metavar="MIB",
+                       help="refuse work that would leave less memory available (default 256)")
+    start.set_defaults(handler=node_start_command)
+
+
+def modules_serve_command(args: argparse.Namespace) -> int:
+    """``pb3a modules serve DIR --listen ADDR``: serve until SIGINT or SIGTERM."""
+    from pb3a.daemons.module_server import ModuleServer
+
+    def start(key: Any, host: str, port: int) -> Any:
+        server = ModuleServer(args.dir, key, host, port)
+        return server, f"serving {server.root} at {server.address}"
+    return serve_until_signalled("pb3a modules serve", args.listen, start)
+
+
+def node_start_command(args: argparse.Namespace) -> int:
+    """``pb3a node start --name N --listen ADDR``: a node controller until signalled."""
+    from pb3a.daemons.node_controller import Limits, NodeController
+
+    def start(key: Any, host: str, port: int) -> Any:
+        limits = Limits(args.max_cpu, args.min_memory << 20)
+        controller = NodeController(args.name, key, host, port, limits)
+        return controller, f"node {args.name} at {controller.address}"
+    return serve_until_signalled("pb3a node start", args.listen, start)

@@ -1,0 +1,110 @@
+"""Commands on a configuration file: ``pb3a check``, ``pb3a graph``, ``pb3a run``."""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+from pb3a.config.dot import plan_to_dot
+from pb3a.config.plan import Plan
+from pb3a.errors import ConfigError
+from pb3a.system import System
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    """Add ``check``, ``graph`` and ``run`` to the command line."""
+    check = commands.add_parser("check", help="validate a configuration file; exit 1 on errors")
+    check.add_argument("file", metavar="FILE", help="a system description (.toml)")
+    check.set_defaults(handler=check_command)
+
+    graph = commands.add_parser("graph", help="draw a configuration: nodes, modules, ports, links")
+    graph.add_argument("file", metavar="FILE", help="a system description (.toml)")
+    graph.add_argument("-o", "--output", metavar="OUT",
+                       help="output file: .svg (default: FILE's name with .svg), .png, .pdf, "
+                            "or .dot for DOT only; '-' prints DOT")
+    graph.set_defaults(handler=graph_command)
+
+    run = commands.add_parser("run", help="launch a system and show its live status")
+    run.add_argument("file", metavar="FILE", help="a system description (.toml)")
+    run.add_argument("--for", dest="seconds", type=float, metavar="SECONDS",
+                     help="stop after this many seconds (default: until Ctrl-C)")
+    run.add_argument("--listen", default="tcp://127.0.0.1:0", metavar="ADDR",
+                     help="where the launcher takes `pb3a status ADDR` etc. (default: any port)")
+    run.set_defaults(handler=run_command)
+
+
+def check_command(args: argparse.Namespace) -> int:
+    """``pb3a check FILE``: every problem on its own line (exit 1), or a one-line summary."""
+    plan = _load_plan(args.file, "check")
+    if plan is None:
+        return 1
+    print(f"ok: {len(plan.modules)} modules, {len(plan.links)} links")
+    return 0
+
+
+def graph_command(args: argparse.Namespace) -> int:
+    """``pb3a graph FILE [-o OUT]``: write DOT, then render OUT with Graphviz unless it is .dot."""
+    plan = _load_plan(args.file, "graph")
+    if plan is None:
+        return 1
+    text = plan_to_dot(plan)
+    if args.output == "-":
+        sys.stdout.write(text)
+        return 0
+    out = Path(args.output) if args.output else Path(Path(args.file).stem + ".svg")
+    dot_path = out if out.suffix == ".dot" else out.with_suffix(".dot")
+    try:
+        dot_path.write_text(text)
+    except OSError as exc:
+        print(f"pb3a graph: cannot write {dot_path}: {exc.strerror or exc}", file=sys.stderr)
+        return 1
+    if out == dot_path:
+        print(f"wrote {dot_path}")
+        return 0
+    dot = shutil.which("dot")
+    if dot is None:
+        print(f"pb3a graph: wrote {dot_path}, but Graphviz's 'dot' program is not on PATH, so "
+              f"no {out.name}: install Graphviz (e.g. apt-get install graphviz), or ask for DOT "
+              "only with -o FILE.dot", file=sys.stderr)
+        return 1
+    fmt = out.suffix.lstrip(".") or "svg"
+    done = subprocess.run([dot, f"-T{fmt}", str(dot_path), "-o", str(out)],
+                          capture_output=True, text=True, timeout=120, check=False)
+    if done.returncode != 0:
+        print(f"pb3a graph: dot could not write {out}: {done.stderr.strip()}", file=sys.stderr)
+        return 1
+    print(f"wrote {dot_path} and {out}")
+    return 0
+
+
+def run_command(args: argparse.Namespace) -> int:
+    """``pb3a run FILE [--for SECONDS]``: launch with a live status display."""
+    from pb3a.cli.status import run_with_status
+
+    try:
+        system = System.load(args.file)
+        return run_with_status(system, args.seconds, listen=args.listen)
+    except OSError as exc:
+        print(f"pb3a run: cannot read {args.file}: {exc.strerror or exc}", file=sys.stderr)
+    except ConfigError as exc:
+        for problem in exc.problems:
+            print(problem)
+    return 1
+
+
+def _load_plan(file: str, command: str) -> Plan | None:
+    """The plan of ``file``, or None after printing why there is none."""
+    try:
+        return System.load(file).plan()
+    except OSError as exc:
+        print(f"pb3a {command}: cannot read {file}: {exc.strerror or exc}", file=sys.stderr)
+    except ConfigError as exc:
+        for problem in exc.problems:
+            print(problem)
+        count = len(exc.problems)
+        print(f"pb3a {command}: {count} problem{'s' if count != 1 else ''} in {file}",
+              file=sys.stderr)
+    return None

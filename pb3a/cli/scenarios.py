@@ -1,0 +1,41 @@
+"""``pb3a scenario NAME [ARGS]``: the bundled applications, found by entry point.
+
+A scenario registers itself in the ``pb3a.scenarios`` entry-point group (``name =
+package.module:main`` in its distribution's metadata); ``main(argv)`` takes the
+scenario's own options and returns its exit code. Other packages can add theirs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from importlib.metadata import EntryPoint, entry_points
+
+GROUP = "pb3a.scenarios"
+
+
+def scenarios() -> dict[str, EntryPoint]:
+    """The scenarios installed, by name."""
+    return {point.name: point for point in entry_points(group=GROUP)}
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    """Add ``scenario NAME [ARGS]``."""
+    names = ", ".join(sorted(scenarios())) or "(none installed)"
+    scenario = commands.add_parser("scenario", help="run a bundled application",
+                                   description=f"Bundled applications: {names}")
+    scenario.add_argument("name", metavar="NAME", help=names)
+    scenario.add_argument("args", nargs=argparse.REMAINDER,
+                          help="the scenario's own options (NAME --help lists them)")
+    scenario.set_defaults(handler=scenario_command)
+
+
+def scenario_command(args: argparse.Namespace) -> int:
+    """Hand over to the scenario's own ``main``."""
+    found = scenarios()
+    point = found.get(args.name)
+    if point is None:
+        print(f"pb3a scenario: no scenario {args.name!r}; the scenarios: "
+              f"{', '.join(sorted(found)) or '(none installed)'}", file=sys.stderr)
+        return 2
+    return int(point.load()(args.args) or 0)

@@ -1,0 +1,90 @@
+"""``pb3a run``: launch a system, show a live status table, stop cleanly.
+
+Ctrl-C, SIGTERM or the end of ``--for`` leave the ``with`` block, which stops
+every module in reverse start order and frees every process and segment.
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import sys
+import time
+from typing import TYPE_CHECKING, TextIO
+
+if TYPE_CHECKING:
+    from pb3a.stats import SystemStats
+    from pb3a.system import System
+
+REFRESH_S = 1.0
+
+
+def format_table(stats: SystemStats) -> str:
+    """The status table: one row per module, one per link, one per remote node."""
+    rows = [("module", "node", "pid", "status", "steps", "events", "cpu s", "errors")]
+    for name, m in stats.modules.items():
+        status = m.status + (f" (restarts {m.restarts})" if m.restarts else "")
+        rows.append((name, m.node, str(m.pid or "-"), status, str(m.steps), str(m.events),
+                     f"{m.cpu:.2f}", str(m.errors)))
+    lines = _columns(rows)
+    if stats.links:
+        lines.append("")
+        link_rows = [("link", "transport", "policy", "values", "rate/s", "drops", "latency")]
+        for link in stats.links.values():
+            latency = link.latency
+            link_rows.append((f"{link.src} -> {link.dst}", link.transport, link.policy,
+                              str(link.values), f"{link.rate:.0f}", str(link.drops),
+                              "-" if math.isnan(latency) else f"{latency * 1e6:.0f} us"))
+        lines += _columns(link_rows)
+    remote = {name: health for name, health in stats.nodes.items() if health.address}
+    if remote:
+        lines.append("")
+        node_rows = [("node", "address", "health", "rtt")]
+        for name, health in remote.items():
+            node_rows.append((name, health.address or "", "up" if health.up else "LOST",
+                              "-" if math.isnan(health.rtt) else f"{health.rtt * 1e3:.1f} ms"))
+        lines += _columns(node_rows)
+    for failure in stats.failures[-5:]:
+        lines.append(f"! {failure}")
+    return "\n".join(lines)
+
+
+def _columns(rows: list[tuple[str, ...]]) -> list[str]:
+    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
+    return ["  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip()
+            for row in rows]
+
+
+def run_with_status(system: System, seconds: float | None, out: TextIO = sys.stdout,
+                    listen: str = "tcp://127.0.0.1:0") -> int:
+    """Run ``system`` until ``seconds`` pass (None: until Ctrl-C or SIGTERM); 0 on a clean
+    stop. The launcher takes ``pb3a status / state / migrate / swap`` at ``listen``."""
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    live = out.isatty()
+    started = time.monotonic()
+    try:
+        with system.launch() as run:
+            address = run.listen(listen)
+            out.write(f"pb3a: system {run.name!r} running"
+                      f"{f' for {seconds:g} s' if seconds else ''}; Ctrl-C stops it; "
+                      f"launcher at {address}\n")
+            try:
+                while seconds is None or time.monotonic() - started < seconds:
+                    left = REFRESH_S if seconds is None else min(
+                        REFRESH_S, seconds - (time.monotonic() - started))
+                    if run.wait(max(0.0, left)):
+                        break
+                    table = format_table(run.stats())
+                    out.write(("\x1b[H\x1b[2J" if live else "\n") + table + "\n")
+                    out.flush()
+            except KeyboardInterrupt:
+                out.write("\npb3a: stopping\n")
+            final = run.stats()
+        out.write("\n" + format_table(final) + "\npb3a: stopped cleanly\n")
+        return 0
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt

@@ -1,0 +1,104 @@
+"""Checks of single configuration values, each returning what is wrong in words.
+
+Every function here looks at one value of one entry (a name, a period, a
+state table, ...) and returns problem texts *without* the place they are in;
+``pb3a.config.compiler`` prefixes them with the file and entry. Keeping the
+wording here keeps every message of one kind the same wherever it is found.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import os
+import re
+from collections.abc import Iterable
+from typing import Any
+
+from pb3a.loading.references import class_ref
+from pb3a.model.module import RESTART_POLICIES, Module
+
+NAME = re.compile(r"^[A-Za-z0-9_-]+$")
+
+
+def did_you_mean(word: str, choices: Iterable[str]) -> str:
+    """`` (did you mean 'x'?)`` when a choice is close to ``word``, else empty."""
+    close = difflib.get_close_matches(str(word), list(choices), n=1)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def listing(names: Iterable[str]) -> str:
+    """Names as a comma-separated list, or ``(none)``."""
+    return ", ".join(names) or "(none)"
+
+
+def name(value: Any, what: str) -> list[str]:
+    """A module, node, group or export name: letters, digits, ``_`` and ``-``."""
+    if isinstance(value, str) and NAME.match(value):
+        return []
+    return [(f"bad {what} name {value!r}: use only letters, digits, '_' and '-' "
+            "(no '.', '/' or spaces)")]
+
+
+def unknown_keys(extra: dict[str, Any], allowed: Iterable[str]) -> list[str]:
+    """One problem per key not in ``allowed`` (typos such as ``perod``)."""
+    allowed = list(allowed)
+    return [f"unknown key {key!r}{did_you_mean(key, allowed)}; allowed keys: {listing(allowed)}"
+            for key in extra]
+
+
+def period(value: Any) -> list[str]:
+    """``None`` (keep the class's) or a non-negative, finite number of seconds."""
+    if value is None or (isinstance(value, (int, float)) and not isinstance(value, bool)
+                         and math.isfinite(value) and value >= 0):
+        return []
+    return [(f"period must be a non-negative number of seconds (0 = as fast as possible; "
+            f"leave it out to keep the class's), got {value!r}")]
+
+
+def restart(value: Any) -> list[str]:
+    """``None`` (keep the class's) or one of the restart policies."""
+    if value is None or value in RESTART_POLICIES:
+        return []
+    return [f"restart must be one of {listing(map(repr, RESTART_POLICIES))}, got {value!r}"]
+
+
+def workers(value: Any) -> list[str]:
+    """0 (one process per module) or a positive number of worker processes."""
+    if isinstance(value, int) and not isinstance(value, bool) and value >= 0:
+        return []
+    return [(f"workers must be a whole number >= 0 (0 = one process per module, N = pack the "
+            f"node's modules into N processes), got {value!r}")]
+
+
+def state(cls: type[Module], value: Any) -> list[str]:
+    """A table of initial state; its keys must be the class's state when it uses reflection."""
+    if not isinstance(value, dict):
+        return [f"state must be a table of attribute = value, got {value!r}"]
+    if cls.get_state is not Module.get_state or cls.set_state is not Module.set_state:
+        return []          # the class defines its own state: it alone knows the keys
+    names = cls.state_names()
+    return [f"{class_ref(cls)} has no state {key!r}{did_you_mean(key, names)}; its state is: "
+            f"{listing(names)} (fix the key, or declare the attribute on the class)"
+            for key in value if key not in names]
+
+
+def cpus(value: Any) -> list[str]:
+    """Left out (any CPU) or a non-empty list of this machine's CPU numbers."""
+    if value is None:
+        return []
+    count = os.cpu_count() or 1
+    if isinstance(value, list) and value and all(
+            isinstance(cpu, int) and not isinstance(cpu, bool) and 0 <= cpu < count
+            for cpu in value):
+        return []
+    return [(f"cpus must be a non-empty list of CPU numbers from 0 to {count - 1} (the CPUs "
+             f"the node's workers may run on), got {value!r}")]
+
+
+def address(value: Any) -> list[str]:
+    """A node address: left out (started on this machine) or a non-empty string."""
+    if value is None or (isinstance(value, str) and value):
+        return []
+    return [(f"address must be a string such as 'tcp://10.0.0.7:7100' (or left out to start "
+            f"the node on this machine), got {value!r}")]

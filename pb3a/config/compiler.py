@@ -1,0 +1,319 @@
+"""Expanding and checking a system description into the flat ``Plan`` the executor runs.
+
+The work goes in phases, each collecting problems instead of stopping at one:
+
+1. *definitions*: the system and every macro it can reach (``[macros.X]`` tables
+   and Python ``Macro`` subclasses) are read once each; their module entries are
+   checked and their children resolved to a Module class or another definition;
+2. *exports* of every definition are resolved down to a leaf module port
+   (an export chain that comes back to itself is reported as a cycle);
+3. *recursion*: a macro that contains itself is reported and the offending
+   entry dropped, so that expansion terminates;
+4. *links* of every definition are resolved through exports and checked
+   (direction, types, policy);
+5. *instances*: the tree is expanded from the top into instance paths
+   (``robot/mapper/grid``), nodes and groups inherited; then inputs fed twice
+   and groups spread over nodes are reported.
+
+A module that names no node runs on the first declared node ("local" when the
+system declares none). Problems name the file (or ``system 'name'``) and the entry, e.g.
+``pipeline.toml [[links]] #2 (tick.out -> scale.x): ...``. Identical problems
+(one macro used twice) are reported once.
+"""
+
+from __future__ import annotations
+
+from pb3a.config import checks
+from pb3a.config.definitions import Child, Definition, toml_key
+from pb3a.config.description import LinkSpec, ModuleSpec, NodeSpec, SystemSpec
+from pb3a.config.exports import LinkResolver
+from pb3a.config.plan import DEFAULT_NODE, FlatLink, FlatModule, Plan
+from pb3a.errors import ConfigError
+from pb3a.loading.references import class_ref, resolve_class
+from pb3a.loading.served import use_module_servers
+from pb3a.model.environment import Environment, env_name
+from pb3a.model.macro import Macro
+from pb3a.model.module import Module
+
+
+def plan_system(spec: SystemSpec) -> tuple[Plan | None, list[str]]:
+    """The plan of ``spec`` and its problems; the plan is None unless there are none."""
+    return _Planner(spec).run()
+
+
+def validate(spec: SystemSpec) -> list[str]:
+    """Every problem in ``spec``, each naming its place and what to change; empty if valid."""
+    return plan_system(spec)[1]
+
+
+def build_plan(spec: SystemSpec) -> Plan:
+    """The flat plan of ``spec``; ConfigError listing every problem if it is not valid."""
+    plan, problems = plan_system(spec)
+    if problems or plan is None:
+        raise ConfigError(problems)
+    return plan
+
+
+class _Planner:
+    def __init__(self, spec: SystemSpec) -> None:
+        self.spec = spec
+        self.problems: list[str] = list(spec.problems)
+        self.node_names: list[str] = list(spec.nodes) or [DEFAULT_NODE]
+        self.file_defs: dict[str, Definition] = {}
+        self.class_defs: dict[type, Definition] = {}
+        self.order: list[Definition] = []
+        self.explored: set[Definition] = set()
+
+    def report(self, label: str, problems: list[str]) -> None:
+        self.problems.extend(f"{label}: {problem}" for problem in problems)
+
+    def run(self) -> tuple[Plan | None, list[str]]:
+        spec = self.spec
+        nodes = self.check_system()
+        top = self.define(Definition(f"system {spec.name!r}", spec.origin, "",
+                                     {**spec.modules, **self.env_modules(nodes)}, spec.links,
+                                     {}))
+        for name in spec.macros:
+            self.file_macro(name)
+        resolver = LinkResolver(self.problems)
+        for definition in list(self.order):
+            for export in definition.exports:
+                resolver.export(definition, export)
+        for definition in self.order:          # the system first, then unused macros too
+            self.break_recursion(definition, [])
+        for definition in self.order:
+            resolver.links(definition)
+        modules: dict[str, FlatModule] = {}
+        labels: dict[str, str] = {}
+        links: list[tuple[str, FlatLink]] = []
+        self.instantiate(top, "", None, None, modules, labels, links)
+        self.check_inputs(links)
+        self.check_groups(modules, labels)
+        problems = list(dict.fromkeys(self.problems))
+        if problems:
+            return None, problems
+        return Plan(spec.name, nodes, modules, [link for _, link in links],
+                    list(spec.module_servers)), []
+
+    # -- the system's own tables ------------------------------------------
+    def check_system(self) -> dict[str, NodeSpec]:
+        spec, origin = self.spec, self.spec.origin
+        self.report(origin, [p.replace("unknown key", "unknown top-level key")
+                             for p in checks.unknown_keys(spec.extra, SystemSpec.KEYS)])
+        if not isinstance(spec.name, str) or not spec.name:
+            self.report(origin, [f"name must be a non-empty string, got {spec.name!r}"])
+        servers = spec.module_servers
+        if not isinstance(servers, list) or not all(isinstance(s, str) for s in servers):
+            self.report(origin, [("module_servers must be a list of addresses such as "
+                                 f"['tcp://127.0.0.1:7300'], got {servers!r}")])
+        else:
+            use_module_servers(servers)   # classes below may only be found there
+        self.report(origin, [f"top-level {p}" for p in checks.workers(spec.workers)])
+        for name, node in spec.nodes.items():
+            label = f"{origin} [nodes.{toml_key(name)}]"
+            self.report(label, checks.name(name, "node"))
+            self.report(label, checks.unknown_keys(node.extra, NodeSpec.KEYS))
+            self.report(label, checks.address(node.address))
+            self.report(label, checks.workers(node.workers))
+            self.report(label, checks.cpus(node.cpus))
+        if not spec.nodes:
+            workers = spec.workers if not checks.workers(spec.workers) else 0
+            return {DEFAULT_NODE: NodeSpec(DEFAULT_NODE, None, workers)}
+        nodes = {name: NodeSpec(name, node.address, node.workers, cpus=node.cpus)
+                 for name, node in spec.nodes.items()}
+        if spec.workers and not checks.workers(spec.workers):
+            if DEFAULT_NODE in nodes and not nodes[DEFAULT_NODE].workers:
+                nodes[DEFAULT_NODE].workers = spec.workers
+            elif DEFAULT_NODE not in nodes:
+                self.report(origin, [(f"top-level workers = {spec.workers!r} is for the default "
+                                     f"node {DEFAULT_NODE!r}, but the system declares nodes "
+                                     f"({checks.listing(nodes)}): set workers in their "
+                                     "[nodes.NAME] tables instead")])
+        return nodes
+
+    def env_modules(self, nodes: dict[str, NodeSpec]) -> dict[str, ModuleSpec]:
+        """The built-in ``env-NODE`` modules that some link reads (and that the system
+        does not define itself)."""
+        wanted = {}
+        for node in nodes.values():
+            name = env_name(node.name)
+            if name in self.spec.modules:
+                continue
+            if any(isinstance(link.src, str) and link.src.startswith(f"{name}.")
+                   for link in self.spec.links):
+                wanted[name] = ModuleSpec(name, cls=Environment, node=node.name)
+        return wanted
+
+    # -- phase 1: definitions ---------------------------------------------
+    def define(self, definition: Definition) -> Definition:
+        self.order.append(definition)
+        for name, entry in definition.modules.items():
+            definition.children[name] = self.child(definition, name, entry)
+        return definition
+
+    def file_macro(self, name: str) -> Definition | None:
+        if name in self.file_defs:
+            return self.file_defs[name]
+        macro = self.spec.macros.get(name)
+        if macro is None:
+            return None
+        definition = Definition(f"macro {name!r}", self.spec.origin, f"macros.{toml_key(name)}.",
+                                macro.modules, macro.links, macro.exports)
+        self.file_defs[name] = definition
+        self.report(f"{self.spec.origin} [macros.{toml_key(name)}]",
+                    checks.name(name, "macro") + checks.unknown_keys(macro.extra,
+                                                                       ("modules", "links",
+                                                                        "exports")))
+        return self.define(definition)
+
+    def class_macro(self, cls: type[Macro]) -> Definition:
+        if cls in self.class_defs:
+            return self.class_defs[cls]
+        origin = f"macro {class_ref(cls)}"
+        modules, links, exports = cls.modules, cls.links, cls.exports
+        problems = []
+        if not isinstance(modules, dict):
+            problems.append(f"modules must be a dict of name -> class or entry, got {modules!r}")
+            modules = {}
+        if not isinstance(exports, dict):
+            problems.append(f"exports must be a dict of port -> 'child.port', got {exports!r}")
+            exports = {}
+        specs = []
+        for number, entry in enumerate(links if isinstance(links, (list, tuple)) else [], 1):
+            try:
+                specs.append(LinkSpec.from_entry(entry))
+            except ValueError as exc:
+                problems.append(f"links #{number}: {exc}")
+        if not isinstance(links, (list, tuple)):
+            problems.append(f"links must be a list of (from, to[, policy]) tuples, got {links!r}")
+        self.report(origin, problems)
+        definition = Definition(origin, origin, "",
+                                {n: ModuleSpec.from_entry(n, e) for n, e in modules.items()},
+                                specs, exports)
+        self.class_defs[cls] = definition
+        return self.define(definition)
+
+    def child(self, definition: Definition, name: str, entry: ModuleSpec) -> Child:
+        child = Child(entry, definition.label("modules", name))
+        problems = checks.name(name, "module instance")
+        problems += checks.unknown_keys(entry.extra, ModuleSpec.KEYS)
+        if entry.node is not None and entry.node not in self.node_names:
+            problems.append(self.unknown_node(entry.node))
+        if entry.group is not None:
+            problems += checks.name(entry.group, "group")
+        if (entry.cls is None) == (entry.macro is None):
+            problems.append("give exactly one of 'class' (a Module class, 'module:Class' or a "
+                            "Python Macro) and 'macro' (the name of a [macros.NAME] table)"
+                            + ("; it has both" if entry.cls is not None else ""))
+        elif isinstance(entry.macro, type) and issubclass(entry.macro, Macro):
+            child.macro = self.class_macro(entry.macro)
+        elif entry.macro is not None:
+            child.macro = self.file_macro(entry.macro) if isinstance(entry.macro, str) else None
+            if child.macro is None:
+                problems.append(f"unknown macro {entry.macro!r}"
+                                f"{checks.did_you_mean(entry.macro, self.spec.macros)}; defined "
+                                f"macros: {checks.listing(self.spec.macros)} (define "
+                                f"[macros.{entry.macro}] or fix the name)")
+        else:
+            problems += self.resolve(child)
+        if child.macro is not None:
+            problems += [f"{key!r} applies to modules, not to a macro: set it on the macro's "
+                         "children" for key, value in (("period", entry.period),
+                                                       ("restart", entry.restart))
+                         if value is not None]
+            if entry.state:
+                problems.append("'state' applies to modules, not to a macro: set it on the "
+                                "macro's children")
+        elif child.cls is not None:
+            problems += checks.period(entry.period) + checks.restart(entry.restart)
+            problems += checks.state(child.cls, entry.state)
+        self.report(child.label, problems)
+        return child
+
+    def resolve(self, child: Child) -> list[str]:
+        try:
+            cls = resolve_class(child.spec.cls)
+        except (ImportError, LookupError, TypeError, ValueError) as exc:
+            return [str(exc)]
+        if issubclass(cls, Macro) and cls is not Macro:
+            child.macro = self.class_macro(cls)
+        elif issubclass(cls, Module) and cls is not Module:
+            child.cls = cls
+        else:
+            return [(f"class {class_ref(cls)} is not a Module or Macro subclass: name a class "
+                    "that subclasses pb3a.Module (or pb3a.Macro)")]
+        return []
+
+    def unknown_node(self, node: object) -> str:
+        if not self.spec.nodes:
+            return (f"unknown node {node!r}: the system declares no nodes, so everything runs on "
+                    f"{DEFAULT_NODE!r}; add a [nodes.{node}] table or leave 'node' out")
+        return (f"unknown node {node!r}{checks.did_you_mean(node, self.node_names)}; declared "
+                f"nodes: {checks.listing(self.node_names)} (add [nodes.{node}] or use one of "
+                "them)")
+
+    # -- phase 3: recursion ------------------------------------------------
+    def break_recursion(self, definition: Definition, stack: list[Definition]) -> None:
+        if definition in self.explored:
+            return
+        stack.append(definition)
+        for child in definition.children.values():
+            inner = child.macro
+            if inner is None:
+                continue
+            if inner in stack:
+                chain = " -> ".join(d.title for d in [*stack[stack.index(inner):], inner])
+                self.report(child.label, [(f"recursive macro: {chain}; a macro cannot contain "
+                                          "itself, directly or through other macros")])
+                child.macro = None
+            else:
+                self.break_recursion(inner, stack)
+        stack.pop()
+        self.explored.add(definition)        # acyclic below here now: never walk it again
+
+    # -- phase 5: instances ------------------------------------------------
+    def instantiate(self, definition: Definition, prefix: str, node: str | None,
+                    group: str | None, modules: dict[str, FlatModule],
+                    labels: dict[str, str], links: list[tuple[str, FlatLink]]) -> None:
+        for name, child in definition.children.items():
+            entry, path = child.spec, prefix + name
+            here = entry.node if entry.node in self.node_names else node
+            team = prefix + entry.group if isinstance(entry.group, str) else group
+            if child.cls is not None:
+                cls = child.cls
+                period = entry.period if not checks.period(entry.period) else None
+                restart = entry.restart if not checks.restart(entry.restart) else None
+                modules[path] = FlatModule(
+                    path, cls, here or self.node_names[0],
+                    float(period) if period is not None else cls.period,
+                    dict(entry.state) if isinstance(entry.state, dict) else {},
+                    restart or cls.restart, team)
+                labels[path] = child.label
+            elif child.macro is not None:
+                self.instantiate(child.macro, path + "/", here, team, modules, labels, links)
+        for label, src, dst, policy in definition.resolved:
+            source, target = prefix + src.path, prefix + dst.path
+            if source in modules and target in modules:
+                links.append((label, FlatLink(source, src.port, target, dst.port, policy)))
+
+    def check_inputs(self, links: list[tuple[str, FlatLink]]) -> None:
+        fed: dict[tuple[str, str], str] = {}
+        for label, link in links:
+            first = fed.setdefault((link.dst, link.dst_port), label)
+            if first != label:
+                self.report(label, [(f"input {link.dst}.{link.dst_port} is fed twice: it is "
+                                    f"already fed by {first}; an input takes at most one link, "
+                                    "so remove one of them or feed another input")])
+
+    def check_groups(self, modules: dict[str, FlatModule], labels: dict[str, str]) -> None:
+        first: dict[str, FlatModule] = {}
+        for module in modules.values():
+            if module.group is None:
+                continue
+            other = first.setdefault(module.group, module)
+            if other.node != module.node:
+                self.report(labels[module.name], [
+                    (f"group {module.group!r} would span nodes {other.node!r} ({other.name}) and "
+                    f"{module.node!r} ({module.name}); a group shares one worker process on one "
+                    "node: give them the same node or different groups")])
+

@@ -1,0 +1,126 @@
+"""Wiring: resolving ``"module.port"`` endpoints through macro exports, and checking links.
+
+An endpoint in a definition (the system or a macro) names one of its children
+and a port. When the child is a leaf module the port is one of its class's
+ports; when it is a macro the port is one of the macro's exports, which names
+an endpoint inside that macro, and so on down to a leaf. ``PortRef`` is where
+such a chain ends. A link is then checked: from an output, to an input, of
+compatible types, with a valid policy.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from pb3a.config import checks
+from pb3a.config.definitions import PortRef
+from pb3a.config.description import LinkSpec
+from pb3a.loading.references import class_ref
+from pb3a.model.ports import Input, Output, Policy
+
+if TYPE_CHECKING:
+    from pb3a.config.definitions import Definition
+
+
+class LinkResolver:
+    """Resolves exports (memoized, cycle-checked) and links, appending problems to a list."""
+
+    def __init__(self, problems: list[str]) -> None:
+        self.problems = problems
+        self._cache: dict[tuple[int, str], PortRef | None] = {}
+        self._trail: list[tuple[Definition, str]] = []
+
+    def export(self, definition: Definition, name: str) -> PortRef | None:
+        """Where ``definition``'s export ``name`` leads, or None (problems reported)."""
+        key = (id(definition), name)
+        if key in self._cache:
+            return self._cache[key]
+        if (definition, name) in self._trail:
+            start = self._trail.index((definition, name))
+            chain = " -> ".join(f"{d.title}.{n}" for d, n in
+                                [*self._trail[start:], (definition, name)])
+            self.problems.append(f"{definition.label('exports', name)}: export chain {chain} "
+                                 "is a cycle; an export must lead to a port of a module")
+            return None
+        self._trail.append((definition, name))
+        try:
+            label = definition.label("exports", name)
+            problems = checks.name(name, "export")
+            ref, found = self.endpoint(definition, definition.exports[name], "the export")
+            self.problems.extend(f"{label}: {p}" for p in problems + found)
+        finally:
+            self._trail.pop()
+        self._cache[key] = ref
+        return ref
+
+    def endpoint(self, definition: Definition, text: Any,
+                 what: str) -> tuple[PortRef | None, list[str]]:
+        """Resolve ``"child.port"`` in ``definition``; problems say what to change."""
+        if text is None:
+            return None, [f"{what} is missing: give it as \"module.port\", e.g. \"tick.out\""]
+        child_name, dot, port = text.partition(".") if isinstance(text, str) else ("", "", "")
+        if not (dot and checks.NAME.match(child_name) and port.isidentifier()):
+            return None, [f"{what} must be \"module.port\" (e.g. \"tick.out\"), got {text!r}"]
+        child = definition.children.get(child_name)
+        if child is None:
+            return None, [(f"{definition.title} has no module {child_name!r}"
+                          f"{checks.did_you_mean(child_name, definition.children)}; its modules: "
+                          f"{checks.listing(definition.children)}")]
+        if child.cls is not None:
+            ports: dict[str, Input | Output] = {**child.cls.inputs, **child.cls.outputs}
+            if port not in ports:
+                kinds = [f"{n} ({'input' if isinstance(p, Input) else 'output'})"
+                         for n, p in ports.items()]
+                return None, [(f"module {child_name!r} ({class_ref(child.cls)}) has no port "
+                              f"{port!r}{checks.did_you_mean(port, ports)}; its ports: "
+                              f"{checks.listing(kinds)}")]
+            return PortRef(child_name, child.cls, port, ports[port]), []
+        if child.macro is not None:
+            exports = child.macro.exports
+            if port not in exports:
+                return None, [(f"macro {child_name!r} ({child.macro.title}) exports no port "
+                              f"{port!r}{checks.did_you_mean(port, exports)}; it exports: "
+                              f"{checks.listing(exports)} (add it to the macro's exports)")]
+            inner = self.export(child.macro, port)
+            if inner is None:
+                return None, []
+            return PortRef(f"{child_name}/{inner.path}", inner.cls, inner.port, inner.spec), []
+        return None, []           # the child itself is broken and already reported
+
+    def links(self, definition: Definition) -> None:
+        """Check every link of ``definition``; the valid ones go to ``definition.resolved``."""
+        for number, link in enumerate(definition.links, 1):
+            label = (f"{definition.origin} [[{definition.prefix}links]] #{number} "
+                     f"({link.title})")
+            problems = checks.unknown_keys(link.extra, LinkSpec.KEYS)
+            src, found = self.endpoint(definition, link.src, "'from'")
+            problems += found
+            dst, found = self.endpoint(definition, link.dst, "'to'")
+            problems += found
+            if src is not None and src.is_input:
+                problems.append(f"'from' = {link.src!r} is an input; a link goes from an output "
+                                "to an input: swap 'from' and 'to', or name an output")
+                src = None
+            if dst is not None and not dst.is_input:
+                problems.append(f"'to' = {link.dst!r} is an output; a link goes from an output "
+                                "to an input: swap 'from' and 'to', or name an input")
+                dst = None
+            if src is not None and dst is not None and isinstance(dst.spec, Input) \
+                    and isinstance(src.spec, Output):
+                reason = dst.spec.accepts(src.spec)
+                if reason:
+                    problems.append(
+                        f"incompatible types: {link.src} gives {src.spec.describe()} but "
+                        f"{link.dst} takes {dst.spec.describe()} ({reason}); link ports of "
+                        "matching types, or change one port's type")
+            policy: Policy | None = None
+            if link.policy is not None:
+                try:
+                    policy = Policy.parse(link.policy)
+                except ValueError as exc:
+                    problems.append(f"{exc} (or leave 'policy' out to keep the input's own)")
+            elif dst is not None and isinstance(dst.spec, Input):
+                policy = dst.spec.policy
+            self.problems.extend(f"{label}: {p}" for p in problems)
+            if not problems and src is not None and dst is not None and policy is not None:
+                definition.resolved.append((label, src, dst, policy))

@@ -1,0 +1,153 @@
+"""``NodeController``: the daemon of one machine (``pb3a node start --name N --listen ADDR``).
+
+It admits or refuses work by its measured resources (psutil CPU and memory against
+its limits) and says why when it refuses; starts one executor process per
+configuration and answers with that executor's address when it already runs; and
+stops an executor gracefully (SIGTERM: modules stop in reverse order) or forcefully
+(SIGKILL) on request. Every request is authenticated; executors it started die
+with it.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+import psutil
+
+from pb3a.daemons.node_share import executor_main
+from pb3a.processes import start_without_main
+from pb3a.transport.auth import ClusterKey
+from pb3a.transport.control import ControlServer
+from pb3a.transport.shm import reap_orphans
+
+log = logging.getLogger("pb3a.node")
+
+_context = multiprocessing.get_context("spawn")      # a clean interpreter per executor
+START_TIMEOUT = 30.0
+SAMPLE_S = 0.5
+
+
+class Refused(Exception):
+    """The node will not take this work; the message says which resource is short."""
+
+
+@dataclass
+class Limits:
+    """What a node accepts work under."""
+
+    max_cpu_percent: float = 90.0         # mean over the machine's CPUs, last sample
+    min_memory_bytes: int = 256 << 20     # available memory that must remain
+
+
+class NodeController:
+    """Admits, starts and stops the executors of one node."""
+
+    def __init__(self, name: str, key: ClusterKey, host: str = "127.0.0.1", port: int = 0,
+                 limits: Limits | None = None) -> None:
+        self.name = name
+        self.limits = limits or Limits()
+        self._executors: dict[str, tuple[Any, Any, str]] = {}   # config -> process, pipe, addr
+        self._lock = threading.Lock()
+        self._cpu = psutil.cpu_percent(interval=None)
+        self._sampling = threading.Event()
+        self._sampler = threading.Thread(target=self._sample, name="pb3a-node-sampler",
+                                         daemon=True)
+        self._sampler.start()
+        self._server = ControlServer(key, self._handle, host, port, name="pb3a-node")
+        self.address = self._server.address
+
+    # -- admission ----------------------------------------------------------------
+    def _sample(self) -> None:
+        while not self._sampling.wait(SAMPLE_S):
+            self._cpu = psutil.cpu_percent(interval=None)
+
+    def admit(self, what: str) -> None:
+        """Raise ``Refused`` with the reason if the node cannot take ``what`` now."""
+        cpu, memory = self._cpu, psutil.virtual_memory().available
+        if cpu > self.limits.max_cpu_percent:
+            raise Refused(f"node {self.name} refuses {what}: CPU {cpu:.0f}% busy, above its "
+                          f"limit of {self.limits.max_cpu_percent:.0f}%")
+        if memory < self.limits.min_memory_bytes:
+            raise Refused(f"node {self.name} refuses {what}: {memory >> 20} MiB of memory "
+                          f"available, below its limit of {self.limits.min_memory_bytes >> 20}"
+                          " MiB")
+
+    # -- executors ----------------------------------------------------------------
+    def start_executor(self, config: str, workers: int = 0, cpus: list[int] | None = None,
+                       host: str = "127.0.0.1") -> str:
+        """The address of ``config``'s executor here, started if it does not run yet."""
+        with self._lock:
+            running = self._executors.get(config)
+            if running is not None and running[0].is_alive():
+                return running[2]
+            self.admit(f"an executor for {config!r}")
+            parent, child = _context.Pipe()
+            process = _context.Process(
+                target=executor_main, name=f"pb3a-executor-{config}",
+                args=(config, self.name, workers, cpus, host, child))
+            start_without_main(process)
+            child.close()
+            if not parent.poll(START_TIMEOUT):
+                process.kill()
+                process.join(5.0)
+                raise RuntimeError(f"the executor for {config!r} did not start within "
+                                   f"{START_TIMEOUT} s")
+            address = parent.recv()
+            self._executors[config] = (process, parent, address)
+            return address
+
+    def stop_executor(self, config: str, force: bool = False, timeout: float = 15.0) -> bool:
+        """Stop ``config``'s executor: SIGTERM (modules stop in order), or SIGKILL with
+        ``force`` or when it does not end within ``timeout``. False if none ran."""
+        with self._lock:
+            entry = self._executors.pop(config, None)
+        if entry is None:
+            return False
+        process, pipe, _ = entry
+        if force:
+            process.kill()
+        else:
+            process.terminate()
+        process.join(timeout)
+        if process.is_alive():
+            process.kill()
+            process.join(5.0)
+        pipe.close()
+        reap_orphans()              # the segments of an executor that could not free them
+        return True
+
+    def executors(self) -> dict[str, str]:
+        """Running configurations and their executors' addresses."""
+        with self._lock:
+            return {config: entry[2] for config, entry in self._executors.items()
+                    if entry[0].is_alive()}
+
+    def _handle(self, op: str, args: dict[str, Any]) -> Any:
+        if op == "start_executor":
+            return self.start_executor(args["config"], args.get("workers", 0),
+                                       args.get("cpus"), args.get("host", "127.0.0.1"))
+        if op == "stop_executor":
+            return self.stop_executor(args["config"], bool(args.get("force", False)))
+        if op == "admit":
+            self.admit(str(args.get("what", "work")))
+            return True
+        if op == "status":
+            return {"node": self.name, "cpu_percent": self._cpu,
+                    "memory_available": psutil.virtual_memory().available,
+                    "executors": self.executors()}
+        raise ValueError(f"a node controller has no operation {op!r}")
+
+    @property
+    def rejected(self) -> Any:
+        return self._server.rejected
+
+    def close(self) -> None:
+        """Stop every executor (gracefully), then the controller."""
+        for config in list(self.executors()):
+            self.stop_executor(config)
+        self._sampling.set()
+        self._server.close()

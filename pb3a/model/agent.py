@@ -1,0 +1,92 @@
+"""``Agent``: a module that adapts the system it runs in.
+
+``self.runtime`` offers the launcher's operations (read or set another
+module's state, swap, relink, spawn, remove, figures). Each request travels
+to the executor and is applied under the global configuration lock, one at a
+time with every other change. Requests block the agent's call until answered
+(10 s at most), so an agent must not target itself: it owns its own state.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from pb3a.model.module import Module
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from pb3a.stats import SystemStats
+
+
+class RuntimeClient:
+    """What ``Agent.runtime`` returns: the running system, seen from inside."""
+
+    def __init__(self, agent: str, request: Callable[[str, dict[str, Any]], Any]) -> None:
+        self._agent = agent
+        self._request = request
+
+    @property
+    def name(self) -> str:
+        """This agent's instance name in the system (e.g. to move itself)."""
+        return self._agent
+
+    def _call(self, op: str, target: str | None = None, **args: Any) -> Any:
+        if target is not None:
+            if target == self._agent:
+                raise ValueError(f"agent {self._agent!r} cannot {op} itself; "
+                                 "change its own attributes directly")
+            args["name"] = target
+        return self._request(op, args)
+
+    def state(self, name: str) -> dict[str, Any]:
+        """Another module's live state."""
+        return self._call("state", name)
+
+    def set_state(self, name: str, **state: Any) -> None:
+        """Set state attributes of another module."""
+        self._call("set_state", name, state=state)
+
+    def swap(self, name: str, cls: type | str) -> list[str]:
+        """Swap another module for ``cls``, keeping ports and matching state."""
+        return self._call("swap", name, cls=cls)
+
+    def relink(self, src: str, dst: str, *, policy: str | None = None) -> None:
+        """Feed input ``dst`` from output ``src`` instead of its old source."""
+        self._call("relink", src=src, dst=dst, policy=policy)
+
+    def link(self, src: str, dst: str, *, policy: str | None = None) -> None:
+        """Add a link to an input that has no source yet."""
+        self._call("link", src=src, dst=dst, policy=policy)
+
+    def spawn(self, name: str, cls: type | str, **options: Any) -> None:
+        """Start a new module (options as for ``System.add``)."""
+        self._call("add", name, cls=cls, **options)
+
+    def remove(self, name: str) -> None:
+        """Stop and remove another module."""
+        self._call("remove", name)
+
+    def stats(self) -> SystemStats:
+        """The figures of the whole system, as ``Running.stats()``."""
+        return self._call("stats")
+
+    def migrate(self, name: str, to: str) -> Any:
+        """Move a module (or macro) to node ``to``; its ``MigrationReport``. An agent may
+        move itself (or its own macro): the move then happens right after the current
+        step or event returns, and this returns None."""
+        if name == self._agent or self._agent.startswith(f"{name}/"):
+            return self._request("migrate_self", {"name": name, "to": to})
+        return self._call("migrate", name, to=to)
+
+
+class Agent(Module):
+    """A port-based agent: a module that measures itself and adapts the system."""
+
+    @property
+    def runtime(self) -> RuntimeClient:
+        client = self.__dict__.get("_pb3a_runtime")
+        if client is None:
+            raise RuntimeError(f"{type(self).__name__} is not running in a PB3A system; "
+                               "self.runtime exists only inside a launched system")
+        return client

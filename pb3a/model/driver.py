@@ -1,0 +1,62 @@
+"""``Driver``: a module that talks to a program outside PB3A (a robot, a simulator, a
+legacy program) through that program's resource port.
+
+The port's address is the state attribute ``resource``, so a running driver is
+re-pointed at another device with ``run.set_state(name, resource=ADDR)`` (or by an
+agent): its next request goes to the new device, after ``release`` let go of the
+old one. Requests are authenticated with the cluster key (the program serves them
+with a ``ControlServer``), have a deadline, and fail with an error naming the
+device; a driver whose device does not answer keeps running and says so.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from typing import Any
+
+from pb3a.errors import RuntimeFailure, RuntimeTimeout
+from pb3a.model.module import Module
+from pb3a.transport.auth import ClusterKey
+from pb3a.transport.control import ControlClient
+
+
+class Driver(Module):
+    """Subclass it, declare ports, and call ``request(op, **args)`` from ``step``."""
+
+    resource = ""            # the device's resource port, e.g. "tcp://10.0.0.7:7400"
+    timeout = 1.0            # seconds a request may take
+
+    def request(self, op: str, **args: Any) -> Any:
+        """Ask the device to do ``op``; its answer, or ``RuntimeFailure``/``RuntimeTimeout``
+        naming the device."""
+        client = self._client()
+        try:
+            return client.call(op, self.timeout, **args)
+        except (RuntimeFailure, RuntimeTimeout) as exc:
+            raise type(exc)(f"{type(self).__name__} at {self.resource}: {exc}") from None
+
+    def release(self, client: ControlClient) -> None:
+        """Called with the old device's connection before the driver is re-pointed or
+        stopped: override to leave the device safe (stop a robot, say)."""
+
+    def teardown(self) -> None:
+        self._disconnect()
+
+    def _client(self) -> ControlClient:
+        if not self.resource:
+            raise RuntimeFailure(f"{type(self).__name__} has no resource port: set its "
+                                 "'resource' state to the device's address")
+        current = self.__dict__.get("_pb3a_device")
+        if current is not None and current[0] == self.resource:
+            return current[1]
+        self._disconnect()
+        client = ControlClient(ClusterKey.load(), self.resource)
+        self.__dict__["_pb3a_device"] = (self.resource, client)
+        return client
+
+    def _disconnect(self) -> None:
+        current = self.__dict__.pop("_pb3a_device", None)
+        if current is not None:
+            with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+                self.release(current[1])
+            current[1].close()

@@ -1,0 +1,133 @@
+"""``Module``: the port-based module (PBM), the unit PB3A runs, swaps and moves.
+
+A module declares ``Input``/``Output`` ports as class attributes, keeps its state
+in public attributes, and has a body: ``step()`` when it has a ``period``
+(threaded), ``on_input(port)`` when it overrides it (event-driven), or both.
+The runtime calls every hook under the module's lock.
+"""
+
+from __future__ import annotations
+
+import copy
+import types
+from typing import Any, ClassVar
+
+import numpy as np
+
+from pb3a.model.ports import Input, InputPort, Output, OutputPort, _Port
+
+RESTART_POLICIES = ("never", "fresh", "last-state")
+
+# Attributes the runtime reads as configuration, never as state.
+_FRAMEWORK_NAMES = frozenset({"period", "restart", "runtime"})
+_NOT_STATE = (_Port, types.FunctionType, classmethod, staticmethod, property, type,
+              types.ModuleType, types.MethodType, types.BuiltinFunctionType)
+
+
+class Module:
+    """Base class of every port-based module.
+
+    Class attributes ``period`` (seconds between steps; ``None`` = not threaded,
+    ``0`` = as fast as possible) and ``restart`` (``"never"``, ``"fresh"`` or
+    ``"last-state"``) configure how the runtime runs it; a configuration may
+    override both. Modules are constructed with no arguments.
+    """
+
+    period: ClassVar[float | None] = None
+    restart: ClassVar[str] = "never"
+    inputs: ClassVar[dict[str, Input]] = {}
+    outputs: ClassVar[dict[str, Output]] = {}
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        inputs: dict[str, Input] = {}
+        outputs: dict[str, Output] = {}
+        for klass in reversed(cls.__mro__):
+            for name, value in vars(klass).items():
+                if isinstance(value, Input):
+                    inputs[name] = value
+                    outputs.pop(name, None)
+                elif isinstance(value, Output):
+                    outputs[name] = value
+                    inputs.pop(name, None)
+        cls.inputs = inputs
+        cls.outputs = outputs
+
+    def __init__(self) -> None:
+        # Mutable class defaults (lists, dicts, arrays) become per-instance copies,
+        # so that two instances never share state through their class.
+        for name in type(self).state_names():
+            if name not in self.__dict__:
+                value = getattr(type(self), name)
+                if isinstance(value, (list, dict, set, bytearray, np.ndarray)):
+                    self.__dict__[name] = copy.deepcopy(value)
+
+    # -- lifecycle hooks (override as needed) ------------------------------
+    def setup(self) -> None:
+        """Called after state and ports are in place, again after every swap or move."""
+
+    def step(self) -> None:
+        """The threaded body: called every ``period`` seconds when ``period`` is set."""
+
+    def on_input(self, port: InputPort) -> None:
+        """The event body: called when ``port`` receives a value (override to use)."""
+
+    def teardown(self) -> None:
+        """Called before the module is removed, swapped out or moved."""
+
+    # -- state -------------------------------------------------------------
+    @classmethod
+    def state_names(cls) -> list[str]:
+        """Names of the class-level state attributes found by reflection."""
+        names: dict[str, None] = {}
+        for klass in reversed(cls.__mro__):
+            if klass in (object, Module) or not issubclass(klass, Module):
+                continue
+            for name, value in vars(klass).items():
+                if _is_state(name, value):
+                    names[name] = None
+        return list(names)
+
+    def get_state(self) -> dict[str, Any]:
+        """The module's state: every public attribute that is not a port or a method."""
+        state = {name: getattr(self, name) for name in type(self).state_names()}
+        for name, value in self.__dict__.items():
+            if _is_state(name, value):
+                state[name] = value
+        return state
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Set state attributes by name; KeyError names any attribute the module lacks."""
+        known = set(type(self).state_names()) | {
+            name for name, value in self.__dict__.items() if _is_state(name, value)}
+        unknown = sorted(set(state) - known)
+        if unknown:
+            raise KeyError(
+                f"{type(self).__name__} has no state {', '.join(map(repr, unknown))}; "
+                f"its state is: {', '.join(sorted(known)) or '(none)'}"
+            )
+        for name, value in state.items():
+            setattr(self, name, value)
+
+    # -- ports -------------------------------------------------------------
+    @classmethod
+    def is_event_driven(cls) -> bool:
+        """True when the class overrides ``on_input``."""
+        return cls.on_input is not Module.on_input
+
+    def _pb3a_bind_ports(self, owner: str = "") -> dict[str, InputPort | OutputPort]:
+        ports: dict[str, InputPort | OutputPort] = {}
+        for name, spec in type(self).inputs.items():
+            ports[name] = InputPort(spec, owner)
+        for name, spec in type(self).outputs.items():
+            ports[name] = OutputPort(spec, owner)
+        self.__dict__["_pb3a_ports"] = ports
+        return ports
+
+    def _pb3a_adopt_ports(self, ports: dict[str, InputPort | OutputPort]) -> None:
+        self.__dict__["_pb3a_ports"] = ports
+
+
+def _is_state(name: str, value: Any) -> bool:
+    return (not name.startswith("_") and name not in _FRAMEWORK_NAMES
+            and name not in ("inputs", "outputs") and not isinstance(value, _NOT_STATE))

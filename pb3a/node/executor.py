@@ -1,0 +1,507 @@
+"""``Executor``: the supervisor of one node (the paper's NetExecutor).
+
+It owns everything on its node: the worker processes (one per module, or a few
+packed ones; ``WorkerPool``), every shared-memory ring, the bridge that receives
+remote links, and the records of the modules that run here. Links with both ends
+here are wired by ``connect``; a remote link is wired in halves (``publish`` at the
+writer's node, ``open_inbound`` and ``follow`` at the reader's) by the
+``Launcher``, which alone sees every node. A crashed worker is restarted by its
+modules' ``restart`` policies within a ``RestartBudget``. Shutdown stops modules in
+reverse start order, then the processes (terminate, then kill), then unlinks every
+segment. It implements ``Node``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import cloudpickle
+
+from pb3a.config.plan import FlatLink, FlatModule
+from pb3a.errors import RuntimeFailure, RuntimeTimeout
+from pb3a.loading.served import forget
+from pb3a.node.bridge import Bridge
+from pb3a.node.protocol import Endpoint
+from pb3a.node.restarts import RestartBudget
+from pb3a.node.ring_sizes import RingSize, ring_size
+from pb3a.node.workers import REQUEST_TIMEOUT, WorkerHandle, WorkerPool, WorkerSettings
+from pb3a.stats import InputStats, ModuleStats, NodeReport
+from pb3a.transport.auth import ClusterKey
+from pb3a.transport.ring import ShmRing
+from pb3a.transport.shm import reap_orphans, segment_name
+
+log = logging.getLogger("pb3a.executor")
+
+REPORT_TIMEOUT = 5.0
+
+
+@dataclass
+class ModuleRecord:
+    """What the executor knows of one module it runs."""
+
+    spec: FlatModule
+    worker: str
+    blob: bytes                       # the class, cloudpickled once
+    status: str = "starting"          # starting | running | failed | stopped
+    checkpoint: bytes | None = None
+    checkpoints: int = 0              # checkpoints received (restart = "last-state")
+    restarts: int = 0
+
+
+class Executor:
+    """Runs one node's modules in worker processes on this machine; thread-safe; every
+    request has a deadline."""
+
+    def __init__(self, node: str, *, workers: int = 0, cpus: list[int] | None = None,
+                 checkpoint_s: float = 1.0, log_level: int = logging.WARNING,
+                 module_servers: list[str] | None = None, host: str = "127.0.0.1",
+                 lock: threading.RLock | None = None, epoch: int = 0) -> None:
+        self.node = node
+        self.epoch = epoch                  # the system's: older replication is refused
+        self.packing = workers              # packed worker processes (0: one per module)
+        self.quota = 0                      # modules per packed worker at start
+        self.host = host                    # where remote readers reach this node's outputs
+        self.modules: dict[str, ModuleRecord] = {}
+        self.links: dict[str, FlatLink] = {}          # links with both ends here
+        self.inbound: dict[str, FlatLink] = {}        # remote links read here
+        self.outbound: dict[str, FlatLink] = {}       # remote links written here
+        self.rings: dict[str, ShmRing] = {}
+        self.failures: list[str] = []                 # what went wrong, for stats and logs
+        self.handler: Any = None                      # applies agents' requests (op, args)
+        self.republished: Any = None                  # told (link, endpoint) after a restart
+        self._bridge: Bridge | None = None            # remote links in (made on first use)
+        self._budgets: dict[str, RestartBudget] = {}  # worker key -> its restarts
+        # Held by a restart and by whoever changes the configuration (the launcher's
+        # global lock when the executor runs in the launcher's process).
+        self.lock = lock or threading.RLock()
+        self._stopping = threading.Event()
+        reap_orphans()
+        self.workers = WorkerPool(
+            WorkerSettings(cpus, checkpoint_s, log_level, list(module_servers or [])),
+            self._notice, self._died)
+
+    def configure(self, *, checkpoint_s: float, log_level: int, module_servers: list[str],
+                  epoch: int) -> None:
+        """Settings a node executor process learns from its launcher (before any module)."""
+        settings = self.workers.settings
+        settings.checkpoint_s, settings.log_level = checkpoint_s, log_level
+        settings.module_servers = list(module_servers)
+        self.epoch = epoch
+
+    @property
+    def bridge(self) -> Bridge:
+        """The receiving end of remote links (the cluster key is loaded on first use)."""
+        if self._bridge is None:
+            self._bridge = Bridge(ClusterKey.load(), self.epoch)
+        return self._bridge
+
+    def call(self, worker: str, op: str, timeout: float = REQUEST_TIMEOUT, /,
+             _fd: int | None = None, **args: Any) -> Any:
+        """One request to a worker; its answer."""
+        return self.workers.call(worker, op, timeout, _fd=_fd, **args)
+
+    def call_module(self, name: str, op: str, timeout: float = REQUEST_TIMEOUT, /,
+                    **args: Any) -> Any:
+        """Send one request about module ``name`` to its worker and wait for the answer."""
+        return self.call(self.modules[name].worker, op, timeout, name=name, **args)
+
+    def _alive(self, key: str) -> bool:
+        return self.workers[key].alive
+
+    # -- placement -------------------------------------------------------------
+    def place(self, spec: FlatModule) -> str:
+        """The worker key a module runs in: its group, its own process, or a packed one.
+
+        Packed modules fill the node's workers in declaration order, so modules
+        declared together (usually linked together) share a process and their links
+        stay in memory; modules added later go to the least-loaded worker.
+        """
+        if spec.group:
+            return f"{spec.node}/g-{spec.group}"
+        if not self.packing:
+            return f"{spec.node}/m-{spec.name.replace('/', '.')}"
+        counts = {f"{spec.node}-p{i}": 0 for i in range(self.packing)}
+        for record in self.modules.values():
+            if record.worker in counts:
+                counts[record.worker] += 1
+        for key, count in counts.items():
+            if count < self.quota:
+                return key
+        return min(counts, key=counts.__getitem__)
+
+    def expect(self, specs: list[FlatModule]) -> None:
+        """Size the packed workers for the modules about to be added, in their order."""
+        if self.packing:
+            count = sum(1 for spec in specs if not spec.group)
+            self.quota = -(-count // self.packing)
+
+    # -- modules -------------------------------------------------------------
+    def add_module(self, spec: FlatModule, *, state: dict[str, Any] | None = None) -> None:
+        """Instantiate a module in its worker (not started)."""
+        key = self.place(spec)
+        handle = self.workers.ensure(key, spec.node)
+        record = ModuleRecord(spec, key, cloudpickle.dumps(spec.cls))
+        self.modules[spec.name] = record
+        handle.modules.append(spec.name)
+        try:
+            self._instantiate(record, spec.state if state is None else state)
+        except BaseException:
+            del self.modules[spec.name]
+            self._vacate(key, spec.name)
+            raise
+
+    def _instantiate(self, record: ModuleRecord, state: dict[str, Any]) -> None:
+        spec = record.spec
+        self.call(record.worker, "add", name=spec.name, cls=record.blob, period=spec.period,
+                  restart=spec.restart, state=state)
+
+    def start_modules(self, names: list[str]) -> None:
+        """Run ``setup`` and start the modules, in order.
+
+        A worker that dies meanwhile is left to its modules' restart policies.
+        """
+        for name in names:
+            record = self.modules[name]
+            try:
+                self.call(record.worker, "start", names=[name])
+            except RuntimeFailure:
+                process = self.workers[record.worker].process
+                process.join(1.0)          # a pipe error may come before the death is seen
+                if process.is_alive():
+                    raise
+                continue
+            record.status = "running"
+
+    def swap(self, name: str, spec: FlatModule) -> list[str]:
+        """Replace a module's class by ``spec.cls`` in place; the state names kept."""
+        record = self.modules[name]
+        blob = cloudpickle.dumps(spec.cls)
+        kept = self.call(record.worker, "swap", name=name, cls=blob)
+        record.spec, record.blob = spec, blob
+        return kept
+
+    def pause(self, name: str, timeout: float = REQUEST_TIMEOUT) -> bool:
+        """Hold a module's lock (no step, no event) until ``resume``; False if it does not
+        run here (any more)."""
+        record = self.modules.get(name)
+        if record is None or not self._alive(record.worker):
+            return False
+        self.call(record.worker, "pause", timeout + 1.0, name=name, timeout=timeout)
+        return True
+
+    def resume(self, name: str) -> None:
+        """Release a module paused by ``pause``."""
+        record = self.modules.get(name)
+        if record is not None and self._alive(record.worker):
+            self.call(record.worker, "resume", name=name)
+
+    def stop_module(self, name: str, timeout: float = 5.0) -> None:
+        """Stop stepping and dispatching, then run the module's ``teardown``."""
+        record = self.modules[name]
+        if record.status == "running" and self._alive(record.worker):
+            self.call(record.worker, "stop", timeout + 1.0, name=name, grace=timeout)
+        record.status = "stopped"
+
+    def remove_module(self, name: str) -> None:
+        """Drop a module (its links are gone) and stop its worker if it hosted nothing else."""
+        record = self.modules.pop(name)
+        if self._alive(record.worker):
+            self.call(record.worker, "remove", name=name)
+        self._vacate(record.worker, name)
+
+    def retire(self, name: str) -> bytes:
+        """The migration fence: ``teardown``, then capture the module's state and unconsumed
+        inputs and drop it here; it runs nowhere until restored (``land``)."""
+        record = self.modules[name]
+        captured = self.call(record.worker, "migrate_out", name=name)
+        del self.modules[name]
+        self._vacate(record.worker, name)
+        return captured
+
+    def land(self, name: str, captured: bytes) -> None:
+        """Restore what ``retire`` captured into the (instantiated, not started) module."""
+        self.call_module(name, "migrate_in", captured=captured)
+
+    def _vacate(self, key: str, name: str) -> None:
+        """``name`` no longer runs in worker ``key``; stop the worker if it is empty now."""
+        handle = self.workers[key]
+        handle.modules.remove(name)
+        if not handle.modules:
+            self.workers.retire(key)
+            self._budgets.pop(key, None)
+
+    def forget(self, module: str) -> None:
+        """Drop cached copies of Python module ``module`` here and in every worker."""
+        forget(module)
+        for key, handle in list(self.workers.handles.items()):
+            if handle.alive:
+                self.call(key, "forget", module=module)
+
+    # -- links with both ends here ---------------------------------------------
+    def connect(self, link: FlatLink) -> None:
+        """Wire one link: in memory inside a worker, else through a new ring."""
+        self.links[link.key] = link
+        self._attach_reader(link)
+        self._attach_writer(link)
+
+    def _attach_reader(self, link: FlatLink) -> None:
+        """The reading side: attach the link's ring (created here) in the reader's worker."""
+        src, dst = self.modules[link.src], self.modules[link.dst]
+        if src.worker == dst.worker:
+            return
+        ring = self._ring(link.key, ring_size(src.spec.cls, link.src_port, link.policy))
+        self.call(dst.worker, "link_in", key=link.key, dst=link.dst, dst_port=link.dst_port,
+                  ring=ring.name, policy=str(link.policy))
+
+    def _attach_writer(self, link: FlatLink) -> None:
+        """The writing side: connect the output to the ring, or straight to the input."""
+        src, dst = self.modules[link.src], self.modules[link.dst]
+        if src.worker == dst.worker:
+            self.call(src.worker, "link_out", key=link.key, src=link.src, src_port=link.src_port,
+                      dst=link.dst, dst_port=link.dst_port, policy=str(link.policy))
+        else:
+            self.call(src.worker, "link_out", key=link.key, src=link.src, src_port=link.src_port,
+                      ring=self.rings[link.key].name, _fd=self.workers[dst.worker].bell)
+
+    def detach(self, link: FlatLink) -> None:
+        """Unwire a link: the writer stops first, then the reader takes in everything
+        still on the way, so a new wiring cannot overtake it."""
+        self.links.pop(link.key, None)
+        src = self.modules.get(link.src)
+        if src is not None and self._alive(src.worker):
+            self.call(src.worker, "unlink_out", key=link.key)
+        self._unlink_in(link)
+
+    def _unlink_in(self, link: FlatLink) -> None:
+        dst = self.modules.get(link.dst)
+        if dst is not None and self._alive(dst.worker):
+            self.call(dst.worker, "unlink_in", key=link.key)
+        ring = self.rings.pop(link.key, None)
+        if ring is not None:
+            ring.close()
+
+    def _ring(self, key: str, size: RingSize | None) -> ShmRing:
+        ring = self.rings.get(key)
+        if ring is None:
+            if size is None:
+                raise RuntimeError(f"link {key} has no ring to reopen")
+            ring = self.rings[key] = ShmRing.create(segment_name("ring"), *size)
+        return ring
+
+    # -- remote links, one half each ---------------------------------------------------
+    def publish(self, link: FlatLink) -> Endpoint:
+        """The writing half: publish the output (once per output, whoever reads it);
+        returns the endpoint (data address, control address, sender incarnation)."""
+        self.outbound[link.key] = link
+        data, control, incarnation = self.call(
+            self.modules[link.src].worker, "publish_out", key=link.key, src=link.src,
+            src_port=link.src_port, secret=self.bridge.key.secret, host=self.host,
+            epoch=self.epoch)
+        return data, control, incarnation
+
+    def unpublish(self, link: FlatLink) -> int:
+        """Stop publishing for ``link``; the sequence number the sender reached."""
+        self.outbound.pop(link.key, None)
+        src = self.modules.get(link.src)
+        if src is None or not self._alive(src.worker):
+            return 0
+        return self.call(src.worker, "unpublish_out", key=link.key)
+
+    def open_inbound(self, link: FlatLink, size: RingSize | None) -> None:
+        """The reading half: a ring into the reader's worker, which the bridge fills
+        (``size`` None: the link's ring exists already)."""
+        self.inbound[link.key] = link
+        dst = self.modules[link.dst]
+        ring = self._ring(link.key, size)
+        self.call(dst.worker, "link_in", key=link.key, dst=link.dst, dst_port=link.dst_port,
+                  ring=ring.name, policy=str(link.policy))
+        self.bridge.open(link.key, _topic(link), ring.name, self.workers[dst.worker].bell)
+
+    def follow(self, link: FlatLink, endpoint: Endpoint) -> None:
+        """Receive ``link``'s output from the sender at ``endpoint`` (see ``publish``)."""
+        self.bridge.follow(_topic(link), *endpoint)
+
+    def close_inbound(self, link: FlatLink, reached: int = 0) -> None:
+        """Stop receiving ``link`` once the values before ``reached`` are in."""
+        self.inbound.pop(link.key, None)
+        self.bridge.close(link.key, reached)
+        self._unlink_in(link)
+
+    # -- figures ---------------------------------------------------------------
+    def report(self) -> NodeReport:
+        """Figures of every module of this node (one request to each worker), its rings'
+        fill and its remote links' losses."""
+        futures = {key: self.workers.submit(key, "stats")
+                   for key, handle in list(self.workers.handles.items()) if handle.alive}
+        reports: dict[str, Any] = {}
+        for key, future in futures.items():
+            with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+                reports[key] = self.workers.result(future, "stats", key, REPORT_TIMEOUT)
+        modules = {name: self._module_stats(record, reports.get(record.worker))
+                   for name, record in self.modules.items()}
+        rings = {key: ring.get("used", 0) for report in reports.values()
+                 for key, ring in report.get("rings", {}).items()}
+        lost = {key: self.bridge.link_failures(_topic(link))
+                for key, link in self.inbound.items()}
+        return NodeReport(modules, rings, lost, list(self.failures))
+
+    @staticmethod
+    def _module_stats(record: ModuleRecord, report: dict[str, Any] | None) -> ModuleStats:
+        spec = record.spec
+        base = {"cls": f"{spec.cls.__module__}:{spec.cls.__qualname__}", "node": spec.node,
+                "worker": record.worker, "status": record.status,
+                "restarts": record.restarts, "checkpoints": record.checkpoints}
+        figures = None if report is None else report["modules"].get(spec.name)
+        if figures is None:
+            return ModuleStats(**base)
+        return ModuleStats(
+            **{**base, "cls": figures["class"]}, pid=report["pid"],
+            running=figures["running"] and record.status == "running",
+            steps=figures["steps"], events=figures["events"], errors=figures["errors"],
+            last_error=figures["last_error"], cpu=figures["cpu"],
+            inputs={name: InputStats(**port) for name, port in figures["inputs"].items()},
+            outputs=dict(figures["outputs"]))
+
+    # -- what workers tell ---------------------------------------------------------
+    def _notice(self, handle: WorkerHandle, kind: str, args: dict[str, Any]) -> None:
+        if kind == "checkpoint":
+            record = self.modules.get(args["name"])
+            if record is not None:
+                record.checkpoint = args["state"]
+                record.checkpoints += 1
+        elif kind == "error":
+            count = args["suppressed"]
+            more = f" ({count} more since the last report)" if count else ""
+            logging.getLogger("pb3a.module").error(
+                "module %r raised in %s%s:\n%s", args["name"], args["where"], more, args["trace"])
+        elif kind == "request":
+            threading.Thread(target=self._serve_request, args=(handle, args), daemon=True,
+                             name="pb3a-agent-request").start()
+
+    def _serve_request(self, handle: WorkerHandle, request: dict[str, Any]) -> None:
+        """Apply an agent's request through ``handler`` and send the answer back."""
+        try:
+            args = cloudpickle.loads(request["args"])
+            if self.handler is None:
+                raise RuntimeFailure("this executor takes no requests from agents")
+            answer = {"id": request["id"], "ok": True, "result": self.handler(request["op"], args)}
+        except Exception as exc:
+            answer = {"id": request["id"], "ok": False, "result": f"{type(exc).__name__}: {exc}"}
+        with contextlib.suppress(OSError, ValueError):
+            handle.send((None, "answer", answer))
+
+    # -- restarts ----------------------------------------------------------------
+    def _died(self, handle: WorkerHandle) -> None:
+        code = handle.process.exitcode
+        if code == 0:                 # stopped on purpose (SIGTERM): not a crash
+            log.warning("worker %s (pid %s) stopped; its modules %s are stopped", handle.key,
+                        handle.pid, ", ".join(handle.modules))
+            for name in handle.modules:
+                self.modules[name].status = "stopped"
+            return
+        log.warning("worker %s (pid %s, modules %s) died with exit code %s",
+                    handle.key, handle.pid, ", ".join(handle.modules), code)
+        threading.Thread(target=self._recover, args=(handle, code), daemon=True,
+                         name=f"pb3a-restart-{handle.key}").start()
+
+    def _recover(self, handle: WorkerHandle, code: int | None) -> None:
+        with self.lock:
+            if not self._stopping.is_set():     # a shutdown may have come first
+                self._restart(handle, code)
+
+    def _restart(self, handle: WorkerHandle, code: int | None) -> None:
+        """Apply the ``restart`` policy of every module that ran in the dead worker:
+        ``never`` leaves it failed; ``fresh`` starts it with its configured state,
+        ``last-state`` with its last checkpoint. Rings are kept, so a restarted reader
+        resumes where the dead one stopped and a restarted writer continues the
+        sequence; a restarted writer of a remote link publishes under a new
+        incarnation, which ``republished`` has the reader's node follow."""
+        budget = self._budgets.setdefault(handle.key, RestartBudget())
+        names = list(handle.modules)
+        revive = [n for n in names if self.modules[n].spec.restart != "never"]
+        reason = "restart = 'never'"
+        if not budget.spend() and revive:
+            reason = (f"restart = '{self.modules[revive[0]].spec.restart}', but its worker "
+                      f"died {budget.deaths} times in {budget.window:.0f} s: gave up")
+            revive = []
+        for name in names:
+            if name not in revive:
+                self._fail(name, code, reason)
+        if not revive:
+            return
+        try:
+            self.workers.spawn(handle)
+            for name in revive:
+                record = self.modules[name]
+                state = record.spec.state
+                if record.spec.restart == "last-state" and record.checkpoint is not None:
+                    state = cloudpickle.loads(record.checkpoint)
+                self._instantiate(record, state)
+                record.restarts += 1
+            self._rewire(set(revive))
+            self.start_modules(revive)
+            log.warning("restarted %s (exit code %s)", ", ".join(revive), code)
+        except (RuntimeFailure, RuntimeTimeout) as exc:
+            self.failures.append(f"restart of worker {handle.key} failed: {exc}")
+            log.error(self.failures[-1])
+
+    def _rewire(self, revived: set[str]) -> None:
+        """Attach every link of restarted modules again, in the worker that replaced theirs."""
+        links = list(self.links.values())
+        for link in links:
+            if link.dst in revived and self.modules[link.src].status != "failed":
+                self._attach_reader(link)
+        for link in links:
+            if link.src in revived and self.modules[link.dst].status != "failed":
+                self._attach_writer(link)
+        for link in list(self.inbound.values()):
+            if link.dst in revived:
+                self.open_inbound(link, None)          # the ring is kept: no size needed
+        for link in list(self.outbound.values()):
+            if link.src in revived:
+                endpoint = self.publish(link)
+                if self.republished is not None:
+                    self.republished(link, endpoint)
+
+    def _fail(self, name: str, code: int | None, reason: str) -> None:
+        record = self.modules[name]
+        record.status = "failed"
+        self.failures.append(f"module {name} failed (worker exit code {code}); {reason}")
+        log.error(self.failures[-1])
+        # Writers into a dead reader would only fill its ring: unhook them.
+        for link in list(self.links.values()):
+            src = self.modules.get(link.src)
+            if link.dst == name and src is not None and self._alive(src.worker):
+                self.call(src.worker, "unlink_out", key=link.key)
+        for link in list(self.inbound.values()):
+            if link.dst == name:
+                self.bridge.close(link.key)
+
+    # -- shutdown ------------------------------------------------------------
+    def shutdown(self, timeout: float = 10.0) -> None:
+        """Stop modules in reverse start order, then workers, then free every ring."""
+        deadline = time.monotonic() + timeout
+        with self.lock:
+            for name in reversed(list(self.modules)):
+                left = max(0.1, deadline - time.monotonic())
+                try:
+                    self.stop_module(name, timeout=min(2.0, left))
+                except (RuntimeFailure, RuntimeTimeout) as exc:
+                    log.warning("stopping module %r: %s", name, exc)
+            self._stopping.set()
+            self.workers.close(max(0.1, deadline - time.monotonic()))
+            if self._bridge is not None:
+                self._bridge.shutdown()
+            for ring in self.rings.values():
+                ring.close()
+            self.rings.clear()
+
+
+def _topic(link: FlatLink) -> str:
+    """The topic a remote link's output is published under."""
+    return f"{link.src}.{link.src_port}"

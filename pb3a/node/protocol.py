@@ -1,0 +1,97 @@
+"""``Node``: what the launcher may ask of a node, wherever its executor runs.
+
+One declared interface, two implementations: ``Executor`` (an embedded node, in
+the launcher's process) and ``RemoteNode`` (the executor process a node controller
+started on this machine or another, each operation one authenticated request).
+The launcher only ever talks to a ``Node``.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+
+if TYPE_CHECKING:
+    from pb3a.config.plan import FlatLink, FlatModule
+    from pb3a.node.ring_sizes import RingSize
+    from pb3a.stats import NodeReport
+
+Endpoint = tuple[str, str, bytes]   # a published output: data address, control address, sender
+
+
+@runtime_checkable
+class Node(Protocol):
+    """The operations of one node's supervisor; each has a deadline of its own."""
+
+    # -- modules
+    def expect(self, specs: list[FlatModule]) -> None:
+        """Size packed workers for the modules about to be added, in their order."""
+
+    def add_module(self, spec: FlatModule, *, state: dict[str, Any] | None = None) -> None:
+        """Instantiate a module in its worker (not started); ``state`` overrides the spec's."""
+
+    def start_modules(self, names: list[str]) -> None:
+        """Run ``setup`` and start the modules, in order."""
+
+    def call_module(self, name: str, op: str, timeout: float, /, **args: Any) -> Any:
+        """One request about module ``name`` to its worker (state, set_state, ...)."""
+
+    def swap(self, name: str, spec: FlatModule) -> list[str]:
+        """Replace a module's class in place; the state names kept."""
+
+    def pause(self, name: str, timeout: float) -> bool:
+        """Hold the module's lock until ``resume``; False if it does not run here."""
+
+    def resume(self, name: str) -> None:
+        """Release a paused module."""
+
+    def stop_module(self, name: str, timeout: float) -> None:
+        """Stop stepping and dispatching, then run ``teardown``."""
+
+    def remove_module(self, name: str) -> None:
+        """Drop a stopped module whose links are gone."""
+
+    def retire(self, name: str) -> bytes:
+        """The migration fence: capture a paused module's state and inputs, drop it here."""
+
+    def land(self, name: str, captured: bytes) -> None:
+        """Restore what ``retire`` captured into an instantiated, unstarted module."""
+
+    def forget(self, module: str) -> None:
+        """Drop cached copies of Python module ``module`` here and in every worker."""
+
+    # -- links with both ends on this node
+    def connect(self, link: FlatLink) -> None:
+        """Wire a link: in memory inside a worker, else through a new ring."""
+
+    def detach(self, link: FlatLink) -> None:
+        """Unwire a link: the writer stops, then the reader takes in what is on the way."""
+
+    # -- remote links, one half on each node
+    def publish(self, link: FlatLink) -> Endpoint:
+        """The writing half: publish the link's output; the endpoint to follow."""
+
+    def unpublish(self, link: FlatLink) -> int:
+        """Stop publishing for ``link``; the sequence number its sender reached."""
+
+    def open_inbound(self, link: FlatLink, size: RingSize | None) -> None:
+        """The reading half: a ring into the reader's worker, filled by the bridge."""
+
+    def follow(self, link: FlatLink, endpoint: Endpoint) -> None:
+        """Receive the link's output from the sender at ``endpoint``."""
+
+    def close_inbound(self, link: FlatLink, reached: int = 0) -> None:
+        """Stop receiving ``link`` once the values before ``reached`` are in."""
+
+    # -- figures and the end
+    def report(self) -> NodeReport:
+        """This node's figures."""
+
+    def shutdown(self, timeout: float) -> None:
+        """Stop every module (reverse start order), every worker, free every segment."""
+
+
+# What a launcher may ask of a node executor process over the wire (its shutdown goes
+# through the node controller, which owns the process).
+REMOTE_OPERATIONS = frozenset(
+    name for name, member in vars(Node).items()
+    if callable(member) and not name.startswith("_")) - {"shutdown"}

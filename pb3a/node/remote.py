@@ -1,0 +1,158 @@
+"""``RemoteNode``: a node whose executor runs elsewhere, started by its node controller.
+
+It implements ``Node`` as the in-process ``Executor`` does, forwarding each
+operation as one authenticated request to the node's executor process
+(``pb3a.daemons.node_share``), which applies it to its own ``Executor``. Beside the
+operations it offers what only a remote node needs: heartbeats, its controller's
+health, its measured round-trip times, and being declared lost.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from typing import TYPE_CHECKING, Any
+
+from pb3a.errors import RuntimeFailure, RuntimeTimeout
+from pb3a.transport.auth import ClusterKey
+from pb3a.transport.control import ControlClient
+
+if TYPE_CHECKING:
+    from pb3a.config.plan import FlatLink, FlatModule
+    from pb3a.node.protocol import Endpoint
+    from pb3a.node.ring_sizes import RingSize
+    from pb3a.stats import NodeReport
+
+START_TIMEOUT = 60.0       # an executor process imports numpy and friends first
+CALL_TIMEOUT = 60.0        # the executor's own requests to its workers have deadlines
+
+
+class RemoteNode:
+    """The executor of node ``name``, reached through the controller at ``address``."""
+
+    def __init__(self, name: str, address: str, *, config: str, launcher: str,
+                 workers: int = 0, cpus: list[int] | None = None, checkpoint_s: float = 1.0,
+                 log_level: int = 30, module_servers: list[str] | None = None,
+                 epoch: int = 0) -> None:
+        self.name, self.config = name, config
+        key = ClusterKey.load()
+        self.controller = ControlClient(key, address)
+        self.client: ControlClient | None = None
+        self.lost = False
+        host = address.removeprefix("tcp://").rpartition(":")[0]
+        try:
+            executor = self.controller.call("start_executor", START_TIMEOUT, config=config,
+                                            workers=workers, cpus=cpus, host=host)
+            self.client = ControlClient(key, executor, epoch=epoch)
+            self.client.call("bind", launcher=launcher, checkpoint_s=checkpoint_s,
+                             log_level=log_level, module_servers=list(module_servers or []),
+                             epoch=epoch)
+        except (RuntimeFailure, RuntimeTimeout) as exc:
+            self.close()
+            raise RuntimeFailure(f"node {name} at {address} did not start an executor for "
+                                 f"{config!r}: {exc}") from None
+        self.address = executor
+
+    def _forward(self, op: str, *args: Any, **kwargs: Any) -> Any:
+        if self.lost or self.client is None:
+            raise RuntimeFailure(f"node {self.name} is lost")
+        return self.client.call("executor", CALL_TIMEOUT, method=op, args=args, kwargs=kwargs)
+
+    # -- Node ------------------------------------------------------------------
+    def expect(self, specs: list[FlatModule]) -> None:
+        self._forward("expect", specs)
+
+    def add_module(self, spec: FlatModule, *, state: dict[str, Any] | None = None) -> None:
+        self._forward("add_module", spec, state=state)
+
+    def start_modules(self, names: list[str]) -> None:
+        self._forward("start_modules", names)
+
+    def call_module(self, name: str, op: str, timeout: float, /, **args: Any) -> Any:
+        return self._forward("call_module", name, op, timeout, **args)
+
+    def swap(self, name: str, spec: FlatModule) -> list[str]:
+        return self._forward("swap", name, spec)
+
+    def pause(self, name: str, timeout: float) -> bool:
+        return self._forward("pause", name, timeout)
+
+    def resume(self, name: str) -> None:
+        self._forward("resume", name)
+
+    def stop_module(self, name: str, timeout: float) -> None:
+        self._forward("stop_module", name, timeout)
+
+    def remove_module(self, name: str) -> None:
+        self._forward("remove_module", name)
+
+    def retire(self, name: str) -> bytes:
+        return self._forward("retire", name)
+
+    def land(self, name: str, captured: bytes) -> None:
+        self._forward("land", name, captured)
+
+    def forget(self, module: str) -> None:
+        self._forward("forget", module)
+
+    def connect(self, link: FlatLink) -> None:
+        self._forward("connect", link)
+
+    def detach(self, link: FlatLink) -> None:
+        self._forward("detach", link)
+
+    def publish(self, link: FlatLink) -> Endpoint:
+        return self._forward("publish", link)
+
+    def unpublish(self, link: FlatLink) -> int:
+        return self._forward("unpublish", link)
+
+    def open_inbound(self, link: FlatLink, size: RingSize | None) -> None:
+        self._forward("open_inbound", link, size)
+
+    def follow(self, link: FlatLink, endpoint: Endpoint) -> None:
+        self._forward("follow", link, endpoint)
+
+    def close_inbound(self, link: FlatLink, reached: int = 0) -> None:
+        self._forward("close_inbound", link, reached)
+
+    def report(self) -> NodeReport:
+        return self._forward("report")
+
+    # -- what only a remote node has ------------------------------------------------
+    def ping(self, timeout: float) -> float | None:
+        """The executor's round-trip time, or None without an answer in ``timeout``."""
+        return None if self.client is None else self.client.ping(timeout)
+
+    def controller_answers(self, timeout: float) -> bool:
+        """True if the node's controller answered within ``timeout`` seconds."""
+        return self.controller.ping(timeout) is not None
+
+    def meet(self, peers: dict[str, str]) -> None:
+        """Have the node measure its RTT to each peer (name -> control address)."""
+        if self.client is not None and not self.lost:
+            self.client.call("peers", peers=peers)
+
+    def rtts(self) -> dict[str, float]:
+        """The node's last measured round-trip times to its peers."""
+        if self.client is None or self.lost:
+            return {}
+        return self.client.call("rtts", 2.0)
+
+    def lose(self) -> None:
+        """The node is gone: every waiting call fails now, and every later one at once."""
+        self.lost = True
+        if self.client is not None:
+            self.client.fail_pending(f"node {self.name} is lost")
+
+    def shutdown(self, timeout: float = 10.0) -> None:
+        """Have the controller stop the executor (modules stop in reverse order), or kill
+        it if the node was lost; then close the connections."""
+        with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+            self.controller.call("stop_executor", timeout + 5.0, config=self.config,
+                                 force=self.lost)
+        self.close()
+
+    def close(self) -> None:
+        self.controller.close()
+        if self.client is not None:
+            self.client.close()

@@ -1,0 +1,239 @@
+"""``WorkerPool``: the worker processes of one node and the requests sent to them.
+
+Workers start from a forkserver with numpy, cloudpickle and the worker code
+preloaded. Each has a private pipe: requests carry an id and wait on a future
+with a deadline. One monitor thread reads every pipe and every process
+sentinel; a worker's notices (checkpoints, errors, agents' requests) go to
+``on_notice``, its death, after every request waiting on it has failed, to
+``on_death``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import logging
+import multiprocessing
+import multiprocessing.connection
+import os
+import socket
+import threading
+import time
+from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
+from dataclasses import dataclass, field
+from multiprocessing import reduction
+from typing import TYPE_CHECKING, Any
+
+from pb3a.errors import RuntimeFailure, RuntimeTimeout
+from pb3a.processes import start_without_main
+from pb3a.transport.doorbell import new_bell
+from pb3a.worker.process import worker_main
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+log = logging.getLogger("pb3a.executor")
+
+REQUEST_TIMEOUT = 10.0
+
+_context = multiprocessing.get_context("forkserver")
+_context.set_forkserver_preload(["pb3a.worker.process", "numpy", "cloudpickle"])
+
+
+@dataclass
+class WorkerHandle:
+    """One worker process: its pipe, its doorbell, the modules it hosts."""
+
+    key: str
+    node: str
+    bell: int = field(default_factory=new_bell)    # the worker's doorbell (an eventfd)
+    process: Any = None
+    conn: Any = None
+    modules: list[str] = field(default_factory=list)
+    alive: bool = False
+    pid: int = 0
+    send_lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def send(self, message: Any, fd: int | None = None) -> None:
+        """Send on the worker's pipe, with a descriptor right behind it if given."""
+        with self.send_lock:                     # several threads may send at once
+            self.conn.send(message)
+            if fd is not None:
+                reduction.send_handle(self.conn, fd, self.pid)
+
+
+@dataclass
+class WorkerSettings:
+    """What every worker of a node is started with."""
+
+    cpus: list[int] | None = None          # the CPUs the node's workers run on (None: all)
+    checkpoint_s: float = 1.0              # how often ``last-state`` modules checkpoint
+    log_level: int = logging.WARNING
+    module_servers: list[str] = field(default_factory=list)   # workers import from these
+
+
+class WorkerPool:
+    """Starts, calls, watches and stops one node's worker processes; thread-safe."""
+
+    def __init__(self, settings: WorkerSettings,
+                 on_notice: Callable[[WorkerHandle, str, dict[str, Any]], None],
+                 on_death: Callable[[WorkerHandle], None]) -> None:
+        self.settings = settings
+        self.handles: dict[str, WorkerHandle] = {}
+        self._on_notice, self._on_death = on_notice, on_death
+        self._futures: dict[int, Future[Any]] = {}
+        self._ids = itertools.count()
+        self._stopping = threading.Event()
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._monitor = threading.Thread(target=self._watch, name="pb3a-monitor", daemon=True)
+        self._monitor.start()
+
+    def __getitem__(self, key: str) -> WorkerHandle:
+        return self.handles[key]
+
+    # -- processes -----------------------------------------------------------
+    def spawn(self, handle: WorkerHandle) -> None:
+        """Start (or restart) the worker process behind ``handle``."""
+        settings = self.settings
+        parent, child = _context.Pipe()
+        process = _context.Process(
+            target=worker_main, name=f"pb3a-worker-{handle.key}", daemon=True,
+            args=(child, handle.key, settings.checkpoint_s, settings.log_level,
+                  settings.cpus, settings.module_servers))
+        start_without_main(process)
+        child.close()
+        # The doorbell is the worker's first read: send it before anyone can send a request.
+        reduction.send_handle(parent, handle.bell, process.pid)
+        handle.process, handle.conn, handle.alive, handle.pid = process, parent, True, process.pid
+        self._poke()
+
+    def ensure(self, key: str, node: str) -> WorkerHandle:
+        """The worker ``key``, started if it does not exist yet."""
+        handle = self.handles.get(key)
+        if handle is None:
+            handle = self.handles[key] = WorkerHandle(key, node)
+            self.spawn(handle)
+        return handle
+
+    def retire(self, key: str, timeout: float = 2.0) -> None:
+        """Stop worker ``key`` and forget it."""
+        self._stop(self.handles.pop(key), timeout)
+
+    # -- requests ------------------------------------------------------------
+    def call(self, key: str, op: str, timeout: float = REQUEST_TIMEOUT, /,
+             _fd: int | None = None, **args: Any) -> Any:
+        """Send one request to a worker (a descriptor right behind it if given) and wait
+        for its answer."""
+        return self.result(self.submit(key, op, _fd=_fd, **args), op, key, timeout)
+
+    def submit(self, key: str, op: str, /, _fd: int | None = None, **args: Any) -> Future[Any]:
+        """Send one request to a worker; the future holds its answer."""
+        handle = self.handles[key]
+        future: Future[Any] = Future()
+        if not handle.alive:
+            future.set_exception(RuntimeFailure(f"worker {key!r} is not running"))
+            return future
+        req_id = next(self._ids)
+        self._futures[req_id] = future
+        future.pb3a_worker = key   # type: ignore[attr-defined]
+        try:
+            handle.send((req_id, op, args), _fd)
+        except (OSError, ValueError) as exc:
+            # Whoever pops a future completes it: the monitor may have done so already
+            # (the worker's death seen meanwhile).
+            if self._futures.pop(req_id, None) is not None:
+                future.set_exception(RuntimeFailure(f"worker {key!r} is gone: {exc}"))
+        return future
+
+    @staticmethod
+    def result(future: Future[Any], op: str, key: str, timeout: float) -> Any:
+        """The answer ``future`` holds within ``timeout``, else ``RuntimeTimeout``."""
+        try:
+            return future.result(timeout)
+        except FutureTimeout:
+            raise RuntimeTimeout(
+                f"worker {key!r} did not answer {op!r} within {timeout} s") from None
+
+    # -- the monitor -----------------------------------------------------------
+    def _poke(self) -> None:
+        with contextlib.suppress(OSError):
+            self._wake_w.send(b"\x01")
+
+    def _watch(self) -> None:
+        while not self._stopping.is_set():
+            handles = [h for h in list(self.handles.values()) if h.alive]
+            by_conn = {h.conn: h for h in handles}
+            by_sentinel = {h.process.sentinel: h for h in handles}
+            ready = multiprocessing.connection.wait(
+                [self._wake_r, *by_conn, *by_sentinel], timeout=1.0)
+            for item in ready:
+                if item is self._wake_r:
+                    with contextlib.suppress(BlockingIOError):
+                        self._wake_r.recv(4096)
+                elif item in by_conn:
+                    self._read(by_conn[item])
+            for item in ready:
+                if item in by_sentinel and by_sentinel[item].alive:
+                    self._read(by_sentinel[item])      # replies sent before it died
+                    self._died(by_sentinel[item])
+
+    def _read(self, handle: WorkerHandle) -> None:
+        try:
+            while handle.conn.poll():
+                req_id, ok, result = handle.conn.recv()
+                if req_id is None:
+                    self._on_notice(handle, ok, result)
+                    continue
+                future = self._futures.pop(req_id, None)
+                if future is None:
+                    continue
+                if ok is True:
+                    future.set_result(result)
+                else:
+                    future.set_exception(RuntimeFailure(f"worker {handle.key!r}: {result}"))
+        except (EOFError, OSError):
+            return                                     # it died: the sentinel reports it
+
+    def _died(self, handle: WorkerHandle) -> None:
+        handle.alive = False
+        with contextlib.suppress(OSError):
+            handle.conn.close()
+        for req_id, future in list(self._futures.items()):
+            if getattr(future, "pb3a_worker", None) == handle.key \
+                    and self._futures.pop(req_id, None) is not None:
+                future.set_exception(RuntimeFailure(f"worker {handle.key!r} died"))
+        if not self._stopping.is_set():
+            self._on_death(handle)
+
+    # -- stopping --------------------------------------------------------------
+    def _stop(self, handle: WorkerHandle, timeout: float) -> None:
+        handle.alive = False
+        with contextlib.suppress(OSError):
+            os.close(handle.bell)              # writers hold their own duplicates
+        if handle.process is None:
+            return
+        with contextlib.suppress(OSError, ValueError):
+            handle.conn.send(None)
+        handle.process.join(timeout)
+        if handle.process.is_alive():
+            handle.process.terminate()
+            handle.process.join(1.0)
+        if handle.process.is_alive():
+            handle.process.kill()
+            handle.process.join(1.0)
+        with contextlib.suppress(OSError):
+            handle.conn.close()
+        self._poke()
+
+    def close(self, timeout: float) -> None:
+        """Stop every worker (in reverse start order) within about ``timeout`` seconds, then
+        the monitor. Deaths from here on are stops, not crashes."""
+        deadline = time.monotonic() + timeout
+        self._stopping.set()
+        for handle in reversed(list(self.handles.values())):
+            self._stop(handle, max(0.1, min(2.0, deadline - time.monotonic())))
+        self._poke()
+        self._monitor.join(2.0)
+        self._wake_r.close()
+        self._wake_w.close()

@@ -1,0 +1,110 @@
+"""The figures of a running system, as typed records: what ``Running.stats()`` returns.
+
+Each record is a frozen dataclass (Trio's ``statistics()`` style): attributes with
+types and docs instead of nested dicts keyed by strings. ``SystemStats.to_json()``
+gives the same figures as plain JSON types, for scripts and ``--json`` output (NaN,
+which JSON cannot carry, becomes ``null``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+
+@dataclass(frozen=True)
+class InputStats:
+    """One input port's counters."""
+
+    policy: str                 # "latest" or "queue:N"
+    received: int = 0           # values delivered to the port
+    drops: int = 0              # values lost to queue overflow (or on the link)
+    pending: int = 0            # values not read yet
+    latency: float = math.nan   # smoothed seconds from write to delivery
+    rate: float = 0.0           # values per second, recently
+    link_failures: int = 0      # values lost because a link or its peer failed
+
+
+@dataclass(frozen=True)
+class ModuleStats:
+    """One module: where it runs, how it is doing, what it did."""
+
+    cls: str                    # "package.module:Class"
+    node: str
+    worker: str                 # the worker process's key
+    status: str                 # starting | running | failed | stopped
+    pid: int | None = None      # the worker process (None while it has none)
+    running: bool = False       # stepping or dispatching now
+    restarts: int = 0           # times its worker was restarted under it
+    checkpoints: int = 0        # checkpoints taken (restart = "last-state")
+    steps: int = 0
+    events: int = 0             # on_input calls
+    errors: int = 0             # exceptions raised by its bodies
+    last_error: str = ""
+    cpu: float = 0.0            # CPU seconds (its whole worker's when it runs alone)
+    inputs: dict[str, InputStats] = field(default_factory=dict)
+    outputs: dict[str, int] = field(default_factory=dict)    # values written, per output
+
+
+@dataclass(frozen=True)
+class LinkStats:
+    """One link, as its reader sees it."""
+
+    src: str                    # "module.port"
+    dst: str
+    policy: str
+    transport: str              # memory (one process) | shm (one node) | zmq (two nodes)
+    values: int = 0
+    drops: int = 0
+    pending: int = 0
+    latency: float = math.nan
+    rate: float = 0.0
+    link_failures: int = 0
+    ring_bytes_used: int = 0
+
+
+@dataclass(frozen=True)
+class NodeStats:
+    """One node's health as the launcher's heartbeats see it."""
+
+    up: bool
+    rtt: float                  # seconds; 0 for embedded nodes, NaN before the first beat
+    address: str | None         # None: embedded in the launcher's process
+    controller: bool | None = None   # its node controller answers (remote nodes)
+
+
+@dataclass(frozen=True)
+class NodeReport:
+    """What one node tells the launcher: its modules, rings and remote-link losses."""
+
+    modules: dict[str, ModuleStats]
+    ring_bytes_used: dict[str, int]     # link key -> bytes in its ring
+    link_failures: dict[str, int]       # link key -> values lost for good on the way in
+    failures: list[str]
+
+
+@dataclass(frozen=True)
+class SystemStats:
+    """A whole system: every module, link and node, and what went wrong."""
+
+    system: str
+    modules: dict[str, ModuleStats]
+    links: dict[str, LinkStats]         # keyed "src.port->dst.port"
+    nodes: dict[str, NodeStats]
+    failures: list[str]
+
+    def to_json(self) -> dict[str, Any]:
+        """The figures as JSON types (NaN as None)."""
+        return _plain(dataclasses.asdict(self))
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    if isinstance(value, dict):
+        return {key: _plain(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_plain(item) for item in value]
+    return value

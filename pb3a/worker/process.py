@@ -1,0 +1,460 @@
+"""The worker process: hosts one or more module actors for its executor.
+
+A worker has three kinds of threads: the control thread (requests from the
+executor over a private pipe, answered in order), the receiver (drains every
+inbound ring, sleeping on the process's doorbell when all are empty), and the
+event pool (or the receiver itself, when the worker hosts a single module) plus
+one step thread per threaded module. The worker exits when the
+executor says so or when the pipe closes (the executor died).
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import os
+import signal
+import threading
+import time
+from dataclasses import dataclass, field
+from multiprocessing import reduction
+from typing import TYPE_CHECKING, Any
+
+import cloudpickle
+
+from pb3a.loading.served import forget, use_module_servers
+from pb3a.model.agent import Agent, RuntimeClient
+from pb3a.model.ports import InputPort, Policy
+from pb3a.transport.codec import local_copy
+from pb3a.transport.doorbell import BellPull
+from pb3a.transport.ring import ShmRing, sleep
+from pb3a.worker.actor import EventPool, ModuleActor
+from pb3a.worker.publications import Publications
+
+if TYPE_CHECKING:
+    from collections.abc import Callable, Sequence
+
+log = logging.getLogger("pb3a.worker")
+
+GUARD_TIMEOUT = 0.5      # longest sleep of the receiver (a guard; wake-ups are not lost)
+SPIN_S = 100e-6          # values closer than this count as dense; poll this long for the next
+ERROR_REPORT_S = 1.0     # a module's exceptions are reported at most this often (all counted)
+
+
+@dataclass
+class _Inbound:
+    """One inbound ring and the input it feeds; closed under its lock."""
+
+    ring: ShmRing
+    port: InputPort
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    closed: bool = False
+
+    def drain(self) -> int:
+        self.lock.acquire()
+        try:
+            if self.closed:
+                return 0
+            values, sent_at, gaps = self.ring.drain()
+        finally:
+            self.lock.release()
+        if gaps:
+            self.port.drops += gaps
+        if values:
+            self.port.deliver_many(values, sent_at)
+        return len(values)
+
+    def close(self) -> int:
+        """Deliver everything left in the ring, then detach."""
+        drained = 0
+        while count := self.drain():
+            drained += count
+        with self.lock:
+            self.closed = True
+            self.ring.close()
+        return drained
+
+
+class Worker:
+    """Everything one worker process runs; ``serve`` is its control loop."""
+
+    def __init__(self, conn: Any, key: str, bell: int, checkpoint_s: float) -> None:
+        self.conn = conn
+        self.key = key
+        self.actors: dict[str, ModuleActor] = {}
+        self.restart_policy: dict[str, str] = {}
+        self.pool = EventPool()
+        self._bell_fd = bell                     # ours to close; the receiver sleeps on it
+        self._wake = BellPull(os.dup(bell))
+        self.inbound: dict[str, _Inbound] = {}
+        # what the receiver loops over, replaced (never mutated) when links change
+        self._receiving: tuple[list[_Inbound], list[Any]] = ([], [])
+        self.outbound: dict[str, tuple[str, str, ShmRing | None, BellPull | None]] = {}
+        self.publications = Publications()       # outputs replicated to other nodes
+        self._send_lock = threading.Lock()
+        self._requests: dict[int, tuple[threading.Event, list[Any]]] = {}
+        self._paused: set[str] = set()
+        self._error_times: dict[str, tuple[float, int]] = {}
+        self._ready: list[Callable[[], None]] = []
+        self._request_ids = itertools.count()
+        self._closing = threading.Event()
+        self._shut_down = False
+        self._checkpoint_s = checkpoint_s
+        self._threads = [threading.Thread(target=self._receive, name="pb3a-receiver", daemon=True),
+                         threading.Thread(target=self._checkpoint, name="pb3a-checkpoint",
+                                          daemon=True)]
+        self._solo = False                     # one module here: dispatch inline
+        for thread in self._threads:
+            thread.start()
+        self._receiver_id = self._threads[0].ident
+
+    # -- control loop ------------------------------------------------------
+    def serve(self) -> None:
+        while True:
+            try:
+                message = self.conn.recv()
+            except (EOFError, OSError):
+                break                                   # the executor is gone
+            if message is None:
+                break
+            req_id, op, args = message
+            if req_id is None:                          # an answer to one of our requests
+                self._answer(**args)
+                continue
+            try:
+                result = getattr(self, f"op_{op}")(**args)
+                reply = (req_id, True, result)
+            except Exception as exc:
+                log.debug("request %s failed", op, exc_info=True)
+                reply = (req_id, False, f"{type(exc).__name__}: {exc}")
+            self.send(reply)
+        self.shutdown()
+
+    def send(self, message: Any) -> None:
+        with self._send_lock:
+            try:
+                self.conn.send(message)
+            except (OSError, EOFError, BrokenPipeError):
+                self._closing.set()
+
+    def shutdown(self) -> None:
+        if self._shut_down:
+            return
+        self._shut_down = True
+        self._closing.set()
+        self.bell_self()                      # the receiver leaves its sleep and its loop
+        for name in reversed(list(self.actors)):
+            self.actors[name].stop(timeout=1.0)
+        self.pool.close(timeout=1.0)
+        for link in list(self.inbound.values()):
+            link.close()
+        for _, _, ring, pull in self.outbound.values():
+            if ring is not None:
+                ring.close()
+            if pull is not None:
+                pull.close()
+        self.publications.close()
+        self._threads[0].join(1.0)            # (before its doorbell's descriptor goes)
+        os.close(self._bell_fd)
+        self._wake.close()
+
+    # -- requests from the executor ----------------------------------------
+    def op_add(self, name: str, cls: bytes, period: float | None, restart: str,
+               state: dict[str, Any]) -> None:
+        module = cloudpickle.loads(cls)()
+        self._give_runtime(name, module)
+        if state:
+            module.set_state(state)
+        actor = ModuleActor(name, module, self._schedule, period, on_error=self._report_error)
+        self.actors[name] = actor
+        self.restart_policy[name] = restart
+        self._retime()
+
+    def _retime(self) -> None:
+        self._solo = solo = len(self.actors) == 1
+        for actor in self.actors.values():
+            actor.timed = not solo
+
+    def op_start(self, names: list[str]) -> None:
+        for name in names:
+            self.actors[name].start()
+
+    def op_stop(self, name: str, grace: float) -> bool:
+        return self.actors[name].stop(grace)
+
+    def op_pause(self, name: str, timeout: float) -> None:
+        """Hold the module's lock so it neither steps nor handles events (for rewiring)."""
+        if not self.actors[name].lock.acquire(timeout=timeout):
+            raise TimeoutError(f"module {name!r} did not finish its call within {timeout} s")
+        self._paused.add(name)
+
+    def op_resume(self, name: str) -> None:
+        if name in self._paused:
+            self._paused.discard(name)
+            self.actors[name].lock.release()
+
+    def op_migrate_out(self, name: str) -> bytes:
+        """Retire a paused module for its move: its state and unconsumed inputs."""
+        if name not in self._paused:
+            raise RuntimeError(f"module {name!r} must be paused before it migrates")
+        actor = self.actors.pop(name)
+        captured = actor.retire()
+        self._paused.discard(name)
+        actor.lock.release()
+        actor.join(timeout=1.0)
+        self.restart_policy.pop(name, None)
+        self._retime()
+        return cloudpickle.dumps(captured, protocol=5)
+
+    def op_migrate_in(self, name: str, captured: bytes) -> None:
+        """Take over a module's state and unconsumed inputs (added, not yet started)."""
+        self.actors[name].restore(cloudpickle.loads(captured))
+
+    def op_remove(self, name: str) -> None:
+        actor = self.actors.pop(name)
+        if actor.running:
+            actor.stop(timeout=1.0)
+        self.restart_policy.pop(name, None)
+        self._retime()
+
+    def op_link_in(self, key: str, dst: str, dst_port: str, ring: str, policy: str) -> None:
+        port = self.actors[dst].inputs[dst_port]
+        port.set_policy(Policy.parse(policy))
+        shm_ring = ShmRing.attach(ring)
+        shm_ring.resume_reader()   # a restarted reader continues where the last one stopped
+        self.inbound[key] = _Inbound(shm_ring, port)
+        self._inbound_changed()
+
+    def op_unlink_in(self, key: str) -> int:
+        link = self.inbound.pop(key, None)
+        if link is None:
+            return 0
+        self._inbound_changed()
+        return link.close()
+
+    def _inbound_changed(self) -> None:
+        links = list(self.inbound.values())
+        self._receiving = (links, [link.ring.core for link in links])
+        self.bell_self()
+
+    def op_link_out(self, key: str, src: str, src_port: str, ring: str | None = None,
+                    dst: str = "", dst_port: str = "", policy: str = "latest") -> None:
+        if ring is None:                                 # both ends in this process
+            self._link_out_memory(key, src, src_port, dst, dst_port, policy)
+            return
+        # The reader's doorbell follows this request on the pipe (SCM_RIGHTS): take it
+        # before anything can fail, or the next request would read it as its own.
+        pull = BellPull(reduction.recv_handle(self.conn))
+        try:
+            self._link_out_ring(key, src, src_port, ring, pull)
+        except BaseException:
+            pull.close()
+            raise
+
+    def _link_out_memory(self, key: str, src: str, src_port: str, dst: str, dst_port: str,
+                         policy: str) -> None:
+        port = self.actors[src].outputs[src_port]
+        target = self.actors[dst].inputs[dst_port]
+        target.set_policy(Policy.parse(policy))
+
+        def one(value: Any, target: InputPort = target) -> None:
+            target.deliver(local_copy(value), time.monotonic())
+
+        def many(values: Sequence[Any], target: InputPort = target) -> None:
+            target.deliver_many([local_copy(v) for v in values], time.monotonic())
+        port.connect(key, one, many)
+        self.outbound[key] = (src, src_port, None, None)
+
+    def _link_out_ring(self, key: str, src: str, src_port: str, ring: str,
+                       pull: BellPull) -> None:
+        port = self.actors[src].outputs[src_port]
+        shm_ring = ShmRing.attach(ring)
+        shm_ring.resume_writer()   # a restarted writer gets back slots it never published
+        shm_ring.set_bell(pull.fileno())
+        port.connect(key, shm_ring.write, shm_ring.write_many)
+        self.outbound[key] = (src, src_port, shm_ring, pull)
+
+    def op_unlink_out(self, key: str) -> None:
+        entry = self.outbound.pop(key, None)
+        if entry is None:
+            return
+        src, src_port, ring, pull = entry
+        if src in self.actors:
+            self.actors[src].outputs[src_port].disconnect(key)
+        if ring is not None:
+            ring.close()
+        if pull is not None:
+            pull.ring()      # the reader drains what is left
+            pull.close()
+
+    def op_publish_out(self, key: str, src: str, src_port: str, secret: bytes,
+                       host: str, epoch: int = 0) -> tuple[str, str, bytes]:
+        """Replicate an output to another node: (data address, control address,
+        incarnation) for the reading node to follow."""
+        return self.publications.add(key, f"{src}.{src_port}",
+                                     self.actors[src].outputs[src_port], secret, host, epoch)
+
+    def op_unpublish_out(self, key: str) -> int:
+        return self.publications.remove(key)
+
+    def op_forget(self, module: str) -> list[str]:
+        """Drop cached copies of ``module``: the next load or swap gets the new code."""
+        return forget(module)
+
+    def op_get_state(self, name: str) -> dict[str, Any]:
+        return self.actors[name].capture()
+
+    def op_set_state(self, name: str, state: dict[str, Any]) -> None:
+        self.actors[name].apply(state)
+
+    def op_swap(self, name: str, cls: bytes) -> list[str]:
+        module = cloudpickle.loads(cls)()
+        self._give_runtime(name, module)
+        return self.actors[name].swap(module)
+
+    def op_stats(self) -> dict[str, Any]:
+        modules = {name: actor.statistics() for name, actor in self.actors.items()}
+        if len(modules) == 1:             # everything this process does is for its module
+            next(iter(modules.values()))["cpu"] = time.process_time()
+        links = {key: link.ring.statistics() for key, link in self.inbound.items()}
+        return {"pid": os.getpid(), "modules": modules, "rings": links}
+
+    def _report_error(self, actor: ModuleActor, where: str, trace: str) -> None:
+        """Tell the executor (which logs it) about an exception, at most once a second each."""
+        now = time.monotonic()
+        last, suppressed = self._error_times.get(actor.name, (0.0, 0))
+        if now - last < ERROR_REPORT_S:
+            self._error_times[actor.name] = (last, suppressed + 1)
+            return
+        self._error_times[actor.name] = (now, 0)
+        self.send((None, "error", {"name": actor.name, "where": where, "trace": trace,
+                                   "suppressed": suppressed}))
+
+    # -- agents' requests to the executor ----------------------------------
+    def _give_runtime(self, name: str, module: Any) -> None:
+        if isinstance(module, Agent):
+            module.__dict__["_pb3a_runtime"] = RuntimeClient(name, self.request)
+
+    def request(self, op: str, args: dict[str, Any], timeout: float = 10.0) -> Any:
+        """Ask the executor to apply a configuration change; wait for the answer."""
+        req_id = next(self._request_ids)
+        done = threading.Event()
+        self._requests[req_id] = (done, [])
+        self.send((None, "request", {"id": req_id, "op": op, "args": cloudpickle.dumps(args)}))
+        try:
+            if not done.wait(timeout):
+                raise TimeoutError(f"the executor did not answer {op!r} within {timeout} s")
+            ok, result = self._requests[req_id][1]
+        finally:
+            self._requests.pop(req_id, None)
+        if not ok:
+            raise RuntimeError(result)
+        return result
+
+    def _answer(self, id: int, ok: bool, result: Any) -> None:
+        entry = self._requests.get(id)
+        if entry is not None:
+            entry[1].extend((ok, result))
+            entry[0].set()
+
+    # -- receiver ----------------------------------------------------------
+    def bell_self(self) -> None:
+        self._wake.ring()
+
+    def _schedule(self, task: Callable[[], None]) -> None:
+        """Run a module's event dispatch: inline on the receiver when it is alone here.
+
+        A worker hosting a single module saves the hand-off to a pool thread (tens
+        of microseconds after an idle period); with several modules the pool runs
+        them in parallel, so one slow handler does not delay another's delivery.
+        """
+        if self._solo and threading.get_ident() == self._receiver_id:
+            self._ready.append(task)
+        else:
+            self.pool.submit(task)
+
+    def _run_ready(self) -> None:
+        tasks, self._ready = self._ready, []
+        for task in tasks:
+            if task.__self__.lock.locked():      # type: ignore[attr-defined]
+                self.pool.submit(task)           # busy stepping: do not block the receiver
+            else:
+                task()
+
+    def _receive(self) -> None:
+        # Drain every ring, run what became ready, then announce sleep and look once
+        # more (the announcement and the look are the reader's half of the ring's
+        # wake-up hand-shake) before sleeping on the doorbell.
+        gap = last = 0.0                   # time between the last two deliveries
+        while not self._closing.is_set():
+            try:
+                links, cores = self._receiving
+                count = 0
+                for link in links:
+                    count += link.drain()
+                if count:
+                    now = time.monotonic()
+                    gap, last = now - last, now
+                if self._ready:
+                    self._run_ready()
+                    if self._ready:               # a module has more to do: drain first
+                        continue
+                if gap < SPIN_S and self._spin(links):
+                    continue
+                sleep(self._bell_fd, cores, GUARD_TIMEOUT)
+            except Exception:
+                log.exception("receiver: unexpected error; going on")
+
+    @staticmethod
+    def _spin(links: list[_Inbound]) -> bool:
+        """While values flow densely, poll briefly before sleeping: the next value is
+        likely microseconds away, and sleeping would make its writer ring (a system
+        call) and its reader wake (tens of microseconds). Sparse traffic never spins."""
+        deadline = time.monotonic() + SPIN_S
+        while time.monotonic() < deadline:
+            if any(link.ring.has_data() for link in links):
+                return True
+            time.sleep(0)                         # let the process's other threads run
+        return False
+
+    def _checkpoint(self) -> None:
+        while not self._closing.wait(self._checkpoint_s):
+            for name, policy in list(self.restart_policy.items()):
+                actor = self.actors.get(name)
+                if policy == "last-state" and actor is not None and actor.running:
+                    try:
+                        blob = cloudpickle.dumps(actor.capture())
+                    except Exception:
+                        log.exception("cannot checkpoint module %r", name)
+                        continue
+                    self.send((None, "checkpoint", {"name": name, "state": blob}))
+
+
+class _Terminated(Exception):
+    """SIGTERM arrived: stop the modules and exit cleanly."""
+
+
+def _on_sigterm(signum: int, frame: object) -> None:
+    raise _Terminated
+
+
+def worker_main(conn: Any, key: str, checkpoint_s: float, level: int,
+                cpus: list[int] | None = None, module_servers: list[str] | None = None) -> None:
+    """Entry point of a worker process.
+
+    Ctrl-C in a terminal reaches every process of the group: workers ignore it and
+    let their launcher stop them in order. SIGTERM stops the worker's modules and
+    exits with status 0, which the executor takes as a stop, not a crash.
+    """
+    if cpus:
+        os.sched_setaffinity(0, cpus)           # before any thread: they all inherit it
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _on_sigterm)
+    logging.basicConfig(level=level, format=f"%(asctime)s pb3a[{key}] %(levelname)s %(message)s")
+    bell = reduction.recv_handle(conn)          # the executor sends our doorbell first
+    use_module_servers(module_servers or [])
+    worker = Worker(conn, key, bell, checkpoint_s)
+    try:
+        worker.serve()
+    except _Terminated:
+        worker.shutdown()

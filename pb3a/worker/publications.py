@@ -1,0 +1,73 @@
+"""``Publications``: the outputs a worker process replicates to other nodes.
+
+One ``Replicator`` per worker, created when the first remote link appears. Each
+output is published under one topic (``"module.port"``) however many remote
+links read it: the output gets one sink, and a topic stays until its last link goes.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from pb3a.transport.auth import ClusterKey
+from pb3a.transport.replication import Replicator
+
+if TYPE_CHECKING:
+    from pb3a.model.ports import OutputPort
+
+
+class Publications:
+    """Remote links out of one worker process."""
+
+    def __init__(self) -> None:
+        self.replicator: Replicator | None = None
+        self._readers: dict[str, set[str]] = {}      # topic -> keys of the links reading it
+        self._ports: dict[str, OutputPort] = {}
+
+    def add(self, key: str, topic: str, port: OutputPort, secret: bytes, host: str,
+            epoch: int = 0) -> tuple[str, str, bytes]:
+        """Publish ``port`` for the link ``key``; the addresses and incarnation to follow.
+        Messages carry the system's ``epoch``; older ones are refused as stale."""
+        if self.replicator is None:
+            self.replicator = Replicator(ClusterKey(secret), host, epoch=epoch)
+        replicator = self.replicator
+        readers = self._readers.setdefault(topic, set())
+        if not readers:
+            replicator.add(topic)
+            publish = replicator.publish
+
+            def one(value: Any) -> None:
+                publish(topic, value)
+
+            def many(values: Any) -> None:
+                for value in values:
+                    publish(topic, value)
+            port.connect(_sink(topic), one, many)
+            self._ports[topic] = port
+        readers.add(key)
+        return replicator.data_address, replicator.control_address, replicator.incarnation
+
+    def remove(self, key: str) -> int:
+        """The link ``key`` no longer reads; unhook its output if nothing else does.
+        Returns the sequence number its topic had reached (what the reader must
+        have received before the link may close)."""
+        reached = 0
+        for topic, readers in list(self._readers.items()):
+            if key not in readers:
+                continue
+            readers.discard(key)
+            if not readers:
+                del self._readers[topic]
+                self._ports.pop(topic).disconnect(_sink(topic))
+            assert self.replicator is not None
+            reached = self.replicator.sequence(topic)
+        return reached
+
+    def close(self) -> None:
+        if self.replicator is not None:
+            self.replicator.close()
+            self.replicator = None
+
+
+def _sink(topic: str) -> str:
+    return f"publish:{topic}"
