@@ -383,3 +383,40 @@ class Cruise(Module):
             self.sonar.read()
             self.scans += 1
         self.command.write(np.array([self.speed, 0.0]))
+
+
+class Busybody(Agent):
+    """An agent that, every step, asks the runtime about its peers in turn: their state,
+    the system's figures, an edit of their state, a swap (to its own class, keeping
+    state), or a move of the first peer to the next node. It counts what it asked and
+    what was refused, and keeps the first unexpected error."""
+
+    period = 0.001
+    peers: list = []
+    nodes: list = []
+    asked = 0
+    refused = 0          # requests cancelled because the runtime had to pause this agent
+    poked = 0            # set by the others
+    unexpected = ""
+
+    def step(self) -> None:
+        peer = self.peers[self.asked % len(self.peers)]
+        try:
+            match self.asked % 5:
+                case 0:
+                    self.runtime.state(peer)
+                case 1:
+                    self.runtime.stats()
+                case 2:
+                    self.runtime.set_state(peer, poked=self.asked)
+                case 3:
+                    self.runtime.swap(peer, type(self))
+                case _:
+                    if self.nodes:
+                        self.runtime.migrate(peer, self.nodes[self.asked % len(self.nodes)])
+        except Exception as exc:
+            if "cancelled" in str(exc):
+                self.refused += 1
+            elif not self.unexpected:
+                self.unexpected = f"{type(exc).__name__}: {exc}"
+        self.asked += 1

@@ -26,11 +26,11 @@ from pb3a.node.protocol import REMOTE_OPERATIONS
 from pb3a.processes import serve_as_child
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient, ControlServer
+from pb3a.worker.process import AGENT_REQUEST_TIMEOUT
 
 log = logging.getLogger("pb3a.node")
 
 ORPHAN_S = 10.0           # a launcher silent this long is gone: stop
-AGENT_TIMEOUT = 120.0     # an agent's request to the launcher (a migration, say)
 
 
 class NodeShare:
@@ -101,7 +101,7 @@ class NodeShare:
     def _agent_request(self, op: str, args: dict[str, Any]) -> Any:
         if self.launcher is None:
             raise RuntimeFailure(f"node {self.node} has no launcher to ask")
-        return self.launcher.call("agent", AGENT_TIMEOUT, request=op, args=args)
+        return self.launcher.call("agent", AGENT_REQUEST_TIMEOUT, request=op, args=args)
 
     def _republished(self, link: Any, endpoint: tuple[str, str, bytes]) -> None:
         # Called during a restart, under the executor's lock: the launcher may be

@@ -19,6 +19,7 @@ import time
 from typing import TYPE_CHECKING, Any
 
 from pb3a.errors import ModuleNotFound, RuntimeFailure, RuntimeTimeout
+from pb3a.launch.configuration_lock import ConfigurationLock
 from pb3a.model.environment import env_name
 from pb3a.node.executor import Executor
 from pb3a.node.remote import RemoteNode
@@ -37,7 +38,6 @@ log = logging.getLogger("pb3a.launcher")
 HEARTBEAT_S = 0.25      # how often the launcher pings each remote node
 LOSS_S = 2.0            # no answer for this long: the node is lost (reported within 3 s)
 ENV_EVERY = 4           # heartbeats between two updates of the env modules' node table
-SETTLE_S = 1.0          # how long a read waits for a change in progress
 
 
 class Launcher:
@@ -47,7 +47,7 @@ class Launcher:
                  log_level: int = logging.WARNING) -> None:
         self.plan = plan
         self.checkpoint_s, self.log_level = checkpoint_s, log_level
-        self.lock = threading.RLock()                 # the global configuration lock
+        self.lock = ConfigurationLock()               # the global configuration lock
         # Stamped on replication and launcher <-> executor messages: frames of an
         # earlier run of a system (a lower epoch) are refused as stale.
         self.epoch = time.time_ns() // 1_000_000
@@ -97,19 +97,6 @@ class Launcher:
         if self.handler is None:
             raise RuntimeFailure("this system takes no requests from agents")
         return self.handler(op, args)
-
-    @contextlib.contextmanager
-    def settled(self, timeout: float = SETTLE_S) -> Iterator[None]:
-        """Hold the configuration lock for a read if it comes within ``timeout``, so that
-        a read does not see a change (a migration, say) half done. A read an agent
-        makes while its own module is being moved must not wait for that move (it
-        waits for the agent), so after ``timeout`` the read goes on without it."""
-        held = self.lock.acquire(timeout=timeout)
-        try:
-            yield
-        finally:
-            if held:
-                self.lock.release()
 
     def node_of(self, name: str) -> Node:
         """The executor of the node module ``name`` runs on."""
@@ -196,7 +183,7 @@ class Launcher:
 
     def republished(self, link: FlatLink, endpoint: tuple[str, str, bytes]) -> None:
         """A restarted writer publishes ``link`` anew: its reader follows the new sender."""
-        with self.lock:
+        with self.lock.held(f"follow the restarted writer of {link.key}"):
             if self.links.get(link.key) == link and link.dst in self.specs:
                 self.node_of(link.dst).follow(link, endpoint)
 
@@ -255,7 +242,7 @@ class Launcher:
         self.failures.append(f"node {node} lost (no heartbeat for {silent_s:.1f} s); its "
                              f"modules {', '.join(gone) or '(none)'} are gone")
         log.error(self.failures[-1])
-        with self.lock:
+        with self.lock.held(f"drop lost node {node}"):
             for key, link in list(self.links.items()):
                 if link.src in gone or link.dst in gone:
                     with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
@@ -306,7 +293,7 @@ class Launcher:
         self._stopping.set()
         if self._watchdog is not None:
             self._watchdog.join(2.0)
-        with self.lock:
+        with self.lock.held("shut the system down"):
             for name in reversed(list(self.specs)):
                 left = max(0.1, deadline - time.monotonic())
                 try:

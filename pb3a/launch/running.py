@@ -55,7 +55,7 @@ class Running:
         run ``setup`` in order."""
         launcher = self._launcher
         try:
-            with self._lock:
+            with self._lock.held(f"start system {self.name!r}"):
                 remote = [node.address for node in self.plan.nodes.values() if node.address]
                 launcher.start_nodes(self.listen(reachable_from(remote[0])) if remote else None)
                 launcher.expect(list(self.plan.modules.values()))
@@ -106,12 +106,12 @@ class Running:
     # -- state -------------------------------------------------------------------
     def state(self, name: str) -> dict[str, Any]:
         """The module's live state (taken under its lock)."""
-        with self._launcher.settled():
+        with self._lock.held(f"state {name}"):
             return self._launcher.call(name, "get_state")
 
     def set_state(self, name: str, **state: Any) -> None:
         """Set state attributes of a running module, between two of its calls."""
-        with self._lock:
+        with self._lock.held(f"set_state {name}"):
             self._launcher.call(name, "set_state", state=state)
 
     # -- migration -------------------------------------------------------------------
@@ -122,7 +122,7 @@ class Running:
         lost, duplicated or reordered. A macro's modules move one after another; its
         report sums their state and links and gives the longest single pause.
         """
-        with self._lock:
+        with self._lock.held(f"migrate {name} to {to}"):
             if to not in self.plan.nodes:
                 raise ConfigError([f"migrate {name}: no node {to!r}; nodes: "
                                    f"{', '.join(self.plan.nodes)}"])
@@ -144,7 +144,7 @@ class Running:
         and in every worker: the next load or ``swap`` naming one of its classes gets
         the file as it is now (from a module server, or the local path). Running
         instances keep their code until swapped."""
-        with self._lock:
+        with self._lock.held(f"reload {module}"):
             forget(module)
             for node in self._launcher.nodes.values():
                 node.forget(module)
@@ -156,7 +156,7 @@ class Running:
         ``setup`` runs again on the new instance. Returns the state names carried over.
         """
         new_cls = resolve_class(cls)
-        with self._lock:
+        with self._lock.held(f"swap {name}"):
             launcher = self._launcher
             node = launcher.node_of(name)
             spec = launcher.specs[name]
@@ -170,7 +170,7 @@ class Running:
 
     def relink(self, src: str, dst: str, *, policy: str | None = None) -> None:
         """Feed input ``dst`` ("module.port") from output ``src``, replacing its old source."""
-        with self._lock:
+        with self._lock.held(f"relink {src} -> {dst}"):
             link = self._new_link(src, dst, policy)
             launcher = self._launcher
             olds = [old for old in launcher.links.values()
@@ -184,7 +184,7 @@ class Running:
 
     def link(self, src: str, dst: str, *, policy: str | None = None) -> None:
         """Add a link while running; the input must not be fed yet."""
-        with self._lock:
+        with self._lock.held(f"link {src} -> {dst}"):
             link = self._new_link(src, dst, policy)
             for old in self._launcher.links.values():
                 if (old.dst, old.dst_port) == (link.dst, link.dst_port):
@@ -228,7 +228,7 @@ class Running:
         restart = restart or module_cls.restart
         if restart not in RESTART_POLICIES:
             raise ConfigError([f"module {name}: restart must be one of {RESTART_POLICIES}"])
-        with self._lock:
+        with self._lock.held(f"add {name}"):
             if name in self._launcher.specs:
                 raise ConfigError([f"module {name}: a module of that name runs already"])
             node = node or next(iter(self.plan.nodes))
@@ -243,7 +243,7 @@ class Running:
 
     def remove(self, name: str) -> None:
         """Stop a module (``teardown`` runs), drop its links, free its process."""
-        with self._lock:
+        with self._lock.held(f"remove {name}"):
             self._launcher.remove_module(name)
 
     def _agent_request(self, op: str, args: dict[str, Any]) -> Any:
@@ -286,7 +286,7 @@ class Running:
     def stats(self) -> SystemStats:
         """Per module: steps, events, CPU time, errors; per link: values, drops, latency,
         rate; per node: health (see ``pb3a.stats``)."""
-        with self._launcher.settled():
+        with self._lock.held("stats"):
             return self._launcher.stats()
 
 

@@ -3,8 +3,11 @@
 ``self.runtime`` offers the launcher's operations (read or set another
 module's state, swap, relink, spawn, remove, figures). Each request travels
 to the executor and is applied under the global configuration lock, one at a
-time with every other change. Requests block the agent's call until answered
-(10 s at most), so an agent must not target itself: it owns its own state.
+time with every other change. A request blocks the agent's call until answered
+(30 s at most). Meanwhile the agent gives way (``pb3a.worker.waits``): its
+state may be read or set on its own thread, and if the runtime must pause it
+(to move or swap it) the call raises ``RuntimeFailure`` ("... cancelled: ...").
+An agent must not target itself (except to migrate): it owns its own state.
 """
 
 from __future__ import annotations

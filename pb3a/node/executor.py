@@ -17,6 +17,7 @@ import contextlib
 import logging
 import threading
 import time
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from typing import Any
 
@@ -60,7 +61,7 @@ class Executor:
     def __init__(self, node: str, *, workers: int = 0, cpus: list[int] | None = None,
                  checkpoint_s: float = 1.0, log_level: int = logging.WARNING,
                  module_servers: list[str] | None = None, host: str = "127.0.0.1",
-                 lock: threading.RLock | None = None, epoch: int = 0) -> None:
+                 lock: AbstractContextManager[Any] | None = None, epoch: int = 0) -> None:
         self.node = node
         self.epoch = epoch                  # the system's: older replication is refused
         self.packing = workers              # packed worker processes (0: one per module)

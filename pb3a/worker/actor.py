@@ -18,6 +18,7 @@ from collections import deque
 from typing import TYPE_CHECKING, Any
 
 from pb3a.model.ports import InputPort, OutputPort
+from pb3a.worker.waits import RuntimeWait, run_posted
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -29,6 +30,8 @@ log = logging.getLogger("pb3a.module")
 _BODIES = ("step", "on_input")   # hooks that run only while the module runs
 _EVENT_BUDGET = 256  # events handled per dispatch task before yielding to other modules
 _HAND_OVER_S = 0.01  # longest a step loop waits for a waiter to take the lock it left
+_WAIT_SLICE = 0.02   # a request waiting for a module lock looks this often for a body that
+                     # has started waiting for the runtime (then runs on its thread)
 
 
 class HandOverLock:
@@ -124,6 +127,9 @@ class ModuleActor:
         self._step_cpu = 0.0
         self._stopped = False
         self._thread: threading.Thread | None = None
+        self._holder = 0                        # the thread running a body now (0: none)
+        self._wait: RuntimeWait | None = None   # its runtime call in progress, if any
+        self._stopping_for = ""                 # why someone waits to stop it, if anyone
         self.ports = module._pb3a_bind_ports(name)
         self._event_driven = type(module).is_event_driven()
         for port in self.inputs.values():
@@ -163,10 +169,11 @@ class ModuleActor:
             self._stop.release()                # wakes a step thread between two steps
         finished = True
         if self._thread is not None and self._thread is not threading.current_thread():
+            self._cancel_wait("the module is stopping")
             self._thread.join(timeout)
             finished = not self._thread.is_alive()
             self._thread = None
-        if self.lock.acquire(timeout=timeout):
+        if self.acquire_stopped(timeout, "the module is stopping"):
             self.lock.release()
             self.call("teardown")
         else:
@@ -214,6 +221,7 @@ class ModuleActor:
         lock = self.lock
         if not lock.try_acquire():
             lock.acquire()
+        self._holder = threading.get_ident()
         try:
             if not self.running and hook in _BODIES:
                 return 0                        # stopped or migrated while waiting
@@ -236,6 +244,7 @@ class ModuleActor:
             if timed:
                 self.cpu += time.thread_time() - start
         finally:
+            self._holder = 0
             self.lock.release()
         return done
 
@@ -274,11 +283,60 @@ class ModuleActor:
                         self._pending.append(port)
         self._schedule(self._dispatch)   # more to do: let other modules have a turn
 
+    # -- a body waiting for the runtime (see ``waits``) ----------------------
+    def begin_wait(self, what: str) -> RuntimeWait:
+        """A runtime call from this module: while it waits, requests that need the lock
+        for a moment run on the calling thread, if that thread holds the lock (a body)."""
+        wait = RuntimeWait(what)
+        if self._holder == threading.get_ident():
+            self._wait = wait
+            if self._stopping_for:              # asked again after a cancellation
+                wait.cancel(self._stopping_for)
+        return wait
+
+    def end_wait(self, wait: RuntimeWait) -> None:
+        if self._wait is wait:
+            self._wait = None
+        wait.close()
+
+    def _cancel_wait(self, reason: str) -> None:
+        wait = self._wait
+        if wait is not None:
+            wait.cancel(reason)
+
+    def with_lock(self, work: Callable[[], Any], timeout: float) -> Any:
+        """Run ``work`` under the module lock, or on the thread of a body that holds it
+        while it waits for the runtime; TimeoutError after ``timeout``."""
+        deadline = time.monotonic() + timeout
+        while True:
+            wait = self._wait
+            if wait is not None and (future := wait.post(work)) is not None:
+                ran, result = run_posted(future, max(0.0, deadline - time.monotonic()))
+                if ran:
+                    return result
+            # in slices: a body may start waiting for the runtime meanwhile
+            if self.lock.acquire(timeout=min(_WAIT_SLICE, max(0.0, deadline - time.monotonic()))):
+                try:
+                    return work()
+                finally:
+                    self.lock.release()
+            if time.monotonic() >= deadline:
+                raise TimeoutError(f"module {self.name!r} was busy in a call for {timeout} s")
+
+    def acquire_stopped(self, timeout: float, why: str) -> bool:
+        """Take the module lock with no body running, cancelling a runtime call a body
+        waits in (it raises there, see ``waits``); False after ``timeout``."""
+        self._stopping_for = why
+        try:
+            self._cancel_wait(why)
+            return self.lock.acquire(timeout=timeout)
+        finally:
+            self._stopping_for = ""
+
     # -- state and swap ----------------------------------------------------
-    def capture(self) -> dict[str, Any]:
+    def capture(self, timeout: float = 10.0) -> dict[str, Any]:
         """The module's state, taken under its lock."""
-        with self.lock:
-            return self.module.get_state()
+        return self.with_lock(self.module.get_state, timeout)
 
     def retire(self) -> dict[str, Any]:
         """Leave this process (migration); the caller holds the module lock (paused).
@@ -315,18 +373,19 @@ class ModuleActor:
             if port is not None:
                 port.restore(held)
 
-    def apply(self, state: dict[str, Any]) -> None:
+    def apply(self, state: dict[str, Any], timeout: float = 10.0) -> None:
         """Set state under the module lock (KeyError for unknown names)."""
-        with self.lock:
-            self.module.set_state(state)
+        self.with_lock(lambda: self.module.set_state(state), timeout)
 
-    def swap(self, new: Module) -> list[str]:
+    def swap(self, new: Module, timeout: float = 10.0) -> list[str]:
         """Replace the module by ``new`` keeping ports, queued values and matching state.
 
         The new instance runs with the period the module was configured with.
         Returns the names of the state attributes carried over.
         """
-        with self.lock:
+        if not self.acquire_stopped(timeout, "the module is being swapped"):
+            raise TimeoutError(f"module {self.name!r} was busy in a call for {timeout} s")
+        try:
             old = self.module
             try:
                 old.teardown()
@@ -347,6 +406,8 @@ class ModuleActor:
             new.set_state(kept)
             self.module = new
             self._event_driven = type(new).is_event_driven()
+        finally:
+            self.lock.release()
         self.call("setup")
         return sorted(kept)
 

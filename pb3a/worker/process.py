@@ -10,6 +10,7 @@ executor says so or when the pipe closes (the executor died).
 
 from __future__ import annotations
 
+import functools
 import itertools
 import logging
 import os
@@ -30,6 +31,7 @@ from pb3a.transport.doorbell import BellPull
 from pb3a.transport.ring import ShmRing, sleep
 from pb3a.worker.actor import EventPool, ModuleActor
 from pb3a.worker.publications import Publications
+from pb3a.worker.waits import RuntimeWait
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Sequence
@@ -39,6 +41,9 @@ log = logging.getLogger("pb3a.worker")
 GUARD_TIMEOUT = 0.5      # longest sleep of the receiver (a guard; wake-ups are not lost)
 SPIN_S = 100e-6          # values closer than this count as dense; poll this long for the next
 ERROR_REPORT_S = 1.0     # a module's exceptions are reported at most this often (all counted)
+AGENT_REQUEST_TIMEOUT = 30.0   # an agent's request to the runtime (a migration, say)
+# Requests that wait for a module's lock: never on the control thread.
+_TAKES_A_MODULE_LOCK = frozenset({"get_state", "set_state", "pause", "swap", "stop", "remove"})
 
 
 @dataclass
@@ -92,7 +97,7 @@ class Worker:
         self.outbound: dict[str, tuple[str, str, ShmRing | None, BellPull | None]] = {}
         self.publications = Publications()       # outputs replicated to other nodes
         self._send_lock = threading.Lock()
-        self._requests: dict[int, tuple[threading.Event, list[Any]]] = {}
+        self._requests: dict[int, RuntimeWait] = {}    # agents' requests awaiting answers
         self._paused: set[str] = set()
         self._error_times: dict[str, tuple[float, int]] = {}
         self._ready: list[Callable[[], None]] = []
@@ -120,15 +125,23 @@ class Worker:
             req_id, op, args = message
             if req_id is None:                          # an answer to one of our requests
                 self._answer(**args)
-                continue
-            try:
-                result = getattr(self, f"op_{op}")(**args)
-                reply = (req_id, True, result)
-            except Exception as exc:
-                log.debug("request %s failed", op, exc_info=True)
-                reply = (req_id, False, f"{type(exc).__name__}: {exc}")
-            self.send(reply)
+            elif op in _TAKES_A_MODULE_LOCK:
+                # This thread must go on reading: the module may be a body waiting for
+                # the answer to its own runtime request (see ``waits``).
+                threading.Thread(target=self._handle, args=(req_id, op, args), daemon=True,
+                                 name=f"pb3a-{op}").start()
+            else:
+                self._handle(req_id, op, args)
         self.shutdown()
+
+    def _handle(self, req_id: int, op: str, args: dict[str, Any]) -> None:
+        try:
+            result = getattr(self, f"op_{op}")(**args)
+            reply = (req_id, True, result)
+        except Exception as exc:
+            log.debug("request %s failed", op, exc_info=True)
+            reply = (req_id, False, f"{type(exc).__name__}: {exc}")
+        self.send(reply)
 
     def send(self, message: Any) -> None:
         with self._send_lock:
@@ -184,7 +197,8 @@ class Worker:
 
     def op_pause(self, name: str, timeout: float) -> None:
         """Hold the module's lock so it neither steps nor handles events (for rewiring)."""
-        if not self.actors[name].lock.acquire(timeout=timeout):
+        if not self.actors[name].acquire_stopped(timeout, f"module {name!r} is being paused "
+                                                 "(to move it, or to rewire its links)"):
             raise TimeoutError(f"module {name!r} did not finish its call within {timeout} s")
         self._paused.add(name)
 
@@ -333,29 +347,29 @@ class Worker:
     # -- agents' requests to the executor ----------------------------------
     def _give_runtime(self, name: str, module: Any) -> None:
         if isinstance(module, Agent):
-            module.__dict__["_pb3a_runtime"] = RuntimeClient(name, self.request)
+            module.__dict__["_pb3a_runtime"] = RuntimeClient(
+                name, functools.partial(self.request, name))
 
-    def request(self, op: str, args: dict[str, Any], timeout: float = 10.0) -> Any:
-        """Ask the executor to apply a configuration change; wait for the answer."""
+    def request(self, agent: str, op: str, args: dict[str, Any],
+                timeout: float = AGENT_REQUEST_TIMEOUT) -> Any:
+        """An agent's request to the runtime (a configuration change, a read); waits for
+        the answer, giving way meanwhile to requests that need the agent (``waits``)."""
+        actor = self.actors[agent]
+        wait = actor.begin_wait(f"{agent}'s request {op!r}")
         req_id = next(self._request_ids)
-        done = threading.Event()
-        self._requests[req_id] = (done, [])
-        self.send((None, "request", {"id": req_id, "op": op, "args": cloudpickle.dumps(args)}))
+        self._requests[req_id] = wait
         try:
-            if not done.wait(timeout):
-                raise TimeoutError(f"the executor did not answer {op!r} within {timeout} s")
-            ok, result = self._requests[req_id][1]
+            self.send((None, "request", {"id": req_id, "op": op,
+                                         "args": cloudpickle.dumps(args)}))
+            return wait.result(timeout)
         finally:
             self._requests.pop(req_id, None)
-        if not ok:
-            raise RuntimeError(result)
-        return result
+            actor.end_wait(wait)
 
     def _answer(self, id: int, ok: bool, result: Any) -> None:
-        entry = self._requests.get(id)
-        if entry is not None:
-            entry[1].extend((ok, result))
-            entry[0].set()
+        wait = self._requests.get(id)
+        if wait is not None:
+            wait.answer(ok, result)
 
     # -- receiver ----------------------------------------------------------
     def bell_self(self) -> None:
