@@ -84,3 +84,66 @@ def test_the_readme_quickstart_runs_as_a_plain_script(tmp_path: Path) -> None:
                           check=False)
     assert done.returncode == 0, done.stderr
     assert "'gain': 10.0" in done.stdout and "tick.out" in done.stdout
+
+
+MODULES_BESIDE_THE_FILE = '''
+from pb3a import Input, Module, Output
+
+
+class Tick(Module):
+    out = Output(int)
+    period = 0.01
+    count = 0
+
+    def step(self):
+        self.count += 1
+        self.out.write(self.count)
+
+
+class Tally(Module):
+    x = Input(int, policy="queue:64")
+    seen = 0
+
+    def on_input(self, port):
+        port.read()
+        self.seen += 1
+'''
+
+
+def test_a_module_next_to_its_configuration_file_imports_on_every_node(tmp_path: Path) -> None:
+    project, elsewhere = tmp_path / "project", tmp_path / "elsewhere"
+    project.mkdir()
+    elsewhere.mkdir()
+    (project / "beside.py").write_text(MODULES_BESIDE_THE_FILE)
+    node = subprocess.Popen([sys.executable, "-m", "pb3a", "node", "start", "--name", "far",
+                             "--listen", "tcp://127.0.0.1:0", "--max-cpu", "100"],
+                            cwd=elsewhere, env=_env(),
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        address = node.stdout.readline().split(" at ")[-1].strip()
+        (project / "system.toml").write_text(f'''
+name = "beside"
+[nodes.here]
+[nodes.far]
+address = "{address}"
+[modules.tick]
+class = "beside:Tick"
+node = "far"
+[modules.tally]
+class = "beside:Tally"
+node = "here"
+[[links]]
+from = "tick.out"
+to = "tally.x"
+''')
+        # neither the launcher's nor the node's working directory or PYTHONPATH has it
+        done = subprocess.run([sys.executable, "-m", "pb3a", "run", "../project/system.toml",
+                               "--for", "2"], cwd=elsewhere, env=_env(), capture_output=True,
+                              text=True, timeout=60, check=False)
+    finally:
+        node.send_signal(signal.SIGTERM)
+        node.wait(10)
+        node.stdout.close()
+    assert done.returncode == 0, done.stdout + done.stderr
+    link = next(line for line in done.stdout.splitlines()[::-1] if "tick.out -> tally.x" in line)
+    assert link.split()[4] != "0", done.stdout         # values crossed from far to here

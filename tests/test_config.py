@@ -203,7 +203,7 @@ def test_nodes_workers_and_the_default_node(tmp_path: Path) -> None:
     assert plan.modules["src"].restart == "last-state"
     assert plan.modules["sink"].node == "a"          # no node: the first declared one
     assert plan.modules["sink"].group == "g"
-    assert plan.module_servers == ["tcp://127.0.0.1:7300"]
+    assert plan.code.module_servers == ("tcp://127.0.0.1:7300",)
     local = build_plan(load_toml(write(tmp_path, "workers = 3\n" + TWO, "w.toml")))
     assert local.nodes == {"local": NodeSpec("local", None, 3)}
 

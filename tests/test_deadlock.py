@@ -43,7 +43,7 @@ def test_agents_and_the_program_act_on_each_other_without_deadlock(workers: int)
             program += 1
             states = [run.state(name) for name in AGENTS]
             answered = sum(s["asked"] - s["refused"] for s in states)
-            if program >= 500 and answered >= 1000 or time.monotonic() > deadline:
+            if (program >= 500 and answered >= 1000) or time.monotonic() > deadline:
                 break
     # every request of the program was answered (else it raised); the agents' were too,
     # except those cut short because their agent had to be paused (to move or swap it):

@@ -10,6 +10,7 @@ from sample_modules import Counter
 
 from pb3a import RuntimeFailure
 from pb3a.config.plan import FlatModule
+from pb3a.loading.sources import CodeSources
 from pb3a.daemons.node_controller import Limits, NodeController
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
@@ -102,7 +103,7 @@ def test_an_executor_whose_launcher_is_gone_stops(node) -> None:
     executor = ControlClient(KEY, address)
     try:
         executor.call("bind", launcher="tcp://127.0.0.1:9", checkpoint_s=1.0, log_level=30,
-                      module_servers=[], orphan_s=0.5)        # nobody listens there
+                      code=CodeSources(), orphan_s=0.5)        # nobody listens there
         eventually(lambda: controller.executors() == {}, what="the orphaned executor gone")
     finally:
         executor.close()

@@ -23,6 +23,8 @@ system declares none). Problems name the file (or ``system 'name'``) and the ent
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from pb3a.config import checks
 from pb3a.config.definitions import Child, Definition, toml_key
 from pb3a.config.description import LinkSpec, ModuleSpec, NodeSpec, SystemSpec
@@ -30,7 +32,7 @@ from pb3a.config.exports import LinkResolver
 from pb3a.config.plan import DEFAULT_NODE, FlatLink, FlatModule, Plan
 from pb3a.errors import ConfigError
 from pb3a.loading.references import class_ref, resolve_class
-from pb3a.loading.served import use_module_servers
+from pb3a.loading.sources import CodeSources
 from pb3a.model.environment import Environment, env_name
 from pb3a.model.macro import Macro
 from pb3a.model.module import Module
@@ -63,6 +65,7 @@ class _Planner:
         self.class_defs: dict[type, Definition] = {}
         self.order: list[Definition] = []
         self.explored: set[Definition] = set()
+        self.code = CodeSources()
 
     def report(self, label: str, problems: list[str]) -> None:
         self.problems.extend(f"{label}: {problem}" for problem in problems)
@@ -92,8 +95,7 @@ class _Planner:
         problems = list(dict.fromkeys(self.problems))
         if problems:
             return None, problems
-        return Plan(spec.name, nodes, modules, [link for _, link in links],
-                    list(spec.module_servers)), []
+        return Plan(spec.name, nodes, modules, [link for _, link in links], self.code), []
 
     # -- the system's own tables ------------------------------------------
     def check_system(self) -> dict[str, NodeSpec]:
@@ -106,8 +108,10 @@ class _Planner:
         if not isinstance(servers, list) or not all(isinstance(s, str) for s in servers):
             self.report(origin, [("module_servers must be a list of addresses such as "
                                  f"['tcp://127.0.0.1:7300'], got {servers!r}")])
-        else:
-            use_module_servers(servers)   # classes below may only be found there
+            servers = []
+        here = () if spec.source is None else (str(Path(spec.source).resolve().parent),)
+        self.code = CodeSources(here, tuple(servers))
+        self.code.install()     # classes below may be next to the file, or only on servers
         self.report(origin, [f"top-level {p}" for p in checks.workers(spec.workers)])
         for name, node in spec.nodes.items():
             label = f"{origin} [nodes.{toml_key(name)}]"

@@ -6,10 +6,11 @@ macro exports onto leaf module ports, and every value checked.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from pb3a.config.description import NodeSpec
+from pb3a.loading.sources import CodeSources
 from pb3a.model.ports import Policy
 
 DEFAULT_NODE = "local"      # the node of a system that declares none
@@ -51,4 +52,4 @@ class Plan:
     nodes: dict[str, NodeSpec]            # always at least one node; "local" if none declared
     modules: dict[str, FlatModule]        # declaration order, macro children in place
     links: list[FlatLink]
-    module_servers: list[str]
+    code: CodeSources = field(default_factory=CodeSources)   # the file's directory, servers

@@ -20,7 +20,7 @@ import time
 from typing import Any
 
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
-from pb3a.loading.served import use_module_servers
+from pb3a.loading.sources import CodeSources
 from pb3a.node.executor import Executor
 from pb3a.node.protocol import REMOTE_OPERATIONS
 from pb3a.processes import serve_as_child
@@ -58,8 +58,7 @@ class NodeShare:
                 return getattr(ex, args["method"])(*args["args"], **args["kwargs"])
         if op == "bind":
             self.bind(args["launcher"], args["checkpoint_s"], args["log_level"],
-                      args["module_servers"], args.get("orphan_s", ORPHAN_S),
-                      args.get("epoch", 0))
+                      args["code"], args.get("orphan_s", ORPHAN_S), args.get("epoch", 0))
             return None
         if op == "peers":
             self.meet(args["peers"])
@@ -73,18 +72,17 @@ class NodeShare:
             return None
         raise ValueError(f"a node executor has no operation {op!r}")
 
-    def bind(self, launcher: str, checkpoint_s: float, log_level: int,
-             module_servers: list[str], orphan_s: float = ORPHAN_S, epoch: int = 0) -> None:
+    def bind(self, launcher: str, checkpoint_s: float, log_level: int, code: CodeSources,
+             orphan_s: float = ORPHAN_S, epoch: int = 0) -> None:
         """Work for the launcher at ``launcher`` (before any module is added), in its
         system's ``epoch``: older requests and replication are refused from now on."""
         if self.launcher is not None:
             raise RuntimeFailure(f"node {self.node} already works for {self.launcher.address}")
-        self.executor.configure(checkpoint_s=checkpoint_s, log_level=log_level,
-                                module_servers=module_servers, epoch=epoch)
+        self.executor.configure(checkpoint_s=checkpoint_s, log_level=log_level, code=code,
+                                epoch=epoch)
         if self.server is not None:
             self.server.advance_epoch(epoch)
-        if module_servers:
-            use_module_servers(module_servers, self.key)
+        code.install(self.key)
         self.launcher = ControlClient(self.key, launcher)
         threading.Thread(target=self._watch_launcher, args=(orphan_s,),
                          name="pb3a-launcher-watch", daemon=True).start()

@@ -70,7 +70,7 @@ class Launcher:
             if node.address is None:
                 executor = Executor(name, workers=node.workers, cpus=node.cpus,
                                     checkpoint_s=self.checkpoint_s, log_level=self.log_level,
-                                    module_servers=self.plan.module_servers, lock=self.lock,
+                                    code=self.plan.code, lock=self.lock,
                                     epoch=self.epoch)
                 executor.handler = self._agent_request
                 executor.republished = self.republished
@@ -81,7 +81,7 @@ class Launcher:
                 self.nodes[name] = self.remotes[name] = RemoteNode(
                     name, node.address, config=self.plan.name, launcher=callback,
                     workers=node.workers, cpus=node.cpus, checkpoint_s=self.checkpoint_s,
-                    log_level=self.log_level, module_servers=self.plan.module_servers,
+                    log_level=self.log_level, code=self.plan.code,
                     epoch=self.epoch)
                 self.health[name] = {"up": True, "rtt": float("nan"), "address": node.address,
                                      "controller": True}

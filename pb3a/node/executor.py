@@ -26,6 +26,7 @@ import cloudpickle
 from pb3a.config.plan import FlatLink, FlatModule
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.served import forget
+from pb3a.loading.sources import CodeSources
 from pb3a.node.bridge import Bridge
 from pb3a.node.protocol import Endpoint
 from pb3a.node.restarts import RestartBudget
@@ -60,7 +61,7 @@ class Executor:
 
     def __init__(self, node: str, *, workers: int = 0, cpus: list[int] | None = None,
                  checkpoint_s: float = 1.0, log_level: int = logging.WARNING,
-                 module_servers: list[str] | None = None, host: str = "127.0.0.1",
+                 code: CodeSources | None = None, host: str = "127.0.0.1",
                  lock: AbstractContextManager[Any] | None = None, epoch: int = 0) -> None:
         self.node = node
         self.epoch = epoch                  # the system's: older replication is refused
@@ -83,15 +84,15 @@ class Executor:
         self._stopping = threading.Event()
         reap_orphans()
         self.workers = WorkerPool(
-            WorkerSettings(cpus, checkpoint_s, log_level, list(module_servers or [])),
+            WorkerSettings(cpus, checkpoint_s, log_level, code or CodeSources()),
             self._notice, self._died)
 
-    def configure(self, *, checkpoint_s: float, log_level: int, module_servers: list[str],
+    def configure(self, *, checkpoint_s: float, log_level: int, code: CodeSources,
                   epoch: int) -> None:
         """Settings a node executor process learns from its launcher (before any module)."""
         settings = self.workers.settings
         settings.checkpoint_s, settings.log_level = checkpoint_s, log_level
-        settings.module_servers = list(module_servers)
+        settings.code = code
         self.epoch = epoch
 
     @property

@@ -13,6 +13,7 @@ import contextlib
 from typing import TYPE_CHECKING, Any
 
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
+from pb3a.loading.sources import CodeSources
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 
@@ -31,7 +32,7 @@ class RemoteNode:
 
     def __init__(self, name: str, address: str, *, config: str, launcher: str,
                  workers: int = 0, cpus: list[int] | None = None, checkpoint_s: float = 1.0,
-                 log_level: int = 30, module_servers: list[str] | None = None,
+                 log_level: int = 30, code: CodeSources | None = None,
                  epoch: int = 0) -> None:
         self.name, self.config = name, config
         key = ClusterKey.load()
@@ -44,7 +45,7 @@ class RemoteNode:
                                             workers=workers, cpus=cpus, host=host)
             self.client = ControlClient(key, executor, epoch=epoch)
             self.client.call("bind", launcher=launcher, checkpoint_s=checkpoint_s,
-                             log_level=log_level, module_servers=list(module_servers or []),
+                             log_level=log_level, code=code or CodeSources(),
                              epoch=epoch)
         except (RuntimeFailure, RuntimeTimeout) as exc:
             self.close()

@@ -26,6 +26,7 @@ from multiprocessing import reduction
 from typing import TYPE_CHECKING, Any
 
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
+from pb3a.loading.sources import CodeSources
 from pb3a.processes import start_without_main
 from pb3a.transport.doorbell import new_bell
 from pb3a.worker.process import worker_main
@@ -70,7 +71,7 @@ class WorkerSettings:
     cpus: list[int] | None = None          # the CPUs the node's workers run on (None: all)
     checkpoint_s: float = 1.0              # how often ``last-state`` modules checkpoint
     log_level: int = logging.WARNING
-    module_servers: list[str] = field(default_factory=list)   # workers import from these
+    code: CodeSources = field(default_factory=CodeSources)    # where workers import from
 
 
 class WorkerPool:
@@ -100,7 +101,7 @@ class WorkerPool:
         process = _context.Process(
             target=worker_main, name=f"pb3a-worker-{handle.key}", daemon=True,
             args=(child, handle.key, settings.checkpoint_s, settings.log_level,
-                  settings.cpus, settings.module_servers))
+                  settings.cpus, settings.code))
         start_without_main(process)
         child.close()
         # The doorbell is the worker's first read: send it before anyone can send a request.

@@ -23,7 +23,8 @@ from typing import TYPE_CHECKING, Any
 
 import cloudpickle
 
-from pb3a.loading.served import forget, use_module_servers
+from pb3a.loading.served import forget
+from pb3a.loading.sources import CodeSources
 from pb3a.model.agent import Agent, RuntimeClient
 from pb3a.model.ports import InputPort, Policy
 from pb3a.transport.codec import local_copy
@@ -453,7 +454,7 @@ def _on_sigterm(signum: int, frame: object) -> None:
 
 
 def worker_main(conn: Any, key: str, checkpoint_s: float, level: int,
-                cpus: list[int] | None = None, module_servers: list[str] | None = None) -> None:
+                cpus: list[int] | None = None, code: CodeSources | None = None) -> None:
     """Entry point of a worker process.
 
     Ctrl-C in a terminal reaches every process of the group: workers ignore it and
@@ -466,7 +467,7 @@ def worker_main(conn: Any, key: str, checkpoint_s: float, level: int,
     signal.signal(signal.SIGTERM, _on_sigterm)
     logging.basicConfig(level=level, format=f"%(asctime)s pb3a[{key}] %(levelname)s %(message)s")
     bell = reduction.recv_handle(conn)          # the executor sends our doorbell first
-    use_module_servers(module_servers or [])
+    (code or CodeSources()).install()
     worker = Worker(conn, key, bell, checkpoint_s)
     try:
         worker.serve()
