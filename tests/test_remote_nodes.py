@@ -13,7 +13,7 @@ import pytest
 from conftest import alive, eventually
 from sample_modules import Collector, Counter, LossWatcher, NodeTable, Relay, Wanderer
 
-from pb3a import ModuleNotFound, RuntimeTimeout, System
+from pb3a import ModuleNotFound, RuntimeFailure, RuntimeTimeout, System
 from pb3a.cli.status import format_table
 from pb3a.daemons.node_controller import Limits, NodeController
 from pb3a.transport.auth import ClusterKey
@@ -115,7 +115,7 @@ def test_a_node_executor_refuses_requests_of_an_earlier_epoch(controllers) -> No
         stale = ControlClient(ClusterKey.load(), address, epoch=run._launcher.epoch - 1)
         current = ControlClient(ClusterKey.load(), address, epoch=run._launcher.epoch)
         try:
-            with pytest.raises(RuntimeTimeout):
+            with pytest.raises(RuntimeFailure, match="works for a newer run of this system"):
                 stale.call("shutdown", 1.0)                     # refused: never applied
             described = current.call("describe")
         finally:
@@ -143,3 +143,24 @@ def test_on_a_remote_node_a_restarted_writer_feeds_its_readers_and_agents_can_mo
         eventually(lambda: run.state("dst")["received"] > before["dst"] + 10
                    and run.state("wanderer")["seen"] > before["wanderer"] + 10,
                    timeout=30, what="values from the restarted writer on node b")
+
+
+def test_a_wrong_key_is_told_apart_from_no_answer_within_5_s() -> None:
+    system = System("keys").node("a").node("b", address="tcp://127.0.0.1:1")
+    system.add("far", Collector, node="b")
+    started = time.monotonic()
+    with pytest.raises(RuntimeTimeout, match=r"node b: no node controller answered at "
+                                             r"tcp://127\.0\.0\.1:1 within 5 s; start one"):
+        system.launch()
+    assert time.monotonic() - started < 8
+    stranger = NodeController("b", ClusterKey(os.urandom(32)), limits=Limits(101.0))
+    try:
+        system = System("keys").node("a").node("b", address=stranger.address)
+        system.add("far", Collector, node="b")
+        started = time.monotonic()
+        with pytest.raises(RuntimeFailure, match="node b: .* runs with another cluster key: "
+                                                 "make PB3A_KEY"):
+            system.launch()
+        assert time.monotonic() - started < 2        # told at once, not timed out
+    finally:
+        stranger.close()

@@ -23,6 +23,7 @@ if TYPE_CHECKING:
     from pb3a.node.ring_sizes import RingSize
     from pb3a.stats import NodeReport
 
+CONNECT_TIMEOUT = 5.0      # a node controller answers a ping at once, or is not there
 START_TIMEOUT = 60.0       # an executor process imports numpy and friends first
 CALL_TIMEOUT = 60.0        # the executor's own requests to its workers have deadlines
 
@@ -40,6 +41,17 @@ class RemoteNode:
         self.client: ControlClient | None = None
         self.lost = False
         host = address.removeprefix("tcp://").rpartition(":")[0]
+        try:
+            self.controller.call("ping", CONNECT_TIMEOUT)
+        except RuntimeTimeout:
+            self.close()
+            raise RuntimeTimeout(
+                f"node {name}: no node controller answered at {address} within "
+                f"{CONNECT_TIMEOUT:g} s; start one there (pb3a node start --name {name} "
+                f"--listen {address}), or fix the node's address, or open its port") from None
+        except RuntimeFailure as exc:
+            self.close()
+            raise RuntimeFailure(f"node {name}: {exc}") from None
         try:
             executor = self.controller.call("start_executor", START_TIMEOUT, config=config,
                                             workers=workers, cpus=cpus, host=host)

@@ -6,12 +6,18 @@ before it is unpickled: an unauthenticated frame is never deserialized. The serv
 takes requests in on its socket loop and runs them one at a time on a handler thread
 (in arrival order, so operations never interleave); ``ping`` is answered at once,
 so heartbeats are not held up by a long operation.
+
+A request the server cannot open is answered with a plain refusal that names the
+check it failed (another cluster key, clocks apart, an older run), at most once a
+second per peer; it carries nothing else and is only ever used to word the client's
+error, so that a wrong key is told apart from a server that does not answer at all.
 """
 
 from __future__ import annotations
 
 import itertools
 import logging
+import math
 import pickle
 import queue
 import socket
@@ -34,6 +40,15 @@ log = logging.getLogger("pb3a.control")
 
 REQUEST, REPLY = 10, 11
 _ID = struct.Struct("<Q")
+_REFUSAL = b"PB3A-REFUSED:"            # + the failed check, in plain ASCII
+_REFUSAL_EVERY_S = 1.0                # per peer
+# What each refusal means to the person who reads the client's error.
+_REFUSAL_HINTS = {
+    "bad tag": ("it runs with another cluster key: make PB3A_KEY, PB3A_KEY_FILE or "
+                "~/.pb3a/cluster.key the same on both machines"),
+    "not fresh": "the two machines' clocks differ by more than a minute: synchronise them",
+    "stale epoch": "it works for a newer run of this system",
+}
 MAX_MESSAGE = 64 * 1024 * 1024          # control messages carry states and code, not streams
 DEFAULT_TIMEOUT = 10.0
 
@@ -76,6 +91,7 @@ class ControlServer:
         self._opener = Opener(key, epoch=epoch, max_bytes=MAX_MESSAGE)
         self._work: queue.SimpleQueue[tuple[Any, bytes, str, dict[str, Any]] | None] = (
             queue.SimpleQueue())
+        self._refused_at: dict[bytes, float] = {}      # peer -> when we last told it
         self._worker = threading.Thread(target=self._serve, name=name, daemon=True)
         self._worker.start()
         self._loop.register(self._router, self._on_request)
@@ -99,7 +115,8 @@ class ControlServer:
                     raise Rejected("unexpected")
                 request_id = bytes(message.frames[0])
                 op, args = pickle.loads(message.frames[1])     # authenticated: safe
-            except Rejected:
+            except Rejected as exc:
+                self._refuse(peer, exc.reason)
                 continue
             except Exception:
                 self._opener.rejected["undecodable"] += 1
@@ -108,6 +125,18 @@ class ControlServer:
                 self._reply(peer, request_id, True, "pong")
             else:
                 self._work.put((peer, request_id, op, args))
+
+    def _refuse(self, peer: Any, reason: str) -> None:
+        """Tell an unauthenticated peer which check failed (rate-limited per peer)."""
+        if reason not in _REFUSAL_HINTS:
+            return                             # garbage gets no answer at all
+        who, now = bytes(peer), time.monotonic()
+        if now - self._refused_at.get(who, -math.inf) < _REFUSAL_EVERY_S:
+            return
+        if len(self._refused_at) > 1024:
+            self._refused_at.clear()
+        self._refused_at[who] = now
+        self._router.send_multipart([peer, _REFUSAL + reason.encode()])
 
     def _serve(self) -> None:
         while (item := self._work.get()) is not None:
@@ -147,11 +176,14 @@ class ControlClient:
         self._opener = Opener(key, max_bytes=MAX_MESSAGE)
         self._ids = itertools.count(1)
         self._waiting: dict[bytes, tuple[threading.Event, list[Any]]] = {}
+        self.refused = ""                    # why the server refused our requests, if it did
         self._loop.register(self._dealer, self._on_reply)
 
     def call(self, op: str, timeout: float = DEFAULT_TIMEOUT, **args: Any) -> Any:
         """Run ``op`` at the server; its result, or ``RuntimeFailure`` with its error,
         or ``RuntimeTimeout`` when no answer came within ``timeout`` seconds."""
+        if self.refused == "bad tag":           # it will not change its mind
+            raise RuntimeFailure(self._refusal(op))
         request_id = _ID.pack(next(self._ids))
         blob = cloudpickle.dumps((op, args), protocol=5)
         done, box = threading.Event(), [False, None]
@@ -160,17 +192,28 @@ class ControlClient:
             self._loop.submit(lambda: self._dealer.send_multipart(
                 self._sealer.seal(REQUEST, [request_id, blob])))
             if not done.wait(timeout):
-                raise RuntimeTimeout(f"{self.address} did not answer {op!r} within {timeout} s")
+                raise RuntimeTimeout(
+                    f"{self.address} did not answer {op!r} within {timeout:g} s: nothing "
+                    "listens there, it is cut off, or it is busy; check the address and "
+                    "that the process runs and its port is open")
         finally:
             self._waiting.pop(request_id, None)
         ok, result = box
+        if ok is None:
+            raise RuntimeFailure(self._refusal(op))
         if not ok:
             raise RuntimeFailure(f"{op} at {self.address} failed: {result}")
         return result
 
+    def _refusal(self, op: str) -> str:
+        return (f"{self.address} refused {op!r}: {_REFUSAL_HINTS.get(self.refused, self.refused)}")
+
     def _on_reply(self, dealer: zmq.Socket) -> None:
         while dealer.poll(0):
             frames = dealer.recv_multipart(copy=False)
+            if len(frames) == 1 and bytes(frames[0].buffer[:len(_REFUSAL)]) == _REFUSAL:
+                self._refused(bytes(frames[0].buffer[len(_REFUSAL):]).decode("ascii", "replace"))
+                continue
             try:
                 message = self._opener.open(frames)
                 if message.kind != REPLY or len(message.frames) != 2:
@@ -184,6 +227,15 @@ class ControlClient:
                 continue
             except Exception:
                 self._opener.rejected["undecodable"] += 1
+
+    def _refused(self, reason: str) -> None:
+        """The server could not open our requests: every one waiting fails now."""
+        if reason not in _REFUSAL_HINTS:
+            return
+        self.refused = reason
+        for done, box in list(self._waiting.values()):
+            box[:] = [None, reason]
+            done.set()
 
     def ping(self, timeout: float) -> float | None:
         """The round-trip time of one ping (answered by the server's socket thread, so a
