@@ -16,6 +16,7 @@ from pb3a.errors import (
     RuntimeFailure,
     RuntimeTimeout,
 )
+from pb3a.launch.connection import Connection, connect
 from pb3a.launch.migration import MigrationReport
 from pb3a.launch.running import Running
 from pb3a.model.agent import Agent
@@ -29,6 +30,7 @@ from pb3a.system import System
 __all__ = [
     "Agent",
     "ConfigError",
+    "Connection",
     "Driver",
     "Environment",
     "Input",
@@ -44,6 +46,7 @@ __all__ = [
     "RuntimeFailure",
     "RuntimeTimeout",
     "System",
+    "connect",
 ]
 
 logging.getLogger("pb3a").addHandler(logging.NullHandler())

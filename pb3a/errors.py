@@ -25,6 +25,9 @@ class ConfigError(PB3AError, ValueError):
         head = f"{count} problem{'s' if count != 1 else ''} in the configuration:"
         super().__init__("\n  ".join([head, *self.problems]))
 
+    def __reduce__(self) -> tuple[type, tuple[list[str]]]:
+        return (type(self), (self.problems,))      # (travels to pb3a.connect intact)
+
 
 class ModuleNotFound(PB3AError, LookupError):
     """No module with the given instance name runs in the system."""

@@ -3,8 +3,10 @@ its launcher's authenticated address."""
 
 from __future__ import annotations
 
+import json
+
 from conftest import eventually
-from sample_modules import Counter, FastScale, Relay, Scale
+from sample_modules import Counter, FastScale, Last, Relay, Scale
 
 from pb3a import System
 from pb3a.cli.main import main
@@ -34,3 +36,58 @@ def test_the_command_line_reads_and_changes_a_running_system(capsys) -> None:
         assert "state kept: gain, setups" in capsys.readouterr().out
         assert main(["state", address, "ghost"]) == 1
         assert "no module 'ghost'" in capsys.readouterr().err
+
+
+def test_every_command_changes_a_running_system_and_speaks_json(capsys) -> None:
+    system = System("cli-more")
+    system.node("a")
+    system.node("b")
+    system.add("src", Counter, node="a", period=0.002)
+    system.add("other", Counter, node="b", period=0.002)
+    system.add("relay", Relay, node="a")
+    system.link("src.out", "relay.x")
+    with system.launch() as run:
+        address = run.listen()
+        bare = address.removeprefix("tcp://")              # HOST:PORT works too
+        assert main(["set", bare, "src", "limit=3"]) == 0
+        assert "src: limit = 3" in capsys.readouterr().out
+        assert run.state("src")["limit"] == 3
+        assert main(["relink", address, "other.out", "relay.x", "--json"]) == 0
+        assert json.loads(capsys.readouterr().out)["from"] == "other.out"
+        eventually(lambda: "other.out->relay.x" in run.stats().links, what="the new link")
+        assert main(["add", address, "probe", f"{Last.__module__}:Last", "--node", "b",
+                     "--state", "value=1.5"]) == 0
+        assert "probe" in capsys.readouterr().out and run.where("probe") == "b"
+        assert run.state("probe")["value"] == 1.5
+        assert main(["restart", address, "probe", "--json"]) == 0
+        assert json.loads(capsys.readouterr().out) == {"module": "probe", "restarted": True}
+        assert main(["remove", address, "probe"]) == 0
+        assert "probe removed" in capsys.readouterr().out
+        assert "probe" not in run.stats().modules
+        assert main(["nodes", address, "--json"]) == 0
+        nodes = json.loads(capsys.readouterr().out)
+        assert set(nodes) == {"a", "b"} and nodes["a"]["up"] is True
+        assert main(["status", address, "--json"]) == 0
+        assert json.loads(capsys.readouterr().out)["modules"]["relay"]["node"] == "a"
+        assert main(["migrate", address, "relay", "b", "--json"]) == 0
+        assert json.loads(capsys.readouterr().out)["destination"] == "b"
+        assert main(["events", address]) == 0
+        kinds = [line.split()[1] for line in capsys.readouterr().out.splitlines()]
+        assert kinds == ["link_removed", "link_added", "module_added", "module_restarted",
+                         "module_removed", "module_moved"]
+
+
+def test_mistakes_on_the_command_line_get_a_sentence_and_exit_1(capsys) -> None:
+    with System("cli-mistakes").add("src", Counter).launch() as run:
+        address = run.listen()
+        for argv, said in (
+                (["status", "7300"], "is not a launcher's address: give tcp://HOST:PORT"),
+                (["set", address, "src", "limit"], "'limit' is not NAME=VALUE"),
+                (["set", address, "src", "nosuch=1"], "has no state 'nosuch'"),
+                (["swap", address, "src", "nowhere:Nothing"], "cannot import module 'nowhere'"),
+                (["migrate", address, "src", "mars"], "no node 'mars'"),
+                (["relink", address, "src.out", "src.nope"], "src has no input 'nope'"),
+                (["remove", address, "ghost"], "no module 'ghost'")):
+            assert main(argv) == 1, argv
+            err = capsys.readouterr().err
+            assert said in err and "Traceback" not in err, (argv, err)

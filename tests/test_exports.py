@@ -6,10 +6,10 @@ import pb3a
 
 
 def test_public_names_are_exactly_the_documented_ones() -> None:
-    assert pb3a.__all__ == sorted(pb3a.__all__)
+    assert pb3a.__all__ == sorted(pb3a.__all__, key=lambda name: (name[0].islower(), name))
     assert set(pb3a.__all__) == {
-        "Agent", "ConfigError", "Driver", "Environment", "Input", "InputPort", "Macro",
-        "MigrationReport",
+        "Agent", "ConfigError", "Connection", "connect", "Driver", "Environment", "Input",
+        "InputPort", "Macro", "MigrationReport",
         "Module", "ModuleNotFound", "Output", "OutputPort", "PB3AError", "Running",
         "RuntimeFailure", "RuntimeTimeout", "System"}
     for name in pb3a.__all__:

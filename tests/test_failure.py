@@ -71,7 +71,10 @@ def test_sigkill_with_restart_never_leaves_module_failed_and_others_running() ->
         before = run.state("other")["count"]
         eventually(lambda: run.state("other")["count"] > before, what="the other module goes on")
         assert any("victim" in f for f in run.stats().failures)
+        failed = [e for e in run.events() if e.kind == "module_failed"]
     assert figures["victim"].restarts == 0
+    assert [e.subject for e in failed] == ["victim"]
+    assert failed[0].detail["reason"] == "restart = 'never'"
 
 
 def test_sigkill_with_restart_fresh_starts_from_the_configured_state() -> None:
@@ -84,8 +87,10 @@ def test_sigkill_with_restart_fresh_starts_from_the_configured_state() -> None:
                              and m.status == "running" and m, what="restart")
         state = eventually(lambda: (s := run.state("victim"))["pid"] not in (0, old) and s,
                            what="steps in the new process")
+        restarted = [(e.kind, e.subject, e.detail["policy"]) for e in run.events()]
     assert figures.pid != old
     assert 1000 < state["count"] < 1100       # from the configured state, not from 1100
+    assert restarted == [("module_restarted", "victim", "fresh")]
 
 
 def test_sigkill_with_restart_last_state_resumes_from_a_checkpoint() -> None:

@@ -10,8 +10,8 @@ from sample_modules import Counter
 
 from pb3a import RuntimeFailure
 from pb3a.config.plan import FlatModule
-from pb3a.loading.sources import CodeSources
 from pb3a.daemons.node_controller import Limits, NodeController
+from pb3a.loading.sources import CodeSources
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 

@@ -138,6 +138,9 @@ def test_on_a_remote_node_a_restarted_writer_feeds_its_readers_and_agents_can_mo
                    what="the agent moved itself from b to a")
         os.kill(run.stats().modules["src"].pid, signal.SIGKILL)
         eventually(lambda: run.stats().modules["src"].restarts == 1, what="a restart")
+        eventually(lambda: [e.subject for e in run.events() if e.kind == "module_restarted"]
+                   == ["src"], what="node b's restart among the launcher's events")
+        assert next((e.kind, e.subject) for e in run.events()) == ("module_moved", "wanderer")
         before = {name: run.state(name)["received" if name == "dst" else "seen"]
                   for name in ("dst", "wanderer")}
         eventually(lambda: run.state("dst")["received"] > before["dst"] + 10
@@ -158,8 +161,8 @@ def test_a_wrong_key_is_told_apart_from_no_answer_within_5_s() -> None:
         system = System("keys").node("a").node("b", address=stranger.address)
         system.add("far", Collector, node="b")
         started = time.monotonic()
-        with pytest.raises(RuntimeFailure, match="node b: .* runs with another cluster key: "
-                                                 "make PB3A_KEY"):
+        with pytest.raises(RuntimeFailure, match=r"node b: .* runs with another cluster key: "
+                                                 r"make PB3A_KEY"):
             system.launch()
         assert time.monotonic() - started < 2        # told at once, not timed out
     finally:

@@ -1,54 +1,188 @@
-"""Commands that act on a running system through its launcher's address:
-``pb3a status / state / migrate / swap ADDR ...``, authenticated with the cluster key."""
+"""Commands that act on a running system through its launcher's address (``pb3a run``
+prints it): ``pb3a status / state / set / migrate / swap / relink / add / remove /
+restart / nodes / events ADDR ...``. Each goes through ``pb3a.connect``, authenticated
+with the cluster key, and prints a sentence, or JSON with ``--json``.
+"""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import math
 import sys
+from collections.abc import Callable
+from typing import Any
 
 from pb3a.cli.status import format_table
-from pb3a.errors import RuntimeFailure, RuntimeTimeout
-from pb3a.transport.auth import ClusterKey
-from pb3a.transport.control import ControlClient
+from pb3a.errors import PB3AError
+from pb3a.launch.connection import Connection, connect
+from pb3a.stats import plain
+from pb3a.transport.auth import ClusterKeyError
 
 
 def register(commands: argparse._SubParsersAction) -> None:
     """Add one subcommand per operation on a running system."""
-    for name, extra, helptext in (
-            ("status", (), "the live status table of a running system"),
-            ("state", ("module",), "a module's live state"),
-            ("migrate", ("module", "node"), "move a module (or macro) to another node"),
-            ("swap", ("module", "cls"), "swap a module's class ('module:Class')")):
+    def command(name: str, helptext: str, run: Callable[[Connection, argparse.Namespace], Any],
+                *arguments: tuple[str, str]) -> argparse.ArgumentParser:
         sub = commands.add_parser(name, help=f"{helptext}, through its launcher")
-        sub.add_argument("address", metavar="ADDR", help="the launcher's address "
-                         "(`pb3a run` prints it)")
-        for arg in extra:
-            sub.add_argument(arg, metavar=arg.upper())
-        sub.set_defaults(handler=launcher_command, op=name)
+        sub.add_argument("address", metavar="ADDR",
+                         help="the launcher's address, tcp://HOST:PORT (pb3a run prints it)")
+        for arg, text in arguments:
+            sub.add_argument(arg, metavar=arg.upper(), help=text)
+        sub.add_argument("--json", action="store_true", help="print JSON, for scripts")
+        sub.add_argument("--timeout", type=float, default=None, metavar="SECONDS",
+                         help="how long the operation may wait (default: the system's)")
+        sub.set_defaults(handler=lambda args: _act(name, run, args))
+        return sub
+
+    command("status", "the live status table of a running system", _status)
+    command("state", "a module's live state", _state, ("module", "the module's name"))
+    set_ = command("set", "set state attributes of a running module", _set,
+                   ("module", "the module's name"))
+    set_.add_argument("values", nargs="+", metavar="NAME=VALUE",
+                      help="VALUE is read as JSON when it is (5, 2.5, true, [1, 2], "
+                           "\"text\"), else as text")
+    command("migrate", "move a module (or macro) to another node", _migrate,
+            ("module", "the module's (or macro's) name"), ("node", "the node to move it to"))
+    command("swap", "swap a module's class", _swap,
+            ("module", "the module's name"), ("cls", "the new class, module:Class"))
+    relink = command("relink", "feed an input from another output", _relink,
+                     ("src", "the output, module.port"), ("dst", "the input, module.port"))
+    relink.add_argument("--policy", help="the input's policy on the new link (latest, "
+                                         "queue:N ...)")
+    add = command("add", "start a new module", _add,
+                  ("module", "the new module's name"), ("cls", "its class, module:Class"))
+    add.add_argument("--node", help="where it runs (default: the first node)")
+    add.add_argument("--period", type=float, metavar="SECONDS", help="its step period")
+    add.add_argument("--state", nargs="*", default=[], metavar="NAME=VALUE",
+                     help="its initial state, as for `pb3a set`")
+    command("remove", "stop and remove a module", _remove, ("module", "the module's name"))
+    command("restart", "start a module again (also a failed one) with its configured state",
+            _restart, ("module", "the module's name"))
+    command("nodes", "every node's health", _nodes)
+    events = command("events", "what happened: moves, swaps, restarts, failures, lost nodes",
+                     _events)
+    events.add_argument("--follow", action="store_true", help="keep printing new events "
+                                                              "until Ctrl-C")
 
 
-def launcher_command(args: argparse.Namespace) -> int:
-    """``pb3a status / state / migrate / swap ADDR ...``: one request to a launcher."""
-
-
-    client = ControlClient(ClusterKey.load(), args.address)
+def _act(name: str, run: Callable[[Connection, argparse.Namespace], Any],
+         args: argparse.Namespace) -> int:
+    """Connect, run one command, print its result; a sentence on any error (exit 1)."""
     try:
-        if args.op == "status":
-            print(format_table(client.call("stats")))
-        elif args.op == "state":
-            print(json.dumps(client.call("state", name=args.module), indent=2, default=repr))
-        elif args.op == "migrate":
-            report = client.call("migrate", timeout=60.0, name=args.module, to=args.node)
-            print(f"{report['module']}: {report['source']} -> {report['destination']}, paused "
-                  f"{report['pause_s'] * 1e3:.1f} ms, {report['state_bytes']} bytes of state, "
-                  f"{report['links']} links re-wired")
-        else:
-            kept = client.call("swap", timeout=60.0, name=args.module, cls=args.cls)
-            print(f"{args.module} is now {args.cls}; state kept: {', '.join(kept) or '(none)'}")
-        return 0
-    except (RuntimeFailure, RuntimeTimeout) as exc:
-        print(f"pb3a {args.op}: {exc}", file=sys.stderr)
+        with connect(_address(args.address)) as system:
+            shown = run(system, args)
+    except (PB3AError, ClusterKeyError, ValueError) as exc:
+        print(f"pb3a {name}: {exc}", file=sys.stderr)
         return 1
-    finally:
-        client.close()
+    except KeyboardInterrupt:
+        return 0
+    if shown is not None:
+        text, data = shown
+        print(json.dumps(plain(data), indent=2, default=repr) if args.json else text)
+    return 0
+
+
+def _status(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
+    stats = system.stats(timeout=args.timeout)
+    return format_table(stats), stats.to_json()
+
+
+def _state(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
+    state = system.state(args.module, timeout=args.timeout)
+    return json.dumps(plain(state), indent=2, default=repr), state
+
+
+def _set(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
+    values = _values(args.values)
+    system.set_state(args.module, values, timeout=args.timeout)
+    told = ", ".join(f"{key} = {value!r}" for key, value in values.items())
+    return f"{args.module}: {told}", {"module": args.module, "set": values}
+
+
+def _migrate(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
+    report = system.migrate(args.module, args.node, timeout=args.timeout)
+    return (f"{report.module}: {report.source} -> {report.destination}, paused "
+            f"{report.pause_s * 1e3:.1f} ms, {report.state_bytes} bytes of state, "
+            f"{report.links} links re-wired"), dataclasses.asdict(report)
+
+
+def _swap(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
+    kept = system.swap(args.module, args.cls, timeout=args.timeout)
+    return (f"{args.module} is now {args.cls}; state kept: {', '.join(kept) or '(none)'}",
+            {"module": args.module, "class": args.cls, "kept": kept})
+
+
+def _relink(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
+    system.relink(args.src, args.dst, policy=args.policy, timeout=args.timeout)
+    return (f"{args.dst} is fed by {args.src} now",
+            {"from": args.src, "to": args.dst, "policy": args.policy})
+
+
+def _add(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
+    state = _values(args.state)
+    system.add(args.module, args.cls, node=args.node, period=args.period, state=state,
+               timeout=args.timeout)
+    where = system.where(args.module, timeout=args.timeout)
+    return (f"{args.module} ({args.cls}) runs on node {where}",
+            {"module": args.module, "class": args.cls, "node": where})
+
+
+def _remove(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
+    system.remove(args.module, timeout=args.timeout)
+    return f"{args.module} removed", {"module": args.module, "removed": True}
+
+
+def _restart(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
+    system.restart(args.module, timeout=args.timeout)
+    return f"{args.module} restarted", {"module": args.module, "restarted": True}
+
+
+def _nodes(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
+    nodes = system.nodes(timeout=args.timeout)
+    rows = [("node", "address", "health", "rtt")]
+    for name, node in nodes.items():
+        rows.append((name, node.address or "(embedded)", "up" if node.up else "LOST",
+                     "-" if math.isnan(node.rtt) else f"{node.rtt * 1e3:.1f} ms"))
+    widths = [max(len(row[i]) for row in rows) for i in range(4)]
+    text = "\n".join("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip()
+                     for row in rows)
+    return text, {name: dataclasses.asdict(node) for name, node in nodes.items()}
+
+
+def _events(system: Connection, args: argparse.Namespace) -> None:
+    seen = 0
+    while True:
+        for event in system.events(seen, timeout=1.0 if args.follow else 0.0):
+            seen = event.seq
+            detail = ", ".join(f"{k}={v}" for k, v in event.detail.items())
+            print(json.dumps(plain(event.to_json())) if args.json else
+                  f"{event.seq:>5} {event.kind:<16} {event.subject} {detail}".rstrip(),
+                  flush=True)
+        if not args.follow:
+            return
+
+
+def _address(text: str) -> str:
+    """``tcp://HOST:PORT``, also from ``HOST:PORT``; ValueError saying what is wrong."""
+    address = text if "://" in text else f"tcp://{text}"
+    host, colon, port = address.removeprefix("tcp://").rpartition(":")
+    if not address.startswith("tcp://") or not colon or not host or not port.isdigit():
+        raise ValueError(f"{text!r} is not a launcher's address: give tcp://HOST:PORT (or "
+                         "HOST:PORT), as pb3a run prints it")
+    return address
+
+
+def _values(pairs: list[str]) -> dict[str, Any]:
+    """``NAME=VALUE`` pairs; a VALUE that is JSON is read as JSON, else kept as text."""
+    values = {}
+    for pair in pairs:
+        name, equals, text = pair.partition("=")
+        if not equals or not name.isidentifier():
+            raise ValueError(f"{pair!r} is not NAME=VALUE (e.g. gain=2.5)")
+        try:
+            values[name] = json.loads(text)
+        except json.JSONDecodeError:
+            values[name] = text
+    return values

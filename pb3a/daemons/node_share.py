@@ -43,6 +43,7 @@ class NodeShare:
         self.executor = Executor(node, workers=workers, cpus=cpus, host=host)
         self.executor.handler = self._agent_request
         self.executor.republished = self._republished
+        self.executor.on_event = self._tell_event
         self.launcher: ControlClient | None = None
         self.server: ControlServer | None = None
         self.peers: dict[str, ControlClient] = {}     # other nodes, pinged for their RTT
@@ -109,6 +110,15 @@ class NodeShare:
                 with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
                     self.launcher.call("republished", link=link, endpoint=endpoint)
         threading.Thread(target=tell, name="pb3a-republished", daemon=True).start()
+
+    def _tell_event(self, kind: str, subject: str, **detail: Any) -> None:
+        """A restart or failure here goes into the launcher's events (from another thread:
+        it happens under the executor's lock, which the launcher may be waiting for)."""
+        def tell() -> None:
+            if self.launcher is not None:
+                with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+                    self.launcher.call("event", kind=kind, subject=subject, detail=detail)
+        threading.Thread(target=tell, name="pb3a-event", daemon=True).start()
 
     def _watch_launcher(self, orphan_s: float) -> None:
         """Ping the launcher (stop when it stays silent) and every peer (their RTTs)."""

@@ -19,6 +19,7 @@ import time
 from typing import TYPE_CHECKING, Any
 
 from pb3a.errors import ModuleNotFound, RuntimeFailure, RuntimeTimeout
+from pb3a.events import EventLog
 from pb3a.launch.configuration_lock import ConfigurationLock
 from pb3a.model.environment import env_name
 from pb3a.node.executor import Executor
@@ -56,6 +57,7 @@ class Launcher:
         self.specs: dict[str, FlatModule] = {}       # every module; its node is spec.node
         self.links: dict[str, FlatLink] = {}
         self.failures: list[str] = []
+        self.events = EventLog()                      # what happened, for run.events()
         self.handler: Any = None                      # applies agents' requests (op, args)
         self.health: dict[str, dict[str, Any]] = {}   # node -> up, rtt, address
         self.changed = threading.Condition()          # notified when a node's health changes
@@ -74,6 +76,7 @@ class Launcher:
                                     epoch=self.epoch)
                 executor.handler = self._agent_request
                 executor.republished = self.republished
+                executor.on_event = self.events.record
                 self.nodes[name] = executor
                 self.health[name] = {"up": True, "rtt": 0.0, "address": None}
             else:
@@ -203,11 +206,14 @@ class Launcher:
         modules = {name: entry for report in reports for name, entry in report.modules.items()
                    if name in self.specs and entry.node == self.specs[name].node}
         failures = [*self.failures, *(f for report in reports for f in report.failures)]
-        nodes = {name: NodeStats(health["up"], health["rtt"], health["address"],
-                                 health.get("controller"))
-                 for name, health in self.health.items()}
         return SystemStats(self.plan.name, modules, _link_table(self.links, modules, reports),
-                           nodes, failures)
+                           self.node_table(), failures)
+
+    def node_table(self) -> dict[str, NodeStats]:
+        """Every node's health as the heartbeats see it."""
+        return {name: NodeStats(health["up"], health["rtt"], health["address"],
+                                health.get("controller"))
+                for name, health in self.health.items()}
 
     # -- heartbeats -------------------------------------------------------------------
     def _watch(self) -> None:
@@ -242,6 +248,7 @@ class Launcher:
         self.failures.append(f"node {node} lost (no heartbeat for {silent_s:.1f} s); its "
                              f"modules {', '.join(gone) or '(none)'} are gone")
         log.error(self.failures[-1])
+        self.events.record("node_lost", node, modules=gone, silent_s=silent_s)
         with self.lock.held(f"drop lost node {node}"):
             for key, link in list(self.links.items()):
                 if link.src in gone or link.dst in gone:
@@ -306,7 +313,8 @@ class Launcher:
 
 def _link_table(links: dict[str, FlatLink], modules: dict[str, ModuleStats],
                 reports: list[NodeReport]) -> dict[str, LinkStats]:
-    """Per link: values, drops, pending, latency, rate, transport, from the reader's node."""
+    """Per link: values, drops, pending, latency, rate, transport, from the reader's node;
+    the writes that waited for room, from the writer's."""
     rings = {key: used for report in reports for key, used in report.ring_bytes_used.items()}
     lost = {key: count for report in reports for key, count in report.link_failures.items()}
     table = {}

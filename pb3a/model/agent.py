@@ -19,6 +19,7 @@ from pb3a.model.module import Module
 if TYPE_CHECKING:
     from collections.abc import Callable
 
+    from pb3a.events import Event
     from pb3a.stats import SystemStats
 
 
@@ -46,9 +47,10 @@ class RuntimeClient:
         """Another module's live state."""
         return self._call("state", name)
 
-    def set_state(self, name: str, **state: Any) -> None:
-        """Set state attributes of another module."""
-        self._call("set_state", name, state=state)
+    def set_state(self, name: str, values: dict[str, Any] | None = None, /,
+                  **fields: Any) -> None:
+        """Set state attributes of another module (as ``Running.set_state``)."""
+        self._call("set_state", name, values={**(values or {}), **fields})
 
     def swap(self, name: str, cls: type | str) -> list[str]:
         """Swap another module for ``cls``, keeping ports and matching state."""
@@ -73,6 +75,15 @@ class RuntimeClient:
     def stats(self) -> SystemStats:
         """The figures of the whole system, as ``Running.stats()``."""
         return self._call("stats")
+
+    def where(self, name: str) -> str:
+        """The node module ``name`` (this agent too) runs on now."""
+        return self._request("where", {"name": name})
+
+    def events(self, since: int = 0) -> list[Event]:
+        """The system's events after sequence number ``since`` (as ``Running.events``);
+        an agent does not wait for them: it looks again at its next step."""
+        return self._request("events", {"since": since})
 
     def migrate(self, name: str, to: str) -> Any:
         """Move a module (or macro) to node ``to``; its ``MigrationReport``. An agent may

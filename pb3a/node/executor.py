@@ -76,6 +76,7 @@ class Executor:
         self.failures: list[str] = []                 # what went wrong, for stats and logs
         self.handler: Any = None                      # applies agents' requests (op, args)
         self.republished: Any = None                  # told (link, endpoint) after a restart
+        self.on_event: Any = None                     # told (kind, module, detail): restarts
         self._bridge: Bridge | None = None            # remote links in (made on first use)
         self._budgets: dict[str, RestartBudget] = {}  # worker key -> its restarts
         # Held by a restart and by whoever changes the configuration (the launcher's
@@ -448,6 +449,9 @@ class Executor:
             self._rewire(set(revive))
             self.start_modules(revive)
             log.warning("restarted %s (exit code %s)", ", ".join(revive), code)
+            for name in revive:
+                self._tell("module_restarted", name, reason="its worker died",
+                           exit_code=code, policy=self.modules[name].spec.restart)
         except (RuntimeFailure, RuntimeTimeout) as exc:
             self.failures.append(f"restart of worker {handle.key} failed: {exc}")
             log.error(self.failures[-1])
@@ -475,6 +479,7 @@ class Executor:
         record.status = "failed"
         self.failures.append(f"module {name} failed (worker exit code {code}); {reason}")
         log.error(self.failures[-1])
+        self._tell("module_failed", name, exit_code=code, reason=reason)
         # Writers into a dead reader would only fill its ring: unhook them.
         for link in list(self.links.values()):
             src = self.modules.get(link.src)
@@ -483,6 +488,10 @@ class Executor:
         for link in list(self.inbound.values()):
             if link.dst == name:
                 self.bridge.close(link.key)
+
+    def _tell(self, kind: str, name: str, **detail: Any) -> None:
+        if self.on_event is not None:
+            self.on_event(kind, name, **detail)
 
     # -- shutdown ------------------------------------------------------------
     def shutdown(self, timeout: float = 10.0) -> None:

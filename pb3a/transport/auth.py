@@ -103,6 +103,11 @@ class ClusterKey:
         return cls._checked(path.read_bytes().strip(), str(path))
 
     @classmethod
+    def from_material(cls, material: bytes | str, where: str = "the key given") -> ClusterKey:
+        """The key of this key material (what ``PB3A_KEY`` or a key file holds)."""
+        return cls._checked(material.encode() if isinstance(material, str) else material, where)
+
+    @classmethod
     def _checked(cls, material: bytes, where: str) -> ClusterKey:
         if len(material) < 32:
             raise ClusterKeyError(f"the cluster key from {where} is {len(material)} bytes; "

@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any
 import cloudpickle
 import zmq
 
-from pb3a.errors import RuntimeFailure, RuntimeTimeout
+from pb3a.errors import PB3AError, RuntimeFailure, RuntimeTimeout
 from pb3a.transport.auth import ClusterKey, Opener, Rejected, Sealer
 from pb3a.transport.loop import SocketLoop
 
@@ -143,6 +143,8 @@ class ControlServer:
             peer, request_id, op, args = item
             try:
                 result, ok = self._handler(op, args), True
+            except PB3AError as exc:               # the caller gets the same error
+                result, ok = exc, False
             except Exception as exc:
                 log.debug("request %s failed", op, exc_info=True)
                 result, ok = f"{type(exc).__name__}: {exc}", False
@@ -182,6 +184,10 @@ class ControlClient:
     def call(self, op: str, timeout: float = DEFAULT_TIMEOUT, **args: Any) -> Any:
         """Run ``op`` at the server; its result, or ``RuntimeFailure`` with its error,
         or ``RuntimeTimeout`` when no answer came within ``timeout`` seconds."""
+        return self.request(op, args, timeout)
+
+    def request(self, op: str, args: dict[str, Any], timeout: float = DEFAULT_TIMEOUT) -> Any:
+        """``call`` with the arguments as a dict (which may then name one ``timeout``)."""
         if self.refused == "bad tag":           # it will not change its mind
             raise RuntimeFailure(self._refusal(op))
         request_id = _ID.pack(next(self._ids))
@@ -202,6 +208,8 @@ class ControlClient:
         if ok is None:
             raise RuntimeFailure(self._refusal(op))
         if not ok:
+            if isinstance(result, PB3AError):
+                raise result
             raise RuntimeFailure(f"{op} at {self.address} failed: {result}")
         return result
 

@@ -1,0 +1,80 @@
+"""``pb3a.connect``: the API of a system launched by another process, or on another host.
+
+A ``Connection`` is a ``SystemHandle`` whose calls go as authenticated requests to
+the launcher's control server (``Running.listen``; ``pb3a run`` prints its address).
+Closing it closes the connection only: the system goes on.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pb3a.errors import RuntimeFailure, RuntimeTimeout
+from pb3a.launch.handle import SystemHandle
+from pb3a.launch.operations import DEFAULT_TIMEOUT
+from pb3a.transport.auth import ClusterKey
+from pb3a.transport.control import ControlClient
+
+CONNECT_TIMEOUT = 5.0       # a launcher answers a ping at once, or is not there
+_MARGIN = 5.0               # the wire's deadline beyond the operation's own
+
+
+def connect(address: str, *, key: ClusterKey | bytes | str | None = None,
+            timeout: float = CONNECT_TIMEOUT) -> Connection:
+    """The running system whose launcher listens at ``address`` ("tcp://host:port").
+
+    ``key`` is the cluster key material (as ``PB3A_KEY`` holds it) or a ``ClusterKey``;
+    by default the one ``PB3A_KEY``, ``PB3A_KEY_FILE`` or ``~/.pb3a/cluster.key`` gives. Raises
+    ``RuntimeTimeout`` when nothing answers within ``timeout`` and ``RuntimeFailure``
+    when the launcher refuses the key, each saying what to check.
+    """
+    return Connection(address, key=key, timeout=timeout)
+
+
+class Connection(SystemHandle):
+    """A system running elsewhere; use it as a context manager to close the connection."""
+
+    def __init__(self, address: str, *, key: ClusterKey | bytes | str | None = None,
+                 timeout: float = CONNECT_TIMEOUT) -> None:
+        if not address.startswith("tcp://"):
+            raise ValueError(f"a launcher's address looks like tcp://HOST:PORT (pb3a run "
+                             f"prints it), got {address!r}")
+        self.address = address
+        self._client = ControlClient(_key(key), address)
+        try:
+            described = self._client.call("describe", timeout)
+        except RuntimeTimeout:
+            self.close()
+            raise RuntimeTimeout(f"no PB3A launcher answered at {address} within {timeout:g} s: "
+                                 "check the address (pb3a run prints it), that the system "
+                                 "still runs, and that the port is open") from None
+        except RuntimeFailure as exc:
+            self.close()
+            raise RuntimeFailure(f"cannot connect: {exc}") from None
+        self.name: str = described["name"]
+
+    def _request(self, op: str, args: dict[str, Any]) -> Any:
+        wait = args.get("timeout")
+        deadline = (DEFAULT_TIMEOUT if wait is None else wait) + _MARGIN
+        return self._client.request(op, args, deadline)
+
+    def close(self) -> None:
+        """Close the connection (the system goes on)."""
+        self._client.close()
+
+    def __enter__(self) -> Connection:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"Connection({self.name!r} at {self.address})"
+
+
+def _key(key: ClusterKey | bytes | str | None) -> ClusterKey:
+    if key is None:
+        return ClusterKey.load()
+    if isinstance(key, ClusterKey):
+        return key
+    return ClusterKey.from_material(key, "connect(key=...)")

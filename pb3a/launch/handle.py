@@ -1,0 +1,115 @@
+"""``SystemHandle``: the API of a running system, written once.
+
+Two implementations carry each call to the system's ``Operations``: ``Running`` (the
+system was launched in this process: a direct call) and ``Connection`` (it runs
+elsewhere: one authenticated request to its launcher, from ``pb3a.connect``). A
+script written against one works against the other.
+
+Every call that waits takes ``timeout=`` in seconds (None: the system's default,
+``launch(timeout=...)``); one that runs out raises ``RuntimeTimeout`` saying what it
+waited for.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from pb3a.events import Event
+    from pb3a.launch.migration import MigrationReport
+    from pb3a.stats import NodeStats, SystemStats
+
+
+class SystemHandle(ABC):
+    """The live operations on a system; subclasses say how a call reaches it."""
+
+    name: str
+
+    @abstractmethod
+    def _request(self, op: str, args: dict[str, Any]) -> Any:
+        """Carry operation ``op`` with ``args`` to the system's ``Operations``."""
+
+    # -- state -------------------------------------------------------------------
+    def state(self, name: str, *, timeout: float | None = None) -> dict[str, Any]:
+        """The module's live state (taken under its lock)."""
+        return self._request("state", {"name": name, "timeout": timeout})
+
+    def set_state(self, name: str, values: dict[str, Any] | None = None, /, *,
+                  timeout: float | None = None, **fields: Any) -> None:
+        """Set state attributes of a running module, between two of its calls:
+        ``set_state("scale", gain=5.0)``, or with a dict for names such as ``timeout``."""
+        self._request("set_state", {"name": name, "values": {**(values or {}), **fields},
+                                    "timeout": timeout})
+
+    # -- moving, swapping, reloading ---------------------------------------------------
+    def migrate(self, name: str, to: str, *, timeout: float | None = None) -> MigrationReport:
+        """Move a module, or every module of a macro, to node ``to`` while it runs.
+
+        State, unconsumed inputs and links go with it; no value on any link is lost,
+        duplicated or reordered. A macro's modules move one after another; its report
+        sums their state and links and gives the longest single pause.
+        """
+        return self._request("migrate", {"name": name, "to": to, "timeout": timeout})
+
+    def swap(self, name: str, cls: type | str, *, timeout: float | None = None) -> list[str]:
+        """Replace a module's class, keeping its ports, queued inputs and matching state.
+
+        ``setup`` runs again on the new instance. Returns the state names carried over.
+        """
+        return self._request("swap", {"name": name, "cls": cls, "timeout": timeout})
+
+    def reload(self, module: str, *, timeout: float | None = None) -> None:
+        """Drop every cached copy of Python module ``module`` (and its submodules), in the
+        launcher and every worker: the next load or ``swap`` naming one of its classes
+        gets the file as it is now (from a module server, or the local path). Running
+        instances keep their code until swapped."""
+        self._request("reload", {"module": module, "timeout": timeout})
+
+    # -- links and modules -----------------------------------------------------------------
+    def relink(self, src: str, dst: str, *, policy: str | None = None,
+               timeout: float | None = None) -> None:
+        """Feed input ``dst`` ("module.port") from output ``src``, replacing its old source;
+        nothing on the old link is lost."""
+        self._request("relink", {"src": src, "dst": dst, "policy": policy, "timeout": timeout})
+
+    def link(self, src: str, dst: str, *, policy: str | None = None,
+             timeout: float | None = None) -> None:
+        """Add a link while running; the input must not be fed yet."""
+        self._request("link", {"src": src, "dst": dst, "policy": policy, "timeout": timeout})
+
+    def add(self, name: str, cls: type | str, *, state: dict[str, Any] | None = None,
+            period: float | None = None, restart: str | None = None, group: str | None = None,
+            node: str | None = None, timeout: float | None = None) -> None:
+        """Start a new module while the system runs (link it with ``link``)."""
+        self._request("add", {"name": name, "cls": cls, "state": state, "period": period,
+                              "restart": restart, "group": group, "node": node,
+                              "timeout": timeout})
+
+    def remove(self, name: str, *, timeout: float | None = None) -> None:
+        """Stop a module (``teardown`` runs), drop its links, free its process."""
+        self._request("remove", {"name": name, "timeout": timeout})
+
+    def restart(self, name: str, *, timeout: float | None = None) -> None:
+        """Start a module again (also one that failed) with its configured state, its
+        links wired again; values queued in its inputs go with the old instance."""
+        self._request("restart", {"name": name, "timeout": timeout})
+
+    # -- where things are, figures, events -----------------------------------------------
+    def where(self, name: str, *, timeout: float | None = None) -> str:
+        """The node module ``name`` runs on now."""
+        return self._request("where", {"name": name, "timeout": timeout})
+
+    def nodes(self, *, timeout: float | None = None) -> dict[str, NodeStats]:
+        """Every node's health: up or lost, its address, its round-trip time."""
+        return self._request("nodes", {"timeout": timeout})
+
+    def stats(self, *, timeout: float | None = None) -> SystemStats:
+        """Per module: steps, events, CPU time, errors; per link: values, drops, latency,
+        rate; per node: health (typed records, see ``pb3a.stats``)."""
+        return self._request("stats", {"timeout": timeout})
+
+    def events(self, since: int = 0, *, timeout: float = 0.0) -> list[Event]:
+        """The events after sequence number ``since`` (moves, swaps, restarts, failures,
+        lost nodes ...), oldest first; waits up to ``timeout`` for one if there is none."""
+        return self._request("events", {"since": since, "timeout": timeout})

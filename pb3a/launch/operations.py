@@ -1,0 +1,275 @@
+"""``Operations``: every live operation on a running system, implemented once.
+
+The program (``Running``), another process (``pb3a.connect`` and the command line,
+through the launcher's control server) and agents (``self.runtime``) all end here.
+Each operation that changes the configuration, or reads what a change may be
+halfway through, holds the configuration lock, whose wait is bounded by the
+operation's ``timeout`` (the system's default when None) and names what holds it
+when it runs out. Each change is recorded as an event.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import replace
+from typing import TYPE_CHECKING, Any
+
+from pb3a.config.plan import FlatLink, FlatModule
+from pb3a.errors import ConfigError
+from pb3a.launch.migration import MigrationReport, migrate
+from pb3a.loading.references import resolve_class
+from pb3a.loading.served import forget
+from pb3a.model.module import RESTART_POLICIES, Module
+from pb3a.model.ports import Policy
+
+if TYPE_CHECKING:
+    from pb3a.events import Event
+    from pb3a.launch.launcher import Launcher
+    from pb3a.stats import NodeStats, SystemStats
+
+log = logging.getLogger("pb3a")
+
+DEFAULT_TIMEOUT = 30.0      # seconds an operation may wait, unless told otherwise
+
+# What may be asked from outside the launcher's process (the command line, a
+# connection, an agent on a remote node): the public operations, nothing else.
+PUBLIC = frozenset({"state", "set_state", "swap", "relink", "link", "add", "remove",
+                    "restart", "migrate", "reload", "stats", "where", "nodes", "events"})
+# What an agent may ask through ``self.runtime`` (it spawns with "add").
+FOR_AGENTS = PUBLIC - {"reload"} | {"migrate_self"}
+
+
+class Operations:
+    """The live operations of one launched system."""
+
+    def __init__(self, launcher: Launcher, timeout: float = DEFAULT_TIMEOUT) -> None:
+        self.launcher = launcher
+        self.plan = launcher.plan
+        self.lock = launcher.lock
+        self.events = launcher.events
+        self.timeout = timeout
+
+    def _held(self, what: str, timeout: float | None) -> Any:
+        return self.lock.held(what, self.timeout if timeout is None else timeout)
+
+    def _call_timeout(self, timeout: float | None) -> float:
+        return self.timeout if timeout is None else timeout
+
+    # -- state -------------------------------------------------------------------
+    def state(self, name: str, *, timeout: float | None = None) -> dict[str, Any]:
+        with self._held(f"state {name}", timeout):
+            return self.launcher.call(name, "get_state", self._call_timeout(timeout))
+
+    def set_state(self, name: str, values: dict[str, Any], *,
+                  timeout: float | None = None) -> None:
+        with self._held(f"set_state {name}", timeout):
+            self.launcher.call(name, "set_state", self._call_timeout(timeout), state=values)
+
+    # -- moving, swapping, reloading ----------------------------------------------------
+    def migrate(self, name: str, to: str, *, timeout: float | None = None) -> MigrationReport:
+        with self._held(f"migrate {name} to {to}", timeout):
+            if to not in self.plan.nodes:
+                raise ConfigError([f"migrate {name}: no node {to!r}; nodes: "
+                                   f"{', '.join(self.plan.nodes)}"])
+            specs = self.launcher.specs
+            names = [name] if name in specs else [
+                child for child in specs if child.startswith(f"{name}/")]
+            if not names:
+                self.launcher.node_of(name)           # raises ModuleNotFound
+            reports = [migrate(self.launcher, child, to) for child in names]
+        for report in reports:
+            if report.source != report.destination:
+                self.events.record("module_moved", report.module, source=report.source,
+                                   destination=report.destination, pause_s=report.pause_s)
+        if len(reports) == 1:
+            return reports[0]
+        return MigrationReport(name, ",".join(sorted({r.source for r in reports})), to,
+                               max(r.pause_s for r in reports),
+                               sum(r.state_bytes for r in reports),
+                               sum(r.links for r in reports))
+
+    def migrate_self(self, name: str, to: str) -> None:
+        """An agent moving itself (or its macro): it waits for this answer inside its own
+        body, holding its lock, and the move has to pause it, so the move happens on
+        another thread once the body has returned."""
+        def move() -> None:
+            try:
+                report = self.migrate(name, to)
+                log.info("agent %s moved to %s (paused %.1f ms)", name, to, report.pause_s * 1e3)
+            except Exception:
+                log.exception("agent %s could not move to %s", name, to)
+        threading.Thread(target=move, name="pb3a-self-migration", daemon=True).start()
+
+    def reload(self, module: str, *, timeout: float | None = None) -> None:
+        with self._held(f"reload {module}", timeout):
+            forget(module)
+            for node in self.launcher.nodes.values():
+                node.forget(module)
+
+    def swap(self, name: str, cls: type | str, *, timeout: float | None = None) -> list[str]:
+        new_cls = resolve_class(cls)
+        with self._held(f"swap {name}", timeout):
+            launcher = self.launcher
+            node = launcher.node_of(name)
+            spec = launcher.specs[name]
+            problems = _swap_problems(name, spec.cls, new_cls, launcher.links, launcher.specs)
+            if problems:
+                raise ConfigError(problems)
+            spec = replace(spec, cls=new_cls)
+            kept = node.swap(name, spec)
+            launcher.specs[name] = spec
+        self.events.record("module_swapped", name, cls=f"{new_cls.__module__}:"
+                           f"{new_cls.__qualname__}", kept=kept)
+        return kept
+
+    # -- links -------------------------------------------------------------------------
+    def relink(self, src: str, dst: str, *, policy: str | None = None,
+               timeout: float | None = None) -> None:
+        with self._held(f"relink {src} -> {dst}", timeout):
+            link = self._new_link(src, dst, policy)
+            launcher = self.launcher
+            olds = [old for old in launcher.links.values()
+                    if (old.dst, old.dst_port) == (link.dst, link.dst_port)]
+            # Writers pause so that nothing is written while the input changes
+            # source; the reader drains the old link before the new one opens.
+            with launcher.paused([link.src, *(old.src for old in olds)]):
+                for old in olds:
+                    launcher.disconnect(old.key)
+                launcher.connect(link)
+        for old in olds:
+            self.events.record("link_removed", old.key)
+        self.events.record("link_added", link.key, policy=str(link.policy))
+
+    def link(self, src: str, dst: str, *, policy: str | None = None,
+             timeout: float | None = None) -> None:
+        with self._held(f"link {src} -> {dst}", timeout):
+            link = self._new_link(src, dst, policy)
+            for old in self.launcher.links.values():
+                if (old.dst, old.dst_port) == (link.dst, link.dst_port):
+                    raise ConfigError([f"input {dst} is fed by {old.src}.{old.src_port} "
+                                       "already; use relink() to replace its source"])
+            self.launcher.connect(link)
+        self.events.record("link_added", link.key, policy=str(link.policy))
+
+    def _new_link(self, src: str, dst: str, policy: str | None) -> FlatLink:
+        problems = []
+        ends = []
+        for text, side in ((src, "outputs"), (dst, "inputs")):
+            module, _, port = text.rpartition(".")
+            spec = self.launcher.specs.get(module)
+            if spec is None:
+                problems.append(f"link {src} -> {dst}: no module {module!r}")
+            elif port not in getattr(spec.cls, side):
+                names = ", ".join(getattr(spec.cls, side)) or "(none)"
+                problems.append(f"link {src} -> {dst}: {module} has no {side[:-1]} {port!r}; "
+                                f"its {side}: {names}")
+            ends.append((module, port, spec))
+        if problems:
+            raise ConfigError(problems)
+        (smod, sport, sspec), (dmod, dport, dspec) = ends
+        out_spec, in_spec = sspec.cls.outputs[sport], dspec.cls.inputs[dport]
+        why = in_spec.accepts(out_spec)
+        if why:
+            raise ConfigError([f"link {src} -> {dst}: incompatible types: {why}"])
+        try:
+            parsed = Policy.parse(policy) if policy is not None else in_spec.policy
+        except ValueError as exc:
+            raise ConfigError([f"link {src} -> {dst}: {exc}"]) from None
+        return FlatLink(smod, sport, dmod, dport, parsed)
+
+    # -- modules -----------------------------------------------------------------------
+    def add(self, name: str, cls: type | str, *, state: dict[str, Any] | None = None,
+            period: float | None = None, restart: str | None = None, group: str | None = None,
+            node: str | None = None, timeout: float | None = None) -> None:
+        module_cls = resolve_class(cls)
+        if not (isinstance(module_cls, type) and issubclass(module_cls, Module)):
+            raise ConfigError([f"module {name}: {module_cls!r} is not a pb3a.Module subclass"])
+        restart = restart or module_cls.restart
+        if restart not in RESTART_POLICIES:
+            raise ConfigError([f"module {name}: restart must be one of {RESTART_POLICIES}"])
+        with self._held(f"add {name}", timeout):
+            if name in self.launcher.specs:
+                raise ConfigError([f"module {name}: a module of that name runs already"])
+            node = node or next(iter(self.plan.nodes))
+            if node not in self.launcher.nodes:
+                raise ConfigError([f"module {name}: no node {node!r}; nodes: "
+                                   f"{', '.join(self.launcher.nodes)}"])
+            spec = FlatModule(name, module_cls, node,
+                              period if period is not None else module_cls.period,
+                              dict(state or {}), restart, group)
+            self.launcher.add_module(spec)
+            self.launcher.node_of(name).start_modules([name])
+        self.events.record("module_added", name, node=node)
+
+    def remove(self, name: str, *, timeout: float | None = None) -> None:
+        with self._held(f"remove {name}", timeout):
+            self.launcher.remove_module(name)
+        self.events.record("module_removed", name)
+
+    def restart(self, name: str, *, timeout: float | None = None) -> None:
+        """Stop a module (also a failed one) and start it again with its configured state
+        in a new worker; its links are wired again. Values queued in its inputs go with
+        the old instance."""
+        with self._held(f"restart {name}", timeout):
+            launcher = self.launcher
+            launcher.node_of(name)                # ModuleNotFound for an unknown name
+            spec = launcher.specs[name]
+            links = [link for link in launcher.links.values() if name in (link.src, link.dst)]
+            launcher.remove_module(name)
+            launcher.add_module(spec)
+            for link in links:
+                launcher.connect(link)
+            launcher.node_of(name).start_modules([name])
+        self.events.record("module_restarted", name, node=spec.node, reason="asked")
+
+    # -- where things are, figures, events ---------------------------------------------------
+    def where(self, name: str, *, timeout: float | None = None) -> str:
+        with self._held(f"where {name}", timeout):
+            self.launcher.node_of(name)           # ModuleNotFound for an unknown name
+            return self.launcher.specs[name].node
+
+    def nodes(self, *, timeout: float | None = None) -> dict[str, NodeStats]:
+        with self._held("nodes", timeout):
+            return self.launcher.node_table()
+
+    def stats(self, *, timeout: float | None = None) -> SystemStats:
+        with self._held("stats", timeout):
+            return self.launcher.stats()
+
+    def events_since(self, since: int = 0, *, timeout: float = 0.0) -> list[Event]:
+        return self.events.since(since, timeout)
+
+    # -- requests from outside --------------------------------------------------------
+    def apply(self, op: str, args: dict[str, Any], allowed: frozenset[str] = PUBLIC) -> Any:
+        """Run operation ``op`` with ``args`` (from a connection, the CLI or an agent)."""
+        if op not in allowed:
+            raise ValueError(f"unknown operation {op!r}; the operations: "
+                             f"{', '.join(sorted(allowed))}")
+        if op == "events":
+            return self.events_since(**args)
+        return getattr(self, op)(**args)
+
+
+def _swap_problems(name: str, old: type, new: type, links: dict[str, FlatLink],
+                   modules: dict[str, FlatModule]) -> list[str]:
+    problems = []
+    if not (isinstance(new, type) and issubclass(new, Module)):
+        return [f"swap {name}: {new!r} is not a pb3a.Module subclass"]
+    for side in ("inputs", "outputs"):
+        missing = sorted(set(getattr(old, side)) - set(getattr(new, side)))
+        if missing:
+            problems.append(f"swap {name}: {new.__name__} lacks the {side} "
+                            f"{', '.join(missing)} that {old.__name__} has")
+    for link in links.values():
+        if link.dst == name and link.dst_port in new.inputs:
+            feeder = modules[link.src].cls.outputs[link.src_port]
+            why = new.inputs[link.dst_port].accepts(feeder)
+            if why:
+                problems.append(f"swap {name}: input {link.dst_port} fed by {link.src}: {why}")
+        if link.src == name and link.src_port in new.outputs:
+            reader = modules[link.dst].cls.inputs[link.dst_port]
+            why = reader.accepts(new.outputs[link.src_port])
+            if why:
+                problems.append(f"swap {name}: output {link.src_port} feeds {link.dst}: {why}")
+    return problems

@@ -1,0 +1,91 @@
+"""``pb3a.connect``: the same API as ``launch()`` returns, from another process."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from conftest import eventually
+from sample_modules import Counter, FastScale, Last, Relay, Scale
+
+import pb3a
+from pb3a import ConfigError, ModuleNotFound, RuntimeFailure, RuntimeTimeout, System
+from pb3a.stats import SystemStats
+
+REPO = Path(__file__).resolve().parent.parent
+
+pytestmark = pytest.mark.timeout(90)
+
+ANOTHER_PROCESS = """
+import sys
+import pb3a
+with pb3a.connect(sys.argv[1]) as run:
+    run.set_state("scale", gain=7.0)
+    report = run.migrate("relay", to="b")
+    print(run.name, run.state("scale")["gain"], report.destination, run.where("relay"),
+          run.stats().modules["relay"].node)
+"""
+
+
+def _system() -> System:
+    system = System("connected")
+    system.node("a")
+    system.node("b")
+    system.add("src", Counter, node="a", period=0.002)
+    system.add("relay", Relay, node="a")
+    system.add("scale", Scale, node="a")
+    system.link("src.out", "relay.x")
+    return system
+
+
+def test_another_process_drives_the_system_through_connect() -> None:
+    with _system().launch() as run:
+        address = run.listen()
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "tests"), str(REPO)])}
+        done = subprocess.run([sys.executable, "-c", ANOTHER_PROCESS, address], env=env,
+                              capture_output=True, text=True, timeout=60, check=False)
+        assert done.returncode == 0, done.stderr
+        assert done.stdout.split() == ["connected", "7.0", "b", "b", "b"]
+        assert run.where("relay") == "b" and run.state("scale")["gain"] == 7.0
+
+
+def test_a_connection_offers_what_launch_offers_with_the_same_errors() -> None:
+    with _system().launch() as run, pb3a.connect(run.listen()) as far:
+        assert far.name == "connected" and isinstance(far.stats(), SystemStats)
+        assert far.swap("scale", FastScale) == ["gain", "setups"]
+        far.add("probe", Last, node="b", state={"value": 2.5})
+        far.link("scale.y", "probe.x")
+        assert far.state("probe")["value"] == 2.5 and far.where("probe") == "b"
+        far.restart("probe")
+        far.remove("probe")
+        assert "probe" not in run.stats().modules
+        assert set(far.nodes()) == {"a", "b"}
+        kinds = [event.kind for event in far.events()]
+        assert kinds == ["module_swapped", "module_added", "link_added", "module_restarted",
+                         "module_removed"]
+        with pytest.raises(ModuleNotFound, match="no module 'ghost'"):
+            far.state("ghost")
+        with pytest.raises(ConfigError, match="no node 'mars'") as caught:
+            far.migrate("relay", to="mars")
+        assert caught.value.problems == ["migrate relay: no node 'mars'; nodes: a, b"]
+        started = time.monotonic()
+        assert far.events(far.events()[-1].seq, timeout=0.3) == []     # waited, then none
+        assert time.monotonic() - started >= 0.3
+
+
+def test_connect_tells_no_answer_a_wrong_key_and_a_bad_address_apart() -> None:
+    with pytest.raises(ValueError, match="looks like tcp://HOST:PORT"):
+        pb3a.connect("127.0.0.1:7300")
+    started = time.monotonic()
+    with pytest.raises(RuntimeTimeout, match=r"no PB3A launcher answered at tcp://127\.0\.0\.1:1 "
+                                             r"within 1 s"):
+        pb3a.connect("tcp://127.0.0.1:1", timeout=1.0)
+    assert time.monotonic() - started < 3
+    with _system().launch() as run:
+        with pytest.raises(RuntimeFailure, match="runs with another cluster key"):
+            pb3a.connect(run.listen(), key=os.urandom(32).hex())
+        eventually(lambda: run.state("relay")["relayed"] > 0, what="the system unharmed")
