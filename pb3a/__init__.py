@@ -7,8 +7,6 @@ while it runs. See README.md for a tour and docs/architecture.md for how.
 
 from __future__ import annotations
 
-import logging
-
 from pb3a.errors import (
     ConfigError,
     ModuleNotFound,
@@ -49,4 +47,3 @@ __all__ = [
     "connect",
 ]
 
-logging.getLogger("pb3a").addHandler(logging.NullHandler())

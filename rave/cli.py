@@ -15,9 +15,12 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
+from pb3a.cli.log_output import show_logs
+
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    show_logs()
     return int(args.handler(args))
 
 

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from pb3a import Agent, Environment, Input, InputPort, Module, Output, System
+from pb3a.cli.log_output import show_logs
 
 RATE_HZ = 200.0
 WORK_S = 0.002                 # CPU seconds of work per value in ``compute``
@@ -251,6 +252,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=".", help="directory for the PNG and JSON")
     parser.add_argument("--quick", action="store_true", help="shorter phases (2/5/2 s)")
     args = parser.parse_args(argv)
+    show_logs()
     if (os.cpu_count() or 1) < 2:
         print("self_migration needs two CPUs (one per node)", file=sys.stderr)
         return 2

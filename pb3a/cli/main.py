@@ -18,12 +18,14 @@ import argparse
 from collections.abc import Callable, Sequence
 
 from pb3a.cli import daemons, files, running_system, scenarios
+from pb3a.cli.log_output import show_logs
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line with ``argv`` (default: ``sys.argv[1:]``); returns the exit code."""
     parser = _parser()
     args = parser.parse_args(argv)
+    show_logs()
     handler: Callable[[argparse.Namespace], int] | None = getattr(args, "handler", None)
     if handler is None:
         parser.print_help()

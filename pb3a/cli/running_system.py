@@ -1,6 +1,6 @@
 """Commands that act on a running system through its launcher's address (``pb3a run``
 prints it): ``pb3a status / state / set / migrate / swap / relink / add / remove /
-restart / nodes / events ADDR ...``. Each goes through ``pb3a.connect``, authenticated
+restart / nodes / events / logs ADDR ...``. Each goes through ``pb3a.connect``, authenticated
 with the cluster key, and prints a sentence, or JSON with ``--json``.
 """
 
@@ -61,6 +61,10 @@ def register(commands: argparse._SubParsersAction) -> None:
     command("restart", "start a module again (also a failed one) with its configured state",
             _restart, ("module", "the module's name"))
     command("nodes", "every node's health", _nodes)
+    logs = command("logs", "the system's log, from every node", _logs)
+    logs.add_argument("--module", help="only what is about this module")
+    logs.add_argument("--follow", action="store_true", help="keep printing new entries "
+                                                            "until Ctrl-C")
     events = command("events", "what happened: moves, swaps, restarts, failures, lost nodes",
                      _events)
     events.add_argument("--follow", action="store_true", help="keep printing new events "
@@ -159,6 +163,17 @@ def _events(system: Connection, args: argparse.Namespace) -> None:
             detail = ", ".join(f"{k}={v}" for k, v in event.detail.items())
             print(json.dumps(plain(event.to_json())) if args.json else
                   f"{event.seq:>5} {event.kind:<16} {event.subject} {detail}".rstrip(),
+                  flush=True)
+        if not args.follow:
+            return
+
+
+def _logs(system: Connection, args: argparse.Namespace) -> None:
+    seen = 0
+    while True:
+        for entry in system.logs(seen, module=args.module, timeout=1.0 if args.follow else 0.0):
+            seen = entry.seq
+            print(json.dumps(plain(dataclasses.asdict(entry))) if args.json else entry.line(),
                   flush=True)
         if not args.follow:
             return

@@ -17,15 +17,17 @@ if TYPE_CHECKING:
     from pb3a.system import System
 
 REFRESH_S = 1.0
+LAST_ERROR_WIDTH = 60        # characters of a module's last error in the table
 
 
 def format_table(stats: SystemStats) -> str:
     """The status table: one row per module, one per link, one per remote node."""
-    rows = [("module", "node", "pid", "status", "steps", "events", "cpu s", "errors")]
+    rows = [("module", "node", "pid", "status", "steps", "events", "cpu s", "errors",
+             "last error")]
     for name, m in stats.modules.items():
         status = m.status + (f" (restarts {m.restarts})" if m.restarts else "")
         rows.append((name, m.node, str(m.pid or "-"), status, str(m.steps), str(m.events),
-                     f"{m.cpu:.2f}", str(m.errors)))
+                     f"{m.cpu:.2f}", str(m.errors), _shortened(m.last_error)))
     lines = _columns(rows)
     if stats.links:
         lines.append("")
@@ -47,6 +49,10 @@ def format_table(stats: SystemStats) -> str:
     for failure in stats.failures[-5:]:
         lines.append(f"! {failure}")
     return "\n".join(lines)
+
+
+def _shortened(text: str, most: int = LAST_ERROR_WIDTH) -> str:
+    return text if len(text) <= most else text[:most - 3] + "..."
 
 
 def _columns(rows: list[tuple[str, ...]]) -> list[str]:

@@ -21,6 +21,7 @@ from typing import Any
 
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
+from pb3a.logbook import LogBook
 from pb3a.node.executor import Executor
 from pb3a.node.protocol import REMOTE_OPERATIONS
 from pb3a.processes import serve_as_child
@@ -49,6 +50,8 @@ class NodeShare:
         self.peers: dict[str, ControlClient] = {}     # other nodes, pinged for their RTT
         self.rtts: dict[str, float] = {}
         self.stopped = threading.Event()
+        self.logbook = LogBook()                       # the launcher merges it into its own
+        logging.getLogger("pb3a").addHandler(self.logbook)
 
     def handle(self, op: str, args: dict[str, Any]) -> Any:
         ex = self.executor
@@ -66,6 +69,8 @@ class NodeShare:
             return None
         if op == "rtts":
             return dict(self.rtts)
+        if op == "logs":
+            return self.logbook.since(args["since"])
         if op == "describe":
             return {"config": self.config, "node": self.node, "modules": sorted(ex.modules)}
         if op == "shutdown":

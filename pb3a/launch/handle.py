@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from pb3a.events import Event
     from pb3a.launch.migration import MigrationReport
+    from pb3a.logbook import LogEntry
     from pb3a.stats import NodeStats, SystemStats
 
 
@@ -108,6 +109,13 @@ class SystemHandle(ABC):
         """Per module: steps, events, CPU time, errors; per link: values, drops, latency,
         rate; per node: health (typed records, see ``pb3a.stats``)."""
         return self._request("stats", {"timeout": timeout})
+
+    def logs(self, since: int = 0, *, module: str | None = None,
+             timeout: float = 0.0) -> list[LogEntry]:
+        """The system's log entries after sequence number ``since`` (about ``module`` only,
+        if given), from the launcher and every node, oldest first; waits up to
+        ``timeout`` for one if there is none."""
+        return self._request("logs", {"since": since, "module": module, "timeout": timeout})
 
     def events(self, since: int = 0, *, timeout: float = 0.0) -> list[Event]:
         """The events after sequence number ``since`` (moves, swaps, restarts, failures,

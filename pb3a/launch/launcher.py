@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 from pb3a.errors import ModuleNotFound, RuntimeFailure, RuntimeTimeout
 from pb3a.events import EventLog
 from pb3a.launch.configuration_lock import ConfigurationLock
+from pb3a.logbook import LogBook
 from pb3a.model.environment import env_name
 from pb3a.node.executor import Executor
 from pb3a.node.remote import RemoteNode
@@ -58,6 +59,8 @@ class Launcher:
         self.links: dict[str, FlatLink] = {}
         self.failures: list[str] = []
         self.events = EventLog()                      # what happened, for run.events()
+        self.logbook = LogBook()                      # the recent log, for run.logs()
+        self._log_seen: dict[str, int] = {}           # remote node -> its last entry merged
         self.handler: Any = None                      # applies agents' requests (op, args)
         self.health: dict[str, dict[str, Any]] = {}   # node -> up, rtt, address
         self.changed = threading.Condition()          # notified when a node's health changes
@@ -68,6 +71,7 @@ class Launcher:
     def start_nodes(self, callback: str | None) -> None:
         """One executor per node; ``callback`` is where remote executors reach this
         launcher (agents' requests, restarts), needed when any node has an address."""
+        logging.getLogger("pb3a").addHandler(self.logbook)
         for name, node in self.plan.nodes.items():
             if node.address is None:
                 executor = Executor(name, workers=node.workers, cpus=node.cpus,
@@ -235,7 +239,16 @@ class Launcher:
                 for name, node in remotes.items():
                     if self.health[name]["up"]:
                         self.health[name]["controller"] = node.controller_answers(HEARTBEAT_S)
+                        self._merge_log(name, node)
                 self.update_env()
+
+    def _merge_log(self, name: str, node: RemoteNode) -> None:
+        """Take in what node ``name`` logged since the last look."""
+        with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+            for entry in node.logs(self._log_seen.get(name, 0)):
+                self._log_seen[name] = entry.seq
+                self.logbook.add(entry.time, entry.level, entry.logger, entry.message,
+                                 name, entry.module)
 
     def _lose(self, node: str, silent_s: float) -> None:
         """Declare ``node`` lost: every call to it fails at once from now on; its modules
@@ -309,6 +322,7 @@ class Launcher:
                     log.warning("stopping module %r: %s", name, exc)
             for node in reversed(list(self.nodes.values())):
                 node.shutdown(max(0.5, deadline - time.monotonic()))
+        logging.getLogger("pb3a").removeHandler(self.logbook)
 
 
 def _link_table(links: dict[str, FlatLink], modules: dict[str, ModuleStats],

@@ -26,6 +26,7 @@ from pb3a.model.ports import Policy
 if TYPE_CHECKING:
     from pb3a.events import Event
     from pb3a.launch.launcher import Launcher
+    from pb3a.logbook import LogEntry
     from pb3a.stats import NodeStats, SystemStats
 
 log = logging.getLogger("pb3a")
@@ -35,7 +36,8 @@ DEFAULT_TIMEOUT = 30.0      # seconds an operation may wait, unless told otherwi
 # What may be asked from outside the launcher's process (the command line, a
 # connection, an agent on a remote node): the public operations, nothing else.
 PUBLIC = frozenset({"state", "set_state", "swap", "relink", "link", "add", "remove",
-                    "restart", "migrate", "reload", "stats", "where", "nodes", "events"})
+                    "restart", "migrate", "reload", "stats", "where", "nodes", "events",
+                    "logs"})
 # What an agent may ask through ``self.runtime`` (it spawns with "add").
 FOR_AGENTS = PUBLIC - {"reload"} | {"migrate_self"}
 
@@ -239,6 +241,10 @@ class Operations:
 
     def events_since(self, since: int = 0, *, timeout: float = 0.0) -> list[Event]:
         return self.events.since(since, timeout)
+
+    def logs(self, since: int = 0, *, module: str | None = None,
+             timeout: float = 0.0) -> list[LogEntry]:
+        return self.launcher.logbook.since(since, timeout, module)
 
     # -- requests from outside --------------------------------------------------------
     def apply(self, op: str, args: dict[str, Any], allowed: frozenset[str] = PUBLIC) -> Any:

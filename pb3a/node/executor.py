@@ -38,6 +38,7 @@ from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import reap_orphans, segment_name
 
 log = logging.getLogger("pb3a.executor")
+_module_log = logging.getLogger("pb3a.module")
 
 REPORT_TIMEOUT = 5.0
 
@@ -79,6 +80,7 @@ class Executor:
         self.on_event: Any = None                     # told (kind, module, detail): restarts
         self._bridge: Bridge | None = None            # remote links in (made on first use)
         self._budgets: dict[str, RestartBudget] = {}  # worker key -> its restarts
+        self._last_errors: dict[str, str] = {}        # module -> its last exception, logged
         # Held by a restart and by whoever changes the configuration (the launcher's
         # global lock when the executor runs in the launcher's process).
         self.lock = lock or threading.RLock()
@@ -378,13 +380,25 @@ class Executor:
                 record.checkpoint = args["state"]
                 record.checkpoints += 1
         elif kind == "error":
-            count = args["suppressed"]
-            more = f" ({count} more since the last report)" if count else ""
-            logging.getLogger("pb3a.module").error(
-                "module %r raised in %s%s:\n%s", args["name"], args["where"], more, args["trace"])
+            self._log_error(args["name"], args["where"], args["trace"], args["suppressed"])
         elif kind == "request":
             threading.Thread(target=self._serve_request, args=(handle, args), daemon=True,
                              name="pb3a-agent-request").start()
+
+    def _log_error(self, name: str, where: str, trace: str, suppressed: int) -> None:
+        """A module's exception: with its traceback the first time (or when it is another
+        one), then one line with how many there were (the worker reports at most one a
+        second, counting the others)."""
+        error = trace.rstrip().rpartition("\n")[2]
+        more = f" ({suppressed} more since the last report)" if suppressed else ""
+        extra = {"pb3a_module": name, "pb3a_node": self.node}
+        if self._last_errors.get(name) == error:
+            _module_log.error("module %r raised in %s again%s: %s", name, where, more, error,
+                              extra=extra)
+        else:
+            self._last_errors[name] = error
+            _module_log.error("module %r raised in %s%s:\n%s", name, where, more,
+                              trace.rstrip(), extra=extra)
 
     def _serve_request(self, handle: WorkerHandle, request: dict[str, Any]) -> None:
         """Apply an agent's request through ``handler`` and send the answer back."""

@@ -19,6 +19,7 @@ from pb3a.transport.control import ControlClient
 
 if TYPE_CHECKING:
     from pb3a.config.plan import FlatLink, FlatModule
+    from pb3a.logbook import LogEntry
     from pb3a.node.protocol import Endpoint
     from pb3a.node.ring_sizes import RingSize
     from pb3a.stats import NodeReport
@@ -150,6 +151,12 @@ class RemoteNode:
         if self.client is None or self.lost:
             return {}
         return self.client.call("rtts", 2.0)
+
+    def logs(self, since: int) -> list[LogEntry]:
+        """What the node logged after its entry ``since``."""
+        if self.client is None or self.lost:
+            return []
+        return self.client.call("logs", 2.0, since=since)
 
     def lose(self) -> None:
         """The node is gone: every waiting call fails now, and every later one at once."""

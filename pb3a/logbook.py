@@ -1,0 +1,95 @@
+"""``LogBook``: the recent log of a running system, kept for ``run.logs()`` and ``pb3a logs``.
+
+PB3A logs as a library should: to loggers under ``pb3a``, with no handler that
+prints (the entry points install one, see ``pb3a.cli.logs``). A launch also
+attaches a ``LogBook`` to the ``pb3a`` logger, a handler that only keeps the most
+recent records, numbered, so that another process can read them through the
+launcher; each remote node keeps its own and the launcher merges them in, marked
+with the node's name.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import deque
+from dataclasses import dataclass
+from time import localtime, strftime
+
+
+@dataclass(frozen=True)
+class LogEntry:
+    """One log record, as plain data."""
+
+    seq: int
+    time: float                 # wall clock, seconds since the epoch
+    level: str                  # "WARNING", "ERROR" ...
+    logger: str
+    message: str                # with the traceback, if the record had one
+    node: str = ""              # where it was logged ("": the launcher's process)
+    module: str = ""            # the PB3A module it is about, if any
+
+    def line(self) -> str:
+        """The entry as one line of text (and its traceback below)."""
+        where = f"[{self.node}] " if self.node else ""
+        return f"{_clock(self.time)} {self.level:<7} {where}{self.message}"
+
+
+class LogBook(logging.Handler):
+    """Keeps the last ``keep`` records it is given; thread-safe."""
+
+    def __init__(self, keep: int = 5000, level: int = logging.NOTSET) -> None:
+        super().__init__(level)
+        self._entries: deque[LogEntry] = deque(maxlen=keep)
+        self._seq = 0
+        self._cond = threading.Condition()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        # The book must not change what the user sees: with no other handler on the
+        # record's way up, Python would have printed it through its last resort.
+        if logging.lastResort is not None and record.levelno >= logging.lastResort.level \
+                and not _handled_elsewhere(record):
+            logging.lastResort.handle(record)
+        try:
+            message = record.getMessage()
+            if record.exc_info:
+                message += "\n" + logging.Formatter().formatException(record.exc_info)
+            self.add(record.created, record.levelname, record.name, message,
+                     getattr(record, "pb3a_node", ""), getattr(record, "pb3a_module", ""))
+        except Exception:
+            self.handleError(record)
+
+    def add(self, time: float, level: str, logger: str, message: str, node: str = "",
+            module: str = "") -> LogEntry:
+        """Keep one entry (a record of this process, or one a remote node kept)."""
+        with self._cond:
+            self._seq += 1
+            entry = LogEntry(self._seq, time, level, logger, message, node, module)
+            self._entries.append(entry)
+            self._cond.notify_all()
+        return entry
+
+    def since(self, seq: int = 0, timeout: float = 0.0, module: str | None = None,
+              ) -> list[LogEntry]:
+        """The entries after ``seq`` (about ``module`` only, if given), waiting up to
+        ``timeout`` for one when there is none yet."""
+        def found() -> list[LogEntry]:
+            return [entry for entry in self._entries if entry.seq > seq
+                    and (module is None or entry.module == module)]
+        with self._cond:
+            self._cond.wait_for(found, timeout)
+            return found()
+
+
+def _handled_elsewhere(record: logging.LogRecord) -> bool:
+    """True if a handler other than a log book sees ``record`` on its way up."""
+    logger: logging.Logger | None = logging.getLogger(record.name)
+    while logger is not None:
+        if any(not isinstance(handler, LogBook) for handler in logger.handlers):
+            return True
+        logger = logger.parent if logger.propagate else None
+    return False
+
+
+def _clock(when: float) -> str:
+    return strftime("%H:%M:%S", localtime(when)) + f".{int(when % 1 * 1000):03d}"

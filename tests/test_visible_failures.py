@@ -1,0 +1,88 @@
+"""Failures are seen where the user looks: on the terminal of the command that runs the
+system, in its table, in a plain script, and through ``run.logs()`` / ``pb3a logs``
+from every node."""
+
+from __future__ import annotations
+
+import logging
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from conftest import eventually
+from sample_modules import Faulty
+
+from pb3a import System
+from pb3a.cli.main import main
+from pb3a.daemons.node_controller import Limits, NodeController
+from pb3a.transport.auth import ClusterKey
+
+REPO = Path(__file__).resolve().parent.parent
+
+pytestmark = pytest.mark.timeout(90)
+
+FAULTY = '''
+from pb3a import Module
+
+
+class Faulty(Module):
+    period = 0.005
+    calls = 0
+
+    def step(self):
+        self.calls += 1
+        if self.calls % 2:
+            raise ValueError("odd step")
+'''
+
+
+def _env() -> dict[str, str]:
+    return {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "tests"), str(REPO)])}
+
+
+def test_pb3a_run_shows_a_module_s_exception_once_then_counts_it(tmp_path: Path) -> None:
+    (tmp_path / "broken.py").write_text(FAULTY)
+    (tmp_path / "broken.toml").write_text('[modules.faulty]\nclass = "broken:Faulty"\n')
+    done = subprocess.run([sys.executable, "-m", "pb3a", "run", "broken.toml", "--for", "2.5"],
+                          cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=60,
+                          check=False)
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.count("module 'faulty' raised in step") >= 2, done.stderr
+    assert done.stderr.count("Traceback (most recent call last)") == 1    # once, in full
+    assert "raised in step again (" in done.stderr and "more since the last report): " \
+        "ValueError: odd step" in done.stderr
+    table = done.stdout.rpartition("pb3a: stopped cleanly")[0]
+    row = next(line for line in table.splitlines()[::-1] if line.startswith("faulty"))
+    assert int(row.split()[7]) > 100 and row.endswith("ValueError: odd step"), row
+
+
+def test_a_plain_script_sees_a_module_s_exception_without_setting_up_logging() -> None:
+    script = ("import time\nfrom pb3a import System\nfrom sample_modules import Faulty\n"
+              "with System('plain').add('faulty', Faulty).launch():\n    time.sleep(1.5)\n")
+    done = subprocess.run([sys.executable, "-c", script], env=_env(), capture_output=True,
+                          text=True, timeout=60, check=False)
+    assert done.returncode == 0, done.stderr
+    assert "module 'faulty' raised in step" in done.stderr and "odd step" in done.stderr
+    assert logging.getLogger("pb3a").handlers == []         # the library installs none
+
+
+def test_logs_come_from_every_node_and_follow_one_module(capsys) -> None:
+    far = NodeController("b", ClusterKey.load(), limits=Limits(max_cpu_percent=101.0))
+    try:
+        system = System("logs").node("a").node("b", address=far.address)
+        system.add("near_fault", Faulty, node="a")
+        system.add("far_fault", Faulty, node="b")
+        with system.launch() as run:
+            entries = eventually(lambda: run.logs(module="far_fault"), timeout=15,
+                                 what="node b's module error in the launcher's log")
+            assert entries[0].node == "b" and "odd step" in entries[0].message
+            assert entries[0].level == "ERROR" and "Traceback" in entries[0].message
+            eventually(lambda: run.logs(module="near_fault"), what="node a's module error")
+            assert main(["logs", run.listen(), "--module", "near_fault"]) == 0
+            shown = capsys.readouterr().out
+            assert "module 'near_fault' raised in step" in shown and "far_fault" not in shown
+            assert {e.module for e in run.logs()} >= {"near_fault", "far_fault"}
+    finally:
+        far.close()
