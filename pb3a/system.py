@@ -16,6 +16,7 @@ from pb3a.config.compiler import build_plan, validate
 from pb3a.config.description import LinkSpec, ModuleSpec, NodeSpec, SystemSpec, load_toml
 from pb3a.config.dot import plan_to_dot
 from pb3a.config.plan import Plan
+from pb3a.launch.operations import DEFAULT_TIMEOUT
 from pb3a.launch.running import Running, launch
 
 
@@ -75,13 +76,18 @@ class System:
         """Graphviz DOT: a cluster per node, modules with their ports, links between them."""
         return plan_to_dot(self.plan())
 
-    def launch(self, *, checkpoint_s: float = 1.0, log_level: int = logging.WARNING) -> Running:
-        """Validate, then start every module on this machine; use it as a context manager.
+    def launch(self, *, checkpoint_s: float = 1.0, log_level: int = logging.WARNING,
+               timeout: float = DEFAULT_TIMEOUT, listen: str | None = None) -> Running:
+        """Validate, then start every module; use it as a context manager.
 
         ``checkpoint_s`` is how often ``restart = "last-state"`` modules are
-        checkpointed; ``log_level`` applies to the worker processes' logs.
+        checkpointed; ``log_level`` applies to the worker processes' logs; ``timeout``
+        is how long an operation on the running system may wait unless it says
+        otherwise; ``listen`` ("tcp://HOST:PORT") is where the launcher takes
+        ``pb3a.connect`` and the command line (see ``Running.listen``).
         """
-        return launch(self.plan(), checkpoint_s=checkpoint_s, log_level=log_level)
+        return launch(self.plan(), checkpoint_s=checkpoint_s, log_level=log_level,
+                      timeout=timeout, listen=listen)
 
     def __repr__(self) -> str:
         return (f"System({self.name!r}, {len(self._spec.modules)} modules, "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -136,14 +137,20 @@ node = "here"
 from = "tick.out"
 to = "tally.x"
 ''')
-        # neither the launcher's nor the node's working directory or PYTHONPATH has it
+        # neither the launcher's nor the node's working directory or PYTHONPATH has it;
+        # --listen holds although a remote node also calls the launcher back there
+        with socket.socket() as probe:
+            probe.bind(("127.0.0.1", 0))
+            port = probe.getsockname()[1]
         done = subprocess.run([sys.executable, "-m", "pb3a", "run", "../project/system.toml",
-                               "--for", "2"], cwd=elsewhere, env=_env(), capture_output=True,
-                              text=True, timeout=60, check=False)
+                               "--for", "2", "--listen", f"tcp://127.0.0.1:{port}"],
+                              cwd=elsewhere, env=_env(), capture_output=True, text=True,
+                              timeout=60, check=False)
     finally:
         node.send_signal(signal.SIGTERM)
         node.wait(10)
         node.stdout.close()
     assert done.returncode == 0, done.stdout + done.stderr
+    assert f"launcher at tcp://127.0.0.1:{port}" in done.stdout
     link = next(line for line in done.stdout.splitlines()[::-1] if "tick.out -> tally.x" in line)
     assert link.split()[4] != "0", done.stdout         # values crossed from far to here

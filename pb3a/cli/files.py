@@ -10,8 +10,9 @@ from pathlib import Path
 
 from pb3a.config.dot import plan_to_dot
 from pb3a.config.plan import Plan
-from pb3a.errors import ConfigError
+from pb3a.errors import ConfigError, PB3AError
 from pb3a.system import System
+from pb3a.transport.auth import ClusterKeyError
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -84,21 +85,22 @@ def run_command(args: argparse.Namespace) -> int:
     """``pb3a run FILE [--for SECONDS]``: launch with a live status display."""
     from pb3a.cli.status import run_with_status
 
+    plan = _load_plan(args.file, "run")
+    if plan is None:
+        return 1
     try:
-        system = System.load(args.file)
-        return run_with_status(system, args.seconds, listen=args.listen)
-    except OSError as exc:
-        print(f"pb3a run: cannot read {args.file}: {exc.strerror or exc}", file=sys.stderr)
-    except ConfigError as exc:
-        for problem in exc.problems:
-            print(problem)
-    return 1
+        return run_with_status(plan, args.seconds, listen=args.listen)
+    except (PB3AError, ClusterKeyError) as exc:
+        print(f"pb3a run: {exc}", file=sys.stderr)
+        return 1
 
 
 def _load_plan(file: str, command: str) -> Plan | None:
     """The plan of ``file``, or None after printing why there is none."""
     try:
         return System.load(file).plan()
+    except ClusterKeyError as exc:              # (module servers need the key)
+        print(f"pb3a {command}: {exc}", file=sys.stderr)
     except OSError as exc:
         print(f"pb3a {command}: cannot read {file}: {exc.strerror or exc}", file=sys.stderr)
     except ConfigError as exc:

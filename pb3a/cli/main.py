@@ -3,37 +3,48 @@
     pb3a check FILE               validate; print every problem; exit 1 on any
     pb3a graph FILE [-o OUT]      draw the configuration (DOT, and SVG/PNG/PDF via Graphviz)
     pb3a run FILE [--for SECONDS] launch, show live status, stop on Ctrl-C or after SECONDS
-    pb3a status|state|migrate|swap ADDR ...  act on a running system through its launcher
-    pb3a scenario NAME [ARGS...]  run an application registered as a ``pb3a.scenarios`` entry point
+    pb3a status|state|set|migrate|swap|relink|add|remove|restart|nodes|events|logs ADDR ...
+                                  act on a running system through its launcher
+    pb3a scenario NAME [ARGS...]  run an application (a ``pb3a.scenarios`` entry point)
     pb3a modules serve DIR [--listen ADDR]   serve module code to the nodes (until signalled)
     pb3a node start --name N [--listen ADDR] run a node controller (until signalled)
 
 Each module of this package registers its subcommands; each subcommand is a function
-taking the parsed arguments and returning the exit code.
+taking the parsed arguments and returning the exit code. The command modules are
+imported inside ``main``, so that a Ctrl-C at any moment ends the command with exit
+status 130 and one line, not a traceback.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 from collections.abc import Callable, Sequence
 
-from pb3a.cli import daemons, files, running_system, scenarios
-from pb3a.cli.log_output import show_logs
+INTERRUPTED = 130      # the shell's convention for a command ended by SIGINT
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line with ``argv`` (default: ``sys.argv[1:]``); returns the exit code."""
-    parser = _parser()
-    args = parser.parse_args(argv)
-    show_logs()
-    handler: Callable[[argparse.Namespace], int] | None = getattr(args, "handler", None)
-    if handler is None:
-        parser.print_help()
-        return 2
-    return handler(args)
+    try:
+        from pb3a.cli.log_output import show_logs
+
+        parser = _parser()
+        args = parser.parse_args(argv)
+        show_logs()
+        handler: Callable[[argparse.Namespace], int] | None = getattr(args, "handler", None)
+        if handler is None:
+            parser.print_help()
+            return 2
+        return handler(args)
+    except KeyboardInterrupt:
+        print("pb3a: interrupted", file=sys.stderr)
+        return INTERRUPTED
 
 
 def _parser() -> argparse.ArgumentParser:
+    from pb3a.cli import daemons, files, running_system, scenarios
+
     parser = argparse.ArgumentParser(
         prog="pb3a", description="Port-based modules that run, swap and move while they run.")
     commands = parser.add_subparsers(title="commands", metavar="COMMAND")

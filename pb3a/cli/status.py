@@ -12,9 +12,11 @@ import sys
 import time
 from typing import TYPE_CHECKING, TextIO
 
+from pb3a.launch.running import launch
+
 if TYPE_CHECKING:
+    from pb3a.config.plan import Plan
     from pb3a.stats import SystemStats
-    from pb3a.system import System
 
 REFRESH_S = 1.0
 LAST_ERROR_WIDTH = 60        # characters of a module's last error in the table
@@ -61,16 +63,18 @@ def _columns(rows: list[tuple[str, ...]]) -> list[str]:
             for row in rows]
 
 
-def run_with_status(system: System, seconds: float | None, out: TextIO = sys.stdout,
+def run_with_status(plan: Plan, seconds: float | None, out: TextIO | None = None,
                     listen: str = "tcp://127.0.0.1:0") -> int:
-    """Run ``system`` until ``seconds`` pass (None: until Ctrl-C or SIGTERM); 0 on a clean
-    stop. The launcher takes ``pb3a status / state / migrate / swap`` at ``listen``."""
+    """Run ``plan`` until ``seconds`` pass (None: until Ctrl-C or SIGTERM), the table on
+    ``out`` (default: stdout); 0 on a clean stop. The launcher takes ``pb3a.connect``
+    and ``pb3a status ADDR`` ... at ``listen``."""
+    out = out or sys.stdout
     previous = signal.signal(signal.SIGTERM, _interrupt)
     live = out.isatty()
     started = time.monotonic()
     try:
-        with system.launch() as run:
-            address = run.listen(listen)
+        with launch(plan, listen=listen) as run:
+            address = run.address
             out.write(f"pb3a: system {run.name!r} running"
                       f"{f' for {seconds:g} s' if seconds else ''}; Ctrl-C stops it; "
                       f"launcher at {address}\n")

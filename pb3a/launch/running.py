@@ -32,7 +32,8 @@ class Running(SystemHandle):
     """A launched system. Use it as a context manager: leaving the block stops everything."""
 
     def __init__(self, plan: Plan, *, checkpoint_s: float = 1.0,
-                 log_level: int = logging.WARNING, timeout: float = DEFAULT_TIMEOUT) -> None:
+                 log_level: int = logging.WARNING, timeout: float = DEFAULT_TIMEOUT,
+                 listen: str | None = None) -> None:
         self.plan = plan
         self.name = plan.name
         self._launcher = Launcher(plan, checkpoint_s=checkpoint_s, log_level=log_level)
@@ -41,6 +42,7 @@ class Running(SystemHandle):
         self._stopped = threading.Event()
         self._server: ControlServer | None = None
         self.address: str | None = None       # where `pb3a status ADDR` etc. reach it
+        self._listen_at = listen
 
     def _request(self, op: str, args: dict[str, Any]) -> Any:
         return self._operations.apply(op, args)
@@ -53,7 +55,9 @@ class Running(SystemHandle):
         try:
             with launcher.lock.held(f"start system {self.name!r}"):
                 remote = [node.address for node in self.plan.nodes.values() if node.address]
-                launcher.start_nodes(self.listen(reachable_from(remote[0])) if remote else None)
+                if self._listen_at is not None or remote:  # remote nodes call the launcher
+                    self.listen(self._listen_at or reachable_from(remote[0]))
+                launcher.start_nodes(self.address if remote else None)
                 launcher.expect(list(self.plan.modules.values()))
                 for spec in self.plan.modules.values():
                     launcher.add_module(spec)

@@ -1,0 +1,70 @@
+"""Every command of ``pb3a`` given a wrong argument answers with a sentence and a non-zero
+exit status, never a traceback (a user's ordinary mistakes, walked one by one)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from pb3a.cli.main import main
+
+pytestmark = pytest.mark.timeout(120)
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _mistakes(tmp: Path) -> list[tuple[list[str], int, str]]:
+    (tmp / "broken.toml").write_text("name = 'x\n")
+    (tmp / "far.toml").write_text('[nodes.far]\naddress = "tcp://127.0.0.1:1"\n'
+                                  '[modules.t]\nclass = "examples.pipeline:Ticker"\n'
+                                  'node = "far"\n')
+    missing = str(tmp / "missing.toml")
+    return [
+        (["check", missing], 1, "cannot read"),
+        (["check", str(tmp / "broken.toml")], 1, "not valid TOML"),
+        (["graph", missing], 1, "cannot read"),
+        (["run", missing], 1, "cannot read"),
+        (["run", str(tmp / "far.toml"), "--for", "1"], 1,
+         "no node controller answered at tcp://127.0.0.1:1"),
+        (["status", "nonsense"], 1, "is not a launcher's address"),
+        (["status", "127.0.0.1:1"], 1, "no PB3A launcher answered"),
+        (["state", "tcp://127.0.0.1:1", "m"], 1, "no PB3A launcher answered"),
+        (["node", "start", "--name", "n", "--listen", "nonsense"], 1,
+         "is not an address to listen on"),
+        (["node", "start", "--name", "n", "--listen", "tcp://127.0.0.1:http"], 1,
+         "is not an address to listen on"),
+        (["modules", "serve", str(tmp / "nowhere")], 1, "nowhere"),
+        (["modules", "serve", str(tmp / "broken.toml")], 1, "is not a directory"),
+        (["scenario", "nope"], 2, "no scenario 'nope'; the scenarios: self-migration"),
+    ]
+
+
+def test_every_command_answers_a_mistake_with_a_sentence(tmp_path, capsys, monkeypatch) -> None:
+    monkeypatch.chdir(REPO)                      # (far.toml names examples.pipeline)
+    for argv, status, said in _mistakes(tmp_path):
+        assert main(argv) == status, argv
+        out, err = capsys.readouterr()
+        assert said in err or said in out, (argv, out, err)
+        assert "Traceback" not in out + err, (argv, err)
+
+
+@pytest.mark.parametrize("argv", [["check"], ["run", "x.toml", "--for", "soon"],
+                                  ["node", "start"], ["migrate", "tcp://h:1", "m"]])
+def test_arguments_that_do_not_parse_get_the_usage(argv, capsys) -> None:
+    with pytest.raises(SystemExit) as stopped:
+        main(argv)
+    assert stopped.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("usage: pb3a") and "error:" in err
+
+
+def test_a_key_of_the_wrong_length_is_a_sentence(tmp_path, capsys, monkeypatch) -> None:
+    monkeypatch.setenv("PB3A_KEY", "short")
+    for argv in (["status", "tcp://127.0.0.1:1"],
+                 ["node", "start", "--name", "n", "--listen", "tcp://127.0.0.1:0"],
+                 ["run", str(REPO / "examples" / "pipeline.toml"), "--for", "1"]):
+        assert main(argv) == 1, argv
+        err = capsys.readouterr().err
+        assert "the cluster key from $PB3A_KEY is 5 bytes; use at least 32" in err, (argv, err)
+        assert "Traceback" not in err
