@@ -11,6 +11,10 @@ both read from CLOCK_MONOTONIC, which all processes share. Two payloads:
 - small: Python ints ``0..N-1``;
 - array: one 1 MiB float64 array, written N times; the reader touches one element of
   each (PB3A hands it a read-only view into the ring: zero copy) and reports GB/s.
+  PB3A runs it twice, same run, same size: on the reader's dropping ``queue:8`` input
+  (``pb3a``), and with the link's policy ``lossless:8`` (``pb3a_lossless``: the writer
+  waits for room instead of dropping); the ``lossless`` entry compares the two (rate,
+  values lost, lossless/dropping).
 
 How: PB3A goes through the public API only: ``System`` with a writer module
 (``IntBurst``/``ArrayBurst``: period 0, one burst of N writes inside ``step``) and an
@@ -74,6 +78,8 @@ TIMEOUT = 30.0             # bound of any one trial (seconds)
 RECV_TIMEOUT = 10.0        # bound of any one blocking receive in a baseline child
 GOALS = {"small": ("pb3a >= 5x mp.Queue (msgs/s)", 5.0),
          "array": ("pb3a >= 10 GB/s with zero-copy views", 10.0)}
+LOSSLESS = "lossless:8"    # the lossless row's link policy (the dropping row: queue:8)
+LOSSLESS_GOAL = 0.9        # lossless at >= 0.9x the dropping policy's rate, nothing lost
 
 
 # -- PB3A ---------------------------------------------------------------------------
@@ -81,15 +87,15 @@ class Pb3aLink:
     """A launched writer -> reader system; every ``burst(n)`` is one trial."""
 
     def __init__(self, writer: type[Module], reader: type[Module], batch: int = 0,
-                 remote: bool = False) -> None:
-        system = System(f"bench-{writer.__name__.lower()}")
+                 remote: bool = False, policy: str | None = None) -> None:
+        system = System(f"bench-{writer.__name__.lower()}-{policy or 'declared'}")
         if remote:
             system.node("a")
             system.node("b")
         # the reader is added (so started) first: ready before values flow
         system.add("reader", reader, node="b" if remote else None)
         system.add("writer", writer, state={"batch": batch}, node="a" if remote else None)
-        system.link("writer.out", "reader.x")
+        system.link("writer.out", "reader.x", policy=policy)
         self.run = system.launch()
         self.bursts = 0
         self.drops = 0
@@ -244,7 +250,10 @@ def suite(payload: str, tmp: str, remote: bool = False) -> dict[str, Any]:
         n, warm = n // 5, warm // 5
     links = {"pb3a": Pb3aLink(ArrayBurst, ArrayCounter, remote=remote) if array
              else Pb3aLink(IntBurst, IntCounter, remote=remote)}
-    if not array:   # the same link written with write_many(), 64 values per call
+    if array:       # the same link, lossless: the writer waits instead of dropping
+        links["pb3a_lossless"] = Pb3aLink(ArrayBurst, ArrayCounter, remote=remote,
+                                          policy=LOSSLESS)
+    else:           # the same link written with write_many(), 64 values per call
         links["pb3a_write_many"] = Pb3aLink(IntBurst, IntCounter, batch=BATCH, remote=remote)
     baselines: tuple[str, ...] = ("zmq_tcp",) if remote else ("mp_queue", "zmq_ipc")
     if array and not remote:
@@ -281,6 +290,8 @@ def suite(payload: str, tmp: str, remote: bool = False) -> dict[str, Any]:
         goal_text, limit = GOALS[payload]
         measured = figures["pb3a"]["median"] if array else ratio["pb3a/mp_queue"]
         goal = {"goal": {"text": goal_text, "measured": measured, "met": measured >= limit}}
+    if array:
+        goal["lossless"] = lossless_report(figures, trials, n)
     return {
         "payload": "float64[131072] (1 MiB)" if array else "int 0..N-1",
         "values_per_trial": n, "warm_up_values": warm, "reps": REPS,
@@ -291,6 +302,22 @@ def suite(payload: str, tmp: str, remote: bool = False) -> dict[str, Any]:
         "pb3a_read_only_view_share": round(
             sum(t["views"] for t in trials["pb3a"]) / max(1, delivered), 3),
         "steal": steal_report(steal_seconds() - steal0, wall),
+    }
+
+
+def lossless_report(figures: dict[str, Any], trials: dict[str, list[dict[str, Any]]],
+                    n: int) -> dict[str, Any]:
+    """The lossless row against the dropping one: rates, values lost, their ratio."""
+    lost = {name: sum(n - t["count"] for t in trials[name]) for name in ("pb3a", "pb3a_lossless")}
+    ratio = round(figures["pb3a_lossless"]["median"] / figures["pb3a"]["median"], 2)
+    return {
+        "policies": {"pb3a": "queue:8 (dropping)", "pb3a_lossless": LOSSLESS},
+        "gb_per_s_median": {name: figures[name]["median"] for name in lost},
+        "values_lost": lost, "values_sent": n * len(trials["pb3a"]),
+        "ratio_lossless_to_dropping": ratio,
+        "goal": {"text": f"lossless >= {LOSSLESS_GOAL}x dropping, with zero loss",
+                 "measured": ratio,
+                 "met": ratio >= LOSSLESS_GOAL and lost["pb3a_lossless"] == 0},
     }
 
 

@@ -3,7 +3,8 @@
     PB3AError
     ├── ConfigError (ValueError)      a configuration is invalid; lists every problem
     ├── ModuleNotFound (LookupError)  no module of that name in the running system
-    ├── RuntimeTimeout (TimeoutError) a runtime request got no answer in time
+    ├── RuntimeTimeout (TimeoutError) a runtime request got no answer in time, or a
+    │                                 write found no room on a lossless link in time
     └── RuntimeFailure (RuntimeError) a worker or node failed to carry out a request
 
 Each subclasses the nearest built-in, so callers may catch either.
@@ -34,8 +35,21 @@ class ModuleNotFound(PB3AError, LookupError):
 
 
 class RuntimeTimeout(PB3AError, TimeoutError):
-    """A request to a worker or node got no answer within its deadline."""
+    """A request to a worker or node got no answer within its deadline, or a write on a
+    ``lossless`` link found no room within its timeout (see ``link_stuck``)."""
 
 
 class RuntimeFailure(PB3AError, RuntimeError):
     """A worker or node could not carry out a request; the message says why."""
+
+
+def link_stuck(link: str, waited: float, unsent: int = 1) -> RuntimeTimeout:
+    """The error of a write on a ``lossless`` link that found no room within its timeout.
+
+    ``link`` is the link's key ("writer.port->reader.port", or several joined by ", ");
+    ``unsent`` values of the write did not go.
+    """
+    what = "the value was" if unsent == 1 else f"{unsent} values were"
+    return RuntimeTimeout(
+        f"write on lossless link {link.replace('->', ' -> ')} timed out: the reader has not "
+        f"taken a value for {waited:.1f} s: it is stuck, too slow, or gone ({what} not sent)")

@@ -18,13 +18,22 @@ from typing import Any
 class InputStats:
     """One input port's counters."""
 
-    policy: str                 # "latest" or "queue:N"
+    policy: str                 # "latest", "queue:N" or "lossless:N"
     received: int = 0           # values delivered to the port
     drops: int = 0              # values lost to queue overflow (or on the link)
     pending: int = 0            # values not read yet
     latency: float = math.nan   # smoothed seconds from write to delivery
     rate: float = 0.0           # values per second, recently
     link_failures: int = 0      # values lost because a link or its peer failed
+
+
+@dataclass(frozen=True)
+class WaitStats:
+    """Writes that waited for room: a full ring or input (on a lossless link, the writer
+    waits until the reader takes a value; on a dropping one, briefly)."""
+
+    waits: int = 0              # writes that waited
+    wait_s: float = 0.0         # seconds spent waiting, in all
 
 
 @dataclass(frozen=True)
@@ -46,11 +55,13 @@ class ModuleStats:
     cpu: float = 0.0            # CPU seconds (its whole worker's when it runs alone)
     inputs: dict[str, InputStats] = field(default_factory=dict)
     outputs: dict[str, int] = field(default_factory=dict)    # values written, per output
+    output_waits: dict[str, WaitStats] = field(default_factory=dict)   # per output
+    link_waits: dict[str, WaitStats] = field(default_factory=dict)     # per link it writes
 
 
 @dataclass(frozen=True)
 class LinkStats:
-    """One link, as its reader sees it."""
+    """One link, as its reader sees it (``waits`` and ``wait_s``: as its writer does)."""
 
     src: str                    # "module.port"
     dst: str
@@ -63,6 +74,8 @@ class LinkStats:
     rate: float = 0.0
     link_failures: int = 0
     ring_bytes_used: int = 0
+    waits: int = 0              # writes that waited for room on this link
+    wait_s: float = 0.0         # seconds they waited
 
 
 @dataclass(frozen=True)

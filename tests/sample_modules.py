@@ -420,3 +420,56 @@ class Busybody(Agent):
             elif not self.unexpected:
                 self.unexpected = f"{type(exc).__name__}: {exc}"
         self.asked += 1
+
+
+class Sipper(Module):
+    """A slow reader: each step reads at most ``sip`` values (0: none, a stuck reader),
+    checking they are 1, 2, 3, ... in order."""
+
+    x = Input(int, policy="lossless:8")
+    period = 0.002
+    sip = 0
+    received = 0
+    last = 0
+    out_of_order = 0
+    duplicates = 0
+
+    def step(self) -> None:
+        for _ in range(self.sip):
+            value = self.x.read(None)
+            if value is None:
+                return
+            if value == self.last:
+                self.duplicates += 1
+            elif value != self.last + 1:
+                self.out_of_order += 1
+            self.last = value
+            self.received += 1
+
+
+class Pusher(Module):
+    """Writes 1, 2, 3, ... as fast as it can, up to ``limit`` (0: forever), each write
+    waiting at most ``timeout`` seconds (0: the default); a write that fails is tried
+    again with the same value at the next step, so ``sent`` counts values that went."""
+
+    out = Output(int)
+    period = 0.0
+    limit = 0
+    timeout = 0.0
+    sent = 0
+
+    def step(self) -> None:
+        if self.limit and self.sent >= self.limit:
+            time.sleep(0.005)
+            return
+        self.out.write(self.sent + 1, timeout=self.timeout or None)
+        self.sent += 1
+
+
+class SipperV2(Sipper):
+    """Sipper with another body, for swaps in the middle of a lossless stream."""
+
+    swapped_in = 0
+
+    def setup(self) -> None:
+        self.swapped_in += 1

@@ -61,6 +61,19 @@ def test_check_prints_every_problem_on_its_own_line_and_exits_1(tmp_path: Path) 
     assert "3 problems in broken.toml" in done.stderr
 
 
+def test_check_accepts_a_lossless_link_and_lists_lossless_when_a_policy_is_bad(
+        tmp_path: Path) -> None:
+    text = BROKEN.replace("perod", "period").replace("Scael", "Scale")
+    (tmp_path / "lossless.toml").write_text(textwrap.dedent(
+        text.replace('policy = "fifo"', 'policy = "lossless:8"')))
+    done = pb3a("check", "lossless.toml", cwd=tmp_path)
+    assert done.returncode == 0, done.stdout + done.stderr
+    (tmp_path / "bad.toml").write_text(textwrap.dedent(text))
+    done = pb3a("check", "bad.toml", cwd=tmp_path)
+    assert done.returncode == 1
+    assert "bad policy 'fifo'" in done.stdout and "'lossless' or 'lossless:N'" in done.stdout
+
+
 def test_check_reports_unreadable_and_non_toml_files(tmp_path: Path) -> None:
     missing = pb3a("check", "nowhere.toml", cwd=tmp_path)
     assert missing.returncode == 1

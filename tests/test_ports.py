@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import threading
+import time
+
 import numpy as np
 import pytest
 
-from pb3a import Input, Module, Output
-from pb3a.model.ports import Policy
+from pb3a import Input, Module, Output, RuntimeTimeout
+from pb3a.model.ports import WRITE_WAIT_S, Policy, WaitCounter
 
 
 class Sensor(Module):
@@ -24,6 +27,10 @@ class Reader(Module):
 
     def helper(self) -> int:
         return 1
+
+
+class Careful(Module):
+    x = Input(int, policy="lossless:2")
 
 
 class Child(Reader):
@@ -182,3 +189,77 @@ def test_deliver_many_applies_the_policy_once_per_batch() -> None:
     assert reader.queued.take_events(10) == 3
     reader.latest.deliver_many([1.0, 2.0, 3.0])
     assert reader.latest.read() == 3.0 and reader.latest.take_events(10) == 1
+
+
+def test_lossless_policies_parse_and_bad_text_lists_them() -> None:
+    assert Policy.parse("lossless:8") == Policy("lossless", 8)
+    assert str(Policy.parse("lossless")) == "lossless:64"
+    assert Policy.parse("lossless:8").lossless and not Policy.parse("queue:8").lossless
+    assert str(Careful.inputs["x"].policy) == "lossless:2"
+    for bad in ("lossless:0", "lossless:", "lossless:x", "lossy"):
+        with pytest.raises(ValueError, match="'lossless' or 'lossless:N'"):
+            Policy.parse(bad)
+
+
+def test_a_lossless_queue_never_drops_and_a_read_wakes_whoever_waits_for_room() -> None:
+    port = Careful().x
+    woken: list[int] = []
+    port._on_room = lambda: woken.append(port.pending)
+    port.deliver_many([1, 2, 3])                  # (two feeders at once may overfill it)
+    assert port.pending == 3 and port.drops == 0 and port.claim_room() == -1
+    assert port.read() == 1 and woken == []       # still full
+    assert port.read() == 2 and woken == [1]      # room: the receiver is told, once
+    assert port.read() == 3 and woken == [1]
+    assert port.claim_room() == 2 and woken == [1]
+
+
+def test_put_waits_for_a_read_then_times_out_naming_the_link() -> None:
+    port, counter = Careful().x, WaitCounter()
+    port.put([1, 2], 1.0, "w.out->r.x", counter)
+    assert counter.waits == 0                     # there was room
+    reader = threading.Timer(0.1, port.read)
+    reader.start()
+    port.put([3], 5.0, "w.out->r.x", counter)     # waits for the read
+    reader.join()
+    assert port.read_all() == [2, 3] and counter.waits == 1 and counter.wait_s >= 0.05
+    port.put([4, 5], 1.0, "w.out->r.x", counter)
+    start = time.monotonic()
+    with pytest.raises(RuntimeTimeout, match=r"lossless link w.out -> r.x timed out.*"
+                       r"not taken a value for 0.2 s.*\(2 values were not sent\)"):
+        port.put([6, 7], 0.2, "w.out->r.x", counter)
+    assert 0.15 < time.monotonic() - start < 2 and port.read_all() == [4, 5]
+    assert counter.waits == 2
+
+
+def test_lossless_sinks_get_the_writers_timeout_and_dropping_ones_do_not() -> None:
+    sensor = Sensor()
+    seen: list = []
+    sensor.label.connect("drop", lambda value: seen.append(("drop", value)))
+    sensor.label.connect("wait", lambda value, timeout: seen.append(("wait", value, timeout)),
+                         lambda values, timeout: seen.append(("many", values, timeout)),
+                         lossless=True)
+    sensor.label.write("a")
+    sensor.label.write("b", timeout=0.5)
+    sensor.label.write_many(["c"], timeout=2.0)
+    assert seen == [("wait", "a", WRITE_WAIT_S), ("drop", "a"), ("wait", "b", 0.5),
+                    ("drop", "b"), ("many", ["c"], 2.0), ("drop", "c")]
+    assert WRITE_WAIT_S == 10.0 and sensor.label.written == 3
+
+
+def test_a_write_that_times_out_is_sent_on_no_link_and_its_wait_is_counted() -> None:
+    sensor = Sensor()
+    counter, seen = WaitCounter(), []
+
+    def stuck(value: str, timeout: float) -> None:
+        counter.add(timeout)
+        raise RuntimeTimeout("no room")
+    sensor.label.connect("drop", seen.append)
+    sensor.label.connect("stuck", stuck, lossless=True, counter=counter)
+    with pytest.raises(RuntimeTimeout):
+        sensor.label.write("a", timeout=0.25)
+    assert sensor.label.written == 0 and seen == []        # not sent on any link
+    sensor.label.disconnect("drop")
+    assert sensor.label.wait_figures() == {"waits": 1, "wait_s": 0.25,
+                                           "links": {"stuck": (1, 0.25)}}
+    sensor.label.disconnect("stuck")
+    assert sensor.label.wait_figures() == {"waits": 0, "wait_s": 0, "links": {}}

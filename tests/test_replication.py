@@ -12,6 +12,7 @@ import pytest
 import zmq
 from conftest import eventually
 
+from pb3a import RuntimeTimeout
 from pb3a.transport import replication
 from pb3a.transport.auth import ClusterKey, Sealer
 from pb3a.transport.replication import Follower, Replicator
@@ -265,3 +266,104 @@ def test_a_sender_of_an_earlier_epoch_is_refused_as_stale() -> None:
         follower.close()
         old.close()
         current.close()
+
+
+class Dam:
+    """A lossless receiver: while closed it puts nothing through (a full ring) and says
+    how much it holds back; ``open`` lets everything through."""
+
+    def __init__(self) -> None:
+        self.inbox = Inbox()
+        self.back: list[Any] = []
+        self.closed = True
+        self._lock = threading.Lock()
+
+    def __call__(self, topic: str, values: list[Any], sent_at: float) -> int:
+        with self._lock:
+            if self.closed:
+                self.back += values
+                return len(self.back)
+        self.inbox(topic, values, sent_at)
+        return 0
+
+    def open(self, follower: Follower, topic: str) -> None:
+        with self._lock:
+            self.closed, back, self.back = False, self.back, []
+        self.inbox(topic, back, 0.0)
+        follower.release(topic, 0)
+
+
+@pytest.fixture
+def dammed():
+    replicator, dam = Replicator(KEY), Dam()
+    follower = Follower(KEY, dam)
+    replicator.add("t")
+    follower.set_lossless("t", True)
+    _follow(follower, replicator, "t", from_seq=0)
+    assert follower.wait_ready("t", TIMEOUT)
+    yield replicator, follower, dam
+    follower.close()
+    replicator.close()
+
+
+def test_a_lossless_follower_holds_the_publisher_back_until_its_receiver_takes_values(
+        dammed, monkeypatch) -> None:
+    replicator, follower, dam = dammed
+    monkeypatch.setattr(replication, "WINDOW", 16)
+    for i in range(16):
+        replicator.publish("t", i, timeout=5.0)
+    started = time.monotonic()
+    with pytest.raises(RuntimeTimeout, match="lossless link t timed out"):
+        replicator.publish("t", "no room", timeout=0.3)      # 16 ahead: not sent
+    assert 0.25 < time.monotonic() - started < 5
+    assert replicator.counter("t").waits == 1
+    opener = threading.Timer(0.1, dam.open, (follower, "t"))
+    opener.start()
+    try:
+        replicator.publish("t", 16, timeout=5.0)              # the receiver takes them
+    finally:
+        opener.join()
+    assert dam.inbox.wait("t", 17) == list(range(17))
+    assert follower.link_failures["t"] == 0 and replicator.counter("t").waits == 2
+
+
+def test_values_a_lossless_follower_has_not_acknowledged_stay_in_the_replay_buffer(
+        dammed, monkeypatch) -> None:
+    replicator, follower, dam = dammed
+    monkeypatch.setattr(replication, "REPLAY_VALUES", 10)
+    for i in range(10):
+        replicator.publish("t", i, timeout=5.0)
+    with pytest.raises(RuntimeTimeout):                       # it would push out value 0
+        replicator.publish("t", 10, timeout=0.2)
+    dam.open(follower, "t")
+    for i in range(10, 30):
+        replicator.publish("t", i, timeout=5.0)
+    assert dam.inbox.wait("t", 30) == list(range(30))
+    assert follower.link_failures["t"] == 0
+
+
+def test_a_lossless_follower_stops_holding_the_publisher_when_it_goes(
+        dammed, monkeypatch) -> None:
+    replicator, follower, _ = dammed
+    monkeypatch.setattr(replication, "WINDOW", 16)
+    for i in range(16):
+        replicator.publish("t", i, timeout=5.0)
+    follower.unfollow("t")                                    # says so: at once
+    replicator.publish("t", 16, timeout=5.0)
+    started = time.monotonic()
+    for i in range(17, 40):
+        replicator.publish("t", i, timeout=5.0)
+    assert time.monotonic() - started < 2.0
+
+
+def test_a_lossless_follower_that_went_silent_holds_the_publisher_until_released(
+        dammed, monkeypatch) -> None:
+    replicator, follower, _ = dammed
+    monkeypatch.setattr(replication, "WINDOW", 16)
+    for i in range(16):
+        replicator.publish("t", i, timeout=5.0)
+    follower.close()                                          # gone without a word
+    with pytest.raises(RuntimeTimeout):
+        replicator.publish("t", 16, timeout=0.2)
+    replicator.release("t")                                   # its link was cut
+    replicator.publish("t", 16, timeout=0.2)

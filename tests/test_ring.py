@@ -9,15 +9,16 @@ import threading
 import numpy as np
 import pytest
 
+from pb3a import RuntimeTimeout
 from pb3a.transport import codec
 from pb3a.transport.doorbell import new_bell
 from pb3a.transport.ring import ShmRing, sleep
 from pb3a.transport.shm import live_segments, segment_name
 
 
-def _ends(slots: int = 0, slot_bytes: int = 0):
+def _ends(slots: int = 0, slot_bytes: int = 0, lossless: bool = False):
     """A 64 KiB ring (with a pool, if asked) and its writer and reader ends."""
-    owner = ShmRing.create(segment_name("ring"), 64 * 1024, slots, slot_bytes)
+    owner = ShmRing.create(segment_name("ring"), 64 * 1024, slots, slot_bytes, lossless)
     reader = ShmRing.attach(owner.name)
     writer = ShmRing.attach(owner.name)
     yield owner, writer, reader
@@ -317,3 +318,91 @@ def test_a_record_naming_a_slot_that_is_not_there_is_reported(pool) -> None:
     owner._data[body:body + 8] = (99).to_bytes(8, "little")
     with pytest.raises(RuntimeError, match="slot 99 of 4"):
         reader.drain()
+
+
+@pytest.fixture
+def lossless():
+    """A lossless 64 KiB ring: its writer waits for room, then fails; it never drops."""
+    yield from _ends(lossless=True)
+
+
+def test_a_full_lossless_ring_makes_the_writer_fail_and_sends_nothing(lossless) -> None:
+    _, writer, reader = lossless
+    assert writer.lossless and reader.lossless
+    writer.label = "w.out->r.x"
+    sent = 0
+    while writer.offer([sent]):                          # what fits, without waiting
+        sent += 1
+    with pytest.raises(RuntimeTimeout, match=r"lossless link w.out -> r.x timed out"):
+        writer.write("no room", timeout=0.05)
+    with pytest.raises(RuntimeTimeout, match=r"\(3 values were not sent\)"):
+        writer.write_many(["a", "b", "c"], timeout=0.05)
+    assert writer.waits == 2 and writer.wait_s >= 0.1
+    got, gaps = _drain(reader)
+    assert got == list(range(sent)) and gaps == 0       # nothing dropped: no gap
+    assert writer.write("after", timeout=0.0)
+    assert _drain(reader) == (["after"], 0)
+
+
+def test_a_lossless_writer_waits_until_the_reader_takes_values(lossless) -> None:
+    _, writer, reader = lossless
+    sent = 0
+    while writer.offer([sent]):
+        sent += 1
+    taken: list = []
+    drained = threading.Timer(0.05, lambda: taken.extend(reader.drain(10)[0]))
+    drained.start()
+    try:
+        assert writer.write_many([sent, sent + 1], timeout=5.0) == 2   # room comes back
+    finally:
+        drained.join()
+    rest, gaps = _drain(reader)
+    assert taken + rest == list(range(sent + 2)) and gaps == 0
+    assert writer.waits >= 1
+
+
+@pytest.fixture
+def lossless_pool():
+    yield from _ends(slots=4, slot_bytes=1 << 20, lossless=True)
+
+
+def test_a_lossless_writer_waits_for_a_slot_while_the_reader_holds_every_view(
+        lossless_pool) -> None:
+    _, writer, reader = lossless_pool
+    array = np.ones(1 << 17)
+    for _ in range(4):
+        writer.write(array)
+    views, _, _ = reader.drain()                         # the input holds four views
+    with pytest.raises(RuntimeTimeout):
+        writer.write(array, timeout=0.05)                # no slot: no drop either
+    released = threading.Timer(0.05, views.pop)
+    released.start()
+    try:
+        assert writer.write(array * 2, timeout=5.0)      # a slot comes back meanwhile
+    finally:
+        released.join()
+    fresh, _, gaps = reader.drain()
+    assert gaps == 0 and [v[0] for v in fresh] == [2.0]
+
+
+def test_a_closing_lossless_link_asks_its_reader_to_take_everything(lossless) -> None:
+    owner, writer, reader = lossless
+    bell = new_bell()
+    try:
+        writer.set_bell(bell)
+        assert not reader.flush_requested
+        writer.request_flush()
+        assert reader.flush_requested and owner.flush_requested
+        assert sleep(bell, [], 0.0)                       # and its doorbell rang
+    finally:
+        os.close(bell)
+
+
+def test_a_writer_waiting_for_room_gives_up_when_its_link_is_cut(lossless) -> None:
+    _, writer, _ = lossless
+    while writer.offer([0]):
+        pass
+    threading.Timer(0.05, writer.cancel).start()
+    with pytest.raises(RuntimeTimeout):
+        writer.write(1, timeout=10.0)
+    assert writer.wait_s < 5

@@ -341,6 +341,9 @@ def _link_table(links: dict[str, FlatLink], modules: dict[str, ModuleStats],
             "values": port.received, "drops": port.drops, "pending": port.pending,
             "latency": port.latency, "rate": port.rate, "link_failures": port.link_failures}
         figures["link_failures"] = figures.get("link_failures", 0) + lost.get(key, 0)
+        waits = src.link_waits.get(key) if src else None
+        if waits is not None:
+            figures.update(waits=waits.waits, wait_s=waits.wait_s)
         table[key] = LinkStats(f"{link.src}.{link.src_port}", f"{link.dst}.{link.dst_port}",
                                str(link.policy), transport, **figures,
                                ring_bytes_used=rings.get(key, 0))

@@ -17,6 +17,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from pb3a.errors import link_stuck
+
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterable, Sequence
 
@@ -26,18 +28,22 @@ _MISSING: Any = object()
 # complex one), so that the SPEC's Ticker (Output(int)) may feed Scale (Input(float)).
 _NUMERIC_PROMOTION: dict[type, tuple[type, ...]] = {float: (int,), complex: (int, float)}
 _RATE_WINDOW = 0.5   # seconds over which an input's rate is counted
+WRITE_WAIT_S = 10.0  # how long a write waits for room on a lossless link, by default
 
 
 @dataclass(frozen=True)
 class Policy:
-    """How an input keeps values: ``latest`` (newest only) or ``queue:N`` (FIFO of N)."""
+    """How an input keeps values: ``latest`` (newest only), ``queue:N`` (FIFO of N: when
+    full, the oldest is dropped and counted) or ``lossless:N`` (FIFO of N: when full,
+    nothing is dropped; the writer waits for room, up to its timeout)."""
 
     kind: str
     size: int = 1
 
     @classmethod
     def parse(cls, text: str | Policy) -> Policy:
-        """Parse ``"latest"``, ``"queue"`` (64 deep) or ``"queue:N"``; ValueError otherwise."""
+        """Parse ``"latest"``, ``"queue"``/``"lossless"`` (64 deep), ``"queue:N"`` or
+        ``"lossless:N"``; ValueError otherwise."""
         if isinstance(text, Policy):
             return text
         if not isinstance(text, str):
@@ -45,17 +51,25 @@ class Policy:
                 f"policy must be a string such as 'latest' or 'queue:64', got {text!r}")
         if text == "latest":
             return cls("latest", 1)
-        if text == "queue":
-            return cls("queue", 64)
         kind, sep, size = text.partition(":")
-        if kind == "queue" and sep and size.isdigit() and int(size) > 0:
-            return cls("queue", int(size))
+        if kind in ("queue", "lossless"):
+            if not sep:
+                return cls(kind, 64)
+            if size.isdigit() and int(size) > 0:
+                return cls(kind, int(size))
         raise ValueError(
-            f"bad policy {text!r}: use 'latest', 'queue' or 'queue:N' with N a positive integer"
+            f"bad policy {text!r}: use 'latest', 'queue' or 'queue:N' (the oldest value is "
+            "dropped when full), or 'lossless' or 'lossless:N' (the writer waits for room), "
+            "with N a positive integer"
         )
 
+    @property
+    def lossless(self) -> bool:
+        """True when a full input makes its writers wait instead of dropping."""
+        return self.kind == "lossless"
+
     def __str__(self) -> str:
-        return "latest" if self.kind == "latest" else f"queue:{self.size}"
+        return "latest" if self.kind == "latest" else f"{self.kind}:{self.size}"
 
 
 class _Port:
@@ -110,7 +124,8 @@ class _Port:
 class Input(_Port):
     """An input port: ``Input(float)``, ``Input(np.ndarray, shape=(16,), dtype="float32")``.
 
-    ``policy`` is ``"latest"`` (default) or ``"queue:N"``; a link may override it.
+    ``policy`` is ``"latest"`` (default), ``"queue:N"`` or ``"lossless:N"``; a link may
+    override it.
     """
 
     def __init__(self, type_: type = object, *, shape: tuple[int, ...] | None = None,
@@ -138,6 +153,8 @@ class InputPort:
     """An input bound to one module instance: holds received values by its policy.
 
     ``deliver`` may be called from any thread; ``read`` from the module's own calls.
+    A ``lossless`` queue never drops: its feeders take only what it has room for
+    (``claim_room``, ``put``), and a read that makes room wakes whoever waits for it.
     """
 
     def __init__(self, spec: Input, owner: str = "") -> None:
@@ -157,34 +174,44 @@ class InputPort:
         self._last_arrival = math.nan
         self._window_start = -math.inf
         self._window_count = 0
+        self._fifo = self.policy.kind != "latest"     # queue or lossless (the read path)
+        self._lossless = self.policy.lossless
         self._lock = threading.Lock()
+        self._room = threading.Condition(self._lock)  # lossless: a read made room
+        self._room_wanted = False    # lossless: a feeder found it full; the next read tells
         self._notify: Callable[[InputPort], None] | None = None
+        # lossless: called (from the reading thread) when a read makes room that a ring's
+        # receiver waits for; the worker sets it to ring its own doorbell
+        self._on_room: Callable[[], None] | None = None
 
     # -- the module's side -------------------------------------------------
     @property
     def has_value(self) -> bool:
         """True when ``read()`` would return a value."""
-        if self.policy.kind == "queue":
+        if self._fifo:
             return bool(self._values)
         return self._latest is not _MISSING
 
     @property
     def pending(self) -> int:
         """Values not yet read: the queue length, or 1 if the latest value is unread."""
-        if self.policy.kind == "queue":
+        if self._fifo:
             return len(self._values)
         return 1 if self._fresh else 0
 
     def read(self, default: Any = _MISSING) -> Any:
-        """The newest value (``latest``) or the next one in order (``queue``).
+        """The newest value (``latest``) or the next one in order (``queue``, ``lossless``).
 
         Without a value, returns ``default`` if given, else raises LookupError.
         """
         self._lock.acquire()
         try:
-            if self.policy.kind == "queue":
+            if self._fifo:
                 if self._values:
-                    return self._values.popleft()
+                    value = self._values.popleft()
+                    if self._room_wanted and len(self._values) < self.policy.size:
+                        self._made_room()
+                    return value
             elif self._latest is not _MISSING:
                 self._fresh = False
                 return self._latest
@@ -198,11 +225,14 @@ class InputPort:
         )
 
     def read_all(self) -> list[Any]:
-        """Every value pending, oldest first (``queue``), or ``[latest]`` if unread."""
+        """Every value pending, oldest first (``queue``, ``lossless``), or ``[latest]`` if
+        unread."""
         with self._lock:
-            if self.policy.kind == "queue":
+            if self._fifo:
                 values = list(self._values)
                 self._values.clear()
+                if values and self._room_wanted:
+                    self._made_room()
                 return values
             if self._fresh:
                 self._fresh = False
@@ -215,7 +245,11 @@ class InputPort:
         self.deliver_many((value,), sent_at)
 
     def deliver_many(self, values: Sequence[Any], sent_at: float | None = None) -> None:
-        """Accept values in link order; ``sent_at`` is when the newest was written."""
+        """Accept values in link order; ``sent_at`` is when the newest was written.
+
+        A ``queue`` drops its oldest values beyond its size; a ``lossless`` queue keeps
+        them all (its feeders respect its room, but two at once may overfill it briefly).
+        """
         count = len(values)
         now = time.monotonic()
         self._lock.acquire()
@@ -232,11 +266,11 @@ class InputPort:
             if now - self._window_start >= _RATE_WINDOW:
                 self.rate = self._window_count / (now - self._window_start)
                 self._window_start, self._window_count = now, 0
-            if self.policy.kind == "queue":
+            if self._fifo:
                 held = self._values
                 held.extend(values)
                 overflow = len(held) - self.policy.size
-                if overflow > 0:
+                if overflow > 0 and not self._lossless:
                     for _ in range(overflow):
                         held.popleft()
                     self.drops += overflow
@@ -252,6 +286,54 @@ class InputPort:
             self._lock.release()
         if notify and self._notify is not None:
             self._notify(self)
+
+    def claim_room(self) -> int:
+        """How many more values a ``lossless`` queue takes now (0 or less when full; then
+        the next read calls ``_on_room``). For the receiver of a ring that feeds it."""
+        with self._lock:
+            room = self.policy.size - len(self._values)
+            if room <= 0:
+                self._room_wanted = True
+            return room
+
+    def put(self, values: Sequence[Any], timeout: float, link: str,
+            counter: WaitCounter | None = None) -> None:
+        """Deliver values into a ``lossless`` queue, waiting for room whenever it is full
+        (at most ``timeout`` seconds in all; ``counter`` counts the wait). Raises
+        RuntimeTimeout (naming ``link``) when the reader made no room in time; the values
+        not in yet are not delivered. For a writer in this process: it waits without
+        holding the reader's module lock, so the reader can read and wake it."""
+        waited, done, total = 0.0, 0, len(values)
+        try:
+            while done < total:
+                with self._lock:
+                    room = self.policy.size - len(self._values)
+                    if room <= 0:
+                        start = time.monotonic()
+                        deadline = start + timeout - waited
+                        try:
+                            while room <= 0:
+                                left = deadline - time.monotonic()
+                                if left <= 0:
+                                    raise link_stuck(link, timeout, total - done)
+                                self._room_wanted = True
+                                self._room.wait(left)
+                                room = self.policy.size - len(self._values)
+                        finally:
+                            waited += time.monotonic() - start
+                chunk = values[done:done + room]
+                self.deliver_many(chunk, time.monotonic())
+                done += len(chunk)
+        finally:
+            if waited and counter is not None:
+                counter.add(waited)
+
+    def _made_room(self) -> None:
+        """A read made room in a full lossless queue: wake its feeders (under the lock)."""
+        self._room_wanted = False
+        self._room.notify_all()
+        if self._on_room is not None:
+            self._on_room()
 
     def take_events(self, most: int) -> int:
         """Claim up to ``most`` ``on_input`` calls for this port; returns how many."""
@@ -281,13 +363,17 @@ class InputPort:
         return min(self.rate, 1.0 / idle) if idle > _RATE_WINDOW else self.rate
 
     def set_policy(self, policy: Policy) -> None:
-        """Change the policy (a link may override the declared one); held values carry over."""
+        """Change the policy (a link may override the declared one); held values carry over.
+
+        Values beyond a smaller ``queue`` size are dropped (counted); a ``lossless``
+        queue keeps them all and takes new ones once it is read below its size."""
         with self._lock:
-            if policy.kind == self.policy.kind:
-                while len(self._values) > policy.size:
+            fifo = policy.kind != "latest"
+            if fifo and self._fifo:
+                while len(self._values) > policy.size and not policy.lossless:
                     self._values.popleft()
                     self.drops += 1
-            elif policy.kind == "latest":              # queue -> latest: keep the newest
+            elif not fifo:                             # queue -> latest: keep the newest
                 if self._values:
                     self._latest, self._fresh = self._values[-1], True
                 self._values.clear()
@@ -295,6 +381,9 @@ class InputPort:
                 self._values.append(self._latest)
             self._undispatched = min(self._undispatched, self._pending_for(policy))
             self.policy = policy
+            self._fifo, self._lossless = fifo, policy.lossless
+            if self._room_wanted and len(self._values) < policy.size:   # a larger queue
+                self._made_room()
 
     def export(self) -> dict[str, Any]:
         """Unconsumed values and counters, for a migration (see ``restore``)."""
@@ -305,7 +394,8 @@ class InputPort:
                     "drops": self.drops, "link_failures": self.link_failures}
 
     def restore(self, held: dict[str, Any]) -> None:
-        """Take over an exported port: its values come before anything delivered later."""
+        """Take over an exported port: its values come before anything delivered later
+        (a lossless queue keeps them all, even beyond its size)."""
         with self._lock:
             self._values.extend(held["values"])
             if held["latest"] is not None:
@@ -319,14 +409,17 @@ class InputPort:
             self._notify(self)
 
     def _pending_for(self, policy: Policy) -> int:
-        return len(self._values) if policy.kind == "queue" else int(self._fresh)
+        return len(self._values) if policy.kind != "latest" else int(self._fresh)
 
 
 class OutputPort:
     """An output bound to one module instance. ``write`` checks the type, then fans out.
 
     Each link is a pair of sinks: ``one(value)`` for ``write`` and ``many(values)``
-    for ``write_many``, which saves the per-value cost of the transport.
+    for ``write_many``, which saves the per-value cost of the transport. The sinks of a
+    ``lossless`` link take the writer's timeout too: ``one(value, timeout)``, and wait
+    for room up to it (then raise RuntimeTimeout). Each link may have a counter of the
+    writes that waited for room (attributes ``waits`` and ``wait_s``).
     """
 
     def __init__(self, spec: Output, owner: str = "") -> None:
@@ -334,24 +427,36 @@ class OutputPort:
         self.name = spec.name
         self.owner = owner
         self.written = 0
-        self._sinks: dict[str, tuple[Callable[[Any], Any], Callable[[Sequence[Any]], Any]]] = {}
+        self._sinks: dict[str, tuple[Callable[..., Any], Callable[..., Any], bool]] = {}
         self._ones: tuple[Callable[[Any], Any], ...] = ()     # the write() path, prebuilt
+        self._waiting: tuple[Callable[[Any, float], Any], ...] = ()   # ... of lossless links
+        self._counters: dict[str, Any] = {}    # link key -> its waits and wait_s
         self._lock = threading.Lock()
 
-    def write(self, value: Any) -> None:
-        """Send ``value`` on every link; TypeError (and nothing sent) if it does not fit."""
+    def write(self, value: Any, timeout: float | None = None) -> None:
+        """Send ``value`` on every link; TypeError (and nothing sent) if it does not fit.
+
+        On a ``lossless`` link a full reader makes the write wait, up to ``timeout``
+        seconds (None: ``WRITE_WAIT_S``), then raise RuntimeTimeout: the value did not
+        go on that link, nor on the dropping links (served after the lossless ones).
+        Dropping links (``latest``, ``queue``) never wait long."""
         if type(value) is not self.spec.plain_type:
             self.spec.check(value)
         self._lock.acquire()            # (not ``with``: half the cost, paid per value)
         try:
-            self.written += 1
+            if self._waiting:
+                wait = WRITE_WAIT_S if timeout is None else timeout
+                for one in self._waiting:
+                    one(value, wait)
             for one in self._ones:
                 one(value)
+            self.written += 1
         finally:
             self._lock.release()
 
-    def write_many(self, values: Iterable[Any]) -> None:
-        """Send values in order, as repeated ``write`` would, but faster; all are checked first."""
+    def write_many(self, values: Iterable[Any], timeout: float | None = None) -> None:
+        """Send values in order, as repeated ``write`` would, but faster; all are checked
+        first. ``timeout`` bounds the whole batch's waits on each lossless link."""
         batch = list(values)
         check = self.spec.check
         for value in batch:
@@ -359,29 +464,83 @@ class OutputPort:
         if not batch:
             return
         with self._lock:
+            wait = WRITE_WAIT_S if timeout is None else timeout
+            sinks = self._sinks.values()
+            for _, many, lossless in sinks:            # lossless links first, as in write
+                if lossless:
+                    many(batch, wait)
+            for _, many, lossless in sinks:
+                if not lossless:
+                    many(batch)
             self.written += len(batch)
-            for _, many in self._sinks.values():
-                many(batch)
 
-    def connect(self, key: str, one: Callable[[Any], Any],
-                many: Callable[[Sequence[Any]], Any] | None = None) -> None:
-        """Add a link: ``one(value)`` / ``many(values)`` are called in write order."""
+    def connect(self, key: str, one: Callable[..., Any], many: Callable[..., Any] | None = None,
+                *, lossless: bool = False, counter: Any = None) -> None:
+        """Add a link: ``one(value)`` / ``many(values)`` are called in write order (with
+        ``lossless``, ``one(value, timeout)`` / ``many(values, timeout)``). ``counter``
+        counts the link's writes that waited for room (see ``track``); if it has a
+        ``cancel()`` (a ring does), ``disconnect`` calls it first, so that a write
+        waiting for room on the link gives up instead of holding the port."""
         if many is None:
-            def many(values: Sequence[Any]) -> None:
+            def many(values: Sequence[Any], *timeout: float) -> None:
                 for value in values:
-                    one(value)
+                    one(value, *timeout)
         with self._lock:
-            self._sinks[key] = (one, many)
-            self._ones = tuple(pair[0] for pair in self._sinks.values())
+            self._sinks[key] = (one, many, lossless)
+            self._prebuild()
+        if counter is not None:
+            self.track(key, counter)
 
     def disconnect(self, key: str) -> bool:
-        """Remove a link; False if there was none. No write is in progress on return."""
+        """Remove a link; False if there was none. No write is in progress on return.
+
+        A write waiting for room on that link gives up at once (RuntimeTimeout)."""
+        cancel = getattr(self._counters.get(key), "cancel", None)
+        if cancel is not None:
+            cancel()
+        self.untrack(key)
         with self._lock:
             found = self._sinks.pop(key, None) is not None
-            self._ones = tuple(pair[0] for pair in self._sinks.values())
+            self._prebuild()
             return found
+
+    def _prebuild(self) -> None:
+        sinks = self._sinks.values()
+        self._ones = tuple(one for one, _, lossless in sinks if not lossless)
+        self._waiting = tuple(one for one, _, lossless in sinks if lossless)
+
+    def track(self, key: str, counter: Any) -> None:
+        """Count the waits of link ``key`` with ``counter`` (``waits``, ``wait_s``; one
+        counter may serve several links, as one remote publication does)."""
+        self._counters = {**self._counters, key: counter}    # replaced: readers iterate
+
+    def untrack(self, key: str) -> None:
+        self._counters = {k: c for k, c in self._counters.items() if k != key}
+
+    def wait_figures(self) -> dict[str, Any]:
+        """Writes that waited for room and seconds spent waiting: for the output (each
+        counter once) and per link key."""
+        counters = self._counters
+        links = {key: (c.waits, c.wait_s) for key, c in counters.items()}
+        distinct = {id(c): c for c in counters.values()}.values()
+        return {"waits": sum(c.waits for c in distinct),
+                "wait_s": sum(c.wait_s for c in distinct), "links": links}
 
     @property
     def links(self) -> list[str]:
         """Keys of the links this output feeds."""
         return list(self._sinks)
+
+
+class WaitCounter:
+    """How many writes on a link waited for room, and how long in all."""
+
+    __slots__ = ("wait_s", "waits")
+
+    def __init__(self) -> None:
+        self.waits = 0
+        self.wait_s = 0.0
+
+    def add(self, seconds: float) -> None:
+        self.waits += 1
+        self.wait_s += seconds

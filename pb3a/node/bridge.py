@@ -4,12 +4,21 @@ Each remote output this node reads is followed once (one ``Follower`` for the no
 one subscription per output), however many local inputs read it; the bridge then
 writes every value into the shared-memory ring of each such input, as a local
 writer would, so the reading worker cannot tell a remote link from a local one.
+
+Values arrive on the follower's socket thread, which must never block for long. A
+dropping link's ring is written as a local writer would (a brief wait, then a counted
+drop). A lossless link's ring takes what fits; the rest waits in the link's backlog,
+retried every ``RETRY_S`` while there is one, and the follower acknowledges to the
+sender only what went into the rings: so a reader that does not keep up holds the
+remote writer back through the sender's flow control, and nothing is dropped.
 """
 
 from __future__ import annotations
 
 import threading
 import time
+from collections import deque
+from dataclasses import dataclass, field
 from typing import Any
 
 from pb3a.errors import RuntimeTimeout
@@ -18,6 +27,29 @@ from pb3a.transport.replication import Follower
 from pb3a.transport.ring import ShmRing
 
 READY_TIMEOUT = 10.0
+RETRY_S = 0.001            # how often a lossless link's backlog is offered to its ring again
+
+
+@dataclass
+class _Feed:
+    """One local input's ring fed by a followed topic and, on a lossless link, the
+    values that did not fit yet, oldest first: ``(values, sent at)``."""
+
+    ring: ShmRing
+    backlog: deque[tuple[list[Any], float]] = field(default_factory=deque)
+    waiting: int = 0                  # values in the backlog
+
+    def offer(self) -> None:
+        """Put as much of the backlog into the ring as fits now."""
+        backlog = self.backlog
+        while backlog:
+            values, sent = backlog[0]
+            went = self.ring.offer(values, sent)
+            self.waiting -= went
+            if went < len(values):
+                backlog[0] = (values[went:], sent)
+                return
+            backlog.popleft()
 
 
 class Bridge:
@@ -26,9 +58,10 @@ class Bridge:
     def __init__(self, key: ClusterKey, epoch: int = 0) -> None:
         self.key = key
         self._lock = threading.Lock()
-        self._rings: dict[str, dict[str, ShmRing]] = {}     # topic -> link key -> ring
+        self._rings: dict[str, dict[str, _Feed]] = {}       # topic -> link key -> its ring
         self._topics: dict[str, str] = {}                   # link key -> topic
         self._senders: dict[str, bytes] = {}                # topic -> incarnation followed
+        self._retrying = False                              # a retry is due on the loop
         self._follower = Follower(key, self._deliver, epoch=epoch)
 
     def open(self, link: str, topic: str, ring: str, bell: int) -> None:
@@ -39,8 +72,11 @@ class Bridge:
                 return
             writer = ShmRing.attach(ring)
             writer.set_bell(bell)
-            self._rings.setdefault(topic, {})[link] = writer
+            writer.label = link
+            self._rings.setdefault(topic, {})[link] = _Feed(writer)
             self._topics[link] = topic
+            lossless = self._lossless(topic)
+        self._follower.set_lossless(topic, lossless)
 
     def follow(self, topic: str, data: str, control: str, incarnation: bytes,
                timeout: float = READY_TIMEOUT) -> None:
@@ -60,20 +96,31 @@ class Bridge:
         (the sender's position when it stopped) are in; the output is unfollowed when
         no local input reads it."""
         topic = self._topics.get(link)
-        if topic is not None and not self._follower.wait_delivered(topic, reached, timeout):
-            raise RuntimeTimeout(f"values of {topic} still in flight after {timeout} s")
+        if topic is not None:
+            with self._lock:
+                feed = self._rings.get(topic, {}).get(link)
+            if feed is not None and feed.ring.lossless:
+                feed.ring.request_flush()        # its reader may be paused: take it all
+            if not self._follower.wait_delivered(topic, reached, timeout):
+                raise RuntimeTimeout(f"values of {topic} still in flight after {timeout} s")
         with self._lock:
             topic = self._topics.pop(link, None)
             if topic is None:
                 return
-            ring = self._rings[topic].pop(link)
+            feed = self._rings[topic].pop(link)
             orphaned = not self._rings[topic]
             if orphaned:
                 del self._rings[topic]
+            lossless = self._lossless(topic)
+            held_back = max((other.waiting for other in self._rings.get(topic, {}).values()),
+                            default=0)
         if orphaned:
             self._senders.pop(topic, None)
             self._follower.unfollow(topic)
-        ring.close()
+        else:
+            self._follower.set_lossless(topic, lossless)
+            self._follower.release(topic, held_back)   # (its backlog held the rest back)
+        feed.ring.close()
 
     def followed(self) -> dict[str, list[str]]:
         """Each followed topic and the local links it feeds."""
@@ -88,18 +135,50 @@ class Bridge:
     def rejected(self) -> Any:
         return self._follower.rejected
 
-    def _deliver(self, topic: str, values: list[Any], sent_at: float) -> None:
+    def _lossless(self, topic: str) -> bool:
+        return any(feed.ring.lossless for feed in self._rings.get(topic, {}).values())
+
+    def _deliver(self, topic: str, values: list[Any], sent_at: float) -> int:
+        """Write values into every ring that reads ``topic`` (on the follower's thread);
+        returns how many of the topic's newest values some lossless ring still lacks."""
         # the sender's wall clock, as this node's monotonic clock (rings keep that)
         sent = sent_at - time.time() + time.monotonic()
+        held_back = 0
         with self._lock:                         # (close waits: no write to a closed ring)
-            for ring in self._rings.get(topic, {}).values():
-                ring.write_many(values, sent_at=sent)
+            for feed in self._rings.get(topic, {}).values():
+                if not feed.ring.lossless:
+                    feed.ring.write_many(values, sent_at=sent)
+                    continue
+                went = 0 if feed.backlog else feed.ring.offer(values, sent)
+                if went < len(values):
+                    feed.backlog.append((values[went:], sent))
+                    feed.waiting += len(values) - went
+                held_back = max(held_back, feed.waiting)
+        if held_back and not self._retrying:
+            self._retrying = True
+            self._follower.later(RETRY_S, self._retry)
+        return held_back
+
+    def _retry(self) -> None:
+        """Offer every backlog to its ring again; tell the follower what went through."""
+        moved: dict[str, int] = {}
+        with self._lock:
+            for topic, feeds in self._rings.items():
+                if any(feed.backlog for feed in feeds.values()):
+                    for feed in feeds.values():
+                        feed.offer()
+                    moved[topic] = max(feed.waiting for feed in feeds.values())
+        for topic, held_back in moved.items():
+            self._follower.release(topic, held_back)
+        self._retrying = any(moved.values())
+        if self._retrying:
+            self._follower.later(RETRY_S, self._retry)
 
     def shutdown(self) -> None:
         self._follower.close()
         with self._lock:
-            for rings in self._rings.values():
-                for ring in rings.values():
-                    ring.close()
+            for feeds in self._rings.values():
+                for feed in feeds.values():
+                    feed.ring.close()
             self._rings.clear()
             self._topics.clear()

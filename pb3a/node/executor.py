@@ -32,7 +32,7 @@ from pb3a.node.protocol import Endpoint
 from pb3a.node.restarts import RestartBudget
 from pb3a.node.ring_sizes import RingSize, ring_size
 from pb3a.node.workers import REQUEST_TIMEOUT, WorkerHandle, WorkerPool, WorkerSettings
-from pb3a.stats import InputStats, ModuleStats, NodeReport
+from pb3a.stats import InputStats, ModuleStats, NodeReport, WaitStats
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import reap_orphans, segment_name
@@ -370,7 +370,11 @@ class Executor:
             steps=figures["steps"], events=figures["events"], errors=figures["errors"],
             last_error=figures["last_error"], cpu=figures["cpu"],
             inputs={name: InputStats(**port) for name, port in figures["inputs"].items()},
-            outputs=dict(figures["outputs"]))
+            outputs=dict(figures["outputs"]),
+            output_waits={name: WaitStats(waits["waits"], waits["wait_s"])
+                          for name, waits in figures["waits"].items()},
+            link_waits={key: WaitStats(*link) for waits in figures["waits"].values()
+                        for key, link in waits["links"].items()})
 
     # -- what workers tell ---------------------------------------------------------
     def _notice(self, handle: WorkerHandle, kind: str, args: dict[str, Any]) -> None:

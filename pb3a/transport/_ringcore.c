@@ -37,6 +37,7 @@
 #define W_RSEQ 25     /* the sequence number after the last record read */
 #define W_SEQ 32
 #define W_WAITING 40
+#define W_FLUSH 48    /* the writer (a lossless link closing): take everything now */
 #define REC_HEAD 24
 #define SCALAR_LEN 64
 #define PAGE 4096ULL
@@ -641,6 +642,29 @@ static PyMemberDef RingCore_members[] = {
     {"bell", T_INT, offsetof(RingCore, bell), 0, "the reader's eventfd, or -1"},
     {NULL}};
 
+/* flush: set by the writer of a lossless link that is closing, read by its reader,
+ * which then takes everything in the ring whether its input has room or not. A plain
+ * flag: the records themselves are ordered by head as always. */
+static PyObject *RingCore_get_flush(RingCore *self, void *closure) {
+    if (self->words == NULL)
+        Py_RETURN_FALSE;
+    return PyBool_FromLong(__atomic_load_n(&self->words[W_FLUSH], __ATOMIC_RELAXED) != 0);
+}
+
+static int RingCore_set_flush(RingCore *self, PyObject *value, void *closure) {
+    int flag = value == NULL ? 0 : PyObject_IsTrue(value);
+    if (flag < 0)
+        return -1;
+    if (self->words != NULL)
+        __atomic_store_n(&self->words[W_FLUSH], (uint64_t)flag, __ATOMIC_RELAXED);
+    return 0;
+}
+
+static PyGetSetDef RingCore_getset[] = {
+    {"flush", (getter)RingCore_get_flush, (setter)RingCore_set_flush,
+     "the writer asks the reader to take everything now", NULL},
+    {NULL}};
+
 static PyMethodDef RingCore_methods[] = {
     {"release", (PyCFunction)RingCore_release, METH_NOARGS, "stop using the segment"},
     {"put", (PyCFunction)RingCore_put, METH_O, "write an int64 or float64 and publish it"},
@@ -674,6 +698,7 @@ static PyTypeObject RingCoreType = {
     .tp_dealloc = (destructor)RingCore_dealloc,
     .tp_members = RingCore_members,
     .tp_methods = RingCore_methods,
+    .tp_getset = RingCore_getset,
 };
 
 /* segment_size(capacity, slots, slot_bytes) -> bytes a ring segment needs. */

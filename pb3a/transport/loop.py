@@ -35,7 +35,7 @@ class SocketLoop:
         self._handlers: dict[zmq.Socket, Callable[[zmq.Socket], None]] = {}
         self._poller = zmq.Poller()
         self._calls: collections.deque[Callable[[], None]] = collections.deque()
-        self._timers: list[list[Any]] = []            # [interval, next due, fn]
+        self._timers: list[list[Any]] = []            # [interval (None: once), next due, fn]
         address = f"inproc://pb3a-loop-{secrets.token_hex(6)}"
         self._wake_r = self.context.socket(zmq.PULL)
         self._wake_r.bind(address)
@@ -68,6 +68,10 @@ class SocketLoop:
     def every(self, interval: float, fn: Callable[[], None]) -> None:
         """Run ``fn`` on the loop about every ``interval`` seconds."""
         self.call(lambda: self._timers.append([interval, time.monotonic() + interval, fn]))
+
+    def later(self, delay: float, fn: Callable[[], None]) -> None:
+        """Run ``fn`` once on the loop, ``delay`` seconds from now (call it on the loop)."""
+        self._timers.append([None, time.monotonic() + delay, fn])
 
     # -- calls from other threads ------------------------------------------------
     def submit(self, fn: Callable[[], None]) -> None:
@@ -117,11 +121,15 @@ class SocketLoop:
     def _run(self) -> None:
         while not self._closing:
             now = time.monotonic()
-            wait_ms = POLL_MS
-            for timer in self._timers:
+            for timer in list(self._timers):
                 if now >= timer[1]:
-                    timer[1] = now + timer[0]
+                    if timer[0] is None:
+                        self._timers.remove(timer)
+                    else:
+                        timer[1] = now + timer[0]
                     self._guarded(timer[2])
+            wait_ms = POLL_MS                             # (timers added just now count)
+            for timer in self._timers:
                 wait_ms = min(wait_ms, max(0, int((timer[1] - now) * 1000)))
             try:
                 ready = dict(self._poller.poll(wait_ms))

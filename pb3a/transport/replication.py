@@ -20,6 +20,12 @@ delivers each topic's values in sequence order, exactly once:
   failure, loudly.
 - Flow control. Followers acknowledge (ACK) how far they are; a publisher more than
   ``WINDOW`` values ahead of its slowest live follower waits for it, briefly.
+- Lossless followers. A follower whose receiver must not drop (a ``lossless`` link)
+  says so in its HELLO and ACKs, and acknowledges only what its receiver has put
+  through. Such a follower holds the publisher back for as long as the writer's
+  timeout allows (then the write fails: ``RuntimeTimeout``), and the replay buffer
+  keeps every value it has not acknowledged; it stops holding when it says so, or
+  when the link to it is cut (``release``).
 - Fencing. A follower accepts one incarnation per topic. Values from any other (a
   sender that was migrated away, or a stale restart) are counted and dropped.
 
@@ -30,6 +36,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import secrets
 import struct
 import threading
@@ -39,6 +46,7 @@ from typing import TYPE_CHECKING, Any
 
 import zmq
 
+from pb3a.errors import link_stuck
 from pb3a.transport import codec
 from pb3a.transport.auth import ClusterKey, Opener, Rejected, Sealer
 from pb3a.transport.loop import SocketLoop
@@ -51,8 +59,10 @@ log = logging.getLogger("pb3a.replication")
 # message kinds
 VALUE, SYNC, HELLO, REPAIR, WELCOME, REPLAYED, ACK, VALUES = 1, 2, 3, 4, 5, 6, 7, 8
 _INFO = struct.Struct("<16sQdB")        # incarnation, sequence number, sent at (unix), codec kind
-_ASK = struct.Struct("<qq")             # HELLO: first needed (-1: from now); REPAIR: first,
-                                        # last; ACK: delivered up to (exclusive), unused
+_ASK = struct.Struct("<qq")             # HELLO: first needed (-1: from now), flags; REPAIR:
+                                        # first, last; ACK: delivered up to (exclusive, -1:
+                                        # unfollowed), flags
+LOSSLESS = 1                            # flag of HELLO and ACK: hold the publisher back
 _ANSWER = struct.Struct("<16sqq")       # WELCOME: incarnation, next; REPLAYED: first, gone
 _ENTRY = struct.Struct("<HI")           # VALUES: each entry's meta and payload lengths
 BATCH_VALUES = 1024                     # small values of one topic sent as one message, at most
@@ -63,7 +73,9 @@ WINDOW = 2048                           # values a publisher may be ahead of its
 WINDOW_WAIT = 0.1                       # seconds it waits for acknowledgements, then goes on
 ACK_EVERY = 256                         # a follower acknowledges after this many values ...
 ACK_IDLE_S = 0.5                        # ... or this long after its last acknowledgement
+ACK_BYTES = 4 * 1024 * 1024             # a lossless follower also after this many bytes
 FOLLOWER_TIMEOUT = 3.0                  # silent this long: no longer holds a publisher back
+SILENT_S = 2 * ACK_IDLE_S               # (a lossless follower: when a link to it is cut)
 REPLAY_VALUES = 4096                    # per topic, at most ...
 REPLAY_BYTES = 64 * 1024 * 1024         # ... and at most this many bytes
 HELLO_EVERY = 0.05                      # seconds between unanswered HELLOs
@@ -108,11 +120,38 @@ class _Stream:
         default_factory=collections.deque)      # (seq, [info, meta, payload], bytes)
     replay_bytes: int = 0
     acks: dict[bytes, tuple[int, float]] = field(default_factory=dict)  # peer -> (seq, when)
+    holds: dict[bytes, int] = field(default_factory=dict)   # lossless followers: peer -> seq
+    waits: int = 0                      # values whose publish waited for followers ...
+    wait_s: float = 0.0                 # ... and the seconds they waited
 
     def acknowledged(self, now: float) -> int | None:
         """Where the slowest live follower is (None: nobody follows)."""
         live = [seq for seq, when in self.acks.values() if now - when < FOLLOWER_TIMEOUT]
         return min(live) if live else None
+
+    def held(self) -> int | None:
+        """Where the slowest lossless follower is, live or not (None: there is none)."""
+        return min(self.holds.values()) if self.holds else None
+
+    def room_for(self, size: int) -> bool:
+        """Whether one more value of ``size`` bytes may go without running ``WINDOW``
+        values ahead of a lossless follower, or pushing out of the replay buffer a value
+        one has not acknowledged."""
+        held = self.held()
+        if held is None:
+            return True
+        if self.next_seq - held >= WINDOW:
+            return False
+        replay = self.replay
+        full = len(replay) >= REPLAY_VALUES or self.replay_bytes + size > REPLAY_BYTES
+        return not (full and replay and replay[0][0] >= held)
+
+    def hold(self, peer: bytes, seq: int, flags: int) -> None:
+        """A follower said how far it is and whether it is lossless."""
+        if flags & LOSSLESS:
+            self.holds[peer] = seq
+        else:
+            self.holds.pop(peer, None)
 
 
 class Replicator:
@@ -156,15 +195,34 @@ class Replicator:
         with self._lock:
             return self._streams[_name(topic)].next_seq
 
-    def publish(self, topic: str, value: Any) -> int:
+    def counter(self, topic: str) -> Any:
+        """What counts the publishes of ``topic`` that waited (``waits``, ``wait_s``)."""
+        with self._lock:
+            return self._streams[_name(topic)]
+
+    def release(self, topic: str, silent_for: float = 0.0) -> None:
+        """Stop waiting for the lossless followers of ``topic`` that have been silent
+        for ``silent_for`` seconds or more (0: all of them): a link to them was cut."""
+        with self._lock:
+            stream = self._streams.get(_name(topic))
+            if stream is None:
+                return
+            now = time.monotonic()
+            for peer in list(stream.holds):
+                if now - stream.acks.get(peer, (0, -math.inf))[1] >= silent_for:
+                    del stream.holds[peer]
+            self._acked.notify_all()
+
+    def publish(self, topic: str, value: Any, timeout: float = WINDOW_WAIT) -> int:
         """Send one value; returns its sequence number.
 
         Flow control: a publisher more than ``WINDOW`` values ahead of its slowest
         follower waits for it (up to ``WINDOW_WAIT``, then goes on and lets the repair
         or the link-failure count deal with it), so a burst never overruns the
-        high-water marks. An array is copied once (the writer may reuse it at once);
-        from there on its bytes go out as a zero-copy frame and stay in the replay
-        buffer as they are."""
+        high-water marks. A lossless follower holds it back up to ``timeout`` (the
+        writer's), and then the publish raises RuntimeTimeout: nothing is sent. An
+        array is copied once (the writer may reuse it at once); from there on its
+        bytes go out as a zero-copy frame and stay in the replay buffer as they are."""
         kind, meta, payload = codec.encode(value)
         nbytes = codec.payload_size(kind, payload)
         if nbytes + 1024 > self._max_bytes:
@@ -174,23 +232,32 @@ class Replicator:
         if kind == codec.ARRAY and payload is value:
             payload = payload.copy()
         name = _name(topic)
+        size = nbytes + 64
         with self._lock:
             stream = self._streams[name]
+            started = self._await_holds(stream, topic, size, timeout) if stream.holds else None
             deadline = None
             while (acked := stream.acknowledged(time.monotonic())) is not None \
                     and stream.next_seq - acked >= WINDOW:
-                deadline = deadline or time.monotonic() + WINDOW_WAIT
+                if deadline is None:
+                    deadline = time.monotonic() + WINDOW_WAIT
+                    started = started or time.monotonic()
                 if not self._acked.wait(deadline - time.monotonic()) \
                         and time.monotonic() >= deadline:
                     break
+            if started is not None:
+                stream.waits += 1
+                stream.wait_s += time.monotonic() - started
             seq = stream.next_seq
             stream.next_seq += 1
             parts = [_INFO.pack(self.incarnation, seq, time.time(), kind), meta, payload]
-            size = nbytes + 64
             stream.replay.append((seq, parts, size))
             stream.replay_bytes += size
+            held = stream.held()
             while stream.replay and (len(stream.replay) > REPLAY_VALUES
                                      or stream.replay_bytes > REPLAY_BYTES):
+                if held is not None and stream.replay[0][0] >= held:
+                    break                        # a lossless follower still needs it
                 stream.replay_bytes -= stream.replay.popleft()[2]
             # The loop thread sends: what piles up meanwhile goes as one message.
             self._outbox.append((name, parts))
@@ -198,6 +265,24 @@ class Replicator:
         if wake:
             self._loop.submit(self._flush)
         return seq
+
+    def _await_holds(self, stream: _Stream, topic: str, size: int,
+                     timeout: float) -> float | None:
+        """Wait (lock held, released while waiting) until the lossless followers leave
+        room for one more value (``_Stream.room_for``); when it waited, since when.
+        RuntimeTimeout after ``timeout`` seconds."""
+        started = None
+        while not stream.room_for(size):
+            now = time.monotonic()
+            if started is None:
+                started = now
+            left = started + timeout - now
+            if left <= 0:
+                stream.waits += 1
+                stream.wait_s += now - started
+                raise link_stuck(topic, timeout)
+            self._acked.wait(left)
+        return started
 
     def flush(self) -> None:
         """Send everything published so far now (it goes soon anyway); waits for it."""
@@ -273,12 +358,18 @@ class Replicator:
                 return                           # not (yet) published here: they retry
             peer_id = bytes(peer)
             if message.kind == ACK:
-                stream.acks[peer_id] = (first, time.monotonic())
+                if first < 0:                    # unfollowed: it holds nothing back now
+                    stream.acks.pop(peer_id, None)
+                    stream.holds.pop(peer_id, None)
+                else:
+                    stream.acks[peer_id] = (first, time.monotonic())
+                    stream.hold(peer_id, first, last)
                 self._acked.notify_all()
             elif message.kind == HELLO:
                 self._flush_locked()
                 nxt = stream.next_seq
                 stream.acks[peer_id] = (first if first >= 0 else nxt, time.monotonic())
+                stream.hold(peer_id, first if first >= 0 else nxt, last)
                 self._send_router(peer, WELCOME, [name, _ANSWER.pack(self.incarnation, nxt, 0)])
                 self._send_pub(name, SYNC, [_ANSWER.pack(self.incarnation, nxt, 0)])
                 if first >= 0:                   # (an empty replay still says so)
@@ -317,12 +408,21 @@ class _Follow:
     next_seq: int                             # the next sequence number to deliver (-1: any)
     incarnation: bytes | None                 # the accepted sender (None: the first to answer)
     live: bool = False                        # a SYNC or value came through the SUB socket
-    held: dict[int, tuple[Any, float]] = field(default_factory=dict)   # beyond a gap
+    # (value, sent at, bytes) of values beyond a gap, or waiting for delivery
+    held: dict[int, tuple[Any, float, int]] = field(default_factory=dict)
     asked: float = 0.0                        # when we last sent HELLO or REPAIR
     repairing: bool = False
     announced: int = -1                       # the sender's next sequence number, as last heard
     acked: int = -1                           # what we last acknowledged
     acked_at: float = 0.0
+    held_back: int = 0                        # delivered values the receiver holds back
+    moved_bytes: int = 0                      # bytes delivered ...
+    acked_bytes: int = 0                      # ... as of the last acknowledgement
+
+    @property
+    def through(self) -> int:
+        """The sequence number up to which the receiver has put values through."""
+        return self.next_seq - self.held_back
     ready: threading.Event = field(default_factory=threading.Event)   # live, start known
 
 
@@ -330,7 +430,10 @@ class Follower:
     """Receives the topics one node follows and delivers each in order, once.
 
     ``deliver(topic, values, sent_at)`` is called on the follower's thread; ``sent_at``
-    is when the newest value was written, in the sender's wall-clock seconds.
+    is when the newest value was written, in the sender's wall-clock seconds. It may
+    return how many of the topic's newest values it holds back, not put through yet (a
+    full lossless receiver), and report later with ``release``; acknowledgements cover
+    only what it put through.
     Counters: ``link_failures`` (values lost for good, per topic), ``fenced`` (values
     from a sender that is not the accepted one), ``duplicates`` (dropped)."""
 
@@ -345,6 +448,7 @@ class Follower:
         self._opener = Opener(key, epoch=epoch, max_bytes=max_bytes)
         self._sealer = Sealer(key, epoch)        # used only on the follower's thread
         self._follows: dict[bytes, _Follow] = {}
+        self._lossless: set[bytes] = set()       # topics whose receiver must not drop
         self._controls: dict[str, zmq.Socket] = {}   # control address -> DEALER
         self._connected: set[str] = set()
         self.link_failures: collections.Counter[str] = collections.Counter()
@@ -375,14 +479,39 @@ class Follower:
         return follow is not None and follow.ready.wait(timeout)
 
     def wait_delivered(self, topic: str, seq: int, timeout: float) -> bool:
-        """Block until every value of ``topic`` before ``seq`` has been delivered."""
+        """Block until every value of ``topic`` before ``seq`` has been delivered (and put
+        through by the receiver)."""
         name = _name(topic)
         with self._progress:
             return self._progress.wait_for(
-                lambda: (f := self._follows.get(name)) is None or f.next_seq >= seq, timeout)
+                lambda: (f := self._follows.get(name)) is None or f.through >= seq, timeout)
 
     def unfollow(self, topic: str) -> None:
         self._loop.call(lambda: self._unfollow(_name(topic)))
+
+    def set_lossless(self, topic: str, lossless: bool) -> None:
+        """Whether ``topic``'s receiver must not drop: then the sender is told (HELLO,
+        ACK) to wait for it and to keep what it has not acknowledged."""
+        self._loop.call(lambda: self._set_lossless(_name(topic), lossless))
+
+    def release(self, topic: str, held_back: int) -> None:
+        """The receiver put values through: it now holds back ``held_back`` of ``topic``'s
+        newest ones."""
+        self._loop.call(lambda: self._release(_name(topic), held_back))
+
+    def _release(self, name: bytes, held_back: int) -> None:
+        follow = self._follows.get(name)
+        if follow is None:
+            return
+        with self._progress:
+            follow.held_back = held_back
+            self._progress.notify_all()
+        if follow.through > follow.acked:
+            self._acknowledge(follow)
+
+    def later(self, delay: float, fn: Callable[[], None]) -> None:
+        """Run ``fn`` on the follower's thread in ``delay`` seconds (call it there)."""
+        self._loop.later(delay, fn)
 
     def _follow(self, name: bytes, data: str, control: str, from_seq: int,
                 incarnation: bytes | None) -> None:
@@ -404,13 +533,31 @@ class Follower:
         self._hello(self._follows[name])
 
     def _unfollow(self, name: bytes) -> None:
-        if self._follows.pop(name, None) is not None:
+        follow = self._follows.pop(name, None)
+        if follow is not None:
             self._sub.setsockopt(zmq.UNSUBSCRIBE, name)
+            if name in self._lossless:           # the sender no longer waits for us
+                self._ask(follow, ACK, -1, 0)
+        self._lossless.discard(name)
+
+    def _set_lossless(self, name: bytes, lossless: bool) -> None:
+        if lossless == (name in self._lossless):
+            return
+        if lossless:
+            self._lossless.add(name)
+        else:
+            self._lossless.discard(name)
+        follow = self._follows.get(name)
+        if follow is not None and follow.live and follow.next_seq >= 0:
+            self._acknowledge(follow)            # the sender learns it now
+
+    def _flags(self, follow: _Follow) -> int:
+        return LOSSLESS if follow.topic in self._lossless else 0
 
     def _hello(self, follow: _Follow) -> None:
         follow.asked = time.monotonic()
         follow.repairing = follow.next_seq >= 0   # the answer replays what we miss
-        self._ask(follow, HELLO, follow.next_seq, -1)
+        self._ask(follow, HELLO, follow.next_seq, self._flags(follow))
 
     def _ask(self, follow: _Follow, kind: int, first: int, last: int) -> None:
         _send(follow.control, self._sealer.seal(kind, [follow.topic, _ASK.pack(first, last)]))
@@ -505,7 +652,8 @@ class Follower:
         if 0 <= seq < follow.next_seq or seq in follow.held:
             self.duplicates[_topic(follow.topic)] += 1
             return False
-        follow.held[seq] = (codec.decode_owned(kind, meta, payload), sent_at)
+        follow.held[seq] = (codec.decode_owned(kind, meta, payload), sent_at,
+                            memoryview(payload).nbytes)
         return True
 
     def _accept(self, follow: _Follow, incarnation: bytes) -> bool:
@@ -520,16 +668,22 @@ class Follower:
         """Deliver what is in order; ask for a repair when a gap blocks the rest."""
         if follow.live and follow.next_seq >= 0:
             follow.ready.set()
-        values, sent_at = [], 0.0
-        while follow.next_seq in follow.held:
-            value, sent_at = follow.held.pop(follow.next_seq)
+        values, sent_at, size, seq = [], 0.0, 0, follow.next_seq
+        while seq in follow.held:
+            value, sent_at, nbytes = follow.held.pop(seq)
             values.append(value)
-            follow.next_seq += 1
+            size += nbytes
+            seq += 1
         if values:
-            self._deliver(_topic(follow.topic), values, sent_at)
-            with self._progress:
-                self._progress.notify_all()
-            if follow.next_seq - follow.acked >= ACK_EVERY:
+            held_back = 0
+            try:
+                held_back = self._deliver(_topic(follow.topic), values, sent_at) or 0
+            finally:
+                with self._progress:             # (one step: see wait_delivered)
+                    follow.next_seq, follow.held_back = seq, held_back
+                    self._progress.notify_all()
+            follow.moved_bytes += size
+            if self._ack_due(follow):
                 self._acknowledge(follow)
         # a gap before held values, or behind what the sender announced (values lost
         # at the end of a burst show up only in its heartbeat)
@@ -539,16 +693,26 @@ class Follower:
             follow.asked = time.monotonic()
             self._ask(follow, REPAIR, follow.next_seq, last)
 
+    def _ack_due(self, follow: _Follow) -> bool:
+        """Every ACK_EVERY values; a lossless follower also every ACK_BYTES bytes (the
+        sender keeps what it did not acknowledge, in a replay buffer of bounded bytes)."""
+        through = follow.through
+        if through - follow.acked >= ACK_EVERY:
+            return True
+        return (follow.topic in self._lossless and through > follow.acked
+                and follow.moved_bytes - follow.acked_bytes >= ACK_BYTES)
+
     def _acknowledge(self, follow: _Follow) -> None:
         """Tell the publisher how far we are: it may run at most WINDOW values ahead."""
-        follow.acked, follow.acked_at = follow.next_seq, time.monotonic()
-        self._ask(follow, ACK, follow.next_seq, -1)
+        follow.acked, follow.acked_at = follow.through, time.monotonic()
+        follow.acked_bytes = follow.moved_bytes
+        self._ask(follow, ACK, follow.acked, self._flags(follow))
 
     def _retry(self) -> None:
         now = time.monotonic()
         for follow in self._follows.values():
             if follow.live and follow.next_seq >= 0 and (
-                    follow.next_seq != follow.acked or now - follow.acked_at > ACK_IDLE_S):
+                    follow.through != follow.acked or now - follow.acked_at > ACK_IDLE_S):
                 self._acknowledge(follow)
             if now - follow.asked < HELLO_EVERY:
                 continue

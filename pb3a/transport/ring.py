@@ -11,6 +11,11 @@ slots: each array is copied into the lowest free slot and the ring carries only
 a small record naming it. Slots come back in any order as their views go, so a
 writer whose reader keeps up reuses the same few slots, which stay in cache.
 
+A ring is dropping or lossless, as its link's policy says (a header word set by the
+creator). Without room, a dropping ring's writer waits briefly, then drops the value
+(the reader counts the sequence gap); a lossless ring's writer waits up to its
+timeout, then raises RuntimeTimeout and sends nothing: the value is never dropped.
+
 Memory ordering. Every access to the header words goes through the C half,
 ``_ringcore.RingCore``: the writer stores a record, then publishes ``head`` with
 a release store; the reader loads ``head`` with acquire, then reads the records
@@ -25,6 +30,7 @@ caches where every Python operation costs microseconds.
 from __future__ import annotations
 
 import contextlib
+import os
 import pickle
 import threading
 import time
@@ -34,6 +40,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
+from pb3a.errors import link_stuck
 from pb3a.transport import codec
 from pb3a.transport._ringcore import RingCore, segment_size, sleep
 from pb3a.transport.shm import attach_segment, close_segment, create_segment, unlink_segment
@@ -46,20 +53,24 @@ __all__ = ["ZERO_COPY_MIN", "RingSize", "ShmRing", "sleep"]
 _MAGIC = 0x50423341_52494E47  # "PB3ARING"
 _DATA = 512                      # header size; data starts here (page offset 512: 64-aligned)
 # word indexes (offset / 8) of the header fields the creator sets (the rest: _ringcore.c)
-_W_MAGIC, _W_CAP, _W_SLOTS, _W_SLOT_BYTES = 0, 1, 2, 3
+_W_MAGIC, _W_CAP, _W_SLOTS, _W_SLOT_BYTES, _W_FLAGS = 0, 1, 2, 3, 4
+_LOSSLESS = 1                    # flag: the writer waits for room, never drops
 _REC_HEAD = 24                   # u32 length, u16 kind, u16 meta length, u64 seq, f64 sent_at
 ZERO_COPY_MIN = 64 * 1024        # arrays at least this large are read as views
 WRITE_TIMEOUT = 0.1              # how long a writer waits for space before dropping a value
+_SPIN_S = 100e-6                 # a lossless writer polls this long for space before sleeping
 _ALIGN = 64
 _LAYOUTS = 64                    # array record layouts a writer remembers
 
 
 class RingSize(NamedTuple):
-    """What a link's segment holds: ring bytes, and a pool of slots for large arrays."""
+    """What a link's segment holds: ring bytes, a pool of slots for large arrays, and
+    whether its writer waits for room rather than drops (a lossless link)."""
 
     capacity: int
     slots: int = 0
     slot_bytes: int = 0
+    lossless: bool = False
 
 
 def _align(n: int, to: int = _ALIGN) -> int:
@@ -84,6 +95,12 @@ class ShmRing:
         self._pool = segment.buf[core.pool_offset:core.pool_offset + core.slots * core.stride]
         self._slot_views: dict[int, weakref.ref[np.ndarray]] = {}   # reader: slot -> view
         self.name = segment.name.lstrip("/")
+        self.lossless = bool(int.from_bytes(segment.buf[8 * _W_FLAGS:8 * _W_FLAGS + 8],
+                                            "little") & _LOSSLESS)
+        self.label = self.name        # the link, for error messages (its writer sets it)
+        self.waits = 0                # writer: writes that waited for room ...
+        self.wait_s = 0.0             # ... and the seconds they waited
+        self._cancelled = False       # writer: the link is being cut; do not wait
         # reader-side bookkeeping (only the reading process uses these)
         self._leases: deque[list[Any]] = deque()   # [start, end, released, ref] per lease
         self._lease_lock = threading.Lock()
@@ -93,15 +110,18 @@ class ShmRing:
 
     # -- life cycle ---------------------------------------------------------
     @classmethod
-    def create(cls, name: str, capacity: int, slots: int = 0, slot_bytes: int = 0) -> ShmRing:
+    def create(cls, name: str, capacity: int, slots: int = 0, slot_bytes: int = 0,
+               lossless: bool = False) -> ShmRing:
         """Create a ring of ``capacity`` data bytes (rounded up to 64), with a pool of
-        ``slots`` slots of ``slot_bytes`` each for arrays that fit one."""
+        ``slots`` slots of ``slot_bytes`` each for arrays that fit one; ``lossless``:
+        its writer waits for room instead of dropping."""
         capacity = _align(max(capacity, 4096))
         segment = create_segment(name, segment_size(capacity, slots, slot_bytes))
         words = segment.buf[:_DATA].cast("Q")
         words[_W_CAP] = capacity
         words[_W_SLOTS] = slots
         words[_W_SLOT_BYTES] = slot_bytes
+        words[_W_FLAGS] = _LOSSLESS if lossless else 0
         words[_W_MAGIC] = _MAGIC
         words.release()
         return cls(segment, owner=True)
@@ -144,20 +164,22 @@ class ShmRing:
         self.core.resume_writer()
 
     def write(self, value: Any, timeout: float = WRITE_TIMEOUT) -> bool:
-        """Append one value; waits up to ``timeout`` for space, then drops it.
+        """Append one value; waits up to ``timeout`` for space.
 
-        Returns False when dropped. The sequence number advances either way, so
-        the reader sees the gap and counts the drop.
-        """
+        Dropping ring: then drops it and returns False; the sequence number advances
+        either way, so the reader sees the gap and counts the drop. Lossless ring:
+        then raises RuntimeTimeout (naming the link) and sends nothing."""
         core = self.core
         done = core.put(value)                # ints and floats: all in C
         if done < 0:
             done = self._stage(value, time.monotonic(), timeout)
             core.publish()
+            if not done:
+                self._no_room(timeout, 1)
         elif not done:
             done = self._wait_space(_ALIGN, timeout) and core.put(value) > 0
             if not done:
-                self._skip()
+                self._no_room(timeout, 1)
         return bool(done)
 
     def write_many(self, values: Sequence[Any], timeout: float = WRITE_TIMEOUT,
@@ -165,7 +187,11 @@ class ShmRing:
         """Append values in order and publish them at once; returns how many fit.
 
         ``sent_at`` (monotonic) is when they were written, if not now: values that
-        came from another node keep their time for the reader's latency figure."""
+        came from another node keep their time for the reader's latency figure. On a
+        lossless ring ``timeout`` bounds the batch's waits in all; then the values
+        that fit are published and RuntimeTimeout says how many did not go."""
+        if self.lossless:
+            return self._write_lossless(values, timeout, sent_at)
         core = self.core
         now = time.monotonic() if sent_at is None else sent_at   # one time for the batch
         written = 0
@@ -173,6 +199,8 @@ class ShmRing:
             done = core.stage(value, now)      # ints and floats: all in C
             if done < 0:                       # (-1 also for an int beyond 64 bits)
                 done = self._stage(value, now, timeout)
+                if not done:
+                    self._skip()
             elif not done:
                 done = self._wait_space(_ALIGN, timeout) and core.stage(value, now) > 0
                 if not done:
@@ -181,9 +209,49 @@ class ShmRing:
         core.publish()
         return written
 
+    def _write_lossless(self, values: Sequence[Any], timeout: float,
+                        sent_at: float | None) -> int:
+        written = self.offer(values, sent_at, timeout)
+        if written < len(values):
+            raise link_stuck(self.label, timeout, len(values) - written)
+        return written
+
+    def offer(self, values: Sequence[Any], sent_at: float | None = None,
+              timeout: float = 0.0) -> int:
+        """Write values in order while they fit, waiting up to ``timeout`` in all for
+        room; publish them and return how many went (never drops, never raises for
+        want of room). A lossless ring's feeder that must not block (the bridge) offers
+        with no timeout and keeps the rest for later."""
+        core = self.core
+        now = time.monotonic() if sent_at is None else sent_at
+        deadline = None
+        written = 0
+        for value in values:
+            done = core.stage(value, now)
+            if done < 0:
+                done = self._stage(value, now, 0.0)
+            if not done and timeout > 0:
+                if deadline is None:
+                    deadline = time.monotonic() + timeout
+                left = deadline - time.monotonic()
+                done = left > 0 and self._stage_waiting(value, now, left)
+            if not done:
+                break
+            written += 1
+        core.publish()
+        return written
+
+    def _stage_waiting(self, value: Any, now: float, timeout: float) -> bool:
+        """Stage one value that did not fit, waiting up to ``timeout`` for room."""
+        done = self.core.stage(value, now)
+        if done < 0:
+            return self._stage(value, now, timeout)
+        return self._wait_space(_ALIGN, timeout) and self.core.stage(value, now) > 0
+
     def _stage(self, value: Any, now: float, timeout: float) -> bool:
         """Stage one record for anything but an int or float (unpublished); False when
-        dropped. An array is copied once, straight from its own buffer, into the ring."""
+        there was no room. An array is copied once, straight from its own buffer, into
+        the ring."""
         layout = None
         if type(value) is np.ndarray and value.flags.c_contiguous:
             layout = self._layouts.get((value.dtype, value.shape))
@@ -198,12 +266,9 @@ class ShmRing:
             payload = value
         kind, meta, body, length = layout
         core = self.core
-        if core.stage_record(kind, meta, payload, body, length, now) or (
-                self._wait_space(length, timeout, kind == codec.SLOT)
-                and core.stage_record(kind, meta, payload, body, length, now)):
-            return True
-        self._skip()                           # dropped: the reader sees the gap
-        return False
+        return bool(core.stage_record(kind, meta, payload, body, length, now) or (
+            timeout > 0 and self._wait_space(length, timeout, kind == codec.SLOT)
+            and core.stage_record(kind, meta, payload, body, length, now)))
 
     def _layout(self, kind: int, meta: bytes, size: int) -> tuple[int, bytes, int, int]:
         """``(kind, meta, body, length)`` of a record: where its payload starts, its size.
@@ -224,19 +289,59 @@ class ShmRing:
         self.core.seq += 1
         self.core.publish()
 
+    def _no_room(self, timeout: float, unsent: int) -> None:
+        """A write found no room in time: dropped (a gap) on a dropping ring; on a
+        lossless ring nothing is sent and the writer learns it."""
+        if self.lossless:
+            raise link_stuck(self.label, timeout, unsent)
+        self._skip()
+
     def _wait_space(self, length: int, timeout: float, slot: bool = False) -> bool:
         """Publish what is there, then wait up to ``timeout`` until a ``length``-byte
-        record (and a pad before it) fits, and a slot is free if ``slot``."""
+        record (and a pad before it) fits, and a slot is free if ``slot``; a wait is
+        counted in ``waits`` and ``wait_s``. Gives up at once when the link is being cut."""
         core = self.core
         core.publish()
-        deadline = time.monotonic() + timeout
+        if core.room(length, slot):
+            return True
+        start = time.monotonic()
+        deadline = start + timeout
+        # A lossless writer waits often (whenever its reader lags a little): it polls
+        # for a moment first, since a reader that keeps up frees room within
+        # microseconds and a sleep lasts tens of them, a bubble in the stream.
+        spin = start + _SPIN_S if self.lossless else start
         pause = 20e-6
-        while not core.room(length, slot):
-            if time.monotonic() >= deadline:
-                return False
-            time.sleep(pause)
-            pause = min(pause * 2, 1e-3)
-        return True
+        try:
+            while not self._cancelled and (now := time.monotonic()) < deadline:
+                if now < spin:
+                    time.sleep(0)             # (lets the process's other threads run)
+                else:
+                    time.sleep(pause)
+                    pause = min(pause * 2, 1e-3)
+                if core.room(length, slot):
+                    return True
+            return False
+        finally:
+            self.waits += 1
+            self.wait_s += time.monotonic() - start
+
+    def cancel(self) -> None:
+        """The link is being cut: a write waiting for room gives up now."""
+        self._cancelled = True
+
+    def request_flush(self) -> None:
+        """Writer: ask the reader to take everything in the ring now, room in its input
+        or not (a lossless link closing while its reader may be paused), and wake it."""
+        self.core.flush = True
+        fd = self.core.bell
+        if fd >= 0:
+            with contextlib.suppress(BlockingIOError):   # rung enough already
+                os.write(fd, (1).to_bytes(8, "little"))
+
+    @property
+    def flush_requested(self) -> bool:
+        """Reader: the writer asked for everything to be taken now (``request_flush``)."""
+        return self.core.flush
 
     # -- reader -------------------------------------------------------------
     def has_data(self) -> bool:

@@ -421,7 +421,8 @@ class ModuleActor:
         return self._step_cpu
 
     def statistics(self) -> dict[str, Any]:
-        """Counters of the module and of its inputs."""
+        """Counters of the module, of its inputs, and of its outputs (values written;
+        writes that waited for room, per output and per link)."""
         inputs = {}
         for name, port in self.inputs.items():
             inputs[name] = {"received": port.received, "drops": port.drops,
@@ -429,8 +430,9 @@ class ModuleActor:
                             "rate": port.current_rate(), "link_failures": port.link_failures,
                             "policy": str(port.policy)}
         outputs = {name: port.written for name, port in self.outputs.items()}
+        waits = {name: port.wait_figures() for name, port in self.outputs.items()}
         return {"class": f"{type(self.module).__module__}:{type(self.module).__qualname__}",
                 "steps": self.steps, "events": self.events, "errors": self.errors,
                 "cpu": self.cpu + self._step_thread_cpu(), "last_error": self.last_error,
                 "running": self.running,
-                "inputs": inputs, "outputs": outputs}
+                "inputs": inputs, "outputs": outputs, "waits": waits}

@@ -26,7 +26,7 @@ import cloudpickle
 from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
 from pb3a.model.agent import Agent, RuntimeClient
-from pb3a.model.ports import InputPort, Policy
+from pb3a.model.ports import InputPort, Policy, WaitCounter
 from pb3a.transport.codec import local_copy
 from pb3a.transport.doorbell import BellPull
 from pb3a.transport.ring import ShmRing, sleep
@@ -56,12 +56,12 @@ class _Inbound:
     lock: threading.Lock = field(default_factory=threading.Lock)
     closed: bool = False
 
-    def drain(self) -> int:
+    def drain(self, limit: int = 1024) -> int:
         self.lock.acquire()
         try:
             if self.closed:
                 return 0
-            values, sent_at, gaps = self.ring.drain()
+            values, sent_at, gaps = self.ring.drain(limit)
         finally:
             self.lock.release()
         if gaps:
@@ -70,15 +70,36 @@ class _Inbound:
             self.port.deliver_many(values, sent_at)
         return len(values)
 
+    def wanted(self) -> bool:
+        """Whether the receiver should drain this ring now (look at it before sleeping)."""
+        return True
+
     def close(self) -> int:
-        """Deliver everything left in the ring, then detach."""
+        """Deliver everything left in the ring (room in the input or not), then detach."""
         drained = 0
-        while count := self.drain():
+        while count := _Inbound.drain(self):
             drained += count
         with self.lock:
             self.closed = True
             self.ring.close()
         return drained
+
+
+class _LosslessInbound(_Inbound):
+    """A lossless link: the receiver takes from the ring only what the input has room
+    for and leaves the rest, so a full input fills the ring and its writer waits. A
+    read that makes room rings the worker's doorbell (the port's ``_on_room``); a
+    writer that closes the link asks for everything at once (``request_flush``)."""
+
+    def drain(self, limit: int = 1024) -> int:
+        if not self.ring.flush_requested:
+            limit = min(limit, self.port.claim_room())
+            if limit <= 0:
+                return 0
+        return super().drain(limit)
+
+    def wanted(self) -> bool:
+        return self.ring.flush_requested or self.port.claim_room() > 0
 
 
 class Worker:
@@ -94,7 +115,8 @@ class Worker:
         self._wake = BellPull(os.dup(bell))
         self.inbound: dict[str, _Inbound] = {}
         # what the receiver loops over, replaced (never mutated) when links change
-        self._receiving: tuple[list[_Inbound], list[Any]] = ([], [])
+        # (and whether some are lossless: those whose input is full are left alone)
+        self._receiving: tuple[list[_Inbound], list[Any], bool] = ([], [], False)
         self.outbound: dict[str, tuple[str, str, ShmRing | None, BellPull | None]] = {}
         self.publications = Publications()       # outputs replicated to other nodes
         self._send_lock = threading.Lock()
@@ -237,7 +259,11 @@ class Worker:
         port.set_policy(Policy.parse(policy))
         shm_ring = ShmRing.attach(ring)
         shm_ring.resume_reader()   # a restarted reader continues where the last one stopped
-        self.inbound[key] = _Inbound(shm_ring, port)
+        if shm_ring.lossless:
+            port._on_room = self._room_made
+            self.inbound[key] = _LosslessInbound(shm_ring, port)
+        else:
+            self.inbound[key] = _Inbound(shm_ring, port)
         self._inbound_changed()
 
     def op_unlink_in(self, key: str) -> int:
@@ -249,8 +275,15 @@ class Worker:
 
     def _inbound_changed(self) -> None:
         links = list(self.inbound.values())
-        self._receiving = (links, [link.ring.core for link in links])
+        lossless = any(isinstance(link, _LosslessInbound) for link in links)
+        self._receiving = (links, [link.ring.core for link in links], lossless)
         self.bell_self()
+
+    def _room_made(self) -> None:
+        """A module read from a full lossless input: the receiver drains its ring again
+        (woken, unless it is the receiver itself that read: it looks anyway)."""
+        if threading.get_ident() != self._receiver_id:
+            self.bell_self()
 
     def op_link_out(self, key: str, src: str, src_port: str, ring: str | None = None,
                     dst: str = "", dst_port: str = "", policy: str = "latest") -> None:
@@ -270,14 +303,27 @@ class Worker:
                          policy: str) -> None:
         port = self.actors[src].outputs[src_port]
         target = self.actors[dst].inputs[dst_port]
-        target.set_policy(Policy.parse(policy))
+        parsed = Policy.parse(policy)
+        target.set_policy(parsed)
+        if parsed.lossless:
+            # The writer waits for room in the input itself (outside the reader's module
+            # lock: the reader's read wakes it), as it would for room in a ring.
+            counter = WaitCounter()
 
-        def one(value: Any, target: InputPort = target) -> None:
-            target.deliver(local_copy(value), time.monotonic())
+            def one_waiting(value: Any, timeout: float, target: InputPort = target) -> None:
+                target.put([local_copy(value)], timeout, key, counter)
 
-        def many(values: Sequence[Any], target: InputPort = target) -> None:
-            target.deliver_many([local_copy(v) for v in values], time.monotonic())
-        port.connect(key, one, many)
+            def many_waiting(values: Sequence[Any], timeout: float,
+                             target: InputPort = target) -> None:
+                target.put([local_copy(v) for v in values], timeout, key, counter)
+            port.connect(key, one_waiting, many_waiting, lossless=True, counter=counter)
+        else:
+            def one(value: Any, target: InputPort = target) -> None:
+                target.deliver(local_copy(value), time.monotonic())
+
+            def many(values: Sequence[Any], target: InputPort = target) -> None:
+                target.deliver_many([local_copy(v) for v in values], time.monotonic())
+            port.connect(key, one, many)
         self.outbound[key] = (src, src_port, None, None)
 
     def _link_out_ring(self, key: str, src: str, src_port: str, ring: str,
@@ -286,7 +332,9 @@ class Worker:
         shm_ring = ShmRing.attach(ring)
         shm_ring.resume_writer()   # a restarted writer gets back slots it never published
         shm_ring.set_bell(pull.fileno())
-        port.connect(key, shm_ring.write, shm_ring.write_many)
+        shm_ring.label = key           # a lossless write that times out names its link
+        port.connect(key, shm_ring.write, shm_ring.write_many, lossless=shm_ring.lossless,
+                     counter=shm_ring)
         self.outbound[key] = (src, src_port, shm_ring, pull)
 
     def op_unlink_out(self, key: str) -> None:
@@ -403,7 +451,7 @@ class Worker:
         gap = last = 0.0                   # time between the last two deliveries
         while not self._closing.is_set():
             try:
-                links, cores = self._receiving
+                links, cores, lossless = self._receiving
                 count = 0
                 for link in links:
                     count += link.drain()
@@ -414,6 +462,9 @@ class Worker:
                     self._run_ready()
                     if self._ready:               # a module has more to do: drain first
                         continue
+                if lossless:              # a full input's ring waits for a read
+                    links = [link for link in links if link.wanted()]
+                    cores = [link.ring.core for link in links]
                 if gap < SPIN_S and self._spin(links):
                     continue
                 sleep(self._bell_fd, cores, GUARD_TIMEOUT)

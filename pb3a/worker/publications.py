@@ -3,14 +3,17 @@
 One ``Replicator`` per worker, created when the first remote link appears. Each
 output is published under one topic (``"module.port"``) however many remote
 links read it: the output gets one sink, and a topic stays until its last link goes.
+The sink takes the writer's timeout: a lossless reader on another node holds the
+writer back up to it (the publish then fails, naming the links of the topic).
 """
 
 from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+from pb3a.errors import RuntimeTimeout, link_stuck
 from pb3a.transport.auth import ClusterKey
-from pb3a.transport.replication import Replicator
+from pb3a.transport.replication import SILENT_S, Replicator
 
 if TYPE_CHECKING:
     from pb3a.model.ports import OutputPort
@@ -36,15 +39,23 @@ class Publications:
             replicator.add(topic)
             publish = replicator.publish
 
-            def one(value: Any) -> None:
-                publish(topic, value)
+            def one(value: Any, timeout: float) -> None:
+                try:
+                    publish(topic, value, timeout)
+                except RuntimeTimeout:
+                    raise link_stuck(", ".join(sorted(readers)), timeout) from None
 
-            def many(values: Any) -> None:
-                for value in values:
-                    publish(topic, value)
-            port.connect(_sink(topic), one, many)
+            def many(values: Any, timeout: float) -> None:
+                for done, value in enumerate(values):
+                    try:
+                        publish(topic, value, timeout)
+                    except RuntimeTimeout:
+                        raise link_stuck(", ".join(sorted(readers)), timeout,
+                                         len(values) - done) from None
+            port.connect(_sink(topic), one, many, lossless=True)
             self._ports[topic] = port
         readers.add(key)
+        self._ports[topic].track(key, replicator.counter(topic))
         return replicator.data_address, replicator.control_address, replicator.incarnation
 
     def remove(self, key: str) -> int:
@@ -55,11 +66,15 @@ class Publications:
         for topic, readers in list(self._readers.items()):
             if key not in readers:
                 continue
+            assert self.replicator is not None
             readers.discard(key)
+            self._ports[topic].untrack(key)
+            # A lossless reader gone with the link no longer holds the writer back
+            # (one that unfollowed said so; a lost node's went silent).
+            self.replicator.release(topic, SILENT_S if readers else 0.0)
             if not readers:
                 del self._readers[topic]
                 self._ports.pop(topic).disconnect(_sink(topic))
-            assert self.replicator is not None
             reached = self.replicator.sequence(topic)
         return reached
 

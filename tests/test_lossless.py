@@ -1,0 +1,185 @@
+"""Lossless links: a full reader makes its writer wait (up to the writer's timeout),
+locally, inside one process and between nodes; nothing is dropped, duplicated or
+reordered, also across migrations and swaps; dropping links behave as before."""
+
+from __future__ import annotations
+
+import pytest
+from conftest import eventually
+from sample_modules import Burst, Collector, Pusher, Sipper, SipperV2
+
+from pb3a import System
+
+pytestmark = pytest.mark.timeout(120)
+
+KEY = "src.out->dst.x"
+SIP = 0.0005           # the slow reader's period: at most 8 values (its queue) per step
+
+
+def _system(name: str, n: int, *, sip: int = 50, remote: bool = False, workers: int = 0,
+            timeout: float = 0.0) -> System:
+    """src (Pusher, ``n`` values) -> dst (Sipper, lossless:8), on nodes a and b if
+    ``remote``, packed into ``workers`` processes if given."""
+    system = System(name, workers=workers)
+    if remote:
+        system.node("a")
+        system.node("b")
+    system.add("dst", Sipper, period=SIP, state={"sip": sip}, node="b" if remote else None)
+    system.add("src", Pusher, state={"limit": n, "timeout": timeout},
+               node="a" if remote else None)
+    system.link("src.out", "dst.x", policy="lossless:8")
+    return system
+
+
+def _every_value(run, n: int, timeout: float = 90) -> dict:
+    return eventually(lambda: (s := run.state("dst"))["received"] >= n and s, timeout=timeout,
+                      what=f"{n} values at the reader")
+
+
+def _in_order(state: dict, n: int) -> bool:
+    return (state["received"] == n and state["last"] == n and state["out_of_order"] == 0
+            and state["duplicates"] == 0)
+
+
+def test_a_slow_reader_behind_a_local_lossless_queue_gets_every_value_in_order() -> None:
+    n = 20_000             # more than the ring holds (16,384 ints): the writer must wait
+    with _system("lossless-local", n).launch() as run:
+        state = _every_value(run, n)
+        stats = run.stats()
+    link, writer = stats.links[KEY], stats.modules["src"]
+    assert _in_order(state, n)
+    assert link.transport == "shm" and link.policy == "lossless:8"
+    assert link.values == n and link.drops == 0 and link.link_failures == 0
+    assert link.waits > 0 and link.wait_s > 0
+    assert writer.output_waits["out"].waits == link.waits and writer.outputs["out"] == n
+    assert writer.errors == 0
+
+
+def test_a_slow_reader_behind_a_lossless_queue_on_another_node_gets_every_value() -> None:
+    n = 20_000             # ring (16,384) + window (2,048) + queue (8) < n: the writer waits
+    with _system("lossless-remote", n, remote=True).launch() as run:
+        state = _every_value(run, n)
+        stats = run.stats()
+    link = stats.links[KEY]
+    assert _in_order(state, n)
+    assert link.transport == "zmq" and link.policy == "lossless:8"
+    assert link.values == n and link.drops == 0 and link.link_failures == 0
+    assert link.waits > 0 and stats.modules["src"].errors == 0
+
+
+def test_a_lossless_link_inside_one_process_waits_without_deadlock() -> None:
+    n = 3000
+    with _system("lossless-memory", n, workers=1).launch() as run:
+        state = _every_value(run, n)
+        stats = run.stats()
+    link = stats.links[KEY]
+    assert _in_order(state, n)
+    assert link.transport == "memory" and link.drops == 0
+    assert link.waits > 0 and stats.modules["src"].errors == 0
+
+
+@pytest.mark.parametrize("where", ["shm", "memory", "zmq"])
+def test_a_write_to_a_reader_that_never_reads_times_out_naming_the_link(where: str) -> None:
+    system = _system(f"lossless-stuck-{where}", 0, sip=0, timeout=0.5, remote=where == "zmq",
+                     workers=1 if where == "memory" else 0)
+    with system.launch() as run:
+        writer = eventually(lambda: (m := run.stats().modules["src"]).errors and m,
+                            timeout=30, what="a write that timed out")
+        sent = run.state("src")["sent"]
+        run.set_state("dst", sip=50)                 # the reader wakes up: the writer goes on
+        state = eventually(lambda: (s := run.state("dst"))["received"] > sent + 100 and s,
+                           what="values after the reader woke up")
+        link = run.stats().links[KEY]
+    assert writer.last_error.startswith("RuntimeTimeout: write on lossless link "
+                                        "src.out -> dst.x timed out")
+    assert "has not taken a value for 0.5 s: it is stuck, too slow, or gone" in writer.last_error
+    assert link.transport == where and link.drops == 0 and link.link_failures == 0
+    # the value that timed out was not sent; the writer sent it again: no gap, no duplicate
+    assert state["out_of_order"] == 0 and state["duplicates"] == 0
+    assert state["last"] == state["received"]
+
+
+def test_a_lossless_link_stays_lossless_across_migrations_and_a_swap() -> None:
+    n = 20_000
+    system = System("lossless-moves")
+    system.node("a")
+    system.node("b")
+    system.add("dst", Sipper, period=SIP, state={"sip": 50}, node="a")
+    system.add("src", Pusher, state={"limit": n}, node="a")
+    system.link("src.out", "dst.x", policy="lossless:8")
+    with system.launch() as run:
+        transports = []
+        for module, node in (("dst", "b"), ("src", "b"), ("dst", "a"), ("src", "a")):
+            before = run.state("dst")["received"]
+            eventually(lambda before=before: run.state("dst")["received"] >= before + 500,
+                       what="values flowing")
+            run.migrate(module, to=node)
+            link = run.stats().links[KEY]
+            transports.append(link.transport)
+            assert link.policy == "lossless:8", (module, node, link.policy)
+        run.swap("dst", SipperV2)
+        state = _every_value(run, n)
+        stats = run.stats()
+    link = stats.links[KEY]
+    assert transports == ["zmq", "shm", "zmq", "shm"]
+    assert _in_order(state, n) and state["swapped_in"] == 1
+    assert link.policy == "lossless:8" and link.drops == 0 and link.link_failures == 0
+    assert stats.modules["dst"].inputs["x"].drops == 0
+
+
+def test_a_stuck_lossless_reader_migrates_with_everything_on_the_way() -> None:
+    # The writer fills the reader's ring, the sender's window and the bridge's backlog;
+    # the reader, paused for the move, takes in all of it (the bridge asks it to).
+    n = 25_000
+    with _system("lossless-stuck-move", n, sip=0, remote=True, timeout=1.0).launch() as run:
+        eventually(lambda: run.stats().links[KEY].waits > 0, what="the writer held back")
+        run.migrate("dst", to="a")
+        assert run.stats().links[KEY].transport == "shm"
+        run.set_state("dst", sip=50)
+        state = _every_value(run, n)
+        link = run.stats().links[KEY]
+    assert _in_order(state, n)
+    assert link.policy == "lossless:8" and link.drops == 0 and link.link_failures == 0
+
+
+def test_relink_may_make_a_dropping_link_lossless() -> None:
+    n = 20_000
+    system = System("lossless-relink")
+    system.add("dst", Sipper, period=SIP, state={"sip": 50})
+    system.add("src", Pusher, state={"limit": n})
+    system.link("src.out", "dst.x", policy="queue:8")
+    with system.launch() as run:
+        eventually(lambda: run.stats().links[KEY].drops > 0, what="drops on queue:8")
+        run.relink("src.out", "dst.x", policy="lossless:8")
+        dropped = run.stats().links[KEY].drops
+        eventually(lambda: run.state("dst")["last"] == n, timeout=90, what="the last value")
+        link = run.stats().links[KEY]
+    assert link.policy == "lossless:8" and link.drops == dropped     # none since
+
+
+def test_a_dropping_queue_still_drops_its_oldest_and_its_writer_does_not_wait() -> None:
+    n = 2000
+    system = System("dropping-queue")
+    system.add("dst", Collector, state={"delay": 0.002})
+    system.add("src", Burst, state={"limit": n})
+    system.link("src.out", "dst.x", policy="queue:10")
+    with system.launch() as run:
+        link = eventually(lambda: (lk := run.stats().links[KEY]).values == n
+                          and lk.pending == 0 and lk, timeout=30, what="every value handled")
+        state = run.state("dst")
+    assert link.drops > 0 and state["received"] + link.drops == n and state["last"] == n
+    assert link.waits == 0 and link.wait_s == 0.0
+
+
+def test_a_latest_input_still_gives_the_newest_and_its_writer_does_not_wait() -> None:
+    n = 2000
+    system = System("dropping-latest")
+    system.add("dst", Collector, state={"delay": 0.002})
+    system.add("src", Burst, state={"limit": n})
+    system.link("src.out", "dst.x", policy="latest")
+    with system.launch() as run:
+        state = eventually(lambda: (s := run.state("dst"))["last"] == n and s, timeout=30,
+                           what="the newest value")
+        link = run.stats().links[KEY]
+    assert state["received"] < n and state["out_of_order"] == 0
+    assert link.drops == 0 and link.waits == 0
