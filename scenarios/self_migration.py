@@ -6,8 +6,11 @@ so each ``env`` module reports its own node. A source on ``b`` emits a time stam
 every 5 ms; ``compute`` (on ``a``) spends a fixed amount of CPU time on each and
 passes it on; the sink on ``b`` records each value's arrival and end-to-end latency.
 After a quiet phase, stress processes pinned to CPU 0 load node ``a``; the ``Mover``
-agent sees node ``a`` busy and node ``b`` not, and migrates ``compute`` to ``b``. The
-same run with the agent disabled is the baseline.
+agent sees node ``a`` busy from outside the system and node ``b`` not, and migrates
+``compute`` to ``b``. It reads each node's ``cpu_outside`` (the load that is not the
+system's own), so once ``compute`` has moved, the load it brings to ``b`` does not
+make ``b`` look worse than ``a``: it moves once, not back and forth. The same run
+with the agent disabled is the baseline; the report counts the moves.
 
 Run it: ``python -m scenarios.self_migration [--out DIR] [--quick]`` (or ``pb3a
 scenario self-migration``). It prints a JSON report (throughput and latency before,
@@ -29,6 +32,7 @@ from typing import Any
 
 from pb3a import Agent, Environment, Input, InputPort, Module, Output, System
 from pb3a.cli.log_output import show_logs
+from pb3a.pending import Pending
 
 RATE_HZ = 200.0
 WORK_S = 0.002                 # CPU seconds of work per value in ``compute``
@@ -79,41 +83,49 @@ class Sink(Module):
 
 
 class Mover(Agent):
-    """Moves ``target`` to the least loaded node when its own node stays busy.
+    """Moves ``target`` off a node that stays busy with load from outside the system.
 
-    Busy means above ``busy_pct`` for ``patience`` samples in a row while the other
-    node is at least ``margin_pct`` less busy. The first ``warmup_s`` after it starts
-    are ignored: the system's own start-up loads the CPUs then."""
+    Busy means an outside load above ``busy_pct`` for ``patience`` samples in a row
+    while the other node's is at least ``margin_pct`` lower. Outside load (``env``'s
+    ``cpu_outside``) leaves out the system's own workers, so moving ``target`` does not
+    make its new node look busy. A move runs in the background (``wait=False``): the
+    agent goes on sampling, and decides again only once the move has ended. The first
+    ``warmup_s`` after it starts are ignored: the system's start-up loads the CPUs."""
 
-    cpu_a = Input(float)
-    cpu_b = Input(float)
+    outside_a = Input(float)
+    outside_b = Input(float)
     target = "compute"
     enabled = True
-    busy_pct = 75.0
+    busy_pct = 50.0
     margin_pct = 25.0
     patience = 2
     strikes = 0
     moved_at: list[float] = []
     moved_to: list[str] = []
-    location = "a"
     warmup_s = 1.0
 
     def setup(self) -> None:
         self._started = time.monotonic()
+        self._moving: Pending | None = None
+        self._here = self.runtime.where(self.target)
 
     def on_input(self, port: InputPort) -> None:
-        load = {"a": self.cpu_a.read(0.0), "b": self.cpu_b.read(0.0)}
-        if time.monotonic() - self._started < self.warmup_s:
+        load = {"a": self.outside_a.read(0.0), "b": self.outside_b.read(0.0)}
+        if time.monotonic() - self._started < self.warmup_s or not self.enabled:
             return
-        here = self.location
+        if self._moving is not None:
+            if not self._moving.done():
+                return                            # one move at a time
+            self._moving, self._here = None, self.runtime.where(self.target)
+        here = self._here
         there = min(load, key=load.__getitem__)
         if load[here] > self.busy_pct and load[there] < load[here] - self.margin_pct:
             self.strikes += 1
         else:
             self.strikes = 0
-        if self.enabled and self.strikes >= self.patience and there != here:
-            self.runtime.migrate(self.target, there)
-            self.location, self.strikes = there, 0
+        if self.strikes >= self.patience and there != here:
+            self._moving = self.runtime.migrate(self.target, there, wait=False)
+            self.strikes = 0
             self.moved_at.append(time.monotonic())
             self.moved_to.append(there)
 
@@ -130,8 +142,8 @@ def build(adaptive: bool, env_period: float = 0.25) -> System:
     system.add("mover", Mover, node="b", state={"enabled": adaptive})
     system.link("source.out", "compute.x")
     system.link("compute.y", "sink.x")
-    system.link("env-a.cpu", "mover.cpu_a")
-    system.link("env-b.cpu", "mover.cpu_b")
+    system.link("env-a.cpu_outside", "mover.outside_a")
+    system.link("env-b.cpu_outside", "mover.outside_b")
     return system
 
 
@@ -264,6 +276,7 @@ def main(argv: list[str] | None = None) -> int:
         ("quiet", "loaded", "after"), phases, strict=True)),
         "rate_hz": RATE_HZ, "work_ms_per_value": WORK_S * 1e3,
         "runs": {name: {"phases": phase_figures(r),
+                        "moves": len(r["moved_at"]),
                         "migrated_after_load_s": [round(m - r["load_on"], 2)
                                                   for m in r["moved_at"]],
                         "compute_node_at_end": r["compute_node_at_end"]}

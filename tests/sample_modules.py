@@ -473,3 +473,55 @@ class SipperV2(Sipper):
 
     def setup(self) -> None:
         self.swapped_in += 1
+
+
+class Spinner(Module):
+    """Burns CPU while ``spinning``: the node's own load."""
+
+    period = 0.0
+    spinning = True
+
+    def step(self) -> None:
+        if not self.spinning:
+            time.sleep(0.01)
+            return
+        end = time.thread_time() + 0.01
+        while time.thread_time() < end:
+            pass
+
+
+class Shepherd(Agent):
+    """Moves ``flock`` to ``to`` without waiting, then follows the move through its
+    pending result, ``runtime.where`` and its env port's ``module_moved`` event."""
+
+    moved = Input(dict, policy="queue:64")
+    flock = "relay"
+    to = "b"
+    period = 0.05
+    asked = False
+    done_before = None
+    report: dict = {}
+    where = ""
+    seen_moves: list = []
+
+    def step(self) -> None:
+        if not self.asked:
+            self.asked = True
+            self._pending = self.runtime.migrate(self.flock, self.to, wait=False)
+            self.done_before = self._pending.done()
+        elif not self.report and self._pending.done():
+            self.report = vars(self._pending.result(1.0))
+            self.where = self.runtime.where(self.flock)
+
+    def on_input(self, port) -> None:
+        self.seen_moves.append(port.read())
+
+
+class Locator(Agent):
+    """Asks the runtime where ``other`` runs from its ``setup``, as the system starts."""
+
+    other = "src"
+    found = ""
+
+    def setup(self) -> None:
+        self.found = self.runtime.where(self.other)

@@ -7,7 +7,7 @@ import itertools
 import time
 
 import pytest
-from sample_modules import Busybody
+from sample_modules import Busybody, Locator
 
 from pb3a import System
 
@@ -50,3 +50,11 @@ def test_agents_and_the_program_act_on_each_other_without_deadlock(workers: int)
     # never a time-out, never another error
     assert [s["unexpected"] for s in states] == ["", "", ""]
     assert program >= 500 and answered >= 1000, (program, answered)
+
+
+def test_an_agent_may_ask_the_runtime_from_setup_as_the_system_starts() -> None:
+    system = System("locating").node("a").node("b")
+    system.add("src", Busybody, node="b", period=1.0, state={"peers": ["src"]})
+    system.add("locator", Locator, node="a")
+    with system.launch(timeout=10) as run:
+        assert run.state("locator")["found"] == "b"

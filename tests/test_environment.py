@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import multiprocessing
 import os
+import statistics
 
 import numpy as np
 import pytest
 from conftest import eventually
+from sample_modules import Spinner
 
 from pb3a import ConfigError, Environment, Input, InputPort, Module, System
 
@@ -83,3 +86,57 @@ def test_bad_cpu_lists_are_reported() -> None:
     assert "[nodes.a]: cpus must be a non-empty list of CPU numbers" in problem
     with pytest.raises(ConfigError, match="cpus must be"):
         system.plan()
+
+
+class LoadWatcher(Module):
+    """Keeps the CPU figures of a node: all, its own modules', the rest."""
+
+    cpu = Input(float, policy="queue:64")
+    own = Input(float, policy="queue:64")
+    outside = Input(float, policy="queue:64")
+    figures: dict = {"cpu": [], "own": [], "outside": []}
+
+    def on_input(self, port: InputPort) -> None:
+        self.figures[port.name].append(port.read())
+
+
+def _burn(stop) -> None:
+    os.sched_setaffinity(0, [0])
+    while not stop.is_set():
+        pass
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="a node pinned to one CPU of two")
+def test_the_env_module_tells_the_system_s_own_load_from_outside_load() -> None:
+    system = System("own-load")
+    system.node("a", cpus=[0])
+    system.node("b", cpus=[1])
+    system.add("env-a", Environment, node="a", period=0.25)
+    system.add("spinner", Spinner, node="a")
+    system.add("watcher", LoadWatcher, node="b")
+    for port, into in (("cpu", "cpu"), ("cpu_own", "own"), ("cpu_outside", "outside")):
+        system.link(f"env-a.{port}", f"watcher.{into}")
+    context = multiprocessing.get_context("fork")
+    stop = context.Event()
+    burner = context.Process(target=_burn, args=(stop,), daemon=True)
+    with system.launch() as run:
+        def settled(when: str) -> dict:
+            """The median of each figure over the next four samples."""
+            begun = len(run.state("watcher")["figures"]["cpu"])
+            figures = eventually(lambda: min(map(len, (f := run.state("watcher")["figures"])
+                                                 .values())) >= begun + 4 and f,
+                                 timeout=15, what=f"four samples {when}")
+            return {name: statistics.median(values[begun:begun + 4])
+                    for name, values in figures.items()}
+        spinning = settled("while its own module spins")
+        run.set_state("spinner", spinning=False)
+        burner.start()
+        try:
+            settled("after the switch")                    # (a sample spans both)
+            burnt = settled("while an outside process burns")
+        finally:
+            stop.set()
+            burner.join(5)
+    # all of node a's CPU goes to its own module, then to a process outside the system
+    assert spinning["own"] > 60 and spinning["outside"] < 30, spinning
+    assert burnt["outside"] > 60 and burnt["own"] < 20, burnt

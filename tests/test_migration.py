@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 from conftest import eventually
-from sample_modules import Chain, Collector, Counter, Relay, Wanderer
+from sample_modules import Chain, Collector, Counter, Relay, Shepherd, Wanderer
 
 from pb3a import ConfigError, ModuleNotFound, RuntimeFailure, System
 
@@ -136,3 +136,41 @@ def test_a_failed_landing_puts_the_module_back_where_it_was(monkeypatch) -> None
         sink = run.state("sink")
     assert failures and sink["out_of_order"] == 0 and sink["duplicates"] == 0
     assert sink["last"] == sink["received"]
+
+
+def test_a_move_without_waiting_returns_a_pending_result_and_is_an_event() -> None:
+    system = System("pending").node("a").node("b")
+    system.add("src", Counter, node="a", period=0.002)
+    system.add("relay", Relay, node="a")
+    system.add("sink", Collector, node="a")
+    system.link("src.out", "relay.x")
+    system.link("relay.out", "sink.x")
+    with system.launch() as run:
+        pending = run.migrate("relay", to="b", wait=False)
+        report = pending.result(30)
+        assert pending.done() and report.destination == "b" and run.where("relay") == "b"
+        moved = [e for e in run.events() if e.kind == "module_moved"]
+        assert [(e.subject, e.detail["source"], e.detail["destination"]) for e in moved] == [
+            ("relay", "a", "b")] and moved[0].detail["pause_s"] == report.pause_s
+        with pytest.raises(RuntimeFailure, match="migrate relay to mars failed: ConfigError"):
+            run.migrate("relay", to="mars", wait=False).result(10)
+        n = run.state("relay")["relayed"] + 100
+        state = eventually(lambda: (s := run.state("sink"))["received"] >= n and s, timeout=30,
+                           what="values after the move")
+    assert state["out_of_order"] == 0 and state["duplicates"] == 0
+
+
+def test_an_agent_moves_a_module_without_waiting_and_sees_where_it_went() -> None:
+    system = System("shepherd").node("a").node("b")
+    system.add("src", Counter, node="a", period=0.002)
+    system.add("relay", Relay, node="a")
+    system.add("shepherd", Shepherd, node="a")
+    system.link("src.out", "relay.x")
+    system.link("env-a.module_moved", "shepherd.moved")
+    with system.launch() as run:
+        state = eventually(lambda: (s := run.state("shepherd"))["seen_moves"] and s["report"]
+                           and s, timeout=30, what="the move done, and seen on env-a")
+    assert state["done_before"] is False                  # the agent did not wait for it
+    assert state["report"]["destination"] == "b" and state["where"] == "b"
+    assert state["seen_moves"][0]["module"] == "relay"
+    assert state["seen_moves"][0]["destination"] == "b"

@@ -19,6 +19,7 @@ def test_the_agent_moves_compute_off_the_loaded_node_while_it_is_loaded() -> Non
     assert any(adaptive["load_on"] < at < adaptive["load_off"] and to == "b"
                for at, to in moves), moves
     assert all(at > adaptive["load_on"] for at, _ in moves), moves   # none while quiet
+    assert len(moves) == 1, moves        # its own load on b does not send it back to a
     assert adaptive["arrivals"][-1] > adaptive["load_off"]           # values still flow
 
 

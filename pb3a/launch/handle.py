@@ -15,6 +15,8 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from typing import TYPE_CHECKING, Any
 
+from pb3a.pending import Pending
+
 if TYPE_CHECKING:
     from pb3a.events import Event
     from pb3a.launch.migration import MigrationReport
@@ -44,14 +46,22 @@ class SystemHandle(ABC):
                                     "timeout": timeout})
 
     # -- moving, swapping, reloading ---------------------------------------------------
-    def migrate(self, name: str, to: str, *, timeout: float | None = None) -> MigrationReport:
+    def migrate(self, name: str, to: str, *, wait: bool = True,
+                timeout: float | None = None) -> MigrationReport | Pending:
         """Move a module, or every module of a macro, to node ``to`` while it runs.
 
         State, unconsumed inputs and links go with it; no value on any link is lost,
         duplicated or reordered. A macro's modules move one after another; its report
-        sums their state and links and gives the longest single pause.
+        sums their state and links and gives the longest single pause. With
+        ``wait=False`` the move goes on in the background: a ``Pending`` whose
+        ``result()`` is the report (and the event ``module_moved`` says when).
         """
-        return self._request("migrate", {"name": name, "to": to, "timeout": timeout})
+        args = {"name": name, "to": to, "timeout": timeout}
+        if wait:
+            return self._request("migrate", args)
+        job = self._request("begin_migration", args)
+        return Pending(f"migrate {name} to {to}",
+                       lambda wait_s: self._request("migration", {"id": job, "timeout": wait_s}))
 
     def swap(self, name: str, cls: type | str, *, timeout: float | None = None) -> list[str]:
         """Replace a module's class, keeping its ports, queued inputs and matching state.

@@ -95,10 +95,10 @@ class Launcher:
         for remote in self.remotes.values():   # the launcher stands for its embedded nodes
             remote.meet({name: self.remotes[name].address if name in self.remotes else callback
                          for name in self.nodes if name != remote.name})
-        if self.remotes:
-            self._watchdog = threading.Thread(target=self._watch, name="pb3a-heartbeat",
-                                              daemon=True)
-            self._watchdog.start()
+        # (also without remote nodes: it keeps the env modules' view up to date)
+        self._watchdog = threading.Thread(target=self._watch, name="pb3a-heartbeat",
+                                          daemon=True)
+        self._watchdog.start()
 
     def _agent_request(self, op: str, args: dict[str, Any]) -> Any:
         if self.handler is None:
@@ -280,9 +280,12 @@ class Launcher:
             self.node_of(link.src).unpublish(link)
 
     def update_env(self) -> None:
-        """Tell every node's env module the health of every node and its round-trip
-        time to each (set as the module's state)."""
-        for name in self.nodes:
+        """Tell every node's env module (as its state) the health of every node and its
+        round-trip time to each, the node's worker processes (its own load) and the
+        moves made so far."""
+        moves = [{"module": event.subject, **event.detail} for event in self.events.since(0)
+                 if event.kind == "module_moved"]
+        for name, node in self.nodes.items():
             env = env_name(name)
             if env not in self.specs or not self.health[name]["up"]:
                 continue
@@ -290,7 +293,8 @@ class Launcher:
                 rtts = self._rtts_from(name)
                 table = {peer: {"up": health["up"], "rtt": rtts.get(peer, float("nan"))}
                          for peer, health in self.health.items()}
-                self.call(env, "set_state", state={"health": table})
+                self.call(env, "set_state", state={"health": table, "moves": moves,
+                                                   "own_pids": node.worker_pids()})
 
     def _rtts_from(self, name: str) -> dict[str, float]:
         """Round-trip times from node ``name`` to every node: measured by the node itself

@@ -10,6 +10,7 @@ when it runs out. Each change is recorded as an event.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 from dataclasses import replace
@@ -22,6 +23,7 @@ from pb3a.loading.references import resolve_class
 from pb3a.loading.served import forget
 from pb3a.model.module import RESTART_POLICIES, Module
 from pb3a.model.ports import Policy
+from pb3a.pending import DONE, FAILED, RUNNING
 
 if TYPE_CHECKING:
     from pb3a.events import Event
@@ -36,10 +38,11 @@ DEFAULT_TIMEOUT = 30.0      # seconds an operation may wait, unless told otherwi
 # What may be asked from outside the launcher's process (the command line, a
 # connection, an agent on a remote node): the public operations, nothing else.
 PUBLIC = frozenset({"state", "set_state", "swap", "relink", "link", "add", "remove",
-                    "restart", "migrate", "reload", "stats", "where", "nodes", "events",
-                    "logs"})
+                    "restart", "migrate", "begin_migration", "migration", "reload", "stats",
+                    "where", "nodes", "events", "logs"})
 # What an agent may ask through ``self.runtime`` (it spawns with "add").
-FOR_AGENTS = PUBLIC - {"reload"} | {"migrate_self"}
+FOR_AGENTS = PUBLIC - {"reload"}
+KEEP_JOBS = 1000            # background operations whose outcome is kept for asking
 
 
 class Operations:
@@ -51,6 +54,8 @@ class Operations:
         self.lock = launcher.lock
         self.events = launcher.events
         self.timeout = timeout
+        self._jobs: dict[int, tuple[threading.Event, list[Any]]] = {}   # background moves
+        self._job_ids = itertools.count(1)
 
     def _held(self, what: str, timeout: float | None) -> Any:
         return self.lock.held(what, self.timeout if timeout is None else timeout)
@@ -80,10 +85,11 @@ class Operations:
             if not names:
                 self.launcher.node_of(name)           # raises ModuleNotFound
             reports = [migrate(self.launcher, child, to) for child in names]
-        for report in reports:
-            if report.source != report.destination:
-                self.events.record("module_moved", report.module, source=report.source,
-                                   destination=report.destination, pause_s=report.pause_s)
+            for report in reports:
+                if report.source != report.destination:
+                    self.events.record("module_moved", report.module, source=report.source,
+                                       destination=report.destination, pause_s=report.pause_s)
+            self.launcher.update_env()          # the moves and the workers, for agents
         if len(reports) == 1:
             return reports[0]
         return MigrationReport(name, ",".join(sorted({r.source for r in reports})), to,
@@ -91,17 +97,34 @@ class Operations:
                                sum(r.state_bytes for r in reports),
                                sum(r.links for r in reports))
 
-    def migrate_self(self, name: str, to: str) -> None:
-        """An agent moving itself (or its macro): it waits for this answer inside its own
-        body, holding its lock, and the move has to pause it, so the move happens on
-        another thread once the body has returned."""
+    def begin_migration(self, name: str, to: str, *, timeout: float | None = None) -> int:
+        """Start ``migrate`` on another thread; the number to ask ``migration`` about. An
+        agent moving itself must not wait: the move pauses it once its body returns."""
+        job = next(self._job_ids)
+        done = threading.Event()
+        self._jobs[job] = (done, [RUNNING, None])
+        while len(self._jobs) > KEEP_JOBS:
+            del self._jobs[next(iter(self._jobs))]
+
         def move() -> None:
+            outcome = self._jobs[job][1]
             try:
-                report = self.migrate(name, to)
-                log.info("agent %s moved to %s (paused %.1f ms)", name, to, report.pause_s * 1e3)
-            except Exception:
-                log.exception("agent %s could not move to %s", name, to)
-        threading.Thread(target=move, name="pb3a-self-migration", daemon=True).start()
+                outcome[:] = [DONE, self.migrate(name, to, timeout=timeout)]
+            except Exception as exc:
+                log.warning("migrate %s to %s failed: %s", name, to, exc)
+                outcome[:] = [FAILED, f"{type(exc).__name__}: {exc}"]
+            done.set()
+        threading.Thread(target=move, name=f"pb3a-migrate-{name}", daemon=True).start()
+        return job
+
+    def migration(self, id: int, *, timeout: float = 0.0) -> tuple[str, Any]:
+        """How background migration ``id`` went: ``("running", None)``, ``("done",
+        report)`` or ``("failed", message)``, waiting up to ``timeout`` for it to end."""
+        entry = self._jobs.get(id)
+        if entry is None:
+            raise ValueError(f"no migration {id} (only the last {KEEP_JOBS} are kept)")
+        entry[0].wait(timeout)
+        return tuple(entry[1])      # type: ignore[return-value]
 
     def reload(self, module: str, *, timeout: float | None = None) -> None:
         with self._held(f"reload {module}", timeout):

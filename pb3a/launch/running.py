@@ -7,11 +7,13 @@ everything. Its live operations are ``SystemHandle``'s, applied here directly.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 from typing import Any
 
 from pb3a.config.plan import Plan
+from pb3a.errors import ModuleNotFound
 from pb3a.launch.handle import SystemHandle
 from pb3a.launch.launcher import Launcher
 from pb3a.launch.operations import DEFAULT_TIMEOUT, FOR_AGENTS, Operations
@@ -50,7 +52,11 @@ class Running(SystemHandle):
     # -- life cycle ------------------------------------------------------------
     def start(self) -> None:
         """Start every node's executor, instantiate every module, wire every link, then
-        run ``setup`` in order."""
+        run ``setup`` in order.
+
+        ``setup`` runs without the configuration lock: an agent may call
+        ``self.runtime`` from it (where is that module? move it ...), which takes the
+        lock, while the start waits for that ``setup`` to return."""
         launcher = self._launcher
         try:
             with launcher.lock.held(f"start system {self.name!r}"):
@@ -63,8 +69,10 @@ class Running(SystemHandle):
                     launcher.add_module(spec)
                 for link in self.plan.links:
                     launcher.connect(link)
-                for name in self.plan.modules:
+            for name in self.plan.modules:
+                with contextlib.suppress(ModuleNotFound):     # an agent removed it meanwhile
                     launcher.node_of(name).start_modules([name])
+            with launcher.lock.held(f"start system {self.name!r}"):
                 launcher.update_env()
         except BaseException:
             self.close()

@@ -15,6 +15,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 from pb3a.model.module import Module
+from pb3a.pending import Pending
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -85,13 +86,17 @@ class RuntimeClient:
         an agent does not wait for them: it looks again at its next step."""
         return self._request("events", {"since": since})
 
-    def migrate(self, name: str, to: str) -> Any:
-        """Move a module (or macro) to node ``to``; its ``MigrationReport``. An agent may
-        move itself (or its own macro): the move then happens right after the current
-        step or event returns, and this returns None."""
-        if name == self._agent or self._agent.startswith(f"{name}/"):
-            return self._request("migrate_self", {"name": name, "to": to})
-        return self._call("migrate", name, to=to)
+    def migrate(self, name: str, to: str, *, wait: bool = True) -> Any:
+        """Move a module (or macro) to node ``to``; its ``MigrationReport``. With
+        ``wait=False``, or when an agent moves itself (or its own macro: the move can
+        only pause it once its body returns), a ``Pending`` instead: the agent goes on,
+        and ``pending.done()`` / ``pending.result()`` or the ``module_moved`` event of
+        its ``env`` port tell it when the move ended."""
+        if wait and not (name == self._agent or self._agent.startswith(f"{name}/")):
+            return self._call("migrate", name, to=to)
+        job = self._request("begin_migration", {"name": name, "to": to})
+        return Pending(f"migrate {name} to {to}",
+                       lambda wait_s: self._request("migration", {"id": job, "timeout": wait_s}))
 
 
 class Agent(Module):

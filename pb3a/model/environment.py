@@ -7,14 +7,23 @@ seconds (default 1; declare ``env-NODE`` yourself, class ``pb3a:Environment``, t
 set another period): agents read them like any other port to decide to move. A
 node pinned to some CPUs (``cpus`` in its table) reports the load of those CPUs.
 
+``cpu`` is how busy the node's CPUs are; ``cpu_own`` how much of that this system's
+own worker processes on the node use, and ``cpu_outside`` the rest: load from
+outside the system. An agent that moves its own load away sees ``cpu`` fall but
+``cpu_outside`` stay, so it does not mistake its own load for the node's.
+
 ``nodes`` carries every node's health as the launcher's heartbeats see it (up or
 lost, and the round-trip time of the last heartbeat); ``node_lost`` is the event:
 a node's name, written once, at the first sample after the launcher lost it.
+``module_moved`` is the event of a migration anywhere in the system (``module``,
+``source``, ``destination``, ``pause_s``), once per move, at the next sample.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
+import time
 
 import numpy as np
 import psutil
@@ -30,24 +39,42 @@ class Environment(Module):
 
     cpu = Output(float)                  # mean busy percent of the node's CPUs
     cpu_per_core = Output(np.ndarray)    # busy percent of each of them
+    cpu_own = Output(float)              # percent of the node's CPUs this system uses
+    cpu_outside = Output(float)          # cpu - cpu_own: the load from outside it
     memory_available = Output(float)     # bytes
     load = Output(np.ndarray)            # 1, 5 and 15-minute load averages
     nodes = Output(dict)                 # node -> {"up": bool, "rtt": seconds}
     node_lost = Output(str)              # a lost node's name (once)
+    module_moved = Output(dict)          # module, source, destination, pause_s (once)
     period = 1.0
-    health: dict = {}                    # node -> {"up", "rtt"}: set by the launcher
+    # set by the launcher: every node's health; this node's worker processes; the moves
+    health: dict = {}                    # node -> {"up", "rtt"}
+    own_pids: list = []
+    moves: list = []
 
     def setup(self) -> None:
         self._told: set[str] = set()
+        self._moves_told = len(self.moves)   # moves before this start are history
         self._cpus = sorted(os.sched_getaffinity(0))   # the node's, if it is pinned
+        self._processes: dict[int, psutil.Process] = {}
+        self._cpu_s: dict[int, float] = {}      # worker pid -> its CPU seconds, last sample
+        self._sampled = time.monotonic()
+        self._own_cpu()
         psutil.cpu_percent(percpu=True)  # the first reading covers the time since this
 
     def step(self) -> None:
         per_core = psutil.cpu_percent(percpu=True)
         busy = np.asarray([per_core[cpu] for cpu in self._cpus if cpu < len(per_core)],
                           dtype=np.float64)
+        cpu = float(busy.mean()) if busy.size else 0.0
+        used, now = self._own_cpu(), time.monotonic()
+        elapsed, self._sampled = now - self._sampled, now
+        own = 100.0 * used / (elapsed * max(1, len(self._cpus))) if elapsed > 0 else 0.0
+        own = min(own, cpu)
         self.cpu_per_core.write(busy)
-        self.cpu.write(float(busy.mean()) if busy.size else 0.0)
+        self.cpu.write(cpu)
+        self.cpu_own.write(own)
+        self.cpu_outside.write(cpu - own)
         self.memory_available.write(float(psutil.virtual_memory().available))
         self.load.write(np.asarray(psutil.getloadavg(), dtype=np.float64))
         if self.health:
@@ -56,6 +83,24 @@ class Environment(Module):
             if not health["up"] and node not in self._told:
                 self._told.add(node)
                 self.node_lost.write(node)
+        for move in self.moves[self._moves_told:]:
+            self.module_moved.write(dict(move))
+        self._moves_told = len(self.moves)
+
+    def _own_cpu(self) -> float:
+        """CPU seconds this system's workers on this node used since the last sample (a
+        worker counts from its first sample on; one gone meanwhile is left out)."""
+        used, seen = 0.0, {}
+        for pid in self.own_pids:
+            with contextlib.suppress(psutil.Error):
+                process = self._processes.get(pid) or psutil.Process(pid)
+                self._processes[pid] = process
+                times = process.cpu_times()
+                seen[pid] = times.user + times.system
+                used += seen[pid] - self._cpu_s.get(pid, seen[pid])
+        self._cpu_s = seen
+        self._processes = {pid: self._processes[pid] for pid in seen}
+        return used
 
 
 def env_name(node: str) -> str:

@@ -166,12 +166,15 @@ class Executor:
                   restart=spec.restart, state=state)
 
     def start_modules(self, names: list[str]) -> None:
-        """Run ``setup`` and start the modules, in order.
+        """Run ``setup`` and start the modules, in order (those not running yet: a module
+        an agent moved while the system started runs already).
 
         A worker that dies meanwhile is left to its modules' restart policies.
         """
         for name in names:
             record = self.modules[name]
+            if record.status == "running":
+                continue
             try:
                 self.call(record.worker, "start", names=[name])
             except RuntimeFailure:
@@ -355,6 +358,10 @@ class Executor:
                 for key, link in self.inbound.items()}
         return NodeReport(modules, rings, lost, list(self.failures))
 
+    def worker_pids(self) -> list[int]:
+        """The process ids of this node's running workers."""
+        return [handle.pid for handle in list(self.workers.handles.values()) if handle.alive]
+
     @staticmethod
     def _module_stats(record: ModuleRecord, report: dict[str, Any] | None) -> ModuleStats:
         spec = record.spec
@@ -463,6 +470,7 @@ class Executor:
                 if record.spec.restart == "last-state" and record.checkpoint is not None:
                     state = cloudpickle.loads(record.checkpoint)
                 self._instantiate(record, state)
+                record.status = "starting"
                 record.restarts += 1
             self._rewire(set(revive))
             self.start_modules(revive)

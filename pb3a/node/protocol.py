@@ -86,6 +86,9 @@ class Node(Protocol):
     def report(self) -> NodeReport:
         """This node's figures."""
 
+    def worker_pids(self) -> list[int]:
+        """The process ids of the node's running workers (its env module's own load)."""
+
     def shutdown(self, timeout: float) -> None:
         """Stop every module (reverse start order), every worker, free every segment."""
 

@@ -132,6 +132,9 @@ class RemoteNode:
     def report(self) -> NodeReport:
         return self._forward("report")
 
+    def worker_pids(self) -> list[int]:
+        return self._forward("worker_pids")
+
     # -- what only a remote node has ------------------------------------------------
     def ping(self, timeout: float) -> float | None:
         """The executor's round-trip time, or None without an answer in ``timeout``."""

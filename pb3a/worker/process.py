@@ -43,8 +43,10 @@ GUARD_TIMEOUT = 0.5      # longest sleep of the receiver (a guard; wake-ups are 
 SPIN_S = 100e-6          # values closer than this count as dense; poll this long for the next
 ERROR_REPORT_S = 1.0     # a module's exceptions are reported at most this often (all counted)
 AGENT_REQUEST_TIMEOUT = 30.0   # an agent's request to the runtime (a migration, say)
-# Requests that wait for a module's lock: never on the control thread.
-_TAKES_A_MODULE_LOCK = frozenset({"get_state", "set_state", "pause", "swap", "stop", "remove"})
+# Requests that wait for a module's lock (and may run its hooks, which may call the
+# runtime, whose answer this thread reads): never on the control thread.
+_TAKES_A_MODULE_LOCK = frozenset({"get_state", "set_state", "pause", "start", "swap", "stop",
+                                  "remove"})
 
 
 @dataclass
