@@ -4,12 +4,13 @@ and moving each other while the program does the same to them."""
 from __future__ import annotations
 
 import itertools
+import threading
 import time
 
 import pytest
 from sample_modules import Busybody, Locator
 
-from pb3a import System
+from pb3a import RuntimeTimeout, System
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -58,3 +59,31 @@ def test_an_agent_may_ask_the_runtime_from_setup_as_the_system_starts() -> None:
     system.add("locator", Locator, node="a")
     with system.launch(timeout=10) as run:
         assert run.state("locator")["found"] == "b"
+
+
+def test_a_call_that_waits_too_long_names_what_it_waited_for() -> None:
+    system = System("waiting").add("src", Busybody, period=1.0, state={"peers": ["src"]})
+    with system.launch(timeout=0.3) as run:
+        held, release = threading.Event(), threading.Event()
+
+        def hold() -> None:
+            with run._launcher.lock.held("migrate src to b"):
+                held.set()
+                release.wait(10)
+        holder = threading.Thread(target=hold)
+        holder.start()
+        try:
+            held.wait(5)
+            started = time.monotonic()
+            with pytest.raises(RuntimeTimeout, match=r"state src: waited 0.3 s for the system's "
+                                                     r"configuration lock, which 'migrate src "
+                                                     r"to b' has held for"):
+                run.state("src")                       # the system's default: 0.3 s
+            with pytest.raises(RuntimeTimeout, match=r"set_state src: waited 0.1 s"):
+                run.set_state("src", {"timeout": 1}, timeout=0.1)   # a field named timeout
+            assert time.monotonic() - started < 2
+        finally:
+            release.set()
+            holder.join(5)
+        run.set_state("src", {"poked": 7})
+        assert run.state("src")["poked"] == 7

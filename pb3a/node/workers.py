@@ -154,7 +154,9 @@ class WorkerPool:
             return future.result(timeout)
         except FutureTimeout:
             raise RuntimeTimeout(
-                f"worker {key!r} did not answer {op!r} within {timeout} s") from None
+                f"worker {key!r} did not answer {op!r} within {timeout:g} s: a module there "
+                "is stuck in a long call (step, on_input, setup), or its machine is "
+                "overloaded; its log and `pb3a status` may say which") from None
 
     # -- the monitor -----------------------------------------------------------
     def _poke(self) -> None:
