@@ -16,7 +16,6 @@ from pb3a.config.compiler import build_plan, validate
 from pb3a.config.description import LinkSpec, ModuleSpec, NodeSpec, SystemSpec, load_toml
 from pb3a.config.dot import plan_to_dot
 from pb3a.config.plan import Plan
-from pb3a.launch.operations import DEFAULT_TIMEOUT
 from pb3a.launch.running import Running, launch
 
 
@@ -24,8 +23,11 @@ class System:
     """A system under construction: nodes, modules (or macros) and links between their ports."""
 
     def __init__(self, name: str, *, module_servers: list[str] | None = None,
-                 workers: int = 0) -> None:
-        self._spec = SystemSpec(name, module_servers=list(module_servers or []), workers=workers)
+                 workers: int = 0, timeout: float | None = None) -> None:
+        """``timeout``: how long an operation on the running system may wait by default
+        (as ``timeout = ...`` at the top of a file; ``launch(timeout=...)`` wins)."""
+        self._spec = SystemSpec(name, module_servers=list(module_servers or []), workers=workers,
+                                timeout=timeout)
 
     @classmethod
     def load(cls, path: str | Path) -> System:
@@ -77,14 +79,15 @@ class System:
         return plan_to_dot(self.plan())
 
     def launch(self, *, checkpoint_s: float = 1.0, log_level: int = logging.WARNING,
-               timeout: float = DEFAULT_TIMEOUT, listen: str | None = None) -> Running:
+               timeout: float | None = None, listen: str | None = None) -> Running:
         """Validate, then start every module; use it as a context manager.
 
         ``checkpoint_s`` is how often ``restart = "last-state"`` modules are
         checkpointed; ``log_level`` applies to the worker processes' logs; ``timeout``
         is how long an operation on the running system may wait unless it says
-        otherwise; ``listen`` ("tcp://HOST:PORT") is where the launcher takes
-        ``pb3a.connect`` and the command line (see ``Running.listen``).
+        otherwise (default: the file's ``timeout``, else 30 s); ``listen``
+        ("tcp://HOST:PORT") is where the launcher takes ``pb3a.connect`` and the
+        command line (see ``Running.listen``).
         """
         return launch(self.plan(), checkpoint_s=checkpoint_s, log_level=log_level,
                       timeout=timeout, listen=listen)

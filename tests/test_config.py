@@ -557,7 +557,7 @@ def test_unknown_keys_everywhere(tmp_path: Path) -> None:
         polcy = "latest"
     """)
     only(problems, "sys.toml: unknown top-level key 'modulez' (did you mean 'modules'?)",
-         "allowed keys: name, module_servers, nodes, modules, links, macros, workers")
+         "allowed keys: name, module_servers, nodes, modules, links, macros, workers, timeout")
     only(problems, "[nodes.a]: unknown key 'adress' (did you mean 'address'?)")
     only(problems, "[macros.m]: unknown key 'export' (did you mean 'exports'?)")
     only(problems, "[modules.src]: unknown key 'perod' (did you mean 'period'?); allowed keys: "
@@ -688,3 +688,13 @@ def test_structural_mistakes_in_the_file_are_reported(tmp_path: Path) -> None:
     only(problems, "sys.toml: 'modules' must be a table")
     only(problems, "sys.toml [[links]]: must be an array of tables")
     only(problems, "sys.toml [nodes.a]: must be a table")
+
+
+def test_a_file_sets_the_default_timeout_of_operations(tmp_path: Path) -> None:
+    plan = build_plan(load_toml(write(tmp_path, "timeout = 2.5\n" + TWO)))
+    assert plan.timeout == 2.5
+    assert build_plan(load_toml(write(tmp_path, TWO))).timeout is None
+    for written, shown in (("0", "0"), ("-1", "-1"), ("'soon'", "'soon'"), ("true", "True")):
+        assert problems_of(tmp_path, f"timeout = {written}\n" + TWO) == [
+            "sys.toml: timeout must be a positive number of seconds (how long an operation "
+            f"on the running system may wait), got {shown}"]

@@ -62,8 +62,9 @@ def test_an_agent_may_ask_the_runtime_from_setup_as_the_system_starts() -> None:
 
 
 def test_a_call_that_waits_too_long_names_what_it_waited_for() -> None:
-    system = System("waiting").add("src", Busybody, period=1.0, state={"peers": ["src"]})
-    with system.launch(timeout=0.3) as run:
+    system = System("waiting", timeout=0.3)        # as `timeout = 0.3` in a file
+    system.add("src", Busybody, period=1.0, state={"peers": ["src"]})
+    with system.launch() as run:
         held, release = threading.Event(), threading.Event()
 
         def hold() -> None:

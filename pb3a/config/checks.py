@@ -71,6 +71,15 @@ def workers(value: Any) -> list[str]:
             f"node's modules into N processes), got {value!r}")]
 
 
+def timeout(value: Any) -> list[str]:
+    """Left out (the default) or a positive, finite number of seconds."""
+    if value is None or (isinstance(value, (int, float)) and not isinstance(value, bool)
+                         and math.isfinite(value) and value > 0):
+        return []
+    return [(f"timeout must be a positive number of seconds (how long an operation on the "
+             f"running system may wait), got {value!r}")]
+
+
 def state(cls: type[Module], value: Any) -> list[str]:
     """A table of initial state; its keys must be the class's state when it uses reflection."""
     if not isinstance(value, dict):

@@ -95,7 +95,9 @@ class _Planner:
         problems = list(dict.fromkeys(self.problems))
         if problems:
             return None, problems
-        return Plan(spec.name, nodes, modules, [link for _, link in links], self.code), []
+        timeout = float(spec.timeout) if spec.timeout is not None else None
+        return Plan(spec.name, nodes, modules, [link for _, link in links], self.code,
+                    timeout), []
 
     # -- the system's own tables ------------------------------------------
     def check_system(self) -> dict[str, NodeSpec]:
@@ -113,6 +115,7 @@ class _Planner:
         self.code = CodeSources(here, tuple(servers))
         self.code.install()     # classes below may be next to the file, or only on servers
         self.report(origin, [f"top-level {p}" for p in checks.workers(spec.workers)])
+        self.report(origin, checks.timeout(spec.timeout))
         for name, node in spec.nodes.items():
             label = f"{origin} [nodes.{toml_key(name)}]"
             self.report(label, checks.name(name, "node"))

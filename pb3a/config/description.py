@@ -111,12 +111,13 @@ class SystemSpec:
     macros: dict[str, MacroSpec] = field(default_factory=dict)
     module_servers: list[str] = field(default_factory=list)
     workers: Any = 0                 # the workers of the default node "local"
+    timeout: Any = None              # seconds an operation may wait (None: the default)
     source: str | None = None
     extra: dict[str, Any] = field(default_factory=dict)
     problems: list[str] = field(default_factory=list)  # found while reading the file
 
     KEYS: ClassVar[tuple[str, ...]] = ("name", "module_servers", "nodes", "modules", "links",
-                                       "macros", "workers")
+                                       "macros", "workers", "timeout")
 
     @property
     def origin(self) -> str:
@@ -143,7 +144,7 @@ def load_toml(path: str | Path) -> SystemSpec:
 def _read_system(data: dict[str, Any], source: str, default_name: str) -> SystemSpec:
     spec = SystemSpec(name=data.get("name", default_name), source=source,
                       module_servers=data.get("module_servers", []),
-                      workers=data.get("workers", 0),
+                      workers=data.get("workers", 0), timeout=data.get("timeout"),
                       extra={k: v for k, v in data.items() if k not in SystemSpec.KEYS})
     for name, entry in _table(data, "nodes", source, spec.problems).items():
         if isinstance(entry, dict):

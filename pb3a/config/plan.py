@@ -53,3 +53,4 @@ class Plan:
     modules: dict[str, FlatModule]        # declaration order, macro children in place
     links: list[FlatLink]
     code: CodeSources = field(default_factory=CodeSources)   # the file's directory, servers
+    timeout: float | None = None          # the file's default for operations, if it sets one

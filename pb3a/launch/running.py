@@ -34,12 +34,12 @@ class Running(SystemHandle):
     """A launched system. Use it as a context manager: leaving the block stops everything."""
 
     def __init__(self, plan: Plan, *, checkpoint_s: float = 1.0,
-                 log_level: int = logging.WARNING, timeout: float = DEFAULT_TIMEOUT,
+                 log_level: int = logging.WARNING, timeout: float | None = None,
                  listen: str | None = None) -> None:
         self.plan = plan
         self.name = plan.name
         self._launcher = Launcher(plan, checkpoint_s=checkpoint_s, log_level=log_level)
-        self._operations = Operations(self._launcher, timeout)
+        self._operations = Operations(self._launcher, timeout or plan.timeout or DEFAULT_TIMEOUT)
         self._launcher.handler = self._agent_request
         self._stopped = threading.Event()
         self._server: ControlServer | None = None
