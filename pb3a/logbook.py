@@ -1,11 +1,12 @@
 """``LogBook``: the recent log of a running system, kept for ``run.logs()`` and ``pb3a logs``.
 
 PB3A logs as a library should: to loggers under ``pb3a``, with no handler that
-prints (the entry points install one, see ``pb3a.cli.logs``). A launch also
-attaches a ``LogBook`` to the ``pb3a`` logger, a handler that only keeps the most
-recent records, numbered, so that another process can read them through the
-launcher; each remote node keeps its own and the launcher merges them in, marked
-with the node's name.
+prints (the entry points install one, see ``pb3a.cli.log_output``). A launch also
+attaches a ``LogBook`` to the root logger, a handler that only keeps the most
+recent records (PB3A's, and what its workers' modules log on loggers of their own,
+which each worker sends to its executor), numbered, so that another process can
+read them through the launcher; each remote node keeps its own and the launcher
+merges them in, marked with the node's name.
 """
 
 from __future__ import annotations

@@ -525,3 +525,17 @@ class Locator(Agent):
 
     def setup(self) -> None:
         self.found = self.runtime.where(self.other)
+
+
+class Chatty(Module):
+    """Logs a warning of its own at its first step."""
+
+    period = 0.05
+    said = False
+
+    def step(self) -> None:
+        if not self.said:
+            self.said = True
+            import logging
+
+            logging.getLogger("chatty").warning("hello from a module's own logger")

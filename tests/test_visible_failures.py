@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 from conftest import eventually
-from sample_modules import Faulty
+from sample_modules import Chatty, Faulty
 
 from pb3a import System
 from pb3a.cli.main import main
@@ -86,3 +86,11 @@ def test_logs_come_from_every_node_and_follow_one_module(capsys) -> None:
             assert {e.module for e in run.logs()} >= {"near_fault", "far_fault"}
     finally:
         far.close()
+
+
+def test_what_a_worker_logs_reaches_the_launcher_s_log() -> None:
+    with System("chat").add("chatty", Chatty).launch() as run:
+        entry = eventually(lambda: next((e for e in run.logs() if e.logger == "chatty"), None),
+                           what="the module's own warning in the launcher's log")
+    assert entry.level == "WARNING"
+    assert entry.message == "[worker local/m-chatty] hello from a module's own logger"

@@ -33,11 +33,13 @@ def format_table(stats: SystemStats) -> str:
     lines = _columns(rows)
     if stats.links:
         lines.append("")
-        link_rows = [("link", "transport", "policy", "values", "rate/s", "drops", "latency")]
+        link_rows = [("link", "transport", "policy", "values", "rate/s", "drops", "waits",
+                      "latency")]
         for link in stats.links.values():
             latency = link.latency
             link_rows.append((f"{link.src} -> {link.dst}", link.transport, link.policy,
                               str(link.values), f"{link.rate:.0f}", str(link.drops),
+                              str(link.waits),
                               "-" if math.isnan(latency) else f"{latency * 1e6:.0f} us"))
         lines += _columns(link_rows)
     remote = {name: health for name, health in stats.nodes.items() if health.address}

@@ -51,7 +51,7 @@ class NodeShare:
         self.rtts: dict[str, float] = {}
         self.stopped = threading.Event()
         self.logbook = LogBook()                       # the launcher merges it into its own
-        logging.getLogger("pb3a").addHandler(self.logbook)
+        logging.getLogger().addHandler(self.logbook)
 
     def handle(self, op: str, args: dict[str, Any]) -> Any:
         ex = self.executor

@@ -71,7 +71,7 @@ class Launcher:
     def start_nodes(self, callback: str | None) -> None:
         """One executor per node; ``callback`` is where remote executors reach this
         launcher (agents' requests, restarts), needed when any node has an address."""
-        logging.getLogger("pb3a").addHandler(self.logbook)
+        logging.getLogger().addHandler(self.logbook)
         for name, node in self.plan.nodes.items():
             if node.address is None:
                 executor = Executor(name, workers=node.workers, cpus=node.cpus,
@@ -326,7 +326,7 @@ class Launcher:
                     log.warning("stopping module %r: %s", name, exc)
             for node in reversed(list(self.nodes.values())):
                 node.shutdown(max(0.5, deadline - time.monotonic()))
-        logging.getLogger("pb3a").removeHandler(self.logbook)
+        logging.getLogger().removeHandler(self.logbook)
 
 
 def _link_table(links: dict[str, FlatLink], modules: dict[str, ModuleStats],

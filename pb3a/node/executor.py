@@ -392,6 +392,10 @@ class Executor:
                 record.checkpoints += 1
         elif kind == "error":
             self._log_error(args["name"], args["where"], args["trace"], args["suppressed"])
+        elif kind == "log":                 # a record the worker logged, logged here
+            logging.getLogger(args["logger"]).log(
+                args["level"], "[worker %s] %s", handle.key, args["message"],
+                extra={"pb3a_node": self.node})
         elif kind == "request":
             threading.Thread(target=self._serve_request, args=(handle, args), daemon=True,
                              name="pb3a-agent-request").start()

@@ -498,6 +498,28 @@ class Worker:
                     self.send((None, "checkpoint", {"name": name, "state": blob}))
 
 
+class _LogForwarder(logging.Handler):
+    """Sends the worker's log records (PB3A's and its modules' own) to its executor,
+    which logs them in its process: where the user's handlers and the launch's log
+    book are. Records from before the worker is set up are not sent."""
+
+    def __init__(self, level: int) -> None:
+        super().__init__(level)
+        self.send: Callable[[Any], None] | None = None
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if self.send is None:
+            return
+        try:
+            message = record.getMessage()
+            if record.exc_info:
+                message += "\n" + logging.Formatter().formatException(record.exc_info)
+            self.send((None, "log", {"level": record.levelno, "logger": record.name,
+                                     "message": message}))
+        except Exception:
+            self.handleError(record)
+
+
 class _Terminated(Exception):
     """SIGTERM arrived: stop the modules and exit cleanly."""
 
@@ -518,10 +540,13 @@ def worker_main(conn: Any, key: str, checkpoint_s: float, level: int,
         os.sched_setaffinity(0, cpus)           # before any thread: they all inherit it
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _on_sigterm)
-    logging.basicConfig(level=level, format=f"%(asctime)s pb3a[{key}] %(levelname)s %(message)s")
+    forward = _LogForwarder(level)
+    logging.getLogger().addHandler(forward)
+    logging.getLogger().setLevel(level)
     bell = reduction.recv_handle(conn)          # the executor sends our doorbell first
     (code or CodeSources()).install()
     worker = Worker(conn, key, bell, checkpoint_s)
+    forward.send = worker.send
     try:
         worker.serve()
     except _Terminated:
