@@ -101,13 +101,12 @@ class Operations:
         """Start ``migrate`` on another thread; the number to ask ``migration`` about. An
         agent moving itself must not wait: the move pauses it once its body returns."""
         job = next(self._job_ids)
-        done = threading.Event()
-        self._jobs[job] = (done, [RUNNING, None])
+        done, outcome = threading.Event(), [RUNNING, None]
+        self._jobs[job] = (done, outcome)
         while len(self._jobs) > KEEP_JOBS:
             del self._jobs[next(iter(self._jobs))]
 
         def move() -> None:
-            outcome = self._jobs[job][1]
             try:
                 outcome[:] = [DONE, self.migrate(name, to, timeout=timeout)]
             except Exception as exc:
@@ -123,8 +122,10 @@ class Operations:
         entry = self._jobs.get(id)
         if entry is None:
             raise ValueError(f"no migration {id} (only the last {KEEP_JOBS} are kept)")
-        entry[0].wait(timeout)
-        return tuple(entry[1])      # type: ignore[return-value]
+        done, outcome = entry
+        done.wait(timeout)
+        status, value = outcome             # (set before ``done``: never half written)
+        return status, value
 
     def reload(self, module: str, *, timeout: float | None = None) -> None:
         with self._held(f"reload {module}", timeout):
