@@ -41,12 +41,14 @@ class System:
         return self._spec.name
 
     def node(self, name: str, *, address: str | None = None, workers: int = 0,
-             cpus: list[int] | None = None) -> System:
+             cpus: list[int] | None = None, advertise: str | None = None) -> System:
         """Declare a node; without any, everything runs on ``"local"``. ``cpus`` pins
-        the node's workers to those CPUs (nodes sharing a machine then share no core)."""
+        the node's workers to those CPUs (nodes sharing a machine then share no core);
+        ``advertise`` is the host other nodes reach it at (by default: a remote node's
+        address, and for a node started here the interface that reaches the remote ones)."""
         if name in self._spec.nodes:
             raise ValueError(f"system {self.name!r} already has a node {name!r}")
-        self._spec.nodes[name] = NodeSpec(name, address, workers, cpus=cpus)
+        self._spec.nodes[name] = NodeSpec(name, address, workers, cpus=cpus, advertise=advertise)
         return self
 
     def add(self, name: str, cls: type | str, *, node: str | None = None,

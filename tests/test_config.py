@@ -698,3 +698,12 @@ def test_a_file_sets_the_default_timeout_of_operations(tmp_path: Path) -> None:
         assert problems_of(tmp_path, f"timeout = {written}\n" + TWO) == [
             "sys.toml: timeout must be a positive number of seconds (how long an operation "
             f"on the running system may wait), got {shown}"]
+
+
+def test_a_node_may_say_where_other_nodes_reach_it(tmp_path: Path) -> None:
+    plan = build_plan(load_toml(write(tmp_path, '[nodes.a]\nadvertise = "10.0.0.5"\n' + TWO)))
+    assert plan.nodes["a"].advertise == "10.0.0.5"
+    for written in ("tcp://10.0.0.5", "10.0.0.5:7100", "", "two words"):
+        assert problems_of(tmp_path, f'[nodes.a]\nadvertise = "{written}"\n' + TWO) == [
+            f"sys.toml [nodes.a]: advertise must be the host other nodes reach this node at, "
+            f"a name or an IP address such as '10.0.0.7' (no tcp://, no port), got {written!r}"]

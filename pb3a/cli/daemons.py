@@ -11,8 +11,8 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
+from pb3a.transport.addresses import bind_address
 from pb3a.transport.auth import ClusterKey, ClusterKeyError
-from pb3a.transport.control import bind_address
 
 
 def serve_until_signalled(command: str, listen: str,

@@ -105,6 +105,16 @@ def cpus(value: Any) -> list[str]:
              f"the node's workers may run on), got {value!r}")]
 
 
+def advertise(value: Any) -> list[str]:
+    """Left out (found) or a host: a name or an IP address, no scheme, no port (one
+    colon means HOST:PORT; an IPv6 address has several)."""
+    if value is None or (isinstance(value, str) and value and value.count(":") != 1
+                         and not any(c in value for c in "/ ")):
+        return []
+    return [(f"advertise must be the host other nodes reach this node at, a name or an IP "
+             f"address such as '10.0.0.7' (no tcp://, no port), got {value!r}")]
+
+
 def address(value: Any) -> list[str]:
     """A node address: left out (started on this machine) or a non-empty string."""
     if value is None or (isinstance(value, str) and value):

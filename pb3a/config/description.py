@@ -25,8 +25,9 @@ class NodeSpec:
     workers: int = 0
     extra: dict[str, Any] = field(default_factory=dict)  # unknown keys, reported by validation
     cpus: list[int] | None = None     # CPUs the node's workers may run on (None: any)
+    advertise: str | None = None      # the host other nodes reach this one at (None: found)
 
-    KEYS: ClassVar[tuple[str, ...]] = ("address", "workers", "cpus")
+    KEYS: ClassVar[tuple[str, ...]] = ("address", "workers", "cpus", "advertise")
 
 
 @dataclass
@@ -150,7 +151,7 @@ def _read_system(data: dict[str, Any], source: str, default_name: str) -> System
         if isinstance(entry, dict):
             spec.nodes[name] = NodeSpec(name, entry.get("address"), entry.get("workers", 0),
                                         {k: v for k, v in entry.items() if k not in NodeSpec.KEYS},
-                                        entry.get("cpus"))
+                                        entry.get("cpus"), entry.get("advertise"))
         else:
             spec.problems.append(f"{source} [nodes.{name}]: must be a table (address, workers, "
                                  "cpus)")

@@ -72,9 +72,12 @@ class Launcher:
         """One executor per node; ``callback`` is where remote executors reach this
         launcher (agents' requests, restarts), needed when any node has an address."""
         logging.getLogger().addHandler(self.logbook)
+        # A node started here is reached where the remote nodes reach the launcher.
+        here = "127.0.0.1" if callback is None else callback.removeprefix("tcp://").rpartition(":")[0]
         for name, node in self.plan.nodes.items():
             if node.address is None:
                 executor = Executor(name, workers=node.workers, cpus=node.cpus,
+                                    host=node.advertise or here,
                                     checkpoint_s=self.checkpoint_s, log_level=self.log_level,
                                     code=self.plan.code, lock=self.lock,
                                     epoch=self.epoch)
@@ -87,6 +90,7 @@ class Launcher:
                 assert callback is not None, "remote nodes call the launcher back"
                 self.nodes[name] = self.remotes[name] = RemoteNode(
                     name, node.address, config=self.plan.name, launcher=callback,
+                    advertise=node.advertise,
                     workers=node.workers, cpus=node.cpus, checkpoint_s=self.checkpoint_s,
                     log_level=self.log_level, code=self.plan.code,
                     epoch=self.epoch)

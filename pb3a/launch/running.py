@@ -17,8 +17,9 @@ from pb3a.errors import ModuleNotFound
 from pb3a.launch.handle import SystemHandle
 from pb3a.launch.launcher import Launcher
 from pb3a.launch.operations import DEFAULT_TIMEOUT, FOR_AGENTS, Operations
+from pb3a.transport.addresses import bind_address, reachable_from
 from pb3a.transport.auth import ClusterKey
-from pb3a.transport.control import ControlServer, bind_address, reachable_from
+from pb3a.transport.control import ControlServer
 
 log = logging.getLogger("pb3a")
 
@@ -62,7 +63,7 @@ class Running(SystemHandle):
             with launcher.lock.held(f"start system {self.name!r}"):
                 remote = [node.address for node in self.plan.nodes.values() if node.address]
                 if self._listen_at is not None or remote:  # remote nodes call the launcher
-                    self.listen(self._listen_at or reachable_from(remote[0]))
+                    self.listen(self._listen_at or f"tcp://{reachable_from(remote[0])}:0")
                 launcher.start_nodes(self.address if remote else None)
                 launcher.expect(list(self.plan.modules.values()))
                 for spec in self.plan.modules.values():

@@ -35,13 +35,15 @@ class RemoteNode:
     def __init__(self, name: str, address: str, *, config: str, launcher: str,
                  workers: int = 0, cpus: list[int] | None = None, checkpoint_s: float = 1.0,
                  log_level: int = 30, code: CodeSources | None = None,
+                 advertise: str | None = None,
                  epoch: int = 0) -> None:
         self.name, self.config = name, config
         key = ClusterKey.load()
         self.controller = ControlClient(key, address)
         self.client: ControlClient | None = None
         self.lost = False
-        host = address.removeprefix("tcp://").rpartition(":")[0]
+        # where the other nodes reach its executor and publications
+        host = advertise or address.removeprefix("tcp://").rpartition(":")[0]
         try:
             self.controller.call("ping", CONNECT_TIMEOUT)
         except RuntimeTimeout:

@@ -20,7 +20,6 @@ import logging
 import math
 import pickle
 import queue
-import socket
 import struct
 import threading
 import time
@@ -30,6 +29,7 @@ import cloudpickle
 import zmq
 
 from pb3a.errors import PB3AError, RuntimeFailure, RuntimeTimeout
+from pb3a.transport.addresses import bind_advertised
 from pb3a.transport.auth import ClusterKey, Opener, Rejected, Sealer
 from pb3a.transport.loop import SocketLoop
 
@@ -60,25 +60,6 @@ def _socket(context: zmq.Context, kind: int) -> zmq.Socket:
     return sock
 
 
-def bind_address(address: str) -> tuple[str, int]:
-    """The host and port a server binds for ``"[tcp://][host]:[port]"``: by default
-    the loopback interface and any free port."""
-    host, _, port = address.removeprefix("tcp://").rpartition(":")
-    if (port and not port.isdigit()) or "://" in host:
-        raise ValueError(f"{address!r} is not an address to listen on: give tcp://HOST:PORT "
-                         "(PORT 0: any free port)")
-    return host or "127.0.0.1", int(port or 0)
-
-
-def reachable_from(peer: str) -> str:
-    """The address to listen on so that a peer at ``peer`` can call back: the interface
-    this machine reaches that peer through, any port (no packet is sent)."""
-    host = peer.removeprefix("tcp://").rpartition(":")[0]
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.connect((host, 9))
-        return f"tcp://{probe.getsockname()[0]}:0"
-
-
 class ControlServer:
     """Serves ``handler(op, args) -> result`` on a ROUTER socket bound to ``host``."""
 
@@ -88,8 +69,7 @@ class ControlServer:
         self._handler = handler
         self._loop = SocketLoop(f"{name}-io")
         self._router = _socket(self._loop.context, zmq.ROUTER)
-        self._router.bind(f"tcp://{host}:{port or '*'}")
-        self.address = self._router.getsockopt_string(zmq.LAST_ENDPOINT)
+        self.address = bind_advertised(self._router, host, port)
         self._sealer = Sealer(key, epoch)
         self._opener = Opener(key, epoch=epoch, max_bytes=MAX_MESSAGE)
         self._work: queue.SimpleQueue[tuple[Any, bytes, str, dict[str, Any]] | None] = (

@@ -48,6 +48,7 @@ import zmq
 
 from pb3a.errors import link_stuck
 from pb3a.transport import codec
+from pb3a.transport.addresses import bind_advertised
 from pb3a.transport.auth import ClusterKey, Opener, Rejected, Sealer
 from pb3a.transport.loop import SocketLoop
 
@@ -165,10 +166,9 @@ class Replicator:
         self._context = context or zmq.Context.instance()
         self._pub = _secure(self._context.socket(zmq.PUB), max_bytes)
         self._router = _secure(self._context.socket(zmq.ROUTER), max_bytes)
-        self._pub.bind(f"tcp://{host}:*")
-        self._router.bind(f"tcp://{host}:*")
-        self.data_address = self._pub.getsockopt_string(zmq.LAST_ENDPOINT)
-        self.control_address = self._router.getsockopt_string(zmq.LAST_ENDPOINT)
+        # (host: where the readers' nodes reach this one; see ``addresses``)
+        self.data_address = bind_advertised(self._pub, host)
+        self.control_address = bind_advertised(self._router, host)
         self._pub_sealer = Sealer(key, epoch)
         self._router_sealer = Sealer(key, epoch)
         self._opener = Opener(key, epoch=epoch, max_bytes=max_bytes)
