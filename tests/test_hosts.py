@@ -9,12 +9,13 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from conftest import eventually
-from sample_modules import Collector, Counter, Relay
+from sample_modules import Chain, Collector, Counter, Relay
 
 from pb3a import System
 
@@ -41,27 +42,50 @@ def _can_make_namespaces() -> str:
 WHY_NOT = _can_make_namespaces()
 
 
-class Host:
-    """A network namespace with one veth link to the test's namespace."""
+class Lan:
+    """A bridge in the test's namespace (the launcher's host) and hosts plugged into it,
+    each a network namespace with one veth cable: a small lab network."""
 
-    def __init__(self, name: str, subnet: int) -> None:
+    def __init__(self) -> None:
+        tag = os.getpid() % 100000
+        self.subnet = f"10.231.{100 + tag % 100}"
+        self.bridge = f"pb{tag}br"
+        self.address = f"{self.subnet}.1"          # the launcher's host on this network
+        self.hosts: list[Host] = []
+        for command in (["ip", "link", "add", self.bridge, "type", "bridge"],
+                        ["ip", "addr", "add", f"{self.address}/24", "dev", self.bridge],
+                        ["ip", "link", "set", self.bridge, "up"]):
+            _run(command)
+
+    def host(self, name: str) -> Host:
+        host = Host(self, name, f"{self.subnet}.{2 + len(self.hosts)}")
+        self.hosts.append(host)
+        return host
+
+    def remove(self) -> None:
+        for host in self.hosts:
+            host.remove()
+        subprocess.run(["ip", "link", "del", self.bridge], check=False, capture_output=True)
+
+
+class Host:
+    """A network namespace plugged into the lan by a veth cable."""
+
+    def __init__(self, lan: Lan, name: str, address: str) -> None:
         self.ns = f"pb3a-{os.getpid()}-{name}"
-        self.outer = f"pb{os.getpid() % 100000}{name}"[:15]     # interface names: 15 chars
-        self.inner = f"{self.outer[:13]}in"
-        self.address = f"10.231.{subnet}.2"
-        self.gateway = f"10.231.{subnet}.1"
+        self.cable = f"{lan.bridge[:-2]}{name}"[:15]   # interface names: 15 characters
+        inner = f"{self.cable[:13]}in"
+        self.address = address
         self.daemons: list[subprocess.Popen[str]] = []
         for command in (["ip", "netns", "add", self.ns],
-                        ["ip", "link", "add", self.outer, "type", "veth", "peer", "name",
-                         self.inner],
-                        ["ip", "link", "set", self.inner, "netns", self.ns],
-                        ["ip", "addr", "add", f"{self.gateway}/24", "dev", self.outer],
-                        ["ip", "link", "set", self.outer, "up"],
-                        *self.inside(["ip", "addr", "add", f"{self.address}/24", "dev",
-                                      self.inner],
-                                     ["ip", "link", "set", self.inner, "up"],
+                        ["ip", "link", "add", self.cable, "type", "veth", "peer", "name", inner],
+                        ["ip", "link", "set", inner, "netns", self.ns],
+                        ["ip", "link", "set", self.cable, "master", lan.bridge],
+                        ["ip", "link", "set", self.cable, "up"],
+                        *self.inside(["ip", "addr", "add", f"{address}/24", "dev", inner],
+                                     ["ip", "link", "set", inner, "up"],
                                      ["ip", "link", "set", "lo", "up"])):
-            subprocess.run(command, check=True, capture_output=True)
+            _run(command)
 
     def inside(self, *commands: list[str]) -> list[list[str]]:
         return [["ip", "netns", "exec", self.ns, *command] for command in commands]
@@ -74,6 +98,17 @@ class Host:
         self.daemons.append(daemon)
         return daemon.stdout.readline().strip()
 
+    def node(self, name: str) -> str:
+        """Start a node controller here for node ``name``; its address."""
+        address = f"tcp://{self.address}:7100"
+        assert self.start("node", "start", "--name", name, "--listen", address,
+                          "--max-cpu", "101") == f"node {name} at {address}"
+        return address
+
+    def cut(self, up: bool = False) -> None:
+        """Unplug this host's cable (or plug it back)."""
+        _run(["ip", "link", "set", self.cable, "up" if up else "down"])
+
     def remove(self) -> None:
         for daemon in self.daemons:
             daemon.terminate()
@@ -84,25 +119,26 @@ class Host:
                 daemon.wait(5)
             daemon.stdout.close()
         subprocess.run(["ip", "netns", "del", self.ns], check=False, capture_output=True)
-        subprocess.run(["ip", "link", "del", self.outer], check=False, capture_output=True)
+        subprocess.run(["ip", "link", "del", self.cable], check=False, capture_output=True)
+
+
+def _run(command: list[str]) -> None:
+    subprocess.run(command, check=True, capture_output=True)
 
 
 @pytest.fixture
-def far_host() -> Iterator[Host]:
+def lan() -> Iterator[Lan]:
     if WHY_NOT:
         pytest.skip(WHY_NOT)
-    host = Host("b", 100 + os.getpid() % 100)
+    network = Lan()
     try:
-        yield host
+        yield network
     finally:
-        host.remove()
+        network.remove()
 
 
-def test_links_cross_to_a_node_on_another_host_both_ways(far_host: Host) -> None:
-    banner = far_host.start("node", "start", "--name", "b", "--listen",
-                            f"tcp://{far_host.address}:7100", "--max-cpu", "101")
-    assert banner == f"node b at tcp://{far_host.address}:7100"
-    system = System("two-hosts").node("a").node("b", address=f"tcp://{far_host.address}:7100")
+def test_links_cross_to_a_node_on_another_host_both_ways(lan: Lan) -> None:
+    system = System("two-hosts").node("a").node("b", address=lan.host("b").node("b"))
     system.add("tick_a", Counter, node="a", period=0.002)
     system.add("tick_b", Counter, node="b", period=0.002)
     system.add("at_b", Collector, node="b")
@@ -128,3 +164,91 @@ def test_links_cross_to_a_node_on_another_host_both_ways(far_host: Host) -> None
         "tick_a.out->at_b.x": "zmq", "tick_b.out->relay.x": "zmq",
         "relay.out->at_a.x": "shm"}                   # relay is back beside at_a
     assert all(link.link_failures == 0 for link in links.values())
+
+
+LAB_MODULES = '''
+from pb3a import Input, Module
+
+FILE_VERSION = {version}
+
+
+class Tally(Module):
+    """Counts the values it is sent; ``loaded`` says which file its code came from."""
+
+    x = Input(int, policy="queue:100000")
+    count = 0
+    loaded = 0
+
+    def setup(self):
+        self.loaded = FILE_VERSION
+
+    def on_input(self, port):
+        port.read()
+        self.count += 1
+'''
+
+
+def test_three_hosts_fan_out_move_back_and_forth_and_serve_code(lan: Lan, tmp_path) -> None:
+    served = tmp_path / "served"
+    served.mkdir()
+    (served / "labmods.py").write_text(LAB_MODULES.format(version=1))
+    server_host = lan.host("d")
+    server = f"tcp://{server_host.address}:7300"
+    assert server_host.start("modules", "serve", str(served), "--listen", server).endswith(
+        f"at {server}")
+    b, c = lan.host("b").node("b"), lan.host("c").node("c")
+    system = System("lab", module_servers=[server])
+    system.node("a").node("b", address=b).node("c", address=c)
+    system.add("src", Counter, node="a", period=0.001)
+    system.add("relay", Relay, node="b")
+    for node in ("a", "b", "c"):                       # fan-out to every host
+        system.add(f"at_{node}", Collector, node=node)
+        system.link("relay.out", f"at_{node}.x")
+    system.add("tally", "labmods:Tally", node="c")     # code only the module server has
+    system.link("src.out", "relay.x")
+    system.link("src.out", "tally.x")
+    system.add("chain", Chain, node="a")
+    with system.launch() as run:
+        eventually(lambda: all(run.state(f"at_{n}")["received"] > 50 for n in "abc"),
+                   timeout=30, what="values at every host")
+        for i in range(100):                           # under the steady flow from src
+            run.migrate("relay", to="c" if i % 2 == 0 else "b")
+        assert run.migrate("chain", to="c").destination == "c"
+        assert {run.where("chain/a"), run.where("chain/b")} == {"c"}
+        (served / "labmods.py").write_text(LAB_MODULES.format(version=2))
+        run.reload("labmods")
+        assert run.state("tally")["loaded"] == 1
+        assert "count" in run.swap("tally", "labmods:Tally")
+        assert run.state("tally")["loaded"] == 2            # the new file's code runs
+        relayed = run.state("relay")["relayed"]
+        eventually(lambda: all(run.state(f"at_{n}")["received"] >= relayed for n in "abc"),
+                   timeout=30, what="every value relayed before, at every host")
+        states = {n: run.state(f"at_{n}") for n in "abc"}
+        counted = run.state("tally")["count"]
+    for state in states.values():                      # in order, once, none missing
+        assert state["out_of_order"] == 0 and state["duplicates"] == 0
+        assert state["last"] == state["received"]
+    assert counted > 0
+
+
+def test_a_cable_cut_is_detected_within_3_s_and_reported(lan: Lan) -> None:
+    far = lan.host("b")
+    system = System("cut").node("a").node("b", address=far.node("b"))
+    system.add("src", Counter, node="a", period=0.002)
+    system.add("at_b", Collector, node="b")
+    system.add("at_a", Collector, node="a")
+    system.link("src.out", "at_b.x")
+    system.link("src.out", "at_a.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("at_b")["received"] > 20, timeout=30, what="values at b")
+        cut = time.monotonic()
+        far.cut()
+        lost = run._launcher.wait_health("b", up=False, timeout=10)
+        detected = time.monotonic() - cut
+        events = [(e.kind, e.subject) for e in run.events()]
+        stats = run.stats()
+        before = run.state("at_a")["received"]
+        eventually(lambda: run.state("at_a")["received"] > before + 50, what="a goes on")
+    assert lost and detected < 3.0, f"the cut was detected after {detected:.2f} s"
+    assert ("node_lost", "b") in events and stats.nodes["b"].up is False
+    assert any("node b lost" in failure for failure in stats.failures)
