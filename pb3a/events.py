@@ -30,10 +30,6 @@ class Event:
     time: float                                   # wall clock, seconds since the epoch
     detail: dict[str, Any] = field(default_factory=dict)
 
-    def to_json(self) -> dict[str, Any]:
-        return {"seq": self.seq, "kind": self.kind, "subject": self.subject,
-                "time": self.time, "detail": dict(self.detail)}
-
 
 class EventLog:
     """The most recent events of one system, numbered from 1; thread-safe."""

@@ -75,6 +75,10 @@ def test_every_command_changes_a_running_system_and_speaks_json(capsys) -> None:
         kinds = [line.split()[1] for line in capsys.readouterr().out.splitlines()]
         assert kinds == ["link_removed", "link_added", "module_added", "module_restarted",
                          "module_removed", "module_moved"]
+        assert main(["events", address, "--json"]) == 0
+        events = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+        assert [e["seq"] for e in events] == list(range(1, 7))
+        assert events[-1]["detail"]["destination"] == "b"
 
 
 def test_mistakes_on_the_command_line_get_a_sentence_and_exit_1(capsys) -> None:

@@ -9,13 +9,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import sys
 from collections.abc import Callable
 from typing import Any
 
-from pb3a.cli.status import format_table
+from pb3a.cli.status import format_nodes, format_table
 from pb3a.errors import PB3AError
+from pb3a.events import Event
 from pb3a.launch.connection import Connection, connect
 from pb3a.stats import plain
 from pb3a.transport.auth import ClusterKeyError
@@ -145,35 +145,30 @@ def _restart(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
 
 def _nodes(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
     nodes = system.nodes(timeout=args.timeout)
-    rows = [("node", "address", "health", "rtt")]
-    for name, node in nodes.items():
-        rows.append((name, node.address or "(embedded)", "up" if node.up else "LOST",
-                     "-" if math.isnan(node.rtt) else f"{node.rtt * 1e3:.1f} ms"))
-    widths = [max(len(row[i]) for row in rows) for i in range(4)]
-    text = "\n".join("  ".join(c.ljust(w) for c, w in zip(row, widths, strict=True)).rstrip()
-                     for row in rows)
-    return text, {name: dataclasses.asdict(node) for name, node in nodes.items()}
+    return format_nodes(nodes), {name: dataclasses.asdict(node) for name, node in nodes.items()}
 
 
 def _events(system: Connection, args: argparse.Namespace) -> None:
-    seen = 0
-    while True:
-        for event in system.events(seen, timeout=1.0 if args.follow else 0.0):
-            seen = event.seq
-            detail = ", ".join(f"{k}={v}" for k, v in event.detail.items())
-            print(json.dumps(plain(event.to_json())) if args.json else
-                  f"{event.seq:>5} {event.kind:<16} {event.subject} {detail}".rstrip(),
-                  flush=True)
-        if not args.follow:
-            return
+    def line(event: Event) -> str:
+        detail = ", ".join(f"{k}={v}" for k, v in event.detail.items())
+        return f"{event.seq:>5} {event.kind:<16} {event.subject} {detail}".rstrip()
+    _follow(lambda seen, wait: system.events(seen, timeout=wait), line, args)
 
 
 def _logs(system: Connection, args: argparse.Namespace) -> None:
+    _follow(lambda seen, wait: system.logs(seen, module=args.module, timeout=wait),
+            lambda entry: entry.line(), args)
+
+
+def _follow(fetch: Callable[[int, float], list[Any]], line: Callable[[Any], str],
+            args: argparse.Namespace) -> None:
+    """Print what ``fetch`` returns after the last one printed (numbered by ``seq``), as
+    a line or as JSON; with ``--follow``, until Ctrl-C."""
     seen = 0
     while True:
-        for entry in system.logs(seen, module=args.module, timeout=1.0 if args.follow else 0.0):
-            seen = entry.seq
-            print(json.dumps(plain(dataclasses.asdict(entry))) if args.json else entry.line(),
+        for item in fetch(seen, 1.0 if args.follow else 0.0):
+            seen = item.seq
+            print(json.dumps(plain(dataclasses.asdict(item))) if args.json else line(item),
                   flush=True)
         if not args.follow:
             return

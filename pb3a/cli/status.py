@@ -16,7 +16,7 @@ from pb3a.launch.running import launch
 
 if TYPE_CHECKING:
     from pb3a.config.plan import Plan
-    from pb3a.stats import SystemStats
+    from pb3a.stats import NodeStats, SystemStats
 
 REFRESH_S = 1.0
 LAST_ERROR_WIDTH = 60        # characters of a module's last error in the table
@@ -44,15 +44,19 @@ def format_table(stats: SystemStats) -> str:
         lines += _columns(link_rows)
     remote = {name: health for name, health in stats.nodes.items() if health.address}
     if remote:
-        lines.append("")
-        node_rows = [("node", "address", "health", "rtt")]
-        for name, health in remote.items():
-            node_rows.append((name, health.address or "", "up" if health.up else "LOST",
-                              "-" if math.isnan(health.rtt) else f"{health.rtt * 1e3:.1f} ms"))
-        lines += _columns(node_rows)
+        lines += ["", format_nodes(remote)]
     for failure in stats.failures[-5:]:
         lines.append(f"! {failure}")
     return "\n".join(lines)
+
+
+def format_nodes(nodes: dict[str, NodeStats]) -> str:
+    """One row per node: its address, health and round-trip time."""
+    rows = [("node", "address", "health", "rtt")]
+    for name, node in nodes.items():
+        rows.append((name, node.address or "(embedded)", "up" if node.up else "LOST",
+                     "-" if math.isnan(node.rtt) else f"{node.rtt * 1e3:.1f} ms"))
+    return "\n".join(_columns(rows))
 
 
 def _shortened(text: str, most: int = LAST_ERROR_WIDTH) -> str:

@@ -108,22 +108,20 @@ class NodeShare:
         return self.launcher.call("agent", AGENT_REQUEST_TIMEOUT, request=op, args=args)
 
     def _republished(self, link: Any, endpoint: tuple[str, str, bytes]) -> None:
-        # Called during a restart, under the executor's lock: the launcher may be
-        # waiting for that lock, so it is told from another thread.
-        def tell() -> None:
-            if self.launcher is not None:
-                with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
-                    self.launcher.call("republished", link=link, endpoint=endpoint)
-        threading.Thread(target=tell, name="pb3a-republished", daemon=True).start()
+        self._tell_launcher("republished", link=link, endpoint=endpoint)
 
     def _tell_event(self, kind: str, subject: str, **detail: Any) -> None:
-        """A restart or failure here goes into the launcher's events (from another thread:
-        it happens under the executor's lock, which the launcher may be waiting for)."""
+        """A restart or failure here goes into the launcher's events."""
+        self._tell_launcher("event", kind=kind, subject=subject, detail=detail)
+
+    def _tell_launcher(self, op: str, **args: Any) -> None:
+        """Tell the launcher what a restart did, from another thread: a restart runs
+        under the executor's lock, which the launcher may be waiting for."""
         def tell() -> None:
             if self.launcher is not None:
                 with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
-                    self.launcher.call("event", kind=kind, subject=subject, detail=detail)
-        threading.Thread(target=tell, name="pb3a-event", daemon=True).start()
+                    self.launcher.call(op, **args)
+        threading.Thread(target=tell, name=f"pb3a-{op}", daemon=True).start()
 
     def _watch_launcher(self, orphan_s: float) -> None:
         """Ping the launcher (stop when it stays silent) and every peer (their RTTs)."""
