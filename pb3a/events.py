@@ -17,7 +17,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 KINDS = ("module_added", "module_removed", "module_moved", "module_swapped",
-         "module_restarted", "module_failed", "link_added", "link_removed", "node_lost")
+         "module_restarted", "module_failed", "module_failed_over", "link_added",
+         "link_removed", "node_lost", "node_joined")
 
 
 @dataclass(frozen=True)

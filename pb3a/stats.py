@@ -86,6 +86,7 @@ class NodeStats:
     rtt: float                  # seconds; 0 for embedded nodes, NaN before the first beat
     address: str | None         # None: embedded in the launcher's process
     controller: bool | None = None   # its node controller answers (remote nodes)
+    epoch: int = 1              # its admission: one more each time it rejoins after a loss
 
 
 @dataclass(frozen=True)

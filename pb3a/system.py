@@ -53,14 +53,16 @@ class System:
 
     def add(self, name: str, cls: type | str, *, node: str | None = None,
             state: dict[str, Any] | None = None, period: float | None = None,
-            restart: str | None = None, group: str | None = None) -> System:
-        """Add a module (a class or ``"module:Class"``) or a Python ``Macro`` subclass."""
+            restart: str | None = None, group: str | None = None,
+            fallback: list[str] | None = None) -> System:
+        """Add a module (a class or ``"module:Class"``) or a Python ``Macro`` subclass;
+        ``fallback``: the nodes to restart it on, in order, if its node is lost."""
         if name in self._spec.modules:
             raise ValueError(f"system {self.name!r} already has a module {name!r}; "
                              "choose another instance name")
         self._spec.modules[name] = ModuleSpec(name, cls=cls, node=node, period=period,
                                              state=dict(state or {}), restart=restart,
-                                             group=group)
+                                             group=group, fallback=fallback)
         return self
 
     def link(self, src: str, dst: str, *, policy: str | None = None) -> System:

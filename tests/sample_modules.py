@@ -539,3 +539,48 @@ class Chatty(Module):
             import logging
 
             logging.getLogger("chatty").warning("hello from a module's own logger")
+
+
+class Stamped(Module):
+    """Writes ``"COPY:N"`` every period. COPY names this copy of the module: new when it
+    starts fresh, kept when it moves (it is state). Its teardown notes when this copy
+    stopped, in ``stopped_file``."""
+
+    out = Output(str)
+    period = 0.002
+    copy = ""
+    n = 0
+    stopped_file = ""
+
+    def setup(self) -> None:
+        self.copy = self.copy or f"{os.getpid()}-{time.monotonic_ns()}"
+
+    def step(self) -> None:
+        self.n += 1
+        self.out.write(f"{self.copy}:{self.n}")
+
+    def teardown(self) -> None:
+        if self.stopped_file:
+            with open(self.stopped_file, "a") as notes:
+                notes.write(f"{self.copy} {time.time()}\n")
+
+
+class Copies(Module):
+    """Which copy of a ``Stamped`` writer each value came from: the copies in the order
+    of their first value and when it came; ``stale`` counts values of a copy that came
+    after a newer copy's."""
+
+    x = Input(str, policy="queue:100000")
+    copies: list = []
+    first_at: list = []
+    received = 0
+    stale = 0
+
+    def on_input(self, port) -> None:
+        copy = port.read().partition(":")[0]
+        self.received += 1
+        if copy not in self.copies:
+            self.copies = [*self.copies, copy]
+            self.first_at = [*self.first_at, time.time()]
+        elif copy != self.copies[-1]:
+            self.stale += 1

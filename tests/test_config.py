@@ -446,6 +446,18 @@ def test_unknown_node(tmp_path: Path) -> None:
     only(problems, "[modules.src]: unknown node 'a'", "declares no nodes", "add a [nodes.a]")
 
 
+def test_fallback_names_declared_nodes_in_order(tmp_path: Path) -> None:
+    nodes = "[nodes.a]\n[nodes.b]\n[nodes.c]\n"
+    plan = build_plan(load_toml(write(tmp_path, nodes + TWO.replace(
+        'Src"', 'Src"\nnode = "a"\nrestart = "fresh"\nfallback = ["c", "b"]'))))
+    assert plan.modules["src"].fallback == ["c", "b"] and plan.modules["sink"].fallback == []
+    problems = problems_of(tmp_path, nodes + TWO.replace('Src"', 'Src"\nfallback = ["b", "d"]'))
+    assert problems == ["sys.toml [modules.src]: fallback names unknown node 'd'; declared "
+                        "nodes: a, b, c"]
+    problems = problems_of(tmp_path, nodes + TWO.replace('Src"', 'Src"\nfallback = "b"'))
+    assert problems == ["sys.toml [modules.src]: fallback must be a list of node names, got 'b'"]
+
+
 def test_bad_policy(tmp_path: Path) -> None:
     problems = problems_of(tmp_path, TWO + """
         [[links]]

@@ -13,9 +13,10 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import psutil
 import pytest
-from conftest import eventually
-from sample_modules import Chain, Collector, Counter, Relay
+from conftest import alive, eventually
+from sample_modules import Chain, Collector, Copies, Counter, Relay, Stamped
 
 from pb3a import System
 
@@ -104,6 +105,12 @@ class Host:
         assert self.start("node", "start", "--name", name, "--listen", address,
                           "--max-cpu", "101") == f"node {name} at {address}"
         return address
+
+    def executors(self) -> list[int]:
+        """The pids of the executors this host's node controller runs."""
+        return [child.pid for daemon in self.daemons
+                for child in psutil.Process(daemon.pid).children()
+                if "resource_tracker" not in " ".join(child.cmdline())]
 
     def cut(self, up: bool = False) -> None:
         """Unplug this host's cable (or plug it back)."""
@@ -231,24 +238,46 @@ def test_three_hosts_fan_out_move_back_and_forth_and_serve_code(lan: Lan, tmp_pa
     assert counted > 0
 
 
-def test_a_cable_cut_is_detected_within_3_s_and_reported(lan: Lan) -> None:
+def test_a_cut_off_node_fences_itself_its_modules_fail_over_and_it_rejoins(
+        lan: Lan, tmp_path: Path) -> None:
     far = lan.host("b")
+    stops = tmp_path / "stops"
     system = System("cut").node("a").node("b", address=far.node("b"))
     system.add("src", Counter, node="a", period=0.002)
     system.add("at_b", Collector, node="b")
     system.add("at_a", Collector, node="a")
+    system.add("stamp", Stamped, node="b", restart="fresh", state={"stopped_file": str(stops)})
+    system.add("copies", Copies, node="a")
     system.link("src.out", "at_b.x")
     system.link("src.out", "at_a.x")
+    system.link("stamp.out", "copies.x")
     with system.launch() as run:
         eventually(lambda: run.state("at_b")["received"] > 20, timeout=30, what="values at b")
+        (executor,) = far.executors()
         cut = time.monotonic()
-        far.cut()
+        far.cut()                                  # the far side goes on running, alone
         lost = run._launcher.wait_health("b", up=False, timeout=10)
         detected = time.monotonic() - cut
+        eventually(lambda: not alive(executor), timeout=10,
+                   what="the cut-off executor stopping by itself (the cable still down)")
+        eventually(lambda: len(run.state("copies")["copies"]) == 2,
+                   what="the failed-over copy of stamp delivering on a")
         events = [(e.kind, e.subject) for e in run.events()]
         stats = run.stats()
         before = run.state("at_a")["received"]
         eventually(lambda: run.state("at_a")["received"] > before + 50, what="a goes on")
+        far.cut(up=True)
+        eventually(lambda: run.stats().nodes["b"].up, timeout=20, what="b admitted again")
+        assert run.migrate("stamp", to="b").destination == "b"
+        moved_back = run.state("copies")["received"]
+        eventually(lambda: run.state("copies")["received"] > moved_back + 50,
+                   what="values of stamp moved back to b")
+        copies, rejoined = run.state("copies"), run.stats().nodes["b"]
     assert lost and detected < 3.0, f"the cut was detected after {detected:.2f} s"
-    assert ("node_lost", "b") in events and stats.nodes["b"].up is False
+    assert ("node_lost", "b") in events and ("module_failed_over", "stamp") in events
+    assert stats.nodes["b"].up is False and "at_b" not in stats.modules
     assert any("node b lost" in failure for failure in stats.failures)
+    stopped = dict(line.split() for line in stops.read_text().splitlines())
+    old, _ = copies["copies"]                   # moving back kept the copy it was
+    assert float(stopped[old]) < copies["first_at"][1], "two copies delivered at once"
+    assert copies["stale"] == 0 and rejoined.epoch == 2

@@ -3,6 +3,8 @@ graceful and forced stops, the command line, and frames it must refuse."""
 
 from __future__ import annotations
 
+import time
+
 import pytest
 import zmq
 from conftest import daemon_banner_then_clean_exit, eventually
@@ -97,13 +99,16 @@ def test_the_command_line_runs_a_node_until_signalled() -> None:
     assert line.startswith("node cli at tcp://127.0.0.1:")
 
 
-def test_an_executor_whose_launcher_is_gone_stops(node) -> None:
+def test_an_executor_whose_lease_is_not_renewed_fences_itself(node) -> None:
     controller, client = node
     address = client.call("start_executor", timeout=60, config="orphan")
     executor = ControlClient(KEY, address)
     try:
         executor.call("bind", launcher="tcp://127.0.0.1:9", checkpoint_s=1.0, log_level=30,
-                      code=CodeSources(), orphan_s=0.5)        # nobody listens there
-        eventually(lambda: controller.executors() == {}, what="the orphaned executor gone")
+                      code=CodeSources(), lease_s=0.5)        # nobody renews it
+        started = time.monotonic()
+        assert executor.ping(1.0, op="lease") is not None      # renewed once, at once
+        eventually(lambda: controller.executors() == {}, what="the fenced executor gone")
+        assert time.monotonic() - started < 3.0
     finally:
         executor.close()

@@ -51,10 +51,12 @@ def format_table(stats: SystemStats) -> str:
 
 
 def format_nodes(nodes: dict[str, NodeStats]) -> str:
-    """One row per node: its address, health and round-trip time."""
+    """One row per node: its address, health (and epoch once it rejoined) and
+    round-trip time."""
     rows = [("node", "address", "health", "rtt")]
     for name, node in nodes.items():
-        rows.append((name, node.address or "(embedded)", "up" if node.up else "LOST",
+        health = "LOST" if not node.up else "up" if node.epoch == 1 else f"up (epoch {node.epoch})"
+        rows.append((name, node.address or "(embedded)", health,
                      "-" if math.isnan(node.rtt) else f"{node.rtt * 1e3:.1f} ms"))
     return "\n".join(_columns(rows))
 
@@ -80,11 +82,11 @@ def run_with_status(plan: Plan, seconds: float | None, out: TextIO | None = None
     started = time.monotonic()
     try:
         with launch(plan, listen=listen) as run:
-            address = run.address
-            out.write(f"pb3a: system {run.name!r} running"
-                      f"{f' for {seconds:g} s' if seconds else ''}; Ctrl-C stops it; "
-                      f"launcher at {address}\n")
-            try:
+            try:     # (from the first line on, a signal means a clean stop)
+                out.write(f"pb3a: system {run.name!r} running"
+                          f"{f' for {seconds:g} s' if seconds else ''}; Ctrl-C stops it; "
+                          f"launcher at {run.address}\n")
+                out.flush()
                 while seconds is None or time.monotonic() - started < seconds:
                     left = REFRESH_S if seconds is None else min(
                         REFRESH_S, seconds - (time.monotonic() - started))

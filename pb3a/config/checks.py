@@ -56,6 +56,20 @@ def period(value: Any) -> list[str]:
             f"leave it out to keep the class's), got {value!r}")]
 
 
+def fallback(value: Any, nodes: list[str]) -> list[str]:
+    """``None`` or a list of declared nodes: where the module restarts, in order, when
+    its node is lost."""
+    if value is None:
+        return []
+    if not isinstance(value, (list, tuple)) or not all(isinstance(n, str) for n in value):
+        return [f"fallback must be a list of node names, got {value!r}"]
+    unknown = [node for node in value if node not in nodes]
+    if unknown:
+        return [f"fallback names unknown node{'s' if len(unknown) > 1 else ''} "
+                f"{listing(map(repr, unknown))}; declared nodes: {listing(nodes)}"]
+    return []
+
+
 def restart(value: Any) -> list[str]:
     """``None`` (keep the class's) or one of the restart policies."""
     if value is None or value in RESTART_POLICIES:

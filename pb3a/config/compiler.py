@@ -208,6 +208,7 @@ class _Planner:
         problems += checks.unknown_keys(entry.extra, ModuleSpec.KEYS)
         if entry.node is not None and entry.node not in self.node_names:
             problems.append(self.unknown_node(entry.node))
+        problems += checks.fallback(entry.fallback, self.node_names)
         if entry.group is not None:
             problems += checks.name(entry.group, "group")
         if (entry.cls is None) == (entry.macro is None):
@@ -228,7 +229,8 @@ class _Planner:
         if child.macro is not None:
             problems += [f"{key!r} applies to modules, not to a macro: set it on the macro's "
                          "children" for key, value in (("period", entry.period),
-                                                       ("restart", entry.restart))
+                                                       ("restart", entry.restart),
+                                                       ("fallback", entry.fallback))
                          if value is not None]
             if entry.state:
                 problems.append("'state' applies to modules, not to a macro: set it on the "
@@ -296,7 +298,9 @@ class _Planner:
                     path, cls, here or self.node_names[0],
                     float(period) if period is not None else cls.period,
                     dict(entry.state) if isinstance(entry.state, dict) else {},
-                    restart or cls.restart, team)
+                    restart or cls.restart, team,
+                    list(entry.fallback or []) if not checks.fallback(
+                        entry.fallback, self.node_names) else [])
                 labels[path] = child.label
             elif child.macro is not None:
                 self.instantiate(child.macro, path + "/", here, team, modules, labels, links)

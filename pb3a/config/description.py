@@ -42,10 +42,11 @@ class ModuleSpec:
     state: Any = field(default_factory=dict)
     restart: str | None = None      # None: the class's restart policy
     group: str | None = None
+    fallback: Any = None            # nodes to restart it on, in order, if its node is lost
     extra: dict[str, Any] = field(default_factory=dict)
 
     KEYS: ClassVar[tuple[str, ...]] = ("class", "macro", "node", "period", "state",
-                                       "restart", "group")
+                                       "restart", "group", "fallback")
 
     @classmethod
     def from_entry(cls, name: str, entry: Any) -> ModuleSpec:
@@ -56,7 +57,7 @@ class ModuleSpec:
         return cls(name, cls=known.get("class"), macro=known.get("macro"),
                    node=known.get("node"), period=known.get("period"),
                    state=known.get("state", {}), restart=known.get("restart"),
-                   group=known.get("group"),
+                   group=known.get("group"), fallback=known.get("fallback"),
                    extra={k: v for k, v in entry.items() if k not in cls.KEYS})
 
 

@@ -27,6 +27,7 @@ class FlatModule:
     state: dict[str, Any]     # initial state overrides from the config
     restart: str              # "never" | "fresh" | "last-state"
     group: str | None = None  # modules with the same group share one worker process
+    fallback: list[str] = field(default_factory=list)   # failover nodes, in order
 
 
 @dataclass

@@ -4,10 +4,17 @@ control server.
 A node controller starts one per configuration on its node; the launcher then
 talks to it directly (``RemoteNode``): ``bind`` says where the launcher is, then
 every ``executor`` request applies one ``Executor`` operation under the executor's
-lock. Agents' requests and restarted writers go back to the launcher. The process
-exits when told to (``shutdown``), when its controller stops it (SIGTERM: modules
-stop in reverse start order first), when its controller dies (its parent-death
-pipe closes), or when its launcher has not answered a ping for ``ORPHAN_S``: it
+lock. Agents' requests, restarted writers, events and the checkpoints of
+``last-state`` modules go back to the launcher, which keeps the checkpoints off this
+node so that it can restart the modules elsewhere when the node is lost.
+
+The launcher holds the executor on a lease, renewed by its heartbeats. When the
+lease runs out (the launcher stopped, or a cable was cut) the executor fences
+itself: it stops its modules in reverse start order and exits, before the launcher
+can have declared the node lost and restarted those modules on another node (the
+lease is shorter than the launcher's loss timeout), so two copies of a module never
+run at once. The process also exits when told to (``shutdown``), when its controller
+stops it (SIGTERM), or when its controller dies (its parent-death pipe closes): it
 never outlives its owners.
 """
 
@@ -24,6 +31,7 @@ from pb3a.loading.sources import CodeSources
 from pb3a.logbook import LogBook
 from pb3a.node.executor import Executor
 from pb3a.node.protocol import REMOTE_OPERATIONS
+from pb3a.node.remote import LEASE_S
 from pb3a.processes import serve_as_child
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient, ControlServer
@@ -31,7 +39,7 @@ from pb3a.worker.process import AGENT_REQUEST_TIMEOUT
 
 log = logging.getLogger("pb3a.node")
 
-ORPHAN_S = 10.0           # a launcher silent this long is gone: stop
+PEER_PING_S = 1.0         # how often the round-trip time to each peer is measured
 
 
 class NodeShare:
@@ -45,7 +53,12 @@ class NodeShare:
         self.executor.handler = self._agent_request
         self.executor.republished = self._republished
         self.executor.on_event = self._tell_event
+        self.executor.on_checkpoint = self._keep_checkpoint
         self.launcher: ControlClient | None = None
+        self.node_epoch = 0                            # this admission of the node
+        self._leased_at = time.monotonic()             # the launcher's last heartbeat
+        self._checkpoints: dict[str, bytes] = {}       # the newest, not yet sent
+        self._checkpointed = threading.Condition()
         self.server: ControlServer | None = None
         self.peers: dict[str, ControlClient] = {}     # other nodes, pinged for their RTT
         self.rtts: dict[str, float] = {}
@@ -62,7 +75,8 @@ class NodeShare:
                 return getattr(ex, args["method"])(*args["args"], **args["kwargs"])
         if op == "bind":
             self.bind(args["launcher"], args["checkpoint_s"], args["log_level"],
-                      args["code"], args.get("orphan_s", ORPHAN_S), args.get("epoch", 0))
+                      args["code"], args.get("lease_s", LEASE_S), args.get("epoch", 0),
+                      args.get("node_epoch", 1))
             return None
         if op == "peers":
             self.meet(args["peers"])
@@ -79,9 +93,10 @@ class NodeShare:
         raise ValueError(f"a node executor has no operation {op!r}")
 
     def bind(self, launcher: str, checkpoint_s: float, log_level: int, code: CodeSources,
-             orphan_s: float = ORPHAN_S, epoch: int = 0) -> None:
+             lease_s: float = LEASE_S, epoch: int = 0, node_epoch: int = 1) -> None:
         """Work for the launcher at ``launcher`` (before any module is added), in its
-        system's ``epoch``: older requests and replication are refused from now on."""
+        system's ``epoch`` (older requests and replication are refused from now on), as
+        the node's admission ``node_epoch``, on a lease of ``lease_s`` seconds."""
         if self.launcher is not None:
             raise RuntimeFailure(f"node {self.node} already works for {self.launcher.address}")
         self.executor.configure(checkpoint_s=checkpoint_s, log_level=log_level, code=code,
@@ -89,9 +104,19 @@ class NodeShare:
         if self.server is not None:
             self.server.advance_epoch(epoch)
         code.install(self.key)
+        self.node_epoch = node_epoch
         self.launcher = ControlClient(self.key, launcher)
-        threading.Thread(target=self._watch_launcher, args=(orphan_s,),
-                         name="pb3a-launcher-watch", daemon=True).start()
+        self.renew()
+        for target, name in ((self._keep_lease, "lease"), (self._measure_peers, "peers"),
+                             (self._send_checkpoints, "checkpoints")):
+            args = (lease_s,) if target == self._keep_lease else ()
+            threading.Thread(target=target, args=args, name=f"pb3a-{name}",
+                             daemon=True).start()
+
+    def renew(self, args: dict[str, Any] | None = None) -> bool:
+        """The launcher's heartbeat (an instant operation): the lease runs on."""
+        self._leased_at = time.monotonic()
+        return True
 
     def meet(self, peers: dict[str, str]) -> None:
         """Measure the round-trip time to each other node (name -> control address) from
@@ -105,7 +130,28 @@ class NodeShare:
     def _agent_request(self, op: str, args: dict[str, Any]) -> Any:
         if self.launcher is None:
             raise RuntimeFailure(f"node {self.node} has no launcher to ask")
-        return self.launcher.call("agent", AGENT_REQUEST_TIMEOUT, request=op, args=args)
+        return self.launcher.call("agent", AGENT_REQUEST_TIMEOUT, request=op, args=args,
+                                  **self._signed())
+
+    def _signed(self) -> dict[str, Any]:
+        """What the launcher checks before it takes anything from this executor: an
+        executor of an earlier admission of the node was fenced, and is refused."""
+        return {"node": self.node, "node_epoch": self.node_epoch}
+
+    def _keep_checkpoint(self, module: str, state: bytes) -> None:
+        """A module's newest checkpoint, for the launcher (only the newest is sent)."""
+        with self._checkpointed:
+            self._checkpoints[module] = state
+            self._checkpointed.notify()
+
+    def _send_checkpoints(self) -> None:
+        while not self.stopped.is_set():
+            with self._checkpointed:
+                self._checkpointed.wait_for(lambda: self._checkpoints or self.stopped.is_set(),
+                                            1.0)
+                pending, self._checkpoints = self._checkpoints, {}
+            for module, state in pending.items():
+                self._call_launcher("checkpoint", module=module, state=state)
 
     def _republished(self, link: Any, endpoint: tuple[str, str, bytes]) -> None:
         self._tell_launcher("republished", link=link, endpoint=endpoint)
@@ -117,24 +163,28 @@ class NodeShare:
     def _tell_launcher(self, op: str, **args: Any) -> None:
         """Tell the launcher what a restart did, from another thread: a restart runs
         under the executor's lock, which the launcher may be waiting for."""
-        def tell() -> None:
-            if self.launcher is not None:
-                with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
-                    self.launcher.call(op, **args)
-        threading.Thread(target=tell, name=f"pb3a-{op}", daemon=True).start()
+        threading.Thread(target=self._call_launcher, args=(op,), kwargs=args,
+                         name=f"pb3a-{op}", daemon=True).start()
 
-    def _watch_launcher(self, orphan_s: float) -> None:
-        """Ping the launcher (stop when it stays silent) and every peer (their RTTs)."""
-        last = time.monotonic()
-        while not self.stopped.wait(min(1.0, orphan_s / 4)) and self.launcher is not None:
-            if self.launcher.ping(1.0) is not None:
-                last = time.monotonic()
-            elif time.monotonic() - last > orphan_s:
-                log.error("launcher at %s silent for %.0f s: stopping",
-                          self.launcher.address, orphan_s)
+    def _call_launcher(self, op: str, **args: Any) -> None:
+        if self.launcher is not None:
+            with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+                self.launcher.call(op, **args, **self._signed())
+
+    def _keep_lease(self, lease_s: float) -> None:
+        """Fence: stop everything once the launcher's heartbeats stop for ``lease_s``."""
+        while not self.stopped.wait(min(0.1, lease_s / 4)):
+            silent = time.monotonic() - self._leased_at
+            if silent > lease_s:
+                log.error("node %s: no heartbeat from the launcher for %.1f s (its lease is "
+                          "%.1f s): fenced, its modules stop", self.node, silent, lease_s)
                 self.stopped.set()
+
+    def _measure_peers(self) -> None:
+        """Ping every peer now and then: the round-trip times the env module shows."""
+        while not self.stopped.wait(PEER_PING_S):
             for name, client in list(self.peers.items()):
-                rtt = client.ping(1.0)
+                rtt = client.ping(PEER_PING_S)
                 if rtt is not None:
                     self.rtts[name] = rtt
 
@@ -151,7 +201,8 @@ def executor_main(config: str, node: str, workers: int, cpus: list[int] | None,
                                             "%(levelname)s %(message)s")
     share = NodeShare(config, node, workers, cpus, host)
     server = share.server = ControlServer(ClusterKey.load(), share.handle, host,
-                                          name="pb3a-node-executor")
+                                          name="pb3a-node-executor",
+                                          instant={"lease": share.renew})
     try:
         serve_as_child(conn, server.address, share.stopped)
     finally:

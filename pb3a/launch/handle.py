@@ -91,11 +91,13 @@ class SystemHandle(ABC):
 
     def add(self, name: str, cls: type | str, *, state: dict[str, Any] | None = None,
             period: float | None = None, restart: str | None = None, group: str | None = None,
-            node: str | None = None, timeout: float | None = None) -> None:
-        """Start a new module while the system runs (link it with ``link``)."""
+            node: str | None = None, fallback: list[str] | None = None,
+            timeout: float | None = None) -> None:
+        """Start a new module while the system runs (link it with ``link``);
+        ``fallback``: the nodes to restart it on, in order, if its node is lost."""
         self._request("add", {"name": name, "cls": cls, "state": state, "period": period,
                               "restart": restart, "group": group, "node": node,
-                              "timeout": timeout})
+                              "fallback": fallback, "timeout": timeout})
 
     def remove(self, name: str, *, timeout: float | None = None) -> None:
         """Stop a module (``teardown`` runs), drop its links, free its process."""

@@ -5,18 +5,32 @@ process for a node without an ``address`` (the embedded default), through the no
 controller at its address otherwise (``RemoteNode``). It wires every link (a link
 inside a node by that node; a remote link in halves: published at the writer's
 node, followed at the reader's) and applies every change under one global
-configuration lock. A watchdog pings every remote node; one that does not answer
-for ``LOSS_S`` is declared lost: its modules and their links are dropped, the rest
-goes on, and each node's ``env`` module reports it.
+configuration lock.
+
+Failure: each ``RemoteNode`` heartbeats its executor, which fences itself when the
+heartbeats stop; a node that does not answer for ``LOSS_S`` is declared lost. Its
+modules whose ``restart`` policy is ``fresh`` or ``last-state`` fail over: they start
+again on a surviving node (their ``fallback`` nodes in order, else the least busy
+one, either only if its controller admits them), ``last-state`` ones from their last
+checkpoint, which every node sends here, off the node that runs the module. Their
+links are wired again and what is known lost counted on them. The others are
+dropped with their links. A lost node whose controller answers again is admitted
+under a new node epoch; anything the fenced executor of an older epoch says is
+refused.
 """
 
 from __future__ import annotations
 
+import collections
 import contextlib
+import dataclasses
 import logging
 import threading
 import time
 from typing import TYPE_CHECKING, Any
+
+import cloudpickle
+import psutil
 
 from pb3a.errors import ModuleNotFound, RuntimeFailure, RuntimeTimeout
 from pb3a.events import EventLog
@@ -24,7 +38,7 @@ from pb3a.launch.configuration_lock import ConfigurationLock
 from pb3a.logbook import LogBook
 from pb3a.model.environment import env_name
 from pb3a.node.executor import Executor
-from pb3a.node.remote import RemoteNode
+from pb3a.node.remote import HEARTBEAT_S, LOSS_S, RemoteNode
 from pb3a.node.ring_sizes import ring_size
 from pb3a.node.workers import REQUEST_TIMEOUT
 from pb3a.stats import LinkStats, ModuleStats, NodeReport, NodeStats, SystemStats
@@ -37,9 +51,10 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("pb3a.launcher")
 
-HEARTBEAT_S = 0.25      # how often the launcher pings each remote node
-LOSS_S = 2.0            # no answer for this long: the node is lost (reported within 3 s)
-ENV_EVERY = 4           # heartbeats between two updates of the env modules' node table
+WATCH_S = 0.1           # how often the watchdog looks at the nodes' heartbeats
+ENV_S = 1.0             # how often it updates the env modules, merges logs
+REJOIN_S = 1.0          # how often it asks a lost node's controller whether it is back
+PLACE_TIMEOUT = 0.5     # a controller's answer about its load and admission
 
 
 class Launcher:
@@ -58,6 +73,10 @@ class Launcher:
         self.specs: dict[str, FlatModule] = {}       # every module; its node is spec.node
         self.links: dict[str, FlatLink] = {}
         self.failures: list[str] = []
+        self.checkpoints: dict[str, bytes] = {}      # module -> its newest (last-state)
+        self.lost_values: collections.Counter[str] = collections.Counter()  # per link key
+        self._rejoining: set[str] = set()
+        self._callback: str | None = None            # where remote executors reach us
         self.events = EventLog()                      # what happened, for run.events()
         self.logbook = LogBook()                      # the recent log, for run.logs()
         self._log_seen: dict[str, int] = {}           # remote node -> its last entry merged
@@ -72,6 +91,7 @@ class Launcher:
         """One executor per node; ``callback`` is where remote executors reach this
         launcher (agents' requests, restarts), needed when any node has an address."""
         logging.getLogger().addHandler(self.logbook)
+        self._callback = callback
         # A node started here is reached where the remote nodes reach the launcher.
         here = "127.0.0.1" if callback is None else callback.removeprefix("tcp://").rpartition(":")[0]
         for name, node in self.plan.nodes.items():
@@ -84,25 +104,47 @@ class Launcher:
                 executor.handler = self._agent_request
                 executor.republished = self.republished
                 executor.on_event = self.events.record
+                executor.on_checkpoint = self.checkpoints.__setitem__
                 self.nodes[name] = executor
-                self.health[name] = {"up": True, "rtt": 0.0, "address": None}
+                self.health[name] = {"up": True, "rtt": 0.0, "address": None, "epoch": 1}
             else:
                 assert callback is not None, "remote nodes call the launcher back"
-                self.nodes[name] = self.remotes[name] = RemoteNode(
-                    name, node.address, config=self.plan.name, launcher=callback,
-                    advertise=node.advertise,
-                    workers=node.workers, cpus=node.cpus, checkpoint_s=self.checkpoint_s,
-                    log_level=self.log_level, code=self.plan.code,
-                    epoch=self.epoch)
+                self.nodes[name] = self.remotes[name] = self._remote(name, node_epoch=1)
                 self.health[name] = {"up": True, "rtt": float("nan"), "address": node.address,
-                                     "controller": True}
-        for remote in self.remotes.values():   # the launcher stands for its embedded nodes
-            remote.meet({name: self.remotes[name].address if name in self.remotes else callback
-                         for name in self.nodes if name != remote.name})
+                                     "controller": True, "epoch": 1}
+        self._introduce()
         # (also without remote nodes: it keeps the env modules' view up to date)
         self._watchdog = threading.Thread(target=self._watch, name="pb3a-heartbeat",
                                           daemon=True)
         self._watchdog.start()
+
+    def _remote(self, name: str, node_epoch: int) -> RemoteNode:
+        """Have node ``name``'s controller start an executor for this system."""
+        node = self.plan.nodes[name]
+        assert node.address is not None and self._callback is not None
+        return RemoteNode(name, node.address, config=self.plan.name, launcher=self._callback,
+                          advertise=node.advertise, workers=node.workers, cpus=node.cpus,
+                          checkpoint_s=self.checkpoint_s, log_level=self.log_level,
+                          code=self.plan.code, epoch=self.epoch, node_epoch=node_epoch)
+
+    def _introduce(self) -> None:
+        """Tell every remote node where its peers are (for their round-trip times); the
+        launcher stands for its embedded nodes."""
+        for remote in self.remotes.values():
+            if not remote.lost:
+                with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+                    remote.meet({name: self.remotes[name].address if name in self.remotes
+                                 else self._callback for name in self.nodes
+                                 if name != remote.name})
+
+    def check_node_epoch(self, node: str, node_epoch: int) -> None:
+        """Refuse what an executor of an earlier admission of ``node`` says: it was
+        fenced when the node was lost."""
+        current = self.health.get(node, {}).get("epoch")
+        if node_epoch != current or not self.health[node]["up"]:
+            raise RuntimeFailure(f"stale: node {node}'s executor of epoch {node_epoch} was "
+                                 f"fenced; the node's epoch is {current}"
+                                 f"{'' if self.health.get(node, {}).get('up') else ' (lost)'}")
 
     def _agent_request(self, op: str, args: dict[str, Any]) -> Any:
         if self.handler is None:
@@ -214,34 +256,39 @@ class Launcher:
         modules = {name: entry for report in reports for name, entry in report.modules.items()
                    if name in self.specs and entry.node == self.specs[name].node}
         failures = [*self.failures, *(f for report in reports for f in report.failures)]
-        return SystemStats(self.plan.name, modules, _link_table(self.links, modules, reports),
+        return SystemStats(self.plan.name, modules,
+                           _link_table(self.links, modules, reports, self.lost_values),
                            self.node_table(), failures)
 
     def node_table(self) -> dict[str, NodeStats]:
         """Every node's health as the heartbeats see it."""
         return {name: NodeStats(health["up"], health["rtt"], health["address"],
-                                health.get("controller"))
+                                health.get("controller"), health["epoch"])
                 for name, health in self.health.items()}
 
     # -- heartbeats -------------------------------------------------------------------
     def _watch(self) -> None:
-        remotes = self.remotes
-        last = dict.fromkeys(remotes, time.monotonic())
-        beats = 0
-        while not self._stopping.wait(HEARTBEAT_S):
-            for name, node in remotes.items():
-                if not self.health[name]["up"]:
-                    continue
-                rtt = node.ping(timeout=HEARTBEAT_S * 2)
-                if rtt is not None:
-                    last[name] = time.monotonic()
-                    self.health[name]["rtt"] = rtt
-                elif time.monotonic() - last[name] > LOSS_S and not self._stopping.is_set():
-                    self._lose(name, time.monotonic() - last[name])
-            beats += 1
-            if beats % ENV_EVERY == 0:
-                for name, node in remotes.items():
-                    if self.health[name]["up"]:
+        """Declare lost a remote node silent for ``LOSS_S``; ask lost ones' controllers
+        whether they are back; keep the env modules and the merged log up to date."""
+        next_env = next_rejoin = time.monotonic()
+        while not self._stopping.wait(WATCH_S):
+            for name, node in list(self.remotes.items()):
+                if self.health[name]["up"]:
+                    self.health[name]["rtt"] = node.rtt
+                    if node.silent_s() > LOSS_S and not self._stopping.is_set():
+                        self._lose(name, node.silent_s())
+            now = time.monotonic()
+            if now >= next_rejoin:
+                next_rejoin = now + REJOIN_S
+                for name in list(self.remotes):
+                    if not self.health[name]["up"] and name not in self._rejoining:
+                        self._rejoining.add(name)
+                        threading.Thread(target=self._rejoin, args=(name,), daemon=True,
+                                         name=f"pb3a-rejoin-{name}").start()
+            if now >= next_env:
+                next_env = now + ENV_S
+                for name, node in list(self.remotes.items()):
+                    if self.health[name]["up"] and node.silent_s() < 2 * HEARTBEAT_S:
                         self.health[name]["controller"] = node.controller_answers(HEARTBEAT_S)
                         self._merge_log(name, node)
                 self.update_env()
@@ -254,34 +301,186 @@ class Launcher:
                 self.logbook.add(entry.time, entry.level, entry.logger, entry.message,
                                  name, entry.module)
 
+    # -- a lost node ------------------------------------------------------------------
     def _lose(self, node: str, silent_s: float) -> None:
         """Declare ``node`` lost: every call to it fails at once from now on; its modules
-        and their links are dropped; the env modules say so."""
+        fail over or are dropped, with their links; the env modules say so."""
+        lost_at = time.monotonic()
         self.remotes[node].lose()
         with self.changed:
             self.health[node]["up"] = False
             self.changed.notify_all()
         gone = sorted(name for name, spec in self.specs.items() if spec.node == node)
         self.failures.append(f"node {node} lost (no heartbeat for {silent_s:.1f} s); its "
-                             f"modules {', '.join(gone) or '(none)'} are gone")
+                             f"modules {', '.join(gone) or '(none)'} were there")
         log.error(self.failures[-1])
         self.events.record("node_lost", node, modules=gone, silent_s=silent_s)
-        with self.lock.held(f"drop lost node {node}"):
-            for key, link in list(self.links.items()):
-                if link.src in gone or link.dst in gone:
-                    with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
-                        self._drop_half(link, gone)
-                    del self.links[key]
+        with self.lock.held(f"fail over lost node {node}"):
+            touched = {key: link for key, link in self.links.items()
+                       if link.src in gone or link.dst in gone}
+            written = {key: self._written(link) for key, link in touched.items()
+                       if link.src not in gone}
+            for link in touched.values():
+                with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+                    self._drop_half(link, gone)
+            moved = self._fail_over(node, gone)
             for name in gone:
-                del self.specs[name]
+                if name not in moved:
+                    del self.specs[name]
+            for key, link in touched.items():
+                if link.src not in self.specs or link.dst not in self.specs:
+                    del self.links[key]
+                    continue
+                try:
+                    self.attach(link)
+                except (RuntimeFailure, RuntimeTimeout) as exc:
+                    self.failures.append(f"link {key} not wired again after the loss of node "
+                                         f"{node}: {exc}")
+                    log.error(self.failures[-1])
+                if key in written:      # what the writer wrote while no reader followed
+                    self.lost_values[key] += max(0, self._written(link) - written[key])
+            for target in dict.fromkeys(moved.values()):
+                started = [name for name, to in moved.items() if to == target]
+                try:
+                    self.nodes[target].start_modules(started)
+                except (RuntimeFailure, RuntimeTimeout) as exc:
+                    self.failures.append(f"failover of {', '.join(started)} to node "
+                                         f"{target} failed: {exc}")
+                    log.error(self.failures[-1])
             self.update_env()
+        for name, target in moved.items():
+            self.events.record("module_failed_over", name, source=node, destination=target,
+                               policy=self.specs[name].restart,
+                               from_checkpoint=self.specs[name].restart == "last-state"
+                               and name in self.checkpoints,
+                               restart_s=time.monotonic() - lost_at)
+
+    def _fail_over(self, lost: str, gone: list[str]) -> dict[str, str]:
+        """Instantiate each module of ``gone`` whose restart policy allows it on a
+        surviving node, from its last checkpoint for ``last-state``; module -> node."""
+        movers = [name for name in gone if self.specs[name].restart != "never"
+                  and name != env_name(lost)]        # an env module belongs to its node
+        loads = self._loads(lost) if movers else {}
+        moved = {}
+        for name in movers:
+            spec = self.specs[name]
+            target = self._place(spec, loads)
+            if target is None:
+                self.failures.append(f"module {name} not restarted after the loss of node "
+                                     f"{lost}: no surviving node "
+                                     f"{'of its fallback ' if spec.fallback else ''}admits it")
+                log.error(self.failures[-1])
+                continue
+            state = spec.state
+            if spec.restart == "last-state" and name in self.checkpoints:
+                state = cloudpickle.loads(self.checkpoints[name])
+            moved_spec = dataclasses.replace(spec, node=target)
+            try:
+                self.nodes[target].add_module(moved_spec, state=state)
+            except (RuntimeFailure, RuntimeTimeout) as exc:
+                self.failures.append(f"module {name} not restarted on node {target}: {exc}")
+                log.error(self.failures[-1])
+                continue
+            self.specs[name] = moved_spec
+            moved[name] = target
+            loads[target] = loads[target][0], loads[target][1] + 1
+        return moved
+
+    def _loads(self, lost: str) -> dict[str, tuple[float, int]]:
+        """Each surviving node's CPU use (percent, as its controller or, embedded, this
+        machine measures it) and module count: the least loaded is tried first."""
+        loads = {}
+        here = psutil.cpu_percent(interval=None)
+        for name in self.nodes:
+            if name == lost or not self.health[name]["up"]:
+                continue
+            cpu = here
+            if name in self.remotes:
+                try:
+                    cpu = self.remotes[name].controller.call("status",
+                                                             PLACE_TIMEOUT)["cpu_percent"]
+                except (RuntimeFailure, RuntimeTimeout):
+                    continue
+            loads[name] = (cpu, sum(spec.node == name for spec in self.specs.values()))
+        return loads
+
+    def _place(self, spec: FlatModule, loads: dict[str, tuple[float, int]]) -> str | None:
+        """The first node that admits ``spec``: of its fallback nodes in order if it names
+        any, else of the surviving ones from the least loaded."""
+        candidates = ([node for node in spec.fallback if node in loads] if spec.fallback
+                      else sorted(loads, key=lambda node: loads[node]))
+        for node in candidates:
+            if node not in self.remotes:
+                return node                   # an embedded node: the launcher's machine
+            try:
+                self.remotes[node].controller.call("admit", PLACE_TIMEOUT,
+                                                   what=f"module {spec.name}")
+                return node
+            except (RuntimeFailure, RuntimeTimeout) as exc:
+                log.warning("failover of %s: %s", spec.name, exc)
+        return None
+
+    def _written(self, link: FlatLink) -> int:
+        """How many values the writer of ``link`` has written on its port so far."""
+        try:
+            report = self.node_of(link.src).report()
+        except (RuntimeFailure, RuntimeTimeout):
+            return 0
+        entry = report.modules.get(link.src)
+        return 0 if entry is None else entry.outputs.get(link.src_port, 0)
 
     def _drop_half(self, link: FlatLink, gone: list[str]) -> None:
-        """Unwire the surviving half of a link whose other end was on a lost node."""
+        """Unwire the surviving half of a link whose other end was on a lost node; what
+        its reader knows it never got is counted on the link."""
         if link.src in gone and link.dst not in gone:
-            self.node_of(link.dst).close_inbound(link)
+            self.lost_values[link.key] += self.node_of(link.dst).close_inbound(link)
         elif link.dst in gone and link.src not in gone:
-            self.node_of(link.src).unpublish(link)
+            writer = self.node_of(link.src)
+            self.lost_values[link.key] += writer.unacknowledged(link)
+            writer.unpublish(link)
+
+    def _rejoin(self, name: str) -> None:
+        """Admit lost node ``name`` again if its controller answers: the fenced executor
+        is stopped, a new one started under the next node epoch; its env module is
+        back. Its modules stay where they failed over to: move them back at will."""
+        try:
+            old = self.remotes[name]
+            if self._stopping.is_set() or not old.controller_answers(HEARTBEAT_S * 2):
+                return
+            old.shutdown(timeout=5.0)             # (it fenced itself; killed if it did not)
+            epoch = old.node_epoch + 1
+            try:
+                node = self._remote(name, node_epoch=epoch)
+            except (RuntimeFailure, RuntimeTimeout) as exc:
+                log.warning("node %s answers again but could not be admitted: %s", name, exc)
+                return
+            with self.lock.held(f"admit node {name} again"):
+                if self._stopping.is_set():
+                    node.shutdown()
+                    return
+                self.nodes[name] = self.remotes[name] = node
+                with self.changed:
+                    self.health[name].update(up=True, rtt=node.rtt, controller=True,
+                                             epoch=epoch)
+                    self.changed.notify_all()
+                self._introduce()
+                self._restore_env(name)
+                self.update_env()
+            log.warning("node %s is back (epoch %d)", name, epoch)
+            self.events.record("node_joined", name, epoch=epoch, address=node.address)
+        finally:
+            self._rejoining.discard(name)
+
+    def _restore_env(self, node: str) -> None:
+        """Bring back a rejoined node's env module and the configured links from it."""
+        spec = self.plan.modules.get(env_name(node))
+        if spec is None or spec.name in self.specs:
+            return
+        self.add_module(spec)
+        for link in self.plan.links:
+            if link.src == spec.name and link.dst in self.specs and link.key not in self.links:
+                self.connect(link)
+        self.nodes[node].start_modules([spec.name])
 
     def update_env(self) -> None:
         """Tell every node's env module (as its state) the health of every node and its
@@ -334,11 +533,14 @@ class Launcher:
 
 
 def _link_table(links: dict[str, FlatLink], modules: dict[str, ModuleStats],
-                reports: list[NodeReport]) -> dict[str, LinkStats]:
+                reports: list[NodeReport], lost_values: dict[str, int]) -> dict[str, LinkStats]:
     """Per link: values, drops, pending, latency, rate, transport, from the reader's node;
-    the writes that waited for room, from the writer's."""
+    the writes that waited for room, from the writer's; the values lost for good, from
+    the reader's node and from the failovers."""
     rings = {key: used for report in reports for key, used in report.ring_bytes_used.items()}
-    lost = {key: count for report in reports for key, count in report.link_failures.items()}
+    lost = collections.Counter(lost_values)
+    for report in reports:
+        lost.update(report.link_failures)
     table = {}
     for key, link in links.items():
         src, dst = modules.get(link.src), modules.get(link.dst)

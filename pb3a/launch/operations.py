@@ -16,6 +16,7 @@ import threading
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
+from pb3a.config import checks
 from pb3a.config.plan import FlatLink, FlatModule
 from pb3a.errors import ConfigError
 from pb3a.launch.migration import MigrationReport, migrate
@@ -207,7 +208,8 @@ class Operations:
     # -- modules -----------------------------------------------------------------------
     def add(self, name: str, cls: type | str, *, state: dict[str, Any] | None = None,
             period: float | None = None, restart: str | None = None, group: str | None = None,
-            node: str | None = None, timeout: float | None = None) -> None:
+            node: str | None = None, fallback: list[str] | None = None,
+            timeout: float | None = None) -> None:
         module_cls = resolve_class(cls)
         if not (isinstance(module_cls, type) and issubclass(module_cls, Module)):
             raise ConfigError([f"module {name}: {module_cls!r} is not a pb3a.Module subclass"])
@@ -221,9 +223,12 @@ class Operations:
             if node not in self.launcher.nodes:
                 raise ConfigError([f"module {name}: no node {node!r}; nodes: "
                                    f"{', '.join(self.launcher.nodes)}"])
+            problems = checks.fallback(fallback, list(self.launcher.nodes))
+            if problems:
+                raise ConfigError([f"module {name}: {problem}" for problem in problems])
             spec = FlatModule(name, module_cls, node,
                               period if period is not None else module_cls.period,
-                              dict(state or {}), restart, group)
+                              dict(state or {}), restart, group, list(fallback or []))
             self.launcher.add_module(spec)
             self.launcher.node_of(name).start_modules([name])
         self.events.record("module_added", name, node=node)

@@ -119,9 +119,12 @@ class Running(SystemHandle):
 
     def _remote_request(self, op: str, args: dict[str, Any]) -> Any:
         """A request to the launcher's address: a connection or the command line, an
-        agent on a remote node, a node telling what happened there."""
+        agent on a remote node, a node telling what happened there (refused if its
+        executor belongs to an earlier admission of the node: it was fenced)."""
         if op == "describe":
             return {"name": self.name, "nodes": list(self.plan.nodes)}
+        if op in ("agent", "republished", "event", "checkpoint"):
+            self._launcher.check_node_epoch(args["node"], args["node_epoch"])
         if op == "agent":                      # an agent on a remote node
             return self._agent_request(args["request"], args["args"])
         if op == "republished":                # a writer restarted on a remote node
@@ -130,5 +133,8 @@ class Running(SystemHandle):
             return None
         if op == "event":                      # a restart or failure on a remote node
             self._launcher.events.record(args["kind"], args["subject"], **args["detail"])
+            return None
+        if op == "checkpoint":                 # kept here, off the module's node
+            self._launcher.checkpoints[args["module"]] = args["state"]
             return None
         return self._operations.apply(op, args)

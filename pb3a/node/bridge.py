@@ -91,11 +91,13 @@ class Bridge:
             raise RuntimeTimeout(f"no hand-shake with the sender of {topic} at {data} "
                                  f"within {timeout} s")
 
-    def close(self, link: str, reached: int = 0, timeout: float = READY_TIMEOUT) -> None:
+    def close(self, link: str, reached: int = 0, timeout: float = READY_TIMEOUT) -> int:
         """Stop feeding ``link`` once the values before sequence number ``reached``
         (the sender's position when it stopped) are in; the output is unfollowed when
-        no local input reads it."""
+        no local input reads it. Returns how many values the sender announced that
+        never came (it is gone: they are lost)."""
         topic = self._topics.get(link)
+        missing = 0
         if topic is not None:
             with self._lock:
                 feed = self._rings.get(topic, {}).get(link)
@@ -103,10 +105,11 @@ class Bridge:
                 feed.ring.request_flush()        # its reader may be paused: take it all
             if not self._follower.wait_delivered(topic, reached, timeout):
                 raise RuntimeTimeout(f"values of {topic} still in flight after {timeout} s")
+            missing = self._follower.missing(topic)
         with self._lock:
             topic = self._topics.pop(link, None)
             if topic is None:
-                return
+                return missing
             feed = self._rings[topic].pop(link)
             orphaned = not self._rings[topic]
             if orphaned:
@@ -121,6 +124,7 @@ class Bridge:
             self._follower.set_lossless(topic, lossless)
             self._follower.release(topic, held_back)   # (its backlog held the rest back)
         feed.ring.close()
+        return missing
 
     def followed(self) -> dict[str, list[str]]:
         """Each followed topic and the local links it feeds."""

@@ -78,6 +78,7 @@ class Executor:
         self.handler: Any = None                      # applies agents' requests (op, args)
         self.republished: Any = None                  # told (link, endpoint) after a restart
         self.on_event: Any = None                     # told (kind, module, detail): restarts
+        self.on_checkpoint: Any = None                # told (module, state) for last-state
         self._bridge: Bridge | None = None            # remote links in (made on first use)
         self._budgets: dict[str, RestartBudget] = {}  # worker key -> its restarts
         self._last_errors: dict[str, str] = {}        # module -> its last exception, logged
@@ -320,6 +321,13 @@ class Executor:
             return 0
         return self.call(src.worker, "unpublish_out", key=link.key)
 
+    def unacknowledged(self, link: FlatLink) -> int:
+        """How many values of ``link``'s output a follower has not acknowledged."""
+        src = self.modules.get(link.src)
+        if link.key not in self.outbound or src is None or not self._alive(src.worker):
+            return 0
+        return self.call(src.worker, "unacknowledged_out", key=link.key)
+
     def open_inbound(self, link: FlatLink, size: RingSize | None) -> None:
         """The reading half: a ring into the reader's worker, which the bridge fills
         (``size`` None: the link's ring exists already)."""
@@ -334,11 +342,13 @@ class Executor:
         """Receive ``link``'s output from the sender at ``endpoint`` (see ``publish``)."""
         self.bridge.follow(_topic(link), *endpoint)
 
-    def close_inbound(self, link: FlatLink, reached: int = 0) -> None:
-        """Stop receiving ``link`` once the values before ``reached`` are in."""
+    def close_inbound(self, link: FlatLink, reached: int = 0) -> int:
+        """Stop receiving ``link`` once the values before ``reached`` are in; how many
+        values its sender announced that never came."""
         self.inbound.pop(link.key, None)
-        self.bridge.close(link.key, reached)
+        missing = self.bridge.close(link.key, reached)
         self._unlink_in(link)
+        return missing
 
     # -- figures ---------------------------------------------------------------
     def report(self) -> NodeReport:
@@ -390,6 +400,8 @@ class Executor:
             if record is not None:
                 record.checkpoint = args["state"]
                 record.checkpoints += 1
+                if record.spec.restart == "last-state" and self.on_checkpoint is not None:
+                    self.on_checkpoint(args["name"], args["state"])   # kept off this node
         elif kind == "error":
             self._log_error(args["name"], args["where"], args["trace"], args["suppressed"])
         elif kind == "log":                 # a record the worker logged, logged here

@@ -73,14 +73,19 @@ class Node(Protocol):
     def unpublish(self, link: FlatLink) -> int:
         """Stop publishing for ``link``; the sequence number its sender reached."""
 
+    def unacknowledged(self, link: FlatLink) -> int:
+        """How many values of ``link``'s output a follower has not acknowledged (when
+        the reader's node is lost: what it never confirmed)."""
+
     def open_inbound(self, link: FlatLink, size: RingSize | None) -> None:
         """The reading half: a ring into the reader's worker, filled by the bridge."""
 
     def follow(self, link: FlatLink, endpoint: Endpoint) -> None:
         """Receive the link's output from the sender at ``endpoint``."""
 
-    def close_inbound(self, link: FlatLink, reached: int = 0) -> None:
-        """Stop receiving ``link`` once the values before ``reached`` are in."""
+    def close_inbound(self, link: FlatLink, reached: int = 0) -> int:
+        """Stop receiving ``link`` once the values before ``reached`` are in; how many
+        values its sender announced that never came (its node was lost)."""
 
     # -- figures and the end
     def report(self) -> NodeReport:

@@ -5,11 +5,19 @@ operation as one authenticated request to the node's executor process
 (``pb3a.daemons.node_share``), which applies it to its own ``Executor``. Beside the
 operations it offers what only a remote node needs: heartbeats, its controller's
 health, its measured round-trip times, and being declared lost.
+
+Its heartbeats also renew the executor's lease: an executor that hears none for
+``LEASE_S`` fences itself (stops its modules and exits). The launcher declares a node
+lost only after ``LOSS_S`` without an answer, and ``LEASE_S`` plus a heartbeat and the
+executor's own check interval stay below it, so a cut-off executor has stopped
+before its modules are started anywhere else.
 """
 
 from __future__ import annotations
 
 import contextlib
+import threading
+import time
 from typing import TYPE_CHECKING, Any
 
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
@@ -27,6 +35,9 @@ if TYPE_CHECKING:
 CONNECT_TIMEOUT = 5.0      # a node controller answers a ping at once, or is not there
 START_TIMEOUT = 60.0       # an executor process imports numpy and friends first
 CALL_TIMEOUT = 60.0        # the executor's own requests to its workers have deadlines
+HEARTBEAT_S = 0.25         # how often the launcher's side pings the executor
+LEASE_S = 1.5              # an executor that hears no heartbeat this long fences itself
+LOSS_S = 2.0               # no answer for this long: the node is lost (reported within 3 s)
 
 
 class RemoteNode:
@@ -36,12 +47,17 @@ class RemoteNode:
                  workers: int = 0, cpus: list[int] | None = None, checkpoint_s: float = 1.0,
                  log_level: int = 30, code: CodeSources | None = None,
                  advertise: str | None = None,
-                 epoch: int = 0) -> None:
+                 epoch: int = 0, node_epoch: int = 1) -> None:
         self.name, self.config = name, config
+        self.node_epoch = node_epoch        # 1, then one more each time the node rejoins
         key = ClusterKey.load()
         self.controller = ControlClient(key, address)
         self.client: ControlClient | None = None
         self.lost = False
+        self.rtt = float("nan")             # of the last answered heartbeat
+        self._answered = time.monotonic()
+        self._closed = threading.Event()
+        self._heart: threading.Thread | None = None
         # where the other nodes reach its executor and publications
         host = advertise or address.removeprefix("tcp://").rpartition(":")[0]
         try:
@@ -61,12 +77,16 @@ class RemoteNode:
             self.client = ControlClient(key, executor, epoch=epoch)
             self.client.call("bind", launcher=launcher, checkpoint_s=checkpoint_s,
                              log_level=log_level, code=code or CodeSources(),
-                             epoch=epoch)
+                             epoch=epoch, node_epoch=node_epoch, lease_s=LEASE_S)
         except (RuntimeFailure, RuntimeTimeout) as exc:
             self.close()
             raise RuntimeFailure(f"node {name} at {address} did not start an executor for "
                                  f"{config!r}: {exc}") from None
         self.address = executor
+        self._answered = time.monotonic()
+        self._heart = threading.Thread(target=self._beat, name=f"pb3a-heartbeat-{name}",
+                                       daemon=True)
+        self._heart.start()
 
     def _forward(self, op: str, *args: Any, **kwargs: Any) -> Any:
         if self.lost or self.client is None:
@@ -122,14 +142,17 @@ class RemoteNode:
     def unpublish(self, link: FlatLink) -> int:
         return self._forward("unpublish", link)
 
+    def unacknowledged(self, link: FlatLink) -> int:
+        return self._forward("unacknowledged", link)
+
     def open_inbound(self, link: FlatLink, size: RingSize | None) -> None:
         self._forward("open_inbound", link, size)
 
     def follow(self, link: FlatLink, endpoint: Endpoint) -> None:
         self._forward("follow", link, endpoint)
 
-    def close_inbound(self, link: FlatLink, reached: int = 0) -> None:
-        self._forward("close_inbound", link, reached)
+    def close_inbound(self, link: FlatLink, reached: int = 0) -> int:
+        return self._forward("close_inbound", link, reached)
 
     def report(self) -> NodeReport:
         return self._forward("report")
@@ -138,9 +161,17 @@ class RemoteNode:
         return self._forward("worker_pids")
 
     # -- what only a remote node has ------------------------------------------------
-    def ping(self, timeout: float) -> float | None:
-        """The executor's round-trip time, or None without an answer in ``timeout``."""
-        return None if self.client is None else self.client.ping(timeout)
+    def _beat(self) -> None:
+        """Renew the executor's lease every ``HEARTBEAT_S``; note when it answered."""
+        assert self.client is not None
+        while not self._closed.wait(HEARTBEAT_S) and not self.lost:
+            rtt = self.client.ping(2 * HEARTBEAT_S, op="lease")
+            if rtt is not None:
+                self.rtt, self._answered = rtt, time.monotonic()
+
+    def silent_s(self) -> float:
+        """Seconds since the executor last answered a heartbeat."""
+        return time.monotonic() - self._answered
 
     def controller_answers(self, timeout: float) -> bool:
         """True if the node's controller answered within ``timeout`` seconds."""
@@ -178,6 +209,9 @@ class RemoteNode:
         self.close()
 
     def close(self) -> None:
+        self._closed.set()
+        if self._heart is not None:
+            self._heart.join(1.0)
         self.controller.close()
         if self.client is not None:
             self.client.close()

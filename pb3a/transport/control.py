@@ -4,7 +4,8 @@ A ``ControlClient`` sends ``(op, args)`` to a ``ControlServer`` and waits for th
 answer. Every request and reply is sealed with the cluster key and opened (``auth``)
 before it is unpickled: an unauthenticated frame is never deserialized. The server
 takes requests in on its socket loop and runs them one at a time on a handler thread
-(in arrival order, so operations never interleave); ``ping`` is answered at once,
+(in arrival order, so operations never interleave); ``ping`` and the server's
+``instant`` operations (a node's lease) are answered at once on the socket thread,
 so heartbeats are not held up by a long operation.
 
 A request the server cannot open is answered with a plain refusal that names the
@@ -34,7 +35,7 @@ from pb3a.transport.auth import ClusterKey, Opener, Rejected, Sealer
 from pb3a.transport.loop import SocketLoop
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
+    from collections.abc import Callable, Mapping
 
 log = logging.getLogger("pb3a.control")
 
@@ -65,8 +66,11 @@ class ControlServer:
 
     def __init__(self, key: ClusterKey, handler: Callable[[str, dict[str, Any]], Any],
                  host: str = "127.0.0.1", port: int = 0, *, epoch: int = 0,
-                 name: str = "pb3a-control") -> None:
+                 name: str = "pb3a-control",
+                 instant: Mapping[str, Callable[[dict[str, Any]], Any]] | None = None) -> None:
         self._handler = handler
+        # answered on the socket thread, never queued: they must be quick and never block
+        self._instant = {"ping": lambda args: "pong", **(instant or {})}
         self._loop = SocketLoop(f"{name}-io")
         self._router = _socket(self._loop.context, zmq.ROUTER)
         self.address = bind_advertised(self._router, host, port)
@@ -104,8 +108,9 @@ class ControlServer:
             except Exception:
                 self._opener.rejected["undecodable"] += 1
                 continue
-            if op == "ping":
-                self._reply(peer, request_id, True, "pong")
+            answer = self._instant.get(op)
+            if answer is not None:
+                self._reply(peer, request_id, True, answer(args))
             else:
                 self._work.put((peer, request_id, op, args))
 
@@ -228,12 +233,13 @@ class ControlClient:
             box[:] = [None, reason]
             done.set()
 
-    def ping(self, timeout: float) -> float | None:
-        """The round-trip time of one ping (answered by the server's socket thread, so a
-        long request cannot delay it), or None without an answer within ``timeout``."""
+    def ping(self, timeout: float, op: str = "ping") -> float | None:
+        """The round-trip time of one ping, or of another of the server's instant
+        operations (answered by its socket thread, so a long request cannot delay it), or
+        None without an answer within ``timeout``."""
         started = time.monotonic()
         try:
-            self.call("ping", timeout)
+            self.call(op, timeout)
         except (RuntimeFailure, RuntimeTimeout):
             return None
         return time.monotonic() - started

@@ -195,6 +195,15 @@ class Replicator:
         with self._lock:
             return self._streams[_name(topic)].next_seq
 
+    def unacknowledged(self, topic: str) -> int:
+        """How many values of ``topic`` its least advanced follower, live or silent, has
+        not acknowledged (a follower on a lost node: what it never confirmed)."""
+        with self._lock:
+            stream = self._streams.get(_name(topic))
+            if stream is None or not stream.acks:
+                return 0
+            return max(0, stream.next_seq - min(seq for seq, _ in stream.acks.values()))
+
     def counter(self, topic: str) -> Any:
         """What counts the publishes of ``topic`` that waited (``waits``, ``wait_s``)."""
         with self._lock:
@@ -488,6 +497,17 @@ class Follower:
 
     def unfollow(self, topic: str) -> None:
         self._loop.call(lambda: self._unfollow(_name(topic)))
+
+    def missing(self, topic: str) -> int:
+        """How many values of ``topic`` the sender announced, or sent beyond a gap, that
+        were not delivered: what is lost if it is gone for good."""
+        def count() -> int:
+            follow = self._follows.get(_name(topic))
+            if follow is None or follow.next_seq < 0:
+                return 0
+            newest = max(follow.announced, max(follow.held, default=-1) + 1)
+            return max(0, newest - follow.next_seq)
+        return self._loop.call(count)
 
     def set_lossless(self, topic: str, lossless: bool) -> None:
         """Whether ``topic``'s receiver must not drop: then the sender is told (HELLO,

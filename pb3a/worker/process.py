@@ -362,6 +362,9 @@ class Worker:
     def op_unpublish_out(self, key: str) -> int:
         return self.publications.remove(key)
 
+    def op_unacknowledged_out(self, key: str) -> int:
+        return self.publications.unacknowledged(key)
+
     def op_forget(self, module: str) -> list[str]:
         """Drop cached copies of ``module``: the next load or swap gets the new code."""
         return forget(module)

@@ -78,6 +78,14 @@ class Publications:
             reached = self.replicator.sequence(topic)
         return reached
 
+    def unacknowledged(self, key: str) -> int:
+        """Values of the output the link ``key`` reads that some follower has not
+        acknowledged."""
+        for topic, readers in self._readers.items():
+            if key in readers and self.replicator is not None:
+                return self.replicator.unacknowledged(topic)
+        return 0
+
     def close(self) -> None:
         if self.replicator is not None:
             self.replicator.close()

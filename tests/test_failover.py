@@ -1,0 +1,189 @@
+"""Failover and rejoin: the modules of a lost node start again on a surviving one within
+1 s (``fresh``, or ``last-state`` from a checkpoint kept off the lost node), their links
+are wired again and what was lost counted; the node, once back, is admitted under a
+new epoch and modules can be moved back; a fenced executor's word is refused."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import cloudpickle
+import psutil
+import pytest
+from conftest import eventually
+from sample_modules import Collector, Counter, Relay
+
+from pb3a import RuntimeFailure, System
+from pb3a.daemons.node_controller import Limits, NodeController
+from pb3a.transport.auth import ClusterKey
+from pb3a.transport.control import ControlClient
+
+REPO = Path(__file__).resolve().parent.parent
+
+pytestmark = pytest.mark.timeout(120)
+
+
+class Daemon:
+    """``pb3a node start`` in a process of its own, so that it can be killed and started
+    again at the same address."""
+
+    def __init__(self, name: str) -> None:
+        with socket.socket() as probe:
+            probe.bind(("127.0.0.1", 0))
+            port = probe.getsockname()[1]
+        self.name, self.address = name, f"tcp://127.0.0.1:{port}"
+        self.process: subprocess.Popen[str] | None = None
+        self.start()
+
+    def start(self) -> None:
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "tests"), str(REPO)])}
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "pb3a", "node", "start", "--name", self.name,
+             "--listen", self.address, "--max-cpu", "101"],
+            stdout=subprocess.PIPE, text=True, env=env)
+        assert self.process.stdout.readline().strip() == f"node {self.name} at {self.address}"
+
+    def executor_pid(self) -> int:
+        """The pid of the one executor this controller runs."""
+        (executor,) = [child for child in psutil.Process(self.process.pid).children()
+                       if "resource_tracker" not in " ".join(child.cmdline())]
+        return executor.pid
+
+    def kill(self) -> None:
+        self.process.kill()
+        self.process.wait(10)
+        self.process.stdout.close()
+
+    def stop(self) -> None:
+        if self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(15)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait(5)
+        self.process.stdout.close()
+
+
+@pytest.fixture
+def daemons() -> Iterator[dict[str, Daemon]]:
+    made: dict[str, Daemon] = {}
+    try:
+        for name in ("b", "c"):
+            made[name] = Daemon(name)
+        yield made
+    finally:
+        for daemon in made.values():
+            daemon.stop()
+
+
+def _events(run, kind: str) -> list:
+    return [event for event in run.events() if event.kind == kind]
+
+
+@pytest.mark.parametrize("victim", ["executor", "controller"])
+def test_modules_of_a_lost_node_fail_over_within_1_s_and_the_node_rejoins(
+        daemons, victim) -> None:
+    b, c = daemons["b"], daemons["c"]
+    system = System("failover").node("a").node("b", address=b.address)
+    system.node("c", address=c.address)
+    system.add("src", Counter, node="a", period=0.001)
+    system.add("relay", Relay, node="b", restart="last-state", fallback=["c", "a"])
+    system.add("far", Collector, node="b", restart="fresh")
+    system.add("gone", Collector, node="b", restart="never")
+    system.add("near", Collector, node="a")
+    system.link("src.out", "relay.x")
+    system.link("src.out", "far.x")
+    system.link("src.out", "gone.x")
+    system.link("relay.out", "near.x")
+    with system.launch(checkpoint_s=0.2) as run:
+        launcher = run._launcher
+        eventually(lambda: run.state("near")["received"] > 100, timeout=30,
+                   what="values through the relay on b")
+        eventually(lambda: "relay" in launcher.checkpoints, what="a checkpoint off node b")
+        kept = cloudpickle.loads(launcher.checkpoints["relay"])
+        if victim == "executor":
+            os.kill(b.executor_pid(), signal.SIGKILL)
+        else:
+            b.kill()
+        assert launcher.wait_health("b", up=False, timeout=10)
+        moved = eventually(lambda: len(_events(run, "module_failed_over")) == 2
+                           and _events(run, "module_failed_over"), what="two failovers")
+        stats = run.stats()
+        before = {name: run.state(name)["received"] for name in ("near", "far")}
+        eventually(lambda: all(run.state(name)["received"] > before[name] + 50
+                               for name in before), timeout=15,
+                   what="values through the restarted modules")
+        relay = run.state("relay")
+        if victim == "controller":
+            b.start()                           # the machine's daemon comes back
+        joined = eventually(lambda: _events(run, "node_joined"), timeout=20,
+                            what="node b admitted again")
+        assert run.stats().nodes["b"].up and run.stats().nodes["b"].epoch == 2
+        assert run.migrate("relay", to="b").destination == "b"
+        relayed = run.state("relay")["relayed"]
+        eventually(lambda: run.state("relay")["relayed"] > relayed + 50
+                   and run.state("near")["received"] > before["near"] + 200, timeout=15,
+                   what="values through the relay moved back to b")
+        lost_event = _events(run, "node_lost")[0]
+    assert lost_event.detail["modules"] == ["far", "gone", "relay"]
+    where = {event.subject: event.detail for event in moved}
+    assert where["relay"]["destination"] == "c"                   # its first fallback
+    assert where["relay"]["from_checkpoint"] and not where["far"]["from_checkpoint"]
+    assert where["far"]["destination"] in ("a", "c")              # the least loaded
+    assert all(detail["restart_s"] < 1.0 for detail in where.values()), where
+    assert relay["setups"] == kept["setups"] + 1 >= 2             # its checkpoint, restored
+    assert "gone" not in stats.modules and "src.out->gone.x" not in stats.links
+    assert stats.modules["relay"].node == "c" and stats.modules["far"].node in ("a", "c")
+    # what src wrote while nobody on b read it is counted, never silently gone
+    assert stats.links["src.out->relay.x"].link_failures > 500
+    assert stats.links["src.out->far.x"].link_failures > 500
+    assert joined[0].detail["epoch"] == 2
+
+
+def test_a_fenced_executors_word_is_refused_and_placement_follows_admission() -> None:
+    b = NodeController("b", ClusterKey.load(), limits=Limits(max_cpu_percent=101.0))
+    c = NodeController("c", ClusterKey.load(), limits=Limits(max_cpu_percent=101.0))
+    try:
+        system = System("fenced").node("a").node("b", address=b.address)
+        system.node("c", address=c.address)
+        system.add("src", Counter, node="a", period=0.001)
+        system.add("relay", Relay, node="b", restart="fresh", fallback=["c", "a"])
+        system.add("near", Collector, node="a")
+        system.link("src.out", "relay.x")
+        system.link("relay.out", "near.x")
+        with system.launch() as run:
+            launcher = run._launcher
+            eventually(lambda: run.state("near")["received"] > 10, timeout=30,
+                       what="values through b")
+            c.limits.max_cpu_percent = -1.0               # c refuses any work from now on
+            os.kill(b._executors["fenced"][0].pid, signal.SIGSTOP)   # cut off, not dead
+            assert launcher.wait_health("b", up=False, timeout=10)
+            moved = eventually(lambda: _events(run, "module_failed_over"),
+                               what="relay restarted")
+            callback = ControlClient(ClusterKey.load(), run.address)
+            try:      # what the old executor says, were it to wake up, is refused
+                with pytest.raises(RuntimeFailure, match="stale: node b's executor of epoch 1"
+                                                         " was fenced"):
+                    callback.call("event", 5.0, kind="module_failed", subject="relay",
+                                  detail={}, node="b", node_epoch=1)
+            finally:
+                callback.close()
+            joined = eventually(lambda: _events(run, "node_joined"), timeout=20,
+                                what="b admitted again (its controller never went)")
+            with pytest.raises(RuntimeFailure, match="stale: node b's executor of epoch 1"):
+                launcher.check_node_epoch("b", 1)
+            launcher.check_node_epoch("b", 2)
+            failures = run.stats().failures
+    finally:
+        b.close()
+        c.close()
+    assert moved[0].detail["destination"] == "a"          # c, its first fallback, refused
+    assert joined[0].detail["epoch"] == 2
+    assert not any("module_failed" in failure for failure in failures)
