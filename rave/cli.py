@@ -85,10 +85,14 @@ class _Served:
 
 def fault_command(args: argparse.Namespace) -> int:
     from pb3a.errors import RuntimeFailure, RuntimeTimeout
-    from pb3a.transport.auth import ClusterKey
+    from pb3a.transport.auth import ClusterKey, ClusterKeyError
     from pb3a.transport.control import ControlClient
 
-    client = ControlClient(ClusterKey.load(), args.robot)
+    try:
+        client = ControlClient(ClusterKey.load(), args.robot)
+    except ClusterKeyError as exc:
+        print(f"rave fault: {exc}", file=sys.stderr)
+        return 1
     try:
         if args.clear:
             client.call("clear", fault=args.fault)

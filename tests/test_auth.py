@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import pwd
 import random
 import stat
 
@@ -27,6 +29,7 @@ def _rejected(opener: Opener, frames: list, reason: str) -> None:
 def test_the_key_comes_from_the_environment_then_the_key_file_then_home(tmp_path) -> None:
     key_file = tmp_path / "cluster.key"
     key_file.write_text("f" * 64 + "\n")
+    key_file.chmod(0o600)
     from_env = ClusterKey.load({"PB3A_KEY": "e" * 64, "PB3A_KEY_FILE": str(key_file)})
     from_file = ClusterKey.load({"PB3A_KEY_FILE": str(key_file)})
     assert from_env == ClusterKey.load({"PB3A_KEY": "e" * 64})
@@ -48,6 +51,50 @@ def test_bad_keys_name_where_they_came_from(tmp_path) -> None:
     missing = tmp_path / "nope.key"
     with pytest.raises(ClusterKeyError, match=f"cannot read the cluster key file {missing}"):
         ClusterKey.load({"PB3A_KEY_FILE": str(missing)})
+
+
+def _key_file(tmp_path, mode: int):
+    path = tmp_path / "cluster.key"
+    path.write_text("s" * 64 + "\n")
+    path.chmod(mode)
+    return path
+
+
+@pytest.mark.parametrize("mode", [0o644, 0o640, 0o604, 0o660, 0o602, 0o620, 0o610, 0o601])
+def test_a_key_file_others_can_read_or_change_is_refused_saying_how_to_fix_it(
+        tmp_path, mode) -> None:
+    path = _key_file(tmp_path, mode)
+    with pytest.raises(ClusterKeyError) as refused:
+        ClusterKey.load({"PB3A_KEY_FILE": str(path)})
+    assert str(refused.value) == (
+        f"the cluster key file {path} has mode {mode:04o}, so other users can read or "
+        f"change it; make it private with `chmod 600 {path}`")
+
+
+def test_the_home_key_file_is_refused_too_once_others_can_read_it(tmp_path) -> None:
+    ClusterKey.load({}, home=tmp_path)
+    path = tmp_path / ".pb3a" / "cluster.key"
+    path.chmod(0o644)
+    with pytest.raises(ClusterKeyError, match=f"chmod 600 {path}"):
+        ClusterKey.load({}, home=tmp_path)
+
+
+@pytest.mark.parametrize("mode", [0o600, 0o400])
+def test_a_key_file_only_its_owner_can_read_is_accepted(tmp_path, mode) -> None:
+    path = _key_file(tmp_path, mode)
+    assert ClusterKey.load({"PB3A_KEY_FILE": str(path)}) == ClusterKey.from_material("s" * 64)
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="giving a file to another user needs root")
+def test_a_key_file_of_another_user_is_refused_naming_both_users(tmp_path) -> None:
+    path = _key_file(tmp_path, 0o600)
+    os.chown(path, 65534, -1)
+    owner, me = pwd.getpwuid(65534).pw_name, pwd.getpwuid(os.geteuid()).pw_name
+    with pytest.raises(ClusterKeyError) as refused:
+        ClusterKey.load({"PB3A_KEY_FILE": str(path)})
+    assert str(refused.value) == (
+        f"the cluster key file {path} (mode 0600) belongs to {owner}, not to {me} who runs "
+        f"this; give it to that user with `chown {me} {path}`")
 
 
 # -- sealing and opening ------------------------------------------------------------

@@ -18,7 +18,9 @@ import pytest
 from conftest import alive, eventually
 from sample_modules import Chain, Collector, Copies, Counter, Relay, Stamped
 
-from pb3a import System
+from pb3a import RuntimeFailure, System
+from pb3a.transport.auth import ClusterKey
+from pb3a.transport.control import ControlClient
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -45,21 +47,23 @@ WHY_NOT = _can_make_namespaces()
 
 class Lan:
     """A bridge in the test's namespace (the launcher's host) and hosts plugged into it,
-    each a network namespace with one veth cable: a small lab network."""
+    each a network namespace with one veth cable: a small lab network. A test's second
+    network is ``Lan(net=1)``; with ``here=False`` the launcher's host is not on it."""
 
-    def __init__(self) -> None:
+    def __init__(self, net: int = 0, here: bool = True) -> None:
         tag = os.getpid() % 100000
-        self.subnet = f"10.231.{100 + tag % 100}"
-        self.bridge = f"pb{tag}br"
-        self.address = f"{self.subnet}.1"          # the launcher's host on this network
+        self.subnet = f"10.{231 + net}.{100 + tag % 100}"
+        self.bridge = f"pb{tag}n{net}"
+        self.address = f"{self.subnet}.1" if here else None   # the launcher's host here
         self.hosts: list[Host] = []
-        for command in (["ip", "link", "add", self.bridge, "type", "bridge"],
-                        ["ip", "addr", "add", f"{self.address}/24", "dev", self.bridge],
-                        ["ip", "link", "set", self.bridge, "up"]):
-            _run(command)
+        self.cables = 0                                # hosts plugged in (their addresses)
+        _run(["ip", "link", "add", self.bridge, "type", "bridge"])
+        if here:
+            _run(["ip", "addr", "add", f"{self.address}/24", "dev", self.bridge])
+        _run(["ip", "link", "set", self.bridge, "up"])
 
     def host(self, name: str) -> Host:
-        host = Host(self, name, f"{self.subnet}.{2 + len(self.hosts)}")
+        host = Host(self, name)
         self.hosts.append(host)
         return host
 
@@ -70,23 +74,33 @@ class Lan:
 
 
 class Host:
-    """A network namespace plugged into the lan by a veth cable."""
+    """A network namespace plugged into the lan by a veth cable (and into other lans by
+    more cables: ``plug``)."""
 
-    def __init__(self, lan: Lan, name: str, address: str) -> None:
+    def __init__(self, lan: Lan, name: str) -> None:
+        self.name = name
         self.ns = f"pb3a-{os.getpid()}-{name}"
-        self.cable = f"{lan.bridge[:-2]}{name}"[:15]   # interface names: 15 characters
-        inner = f"{self.cable[:13]}in"
-        self.address = address
+        self.cables: list[str] = []
         self.daemons: list[subprocess.Popen[str]] = []
-        for command in (["ip", "netns", "add", self.ns],
-                        ["ip", "link", "add", self.cable, "type", "veth", "peer", "name", inner],
+        _run(["ip", "netns", "add", self.ns])
+        _run(*self.inside(["ip", "link", "set", "lo", "up"]))
+        self.address = self.plug(lan)
+
+    def plug(self, lan: Lan) -> str:
+        """Plug this host into ``lan`` with a cable of its own; its address there."""
+        lan.cables += 1
+        address = f"{lan.subnet}.{1 + lan.cables}"
+        cable = f"{lan.bridge}{self.name}"[:13]       # interface names: 15 characters
+        inner = f"{cable}in"
+        self.cables.append(cable)
+        for command in (["ip", "link", "add", cable, "type", "veth", "peer", "name", inner],
                         ["ip", "link", "set", inner, "netns", self.ns],
-                        ["ip", "link", "set", self.cable, "master", lan.bridge],
-                        ["ip", "link", "set", self.cable, "up"],
+                        ["ip", "link", "set", cable, "master", lan.bridge],
+                        ["ip", "link", "set", cable, "up"],
                         *self.inside(["ip", "addr", "add", f"{address}/24", "dev", inner],
-                                     ["ip", "link", "set", inner, "up"],
-                                     ["ip", "link", "set", "lo", "up"])):
+                                     ["ip", "link", "set", inner, "up"])):
             _run(command)
+        return address
 
     def inside(self, *commands: list[str]) -> list[list[str]]:
         return [["ip", "netns", "exec", self.ns, *command] for command in commands]
@@ -113,8 +127,9 @@ class Host:
                 if "resource_tracker" not in " ".join(child.cmdline())]
 
     def cut(self, up: bool = False) -> None:
-        """Unplug this host's cable (or plug it back)."""
-        _run(["ip", "link", "set", self.cable, "up" if up else "down"])
+        """Unplug this host's cables (or plug them back)."""
+        for cable in self.cables:
+            _run(["ip", "link", "set", cable, "up" if up else "down"])
 
     def remove(self) -> None:
         for daemon in self.daemons:
@@ -126,7 +141,8 @@ class Host:
                 daemon.wait(5)
             daemon.stdout.close()
         subprocess.run(["ip", "netns", "del", self.ns], check=False, capture_output=True)
-        subprocess.run(["ip", "link", "del", self.cable], check=False, capture_output=True)
+        for cable in self.cables:
+            subprocess.run(["ip", "link", "del", cable], check=False, capture_output=True)
 
 
 def _run(command: list[str]) -> None:
@@ -171,6 +187,52 @@ def test_links_cross_to_a_node_on_another_host_both_ways(lan: Lan) -> None:
         "tick_a.out->at_b.x": "zmq", "tick_b.out->relay.x": "zmq",
         "relay.out->at_a.x": "shm"}                   # relay is back beside at_a
     assert all(link.link_failures == 0 for link in links.values())
+
+
+def test_a_host_on_two_networks_binds_on_one_address_and_advertises_another(
+        lan: Lan) -> None:
+    # The launcher's host and robot m are on a management network and on the lab's;
+    # robot r is on the lab's only. The launcher reaches m's controller on the first;
+    # r reaches m where m advertises, and the launcher's node where the launcher
+    # chose (the interface towards the nodes), both on the second.
+    management = Lan(net=1)
+    try:
+        m, r = lan.host("m"), lan.host("r")
+        m_management = m.plug(management)
+        assert m.start("node", "start", "--name", "m", "--listen", "tcp://0.0.0.0:7100",
+                       "--max-cpu", "101") == "node m at tcp://0.0.0.0:7100"
+        controller = f"tcp://{m_management}:7100"
+        system = System("two-networks").node("a")
+        system.node("m", address=controller, advertise=m.address).node("r", address=r.node("r"))
+        for node in "amr":
+            system.add(f"tick_{node}", Counter, node=node, period=0.002)
+        for src, dst in ("ar", "ra", "mr", "rm"):
+            system.add(f"{src}_to_{dst}", Collector, node=dst)
+            system.link(f"tick_{src}.out", f"{src}_to_{dst}.x")
+        with system.launch() as run:
+            for name in ("ar", "ra", "mr", "rm"):
+                eventually(lambda name=f"{name[0]}_to_{name[1]}": run.state(name)["received"]
+                           > 50, timeout=30, what=f"values on {name[0]} -> {name[1]}")
+            launcher = run.address
+        assert launcher.startswith(f"tcp://{lan.address}:")   # not the management address
+
+        wrong = System("wrong-advertise").node("m", address=controller,
+                                                advertise=f"{lan.subnet}.99")
+        wrong.add("tick", Counter, node="m")
+        started = time.monotonic()
+        with pytest.raises(RuntimeFailure, match=(
+                rf"node m: its executor did not answer within 5 s at tcp://{lan.subnet}\.99:"
+                rf"\d+, on the host other nodes reach node m at \({lan.subnet}\.99\); make "
+                r"\[nodes\.m\] advertise an address of that machine")):
+            wrong.launch()
+        assert time.monotonic() - started < 20
+        client = ControlClient(ClusterKey.load(), controller)
+        try:
+            assert client.call("status")["executors"] == {}        # none left running
+        finally:
+            client.close()
+    finally:
+        management.remove()
 
 
 LAB_MODULES = '''

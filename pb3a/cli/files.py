@@ -32,8 +32,10 @@ def register(commands: argparse._SubParsersAction) -> None:
     run.add_argument("file", metavar="FILE", help="a system description (.toml)")
     run.add_argument("--for", dest="seconds", type=float, metavar="SECONDS",
                      help="stop after this many seconds (default: until Ctrl-C)")
-    run.add_argument("--listen", default="tcp://127.0.0.1:0", metavar="ADDR",
-                     help="where the launcher takes `pb3a status ADDR` etc. (default: any port)")
+    run.add_argument("--listen", metavar="ADDR",
+                     help="where the launcher takes `pb3a status ADDR` etc. and remote nodes "
+                          "call it back (default: any port on the interface that reaches "
+                          "the remote nodes; loopback without)")
     run.set_defaults(handler=run_command)
 
 

@@ -8,6 +8,7 @@
     pb3a scenario NAME [ARGS...]  run an application (a ``pb3a.scenarios`` entry point)
     pb3a modules serve DIR [--listen ADDR]   serve module code to the nodes (until signalled)
     pb3a node start --name N [--listen ADDR] run a node controller (until signalled)
+    pb3a key new PATH             write a new cluster key file (mode 0600)
 
 Each module of this package registers its subcommands; each subcommand is a function
 taking the parsed arguments and returning the exit code. The command modules are
@@ -43,11 +44,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _parser() -> argparse.ArgumentParser:
-    from pb3a.cli import daemons, files, running_system, scenarios
+    from pb3a.cli import daemons, files, keys, running_system, scenarios
 
     parser = argparse.ArgumentParser(
         prog="pb3a", description="Port-based modules that run, swap and move while they run.")
     commands = parser.add_subparsers(title="commands", metavar="COMMAND")
-    for group in (files, running_system, scenarios, daemons):
+    for group in (files, running_system, scenarios, daemons, keys):
         group.register(commands)
     return parser

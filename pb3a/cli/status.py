@@ -72,10 +72,11 @@ def _columns(rows: list[tuple[str, ...]]) -> list[str]:
 
 
 def run_with_status(plan: Plan, seconds: float | None, out: TextIO | None = None,
-                    listen: str = "tcp://127.0.0.1:0") -> int:
+                    listen: str | None = None) -> int:
     """Run ``plan`` until ``seconds`` pass (None: until Ctrl-C or SIGTERM), the table on
     ``out`` (default: stdout); 0 on a clean stop. The launcher takes ``pb3a.connect``
-    and ``pb3a status ADDR`` ... at ``listen``."""
+    and ``pb3a status ADDR`` ... at ``listen`` (default: where the remote nodes reach
+    it, else loopback)."""
     out = out or sys.stdout
     previous = signal.signal(signal.SIGTERM, _interrupt)
     live = out.isatty()
@@ -83,9 +84,10 @@ def run_with_status(plan: Plan, seconds: float | None, out: TextIO | None = None
     try:
         with launch(plan, listen=listen) as run:
             try:     # (from the first line on, a signal means a clean stop)
+                address = run.address or run.listen()
                 out.write(f"pb3a: system {run.name!r} running"
                           f"{f' for {seconds:g} s' if seconds else ''}; Ctrl-C stops it; "
-                          f"launcher at {run.address}\n")
+                          f"launcher at {address}\n")
                 out.flush()
                 while seconds is None or time.monotonic() - started < seconds:
                     left = REFRESH_S if seconds is None else min(

@@ -61,8 +61,10 @@ class Running(SystemHandle):
         launcher = self._launcher
         try:
             with launcher.lock.held(f"start system {self.name!r}"):
-                remote = [node.address for node in self.plan.nodes.values() if node.address]
-                if self._listen_at is not None or remote:  # remote nodes call the launcher
+                # remote nodes call the launcher back where they reach each other
+                remote = [f"tcp://{node.advertise}:0" if node.advertise else node.address
+                          for node in self.plan.nodes.values() if node.address]
+                if self._listen_at is not None or remote:
                     self.listen(self._listen_at or f"tcp://{reachable_from(remote[0])}:0")
                 launcher.start_nodes(self.address if remote else None)
                 launcher.expect(list(self.plan.modules.values()))

@@ -75,13 +75,23 @@ class RemoteNode:
             executor = self.controller.call("start_executor", START_TIMEOUT, config=config,
                                             workers=workers, cpus=cpus, host=host)
             self.client = ControlClient(key, executor, epoch=epoch)
-            self.client.call("bind", launcher=launcher, checkpoint_s=checkpoint_s,
-                             log_level=log_level, code=code or CodeSources(),
-                             epoch=epoch, node_epoch=node_epoch, lease_s=LEASE_S)
+            reached = self.client.ping(CONNECT_TIMEOUT) is not None
+            if reached:
+                self.client.call("bind", launcher=launcher, checkpoint_s=checkpoint_s,
+                                 log_level=log_level, code=code or CodeSources(),
+                                 epoch=epoch, node_epoch=node_epoch, lease_s=LEASE_S)
         except (RuntimeFailure, RuntimeTimeout) as exc:
             self.close()
             raise RuntimeFailure(f"node {name} at {address} did not start an executor for "
                                  f"{config!r}: {exc}") from None
+        if not reached:                # its controller answers, but not where it is reached
+            self.lost = True                           # (shutdown then kills the executor)
+            self.shutdown()
+            raise RuntimeFailure(
+                f"node {name}: its executor did not answer within {CONNECT_TIMEOUT:g} s at "
+                f"{executor}, on the host other nodes reach node {name} at ({host}); make "
+                f"[nodes.{name}] advertise an address of that machine which this one and the "
+                "other nodes reach, and open its ports to them")
         self.address = executor
         self._answered = time.monotonic()
         self._heart = threading.Thread(target=self._beat, name=f"pb3a-heartbeat-{name}",

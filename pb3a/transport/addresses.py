@@ -10,6 +10,7 @@ address to hand out: ``tcp://HOST:PORT`` with that host.
 
 from __future__ import annotations
 
+import errno
 import socket
 
 import zmq
@@ -21,7 +22,7 @@ def bind_advertised(sock: zmq.Socket, host: str, port: int = 0) -> str:
     try:
         sock.bind(f"tcp://{host}:{port or '*'}")
     except zmq.ZMQError as exc:
-        if exc.errno not in (zmq.EADDRNOTAVAIL, zmq.ENODEV, zmq.EINVAL):
+        if exc.errno not in (errno.EADDRNOTAVAIL, errno.ENODEV, errno.EINVAL):
             raise
         sock.bind(f"tcp://*:{port or '*'}")       # not an address of ours: all interfaces
     bound = sock.getsockopt_string(zmq.LAST_ENDPOINT)

@@ -21,9 +21,12 @@ and any tag that does not verify. Only then does a caller unpickle anything.
 from __future__ import annotations
 
 import collections
+import contextlib
 import hashlib
 import os
+import pwd
 import secrets
+import stat
 import struct
 import time
 from dataclasses import dataclass
@@ -79,28 +82,42 @@ class ClusterKey:
     @classmethod
     def load(cls, environ: dict[str, str] | None = None, home: Path | None = None) -> ClusterKey:
         """From ``PB3A_KEY``, else the file named by ``PB3A_KEY_FILE``, else
-        ``~/.pb3a/cluster.key``, which is created (mode 0600) on first use."""
+        ``~/.pb3a/cluster.key``, which is created (mode 0600) on first use. A key file
+        another user could read or change is refused (``ClusterKeyError``)."""
         env = os.environ if environ is None else environ
         if env.get(KEY_ENV):
             return cls._checked(env[KEY_ENV].encode(), f"${KEY_ENV}")
         if env.get(KEY_FILE_ENV):
-            path = Path(env[KEY_FILE_ENV]).expanduser()
-            try:
-                return cls._checked(path.read_bytes().strip(), str(path))
-            except OSError as exc:
-                raise ClusterKeyError(f"cannot read the cluster key file {path} named by "
-                                f"${KEY_FILE_ENV}: {exc.strerror}") from None
+            return cls._read(Path(env[KEY_FILE_ENV]).expanduser(), f" named by ${KEY_FILE_ENV}")
         path = (home / ".pb3a" / "cluster.key") if home else DEFAULT_KEY_FILE.expanduser()
         if not path.exists():
             path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
-            try:      # O_EXCL: two processes starting at once agree on one key
-                fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-            except FileExistsError:
-                pass
-            else:
-                with os.fdopen(fd, "wb") as out:
-                    out.write(secrets.token_hex(32).encode() + b"\n")
-        return cls._checked(path.read_bytes().strip(), str(path))
+            with contextlib.suppress(FileExistsError):   # two processes starting at once
+                cls.create(path)                         # agree on one key
+        return cls._read(path)
+
+    @classmethod
+    def create(cls, path: Path) -> ClusterKey:
+        """New key material written to ``path``, which must not exist yet
+        (``FileExistsError``), as a file only its owner can read (mode 0600)."""
+        material = secrets.token_hex(32).encode()
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "wb") as out:
+            out.write(material + b"\n")
+        return cls._checked(material, str(path))
+
+    @classmethod
+    def _read(cls, path: Path, named: str = "") -> ClusterKey:
+        """The key in the file at ``path``, which must belong to the user running this
+        and be readable by nobody else (the key is the cluster's root of trust)."""
+        try:
+            with path.open("rb") as file:
+                _check_private(path, os.fstat(file.fileno()))
+                material = file.read().strip()
+        except OSError as exc:
+            raise ClusterKeyError(f"cannot read the cluster key file {path}{named}: "
+                                  f"{exc.strerror}") from None
+        return cls._checked(material, str(path))
 
     @classmethod
     def from_material(cls, material: bytes | str, where: str = "the key given") -> ClusterKey:
@@ -119,6 +136,27 @@ class ClusterKey:
         """The signing key of one sender incarnation (HKDF-SHA256)."""
         return HKDF(hashes.SHA256(), 32, salt=None, info=b"pb3a sender\0" + sender).derive(
             self.secret)
+
+
+def _check_private(path: Path, status: os.stat_result) -> None:
+    """Refuse a key file that another user could read or change, or that belongs to
+    another user (as ssh refuses such private keys): one sentence with the fix."""
+    mode, me = stat.S_IMODE(status.st_mode), os.geteuid()
+    if mode & 0o077:
+        raise ClusterKeyError(f"the cluster key file {path} has mode {mode:04o}, so other "
+                              f"users can read or change it; make it private with "
+                              f"`chmod 600 {path}`")
+    if status.st_uid != me:
+        raise ClusterKeyError(f"the cluster key file {path} (mode {mode:04o}) belongs to "
+                              f"{_user(status.st_uid)}, not to {_user(me)} who runs this; "
+                              f"give it to that user with `chown {_user(me)} {path}`")
+
+
+def _user(uid: int) -> str:
+    try:
+        return pwd.getpwuid(uid).pw_name
+    except KeyError:
+        return f"uid {uid}"
 
 
 def _flat(part: Any) -> Any:

@@ -1,0 +1,37 @@
+"""``pb3a key new PATH``: make a cluster key file the way every command accepts it (new
+random material, mode 0600, owned by the user who runs this), to copy to each host."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from pb3a.transport.auth import KEY_FILE_ENV, ClusterKey
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    """Add ``key new``."""
+    key = commands.add_parser("key", help="the cluster key")
+    key_commands = key.add_subparsers(title="commands", metavar="COMMAND")
+    new = key_commands.add_parser("new", help="write a new cluster key to PATH (mode 0600)")
+    new.add_argument("path", metavar="PATH", help="the key file to create (it must not exist)")
+    new.set_defaults(handler=key_new_command)
+
+
+def key_new_command(args: argparse.Namespace) -> int:
+    """``pb3a key new PATH``: a new key file, never over an existing one."""
+    path = Path(args.path).expanduser()
+    try:
+        ClusterKey.create(path)
+    except FileExistsError:
+        print(f"pb3a key new: {path} exists; a cluster's key is made once and copied to "
+              "each host (remove the file first to replace the key on every host)",
+              file=sys.stderr)
+        return 1
+    except OSError as exc:
+        print(f"pb3a key new: cannot create {path}: {exc.strerror}", file=sys.stderr)
+        return 1
+    print(f"wrote a new cluster key to {path} (mode 0600); copy it to each host, readable "
+          f"only by the user who runs pb3a there, and set {KEY_FILE_ENV}={path}")
+    return 0
