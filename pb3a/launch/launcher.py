@@ -520,6 +520,9 @@ class Launcher:
         self._stopping.set()
         if self._watchdog is not None:
             self._watchdog.join(2.0)
+        for remote in self.remotes.values():
+            if remote.silent_s() > 2 * HEARTBEAT_S:   # gone, not yet declared: no waiting
+                remote.lose()
         with self.lock.held("shut the system down"):
             for name in reversed(list(self.specs)):
                 left = max(0.1, deadline - time.monotonic())

@@ -35,6 +35,7 @@ if TYPE_CHECKING:
 CONNECT_TIMEOUT = 5.0      # a node controller answers a ping at once, or is not there
 START_TIMEOUT = 60.0       # an executor process imports numpy and friends first
 CALL_TIMEOUT = 60.0        # the executor's own requests to its workers have deadlines
+MARGIN_S = 5.0             # beyond an operation's own deadline: the way there and back
 HEARTBEAT_S = 0.25         # how often the launcher's side pings the executor
 LEASE_S = 1.5              # an executor that hears no heartbeat this long fences itself
 LOSS_S = 2.0               # no answer for this long: the node is lost (reported within 3 s)
@@ -81,7 +82,11 @@ class RemoteNode:
                                  log_level=log_level, code=code or CodeSources(),
                                  epoch=epoch, node_epoch=node_epoch, lease_s=LEASE_S)
         except (RuntimeFailure, RuntimeTimeout) as exc:
-            self.close()
+            if self.client is None:
+                self.close()
+            else:                          # started but not bound: do not leave it running
+                self.lost = True
+                self.shutdown()
             raise RuntimeFailure(f"node {name} at {address} did not start an executor for "
                                  f"{config!r}: {exc}") from None
         if not reached:                # its controller answers, but not where it is reached
@@ -98,10 +103,12 @@ class RemoteNode:
                                        daemon=True)
         self._heart.start()
 
-    def _forward(self, op: str, *args: Any, **kwargs: Any) -> Any:
+    def _forward(self, op: str, *args: Any, within: float = CALL_TIMEOUT, **kwargs: Any) -> Any:
+        """Apply ``op`` at the executor; an operation with a deadline of its own gets
+        that, plus ``MARGIN_S`` for the way there and back."""
         if self.lost or self.client is None:
             raise RuntimeFailure(f"node {self.name} is lost")
-        return self.client.call("executor", CALL_TIMEOUT, method=op, args=args, kwargs=kwargs)
+        return self.client.call("executor", within, method=op, args=args, kwargs=kwargs)
 
     # -- Node ------------------------------------------------------------------
     def expect(self, specs: list[FlatModule]) -> None:
@@ -114,19 +121,20 @@ class RemoteNode:
         self._forward("start_modules", names)
 
     def call_module(self, name: str, op: str, timeout: float, /, **args: Any) -> Any:
-        return self._forward("call_module", name, op, timeout, **args)
+        return self._forward("call_module", name, op, timeout, within=timeout + MARGIN_S,
+                             **args)
 
     def swap(self, name: str, spec: FlatModule) -> list[str]:
         return self._forward("swap", name, spec)
 
     def pause(self, name: str, timeout: float) -> bool:
-        return self._forward("pause", name, timeout)
+        return self._forward("pause", name, timeout, within=timeout + MARGIN_S)
 
     def resume(self, name: str) -> None:
         self._forward("resume", name)
 
     def stop_module(self, name: str, timeout: float) -> None:
-        self._forward("stop_module", name, timeout)
+        self._forward("stop_module", name, timeout, within=timeout + MARGIN_S)
 
     def remove_module(self, name: str) -> None:
         self._forward("remove_module", name)
