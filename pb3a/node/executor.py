@@ -35,7 +35,8 @@ from pb3a.node.workers import REQUEST_TIMEOUT, WorkerHandle, WorkerPool, WorkerS
 from pb3a.stats import InputStats, ModuleStats, NodeReport, WaitStats
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.ring import ShmRing
-from pb3a.transport.shm import reap_orphans, segment_name
+from pb3a.transport.shm import memory_domain, reap_orphans, segment_name, unlink_name
+from pb3a.transport.snapshot import Snapshot
 
 log = logging.getLogger("pb3a.executor")
 _module_log = logging.getLogger("pb3a.module")
@@ -222,18 +223,47 @@ class Executor:
             self.call(record.worker, "remove", name=name)
         self._vacate(record.worker, name)
 
-    def retire(self, name: str) -> bytes:
-        """The migration fence: ``teardown``, then capture the module's state and unconsumed
-        inputs and drop it here; it runs nowhere until restored (``land``)."""
-        record = self.modules[name]
-        captured = self.call(record.worker, "migrate_out", name=name)
-        del self.modules[name]
-        self._vacate(record.worker, name)
-        return captured
+    def memory_domain(self) -> str:
+        """Where this node's shared-memory segments can be seen (see ``retire``)."""
+        return memory_domain()
 
-    def land(self, name: str, captured: bytes) -> None:
-        """Restore what ``retire`` captured into the (instantiated, not started) module."""
-        self.call_module(name, "migrate_in", captured=captured)
+    def retire(self, name: str, carry: bool) -> Snapshot:
+        """The migration fence: ``teardown``, then capture the module's state and unconsumed
+        inputs into a segment of this executor, and drop the module here; it runs nowhere
+        until restored (``land``). With ``carry`` (a destination in another memory domain)
+        the parts travel in the snapshot instead. The worker the module leaves is stopped
+        by ``release``, after the pause, if nothing else runs there."""
+        record = self.modules[name]
+        segment = segment_name("state")
+        try:
+            snapshot: Snapshot = self.call(record.worker, "migrate_out", name=name,
+                                           segment=segment)
+        except BaseException:
+            unlink_name(segment)               # (if the worker made it before failing)
+            raise
+        del self.modules[name]
+        self.workers[record.worker].modules.remove(name)
+        return snapshot.carry() if carry else snapshot
+
+    def land(self, name: str, snapshot: Snapshot) -> float:
+        """Restore what ``retire`` captured into the (instantiated, not started) module;
+        the seconds its worker took."""
+        if not snapshot.carried:
+            return self.call_module(name, "migrate_in", snapshot=snapshot)
+        here = snapshot.lay_out(segment_name("state"))
+        try:
+            return self.call_module(name, "migrate_in", snapshot=here)
+        finally:
+            here.release()
+
+    def release(self, snapshot: Snapshot) -> None:
+        """A migration from here is over: unlink its snapshot's segment and stop the
+        workers it left empty (a move back home after a failed landing reuses its worker)."""
+        snapshot.release()
+        for key, handle in list(self.workers.handles.items()):
+            if not handle.modules:
+                self.workers.retire(key)
+                self._budgets.pop(key, None)
 
     def _vacate(self, key: str, name: str) -> None:
         """``name`` no longer runs in worker ``key``; stop the worker if it is empty now."""

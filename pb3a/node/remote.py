@@ -23,6 +23,7 @@ if TYPE_CHECKING:
     from pb3a.node.protocol import Endpoint
     from pb3a.node.ring_sizes import RingSize
     from pb3a.stats import NodeReport
+    from pb3a.transport.snapshot import Snapshot
 
 CONNECT_TIMEOUT = 5.0      # a node controller answers a ping at once, or is not there
 START_TIMEOUT = 60.0       # an executor process imports numpy and friends first
@@ -42,6 +43,7 @@ class RemoteNode:
         self.controller = ControlClient(key, address)
         self.client: ControlClient | None = None
         self.lost = False
+        self._domain: str | None = None
         # where the other nodes reach its executor and publications
         host = advertise or address.removeprefix("tcp://").rpartition(":")[0]
         try:
@@ -101,11 +103,19 @@ class RemoteNode:
     def remove_module(self, name: str) -> None:
         self._forward("remove_module", name)
 
-    def retire(self, name: str) -> bytes:
-        return self._forward("retire", name)
+    def memory_domain(self) -> str:
+        if self._domain is None:                # (it does not change: asked once)
+            self._domain = self._forward("memory_domain")
+        return self._domain
 
-    def land(self, name: str, captured: bytes) -> None:
-        self._forward("land", name, captured)
+    def retire(self, name: str, carry: bool) -> Snapshot:
+        return self._forward("retire", name, carry)
+
+    def land(self, name: str, snapshot: Snapshot) -> float:
+        return self._forward("land", name, snapshot)
+
+    def release(self, snapshot: Snapshot) -> None:
+        self._forward("release", snapshot)
 
     def forget(self, module: str) -> None:
         self._forward("forget", module)

@@ -30,6 +30,7 @@ from pb3a.model.ports import InputPort, Policy, WaitCounter
 from pb3a.transport.codec import local_copy
 from pb3a.transport.doorbell import BellPull
 from pb3a.transport.ring import ShmRing, sleep
+from pb3a.transport.snapshot import Snapshot
 from pb3a.worker.actor import EventPool, ModuleActor
 from pb3a.worker.publications import Publications
 from pb3a.worker.waits import RuntimeWait
@@ -232,8 +233,10 @@ class Worker:
             self._paused.discard(name)
             self.actors[name].lock.release()
 
-    def op_migrate_out(self, name: str) -> bytes:
-        """Retire a paused module for its move: its state and unconsumed inputs."""
+    def op_migrate_out(self, name: str, segment: str) -> Snapshot:
+        """Retire a paused module for its move: its state and unconsumed inputs, laid out
+        in a new shared-memory segment ``segment`` (which its executor unlinks)."""
+        started = time.perf_counter()
         if name not in self._paused:
             raise RuntimeError(f"module {name!r} must be paused before it migrates")
         actor = self.actors.pop(name)
@@ -243,11 +246,14 @@ class Worker:
         actor.join(timeout=1.0)
         self.restart_policy.pop(name, None)
         self._retime()
-        return cloudpickle.dumps(captured, protocol=5)
+        return Snapshot.capture(captured, segment, since=started)
 
-    def op_migrate_in(self, name: str, captured: bytes) -> None:
-        """Take over a module's state and unconsumed inputs (added, not yet started)."""
-        self.actors[name].restore(cloudpickle.loads(captured))
+    def op_migrate_in(self, name: str, snapshot: Snapshot) -> float:
+        """Take over a module's state and unconsumed inputs (added, not yet started);
+        the seconds it took."""
+        started = time.perf_counter()
+        self.actors[name].restore(snapshot.restore())
+        return time.perf_counter() - started
 
     def op_remove(self, name: str) -> None:
         actor = self.actors.pop(name)
