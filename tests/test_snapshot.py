@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from conftest import assert_same_arrays
 
-from pb3a.transport.shm import live_segments, segment_name
-from pb3a.transport.snapshot import Snapshot
+from pb3a.transport.shm import live_segments, segment_name, unlink_name
+from pb3a.transport.snapshot import Snapshot, make_room
 
 
 def _value() -> dict:
@@ -31,9 +31,10 @@ def _memory_under(array: np.ndarray) -> object:
 
 @pytest.fixture
 def snapshot():
-    made = Snapshot.capture(_value(), segment_name("state"), since=time.perf_counter())
-    yield made
-    made.release()
+    segment = segment_name("state")
+    make_room(segment, 4096)                  # too small: the capture makes it fit
+    yield Snapshot.capture(_value(), segment, since=time.perf_counter())
+    unlink_name(segment)
 
 
 def test_a_value_comes_back_equal_with_its_arrays_mapped_from_the_segment(snapshot) -> None:
@@ -43,6 +44,7 @@ def test_a_value_comes_back_equal_with_its_arrays_mapped_from_the_segment(snapsh
     assert value["raw"] == want["raw"] and value["small"] == want["small"]
     assert isinstance(_memory_under(value["c"]), mmap.mmap)      # mapped, not copied
     assert snapshot.nbytes > want["c"].nbytes and snapshot.capture_s > 0
+    assert Snapshot.measure(_value()) >= snapshot.nbytes            # the room it takes
 
 
 def test_what_a_restorer_writes_stays_its_own(snapshot) -> None:
@@ -53,12 +55,12 @@ def test_what_a_restorer_writes_stays_its_own(snapshot) -> None:
 
 def test_a_carried_snapshot_is_laid_out_again_elsewhere(snapshot) -> None:
     carried = snapshot.carry()
-    assert carried.segment == "" and snapshot.segment not in live_segments()
+    assert carried.segment == "" and carried.nbytes == snapshot.nbytes
     with pytest.raises(ValueError, match="lay_out"):
         carried.restore()
     here = carried.lay_out(segment_name("state"))
     try:
         assert np.array_equal(here.restore()["c"], _value()["c"])
     finally:
-        here.release()
+        unlink_name(here.segment)
     assert here.segment not in live_segments()

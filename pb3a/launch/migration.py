@@ -3,8 +3,9 @@ inputs, and no value on any of its links is lost, duplicated or reordered.
 
 The hand-over, under the global configuration lock:
 
-1. Prepare the destination first: a worker on the destination node with the
-   module's code loaded (instantiated, not started). Nothing has paused yet.
+1. Prepare first: room for the module's snapshot at the source (a segment the size
+   of its state now), and a worker on the destination node with the module's code
+   loaded (instantiated, not started). Nothing has paused yet.
 2. Pause the writers of the module's inputs, then the module itself (its lock is
    held: no step or event is running or will start).
 3. Detach every link of the module. Each writer stops first; each reader then takes
@@ -12,8 +13,8 @@ The hand-over, under the global configuration lock:
    to the sequence number its sender reached), so values already written end up in
    the module's input queues, or, for its outputs, at their readers.
 4. Retire the module at the source: ``teardown``, then its state and every input's
-   unconsumed values are captured (cloudpickle, protocol 5) into a shared-memory
-   segment, numpy arrays as out-of-band buffers (``Snapshot``). From here on it runs
+   unconsumed values are captured (cloudpickle, protocol 5) into that segment, numpy
+   arrays as out-of-band buffers (``Snapshot``). From here on it runs
    nowhere: the fence. Only the segment's name goes source node -> launcher ->
    destination node; between memory domains (other machines) the snapshot's parts
    travel in it over authenticated control.
@@ -81,39 +82,39 @@ def migrate(launcher: Launcher, name: str, node: str) -> MigrationReport:
     writers = sorted({link.src for link in links if link.dst == name and link.src != name})
     leaving, arriving = launcher.nodes[source], launcher.nodes[node]
     carry = leaving.memory_domain() != arriving.memory_domain()
-
-    # 1. the destination, ready before anything pauses
     moved = replace(home, node=node)
-    arriving.add_module(moved, state={})
-    # (the exit stack's callbacks run once the writers go on)
-    with contextlib.ExitStack() as afterwards, launcher.paused(writers):
-        # 2. and 3. pause the module, unwire it
-        try:
-            leaving.pause(name, 5.0)
-            laps = _Laps()
-            for link in links:
-                launcher.detach(link)
-            laps.mark("unwire")
-            # 4. the fence: retired at the source
-            snapshot = leaving.retire(name, carry)
-            laps.mark("retire")
-        except BaseException:
-            arriving.remove_module(name)
-            raise
-        afterwards.callback(_quietly, leaving.release, snapshot)
-        launcher.specs[name] = moved
-        # 5. restored, re-wired, started (or, failing that, the same back home)
-        try:
-            restore_s = _land(launcher, name, snapshot, links, laps)
-        except (RuntimeFailure, RuntimeTimeout) as exc:
-            for link in links:
-                _quietly(launcher.detach, link)
-            _quietly(arriving.remove_module, name)
-            launcher.specs[name] = home
-            leaving.add_module(home, state={})
-            _land(launcher, name, snapshot, links, _Laps())
-            raise RuntimeFailure(f"migration of {name} to node {node} failed ({exc}); it "
-                                 f"runs on node {source} again, with its state") from exc
+    with contextlib.ExitStack() as afterwards:      # (its callbacks run last)
+        # 1. room for the snapshot and the destination, ready before anything pauses
+        segment = leaving.reserve(name)
+        afterwards.callback(_quietly, leaving.release, segment)
+        arriving.add_module(moved, state={})
+        with launcher.paused(writers):
+            # 2. and 3. pause the module, unwire it
+            try:
+                leaving.pause(name, 5.0)
+                laps = _Laps()
+                for link in links:
+                    launcher.detach(link)
+                laps.mark("unwire")
+                # 4. the fence: retired at the source
+                snapshot = leaving.retire(name, segment, carry)
+                laps.mark("retire")
+            except BaseException:
+                arriving.remove_module(name)
+                raise
+            launcher.specs[name] = moved
+            # 5. restored, re-wired, started (or, failing that, the same back home)
+            try:
+                restore_s = _land(launcher, name, snapshot, links, laps)
+            except (RuntimeFailure, RuntimeTimeout) as exc:
+                for link in links:
+                    _quietly(launcher.detach, link)
+                _quietly(arriving.remove_module, name)
+                launcher.specs[name] = home
+                leaving.add_module(home, state={})
+                _land(launcher, name, snapshot, links, _Laps())
+                raise RuntimeFailure(f"migration of {name} to node {node} failed ({exc}); "
+                                     f"it runs on node {source} again, with its state") from exc
     lap = laps.seconds
     phases = MigrationPhases(
         lap["unwire"], snapshot.capture_s,

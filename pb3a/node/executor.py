@@ -36,7 +36,7 @@ from pb3a.stats import InputStats, ModuleStats, NodeReport, WaitStats
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import memory_domain, reap_orphans, segment_name, unlink_name
-from pb3a.transport.snapshot import Snapshot
+from pb3a.transport.snapshot import Snapshot, make_room
 
 log = logging.getLogger("pb3a.executor")
 _module_log = logging.getLogger("pb3a.module")
@@ -227,20 +227,26 @@ class Executor:
         """Where this node's shared-memory segments can be seen (see ``retire``)."""
         return memory_domain()
 
-    def retire(self, name: str, carry: bool) -> Snapshot:
-        """The migration fence: ``teardown``, then capture the module's state and unconsumed
-        inputs into a segment of this executor, and drop the module here; it runs nowhere
-        until restored (``land``). With ``carry`` (a destination in another memory domain)
-        the parts travel in the snapshot instead. The worker the module leaves is stopped
-        by ``release``, after the pause, if nothing else runs there."""
-        record = self.modules[name]
-        segment = segment_name("state")
+    def reserve(self, name: str) -> str:
+        """Room for module ``name``'s snapshot, made before a migration pauses it: a
+        segment of this executor the size of the module's state now (``release`` it)."""
+        segment, size = segment_name("state"), self.call_module(name, "snapshot_size")
         try:
-            snapshot: Snapshot = self.call(record.worker, "migrate_out", name=name,
-                                           segment=segment)
-        except BaseException:
-            unlink_name(segment)               # (if the worker made it before failing)
-            raise
+            make_room(segment, size)
+        except OSError as exc:
+            raise RuntimeFailure(f"no room for the {size}-byte snapshot of module {name!r} in "
+                                 f"shared memory ({exc.strerror}): make /dev/shm larger, or "
+                                 "the module's state smaller") from None
+        return segment
+
+    def retire(self, name: str, segment: str, carry: bool) -> Snapshot:
+        """The migration fence: ``teardown``, then capture the module's state and unconsumed
+        inputs into ``segment`` (see ``reserve``), and drop the module here; it runs
+        nowhere until restored (``land``). With ``carry`` (a destination in another
+        memory domain) the parts travel in the snapshot instead. The worker the module
+        leaves is stopped by ``release``, after the pause, if nothing else runs there."""
+        record = self.modules[name]
+        snapshot: Snapshot = self.call(record.worker, "migrate_out", name=name, segment=segment)
         del self.modules[name]
         self.workers[record.worker].modules.remove(name)
         return snapshot.carry() if carry else snapshot
@@ -254,12 +260,13 @@ class Executor:
         try:
             return self.call_module(name, "migrate_in", snapshot=here)
         finally:
-            here.release()
+            unlink_name(here.segment)
 
-    def release(self, snapshot: Snapshot) -> None:
-        """A migration from here is over: unlink its snapshot's segment and stop the
-        workers it left empty (a move back home after a failed landing reuses its worker)."""
-        snapshot.release()
+    def release(self, segment: str) -> None:
+        """A migration from here is over (or did not happen): unlink the segment reserved
+        for it and stop the workers it left empty (a move back home after a failed
+        landing reuses its worker)."""
+        unlink_name(segment)
         for key, handle in list(self.workers.handles.items()):
             if not handle.modules:
                 self.workers.retire(key)

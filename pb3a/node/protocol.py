@@ -55,16 +55,20 @@ class Node(Protocol):
         """Where the node's shared-memory segments can be seen: nodes of one domain hand
         each other a migrating module's snapshot by name."""
 
-    def retire(self, name: str, carry: bool) -> Snapshot:
-        """The migration fence: capture a paused module's state and inputs into a segment
-        (with ``carry``, into the snapshot itself, for another domain), drop it here."""
+    def reserve(self, name: str) -> str:
+        """Before a migration pauses module ``name``: a segment the size of its snapshot."""
+
+    def retire(self, name: str, segment: str, carry: bool) -> Snapshot:
+        """The migration fence: capture a paused module's state and inputs into the
+        reserved ``segment`` (with ``carry``, into the snapshot itself, for another
+        domain), drop the module here."""
 
     def land(self, name: str, snapshot: Snapshot) -> float:
         """Restore what ``retire`` captured into an instantiated, unstarted module; the
         seconds its worker took."""
 
-    def release(self, snapshot: Snapshot) -> None:
-        """After a migration from this node: free the snapshot and any worker left empty."""
+    def release(self, segment: str) -> None:
+        """After a migration from this node: unlink its segment, stop any worker left empty."""
 
     def forget(self, module: str) -> None:
         """Drop cached copies of Python module ``module`` here and in every worker."""

@@ -108,14 +108,17 @@ class RemoteNode:
             self._domain = self._forward("memory_domain")
         return self._domain
 
-    def retire(self, name: str, carry: bool) -> Snapshot:
-        return self._forward("retire", name, carry)
+    def reserve(self, name: str) -> str:
+        return self._forward("reserve", name)
+
+    def retire(self, name: str, segment: str, carry: bool) -> Snapshot:
+        return self._forward("retire", name, segment, carry)
 
     def land(self, name: str, snapshot: Snapshot) -> float:
         return self._forward("land", name, snapshot)
 
-    def release(self, snapshot: Snapshot) -> None:
-        self._forward("release", snapshot)
+    def release(self, segment: str) -> None:
+        self._forward("release", segment)
 
     def forget(self, module: str) -> None:
         self._forward("forget", module)

@@ -1,12 +1,11 @@
 """Shared-memory segments with one owner.
 
-The executor names and unlinks every segment. It creates the rings
-(``create_segment``); a worker creates only the snapshot of a module it retires,
-under the name its executor gave (``pb3a.transport.snapshot``). Workers otherwise
-only attach (``attach_segment``) and never register with CPython's resource
-tracker, which would otherwise unlink a segment another process still uses
-(cpython#82300). Names carry the owner's pid, so ``reap_orphans`` can remove
-segments whose owner died without cleaning up.
+The executor creates and unlinks every segment (``create_segment`` for rings; a
+migrating module's snapshot, which its worker writes into, see
+``pb3a.transport.snapshot``); workers only attach (``attach_segment``) and never
+register with CPython's resource tracker, which would otherwise unlink a segment
+another process still uses (cpython#82300). Names carry the owner's pid, so
+``reap_orphans`` can remove segments whose owner died without cleaning up.
 """
 
 from __future__ import annotations

@@ -353,6 +353,13 @@ class ModuleActor:
             self.module.teardown()
         except Exception:
             log.exception("module %r raised in teardown before migrating", self.name)
+        return self._holdings()
+
+    def holdings(self, timeout: float = 10.0) -> dict[str, Any]:
+        """What a migration would capture now (taken under the module lock)."""
+        return self.with_lock(self._holdings, timeout)
+
+    def _holdings(self) -> dict[str, Any]:
         return {"state": self.module.get_state(),
                 "inputs": {name: port.export() for name, port in self.inputs.items()}}
 

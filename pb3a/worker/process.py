@@ -47,7 +47,7 @@ AGENT_REQUEST_TIMEOUT = 30.0   # an agent's request to the runtime (a migration,
 # Requests that wait for a module's lock (and may run its hooks, which may call the
 # runtime, whose answer this thread reads): never on the control thread.
 _TAKES_A_MODULE_LOCK = frozenset({"get_state", "set_state", "pause", "start", "swap", "stop",
-                                  "remove"})
+                                  "remove", "snapshot_size"})
 
 
 @dataclass
@@ -233,9 +233,13 @@ class Worker:
             self._paused.discard(name)
             self.actors[name].lock.release()
 
+    def op_snapshot_size(self, name: str) -> int:
+        """The bytes a migration's snapshot of the module would take now."""
+        return Snapshot.measure(self.actors[name].holdings())
+
     def op_migrate_out(self, name: str, segment: str) -> Snapshot:
         """Retire a paused module for its move: its state and unconsumed inputs, laid out
-        in a new shared-memory segment ``segment`` (which its executor unlinks)."""
+        in shared-memory segment ``segment`` (which its executor made and unlinks)."""
         started = time.perf_counter()
         if name not in self._paused:
             raise RuntimeError(f"module {name!r} must be paused before it migrates")
