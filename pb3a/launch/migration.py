@@ -5,7 +5,8 @@ The hand-over, under the global configuration lock:
 
 1. Prepare first: room for the module's snapshot at the source (a segment the size
    of its state now), and a worker on the destination node with the module's code
-   loaded (instantiated, not started). Nothing has paused yet.
+   loaded (instantiated, not started), its publishing sockets bound if its outputs
+   will cross nodes from there. Nothing has paused yet.
 2. Pause the writers of the module's inputs, then the module itself (its lock is
    held: no step or event is running or will start).
 3. Detach every link of the module. Each writer stops first; each reader then takes
@@ -88,6 +89,8 @@ def migrate(launcher: Launcher, name: str, node: str) -> MigrationReport:
         segment = leaving.reserve(name)
         afterwards.callback(_quietly, leaving.release, segment)
         arriving.add_module(moved, state={})
+        if any(link.src == name and launcher.specs[link.dst].node != node for link in links):
+            arriving.ready_to_publish(name)         # (its sockets take milliseconds)
         with launcher.paused(writers):
             # 2. and 3. pause the module, unwire it
             try:

@@ -339,15 +339,23 @@ class Executor:
         return ring
 
     # -- remote links, one half each ---------------------------------------------------
+    def ready_to_publish(self, name: str) -> None:
+        """Have module ``name``'s worker ready to publish to other nodes (its sockets
+        bound), before a migration that will need it pauses anything."""
+        self.call(self.modules[name].worker, "ready_to_publish", **self._publishing())
+
     def publish(self, link: FlatLink) -> Endpoint:
         """The writing half: publish the output (once per output, whoever reads it);
         returns the endpoint (data address, control address, sender incarnation)."""
         self.outbound[link.key] = link
         data, control, incarnation = self.call(
             self.modules[link.src].worker, "publish_out", key=link.key, src=link.src,
-            src_port=link.src_port, secret=self.bridge.key.secret, host=self.host,
-            epoch=self.epoch)
+            src_port=link.src_port, **self._publishing())
         return data, control, incarnation
+
+    def _publishing(self) -> dict[str, Any]:
+        """What a worker publishes with: the cluster key, this node's address, the epoch."""
+        return {"secret": self.bridge.key.secret, "host": self.host, "epoch": self.epoch}
 
     def unpublish(self, link: FlatLink) -> int:
         """Stop publishing for ``link``; the sequence number the sender reached."""

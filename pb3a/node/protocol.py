@@ -81,6 +81,9 @@ class Node(Protocol):
         """Unwire a link: the writer stops, then the reader takes in what is on the way."""
 
     # -- remote links, one half on each node
+    def ready_to_publish(self, name: str) -> None:
+        """Bind module ``name``'s publishing sockets now, not when a link first needs them."""
+
     def publish(self, link: FlatLink) -> Endpoint:
         """The writing half: publish the link's output; the endpoint to follow."""
 

@@ -129,6 +129,9 @@ class RemoteNode:
     def detach(self, link: FlatLink) -> None:
         self._forward("detach", link)
 
+    def ready_to_publish(self, name: str) -> None:
+        self._forward("ready_to_publish", name)
+
     def publish(self, link: FlatLink) -> Endpoint:
         return self._forward("publish", link)
 

@@ -369,6 +369,10 @@ class Worker:
         return self.publications.add(key, f"{src}.{src_port}",
                                      self.actors[src].outputs[src_port], secret, host, epoch)
 
+    def op_ready_to_publish(self, secret: bytes, host: str, epoch: int = 0) -> None:
+        """Bind the sockets that replicate outputs to other nodes before they are needed."""
+        self.publications.open(secret, host, epoch)
+
     def op_unpublish_out(self, key: str) -> int:
         return self.publications.remove(key)
 
