@@ -84,7 +84,7 @@ def migrate(launcher: Launcher, name: str, node: str) -> MigrationReport:
     leaving, arriving = launcher.nodes[source], launcher.nodes[node]
     carry = leaving.memory_domain() != arriving.memory_domain()
     moved = replace(home, node=node)
-    with contextlib.ExitStack() as afterwards:      # (its callbacks run last)
+    with contextlib.ExitStack() as afterwards:      # (called once the writers go on)
         # 1. room for the snapshot and the destination, ready before anything pauses
         segment = leaving.reserve(name)
         afterwards.callback(_quietly, leaving.release, segment)

@@ -353,13 +353,11 @@ class ModuleActor:
             self.module.teardown()
         except Exception:
             log.exception("module %r raised in teardown before migrating", self.name)
-        return self._holdings()
+        return self.holdings()
 
-    def holdings(self, timeout: float = 10.0) -> dict[str, Any]:
-        """What a migration would capture now (taken under the module lock)."""
-        return self.with_lock(self._holdings, timeout)
-
-    def _holdings(self) -> dict[str, Any]:
+    def holdings(self) -> dict[str, Any]:
+        """What a migration captures: the state and every input's unconsumed values (the
+        caller holds the module lock, and pickles them before letting it go)."""
         return {"state": self.module.get_state(),
                 "inputs": {name: port.export() for name, port in self.inputs.items()}}
 

@@ -44,6 +44,7 @@ GUARD_TIMEOUT = 0.5      # longest sleep of the receiver (a guard; wake-ups are 
 SPIN_S = 100e-6          # values closer than this count as dense; poll this long for the next
 ERROR_REPORT_S = 1.0     # a module's exceptions are reported at most this often (all counted)
 AGENT_REQUEST_TIMEOUT = 30.0   # an agent's request to the runtime (a migration, say)
+MEASURE_TIMEOUT = 5.0    # how long measuring a snapshot waits for a busy module's lock
 # Requests that wait for a module's lock (and may run its hooks, which may call the
 # runtime, whose answer this thread reads): never on the control thread.
 _TAKES_A_MODULE_LOCK = frozenset({"get_state", "set_state", "pause", "start", "swap", "stop",
@@ -234,8 +235,10 @@ class Worker:
             self.actors[name].lock.release()
 
     def op_snapshot_size(self, name: str) -> int:
-        """The bytes a migration's snapshot of the module would take now."""
-        return Snapshot.measure(self.actors[name].holdings())
+        """The bytes a migration's snapshot of the module would take now (measured under
+        its lock: a body must not change the state while it is pickled)."""
+        actor = self.actors[name]
+        return actor.with_lock(lambda: Snapshot.measure(actor.holdings()), MEASURE_TIMEOUT)
 
     def op_migrate_out(self, name: str, segment: str) -> Snapshot:
         """Retire a paused module for its move: its state and unconsumed inputs, laid out
