@@ -156,6 +156,29 @@ class MigrationRelay(Module):
         self.relayed += 1
 
 
+BIG_STATE_BYTES = 10 * 2**20    # the state the migration bench moves (10 MiB of float64)
+
+
+class BigState(Module):
+    """Event-driven, with 10 MiB of numpy state: each value is stored in ``field`` and
+    passed on (the module the migration bench moves to measure a big state)."""
+
+    x = Input(float, policy="queue:10000")
+    out = Output(float)
+    field: np.ndarray | None = None
+    relayed = 0
+
+    def setup(self) -> None:
+        if self.field is None:          # (a moved module keeps the field it brought)
+            self.field = np.arange(BIG_STATE_BYTES // 8, dtype=np.float64)
+
+    def on_input(self, port: InputPort) -> None:
+        value = port.read()
+        self.field[self.relayed % self.field.size] = value
+        self.out.write(value)
+        self.relayed += 1
+
+
 class OrderedReader(Module):
     """Counts values and checks they only grow (``Clock`` writes increasing times)."""
 

@@ -11,6 +11,7 @@ import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
+import numpy as np
 import psutil
 import pytest
 
@@ -31,6 +32,15 @@ def eventually(check: Callable[[], Any], timeout: float = 10.0, what: str = "con
         if time.monotonic() > deadline:
             pytest.fail(f"timed out after {timeout} s waiting for {what}; last value {value!r}")
         time.sleep(0.02)
+
+
+def assert_same_arrays(got: dict[str, Any], want: dict[str, Any]) -> None:
+    """Each array in ``want`` is in ``got`` with the same dtype, shape, order and values."""
+    for name, expected in want.items():
+        array = got[name]
+        assert (array.dtype, array.shape) == (expected.dtype, expected.shape), name
+        assert array.flags.f_contiguous == expected.flags.f_contiguous, name
+        assert np.array_equal(array, expected), name
 
 
 def alive(pid: int) -> bool:

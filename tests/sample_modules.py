@@ -316,6 +316,34 @@ class ArrayHolder(Module):
     x = Input(np.ndarray, shape=(1024, 128), dtype="float64", policy="queue:10")
 
 
+class Hoard(Module):
+    """Event-driven, with 6 MiB of numpy state: ``grid`` (float32) and ``marks`` (int16,
+    Fortran order); the n-th value it gets goes into ``grid.flat[n - 1]`` (the module
+    the big-state migration tests move)."""
+
+    x = Input(int, policy="queue:1000")
+    shape = (1024, 1024)
+    grid: np.ndarray | None = None
+    marks: np.ndarray | None = None
+    stored = 0
+
+    def setup(self) -> None:
+        if self.grid is None:                   # (a moved module keeps what it brought)
+            self.grid, self.marks = self.expected(0)
+
+    def on_input(self, port) -> None:
+        self.grid.flat[self.stored] = port.read()
+        self.stored += 1
+
+    @classmethod
+    def expected(cls, stored: int) -> tuple[np.ndarray, np.ndarray]:
+        """``grid`` and ``marks`` after values 1, 2, ... ``stored``."""
+        grid = np.linspace(-1.0, 1.0, cls.shape[0] * cls.shape[1], dtype=np.float32)
+        grid[:stored] = np.arange(1, stored + 1)
+        marks = np.arange(grid.size, dtype=np.int16).reshape(cls.shape, order="F")
+        return grid.reshape(cls.shape), marks
+
+
 class Relay(Module):
     """Passes every value on, counting them (the module the migration tests move)."""
 

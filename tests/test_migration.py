@@ -3,11 +3,14 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
-from conftest import eventually
-from sample_modules import Chain, Collector, Counter, Relay, Shepherd, Wanderer
+from conftest import assert_same_arrays, eventually
+from sample_modules import Chain, Collector, Counter, Hoard, Relay, Shepherd, Wanderer
 
 from pb3a import ConfigError, ModuleNotFound, RuntimeFailure, System
+from pb3a.node.executor import Executor
 
 
 def _nodes(system: System, *names: str) -> System:
@@ -76,6 +79,28 @@ def test_100_migrations_under_a_steady_flow_lose_duplicate_and_reorder_nothing()
         links = run.stats().links
     assert all(link.link_failures == 0 and link.drops == 0 for link in links.values())
     assert len(pauses) == 100 and max(pauses) < 5
+
+
+@pytest.mark.parametrize("machines", ["one", "two"])
+def test_megabytes_of_numpy_state_move_intact(machines, monkeypatch) -> None:
+    if machines == "two":       # as if b were another machine: the state goes in requests
+        monkeypatch.setattr(Executor, "memory_domain", lambda self: self.node)
+    n = 300
+    system = _nodes(System(f"move-arrays-{machines}"), "a", "b")
+    system.add("src", Counter, node="a", period=0.002, state={"limit": n})
+    system.add("hoard", Hoard, node="a")
+    system.link("src.out", "hoard.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("hoard")["stored"] > 20, what="values at the hoard")
+        reports = [run.migrate("hoard", to=to) for to in ("b", "a", "b")]
+        state = eventually(lambda: (s := run.state("hoard"))["stored"] >= n and s,
+                           what=f"{n} values at the hoard")
+    grid, marks = Hoard.expected(n)
+    assert state["stored"] == n
+    assert_same_arrays(state, {"grid": grid, "marks": marks})   # written to after each move
+    for report in reports:
+        assert report.state_bytes > grid.nbytes + marks.nbytes
+        assert sum(dataclasses.astuple(report.phases)) == pytest.approx(report.pause_s)
 
 
 def test_a_macro_moves_as_a_whole() -> None:

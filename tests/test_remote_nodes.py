@@ -9,9 +9,10 @@ import re
 import signal
 import time
 
+import psutil
 import pytest
-from conftest import alive, eventually
-from sample_modules import Collector, Counter, LossWatcher, NodeTable, Relay, Wanderer
+from conftest import alive, assert_same_arrays, eventually
+from sample_modules import Collector, Counter, Hoard, LossWatcher, NodeTable, Relay, Wanderer
 
 from pb3a import ModuleNotFound, RuntimeFailure, RuntimeTimeout, System
 from pb3a.cli.status import format_table
@@ -74,6 +75,29 @@ def test_a_system_spans_node_controllers_and_migrates_across_them(controllers) -
     assert pids["far"] != pids["near"] != os.getpid()
     assert all(c.executors() == {} for c in controllers.values())      # stopped with the run
     assert not any(alive(pid) for pid in pids.values())
+
+
+def test_megabytes_of_numpy_state_move_intact_between_node_controllers(controllers) -> None:
+    n = 300
+    system = System("spanning-arrays").node("a")
+    for name, controller in controllers.items():
+        system.node(name, address=controller.address)
+    system.add("src", Counter, node="a", period=0.002, state={"limit": n})
+    system.add("hoard", Hoard, node="a")
+    system.link("src.out", "hoard.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("hoard")["stored"] > 20, timeout=30,
+                   what="values at the hoard")
+        for to in ("b", "c", "a", "c"):                 # c to a and b to c: executor to executor
+            assert run.migrate("hoard", to=to).state_bytes > 6 * 2**20
+        state = eventually(lambda: (s := run.state("hoard"))["stored"] >= n and s, timeout=30,
+                           what=f"{n} values at the hoard")
+        ours = [os.getpid(), *(child.pid for child in psutil.Process().children(recursive=True))]
+        snapshots = [name for pid in ours for name in live_segments(pid) if "_state" in name]
+    grid, marks = Hoard.expected(n)
+    assert state["stored"] == n
+    assert_same_arrays(state, {"grid": grid, "marks": marks})
+    assert snapshots == []                   # each freed by the executor that made it
 
 
 @pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGSTOP], ids=["dies", "is-cut-off"])

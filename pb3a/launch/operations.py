@@ -93,10 +93,10 @@ class Operations:
             self.launcher.update_env()          # the moves and the workers, for agents
         if len(reports) == 1:
             return reports[0]
+        longest = max(reports, key=lambda r: r.pause_s)       # its phases stand for all
         return MigrationReport(name, ",".join(sorted({r.source for r in reports})), to,
-                               max(r.pause_s for r in reports),
-                               sum(r.state_bytes for r in reports),
-                               sum(r.links for r in reports))
+                               longest.pause_s, sum(r.state_bytes for r in reports),
+                               sum(r.links for r in reports), longest.phases)
 
     def begin_migration(self, name: str, to: str, *, timeout: float | None = None) -> int:
         """Start ``migrate`` on another thread; the number to ask ``migration`` about. An

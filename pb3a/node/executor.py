@@ -35,7 +35,8 @@ from pb3a.node.workers import REQUEST_TIMEOUT, WorkerHandle, WorkerPool, WorkerS
 from pb3a.stats import InputStats, ModuleStats, NodeReport, WaitStats
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.ring import ShmRing
-from pb3a.transport.shm import reap_orphans, segment_name
+from pb3a.transport.shm import memory_domain, reap_orphans, segment_name, unlink_name
+from pb3a.transport.snapshot import Snapshot, make_room
 
 log = logging.getLogger("pb3a.executor")
 _module_log = logging.getLogger("pb3a.module")
@@ -223,18 +224,54 @@ class Executor:
             self.call(record.worker, "remove", name=name)
         self._vacate(record.worker, name)
 
-    def retire(self, name: str) -> bytes:
-        """The migration fence: ``teardown``, then capture the module's state and unconsumed
-        inputs and drop it here; it runs nowhere until restored (``land``)."""
-        record = self.modules[name]
-        captured = self.call(record.worker, "migrate_out", name=name)
-        del self.modules[name]
-        self._vacate(record.worker, name)
-        return captured
+    def memory_domain(self) -> str:
+        """Where this node's shared-memory segments can be seen (see ``retire``)."""
+        return memory_domain()
 
-    def land(self, name: str, captured: bytes) -> None:
-        """Restore what ``retire`` captured into the (instantiated, not started) module."""
-        self.call_module(name, "migrate_in", captured=captured)
+    def reserve(self, name: str) -> str:
+        """Room for module ``name``'s snapshot, made before a migration pauses it: a
+        segment of this executor the size of the module's state now (``release`` it)."""
+        segment, size = segment_name("state"), self.call_module(name, "snapshot_size")
+        try:
+            make_room(segment, size)
+        except OSError as exc:
+            raise RuntimeFailure(f"no room for the {size}-byte snapshot of module {name!r} in "
+                                 f"shared memory ({exc.strerror}): make /dev/shm larger, or "
+                                 "the module's state smaller") from None
+        return segment
+
+    def retire(self, name: str, segment: str, carry: bool) -> Snapshot:
+        """The migration fence: ``teardown``, then capture the module's state and unconsumed
+        inputs into ``segment`` (see ``reserve``), and drop the module here; it runs
+        nowhere until restored (``land``). With ``carry`` (a destination in another
+        memory domain) the parts travel in the snapshot instead. The worker the module
+        leaves is stopped by ``release``, after the pause, if nothing else runs there."""
+        record = self.modules[name]
+        snapshot: Snapshot = self.call(record.worker, "migrate_out", name=name, segment=segment)
+        del self.modules[name]
+        self.workers[record.worker].modules.remove(name)
+        return snapshot.carry() if carry else snapshot
+
+    def land(self, name: str, snapshot: Snapshot) -> float:
+        """Restore what ``retire`` captured into the (instantiated, not started) module;
+        the seconds its worker took."""
+        if not snapshot.carried:
+            return self.call_module(name, "migrate_in", snapshot=snapshot)
+        here = snapshot.lay_out(segment_name("state"))
+        try:
+            return self.call_module(name, "migrate_in", snapshot=here)
+        finally:
+            unlink_name(here.segment)
+
+    def release(self, segment: str) -> None:
+        """A migration from here is over (or did not happen): unlink the segment reserved
+        for it and stop the workers it left empty (a move back home after a failed
+        landing reuses its worker)."""
+        unlink_name(segment)
+        for key, handle in list(self.workers.handles.items()):
+            if not handle.modules:
+                self.workers.retire(key)
+                self._budgets.pop(key, None)
 
     def _vacate(self, key: str, name: str) -> None:
         """``name`` no longer runs in worker ``key``; stop the worker if it is empty now."""
@@ -303,15 +340,23 @@ class Executor:
         return ring
 
     # -- remote links, one half each ---------------------------------------------------
+    def ready_to_publish(self, name: str) -> None:
+        """Have module ``name``'s worker ready to publish to other nodes (its sockets
+        bound), before a migration that will need it pauses anything."""
+        self.call(self.modules[name].worker, "ready_to_publish", **self._publishing())
+
     def publish(self, link: FlatLink) -> Endpoint:
         """The writing half: publish the output (once per output, whoever reads it);
         returns the endpoint (data address, control address, sender incarnation)."""
         self.outbound[link.key] = link
         data, control, incarnation = self.call(
             self.modules[link.src].worker, "publish_out", key=link.key, src=link.src,
-            src_port=link.src_port, secret=self.bridge.key.secret, host=self.host,
-            epoch=self.epoch)
+            src_port=link.src_port, **self._publishing())
         return data, control, incarnation
+
+    def _publishing(self) -> dict[str, Any]:
+        """What a worker publishes with: the cluster key, this node's address, the epoch."""
+        return {"secret": self.bridge.key.secret, "host": self.host, "epoch": self.epoch}
 
     def unpublish(self, link: FlatLink) -> int:
         """Stop publishing for ``link``; the sequence number the sender reached."""

@@ -14,6 +14,7 @@ if TYPE_CHECKING:
     from pb3a.config.plan import FlatLink, FlatModule
     from pb3a.node.ring_sizes import RingSize
     from pb3a.stats import NodeReport
+    from pb3a.transport.snapshot import Snapshot
 
 Endpoint = tuple[str, str, bytes]   # a published output: data address, control address, sender
 
@@ -50,11 +51,24 @@ class Node(Protocol):
     def remove_module(self, name: str) -> None:
         """Drop a stopped module whose links are gone."""
 
-    def retire(self, name: str) -> bytes:
-        """The migration fence: capture a paused module's state and inputs, drop it here."""
+    def memory_domain(self) -> str:
+        """Where the node's shared-memory segments can be seen: nodes of one domain hand
+        each other a migrating module's snapshot by name."""
 
-    def land(self, name: str, captured: bytes) -> None:
-        """Restore what ``retire`` captured into an instantiated, unstarted module."""
+    def reserve(self, name: str) -> str:
+        """Before a migration pauses module ``name``: a segment the size of its snapshot."""
+
+    def retire(self, name: str, segment: str, carry: bool) -> Snapshot:
+        """The migration fence: capture a paused module's state and inputs into the
+        reserved ``segment`` (with ``carry``, into the snapshot itself, for another
+        domain), drop the module here."""
+
+    def land(self, name: str, snapshot: Snapshot) -> float:
+        """Restore what ``retire`` captured into an instantiated, unstarted module; the
+        seconds its worker took."""
+
+    def release(self, segment: str) -> None:
+        """After a migration from this node: unlink its segment, stop any worker left empty."""
 
     def forget(self, module: str) -> None:
         """Drop cached copies of Python module ``module`` here and in every worker."""
@@ -67,6 +81,9 @@ class Node(Protocol):
         """Unwire a link: the writer stops, then the reader takes in what is on the way."""
 
     # -- remote links, one half on each node
+    def ready_to_publish(self, name: str) -> None:
+        """Bind module ``name``'s publishing sockets now, not when a link first needs them."""
+
     def publish(self, link: FlatLink) -> Endpoint:
         """The writing half: publish the link's output; the endpoint to follow."""
 

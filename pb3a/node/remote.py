@@ -31,6 +31,7 @@ if TYPE_CHECKING:
     from pb3a.node.protocol import Endpoint
     from pb3a.node.ring_sizes import RingSize
     from pb3a.stats import NodeReport
+    from pb3a.transport.snapshot import Snapshot
 
 CONNECT_TIMEOUT = 5.0      # a node controller answers a ping at once, or is not there
 START_TIMEOUT = 60.0       # an executor process imports numpy and friends first
@@ -59,6 +60,7 @@ class RemoteNode:
         self._answered = time.monotonic()
         self._closed = threading.Event()
         self._heart: threading.Thread | None = None
+        self._domain: str | None = None
         # where the other nodes reach its executor and publications
         host = advertise or address.removeprefix("tcp://").rpartition(":")[0]
         try:
@@ -139,11 +141,22 @@ class RemoteNode:
     def remove_module(self, name: str) -> None:
         self._forward("remove_module", name)
 
-    def retire(self, name: str) -> bytes:
-        return self._forward("retire", name)
+    def memory_domain(self) -> str:
+        if self._domain is None:                # (it does not change: asked once)
+            self._domain = self._forward("memory_domain")
+        return self._domain
 
-    def land(self, name: str, captured: bytes) -> None:
-        self._forward("land", name, captured)
+    def reserve(self, name: str) -> str:
+        return self._forward("reserve", name)
+
+    def retire(self, name: str, segment: str, carry: bool) -> Snapshot:
+        return self._forward("retire", name, segment, carry)
+
+    def land(self, name: str, snapshot: Snapshot) -> float:
+        return self._forward("land", name, snapshot)
+
+    def release(self, segment: str) -> None:
+        self._forward("release", segment)
 
     def forget(self, module: str) -> None:
         self._forward("forget", module)
@@ -153,6 +166,9 @@ class RemoteNode:
 
     def detach(self, link: FlatLink) -> None:
         self._forward("detach", link)
+
+    def ready_to_publish(self, name: str) -> None:
+        self._forward("ready_to_publish", name)
 
     def publish(self, link: FlatLink) -> Endpoint:
         return self._forward("publish", link)

@@ -1,10 +1,11 @@
 """Shared-memory segments with one owner.
 
-The executor creates and unlinks every segment (``create_segment``); workers
-only attach (``attach_segment``) and never register with CPython's resource
-tracker, which would otherwise unlink a segment another process still uses
-(cpython#82300). Names carry the owner's pid, so ``reap_orphans`` can remove
-segments whose owner died without cleaning up.
+The executor creates and unlinks every segment (``create_segment`` for rings; a
+migrating module's snapshot, which its worker writes into, see
+``pb3a.transport.snapshot``); workers only attach (``attach_segment``) and never
+register with CPython's resource tracker, which would otherwise unlink a segment
+another process still uses (cpython#82300). Names carry the owner's pid, so
+``reap_orphans`` can remove segments whose owner died without cleaning up.
 """
 
 from __future__ import annotations
@@ -25,6 +26,27 @@ _counter = itertools.count()
 def segment_name(kind: str) -> str:
     """A fresh segment name owned by this process: ``pb3a_<pid>_<kind><n>``."""
     return f"{PREFIX}{os.getpid()}_{kind}{next(_counter)}"
+
+
+def segment_path(name: str) -> str:
+    """Where segment ``name`` is on this machine's shared-memory file system."""
+    return os.path.join(_SHM_DIR, name)
+
+
+def unlink_name(name: str) -> None:
+    """Unlink segment ``name`` (owner side) without mapping it; gone already is fine.
+    Processes that mapped it keep their mappings."""
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(segment_path(name))
+
+
+def memory_domain() -> str:
+    """Where this process's segments can be seen: two processes that report the same
+    domain (one boot of one machine, one shared-memory file system) can hand each other
+    a segment by name."""
+    with open("/proc/sys/kernel/random/boot_id") as boot:
+        booted = boot.read().strip()
+    return f"{booted}/{os.stat(_SHM_DIR).st_dev}"
 
 
 def create_segment(name: str, size: int) -> shared_memory.SharedMemory:
@@ -70,7 +92,7 @@ def reap_orphans() -> list[str]:
         pid = name[len(PREFIX):].split("_", 1)[0]
         if pid.isdigit() and not psutil.pid_exists(int(pid)):
             with contextlib.suppress(FileNotFoundError):
-                os.unlink(os.path.join(_SHM_DIR, name))
+                os.unlink(segment_path(name))
                 reaped.append(name)
     return reaped
 

@@ -353,6 +353,11 @@ class ModuleActor:
             self.module.teardown()
         except Exception:
             log.exception("module %r raised in teardown before migrating", self.name)
+        return self.holdings()
+
+    def holdings(self) -> dict[str, Any]:
+        """What a migration captures: the state and every input's unconsumed values (the
+        caller holds the module lock, and pickles them before letting it go)."""
         return {"state": self.module.get_state(),
                 "inputs": {name: port.export() for name, port in self.inputs.items()}}
 

@@ -30,6 +30,7 @@ from pb3a.model.ports import InputPort, Policy, WaitCounter
 from pb3a.transport.codec import local_copy
 from pb3a.transport.doorbell import BellPull
 from pb3a.transport.ring import ShmRing, sleep
+from pb3a.transport.snapshot import Snapshot
 from pb3a.worker.actor import EventPool, ModuleActor
 from pb3a.worker.publications import Publications
 from pb3a.worker.waits import RuntimeWait
@@ -43,10 +44,11 @@ GUARD_TIMEOUT = 0.5      # longest sleep of the receiver (a guard; wake-ups are 
 SPIN_S = 100e-6          # values closer than this count as dense; poll this long for the next
 ERROR_REPORT_S = 1.0     # a module's exceptions are reported at most this often (all counted)
 AGENT_REQUEST_TIMEOUT = 30.0   # an agent's request to the runtime (a migration, say)
+MEASURE_TIMEOUT = 5.0    # how long measuring a snapshot waits for a busy module's lock
 # Requests that wait for a module's lock (and may run its hooks, which may call the
 # runtime, whose answer this thread reads): never on the control thread.
 _TAKES_A_MODULE_LOCK = frozenset({"get_state", "set_state", "pause", "start", "swap", "stop",
-                                  "remove"})
+                                  "remove", "snapshot_size"})
 
 
 @dataclass
@@ -232,8 +234,16 @@ class Worker:
             self._paused.discard(name)
             self.actors[name].lock.release()
 
-    def op_migrate_out(self, name: str) -> bytes:
-        """Retire a paused module for its move: its state and unconsumed inputs."""
+    def op_snapshot_size(self, name: str) -> int:
+        """The bytes a migration's snapshot of the module would take now (measured under
+        its lock: a body must not change the state while it is pickled)."""
+        actor = self.actors[name]
+        return actor.with_lock(lambda: Snapshot.measure(actor.holdings()), MEASURE_TIMEOUT)
+
+    def op_migrate_out(self, name: str, segment: str) -> Snapshot:
+        """Retire a paused module for its move: its state and unconsumed inputs, laid out
+        in shared-memory segment ``segment`` (which its executor made and unlinks)."""
+        started = time.perf_counter()
         if name not in self._paused:
             raise RuntimeError(f"module {name!r} must be paused before it migrates")
         actor = self.actors.pop(name)
@@ -243,11 +253,14 @@ class Worker:
         actor.join(timeout=1.0)
         self.restart_policy.pop(name, None)
         self._retime()
-        return cloudpickle.dumps(captured, protocol=5)
+        return Snapshot.capture(captured, segment, since=started)
 
-    def op_migrate_in(self, name: str, captured: bytes) -> None:
-        """Take over a module's state and unconsumed inputs (added, not yet started)."""
-        self.actors[name].restore(cloudpickle.loads(captured))
+    def op_migrate_in(self, name: str, snapshot: Snapshot) -> float:
+        """Take over a module's state and unconsumed inputs (added, not yet started);
+        the seconds it took."""
+        started = time.perf_counter()
+        self.actors[name].restore(snapshot.restore())
+        return time.perf_counter() - started
 
     def op_remove(self, name: str) -> None:
         actor = self.actors.pop(name)
@@ -358,6 +371,10 @@ class Worker:
         incarnation) for the reading node to follow."""
         return self.publications.add(key, f"{src}.{src_port}",
                                      self.actors[src].outputs[src_port], secret, host, epoch)
+
+    def op_ready_to_publish(self, secret: bytes, host: str, epoch: int = 0) -> None:
+        """Bind the sockets that replicate outputs to other nodes before they are needed."""
+        self.publications.open(secret, host, epoch)
 
     def op_unpublish_out(self, key: str) -> int:
         return self.publications.remove(key)

@@ -27,13 +27,18 @@ class Publications:
         self._readers: dict[str, set[str]] = {}      # topic -> keys of the links reading it
         self._ports: dict[str, OutputPort] = {}
 
+    def open(self, secret: bytes, host: str, epoch: int = 0) -> Replicator:
+        """The worker's replicator, made (its sockets bound) if it is not yet: ahead of
+        time, it keeps milliseconds out of a migration's pause."""
+        if self.replicator is None:
+            self.replicator = Replicator(ClusterKey(secret), host, epoch=epoch)
+        return self.replicator
+
     def add(self, key: str, topic: str, port: OutputPort, secret: bytes, host: str,
             epoch: int = 0) -> tuple[str, str, bytes]:
         """Publish ``port`` for the link ``key``; the addresses and incarnation to follow.
         Messages carry the system's ``epoch``; older ones are refused as stale."""
-        if self.replicator is None:
-            self.replicator = Replicator(ClusterKey(secret), host, epoch=epoch)
-        replicator = self.replicator
+        replicator = self.open(secret, host, epoch)
         readers = self._readers.setdefault(topic, set())
         if not readers:
             replicator.add(topic)
