@@ -175,13 +175,13 @@ class _Stream:
     """One published output: its next sequence number, the values published but not
     sent yet (one batch), and its replay buffer."""
 
+    name: bytes                         # the topic on the wire
     next_seq: int = 0
     pending: list[Any] = field(default_factory=list)    # entries of the batch being filled
     kinds: bytearray | None = None      # ... their codec kinds, once one is not PLAIN
     pending_at: float = 0.0             # ... when the first of them was written (unix)
     pending_bytes: int = 0
     replay: collections.deque[_Sent] = field(default_factory=collections.deque)
-    replay_values: int = 0              # values in the replay buffer and the batch
     replay_bytes: int = 0
     clear_until: float = 0              # values before this one need no flow-control check
     acks: dict[bytes, tuple[int, float]] = field(default_factory=dict)  # peer -> (seq, when)
@@ -193,6 +193,11 @@ class _Stream:
         """Where the slowest live follower is (None: nobody follows)."""
         live = [seq for seq, when in self.acks.values() if now - when < FOLLOWER_TIMEOUT]
         return min(live) if live else None
+
+    def kept(self) -> int:
+        """Values in the replay buffer and the batch being filled (all consecutive)."""
+        oldest = self.replay[0].first if self.replay else self.next_seq - len(self.pending)
+        return self.next_seq - oldest
 
     def held(self) -> int | None:
         """Where the slowest lossless follower is, live or not (None: there is none)."""
@@ -207,7 +212,7 @@ class _Stream:
             return True
         if self.next_seq - held >= WINDOW:
             return False
-        full = (self.replay_values >= REPLAY_VALUES
+        full = (self.kept() >= REPLAY_VALUES
                 or self.replay_bytes + self.pending_bytes + size > REPLAY_BYTES)
         oldest = self.replay[0].first if self.replay else self.next_seq - len(self.pending)
         return not (full and oldest >= held)
@@ -227,17 +232,16 @@ class _Stream:
         replay.append(sent)
         self.replay_bytes += sent.nbytes
         held = self.held()
-        while replay and (self.replay_values > REPLAY_VALUES
+        while replay and ((kept := self.kept()) > REPLAY_VALUES
                           or self.replay_bytes > REPLAY_BYTES):
             oldest = replay[0]
             cut = oldest.end
             if self.replay_bytes <= REPLAY_BYTES:
-                cut = min(cut, oldest.first + self.replay_values - REPLAY_VALUES)
+                cut = min(cut, oldest.first + kept - REPLAY_VALUES)
             if held is not None:
                 cut = min(cut, held)
             if cut <= oldest.first:
                 break                            # a lossless follower still needs it
-            self.replay_values -= cut - oldest.first
             if cut < oldest.end:
                 replay[0] = oldest._replace(first=cut)
             else:
@@ -263,7 +267,8 @@ class Replicator:
         self._pub_sealer = Sealer(key, epoch)
         self._router_sealer = Sealer(key, epoch)
         self._opener = Opener(key, epoch=epoch, max_bytes=max_bytes)
-        self._streams: dict[bytes, _Stream] = {}
+        self._streams: dict[bytes, _Stream] = {}      # by name (bytes) ...
+        self._topics: dict[str, _Stream] = {}         # ... and by topic
         self._lock = threading.Lock()            # the PUB socket, the streams, the outbox
         self._acked = threading.Condition(self._lock)
         self._outbox: list[tuple[bytes, _Sent]] = []     # ready, not sent yet
@@ -281,23 +286,25 @@ class Replicator:
     def add(self, topic: str, next_seq: int = 0) -> None:
         """Start publishing ``topic``; ``next_seq`` continues a migrated stream."""
         with self._lock:
-            self._streams.setdefault(_name(topic), _Stream(next_seq))
+            if topic not in self._topics:
+                stream = _Stream(_name(topic), next_seq)
+                self._streams[stream.name] = self._topics[topic] = stream
 
     def sequence(self, topic: str) -> int:
         """The sequence number the next value on ``topic`` will get."""
         with self._lock:
-            return self._streams[_name(topic)].next_seq
+            return self._topics[topic].next_seq
 
     def counter(self, topic: str) -> Any:
         """What counts the publishes of ``topic`` that waited (``waits``, ``wait_s``)."""
         with self._lock:
-            return self._streams[_name(topic)]
+            return self._topics[topic]
 
     def release(self, topic: str, silent_for: float = 0.0) -> None:
         """Stop waiting for the lossless followers of ``topic`` that have been silent
         for ``silent_for`` seconds or more (0: all of them): a link to them was cut."""
         with self._lock:
-            stream = self._streams.get(_name(topic))
+            stream = self._topics.get(topic)
             if stream is None:
                 return
             now = time.monotonic()
@@ -328,47 +335,55 @@ class Replicator:
         replicator's thread gets to them: those published meanwhile go with them."""
         max_bytes = self._max_bytes
         entries = [_entry(value, max_bytes) for value in values]
-        name = _name(topic)
         deadline = None
+        went = 0
         with self._lock:
-            stream = self._streams[name]
-            for went, (kind, entry, size) in enumerate(entries):
+            stream = self._topics[topic]
+            pending = stream.pending
+            for kind, entry, size in entries:
                 if stream.next_seq >= stream.clear_until:
                     if deadline is None:
                         deadline = time.monotonic() + timeout
                     if not self._admit(stream, size, deadline):
-                        return went
-                if kind < 0:                        # large: a message of its own
-                    self._close_batch(name, stream)
-                    seq = stream.next_seq
-                    meta, payload = entry
-                    parts = [_INFO.pack(self.incarnation, seq, time.time(), -kind), meta,
-                             payload]
-                    stream.next_seq = seq + 1
-                    stream.replay_values += 1
-                    sent = _Sent(seq, seq + 1, VALUE, parts, size)
-                    stream.keep(sent)
-                    self._outbox.append((name, sent))
-                else:
-                    pending = stream.pending
-                    if not pending:
-                        stream.pending_at = time.time()
-                        self._filling.add(name)
-                    if kind != PLAIN and stream.kinds is None:
-                        stream.kinds = bytearray(len(pending))
+                        break
+                if kind == PLAIN and pending and stream.kinds is None:   # most values
                     pending.append(entry)
-                    if stream.kinds is not None:
-                        stream.kinds.append(kind)
-                    stream.next_seq += 1
-                    stream.replay_values += 1
                     stream.pending_bytes += size
-                    if len(pending) >= BATCH_VALUES \
-                            or stream.pending_bytes >= self._batch_bytes:
-                        self._close_batch(name, stream)
+                    stream.next_seq += 1
+                else:
+                    self._add(stream, kind, entry, size)
+                went += 1
+                if len(pending) >= BATCH_VALUES or stream.pending_bytes >= self._batch_bytes:
+                    self._close_batch(stream)
             if not self._flush_due:
                 self._flush_due = True
                 self._loop.submit(self._flush)
-        return len(entries)
+        return went
+
+    def _add(self, stream: _Stream, kind: int, entry: Any, size: int) -> None:
+        """Publish one value (lock held): into the batch being filled, or, if large, as
+        a message of its own."""
+        seq = stream.next_seq
+        stream.next_seq = seq + 1
+        if kind < 0:
+            self._close_batch(stream)
+            meta, payload = entry
+            sent = _Sent(seq, seq + 1, VALUE,
+                         [_INFO.pack(self.incarnation, seq, time.time(), -kind), meta, payload],
+                         size)
+            stream.keep(sent)
+            self._outbox.append((stream.name, sent))
+            return
+        pending = stream.pending
+        if not pending:
+            stream.pending_at = time.time()
+            self._filling.add(stream.name)
+        if kind != PLAIN and stream.kinds is None:
+            stream.kinds = bytearray(len(pending))
+        pending.append(entry)
+        if stream.kinds is not None:
+            stream.kinds.append(kind)
+        stream.pending_bytes += size
 
     def _admit(self, stream: _Stream, size: int, deadline: float) -> bool:
         """Flow control for the next value (lock held, released while waiting): False if
@@ -401,7 +416,7 @@ class Replicator:
             stream.clear_until = math.inf if acked is None else acked + WINDOW
         return True
 
-    def _close_batch(self, name: bytes, stream: _Stream) -> None:
+    def _close_batch(self, stream: _Stream) -> None:
         """The values being gathered become one message, ready to send (lock held)."""
         pending = stream.pending
         if not pending:
@@ -411,10 +426,11 @@ class Replicator:
         parts = [_BATCH.pack(self.incarnation, first, len(pending), stream.pending_at), kinds,
                  pickle.dumps(pending, protocol=5)]
         sent = _Sent(first, stream.next_seq, VALUES, parts, stream.pending_bytes)
-        stream.pending, stream.kinds, stream.pending_bytes = [], None, 0
-        self._filling.discard(name)
+        pending.clear()                          # (the same list: offer holds it)
+        stream.kinds, stream.pending_bytes = None, 0
+        self._filling.discard(stream.name)
         stream.keep(sent)
-        self._outbox.append((name, sent))
+        self._outbox.append((stream.name, sent))
 
     def flush(self) -> None:
         """Send everything published so far now (it goes soon anyway); waits for it."""
@@ -428,7 +444,7 @@ class Replicator:
         """Send what was published, in order (lock held, on the loop's thread)."""
         self._flush_due = False
         for name in list(self._filling):
-            self._close_batch(name, self._streams[name])
+            self._close_batch(self._streams[name])
         outbox, self._outbox = self._outbox, []
         for name, sent in outbox:
             self._send_pub(name, sent.kind, sent.parts)
