@@ -269,7 +269,9 @@ class Replicator:
         self._opener = Opener(key, epoch=epoch, max_bytes=max_bytes)
         self._streams: dict[bytes, _Stream] = {}      # by name (bytes) ...
         self._topics: dict[str, _Stream] = {}         # ... and by topic
-        self._lock = threading.Lock()            # the PUB socket, the streams, the outbox
+        # the PUB socket (used by the loop's thread and, for large values, by the
+        # publishing thread: never both at once), the streams, the outbox
+        self._lock = threading.Lock()
         self._acked = threading.Condition(self._lock)
         self._outbox: list[tuple[bytes, _Sent]] = []     # ready, not sent yet
         self._filling: set[bytes] = set()                # topics with a batch being filled
@@ -331,12 +333,14 @@ class Replicator:
         high-water marks. A lossless follower holds it back up to ``timeout`` (the
         writer's) in all; the values that found no room by then are not sent.
 
-        Values are taken as they are now (see ``_entry``) and go out as soon as the
-        replicator's thread gets to them: those published meanwhile go with them."""
+        Values are taken as they are now (see ``_entry``). Small ones go out as soon as
+        the replicator's thread gets to them (those published meanwhile go with them);
+        a large one goes at once, from this thread: batching gains nothing for it, and
+        a hand-over to the other thread costs a thread switch per value."""
         max_bytes = self._max_bytes
         entries = [_entry(value, max_bytes) for value in values]
         deadline = None
-        went = 0
+        went, large = 0, False
         with self._lock:
             stream = self._topics[topic]
             pending = stream.pending
@@ -352,10 +356,13 @@ class Replicator:
                     stream.next_seq += 1
                 else:
                     self._add(stream, kind, entry, size)
+                    large = large or kind < 0
                 went += 1
                 if len(pending) >= BATCH_VALUES or stream.pending_bytes >= self._batch_bytes:
                     self._close_batch(stream)
-            if not self._flush_due:
+            if large:                        # sent now: see above
+                self._flush_locked()
+            elif not self._flush_due:
                 self._flush_due = True
                 self._loop.submit(self._flush)
         return went
