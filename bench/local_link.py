@@ -3,7 +3,8 @@
 ``local_link.py`` measures a local link (two worker processes on one node: a
 shared-memory ring); ``local_link.py --remote`` a link between two embedded nodes
 (authenticated ZeroMQ PUB/SUB with sequence numbers, flow control and the receiving
-node's bridge), against raw pyzmq PUSH/PULL over tcp on loopback.
+node's bridge), against raw pyzmq PUSH/PULL over tcp on loopback, with the goal of
+issue 16: every PB3A row at least ``REMOTE_GOAL`` (0.7) times it, same run.
 
 What is measured: values delivered / (receiver's last receipt - sender's first send),
 both read from CLOCK_MONOTONIC, which all processes share. Two payloads:
