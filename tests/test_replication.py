@@ -3,6 +3,7 @@ fencing, arrays as frames, and forged or garbage frames refused."""
 
 from __future__ import annotations
 
+import pickle
 import threading
 import time
 from typing import Any
@@ -160,6 +161,79 @@ def test_arrays_travel_as_frames_and_keep_the_value_they_had_when_written(link) 
     (received,) = inbox.wait("img", 1)
     assert np.array_equal(received, np.arange(1 << 17, dtype=np.float64))
     assert not received.flags.writeable
+
+
+def test_a_batch_mixes_plain_and_encoded_values_each_as_it_was_when_written(link) -> None:
+    replicator, follower, inbox = link
+    replicator.add("t")
+    _follow(follower, replicator, "t", from_seq=0)
+    assert follower.wait_ready("t", TIMEOUT)
+    table, small = {"a": [1, 2]}, np.arange(4.0)
+    written = [table, 1, "two", None, small, b"\x00six", 7.5]
+    assert replicator.offer("t", written) == len(written)      # one VALUES message
+    table["a"].append(3)                      # the writer changes them right after
+    small[:] = -1
+    got = inbox.wait("t", len(written))
+    assert got[:4] == [{"a": [1, 2]}, 1, "two", None] and got[5:] == [b"\x00six", 7.5]
+    assert np.array_equal(got[4], np.arange(4.0)) and not got[4].flags.writeable
+
+
+class FakeSender:
+    """Sealed VALUES messages of a sender that the test controls, on a PUB socket."""
+
+    def __init__(self, follower: Follower, control: str) -> None:
+        self.incarnation = b"i" * 16
+        self.sealer = Sealer(KEY)
+        self.pub = zmq.Context.instance().socket(zmq.PUB)
+        self.pub.setsockopt(zmq.LINGER, 0)
+        port = self.pub.bind_to_random_port("tcp://127.0.0.1")
+        follower.follow("t", f"tcp://127.0.0.1:{port}", control, from_seq=0,
+                        incarnation=self.incarnation)
+        deadline = time.monotonic() + TIMEOUT
+        while not follower.wait_ready("t", 0.05):     # SYNCs until the SUB is live
+            assert time.monotonic() < deadline, "the follower never heard the fake sender"
+            self.send(replication.SYNC, [replication._ANSWER.pack(self.incarnation, 0, 0)])
+
+    def values(self, first: int, values: list[Any]) -> list[Any]:
+        """The sealed frames of a VALUES message of ``values`` from ``first`` on."""
+        header = replication._BATCH.pack(self.incarnation, first, len(values), time.time())
+        return [b"t\0", *self.sealer.seal(replication.VALUES,
+                                          [b"t\0", header, b"", pickle.dumps(values)])]
+
+    def send(self, kind: int, parts: list[Any]) -> None:
+        self.pub.send_multipart([b"t\0", *self.sealer.seal(kind, [b"t\0", *parts])])
+
+
+@pytest.fixture
+def fake(link):
+    replicator, follower, inbox = link
+    sender = FakeSender(follower, replicator.control_address)
+    yield sender, follower, inbox
+    sender.pub.close(0)
+
+
+def test_batches_that_overlap_or_follow_a_gap_deliver_each_value_once_in_order(fake) -> None:
+    sender, follower, inbox = fake
+    for first, values in ((0, ["a", "b", "c"]), (2, ["c", "d", "e"]),   # c twice
+                          (8, ["i", "j"]),                                # 5..7 missing
+                          (5, ["f", "g", "h", "i"])):                     # the gap, and i
+        sender.pub.send_multipart(sender.values(first, values))
+    assert inbox.wait("t", 10) == list("abcdefghij")
+    eventually(lambda: follower.duplicates["t"] == 2, what="c and i counted as duplicates")
+    assert not follower.link_failures and not follower.rejected
+
+
+def test_a_tampered_batch_is_refused_before_anything_in_it_is_unpickled(fake) -> None:
+    sender, follower, inbox = fake
+    frames = sender.values(0, ["real"])
+    bomb = pickle.dumps(["fake"])
+    body = bytearray(frames[1])               # (small: one packed frame)
+    at = body.index(pickle.dumps(["real"]))
+    body[at:at + len(bomb)] = bomb            # same length: only the tag can tell
+    sender.pub.send_multipart([frames[0], bytes(body)])
+    sender.pub.send_multipart(sender.values(0, ["real"]))
+    assert inbox.wait("t", 1) == ["real"]
+    assert follower.rejected["bad tag"] == 1
 
 
 def test_forged_garbage_and_oversized_frames_are_refused_without_harm(link,

@@ -5,8 +5,13 @@ its output's topic, however many nodes (and inputs there) read it, and kept in a
 bounded replay buffer. A ``Follower`` receives on one node: one SUB socket for all
 the topics it follows, and a DEALER per sender for the hand-shake and repairs.
 
-Every value carries (sender incarnation, topic, sequence number). The follower
-delivers each topic's values in sequence order, exactly once:
+Every value carries (sender incarnation, topic, sequence number). Values published
+while the previous ones are being sent travel together: small ones as one VALUES
+message (first sequence number and count in its header, the values pickled as one
+list: one seal, one send and one unpickling for up to ``BATCH_VALUES`` of them),
+large ones (``ZERO_COPY_MIN`` bytes and more) each as a VALUE message whose payload
+is a zero-copy frame. The follower delivers each topic's values in sequence order,
+exactly once:
 
 - Slow joiners. A SUB socket misses what is published before its subscription
   reaches the publisher. So the follower says HELLO (topic, first sequence number
@@ -16,8 +21,9 @@ delivers each topic's values in sequence order, exactly once:
 - Gaps (the publisher's high-water mark dropped values for a slow follower, or a
   reconnect lost some) are repaired the same way; values beyond a gap wait; a
   heartbeat (SYNC every 0.5 s with the next sequence number) reveals values lost at
-  the end of a burst. What the replay buffer no longer holds is counted as a link
-  failure, loudly.
+  the end of a burst. A repair re-sends whole messages: what of them was delivered
+  already is counted as duplicates and dropped. What the replay buffer no longer
+  holds is counted as a link failure, loudly.
 - Flow control. Followers acknowledge (ACK) how far they are; a publisher more than
   ``WINDOW`` values ahead of its slowest live follower waits for it, briefly.
 - Lossless followers. A follower whose receiver must not drop (a ``lossless`` link)
@@ -37,12 +43,13 @@ from __future__ import annotations
 import collections
 import logging
 import math
+import pickle
 import secrets
 import struct
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import zmq
 
@@ -53,19 +60,22 @@ from pb3a.transport.auth import ClusterKey, Opener, Rejected, Sealer
 from pb3a.transport.loop import SocketLoop
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
+    from collections.abc import Callable, Sequence
 
 log = logging.getLogger("pb3a.replication")
 
 # message kinds
 VALUE, SYNC, HELLO, REPAIR, WELCOME, REPLAYED, ACK, VALUES = 1, 2, 3, 4, 5, 6, 7, 8
-_INFO = struct.Struct("<16sQdB")        # incarnation, sequence number, sent at (unix), codec kind
+_INFO = struct.Struct("<16sQdB")        # VALUE: incarnation, sequence number, sent at (unix),
+                                        # codec kind
+_BATCH = struct.Struct("<16sQId")       # VALUES: incarnation, first sequence number, count,
+                                        # sent at (unix: when the first was written)
 _ASK = struct.Struct("<qq")             # HELLO: first needed (-1: from now), flags; REPAIR:
                                         # first, last; ACK: delivered up to (exclusive, -1:
                                         # unfollowed), flags
 LOSSLESS = 1                            # flag of HELLO and ACK: hold the publisher back
 _ANSWER = struct.Struct("<16sqq")       # WELCOME: incarnation, next; REPLAYED: first, gone
-_ENTRY = struct.Struct("<HI")           # VALUES: each entry's meta and payload lengths
+PLAIN = 0                               # a VALUES entry that is the value itself
 BATCH_VALUES = 1024                     # small values of one topic sent as one message, at most
 BATCH_BYTES = 1 << 20                   # ... and at most this many bytes of them
 HWM = 10_000                            # messages queued per peer before ZeroMQ drops
@@ -83,6 +93,8 @@ HELLO_EVERY = 0.05                      # seconds between unanswered HELLOs
 HEARTBEAT_S = 0.5                       # how often a replicator announces its topics
 DRAIN_BATCH = 1024                      # messages taken in before delivering them
 ZERO_COPY_MIN = 64 * 1024               # frames at least this large are sent without a copy
+_SCALARS = frozenset({int, float, bool, complex, type(None)})   # immutable: kept as they are
+_TEXT = frozenset({str, bytes})         # immutable too, when small
 
 
 def _name(topic: str) -> bytes:
@@ -111,15 +123,67 @@ def _secure(sock: zmq.Socket, max_bytes: int = MAX_MESSAGE) -> zmq.Socket:
     return sock
 
 
+def _entry(value: Any, max_bytes: int) -> tuple[int, Any, int]:
+    """``(kind, entry, bytes)`` of one value, taken when it is written (the writer may
+    change a mutable value right after): an immutable small value is its own entry
+    (``PLAIN``), pickled later with the rest of its batch; anything else is encoded
+    now, to ``(meta, payload)``. A payload of ``ZERO_COPY_MIN`` bytes or more is sent
+    on its own (``kind`` negative); an array's is copied once, and from there on goes
+    out as a zero-copy frame and stays in the replay buffer as it is."""
+    cls = type(value)
+    if cls in _SCALARS:
+        return PLAIN, value, 9
+    if cls in _TEXT and len(value) < ZERO_COPY_MIN:
+        return PLAIN, value, len(value) + 9
+    kind, meta, payload = codec.encode(value)
+    nbytes = codec.payload_size(kind, payload)
+    if nbytes + 1024 > max_bytes:
+        raise ValueError(f"a value of {nbytes} bytes exceeds the {max_bytes}-byte message "
+                         "limit of remote links; raise the limit")
+    if kind == codec.ARRAY:
+        payload = payload.copy() if nbytes >= ZERO_COPY_MIN else payload.tobytes()
+    return (-kind if nbytes >= ZERO_COPY_MIN else kind), (meta, payload), nbytes + 64
+
+
 # -- the sending side ---------------------------------------------------------------
+class _Sent(NamedTuple):
+    """A message of one topic's values, as sent, kept for repairs: those from ``first``
+    (the older ones were pushed out of the replay buffer) to ``end - 1``."""
+
+    first: int
+    end: int
+    kind: int                           # VALUE or VALUES
+    parts: list[Any]
+    nbytes: int
+
+    def replayable(self) -> list[Any]:
+        """The message of the values it still holds: the one sent, or one without the
+        values pushed out (re-encoded: only repairs of a full buffer pay for it)."""
+        if self.kind != VALUES:
+            return self.parts
+        header, kinds, body = self.parts
+        incarnation, first, count, sent_at = _BATCH.unpack(header)
+        gone = self.first - first
+        if not gone:
+            return self.parts
+        return [_BATCH.pack(incarnation, self.first, count - gone, sent_at), kinds[gone:],
+                pickle.dumps(pickle.loads(body)[gone:], protocol=5)]
+
+
 @dataclass
 class _Stream:
-    """One published output: its next sequence number and its replay buffer."""
+    """One published output: its next sequence number, the values published but not
+    sent yet (one batch), and its replay buffer."""
 
+    name: bytes                         # the topic on the wire
     next_seq: int = 0
-    replay: collections.deque[tuple[int, list[Any], int]] = field(
-        default_factory=collections.deque)      # (seq, [info, meta, payload], bytes)
+    pending: list[Any] = field(default_factory=list)    # entries of the batch being filled
+    kinds: bytearray | None = None      # ... their codec kinds, once one is not PLAIN
+    pending_at: float = 0.0             # ... when the first of them was written (unix)
+    pending_bytes: int = 0
+    replay: collections.deque[_Sent] = field(default_factory=collections.deque)
     replay_bytes: int = 0
+    clear_until: float = 0              # values before this one need no flow-control check
     acks: dict[bytes, tuple[int, float]] = field(default_factory=dict)  # peer -> (seq, when)
     holds: dict[bytes, int] = field(default_factory=dict)   # lossless followers: peer -> seq
     waits: int = 0                      # values whose publish waited for followers ...
@@ -129,6 +193,11 @@ class _Stream:
         """Where the slowest live follower is (None: nobody follows)."""
         live = [seq for seq, when in self.acks.values() if now - when < FOLLOWER_TIMEOUT]
         return min(live) if live else None
+
+    def kept(self) -> int:
+        """Values in the replay buffer and the batch being filled (all consecutive)."""
+        oldest = self.replay[0].first if self.replay else self.next_seq - len(self.pending)
+        return self.next_seq - oldest
 
     def held(self) -> int | None:
         """Where the slowest lossless follower is, live or not (None: there is none)."""
@@ -143,9 +212,10 @@ class _Stream:
             return True
         if self.next_seq - held >= WINDOW:
             return False
-        replay = self.replay
-        full = len(replay) >= REPLAY_VALUES or self.replay_bytes + size > REPLAY_BYTES
-        return not (full and replay and replay[0][0] >= held)
+        full = (self.kept() >= REPLAY_VALUES
+                or self.replay_bytes + self.pending_bytes + size > REPLAY_BYTES)
+        oldest = self.replay[0].first if self.replay else self.next_seq - len(self.pending)
+        return not (full and oldest >= held)
 
     def hold(self, peer: bytes, seq: int, flags: int) -> None:
         """A follower said how far it is and whether it is lossless."""
@@ -154,15 +224,40 @@ class _Stream:
         else:
             self.holds.pop(peer, None)
 
+    def keep(self, sent: _Sent) -> None:
+        """Put a message in the replay buffer; push out the oldest values while it holds
+        too many (too many bytes: whole messages), but never what a lossless follower
+        has not acknowledged."""
+        replay = self.replay
+        replay.append(sent)
+        self.replay_bytes += sent.nbytes
+        held = self.held()
+        while replay and ((kept := self.kept()) > REPLAY_VALUES
+                          or self.replay_bytes > REPLAY_BYTES):
+            oldest = replay[0]
+            cut = oldest.end
+            if self.replay_bytes <= REPLAY_BYTES:
+                cut = min(cut, oldest.first + kept - REPLAY_VALUES)
+            if held is not None:
+                cut = min(cut, held)
+            if cut <= oldest.first:
+                break                            # a lossless follower still needs it
+            if cut < oldest.end:
+                replay[0] = oldest._replace(first=cut)
+            else:
+                replay.popleft()
+                self.replay_bytes -= oldest.nbytes
+
 
 class Replicator:
     """Publishes the outputs of one process (PUB) and answers hand-shakes and repairs
-    (ROUTER) on its own thread. ``publish`` may be called from any thread."""
+    (ROUTER) on its own thread. ``publish`` and ``offer`` may be called from any thread."""
 
     def __init__(self, key: ClusterKey, host: str = "127.0.0.1", *, epoch: int = 0,
                  max_bytes: int = MAX_MESSAGE, context: zmq.Context | None = None) -> None:
         self.incarnation = secrets.token_bytes(16)
         self._max_bytes = max_bytes
+        self._batch_bytes = min(BATCH_BYTES, max_bytes // 2)
         self._context = context or zmq.Context.instance()
         self._pub = _secure(self._context.socket(zmq.PUB), max_bytes)
         self._router = _secure(self._context.socket(zmq.ROUTER), max_bytes)
@@ -172,10 +267,15 @@ class Replicator:
         self._pub_sealer = Sealer(key, epoch)
         self._router_sealer = Sealer(key, epoch)
         self._opener = Opener(key, epoch=epoch, max_bytes=max_bytes)
-        self._streams: dict[bytes, _Stream] = {}
-        self._lock = threading.Lock()            # the PUB socket, the streams, the outbox
+        self._streams: dict[bytes, _Stream] = {}      # by name (bytes) ...
+        self._topics: dict[str, _Stream] = {}         # ... and by topic
+        # the PUB socket (used by the loop's thread and, for large values, by the
+        # publishing thread: never both at once), the streams, the outbox
+        self._lock = threading.Lock()
         self._acked = threading.Condition(self._lock)
-        self._outbox: list[tuple[bytes, list[Any]]] = []   # published, not sent yet
+        self._outbox: list[tuple[bytes, _Sent]] = []     # ready, not sent yet
+        self._filling: set[bytes] = set()                # topics with a batch being filled
+        self._flush_due = False                          # a flush is queued on the loop
         self._loop = SocketLoop("pb3a-replicator", self._context)
         self._loop.register(self._router, self._on_request)
         self._loop.every(HEARTBEAT_S, self._heartbeat)
@@ -188,12 +288,14 @@ class Replicator:
     def add(self, topic: str, next_seq: int = 0) -> None:
         """Start publishing ``topic``; ``next_seq`` continues a migrated stream."""
         with self._lock:
-            self._streams.setdefault(_name(topic), _Stream(next_seq))
+            if topic not in self._topics:
+                stream = _Stream(_name(topic), next_seq)
+                self._streams[stream.name] = self._topics[topic] = stream
 
     def sequence(self, topic: str) -> int:
         """The sequence number the next value on ``topic`` will get."""
         with self._lock:
-            return self._streams[_name(topic)].next_seq
+            return self._topics[topic].next_seq
 
     def unacknowledged(self, topic: str) -> int:
         """How many values of ``topic`` its least advanced follower, live or silent, has
@@ -207,13 +309,13 @@ class Replicator:
     def counter(self, topic: str) -> Any:
         """What counts the publishes of ``topic`` that waited (``waits``, ``wait_s``)."""
         with self._lock:
-            return self._streams[_name(topic)]
+            return self._topics[topic]
 
     def release(self, topic: str, silent_for: float = 0.0) -> None:
         """Stop waiting for the lossless followers of ``topic`` that have been silent
         for ``silent_for`` seconds or more (0: all of them): a link to them was cut."""
         with self._lock:
-            stream = self._streams.get(_name(topic))
+            stream = self._topics.get(topic)
             if stream is None:
                 return
             now = time.monotonic()
@@ -223,75 +325,128 @@ class Replicator:
             self._acked.notify_all()
 
     def publish(self, topic: str, value: Any, timeout: float = WINDOW_WAIT) -> int:
-        """Send one value; returns its sequence number.
+        """Send one value; returns its sequence number. RuntimeTimeout (and nothing sent)
+        when a lossless follower leaves no room within ``timeout``: see ``offer``."""
+        if not self.offer(topic, (value,), timeout):
+            raise link_stuck(topic, timeout)
+        return self.sequence(topic) - 1
+
+    def offer(self, topic: str, values: Sequence[Any], timeout: float = WINDOW_WAIT) -> int:
+        """Send values in order; returns how many went (all but when a lossless follower
+        holds the publisher back: see below). ValueError, and nothing sent, if one is
+        larger than the message limit.
 
         Flow control: a publisher more than ``WINDOW`` values ahead of its slowest
         follower waits for it (up to ``WINDOW_WAIT``, then goes on and lets the repair
         or the link-failure count deal with it), so a burst never overruns the
         high-water marks. A lossless follower holds it back up to ``timeout`` (the
-        writer's), and then the publish raises RuntimeTimeout: nothing is sent. An
-        array is copied once (the writer may reuse it at once); from there on its
-        bytes go out as a zero-copy frame and stay in the replay buffer as they are."""
-        kind, meta, payload = codec.encode(value)
-        nbytes = codec.payload_size(kind, payload)
-        if nbytes + 1024 > self._max_bytes:
-            raise ValueError(
-                f"a value of {nbytes} bytes exceeds the {self._max_bytes}-byte message "
-                "limit of remote links; raise the limit")
-        if kind == codec.ARRAY and payload is value:
-            payload = payload.copy()
-        name = _name(topic)
-        size = nbytes + 64
-        with self._lock:
-            stream = self._streams[name]
-            started = self._await_holds(stream, topic, size, timeout) if stream.holds else None
-            deadline = None
-            while (acked := stream.acknowledged(time.monotonic())) is not None \
-                    and stream.next_seq - acked >= WINDOW:
-                if deadline is None:
-                    deadline = time.monotonic() + WINDOW_WAIT
-                    started = started or time.monotonic()
-                if not self._acked.wait(deadline - time.monotonic()) \
-                        and time.monotonic() >= deadline:
-                    break
-            if started is not None:
-                stream.waits += 1
-                stream.wait_s += time.monotonic() - started
-            seq = stream.next_seq
-            stream.next_seq += 1
-            parts = [_INFO.pack(self.incarnation, seq, time.time(), kind), meta, payload]
-            stream.replay.append((seq, parts, size))
-            stream.replay_bytes += size
-            held = stream.held()
-            while stream.replay and (len(stream.replay) > REPLAY_VALUES
-                                     or stream.replay_bytes > REPLAY_BYTES):
-                if held is not None and stream.replay[0][0] >= held:
-                    break                        # a lossless follower still needs it
-                stream.replay_bytes -= stream.replay.popleft()[2]
-            # The loop thread sends: what piles up meanwhile goes as one message.
-            self._outbox.append((name, parts))
-            wake = len(self._outbox) == 1
-        if wake:
-            self._loop.submit(self._flush)
-        return seq
+        writer's) in all; the values that found no room by then are not sent.
 
-    def _await_holds(self, stream: _Stream, topic: str, size: int,
-                     timeout: float) -> float | None:
-        """Wait (lock held, released while waiting) until the lossless followers leave
-        room for one more value (``_Stream.room_for``); when it waited, since when.
-        RuntimeTimeout after ``timeout`` seconds."""
+        Values are taken as they are now (see ``_entry``). Small ones go out as soon as
+        the replicator's thread gets to them (those published meanwhile go with them);
+        a large one goes at once, from this thread: batching gains nothing for it, and
+        a hand-over to the other thread costs a thread switch per value."""
+        max_bytes = self._max_bytes
+        entries = [_entry(value, max_bytes) for value in values]
+        deadline = None
+        went, large = 0, False
+        with self._lock:
+            stream = self._topics[topic]
+            pending = stream.pending
+            for kind, entry, size in entries:
+                if stream.next_seq >= stream.clear_until:
+                    if deadline is None:
+                        deadline = time.monotonic() + timeout
+                    if not self._admit(stream, size, deadline):
+                        break
+                if kind == PLAIN and pending and stream.kinds is None:   # most values
+                    pending.append(entry)
+                    stream.pending_bytes += size
+                    stream.next_seq += 1
+                else:
+                    self._add(stream, kind, entry, size)
+                    large = large or kind < 0
+                went += 1
+                if len(pending) >= BATCH_VALUES or stream.pending_bytes >= self._batch_bytes:
+                    self._close_batch(stream)
+            if large:                        # sent now: see above
+                self._flush_locked()
+            elif not self._flush_due:
+                self._flush_due = True
+                self._loop.submit(self._flush)
+        return went
+
+    def _add(self, stream: _Stream, kind: int, entry: Any, size: int) -> None:
+        """Publish one value (lock held): into the batch being filled, or, if large, as
+        a message of its own."""
+        seq = stream.next_seq
+        stream.next_seq = seq + 1
+        if kind < 0:
+            self._close_batch(stream)
+            meta, payload = entry
+            sent = _Sent(seq, seq + 1, VALUE,
+                         [_INFO.pack(self.incarnation, seq, time.time(), -kind), meta, payload],
+                         size)
+            stream.keep(sent)
+            self._outbox.append((stream.name, sent))
+            return
+        pending = stream.pending
+        if not pending:
+            stream.pending_at = time.time()
+            self._filling.add(stream.name)
+        if kind != PLAIN and stream.kinds is None:
+            stream.kinds = bytearray(len(pending))
+        pending.append(entry)
+        if stream.kinds is not None:
+            stream.kinds.append(kind)
+        stream.pending_bytes += size
+
+    def _admit(self, stream: _Stream, size: int, deadline: float) -> bool:
+        """Flow control for the next value (lock held, released while waiting): False if
+        a lossless follower left no room by ``deadline``. Sets how far values may go
+        from here on without asking again."""
         started = None
-        while not stream.room_for(size):
+        while stream.holds and not stream.room_for(size):
             now = time.monotonic()
-            if started is None:
-                started = now
-            left = started + timeout - now
-            if left <= 0:
+            started = started or now
+            if now >= deadline:
                 stream.waits += 1
                 stream.wait_s += now - started
-                raise link_stuck(topic, timeout)
-            self._acked.wait(left)
-        return started
+                return False
+            self._acked.wait(deadline - now)
+        window_end = None
+        while (acked := stream.acknowledged(time.monotonic())) is not None \
+                and stream.next_seq - acked >= WINDOW:
+            if window_end is None:
+                window_end = time.monotonic() + WINDOW_WAIT
+                started = started or time.monotonic()
+            if not self._acked.wait(window_end - time.monotonic()) \
+                    and time.monotonic() >= window_end:
+                break
+        if started is not None:
+            stream.waits += 1
+            stream.wait_s += time.monotonic() - started
+        if stream.holds or started is not None:
+            stream.clear_until = stream.next_seq + 1    # ask again for the next value
+        else:            # (only a new follower brings the window's end closer: see ACK)
+            stream.clear_until = math.inf if acked is None else acked + WINDOW
+        return True
+
+    def _close_batch(self, stream: _Stream) -> None:
+        """The values being gathered become one message, ready to send (lock held)."""
+        pending = stream.pending
+        if not pending:
+            return
+        first = stream.next_seq - len(pending)
+        kinds = bytes(stream.kinds) if stream.kinds is not None else b""
+        parts = [_BATCH.pack(self.incarnation, first, len(pending), stream.pending_at), kinds,
+                 pickle.dumps(pending, protocol=5)]
+        sent = _Sent(first, stream.next_seq, VALUES, parts, stream.pending_bytes)
+        pending.clear()                          # (the same list: offer holds it)
+        stream.kinds, stream.pending_bytes = None, 0
+        self._filling.discard(stream.name)
+        stream.keep(sent)
+        self._outbox.append((stream.name, sent))
 
     def flush(self) -> None:
         """Send everything published so far now (it goes soon anyway); waits for it."""
@@ -302,36 +457,13 @@ class Replicator:
             self._flush_locked()
 
     def _flush_locked(self) -> None:
-        """Send the outbox in order: runs of small values of one topic as one VALUES
-        message (a seal and a send for many values), large ones as zero-copy frames."""
+        """Send what was published, in order (lock held, on the loop's thread)."""
+        self._flush_due = False
+        for name in list(self._filling):
+            self._close_batch(self._streams[name])
         outbox, self._outbox = self._outbox, []
-        budget = min(BATCH_BYTES, self._max_bytes // 2)
-        name, run, run_bytes = b"", [], 0
-        for entry_name, parts in outbox:
-            size = memoryview(parts[2]).nbytes
-            large = size >= ZERO_COPY_MIN
-            if run and (large or entry_name != name or len(run) >= BATCH_VALUES
-                        or run_bytes + size > budget):
-                self._send_run(name, run)
-                run, run_bytes = [], 0
-            if large:
-                self._send_pub(entry_name, VALUE, parts)
-            else:
-                name = entry_name
-                run.append(parts)
-                run_bytes += size
-        if run:
-            self._send_run(name, run)
-
-    def _send_run(self, name: bytes, run: list[list[Any]]) -> None:
-        if len(run) == 1:
-            self._send_pub(name, VALUE, run[0])
-            return
-        blob = []
-        for info, meta, payload in run:
-            body = memoryview(payload).cast("B")
-            blob += (_ENTRY.pack(len(meta), body.nbytes), info, meta, body)
-        self._send_pub(name, VALUES, [b"".join(blob)])
+        for name, sent in outbox:
+            self._send_pub(name, sent.kind, sent.parts)
 
     def _send_pub(self, name: bytes, kind: int, parts: list[Any]) -> None:
         # topic first (SUB filters on it), then the sealed message, which holds the
@@ -373,26 +505,30 @@ class Replicator:
                 else:
                     stream.acks[peer_id] = (first, time.monotonic())
                     stream.hold(peer_id, first, last)
+                stream.clear_until = 0           # (a lossless follower may have come)
                 self._acked.notify_all()
             elif message.kind == HELLO:
-                self._flush_locked()
+                self._flush_locked()             # (all it may need is in the buffer)
                 nxt = stream.next_seq
                 stream.acks[peer_id] = (first if first >= 0 else nxt, time.monotonic())
                 stream.hold(peer_id, first if first >= 0 else nxt, last)
+                stream.clear_until = 0           # a new follower: the window moved back
                 self._send_router(peer, WELCOME, [name, _ANSWER.pack(self.incarnation, nxt, 0)])
                 self._send_pub(name, SYNC, [_ANSWER.pack(self.incarnation, nxt, 0)])
                 if first >= 0:                   # (an empty replay still says so)
                     self._replay(peer, name, stream, first, nxt - 1)
             else:
+                self._flush_locked()
                 self._replay(peer, name, stream, first, last)
 
     def _replay(self, peer: Any, name: bytes, stream: _Stream, first: int, last: int) -> None:
-        """Values ``first..last`` from the buffer, then how many of them are gone."""
-        oldest = stream.replay[0][0] if stream.replay else stream.next_seq
+        """The messages holding values ``first..last`` from the buffer, then how many of
+        those values are gone."""
+        oldest = stream.replay[0].first if stream.replay else stream.next_seq
         gone = max(0, min(last + 1, oldest) - first)
-        for seq, parts, _ in stream.replay:
-            if first <= seq <= last:
-                self._send_router(peer, VALUE, [name, *parts])
+        for sent in stream.replay:
+            if sent.first <= last and sent.end > first:
+                self._send_router(peer, sent.kind, [name, *sent.replayable()])
         self._send_router(peer, REPLAYED, [name, _ANSWER.pack(self.incarnation, first, gone)])
 
     def _send_router(self, peer: Any, kind: int, parts: list[Any]) -> None:
@@ -417,8 +553,9 @@ class _Follow:
     next_seq: int                             # the next sequence number to deliver (-1: any)
     incarnation: bytes | None                 # the accepted sender (None: the first to answer)
     live: bool = False                        # a SYNC or value came through the SUB socket
-    # (value, sent at, bytes) of values beyond a gap, or waiting for delivery
-    held: dict[int, tuple[Any, float, int]] = field(default_factory=dict)
+    # runs of values beyond a gap, or waiting for delivery: first sequence number ->
+    # (values, sent at, bytes)
+    held: dict[int, tuple[list[Any], float, int]] = field(default_factory=dict)
     asked: float = 0.0                        # when we last sent HELLO or REPAIR
     repairing: bool = False
     announced: int = -1                       # the sender's next sequence number, as last heard
@@ -626,28 +763,33 @@ class Follower:
                 return None
             if follow.next_seq < 0:             # from now on: what came earlier goes
                 follow.next_seq = nxt
-                for seq in [seq for seq in follow.held if seq < nxt]:
-                    del follow.held[seq]
+                for first in [first for first in follow.held if first < nxt]:
+                    values, sent_at, nbytes = follow.held.pop(first)
+                    if first + len(values) > nxt:
+                        follow.held[nxt] = (values[nxt - first:], sent_at, nbytes)
             follow.announced = max(follow.announced, nxt)
             follow.live = follow.live or live
             return follow
         if message.kind == VALUE:
-            info, meta, payload = message.frames[1:4]
-            return follow if self._take(follow, info, bytes(meta), payload, live) else None
+            if len(message.frames) != 4 or memoryview(message.frames[1]).nbytes != _INFO.size:
+                raise Rejected("malformed")
+            info, meta, payload = message.frames[1:]
+            incarnation, seq, sent_at, kind = _INFO.unpack(info)
+            if not self._accept(follow, incarnation):
+                return None
+            value = codec.decode_owned(kind, bytes(meta), payload)
+            nbytes = memoryview(payload).nbytes
+            return follow if self._take(follow, seq, [value], sent_at, nbytes, live) else None
         if message.kind == VALUES:
-            blob, at, taken = memoryview(message.frames[1]), 0, False
-            while at < blob.nbytes:
-                if at + _ENTRY.size + _INFO.size > blob.nbytes:
-                    raise Rejected("malformed")
-                meta_len, size = _ENTRY.unpack_from(blob, at)
-                start = at + _ENTRY.size + _INFO.size
-                at = start + meta_len + size
-                if at > blob.nbytes:
-                    raise Rejected("malformed")
-                taken |= self._take(follow, blob[start - _INFO.size:start],
-                                    bytes(blob[start:start + meta_len]),
-                                    blob[start + meta_len:at], live)
-            return follow if taken else None
+            if len(message.frames) != 4 or memoryview(message.frames[1]).nbytes != _BATCH.size:
+                raise Rejected("malformed")
+            header, kinds, body = message.frames[1:]
+            incarnation, first, count, sent_at = _BATCH.unpack(header)
+            if not self._accept(follow, incarnation):
+                return None
+            values = _entries(body, bytes(kinds), count)
+            nbytes = memoryview(body).nbytes
+            return follow if self._take(follow, first, values, sent_at, nbytes, live) else None
         if message.kind == REPLAYED:
             incarnation, first, gone = _ANSWER.unpack(message.frames[1])
             if not self._accept(follow, incarnation):
@@ -662,18 +804,24 @@ class Follower:
             return follow
         raise Rejected("unexpected")
 
-    def _take(self, follow: _Follow, info: Any, meta: bytes, payload: Any, live: bool) -> bool:
-        """Hold one value for in-order delivery; False if it is fenced or a duplicate."""
-        incarnation, seq, sent_at, kind = _INFO.unpack(info)
-        if not self._accept(follow, incarnation):
-            return False
+    def _take(self, follow: _Follow, first: int, values: list[Any], sent_at: float,
+              nbytes: int, live: bool) -> bool:
+        """Hold a run of values (sequence numbers from ``first`` on) for in-order
+        delivery; False if all of them are duplicates."""
         follow.live = follow.live or live
         # (joined "from now": values wait until the hand-shake says where now is)
-        if 0 <= seq < follow.next_seq or seq in follow.held:
-            self.duplicates[_topic(follow.topic)] += 1
-            return False
-        follow.held[seq] = (codec.decode_owned(kind, meta, payload), sent_at,
-                            memoryview(payload).nbytes)
+        old = max(0, follow.next_seq - first) if follow.next_seq >= 0 else 0
+        if old:
+            self.duplicates[_topic(follow.topic)] += min(old, len(values))
+            if old >= len(values):
+                return False
+            first, values = first + old, values[old:]
+        known = follow.held.get(first)
+        if known is not None:                   # (a repair raced the live message)
+            self.duplicates[_topic(follow.topic)] += min(len(known[0]), len(values))
+            if len(known[0]) >= len(values):
+                return False
+        follow.held[first] = (values, sent_at, nbytes)
         return True
 
     def _accept(self, follow: _Follow, incarnation: bytes) -> bool:
@@ -689,11 +837,18 @@ class Follower:
         if follow.live and follow.next_seq >= 0:
             follow.ready.set()
         values, sent_at, size, seq = [], 0.0, 0, follow.next_seq
-        while seq in follow.held:
-            value, sent_at, nbytes = follow.held.pop(seq)
-            values.append(value)
+        held = follow.held
+        while seq >= 0 and held:
+            first = seq if seq in held else next((k for k in held if k < seq), None)
+            if first is None:
+                break
+            run, sent_at, nbytes = held.pop(first)
+            if first < seq:                      # runs that overlap: the rest of this one
+                self.duplicates[_topic(follow.topic)] += min(seq - first, len(run))
+                run = run[seq - first:]
+            values = run if not values else values + run
             size += nbytes
-            seq += 1
+            seq += len(run)
         if values:
             held_back = 0
             try:
@@ -748,3 +903,14 @@ class Follower:
         for dealer in self._controls.values():
             dealer.close(0)
 
+
+
+def _entries(body: Any, kinds: bytes, count: int) -> list[Any]:
+    """The values of an authenticated VALUES message (checked all the same)."""
+    values = pickle.loads(body)
+    if type(values) is not list or len(values) != count or len(kinds) not in (0, count):
+        raise Rejected("malformed")
+    if kinds:
+        values = [entry if kind == PLAIN else codec.decode_owned(kind, bytes(entry[0]), entry[1])
+                  for kind, entry in zip(kinds, values, strict=True)]
+    return values

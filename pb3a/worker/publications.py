@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from pb3a.errors import RuntimeTimeout, link_stuck
+from pb3a.errors import link_stuck
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.replication import SILENT_S, Replicator
 
@@ -42,21 +42,16 @@ class Publications:
         readers = self._readers.setdefault(topic, set())
         if not readers:
             replicator.add(topic)
-            publish = replicator.publish
+            offer = replicator.offer
 
             def one(value: Any, timeout: float) -> None:
-                try:
-                    publish(topic, value, timeout)
-                except RuntimeTimeout:
-                    raise link_stuck(", ".join(sorted(readers)), timeout) from None
+                if not offer(topic, (value,), timeout):
+                    raise link_stuck(", ".join(sorted(readers)), timeout)
 
             def many(values: Any, timeout: float) -> None:
-                for done, value in enumerate(values):
-                    try:
-                        publish(topic, value, timeout)
-                    except RuntimeTimeout:
-                        raise link_stuck(", ".join(sorted(readers)), timeout,
-                                         len(values) - done) from None
+                went = offer(topic, values, timeout)
+                if went < len(values):
+                    raise link_stuck(", ".join(sorted(readers)), timeout, len(values) - went)
             port.connect(_sink(topic), one, many, lossless=True)
             self._ports[topic] = port
         readers.add(key)
