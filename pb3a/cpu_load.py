@@ -77,6 +77,11 @@ class CPULoad:
         """The burner processes' ids."""
         return [burner.pid for burner in self._burners]
 
+    @property
+    def running(self) -> bool:
+        """True from ``start`` to ``stop``."""
+        return bool(self._burners) and not self._stopped.is_set()
+
     def start(self) -> None:
         """Start the burners and the controller."""
         for cpu, share in self._shares.items():

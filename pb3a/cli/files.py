@@ -39,7 +39,7 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 def check_command(args: argparse.Namespace) -> int:
     """``pb3a check FILE``: every problem on its own line (exit 1), or a one-line summary."""
-    plan = _load_plan(args.file, "check")
+    plan = load_plan(args.file, "check")
     if plan is None:
         return 1
     print(f"ok: {len(plan.modules)} modules, {len(plan.links)} links")
@@ -48,7 +48,7 @@ def check_command(args: argparse.Namespace) -> int:
 
 def graph_command(args: argparse.Namespace) -> int:
     """``pb3a graph FILE [-o OUT]``: write DOT, then render OUT with Graphviz unless it is .dot."""
-    plan = _load_plan(args.file, "graph")
+    plan = load_plan(args.file, "graph")
     if plan is None:
         return 1
     text = plan_to_dot(plan)
@@ -85,7 +85,7 @@ def run_command(args: argparse.Namespace) -> int:
     """``pb3a run FILE [--for SECONDS]``: launch with a live status display."""
     from pb3a.cli.status import run_with_status
 
-    plan = _load_plan(args.file, "run")
+    plan = load_plan(args.file, "run")
     if plan is None:
         return 1
     try:
@@ -95,7 +95,7 @@ def run_command(args: argparse.Namespace) -> int:
         return 1
 
 
-def _load_plan(file: str, command: str) -> Plan | None:
+def load_plan(file: str, command: str) -> Plan | None:
     """The plan of ``file``, or None after printing why there is none."""
     try:
         return System.load(file).plan()

@@ -6,10 +6,12 @@ every module in reverse start order and frees every process and segment.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import signal
 import sys
 import time
+from collections.abc import Iterator
 from typing import TYPE_CHECKING, TextIO
 
 from pb3a.launch.running import launch
@@ -75,10 +77,9 @@ def run_with_status(plan: Plan, seconds: float | None, out: TextIO | None = None
     ``out`` (default: stdout); 0 on a clean stop. The launcher takes ``pb3a.connect``
     and ``pb3a status ADDR`` ... at ``listen``."""
     out = out or sys.stdout
-    previous = signal.signal(signal.SIGTERM, _interrupt)
     live = out.isatty()
     started = time.monotonic()
-    try:
+    with sigterm_interrupts():
         with launch(plan, listen=listen) as run:
             address = run.address
             out.write(f"pb3a: system {run.name!r} running"
@@ -98,6 +99,15 @@ def run_with_status(plan: Plan, seconds: float | None, out: TextIO | None = None
             final = run.stats()
         out.write("\n" + format_table(final) + "\npb3a: stopped cleanly\n")
         return 0
+
+
+@contextlib.contextmanager
+def sigterm_interrupts() -> Iterator[None]:
+    """Inside the block, SIGTERM raises KeyboardInterrupt as Ctrl-C does: either ends a
+    run the same clean way."""
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        yield
     finally:
         signal.signal(signal.SIGTERM, previous)
 
