@@ -210,6 +210,10 @@ class Stress:
         run_s = self.options.seconds
         self._add_probes()
         self._started, self._wall_started = time.monotonic(), time.time()
+        for key, link in _measured(self.run.stats()).items():   # count from here on
+            self._links[key] = {"at": 0.0, "values": link.values, "drops": link.drops,
+                                "link_failures": link.link_failures,
+                                "counts": dict(link.latency_counts)}
         timed: list[tuple[float, Callable[[], None]]] = []
         for load, window in self.loads:
             timed += [(window.start, functools.partial(self._load, load, on=True)),
@@ -290,8 +294,11 @@ class Stress:
     def _add_probes(self) -> None:
         """A probe per node, fed by the node's env module (started here if the system
         has none, sampling as often as this run samples)."""
+        running = self.run.stats().modules          # (an earlier run may have added them)
         for node, probe in self.probes.items():
-            if env_name(node) not in self.plan.modules:
+            if probe in running:
+                continue
+            if env_name(node) not in running:
                 self.run.add(env_name(node), Environment, node=node,
                              period=self.options.sample_s)
             self.run.add(probe, EnvProbe, node=node)
@@ -304,8 +311,8 @@ class Stress:
             stats = self.run.stats(timeout=max(1.0, self.options.sample_s))
         except (RuntimeFailure, RuntimeTimeout):
             return
-        links = {key: self._link_sample(key, link, at) for key, link in stats.links.items()
-                 if not link.dst.startswith(PROBE_PREFIX)}
+        links = {key: self._link_sample(key, link, at)
+                 for key, link in _measured(stats).items()}
         nodes = {name: self._node_sample(name, stats) for name in self.plan.nodes}
         load = {cpu: round(reading, 1) for load, _ in self.loads if load.running
                 for cpu, reading in load.readings.items()}
@@ -316,10 +323,10 @@ class Stress:
 
     def _link_sample(self, key: str, link: LinkStats, at: float) -> dict[str, Any]:
         last = self._links.setdefault(key, {"at": 0.0, "values": 0, "drops": 0,
-                                            "link_failures": 0, "counts": {},
-                                            "totals": {"values": 0, "drops": 0,
-                                                       "link_failures": 0, "counts": {}}})
-        totals, sample = last["totals"], {}
+                                            "link_failures": 0, "counts": {}})
+        totals = last.setdefault("totals", {"values": 0, "drops": 0, "link_failures": 0,
+                                            "counts": {}})
+        sample = {}
         for figure in ("values", "drops", "link_failures"):
             now = getattr(link, figure)
             added = now - last[figure] if now >= last[figure] else now   # restarted: anew
@@ -402,6 +409,12 @@ class Stress:
                         "modules_failed": kinds.count("module_failed"),
                         "nodes_lost": kinds.count("node_lost"),
                         "links": links, "nodes": nodes}})
+
+
+def _measured(stats: SystemStats) -> dict[str, LinkStats]:
+    """The system's links, without those feeding the probes."""
+    return {key: link for key, link in stats.links.items()
+            if not link.dst.startswith(PROBE_PREFIX)}
 
 
 @contextlib.contextmanager
