@@ -196,3 +196,41 @@ class OrderedReader(Module):
             self.out_of_order += 1
         self.last = value
         self.count += 1
+
+
+class SequenceSource(Module):
+    """Writes the integers 0, 1, 2 ... in batches of ``batch`` per step while
+    ``sending``; ``sent`` is how many so far (the soak's rate: batch / period)."""
+
+    out = Output(int)
+    period = 0.01
+    batch = 33
+    sending = True
+    sent = 0
+
+    def step(self) -> None:
+        if self.sending:
+            self.out.write_many(range(self.sent, self.sent + self.batch))
+            self.sent += self.batch
+
+
+class SequenceChecker(Module):
+    """Checks a ``SequenceSource``'s integers arrive once each and in order: counts
+    those received, those seen again or out of order, and those skipped."""
+
+    x = Input(int, policy="queue:100000")
+    received = 0
+    expected = 0
+    repeated = 0            # a value below the next expected one: duplicated or reordered
+    skipped = 0             # values never seen: lost
+
+    def on_input(self, port: InputPort) -> None:
+        for value in port.read_all():
+            self.received += 1
+            if value == self.expected:
+                self.expected += 1
+            elif value < self.expected:
+                self.repeated += 1
+            else:
+                self.skipped += value - self.expected
+                self.expected = value + 1

@@ -25,6 +25,8 @@ class InputStats:
     latency: float = math.nan   # smoothed seconds from write to delivery
     rate: float = 0.0           # values per second, recently
     link_failures: int = 0      # values lost because a link or its peer failed
+    # values delivered, per latency bucket (``pb3a.latencies``; only the buckets used)
+    latency_counts: dict[int, int] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -74,6 +76,10 @@ class LinkStats:
     rate: float = 0.0
     link_failures: int = 0
     ring_bytes_used: int = 0
+    latency_p50: float = math.nan   # seconds, over every value delivered (to a bucket's 9 %)
+    latency_p90: float = math.nan
+    latency_p99: float = math.nan
+    latency_counts: dict[int, int] = field(default_factory=dict)   # as in InputStats
     waits: int = 0              # writes that waited for room on this link
     wait_s: float = 0.0         # seconds they waited
 

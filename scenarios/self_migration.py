@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing
 import os
 import statistics
 import sys
@@ -32,13 +31,14 @@ from typing import Any
 
 from pb3a import Agent, Environment, Input, InputPort, Module, Output, System
 from pb3a.cli.log_output import show_logs
+from pb3a.cpu_load import CPULoad
 from pb3a.pending import Pending
 
 RATE_HZ = 200.0
 WORK_S = 0.002                 # CPU seconds of work per value in ``compute``
 WINDOW_S = 0.5                 # throughput and latency are reported per window
 PHASES = {"full": (5.0, 10.0, 5.0), "quick": (2.0, 5.0, 2.0)}   # quiet, loaded, after
-STRESS_PROCESSES = 2
+STRESS_PROCESSES = 2           # burners on CPU 0: compute gets a third of it
 
 
 class Source(Module):
@@ -147,34 +147,15 @@ def build(adaptive: bool, env_period: float = 0.25) -> System:
     return system
 
 
-def _burn(cpu: int, stop: Any) -> None:
-    os.sched_setaffinity(0, [cpu])
-    while not stop.is_set():
-        for _ in range(100_000):
-            pass
-
-
 def run_once(adaptive: bool, phases: tuple[float, float, float]) -> dict[str, Any]:
     """One run: quiet, loaded (stress on CPU 0), after; the sink's records and events."""
     quiet, loaded, after = phases
-    context = multiprocessing.get_context("fork")
-    stop = context.Event()
-    stress = [context.Process(target=_burn, args=(0, stop), daemon=True)
-              for _ in range(STRESS_PROCESSES)]
     with build(adaptive).launch() as run:
         start = time.monotonic()
         _sleep_until(start + quiet)
         load_on = time.monotonic()
-        for process in stress:
-            process.start()
-        try:
+        with CPULoad({0: 100.0}, burners_per_cpu=STRESS_PROCESSES):
             _sleep_until(load_on + loaded)
-        finally:
-            stop.set()
-            for process in stress:
-                process.join(5.0)
-                if process.is_alive():
-                    process.kill()
         load_off = time.monotonic()
         _sleep_until(load_off + after)
         sink, mover = run.state("sink"), run.state("mover")

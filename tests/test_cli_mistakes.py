@@ -20,6 +20,7 @@ def _mistakes(tmp: Path) -> list[tuple[list[str], int, str]]:
                                   '[modules.t]\nclass = "examples.pipeline:Ticker"\n'
                                   'node = "far"\n')
     missing = str(tmp / "missing.toml")
+    pipeline = str(REPO / "examples" / "pipeline.toml")
     return [
         (["check", missing], 1, "cannot read"),
         (["check", str(tmp / "broken.toml")], 1, "not valid TOML"),
@@ -37,6 +38,15 @@ def _mistakes(tmp: Path) -> list[tuple[list[str], int, str]]:
         (["modules", "serve", str(tmp / "nowhere")], 1, "nowhere"),
         (["modules", "serve", str(tmp / "broken.toml")], 1, "is not a directory"),
         (["scenario", "nope"], 2, "no scenario 'nope'; the scenarios: self-migration"),
+        (["stress", missing], 1, "cannot read"),
+        (["stress", pipeline, "--cut-node", "local@1"], 1,
+         "--cut-node: node 'local' has no address"),
+        (["stress", pipeline, "--cut-node", "b@1"], 1, "--cut-node: there is no node 'b'"),
+        (["stress", pipeline, "--kill-among", "tick,nope"], 1,
+         "--kill-among: there is no module 'nope'"),
+        (["stress", pipeline, "--load", "9999:50"], 1, "--load: cannot load CPU 9999"),
+        (["stress", pipeline, "--migrate-every", "1"], 1,
+         "--migrate-every: the system has one node"),
     ]
 
 
@@ -50,7 +60,11 @@ def test_every_command_answers_a_mistake_with_a_sentence(tmp_path, capsys, monke
 
 
 @pytest.mark.parametrize("argv", [["check"], ["run", "x.toml", "--for", "soon"],
-                                  ["node", "start"], ["migrate", "tcp://h:1", "m"]])
+                                  ["node", "start"], ["migrate", "tcp://h:1", "m"],
+                                  ["stress", "x.toml", "--load", "lots"],
+                                  ["stress", "x.toml", "--load", "0:80@soon"],
+                                  ["stress", "x.toml", "--cut-node", "b"],
+                                  ["stress", "x.toml", "--for", "-1"]])
 def test_arguments_that_do_not_parse_get_the_usage(argv, capsys) -> None:
     with pytest.raises(SystemExit) as stopped:
         main(argv)

@@ -41,7 +41,7 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 def check_command(args: argparse.Namespace) -> int:
     """``pb3a check FILE``: every problem on its own line (exit 1), or a one-line summary."""
-    plan = _load_plan(args.file, "check")
+    plan = load_plan(args.file, "check")
     if plan is None:
         return 1
     print(f"ok: {len(plan.modules)} modules, {len(plan.links)} links")
@@ -50,7 +50,7 @@ def check_command(args: argparse.Namespace) -> int:
 
 def graph_command(args: argparse.Namespace) -> int:
     """``pb3a graph FILE [-o OUT]``: write DOT, then render OUT with Graphviz unless it is .dot."""
-    plan = _load_plan(args.file, "graph")
+    plan = load_plan(args.file, "graph")
     if plan is None:
         return 1
     text = plan_to_dot(plan)
@@ -87,7 +87,7 @@ def run_command(args: argparse.Namespace) -> int:
     """``pb3a run FILE [--for SECONDS]``: launch with a live status display."""
     from pb3a.cli.status import run_with_status
 
-    plan = _load_plan(args.file, "run")
+    plan = load_plan(args.file, "run")
     if plan is None:
         return 1
     try:
@@ -97,7 +97,7 @@ def run_command(args: argparse.Namespace) -> int:
         return 1
 
 
-def _load_plan(file: str, command: str) -> Plan | None:
+def load_plan(file: str, command: str) -> Plan | None:
     """The plan of ``file``, or None after printing why there is none."""
     try:
         return System.load(file).plan()

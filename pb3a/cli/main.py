@@ -5,6 +5,8 @@
     pb3a run FILE [--for SECONDS] launch, show live status, stop on Ctrl-C or after SECONDS
     pb3a status|state|set|migrate|swap|relink|add|remove|restart|nodes|events|logs ADDR ...
                                   act on a running system through its launcher
+    pb3a stress FILE [--load CPUS:PCT] [--kill-worker-every N] [--cut-node NAME@T+D] ...
+                                  run under CPU load and faults; report per link and node
     pb3a scenario NAME [ARGS...]  run an application (a ``pb3a.scenarios`` entry point)
     pb3a modules serve DIR [--listen ADDR]   serve module code to the nodes (until signalled)
     pb3a node start --name N [--listen ADDR] run a node controller (until signalled)
@@ -44,11 +46,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _parser() -> argparse.ArgumentParser:
-    from pb3a.cli import daemons, files, keys, running_system, scenarios
+    from pb3a.cli import daemons, files, keys, running_system, scenarios, stress
 
     parser = argparse.ArgumentParser(
         prog="pb3a", description="Port-based modules that run, swap and move while they run.")
     commands = parser.add_subparsers(title="commands", metavar="COMMAND")
-    for group in (files, running_system, scenarios, daemons, keys):
+    for group in (files, running_system, stress, scenarios, daemons, keys):
         group.register(commands)
     return parser

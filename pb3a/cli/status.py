@@ -6,10 +6,12 @@ every module in reverse start order and frees every process and segment.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import signal
 import sys
 import time
+from collections.abc import Iterator
 from typing import TYPE_CHECKING, TextIO
 
 from pb3a.launch.running import launch
@@ -78,10 +80,9 @@ def run_with_status(plan: Plan, seconds: float | None, out: TextIO | None = None
     and ``pb3a status ADDR`` ... at ``listen`` (default: where the remote nodes reach
     it, else loopback)."""
     out = out or sys.stdout
-    previous = signal.signal(signal.SIGTERM, _interrupt)
     live = out.isatty()
     started = time.monotonic()
-    try:
+    with sigterm_interrupts():
         with launch(plan, listen=listen) as run:
             try:     # (from the first line on, a signal means a clean stop)
                 address = run.address or run.listen()
@@ -102,6 +103,15 @@ def run_with_status(plan: Plan, seconds: float | None, out: TextIO | None = None
             final = run.stats()
         out.write("\n" + format_table(final) + "\npb3a: stopped cleanly\n")
         return 0
+
+
+@contextlib.contextmanager
+def sigterm_interrupts() -> Iterator[None]:
+    """Inside the block, SIGTERM raises KeyboardInterrupt as Ctrl-C does: either ends a
+    run the same clean way."""
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        yield
     finally:
         signal.signal(signal.SIGTERM, previous)
 

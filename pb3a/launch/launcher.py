@@ -34,6 +34,7 @@ import psutil
 
 from pb3a.errors import ModuleNotFound, RuntimeFailure, RuntimeTimeout
 from pb3a.events import EventLog
+from pb3a.latencies import percentile
 from pb3a.launch.configuration_lock import ConfigurationLock
 from pb3a.logbook import LogBook
 from pb3a.model.environment import env_name
@@ -552,7 +553,9 @@ def _link_table(links: dict[str, FlatLink], modules: dict[str, ModuleStats],
                      "memory" if src and dst and src.worker == dst.worker else "shm")
         figures = {} if port is None else {
             "values": port.received, "drops": port.drops, "pending": port.pending,
-            "latency": port.latency, "rate": port.rate, "link_failures": port.link_failures}
+            "latency": port.latency, "rate": port.rate, "link_failures": port.link_failures,
+            "latency_counts": port.latency_counts,
+            **{f"latency_p{q}": percentile(port.latency_counts, q) for q in (50, 90, 99)}}
         figures["link_failures"] = figures.get("link_failures", 0) + lost.get(key, 0)
         waits = src.link_waits.get(key) if src else None
         if waits is not None:

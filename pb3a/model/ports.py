@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from pb3a import latencies
 from pb3a.errors import link_stuck
 
 if TYPE_CHECKING:
@@ -166,6 +167,7 @@ class InputPort:
         self.drops = 0               # values lost to queue overflow (or on the link)
         self.link_failures = 0       # values lost because a link or its peer failed
         self.latency = math.nan      # smoothed seconds from write to delivery
+        self.latency_counts = [0] * latencies.BUCKETS   # values per latency bucket
         self.rate = 0.0              # smoothed values per second
         self._values: collections.deque[Any] = collections.deque()
         self._latest: Any = _MISSING
@@ -259,6 +261,8 @@ class InputPort:
                 lat = now - sent_at if now > sent_at else 0.0
                 old = self.latency
                 self.latency = lat if old != old else old + 0.1 * (lat - old)  # NaN: the first
+                # every value of a batch counts at the newest one's latency (a lower bound)
+                self.latency_counts[latencies.bucket(lat)] += count
             # rate: values counted over windows of at least _RATE_WINDOW seconds; the
             # first arrival only opens the first window (it started at -inf: rate 0)
             self._window_count += count
@@ -391,7 +395,8 @@ class InputPort:
             return {"values": list(self._values), "fresh": self._fresh,
                     "latest": None if self._latest is _MISSING else (self._latest,),
                     "undispatched": self._undispatched, "received": self.received,
-                    "drops": self.drops, "link_failures": self.link_failures}
+                    "drops": self.drops, "link_failures": self.link_failures,
+                    "latency_counts": list(self.latency_counts)}
 
     def restore(self, held: dict[str, Any]) -> None:
         """Take over an exported port: its values come before anything delivered later
@@ -404,6 +409,8 @@ class InputPort:
             self.received += held["received"]
             self.drops += held["drops"]
             self.link_failures += held["link_failures"]
+            for index, count in enumerate(held["latency_counts"]):
+                self.latency_counts[index] += count
             owed = self._undispatched > 0
         if owed and self._notify is not None:
             self._notify(self)

@@ -17,6 +17,7 @@ import traceback
 from collections import deque
 from typing import TYPE_CHECKING, Any
 
+from pb3a import latencies
 from pb3a.model.ports import InputPort, OutputPort
 from pb3a.worker.waits import RuntimeWait, run_posted
 
@@ -432,6 +433,7 @@ class ModuleActor:
         for name, port in self.inputs.items():
             inputs[name] = {"received": port.received, "drops": port.drops,
                             "pending": port.pending, "latency": port.latency,
+                            "latency_counts": latencies.used(port.latency_counts),
                             "rate": port.current_rate(), "link_failures": port.link_failures,
                             "policy": str(port.policy)}
         outputs = {name: port.written for name, port in self.outputs.items()}

@@ -1,0 +1,43 @@
+"""CPULoad holds CPUs at the level asked, as psutil reads it, and leaves nothing running."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import psutil
+import pytest
+from conftest import alive
+
+from pb3a.cpu_load import CPULoad, parse_levels
+
+pytestmark = pytest.mark.timeout(60)
+
+TOLERANCE = 10.0       # percent: the machine is shared, and its other load comes and goes
+
+
+def test_psutil_reads_the_level_asked_and_the_burners_end_with_the_block() -> None:
+    cpu = max(os.sched_getaffinity(0))
+    with CPULoad({cpu: 60.0}) as load:
+        pids = load.pids
+        time.sleep(2.0)                       # the controller settles (4 adjustments)
+        psutil.cpu_percent(percpu=True)
+        time.sleep(3.0)                       # (measuring a span of time, not waiting)
+        reading = psutil.cpu_percent(percpu=True)[cpu]
+        assert all(psutil.Process(pid).cpu_affinity() == [cpu] for pid in pids)
+    assert abs(reading - 60.0) < TOLERANCE, reading
+    assert not [pid for pid in pids if alive(pid)]
+
+
+@pytest.mark.parametrize(("levels", "said"), [
+    ({9999: 50.0}, "cannot load CPU 9999"), ({0: 150.0}, "give a percent from 0 to 100")])
+def test_a_wrong_level_names_the_cpu(levels: dict[int, float], said: str) -> None:
+    with pytest.raises(ValueError, match=said):
+        CPULoad(levels)
+
+
+def test_levels_parse_from_the_command_line_form() -> None:
+    assert parse_levels("0,1:80") == {0: 80.0, 1: 80.0}
+    for wrong in ("80", "a:80", "0:lots"):
+        with pytest.raises(ValueError, match="is not CPUS:PERCENT"):
+            parse_levels(wrong)

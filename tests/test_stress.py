@@ -1,0 +1,66 @@
+"""``pb3a stress`` as a user runs it: a small system under CPU load with a worker killed;
+the report's figures are real (values counted, the kill and the restart recorded, the
+load read by the node's env port near the level asked)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from pb3a.cli.main import main
+
+pytestmark = pytest.mark.timeout(90)
+
+REPO = Path(__file__).resolve().parent.parent
+LEVEL = 70.0
+
+
+def _configuration(tmp: Path, cpu: int) -> Path:
+    path = tmp / "stressed.toml"
+    path.write_text(f'''
+name = "stressed"
+[nodes.a]
+cpus = [{cpu}]
+[modules.tick]
+class = "examples.pipeline:Ticker"
+period = 0.002
+restart = "fresh"
+[modules.scale]
+class = "examples.pipeline:Scale"
+restart = "fresh"
+[[links]]
+from = "tick.out"
+to = "scale.x"
+policy = "queue:64"
+''')
+    return path
+
+
+def test_stress_reports_values_kills_and_the_load_the_env_port_reads(tmp_path, capsys,
+                                                                      monkeypatch) -> None:
+    monkeypatch.chdir(REPO)                      # (the file names examples.pipeline)
+    cpu = max(os.sched_getaffinity(0))
+    argv = ["stress", str(_configuration(tmp_path, cpu)), "--for", "7", "--sample", "0.5",
+            "--load", f"{cpu}:{LEVEL:g}@1", "--kill-worker-every", "3",
+            "--kill-among", "scale", "--out", str(tmp_path), "--seed", "1"]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "values/s" in out and "wrote" in out
+    report = json.loads((tmp_path / "stress.json").read_text())
+    assert report["schema"] == "pb3a-stress/1"
+    link = report["summary"]["links"]["tick.out->scale.x"]
+    assert link["values"] > 500 and link["values_per_s"] > 100
+    assert 0 < link["latency_p50_s"] <= link["latency_p99_s"] < 1.0
+    kills = [mark for mark in report["marks"] if mark["kind"] == "kill"]
+    assert kills and all(mark["modules"] == ["scale"] for mark in kills)
+    assert report["summary"]["kills"] == len(kills)
+    assert report["summary"]["restarts"] >= 1                 # "fresh": it came back
+    late = [s for s in report["samples"] if s["t"] > report["samples"][-1]["t"] - 1]
+    assert any(s["links"]["tick.out->scale.x"]["values_per_s"] > 0 for s in late)
+    loaded = [s["nodes"]["a"]["cpu"] for s in report["samples"]
+              if 2.5 <= s["t"] <= 6.5 and s["nodes"]["a"]["cpu"] is not None]
+    assert loaded and abs(sum(loaded) / len(loaded) - LEVEL) < 20, loaded
+    assert (tmp_path / "stress.png").stat().st_size > 10_000
