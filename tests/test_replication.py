@@ -254,8 +254,9 @@ def test_forged_garbage_and_oversized_frames_are_refused_without_harm(link,
     fake = context.socket(zmq.PUB)
     fake.setsockopt(zmq.LINGER, 0)
     port = fake.bind_to_random_port("tcp://127.0.0.1")
-    follower.follow("t", f"tcp://127.0.0.1:{port}", replicator.control_address, from_seq=0)
-    _follow(follower, replicator, "t", from_seq=0)    # (the real one too)
+    # (following another topic there keeps the SUB socket connected to it)
+    follower.follow("u", f"tcp://127.0.0.1:{port}", replicator.control_address, from_seq=0)
+    _follow(follower, replicator, "t", from_seq=0)    # the real one
     replicator.publish("t", "first")
     assert inbox.wait("t", 1) == ["first"]
     for frames in ([b"t\0", b"garbage"], [b"t\0", *wrong.seal(replication.VALUE, [b"x"])],
@@ -441,3 +442,26 @@ def test_a_lossless_follower_that_went_silent_holds_the_publisher_until_released
         replicator.publish("t", 16, timeout=0.2)
     replicator.release("t")                                   # its link was cut
     replicator.publish("t", 16, timeout=0.2)
+
+
+def test_a_follower_lets_go_of_senders_it_no_longer_follows(link) -> None:
+    _, follower, inbox = link
+    senders = []
+    try:
+        for round_ in range(20):               # a writer restarted or moved 20 times
+            sender = Replicator(KEY)
+            senders.append(sender)
+            sender.add("t")
+            _follow(follower, sender, "t", incarnation=sender.incarnation)
+            assert follower.wait_ready("t", TIMEOUT)
+            sender.publish("t", round_)
+            assert inbox.wait("t", round_ + 1)[-1] == round_
+            sockets = follower._loop.call(lambda: (len(follower._controls),
+                                                   len(follower._connected)))
+            assert sockets == (1, 1), f"after {round_ + 1} senders: {sockets}"
+        follower.unfollow("t")
+        assert follower._loop.call(lambda: (len(follower._controls),
+                                            len(follower._connected))) == (0, 0)
+    finally:
+        for sender in senders:
+            sender.close()

@@ -41,6 +41,7 @@ Every message is sealed (``auth``) and opened before anything in it is decoded.
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import math
 import pickle
@@ -91,6 +92,7 @@ REPLAY_VALUES = 4096                    # per topic, at most ...
 REPLAY_BYTES = 64 * 1024 * 1024         # ... and at most this many bytes
 HELLO_EVERY = 0.05                      # seconds between unanswered HELLOs
 HEARTBEAT_S = 0.5                       # how often a replicator announces its topics
+LINGER_MS = 500                         # a closed DEALER's last messages may still go
 DRAIN_BATCH = 1024                      # messages taken in before delivering them
 ZERO_COPY_MIN = 64 * 1024               # frames at least this large are sent without a copy
 _SCALARS = frozenset({int, float, bool, complex, type(None)})   # immutable: kept as they are
@@ -570,6 +572,7 @@ class _Follow:
         """The sequence number up to which the receiver has put values through."""
         return self.next_seq - self.held_back
     ready: threading.Event = field(default_factory=threading.Event)   # live, start known
+    data: str = ""                            # the replicator's PUB address
 
 
 class Follower:
@@ -686,8 +689,24 @@ class Follower:
             self._sub.setsockopt(zmq.SUBSCRIBE, name)
         elif from_seq < 0 and incarnation in (None, old.incarnation):
             from_seq = old.next_seq               # the same sender: go on where we are
-        self._follows[name] = _Follow(name, dealer, from_seq, incarnation)
+        self._follows[name] = _Follow(name, dealer, from_seq, incarnation, data=data)
         self._hello(self._follows[name])
+        self._drop_unused()
+
+    def _drop_unused(self) -> None:
+        """Close the DEALERs and SUB connections no followed topic uses any more (its
+        sender moved, restarted or stopped): each holds a socket and file descriptors,
+        and would go on reconnecting to a sender that is gone."""
+        used = {id(follow.control) for follow in self._follows.values()}
+        for address, dealer in list(self._controls.items()):
+            if id(dealer) not in used:
+                self._loop.unregister(dealer)
+                dealer.close(linger=LINGER_MS)    # (a last ACK may still be on its way)
+                del self._controls[address]
+        for address in self._connected - {follow.data for follow in self._follows.values()}:
+            with contextlib.suppress(zmq.ZMQError):
+                self._sub.disconnect(address)
+            self._connected.discard(address)
 
     def _unfollow(self, name: bytes) -> None:
         follow = self._follows.pop(name, None)
@@ -696,6 +715,7 @@ class Follower:
             if name in self._lossless:           # the sender no longer waits for us
                 self._ask(follow, ACK, -1, 0)
         self._lossless.discard(name)
+        self._drop_unused()
 
     def _set_lossless(self, name: bytes, lossless: bool) -> None:
         if lossless == (name in self._lossless):
