@@ -5,10 +5,12 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -99,3 +101,46 @@ def daemon_banner_then_clean_exit(*args: str) -> str:
             process.kill()
             process.wait(5)
         process.stdout.close()
+
+
+class Daemon:
+    """``pb3a node start`` in a process of its own, so that it can be killed and started
+    again at the same address."""
+
+    def __init__(self, name: str) -> None:
+        with socket.socket() as probe:
+            probe.bind(("127.0.0.1", 0))
+            port = probe.getsockname()[1]
+        self.name, self.address = name, f"tcp://127.0.0.1:{port}"
+        self.process: subprocess.Popen[str] | None = None
+        self.start()
+
+    def start(self) -> None:
+        repo = Path(__file__).resolve().parent.parent
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(repo / "tests"), str(repo)])}
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "pb3a", "node", "start", "--name", self.name,
+             "--listen", self.address, "--max-cpu", "101"],
+            stdout=subprocess.PIPE, text=True, env=env)
+        assert self.process.stdout.readline().strip() == f"node {self.name} at {self.address}"
+
+    def executor_pid(self) -> int:
+        """The pid of the one executor this controller runs."""
+        (executor,) = [child for child in psutil.Process(self.process.pid).children()
+                       if "resource_tracker" not in " ".join(child.cmdline())]
+        return executor.pid
+
+    def kill(self) -> None:
+        self.process.kill()
+        self.process.wait(10)
+        self.process.stdout.close()
+
+    def stop(self) -> None:
+        if self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(15)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait(5)
+        self.process.stdout.close()

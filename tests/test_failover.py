@@ -7,16 +7,11 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
-import subprocess
-import sys
 from collections.abc import Iterator
-from pathlib import Path
 
 import cloudpickle
-import psutil
 import pytest
-from conftest import eventually
+from conftest import Daemon, eventually
 from sample_modules import Collector, Counter, Relay
 
 from pb3a import RuntimeFailure, System
@@ -24,51 +19,7 @@ from pb3a.daemons.node_controller import Limits, NodeController
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 
-REPO = Path(__file__).resolve().parent.parent
-
 pytestmark = pytest.mark.timeout(120)
-
-
-class Daemon:
-    """``pb3a node start`` in a process of its own, so that it can be killed and started
-    again at the same address."""
-
-    def __init__(self, name: str) -> None:
-        with socket.socket() as probe:
-            probe.bind(("127.0.0.1", 0))
-            port = probe.getsockname()[1]
-        self.name, self.address = name, f"tcp://127.0.0.1:{port}"
-        self.process: subprocess.Popen[str] | None = None
-        self.start()
-
-    def start(self) -> None:
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "tests"), str(REPO)])}
-        self.process = subprocess.Popen(
-            [sys.executable, "-m", "pb3a", "node", "start", "--name", self.name,
-             "--listen", self.address, "--max-cpu", "101"],
-            stdout=subprocess.PIPE, text=True, env=env)
-        assert self.process.stdout.readline().strip() == f"node {self.name} at {self.address}"
-
-    def executor_pid(self) -> int:
-        """The pid of the one executor this controller runs."""
-        (executor,) = [child for child in psutil.Process(self.process.pid).children()
-                       if "resource_tracker" not in " ".join(child.cmdline())]
-        return executor.pid
-
-    def kill(self) -> None:
-        self.process.kill()
-        self.process.wait(10)
-        self.process.stdout.close()
-
-    def stop(self) -> None:
-        if self.process.poll() is None:
-            self.process.terminate()
-            try:
-                self.process.wait(15)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait(5)
-        self.process.stdout.close()
 
 
 @pytest.fixture

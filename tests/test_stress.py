@@ -9,6 +9,7 @@ import os
 from pathlib import Path
 
 import pytest
+from conftest import Daemon
 
 from pb3a.cli.main import main
 
@@ -64,3 +65,42 @@ def test_stress_reports_values_kills_and_the_load_the_env_port_reads(tmp_path, c
               if 2.5 <= s["t"] <= 6.5 and s["nodes"]["a"]["cpu"] is not None]
     assert loaded and abs(sum(loaded) / len(loaded) - LEVEL) < 20, loaded
     assert (tmp_path / "stress.png").stat().st_size > 10_000
+
+
+def test_stress_cuts_a_node_whose_module_fails_over_and_which_rejoins(tmp_path,
+                                                                      monkeypatch) -> None:
+    monkeypatch.chdir(REPO)
+    daemon = Daemon("b")
+    try:
+        path = tmp_path / "cut.toml"
+        path.write_text(f'''
+name = "cut"
+[nodes.a]
+[nodes.b]
+address = "{daemon.address}"
+[modules.tick]
+class = "examples.pipeline:Ticker"
+node = "a"
+period = 0.002
+[modules.scale]
+class = "examples.pipeline:Scale"
+node = "b"
+restart = "fresh"
+[[links]]
+from = "tick.out"
+to = "scale.x"
+policy = "queue:64"
+''')
+        assert main(["stress", str(path), "--for", "9", "--sample", "0.5",
+                     "--cut-node", "b@1+3", "--out", str(tmp_path)]) == 0
+    finally:
+        daemon.stop()
+    report = json.loads((tmp_path / "stress.json").read_text())
+    summary = report["summary"]
+    assert (summary["cuts"], summary["nodes_lost"], summary["failovers"],
+            summary["nodes_joined"]) == (1, 1, 1, 1), summary
+    order = [mark["kind"] for mark in report["marks"]
+             if mark["kind"] in ("cut", "node_lost", "module_failed_over", "uncut", "node_joined")]
+    assert order == ["cut", "node_lost", "module_failed_over", "uncut", "node_joined"], order
+    late = [s for s in report["samples"] if s["t"] > report["samples"][-1]["t"] - 2]
+    assert any(s["links"]["tick.out->scale.x"]["values_per_s"] > 0 for s in late)

@@ -46,7 +46,8 @@ from pb3a.transport.auth import ClusterKeyError
 SCHEMA = "pb3a-stress/1"
 PROBE_PREFIX = "stress-probe-"
 PLAIN_EVERY_S = 5.0          # progress lines when the output is not a terminal
-EVENTS_MARKED = ("module_restarted", "module_failed", "node_lost")
+EVENTS_MARKED = ("module_restarted", "module_failed", "module_failed_over", "node_lost",
+                 "node_joined")
 
 
 @dataclass(frozen=True)
@@ -408,6 +409,8 @@ class Stress:
                         **self.counts, "restarts": kinds.count("module_restarted"),
                         "modules_failed": kinds.count("module_failed"),
                         "nodes_lost": kinds.count("node_lost"),
+                        "failovers": kinds.count("module_failed_over"),
+                        "nodes_joined": kinds.count("node_joined"),
                         "links": links, "nodes": nodes}})
 
 
@@ -436,7 +439,8 @@ def summary_text(report: dict[str, Any]) -> str:
     lines = [f"{report['system']}: {summary['duration_s']:.0f} s, "
              f"{summary['values_per_s']:.0f} values/s, kills {summary['kills']}, "
              f"restarts {summary['restarts']}, moves {summary['migrations']}, "
-             f"cuts {summary['cuts']}, nodes lost {summary['nodes_lost']}"]
+             f"cuts {summary['cuts']}, nodes lost {summary['nodes_lost']}, failovers "
+             f"{summary['failovers']}, nodes rejoined {summary['nodes_joined']}"]
     for key, link in summary["links"].items():
         p99 = link["latency_p99_s"]
         lines.append(f"  {key}: {link['values']} values ({link['values_per_s']:.0f}/s), "
