@@ -3,8 +3,10 @@ before anything is unpickled."""
 
 from __future__ import annotations
 
+import importlib
 import pickle
 import threading
+import time
 from typing import Any
 
 import pytest
@@ -105,3 +107,21 @@ def test_forged_and_garbage_requests_are_never_unpickled(rpc) -> None:
     assert exploded == []
     assert server.rejected["replay"] == 1
     attacker.close(0)
+
+
+class _Elsewhere:
+    """Unpickles as an import of a module the server's process does not have."""
+
+    def __reduce__(self) -> tuple:
+        return importlib.import_module, ("pb3a_not_installed_here",)
+
+
+def test_a_request_naming_a_module_the_server_cannot_import_is_answered_at_once(rpc) -> None:
+    server, client = rpc
+    started = time.monotonic()
+    with pytest.raises(RuntimeFailure, match="names Python module 'pb3a_not_installed_here',"
+                                             f" which the process at {server.address} "
+                                             "cannot import: install it"):
+        client.call("add", 10.0, a=_Elsewhere(), b=1)
+    assert time.monotonic() - started < 2.0
+    assert client.call("add", a=1, b=2) == 3            # the server goes on

@@ -100,13 +100,16 @@ class ControlServer:
                 message = self._opener.open(frames)
                 if message.kind != REQUEST or len(message.frames) != 2:
                     raise Rejected("unexpected")
-                request_id = bytes(message.frames[0])
-                op, args = pickle.loads(message.frames[1])     # authenticated: safe
             except Rejected as exc:
                 self._refuse(peer, exc.reason)
                 continue
-            except Exception:
+            request_id = bytes(message.frames[0])
+            try:
+                op, args = pickle.loads(message.frames[1])     # authenticated: safe
+            except Exception as exc:       # (a key holder's request: it gets an answer)
                 self._opener.rejected["undecodable"] += 1
+                self._reply(peer, request_id, False,
+                            RuntimeFailure(_undecodable(exc, self.address)))
                 continue
             answer = self._instant.get(op)
             if answer is not None:
@@ -150,6 +153,15 @@ class ControlServer:
         self._worker.join(5.0)
         self._loop.close()
         self._router.close(0)
+
+
+def _undecodable(exc: Exception, where: str) -> str:
+    """Why a request could not be read at ``where``, and what to do about it."""
+    if isinstance(exc, ModuleNotFoundError):
+        return (f"a request names Python module {exc.name!r}, which the process at {where} "
+                "cannot import: install it on that machine (or put it on its PYTHONPATH), "
+                "or serve it from a module server (module_servers in the configuration)")
+    return f"a request could not be read at {where}: {type(exc).__name__}: {exc}"
 
 
 class ControlClient:
