@@ -511,7 +511,7 @@ class Worker:
                 actor = self.actors.get(name)
                 if policy == "last-state" and actor is not None and actor.running:
                     try:
-                        blob = cloudpickle.dumps(actor.capture())
+                        blob = actor.checkpoint()
                     except Exception:
                         log.exception("cannot checkpoint module %r", name)
                         continue
