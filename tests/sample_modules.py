@@ -612,3 +612,13 @@ class Copies(Module):
             self.first_at = [*self.first_at, time.time()]
         elif copy != self.copies[-1]:
             self.stale += 1
+
+
+class MoveLog(Module):
+    """Keeps every move its env module reports (migrations and failovers)."""
+
+    moved = Input(dict, policy="queue:100")
+    moves: list = []
+
+    def on_input(self, port) -> None:
+        self.moves = [*self.moves, port.read()]

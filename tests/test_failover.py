@@ -12,7 +12,7 @@ from collections.abc import Iterator
 import cloudpickle
 import pytest
 from conftest import Daemon, eventually
-from sample_modules import Collector, Counter, Relay
+from sample_modules import Collector, Counter, MoveLog, Relay
 
 from pb3a import RuntimeFailure, System
 from pb3a.daemons.node_controller import Limits, NodeController
@@ -53,6 +53,8 @@ def test_modules_of_a_lost_node_fail_over_within_1_s_and_the_node_rejoins(
     system.link("src.out", "far.x")
     system.link("src.out", "gone.x")
     system.link("relay.out", "near.x")
+    system.add("moves", MoveLog, node="a")
+    system.link("env-a.module_moved", "moves.moved")
     with system.launch(checkpoint_s=0.2) as run:
         launcher = run._launcher
         eventually(lambda: run.state("near")["received"] > 100, timeout=30,
@@ -72,6 +74,8 @@ def test_modules_of_a_lost_node_fail_over_within_1_s_and_the_node_rejoins(
                                for name in before), timeout=15,
                    what="values through the restarted modules")
         relay = run.state("relay")
+        told = eventually(lambda: len(run.state("moves")["moves"]) == 2
+                          and run.state("moves")["moves"], what="the env module's moves")
         if victim == "controller":
             b.start()                           # the machine's daemon comes back
         joined = eventually(lambda: _events(run, "node_joined"), timeout=20,
@@ -96,6 +100,8 @@ def test_modules_of_a_lost_node_fail_over_within_1_s_and_the_node_rejoins(
     assert stats.links["src.out->relay.x"].link_failures > 500
     assert stats.links["src.out->far.x"].link_failures > 500
     assert joined[0].detail["epoch"] == 2
+    assert {(move["module"], move["destination"]) for move in told} == {
+        (name, detail["destination"]) for name, detail in where.items()}
 
 
 def test_a_fenced_executors_word_is_refused_and_placement_follows_admission() -> None:

@@ -348,13 +348,13 @@ class Launcher:
                     self.failures.append(f"failover of {', '.join(started)} to node "
                                          f"{target} failed: {exc}")
                     log.error(self.failures[-1])
+            for name, target in moved.items():
+                self.events.record("module_failed_over", name, source=node,
+                                   destination=target, policy=self.specs[name].restart,
+                                   from_checkpoint=self.specs[name].restart == "last-state"
+                                   and name in self.checkpoints,
+                                   restart_s=time.monotonic() - lost_at)
             self.update_env()
-        for name, target in moved.items():
-            self.events.record("module_failed_over", name, source=node, destination=target,
-                               policy=self.specs[name].restart,
-                               from_checkpoint=self.specs[name].restart == "last-state"
-                               and name in self.checkpoints,
-                               restart_s=time.monotonic() - lost_at)
 
     def _fail_over(self, lost: str, gone: list[str]) -> dict[str, str]:
         """Instantiate each module of ``gone`` whose restart policy allows it on a
@@ -488,7 +488,7 @@ class Launcher:
         round-trip time to each, the node's worker processes (its own load) and the
         moves made so far."""
         moves = [{"module": event.subject, **event.detail} for event in self.events.since(0)
-                 if event.kind == "module_moved"]
+                 if event.kind in ("module_moved", "module_failed_over")]
         for name, node in self.nodes.items():
             env = env_name(name)
             if env not in self.specs or not self.health[name]["up"]:

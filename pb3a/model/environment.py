@@ -16,7 +16,9 @@ outside the system. An agent that moves its own load away sees ``cpu`` fall but
 lost, and the round-trip time of the last heartbeat); ``node_lost`` is the event:
 a node's name, written once, at the first sample after the launcher lost it.
 ``module_moved`` is the event of a migration anywhere in the system (``module``,
-``source``, ``destination``, ``pause_s``), once per move, at the next sample.
+``source``, ``destination``, ``pause_s``), once per move, at the next sample; a
+module restarted on another node because its node was lost is one too (``policy``,
+``from_checkpoint`` and ``restart_s`` instead of ``pause_s``).
 """
 
 from __future__ import annotations
