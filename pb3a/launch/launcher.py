@@ -319,8 +319,8 @@ class Launcher:
         with self.lock.held(f"fail over lost node {node}"):
             touched = {key: link for key, link in self.links.items()
                        if link.src in gone or link.dst in gone}
-            written = {key: self._written(link) for key, link in touched.items()
-                       if link.src not in gone}
+            # what a surviving writer writes while its link is unwired is lost: counted
+            written = self._written([link for link in touched.values() if link.src not in gone])
             for link in touched.values():
                 with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
                     self._drop_half(link, gone)
@@ -338,8 +338,9 @@ class Launcher:
                     self.failures.append(f"link {key} not wired again after the loss of node "
                                          f"{node}: {exc}")
                     log.error(self.failures[-1])
-                if key in written:      # what the writer wrote while no reader followed
-                    self.lost_values[key] += max(0, self._written(link) - written[key])
+            rewired = [self.links[key] for key in written if key in self.links]
+            for key, count in self._written(rewired).items():
+                self.lost_values[key] += max(0, count - written[key])
             for target in dict.fromkeys(moved.values()):
                 started = [name for name, to in moved.items() if to == target]
                 try:
@@ -421,14 +422,22 @@ class Launcher:
                 log.warning("failover of %s: %s", spec.name, exc)
         return None
 
-    def _written(self, link: FlatLink) -> int:
-        """How many values the writer of ``link`` has written on its port so far."""
-        try:
-            report = self.node_of(link.src).report()
-        except (RuntimeFailure, RuntimeTimeout):
-            return 0
-        entry = report.modules.get(link.src)
-        return 0 if entry is None else entry.outputs.get(link.src_port, 0)
+    def _written(self, links: list[FlatLink]) -> dict[str, int]:
+        """How many values the writer of each link has written on its port so far (one
+        report from each writer's node)."""
+        reports: dict[str, NodeReport | None] = {}
+        counts = {}
+        for link in links:
+            node = self.specs[link.src].node
+            if node not in reports:
+                try:
+                    reports[node] = self.nodes[node].report()
+                except (RuntimeFailure, RuntimeTimeout):
+                    reports[node] = None
+            report = reports[node]
+            entry = None if report is None else report.modules.get(link.src)
+            counts[link.key] = 0 if entry is None else entry.outputs.get(link.src_port, 0)
+        return counts
 
     def _drop_half(self, link: FlatLink, gone: list[str]) -> None:
         """Unwire the surviving half of a link whose other end was on a lost node; what
