@@ -124,9 +124,14 @@ def test_a_lost_node_is_detected_within_3_s_and_reported_while_the_rest_goes_on(
             run.state("far")
         before = run.state("near")["received"]
         eventually(lambda: run.state("near")["received"] > before + 50, what="values go on")
+        # its controller never went: the node is admitted again, without its module
+        back = eventually(lambda: run.stats().nodes["b"].epoch == 2 and run.stats(),
+                          what="node b admitted again")
     assert detected < 3.0, f"node loss detected after {detected:.2f} s"
-    assert stats.nodes["b"].up is False and stats.nodes["a"].up is True
+    assert [event.subject for event in run.events() if event.kind == "node_lost"] == ["b"]
+    assert back.nodes["b"].up and back.nodes["a"].up
     assert "far" not in stats.modules and "src.out->far.x" not in stats.links
+    assert "far" not in back.modules
     assert any("node b lost" in failure for failure in stats.failures)
     assert live_segments(process.pid) == []     # the dead executor's rings, reaped
 

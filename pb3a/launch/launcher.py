@@ -496,8 +496,10 @@ class Launcher:
         """Tell every node's env module (as its state) the health of every node and its
         round-trip time to each, the node's worker processes (its own load) and the
         moves made so far."""
-        moves = [{"module": event.subject, **event.detail} for event in self.events.since(0)
+        events = self.events.since(0)
+        moves = [{"module": event.subject, **event.detail} for event in events
                  if event.kind in ("module_moved", "module_failed_over")]
+        losses = [event.subject for event in events if event.kind == "node_lost"]
         for name, node in self.nodes.items():
             env = env_name(name)
             if env not in self.specs or not self.health[name]["up"]:
@@ -507,6 +509,7 @@ class Launcher:
                 table = {peer: {"up": health["up"], "rtt": rtts.get(peer, float("nan"))}
                          for peer, health in self.health.items()}
                 self.call(env, "set_state", state={"health": table, "moves": moves,
+                                                   "losses": losses,
                                                    "own_pids": node.worker_pids()})
 
     def _rtts_from(self, name: str) -> dict[str, float]:

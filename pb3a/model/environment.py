@@ -14,7 +14,8 @@ outside the system. An agent that moves its own load away sees ``cpu`` fall but
 
 ``nodes`` carries every node's health as the launcher's heartbeats see it (up or
 lost, and the round-trip time of the last heartbeat); ``node_lost`` is the event:
-a node's name, written once, at the first sample after the launcher lost it.
+a node's name, written once per loss, at the first sample after the launcher lost
+it (also when it was back by then).
 ``module_moved`` is the event of a migration anywhere in the system (``module``,
 ``source``, ``destination``, ``pause_s``), once per move, at the next sample; a
 module restarted on another node because its node was lost is one too (``policy``,
@@ -50,12 +51,14 @@ class Environment(Module):
     module_moved = Output(dict)          # module, source, destination, pause_s (once)
     period = 1.0
     # set by the launcher: every node's health; this node's worker processes; the moves
+    # and the nodes lost so far (each told once, also one lost and back between samples)
     health: dict = {}                    # node -> {"up", "rtt"}
     own_pids: list = []
     moves: list = []
+    losses: list = []
 
     def setup(self) -> None:
-        self._told: set[str] = set()
+        self._losses_told = len(self.losses)  # so are the losses
         self._moves_told = len(self.moves)   # moves before this start are history
         self._cpus = sorted(os.sched_getaffinity(0))   # the node's, if it is pinned
         self._processes: dict[int, psutil.Process] = {}
@@ -81,10 +84,9 @@ class Environment(Module):
         self.load.write(np.asarray(psutil.getloadavg(), dtype=np.float64))
         if self.health:
             self.nodes.write(dict(self.health))
-        for node, health in self.health.items():
-            if not health["up"] and node not in self._told:
-                self._told.add(node)
-                self.node_lost.write(node)
+        for node in self.losses[self._losses_told:]:
+            self.node_lost.write(node)
+        self._losses_told = len(self.losses)
         for move in self.moves[self._moves_told:]:
             self.module_moved.write(dict(move))
         self._moves_told = len(self.moves)
