@@ -17,6 +17,7 @@ import numpy as np
 import psutil
 import pytest
 
+from pb3a.loading.served import ServedModuleFinder
 from pb3a.transport.shm import live_segments
 
 # Every process of the test run (workers inherit it) uses a throw-away cluster key,
@@ -65,6 +66,19 @@ def _workers() -> set[int]:
         except psutil.Error:
             continue
     return found
+
+
+@pytest.fixture(autouse=True)
+def no_module_servers_left() -> Iterator[None]:
+    """A test that used module servers in this process leaves no finder behind that
+    later imports would ask (and wait for, once the servers are gone)."""
+    before = list(sys.meta_path)
+    yield
+    for finder in [f for f in sys.meta_path if f not in before]:
+        if isinstance(finder, ServedModuleFinder):
+            sys.meta_path.remove(finder)
+            for client in finder.clients.values():
+                client.close()
 
 
 @pytest.fixture(autouse=True)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import textwrap
+import time
 from pathlib import Path
 
 import pytest
@@ -12,6 +13,7 @@ from conftest import daemon_banner_then_clean_exit, eventually
 
 from pb3a import System
 from pb3a.daemons.module_server import ModuleServer
+from pb3a.loading import served as served_code
 from pb3a.transport.auth import ClusterKey
 
 TICKER = '''
@@ -85,3 +87,20 @@ def test_the_command_line_serves_until_signalled(tmp_path) -> None:
     line = daemon_banner_then_clean_exit("modules", "serve", str(tmp_path),
                                          "--listen", "tcp://127.0.0.1:0")
     assert line.startswith(f"serving {tmp_path.resolve()} at tcp://127.0.0.1:")
+
+
+def test_a_module_server_that_does_not_answer_holds_up_one_import_not_every_one(
+        monkeypatch) -> None:
+    monkeypatch.setattr(served_code, "FIND_TIMEOUT", 0.3)
+    finder = served_code.ServedModuleFinder(ClusterKey.load())
+    finder.add("tcp://127.0.0.1:9")                   # nobody listens there
+    try:
+        waits = []
+        for _ in range(3):
+            started = time.monotonic()
+            assert finder.find_spec("pb3a_nowhere") is None
+            waits.append(time.monotonic() - started)
+    finally:
+        for client in finder.clients.values():
+            client.close()
+    assert waits[0] >= 0.3 and max(waits[1:]) < 0.05, waits

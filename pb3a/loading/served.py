@@ -13,6 +13,7 @@ import importlib.abc
 import importlib.util
 import sys
 import threading
+import time
 from typing import TYPE_CHECKING, Any
 
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
@@ -25,6 +26,7 @@ if TYPE_CHECKING:
     from types import ModuleType
 
 FIND_TIMEOUT = 5.0
+SILENT_FOR_S = 30.0         # a server that did not answer is not asked again for this long
 _lock = threading.Lock()
 
 
@@ -34,17 +36,23 @@ class ServedModuleFinder(importlib.abc.MetaPathFinder):
     def __init__(self, key: ClusterKey) -> None:
         self._key = key
         self.clients: dict[str, ControlClient] = {}
+        self._silent_until: dict[str, float] = {}    # address -> when to ask it again
 
     def add(self, address: str) -> None:
         if address not in self.clients:
             self.clients[address] = ControlClient(self._key, address)
 
     def find_spec(self, fullname: str, path: Any = None, target: Any = None) -> ModuleSpec | None:
-        for client in list(self.clients.values()):
+        for address, client in list(self.clients.items()):
+            if time.monotonic() < self._silent_until.get(address, 0.0):
+                continue              # it did not answer lately: no import waits for it
             try:
                 found = client.call("find", timeout=FIND_TIMEOUT, name=fullname)
-            except (RuntimeFailure, RuntimeTimeout):
-                continue                          # that server is down: try the next
+            except RuntimeTimeout:
+                self._silent_until[address] = time.monotonic() + SILENT_FOR_S
+                continue
+            except RuntimeFailure:
+                continue                          # it refused: try the next
             if found is not None:
                 loader = _SourceLoader(found["source"], found["origin"])
                 return importlib.util.spec_from_loader(
