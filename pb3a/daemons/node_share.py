@@ -56,6 +56,7 @@ class NodeShare:
         self.executor.on_checkpoint = self._keep_checkpoint
         self.launcher: ControlClient | None = None
         self.node_epoch = 0                            # this admission of the node
+        self._lease_s = LEASE_S
         self._leased_at = time.monotonic()             # the launcher's last heartbeat
         self._checkpoints: dict[str, bytes] = {}       # the newest, not yet sent
         self._checkpointed = threading.Condition()
@@ -104,14 +105,12 @@ class NodeShare:
         if self.server is not None:
             self.server.advance_epoch(epoch)
         code.install(self.key)
-        self.node_epoch = node_epoch
+        self.node_epoch, self._lease_s = node_epoch, lease_s
         self.launcher = ControlClient(self.key, launcher)
         self.renew()
         for target, name in ((self._keep_lease, "lease"), (self._measure_peers, "peers"),
                              (self._send_checkpoints, "checkpoints")):
-            args = (lease_s,) if target == self._keep_lease else ()
-            threading.Thread(target=target, args=args, name=f"pb3a-{name}",
-                             daemon=True).start()
+            threading.Thread(target=target, name=f"pb3a-{name}", daemon=True).start()
 
     def renew(self, args: dict[str, Any] | None = None) -> bool:
         """The launcher's heartbeat (an instant operation): the lease runs on."""
@@ -171,8 +170,9 @@ class NodeShare:
             with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
                 self.launcher.call(op, **args, **self._signed())
 
-    def _keep_lease(self, lease_s: float) -> None:
-        """Fence: stop everything once the launcher's heartbeats stop for ``lease_s``."""
+    def _keep_lease(self) -> None:
+        """Fence: stop everything once the launcher's heartbeats stop for the lease."""
+        lease_s = self._lease_s
         while not self.stopped.wait(min(0.1, lease_s / 4)):
             silent = time.monotonic() - self._leased_at
             if silent > lease_s:
