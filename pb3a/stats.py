@@ -93,6 +93,7 @@ class NodeStats:
     address: str | None         # None: embedded in the launcher's process
     controller: bool | None = None   # its node controller answers (remote nodes)
     epoch: int = 1              # its admission: one more each time it rejoins after a loss
+    silent_s: float = 0.0       # since its executor last answered a heartbeat (remote nodes)
 
 
 @dataclass(frozen=True)

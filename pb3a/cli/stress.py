@@ -45,6 +45,7 @@ from pb3a.transport.auth import ClusterKeyError
 
 SCHEMA = "pb3a-stress/1"
 PROBE_PREFIX = "stress-probe-"
+SILENT_S = 0.5          # a node whose heartbeats stopped this long is not asked for readings
 PLAIN_EVERY_S = 5.0          # progress lines when the output is not a terminal
 EVENTS_MARKED = ("module_restarted", "module_failed", "module_failed_over", "node_lost",
                  "node_joined")
@@ -295,9 +296,10 @@ class Stress:
     def _add_probes(self) -> None:
         """A probe per node, fed by the node's env module (started here if the system
         has none, sampling as often as this run samples)."""
-        running = self.run.stats().modules          # (an earlier run may have added them)
+        stats = self.run.stats()          # (an earlier run may have added them)
+        running = stats.modules
         for node, probe in self.probes.items():
-            if probe in running:
+            if probe in running or not stats.nodes[node].up:
                 continue
             if env_name(node) not in running:
                 self.run.add(env_name(node), Environment, node=node,
@@ -346,7 +348,7 @@ class Stress:
     def _node_sample(self, node: str, stats: SystemStats) -> dict[str, Any]:
         health = stats.nodes.get(node)
         readings: dict[str, Any] = {}
-        if health is not None and health.up:
+        if health is not None and health.up and health.silent_s < SILENT_S:
             with contextlib.suppress(ModuleNotFound, RuntimeFailure, RuntimeTimeout):
                 readings = self.run.state(self.probes[node], timeout=1.0)["readings"]
         return {"up": bool(health and health.up), "cpu": readings.get("cpu"),
@@ -360,6 +362,8 @@ class Stress:
                 if event.kind in EVENTS_MARKED:
                     self.mark(event.kind, event.subject, at=event.time - self._wall_started,
                               **plain(event.detail))
+                if event.kind == "node_joined":        # its probe went with it: again
+                    self._add_probes()
 
     def _progress(self, at: float, stats: SystemStats) -> None:
         latest = self.samples[-1]

@@ -12,7 +12,8 @@ SPANS = {"load": ("load_on", "load_off", "tab:orange", "CPU load"),
          "cut": ("cut", "uncut", "0.6", "node cut")}
 MOMENTS = {"kill": ("tab:red", "worker killed"), "migration": ("tab:blue", "module moved"),
            "module_restarted": ("tab:green", "module restarted"),
-           "node_lost": ("black", "node lost")}
+           "module_failed_over": ("tab:purple", "failed over"),
+           "node_lost": ("black", "node lost"), "node_joined": ("tab:gray", "node back")}
 
 
 def plot(report: dict[str, Any], path: Path) -> bool:

@@ -77,6 +77,8 @@ class Launcher:
         self.checkpoints: dict[str, bytes] = {}      # module -> its newest (last-state)
         self.lost_values: collections.Counter[str] = collections.Counter()  # per link key
         self._rejoining: set[str] = set()
+        # a lost node's env module and the links from it, restored when it rejoins
+        self._env_kept: dict[str, tuple[FlatModule, list[FlatLink]]] = {}
         self._callback: str | None = None            # where remote executors reach us
         self.events = EventLog()                      # what happened, for run.events()
         self.logbook = LogBook()                      # the recent log, for run.logs()
@@ -86,6 +88,7 @@ class Launcher:
         self.changed = threading.Condition()          # notified when a node's health changes
         self._stopping = threading.Event()
         self._watchdog: threading.Thread | None = None
+        self._env_keeper: threading.Thread | None = None
 
     # -- nodes ----------------------------------------------------------------------
     def start_nodes(self, callback: str | None) -> None:
@@ -115,6 +118,9 @@ class Launcher:
                                      "controller": True, "epoch": 1}
         self._introduce()
         # (also without remote nodes: it keeps the env modules' view up to date)
+        self._env_keeper = threading.Thread(target=self._keep_env, name="pb3a-env",
+                                            daemon=True)
+        self._env_keeper.start()
         self._watchdog = threading.Thread(target=self._watch, name="pb3a-heartbeat",
                                           daemon=True)
         self._watchdog.start()
@@ -245,14 +251,7 @@ class Launcher:
     def stats(self) -> SystemStats:
         """Every node's report, joined: modules where the launcher says they run, the
         per-link table (from the reader's side), failures, node health."""
-        reports: list[NodeReport] = []
-        for name, node in list(self.nodes.items()):
-            if not self.health[name]["up"]:
-                continue
-            try:
-                reports.append(node.report())
-            except (RuntimeFailure, RuntimeTimeout) as exc:
-                log.warning("node %s did not report: %s", name, exc)   # its modules: absent
+        reports = self._reports()
         # a module being migrated is on two nodes for a moment: the launcher says where
         modules = {name: entry for report in reports for name, entry in report.modules.items()
                    if name in self.specs and entry.node == self.specs[name].node}
@@ -261,17 +260,47 @@ class Launcher:
                            _link_table(self.links, modules, reports, self.lost_values),
                            self.node_table(), failures)
 
+    def _reports(self) -> list[NodeReport]:
+        """Every node's report, asked of all at once. A node that stops answering its
+        heartbeats meanwhile is not waited for (until it is declared lost): its modules
+        are absent from this report."""
+        reports: dict[str, NodeReport] = {}
+
+        def ask(name: str, node: Node) -> None:
+            try:
+                reports[name] = node.report()
+            except (RuntimeFailure, RuntimeTimeout) as exc:
+                log.warning("node %s did not report: %s", name, exc)
+
+        asked = {name: threading.Thread(target=ask, args=(name, node), daemon=True,
+                                        name=f"pb3a-report-{name}")
+                 for name, node in list(self.nodes.items())
+                 if self.health[name]["up"] and not self._silent(name)}
+        for thread in asked.values():
+            thread.start()
+        for name, thread in asked.items():
+            while thread.is_alive() and not self._silent(name):
+                thread.join(WATCH_S)
+        return [reports[name] for name in asked if name in reports]
+
+    def _silent(self, name: str) -> bool:
+        """Whether remote node ``name`` missed its last two heartbeats."""
+        remote = self.remotes.get(name)
+        return remote is not None and remote.silent_s() > 2 * HEARTBEAT_S
+
     def node_table(self) -> dict[str, NodeStats]:
         """Every node's health as the heartbeats see it."""
         return {name: NodeStats(health["up"], health["rtt"], health["address"],
-                                health.get("controller"), health["epoch"])
+                                health.get("controller"), health["epoch"],
+                                self.remotes[name].silent_s() if name in self.remotes
+                                and health["up"] else 0.0)
                 for name, health in self.health.items()}
 
     # -- heartbeats -------------------------------------------------------------------
     def _watch(self) -> None:
         """Declare lost a remote node silent for ``LOSS_S``; ask lost ones' controllers
-        whether they are back; keep the env modules and the merged log up to date."""
-        next_env = next_rejoin = time.monotonic()
+        whether they are back. (Nothing here waits for a node that may be gone.)"""
+        next_rejoin = time.monotonic()
         while not self._stopping.wait(WATCH_S):
             for name, node in list(self.remotes.items()):
                 if self.health[name]["up"]:
@@ -286,13 +315,17 @@ class Launcher:
                         self._rejoining.add(name)
                         threading.Thread(target=self._rejoin, args=(name,), daemon=True,
                                          name=f"pb3a-rejoin-{name}").start()
-            if now >= next_env:
-                next_env = now + ENV_S
-                for name, node in list(self.remotes.items()):
-                    if self.health[name]["up"] and node.silent_s() < 2 * HEARTBEAT_S:
-                        self.health[name]["controller"] = node.controller_answers(HEARTBEAT_S)
-                        self._merge_log(name, node)
-                self.update_env()
+
+    def _keep_env(self) -> None:
+        """Every ``ENV_S``: each remote node's controller health and log, and the env
+        modules' view (on a thread of its own: a node going silent meanwhile must not
+        hold up the detection of its loss)."""
+        while not self._stopping.wait(ENV_S):
+            for name, node in list(self.remotes.items()):
+                if self.health[name]["up"] and not self._silent(name):
+                    self.health[name]["controller"] = node.controller_answers(HEARTBEAT_S)
+                    self._merge_log(name, node)
+            self.update_env()
 
     def _merge_log(self, name: str, node: RemoteNode) -> None:
         """Take in what node ``name`` logged since the last look."""
@@ -319,6 +352,10 @@ class Launcher:
         with self.lock.held(f"fail over lost node {node}"):
             touched = {key: link for key, link in self.links.items()
                        if link.src in gone or link.dst in gone}
+            env = env_name(node)            # back with the node, if it rejoins
+            if env in self.specs:
+                self._env_kept[node] = (self.specs[env], [
+                    link for link in touched.values() if link.src == env])
             # what a surviving writer writes while its link is unwired is lost: counted
             written = self._written([link for link in touched.values() if link.src not in gone])
             for link in touched.values():
@@ -482,13 +519,14 @@ class Launcher:
             self._rejoining.discard(name)
 
     def _restore_env(self, node: str) -> None:
-        """Bring back a rejoined node's env module and the configured links from it."""
-        spec = self.plan.modules.get(env_name(node))
+        """Bring back a rejoined node's env module and its links that were there when the
+        node was lost (to modules still running)."""
+        spec, links = self._env_kept.pop(node, (None, []))
         if spec is None or spec.name in self.specs:
             return
         self.add_module(spec)
-        for link in self.plan.links:
-            if link.src == spec.name and link.dst in self.specs and link.key not in self.links:
+        for link in links:
+            if link.dst in self.specs and link.key not in self.links:
                 self.connect(link)
         self.nodes[node].start_modules([spec.name])
 
@@ -500,17 +538,17 @@ class Launcher:
         moves = [{"module": event.subject, **event.detail} for event in events
                  if event.kind in ("module_moved", "module_failed_over")]
         losses = [event.subject for event in events if event.kind == "node_lost"]
-        for name, node in self.nodes.items():
+        for name, node in list(self.nodes.items()):
             env = env_name(name)
-            if env not in self.specs or not self.health[name]["up"]:
+            if env not in self.specs or not self.health[name]["up"] or self._silent(name):
                 continue
             with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
                 rtts = self._rtts_from(name)
                 table = {peer: {"up": health["up"], "rtt": rtts.get(peer, float("nan"))}
                          for peer, health in self.health.items()}
-                self.call(env, "set_state", state={"health": table, "moves": moves,
-                                                   "losses": losses,
-                                                   "own_pids": node.worker_pids()})
+                self.call(env, "set_state", ENV_S, state={
+                    "health": table, "moves": moves, "losses": losses,
+                    "own_pids": node.worker_pids()})
 
     def _rtts_from(self, name: str) -> dict[str, float]:
         """Round-trip times from node ``name`` to every node: measured by the node itself
@@ -531,10 +569,11 @@ class Launcher:
         """Stop modules in reverse start order (across nodes), then every node."""
         deadline = time.monotonic() + timeout
         self._stopping.set()
-        if self._watchdog is not None:
-            self._watchdog.join(2.0)
-        for remote in self.remotes.values():
-            if remote.silent_s() > 2 * HEARTBEAT_S:   # gone, not yet declared: no waiting
+        for thread in (self._watchdog, self._env_keeper):
+            if thread is not None:
+                thread.join(2.0)
+        for name, remote in self.remotes.items():
+            if self._silent(name):                    # gone, not yet declared: no waiting
                 remote.lose()
         with self.lock.held("shut the system down"):
             for name in reversed(list(self.specs)):
