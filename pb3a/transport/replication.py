@@ -27,8 +27,8 @@ exactly once:
 - Flow control. Followers acknowledge (ACK) how far they are; a publisher more than
   ``WINDOW`` values or ``WINDOW_BYTES`` bytes ahead of its slowest live follower waits
   for it, briefly. The replay buffer holds twice the bytes of that window: everything
-  a live follower may still need, and few enough large values that the memory they
-  are copied into stays in the cache.
+  a live follower may still need, and a bounded number of large values alive (the
+  fewer, the warmer the memory the next one is copied into).
 - Lossless followers. A follower whose receiver must not drop (a ``lossless`` link)
   says so in its HELLO and ACKs, and acknowledges only what its receiver has put
   through. Such a follower holds the publisher back for as long as the writer's
@@ -86,7 +86,7 @@ BATCH_BYTES = 1 << 20                   # ... and at most this many bytes of the
 HWM = 10_000                            # messages queued per peer before ZeroMQ drops
 MAX_MESSAGE = 256 * 1024 * 1024         # bytes; larger frames are refused by ZeroMQ itself
 WINDOW = 2048                           # values a publisher may be ahead of its slowest follower
-WINDOW_BYTES = 8 * 1024 * 1024          # ... and bytes of values (see ``Replicator.sink``)
+WINDOW_BYTES = 16 * 1024 * 1024         # ... and bytes of values (see ``Replicator.sink``)
 WINDOW_WAIT = 0.1                       # seconds it waits for acknowledgements, then goes on
 ACK_EVERY = 256                         # a follower acknowledges after this many values ...
 ACK_IDLE_S = 0.5                        # ... or this long after its last acknowledgement
