@@ -164,9 +164,25 @@ class ArraySource(Module):
         self.out.write(np.full((1024, 128), float(self.n)))
 
 
+class ArrayReuser(ArraySource):
+    """Writes one buffer again and again, scribbling over it (-1) right after each write."""
+
+    period = 0.002
+
+    def setup(self) -> None:
+        self._buffer = np.zeros((1024, 128))
+
+    def step(self) -> None:
+        self.n += 1
+        self._buffer[:] = float(self.n)
+        self.out.write(self._buffer)
+        self._buffer[:] = -1.0
+
+
 class ArraySink(Module):
     x = Input(np.ndarray, shape=(1024, 128), dtype="float64")
     sums_ok = 0
+    scribbled = 0          # arrays holding what the writer put in after writing them
     writable = False
 
     def on_input(self, port) -> None:
@@ -174,6 +190,8 @@ class ArraySink(Module):
         self.writable = bool(arr.flags.writeable)
         if float(arr[0, 0]) * arr.size == float(arr.sum()):
             self.sums_ok += 1
+        if float(arr.min()) < 0:
+            self.scribbled += 1
 
 
 class Chain(Macro):

@@ -7,7 +7,7 @@ import os
 import signal
 
 from conftest import eventually
-from sample_modules import ArraySink, ArraySource, Burst, Collector, Counter
+from sample_modules import ArrayReuser, ArraySink, ArraySource, Burst, Collector, Counter
 
 from pb3a import System
 
@@ -46,6 +46,17 @@ def test_large_arrays_cross_nodes_intact_and_read_only() -> None:
         link = run.stats().links["src.out->dst.x"]
     assert state["writable"] is False
     assert link.transport == "zmq" and link.link_failures == 0
+
+
+def test_an_array_its_writer_changes_right_after_writing_crosses_as_written() -> None:
+    system = _two_nodes("remote-reused-array")
+    system.add("src", ArrayReuser, node="a")
+    system.add("dst", ArraySink, node="b")
+    system.link("src.out", "dst.x", policy="queue:64")
+    with system.launch() as run:
+        state = eventually(lambda: (s := run.state("dst"))["sums_ok"] >= 200 and s,
+                           timeout=30, what="200 arrays across nodes")
+    assert state["scribbled"] == 0
 
 
 def test_an_output_crosses_once_per_node_however_many_inputs_read_it_there() -> None:

@@ -128,6 +128,57 @@ def test_values_gone_from_the_replay_buffer_are_counted_as_link_failures(link,
     assert follower.link_failures["t"] == 90
 
 
+def test_a_value_larger_than_the_replay_buffer_is_repaired_as_it_was_written(
+        link, monkeypatch) -> None:
+    replicator, follower, inbox = link
+    monkeypatch.setattr(replication, "REPLAY_BYTES", 1 << 20)
+    replicator.add("t")
+    _follow(follower, replicator, "t", from_seq=0)
+    assert follower.wait_ready("t", TIMEOUT)
+    send, dropped = replicator._send_pub, []
+
+    def lossy(name: bytes, kind: int, parts: list[Any]) -> None:
+        if kind == replication.VALUE and not dropped:     # the first sending is lost
+            dropped.append(kind)
+            return
+        send(name, kind, parts)
+    monkeypatch.setattr(replicator, "_send_pub", lossy)
+    image = np.arange(1 << 18, dtype=np.float64)          # 2 MiB
+    replicator.publish("t", image)
+    image[:] = -1                                         # the writer reuses its buffer
+    (received,) = inbox.wait("t", 1)                      # (the heartbeat reveals the gap)
+    assert dropped and np.array_equal(received, np.arange(1 << 18, dtype=np.float64))
+    assert not follower.link_failures
+
+
+def test_a_publisher_more_than_its_window_of_bytes_ahead_waits_for_the_follower(
+        monkeypatch) -> None:
+    monkeypatch.setattr(replication, "WINDOW_BYTES", 1 << 20)
+    monkeypatch.setattr(replication, "WINDOW_WAIT", 0.05)
+    gate, inbox = threading.Event(), Inbox()
+
+    def slow(topic: str, values: list[Any], sent_at: float) -> None:
+        gate.wait(TIMEOUT)                    # the follower's thread: no ACK meanwhile
+        inbox(topic, values, sent_at)
+    replicator, follower = Replicator(KEY), Follower(KEY, slow)
+    try:
+        replicator.add("t")
+        _follow(follower, replicator, "t", from_seq=0)
+        assert follower.wait_ready("t", TIMEOUT)
+        arrays = [np.full(1 << 15, float(i)) for i in range(10)]     # 256 KiB each
+        for array in arrays:
+            replicator.publish("t", array)
+        assert replicator.counter("t").waits >= 5          # 4 fit in 1 MiB, then each waits
+        gate.set()
+        got = inbox.wait("t", len(arrays))
+        assert all(np.array_equal(a, b) for a, b in zip(got, arrays, strict=True))
+        assert not follower.link_failures
+    finally:
+        gate.set()
+        follower.close()
+        replicator.close()
+
+
 def test_only_the_accepted_sender_is_delivered(link) -> None:
     replicator, follower, inbox = link
     impostor = Replicator(KEY)                # same key, another incarnation
@@ -176,6 +227,28 @@ def test_a_batch_mixes_plain_and_encoded_values_each_as_it_was_when_written(link
     got = inbox.wait("t", len(written))
     assert got[:4] == [{"a": [1, 2]}, 1, "two", None] and got[5:] == [b"\x00six", 7.5]
     assert np.array_equal(got[4], np.arange(4.0)) and not got[4].flags.writeable
+
+
+def test_values_written_one_by_one_through_the_sink_arrive_in_order_once(link) -> None:
+    replicator, follower, inbox = link
+    replicator.add("t")
+    _follow(follower, replicator, "t", from_seq=0)
+    assert follower.wait_ready("t", TIMEOUT)
+    one = replicator.sink("t", lambda timeout: AssertionError("no lossless follower here"))
+    array = np.arange(4.0)
+    written: list[Any] = []
+    for i in range(3 * replication.BATCH_VALUES):   # batches fill up, scalars among others
+        value = i if i % 100 else (str(i) if i % 300 else array * i)
+        one(value, 5.0)
+        written.append(value)
+        if i % 2 == 0:
+            one(i / 2, 5.0)
+            written.append(i / 2)
+    got = inbox.wait("t", len(written))
+    assert len(got) == len(written)
+    for sent, arrived in zip(written, got, strict=True):
+        assert np.array_equal(arrived, sent) if isinstance(sent, np.ndarray) else arrived == sent
+    assert replicator.sequence("t") == len(written) and not follower.duplicates
 
 
 class FakeSender:
@@ -402,6 +475,24 @@ def test_a_lossless_follower_holds_the_publisher_back_until_its_receiver_takes_v
     assert follower.link_failures["t"] == 0 and replicator.counter("t").waits == 2
 
 
+def test_the_sink_raises_what_its_stuck_makes_when_a_lossless_follower_leaves_no_room(
+        dammed, monkeypatch) -> None:
+    replicator, follower, dam = dammed
+    monkeypatch.setattr(replication, "WINDOW", 16)
+
+    class Stuck(Exception):
+        pass
+    one = replicator.sink("t", lambda timeout: Stuck(timeout))
+    for i in range(16):
+        one(i, 5.0)
+    with pytest.raises(Stuck, match=r"0\.2"):
+        one(16, 0.2)                                          # 16 ahead: not sent
+    assert replicator.sequence("t") == 16
+    dam.open(follower, "t")
+    one(16, 5.0)
+    assert dam.inbox.wait("t", 17) == list(range(17))
+
+
 def test_values_a_lossless_follower_has_not_acknowledged_stay_in_the_replay_buffer(
         dammed, monkeypatch) -> None:
     replicator, follower, dam = dammed
@@ -414,6 +505,19 @@ def test_values_a_lossless_follower_has_not_acknowledged_stay_in_the_replay_buff
     for i in range(10, 30):
         replicator.publish("t", i, timeout=5.0)
     assert dam.inbox.wait("t", 30) == list(range(30))
+    assert follower.link_failures["t"] == 0
+
+
+def test_a_lossless_link_carries_values_larger_than_the_replay_buffer(
+        dammed, monkeypatch) -> None:
+    replicator, follower, dam = dammed
+    monkeypatch.setattr(replication, "REPLAY_BYTES", 1 << 20)
+    dam.open(follower, "t")
+    image = np.arange(1 << 18, dtype=np.float64)          # 2 MiB
+    replicator.publish("t", image, timeout=5.0)           # into the empty buffer
+    replicator.publish("t", image * 2, timeout=5.0)       # once the first is acknowledged
+    first, second = dam.inbox.wait("t", 2)
+    assert np.array_equal(first, image) and np.array_equal(second, image * 2)
     assert follower.link_failures["t"] == 0
 
 

@@ -25,7 +25,10 @@ exactly once:
   already is counted as duplicates and dropped. What the replay buffer no longer
   holds is counted as a link failure, loudly.
 - Flow control. Followers acknowledge (ACK) how far they are; a publisher more than
-  ``WINDOW`` values ahead of its slowest live follower waits for it, briefly.
+  ``WINDOW`` values or ``WINDOW_BYTES`` bytes ahead of its slowest live follower waits
+  for it, briefly. The replay buffer holds twice the bytes of that window: everything
+  a live follower may still need, and a bounded number of large values alive (the
+  fewer, the warmer the memory the next one is copied into).
 - Lossless followers. A follower whose receiver must not drop (a ``lossless`` link)
   says so in its HELLO and ACKs, and acknowledges only what its receiver has put
   through. Such a follower holds the publisher back for as long as the writer's
@@ -58,6 +61,7 @@ from pb3a.errors import link_stuck
 from pb3a.transport import codec
 from pb3a.transport.addresses import bind_advertised
 from pb3a.transport.auth import ClusterKey, Opener, Rejected, Sealer
+from pb3a.transport.heap import keep_freed_buffers
 from pb3a.transport.loop import SocketLoop
 
 if TYPE_CHECKING:
@@ -82,20 +86,23 @@ BATCH_BYTES = 1 << 20                   # ... and at most this many bytes of the
 HWM = 10_000                            # messages queued per peer before ZeroMQ drops
 MAX_MESSAGE = 256 * 1024 * 1024         # bytes; larger frames are refused by ZeroMQ itself
 WINDOW = 2048                           # values a publisher may be ahead of its slowest follower
+WINDOW_BYTES = 16 * 1024 * 1024         # ... and bytes of values (see ``Replicator.sink``)
 WINDOW_WAIT = 0.1                       # seconds it waits for acknowledgements, then goes on
 ACK_EVERY = 256                         # a follower acknowledges after this many values ...
 ACK_IDLE_S = 0.5                        # ... or this long after its last acknowledgement
-ACK_BYTES = 4 * 1024 * 1024             # a lossless follower also after this many bytes
+ACK_BYTES = WINDOW_BYTES // 2           # ... or after this many bytes
 FOLLOWER_TIMEOUT = 3.0                  # silent this long: no longer holds a publisher back
 SILENT_S = 2 * ACK_IDLE_S               # (a lossless follower: when a link to it is cut)
 REPLAY_VALUES = 4096                    # per topic, at most ...
-REPLAY_BYTES = 64 * 1024 * 1024         # ... and at most this many bytes
+REPLAY_BYTES = 2 * WINDOW_BYTES         # ... and at most this many bytes (the newest message
+                                        # is always kept, however large)
 HELLO_EVERY = 0.05                      # seconds between unanswered HELLOs
 HEARTBEAT_S = 0.5                       # how often a replicator announces its topics
 LINGER_MS = 500                         # a closed DEALER's last messages may still go
 DRAIN_BATCH = 1024                      # messages taken in before delivering them
 ZERO_COPY_MIN = 64 * 1024               # frames at least this large are sent without a copy
 _SCALARS = frozenset({int, float, bool, complex, type(None)})   # immutable: kept as they are
+SCALAR_BYTES = 9                        # what a scalar counts for in a batch's bytes
 _TEXT = frozenset({str, bytes})         # immutable too, when small
 
 
@@ -130,20 +137,21 @@ def _entry(value: Any, max_bytes: int) -> tuple[int, Any, int]:
     change a mutable value right after): an immutable small value is its own entry
     (``PLAIN``), pickled later with the rest of its batch; anything else is encoded
     now, to ``(meta, payload)``. A payload of ``ZERO_COPY_MIN`` bytes or more is sent
-    on its own (``kind`` negative); an array's is copied once, and from there on goes
-    out as a zero-copy frame and stays in the replay buffer as it is."""
+    on its own (``kind`` negative); an array's is copied once, into a ZeroMQ frame that
+    the replay buffer keeps and every send (repairs too) shares by reference: ZeroMQ
+    frees it when the last is done, with no Python object to hand back per send."""
     cls = type(value)
     if cls in _SCALARS:
-        return PLAIN, value, 9
+        return PLAIN, value, SCALAR_BYTES
     if cls in _TEXT and len(value) < ZERO_COPY_MIN:
-        return PLAIN, value, len(value) + 9
+        return PLAIN, value, len(value) + SCALAR_BYTES
     kind, meta, payload = codec.encode(value)
     nbytes = codec.payload_size(kind, payload)
     if nbytes + 1024 > max_bytes:
         raise ValueError(f"a value of {nbytes} bytes exceeds the {max_bytes}-byte message "
                          "limit of remote links; raise the limit")
     if kind == codec.ARRAY:
-        payload = payload.copy() if nbytes >= ZERO_COPY_MIN else payload.tobytes()
+        payload = zmq.Frame(payload, copy=True) if nbytes >= ZERO_COPY_MIN else payload.tobytes()
     return (-kind if nbytes >= ZERO_COPY_MIN else kind), (meta, payload), nbytes + 64
 
 
@@ -185,7 +193,8 @@ class _Stream:
     pending_bytes: int = 0
     replay: collections.deque[_Sent] = field(default_factory=collections.deque)
     replay_bytes: int = 0
-    clear_until: float = 0              # values before this one need no flow-control check
+    clear_until: float = 0              # values before this one need no flow-control check ...
+    credit: float = 0                   # ... while they take fewer bytes than this
     acks: dict[bytes, tuple[int, float]] = field(default_factory=dict)  # peer -> (seq, when)
     holds: dict[bytes, int] = field(default_factory=dict)   # lossless followers: peer -> seq
     waits: int = 0                      # values whose publish waited for followers ...
@@ -195,6 +204,21 @@ class _Stream:
         """Where the slowest live follower is (None: nobody follows)."""
         live = [seq for seq, when in self.acks.values() if now - when < FOLLOWER_TIMEOUT]
         return min(live) if live else None
+
+    def ahead(self, acked: int) -> int:
+        """Bytes of the values from sequence number ``acked`` on (whole messages)."""
+        total = self.pending_bytes
+        for sent in reversed(self.replay):
+            if sent.end <= acked:
+                break
+            total += sent.nbytes
+        return total
+
+    def fits(self, acked: int, size: int) -> bool:
+        """Whether one more value of ``size`` bytes stays within ``WINDOW_BYTES`` of a
+        follower at ``acked`` (a larger one goes when nothing is ahead of it)."""
+        ahead = self.ahead(acked)
+        return not ahead or ahead + size <= WINDOW_BYTES
 
     def kept(self) -> int:
         """Values in the replay buffer and the batch being filled (all consecutive)."""
@@ -208,7 +232,7 @@ class _Stream:
     def room_for(self, size: int) -> bool:
         """Whether one more value of ``size`` bytes may go without running ``WINDOW``
         values ahead of a lossless follower, or pushing out of the replay buffer a value
-        one has not acknowledged."""
+        one has not acknowledged (into an empty buffer, a value of any size may go)."""
         held = self.held()
         if held is None:
             return True
@@ -217,7 +241,7 @@ class _Stream:
         full = (self.kept() >= REPLAY_VALUES
                 or self.replay_bytes + self.pending_bytes + size > REPLAY_BYTES)
         oldest = self.replay[0].first if self.replay else self.next_seq - len(self.pending)
-        return not (full and oldest >= held)
+        return not (full and self.kept() and oldest >= held)
 
     def hold(self, peer: bytes, seq: int, flags: int) -> None:
         """A follower said how far it is and whether it is lossless."""
@@ -228,18 +252,21 @@ class _Stream:
 
     def keep(self, sent: _Sent) -> None:
         """Put a message in the replay buffer; push out the oldest values while it holds
-        too many (too many bytes: whole messages), but never what a lossless follower
-        has not acknowledged."""
+        too many values, or too many bytes (whole messages, but not the newest: a value
+        larger than the bound stays replayable until the next one goes), and never what
+        a lossless follower has not acknowledged."""
         replay = self.replay
         replay.append(sent)
         self.replay_bytes += sent.nbytes
         held = self.held()
-        while replay and ((kept := self.kept()) > REPLAY_VALUES
-                          or self.replay_bytes > REPLAY_BYTES):
+        while replay:
             oldest = replay[0]
-            cut = oldest.end
-            if self.replay_bytes <= REPLAY_BYTES:
-                cut = min(cut, oldest.first + kept - REPLAY_VALUES)
+            if self.replay_bytes > REPLAY_BYTES and len(replay) > 1:
+                cut = oldest.end                 # too many bytes: whole messages
+            elif (kept := self.kept()) > REPLAY_VALUES:
+                cut = min(oldest.end, oldest.first + kept - REPLAY_VALUES)
+            else:
+                break
             if held is not None:
                 cut = min(cut, held)
             if cut <= oldest.first:
@@ -257,6 +284,7 @@ class Replicator:
 
     def __init__(self, key: ClusterKey, host: str = "127.0.0.1", *, epoch: int = 0,
                  max_bytes: int = MAX_MESSAGE, context: zmq.Context | None = None) -> None:
+        keep_freed_buffers()                     # (the copies of large values: see heap)
         self.incarnation = secrets.token_bytes(16)
         self._max_bytes = max_bytes
         self._batch_bytes = min(BATCH_BYTES, max_bytes // 2)
@@ -333,15 +361,44 @@ class Replicator:
             raise link_stuck(topic, timeout)
         return self.sequence(topic) - 1
 
+    def sink(self, topic: str, stuck: Callable[[float], Exception]) -> Callable[[Any, float], None]:
+        """What an output's ``write`` calls to publish one value on ``topic``:
+        ``one(value, timeout)``, as ``offer``, raising ``stuck(timeout)`` if the value
+        did not go. The most common value (an immutable scalar joining a batch of such
+        values that flow control has already cleared) takes a short path: the lock
+        and an append, about a third of ``offer``'s cost. Such scalars count against
+        the ``WINDOW`` of values, not the ``WINDOW_BYTES`` (their 9 bytes each, 18 KiB
+        in a full window, are not worth the count)."""
+        with self._lock:
+            stream = self._topics[topic]
+        lock, offer = self._lock, self.offer
+        last, full = BATCH_VALUES - 1, self._batch_bytes - SCALAR_BYTES
+
+        def one(value: Any, timeout: float) -> None:
+            if type(value) in _SCALARS:
+                lock.acquire()          # (not ``with``: this path is paid per value)
+                pending = stream.pending
+                if (pending and stream.next_seq < stream.clear_until and stream.kinds is None
+                        and len(pending) < last and stream.pending_bytes < full):
+                    pending.append(value)           # a flush is due: see offer
+                    stream.next_seq += 1
+                    stream.pending_bytes += SCALAR_BYTES
+                    lock.release()
+                    return
+                lock.release()
+            if not offer(topic, (value,), timeout):
+                raise stuck(timeout)
+        return one
+
     def offer(self, topic: str, values: Sequence[Any], timeout: float = WINDOW_WAIT) -> int:
         """Send values in order; returns how many went (all but when a lossless follower
         holds the publisher back: see below). ValueError, and nothing sent, if one is
         larger than the message limit.
 
-        Flow control: a publisher more than ``WINDOW`` values ahead of its slowest
-        follower waits for it (up to ``WINDOW_WAIT``, then goes on and lets the repair
-        or the link-failure count deal with it), so a burst never overruns the
-        high-water marks. A lossless follower holds it back up to ``timeout`` (the
+        Flow control: a publisher more than ``WINDOW`` values or ``WINDOW_BYTES`` bytes
+        ahead of its slowest follower waits for it (up to ``WINDOW_WAIT``, then goes on
+        and lets the repair or the link-failure count deal with it), so a burst never
+        overruns the high-water marks. A lossless follower holds it back up to ``timeout`` (the
         writer's) in all; the values that found no room by then are not sent.
 
         Values are taken as they are now (see ``_entry``). Small ones go out as soon as
@@ -356,11 +413,12 @@ class Replicator:
             stream = self._topics[topic]
             pending = stream.pending
             for kind, entry, size in entries:
-                if stream.next_seq >= stream.clear_until:
+                if stream.next_seq >= stream.clear_until or size > stream.credit:
                     if deadline is None:
                         deadline = time.monotonic() + timeout
                     if not self._admit(stream, size, deadline):
                         break
+                stream.credit -= size
                 if kind == PLAIN and pending and stream.kinds is None:   # most values
                     pending.append(entry)
                     stream.pending_bytes += size
@@ -418,7 +476,7 @@ class Replicator:
             self._acked.wait(deadline - now)
         window_end = None
         while (acked := stream.acknowledged(time.monotonic())) is not None \
-                and stream.next_seq - acked >= WINDOW:
+                and (stream.next_seq - acked >= WINDOW or not stream.fits(acked, size)):
             if window_end is None:
                 window_end = time.monotonic() + WINDOW_WAIT
                 started = started or time.monotonic()
@@ -430,8 +488,11 @@ class Replicator:
             stream.wait_s += time.monotonic() - started
         if stream.holds or started is not None:
             stream.clear_until = stream.next_seq + 1    # ask again for the next value
+        elif acked is None:
+            stream.clear_until = stream.credit = math.inf
         else:            # (only a new follower brings the window's end closer: see ACK)
-            stream.clear_until = math.inf if acked is None else acked + WINDOW
+            stream.clear_until = acked + WINDOW
+            stream.credit = WINDOW_BYTES - stream.ahead(acked)
         return True
 
     def _close_batch(self, stream: _Stream) -> None:
@@ -589,6 +650,7 @@ class Follower:
     def __init__(self, key: ClusterKey, deliver: Callable[[str, list[Any], float], None], *,
                  epoch: int = 0, max_bytes: int = MAX_MESSAGE,
                  context: zmq.Context | None = None) -> None:
+        keep_freed_buffers()                     # (ZeroMQ's receive buffers: see heap)
         self._key = key
         self._deliver = deliver
         self._max_bytes = max_bytes
@@ -889,16 +951,16 @@ class Follower:
             self._ask(follow, REPAIR, follow.next_seq, last)
 
     def _ack_due(self, follow: _Follow) -> bool:
-        """Every ACK_EVERY values; a lossless follower also every ACK_BYTES bytes (the
-        sender keeps what it did not acknowledge, in a replay buffer of bounded bytes)."""
+        """Every ACK_EVERY values or ACK_BYTES bytes (the sender's window counts both,
+        and a lossless follower's unacknowledged values stay in a replay buffer of
+        bounded bytes)."""
         through = follow.through
         if through - follow.acked >= ACK_EVERY:
             return True
-        return (follow.topic in self._lossless and through > follow.acked
-                and follow.moved_bytes - follow.acked_bytes >= ACK_BYTES)
+        return through > follow.acked and follow.moved_bytes - follow.acked_bytes >= ACK_BYTES
 
     def _acknowledge(self, follow: _Follow) -> None:
-        """Tell the publisher how far we are: it may run at most WINDOW values ahead."""
+        """Tell the publisher how far we are: it may run at most its window ahead."""
         follow.acked, follow.acked_at = follow.through, time.monotonic()
         follow.acked_bytes = follow.moved_bytes
         self._ask(follow, ACK, follow.acked, self._flags(follow))

@@ -43,10 +43,8 @@ class Publications:
         if not readers:
             replicator.add(topic)
             offer = replicator.offer
-
-            def one(value: Any, timeout: float) -> None:
-                if not offer(topic, (value,), timeout):
-                    raise link_stuck(", ".join(sorted(readers)), timeout)
+            one = replicator.sink(topic, lambda timeout: link_stuck(", ".join(sorted(readers)),
+                                                                    timeout))
 
             def many(values: Any, timeout: float) -> None:
                 went = offer(topic, values, timeout)
