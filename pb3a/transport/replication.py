@@ -44,7 +44,6 @@ Every message is sealed (``auth``) and opened before anything in it is decoded.
 from __future__ import annotations
 
 import collections
-import contextlib
 import logging
 import math
 import pickle
@@ -99,6 +98,7 @@ REPLAY_BYTES = 2 * WINDOW_BYTES         # ... and at most this many bytes (the n
 HELLO_EVERY = 0.05                      # seconds between unanswered HELLOs
 HEARTBEAT_S = 0.5                       # how often a replicator announces its topics
 LINGER_MS = 500                         # a closed DEALER's last messages may still go
+RECONNECT_MAX_MS = 10_000               # retries of a sender that is gone back off to this
 DRAIN_BATCH = 1024                      # messages taken in before delivering them
 ZERO_COPY_MIN = 64 * 1024               # frames at least this large are sent without a copy
 _SCALARS = frozenset({int, float, bool, complex, type(None)})   # immutable: kept as they are
@@ -633,7 +633,6 @@ class _Follow:
         """The sequence number up to which the receiver has put values through."""
         return self.next_seq - self.held_back
     ready: threading.Event = field(default_factory=threading.Event)   # live, start known
-    data: str = ""                            # the replicator's PUB address
 
 
 class Follower:
@@ -656,6 +655,7 @@ class Follower:
         self._max_bytes = max_bytes
         self._context = context or zmq.Context.instance()
         self._sub = _secure(self._context.socket(zmq.SUB), max_bytes)
+        self._sub.setsockopt(zmq.RECONNECT_IVL_MAX, RECONNECT_MAX_MS)
         self._opener = Opener(key, epoch=epoch, max_bytes=max_bytes)
         self._sealer = Sealer(key, epoch)        # used only on the follower's thread
         self._follows: dict[bytes, _Follow] = {}
@@ -751,24 +751,22 @@ class Follower:
             self._sub.setsockopt(zmq.SUBSCRIBE, name)
         elif from_seq < 0 and incarnation in (None, old.incarnation):
             from_seq = old.next_seq               # the same sender: go on where we are
-        self._follows[name] = _Follow(name, dealer, from_seq, incarnation, data=data)
+        self._follows[name] = _Follow(name, dealer, from_seq, incarnation)
         self._hello(self._follows[name])
         self._drop_unused()
 
     def _drop_unused(self) -> None:
-        """Close the DEALERs and SUB connections no followed topic uses any more (its
-        sender moved, restarted or stopped): each holds a socket and file descriptors,
-        and would go on reconnecting to a sender that is gone."""
+        """Close the DEALERs no followed topic uses any more (its sender moved,
+        restarted or stopped): each holds a socket and file descriptors. (The SUB
+        socket stays connected to the senders that are gone: disconnecting it while a
+        message is half taken in aborts libzmq, zeromq/libzmq#2163; it retries them
+        less and less often instead, ``RECONNECT_MAX_MS``.)"""
         used = {id(follow.control) for follow in self._follows.values()}
         for address, dealer in list(self._controls.items()):
             if id(dealer) not in used:
                 self._loop.unregister(dealer)
                 dealer.close(linger=LINGER_MS)    # (a last ACK may still be on its way)
                 del self._controls[address]
-        for address in self._connected - {follow.data for follow in self._follows.values()}:
-            with contextlib.suppress(zmq.ZMQError):
-                self._sub.disconnect(address)
-            self._connected.discard(address)
 
     def _unfollow(self, name: bytes) -> None:
         follow = self._follows.pop(name, None)
