@@ -2,8 +2,9 @@
 
 A ``Replicator`` sends the outputs of one process: each value is published once on
 its output's topic, however many nodes (and inputs there) read it, and kept in a
-bounded replay buffer. A ``Follower`` receives on one node: one SUB socket for all
-the topics it follows, and a DEALER per sender for the hand-shake and repairs.
+bounded replay buffer. A ``Follower`` receives on one node: per sender, a SUB socket
+for the topics it follows from it and a DEALER for the hand-shake and repairs, both
+closed once no topic comes from that sender.
 
 Every value carries (sender incarnation, topic, sequence number). Values published
 while the previous ones are being sent travel together: small ones as one VALUES
@@ -98,7 +99,6 @@ REPLAY_BYTES = 2 * WINDOW_BYTES         # ... and at most this many bytes (the n
 HELLO_EVERY = 0.05                      # seconds between unanswered HELLOs
 HEARTBEAT_S = 0.5                       # how often a replicator announces its topics
 LINGER_MS = 500                         # a closed DEALER's last messages may still go
-RECONNECT_MAX_MS = 10_000               # retries of a sender that is gone back off to this
 DRAIN_BATCH = 1024                      # messages taken in before delivering them
 ZERO_COPY_MIN = 64 * 1024               # frames at least this large are sent without a copy
 _SCALARS = frozenset({int, float, bool, complex, type(None)})   # immutable: kept as they are
@@ -612,6 +612,7 @@ class _Follow:
     """What a follower knows of one topic."""
 
     topic: bytes
+    data: zmq.Socket                          # SUB to the topic's replicator
     control: zmq.Socket                       # DEALER to the topic's replicator
     next_seq: int                             # the next sequence number to deliver (-1: any)
     incarnation: bytes | None                 # the accepted sender (None: the first to answer)
@@ -654,20 +655,17 @@ class Follower:
         self._deliver = deliver
         self._max_bytes = max_bytes
         self._context = context or zmq.Context.instance()
-        self._sub = _secure(self._context.socket(zmq.SUB), max_bytes)
-        self._sub.setsockopt(zmq.RECONNECT_IVL_MAX, RECONNECT_MAX_MS)
         self._opener = Opener(key, epoch=epoch, max_bytes=max_bytes)
         self._sealer = Sealer(key, epoch)        # used only on the follower's thread
         self._follows: dict[bytes, _Follow] = {}
         self._lossless: set[bytes] = set()       # topics whose receiver must not drop
+        self._subs: dict[str, zmq.Socket] = {}       # data address -> SUB
         self._controls: dict[str, zmq.Socket] = {}   # control address -> DEALER
-        self._connected: set[str] = set()
         self.link_failures: collections.Counter[str] = collections.Counter()
         self.fenced: collections.Counter[str] = collections.Counter()
         self.duplicates: collections.Counter[str] = collections.Counter()
         self._progress = threading.Condition()   # notified after every delivery
         self._loop = SocketLoop("pb3a-follower", self._context)
-        self._loop.register(self._sub, self._on_data)
         self._loop.every(HELLO_EVERY, self._retry)
 
     @property
@@ -737,9 +735,11 @@ class Follower:
 
     def _follow(self, name: bytes, data: str, control: str, from_seq: int,
                 incarnation: bytes | None) -> None:
-        if data not in self._connected:
-            self._sub.connect(data)
-            self._connected.add(data)
+        sub = self._subs.get(data)
+        if sub is None:
+            sub = self._subs[data] = _secure(self._context.socket(zmq.SUB), self._max_bytes)
+            sub.connect(data)
+            self._loop.register(sub, self._on_data)
         dealer = self._controls.get(control)
         if dealer is None:
             dealer = _secure(self._context.socket(zmq.DEALER), self._max_bytes)
@@ -747,31 +747,36 @@ class Follower:
             self._controls[control] = dealer
             self._loop.register(dealer, self._on_control)
         old = self._follows.get(name)
-        if old is None:
-            self._sub.setsockopt(zmq.SUBSCRIBE, name)
-        elif from_seq < 0 and incarnation in (None, old.incarnation):
+        if old is None or old.data is not sub:
+            sub.setsockopt(zmq.SUBSCRIBE, name)
+        if old is not None and old.data is not sub:
+            old.data.setsockopt(zmq.UNSUBSCRIBE, name)
+        if old is not None and from_seq < 0 and incarnation in (None, old.incarnation):
             from_seq = old.next_seq               # the same sender: go on where we are
-        self._follows[name] = _Follow(name, dealer, from_seq, incarnation)
+        self._follows[name] = _Follow(name, sub, dealer, from_seq, incarnation)
         self._hello(self._follows[name])
         self._drop_unused()
 
     def _drop_unused(self) -> None:
-        """Close the DEALERs no followed topic uses any more (its sender moved,
-        restarted or stopped): each holds a socket and file descriptors. (The SUB
-        socket stays connected to the senders that are gone: disconnecting it while a
-        message is half taken in aborts libzmq, zeromq/libzmq#2163; it retries them
-        less and less often instead, ``RECONNECT_MAX_MS``.)"""
-        used = {id(follow.control) for follow in self._follows.values()}
-        for address, dealer in list(self._controls.items()):
-            if id(dealer) not in used:
-                self._loop.unregister(dealer)
-                dealer.close(linger=LINGER_MS)    # (a last ACK may still be on its way)
-                del self._controls[address]
+        """Close the sockets to senders no followed topic comes from any more (they
+        moved, restarted or stopped): each holds file descriptors, and a SUB socket
+        would go on reconnecting to a sender that is gone. (Each sender has a SUB socket
+        of its own because closing a socket is safe where disconnecting a SUB socket
+        from one of its publishers while a message is half taken in aborts libzmq:
+        zeromq/libzmq#2163.)"""
+        used = {id(sock) for follow in self._follows.values()
+                for sock in (follow.data, follow.control)}
+        for sockets, linger in ((self._subs, 0), (self._controls, LINGER_MS)):
+            for address, sock in list(sockets.items()):
+                if id(sock) not in used:
+                    self._loop.unregister(sock)
+                    sock.close(linger=linger)     # (a DEALER's last ACK may be on its way)
+                    del sockets[address]
 
     def _unfollow(self, name: bytes) -> None:
         follow = self._follows.pop(name, None)
         if follow is not None:
-            self._sub.setsockopt(zmq.UNSUBSCRIBE, name)
+            follow.data.setsockopt(zmq.UNSUBSCRIBE, name)
             if name in self._lossless:           # the sender no longer waits for us
                 self._ask(follow, ACK, -1, 0)
         self._lossless.discard(name)
@@ -979,9 +984,8 @@ class Follower:
 
     def close(self) -> None:
         self._loop.close()
-        self._sub.close(0)
-        for dealer in self._controls.values():
-            dealer.close(0)
+        for sock in [*self._subs.values(), *self._controls.values()]:
+            sock.close(0)
 
 
 
