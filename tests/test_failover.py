@@ -119,7 +119,8 @@ def test_a_fenced_executors_word_is_refused_and_placement_follows_admission() ->
             launcher = run._launcher
             eventually(lambda: run.state("near")["received"] > 10, timeout=30,
                        what="values through b")
-            c.limits.max_cpu_percent = -1.0               # c refuses any work from now on
+            for controller in (b, c):                     # both refuse any work for now
+                controller.limits.max_cpu_percent = -1.0
             os.kill(b._executors["fenced"][0].pid, signal.SIGSTOP)   # cut off, not dead
             assert launcher.wait_health("b", up=False, timeout=10)
             moved = eventually(lambda: _events(run, "module_failed_over"),
@@ -132,6 +133,10 @@ def test_a_fenced_executors_word_is_refused_and_placement_follows_admission() ->
                                   detail={}, node="b", node_epoch=1)
             finally:
                 callback.close()
+            eventually(lambda: any("could not be admitted" in entry.message
+                                   for entry in run.logs()), what="b's controller refusing")
+            assert not _events(run, "node_joined")
+            b.limits.max_cpu_percent = 101.0              # a later attempt gets in
             joined = eventually(lambda: _events(run, "node_joined"), timeout=20,
                                 what="b admitted again (its controller never went)")
             with pytest.raises(RuntimeFailure, match="stale: node b's executor of epoch 1"):

@@ -494,17 +494,18 @@ class Launcher:
             old = self.remotes[name]
             if self._stopping.is_set() or not old.controller_answers(HEARTBEAT_S * 2):
                 return
-            old.shutdown(timeout=5.0)             # (it fenced itself; killed if it did not)
+            old.stop_executor(timeout=5.0)        # (it fenced itself; killed if it did not)
             epoch = old.node_epoch + 1
             try:
                 node = self._remote(name, node_epoch=epoch)
-            except (RuntimeFailure, RuntimeTimeout) as exc:
+            except (RuntimeFailure, RuntimeTimeout) as exc:   # (asked again in a second)
                 log.warning("node %s answers again but could not be admitted: %s", name, exc)
                 return
             with self.lock.held(f"admit node {name} again"):
                 if self._stopping.is_set():
                     node.shutdown()
                     return
+                old.close()
                 self.nodes[name] = self.remotes[name] = node
                 with self.changed:
                     self.health[name].update(up=True, rtt=node.rtt, controller=True,

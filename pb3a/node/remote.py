@@ -234,12 +234,16 @@ class RemoteNode:
         if self.client is not None:
             self.client.fail_pending(f"node {self.name} is lost")
 
-    def shutdown(self, timeout: float = 10.0) -> None:
+    def stop_executor(self, timeout: float = 10.0) -> None:
         """Have the controller stop the executor (modules stop in reverse order), or kill
-        it if the node was lost; then close the connections."""
+        it if the node was lost; the controller stays reachable."""
         with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
             self.controller.call("stop_executor", timeout + 5.0, config=self.config,
                                  force=self.lost)
+
+    def shutdown(self, timeout: float = 10.0) -> None:
+        """Stop the executor, then close the connections."""
+        self.stop_executor(timeout)
         self.close()
 
     def close(self) -> None:
