@@ -194,6 +194,7 @@ class Launcher:
             self.disconnect(key)
         node.remove_module(name)
         del self.specs[name]
+        self.checkpoints.pop(name, None)
 
     @contextlib.contextmanager
     def paused(self, names: list[str], timeout: float = REQUEST_TIMEOUT) -> Iterator[None]:
