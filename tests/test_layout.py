@@ -27,7 +27,8 @@ LAYERS: list[set[str]] = [
     {"pb3a.worker"},                                    # the worker process
     {"pb3a.node"},                                      # one node's supervisor
     {"pb3a.launch", "pb3a.daemons"},                    # the whole system; the daemons
-    {"pb3a.system"},                                    # the builder users start from
+    {"pb3a.system", "pb3a.testing"},                    # the builder users start from; a
+                                                        # module tested on its own
     {"pb3a.cli"},                                       # the command line
     {"pb3a", "pb3a.__main__"},                          # the public API
 ]
