@@ -13,7 +13,14 @@ from pathlib import Path
 from typing import Any
 
 from pb3a.config.compiler import build_plan, validate
-from pb3a.config.description import LinkSpec, ModuleSpec, NodeSpec, SystemSpec, load_toml
+from pb3a.config.description import (
+    LinkSpec,
+    ModuleSpec,
+    NodeSpec,
+    SystemSpec,
+    load_toml,
+    read_description,
+)
 from pb3a.config.dot import plan_to_dot
 from pb3a.config.plan import Plan
 from pb3a.launch.running import Running, launch
@@ -34,6 +41,16 @@ class System:
         """Read a TOML system description (see ``pb3a check`` for its problems)."""
         system = cls.__new__(cls)
         system._spec = load_toml(path)
+        return system
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], source: str = "a description") -> System:
+        """A system from the tables a TOML description holds, as ``tomllib`` reads them
+        (a program may read a file, fill in what it knows only when it runs, such as
+        addresses, and build the system from the result); ``source`` names it in
+        messages."""
+        system = cls.__new__(cls)
+        system._spec = read_description(data, source)
         return system
 
     @property

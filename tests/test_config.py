@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sys
 import textwrap
+import tomllib
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -719,3 +720,14 @@ def test_a_node_may_say_where_other_nodes_reach_it(tmp_path: Path) -> None:
         assert problems_of(tmp_path, f'[nodes.a]\nadvertise = "{written}"\n' + TWO) == [
             f"sys.toml [nodes.a]: advertise must be the host other nodes reach this node at, "
             f"a name or an IP address such as '10.0.0.7' (no tcp://, no port), got {written!r}"]
+
+
+def test_a_description_read_by_a_program_and_filled_in_becomes_a_system() -> None:
+    data = tomllib.loads(PIPELINE.read_text())
+    data["modules"]["scale"]["state"] = {"gain": 5.0}      # what the program knows
+    plan = System.from_dict(data, source="pipeline, filled in").plan()
+    assert plan.modules["scale"].state == {"gain": 5.0}
+    assert set(plan.modules) == set(System.load(PIPELINE).plan().modules)
+    data["links"].append({"from": "nowhere.out", "to": "scale.x"})
+    problems = System.from_dict(data, source="pipeline, filled in").check()
+    assert any(p.startswith("pipeline, filled in") and "nowhere" in p for p in problems), problems

@@ -143,6 +143,11 @@ def load_toml(path: str | Path) -> SystemSpec:
     return _read_system(data, str(path), default_name=path.stem)
 
 
+def read_description(data: dict[str, Any], source: str) -> SystemSpec:
+    """A system description from the tables of a TOML file, already read."""
+    return _read_system(data, source, default_name=str(data.get("name", "system")))
+
+
 def _read_system(data: dict[str, Any], source: str, default_name: str) -> SystemSpec:
     spec = SystemSpec(name=data.get("name", default_name), source=source,
                       module_servers=data.get("module_servers", []),
