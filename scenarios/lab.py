@@ -1,0 +1,158 @@
+"""``Lab``: everything a robot application runs against, on one machine.
+
+A RAVE world served by a ``WorldServer`` (real time, or faster for a simulated
+world), one robot server per robot (its TCP resource port, what a ``RobotDriver``
+talks to), and one node controller per on-board computer (``pb3a node start`` in a
+process of its own, as it would run on the robot). The application's system is then
+launched against these addresses like any other; the lab owns every process it
+started and stops them all on ``close``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import selectors
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from pb3a.transport.auth import ClusterKey
+from pb3a.transport.control import ControlClient
+from rave.server import RobotServers, WorldServer
+from rave.world import World
+
+WORLDS = Path(__file__).resolve().parent.parent / "rave" / "worlds"
+START_TIMEOUT = 30.0          # seconds for a node controller to say where it listens
+CALL_TIMEOUT = 5.0
+
+
+def world_file(name: str) -> Path:
+    """A bundled world by name (``lab``, ``arena``, ...) or a path to a world file."""
+    path = Path(name)
+    if path.suffix == ".toml" or path.exists():
+        return path
+    bundled = WORLDS / f"{name}.toml"
+    if not bundled.exists():
+        known = ", ".join(sorted(p.stem for p in WORLDS.glob("*.toml")))
+        raise ValueError(f"no world {name!r}: the bundled worlds are {known}, or give the "
+                         "path of a world file")
+    return bundled
+
+
+class NodeControllerProcess:
+    """``pb3a node start --name NAME`` on a free loopback port, in a child process."""
+
+    def __init__(self, name: str, timeout: float = START_TIMEOUT) -> None:
+        self.name = name
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "pb3a", "node", "start", "--name", name,
+             "--listen", "tcp://127.0.0.1:0", "--max-cpu", "101"],
+            stdout=subprocess.PIPE, text=True)
+        try:
+            self.address = self._banner(timeout).rpartition(" at ")[2]
+        except BaseException:
+            self.close()
+            raise
+
+    def _banner(self, timeout: float) -> str:
+        """The first line it prints ("node NAME at ADDRESS"), within ``timeout``."""
+        assert self.process.stdout is not None
+        with selectors.DefaultSelector() as selector:
+            selector.register(self.process.stdout, selectors.EVENT_READ)
+            if not selector.select(timeout):
+                raise TimeoutError(f"the node controller of {self.name} did not start "
+                                   f"within {timeout} s")
+        line = self.process.stdout.readline().strip()
+        if not line.startswith(f"node {self.name} at "):
+            raise RuntimeError(f"the node controller of {self.name} failed to start: "
+                               f"{line or 'it exited'}")
+        return line
+
+    def close(self, timeout: float = 15.0) -> None:
+        """Stop it (and so the executors it runs): SIGTERM, then SIGKILL."""
+        if self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait(5.0)
+        if self.process.stdout is not None:
+            self.process.stdout.close()
+
+
+class Lab:
+    """A served world (``rate`` simulated seconds per second), its robot servers, and
+    a node controller per name in ``onboard``. ``hardware`` names robots to serve by
+    the emulated hardware back end whatever the world file says."""
+
+    def __init__(self, world: str | Path, *, seed: int = 0, onboard: tuple[str, ...] = (),
+                 hardware: tuple[str, ...] = (), rate: float = 1.0) -> None:
+        self.world = World.load(world_file(str(world)), seed=seed)
+        self.world_server: WorldServer | None = None
+        self.robot_servers: RobotServers | None = None
+        self.nodes: dict[str, NodeControllerProcess] = {}
+        self._clients: dict[str, ControlClient] = {}
+        try:
+            for name in hardware:
+                self.world.robot(name).swap("hardware")
+            self.world_server = WorldServer(self.world, rate=rate)
+            self.robot_servers = RobotServers(self.world_server.address, list(self.world.robots))
+            for name in onboard:
+                self.nodes[name] = NodeControllerProcess(name)
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def robots(self) -> dict[str, str]:
+        """Each robot's resource port (its robot server's address), by name."""
+        assert self.robot_servers is not None
+        return dict(self.robot_servers.addresses)
+
+    def robot(self, name: str, op: str, **args: Any) -> Any:
+        """Ask robot ``name``'s server to do ``op`` (``inject``, ``sensors``, ...), as
+        ``rave fault`` would."""
+        return self._client(self.robots[name]).call(op, CALL_TIMEOUT, **args)
+
+    def poses(self) -> dict[str, tuple[float, float, float]]:
+        """Every robot's true pose now, from the world server."""
+        assert self.world_server is not None
+        described = self._client(self.world_server.address).call("describe", CALL_TIMEOUT)
+        return {name: tuple(robot["pose"]) for name, robot in described["robots"].items()}
+
+    def _client(self, address: str) -> ControlClient:
+        if address not in self._clients:
+            self._clients[address] = ControlClient(ClusterKey.load(), address)
+        return self._clients[address]
+
+    def close(self) -> None:
+        """Stop the node controllers, the robot servers and the world."""
+        for client in self._clients.values():
+            with contextlib.suppress(Exception):
+                client.close()
+        self._clients.clear()
+        for node in self.nodes.values():
+            node.close()
+        self.nodes.clear()
+        if self.robot_servers is not None:
+            self.robot_servers.close()
+        if self.world_server is not None:
+            self.world_server.close()       # (closes the world)
+        else:
+            self.world.close()
+
+    def __enter__(self) -> Lab:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def wait_until(deadline: float) -> None:
+    """Let a scenario's phase run until ``deadline`` (monotonic): the scenario's own
+    clock, not synchronisation."""
+    while (left := deadline - time.monotonic()) > 0:
+        time.sleep(min(left, 0.5))
