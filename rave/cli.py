@@ -1,7 +1,8 @@
 """The ``rave`` command: serve a world and its robots, inject faults, render.
 
-    rave start WORLD [--seed N] [--listen HOST] [--rate R]
-                                      step WORLD in real time and start one robot
+    rave start WORLD [--seed N] [--listen HOST] [--rate R | --lockstep]
+                                      step WORLD in real time (or R times it, or
+                                      when its controller asks) and start one robot
                                       server per robot; prints every address
     rave fault ROBOT_ADDR FAULT [--sonars I ...] [--bias B] [--clear]
                                       inject (or clear) a fault in a hardware robot
@@ -34,6 +35,9 @@ def _parser() -> argparse.ArgumentParser:
                        help="the interface to serve on (default 127.0.0.1)")
     start.add_argument("--rate", type=float, default=1.0,
                        help="simulated seconds per wall-clock second (default 1)")
+    start.add_argument("--lockstep", action="store_true",
+                       help="step only when the controller asks (a driver's `advance`): "
+                            "as fast as it decides, never ahead of it")
     start.set_defaults(handler=start_command)
     fault = commands.add_parser("fault", help="inject or clear a fault in a hardware robot")
     fault.add_argument("robot", metavar="ROBOT_ADDR", help="the robot server's address")
@@ -62,7 +66,8 @@ def start_command(args: argparse.Namespace) -> int:
         return 1
 
     def start(key: Any, host: str, port: int) -> tuple[Any, str]:
-        served = _Served(WorldServer(world, host, port, rate=args.rate))
+        served = _Served(WorldServer(world, host, port, rate=args.rate,
+                                      lockstep=args.lockstep))
         served.robots = RobotServers(served.world.address, list(world.robots), host)
         lines = [f"world {world.name} at {served.world.address}"]
         lines += [f"robot {name} at {address}"

@@ -29,16 +29,25 @@ log = logging.getLogger("rave.server")
 _context = multiprocessing.get_context("spawn")
 START_TIMEOUT = 30.0
 RELAY_TIMEOUT = 2.0
-ROBOT_OPS = ("drive", "stop", "sensors", "camera", "inject", "clear", "swap")
+ROBOT_OPS = ("drive", "stop", "sensors", "camera", "inject", "clear", "swap", "advance")
+MAX_ADVANCE_S = 10.0          # simulated seconds one ``advance`` may ask for
 
 
 class WorldServer:
     """A world stepped at ``rate`` times real time, and its robots' requests answered
-    between two physics steps."""
+    between two physics steps.
+
+    With ``lockstep`` the world does not step by itself: it advances only when a
+    controller asks (``advance``, ``dt`` simulated seconds, answered with the world's
+    time once done), so a simulated experiment runs exactly as fast as its controllers
+    decide, faster than real time on a fast machine and never ahead of them. Meant for
+    one controlling client (several would each advance the shared clock)."""
 
     def __init__(self, world: World, host: str = "127.0.0.1", port: int = 0,
-                 rate: float = 1.0) -> None:
-        self.world, self.rate = world, rate
+                 rate: float = 1.0, lockstep: bool = False) -> None:
+        if not lockstep and not rate > 0:
+            raise ValueError(f"a world server's rate must be positive, not {rate}")
+        self.world, self.rate, self.lockstep = world, rate, lockstep
         self._lock = threading.Lock()                      # the world is not thread-safe
         self._stopping = threading.Event()
         self._server = ControlServer(ClusterKey.load(), self._handle, host, port,
@@ -46,7 +55,8 @@ class WorldServer:
         self.address = self._server.address
         self._stepper = threading.Thread(target=self._run, name="rave-world-step",
                                          daemon=True)
-        self._stepper.start()
+        if not lockstep:
+            self._stepper.start()
 
     def _run(self) -> None:
         period = PHYSICS_DT / self.rate
@@ -65,12 +75,26 @@ class WorldServer:
             if op not in ROBOT_OPS:
                 raise ValueError(f"the world server has no operation {op!r}; robot "
                                  f"operations: {', '.join(ROBOT_OPS)}")
-            return _apply(self.world.robot(args.pop("robot")), op, args, self.world.time)
+            robot = self.world.robot(args.pop("robot"))
+            if op == "advance":
+                return self._advance(float(args.get("dt", PHYSICS_DT)))
+            return _apply(robot, op, args, self.world.time)
+
+    def _advance(self, dt: float) -> float:
+        if not self.lockstep:
+            raise ValueError(f"world {self.world.name} runs by itself ({self.rate} x real "
+                             "time); serve it in lock-step (rave start --lockstep) to "
+                             "advance it from a controller")
+        if not 0 <= dt <= MAX_ADVANCE_S:
+            raise ValueError(f"advance(dt={dt}): dt must be between 0 and {MAX_ADVANCE_S} s")
+        self.world.step(dt)
+        return self.world.time
 
     def close(self) -> None:
         """Stop stepping and serving, and close the world (it is this server's now)."""
         self._stopping.set()
-        self._stepper.join(2.0)
+        if self._stepper.is_alive():
+            self._stepper.join(2.0)
         self._server.close()
         self.world.close()
 

@@ -61,6 +61,36 @@ def test_a_robot_server_relays_commands_sensors_and_faults(served) -> None:
     assert not any(alive(pid) for pid in pids)
 
 
+def test_a_lockstep_world_advances_only_when_its_controller_asks() -> None:
+    world = World.load("rave/worlds/arena.toml", seed=2)       # r1 sim
+    server = WorldServer(world, lockstep=True)
+    robots = RobotServers(server.address, ["r1"])
+    r1 = ControlClient(ClusterKey.load(), robots.addresses["r1"])
+    try:
+        r1.call("drive", v=0.5, w=0.0)
+        before = r1.call("sensors")
+        assert r1.call("sensors")["time"] == before["time"] == 0.0   # nobody asked
+        assert r1.call("advance", dt=2.0) == pytest.approx(2.0)
+        after = r1.call("sensors")
+        assert after["time"] == pytest.approx(2.0)
+        assert after["gps"][0] == pytest.approx(before["gps"][0] + 1.0, abs=0.02)
+        with pytest.raises(RuntimeFailure, match="dt must be between 0 and 10"):
+            r1.call("advance", dt=-1.0)
+    finally:
+        r1.close()
+        robots.close()
+        server.close()
+    world = World.load("rave/worlds/arena.toml", seed=2)
+    server = WorldServer(world)                                 # real time
+    client = ControlClient(ClusterKey.load(), server.address)
+    try:
+        with pytest.raises(RuntimeFailure, match="serve it in lock-step"):
+            client.call("advance", robot="r1", dt=0.1)
+    finally:
+        client.close()
+        server.close()
+
+
 def test_a_driver_module_drives_a_robot_and_is_re_pointed_while_running(served) -> None:
     robots, clients = served
     system = System("driven")
