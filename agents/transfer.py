@@ -1,0 +1,78 @@
+"""``TransferAgent``: ends learning in simulation and moves the learner to the robot.
+
+A policy learned on a simulated robot is a head start, not the end: the real robot's
+dynamics and noise differ, so learning goes on there. This agent watches the
+learner's episodes; once the success rate over the last ``window`` episodes reaches
+``threshold`` (after at least ``min_episodes``), it moves the learner's macro (the
+learner with its driver) to the hardware robot's node without waiting, and, once the
+move has ended, re-points the driver at the hardware robot (``resource``), lets the
+driver follow that robot's clock (``lockstep_s`` 0: a real robot is not stepped) and
+sets the learner's state for the real robot (``learner_state``, e.g. a lower
+exploration rate). It acts once. ``transfer`` reports when it decided, when the move
+ended and when the driver was re-pointed, in unix time.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from pb3a import Agent, Input, InputPort, Output
+
+
+def success_rate(outcomes: list[bool], window: int) -> float:
+    """The share of successes among the last ``window`` outcomes (0 if none)."""
+    recent = outcomes[-window:]
+    return sum(recent) / len(recent) if recent else 0.0
+
+
+class TransferAgent(Agent):
+    """Moves ``macro`` to ``to_node`` and re-points ``driver`` at ``to_resource`` once
+    the learner succeeds often enough in simulation."""
+
+    episode = Input(dict, policy="queue:1000")     # the learner's episodes, in order
+    transfer = Output(dict)
+    macro = "brain"                 # what moves: the learner and its driver
+    driver = "brain/driver"
+    learner = "brain/learner"
+    to_node = ""                    # the hardware robot's on-board node
+    to_resource = ""                # the hardware robot's resource port
+    learner_state: dict[str, Any] = {}   # set on the learner once it runs on the robot
+    window = 20
+    threshold = 0.8
+    min_episodes = 20
+    outcomes: list[bool] = []
+    decided_at = 0.0                # unix times; 0: not yet
+    moved_at = 0.0
+    repointed_at = 0.0
+    period = 0.02                   # how often a move in progress is looked at
+
+    def setup(self) -> None:
+        self._moving: Any = None    # the Pending of the move (not state: not picklable)
+
+    def on_input(self, port: InputPort) -> None:
+        for episode in port.read_all():
+            self.outcomes.append(bool(episode["success"]))
+        if self.decided_at or len(self.outcomes) < self.min_episodes:
+            return
+        if success_rate(self.outcomes, self.window) >= self.threshold:
+            if not (self.to_node and self.to_resource):
+                raise ValueError("TransferAgent needs to_node and to_resource: the hardware "
+                                 "robot's node and its robot server's address")
+            self.decided_at = time.time()
+            self._moving = self.runtime.migrate(self.macro, self.to_node, wait=False)
+
+    def step(self) -> None:
+        if self._moving is None or not self._moving.done():
+            return
+        self._moving.result(0)           # (a failed move raises here, in the agent's log)
+        self._moving = None
+        self.moved_at = time.time()
+        self.runtime.set_state(self.driver, {"resource": self.to_resource, "lockstep_s": 0.0})
+        if self.learner_state:
+            self.runtime.set_state(self.learner, dict(self.learner_state))
+        self.repointed_at = time.time()
+        self.transfer.write({"decided_at": self.decided_at, "moved_at": self.moved_at,
+                             "repointed_at": self.repointed_at,
+                             "episodes": len(self.outcomes),
+                             "success_rate": success_rate(self.outcomes, self.window)})

@@ -1,0 +1,75 @@
+"""``TransferAgent`` on its own: it decides on the learner's success rate, moves the
+learner's macro without waiting, and re-points the driver once the move has ended."""
+
+from __future__ import annotations
+
+import pytest
+
+from agents.transfer import TransferAgent, success_rate
+from pb3a.testing import ModuleHarness
+
+
+class Move:
+    """What a non-blocking migrate gives an agent; the test says when it ends."""
+
+    def __init__(self) -> None:
+        self.ended = False
+
+    def done(self) -> bool:
+        return self.ended
+
+    def result(self, timeout: float) -> None:
+        assert self.ended
+
+
+class Runtime:
+    def __init__(self) -> None:
+        self.calls: list[tuple] = []
+        self.move = Move()
+
+    def migrate(self, name: str, to: str, *, wait: bool = True) -> Move:
+        self.calls.append(("migrate", name, to, wait))
+        return self.move
+
+    def set_state(self, name: str, values: dict) -> None:
+        self.calls.append(("set_state", name, values))
+
+
+STATE = {"to_node": "robot", "to_resource": "tcp://127.0.0.1:7421", "window": 10,
+         "threshold": 0.8, "min_episodes": 10, "learner_state": {"epsilon": 0.05}}
+
+
+def test_success_rate_counts_the_last_window() -> None:
+    assert success_rate([False] * 5 + [True] * 4, 4) == 1.0
+    assert success_rate([True, False], 10) == 0.5
+    assert success_rate([], 3) == 0.0
+
+
+def test_it_waits_for_the_success_rate_then_moves_once_and_re_points_after_the_move() -> None:
+    runtime = Runtime()
+    agent = ModuleHarness(TransferAgent, state=STATE, runtime=runtime)
+    for success in [False] * 6 + [True] * 7:     # last 10: 7 of 10, not yet
+        agent.feed("episode", {"success": success})
+    assert runtime.calls == []
+    agent.feed("episode", {"success": True})     # 8 of the last 10
+    assert runtime.calls == [("migrate", "brain", "robot", False)]
+    agent.step()                                 # the move has not ended: nothing more
+    agent.feed("episode", {"success": True})
+    assert len(runtime.calls) == 1 and agent.written["transfer"] == []
+    runtime.move.ended = True
+    agent.step()
+    assert runtime.calls[1:] == [
+        ("set_state", "brain/driver", {"resource": "tcp://127.0.0.1:7421", "lockstep_s": 0.0}),
+        ("set_state", "brain/learner", {"epsilon": 0.05})]
+    (report,) = agent.written["transfer"]
+    assert report["decided_at"] <= report["moved_at"] <= report["repointed_at"]
+    assert report["success_rate"] >= 0.8
+    agent.step()
+    assert len(runtime.calls) == 3                # once
+
+
+def test_without_a_destination_it_says_what_to_set() -> None:
+    agent = ModuleHarness(TransferAgent, state={"min_episodes": 1, "window": 1},
+                          runtime=Runtime())
+    with pytest.raises(ValueError, match="needs to_node and to_resource"):
+        agent.feed("episode", {"success": True})
