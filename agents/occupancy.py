@@ -157,13 +157,16 @@ class Mapper(Module):
     driver's ``gps``; readings before any pose are ignored). Both come from one
     driver step, so when the reading is handled first the pose is one step old: at
     0.1 s and 0.5 m/s, 5 cm, within a cell. The map is written on ``map`` every
-    ``publish_every`` updates. The state holds the map itself (``log_odds``), so a
-    mapper moved to another node, or handed to another robot, carries on with it.
+    ``publish_every`` updates, and every update says when and at which pose it was
+    made on ``updated`` (so a watcher knows which robot's reading it was). The state
+    holds the map itself (``log_odds``), so a mapper moved to another node, or handed
+    to another robot, carries on with it.
     """
 
     sonar = Input(np.ndarray, shape=(16,), dtype="float64")
     pose = Input(np.ndarray, shape=(3,), dtype="float64")
     map = Output(np.ndarray, dtype="float32")
+    updated = Output(np.ndarray, shape=(4,), dtype="float64")   # (time.time(), x, y, heading)
     size = [12.0, 9.0]                          # m: the world's width and height
     resolution = 0.1                            # m per cell
     model = asdict(SonarModel())                # SonarModel's fields; may give only some
@@ -181,9 +184,11 @@ class Mapper(Module):
         if port.name != "sonar" or not self.pose.has_value:
             return
         mapper = self._current()
-        mapper.update(self.pose.read(), self.sonar.read())
+        pose = self.pose.read()
+        mapper.update(pose, self.sonar.read())
         self.updates += 1
         self.last_update = time.time()
+        self.updated.write(np.array([self.last_update, *pose[:3]]))
         if self.updates % max(1, int(self.publish_every)) == 0:
             self.map.write(mapper.probabilities())
 

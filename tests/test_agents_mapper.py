@@ -179,6 +179,9 @@ def test_the_mapper_writes_maps_once_it_has_a_pose() -> None:
     assert published.dtype == np.float32 and published.shape == (90, 120)
     assert np.argmax(published[45]) in (39, 40) and published[45].max() > UNKNOWN
     assert published[45, 30] < UNKNOWN                       # the wall, the space before it
+    updates = harness.written["updated"]                     # each update: when, and where
+    assert [list(u[1:]) for u in updates] == [list(pose) for _, pose in readings]
+    assert updates[0][0] <= updates[-1][0] == state["last_update"]
 
 
 def test_the_mapper_fits_its_grid_to_the_size_and_resolution_it_is_given() -> None:
