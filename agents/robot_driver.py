@@ -4,7 +4,9 @@ It lives in ``agents/`` rather than ``rave/`` because it is a PB3A module: RAVE'
 simulator core does not depend on PB3A, and the driver is where the two meet. It
 talks to the robot's server (``rave start``) through its resource port, so the
 controller behind its ports can run on any node; re-pointing ``resource`` moves it
-to another robot while it runs (the old one is stopped first).
+to another robot while it runs (the old one is stopped first). Setting ``enabled`` to
+False stops the robot safely: it is told to stop every period and commands are
+ignored, while its sensors are still read out.
 """
 
 from __future__ import annotations
@@ -27,12 +29,15 @@ class RobotDriver(Driver):
     camera = Output(list)
     period = 0.1
     with_camera = False          # the camera costs a request more per period
+    enabled = True               # False: keep the robot standing, ignore commands
     failures = 0                 # periods in which the robot did not answer
     last_error = ""
 
     def step(self) -> None:
         try:
-            if self.command.has_value:
+            if not self.enabled:
+                self.request("stop")
+            elif self.command.has_value:
                 v, w = self.command.read()
                 self.request("drive", v=float(v), w=float(w))
             sensed = readings(self.request("sensors"))

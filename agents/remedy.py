@@ -1,0 +1,347 @@
+"""``RemedyAgent``: what to do about a hardware failure, chosen by case-based reasoning.
+
+A failure (from a hardware monitor) is turned into features; the most similar cases of
+the case base (``agents/cases.toml`` and the user's own file) are adapted to the
+running system in turn, and the first that makes sense there is carried out: move the
+control macro to the standby robot's node and point its driver at that robot, swap
+the failed sensor's consumer for a class that does without it, or stop the robot.
+When nothing fits, or a remedy fails, the robot is stopped. Each outcome is judged
+after a while and retained in the user's case file, so the base learns.
+
+The pure part (``situation_of``, ``SystemView``, ``check_remedy``, ``plan``) knows
+nothing of PB3A's runtime; ``RemedyAgent`` carries the plan out and watches it.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from agents.case_base import AdaptationError, CaseBase, CaseFileError, Feature, Match, adapt
+from pb3a import Agent, Input, Output
+from pb3a.errors import PB3AError
+
+if TYPE_CHECKING:
+    from pb3a.stats import SystemStats
+
+SHIPPED_CASES = Path(__file__).with_name("cases.toml")
+ACTIONS = ("move_macro", "swap", "stop")
+HISTORY_KEPT = 200                    # remedies remembered in ``history``
+_HISTORY_KEYS = ("failure", "remedy", "case", "similarity", "reason", "started", "ended",
+                 "judged", "worked", "outcome")
+_CLASS_REF = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_][\w.]*$")
+
+
+def situation_of(failure: dict[str, Any], *, standby: bool) -> dict[str, Feature]:
+    """The features of ``failure`` (a monitor's ``{"fault", "probability", "at",
+    "detail"}``): its fault, probability, how many sensors its detail names, whether a
+    standby robot is at hand, and the detail's own numbers, strings and booleans."""
+    detail = failure.get("detail") or {}
+    features: dict[str, Feature] = {
+        name: value for name, value in detail.items()
+        if isinstance(value, (str, bool, int, float))}
+    features.update(
+        fault=str(failure.get("fault", "unknown")),
+        probability=float(failure.get("probability", 1.0)),
+        failed_sensors=sum(len(value) for value in detail.values()
+                           if isinstance(value, (list, tuple))),
+        standby=standby)
+    return features
+
+
+@dataclass(frozen=True)
+class SystemView:
+    """What the checks of a remedy need to know of the running system."""
+
+    classes: dict[str, str]          # module -> "package.module:Class"
+    nodes: dict[str, str]            # module -> the node it runs on
+    up: frozenset[str]               # the nodes that are up
+
+    @classmethod
+    def of(cls, stats: SystemStats) -> SystemView:
+        """The view of a system's figures (``runtime.stats()``)."""
+        return cls({name: module.cls for name, module in stats.modules.items()},
+                   {name: module.node for name, module in stats.modules.items()},
+                   frozenset(name for name, node in stats.nodes.items() if node.up))
+
+
+def check_remedy(remedy: dict[str, Any], view: SystemView) -> None:
+    """AdaptationError unless ``remedy`` makes sense in the system ``view`` shows."""
+    action = remedy.get("action")
+    if action == "move_macro":
+        macro, to, driver = remedy.get("macro", ""), remedy.get("to", ""), remedy.get("driver")
+        if not any(name.startswith(f"{macro}/") for name in view.nodes):
+            raise AdaptationError(f"no macro {macro!r} runs")
+        if driver not in view.nodes:
+            raise AdaptationError(f"no driver {driver!r} runs")
+        if to not in view.up:
+            raise AdaptationError(f"node {to!r} is not up")
+        if view.nodes[driver] == to:
+            raise AdaptationError(f"{macro!r} already runs on {to!r}")
+        if not remedy.get("resource"):
+            raise AdaptationError("no robot server to point the driver at")
+    elif action == "swap":
+        module, cls = remedy.get("module"), remedy.get("cls", "")
+        if module not in view.classes:
+            raise AdaptationError(f"no module {module!r} runs")
+        if not isinstance(cls, str) or not _CLASS_REF.match(cls):
+            raise AdaptationError(f"{cls!r} is not a class reference 'package.module:Class'")
+        if view.classes[module] == cls:
+            raise AdaptationError(f"{module!r} already is a {cls}")
+    elif action == "stop":
+        if remedy.get("driver") not in view.nodes:
+            raise AdaptationError(f"no driver {remedy.get('driver')!r} runs")
+    else:
+        raise AdaptationError(f"unknown action {action!r}; actions: {', '.join(ACTIONS)}")
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The remedy chosen, the case it came from ("" for the fallback stop) and why."""
+
+    remedy: dict[str, Any]
+    case: str
+    similarity: float
+    reason: str
+
+
+def plan(base: CaseBase, situation: dict[str, Feature], placeholders: dict[str, Any],
+         view: SystemView) -> Plan:
+    """The remedy of the most similar case that adapts to ``placeholders`` and passes
+    ``check_remedy``; else stopping the robot (``placeholders["driver"]``)."""
+    refused = []
+    for match in base.retrieve(situation):
+        try:
+            remedy = adapt(match.case.remedy, placeholders)
+            check_remedy(remedy, view)
+        except AdaptationError as exc:
+            refused.append(f"case {match.case.id!r}: {exc}")
+            continue
+        return Plan(remedy, match.case.id, match.similarity, "; ".join(refused))
+    why = "; ".join(refused) or f"no case is {base.setting('min_similarity'):.0%} similar"
+    return Plan({"action": "stop", "driver": placeholders["driver"]}, "", 0.0, why)
+
+
+def check_actions(base: CaseBase) -> None:
+    """CaseFileError, naming its file and case, for a remedy the agent cannot carry out."""
+    for case in base.cases:
+        if case.remedy["action"] not in ACTIONS:
+            raise CaseFileError(f"{case.source}: case {case.id!r}: unknown action "
+                                f"{case.remedy['action']!r}; actions: {', '.join(ACTIONS)}")
+
+
+class RemedyAgent(Agent):
+    """Failures in, one remedy per failure onset, its outcome judged and learned.
+
+    A remedy runs through phases kept in ``action`` (state, so a moved or restored
+    agent carries on): ``moving`` until the macro's move ends (then the driver is
+    re-pointed), ``verifying`` for ``verify_s`` seconds, then judged. It worked if the
+    ``watch``ed module (the driver, or the swapped module) wrote outputs meanwhile and
+    the fault did not come back later than ``settle_s`` after the action ended (earlier
+    reports are echoes of the old robot). A failed remedy is followed by a stop. While
+    a remedy runs, failures of its fault are not acted on and failures of other kinds
+    wait in ``deferred``; once the robot is stopped (``stopped``) the agent acts no
+    more until someone sets ``stopped`` back to False.
+    """
+
+    failure = Input(dict, policy="queue:64")     # {"fault", "probability", "at", "detail"}
+    # {"event": "chosen" | "worked" | "failed", "at", "fault", "action", "remedy", "case"
+    # ("" for the fallback stop), "similarity", "reason" (cases passed over), "outcome"};
+    # or {"event": "not_saved", "at", "reason"} when the case file cannot be written
+    remedy = Output(dict)
+    period = 0.2
+
+    macro = "control"                     # the control system: the macro to move
+    driver = "control/driver"             # its RobotDriver
+    standby_node = ""                     # the standby robot's node ("" = none)
+    standby_resource = ""                 # and its robot server's address
+    consumers: dict[str, str] = {}        # sensor (fault kind) -> module that reads it
+    fallbacks: dict[str, str] = {}        # sensor -> "package.module:Class" doing without
+    watch = ""                            # module whose outputs show a move worked ("": driver)
+    cases_path = "~/.pb3a/remedy-cases.toml"   # the user's case file: read, and learned into
+    case_base: dict[str, Any] = {}        # the case base itself ({}: load it from the files)
+    move_timeout_s = 60.0                 # a move not ended by then has failed
+    settle_s = 2.0                        # s after an action in which its fault only echoes
+    verify_s = 6.0                        # s after an action at which it is judged
+    action: dict[str, Any] = {}           # the remedy under way ({}: none)
+    deferred: list[dict[str, Any]] = []   # failures of other kinds that came meanwhile
+    history: list[dict[str, Any]] = []    # every remedy and how it went, oldest first
+    stopped = False
+
+    def setup(self) -> None:
+        if not self.driver:
+            raise ValueError("RemedyAgent needs its 'driver': the RobotDriver to stop or "
+                             "re-point (e.g. 'control/driver')")
+        if self.case_base:
+            base = CaseBase.from_dict(self.case_base)
+        else:
+            mine = [self.cases_path] if Path(self.cases_path).expanduser().exists() else []
+            base = CaseBase.load([SHIPPED_CASES, *mine])
+            self.case_base = base.to_dict()
+        check_actions(base)
+        self._base = base
+        # A move's Pending cannot be pickled: a moved or restored agent has none, and
+        # looks at where the driver runs instead.
+        self._pending: Any = None
+
+    def step(self) -> None:
+        now = time.time()      # wall time: it goes into state that may move between nodes
+        for failure in self.failure.read_all():
+            self._receive(failure, now)
+        if self.action:
+            self._advance(now)
+        while not self.action and self.deferred and not self.stopped:
+            self._receive(self.deferred.pop(0), now)
+
+    # -- failures -----------------------------------------------------------------------
+    def _receive(self, failure: dict[str, Any], now: float) -> None:
+        fault, at = failure.get("fault"), failure.get("at", now)
+        if self.stopped:
+            return
+        if self.action:
+            current = self.action
+            if fault == current["failure"].get("fault"):
+                if current["ended"] is not None and at >= current["ended"] + self.settle_s:
+                    current["recurred"] = True
+            elif all(fault != waiting.get("fault") for waiting in self.deferred):
+                self.deferred.append(failure)
+            return
+        if at > self._settled(fault):
+            self._begin(failure, now)
+
+    def _settled(self, fault: Any) -> float:
+        """When the last remedy for ``fault`` was judged: reports up to then are about a
+        failure already dealt with."""
+        return max((entry["judged"] for entry in self.history
+                    if entry["failure"].get("fault") == fault), default=float("-inf"))
+
+    # -- choosing and carrying out a remedy -------------------------------------------
+    def _begin(self, failure: dict[str, Any], now: float) -> None:
+        fault = str(failure.get("fault", "unknown"))
+        try:
+            view = SystemView.of(self.runtime.stats())
+        except PB3AError:
+            view = SystemView({}, {}, frozenset())
+        standby = (bool(self.standby_resource) and self.standby_node in view.up
+                   and view.nodes.get(self.driver) != self.standby_node)
+        situation = situation_of(failure, standby=standby)
+        placeholders = {"macro": self.macro, "driver": self.driver, "fault": fault,
+                        "standby_node": self.standby_node,
+                        "standby_resource": self.standby_resource,
+                        "consumer": self.consumers.get(fault, ""),
+                        "fallback": self.fallbacks.get(fault, "")}
+        chosen = plan(self._base, situation, placeholders, view)
+        self._start(failure, situation, chosen, now)
+
+    def _start(self, failure: dict[str, Any], situation: dict[str, Feature], chosen: Plan,
+               now: float) -> None:
+        remedy = chosen.remedy
+        self.action = {"failure": failure, "situation": situation, "remedy": remedy,
+                       "case": chosen.case, "similarity": chosen.similarity,
+                       "reason": chosen.reason, "started": now, "ended": None,
+                       "phase": "", "watch": "", "baseline": 0, "recurred": False}
+        self._report("chosen", now)
+        try:
+            if remedy["action"] == "move_macro":
+                self.action["phase"] = "moving"
+                self._pending = self.runtime.migrate(remedy["macro"], remedy["to"], wait=False)
+            elif remedy["action"] == "swap":
+                self.runtime.swap(remedy["module"], remedy["cls"])
+                self._verify(remedy["module"], now)
+            else:
+                self.runtime.set_state(remedy["driver"], {"enabled": False})
+                self.stopped, self.deferred = True, []
+                enabled = self.runtime.state(remedy["driver"]).get("enabled")
+                self._conclude(enabled is False, f"{remedy['driver']} has enabled = "
+                               f"{enabled!r}", now)
+        except PB3AError as exc:
+            self._conclude(False, f"{remedy['action']} failed: {exc}", now)
+
+    def _advance(self, now: float) -> None:
+        action = self.action
+        if action["phase"] == "moving":
+            self._advance_move(now)
+        elif action["recurred"]:
+            self._conclude(False, f"the {action['failure'].get('fault')} fault came back",
+                           now)
+        elif now >= action["ended"] + self.verify_s:
+            active = self._written(action["watch"]) > action["baseline"]
+            self._conclude(active, f"{action['watch']} is at work" if active else
+                           f"{action['watch']} wrote nothing in {self.verify_s:g} s", now)
+
+    def _advance_move(self, now: float) -> None:
+        remedy = self.action["remedy"]
+        try:
+            if self._pending is not None:
+                if not self._pending.done():
+                    moved = False
+                else:
+                    self._pending.result(0.0)     # raises if the move failed
+                    moved = True
+            else:
+                moved = self.runtime.where(remedy["driver"]) == remedy["to"]
+            if not moved:
+                if now - self.action["started"] > self.move_timeout_s:
+                    self._conclude(False, f"the move had not ended after "
+                                   f"{self.move_timeout_s:g} s", now)
+                return
+            # Moved first, re-pointed second: until the control system runs on the
+            # standby's node, the standby robot is not driven from the failing one, and
+            # a move that fails leaves the standby untouched.
+            self.runtime.set_state(remedy["driver"], {"resource": remedy["resource"]})
+        except PB3AError as exc:
+            self._conclude(False, f"move_macro failed: {exc}", now)
+            return
+        self._pending = None
+        self.standby_node = self.standby_resource = ""     # the standby is in use now
+        self._verify(self.watch or remedy["driver"], now)
+
+    def _verify(self, watch: str, now: float) -> None:
+        self.action.update(phase="verifying", ended=now, watch=watch,
+                           baseline=self._written(watch))
+
+    def _written(self, module: str) -> int:
+        """Values ``module`` has written, over all its outputs (0 if it cannot be told)."""
+        try:
+            stats = self.runtime.stats().modules.get(module)
+        except PB3AError:
+            return 0
+        return sum(stats.outputs.values()) if stats is not None else 0
+
+    # -- judging, learning ------------------------------------------------------------
+    def _conclude(self, worked: bool, outcome: str, now: float) -> None:
+        action, self.action, self._pending = self.action, {}, None
+        action.update(judged=now, worked=worked, outcome=outcome)
+        self.history = [*self.history, {key: action[key] for key in _HISTORY_KEYS}]
+        self.history = self.history[-HISTORY_KEPT:]
+        self._report("worked" if worked else "failed", now, action)
+        if action["case"]:
+            self._retain(action, worked, now)
+        if action["remedy"]["action"] == "move_macro" and action["ended"] is not None:
+            # failures reported before the move ended were about the robot left behind
+            self.deferred = [f for f in self.deferred if f.get("at", now) >= action["ended"]]
+        if not worked and action["remedy"]["action"] != "stop":
+            self._start(action["failure"], action["situation"],
+                        Plan({"action": "stop", "driver": self.driver}, "", 0.0,
+                             f"case {action['case']!r} failed: {outcome}"), now)
+
+    def _retain(self, action: dict[str, Any], worked: bool, now: float) -> None:
+        match = Match(self._base.case(action["case"]), action["similarity"])
+        self._base.retain(match, action["situation"], worked, self.cases_path)
+        self.case_base = self._base.to_dict()
+        try:
+            self._base.save(self.cases_path)
+        except OSError as exc:
+            self.remedy.write({"event": "not_saved", "at": now,
+                               "reason": f"{self.cases_path}: {exc}"})
+
+    def _report(self, event: str, now: float, action: dict[str, Any] | None = None) -> None:
+        """Write on ``remedy`` what was chosen (``event`` "chosen") or how it went."""
+        action = action or self.action
+        self.remedy.write({"event": event, "at": now, "fault": action["failure"].get("fault"),
+                           "action": action["remedy"]["action"], "remedy": action["remedy"],
+                           "case": action["case"], "similarity": action["similarity"],
+                           "reason": action["reason"], "outcome": action.get("outcome", "")})

@@ -1,0 +1,568 @@
+"""The remedy agent: its case base (retrieve, adapt, retain, files), the agent through
+its ports against a recording runtime, and the robot driver's ``enabled`` flag."""
+
+from __future__ import annotations
+
+import pickle
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+
+import agents.remedy as remedy_module
+import pb3a.model.driver
+from agents.case_base import AdaptationError, Case, CaseBase, CaseFileError, Match, adapt
+from agents.remedy import SHIPPED_CASES, RemedyAgent, SystemView, check_remedy, plan
+from agents.robot_driver import RobotDriver
+from pb3a import RuntimeFailure
+from pb3a.testing import ModuleHarness
+
+SONAR_FREE = "agents.explorer:SonarFreeExplorer"
+
+
+def write(path: Path, text: str) -> Path:
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def situation(fault: str, *, standby: bool = False, failed: int = 0,
+              probability: float = 0.9) -> dict[str, Any]:
+    return {"fault": fault, "probability": probability, "failed_sensors": failed,
+            "standby": standby}
+
+
+# -- the case base -------------------------------------------------------------------
+
+@pytest.mark.parametrize(("symptoms", "expected"), [
+    (situation("motors", standby=True), "motors-standby"),
+    (situation("motors", standby=False), "motors-alone"),
+    (situation("sonar", failed=2, standby=True), "sonar-few"),
+    (situation("sonar", failed=9, standby=True), "sonar-many-standby"),
+    (situation("sonar", failed=9, standby=False), "sonar-many-alone"),
+    (situation("odometry"), "odometry-drift"),
+])
+def test_the_shipped_base_retrieves_the_case_made_for_each_failure(symptoms, expected) -> None:
+    matches = CaseBase.load([SHIPPED_CASES]).retrieve(symptoms)
+    assert matches[0].case.id == expected
+    assert matches[0].similarity == 1.0
+
+
+def test_a_fault_no_case_knows_retrieves_nothing() -> None:
+    base = CaseBase.load([SHIPPED_CASES])
+    assert base.retrieve(situation("battery", standby=True)) == []
+
+
+def test_numbers_match_by_distance_over_their_scale(tmp_path) -> None:
+    base = CaseBase.load([write(tmp_path / "cases.toml", """
+        [scales]
+        dead = 4
+        [[case]]
+        id = "range"
+        symptoms = { dead = [2, 4] }
+        remedy = { action = "stop" }
+        [[case]]
+        id = "flag"
+        symptoms = { standby = true }
+        remedy = { action = "stop" }
+    """)])
+    ranged, flag = base.cases
+    assert base.similarity(ranged, {"dead": 3}) == 1.0
+    assert base.similarity(ranged, {"dead": 5}) == 0.75
+    assert base.similarity(ranged, {"dead": 9}) == 0.0
+    assert base.similarity(ranged, {}) == 0.0
+    assert base.similarity(flag, {"standby": True}) == 1.0
+    assert base.similarity(flag, {"standby": 1}) == 0.0        # a count is not a flag
+
+
+def test_adaptation_fills_placeholders_and_names_the_missing_ones() -> None:
+    template = {"action": "move_macro", "to": "{standby_node}", "sensors": "{dead}",
+                "note": "from {macro} to {standby_node}", "nested": {"x": ["{macro}"]}}
+    values = {"standby_node": "r2-node", "dead": [3, 4], "macro": "control"}
+    assert adapt(template, values) == {
+        "action": "move_macro", "to": "r2-node", "sensors": [3, 4],
+        "note": "from control to r2-node", "nested": {"x": ["control"]}}
+    with pytest.raises(AdaptationError, match=r"no value for \{standby_node\}"):
+        adapt(template, {**values, "standby_node": ""})
+
+
+def _view(driver_node: str = "r1", explorer: str = "agents.explorer:Explorer") -> SystemView:
+    return SystemView({"control/driver": "agents.robot_driver:RobotDriver",
+                       "control/explorer": explorer},
+                      {"control/driver": driver_node, "control/explorer": driver_node},
+                      frozenset({"r1", "r2"}))
+
+
+@pytest.mark.parametrize(("remedy", "view", "refusal"), [
+    ({"action": "move_macro", "macro": "control", "to": "r1", "driver": "control/driver",
+      "resource": "tcp://r2:7400"}, _view(), "'control' already runs on 'r1'"),
+    ({"action": "move_macro", "macro": "control", "to": "r3", "driver": "control/driver",
+      "resource": "tcp://r3:7400"}, _view(), "node 'r3' is not up"),
+    ({"action": "move_macro", "macro": "ctrl", "to": "r2", "driver": "control/driver",
+      "resource": "tcp://r2:7400"}, _view(), "no macro 'ctrl' runs"),
+    ({"action": "swap", "module": "control/explorer", "cls": SONAR_FREE},
+     _view(explorer=SONAR_FREE), "already is a"),
+    ({"action": "swap", "module": "control/explorer", "cls": "SonarFree"}, _view(),
+     "not a class reference"),
+    ({"action": "swap", "module": "control/mapper", "cls": SONAR_FREE}, _view(),
+     "no module 'control/mapper' runs"),
+    ({"action": "dance"}, _view(), "unknown action 'dance'"),
+])
+def test_an_adapted_remedy_that_makes_no_sense_is_refused(remedy, view, refusal) -> None:
+    with pytest.raises(AdaptationError, match=refusal):
+        check_remedy(remedy, view)
+
+
+def test_a_plan_passes_over_cases_that_do_not_adapt_and_ends_in_a_stop() -> None:
+    base = CaseBase.load([SHIPPED_CASES])
+    values = {"macro": "control", "driver": "control/driver", "fault": "sonar",
+              "standby_node": "r2", "standby_resource": "tcp://r2:7400",
+              "consumer": "control/explorer", "fallback": ""}
+    # no class does without the sonar: the next case, moving to the standby, is taken
+    moved = plan(base, situation("sonar", failed=2, standby=True), values, _view())
+    assert (moved.case, moved.remedy["action"], moved.remedy["to"]) == (
+        "sonar-many-standby", "move_macro", "r2")
+    assert "case 'sonar-few': no value for {fallback}" in moved.reason
+    stopped = plan(base, situation("battery"), values, _view())
+    assert stopped.remedy == {"action": "stop", "driver": "control/driver"}
+    assert stopped.case == "" and "no case is 75% similar" in stopped.reason
+
+
+def test_retention_counts_attempts_learns_new_cases_and_reloads(tmp_path) -> None:
+    user = tmp_path / "mine" / "cases.toml"
+    base = CaseBase.load([SHIPPED_CASES])
+    close = base.retrieve(situation("motors", standby=True))[0]
+    base.retain(close, situation("motors", standby=True), True, user)
+    base.retain(close, situation("motors", standby=True), False, user)
+    # far below the case's probability range (similarity 0.94): a success there is new
+    far = situation("motors", standby=True, probability=0.1)
+    learned = base.retain(base.retrieve(far)[0], far, True, user)
+    assert learned.id == "motors-standby/learned-1"
+    assert learned.remedy == close.case.remedy and learned.symptoms == far
+    base.save(user)
+
+    shipped_text = SHIPPED_CASES.read_text()
+    again = CaseBase.load([SHIPPED_CASES, user])
+    counted = again.case("motors-standby")
+    assert (counted.tried, counted.worked) == (2, 1)
+    assert again.case("motors-standby/learned-1").worked == 1
+    assert again.retrieve(far)[0].case.id == "motors-standby/learned-1"
+    assert [p.name for p in user.parent.iterdir()] == ["cases.toml"]     # no temp file left
+    assert SHIPPED_CASES.read_text() == shipped_text
+    assert [case.id for case in CaseBase.load([user]).cases] == [
+        "motors-standby", "motors-standby/learned-1"]
+
+
+def test_a_base_carried_elsewhere_saves_to_the_users_file_there(tmp_path, monkeypatch) -> None:
+    monkeypatch.setenv("HOME", str(tmp_path / "alice"))
+    base = CaseBase.load([SHIPPED_CASES])
+    motors = situation("motors", standby=True)
+    base.retain(base.retrieve(motors)[0], motors, True, "~/.pb3a/cases.toml")
+    carried = CaseBase.from_dict(pickle.loads(pickle.dumps(base.to_dict())))
+    monkeypatch.setenv("HOME", str(tmp_path / "bob"))       # another node, another home
+    carried.save("~/.pb3a/cases.toml")
+    saved = CaseBase.load([tmp_path / "bob" / ".pb3a" / "cases.toml"])
+    assert [(case.id, case.worked) for case in saved.cases] == [("motors-standby", 1)]
+
+
+def test_any_case_survives_being_written_and_read_back(tmp_path) -> None:
+    odd = Case("odd \"one\"", {"fault": "sonar", "odd key": [1e-07, 0.5], "n": 3},
+               {"action": "swap", "set": {"gains": [1, 2.5], "on": True, "x.y": "\x7f"}},
+               'a "quoted"\nnote \\ é\t', 2, 1, str(tmp_path / "odd.toml"))
+    CaseBase([odd]).save(tmp_path / "odd.toml")
+    (back,) = CaseBase.load([tmp_path / "odd.toml"]).cases
+    assert back == odd
+
+
+def test_saving_a_user_file_keeps_its_settings(tmp_path) -> None:
+    user = write(tmp_path / "cases.toml", 'min_similarity = 0.5\n[weights]\n"odd key" = 2\n')
+    base = CaseBase.load([SHIPPED_CASES, user])
+    base.retain(base.retrieve(situation("odometry"))[0], situation("odometry"), True, user)
+    base.save(user)
+    reloaded = CaseBase.load([SHIPPED_CASES, user])
+    assert reloaded.setting("min_similarity") == 0.5
+    assert reloaded.settings[str(user)] == {"min_similarity": 0.5,
+                                            "weights": {"odd key": 2}}
+    assert reloaded.case("odometry-drift").tried == 1
+
+
+def test_a_users_case_wins_when_it_matches_better_or_as_well(tmp_path) -> None:
+    shipped = write(tmp_path / "shipped.toml", """
+        [[case]]
+        id = "generic"
+        symptoms = { fault = "sonar", failed_sensors = 4 }
+        remedy = { action = "stop" }
+    """)
+    user = write(tmp_path / "user.toml", """
+        [scales]
+        failed_sensors = 8
+        [[case]]
+        id = "two-dead"
+        symptoms = { fault = "sonar", failed_sensors = 2 }
+        remedy = { action = "swap", module = "{consumer}", cls = "my.explorers:Cautious" }
+    """)
+    base = CaseBase.load([shipped, user])
+    assert base.retrieve(situation("sonar", failed=2))[0].case.id == "two-dead"
+    assert base.retrieve(situation("sonar", failed=4))[0].case.id == "generic"
+    tie = CaseBase.load([shipped, write(tmp_path / "tie.toml", """
+        [[case]]
+        id = "mine"
+        symptoms = { fault = "sonar", failed_sensors = 4 }
+        remedy = { action = "swap", module = "x", cls = "a.b:C" }
+    """)])
+    assert tie.retrieve(situation("sonar", failed=4))[0].case.id == "mine"
+    replaced = CaseBase.load([SHIPPED_CASES, write(tmp_path / "same-id.toml", """
+        [[case]]
+        id = "motors-alone"
+        symptoms = { fault = "motors" }
+        remedy = { action = "stop", driver = "{driver}" }
+    """)])
+    assert [case.id for case in replaced.cases].count("motors-alone") == 1
+    assert replaced.case("motors-alone").symptoms == {"fault": "motors"}
+
+
+@pytest.mark.parametrize(("case", "problem"), [
+    ('id = "broken"\nremedy = { action = "stop" }', "case 'broken': no symptoms"),
+    ('id = "broken"\nsymptoms = { fault = "motors" }', "case 'broken': no remedy action"),
+    ('id = "broken"\nsymptoms = { probability = [0.9, 0.1] }\nremedy = { action = "stop" }',
+     r"case 'broken': symptom probability = \[0.9, 0.1\] is not"),
+    ('id = "broken"\nsymptom = { fault = "motors" }\nremedy = { action = "stop" }',
+     "case 'broken': unknown keys 'symptom'"),
+    ('id = "broken"\ntried = 1\nworked = 2\nsymptoms = { fault = "x" }\n'
+     'remedy = { action = "stop" }', "case 'broken': tried = 1 and worked = 2"),
+    ('symptoms = { fault = "x" }\nremedy = { action = "stop" }', "case number 1 has no id"),
+])
+def test_a_malformed_case_names_its_file_and_case(tmp_path, case, problem) -> None:
+    path = write(tmp_path / "bad.toml", f"[[case]]\n{case}\n")
+    with pytest.raises(CaseFileError, match=f"{re.escape(str(path))}: {problem}"):
+        CaseBase.load([SHIPPED_CASES, path])
+
+
+def test_a_file_that_is_not_toml_or_not_there_is_named(tmp_path) -> None:
+    path = write(tmp_path / "bad.toml", "[[case]\nid = 1\n")
+    with pytest.raises(CaseFileError, match=f"{re.escape(str(path))}: not valid TOML"):
+        CaseBase.load([path])
+    with pytest.raises(CaseFileError, match=r"missing\.toml: cannot read the case file"):
+        CaseBase.load([tmp_path / "missing.toml"])
+
+
+def test_an_agent_refuses_a_case_whose_action_it_cannot_carry_out(tmp_path) -> None:
+    path = write(tmp_path / "user.toml", '[[case]]\nid = "odd"\nsymptoms = { fault = "x" }\n'
+                                         'remedy = { action = "reboot" }\n')
+    problem = f"{re.escape(str(path))}: case 'odd': unknown action 'reboot'"
+    with pytest.raises(CaseFileError, match=problem):
+        ModuleHarness(RemedyAgent, state={"cases_path": str(path)}, runtime=FakeRuntime())
+
+
+# -- the agent, through its ports, against a recording runtime --------------------------
+
+@dataclass
+class FakeModule:
+    cls: str
+    node: str
+    written: int = 0
+
+
+class FakePending:
+    """A move that ends when the test says so."""
+
+    def __init__(self) -> None:
+        self.outcome: tuple[str, Any] | None = None
+
+    def done(self) -> bool:
+        return self.outcome is not None
+
+    def result(self, timeout: float = 60.0) -> Any:
+        status, value = self.outcome
+        if status == "failed":
+            raise RuntimeFailure(value)
+        return value
+
+
+@dataclass
+class FakeRuntime:
+    """The part of ``Agent.runtime`` the remedy agent uses; it records every change."""
+
+    calls: list[tuple[Any, ...]] = field(default_factory=list)
+    up: dict[str, bool] = field(default_factory=lambda: {"r1": True, "r2": True})
+    modules: dict[str, FakeModule] = field(default_factory=lambda: {
+        "control/driver": FakeModule("agents.robot_driver:RobotDriver", "r1"),
+        "control/explorer": FakeModule("agents.explorer:Explorer", "r1"),
+        "control/mapper": FakeModule("agents.occupancy:Mapper", "r1")})
+    driver: dict[str, Any] = field(default_factory=lambda: {"enabled": True})
+    moves: list[FakePending] = field(default_factory=list)
+
+    def stats(self) -> Any:
+        return SimpleNamespace(
+            nodes={name: SimpleNamespace(up=up) for name, up in self.up.items()},
+            modules={name: SimpleNamespace(cls=m.cls, node=m.node, outputs={"out": m.written})
+                     for name, m in self.modules.items()})
+
+    def migrate(self, name: str, to: str, *, wait: bool = True) -> FakePending:
+        self.calls.append(("migrate", name, to, wait))
+        self.moves.append(FakePending())
+        return self.moves[-1]
+
+    def end_move(self, to: str = "r2") -> None:
+        for name, module in self.modules.items():
+            if name.startswith("control/"):
+                module.node = to
+        self.moves[-1].outcome = ("done", "report")
+
+    def where(self, name: str) -> str:
+        return self.modules[name].node
+
+    def set_state(self, name: str, values: dict[str, Any]) -> None:
+        self.calls.append(("set_state", name, values))
+        if name == "control/driver":
+            self.driver.update(values)
+
+    def state(self, name: str) -> dict[str, Any]:
+        return dict(self.driver)
+
+    def swap(self, name: str, cls: str) -> list[str]:
+        self.calls.append(("swap", name, cls))
+        self.modules[name].cls = cls
+        return []
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 1_000.0
+
+    def time(self) -> float:
+        return self.now
+
+
+@pytest.fixture
+def clock(monkeypatch) -> Clock:
+    clock = Clock()
+    monkeypatch.setattr(remedy_module, "time", clock)
+    return clock
+
+
+def agent(tmp_path: Path, runtime: FakeRuntime, **state: Any) -> ModuleHarness:
+    return ModuleHarness(RemedyAgent, runtime=runtime, name="remedy", state={
+        "standby_node": "r2", "standby_resource": "tcp://r2:7400",
+        "consumers": {"sonar": "control/explorer"}, "fallbacks": {"sonar": SONAR_FREE},
+        "cases_path": str(tmp_path / "learned.toml"), **state})
+
+
+def failure(fault: str, at: float, **detail: Any) -> dict[str, Any]:
+    return {"fault": fault, "probability": 0.95, "at": at, "detail": detail}
+
+
+def events(harness: ModuleHarness) -> list[tuple[str, str, str]]:
+    return [(out["event"], out["action"], out["case"]) for out in harness.written["remedy"]]
+
+
+def test_motors_failure_moves_the_macro_then_re_points_the_driver(tmp_path, clock) -> None:
+    runtime = FakeRuntime()
+    harness = agent(tmp_path, runtime)
+    harness.feed("failure", failure("motors", clock.now))
+    harness.step()
+    assert runtime.calls == [("migrate", "control", "r2", False)]
+
+    for late in (0.1, 0.5):                      # the monitor goes on reporting
+        clock.now += 0.2
+        harness.feed("failure", failure("motors", clock.now - late))
+        harness.step()
+    assert runtime.calls == [("migrate", "control", "r2", False)]
+
+    runtime.end_move()
+    clock.now += 0.2
+    harness.step()
+    assert runtime.calls[1:] == [("set_state", "control/driver",
+                                  {"resource": "tcp://r2:7400"})]
+    assert harness.state["standby_node"] == ""
+    moved_at = clock.now
+
+    runtime.modules["control/driver"].written += 10         # r2's sensors flow
+    clock.now += 1.0                       # an echo of r1, within settle_s: not a recurrence
+    harness.feed("failure", failure("motors", clock.now))
+    harness.step()
+    clock.now = moved_at + harness.state["verify_s"]
+    harness.step()
+
+    assert len(runtime.calls) == 2
+    assert events(harness) == [("chosen", "move_macro", "motors-standby"),
+                               ("worked", "move_macro", "motors-standby")]
+    (entry,) = harness.state["history"]
+    assert entry["worked"] and entry["ended"] == moved_at
+    assert harness.state["action"] == {}
+    learned = CaseBase.load([tmp_path / "learned.toml"]).case("motors-standby")
+    assert (learned.tried, learned.worked) == (1, 1)
+
+    clock.now += 1.0                       # reported before it was judged: already handled
+    harness.feed("failure", failure("motors", clock.now - 2.0))
+    harness.step()
+    assert len(runtime.calls) == 2
+    harness.feed("failure", failure("motors", clock.now))      # r2's motors now: no standby
+    harness.step()
+    assert runtime.calls[2] == ("set_state", "control/driver", {"enabled": False})
+    assert events(harness)[-2:] == [("chosen", "stop", "motors-alone"),
+                                    ("worked", "stop", "motors-alone")]
+
+
+def test_a_fault_that_comes_back_after_the_move_fails_it_and_stops(tmp_path, clock) -> None:
+    runtime = FakeRuntime()
+    harness = agent(tmp_path, runtime)
+    harness.feed("failure", failure("motors", clock.now))
+    harness.step()
+    runtime.end_move()
+    harness.step()
+    clock.now += harness.state["settle_s"] + 0.5
+    harness.feed("failure", failure("motors", clock.now))
+    harness.step()
+    assert runtime.calls[-1] == ("set_state", "control/driver", {"enabled": False})
+    assert [event for event, _, _ in events(harness)] == ["chosen", "failed", "chosen", "worked"]
+    assert harness.state["history"][0]["outcome"] == "the motors fault came back"
+    assert harness.state["stopped"] and runtime.driver["enabled"] is False
+    learned = CaseBase.load([tmp_path / "learned.toml"]).case("motors-standby")
+    assert (learned.tried, learned.worked) == (1, 0)
+
+    harness.feed("failure", failure("sonar", clock.now + 1, sonars=[3]))    # stopped: no more
+    harness.step()
+    assert len(runtime.calls) == 3
+
+
+def test_a_move_that_fails_leaves_the_standby_alone_and_stops(tmp_path, clock) -> None:
+    runtime = FakeRuntime()
+    harness = agent(tmp_path, runtime)
+    harness.feed("failure", failure("motors", clock.now))
+    harness.step()
+    runtime.moves[-1].outcome = ("failed", "node r2 refused the modules")
+    harness.step()
+    assert runtime.calls[1:] == [("set_state", "control/driver", {"enabled": False})]
+    assert "node r2 refused the modules" in harness.state["history"][0]["outcome"]
+
+
+def test_a_restored_agent_finishes_its_move_by_looking_where_the_driver_runs(
+        tmp_path, clock) -> None:
+    runtime = FakeRuntime()
+    harness = agent(tmp_path, runtime)
+    harness.feed("failure", failure("motors", clock.now))
+    harness.step()
+    state = pickle.loads(pickle.dumps(harness.state))     # as a migration carries it
+    assert state["action"]["phase"] == "moving"
+
+    restored = ModuleHarness(RemedyAgent, runtime=runtime, state=state)
+    restored.step()
+    assert len(runtime.calls) == 1                        # the move has not ended yet
+    runtime.end_move()
+    restored.step()
+    assert runtime.calls[1:] == [("set_state", "control/driver",
+                                  {"resource": "tcp://r2:7400"})]
+
+
+def test_a_move_not_seen_to_end_in_time_has_failed(tmp_path, clock) -> None:
+    runtime = FakeRuntime()
+    harness = agent(tmp_path, runtime)
+    harness.feed("failure", failure("motors", clock.now))
+    harness.step()
+    restored = ModuleHarness(RemedyAgent, runtime=runtime, state=harness.state)
+    clock.now += harness.state["move_timeout_s"] + 1
+    restored.step()
+    assert runtime.calls[1:] == [("set_state", "control/driver", {"enabled": False})]
+    assert "had not ended after 60 s" in restored.state["history"][0]["outcome"]
+
+
+def test_dead_sonars_swap_their_consumer_for_one_that_does_without(tmp_path, clock) -> None:
+    runtime = FakeRuntime()
+    harness = agent(tmp_path, runtime)
+    harness.feed("failure", failure("sonar", clock.now, sonars=[3, 4]))
+    harness.step()
+    assert runtime.calls == [("swap", "control/explorer", SONAR_FREE)]
+    runtime.modules["control/explorer"].written += 5
+    clock.now += harness.state["verify_s"]
+    harness.step()
+    assert events(harness)[-1] == ("worked", "swap", "sonar-few")
+
+    harness.feed("failure", failure("sonar", clock.now + 1, sonars=[3, 4, 5]))
+    harness.step()                    # already swapped: on to the robot whose sonars work
+    assert runtime.calls[-1] == ("migrate", "control", "r2", False)
+    chosen = harness.written["remedy"][-1]
+    assert chosen["case"] == "sonar-many-standby" and "already is a" in chosen["reason"]
+
+
+def test_a_failure_no_case_fits_stops_the_robot(tmp_path, clock) -> None:
+    runtime = FakeRuntime()
+    harness = agent(tmp_path, runtime)
+    harness.feed("failure", failure("battery", clock.now))
+    harness.step()
+    assert runtime.calls == [("set_state", "control/driver", {"enabled": False})]
+    (chosen, done) = harness.written["remedy"]
+    assert (chosen["case"], chosen["action"], done["event"]) == ("", "stop", "worked")
+    assert not (tmp_path / "learned.toml").exists()        # the fallback is no case to learn
+
+
+def test_a_failure_of_another_kind_waits_for_the_remedy_under_way(tmp_path, clock) -> None:
+    runtime = FakeRuntime()
+    harness = agent(tmp_path, runtime)
+    harness.feed("failure", failure("motors", clock.now))
+    harness.feed("failure", failure("sonar", clock.now + 0.1, sonars=[1]))   # r1's sonar
+    harness.step()
+    runtime.end_move()
+    clock.now += 1.0
+    harness.step()
+    harness.feed("failure", failure("odometry", clock.now + 0.1))       # r2's odometry
+    runtime.modules["control/driver"].written += 3
+    clock.now += harness.state["verify_s"]
+    harness.step()
+    assert [event[:2] for event in events(harness)] == [
+        ("chosen", "move_macro"), ("worked", "move_macro"),
+        ("chosen", "stop"), ("worked", "stop")]     # no odometry fallback: stop
+    assert harness.state["deferred"] == []
+
+
+def test_the_agents_state_pickles_in_the_middle_of_a_move(tmp_path, clock) -> None:
+    runtime = FakeRuntime()
+    harness = agent(tmp_path, runtime)
+    harness.feed("failure", failure("motors", clock.now))
+    harness.step()
+    assert pickle.loads(pickle.dumps(harness.state))["action"]["case"] == "motors-standby"
+    base = CaseBase.from_dict(pickle.loads(pickle.dumps(harness.state["case_base"])))
+    assert base.case("sonar-few").remedy["action"] == "swap"
+    retained = base.retain(Match(base.case("sonar-few"), 1.0), situation("sonar"), True,
+                           tmp_path / "x.toml")
+    assert retained.tried == 1
+
+
+# -- the robot driver's enabled flag -------------------------------------------------
+
+class FakeRobotServer:
+    """A robot server's client: records requests, answers ``sensors``."""
+
+    requests: list[tuple[str, dict[str, Any]]] = []
+
+    def __init__(self, key: Any, address: str) -> None:
+        self.address = address
+
+    def call(self, op: str, timeout: float, **args: Any) -> Any:
+        self.requests.append((op, args))
+        if op == "sensors":
+            return {"sonar": [1.0] * 16, "odometry": [0.0] * 3, "gps": [0.0] * 3,
+                    "velocity": [0.0] * 2}
+        return None
+
+    def close(self) -> None:
+        pass
+
+
+def test_a_disabled_driver_keeps_its_robot_standing(monkeypatch) -> None:
+    monkeypatch.setattr(pb3a.model.driver, "ControlClient", FakeRobotServer)
+    monkeypatch.setattr(FakeRobotServer, "requests", [])
+    harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400"})
+    harness.feed("command", np.array([0.4, 0.1]))
+    harness.step()
+    assert [op for op, _ in FakeRobotServer.requests] == ["drive", "sensors"]
+
+    harness.module.set_state({"enabled": False})
+    FakeRobotServer.requests.clear()
+    harness.feed("command", np.array([0.5, 0.0]))
+    harness.step(2)
+    assert [op for op, _ in FakeRobotServer.requests] == ["stop", "sensors"] * 2
+    assert len(harness.written["sonar"]) == 3                 # still sensing
