@@ -7,48 +7,78 @@ controller behind its ports can run on any node; re-pointing ``resource`` moves 
 to another robot while it runs (the old one is stopped first). Setting ``enabled`` to
 False stops the robot safely: it is told to stop every period and commands are
 ignored, while its sensors are still read out.
+
+Against a world served in lock-step (``rave start --lockstep``), set ``lockstep_s``:
+each command then drives the robot, advances the world by ``lockstep_s`` simulated
+seconds and answers with the new readings, so the world moves exactly as fast as the
+controller decides. A controller that waits for a first reading gets one every
+``period`` until commands come. ``clock`` carries the world's time of each reading,
+for controllers that must keep time by the world rather than the wall clock.
 """
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import numpy as np
 
-from pb3a import Driver, Input, Output
+from pb3a import Driver, Input, InputPort, Output
 from rave.server import readings
 
 
 class RobotDriver(Driver):
-    """Velocity command in; sonar, odometry, gps and camera out, every ``period``."""
+    """Velocity command in; sonar, odometry, gps, clock and camera out, every
+    ``period`` (or, in lock-step, after every command)."""
 
     command = Input(np.ndarray, shape=(2,), dtype="float64")   # v (m/s), w (rad/s)
     sonar = Output(np.ndarray, shape=(16,), dtype="float64")
     odometry = Output(np.ndarray, shape=(3,), dtype="float64")
     gps = Output(np.ndarray, shape=(3,), dtype="float64")
+    clock = Output(float)        # the world's time of the readings (s)
     camera = Output(list)
     period = 0.1
     with_camera = False          # the camera costs a request more per period
     enabled = True               # False: keep the robot standing, ignore commands
+    lockstep_s = 0.0             # > 0: each command advances a lock-step world this long
     failures = 0                 # periods in which the robot did not answer
     last_error = ""
 
+    def setup(self) -> None:
+        self._read_at = 0.0      # (monotonic) when readings were last written
+
     def step(self) -> None:
+        if self.lockstep_s > 0 and time.monotonic() - self._read_at < self.period:
+            return               # lock-step: commands drive it (see on_input)
+        command = self.command.read() if self.command.has_value else None
+        self._serve(command, advance=0.0)
+
+    def on_input(self, port: InputPort) -> None:
+        if self.lockstep_s > 0:
+            self._serve(port.read(), advance=self.lockstep_s)
+
+    def _serve(self, command: np.ndarray | None, advance: float) -> None:
+        """Apply ``command`` (none: the last one holds), advance a lock-step world,
+        and write the readings; a robot that does not answer is counted."""
         try:
             if not self.enabled:
                 self.request("stop")
-            elif self.command.has_value:
-                v, w = self.command.read()
-                self.request("drive", v=float(v), w=float(w))
-            sensed = readings(self.request("sensors"))
+            elif command is not None:
+                self.request("drive", v=float(command[0]), w=float(command[1]))
+            if advance:
+                self.request("advance", dt=advance)
+            answer = self.request("sensors")
             blobs = self.request("camera") if self.with_camera else None
         except (RuntimeError, OSError) as exc:
             self.failures += 1
             self.last_error = str(exc)
             return
+        sensed = readings(answer)
+        self._read_at = time.monotonic()
         self.sonar.write(sensed["sonar"])
         self.odometry.write(sensed["odometry"])
         self.gps.write(sensed["gps"])
+        self.clock.write(float(answer["time"]))
         if blobs is not None:
             self.camera.write(blobs)
 

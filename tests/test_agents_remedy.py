@@ -10,14 +10,11 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
-import numpy as np
 import pytest
 
 import agents.remedy as remedy_module
-import pb3a.model.driver
 from agents.case_base import AdaptationError, Case, CaseBase, CaseFileError, Match, adapt
 from agents.remedy import SHIPPED_CASES, RemedyAgent, SystemView, check_remedy, plan
-from agents.robot_driver import RobotDriver
 from pb3a import RuntimeFailure
 from pb3a.testing import ModuleHarness
 
@@ -532,37 +529,3 @@ def test_the_agents_state_pickles_in_the_middle_of_a_move(tmp_path, clock) -> No
 
 
 # -- the robot driver's enabled flag -------------------------------------------------
-
-class FakeRobotServer:
-    """A robot server's client: records requests, answers ``sensors``."""
-
-    requests: list[tuple[str, dict[str, Any]]] = []
-
-    def __init__(self, key: Any, address: str) -> None:
-        self.address = address
-
-    def call(self, op: str, timeout: float, **args: Any) -> Any:
-        self.requests.append((op, args))
-        if op == "sensors":
-            return {"sonar": [1.0] * 16, "odometry": [0.0] * 3, "gps": [0.0] * 3,
-                    "velocity": [0.0] * 2}
-        return None
-
-    def close(self) -> None:
-        pass
-
-
-def test_a_disabled_driver_keeps_its_robot_standing(monkeypatch) -> None:
-    monkeypatch.setattr(pb3a.model.driver, "ControlClient", FakeRobotServer)
-    monkeypatch.setattr(FakeRobotServer, "requests", [])
-    harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400"})
-    harness.feed("command", np.array([0.4, 0.1]))
-    harness.step()
-    assert [op for op, _ in FakeRobotServer.requests] == ["drive", "sensors"]
-
-    harness.module.set_state({"enabled": False})
-    FakeRobotServer.requests.clear()
-    harness.feed("command", np.array([0.5, 0.0]))
-    harness.step(2)
-    assert [op for op, _ in FakeRobotServer.requests] == ["stop", "sensors"] * 2
-    assert len(harness.written["sonar"]) == 3                 # still sensing

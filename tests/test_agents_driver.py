@@ -1,0 +1,84 @@
+"""``RobotDriver`` on its own, against a fake robot server: commands, sensors, the
+world's clock, stopping safely, and lock-step."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+
+import pb3a.model.driver
+from agents.robot_driver import RobotDriver
+from pb3a.testing import ModuleHarness
+
+
+class FakeRobotServer:
+    """A robot server's client: records requests, answers ``sensors`` with the time
+    of a world that ``advance`` moves on."""
+
+    requests: list[tuple[str, dict[str, Any]]] = []
+    time = 0.0
+
+    def __init__(self, key: Any, address: str) -> None:
+        self.address = address
+
+    def call(self, op: str, timeout: float, **args: Any) -> Any:
+        self.requests.append((op, args))
+        if op == "advance":
+            FakeRobotServer.time += args["dt"]
+            return FakeRobotServer.time
+        if op == "sensors":
+            return {"time": FakeRobotServer.time, "sonar": [1.0] * 16, "odometry": [0.0] * 3,
+                    "gps": [0.0] * 3, "velocity": [0.0] * 3}
+        return None
+
+    def close(self) -> None:
+        pass
+
+
+@pytest.fixture
+def robot(monkeypatch) -> type[FakeRobotServer]:
+    monkeypatch.setattr(pb3a.model.driver, "ControlClient", FakeRobotServer)
+    monkeypatch.setattr(FakeRobotServer, "requests", [])
+    monkeypatch.setattr(FakeRobotServer, "time", 0.0)
+    return FakeRobotServer
+
+
+def ops(robot: type[FakeRobotServer]) -> list[str]:
+    return [op for op, _ in robot.requests]
+
+
+def test_each_period_it_drives_by_the_latest_command_and_writes_the_readings(robot) -> None:
+    harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400"})
+    harness.step()                                  # no command yet: only sensing
+    harness.feed("command", np.array([0.4, 0.1]))
+    harness.step()
+    assert ops(robot) == ["sensors", "drive", "sensors"]
+    assert robot.requests[1][1] == {"v": 0.4, "w": 0.1}
+    assert len(harness.written["sonar"]) == len(harness.written["clock"]) == 2
+
+
+def test_a_disabled_driver_keeps_its_robot_standing(robot) -> None:
+    harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400"})
+    harness.feed("command", np.array([0.4, 0.1]))
+    harness.step()
+    assert ops(robot) == ["drive", "sensors"]
+    harness.module.set_state({"enabled": False})
+    robot.requests.clear()
+    harness.feed("command", np.array([0.5, 0.0]))
+    harness.step(2)
+    assert ops(robot) == ["stop", "sensors"] * 2
+    assert len(harness.written["sonar"]) == 3                 # still sensing
+
+
+def test_in_lockstep_every_command_advances_the_world_once(robot) -> None:
+    harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400",
+                                                "lockstep_s": 0.25})
+    harness.step()                   # the controller waits for a first reading: it gets one
+    assert ops(robot) == ["sensors"] and harness.written["clock"] == [0.0]
+    for _ in range(3):
+        harness.feed("command", np.array([0.3, 0.0]))
+    harness.step()                   # commands come: the period adds nothing
+    assert ops(robot)[1:] == ["drive", "advance", "sensors"] * 3
+    assert harness.written["clock"] == [0.0, 0.25, 0.5, 0.75]
