@@ -1,0 +1,513 @@
+"""``HardwareMonitor``: notices a robot's hardware failing, and says which part failed.
+
+A one-class Gaussian naive Bayes model of normal running (notes §2.3). Every sample
+of the robot's streams (command, odometry, sonar and the localization pose, 10 Hz)
+gives features in three groups, each the evidence of one kind of fault:
+
+- ``motors``: the motion commanded, passed through the robot's known response (a
+  first-order lag with acceleration limits), against the motion odometry measured,
+  averaged over 0.5 s. A motor power cut leaves the wheels still under a command.
+- ``odometry``: how far odometry's heading drifts from the pose's per metre
+  travelled, over 4 s, beside its error in scale on turns and the pose's latency.
+  A biased odometer drifts; a sound one does not.
+- ``sonar``: per transducer, the span of headings the robot has turned through
+  since the transducer last heard an echo. A dead one never hears one, however the
+  robot turns; a live one among walls seldom turns through half a circle without
+  one. The transducers differ only in where they point, so they share one Gaussian.
+
+Each feature is fitted by a Gaussian on normal running only. A fault of a group is
+a broad Gaussian (``fault_breadth`` times wider) on one of its units (the motors, the
+odometer, one transducer) with a small prior; the log-likelihood ratio of fault to
+normal is the group's evidence, its posterior the failure's probability. A group
+alarms when its evidence beats the high quantile of what normal running showed by
+a margin, and the fault's posterior beats normal's, in k of the last n informative
+windows. A failure names its failed units; one more unit failing (a transducer
+after others) is one more onset.
+
+Windows that carry no information are left out rather than scored as normal: the
+motor residual while the robot is commanded to stand still (the notes' pitfall),
+odometry's drift when the robot has not driven straight enough to tell it from a
+scale error on turns; so a latched alarm stays latched and an idle robot never
+alarms.
+
+``FaultMonitor`` is the numpy core (``FeatureTracker``, ``NormalModel``, a k-of-n
+vote); ``HardwareMonitor`` is it as a PB3A module; ``record_normal_running`` records
+training features from an in-process RAVE world, driven by a ``Wanderer``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from scipy.special import expit, logsumexp
+
+from pb3a import Input, InputPort, Module, Output
+from rave.sonar import COUNT as SONARS
+from rave.sonar import MAX_RANGE
+
+if TYPE_CHECKING:
+    from rave import World
+
+GROUPS = ("motors", "odometry", "sonar")
+MOTORS, ODOMETRY, SONAR = range(len(GROUPS))
+FEATURES = ("v_residual", "w_residual", "drift_per_m",
+            *(f"silent_sweep_{i}" for i in range(SONARS)))
+_SWEEPS = slice(3, 3 + SONARS)
+# The units a group's fault may strike: the motors, the odometer, each transducer.
+# Features of a unit are summed; a group's evidence averages over its units' faults.
+_UNIT_COUNT = 2 + SONARS
+_UNIT_OF_FEATURE = np.array([0, 0, 1, *range(2, _UNIT_COUNT)])
+_UNITS_OF_GROUP = (np.array([0]), np.array([1]), np.arange(2, _UNIT_COUNT))
+_GROUP_OF_FEATURE = np.array([MOTORS, MOTORS, ODOMETRY, *[SONAR] * SONARS])
+# The smallest spread each feature is believed to have (m/s, rad/s, rad/m, rad; added
+# to the variance fitted), so that a feature that barely varied in training does not
+# make every later wobble a fault.
+_LEAST_SPREAD = np.array([0.01, 0.02, 0.002, *[0.1] * SONARS])
+# Odometry's heading error per sample is fitted as scale * turn + drift * distance +
+# latency * (change of turn): a scale error on turns, a drift per metre, and the pose
+# lagging odometry. The ridge keeps the fit solvable when a regressor is idle (rad^2).
+_RIDGE = np.diag([1e-4, 1e-6, 1e-4])
+
+
+class FeatureTracker:
+    """Turns each sample of a robot's streams into the monitor's ``FEATURES``, keeping
+    the short history they are computed over (``state`` carries it elsewhere).
+
+    The expected response defaults to a Pioneer's: ``lag_s`` of motor lag and the
+    acceleration limits ARIA sets, as RAVE's emulator has them."""
+
+    def __init__(self, sample_s: float = 0.1, lag_s: float = 0.25, accel: float = 0.3,
+                 angular_accel: float = math.radians(100.0), motor_window: int = 5,
+                 odometry_window: int = 40, min_speed: float = 0.05, min_turn: float = 0.15,
+                 heading_noise: float = 0.0005, drift_resolution: float = 0.005) -> None:
+        self.sample_s, self.lag_s = sample_s, lag_s
+        self.limits = np.array([accel, angular_accel])
+        self.min_speed, self.min_turn = min_speed, min_turn
+        # the drift is informative when its standard error, for this noise of odometry's
+        # heading against the pose's per sample (rad), is within drift_resolution (rad/m)
+        self.heading_noise, self.drift_resolution = heading_noise, drift_resolution
+        self.expected = np.zeros(2)          # the (v, w) the commands should have given
+        self.last_odometry = np.full(3, np.nan)
+        self.last_pose = np.full(3, np.nan)
+        self.heading = 0.0                   # the pose's heading, unwrapped
+        # per transducer: lowest and highest heading since its last echo
+        self.quiet = np.zeros((2, SONARS))
+        # per sample: v and w residuals, expected |v| and |w|
+        self.motions = np.zeros((motor_window, 4))
+        # per sample: odometry's heading error; the pose's turn, distance (unsigned) and
+        # change of turn from the sample before
+        self.travel = np.zeros((odometry_window, 4))
+        self.last_turn = 0.0
+        self.samples = 0
+
+    _STATE = ("expected", "last_odometry", "last_pose", "heading", "quiet", "motions",
+              "travel", "last_turn", "samples")
+
+    def state(self) -> dict[str, Any]:
+        """The running history (numpy arrays and numbers), for ``restore``."""
+        return {name: getattr(self, name) for name in self._STATE}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Carry on from a ``state`` taken from a tracker with the same windows."""
+        for name in self._STATE:
+            value = state[name]
+            setattr(self, name, np.array(value, dtype=np.float64)
+                    if isinstance(value, np.ndarray) else value)
+
+    def update(self, command: np.ndarray, odometry: np.ndarray, sonar: np.ndarray,
+               pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The features now and, per group, whether they carry information (a feature
+        of a group that does not is NaN). ``command`` is what drove the robot since the
+        last sample; the other three are read now."""
+        features = np.full(len(FEATURES), np.nan)
+        informative = np.zeros(len(GROUPS), dtype=bool)
+        expected = self._respond(np.asarray(command, dtype=np.float64))
+        if self.samples == 0:
+            self.last_odometry[:], self.last_pose[:] = odometry, pose
+            self.heading = float(pose[2])
+            self.quiet[:] = self.heading
+            self.samples = 1
+            return features, informative
+        odometry_distance, odometry_turn = _forward_and_turn(self.last_odometry, odometry)
+        pose_distance, pose_turn = _forward_and_turn(self.last_pose, pose)
+        self.last_odometry[:], self.last_pose[:] = odometry, pose
+        self.motions[self.samples % len(self.motions)] = (
+            odometry_distance / self.sample_s - expected[0],
+            odometry_turn / self.sample_s - expected[1], *np.abs(expected))
+        self.travel[self.samples % len(self.travel)] = (
+            odometry_turn - pose_turn, pose_turn, abs(pose_distance), pose_turn - self.last_turn)
+        self.last_turn = pose_turn
+        self.samples += 1
+
+        if self.samples > len(self.motions):
+            v_residual, w_residual, speed, turn = self.motions.mean(axis=0)
+            features[0:2] = v_residual, w_residual
+            informative[MOTORS] = speed >= self.min_speed or turn >= self.min_turn
+        if self.samples > len(self.travel):
+            drift, spread = _drift_per_metre(self.travel)
+            if spread * self.heading_noise <= self.drift_resolution:
+                features[2] = drift
+                informative[ODOMETRY] = True
+
+        self.heading += pose_turn
+        heard = np.asarray(sonar) < MAX_RANGE - 1e-6
+        self.quiet[:, heard] = self.heading
+        np.minimum(self.quiet[0], self.heading, out=self.quiet[0])
+        np.maximum(self.quiet[1], self.heading, out=self.quiet[1])
+        features[_SWEEPS] = self.quiet[1] - self.quiet[0]
+        informative[SONAR] = True
+        return features, informative
+
+    def _respond(self, command: np.ndarray) -> np.ndarray:
+        """Advance the expected speed under ``command`` by one sample (in ten steps: the
+        acceleration limit bites within a sample); its mean over the sample."""
+        steps = 10
+        dt = self.sample_s / steps
+        gain = 1.0 - math.exp(-dt / self.lag_s)
+        limit = self.limits * dt
+        total = np.zeros(2)
+        for _ in range(steps):
+            self.expected += np.clip((command - self.expected) * gain, -limit, limit)
+            total += self.expected
+        return total / steps
+
+
+def _forward_and_turn(before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
+    """Distance driven forward (negative backward) and turn from one pose to the next."""
+    turn = math.remainder(float(after[2] - before[2]), math.tau)
+    middle = float(before[2]) + turn / 2.0
+    forward = (after[0] - before[0]) * math.cos(middle) + (after[1] - before[1]) * math.sin(middle)
+    return float(forward), turn
+
+
+def _drift_per_metre(travel: np.ndarray) -> tuple[float, float]:
+    """The drift per metre of the least-squares fit of odometry's heading errors (see
+    ``_RIDGE``) over ``travel``'s samples, and its standard error per unit of noise:
+    large when the robot barely moved, or drove one steady arc, where a drift and a
+    scale error on turns explain the same errors."""
+    error, regressors = travel[:, 0], travel[:, 1:]
+    covariance = np.linalg.inv(regressors.T @ regressors + _RIDGE)
+    return float((covariance @ (regressors.T @ error))[1]), math.sqrt(covariance[1, 1])
+
+
+@dataclass(frozen=True)
+class NormalModel:
+    """Normal running as Gaussians per feature (``means``, ``variances``), with the
+    alarm ``thresholds`` on each group's evidence; a fault is ``fault_breadth`` times
+    wider, with prior probability ``fault_prior`` per group."""
+
+    means: np.ndarray
+    variances: np.ndarray
+    thresholds: np.ndarray
+    fault_prior: float = 0.01
+    fault_breadth: float = 10.0
+
+    @classmethod
+    def fit(cls, features: np.ndarray, informative: np.ndarray, quantile: float = 0.999,
+            margin: float = 10.0, fault_prior: float = 0.01, fault_breadth: float = 10.0,
+            ) -> NormalModel:
+        """Fit on normal running: ``features`` (samples, len(FEATURES)) with
+        ``informative`` (samples, len(GROUPS)) from ``FeatureTracker``. Each group's
+        threshold is the ``quantile`` of its evidence over the training samples plus
+        ``margin`` (nats: some features, such as a sonar's silent sweep, are heavier
+        tailed than a Gaussian, and a persistent one is not thinned by the k-of-n
+        vote), or the evidence at which a fault becomes likelier than normal, if
+        higher."""
+        features, informative = np.asarray(features), np.asarray(informative, dtype=bool)
+        used = informative[:, _GROUP_OF_FEATURE]
+        short = [GROUPS[g] for g in range(len(GROUPS)) if informative[:, g].sum() < 10]
+        if short:
+            raise ValueError(f"too little normal running to train on: fewer than 10 "
+                             f"informative samples of {', '.join(short)}")
+        data = np.where(used, features, np.nan)
+        means = np.nanmean(data, axis=0)
+        variances = np.nanvar(data, axis=0)
+        means[_SWEEPS] = np.nanmean(data[:, _SWEEPS])        # the transducers, tied
+        variances[_SWEEPS] = np.nanvar(data[:, _SWEEPS])
+        variances += _LEAST_SPREAD ** 2
+        model = cls(means, variances, np.zeros(len(GROUPS)), fault_prior, fault_breadth)
+        evidence = model.evidence(features, informative)
+        even = math.log((1.0 - fault_prior) / fault_prior)
+        thresholds = np.array([
+            max(even, float(np.quantile(evidence[informative[:, g], g], quantile)) + margin)
+            for g in range(len(GROUPS))])
+        return replace(model, thresholds=thresholds)
+
+    def unit_evidence(self, features: np.ndarray) -> np.ndarray:
+        """Per unit (the motors, the odometer, each transducer), the log-likelihood
+        ratio of its fault to normal running: shape (..., 2 + 16)."""
+        z2 = (np.asarray(features) - self.means) ** 2 / self.variances
+        per_feature = 0.5 * z2 * (1.0 - self.fault_breadth ** -2) - math.log(self.fault_breadth)
+        units = np.zeros((*per_feature.shape[:-1], _UNIT_COUNT))
+        np.add.at(units.T, _UNIT_OF_FEATURE, per_feature.T)
+        return units
+
+    def evidence(self, features: np.ndarray, informative: np.ndarray) -> np.ndarray:
+        """Per group, the log-likelihood ratio of its fault (in any one of its units)
+        to normal running; ``-inf`` where the group carries no information."""
+        return self.group_evidence(self.unit_evidence(features), informative)
+
+    @staticmethod
+    def group_evidence(units: np.ndarray, informative: np.ndarray) -> np.ndarray:
+        """``evidence`` from the ``unit_evidence``."""
+        groups = np.stack([logsumexp(units[..., members], axis=-1) - math.log(len(members))
+                           for members in _UNITS_OF_GROUP], axis=-1)
+        return np.where(informative, groups, -np.inf)
+
+    def probability(self, evidence: np.ndarray) -> np.ndarray:
+        """Each group's fault probability given its evidence."""
+        return expit(np.asarray(evidence) + math.log(self.fault_prior / (1 - self.fault_prior)))
+
+    def health(self, evidence: np.ndarray) -> float:
+        """The probability of normal running against every group's fault."""
+        odds = np.asarray(evidence) + math.log(self.fault_prior / (1 - self.fault_prior))
+        return float(expit(-logsumexp(odds)))
+
+    def state(self) -> dict[str, Any]:
+        """The model as plain state (a ``HardwareMonitor``'s trained state)."""
+        return {"means": self.means, "variances": self.variances,
+                "thresholds": self.thresholds, "fault_prior": self.fault_prior,
+                "fault_breadth": self.fault_breadth, "trained": True}
+
+
+class FaultMonitor:
+    """A trained ``NormalModel`` watching one robot's streams: ``update`` each sample
+    returns the failures that start then, each reported once per onset. A failure
+    names its units (which transducers); one more unit failing is one more onset."""
+
+    def __init__(self, model: NormalModel, tracker: FeatureTracker | None = None,
+                 votes_needed: int = 3, votes_of: int = 5, rearm: int = 50) -> None:
+        if not 1 <= votes_needed <= votes_of:
+            raise ValueError(f"an alarm needs 1 <= k <= n (k of n windows), not "
+                             f"{votes_needed} of {votes_of}")
+        self.model = model
+        self.tracker = tracker or FeatureTracker()
+        self.votes_needed = votes_needed
+        # a raised alarm is lowered after this many informative windows in a row within
+        # the threshold (longer than the longest feature window, so that a fault does
+        # not raise it twice while its evidence fills a window)
+        self.rearm = rearm
+        self.votes = np.zeros((votes_of, len(GROUPS)), dtype=bool)  # last n informative
+        self.counted = np.zeros(len(GROUPS), dtype=np.int64)       # informative windows
+        self.raised = np.zeros(len(GROUPS), dtype=bool)            # alarms latched
+        self.calm = np.zeros(len(GROUPS), dtype=np.int64)  # normal windows since alarm
+        self.named = np.zeros(_UNIT_COUNT, dtype=bool)             # units named failed
+        self.health = 1.0
+
+    _STATE = ("votes", "counted", "raised", "calm", "named", "health")
+
+    def state(self) -> dict[str, Any]:
+        """The running state (the tracker's history and the votes), for ``restore``."""
+        return {"tracker": self.tracker.state(),
+                **{name: getattr(self, name) for name in self._STATE}}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Carry on from a ``state`` taken from a monitor with the same windows."""
+        self.tracker.restore(state["tracker"])
+        for name in self._STATE:
+            setattr(self, name, np.array(state[name]) if name != "health" else state[name])
+
+    def update(self, command: np.ndarray, odometry: np.ndarray, sonar: np.ndarray,
+               pose: np.ndarray) -> list[dict[str, Any]]:
+        """Take one sample (as ``FeatureTracker.update``); the failures that start now,
+        each ``{"fault", "probability", "detail"}``."""
+        features, informative = self.tracker.update(command, odometry, sonar, pose)
+        units = self.model.unit_evidence(features)
+        evidence = self.model.group_evidence(units, informative)
+        self.health = self.model.health(evidence)
+        probability = self.model.probability(evidence)
+        beyond = (evidence > self.model.thresholds) & informative
+        failures = []
+        for group in np.flatnonzero(informative):
+            slot = self.counted[group] % len(self.votes)
+            self.votes[slot, group] = beyond[group]
+            self.counted[group] += 1
+            members = _UNITS_OF_GROUP[group]
+            # the units whose own evidence beats the threshold (a group's evidence shares
+            # it out among its units, so when the group's does, the likeliest one's does)
+            culprits = members[units[members] >= self.model.thresholds[group]]
+            if self.raised[group]:
+                self.calm[group] = 0 if beyond[group] else self.calm[group] + 1
+                if self.calm[group] >= self.rearm:
+                    self.raised[group], self.named[members] = False, False
+                if not self.raised[group] or self.named[culprits].all():
+                    continue
+            elif not (beyond[group] and self.votes[:, group].sum() >= self.votes_needed):
+                continue
+            self.raised[group], self.calm[group] = True, 0
+            self.named[culprits] = True
+            failures.append({"fault": GROUPS[group], "probability": float(probability[group]),
+                             "detail": self._detail(group, features)})
+        return failures
+
+    def _detail(self, group: int, features: np.ndarray) -> dict[str, Any]:
+        if group == MOTORS:
+            return {"v_residual": float(features[0]), "w_residual": float(features[1])}
+        if group == ODOMETRY:
+            return {"drift_per_m": float(features[2])}
+        dead = np.flatnonzero(self.named[_UNITS_OF_GROUP[SONAR]])
+        return {"sonars": dead.tolist(), "silent_sweep": features[_SWEEPS][dead].tolist()}
+
+
+class HardwareMonitor(Module):
+    """Watches a robot's command, odometry, sonar and localization pose; writes a
+    ``failure`` once per fault onset: ``{"fault": "motors" | "sonar" | "odometry",
+    "probability", "at": time.time(), "detail"}``, and ``health`` (the probability
+    of normal running) each sample.
+
+    Untrained, it learns normal running from the first ``training_s`` seconds of
+    samples, then monitors; or it is given a trained model's state
+    (``NormalModel.state()``: ``means``, ``variances``, ``thresholds``, ``trained``).
+    A sample is taken when both a new odometry and a new pose have arrived (the
+    driver sends them together, every ``sample_s``)."""
+
+    command = Input(np.ndarray, shape=(2,), dtype="float64")     # v (m/s), w (rad/s)
+    odometry = Input(np.ndarray, shape=(3,), dtype="float64")
+    sonar = Input(np.ndarray, shape=(SONARS,), dtype="float64")
+    pose = Input(np.ndarray, shape=(3,), dtype="float64")         # localization (gps)
+    failure = Output(dict)
+    health = Output(float)
+
+    sample_s = 0.1
+    training_s = 120.0
+    quantile = 0.999             # of normal running's evidence, for the thresholds ...
+    margin = 10.0                # ... with this margin (nats)
+    fault_prior = 0.01
+    fault_breadth = 10.0
+    votes_needed = 3             # an alarm needs this many of ...
+    votes_of = 5                 # ... the last windows beyond the threshold
+    rearm = 50                   # windows within the threshold that lower an alarm
+    trained = False
+    means = np.zeros(0)
+    variances = np.zeros(0)
+    thresholds = np.zeros(0)
+    training = np.zeros((0, len(FEATURES)))        # the samples of normal running so far
+    training_informative = np.zeros((0, len(GROUPS)), dtype=bool)
+    collected = 0
+    running: dict = {}           # FaultMonitor.state(): the tracker's history, the votes
+    failures = 0
+    last_failure: dict = {}
+
+    def setup(self) -> None:
+        self._tracker = FeatureTracker(self.sample_s)
+        self._monitor: FaultMonitor | None = None
+        if self.trained:
+            monitor = self._start_monitoring(NormalModel(
+                np.asarray(self.means), np.asarray(self.variances),
+                np.asarray(self.thresholds), self.fault_prior, self.fault_breadth))
+            if self.running:
+                monitor.restore(self.running)
+            return
+        if self.running:
+            self._tracker.restore(self.running["tracker"])
+        wanted = math.ceil(self.training_s / self.sample_s - 1e-9)
+        if len(self.training) != wanted:        # first set up, or training_s was changed
+            kept = min(self.collected, wanted)
+            training = np.full((wanted, len(FEATURES)), np.nan)
+            informative = np.zeros((wanted, len(GROUPS)), dtype=bool)
+            training[:kept] = self.training[:kept]
+            informative[:kept] = self.training_informative[:kept]
+            self.training, self.training_informative = training, informative
+            self.collected = kept
+
+    def _start_monitoring(self, model: NormalModel) -> FaultMonitor:
+        self._monitor = FaultMonitor(model, self._tracker, self.votes_needed, self.votes_of,
+                                     self.rearm)
+        return self._monitor
+
+    def on_input(self, port: InputPort) -> None:
+        # one sample per odometry-and-pose pair, whichever of the two came last
+        if not (self.odometry.pending and self.pose.pending and self.sonar.has_value):
+            return
+        sample = (self.command.read(default=np.zeros(2)), self.odometry.read(),
+                  self.sonar.read(), self.pose.read())
+        if self._monitor is None:
+            self._learn(*sample)
+            return
+        failures = self._monitor.update(*sample)
+        self.running = self._monitor.state()
+        self.health.write(self._monitor.health)
+        for failure in failures:
+            failure["at"] = time.time()
+            self.failures += 1
+            self.last_failure = failure
+            self.failure.write(failure)
+
+    def _learn(self, *sample: np.ndarray) -> None:
+        features, informative = self._tracker.update(*sample)
+        self.running = {"tracker": self._tracker.state()}
+        self.training[self.collected] = features
+        self.training_informative[self.collected] = informative
+        self.collected += 1
+        if self.collected == len(self.training):
+            model = NormalModel.fit(self.training, self.training_informative, self.quantile,
+                                    self.margin, self.fault_prior, self.fault_breadth)
+            self.set_state(model.state())
+            self.training = np.zeros((0, len(FEATURES)))
+            self.training_informative = np.zeros((0, len(GROUPS)), dtype=bool)
+            self.collected = 0
+            self.running = self._start_monitoring(model).state()
+
+
+class Wanderer:
+    """A reactive wander-and-avoid controller on the sonar ring: the normal running
+    ``record_normal_running`` drives by default. Cruises, veers towards open space,
+    wanders at random, and turns on the spot away from anything close ahead."""
+
+    def __init__(self, seed: int = 0, cruise: float = 0.35, clearance: float = 0.7) -> None:
+        self.rng = np.random.default_rng(seed)
+        self.cruise, self.clearance = cruise, clearance
+        self.whim = 0.0              # the random part of the turn rate, a slow walk
+        self.escape = 0.0            # the way it turns on the spot, kept until clear
+
+    def __call__(self, sonar: np.ndarray) -> np.ndarray:
+        """The command (v m/s, w rad/s) for this sonar ring."""
+        # the 50-degree transducers guard the shoulders, which a corner may graze
+        ahead = min(float(sonar[2:6].min()), float(sonar[[1, 6]].min()) / 0.6)
+        left, right = float(sonar[0:2].min()), float(sonar[6:8].min())
+        if ahead < self.clearance:
+            if not self.escape:
+                self.escape = 0.8 if left >= right else -0.8
+            return np.array([0.0, self.escape])
+        self.escape = 0.0
+        self.whim = float(np.clip(self.whim + self.rng.normal(0.0, 0.1), -0.4, 0.4))
+        veer = 0.4 * (min(left, 2.0) - min(right, 2.0))
+        speed = self.cruise * min(1.0, (ahead - self.clearance) / 0.8 + 0.3)
+        return np.array([speed, float(np.clip(self.whim + veer, -1.0, 1.0))])
+
+
+def samples(world: World, robot: str, seconds: float,
+            controller: Callable[[np.ndarray], np.ndarray] | None = None,
+            sample_s: float = 0.1,
+            ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """Drive ``robot`` of an in-process ``world`` by ``controller`` (a ``Wanderer`` by
+    default) for ``seconds`` of simulated time, stepping the world by ``sample_s``;
+    yields each sample as (command since the last sample, odometry, sonar, pose), as
+    a ``FaultMonitor`` takes them. Faults injected between yields take effect in the
+    next step."""
+    body = world.robot(robot)
+    controller = controller or Wanderer()
+    command = np.zeros(2)
+    for _ in range(round(seconds / sample_s)):
+        sonar = np.asarray(body.sonar(), dtype=np.float64)
+        yield (command, np.array(body.odometry()), sonar, np.array(body.gps()))
+        command = np.asarray(controller(sonar), dtype=np.float64)
+        body.drive(float(command[0]), float(command[1]))
+        world.step(sample_s)
+
+
+def record_normal_running(world: World, robot: str, seconds: float,
+                          controller: Callable[[np.ndarray], np.ndarray] | None = None,
+                          tracker: FeatureTracker | None = None,
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """Features and informative flags (``NormalModel.fit``'s arguments) of ``seconds``
+    of ``robot`` running normally in ``world`` (see ``samples``)."""
+    tracker = tracker or FeatureTracker()
+    rows = [tracker.update(*sample)
+            for sample in samples(world, robot, seconds, controller, tracker.sample_s)]
+    return np.array([f for f, _ in rows]), np.array([i for _, i in rows])

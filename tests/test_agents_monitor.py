@@ -1,0 +1,178 @@
+"""``agents.monitor``: a hardware monitor trained on one robot's normal running in
+RAVE's lab, watching other runs of the lab's hardware robot (an emulator in a child
+process: every world is closed), driven by a ``Wanderer`` at 10 Hz of simulated time.
+Latencies are in simulated time, from the fault's injection to the sample on which
+the failure is raised."""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable
+from typing import Any
+
+import cloudpickle
+import numpy as np
+import pytest
+
+from agents.monitor import (
+    FEATURES,
+    GROUPS,
+    FaultMonitor,
+    FeatureTracker,
+    HardwareMonitor,
+    NormalModel,
+    Wanderer,
+    record_normal_running,
+    samples,
+)
+from pb3a.testing import ModuleHarness
+from rave import World
+
+LAB = "rave/worlds/lab.toml"
+ROBOT = "r1"                     # the lab's hardware robot
+SAMPLE_S = 0.1
+PORTS = ("command", "odometry", "sonar", "pose")     # a sample's order
+
+
+@pytest.fixture(scope="module")
+def model() -> NormalModel:
+    """Trained on 240 s of the lab's hardware robot wandering (seed 1)."""
+    with World.load(LAB, seed=1) as world:
+        features, informative = record_normal_running(world, ROBOT, 240.0, Wanderer(1))
+    return NormalModel.fit(features, informative)
+
+
+def watch(model: NormalModel, seed: int, seconds: float, fault: str | None = None,
+          at_s: float = 0.0, controller: Callable[[np.ndarray], np.ndarray] | None = None,
+          **params: Any) -> list[tuple[float, dict[str, Any]]]:
+    """(simulated time, failure) of each failure a ``FaultMonitor`` raises on ``seconds``
+    of the lab's hardware robot (world ``seed``), ``fault`` injected at ``at_s``."""
+    monitor, raised = FaultMonitor(model), []
+    with World.load(LAB, seed=seed) as world:
+        for tick, sample in enumerate(samples(world, ROBOT, seconds,
+                                              controller or Wanderer(seed))):
+            if fault and tick == round(at_s / SAMPLE_S):
+                world.robot(ROBOT).inject(fault, **params)
+            raised += [(round(tick * SAMPLE_S, 1), failure)
+                       for failure in monitor.update(*sample)]
+    return raised
+
+
+def test_another_run_of_normal_running_raises_nothing(model: NormalModel) -> None:
+    assert model.thresholds.shape == (len(GROUPS),) and model.means.shape == (len(FEATURES),)
+    assert watch(model, seed=2, seconds=150.0) == []
+
+
+@pytest.mark.parametrize("seed", [3, 4, 5])
+def test_a_motor_power_cut_is_diagnosed_within_half_a_second(model: NormalModel,
+                                                              seed: int) -> None:
+    raised = watch(model, seed, 35.0, "motors_off", at_s=30.0)
+    assert len(raised) == 1                         # none before, one for the onset
+    at, failure = raised[0]
+    assert failure["fault"] == "motors" and failure["probability"] > 0.9
+    assert 30.0 < at <= 30.5                        # measured: 0.3-0.4 s
+    residuals = failure["detail"]
+    assert min(residuals["v_residual"], residuals["w_residual"]) < -0.05   # it stopped
+
+
+@pytest.mark.parametrize("seed", [3, 5])
+def test_dead_transducers_are_named_once_the_robot_has_turned(model: NormalModel,
+                                                              seed: int) -> None:
+    raised = watch(model, seed, 60.0, "sonar_dead", at_s=30.0, sonars=[3, 4, 11])
+    assert {failure["fault"] for _, failure in raised} == {"sonar"}
+    assert all(failure["probability"] > 0.9 for _, failure in raised)
+    named = [failure["detail"]["sonars"] for _, failure in raised]
+    assert named[-1] == [3, 4, 11]                  # each failure names those so far
+    assert all(set(a) < set(b) for a, b in itertools.pairwise(named))
+    assert 30.0 < raised[0][0] <= 60.0              # measured: 12.8 s, 5.3 s (all: 9.9 s)
+    assert min(raised[-1][1]["detail"]["silent_sweep"]) > 2.5   # rad turned, no echo
+
+
+def test_a_biased_odometer_is_told_from_a_sound_one(model: NormalModel) -> None:
+    raised = watch(model, 3, 40.0, "odometry_bias", at_s=30.0, bias=0.05)
+    assert len(raised) == 1
+    at, failure = raised[0]
+    assert failure["fault"] == "odometry" and failure["probability"] > 0.9
+    assert 30.0 < at <= 35.0                        # measured: 4.5 s
+    assert failure["detail"]["drift_per_m"] > 0.01   # rad/m; injected 0.05
+
+
+class StillThenWander:
+    """Commands the robot to stand still for ``still_s``, then wanders."""
+
+    def __init__(self, still_s: float, seed: int) -> None:
+        self.still = round(still_s / SAMPLE_S)
+        self.wander = Wanderer(seed)
+
+    def __call__(self, sonar: np.ndarray) -> np.ndarray:
+        self.still -= 1
+        return np.zeros(2) if self.still >= 0 else self.wander(sonar)
+
+
+def test_a_robot_told_to_stand_still_gives_no_evidence_on_its_motors(
+        model: NormalModel) -> None:
+    raised = watch(model, 5, 15.0, "motors_off", at_s=2.0,
+                   controller=StillThenWander(10.0, seed=5))
+    assert [(failure["fault"]) for _, failure in raised] == ["motors"]
+    assert 10.0 < raised[0][0] <= 11.0      # once told to move (measured: 0.7 s after)
+
+
+def feed(harness: ModuleHarness, sample: tuple[np.ndarray, ...]) -> None:
+    for port, value in zip(PORTS, sample, strict=True):
+        harness.feed(port, value)
+
+
+def test_the_module_writes_one_failure_per_onset_and_carries_on_after_a_move(
+        model: NormalModel) -> None:
+    harness = ModuleHarness(HardwareMonitor, state=model.state())
+    written: list[tuple[float, dict[str, Any]]] = []
+    with World.load(LAB, seed=6) as world:
+        robot = world.robot(ROBOT)
+        for tick, sample in enumerate(samples(world, ROBOT, 40.0, Wanderer(6))):
+            at = round(tick * SAMPLE_S, 1)
+            if at in (10.0, 30.0):
+                robot.inject("motors_off")
+            elif at == 20.0:
+                robot.clear("motors_off")
+            elif at == 15.0:                        # moved mid-fault, state and all
+                state = cloudpickle.loads(cloudpickle.dumps(harness.state))
+                harness = ModuleHarness(HardwareMonitor, state=state)
+            before = len(harness.written["failure"])
+            feed(harness, sample)
+            written += [(at, failure) for failure in harness.written["failure"][before:]]
+    assert [(failure["fault"]) for _, failure in written] == ["motors", "motors"]
+    assert 10.0 < written[0][0] <= 10.5 and 30.0 < written[1][0] <= 30.5
+    assert all(isinstance(failure["at"], float) and failure["probability"] > 0.9
+               for _, failure in written)
+    health = harness.written["health"]
+    assert len(health) == 250 and min(health) < 0.01 and max(health) > 0.99
+    assert harness.state["failures"] == 2           # the count moved with the state
+
+
+def test_an_untrained_module_learns_normal_running_then_watches() -> None:
+    harness = ModuleHarness(HardwareMonitor, state={"training_s": 60.0})
+    tracker, features, informative = FeatureTracker(), [], []
+    with World.load(LAB, seed=7) as world:
+        for tick, sample in enumerate(samples(world, ROBOT, 70.0, Wanderer(7))):
+            if tick == 300:                         # moved while learning
+                state = cloudpickle.loads(cloudpickle.dumps(harness.state))
+                assert state["collected"] == 300 and not state["trained"]
+                harness = ModuleHarness(HardwareMonitor, state=state)
+            if tick < 600:
+                row, flags = tracker.update(*sample)
+                features.append(row)
+                informative.append(flags)
+            feed(harness, sample)
+            assert harness.state["trained"] == (tick >= 599)
+    fitted = NormalModel.fit(np.array(features), np.array(informative))
+    for name in ("means", "variances", "thresholds"):
+        np.testing.assert_allclose(harness.state[name], getattr(fitted, name), rtol=1e-12)
+    assert len(harness.written["health"]) == 100 and harness.written["failure"] == []
+
+
+def test_too_little_normal_running_is_refused() -> None:
+    tracker = FeatureTracker()
+    with World.load(LAB, seed=8) as world:
+        rows = [tracker.update(*sample) for sample in samples(world, ROBOT, 3.0)]
+    with pytest.raises(ValueError, match="fewer than 10 informative samples of odometry"):
+        NormalModel.fit(np.array([f for f, _ in rows]), np.array([i for _, i in rows]))
