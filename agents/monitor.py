@@ -136,6 +136,11 @@ class FeatureTracker:
         odometry_distance, odometry_turn = _forward_and_turn(self.last_odometry, odometry)
         pose_distance, pose_turn = _forward_and_turn(self.last_pose, pose)
         self.last_odometry[:], self.last_pose[:] = odometry, pose
+        if self.samples == 1:    # the first motion seen is what the commands gave so far:
+            # a tracker started on a robot already moving (another robot handed over)
+            # must not read its speed as a response to nothing
+            self.expected[:] = odometry_distance / self.sample_s, odometry_turn / self.sample_s
+            expected = self.expected.copy()
         self.motions[self.samples % len(self.motions)] = (
             odometry_distance / self.sample_s - expected[0],
             odometry_turn / self.sample_s - expected[1], *np.abs(expected))
@@ -364,7 +369,13 @@ class HardwareMonitor(Module):
     samples, then monitors; or it is given a trained model's state
     (``NormalModel.state()``: ``means``, ``variances``, ``thresholds``, ``trained``).
     A sample is taken when both a new odometry and a new pose have arrived (the
-    driver sends them together, every ``sample_s``)."""
+    driver sends them together, every ``sample_s``).
+
+    A pose that jumps by more than ``jump_m`` between two samples (no robot moves that
+    fast) means another robot feeds the monitor now: its driver was re-pointed, as
+    when a control system moves to a standby robot. The monitor then starts afresh on
+    the new robot (the model stays, the history and alarms go: they were the old
+    robot's), rather than read the jump as a fault (``robot_changes`` counts them)."""
 
     command = Input(np.ndarray, shape=(2,), dtype="float64")     # v (m/s), w (rad/s)
     odometry = Input(np.ndarray, shape=(3,), dtype="float64")
@@ -392,6 +403,8 @@ class HardwareMonitor(Module):
     running: dict = {}           # FaultMonitor.state(): the tracker's history, the votes
     failures = 0
     last_failure: dict = {}
+    jump_m = 1.0
+    robot_changes = 0
 
     def setup(self) -> None:
         self._tracker = FeatureTracker(self.sample_s)
@@ -426,6 +439,12 @@ class HardwareMonitor(Module):
             return
         sample = (self.command.read(default=np.zeros(2)), self.odometry.read(),
                   self.sonar.read(), self.pose.read())
+        last = self._tracker.last_pose
+        if np.isfinite(last).all() and math.dist(last[:2], sample[3][:2]) > self.jump_m:
+            self._tracker = FeatureTracker(self.sample_s)      # another robot: afresh
+            if self._monitor is not None:
+                self._start_monitoring(self._monitor.model)
+            self.robot_changes += 1
         if self._monitor is None:
             self._learn(*sample)
             return

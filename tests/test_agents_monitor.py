@@ -149,6 +149,29 @@ def test_the_module_writes_one_failure_per_onset_and_carries_on_after_a_move(
     assert harness.state["failures"] == 2           # the count moved with the state
 
 
+def handed_over(model: NormalModel, **settings: Any) -> ModuleHarness:
+    """A module fed 30 s of the lab's hardware robot, whose pose and odometry from 15 s
+    on are another robot's 9 m away (its driver re-pointed to a standby robot)."""
+    harness = ModuleHarness(HardwareMonitor, state={**model.state(), **settings})
+    away = np.array([9.0, 0.0, 0.0])
+    with World.load(LAB, seed=7) as world:
+        for tick, (command, odometry, sonar, pose) in enumerate(
+                samples(world, ROBOT, 30.0, Wanderer(7))):
+            if tick >= 150:
+                odometry, pose = odometry + away, pose + away
+            feed(harness, (command, odometry, sonar, pose))
+    return harness
+
+
+def test_a_monitor_handed_to_another_robot_starts_afresh_on_it(model: NormalModel) -> None:
+    harness = handed_over(model)
+    assert harness.written["failure"] == []
+    assert harness.state["robot_changes"] == 1
+    assert len(harness.written["health"]) == 300
+    # the same jump read as motion is a fault
+    assert handed_over(model, jump_m=100.0).written["failure"]
+
+
 def test_an_untrained_module_learns_normal_running_then_watches() -> None:
     harness = ModuleHarness(HardwareMonitor, state={"training_s": 60.0})
     tracker, features, informative = FeatureTracker(), [], []
