@@ -1,0 +1,358 @@
+"""``agents.explorer``: frontiers, plans, reflexes and the ``Explorer`` module, on
+hand-made maps and on RAVE worlds explored by a simulated robot.
+
+The worlds' maps come from a perfect sensor, not from the mapper: every tick, the
+cells within ``SENSOR_RANGE`` of the robot in plain sight (rays marched over the
+true grid) become free (0.1) or, where a ray stops, occupied (0.9).
+"""
+
+from __future__ import annotations
+
+import math
+import pickle
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from agents.explorer import (
+    Explorer,
+    FrontierExplorer,
+    FrontierPlanner,
+    frontiers,
+    hidden_frontiers,
+)
+from agents.grid import UNKNOWN, Grid
+from agents.map_truth import reachable, score, truth
+from pb3a.testing import ModuleHarness
+from rave import World, worldfile
+from rave.layers import WALL_RADIUS
+from rave.pioneer import RADIUS
+from rave.sonar import MAX_RANGE
+
+WORLDS = Path(__file__).resolve().parents[1] / "rave" / "worlds"
+SENSOR_RANGE = 3.5                                   # m
+RAYS = np.linspace(-math.pi, math.pi, 180, endpoint=False)
+FREE_P, OCCUPIED_P = np.float32(0.1), np.float32(0.9)
+TICK = 0.1                                           # s, the explorer's period
+TOUCH = RADIUS + WALL_RADIUS                         # the robot's centre this near a wall
+
+
+def _world_without_robots(name: str, seed: int = 1) -> World:
+    """The world of ``rave/worlds/<name>.toml`` without its robots (one is a hardware
+    robot, with an emulator process, that these tests do not need)."""
+    plan = worldfile.read(WORLDS / f"{name}.toml")
+    world = World(plan.size, seed, plan.name)
+    for wall in plan.walls:
+        world.add_wall(**wall)
+    for box in plan.boxes:
+        world.add_box(**box)
+    for polygon in plan.polygons:
+        world.add_polygon(**polygon)
+    return world
+
+
+def _reveal(probabilities: np.ndarray, occupied: np.ndarray, grid: Grid, pose: Any) -> None:
+    """What a perfect range sensor at ``pose`` shows, written into ``probabilities``."""
+    steps = np.arange(0.0, SENSOR_RANGE, grid.resolution / 3)
+    rows, cols = grid.cell(pose[0] + np.cos(RAYS)[:, None] * steps,
+                           pose[1] + np.sin(RAYS)[:, None] * steps)
+    inside = grid.inside(rows, cols)
+    rows, cols = np.where(inside, rows, 0), np.where(inside, cols, 0)
+    stopped = occupied[rows, cols] | ~inside
+    first = np.where(stopped.any(axis=1), stopped.argmax(axis=1), len(steps))
+    seen = np.arange(len(steps)) < first[:, None]
+    probabilities[rows[seen], cols[seen]] = FREE_P
+    hit = np.flatnonzero(first < len(steps))
+    hit = hit[inside[hit, first[hit]]]
+    probabilities[rows[hit, first[hit]], cols[hit, first[hit]]] = OCCUPIED_P
+
+
+def _distance_to_walls(x: float, y: float, segments: np.ndarray) -> float:
+    start, end = segments[:, 0:2], segments[:, 2:4]
+    along = end - start
+    t = np.clip(((x - start[:, 0]) * along[:, 0] + (y - start[:, 1]) * along[:, 1])
+                / (along ** 2).sum(axis=1), 0.0, 1.0)
+    return float(np.hypot(x - start[:, 0] - t * along[:, 0],
+                          y - start[:, 1] - t * along[:, 1]).min())
+
+
+@dataclass
+class Run:
+    """What happened while an ``Explorer`` drove a simulated robot."""
+
+    explorer: ModuleHarness
+    coverage: list[tuple[float, float]] = field(default_factory=list)  # (s, share), 5 s apart
+    closest: float = math.inf            # m: nearest the robot's centre came to a wall
+    done_at: float | None = None         # s
+    final_coverage: float = 0.0
+
+    def coverage_by(self, seconds: float) -> float:
+        return max((share for at, share in self.coverage if at <= seconds), default=0.0)
+
+
+def _explore(world: World, start: tuple[float, float, float], seconds: float,
+             sensed: Any = None, **state: Any) -> Run:
+    """Drive a simulated robot from ``start`` by an ``Explorer`` (with ``state``)
+    for ``seconds`` of simulated time, or until it is done, the map shown by a
+    perfect sensor of the obstacles of ``sensed`` (the world's by default)."""
+    grid = Grid.of(world.size)
+    occupied = truth(world if sensed is None else sensed, grid)
+    free_space = reachable(occupied, grid, start[:2])
+    robot = world.add_robot("explorer", start, backend="sim")
+    run = Run(ModuleHarness(Explorer, state={"size": list(world.size), **state}))
+    probabilities, segments = grid.blank(), world.segments()
+    for tick in range(round(seconds / TICK)):
+        pose = np.array(world.pose("explorer"))
+        _reveal(probabilities, occupied, grid, pose)
+        run.explorer.feed("map", probabilities)
+        run.explorer.feed("pose", pose)
+        run.explorer.feed("sonar", robot.sonar())
+        run.explorer.step()
+        if tick % 50 == 0:
+            run.coverage.append((world.time, score(probabilities, occupied, free_space).coverage))
+        if run.explorer.state["done"]:
+            run.done_at = world.time
+            break
+        robot.drive(*run.explorer.last("command"))
+        world.step(TICK)
+        run.closest = min(run.closest, _distance_to_walls(*world.pose("explorer")[:2], segments))
+    run.final_coverage = score(probabilities, occupied, free_space).coverage
+    return run
+
+
+# -- frontiers and plans on hand-made maps ---------------------------------------------------
+def _room(width: float = 6.0, height: float = 4.0) -> tuple[Grid, np.ndarray]:
+    """A map of a walled ``width`` x ``height`` m room, all known: free inside."""
+    grid = Grid(width, height)
+    probabilities = np.full(grid.shape, FREE_P)
+    probabilities[[0, -1], :] = probabilities[:, [0, -1]] = OCCUPIED_P
+    return grid, probabilities
+
+
+def test_frontiers_border_wide_unknown_areas_only() -> None:
+    _, probabilities = _room()
+    probabilities[10:30, 40:59] = UNKNOWN          # the east end, unseen: 380 cells
+    probabilities[20:23, 10:13] = UNKNOWN          # a pocket a sensor missed: 9 cells
+    classes = probabilities < 0.35
+    found = frontiers(classes, probabilities == UNKNOWN)
+    rows, cols = np.nonzero(found)
+    assert (cols == 39).sum() == 20                # the west edge of the unseen end
+    assert ((rows == 9) | (rows == 30)).sum() == 2 * 19   # and its north and south edges
+    assert not found[19:24, 9:14].any()            # no trip for the pocket
+    assert found.sum() == 20 + 2 * 19
+
+
+def test_hidden_frontiers_face_a_thin_wall_with_a_wide_unknown_behind() -> None:
+    _, probabilities = _room()
+    probabilities[1:-1, 31:59] = UNKNOWN           # beyond a wall at column 30
+    probabilities[1:-1, 30] = OCCUPIED_P
+    free, unknown = probabilities < 0.35, probabilities == UNKNOWN
+    occupied = probabilities > 0.65
+    assert not frontiers(free, unknown).any()      # the wall hides everything
+    rows, cols = np.nonzero(hidden_frontiers(free, occupied, unknown))
+    assert set(cols) == {29} and len(rows) == 38   # the cells along the wall's near side
+    probabilities[1:-1, 26:30] = OCCUPIED_P        # a thick wall is a wall
+    assert not hidden_frontiers(probabilities < 0.35, probabilities > 0.65, unknown).any()
+
+
+def test_a_plan_goes_through_the_doorway_keeping_clear_of_the_walls() -> None:
+    grid, probabilities = _room(8.0, 4.0)
+    probabilities[1:-1, 40] = OCCUPIED_P           # a wall at x = 4 m ...
+    probabilities[25:35, 40] = FREE_P              # ... with a 1 m doorway, y 2.5-3.5 m
+    probabilities[1:-1, 60:79] = UNKNOWN           # the east end, unseen
+    planner = FrontierPlanner(grid)
+    plan = planner.plan(probabilities, (1.0, 1.0, 0.0))
+    assert plan.target is not None and not plan.hidden
+    assert plan.target[0] == pytest.approx(5.95)   # the free cells next to the unknown
+    x, y, clearance = plan.path.T
+    assert x[-1] >= plan.target[0] - 1.0           # ends within ``approach`` of it
+    through = np.flatnonzero(np.abs(x - 4.05) < 0.06)
+    assert through.size and (np.abs(y[through] - 3.0) <= 0.1).all()   # the doorway's middle
+    assert (clearance >= planner.lethal).all()     # clear of every wall
+    length = np.hypot(np.diff(x), np.diff(y)).sum()
+    assert length <= plan.cost <= (1 + planner.proximity_cost) * length
+
+
+def test_past_a_doorway_a_sonar_map_narrows_it_squeezes_through_or_keeps_to_its_trail() -> None:
+    grid, probabilities = _room(8.0, 4.0)
+    probabilities[1:-1, 40] = OCCUPIED_P           # a wall at x = 4 m ...
+    probabilities[17:23, 40] = FREE_P              # ... its doorway drawn 0.6 m wide
+    probabilities[1:-1, 55:79] = UNKNOWN           # unseen from x = 5.5 m on
+    planner, robot = FrontierPlanner(grid), (1.0, 2.0, 0.0)
+    squeezed = planner.plan(probabilities, robot)
+    assert squeezed.target[0] == pytest.approx(5.45) and not squeezed.hidden
+    assert planner.squeezed <= squeezed.path[:, 2].min() < planner.lethal
+    probabilities[17:23, 40] = OCCUPIED_P          # echoes drawn right across it
+    closed = planner.plan(probabilities, robot)
+    assert closed.target is None and closed.regions == 1
+    trail = np.zeros(grid.shape, dtype=bool)
+    trail[20, 10:50] = True                        # ... where the robot once went through
+    through = planner.plan(probabilities, robot, trail=trail)
+    assert through.target[0] == pytest.approx(5.45)
+    at_the_doorway = np.abs(through.path[:, 0] - 4.05) < 0.3
+    assert np.allclose(through.path[at_the_doorway, 1], 2.05)    # along the trail
+
+
+def test_when_a_wall_hides_every_frontier_it_goes_to_look_at_the_wall() -> None:
+    grid, probabilities = _room(8.0, 4.0)
+    probabilities[1:-1, 40] = OCCUPIED_P           # a wall at x = 4 m, doorway unseen
+    probabilities[1:-1, 41:79] = UNKNOWN
+    planner = FrontierPlanner(grid)
+    plan = planner.plan(probabilities, (1.0, 2.0, 0.0))
+    assert plan.hidden and plan.regions == 0 and plan.target[0] == pytest.approx(3.95)
+    assert FrontierPlanner(grid, look_behind_walls=False).plan(
+        probabilities, (1.0, 2.0, 0.0)).target is None
+
+
+def test_at_a_frontier_that_stays_it_looks_at_it_then_sets_it_aside() -> None:
+    grid, probabilities = _room(8.0, 4.0)
+    probabilities[1:-1, 40] = OCCUPIED_P           # a wall hiding everything beyond
+    probabilities[1:-1, 41:79] = UNKNOWN
+    explorer, pose = FrontierExplorer(grid, look_time=2.0), (3.4, 2.0, math.pi)
+    v, w = explorer.step(probabilities, pose, None, TICK)
+    first = list(explorer.target)
+    assert first[0] == pytest.approx(3.95) and abs(first[1] - 2.0) < 0.3
+    assert v == 0.0 and abs(w) == explorer.max_turn          # turns round to face it
+    for _ in range(round(explorer.look_time / TICK)):        # the map stays the same
+        explorer.step(probabilities, pose, None, TICK)
+    assert [entry[:2] for entry in explorer.blacklist] == [first]
+    explorer.step(probabilities, pose, None, TICK)           # and it plans without it
+    assert np.hypot(explorer.target[0] - first[0], explorer.target[1] - first[1]) > 1.0
+    assert explorer.stuck == 0
+
+
+def test_a_blacklisted_frontier_is_no_target() -> None:
+    grid, probabilities = _room()
+    probabilities[29:39, 20:30] = UNKNOWN          # two unseen 1 m squares on the north
+    probabilities[29:39, 48:58] = UNKNOWN          # wall, the first nearer the robot
+    planner = FrontierPlanner(grid, blacklist_radius=1.6)
+    robot = (1.0, 1.0, 0.0)
+    near = planner.plan(probabilities, robot)
+    assert near.regions == 2 and 1.8 < near.target[0] < 3.2
+    far = planner.plan(probabilities, robot, blacklist=np.array([near.target]))
+    assert far.regions == 1 and far.target[0] > 4.6
+    none = planner.plan(probabilities, robot, blacklist=np.array([near.target, far.target]))
+    assert none.target is None and none.regions == 0
+
+
+def test_with_nothing_left_to_see_it_is_done_and_stands() -> None:
+    grid, probabilities = _room()
+    explorer = FrontierExplorer(grid)
+    assert explorer.step(probabilities, (3.0, 2.0, 0.0), None, TICK) == (0.0, 0.0)
+    assert explorer.done and explorer.plans == 1 and explorer.target == []
+    with pytest.raises(ValueError, match="plan on the map's grid"):
+        FrontierExplorer(Grid(5.0, 4.0)).step(probabilities, (3.0, 2.0, 0.0), None, TICK)
+
+
+def test_sonar_reflexes_slow_down_and_back_off_before_an_unmapped_obstacle() -> None:
+    grid, probabilities = _room()
+    probabilities[1:-1, 45:59] = UNKNOWN           # a frontier straight ahead
+    pose, clear = (1.5, 2.0, 0.0), np.full(16, MAX_RANGE)
+
+    def command(front: float) -> tuple[float, float]:
+        sonar = clear.copy()
+        sonar[2:6] = front                         # the front transducers, -30..+30 deg
+        explorer = FrontierExplorer(grid)
+        explorer.step(probabilities, pose, clear, TICK)     # plans, in the open
+        return explorer.step(probabilities, pose, sonar, TICK)
+
+    (free_v, _), (slowed_v, _), (close_v, close_w) = command(5.0), command(0.4), command(0.12)
+    assert free_v == pytest.approx(0.4, abs=0.05)
+    assert 0.0 < slowed_v < 0.75 * free_v
+    assert close_v < 0.0 and close_w != 0.0        # backs off, turning away
+
+
+# -- exploring worlds --------------------------------------------------------------------------
+def test_it_explores_the_lab_without_touching_a_wall() -> None:
+    world = _world_without_robots("lab")
+    try:
+        run = _explore(world, (1.0, 1.5, 0.0), seconds=300.0)
+    finally:
+        world.close()
+    # measured: 85 % by 85 s, done at 138 s with 98 %, never nearer a wall than 0.46 m
+    assert run.coverage_by(120.0) >= 0.85
+    assert run.done_at is not None and run.done_at <= 240.0
+    assert run.final_coverage >= 0.95
+    assert run.closest > TOUCH + 0.05
+    assert run.explorer.last("command").tolist() == [0.0, 0.0]
+    assert run.explorer.state["stuck"] == 0
+
+
+def test_it_explores_the_arena_round_its_obstacles() -> None:
+    world = _world_without_robots("arena")
+    try:
+        run = _explore(world, (1.0, 4.0, 0.0), seconds=200.0)
+    finally:
+        world.close()
+    # measured: 85 % by 50 s, done at 70 s with 99 %, never nearer a wall than 0.46 m
+    assert run.coverage_by(80.0) >= 0.85
+    assert run.done_at is not None and run.done_at <= 120.0
+    assert run.final_coverage >= 0.95
+    assert run.closest > TOUCH + 0.05
+
+
+def test_a_frontier_it_cannot_reach_is_set_aside_instead_of_pushed_at() -> None:
+    # a corridor closed at x = 3 m by a glass pane the map never shows: the sensor
+    # sees through it, the sonar echoes off it
+    world = World((8.0, 2.0), seed=1, name="glass")
+    for start, end in (((0, 0), (8, 0)), ((8, 0), (8, 2)), ((8, 2), (0, 2)), ((0, 2), (0, 0))):
+        world.add_wall(start, end)
+    sensed = world.describe()
+    world.add_wall((3.0, 0.0), (3.0, 2.0))
+    try:
+        run = _explore(world, (1.0, 1.0, 0.0), seconds=60.0, sensed=sensed)
+        x = world.pose("explorer")[0]
+    finally:
+        world.close()
+    state = run.explorer.state
+    assert state["stuck"] >= 1 and state["blacklist"]
+    assert all(entry[0] > 3.0 for entry in state["blacklist"])    # the frontiers past it
+    assert run.done_at is not None and run.done_at <= 40.0          # measured: 21 s
+    assert x < 3.0 - RADIUS and run.closest > TOUCH + 0.05      # measured: 0.35 m
+    assert run.explorer.last("command").tolist() == [0.0, 0.0]
+
+
+def test_after_a_move_it_carries_on_toward_the_same_target() -> None:
+    world = _world_without_robots("arena")
+    try:
+        original = _explore(world, (1.0, 4.0, 0.0), seconds=20.0).explorer
+        assert original.state["target"] and not original.state["done"]
+        plans_before = original.state["plans"]
+        # the state goes to another process (pickled) and the module starts again there
+        moved = ModuleHarness(Explorer, state=pickle.loads(pickle.dumps(original.state)))
+        assert moved.state["target"] == original.state["target"]
+        np.testing.assert_array_equal(moved.state["path"], original.state["path"])
+        grid = Grid.of(world.size)
+        occupied, probabilities = truth(world, grid), grid.blank()
+        robot = world.robot("explorer")
+        for _ in range(100):
+            pose = np.array(world.pose("explorer"))
+            _reveal(probabilities, occupied, grid, pose)
+            for harness in (original, moved):
+                harness.feed("map", probabilities)
+                harness.feed("pose", pose)
+                harness.feed("sonar", robot.sonar())
+                harness.step()
+            np.testing.assert_array_equal(moved.last("command"), original.last("command"))
+            robot.drive(*moved.last("command"))
+            world.step(TICK)
+    finally:
+        world.close()
+    assert moved.state["plans"] == original.state["plans"] > plans_before
+    assert moved.state["target"] == original.state["target"]
+
+
+def test_without_a_map_or_a_pose_it_stands() -> None:
+    explorer = ModuleHarness(Explorer, state={"size": [6.0, 4.0]})
+    explorer.step()
+    explorer.feed("pose", np.array([1.0, 2.0, 0.0]))
+    explorer.step()
+    assert [c.tolist() for c in explorer.written["command"]] == [[0.0, 0.0], [0.0, 0.0]]
+    _, probabilities = _room()
+    probabilities[:, 45:59] = UNKNOWN
+    explorer.feed("map", probabilities)
+    explorer.step()
+    assert explorer.last("command")[0] != 0.0 or explorer.last("command")[1] != 0.0
