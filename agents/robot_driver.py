@@ -13,7 +13,10 @@ each command then drives the robot, advances the world by ``lockstep_s`` simulat
 seconds and answers with the new readings, so the world moves exactly as fast as the
 controller decides. A controller that waits for a first reading gets one every
 ``period`` until commands come. ``clock`` carries the world's time of each reading,
-for controllers that must keep time by the world rather than the wall clock.
+for controllers that must keep time by the world rather than the wall clock, and
+``applied`` the command that moved the robot up to those readings (the one before
+this period's: a reading right after a command does not show it yet), for monitors
+that compare commanded with measured motion.
 """
 
 from __future__ import annotations
@@ -36,6 +39,8 @@ class RobotDriver(Driver):
     odometry = Output(np.ndarray, shape=(3,), dtype="float64")
     gps = Output(np.ndarray, shape=(3,), dtype="float64")
     clock = Output(float)        # the world's time of the readings (s)
+    applied = Output(np.ndarray, shape=(2,), dtype="float64")   # what drove the robot up to
+                                                                # these readings (v, w)
     camera = Output(list)
     period = 0.1
     with_camera = False          # the camera costs a request more per period
@@ -46,6 +51,7 @@ class RobotDriver(Driver):
 
     def setup(self) -> None:
         self._read_at = 0.0      # (monotonic) when readings were last written
+        self._in_force = np.zeros(2)     # the command the robot runs on now
 
     def step(self) -> None:
         if self.lockstep_s > 0 and time.monotonic() - self._read_at < self.period:
@@ -60,13 +66,17 @@ class RobotDriver(Driver):
     def _serve(self, command: np.ndarray | None, advance: float) -> None:
         """Apply ``command`` (none: the last one holds), advance a lock-step world,
         and write the readings; a robot that does not answer is counted."""
+        before = self._in_force
         try:
             if not self.enabled:
                 self.request("stop")
+                self._in_force = np.zeros(2)
             elif command is not None:
                 self.request("drive", v=float(command[0]), w=float(command[1]))
+                self._in_force = np.array(command, dtype=np.float64)
             if advance:
                 self.request("advance", dt=advance)
+                before = self._in_force          # (the world moved under the new one)
             answer = self.request("sensors")
             blobs = self.request("camera") if self.with_camera else None
         except (RuntimeError, OSError) as exc:
@@ -75,6 +85,7 @@ class RobotDriver(Driver):
             return
         sensed = readings(answer)
         self._read_at = time.monotonic()
+        self.applied.write(before)
         self.sonar.write(sensed["sonar"])
         self.odometry.write(sensed["odometry"])
         self.gps.write(sensed["gps"])

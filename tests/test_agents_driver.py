@@ -57,6 +57,10 @@ def test_each_period_it_drives_by_the_latest_command_and_writes_the_readings(rob
     assert ops(robot) == ["sensors", "drive", "sensors"]
     assert robot.requests[1][1] == {"v": 0.4, "w": 0.1}
     assert len(harness.written["sonar"]) == len(harness.written["clock"]) == 2
+    # the readings right after a command still show the motion of the one before
+    assert [list(a) for a in harness.written["applied"]] == [[0.0, 0.0], [0.0, 0.0]]
+    harness.step()
+    assert list(harness.last("applied")) == [0.4, 0.1]
 
 
 def test_a_disabled_driver_keeps_its_robot_standing(robot) -> None:
@@ -82,3 +86,4 @@ def test_in_lockstep_every_command_advances_the_world_once(robot) -> None:
     harness.step()                   # commands come: the period adds nothing
     assert ops(robot)[1:] == ["drive", "advance", "sensors"] * 3
     assert harness.written["clock"] == [0.0, 0.25, 0.5, 0.75]
+    assert [list(a) for a in harness.written["applied"][1:]] == [[0.3, 0.0]] * 3

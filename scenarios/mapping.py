@@ -1,0 +1,301 @@
+"""Fault-tolerant mapping: a robot maps a lab until its motors fail; its whole control
+system then moves, map and all, to a standby robot's on-board computer and maps on.
+
+The world's first robot (an emulated hardware robot) runs the control system
+(``scenarios/mapping.toml``: driver, occupancy mapper, frontier explorer, hardware
+monitor) on its on-board computer, a node behind its own node controller; the second
+robot, also emulated hardware, stands by with a node of its own. After a while the
+scenario cuts the first robot's motor power (``motors_off``, through its robot
+server, as ``rave fault`` would). The monitor, which learnt normal running in the
+first ``TRAINING_S`` of the mission, reports the failure; the remedy agent (case-based reasoning)
+moves the control macro to the standby robot's node and re-points its driver at that
+robot; mapping goes on from the map the mapper carried.
+
+Measured in the run: detection time (fault to the monitor's failure event), hand-off
+time (that event to the first map update made from the standby robot's readings),
+and the map against the world's ground truth (accuracy of the classified cells,
+coverage of the reachable free space) before the fault, at the hand-off and at the end.
+
+Run it: ``pb3a scenario mapping [--quick] [--world W] [--seed N] [--out DIR]`` (or
+``python -m scenarios.mapping``). It prints the report as JSON and writes
+``mapping.json`` and ``mapping.png`` to DIR.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agents.grid import Grid
+from agents.map_truth import reachable, score, truth
+from pb3a import Input, InputPort, Module, System
+from pb3a.cli.log_output import show_logs
+from scenarios.lab import Lab, wait_until, world_file
+
+CONFIG = Path(__file__).with_name("mapping.toml")
+PHASES = {"full": (150.0, 150.0), "quick": (45.0, 30.0)}   # s: mapping before the fault,
+                                                            # and after it
+TRAINING_S = {"full": 60.0, "quick": 25.0}    # of them, the monitor's training first
+POSE_EVERY_S = 0.5                            # how often the robots' true paths are sampled
+HANDOFF_NEAR_M = 1.0                          # an update this near the standby robot is its
+GOALS = {"handoff_s": 0.5, "accuracy": 0.9}
+
+
+class MappingRecorder(Module):
+    """Keeps what the report needs: a map snapshot every ``snapshot_s``, every map
+    update (when, where), and every failure and remedy."""
+
+    map = Input(np.ndarray)
+    updated = Input(np.ndarray, shape=(4,), dtype="float64", policy="queue:100000")
+    failure = Input(dict, policy="queue:1000")
+    remedy = Input(dict, policy="queue:1000")
+    snapshot_s = 2.0
+    snapshots: list[tuple[float, np.ndarray]] = []     # (unix time, map)
+    updates: list[list[float]] = []                    # [unix time, x, y, heading]
+    failures: list[dict[str, Any]] = []
+    remedies: list[dict[str, Any]] = []
+
+    def on_input(self, port: InputPort) -> None:
+        if port.name == "map":
+            now = time.time()
+            latest = port.read()
+            if not self.snapshots or now - self.snapshots[-1][0] >= self.snapshot_s:
+                self.snapshots.append((now, np.array(latest)))
+        elif port.name == "updated":
+            self.updates.extend(row.tolist() for row in port.read_all())
+        elif port.name == "failure":
+            self.failures.extend(port.read_all())
+        else:
+            self.remedies.extend(port.read_all())
+
+
+def configuration(lab: Lab, robots: tuple[str, str], training_s: float,
+                  cases: Path) -> System:
+    """``mapping.toml`` with this run's addresses, world size, the monitor's training
+    time, and the file the remedy agent learns its cases into."""
+    data = tomllib.loads(CONFIG.read_text())
+    first, standby = robots
+    data["nodes"]["r1"]["address"] = lab.nodes["r1"].address
+    data["nodes"]["r2"]["address"] = lab.nodes["r2"].address
+    control = data["macros"]["control"]["modules"]
+    control["driver"]["state"]["resource"] = lab.robots[first]
+    for name in ("mapper", "explorer"):
+        control[name].setdefault("state", {})["size"] = list(lab.world.size)
+    control["monitor"].setdefault("state", {})["training_s"] = training_s
+    data["modules"]["remedy"]["state"]["standby_resource"] = lab.robots[standby]
+    data["modules"]["remedy"]["state"]["cases_path"] = str(cases)
+    return System.from_dict(data, source=str(CONFIG))
+
+
+def run(out: Path, world: str = "lab", seed: int = 1, quick: bool = False) -> dict[str, Any]:
+    """One run; what happened, for ``report``. The remedy agent's learned cases go to
+    ``out``/remedy-cases.toml."""
+    before, after = PHASES["quick" if quick else "full"]
+    path = world_file(world)
+    robots = _two_robots(path)
+    with Lab(path, seed=seed, onboard=("r1", "r2"), hardware=robots) as lab:
+        size, described = lab.world.size, lab.world.describe()
+        with configuration(lab, robots, TRAINING_S["quick" if quick else "full"],
+                           out / "remedy-cases.toml").launch() as running:
+            started = time.time()
+            paths: dict[str, list[tuple[float, ...]]] = {name: [] for name in robots}
+            _follow(lab, paths, time.monotonic() + before)
+            lab.robot(robots[0], "inject", fault="motors_off", params={})
+            fault_at = time.time()
+            standby_at = lab.poses()[robots[1]]
+            _follow(lab, paths, time.monotonic() + after)
+            recorder = running.state("recorder")
+            remedy = running.state("remedy")
+            final = running.state("control/mapper")
+            where = running.where("control/mapper")
+    return {"world": path.stem, "seed": seed, "quick": quick, "robots": robots,
+            "size": size, "described": described, "started": started,
+            "fault_at": fault_at, "standby_at": standby_at, "ended": time.time(),
+            "paths": paths, "recorder": recorder, "remedy": remedy,
+            "final_map": _probabilities(final["log_odds"]), "resolution": final["resolution"],
+            "mapper_node_at_end": where}
+
+
+def _two_robots(path: Path) -> tuple[str, str]:
+    """The world's first two robots: the one that maps, and the standby."""
+    with path.open("rb") as file:
+        declared = [robot["name"] for robot in tomllib.load(file).get("robots", [])]
+    if len(declared) < 2:
+        raise ValueError(f"the mapping scenario needs a world with two robots; {path} "
+                         f"declares {len(declared)}")
+    return declared[0], declared[1]
+
+
+def _follow(lab: Lab, paths: dict[str, list[tuple[float, ...]]], until: float) -> None:
+    """Sample every robot's true pose until ``until`` (monotonic)."""
+    while time.monotonic() < until:
+        now = time.time()
+        for name, pose in lab.poses().items():
+            if name in paths:
+                paths[name].append((now, *pose))
+        wait_until(min(until, time.monotonic() + POSE_EVERY_S))
+
+
+def _probabilities(log_odds: np.ndarray) -> np.ndarray:
+    return (1.0 - 1.0 / (1.0 + np.exp(np.asarray(log_odds, dtype=np.float64)))).astype(np.float32)
+
+
+def report(record: dict[str, Any]) -> dict[str, Any]:
+    """The figures of one run, and whether they meet the goals."""
+    grid = Grid.of(record["size"], record["resolution"])
+    occupied = truth(record["described"], grid)
+    free_space = np.zeros(grid.shape, dtype=bool)
+    for name in record["robots"]:
+        free_space |= reachable(occupied, grid, tuple(record["paths"][name][0][1:3]))
+    recorder, started, fault_at = record["recorder"], record["started"], record["fault_at"]
+
+    def quality(probabilities: np.ndarray) -> dict[str, float]:
+        figures = score(probabilities, occupied, free_space)
+        return {"accuracy": round(figures.accuracy, 4), "coverage": round(figures.coverage, 4)}
+
+    over_time = [{"t": round(at - started, 2), **quality(snapshot)}
+                 for at, snapshot in recorder["snapshots"]]
+    detected = next((f for f in recorder["failures"]
+                     if f.get("fault") == "motors" and f["at"] >= fault_at), None)
+    false_alarms = [f for f in recorder["failures"] if f["at"] < fault_at]
+    handoff_at = None
+    if detected is not None:
+        sx, sy = record["standby_at"][:2]
+        handoff_at = next((u[0] for u in recorder["updates"] if u[0] > detected["at"]
+                           and math.hypot(u[1] - sx, u[2] - sy) < HANDOFF_NEAR_M), None)
+    before = [s for at, s in recorder["snapshots"] if at <= fault_at]
+    at_handoff = [s for at, s in recorder["snapshots"] if handoff_at and at <= handoff_at]
+    figures: dict[str, Any] = {
+        "scenario": "mapping", "world": record["world"], "seed": record["seed"],
+        "quick": record["quick"], "robots": list(record["robots"]),
+        "fault_at_s": round(fault_at - started, 2),
+        "detection_s": round(detected["at"] - fault_at, 3) if detected else None,
+        "detected_fault": detected, "false_alarms": len(false_alarms),
+        "handoff_s": round(handoff_at - detected["at"], 3) if handoff_at else None,
+        "remedies": recorder["remedies"],
+        "mapper_node_at_end": record["mapper_node_at_end"],
+        "map": {"before_fault": quality(before[-1]) if before else None,
+                "at_handoff": quality(at_handoff[-1]) if at_handoff else None,
+                "end": quality(record["final_map"])},
+        "map_quality_over_time": over_time,
+    }
+    maps = figures["map"]
+    figures["goals"] = {
+        "handoff_s <= 0.5": figures["handoff_s"] is not None
+        and figures["handoff_s"] <= GOALS["handoff_s"],
+        "accuracy >= 0.9 (before the fault and at the end)": all(
+            maps[k] is not None and maps[k]["accuracy"] >= GOALS["accuracy"]
+            for k in ("before_fault", "end")),
+        "coverage grows after the hand-off": maps["at_handoff"] is not None
+        and maps["end"]["coverage"] > maps["at_handoff"]["coverage"] + 0.01,
+    }
+    return figures
+
+
+def plot(record: dict[str, Any], figures: dict[str, Any], path: Path) -> None:
+    """The true map and the learnt ones with both robots' paths; quality over time."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    grid = Grid.of(record["size"], record["resolution"])
+    occupied = truth(record["described"], grid)
+    extent = (0, grid.width, 0, grid.height)
+    started, fault_at = record["started"], record["fault_at"]
+    before = [s for at, s in record["recorder"]["snapshots"] if at <= fault_at]
+    fig = plt.figure(figsize=(13, 8))
+    panels = [("ground truth", np.where(occupied, 1.0, 0.0)),
+              (f"map at the fault ({figures['fault_at_s']:.0f} s)",
+               before[-1] if before else grid.blank()),
+              ("map at the end", record["final_map"])]
+    colours = ("tab:red", "tab:blue")
+    for column, (title, image) in enumerate(panels):
+        axis = fig.add_subplot(2, 3, column + 1)
+        axis.imshow(image, origin="lower", extent=extent, cmap="gray_r", vmin=0, vmax=1)
+        for colour, name in zip(colours, record["robots"], strict=True):
+            samples = [p for p in record["paths"][name]
+                       if column == 2 or column == 0 or p[0] <= fault_at]
+            if samples:
+                xs, ys = [p[1] for p in samples], [p[2] for p in samples]
+                axis.plot(xs, ys, color=colour, linewidth=1, label=name)
+                axis.plot(xs[0], ys[0], "o", color=colour, markersize=4)
+        if column > 0:
+            stuck = next((p for p in record["paths"][record["robots"][0]] if p[0] >= fault_at),
+                         None)
+            if stuck:
+                axis.plot(stuck[1], stuck[2], "x", color="black", markersize=9,
+                          label="motors cut")
+        axis.set_title(title, fontsize=10)
+        axis.set_xticks([])
+        axis.set_yticks([])
+    fig.axes[2].legend(loc="upper right", fontsize=7)
+    quality = fig.add_subplot(2, 1, 2)
+    over = figures["map_quality_over_time"]
+    quality.plot([q["t"] for q in over], [q["accuracy"] for q in over], label="accuracy")
+    quality.plot([q["t"] for q in over], [q["coverage"] for q in over], label="coverage")
+    quality.axvline(fault_at - started, color="black", linestyle=":", label="motors cut")
+    if figures["detection_s"] is not None:
+        quality.axvline(fault_at - started + figures["detection_s"], color="tab:red",
+                        linestyle="--", label="failure detected")
+    if figures["handoff_s"] is not None:
+        quality.axvline(fault_at - started + figures["detection_s"] + figures["handoff_s"],
+                        color="tab:green", linestyle="-.", label="mapping from the standby")
+    quality.axhline(GOALS["accuracy"], color="0.7", linewidth=0.8)
+    quality.set_ylim(0, 1.02)
+    quality.set_xlabel("time (s)")
+    quality.set_ylabel("share")
+    quality.legend(loc="lower right", fontsize=8)
+    quality.set_title(f"{figures['world']}, seed {figures['seed']}: detection "
+                      f"{figures['detection_s']} s, hand-off {figures['handoff_s']} s",
+                      fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="mapping", description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true",
+                        help=f"shorter phases ({PHASES['quick'][0]:.0f} s of mapping, then "
+                             f"{PHASES['quick'][1]:.0f} s after the fault)")
+    parser.add_argument("--world", default="lab",
+                        help="a bundled world (lab, arena) or a world file (default lab)")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--out", default=".", help="directory for mapping.json and .png")
+    args = parser.parse_args(argv)
+    show_logs()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        record = run(out, args.world, args.seed, args.quick)
+    except ValueError as exc:
+        print(f"mapping: {exc}", file=sys.stderr)
+        return 2
+    figures = report(record)
+    plot(record, figures, out / "mapping.png")
+    figures["plot"] = str(out / "mapping.png")
+    (out / "mapping.json").write_text(json.dumps(figures, indent=2, default=_plain))
+    print(json.dumps({k: v for k, v in figures.items() if k != "map_quality_over_time"},
+                     indent=2, default=_plain))
+    return 0
+
+
+def _plain(value: Any) -> Any:
+    """What JSON cannot say directly: numpy scalars and arrays."""
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
