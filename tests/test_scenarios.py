@@ -1,13 +1,15 @@
-"""The bundled applications: the self-migration experiment, shortened."""
+"""The bundled applications, shortened (``--quick``): self-migration, and fault-tolerant
+mapping on two worlds and seeds, with their figures checked against the goals."""
 
 from __future__ import annotations
 
+import json
 import os
 
 import pytest
 
 from pb3a.cli.main import main
-from scenarios import self_migration
+from scenarios import mapping, self_migration
 
 
 @pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="one CPU per node needs two CPUs")
@@ -25,4 +27,35 @@ def test_the_agent_moves_compute_off_the_loaded_node_while_it_is_loaded() -> Non
 
 def test_the_scenario_command_names_the_scenarios(capsys) -> None:
     assert main(["scenario", "no-such-thing"]) == 2
-    assert "the scenarios: self-migration" in capsys.readouterr().err
+    assert "the scenarios: mapping, self-migration" in capsys.readouterr().err
+
+
+def _check_mapping(figures: dict) -> None:
+    assert figures["false_alarms"] == 0, figures["remedies"]
+    assert figures["detected_fault"]["fault"] == "motors"
+    assert figures["detection_s"] < 1.5
+    assert figures["mapper_node_at_end"] == "r2"          # the control system moved
+    assert [r["action"] for r in figures["remedies"] if r["event"] == "chosen"] == [
+        "move_macro"]
+    assert all(figures["goals"].values()), (figures["goals"], figures["map"],
+                                            figures["handoff_s"])
+
+
+@pytest.mark.timeout(300)
+def test_mapping_hands_the_control_system_over_to_the_standby_robot(tmp_path) -> None:
+    _check_mapping(mapping.report(mapping.run(tmp_path, "lab", seed=1, quick=True)))
+
+
+@pytest.mark.timeout(300)
+def test_mapping_from_the_command_line_on_another_world_and_seed(tmp_path, capsys) -> None:
+    assert main(["scenario", "mapping", "--quick", "--world", "arena", "--seed", "7",
+                 "--out", str(tmp_path)]) == 0
+    figures = json.loads((tmp_path / "mapping.json").read_text())
+    _check_mapping(figures)
+    assert (tmp_path / "mapping.png").stat().st_size > 10_000
+    assert '"handoff_s"' in capsys.readouterr().out
+
+
+def test_mapping_names_the_worlds_when_given_one_it_does_not_know(tmp_path, capsys) -> None:
+    assert main(["scenario", "mapping", "--world", "moon", "--out", str(tmp_path)]) == 2
+    assert "no world 'moon': the bundled worlds are arena, lab" in capsys.readouterr().err
