@@ -1,0 +1,226 @@
+"""agents.learner: the reactive policy learner learns to reach goals on the simulated
+robot, what it learnt gives the hardware robot a head start, it recovers from
+collisions, and as a module it carries on from its pickled state."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import cloudpickle
+import numpy as np
+import pytest
+
+from agents.learner import (
+    COLLISION,
+    SUCCESS,
+    Parameters,
+    PolicyLearner,
+    ReactiveLearner,
+    success_rate,
+)
+from pb3a.testing import ModuleHarness
+from rave import World
+
+PERIOD = 0.25                       # s: one decision per world step
+# the room's corners, 1 m in: the box in the middle stands across both diagonals
+GOALS = [[1.0, 1.0], [6.0, 4.0], [6.0, 1.0], [1.0, 4.0]]
+TRAINING = 80                       # episodes on the simulated robot
+TRIAL = 12                          # episodes on the hardware robot, each way
+CLEAR = np.full(16, 5.0)            # nothing within range
+MIRRORED = [7, 6, 5, 4, 3, 2, 1, 0, 15, 14, 13, 12, 11, 10, 9, 8]   # ring, left for right
+
+
+def room(backend: str, seed: int) -> World:
+    """A 7 x 5 m room with a 1.2 x 1.0 m box in the middle and a robot "r" (close it)."""
+    world = World(size=(7.0, 5.0), seed=seed)
+    corners = [(0.0, 0.0), (7.0, 0.0), (7.0, 5.0), (0.0, 5.0)]
+    for start, end in zip(corners, corners[1:] + corners[:1], strict=True):
+        world.add_wall(start, end)
+    world.add_box(center=(3.5, 2.5), size=(1.2, 1.0))
+    world.add_robot("r", (1.0, 1.0, 0.0), backend=backend)
+    return world
+
+
+def drive(learner: ReactiveLearner, world: World, episodes: int) -> float:
+    """Run ``episodes`` more episodes, one decision per ``PERIOD`` of simulated time;
+    the simulated seconds they took."""
+    robot, start = world.robot("r"), world.time
+    stop = len(learner.episodes) + episodes
+    while len(learner.episodes) < stop:
+        command, _ = learner.decide(robot.sonar(), np.asarray(robot.gps()), world.time)
+        robot.drive(*command)
+        world.step(PERIOD)
+    return world.time - start
+
+
+@pytest.fixture(scope="module")
+def trained() -> tuple[ReactiveLearner, float]:
+    """A learner after ``TRAINING`` episodes on the simulated robot, and the simulated
+    seconds they took."""
+    learner = ReactiveLearner(GOALS, seed=1)
+    with room("sim", seed=1) as world:
+        seconds = drive(learner, world, TRAINING)
+    return learner, seconds
+
+
+def test_the_learner_comes_to_reach_most_goals_on_the_simulated_robot(
+        trained: tuple[ReactiveLearner, float]) -> None:
+    learner, seconds = trained
+    first, last = success_rate(learner.episodes[:10]), success_rate(learner.episodes, last=20)
+    assert last >= 0.8 and last >= first + 0.25, (first, last)
+    assert seconds < 40 * 60                     # of simulated time
+    assert learner.epsilon < 0.05                # exploration has died down
+
+
+def test_a_table_learnt_in_simulation_gives_the_hardware_robot_a_head_start(
+        trained: tuple[ReactiveLearner, float]) -> None:
+    learnt, _ = trained
+    rates = {}
+    for name, start in (("transferred", {"q": learnt.q.copy(), "epsilon": learnt.epsilon}),
+                        ("fresh", {})):
+        learner = ReactiveLearner(GOALS, seed=2, **start)
+        with room("hardware", seed=2) as world:     # the same noise for both
+            drive(learner, world, TRIAL)
+        rates[name] = success_rate(learner.episodes)
+    assert rates["transferred"] >= 0.5 and rates["transferred"] >= rates["fresh"] + 0.25, rates
+
+
+def test_after_a_collision_the_robot_backs_up_turns_away_and_goes_for_the_next_goal() -> None:
+    learner = ReactiveLearner([[5.0, 0.0], [0.0, 5.0]], seed=3)
+    pose = np.zeros(3)
+    learner.decide(CLEAR, pose, 0.0)
+    blocked = CLEAR.copy()
+    blocked[[2, 3]] = 0.2                        # front-left: the nearer side is the left
+    command, finished = learner.decide(blocked, pose, 0.25)
+    assert finished is not None and finished.outcome == COLLISION and finished.steps == 1
+    assert learner.q.min() < 0                   # the penalty was learnt
+    assert command.tolist() == [-0.2, 0.0]       # backing up while the bumper is blocked
+    command, _ = learner.decide(blocked, pose, 0.5)
+    assert command.tolist() == [-0.2, 0.0]
+    cleared = CLEAR.copy()
+    cleared[[2, 3]] = 0.6                        # the bumper reads clear again
+    command, _ = learner.decide(cleared, pose, 0.75)
+    assert command[0] == 0.0 and command[1] < 0  # turning right, away from the left
+    now, turned = 0.75, 0
+    while learner.recovery:
+        now += PERIOD
+        command, _ = learner.decide(CLEAR, pose, now)
+        turned += 1
+    assert 2 <= turned <= 6                      # 0.5-1.5 s, then the policy's action
+    assert learner.underway["steps"] == 1 and learner.goal_index == 1
+    assert [outcome for outcome, _, _ in learner.episodes] == [COLLISION]
+
+
+def test_a_situation_is_which_sectors_are_near_and_where_the_goal_lies() -> None:
+    learner = ReactiveLearner(GOALS)
+    here = np.array([2.0, 2.0, math.pi / 2])                  # facing +y
+    ahead, left, behind, right = ([2.0, 4.0], [0.0, 2.0], [2.0, 0.0], [4.0, 2.0])
+    clear = [learner.situation(CLEAR, here, np.array(goal))
+             for goal in (ahead, left, behind, right)]
+    assert clear == [120, 122, 124, 126]         # every sector clear (15), bearing 0-7
+    near = CLEAR.copy()
+    near[3] = 0.5                                # front-left (2, 3) near: 15 - 2
+    assert learner.situation(near, here, np.array(ahead)) == 13 * 8
+    near[[0, 7]] = 0.69                          # left and right too: 15 - 2 - 1 - 8
+    assert learner.situation(near, here, np.array(ahead)) == 4 * 8
+
+
+def test_a_learner_rebuilt_from_its_state_decides_as_the_one_that_carried_on() -> None:
+    rng = np.random.default_rng(7)
+    inputs = [(rng.uniform(0.25, 5.0, 16), rng.uniform(0.0, 7.0, 3)) for _ in range(80)]
+    learner = ReactiveLearner(GOALS, seed=7)
+    for step, (sonar, pose) in enumerate(inputs[:40]):
+        learner.decide(sonar, pose, step * PERIOD)
+    rebuilt = ReactiveLearner(GOALS, seed=7, **copy.deepcopy(learner.state()))
+    for step, (sonar, pose) in enumerate(inputs[40:], 40):
+        carried_on, _ = learner.decide(sonar, pose, step * PERIOD)
+        assert np.array_equal(rebuilt.decide(sonar, pose, step * PERIOD)[0], carried_on)
+    assert np.array_equal(rebuilt.q, learner.q) and rebuilt.episodes == learner.episodes
+    assert COLLISION in [outcome for outcome, _, _ in learner.episodes]   # recoveries too
+
+
+def test_what_is_learnt_of_a_situation_is_learnt_of_its_mirror_image() -> None:
+    learner = ReactiveLearner([[3.0, 1.0]], Parameters(alpha=0.5), seed=4)
+    sonar = CLEAR.copy()
+    sonar[[0, 1]] = 0.5                          # an obstacle on the left
+    pose = np.array([0.0, 0.0, 0.0])
+    learner.decide(sonar, pose, 0.0)
+    situation, action = learner.underway["state"], learner.underway["action"]
+    learner.decide(np.full(16, 0.2), pose, 0.25)                      # a collision
+    mirror = learner.situation(sonar[MIRRORED], pose, np.array([3.0, -1.0]))
+    v, w = learner.parameters.actions[action]
+    mirror_action = learner.parameters.actions.index((v, -w))
+    assert mirror != situation
+    assert learner.q[mirror, mirror_action] == learner.q[situation, action] < 0
+    assert np.count_nonzero(learner.q) == 2
+
+
+def test_nothing_is_learnt_across_a_long_pause_nor_when_learning_is_off() -> None:
+    learner = ReactiveLearner([[3.0, 0.0]], seed=5)
+    pose = np.zeros(3)
+    learner.decide(CLEAR, pose, 0.0)
+    learner.decide(CLEAR, np.array([0.3, 0.0, 0.0]), 5.0)      # a migration, say
+    assert not learner.q.any() and learner.underway["steps"] == 2
+    learner.q[:] = np.random.default_rng(5).normal(size=learner.q.shape)
+    table, epsilon, rng = learner.q.copy(), learner.epsilon, learner.rng.bit_generator.state
+    for step in range(20):                       # the robot is carried to the goal
+        learner.decide(CLEAR, np.array([0.15 * step, 0.0, 0.0]), 5.25 + step * PERIOD,
+                       learn=False)
+    assert learner.episodes[0][0] == SUCCESS
+    assert np.array_equal(learner.q, table) and learner.epsilon == epsilon
+    assert learner.rng.bit_generator.state == rng
+
+
+def test_parameters_and_table_are_checked() -> None:
+    assert Parameters.of({"thresholds": [0.5, 1.0]}).thresholds == (0.5, 1.0)
+    assert Parameters.of({"thresholds": [0.5, 1.0]}).states == 3 ** 4 * 8
+    with pytest.raises(ValueError, match=r"unknown learner parameter.*'alfa'"):
+        Parameters.of({"alfa": 0.1})
+    with pytest.raises(ValueError, match=r"shape \(4, 3\) does not fit"):
+        ReactiveLearner(GOALS, q=np.zeros((4, 3)))
+    with pytest.raises(ValueError, match="mirror each other"):
+        ReactiveLearner(GOALS, Parameters(actions=((0.3, 0.0), (0.0, 1.0))))
+    with pytest.raises(ValueError, match="transducers 0-15"):
+        Parameters.of({"sectors": [[0, 1], [16]]})
+    with pytest.raises(ValueError, match="at least one goal"):
+        ReactiveLearner([])
+
+
+def test_the_module_commands_reports_episodes_and_carries_on_from_its_pickled_state() -> None:
+    # goals 2 m ahead and behind; a gap in wall-clock time is not what is tested here
+    state = {"goals": [[2.0, 0.0], [0.0, 0.0]], "seed": 6, "parameters": {"max_gap": 3600.0}}
+    harness = ModuleHarness(PolicyLearner, state=state)
+    harness.step()
+    assert harness.written["command"] == []                 # nothing sensed yet
+    assert harness.state["q"].shape == (128, 3)             # made at setup
+    harness.feed("sonar", CLEAR)
+    for x in (0.0, 0.5, 1.0):
+        harness.feed("pose", np.array([x, 0.0, 0.0]))
+        harness.step()
+    assert len(harness.written["command"]) == 3 and harness.written["episode"] == []
+    assert harness.last("command").shape == (2,)
+    harness.feed("pose", np.array([1.8, 0.0, 0.0]))        # within 0.4 m of the goal
+    harness.step()
+    (episode,) = harness.written["episode"]
+    assert episode["success"] and episode["index"] == 0 and episode["steps"] == 3
+    assert episode["goal"] == (2.0, 0.0) and episode["epsilon"] < 0.3
+
+    # mid-episode, the state goes through cloudpickle as it does in a migration
+    restored = ModuleHarness(PolicyLearner,
+                             state=cloudpickle.loads(cloudpickle.dumps(harness.state)))
+    rng = np.random.default_rng(6)
+    for _ in range(30):
+        sonar, pose = rng.uniform(0.4, 5.0, 16), rng.uniform(0.5, 1.5, 3)
+        for each in (harness, restored):
+            each.feed("sonar", sonar)
+            each.feed("pose", pose)
+            each.step()
+        assert np.array_equal(restored.last("command"), harness.last("command"))
+    assert np.array_equal(restored.state["q"], harness.state["q"])
+    carried_on, going_on = harness.state["underway"], restored.state["underway"]
+    assert going_on["started"] == carried_on["started"]             # the same episode
+    assert going_on["steps"] == carried_on["steps"] > 30
+
+    harness.close()                                         # the robot is left standing
+    assert harness.last("command").tolist() == [0.0, 0.0]
