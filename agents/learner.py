@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from pb3a import Input, Module, Output
+from pb3a import Input, InputPort, Module, Output
 
 SUCCESS, COLLISION, TIMEOUT = "success", "collision", "timeout"
 EPSILON = 0.3        # the exploration rate an untrained learner starts with
@@ -321,25 +321,37 @@ def _frozen(value: Any) -> Any:
 
 
 class PolicyLearner(Module):
-    """Learns to reach ``goals`` while avoiding obstacles, one decision every ``period``.
+    """Learns to reach ``goals`` while avoiding obstacles, one decision every
+    ``decision_s`` of the world's time.
 
-    Feed it the robot's ``sonar`` and its localization ``pose`` (a ``RobotDriver``'s
-    ``gps``); link ``command`` to the driver's. ``episode`` gets a dict at the end of
-    every episode: index, outcome, success, steps, seconds, goal, epsilon, at
-    (``time.time()``). Set ``learning`` False to run the learnt policy greedily with
-    no updates. After a migration the episode under way goes on toward its goal; the
-    one transition that spans the move is not learnt from (``Parameters.max_gap``).
+    Feed it the robot's ``sonar``, its localization ``pose`` and the world's ``clock``
+    (a ``RobotDriver``'s ``sonar``, ``gps`` and ``clock``); link ``command`` to the
+    driver's. It decides on the first reading at least ``decision_s`` after its last
+    decision, by the world's clock, not the wall clock: against a world served in
+    lock-step (the driver's ``lockstep_s`` equal to ``decision_s``) every reading is
+    a decision and the world moves only as fast as the learner decides; against a
+    robot in real time it decides every ``decision_s``. ``episode`` gets a dict at the
+    end of every episode: index, outcome, success, steps, seconds (world time),
+    goal, epsilon, at (``time.time()``). Set ``learning`` False to run the learnt
+    policy greedily with no updates.
+
+    After a migration the episode under way goes on toward its goal; the one
+    transition that spans the move is not learnt from. Moved to another robot, it
+    reads another world's clock: a clock that goes back, or jumps by more than
+    ``Parameters.max_gap``, carries the episode under way over to it.
     """
 
     sonar = Input(np.ndarray, shape=(16,), dtype="float64")
     pose = Input(np.ndarray, shape=(3,), dtype="float64")
+    clock = Input(float)             # the world's time of the readings (s)
     command = Output(np.ndarray, shape=(2,), dtype="float64")
     episode = Output(dict)
-    period = 0.25                    # s: the decision period
+    decision_s = 0.2                 # world s between decisions
     goals: list[list[float]] = []    # [[x, y], ...] in the world's frame, visited in turn
     learning = True
     parameters: dict[str, Any] = {}  # overrides of ``Parameters``' defaults
     seed = 0
+    decided_at = -math.inf           # world time of the last decision
     # what it has learnt and where it is (see ``ReactiveLearner``)
     q = np.zeros((0, 0))
     trace = np.zeros((0, 0))
@@ -354,20 +366,37 @@ class PolicyLearner(Module):
         # made here, goals, parameters and table are checked before the first decision
         vars(self).update(self._learner().state())
 
-    def step(self) -> None:
-        if not (self.sonar.has_value and self.pose.has_value):
+    def on_input(self, port: InputPort) -> None:
+        if port.name != "clock" or not (self.sonar.has_value and self.pose.has_value):
             return
-        # Rebuilt from the state at every decision (tens of microseconds a period), so
-        # that state set while running (an agent turning ``learning`` off, a new
-        # ``epsilon`` or ``goals``) counts from the next decision.
+        now = float(port.read())
+        if self.decided_at <= now < self.decided_at + self.decision_s - 1e-6:
+            return                           # not yet (a clock that went back: another world)
+        # Rebuilt from the state at every decision (tens of microseconds), so that state
+        # set while running (an agent turning ``learning`` off, a new ``epsilon`` or
+        # ``goals``) counts from the next decision.
         learner = self._learner()
-        command, finished = learner.decide(self.sonar.read(), self.pose.read(), time.time(),
+        self._carry_over(learner, now)
+        command, finished = learner.decide(self.sonar.read(), self.pose.read(), now,
                                            learn=self.learning)
         vars(self).update(learner.state())
+        self.decided_at = now
         self.command.write(command)
         if finished is not None:
             self.episode.write({**asdict(finished), "success": finished.outcome == SUCCESS,
                                 "epsilon": self.epsilon, "at": time.time()})
+
+    def _carry_over(self, learner: ReactiveLearner, now: float) -> None:
+        """If the clock is another world's, move the episode under way (and a recovery
+        manoeuvre) onto it, and learn nothing from the transition across."""
+        underway = learner.underway
+        gap = now - underway.get("at", now)
+        if 0 <= gap <= learner.parameters.max_gap:
+            return
+        underway.update(started=underway["started"] + gap, at=now, state=-1)
+        for key in ("since", "until"):
+            if key in learner.recovery:
+                learner.recovery[key] += gap
 
     def teardown(self) -> None:
         self.command.write(np.zeros(2))      # the robot stands while the learner is away

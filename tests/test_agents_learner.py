@@ -188,39 +188,49 @@ def test_parameters_and_table_are_checked() -> None:
 
 
 def test_the_module_commands_reports_episodes_and_carries_on_from_its_pickled_state() -> None:
-    # goals 2 m ahead and behind; a gap in wall-clock time is not what is tested here
-    state = {"goals": [[2.0, 0.0], [0.0, 0.0]], "seed": 6, "parameters": {"max_gap": 3600.0}}
+    # goals 2 m ahead and behind; decisions by the world's clock, every 0.2 s of it
+    state = {"goals": [[2.0, 0.0], [0.0, 0.0]], "seed": 6}
     harness = ModuleHarness(PolicyLearner, state=state)
-    harness.step()
+    harness.feed("clock", 0.0)
     assert harness.written["command"] == []                 # nothing sensed yet
     assert harness.state["q"].shape == (128, 3)             # made at setup
     harness.feed("sonar", CLEAR)
-    for x in (0.0, 0.5, 1.0):
+    for tick, x in enumerate((0.0, 0.5, 1.0)):
         harness.feed("pose", np.array([x, 0.0, 0.0]))
-        harness.step()
+        harness.feed("clock", 0.2 * tick)
+        harness.feed("clock", 0.2 * tick + 0.1)              # a reading between decisions
     assert len(harness.written["command"]) == 3 and harness.written["episode"] == []
     assert harness.last("command").shape == (2,)
     harness.feed("pose", np.array([1.8, 0.0, 0.0]))        # within 0.4 m of the goal
-    harness.step()
+    harness.feed("clock", 0.6)
     (episode,) = harness.written["episode"]
     assert episode["success"] and episode["index"] == 0 and episode["steps"] == 3
+    assert episode["seconds"] == pytest.approx(0.6)          # world time
     assert episode["goal"] == (2.0, 0.0) and episode["epsilon"] < 0.3
 
     # mid-episode, the state goes through cloudpickle as it does in a migration
     restored = ModuleHarness(PolicyLearner,
                              state=cloudpickle.loads(cloudpickle.dumps(harness.state)))
     rng = np.random.default_rng(6)
-    for _ in range(30):
+    for tick in range(30):
         sonar, pose = rng.uniform(0.4, 5.0, 16), rng.uniform(0.5, 1.5, 3)
         for each in (harness, restored):
             each.feed("sonar", sonar)
             each.feed("pose", pose)
-            each.step()
+            each.feed("clock", 0.8 + 0.2 * tick)
         assert np.array_equal(restored.last("command"), harness.last("command"))
     assert np.array_equal(restored.state["q"], harness.state["q"])
     carried_on, going_on = harness.state["underway"], restored.state["underway"]
     assert going_on["started"] == carried_on["started"]             # the same episode
-    assert going_on["steps"] == carried_on["steps"] > 30
+    assert going_on["steps"] == carried_on["steps"] == 31     # (its first at 0.6 s)
+
+    # moved to a robot in another world, whose clock reads 5 s: the episode goes on there
+    q_before, started = restored.state["q"].copy(), going_on["started"]
+    restored.feed("clock", 5.0)
+    moved = restored.state["underway"]
+    assert moved["steps"] == 32 and moved["at"] == 5.0
+    assert moved["started"] == pytest.approx(started + 5.0 - (0.8 + 0.2 * 29))
+    assert np.array_equal(restored.state["q"], q_before)        # nothing learnt across
 
     harness.close()                                         # the robot is left standing
     assert harness.last("command").tolist() == [0.0, 0.0]
