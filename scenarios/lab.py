@@ -84,21 +84,25 @@ class NodeControllerProcess:
 
 
 class Lab:
-    """A served world (``rate`` simulated seconds per second), its robot servers, and
-    a node controller per name in ``onboard``. ``hardware`` names robots to serve by
-    the emulated hardware back end whatever the world file says."""
+    """A served world (``rate`` simulated seconds per second, or in ``lockstep``), its
+    robot servers, and a node controller per name in ``onboard``. ``add`` places more
+    robots (name: pose); ``hardware`` names robots to serve by the emulated hardware
+    back end whatever the world file says."""
 
     def __init__(self, world: str | Path, *, seed: int = 0, onboard: tuple[str, ...] = (),
-                 hardware: tuple[str, ...] = (), rate: float = 1.0) -> None:
+                 hardware: tuple[str, ...] = (), rate: float = 1.0, lockstep: bool = False,
+                 add: dict[str, tuple[float, float, float]] | None = None) -> None:
         self.world = World.load(world_file(str(world)), seed=seed)
         self.world_server: WorldServer | None = None
         self.robot_servers: RobotServers | None = None
         self.nodes: dict[str, NodeControllerProcess] = {}
         self._clients: dict[str, ControlClient] = {}
         try:
+            for name, pose in (add or {}).items():
+                self.world.add_robot(name, pose, color="blue")
             for name in hardware:
                 self.world.robot(name).swap("hardware")
-            self.world_server = WorldServer(self.world, rate=rate)
+            self.world_server = WorldServer(self.world, rate=rate, lockstep=lockstep)
             self.robot_servers = RobotServers(self.world_server.address, list(self.world.robots))
             for name in onboard:
                 self.nodes[name] = NodeControllerProcess(name)

@@ -4,7 +4,8 @@ system then moves, map and all, to a standby robot's on-board computer and maps 
 The world's first robot (an emulated hardware robot) runs the control system
 (``scenarios/mapping.toml``: driver, occupancy mapper, frontier explorer, hardware
 monitor) on its on-board computer, a node behind its own node controller; the second
-robot, also emulated hardware, stands by with a node of its own. After a while the
+robot, also emulated hardware, stands by with a node of its own (a world with one
+robot gets a standby placed as far from it as its free space allows). After a while the
 scenario cuts the first robot's motor power (``motors_off``, through its robot
 server, as ``rave fault`` would). The monitor, which learnt normal running in the
 first ``TRAINING_S`` of the mission, reports the failure; the remedy agent (case-based reasoning)
@@ -33,11 +34,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 
 from agents.grid import Grid
 from agents.map_truth import reachable, score, truth
 from pb3a import Input, InputPort, Module, System
 from pb3a.cli.log_output import show_logs
+from rave import World
 from scenarios.lab import Lab, wait_until, world_file
 
 CONFIG = Path(__file__).with_name("mapping.toml")
@@ -46,6 +49,7 @@ PHASES = {"full": (150.0, 150.0), "quick": (45.0, 30.0)}   # s: mapping before t
 TRAINING_S = {"full": 60.0, "quick": 25.0}    # of them, the monitor's training first
 POSE_EVERY_S = 0.5                            # how often the robots' true paths are sampled
 HANDOFF_NEAR_M = 1.0                          # an update this near the standby robot is its
+CLEARANCE_M = 0.6                             # a standby robot placed by the scenario keeps this
 GOALS = {"handoff_s": 0.5, "accuracy": 0.9}
 
 
@@ -100,8 +104,8 @@ def run(out: Path, world: str = "lab", seed: int = 1, quick: bool = False) -> di
     ``out``/remedy-cases.toml."""
     before, after = PHASES["quick" if quick else "full"]
     path = world_file(world)
-    robots = _two_robots(path)
-    with Lab(path, seed=seed, onboard=("r1", "r2"), hardware=robots) as lab:
+    robots, added = place_robots(path)
+    with Lab(path, seed=seed, onboard=("r1", "r2"), hardware=robots, add=added) as lab:
         size, described = lab.world.size, lab.world.describe()
         with configuration(lab, robots, TRAINING_S["quick" if quick else "full"],
                            out / "remedy-cases.toml").launch() as running:
@@ -124,14 +128,30 @@ def run(out: Path, world: str = "lab", seed: int = 1, quick: bool = False) -> di
             "mapper_node_at_end": where}
 
 
-def _two_robots(path: Path) -> tuple[str, str]:
-    """The world's first two robots: the one that maps, and the standby."""
-    with path.open("rb") as file:
-        declared = [robot["name"] for robot in tomllib.load(file).get("robots", [])]
-    if len(declared) < 2:
-        raise ValueError(f"the mapping scenario needs a world with two robots; {path} "
-                         f"declares {len(declared)}")
-    return declared[0], declared[1]
+def place_robots(path: Path) -> tuple[tuple[str, str], dict[str, tuple[float, float, float]]]:
+    """The robot that maps and the standby: the world's first two robots. A world with
+    only one gets a standby ("standby") placed where it is furthest from the first
+    while keeping ``CLEARANCE_M`` from every obstacle; a world with none is refused."""
+    with World.load(path) as world:
+        described = world.describe()
+        grid = Grid.of(world.size, 0.1)
+    declared = list(described["robots"])
+    if not declared:
+        raise ValueError(f"the mapping scenario needs a world with a robot; {path} declares "
+                         "none (add a [[robots]] entry)")
+    if len(declared) >= 2:
+        return (declared[0], declared[1]), {}
+    first = described["robots"][declared[0]]["pose"]
+    occupied = truth(described, grid)
+    roomy = (ndimage.distance_transform_edt(~occupied) * grid.resolution >= CLEARANCE_M) \
+        & reachable(occupied, grid, first[:2])
+    xs, ys = grid.centers()
+    far = np.where(roomy, np.hypot(xs - first[0], ys - first[1]), -1.0)
+    row, col = np.unravel_index(np.argmax(far), far.shape)
+    if far[row, col] < 0:
+        raise ValueError(f"no room for a standby robot in {path}: add a second [[robots]] "
+                         "entry")
+    return (declared[0], "standby"), {"standby": (float(xs[row, col]), float(ys[row, col]), 0.0)}
 
 
 def _follow(lab: Lab, paths: dict[str, list[tuple[float, ...]]], until: float) -> None:

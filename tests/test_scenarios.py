@@ -58,4 +58,4 @@ def test_mapping_from_the_command_line_on_another_world_and_seed(tmp_path, capsy
 
 def test_mapping_names_the_worlds_when_given_one_it_does_not_know(tmp_path, capsys) -> None:
     assert main(["scenario", "mapping", "--world", "moon", "--out", str(tmp_path)]) == 2
-    assert "no world 'moon': the bundled worlds are arena, lab" in capsys.readouterr().err
+    assert "no world 'moon': the bundled worlds are arena, lab, room" in capsys.readouterr().err
