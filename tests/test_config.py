@@ -731,3 +731,10 @@ def test_a_description_read_by_a_program_and_filled_in_becomes_a_system() -> Non
     data["links"].append({"from": "nowhere.out", "to": "scale.x"})
     problems = System.from_dict(data, source="pipeline, filled in").check()
     assert any(p.startswith("pipeline, filled in") and "nowhere" in p for p in problems), problems
+
+
+def test_a_plan_names_the_modules_its_classes_live_in_for_nodes_to_preload() -> None:
+    plan = System.load(PIPELINE).plan()
+    assert plan.code.preload == ("examples.pipeline",)
+    macro_plan = System("m").add("twice", "parts_cfg:Twice").plan()
+    assert macro_plan.code.preload == ("parts_cfg",)

@@ -23,6 +23,7 @@ system declares none). Problems name the file (or ``system 'name'``) and the ent
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 from pb3a.config import checks
@@ -96,8 +97,9 @@ class _Planner:
         if problems:
             return None, problems
         timeout = float(spec.timeout) if spec.timeout is not None else None
-        return Plan(spec.name, nodes, modules, [link for _, link in links], self.code,
-                    timeout), []
+        preload = tuple(sorted({m.cls.__module__ for m in modules.values()} - {"__main__"}))
+        return Plan(spec.name, nodes, modules, [link for _, link in links],
+                    dataclasses.replace(self.code, preload=preload), timeout), []
 
     # -- the system's own tables ------------------------------------------
     def check_system(self) -> dict[str, NodeSpec]:

@@ -21,10 +21,15 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class CodeSources:
-    """Directories put first on the import path, and module servers asked last."""
+    """Directories put first on the import path, and module servers asked last; and the
+    Python modules the configuration's classes live in (``preload``), which a node
+    imports once, in the process its workers are forked from, so that a worker started
+    later (a migration's destination, a restart, a spawn) does not import them in the
+    critical path."""
 
     paths: tuple[str, ...] = ()
     module_servers: tuple[str, ...] = ()
+    preload: tuple[str, ...] = ()
 
     def install(self, key: ClusterKey | None = None) -> None:
         """Make this process import from these sources (idempotent)."""

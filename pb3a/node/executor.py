@@ -91,6 +91,8 @@ class Executor:
         self.workers = WorkerPool(
             WorkerSettings(cpus, checkpoint_s, log_level, code or CodeSources()),
             self._notice, self._died)
+        if code is not None:                # (a node share learns it later: configure)
+            self.workers.warm()
 
     def configure(self, *, checkpoint_s: float, log_level: int, code: CodeSources,
                   epoch: int) -> None:
@@ -99,6 +101,7 @@ class Executor:
         settings.checkpoint_s, settings.log_level = checkpoint_s, log_level
         settings.code = code
         self.epoch = epoch
+        self.workers.warm()
 
     @property
     def bridge(self) -> Bridge:

@@ -22,7 +22,7 @@ import time
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass, field
-from multiprocessing import reduction
+from multiprocessing import forkserver, reduction
 from typing import TYPE_CHECKING, Any
 
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
@@ -39,7 +39,7 @@ log = logging.getLogger("pb3a.executor")
 REQUEST_TIMEOUT = 10.0
 
 _context = multiprocessing.get_context("forkserver")
-_context.set_forkserver_preload(["pb3a.worker.process", "numpy", "cloudpickle"])
+PRELOAD = ("pb3a.worker.process", "numpy", "cloudpickle")
 
 
 @dataclass
@@ -89,6 +89,17 @@ class WorkerPool:
         self._wake_r, self._wake_w = socket.socketpair()
         self._monitor = threading.Thread(target=self._watch, name="pb3a-monitor", daemon=True)
         self._monitor.start()
+
+    def warm(self) -> None:
+        """Start the forkserver now, in the background, with the configuration's modules
+        imported (``settings.code.preload``): a node that has no modules yet (one that
+        modules will move to) would otherwise pay for it in the first migration's
+        critical path. One forkserver serves a process: the first pool to start it
+        chooses what it preloads; a module that cannot be imported there, such as
+        served code, is skipped."""
+        _context.set_forkserver_preload([*PRELOAD, *self.settings.code.preload])
+        threading.Thread(target=forkserver.ensure_running, name="pb3a-forkserver",
+                         daemon=True).start()
 
     def __getitem__(self, key: str) -> WorkerHandle:
         return self.handles[key]
