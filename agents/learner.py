@@ -332,8 +332,8 @@ class PolicyLearner(Module):
     a decision and the world moves only as fast as the learner decides; against a
     robot in real time it decides every ``decision_s``. ``episode`` gets a dict at the
     end of every episode: index, outcome, success, steps, seconds (world time),
-    goal, epsilon, at (``time.time()``). Set ``learning`` False to run the learnt
-    policy greedily with no updates.
+    goal, epsilon, at (``time.time()``), clock (the world's time at its end). Set
+    ``learning`` False to run the learnt policy greedily with no updates.
 
     After a migration the episode under way goes on toward its goal; the one
     transition that spans the move is not learnt from. Moved to another robot, it
@@ -384,7 +384,7 @@ class PolicyLearner(Module):
         self.command.write(command)
         if finished is not None:
             self.episode.write({**asdict(finished), "success": finished.outcome == SUCCESS,
-                                "epsilon": self.epsilon, "at": time.time()})
+                                "epsilon": self.epsilon, "at": time.time(), "clock": now})
 
     def _carry_over(self, learner: ReactiveLearner, now: float) -> None:
         """If the clock is another world's, move the episode under way (and a recovery

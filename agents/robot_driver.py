@@ -2,6 +2,8 @@
 
 It lives in ``agents/`` rather than ``rave/`` because it is a PB3A module: RAVE's
 simulator core does not depend on PB3A, and the driver is where the two meet. It
+imports nothing of RAVE (it speaks to the robot server's port), so a worker that
+takes it in, as when a control system migrates, does not load the simulator. It
 talks to the robot's server (``rave start``) through its resource port, so the
 controller behind its ports can run on any node; re-pointing ``resource`` moves it
 to another robot while it runs (the old one is stopped first). Setting ``enabled`` to
@@ -27,7 +29,6 @@ from typing import Any
 import numpy as np
 
 from pb3a import Driver, Input, InputPort, Output
-from rave.server import readings
 
 
 class RobotDriver(Driver):
@@ -83,7 +84,8 @@ class RobotDriver(Driver):
             self.failures += 1
             self.last_error = str(exc)
             return
-        sensed = readings(answer)
+        sensed = {key: np.asarray(answer[key], dtype=np.float64)
+                  for key in ("sonar", "odometry", "gps")}
         self._read_at = time.monotonic()
         self.applied.write(before)
         self.sonar.write(sensed["sonar"])

@@ -17,8 +17,6 @@ import threading
 import time
 from typing import Any
 
-import numpy as np
-
 from pb3a.processes import serve_as_child, start_without_main
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient, ControlServer
@@ -177,9 +175,3 @@ def robot_server_main(name: str, world_address: str, host: str, conn: Any) -> No
     finally:
         server.close()
         world.close()
-
-
-def readings(answer: dict[str, Any]) -> dict[str, np.ndarray]:
-    """A ``sensors`` answer's numbers as arrays."""
-    return {key: np.asarray(answer[key], dtype=np.float64)
-            for key in ("sonar", "odometry", "gps", "velocity")}

@@ -127,6 +127,12 @@ class Lab:
         described = self._client(self.world_server.address).call("describe", CALL_TIMEOUT)
         return {name: tuple(robot["pose"]) for name, robot in described["robots"].items()}
 
+    def time(self) -> float:
+        """The world's time now (simulated seconds), from the world server."""
+        assert self.world_server is not None
+        return float(self._client(self.world_server.address).call("describe", CALL_TIMEOUT)
+                     ["time"])
+
     def _client(self, address: str) -> ControlClient:
         if address not in self._clients:
             self._clients[address] = ControlClient(ClusterKey.load(), address)
