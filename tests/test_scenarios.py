@@ -27,7 +27,7 @@ def test_the_agent_moves_compute_off_the_loaded_node_while_it_is_loaded() -> Non
 
 def test_the_scenario_command_names_the_scenarios(capsys) -> None:
     assert main(["scenario", "no-such-thing"]) == 2
-    assert "the scenarios: mapping, self-migration" in capsys.readouterr().err
+    assert "the scenarios: mapping, self-migration, sim-to-real" in capsys.readouterr().err
 
 
 def _check_mapping(figures: dict) -> None:
@@ -59,3 +59,19 @@ def test_mapping_from_the_command_line_on_another_world_and_seed(tmp_path, capsy
 def test_mapping_names_the_worlds_when_given_one_it_does_not_know(tmp_path, capsys) -> None:
     assert main(["scenario", "mapping", "--world", "moon", "--out", str(tmp_path)]) == 2
     assert "no world 'moon': the bundled worlds are arena, lab, room" in capsys.readouterr().err
+
+
+@pytest.mark.timeout(300)
+def test_sim_to_real_learns_in_lock_step_then_moves_the_learner_to_the_robot(tmp_path) -> None:
+    assert main(["scenario", "sim-to-real", "--quick", "--seed", "5",
+                 "--out", str(tmp_path)]) == 0
+    figures = json.loads((tmp_path / "sim_to_real.json").read_text())
+    simulation = figures["simulation"]
+    assert simulation["success_rate_last_20"] >= 0.9           # what the agent waits for
+    assert simulation["times_real_time"] > 10                    # lock-step: as fast as it decides
+    assert figures["transfer_s"] <= 0.25, figures["transfer_s"]
+    assert figures["learner_node_at_end"] == "robot"
+    on_robot = figures["hardware"]["with_transfer"]
+    assert on_robot["episodes"] >= 5 and on_robot["success_rate_at_end"] >= 0.5, on_robot
+    assert figures["hardware"]["alone"]["episodes"] >= 5
+    assert (tmp_path / "sim_to_real.png").stat().st_size > 10_000

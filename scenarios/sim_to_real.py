@@ -1,0 +1,260 @@
+"""Simulation to real: a learner learns on a simulated robot, faster than real time,
+then moves with what it learnt to the hardware robot and finishes learning there.
+
+``scenarios/sim_to_real.toml``: the ``brain`` macro (a ``PolicyLearner`` and the
+``RobotDriver`` of the robot it learns on) starts on the workstation against a
+simulated robot in the ``room`` world, served in lock-step: the world advances one
+decision at a time, as fast as the learner decides. The ``TransferAgent`` watches its
+episodes; once 80 % of the last 20 succeed, it moves the brain to the hardware
+robot's on-board computer (a node behind its own node controller) and re-points the
+driver at the emulated hardware robot (second-order dynamics, sonar noise and
+specular dropouts), where learning goes on. The baseline, ``alone``, is the same
+brain learning on a second hardware robot (in a world of its own) from the start.
+
+Measured in the run: the transfer time (the agent's decision to the driver
+re-pointed at the hardware robot, with the learner on its node), the success rate
+at the end for both, and the hardware time each needs to reach ``TARGET`` (a success
+rate over the last episodes). Goals: transfer at most 0.25 s; at least 3x less
+hardware time with transfer than without. A ``--quick`` run serves the hardware
+worlds at 5x real time to fit in two minutes (hardware time is the hardware
+world's own clock either way); the full run serves them in real time.
+
+Run it: ``pb3a scenario sim-to-real [--quick] [--seed N] [--out DIR]`` (or ``python
+-m scenarios.sim_to_real``). It prints the report as JSON and writes
+``sim_to_real.json`` and ``sim_to_real.png`` to DIR.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import copy
+import json
+import sys
+import time
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from pb3a import Input, InputPort, Module, System
+from pb3a.cli.log_output import show_logs
+from scenarios.lab import Lab, wait_until
+
+CONFIG = Path(__file__).with_name("sim_to_real.toml")
+WORLD = "room"
+# wall seconds at most for learning in simulation, then on the hardware robot; and the
+# hardware worlds' speed (simulated seconds per wall second)
+BUDGETS = {"quick": {"simulation": 45.0, "hardware": 75.0, "rate": 5.0},
+           "full": {"simulation": 240.0, "hardware": 600.0, "rate": 1.0}}
+TARGET = (0.7, 10)            # learnt: this success rate over the last this many episodes
+GOALS = {"transfer_s": 0.25, "speedup": 3.0}
+POLL_S = 0.5
+
+
+class LearningRecorder(Module):
+    """Keeps every episode of both learners, and the transfer."""
+
+    transferred = Input(dict, policy="queue:100000")
+    alone = Input(dict, policy="queue:100000")
+    transfer = Input(dict, policy="queue:10")
+    with_transfer: list[dict[str, Any]] = []
+    without: list[dict[str, Any]] = []
+    transfers: list[dict[str, Any]] = []
+
+    def on_input(self, port: InputPort) -> None:
+        kept = {"transferred": self.with_transfer, "alone": self.without,
+                "transfer": self.transfers}[port.name]
+        kept.extend(port.read_all())
+
+
+def configuration(simulated: Lab, hardware: Lab, baseline: Lab, rate: float,
+                  seed: int) -> System:
+    """``sim_to_real.toml`` with this run's addresses, the driver's period for the
+    hardware worlds' rate, the seeds, and the baseline ``alone``."""
+    data = tomllib.loads(CONFIG.read_text())
+    data["nodes"]["robot"]["address"] = hardware.nodes["robot"].address
+    data["nodes"]["other"]["address"] = baseline.nodes["other"].address
+    brain = data["macros"]["brain"]["modules"]
+    brain["driver"]["period"] = brain["driver"].get("period", 0.1) / rate
+    brain["driver"]["state"]["resource"] = simulated.robots["r1"]
+    brain["learner"]["state"]["seed"] = seed
+    alone = copy.deepcopy(data["macros"]["brain"])
+    alone["modules"]["driver"]["state"].update(resource=baseline.robots["r1"], lockstep_s=0.0)
+    alone["modules"]["learner"]["state"]["seed"] = seed + 1
+    data["macros"]["alone"] = alone
+    data["modules"]["alone"] = {"macro": "alone", "node": "other"}
+    data["links"].append({"from": "alone.episode", "to": "recorder.alone"})
+    data["modules"]["transfer"]["state"]["to_resource"] = hardware.robots["r1"]
+    return System.from_dict(data, source=str(CONFIG))
+
+
+def run(seed: int = 1, quick: bool = False) -> dict[str, Any]:
+    """One run; what happened, for ``report``."""
+    budget = BUDGETS["quick" if quick else "full"]
+    rate = budget["rate"]
+    with contextlib.ExitStack() as labs:
+        simulated = labs.enter_context(Lab(WORLD, seed=seed, lockstep=True))
+        hardware = labs.enter_context(Lab(WORLD, seed=seed, onboard=("robot",),
+                                          hardware=("r1",), rate=rate))
+        baseline = labs.enter_context(Lab(WORLD, seed=seed + 1, onboard=("other",),
+                                          hardware=("r1",), rate=rate))
+        running = labs.enter_context(
+            configuration(simulated, hardware, baseline, rate, seed).launch())
+        started, alone_from = time.time(), baseline.time()
+        deadline = time.monotonic() + budget["simulation"]
+        while time.monotonic() < deadline and not running.state("transfer")["repointed_at"]:
+            wait_until(min(deadline, time.monotonic() + POLL_S))
+        transfer = running.state("transfer")
+        simulated_s = simulated.time()
+        simulation_wall_s = time.time() - started
+        transferred_from = None
+        if transfer["repointed_at"]:     # the hardware world's clock when it happened
+            transferred_from = hardware.time() - (time.time() - transfer["repointed_at"]) * rate
+            wait_until(time.monotonic() + budget["hardware"])
+        recorder = running.state("recorder")
+        clocks = {"with_transfer": (transferred_from, hardware.time()),
+                  "alone": (alone_from, baseline.time())}
+        where = running.where("brain/learner")
+    return {"seed": seed, "quick": quick, "rate": rate, "clocks": clocks,
+            "transfer": transfer, "simulated_s": simulated_s,
+            "simulation_wall_s": simulation_wall_s, "recorder": recorder,
+            "learner_node_at_end": where}
+
+
+def rolling(episodes: list[dict[str, Any]], window: int) -> list[float]:
+    """The success rate over the last ``window`` episodes, after each episode."""
+    outcomes = [bool(e["success"]) for e in episodes]
+    return [sum(outcomes[max(0, i + 1 - window):i + 1]) / min(window, i + 1)
+            for i in range(len(outcomes))]
+
+
+def time_to_target(episodes: list[dict[str, Any]], since: float) -> float | None:
+    """Hardware seconds from the hardware world's time ``since`` until the success rate
+    over the last ``TARGET[1]`` episodes first reaches ``TARGET[0]`` (None: it did
+    not)."""
+    rate_needed, window = TARGET
+    for count, (episode, success) in enumerate(zip(episodes, rolling(episodes, window),
+                                                   strict=True), 1):
+        if count >= window and success >= rate_needed:
+            return episode["clock"] - since
+    return None
+
+
+def report(record: dict[str, Any]) -> dict[str, Any]:
+    """The figures of one run, and whether they meet the goals."""
+    transfer, recorder, clocks = record["transfer"], record["recorder"], record["clocks"]
+    moved = transfer["repointed_at"] or None
+    in_simulation = [e for e in recorder["with_transfer"] if not moved or e["at"] <= moved]
+    by_learner = {"with_transfer": [e for e in recorder["with_transfer"]
+                                    if moved and e["at"] > moved],
+                  "alone": recorder["without"]}
+    hardware_s = {name: (end - start) if start is not None else 0.0
+                  for name, (start, end) in clocks.items()}
+    reached = {name: time_to_target(episodes, clocks[name][0])
+               if clocks[name][0] is not None else None
+               for name, episodes in by_learner.items()}
+    window = TARGET[1]
+    figures: dict[str, Any] = {
+        "scenario": "sim-to-real", "world": WORLD, "seed": record["seed"],
+        "quick": record["quick"], "hardware_rate": record["rate"],
+        "simulation": {"episodes": len(in_simulation),
+                       "success_rate_last_20": _rate(in_simulation, 20),
+                       "simulated_s": round(record["simulated_s"], 1),
+                       "wall_s": round(record["simulation_wall_s"], 1),
+                       "times_real_time": round(record["simulated_s"]
+                                                / max(record["simulation_wall_s"], 1e-9), 1)},
+        "transfer_s": round(transfer["repointed_at"] - transfer["decided_at"], 3)
+        if moved else None,
+        "move_s": round(transfer["moved_at"] - transfer["decided_at"], 3) if moved else None,
+        "learner_node_at_end": record["learner_node_at_end"],
+        "target": {"success_rate": TARGET[0], "over_last_episodes": window},
+        "hardware": {name: {"episodes": len(episodes),
+                            "success_rate_at_end": _rate(episodes, window),
+                            "hardware_s": round(hardware_s[name], 1),
+                            "hardware_s_to_target": (round(reached[name], 1)
+                                                     if reached[name] is not None else None)}
+                     for name, episodes in by_learner.items()},
+    }
+    with_transfer, without = reached["with_transfer"], reached["alone"]
+    if with_transfer is None:
+        speedup, bound = None, None
+    elif without is not None:
+        speedup, bound = without / max(with_transfer, 1e-9), "measured"
+    else:      # the baseline never got there: it needs more than all the time it had
+        speedup, bound = hardware_s["alone"] / max(with_transfer, 1e-9), "at least"
+    figures["speedup"] = {"value": round(speedup, 2) if speedup else None, "kind": bound}
+    figures["goals"] = {
+        "transfer_s <= 0.25": figures["transfer_s"] is not None
+        and figures["transfer_s"] <= GOALS["transfer_s"],
+        "hardware time to the target at least 3x less with transfer": speedup is not None
+        and speedup >= GOALS["speedup"],
+    }
+    figures["curves"] = {"simulation": rolling(in_simulation, 20)}
+    for name, episodes in by_learner.items():
+        start = clocks[name][0] or 0.0
+        figures["curves"][name] = [[round(e["clock"] - start, 2), r]
+                                   for e, r in zip(episodes, rolling(episodes, window),
+                                                   strict=True)]
+    return figures
+
+
+def _rate(episodes: list[dict[str, Any]], window: int) -> float | None:
+    recent = episodes[-window:]
+    return round(sum(bool(e["success"]) for e in recent) / len(recent), 3) if recent else None
+
+
+def plot(figures: dict[str, Any], path: Path) -> None:
+    """Learning in simulation by episode; on the hardware robots against their time."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.5))
+    curves = figures["curves"]
+    left.plot(range(1, len(curves["simulation"]) + 1), curves["simulation"], color="tab:purple")
+    left.axhline(0.8, color="0.7", linewidth=0.8)
+    left.set_title(f"in simulation (lock-step): {figures['simulation']['simulated_s']:.0f} "
+                   f"simulated s in {figures['simulation']['wall_s']:.0f} s", fontsize=10)
+    left.set_xlabel("episode")
+    left.set_ylabel("success rate, last 20 episodes")
+    left.set_ylim(0, 1.02)
+    for name, colour, label in (("with_transfer", "tab:blue", "after transfer"),
+                                ("alone", "tab:red", "learning on the robot alone")):
+        points = curves[name]
+        right.plot([p[0] for p in points], [p[1] for p in points], color=colour, label=label,
+                   marker=".", markersize=3)
+    right.axhline(TARGET[0], color="0.7", linewidth=0.8, label=f"target ({TARGET[0]:.0%})")
+    right.set_title(f"on the hardware robot: transfer {figures['transfer_s']} s, "
+                    f"speed-up {figures['speedup']['kind'] or ''} "
+                    f"{figures['speedup']['value']}x", fontsize=10)
+    served = figures["hardware_rate"]
+    right.set_xlabel("hardware time (s)" + (f", served at {served:g}x" if served != 1 else ""))
+    right.set_ylabel(f"success rate, last {TARGET[1]} episodes")
+    right.set_ylim(0, 1.02)
+    right.legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="sim_to_real", description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true",
+                        help="at most 45 s in simulation and 75 s on the hardware robots, "
+                             "whose worlds run at 5x real time")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--out", default=".", help="directory for sim_to_real.json and .png")
+    args = parser.parse_args(argv)
+    show_logs()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    figures = report(run(args.seed, args.quick))
+    plot(figures, out / "sim_to_real.png")
+    figures["plot"] = str(out / "sim_to_real.png")
+    (out / "sim_to_real.json").write_text(json.dumps(figures, indent=2))
+    print(json.dumps({k: v for k, v in figures.items() if k != "curves"}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
