@@ -3,11 +3,11 @@
 A policy learned on a simulated robot is a head start, not the end: the real robot's
 dynamics and noise differ, so learning goes on there. This agent watches the
 learner's episodes; once the success rate over the last ``window`` episodes reaches
-``threshold`` (after at least ``min_episodes``), it moves the learner's macro (the
-learner with its driver) to the hardware robot's node without waiting, and, once the
-move has ended, re-points the driver at the hardware robot (``resource``), lets the
-driver follow that robot's clock (``lockstep_s`` 0: a real robot is not stepped) and
-sets the learner's state for the real robot (``learner_state``, e.g. a lower
+``threshold`` (after at least ``min_episodes``), it stops stepping the simulation
+(the driver's ``lockstep_s`` 0: a real robot is not stepped either), moves the
+learner's macro (the learner with its driver) to the hardware robot's node without
+waiting, and, once the move has ended, re-points the driver at the hardware robot
+(``resource``) and sets the learner's state for the real robot (``learner_state``, e.g. a lower
 exploration rate). It acts once. ``transfer`` reports when it decided, when the move
 ended and when the driver was re-pointed, in unix time.
 """
@@ -60,6 +60,9 @@ class TransferAgent(Agent):
                 raise ValueError("TransferAgent needs to_node and to_resource: the hardware "
                                  "robot's node and its robot server's address")
             self.decided_at = time.time()
+            # the simulation stops first (its lock-step loop would compete with the move
+            # for the CPU), then the learner and its driver move
+            self.runtime.set_state(self.driver, {"lockstep_s": 0.0})
             self._moving = self.runtime.migrate(self.macro, self.to_node, wait=False)
 
     def step(self) -> None:
@@ -68,7 +71,7 @@ class TransferAgent(Agent):
         self._moving.result(0)           # (a failed move raises here, in the agent's log)
         self._moving = None
         self.moved_at = time.time()
-        self.runtime.set_state(self.driver, {"resource": self.to_resource, "lockstep_s": 0.0})
+        self.runtime.set_state(self.driver, {"resource": self.to_resource})
         if self.learner_state:
             self.runtime.set_state(self.learner, dict(self.learner_state))
         self.repointed_at = time.time()

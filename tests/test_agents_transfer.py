@@ -52,20 +52,21 @@ def test_it_waits_for_the_success_rate_then_moves_once_and_re_points_after_the_m
         agent.feed("episode", {"success": success})
     assert runtime.calls == []
     agent.feed("episode", {"success": True})     # 8 of the last 10
-    assert runtime.calls == [("migrate", "brain", "robot", False)]
+    assert runtime.calls == [("set_state", "brain/driver", {"lockstep_s": 0.0}),
+                             ("migrate", "brain", "robot", False)]
     agent.step()                                 # the move has not ended: nothing more
     agent.feed("episode", {"success": True})
-    assert len(runtime.calls) == 1 and agent.written["transfer"] == []
+    assert len(runtime.calls) == 2 and agent.written["transfer"] == []
     runtime.move.ended = True
     agent.step()
-    assert runtime.calls[1:] == [
-        ("set_state", "brain/driver", {"resource": "tcp://127.0.0.1:7421", "lockstep_s": 0.0}),
+    assert runtime.calls[2:] == [
+        ("set_state", "brain/driver", {"resource": "tcp://127.0.0.1:7421"}),
         ("set_state", "brain/learner", {"epsilon": 0.05})]
     (report,) = agent.written["transfer"]
     assert report["decided_at"] <= report["moved_at"] <= report["repointed_at"]
     assert report["success_rate"] >= 0.8
     agent.step()
-    assert len(runtime.calls) == 3                # once
+    assert len(runtime.calls) == 4                # once
 
 
 def test_without_a_destination_it_says_what_to_set() -> None:
