@@ -33,6 +33,7 @@ from pb3a import Agent, Environment, Input, InputPort, Module, Output, System
 from pb3a.cli.log_output import show_logs
 from pb3a.cpu_load import CPULoad
 from pb3a.pending import Pending
+from scenarios.lab import wait_until
 
 RATE_HZ = 200.0
 WORK_S = 0.002                 # CPU seconds of work per value in ``compute``
@@ -152,12 +153,12 @@ def run_once(adaptive: bool, phases: tuple[float, float, float]) -> dict[str, An
     quiet, loaded, after = phases
     with build(adaptive).launch() as run:
         start = time.monotonic()
-        _sleep_until(start + quiet)
+        wait_until(start + quiet)
         load_on = time.monotonic()
         with CPULoad({0: 100.0}, burners_per_cpu=STRESS_PROCESSES):
-            _sleep_until(load_on + loaded)
+            wait_until(load_on + loaded)
         load_off = time.monotonic()
-        _sleep_until(load_off + after)
+        wait_until(load_off + after)
         sink, mover = run.state("sink"), run.state("mover")
         node = run.stats().modules["compute"].node
     return {"start": start, "load_on": load_on, "load_off": load_off,
@@ -165,12 +166,6 @@ def run_once(adaptive: bool, phases: tuple[float, float, float]) -> dict[str, An
             "latencies": sink["latencies"], "moved_at": mover["moved_at"],
             "moved_to": mover["moved_to"],
             "compute_node_at_end": node}
-
-
-def _sleep_until(deadline: float) -> None:
-    # The scenario's own clock: phases last what they say (this is not synchronisation).
-    while (left := deadline - time.monotonic()) > 0:
-        time.sleep(min(left, 0.5))
 
 
 def windows(record: dict[str, Any]) -> list[dict[str, float]]:
