@@ -16,10 +16,11 @@ from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 
 from agents.grid import Grid
 from pb3a import Input, InputPort, Module, Output
-from rave.sonar import RING
+from rave.sonar import MAX_RANGE, RING
 
 
 @dataclass(frozen=True)
@@ -38,6 +39,14 @@ class SonarModel:
     in the same reading again and again, takes a cell no further than ``clamp``
     (p = 0.982 at 4), from where eight readings of free space on the axis clear it.
 
+    A beam meeting a smooth surface further than ``specular_deg`` from its normal
+    (on the acoustic axis; the hardware's 20 degrees plus the cone's half-width) is
+    reflected away: neither its echo nor its silence says anything of that surface.
+    So a cell the map already holds occupied, whose surface (the local run of
+    occupied cells, by the gradient of the smoothed map) the beam meets at such a
+    grazing angle, keeps what it has; other cells take the free update. 90 turns
+    this off.
+
     The defaults were tuned on the lab world (``tests/test_agents_mapper.py``): a
     free update as strong as the occupied one carves away the parts of each 30 degree
     arc that are not wall, and a weak no-echo update keeps specular misses from
@@ -53,33 +62,45 @@ class SonarModel:
     max_occupied_range: float = 3.5   # m: longer echoes clear free space only ...
     max_free_range: float = 3.0       # m: ... out to here
     clamp: float = 4.0                # log-odds stay within [-clamp, clamp]
+    specular_deg: float = 35.0        # beams meeting a mapped surface beyond this from
+                                      # its normal do not clear it
 
     def __post_init__(self) -> None:
         if not (0 < self.cone_deg < 180 and self.sigma_deg > 0 and self.thickness > 0
                 and self.occupied > 0 > self.free and self.free_no_echo <= 0
                 and self.max_free_range > 0 and self.max_occupied_range > 0
-                and self.clamp > 0):
+                and self.clamp > 0 and 0 < self.specular_deg <= 90):
             raise ValueError(f"a sonar model needs a cone in (0, 180) degrees, positive "
-                             f"sigma, thickness, ranges, clamp and occupied update, and "
-                             f"free updates below zero, not {self}")
+                             f"sigma, thickness, ranges, clamp and occupied update, free "
+                             f"updates below zero and a specular angle in (0, 90], not "
+                             f"{self}")
 
 
 class OccupancyGrid:
     """A log-odds occupancy map on ``grid``, learnt from sonar ring readings.
 
-    ``log_odds`` (float32, ``grid.shape``) and ``last_ranges`` (the ring's previous
-    reading) are updated in place, so a caller that keeps the arrays (a module's
+    ``log_odds`` (float32, ``grid.shape``), ``last_ranges`` (the ring's previous
+    reading) and ``unfolded`` (per transducer, the updates since its reading was last
+    folded in) are updated in place, so a caller that keeps the arrays (a module's
     state) always holds the current map; pass existing ones to carry on from them.
 
     With ``skip_repeats``, a transducer whose reading is exactly its previous one is
     left out: a real ring fires each transducer every 320 ms while its robot reports
     every 100 ms, so most of a report repeats the last one, and folding a reading in
-    again would count one echo three times, at poses it was not taken from.
+    again would count one echo three times, at poses it was not taken from. A reading
+    of no echo (``MAX_RANGE``) is the exception: it is the same number whether the
+    transducer fired again or not, so a repeat of it is taken for a new firing once
+    ``refire_every`` updates have passed since it was last folded in (3: a firing
+    cycle at the robot's 100 ms reports). Were every repeat left out, a beam that
+    keeps hearing nothing (down a corridor whose walls reflect it away, across an
+    open floor) would count once however long it looked, and the space ahead of the
+    robot would never be cleared.
     """
 
     def __init__(self, grid: Grid, model: SonarModel | None = None,
                  log_odds: np.ndarray | None = None, last_ranges: np.ndarray | None = None,
-                 skip_repeats: bool = True) -> None:
+                 skip_repeats: bool = True, unfolded: np.ndarray | None = None,
+                 refire_every: int = 3) -> None:
         self.grid = grid
         self.model = model or SonarModel()
         if log_odds is None:
@@ -92,10 +113,16 @@ class OccupancyGrid:
         if last_ranges.shape != (len(RING),) or last_ranges.dtype != np.float64:
             raise ValueError(f"the last ranges must be float64 of shape ({len(RING)},), "
                              f"not {last_ranges.dtype} {last_ranges.shape}")
-        self.log_odds, self.last_ranges = log_odds, last_ranges
-        self.skip_repeats = skip_repeats
+        if unfolded is None:
+            unfolded = np.zeros(len(RING))
+        if unfolded.shape != (len(RING),) or unfolded.dtype != np.float64:
+            raise ValueError(f"the unfolded counts must be float64 of shape ({len(RING)},), "
+                             f"not {unfolded.dtype} {unfolded.shape}")
+        self.log_odds, self.last_ranges, self.unfolded = log_odds, last_ranges, unfolded
+        self.skip_repeats, self.refire_every = skip_repeats, refire_every
         self._tan_half_cone = math.tan(math.radians(self.model.cone_deg) / 2)
         self._inverse_2sigma2 = 1.0 / (2 * math.radians(self.model.sigma_deg) ** 2)
+        self._cos_specular = math.cos(math.radians(self.model.specular_deg))
 
     def update(self, pose: Any, ranges: Any) -> None:
         """Fold in one ring reading: ``ranges`` (16, m, Pioneer order; non-finite
@@ -104,8 +131,11 @@ class OccupancyGrid:
         x, y, theta = (float(v) for v in pose)
         ranges = np.array(ranges, dtype=np.float64)
         usable = np.isfinite(ranges)
+        self.unfolded += 1
         if self.skip_repeats:
-            usable &= ranges != self.last_ranges
+            usable &= (ranges != self.last_ranges) | (
+                (ranges >= MAX_RANGE) & (self.unfolded >= self.refire_every))
+        self.unfolded[usable] = 0
         self.last_ranges[:] = ranges
         echo = usable & (ranges < model.max_occupied_range)
         half = model.thickness / 2
@@ -130,13 +160,20 @@ class OccupancyGrid:
         along = dx * axis_x + dy * axis_y               # (16, rows, cols): along the axis
         across = dy * axis_x - dx * axis_y              # ... and off it, left positive
         distance = np.hypot(along, across)
-        inside = ((distance < reach[:, None, None])
-                  & (np.abs(across) <= along * self._tan_half_cone))
+        # a cell is in a cone when the cone reaches within half a cell of its centre
+        # (near the ring a cone is narrower than a cell, and testing centres alone
+        # would leave holes between the beams), at the bearing of that nearest part
+        inside = ((distance < reach[:, None, None]) & (along > 0)
+                  & (np.abs(across) <= along * self._tan_half_cone + res / 2))
         sensor, row, col = np.nonzero(inside)           # only cells in a cone from here on
         r = distance[sensor, row, col]
-        bearing = np.arctan2(across[sensor, row, col], along[sensor, row, col])
+        off = across[sensor, row, col]
+        bearing = np.arctan2(np.sign(off) * np.maximum(np.abs(off) - res / 2, 0.0),
+                             along[sensor, row, col])
         passed = np.where(echo, model.free, model.free_no_echo)[sensor]
         evidence = np.where(r < free_to[sensor], passed, 0.0)
+        if self._cos_specular > 0:
+            evidence[self._grazing(sensor, row, col, row0, col0, dx, dy)] = 0.0
         evidence += np.where(echo[sensor] & (np.abs(r - ranges[sensor]) <= half),
                              model.occupied, 0.0)
         evidence *= np.exp(-bearing * bearing * self._inverse_2sigma2)
@@ -144,6 +181,33 @@ class OccupancyGrid:
         change = np.bincount(row * (col1 - col0) + col, weights=evidence,
                              minlength=window.size).reshape(window.shape)
         np.clip(window + change, -model.clamp, model.clamp, out=window, casting="unsafe")
+
+    def _grazing(self, sensor: np.ndarray, row: np.ndarray, col: np.ndarray, row0: int,
+                 col0: int, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
+        """Which of the cells (``row``, ``col`` in the window from ``row0``, ``col0``,
+        each in the cone of ``sensor``, ``dx``, ``dy`` from it) the map holds
+        occupied with a surface the beam meets at a grazing angle: the angle between
+        the beam and the gradient of the smoothed map (the surface's normal) is
+        beyond ``specular_deg``."""
+        occupied = self.log_odds[row0 + row, col0 + col] > 0
+        if not occupied.any():
+            return occupied
+        rows, cols = self.grid.shape
+        pad = 2                              # the gradient needs cells round the window
+        r0, c0 = max(0, row0 - pad), max(0, col0 - pad)
+        r1 = min(rows, row0 + int(row.max()) + 1 + pad)
+        c1 = min(cols, col0 + int(col.max()) + 1 + pad)
+        smooth = ndimage.gaussian_filter(np.clip(self.log_odds[r0:r1, c0:c1], 0.0, None),
+                                         1.0)
+        grad_y, grad_x = np.gradient(smooth)
+        at = (row0 - r0 + row[occupied], col0 - c0 + col[occupied])
+        nx, ny = grad_x[at], grad_y[at]
+        bx, by = dx[sensor[occupied], 0, col[occupied]], dy[sensor[occupied], row[occupied], 0]
+        norm = np.hypot(nx, ny) * np.hypot(bx, by)
+        grazing = (norm > 1e-12) & (np.abs(nx * bx + ny * by)
+                                    < self._cos_specular * np.maximum(norm, 1e-12))
+        occupied[occupied] = grazing
+        return occupied
 
     def probabilities(self) -> np.ndarray:
         """The map as occupancy probabilities (float32, ``agents.grid``'s convention)."""
@@ -174,6 +238,7 @@ class Mapper(Module):
     publish_every = 1
     log_odds = np.zeros((0, 0), dtype=np.float32)   # the map; (re)made to fit in setup
     last_ranges = np.full(16, np.nan)
+    unfolded = np.zeros(16)                     # see OccupancyGrid
     updates = 0
     last_update = 0.0                           # time.time() of the last update
 
@@ -197,6 +262,7 @@ class Mapper(Module):
         core: OccupancyGrid | None = self.__dict__.get("_core")
         if (core is None or core.log_odds is not self.log_odds
                 or core.last_ranges is not self.last_ranges
+                or core.unfolded is not self.unfolded
                 or core.skip_repeats != self.skip_repeats
                 or core.grid != Grid.of(self.size, self.resolution)
                 or asdict(core.model) != self.model):
@@ -221,8 +287,11 @@ class Mapper(Module):
         self.last_ranges = _writable(self.last_ranges, np.float64)
         if self.last_ranges.shape != (len(RING),):
             self.last_ranges = np.full(len(RING), np.nan)
+        self.unfolded = _writable(self.unfolded, np.float64)
+        if self.unfolded.shape != (len(RING),):
+            self.unfolded = np.zeros(len(RING))
         core = OccupancyGrid(grid, model, self.log_odds, self.last_ranges,
-                             bool(self.skip_repeats))
+                             bool(self.skip_repeats), self.unfolded)
         self.__dict__["_core"] = core
         return core
 

@@ -26,6 +26,7 @@ from agents.explorer import (
 )
 from agents.grid import UNKNOWN, Grid
 from agents.map_truth import reachable, score, truth
+from agents.occupancy import OccupancyGrid
 from pb3a.testing import ModuleHarness
 from rave import World, worldfile
 from rave.layers import WALL_RADIUS
@@ -187,7 +188,10 @@ def test_past_a_doorway_a_sonar_map_narrows_it_squeezes_through_or_keeps_to_its_
     assert planner.squeezed <= squeezed.path[:, 2].min() < planner.lethal
     probabilities[17:23, 40] = OCCUPIED_P          # echoes drawn right across it
     closed = planner.plan(probabilities, robot)
-    assert closed.target is None and closed.regions == 1
+    # the frontier beyond is out of reach, but the robot saw free space through the
+    # wall: it goes to look at the wall from close by, where the doorway was
+    assert closed.hidden and closed.regions == 1
+    assert closed.target[0] == pytest.approx(3.95) and abs(closed.target[1] - 2.0) < 0.5
     trail = np.zeros(grid.shape, dtype=bool)
     trail[20, 10:50] = True                        # ... where the robot once went through
     through = planner.plan(probabilities, robot, trail=trail)
@@ -211,13 +215,15 @@ def test_at_a_frontier_that_stays_it_looks_at_it_then_sets_it_aside() -> None:
     grid, probabilities = _room(8.0, 4.0)
     probabilities[1:-1, 40] = OCCUPIED_P           # a wall hiding everything beyond
     probabilities[1:-1, 41:79] = UNKNOWN
-    explorer, pose = FrontierExplorer(grid, look_time=2.0), (3.4, 2.0, math.pi)
+    explorer, pose = FrontierExplorer(grid, look_time=2.0), (3.6, 2.0, math.pi)
     v, w = explorer.step(probabilities, pose, None, TICK)
     first = list(explorer.target)
     assert first[0] == pytest.approx(3.95) and abs(first[1] - 2.0) < 0.3
     assert v == 0.0 and abs(w) == explorer.max_turn          # turns round to face it
     for _ in range(round(explorer.look_time / TICK)):        # the map stays the same
         explorer.step(probabilities, pose, None, TICK)
+    # looking resolved nothing: it plans to get nearer, finds it cannot, sets it aside
+    explorer.step(probabilities, pose, None, TICK)
     assert [entry[:2] for entry in explorer.blacklist] == [first]
     explorer.step(probabilities, pose, None, TICK)           # and it plans without it
     assert np.hypot(explorer.target[0] - first[0], explorer.target[1] - first[1]) > 1.0
@@ -256,6 +262,7 @@ def test_sonar_reflexes_slow_down_and_back_off_before_an_unmapped_obstacle() -> 
         sonar = clear.copy()
         sonar[2:6] = front                         # the front transducers, -30..+30 deg
         explorer = FrontierExplorer(grid)
+        explorer.obstacle_range = 0.0              # the reflexes alone, not the plan
         explorer.step(probabilities, pose, clear, TICK)     # plans, in the open
         return explorer.step(probabilities, pose, sonar, TICK)
 
@@ -269,12 +276,15 @@ def test_sonar_reflexes_slow_down_and_back_off_before_an_unmapped_obstacle() -> 
 def test_it_explores_the_lab_without_touching_a_wall() -> None:
     world = _world_without_robots("lab")
     try:
-        run = _explore(world, (1.0, 1.5, 0.0), seconds=300.0)
+        run = _explore(world, (1.0, 1.5, 0.0), seconds=320.0)
     finally:
         world.close()
-    # measured: 85 % by 85 s, done at 138 s with 98 %, never nearer a wall than 0.46 m
-    assert run.coverage_by(120.0) >= 0.85
-    assert run.done_at is not None and run.done_at <= 240.0
+    # measured: 76 % by 120 s, 97 % by 150 s, done at 231 s with 99 %, never nearer a
+    # wall than 0.42 m. (Slower than when it set aside the corners it could not see
+    # round from a metre off, and went through walls to look at them: it now looks
+    # at frontiers it can see, and goes nearer before it gives one up.)
+    assert run.coverage_by(150.0) >= 0.85
+    assert run.done_at is not None and run.done_at <= 300.0
     assert run.final_coverage >= 0.95
     assert run.closest > TOUCH + 0.05
     assert run.explorer.last("command").tolist() == [0.0, 0.0]
@@ -287,14 +297,15 @@ def test_it_explores_the_arena_round_its_obstacles() -> None:
         run = _explore(world, (1.0, 4.0, 0.0), seconds=200.0)
     finally:
         world.close()
-    # measured: 85 % by 50 s, done at 70 s with 99 %, never nearer a wall than 0.46 m
-    assert run.coverage_by(80.0) >= 0.85
-    assert run.done_at is not None and run.done_at <= 120.0
+    # measured: 81 % by 80 s, 91 % by 90 s, done at 95 s with 98 %, never nearer a
+    # wall than 0.40 m
+    assert run.coverage_by(100.0) >= 0.85
+    assert run.done_at is not None and run.done_at <= 150.0
     assert run.final_coverage >= 0.95
     assert run.closest > TOUCH + 0.05
 
 
-def test_a_frontier_it_cannot_reach_is_set_aside_instead_of_pushed_at() -> None:
+def test_a_frontier_behind_what_only_its_sonar_sees_is_given_up_not_pushed_at() -> None:
     # a corridor closed at x = 3 m by a glass pane the map never shows: the sensor
     # sees through it, the sonar echoes off it
     world = World((8.0, 2.0), seed=1, name="glass")
@@ -308,10 +319,12 @@ def test_a_frontier_it_cannot_reach_is_set_aside_instead_of_pushed_at() -> None:
     finally:
         world.close()
     state = run.explorer.state
-    assert state["stuck"] >= 1 and state["blacklist"]
-    assert all(entry[0] > 3.0 for entry in state["blacklist"])    # the frontiers past it
-    assert run.done_at is not None and run.done_at <= 40.0          # measured: 21 s
-    assert x < 3.0 - RADIUS and run.closest > TOUCH + 0.05      # measured: 0.35 m
+    # what it heard close by closes the corridor to the planner: the frontiers past
+    # the pane are out of reach, and it is done without driving into the pane
+    assert state["echoes"][:, 28:31].any() and not state["echoes"][:, 31:].any()
+    assert run.done_at is not None and run.done_at <= 20.0          # measured: 5.7 s
+    assert x < 3.0 - RADIUS and run.closest > TOUCH + 0.05      # measured: 0.74 m
+    assert state["stuck"] == 0
     assert run.explorer.last("command").tolist() == [0.0, 0.0]
 
 
@@ -356,3 +369,119 @@ def test_without_a_map_or_a_pose_it_stands() -> None:
     explorer.feed("map", probabilities)
     explorer.step()
     assert explorer.last("command")[0] != 0.0 or explorer.last("command")[1] != 0.0
+
+
+# -- on a hardware robot, with the mapper, as in the live pipeline ---------------------------
+def _explore_hardware(name: str, seed: int, seconds: float, delay: int = 1,
+                      hand_over_at: float | None = None) -> dict[str, Any]:
+    """The mapping application's loop in one process: the world's first robot on the
+    emulated hardware back end (second-order motors, a sonar ring with noise,
+    dropouts and specular reflection), an ``OccupancyGrid`` fed its ring and pose
+    every 0.1 s, and a ``FrontierExplorer`` that sees pose, map and sonar ``delay``
+    ticks late and whose command reaches the robot ``delay`` ticks later (as the
+    pipeline's ports and periods do). With ``hand_over_at`` the explorer, its memory
+    pickled, moves to the world's second robot then. Coverage every 5 s, what
+    happened to the explorer, and how near the robot came to a wall."""
+    world = World.load(WORLDS / f"{name}.toml", seed=seed)
+    try:
+        names = list(world.robots)
+        for robot_name in names[:2]:
+            world.robot(robot_name).swap("hardware")
+        robot = world.robot(names[0])
+        grid = Grid.of(world.size)
+        occupied = truth(world, grid)
+        free_space = reachable(occupied, grid, world.pose(names[0])[:2])
+        mapper, explorer = OccupancyGrid(grid), FrontierExplorer(grid)
+        seen: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        commands = [(0.0, 0.0)] * delay
+        segments = world.segments(virtual=False)
+        out: dict[str, Any] = {"coverage": [], "accuracy": [], "closest": math.inf,
+                               "set_aside_at": [], "jumped": None}
+        while world.time < seconds:
+            if hand_over_at is not None and world.time >= hand_over_at:
+                hand_over_at = None
+                blacklist = len(explorer.blacklist)
+                explorer.restore(pickle.loads(pickle.dumps(explorer.memory())))
+                robot.stop()
+                robot = world.robot(names[1])
+                seen.clear()
+                out["jumped"] = {"plans": explorer.plans, "blacklist": blacklist,
+                                 "stuck": explorer.stuck, "at": robot.gps()}
+            sonar, pose = robot.sonar(), np.array(robot.gps())
+            mapper.update(pose, sonar)
+            seen.append((mapper.probabilities(), pose, sonar))
+            before = len(explorer.blacklist)
+            commands.append(explorer.step(*seen[max(0, len(seen) - 1 - delay)], TICK))
+            if len(explorer.blacklist) > before:
+                out["set_aside_at"].append(world.time)
+            if out["jumped"] is not None and "plans_after" not in out["jumped"]:
+                out["jumped"].update(plans_after=explorer.plans, target=list(explorer.target))
+            robot.drive(*commands.pop(0))
+            world.step(TICK)
+            out["closest"] = min(out["closest"], _distance_to_walls(*robot.gps()[:2], segments))
+            if round(world.time / TICK) % 50 == 0:
+                figures = score(mapper.probabilities(), occupied, free_space)
+                out["coverage"].append((round(world.time), figures.coverage))
+                out["accuracy"].append(figures.accuracy)
+        out["explorer"] = explorer
+        return out
+    finally:
+        world.close()
+
+
+def test_on_a_hardware_robot_it_maps_the_lab_instead_of_giving_up_near_the_start() -> None:
+    # The live failure: the mapper folded a beam that hears no echo in only once (its
+    # reading, the sonar's maximum, repeats exactly), so the corridor ahead stayed
+    # unknown; the explorer stood a metre off the frontier, looked at it for 2 s,
+    # set it aside with everything within a metre, and was done at (1.5, 2.2) with
+    # 12 % after 17 s.
+    run = _explore_hardware("lab", seed=1, seconds=45.0)
+    coverage = dict(run["coverage"])
+    # measured: 11, 14, 22, 29, 34, 43, 47, 49, 49 % at 5 ... 45 s, nothing set
+    # aside, accuracy 0.95-0.97, never nearer a wall than 0.59 m
+    assert coverage[20] >= 0.2 and coverage[40] >= 0.4
+    assert all(a < b for a, b in zip([coverage[10], coverage[20], coverage[30]],
+                                      [coverage[20], coverage[30], coverage[40]],
+                                      strict=True))
+    assert not run["explorer"].done and not [t for t in run["set_aside_at"] if t < 20.0]
+    assert min(run["accuracy"]) >= 0.9
+    assert run["closest"] > TOUCH
+
+
+def test_handed_to_another_robot_it_plans_afresh_there_and_holds_nothing_against_the_jump(
+        ) -> None:
+    # The remedy moves the control macro, explorer and all, to the standby robot: its
+    # pose jumps across the lab.
+    run = _explore_hardware("lab", seed=2, seconds=30.0, hand_over_at=20.0)
+    jumped = run["jumped"]
+    assert jumped["plans_after"] == jumped["plans"] + 1          # at once
+    target = np.array(jumped["target"])
+    assert target.size and np.hypot(*(target - np.array(jumped["at"][:2]))) < 3.0
+    explorer = run["explorer"]
+    assert explorer.stuck == jumped["stuck"] and len(explorer.blacklist) == jumped["blacklist"]
+    assert not explorer.done and run["coverage"][-1][1] > run["coverage"][3][1]
+
+
+def test_looking_does_not_count_against_its_patience_and_a_stale_pose_stops_its_clock(
+        ) -> None:
+    grid, probabilities = _room(8.0, 4.0)
+    probabilities[1:-1, 40] = OCCUPIED_P
+    probabilities[1:-1, 41:79] = UNKNOWN
+    explorer = FrontierExplorer(grid, look_time=2.0, patience=1.0)
+    pose = (3.6, 2.0, math.pi)
+    explorer.step(probabilities, pose, None, TICK)
+    assert explorer.looking_until > explorer.clock
+    for _ in range(15):                                      # 1.5 s looking, standing
+        explorer.step(probabilities, pose, None, TICK)
+    assert explorer.stuck == 0
+    module = ModuleHarness(Explorer, state={"size": [8.0, 4.0]})
+    module.feed("map", probabilities)
+    module.feed("pose", np.array(pose))
+    module.step()
+    clock = module.state["clock"]
+    module.step()                                            # no new report from the robot
+    assert module.state["clock"] == clock
+    np.testing.assert_array_equal(module.written["command"][-1], module.written["command"][-2])
+    module.feed("pose", np.array(pose))
+    module.step()
+    assert module.state["clock"] == pytest.approx(clock + TICK)

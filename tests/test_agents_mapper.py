@@ -13,7 +13,7 @@ import cloudpickle
 import numpy as np
 import pytest
 
-from agents.grid import FREE, OCCUPIED, UNKNOWN, Grid, classify
+from agents.grid import FREE, OCCUPIED, UNKNOWN, UNSEEN, Grid, classify
 from agents.map_truth import MapScore, reachable, score, truth
 from agents.occupancy import Mapper, OccupancyGrid, SonarModel
 from pb3a.testing import ModuleHarness
@@ -75,23 +75,28 @@ def _assert_converges(scores: list[MapScore], accuracy: float, coverage: float) 
 
 
 def test_a_simulated_robot_touring_the_lab_maps_it_accurately() -> None:
-    # measured: accuracy 0.95-0.97 throughout, coverage 0.44, 0.63, 0.77, 0.89 (the
-    # parameters of the notes, occupied 0.85 and free -0.4, give 0.91-0.93 and 0.80)
+    # measured: accuracy 0.95-0.97 throughout, coverage 0.45, 0.63, 0.77, 0.89 (the
+    # parameters of the notes, occupied 0.85 and free -0.4, give 0.91-0.93 and 0.80).
+    # A simulated ring hears every echo, at any angle: no specular reflection to
+    # allow for (the default model's, for hardware, keeps 0.94-0.96 and 0.87)
     with _lab(seed=1) as world:
         robot = world.add_robot("r", START, backend="sim")
-        grid = OccupancyGrid(Grid.of(world.size))
+        grid = OccupancyGrid(Grid.of(world.size), SonarModel(specular_deg=90.0))
         _assert_converges(_map_the_tour(world, robot, grid), accuracy=0.94, coverage=0.85)
 
 
 def test_a_hardware_robot_with_noise_and_specular_dropouts_maps_it_too() -> None:
-    # measured: accuracy 0.95-0.96, coverage 0.43, 0.65, 0.81, 0.95. No echo clearing
-    # as much as an echo (-0.4) gives 0.93: grazing beams clear walls; folding in the
-    # ring's repeated readings gives 0.92-0.93. The boxes' insides, which no echo
-    # comes from, are most of what is still wrong.
+    # measured: accuracy 0.96, 0.94, 0.94, 0.94, coverage 0.48, 0.69, 0.83, 0.96. No
+    # echo clearing as much as an echo (-0.4) gives 0.93: grazing beams clear walls;
+    # folding in the ring's repeated echoes gives 0.92-0.93. Leaving out every repeat
+    # of no echo too (as once) gave 0.95-0.96 but only 0.43 ... 0.95 here, and left a
+    # robot that stands in a corridor blind to the space ahead of it (below); letting
+    # grazing beams clear walls the map holds gives 0.93-0.94. The boxes' insides,
+    # which no echo comes from, are most of what is still wrong.
     with _lab(seed=1) as world:
         robot = world.add_robot("r", START, backend="hardware")
         grid = OccupancyGrid(Grid.of(world.size))
-        _assert_converges(_map_the_tour(world, robot, grid), accuracy=0.94, coverage=0.85)
+        _assert_converges(_map_the_tour(world, robot, grid), accuracy=0.93, coverage=0.9)
 
 
 def _wall_ahead(pose: tuple[float, float, float] = (2.0, 4.5, 0.0),
@@ -138,6 +143,48 @@ def test_a_robot_standing_still_reaches_the_clamp_and_a_repeated_reading_counts_
     assert grid.log_odds.max() == model.clamp and grid.log_odds.min() == -model.clamp
     classes = classify(grid.probabilities())
     assert classes[45, 39] == OCCUPIED and (classes[45, 25:37] == FREE).all()
+
+
+def test_a_beam_that_keeps_hearing_nothing_clears_the_space_ahead_as_it_fires() -> None:
+    # The live failure: a robot at the start of the lab's corridor, whose walls
+    # reflect its forward beams away, hears no echo ahead; each report repeats the
+    # last (MAX_RANGE, the same number whether a transducer fired again or not), and
+    # with every repeat left out the corridor ahead stayed unknown however long the
+    # robot looked, so the explorer found no frontier it could resolve.
+    grid = OccupancyGrid(Grid(12.0, 9.0))
+    silence = np.full(16, sonar.MAX_RANGE)
+    ahead = np.s_[14:16, 21:36]                              # y 1.4-1.6, x 2.1-3.6
+    grid.update((1.0, 1.5, 0.0), silence)
+    once = grid.log_odds.copy()
+    grid.update((1.0, 1.5, 0.0), silence)                    # 100 ms on: not fired again
+    assert np.array_equal(grid.log_odds, once)
+    for _ in range(38):                                      # 4 s of reports in all
+        grid.update((1.0, 1.5, 0.0), silence)
+    folded = once[ahead] / grid.log_odds[ahead]
+    assert np.allclose(folded, 1 / 14, rtol=0.01)            # once per 3 reports: 14 firings
+    assert (classify(grid.probabilities())[ahead] == FREE).all()
+    stale = OccupancyGrid(Grid(12.0, 9.0), refire_every=10**9)   # every repeat left out
+    for _ in range(40):
+        stale.update((1.0, 1.5, 0.0), silence)
+    assert (classify(stale.probabilities())[ahead] == UNSEEN).all()
+
+
+def test_a_beam_that_grazes_a_mapped_wall_does_not_clear_it() -> None:
+    # A wall along y = 3 m the map holds; a robot driving along it 0.6 m off, its
+    # forward beams meeting the wall at a grazing angle and echoing from far beyond
+    # (or not at all), as on hardware. A beam square to the wall still clears it.
+    def drive(model: SonarModel, heading: float, ranges: np.ndarray) -> np.ndarray:
+        grid = OccupancyGrid(Grid(12.0, 9.0), model, skip_repeats=False)
+        grid.log_odds[29:31, 20:80] = 2.0                    # y 2.9-3.1, x 2-8
+        for step in range(40):
+            grid.update((2.0 + 0.1 * step, 2.4, heading), ranges)
+        return classify(grid.probabilities())[29:31, 30:70]
+    far = np.full(16, 4.0)                                   # echoes from 4 m off
+    assert (drive(SonarModel(), 0.0, far) == OCCUPIED).all()
+    assert (drive(SonarModel(specular_deg=90.0), 0.0, far) != OCCUPIED).any()
+    square = np.full(16, sonar.MAX_RANGE)
+    square[[2, 3, 4, 5]] = 2.0                               # facing it, hearing beyond
+    assert (drive(SonarModel(), math.pi / 2, square) != OCCUPIED).any()
 
 
 def test_one_update_of_the_ring_takes_a_few_milliseconds() -> None:
@@ -205,6 +252,7 @@ def test_the_mapper_state_survives_pickling_and_the_next_update_continues_the_ma
     assert moved.state["updates"] == 10
     assert np.array_equal(moved.state["log_odds"], original.state["log_odds"])
     assert np.array_equal(moved.state["last_ranges"], original.state["last_ranges"])
+    assert np.array_equal(moved.state["unfolded"], original.state["unfolded"])
     for reading, pose in readings[10:]:
         for harness in (original, moved):
             harness.feed("pose", pose)
