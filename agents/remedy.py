@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from agents.case_base import AdaptationError, CaseBase, CaseFileError, Feature, Match, adapt
-from pb3a import Agent, Input, Output
+from pb3a import Agent, Input, InputPort, Output
 from pb3a.errors import PB3AError
 
 if TYPE_CHECKING:
@@ -186,6 +186,9 @@ class RemedyAgent(Agent):
         # A move's Pending cannot be pickled: a moved or restored agent has none, and
         # looks at where the driver runs instead.
         self._pending: Any = None
+
+    def on_input(self, port: InputPort) -> None:
+        self.step()            # a failure is acted on at once, not at the next period
 
     def step(self) -> None:
         now = time.time()      # wall time: it goes into state that may move between nodes

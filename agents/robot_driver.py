@@ -54,6 +54,15 @@ class RobotDriver(Driver):
         self._read_at = 0.0      # (monotonic) when readings were last written
         self._in_force = np.zeros(2)     # the command the robot runs on now
 
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Set state; a running driver re-pointed at another robot reads it at once,
+        rather than at its next period (a control system handed to a standby robot
+        sees that robot a period sooner)."""
+        repointed = state.get("resource", self.resource) != self.resource
+        super().set_state(state)
+        if repointed and "_read_at" in vars(self):
+            self._serve(None, advance=0.0)
+
     def step(self) -> None:
         if self.lockstep_s > 0 and time.monotonic() - self._read_at < self.period:
             return               # lock-step: commands drive it (see on_input)

@@ -87,3 +87,13 @@ def test_in_lockstep_every_command_advances_the_world_once(robot) -> None:
     assert ops(robot)[1:] == ["drive", "advance", "sensors"] * 3
     assert harness.written["clock"] == [0.0, 0.25, 0.5, 0.75]
     assert [list(a) for a in harness.written["applied"][1:]] == [[0.3, 0.0]] * 3
+
+
+def test_a_running_driver_re_pointed_at_another_robot_reads_it_at_once(robot) -> None:
+    harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400"})
+    harness.step()
+    harness.module.set_state({"resource": "tcp://standby:7400"})
+    assert len(harness.written["sonar"]) == 2                 # no step in between
+    assert [op for op, _ in robot.requests] == ["sensors", "stop", "sensors"]
+    harness.module.set_state({"enabled": True})                # not a re-point: no reading
+    assert len(harness.written["sonar"]) == 2

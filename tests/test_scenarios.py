@@ -48,7 +48,7 @@ def test_mapping_hands_the_control_system_over_to_the_standby_robot(tmp_path) ->
 
 @pytest.mark.timeout(300)
 def test_mapping_from_the_command_line_on_another_world_and_seed(tmp_path, capsys) -> None:
-    assert main(["scenario", "mapping", "--quick", "--world", "arena", "--seed", "7",
+    assert main(["scenario", "mapping", "--quick", "--world", "room", "--seed", "3",
                  "--out", str(tmp_path)]) == 0
     figures = json.loads((tmp_path / "mapping.json").read_text())
     _check_mapping(figures)

@@ -14,6 +14,7 @@ segment. It implements ``Node``.
 from __future__ import annotations
 
 import contextlib
+import importlib
 import logging
 import threading
 import time
@@ -102,6 +103,10 @@ class Executor:
         settings.code = code
         self.epoch = epoch
         self.workers.warm()
+        # This process resolves the classes of modules that come to the node (a move,
+        # an add): import them now, in the background, not in a move's critical path.
+        threading.Thread(target=_import_quietly, args=(code.preload,),
+                         name="pb3a-preload", daemon=True).start()
 
     @property
     def bridge(self) -> Bridge:
@@ -606,3 +611,11 @@ class Executor:
 def _topic(link: FlatLink) -> str:
     """The topic a remote link's output is published under."""
     return f"{link.src}.{link.src_port}"
+
+
+def _import_quietly(modules: tuple[str, ...]) -> None:
+    """Import ``modules``; one that fails is left to fail, with its message, when a
+    module of it is added."""
+    for name in modules:
+        with contextlib.suppress(Exception):
+            importlib.import_module(name)
