@@ -256,7 +256,8 @@ def plot(record: dict[str, Any], figures: dict[str, Any], path: Path) -> None:
         axis.set_title(title, fontsize=10)
         axis.set_xticks([])
         axis.set_yticks([])
-    fig.axes[2].legend(loc="upper right", fontsize=7)
+    fig.axes[2].legend(loc="upper center", bbox_to_anchor=(0.5, -0.01), ncol=3, fontsize=7,
+                       frameon=False)
     quality = fig.add_subplot(2, 1, 2)
     over = figures["map_quality_over_time"]
     quality.plot([q["t"] for q in over], [q["accuracy"] for q in over], label="accuracy")
