@@ -33,7 +33,8 @@ def test_the_scenario_command_names_the_scenarios(capsys) -> None:
 def _check_mapping(figures: dict) -> None:
     assert figures["false_alarms"] == 0, figures["remedies"]
     assert figures["detected_fault"]["fault"] == "motors"
-    assert figures["detection_s"] < 1.5
+    # (a motor cut shows once the robot is told to move: it may be looking round, still)
+    assert figures["detection_s"] < 3.0
     assert figures["mapper_node_at_end"] == "r2"          # the control system moved
     assert [r["action"] for r in figures["remedies"] if r["event"] == "chosen"] == [
         "move_macro"]
