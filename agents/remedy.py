@@ -28,17 +28,19 @@ if TYPE_CHECKING:
     from pb3a.stats import SystemStats
 
 SHIPPED_CASES = Path(__file__).with_name("cases.toml")
-ACTIONS = ("move_macro", "swap", "stop")
+ACTIONS = ("move_macro", "swap", "stop", "carry_on")
 HISTORY_KEPT = 200                    # remedies remembered in ``history``
 _HISTORY_KEYS = ("failure", "remedy", "case", "similarity", "reason", "started", "ended",
                  "judged", "worked", "outcome")
 _CLASS_REF = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_][\w.]*$")
 
 
-def situation_of(failure: dict[str, Any], *, standby: bool) -> dict[str, Feature]:
+def situation_of(failure: dict[str, Any], *, standby: bool,
+                 consumed: bool = True) -> dict[str, Feature]:
     """The features of ``failure`` (a monitor's ``{"fault", "probability", "at",
     "detail"}``): its fault, probability, how many sensors its detail names, whether a
-    standby robot is at hand, and the detail's own numbers, strings and booleans."""
+    standby robot is at hand, whether a module of the system reads the failed sensor
+    (``consumed``), and the detail's own numbers, strings and booleans."""
     detail = failure.get("detail") or {}
     features: dict[str, Feature] = {
         name: value for name, value in detail.items()
@@ -48,7 +50,7 @@ def situation_of(failure: dict[str, Any], *, standby: bool) -> dict[str, Feature
         probability=float(failure.get("probability", 1.0)),
         failed_sensors=sum(len(value) for value in detail.values()
                            if isinstance(value, (list, tuple))),
-        standby=standby)
+        standby=standby, consumed=consumed)
     return features
 
 
@@ -94,6 +96,8 @@ def check_remedy(remedy: dict[str, Any], view: SystemView) -> None:
     elif action == "stop":
         if remedy.get("driver") not in view.nodes:
             raise AdaptationError(f"no driver {remedy.get('driver')!r} runs")
+    elif action == "carry_on":
+        pass                             # nothing to change: nothing reads what failed
     else:
         raise AdaptationError(f"unknown action {action!r}; actions: {', '.join(ACTIONS)}")
 
@@ -230,7 +234,8 @@ class RemedyAgent(Agent):
             view = SystemView({}, {}, frozenset())
         standby = (bool(self.standby_resource) and self.standby_node in view.up
                    and view.nodes.get(self.driver) != self.standby_node)
-        situation = situation_of(failure, standby=standby)
+        situation = situation_of(failure, standby=standby,
+                                 consumed=fault in self.consumers or fault == "motors")
         placeholders = {"macro": self.macro, "driver": self.driver, "fault": fault,
                         "standby_node": self.standby_node,
                         "standby_resource": self.standby_resource,
@@ -254,6 +259,9 @@ class RemedyAgent(Agent):
             elif remedy["action"] == "swap":
                 self.runtime.swap(remedy["module"], remedy["cls"])
                 self._verify(remedy["module"], now)
+            elif remedy["action"] == "carry_on":
+                self._conclude(True, f"no module reads the {failure.get('fault')} sensor: "
+                               "carried on", now)
             else:
                 self.runtime.set_state(remedy["driver"], {"enabled": False})
                 self.stopped, self.deferred = True, []

@@ -511,7 +511,7 @@ def test_a_failure_of_another_kind_waits_for_the_remedy_under_way(tmp_path, cloc
     harness.step()
     assert [event[:2] for event in events(harness)] == [
         ("chosen", "move_macro"), ("worked", "move_macro"),
-        ("chosen", "stop"), ("worked", "stop")]     # no odometry fallback: stop
+        ("chosen", "carry_on"), ("worked", "carry_on")]     # nothing reads odometry
     assert harness.state["deferred"] == []
 
 
@@ -529,3 +529,17 @@ def test_the_agents_state_pickles_in_the_middle_of_a_move(tmp_path, clock) -> No
 
 
 # -- the robot driver's enabled flag -------------------------------------------------
+
+
+def test_a_sensor_nothing_reads_fails_and_the_mission_carries_on(tmp_path, clock) -> None:
+    runtime = FakeRuntime()
+    harness = agent(tmp_path, runtime)            # (its consumers name no odometry reader)
+    harness.feed("failure", failure("odometry", clock.now, drift_per_m=0.05))
+    harness.step()
+    assert runtime.calls == []                    # nothing moved, swapped or stopped
+    assert events(harness) == [("chosen", "carry_on", "unread-sensor"),
+                               ("worked", "carry_on", "unread-sensor")]
+    assert not harness.state["stopped"]
+    harness.feed("failure", failure("motors", clock.now + 1))
+    harness.step()                                # and a real fault is still acted on
+    assert runtime.calls[-1] == ("migrate", "control", "r2", False)
