@@ -75,8 +75,10 @@ class World:
         self.hardware: list[HardwareBody] = []       # the hardware robots' bodies
 
     @classmethod
-    def load(cls, path: str | Path, seed: int = 0) -> World:
-        """A world from a TOML world file (see ``rave/worldfile.py``)."""
+    def load(cls, path: str | Path, seed: int = 0, *, robots: bool = True) -> World:
+        """A world from a TOML world file (see ``rave/worldfile.py``); with ``robots``
+        False, its walls and obstacles only (no emulator process is started for the
+        hardware robots the file places)."""
         plan = worldfile.read(Path(path))
         world = cls(plan.size, seed, plan.name)
         for wall in plan.walls:
@@ -85,7 +87,7 @@ class World:
             world.add_box(**box)
         for polygon in plan.polygons:
             world.add_polygon(**polygon)
-        for robot in plan.robots:
+        for robot in plan.robots if robots else ():
             world.add_robot(**robot)
         return world
 

@@ -28,7 +28,7 @@ from agents.grid import UNKNOWN, Grid
 from agents.map_truth import reachable, score, truth
 from agents.occupancy import OccupancyGrid
 from pb3a.testing import ModuleHarness
-from rave import World, worldfile
+from rave import World
 from rave.layers import WALL_RADIUS
 from rave.pioneer import RADIUS
 from rave.sonar import MAX_RANGE
@@ -44,15 +44,7 @@ TOUCH = RADIUS + WALL_RADIUS                         # the robot's centre this n
 def _world_without_robots(name: str, seed: int = 1) -> World:
     """The world of ``rave/worlds/<name>.toml`` without its robots (one is a hardware
     robot, with an emulator process, that these tests do not need)."""
-    plan = worldfile.read(WORLDS / f"{name}.toml")
-    world = World(plan.size, seed, plan.name)
-    for wall in plan.walls:
-        world.add_wall(**wall)
-    for box in plan.boxes:
-        world.add_box(**box)
-    for polygon in plan.polygons:
-        world.add_polygon(**polygon)
-    return world
+    return World.load(WORLDS / f"{name}.toml", seed, robots=False)
 
 
 def _reveal(probabilities: np.ndarray, occupied: np.ndarray, grid: Grid, pose: Any) -> None:

@@ -17,7 +17,7 @@ from agents.grid import FREE, OCCUPIED, UNKNOWN, UNSEEN, Grid, classify
 from agents.map_truth import MapScore, reachable, score, truth
 from agents.occupancy import Mapper, OccupancyGrid, SonarModel
 from pb3a.testing import ModuleHarness
-from rave import World, sonar, worldfile
+from rave import World, sonar
 from rave.robot import Robot
 
 LAB = Path(__file__).resolve().parent.parent / "rave" / "worlds" / "lab.toml"
@@ -34,15 +34,7 @@ EXACT = sonar.SonarNoise(sigma0=0.0, sigma_per_m=0.0)
 def _lab(seed: int) -> World:
     """The lab's walls and furniture without the robots its file places (one of them
     a hardware robot, with an emulator process this test does not want)."""
-    plan = worldfile.read(LAB)
-    world = World(plan.size, seed, plan.name)
-    for wall in plan.walls:
-        world.add_wall(**wall)
-    for box in plan.boxes:
-        world.add_box(**box)
-    for polygon in plan.polygons:
-        world.add_polygon(**polygon)
-    return world
+    return World.load(LAB, seed, robots=False)
 
 
 def _map_the_tour(world: World, robot: Robot, grid: OccupancyGrid) -> list[MapScore]:
