@@ -288,7 +288,7 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"shorter phases ({PHASES['quick'][0]:.0f} s of mapping, then "
                              f"{PHASES['quick'][1]:.0f} s after the fault)")
     parser.add_argument("--world", default="lab",
-                        help="a bundled world (lab, arena) or a world file (default lab)")
+                        help="a bundled world (lab, arena, room) or a world file (default lab)")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--out", default=".", help="directory for mapping.json and .png")
     args = parser.parse_args(argv)
