@@ -288,6 +288,33 @@ def test_python_macro_subclasses_expand_like_file_macros() -> None:
     assert plan.modules["src"].group is None
 
 
+def test_a_macro_instance_sets_the_state_of_its_modules() -> None:
+    import sample_modules as sm
+
+    system = (System("two").add("left", sm.Outer, state={"chain/b": {"gain": 5.0}})
+              .add("right", sm.Outer, state={"tail": {"gain": 7.0, "setups": 1}}))
+    assert system.check() == []
+    state = {name: module.state for name, module in system.plan().modules.items()}
+    assert state["left/chain/b"] == {"gain": 5.0}          # over the macro's own 3.0
+    assert state["right/chain/b"] == {"gain": 3.0}         # each instance its own
+    assert state["right/tail"] == {"gain": 7.0, "setups": 1}
+    assert state["left/tail"] == state["left/chain/a"] == {}
+
+
+def test_a_macro_instance_naming_a_module_it_lacks_or_bad_state_is_reported() -> None:
+    import sample_modules as sm
+
+    problems = (System("bad").add("m", sm.Outer, state={"chain/c": {"gain": 1.0},
+                                                         "tail": {"gian": 1.0},
+                                                         "chain": {"gain": 1.0}}).check())
+    assert len(problems) == 3
+    only(problems, "[modules.m]: state names 'chain/c', which is not a module of macro",
+         "its modules: a, b")
+    only(problems, "[modules.m]: state names 'chain', which is not a module of macro",
+         "its modules: tail", "'macro/module'")
+    only(problems, "[modules.m]: state of 'tail': ", "has no state 'gian' (did you mean 'gain'?)")
+
+
 def test_macro_subclasses_own_their_tables_and_may_be_given_as_macro() -> None:
     import parts_cfg
 
@@ -604,7 +631,8 @@ def test_bad_instance_names_and_class_macro_choice(tmp_path: Path) -> None:
     only(problems, "[modules.both]: give exactly one of 'class'", "it has both")
     only(problems, "[modules.neither]: give exactly one of 'class'", "'macro' (the name of")
     only(problems, "[modules.m]: 'period' applies to modules, not to a macro")
-    only(problems, "[modules.m]: 'state' applies to modules, not to a macro")
+    only(problems, "[modules.m]: a macro instance's state is a table of its modules",
+         "got {'x': 1}")
 
 
 def test_bad_workers_and_node_values(tmp_path: Path) -> None:

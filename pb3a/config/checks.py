@@ -106,6 +106,16 @@ def state(cls: type[Module], value: Any) -> list[str]:
             for key in value if key not in names]
 
 
+def macro_state(value: Any) -> list[str]:
+    """A macro instance's state: a table of its modules' paths, each a table of state
+    for that module (which overrides the macro's own)."""
+    if isinstance(value, dict) and all(isinstance(v, dict) for v in value.values()):
+        return []
+    return [("a macro instance's state is a table of its modules, each a table of their "
+             "state, e.g. state = { driver = { resource = \"tcp://...\" } }, got "
+             f"{value!r}")]
+
+
 def cpus(value: Any) -> list[str]:
     """Left out (any CPU) or a non-empty list of this machine's CPU numbers."""
     if value is None:

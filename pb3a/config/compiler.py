@@ -24,7 +24,9 @@ system declares none). Problems name the file (or ``system 'name'``) and the ent
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from pb3a.config import checks
 from pb3a.config.definitions import Child, Definition, toml_key
@@ -55,6 +57,15 @@ def build_plan(spec: SystemSpec) -> Plan:
     if problems or plan is None:
         raise ConfigError(problems)
     return plan
+
+
+@dataclass(frozen=True)
+class Override:
+    """State a macro instance's ``state`` table sets on one of the macro's modules."""
+
+    state: dict[str, Any]
+    label: str                 # the instance's entry, for messages
+    key: str                   # the module's path as that entry wrote it
 
 
 class _Planner:
@@ -234,9 +245,7 @@ class _Planner:
                                                        ("restart", entry.restart),
                                                        ("fallback", entry.fallback))
                          if value is not None]
-            if entry.state:
-                problems.append("'state' applies to modules, not to a macro: set it on the "
-                                "macro's children")
+            problems += checks.macro_state(entry.state)
         elif child.cls is not None:
             problems += checks.period(entry.period) + checks.restart(entry.restart)
             problems += checks.state(child.cls, entry.state)
@@ -287,7 +296,12 @@ class _Planner:
     # -- phase 5: instances ------------------------------------------------
     def instantiate(self, definition: Definition, prefix: str, node: str | None,
                     group: str | None, modules: dict[str, FlatModule],
-                    labels: dict[str, str], links: list[tuple[str, FlatLink]]) -> None:
+                    labels: dict[str, str], links: list[tuple[str, FlatLink]],
+                    overrides: dict[str, Override] | None = None) -> None:
+        """Expand ``definition`` under ``prefix``; ``overrides`` are the state its
+        instance's ``state`` table (and those of the instances around it) sets on its
+        modules, keyed by their paths inside it."""
+        overrides = dict(overrides or {})
         for name, child in definition.children.items():
             entry, path = child.spec, prefix + name
             here = entry.node if entry.node in self.node_names else node
@@ -296,16 +310,32 @@ class _Planner:
                 cls = child.cls
                 period = entry.period if not checks.period(entry.period) else None
                 restart = entry.restart if not checks.restart(entry.restart) else None
+                state = dict(entry.state) if isinstance(entry.state, dict) else {}
+                if name in overrides:
+                    extra = overrides.pop(name)
+                    self.report(extra.label, [f"state of {extra.key!r}: {problem}"
+                                              for problem in checks.state(cls, extra.state)])
+                    state.update(extra.state)
                 modules[path] = FlatModule(
                     path, cls, here or self.node_names[0],
-                    float(period) if period is not None else cls.period,
-                    dict(entry.state) if isinstance(entry.state, dict) else {},
+                    float(period) if period is not None else cls.period, state,
                     restart or cls.restart, team,
                     list(entry.fallback or []) if not checks.fallback(
                         entry.fallback, self.node_names) else [])
                 labels[path] = child.label
             elif child.macro is not None:
-                self.instantiate(child.macro, path + "/", here, team, modules, labels, links)
+                own = entry.state if not checks.macro_state(entry.state) else {}
+                inner = {key: Override(value, child.label, key) for key, value in own.items()}
+                for key in [key for key in overrides if key.startswith(f"{name}/")]:
+                    inner[key.removeprefix(f"{name}/")] = overrides.pop(key)   # the outer wins
+                self.instantiate(child.macro, path + "/", here, team, modules, labels, links,
+                                 inner)
+        modules_here = [name for name, child in definition.children.items() if child.cls]
+        for extra in overrides.values():
+            self.report(extra.label, [
+                f"state names {extra.key!r}, which is not a module of {definition.title}; its "
+                f"modules: {checks.listing(modules_here)} (a child macro's modules as "
+                "'macro/module')"])
         for label, src, dst, policy in definition.resolved:
             source, target = prefix + src.path, prefix + dst.path
             if source in modules and target in modules:
