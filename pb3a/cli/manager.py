@@ -53,6 +53,7 @@ def manager_command(args: argparse.Namespace) -> int:
         return _fail("--refresh and --timeout take a number of seconds above 0")
 
     from pb3a.errors import ConfigError, PB3AError
+    from pb3a.launch.connection import connect
     from pb3a.manager.access import Access, new_token
     from pb3a.manager.app import bind, create_app, serve
     from pb3a.manager.document import Document
@@ -63,9 +64,7 @@ def manager_command(args: argparse.Namespace) -> int:
         if target is None:
             session = Session(Document.empty(), timeout=args.timeout)
         elif target.startswith("tcp://"):
-            import pb3a
-
-            session = Session(Document.empty(), pb3a.connect(target), owns_handle=True,
+            session = Session(Document.empty(), connect(target), owns_handle=True,
                               timeout=args.timeout)
         else:
             if not Path(target).is_file():
