@@ -3,6 +3,7 @@ the structure after a change, and the watched module's state."""
 
 from __future__ import annotations
 
+import itertools
 import threading
 import time
 from collections.abc import Iterator
@@ -10,8 +11,6 @@ from collections.abc import Iterator
 import pytest
 
 pytest.importorskip("starlette", reason="the manager needs the 'ui' extra")
-
-import itertools
 
 from test_manager_api import managed, manager_client
 
