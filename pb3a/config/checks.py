@@ -16,6 +16,7 @@ from collections.abc import Iterable
 from typing import Any
 
 from pb3a.loading.references import class_ref
+from pb3a.model.displays import declared_displays
 from pb3a.model.module import RESTART_POLICIES, Module
 
 NAME = re.compile(r"^[A-Za-z0-9_-]+$")
@@ -114,6 +115,16 @@ def macro_state(value: Any) -> list[str]:
     return [("a macro instance's state is a table of its modules, each a table of their "
              "state, e.g. state = { driver = { resource = \"tcp://...\" } }, got "
              f"{value!r}")]
+
+
+def displays(cls: type[Module]) -> list[str]:
+    """The class's ``displays`` table is well formed. (The fields it names are not
+    checked: state may be set first in ``setup``.)"""
+    try:
+        declared_displays(cls)
+    except ValueError as exc:
+        return [f"{exc} (fix the class's displays table)"]
+    return []
 
 
 def cpus(value: Any) -> list[str]:
