@@ -94,6 +94,19 @@ class NodeStats:
     controller: bool | None = None   # its node controller answers (remote nodes)
     epoch: int = 1              # its admission: one more each time it rejoins after a loss
     silent_s: float = 0.0       # since its executor last answered a heartbeat (remote nodes)
+    # the node's resources as its executor last measured them (None: not asked, or lost)
+    cpu: float | None = None                # percent busy of its CPUs (its pinned ones)
+    memory_available: int | None = None     # bytes
+    memory_total: int | None = None         # bytes
+
+
+@dataclass(frozen=True)
+class NodeResources:
+    """A node's machine as its executor measures it: CPU since the last look, memory."""
+
+    cpu: float                  # percent busy of the node's CPUs (its pinned ones), 0-100
+    memory_available: int       # bytes
+    memory_total: int           # bytes
 
 
 @dataclass(frozen=True)
@@ -104,6 +117,7 @@ class NodeReport:
     ring_bytes_used: dict[str, int]     # link key -> bytes in its ring
     link_failures: dict[str, int]       # link key -> values lost for good on the way in
     failures: list[str]
+    resources: NodeResources | None = None   # the machine's CPU and memory
 
 
 @dataclass(frozen=True)

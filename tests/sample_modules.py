@@ -640,3 +640,19 @@ class MoveLog(Module):
 
     def on_input(self, port) -> None:
         self.moves = [*self.moves, port.read()]
+
+
+class Mapper(Module):
+    """Fills an occupancy-like grid, one cell per step; declares custom displays."""
+
+    x = Input(float)
+    period = 0.01
+    grid = np.zeros((8, 8))
+    cells = 0
+    speed = 0.5
+    label = "map"
+    displays = {"grid": "image", "cells": "plot", "speed": ("gauge", 0.0, 1.0)}
+
+    def step(self) -> None:
+        self.grid[divmod(self.cells % 64, 8)] += self.speed
+        self.cells += 1

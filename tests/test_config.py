@@ -738,3 +738,27 @@ def test_a_plan_names_the_modules_its_classes_live_in_for_nodes_to_preload() -> 
     assert plan.code.preload == ("examples.pipeline",)
     macro_plan = System("m").add("twice", "parts_cfg:Twice").plan()
     assert macro_plan.code.preload == ("parts_cfg",)
+
+
+def test_displays_are_configuration_and_a_bad_table_is_reported() -> None:
+    from pb3a import Module, System
+    from pb3a.model.displays import Display, declared_displays
+
+    class Shown(Module):
+        level = 0.5
+        displays = {"level": ("gauge", 0, 1)}
+
+    class Garbled(Module):
+        level = 0.5
+        displays = {"level": ("gauge", 1, 0), "other": "picture"}
+
+    assert Shown.state_names() == ["level"]
+    assert declared_displays(Shown) == {"level": Display("gauge", 0.0, 1.0)}
+    system = System("shown")
+    system.add("good", Shown)
+    system.add("bad", Garbled)
+    problems = system.check()
+    assert len(problems) == 1 and "[modules.bad]" in problems[0], problems
+    assert "displays['level'] = ('gauge', 1, 0)" in problems[0]
+    assert "displays['other'] = 'picture'" in problems[0]
+    assert 'use "image", "plot" or ("gauge", MIN, MAX) with MIN < MAX' in problems[0]

@@ -2,19 +2,23 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import psutil
 import pytest
 from conftest import eventually
-from sample_modules import Counter, FastScale, Last, Relay, Scale
+from sample_modules import Chain, Counter, Doubler, FastScale, Last, Mapper, Relay, Scale
 
 import pb3a
 from pb3a import ConfigError, ModuleNotFound, RuntimeFailure, RuntimeTimeout, System
+from pb3a.model.displays import Display
 from pb3a.stats import SystemStats
+from pb3a.topology import NodeInfo, PortInfo
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -89,3 +93,47 @@ def test_connect_tells_no_answer_a_wrong_key_and_a_bad_address_apart() -> None:
         with pytest.raises(RuntimeFailure, match="runs with another cluster key"):
             pb3a.connect(run.listen(), key=os.urandom(32).hex())
         eventually(lambda: run.state("relay")["relayed"] > 0, what="the system unharmed")
+
+
+def test_topology_describes_the_structure_alike_through_launch_and_connect() -> None:
+    system = _system()
+    system.add("chain", Chain, node="b")
+    system.add("map", Mapper, node="b")
+    system.add("boss", Doubler, node="a")
+    system.link("scale.y", "chain.x")
+    with system.launch() as run, pb3a.connect(run.listen()) as far:
+        topology = run.topology()
+        assert far.topology() == topology
+        assert set(topology.modules) == {"src", "relay", "scale", "chain/a", "chain/b", "map",
+                                         "boss"}
+        chained = topology.modules["chain/b"]
+        assert (chained.cls, chained.node, chained.macro, chained.kind) == (
+            "sample_modules:Scale", "b", "chain", "module")
+        assert topology.modules["boss"].kind == "agent"
+        assert chained.inputs["x"] == PortInfo("float", "latest")
+        assert chained.outputs["y"] == PortInfo("float")
+        assert set(chained.state) == {"gain", "setups"}
+        assert topology.modules["map"].displays == {
+            "grid": Display("image"), "cells": Display("plot"), "speed": Display("gauge", 0, 1)}
+        assert "displays" not in run.state("map")                  # configuration, not state
+        assert topology.macros == {"chain": ["chain/a", "chain/b"]}
+        assert set(topology.links) == {"src.out->relay.x", "scale.y->chain/a.x",
+                                       "chain/a.y->chain/b.x"}
+        assert topology.nodes["a"] == NodeInfo(None, 0, True, 0.0)
+        shown = json.loads(json.dumps(topology.to_json()))          # plain JSON types only
+        assert shown["modules"]["map"]["displays"]["speed"] == {"kind": "gauge", "min": 0.0,
+                                                                "max": 1.0}
+        assert {"key": "src.out->relay.x", "src": "src.out", "dst": "relay.x",
+                "policy": "queue:100000"} in shown["links"]
+        far.migrate("map", to="a")
+        assert far.topology().modules["map"].node == "a"
+
+
+def test_stats_report_each_nodes_cpu_and_memory() -> None:
+    with _system().launch() as run, pb3a.connect(run.listen()) as far:
+        for stats in (run.stats(), far.stats()):
+            for node in stats.nodes.values():
+                assert node.cpu is not None and 0.0 <= node.cpu <= 100.0
+                assert 0 < node.memory_available <= node.memory_total
+                assert node.memory_total == psutil.virtual_memory().total
+        assert far.nodes()["a"].cpu is None          # health only: nothing was measured

@@ -24,11 +24,13 @@ LAYERS: list[set[str]] = [
     {"pb3a.transport"},                                 # how bytes move
     {"pb3a.model", "pb3a.loading"},                     # what users write; code by reference
     {"pb3a.config"},                                    # description -> checked plan
+    {"pb3a.topology"},                                  # a system's structure, as records
     {"pb3a.worker"},                                    # the worker process
     {"pb3a.node"},                                      # one node's supervisor
     {"pb3a.launch", "pb3a.daemons"},                    # the whole system; the daemons
     {"pb3a.system", "pb3a.testing"},                    # the builder users start from; a
                                                         # module tested on its own
+    {"pb3a.manager"},                                   # the ModuleManager web app
     {"pb3a.cli"},                                       # the command line
     {"pb3a", "pb3a.__main__"},                          # the public API
 ]

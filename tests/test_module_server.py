@@ -15,6 +15,7 @@ from pb3a import System
 from pb3a.daemons.module_server import ModuleServer
 from pb3a.loading import served as served_code
 from pb3a.transport.auth import ClusterKey
+from pb3a.transport.control import ControlClient
 
 TICKER = '''
 from pb3a import Module, Output
@@ -80,6 +81,23 @@ def test_nothing_outside_the_directory_is_served(served, tmp_path) -> None:
     for name in ("escape", "escdir.secret", "..secret", "../secret", "/etc/passwd", "",
                  "os.path", "a..b"):
         assert server.find(name) is None, name
+
+
+def test_list_names_every_module_it_serves_and_nothing_outside(served, tmp_path) -> None:
+    root, server = served
+    _write(root / "top.py", "")
+    (root / "pkg" / "sub").mkdir(parents=True)
+    _write(root / "pkg" / "__init__.py", "")
+    _write(root / "pkg" / "sub" / "leaf.py", "")
+    _write(root / "not-a-name.py", "")                 # no import can name it
+    (tmp_path / "secret.py").write_text("")
+    (root / "escape.py").symlink_to(tmp_path / "secret.py")
+    client = ControlClient(ClusterKey.load(), server.address)
+    try:
+        assert client.call("list", timeout=5.0) == ["pkg", "pkg.sub.leaf", "top"]
+    finally:
+        client.close()
+    assert all(server.find(name) is not None for name in server.names())
 
 
 def test_the_command_line_serves_until_signalled(tmp_path) -> None:

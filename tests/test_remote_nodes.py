@@ -67,6 +67,7 @@ def test_a_system_spans_node_controllers_and_migrates_across_them(controllers) -
     assert all(list(found) == ["spanning"] for found in executors.values())
     assert _clean(far) and _clean(near) and far["last"] == far["received"]
     assert stats.modules["relay"].node == "b" and stats.nodes["b"].up
+    assert all(node.cpu is not None and node.memory_total for node in stats.nodes.values())
     assert all(entry["up"] for entry in table.values()) and table["b"]["rtt"] == 0.0
     assert max(table["a"]["rtt"], table["c"]["rtt"]) < 1.0
     shown = format_table(stats)                                      # pb3a run's table

@@ -83,7 +83,11 @@ def test_stats_are_typed_records_with_a_json_form() -> None:
     assert isinstance(stats.modules["scale"].inputs["x"], InputStats)
     assert stats.modules["src"].inputs == {} and stats.modules["src"].outputs["out"] >= 2
     assert isinstance(stats.links["src.out->scale.x"], LinkStats)
-    assert stats.nodes["local"] == NodeStats(up=True, rtt=0.0, address=None)
+    node = stats.nodes["local"]
+    assert node == NodeStats(up=True, rtt=0.0, address=None, cpu=node.cpu,
+                             memory_available=node.memory_available,
+                             memory_total=node.memory_total)
+    assert node.cpu is not None and node.memory_total is not None
     plain = stats.to_json()
     text = json.dumps(plain, allow_nan=False)          # NaN (no latency yet) is null
     assert json.loads(text)["links"]["scale.y->sink.x"]["values"] >= 2

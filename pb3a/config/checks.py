@@ -16,6 +16,7 @@ from collections.abc import Iterable
 from typing import Any
 
 from pb3a.loading.references import class_ref
+from pb3a.model.displays import declared_displays
 from pb3a.model.module import RESTART_POLICIES, Module
 
 NAME = re.compile(r"^[A-Za-z0-9_-]+$")
@@ -104,6 +105,16 @@ def state(cls: type[Module], value: Any) -> list[str]:
     return [f"{class_ref(cls)} has no state {key!r}{did_you_mean(key, names)}; its state is: "
             f"{listing(names)} (fix the key, or declare the attribute on the class)"
             for key in value if key not in names]
+
+
+def displays(cls: type[Module]) -> list[str]:
+    """The class's ``displays`` table is well formed. (The fields it names are not
+    checked: state may be set first in ``setup``.)"""
+    try:
+        declared_displays(cls)
+    except ValueError as exc:
+        return [f"{exc} (fix the class's displays table)"]
+    return []
 
 
 def cpus(value: Any) -> list[str]:

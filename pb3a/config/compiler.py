@@ -240,6 +240,7 @@ class _Planner:
         elif child.cls is not None:
             problems += checks.period(entry.period) + checks.restart(entry.restart)
             problems += checks.state(child.cls, entry.state)
+            problems += checks.displays(child.cls)
         self.report(child.label, problems)
         return child
 

@@ -4,7 +4,8 @@ Nodes import a module class from their own import path first, then from the modu
 servers the configuration names (``module_servers``). The server answers ``find``
 requests for dotted module names with the source of ``DIR/a/b.py`` or
 ``DIR/a/b/__init__.py``, read at each request, so new and overwritten files are
-served without a restart. Requests are authenticated (``ControlServer``); names
+served without a restart; ``list`` gives every dotted name it can serve (for module
+browsers such as the ModuleManager's). Requests are authenticated (``ControlServer``); names
 are identifiers only, and a file whose real path (symbolic links resolved) leaves DIR
 is never served.
 """
@@ -50,9 +51,30 @@ class ModuleServer:
                     "origin": f"{self.address}/{real.relative_to(self.root)}"}
         return None
 
+    def names(self) -> list[str]:
+        """Every dotted module name ``find`` serves, sorted: the ``.py`` files under the
+        root whose path is made of identifiers, packages by their ``__init__.py``
+        (symbolic links leading out of the root are left out, as ``find`` refuses them)."""
+        names = set()
+        for path in self.root.rglob("*.py"):
+            parts = path.relative_to(self.root).with_suffix("").parts
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            if not parts or not all(part.isidentifier() for part in parts):
+                continue
+            try:
+                real = path.resolve(strict=True)
+            except (FileNotFoundError, RuntimeError):
+                continue
+            if real.is_relative_to(self.root) and real.is_file():
+                names.add(".".join(parts))
+        return sorted(names)
+
     def _handle(self, op: str, args: dict[str, Any]) -> Any:
         if op == "find":
             return self.find(str(args.get("name", "")))
+        if op == "list":
+            return self.names()
         raise ValueError(f"the module server has no operation {op!r}")
 
     @property

@@ -22,6 +22,7 @@ if TYPE_CHECKING:
     from pb3a.launch.migration import MigrationReport
     from pb3a.logbook import LogEntry
     from pb3a.stats import NodeStats, SystemStats
+    from pb3a.topology import Topology
 
 
 class SystemHandle(ABC):
@@ -116,6 +117,12 @@ class SystemHandle(ABC):
     def nodes(self, *, timeout: float | None = None) -> dict[str, NodeStats]:
         """Every node's health: up or lost, its address, its round-trip time."""
         return self._request("nodes", {"timeout": timeout})
+
+    def topology(self, *, timeout: float | None = None) -> Topology:
+        """The system's structure now: every module with its class, node, ports and their
+        types, state names and displays; every link; every node with its health (typed
+        records, see ``pb3a.topology``)."""
+        return self._request("topology", {"timeout": timeout})
 
     def stats(self, *, timeout: float | None = None) -> SystemStats:
         """Per module: steps, events, CPU time, errors; per link: values, drops, latency,

@@ -254,15 +254,24 @@ class Launcher:
         per-link table (from the reader's side), failures, node health."""
         reports = self._reports()
         # a module being migrated is on two nodes for a moment: the launcher says where
-        modules = {name: entry for report in reports for name, entry in report.modules.items()
+        modules = {name: entry for report in reports.values()
+                   for name, entry in report.modules.items()
                    if name in self.specs and entry.node == self.specs[name].node}
-        failures = [*self.failures, *(f for report in reports for f in report.failures)]
+        failures = [*self.failures, *(f for report in reports.values() for f in report.failures)]
+        nodes = self.node_table()
+        for name, report in reports.items():
+            if report.resources is not None and name in nodes:
+                measured = report.resources
+                nodes[name] = dataclasses.replace(
+                    nodes[name], cpu=measured.cpu, memory_available=measured.memory_available,
+                    memory_total=measured.memory_total)
         return SystemStats(self.plan.name, modules,
-                           _link_table(self.links, modules, reports, self.lost_values),
-                           self.node_table(), failures)
+                           _link_table(self.links, modules, list(reports.values()),
+                                       self.lost_values),
+                           nodes, failures)
 
-    def _reports(self) -> list[NodeReport]:
-        """Every node's report, asked of all at once. A node that stops answering its
+    def _reports(self) -> dict[str, NodeReport]:
+        """Every node's report, by node, asked of all at once. A node that stops answering its
         heartbeats meanwhile is not waited for (until it is declared lost): its modules
         are absent from this report."""
         reports: dict[str, NodeReport] = {}
@@ -282,7 +291,7 @@ class Launcher:
         for name, thread in asked.items():
             while thread.is_alive() and not self._silent(name):
                 thread.join(WATCH_S)
-        return [reports[name] for name in asked if name in reports]
+        return {name: reports[name] for name in asked if name in reports}
 
     def _silent(self, name: str) -> bool:
         """Whether remote node ``name`` missed its last two heartbeats."""

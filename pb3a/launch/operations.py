@@ -25,6 +25,7 @@ from pb3a.loading.served import forget
 from pb3a.model.module import RESTART_POLICIES, Module
 from pb3a.model.ports import Policy
 from pb3a.pending import DONE, FAILED, RUNNING
+from pb3a.topology import Topology, topology_of
 
 if TYPE_CHECKING:
     from pb3a.events import Event
@@ -40,7 +41,7 @@ DEFAULT_TIMEOUT = 30.0      # seconds an operation may wait, unless told otherwi
 # connection, an agent on a remote node): the public operations, nothing else.
 PUBLIC = frozenset({"state", "set_state", "swap", "relink", "link", "add", "remove",
                     "restart", "migrate", "begin_migration", "migration", "reload", "stats",
-                    "where", "nodes", "events", "logs"})
+                    "where", "nodes", "topology", "events", "logs"})
 # What an agent may ask through ``self.runtime`` (it spawns with "add").
 FOR_AGENTS = PUBLIC - {"reload"}
 KEEP_JOBS = 1000            # background operations whose outcome is kept for asking
@@ -263,6 +264,12 @@ class Operations:
     def nodes(self, *, timeout: float | None = None) -> dict[str, NodeStats]:
         with self._held("nodes", timeout):
             return self.launcher.node_table()
+
+    def topology(self, *, timeout: float | None = None) -> Topology:
+        with self._held("topology", timeout):
+            launcher = self.launcher
+            return topology_of(self.plan.name, self.plan.nodes, launcher.specs.values(),
+                               launcher.links.values(), launcher.node_table())
 
     def stats(self, *, timeout: float | None = None) -> SystemStats:
         with self._held("stats", timeout):

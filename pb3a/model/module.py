@@ -19,7 +19,7 @@ from pb3a.model.ports import Input, InputPort, Output, OutputPort, _Port
 RESTART_POLICIES = ("never", "fresh", "last-state")
 
 # Attributes the runtime reads as configuration, never as state.
-_FRAMEWORK_NAMES = frozenset({"period", "restart", "runtime"})
+_FRAMEWORK_NAMES = frozenset({"period", "restart", "runtime", "displays"})
 _NOT_STATE = (_Port, types.FunctionType, classmethod, staticmethod, property, type,
               types.ModuleType, types.MethodType, types.BuiltinFunctionType)
 
@@ -30,11 +30,13 @@ class Module:
     Class attributes ``period`` (seconds between steps; ``None`` = not threaded,
     ``0`` = as fast as possible) and ``restart`` (``"never"``, ``"fresh"`` or
     ``"last-state"``) configure how the runtime runs it; a configuration may
-    override both. Modules are constructed with no arguments.
+    override both. ``displays`` tells tools how to show some state fields
+    (``pb3a.model.displays``). Modules are constructed with no arguments.
     """
 
     period: ClassVar[float | None] = None
     restart: ClassVar[str] = "never"
+    displays: ClassVar[dict[str, Any]] = {}
     inputs: ClassVar[dict[str, Input]] = {}
     outputs: ClassVar[dict[str, Output]] = {}
 

@@ -30,6 +30,7 @@ from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
 from pb3a.node.bridge import Bridge
 from pb3a.node.protocol import Endpoint
+from pb3a.node.resources import ResourceMeter
 from pb3a.node.restarts import RestartBudget
 from pb3a.node.ring_sizes import RingSize, ring_size
 from pb3a.node.workers import REQUEST_TIMEOUT, WorkerHandle, WorkerPool, WorkerSettings
@@ -77,6 +78,7 @@ class Executor:
         self.outbound: dict[str, FlatLink] = {}       # remote links written here
         self.rings: dict[str, ShmRing] = {}
         self.failures: list[str] = []                 # what went wrong, for stats and logs
+        self.meter = ResourceMeter(cpus)              # the machine's CPU and memory
         self.handler: Any = None                      # applies agents' requests (op, args)
         self.republished: Any = None                  # told (link, endpoint) after a restart
         self.on_event: Any = None                     # told (kind, module, detail): restarts
@@ -406,7 +408,7 @@ class Executor:
     # -- figures ---------------------------------------------------------------
     def report(self) -> NodeReport:
         """Figures of every module of this node (one request to each worker), its rings'
-        fill and its remote links' losses."""
+        fill, its remote links' losses, and its CPU (since the last report) and memory."""
         futures = {key: self.workers.submit(key, "stats")
                    for key, handle in list(self.workers.handles.items()) if handle.alive}
         reports: dict[str, Any] = {}
@@ -419,7 +421,7 @@ class Executor:
                  for key, ring in report.get("rings", {}).items()}
         lost = {key: self.bridge.link_failures(_topic(link))
                 for key, link in self.inbound.items()}
-        return NodeReport(modules, rings, lost, list(self.failures))
+        return NodeReport(modules, rings, lost, list(self.failures), self.meter.sample())
 
     def worker_pids(self) -> list[int]:
         """The process ids of this node's running workers."""
