@@ -187,7 +187,7 @@ class Manager {
       info.period !== null && info.period !== undefined ? h("span", {}, `period ${fmt.seconds(info.period)}`) : null,
       info.macro ? h("span", {}, `in macro ${info.macro}`) : null,
     ];
-    $("inspector-meta").replaceChildren(...meta);
+    $("inspector-meta").replaceChildren(...meta.filter(Boolean));
     const extra = [];
     if (live?.last_error) extra.push(h("div", {class: "problem"}, `${live.errors} errors · last: ${live.last_error}`));
     const move = this.lastMove.get(name);

@@ -22,6 +22,12 @@ export function bytes(value) {
   return `${value.toFixed(value >= 10 || i === 0 ? 0 : 1)} ${units[i]}`;
 }
 
+/** Bytes in GiB, with one decimal below 10. */
+export function gib(value) {
+  const g = value / 2 ** 30;
+  return g >= 10 ? g.toFixed(0) : g.toFixed(1);
+}
+
 export function percent(value) {
   return value === null || value === undefined ? "–" : `${value.toFixed(0)}%`;
 }

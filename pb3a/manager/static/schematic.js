@@ -11,6 +11,9 @@ const HEADER = 24;          // a module box's title band, above its ports
 const PORT_R = 4.5;
 const DRAG_THRESHOLD = 4;   // pixels a press moves before it counts as a drag
 const PAD = 24;             // around the drawing, in layout pixels
+const MODULE_H = 84;        // the least height a module box needs for its title, ports, figures
+const MAX_ZOOM = 1.4;       // a fitted small system is magnified this much at most
+const WIDEN = 1.3;          // and a little wider still, for the links' figures between boxes
 
 export class Schematic {
   /**
@@ -32,13 +35,14 @@ export class Schematic {
     this.fitted = true;
     this.layers = {};
     this.bindViewGestures();
+    window.addEventListener("resize", () => { if (this.fitted && this.layout) this.fit(); });
   }
 
   // -- structure -------------------------------------------------------------------
   render(system, layout) {
     const before = new Map([...this.boxes].map(([name, box]) => [name, box.at]));
     this.system = system;
-    this.layout = layout;
+    this.layout = layout = withEveryNode(roomy(layout), system);
     this.svg.replaceChildren();
     this.boxes.clear();
     this.links.clear();
@@ -75,11 +79,17 @@ export class Schematic {
     const title = s("text", {x: box.x + 14, y: box.y + 20, class: "cluster-title"}, node);
     const badge = s("text", {x: box.x + box.w - 12, y: box.y + 20, class: "cluster-badge",
                              "text-anchor": "end"}, info.up === false ? "lost" : "up");
-    const figures = s("text", {x: box.x + 14, y: box.y + 36, class: "cluster-figures"},
-                      info.address || "in the launcher");
-    group.append(rect, title, badge, figures);
+    const figures = s("text", {x: box.x + 14, y: box.y + 36, class: "cluster-figures"}, "");
+    const reach = s("text", {x: box.x + 14, y: box.y + 50, class: "cluster-figures"},
+                    info.address ? `${info.address}` : "in the launcher");
+    group.append(s("title", {}, `node ${node}${info.address ? ` at ${info.address}` : " (embedded)"}`),
+                 rect, title, badge, figures, reach);
+    if (box.empty) {
+      group.append(s("text", {x: box.x + box.w / 2, y: box.y + box.h / 2 + 14, class: "cluster-empty",
+                              "text-anchor": "middle"}, "no module runs here"));
+    }
     this.layers.clusters.append(group);
-    this.clusters.set(node, {group, rect, badge, figures, box});
+    this.clusters.set(node, {group, rect, badge, figures, reach, box});
     group.classList.toggle("lost", info.up === false);
   }
 
@@ -198,6 +208,7 @@ export class Schematic {
     const path = s("path", {class: "link", d, "marker-end": "url(#arrow)", dataset: {link: link.key}},
                    s("title", {}, `${link.key} (${link.policy})`));
     const mid = bezierMid(a, b);
+    mid.y -= 12;                                      // above the path, clear of the ports
     const text = s("text", {class: "link-text", x: mid.x, y: mid.y + 3.5, "text-anchor": "middle"},
                    link.policy);
     const bg = s("rect", {class: "link-label-bg", rx: 6, height: 15, y: mid.y - 8});
@@ -271,7 +282,7 @@ export class Schematic {
       const l = stats.links?.[key];
       if (!l) continue;
       let text = `${fmt.rate(l.rate)} · ${fmt.seconds(l.latency)}`;
-      if (l.drops) text += ` · ${fmt.count(l.drops)} drops`;
+      if (l.drops) text += ` · ${fmt.count(l.drops)} dropped`;
       if (l.link_failures) text += ` · ${l.link_failures} lost`;
       if (setText(entry.text, text)) this.sizeLabel(entry);
       entry.path.classList.toggle("flowing", l.rate > 0);
@@ -287,11 +298,11 @@ export class Schematic {
       const parts = [];
       if (n.cpu !== null && n.cpu !== undefined) parts.push(`CPU ${fmt.percent(n.cpu)}`);
       if (n.memory_total) {
-        parts.push(`mem ${fmt.bytes(n.memory_total - (n.memory_available ?? 0))} / ` +
-                   `${fmt.bytes(n.memory_total)}`);
+        parts.push(`mem ${fmt.gib(n.memory_total - (n.memory_available ?? 0))}/${fmt.gib(n.memory_total)} GiB`);
       }
-      parts.push(n.address ? `RTT ${fmt.seconds(n.rtt)}` : "in the launcher");
       setText(entry.figures, parts.join(" · "));
+      setText(entry.reach, !n.up ? `lost${n.silent_s ? ` · silent ${fmt.seconds(n.silent_s)}` : ""}`
+                         : n.address ? `RTT ${fmt.seconds(n.rtt)}` : "in the launcher");
     }
     this.previous = stats;
   }
@@ -418,9 +429,13 @@ export class Schematic {
     });
   }
 
+  /** The whole drawing, centred, never magnified past one layout pixel per screen pixel
+   * (a small system keeps the type size of a large one). */
   fullView() {
-    const w = Math.max(this.layout?.width || 400, 200), h = Math.max(this.layout?.height || 300, 150);
-    return {x: -PAD, y: -PAD, w: w + 2 * PAD, h: h + 2 * PAD};
+    const w = (this.layout?.width || 400) + 2 * PAD, h = (this.layout?.height || 300) + 2 * PAD;
+    const cw = this.svg.clientWidth || w, ch = this.svg.clientHeight || h;
+    const k = Math.max(w / cw, h / ch, 1 / MAX_ZOOM);
+    return {x: -PAD - (cw * k - w) / 2, y: -PAD - (ch * k - h) / 2, w: cw * k, h: ch * k};
   }
 
   fit() {
@@ -432,6 +447,40 @@ export class Schematic {
     this.view = view;
     this.svg.setAttribute("viewBox", `${view.x} ${view.y} ${view.w} ${view.h}`);
   }
+}
+
+/** Graphviz sizes boxes for 10-point labels; the page draws more in each (ports, figures),
+ * so the whole layout is scaled until the smallest module box has room for them. */
+function roomy(layout) {
+  if (layout.scaled) return layout;
+  const heights = Object.values(layout.modules || {}).map((b) => b.h).filter((v) => v > 0);
+  const k = heights.length ? Math.min(4, Math.max(1, MODULE_H / Math.min(...heights))) : 1;
+  const kx = k * WIDEN;
+  const box = (b) => ({x: b.x * kx, y: b.y * k, w: b.w * kx, h: b.h * k});
+  const each = (boxes) => Object.fromEntries(Object.entries(boxes || {}).map(([n, b]) => [n, box(b)]));
+  return {
+    ...layout, scaled: k, width: layout.width * kx, height: layout.height * k,
+    clusters: each(layout.clusters), modules: each(layout.modules),
+    links: Object.fromEntries(Object.entries(layout.links || {}).map(([key, l]) =>
+      [key, {...l, points: (l.points || []).map(([x, y]) => [x * kx, y * k])}])),
+  };
+}
+
+/** A node that runs no module still needs a region to drop a module on: Graphviz leaves
+ * empty clusters out, so each missing one is put to the right of the drawing. */
+function withEveryNode(layout, system) {
+  const missing = Object.keys(system.nodes || {}).filter((node) => !layout.clusters?.[node]);
+  if (!missing.length) return layout;
+  const clusters = {...layout.clusters};
+  const boxes = Object.values(clusters);
+  const h = Math.max(170, ...boxes.map((b) => b.h));
+  const y = boxes.length ? Math.min(...boxes.map((b) => b.y)) : 0;
+  let x = boxes.length ? Math.max(...boxes.map((b) => b.x + b.w)) + 40 : 0;
+  for (const node of missing) {
+    clusters[node] = {x, y, w: 230, h, empty: true};
+    x += 270;
+  }
+  return {...layout, clusters, width: Math.max(layout.width, x - 40), height: Math.max(layout.height, y + h)};
 }
 
 function moduleOf(end) {

@@ -71,7 +71,7 @@ export class StateEditor {
     else if (field.type === "ndarray") editor = arrayEditor(field, commit, this.displays[name]);
     else if (CONTAINERS.has(field.type)) editor = this.containerEditor(name, field, commit);
     else editor = objectViewer(field);
-    element.append(
+    element.append(...[
       h("div", {class: "field-head"}, [
         h("label", {class: "field-name", title: name}, name),
         h("span", {class: "field-type"}, typeLabel(field)),
@@ -79,7 +79,7 @@ export class StateEditor {
       ]),
       editor.below,
       message,
-    );
+    ].filter(Boolean));
     const display = field.type === "ndarray" && this.displays[name]?.kind === "image"
       ? null : makeDisplay(this.displays[name]);
     if (display) element.append(display.element);
@@ -242,7 +242,8 @@ function scalarEditor(field, commit) {
   });
   input.addEventListener("change", send);
   const refresh = (view) => {
-    shown = numeric ? fmt.number(view.value) : String(view.value);
+    shown = !numeric ? String(view.value)
+      : field.type === "float" && Number.isInteger(view.value) ? view.value.toFixed(1) : fmt.number(view.value);
     if (!dirty && document.activeElement !== input) input.value = shown;
   };
   return {inline: input, below: null, refresh};
