@@ -204,10 +204,12 @@ export class Schematic {
     if (!a || !b) return;
     const fold = this.hiddenBy(moduleOf(link.src));
     if (fold && fold === this.hiddenBy(moduleOf(link.dst))) return;      // inside one fold
-    const d = curve(a, b);
+    const folded = this.hiddenBy(moduleOf(link.src)) || this.hiddenBy(moduleOf(link.dst));
+    const route = folded ? null : routed(this.layout.links?.[link.key]?.points, a, b);
+    const d = route ? route.d : curve(a, b);
     const path = s("path", {class: "link", d, "marker-end": "url(#arrow)", dataset: {link: link.key}},
                    s("title", {}, `${link.key} (${link.policy})`));
-    const mid = bezierMid(a, b);
+    const mid = route ? route.mid : bezierMid(a, b);
     mid.y -= 12;                                      // above the path, clear of the ports
     const text = s("text", {class: "link-text", x: mid.x, y: mid.y + 3.5, "text-anchor": "middle"},
                    link.policy);
@@ -485,6 +487,29 @@ function withEveryNode(layout, system) {
 
 function moduleOf(end) {
   return end.slice(0, end.lastIndexOf("."));
+}
+
+/** Graphviz's spline for a link (cubic Bézier segments: 1 + 3n points), its ends moved
+ * onto the ports this page draws (with their neighbouring control points, so the
+ * tangents stay); null when there is none to follow. */
+function routed(points, a, b) {
+  if (!points || points.length < 4 || (points.length - 1) % 3 !== 0) return null;
+  const p = points.map(([x, y]) => ({x, y}));
+  const last = p.length - 1;
+  const da = {x: a.x - p[0].x, y: a.y - p[0].y}, db = {x: b.x - p[last].x, y: b.y - p[last].y};
+  p[0] = a;
+  p[1] = {x: p[1].x + da.x, y: p[1].y + da.y};
+  p[last - 1] = {x: p[last - 1].x + db.x, y: p[last - 1].y + db.y};
+  p[last] = b;
+  let d = `M${p[0].x},${p[0].y}`;
+  for (let i = 1; i < p.length; i += 3) {
+    d += ` C${p[i].x},${p[i].y} ${p[i + 1].x},${p[i + 1].y} ${p[i + 2].x},${p[i + 2].y}`;
+  }
+  const k = 3 * Math.floor((p.length - 1) / 6);    // the middle segment starts at p[k]
+  const q = [p[k], p[k + 1], p[k + 2], p[k + 3]];
+  const mid = {x: (q[0].x + 3 * q[1].x + 3 * q[2].x + q[3].x) / 8,
+               y: (q[0].y + 3 * q[1].y + 3 * q[2].y + q[3].y) / 8};
+  return {d, mid};
 }
 
 function curve(a, b) {

@@ -338,6 +338,7 @@ function leafText(view) {
   if (view.type === "str") return JSON.stringify(view.value);
   if (view.type === "none") return "None";
   if (view.type === "bool") return view.value ? "True" : "False";
+  if (view.type === "float" && Number.isInteger(view.value)) return view.value.toFixed(1);
   if (view.type === "int" || view.type === "float") return fmt.number(view.value);
   if (view.type === "ndarray") {
     const sm = view.summary || {};
