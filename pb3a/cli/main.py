@@ -11,6 +11,7 @@
     pb3a modules serve DIR [--listen ADDR]   serve module code to the nodes (until signalled)
     pb3a node start --name N [--listen ADDR] run a node controller (until signalled)
     pb3a key new PATH             write a new cluster key file (mode 0600)
+    pb3a manager [FILE | ADDR]    the ModuleManager web app (needs the 'ui' extra)
 
 Each module of this package registers its subcommands; each subcommand is a function
 taking the parsed arguments and returning the exit code. The command modules are
@@ -46,11 +47,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _parser() -> argparse.ArgumentParser:
-    from pb3a.cli import daemons, files, keys, running_system, scenarios, stress
+    from pb3a.cli import daemons, files, keys, manager, running_system, scenarios, stress
 
     parser = argparse.ArgumentParser(
         prog="pb3a", description="Port-based modules that run, swap and move while they run.")
     commands = parser.add_subparsers(title="commands", metavar="COMMAND")
-    for group in (files, running_system, stress, scenarios, daemons, keys):
+    for group in (files, running_system, stress, scenarios, daemons, keys, manager):
         group.register(commands)
     return parser

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import Any
 
 from pb3a.config import checks
 from pb3a.config.definitions import Child, Definition, toml_key
@@ -42,6 +43,13 @@ from pb3a.model.module import Module
 def plan_system(spec: SystemSpec) -> tuple[Plan | None, list[str]]:
     """The plan of ``spec`` and its problems; the plan is None unless there are none."""
     return _Planner(spec).run()
+
+
+def sketch_plan(spec: SystemSpec) -> tuple[Plan, list[str]]:
+    """What ``spec`` would run so far, and its problems: the modules whose entries
+    resolved and the links between them, also when others have problems (an editor
+    draws a half-built system). Never launch it: ``build_plan`` is for that."""
+    return _Planner(spec).run(partial=True)
 
 
 def validate(spec: SystemSpec) -> list[str]:
@@ -71,7 +79,9 @@ class _Planner:
     def report(self, label: str, problems: list[str]) -> None:
         self.problems.extend(f"{label}: {problem}" for problem in problems)
 
-    def run(self) -> tuple[Plan | None, list[str]]:
+    def run(self, partial: bool = False) -> tuple[Any, list[str]]:
+        """The plan and the problems; the plan is None when there are problems, unless
+        ``partial`` asks for what resolved."""
         spec = self.spec
         nodes = self.check_system()
         top = self.define(Definition(f"system {spec.name!r}", spec.origin, "",
@@ -94,12 +104,13 @@ class _Planner:
         self.check_inputs(links)
         self.check_groups(modules, labels)
         problems = list(dict.fromkeys(self.problems))
-        if problems:
+        if problems and not partial:
             return None, problems
-        timeout = float(spec.timeout) if spec.timeout is not None else None
+        timeout = (None if spec.timeout is None or checks.timeout(spec.timeout)
+                   else float(spec.timeout))
         preload = tuple(sorted({m.cls.__module__ for m in modules.values()} - {"__main__"}))
         return Plan(spec.name, nodes, modules, [link for _, link in links],
-                    dataclasses.replace(self.code, preload=preload), timeout), []
+                    dataclasses.replace(self.code, preload=preload), timeout), problems
 
     # -- the system's own tables ------------------------------------------
     def check_system(self) -> dict[str, NodeSpec]:

@@ -1,0 +1,108 @@
+"""``pb3a manager [FILE | ADDR]``: serve the ModuleManager and State Editor.
+
+No argument: an empty document to build a system in. ``FILE``: a configuration to
+edit and launch from the page. ``ADDR`` (``tcp://HOST:PORT``, what ``pb3a run``
+prints): attach to a running system through its launcher. The app listens on
+loopback by default and prints its URL with a new token; Ctrl-C or SIGTERM stop it,
+and the system it launched, cleanly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import socket
+import sys
+from pathlib import Path
+
+UI_PACKAGES = ("starlette", "uvicorn", "websockets", "tomlkit")
+DEFAULT_LISTEN = "127.0.0.1:0"
+
+
+def register(commands: argparse._SubParsersAction) -> None:
+    """Add ``manager``."""
+    manager = commands.add_parser(
+        "manager", help="the ModuleManager and State Editor: a web app to build, see and "
+                        "change a system live")
+    manager.add_argument("target", nargs="?", metavar="FILE | ADDR",
+                         help="a configuration (.toml) to edit and launch, or the address "
+                              "tcp://HOST:PORT of a running system's launcher (default: a "
+                              "new, empty document)")
+    manager.add_argument("--listen", default=DEFAULT_LISTEN, metavar="HOST:PORT",
+                         help=f"where the app listens (default {DEFAULT_LISTEN}: loopback, "
+                              "any free port)")
+    manager.add_argument("--refresh", type=float, default=0.5, metavar="S",
+                         help="seconds between live updates of the page (default 0.5)")
+    manager.add_argument("--timeout", type=float, default=10.0, metavar="S",
+                         help="seconds a call to the system may take (default 10)")
+    manager.set_defaults(handler=manager_command)
+
+
+def manager_command(args: argparse.Namespace) -> int:
+    """Serve the manager until signalled; 1 with one sentence on any mistake."""
+    missing = [name for name in UI_PACKAGES if importlib.util.find_spec(name) is None]
+    if missing:
+        return _fail(f"needs the 'ui' extra, missing {', '.join(missing)}: "
+                     "pip install 'pb3a[ui]' (or: pip install starlette uvicorn websockets "
+                     "tomlkit)")
+    try:
+        host, port = listen_address(args.listen)
+    except ValueError as exc:
+        return _fail(str(exc))
+    if not args.refresh > 0 or not args.timeout > 0:
+        return _fail("--refresh and --timeout take a number of seconds above 0")
+
+    from pb3a.errors import ConfigError, PB3AError
+    from pb3a.launch.connection import connect
+    from pb3a.manager.access import Access, new_token
+    from pb3a.manager.app import bind, create_app, serve
+    from pb3a.manager.document import Document
+    from pb3a.manager.session import Session
+
+    target = args.target
+    try:
+        if target is None:
+            session = Session(Document.empty(), timeout=args.timeout)
+        elif target.startswith("tcp://"):
+            session = Session(Document.empty(), connect(target), owns_handle=True,
+                              timeout=args.timeout)
+        else:
+            if not Path(target).is_file():
+                return _fail(f"no file {target!r}: give a configuration file (.toml) or the "
+                             "address tcp://HOST:PORT of a running system")
+            session = Session(Document.open(target), timeout=args.timeout)
+    except ConfigError as exc:
+        return _fail("; ".join(exc.problems) or str(exc))
+    except (PB3AError, OSError, ValueError) as exc:
+        return _fail(str(exc))
+    try:
+        sock = bind(host, port)
+    except OSError as exc:
+        session.close()
+        return _fail(f"cannot listen at {host}:{port}: {exc.strerror or exc}")
+    bound_port = sock.getsockname()[1]
+    access = Access(new_token())
+    access.serve_at(host, bound_port)
+    if host in ("0.0.0.0", "::"):
+        access.serve_at(socket.gethostname(), bound_port)
+        access.serve_at(socket.getfqdn(), bound_port)
+    shown = "127.0.0.1" if host in ("0.0.0.0", "::") else host
+    shown = f"[{shown}]" if ":" in shown else shown
+    print(f"PB3A manager: http://{shown}:{bound_port}/?token={access.token}", flush=True)
+    serve(create_app(session, access, args.refresh), sock)
+    return 0
+
+
+def listen_address(text: str) -> tuple[str, int]:
+    """``HOST:PORT`` (``[::1]:PORT`` for IPv6; PORT 0: any free one) as a host and port."""
+    host, _, port = text.removeprefix("http://").rpartition(":")
+    host = host.strip("[]")
+    if not host or not port.isdigit() or int(port) > 65535:
+        raise ValueError(f"--listen {text!r}: give HOST:PORT, e.g. 127.0.0.1:8080 "
+                         "(PORT 0: any free port)")
+    return host, int(port)
+
+
+def _fail(message: str) -> int:
+    print(f"pb3a manager: {message}", file=sys.stderr)
+    return 1

@@ -1,0 +1,199 @@
+"""The manager's HTTP API: one route per operation, JSON in and out, errors that say
+what to do.
+
+Each route reads its request, then runs the session's blocking method in a worker
+thread (``run_in_threadpool``: never on the event loop, so the websocket feed and
+other requests go on meanwhile), each call to the system bounded by the session's
+timeout. Errors become ``{"error": ..., "problems": [...]}`` with the status that
+fits (see ``STATUS``); the session checks before it changes anything, so a refused
+request changes nothing.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+from starlette.concurrency import run_in_threadpool
+from starlette.requests import Request
+from starlette.responses import JSONResponse, PlainTextResponse, Response
+from starlette.routing import Route
+
+from pb3a.errors import ConfigError, ModuleNotFound, RuntimeFailure, RuntimeTimeout
+from pb3a.manager.document import Document
+from pb3a.manager.session import Malformed, NotFound, Session, Unfit
+
+log = logging.getLogger("pb3a.manager")
+
+# exception -> status, most specific first
+STATUS: list[tuple[type[BaseException], int]] = [
+    (Malformed, 400), (ModuleNotFound, 404), (NotFound, 404), (Unfit, 422),
+    (ConfigError, 409), (RuntimeTimeout, 504), (RuntimeFailure, 502),
+]
+MOST_BODY_BYTES = 8_000_000          # a request body larger than this is refused
+
+
+def error_response(exc: BaseException) -> JSONResponse:
+    """The JSON error for ``exc``, with its status; an unexpected error is a 500 and logged."""
+    for kind, status in STATUS:
+        if isinstance(exc, kind):
+            problems = list(getattr(exc, "problems", []) or [])
+            message = "; ".join(problems) if problems else str(exc).strip("'\"")
+            return JSONResponse({"error": message, "problems": problems}, status_code=status)
+    log.exception("the manager failed on a request", exc_info=exc)
+    return JSONResponse({"error": f"the manager failed: {type(exc).__name__}: {exc}",
+                         "problems": []}, status_code=500)
+
+
+async def body_of(request: Request) -> Any:
+    """The request's JSON body; Malformed when it is not JSON."""
+    raw = await request.body()
+    if len(raw) > MOST_BODY_BYTES:
+        raise Malformed(f"the request body has {len(raw)} bytes; at most {MOST_BODY_BYTES}")
+    if not raw:
+        raise Malformed("the request needs a JSON body")
+    try:
+        return json.loads(raw)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise Malformed(f"the request body is not JSON: {exc}") from None
+
+
+def routes(session: Session) -> list[Route]:
+    """Every API route, bound to ``session``."""
+
+    def answer(work: Callable[[Request], Awaitable[Any]], status: int = 200
+               ) -> Callable[[Request], Awaitable[Response]]:
+        async def endpoint(request: Request) -> Response:
+            try:
+                result = await work(request)
+            except Exception as exc:
+                return error_response(exc)
+            if isinstance(result, Response):
+                return result
+            return JSONResponse(result, status_code=status)
+        return endpoint
+
+    def call(method: Callable[..., Any], *args: Any) -> Awaitable[Any]:
+        return run_in_threadpool(method, *args)
+
+    def name(request: Request) -> str:
+        return request.path_params["name"]
+
+    async def system(request: Request) -> Any:
+        return await call(session.system)
+
+    async def layout(request: Request) -> Any:
+        return await call(session.layout)
+
+    async def stats(request: Request) -> Any:
+        return await call(session.stats)
+
+    async def get_state(request: Request) -> Any:
+        return await call(session.state, name(request), request.query_params.get("path", ""))
+
+    async def set_state(request: Request) -> Any:
+        values = await body_of(request)
+        return await call(session.set_state, name(request), values)
+
+    async def image(request: Request) -> Any:
+        png = await call(session.image, name(request), request.query_params.get("path", ""))
+        return Response(png, media_type="image/png", headers={"cache-control": "no-store"})
+
+    async def migrate(request: Request) -> Any:
+        body = await body_of(request)
+        return await call(session.migrate, name(request),
+                          body.get("to") if isinstance(body, dict) else None)
+
+    async def swap(request: Request) -> Any:
+        body = await body_of(request)
+        return await call(session.swap, name(request),
+                          body.get("class") if isinstance(body, dict) else None)
+
+    async def swaps(request: Request) -> Any:
+        return await call(session.swaps, name(request))
+
+    async def add(request: Request) -> Any:
+        return await call(session.add, await body_of(request))
+
+    async def remove(request: Request) -> Any:
+        return await call(session.remove, name(request))
+
+    async def link(request: Request) -> Any:
+        return await call(session.link, await body_of(request))
+
+    async def reload(request: Request) -> Any:
+        return await call(session.reload, await body_of(request))
+
+    async def classes(request: Request) -> Any:
+        return await call(session.catalog.classes)
+
+    document = session.document
+
+    async def get_document(request: Request) -> Any:
+        return await call(document.to_json)
+
+    async def put_document(request: Request) -> Any:
+        body = await body_of(request)
+        if not isinstance(body, dict) or not isinstance(body.get("system"), dict):
+            raise Malformed("send {\"system\": {...the tables of the TOML as JSON...}}")
+        await call(document.replace, body["system"])
+        return await call(document.to_json)
+
+    async def check_link(request: Request) -> Any:
+        body = await body_of(request)
+        if not isinstance(body, dict) or not all(isinstance(body.get(k), str)
+                                                 for k in ("src", "dst")):
+            raise Malformed("send {\"src\": \"module.output\", \"dst\": \"module.input\"}")
+        ok, message = await call(document.check_link, body["src"], body["dst"])
+        return {"ok": ok, "message": message}
+
+    async def toml(request: Request) -> Any:
+        return PlainTextResponse(await call(document.toml),
+                                 media_type="application/toml; charset=utf-8")
+
+    async def save(request: Request) -> Any:
+        raw = await request.body()
+        body = await body_of(request) if raw else {}
+        path = body.get("path") if isinstance(body, dict) else None
+        if path is not None and not isinstance(path, str):
+            raise Malformed(f"'path' must be a file name, got {path!r}")
+        try:
+            written = await call(_save, document, path)
+        except ValueError as exc:
+            raise Malformed(str(exc)) from None
+        return {"path": str(written)}
+
+    async def launch(request: Request) -> Any:
+        return await call(session.launch)
+
+    return [
+        Route("/api/system", answer(system)),
+        Route("/api/layout", answer(layout)),
+        Route("/api/stats", answer(stats)),
+        Route("/api/classes", answer(classes)),
+        Route("/api/modules", answer(add, 201), methods=["POST"]),
+        Route("/api/modules/{name:path}/state", answer(get_state), methods=["GET"]),
+        Route("/api/modules/{name:path}/state", answer(set_state), methods=["POST"]),
+        Route("/api/modules/{name:path}/image", answer(image)),
+        Route("/api/modules/{name:path}/migrate", answer(migrate), methods=["POST"]),
+        Route("/api/modules/{name:path}/swap", answer(swap), methods=["POST"]),
+        Route("/api/modules/{name:path}/swaps", answer(swaps)),
+        Route("/api/modules/{name:path}", answer(remove), methods=["DELETE"]),
+        Route("/api/links", answer(link), methods=["POST"]),
+        Route("/api/reload", answer(reload), methods=["POST"]),
+        Route("/api/document", answer(get_document), methods=["GET"]),
+        Route("/api/document", answer(put_document), methods=["PUT"]),
+        Route("/api/document/check-link", answer(check_link), methods=["POST"]),
+        Route("/api/document/toml", answer(toml)),
+        Route("/api/document/save", answer(save), methods=["POST"]),
+        Route("/api/document/launch", answer(launch), methods=["POST"]),
+    ]
+
+
+def _save(document: Document, path: str | None) -> Any:
+    try:
+        return document.save(path)
+    except OSError as exc:
+        raise Malformed(f"cannot write {path or document.path}: {exc.strerror or exc}") from None

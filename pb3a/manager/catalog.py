@@ -1,0 +1,259 @@
+"""The module browser's catalog: the module classes a user can place, with their ports.
+
+Classes come from two places: the project's own directories (the document's
+directory and the directories on ``sys.path`` outside the Python installation),
+and the module servers the document names (``module_servers``; each lists what it
+serves). A Python file is imported only if its top level merely defines things
+(imports, classes, functions, assignments, an ``if __name__ == "__main__"`` block):
+a script that does its work when imported (``examples/quickstart.py`` launches a
+system) is left out, and said so in ``problems``. What one import finds is kept
+until ``forget`` (after a reload).
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import inspect
+import logging
+import sys
+import sysconfig
+import threading
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from pb3a.errors import PB3AError
+from pb3a.loading.references import class_ref, resolve_class
+from pb3a.loading.served import use_module_servers
+from pb3a.manager.reflection import plain
+from pb3a.model.macro import Macro
+from pb3a.model.module import Module
+from pb3a.topology import class_kind, displays_of, ports
+from pb3a.transport.auth import ClusterKey
+from pb3a.transport.control import ControlClient
+
+if TYPE_CHECKING:
+    from pb3a.manager.document import Document
+    from pb3a.topology import Topology
+
+log = logging.getLogger("pb3a.manager")
+
+LIST_TIMEOUT = 3.0           # seconds a module server may take to list its modules
+MOST_FILE_BYTES = 256_000    # larger files are not looked into
+MOST_DEPTH = 4               # package levels looked into below a directory
+_SKIPPED_DIRS = {"build", "dist", "node_modules", "site-packages", "venv", "tests", "test",
+                 "docs", "pb3a"}       # pb3a: its own classes are bases, not parts
+_SAFE_STATEMENTS = (ast.Import, ast.ImportFrom, ast.ClassDef, ast.FunctionDef,
+                    ast.AsyncFunctionDef, ast.Assign, ast.AnnAssign, ast.AugAssign, ast.Pass)
+REPR_CHARS = 200
+
+
+class Catalog:
+    """The classes on the project's path and on the document's module servers."""
+
+    def __init__(self, document: Document, roots: list[Path] | None = None) -> None:
+        self.document = document
+        self._roots = roots                 # None: the project's directories on sys.path
+        self._lock = threading.Lock()
+        self._found: dict[str, Any] | None = None
+        self._classes: dict[str, type] = {}
+
+    def classes(self) -> dict[str, Any]:
+        """``GET /api/classes``: ``{"classes": [...], "problems": [...]}``."""
+        with self._lock:
+            if self._found is None:
+                self._found = self._scan()
+            return self._found
+
+    def forget(self, module: str | None = None) -> None:
+        """Look again at the next ``classes`` (after ``module`` was reloaded)."""
+        with self._lock:
+            self._found = None
+            self._classes.clear()
+
+    def fitting(self, topology: Topology, name: str) -> list[str]:
+        """The catalog's classes that could replace module ``name``'s: every port it has,
+        of a type each link on it accepts (as ``swap`` checks)."""
+        self.classes()
+        module = topology.modules[name]
+        links = [link for link in topology.links.values()
+                 if link.src.rpartition(".")[0] == name or link.dst.rpartition(".")[0] == name]
+        peers: dict[str, type] = {}
+        for link in links:
+            for end in (link.src, link.dst):
+                other = end.rpartition(".")[0]
+                if other != name and other not in peers:
+                    try:
+                        peers[other] = resolve_class(topology.modules[other].cls)
+                    except (ImportError, LookupError, TypeError, ValueError):
+                        return []              # a peer the manager cannot load: cannot tell
+        fits = []
+        for ref, cls in sorted(self._classes.items()):
+            if ref == module.cls or not set(module.inputs) <= set(cls.inputs) \
+                    or not set(module.outputs) <= set(cls.outputs):
+                continue
+            if all(_link_fits(link.src, link.dst, name, cls, peers) for link in links):
+                fits.append(ref)
+        return fits
+
+    # -- looking ------------------------------------------------------------------
+    def _scan(self) -> dict[str, Any]:
+        problems: list[str] = []
+        modules: dict[str, str] = {}            # dotted name -> origin
+        for root in self._directories():
+            for name in _module_names(root, problems):
+                modules.setdefault(name, "path")
+        servers = self.document.data().get("module_servers", [])
+        if isinstance(servers, list) and servers:
+            modules.update({name: origin for name, origin in self._served(servers, problems)
+                            .items() if name not in modules})
+        entries = []
+        for name, origin in sorted(modules.items()):
+            try:
+                module = importlib.import_module(name)
+            except Exception as exc:               # whatever a user's module raises
+                problems.append(f"{name}: not imported: {type(exc).__name__}: {exc}")
+                continue
+            for _, cls in inspect.getmembers(module, inspect.isclass):
+                if (issubclass(cls, Module) and not issubclass(cls, Macro)
+                        and cls.__module__ == name and not cls.__name__.startswith("_")):
+                    ref = class_ref(cls)
+                    self._classes[ref] = cls
+                    entries.append(describe_class(cls, origin))
+        return {"classes": entries, "problems": problems}
+
+    def _directories(self) -> list[Path]:
+        if self._roots is not None:
+            roots = list(self._roots)
+        else:
+            installed = {Path(p).resolve() for p in (sys.prefix, sys.base_prefix,
+                                                     sysconfig.get_paths()["stdlib"])}
+            roots = [Path(entry or ".").resolve() for entry in sys.path]
+            roots = [root for root in roots if root.is_dir()
+                     and not any(root.is_relative_to(base) for base in installed)]
+        if self.document.path is not None:
+            roots.insert(0, self.document.path.resolve().parent)
+        return list(dict.fromkeys(roots))
+
+    def _served(self, servers: list[str], problems: list[str]) -> dict[str, str]:
+        """The modules each server lists (whose source only defines things), importable
+        through the served finder from now on."""
+        found: dict[str, str] = {}
+        key = ClusterKey.load()
+        for address in servers:
+            client = ControlClient(key, address)
+            try:
+                for name in client.call("list", LIST_TIMEOUT):
+                    served = client.call("find", LIST_TIMEOUT, name=name)
+                    if served and _defines_classes(served["source"], f"{address} {name}",
+                                                   problems):
+                        found.setdefault(name, address)
+            except PB3AError as exc:
+                problems.append(f"module server {address}: {exc}")
+            finally:
+                client.close()
+        if found:
+            use_module_servers(servers, key)
+        return found
+
+
+def describe_class(cls: type[Module], origin: str) -> dict[str, Any]:
+    """One catalog entry: the class, its kind, doc, ports, state with defaults, origin."""
+    doc = inspect.getdoc(cls) or ""
+    state = {}
+    for name in cls.state_names():
+        value = getattr(cls, name, None)
+        default = value if plain(value) else _short_repr(value)
+        state[name] = {"type": type(value).__name__, "default": default}
+    return {"class": class_ref(cls), "kind": class_kind(cls),
+            "doc": doc.split("\n\n")[0].replace("\n", " "),
+            "inputs": {n: p.to_json() for n, p in ports(cls.inputs).items()},
+            "outputs": {n: p.to_json() for n, p in ports(cls.outputs).items()},
+            "state": state, "period": cls.period,
+            "displays": {n: d.to_json() for n, d in displays_of(cls).items()},
+            "origin": origin}
+
+
+def _module_names(root: Path, problems: list[str]) -> list[str]:
+    """The dotted names of the modules under ``root`` that define module classes and
+    nothing else at their top level."""
+    names = []
+
+    def walk(directory: Path, prefix: str, depth: int) -> None:
+        try:
+            entries = sorted(directory.iterdir())
+        except OSError:
+            return
+        for path in entries:
+            stem = path.stem if path.suffix == ".py" else path.name
+            if not stem.isidentifier() or stem.startswith(("_", "test")) or stem == "conftest":
+                continue
+            if path.is_dir() and not path.is_symlink() and depth < MOST_DEPTH \
+                    and stem not in _SKIPPED_DIRS and (path / "__init__.py").is_file():
+                walk(path, f"{prefix}{stem}.", depth + 1)
+            elif path.suffix == ".py" and path.is_file() and (prefix or depth == 0):
+                try:
+                    if path.stat().st_size > MOST_FILE_BYTES:
+                        continue
+                    source = path.read_bytes()
+                except OSError:
+                    continue
+                if _defines_classes(source, str(path), problems):
+                    names.append(prefix + stem)
+
+    walk(root, "", 0)
+    return names
+
+
+def _defines_classes(source: bytes, where: str, problems: list[str]) -> bool:
+    """Whether ``source`` has a class with a base and, at its top level, only statements
+    that define things (so importing it runs nothing else)."""
+    try:
+        tree = ast.parse(source)
+    except (SyntaxError, ValueError):
+        return False
+    has_class = any(isinstance(node, ast.ClassDef) and node.bases for node in tree.body)
+    if not has_class:
+        return False
+    for node in tree.body:
+        if isinstance(node, _SAFE_STATEMENTS) or _docstring(node) or _guarded(node) \
+                or _optional_import(node):
+            continue
+        problems.append(f"{where}: not imported: line {node.lineno} runs code at import "
+                        "(move it under if __name__ == \"__main__\":)")
+        return False
+    return True
+
+
+def _docstring(node: ast.stmt) -> bool:
+    return isinstance(node, ast.Expr) and isinstance(node.value, ast.Constant)
+
+
+def _guarded(node: ast.stmt) -> bool:
+    """``if __name__ == "__main__":`` or ``if TYPE_CHECKING:``."""
+    if not isinstance(node, ast.If):
+        return False
+    test = ast.unparse(node.test)
+    return test in ("TYPE_CHECKING", "typing.TYPE_CHECKING") or "__name__" in test
+
+
+def _optional_import(node: ast.stmt) -> bool:
+    """``try: import x`` ``except ImportError: ...`` (imports and assignments only)."""
+    if not isinstance(node, ast.Try):
+        return False
+    body = [*node.body, *(s for h in node.handlers for s in h.body)]
+    return all(isinstance(s, (ast.Import, ast.ImportFrom, ast.Assign, ast.Pass)) for s in body)
+
+
+def _link_fits(src: str, dst: str, name: str, cls: type[Module],
+               peers: dict[str, type]) -> bool:
+    source, _, out_port = src.rpartition(".")
+    target, _, in_port = dst.rpartition(".")
+    writer = cls if source == name else peers[source]
+    reader = cls if target == name else peers[target]
+    return reader.inputs[in_port].accepts(writer.outputs[out_port]) is None
+
+
+def _short_repr(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= REPR_CHARS else text[:REPR_CHARS - 3] + "..."

@@ -1,0 +1,190 @@
+"""The configuration being edited: a TOML document that keeps what the user wrote.
+
+The document is held as a ``tomlkit`` document, not as plain dicts: an edit from
+the page (the whole system as JSON) is merged into it key by key, so entries that
+did not change keep their comments, order and formatting, and a file opened and
+saved unchanged is the same file (the round trip). Problems are found as ``pb3a
+check`` finds them, with the same words: the document is read as a description
+and compiled; a half-built system is kept, its problems listed.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Any
+
+import tomlkit
+from tomlkit.exceptions import TOMLKitError
+from tomlkit.items import AoT, InlineTable, Table
+
+from pb3a.config.compiler import sketch_plan
+from pb3a.config.description import read_description
+from pb3a.config.plan import Plan
+from pb3a.errors import ConfigError
+
+# dicts at these places are written as [tables]; every other dict inline ({...})
+_TABLES = (("nodes",), ("modules",), ("macros",), ("macros", "*"), ("macros", "*", "modules"))
+_TABLE_ARRAYS = (("links",), ("macros", "*", "links"))   # lists of dicts as [[tables]]
+
+
+class Document:
+    """One system description being edited (thread-safe)."""
+
+    def __init__(self, text: str = "", path: Path | None = None) -> None:
+        self.path = path
+        try:
+            self._doc = tomlkit.parse(text)
+        except TOMLKitError as exc:
+            where = path if path is not None else "the document"
+            raise ConfigError([f"{where}: not valid TOML: {exc}"]) from None
+        self._lock = threading.Lock()
+
+    @classmethod
+    def open(cls, path: str | Path) -> Document:
+        """The document in file ``path``; OSError if it cannot be read, ConfigError if it
+        is not TOML."""
+        path = Path(path)
+        return cls(path.read_text(encoding="utf-8"), path)
+
+    @classmethod
+    def empty(cls, name: str = "system") -> Document:
+        """A new document with a name and nothing else."""
+        return cls(f'name = "{name}"\n')
+
+    # -- reading ------------------------------------------------------------------
+    def data(self) -> dict[str, Any]:
+        """The document as plain JSON-like values."""
+        with self._lock:
+            return self._doc.unwrap()
+
+    def toml(self) -> str:
+        """The document's TOML text."""
+        with self._lock:
+            return tomlkit.dumps(self._doc)
+
+    @property
+    def source(self) -> str:
+        """How problems name the document: its file, or ``the document``."""
+        return str(self.path) if self.path is not None else "the document"
+
+    def sketch(self) -> tuple[Plan, list[str]]:
+        """What the document would run so far, and every problem ``pb3a check`` reports."""
+        return check_data(self.data(), self.source)
+
+    def problems(self) -> list[str]:
+        return self.sketch()[1]
+
+    def to_json(self) -> dict[str, Any]:
+        """``{"path", "system", "problems"}`` as ``GET /api/document`` answers."""
+        return {"path": None if self.path is None else str(self.path), "system": self.data(),
+                "problems": self.problems()}
+
+    # -- changing -----------------------------------------------------------------
+    def replace(self, system: dict[str, Any]) -> None:
+        """Make the document say ``system`` (the tables as JSON), keeping the comments and
+        layout of everything that did not change. ``null`` values leave a key out."""
+        if not isinstance(system, dict):
+            raise ValueError(f"'system' must be an object of TOML tables, got {system!r}")
+        with self._lock:
+            _merge(self._doc, system, ())
+
+    def check_link(self, src: str, dst: str) -> tuple[bool, str]:
+        """Whether a link ``src -> dst`` added to the document would be fine, and if not
+        the words ``pb3a check`` would use."""
+        data = self.data()
+        before = set(check_data(data, self.source)[1])
+        links = list(data.get("links", [])) if isinstance(data.get("links"), list) else []
+        data["links"] = [*links, {"from": src, "to": dst}]
+        after = [problem for problem in check_data(data, self.source)[1]
+                 if problem not in before]
+        return (not after, "; ".join(after) or f"{src} -> {dst} fits")
+
+    def save(self, path: str | Path | None = None) -> Path:
+        """Write the TOML to ``path`` (default: where it came from); the path written."""
+        target = Path(path) if path is not None else self.path
+        if target is None:
+            raise ValueError("the document has no file yet: give the path to save it to")
+        text = self.toml()
+        target.write_text(text, encoding="utf-8")
+        self.path = target
+        return target
+
+
+def check_data(data: dict[str, Any], source: str) -> tuple[Plan, list[str]]:
+    """The plan so far and the problems of a description given as tables."""
+    return sketch_plan(read_description(data, source))
+
+
+def _merge(container: Any, new: dict[str, Any], where: tuple[str, ...]) -> None:
+    """Update a tomlkit table in place to hold ``new``: unchanged values keep their
+    formatting, changed ones are replaced, missing ones removed."""
+    for key in [key for key in container if key not in new or new[key] is None]:
+        del container[key]
+    for key, value in new.items():
+        if value is None:
+            continue
+        place = (*where, key)
+        old = container.get(key)
+        if old is not None and _plain(old) == value:
+            continue
+        if isinstance(value, dict) and isinstance(old, (Table, InlineTable)):
+            _merge(old, value, place)
+        elif (isinstance(value, list) and isinstance(old, AoT)
+              and all(isinstance(item, dict) for item in value)):
+            _merge_array(old, value, place)
+        else:
+            container[key] = _item(value, place)
+
+
+def _merge_array(old: AoT, new: list[dict[str, Any]], where: tuple[str, ...]) -> None:
+    """An array of tables entry by entry (links keep their comments when others change)."""
+    for index, value in enumerate(new[:len(old)]):
+        if _plain(old[index]) != value:
+            _merge(old[index], value, where)
+    while len(old) > len(new):
+        del old[len(old) - 1]
+    for value in new[len(old):]:
+        old.append(_table(value, where, tomlkit.table()))
+
+
+def _item(value: Any, where: tuple[str, ...]) -> Any:
+    """A new tomlkit value: tables where a configuration has them, inline otherwise."""
+    if isinstance(value, dict):
+        tabled = _matches(where, _TABLES) or _matches(where[:-1], _TABLES)
+        return _table(value, where, tomlkit.table() if tabled else tomlkit.inline_table())
+    if isinstance(value, list) and value and all(isinstance(item, dict) for item in value) \
+            and _matches(where, _TABLE_ARRAYS):
+        array = tomlkit.aot()
+        for item in value:
+            array.append(_table(item, where, tomlkit.table()))
+        return array
+    if isinstance(value, list):
+        return tomlkit.item([_plain_item(item) for item in value])
+    return tomlkit.item(value)
+
+
+def _table(value: dict[str, Any], where: tuple[str, ...], table: Any) -> Any:
+    for key, item in value.items():
+        if item is not None:
+            table[key] = _item(item, (*where, key))
+    if isinstance(table, Table) and not isinstance(table, InlineTable):
+        table.add(tomlkit.nl())              # a blank line before the next table
+    return table
+
+
+def _plain_item(value: Any) -> Any:
+    if isinstance(value, dict):
+        table = tomlkit.inline_table()
+        table.update({key: _plain_item(item) for key, item in value.items() if item is not None})
+        return table
+    return value
+
+
+def _matches(where: tuple[str, ...], patterns: tuple[tuple[str, ...], ...]) -> bool:
+    return any(len(where) == len(pattern) and all(p in ("*", w) for p, w in zip(
+        pattern, where, strict=True)) for pattern in patterns)
+
+
+def _plain(item: Any) -> Any:
+    return item.unwrap() if hasattr(item, "unwrap") else item

@@ -1,0 +1,226 @@
+"""The websocket feed ``/api/live``: the system as it changes, pushed to every page.
+
+One ``Feed`` serves every client: it gathers the stats every ``refresh`` seconds
+(one ``stats()`` call however many pages are open) and follows the events
+(``events(since, timeout=...)`` in a worker thread), and hands each message to every
+client's queue. After an event that changes the structure it sends the structure
+and its layout again. Each client also gets, every ``refresh``, the state of the one
+module it watches (``{"watch": name}``). A client that cannot keep up loses the
+oldest stats, never an event. Blocking calls run in worker threads, never on the
+event loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import time
+from dataclasses import asdict
+from typing import Any, NamedTuple
+
+from starlette.concurrency import run_in_threadpool
+from starlette.websockets import WebSocket, WebSocketDisconnect
+
+from pb3a.errors import PB3AError
+from pb3a.manager.api import error_response
+from pb3a.manager.session import Session
+from pb3a.stats import plain
+
+log = logging.getLogger("pb3a.manager")
+
+REFRESH_S = 0.5             # stats and watched state, by default
+EVENT_WAIT_S = 0.5          # one events() call waits this long for the next event
+CLIENT_BACKLOG = 64         # messages queued for a client before stats are dropped
+# events after which the structure (modules, links, nodes) is sent again
+STRUCTURAL = frozenset({"module_added", "module_removed", "module_moved", "module_swapped",
+                        "module_failed_over", "module_failed", "link_added", "link_removed",
+                        "node_lost", "node_joined"})
+
+
+class Feed:
+    """What every open page gets: stats, events, structure after a change."""
+
+    def __init__(self, session: Session, refresh: float = REFRESH_S) -> None:
+        self.session = session
+        self.refresh = refresh
+        self._clients: set[asyncio.Queue[Message]] = set()
+        self._tasks: list[asyncio.Task[None]] = []
+        self._seen = 0                      # the last event sent
+
+    # -- life cycle (the app's lifespan) ---------------------------------------------
+    def start(self) -> None:
+        self._tasks = [asyncio.create_task(self._stats(), name="pb3a-manager-stats"),
+                       asyncio.create_task(self._events(), name="pb3a-manager-events")]
+
+    async def stop(self) -> None:
+        for task in self._tasks:
+            task.cancel()
+        for task in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        self._tasks = []
+
+    # -- producing --------------------------------------------------------------------
+    def publish(self, message: dict[str, Any] | Message) -> None:
+        """Queue ``message`` for every client, encoded once (the oldest stats give way
+        when one lags)."""
+        if isinstance(message, dict):
+            message = Message(message["type"], encode(message))
+        for queue in list(self._clients):
+            if queue.full():
+                _drop_a_stats_message(queue)
+            if not queue.full():
+                queue.put_nowait(message)
+
+    async def _stats(self) -> None:
+        while True:
+            started = time.monotonic()
+            if self._clients and self.session.mode == "running":
+                try:
+                    message = await run_in_threadpool(stats_message, self.session)
+                    self.publish(message)
+                except PB3AError as exc:
+                    log.warning("manager: no stats this time: %s", exc)
+            await asyncio.sleep(max(0.0, self.refresh - (time.monotonic() - started)))
+
+    async def _events(self) -> None:
+        while True:
+            if self.session.mode != "running":
+                await asyncio.sleep(self.refresh)
+                continue
+            try:
+                events = await run_in_threadpool(self._next_events)
+            except PB3AError as exc:
+                log.warning("manager: reading events failed: %s", exc)
+                await asyncio.sleep(self.refresh)
+                continue
+            for event in events:
+                self._seen = max(self._seen, event.seq)
+                self.publish({"type": "event", "event": plain(asdict(event))})
+            if any(event.kind in STRUCTURAL for event in events):
+                try:
+                    self.publish({"type": "system", **await run_in_threadpool(
+                        structure, self.session)})
+                except PB3AError as exc:
+                    log.warning("manager: reading the structure failed: %s", exc)
+
+    def _next_events(self) -> list[Any]:
+        return self.session.handle.events(self._seen, timeout=EVENT_WAIT_S)
+
+    # -- one client --------------------------------------------------------------------
+    async def serve(self, socket: WebSocket) -> None:
+        """Talk to one page until it goes: hello, then everything published, and the
+        state of the module it watches."""
+        await socket.accept()
+        queue: asyncio.Queue[Message] = asyncio.Queue(CLIENT_BACKLOG)
+        watched: list[str | None] = [None]
+        try:
+            hello = await run_in_threadpool(structure, self.session)
+        except PB3AError as exc:
+            await socket.send_text(json.dumps({"type": "error", **_error(exc)}))
+            await socket.close()
+            return
+        if self.session.mode == "running":
+            self._seen = self._seen or await run_in_threadpool(self._last_event)
+        self._clients.add(queue)
+        await socket.send_text(encode({"type": "hello", **hello}))
+        tasks = [asyncio.create_task(self._send(socket, queue)),
+                 asyncio.create_task(self._watch(queue, watched)),
+                 asyncio.create_task(_listen(socket, watched))]
+        try:
+            await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            self._clients.discard(queue)
+            for task in tasks:
+                task.cancel()
+            for task in tasks:
+                with contextlib.suppress(asyncio.CancelledError, WebSocketDisconnect,
+                                         RuntimeError):
+                    await task
+
+    def _last_event(self) -> int:
+        events = self.session.handle.events(0)
+        return events[-1].seq if events else 0
+
+    async def _send(self, socket: WebSocket, queue: asyncio.Queue[Message]) -> None:
+        while True:
+            message = await queue.get()
+            await socket.send_text(message.text)
+
+    async def _watch(self, queue: asyncio.Queue[Message],
+                     watched: list[str | None]) -> None:
+        while True:
+            name = watched[0]
+            if name is not None and self.session.mode == "running":
+                try:
+                    state = await run_in_threadpool(self.session.state, name)
+                    message: dict[str, Any] = {"type": "state", "module": name, "state": state}
+                except Exception as exc:        # reported to the page, which shows it
+                    message = {"type": "state", "module": name, **_error(exc)}
+                if watched[0] == name and not queue.full():
+                    queue.put_nowait(Message("state", encode(message)))
+            await asyncio.sleep(self.refresh)
+
+
+async def _listen(socket: WebSocket, watched: list[str | None]) -> None:
+    """Read the page's messages (``{"watch": name | null}``) until it closes."""
+    while True:
+        try:
+            text = await socket.receive_text()
+        except WebSocketDisconnect:
+            return
+        try:
+            message = json.loads(text)
+        except ValueError:
+            continue
+        if isinstance(message, dict) and "watch" in message:
+            name = message["watch"]
+            watched[0] = name if isinstance(name, str) else None
+
+
+class Message(NamedTuple):
+    """A message as sent: its type and its JSON text, encoded once for every client."""
+
+    type: str
+    text: str
+
+
+def encode(message: dict[str, Any]) -> str:
+    return json.dumps(message, allow_nan=False, separators=(",", ":"))
+
+
+def stats_message(session: Session) -> Message:
+    """``{"type": "stats", "time", "cost_ms", "stats"}``, its text built once; ``cost_ms``
+    is what gathering the figures and encoding them took (the server's share of the
+    cost of one update)."""
+    started = time.perf_counter()
+    stats = encode(session.stats())
+    cost_ms = (time.perf_counter() - started) * 1e3
+    return Message("stats", f'{{"type":"stats","time":{time.time()!r},'
+                            f'"cost_ms":{cost_ms:.3f},"stats":{stats}}}')
+
+
+def structure(session: Session) -> dict[str, Any]:
+    """``{"system", "layout"}``, from one look at the structure."""
+    topology = session.topology()
+    return {"system": session.system(topology), "layout": session.layout(topology)}
+
+
+def _error(exc: BaseException) -> dict[str, Any]:
+    return json.loads(error_response(exc).body)
+
+
+def _drop_a_stats_message(queue: asyncio.Queue[Message]) -> None:
+    """Take the oldest stats message out of ``queue`` (events stay, in order)."""
+    kept = []
+    dropped = False
+    while not queue.empty():
+        message = queue.get_nowait()
+        if not dropped and message.type == "stats":
+            dropped = True
+            continue
+        kept.append(message)
+    for message in kept:
+        queue.put_nowait(message)

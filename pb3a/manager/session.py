@@ -1,0 +1,293 @@
+"""``Session``: what one manager manages, and everything the app asks of it.
+
+A session has a document (the configuration being edited; empty when the manager
+attached to a running system) and, while a system runs, a ``SystemHandle``: a
+``Running`` it launched from the document (it owns it and closes it) or a
+``Connection`` to a system launched elsewhere (closing the session leaves that
+system running). Every method here may block: the app calls them from a thread pool,
+each call to the system with a deadline.
+
+The methods answer in JSON types, as the HTTP API and the websocket send them; a
+request that cannot be served raises ``Malformed`` (the request is wrong),
+``NotFound`` (no such module, node, class or field), ``Unfit`` (a value that does
+not fit a state field), or PB3A's own errors (``ConfigError``: refused by the
+configuration rules or nothing runs; ``RuntimeTimeout``; ``RuntimeFailure``).
+Each checks before it changes anything, so a refused request changes nothing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+from typing import TYPE_CHECKING, Any
+
+from pb3a.config.checks import NAME
+from pb3a.errors import ConfigError, ModuleNotFound
+from pb3a.loading.references import resolve_class
+from pb3a.manager import reflection
+from pb3a.manager.catalog import Catalog
+from pb3a.manager.document import Document
+from pb3a.manager.layout import layout
+from pb3a.model.ports import Policy
+from pb3a.system import System
+from pb3a.topology import Topology, plan_topology
+
+if TYPE_CHECKING:
+    from pb3a.launch.handle import SystemHandle
+    from pb3a.launch.running import Running
+
+CALL_TIMEOUT = 10.0         # seconds a call to the system may take (a migration: MOVE_TIMEOUT)
+MOVE_TIMEOUT = 30.0
+NOTHING_RUNS = ("nothing runs: launch the document first (POST /api/document/launch), or "
+                "start the manager with the address of a running system")
+
+
+class Malformed(ValueError):
+    """The request itself is wrong: not JSON, a field missing or of the wrong kind."""
+
+
+class NotFound(LookupError):
+    """The request names a module, node, class or state field that does not exist."""
+
+
+class Unfit(ValueError):
+    """A value that does not fit the state field it is for; ``problems``: one per field."""
+
+    def __init__(self, problems: list[str]) -> None:
+        super().__init__("; ".join(problems))
+        self.problems = problems
+
+
+class Session:
+    """A document and the system that runs (if one does); thread-safe."""
+
+    def __init__(self, document: Document, handle: SystemHandle | None = None, *,
+                 owns_handle: bool = False, timeout: float = CALL_TIMEOUT,
+                 catalog: Catalog | None = None) -> None:
+        """``owns_handle``: close ``handle`` when the session closes (a ``Running``: the
+        system stops; a ``Connection``: only the connection closes)."""
+        self.document = document
+        self._handle = handle
+        self._owns_handle = owns_handle
+        self.timeout = timeout
+        self.catalog = catalog or Catalog(document)
+        self._lock = threading.Lock()       # launching and closing
+        self._layouts: dict[Any, dict[str, Any]] = {}     # structure -> its layout
+
+    # -- what runs ----------------------------------------------------------------
+    @property
+    def mode(self) -> str:
+        return "running" if self._handle is not None else "editing"
+
+    @property
+    def handle(self) -> SystemHandle:
+        """The running system's handle; ConfigError when nothing runs."""
+        handle = self._handle
+        if handle is None:
+            raise ConfigError([NOTHING_RUNS])
+        return handle
+
+    def launch(self) -> dict[str, Any]:
+        """Launch the document (checked first: ConfigError with its problems); the session
+        owns the system and stops it when it closes."""
+        with self._lock:
+            if self._handle is not None:
+                raise ConfigError(["a system runs already in this manager: one at a time"])
+            data = self.document.data()
+            system = System.from_dict(data, self.document.source)
+            problems = system.check()
+            if problems:
+                raise ConfigError(problems)
+            running: Running = system.launch(listen="tcp://127.0.0.1:0")
+            self._handle, self._owns_handle = running, True
+        return self.system()
+
+    def close(self) -> None:
+        """Close the handle if the session owns it (a system it launched stops)."""
+        with self._lock:
+            handle, self._handle = self._handle, None
+            if handle is not None and self._owns_handle:
+                handle.close()
+
+    # -- structure ----------------------------------------------------------------
+    def topology(self) -> Topology:
+        """The running system's structure, or the document's so far."""
+        if self._handle is None:
+            return plan_topology(self.document.sketch()[0])
+        return self._handle.topology(timeout=self.timeout)
+
+    def system(self, topology: Topology | None = None) -> dict[str, Any]:
+        """``GET /api/system``."""
+        topology = topology or self.topology()
+        handle = self._handle
+        return {**topology.to_json(), "mode": self.mode,
+                "address": getattr(handle, "address", None) if handle is not None else None}
+
+    def layout(self, topology: Topology | None = None) -> dict[str, Any]:
+        """``GET /api/layout``: Graphviz's, computed once per structure."""
+        topology = topology or self.topology()
+        shape = (tuple((name, m.node, tuple(m.inputs), tuple(m.outputs))
+                       for name, m in topology.modules.items()),
+                 tuple(topology.links), tuple(topology.nodes))
+        found = self._layouts.get(shape)
+        if found is None:
+            found = layout(topology)
+            if len(self._layouts) > 16:
+                self._layouts.clear()
+            self._layouts[shape] = found
+        return found
+
+    def stats(self) -> dict[str, Any]:
+        """``GET /api/stats``."""
+        return self.handle.stats(timeout=self.timeout).to_json()
+
+    # -- state --------------------------------------------------------------------
+    def state(self, name: str, path: str = "") -> dict[str, Any]:
+        """``GET /api/modules/{name}/state``: the State Editor's view."""
+        topology = self.topology_of(name)
+        state = self.handle.state(name, timeout=self.timeout)
+        try:
+            return reflection.state_view(name, topology.modules[name].cls, state, path)
+        except reflection.FieldNotFound as exc:
+            raise NotFound(f"module {name}: {exc}") from None
+
+    def image(self, name: str, path: str) -> bytes:
+        """``GET /api/modules/{name}/image``: a 2-D array of its state as PNG."""
+        self.topology_of(name)
+        state = self.handle.state(name, timeout=self.timeout)
+        try:
+            value = reflection.find(state, path)
+        except reflection.FieldNotFound as exc:
+            raise NotFound(f"module {name}: {exc}") from None
+        try:
+            return reflection.png_of(value)
+        except ValueError as exc:
+            raise Malformed(f"module {name}, state {path!r}: {exc}") from None
+
+    def set_state(self, name: str, values: Any) -> dict[str, Any]:
+        """``POST /api/modules/{name}/state``: set top-level fields, each coerced to the
+        type of its current value; nothing is set unless every field fits."""
+        if not isinstance(values, dict) or not values:
+            raise Malformed("send an object of state fields to set, e.g. {\"gain\": 5.0}")
+        self.topology_of(name)
+        current = self.handle.state(name, timeout=self.timeout)
+        unknown = sorted(set(values) - set(current))
+        if unknown:
+            raise NotFound(f"module {name} has no state {', '.join(map(repr, unknown))}; its "
+                           f"state: {', '.join(current) or '(none)'}")
+        problems, fitted = [], {}
+        for field, value in values.items():
+            try:
+                fitted[field] = reflection.coerce(field, current[field], value)
+            except ValueError as exc:
+                problems.append(f"module {name}: {exc}")
+        if problems:
+            raise Unfit(problems)
+        self.handle.set_state(name, fitted, timeout=self.timeout)
+        return self.state(name)
+
+    # -- changes ------------------------------------------------------------------
+    def migrate(self, name: str, to: Any) -> dict[str, Any]:
+        """``POST /api/modules/{name}/migrate``: the migration report."""
+        topology = self.topology_of(name)
+        if not isinstance(to, str):
+            raise Malformed("send the node to move to: {\"to\": \"NODE\"}")
+        if to not in topology.nodes:
+            raise NotFound(f"no node {to!r}; nodes: {', '.join(topology.nodes)}")
+        report = self.handle.migrate(name, to=to, timeout=MOVE_TIMEOUT)
+        return dataclasses.asdict(report)
+
+    def swap(self, name: str, cls: Any) -> dict[str, Any]:
+        """``POST /api/modules/{name}/swap``: the state names carried over."""
+        self.topology_of(name)
+        ref = self._class(cls)
+        return {"kept": self.handle.swap(name, ref, timeout=self.timeout)}
+
+    def swaps(self, name: str) -> dict[str, Any]:
+        """``GET /api/modules/{name}/swaps``: the catalog's classes whose ports fit."""
+        topology = self.topology_of(name)
+        return {"classes": self.catalog.fitting(topology, name)}
+
+    def add(self, body: Any) -> dict[str, Any]:
+        """``POST /api/modules``: start a module (then link it)."""
+        if not isinstance(body, dict):
+            raise Malformed("send {\"name\", \"class\", \"node\"?, \"state\"?, \"period\"?}")
+        name, cls = body.get("name"), body.get("class")
+        if not isinstance(name, str) or not all(NAME.match(part) for part in name.split("/")):
+            raise Malformed(f"a new module needs a 'name' of letters, digits, '_' and '-', "
+                            f"got {name!r}")
+        state, period, node = body.get("state"), body.get("period"), body.get("node")
+        if state is not None and not isinstance(state, dict):
+            raise Malformed(f"'state' must be an object of field values, got {state!r}")
+        if period is not None and (not isinstance(period, (int, float))
+                                   or isinstance(period, bool) or period < 0):
+            raise Malformed(f"'period' must be a number of seconds >= 0, got {period!r}")
+        topology = self.topology()
+        if name in topology.modules:
+            raise ConfigError([f"module {name}: a module of that name runs already"])
+        if node is not None and node not in topology.nodes:
+            raise NotFound(f"no node {node!r}; nodes: {', '.join(topology.nodes)}")
+        ref = self._class(cls)
+        self.handle.add(name, ref, state=state, period=period, node=node,
+                        timeout=self.timeout)
+        return self.system()
+
+    def remove(self, name: str) -> dict[str, Any]:
+        """``DELETE /api/modules/{name}``."""
+        self.topology_of(name)
+        self.handle.remove(name, timeout=self.timeout)
+        return self.system()
+
+    def link(self, body: Any) -> dict[str, Any]:
+        """``POST /api/links``: a new link, or with ``replace`` a new source for an input."""
+        if not isinstance(body, dict) or not all(isinstance(body.get(k), str)
+                                                 for k in ("src", "dst")):
+            raise Malformed("send {\"src\": \"module.output\", \"dst\": \"module.input\", "
+                            "\"policy\"?: \"queue:8\", \"replace\"?: false}")
+        policy = body.get("policy")
+        if policy is not None:
+            try:
+                Policy.parse(policy)
+            except ValueError as exc:
+                raise ConfigError([f"link {body['src']} -> {body['dst']}: {exc}"]) from None
+        topology = self.topology()
+        for end in (body["src"], body["dst"]):
+            module = end.rpartition(".")[0]
+            if module not in topology.modules:
+                raise NotFound(f"link {body['src']} -> {body['dst']}: no module {module!r}")
+        act = self.handle.relink if body.get("replace") else self.handle.link
+        act(body["src"], body["dst"], policy=policy, timeout=self.timeout)
+        return self.system()
+
+    def reload(self, body: Any) -> dict[str, Any]:
+        """``POST /api/reload``: drop the cached copies of a Python module everywhere."""
+        module = body.get("module") if isinstance(body, dict) else None
+        if not isinstance(module, str) or not all(p.isidentifier() for p in module.split(".")):
+            raise Malformed(f"send the dotted module name to reload: {{\"module\": "
+                            f"\"pkg.mod\"}}, got {module!r}")
+        self.handle.reload(module, timeout=self.timeout)
+        self.catalog.forget(module)
+        return {"reloaded": module}
+
+    # -- helpers ------------------------------------------------------------------
+    def topology_of(self, name: str) -> Topology:
+        """The structure, checked to have module ``name`` (ModuleNotFound otherwise)."""
+        topology = self.topology()
+        if name not in topology.modules:
+            raise ModuleNotFound(f"no module {name!r} in system {topology.system!r}; "
+                                 f"modules: {', '.join(topology.modules) or '(none)'}")
+        return topology
+
+    @staticmethod
+    def _class(ref: Any) -> str:
+        """A class reference the manager can import ("pkg.mod:Class")."""
+        if not isinstance(ref, str):
+            raise Malformed(f"'class' must be a reference such as \"pkg.mod:Class\", got {ref!r}")
+        try:
+            resolve_class(ref)
+        except ValueError as exc:
+            raise Malformed(str(exc)) from None
+        except (ImportError, LookupError, TypeError) as exc:
+            raise NotFound(str(exc)) from None
+        return ref
+
