@@ -489,10 +489,14 @@ function moduleOf(end) {
   return end.slice(0, end.lastIndexOf("."));
 }
 
-/** Graphviz's spline for a link (cubic Bézier segments: 1 + 3n points), its ends moved
+/** Graphviz's spline for a link (cubic Bézier segments: 1 + 3n points, maybe followed by
+ * the arrowhead's tip), its ends moved
  * onto the ports this page draws (with their neighbouring control points, so the
  * tangents stay); null when there is none to follow. */
 function routed(points, a, b) {
+  if (points && points.length >= 5 && (points.length - 2) % 3 === 0) {
+    points = points.slice(0, -1);          // the arrowhead's tip, after the spline's end
+  }
   if (!points || points.length < 4 || (points.length - 1) % 3 !== 0) return null;
   const p = points.map(([x, y]) => ({x, y}));
   const last = p.length - 1;
