@@ -40,7 +40,7 @@ export class Schematic {
 
   // -- structure -------------------------------------------------------------------
   render(system, layout) {
-    const before = new Map([...this.boxes].map(([name, box]) => [name, box.at]));
+    const before = new Map([...this.boxes].map(([name, box]) => [name, {...box.at, node: box.info.node}]));
     this.system = system;
     this.layout = layout = withEveryNode(roomy(layout), system);
     this.svg.replaceChildren();
@@ -63,10 +63,10 @@ export class Schematic {
     this.drawMacros();
     for (const link of system.links) this.drawLink(link);
     this.setView(this.fitted || !this.view ? this.fullView() : this.view);
-    // A module that moved glides from where it was to where it is now.
+    // A module that moved to another node glides from where it was to where it is now.
     for (const [name, box] of this.boxes) {
       const was = before.get(name);
-      if (was && (was.x !== box.at.x || was.y !== box.at.y)) this.glide(box, was);
+      if (was && was.node !== box.info.node) this.glide(box, was);
     }
     if (this.selected && !this.boxes.has(this.selected)) this.selected = null;
     this.markSelected();
