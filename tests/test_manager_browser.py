@@ -249,10 +249,12 @@ def test_dragging_a_module_onto_another_node_migrates_it(lab: ManagerProcess, pa
         const n = document.querySelector("[data-node='a'] > rect").getBoundingClientRect();
         return m.left >= n.left && m.right <= n.right && m.top >= n.top && m.bottom <= n.bottom;
     }""", timeout=WAIT_MS)
-    # The live view's screenshot: the probe on a, the move in the events, the figures live.
+    # The live view's screenshot: the probe on a, the move in the events, the figures
+    # live, the probe's plot drawing the ripple the sensor now adds.
+    lab.api("POST", "/api/modules/sensor/state", {"ripple": 0.4})
     page.click("[data-module='probe'] .module-title")
     page.wait_for_selector("[data-field='load'] .gauge-svg", timeout=WAIT_MS)
-    page.wait_for_timeout(1500)
+    page.wait_for_timeout(4000)
     page.screenshot(path=str(screenshot_path(tmp_path, "manager_live.png")))
 
 

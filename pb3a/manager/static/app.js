@@ -115,8 +115,11 @@ class Manager {
   }
 
   onStats(message) {
+    const start = performance.now();
     this.schematic.update({...message.stats, time: message.time});
-    $("cost").textContent = `updated ${fmt.clock(message.time)} · gathered in ${message.cost_ms?.toFixed?.(1) ?? "?"} ms`;
+    this.drawMs = performance.now() - start;       // the page's share of an update
+    $("cost").textContent = `updated ${fmt.clock(message.time)} · gathered in ` +
+      `${message.cost_ms?.toFixed?.(1) ?? "?"} ms · drawn in ${this.drawMs.toFixed(1)} ms`;
     this.stats = message.stats;
     if (this.selected) this.describeSelected();
   }

@@ -28,7 +28,7 @@ export class Plot {
   }
 
   draw() {
-    const W = 320, H = 110, L = 44, B = 16;
+    const W = 320, H = 110, L = 50, B = 16;
     const all = this.samples.flatMap(([, v]) => v).filter(Number.isFinite);
     if (!all.length) return;
     let lo = Math.min(...all), hi = Math.max(...all);
@@ -48,8 +48,8 @@ export class Plot {
     this.element.replaceChildren(s("svg", {viewBox: `0 0 ${W} ${H}`, class: "plot-svg"}, [
       s("line", {x1: L, x2: W - 6, y1: y(lo), y2: y(lo), class: "axis"}),
       s("line", {x1: L, x2: L, y1: 6, y2: H - B - 6, class: "axis"}),
-      s("text", {x: L - 5, y: y(hi) + 4, "text-anchor": "end", class: "tick"}, fmt.number(hi)),
-      s("text", {x: L - 5, y: y(lo) + 4, "text-anchor": "end", class: "tick"}, fmt.number(lo)),
+      s("text", {x: L - 5, y: y(hi) + 4, "text-anchor": "end", class: "tick"}, fmt.tick(hi)),
+      s("text", {x: L - 5, y: y(lo) + 4, "text-anchor": "end", class: "tick"}, fmt.tick(lo)),
       s("text", {x: W - 6, y: H - 2, "text-anchor": "end", class: "tick"},
         `last ${(t1 - t0).toFixed(0)} s · now ${last.map(fmt.number).join(", ")}`),
       ...lines,

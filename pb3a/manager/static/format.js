@@ -50,6 +50,12 @@ export function number(value) {
     ? value.toExponential(4) : String(Number(value.toPrecision(6)));
 }
 
+/** An axis label: three significant digits. */
+export function tick(value) {
+  return Math.abs(value) >= 1e4 || (Math.abs(value) < 1e-2 && value !== 0)
+    ? value.toExponential(1) : String(Number(value.toPrecision(3)));
+}
+
 /** The part of a "package.module:Class" name a person looks for first. */
 export function shortClass(cls) {
   if (!cls) return "";

@@ -205,7 +205,9 @@ export class Schematic {
     const fold = this.hiddenBy(moduleOf(link.src));
     if (fold && fold === this.hiddenBy(moduleOf(link.dst))) return;      // inside one fold
     const folded = this.hiddenBy(moduleOf(link.src)) || this.hiddenBy(moduleOf(link.dst));
-    const route = folded ? null : routed(this.layout.links?.[link.key]?.points, a, b);
+    const route = folded ? null
+      : b.x < a.x + 20 ? this.backRoute(a, b, moduleOf(link.src), moduleOf(link.dst))
+      : routed(this.layout.links?.[link.key]?.points, a, b);
     const d = route ? route.d : curve(a, b);
     const path = s("path", {class: "link", d, "marker-end": "url(#arrow)", dataset: {link: link.key}},
                    s("title", {}, `${link.key} (${link.policy})`));
@@ -219,6 +221,20 @@ export class Schematic {
     this.layers.labels.append(label);
     this.links.set(link.key, {path, label, text, bg, mid});
     this.sizeLabel(this.links.get(link.key));
+  }
+
+  /** A link whose input lies left of its output: out to the right, along under both
+   * modules, and into the input from the left, instead of through the boxes. */
+  backRoute(a, b, src, dst) {
+    const bottom = (name) => {
+      const box = this.boxes.get(name);
+      return box ? box.at.y + box.box.h : Math.max(a.y, b.y);
+    };
+    const y = Math.max(bottom(src), bottom(dst)) + 18;
+    const r = 26;
+    const d = `M${a.x},${a.y} C${a.x + r},${a.y} ${a.x + r},${y} ${a.x},${y} ` +
+              `L${b.x},${y} C${b.x - r},${y} ${b.x - r},${b.y} ${b.x},${b.y}`;
+    return {d, mid: {x: b.x + (a.x - b.x) * 0.7, y: y + 4}};
   }
 
   sizeLabel(entry) {
@@ -499,6 +515,8 @@ function routed(points, a, b) {
   }
   if (!points || points.length < 4 || (points.length - 1) % 3 !== 0) return null;
   const p = points.map(([x, y]) => ({x, y}));
+  const far = (q, r) => Math.hypot(q.x - r.x, q.y - r.y);
+  if (far(p[0], a) + far(p.at(-1), b) > far(p[0], b) + far(p.at(-1), a)) p.reverse();   // a back edge
   const last = p.length - 1;
   const da = {x: a.x - p[0].x, y: a.y - p[0].y}, db = {x: b.x - p[last].x, y: b.y - p[last].y};
   p[0] = a;
