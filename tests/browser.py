@@ -40,8 +40,7 @@ def chromium_path() -> str | None:
     for candidate in CHROMIUM_CANDIDATES:
         if os.access(candidate, os.X_OK):
             return candidate
-    found = shutil.which("chromium")
-    return found
+    return shutil.which("chromium")
 
 
 def skip_reason() -> str | None:

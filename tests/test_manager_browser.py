@@ -26,7 +26,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-
 from browser import chromium_page, skip_reason
 
 REPO = Path(__file__).resolve().parent.parent
@@ -193,7 +192,7 @@ def test_the_live_view_shows_every_module_on_its_node_with_live_figures(
     assert page.locator("#system-name").text_content() == "lab"
     assert page.locator("#mode").text_content() == "running"
     for name, module in system["modules"].items():
-        assert module_on_node(page, name, module["node"]), f"{name} is not drawn on {module['node']}"
+        assert module_on_node(page, name, module["node"]), f"{name} not drawn on {module['node']}"
     # the links' rates and the nodes' figures arrive over the websocket
     page.wait_for_function(
         "[...document.querySelectorAll('.link-text')].some(t => /\\d\\/s/.test(t.textContent))",
@@ -245,8 +244,8 @@ def test_dragging_a_module_onto_another_node_migrates_it(lab: ManagerProcess, pa
     assert "paused" in page.locator(".toast.ok").first.text_content()
     assert lab.api("GET", "/api/system")["modules"]["probe"]["node"] == "a"
     page.wait_for_function("""() => {
-        const m = document.querySelector("[data-module='probe'] .module-box").getBoundingClientRect();
-        const n = document.querySelector("[data-node='a'] > rect").getBoundingClientRect();
+        const box = (selector) => document.querySelector(selector).getBoundingClientRect();
+        const m = box("[data-module='probe'] .module-box"), n = box("[data-node='a'] > rect");
         return m.left >= n.left && m.right <= n.right && m.top >= n.top && m.bottom <= n.bottom;
     }""", timeout=WAIT_MS)
     # The live view's screenshot: the probe on a, the move in the events, the figures
@@ -267,9 +266,10 @@ def test_the_swap_picker_swaps_a_module_for_a_class_whose_ports_fit(
     choice.click()
     page.wait_for_selector(".event[data-kind='module_swapped']", timeout=WAIT_MS)
     page.wait_for_function(
-        "document.querySelector(\"[data-module='scale'] .module-class\").textContent === 'FastScale'",
-        timeout=WAIT_MS)
-    assert lab.api("GET", "/api/system")["modules"]["scale"]["class"] == "examples.pipeline:FastScale"
+        "document.querySelector(\"[data-module='scale'] .module-class\").textContent"
+        " === 'FastScale'", timeout=WAIT_MS)
+    swapped = lab.api("GET", "/api/system")["modules"]["scale"]["class"]
+    assert swapped == "examples.pipeline:FastScale"
     assert field_value(page, "scale", "gain") == "2.0"          # kept through the swap
 
 
