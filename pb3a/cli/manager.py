@@ -52,6 +52,7 @@ def manager_command(args: argparse.Namespace) -> int:
     if not args.refresh > 0 or not args.timeout > 0:
         return _fail("--refresh and --timeout take a number of seconds above 0")
 
+    from pb3a.cli.status import sigterm_interrupts
     from pb3a.errors import ConfigError, PB3AError
     from pb3a.launch.connection import connect
     from pb3a.manager.access import Access, new_token
@@ -89,7 +90,8 @@ def manager_command(args: argparse.Namespace) -> int:
     shown = "127.0.0.1" if host in ("0.0.0.0", "::") else host
     shown = f"[{shown}]" if ":" in shown else shown
     print(f"PB3A manager: http://{shown}:{bound_port}/?token={access.token}", flush=True)
-    serve(create_app(session, access, args.refresh), sock)
+    with sigterm_interrupts():     # uvicorn stops, then raises SIGTERM again: as Ctrl-C
+        serve(create_app(session, access, args.refresh), sock)
     return 0
 
 

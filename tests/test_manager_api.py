@@ -1,0 +1,272 @@
+"""The ModuleManager's HTTP API on a running system: every endpoint, its errors, and
+that a refused request changes nothing."""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("starlette", reason="the manager needs the 'ui' extra")
+
+from sample_modules import FloatSource, Mapper, Scale
+from starlette.testclient import TestClient
+
+from pb3a import Running, System
+from pb3a.manager.access import Access, new_token
+from pb3a.manager.app import create_app
+from pb3a.manager.catalog import Catalog
+from pb3a.manager.document import Document
+from pb3a.manager.session import Session
+
+pytestmark = pytest.mark.timeout(60)
+
+TESTS = Path(__file__).resolve().parent
+
+
+def managed() -> System:
+    system = System("managed").node("a").node("b")
+    system.add("src", FloatSource, node="a")
+    system.add("scale", Scale, node="a")
+    system.add("map", Mapper, node="b")
+    system.link("src.out", "scale.x")
+    system.link("scale.y", "map.x")
+    return system
+
+
+@pytest.fixture
+def run() -> Iterator[Running]:
+    with managed().launch() as running:
+        yield running
+
+
+def manager_client(session: Session, refresh: float = 0.5) -> TestClient:
+    """A test client of a manager app serving ``session``, with the token in its headers
+    (``client.token``)."""
+    token = new_token()
+    client = TestClient(create_app(session, Access(token, {"testserver"}), refresh),
+                        headers={"Authorization": f"Bearer {token}"})
+    client.token = token                        # type: ignore[attr-defined]
+    return client
+
+
+@pytest.fixture
+def client(run: Running) -> Iterator[TestClient]:
+    document = Document.empty()
+    session = Session(document, run, catalog=Catalog(document, roots=[TESTS]))
+    with manager_client(session) as client:
+        yield client
+
+
+# -- access ----------------------------------------------------------------------------
+def test_without_the_right_token_nothing_is_served_and_nothing_changes(client, run) -> None:
+    bare = TestClient(client.app)
+    for path in ("/api/system", "/api/stats", "/api/modules/scale/state"):
+        refused = bare.get(path)
+        assert refused.status_code == 401 and "token" in refused.json()["error"], path
+    assert bare.get("/api/stats", headers={"Authorization": "Bearer wrong"}).status_code == 401
+    assert bare.get(f"/api/stats?token={client.token}").status_code == 401   # not in URLs
+    page = bare.get("/")
+    assert page.status_code == 401 and "pb3a manager" in page.text
+    assert page.headers["content-type"].startswith("text/html")
+    assert bare.get("/static/app.js").status_code == 401
+    assert bare.post("/api/modules/scale/state", json={"gain": 99.0}).status_code == 401
+    assert bare.post("/api/modules/map/migrate", json={"to": "a"}).status_code == 401
+    assert run.state("scale")["gain"] == 2.0 and run.where("map") == "b"
+
+
+def test_a_foreign_host_is_refused_even_with_the_token(client, run) -> None:
+    rebound = client.post("/api/modules/scale/state", json={"gain": 99.0},
+                          headers={"Host": "evil.example:8080"})
+    assert rebound.status_code == 403 and "host" in rebound.json()["error"]
+    assert run.state("scale")["gain"] == 2.0
+
+
+def test_the_token_in_the_first_url_becomes_a_cookie_and_leaves_the_address_bar(client) -> None:
+    browser = TestClient(client.app, follow_redirects=False)
+    signed_in = browser.get(f"/?token={client.token}")
+    assert signed_in.status_code == 303 and signed_in.headers["location"] == "/"
+    cookie = signed_in.headers["set-cookie"]
+    assert "HttpOnly" in cookie and "SameSite=Strict" in cookie and "Path=/" in cookie
+    assert browser.get("/api/system").status_code == 200          # the cookie does it now
+    assert TestClient(client.app, follow_redirects=False).get("/?token=nope").status_code == 401
+
+
+def test_a_websocket_needs_the_token_and_the_page_s_origin(client) -> None:
+    from starlette.websockets import WebSocketDisconnect
+
+    with pytest.raises(WebSocketDisconnect), TestClient(client.app).websocket_connect(
+            "/api/live"):
+        pass
+    with pytest.raises(WebSocketDisconnect), client.websocket_connect(
+            "/api/live", headers={"Origin": "http://evil.example"}):
+        pass
+    with client.websocket_connect("/api/live",
+                                  headers={"Origin": "http://testserver"}) as socket:
+        assert socket.receive_json()["type"] == "hello"
+
+
+# -- structure and figures -------------------------------------------------------------------
+def test_system_and_layout_show_every_module_on_its_node(client) -> None:
+    system = client.get("/api/system").json()
+    assert system["mode"] == "running" and system["name"] == "managed"
+    assert {name: m["node"] for name, m in system["modules"].items()} == {
+        "src": "a", "scale": "a", "map": "b"}
+    scale = system["modules"]["scale"]
+    assert scale["class"] == "sample_modules:Scale" and scale["kind"] == "module"
+    assert scale["inputs"] == {"x": {"type": "float", "policy": "latest"}}
+    assert scale["outputs"] == {"y": {"type": "float"}} and scale["state"] == ["gain", "setups"]
+    assert system["modules"]["map"]["displays"]["speed"] == {"kind": "gauge", "min": 0.0,
+                                                             "max": 1.0}
+    assert {link["key"] for link in system["links"]} == {"src.out->scale.x", "scale.y->map.x"}
+    assert system["nodes"]["a"]["up"] is True
+    layout = client.get("/api/layout").json()
+    for name, module in system["modules"].items():
+        box, region = layout["modules"][name], layout["clusters"][module["node"]]
+        assert region["x"] <= box["x"] and box["x"] + box["w"] <= region["x"] + region["w"]
+        assert region["y"] <= box["y"] and box["y"] + box["h"] <= region["y"] + region["h"]
+    assert all(len(layout["links"][key]["points"]) >= 2 for key in layout["links"])
+
+
+def test_stats_carry_modules_links_and_each_node_s_resources(client) -> None:
+    stats = client.get("/api/stats").json()
+    assert set(stats["modules"]) == {"src", "scale", "map"}
+    assert stats["modules"]["scale"]["status"] in ("starting", "running")
+    assert set(stats["links"]) == {"src.out->scale.x", "scale.y->map.x"}
+    for node in stats["nodes"].values():
+        assert 0 <= node["cpu"] <= 100 and 0 < node["memory_available"] <= node["memory_total"]
+
+
+# -- the State Editor ------------------------------------------------------------------
+def test_state_views_drill_down_and_draw_2d_arrays(client) -> None:
+    view = client.get("/api/modules/map/state").json()
+    assert view["module"] == "map" and view["class"] == "sample_modules:Mapper"
+    fields = view["fields"]
+    assert fields["speed"] == {"type": "float", "value": 0.5, "editable": True}
+    assert fields["label"] == {"type": "str", "value": "map", "editable": True}
+    grid = fields["grid"]
+    assert grid["type"] == "ndarray" and grid["shape"] == [8, 8] and grid["dtype"] == "float64"
+    assert grid["editable"] and len(grid["value"]) == 8
+    assert grid["image"] == "/api/modules/map/image?path=grid"
+    assert set(grid["summary"]) == {"min", "max", "mean"}
+    row = client.get("/api/modules/map/state?path=grid.0").json()
+    assert row["path"] == "grid.0" and row["fields"]["0"]["shape"] == [8]
+    image = client.get(grid["image"])
+    assert image.status_code == 200 and image.headers["content-type"] == "image/png"
+    assert image.content.startswith(b"\x89PNG\r\n\x1a\n")
+    width, height = struct.unpack(">II", image.content[16:24])
+    assert (width, height) == (256, 256)                     # 8x8 scaled up by 32
+    assert client.get("/api/modules/map/state?path=nothing").status_code == 404
+    assert client.get("/api/modules/map/image?path=speed").status_code == 400
+    missing = client.get("/api/modules/ghost/state")
+    assert missing.status_code == 404 and "no module 'ghost'" in missing.json()["error"]
+
+
+def test_an_edit_is_coerced_applied_and_used_and_a_bad_one_changes_nothing(client, run) -> None:
+    changed = client.post("/api/modules/scale/state", json={"gain": 5})
+    assert changed.status_code == 200
+    assert changed.json()["fields"]["gain"] == {"type": "float", "value": 5.0, "editable": True}
+    assert run.state("scale")["gain"] == 5.0 and isinstance(run.state("scale")["gain"], float)
+    grid = [[float(i * 8 + j) for j in range(8)] for i in range(8)]
+    assert client.post("/api/modules/map/state", json={"grid": grid, "speed": 0.0}).status_code \
+        == 200
+    assert run.state("map")["grid"][7][7] == 63.0          # speed 0: stepping adds nothing
+    for body, status, words in (
+            ({"gain": "x"}, 422, "state 'gain' takes a number, got 'x'"),
+            ({"gain": 1.0, "setups": 2.5}, 422, "state 'setups' takes a whole number"),
+            ({"gian": 1.0}, 404, "has no state 'gian'"),
+            ({}, 400, "send an object of state fields"),
+            ([1, 2], 400, "send an object of state fields")):
+        refused = client.post("/api/modules/scale/state", json=body)
+        assert refused.status_code == status and words in refused.json()["error"], body
+    wrong_shape = client.post("/api/modules/map/state", json={"grid": [[1.0, 2.0]]})
+    assert wrong_shape.status_code == 422 and "shape [8, 8]" in wrong_shape.json()["error"]
+    not_json = client.post("/api/modules/scale/state", content=b"{gain: 1",
+                           headers={"content-type": "application/json"})
+    assert not_json.status_code == 400 and "not JSON" in not_json.json()["error"]
+    assert run.state("scale")["gain"] == 5.0 and run.state("map")["grid"][7][7] == 63.0
+
+
+# -- changing the system -------------------------------------------------------------------
+def test_migrate_answers_the_report_and_refuses_an_unknown_node(client, run) -> None:
+    refused = client.post("/api/modules/map/migrate", json={"to": "mars"})
+    assert refused.status_code == 404 and "no node 'mars'" in refused.json()["error"]
+    assert client.post("/api/modules/map/migrate", json={}).status_code == 400
+    assert run.where("map") == "b"
+    report = client.post("/api/modules/map/migrate", json={"to": "a"}).json()
+    assert (report["module"], report["source"], report["destination"]) == ("map", "b", "a")
+    assert report["pause_s"] > 0 and report["links"] == 1 and "capture_s" in report["phases"]
+    assert run.where("map") == "a"
+
+
+def test_swap_offers_the_classes_whose_ports_fit_and_refuses_the_others(client, run) -> None:
+    fitting = client.get("/api/modules/scale/swaps").json()["classes"]
+    assert "sample_modules:FastScale" in fitting and "sample_modules:Scale" not in fitting
+    assert "sample_modules:Counter" not in fitting          # no input x
+    unfit = client.post("/api/modules/scale/swap", json={"class": "sample_modules:Counter"})
+    assert unfit.status_code == 409 and "lacks the inputs x" in unfit.json()["error"]
+    unknown = client.post("/api/modules/scale/swap", json={"class": "sample_modules:Nope"})
+    assert unknown.status_code == 404
+    assert client.post("/api/modules/scale/swap", json={"class": 3}).status_code == 400
+    assert run.topology().modules["scale"].cls == "sample_modules:Scale"
+    swapped = client.post("/api/modules/scale/swap", json={"class": "sample_modules:FastScale"})
+    assert swapped.json() == {"kept": ["gain", "setups"]}
+    assert run.topology().modules["scale"].cls == "sample_modules:FastScale"
+
+
+def test_add_link_and_remove_modules_with_the_words_of_pb3a_check(client, run) -> None:
+    added = client.post("/api/modules", json={"name": "probe", "class": "sample_modules:Last",
+                                              "node": "b", "state": {"value": 1.5}})
+    assert added.status_code == 201 and added.json()["modules"]["probe"]["node"] == "b"
+    assert run.state("probe")["value"] == 1.5
+    taken = client.post("/api/modules", json={"name": "probe", "class": "sample_modules:Last"})
+    assert taken.status_code == 409 and "runs already" in taken.json()["error"]
+    assert client.post("/api/modules", json={"name": "p2", "class": "sample_modules:Last",
+                                             "node": "mars"}).status_code == 404
+    assert client.post("/api/modules", json={"name": "bad name", "class":
+                                             "sample_modules:Last"}).status_code == 400
+    twice = client.post("/api/links", json={"src": "src.out", "dst": "map.x"})
+    assert twice.status_code == 409 and "is fed by scale.y already" in twice.json()["error"]
+    backwards = client.post("/api/links", json={"src": "probe.x", "dst": "scale.x"})
+    assert backwards.status_code == 409 and "has no output 'x'" in backwards.json()["error"]
+    assert client.post("/api/links", json={"src": "ghost.y", "dst": "probe.x"}).status_code \
+        == 404
+    assert client.post("/api/links", json={"src": "scale.y", "dst": "probe.x",
+                                           "policy": "sometimes"}).status_code == 409
+    assert set(run.topology().links) == {"src.out->scale.x", "scale.y->map.x"}
+    linked = client.post("/api/links", json={"src": "scale.y", "dst": "probe.x",
+                                             "policy": "queue:8"})
+    assert linked.status_code == 200
+    assert {"key": "scale.y->probe.x", "src": "scale.y", "dst": "probe.x",
+            "policy": "queue:8"} in linked.json()["links"]
+    relinked = client.post("/api/links", json={"src": "src.out", "dst": "probe.x",
+                                               "replace": True})
+    assert {link["key"] for link in relinked.json()["links"]} >= {"src.out->probe.x"}
+    assert client.delete("/api/modules/probe").status_code == 200
+    assert "probe" not in run.topology().modules
+    assert client.delete("/api/modules/probe").status_code == 404
+
+
+def test_reload_drops_a_module_s_code_everywhere(client) -> None:
+    assert client.post("/api/reload", json={"module": "sample_modules"}).json() == {
+        "reloaded": "sample_modules"}
+    assert client.post("/api/reload", json={"module": "../etc"}).status_code == 400
+
+
+def test_classes_list_the_catalog_with_ports_state_and_origin(client) -> None:
+    catalog = client.get("/api/classes").json()
+    mapper = next(c for c in catalog["classes"] if c["class"] == "sample_modules:Mapper")
+    assert mapper["kind"] == "module" and mapper["origin"] == "path"
+    assert mapper["doc"].startswith("Fills an occupancy-like grid")
+    assert mapper["inputs"] == {"x": {"type": "float", "policy": "latest"}}
+    assert mapper["state"]["speed"] == {"type": "float", "default": 0.5}
+    assert mapper["state"]["grid"]["type"] == "ndarray"
+    doubler = next(c for c in catalog["classes"] if c["class"] == "sample_modules:Doubler")
+    assert doubler["kind"] == "agent"
+
+
+def test_an_unknown_route_is_a_json_404(client) -> None:
+    missing = client.get("/api/nothing")
+    assert missing.status_code == 404 and "docs/manager.md" in missing.json()["error"]

@@ -1,0 +1,90 @@
+"""The manager's websocket feed: hello, stats twice a second, events as they happen,
+the structure after a change, and the watched module's state."""
+
+from __future__ import annotations
+
+import itertools
+import threading
+import time
+from collections.abc import Iterator
+
+import pytest
+
+pytest.importorskip("starlette", reason="the manager needs the 'ui' extra")
+
+from test_manager_api import managed, manager_client
+
+from pb3a import Running
+from pb3a.manager.document import Document
+from pb3a.manager.session import Session
+
+pytestmark = pytest.mark.timeout(60)
+
+
+@pytest.fixture
+def run() -> Iterator[Running]:
+    with managed().launch() as running:
+        yield running
+
+
+def test_hello_then_stats_at_least_twice_a_second(run) -> None:
+    with manager_client(Session(Document.empty(), run)) as client, \
+            client.websocket_connect("/api/live") as socket:
+        hello = socket.receive_json()
+        assert hello["type"] == "hello"
+        assert set(hello["system"]["modules"]) == {"src", "scale", "map"}
+        assert set(hello["layout"]["modules"]) == {"src", "scale", "map"}
+        times = []
+        started = time.monotonic()
+        while len(times) < 4:
+            message = socket.receive_json()
+            assert message["type"] == "stats"
+            assert set(message["stats"]["modules"]) == {"src", "scale", "map"}
+            assert message["cost_ms"] > 0
+            times.append(time.monotonic())
+        # four updates within 2.1 s: the first comes at once, then one every 0.5 s
+        assert times[-1] - started < 2.1
+        gaps = [later - earlier for earlier, later in itertools.pairwise(times)]
+        assert max(gaps) < 0.75, gaps
+
+
+def test_a_migration_arrives_as_an_event_then_as_the_new_structure(run) -> None:
+    with manager_client(Session(Document.empty(), run)) as client, \
+            client.websocket_connect("/api/live") as socket:
+        assert socket.receive_json()["type"] == "hello"
+        mover = threading.Thread(target=run.migrate, args=("map", "a"))    # as an agent would
+        mover.start()
+        mover.join(30)
+        kinds = []
+        deadline = time.monotonic() + 10
+        while "system" not in kinds and time.monotonic() < deadline:
+            message = socket.receive_json()
+            kinds.append(message["type"])
+            if message["type"] == "event":
+                event = message["event"]
+                assert (event["kind"], event["subject"]) == ("module_moved", "map")
+                assert event["detail"]["destination"] == "a" and event["detail"]["pause_s"] > 0
+            if message["type"] == "system":
+                assert message["system"]["modules"]["map"]["node"] == "a"
+                assert "map" in message["layout"]["modules"]
+        assert "event" in kinds and kinds.index("event") < kinds.index("system")
+
+
+def test_the_watched_module_s_state_comes_while_it_runs(run) -> None:
+    with manager_client(Session(Document.empty(), run)) as client, \
+            client.websocket_connect("/api/live") as socket:
+        assert socket.receive_json()["type"] == "hello"
+        socket.send_json({"watch": "map"})
+        cells = []
+        while len(cells) < 2:
+            message = socket.receive_json()
+            if message["type"] == "state":
+                assert message["module"] == "map"
+                cells.append(message["state"]["fields"]["cells"]["value"])
+        assert cells[1] > cells[0]                    # live: it stepped in between
+        socket.send_json({"watch": "ghost"})
+        while True:
+            message = socket.receive_json()
+            if message["type"] == "state" and message["module"] == "ghost":
+                assert "no module 'ghost'" in message["error"]
+                break
