@@ -298,6 +298,13 @@ def test_a_system_built_in_the_editor_is_checked_as_drawn_and_launches(tmp_path:
             refusal.wait_for(timeout=WAIT_MS)
             assert "scale2.x" in refusal.text_content()
             assert len(manager.api("GET", "/api/document")["system"]["links"]) == 2
+            # initial state, in a typed field, goes into the document
+            page.click("[data-module='scale2'] .module-title")
+            page.fill("[data-field='gain'] input", "3")
+            page.press("[data-field='gain'] input", "Enter")
+            page.wait_for_selector("[data-field='gain'].applied", timeout=WAIT_MS)
+            document = manager.api("GET", "/api/document")["system"]
+            assert document["modules"]["scale2"]["state"] == {"gain": 3.0}
             page.click("#launch")
             page.wait_for_function("document.querySelector('#mode').textContent === 'running'",
                                    timeout=WAIT_MS)
@@ -306,6 +313,7 @@ def test_a_system_built_in_the_editor_is_checked_as_drawn_and_launches(tmp_path:
                 ".textContent.includes('steps')", timeout=WAIT_MS)
             assert tab.errors == [], f"the page threw: {tab.errors}"
         assert manager.api("GET", "/api/stats")["modules"]["scale2"]["events"] > 0
+        assert manager.api("GET", "/api/modules/scale2/state")["fields"]["gain"]["value"] == 3.0
     finally:
         manager.stop()
 
@@ -320,3 +328,47 @@ def connect(page: Any, src: str, dst: str) -> None:
     page.mouse.down()
     page.mouse.move(b["x"] + b["width"] / 2, b["y"] + b["height"] / 2, steps=10)
     page.mouse.up()
+
+
+def big_system(modules: int) -> str:
+    """A ticker feeding a chain of ``modules - 1`` scales, half on each node, packed into
+    two worker processes per node."""
+    lines = ['name = "big"', "[nodes.a]", "workers = 2", "[nodes.b]", "workers = 2",
+             "[modules.m0]", 'class = "examples.pipeline:Ticker"', 'node = "a"', "period = 0.5"]
+    for i in range(1, modules):
+        lines += [f"[modules.m{i}]", 'class = "examples.pipeline:Scale"',
+                  f'node = "{"a" if i < modules // 2 else "b"}"']
+    for i in range(1, modules):
+        lines += ["[[links]]", f'from = "m{i - 1}.{"out" if i == 1 else "y"}"', f'to = "m{i}.x"']
+    return "\n".join(lines) + "\n"
+
+
+def test_the_page_keeps_up_with_200_modules(tmp_path: Path) -> None:
+    config = tmp_path / "big.toml"
+    config.write_text(big_system(200))
+    manager = ManagerProcess(str(config))
+    try:
+        manager.api("POST", "/api/document/launch", {})
+        with chromium_page() as tab:
+            page = tab.page
+            page.goto(manager.url)
+            page.wait_for_function("document.querySelectorAll('.module').length === 200",
+                                   timeout=WAIT_MS)
+            costs = []
+            for _ in range(6):                       # six live updates, as they arrive
+                page.wait_for_function("(seen) => window.pb3aManager.updates > seen",
+                                       arg=page.evaluate("window.pb3aManager.updates"),
+                                       timeout=WAIT_MS)
+                costs.append(page.evaluate("window.pb3aManager.drawMs"))
+            render_ms = page.evaluate("""() => {
+                const m = window.pb3aManager, start = performance.now();
+                m.schematic.render(m.system, m.layout);
+                return performance.now() - start; }""")
+            assert tab.errors == [], f"the page threw: {tab.errors}"
+        print(f"200 modules: drawing an update took {max(costs):.1f} ms at most "
+              f"(median {sorted(costs)[len(costs) // 2]:.1f} ms); a full redraw {render_ms:.0f} ms")
+        # well inside the half second between updates, on a shared two-core machine
+        assert max(costs) < 100, costs
+        assert render_ms < 1000, render_ms
+    finally:
+        manager.stop()

@@ -22,6 +22,8 @@ class Manager {
     this.selected = null;
     this.document = null;          // an EditedDocument in FILE mode
     this.lastMove = new Map();     // module -> its last MigrationReport, shown in the inspector
+    this.updates = 0;              // live updates drawn, and what the last one cost (ms)
+    this.drawMs = null;
     this.toasts = new Toasts($("toasts"));
     this.schematic = new Schematic($("schematic"), {
       select: (name) => this.select(name),
@@ -118,8 +120,11 @@ class Manager {
     const start = performance.now();
     this.schematic.update({...message.stats, time: message.time});
     this.drawMs = performance.now() - start;       // the page's share of an update
-    $("cost").textContent = `updated ${fmt.clock(message.time)} · gathered in ` +
-      `${message.cost_ms?.toFixed?.(1) ?? "?"} ms · drawn in ${this.drawMs.toFixed(1)} ms`;
+    this.updates += 1;
+    $("cost").textContent = `${fmt.clock(message.time)} · server ` +
+      `${message.cost_ms?.toFixed?.(1) ?? "?"} ms · page ${this.drawMs.toFixed(1)} ms`;
+    $("cost").title = "the last update: when, what gathering it took on the server, " +
+      "and what drawing it took in this page";
     this.stats = message.stats;
     if (this.selected) this.describeSelected();
   }

@@ -13,6 +13,7 @@ const DRAG_THRESHOLD = 4;   // pixels a press moves before it counts as a drag
 const PAD = 24;             // around the drawing, in layout pixels
 const MODULE_H = 84;        // the least height a module box needs for its title, ports, figures
 const MAX_ZOOM = 1.4;       // a fitted small system is magnified this much at most
+const MAX_SHRINK = 3.5;     // and a large one shrunk this much at most: still legible
 const WIDEN = 1.3;          // and a little wider still, for the links' figures between boxes
 
 export class Schematic {
@@ -447,13 +448,16 @@ export class Schematic {
     });
   }
 
-  /** The whole drawing, centred, never magnified past one layout pixel per screen pixel
-   * (a small system keeps the type size of a large one). */
+  /** The whole drawing, centred, magnified little (a small system keeps the type size of
+   * a large one) and shrunk only so far that a module's name can still be read. */
   fullView() {
     const w = (this.layout?.width || 400) + 2 * PAD, h = (this.layout?.height || 300) + 2 * PAD;
     const cw = this.svg.clientWidth || w, ch = this.svg.clientHeight || h;
-    const k = Math.max(w / cw, h / ch, 1 / MAX_ZOOM);
-    return {x: -PAD - (cw * k - w) / 2, y: -PAD - (ch * k - h) / 2, w: cw * k, h: ch * k};
+    const k = Math.min(Math.max(w / cw, h / ch, 1 / MAX_ZOOM), MAX_SHRINK);
+    // what does not fit starts at the top left (the user pans); the rest is centred
+    const x = cw * k >= w ? -PAD - (cw * k - w) / 2 : -PAD;
+    const y = ch * k >= h ? -PAD - (ch * k - h) / 2 : -PAD;
+    return {x, y, w: cw * k, h: ch * k};
   }
 
   fit() {

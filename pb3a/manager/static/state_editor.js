@@ -151,9 +151,10 @@ export class StateEditor {
       const more = h("button", {class: "small ghost", type: "button"}, "Load this level");
       more.addEventListener("click", async () => {
         try {
+          // the server answers a container's items as the fields below the path
           const deeper = await this.actions.drill(path);
-          const inner = deeper.fields?.[path.split(".").pop()] ?? {type: view.type, items: deeper.fields};
-          more.replaceWith(this.items(path, {...inner, truncated: false}));
+          more.replaceWith(this.items(path, {type: view.type, length: view.length,
+                                             items: deeper.fields || {}, more: deeper.more}));
         } catch (error) {
           this.actions.error(error, true);
         }
