@@ -228,7 +228,7 @@ def test_an_edited_state_field_is_used_by_the_module(lab: ManagerProcess, page: 
 
     # The State Editor's screenshot: the mapper's grid as it is being built.
     page.click("[data-module='mapper'] .module-title")
-    page.wait_for_selector("[data-field='grid'] img[src]", timeout=WAIT_MS)
+    page.wait_for_selector("[data-field='grid'] canvas.drawn", timeout=WAIT_MS)
     page.wait_for_selector("[data-field='coverage_now'] polyline", timeout=WAIT_MS)
     page.wait_for_timeout(2500)      # a few refreshes: the plot has a history to draw
     page.screenshot(path=str(screenshot_path(tmp_path, "manager_state.png")))

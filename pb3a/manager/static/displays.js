@@ -86,12 +86,23 @@ export class Gauge {
   }
 }
 
-/** A 2-D array as a picture, fetched anew each refresh; the old one stays until the new
- * one has loaded, so it never flickers. */
+// Viridis at nine stops (perceptually even, legible to colour-blind readers): the grey
+// levels of the server's PNG (min..max) are drawn through it.
+const VIRIDIS = [[68, 1, 84], [71, 44, 122], [59, 81, 139], [44, 113, 142], [33, 144, 141],
+                 [39, 173, 129], [92, 200, 99], [170, 220, 50], [253, 231, 37]];
+const LUT = Array.from({length: 256}, (_, g) => {
+  const f = g / 255 * (VIRIDIS.length - 1), i = Math.min(Math.floor(f), VIRIDIS.length - 2);
+  const t = f - i;
+  return VIRIDIS[i].map((c, k) => Math.round(c + (VIRIDIS[i + 1][k] - c) * t));
+});
+
+/** A 2-D array as a picture, fetched anew each refresh and drawn in colour; the old one
+ * stays until the new one has loaded, so it never flickers. */
 export class LiveImage {
   constructor(large) {
-    this.img = h("img", {class: `state-image ${large ? "large" : ""}`, alt: "2-D array"});
-    this.element = h("div", {class: "display image"}, this.img);
+    this.canvas = h("canvas", {class: `state-image ${large ? "large" : ""}`});
+    this.scale = h("div", {class: "image-scale"});
+    this.element = h("div", {class: "display image"}, [this.canvas, this.scale]);
     this.loading = false;
   }
 
@@ -99,9 +110,31 @@ export class LiveImage {
     if (!view.image || this.loading) return;
     this.loading = true;
     const next = new Image();
-    next.onload = () => { this.img.src = next.src; this.loading = false; };
+    next.onload = () => { this.draw(next, view.summary); this.loading = false; };
     next.onerror = () => { this.loading = false; };
     next.src = imageUrl(view.image, Date.now());
+  }
+
+  draw(image, summary) {
+    const {width, height} = image;
+    if (this.canvas.width !== width || this.canvas.height !== height) {
+      this.canvas.width = width;
+      this.canvas.height = height;
+    }
+    const context = this.canvas.getContext("2d", {willReadFrequently: true});
+    context.drawImage(image, 0, 0);
+    const pixels = context.getImageData(0, 0, width, height);
+    const data = pixels.data;
+    for (let i = 0; i < data.length; i += 4) {
+      const [r, g, b] = LUT[data[i]];
+      data[i] = r; data[i + 1] = g; data[i + 2] = b;
+    }
+    context.putImageData(pixels, 0, 0);
+    this.canvas.classList.add("drawn");
+    if (summary) {
+      this.scale.replaceChildren(h("span", {}, fmt.number(summary.min)), h("i"),
+                                 h("span", {}, fmt.number(summary.max)));
+    }
   }
 }
 
