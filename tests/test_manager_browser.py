@@ -241,7 +241,8 @@ def test_dragging_a_module_onto_another_node_migrates_it(lab: ManagerProcess, pa
          box_of(page, "[data-node='a'] > rect"))
     page.wait_for_selector(".event[data-kind='module_moved']", timeout=WAIT_MS)
     assert "b → a" in page.locator(".event[data-kind='module_moved']").first.text_content()
-    assert "paused" in page.locator(".toast.ok").first.text_content()
+    # the report answers the request, maybe after the event came over the websocket
+    page.wait_for_selector(".toast.ok >> text=paused", timeout=WAIT_MS)
     assert lab.api("GET", "/api/system")["modules"]["probe"]["node"] == "a"
     page.wait_for_function("""() => {
         const box = (selector) => document.querySelector(selector).getBoundingClientRect();
