@@ -306,6 +306,14 @@ def test_a_system_built_in_the_editor_is_checked_as_drawn_and_launches(tmp_path:
             page.wait_for_selector("[data-field='gain'].applied", timeout=WAIT_MS)
             document = manager.api("GET", "/api/document")["system"]
             assert document["modules"]["scale2"]["state"] == {"gain": 3.0}
+            # saved, it is a file `pb3a check` accepts
+            saved = tmp_path / "built.toml"
+            page.fill("#save-path", str(saved))
+            page.click("#save")
+            page.wait_for_selector(".toast.ok >> text=Saved", timeout=WAIT_MS)
+            check = subprocess.run([sys.executable, "-m", "pb3a", "check", str(saved)],
+                                   capture_output=True, text=True, timeout=60, cwd=REPO)
+            assert check.returncode == 0, check.stdout + check.stderr
             page.click("#launch")
             page.wait_for_function("document.querySelector('#mode').textContent === 'running'",
                                    timeout=WAIT_MS)

@@ -30,6 +30,7 @@ export class Schematic {
     this.links = new Map();      // key -> {path, label, text}
     this.clusters = new Map();   // node -> {group, rect, badge, figures}
     this.collapsed = new Set();  // macros shown as one box
+    this.frames = new Map();     // "macro@node" -> the frame drawn around its modules there
     this.selected = null;
     this.previous = null;        // the last stats, for rates of steps and events
     this.view = null;            // the viewBox {x, y, w, h}
@@ -148,7 +149,8 @@ export class Schematic {
         groups.get(node).push(box);
       }
       for (const [node, boxes] of groups) {
-        if (this.hiddenBy(macros[macro][0]) && this.hiddenBy(macros[macro][0]) !== macro) continue;
+        const outer = this.hiddenBy(macros[macro][0]);
+        if (outer && outer !== macro) continue;            // inside a larger folded macro
         const x0 = Math.min(...boxes.map((b) => b.at.x)) - 10;
         const y0 = Math.min(...boxes.map((b) => b.at.y)) - 22;
         const x1 = Math.max(...boxes.map((b) => b.at.x + b.box.w)) + 10;
