@@ -295,6 +295,7 @@ export class Schematic {
       if (m.errors) text += ` · ${m.errors} err`;
       setText(box.figures, text);
       box.group.classList.toggle("has-errors", m.errors > 0);
+      box.group.classList.toggle("on-lost-node", stats.nodes?.[m.node]?.up === false);
       const tip = box.group.querySelector("title");
       const error = m.last_error ? `\nlast error: ${m.last_error}` : "";
       setText(tip, `${name}\n${m.cls}\nnode ${m.node} · ${m.status}${error}`);
@@ -321,7 +322,7 @@ export class Schematic {
       if (n.memory_total) {
         parts.push(`mem ${fmt.gib(n.memory_total - (n.memory_available ?? 0))}/${fmt.gib(n.memory_total)} GiB`);
       }
-      setText(entry.figures, parts.join(" · "));
+      setText(entry.figures, n.up ? parts.join(" · ") : "no figures while it is lost");
       setText(entry.reach, !n.up ? `lost${n.silent_s ? ` · silent ${fmt.seconds(n.silent_s)}` : ""}`
                          : n.address ? `RTT ${fmt.seconds(n.rtt)}` : "in the launcher");
     }
