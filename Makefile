@@ -13,6 +13,11 @@ $(STAMP): setup.cfg setup.py pyproject.toml pb3a/transport/_ringcore.c rave/_ray
 	@command -v dot >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null \
 	  && (apt-get update -qq && apt-get install -y -qq graphviz >/dev/null) \
 	  || echo "note: graphviz's 'dot' is missing; 'pb3a graph' will write DOT only"; }
+	@# The manager's browser tests drive Debian's chromium with the pinned Playwright
+	@# (its own browser download is not reachable from every machine).
+	@command -v chromium >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null \
+	  && (apt-get update -qq && apt-get install -y -qq chromium >/dev/null) \
+	  || echo "note: chromium is missing; the manager's browser tests will be skipped"; }
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -1,0 +1,70 @@
+// The manager's HTTP API, as the page uses it: JSON in and out, errors as ApiError.
+// The token travels in the HttpOnly cookie set by GET /?token=..., so no header is needed.
+
+/** A refused or failed request: the server's message, its problems and status. */
+export class ApiError extends Error {
+  constructor(status, message, problems) {
+    super(message);
+    this.status = status;
+    this.problems = problems || [];
+  }
+}
+
+const TIMEOUT_MS = 30000;   // a migration or a launch may take seconds, never this long
+
+async function request(method, path, body) {
+  const controller = new AbortController();
+  const timer = setTimeout(() => controller.abort(), TIMEOUT_MS);
+  let response;
+  try {
+    response = await fetch(path, {
+      method,
+      credentials: "same-origin",
+      signal: controller.signal,
+      headers: body === undefined ? {} : {"Content-Type": "application/json"},
+      body: body === undefined ? undefined : JSON.stringify(body),
+    });
+  } catch (error) {
+    const why = error.name === "AbortError" ? `no answer in ${TIMEOUT_MS / 1000} s`
+                                            : "the manager cannot be reached";
+    throw new ApiError(0, `${method} ${path}: ${why}`);
+  } finally {
+    clearTimeout(timer);
+  }
+  const type = response.headers.get("Content-Type") || "";
+  const payload = type.includes("json") ? await response.json() : await response.text();
+  if (!response.ok) {
+    const message = (payload && payload.error) || `${method} ${path}: HTTP ${response.status}`;
+    throw new ApiError(response.status, message, payload && payload.problems);
+  }
+  return payload;
+}
+
+const q = (name) => encodeURIComponent(name).replaceAll("%2F", "/");
+
+export const api = {
+  system: () => request("GET", "/api/system"),
+  layout: () => request("GET", "/api/layout"),
+  stats: () => request("GET", "/api/stats"),
+  classes: () => request("GET", "/api/classes"),
+  state: (name, path = "") =>
+    request("GET", `/api/modules/${q(name)}/state${path ? `?path=${encodeURIComponent(path)}` : ""}`),
+  setState: (name, fields) => request("POST", `/api/modules/${q(name)}/state`, fields),
+  migrate: (name, to) => request("POST", `/api/modules/${q(name)}/migrate`, {to}),
+  swaps: (name) => request("GET", `/api/modules/${q(name)}/swaps`),
+  swap: (name, cls) => request("POST", `/api/modules/${q(name)}/swap`, {class: cls}),
+  addModule: (spec) => request("POST", "/api/modules", spec),
+  removeModule: (name) => request("DELETE", `/api/modules/${q(name)}`),
+  link: (spec) => request("POST", "/api/links", spec),
+  reload: (module) => request("POST", "/api/reload", {module}),
+  document: () => request("GET", "/api/document"),
+  putDocument: (system) => request("PUT", "/api/document", {system}),
+  checkLink: (src, dst) => request("POST", "/api/document/check-link", {src, dst}),
+  save: (path) => request("POST", "/api/document/save", path ? {path} : {}),
+  launch: () => request("POST", "/api/document/launch", {}),
+};
+
+/** The URL of a module's 2-D array as a PNG (the server answers it fresh each time). */
+export function imageUrl(path, bust) {
+  return `${path}${path.includes("?") ? "&" : "?"}t=${bust}`;
+}

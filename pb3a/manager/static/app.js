@@ -1,0 +1,422 @@
+// The ModuleManager page: a running system (or a document being edited) drawn live,
+// with the State Editor beside it. It wires the views to the API and the live feed;
+// each view lives in its own module.
+
+import {api, ApiError} from "./api.js";
+import {h} from "./dom.js";
+import {EditedDocument} from "./document.js";
+import {EventList} from "./events.js";
+import * as fmt from "./format.js";
+import {LiveFeed} from "./live.js";
+import {ModuleBrowser} from "./module_browser.js";
+import {Schematic} from "./schematic.js";
+import {StateEditor} from "./state_editor.js";
+import {Toasts} from "./toasts.js";
+
+const $ = (id) => document.getElementById(id);
+
+class Manager {
+  constructor() {
+    this.system = null;
+    this.layout = null;
+    this.selected = null;
+    this.document = null;          // an EditedDocument in FILE mode
+    this.lastMove = new Map();     // module -> its last MigrationReport, shown in the inspector
+    this.updates = 0;              // live updates drawn, and what the last one cost (ms)
+    this.drawMs = null;
+    this.toasts = new Toasts($("toasts"));
+    this.schematic = new Schematic($("schematic"), {
+      select: (name) => this.select(name),
+      migrate: (name, node) => this.migrate(name, node),
+      connect: (src, dst) => this.connect(src, dst),
+      place: (cls, node) => this.place(cls, node),
+    });
+    this.events = new EventList($("events"), $("event-count"));
+    this.editor = new StateEditor($("state-fields"), {
+      apply: (fields) => this.applyState(fields),
+      drill: (path) => api.state(this.selected, path),
+      error: (error, loud) => { if (loud) this.toasts.error(error); },
+    });
+    this.browser = new ModuleBrowser($("classes"), $("class-filter"), {
+      place: (cls) => this.place(cls, null),
+    });
+    this.live = new LiveFeed({
+      hello: (m) => this.setStructure(m.system, m.layout),
+      system: (m) => this.setStructure(m.system, m.layout),
+      stats: (m) => this.onStats(m),
+      event: (m) => this.onEvent(m.event),
+      state: (m) => { if (m.module === this.selected && this.mode() === "running") this.editor.update(m.state); },
+      status: (up) => this.onConnection(up),
+    });
+    $("fit").addEventListener("click", () => this.schematic.fit());
+    $("inspector-close").addEventListener("click", () => this.select(null));
+    $("toggle-browser").addEventListener("click", () => this.toggleBrowser());
+    $("save").addEventListener("click", () => this.save());
+    $("launch").addEventListener("click", () => this.launch());
+    $("add-node").addEventListener("click", () => this.addNode());
+    document.addEventListener("keydown", (ev) => {
+      if (ev.key === "Escape" && !ev.target.closest("input, textarea")) this.select(null);
+    });
+  }
+
+  mode() {
+    return this.system?.mode ?? "running";
+  }
+
+  async start() {
+    try {
+      const [system, layout] = await Promise.all([api.system(), api.layout()]);
+      await this.setStructure(system, layout);
+    } catch (error) {
+      this.toasts.error(error);
+    }
+    this.live.open();
+  }
+
+  // -- structure and live figures ---------------------------------------------------
+  async setStructure(system, layout) {
+    const modeChanged = this.system?.mode !== system.mode;
+    this.system = system;
+    this.layout = layout;
+    document.body.dataset.mode = system.mode;
+    $("system-name").textContent = system.name || "untitled";
+    $("mode").textContent = system.mode;
+    $("mode").className = `mode-badge ${system.mode}`;
+    $("address").textContent = system.address || "";
+    $("document-actions").hidden = system.mode !== "editing";
+    if (modeChanged) await this.enterMode(system.mode);
+    this.schematic.render(system, layout);
+    if (this.selected && !(this.selected in system.modules)) this.select(null);
+    else if (this.selected) this.describeSelected();
+    this.showProblems();
+  }
+
+  async enterMode(mode) {
+    if (mode === "editing") {
+      this.document = await new EditedDocument().load().catch((error) => { this.toasts.error(error); return null; });
+      $("save-path").value = this.document?.path || "";
+      $("browser").hidden = false;
+    } else {
+      this.document = null;
+    }
+    if (mode === "editing" || !$("browser").hidden) await this.loadClasses();
+  }
+
+  async loadClasses() {
+    try {
+      this.browser.set(await api.classes());
+    } catch (error) {
+      this.toasts.error(error);
+    }
+  }
+
+  toggleBrowser() {
+    const panel = $("browser");
+    panel.hidden = !panel.hidden;
+    if (!panel.hidden && !this.browser.classes.length) this.loadClasses();
+  }
+
+  onStats(message) {
+    const start = performance.now();
+    this.schematic.update({...message.stats, time: message.time});
+    this.drawMs = performance.now() - start;       // the page's share of an update
+    this.updates += 1;
+    $("cost").textContent = `${fmt.clock(message.time)} · server ` +
+      `${message.cost_ms?.toFixed?.(1) ?? "?"} ms · page ${this.drawMs.toFixed(1)} ms`;
+    $("cost").title = "the last update: when, what gathering it took on the server, " +
+      "and what drawing it took in this page";
+    this.stats = message.stats;
+    if (this.selected) this.describeSelected();
+  }
+
+  onEvent(event) {
+    this.events.add(event);
+    if (event.kind.startsWith("module_")) this.schematic.flash(event.subject);
+    if (event.kind === "module_swapped" && event.subject === this.selected) this.select(this.selected);
+  }
+
+  onConnection(up) {
+    const badge = $("connection");
+    badge.textContent = up ? "live" : "reconnecting…";
+    badge.classList.toggle("up", up);
+  }
+
+  showProblems() {
+    const box = $("problems");
+    const problems = this.document?.problems || [];
+    box.hidden = this.mode() !== "editing" || !problems.length;
+    box.replaceChildren(h("strong", {}, `${problems.length} problem${problems.length === 1 ? "" : "s"} (pb3a check)`),
+                        h("ul", {}, problems.map((p) => h("li", {}, p))));
+  }
+
+  // -- the inspector and its State Editor --------------------------------------------
+  async select(name) {
+    this.selected = name;
+    this.schematic.select(name);
+    $("swap-picker").hidden = true;
+    if (!name) {
+      $("inspector-body").hidden = true;
+      $("inspector-empty").hidden = false;
+      this.live.watch(null);
+      return;
+    }
+    $("inspector-empty").hidden = true;
+    $("inspector-body").hidden = false;
+    $("inspector-name").textContent = name;
+    this.describeSelected();
+    this.drawActions(name);
+    const displays = this.system.modules[name]?.displays;
+    if (this.mode() === "editing") {
+      this.editor.show(this.documentState(name), displays);
+      return;
+    }
+    this.live.watch(name);
+    $("state-fields").replaceChildren(h("p", {class: "muted"}, "Reading its state…"));
+    try {
+      const view = await api.state(name);
+      if (this.selected === name) this.editor.show(view, displays);
+    } catch (error) {
+      if (this.selected === name) {
+        $("state-fields").replaceChildren(h("p", {class: "problem"}, error.message));
+      }
+    }
+  }
+
+  describeSelected() {
+    const name = this.selected;
+    const info = this.system.modules[name];
+    if (!info) return;
+    const live = this.stats?.modules?.[name];
+    const status = live ? live.status : this.mode() === "editing" ? "not launched" : "";
+    const meta = [
+      h("span", {class: "mono"}, info.class),
+      h("span", {}, ["on ", h("strong", {}, live?.node ?? info.node ?? "the default node")]),
+      status ? h("span", {class: `status status-${status}`}, status) : null,
+      info.period !== null && info.period !== undefined ? h("span", {}, `period ${fmt.seconds(info.period)}`) : null,
+      info.macro ? h("span", {}, `in macro ${info.macro}`) : null,
+    ];
+    $("inspector-meta").replaceChildren(...meta.filter(Boolean));
+    const extra = [];
+    if (live?.last_error) extra.push(h("div", {class: "problem"}, `${live.errors} errors · last: ${live.last_error}`));
+    const move = this.lastMove.get(name);
+    if (move) {
+      extra.push(h("div", {class: "move-report"}, [
+        h("strong", {}, `Moved ${move.source} → ${move.destination}`),
+        ` · paused ${fmt.seconds(move.pause_s)} · ${fmt.bytes(move.state_bytes)} of state · ${move.links} links`,
+      ]));
+    }
+    $("inspector-extra").replaceChildren(...extra);
+  }
+
+  drawActions(name) {
+    const button = (label, act, tone = "") =>
+      h("button", {type: "button", class: `small ${tone}`, onclick: act}, label);
+    const actions = [];
+    if (this.mode() === "running") {
+      actions.push(button("Swap class…", () => this.openSwaps(name)));
+      actions.push(button("Reload code", () => this.reload(name)));
+      actions.push(button("Remove", () => this.remove(name), "danger"));
+    } else if (this.document?.system.modules[name]) {
+      const node = h("select", {class: "small", "aria-label": "node"}, [
+        h("option", {value: ""}, "default node"),
+        ...this.document.nodes().map((n) => h("option", {value: n}, n)),
+      ]);
+      node.value = this.document.system.modules[name].node || "";
+      node.addEventListener("change", () => this.editDocument(() => this.document.setNode(name, node.value || undefined)));
+      const period = h("input", {type: "text", class: "small mono", placeholder: "event-driven",
+                                 value: this.document.system.modules[name].period ?? "",
+                                 "aria-label": "period in seconds", size: 8});
+      period.addEventListener("change", () => {
+        const text = period.value.trim();
+        const value = text === "" ? null : Number(text);
+        if (value !== null && !(value >= 0)) return this.toasts.error(new Error("period: a number of seconds ≥ 0, or empty for event-driven"));
+        this.editDocument(() => this.document.setPeriod(name, value));
+      });
+      actions.push(h("label", {class: "inline"}, ["Node ", node]), h("label", {class: "inline"}, ["Period ", period]));
+      actions.push(button("Remove", () => this.editDocument(() => this.document.remove(name)), "danger"));
+    }
+    $("inspector-actions").replaceChildren(...actions);
+  }
+
+  documentState(name) {
+    const module = this.document?.system.modules[name];
+    const info = this.browser.byName(this.system.modules[name]?.class);
+    return StateEditor.documentView(info, module?.state);
+  }
+
+  async applyState(fields) {
+    const name = this.selected;
+    if (this.mode() === "editing") {
+      await this.editDocument(() => this.document.setState(name, fields), true);
+      return this.documentState(name);
+    }
+    return api.setState(name, fields);
+  }
+
+  // -- changing it -------------------------------------------------------------------
+  async migrate(name, node) {
+    if (this.mode() === "editing") return this.editDocument(() => this.document.setNode(name, node));
+    const pending = this.toasts.show("info", `Moving ${name} to ${node}…`, {seconds: 0});
+    try {
+      const report = await api.migrate(name, node);
+      this.lastMove.set(name, report);
+      this.toasts.show("ok", `${name} moved ${report.source} → ${report.destination}`, {
+        lines: [`paused ${fmt.seconds(report.pause_s)} · ${fmt.bytes(report.state_bytes)} of state · ${report.links} links rewired`],
+      });
+      if (this.selected === name) this.describeSelected();
+      await this.refreshStructure();
+    } catch (error) {
+      this.toasts.error(error);
+    } finally {
+      pending.remove();
+    }
+  }
+
+  async openSwaps(name) {
+    const picker = $("swap-picker");
+    picker.hidden = false;
+    picker.replaceChildren(h("p", {class: "muted"}, "Finding classes whose ports fit…"));
+    try {
+      const {classes} = await api.swaps(name);
+      const current = this.system.modules[name].class;
+      const choices = classes.filter((c) => c !== current);
+      picker.replaceChildren(
+        h("div", {class: "picker-head"}, [h("strong", {}, "Swap to"),
+          h("button", {type: "button", class: "icon ghost", onclick: () => { picker.hidden = true; }}, "✕")]),
+        choices.length
+          ? h("ul", {class: "choices"}, choices.map((cls) => h("li", {}, h("button", {
+              type: "button", class: "choice mono", dataset: {class: cls},
+              onclick: () => this.swap(name, cls)}, cls))))
+          : h("p", {class: "muted"}, "No other class on the import path has ports that fit."),
+      );
+    } catch (error) {
+      picker.replaceChildren(h("p", {class: "problem"}, error.message));
+    }
+  }
+
+  async swap(name, cls) {
+    try {
+      const {kept} = await api.swap(name, cls);
+      $("swap-picker").hidden = true;
+      this.toasts.show("ok", `${name} is now ${fmt.shortClass(cls)}`,
+                       {lines: [kept.length ? `state kept: ${kept.join(", ")}` : "no state kept"]});
+      await this.refreshStructure();
+      if (this.selected === name) this.select(name);
+    } catch (error) {
+      this.toasts.error(error);
+    }
+  }
+
+  async reload(name) {
+    const module = this.system.modules[name].class.split(":")[0];
+    try {
+      await api.reload(module);
+      this.toasts.show("ok", `Reloaded ${module}`);
+    } catch (error) {
+      this.toasts.error(error);
+    }
+  }
+
+  async remove(name) {
+    try {
+      await api.removeModule(name);
+      this.toasts.show("ok", `Removed ${name}`);
+      await this.refreshStructure();
+    } catch (error) {
+      this.toasts.error(error);
+    }
+  }
+
+  async connect(src, dst, replace = false) {
+    if (this.mode() === "editing") {
+      return this.editDocument(async () => {
+        const check = await this.document.link(src, dst);
+        if (!check.ok) this.toasts.error(new ApiError(409, check.message));
+        else this.toasts.show("ok", `Linked ${src} → ${dst}`);
+      });
+    }
+    try {
+      await api.link({src, dst, replace});
+      this.toasts.show("ok", `${replace ? "Relinked" : "Linked"} ${src} → ${dst}`);
+      await this.refreshStructure();
+    } catch (error) {
+      const offer = error.status === 409 && !replace ? [["Replace its link", () => this.connect(src, dst, true)]] : [];
+      this.toasts.error(error, offer);
+    }
+  }
+
+  async place(cls, node) {
+    if (this.mode() === "editing") {
+      const target = node ?? this.document.nodes()[0];
+      return this.editDocument(async () => {
+        const name = await this.document.place(cls, target);
+        this.toasts.show("ok", `Placed ${name}${target ? ` on ${target}` : ""}`);
+      });
+    }
+    const base = fmt.shortClass(cls).toLowerCase();
+    let name = base;
+    for (let i = 2; name in this.system.modules; i += 1) name = `${base}${i}`;
+    try {
+      await api.addModule(node ? {name, class: cls, node} : {name, class: cls});
+      this.toasts.show("ok", `Added ${name}${node ? ` on ${node}` : ""}`);
+      await this.refreshStructure();
+    } catch (error) {
+      this.toasts.error(error);
+    }
+  }
+
+  async addNode() {
+    const nodes = this.document.nodes();
+    let name = "a";
+    for (let i = 0; nodes.includes(name); i += 1) name = String.fromCharCode(98 + i);
+    await this.editDocument(() => this.document.addNode(name));
+  }
+
+  /** Change the document, then draw what the server now makes of it. */
+  async editDocument(change, rethrow = false) {
+    try {
+      await change();
+    } catch (error) {
+      this.toasts.error(error);
+      if (rethrow) throw error;
+    }
+    await this.refreshStructure();
+    if (this.selected) this.drawActions(this.selected);
+  }
+
+  async refreshStructure() {
+    try {
+      const [system, layout] = await Promise.all([api.system(), api.layout()]);
+      await this.setStructure(system, layout);
+    } catch (error) {
+      this.toasts.error(error);
+    }
+  }
+
+  async save() {
+    const path = $("save-path").value.trim() || undefined;
+    try {
+      const answer = await api.save(path);
+      this.toasts.show("ok", `Saved ${answer.path ?? path ?? this.document.path}`);
+    } catch (error) {
+      this.toasts.error(error);
+    }
+  }
+
+  async launch() {
+    const pending = this.toasts.show("info", "Launching…", {seconds: 0});
+    try {
+      await api.launch();
+      this.toasts.show("ok", `${this.system.name} is running`);
+      await this.refreshStructure();
+    } catch (error) {
+      this.toasts.error(error);
+    } finally {
+      pending.remove();
+    }
+  }
+}
+
+const manager = new Manager();
+window.pb3aManager = manager;      // for a console user or a test that wants to look inside
+manager.start();

@@ -1,0 +1,66 @@
+// The event list: moves, swaps, restarts, failures, lost nodes, adds and removes, as
+// they happen (also those an agent makes), newest first.
+
+import {h} from "./dom.js";
+import * as fmt from "./format.js";
+
+const KEEP = 200;
+
+const LOOK = {
+  module_moved: ["move", "moved"],
+  module_swapped: ["swap", "swapped"],
+  module_restarted: ["restart", "restarted"],
+  module_failed: ["failure", "failed"],
+  module_failed_over: ["failure", "failed over"],
+  module_added: ["add", "added"],
+  module_removed: ["remove", "removed"],
+  link_added: ["link", "linked"],
+  link_removed: ["link", "unlinked"],
+  node_lost: ["failure", "node lost"],
+  node_joined: ["add", "node joined"],
+};
+
+function describe(event) {
+  const d = event.detail || {};
+  switch (event.kind) {
+    case "module_moved":
+      return `${d.source} → ${d.destination}, paused ${fmt.seconds(d.pause_s)}`;
+    case "module_swapped":
+      return `now ${fmt.shortClass(d.cls)}${d.kept?.length ? `, kept ${d.kept.join(", ")}` : ""}`;
+    case "module_failed_over":
+      return `from ${d.source ?? "?"} to ${d.destination ?? "?"}`;
+    case "module_restarted":
+      return [d.node && `on ${d.node}`, d.reason].filter(Boolean).join(", ");
+    case "node_lost":
+      return d.modules?.length ? `with ${d.modules.join(", ")}` : "";
+    case "module_added":
+      return d.node ? `on ${d.node}` : "";
+    default:
+      return Object.entries(d).map(([k, v]) => `${k} ${typeof v === "object" ? JSON.stringify(v) : v}`)
+        .join(", ");
+  }
+}
+
+export class EventList {
+  constructor(list, counter) {
+    this.list = list;
+    this.counter = counter;
+    this.seen = 0;
+  }
+
+  add(event) {
+    const [tone, verb] = LOOK[event.kind] || ["other", event.kind.replaceAll("_", " ")];
+    const item = h("li", {class: `event tone-${tone} fresh`, dataset: {kind: event.kind}}, [
+      h("time", {}, fmt.clock(event.time)),
+      h("span", {class: "event-kind"}, verb),
+      h("span", {class: "event-subject"}, event.subject),
+      h("span", {class: "event-detail"}, describe(event)),
+    ]);
+    this.list.querySelector(".empty")?.remove();
+    this.list.prepend(item);
+    setTimeout(() => item.classList.remove("fresh"), 1500);
+    while (this.list.children.length > KEEP) this.list.lastElementChild.remove();
+    this.seen += 1;
+    this.counter.textContent = String(this.seen);
+  }
+}

@@ -1,0 +1,74 @@
+"""Modules for the manager's browser tests and its screenshots: a sensor whose level
+the State Editor changes, a probe that shows what reaches it (a plot and a gauge),
+and a mapper that builds an occupancy grid (a live image) while it runs."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from pb3a.model.module import Module
+from pb3a.model.ports import Input, InputPort, Output
+
+
+class Sensor(Module):
+    """Writes ``level`` plus a small ripple every ``period`` seconds on ``out``."""
+
+    out = Output(float)
+    period = 0.02
+    level = 1.0
+    ripple = 0.0
+    label = "sensor"
+    steps = 0
+
+    def step(self) -> None:
+        self.steps += 1
+        self.out.write(self.level + self.ripple * math.sin(self.steps / 8))
+
+
+class Probe(Module):
+    """Keeps the last value that reached ``x`` and the last few, for the State Editor."""
+
+    x = Input(float, policy="queue:16")
+    last = 0.0
+    seen = 0
+    recent: list = []
+    load = 0.0
+    displays = {"last": "plot", "load": ("gauge", 0.0, 10.0)}
+
+    def on_input(self, port: InputPort) -> None:
+        self.last = float(port.read())
+        self.seen += 1
+        self.load = min(abs(self.last), 10.0)
+        self.recent = [*self.recent[-4:], round(self.last, 3)]
+
+
+class Mapper(Module):
+    """Walks a grid, marking the cells it visits: an occupancy grid built while it runs."""
+
+    speed = Input(float)
+    coverage = Output(float)
+    period = 0.05
+    grid = np.zeros((40, 56))
+    pose = np.array([20.0, 28.0])
+    enabled = True
+    settings: dict = {"decay": 0.995, "brush": 2, "mode": "explore"}
+    displays = {"grid": "image", "coverage_now": "plot"}
+    coverage_now = 0.0
+    t = 0
+
+    def step(self) -> None:
+        if not self.enabled:
+            return
+        self.t += 1
+        t = self.t
+        rows, cols = self.grid.shape
+        self.pose = np.array([rows / 2 + (rows / 2 - 3) * math.sin(t / 23),
+                              cols / 2 + (cols / 2 - 3) * math.sin(t / 17 + 1)])
+        r, c = (int(v) for v in self.pose)
+        brush = int(self.settings.get("brush", 2))
+        self.grid *= float(self.settings.get("decay", 1.0))
+        self.grid[max(r - brush, 0):r + brush + 1, max(c - brush, 0):c + brush + 1] = 1.0
+        self.coverage_now = float((self.grid > 0.5).mean())
+        self.coverage.write(self.coverage_now)

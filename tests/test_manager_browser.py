@@ -1,0 +1,383 @@
+"""The manager's page in a real headless browser (Debian's chromium, driven by
+Playwright) against the real server: ``pb3a manager`` in a process of its own, the way
+a user starts it.
+
+Each test opens the page with the printed URL (the token becomes a cookie) and does
+what a person would: looks at every module on its node, edits a state field and sees
+the module downstream use it, drags a module onto another node, swaps a class, builds
+a small system in the editor and launches it. With ``PB3A_SCREENSHOTS=docs`` the tests
+write the screenshots the README shows (docs/manager_live.png, docs/manager_state.png);
+otherwise they go to the test's temporary directory.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from browser import chromium_page, skip_reason
+
+REPO = Path(__file__).resolve().parent.parent
+START_TIMEOUT = 30.0        # seconds for `pb3a manager` to print its URL
+STOP_TIMEOUT = 20.0         # for it to stop its system and exit after SIGINT
+WAIT_MS = 15_000            # for the page to show something the server did
+
+pytestmark = pytest.mark.skipif(skip_reason() is not None, reason=skip_reason() or "")
+
+LAB = """\
+name = "lab"
+
+[nodes.a]
+[nodes.b]
+
+[modules.sensor]
+class = "manager_modules:Sensor"
+node = "a"
+state = { level = 1.0 }
+
+[modules.scale]
+class = "examples.pipeline:Scale"
+node = "b"
+state = { gain = 2.0 }
+
+[modules.probe]
+class = "manager_modules:Probe"
+node = "b"
+
+[modules.mapper]
+class = "manager_modules:Mapper"
+node = "a"
+
+[[links]]
+from = "sensor.out"
+to = "scale.x"
+policy = "queue:64"
+
+[[links]]
+from = "scale.y"
+to = "probe.x"
+
+[[links]]
+from = "scale.y"
+to = "mapper.speed"
+"""
+
+
+class ManagerProcess:
+    """``pb3a manager ARGS`` in a process of its own: its URL and token, its API, and a
+    clean stop (SIGINT, as Ctrl-C: the system it launched stops with it)."""
+
+    def __init__(self, *args: str) -> None:
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "tests"), str(REPO)])}
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "pb3a", "manager", *args, "--listen", "127.0.0.1:0"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO)
+        self.url = self._read_url()
+        match = re.match(r"(http://[^/]+)/\?token=(\S+)", self.url)
+        assert match, f"`pb3a manager` printed {self.url!r}, not its URL with a token"
+        self.base, self.token = match.group(1), match.group(2)
+
+    def _read_url(self) -> str:
+        lines: list[str] = []
+        reader = threading.Thread(target=lambda: lines.append(self.process.stdout.readline()),
+                                  daemon=True)
+        reader.start()
+        reader.join(START_TIMEOUT)
+        if not lines or not lines[0].startswith("PB3A manager: "):
+            self.stop()
+            pytest.fail(f"`pb3a manager` printed no URL in {START_TIMEOUT} s: "
+                        f"{lines!r}; stderr: {self.process.stderr.read()[-2000:]}")
+        return lines[0].split(": ", 1)[1].strip()
+
+    def api(self, method: str, path: str, body: Any = None) -> Any:
+        """Call the API as a script would (the token as a bearer header)."""
+        data = None if body is None else json.dumps(body).encode()
+        request = urllib.request.Request(
+            self.base + path, data=data, method=method,
+            headers={"Authorization": f"Bearer {self.token}", "Content-Type": "application/json"})
+        with urllib.request.urlopen(request, timeout=30) as answer:
+            return json.loads(answer.read() or b"null")
+
+    def stop(self) -> None:
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGINT)
+            try:
+                self.process.wait(STOP_TIMEOUT)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait(5)
+        self.process.stdout.close()
+        self.process.stderr.close()
+
+
+@pytest.fixture
+def lab(tmp_path: Path) -> Iterator[ManagerProcess]:
+    """The four-module lab on nodes a and b, launched by the manager that edits its file."""
+    config = tmp_path / "lab.toml"
+    config.write_text(LAB)
+    manager = ManagerProcess(str(config))
+    try:
+        manager.api("POST", "/api/document/launch", {})
+        yield manager
+    finally:
+        manager.stop()
+    # as any program Ctrl-C stops: 130 (128 + SIGINT), or killed by the signal itself
+    assert manager.process.returncode in (0, 130, -signal.SIGINT), \
+        f"pb3a manager exited {manager.process.returncode} on Ctrl-C"
+
+
+@pytest.fixture
+def page(lab: ManagerProcess) -> Iterator[Any]:
+    """The lab's page, open, with every module drawn; it must throw no script error."""
+    with chromium_page() as tab:
+        tab.page.goto(lab.url)
+        tab.page.wait_for_function("document.querySelectorAll('.module').length === 4",
+                                   timeout=WAIT_MS)
+        yield tab.page
+        assert tab.errors == [], f"the page threw: {tab.errors}"
+
+
+def screenshot_path(tmp_path: Path, name: str) -> Path:
+    """Where a screenshot goes: PB3A_SCREENSHOTS (e.g. docs) when set, else tmp_path."""
+    folder = os.environ.get("PB3A_SCREENSHOTS")
+    return (REPO / folder if folder else tmp_path) / name
+
+
+def box_of(page: Any, selector: str) -> dict[str, float]:
+    box = page.locator(selector).bounding_box()
+    assert box is not None, f"{selector} is not drawn"
+    return box
+
+
+def inside(inner: dict[str, float], outer: dict[str, float]) -> bool:
+    return (inner["x"] >= outer["x"] and inner["y"] >= outer["y"]
+            and inner["x"] + inner["width"] <= outer["x"] + outer["width"]
+            and inner["y"] + inner["height"] <= outer["y"] + outer["height"])
+
+
+def module_on_node(page: Any, module: str, node: str) -> bool:
+    return inside(box_of(page, f"[data-module='{module}'] .module-box"),
+                  box_of(page, f"[data-node='{node}'] > rect"))
+
+
+def drag(page: Any, source: dict[str, float], target: dict[str, float]) -> None:
+    """Press on the middle of ``source``, move in steps, release low in ``target``."""
+    page.mouse.move(source["x"] + source["width"] / 2, source["y"] + source["height"] / 2)
+    page.mouse.down()
+    page.mouse.move(target["x"] + target["width"] / 2, target["y"] + target["height"] - 24,
+                    steps=12)
+    page.mouse.up()
+
+
+def field_value(page: Any, module: str, field: str) -> str:
+    """The text a State Editor field shows (the inspector must show ``module``)."""
+    page.wait_for_function(f"document.querySelector('#inspector-name').textContent === '{module}'")
+    return page.locator(f"[data-field='{field}'] input").input_value()
+
+
+def test_the_live_view_shows_every_module_on_its_node_with_live_figures(
+        lab: ManagerProcess, page: Any) -> None:
+    system = lab.api("GET", "/api/system")
+    assert page.locator("#system-name").text_content() == "lab"
+    assert page.locator("#mode").text_content() == "running"
+    for name, module in system["modules"].items():
+        assert module_on_node(page, name, module["node"]), f"{name} not drawn on {module['node']}"
+    # the links' rates and the nodes' figures arrive over the websocket
+    page.wait_for_function(
+        "[...document.querySelectorAll('.link-text')].some(t => /\\d\\/s/.test(t.textContent))",
+        timeout=WAIT_MS)
+    page.wait_for_function("document.querySelector('#connection').textContent === 'live'")
+    page.wait_for_function(
+        "document.querySelector(\"[data-node='a'] .cluster-figures\").textContent.includes('CPU')",
+        timeout=WAIT_MS)
+    assert page.locator("[data-module='sensor']").get_attribute("class").count("status-running")
+
+
+def test_an_edited_state_field_is_used_by_the_module(lab: ManagerProcess, page: Any,
+                                                     tmp_path: Path) -> None:
+    page.click("[data-module='probe'] .module-title")
+    page.wait_for_function("document.querySelector(\"[data-field='last'] input\")?.value === '2.0'",
+                           timeout=WAIT_MS)                       # level 1.0 x gain 2.0
+    page.click("[data-module='scale'] .module-title")
+    assert field_value(page, "scale", "gain") == "2.0"
+    page.fill("[data-field='gain'] input", "5")
+    page.press("[data-field='gain'] input", "Enter")
+    page.wait_for_selector("[data-field='gain'].applied", timeout=WAIT_MS)
+    assert lab.api("GET", "/api/modules/scale/state")["fields"]["gain"]["value"] == 5.0
+    # the probe downstream now receives level x 5: the scale uses the new gain
+    page.click("[data-module='probe'] .module-title")
+    page.wait_for_function("document.querySelector(\"[data-field='last'] input\")?.value === '5.0'",
+                           timeout=WAIT_MS)
+    # a value that does not fit is refused in words, and nothing changes
+    page.click("[data-module='scale'] .module-title")
+    page.fill("[data-field='gain'] input", "fast")
+    page.press("[data-field='gain'] input", "Enter")
+    assert "invalid" in page.locator("[data-field='gain'] input").get_attribute("class")
+    assert lab.api("GET", "/api/modules/scale/state")["fields"]["gain"]["value"] == 5.0
+
+    # The State Editor's screenshot: the mapper's grid as it is being built.
+    page.click("[data-module='mapper'] .module-title")
+    page.wait_for_selector("[data-field='grid'] canvas.drawn", timeout=WAIT_MS)
+    page.wait_for_selector("[data-field='coverage_now'] polyline", timeout=WAIT_MS)
+    page.wait_for_timeout(2500)      # a few refreshes: the plot has a history to draw
+    page.screenshot(path=str(screenshot_path(tmp_path, "manager_state.png")))
+
+
+def test_dragging_a_module_onto_another_node_migrates_it(lab: ManagerProcess, page: Any,
+                                                         tmp_path: Path) -> None:
+    assert module_on_node(page, "probe", "b")
+    drag(page, box_of(page, "[data-module='probe'] .module-box"),
+         box_of(page, "[data-node='a'] > rect"))
+    page.wait_for_selector(".event[data-kind='module_moved']", timeout=WAIT_MS)
+    assert "b → a" in page.locator(".event[data-kind='module_moved']").first.text_content()
+    # the report answers the request, maybe after the event came over the websocket
+    page.wait_for_selector(".toast.ok >> text=paused", timeout=WAIT_MS)
+    assert lab.api("GET", "/api/system")["modules"]["probe"]["node"] == "a"
+    page.wait_for_function("""() => {
+        const box = (selector) => document.querySelector(selector).getBoundingClientRect();
+        const m = box("[data-module='probe'] .module-box"), n = box("[data-node='a'] > rect");
+        return m.left >= n.left && m.right <= n.right && m.top >= n.top && m.bottom <= n.bottom;
+    }""", timeout=WAIT_MS)
+    # The live view's screenshot: the probe on a, the move in the events, the figures
+    # live, the probe's plot drawing the ripple the sensor now adds.
+    lab.api("POST", "/api/modules/sensor/state", {"ripple": 0.4})
+    page.click("[data-module='probe'] .module-title")
+    page.wait_for_selector("[data-field='load'] .gauge-svg", timeout=WAIT_MS)
+    page.wait_for_timeout(4000)
+    page.screenshot(path=str(screenshot_path(tmp_path, "manager_live.png")))
+
+
+def test_the_swap_picker_swaps_a_module_for_a_class_whose_ports_fit(
+        lab: ManagerProcess, page: Any) -> None:
+    page.click("[data-module='scale'] .module-title")
+    page.click("text=Swap class…")
+    choice = page.locator("button.choice[data-class='examples.pipeline:FastScale']")
+    choice.wait_for(timeout=WAIT_MS)
+    choice.click()
+    page.wait_for_selector(".event[data-kind='module_swapped']", timeout=WAIT_MS)
+    page.wait_for_function(
+        "document.querySelector(\"[data-module='scale'] .module-class\").textContent"
+        " === 'FastScale'", timeout=WAIT_MS)
+    swapped = lab.api("GET", "/api/system")["modules"]["scale"]["class"]
+    assert swapped == "examples.pipeline:FastScale"
+    assert field_value(page, "scale", "gain") == "2.0"          # kept through the swap
+
+
+def test_a_system_built_in_the_editor_is_checked_as_drawn_and_launches(tmp_path: Path) -> None:
+    manager = ManagerProcess()
+    try:
+        with chromium_page() as tab:
+            page = tab.page
+            page.goto(manager.url)
+            page.wait_for_function("document.querySelector('#mode').textContent === 'editing'",
+                                   timeout=WAIT_MS)
+            page.fill("#class-filter", "examples.pipeline")
+            for cls in ("Ticker", "Scale", "Scale"):
+                page.locator(f".class-card[data-class='examples.pipeline:{cls}'] button").click()
+                page.wait_for_selector(".toast.ok >> text=Placed", timeout=WAIT_MS)
+                page.locator(".toast .icon").first.click()
+            page.wait_for_function("document.querySelectorAll('.module').length === 3",
+                                   timeout=WAIT_MS)
+            connect(page, "ticker.out", "scale.x")
+            connect(page, "scale.y", "scale2.x")
+            page.wait_for_function("document.querySelectorAll('.link').length === 2",
+                                   timeout=WAIT_MS)
+            # an input fed twice is refused as drawn, with pb3a check's words
+            connect(page, "ticker.out", "scale2.x")
+            refusal = page.locator(".toast.error").first
+            refusal.wait_for(timeout=WAIT_MS)
+            assert "scale2.x" in refusal.text_content()
+            assert len(manager.api("GET", "/api/document")["system"]["links"]) == 2
+            # initial state, in a typed field, goes into the document
+            page.click("[data-module='scale2'] .module-title")
+            page.fill("[data-field='gain'] input", "3")
+            page.press("[data-field='gain'] input", "Enter")
+            page.wait_for_selector("[data-field='gain'].applied", timeout=WAIT_MS)
+            document = manager.api("GET", "/api/document")["system"]
+            assert document["modules"]["scale2"]["state"] == {"gain": 3.0}
+            # saved, it is a file `pb3a check` accepts
+            saved = tmp_path / "built.toml"
+            page.fill("#save-path", str(saved))
+            page.click("#save")
+            page.wait_for_selector(".toast.ok >> text=Saved", timeout=WAIT_MS)
+            check = subprocess.run([sys.executable, "-m", "pb3a", "check", str(saved)],
+                                   capture_output=True, text=True, timeout=60, cwd=REPO)
+            assert check.returncode == 0, check.stdout + check.stderr
+            page.click("#launch")
+            page.wait_for_function("document.querySelector('#mode').textContent === 'running'",
+                                   timeout=WAIT_MS)
+            page.wait_for_function(
+                "document.querySelector(\"[data-module='ticker'] .module-figures\")"
+                ".textContent.includes('steps')", timeout=WAIT_MS)
+            assert tab.errors == [], f"the page threw: {tab.errors}"
+        assert manager.api("GET", "/api/stats")["modules"]["scale2"]["events"] > 0
+        assert manager.api("GET", "/api/modules/scale2/state")["fields"]["gain"]["value"] == 3.0
+    finally:
+        manager.stop()
+
+
+def connect(page: Any, src: str, dst: str) -> None:
+    """Drag from output port ``src`` to input port ``dst``."""
+    with contextlib.suppress(Exception):
+        page.locator(".toast .icon").first.click(timeout=500)
+    a = box_of(page, f"[data-port='{src}']")
+    b = box_of(page, f"[data-port='{dst}']")
+    page.mouse.move(a["x"] + a["width"] / 2, a["y"] + a["height"] / 2)
+    page.mouse.down()
+    page.mouse.move(b["x"] + b["width"] / 2, b["y"] + b["height"] / 2, steps=10)
+    page.mouse.up()
+
+
+def big_system(modules: int) -> str:
+    """A ticker feeding a chain of ``modules - 1`` scales, half on each node, packed into
+    two worker processes per node."""
+    lines = ['name = "big"', "[nodes.a]", "workers = 2", "[nodes.b]", "workers = 2",
+             "[modules.m0]", 'class = "examples.pipeline:Ticker"', 'node = "a"', "period = 0.5"]
+    for i in range(1, modules):
+        lines += [f"[modules.m{i}]", 'class = "examples.pipeline:Scale"',
+                  f'node = "{"a" if i < modules // 2 else "b"}"']
+    for i in range(1, modules):
+        lines += ["[[links]]", f'from = "m{i - 1}.{"out" if i == 1 else "y"}"', f'to = "m{i}.x"']
+    return "\n".join(lines) + "\n"
+
+
+def test_the_page_keeps_up_with_200_modules(tmp_path: Path) -> None:
+    config = tmp_path / "big.toml"
+    config.write_text(big_system(200))
+    manager = ManagerProcess(str(config))
+    try:
+        manager.api("POST", "/api/document/launch", {})
+        with chromium_page() as tab:
+            page = tab.page
+            page.goto(manager.url)
+            page.wait_for_function("document.querySelectorAll('.module').length === 200",
+                                   timeout=WAIT_MS)
+            costs = []
+            for _ in range(6):                       # six live updates, as they arrive
+                page.wait_for_function("(seen) => window.pb3aManager.updates > seen",
+                                       arg=page.evaluate("window.pb3aManager.updates"),
+                                       timeout=WAIT_MS)
+                costs.append(page.evaluate("window.pb3aManager.drawMs"))
+            render_ms = page.evaluate("""() => {
+                const m = window.pb3aManager, start = performance.now();
+                m.schematic.render(m.system, m.layout);
+                return performance.now() - start; }""")
+            assert tab.errors == [], f"the page threw: {tab.errors}"
+        print(f"200 modules: drawing an update took {max(costs):.1f} ms at most "
+              f"(median {sorted(costs)[len(costs) // 2]:.1f} ms); a full redraw {render_ms:.0f} ms")
+        # well inside the half second between updates, on a shared two-core machine
+        assert max(costs) < 100, costs
+        assert render_ms < 1000, render_ms
+    finally:
+        manager.stop()
