@@ -20,6 +20,7 @@ import signal
 import subprocess
 import sys
 import threading
+import tomllib
 import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
@@ -379,5 +380,297 @@ def test_the_page_keeps_up_with_200_modules(tmp_path: Path) -> None:
         # well inside the half second between updates, on a shared two-core machine
         assert max(costs) < 100, costs
         assert render_ms < 1000, render_ms
+    finally:
+        manager.stop()
+
+
+# -- macros, renaming and the keyboard in the editor -------------------------------------
+
+CHAIN = """\
+name = "chain"
+
+[nodes.a]
+[nodes.b]
+
+[modules.ticker]
+class = "examples.pipeline:Ticker"
+node = "a"
+period = 0.05
+
+[modules.scale]
+class = "examples.pipeline:Scale"
+node = "b"
+
+[modules.scale2]
+class = "examples.pipeline:Scale"
+node = "b"
+
+[[links]]
+from = "ticker.out"
+to = "scale.x"
+
+[[links]]
+from = "scale.y"
+to = "scale2.x"
+"""
+
+
+@contextlib.contextmanager
+def editor(path: Path, modules: int) -> Iterator[tuple[ManagerProcess, Any]]:
+    """`pb3a manager FILE` with its page open on the document, ``modules`` drawn; the page
+    must throw no script error."""
+    manager = ManagerProcess(str(path))
+    try:
+        with chromium_page() as tab:
+            tab.page.goto(manager.url)
+            tab.page.wait_for_function(
+                f"document.querySelector('#mode').textContent === 'editing' && "
+                f"document.querySelectorAll('.module').length === {modules}", timeout=WAIT_MS)
+            yield manager, tab.page
+            assert tab.errors == [], f"the page threw: {tab.errors}"
+    finally:
+        manager.stop()
+
+
+def document_of(manager: ManagerProcess) -> dict[str, Any]:
+    return manager.api("GET", "/api/document")
+
+
+def saved_and_checked(manager: ManagerProcess, page: Any, path: Path) -> str:
+    """Save the document from the page to ``path``; `pb3a check` must accept the file and
+    it must read back as the same document, the same text (the round trip)."""
+    from pb3a.manager.document import Document
+
+    page.fill("#save-path", str(path))
+    page.click("#save")
+    page.wait_for_selector(f".toast.ok >> text=Saved {path}", timeout=WAIT_MS)
+    check = subprocess.run([sys.executable, "-m", "pb3a", "check", str(path)],
+                           capture_output=True, text=True, timeout=60, cwd=REPO,
+                           env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert check.returncode == 0, check.stdout + check.stderr
+    text = path.read_text()
+    reread = Document.open(path)
+    assert reread.toml() == text
+    assert reread.data() == document_of(manager)["system"]
+    return text
+
+
+def test_modules_grouped_into_a_macro_open_close_place_again_and_take_overrides(
+        tmp_path: Path) -> None:
+    config = tmp_path / "chain.toml"
+    config.write_text(CHAIN)
+    with editor(config, 3) as (manager, page):
+        # Shift-click adds to the selection; the two scales become macro "stage"
+        page.click("[data-module='scale'] .module-title")
+        page.click("[data-module='scale2'] .module-title", modifiers=["Shift"])
+        page.wait_for_function(
+            "document.querySelector('#inspector-name').textContent === '2 selected'")
+        page.fill("#macro-name", "stage")
+        page.click("#group")
+        page.wait_for_selector(".macro[data-macro='stage']", timeout=WAIT_MS)
+        document = document_of(manager)
+        assert document["problems"] == []
+        system = document["system"]
+        assert system["macros"]["stage"] == {
+            "modules": {"scale": {"class": "examples.pipeline:Scale"},
+                        "scale2": {"class": "examples.pipeline:Scale"}},
+            "links": [{"from": "scale.y", "to": "scale2.x"}],
+            "exports": {"x": "scale.x"}}
+        assert system["modules"]["stage"] == {"macro": "stage", "node": "b"}
+        assert system["links"] == [{"from": "ticker.out", "to": "stage.x"}]
+        assert page.locator("#inspector-name").text_content() == "stage"
+        for name in ("stage/scale", "stage/scale2"):
+            assert module_on_node(page, name, "b")
+
+        # closed, the macro is one box; opened, its modules again
+        page.click("[data-toggle='stage']")
+        page.wait_for_selector(".macro.folded[data-macro='stage']", timeout=WAIT_MS)
+        assert page.locator("[data-module='stage/scale']").is_hidden()
+        page.click("#macro-fold")                              # the inspector's "Open"
+        page.wait_for_selector(".macro:not(.folded)[data-macro='stage']", timeout=WAIT_MS)
+        assert page.locator("[data-module='stage/scale']").is_visible()
+
+        # the document's macro is in the module browser: a second instance of it
+        page.click(".macro-card[data-macro='stage'] button")
+        page.wait_for_selector("[data-module='stage2/scale']", timeout=WAIT_MS)
+        assert document_of(manager)["system"]["modules"]["stage2"] == {"macro": "stage",
+                                                                       "node": "a"}
+
+        # the state of a module inside an instance is that instance's override
+        page.click("[data-module='stage2/scale'] .module-title")
+        assert field_value(page, "stage2/scale", "gain") == "2.0"
+        page.fill("[data-field='gain'] input", "4")
+        page.press("[data-field='gain'] input", "Enter")
+        page.wait_for_selector("[data-field='gain'].applied", timeout=WAIT_MS)
+        system = document_of(manager)["system"]
+        assert system["modules"]["stage2"]["state"] == {"scale": {"gain": 4.0}}
+        assert "state" not in system["macros"]["stage"]["modules"]["scale"]
+        page.click("[data-title='stage2']")
+        page.wait_for_selector("[data-override='scale.gain']", timeout=WAIT_MS)
+
+        saved = tomllib.loads(saved_and_checked(manager, page, tmp_path / "saved.toml"))
+        assert saved["modules"]["stage2"] == {"macro": "stage", "node": "a",
+                                              "state": {"scale": {"gain": 4}}}
+        assert saved["macros"]["stage"]["exports"] == {"x": "scale.x"}
+        page.click("#launch")
+        page.wait_for_function("document.querySelector('#mode').textContent === 'running'",
+                               timeout=WAIT_MS)
+        gains = [manager.api("GET", f"/api/modules/{name}/state")["fields"]["gain"]["value"]
+                 for name in ("stage2/scale", "stage/scale")]
+        assert gains == [4.0, 2.0]            # the override, and the class's own
+
+
+def test_a_module_renamed_in_the_editor_keeps_its_links(tmp_path: Path) -> None:
+    config = tmp_path / "chain.toml"
+    config.write_text(CHAIN)
+    with editor(config, 3) as (manager, page):
+        page.click("[data-module='scale'] .module-title")
+        page.click("#rename")
+        page.fill("#rename-input", "amplifier")
+        page.press("#rename-input", "Enter")
+        page.wait_for_selector("[data-module='amplifier']", timeout=WAIT_MS)
+        document = document_of(manager)
+        assert document["problems"] == []
+        assert "scale" not in document["system"]["modules"]
+        assert document["system"]["links"] == [{"from": "ticker.out", "to": "amplifier.x"},
+                                                {"from": "amplifier.y", "to": "scale2.x"}]
+        assert page.locator("#inspector-name").text_content() == "amplifier"
+        page.wait_for_selector("path[data-link='amplifier.y->scale2.x']", state="attached",
+                               timeout=WAIT_MS)
+        # a name pb3a check would refuse is refused at once, and nothing changes
+        page.click("#rename")
+        page.fill("#rename-input", "two words")
+        page.press("#rename-input", "Enter")
+        page.wait_for_selector(".toast.error >> text=letters, digits", timeout=WAIT_MS)
+        assert "amplifier" in document_of(manager)["system"]["modules"]
+        saved_and_checked(manager, page, tmp_path / "renamed.toml")
+
+
+def focused(page: Any) -> str:
+    """What has the keyboard's focus: an id, a module, a menu's value, or a tag name."""
+    return page.evaluate("""() => {
+        const e = document.activeElement;
+        return e.id ? '#' + e.id : e.dataset?.module ? 'module ' + e.dataset.module
+             : e.dataset?.menu ? 'menu ' + e.dataset.menu
+             : e.dataset?.value ? 'item ' + e.dataset.value
+             : e.tagName.toLowerCase(); }""")
+
+
+def test_the_keyboard_reaches_the_controls_moves_links_and_removes(lab: ManagerProcess,
+                                                                   page: Any) -> None:
+    # Tab walks the header's controls, then the modules; the focus is drawn
+    seen = []
+    for _ in range(12):
+        page.keyboard.press("Tab")
+        seen.append(focused(page))
+        if seen[-1].startswith("module "):
+            break
+    assert {"#toggle-browser", "#fit"} <= set(seen), seen
+    assert seen[-1].startswith("module "), seen
+    module = seen[-1].removeprefix("module ")
+    stroke = page.evaluate("getComputedStyle(document.activeElement.querySelector('.module-box'))"
+                           ".strokeDasharray")
+    assert stroke not in ("", "none"), "the focused module is not drawn as focused"
+    page.keyboard.press("Enter")
+    page.wait_for_function(f"document.querySelector('#inspector-name').textContent === '{module}'")
+
+    # "Move to node ▸" with the keyboard: the probe goes from b to a
+    page.click("[data-module='probe'] .module-title")
+    page.focus("[data-menu='move to node']")
+    page.keyboard.press("Enter")
+    assert focused(page) == "item a"                  # b, where it is, is not offered
+    page.keyboard.press("Enter")
+    page.wait_for_selector(".event[data-kind='module_moved']", timeout=WAIT_MS)
+    assert lab.api("GET", "/api/system")["modules"]["probe"]["node"] == "a"
+
+    # a class added from the module browser, linked from its port's menu
+    page.click("#toggle-browser")
+    page.fill("#class-filter", "examples.pipeline")
+    page.click(".class-card[data-class='examples.pipeline:Scale'] button")
+    page.wait_for_selector("[data-module='scale2']", timeout=WAIT_MS)
+    assert lab.api("GET", "/api/system")["modules"]["scale2"]["class"] == "examples.pipeline:Scale"
+    page.click("[data-module='scale2'] .module-title")
+    page.click("[data-menu='link scale2.x']")
+    page.click("[role=menuitem][data-value='mapper.coverage']")
+    page.wait_for_selector("path[data-link='mapper.coverage->scale2.x']", state="attached",
+                           timeout=WAIT_MS)
+    assert "mapper.coverage->scale2.x" in {link["key"] for link in
+                                          lab.api("GET", "/api/system")["links"]}
+
+    # Delete asks first; Cancel (where the focus starts) keeps it, Remove removes it
+    page.focus("[data-module='scale2']")
+    page.keyboard.press("Delete")
+    page.wait_for_selector("dialog.confirm[open]")
+    page.keyboard.press("Enter")
+    page.wait_for_selector("dialog.confirm", state="detached")
+    assert "scale2" in lab.api("GET", "/api/system")["modules"]
+    page.keyboard.press("Delete")
+    page.click("dialog.confirm button[value=ok]")
+    page.wait_for_selector("[data-module='scale2']", state="detached", timeout=WAIT_MS)
+    assert "scale2" not in lab.api("GET", "/api/system")["modules"]
+    page.wait_for_selector(".event[data-kind='module_removed']", timeout=WAIT_MS)
+
+
+def test_an_input_fed_already_is_relinked_by_replace_its_link(lab: ManagerProcess,
+                                                             page: Any) -> None:
+    connect(page, "sensor.out", "probe.x")
+    page.wait_for_selector(".toast.error >> text=Replace its link", timeout=WAIT_MS)
+    keys = {link["key"] for link in lab.api("GET", "/api/system")["links"]}
+    assert "sensor.out->probe.x" not in keys and "scale.y->probe.x" in keys
+    page.click(".toast.error >> text=Replace its link")
+    page.wait_for_selector("path[data-link='sensor.out->probe.x']", state="attached",
+                           timeout=WAIT_MS)
+    keys = {link["key"] for link in lab.api("GET", "/api/system")["links"]}
+    assert "sensor.out->probe.x" in keys and "scale.y->probe.x" not in keys
+    # the probe now gets the sensor's level itself, no longer scaled
+    page.click("[data-module='probe'] .module-title")
+    page.wait_for_function("document.querySelector(\"[data-field='last'] input\")?.value === '1.0'",
+                           timeout=WAIT_MS)
+
+
+RELOADABLE = '''\
+"""A gain read from its source file: the reload test changes the file."""
+from pb3a.model.module import Module
+from pb3a.model.ports import Input, InputPort, Output
+
+
+class Gain(Module):
+    x = Input(float)
+    y = Output(float)
+
+    def on_input(self, port: InputPort) -> None:
+        self.y.write(port.read() * FACTOR)
+'''
+
+
+def test_reload_code_runs_the_changed_file(tmp_path: Path) -> None:
+    source = tmp_path / "reloadable_gain.py"
+    source.write_text(RELOADABLE.replace("FACTOR", "2"))
+    config = tmp_path / "reload.toml"
+    config.write_text(LAB.replace('"examples.pipeline:Scale"', '"reloadable_gain:Gain"')
+                      .replace("state = { gain = 2.0 }\n", ""))
+    manager = ManagerProcess(str(config))
+    try:
+        manager.api("POST", "/api/document/launch", {})
+        with chromium_page() as tab:
+            page = tab.page
+            page.goto(manager.url)
+            page.click("[data-module='probe'] .module-title")
+            page.wait_for_function(
+                "document.querySelector(\"[data-field='last'] input\")?.value === '2.0'",
+                timeout=WAIT_MS)
+            # a longer file, and a later time, so no cached bytecode passes for the new one
+            source.write_text(RELOADABLE.replace("FACTOR", "3.0 "))
+            later = source.stat().st_mtime + 2
+            os.utime(source, (later, later))
+            page.click("[data-module='scale'] .module-title")
+            page.click("text=Reload code")
+            page.wait_for_selector(".toast.ok >> text=Reloaded reloadable_gain", timeout=WAIT_MS)
+            page.wait_for_selector(".event[data-kind='module_swapped']", timeout=WAIT_MS)
+            page.click("[data-module='probe'] .module-title")
+            page.wait_for_function(
+                "document.querySelector(\"[data-field='last'] input\")?.value === '3.0'",
+                timeout=WAIT_MS)
+            assert tab.errors == [], f"the page threw: {tab.errors}"
     finally:
         manager.stop()

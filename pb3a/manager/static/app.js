@@ -3,12 +3,15 @@
 // each view lives in its own module.
 
 import {api, ApiError} from "./api.js";
+import {confirmAction} from "./confirm.js";
 import {h} from "./dom.js";
-import {EditedDocument} from "./document.js";
+import {EditedDocument, entryOf} from "./document.js";
 import {EventList} from "./events.js";
 import * as fmt from "./format.js";
 import {LiveFeed} from "./live.js";
+import {menuButton} from "./menu.js";
 import {ModuleBrowser} from "./module_browser.js";
+import {portsPanel} from "./ports.js";
 import {Schematic} from "./schematic.js";
 import {StateEditor} from "./state_editor.js";
 import {Toasts} from "./toasts.js";
@@ -19,17 +22,19 @@ class Manager {
   constructor() {
     this.system = null;
     this.layout = null;
-    this.selected = null;
+    this.selected = null;          // the module or macro instance the inspector shows
+    this.selection = new Set();    // everything selected (Shift-click adds), the last one shown
     this.document = null;          // an EditedDocument in FILE mode
     this.lastMove = new Map();     // module -> its last MigrationReport, shown in the inspector
     this.updates = 0;              // live updates drawn, and what the last one cost (ms)
     this.drawMs = null;
     this.toasts = new Toasts($("toasts"));
     this.schematic = new Schematic($("schematic"), {
-      select: (name) => this.select(name),
+      select: (name, how) => this.select(name, how),
       migrate: (name, node) => this.migrate(name, node),
       connect: (src, dst) => this.connect(src, dst),
       place: (cls, node) => this.place(cls, node),
+      placeMacro: (macro, node) => this.placeMacro(macro, node),
     });
     this.events = new EventList($("events"), $("event-count"));
     this.editor = new StateEditor($("state-fields"), {
@@ -39,6 +44,7 @@ class Manager {
     });
     this.browser = new ModuleBrowser($("classes"), $("class-filter"), {
       place: (cls) => this.place(cls, null),
+      placeMacro: (macro) => this.placeMacro(macro, null),
     });
     this.live = new LiveFeed({
       hello: (m) => this.setStructure(m.system, m.layout),
@@ -55,12 +61,27 @@ class Manager {
     $("launch").addEventListener("click", () => this.launch());
     $("add-node").addEventListener("click", () => this.addNode());
     document.addEventListener("keydown", (ev) => {
-      if (ev.key === "Escape" && !ev.target.closest("input, textarea")) this.select(null);
+      if (ev.target.closest("input, textarea, select, dialog")) return;
+      if (ev.key === "Escape") this.select(null);
+      if (ev.key === "Delete" && this.selected) this.requestRemove(this.selected);
     });
   }
 
   mode() {
     return this.system?.mode ?? "running";
+  }
+
+  isMacro(name) {
+    return !!this.system?.macros && name in this.system.macros;
+  }
+
+  exists(name) {
+    return name in (this.system?.modules || {}) || this.isMacro(name);
+  }
+
+  /** A document entry (a module or macro instance of its own), not a part of a macro. */
+  isEntry(name) {
+    return this.mode() === "editing" && !!this.document?.system.modules[name];
   }
 
   async start() {
@@ -85,9 +106,15 @@ class Manager {
     $("address").textContent = system.address || "";
     $("document-actions").hidden = system.mode !== "editing";
     if (modeChanged) await this.enterMode(system.mode);
+    if (this.document) this.browser.setMacros(this.document.macros());
     this.schematic.render(system, layout);
-    if (this.selected && !(this.selected in system.modules)) this.select(null);
-    else if (this.selected) this.describeSelected();
+    const gone = [...this.selection].filter((name) => !this.exists(name));
+    if (gone.length) {
+      for (const name of gone) this.selection.delete(name);
+      this.select([...this.selection].at(-1) ?? null);
+    } else if (this.selected) {
+      this.describeSelected();
+    }
     this.showProblems();
   }
 
@@ -150,9 +177,18 @@ class Manager {
   }
 
   // -- the inspector and its State Editor --------------------------------------------
-  async select(name) {
+  /** Show `name` (a module or a macro instance) in the inspector; with `add`, add it to
+   * the selection (or take it out) instead. */
+  async select(name, {add = false} = {}) {
+    if (add && name) {
+      if (this.selection.has(name)) this.selection.delete(name);
+      else this.selection.add(name);
+    } else {
+      this.selection = new Set(name ? [name] : []);
+    }
+    name = [...this.selection].at(-1) ?? null;
     this.selected = name;
-    this.schematic.select(name);
+    this.schematic.select(name, [...this.selection]);
     $("swap-picker").hidden = true;
     if (!name) {
       $("inspector-body").hidden = true;
@@ -162,9 +198,14 @@ class Manager {
     }
     $("inspector-empty").hidden = true;
     $("inspector-body").hidden = false;
-    $("inspector-name").textContent = name;
+    $("inspector-name").textContent = this.selection.size > 1 ? `${this.selection.size} selected` : name;
     this.describeSelected();
     this.drawActions(name);
+    if (this.selection.size > 1 || this.isMacro(name)) {
+      this.live.watch(null);
+      $("state-fields").replaceChildren();
+      return;
+    }
     const displays = this.system.modules[name]?.displays;
     if (this.mode() === "editing") {
       this.editor.show(this.documentState(name), displays);
@@ -184,6 +225,12 @@ class Manager {
 
   describeSelected() {
     const name = this.selected;
+    if (this.selection.size > 1) {
+      $("inspector-meta").replaceChildren(h("span", {class: "mono"}, [...this.selection].join(", ")));
+      $("inspector-extra").replaceChildren();
+      return;
+    }
+    if (this.isMacro(name)) return this.describeMacro(name);
     const info = this.system.modules[name];
     if (!info) return;
     const live = this.stats?.modules?.[name];
@@ -194,6 +241,8 @@ class Manager {
       status ? h("span", {class: `status status-${status}`}, status) : null,
       info.period !== null && info.period !== undefined ? h("span", {}, `period ${fmt.seconds(info.period)}`) : null,
       info.macro ? h("span", {}, `in macro ${info.macro}`) : null,
+      this.mode() === "editing" && name.includes("/")
+        ? h("span", {}, `its state here is what instance ${entryOf(name)} sets`) : null,
     ];
     $("inspector-meta").replaceChildren(...meta.filter(Boolean));
     const extra = [];
@@ -212,17 +261,18 @@ class Manager {
     const button = (label, act, tone = "") =>
       h("button", {type: "button", class: `small ${tone}`, onclick: act}, label);
     const actions = [];
-    if (this.mode() === "running") {
+    let ports = null;
+    if (this.selection.size > 1) {
+      actions.push(...this.groupForm());
+    } else if (this.isMacro(name)) {
+      actions.push(...this.macroActions(name, button));
+    } else if (this.mode() === "running") {
+      actions.push(this.moveMenu(name));
       actions.push(button("Swap class…", () => this.openSwaps(name)));
       actions.push(button("Reload code", () => this.reload(name)));
-      actions.push(button("Remove", () => this.remove(name), "danger"));
-    } else if (this.document?.system.modules[name]) {
-      const node = h("select", {class: "small", "aria-label": "node"}, [
-        h("option", {value: ""}, "default node"),
-        ...this.document.nodes().map((n) => h("option", {value: n}, n)),
-      ]);
-      node.value = this.document.system.modules[name].node || "";
-      node.addEventListener("change", () => this.editDocument(() => this.document.setNode(name, node.value || undefined)));
+      actions.push(button("Remove", () => this.requestRemove(name), "danger"));
+      ports = this.ports(name, (m) => m !== name);
+    } else if (this.isEntry(name)) {
       const period = h("input", {type: "text", class: "small mono", placeholder: "event-driven",
                                  value: this.document.system.modules[name].period ?? "",
                                  "aria-label": "period in seconds", size: 8});
@@ -232,22 +282,121 @@ class Manager {
         if (value !== null && !(value >= 0)) return this.toasts.error(new Error("period: a number of seconds ≥ 0, or empty for event-driven"));
         this.editDocument(() => this.document.setPeriod(name, value));
       });
-      actions.push(h("label", {class: "inline"}, ["Node ", node]), h("label", {class: "inline"}, ["Period ", period]));
-      actions.push(button("Remove", () => this.editDocument(() => this.document.remove(name)), "danger"));
+      actions.push(this.moveMenu(name), this.renameControl(name),
+                   h("label", {class: "inline"}, ["Period ", period]),
+                   button("Remove", () => this.requestRemove(name), "danger"));
+      // a document links its own entries: a macro's modules through the macro's exports
+      ports = this.ports(name, (m) => m !== name && !m.includes("/"));
+    } else if (this.mode() === "editing") {
+      actions.push(button(`Macro ${entryOf(name)}`, () => this.select(entryOf(name))));
     }
     $("inspector-actions").replaceChildren(...actions);
+    $("inspector-ports").replaceChildren(...[ports].filter(Boolean));
+  }
+
+  /** "Move to node ▸": the keyboard's way to drag a module (or a macro) to a node. */
+  moveMenu(name) {
+    const here = this.stats?.modules?.[name]?.node ?? this.system.modules[name]?.node ??
+                 this.document?.system.modules[name]?.node;
+    return menuButton("Move to node ▸", () => Object.keys(this.system.nodes || {}).map((node) => ({
+      label: node === here ? `${node} (here)` : node, value: node, disabled: node === here,
+      act: () => this.migrate(name, node)})), {empty: "no node to move to", name: "move to node"});
+  }
+
+  ports(name, linkable) {
+    const candidates = (dir) => Object.entries(this.system.modules)
+      .filter(([m]) => linkable(m))
+      .flatMap(([m, info]) => Object.entries((dir === "in" ? info.inputs : info.outputs) || {})
+        .map(([port, spec]) => [m, port, spec]));
+    return portsPanel(name, this.system.modules[name], this.system.links || [], candidates,
+                      (src, dst) => this.connect(src, dst));
+  }
+
+  /** "Rename…": a field in place of the button; Enter renames, Escape leaves it. */
+  renameControl(name) {
+    const open = h("button", {type: "button", class: "small", id: "rename"}, "Rename…");
+    open.addEventListener("click", () => {
+      const input = h("input", {type: "text", class: "small mono", id: "rename-input", value: name,
+                                "aria-label": `new name for ${name}`, size: 12, spellcheck: "false"});
+      input.addEventListener("keydown", (ev) => {
+        if (ev.key === "Enter") this.rename(name, input.value);
+        if (ev.key === "Escape") { ev.stopPropagation(); input.replaceWith(open); open.focus(); }
+      });
+      open.replaceWith(input);
+      input.select();
+    });
+    return open;
+  }
+
+  /** With several modules selected while editing: make them one macro. */
+  groupForm() {
+    if (this.mode() !== "editing") {
+      return [h("p", {class: "muted"}, "Grouping into a macro is done in the document being edited.")];
+    }
+    const input = h("input", {type: "text", class: "small mono", id: "macro-name", placeholder: "macro name",
+                              "aria-label": "name of the new macro", size: 12, spellcheck: "false"});
+    const go = () => this.group([...this.selection], input.value.trim());
+    input.addEventListener("keydown", (ev) => { if (ev.key === "Enter") go(); });
+    return [input, h("button", {type: "button", class: "small primary", id: "group", onclick: go}, "Group into macro")];
+  }
+
+  macroActions(macro, button) {
+    const folded = this.schematic.isFolded(macro);
+    const actions = [button(folded ? "Open" : "Close", () => {
+      this.schematic.toggleMacro(macro);
+      this.drawActions(macro);
+    })];
+    actions[0].id = "macro-fold";
+    if (this.mode() === "running" || this.isEntry(macro)) actions.push(this.moveMenu(macro));
+    if (this.isEntry(macro)) {
+      actions.push(this.renameControl(macro), button("Remove", () => this.requestRemove(macro), "danger"));
+    }
+    return actions;
+  }
+
+  /** A macro instance: what it is, its modules (each opens in the inspector), and the
+   * state it sets on them (its overrides), each of which can be dropped. */
+  describeMacro(macro) {
+    const modules = this.system.macros[macro] || [];
+    const entry = this.isEntry(macro) ? this.document.system.modules[macro] : null;
+    const nodes = [...new Set(modules.map((m) => this.stats?.modules?.[m]?.node ?? this.system.modules[m]?.node))];
+    $("inspector-meta").replaceChildren(...[
+      h("span", {}, ["macro instance", entry ? [" of ", h("strong", {}, entry.macro)] : ""]),
+      h("span", {}, `${modules.length} module${modules.length === 1 ? "" : "s"}`),
+      h("span", {}, ["on ", h("strong", {}, nodes.join(", ") || "–")]),
+    ]);
+    const list = h("ul", {class: "macro-modules"}, modules.map((m) => h("li", {}, h("button", {
+      type: "button", class: "small ghost mono", dataset: {child: m}, onclick: () => this.select(m)},
+      m.slice(macro.length + 1)))));
+    const extra = [h("h3", {}, "Modules"), list];
+    const overrides = Object.entries(entry?.state || {});
+    if (entry) {
+      extra.push(h("h3", {}, "State it sets on them"));
+      extra.push(overrides.length ? h("ul", {class: "overrides"}, overrides.flatMap(([key, fields]) =>
+        Object.entries(fields || {}).map(([field, value]) => h("li", {dataset: {override: `${key}.${field}`}}, [
+          h("span", {class: "mono"}, `${key}.${field} = ${JSON.stringify(value)}`),
+          h("button", {type: "button", class: "icon ghost", title: "drop this override",
+                       "aria-label": `drop ${key}.${field}`,
+                       onclick: () => this.editDocument(() => this.document.clearOverride(macro, key, field))}, "✕"),
+        ]))))
+        : h("p", {class: "muted"}, "None: select one of its modules to set its state for this instance."));
+    }
+    $("inspector-extra").replaceChildren(...extra);
   }
 
   documentState(name) {
     const module = this.document?.system.modules[name];
     const info = this.browser.byName(this.system.modules[name]?.class);
-    return StateEditor.documentView(info, module?.state);
+    return StateEditor.documentView(info, module ? module.state : this.document?.macroChildState(name));
   }
 
   async applyState(fields) {
     const name = this.selected;
     if (this.mode() === "editing") {
-      await this.editDocument(() => this.document.setState(name, fields), true);
+      // a module inside a macro instance: the instance's override, not the macro's own
+      const edit = this.isEntry(name) ? () => this.document.setState(name, fields)
+                                      : () => this.document.setOverride(name, fields);
+      await this.editDocument(edit, true);
       return this.documentState(name);
     }
     return api.setState(name, fields);
@@ -307,17 +456,38 @@ class Manager {
     }
   }
 
+  /** Drop the cached code of the module's file everywhere, then swap each module whose
+   * class comes from that file to the same class: the new code runs, the state is kept. */
   async reload(name) {
     const module = this.system.modules[name].class.split(":")[0];
+    const users = Object.entries(this.system.modules).filter(([, info]) => info.class.startsWith(`${module}:`));
     try {
       await api.reload(module);
-      this.toasts.show("ok", `Reloaded ${module}`);
+      for (const [user, info] of users) await api.swap(user, info.class);
+      this.toasts.show("ok", `Reloaded ${module}`, {lines: [`new code in ${users.map(([user]) => user).join(", ")}`]});
+      await this.refreshStructure();
+      if (this.selected === name) this.select(name);
     } catch (error) {
       this.toasts.error(error);
     }
   }
 
-  async remove(name) {
+  /** Remove a module (or a macro instance of the document), after asking. */
+  async requestRemove(name) {
+    const running = this.mode() === "running";
+    if (!running && !this.isEntry(name)) {
+      return this.toasts.error(new Error(`${name} is part of macro ${entryOf(name)}: remove the instance, or change the macro`));
+    }
+    if (running && this.isMacro(name)) {
+      return this.toasts.error(new Error(`remove the modules of macro ${name} one by one`));
+    }
+    const what = this.isMacro(name) ? "macro instance" : "module";
+    const detail = running ? "It stops now; its links go with it." : "Its links go with it.";
+    if (!await confirmAction(`Remove ${what} ${name}?`, detail, "Remove")) return;
+    if (!running) {
+      await this.editDocument(() => this.document.remove(name));
+      return;
+    }
     try {
       await api.removeModule(name);
       this.toasts.show("ok", `Removed ${name}`);
@@ -325,6 +495,32 @@ class Manager {
     } catch (error) {
       this.toasts.error(error);
     }
+  }
+
+  async rename(name, to) {
+    let renamed = null;
+    await this.editDocument(async () => { renamed = await this.document.rename(name, to); });
+    if (renamed && renamed !== name) {
+      this.toasts.show("ok", `Renamed ${name} → ${renamed}`);
+      await this.select(renamed);
+    }
+  }
+
+  async group(names, macro) {
+    let instance = null;
+    await this.editDocument(async () => { instance = await this.document.group(names.map(entryOf), macro); });
+    if (instance) {
+      this.toasts.show("ok", `Grouped ${names.length} modules into macro ${macro}`, {lines: [`instance ${instance}`]});
+      await this.select(instance);
+    }
+  }
+
+  async placeMacro(macro, node) {
+    if (this.mode() !== "editing") return this.toasts.error(new Error("macros are placed in the document being edited"));
+    const target = node ?? this.document.nodes()[0];
+    let name = null;
+    await this.editDocument(async () => { name = await this.document.placeMacro(macro, target); });
+    if (name) this.toasts.show("ok", `Placed macro ${macro} as ${name}${target ? ` on ${target}` : ""}`);
   }
 
   async connect(src, dst, replace = false) {
@@ -381,7 +577,10 @@ class Manager {
       if (rethrow) throw error;
     }
     await this.refreshStructure();
-    if (this.selected) this.drawActions(this.selected);
+    if (this.selected) {
+      this.drawActions(this.selected);
+      this.describeSelected();
+    }
   }
 
   async refreshStructure() {

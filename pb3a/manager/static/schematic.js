@@ -1,8 +1,10 @@
 // The schematic: nodes as regions, modules as boxes inside the node they run on (inputs
 // left, outputs right), links as paths with their live figures. Laid out by the server
 // (/api/layout, from Graphviz); this draws it, keeps the figures live, and turns
-// gestures into requests: click a module (select), drag it onto another node (move it),
-// drag from an output to an input (link), drop a class from the browser (place).
+// gestures into requests: click a module (select; with Shift, add to the selection),
+// drag it onto another node (move it), drag from an output to an input (link), drop a
+// class or a macro from the browser (place). Modules and macro titles take the focus
+// (Tab), Enter or Space selects, so nothing needs a pointer.
 
 import {s} from "./dom.js";
 import * as fmt from "./format.js";
@@ -15,11 +17,13 @@ const MODULE_H = 84;        // the least height a module box needs for its title
 const MAX_ZOOM = 1.4;       // a fitted small system is magnified this much at most
 const MAX_SHRINK = 3.5;     // and a large one shrunk this much at most: still legible
 const WIDEN = 1.3;          // and a little wider still, for the links' figures between boxes
+const PLACEABLE = ["application/x-pb3a-class", "application/x-pb3a-macro"];   // dropped from the browser
 
 export class Schematic {
   /**
    * svg: the <svg> element to draw in.
-   * actions: {select(name), migrate(name, node), connect(src, dst), place(cls, node, at)}
+   * actions: {select(name, {add}), migrate(name, node), connect(src, dst),
+   *           place(cls, node, at), placeMacro(macro, node)}
    */
   constructor(svg, actions) {
     this.svg = svg;
@@ -32,6 +36,7 @@ export class Schematic {
     this.collapsed = new Set();  // macros shown as one box
     this.frames = new Map();     // "macro@node" -> the frame drawn around its modules there
     this.selected = null;
+    this.marked = new Set();     // the other modules selected with it (Shift-click)
     this.previous = null;        // the last stats, for rates of steps and events
     this.view = null;            // the viewBox {x, y, w, h}
     this.fitted = true;
@@ -43,6 +48,7 @@ export class Schematic {
   // -- structure -------------------------------------------------------------------
   render(system, layout) {
     const before = new Map([...this.boxes].map(([name, box]) => [name, {...box.at, node: box.info.node}]));
+    const focused = this.svg.contains(document.activeElement) ? focusKey(document.activeElement) : null;
     this.system = system;
     this.layout = layout = withEveryNode(roomy(layout), system);
     this.svg.replaceChildren();
@@ -70,8 +76,12 @@ export class Schematic {
       const was = before.get(name);
       if (was && was.node !== box.info.node) this.glide(box, was);
     }
-    if (this.selected && !this.boxes.has(this.selected)) this.selected = null;
+    if (this.selected && !this.boxes.has(this.selected) && !this.system.macros?.[this.selected]) {
+      this.selected = null;
+    }
     this.markSelected();
+    // the keyboard user keeps their place through a redraw (a fold, a change of structure)
+    if (focused) this.svg.querySelector(focused)?.focus();
   }
 
   drawCluster(node, box) {
@@ -97,7 +107,9 @@ export class Schematic {
 
   drawModule(name, info, box) {
     const hidden = this.hiddenBy(name);
-    const group = s("g", {class: `module kind-${info.kind || "module"}`, dataset: {module: name}});
+    const group = s("g", {class: `module kind-${info.kind || "module"}`, dataset: {module: name},
+                          tabindex: 0, role: "button",
+                          "aria-label": `module ${name}, ${fmt.shortClass(info.class)}, on node ${info.node}`});
     group.style.transform = `translate(${box.x}px, ${box.y}px)`;
     const rect = s("rect", {class: "module-box", width: box.w, height: box.h, rx: 9});
     const band = s("path", {class: "module-band",
@@ -131,7 +143,8 @@ export class Schematic {
     this.layers.modules.append(group);
     const entry = {group, rect, figures, status, ports, at: {x: box.x, y: box.y}, box, info};
     this.boxes.set(name, entry);
-    this.bindModuleGestures(name, entry);
+    this.bindDrag(group, name, info.node, entry.at);
+    this.bindKeys(group, name);
   }
 
   /** Macros: a dashed frame around each macro's modules on a node, with a toggle that
@@ -159,23 +172,41 @@ export class Schematic {
         const frame = {x: x0, y: y0, w: folded ? Math.min(x1 - x0, 190) : x1 - x0,
                        h: folded ? 64 : y1 - y0};
         const group = s("g", {class: `macro ${folded ? "folded" : ""}`, dataset: {macro}});
-        group.append(
-          s("rect", {x: frame.x, y: frame.y, width: frame.w, height: frame.h, rx: 12}),
-          s("text", {x: frame.x + 10, y: frame.y + 15, class: "macro-title",
-                     onclick: () => this.toggleMacro(macro)},
-            `${folded ? "▸" : "▾"} ${macro}${folded ? ` · ${boxes.length} modules` : ""}`),
-        );
+        const toggle = s("text", {x: frame.x + 8, y: frame.y + 16, class: "macro-toggle", tabindex: 0,
+                                  role: "button", "aria-expanded": String(!folded),
+                                  "aria-label": `${folded ? "open" : "close"} macro ${macro}`,
+                                  dataset: {toggle: macro}}, folded ? "▸" : "▾");
+        const title = s("text", {x: frame.x + 22, y: frame.y + 15, class: "macro-title", tabindex: 0,
+                                 role: "button", "aria-label": `macro ${macro} on node ${node}`,
+                                 dataset: {title: macro}},
+                        `${macro}${folded ? ` · ${boxes.length} modules` : ""}`);
+        group.append(s("rect", {x: frame.x, y: frame.y, width: frame.w, height: frame.h, rx: 12}),
+                     toggle, title);
+        toggle.addEventListener("pointerdown", (ev) => ev.stopPropagation());
+        toggle.addEventListener("click", () => this.toggleMacro(macro));
+        toggle.addEventListener("keydown", (ev) => {
+          if (ev.key === "Enter" || ev.key === " ") { ev.preventDefault(); this.toggleMacro(macro); }
+        });
+        this.bindKeys(title, macro);
+        // a macro moves as one: its title, or the whole box when it is folded
+        this.bindDrag(folded ? group : title, macro, node, {x: 0, y: 0}, group);
         this.layers.frames.append(group);
-        this.frames.set(`${macro}@${node}`, frame);
+        this.frames.set(`${macro}@${node}`, {...frame, group});
       }
     }
   }
 
-  toggleMacro(macro) {
-    if (this.collapsed.has(macro)) this.collapsed.delete(macro);
-    else this.collapsed.add(macro);
+  toggleMacro(macro, open) {
+    const folded = open === undefined ? !this.collapsed.has(macro) : !open;
+    if (folded === this.collapsed.has(macro)) return;
+    if (folded) this.collapsed.add(macro);
+    else this.collapsed.delete(macro);
     this.render(this.system, this.layout);
     if (this.lastStats) this.update(this.lastStats);
+  }
+
+  isFolded(macro) {
+    return this.collapsed.has(macro);
   }
 
   /** The outermost folded macro that hides this module, or null. */
@@ -266,13 +297,21 @@ export class Schematic {
     setTimeout(() => box.group.classList.remove("flash"), 2000);
   }
 
-  select(name) {
+  /** Show `name` (a module or a macro instance) as selected, with `marked` beside it. */
+  select(name, marked = []) {
     this.selected = name;
+    this.marked = new Set(marked);
     this.markSelected();
   }
 
   markSelected() {
-    for (const [name, box] of this.boxes) box.group.classList.toggle("selected", name === this.selected);
+    for (const [name, box] of this.boxes) {
+      box.group.classList.toggle("selected", name === this.selected || this.marked.has(name));
+    }
+    for (const group of this.layers.frames?.children || []) {
+      const macro = group.dataset.macro;
+      group.classList.toggle("selected", macro === this.selected || this.marked.has(macro));
+    }
   }
 
   // -- live figures ------------------------------------------------------------------
@@ -343,54 +382,64 @@ export class Schematic {
     return null;
   }
 
-  bindModuleGestures(name, box) {
-    box.group.addEventListener("pointerdown", (down) => {
+  /** Enter or Space selects (with Shift: adds to the selection), as a click does. */
+  bindKeys(element, name) {
+    element.addEventListener("keydown", (ev) => {
+      if (ev.target !== element || (ev.key !== "Enter" && ev.key !== " ")) return;
+      ev.preventDefault();
+      this.actions.select(name, {add: ev.shiftKey});
+    });
+  }
+
+  /**
+   * Press on `handle` and release: select `name`. Press and drag: `moved` (the handle
+   * unless told) follows the pointer from `rest` (its resting translation); released on
+   * another node than `node`, `name` is migrated there.
+   */
+  bindDrag(handle, name, node, rest, moved = null) {
+    const element = moved || handle;
+    handle.addEventListener("pointerdown", (down) => {
       if (down.button !== 0) return;
       down.stopPropagation();
       const port = down.target.closest(".port");
       if (port && port.dataset.dir === "out") return this.dragLink(down, port.dataset.port);
       const start = this.toSvg(down);
+      const add = down.shiftKey || down.ctrlKey || down.metaKey;
       let dragging = false, target = null;
-      box.group.setPointerCapture(down.pointerId);
+      handle.setPointerCapture(down.pointerId);
       const move = (ev) => {
         const p = this.toSvg(ev);
         if (!dragging && Math.hypot(p.x - start.x, p.y - start.y) < DRAG_THRESHOLD) return;
         dragging = true;
-        box.group.classList.add("dragging");
-        box.group.style.transition = "none";
-        box.group.style.transform =
-          `translate(${box.at.x + p.x - start.x}px, ${box.at.y + p.y - start.y}px)`;
+        element.classList.add("dragging");
+        element.style.transition = "none";
+        element.style.transform = `translate(${rest.x + p.x - start.x}px, ${rest.y + p.y - start.y}px)`;
         target = this.nodeAt(p);
-        for (const [node, entry] of this.clusters) {
-          entry.group.classList.toggle("drop-target", node === target && node !== box.info.node);
+        for (const [each, entry] of this.clusters) {
+          entry.group.classList.toggle("drop-target", each === target && each !== node);
         }
       };
       const up = () => {
-        box.group.removeEventListener("pointermove", move);
-        box.group.removeEventListener("pointerup", up);
-        box.group.removeEventListener("pointercancel", up);
-        box.group.classList.remove("dragging");
+        handle.removeEventListener("pointermove", move);
+        handle.removeEventListener("pointerup", up);
+        handle.removeEventListener("pointercancel", up);
+        element.classList.remove("dragging");
         for (const entry of this.clusters.values()) entry.group.classList.remove("drop-target");
-        if (!dragging) return this.actions.select(name);
-        if (target && target !== box.info.node) {
-          box.group.classList.add("moving");
+        if (!dragging) return this.actions.select(name, {add});
+        if (target && target !== node) {
+          element.classList.add("moving");
           this.actions.migrate(name, target).finally(() => {
-            box.group.classList.remove("moving");
-            this.snapBack(box);
+            element.classList.remove("moving");
+            snapBack(element, rest);
           });
         } else {
-          this.snapBack(box);
+          snapBack(element, rest);
         }
       };
-      box.group.addEventListener("pointermove", move);
-      box.group.addEventListener("pointerup", up);
-      box.group.addEventListener("pointercancel", up);
+      handle.addEventListener("pointermove", move);
+      handle.addEventListener("pointerup", up);
+      handle.addEventListener("pointercancel", up);
     });
-  }
-
-  snapBack(box) {
-    box.group.style.transition = "transform 0.25s ease-out";
-    box.group.style.transform = `translate(${box.at.x}px, ${box.at.y}px)`;
   }
 
   /** From an output port: a line follows the pointer; released on an input, it links. */
@@ -415,7 +464,7 @@ export class Schematic {
   /** Pan by dragging the background; zoom with the wheel around the pointer. */
   bindViewGestures() {
     this.svg.addEventListener("pointerdown", (down) => {
-      if (down.button !== 0 || down.target.closest(".module, .macro-title")) return;
+      if (down.button !== 0 || down.target.closest(".module, .macro-title, .macro.folded")) return;
       const start = {x: down.clientX, y: down.clientY}, view = {...this.view};
       const scale = this.view.w / this.svg.clientWidth;
       const move = (ev) => {
@@ -440,14 +489,16 @@ export class Schematic {
       this.setView({x: p.x - (p.x - v.x) * k, y: p.y - (p.y - v.y) * k, w: v.w * k, h: v.h * k});
     }, {passive: false});
     this.svg.addEventListener("dragover", (ev) => {
-      if (ev.dataTransfer.types.includes("application/x-pb3a-class")) ev.preventDefault();
+      if (PLACEABLE.some((type) => ev.dataTransfer.types.includes(type))) ev.preventDefault();
     });
     this.svg.addEventListener("drop", (ev) => {
       const cls = ev.dataTransfer.getData("application/x-pb3a-class");
-      if (!cls) return;
+      const macro = ev.dataTransfer.getData("application/x-pb3a-macro");
+      if (!cls && !macro) return;
       ev.preventDefault();
       const at = this.toSvg(ev);
-      this.actions.place(cls, this.nodeAt(at), at);
+      if (cls) this.actions.place(cls, this.nodeAt(at), at);
+      else this.actions.placeMacro(macro, this.nodeAt(at));
     });
   }
 
@@ -506,6 +557,20 @@ function withEveryNode(layout, system) {
     x += 270;
   }
   return {...layout, clusters, width: Math.max(layout.width, x - 40), height: Math.max(layout.height, y + h)};
+}
+
+/** A selector that finds the same focusable part of the drawing after a redraw. */
+function focusKey(element) {
+  for (const key of ["module", "toggle", "title"]) {
+    const value = element.dataset?.[key];
+    if (value !== undefined) return `[data-${key}="${CSS.escape(value)}"]`;
+  }
+  return null;
+}
+
+function snapBack(element, rest) {
+  element.style.transition = "transform 0.25s ease-out";
+  element.style.transform = `translate(${rest.x}px, ${rest.y}px)`;
 }
 
 function moduleOf(end) {
