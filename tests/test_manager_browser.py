@@ -17,10 +17,12 @@ import json
 import os
 import re
 import signal
+import statistics
 import subprocess
 import sys
 import threading
 import tomllib
+import urllib.error
 import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
@@ -150,7 +152,8 @@ def page(lab: ManagerProcess) -> Iterator[Any]:
 
 
 def screenshot_path(tmp_path: Path, name: str) -> Path:
-    """Where a screenshot goes: PB3A_SCREENSHOTS (e.g. docs) when set, else tmp_path."""
+    """Where a screenshot (or the page's cost report) goes: PB3A_SCREENSHOTS (e.g. docs)
+    when set, else tmp_path."""
     folder = os.environ.get("PB3A_SCREENSHOTS")
     return (REPO / folder if folder else tmp_path) / name
 
@@ -353,6 +356,46 @@ def big_system(modules: int) -> str:
     return "\n".join(lines) + "\n"
 
 
+UPDATES = 30                 # live updates measured in the 200-module test (15 s at 0.5 s)
+REDRAWS = 15                 # full redraws measured there
+
+# Installed in the page: each live update (the page's whole handling of a stats message)
+# is timed twice, for its script alone and with the style and layout it causes (forced
+# at once with getBBox, instead of at the next frame); the server's cost comes along.
+MEASURE_UPDATES = """() => {
+    const m = window.pb3aManager, handle = m.onStats.bind(m);
+    window.pb3aCosts = {script: [], layout: [], server: []};
+    m.onStats = (message) => {
+        const start = performance.now();
+        handle(message);
+        const script = performance.now();
+        m.schematic.svg.getBBox();
+        const costs = window.pb3aCosts;
+        costs.script.push(script - start);
+        costs.layout.push(performance.now() - start);
+        costs.server.push(message.cost_ms);
+    };
+}"""
+
+# A full redraw, as after a change of structure: every node, module and link drawn anew,
+# the last figures put back, and laid out.
+REDRAW = """() => {
+    const m = window.pb3aManager, s = m.schematic, start = performance.now();
+    s.render(m.system, m.layout);
+    if (s.lastStats) s.update(s.lastStats);
+    s.svg.getBBox();
+    return performance.now() - start;
+}"""
+
+
+def summary(samples: list[float]) -> dict[str, float]:
+    """Median, 95th percentile (nearest rank) and maximum, in ms to 0.1."""
+    ordered = sorted(samples)
+    rank = max(0, -(-95 * len(ordered) // 100) - 1)
+    return {"samples": len(ordered), "median": round(statistics.median(ordered), 1),
+            "p95": round(ordered[rank], 1), "max": round(ordered[-1], 1)}
+
+
 def test_the_page_keeps_up_with_200_modules(tmp_path: Path) -> None:
     config = tmp_path / "big.toml"
     config.write_text(big_system(200))
@@ -364,22 +407,33 @@ def test_the_page_keeps_up_with_200_modules(tmp_path: Path) -> None:
             page.goto(manager.url)
             page.wait_for_function("document.querySelectorAll('.module').length === 200",
                                    timeout=WAIT_MS)
-            costs = []
-            for _ in range(6):                       # six live updates, as they arrive
-                page.wait_for_function("(seen) => window.pb3aManager.updates > seen",
-                                       arg=page.evaluate("window.pb3aManager.updates"),
-                                       timeout=WAIT_MS)
-                costs.append(page.evaluate("window.pb3aManager.drawMs"))
-            render_ms = page.evaluate("""() => {
-                const m = window.pb3aManager, start = performance.now();
-                m.schematic.render(m.system, m.layout);
-                return performance.now() - start; }""")
+            page.evaluate(MEASURE_UPDATES)
+            page.wait_for_function(f"window.pb3aCosts.script.length >= {UPDATES}",
+                                   timeout=UPDATES * 1000 + WAIT_MS)
+            costs = page.evaluate("window.pb3aCosts")
+            redraws = [page.evaluate(REDRAW) for _ in range(REDRAWS)]
+            browser = page.context.browser.version if page.context.browser else \
+                page.evaluate("navigator.userAgent")
+            assert page.locator(".module").count() == 200
+            assert page.locator("path.link").count() == 199
             assert tab.errors == [], f"the page threw: {tab.errors}"
-        print(f"200 modules: drawing an update took {max(costs):.1f} ms at most "
-              f"(median {sorted(costs)[len(costs) // 2]:.1f} ms); a full redraw {render_ms:.0f} ms")
+        report = {
+            "what": "the manager page's cost for a running system of 200 modules and 199 links "
+                    "(tests/test_manager_browser.py::test_the_page_keeps_up_with_200_modules)",
+            "browser": f"headless Chromium {browser}",
+            "machine": f"{os.cpu_count()} CPUs, shared; load average {os.getloadavg()[0]:.1f}",
+            "live_update_ms": summary(costs["script"][:UPDATES]),
+            "live_update_with_layout_ms": summary(costs["layout"][:UPDATES]),
+            "full_redraw_ms": summary(redraws),
+            "server_gathering_ms": summary([c for c in costs["server"][:UPDATES] if c is not None]),
+            "refresh_s": 0.5,
+        }
+        path = screenshot_path(tmp_path, "manager_page_cost.json")
+        path.write_text(json.dumps(report, indent=2) + "\n")
+        print(json.dumps(report, indent=2))
         # well inside the half second between updates, on a shared two-core machine
-        assert max(costs) < 100, costs
-        assert render_ms < 1000, render_ms
+        assert report["live_update_with_layout_ms"]["p95"] < 100, report
+        assert report["full_redraw_ms"]["p95"] < 1000, report
     finally:
         manager.stop()
 
@@ -670,6 +724,87 @@ def test_reload_code_runs_the_changed_file(tmp_path: Path) -> None:
             page.click("[data-module='probe'] .module-title")
             page.wait_for_function(
                 "document.querySelector(\"[data-field='last'] input\")?.value === '3.0'",
+                timeout=WAIT_MS)
+            assert tab.errors == [], f"the page threw: {tab.errors}"
+    finally:
+        manager.stop()
+
+
+PAIR = """\
+name = "pair"
+
+[nodes.a]
+[nodes.b]
+
+[macros.stage]
+links = [ { from = "sensor.out", to = "scale.x" } ]
+exports = { y = "scale.y" }
+
+[macros.stage.modules]
+sensor = { class = "manager_modules:Sensor" }
+scale = { class = "examples.pipeline:Scale" }
+
+[modules.front]
+macro = "stage"
+node = "a"
+
+[modules.probe]
+class = "manager_modules:Probe"
+node = "a"
+
+[[links]]
+from = "front.y"
+to = "probe.x"
+"""
+
+
+def migrates_macros(manager: ManagerProcess) -> bool:
+    """Whether the server takes a macro's name to migrate: a malformed request (no node)
+    is then refused as malformed (400), changing nothing, not as an unknown module (404)."""
+    try:
+        manager.api("POST", "/api/modules/front/migrate", {"to": None})
+    except urllib.error.HTTPError as exc:
+        return exc.code != 404
+    return True
+
+
+def test_a_folded_macro_dragged_to_another_node_moves_with_all_its_modules(
+        tmp_path: Path) -> None:
+    config = tmp_path / "pair.toml"
+    config.write_text(PAIR)
+    manager = ManagerProcess(str(config))
+    try:
+        manager.api("POST", "/api/document/launch", {})
+        if not migrates_macros(manager):
+            pytest.skip("this server cannot migrate a macro as a whole yet (POST "
+                        "/api/modules/MACRO/migrate answers 404)")
+        with chromium_page() as tab:
+            page = tab.page
+            page.goto(manager.url)
+            page.wait_for_function("document.querySelectorAll('.module').length === 3",
+                                   timeout=WAIT_MS)
+            page.click("[data-toggle='front']")
+            folded = ".macro.folded[data-macro='front'] > rect"
+            page.wait_for_selector(folded, timeout=WAIT_MS)
+            drag(page, box_of(page, folded), box_of(page, "[data-node='b'] > rect"))
+            page.wait_for_selector(".toast.ok >> text=front moved", timeout=WAIT_MS)
+            modules = manager.api("GET", "/api/system")["modules"]
+            assert {modules[name]["node"] for name in ("front/sensor", "front/scale")} == {"b"}
+            assert modules["probe"]["node"] == "a"
+            # still folded, now drawn on b; opened, both its modules are there
+            page.wait_for_function("""() => {
+                const box = (s) => document.querySelector(s).getBoundingClientRect();
+                const m = box(".macro.folded[data-macro='front'] > rect");
+                const n = box("[data-node='b'] > rect");
+                return m.left >= n.left && m.right <= n.right; }""", timeout=WAIT_MS)
+            page.click("[data-toggle='front']")
+            page.wait_for_selector("[data-module='front/scale']", state="visible")
+            assert module_on_node(page, "front/sensor", "b")
+            assert module_on_node(page, "front/scale", "b")
+            # the values still flow through the moved macro to the probe
+            page.click("[data-module='probe'] .module-title")
+            page.wait_for_function(
+                "document.querySelector(\"[data-field='last'] input\")?.value === '2.0'",
                 timeout=WAIT_MS)
             assert tab.errors == [], f"the page threw: {tab.errors}"
     finally:
