@@ -644,6 +644,7 @@ def test_the_keyboard_reaches_the_controls_moves_links_and_removes(lab: ManagerP
     page.wait_for_selector("[data-module='scale2']", timeout=WAIT_MS)
     assert lab.api("GET", "/api/system")["modules"]["scale2"]["class"] == "examples.pipeline:Scale"
     page.click("[data-module='scale2'] .module-title")
+    page.click("details.ports > summary")
     page.click("[data-menu='link scale2.x']")
     page.click("[role=menuitem][data-value='mapper.coverage']")
     page.wait_for_selector("path[data-link='mapper.coverage->scale2.x']", state="attached",

@@ -31,8 +31,16 @@ export function portsPanel(name, info, links, candidates, link) {
       {empty: "no input to link to", name: `link ${end}`})));
   }
   if (!rows.length) return null;
-  return h("section", {class: "ports", "aria-label": "ports"}, [h("h3", {}, "Ports"), ...rows]);
+  // closed unless the user opened it last time: the state below keeps its room
+  const details = h("details", {class: "ports", open: portsOpen}, [
+    h("summary", {}, [h("span", {class: "ports-title"}, `Ports · ${rows.length}`),
+                      h("span", {class: "muted small-text"}, " · their links, as menus")]),
+    ...rows]);
+  details.addEventListener("toggle", () => { portsOpen = details.open; });
+  return details;
 }
+
+let portsOpen = false;     // whether the last ports list shown was open
 
 function row(dir, port, spec, peers, menu) {
   return h("div", {class: `port-row ${dir}`, dataset: {port}}, [
