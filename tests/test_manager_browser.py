@@ -536,10 +536,12 @@ def test_modules_grouped_into_a_macro_open_close_place_again_and_take_overrides(
         for name in ("stage/scale", "stage/scale2"):
             assert module_on_node(page, name, "b")
 
-        # closed, the macro is one box; opened, its modules again
-        page.click("[data-toggle='stage']")
+        # closed (from the keyboard), the macro is one box; opened, its modules again
+        page.focus("[data-toggle='stage']")
+        page.keyboard.press("Enter")
         page.wait_for_selector(".macro.folded[data-macro='stage']", timeout=WAIT_MS)
         assert page.locator("[data-module='stage/scale']").is_hidden()
+        assert page.evaluate("document.activeElement.dataset.toggle") == "stage"   # kept
         page.click("#macro-fold")                              # the inspector's "Open"
         page.wait_for_selector(".macro:not(.folded)[data-macro='stage']", timeout=WAIT_MS)
         assert page.locator("[data-module='stage/scale']").is_visible()
@@ -561,6 +563,8 @@ def test_modules_grouped_into_a_macro_open_close_place_again_and_take_overrides(
         assert "state" not in system["macros"]["stage"]["modules"]["scale"]
         page.click("[data-title='stage2']")
         page.wait_for_selector("[data-override='scale.gain']", timeout=WAIT_MS)
+        page.locator(".toast .icon").evaluate_all("buttons => buttons.forEach(b => b.click())")
+        page.screenshot(path=str(screenshot_path(tmp_path, "manager_macro.png")))
 
         saved = tomllib.loads(saved_and_checked(manager, page, tmp_path / "saved.toml"))
         assert saved["modules"]["stage2"] == {"macro": "stage", "node": "a",
