@@ -270,3 +270,27 @@ def test_classes_list_the_catalog_with_ports_state_and_origin(client) -> None:
 def test_an_unknown_route_is_a_json_404(client) -> None:
     missing = client.get("/api/nothing")
     assert missing.status_code == 404 and "docs/manager.md" in missing.json()["error"]
+
+
+# -- macros --------------------------------------------------------------------------------
+def test_a_macro_moves_as_a_whole_and_an_unknown_name_says_what_there_is() -> None:
+    from sample_modules import Chain
+
+    system = System("macros").node("a").node("b")
+    system.add("src", FloatSource, node="a")
+    system.add("pair", Chain, node="a")
+    system.link("src.out", "pair.x")
+    with system.launch() as run, manager_client(Session(Document.empty(), run)) as client:
+        assert client.get("/api/system").json()["macros"] == {"pair": ["pair/a", "pair/b"]}
+        report = client.post("/api/modules/pair/migrate", json={"to": "b"})
+        assert report.status_code == 200, report.json()
+        body = report.json()
+        assert (body["module"], body["source"], body["destination"]) == ("pair", "a", "b")
+        assert body["links"] == 3 and body["pause_s"] > 0     # src->a, a->b, counted per move
+        assert run.where("pair/a") == run.where("pair/b") == "b" and run.where("src") == "a"
+        missing = client.post("/api/modules/pai/migrate", json={"to": "a"})
+        assert missing.status_code == 404
+        assert "no module or macro 'pai'" in missing.json()["error"]
+        assert "macros: pair" in missing.json()["error"]
+        # the operations that take a module only still say "module"
+        assert "no module 'pair'" in client.get("/api/modules/pair/state").json()["error"]

@@ -269,7 +269,8 @@ class Operations:
         with self._held("topology", timeout):
             launcher = self.launcher
             return topology_of(self.plan.name, self.plan.nodes, launcher.specs.values(),
-                               launcher.links.values(), launcher.node_table())
+                               launcher.links.values(), launcher.node_table(),
+                               self.plan.code.module_servers)
 
     def stats(self, *, timeout: float | None = None) -> SystemStats:
         with self._held("stats", timeout):

@@ -127,7 +127,7 @@ def routes(session: Session) -> list[Route]:
         return await call(session.reload, await body_of(request))
 
     async def classes(request: Request) -> Any:
-        return await call(session.catalog.classes)
+        return await call(session.classes)
 
     document = session.document
 

@@ -137,6 +137,12 @@ class Session:
             self._layouts[shape] = found
         return found
 
+    def classes(self) -> dict[str, Any]:
+        """``GET /api/classes``: the catalog, with the running system's module servers
+        asked too (attached to a system, they are where its code comes from)."""
+        servers = self.topology().module_servers if self._handle is not None else ()
+        return self.catalog.classes(servers)
+
     def stats(self) -> dict[str, Any]:
         """``GET /api/stats``."""
         return self.handle.stats(timeout=self.timeout).to_json()
@@ -188,8 +194,10 @@ class Session:
 
     # -- changes ------------------------------------------------------------------
     def migrate(self, name: str, to: Any) -> dict[str, Any]:
-        """``POST /api/modules/{name}/migrate``: the migration report."""
-        topology = self.topology_of(name)
+        """``POST /api/modules/{name}/migrate``: the migration report. ``name`` may be a
+        macro: its modules move one after another (as ``migrate`` on the control surface
+        does), and the report sums them."""
+        topology = self.topology_of(name, macros=True)
         if not isinstance(to, str):
             raise Malformed("send the node to move to: {\"to\": \"NODE\"}")
         if to not in topology.nodes:
@@ -270,13 +278,17 @@ class Session:
         return {"reloaded": module}
 
     # -- helpers ------------------------------------------------------------------
-    def topology_of(self, name: str) -> Topology:
-        """The structure, checked to have module ``name`` (ModuleNotFound otherwise)."""
+    def topology_of(self, name: str, *, macros: bool = False) -> Topology:
+        """The structure, checked to have module ``name`` (or, with ``macros``, macro
+        ``name``); ModuleNotFound otherwise."""
         topology = self.topology()
-        if name not in topology.modules:
-            raise ModuleNotFound(f"no module {name!r} in system {topology.system!r}; "
-                                 f"modules: {', '.join(topology.modules) or '(none)'}")
-        return topology
+        if name in topology.modules or (macros and name in topology.macros):
+            return topology
+        known = f"modules: {', '.join(topology.modules) or '(none)'}"
+        if macros and topology.macros:
+            known += f"; macros: {', '.join(topology.macros)}"
+        raise ModuleNotFound(f"no {'module or macro' if macros else 'module'} {name!r} in "
+                             f"system {topology.system!r}; {known}")
 
     @staticmethod
     def _class(ref: Any) -> str:
