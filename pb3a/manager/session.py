@@ -26,7 +26,7 @@ from pb3a.errors import ConfigError, ModuleNotFound
 from pb3a.loading.references import resolve_class
 from pb3a.manager import reflection
 from pb3a.manager.catalog import Catalog
-from pb3a.manager.document import Document
+from pb3a.manager.document import Document, toml_text
 from pb3a.manager.layout import layout
 from pb3a.model.ports import Policy
 from pb3a.system import System
@@ -122,6 +122,15 @@ class Session:
         handle = self._handle
         return {**topology.to_json(), "mode": self.mode,
                 "address": getattr(handle, "address", None) if handle is not None else None}
+
+    def system_toml(self) -> str:
+        """``GET /api/system/toml``: the running system as it is now, as a configuration
+        file that launches it again; what TOML cannot hold is named in comments on top."""
+        written = self.handle.configuration(timeout=self.timeout)
+        comments = [f"The system {written['system'].get('name')!r} as it ran when saved by "
+                    "the PB3A manager (GET /api/system/toml)."]
+        comments += [f"Not written: {problem}" for problem in written["problems"]]
+        return toml_text(written["system"], comments)
 
     def layout(self, topology: Topology | None = None) -> dict[str, Any]:
         """``GET /api/layout``: Graphviz's, computed once per structure."""
