@@ -11,6 +11,7 @@ from pb3a.config.compiler import build_plan, sketch_plan
 from pb3a.config.description import read_description
 from pb3a.config.folding import fold
 from pb3a.config.plan import FlatModule, Plan
+from pb3a.loading.references import class_ref
 
 
 def folded_again(plan: Plan) -> tuple[dict, list[str], Plan]:
@@ -22,8 +23,9 @@ def folded_again(plan: Plan) -> tuple[dict, list[str], Plan]:
 
 
 def shape(plan: Plan) -> tuple[dict, dict, dict]:
-    """What must survive: each module's settings, each link's policy, each node."""
-    modules = {m.name: (m.cls, m.node, m.period, m.state, m.restart, m.group, m.fallback)
+    """What must survive: each module's settings, each link's policy, each node.
+    (Classes by reference: another test may have reloaded their module meanwhile.)"""
+    modules = {m.name: (class_ref(m.cls), m.node, m.period, m.state, m.restart, m.group, m.fallback)
                for m in plan.modules.values()}
     links = {link.key: str(link.policy) for link in plan.links}
     nodes = {n.name: (n.address, n.workers, n.cpus, n.advertise) for n in plan.nodes.values()}

@@ -135,7 +135,7 @@ class Session:
     def layout(self, topology: Topology | None = None) -> dict[str, Any]:
         """``GET /api/layout``: Graphviz's, computed once per structure."""
         topology = topology or self.topology()
-        shape = (tuple((name, m.node, tuple(m.inputs), tuple(m.outputs))
+        shape = (tuple((name, m.cls, m.node, tuple(m.inputs), tuple(m.outputs))
                        for name, m in topology.modules.items()),
                  tuple(topology.links), tuple(topology.nodes))
         found = self._layouts.get(shape)
