@@ -13,7 +13,10 @@ processes; chains of 10: a threaded ``Clock``, period 0.1 s, feeding 9 event-dri
 - ``system_ms``, ``layout_ms``: the structure as JSON and its first Graphviz layout
   (sent at start and after each structural change, not at each update).
 
-Each figure is the median (min, max) of ``REPEATS`` updates, one every 0.1 s.
+Each figure is the median (min, max) of ``REPEATS`` updates, one every 0.1 s. This is
+the server's share; the page's (drawing one update of 200 modules in headless
+Chromium) is measured by ``tests/test_manager_browser.py``
+(``test_the_page_keeps_up_with_200_modules``); docs/manager.md gives both.
 """
 
 from __future__ import annotations

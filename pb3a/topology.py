@@ -98,6 +98,7 @@ class Topology:
     modules: dict[str, ModuleInfo]
     links: dict[str, LinkInfo]       # keyed "src.port->dst.port"
     nodes: dict[str, NodeInfo]
+    module_servers: tuple[str, ...] = ()     # where its nodes import code the path lacks
 
     @property
     def macros(self) -> dict[str, list[str]]:
@@ -115,14 +116,15 @@ class Topology:
                 "nodes": {name: node.to_json() for name, node in self.nodes.items()},
                 "modules": {name: module.to_json() for name, module in self.modules.items()},
                 "links": [link.to_json() for link in self.links.values()],
-                "macros": self.macros}
+                "macros": self.macros, "module_servers": list(self.module_servers)}
 
 
 def topology_of(system: str, nodes: dict[str, NodeSpec], modules: Iterable[FlatModule],
                 links: Iterable[FlatLink],
-                health: dict[str, NodeStats] | None = None) -> Topology:
+                health: dict[str, NodeStats] | None = None,
+                module_servers: Iterable[str] = ()) -> Topology:
     """The topology of modules and links placed on ``nodes``; ``health`` (a running
-    system's ``node_table``) says which are up."""
+    system's ``node_table``) says which are up; ``module_servers``: the system's."""
     health = health or {}
     return Topology(
         system,
@@ -133,12 +135,14 @@ def topology_of(system: str, nodes: dict[str, NodeSpec], modules: Iterable[FlatM
         {name: NodeInfo(node.address, node.workers,
                         health[name].up if name in health else None,
                         health[name].rtt if name in health else None)
-         for name, node in nodes.items()})
+         for name, node in nodes.items()},
+        tuple(module_servers))
 
 
 def plan_topology(plan: Plan) -> Topology:
     """The topology of a plan before it runs."""
-    return topology_of(plan.name, plan.nodes, plan.modules.values(), plan.links)
+    return topology_of(plan.name, plan.nodes, plan.modules.values(), plan.links,
+                       module_servers=plan.code.module_servers)
 
 
 def module_info(module: FlatModule) -> ModuleInfo:

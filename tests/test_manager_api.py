@@ -270,3 +270,80 @@ def test_classes_list_the_catalog_with_ports_state_and_origin(client) -> None:
 def test_an_unknown_route_is_a_json_404(client) -> None:
     missing = client.get("/api/nothing")
     assert missing.status_code == 404 and "docs/manager.md" in missing.json()["error"]
+
+
+# -- macros --------------------------------------------------------------------------------
+def test_a_macro_moves_as_a_whole_and_an_unknown_name_says_what_there_is() -> None:
+    from sample_modules import Chain
+
+    system = System("macros").node("a").node("b")
+    system.add("src", FloatSource, node="a")
+    system.add("pair", Chain, node="a")
+    system.link("src.out", "pair.x")
+    with system.launch() as run, manager_client(Session(Document.empty(), run)) as client:
+        assert client.get("/api/system").json()["macros"] == {"pair": ["pair/a", "pair/b"]}
+        report = client.post("/api/modules/pair/migrate", json={"to": "b"})
+        assert report.status_code == 200, report.json()
+        body = report.json()
+        assert (body["module"], body["source"], body["destination"]) == ("pair", "a", "b")
+        assert body["links"] == 3 and body["pause_s"] > 0     # src->a, a->b, counted per move
+        assert run.where("pair/a") == run.where("pair/b") == "b" and run.where("src") == "a"
+        missing = client.post("/api/modules/pai/migrate", json={"to": "a"})
+        assert missing.status_code == 404
+        assert "no module or macro 'pai'" in missing.json()["error"]
+        assert "macros: pair" in missing.json()["error"]
+        # the operations that take a module only still say "module"
+        assert "no module 'pair'" in client.get("/api/modules/pair/state").json()["error"]
+
+
+# -- saving a system changed live ----------------------------------------------------------
+def test_the_running_system_saved_as_toml_checks_and_launches_the_same_system(
+        tmp_path) -> None:
+    import os
+    import subprocess
+    import sys
+
+    from sample_modules import Chain
+
+    system = managed()
+    system.add("feed", FloatSource, node="b", state={"value": 0.25})
+    system.add("pair", Chain, node="a")
+    system.link("feed.out", "pair.x")
+    with system.launch() as run, manager_client(Session(Document.empty(), run)) as client:
+        # changed live: a macro's module moved, a class swapped, a module added and linked
+        assert client.post("/api/modules/pair/b/migrate", json={"to": "b"}).status_code == 200
+        assert client.post("/api/modules/scale/swap",
+                           json={"class": "sample_modules:FastScale"}).status_code == 200
+        assert client.post("/api/modules", json={"name": "probe", "class": "sample_modules:Last",
+                                                 "node": "b", "state": {"value": 1.5}}
+                           ).status_code == 201
+        assert client.post("/api/links", json={"src": "pair/b.y", "dst": "probe.x",
+                                               "policy": "queue:8"}).status_code == 200
+        saved = client.get("/api/system/toml")
+        assert saved.status_code == 200 and saved.headers["content-type"].startswith(
+            "application/toml")
+        text = saved.text
+        assert text.startswith("# The system 'managed' as it ran")
+        path = tmp_path / "saved.toml"
+        path.write_text(text)
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS.parent), str(TESTS)])}
+        check = subprocess.run([sys.executable, "-m", "pb3a", "check", str(path)], env=env,
+                               capture_output=True, text=True, timeout=60)
+        assert check.returncode == 0, check.stdout + check.stderr + text
+        before = run.topology()
+    with System.load(path).launch() as again:
+        after = again.topology()
+        assert {n: (m.cls, m.node) for n, m in after.modules.items()} == {
+            n: (m.cls, m.node) for n, m in before.modules.items()}
+        assert {k: link.policy for k, link in after.links.items()} == {
+            k: link.policy for k, link in before.links.items()}
+        assert after.modules["scale"].cls == "sample_modules:FastScale"
+        assert after.modules["pair/b"].node == "b" and after.modules["pair/a"].node == "a"
+        assert after.links["pair/b.y->probe.x"].policy == "queue:8"
+        assert again.state("probe")["value"] == 1.5          # the state it was added with
+
+
+def test_nothing_running_has_no_system_to_save() -> None:
+    with manager_client(Session(Document.empty())) as client:
+        refused = client.get("/api/system/toml")
+        assert refused.status_code == 409 and "nothing runs" in refused.json()["error"]

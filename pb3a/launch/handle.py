@@ -124,6 +124,13 @@ class SystemHandle(ABC):
         records, see ``pb3a.topology``)."""
         return self._request("topology", {"timeout": timeout})
 
+    def configuration(self, *, timeout: float | None = None) -> dict[str, Any]:
+        """The system as it is now (after moves, swaps, adds, relinks) as the tables of a
+        configuration file that launches it again: ``{"system": tables, "problems":
+        [...]}``, ``problems`` naming what TOML cannot hold (such as an initial state
+        that is an array). Each macro instance comes back as a ``[macros.X]`` of its own."""
+        return self._request("configuration", {"timeout": timeout})
+
     def stats(self, *, timeout: float | None = None) -> SystemStats:
         """Per module: steps, events, CPU time, errors; per link: values, drops, latency,
         rate; per node: health (typed records, see ``pb3a.stats``)."""

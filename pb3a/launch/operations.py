@@ -17,6 +17,7 @@ from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 from pb3a.config import checks
+from pb3a.config.folding import fold
 from pb3a.config.plan import FlatLink, FlatModule
 from pb3a.errors import ConfigError
 from pb3a.launch.migration import MigrationReport, migrate
@@ -41,7 +42,7 @@ DEFAULT_TIMEOUT = 30.0      # seconds an operation may wait, unless told otherwi
 # connection, an agent on a remote node): the public operations, nothing else.
 PUBLIC = frozenset({"state", "set_state", "swap", "relink", "link", "add", "remove",
                     "restart", "migrate", "begin_migration", "migration", "reload", "stats",
-                    "where", "nodes", "topology", "events", "logs"})
+                    "where", "nodes", "topology", "configuration", "events", "logs"})
 # What an agent may ask through ``self.runtime`` (it spawns with "add").
 FOR_AGENTS = PUBLIC - {"reload"}
 KEEP_JOBS = 1000            # background operations whose outcome is kept for asking
@@ -269,7 +270,17 @@ class Operations:
         with self._held("topology", timeout):
             launcher = self.launcher
             return topology_of(self.plan.name, self.plan.nodes, launcher.specs.values(),
-                               launcher.links.values(), launcher.node_table())
+                               launcher.links.values(), launcher.node_table(),
+                               self.plan.code.module_servers)
+
+    def configuration(self, *, timeout: float | None = None) -> dict[str, Any]:
+        """The system as it is now, as the tables of a configuration file:
+        ``{"system": tables, "problems": [what could not be written]}``."""
+        with self._held("configuration", timeout):
+            plan = self.plan
+            folded = fold(plan.name, plan.nodes, self.launcher.specs.values(),
+                          self.launcher.links.values(), plan.code.module_servers, plan.timeout)
+        return {"system": folded.tables, "problems": folded.problems}
 
     def stats(self, *, timeout: float | None = None) -> SystemStats:
         with self._held("stats", timeout):

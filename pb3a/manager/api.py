@@ -84,6 +84,10 @@ def routes(session: Session) -> list[Route]:
     async def system(request: Request) -> Any:
         return await call(session.system)
 
+    async def system_toml(request: Request) -> Any:
+        return PlainTextResponse(await call(session.system_toml),
+                                 media_type="application/toml; charset=utf-8")
+
     async def layout(request: Request) -> Any:
         return await call(session.layout)
 
@@ -127,7 +131,7 @@ def routes(session: Session) -> list[Route]:
         return await call(session.reload, await body_of(request))
 
     async def classes(request: Request) -> Any:
-        return await call(session.catalog.classes)
+        return await call(session.classes)
 
     document = session.document
 
@@ -170,6 +174,7 @@ def routes(session: Session) -> list[Route]:
 
     return [
         Route("/api/system", answer(system)),
+        Route("/api/system/toml", answer(system_toml)),
         Route("/api/layout", answer(layout)),
         Route("/api/stats", answer(stats)),
         Route("/api/classes", answer(classes)),

@@ -2,9 +2,11 @@
 
 Classes come from two places: the project's own directories (the document's
 directory and the directories on ``sys.path`` outside the Python installation),
-and the module servers the document names (``module_servers``; each lists what it
-serves). A Python file is imported only if its top level merely defines things
-(imports, classes, functions, assignments, an ``if __name__ == "__main__"`` block):
+and module servers (each lists what it serves): those the document names
+(``module_servers``) and, when the manager is attached to a running system, those
+that system's nodes import from (its topology's ``module_servers``). A Python file
+is imported only if its top level merely defines things (imports, classes,
+functions, assignments, an ``if __name__ == "__main__"`` block):
 a script that does its work when imported (``examples/quickstart.py`` launches a
 system) is left out, and said so in ``problems``. What one import finds is kept
 until ``forget`` (after a reload).
@@ -19,6 +21,7 @@ import logging
 import sys
 import sysconfig
 import threading
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -49,20 +52,25 @@ REPR_CHARS = 200
 
 
 class Catalog:
-    """The classes on the project's path and on the document's module servers."""
+    """The classes on the project's path and on module servers."""
 
     def __init__(self, document: Document, roots: list[Path] | None = None) -> None:
         self.document = document
         self._roots = roots                 # None: the project's directories on sys.path
         self._lock = threading.Lock()
         self._found: dict[str, Any] | None = None
+        self._servers: tuple[str, ...] = ()   # the servers asked for ``_found``
         self._classes: dict[str, type] = {}
 
-    def classes(self) -> dict[str, Any]:
-        """``GET /api/classes``: ``{"classes": [...], "problems": [...]}``."""
+    def classes(self, servers: Sequence[str] = ()) -> dict[str, Any]:
+        """``GET /api/classes``: ``{"classes": [...], "problems": [...]}``; ``servers``:
+        module servers to ask besides the document's (a running system's)."""
+        wanted = self._servers_with(servers)
         with self._lock:
-            if self._found is None:
-                self._found = self._scan()
+            if self._found is None or self._servers != wanted:
+                self._classes.clear()
+                self._found = self._scan(wanted)
+                self._servers = wanted
             return self._found
 
     def forget(self, module: str | None = None) -> None:
@@ -72,9 +80,10 @@ class Catalog:
             self._classes.clear()
 
     def fitting(self, topology: Topology, name: str) -> list[str]:
-        """The catalog's classes that could replace module ``name``'s: every port it has,
-        of a type each link on it accepts (as ``swap`` checks)."""
-        self.classes()
+        """The catalog's classes (the topology's module servers asked too) that could
+        replace module ``name``'s: every port it has, of a type each link on it accepts
+        (as ``swap`` checks)."""
+        self.classes(topology.module_servers)
         module = topology.modules[name]
         links = [link for link in topology.links.values()
                  if link.src.rpartition(".")[0] == name or link.dst.rpartition(".")[0] == name]
@@ -97,14 +106,19 @@ class Catalog:
         return fits
 
     # -- looking ------------------------------------------------------------------
-    def _scan(self) -> dict[str, Any]:
+    def _servers_with(self, servers: Sequence[str]) -> tuple[str, ...]:
+        """The document's module servers, then ``servers``, each once."""
+        named = self.document.data().get("module_servers", [])
+        named = [s for s in named if isinstance(s, str)] if isinstance(named, list) else []
+        return tuple(dict.fromkeys([*named, *servers]))
+
+    def _scan(self, servers: tuple[str, ...]) -> dict[str, Any]:
         problems: list[str] = []
         modules: dict[str, str] = {}            # dotted name -> origin
         for root in self._directories():
             for name in _module_names(root, problems):
                 modules.setdefault(name, "path")
-        servers = self.document.data().get("module_servers", [])
-        if isinstance(servers, list) and servers:
+        if servers:
             modules.update({name: origin for name, origin in self._served(servers, problems)
                             .items() if name not in modules})
         entries = []
@@ -135,7 +149,7 @@ class Catalog:
             roots.insert(0, self.document.path.resolve().parent)
         return list(dict.fromkeys(roots))
 
-    def _served(self, servers: list[str], problems: list[str]) -> dict[str, str]:
+    def _served(self, servers: tuple[str, ...], problems: list[str]) -> dict[str, str]:
         """The modules each server lists (whose source only defines things), importable
         through the served finder from now on."""
         found: dict[str, str] = {}

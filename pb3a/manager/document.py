@@ -11,6 +11,7 @@ and compiled; a half-built system is kept, its problems listed.
 from __future__ import annotations
 
 import threading
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -109,6 +110,18 @@ class Document:
         target.write_text(text, encoding="utf-8")
         self.path = target
         return target
+
+
+def toml_text(tables: dict[str, Any], comments: Sequence[str] = ()) -> str:
+    """A new configuration file saying ``tables``: tables and arrays of tables where a
+    configuration has them, inline tables elsewhere; ``comments`` first, one a line."""
+    doc = tomlkit.document()
+    for line in comments:
+        doc.add(tomlkit.comment(line))
+    if comments:
+        doc.add(tomlkit.nl())
+    _merge(doc, tables, ())
+    return tomlkit.dumps(doc)
 
 
 def check_data(data: dict[str, Any], source: str) -> tuple[Plan, list[str]]:

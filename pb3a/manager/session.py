@@ -26,7 +26,7 @@ from pb3a.errors import ConfigError, ModuleNotFound
 from pb3a.loading.references import resolve_class
 from pb3a.manager import reflection
 from pb3a.manager.catalog import Catalog
-from pb3a.manager.document import Document
+from pb3a.manager.document import Document, toml_text
 from pb3a.manager.layout import layout
 from pb3a.model.ports import Policy
 from pb3a.system import System
@@ -123,10 +123,19 @@ class Session:
         return {**topology.to_json(), "mode": self.mode,
                 "address": getattr(handle, "address", None) if handle is not None else None}
 
+    def system_toml(self) -> str:
+        """``GET /api/system/toml``: the running system as it is now, as a configuration
+        file that launches it again; what TOML cannot hold is named in comments on top."""
+        written = self.handle.configuration(timeout=self.timeout)
+        comments = [f"The system {written['system'].get('name')!r} as it ran when saved by "
+                    "the PB3A manager (GET /api/system/toml)."]
+        comments += [f"Not written: {problem}" for problem in written["problems"]]
+        return toml_text(written["system"], comments)
+
     def layout(self, topology: Topology | None = None) -> dict[str, Any]:
         """``GET /api/layout``: Graphviz's, computed once per structure."""
         topology = topology or self.topology()
-        shape = (tuple((name, m.node, tuple(m.inputs), tuple(m.outputs))
+        shape = (tuple((name, m.cls, m.node, tuple(m.inputs), tuple(m.outputs))
                        for name, m in topology.modules.items()),
                  tuple(topology.links), tuple(topology.nodes))
         found = self._layouts.get(shape)
@@ -136,6 +145,12 @@ class Session:
                 self._layouts.clear()
             self._layouts[shape] = found
         return found
+
+    def classes(self) -> dict[str, Any]:
+        """``GET /api/classes``: the catalog, with the running system's module servers
+        asked too (attached to a system, they are where its code comes from)."""
+        servers = self.topology().module_servers if self._handle is not None else ()
+        return self.catalog.classes(servers)
 
     def stats(self) -> dict[str, Any]:
         """``GET /api/stats``."""
@@ -188,8 +203,10 @@ class Session:
 
     # -- changes ------------------------------------------------------------------
     def migrate(self, name: str, to: Any) -> dict[str, Any]:
-        """``POST /api/modules/{name}/migrate``: the migration report."""
-        topology = self.topology_of(name)
+        """``POST /api/modules/{name}/migrate``: the migration report. ``name`` may be a
+        macro: its modules move one after another (as ``migrate`` on the control surface
+        does), and the report sums them."""
+        topology = self.topology_of(name, macros=True)
         if not isinstance(to, str):
             raise Malformed("send the node to move to: {\"to\": \"NODE\"}")
         if to not in topology.nodes:
@@ -270,13 +287,17 @@ class Session:
         return {"reloaded": module}
 
     # -- helpers ------------------------------------------------------------------
-    def topology_of(self, name: str) -> Topology:
-        """The structure, checked to have module ``name`` (ModuleNotFound otherwise)."""
+    def topology_of(self, name: str, *, macros: bool = False) -> Topology:
+        """The structure, checked to have module ``name`` (or, with ``macros``, macro
+        ``name``); ModuleNotFound otherwise."""
         topology = self.topology()
-        if name not in topology.modules:
-            raise ModuleNotFound(f"no module {name!r} in system {topology.system!r}; "
-                                 f"modules: {', '.join(topology.modules) or '(none)'}")
-        return topology
+        if name in topology.modules or (macros and name in topology.macros):
+            return topology
+        known = f"modules: {', '.join(topology.modules) or '(none)'}"
+        if macros and topology.macros:
+            known += f"; macros: {', '.join(topology.macros)}"
+        raise ModuleNotFound(f"no {'module or macro' if macros else 'module'} {name!r} in "
+                             f"system {topology.system!r}; {known}")
 
     @staticmethod
     def _class(ref: Any) -> str:

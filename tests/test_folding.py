@@ -1,0 +1,80 @@
+"""A system's flat structure folded back into a configuration's tables: read again,
+they make the same plan (modules, their settings, links, nodes), macros included."""
+
+from __future__ import annotations
+
+import numpy as np
+from sample_modules import Chain, FloatSource, Last, Outer, Scale
+
+from pb3a import System
+from pb3a.config.compiler import build_plan, sketch_plan
+from pb3a.config.description import read_description
+from pb3a.config.folding import fold
+from pb3a.config.plan import FlatModule, Plan
+from pb3a.loading.references import class_ref
+
+
+def folded_again(plan: Plan) -> tuple[dict, list[str], Plan]:
+    folded = fold(plan.name, plan.nodes, plan.modules.values(), plan.links,
+                  plan.code.module_servers, plan.timeout)
+    again, problems = sketch_plan(read_description(folded.tables, "the folded tables"))
+    assert problems == [], problems
+    return folded.tables, folded.problems, again
+
+
+def shape(plan: Plan) -> tuple[dict, dict, dict]:
+    """What must survive: each module's settings, each link's policy, each node.
+    (Classes by reference: another test may have reloaded their module meanwhile.)"""
+    modules = {m.name: (class_ref(m.cls), m.node, m.period, m.state, m.restart, m.group, m.fallback)
+               for m in plan.modules.values()}
+    links = {link.key: str(link.policy) for link in plan.links}
+    nodes = {n.name: (n.address, n.workers, n.cpus, n.advertise) for n in plan.nodes.values()}
+    return modules, links, nodes
+
+
+def test_nested_macros_links_through_them_and_every_setting_come_back() -> None:
+    system = System("folded", timeout=12.0).node("a", workers=2).node("b", cpus=[0])
+    system.add("src", FloatSource, node="a", period=0.02, state={"value": 3.0})
+    system.add("outer", Outer, node="b")
+    system.add("pair", Chain, node="a")
+    system.add("last", Last, node="b", restart="fresh", fallback=["a"], group="sinks")
+    system.add("tail", Scale, node="b", group="sinks", state={"gain": 0.5})
+    system.link("src.out", "outer.x", policy="queue:8")
+    system.link("outer.y", "pair.x")
+    system.link("pair.y", "last.x")
+    system.link("env-a.cpu", "tail.x")
+    plan = build_plan(system._spec)
+    tables, problems, again = folded_again(plan)
+    assert problems == []
+    assert shape(again) == shape(plan)
+    assert list(again.modules) == list(plan.modules)           # the start order too
+    # each macro instance is a definition of its own; links go through their exports
+    assert set(tables["macros"]) == {"outer", "outer-chain", "pair"}
+    assert tables["modules"]["outer"] == {"macro": "outer"}
+    assert tables["macros"]["outer"]["modules"]["chain"] == {"macro": "outer-chain"}
+    assert {"from": "src.out", "to": "outer.chain_a_x", "policy": "queue:8"} in tables["links"]
+    assert tables["macros"]["outer"]["exports"]["chain_a_x"] == "chain.a_x"
+    assert tables["macros"]["outer-chain"]["exports"]["a_x"] == "a.x"
+    assert {"from": "a.y", "to": "b.x"} in tables["macros"]["pair"]["links"]
+    assert "env-a" not in tables["modules"]        # the compiler adds it again for the link
+    assert tables["timeout"] == 12.0 and tables["nodes"]["b"] == {"cpus": [0]}
+
+
+def test_a_changed_system_and_what_toml_cannot_hold() -> None:
+    system = System("plain", workers=3)
+    system.add("src", FloatSource)
+    system.add("scale", Scale)
+    system.link("src.out", "scale.x")
+    plan = build_plan(system._spec)
+    # as a running system may have it after an add with an array as its state
+    plan.modules["held"] = FlatModule("held", Scale, "local", None,
+                                      {"gain": np.float64(4.0), "setups": np.zeros(3)},
+                                      "never")
+    tables, problems, again = folded_again(plan)
+    assert "nodes" not in tables and tables["workers"] == 3          # the implicit node
+    assert tables["modules"]["held"]["state"] == {"gain": 4.0}
+    assert type(tables["modules"]["held"]["state"]["gain"]) is float
+    assert problems == ["module held: its configured state 'setups' (ndarray) has no TOML "
+                        "form, left out: it starts with its class's value"]
+    assert again.modules["held"].state == {"gain": 4.0}
+    assert set(again.modules) == {"src", "scale", "held"}

@@ -1,0 +1,93 @@
+"""The manager attached to a system launched elsewhere (``pb3a manager tcp://...``):
+its module browser and swap picker ask the system's own module servers."""
+
+from __future__ import annotations
+
+import textwrap
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("starlette", reason="the manager needs the 'ui' extra")
+
+from test_manager_api import manager_client
+
+from pb3a import System, connect
+from pb3a.daemons.module_server import ModuleServer
+from pb3a.manager.catalog import Catalog
+from pb3a.manager.document import Document
+from pb3a.manager.session import Session
+from pb3a.transport.auth import ClusterKey
+
+pytestmark = pytest.mark.timeout(60)
+
+SERVED = '''
+"""Classes only the module server has."""
+from pb3a import Input, Module, Output
+
+class Emitter(Module):
+    """Writes its value."""
+    out = Output(float)
+    period = 0.01
+    value = 1.0
+
+    def step(self):
+        self.out.write(self.value)
+
+class Halver(Module):
+    """Halves what it reads."""
+    x = Input(float)
+    y = Output(float)
+
+    def on_input(self, port):
+        self.y.write(port.read() / 2)
+
+class Thirder(Halver):
+    """Divides by three: the same ports as Halver."""
+
+    def on_input(self, port):
+        self.y.write(port.read() / 3)
+
+class Worder(Module):
+    """Reads text: does not fit where Halver is."""
+    x = Input(str)
+    y = Output(float)
+'''
+
+
+@pytest.fixture
+def server(tmp_path: Path) -> Iterator[ModuleServer]:
+    root = tmp_path / "code"
+    root.mkdir()
+    (root / "pb3a_manager_served.py").write_text(textwrap.dedent(SERVED))
+    served = ModuleServer(root, ClusterKey.load())
+    yield served
+    served.close()
+
+
+def test_attached_the_catalog_and_swaps_come_from_the_system_s_module_servers(server) -> None:
+    system = System("served", module_servers=[server.address])
+    system.add("emit", "pb3a_manager_served:Emitter")
+    system.add("half", "pb3a_manager_served:Halver")
+    system.link("emit.out", "half.x")
+    with system.launch(listen="tcp://127.0.0.1:0") as run:
+        document = Document.empty()       # attached: the document names no module server
+        session = Session(document, connect(run.address), owns_handle=True,
+                          catalog=Catalog(document, roots=[]))
+        with manager_client(session) as client:
+            assert client.get("/api/system").json()["module_servers"] == [server.address]
+            catalog = client.get("/api/classes").json()
+            found = {entry["class"]: entry for entry in catalog["classes"]}
+            assert set(found) == {f"pb3a_manager_served:{name}"
+                                  for name in ("Emitter", "Halver", "Thirder", "Worder")}
+            assert found["pb3a_manager_served:Halver"]["origin"] == server.address
+            assert found["pb3a_manager_served:Halver"]["inputs"] == {
+                "x": {"type": "float", "policy": "latest"}}
+            fitting = client.get("/api/modules/half/swaps").json()["classes"]
+            assert fitting == ["pb3a_manager_served:Thirder"]
+            swapped = client.post("/api/modules/half/swap",
+                                  json={"class": "pb3a_manager_served:Thirder"})
+            assert swapped.status_code == 200, swapped.json()
+            assert run.topology().modules["half"].cls == "pb3a_manager_served:Thirder"
+        assert run.topology().modules["emit"].node == "local"    # still runs: attached only

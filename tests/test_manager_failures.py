@@ -1,0 +1,114 @@
+"""Real failures as the manager's page sees them, through the API and the websocket: a
+module that raises in its body, a module whose worker is killed, and a remote node
+(``pb3a node start``) that is lost and then comes back."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+
+pytest.importorskip("starlette", reason="the manager needs the 'ui' extra")
+
+from conftest import Daemon
+from sample_modules import Collector, Counter, Faulty, Steady
+from test_manager_api import manager_client
+
+from pb3a import System
+from pb3a.manager.document import Document
+from pb3a.manager.session import Session
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def receive_until(socket: Any, wanted: Callable[[dict[str, Any]], bool], what: str,
+                  timeout: float = 20.0) -> list[dict[str, Any]]:
+    """The messages the feed sends until one is ``wanted`` (that one last); fail after
+    ``timeout`` seconds. The feed sends stats every refresh, so each wait is short."""
+    seen: list[dict[str, Any]] = []
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        message = socket.receive_json()
+        seen.append(message)
+        if wanted(message):
+            return seen
+    pytest.fail(f"the feed sent no {what} within {timeout} s; it sent "
+                f"{[m['type'] for m in seen]}")
+
+
+def event_of(kind: str, subject: str) -> Callable[[dict[str, Any]], bool]:
+    return lambda m: (m["type"] == "event" and m["event"]["kind"] == kind
+                      and m["event"]["subject"] == subject)
+
+
+def stats_where(check: Callable[[dict[str, Any]], bool]) -> Callable[[dict[str, Any]], bool]:
+    return lambda m: m["type"] == "stats" and check(m["stats"])
+
+
+def test_a_module_that_raises_and_one_whose_worker_dies_are_seen_failing() -> None:
+    system = System("failing")
+    system.add("boom", Faulty)
+    system.add("steady", Steady, restart="never")
+    with system.launch() as run, manager_client(Session(Document.empty(), run)) as client, \
+            client.websocket_connect("/api/live") as socket:
+        assert socket.receive_json()["type"] == "hello"
+        # raising in its body: counted, the last error shown, the module goes on
+        seen = receive_until(socket, stats_where(
+            lambda s: s["modules"]["boom"]["errors"] > 0), "errors of boom")
+        boom = seen[-1]["stats"]["modules"]["boom"]
+        assert "ValueError: odd step" in boom["last_error"] and boom["status"] == "running"
+        # its worker killed: failed, as an event, in the stats and in the structure's feed
+        pid = client.get("/api/stats").json()["modules"]["steady"]["pid"]
+        assert pid and pid != os.getpid()
+        os.kill(pid, signal.SIGKILL)
+        seen = receive_until(socket, event_of("module_failed", "steady"), "module_failed")
+        assert seen[-1]["event"]["detail"]["exit_code"] == -signal.SIGKILL
+        receive_until(socket, stats_where(
+            lambda s: s["modules"]["steady"]["status"] == "failed"), "steady failed")
+        stats = client.get("/api/stats").json()
+        assert stats["modules"]["steady"]["status"] == "failed"
+        assert any("module steady failed" in failure for failure in stats["failures"])
+        assert stats["modules"]["boom"]["status"] == "running"
+
+
+def test_a_lost_remote_node_is_seen_lost_then_rejoined() -> None:
+    node = Daemon("b")
+    try:
+        system = System("remote").node("a").node("b", address=node.address)
+        system.add("src", Counter, node="a", period=0.01)
+        system.add("far", Collector, node="b", restart="fresh", fallback=["a"])
+        system.link("src.out", "far.x")
+        with system.launch() as run, \
+                manager_client(Session(Document.empty(), run)) as client, \
+                client.websocket_connect("/api/live") as socket:
+            assert socket.receive_json()["type"] == "hello"
+            before = client.get("/api/system").json()
+            assert before["nodes"]["b"]["up"] is True
+            assert before["nodes"]["b"]["address"] == node.address
+            assert before["modules"]["far"]["node"] == "b"
+            node.kill()                     # the machine's daemon and its executor go
+            seen = receive_until(socket, lambda m: m["type"] == "system"
+                                 and m["system"]["nodes"]["b"]["up"] is False,
+                                 "the structure with node b lost")
+            lost = [m["event"] for m in seen if m["type"] == "event"
+                    and m["event"]["kind"] == "node_lost"]
+            assert lost and lost[0]["subject"] == "b" and lost[0]["detail"]["modules"] == [
+                "far"]
+            assert client.get("/api/system").json()["nodes"]["b"]["up"] is False
+            stats = client.get("/api/stats").json()
+            assert stats["nodes"]["b"]["up"] is False
+            assert any("node b lost" in failure for failure in stats["failures"])
+            receive_until(socket, event_of("module_failed_over", "far"), "far failed over")
+            assert client.get("/api/system").json()["modules"]["far"]["node"] == "a"
+            node.start()                    # the daemon comes back at the same address
+            receive_until(socket, event_of("node_joined", "b"), "node b joined", timeout=30)
+            receive_until(socket, stats_where(lambda s: s["nodes"]["b"]["up"] is True),
+                          "stats with node b up")
+            assert client.get("/api/system").json()["nodes"]["b"]["up"] is True
+            assert client.get("/api/stats").json()["nodes"]["b"]["up"] is True
+    finally:
+        node.stop()
