@@ -164,10 +164,12 @@ export class Schematic {
       for (const [node, boxes] of groups) {
         const outer = this.hiddenBy(macros[macro][0]);
         if (outer && outer !== macro) continue;            // inside a larger folded macro
-        const x0 = Math.min(...boxes.map((b) => b.at.x)) - 10;
-        const y0 = Math.min(...boxes.map((b) => b.at.y)) - 22;
-        const x1 = Math.max(...boxes.map((b) => b.at.x + b.box.w)) + 10;
-        const y1 = Math.max(...boxes.map((b) => b.at.y + b.box.h)) + 10;
+        // the server's frame (a cluster Graphviz made room for), else one around the boxes
+        const given = this.layout.macros?.[macro]?.[node];
+        const x0 = given ? given.x : Math.min(...boxes.map((b) => b.at.x)) - 10;
+        const y0 = given ? given.y : Math.min(...boxes.map((b) => b.at.y)) - 22;
+        const x1 = given ? given.x + given.w : Math.max(...boxes.map((b) => b.at.x + b.box.w)) + 10;
+        const y1 = given ? given.y + given.h : Math.max(...boxes.map((b) => b.at.y + b.box.h)) + 10;
         const folded = this.collapsed.has(macro);
         const frame = {x: x0, y: y0, w: folded ? Math.min(x1 - x0, 190) : x1 - x0,
                        h: folded ? 64 : y1 - y0};
