@@ -51,7 +51,7 @@ class Manager {
       system: (m) => this.setStructure(m.system, m.layout),
       stats: (m) => this.onStats(m),
       event: (m) => this.onEvent(m.event),
-      state: (m) => { if (m.module === this.selected && this.mode() === "running") this.editor.update(m.state); },
+      state: (m) => this.onState(m),
       status: (up) => this.onConnection(up),
     });
     $("fit").addEventListener("click", () => this.schematic.fit());
@@ -154,6 +154,14 @@ class Manager {
       "and what drawing it took in this page";
     this.stats = message.stats;
     if (this.selected) this.describeSelected();
+  }
+
+  /** A refresh of the watched module's state, or why it could not be read (it may be
+   * gone, or slow to answer): the fields stay, the reason shows above them. */
+  onState(message) {
+    if (message.module !== this.selected || this.mode() !== "running") return;
+    if (message.state) this.editor.update(message.state);
+    this.editor.problem(message.state ? null : message.error || "its state could not be read");
   }
 
   onEvent(event) {

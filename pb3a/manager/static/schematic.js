@@ -13,10 +13,8 @@ const HEADER = 24;          // a module box's title band, above its ports
 const PORT_R = 4.5;
 const DRAG_THRESHOLD = 4;   // pixels a press moves before it counts as a drag
 const PAD = 24;             // around the drawing, in layout pixels
-const MODULE_H = 84;        // the least height a module box needs for its title, ports, figures
 const MAX_ZOOM = 1.4;       // a fitted small system is magnified this much at most
 const MAX_SHRINK = 3.5;     // and a large one shrunk this much at most: still legible
-const WIDEN = 1.3;          // and a little wider still, for the links' figures between boxes
 const PLACEABLE = ["application/x-pb3a-class", "application/x-pb3a-macro"];   // dropped from the browser
 
 export class Schematic {
@@ -50,7 +48,7 @@ export class Schematic {
     const before = new Map([...this.boxes].map(([name, box]) => [name, {...box.at, node: box.info.node}]));
     const focused = this.svg.contains(document.activeElement) ? focusKey(document.activeElement) : null;
     this.system = system;
-    this.layout = layout = withEveryNode(roomy(layout), system);
+    this.layout = layout;            // in the page's pixels, every node included (the server's)
     this.svg.replaceChildren();
     this.boxes.clear();
     this.links.clear();
@@ -525,40 +523,6 @@ export class Schematic {
     this.view = view;
     this.svg.setAttribute("viewBox", `${view.x} ${view.y} ${view.w} ${view.h}`);
   }
-}
-
-/** Graphviz sizes boxes for 10-point labels; the page draws more in each (ports, figures),
- * so the whole layout is scaled until the smallest module box has room for them. */
-function roomy(layout) {
-  if (layout.scaled) return layout;
-  const heights = Object.values(layout.modules || {}).map((b) => b.h).filter((v) => v > 0);
-  const k = heights.length ? Math.min(4, Math.max(1, MODULE_H / Math.min(...heights))) : 1;
-  const kx = k * WIDEN;
-  const box = (b) => ({x: b.x * kx, y: b.y * k, w: b.w * kx, h: b.h * k});
-  const each = (boxes) => Object.fromEntries(Object.entries(boxes || {}).map(([n, b]) => [n, box(b)]));
-  return {
-    ...layout, scaled: k, width: layout.width * kx, height: layout.height * k,
-    clusters: each(layout.clusters), modules: each(layout.modules),
-    links: Object.fromEntries(Object.entries(layout.links || {}).map(([key, l]) =>
-      [key, {...l, points: (l.points || []).map(([x, y]) => [x * kx, y * k])}])),
-  };
-}
-
-/** A node that runs no module still needs a region to drop a module on: Graphviz leaves
- * empty clusters out, so each missing one is put to the right of the drawing. */
-function withEveryNode(layout, system) {
-  const missing = Object.keys(system.nodes || {}).filter((node) => !layout.clusters?.[node]);
-  if (!missing.length) return layout;
-  const clusters = {...layout.clusters};
-  const boxes = Object.values(clusters);
-  const h = Math.max(170, ...boxes.map((b) => b.h));
-  const y = boxes.length ? Math.min(...boxes.map((b) => b.y)) : 0;
-  let x = boxes.length ? Math.max(...boxes.map((b) => b.x + b.w)) + 40 : 0;
-  for (const node of missing) {
-    clusters[node] = {x, y, w: 230, h, empty: true};
-    x += 270;
-  }
-  return {...layout, clusters, width: Math.max(layout.width, x - 40), height: Math.max(layout.height, y + h)};
 }
 
 /** A selector that finds the same focusable part of the drawing after a redraw. */

@@ -62,6 +62,14 @@ export class StateEditor {
     }
   }
 
+  /** Say above the fields why the last refresh failed (null: it did not). */
+  problem(message) {
+    let line = this.root.querySelector(":scope > .state-problem");
+    if (!message) return line?.remove();
+    line ??= this.root.insertAdjacentElement("afterbegin", h("p", {class: "problem state-problem"}));
+    line.textContent = message;
+  }
+
   makeRow(name, field, signature) {
     const message = h("div", {class: "field-message"});
     const element = h("div", {class: `field type-${field.type}`, dataset: {field: name}});
