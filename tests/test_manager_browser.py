@@ -175,6 +175,15 @@ def module_on_node(page: Any, module: str, node: str) -> bool:
                   box_of(page, f"[data-node='{node}'] > rect"))
 
 
+def wait_until_inside(page: Any, inner: str, outer: str) -> None:
+    """Wait until the element ``inner`` is drawn inside ``outer`` (a move glides there)."""
+    page.wait_for_function("""([inner, outer]) => {
+        const box = (selector) => document.querySelector(selector)?.getBoundingClientRect();
+        const m = box(inner), n = box(outer);
+        return !!m && !!n && m.left >= n.left && m.right <= n.right && m.top >= n.top
+            && m.bottom <= n.bottom; }""", arg=[inner, outer], timeout=WAIT_MS)
+
+
 def drag(page: Any, source: dict[str, float], target: dict[str, float]) -> None:
     """Press on the middle of ``source``, move in steps, release low in ``target``."""
     page.mouse.move(source["x"] + source["width"] / 2, source["y"] + source["height"] / 2)
@@ -248,11 +257,7 @@ def test_dragging_a_module_onto_another_node_migrates_it(lab: ManagerProcess, pa
     # the report answers the request, maybe after the event came over the websocket
     page.wait_for_selector(".toast.ok >> text=paused", timeout=WAIT_MS)
     assert lab.api("GET", "/api/system")["modules"]["probe"]["node"] == "a"
-    page.wait_for_function("""() => {
-        const box = (selector) => document.querySelector(selector).getBoundingClientRect();
-        const m = box("[data-module='probe'] .module-box"), n = box("[data-node='a'] > rect");
-        return m.left >= n.left && m.right <= n.right && m.top >= n.top && m.bottom <= n.bottom;
-    }""", timeout=WAIT_MS)
+    wait_until_inside(page, "[data-module='probe'] .module-box", "[data-node='a'] > rect")
     # The live view's screenshot: the probe on a, the move in the events, the figures
     # live, the probe's plot drawing the ripple the sensor now adds.
     lab.api("POST", "/api/modules/sensor/state", {"ripple": 0.4})
@@ -601,6 +606,19 @@ def test_a_module_renamed_in_the_editor_keeps_its_links(tmp_path: Path) -> None:
         page.press("#rename-input", "Enter")
         page.wait_for_selector(".toast.error >> text=letters, digits", timeout=WAIT_MS)
         assert "amplifier" in document_of(manager)["system"]["modules"]
+        # its node from the menu, as a drag would; then scale2 removed with Delete
+        page.click("[data-menu='move to node']")
+        page.click("[role=menuitem][data-value='a']")
+        wait_until_inside(page, "[data-module='amplifier'] .module-box", "[data-node='a'] > rect")
+        assert document_of(manager)["system"]["modules"]["amplifier"]["node"] == "a"
+        page.focus("[data-module='scale2']")
+        page.keyboard.press("Enter")
+        page.keyboard.press("Delete")
+        page.click("dialog.confirm button[value=ok]")
+        page.wait_for_selector("[data-module='scale2']", state="detached", timeout=WAIT_MS)
+        system = document_of(manager)["system"]
+        assert "scale2" not in system["modules"]
+        assert system["links"] == [{"from": "ticker.out", "to": "amplifier.x"}]
         saved_and_checked(manager, page, tmp_path / "renamed.toml")
 
 
@@ -797,11 +815,8 @@ def test_a_folded_macro_dragged_to_another_node_moves_with_all_its_modules(
             assert {modules[name]["node"] for name in ("front/sensor", "front/scale")} == {"b"}
             assert modules["probe"]["node"] == "a"
             # still folded, now drawn on b; opened, both its modules are there
-            page.wait_for_function("""() => {
-                const box = (s) => document.querySelector(s).getBoundingClientRect();
-                const m = box(".macro.folded[data-macro='front'] > rect");
-                const n = box("[data-node='b'] > rect");
-                return m.left >= n.left && m.right <= n.right; }""", timeout=WAIT_MS)
+            wait_until_inside(page, ".macro.folded[data-macro='front'] > rect",
+                              "[data-node='b'] > rect")
             page.click("[data-toggle='front']")
             page.wait_for_selector("[data-module='front/scale']", state="visible")
             assert module_on_node(page, "front/sensor", "b")
