@@ -25,6 +25,7 @@ class Manager {
     this.selected = null;          // the module or macro instance the inspector shows
     this.selection = new Set();    // everything selected (Shift-click adds), the last one shown
     this.document = null;          // an EditedDocument in FILE mode
+    this.macroDrawn = null;        // what the inspector last drew for a macro instance
     this.lastMove = new Map();     // module -> its last MigrationReport, shown in the inspector
     this.updates = 0;              // live updates drawn, and what the last one cost (ms)
     this.drawMs = null;
@@ -207,6 +208,7 @@ class Manager {
     $("inspector-empty").hidden = true;
     $("inspector-body").hidden = false;
     $("inspector-name").textContent = this.selection.size > 1 ? `${this.selection.size} selected` : name;
+    this.macroDrawn = null;
     this.describeSelected();
     this.drawActions(name);
     if (this.selection.size > 1 || this.isMacro(name)) {
@@ -350,11 +352,10 @@ class Manager {
 
   macroActions(macro, button) {
     const folded = this.schematic.isFolded(macro);
-    const actions = [button(folded ? "Open" : "Close", () => {
+    const actions = [h("button", {type: "button", class: "small", id: "macro-fold", onclick: () => {
       this.schematic.toggleMacro(macro);
       this.drawActions(macro);
-    })];
-    actions[0].id = "macro-fold";
+    }}, folded ? "Open" : "Close")];
     if (this.mode() === "running" || this.isEntry(macro)) actions.push(this.moveMenu(macro));
     if (this.isEntry(macro)) {
       actions.push(this.renameControl(macro), button("Remove", () => this.requestRemove(macro), "danger"));
@@ -368,6 +369,10 @@ class Manager {
     const modules = this.system.macros[macro] || [];
     const entry = this.isEntry(macro) ? this.document.system.modules[macro] : null;
     const nodes = [...new Set(modules.map((m) => this.stats?.modules?.[m]?.node ?? this.system.modules[m]?.node))];
+    // redrawn only when it changed: a refresh must not take the focus from its buttons
+    const drawn = JSON.stringify([macro, modules, nodes, entry]);
+    if (drawn === this.macroDrawn) return;
+    this.macroDrawn = drawn;
     $("inspector-meta").replaceChildren(...[
       h("span", {}, ["macro instance", entry ? [" of ", h("strong", {}, entry.macro)] : ""]),
       h("span", {}, `${modules.length} module${modules.length === 1 ? "" : "s"}`),
