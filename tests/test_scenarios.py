@@ -76,4 +76,6 @@ def test_sim_to_real_learns_in_lock_step_then_moves_the_learner_to_the_robot(tmp
     for name in ("with_transfer", "alone"):
         assert figures["hardware"][name]["episodes"] >= 5, figures["hardware"]
         assert figures["hardware"][name]["success_rate_at_end"] is not None
+        # the hardware worlds kept (near enough) the pace they were served at
+        assert figures["hardware"][name]["times_real_time"] >= 0.8 * figures["hardware_rate"]
     assert (tmp_path / "sim_to_real.png").stat().st_size > 10_000
