@@ -15,7 +15,7 @@ own) from the start.
 Measured in the run: the transfer time (the agent's decision to the driver
 re-pointed at the hardware robot, with the learner on its node), the success rate
 at the end for both, and the hardware time each needs to reach ``TARGET`` (a success
-rate over the last episodes). Goals: transfer at most 0.25 s; at least 3x less
+rate over the last episodes) and keep it. Goals: transfer at most 0.25 s; at least 3x less
 hardware time with transfer than without. A ``--quick`` run serves the hardware
 worlds at 10x real time to fit in two minutes (hardware time is the hardware
 world's own clock either way, and the report gives the pace each world kept); the
@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import copy
 import json
 import sys
 import time
@@ -72,7 +71,7 @@ class LearningRecorder(Module):
 def configuration(simulated: Lab, hardware: Lab, baseline: Lab, rate: float,
                   seed: int) -> System:
     """``sim_to_real.toml`` with this run's addresses, the driver's period for the
-    hardware worlds' rate, the seeds, and the baseline ``alone``."""
+    hardware worlds' rate, and the seeds."""
     data = tomllib.loads(CONFIG.read_text())
     data["nodes"]["robot"]["address"] = hardware.nodes["robot"].address
     data["nodes"]["other"]["address"] = baseline.nodes["other"].address
@@ -80,12 +79,9 @@ def configuration(simulated: Lab, hardware: Lab, baseline: Lab, rate: float,
     brain["driver"]["period"] = brain["driver"].get("period", 0.1) / rate
     brain["driver"]["state"]["resource"] = simulated.robots["r1"]
     brain["learner"]["state"]["seed"] = seed
-    alone = copy.deepcopy(data["macros"]["brain"])
-    alone["modules"]["driver"]["state"].update(resource=baseline.robots["r1"], lockstep_s=0.0)
-    alone["modules"]["learner"]["state"]["seed"] = seed + 1
-    data["macros"]["alone"] = alone
-    data["modules"]["alone"] = {"macro": "alone", "node": "other"}
-    data["links"].append({"from": "alone.episode", "to": "recorder.alone"})
+    alone = data["modules"]["alone"]["state"]
+    alone["driver"]["resource"] = baseline.robots["r1"]
+    alone["learner"]["seed"] = seed + 1
     data["modules"]["transfer"]["state"]["to_resource"] = hardware.robots["r1"]
     return System.from_dict(data, source=str(CONFIG))
 
@@ -133,16 +129,27 @@ def rolling(episodes: list[dict[str, Any]], window: int) -> list[float]:
             for i in range(len(outcomes))]
 
 
-def time_to_target(episodes: list[dict[str, Any]], since: float) -> float | None:
+def time_to_target(episodes: list[dict[str, Any]], since: float, *,
+                   held: bool = True) -> float | None:
     """Hardware seconds from the hardware world's time ``since`` until the success rate
-    over the last ``TARGET[1]`` episodes first reaches ``TARGET[0]`` (None: it did
-    not)."""
+    over the last ``TARGET[1]`` episodes reaches ``TARGET[0]`` for good: it never falls
+    below again, and a window of episodes or more follow to show it (None: it did not).
+    With ``held`` False, until it first reaches it: a learner that succeeds half the
+    time gets there on a lucky streak, which is why the speed-up uses the other."""
     rate_needed, window = TARGET
-    for count, (episode, success) in enumerate(zip(episodes, rolling(episodes, window),
-                                                   strict=True), 1):
-        if count >= window and success >= rate_needed:
-            return episode["clock"] - since
-    return None
+    since_index = None                   # where the run at or above the target began
+    for index, rate in enumerate(rolling(episodes, window)):
+        if index + 1 < window:
+            continue
+        if rate < rate_needed:
+            since_index = None
+        elif since_index is None:
+            since_index = index
+            if not held:
+                break
+    if since_index is None or (held and since_index > len(episodes) - 1 - window):
+        return None
+    return episodes[since_index]["clock"] - since
 
 
 def report(record: dict[str, Any]) -> dict[str, Any]:
@@ -155,9 +162,9 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
                   "alone": recorder["without"]}
     hardware_s = {name: (end - start) if start is not None else 0.0
                   for name, (start, end) in clocks.items()}
-    reached = {name: time_to_target(episodes, clocks[name][0])
-               if clocks[name][0] is not None else None
-               for name, episodes in by_learner.items()}
+    reached, first = ({name: time_to_target(episodes, clocks[name][0], held=held)
+                       if clocks[name][0] is not None else None
+                       for name, episodes in by_learner.items()} for held in (True, False))
     window = TARGET[1]
     figures: dict[str, Any] = {
         "scenario": "sim-to-real", "world": WORLD, "seed": record["seed"],
@@ -172,15 +179,16 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
         if moved else None,
         "move_s": round(transfer["moved_at"] - transfer["decided_at"], 3) if moved else None,
         "learner_node_at_end": record["learner_node_at_end"],
-        "target": {"success_rate": TARGET[0], "over_last_episodes": window},
+        "target": {"success_rate": TARGET[0], "over_last_episodes": window,
+                   "kept_to_the_end": True},
         "hardware": {name: {"episodes": len(episodes),
                             "success_rate_at_end": _rate(episodes, window),
                             "hardware_s": round(hardware_s[name], 1),
                             # the world's own pace: whether it kept the rate it was served at
                             "times_real_time": round(hardware_s[name]
                                                      / max(record["walls"][name], 1e-9), 1),
-                            "hardware_s_to_target": (round(reached[name], 1)
-                                                     if reached[name] is not None else None)}
+                            "hardware_s_to_target": _rounded(reached[name]),
+                            "hardware_s_first_at_target": _rounded(first[name])}
                      for name, episodes in by_learner.items()},
     }
     with_transfer, without = reached["with_transfer"], reached["alone"]
@@ -204,6 +212,10 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
                                    for e, r in zip(episodes, rolling(episodes, window),
                                                    strict=True)]
     return figures
+
+
+def _rounded(seconds: float | None) -> float | None:
+    return round(seconds, 1) if seconds is not None else None
 
 
 def _rate(episodes: list[dict[str, Any]], window: int) -> float | None:

@@ -301,6 +301,14 @@ def test_a_macro_instance_sets_the_state_of_its_modules() -> None:
     assert state["left/tail"] == state["left/chain/a"] == {}
 
 
+def test_an_integer_for_a_float_state_field_becomes_a_float() -> None:
+    import sample_modules as sm
+
+    state = System("w").add("s", sm.Scale, state={"gain": 4, "setups": 1}).plan().modules["s"].state
+    assert state == {"gain": 4.0, "setups": 1}
+    assert type(state["gain"]) is float and type(state["setups"]) is int
+
+
 def test_a_macro_instance_naming_a_module_it_lacks_or_bad_state_is_reported() -> None:
     import sample_modules as sm
 

@@ -79,3 +79,19 @@ def test_sim_to_real_learns_in_lock_step_then_moves_the_learner_to_the_robot(tmp
         # the hardware worlds kept (near enough) the pace they were served at
         assert figures["hardware"][name]["times_real_time"] >= 0.8 * figures["hardware_rate"]
     assert (tmp_path / "sim_to_real.png").stat().st_size > 10_000
+
+
+def test_sim_to_real_counts_a_target_reached_only_when_it_is_kept() -> None:
+    from scenarios.sim_to_real import time_to_target
+
+    def episodes(outcomes: str) -> list[dict]:
+        return [{"success": o == "s", "clock": 10.0 * (i + 1)} for i, o in enumerate(outcomes)]
+
+    lucky = episodes("fsfsfsssssss" + "fsfsfsfsfsfsfsfs")     # 7 of 10 once, then half
+    assert time_to_target(lucky, 0.0, held=False) == 100.0
+    assert time_to_target(lucky, 0.0) is None
+    learnt = episodes("ffssfsssss" + "s" * 12)
+    assert time_to_target(learnt, 5.0) == time_to_target(learnt, 5.0, held=False) == 95.0
+    late = episodes("f" * 10 + "s" * 12)                      # kept, but not for a window yet
+    assert time_to_target(late, 0.0, held=False) == 170.0
+    assert time_to_target(late, 0.0) is None

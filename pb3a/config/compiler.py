@@ -327,6 +327,7 @@ class _Planner:
                     self.report(extra.label, [f"state of {extra.key!r}: {problem}"
                                               for problem in checks.state(cls, extra.state)])
                     state.update(extra.state)
+                state = _widened(cls, state)
                 modules[path] = FlatModule(
                     path, cls, here or self.node_names[0],
                     float(period) if period is not None else cls.period, state,
@@ -373,3 +374,11 @@ class _Planner:
                     f"{module.node!r} ({module.name}); a group shares one worker process on one "
                     "node: give them the same node or different groups")])
 
+
+def _widened(cls: type[Module], state: dict[str, Any]) -> dict[str, Any]:
+    """``state`` with an integer given for a field whose class default is a float as
+    that float: TOML and JSON write 4.0 as 4 as often as not, and the module should not
+    get an int it never had."""
+    return {name: float(value) if type(value) is int
+            and type(getattr(cls, name, None)) is float else value
+            for name, value in state.items()}
