@@ -171,6 +171,7 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
         "quick": record["quick"], "hardware_rate": record["rate"],
         "simulation": {"episodes": len(in_simulation),
                        "success_rate_last_20": _rate(in_simulation, 20),
+                       "transfer_threshold": transfer["threshold"],
                        "simulated_s": round(record["simulated_s"], 1),
                        "wall_s": round(record["simulation_wall_s"], 1),
                        "times_real_time": round(record["simulated_s"]
@@ -232,7 +233,7 @@ def plot(figures: dict[str, Any], path: Path) -> None:
     fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.5))
     curves = figures["curves"]
     left.plot(range(1, len(curves["simulation"]) + 1), curves["simulation"], color="tab:purple")
-    left.axhline(0.8, color="0.7", linewidth=0.8)
+    left.axhline(figures["simulation"]["transfer_threshold"], color="0.7", linewidth=0.8)
     left.set_title(f"in simulation (lock-step): {figures['simulation']['simulated_s']:.0f} "
                    f"simulated s in {figures['simulation']['wall_s']:.0f} s", fontsize=10)
     left.set_xlabel("episode")
@@ -243,6 +244,9 @@ def plot(figures: dict[str, Any], path: Path) -> None:
         points = curves[name]
         right.plot([p[0] for p in points], [p[1] for p in points], color=colour, label=label,
                    marker=".", markersize=3)
+        kept_from = figures["hardware"][name]["hardware_s_to_target"]
+        if kept_from is not None:        # where the target was reached for good
+            right.axvline(kept_from, color=colour, linewidth=0.8, linestyle=":")
     right.axhline(TARGET[0], color="0.7", linewidth=0.8, label=f"target ({TARGET[0]:.0%})")
     right.set_title(f"on the hardware robot: transfer {figures['transfer_s']} s, "
                     f"speed-up {figures['speedup']['kind'] or ''} "
