@@ -125,3 +125,20 @@ def test_a_request_naming_a_module_the_server_cannot_import_is_answered_at_once(
         client.call("add", 10.0, a=_Elsewhere(), b=1)
     assert time.monotonic() - started < 2.0
     assert client.call("add", a=1, b=2) == 3            # the server goes on
+
+
+def test_requests_are_decoded_under_the_decode_lock() -> None:
+    """A node's executor imports the configuration's modules in the background; a
+    request naming a class waits for that, never importing beside it (two threads
+    importing through a circular import can get each other's half-made modules)."""
+    importing = threading.Lock()
+    server = ControlServer(KEY, handler, decode_lock=importing)
+    client = ControlClient(KEY, server.address)
+    try:
+        with importing:              # a background import is under way
+            with pytest.raises(RuntimeTimeout):
+                client.call("add", timeout=0.3, a=1, b=2)
+        assert client.call("add", timeout=5.0, a=1, b=2) == 3
+    finally:
+        client.close()
+        server.close()

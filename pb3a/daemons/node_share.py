@@ -202,7 +202,8 @@ def executor_main(config: str, node: str, workers: int, cpus: list[int] | None,
     share = NodeShare(config, node, workers, cpus, host)
     server = share.server = ControlServer(ClusterKey.load(), share.handle, host,
                                           name="pb3a-node-executor",
-                                          instant={"lease": share.renew})
+                                          instant={"lease": share.renew},
+                                          decode_lock=share.executor.import_lock)
     try:
         serve_as_child(conn, server.address, share.stopped)
     finally:

@@ -79,6 +79,7 @@ class Executor:
         self.rings: dict[str, ShmRing] = {}
         self.failures: list[str] = []                 # what went wrong, for stats and logs
         self.meter = ResourceMeter(cpus)              # the machine's CPU and memory
+        self.import_lock = threading.Lock()           # background imports vs requests
         self.handler: Any = None                      # applies agents' requests (op, args)
         self.republished: Any = None                  # told (link, endpoint) after a restart
         self.on_event: Any = None                     # told (kind, module, detail): restarts
@@ -106,8 +107,9 @@ class Executor:
         self.epoch = epoch
         self.workers.warm()
         # This process resolves the classes of modules that come to the node (a move,
-        # an add): import them now, in the background, not in a move's critical path.
-        threading.Thread(target=_import_quietly, args=(code.preload,),
+        # an add): import them now, in the background, not in a move's critical path;
+        # one at a time under ``import_lock``, which requests are decoded under too.
+        threading.Thread(target=_import_quietly, args=(code.preload, self.import_lock),
                          name="pb3a-preload", daemon=True).start()
 
     @property
@@ -615,9 +617,9 @@ def _topic(link: FlatLink) -> str:
     return f"{link.src}.{link.src_port}"
 
 
-def _import_quietly(modules: tuple[str, ...]) -> None:
-    """Import ``modules``; one that fails is left to fail, with its message, when a
-    module of it is added."""
+def _import_quietly(modules: tuple[str, ...], lock: threading.Lock) -> None:
+    """Import ``modules``, each holding ``lock``; one that fails is left to fail, with
+    its message, when a module of it is added."""
     for name in modules:
-        with contextlib.suppress(Exception):
+        with lock, contextlib.suppress(Exception):
             importlib.import_module(name)

@@ -16,6 +16,7 @@ error, so that a wrong key is told apart from a server that does not answer at a
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 import math
@@ -67,8 +68,14 @@ class ControlServer:
     def __init__(self, key: ClusterKey, handler: Callable[[str, dict[str, Any]], Any],
                  host: str = "127.0.0.1", port: int = 0, *, epoch: int = 0,
                  name: str = "pb3a-control",
-                 instant: Mapping[str, Callable[[dict[str, Any]], Any]] | None = None) -> None:
+                 instant: Mapping[str, Callable[[dict[str, Any]], Any]] | None = None,
+                 decode_lock: threading.Lock | None = None) -> None:
+        """``decode_lock``: held while a request is unpickled (which may import the
+        modules of the classes it names), by a process that also imports in the
+        background: CPython may hand one thread a module another is still importing
+        when the two imports go through a circular one."""
         self._handler = handler
+        self._decode_lock = decode_lock or contextlib.nullcontext()
         # answered on the socket thread, never queued: they must be quick and never block
         self._instant = {"ping": lambda args: "pong", **(instant or {})}
         self._loop = SocketLoop(f"{name}-io")
@@ -105,7 +112,8 @@ class ControlServer:
                 continue
             request_id = bytes(message.frames[0])
             try:
-                op, args = pickle.loads(message.frames[1])     # authenticated: safe
+                with self._decode_lock:
+                    op, args = pickle.loads(message.frames[1])     # authenticated: safe
             except Exception as exc:       # (a key holder's request: it gets an answer)
                 self._opener.rejected["undecodable"] += 1
                 self._reply(peer, request_id, False,
