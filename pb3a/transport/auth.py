@@ -2,20 +2,31 @@
 with the cluster key, and is checked before any byte of it is interpreted.
 
 A message is a kind and a list of parts. ``Sealer.seal`` puts a fixed header in
-front (magic, version, kind, epoch, sender, counter, send time) and a 16-byte tag
-behind. A small message travels as one ZeroMQ frame (pyzmq costs microseconds per
-frame); a large one as ``[header, *parts, tag]``, so that big arrays go without a
+front (magic, version, kind, flags, epoch, sender, counter, send time) and a 16-byte
+tag behind. A small message travels as one ZeroMQ frame (pyzmq costs microseconds
+per frame); a large one as ``[header, *parts, tag]``, so that big parts go without a
 copy. The tag is GMAC (AES-256-GCM over the header and the length-prefixed parts as
-associated data): OpenSSL runs it at about 15-19 GB/s here, so a 1 MiB array frame
-costs ~60 us, where HMAC-SHA256 would cost over a millisecond. Each sender draws a
-random 16-byte id per incarnation and signs with its own key, derived from the
-cluster key and that id (HKDF), so its 96-bit counter nonces can never collide with
-another sender's.
+associated data): OpenSSL runs it at about 15-30 GB/s here, where HMAC-SHA256 would
+cost over a millisecond per MiB. Each sender draws a random 16-byte id per
+incarnation and signs with its own key, derived from the cluster key and that id
+(HKDF), so its 96-bit counter nonces can never collide with another sender's.
+
+A message may carry one more frame behind it, a payload sealed on its own
+(``Payloads``, flag ``_ATTACHED``; wire version 2): a remote link's large value,
+encrypted with AES-GCM at write time, straight from the writer's memory into the
+buffer that is sent, so that one pass is both the copy value semantics need and the
+authentication (a copy, then GMAC over it, took two: ~110 us per cold MiB against
+~65 here), and decrypted straight into the reader's ring slot at the other end.
+The message's tag does not cover that frame; its parts carry the payload's nonce
+and tag, which it does cover, and the payload's associated data names what it is
+(topic, incarnation, sequence number), so it cannot be moved to another message as
+another value. Payload keys use an HKDF label of their own: never a message key.
 
 ``Opener.open`` refuses, counts and never decodes: wrong frame count or size, a
 malformed header, an unknown version, a stale epoch, a send time outside the
-freshness window, a counter not above the last one seen from that sender (replay),
-and any tag that does not verify. Only then does a caller unpickle anything.
+freshness window, a counter not above the last one from that sender (replay), and
+any tag that does not verify. Only then does a caller unpickle anything (or open the
+attached payload: ``Payloads.open_into``).
 """
 
 from __future__ import annotations
