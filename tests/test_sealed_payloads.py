@@ -161,7 +161,8 @@ def test_a_tampered_payload_is_refused_counted_never_delivered_and_repaired(
     assert [value[0] for value in got] == [0.0, 1.0, 2.0]
     assert all(np.array_equal(value, array) for value, array in zip(got, arrays, strict=True))
     assert receiver.follower.rejected == {"bad payload tag": 1}
-    assert receiver.landed >= 3                  # they did land in the ring's slots ...
+    assert receiver.landed >= 1                  # the refused one was decrypted into a
+                                                 # slot of the ring (it came in order) ...
     gc.collect()
     eventually(lambda: receiver.writer.core.slots_used() == 0,
                what="every slot back, the refused one too")    # ... and none leaked

@@ -145,14 +145,16 @@ class Bridge:
     def _land(self, topic: str, meta: bytes, nbytes: int) -> Landed | None:
         """A claimed slot of the ring ``topic`` feeds, for a large array to be decrypted
         into (on the follower's thread): so it lands with no copy of its own. Only for
-        a topic that feeds one ring: a slot staged in one ring may be reused while
-        another ring's backlog would still copy from it."""
+        a topic that feeds one ring (a slot staged in one ring may be reused while
+        another ring's backlog would still copy from it), and not while that ring's
+        backlog waits: a slot freed by the reader must go to the backlog's oldest
+        value, not to a newer one."""
         with self._lock:
             feeds = self._rings.get(topic)
             if feeds is None or len(feeds) != 1:
                 return None
             (feed,) = feeds.values()
-            return feed.ring.claim(meta, nbytes)
+            return None if feed.backlog else feed.ring.claim(meta, nbytes)
 
     def _deliver(self, topic: str, values: list[Any], sent_at: float) -> int:
         """Write values into every ring that reads ``topic`` (on the follower's thread);

@@ -912,10 +912,20 @@ class Follower:
             if self._delivered(follow, seq):     # (a repair re-sent it: not decrypted again)
                 self.duplicates[_topic(follow.topic)] += 1
                 return None
+            # Only the next value in order lands in a ring slot, and is delivered at once:
+            # a slot claimed by a value held beyond a gap (or behind one that waits for
+            # a free slot) could leave a lossless ring with every slot claimed by values
+            # that cannot be staged before the one that waits. Those go to memory.
+            in_order = seq == follow.next_seq and not follow.held
             payload = memoryview(message.payload)
-            value = self._unseal(follow, incarnation, seq, kind, bytes(meta), nonce, tag, payload)
+            value = self._unseal(follow, incarnation, seq, kind, bytes(meta), nonce, tag,
+                                 payload, in_order)
             nbytes = payload.nbytes - PAYLOAD_TAG
-            return follow if self._take(follow, seq, [value], sent_at, nbytes, live) else None
+            if not self._take(follow, seq, [value], sent_at, nbytes, live):
+                return None
+            if in_order:
+                self._advance(follow)
+            return follow
         if message.kind == VALUES:
             if len(message.frames) != 4 or memoryview(message.frames[1]).nbytes != _BATCH.size:
                 raise Rejected("malformed")
@@ -941,10 +951,10 @@ class Follower:
         raise Rejected("unexpected")
 
     def _unseal(self, follow: _Follow, incarnation: bytes, seq: int, kind: int, meta: bytes,
-                nonce: int, tag: bytes, payload: memoryview) -> Any:
+                nonce: int, tag: bytes, payload: memoryview, land: bool) -> Any:
         """The value of a sealed payload, decrypted and checked in one pass: an array
-        straight into the slot the receiver offers (``land``), else into memory of its
-        own. ``Rejected`` if its tag fails (what was decrypted is never delivered)."""
+        straight into the slot the receiver offers (``land``, if asked), else into
+        memory of its own. ``Rejected`` if its tag fails (never delivered)."""
         size = payload.nbytes - PAYLOAD_TAG
         if size < 0 or not secrets.compare_digest(payload[size:], tag):
             raise Rejected("bad payload tag")
@@ -959,7 +969,7 @@ class Follower:
             raise Rejected("malformed") from None
         if count * dtype.itemsize != size:
             raise Rejected("malformed")
-        landed = self._land(_topic(follow.topic), meta, size) if self._land else None
+        landed = self._land(_topic(follow.topic), meta, size) if land and self._land else None
         if landed is None:
             out = np.empty(size, np.uint8)
             self._payloads.open_into(incarnation, nonce, bound, payload, out)
