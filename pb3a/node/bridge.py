@@ -24,7 +24,7 @@ from typing import Any
 from pb3a.errors import RuntimeTimeout
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.replication import Follower
-from pb3a.transport.ring import ShmRing
+from pb3a.transport.ring import Landed, ShmRing
 
 READY_TIMEOUT = 10.0
 RETRY_S = 0.001            # how often a lossless link's backlog is offered to its ring again
@@ -62,7 +62,7 @@ class Bridge:
         self._topics: dict[str, str] = {}                   # link key -> topic
         self._senders: dict[str, bytes] = {}                # topic -> incarnation followed
         self._retrying = False                              # a retry is due on the loop
-        self._follower = Follower(key, self._deliver, epoch=epoch)
+        self._follower = Follower(key, self._deliver, land=self._land, epoch=epoch)
 
     def open(self, link: str, topic: str, ring: str, bell: int) -> None:
         """Write ``topic``'s values into ``ring`` (the link's, read by a local worker
@@ -141,6 +141,20 @@ class Bridge:
 
     def _lossless(self, topic: str) -> bool:
         return any(feed.ring.lossless for feed in self._rings.get(topic, {}).values())
+
+    def _land(self, topic: str, meta: bytes, nbytes: int) -> Landed | None:
+        """A claimed slot of the ring ``topic`` feeds, for a large array to be decrypted
+        into (on the follower's thread): so it lands with no copy of its own. Only for
+        a topic that feeds one ring (a slot staged in one ring may be reused while
+        another ring's backlog would still copy from it), and not while that ring's
+        backlog waits: a slot freed by the reader must go to the backlog's oldest
+        value, not to a newer one."""
+        with self._lock:
+            feeds = self._rings.get(topic)
+            if feeds is None or len(feeds) != 1:
+                return None
+            (feed,) = feeds.values()
+            return None if feed.backlog else feed.ring.claim(meta, nbytes)
 
     def _deliver(self, topic: str, values: list[Any], sent_at: float) -> int:
         """Write values into every ring that reads ``topic`` (on the follower's thread);

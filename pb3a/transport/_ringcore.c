@@ -42,6 +42,7 @@
 #define SCALAR_LEN 64
 #define PAGE 4096ULL
 #define MAX_SLOTS 4096
+#define CLAIMED UINT64_MAX   /* a slot's state while a value is received into it */
 enum { K_PAD = 0, K_INT = 4, K_FLOAT = 5, K_SLOT = 6 };
 
 #define LOAD_ACQ(p) __atomic_load_n((p), __ATOMIC_ACQUIRE)
@@ -363,6 +364,75 @@ done:
     return result;
 }
 
+/* claim_slot() -> the index of a free slot, now claimed for a value that is written
+ * into it before its record is staged (a remote link's payload decrypted straight
+ * into place: see ShmRing.claim), or -1 if none is free. A claimed slot is the
+ * writer's until stage_claimed publishes it or unclaim_slot frees it; the reader
+ * never sees it, and a reader restart leaves it alone (its state is above any seq). */
+static PyObject *RingCore_claim_slot(RingCore *self, PyObject *unused) {
+    if (check_open(self) < 0)
+        return NULL;
+    long long slot = take_slot(self);
+    if (slot >= 0)
+        STORE_RLX(&self->states[slot], CLAIMED);
+    return PyLong_FromLongLong(slot);
+}
+
+/* unclaim_slot(index): a claimed slot whose value will never be staged (its tag
+ * failed, or it was dropped) is free again. Nothing once the ring is closed. */
+static PyObject *RingCore_unclaim_slot(RingCore *self, PyObject *arg) {
+    unsigned long long index = PyLong_AsUnsignedLongLong(arg);
+    if (PyErr_Occurred())
+        return NULL;
+    if (self->words != NULL && index < self->slots) {
+        uint64_t claimed = CLAIMED;
+        __atomic_compare_exchange_n(&self->states[index], &claimed, 0, 0, __ATOMIC_RELEASE,
+                                    __ATOMIC_RELAXED);
+    }
+    Py_RETURN_NONE;
+}
+
+/* stage_claimed(index, meta, body, length, sent_at) -> 1 written, 0 no room: the
+ * K_SLOT record of a claimed slot whose bytes are already in place, unpublished. No
+ * copy: this is how a value decrypted into its slot lands. */
+static PyObject *RingCore_stage_claimed(RingCore *self, PyObject *const *args, Py_ssize_t nargs) {
+    if (nargs != 5 || !PyBytes_Check(args[1])) {
+        PyErr_SetString(PyExc_TypeError,
+                        "stage_claimed takes (index, meta bytes, body, length, sent_at)");
+        return NULL;
+    }
+    if (check_open(self) < 0)
+        return NULL;
+    unsigned long long index = PyLong_AsUnsignedLongLong(args[0]);
+    unsigned long long body = PyLong_AsUnsignedLongLong(args[2]);
+    unsigned long long length = PyLong_AsUnsignedLongLong(args[3]);
+    double sent_at = PyFloat_AsDouble(args[4]);
+    if (PyErr_Occurred())
+        return NULL;
+    Py_ssize_t meta_len = PyBytes_GET_SIZE(args[1]);
+    if (index >= self->slots || LOAD_ACQ(&self->states[index]) != CLAIMED) {
+        PyErr_SetString(PyExc_ValueError, "stage_claimed: the slot is not claimed");
+        return NULL;
+    }
+    if (meta_len > 0xFFFF || body < REC_HEAD + (unsigned long long)meta_len || body % 8
+            || length < body + 8 || length % 64 || length > self->cap) {
+        PyErr_SetString(PyExc_ValueError, "stage_claimed: inconsistent record sizes");
+        return NULL;
+    }
+    long long start = reserve(self, length);
+    if (start < 0)
+        return PyLong_FromLong(0);
+    unsigned char *at = self->data + (unsigned long long)start % self->cap;
+    put_header(at, (uint32_t)length, K_SLOT, (uint16_t)meta_len, self->seq, sent_at);
+    memcpy(at + REC_HEAD, PyBytes_AS_STRING(args[1]), (size_t)meta_len);
+    uint64_t slot = (uint64_t)index;
+    memcpy(at + body, &slot, 8);
+    STORE_RLX(&self->states[index], self->seq + 1);   /* (as stage_record: see there) */
+    self->seq += 1;
+    self->head = (unsigned long long)start + length;
+    return PyLong_FromLong(1);
+}
+
 /* Free the slots whose state (the seq of their record + 1) is in (above, upto]:
  * what a restarted reader or writer knows its dead predecessor left taken. */
 static void free_slots(RingCore *self, uint64_t above, uint64_t upto) {
@@ -675,6 +745,11 @@ static PyMethodDef RingCore_methods[] = {
     {"publish", (PyCFunction)RingCore_publish, METH_NOARGS, "make records up to head visible"},
     {"stage_record", (PyCFunction)(void (*)(void))RingCore_stage_record, METH_FASTCALL,
      "write a whole record, unpublished"},
+    {"claim_slot", (PyCFunction)RingCore_claim_slot, METH_NOARGS,
+     "claim a free slot to write a value into before staging it"},
+    {"unclaim_slot", (PyCFunction)RingCore_unclaim_slot, METH_O, "free a claimed slot"},
+    {"stage_claimed", (PyCFunction)(void (*)(void))RingCore_stage_claimed, METH_FASTCALL,
+     "the record of a claimed slot, unpublished"},
     {"has_data", (PyCFunction)RingCore_has_data, METH_NOARGS, "unread records?"},
     {"store_tail", (PyCFunction)RingCore_store_tail, METH_O, "hand bytes back to the writer"},
     {"resume_reader", (PyCFunction)RingCore_resume_reader, METH_NOARGS,

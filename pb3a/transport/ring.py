@@ -11,6 +11,11 @@ slots: each array is copied into the lowest free slot and the ring carries only
 a small record naming it. Slots come back in any order as their views go, so a
 writer whose reader keeps up reuses the same few slots, which stay in cache.
 
+A value received from another node can be written straight into a slot before its
+record is staged (``claim``: the remote link decrypts into it, see ``replication``);
+staging it then copies nothing. A claimed slot whose value is never staged (its tag
+failed, or it was dropped) is freed, and the reader never sees it.
+
 A ring is dropping or lossless, as its link's policy says (a header word set by the
 creator). Without room, a dropping ring's writer waits briefly, then drops the value
 (the reader counts the sequence gap); a lossless ring's writer waits up to its
@@ -48,7 +53,7 @@ from pb3a.transport.shm import attach_segment, close_segment, create_segment, un
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
-__all__ = ["ZERO_COPY_MIN", "RingSize", "ShmRing", "sleep"]
+__all__ = ["ZERO_COPY_MIN", "Landed", "RingSize", "ShmRing", "sleep"]
 
 _MAGIC = 0x50423341_52494E47  # "PB3ARING"
 _DATA = 512                      # header size; data starts here (page offset 512: 64-aligned)
@@ -80,6 +85,42 @@ def _align(n: int, to: int = _ALIGN) -> int:
 def _body(kind: int, meta_len: int) -> int:
     """Where a record's payload starts (a SLOT record's: the slot's index)."""
     return _align(_REC_HEAD + meta_len, _ALIGN if kind == codec.ARRAY else 8)
+
+
+class Landed:
+    """A large array written into a claimed slot of ``ring``, not staged yet: staged
+    in that ring, it becomes the slot's record without a copy; anywhere else (or once
+    staged) it is read through ``array``. Dropped without being staged, it frees the
+    slot (a weak finalizer: no slot leaks whatever path the value takes)."""
+
+    __slots__ = ("__weakref__", "_free", "meta", "nbytes", "ring", "slot")
+
+    def __init__(self, ring: ShmRing, slot: int, meta: bytes, nbytes: int) -> None:
+        self.ring, self.slot, self.meta, self.nbytes = ring, slot, meta, nbytes
+        self._free = weakref.finalize(self, ring.core.unclaim_slot, slot)
+
+    @property
+    def buffer(self) -> memoryview:
+        """The slot's bytes, writable: where the value is written before staging."""
+        start = self.slot * self.ring.core.stride
+        return self.ring._pool[start:start + self.nbytes]
+
+    @property
+    def array(self) -> np.ndarray:
+        """A read-only view of the value (valid while the slot is claimed: before it is
+        staged, or by the one who staged it until the reader may have taken it)."""
+        dtype, shape, count = codec.array_meta(self.meta)
+        view = np.frombuffer(self.buffer, dtype=dtype, count=count).reshape(shape)
+        view.flags.writeable = False
+        return view
+
+    @property
+    def staged(self) -> bool:
+        return not self._free.alive
+
+    def abandon(self) -> None:
+        """Never to be staged (its tag failed): the slot is free now."""
+        self._free()
 
 
 class ShmRing:
@@ -248,10 +289,34 @@ class ShmRing:
             return self._stage(value, now, timeout)
         return self._wait_space(_ALIGN, timeout) and self.core.stage(value, now) > 0
 
+    def claim(self, meta: bytes, nbytes: int) -> Landed | None:
+        """A free slot for an array of ``nbytes`` (ARRAY ``meta``) that the caller
+        writes in place before staging it (``Landed.buffer``); None if this ring has no
+        slot that size or none is free (then stage the array as usual)."""
+        if not ZERO_COPY_MIN <= nbytes <= self.core.slot_bytes:
+            return None
+        slot = self.core.claim_slot()
+        return None if slot < 0 else Landed(self, slot, meta, nbytes)
+
+    def _stage_landed(self, landed: Landed, now: float, timeout: float) -> bool:
+        """Stage a value already in a claimed slot of this ring: the record only."""
+        _, meta, body, length = self._layout(codec.ARRAY, landed.meta, landed.nbytes)
+        core = self.core
+        done = bool(core.stage_claimed(landed.slot, meta, body, length, now) or (
+            timeout > 0 and self._wait_space(length, timeout)
+            and core.stage_claimed(landed.slot, meta, body, length, now)))
+        if done:
+            landed._free.detach()             # the reader's now: it frees the slot
+        return done
+
     def _stage(self, value: Any, now: float, timeout: float) -> bool:
         """Stage one record for anything but an int or float (unpublished); False when
         there was no room. An array is copied once, straight from its own buffer, into
-        the ring."""
+        the ring (one already in a claimed slot of this ring, not at all)."""
+        if type(value) is Landed:
+            if value.ring is self and not value.staged:
+                return self._stage_landed(value, now, timeout)
+            value = value.array
         layout = None
         if type(value) is np.ndarray and value.flags.c_contiguous:
             layout = self._layouts.get((value.dtype, value.shape))
