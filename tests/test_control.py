@@ -135,9 +135,8 @@ def test_requests_are_decoded_under_the_decode_lock() -> None:
     server = ControlServer(KEY, handler, decode_lock=importing)
     client = ControlClient(KEY, server.address)
     try:
-        with importing:              # a background import is under way
-            with pytest.raises(RuntimeTimeout):
-                client.call("add", timeout=0.3, a=1, b=2)
+        with importing, pytest.raises(RuntimeTimeout):    # a background import runs
+            client.call("add", timeout=0.3, a=1, b=2)
         assert client.call("add", timeout=5.0, a=1, b=2) == 3
     finally:
         client.close()
