@@ -124,7 +124,7 @@ class TrafficDriver(_JunctionSlots, Module):
     def step(self) -> None:
         if self.status != "running":
             return
-        if self.own_programs:
+        if self.own_programs or not self.junctions:
             deadline = self._clock() + 0.02        # free run, a slice at a time
             while self.status == "running" and self._clock() < deadline:
                 self._advance()
