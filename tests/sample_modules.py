@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 
+from agents.traffic.messages import JunctionReading, PhaseRequest
 from pb3a import Agent, Input, Macro, Module, Output
 
 
@@ -656,3 +657,19 @@ class Mapper(Module):
     def step(self) -> None:
         self.grid[divmod(self.cells % 64, 8)] += self.speed
         self.cells += 1
+
+
+class PhaseAlternator(Module):
+    """A traffic junction's controller for the driver's tests: answers every reading
+    at once, asking for each green phase in turn for ``hold`` steps."""
+
+    reading = Input(JunctionReading, policy="queue:8")
+    request = Output(PhaseRequest)
+    hold = 10
+    answered = 0
+
+    def on_input(self, port) -> None:
+        for reading in port.read_all():
+            green = (reading.step // self.hold) % len(reading.layout.greens)
+            self.request.write(PhaseRequest(reading.junction, reading.step, green))
+            self.answered += 1

@@ -1,0 +1,261 @@
+"""``TrafficDriver``: a SUMO simulation as PB3A ports, stepped in lock-step with the
+junctions' controllers.
+
+SUMO is the legacy program here, and the driver owns it: one simulation, run in the
+driver's own process through libsumo (which allows one per process, so the driver
+needs a worker of its own). Its ``resource`` is the path of a network description
+(``scenarios/traffic/ring.toml``); the driver builds the network if needed
+(``agents.traffic.networks``), writes the demand for ``duration_s`` and starts SUMO
+with ``seed``. Setting ``resource`` (or ``seed``, ``signals``, ``duration_s``,
+``own_programs``) while it runs finishes the simulation it has, keeping its figures
+in ``result``, and starts the new one at once: like ``RobotDriver``, it is re-pointed
+while the system runs.
+
+Each signalized junction has a slot: the i-th junction (in ``junctions``, sorted by
+id) writes a ``JunctionReading`` on ``reading_i`` at the start of every control step
+and takes ``PhaseRequest``s on ``request_i``. The simulation advances one control
+step (``control_step_s``) when every junction has answered that step's reading, or
+when ``lockstep_timeout_s`` has passed since the readings went out; the junctions
+that had not answered are counted in ``late`` (and ``late_by_junction``) and keep the
+phase they last asked for. So a scenario runs as fast as its controllers decide, and
+a stuck controller slows it down but does not stop it.
+
+The driver, not the controllers, makes the lights legal: each junction's
+``SignalHead`` holds a green for ``min_green_s`` and puts yellow (and all-red, where
+the program has it) before any new green, so a controller swapped mid-phase cannot
+show conflicting greens or skip a yellow. With ``own_programs`` the lights run SUMO's
+own programs (``signals``: static, actuated or delay_based, the baselines), the driver
+takes no requests and runs the simulation as fast as it goes.
+
+``traffic`` carries the network's totals each step and ``clock`` the simulated time;
+at ``duration_s`` the simulation ends and ``summary`` (also ``result``) carries the
+run's figures: mean delay per vehicle (SUMO's tripinfo ``timeLoss + departDelay``,
+over every vehicle, also those still in the network or waiting to enter at the end),
+throughput, teleports, the mean number of vehicles standing at the signals, and the
+delay over time.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from agents.traffic.messages import JunctionReading, NetworkReading, PhaseRequest
+from agents.traffic.networks import Network
+from agents.traffic.signals import SignalHead
+from agents.traffic.simulation import STEP_S, Simulation
+from pb3a import Input, InputPort, Module, Output
+
+MAX_JUNCTIONS = 16          # junction slots: ports are declared with the class
+_SIMULATION_KEYS = ("resource", "seed", "signals", "duration_s", "own_programs")
+
+
+def _junction_ports() -> dict[str, Input | Output]:
+    ports: dict[str, Input | Output] = {}
+    for slot in range(MAX_JUNCTIONS):
+        ports[f"reading_{slot}"] = Output(JunctionReading)
+        ports[f"request_{slot}"] = Input(PhaseRequest, policy="queue:8")
+    return ports
+
+
+# The slots' ports, one pair per junction, declared once for the class below.
+_JunctionSlots = type("_JunctionSlots", (), _junction_ports())
+
+
+class TrafficDriver(_JunctionSlots, Module):
+    """A SUMO simulation: junction readings out, phase requests in, in lock-step."""
+
+    traffic = Output(NetworkReading)
+    clock = Output(float)           # simulated seconds of the readings just written
+    summary = Output(dict)          # the run's figures, once, when it ends
+    period = 0.005                  # how often the lock-step timeout is checked
+
+    resource = ""                   # the network description (.toml) to simulate
+    seed = 1                        # SUMO's random seed: the demand's arrivals
+    duration_s = 3600.0             # simulated length of the run (the demand fits in it)
+    signals = "static"              # SUMO's program type for the lights: static,
+                                    # actuated or delay_based (used with own_programs)
+    own_programs = False            # True: SUMO's programs run the lights (baselines)
+    control_step_s = 1.0            # simulated seconds between two readings
+    min_green_s = 5.0
+    lockstep_timeout_s = 2.0        # wall seconds to wait for a junction's request
+    cache_dir = ""                  # where networks are built ("": the user's cache)
+    out_dir = ""                    # where SUMO writes its files ("": a temporary one)
+
+    # read-outs
+    status = "idle"                 # idle | running | finished | failed
+    junctions: list[str] = []       # the signalized junctions, in slot order
+    step_count = 0                  # control steps done in this simulation
+    time_s = 0.0
+    late = 0                        # requests that had not come by the timeout
+    late_by_junction: dict[str, int] = {}
+    rejected = 0                    # requests that could not be applied
+    last_error = ""
+    result: dict[str, Any] = {}     # the figures of the last simulation that ended
+
+    def setup(self) -> None:
+        self._clock = time.monotonic
+        self._simulation: Simulation | None = None
+        self._heads: dict[str, SignalHead] = {}
+        self._awaiting: set[str] = set()
+        self._published_at = 0.0
+        self._workdir: Path | None = None
+        if self.resource:
+            self._begin()
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Set state; a change of ``resource``, ``seed``, ``signals``, ``duration_s`` or
+        ``own_programs`` in a running driver ends its simulation and starts the new one
+        at once."""
+        changed = any(k in state and state[k] != getattr(self, k) for k in _SIMULATION_KEYS)
+        super().set_state(state)
+        if changed and "_heads" in vars(self):
+            self._end(keep=True)
+            if self.resource:
+                self._begin()
+
+    def teardown(self) -> None:
+        self._end(keep=False)
+
+    # -- the lock-step ------------------------------------------------------------
+    def step(self) -> None:
+        if self.status != "running":
+            return
+        if self.own_programs or not self.junctions:
+            deadline = self._clock() + 0.02        # free run, a slice at a time
+            while self.status == "running" and self._clock() < deadline:
+                self._advance()
+        elif self._clock() - self._published_at >= self.lockstep_timeout_s:
+            for junction in self._awaiting:
+                self.late_by_junction[junction] = self.late_by_junction.get(junction, 0) + 1
+            self.late += len(self._awaiting)
+            self._advance()
+
+    def on_input(self, port: InputPort) -> None:
+        slot = int(port.name.rpartition("_")[2])
+        for request in port.read_all():
+            self._take(slot, request)
+        if self.status == "running" and not self.own_programs and not self._awaiting:
+            self._advance()
+
+    def _take(self, slot: int, request: PhaseRequest) -> None:
+        """Apply a junction's request; a wrong one is counted and said in last_error."""
+        if self.status != "running" or self.own_programs:
+            return
+        junction = self.junctions[slot] if slot < len(self.junctions) else None
+        problem = None
+        if request.junction != junction:
+            problem = (f"request_{slot} is junction {junction!r}'s slot, but the request "
+                       f"names {request.junction!r}")
+        elif request.step > self.step_count:
+            problem = (f"{junction}: a request for step {request.step}, which has not "
+                       f"begun (now {self.step_count})")
+        else:
+            try:
+                self._heads[junction].request(request.green)
+            except ValueError as exc:
+                problem = f"{junction}: {exc}"
+        if problem is not None:
+            self.rejected += 1
+            self.last_error = problem
+        elif request.step == self.step_count:
+            self._awaiting.discard(junction)
+        # (an older step's request came after its step was counted late: it still
+        # stands as the junction's wish)
+
+    def _advance(self) -> None:
+        """Show each junction's next legal state, run one control step, write what
+        came of it (or end the run at ``duration_s``)."""
+        simulation = self._simulation
+        assert simulation is not None
+        if not self.own_programs:
+            for junction, head in self._heads.items():
+                simulation.set_signal(junction, head.show(self.control_step_s))
+        simulation.advance(max(1, round(self.control_step_s / STEP_S)))
+        self.step_count += 1
+        self.time_s = simulation.time
+        if self.time_s >= self.duration_s:
+            self._end(keep=True)
+        else:
+            self._publish()
+
+    def _publish(self) -> None:
+        simulation = self._simulation
+        assert simulation is not None
+        halting = 0
+        for slot, junction in enumerate(self.junctions):
+            detectors = simulation.junction_detectors(junction)
+            halting += sum(detectors["queues"].values())
+            head = self._heads.get(junction)
+            if head is not None and not self.own_programs:
+                green, target, stage, elapsed = head.green, head.target, head.stage, head.elapsed
+            else:
+                green, stage = simulation.describe_signal(junction)
+                target, elapsed = green, 0.0
+            getattr(self, f"reading_{slot}").write(JunctionReading(
+                junction=junction, step=self.step_count, time=simulation.time,
+                layout=simulation.layouts[junction], green=green, target=target,
+                stage=stage, elapsed=elapsed, signal=simulation.signal(junction),
+                **detectors))
+        self.traffic.write(simulation.network_reading(self.step_count, halting))
+        self.clock.write(simulation.time)
+        self._awaiting = set() if self.own_programs else set(self.junctions)
+        self._published_at = self._clock()
+
+    # -- a simulation's life ---------------------------------------------------------
+    def _begin(self) -> None:
+        """Build the network and demand, start SUMO, write the first readings."""
+        try:
+            network = Network.load(self.resource)
+            net = network.build(self.signals, Path(self.cache_dir) if self.cache_dir else None)
+            if self.out_dir:
+                self._workdir = Path(self.out_dir)
+                self._workdir.mkdir(parents=True, exist_ok=True)
+            else:
+                self._workdir = Path(tempfile.mkdtemp(prefix="pb3a-traffic-"))
+            routes = network.write_demand(self.duration_s, self._workdir / "demand.rou.xml")
+            self._simulation = Simulation(net, routes, seed=self.seed, end_s=self.duration_s,
+                                          workdir=self._workdir)
+        except Exception as exc:
+            self.status, self.last_error = "failed", f"{self.resource}: {exc}"
+            self._remove_workdir()
+            raise
+        layouts = self._simulation.layouts
+        if len(layouts) > MAX_JUNCTIONS:
+            self._end(keep=False)
+            self.status = "failed"
+            raise ValueError(f"{self.resource} has {len(layouts)} signalized junctions; "
+                             f"the driver has slots for {MAX_JUNCTIONS}")
+        # what this simulation is, for its figures (state may change before it ends)
+        self._identity = {key: getattr(self, key) for key in _SIMULATION_KEYS}
+        self.junctions = list(layouts)
+        self._heads = {} if self.own_programs else {
+            j: SignalHead(self._simulation.plans[j], self.min_green_s) for j in self.junctions}
+        self.status, self.step_count, self.time_s = "running", 0, 0.0
+        self.late, self.late_by_junction, self.rejected = 0, {}, 0
+        self._publish()
+
+    def _end(self, keep: bool) -> None:
+        """Stop the simulation; with ``keep``, its figures go to ``result`` and out on
+        ``summary``."""
+        simulation, self._simulation = self._simulation, None
+        if simulation is None:
+            return
+        if keep:
+            self.result = {**self._identity, "late": self.late, "rejected": self.rejected,
+                           **simulation.finish()}
+            self.status = "finished"
+            self.summary.write(self.result)
+        else:
+            simulation.close()
+            self.status = "idle"
+        self._heads, self._awaiting = {}, set()
+        self._remove_workdir()
+
+    def _remove_workdir(self) -> None:
+        if self._workdir is not None and not self.out_dir:
+            shutil.rmtree(self._workdir, ignore_errors=True)
+        self._workdir = None

@@ -1,0 +1,206 @@
+"""``Simulation``: one SUMO simulation in this process, through libsumo.
+
+It starts SUMO on a built network and its demand, advances it, reads the detectors
+of every signalized junction (the halting vehicles, their waiting time and the new
+arrivals per incoming lane, the vehicles on each outgoing lane), sets the lights,
+and at the end gives the figures the traffic-signal benchmarks report, per vehicle:
+SUMO's tripinfo ``timeLoss + departDelay``, over every vehicle, also those still on
+the roads at the end and those still waiting to enter.
+
+libsumo runs SUMO inside the calling process, which is fast (no socket, a few
+microseconds a call) but allows one simulation per process: a second ``Simulation``
+while one runs is refused, so each driver needs its own worker.
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from pathlib import Path
+from typing import Any
+
+from agents.traffic.messages import JunctionLayout, NetworkReading
+from agents.traffic.networks import SumoMissing
+from agents.traffic.signals import SignalPlan, is_green_phase
+
+STEP_S = 1.0                   # SUMO's step: one simulated second
+
+
+def _libsumo() -> Any:
+    try:
+        import libsumo
+    except ImportError:
+        raise SumoMissing("libsumo is not installed: install the project's traffic extra "
+                          "(pip install -e '.[traffic]', or make)") from None
+    return libsumo
+
+
+class Simulation:
+    """A running SUMO simulation of ``net`` with the flows in ``routes``."""
+
+    _running: Simulation | None = None      # libsumo's one simulation in this process
+
+    def __init__(self, net: Path, routes: Path, *, seed: int, end_s: float,
+                 workdir: Path) -> None:
+        if Simulation._running is not None:
+            raise RuntimeError("libsumo runs one SUMO simulation per process and one runs "
+                               "here already: give each traffic driver its own worker")
+        self._sumo = _libsumo()
+        self.tripinfo = workdir / "tripinfo.xml"
+        self._sumo.start([
+            "sumo", "--net-file", str(net), "--route-files", str(routes),
+            "--seed", str(int(seed)), "--step-length", str(STEP_S), "--end", str(end_s),
+            "--tripinfo-output", str(self.tripinfo),
+            "--tripinfo-output.write-unfinished", "true",
+            "--no-step-log", "true", "--no-warnings", "true",
+            "--duration-log.disable", "true"])
+        Simulation._running = self
+        self.layouts: dict[str, JunctionLayout] = {}
+        self.plans: dict[str, SignalPlan] = {}
+        tls = self._sumo.trafficlight
+        for junction in sorted(tls.getIDList()):
+            logic = tls.getAllProgramLogics(junction)[0]
+            plan = SignalPlan.from_program([(p.state, p.duration) for p in logic.phases])
+            links = tuple((group[0][0], group[0][1]) if group else ("", "")
+                          for group in tls.getControlledLinks(junction))
+            self.plans[junction] = plan
+            self.layouts[junction] = JunctionLayout(
+                junction, links, plan.greens,
+                tuple(dict.fromkeys(i for i, _ in links if i)),
+                tuple(dict.fromkeys(o for _, o in links if o)))
+        self._seen: dict[str, set[str]] = {lane: set() for layout in self.layouts.values()
+                                           for lane in layout.lanes_in}
+        self._signals: dict[str, str] = {}
+        self.departed = self.arrived = self.teleports = 0
+        self._halting_sum = 0
+        self._readings = 0
+
+    @property
+    def time(self) -> float:
+        """Simulated seconds since the start."""
+        return float(self._sumo.simulation.getTime())
+
+    def set_signal(self, junction: str, state: str) -> None:
+        """Show ``state`` at ``junction`` from the next step on (SUMO's program for it
+        is set aside for good)."""
+        if self._signals.get(junction) != state:
+            self._sumo.trafficlight.setRedYellowGreenState(junction, state)
+            self._signals[junction] = state
+
+    def signal(self, junction: str) -> str:
+        """The state ``junction`` shows now."""
+        return str(self._sumo.trafficlight.getRedYellowGreenState(junction))
+
+    def advance(self, steps: int) -> None:
+        """Run ``steps`` SUMO steps, counting departures, arrivals and teleports."""
+        simulation = self._sumo.simulation
+        for _ in range(steps):
+            self._sumo.simulationStep()
+            self.departed += simulation.getDepartedNumber()
+            self.arrived += simulation.getArrivedNumber()
+            self.teleports += simulation.getStartingTeleportNumber()
+
+    def junction_detectors(self, junction: str) -> dict[str, dict[str, Any]]:
+        """``queues``, ``waiting``, ``arrivals`` per incoming lane and ``outgoing`` per
+        outgoing lane of ``junction``, now. Arrivals are the vehicles on a lane now
+        that were not there at the previous reading."""
+        lane = self._sumo.lane
+        layout = self.layouts[junction]
+        queues, waiting, arrivals = {}, {}, {}
+        for name in layout.lanes_in:
+            queues[name] = int(lane.getLastStepHaltingNumber(name))
+            waiting[name] = float(lane.getWaitingTime(name))
+            present = set(lane.getLastStepVehicleIDs(name))
+            arrivals[name] = len(present - self._seen[name])
+            self._seen[name] = present
+        outgoing = {name: int(lane.getLastStepVehicleNumber(name)) for name in layout.lanes_out}
+        return {"queues": queues, "waiting": waiting, "arrivals": arrivals,
+                "outgoing": outgoing}
+
+    def network_reading(self, step: int, halting: int) -> NetworkReading:
+        """The network's totals now; ``halting`` (the vehicles standing at the
+        signals, summed by the caller from its junction readings) is kept for the
+        mean queue of the run's summary."""
+        self._halting_sum += halting
+        self._readings += 1
+        return NetworkReading(
+            step=step, time=self.time, running=int(self._sumo.vehicle.getIDCount()),
+            waiting_to_enter=len(self._sumo.simulation.getPendingVehicles()),
+            departed=self.departed, arrived=self.arrived, teleports=self.teleports,
+            halting=halting)
+
+    def describe_signal(self, junction: str) -> tuple[int, str]:
+        """(green phase index or -1, stage) of what SUMO's own program shows now."""
+        state = self.signal(junction)
+        greens = self.plans[junction].greens
+        if state in greens:
+            return greens.index(state), "green"
+        if is_green_phase(state):
+            return -1, "green"
+        return -1, "yellow" if any(c in "yY" for c in state) else "all_red"
+
+    def finish(self, window_s: float = 60.0) -> dict[str, Any]:
+        """End the simulation; the run's figures (see ``summarize``)."""
+        pending = [float(self._sumo.vehicle.getDepartDelay(v))
+                   for v in self._sumo.simulation.getPendingVehicles()]
+        end = self.time
+        self.close()
+        summary = summarize(self.tripinfo, pending, end, window_s)
+        summary["teleports"] = self.teleports
+        summary["mean_halting"] = self._halting_sum / max(self._readings, 1)
+        return summary
+
+    def close(self) -> None:
+        """Stop SUMO (it writes the tripinfo of the vehicles still running)."""
+        if Simulation._running is self:
+            self._sumo.close()
+            Simulation._running = None
+
+
+def summarize(tripinfo: Path, pending_delays: list[float], end_s: float,
+              window_s: float = 60.0) -> dict[str, Any]:
+    """Per-vehicle figures from a tripinfo file written with ``write-unfinished`` and
+    the depart delays of the vehicles that never entered.
+
+    ``mean_delay_s`` is the mean of ``timeLoss + departDelay`` over every vehicle;
+    ``delay_by_window`` gives, per ``window_s`` of simulated time, the end of the
+    window, the mean delay of the vehicles that left the network in it (those still
+    in it at the end count in the last window) and their number.
+    """
+    delays: list[tuple[float, float]] = []       # (when it left, its delay)
+    finished = unfinished = 0
+    time_loss = depart_delay = 0.0
+    for _, element in ET.iterparse(tripinfo):
+        if element.tag != "tripinfo":
+            continue
+        loss, delay = float(element.get("timeLoss", 0)), float(element.get("departDelay", 0))
+        arrival = float(element.get("arrival", -1))
+        if arrival < 0:
+            unfinished += 1
+            arrival = end_s
+        else:
+            finished += 1
+        time_loss += loss
+        depart_delay += delay
+        delays.append((arrival, loss + delay))
+        element.clear()
+    delays.extend((end_s, d) for d in pending_delays)
+    depart_delay += sum(pending_delays)
+    count = len(delays)
+    windows: dict[int, list[float]] = {}
+    for left, delay in delays:
+        windows.setdefault(min(int(left // window_s), int(max(end_s - 1e-9, 0) // window_s)),
+                           []).append(delay)
+    return {
+        "end_s": end_s,
+        "vehicles": count,
+        "finished": finished,
+        "unfinished": unfinished,
+        "never_entered": len(pending_delays),
+        "mean_delay_s": sum(d for _, d in delays) / count if count else 0.0,
+        "mean_time_loss_s": time_loss / count if count else 0.0,
+        "mean_depart_delay_s": depart_delay / count if count else 0.0,
+        "throughput": finished,
+        "delay_by_window": [[(w + 1) * window_s, sum(v) / len(v), len(v)]
+                            for w, v in sorted(windows.items())],
+    }
+

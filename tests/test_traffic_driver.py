@@ -1,0 +1,191 @@
+"""``TrafficDriver`` on its own against one signalized crossing (SUMO through
+libsumo, in this process): its readings, requests applied, legal lights through a
+controller swapped mid-phase, the lock-step, re-pointing, and the run's figures.
+One system test runs it in its own worker with a controller in another."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+from conftest import eventually
+from sample_modules import PhaseAlternator
+from traffic_legality import illegal_steps
+
+from agents.traffic.driver import TrafficDriver
+from agents.traffic.messages import JunctionReading, NetworkReading, PhaseRequest
+from pb3a import System
+from pb3a.testing import ModuleHarness
+
+pytest.importorskip("libsumo", reason="SUMO (the traffic extra) is not installed: "
+                                      "pip install -e '.[traffic]'")
+
+NETWORKS = Path(__file__).resolve().parent.parent / "scenarios" / "traffic"
+CROSS = str(NETWORKS / "cross.toml")
+RING = str(NETWORKS / "ring.toml")
+NS, EW = 0, 1          # the crossing's green phases: north-south, then east-west
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("traffic-cache")
+
+
+@pytest.fixture
+def driver(cache: Path) -> Iterator[Callable[..., ModuleHarness]]:
+    """Makes a driver on the crossing (state overridable), and stops it after."""
+    made: list[ModuleHarness] = []
+
+    def make(**state) -> ModuleHarness:
+        harness = ModuleHarness(TrafficDriver, state={
+            "resource": CROSS, "cache_dir": str(cache), "duration_s": 600.0,
+            "min_green_s": 5.0, **state})
+        made.append(harness)
+        return harness
+
+    yield make
+    for harness in made:
+        harness.close()
+
+
+def answer(harness: ModuleHarness, green: int) -> JunctionReading:
+    """Answer the newest reading of the crossing with ``green``; the next reading."""
+    reading = harness.last("reading_0")
+    harness.feed("request_0", PhaseRequest(reading.junction, reading.step, green))
+    return harness.last("reading_0")
+
+
+def test_it_writes_each_junctions_detectors_and_the_networks_totals(driver) -> None:
+    harness = driver()
+    first = harness.last("reading_0")
+    assert harness.state["junctions"] == ["C"] and harness.state["status"] == "running"
+    assert (first.junction, first.step, first.time, first.stage) == ("C", 0, 0.0, "green")
+    layout = first.layout
+    assert len(layout.greens) == 2 and len(layout.links) == 12
+    assert set(first.queues) == set(first.waiting) == set(first.arrivals) == set(layout.lanes_in)
+    assert set(first.outgoing) == set(layout.lanes_out) and len(layout.lanes_in) == 4
+    for _ in range(90):                      # north-south green all along (no yellow asked)
+        reading = answer(harness, NS)
+    ns_lanes = {i for i, _ in layout.movements(NS)}
+    red = sum(q for lane, q in reading.queues.items() if lane not in ns_lanes)
+    green = sum(q for lane, q in reading.queues.items() if lane in ns_lanes)
+    assert red >= 3 and green <= 1, reading.queues        # queues build up at red only
+    assert sum(w for lane, w in reading.waiting.items() if lane not in ns_lanes) > 30
+    assert sum(sum(r.arrivals.values()) for r in harness.written["reading_0"]) >= 15
+    assert reading.signal == layout.greens[NS] and reading.elapsed == 90.0
+    traffic = harness.last("traffic")
+    assert isinstance(traffic, NetworkReading) and traffic.step == 90
+    assert traffic.departed >= 15 and traffic.halting == red + green
+    assert harness.written["clock"][:3] == [0.0, 1.0, 2.0]
+
+
+def test_a_requested_phase_comes_after_the_minimum_green_and_a_yellow(driver) -> None:
+    harness = driver(min_green_s=8.0)
+    greens = harness.last("reading_0").layout.greens
+    shown = [answer(harness, EW).signal for _ in range(13)]
+    yellow = "".join("y" if c in "Gg" else c for c in greens[NS])
+    assert shown == [greens[NS]] * 8 + [yellow] * 3 + [greens[EW]] * 2
+    reading = harness.last("reading_0")
+    assert (reading.green, reading.target, reading.stage, reading.elapsed) == (EW, EW, "green", 2.0)
+
+
+def test_a_controller_swapped_mid_phase_keeps_the_lights_legal(driver) -> None:
+    """A steady controller, then (mid-green) one that changes its mind every second:
+    every step's lights are legal: no conflicting greens, yellow before red."""
+    harness = driver(min_green_s=5.0)
+    greens = harness.last("reading_0").layout.greens
+    shown = [answer(harness, NS).signal for _ in range(3)]      # the first controller
+    shown += [answer(harness, step % 2).signal for step in range(150)]   # swapped in
+    assert illegal_steps(shown, greens, yellow_s=3) == []
+    assert {greens[NS], greens[EW]} <= set(shown)                # and it did switch
+    assert harness.state["rejected"] == 0
+
+
+def test_a_slow_controller_holds_the_simulation_and_a_missing_one_is_late(driver) -> None:
+    now = [100.0]
+    harness = driver(lockstep_timeout_s=2.0)
+    harness.module._clock = lambda: now[0]
+    harness.module._published_at = now[0]
+    now[0] += 1.5
+    harness.step()                           # no request yet, within the timeout
+    assert harness.last("reading_0").step == 0 and harness.state["late"] == 0
+    answer(harness, NS)                      # the slow controller answers: on it goes
+    assert harness.last("reading_0").step == 1
+    now[0] += 2.5                            # this time it does not answer in time
+    harness.step()
+    assert harness.last("reading_0").step == 2
+    assert harness.state["late"] == 1 and harness.state["late_by_junction"] == {"C": 1}
+    harness.feed("request_0", PhaseRequest("C", 1, EW))         # it answers, too late
+    assert harness.last("reading_0").step == 2 and harness.state["late"] == 1
+    assert harness.module._heads["C"].requested == EW            # its wish still stands
+
+
+def test_requests_it_cannot_apply_are_counted_and_said(driver) -> None:
+    harness = driver()
+    harness.feed("request_0", PhaseRequest("B1", 0, NS))
+    assert "request_0 is junction 'C'" in harness.state["last_error"]
+    harness.feed("request_0", PhaseRequest("C", 0, 5))
+    assert "no green phase 5" in harness.state["last_error"]
+    harness.feed("request_0", PhaseRequest("C", 7, NS))
+    assert "step 7, which has not begun" in harness.state["last_error"]
+    assert harness.state["rejected"] == 3 and harness.last("reading_0").step == 0
+
+
+def test_at_the_end_the_run_s_figures_count_every_vehicle(driver) -> None:
+    harness = driver(duration_s=240.0)
+    while harness.state["status"] == "running":
+        answer(harness, (harness.last("reading_0").step // 30) % 2)
+    result = harness.state["result"]
+    assert harness.written["summary"] == [result] and harness.state["status"] == "finished"
+    assert result["vehicles"] == (result["finished"] + result["unfinished"]
+                                  + result["never_entered"])
+    assert result["vehicles"] >= 20 and result["finished"] >= 10
+    assert result["mean_delay_s"] >= result["mean_time_loss_s"] > 0
+    assert result["teleports"] == 0 and result["mean_halting"] > 0
+    assert [w[0] for w in result["delay_by_window"]] == [60.0, 120.0, 180.0, 240.0]
+    assert sum(w[2] for w in result["delay_by_window"]) == result["vehicles"]
+
+
+def test_sumo_s_own_programs_run_free_for_the_baselines(driver) -> None:
+    harness = driver(own_programs=True, signals="actuated", duration_s=120.0)
+    eventually(lambda: harness.step() or harness.state["status"] == "finished",
+               timeout=20, what="the free run to end")
+    assert harness.state["result"]["signals"] == "actuated"
+    assert harness.state["result"]["own_programs"] is True
+    assert len(harness.written["reading_0"]) == 120     # readings each step, for measuring
+
+
+def test_re_pointed_while_it_runs_it_ends_one_simulation_and_starts_the_other(driver) -> None:
+    harness = driver()
+    for _ in range(20):
+        answer(harness, NS)
+    harness.module.set_state({"resource": RING})
+    assert harness.state["result"]["resource"] == CROSS        # the crossing's figures kept
+    assert harness.state["result"]["end_s"] == 20.0
+    junctions = harness.state["junctions"]
+    assert junctions == sorted(["N1", "N2", "E", "S2", "S1", "W"])
+    assert harness.state["status"] == "running" and harness.state["step_count"] == 0
+    firsts = [harness.last(f"reading_{slot}") for slot in range(6)]
+    assert [r.junction for r in firsts] == junctions and all(r.step == 0 for r in firsts)
+    for slot, junction in enumerate(junctions):                 # every junction answers:
+        harness.feed(f"request_{slot}", PhaseRequest(junction, 0, 0))
+    assert harness.last("reading_0").step == 1                  # then the ring moves on
+    with pytest.raises(ValueError, match="no network description"):
+        harness.module.set_state({"resource": str(NETWORKS / "nowhere.toml")})
+    assert harness.state["status"] == "failed" and "nowhere.toml" in harness.state["last_error"]
+
+
+def test_in_its_own_worker_it_runs_in_lockstep_with_a_controller(cache: Path) -> None:
+    system = System("traffic-lockstep")
+    system.add("sumo", TrafficDriver, state={"resource": CROSS, "cache_dir": str(cache),
+                                             "duration_s": 300.0})
+    system.add("signal", PhaseAlternator, state={"hold": 20})
+    system.link("sumo.reading_0", "signal.reading")
+    system.link("signal.request", "sumo.request_0")
+    with system.launch() as run:
+        result = eventually(lambda: run.state("sumo")["result"], timeout=60,
+                            what="the 300 s simulation to end")
+        state = run.state("sumo")
+    assert result["end_s"] == 300.0 and result["vehicles"] > 30
+    assert state["late"] == 0 and state["rejected"] == 0

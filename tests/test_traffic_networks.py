@@ -1,0 +1,106 @@
+"""The traffic networks: described in the repo, built by SUMO's tools into a cache
+(again only when something they depend on changes), with demand SUMO accepts."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+
+from agents.traffic.networks import Network, SumoMissing, sumo_binary
+
+NETWORKS = Path(__file__).resolve().parent.parent / "scenarios" / "traffic"
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    pytest.importorskip("sumo", reason="SUMO (the traffic extra) is not installed: "
+                                       "pip install -e '.[traffic]'")
+    return tmp_path_factory.mktemp("traffic-cache")
+
+
+@pytest.mark.parametrize(("name", "junctions"), [("ring", 6), ("grid", 9), ("cross", 1)])
+def test_each_network_builds_and_sumo_runs_its_demand(cache: Path, tmp_path: Path,
+                                                      name: str, junctions: int) -> None:
+    import sumolib
+
+    network = Network.load(NETWORKS / f"{name}.toml")
+    net_file = network.build("static", cache)
+    net = sumolib.net.readNet(str(net_file))
+    assert len(net.getTrafficLights()) == junctions
+    for stream in network.streams:                  # every stream's roads exist
+        assert net.hasEdge(stream.origin) and net.hasEdge(stream.destination), stream
+    routes = network.write_demand(240.0, tmp_path / "demand.rou.xml")
+    done = subprocess.run(
+        [str(sumo_binary("sumo")), "-n", str(net_file), "-r", str(routes), "--end", "240",
+         "--no-step-log", "true", "--seed", "3", "--duration-log.statistics", "true"],
+        capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 0, done.stderr
+    assert "Inserted: 0 " not in done.stdout and "Inserted:" in done.stdout
+
+
+def test_the_signal_type_is_built_in(cache: Path) -> None:
+    network = Network.load(NETWORKS / "cross.toml")
+    actuated = network.build("actuated", cache)
+    assert ET.parse(actuated).find("tlLogic").get("type") == "actuated"
+    with pytest.raises(ValueError, match="signals must be one of static, actuated"):
+        network.build("smart", cache)
+
+
+def test_a_network_is_built_once_and_again_when_its_files_change(cache: Path,
+                                                                 tmp_path: Path) -> None:
+    for suffix in (".toml", ".nod.xml", ".edg.xml"):
+        shutil.copy(NETWORKS / f"cross{suffix}", tmp_path / f"cross{suffix}")
+    first = Network.load(tmp_path / "cross.toml").build("static", cache)
+    built_at = first.stat().st_mtime_ns
+    assert Network.load(tmp_path / "cross.toml").build("static", cache) == first
+    assert first.stat().st_mtime_ns == built_at
+    edges = tmp_path / "cross.edg.xml"
+    edges.write_text(edges.read_text().replace('speed="13.89"', 'speed="8.33"'))
+    second = Network.load(tmp_path / "cross.toml").build("static", cache)
+    assert second != first and 'speed="8.33"' in second.read_text()
+
+
+def test_the_demand_keeps_its_shape_in_a_shorter_run(tmp_path: Path) -> None:
+    network = Network.load(NETWORKS / "ring.toml")
+    spans = [(period.name, begin, end) for period, begin, end in network.schedule(900.0)]
+    assert spans == [("west heavy", 0.0, 225.0), ("east heavy", 225.0, 450.0),
+                     ("balanced", 450.0, 675.0), ("surge", 675.0, 900.0)]
+    flows = ET.parse(network.write_demand(900.0, tmp_path / "d.rou.xml")).findall("flow")
+    assert len(flows) == len(network.streams) * 4
+    first = {f.get("id"): f for f in flows}["west_to_east.0"]
+    assert (first.get("begin"), first.get("end")) == ("0.00", "225.00")
+    assert first.get("period") == f"exp({420 / 3600:.6f})"     # Poisson, seeded by SUMO
+
+
+@pytest.mark.parametrize(("text", "complaint"), [
+    ("", "needs exactly one of netconvert"),
+    ('[build]\nnetgenerate = ["--grid"]\n', r"\[demand.streams\] is empty"),
+    ('[build]\nnetgenerate = ["--grid"]\n[demand.streams]\na = { from = "x", to = "y", '
+     'group = "g" }\n[[demand.periods]]\nshare = 1.0\nrates = { h = 1 }\n',
+     "rates must give every group"),
+    ('[build]\nnetgenerate = ["--grid"]\n[demand.streams]\na = { from = "x", to = "y", '
+     'group = "g" }\n[[demand.periods]]\nshare = 0.5\nrates = { g = 1 }\n',
+     "shares must add up to 1"),
+    ('[build]\nnetconvert = { nodes = "no.nod.xml", edges = "no.edg.xml" }\n',
+     "netconvert nodes: no file"),
+])
+def test_a_bad_description_is_refused_saying_what_to_fix(tmp_path: Path, text: str,
+                                                         complaint: str) -> None:
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=complaint) as caught:
+        Network.load(path)
+    assert str(path) in str(caught.value)
+    with pytest.raises(ValueError, match="no network description at"):
+        Network.load(tmp_path / "missing.toml")
+
+
+def test_without_sumo_the_error_says_how_to_install_it(monkeypatch) -> None:
+    monkeypatch.setitem(sys.modules, "sumo", None)          # import sumo fails
+    with pytest.raises(SumoMissing, match=r"pip install -e '\.\[traffic\]'"):
+        sumo_binary("netconvert")
