@@ -56,6 +56,8 @@ class QLearning(JunctionController):
         super().setup()
         if not self.table and self.table_file and Path(self.table_file).is_file():
             self.table = json.loads(Path(self.table_file).read_text())["table"]
+        else:
+            self.table = dict(self.table)       # its own, not the class's
         self._random = random.Random(self.seed)
         self._pending: tuple[str, int] | None = None   # the decision not yet learnt from
         self._decided_at = -1e9
