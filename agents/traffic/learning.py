@@ -1,15 +1,15 @@
-"""``QLearning``: a junction controller that learns which green to show by Q-learning
-on its queues, its table in its state.
+"""``QLearning``: a junction controller that learns when to end a green, by
+Q-learning, its table in its state.
 
-The state it sees is the green shown, how long it has been shown (three bands) and
-the halting vehicles each green would serve (six bands); its actions are the greens.
-It decides every ``decision_s`` once the minimum green has passed, and learns from
-the next decision: the reward is minus the vehicles halting then. The table
-(``table``: state key -> one value per green) is the module's state, so it moves and
-swaps with the module; a controller swapped in with an empty table takes the one
-trained offline for the bundled networks (``table_file``, made by
-``python -m agents.traffic.training``). States the table has never seen get the
-longest-queue choice, a safe default.
+Each second of green after the minimum it chooses between holding the green and
+giving way to the busiest red (the two actions of an actuated controller), seeing
+how long the green has been shown, the vehicles approaching its stop lines, those
+halting on its lanes and the vehicles on the red side, each in a few bands. The
+reward is minus the vehicles halting at the junction a second later. The table
+(``table``: state key -> [value of holding, value of giving way]) is the module's
+state, so it moves and swaps with the module. One swapped in with an empty table
+takes the one trained offline (``table_file``, made by ``python -m
+agents.traffic.training``). In a state it has never seen, it acts as ``GapOut``.
 """
 
 from __future__ import annotations
@@ -19,36 +19,48 @@ import random
 from pathlib import Path
 from typing import Any
 
-from agents.traffic.controller import JunctionController, in_transition, served_queue
+from agents.traffic.controller import JunctionController, in_transition
+from agents.traffic.gap_out import served
 from agents.traffic.messages import JunctionReading
 
 TRAINED = Path(__file__).with_name("q_table.json")
-QUEUE_BANDS = (0, 1, 3, 6, 10, 16)          # a band starts at each of these
-ELAPSED_BANDS = (0.0, 15.0, 35.0)
+HOLD, GIVE_WAY = 0, 1
+ELAPSED_BANDS = (0.0, 10.0, 20.0, 30.0, 45.0)      # a band starts at each of these
+COMING_BANDS = (0, 1, 2, 4)
+COUNT_BANDS = (0, 1, 3, 6, 10, 16)
 
 
 def _band(value: float, starts: tuple[float, ...]) -> int:
     return sum(value >= start for start in starts) - 1
 
 
+def busiest_red(reading: JunctionReading) -> tuple[int, int]:
+    """(vehicles, green) of the green phase not shown with the most vehicles."""
+    greens = range(len(reading.layout.greens))
+    return max((served(reading, g, reading.vehicles), g) for g in greens
+               if g != reading.green)
+
+
 def state_key(reading: JunctionReading) -> str:
     """What the learner sees of ``reading``, as the table's key."""
-    greens = len(reading.layout.greens)
-    queues = ".".join(str(_band(served_queue(reading, g), QUEUE_BANDS)) for g in range(greens))
-    return f"{greens}|{reading.green}|{_band(reading.elapsed, ELAPSED_BANDS)}|{queues}"
+    coming = served(reading, reading.green, reading.approaching)
+    halting = served(reading, reading.green, reading.queues)
+    red, _ = busiest_red(reading)
+    return (f"{_band(reading.elapsed, ELAPSED_BANDS)}|{_band(coming, COMING_BANDS)}|"
+            f"{_band(halting, COUNT_BANDS)}|{_band(red, COUNT_BANDS)}")
 
 
 class QLearning(JunctionController):
-    """Q-learning on banded queues and the phase shown; the table is its state."""
+    """Q-learning of when to give way; the table is its state."""
 
     table: dict[str, list[float]] = {}
     table_file = str(TRAINED)       # the table to start from when ``table`` is empty
     learning = True                 # False: act on the table, change nothing
     epsilon = 0.0                   # exploration (training uses more)
-    alpha = 0.1
-    gamma = 0.8
-    min_green_s = 8.0
-    decision_s = 4.0
+    alpha = 0.05
+    gamma = 0.95
+    min_green_s = 5.0
+    max_green_s = 60.0
     seed = 0
     updates = 0
 
@@ -56,41 +68,47 @@ class QLearning(JunctionController):
         super().setup()
         if not self.table and self.table_file and Path(self.table_file).is_file():
             self.table = json.loads(Path(self.table_file).read_text())["table"]
-        else:
-            self.table = dict(self.table)       # its own, not the class's
+        elif self.table is type(self).table:
+            self.table = {}                     # its own, not the class's
         self._random = random.Random(self.seed)
         self._pending: tuple[str, int] | None = None   # the decision not yet learnt from
-        self._decided_at = -1e9
+        self._accrued, self._seconds = 0.0, 0           # its cost so far, and how long
 
     def choose(self, reading: JunctionReading) -> int:
+        if len(reading.layout.greens) == 1:
+            return 0
+        if self._pending is not None:           # the cost of the last decision, so far
+            self._accrued -= self.gamma ** self._seconds * sum(reading.queues.values())
+            self._seconds += 1
         if in_transition(reading) or reading.elapsed + 1e-9 < self.min_green_s:
             return reading.target
-        if reading.time - self._decided_at + 1e-9 < self.decision_s:
-            return reading.green
         key = state_key(reading)
         if self.learning and self._pending is not None:
-            self._learn(*self._pending, -float(sum(reading.queues.values())), key)
-        greens = len(reading.layout.greens)
-        values = self.table.get(key)
-        if self.epsilon and self._random.random() < self.epsilon:
-            action = self._random.randrange(greens)
-        elif values is None:
-            queues = [served_queue(reading, g) for g in range(greens)]
-            action = reading.green if queues[reading.green] >= max(queues) else \
-                queues.index(max(queues))
-        else:
-            best = max(values)
-            action = reading.green if values[reading.green] >= best else values.index(best)
-        self._pending = (key, action)
-        self._decided_at = reading.time
-        return action
+            self._learn(key)
+        red, green = busiest_red(reading)
+        if red == 0:
+            action = HOLD
+        elif reading.elapsed + 1e-9 >= self.max_green_s:
+            action = GIVE_WAY
+        elif self.epsilon and self._random.random() < self.epsilon:
+            action = self._random.randrange(2)
+        elif key in self.table:
+            values = self.table[key]
+            action = GIVE_WAY if values[GIVE_WAY] > values[HOLD] else HOLD
+        else:                                   # never seen: as GapOut would
+            action = HOLD if served(reading, reading.green, reading.approaching) else GIVE_WAY
+        self._pending, self._accrued, self._seconds = (key, action), 0.0, 0
+        return reading.green if action == HOLD else green
 
-    def _learn(self, key: str, action: int, reward: float, next_key: str) -> None:
-        greens = int(key.partition("|")[0])
-        values = self.table.setdefault(key, [0.0] * greens)
+    def _learn(self, next_key: str) -> None:
+        """Update the value of the pending decision: the discounted halting since it
+        was taken, then the best value of the state it led to."""
+        key, action = self._pending
+        values = self.table.setdefault(key, [0.0, 0.0])
         following = self.table.get(next_key)
         future = max(following) if following else 0.0
-        values[action] += self.alpha * (reward + self.gamma * future - values[action])
+        target = self._accrued + self.gamma ** self._seconds * future
+        values[action] += self.alpha * (target - values[action])
         self.updates += 1
 
 
