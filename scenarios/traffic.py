@@ -91,9 +91,11 @@ def neighbours(found: dict[str, JunctionLayout]) -> dict[str, list[str]]:
 
 
 def configuration(resource: Path, seed: int, duration_s: float,
-                  found: dict[str, JunctionLayout], cache: Path | None = None) -> System:
+                  found: dict[str, JunctionLayout], cache: Path | None = None,
+                  agent_state: dict[str, Any] | None = None) -> System:
     """``traffic.toml`` with this run's network, seed and length, one ``junction``
-    instance per signalized junction, and the links between neighbours."""
+    instance per signalized junction (its agent's state overridden by
+    ``agent_state``), and the links between neighbours."""
     data = tomllib.loads(CONFIG.read_text())
     data["modules"]["sumo"].setdefault("state", {}).update(
         resource=str(resource), seed=seed, duration_s=duration_s,
@@ -101,7 +103,7 @@ def configuration(resource: Path, seed: int, duration_s: float,
     links = data.setdefault("links", [])
     for slot, junction in enumerate(found):
         data["modules"][junction] = {"macro": "junction", "state": {
-            "agent": {"controller": f"{junction}/controller"}}}
+            "agent": {**(agent_state or {}), "controller": f"{junction}/controller"}}}
         links += [{"from": f"sumo.reading_{slot}", "to": f"{junction}.reading"},
                   {"from": f"sumo.reading_{slot}", "to": f"{junction}.control"},
                   {"from": f"{junction}.request", "to": f"sumo.request_{slot}"},

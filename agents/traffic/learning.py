@@ -9,7 +9,8 @@ reward is minus the vehicles halting at the junction a second later. The table
 (``table``: state key -> [value of holding, value of giving way]) is the module's
 state, so it moves and swaps with the module. One swapped in with an empty table
 takes the one trained offline (``table_file``, made by ``python -m
-agents.traffic.training``). In a state it has never seen, it acts as ``GapOut``.
+agents.traffic.training``). Where its table cannot tell the actions apart (a state
+never seen, or seen once), it acts as ``GapOut``.
 """
 
 from __future__ import annotations
@@ -92,10 +93,10 @@ class QLearning(JunctionController):
             action = GIVE_WAY
         elif self.epsilon and self._random.random() < self.epsilon:
             action = self._random.randrange(2)
-        elif key in self.table:
+        elif key in self.table and self.table[key][HOLD] != self.table[key][GIVE_WAY]:
             values = self.table[key]
             action = GIVE_WAY if values[GIVE_WAY] > values[HOLD] else HOLD
-        else:                                   # never seen: as GapOut would
+        else:                                   # nothing learnt to tell: as GapOut would
             action = HOLD if served(reading, reading.green, reading.approaching) else GIVE_WAY
         self._pending, self._accrued, self._seconds = (key, action), 0.0, 0
         return reading.green if action == HOLD else green
@@ -104,11 +105,14 @@ class QLearning(JunctionController):
         """Update the value of the pending decision: the discounted halting since it
         was taken, then the best value of the state it led to."""
         key, action = self._pending
-        values = self.table.setdefault(key, [0.0, 0.0])
         following = self.table.get(next_key)
         future = max(following) if following else 0.0
         target = self._accrued + self.gamma ** self._seconds * future
-        values[action] += self.alpha * (target - values[action])
+        values = self.table.get(key)
+        if values is None:      # both actions start at the first value seen, so an
+            self.table[key] = [target, target]    # untried one does not look better
+        else:
+            values[action] += self.alpha * (target - values[action])
         self.updates += 1
 
 
