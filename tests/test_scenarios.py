@@ -107,12 +107,14 @@ def _check_traffic(figures: dict) -> None:
     assert all(run["vehicles"] == runs["agents"]["vehicles"] for run in runs.values())
     goals = figures["goals"]
     assert goals["less delay than SUMO's delay_based"], runs
-    assert goals["less delay than max_pressure alone"], runs
-    # The agents keep gap_out, the best controller alone (see applications.md): they
-    # tie it, and beat every other. The goal of beating it too is not met.
-    assert agents <= min(runs[name]["mean_delay_s"] for name in runs
-                         if name not in ("agents", "sumo_actuated", "sumo_delay_based"))
-    assert figures["best_alone"] == "gap_out"
+    for name in ("fixed_time", "max_pressure", "longest_queue"):
+        assert goals[f"less delay than {name} alone"], runs
+    # The agents' rules keep gap_out (the best of their controllers on the bundled
+    # networks, measured in applications.md) and nothing on these runs calls for a
+    # swap: the system with its agents gives exactly gap_out's run alone. The goal of
+    # beating gap_out (and, on some seeds, q_learning) is therefore not met.
+    assert runs["agents"]["swaps"] == 0 and figures["swap_events"] == 0
+    assert agents == runs["gap_out"]["mean_delay_s"], runs
     assert figures["agents_wall_s"] < 30          # lock-step: as fast as they decide
 
 
