@@ -94,16 +94,20 @@ def configuration(resource: Path, seed: int, duration_s: float,
                   found: dict[str, JunctionLayout], cache: Path | None = None,
                   agent_state: dict[str, Any] | None = None) -> System:
     """``traffic.toml`` with this run's network, seed and length, one ``junction``
-    instance per signalized junction (its agent's state overridden by
-    ``agent_state``), and the links between neighbours."""
+    instance per signalized junction (the file's own, if it has one by the
+    junction's name; its agent's state over ``agent_state``), and the links between
+    neighbours."""
     data = tomllib.loads(CONFIG.read_text())
     data["modules"]["sumo"].setdefault("state", {}).update(
         resource=str(resource), seed=seed, duration_s=duration_s,
         cache_dir=str(cache) if cache else "")
     links = data.setdefault("links", [])
     for slot, junction in enumerate(found):
-        data["modules"][junction] = {"macro": "junction", "state": {
-            "agent": {**(agent_state or {}), "controller": f"{junction}/controller"}}}
+        # an instance the file has for this junction keeps its own state
+        instance = data["modules"].setdefault(junction, {"macro": "junction"})
+        state = instance.setdefault("state", {})
+        state["agent"] = {**(agent_state or {}), **state.get("agent", {}),
+                          "controller": f"{junction}/controller"}
         links += [{"from": f"sumo.reading_{slot}", "to": f"{junction}.reading"},
                   {"from": f"sumo.reading_{slot}", "to": f"{junction}.control"},
                   {"from": f"{junction}.request", "to": f"sumo.request_{slot}"},

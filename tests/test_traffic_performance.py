@@ -52,6 +52,7 @@ def agent(**state: Any) -> tuple[ModuleHarness, RecordingRuntime]:
     harness = ModuleHarness(PerformanceAgent, runtime=runtime, state={
         "controller": "W/controller", "controllers": CONTROLLERS, "running": "gap_out",
         "window_s": 60.0, "min_between_swaps_s": 120.0, "silent_after_s": 10.0,
+        "silent_wall_s": 0.0,
         "rules": [{"use": "gap_out"}, {"use": "max_pressure", "queue_at_least": 6.0}],
         **state})
     return harness, runtime
@@ -93,13 +94,18 @@ def test_it_waits_the_minimum_time_between_two_swaps() -> None:
 
 
 def test_silent_detectors_bring_fixed_time_at_once_and_it_comes_back_after() -> None:
-    harness, runtime = agent()
+    harness, runtime = agent(silent_wall_s=0.5)
+    wall = [50.0]
+    harness.module._wall = lambda: wall[0]
     feed(harness, 0, 61, queue=9)            # (a swap at 60 s: the minimum time runs)
     for second in range(61, 75):             # the readings stop; the clock goes on
         harness.feed("clock", float(second))
+    assert runtime.swaps() == ["MaxPressure"]   # they may only lag: wait a little
+    wall[0] += 0.6
+    harness.step()
     assert runtime.swaps() == ["MaxPressure", "FixedTime"]   # within the minimum time
     assert harness.state["detectors_ok"] is False
-    assert "no detector reading for 11 s" in harness.state["swaps"][-1]["reason"]
+    assert "no detector reading for 14 s" in harness.state["swaps"][-1]["reason"]
     feed(harness, 75, 134, queue=1)          # readings again: not a whole window yet
     assert runtime.swaps()[-1] == "FixedTime"
     feed(harness, 134, 136, queue=1)
@@ -160,3 +166,24 @@ def test_in_a_system_its_swaps_are_events_and_the_lock_step_goes_on(tmp_path: Pa
     assert [e.subject for e in events] == ["C/controller"]
     assert events[0].detail["cls"] == "agents.traffic.max_pressure:MaxPressure"
     assert result["rejected"] == 0 and result["late"] == 0 and result["teleports"] == 0
+
+
+
+@pytest.mark.timeout(60)
+def test_a_junction_the_file_names_keeps_its_own_settings(tmp_path: Path,
+                                                         monkeypatch) -> None:
+    pytest.importorskip("libsumo", reason="SUMO (the traffic extra) is not installed")
+    from scenarios import traffic
+
+    own = tmp_path / "traffic.toml"
+    own.write_text(traffic.CONFIG.read_text() + '\n[modules.C]\nmacro = "junction"\n'
+                   'state = { controller = { max_green_s = 60.0 }, '
+                   'agent = { min_between_swaps_s = 300.0 } }\n')
+    monkeypatch.setattr(traffic, "CONFIG", own)
+    resource = NETWORKS / "cross.toml"
+    system = traffic.configuration(resource, 1, 60.0, traffic.layouts(resource, tmp_path),
+                                   tmp_path)
+    with system.launch() as running:
+        controller, agent = running.state("C/controller"), running.state("C/agent")
+    assert controller["max_green_s"] == 60.0
+    assert agent["min_between_swaps_s"] == 300.0 and agent["controller"] == "C/controller"

@@ -11,10 +11,11 @@ each a class and the state it is given when swapped in).
 Guard rails:
 
 - at least ``min_between_swaps_s`` simulated seconds between two swaps by the rules;
-- when the detectors fail (no measure for ``silent_after_s`` while the clock goes
-  on, or an implausible one), it swaps to ``fallback`` (fixed time, which needs no
-  detector) at once, and leaves it only after a whole window of plausible
-  measures.
+- when the detectors fail (an implausible measure, or none for ``silent_after_s``
+  of the driver's clock and ``silent_wall_s`` of wall time: a lock-step run goes
+  faster than the messages between modules, and their lag is no failure), it swaps
+  to ``fallback`` (fixed time, which needs no detector) at once, and leaves it only
+  after a whole window of plausible measures.
 
 A controller's table or weights (state ``table``) is kept when it is swapped out and
 given back when it is swapped in again, so a learner does not forget. Each swap is a
@@ -23,6 +24,7 @@ given back when it is swapped in again, so a learner does not forget. Each swap 
 
 from __future__ import annotations
 
+import time
 from collections import deque
 from typing import Any
 
@@ -35,7 +37,7 @@ KEPT_STATE = ("table",)             # a controller's learnt state, kept across s
 class PerformanceAgent(Agent):
     """Swaps a junction's controller by measured demand and delay, with guard rails."""
 
-    measures = Input(JunctionMeasures, policy="queue:64")
+    measures = Input(JunctionMeasures, policy="queue:512")
     clock = Input(float, policy="latest")
     swapped = Output(dict)
 
@@ -46,7 +48,9 @@ class PerformanceAgent(Agent):
     fallback = "fixed_time"         # the controller for failed detectors
     window_s = 60.0
     min_between_swaps_s = 120.0
-    silent_after_s = 10.0
+    silent_after_s = 10.0           # simulated seconds without a measure ...
+    silent_wall_s = 0.5             # ... for at least this long in wall time
+    period = 0.1                    # how often silence is checked, besides on the clock
     # read-outs
     demand_per_min = 0.0
     mean_queue = 0.0
@@ -65,19 +69,24 @@ class PerformanceAgent(Agent):
         self._last_measure_s: float | None = None
         self._plausible_since: float | None = None
         self._kept: dict[str, dict[str, Any]] = {}
+        self._clock_s: float | None = None
+        self._behind_since: float | None = None     # wall time the measures fell behind
+        self._wall = time.monotonic
 
     def on_input(self, port: InputPort) -> None:
         if port.name == "clock":
-            now = port.read()
-            if now is not None:
-                self._check_silence(now)
+            self._clock_s = port.read()
+            self._check_silence()
             return
         for measure in port.read_all():
             self._take(measure)
 
+    def step(self) -> None:
+        self._check_silence()
+
     # -- measuring --------------------------------------------------------------------
     def _take(self, measure: JunctionMeasures) -> None:
-        self._last_measure_s = measure.time
+        self._last_measure_s, self._behind_since = measure.time, None
         if not measure.plausible:
             self._plausible_since = None
             self._window.clear()
@@ -110,9 +119,13 @@ class PerformanceAgent(Agent):
                 chosen = rule["use"]
         return chosen
 
-    def _check_silence(self, now: float) -> None:
-        last = self._last_measure_s
-        if last is not None and now - last > self.silent_after_s:
+    def _check_silence(self) -> None:
+        now, last = self._clock_s, self._last_measure_s
+        if now is None or last is None or now - last <= self.silent_after_s:
+            return
+        if self._behind_since is None:
+            self._behind_since = self._wall()
+        if self._wall() - self._behind_since >= self.silent_wall_s and self.detectors_ok:
             self._plausible_since = None
             self._window.clear()
             self._fail(now, f"no detector reading for {now - last:.0f} s")
