@@ -112,6 +112,13 @@ def test_silent_detectors_bring_fixed_time_at_once_and_it_comes_back_after() -> 
     assert runtime.swaps()[-1] == "GapOut" and harness.state["detectors_ok"] is True
 
 
+def test_detectors_silent_from_the_start_bring_fixed_time() -> None:
+    harness, runtime = agent()
+    for second in range(12):
+        harness.feed("clock", float(second))
+    assert runtime.swaps() == ["FixedTime"] and harness.state["detectors_ok"] is False
+
+
 def test_implausible_readings_bring_fixed_time() -> None:
     harness, runtime = agent()
     feed(harness, 0, 30, queue=1)

@@ -76,6 +76,8 @@ class PerformanceAgent(Agent):
     def on_input(self, port: InputPort) -> None:
         if port.name == "clock":
             self._clock_s = port.read()
+            if self._last_measure_s is None:    # none yet: silent since the clock began
+                self._last_measure_s = self._clock_s
             self._check_silence()
             return
         for measure in port.read_all():
