@@ -8,7 +8,7 @@ they cross processes as they are.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 
 @dataclass(frozen=True)
@@ -45,6 +45,10 @@ class JunctionReading:
     waiting: dict[str, float]            # their accumulated waiting time (s) per lane
     arrivals: dict[str, int]             # vehicles new on each incoming lane this step
     outgoing: dict[str, int]             # vehicles on each outgoing lane
+    vehicles: dict[str, int] = field(default_factory=dict)   # all vehicles (moving
+                                         # too) on each incoming lane
+    approaching: dict[str, int] = field(default_factory=dict)   # moving vehicles due
+                                         # at the stop line within APPROACH_S, per lane
 
 
 @dataclass(frozen=True)
@@ -69,3 +73,28 @@ class NetworkReading:
     arrived: int                         # vehicles that reached their destination
     teleports: int                       # vehicles SUMO moved out of a jam, since the start
     halting: int                         # vehicles standing on the signalized approaches
+
+
+@dataclass(frozen=True)
+class JunctionMeasures:
+    """What a junction's sensors make of one reading: its totals, for the junction's
+    performance agent. ``plausible`` is False when a detector gave a value no road
+    can have (a negative count, more vehicles than a lane holds)."""
+
+    junction: str
+    step: int
+    time: float                          # simulated seconds
+    queue: int                           # halting vehicles on its incoming lanes
+    waiting_s: float                     # their accumulated waiting time
+    arrivals: int                        # vehicles new on its incoming lanes this step
+    plausible: bool
+
+
+@dataclass(frozen=True)
+class NeighbourQueues:
+    """A junction's halting vehicles per incoming lane, sent to the junctions upstream:
+    for them, these are the queues their outgoing lanes run into."""
+
+    junction: str
+    time: float
+    queues: dict[str, int]

@@ -23,6 +23,9 @@ from agents.traffic.networks import SumoMissing
 from agents.traffic.signals import SignalPlan, is_green_phase
 
 STEP_S = 1.0                   # SUMO's step: one simulated second
+APPROACH_S = 4.0               # "approaching": due at the stop line within this, at
+                               # the speed it has (an actuated signal's passage time)
+MOVING_MPS = 1.0
 
 
 def _libsumo() -> Any:
@@ -70,6 +73,7 @@ class Simulation:
         self._seen: dict[str, set[str]] = {lane: set() for layout in self.layouts.values()
                                            for lane in layout.lanes_in}
         self._signals: dict[str, str] = {}
+        self._lengths: dict[str, float] = {}
         self.departed = self.arrived = self.teleports = 0
         self._halting_sum = 0
         self._readings = 0
@@ -100,21 +104,36 @@ class Simulation:
             self.teleports += simulation.getStartingTeleportNumber()
 
     def junction_detectors(self, junction: str) -> dict[str, dict[str, Any]]:
-        """``queues``, ``waiting``, ``arrivals`` per incoming lane and ``outgoing`` per
-        outgoing lane of ``junction``, now. Arrivals are the vehicles on a lane now
+        """``queues``, ``waiting``, ``arrivals``, ``vehicles`` per incoming lane and
+        ``outgoing`` per outgoing lane of ``junction``, now. Arrivals are the vehicles on a lane now
         that were not there at the previous reading."""
         lane = self._sumo.lane
         layout = self.layouts[junction]
-        queues, waiting, arrivals = {}, {}, {}
+        queues, waiting, arrivals, vehicles, approaching = {}, {}, {}, {}, {}
         for name in layout.lanes_in:
             queues[name] = int(lane.getLastStepHaltingNumber(name))
             waiting[name] = float(lane.getWaitingTime(name))
             present = set(lane.getLastStepVehicleIDs(name))
+            vehicles[name] = len(present)
+            approaching[name] = self._approaching(name, present)
             arrivals[name] = len(present - self._seen[name])
             self._seen[name] = present
         outgoing = {name: int(lane.getLastStepVehicleNumber(name)) for name in layout.lanes_out}
         return {"queues": queues, "waiting": waiting, "arrivals": arrivals,
-                "outgoing": outgoing}
+                "outgoing": outgoing, "vehicles": vehicles, "approaching": approaching}
+
+    def _approaching(self, lane: str, present: set[str]) -> int:
+        """The moving vehicles on ``lane`` due at its end within ``APPROACH_S``."""
+        vehicle = self._sumo.vehicle
+        length = self._lengths.get(lane)
+        if length is None:
+            length = self._lengths[lane] = float(self._sumo.lane.getLength(lane))
+        due = 0
+        for name in present:
+            speed = vehicle.getSpeed(name)
+            if speed >= MOVING_MPS and length - vehicle.getLanePosition(name) <= speed * APPROACH_S:
+                due += 1
+        return due
 
     def network_reading(self, step: int, halting: int) -> NetworkReading:
         """The network's totals now; ``halting`` (the vehicles standing at the

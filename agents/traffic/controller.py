@@ -1,0 +1,67 @@
+"""``JunctionController``: the ports every junction controller shares, so any one can
+be swapped for another while the system runs.
+
+A controller answers each ``JunctionReading`` with a ``PhaseRequest`` at once (the
+driver's lock-step waits for it) and hears its neighbours' queues on
+``neighbour_0`` … ``neighbour_3`` (``NeighbourQueues``: the queues its outgoing lanes
+lead into). Subclasses only say which green they want, in ``choose``. They decide
+from the reading's ``green``, ``target``, ``stage`` and ``elapsed`` (what the driver's
+``SignalHead`` shows), not from a phase of their own: a controller swapped in
+mid-phase carries on from the phase in progress.
+"""
+
+from __future__ import annotations
+
+from agents.traffic.messages import JunctionReading, NeighbourQueues, PhaseRequest
+from pb3a import Input, InputPort, Module, Output
+
+NEIGHBOUR_SLOTS = 4             # a junction's neighbours downstream, at most
+
+
+def _neighbour_ports() -> dict[str, Input]:
+    return {f"neighbour_{slot}": Input(NeighbourQueues, policy="latest")
+            for slot in range(NEIGHBOUR_SLOTS)}
+
+
+_NeighbourSlots = type("_NeighbourSlots", (), _neighbour_ports())
+
+
+class JunctionController(_NeighbourSlots, Module):
+    """Readings in, one phase request per reading out; ``choose`` decides."""
+
+    reading = Input(JunctionReading, policy="queue:8")
+    request = Output(PhaseRequest)
+    decisions = 0                           # readings answered
+
+    def setup(self) -> None:
+        self._downstream: dict[str, int] = {}
+
+    def on_input(self, port: InputPort) -> None:
+        if port.name.startswith("neighbour_"):
+            for message in port.read_all():
+                self._downstream.update(message.queues)
+            return
+        for reading in port.read_all():
+            green = self.choose(reading)
+            self.request.write(PhaseRequest(reading.junction, reading.step, green))
+            self.decisions += 1
+
+    def choose(self, reading: JunctionReading) -> int:
+        """The green phase to ask for after ``reading``."""
+        raise NotImplementedError
+
+    def downstream(self, reading: JunctionReading, lane: str) -> int:
+        """Vehicles standing on outgoing ``lane``: the neighbour's count of its halting
+        vehicles when it has sent one, else the driver's count of all on it."""
+        return self._downstream.get(lane, reading.outgoing.get(lane, 0))
+
+
+def in_transition(reading: JunctionReading) -> bool:
+    """True while the lights move from one green to another (yellow, all-red)."""
+    return reading.stage != "green" or reading.target != reading.green
+
+
+def served_queue(reading: JunctionReading, green: int) -> int:
+    """The halting vehicles on the lanes that green phase ``green`` lets go."""
+    lanes = {lane for lane, _ in reading.layout.movements(green)}
+    return sum(reading.queues.get(lane, 0) for lane in lanes)

@@ -1,0 +1,40 @@
+"""``JunctionSensors``: what a junction's detectors say, made into the figures its
+modules use: totals (queue, waiting time, arrivals) for its performance agent and
+the queue per incoming lane for the neighbours upstream.
+
+It also judges whether a reading is plausible: a negative count or more vehicles
+halting on a lane than ``lane_capacity`` is a failed detector, not traffic.
+"""
+
+from __future__ import annotations
+
+from agents.traffic.messages import JunctionMeasures, JunctionReading, NeighbourQueues
+from pb3a import Input, InputPort, Module, Output
+
+
+def plausible(reading: JunctionReading, lane_capacity: int) -> bool:
+    """False when a detector of ``reading`` gives a value no lane can have."""
+    counts = (*reading.queues.values(), *reading.arrivals.values())
+    return (all(0 <= c <= lane_capacity for c in counts)
+            and all(w >= 0 for w in reading.waiting.values()))
+
+
+class JunctionSensors(Module):
+    """A junction's reading in; its totals and its queues per lane out."""
+
+    reading = Input(JunctionReading, policy="queue:8")
+    measures = Output(JunctionMeasures)
+    queues = Output(NeighbourQueues)
+    lane_capacity = 200                 # halting vehicles a lane can hold, at most
+    implausible = 0                     # readings judged implausible
+
+    def on_input(self, port: InputPort) -> None:
+        for reading in port.read_all():
+            ok = plausible(reading, self.lane_capacity)
+            self.implausible += not ok
+            self.measures.write(JunctionMeasures(
+                reading.junction, reading.step, reading.time,
+                queue=sum(reading.queues.values()), waiting_s=sum(reading.waiting.values()),
+                arrivals=sum(reading.arrivals.values()), plausible=ok))
+            self.queues.write(NeighbourQueues(reading.junction, reading.time,
+                                              dict(reading.queues)))

@@ -1,0 +1,266 @@
+"""Traffic control on SUMO: every signalized junction run by an intersection macro
+whose performance agent swaps its controller as traffic changes, against each
+controller alone and against SUMO's own actuated programs.
+
+``scenarios/traffic.toml`` is the system: the ``TrafficDriver`` (SUMO, in lock-step)
+and, per junction, the ``junction`` macro: its sensors, its controller and its
+``PerformanceAgent``, with each junction's queues sent to its neighbours upstream.
+The scenario fills in the network, the seed and the length of the run, one
+instance per signalized junction and the links between neighbours.
+
+On the same network, demand and seed it runs:
+
+- the swapping agents: that system, launched (one process for SUMO and one for the
+  junctions' modules);
+- each controller of the agents' ``controllers`` alone, with the parameters the
+  file gives it, at every junction (in one process, ``run_in_process``: the same
+  driver and classes in the same lock-step, without the agents);
+- SUMO's ``actuated`` and ``delay_based`` programs (the driver's ``own_programs``),
+  as outside baselines.
+
+Figures per run (the driver's): mean delay per vehicle (tripinfo ``timeLoss +
+departDelay`` over every vehicle, counting those still in the network or never let
+in), mean vehicles halting at the signals, throughput, teleports, swaps made, and
+the delay over time. Goals: the swapping agents have less mean delay than every
+controller alone, than SUMO's ``delay_based`` and than max-pressure.
+
+Run it: ``pb3a scenario traffic [--quick] [--network ring|grid] [--seed N] [--out DIR]``
+(or ``python -m scenarios.traffic``); ``--network`` also takes the path of another
+network description. It prints the report as JSON and writes ``traffic_NETWORK.json``
+and ``traffic_NETWORK.png`` to DIR.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from agents.traffic.driver import TrafficDriver
+from agents.traffic.lockstep import run_in_process
+from agents.traffic.messages import JunctionLayout
+from pb3a import System
+from pb3a.cli.log_output import show_logs
+from pb3a.loading.references import resolve_class
+from pb3a.testing import ModuleHarness
+
+CONFIG = Path(__file__).with_name("traffic.toml")
+NETWORKS = Path(__file__).with_name("traffic")
+DURATION_S = {"quick": 900.0, "full": 3600.0}
+BASELINES = ("actuated", "delay_based")
+RUN_TIMEOUT_S = {"quick": 120.0, "full": 600.0}    # wall seconds for the agents' run
+POLL_S = 0.2
+FIGURES = ("mean_delay_s", "mean_halting", "throughput", "teleports", "vehicles",
+           "mean_time_loss_s", "mean_depart_delay_s")
+
+
+def network_path(network: str) -> Path:
+    """A bundled network by name (``ring``, ``grid``), or a description's path."""
+    path = Path(network)
+    if path.suffix == ".toml":
+        return path
+    bundled = NETWORKS / f"{network}.toml"
+    if not bundled.is_file():
+        names = sorted(p.stem for p in NETWORKS.glob("*.toml"))
+        raise ValueError(f"no network {network!r}: the bundled networks are "
+                         f"{', '.join(names)} (or give the path of a .toml description)")
+    return bundled
+
+
+def layouts(resource: Path, cache: Path | None = None) -> dict[str, JunctionLayout]:
+    """The network's signalized junctions, in the driver's slot order."""
+    driver = ModuleHarness(TrafficDriver, state={
+        "resource": str(resource), "duration_s": 10.0,
+        "cache_dir": str(cache) if cache else ""})
+    try:
+        return {junction: driver.last(f"reading_{slot}").layout
+                for slot, junction in enumerate(driver.state["junctions"])}
+    finally:
+        driver.close()
+
+
+def neighbours(found: dict[str, JunctionLayout]) -> dict[str, list[str]]:
+    """Per junction, the junctions its outgoing lanes lead into."""
+    return {junction: [other for other, theirs in found.items() if other != junction
+                       and set(layout.lanes_out) & set(theirs.lanes_in)]
+            for junction, layout in found.items()}
+
+
+def configuration(resource: Path, seed: int, duration_s: float,
+                  found: dict[str, JunctionLayout], cache: Path | None = None,
+                  agent_state: dict[str, Any] | None = None) -> System:
+    """``traffic.toml`` with this run's network, seed and length, one ``junction``
+    instance per signalized junction (the file's own, if it has one by the
+    junction's name; its agent's state over ``agent_state``), and the links between
+    neighbours."""
+    data = tomllib.loads(CONFIG.read_text())
+    data["modules"]["sumo"].setdefault("state", {}).update(
+        resource=str(resource), seed=seed, duration_s=duration_s,
+        cache_dir=str(cache) if cache else "")
+    links = data.setdefault("links", [])
+    for slot, junction in enumerate(found):
+        # an instance the file has for this junction keeps its own state
+        instance = data["modules"].setdefault(junction, {"macro": "junction"})
+        state = instance.setdefault("state", {})
+        state["agent"] = {**(agent_state or {}), **state.get("agent", {}),
+                          "controller": f"{junction}/controller"}
+        links += [{"from": f"sumo.reading_{slot}", "to": f"{junction}.reading"},
+                  {"from": f"sumo.reading_{slot}", "to": f"{junction}.control"},
+                  {"from": f"{junction}.request", "to": f"sumo.request_{slot}"},
+                  {"from": "sumo.clock", "to": f"{junction}.clock"}]
+    for junction, downstream in neighbours(found).items():
+        for slot, other in enumerate(downstream[:4]):
+            links.append({"from": f"{other}.queues", "to": f"{junction}.neighbour_{slot}"})
+    return System.from_dict(data, source=str(CONFIG))
+
+
+def controllers() -> dict[str, dict[str, Any]]:
+    """The controllers the agents choose among (name -> class and state), from the file."""
+    data = tomllib.loads(CONFIG.read_text())
+    return data["macros"]["junction"]["modules"]["agent"]["state"]["controllers"]
+
+
+def run_agents(resource: Path, seed: int, duration_s: float, found: dict[str, JunctionLayout],
+               timeout_s: float, cache: Path | None = None) -> dict[str, Any]:
+    """The swapping agents' run: its figures, its swaps and the system's swap events."""
+    system = configuration(resource, seed, duration_s, found, cache)
+    with system.launch() as running:
+        started = time.monotonic()
+        deadline = started + timeout_s
+        while not running.state("sumo")["result"]:
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"the agents' run of {resource.name} did not end in "
+                                   f"{timeout_s:.0f} s (at {running.state('sumo')['time_s']:.0f} "
+                                   f"of {duration_s:.0f} simulated s)")
+            time.sleep(POLL_S)
+        wall_s = time.monotonic() - started
+        result = running.state("sumo")["result"]
+        swaps = sorted((swap for junction in found
+                        for swap in running.state(f"{junction}/agent")["swaps"]),
+                       key=lambda swap: swap["time"])
+        events = [e for e in running.events(since=0, timeout=1.0) if e.kind == "module_swapped"]
+    return {**result, "swaps": swaps, "swap_events": len(events), "wall_s": round(wall_s, 1)}
+
+
+def run_alone(resource: Path, seed: int, duration_s: float, spec: dict[str, Any],
+              cache: Path | None = None) -> dict[str, Any]:
+    """One controller at every junction, no agents."""
+    cls = resolve_class(spec["class"])
+    result, _ = run_in_process(resource, lambda _junction: (cls, dict(spec.get("state", {}))),
+                               seed=seed, duration_s=duration_s, cache=cache)
+    return result
+
+
+def run_sumo(resource: Path, seed: int, duration_s: float, signals: str,
+             cache: Path | None = None) -> dict[str, Any]:
+    """SUMO's own programs of type ``signals`` drive the lights."""
+    driver = ModuleHarness(TrafficDriver, state={
+        "resource": str(resource), "seed": seed, "duration_s": duration_s,
+        "signals": signals, "own_programs": True, "cache_dir": str(cache) if cache else ""})
+    try:
+        while driver.module.status == "running":
+            driver.step()
+        return driver.state["result"]
+    finally:
+        driver.close()
+
+
+def run(network: str = "ring", seed: int = 1, quick: bool = False,
+        cache: Path | None = None) -> dict[str, Any]:
+    """Every run on ``network`` with ``seed``; the report (``report``)."""
+    resource = network_path(network)
+    mode = "quick" if quick else "full"
+    duration_s = DURATION_S[mode]
+    found = layouts(resource, cache)
+    runs: dict[str, dict[str, Any]] = {}
+    for name, spec in controllers().items():
+        runs[name] = run_alone(resource, seed, duration_s, spec, cache)
+    for signals in BASELINES:
+        runs[f"sumo_{signals}"] = run_sumo(resource, seed, duration_s, signals, cache)
+    runs["agents"] = run_agents(resource, seed, duration_s, found, RUN_TIMEOUT_S[mode], cache)
+    return report(resource, seed, quick, runs)
+
+
+def report(resource: Path, seed: int, quick: bool,
+           runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """The figures of every run, and whether the agents meet the goals."""
+    table = {name: {key: _round(result[key]) for key in FIGURES}
+             | {"swaps": len(result.get("swaps", []))} for name, result in runs.items()}
+    agents = runs["agents"]["mean_delay_s"]
+    own = [name for name in runs if name != "agents" and not name.startswith("sumo_")]
+    goals = {f"less delay than {name} alone": agents < runs[name]["mean_delay_s"]
+             for name in own}
+    goals["less delay than SUMO's delay_based"] = agents < runs["sumo_delay_based"]["mean_delay_s"]
+    goals["no teleports"] = runs["agents"]["teleports"] == 0
+    return {"scenario": "traffic", "network": resource.stem, "seed": seed, "quick": quick,
+            "duration_s": runs["agents"]["end_s"], "runs": table,
+            "best_alone": min(own, key=lambda n: runs[n]["mean_delay_s"]),
+            "agents_wall_s": runs["agents"]["wall_s"],
+            "swap_events": runs["agents"]["swap_events"],
+            "swaps": runs["agents"]["swaps"], "goals": goals,
+            "delay_over_time": {name: result["delay_by_window"] for name, result in runs.items()}}
+
+
+def _round(value: Any) -> Any:
+    return round(value, 2) if isinstance(value, float) else value
+
+
+def plot(figures: dict[str, Any], path: Path) -> None:
+    """Mean delay of the vehicles that left in each minute, per run; swaps marked."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(figsize=(11, 5))
+    for name, windows in figures["delay_over_time"].items():
+        style = {"linewidth": 2.4, "color": "black"} if name == "agents" else \
+            {"linewidth": 1.0, "linestyle": "--" if name.startswith("sumo_") else "-"}
+        delay = figures["runs"][name]["mean_delay_s"]
+        axes.plot([w[0] for w in windows], [w[1] for w in windows],
+                  label=f"{name}: {delay:.1f} s", **style)
+    for index, swap in enumerate(figures["swaps"]):
+        axes.axvline(swap["time"], color="tab:red", alpha=0.25, linewidth=0.8,
+                     label="a swap by an agent" if index == 0 else None)
+    axes.set_xlabel("simulated time (s)")
+    axes.set_ylabel("mean delay of the vehicles that left in the minute (s)")
+    axes.set_title(f"{figures['network']}, seed {figures['seed']}: mean delay per vehicle "
+                   f"over the run (legend); {len(figures['swaps'])} swaps", fontsize=10)
+    axes.legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="traffic", description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true",
+                        help="15 simulated minutes (the demand's four periods shortened) "
+                             "instead of an hour")
+    parser.add_argument("--network", default="ring",
+                        help="ring, grid, or the path of a network description (.toml)")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--out", default=".", help="directory for the JSON and the PNG")
+    args = parser.parse_args(argv)
+    try:
+        resource = network_path(args.network)
+    except ValueError as exc:
+        print(f"traffic: {exc}", file=sys.stderr)
+        return 2
+    show_logs()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    figures = run(str(resource), args.seed, args.quick)
+    png = out / f"traffic_{figures['network']}.png"
+    plot(figures, png)
+    figures["plot"] = str(png)
+    (out / f"traffic_{figures['network']}.json").write_text(json.dumps(figures, indent=2))
+    print(json.dumps({k: v for k, v in figures.items() if k != "delay_over_time"}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,222 @@
+"""The junction controllers, each on its own: against synthetic readings of a
+two-phase crossing (what it asks for, when), then against the driver on the
+crossing in SUMO, and swapped for one another mid-phase."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+from traffic_legality import illegal_steps
+
+from agents.traffic.fixed_time import FixedTime
+from agents.traffic.gap_out import GapOut
+from agents.traffic.learning import QLearning, state_key
+from agents.traffic.longest_queue import LongestQueueFirst
+from agents.traffic.max_pressure import MaxPressure
+from agents.traffic.messages import JunctionLayout, JunctionReading, NeighbourQueues
+from pb3a.testing import ModuleHarness
+
+# north-south (phase 0) and east-west (phase 1), one lane each way
+LAYOUT = JunctionLayout(
+    "J", links=(("n_in", "s_out"), ("s_in", "n_out"), ("e_in", "w_out"), ("w_in", "e_out")),
+    greens=("GGrr", "rrGG"), lanes_in=("n_in", "s_in", "e_in", "w_in"),
+    lanes_out=("s_out", "n_out", "w_out", "e_out"))
+NS, EW = 0, 1
+LANES = {"ns": ("n_in", "s_in"), "ew": ("e_in", "w_in")}
+
+
+def reading(green: int = NS, elapsed: float = 0.0, *, step: int = 0, stage: str = "green",
+            target: int | None = None, queues: dict[str, int] | None = None,
+            vehicles: dict[str, int] | None = None, approaching: dict[str, int] | None = None,
+            outgoing: dict[str, int] | None = None) -> JunctionReading:
+    """A reading of the crossing; counts per lane group (``ns``/``ew``) or per lane."""
+    def per_lane(counts: dict[str, int] | None, lanes: tuple[str, ...]) -> dict[str, int]:
+        out = dict.fromkeys(lanes, 0)
+        for name, count in (counts or {}).items():
+            for lane in LANES.get(name, (name,)):
+                out[lane] = count
+        return out
+
+    queue = per_lane(queues, LAYOUT.lanes_in)
+    return JunctionReading(
+        "J", step, float(step), LAYOUT, green, green if target is None else target, stage,
+        elapsed, LAYOUT.greens[green], queue, dict.fromkeys(queue, 0.0),
+        dict.fromkeys(queue, 0), per_lane(outgoing, LAYOUT.lanes_out),
+        per_lane(vehicles if vehicles is not None else queues, LAYOUT.lanes_in),
+        per_lane(approaching, LAYOUT.lanes_in))
+
+
+def asks(cls: type, state: dict[str, Any] | None = None, **fields: Any) -> int:
+    """The green ``cls`` asks for after one reading."""
+    harness = ModuleHarness(cls, state=state)
+    harness.feed("reading", reading(**fields))
+    request = harness.last("request")
+    assert (request.junction, request.step) == ("J", fields.get("step", 0))
+    return request.green
+
+
+@pytest.mark.parametrize("cls", [FixedTime, MaxPressure, LongestQueueFirst, GapOut, QLearning])
+def test_every_controller_lets_a_transition_finish(cls: type) -> None:
+    # mid-yellow from north-south to east-west, with everybody waiting north-south
+    assert asks(cls, green=NS, target=EW, stage="yellow", elapsed=1.0,
+                queues={"ns": 9}) == EW
+
+
+def test_fixed_time_holds_each_green_for_its_time_whatever_the_queues() -> None:
+    assert asks(FixedTime, {"green_s": 20.0}, green=NS, elapsed=19.0, queues={"ew": 30}) == NS
+    assert asks(FixedTime, {"green_s": 20.0}, green=NS, elapsed=20.0, queues={"ns": 30}) == EW
+    assert asks(FixedTime, {"green_s": 20.0}, green=EW, elapsed=25.0) == NS
+
+
+def test_max_pressure_weighs_the_queues_against_what_stands_downstream() -> None:
+    assert asks(MaxPressure, green=NS, elapsed=4.0, queues={"ew": 8}) == NS     # holding
+    assert asks(MaxPressure, green=NS, elapsed=10.0, queues={"ns": 3, "ew": 8}) == EW
+    # east-west's exits are full: its pressure is lower though its queue is longer
+    assert asks(MaxPressure, green=NS, elapsed=10.0, queues={"ns": 3, "ew": 8},
+                outgoing={"w_out": 12, "e_out": 12}) == NS
+
+
+def test_max_pressure_takes_the_downstream_queue_from_its_neighbour() -> None:
+    harness = ModuleHarness(MaxPressure)
+    busy = reading(NS, 10.0, queues={"ns": 3, "ew": 8}, outgoing={"w_out": 12, "e_out": 12})
+    harness.feed("reading", busy)
+    assert harness.last("request").green == NS          # the driver's counts: all on them
+    # the neighbours say those cars are moving: none halts on its incoming lanes
+    harness.feed("neighbour_1", NeighbourQueues("K", 10.0, {"w_out": 0, "e_out": 0}))
+    harness.feed("reading", busy)
+    assert harness.last("request").green == EW and harness.state["decisions"] == 2
+
+
+def test_longest_queue_first_keeps_minimum_and_maximum_greens() -> None:
+    state = {"min_green_s": 8.0, "max_green_s": 40.0, "switch_ratio": 2.0}
+    assert asks(LongestQueueFirst, state, green=NS, elapsed=7.0, queues={"ew": 20}) == NS
+    assert asks(LongestQueueFirst, state, green=NS, elapsed=8.0, queues={"ew": 20}) == EW
+    # its own queue still long, the other not twice as long: hold, until the maximum
+    assert asks(LongestQueueFirst, state, green=NS, elapsed=30.0,
+                queues={"ns": 6, "ew": 9}) == NS
+    assert asks(LongestQueueFirst, state, green=NS, elapsed=40.0,
+                queues={"ns": 6, "ew": 2}) == EW
+    assert asks(LongestQueueFirst, state, green=NS, elapsed=30.0) == NS   # nobody: stay
+
+
+def test_gap_out_holds_while_vehicles_come_and_gives_way_when_they_stop() -> None:
+    state = {"min_green_s": 5.0, "max_green_s": 40.0}
+    assert asks(GapOut, state, green=NS, elapsed=12.0, vehicles={"ew": 5},
+                approaching={"n_in": 1}) == NS
+    assert asks(GapOut, state, green=NS, elapsed=12.0, vehicles={"ew": 5}) == EW   # a gap
+    assert asks(GapOut, state, green=NS, elapsed=40.0, vehicles={"ew": 5},
+                approaching={"ns": 3}) == EW                           # the maximum
+    assert asks(GapOut, state, green=NS, elapsed=12.0) == NS           # nobody at red
+    # a car braking for the red (not yet halting) counts as waiting there
+    assert asks(GapOut, state, green=NS, elapsed=12.0, queues={},
+                vehicles={"e_in": 1}) == EW
+
+
+def test_q_learning_acts_on_its_table_which_is_its_state() -> None:
+    seen = reading(NS, 12.0, vehicles={"ew": 5}, approaching={"n_in": 1})
+    key = state_key(seen)
+    hold = ModuleHarness(QLearning, state={"table": {key: [-1.0, -5.0]}, "learning": False})
+    give_way = ModuleHarness(QLearning, state={"table": {key: [-5.0, -1.0]},
+                                               "learning": False})
+    for harness in (hold, give_way):
+        harness.feed("reading", seen)
+    assert (hold.last("request").green, give_way.last("request").green) == (NS, EW)
+    assert give_way.state["table"] == {key: [-5.0, -1.0]}
+
+
+def test_q_learning_learns_from_the_halting_that_follows_and_starts_as_gap_out() -> None:
+    harness = ModuleHarness(QLearning, state={"table_file": "", "alpha": 0.5})
+    assert harness.state["table"] == {}
+    asked = []
+    for second in range(12, 16):
+        harness.feed("reading", reading(NS, float(second), step=second, queues={"ew": 4},
+                                        approaching={"n_in": 1}))
+        asked.append(harness.last("request").green)
+    assert asked[:2] == [NS, NS]          # nothing to tell the actions apart: as GapOut
+    table = harness.state["table"]
+    assert harness.state["updates"] == 3 and len(table) >= 1
+    assert all(values[0] < 0 for values in table.values())   # four halting: a cost
+
+
+def test_q_learning_starts_from_the_trained_table(tmp_path: Path) -> None:
+    shipped = ModuleHarness(QLearning)
+    trained = json.loads(Path(shipped.state["table_file"]).read_text())
+    assert shipped.state["table"] == trained["table"] and len(trained["table"]) > 50
+    assert trained["how"]["command"].startswith("python -m agents.traffic.training")
+    own = tmp_path / "table.json"
+    own.write_text(json.dumps({"table": {"k": [1.0, 2.0]}}))
+    assert ModuleHarness(QLearning, state={"table_file": str(own)}).state["table"] == {
+        "k": [1.0, 2.0]}
+
+
+# -- against the driver, on the crossing in SUMO --------------------------------------
+NETWORKS = Path(__file__).resolve().parent.parent / "scenarios" / "traffic"
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    pytest.importorskip("libsumo", reason="SUMO (the traffic extra) is not installed: "
+                                          "pip install -e '.[traffic]'")
+    return tmp_path_factory.mktemp("traffic-cache")
+
+
+@pytest.mark.parametrize(("cls", "worst_delay_s"), [
+    (FixedTime, 60.0), (MaxPressure, 40.0), (LongestQueueFirst, 40.0), (GapOut, 25.0),
+    (QLearning, 30.0)])
+def test_each_controller_runs_the_crossing_through_the_driver(cache: Path, cls: type,
+                                                              worst_delay_s: float) -> None:
+    from agents.traffic.lockstep import run_in_process
+
+    result, controllers = run_in_process(NETWORKS / "cross.toml", lambda _: (cls, {}),
+                                         seed=3, duration_s=600.0, cache=cache)
+    assert controllers["C"].state["decisions"] == 600           # one answer a step
+    assert result["late"] == 0 and result["rejected"] == 0 and result["teleports"] == 0
+    assert result["finished"] > 100 and 0 < result["mean_delay_s"] < worst_delay_s, result
+
+
+def test_gap_out_beats_fixed_time_on_the_crossing(cache: Path) -> None:
+    from agents.traffic.lockstep import run_in_process
+
+    delays = {cls: run_in_process(NETWORKS / "cross.toml", lambda _, c=cls: (c, {}), seed=4,
+                                  duration_s=600.0, cache=cache)[0]["mean_delay_s"]
+              for cls in (FixedTime, GapOut)}
+    assert delays[GapOut] < 0.7 * delays[FixedTime], delays
+
+
+def test_a_controller_swapped_mid_phase_carries_on_from_the_phase_shown(cache: Path) -> None:
+    """Fixed time on the crossing; mid-green of east-west, swapped for max-pressure
+    (a fresh instance, as ``run.swap`` makes): it asks for the green in progress,
+    does not start over from phase 0, and the lights stay legal throughout."""
+    from agents.traffic.driver import TrafficDriver
+
+    driver = ModuleHarness(TrafficDriver, state={
+        "resource": str(NETWORKS / "cross.toml"), "cache_dir": str(cache),
+        "duration_s": 300.0, "seed": 2})
+    try:
+        controller = ModuleHarness(FixedTime, state={"green_s": 20.0})
+        shown = []
+
+        def one_step() -> JunctionReading:
+            controller.feed("reading", driver.last("reading_0"))
+            driver.feed("request_0", controller.last("request"))
+            shown.append(driver.last("reading_0").signal)
+            return driver.last("reading_0")
+
+        now = one_step()
+        while not (now.green == EW and now.stage == "green" and now.elapsed >= 3):
+            now = one_step()
+        controller = ModuleHarness(MaxPressure, state={"hold_s": 10.0})   # swapped in
+        controller.feed("reading", now)
+        assert controller.last("request").green == EW                     # carries on
+        driver.feed("request_0", controller.last("request"))
+        for _ in range(200):
+            one_step()
+        greens = driver.last("reading_0").layout.greens
+        assert illegal_steps(shown, greens, yellow_s=3) == []
+        assert {r.green for r in driver.written["reading_0"][-200:]} == {NS, EW}
+        assert driver.state["rejected"] == 0
+    finally:
+        driver.close()

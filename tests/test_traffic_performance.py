@@ -1,0 +1,196 @@
+"""``PerformanceAgent`` on its own, with a recording runtime: it swaps by its rules
+after a whole window, no sooner than its minimum time between swaps, falls back to
+fixed time at once when the detectors fail (silent or implausible) and comes back
+after a window of good readings, keeps a learner's table across swaps; and in a
+running system, where its swaps are the system's events."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+from conftest import eventually
+
+from agents.traffic.messages import JunctionMeasures
+from agents.traffic.performance import PerformanceAgent
+from pb3a.testing import ModuleHarness
+
+CONTROLLERS = {
+    "fixed_time": {"class": "agents.traffic.fixed_time:FixedTime", "state": {"green_s": 25.0}},
+    "gap_out": {"class": "agents.traffic.gap_out:GapOut", "state": {"max_green_s": 40.0}},
+    "max_pressure": {"class": "agents.traffic.max_pressure:MaxPressure", "state": {}},
+    "q_learning": {"class": "agents.traffic.learning:QLearning", "state": {}},
+}
+
+
+class RecordingRuntime:
+    """What the agent asks of the system, kept; a controller's state served back."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[str, ...]] = []
+        self.controller_state: dict[str, Any] = {}
+
+    def state(self, name: str) -> dict[str, Any]:
+        return dict(self.controller_state)
+
+    def swap(self, name: str, cls: str) -> list[str]:
+        self.calls.append(("swap", name, cls.rpartition(":")[2]))
+        self.controller_state = {}
+        return []
+
+    def set_state(self, name: str, values: dict[str, Any]) -> None:
+        self.calls.append(("set_state", name, tuple(sorted(values))))
+        self.controller_state.update(values)
+
+    def swaps(self) -> list[str]:
+        return [call[2] for call in self.calls if call[0] == "swap"]
+
+
+def agent(**state: Any) -> tuple[ModuleHarness, RecordingRuntime]:
+    runtime = RecordingRuntime()
+    harness = ModuleHarness(PerformanceAgent, runtime=runtime, state={
+        "controller": "W/controller", "controllers": CONTROLLERS, "running": "gap_out",
+        "window_s": 60.0, "min_between_swaps_s": 120.0, "silent_after_s": 10.0,
+        "silent_wall_s": 0.0,
+        "rules": [{"use": "gap_out"}, {"use": "max_pressure", "queue_at_least": 6.0}],
+        **state})
+    return harness, runtime
+
+
+def measure(time: float, queue: int = 0, arrivals: int = 0, *, plausible: bool = True,
+            ) -> JunctionMeasures:
+    return JunctionMeasures("W", int(time), time, queue, 0.0, arrivals, plausible)
+
+
+def feed(harness: ModuleHarness, start: float, end: float, **values: Any) -> None:
+    """A measure (and the driver's clock) every simulated second of [start, end)."""
+    for second in range(int(start), int(end)):
+        harness.feed("measures", measure(float(second), **values))
+        harness.feed("clock", float(second))
+
+
+def test_it_swaps_by_its_rules_once_it_has_measured_a_whole_window() -> None:
+    harness, runtime = agent()
+    feed(harness, 0, 59, queue=9)            # congested, but not yet a whole window
+    assert runtime.swaps() == []
+    feed(harness, 59, 61, queue=9)
+    assert runtime.swaps() == ["MaxPressure"]
+    assert runtime.calls[-1] == ("set_state", "W/controller", ())   # its configured state
+    swap = harness.state["swaps"][0]
+    assert (swap["time"], swap["from"], swap["to"]) == (60.0, "gap_out", "max_pressure")
+    assert "queue 9.0" in swap["reason"] and harness.last("swapped") == swap
+    assert harness.state["running"] == "max_pressure" and harness.state["mean_queue"] == 9.0
+
+
+def test_it_waits_the_minimum_time_between_two_swaps() -> None:
+    harness, runtime = agent()
+    feed(harness, 0, 61, queue=9)            # swapped at 60 s
+    feed(harness, 61, 179, queue=0)          # light again at once: it must not flap
+    assert runtime.swaps() == ["MaxPressure"]
+    feed(harness, 179, 181, queue=0)         # 120 s after the first swap
+    assert runtime.swaps() == ["MaxPressure", "GapOut"]
+    assert [s["time"] for s in harness.state["swaps"]] == [60.0, 180.0]
+
+
+def test_silent_detectors_bring_fixed_time_at_once_and_it_comes_back_after() -> None:
+    harness, runtime = agent(silent_wall_s=0.5)
+    wall = [50.0]
+    harness.module._wall = lambda: wall[0]
+    feed(harness, 0, 61, queue=9)            # (a swap at 60 s: the minimum time runs)
+    for second in range(61, 75):             # the readings stop; the clock goes on
+        harness.feed("clock", float(second))
+    assert runtime.swaps() == ["MaxPressure"]   # they may only lag: wait a little
+    wall[0] += 0.6
+    harness.step()
+    assert runtime.swaps() == ["MaxPressure", "FixedTime"]   # within the minimum time
+    assert harness.state["detectors_ok"] is False
+    assert "no detector reading for 14 s" in harness.state["swaps"][-1]["reason"]
+    feed(harness, 75, 134, queue=1)          # readings again: not a whole window yet
+    assert runtime.swaps()[-1] == "FixedTime"
+    feed(harness, 134, 136, queue=1)
+    assert runtime.swaps()[-1] == "GapOut" and harness.state["detectors_ok"] is True
+
+
+def test_detectors_silent_from_the_start_bring_fixed_time() -> None:
+    harness, runtime = agent()
+    for second in range(12):
+        harness.feed("clock", float(second))
+    assert runtime.swaps() == ["FixedTime"] and harness.state["detectors_ok"] is False
+
+
+def test_implausible_readings_bring_fixed_time() -> None:
+    harness, runtime = agent()
+    feed(harness, 0, 30, queue=1)
+    harness.feed("measures", measure(30.0, queue=1, plausible=False))
+    assert runtime.swaps() == ["FixedTime"]
+    assert "implausible" in harness.state["swaps"][0]["reason"]
+    feed(harness, 31, 60, queue=1)
+    harness.feed("measures", measure(60.0, plausible=False))   # again: it stays, no swap
+    assert runtime.swaps() == ["FixedTime"]
+
+
+def test_a_learners_table_is_kept_when_swapped_out_and_given_back() -> None:
+    harness, runtime = agent(running="q_learning", rules=[
+        {"use": "q_learning"}, {"use": "gap_out", "queue_at_least": 6.0}])
+    runtime.controller_state = {"table": {"1|0|0|2": [-3.0, -4.0]}, "updates": 7}
+    feed(harness, 0, 61, queue=9)
+    assert runtime.swaps() == ["GapOut"]
+    feed(harness, 61, 181, queue=0)
+    assert runtime.swaps() == ["GapOut", "QLearning"]
+    assert runtime.controller_state["table"] == {"1|0|0|2": [-3.0, -4.0]}
+
+
+def test_rules_naming_a_controller_it_does_not_have_are_refused_by_name() -> None:
+    with pytest.raises(ValueError, match="no controller webster in controllers"):
+        agent(rules=[{"use": "webster"}])
+
+
+NETWORKS = Path(__file__).resolve().parent.parent / "scenarios" / "traffic"
+
+
+@pytest.mark.timeout(120)
+def test_in_a_system_its_swaps_are_events_and_the_lock_step_goes_on(tmp_path: Path) -> None:
+    """The crossing with the scenario's junction macro; the agent's rules say
+    max-pressure once the queue is over one vehicle: it swaps, mid-run, in lock-step
+    with the driver, and the swap is a system event."""
+    pytest.importorskip("libsumo", reason="SUMO (the traffic extra) is not installed")
+    from scenarios import traffic
+
+    resource = NETWORKS / "cross.toml"
+    found = traffic.layouts(resource, tmp_path)
+    system = traffic.configuration(resource, seed=2, duration_s=600.0, found=found,
+                                   cache=tmp_path, agent_state={
+        "rules": [{"use": "gap_out"}, {"use": "max_pressure", "queue_at_least": 1.0}],
+        "min_between_swaps_s": 1000.0})
+    with system.launch() as running:
+        result = eventually(lambda: running.state("sumo")["result"], timeout=60,
+                            what="the 600 s run to end")
+        swaps = running.state("C/agent")["swaps"]
+        events = [e for e in running.events(since=0, timeout=1.0)
+                  if e.kind == "module_swapped"]
+    assert [s["to"] for s in swaps] == ["max_pressure"] and 60 <= swaps[0]["time"] < 600
+    assert [e.subject for e in events] == ["C/controller"]
+    assert events[0].detail["cls"] == "agents.traffic.max_pressure:MaxPressure"
+    assert result["rejected"] == 0 and result["late"] == 0 and result["teleports"] == 0
+
+
+
+@pytest.mark.timeout(60)
+def test_a_junction_the_file_names_keeps_its_own_settings(tmp_path: Path,
+                                                         monkeypatch) -> None:
+    pytest.importorskip("libsumo", reason="SUMO (the traffic extra) is not installed")
+    from scenarios import traffic
+
+    own = tmp_path / "traffic.toml"
+    own.write_text(traffic.CONFIG.read_text() + '\n[modules.C]\nmacro = "junction"\n'
+                   'state = { controller = { max_green_s = 60.0 }, '
+                   'agent = { min_between_swaps_s = 300.0 } }\n')
+    monkeypatch.setattr(traffic, "CONFIG", own)
+    resource = NETWORKS / "cross.toml"
+    system = traffic.configuration(resource, 1, 60.0, traffic.layouts(resource, tmp_path),
+                                   tmp_path)
+    with system.launch() as running:
+        controller, agent = running.state("C/controller"), running.state("C/agent")
+    assert controller["max_green_s"] == 60.0
+    assert agent["min_between_swaps_s"] == 300.0 and agent["controller"] == "C/controller"
