@@ -46,7 +46,7 @@ from scenarios.lab import Lab, wait_until, world_file
 CONFIG = Path(__file__).with_name("mapping.toml")
 PHASES = {"full": (150.0, 150.0), "quick": (45.0, 40.0)}   # s: mapping before the fault,
                                                             # and after it
-TRAINING_S = {"full": 60.0, "quick": 25.0}    # of them, the monitor's training first
+TRAINING_S = {"full": 60.0, "quick": 35.0}    # of them, the monitor's training first
 POSE_EVERY_S = 0.5                            # how often the robots' true paths are sampled
 HANDOFF_NEAR_M = 1.0                          # an update this near the standby robot is its
 CLEARANCE_M = 0.6                             # a standby robot placed by the scenario keeps this
