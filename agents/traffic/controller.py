@@ -12,6 +12,8 @@ mid-phase carries on from the phase in progress.
 
 from __future__ import annotations
 
+import abc
+
 from agents.traffic.messages import JunctionReading, NeighbourQueues, PhaseRequest
 from pb3a import Input, InputPort, Module, Output
 
@@ -26,8 +28,9 @@ def _neighbour_ports() -> dict[str, Input]:
 _NeighbourSlots = type("_NeighbourSlots", (), _neighbour_ports())
 
 
-class JunctionController(_NeighbourSlots, Module):
-    """Readings in, one phase request per reading out; ``choose`` decides."""
+class JunctionController(_NeighbourSlots, Module, abc.ABC):
+    """Readings in, one phase request per reading out; ``choose`` decides (an
+    abstract method: the base class itself never runs)."""
 
     reading = Input(JunctionReading, policy="queue:8")
     request = Output(PhaseRequest)
@@ -46,9 +49,9 @@ class JunctionController(_NeighbourSlots, Module):
             self.request.write(PhaseRequest(reading.junction, reading.step, green))
             self.decisions += 1
 
+    @abc.abstractmethod
     def choose(self, reading: JunctionReading) -> int:
         """The green phase to ask for after ``reading``."""
-        raise NotImplementedError
 
     def downstream(self, reading: JunctionReading, lane: str) -> int:
         """Vehicles standing on outgoing ``lane``: the neighbour's count of its halting
