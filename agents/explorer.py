@@ -344,7 +344,8 @@ class FrontierExplorer:
     (not the time it spends looking), and sets a target it stands at aside only when
     looking at it for ``look_time`` s reduced the unresolved cells round it by less
     than ``look_gain`` (see ``_unresolved``); a pose further than ``jump_distance``
-    from the last is another robot's, and it plans afresh from there at once.
+    from the last is another robot's (none moves that far in a step, and no two robots'
+    centres are that close), and it plans afresh from there at once.
 
     Its memory (the attributes named in ``MEMORY``) is plain data: copy it into a
     new explorer of the same grid and settings and it carries on where this one was.
@@ -358,7 +359,7 @@ class FrontierExplorer:
     def __init__(self, grid: Grid, *, max_speed: float = 0.4, max_turn: float = 1.0,
                  clearance: float = 0.1, lookahead: float = 0.5, replan_every: float = 2.0,
                  patience: float = 8.0, forget_after: float = 60.0, look_time: float = 2.0,
-                 look_gain: float = 0.3, jump_distance: float = 1.0,
+                 look_gain: float = 0.3, jump_distance: float = 0.4,
                  **planning: Any) -> None:
         self.planner = FrontierPlanner(grid, clearance=clearance, **planning)
         self.max_speed, self.max_turn, self.lookahead = max_speed, max_turn, lookahead

@@ -37,6 +37,7 @@ training features from an in-process RAVE world, driven by a ``Wanderer``.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Callable, Iterator
@@ -53,6 +54,8 @@ from rave.sonar import MAX_RANGE
 if TYPE_CHECKING:
     from rave import World
 
+log = logging.getLogger("agents.monitor")
+
 GROUPS = ("motors", "odometry", "sonar")
 MOTORS, ODOMETRY, SONAR = range(len(GROUPS))
 FEATURES = ("v_residual", "w_residual", "drift_per_m",
@@ -66,8 +69,10 @@ _UNITS_OF_GROUP = (np.array([0]), np.array([1]), np.arange(2, _UNIT_COUNT))
 _GROUP_OF_FEATURE = np.array([MOTORS, MOTORS, ODOMETRY, *[SONAR] * SONARS])
 # The smallest spread each feature is believed to have (m/s, rad/s, rad/m, rad; added
 # to the variance fitted), so that a feature that barely varied in training does not
-# make every later wobble a fault.
-_LEAST_SPREAD = np.array([0.01, 0.02, 0.002, *[0.1] * SONARS])
+# make every later wobble a fault. Odometry's drift gets more: a model learnt on one
+# robot watches its standby too, whose odometer has calibration errors of its own (with
+# 0.002 rad/m, one quick mapping run in four saw a standby drift 0.019 rad/m, sound).
+_LEAST_SPREAD = np.array([0.01, 0.02, 0.005, *[0.1] * SONARS])
 # Odometry's heading error per sample is fitted as scale * turn + drift * distance +
 # latency * (change of turn): a scale error on turns, a drift per metre, and the pose
 # lagging odometry. The ridge keeps the fit solvable when a regressor is idle (rad^2).
@@ -204,44 +209,60 @@ def _drift_per_metre(travel: np.ndarray) -> tuple[float, float]:
 class NormalModel:
     """Normal running as Gaussians per feature (``means``, ``variances``), with the
     alarm ``thresholds`` on each group's evidence; a fault is ``fault_breadth`` times
-    wider, with prior probability ``fault_prior`` per group."""
+    wider, with prior probability ``fault_prior`` per group. Only the ``watched``
+    groups (all by default) are modelled; the others give no evidence."""
 
     means: np.ndarray
     variances: np.ndarray
     thresholds: np.ndarray
     fault_prior: float = 0.01
     fault_breadth: float = 10.0
+    watched: tuple[str, ...] = GROUPS
 
     @classmethod
     def fit(cls, features: np.ndarray, informative: np.ndarray, quantile: float = 0.999,
             margin: float = 10.0, fault_prior: float = 0.01, fault_breadth: float = 10.0,
-            ) -> NormalModel:
-        """Fit on normal running: ``features`` (samples, len(FEATURES)) with
-        ``informative`` (samples, len(GROUPS)) from ``FeatureTracker``. Each group's
-        threshold is the ``quantile`` of its evidence over the training samples plus
-        ``margin`` (nats: some features, such as a sonar's silent sweep, are heavier
-        tailed than a Gaussian, and a persistent one is not thinned by the k-of-n
-        vote), or the evidence at which a fault becomes likelier than normal, if
-        higher."""
+            watched: tuple[str, ...] = GROUPS) -> NormalModel:
+        """Fit the ``watched`` groups on normal running: ``features`` (samples,
+        len(FEATURES)) with ``informative`` (samples, len(GROUPS)) from
+        ``FeatureTracker``. Each group's threshold is the ``quantile`` of its evidence
+        over the training samples plus ``margin`` (nats: some features, such as a
+        sonar's silent sweep, are heavier tailed than a Gaussian, and a persistent
+        one is not thinned by the k-of-n vote), or the evidence at which a fault
+        becomes likelier than normal, if higher."""
         features, informative = np.asarray(features), np.asarray(informative, dtype=bool)
-        used = informative[:, _GROUP_OF_FEATURE]
-        short = [GROUPS[g] for g in range(len(GROUPS)) if informative[:, g].sum() < 10]
+        unknown = sorted(set(watched) - set(GROUPS))
+        if unknown:
+            raise ValueError(f"no fault group {', '.join(unknown)}: the groups are "
+                             f"{', '.join(GROUPS)}")
+        mask = np.array([group in watched for group in GROUPS])
+        short = [GROUPS[g] for g in np.flatnonzero(mask) if informative[:, g].sum() < 10]
         if short:
             raise ValueError(f"too little normal running to train on: fewer than 10 "
                              f"informative samples of {', '.join(short)}")
+        informative = informative & mask
+        used = informative[:, _GROUP_OF_FEATURE]
         data = np.where(used, features, np.nan)
-        means = np.nanmean(data, axis=0)
-        variances = np.nanvar(data, axis=0)
-        means[_SWEEPS] = np.nanmean(data[:, _SWEEPS])        # the transducers, tied
-        variances[_SWEEPS] = np.nanvar(data[:, _SWEEPS])
-        variances += _LEAST_SPREAD ** 2
-        model = cls(means, variances, np.zeros(len(GROUPS)), fault_prior, fault_breadth)
+        means, variances = np.zeros(len(FEATURES)), np.ones(len(FEATURES))
+        fitted = used.any(axis=0)
+        means[fitted] = np.nanmean(data[:, fitted], axis=0)
+        variances[fitted] = np.nanvar(data[:, fitted], axis=0) + _LEAST_SPREAD[fitted] ** 2
+        if mask[SONAR]:                                     # the transducers, tied
+            means[_SWEEPS] = np.nanmean(data[:, _SWEEPS])
+            variances[_SWEEPS] = np.nanvar(data[:, _SWEEPS]) + _LEAST_SPREAD[_SWEEPS] ** 2
+        model = cls(means, variances, np.full(len(GROUPS), np.inf), fault_prior,
+                    fault_breadth, tuple(group for group in GROUPS if group in watched))
         evidence = model.evidence(features, informative)
         even = math.log((1.0 - fault_prior) / fault_prior)
         thresholds = np.array([
             max(even, float(np.quantile(evidence[informative[:, g], g], quantile)) + margin)
-            for g in range(len(GROUPS))])
+            if mask[g] else np.inf for g in range(len(GROUPS))])
         return replace(model, thresholds=thresholds)
+
+    @property
+    def watching(self) -> np.ndarray:
+        """Per group, whether it is watched (bool, len(GROUPS))."""
+        return np.array([group in self.watched for group in GROUPS])
 
     def unit_evidence(self, features: np.ndarray) -> np.ndarray:
         """Per unit (the motors, the odometer, each transducer), the log-likelihood
@@ -254,8 +275,9 @@ class NormalModel:
 
     def evidence(self, features: np.ndarray, informative: np.ndarray) -> np.ndarray:
         """Per group, the log-likelihood ratio of its fault (in any one of its units)
-        to normal running; ``-inf`` where the group carries no information."""
-        return self.group_evidence(self.unit_evidence(features), informative)
+        to normal running; ``-inf`` where the group carries no information or is not
+        watched."""
+        return self.group_evidence(self.unit_evidence(features), informative & self.watching)
 
     @staticmethod
     def group_evidence(units: np.ndarray, informative: np.ndarray) -> np.ndarray:
@@ -277,7 +299,8 @@ class NormalModel:
         """The model as plain state (a ``HardwareMonitor``'s trained state)."""
         return {"means": self.means, "variances": self.variances,
                 "thresholds": self.thresholds, "fault_prior": self.fault_prior,
-                "fault_breadth": self.fault_breadth, "trained": True}
+                "fault_breadth": self.fault_breadth, "watched": list(self.watched),
+                "trained": True}
 
 
 class FaultMonitor:
@@ -321,7 +344,11 @@ class FaultMonitor:
                pose: np.ndarray) -> list[dict[str, Any]]:
         """Take one sample (as ``FeatureTracker.update``); the failures that start now,
         each ``{"fault", "probability", "detail"}``."""
-        features, informative = self.tracker.update(command, odometry, sonar, pose)
+        return self.observe(*self.tracker.update(command, odometry, sonar, pose))
+
+    def observe(self, features: np.ndarray, informative: np.ndarray) -> list[dict[str, Any]]:
+        """``update`` from a sample's features, taken by the tracker elsewhere."""
+        informative = informative & self.model.watching
         units = self.model.unit_evidence(features)
         evidence = self.model.group_evidence(units, informative)
         self.health = self.model.health(evidence)
@@ -365,17 +392,24 @@ class HardwareMonitor(Module):
     "probability", "at": time.time(), "detail"}``, and ``health`` (the probability
     of normal running) each sample.
 
-    Untrained, it learns normal running from the first ``training_s`` seconds of
-    samples, then monitors; or it is given a trained model's state
-    (``NormalModel.state()``: ``means``, ``variances``, ``thresholds``, ``trained``).
-    A sample is taken when both a new odometry and a new pose have arrived (the
-    driver sends them together, every ``sample_s``).
+    Untrained, it learns normal running as it comes, and watches each group of
+    faults as soon as it has seen ``ready_windows`` informative windows of it (the
+    motors' residual is informative whenever the robot is told to move; odometry's
+    drift only after straight drives): its model is then fitted on all of normal
+    running so far, and fitted again as each further group becomes ready and when
+    ``training_s`` is up (``trained``; a group still short of windows then stays
+    unwatched). ``watched`` names the groups watched. Or it is given a trained
+    model's state (``NormalModel.state()``: ``means``, ``variances``, ``thresholds``,
+    ``watched``, ``trained``). A sample is taken when both a new odometry and a new
+    pose have arrived (the driver sends them together, every ``sample_s``).
 
-    A pose that jumps by more than ``jump_m`` between two samples (no robot moves that
-    fast) means another robot feeds the monitor now: its driver was re-pointed, as
-    when a control system moves to a standby robot. The monitor then starts afresh on
-    the new robot (the model stays, the history and alarms go: they were the old
-    robot's), rather than read the jump as a fault (``robot_changes`` counts them)."""
+    A pose that jumps between two samples by more than ``jump_m`` or ``jump_rad`` (no
+    robot moves or turns that far in a sample, and no two robots' centres are that
+    close: a Pioneer is 0.5 m across) means another robot feeds the monitor now:
+    its driver was re-pointed, as when a control system moves to a standby robot. The
+    monitor then starts afresh on the new robot (the model and what it learnt stay,
+    the history and alarms go: they were the old robot's), rather than read the jump
+    as a fault (``robot_changes`` counts them)."""
 
     command = Input(np.ndarray, shape=(2,), dtype="float64")     # v (m/s), w (rad/s)
     odometry = Input(np.ndarray, shape=(3,), dtype="float64")
@@ -386,6 +420,10 @@ class HardwareMonitor(Module):
 
     sample_s = 0.1
     training_s = 120.0
+    # informative windows of normal running after which a group is watched: odometry
+    # needs many, as its windows overlap and straight drives are few (with about 160,
+    # 4 quick mapping runs in 15 raised a false odometry alarm)
+    ready_windows = {"motors": 150, "odometry": 300, "sonar": 300}
     quantile = 0.999             # of normal running's evidence, for the thresholds ...
     margin = 10.0                # ... with this margin (nats)
     fault_prior = 0.01
@@ -394,6 +432,7 @@ class HardwareMonitor(Module):
     votes_of = 5                 # ... the last windows beyond the threshold
     rearm = 50                   # windows within the threshold that lower an alarm
     trained = False
+    watched: list[str] = []      # the groups watched so far
     means = np.zeros(0)
     variances = np.zeros(0)
     thresholds = np.zeros(0)
@@ -403,21 +442,27 @@ class HardwareMonitor(Module):
     running: dict = {}           # FaultMonitor.state(): the tracker's history, the votes
     failures = 0
     last_failure: dict = {}
-    jump_m = 1.0
+    jump_m = 0.4
+    jump_rad = 1.0
     robot_changes = 0
 
     def setup(self) -> None:
+        unknown = sorted(set(self.ready_windows) - set(GROUPS))
+        if unknown:
+            raise ValueError(f"ready_windows names no fault group {', '.join(unknown)}: "
+                             f"the groups are {', '.join(GROUPS)}")
         self._tracker = FeatureTracker(self.sample_s)
         self._monitor: FaultMonitor | None = None
-        if self.trained:
-            monitor = self._start_monitoring(NormalModel(
-                np.asarray(self.means), np.asarray(self.variances),
-                np.asarray(self.thresholds), self.fault_prior, self.fault_breadth))
-            if self.running:
-                monitor.restore(self.running)
-            return
         if self.running:
             self._tracker.restore(self.running["tracker"])
+        if self.trained and not self.watched:    # a model given without: it has them all
+            self.watched = list(GROUPS)
+        if self.watched:
+            self._watch(self._model())
+            if "votes" in self.running:
+                self._monitor.restore(self.running)
+        if self.trained:
+            return
         wanted = math.ceil(self.training_s / self.sample_s - 1e-9)
         if len(self.training) != wanted:        # first set up, or training_s was changed
             kept = min(self.collected, wanted)
@@ -428,10 +473,14 @@ class HardwareMonitor(Module):
             self.training, self.training_informative = training, informative
             self.collected = kept
 
-    def _start_monitoring(self, model: NormalModel) -> FaultMonitor:
-        self._monitor = FaultMonitor(model, self._tracker, self.votes_needed, self.votes_of,
-                                     self.rearm)
-        return self._monitor
+    def _watch(self, model: NormalModel) -> None:
+        """Watch by ``model``: a first model starts a ``FaultMonitor``; a later one
+        (more groups, more normal running) replaces its model, keeping its votes."""
+        if self._monitor is None:
+            self._monitor = FaultMonitor(model, self._tracker, self.votes_needed,
+                                         self.votes_of, self.rearm)
+        else:
+            self._monitor.model = model
 
     def on_input(self, port: InputPort) -> None:
         # one sample per odometry-and-pose pair, whichever of the two came last
@@ -439,16 +488,19 @@ class HardwareMonitor(Module):
             return
         sample = (self.command.read(default=np.zeros(2)), self.odometry.read(),
                   self.sonar.read(), self.pose.read())
-        last = self._tracker.last_pose
-        if np.isfinite(last).all() and math.dist(last[:2], sample[3][:2]) > self.jump_m:
-            self._tracker = FeatureTracker(self.sample_s)      # another robot: afresh
+        if self._another_robot(sample[3]):
+            self._tracker = FeatureTracker(self.sample_s)      # afresh on it
             if self._monitor is not None:
-                self._start_monitoring(self._monitor.model)
+                self._monitor = None
+                self._watch(self._model())
             self.robot_changes += 1
+        features, informative = self._tracker.update(*sample)
+        if not self.trained:
+            self._learn(features, informative)
         if self._monitor is None:
-            self._learn(*sample)
+            self.running = {"tracker": self._tracker.state()}
             return
-        failures = self._monitor.update(*sample)
+        failures = self._monitor.observe(features, informative)
         self.running = self._monitor.state()
         self.health.write(self._monitor.health)
         for failure in failures:
@@ -457,20 +509,47 @@ class HardwareMonitor(Module):
             self.last_failure = failure
             self.failure.write(failure)
 
-    def _learn(self, *sample: np.ndarray) -> None:
-        features, informative = self._tracker.update(*sample)
-        self.running = {"tracker": self._tracker.state()}
+    def _another_robot(self, pose: np.ndarray) -> bool:
+        """Whether ``pose`` jumped from the last sample's (see the class docstring)."""
+        last = self._tracker.last_pose
+        return bool(np.isfinite(last).all()) and (
+            math.dist(last[:2], pose[:2]) > self.jump_m
+            or abs(math.remainder(float(pose[2] - last[2]), math.tau)) > self.jump_rad)
+
+    def _model(self) -> NormalModel:
+        return NormalModel(np.asarray(self.means), np.asarray(self.variances),
+                           np.asarray(self.thresholds), self.fault_prior,
+                           self.fault_breadth, tuple(self.watched))
+
+    def _learn(self, features: np.ndarray, informative: np.ndarray) -> None:
+        """Keep a sample of normal running; fit the model again when a group has become
+        ready, and for the last time when ``training_s`` is up."""
         self.training[self.collected] = features
         self.training_informative[self.collected] = informative
         self.collected += 1
-        if self.collected == len(self.training):
-            model = NormalModel.fit(self.training, self.training_informative, self.quantile,
-                                    self.margin, self.fault_prior, self.fault_breadth)
-            self.set_state(model.state())
+        counts = self.training_informative[:self.collected].sum(axis=0)
+        done = self.collected == len(self.training)
+        ready = tuple(group for g, group in enumerate(GROUPS)
+                      if counts[g] >= max(10, self.ready_windows.get(group, 0))
+                      or (done and counts[g] >= 10))
+        if ready == tuple(self.watched) and not done:
+            return
+        if ready:
+            model = NormalModel.fit(self.training[:self.collected],
+                                    self.training_informative[:self.collected],
+                                    self.quantile, self.margin, self.fault_prior,
+                                    self.fault_breadth, ready)
+            self.set_state(model.state() | {"trained": done})
+            self._watch(model)
+        if done:
+            if len(ready) < len(GROUPS):
+                log.warning("HardwareMonitor watches no %s faults: fewer than 10 "
+                            "informative windows of them in %g s of normal running",
+                            ", ".join(g for g in GROUPS if g not in ready), self.training_s)
+            self.trained = True
             self.training = np.zeros((0, len(FEATURES)))
             self.training_informative = np.zeros((0, len(GROUPS)), dtype=bool)
             self.collected = 0
-            self.running = self._start_monitoring(model).state()
 
 
 class Wanderer:

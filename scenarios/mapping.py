@@ -5,12 +5,14 @@ The world's first robot (an emulated hardware robot) runs the control system
 (``scenarios/mapping.toml``: driver, occupancy mapper, frontier explorer, hardware
 monitor) on its on-board computer, a node behind its own node controller; the second
 robot, also emulated hardware, stands by with a node of its own (a world with one
-robot gets a standby placed as far from it as its free space allows). After a while the
-scenario cuts the first robot's motor power (``motors_off``, through its robot
-server, as ``rave fault`` would). The monitor, which learnt normal running in the
-first ``TRAINING_S`` of the mission, reports the failure; the remedy agent (case-based reasoning)
-moves the control macro to the standby robot's node and re-points its driver at that
-robot; mapping goes on from the map the mapper carried.
+robot gets a standby placed as far from it as its free space allows). Once the
+monitor has learnt the motors' normal running (in the mission's first seconds) and
+the map covers ``FAULT_COVERAGE`` of the free space (or at the end of the first
+phase), the scenario cuts the first robot's motor power (``motors_off``, through its
+robot server, as ``rave fault`` would): half the free space is left to map, however
+small the world. The monitor reports the failure; the remedy agent (case-based
+reasoning) moves the control macro to the standby robot's node and re-points its
+driver at that robot; mapping goes on from the map the mapper carried.
 
 Measured in the run: detection time (fault to the monitor's failure event), hand-off
 time (that event to the first map update made from the standby robot's readings),
@@ -30,6 +32,7 @@ import math
 import sys
 import time
 import tomllib
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -44,10 +47,11 @@ from rave import World
 from scenarios.lab import Lab, wait_until, world_file
 
 CONFIG = Path(__file__).with_name("mapping.toml")
-PHASES = {"full": (150.0, 150.0), "quick": (45.0, 40.0)}   # s: mapping before the fault,
-                                                            # and after it
-TRAINING_S = {"full": 60.0, "quick": 35.0}    # of them, the monitor's training first
+PHASES = {"full": (150.0, 150.0), "quick": (45.0, 40.0)}   # s: mapping before the fault
+                                                            # at the latest, and after it
+FAULT_COVERAGE = 0.5         # the fault comes once the map covers this share of the free space
 POSE_EVERY_S = 0.5                            # how often the robots' true paths are sampled
+DONE_EVERY_S = 1.0                            # how often the map's coverage is looked at
 HANDOFF_NEAR_M = 1.0                          # an update this near the standby robot is its
 CLEARANCE_M = 0.6                             # a standby robot placed by the scenario keeps this
 GOALS = {"handoff_s": 0.5, "accuracy": 0.9}
@@ -81,10 +85,9 @@ class MappingRecorder(Module):
             self.remedies.extend(port.read_all())
 
 
-def configuration(lab: Lab, robots: tuple[str, str], training_s: float,
-                  cases: Path) -> System:
-    """``mapping.toml`` with this run's addresses, world size, the monitor's training
-    time, and the file the remedy agent learns its cases into."""
+def configuration(lab: Lab, robots: tuple[str, str], cases: Path) -> System:
+    """``mapping.toml`` with this run's addresses, world size, and the file the remedy
+    agent learns its cases into."""
     data = tomllib.loads(CONFIG.read_text())
     first, standby = robots
     data["nodes"]["r1"]["address"] = lab.nodes["r1"].address
@@ -93,7 +96,6 @@ def configuration(lab: Lab, robots: tuple[str, str], training_s: float,
     control["driver"]["state"]["resource"] = lab.robots[first]
     for name in ("mapper", "explorer"):
         control[name].setdefault("state", {})["size"] = list(lab.world.size)
-    control["monitor"].setdefault("state", {})["training_s"] = training_s
     data["modules"]["remedy"]["state"]["standby_resource"] = lab.robots[standby]
     data["modules"]["remedy"]["state"]["cases_path"] = str(cases)
     return System.from_dict(data, source=str(CONFIG))
@@ -107,11 +109,21 @@ def run(out: Path, world: str = "lab", seed: int = 1, quick: bool = False) -> di
     robots, added = place_robots(path)
     with Lab(path, seed=seed, onboard=("r1", "r2"), hardware=robots, add=added) as lab:
         size, described = lab.world.size, lab.world.describe()
-        with configuration(lab, robots, TRAINING_S["quick" if quick else "full"],
-                           out / "remedy-cases.toml").launch() as running:
+        starts = [lab.poses()[name] for name in robots]
+        with configuration(lab, robots, out / "remedy-cases.toml").launch() as running:
             started = time.time()
             paths: dict[str, list[tuple[float, ...]]] = {name: [] for name in robots}
-            _follow(lab, paths, time.monotonic() + before)
+
+            def time_for_the_fault() -> bool:
+                if "motors" not in running.state("control/monitor")["watched"]:
+                    return False
+                mapper = running.state("control/mapper")
+                grid = Grid.of(size, mapper["resolution"])
+                occupied = truth(described, grid)
+                return score(_probabilities(mapper["log_odds"]), occupied,
+                             _free_space(occupied, grid, starts)).coverage >= FAULT_COVERAGE
+
+            _follow(lab, paths, time.monotonic() + before, time_for_the_fault)
             lab.robot(robots[0], "inject", fault="motors_off", params={})
             fault_at = time.time()
             standby_at = lab.poses()[robots[1]]
@@ -154,14 +166,30 @@ def place_robots(path: Path) -> tuple[tuple[str, str], dict[str, tuple[float, fl
     return (declared[0], "standby"), {"standby": (float(xs[row, col]), float(ys[row, col]), 0.0)}
 
 
-def _follow(lab: Lab, paths: dict[str, list[tuple[float, ...]]], until: float) -> None:
-    """Sample every robot's true pose until ``until`` (monotonic)."""
+def _follow(lab: Lab, paths: dict[str, list[tuple[float, ...]]], until: float,
+            done: Callable[[], bool] = lambda: False) -> None:
+    """Sample every robot's true pose until ``until`` (monotonic) or, looked at each
+    ``DONE_EVERY_S``, until ``done()``."""
+    looked = time.monotonic()
     while time.monotonic() < until:
         now = time.time()
         for name, pose in lab.poses().items():
             if name in paths:
                 paths[name].append((now, *pose))
+        if time.monotonic() - looked >= DONE_EVERY_S:
+            looked = time.monotonic()
+            if done():
+                return
         wait_until(min(until, time.monotonic() + POSE_EVERY_S))
+
+
+def _free_space(occupied: np.ndarray, grid: Grid,
+                starts: list[tuple[float, ...]]) -> np.ndarray:
+    """The free space the robots can reach from where they start."""
+    free_space = np.zeros(grid.shape, dtype=bool)
+    for start in starts:
+        free_space |= reachable(occupied, grid, tuple(start[:2]))
+    return free_space
 
 
 def _probabilities(log_odds: np.ndarray) -> np.ndarray:
@@ -172,9 +200,8 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
     """The figures of one run, and whether they meet the goals."""
     grid = Grid.of(record["size"], record["resolution"])
     occupied = truth(record["described"], grid)
-    free_space = np.zeros(grid.shape, dtype=bool)
-    for name in record["robots"]:
-        free_space |= reachable(occupied, grid, tuple(record["paths"][name][0][1:3]))
+    free_space = _free_space(occupied, grid,
+                             [record["paths"][name][0][1:] for name in record["robots"]])
     recorder, started, fault_at = record["recorder"], record["started"], record["fault_at"]
 
     def quality(probabilities: np.ndarray) -> dict[str, float]:
@@ -199,6 +226,8 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
         "fault_at_s": round(fault_at - started, 2),
         "detection_s": round(detected["at"] - fault_at, 3) if detected else None,
         "detected_fault": detected, "false_alarms": len(false_alarms),
+        "failures": [{**f, "after_fault_s": round(f["at"] - fault_at, 3)}
+                     for f in recorder["failures"]],
         "handoff_s": round(handoff_at - detected["at"], 3) if handoff_at else None,
         "remedies": recorder["remedies"],
         "mapper_node_at_end": record["mapper_node_at_end"],
@@ -285,8 +314,8 @@ def plot(record: dict[str, Any], figures: dict[str, Any], path: Path) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="mapping", description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true",
-                        help=f"shorter phases ({PHASES['quick'][0]:.0f} s of mapping, then "
-                             f"{PHASES['quick'][1]:.0f} s after the fault)")
+                        help=f"shorter phases (the fault within {PHASES['quick'][0]:.0f} s, "
+                             f"then {PHASES['quick'][1]:.0f} s of mapping after it)")
     parser.add_argument("--world", default="lab",
                         help="a bundled world (lab, arena, room) or a world file (default lab)")
     parser.add_argument("--seed", type=int, default=1)

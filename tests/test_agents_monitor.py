@@ -149,32 +149,47 @@ def test_the_module_writes_one_failure_per_onset_and_carries_on_after_a_move(
     assert harness.state["failures"] == 2           # the count moved with the state
 
 
-def handed_over(model: NormalModel, **settings: Any) -> ModuleHarness:
+def handed_over(model: NormalModel, away: tuple[float, float, float] = (9.0, 0.0, 0.0),
+                **settings: Any) -> ModuleHarness:
     """A module fed 30 s of the lab's hardware robot, whose pose and odometry from 15 s
-    on are another robot's 9 m away (its driver re-pointed to a standby robot)."""
+    on are another robot's: the rest of the run turned by ``away[2]`` about where the
+    robot is at 15 s and shifted by ``away[:2]`` (its driver re-pointed to a standby
+    robot there)."""
     harness = ModuleHarness(HardwareMonitor, state={**model.state(), **settings})
-    away = np.array([9.0, 0.0, 0.0])
+    turn = away[2]
+    rotation = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
+
+    def moved(reading: np.ndarray, centre: np.ndarray) -> np.ndarray:
+        xy = rotation @ (reading[:2] - centre) + centre + away[:2]
+        return np.array([*xy, reading[2] + turn])
+
     with World.load(LAB, seed=7) as world:
         for tick, (command, odometry, sonar, pose) in enumerate(
                 samples(world, ROBOT, 30.0, Wanderer(7))):
+            if tick == 150:
+                centres = odometry[:2].copy(), pose[:2].copy()
             if tick >= 150:
-                odometry, pose = odometry + away, pose + away
+                odometry, pose = moved(odometry, centres[0]), moved(pose, centres[1])
             feed(harness, (command, odometry, sonar, pose))
     return harness
 
 
-def test_a_monitor_handed_to_another_robot_starts_afresh_on_it(model: NormalModel) -> None:
-    harness = handed_over(model)
+@pytest.mark.parametrize("away", [(9.0, 0.0, 0.0), (0.0, 0.5, 0.0), (0.0, 0.0, 2.0)],
+                         ids=["across the lab", "right beside it", "turned the other way"])
+def test_a_monitor_handed_to_another_robot_starts_afresh_on_it(
+        model: NormalModel, away: tuple[float, float, float]) -> None:
+    harness = handed_over(model, away)
     assert harness.written["failure"] == []
     assert harness.state["robot_changes"] == 1
     assert len(harness.written["health"]) == 300
     # the same jump read as motion is a fault
-    assert handed_over(model, jump_m=100.0).written["failure"]
+    assert handed_over(model, away, jump_m=100.0, jump_rad=100.0).written["failure"]
 
 
-def test_an_untrained_module_learns_normal_running_then_watches() -> None:
+def test_an_untrained_module_watches_each_fault_once_it_has_learnt_its_normal_running(
+        ) -> None:
     harness = ModuleHarness(HardwareMonitor, state={"training_s": 60.0})
-    tracker, features, informative = FeatureTracker(), [], []
+    tracker, features, informative, watched = FeatureTracker(), [], [], []
     with World.load(LAB, seed=7) as world:
         for tick, sample in enumerate(samples(world, ROBOT, 70.0, Wanderer(7))):
             if tick == 300:                         # moved while learning
@@ -186,11 +201,34 @@ def test_an_untrained_module_learns_normal_running_then_watches() -> None:
                 features.append(row)
                 informative.append(flags)
             feed(harness, sample)
+            watched.append(tuple(harness.state["watched"]))
             assert harness.state["trained"] == (tick >= 599)
+    # each group from the sample that brought its ready windows of normal running
+    counts = np.cumsum(informative, axis=0)
+    first = {group: watched.index(next(w for w in watched if group in w)) for group in GROUPS}
+    for g, group in enumerate(GROUPS):
+        ready = int(np.searchsorted(counts[:, g], HardwareMonitor.ready_windows[group]))
+        assert first[group] == min(ready, 599), (group, first)
+    assert first["motors"] < 200 < first["odometry"]          # the motors long before
+    assert watched[-1] == GROUPS
     fitted = NormalModel.fit(np.array(features), np.array(informative))
     for name in ("means", "variances", "thresholds"):
         np.testing.assert_allclose(harness.state[name], getattr(fitted, name), rtol=1e-12)
-    assert len(harness.written["health"]) == 100 and harness.written["failure"] == []
+    assert len(harness.written["health"]) == 400        # every sample since the move:
+                                                         # it watched the motors then
+    assert harness.written["failure"] == []
+
+
+def test_a_model_of_the_motors_alone_gives_no_evidence_on_the_rest() -> None:
+    with World.load(LAB, seed=8) as world:
+        features, informative = record_normal_running(world, ROBOT, 30.0, Wanderer(8))
+    motors = NormalModel.fit(features, informative, watched=("motors",))
+    assert motors.watched == ("motors",) and np.isinf(motors.thresholds[1:]).all()
+    evidence = motors.evidence(features, informative)
+    assert np.isfinite(evidence[informative[:, 0], 0]).all()
+    assert (evidence[:, 1:] == -np.inf).all()
+    with pytest.raises(ValueError, match="no fault group wheels: the groups are motors, "):
+        NormalModel.fit(features, informative, watched=("motors", "wheels"))
 
 
 def test_too_little_normal_running_is_refused() -> None:

@@ -38,7 +38,9 @@ def _check_mapping(figures: dict) -> None:
     assert figures["detection_s"] < 3.0
     assert figures["mapper_node_at_end"] == "r2"          # the control system moved
     assert [r["action"] for r in figures["remedies"] if r["event"] == "chosen"] == [
-        "move_macro"]
+        "move_macro"], figures["failures"]
+    # the fault came with about half of the free space left to map, whatever the world
+    assert figures["map"]["before_fault"]["coverage"] < mapping.FAULT_COVERAGE + 0.1
     assert all(figures["goals"].values()), (figures["goals"], figures["map"],
                                             figures["handoff_s"])
 
