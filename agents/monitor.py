@@ -323,6 +323,7 @@ class FaultMonitor:
         self.votes = np.zeros((votes_of, len(GROUPS)), dtype=bool)  # last n informative
         self.counted = np.zeros(len(GROUPS), dtype=np.int64)       # informative windows
         self.raised = np.zeros(len(GROUPS), dtype=bool)            # alarms latched
+        self.beyond = np.zeros(len(GROUPS), dtype=bool)    # the last sample's, per group
         self.calm = np.zeros(len(GROUPS), dtype=np.int64)  # normal windows since alarm
         self.named = np.zeros(_UNIT_COUNT, dtype=bool)             # units named failed
         self.health = 1.0
@@ -353,7 +354,7 @@ class FaultMonitor:
         evidence = self.model.group_evidence(units, informative)
         self.health = self.model.health(evidence)
         probability = self.model.probability(evidence)
-        beyond = (evidence > self.model.thresholds) & informative
+        beyond = self.beyond = (evidence > self.model.thresholds) & informative
         failures = []
         for group in np.flatnonzero(informative):
             slot = self.counted[group] % len(self.votes)
@@ -398,7 +399,9 @@ class HardwareMonitor(Module):
     drift only after straight drives): its model is then fitted on all of normal
     running so far, and fitted again as each further group becomes ready and when
     ``training_s`` is up (``trained``; a group still short of windows then stays
-    unwatched). ``watched`` names the groups watched. Or it is given a trained
+    unwatched). A sample that the groups watched already find abnormal is not learnt
+    as normal running (a fault while it learns would widen the very model that is to
+    catch it). ``watched`` names the groups watched. Or it is given a trained
     model's state (``NormalModel.state()``: ``means``, ``variances``, ``thresholds``,
     ``watched``, ``trained``). A sample is taken when both a new odometry and a new
     pose have arrived (the driver sends them together, every ``sample_s``).
@@ -495,12 +498,14 @@ class HardwareMonitor(Module):
                 self._watch(self._model())
             self.robot_changes += 1
         features, informative = self._tracker.update(*sample)
-        if not self.trained:
+        failures = [] if self._monitor is None else self._monitor.observe(features, informative)
+        # what the groups watched already find abnormal is not learnt as normal running
+        if not self.trained and (self._monitor is None or not (
+                self._monitor.raised.any() or self._monitor.beyond.any())):
             self._learn(features, informative)
         if self._monitor is None:
             self.running = {"tracker": self._tracker.state()}
             return
-        failures = self._monitor.observe(features, informative)
         self.running = self._monitor.state()
         self.health.write(self._monitor.health)
         for failure in failures:
