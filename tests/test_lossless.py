@@ -57,7 +57,11 @@ def test_a_slow_reader_behind_a_local_lossless_queue_gets_every_value_in_order()
 
 def test_a_slow_reader_behind_a_lossless_queue_on_another_node_gets_every_value() -> None:
     n = 20_000             # ring (16,384) + window (2,048) + queue (8) < n: the writer waits
-    with _system("lossless-remote", n, remote=True).launch() as run:
+    # the reader sips only once the writer waits (on a loaded machine a writer may be
+    # no faster than a reader that sips from the start)
+    with _system("lossless-remote", n, sip=0, remote=True).launch() as run:
+        eventually(lambda: run.stats().links[KEY].waits > 0, what="the writer waiting")
+        run.set_state("dst", sip=50)
         state = _every_value(run, n)
         stats = run.stats()
     link = stats.links[KEY]
