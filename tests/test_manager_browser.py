@@ -514,6 +514,70 @@ def saved_and_checked(manager: ManagerProcess, page: Any, path: Path) -> str:
     return text
 
 
+OPENED = """\
+# Opened from the page's file picker.
+name = "opened"
+
+[nodes.a]
+
+[modules.tick]
+class = "examples.pipeline:Ticker"
+node = "a"
+
+[modules.double]
+class = "examples.pipeline:Scale"
+node = "a"
+state = { gain = 2.0 }
+
+[[links]]
+from = "tick.out"
+to = "double.x"
+"""
+
+
+def open_file(page: Any, path: Path) -> None:
+    """Click Open… and choose ``path`` in the file picker, as a person would."""
+    with page.expect_file_chooser(timeout=WAIT_MS) as chooser:
+        page.click("#open")
+    chooser.value.set_files(str(path))
+
+
+def test_a_file_opened_in_the_page_is_checked_and_becomes_the_document(tmp_path: Path) -> None:
+    config = tmp_path / "chain.toml"
+    config.write_text(CHAIN)
+    with editor(config, 3) as (manager, page):
+        # a file pb3a check refuses: its words in the page, and nothing changes
+        bad = tmp_path / "bad.toml"
+        bad.write_text(OPENED.replace('node = "a"\nstate', 'perod = 1.0\nnode = "a"\nstate'))
+        open_file(page, bad)
+        refusal = page.locator(".toast.error").first
+        refusal.wait_for(timeout=WAIT_MS)
+        assert "bad.toml" in refusal.text_content()
+        assert "unknown key 'perod'" in refusal.text_content()
+        assert document_of(manager)["system"]["name"] == "chain"
+        assert page.locator("#system-name").text_content() == "chain"
+        assert page.locator(".module").count() == 3
+        assert config.read_text() == CHAIN
+        # a good one: drawn, the document now, saved where the box says, and it launches
+        good = tmp_path / "good.toml"
+        good.write_text(OPENED)
+        open_file(page, good)
+        page.wait_for_selector(".toast.ok >> text=Opened good.toml", timeout=WAIT_MS)
+        page.wait_for_function("document.querySelector('#system-name').textContent === 'opened'"
+                               " && document.querySelectorAll('.module').length === 2",
+                               timeout=WAIT_MS)
+        assert module_on_node(page, "tick", "a") and module_on_node(page, "double", "a")
+        document = document_of(manager)
+        assert document["path"] is None and document["problems"] == []
+        assert page.locator("#save-path").input_value() == ""
+        assert config.read_text() == CHAIN                # the file edited before is left as it was
+        assert saved_and_checked(manager, page, tmp_path / "saved.toml") == OPENED
+        page.click("#launch")
+        page.wait_for_function("document.querySelector('#mode').textContent === 'running'",
+                               timeout=WAIT_MS)
+        assert set(manager.api("GET", "/api/system")["modules"]) == {"tick", "double"}
+
+
 def test_modules_grouped_into_a_macro_open_close_place_again_and_take_overrides(
         tmp_path: Path) -> None:
     config = tmp_path / "chain.toml"

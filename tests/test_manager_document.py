@@ -1,5 +1,6 @@
 """Editing a configuration in the manager: the TOML round trip, problems in the words of
-``pb3a check``, links checked as they are drawn, save, and launch from the page."""
+``pb3a check``, links checked as they are drawn, a file opened from the page, save, and
+launch from the page."""
 
 from __future__ import annotations
 
@@ -95,3 +96,74 @@ def test_nothing_runs_in_an_empty_document_and_saving_needs_a_path() -> None:
         assert nothing.status_code == 409 and "nothing runs" in nothing.json()["error"]
         unsaved = client.post("/api/document/save")
         assert unsaved.status_code == 400 and "give the path" in unsaved.json()["error"]
+
+
+OPENED = """\
+# Two scales in a row, opened from the page.
+name = "opened"
+
+[nodes.a]
+
+[modules.tick]
+class = "examples.pipeline:Ticker"
+node = "a"  # where it runs
+
+[modules.double]
+class = "examples.pipeline:Scale"
+node = "a"
+state = { gain = 2.0 }
+
+[[links]]
+from = "tick.out"
+to = "double.x"
+"""
+
+
+def test_a_file_opened_from_the_page_is_checked_then_becomes_the_document(
+        pipeline: Path, tmp_path: Path) -> None:
+    with manager_client(Session(Document.open(pipeline))) as client:
+        before = client.get("/api/document/toml").text
+        # not TOML, or refused by pb3a check: 409 with the checker's words, nothing changes
+        garbled = client.post("/api/document/open", json={"name": "garbled.toml",
+                                                          "toml": "name = \n[modules"})
+        assert garbled.status_code == 409
+        assert garbled.json()["error"].startswith("garbled.toml: not valid TOML")
+        bad_text = OPENED.replace("node = \"a\"  #", "perod = 1.0\nnode = \"a\"  #").replace(
+            "examples.pipeline:Scale", "examples.pipeline:Nope")
+        bad = tmp_path / "bad.toml"
+        bad.write_text(bad_text)
+        checked = [problem.replace(str(bad), "bad.toml") for problem in System.load(bad).check()]
+        assert any("perod" in p for p in checked) and any("Nope" in p for p in checked)
+        refused = client.post("/api/document/open", json={"name": "bad.toml", "toml": bad_text})
+        assert refused.status_code == 409 and refused.json()["problems"] == checked
+        for malformed in ({}, {"toml": 3}, {"name": 3, "toml": OPENED}, ["x"]):
+            assert client.post("/api/document/open", json=malformed).status_code == 400
+        assert client.get("/api/document/toml").text == before
+        assert client.get("/api/system").json()["name"] == "pipeline"
+        # a good file: the document, as written (comments too), with no path to save to
+        opened = client.post("/api/document/open", json={"name": "../elsewhere/opened.toml",
+                                                         "toml": OPENED})
+        assert opened.status_code == 200, opened.json()
+        assert opened.json()["path"] is None and opened.json()["problems"] == []
+        assert opened.json()["system"]["modules"]["double"]["state"] == {"gain": 2.0}
+        assert client.get("/api/document/toml").text == OPENED
+        system = client.get("/api/system").json()
+        assert system["name"] == "opened" and system["mode"] == "editing"
+        assert {name: m["node"] for name, m in system["modules"].items()} == {
+            "tick": "a", "double": "a"}
+        # its problems from now on name the file it came from (its name only)
+        edited = opened.json()["system"]
+        edited["modules"]["double"]["perod"] = 1.0
+        problems = client.put("/api/document", json={"system": edited}).json()["problems"]
+        assert problems and all(p.startswith("opened.toml") for p in problems), problems
+        del edited["modules"]["double"]["perod"]
+        assert client.put("/api/document", json={"system": edited}).json()["problems"] == []
+        unsaved = client.post("/api/document/save")
+        assert unsaved.status_code == 400 and "give the path" in unsaved.json()["error"]
+        saved = tmp_path / "saved.toml"
+        assert client.post("/api/document/save", json={"path": str(saved)}).status_code == 200
+        assert saved.read_text() == OPENED
+        assert not (tmp_path.parent / "elsewhere").exists()
+        launched = client.post("/api/document/launch")
+        assert launched.status_code == 200 and set(launched.json()["modules"]) == {"tick",
+                                                                                  "double"}

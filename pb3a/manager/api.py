@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Awaitable, Callable
+from pathlib import Path
 from typing import Any
 
 from starlette.concurrency import run_in_threadpool
@@ -145,6 +146,16 @@ def routes(session: Session) -> list[Route]:
         await call(document.replace, body["system"])
         return await call(document.to_json)
 
+    async def open_document(request: Request) -> Any:
+        body = await body_of(request)
+        if not isinstance(body, dict) or not isinstance(body.get("toml"), str) \
+                or not isinstance(body.get("name", "opened.toml"), str):
+            raise Malformed("send {\"name\": \"system.toml\", \"toml\": \"...the file's "
+                            "text...\"}")
+        name = Path(body.get("name") or "opened.toml").name or "opened.toml"
+        await call(document.open_text, body["toml"], name)
+        return await call(document.to_json)
+
     async def check_link(request: Request) -> Any:
         body = await body_of(request)
         if not isinstance(body, dict) or not all(isinstance(body.get(k), str)
@@ -190,6 +201,7 @@ def routes(session: Session) -> list[Route]:
         Route("/api/reload", answer(reload), methods=["POST"]),
         Route("/api/document", answer(get_document), methods=["GET"]),
         Route("/api/document", answer(put_document), methods=["PUT"]),
+        Route("/api/document/open", answer(open_document), methods=["POST"]),
         Route("/api/document/check-link", answer(check_link), methods=["POST"]),
         Route("/api/document/toml", answer(toml)),
         Route("/api/document/save", answer(save), methods=["POST"]),

@@ -34,6 +34,7 @@ class Document:
 
     def __init__(self, text: str = "", path: Path | None = None) -> None:
         self.path = path
+        self.name: str | None = None     # the file's name when opened in the page (no path)
         try:
             self._doc = tomlkit.parse(text)
         except TOMLKitError as exc:
@@ -66,8 +67,11 @@ class Document:
 
     @property
     def source(self) -> str:
-        """How problems name the document: its file, or ``the document``."""
-        return str(self.path) if self.path is not None else "the document"
+        """How problems name the document: its file, the name of the file opened in the
+        page, or ``the document``."""
+        if self.path is not None:
+            return str(self.path)
+        return self.name or "the document"
 
     def sketch(self) -> tuple[Plan, list[str]]:
         """What the document would run so far, and every problem ``pb3a check`` reports."""
@@ -89,6 +93,20 @@ class Document:
             raise ValueError(f"'system' must be an object of TOML tables, got {system!r}")
         with self._lock:
             _merge(self._doc, system, ())
+
+    def open_text(self, text: str, name: str) -> None:
+        """Make the document the TOML ``text`` of a file called ``name`` (one the page
+        read from the user's disk), if ``pb3a check`` accepts it: ConfigError with its
+        problems, in ``pb3a check``'s words and naming ``name``, otherwise, and then
+        nothing changes. The page sends no path, so the document has none: Save needs
+        one."""
+        opened = Document(text, Path(name))          # ConfigError if it is not TOML
+        problems = check_data(opened.data(), name)[1]
+        if problems:
+            raise ConfigError(problems)
+        with self._lock:
+            self._doc = opened._doc
+            self.path, self.name = None, name
 
     def check_link(self, src: str, dst: str) -> tuple[bool, str]:
         """Whether a link ``src -> dst`` added to the document would be fine, and if not

@@ -59,6 +59,7 @@ export const api = {
   reload: (module) => request("POST", "/api/reload", {module}),
   document: () => request("GET", "/api/document"),
   putDocument: (system) => request("PUT", "/api/document", {system}),
+  open: (name, toml) => request("POST", "/api/document/open", {name, toml}),
   checkLink: (src, dst) => request("POST", "/api/document/check-link", {src, dst}),
   save: (path) => request("POST", "/api/document/save", path ? {path} : {}),
   launch: () => request("POST", "/api/document/launch", {}),

@@ -59,6 +59,8 @@ class Manager {
     $("inspector-close").addEventListener("click", () => this.select(null));
     $("toggle-browser").addEventListener("click", () => this.toggleBrowser());
     $("save").addEventListener("click", () => this.save());
+    $("open").addEventListener("click", () => $("open-file").click());
+    $("open-file").addEventListener("change", () => this.open($("open-file")));
     $("launch").addEventListener("click", () => this.launch());
     $("add-node").addEventListener("click", () => this.addNode());
     document.addEventListener("keydown", (ev) => {
@@ -603,6 +605,27 @@ class Manager {
     } catch (error) {
       this.toasts.error(error);
     }
+  }
+
+  /** Send the .toml file chosen in the file picker; the server checks it as `pb3a check`
+   * does and, if it passes, makes it the document. Its problems are shown otherwise, and
+   * the document stays as it was. The browser gives no path: Save asks for one. */
+  async open(input) {
+    const file = input.files[0];
+    input.value = "";                  // so that choosing the same file again reads it again
+    if (!file) return;
+    try {
+      const answer = await api.open(file.name, await file.text());
+      this.document.take(answer);
+      this.document.path = answer.path;
+      $("save-path").value = "";
+      this.toasts.show("ok", `Opened ${file.name}`, {lines: ["Save writes it where the box says"]});
+    } catch (error) {
+      this.toasts.error(error);
+      return;
+    }
+    await this.refreshStructure();
+    await this.loadClasses();          // its module servers may offer other classes
   }
 
   async save() {
