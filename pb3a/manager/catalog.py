@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 from pb3a.errors import PB3AError
 from pb3a.loading.references import class_ref, resolve_class
+from pb3a.loading.served import forget as forget_module
 from pb3a.loading.served import use_module_servers
 from pb3a.manager.reflection import plain
 from pb3a.model.macro import Macro
@@ -74,8 +75,13 @@ class Catalog:
             return self._found
 
     def forget(self, module: str | None = None) -> None:
-        """Look again at the next ``classes`` (after ``module`` was reloaded)."""
+        """Look again at the next ``classes`` (after ``module`` was reloaded). The
+        manager's own imported copy of ``module`` goes too: attached to a system that runs
+        in another process, its reload dropped the copies there, not this one, and the
+        catalog would show the old classes."""
         with self._lock:
+            if module is not None:
+                forget_module(module)
             self._found = None
             self._classes.clear()
 
