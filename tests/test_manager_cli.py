@@ -1,5 +1,6 @@
 """``pb3a manager``: it prints its URL with a token, serves, launches a system from the
-page, and stops it with itself on Ctrl-C; mistakes get one sentence."""
+page, and stops it with itself on Ctrl-C; attached to a running system it shows and
+changes that system and leaves it running; mistakes get one sentence."""
 
 from __future__ import annotations
 
@@ -7,12 +8,14 @@ import json
 import signal
 import subprocess
 import sys
+import time
 import urllib.request
 from pathlib import Path
 
 import pytest
-from conftest import alive
+from conftest import alive, eventually
 
+from pb3a import System
 from pb3a.cli.main import main
 
 pytestmark = pytest.mark.timeout(60)
@@ -51,6 +54,52 @@ def test_the_command_serves_launches_and_stops_everything_on_ctrl_c() -> None:
             process.wait(5)
         process.stdout.close()
         process.stderr.close()
+
+
+def test_the_command_attaches_to_a_running_system_shows_it_and_changes_it() -> None:
+    pytest.importorskip("uvicorn", reason="the manager needs the 'ui' extra")
+    from sample_modules import FloatSource, Last, Scale
+    from test_manager_browser import ManagerProcess
+
+    system = System("attached").node("a").node("b")
+    system.add("src", FloatSource, node="a")
+    system.add("scale", Scale, node="a")
+    system.add("sink", Last, node="b")
+    system.link("src.out", "scale.x")
+    system.link("scale.y", "sink.x")
+    with system.launch() as run:
+        address = run.listen()
+        eventually(lambda: run.state("sink")["value"] == 2.0, what="1.0 x gain 2.0 at sink")
+        manager = ManagerProcess(address)            # `pb3a manager tcp://...`
+        try:
+            shown = manager.api("GET", "/api/system")
+            assert (shown["name"], shown["mode"], shown["address"]) == (
+                "attached", "running", address)
+            assert {name: (m["class"], m["node"]) for name, m in shown["modules"].items()} == {
+                "src": ("sample_modules:FloatSource", "a"),
+                "scale": ("sample_modules:Scale", "a"), "sink": ("sample_modules:Last", "b")}
+            assert {link["key"] for link in shown["links"]} == {"src.out->scale.x",
+                                                                 "scale.y->sink.x"}
+            assert all(shown["nodes"][node]["up"] for node in ("a", "b"))
+            stats = manager.api("GET", "/api/stats")
+            assert {name: m["node"] for name, m in stats["modules"].items()} == {
+                "src": "a", "scale": "a", "sink": "b"}
+            edited = manager.api("POST", "/api/modules/scale/state", {"gain": 5})
+            assert edited["fields"]["gain"]["value"] == 5.0
+            assert run.state("scale")["gain"] == 5.0
+            eventually(lambda: run.state("sink")["value"] == 5.0,
+                       what="the running scale using the gain set through the manager")
+        finally:
+            started = time.monotonic()
+            manager.stop()
+            stopping = time.monotonic() - started
+        assert manager.process.returncode in (0, 130, -signal.SIGINT)
+        # Ctrl-C stops the manager at once (it does not wait out a call to the system it
+        # has under way) and leaves the system it attached to running
+        assert stopping < 4.0, f"pb3a manager took {stopping:.1f} s to stop on Ctrl-C"
+        seen = run.state("sink")["seen"]
+        eventually(lambda: run.state("sink")["seen"] > seen, what="the system still running")
+        assert set(run.topology().modules) == {"src", "scale", "sink"}
 
 
 @pytest.mark.parametrize(("args", "words"), [

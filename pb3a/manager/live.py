@@ -17,8 +17,9 @@ import contextlib
 import json
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import asdict
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, TypeVar
 
 from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocket, WebSocketDisconnect
@@ -29,9 +30,11 @@ from pb3a.manager.session import Session
 from pb3a.stats import plain
 
 log = logging.getLogger("pb3a.manager")
+T = TypeVar("T")
 
 REFRESH_S = 0.5             # stats and watched state, by default
 EVENT_WAIT_S = 0.5          # one events() call waits this long for the next event
+STOP_WAIT_S = 5.0           # at the end, how long a call to the system still under way may take
 CLIENT_BACKLOG = 64         # messages queued for a client before stats are dropped
 # events after which the structure (modules, links, nodes) is sent again
 STRUCTURAL = frozenset({"module_added", "module_removed", "module_moved", "module_swapped",
@@ -47,6 +50,7 @@ class Feed:
         self.refresh = refresh
         self._clients: set[asyncio.Queue[Message]] = set()
         self._tasks: list[asyncio.Task[None]] = []
+        self._calls: set[asyncio.Future[Any]] = set()     # blocking calls under way
         self._seen = 0                      # the last event sent
 
     # -- life cycle (the app's lifespan) ---------------------------------------------
@@ -55,12 +59,25 @@ class Feed:
                        asyncio.create_task(self._events(), name="pb3a-manager-events")]
 
     async def stop(self) -> None:
+        """Stop producing, and let a call to the system that is under way end (an events
+        call waits EVENT_WAIT_S at most) before the session closes its connection:
+        closed under it, the call would wait out its whole deadline."""
         for task in self._tasks:
             task.cancel()
         for task in self._tasks:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
         self._tasks = []
+        if self._calls:
+            await asyncio.wait(list(self._calls), timeout=STOP_WAIT_S)
+
+    async def _blocking(self, work: Callable[..., T], *args: Any) -> T:
+        """``work(*args)`` in a worker thread, kept in ``_calls`` until it returns (a
+        cancelled task does not stop the thread)."""
+        call = asyncio.ensure_future(run_in_threadpool(work, *args))
+        self._calls.add(call)
+        call.add_done_callback(_settled(self._calls))
+        return await asyncio.shield(call)
 
     # -- producing --------------------------------------------------------------------
     def publish(self, message: dict[str, Any] | Message) -> None:
@@ -79,7 +96,7 @@ class Feed:
             started = time.monotonic()
             if self._clients and self.session.mode == "running":
                 try:
-                    message = await run_in_threadpool(stats_message, self.session)
+                    message = await self._blocking(stats_message, self.session)
                     self.publish(message)
                 except PB3AError as exc:
                     log.warning("manager: no stats this time: %s", exc)
@@ -91,7 +108,7 @@ class Feed:
                 await asyncio.sleep(self.refresh)
                 continue
             try:
-                events = await run_in_threadpool(self._next_events)
+                events = await self._blocking(self._next_events)
             except PB3AError as exc:
                 log.warning("manager: reading events failed: %s", exc)
                 await asyncio.sleep(self.refresh)
@@ -101,7 +118,7 @@ class Feed:
                 self.publish({"type": "event", "event": plain(asdict(event))})
             if any(event.kind in STRUCTURAL for event in events):
                 try:
-                    self.publish({"type": "system", **await run_in_threadpool(
+                    self.publish({"type": "system", **await self._blocking(
                         structure, self.session)})
                 except PB3AError as exc:
                     log.warning("manager: reading the structure failed: %s", exc)
@@ -210,6 +227,16 @@ def structure(session: Session) -> dict[str, Any]:
 
 def _error(exc: BaseException) -> dict[str, Any]:
     return json.loads(error_response(exc).body)
+
+
+def _settled(calls: set[asyncio.Future[Any]]) -> Callable[[asyncio.Future[Any]], None]:
+    """A done callback: the call is no longer under way; its outcome is taken (a call
+    whose caller was cancelled may have failed, unheard)."""
+    def done(call: asyncio.Future[Any]) -> None:
+        calls.discard(call)
+        if not call.cancelled():
+            call.exception()
+    return done
 
 
 def _drop_a_stats_message(queue: asyncio.Queue[Message]) -> None:
