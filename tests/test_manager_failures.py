@@ -1,6 +1,6 @@
 """Real failures as the manager's page sees them, through the API and the websocket: a
-module that raises in its body, a module whose worker is killed, and a remote node
-(``pb3a node start``) that is lost and then comes back."""
+module that raises in its body, a module whose worker is killed (left failed, or
+restarted), and a remote node (``pb3a node start``) that is lost and then comes back."""
 
 from __future__ import annotations
 
@@ -73,6 +73,45 @@ def test_a_module_that_raises_and_one_whose_worker_dies_are_seen_failing() -> No
         assert stats["modules"]["steady"]["status"] == "failed"
         assert any("module steady failed" in failure for failure in stats["failures"])
         assert stats["modules"]["boom"]["status"] == "running"
+
+
+def test_a_restart_appears_on_the_feed_as_it_happens() -> None:
+    system = System("restarting")
+    system.add("victim", Steady, restart="fresh", state={"count": 1000})
+    with system.launch() as run, manager_client(Session(Document.empty(), run)) as client, \
+            client.websocket_connect("/api/live") as socket:
+        assert socket.receive_json()["type"] == "hello"
+        first = receive_until(socket, stats_where(
+            lambda s: s["modules"]["victim"]["status"] == "running"
+            and s["modules"]["victim"]["pid"]), "victim running")[-1]
+        pid = first["stats"]["modules"]["victim"]["pid"]
+        assert pid != os.getpid()
+        socket.send_json({"watch": "victim"})
+        receive_until(socket, lambda m: m["type"] == "state" and m["state"]["fields"]["count"][
+            "value"] > 1000, "victim's state counting on from 1000")
+        # its worker killed: restarted fresh, as an event, then running in a new worker
+        os.kill(pid, signal.SIGKILL)
+        seen = receive_until(socket, event_of("module_restarted", "victim"), "module_restarted")
+        detail = seen[-1]["event"]["detail"]
+        assert detail["reason"] == "its worker died" and detail["policy"] == "fresh"
+        assert detail["exit_code"] == -signal.SIGKILL
+        assert not any(m["type"] == "event" and m["event"]["kind"] == "module_failed"
+                       for m in seen)
+        again = receive_until(socket, stats_where(
+            lambda s: s["modules"]["victim"]["status"] == "running"
+            and s["modules"]["victim"]["pid"] not in (None, pid)
+            and s["modules"]["victim"]["restarts"] == 1), "victim running in a new worker")
+        new_pid = again[-1]["stats"]["modules"]["victim"]["pid"]
+        # the State Editor's feed follows it into its new worker
+        receive_until(socket, lambda m: m["type"] == "state"
+                      and m["state"]["fields"]["pid"]["value"] == new_pid,
+                      "victim's state from its new worker")
+        assert client.get("/api/stats").json()["modules"]["victim"]["restarts"] == 1
+        # a restart asked for elsewhere (as by an agent, or `pb3a` on the command line)
+        run.restart("victim")
+        seen = receive_until(socket, event_of("module_restarted", "victim"),
+                             "the asked-for restart")
+        assert seen[-1]["event"]["detail"]["reason"] == "asked"
 
 
 def test_a_lost_remote_node_is_seen_lost_then_rejoined() -> None:
