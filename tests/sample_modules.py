@@ -379,6 +379,14 @@ class Relay(Module):
         self.relayed += 1
 
 
+
+class RelayPair(Macro):
+    """relay -> relay: a macro the migration tests move under a steady flow."""
+
+    modules = {"first": Relay, "second": Relay}
+    links = [("first.out", "second.x")]
+    exports = {"x": "first.x", "out": "second.out"}
+
 class Wanderer(Agent):
     """An agent that moves itself to node ``to`` once it has seen ``after`` values."""
 

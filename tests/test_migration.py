@@ -7,7 +7,7 @@ import dataclasses
 
 import pytest
 from conftest import assert_same_arrays, eventually
-from sample_modules import Chain, Collector, Counter, Hoard, Relay, Shepherd, Wanderer
+from sample_modules import Collector, Counter, Hoard, Relay, RelayPair, Shepherd, Wanderer
 
 from pb3a import ConfigError, ModuleNotFound, RuntimeFailure, System
 from pb3a.node.executor import Executor
@@ -103,16 +103,30 @@ def test_megabytes_of_numpy_state_move_intact(machines, monkeypatch) -> None:
         assert sum(dataclasses.astuple(report.phases)) == pytest.approx(report.pause_s)
 
 
-def test_a_macro_moves_as_a_whole() -> None:
+def test_a_macro_moves_as_one_under_a_steady_flow() -> None:
     system = _nodes(System("move-macro"), "a", "b")
-    system.add("chain", Chain, node="a")
+    system.add("src", Counter, node="a", period=0.001)
+    system.add("pair", RelayPair, node="a")
+    system.add("sink", Collector, node="a")
+    system.link("src.out", "pair.x")
+    system.link("pair.out", "sink.x")
     with system.launch() as run:
-        run.set_state("chain/a", gain=5.0)
-        report = run.migrate("chain", to="b")
-        modules = run.stats().modules
-        gain = run.state("chain/a")["gain"]
-    assert {modules["chain/a"].node, modules["chain/b"].node} == {"b"}
-    assert report.destination == "b" and report.links == 2 and gain == 5.0
+        eventually(lambda: run.state("sink")["received"] > 20, what="values through the pair")
+        there = run.migrate("pair", to="b")
+        inside = run.stats().links["pair/first.out->pair/second.x"].transport
+        back = run.migrate("pair", to="a")
+        moved = [e for e in run.events() if e.kind == "module_moved"]
+        n = run.state("src")["count"]
+        state = eventually(lambda: (s := run.state("sink"))["received"] >= n and s,
+                           timeout=30, what="every value through the pair")
+    assert [(e.subject, e.detail["destination"]) for e in moved] == [
+        ("pair/first", "b"), ("pair/second", "b"), ("pair/first", "a"), ("pair/second", "a")]
+    # its modules paused once, together, each way; the link between them stayed inside
+    assert moved[0].detail["pause_s"] == moved[1].detail["pause_s"] == there.pause_s
+    assert moved[2].detail["pause_s"] == moved[3].detail["pause_s"] == back.pause_s
+    assert there.destination == "b" and there.links == 3 and inside == "shm"
+    assert state["out_of_order"] == 0 and state["duplicates"] == 0
+    assert state["last"] == state["received"]                        # 1, 2, 3, ... no gap
 
 
 def test_an_agent_moves_itself_and_goes_on_where_it_was() -> None:
@@ -161,6 +175,37 @@ def test_a_failed_landing_puts_the_module_back_where_it_was(monkeypatch) -> None
         sink = run.state("sink")
     assert failures and sink["out_of_order"] == 0 and sink["duplicates"] == 0
     assert sink["last"] == sink["received"]
+
+
+def test_a_failed_landing_puts_a_whole_macro_back_where_it_was(monkeypatch) -> None:
+    system = _nodes(System("move-macro-fail"), "a", "b")
+    system.add("src", Counter, node="a", period=0.001)
+    system.add("pair", RelayPair, node="a")
+    system.add("sink", Collector, node="a")
+    system.link("src.out", "pair.x")
+    system.link("pair.out", "sink.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("sink")["received"] > 20, what="values through the pair")
+        executor = run._launcher.nodes["b"]
+        real_call = type(executor).call
+        failures = []
+
+        def flaky(self, worker, op, *args, **kwargs):   # the second one fails to land
+            if op == "migrate_in" and worker.endswith("second") and not failures:
+                failures.append(worker)
+                raise RuntimeFailure(f"worker {worker!r} died")
+            return real_call(self, worker, op, *args, **kwargs)
+        monkeypatch.setattr(type(executor), "call", flaky)
+        with pytest.raises(RuntimeFailure, match="pair/first, pair/second to node b failed.*"
+                                                 "they run on node a again, with their state"):
+            run.migrate("pair", to="b")
+        modules = run.stats().modules
+        n = run.state("src")["count"]
+        state = eventually(lambda: (s := run.state("sink"))["received"] >= n and s,
+                           timeout=30, what="every value through the pair")
+    assert failures and {modules["pair/first"].node, modules["pair/second"].node} == {"a"}
+    assert state["out_of_order"] == 0 and state["duplicates"] == 0
+    assert state["last"] == state["received"]
 
 
 def test_a_move_without_waiting_returns_a_pending_result_and_is_an_event() -> None:

@@ -4,7 +4,8 @@ inputs, and no value on any of its links is lost, duplicated or reordered.
 The hand-over, under the global configuration lock:
 
 1. Prepare first: room for the module's snapshot at the source (a segment the size
-   of its state now), and a worker on the destination node with the module's code
+   of its state now), and a worker on the destination node (the workers of a macro's
+   modules boot side by side) with the module's code
    loaded (instantiated, not started), its publishing sockets bound if its outputs
    will cross nodes from there. Nothing has paused yet.
 2. Pause the writers of the module's inputs, then the module itself (its lock is
@@ -29,6 +30,10 @@ The hand-over, under the global configuration lock:
 destination; ``phases`` says where it went. If step 5 fails (the destination worker
 died, say), the module is put back on its source node the same way, with what was
 captured, and the migration raises ``RuntimeFailure``: the module is never lost.
+
+A macro's modules move together: each step is taken for all of them before the
+next, so they pause once, and a link between two of them is unwired where both ran
+and wired again where both run, never across nodes on the way.
 """
 
 from __future__ import annotations
@@ -43,7 +48,7 @@ from pb3a.errors import RuntimeFailure, RuntimeTimeout
 if TYPE_CHECKING:
     from collections.abc import Callable
 
-    from pb3a.config.plan import FlatLink
+    from pb3a.config.plan import FlatLink, FlatModule
     from pb3a.launch.launcher import Launcher
     from pb3a.transport.snapshot import Snapshot
 
@@ -73,71 +78,122 @@ class MigrationReport:
     phases: MigrationPhases = MigrationPhases()
 
 
-def migrate(launcher: Launcher, name: str, node: str) -> MigrationReport:
-    """Move module ``name`` to ``node`` (the caller holds the configuration lock)."""
-    home = launcher.specs[name]
-    source = home.node
-    if source == node:
-        return MigrationReport(name, source, node, 0.0, 0, 0)
-    links = [link for link in launcher.links.values() if name in (link.src, link.dst)]
-    writers = sorted({link.src for link in links if link.dst == name and link.src != name})
-    leaving, arriving = launcher.nodes[source], launcher.nodes[node]
-    carry = leaving.memory_domain() != arriving.memory_domain()
-    moved = replace(home, node=node)
+def migrate(launcher: Launcher, names: list[str], node: str) -> list[MigrationReport]:
+    """Move modules ``names`` to ``node`` together, one report each (the caller holds
+    the configuration lock). A macro's modules move as one: prepared together, paused
+    together, and its inner links never cross nodes on the way."""
+    moving = [name for name in dict.fromkeys(names) if launcher.specs[name].node != node]
+    reports = {name: MigrationReport(name, node, node, 0.0, 0, 0) for name in names}
+    if not moving:
+        return list(reports.values())
+    homes = {name: launcher.specs[name] for name in moving}
+    group = set(moving)
+    links = [link for link in launcher.links.values() if group & {link.src, link.dst}]
+    writers = sorted({link.src for link in links if link.dst in group} - group)
+    arriving = launcher.nodes[node]
     with contextlib.ExitStack() as afterwards:      # (called once the writers go on)
-        # 1. room for the snapshot and the destination, ready before anything pauses
-        segment = leaving.reserve(name)
-        afterwards.callback(_quietly, leaving.release, segment)
-        arriving.add_module(moved, state={})
-        if any(link.src == name and launcher.specs[link.dst].node != node for link in links):
-            arriving.ready_to_publish(name)         # (its sockets take milliseconds)
+        # 1. room for the snapshots and the destination, ready before anything pauses
+        segments = _prepare(launcher, homes, links, node, afterwards)
         with launcher.paused(writers):
-            # 2. and 3. pause the module, unwire it
+            # 2. and 3. pause the modules, unwire them; 4. the fence: retired at the source
+            laps, snapshots = _Laps(), {}
             try:
-                leaving.pause(name, 5.0)
-                laps = _Laps()
+                for name in moving:
+                    launcher.nodes[homes[name].node].pause(name, 5.0)
                 for link in links:
                     launcher.detach(link)
                 laps.mark("unwire")
-                # 4. the fence: retired at the source
-                snapshot = leaving.retire(name, segment, carry)
+                for name in moving:
+                    leaving = launcher.nodes[homes[name].node]
+                    carry = leaving.memory_domain() != arriving.memory_domain()
+                    snapshots[name] = leaving.retire(name, segments[name], carry)
                 laps.mark("retire")
             except BaseException:
-                arriving.remove_module(name)
+                for name in moving:
+                    _quietly(arriving.remove_module, name)
+                if snapshots:                        # (the rest never left their node)
+                    _put_back(launcher, homes, snapshots, links)
                 raise
-            launcher.specs[name] = moved
+            for name in moving:
+                launcher.specs[name] = replace(homes[name], node=node)
             # 5. restored, re-wired, started (or, failing that, the same back home)
             try:
-                restore_s = _land(launcher, name, snapshot, links, laps)
+                restore_s = _land(launcher, snapshots, links, laps)
             except (RuntimeFailure, RuntimeTimeout) as exc:
                 for link in links:
                     _quietly(launcher.detach, link)
-                _quietly(arriving.remove_module, name)
-                launcher.specs[name] = home
-                leaving.add_module(home, state={})
-                _land(launcher, name, snapshot, links, _Laps())
-                raise RuntimeFailure(f"migration of {name} to node {node} failed ({exc}); "
-                                     f"it runs on node {source} again, with its state") from exc
+                for name in moving:
+                    _quietly(arriving.remove_module, name)
+                _put_back(launcher, homes, snapshots, links)
+                sources = ", ".join(sorted({home.node for home in homes.values()}))
+                what = (f"{moving[0]} to node {node} failed ({exc}); it runs on node "
+                        f"{sources} again, with its state" if len(moving) == 1 else
+                        f"{', '.join(moving)} to node {node} failed ({exc}); they run on "
+                        f"node {sources} again, with their state")
+                raise RuntimeFailure(f"migration of {what}") from exc
     lap = laps.seconds
+    capture_s = sum(snapshot.capture_s for snapshot in snapshots.values())
     phases = MigrationPhases(
-        lap["unwire"], snapshot.capture_s,
-        lap["retire"] - snapshot.capture_s + lap["land"] - restore_s, restore_s,
-        lap["rewire"], lap["start"])
-    return MigrationReport(name, source, node, sum(lap.values()), snapshot.nbytes, len(links),
-                           phases)
+        lap["unwire"], capture_s, lap["retire"] - capture_s + lap["land"] - restore_s,
+        restore_s, lap["rewire"], lap["start"])
+    for name in moving:
+        reports[name] = MigrationReport(
+            name, homes[name].node, node, sum(lap.values()), snapshots[name].nbytes,
+            sum(name in (link.src, link.dst) for link in links), phases)
+    return list(reports.values())
 
 
-def _land(launcher: Launcher, name: str, snapshot: Snapshot, links: list[FlatLink],
+def _prepare(launcher: Launcher, homes: dict[str, FlatModule], links: list[FlatLink],
+             node: str, afterwards: contextlib.ExitStack) -> dict[str, str]:
+    """Step 1 for each module: a segment at its source, released ``afterwards``, and
+    the module instantiated at ``node``, publishing already if its outputs will cross
+    nodes from there; the segments. What was added is removed again if one fails."""
+    arriving, segments, added = launcher.nodes[node], {}, []
+    arriving.spawn_workers([replace(home, node=node) for home in homes.values()])
+    try:
+        for name, home in homes.items():
+            leaving = launcher.nodes[home.node]
+            segments[name] = leaving.reserve(name)
+            afterwards.callback(_quietly, leaving.release, segments[name])
+            arriving.add_module(replace(home, node=node), state={})
+            added.append(name)
+            if any(link.src == name and link.dst not in homes
+                   and launcher.specs[link.dst].node != node for link in links):
+                arriving.ready_to_publish(name)     # (its sockets take milliseconds)
+    except BaseException:
+        for name in added:
+            _quietly(arriving.remove_module, name)
+        raise
+    return segments
+
+
+def _put_back(launcher: Launcher, homes: dict[str, FlatModule],
+              snapshots: dict[str, Snapshot], links: list[FlatLink]) -> None:
+    """What was captured, restored where it ran before, its links wired again there."""
+    for name in snapshots:
+        launcher.specs[name] = homes[name]
+        launcher.nodes[homes[name].node].add_module(homes[name], state={})
+    for name in set(homes) - set(snapshots):          # paused, never retired
+        launcher.specs[name] = homes[name]
+        _quietly(launcher.nodes[homes[name].node].resume, name)
+    _land(launcher, snapshots, links, _Laps())
+
+
+def _land(launcher: Launcher, snapshots: dict[str, Snapshot], links: list[FlatLink],
           laps: _Laps) -> float:
-    """Restore what was captured in the module's (new) worker, re-wire it, start it; the
-    seconds the worker took to restore."""
-    node = launcher.node_of(name)
-    restore_s = node.land(name, snapshot)
+    """Restore what was captured in the modules' (new) workers, re-wire them, start
+    them; the seconds the workers took to restore."""
+    restore_s = sum(launcher.node_of(name).land(name, snapshot)
+                    for name, snapshot in snapshots.items())
     laps.mark("land")
     for link in links:
         launcher.attach(link)
     laps.mark("rewire")
-    node.start_modules([name])
+    starting: dict[str, list[str]] = {}
+    for name in snapshots:
+        starting.setdefault(launcher.specs[name].node, []).append(name)
+    for node, names in starting.items():
+        launcher.nodes[node].start_modules(names)
     laps.mark("start")
     return restore_s
 

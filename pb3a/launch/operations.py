@@ -87,18 +87,21 @@ class Operations:
                 child for child in specs if child.startswith(f"{name}/")]
             if not names:
                 self.launcher.node_of(name)           # raises ModuleNotFound
-            reports = [migrate(self.launcher, child, to) for child in names]
+            reports = migrate(self.launcher, names, to)     # (a macro's: one pause)
+            moved = {report.module for report in reports if report.source != to}
             for report in reports:
-                if report.source != report.destination:
+                if report.module in moved:
                     self.events.record("module_moved", report.module, source=report.source,
                                        destination=report.destination, pause_s=report.pause_s)
+            rewired = sum(1 for link in self.launcher.links.values()
+                          if moved & {link.src, link.dst})
             self.launcher.update_env()          # the moves and the workers, for agents
         if len(reports) == 1:
             return reports[0]
         longest = max(reports, key=lambda r: r.pause_s)       # its phases stand for all
         return MigrationReport(name, ",".join(sorted({r.source for r in reports})), to,
                                longest.pause_s, sum(r.state_bytes for r in reports),
-                               sum(r.links for r in reports), longest.phases)
+                               rewired, longest.phases)
 
     def begin_migration(self, name: str, to: str, *, timeout: float | None = None) -> int:
         """Start ``migrate`` on another thread; the number to ask ``migration`` about. An

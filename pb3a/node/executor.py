@@ -154,10 +154,19 @@ class Executor:
         return min(counts, key=counts.__getitem__)
 
     def expect(self, specs: list[FlatModule]) -> None:
-        """Size the packed workers for the modules about to be added, in their order."""
+        """Size the packed workers for the modules about to be added, in their order;
+        start the workers of the others now (``spawn_workers``)."""
         if self.packing:
             count = sum(1 for spec in specs if not spec.group)
             self.quota = -(-count // self.packing)
+        self.spawn_workers(specs)
+
+    def spawn_workers(self, specs: list[FlatModule]) -> None:
+        """Start the workers of modules that run in a process of their own (unpacked or
+        grouped) now, side by side: ``add_module`` then finds them booting or booted."""
+        for spec in specs:
+            if spec.group or not self.packing:
+                self.workers.ensure(self.place(spec), spec.node)
 
     # -- modules -------------------------------------------------------------
     def add_module(self, spec: FlatModule, *, state: dict[str, Any] | None = None) -> None:

@@ -27,6 +27,10 @@ class Node(Protocol):
     def expect(self, specs: list[FlatModule]) -> None:
         """Size packed workers for the modules about to be added, in their order."""
 
+    def spawn_workers(self, specs: list[FlatModule]) -> None:
+        """Start the processes of the modules about to be added that get a worker of
+        their own, so that they boot side by side rather than one per ``add_module``."""
+
     def add_module(self, spec: FlatModule, *, state: dict[str, Any] | None = None) -> None:
         """Instantiate a module in its worker (not started); ``state`` overrides the spec's."""
 

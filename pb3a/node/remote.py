@@ -116,6 +116,9 @@ class RemoteNode:
     def expect(self, specs: list[FlatModule]) -> None:
         self._forward("expect", specs)
 
+    def spawn_workers(self, specs: list[FlatModule]) -> None:
+        self._forward("spawn_workers", specs)
+
     def add_module(self, spec: FlatModule, *, state: dict[str, Any] | None = None) -> None:
         self._forward("add_module", spec, state=state)
 

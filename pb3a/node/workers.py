@@ -55,6 +55,9 @@ class WorkerHandle:
     alive: bool = False
     pid: int = 0
     send_lock: threading.Lock = field(default_factory=threading.Lock)
+    # held to read the pipe and to close it: a worker stopped by another thread must
+    # not have its pipe closed under the monitor reading it
+    read_lock: threading.RLock = field(default_factory=threading.RLock)
 
     def send(self, message: Any, fd: int | None = None) -> None:
         """Send on the worker's pipe, with a descriptor right behind it if given."""
@@ -193,6 +196,11 @@ class WorkerPool:
                     self._died(by_sentinel[item])
 
     def _read(self, handle: WorkerHandle) -> None:
+        with handle.read_lock:
+            if not handle.conn.closed:
+                self._read_open(handle)
+
+    def _read_open(self, handle: WorkerHandle) -> None:
         try:
             while handle.conn.poll():
                 req_id, ok, result = handle.conn.recv()
@@ -211,7 +219,7 @@ class WorkerPool:
 
     def _died(self, handle: WorkerHandle) -> None:
         handle.alive = False
-        with contextlib.suppress(OSError):
+        with handle.read_lock, contextlib.suppress(OSError):
             handle.conn.close()
         for req_id, future in list(self._futures.items()):
             if getattr(future, "pb3a_worker", None) == handle.key \
@@ -236,7 +244,7 @@ class WorkerPool:
         if handle.process.is_alive():
             handle.process.kill()
             handle.process.join(1.0)
-        with contextlib.suppress(OSError):
+        with handle.read_lock, contextlib.suppress(OSError):
             handle.conn.close()
         self._poke()
 
