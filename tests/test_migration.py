@@ -196,8 +196,8 @@ def test_a_failed_landing_puts_a_whole_macro_back_where_it_was(monkeypatch) -> N
                 raise RuntimeFailure(f"worker {worker!r} died")
             return real_call(self, worker, op, *args, **kwargs)
         monkeypatch.setattr(type(executor), "call", flaky)
-        with pytest.raises(RuntimeFailure, match="pair/first, pair/second to node b failed.*"
-                                                 "they run on node a again, with their state"):
+        with pytest.raises(RuntimeFailure, match=r"pair/first, pair/second to node b failed.*"
+                                                 r"they run on node a again, with their state"):
             run.migrate("pair", to="b")
         modules = run.stats().modules
         n = run.state("src")["count"]
