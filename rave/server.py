@@ -15,6 +15,7 @@ import logging
 import multiprocessing
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 from pb3a.processes import serve_as_child, start_without_main
@@ -43,11 +44,12 @@ class WorldServer:
 
     def __init__(self, world: World, host: str = "127.0.0.1", port: int = 0,
                  rate: float = 1.0, lockstep: bool = False) -> None:
-        if not lockstep and not rate > 0:
-            raise ValueError(f"a world server's rate must be positive, not {rate}")
+        if not lockstep:
+            _check_rate(rate)
         self.world, self.rate, self.lockstep = world, rate, lockstep
         self._lock = threading.Lock()                      # the world is not thread-safe
         self._stopping = threading.Event()
+        self._paced = threading.Event()                    # the rate changed
         self._server = ControlServer(ClusterKey.load(), self._handle, host, port,
                                      name="rave-world")
         self.address = self._server.address
@@ -57,22 +59,43 @@ class WorldServer:
             self._stepper.start()
 
     def _run(self) -> None:
-        period = PHYSICS_DT / self.rate
         next_at = time.monotonic()
         while not self._stopping.is_set():
-            with self._lock:
-                self.world.step(PHYSICS_DT)
-            next_at += period
-            # a real-time loop: wait for the next tick (or for the stop), never drift
-            self._stopping.wait(max(0.0, next_at - time.monotonic()))
+            if self._paced.is_set():
+                self._paced.clear()
+                next_at = time.monotonic()
+            with self._lock:                   # (the rate is read with the world: a
+                rate = self.rate               # world held by ``pace`` steps no more)
+                if rate:
+                    self.world.step(PHYSICS_DT)
+            if not rate:                       # held: no simulated time passes
+                self._paced.wait()
+                continue
+            next_at += PHYSICS_DT / rate
+            # a real-time loop: wait for the next tick (or a new pace), never drift
+            self._paced.wait(max(0.0, next_at - time.monotonic()))
+
+    def pace(self, rate: float) -> float:
+        """Run the world at ``rate`` times real time from now on; 0 holds it (no
+        simulated time passes, requests are still answered). The world's time now."""
+        if self.lockstep:
+            raise ValueError(f"world {self.world.name} runs in lock-step: its controller "
+                             "advances it")
+        _check_rate(rate)
+        with self._lock:
+            self.rate = rate
+            self._paced.set()
+            return self.world.time
 
     def _handle(self, op: str, args: dict[str, Any]) -> Any:
+        if op == "pace":
+            return self.pace(float(args.get("rate", 1.0)))
         with self._lock:
             if op == "describe":
                 return self.world.describe()
             if op not in ROBOT_OPS:
-                raise ValueError(f"the world server has no operation {op!r}; robot "
-                                 f"operations: {', '.join(ROBOT_OPS)}")
+                raise ValueError(f"the world server has no operation {op!r}; its operations: "
+                                 f"describe, pace, and the robots' {', '.join(ROBOT_OPS)}")
             robot = self.world.robot(args.pop("robot"))
             if op == "advance":
                 return self._advance(float(args.get("dt", PHYSICS_DT)))
@@ -91,6 +114,7 @@ class WorldServer:
     def close(self) -> None:
         """Stop stepping and serving, and close the world (it is this server's now)."""
         self._stopping.set()
+        self._paced.set()
         if self._stepper.is_alive():
             self._stepper.join(2.0)
         self._server.close()
@@ -115,6 +139,76 @@ def _apply(robot: Any, op: str, args: dict[str, Any], now: float) -> Any:
     elif op == "swap":
         robot.swap(args["backend"])
     return None
+
+
+def _check_rate(rate: float) -> None:
+    if not rate >= 0:
+        raise ValueError(f"a world's rate is how many times real time it runs, 0 or more "
+                         f"(0 holds it), not {rate}")
+
+
+class WorldProcess:
+    """A ``WorldServer`` in a process of its own, serving the world file ``path``
+    (``seed``; robots ``add``-ed as name: pose; the robots named in ``hardware`` on the
+    emulated hardware back end). Its physics and its requests then never wait for the
+    interpreter lock of the process that started it: one process serving several
+    worlds at 10x real time left a lock-step world's requests waiting up to a switch
+    interval (5 ms) each."""
+
+    def __init__(self, path: str | Path, *, seed: int = 0, rate: float = 1.0,
+                 lockstep: bool = False, add: dict[str, tuple[float, float, float]] | None = None,
+                 hardware: tuple[str, ...] = (), host: str = "127.0.0.1") -> None:
+        parent, child = _context.Pipe()
+        self._pipe = parent                  # held open: the server stops when it closes
+        self._process = _context.Process(
+            target=world_server_main, daemon=True, name=f"rave-world-{Path(path).stem}",
+            args=(str(path), seed, rate, lockstep, dict(add or {}), tuple(hardware), host,
+                  child))
+        start_without_main(self._process)
+        child.close()
+        try:
+            if not parent.poll(START_TIMEOUT):
+                raise RuntimeError(f"the world server of {path} did not start within "
+                                   f"{START_TIMEOUT} s")
+            try:
+                self.address: str = parent.recv()
+            except EOFError:
+                raise RuntimeError(f"the world server of {path} stopped before serving "
+                                   "(its error is in the log above)") from None
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Stop serving and close the world (its back ends' processes too)."""
+        self._pipe.close()                   # (the child stops on its parent's EOF)
+        self._process.join(timeout)
+        if self._process.is_alive():
+            self._process.terminate()
+            self._process.join(timeout)
+        if self._process.is_alive():
+            self._process.kill()
+            self._process.join(1.0)
+
+
+def world_server_main(path: str, seed: int, rate: float, lockstep: bool,
+                      add: dict[str, tuple[float, float, float]], hardware: tuple[str, ...],
+                      host: str, conn: Any) -> None:
+    """A world server process (see ``WorldProcess``)."""
+    world = World.load(path, seed=seed)
+    try:
+        for name, pose in add.items():
+            world.add_robot(name, pose, color="blue")
+        for name in hardware:
+            world.robot(name).swap("hardware")
+        server = WorldServer(world, host, rate=rate, lockstep=lockstep)
+    except BaseException:
+        world.close()
+        raise
+    try:
+        serve_as_child(conn, server.address, threading.Event())
+    finally:
+        server.close()                       # (closes the world)
 
 
 class RobotServers:

@@ -1,11 +1,11 @@
 """``Lab``: everything a robot application runs against, on one machine.
 
-A RAVE world served by a ``WorldServer`` (real time, or faster for a simulated
-world), one robot server per robot (its TCP resource port, what a ``RobotDriver``
-talks to), and one node controller per on-board computer (``pb3a node start`` in a
-process of its own, as it would run on the robot). The application's system is then
-launched against these addresses like any other; the lab owns every process it
-started and stops them all on ``close``.
+A RAVE world served by a ``WorldServer`` in a process of its own (real time, or
+faster, or in lock-step for a simulated world), one robot server per robot (its TCP
+resource port, what a ``RobotDriver`` talks to), and one node controller per
+on-board computer (``pb3a node start`` in a process of its own, as it would run on
+the robot). The application's system is then launched against these addresses like
+any other; the lab owns every process it started and stops them all on ``close``.
 """
 
 from __future__ import annotations
@@ -20,8 +20,7 @@ from typing import Any
 
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
-from rave.server import RobotServers, WorldServer
-from rave.world import World
+from rave.server import RobotServers, WorldProcess
 
 WORLDS = Path(__file__).resolve().parent.parent / "rave" / "worlds"
 START_TIMEOUT = 30.0          # seconds for a node controller to say where it listens
@@ -92,18 +91,18 @@ class Lab:
     def __init__(self, world: str | Path, *, seed: int = 0, onboard: tuple[str, ...] = (),
                  hardware: tuple[str, ...] = (), rate: float = 1.0, lockstep: bool = False,
                  add: dict[str, tuple[float, float, float]] | None = None) -> None:
-        self.world = World.load(world_file(str(world)), seed=seed)
-        self.world_server: WorldServer | None = None
+        self.world_server: WorldProcess | None = None
         self.robot_servers: RobotServers | None = None
         self.nodes: dict[str, NodeControllerProcess] = {}
         self._clients: dict[str, ControlClient] = {}
         try:
-            for name, pose in (add or {}).items():
-                self.world.add_robot(name, pose, color="blue")
-            for name in hardware:
-                self.world.robot(name).swap("hardware")
-            self.world_server = WorldServer(self.world, rate=rate, lockstep=lockstep)
-            self.robot_servers = RobotServers(self.world_server.address, list(self.world.robots))
+            # (each world in a process of its own: see WorldProcess)
+            self.world_server = WorldProcess(world_file(str(world)), seed=seed, rate=rate,
+                                             lockstep=lockstep, add=add, hardware=hardware)
+            self.described = self.describe()
+            self.size: tuple[float, float] = tuple(self.described["size"])
+            self.robot_servers = RobotServers(self.world_server.address,
+                                              list(self.described["robots"]))
             for name in onboard:
                 self.nodes[name] = NodeControllerProcess(name)
         except BaseException:
@@ -121,17 +120,25 @@ class Lab:
         ``rave fault`` would."""
         return self._client(self.robots[name]).call(op, CALL_TIMEOUT, **args)
 
+    def describe(self) -> dict[str, Any]:
+        """The world as plain data now (``World.describe``), from the world server."""
+        assert self.world_server is not None
+        return self._client(self.world_server.address).call("describe", CALL_TIMEOUT)
+
     def poses(self) -> dict[str, tuple[float, float, float]]:
         """Every robot's true pose now, from the world server."""
+        return {name: tuple(robot["pose"]) for name, robot in self.describe()["robots"].items()}
+
+    def pace(self, rate: float) -> float:
+        """Run the world at ``rate`` times real time from now on (0 holds it); the
+        world's time now."""
         assert self.world_server is not None
-        described = self._client(self.world_server.address).call("describe", CALL_TIMEOUT)
-        return {name: tuple(robot["pose"]) for name, robot in described["robots"].items()}
+        return float(self._client(self.world_server.address).call("pace", CALL_TIMEOUT,
+                                                                  rate=rate))
 
     def time(self) -> float:
         """The world's time now (simulated seconds), from the world server."""
-        assert self.world_server is not None
-        return float(self._client(self.world_server.address).call("describe", CALL_TIMEOUT)
-                     ["time"])
+        return float(self.describe()["time"])
 
     def _client(self, address: str) -> ControlClient:
         if address not in self._clients:
@@ -151,8 +158,6 @@ class Lab:
             self.robot_servers.close()
         if self.world_server is not None:
             self.world_server.close()       # (closes the world)
-        else:
-            self.world.close()
 
     def __enter__(self) -> Lab:
         return self

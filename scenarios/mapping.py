@@ -95,7 +95,7 @@ def configuration(lab: Lab, robots: tuple[str, str], cases: Path) -> System:
     control = data["macros"]["control"]["modules"]
     control["driver"]["state"]["resource"] = lab.robots[first]
     for name in ("mapper", "explorer"):
-        control[name].setdefault("state", {})["size"] = list(lab.world.size)
+        control[name].setdefault("state", {})["size"] = list(lab.size)
     data["modules"]["remedy"]["state"]["standby_resource"] = lab.robots[standby]
     data["modules"]["remedy"]["state"]["cases_path"] = str(cases)
     return System.from_dict(data, source=str(CONFIG))
@@ -108,7 +108,7 @@ def run(out: Path, world: str = "lab", seed: int = 1, quick: bool = False) -> di
     path = world_file(world)
     robots, added = place_robots(path)
     with Lab(path, seed=seed, onboard=("r1", "r2"), hardware=robots, add=added) as lab:
-        size, described = lab.world.size, lab.world.describe()
+        size, described = lab.size, lab.described
         starts = [lab.poses()[name] for name in robots]
         with configuration(lab, robots, out / "remedy-cases.toml").launch() as running:
             started = time.time()

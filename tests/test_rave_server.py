@@ -18,7 +18,7 @@ from pb3a import RuntimeFailure, System
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 from rave import World, cli, render
-from rave.server import RobotServers, WorldServer
+from rave.server import RobotServers, WorldProcess, WorldServer
 
 
 @pytest.fixture
@@ -86,6 +86,41 @@ def test_a_lockstep_world_advances_only_when_its_controller_asks() -> None:
     try:
         with pytest.raises(RuntimeFailure, match="serve it in lock-step"):
             client.call("advance", robot="r1", dt=0.1)
+    finally:
+        client.close()
+        server.close()
+
+
+def test_a_world_in_a_process_of_its_own_is_held_then_paced_and_stops_with_its_owner() -> None:
+    served = WorldProcess("rave/worlds/arena.toml", seed=2, rate=0.0, hardware=("r1",),
+                          add={"r9": (2.0, 2.0, 0.0)})
+    client = ControlClient(ClusterKey.load(), served.address)
+    try:
+        described = client.call("describe")
+        assert described["robots"]["r1"]["backend"] == "hardware" and "r9" in described["robots"]
+        client.call("drive", robot="r1", v=0.5, w=0.0)
+        assert client.call("describe")["time"] == 0.0                # held: no time passes
+        assert client.call("pace", rate=20.0) == 0.0                 # its time when paced
+        eventually(lambda: client.call("describe")["time"] > 1.0, what="time at 20x")
+        held_at = client.call("pace", rate=0.0)
+        assert client.call("describe")["time"] == held_at            # held again
+        with pytest.raises(RuntimeFailure, match=r"0 or more \(0 holds it\), not -1.0"):
+            client.call("pace", rate=-1.0)
+        with pytest.raises(RuntimeFailure, match="its operations: describe, pace"):
+            client.call("fly", robot="r1")
+    finally:
+        client.close()
+        pid = served._process.pid
+        served.close()
+    assert not alive(pid)
+
+
+def test_a_lockstep_world_refuses_a_pace() -> None:
+    server = WorldServer(World.load("rave/worlds/arena.toml", seed=2), lockstep=True)
+    client = ControlClient(ClusterKey.load(), server.address)
+    try:
+        with pytest.raises(RuntimeFailure, match="runs in lock-step: its controller advances"):
+            client.call("pace", rate=2.0)
     finally:
         client.close()
         server.close()
