@@ -3,10 +3,13 @@ before anything is unpickled."""
 
 from __future__ import annotations
 
+import collections
 import importlib
 import pickle
+import sys
 import threading
 import time
+import types
 from typing import Any
 
 import pytest
@@ -127,17 +130,32 @@ def test_a_request_naming_a_module_the_server_cannot_import_is_answered_at_once(
     assert client.call("add", a=1, b=2) == 3            # the server goes on
 
 
-def test_requests_are_decoded_under_the_decode_lock() -> None:
+def test_a_request_naming_a_module_not_imported_yet_waits_for_the_decode_lock() -> None:
     """A node's executor imports the configuration's modules in the background; a
-    request naming a class waits for that, never importing beside it (two threads
-    importing through a circular import can get each other's half-made modules)."""
+    request naming a class of a module not imported yet waits for that, never importing
+    beside it (two threads importing through a circular import can get each other's
+    half-made modules). A request that names no new module, such as a node's lease
+    heartbeat, is decoded at once, also while a background import runs."""
     importing = threading.Lock()
     server = ControlServer(KEY, handler, decode_lock=importing)
     client = ControlClient(KEY, server.address)
+    fresh = "pb3a_test_decoded_later"
     try:
-        with importing, pytest.raises(RuntimeTimeout):    # a background import runs
-            client.call("add", timeout=0.3, a=1, b=2)
-        assert client.call("add", timeout=5.0, a=1, b=2) == 3
+        with importing:                                    # a background import runs
+            assert client.call("add", timeout=2.0, a=1, b=2) == 3
+            assert client.ping(2.0) is not None
+            # a module that another thread is still importing, as the server sees it
+            module = sys.modules[fresh] = types.ModuleType(fresh)
+            module.__spec__ = importlib.machinery.ModuleSpec(fresh, None)
+            module.__spec__._initializing = True
+            module.Point = collections.namedtuple("Point", "x", module=fresh)
+            with pytest.raises(RuntimeTimeout):
+                client.call("add", timeout=0.3, a=module.Point(5), b=0)
+        module.__spec__._initializing = False              # (imported since)
+        assert client.call("add", timeout=2.0, a=(1,), b=(2,)) == (1, 2)
     finally:
         client.close()
         server.close()
+        sys.modules.pop(fresh, None)
+
+

@@ -17,12 +17,14 @@ error, so that a wrong key is told apart from a server that does not answer at a
 from __future__ import annotations
 
 import contextlib
+import io
 import itertools
 import logging
 import math
 import pickle
 import queue
 import struct
+import sys
 import threading
 import time
 from typing import TYPE_CHECKING, Any
@@ -70,10 +72,10 @@ class ControlServer:
                  name: str = "pb3a-control",
                  instant: Mapping[str, Callable[[dict[str, Any]], Any]] | None = None,
                  decode_lock: threading.Lock | None = None) -> None:
-        """``decode_lock``: held while a request is unpickled (which may import the
-        modules of the classes it names), by a process that also imports in the
-        background: CPython may hand one thread a module another is still importing
-        when the two imports go through a circular one."""
+        """``decode_lock``: held while a request imports the modules of the classes it
+        names (see ``_decode``), by a process that also imports in the background:
+        CPython may hand one thread a module another is still importing when the two
+        imports go through a circular one."""
         self._handler = handler
         self._decode_lock = decode_lock or contextlib.nullcontext()
         # answered on the socket thread, never queued: they must be quick and never block
@@ -112,8 +114,7 @@ class ControlServer:
                 continue
             request_id = bytes(message.frames[0])
             try:
-                with self._decode_lock:
-                    op, args = pickle.loads(message.frames[1])     # authenticated: safe
+                op, args = _decode(message.frames[1], self._decode_lock)  # authenticated
             except Exception as exc:       # (a key holder's request: it gets an answer)
                 self._opener.rejected["undecodable"] += 1
                 self._reply(peer, request_id, False,
@@ -274,3 +275,27 @@ class ControlClient:
     def close(self) -> None:
         self._loop.close()
         self._dealer.close(0)
+
+
+class _RequestUnpickler(pickle.Unpickler):
+    """Unpickles a request, importing a module it names only under ``lock``."""
+
+    def __init__(self, data: Any, lock: Any) -> None:
+        super().__init__(io.BytesIO(data))
+        self._lock = lock
+
+    def find_class(self, module: str, name: str) -> Any:
+        loaded = sys.modules.get(module)
+        if loaded is None or getattr(getattr(loaded, "__spec__", None), "_initializing",
+                                     False):
+            with self._lock:                   # (an import, or one under way elsewhere)
+                return super().find_class(module, name)
+        return super().find_class(module, name)
+
+
+def _decode(data: Any, lock: Any) -> Any:
+    """A request's ``(op, args)``. Only a request that names a module not imported yet
+    waits for ``lock``: a heartbeat, decoded on the socket thread, never waits behind a
+    background import (under load one took longer than a node's lease, and the node
+    fenced itself while its launcher was still starting it)."""
+    return _RequestUnpickler(data, lock).load()
