@@ -35,6 +35,17 @@ def _src_relay_sink(name: str) -> System:
     return system
 
 
+def _src_pair_sink(name: str) -> System:
+    """src -> pair (a macro: relay -> relay) -> sink, all on node a of nodes a and b."""
+    system = _nodes(System(name), "a", "b")
+    system.add("src", Counter, node="a", period=0.001)
+    system.add("pair", RelayPair, node="a")
+    system.add("sink", Collector, node="a")
+    system.link("src.out", "pair.x")
+    system.link("pair.out", "sink.x")
+    return system
+
+
 def test_a_module_moves_with_its_state_and_its_links_follow() -> None:
     with _src_relay_sink("move-one").launch() as run:
         eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")
@@ -104,13 +115,7 @@ def test_megabytes_of_numpy_state_move_intact(machines, monkeypatch) -> None:
 
 
 def test_a_macro_moves_as_one_under_a_steady_flow() -> None:
-    system = _nodes(System("move-macro"), "a", "b")
-    system.add("src", Counter, node="a", period=0.001)
-    system.add("pair", RelayPair, node="a")
-    system.add("sink", Collector, node="a")
-    system.link("src.out", "pair.x")
-    system.link("pair.out", "sink.x")
-    with system.launch() as run:
+    with _src_pair_sink("move-macro").launch() as run:
         eventually(lambda: run.state("sink")["received"] > 20, what="values through the pair")
         there = run.migrate("pair", to="b")
         inside = run.stats().links["pair/first.out->pair/second.x"].transport
@@ -178,13 +183,7 @@ def test_a_failed_landing_puts_the_module_back_where_it_was(monkeypatch) -> None
 
 
 def test_a_failed_landing_puts_a_whole_macro_back_where_it_was(monkeypatch) -> None:
-    system = _nodes(System("move-macro-fail"), "a", "b")
-    system.add("src", Counter, node="a", period=0.001)
-    system.add("pair", RelayPair, node="a")
-    system.add("sink", Collector, node="a")
-    system.link("src.out", "pair.x")
-    system.link("pair.out", "sink.x")
-    with system.launch() as run:
+    with _src_pair_sink("move-macro-fail").launch() as run:
         eventually(lambda: run.state("sink")["received"] > 20, what="values through the pair")
         executor = run._launcher.nodes["b"]
         real_call = type(executor).call
