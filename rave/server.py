@@ -151,9 +151,8 @@ class WorldProcess:
     """A ``WorldServer`` in a process of its own, serving the world file ``path``
     (``seed``; robots ``add``-ed as name: pose; the robots named in ``hardware`` on the
     emulated hardware back end). Its physics and its requests then never wait for the
-    interpreter lock of the process that started it: one process serving several
-    worlds at 10x real time left a lock-step world's requests waiting up to a switch
-    interval (5 ms) each."""
+    interpreter lock of the process that started it (a scenario serving several
+    worlds, or a launcher)."""
 
     def __init__(self, path: str | Path, *, seed: int = 0, rate: float = 1.0,
                  lockstep: bool = False, add: dict[str, tuple[float, float, float]] | None = None,
