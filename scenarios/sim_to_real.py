@@ -251,9 +251,11 @@ def plot(figures: dict[str, Any], path: Path) -> None:
         if kept_from is not None:        # where the target was reached for good
             right.axvline(kept_from, color=colour, linewidth=0.8, linestyle=":")
     right.axhline(TARGET[0], color="0.7", linewidth=0.8, label=f"target ({TARGET[0]:.0%})")
-    right.set_title(f"on the hardware robot: transfer {figures['transfer_s']} s, "
-                    f"speed-up {figures['speedup']['kind'] or ''} "
-                    f"{figures['speedup']['value']}x", fontsize=10)
+    speedup = figures["speedup"]
+    gained = (f"speed-up {speedup['kind']} {speedup['value']}x" if speedup["value"] is not None
+              else "target not kept after it")
+    right.set_title(f"on the hardware robot: transfer {figures['transfer_s']} s, {gained}",
+                    fontsize=10)
     served = figures["hardware_rate"]
     right.set_xlabel("hardware time (s)" + (f", served at {served:g}x" if served != 1 else ""))
     right.set_ylabel(f"success rate, last {TARGET[1]} episodes")
