@@ -10,6 +10,11 @@ and for each side the wall time per array and how busy the CPUs were inside the
 bursts (CPU per array / (wall per array x CPUs)): near 1.0 means the link is bound by
 CPU, not by waiting.
 
+It also times, in the same run, the two passes the link cannot do without (``auth``):
+sealing one array into a fresh frame and opening it into a buffer (``payload_us``).
+Their sum is CPU a sealed link spends per array on top of everything raw pyzmq does;
+on a CPU whose AES-GCM runs without VAES it alone exceeds raw pyzmq's whole transfer.
+
 Run: ``.venv/bin/python bench/link_cpu.py`` (about 20 s).
 """
 
@@ -17,6 +22,8 @@ from __future__ import annotations
 
 import glob
 import os
+import secrets
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -31,7 +38,10 @@ from _common import machine, main_guard, run_forked
 from _modules import ARRAY_SHAPE, ArrayBurst, ArrayCounter
 from local_link import Pb3aLink, _free_port
 
+from pb3a.transport.auth import ClusterKey, Payloads
+
 SECONDS = 6.0              # of PB3A bursts
+CRYPTO_N = 200             # arrays sealed and opened to time the two passes
 BURST = 500                # arrays per PB3A burst
 RAW_N, RAW_WARM = 3_000, 100
 ARRAY_BYTES = int(np.prod(ARRAY_SHAPE)) * 8
@@ -143,10 +153,28 @@ def _side(threads: dict[str, float], wall_us: float, n: int) -> dict[str, Any]:
             "cpu_us_per_array_by_thread": threads}
 
 
+def payload_passes() -> dict[str, float]:
+    """Median µs to seal one array into a fresh frame and to open it into a reused
+    buffer (the writer's and the follower's passes, without the rest of the link)."""
+    payloads = Payloads(ClusterKey(secrets.token_bytes(32)), owner=secrets.token_bytes(16))
+    array, out = np.random.default_rng(1).random(ARRAY_SHAPE), np.empty(ARRAY_BYTES, np.uint8)
+    seal_s, open_s = [], []
+    for _ in range(CRYPTO_N):
+        started = time.perf_counter()
+        counter, frame = payloads.seal(array, b"bound")
+        sealed = time.perf_counter()
+        payloads.open_into(payloads.owner, counter, b"bound", frame, out)
+        seal_s.append(sealed - started)
+        open_s.append(time.perf_counter() - sealed)
+    return {"seal": round(statistics.median(seal_s) * 1e6, 1),
+            "open": round(statistics.median(open_s) * 1e6, 1)}
+
+
 def body(result: dict[str, Any]) -> None:
     result.update(benchmark="link_cpu", machine=machine())
     result["pb3a_remote"] = pb3a_side()
     result["zmq_tcp"] = raw_side()
+    result["payload_us"] = payload_passes()
     result["cpu_ratio"] = round(result["pb3a_remote"]["cpu_us_per_array"]
                                 / result["zmq_tcp"]["cpu_us_per_array"], 2)
 
