@@ -65,6 +65,28 @@ def test_a_slow_operation_times_out_and_pings_still_get_through(rpc) -> None:
     assert client.call("add", a=1, b=1) == 2
 
 
+def test_closing_the_client_fails_a_waiting_call_at_once_and_any_later_one(rpc) -> None:
+    server, _ = rpc
+    client = ControlClient(KEY, server.address)
+    errors: list[Exception] = []
+
+    def wait_for_block() -> None:
+        try:
+            client.call("block", timeout=10.0)
+        except RuntimeFailure as exc:
+            errors.append(exc)
+    waiting = threading.Thread(target=wait_for_block)
+    waiting.start()
+    eventually(lambda: client._waiting, what="the call waiting for its answer")
+    started = time.monotonic()
+    client.close()
+    waiting.join(5.0)
+    assert time.monotonic() - started < 2.0 and not waiting.is_alive()
+    assert len(errors) == 1 and "closed while it waited" in str(errors[0])
+    with pytest.raises(RuntimeFailure, match=r"'add' to tcp://.*: this client is closed"):
+        client.call("add", a=1, b=2)
+
+
 def test_many_threads_share_one_client(rpc) -> None:
     _, client = rpc
     results: dict[int, list[int]] = {}

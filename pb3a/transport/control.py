@@ -188,6 +188,7 @@ class ControlClient:
         self._ids = itertools.count(1)
         self._waiting: dict[bytes, tuple[threading.Event, list[Any]]] = {}
         self.refused = ""                    # why the server refused our requests, if it did
+        self._closed = False
         self._loop.register(self._dealer, self._on_reply)
 
     def call(self, op: str, timeout: float = DEFAULT_TIMEOUT, **args: Any) -> Any:
@@ -204,6 +205,8 @@ class ControlClient:
         done, box = threading.Event(), [False, None]
         self._waiting[request_id] = (done, box)
         try:
+            if self._closed:      # (checked once registered: close fails what it finds)
+                raise RuntimeFailure(f"{op!r} to {self.address}: this client is closed")
             self._loop.submit(lambda: self._dealer.send_multipart(
                 self._sealer.seal(REQUEST, [request_id, blob])))
             if not done.wait(timeout):
@@ -273,6 +276,9 @@ class ControlClient:
             done.set()
 
     def close(self) -> None:
+        """Stop; a call still waiting for its answer fails now, and so does any later."""
+        self._closed = True
+        self.fail_pending("this client was closed while it waited")
         self._loop.close()
         self._dealer.close(0)
 
