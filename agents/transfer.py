@@ -9,11 +9,14 @@ learner's macro (the learner with its driver) to the hardware robot's node witho
 waiting, and, once the move has ended, re-points the driver at the hardware robot
 (``resource``) and sets the learner's state for the real robot (``learner_state``, e.g. a lower
 exploration rate). It acts once. ``transfer`` reports when it decided, when the move
-ended and when the driver was re-pointed, in unix time.
+ended and when the driver was re-pointed, in unix time, and the move's pause, where
+it went and the preparation before it (``pause_s``, ``phases``, ``prepare_s``: see
+``MigrationReport``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Any
 
@@ -45,6 +48,7 @@ class TransferAgent(Agent):
     decided_at = 0.0                # unix times; 0: not yet
     moved_at = 0.0
     repointed_at = 0.0
+    move: dict[str, Any] = {}       # the migration's pause_s, prepare_s and phases
     period = 0.02                   # how often a move in progress is looked at
 
     def setup(self) -> None:
@@ -68,14 +72,16 @@ class TransferAgent(Agent):
     def step(self) -> None:
         if self._moving is None or not self._moving.done():
             return
-        self._moving.result(0)           # (a failed move raises here, in the agent's log)
+        report = self._moving.result(0)  # (a failed move raises here, in the agent's log)
         self._moving = None
         self.moved_at = time.time()
+        self.move = {"pause_s": report.pause_s, "prepare_s": report.prepare_s,
+                     "phases": dataclasses.asdict(report.phases)}
         self.runtime.set_state(self.driver, {"resource": self.to_resource})
         if self.learner_state:
             self.runtime.set_state(self.learner, dict(self.learner_state))
         self.repointed_at = time.time()
         self.transfer.write({"decided_at": self.decided_at, "moved_at": self.moved_at,
-                             "repointed_at": self.repointed_at,
+                             "repointed_at": self.repointed_at, **self.move,
                              "episodes": len(self.outcomes),
                              "success_rate": success_rate(self.outcomes, self.window)})

@@ -182,6 +182,11 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
         "transfer_s": round(transfer["repointed_at"] - transfer["decided_at"], 3)
         if moved else None,
         "move_s": round(transfer["moved_at"] - transfer["decided_at"], 3) if moved else None,
+        # of which: the brain paused, and its workers readied on the robot's node before
+        "move_pause_s": _rounded(transfer["move"].get("pause_s"), 3),
+        "move_prepare_s": _rounded(transfer["move"].get("prepare_s"), 3),
+        "move_phases": {phase: round(seconds, 4) for phase, seconds
+                        in transfer["move"].get("phases", {}).items()},
         "learner_node_at_end": record["learner_node_at_end"],
         "target": {"success_rate": TARGET[0], "over_last_episodes": window,
                    "kept_to_the_end": True},
@@ -218,8 +223,8 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
     return figures
 
 
-def _rounded(seconds: float | None) -> float | None:
-    return round(seconds, 1) if seconds is not None else None
+def _rounded(seconds: float | None, digits: int = 1) -> float | None:
+    return round(seconds, digits) if seconds is not None else None
 
 
 def _rate(episodes: list[dict[str, Any]], window: int) -> float | None:

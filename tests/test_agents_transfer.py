@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 
 from agents.transfer import TransferAgent, success_rate
+from pb3a import MigrationReport
 from pb3a.testing import ModuleHarness
 
 
@@ -18,8 +19,9 @@ class Move:
     def done(self) -> bool:
         return self.ended
 
-    def result(self, timeout: float) -> None:
+    def result(self, timeout: float) -> MigrationReport:
         assert self.ended
+        return MigrationReport("brain", "ws", "robot", 0.02, 1000, 4, prepare_s=0.09)
 
 
 class Runtime:
@@ -65,6 +67,8 @@ def test_it_waits_for_the_success_rate_then_moves_once_and_re_points_after_the_m
     (report,) = agent.written["transfer"]
     assert report["decided_at"] <= report["moved_at"] <= report["repointed_at"]
     assert report["success_rate"] >= 0.8
+    assert (report["pause_s"], report["prepare_s"]) == (0.02, 0.09)
+    assert set(report["phases"]) >= {"capture_s", "restore_s", "start_s"}
     agent.step()
     assert len(runtime.calls) == 4                # once
 

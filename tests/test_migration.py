@@ -130,6 +130,8 @@ def test_a_macro_moves_as_one_under_a_steady_flow() -> None:
     assert moved[0].detail["pause_s"] == moved[1].detail["pause_s"] == there.pause_s
     assert moved[2].detail["pause_s"] == moved[3].detail["pause_s"] == back.pause_s
     assert there.destination == "b" and there.links == 3 and inside == "shm"
+    # booting b's workers came before the pause, and is reported apart from it
+    assert there.prepare_s > 0 and back.prepare_s > 0
     assert state["out_of_order"] == 0 and state["duplicates"] == 0
     assert state["last"] == state["received"]                        # 1, 2, 3, ... no gap
 

@@ -76,6 +76,7 @@ class MigrationReport:
     state_bytes: int          # captured state and unconsumed inputs, pickled
     links: int                # links re-wired
     phases: MigrationPhases = MigrationPhases()
+    prepare_s: float = 0.0    # before the pause: segments, destination workers, instances
 
 
 def migrate(launcher: Launcher, names: list[str], node: str) -> list[MigrationReport]:
@@ -93,7 +94,9 @@ def migrate(launcher: Launcher, names: list[str], node: str) -> list[MigrationRe
     arriving = launcher.nodes[node]
     with contextlib.ExitStack() as afterwards:      # (called once the writers go on)
         # 1. room for the snapshots and the destination, ready before anything pauses
+        preparing = time.perf_counter()
         segments = _prepare(launcher, homes, links, node, afterwards)
+        prepare_s = time.perf_counter() - preparing
         with launcher.paused(writers):
             # 2. and 3. pause the modules, unwire them; 4. the fence: retired at the source
             laps, snapshots = _Laps(), {}
@@ -139,7 +142,7 @@ def migrate(launcher: Launcher, names: list[str], node: str) -> list[MigrationRe
     for name in moving:
         reports[name] = MigrationReport(
             name, homes[name].node, node, sum(lap.values()), snapshots[name].nbytes,
-            sum(name in (link.src, link.dst) for link in links), phases)
+            sum(name in (link.src, link.dst) for link in links), phases, prepare_s)
     return list(reports.values())
 
 

@@ -101,7 +101,7 @@ class Operations:
         longest = max(reports, key=lambda r: r.pause_s)       # its phases stand for all
         return MigrationReport(name, ",".join(sorted({r.source for r in reports})), to,
                                longest.pause_s, sum(r.state_bytes for r in reports),
-                               rewired, longest.phases)
+                               rewired, longest.phases, longest.prepare_s)
 
     def begin_migration(self, name: str, to: str, *, timeout: float | None = None) -> int:
         """Start ``migrate`` on another thread; the number to ask ``migration`` about. An
