@@ -209,6 +209,29 @@ def test_a_failed_landing_puts_a_whole_macro_back_where_it_was(monkeypatch) -> N
     assert state["last"] == state["received"]
 
 
+def test_a_macro_that_cannot_be_readied_stays_and_leaves_no_worker_behind(monkeypatch) -> None:
+    with _src_pair_sink("move-macro-unready").launch() as run:
+        eventually(lambda: run.state("sink")["received"] > 20, what="values through the pair")
+        executor = run._launcher.nodes["b"]
+        real_call = type(executor).call
+
+        def flaky(self, worker, op, *args, **kwargs):   # the first cannot be made at b
+            if op == "add" and worker.startswith("b/") and worker.endswith("first"):
+                raise RuntimeFailure(f"worker {worker!r} died")
+            return real_call(self, worker, op, *args, **kwargs)
+        monkeypatch.setattr(type(executor), "call", flaky)
+        with pytest.raises(RuntimeFailure, match="died"):
+            run.migrate("pair", to="b")
+        # the worker booted for the second, which never came, was stopped too
+        assert not [key for key in executor.workers.handles if "pair" in key]
+        assert {run.where("pair/first"), run.where("pair/second")} == {"a"}
+        n = run.state("src")["count"]
+        state = eventually(lambda: (s := run.state("sink"))["received"] >= n and s,
+                           timeout=30, what="every value through the pair")
+    assert state["out_of_order"] == 0 and state["duplicates"] == 0
+    assert state["last"] == state["received"]
+
+
 def test_a_move_without_waiting_returns_a_pending_result_and_is_an_event() -> None:
     system = System("pending").node("a").node("b")
     system.add("src", Counter, node="a", period=0.002)

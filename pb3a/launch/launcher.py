@@ -406,11 +406,12 @@ class Launcher:
 
     def _fail_over(self, lost: str, gone: list[str]) -> dict[str, str]:
         """Instantiate each module of ``gone`` whose restart policy allows it on a
-        surviving node, from its last checkpoint for ``last-state``; module -> node."""
+        surviving node, from its last checkpoint for ``last-state``; module -> node.
+        All are placed first, so that each target boots their workers side by side."""
         movers = [name for name in gone if self.specs[name].restart != "never"
                   and name != env_name(lost)]        # an env module belongs to its node
         loads = self._loads(lost) if movers else {}
-        moved = {}
+        placed: dict[str, FlatModule] = {}
         for name in movers:
             spec = self.specs[name]
             target = self._place(spec, loads)
@@ -420,19 +421,28 @@ class Launcher:
                                      f"{'of its fallback ' if spec.fallback else ''}admits it")
                 log.error(self.failures[-1])
                 continue
-            state = spec.state
-            if spec.restart == "last-state" and name in self.checkpoints:
+            placed[name] = dataclasses.replace(spec, node=target)
+            loads[target] = loads[target][0], loads[target][1] + 1
+        coming: dict[str, list[FlatModule]] = {}
+        for spec in placed.values():
+            coming.setdefault(spec.node, []).append(spec)
+        for target, specs in coming.items():
+            with contextlib.suppress(RuntimeFailure, RuntimeTimeout):   # (add_module boots
+                self.nodes[target].spawn_workers(specs)                 # them, failing this)
+        moved = {}
+        for name, moved_spec in placed.items():
+            state = moved_spec.state
+            if moved_spec.restart == "last-state" and name in self.checkpoints:
                 state = cloudpickle.loads(self.checkpoints[name])
-            moved_spec = dataclasses.replace(spec, node=target)
             try:
-                self.nodes[target].add_module(moved_spec, state=state)
+                self.nodes[moved_spec.node].add_module(moved_spec, state=state)
             except (RuntimeFailure, RuntimeTimeout) as exc:
-                self.failures.append(f"module {name} not restarted on node {target}: {exc}")
+                self.failures.append(f"module {name} not restarted on node "
+                                     f"{moved_spec.node}: {exc}")
                 log.error(self.failures[-1])
                 continue
             self.specs[name] = moved_spec
-            moved[name] = target
-            loads[target] = loads[target][0], loads[target][1] + 1
+            moved[name] = moved_spec.node
         return moved
 
     def _loads(self, lost: str) -> dict[str, tuple[float, int]]:

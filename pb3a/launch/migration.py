@@ -152,7 +152,8 @@ def _prepare(launcher: Launcher, homes: dict[str, FlatModule], links: list[FlatL
     the module instantiated at ``node``, publishing already if its outputs will cross
     nodes from there; the segments. What was added is removed again if one fails."""
     arriving, segments, added = launcher.nodes[node], {}, []
-    arriving.spawn_workers([replace(home, node=node) for home in homes.values()])
+    coming = [replace(home, node=node) for home in homes.values()]
+    arriving.spawn_workers(coming)
     try:
         for name, home in homes.items():
             leaving = launcher.nodes[home.node]
@@ -166,6 +167,7 @@ def _prepare(launcher: Launcher, homes: dict[str, FlatModule], links: list[FlatL
     except BaseException:
         for name in added:
             _quietly(arriving.remove_module, name)
+        _quietly(arriving.release_workers, coming)   # (those booted for the rest)
         raise
     return segments
 

@@ -168,6 +168,16 @@ class Executor:
             if spec.group or not self.packing:
                 self.workers.ensure(self.place(spec), spec.node)
 
+    def release_workers(self, specs: list[FlatModule]) -> None:
+        """Stop the workers ``spawn_workers`` started for ``specs`` that host nothing."""
+        for spec in specs:
+            if spec.group or not self.packing:
+                key = self.place(spec)
+                handle = self.workers.handles.get(key)
+                if handle is not None and not handle.modules:
+                    self.workers.retire(key)
+                    self._budgets.pop(key, None)
+
     # -- modules -------------------------------------------------------------
     def add_module(self, spec: FlatModule, *, state: dict[str, Any] | None = None) -> None:
         """Instantiate a module in its worker (not started)."""

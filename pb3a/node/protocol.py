@@ -31,6 +31,10 @@ class Node(Protocol):
         """Start the processes of the modules about to be added that get a worker of
         their own, so that they boot side by side rather than one per ``add_module``."""
 
+    def release_workers(self, specs: list[FlatModule]) -> None:
+        """Stop the workers ``spawn_workers`` started for ``specs`` that host nothing:
+        what was spawned for modules that are not coming after all."""
+
     def add_module(self, spec: FlatModule, *, state: dict[str, Any] | None = None) -> None:
         """Instantiate a module in its worker (not started); ``state`` overrides the spec's."""
 

@@ -119,6 +119,9 @@ class RemoteNode:
     def spawn_workers(self, specs: list[FlatModule]) -> None:
         self._forward("spawn_workers", specs)
 
+    def release_workers(self, specs: list[FlatModule]) -> None:
+        self._forward("release_workers", specs)
+
     def add_module(self, spec: FlatModule, *, state: dict[str, Any] | None = None) -> None:
         self._forward("add_module", spec, state=state)
 
