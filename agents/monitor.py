@@ -84,7 +84,10 @@ class FeatureTracker:
     the short history they are computed over (``state`` carries it elsewhere).
 
     The expected response defaults to a Pioneer's: ``lag_s`` of motor lag and the
-    acceleration limits ARIA sets, as RAVE's emulator has them."""
+    acceleration limits ARIA sets, as RAVE's emulator has them. Speeds are measured
+    over the time between two samples by the robot's ``clock`` when given (a driver on
+    a loaded machine reads late now and then, and a sample 0.2 s after the last read as
+    0.1 s doubles the speed), else over the nominal ``sample_s``."""
 
     def __init__(self, sample_s: float = 0.1, lag_s: float = 0.25, accel: float = 0.3,
                  angular_accel: float = math.radians(100.0), motor_window: int = 5,
@@ -108,10 +111,11 @@ class FeatureTracker:
         # change of turn from the sample before
         self.travel = np.zeros((odometry_window, 4))
         self.last_turn = 0.0
+        self.last_clock = math.nan           # the robot's time of the last sample
         self.samples = 0
 
     _STATE = ("expected", "last_odometry", "last_pose", "heading", "quiet", "motions",
-              "travel", "last_turn", "samples")
+              "travel", "last_turn", "last_clock", "samples")
 
     def state(self) -> dict[str, Any]:
         """The running history (numpy arrays and numbers), for ``restore``."""
@@ -120,18 +124,24 @@ class FeatureTracker:
     def restore(self, state: dict[str, Any]) -> None:
         """Carry on from a ``state`` taken from a tracker with the same windows."""
         for name in self._STATE:
-            value = state[name]
+            value = state.get(name, getattr(self, name))   # (a state from before a name)
             setattr(self, name, np.array(value, dtype=np.float64)
                     if isinstance(value, np.ndarray) else value)
 
     def update(self, command: np.ndarray, odometry: np.ndarray, sonar: np.ndarray,
-               pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+               pose: np.ndarray, clock: float | None = None,
+               ) -> tuple[np.ndarray, np.ndarray]:
         """The features now and, per group, whether they carry information (a feature
         of a group that does not is NaN). ``command`` is what drove the robot since the
-        last sample; the other three are read now."""
+        last sample; the other three are read now, at the robot's time ``clock``."""
         features = np.full(len(FEATURES), np.nan)
         informative = np.zeros(len(GROUPS), dtype=bool)
-        expected = self._respond(np.asarray(command, dtype=np.float64))
+        dt = self.sample_s
+        if clock is not None:
+            if clock - self.last_clock > 0.0:        # (NaN before the first sample)
+                dt = clock - self.last_clock
+            self.last_clock = clock
+        expected = self._respond(np.asarray(command, dtype=np.float64), dt)
         if self.samples == 0:
             self.last_odometry[:], self.last_pose[:] = odometry, pose
             self.heading = float(pose[2])
@@ -144,11 +154,11 @@ class FeatureTracker:
         if self.samples == 1:    # the first motion seen is what the commands gave so far:
             # a tracker started on a robot already moving (another robot handed over)
             # must not read its speed as a response to nothing
-            self.expected[:] = odometry_distance / self.sample_s, odometry_turn / self.sample_s
+            self.expected[:] = odometry_distance / dt, odometry_turn / dt
             expected = self.expected.copy()
         self.motions[self.samples % len(self.motions)] = (
-            odometry_distance / self.sample_s - expected[0],
-            odometry_turn / self.sample_s - expected[1], *np.abs(expected))
+            odometry_distance / dt - expected[0],
+            odometry_turn / dt - expected[1], *np.abs(expected))
         self.travel[self.samples % len(self.travel)] = (
             odometry_turn - pose_turn, pose_turn, abs(pose_distance), pose_turn - self.last_turn)
         self.last_turn = pose_turn
@@ -173,11 +183,11 @@ class FeatureTracker:
         informative[SONAR] = True
         return features, informative
 
-    def _respond(self, command: np.ndarray) -> np.ndarray:
-        """Advance the expected speed under ``command`` by one sample (in ten steps: the
-        acceleration limit bites within a sample); its mean over the sample."""
+    def _respond(self, command: np.ndarray, elapsed: float) -> np.ndarray:
+        """Advance the expected speed under ``command`` by ``elapsed`` seconds (in ten
+        steps: the acceleration limit bites within a sample); its mean over them."""
         steps = 10
-        dt = self.sample_s / steps
+        dt = elapsed / steps
         gain = 1.0 - math.exp(-dt / self.lag_s)
         limit = self.limits * dt
         total = np.zeros(2)
@@ -342,10 +352,10 @@ class FaultMonitor:
             setattr(self, name, np.array(state[name]) if name != "health" else state[name])
 
     def update(self, command: np.ndarray, odometry: np.ndarray, sonar: np.ndarray,
-               pose: np.ndarray) -> list[dict[str, Any]]:
+               pose: np.ndarray, clock: float | None = None) -> list[dict[str, Any]]:
         """Take one sample (as ``FeatureTracker.update``); the failures that start now,
         each ``{"fault", "probability", "detail"}``."""
-        return self.observe(*self.tracker.update(command, odometry, sonar, pose))
+        return self.observe(*self.tracker.update(command, odometry, sonar, pose, clock))
 
     def observe(self, features: np.ndarray, informative: np.ndarray) -> list[dict[str, Any]]:
         """``update`` from a sample's features, taken by the tracker elsewhere."""
@@ -404,7 +414,9 @@ class HardwareMonitor(Module):
     catch it). ``watched`` names the groups watched. Or it is given a trained
     model's state (``NormalModel.state()``: ``means``, ``variances``, ``thresholds``,
     ``watched``, ``trained``). A sample is taken when both a new odometry and a new
-    pose have arrived (the driver sends them together, every ``sample_s``).
+    pose have arrived (the driver sends them together, every ``sample_s``), and a new
+    ``clock`` too once one has come: link the driver's, so that motion is measured
+    over the robot's time between samples, not the nominal period.
 
     A pose that jumps between two samples by more than ``jump_m`` or ``jump_rad`` (no
     robot moves or turns that far in a sample, and no two robots' centres are that
@@ -418,6 +430,8 @@ class HardwareMonitor(Module):
     odometry = Input(np.ndarray, shape=(3,), dtype="float64")
     sonar = Input(np.ndarray, shape=(SONARS,), dtype="float64")
     pose = Input(np.ndarray, shape=(3,), dtype="float64")         # localization (gps)
+    clock = Input(float)         # the robot's time of the readings (optional, but see
+                                 # FeatureTracker: a loaded machine's late samples)
     failure = Output(dict)
     health = Output(float)
 
@@ -486,18 +500,22 @@ class HardwareMonitor(Module):
             self._monitor.model = model
 
     def on_input(self, port: InputPort) -> None:
-        # one sample per odometry-and-pose pair, whichever of the two came last
-        if not (self.odometry.pending and self.pose.pending and self.sonar.has_value):
+        # one sample per odometry-and-pose pair (and clock, once one has come),
+        # whichever came last
+        timed = self.clock.has_value
+        if not (self.odometry.pending and self.pose.pending and self.sonar.has_value
+                and (self.clock.pending or not timed)):
             return
         sample = (self.command.read(default=np.zeros(2)), self.odometry.read(),
                   self.sonar.read(), self.pose.read())
+        clock = self.clock.read() if timed else None
         if self._another_robot(sample[3]):
             self._tracker = FeatureTracker(self.sample_s)      # afresh on it
             if self._monitor is not None:
                 self._monitor = None
                 self._watch(self._model())
             self.robot_changes += 1
-        features, informative = self._tracker.update(*sample)
+        features, informative = self._tracker.update(*sample, clock=clock)
         failures = [] if self._monitor is None else self._monitor.observe(features, informative)
         # what the groups watched already find abnormal is not learnt as normal running
         if not self.trained and (self._monitor is None or not (
