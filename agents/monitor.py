@@ -72,7 +72,13 @@ _GROUP_OF_FEATURE = np.array([MOTORS, MOTORS, ODOMETRY, *[SONAR] * SONARS])
 # make every later wobble a fault. Odometry's drift gets more: a model learnt on one
 # robot watches its standby too, whose odometer has calibration errors of its own (with
 # 0.002 rad/m, one quick mapping run in four saw a standby drift 0.019 rad/m, sound).
-_LEAST_SPREAD = np.array([0.01, 0.02, 0.005, *[0.1] * SONARS])
+# So do the silent sweeps: their tail grows with the running seen. A minute of the lab's
+# hardware robot wandering put one transducer's limit at 2.5-2.9 rad with 0.1, where
+# four minutes reached 2.8 rad, sound (a standby robot's transducer, after a hand-over,
+# was read as dead at 2.83 rad); 0.5 puts it at 3.4-3.8 rad, about the half circle a
+# live transducer seldom turns through without an echo, and a dead one still gets there
+# in 7-15 s of wandering (against 5-13 s).
+_LEAST_SPREAD = np.array([0.01, 0.02, 0.005, *[0.5] * SONARS])
 # Odometry's heading error per sample is fitted as scale * turn + drift * distance +
 # latency * (change of turn): a scale error on turns, a drift per metre, and the pose
 # lagging odometry. The ridge keeps the fit solvable when a regressor is idle (rad^2).
