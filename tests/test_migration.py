@@ -24,30 +24,20 @@ def _clean(state: dict, at_least: int) -> bool:
             and state["duplicates"] == 0)
 
 
-def _src_relay_sink(name: str) -> System:
-    """src -> relay -> sink, all on node a of nodes a and b."""
+def _through(name: str, middle: str, cls: type) -> System:
+    """src -> ``middle`` (a ``cls``: a relay, or a macro of two) -> sink, all on node a
+    of nodes a and b."""
     system = _nodes(System(name), "a", "b")
     system.add("src", Counter, node="a", period=0.001)
-    system.add("relay", Relay, node="a")
+    system.add(middle, cls, node="a")
     system.add("sink", Collector, node="a")
-    system.link("src.out", "relay.x")
-    system.link("relay.out", "sink.x")
-    return system
-
-
-def _src_pair_sink(name: str) -> System:
-    """src -> pair (a macro: relay -> relay) -> sink, all on node a of nodes a and b."""
-    system = _nodes(System(name), "a", "b")
-    system.add("src", Counter, node="a", period=0.001)
-    system.add("pair", RelayPair, node="a")
-    system.add("sink", Collector, node="a")
-    system.link("src.out", "pair.x")
-    system.link("pair.out", "sink.x")
+    system.link("src.out", f"{middle}.x")
+    system.link(f"{middle}.out", "sink.x")
     return system
 
 
 def test_a_module_moves_with_its_state_and_its_links_follow() -> None:
-    with _src_relay_sink("move-one").launch() as run:
+    with _through("move-one", "relay", Relay).launch() as run:
         eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")
         before = run.state("relay")["relayed"]
         report = run.migrate("relay", to="b")
@@ -115,7 +105,7 @@ def test_megabytes_of_numpy_state_move_intact(machines, monkeypatch) -> None:
 
 
 def test_a_macro_moves_as_one_under_a_steady_flow() -> None:
-    with _src_pair_sink("move-macro").launch() as run:
+    with _through("move-macro", "pair", RelayPair).launch() as run:
         eventually(lambda: run.state("sink")["received"] > 20, what="values through the pair")
         there = run.migrate("pair", to="b")
         inside = run.stats().links["pair/first.out->pair/second.x"].transport
@@ -161,7 +151,7 @@ def test_migration_to_an_unknown_node_or_of_an_unknown_module_is_refused() -> No
 
 
 def test_a_failed_landing_puts_the_module_back_where_it_was(monkeypatch) -> None:
-    with _src_relay_sink("move-fail").launch() as run:
+    with _through("move-fail", "relay", Relay).launch() as run:
         eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")
         executor = run._launcher.nodes["b"]
         real_call = type(executor).call
@@ -185,7 +175,7 @@ def test_a_failed_landing_puts_the_module_back_where_it_was(monkeypatch) -> None
 
 
 def test_a_failed_landing_puts_a_whole_macro_back_where_it_was(monkeypatch) -> None:
-    with _src_pair_sink("move-macro-fail").launch() as run:
+    with _through("move-macro-fail", "pair", RelayPair).launch() as run:
         eventually(lambda: run.state("sink")["received"] > 20, what="values through the pair")
         executor = run._launcher.nodes["b"]
         real_call = type(executor).call
@@ -210,7 +200,7 @@ def test_a_failed_landing_puts_a_whole_macro_back_where_it_was(monkeypatch) -> N
 
 
 def test_a_macro_that_cannot_be_readied_stays_and_leaves_no_worker_behind(monkeypatch) -> None:
-    with _src_pair_sink("move-macro-unready").launch() as run:
+    with _through("move-macro-unready", "pair", RelayPair).launch() as run:
         eventually(lambda: run.state("sink")["received"] > 20, what="values through the pair")
         executor = run._launcher.nodes["b"]
         real_call = type(executor).call
