@@ -34,7 +34,7 @@ class WaitStats:
     """Writes that waited for room: a full ring or input (on a lossless link, the writer
     waits until the reader takes a value; on a dropping one, briefly)."""
 
-    waits: int = 0              # writes that waited
+    waits: int = 0              # writes that waited (or wait now)
     wait_s: float = 0.0         # seconds spent waiting, in all
 
 
@@ -80,7 +80,7 @@ class LinkStats:
     latency_p90: float = math.nan
     latency_p99: float = math.nan
     latency_counts: dict[int, int] = field(default_factory=dict)   # as in InputStats
-    waits: int = 0              # writes that waited for room on this link
+    waits: int = 0              # writes that waited (or wait now) for room on this link
     wait_s: float = 0.0         # seconds they waited
 
 

@@ -103,6 +103,19 @@ def test_a_write_to_a_reader_that_never_reads_times_out_naming_the_link(where: s
     assert state["last"] == state["received"]
 
 
+@pytest.mark.parametrize("where", ["shm", "memory", "zmq"])
+def test_a_writer_stuck_on_a_lossless_link_shows_in_stats_while_it_waits(where: str) -> None:
+    system = _system(f"lossless-waiting-{where}", 0, sip=0, timeout=60.0, remote=where == "zmq",
+                     workers=1 if where == "memory" else 0)
+    with system.launch() as run:
+        link = eventually(lambda: (found := run.stats().links[KEY]).waits and found,
+                          timeout=30, what="the writer's wait, in stats while it waits")
+        assert run.stats().modules["src"].errors == 0      # no write has timed out
+        run.set_state("dst", sip=50)                        # the wait ends: its seconds count
+        eventually(lambda: run.stats().links[KEY].wait_s > 0, what="the wait's seconds")
+    assert link.transport == where
+
+
 def test_a_lossless_link_stays_lossless_across_migrations_and_a_swap() -> None:
     n = 20_000
     system = System("lossless-moves")

@@ -251,7 +251,8 @@ def test_a_write_that_times_out_is_sent_on_no_link_and_its_wait_is_counted() -> 
     counter, seen = WaitCounter(), []
 
     def stuck(value: str, timeout: float) -> None:
-        counter.add(timeout)
+        counter.begin()
+        counter.wait_s += timeout
         raise RuntimeTimeout("no room")
     sensor.label.connect("drop", seen.append)
     sensor.label.connect("stuck", stuck, lossless=True, counter=counter)

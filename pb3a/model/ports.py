@@ -313,6 +313,8 @@ class InputPort:
                 with self._lock:
                     room = self.policy.size - len(self._values)
                     if room <= 0:
+                        if not waited and counter is not None:
+                            counter.begin()
                         start = time.monotonic()
                         deadline = start + timeout - waited
                         try:
@@ -330,7 +332,7 @@ class InputPort:
                 done += len(chunk)
         finally:
             if waited and counter is not None:
-                counter.add(waited)
+                counter.wait_s += waited
 
     def _made_room(self) -> None:
         """A read made room in a full lossless queue: wake its feeders (under the lock)."""
@@ -540,7 +542,8 @@ class OutputPort:
 
 
 class WaitCounter:
-    """How many writes on a link waited for room, and how long in all."""
+    """How many writes on a link waited for room, counted as each wait begins (so that
+    a writer stuck now shows), and how long in all those that ended waited."""
 
     __slots__ = ("wait_s", "waits")
 
@@ -548,6 +551,5 @@ class WaitCounter:
         self.waits = 0
         self.wait_s = 0.0
 
-    def add(self, seconds: float) -> None:
+    def begin(self) -> None:
         self.waits += 1
-        self.wait_s += seconds

@@ -228,8 +228,8 @@ class _Stream:
     credit: float = 0                   # ... while they take fewer bytes than this
     acks: dict[bytes, tuple[int, float]] = field(default_factory=dict)  # peer -> (seq, when)
     holds: dict[bytes, int] = field(default_factory=dict)   # lossless followers: peer -> seq
-    waits: int = 0                      # values whose publish waited for followers ...
-    wait_s: float = 0.0                 # ... and the seconds they waited
+    waits: int = 0                      # values whose publish waited (or waits) for followers
+    wait_s: float = 0.0                 # ... and the seconds those that ended waited
 
     def acknowledged(self, now: float) -> int | None:
         """Where the slowest live follower is (None: nobody follows)."""
@@ -500,12 +500,13 @@ class Replicator:
         """Flow control for the next value (lock held, released while waiting): False if
         a lossless follower left no room by ``deadline``. Sets how far values may go
         from here on without asking again."""
-        started = None
+        started = None          # a wait is counted as it begins: a writer stuck now shows
         while stream.holds and not stream.room_for(size):
             now = time.monotonic()
-            started = started or now
-            if now >= deadline:
+            if started is None:
+                started = now
                 stream.waits += 1
+            if now >= deadline:
                 stream.wait_s += now - started
                 return False
             self._acked.wait(deadline - now)
@@ -514,12 +515,13 @@ class Replicator:
                 and (stream.next_seq - acked >= WINDOW or not stream.fits(acked, size)):
             if window_end is None:
                 window_end = time.monotonic() + WINDOW_WAIT
-                started = started or time.monotonic()
+                if started is None:
+                    started = time.monotonic()
+                    stream.waits += 1
             if not self._acked.wait(window_end - time.monotonic()) \
                     and time.monotonic() >= window_end:
                 break
         if started is not None:
-            stream.waits += 1
             stream.wait_s += time.monotonic() - started
         if stream.holds or started is not None:
             stream.clear_until = stream.next_seq + 1    # ask again for the next value

@@ -139,7 +139,7 @@ class ShmRing:
         self.lossless = bool(int.from_bytes(segment.buf[8 * _W_FLAGS:8 * _W_FLAGS + 8],
                                             "little") & _LOSSLESS)
         self.label = self.name        # the link, for error messages (its writer sets it)
-        self.waits = 0                # writer: writes that waited for room ...
+        self.waits = 0                # writer: writes that waited (or wait) for room ...
         self.wait_s = 0.0             # ... and the seconds they waited
         self._cancelled = False       # writer: the link is being cut; do not wait
         # reader-side bookkeeping (only the reading process uses these)
@@ -371,6 +371,7 @@ class ShmRing:
             return True
         start = time.monotonic()
         deadline = start + timeout
+        self.waits += 1                   # as it begins: a writer stuck now shows
         # A lossless writer waits often (whenever its reader lags a little): it polls
         # for a moment first, since a reader that keeps up frees room within
         # microseconds and a sleep lasts tens of them, a bubble in the stream.
@@ -387,7 +388,6 @@ class ShmRing:
                     return True
             return False
         finally:
-            self.waits += 1
             self.wait_s += time.monotonic() - start
 
     def cancel(self) -> None:
