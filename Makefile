@@ -25,7 +25,10 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/ruff check pb3a rave agents tests examples bench scenarios setup.py
-	$(BIN)/python -m pytest -q
+	@# Most tests run on two workers, a test file to each (pytest-xdist); those marked
+	@# serial load the CPUs or time whole applications, and run alone after them.
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not serial"
+	$(BIN)/python -m pytest -q -m serial
 
 bench: $(STAMP)
 	mkdir -p bench/results

@@ -11,7 +11,8 @@ from conftest import alive
 
 from pb3a.cpu_load import CPULoad, parse_levels
 
-pytestmark = pytest.mark.timeout(60)
+# alone: it loads the CPUs or measures against them (see the Makefile's test target)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.serial]
 
 TOLERANCE = 10.0       # percent: the machine is shared, and its other load comes and goes
 

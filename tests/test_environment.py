@@ -13,6 +13,9 @@ from sample_modules import Spinner
 
 from pb3a import ConfigError, Environment, Input, InputPort, Module, System
 
+# alone: it loads the CPUs or measures against them (see the Makefile's test target)
+pytestmark = pytest.mark.serial
+
 
 class Watcher(Module):
     """Keeps the newest environment figures it was sent."""

@@ -11,7 +11,8 @@ from sample_modules import Idle
 
 from pb3a import System
 
-pytestmark = pytest.mark.timeout(60)
+# alone: it loads the CPUs or measures against them (see the Makefile's test target)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.serial]
 
 
 def _cpu_seconds(pids: list[int]) -> float:

@@ -204,8 +204,9 @@ def test_the_live_view_shows_every_module_on_its_node_with_live_figures(
     system = lab.api("GET", "/api/system")
     assert page.locator("#system-name").text_content() == "lab"
     assert page.locator("#mode").text_content() == "running"
-    for name, module in system["modules"].items():
-        assert module_on_node(page, name, module["node"]), f"{name} not drawn on {module['node']}"
+    for name, module in system["modules"].items():      # (drawn as the first state arrives)
+        wait_until_inside(page, f"[data-module='{name}'] .module-box",
+                          f"[data-node='{module['node']}'] > rect")
     # the links' rates and the nodes' figures arrive over the websocket
     page.wait_for_function(
         "[...document.querySelectorAll('.link-text')].some(t => /\\d\\/s/.test(t.textContent))",

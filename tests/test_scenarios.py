@@ -12,6 +12,9 @@ import pytest
 from pb3a.cli.main import main
 from scenarios import mapping, self_migration
 
+# alone: timed runs of whole applications (see the Makefile's test target)
+pytestmark = pytest.mark.serial
+
 
 @pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="one CPU per node needs two CPUs")
 def test_the_agent_moves_compute_off_the_loaded_node_while_it_is_loaded() -> None:

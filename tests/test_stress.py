@@ -13,7 +13,8 @@ from conftest import Daemon
 
 from pb3a.cli.main import main
 
-pytestmark = pytest.mark.timeout(90)
+# alone: it loads the CPUs or measures against them (see the Makefile's test target)
+pytestmark = [pytest.mark.timeout(90), pytest.mark.serial]
 
 REPO = Path(__file__).resolve().parent.parent
 LEVEL = 70.0
