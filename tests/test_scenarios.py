@@ -12,10 +12,13 @@ import pytest
 from pb3a.cli.main import main
 from scenarios import mapping, self_migration
 
-# alone: timed runs of whole applications (see the Makefile's test target)
-pytestmark = pytest.mark.serial
+# The robot applications and self-migration run alone (the Makefile's test target):
+# their figures are timed against the wall clock on all the machine's CPUs. Traffic
+# runs in lock-step, its figures the same however busy the machine is.
+serial = pytest.mark.serial
 
 
+@serial
 @pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="one CPU per node needs two CPUs")
 def test_the_agent_moves_compute_off_the_loaded_node_while_it_is_loaded() -> None:
     # What it decides and when; the throughput it buys is a figure for the scenario's
@@ -56,11 +59,13 @@ def _check_mapping(figures: dict) -> None:
     assert maps["end"]["coverage"] > maps["before_fault"]["coverage"], maps   # mapped on
 
 
+@serial
 @pytest.mark.timeout(300)
 def test_mapping_hands_the_control_system_over_to_the_standby_robot(tmp_path) -> None:
     _check_mapping(mapping.report(mapping.run(tmp_path, "lab", seed=1, quick=True)))
 
 
+@serial
 @pytest.mark.timeout(300)
 def test_mapping_from_the_command_line_on_another_world_and_seed(tmp_path, capsys) -> None:
     assert main(["scenario", "mapping", "--quick", "--world", "room", "--seed", "3",
@@ -76,6 +81,7 @@ def test_mapping_names_the_worlds_when_given_one_it_does_not_know(tmp_path, caps
     assert "no world 'moon': the bundled worlds are arena, lab, room" in capsys.readouterr().err
 
 
+@serial
 @pytest.mark.timeout(300)
 def test_sim_to_real_learns_in_lock_step_then_moves_the_learner_to_the_robot(tmp_path) -> None:
     assert main(["scenario", "sim-to-real", "--quick", "--seed", "5",
