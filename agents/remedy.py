@@ -139,8 +139,8 @@ class RemedyAgent(Agent):
     """Failures in, one remedy per failure onset, its outcome judged and learned.
 
     A remedy runs through phases kept in ``action`` (state, so a moved or restored
-    agent carries on): ``moving`` until the macro's move ends (then the driver is
-    re-pointed), ``verifying`` for ``verify_s`` seconds, then judged. It worked if the
+    agent carries on): ``moving`` until the macro's move ends (the driver re-pointed
+    as it arrives), ``verifying`` for ``verify_s`` seconds, then judged. It worked if the
     ``watch``ed module (the driver, or the swapped module) wrote outputs meanwhile and
     the fault did not come back later than ``settle_s`` after the action ended (earlier
     reports are echoes of the old robot). A failed remedy is followed by a stop. While
@@ -253,7 +253,12 @@ class RemedyAgent(Agent):
         try:
             if remedy["action"] == "move_macro":
                 self.action["phase"] = "moving"
-                self._pending = self.runtime.migrate(remedy["macro"], remedy["to"], wait=False)
+                # The driver is re-pointed at the standby robot as it arrives on the
+                # standby's node: the standby robot is never driven from the failing one,
+                # and a move that fails leaves the driver as it was.
+                self._pending = self.runtime.migrate(
+                    remedy["macro"], remedy["to"], wait=False,
+                    state={remedy["driver"]: {"resource": remedy["resource"]}})
             elif remedy["action"] == "swap":
                 self.runtime.swap(remedy["module"], remedy["cls"])
                 self._verify(remedy["module"], now)
@@ -297,10 +302,6 @@ class RemedyAgent(Agent):
                     self._conclude(False, f"the move had not ended after "
                                    f"{self.move_timeout_s:g} s", now)
                 return
-            # Moved first, re-pointed second: until the control system runs on the
-            # standby's node, the standby robot is not driven from the failing one, and
-            # a move that fails leaves the standby untouched.
-            self.runtime.set_state(remedy["driver"], {"resource": remedy["resource"]})
         except PB3AError as exc:
             self._conclude(False, f"move_macro failed: {exc}", now)
             return

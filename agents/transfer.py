@@ -4,14 +4,16 @@ A policy learned on a simulated robot is a head start, not the end: the real rob
 dynamics and noise differ, so learning goes on there. This agent watches the
 learner's episodes; once the success rate over the last ``window`` episodes reaches
 ``threshold`` (after at least ``min_episodes``), it stops stepping the simulation
-(the driver's ``lockstep_s`` 0: a real robot is not stepped either), moves the
+(the driver's ``lockstep_s`` 0: a real robot is not stepped either) and moves the
 learner's macro (the learner with its driver) to the hardware robot's node without
-waiting, and, once the move has ended, re-points the driver at the hardware robot
-(``resource``) and sets the learner's state for the real robot (``learner_state``, e.g. a lower
-exploration rate). It acts once. ``transfer`` reports when it decided, when the move
-ended and when the driver was re-pointed, in unix time, and the move's pause, where
-it went and the preparation before it (``pause_s``, ``phases``, ``prepare_s``: see
-``MigrationReport``).
+waiting. The driver is re-pointed at the hardware robot (``resource``) and the
+learner given its state for the real robot (``learner_state``, e.g. a lower
+exploration rate) on arrival (``migrate(..., state=...)``): they start on the robot's
+node already set for it, and a move that fails leaves them as they were. It acts
+once. ``transfer`` reports when it decided and when the move ended (``moved_at``, and
+``repointed_at``, the same: the driver was re-pointed as it arrived), in unix time,
+and the move's pause, where it went and the preparation before it (``pause_s``,
+``phases``, ``prepare_s``: see ``MigrationReport``).
 """
 
 from __future__ import annotations
@@ -67,20 +69,20 @@ class TransferAgent(Agent):
             # the simulation stops first (its lock-step loop would compete with the move
             # for the CPU), then the learner and its driver move
             self.runtime.set_state(self.driver, {"lockstep_s": 0.0})
-            self._moving = self.runtime.migrate(self.macro, self.to_node, wait=False)
+            arriving = {self.driver: {"resource": self.to_resource}}
+            if self.learner_state:
+                arriving[self.learner] = dict(self.learner_state)
+            self._moving = self.runtime.migrate(self.macro, self.to_node, wait=False,
+                                                state=arriving)
 
     def step(self) -> None:
         if self._moving is None or not self._moving.done():
             return
         report = self._moving.result(0)  # (a failed move raises here, in the agent's log)
         self._moving = None
-        self.moved_at = time.time()
+        self.moved_at = self.repointed_at = time.time()
         self.move = {"pause_s": report.pause_s, "prepare_s": report.prepare_s,
                      "phases": dataclasses.asdict(report.phases)}
-        self.runtime.set_state(self.driver, {"resource": self.to_resource})
-        if self.learner_state:
-            self.runtime.set_state(self.learner, dict(self.learner_state))
-        self.repointed_at = time.time()
         self.transfer.write({"decided_at": self.decided_at, "moved_at": self.moved_at,
                              "repointed_at": self.repointed_at, **self.move,
                              "episodes": len(self.outcomes),

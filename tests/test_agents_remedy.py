@@ -298,15 +298,18 @@ class FakeRuntime:
             modules={name: SimpleNamespace(cls=m.cls, node=m.node, outputs={"out": m.written})
                      for name, m in self.modules.items()})
 
-    def migrate(self, name: str, to: str, *, wait: bool = True) -> FakePending:
-        self.calls.append(("migrate", name, to, wait))
+    def migrate(self, name: str, to: str, *, wait: bool = True,
+                state: dict[str, dict[str, Any]] | None = None) -> FakePending:
+        self.calls.append(("migrate", name, to, wait, state))
         self.moves.append(FakePending())
+        self.arriving = state or {}
         return self.moves[-1]
 
     def end_move(self, to: str = "r2") -> None:
         for name, module in self.modules.items():
             if name.startswith("control/"):
                 module.node = to
+        self.driver.update(self.arriving.get("control/driver", {}))     # set on arrival
         self.moves[-1].outcome = ("done", "report")
 
     def where(self, name: str) -> str:
@@ -352,28 +355,32 @@ def failure(fault: str, at: float, **detail: Any) -> dict[str, Any]:
     return {"fault": fault, "probability": 0.95, "at": at, "detail": detail}
 
 
+# the macro moves to the standby's node, its driver re-pointed at the standby as it arrives
+MOVE = ("migrate", "control", "r2", False, {"control/driver": {"resource": "tcp://r2:7400"}})
+
+
 def events(harness: ModuleHarness) -> list[tuple[str, str, str]]:
     return [(out["event"], out["action"], out["case"]) for out in harness.written["remedy"]]
 
 
-def test_motors_failure_moves_the_macro_then_re_points_the_driver(tmp_path, clock) -> None:
+def test_motors_failure_moves_the_macro_with_the_driver_re_pointed_on_arrival(tmp_path,
+                                                                             clock) -> None:
     runtime = FakeRuntime()
     harness = agent(tmp_path, runtime)
     harness.feed("failure", failure("motors", clock.now))
     harness.step()
-    assert runtime.calls == [("migrate", "control", "r2", False)]
+    assert runtime.calls == [MOVE]
 
     for late in (0.1, 0.5):                      # the monitor goes on reporting
         clock.now += 0.2
         harness.feed("failure", failure("motors", clock.now - late))
         harness.step()
-    assert runtime.calls == [("migrate", "control", "r2", False)]
+    assert runtime.calls == [MOVE]
 
     runtime.end_move()
     clock.now += 0.2
     harness.step()
-    assert runtime.calls[1:] == [("set_state", "control/driver",
-                                  {"resource": "tcp://r2:7400"})]
+    assert runtime.calls == [MOVE] and runtime.driver["resource"] == "tcp://r2:7400"
     assert harness.state["standby_node"] == ""
     moved_at = clock.now
 
@@ -384,7 +391,7 @@ def test_motors_failure_moves_the_macro_then_re_points_the_driver(tmp_path, cloc
     clock.now = moved_at + harness.state["verify_s"]
     harness.step()
 
-    assert len(runtime.calls) == 2
+    assert len(runtime.calls) == 1
     assert events(harness) == [("chosen", "move_macro", "motors-standby"),
                                ("worked", "move_macro", "motors-standby")]
     (entry,) = harness.state["history"]
@@ -396,10 +403,10 @@ def test_motors_failure_moves_the_macro_then_re_points_the_driver(tmp_path, cloc
     clock.now += 1.0                       # reported before it was judged: already handled
     harness.feed("failure", failure("motors", clock.now - 2.0))
     harness.step()
-    assert len(runtime.calls) == 2
+    assert len(runtime.calls) == 1
     harness.feed("failure", failure("motors", clock.now))      # r2's motors now: no standby
     harness.step()
-    assert runtime.calls[2] == ("set_state", "control/driver", {"enabled": False})
+    assert runtime.calls[1] == ("set_state", "control/driver", {"enabled": False})
     assert events(harness)[-2:] == [("chosen", "stop", "motors-alone"),
                                     ("worked", "stop", "motors-alone")]
 
@@ -423,7 +430,7 @@ def test_a_fault_that_comes_back_after_the_move_fails_it_and_stops(tmp_path, clo
 
     harness.feed("failure", failure("sonar", clock.now + 1, sonars=[3]))    # stopped: no more
     harness.step()
-    assert len(runtime.calls) == 3
+    assert len(runtime.calls) == 2
 
 
 def test_a_move_that_fails_leaves_the_standby_alone_and_stops(tmp_path, clock) -> None:
@@ -435,6 +442,7 @@ def test_a_move_that_fails_leaves_the_standby_alone_and_stops(tmp_path, clock) -
     harness.step()
     assert runtime.calls[1:] == [("set_state", "control/driver", {"enabled": False})]
     assert "node r2 refused the modules" in harness.state["history"][0]["outcome"]
+    assert "resource" not in runtime.driver          # never re-pointed: it did not arrive
 
 
 def test_a_restored_agent_finishes_its_move_by_looking_where_the_driver_runs(
@@ -451,8 +459,7 @@ def test_a_restored_agent_finishes_its_move_by_looking_where_the_driver_runs(
     assert len(runtime.calls) == 1                        # the move has not ended yet
     runtime.end_move()
     restored.step()
-    assert runtime.calls[1:] == [("set_state", "control/driver",
-                                  {"resource": "tcp://r2:7400"})]
+    assert runtime.calls == [MOVE] and restored.state["action"]["phase"] == "verifying"
 
 
 def test_a_move_not_seen_to_end_in_time_has_failed(tmp_path, clock) -> None:
@@ -480,7 +487,7 @@ def test_dead_sonars_swap_their_consumer_for_one_that_does_without(tmp_path, clo
 
     harness.feed("failure", failure("sonar", clock.now + 1, sonars=[3, 4, 5]))
     harness.step()                    # already swapped: on to the robot whose sonars work
-    assert runtime.calls[-1] == ("migrate", "control", "r2", False)
+    assert runtime.calls[-1] == MOVE
     chosen = harness.written["remedy"][-1]
     assert chosen["case"] == "sonar-many-standby" and "already is a" in chosen["reason"]
 
@@ -542,4 +549,4 @@ def test_a_sensor_nothing_reads_fails_and_the_mission_carries_on(tmp_path, clock
     assert not harness.state["stopped"]
     harness.feed("failure", failure("motors", clock.now + 1))
     harness.step()                                # and a real fault is still acted on
-    assert runtime.calls[-1] == ("migrate", "control", "r2", False)
+    assert runtime.calls[-1] == MOVE

@@ -1,5 +1,6 @@
 """``TransferAgent`` on its own: it decides on the learner's success rate, moves the
-learner's macro without waiting, and re-points the driver once the move has ended."""
+learner's macro without waiting, the driver re-pointed and the learner set for the
+robot on arrival, and reports once the move has ended."""
 
 from __future__ import annotations
 
@@ -29,8 +30,9 @@ class Runtime:
         self.calls: list[tuple] = []
         self.move = Move()
 
-    def migrate(self, name: str, to: str, *, wait: bool = True) -> Move:
-        self.calls.append(("migrate", name, to, wait))
+    def migrate(self, name: str, to: str, *, wait: bool = True,
+                state: dict | None = None) -> Move:
+        self.calls.append(("migrate", name, to, wait, state))
         return self.move
 
     def set_state(self, name: str, values: dict) -> None:
@@ -47,7 +49,7 @@ def test_success_rate_counts_the_last_window() -> None:
     assert success_rate([], 3) == 0.0
 
 
-def test_it_waits_for_the_success_rate_then_moves_once_and_re_points_after_the_move() -> None:
+def test_it_waits_for_the_success_rate_then_moves_with_the_driver_re_pointed_on_arrival() -> None:
     runtime = Runtime()
     agent = ModuleHarness(TransferAgent, state=STATE, runtime=runtime)
     for success in [False] * 6 + [True] * 7:     # last 10: 7 of 10, not yet
@@ -55,22 +57,22 @@ def test_it_waits_for_the_success_rate_then_moves_once_and_re_points_after_the_m
     assert runtime.calls == []
     agent.feed("episode", {"success": True})     # 8 of the last 10
     assert runtime.calls == [("set_state", "brain/driver", {"lockstep_s": 0.0}),
-                             ("migrate", "brain", "robot", False)]
+                             ("migrate", "brain", "robot", False, {
+                                 "brain/driver": {"resource": "tcp://127.0.0.1:7421"},
+                                 "brain/learner": {"epsilon": 0.05}})]
     agent.step()                                 # the move has not ended: nothing more
     agent.feed("episode", {"success": True})
     assert len(runtime.calls) == 2 and agent.written["transfer"] == []
     runtime.move.ended = True
     agent.step()
-    assert runtime.calls[2:] == [
-        ("set_state", "brain/driver", {"resource": "tcp://127.0.0.1:7421"}),
-        ("set_state", "brain/learner", {"epsilon": 0.05})]
+    assert len(runtime.calls) == 2               # nothing left to set once it has moved
     (report,) = agent.written["transfer"]
     assert report["decided_at"] <= report["moved_at"] <= report["repointed_at"]
     assert report["success_rate"] >= 0.8
     assert (report["pause_s"], report["prepare_s"]) == (0.02, 0.09)
     assert set(report["phases"]) >= {"capture_s", "restore_s", "start_s"}
     agent.step()
-    assert len(runtime.calls) == 4                # once
+    assert len(runtime.calls) == 2 and len(agent.written["transfer"]) == 1     # once
 
 
 def test_without_a_destination_it_says_what_to_set() -> None:

@@ -126,6 +126,32 @@ def test_a_macro_moves_as_one_under_a_steady_flow() -> None:
     assert state["last"] == state["received"]                        # 1, 2, 3, ... no gap
 
 
+def test_state_given_on_arrival_is_set_before_the_module_starts_there_or_not_at_all() -> None:
+    with _through("move-arrive", "pair", RelayPair).launch() as run:
+        eventually(lambda: run.state("sink")["received"] > 20, what="values through the pair")
+        with pytest.raises(ValueError, match="state on arrival for 'sink', which does not "
+                                             "move; what moves: pair/first, pair/second"):
+            run.migrate("pair", to="b", state={"sink": {"received": 0}})
+        # a field the module lacks: the move fails after the fence and is put back whole
+        with pytest.raises(RuntimeFailure, match=r"has no state 'gian'.*they run on node a "
+                                                 r"again, with their state"):
+            run.migrate("pair", to="b", state={"pair/first": {"gian": 2.0}})
+        back = run.stats().modules
+        relayed = run.state("pair/second")["relayed"]
+        report = run.migrate("pair", to="b", state={"pair/second": {"setups": 100}})
+        second, first = run.state("pair/second"), run.state("pair/first")
+        n = run.state("src")["count"]
+        sink = eventually(lambda: (s := run.state("sink"))["received"] >= n and s,
+                          timeout=30, what="every value through the pair")
+    assert {back["pair/first"].node, back["pair/second"].node} == {"a"}
+    assert report.destination == "b"
+    # set on arrival, then setup() ran on it (100 + 1); the rest of its state came along
+    assert second["setups"] == 101 and second["relayed"] >= relayed
+    assert first["setups"] == 3          # a, put back on a (the failed move), then b
+    assert sink["out_of_order"] == 0 and sink["duplicates"] == 0
+    assert sink["last"] == sink["received"]
+
+
 def test_an_agent_moves_itself_and_goes_on_where_it_was() -> None:
     system = _nodes(System("wander"), "a", "b")
     system.add("src", Counter, node="a", period=0.001)

@@ -48,16 +48,20 @@ class SystemHandle(ABC):
 
     # -- moving, swapping, reloading ---------------------------------------------------
     def migrate(self, name: str, to: str, *, wait: bool = True,
+                state: dict[str, dict[str, Any]] | None = None,
                 timeout: float | None = None) -> MigrationReport | Pending:
         """Move a module, or every module of a macro, to node ``to`` while it runs.
 
         State, unconsumed inputs and links go with it; no value on any link is lost,
         duplicated or reordered. A macro's modules move one after another; its report
-        sums their state and links and gives the longest single pause. With
+        sums their state and links and gives the longest single pause. ``state``
+        (module name -> fields) is set on arrival, before the module runs there
+        (``{"brain/driver": {"resource": ...}}``: a driver that starts on the robot's
+        node already pointed at that robot); a move that fails leaves it unset. With
         ``wait=False`` the move goes on in the background: a ``Pending`` whose
         ``result()`` is the report (and the event ``module_moved`` says when).
         """
-        args = {"name": name, "to": to, "timeout": timeout}
+        args = {"name": name, "to": to, "state": state, "timeout": timeout}
         if wait:
             return self._request("migrate", args)
         job = self._request("begin_migration", args)

@@ -21,10 +21,11 @@ The hand-over, under the global configuration lock:
    destination node; between memory domains (other machines) the snapshot's parts
    travel in it over authenticated control.
 5. Restore them at the destination (the arrays map the segment's pages: no copy),
-   re-attach every link (a link becomes shared memory or ZeroMQ by where its ends now
-   are; a remote reader follows the new sender incarnation and refuses the old one),
-   start the module (``setup``), then let the writers go on. Only then are the
-   segment and the worker the module left freed.
+   set what the caller asked to change on arrival (``state``: a driver re-pointed at
+   the robot it drives from there, say), re-attach every link (a link becomes shared
+   memory or ZeroMQ by where its ends now are; a remote reader follows the new sender
+   incarnation and refuses the old one), start the module (``setup``), then let the
+   writers go on. Only then are the segment and the worker the module left freed.
 
 ``pause_s`` is the time from step 2 (the module's pause) to its start at the
 destination; ``phases`` says where it went. If step 5 fails (the destination worker
@@ -79,12 +80,23 @@ class MigrationReport:
     prepare_s: float = 0.0    # before the pause: segments, destination workers, instances
 
 
-def migrate(launcher: Launcher, names: list[str], node: str) -> list[MigrationReport]:
+def migrate(launcher: Launcher, names: list[str], node: str,
+            state: dict[str, dict[str, Any]] | None = None) -> list[MigrationReport]:
     """Move modules ``names`` to ``node`` together, one report each (the caller holds
     the configuration lock). A macro's modules move as one: prepared together, paused
-    together, and its inner links never cross nodes on the way."""
+    together, and its inner links never cross nodes on the way. ``state`` (module name
+    -> fields) is set as each arrives, after its state is restored and before it
+    starts; a move that fails puts the modules back without it."""
+    state = state or {}
+    strangers = sorted(set(state) - set(names))
+    if strangers:
+        raise ValueError(f"state on arrival for {', '.join(map(repr, strangers))}, which "
+                         f"{'does' if len(strangers) == 1 else 'do'} not move; what moves: "
+                         f"{', '.join(names)}")
     moving = [name for name in dict.fromkeys(names) if launcher.specs[name].node != node]
     reports = {name: MigrationReport(name, node, node, 0.0, 0, 0) for name in names}
+    for name in set(state) - set(moving):           # already there: set now
+        launcher.call(name, "set_state", state=state[name])
     if not moving:
         return list(reports.values())
     homes = {name: launcher.specs[name] for name in moving}
@@ -121,7 +133,7 @@ def migrate(launcher: Launcher, names: list[str], node: str) -> list[MigrationRe
                 launcher.specs[name] = replace(homes[name], node=node)
             # 5. restored, re-wired, started (or, failing that, the same back home)
             try:
-                restore_s = _land(launcher, snapshots, links, laps)
+                restore_s = _land(launcher, snapshots, links, laps, state)
             except (RuntimeFailure, RuntimeTimeout) as exc:
                 for link in links:
                     _quietly(launcher.detach, link)
@@ -185,11 +197,16 @@ def _put_back(launcher: Launcher, homes: dict[str, FlatModule],
 
 
 def _land(launcher: Launcher, snapshots: dict[str, Snapshot], links: list[FlatLink],
-          laps: _Laps) -> float:
-    """Restore what was captured in the modules' (new) workers, re-wire them, start
-    them; the seconds the workers took to restore."""
-    restore_s = sum(launcher.node_of(name).land(name, snapshot)
-                    for name, snapshot in snapshots.items())
+          laps: _Laps, arriving: dict[str, dict[str, Any]] | None = None) -> float:
+    """Restore what was captured in the modules' (new) workers, set ``arriving`` on
+    them, re-wire them, start them; the seconds the workers took to restore."""
+    restore_s = 0.0
+    for name, snapshot in snapshots.items():
+        restore_s += launcher.node_of(name).land(name, snapshot)
+        if arriving and name in arriving:
+            started = time.perf_counter()
+            launcher.call(name, "set_state", state=arriving[name])
+            restore_s += time.perf_counter() - started
     laps.mark("land")
     for link in links:
         launcher.attach(link)

@@ -77,7 +77,8 @@ class Operations:
             self.launcher.call(name, "set_state", self._call_timeout(timeout), state=values)
 
     # -- moving, swapping, reloading ----------------------------------------------------
-    def migrate(self, name: str, to: str, *, timeout: float | None = None) -> MigrationReport:
+    def migrate(self, name: str, to: str, *, state: dict[str, dict[str, Any]] | None = None,
+                timeout: float | None = None) -> MigrationReport:
         with self._held(f"migrate {name} to {to}", timeout):
             if to not in self.plan.nodes:
                 raise ConfigError([f"migrate {name}: no node {to!r}; nodes: "
@@ -87,7 +88,7 @@ class Operations:
                 child for child in specs if child.startswith(f"{name}/")]
             if not names:
                 self.launcher.node_of(name)           # raises ModuleNotFound
-            reports = migrate(self.launcher, names, to)     # (a macro's: one pause)
+            reports = migrate(self.launcher, names, to, state)    # (a macro's: one pause)
             moved = {report.module for report in reports if report.source != to}
             for report in reports:
                 if report.module in moved:
@@ -103,7 +104,9 @@ class Operations:
                                longest.pause_s, sum(r.state_bytes for r in reports),
                                rewired, longest.phases, longest.prepare_s)
 
-    def begin_migration(self, name: str, to: str, *, timeout: float | None = None) -> int:
+    def begin_migration(self, name: str, to: str, *,
+                        state: dict[str, dict[str, Any]] | None = None,
+                        timeout: float | None = None) -> int:
         """Start ``migrate`` on another thread; the number to ask ``migration`` about. An
         agent moving itself must not wait: the move pauses it once its body returns."""
         job = next(self._job_ids)
@@ -114,7 +117,7 @@ class Operations:
 
         def move() -> None:
             try:
-                outcome[:] = [DONE, self.migrate(name, to, timeout=timeout)]
+                outcome[:] = [DONE, self.migrate(name, to, state=state, timeout=timeout)]
             except Exception as exc:
                 log.warning("migrate %s to %s failed: %s", name, to, exc)
                 outcome[:] = [FAILED, f"{type(exc).__name__}: {exc}"]

@@ -86,15 +86,17 @@ class RuntimeClient:
         an agent does not wait for them: it looks again at its next step."""
         return self._request("events", {"since": since})
 
-    def migrate(self, name: str, to: str, *, wait: bool = True) -> Any:
-        """Move a module (or macro) to node ``to``; its ``MigrationReport``. With
+    def migrate(self, name: str, to: str, *, wait: bool = True,
+                state: dict[str, dict[str, Any]] | None = None) -> Any:
+        """Move a module (or macro) to node ``to``; its ``MigrationReport``. ``state``
+        (module name -> fields) is set on arrival, before the module runs there. With
         ``wait=False``, or when an agent moves itself (or its own macro: the move can
         only pause it once its body returns), a ``Pending`` instead: the agent goes on,
         and ``pending.done()`` / ``pending.result()`` or the ``module_moved`` event of
         its ``env`` port tell it when the move ended."""
         if wait and not (name == self._agent or self._agent.startswith(f"{name}/")):
-            return self._call("migrate", name, to=to)
-        job = self._request("begin_migration", {"name": name, "to": to})
+            return self._call("migrate", name, to=to, state=state)
+        job = self._request("begin_migration", {"name": name, "to": to, "state": state})
         return Pending(f"migrate {name} to {to}",
                        lambda wait_s: self._request("migration", {"id": job, "timeout": wait_s}))
 
