@@ -95,10 +95,16 @@ def migrate(launcher: Launcher, names: list[str], node: str,
                          f"{', '.join(names)}")
     moving = [name for name in dict.fromkeys(names) if launcher.specs[name].node != node]
     reports = {name: MigrationReport(name, node, node, 0.0, 0, 0) for name in names}
-    for name in set(state) - set(moving):           # already there: set now
+    if moving:
+        _move(launcher, moving, node, state, reports)
+    for name in set(state) - set(moving):           # there already: set once all are
         launcher.call(name, "set_state", state=state[name])
-    if not moving:
-        return list(reports.values())
+    return list(reports.values())
+
+
+def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dict[str, Any]],
+          reports: dict[str, MigrationReport]) -> None:
+    """``migrate`` for the modules not on ``node`` yet, filling in their ``reports``."""
     homes = {name: launcher.specs[name] for name in moving}
     group = set(moving)
     links = [link for link in launcher.links.values() if group & {link.src, link.dst}]
@@ -155,7 +161,6 @@ def migrate(launcher: Launcher, names: list[str], node: str,
         reports[name] = MigrationReport(
             name, homes[name].node, node, sum(lap.values()), snapshots[name].nbytes,
             sum(name in (link.src, link.dst) for link in links), phases, prepare_s)
-    return list(reports.values())
 
 
 def _prepare(launcher: Launcher, homes: dict[str, FlatModule], links: list[FlatLink],
