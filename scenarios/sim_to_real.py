@@ -110,8 +110,9 @@ def run(seed: int = 1, quick: bool = False) -> dict[str, Any]:
         _until_repointed(running, deadline)
         # The simulation's budget is spent before the agent's threshold was reached (a
         # slow machine): what it learnt goes to the robot as it is, at the next episode.
-        threshold, forced_at = running.state("transfer")["threshold"], math.inf
-        if not running.state("transfer")["decided_at"]:
+        agent = running.state("transfer")
+        threshold, forced_at = agent["threshold"], math.inf
+        if not agent["decided_at"]:
             forced_at = time.time()
             running.set_state("transfer", {"threshold": 0.0, "min_episodes": 0})
         _until_repointed(running, time.monotonic() + LAST_EPISODE_S)
