@@ -16,9 +16,9 @@ seconds and answers with the new readings, so the world moves exactly as fast as
 controller decides. A controller that waits for a first reading gets one every
 ``period`` until commands come. ``clock`` carries the world's time of each reading,
 for controllers that must keep time by the world rather than the wall clock, and
-``applied`` the command that moved the robot up to those readings (the one before
-this period's: a reading right after a command does not show it yet), for monitors
-that compare commanded with measured motion.
+``applied`` the command that moved the robot up to those readings, for monitors that
+compare commanded with measured motion. A command is sent to the robot as it comes,
+not at the driver's next period.
 """
 
 from __future__ import annotations
@@ -53,6 +53,7 @@ class RobotDriver(Driver):
     def setup(self) -> None:
         self._read_at = 0.0      # (monotonic) when readings were last written
         self._in_force = np.zeros(2)     # the command the robot runs on now
+        self._unsent: np.ndarray | None = None   # a command the robot has not taken yet
 
     def set_state(self, state: dict[str, Any]) -> None:
         """Set state; a running driver re-pointed at another robot reads it at once,
@@ -61,29 +62,48 @@ class RobotDriver(Driver):
         repointed = state.get("resource", self.resource) != self.resource
         super().set_state(state)
         if repointed and "_read_at" in vars(self):
-            self._serve(None, advance=0.0)
+            # the new robot has not taken the command in force yet
+            self._unsent = self.command.read() if self.command.has_value else None
+            self._serve(self._unsent, advance=0.0)
 
     def step(self) -> None:
         if self.lockstep_s > 0 and time.monotonic() - self._read_at < self.period:
             return               # lock-step: commands drive it (see on_input)
-        command = self.command.read() if self.command.has_value else None
-        self._serve(command, advance=0.0)
+        self._serve(self._unsent, advance=0.0)
 
     def on_input(self, port: InputPort) -> None:
         if self.lockstep_s > 0:
             self._serve(port.read(), advance=self.lockstep_s)
+            return
+        # A command is sent as it comes, not at the next period: waiting for the
+        # period would add up to one (0.1 s) to the loop's latency, which a robot with
+        # inertia turns into collisions. A command the robot did not take is sent
+        # again with the next period's reading.
+        if not self.enabled:
+            return               # ignored: every period tells the robot to stop
+        self._unsent = port.read()
+        try:
+            self._apply(self._unsent)
+        except (RuntimeError, OSError) as exc:
+            self.failures += 1
+            self.last_error = str(exc)
+
+    def _apply(self, command: np.ndarray | None) -> None:
+        """Drive by ``command`` (none: the last one holds), or stop a disabled robot."""
+        if not self.enabled:
+            self.request("stop")
+            self._in_force = np.zeros(2)
+        elif command is not None:
+            self.request("drive", v=float(command[0]), w=float(command[1]))
+            self._in_force = np.array(command, dtype=np.float64)
+        self._unsent = None
 
     def _serve(self, command: np.ndarray | None, advance: float) -> None:
-        """Apply ``command`` (none: the last one holds), advance a lock-step world,
-        and write the readings; a robot that does not answer is counted."""
+        """Apply ``command`` (see ``_apply``), advance a lock-step world, and write the
+        readings; a robot that does not answer is counted."""
         before = self._in_force
         try:
-            if not self.enabled:
-                self.request("stop")
-                self._in_force = np.zeros(2)
-            elif command is not None:
-                self.request("drive", v=float(command[0]), w=float(command[1]))
-                self._in_force = np.array(command, dtype=np.float64)
+            self._apply(command)
             if advance:
                 self.request("advance", dt=advance)
                 before = self._in_force          # (the world moved under the new one)

@@ -49,18 +49,39 @@ def ops(robot: type[FakeRobotServer]) -> list[str]:
     return [op for op, _ in robot.requests]
 
 
-def test_each_period_it_drives_by_the_latest_command_and_writes_the_readings(robot) -> None:
+def test_a_command_drives_the_robot_as_it_comes_and_each_period_writes_the_readings(
+        robot) -> None:
     harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400"})
     harness.step()                                  # no command yet: only sensing
     harness.feed("command", np.array([0.4, 0.1]))
+    assert ops(robot) == ["sensors", "drive"]       # at once, not at the next period
+    assert robot.requests[1][1] == {"v": 0.4, "w": 0.1}
     harness.step()
     assert ops(robot) == ["sensors", "drive", "sensors"]
-    assert robot.requests[1][1] == {"v": 0.4, "w": 0.1}
     assert len(harness.written["sonar"]) == len(harness.written["clock"]) == 2
-    # the readings right after a command still show the motion of the one before
-    assert [list(a) for a in harness.written["applied"]] == [[0.0, 0.0], [0.0, 0.0]]
+    # each reading names the command that moved the robot up to it
+    assert [list(a) for a in harness.written["applied"]] == [[0.0, 0.0], [0.4, 0.1]]
+
+
+def test_a_command_the_robot_did_not_take_is_sent_again_with_the_next_reading(
+        robot, monkeypatch) -> None:
+    harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400"})
+    answer = FakeRobotServer.call
+
+    def lost(self, op: str, timeout: float, **args: Any) -> Any:
+        if op == "drive" and not any(o == "drive" for o, _ in robot.requests):
+            robot.requests.append((op, args))
+            raise RuntimeError("robot did not answer")
+        return answer(self, op, timeout, **args)
+
+    monkeypatch.setattr(FakeRobotServer, "call", lost)
+    harness.feed("command", np.array([0.2, 0.0]))
+    assert harness.module.failures == 1
     harness.step()
-    assert list(harness.last("applied")) == [0.4, 0.1]
+    assert ops(robot) == ["drive", "drive", "sensors"]
+    assert list(harness.last("applied")) == [0.0, 0.0]      # it moved only from now on
+    harness.step()
+    assert ops(robot)[3:] == ["sensors"] and list(harness.last("applied")) == [0.2, 0.0]
 
 
 def test_a_disabled_driver_keeps_its_robot_standing(robot) -> None:
@@ -92,8 +113,10 @@ def test_in_lockstep_every_command_advances_the_world_once(robot) -> None:
 def test_a_running_driver_re_pointed_at_another_robot_reads_it_at_once(robot) -> None:
     harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400"})
     harness.step()
+    harness.feed("command", np.array([0.3, 0.0]))
     harness.module.set_state({"resource": "tcp://standby:7400"})
     assert len(harness.written["sonar"]) == 2                 # no step in between
-    assert [op for op, _ in robot.requests] == ["sensors", "stop", "sensors"]
+    # the old robot is stopped; the new one takes the command in force
+    assert ops(robot) == ["sensors", "drive", "stop", "drive", "sensors"]
     harness.module.set_state({"enabled": True})                # not a re-point: no reading
     assert len(harness.written["sonar"]) == 2
