@@ -51,7 +51,7 @@ class TransferAgent(Agent):
     moved_at = 0.0
     repointed_at = 0.0
     move: dict[str, Any] = {}       # the migration's pause_s, prepare_s and phases
-    period = 0.02                   # how often a move in progress is looked at
+    period = 0.02                   # the longest a look at a move in progress waits
 
     def setup(self) -> None:
         self._moving: Any = None    # the Pending of the move (not state: not picklable)
@@ -76,7 +76,9 @@ class TransferAgent(Agent):
                                                 state=arriving)
 
     def step(self) -> None:
-        if self._moving is None or not self._moving.done():
+        # waits for the move's end (a period at most): the transfer is timed to when the
+        # agent knows it ended, and this knows it as it ends
+        if self._moving is None or not self._moving.wait(self.period):
             return
         report = self._moving.result(0)  # (a failed move raises here, in the agent's log)
         self._moving = None

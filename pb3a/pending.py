@@ -35,16 +35,21 @@ class Pending:
         """True once the operation has ended, well or not (does not wait)."""
         return self._look(0.0) is not None
 
-    def result(self, timeout: float = 60.0) -> Any:
-        """Its result, waiting up to ``timeout`` seconds; ``RuntimeFailure`` if it failed,
-        ``RuntimeTimeout`` if it has not ended in time."""
+    def wait(self, timeout: float) -> bool:
+        """``done()``, waiting up to ``timeout`` seconds for the end: it returns as the
+        operation ends, where polling ``done()`` would learn of it a poll later."""
         deadline = time.monotonic() + timeout
         outcome = self._look(timeout)
         while outcome is None and time.monotonic() < deadline:
             outcome = self._look(deadline - time.monotonic())
-        if outcome is None:
+        return outcome is not None
+
+    def result(self, timeout: float = 60.0) -> Any:
+        """Its result, waiting up to ``timeout`` seconds; ``RuntimeFailure`` if it failed,
+        ``RuntimeTimeout`` if it has not ended in time."""
+        if not self.wait(timeout):
             raise RuntimeTimeout(f"{self.what} had not ended after {timeout:g} s")
-        status, value = outcome
+        status, value = self._outcome
         if status == FAILED:
             raise RuntimeFailure(f"{self.what} failed: {value}")
         return value

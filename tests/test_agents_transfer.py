@@ -17,7 +17,7 @@ class Move:
     def __init__(self) -> None:
         self.ended = False
 
-    def done(self) -> bool:
+    def wait(self, timeout: float) -> bool:
         return self.ended
 
     def result(self, timeout: float) -> MigrationReport:

@@ -257,8 +257,9 @@ def test_a_move_without_waiting_returns_a_pending_result_and_is_an_event() -> No
     system.link("relay.out", "sink.x")
     with system.launch() as run:
         pending = run.migrate("relay", to="b", wait=False)
-        report = pending.result(30)
-        assert pending.done() and report.destination == "b" and run.where("relay") == "b"
+        assert pending.wait(30) and pending.done()
+        report = pending.result(0)
+        assert report.destination == "b" and run.where("relay") == "b"
         moved = [e for e in run.events() if e.kind == "module_moved"]
         assert [(e.subject, e.detail["source"], e.detail["destination"]) for e in moved] == [
             ("relay", "a", "b")] and moved[0].detail["pause_s"] == report.pause_s
