@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import itertools
 import logging
 import threading
 import time
@@ -204,19 +205,22 @@ class Executor:
 
         A worker that dies meanwhile is left to its modules' restart policies.
         """
-        for name in names:
-            record = self.modules[name]
-            if record.status == "running":
-                continue
+        # one request per run of modules that share a worker (a group, a packed worker)
+        waiting = [self.modules[name] for name in names]
+        runs = itertools.groupby((r for r in waiting if r.status != "running"),
+                                 key=lambda record: record.worker)
+        for worker, records in runs:
+            batch = list(records)
             try:
-                self.call(record.worker, "start", names=[name])
+                self.call(worker, "start", names=[r.spec.name for r in batch])
             except RuntimeFailure:
-                process = self.workers[record.worker].process
+                process = self.workers[worker].process
                 process.join(1.0)          # a pipe error may come before the death is seen
                 if process.is_alive():
                     raise
                 continue
-            record.status = "running"
+            for record in batch:
+                record.status = "running"
 
     def swap(self, name: str, spec: FlatModule) -> list[str]:
         """Replace a module's class by ``spec.cls`` in place; the state names kept."""

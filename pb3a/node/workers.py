@@ -39,7 +39,9 @@ log = logging.getLogger("pb3a.executor")
 REQUEST_TIMEOUT = 10.0
 
 _context = multiprocessing.get_context("forkserver")
-PRELOAD = ("pb3a.worker.process", "numpy", "cloudpickle")
+# numpy imports numpy.random only when first used: 25-30 ms in a fresh worker, which
+# fell inside a migration's pause when a module made a generator in its ``setup``
+PRELOAD = ("pb3a.worker.process", "numpy", "numpy.random", "cloudpickle")
 
 
 @dataclass
