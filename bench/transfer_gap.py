@@ -1,11 +1,12 @@
 """What a policy learnt on the simulated robot is worth on the emulated hardware robot,
 in one process: the sim-to-real application's learner without its processes.
 
-Per seed: a ``ReactiveLearner`` with the scenario's actions learns in the ``room``
-world on the ``--train`` back end (``sim``: zeroth-order, the scenario's simulation)
-until 18 of its last 20 episodes succeed (40 episodes at least, 300 at most), one
-decision per 0.2 s of world time. Its table then goes on, at the scenario's settings
-on the robot (alpha 0.1, epsilon 0.02), for ``--episodes`` episodes on the hardware
+Per seed: a ``ReactiveLearner`` with the goals and parameters of
+``scenarios/sim_to_real.toml`` learns in the scenario's world on the ``--train`` back
+end (``sim``: zeroth-order, the scenario's simulation) until the transfer agent's
+rule there holds (300 episodes at most), one decision per ``decision_s`` of world
+time. Its table then goes on, with the agent's ``learner_state`` for the robot, for
+``--episodes`` episodes on the hardware
 robot (second-order motors, sonar noise, dropouts and specular reflection), each
 command reaching the robot ``--lag`` s after the readings it answers. Per run: the
 episodes in training, collisions and successes on the robot, and the hardware s from
@@ -21,6 +22,7 @@ import argparse
 import json
 import sys
 import time
+import tomllib
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -31,25 +33,23 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from agents.learner import SUCCESS, Parameters, ReactiveLearner  # noqa: E402
+from agents.transfer import success_rate  # noqa: E402
 from rave import worldfile  # noqa: E402
 from rave.world import World  # noqa: E402
-from scenarios.sim_to_real import time_to_target  # noqa: E402
+from scenarios.lab import world_file  # noqa: E402
+from scenarios.sim_to_real import CONFIG, WORLD, time_to_target  # noqa: E402
 
-DECISION_S = 0.2
-ACTIONS = [[0.3, 0.0], [0.3, 0.6], [0.3, -0.6], [0.0, 1.2], [0.0, -1.2]]
-GOALS = [[1.0, 1.0], [6.0, 4.0], [6.0, 1.0], [1.0, 4.0]]
-ON_ROBOT = {"alpha": 0.1}
+_SYSTEM = tomllib.loads(CONFIG.read_text())
+LEARNER = _SYSTEM["macros"]["brain"]["modules"]["learner"]["state"]
+TRANSFER = _SYSTEM["modules"]["transfer"]["state"]
+DECISION_S = LEARNER["decision_s"]
 
 
 def room(backend: str, seed: int) -> World:
-    """The scenario's world (its box virtual) with one robot on ``backend``."""
-    plan = worldfile.read(ROOT / "rave" / "worlds" / "room.toml")
-    world = World(size=plan.size, seed=seed)
-    for wall in plan.walls:
-        world.add_wall(**wall)
-    for box in plan.boxes:
-        world.add_box(**box)
-    world.add_robot("r", (1.0, 1.0, 0.0), backend=backend)
+    """The scenario's world with its first robot where the file puts it, on ``backend``."""
+    path = world_file(WORLD)
+    world = World.load(path, seed, robots=False)
+    world.add_robot("r", worldfile.read(path).robots[0]["pose"], backend=backend)
     return world
 
 
@@ -71,19 +71,22 @@ def drive(learner: ReactiveLearner, world: World, enough: Any, lag: float,
 
 
 def trained(learner: ReactiveLearner) -> bool:
-    episodes = learner.episodes
-    return len(episodes) >= 300 or (len(episodes) >= 40 and sum(
-        outcome == SUCCESS for outcome, _, _ in episodes[-20:]) >= 18)
+    """The transfer agent's rule (or 300 episodes: a learner that never gets there)."""
+    outcomes = [outcome == SUCCESS for outcome, _, _ in learner.episodes]
+    return len(outcomes) >= 300 or (
+        len(outcomes) >= TRANSFER["min_episodes"]
+        and success_rate(outcomes, TRANSFER["window"]) >= TRANSFER["threshold"])
 
 
 def run(seed: int, train: str, episodes: int, lag: float) -> dict[str, Any]:
     started = time.monotonic()
-    parameters = {"actions": ACTIONS}
-    learner = ReactiveLearner(GOALS, Parameters.of(parameters), seed=seed)
+    goals = LEARNER["goals"]
+    learner = ReactiveLearner(goals, Parameters.of(LEARNER["parameters"]), seed=seed)
     with room(train, seed) as world:
         drive(learner, world, trained, 0.0)
-    on_robot = ReactiveLearner(GOALS, Parameters.of({**parameters, **ON_ROBOT}), seed=seed,
-                               q=learner.q.copy(), epsilon=0.02)
+    on_robot_state = TRANSFER["learner_state"]
+    on_robot = ReactiveLearner(goals, Parameters.of(on_robot_state["parameters"]), seed=seed,
+                               q=learner.q.copy(), epsilon=on_robot_state["epsilon"])
     with room("hardware", seed) as world:
         ended = drive(on_robot, world, lambda it: len(it.episodes) >= episodes, lag)
     kept = time_to_target(ended, 0.0)
