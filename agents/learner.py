@@ -13,6 +13,10 @@ An episode drives to one goal. It ends in success (within ``goal_radius``), in a
 collision (a bumper transducer reads below ``collision_range``), after which the
 robot backs up and turns away (a real robot cannot be put back by hand), or at its
 ``timeout``. The next episode goes for the next goal, from wherever the robot is.
+
+An optional speed guard (``Parameters.guard_range``) holds the forward speed down as
+the robot nears an obstacle, whatever the policy decided: a robot with inertia,
+which the simulated one has not, then brakes in time for what the table learnt.
 """
 
 from __future__ import annotations
@@ -54,6 +58,12 @@ class Parameters:
     goal_radius: float = 0.4                 # m: success within this of the goal
     bumper: tuple[int, ...] = (1, 2, 3, 4, 5, 6)   # transducers that sense a collision
     collision_range: float = 0.3             # m
+    # m: an on-board speed guard (as a Pioneer's avoid-front action) when positive:
+    # forward speed is held to ``guard_gain`` (1/s) times how far the bumper's nearest
+    # reading is beyond ``guard_range``, so the robot slows as it nears an obstacle,
+    # whatever it decided, and stops short of it; 0 turns the guard off
+    guard_range: float = 0.0
+    guard_gain: float = 1.0
     timeout: float = 60.0                    # s an episode may last
     progress_reward: float = 10.0            # per metre nearer the goal
     step_cost: float = 0.1                   # per decision
@@ -194,7 +204,15 @@ class ReactiveLearner:
         action = self._choose(situation, learn)
         self.underway.update(steps=self.underway["steps"] + 1, state=situation, action=action,
                              distance=distance, at=now)
-        return self._actions[action].copy(), None
+        return self._guarded(self._actions[action].copy(), sonar), None
+
+    def _guarded(self, command: np.ndarray, sonar: np.ndarray) -> np.ndarray:
+        """``command`` with its forward speed held by the guard (see ``Parameters``)."""
+        p = self.parameters
+        if p.guard_range > 0 and command[0] > 0:
+            room = sonar[self._bumper].min() - p.guard_range
+            command[0] = min(command[0], max(0.0, p.guard_gain * room))
+        return command
 
     def _outcome(self, sonar: np.ndarray, distance: float, now: float) -> str | None:
         p, underway = self.parameters, self.underway

@@ -112,6 +112,25 @@ def test_after_a_collision_the_robot_backs_up_turns_away_and_goes_for_the_next_g
     assert [outcome for outcome, _, _ in learner.episodes] == [COLLISION]
 
 
+def test_the_speed_guard_slows_the_robot_as_it_nears_an_obstacle_whatever_it_decided(
+        ) -> None:
+    ahead_only = {"actions": [[0.3, 0.0]], "mirror": False}
+    guarded = ReactiveLearner([[9.0, 0.0]], Parameters.of({**ahead_only, "guard_range": 0.4}))
+    unguarded = ReactiveLearner([[9.0, 0.0]], Parameters.of(ahead_only))
+    pose, speeds = np.zeros(3), []
+    for t, front in enumerate((2.0, 0.6, 0.45, 0.38)):
+        sonar = CLEAR.copy()
+        sonar[3] = front
+        command, _ = guarded.decide(sonar, pose, t * PERIOD)
+        speeds.append(round(float(command[0]), 3))
+        assert unguarded.decide(sonar, pose, t * PERIOD)[0].tolist() == [0.3, 0.0]
+    assert speeds == [0.3, 0.2, 0.05, 0.0]       # 1/s times the range beyond 0.4 m
+    sonar = CLEAR.copy()
+    sonar[3] = 0.2                               # a collision: backing up is not held
+    command, finished = guarded.decide(sonar, pose, 4 * PERIOD)
+    assert finished is not None and finished.outcome == COLLISION and command[0] < 0
+
+
 def test_a_situation_is_which_sectors_are_near_and_where_the_goal_lies() -> None:
     learner = ReactiveLearner(GOALS)
     here = np.array([2.0, 2.0, math.pi / 2])                  # facing +y
