@@ -58,7 +58,7 @@ class Parameters:
     goal_radius: float = 0.4                 # m: success within this of the goal
     bumper: tuple[int, ...] = (1, 2, 3, 4, 5, 6)   # transducers that sense a collision
     collision_range: float = 0.3             # m
-    # m: an on-board speed guard (as a Pioneer's avoid-front action) when positive:
+    # m: an on-board speed guard (as ARIA's avoid-front action) when positive:
     # forward speed is held to ``guard_gain`` (1/s) times how far the bumper's nearest
     # reading is beyond ``guard_range``, so the robot slows as it nears an obstacle,
     # whatever it decided, and stops short of it; 0 turns the guard off
