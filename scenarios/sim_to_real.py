@@ -226,13 +226,8 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
                             "hardware_s_first_at_target": _rounded(first[name])}
                      for name, episodes in by_learner.items()},
     }
-    with_transfer, without = reached["with_transfer"], reached["alone"]
-    if with_transfer is None:
-        speedup, bound = None, None
-    elif without is not None:
-        speedup, bound = without / max(with_transfer, 1e-9), "measured"
-    else:      # the baseline never got there: it needs more than all the time it had
-        speedup, bound = hardware_s["alone"] / max(with_transfer, 1e-9), "at least"
+    speedup, bound = speed_up(reached["with_transfer"], reached["alone"],
+                              hardware_s["alone"])
     figures["speedup"] = {"value": round(speedup, 2) if speedup else None, "kind": bound}
     figures["goals"] = {
         "transfer_s <= 0.25": figures["transfer_s"] is not None
@@ -247,6 +242,18 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
                                    for e, r in zip(episodes, rolling(episodes, window),
                                                    strict=True)]
     return figures
+
+
+def speed_up(with_transfer: float | None, alone: float | None, alone_had: float,
+             ) -> tuple[float | None, str | None]:
+    """The baseline's hardware time to the target over the transferred learner's, and
+    whether it is "measured" or "at least" (the baseline never got there within the
+    ``alone_had`` s it had); (None, None) if the transferred learner never did."""
+    if with_transfer is None:
+        return None, None
+    if alone is not None:
+        return alone / max(with_transfer, 1e-9), "measured"
+    return alone_had / max(with_transfer, 1e-9), "at least"
 
 
 def _rounded(seconds: float | None, digits: int = 1) -> float | None:
