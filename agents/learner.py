@@ -344,8 +344,9 @@ class PolicyLearner(Module):
 
     Feed it the robot's ``sonar``, its localization ``pose`` and the world's ``clock``
     (a ``RobotDriver``'s ``sonar``, ``gps`` and ``clock``); link ``command`` to the
-    driver's. It decides on the first reading at least ``decision_s`` after its last
-    decision, by the world's clock, not the wall clock: against a world served in
+    driver's. It decides on the reading nearest ``decision_s`` after its last decision
+    (the first one less than half a reading interval before it), by the world's clock,
+    not the wall clock: against a world served in
     lock-step (the driver's ``lockstep_s`` equal to ``decision_s``) every reading is
     a decision and the world moves only as fast as the learner decides; against a
     robot in real time it decides every ``decision_s``. ``episode`` gets a dict at the
@@ -370,6 +371,7 @@ class PolicyLearner(Module):
     parameters: dict[str, Any] = {}  # overrides of ``Parameters``' defaults
     seed = 0
     decided_at = -math.inf           # world time of the last decision
+    read_at = -math.inf              # world time of the last reading
     # what it has learnt and where it is (see ``ReactiveLearner``)
     q = np.zeros((0, 0))
     trace = np.zeros((0, 0))
@@ -388,7 +390,13 @@ class PolicyLearner(Module):
         if port.name != "clock" or not (self.sonar.has_value and self.pose.has_value):
             return
         now = float(port.read())
-        if self.decided_at <= now < self.decided_at + self.decision_s - 1e-6:
+        # Readings come every ``interval`` with jitter: waiting for one at least
+        # ``decision_s`` on would let a reading a millisecond early pass, and the
+        # decision wait a whole interval more.
+        interval = now - self.read_at
+        self.read_at = now
+        early = interval / 2 if 0 < interval <= self.decision_s else 0.0
+        if self.decided_at <= now < self.decided_at + self.decision_s - early - 1e-6:
             return                           # not yet (a clock that went back: another world)
         # Rebuilt from the state at every decision (tens of microseconds), so that state
         # set while running (an agent turning ``learning`` off, a new ``epsilon`` or

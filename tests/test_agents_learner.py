@@ -253,3 +253,23 @@ def test_the_module_commands_reports_episodes_and_carries_on_from_its_pickled_st
 
     harness.close()                                         # the robot is left standing
     assert harness.last("command").tolist() == [0.0, 0.0]
+
+
+def test_the_module_decides_on_the_reading_nearest_each_decision_even_when_readings_jitter(
+        ) -> None:
+    # a driver's readings every 0.1 s of world time, each up to 4 ms early or late: a
+    # decision every second reading, never a whole reading late (0.3 s)
+    harness = ModuleHarness(PolicyLearner, state={"goals": [[5.0, 0.0]], "seed": 2})
+    harness.feed("sonar", CLEAR)
+    harness.feed("pose", np.zeros(3))
+    rng = np.random.default_rng(2)
+    decided = []
+    for tick in range(200):
+        now = 0.1 * tick + rng.uniform(-0.004, 0.004)
+        before = len(harness.written["command"])
+        harness.feed("clock", now)
+        if len(harness.written["command"]) > before:
+            decided.append(now)
+    gaps = np.diff(decided)
+    assert len(decided) == 100 and gaps.max() < 0.21 and gaps.min() > 0.19
+    harness.close()
