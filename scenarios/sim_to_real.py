@@ -163,19 +163,36 @@ def time_to_target(episodes: list[dict[str, Any]], since: float, *,
     With ``held`` False, until it first reaches it: a learner that succeeds half the
     time gets there on a lucky streak, which is why the speed-up uses the other."""
     rate_needed, window = TARGET
-    since_index = None                   # where the run at or above the target began
-    for index, rate in enumerate(rolling(episodes, window)):
-        if index + 1 < window:
-            continue
-        if rate < rate_needed:
-            since_index = None
-        elif since_index is None:
-            since_index = index
-            if not held:
-                break
-    if since_index is None or (held and since_index > len(episodes) - 1 - window):
-        return None
-    return episodes[since_index]["clock"] - since
+    rates = rolling(episodes, window)
+    if not held:
+        reached = next((i for i in range(window - 1, len(rates)) if rates[i] >= rate_needed),
+                       None)
+    else:
+        reached = _last_reached(rates)
+        if reached is not None and reached > len(episodes) - 1 - window:
+            reached = None               # at the target at the end, but not for a window yet
+    return None if reached is None else episodes[reached]["clock"] - since
+
+
+def at_target_since(episodes: list[dict[str, Any]], since: float) -> float | None:
+    """Hardware seconds from ``since`` to where the success rate came up to the target
+    for the last time, if it is still there at the end (None: it ended below it). The
+    soonest ``time_to_target`` can turn out to be, once more episodes confirm it."""
+    reached = _last_reached(rolling(episodes, TARGET[1]))
+    return None if reached is None else episodes[reached]["clock"] - since
+
+
+def _last_reached(rates: list[float]) -> int | None:
+    """The index from which ``rates`` stay at or above the target to their end (None: the
+    last is below it), counting only full windows."""
+    rate_needed, window = TARGET
+    reached = None
+    for index in range(window - 1, len(rates)):
+        if rates[index] < rate_needed:
+            reached = None
+        elif reached is None:
+            reached = index
+    return reached
 
 
 def report(record: dict[str, Any]) -> dict[str, Any]:
@@ -223,11 +240,15 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
                             "times_real_time": round(hardware_s[name]
                                                      / max(record["walls"][name], 1e-9), 1),
                             "hardware_s_to_target": _rounded(reached[name]),
-                            "hardware_s_first_at_target": _rounded(first[name])}
+                            "hardware_s_first_at_target": _rounded(first[name]),
+                            # where its last stretch at the target began, confirmed or not
+                            "hardware_s_at_target_since": _rounded(at_target_since(
+                                episodes, clocks[name][0] or 0.0))}
                      for name, episodes in by_learner.items()},
     }
+    alone_since = figures["hardware"]["alone"]["hardware_s_at_target_since"]
     speedup, bound = speed_up(reached["with_transfer"], reached["alone"],
-                              hardware_s["alone"])
+                              hardware_s["alone"] if alone_since is None else alone_since)
     figures["speedup"] = {"value": round(speedup, 2) if speedup else None, "kind": bound}
     figures["goals"] = {
         "transfer_s <= 0.25": figures["transfer_s"] is not None
@@ -244,16 +265,18 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
     return figures
 
 
-def speed_up(with_transfer: float | None, alone: float | None, alone_had: float,
+def speed_up(with_transfer: float | None, alone: float | None, alone_at_least: float,
              ) -> tuple[float | None, str | None]:
     """The baseline's hardware time to the target over the transferred learner's, and
-    whether it is "measured" or "at least" (the baseline never got there within the
-    ``alone_had`` s it had); (None, None) if the transferred learner never did."""
+    whether it is "measured" or "at least": when the baseline's time is not known, it
+    is at least ``alone_at_least`` (where it came up to the target for the last time,
+    if it ended there, or else the hardware time it had). (None, None) if the
+    transferred learner never got there."""
     if with_transfer is None:
         return None, None
     if alone is not None:
         return alone / max(with_transfer, 1e-9), "measured"
-    return alone_had / max(with_transfer, 1e-9), "at least"
+    return alone_at_least / max(with_transfer, 1e-9), "at least"
 
 
 def _rounded(seconds: float | None, digits: int = 1) -> float | None:

@@ -108,7 +108,7 @@ def test_sim_to_real_learns_in_lock_step_then_moves_the_learner_to_the_robot(tmp
 
 
 def test_sim_to_real_counts_a_target_reached_only_when_it_is_kept() -> None:
-    from scenarios.sim_to_real import time_to_target
+    from scenarios.sim_to_real import at_target_since, speed_up, time_to_target
 
     def episodes(outcomes: str) -> list[dict]:
         return [{"success": o == "s", "clock": 10.0 * (i + 1)} for i, o in enumerate(outcomes)]
@@ -121,6 +121,13 @@ def test_sim_to_real_counts_a_target_reached_only_when_it_is_kept() -> None:
     late = episodes("f" * 10 + "s" * 12)                      # kept, but not for a window yet
     assert time_to_target(late, 0.0, held=False) == 170.0
     assert time_to_target(late, 0.0) is None
+    assert at_target_since(late, 0.0) == 170.0 and at_target_since(lucky, 0.0) is None
+
+    # a baseline not seen keeping the target is counted as keeping it from where it last
+    # came up to it, if it ended there: the soonest it can turn out to be
+    assert speed_up(50.0, 200.0, 720.0) == (4.0, "measured")
+    assert speed_up(50.0, None, at_target_since(late, 0.0)) == (3.4, "at least")
+    assert speed_up(None, 200.0, 720.0) == (None, None)
 
 
 def _check_traffic(figures: dict) -> None:
