@@ -10,10 +10,10 @@ waiting. The driver is re-pointed at the hardware robot (``resource``) and the
 learner given its state for the real robot (``learner_state``, e.g. a lower
 exploration rate) on arrival (``migrate(..., state=...)``): they start on the robot's
 node already set for it, and a move that fails leaves them as they were. It acts
-once. ``transfer`` reports when it decided and when the move ended (``moved_at``, and
-``repointed_at``, the same: the driver was re-pointed as it arrived), in unix time,
-and the move's pause, where it went and the preparation before it (``pause_s``,
-``phases``, ``prepare_s``: see ``MigrationReport``).
+once. ``transfer`` reports when it decided and when the move ended (``moved_at``: the
+driver was re-pointed as it arrived, inside the move), in unix time, and the move's
+pause, where it went and the preparation before it (``pause_s``, ``phases``,
+``prepare_s``: see ``MigrationReport``).
 """
 
 from __future__ import annotations
@@ -49,7 +49,6 @@ class TransferAgent(Agent):
     outcomes: list[bool] = []
     decided_at = 0.0                # unix times; 0: not yet
     moved_at = 0.0
-    repointed_at = 0.0
     move: dict[str, Any] = {}       # the migration's pause_s, prepare_s and phases
     period = 0.02                   # the longest a look at a move in progress waits
 
@@ -82,10 +81,10 @@ class TransferAgent(Agent):
             return
         report = self._moving.result(0)  # (a failed move raises here, in the agent's log)
         self._moving = None
-        self.moved_at = self.repointed_at = time.time()
+        self.moved_at = time.time()
         self.move = {"pause_s": report.pause_s, "prepare_s": report.prepare_s,
                      "phases": dataclasses.asdict(report.phases)}
         self.transfer.write({"decided_at": self.decided_at, "moved_at": self.moved_at,
-                             "repointed_at": self.repointed_at, **self.move,
+                             **self.move,
                              "episodes": len(self.outcomes),
                              "success_rate": success_rate(self.outcomes, self.window)})

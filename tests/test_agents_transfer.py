@@ -67,7 +67,7 @@ def test_it_waits_for_the_success_rate_then_moves_with_the_driver_re_pointed_on_
     agent.step()
     assert len(runtime.calls) == 2               # nothing left to set once it has moved
     (report,) = agent.written["transfer"]
-    assert report["decided_at"] <= report["moved_at"] <= report["repointed_at"]
+    assert 0 < report["decided_at"] <= report["moved_at"]
     assert report["success_rate"] >= 0.8
     assert (report["pause_s"], report["prepare_s"]) == (0.02, 0.09)
     assert set(report["phases"]) >= {"capture_s", "restore_s", "start_s"}
