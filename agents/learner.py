@@ -346,13 +346,13 @@ class PolicyLearner(Module):
     (a ``RobotDriver``'s ``sonar``, ``gps`` and ``clock``); link ``command`` to the
     driver's. It decides on the reading nearest ``decision_s`` after its last decision
     (the first one less than half a reading interval before it), by the world's clock,
-    not the wall clock: against a world served in
-    lock-step (the driver's ``lockstep_s`` equal to ``decision_s``) every reading is
-    a decision and the world moves only as fast as the learner decides; against a
-    robot in real time it decides every ``decision_s``. ``episode`` gets a dict at the
-    end of every episode: index, outcome, success, steps, seconds (world time),
-    goal, epsilon, at (``time.time()``), clock (the world's time at its end). Set
-    ``learning`` False to run the learnt policy greedily with no updates.
+    not the wall clock: against a world served in lock-step (the driver's
+    ``lockstep_s`` equal to ``decision_s``) every reading is a decision and the world
+    moves only as fast as the learner decides; against a robot in real time it decides
+    every ``decision_s``. ``episode`` gets a dict at the end of every episode: index,
+    outcome, success, steps, seconds (world time), goal, epsilon, at (``time.time()``),
+    clock (the world's time at its end). Set ``learning`` False to run the learnt
+    policy greedily with no updates.
 
     After a migration the episode under way goes on toward its goal; the one
     transition that spans the move is not learnt from. Moved to another robot, it
