@@ -124,8 +124,7 @@ def run(seed: int, train: str, hardware_s: float, lag: float, baseline: bool,
         alone = ReactiveLearner(goals, parameters(LEARNER["parameters"]), seed=seed + 1)
         result["alone"] = itself = on_robot(alone, seed + 1, hardware_s, lag)
         value, kind = speed_up(result["transferred"]["kept_70_from_s"], itself["kept_70_from_s"],
-                               hardware_s if itself["at_70_since_s"] is None
-                               else itself["at_70_since_s"])
+                               itself["at_70_since_s"], hardware_s)
         result["speedup"] = {"value": None if value is None else round(value, 1), "kind": kind}
     result["wall_s"] = round(time.monotonic() - started, 1)
     return result

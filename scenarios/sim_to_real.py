@@ -247,9 +247,9 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
                                 episodes, clocks[name][0] or 0.0))}
                      for name, episodes in by_learner.items()},
     }
-    alone_since = figures["hardware"]["alone"]["hardware_s_at_target_since"]
     speedup, bound = speed_up(reached["with_transfer"], reached["alone"],
-                              hardware_s["alone"] if alone_since is None else alone_since)
+                              figures["hardware"]["alone"]["hardware_s_at_target_since"],
+                              hardware_s["alone"])
     figures["speedup"] = {"value": round(speedup, 2) if speedup else None, "kind": bound}
     figures["goals"] = {
         "transfer_s <= 0.25": figures["transfer_s"] is not None
@@ -266,18 +266,19 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
     return figures
 
 
-def speed_up(with_transfer: float | None, alone: float | None, alone_at_least: float,
-             ) -> tuple[float | None, str | None]:
+def speed_up(with_transfer: float | None, alone: float | None, alone_since: float | None,
+             alone_had: float) -> tuple[float | None, str | None]:
     """The baseline's hardware time to the target over the transferred learner's, and
-    whether it is "measured" or "at least": when the baseline's time is not known, it
-    is at least ``alone_at_least`` (where it came up to the target for the last time,
-    if it ended there, or else the hardware time it had). (None, None) if the
-    transferred learner never got there."""
+    whether it is "measured" or "at least". When the baseline was not seen keeping the
+    target, its time is at least ``alone_since`` (``at_target_since``: where it came up
+    to the target for the last time, if it ended there), or else the ``alone_had`` s it
+    had. (None, None) if the transferred learner never got there."""
     if with_transfer is None:
         return None, None
     if alone is not None:
         return alone / max(with_transfer, 1e-9), "measured"
-    return alone_at_least / max(with_transfer, 1e-9), "at least"
+    at_least = alone_had if alone_since is None else alone_since
+    return at_least / max(with_transfer, 1e-9), "at least"
 
 
 def _rounded(seconds: float | None, digits: int = 1) -> float | None:

@@ -125,9 +125,10 @@ def test_sim_to_real_counts_a_target_reached_only_when_it_is_kept() -> None:
 
     # a baseline not seen keeping the target is counted as keeping it from where it last
     # came up to it, if it ended there: the soonest it can turn out to be
-    assert speed_up(50.0, 200.0, 720.0) == (4.0, "measured")
-    assert speed_up(50.0, None, at_target_since(late, 0.0)) == (3.4, "at least")
-    assert speed_up(None, 200.0, 720.0) == (None, None)
+    assert speed_up(50.0, 200.0, None, 720.0) == (4.0, "measured")
+    assert speed_up(50.0, None, at_target_since(late, 0.0), 720.0) == (3.4, "at least")
+    assert speed_up(50.0, None, at_target_since(lucky, 0.0), 720.0) == (14.4, "at least")
+    assert speed_up(None, 200.0, None, 720.0) == (None, None)
 
 
 def _check_traffic(figures: dict) -> None:
