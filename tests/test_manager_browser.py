@@ -402,6 +402,7 @@ def summary(samples: list[float]) -> dict[str, float]:
             "p95": round(ordered[rank], 1), "max": round(ordered[-1], 1)}
 
 
+@pytest.mark.serial      # it times the page, so it runs alone, not beside another worker
 def test_the_page_keeps_up_with_200_modules(tmp_path: Path) -> None:
     config = tmp_path / "big.toml"
     config.write_text(big_system(200))
