@@ -98,12 +98,14 @@ def test_sim_to_real_learns_in_lock_step_then_moves_the_learner_to_the_robot(tmp
     assert figures["transfer_s"] < 1.0, figures["transfer_s"]
     assert 0 < figures["move_pause_s"] + figures["move_prepare_s"] <= figures["transfer_s"] + 0.002
     assert figures["learner_node_at_end"] == "robot"
+    assert figures["learner_situations"] == 128                 # the quick run's coarser view
     # both learn on their robots (how well varies from run to run: see applications.md)
     for name in ("with_transfer", "alone"):
         assert figures["hardware"][name]["episodes"] >= 5, figures["hardware"]
         assert figures["hardware"][name]["success_rate_at_end"] is not None
-        # the hardware worlds kept (near enough) the pace they were served at
-        assert figures["hardware"][name]["times_real_time"] >= 0.8 * figures["hardware_rate"]
+        # the hardware worlds ran at about the pace they were served at (a loaded machine
+        # falls behind it: hardware time is their own clock either way)
+        assert figures["hardware"][name]["times_real_time"] >= 0.6 * figures["hardware_rate"]
     assert (tmp_path / "sim_to_real.png").stat().st_size > 10_000
 
 
