@@ -42,6 +42,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+from agents.learner import Parameters
 from pb3a import Input, InputPort, Module, System
 from pb3a.cli.log_output import show_logs
 from scenarios.lab import Lab, wait_until
@@ -60,7 +61,7 @@ BUDGETS = {"quick": {"simulation": 30.0, "hardware": 55.0, "rate": 8.0},
 # 1,296) and may move after 30 episodes: the finer view needs 120 in simulation, six
 # times what the quick budget gets through in lock-step beside a hardware world at 8x.
 # So the quick run shows the mechanism; the full run measures the speed-up.
-QUICK_VIEW = {"thresholds": [0.7], "bearings": 8}
+QUICK_VIEW = {"thresholds": list(Parameters.thresholds), "bearings": Parameters.bearings}
 QUICK_MIN_EPISODES = 30
 TARGET = (0.7, 10)            # learnt: this success rate over the last this many episodes
 GOALS = {"transfer_s": 0.25, "speedup": 3.0}
