@@ -406,7 +406,10 @@ class Stress:
             "schema": SCHEMA, "system": self.plan.name,
             "options": {**dataclasses.asdict(self.options),
                         "kill_among": self.kill_among, "migrate_among": self.migrate_among},
-            "started": self._wall_started, "marks": self.marks, "samples": self.samples,
+            # (the system's events are marked at their own time when next polled: sorted,
+            # a node lost before it was uncut reads so even if the poll came after)
+            "started": self._wall_started, "samples": self.samples,
+            "marks": sorted(self.marks, key=lambda mark: mark["t"]),
             "summary": {"duration_s": duration,
                         "values_per_s": round(sum(link["values_per_s"]
                                                   for link in links.values()), 1),
