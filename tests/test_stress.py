@@ -92,16 +92,19 @@ from = "tick.out"
 to = "scale.x"
 policy = "queue:64"
 ''')
-        assert main(["stress", str(path), "--for", "9", "--sample", "0.5",
-                     "--cut-node", "b@1+3", "--out", str(tmp_path)]) == 0
+        # (cut for 4 s: the launcher loses a node silent for 2 s)
+        assert main(["stress", str(path), "--for", "10", "--sample", "0.5",
+                     "--cut-node", "b@1+4", "--out", str(tmp_path)]) == 0
     finally:
         daemon.stop()
     report = json.loads((tmp_path / "stress.json").read_text())
     summary = report["summary"]
     assert (summary["cuts"], summary["nodes_lost"], summary["failovers"],
             summary["nodes_joined"]) == (1, 1, 1, 1), summary
-    order = [mark["kind"] for mark in report["marks"]
-             if mark["kind"] in ("cut", "node_lost", "module_failed_over", "uncut", "node_joined")]
-    assert order == ["cut", "node_lost", "module_failed_over", "uncut", "node_joined"], order
+    # lost while cut, failed over, and back after the cut; the failover may finish
+    # before or after the uncut (it restarts the module on a: a slow host takes > 1 s)
+    at = {mark["kind"]: mark["t"] for mark in report["marks"]}
+    assert at["cut"] < at["node_lost"] < at["uncut"] < at["node_joined"], report["marks"]
+    assert at["node_lost"] <= at["module_failed_over"] < at["node_joined"], report["marks"]
     late = [s for s in report["samples"] if s["t"] > report["samples"][-1]["t"] - 2]
     assert any(s["links"]["tick.out->scale.x"]["values_per_s"] > 0 for s in late)
