@@ -30,11 +30,16 @@ START_TIMEOUT = 30.0
 RELAY_TIMEOUT = 2.0
 ROBOT_OPS = ("drive", "stop", "sensors", "camera", "inject", "clear", "swap", "advance")
 MAX_ADVANCE_S = 10.0          # simulated seconds one ``advance`` may ask for
+TICK_S = 0.005                # s of wall time a paced world steps at most 200 times a second
 
 
 class WorldServer:
     """A world stepped at ``rate`` times real time, and its robots' requests answered
-    between two physics steps.
+    between two world steps.
+
+    A world step is one physics step (10 ms) up to twice real time; faster, it is the
+    whole number of physics steps nearest 5 ms of wall time (four at 8x), taken in
+    one round trip to each hardware robot's emulator, not one per physics step.
 
     With ``lockstep`` the world does not step by itself: it advances only when a
     controller asks (``advance``, ``dt`` simulated seconds, answered with the world's
@@ -67,11 +72,12 @@ class WorldServer:
             with self._lock:                   # (the rate is read with the world: a
                 rate = self.rate               # world held by ``pace`` steps no more)
                 if rate:
-                    self.world.step(PHYSICS_DT)
+                    steps = max(1, round(TICK_S * rate / PHYSICS_DT))
+                    self.world.step(steps * PHYSICS_DT)
             if not rate:                       # held: no simulated time passes
                 self._paced.wait()
                 continue
-            next_at += PHYSICS_DT / rate
+            next_at += steps * PHYSICS_DT / rate
             # a real-time loop: wait for the next tick (or a new pace), never drift
             self._paced.wait(max(0.0, next_at - time.monotonic()))
 
