@@ -28,7 +28,8 @@ log = logging.getLogger("rave.server")
 _context = multiprocessing.get_context("spawn")
 START_TIMEOUT = 30.0
 RELAY_TIMEOUT = 2.0
-ROBOT_OPS = ("drive", "stop", "sensors", "camera", "inject", "clear", "swap", "advance")
+ROBOT_OPS = ("drive", "stop", "sensors", "camera", "inject", "clear", "swap", "advance",
+             "cycle")
 MAX_ADVANCE_S = 10.0          # simulated seconds one ``advance`` may ask for
 TICK_S = 0.005                # s of wall time a paced world steps at most 200 times a second
 
@@ -45,7 +46,9 @@ class WorldServer:
     controller asks (``advance``, ``dt`` simulated seconds, answered with the world's
     time once done), so a simulated experiment runs exactly as fast as its controllers
     decide, faster than real time on a fast machine and never ahead of them. Meant for
-    one controlling client (several would each advance the shared clock)."""
+    one controlling client (several would each advance the shared clock). ``cycle`` is
+    a lock-step controller's whole turn in one request: drive by ``v`` and ``w`` if
+    given, advance ``dt``, and answer with the robot's readings then."""
 
     def __init__(self, world: World, host: str = "127.0.0.1", port: int = 0,
                  rate: float = 1.0, lockstep: bool = False) -> None:
@@ -105,6 +108,14 @@ class WorldServer:
             robot = self.world.robot(args.pop("robot"))
             if op == "advance":
                 return self._advance(float(args.get("dt", PHYSICS_DT)))
+            if op == "cycle":
+                if ("v" in args) != ("w" in args):
+                    raise ValueError("cycle: give both v and w (drive, then advance), or "
+                                     "neither (advance on the command in force)")
+                if "v" in args:
+                    _apply(robot, "drive", args, self.world.time)
+                self._advance(float(args.get("dt", PHYSICS_DT)))
+                op = "sensors"
             return _apply(robot, op, args, self.world.time)
 
     def _advance(self, dt: float) -> float:

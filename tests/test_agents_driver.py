@@ -14,8 +14,8 @@ from pb3a.testing import ModuleHarness
 
 
 class FakeRobotServer:
-    """A robot server's client: records requests, answers ``sensors`` with the time
-    of a world that ``advance`` moves on."""
+    """A robot server's client: records requests, answers ``sensors`` (and
+    ``cycle``) with the time of a world that ``advance`` (and ``cycle``) moves on."""
 
     requests: list[tuple[str, dict[str, Any]]] = []
     time = 0.0
@@ -25,10 +25,11 @@ class FakeRobotServer:
 
     def call(self, op: str, timeout: float, **args: Any) -> Any:
         self.requests.append((op, args))
-        if op == "advance":
+        if op in ("advance", "cycle"):
             FakeRobotServer.time += args["dt"]
-            return FakeRobotServer.time
-        if op == "sensors":
+            if op == "advance":
+                return FakeRobotServer.time
+        if op in ("sensors", "cycle"):
             return {"time": FakeRobotServer.time, "sonar": [1.0] * 16, "odometry": [0.0] * 3,
                     "gps": [0.0] * 3, "velocity": [0.0] * 3}
         return None
@@ -105,9 +106,16 @@ def test_in_lockstep_every_command_advances_the_world_once(robot) -> None:
     for _ in range(3):
         harness.feed("command", np.array([0.3, 0.0]))
     harness.step()                   # commands come: the period adds nothing
-    assert ops(robot)[1:] == ["drive", "advance", "sensors"] * 3
+    # each in one request: drive, advance, read
+    assert robot.requests[1:] == [("cycle", {"dt": 0.25, "v": 0.3, "w": 0.0})] * 3
     assert harness.written["clock"] == [0.0, 0.25, 0.5, 0.75]
     assert [list(a) for a in harness.written["applied"][1:]] == [[0.3, 0.0]] * 3
+    harness.module.set_state({"enabled": False})       # stopped, and the world goes on
+    robot.requests.clear()
+    harness.feed("command", np.array([0.3, 0.0]))
+    assert ops(robot) == ["stop", "cycle"] and robot.requests[1][1] == {"dt": 0.25}
+    assert harness.written["clock"][-1] == 1.0
+    assert list(harness.written["applied"][-1]) == [0.0, 0.0]
 
 
 def test_a_running_driver_re_pointed_at_another_robot_reads_it_at_once(robot) -> None:

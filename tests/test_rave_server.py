@@ -76,6 +76,15 @@ def test_a_lockstep_world_advances_only_when_its_controller_asks() -> None:
         assert after["gps"][0] == pytest.approx(before["gps"][0] + 1.0, abs=0.02)
         with pytest.raises(RuntimeFailure, match="dt must be between 0 and 10"):
             r1.call("advance", dt=-1.0)
+        # a controller's turn in one request: drive, advance, and the readings then
+        turned = r1.call("cycle", dt=1.0, v=0.0, w=0.5)
+        assert turned["time"] == pytest.approx(3.0)
+        assert turned["gps"][:2] == pytest.approx(r1.call("sensors")["gps"][:2])
+        assert turned["gps"][0] == pytest.approx(after["gps"][0], abs=0.02)  # on the spot
+        assert turned["gps"][2] == pytest.approx(after["gps"][2] + 0.5, abs=0.02)
+        assert r1.call("cycle", dt=0.5)["time"] == pytest.approx(3.5)  # the command holds
+        with pytest.raises(RuntimeFailure, match="give both v and w"):
+            r1.call("cycle", dt=0.1, v=0.2)
     finally:
         r1.close()
         robots.close()
