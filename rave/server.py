@@ -31,7 +31,7 @@ RELAY_TIMEOUT = 2.0
 ROBOT_OPS = ("drive", "stop", "sensors", "camera", "inject", "clear", "swap", "advance",
              "cycle")
 MAX_ADVANCE_S = 10.0          # simulated seconds one ``advance`` may ask for
-TICK_S = 0.005                # s of wall time a paced world steps at most 200 times a second
+TICK_S = 0.005                # s of wall time between a fast-paced world's steps (about)
 
 
 class WorldServer:
