@@ -12,13 +12,13 @@ ignored, while its sensors are still read out.
 
 Against a world served in lock-step (``rave start --lockstep``), set ``lockstep_s``:
 each command then drives the robot, advances the world by ``lockstep_s`` simulated
-seconds and answers with the new readings (one ``cycle`` request), so the world moves exactly as fast as the
-controller decides. A controller that waits for a first reading gets one every
-``period`` until commands come. ``clock`` carries the world's time of each reading,
-for controllers that must keep time by the world rather than the wall clock, and
-``applied`` the command that moved the robot up to those readings, for monitors that
-compare commanded with measured motion. A command is sent to the robot as it comes,
-not at the driver's next period.
+seconds and answers with the new readings (one ``cycle`` request), so the world moves
+exactly as fast as the controller decides. A controller that waits for a first reading
+gets one every ``period`` until commands come. ``clock`` carries the world's time of
+each reading, for controllers that must keep time by the world rather than the wall
+clock, and ``applied`` the command that moved the robot up to those readings, for
+monitors that compare commanded with measured motion. A command is sent to the robot
+as it comes, not at the driver's next period.
 """
 
 from __future__ import annotations
