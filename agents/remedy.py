@@ -151,7 +151,9 @@ class RemedyAgent(Agent):
 
     failure = Input(dict, policy="queue:64")     # {"fault", "probability", "at", "detail"}
     # {"event": "chosen" | "worked" | "failed", "at", "fault", "action", "remedy", "case"
-    # ("" for the fallback stop), "similarity", "reason" (cases passed over), "outcome"};
+    # ("" for the fallback stop), "similarity", "reason" (cases passed over), "outcome",
+    # and for a move the agent saw end, "move": {"prepare_s", "pause_s", "seen_done_s"}
+    # (its MigrationReport's, and when the agent saw it done after choosing it)};
     # or {"event": "not_saved", "at", "reason"} when the case file cannot be written
     remedy = Output(dict)
     period = 0.2
@@ -293,8 +295,11 @@ class RemedyAgent(Agent):
                 if not self._pending.done():
                     moved = False
                 else:
-                    self._pending.result(0.0)     # raises if the move failed
+                    report = self._pending.result(0.0)     # raises if the move failed
                     moved = True
+                    self.action["move"] = {"prepare_s": round(report.prepare_s, 4),
+                                           "pause_s": round(report.pause_s, 4),
+                                           "seen_done_s": round(now - self.action["started"], 4)}
             else:
                 moved = self.runtime.where(remedy["driver"]) == remedy["to"]
             if not moved:
@@ -354,4 +359,5 @@ class RemedyAgent(Agent):
         self.remedy.write({"event": event, "at": now, "fault": action["failure"].get("fault"),
                            "action": action["remedy"]["action"], "remedy": action["remedy"],
                            "case": action["case"], "similarity": action["similarity"],
-                           "reason": action["reason"], "outcome": action.get("outcome", "")})
+                           "reason": action["reason"], "outcome": action.get("outcome", ""),
+                           **({"move": action["move"]} if "move" in action else {})})

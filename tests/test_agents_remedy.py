@@ -15,7 +15,7 @@ import pytest
 import agents.remedy as remedy_module
 from agents.case_base import AdaptationError, Case, CaseBase, CaseFileError, Match, adapt
 from agents.remedy import SHIPPED_CASES, RemedyAgent, SystemView, check_remedy, plan
-from pb3a import RuntimeFailure
+from pb3a import MigrationReport, RuntimeFailure
 from pb3a.testing import ModuleHarness
 
 SONAR_FREE = "agents.explorer:SonarFreeExplorer"
@@ -310,7 +310,9 @@ class FakeRuntime:
             if name.startswith("control/"):
                 module.node = to
         self.driver.update(self.arriving.get("control/driver", {}))     # set on arrival
-        self.moves[-1].outcome = ("done", "report")
+        self.moves[-1].outcome = ("done", MigrationReport("control", "r1", to, pause_s=0.15,
+                                                          state_bytes=1, links=15,
+                                                          prepare_s=0.1))
 
     def where(self, name: str) -> str:
         return self.modules[name].node
@@ -394,6 +396,10 @@ def test_motors_failure_moves_the_macro_with_the_driver_re_pointed_on_arrival(tm
     assert len(runtime.calls) == 1
     assert events(harness) == [("chosen", "move_macro", "motors-standby"),
                                ("worked", "move_macro", "motors-standby")]
+    # what the move cost, for a report (the agent saw it done 0.6 s after choosing it)
+    assert harness.written["remedy"][-1]["move"] == {"prepare_s": 0.1, "pause_s": 0.15,
+                                                     "seen_done_s": 0.6}
+    assert "move" not in harness.written["remedy"][0]
     (entry,) = harness.state["history"]
     assert entry["worked"] and entry["ended"] == moved_at
     assert harness.state["action"] == {}
