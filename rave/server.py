@@ -115,7 +115,7 @@ class WorldServer:
                 if "v" in args:
                     _apply(robot, "drive", args, self.world.time)
                 self._advance(float(args.get("dt", PHYSICS_DT)))
-                op = "sensors"
+                return _apply(robot, "sensors", {}, self.world.time)
             return _apply(robot, op, args, self.world.time)
 
     def _advance(self, dt: float) -> float:
