@@ -157,11 +157,13 @@ def test_a_request_naming_a_module_not_imported_yet_waits_for_the_decode_lock() 
     request naming a class of a module not imported yet waits for that, never importing
     beside it (two threads importing through a circular import can get each other's
     half-made modules). A request that names no new module, such as a node's lease
-    heartbeat, is decoded at once, also while a background import runs."""
+    heartbeat, is decoded at once, also while a background import runs, and also while
+    a request that names one waits."""
     importing = threading.Lock()
     server = ControlServer(KEY, handler, decode_lock=importing)
     client = ControlClient(KEY, server.address)
     fresh = "pb3a_test_decoded_later"
+    answers: list[Any] = []
     try:
         with importing:                                    # a background import runs
             assert client.call("add", timeout=2.0, a=1, b=2) == 3
@@ -173,7 +175,14 @@ def test_a_request_naming_a_module_not_imported_yet_waits_for_the_decode_lock() 
             module.Point = collections.namedtuple("Point", "x", module=fresh)
             with pytest.raises(RuntimeTimeout):
                 client.call("add", timeout=0.3, a=module.Point(5), b=0)
+            assert client.ping(1.0) is not None            # heartbeats are not held up
+            waiting = threading.Thread(target=lambda: answers.append(
+                client.call("add", timeout=5.0, a=module.Point(7), b=(1,))))
+            waiting.start()
+            assert client.ping(1.0) is not None
         module.__spec__._initializing = False              # (imported since)
+        waiting.join(5.0)
+        assert answers == [(7, 1)]                         # the waiting one, answered
         assert client.call("add", timeout=2.0, a=(1,), b=(2,)) == (1, 2)
     finally:
         client.close()

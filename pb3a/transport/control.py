@@ -6,7 +6,9 @@ before it is unpickled: an unauthenticated frame is never deserialized. The serv
 takes requests in on its socket loop and runs them one at a time on a handler thread
 (in arrival order, so operations never interleave); ``ping`` and the server's
 ``instant`` operations (a node's lease) are answered at once on the socket thread,
-so heartbeats are not held up by a long operation.
+so heartbeats are not held up by a long operation. Nor by a request that must wait
+for an import before it can be read: the socket thread never waits, it hands such a
+request to the handler thread to be read there.
 
 A request the server cannot open is answered with a plain refusal that names the
 check it failed (another cluster key, clocks apart, an older run), at most once a
@@ -16,7 +18,6 @@ error, so that a wrong key is told apart from a server that does not answer at a
 
 from __future__ import annotations
 
-import contextlib
 import io
 import itertools
 import logging
@@ -77,7 +78,7 @@ class ControlServer:
         CPython may hand one thread a module another is still importing when the two
         imports go through a circular one."""
         self._handler = handler
-        self._decode_lock = decode_lock or contextlib.nullcontext()
+        self._decode_lock = decode_lock or threading.Lock()
         # answered on the socket thread, never queued: they must be quick and never block
         self._instant = {"ping": lambda args: "pong", **(instant or {})}
         self._loop = SocketLoop(f"{name}-io")
@@ -85,7 +86,8 @@ class ControlServer:
         self.address = bind_advertised(self._router, host, port)
         self._sealer = Sealer(key, epoch)
         self._opener = Opener(key, epoch=epoch, max_bytes=MAX_MESSAGE)
-        self._work: queue.SimpleQueue[tuple[Any, bytes, str, dict[str, Any]] | None] = (
+        # (peer, request id, op, args), or with op None the request's pickle, to read
+        self._work: queue.SimpleQueue[tuple[Any, bytes, str | None, Any] | None] = (
             queue.SimpleQueue())
         self._refused_at: dict[bytes, float] = {}      # peer -> when we last told it
         self._worker = threading.Thread(target=self._serve, name=name, daemon=True)
@@ -114,17 +116,24 @@ class ControlServer:
                 continue
             request_id = bytes(message.frames[0])
             try:
-                op, args = _decode(message.frames[1], self._decode_lock)  # authenticated
-            except Exception as exc:       # (a key holder's request: it gets an answer)
-                self._opener.rejected["undecodable"] += 1
-                self._reply(peer, request_id, False,
-                            RuntimeFailure(_undecodable(exc, self.address)))
+                op, args = _decode(message.frames[1], self._decode_lock, wait=False)
+            except _MustWait:
+                self._work.put((peer, request_id, None, message.frames[1]))
+                continue
+            except Exception as exc:
+                self._reply_undecodable(peer, request_id, exc)
                 continue
             answer = self._instant.get(op)
             if answer is not None:
                 self._reply(peer, request_id, True, answer(args))
             else:
                 self._work.put((peer, request_id, op, args))
+
+    def _reply_undecodable(self, peer: Any, request_id: bytes, exc: Exception) -> None:
+        """A key holder's request that cannot be read still gets an answer, saying why."""
+        self._opener.rejected["undecodable"] += 1
+        self._loop.submit(lambda: self._reply(
+            peer, request_id, False, RuntimeFailure(_undecodable(exc, self.address))))
 
     def _refuse(self, peer: Any, reason: str) -> None:
         """Tell an unauthenticated peer which check failed (rate-limited per peer)."""
@@ -141,6 +150,12 @@ class ControlServer:
     def _serve(self) -> None:
         while (item := self._work.get()) is not None:
             peer, request_id, op, args = item
+            if op is None:                 # one the socket thread could not read at once
+                try:
+                    op, args = _decode(args, self._decode_lock, wait=True)
+                except Exception as exc:
+                    self._reply_undecodable(peer, request_id, exc)
+                    continue
             try:
                 result, ok = self._handler(op, args), True
             except PB3AError as exc:               # the caller gets the same error
@@ -283,25 +298,35 @@ class ControlClient:
         self._dealer.close(0)
 
 
-class _RequestUnpickler(pickle.Unpickler):
-    """Unpickles a request, importing a module it names only under ``lock``."""
+class _MustWait(Exception):
+    """A request names a module that another thread is importing."""
 
-    def __init__(self, data: Any, lock: Any) -> None:
+
+class _RequestUnpickler(pickle.Unpickler):
+    """Unpickles a request, importing a module it names only under ``lock``; without
+    ``wait``, a module it would have to wait for ``lock`` to import raises ``_MustWait``."""
+
+    def __init__(self, data: Any, lock: threading.Lock, wait: bool) -> None:
         super().__init__(io.BytesIO(data))
-        self._lock = lock
+        self._lock, self._wait = lock, wait
 
     def find_class(self, module: str, name: str) -> Any:
         loaded = sys.modules.get(module)
         if loaded is None or getattr(getattr(loaded, "__spec__", None), "_initializing",
                                      False):
-            with self._lock:                   # (an import, or one under way elsewhere)
+            # (an import, or one under way elsewhere)
+            if not self._lock.acquire(blocking=self._wait):
+                raise _MustWait(module)
+            try:
                 return super().find_class(module, name)
+            finally:
+                self._lock.release()
         return super().find_class(module, name)
 
 
-def _decode(data: Any, lock: Any) -> Any:
+def _decode(data: Any, lock: threading.Lock, *, wait: bool) -> Any:
     """A request's ``(op, args)``. Only a request that names a module not imported yet
-    waits for ``lock``: a heartbeat, decoded on the socket thread, never waits behind a
-    background import (under load one took longer than a node's lease, and the node
-    fenced itself while its launcher was still starting it)."""
-    return _RequestUnpickler(data, lock).load()
+    takes ``lock``; on the socket thread (``wait`` False) it must not wait for it: a
+    heartbeat behind it would wait for a background import too (under load, longer than
+    a node's lease, and the node was lost while its launcher was still starting it)."""
+    return _RequestUnpickler(data, lock, wait).load()
