@@ -14,6 +14,7 @@ nothing of PB3A's runtime; ``RemedyAgent`` carries the plan out and watches it.
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import time
 from dataclasses import dataclass
@@ -152,8 +153,9 @@ class RemedyAgent(Agent):
     failure = Input(dict, policy="queue:64")     # {"fault", "probability", "at", "detail"}
     # {"event": "chosen" | "worked" | "failed", "at", "fault", "action", "remedy", "case"
     # ("" for the fallback stop), "similarity", "reason" (cases passed over), "outcome",
-    # and for a move the agent saw end, "move": {"prepare_s", "pause_s", "seen_done_s"}
-    # (its MigrationReport's, and when the agent saw it done after choosing it)};
+    # and for a move the agent saw end, "move": {"prepare_s", "pause_s", "phases",
+    # "seen_done_s"} (its MigrationReport's, where the pause went, and when the agent saw
+    # it done after choosing it)};
     # or {"event": "not_saved", "at", "reason"} when the case file cannot be written
     remedy = Output(dict)
     period = 0.2
@@ -297,9 +299,12 @@ class RemedyAgent(Agent):
                 else:
                     report = self._pending.result(0.0)     # raises if the move failed
                     moved = True
-                    self.action["move"] = {"prepare_s": round(report.prepare_s, 4),
-                                           "pause_s": round(report.pause_s, 4),
-                                           "seen_done_s": round(now - self.action["started"], 4)}
+                    self.action["move"] = {
+                        "prepare_s": round(report.prepare_s, 4),
+                        "pause_s": round(report.pause_s, 4),
+                        "phases": {name: round(value, 4) for name, value
+                                   in dataclasses.asdict(report.phases).items()},
+                        "seen_done_s": round(now - self.action["started"], 4)}
             else:
                 moved = self.runtime.where(remedy["driver"]) == remedy["to"]
             if not moved:

@@ -16,6 +16,7 @@ import agents.remedy as remedy_module
 from agents.case_base import AdaptationError, Case, CaseBase, CaseFileError, Match, adapt
 from agents.remedy import SHIPPED_CASES, RemedyAgent, SystemView, check_remedy, plan
 from pb3a import MigrationReport, RuntimeFailure
+from pb3a.launch.migration import MigrationPhases
 from pb3a.testing import ModuleHarness
 
 SONAR_FREE = "agents.explorer:SonarFreeExplorer"
@@ -310,9 +311,11 @@ class FakeRuntime:
             if name.startswith("control/"):
                 module.node = to
         self.driver.update(self.arriving.get("control/driver", {}))     # set on arrival
+        phases = MigrationPhases(unwire_s=0.02, capture_s=0.03, restore_s=0.04,
+                                 rewire_s=0.05, start_s=0.01)
         self.moves[-1].outcome = ("done", MigrationReport("control", "r1", to, pause_s=0.15,
                                                           state_bytes=1, links=15,
-                                                          prepare_s=0.1))
+                                                          phases=phases, prepare_s=0.1))
 
     def where(self, name: str) -> str:
         return self.modules[name].node
@@ -397,8 +400,10 @@ def test_motors_failure_moves_the_macro_with_the_driver_re_pointed_on_arrival(tm
     assert events(harness) == [("chosen", "move_macro", "motors-standby"),
                                ("worked", "move_macro", "motors-standby")]
     # what the move cost, for a report (the agent saw it done 0.6 s after choosing it)
-    assert harness.written["remedy"][-1]["move"] == {"prepare_s": 0.1, "pause_s": 0.15,
-                                                     "seen_done_s": 0.6}
+    assert harness.written["remedy"][-1]["move"] == {
+        "prepare_s": 0.1, "pause_s": 0.15, "seen_done_s": 0.6,
+        "phases": {"unwire_s": 0.02, "capture_s": 0.03, "transfer_s": 0.0,
+                   "restore_s": 0.04, "rewire_s": 0.05, "start_s": 0.01}}
     assert "move" not in harness.written["remedy"][0]
     (entry,) = harness.state["history"]
     assert entry["worked"] and entry["ended"] == moved_at
