@@ -218,9 +218,10 @@ class Mapper(Module):
     """Builds an occupancy map from a robot's sonar ring and its localization pose.
 
     Each reading on ``sonar`` is folded in at the newest pose on ``pose`` (the
-    driver's ``gps``; readings before any pose are ignored). Both come from one
-    driver step, so when the reading is handled first the pose is one step old: at
-    0.1 s and 0.5 m/s, 5 cm, within a cell. The map is written on ``map`` every
+    driver's ``gps``; readings before any pose are ignored). ``RobotDriver`` writes a
+    step's pose before its reading, so that is the reading's own pose; also the first
+    reading from a robot the driver was just pointed at is folded in where that robot
+    stands, not where the last one stood. The map is written on ``map`` every
     ``publish_every`` updates, and every update says when and at which pose it was
     made on ``updated`` (so a watcher knows which robot's reading it was). The state
     holds the map itself (``log_odds``), so a mapper moved to another node, or handed

@@ -17,7 +17,9 @@ exactly as fast as the controller decides. A controller that waits for a first r
 gets one every ``period`` until commands come. ``clock`` carries the world's time of
 each reading, for controllers that must keep time by the world rather than the wall
 clock, and ``applied`` the command that moved the robot up to those readings, for
-monitors that compare commanded with measured motion. A command is sent to the robot
+monitors that compare commanded with measured motion. A step's outputs are written
+``applied``, ``gps``, ``sonar``, ``odometry``, ``clock``: the pose before the
+reading taken there, and the clock last. A command is sent to the robot
 as it comes, not at the driver's next period.
 """
 
@@ -128,10 +130,13 @@ class RobotDriver(Driver):
         sensed = {key: np.asarray(answer[key], dtype=np.float64)
                   for key in ("sonar", "odometry", "gps")}
         self._read_at = time.monotonic()
+        # In this order: a consumer that takes the pose at each reading (a mapper) has
+        # the reading's own pose by then, and one that waits for a whole step's readings
+        # (a monitor, a learner) waits for ``clock``, written last.
         self.applied.write(before)
+        self.gps.write(sensed["gps"])
         self.sonar.write(sensed["sonar"])
         self.odometry.write(sensed["odometry"])
-        self.gps.write(sensed["gps"])
         self.clock.write(float(answer["time"]))
         if blobs is not None:
             self.camera.write(blobs)
