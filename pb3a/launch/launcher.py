@@ -216,26 +216,38 @@ class Launcher:
         self.links[link.key] = link
         self.attach(link)
 
-    def attach(self, link: FlatLink) -> None:
-        """Wire a known link where its ends run now: shared memory or in memory inside a
-        node; across nodes, the reader's ring first, then the writer publishes, then
-        the reader follows (so nothing published is missed)."""
-        if not self.remote(link):
-            self.node_of(link.src).connect(link)
-            return
-        reader, writer = self.node_of(link.dst), self.node_of(link.src)
-        reader.open_inbound(link, ring_size(self.specs[link.src].cls, link.src_port,
-                                            link.policy))
-        reader.follow(link, writer.publish(link))
+    def attach(self, *links: FlatLink) -> None:
+        """Wire known links where their ends run now: shared memory or in memory inside
+        a node, one request to the node for all of its own; across nodes, the reader's
+        ring first, then the writer publishes, then the reader follows (so nothing
+        published is missed)."""
+        for node, inside in self._by_node(links).items():
+            self.nodes[node].connect(inside)
+        for link in links:
+            if self.remote(link):
+                reader, writer = self.node_of(link.dst), self.node_of(link.src)
+                reader.open_inbound(link, ring_size(self.specs[link.src].cls,
+                                                    link.src_port, link.policy))
+                reader.follow(link, writer.publish(link))
 
-    def detach(self, link: FlatLink) -> None:
-        """Unwire a link (it stays known): the writer stops first, then the reader takes
-        in everything still on the way."""
-        if not self.remote(link):
-            self.node_of(link.src).detach(link)
-            return
-        reached = self.node_of(link.src).unpublish(link)
-        self.node_of(link.dst).close_inbound(link, reached)
+    def detach(self, *links: FlatLink) -> None:
+        """Unwire links (they stay known): each writer stops first, then its reader
+        takes in everything still on the way; one request to a node for all the links
+        inside it."""
+        for node, inside in self._by_node(links).items():
+            self.nodes[node].detach(inside)
+        for link in links:
+            if self.remote(link):
+                reached = self.node_of(link.src).unpublish(link)
+                self.node_of(link.dst).close_inbound(link, reached)
+
+    def _by_node(self, links: tuple[FlatLink, ...]) -> dict[str, list[FlatLink]]:
+        """The links with both ends on one node, by node."""
+        inside: dict[str, list[FlatLink]] = {}
+        for link in links:
+            if not self.remote(link):
+                inside.setdefault(self.specs[link.src].node, []).append(link)
+        return inside
 
     def disconnect(self, key: str) -> None:
         """Unwire a link and forget it."""

@@ -121,8 +121,7 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
             try:
                 for name in moving:
                     launcher.nodes[homes[name].node].pause(name, 5.0)
-                for link in links:
-                    launcher.detach(link)
+                launcher.detach(*links)
                 laps.mark("unwire")
                 for name in moving:
                     leaving = launcher.nodes[homes[name].node]
@@ -213,8 +212,7 @@ def _land(launcher: Launcher, snapshots: dict[str, Snapshot], links: list[FlatLi
             launcher.call(name, "set_state", state=arriving[name])
             restore_s += time.perf_counter() - started
     laps.mark("land")
-    for link in links:
-        launcher.attach(link)
+    launcher.attach(*links)
     laps.mark("rewire")
     starting: dict[str, list[str]] = {}
     for name in snapshots:

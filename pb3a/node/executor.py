@@ -60,6 +60,16 @@ class ModuleRecord:
     restarts: int = 0
 
 
+@dataclass(frozen=True)
+class _Request:
+    """One request to a worker, to be sent beside others (``Executor._side_by_side``)."""
+
+    worker: str
+    op: str
+    args: dict[str, Any]
+    fd: int | None = None             # a descriptor sent right behind it
+
+
 class Executor:
     """Runs one node's modules in worker processes on this machine; thread-safe; every
     request has a deadline."""
@@ -324,47 +334,80 @@ class Executor:
                 self.call(key, "forget", module=module)
 
     # -- links with both ends here ---------------------------------------------
-    def connect(self, link: FlatLink) -> None:
-        """Wire one link: in memory inside a worker, else through a new ring."""
-        self.links[link.key] = link
-        self._attach_reader(link)
-        self._attach_writer(link)
+    def connect(self, links: list[FlatLink]) -> None:
+        """Wire links: in memory inside a worker, else through a new ring. Every
+        reader is attached before any writer, and the workers are asked side by side:
+        a macro's links are wired at once, not one worker request after another."""
+        for link in links:
+            self.links[link.key] = link
+        self._side_by_side([self._reader_request(link) for link in links])
+        self._side_by_side([self._writer_request(link) for link in links])
 
-    def _attach_reader(self, link: FlatLink) -> None:
-        """The reading side: attach the link's ring (created here) in the reader's worker."""
+    def _reader_request(self, link: FlatLink) -> _Request | None:
+        """The reading side: attach the link's ring (created here) in the reader's worker
+        (none for a link inside one worker)."""
         src, dst = self.modules[link.src], self.modules[link.dst]
         if src.worker == dst.worker:
-            return
+            return None
         ring = self._ring(link.key, ring_size(src.spec.cls, link.src_port, link.policy))
-        self.call(dst.worker, "link_in", key=link.key, dst=link.dst, dst_port=link.dst_port,
-                  ring=ring.name, policy=str(link.policy))
+        return _Request(dst.worker, "link_in", {
+            "key": link.key, "dst": link.dst, "dst_port": link.dst_port, "ring": ring.name,
+            "policy": str(link.policy)})
 
-    def _attach_writer(self, link: FlatLink) -> None:
+    def _writer_request(self, link: FlatLink) -> _Request:
         """The writing side: connect the output to the ring, or straight to the input."""
         src, dst = self.modules[link.src], self.modules[link.dst]
         if src.worker == dst.worker:
-            self.call(src.worker, "link_out", key=link.key, src=link.src, src_port=link.src_port,
-                      dst=link.dst, dst_port=link.dst_port, policy=str(link.policy))
-        else:
-            self.call(src.worker, "link_out", key=link.key, src=link.src, src_port=link.src_port,
-                      ring=self.rings[link.key].name, _fd=self.workers[dst.worker].bell)
+            return _Request(src.worker, "link_out", {
+                "key": link.key, "src": link.src, "src_port": link.src_port, "dst": link.dst,
+                "dst_port": link.dst_port, "policy": str(link.policy)})
+        return _Request(src.worker, "link_out", {
+            "key": link.key, "src": link.src, "src_port": link.src_port,
+            "ring": self.rings[link.key].name}, fd=self.workers[dst.worker].bell)
 
-    def detach(self, link: FlatLink) -> None:
-        """Unwire a link: the writer stops first, then the reader takes in everything
-        still on the way, so a new wiring cannot overtake it."""
-        self.links.pop(link.key, None)
-        src = self.modules.get(link.src)
-        if src is not None and self._alive(src.worker):
-            self.call(src.worker, "unlink_out", key=link.key)
-        self._unlink_in(link)
+    def detach(self, links: list[FlatLink]) -> None:
+        """Unwire links: every writer stops first, then every reader takes in everything
+        still on the way, so a new wiring cannot overtake it (the workers asked side by
+        side, as in ``connect``)."""
+        for link in links:
+            self.links.pop(link.key, None)
+        writers = [self.modules.get(link.src) for link in links]
+        self._side_by_side([_Request(src.worker, "unlink_out", {"key": link.key})
+                            for link, src in zip(links, writers, strict=True)
+                            if src is not None and self._alive(src.worker)])
+        self._side_by_side([self._unlink_in_request(link) for link in links])
+        for link in links:
+            self._close_ring(link)
 
     def _unlink_in(self, link: FlatLink) -> None:
+        self._side_by_side([self._unlink_in_request(link)])
+        self._close_ring(link)
+
+    def _unlink_in_request(self, link: FlatLink) -> _Request | None:
         dst = self.modules.get(link.dst)
-        if dst is not None and self._alive(dst.worker):
-            self.call(dst.worker, "unlink_in", key=link.key)
+        if dst is None or not self._alive(dst.worker):
+            return None
+        return _Request(dst.worker, "unlink_in", {"key": link.key})
+
+    def _close_ring(self, link: FlatLink) -> None:
         ring = self.rings.pop(link.key, None)
         if ring is not None:
             ring.close()
+
+    def _side_by_side(self, requests: list[_Request | None]) -> None:
+        """Send every request (None: nothing to do), then wait for every answer; the
+        first error, once all have answered. A worker takes its requests in order."""
+        sent = [(request, self.workers.submit(request.worker, request.op, _fd=request.fd,
+                                              **request.args))
+                for request in requests if request is not None]
+        failure: BaseException | None = None
+        for request, future in sent:
+            try:
+                self.workers.result(future, request.op, request.worker, REQUEST_TIMEOUT)
+            except (RuntimeFailure, RuntimeTimeout) as exc:
+                failure = failure or exc
+        if failure is not None:
+            raise failure
 
     def _ring(self, key: str, size: RingSize | None) -> ShmRing:
         ring = self.rings.get(key)
@@ -581,12 +624,10 @@ class Executor:
     def _rewire(self, revived: set[str]) -> None:
         """Attach every link of restarted modules again, in the worker that replaced theirs."""
         links = list(self.links.values())
-        for link in links:
-            if link.dst in revived and self.modules[link.src].status != "failed":
-                self._attach_reader(link)
-        for link in links:
-            if link.src in revived and self.modules[link.dst].status != "failed":
-                self._attach_writer(link)
+        self._side_by_side([self._reader_request(link) for link in links
+                            if link.dst in revived and self.modules[link.src].status != "failed"])
+        self._side_by_side([self._writer_request(link) for link in links
+                            if link.src in revived and self.modules[link.dst].status != "failed"])
         for link in list(self.inbound.values()):
             if link.dst in revived:
                 self.open_inbound(link, None)          # the ring is kept: no size needed

@@ -82,11 +82,13 @@ class Node(Protocol):
         """Drop cached copies of Python module ``module`` here and in every worker."""
 
     # -- links with both ends on this node
-    def connect(self, link: FlatLink) -> None:
-        """Wire a link: in memory inside a worker, else through a new ring."""
+    def connect(self, links: list[FlatLink]) -> None:
+        """Wire links: in memory inside a worker, else through a new ring; in one
+        request however many they are."""
 
-    def detach(self, link: FlatLink) -> None:
-        """Unwire a link: the writer stops, then the reader takes in what is on the way."""
+    def detach(self, links: list[FlatLink]) -> None:
+        """Unwire links: the writers stop, then the readers take in what is on the way;
+        in one request however many they are."""
 
     # -- remote links, one half on each node
     def ready_to_publish(self, name: str) -> None:

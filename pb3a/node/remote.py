@@ -167,11 +167,11 @@ class RemoteNode:
     def forget(self, module: str) -> None:
         self._forward("forget", module)
 
-    def connect(self, link: FlatLink) -> None:
-        self._forward("connect", link)
+    def connect(self, links: list[FlatLink]) -> None:
+        self._forward("connect", links)
 
-    def detach(self, link: FlatLink) -> None:
-        self._forward("detach", link)
+    def detach(self, links: list[FlatLink]) -> None:
+        self._forward("detach", links)
 
     def ready_to_publish(self, name: str) -> None:
         self._forward("ready_to_publish", name)
