@@ -371,23 +371,23 @@ class Executor:
         side, as in ``connect``)."""
         for link in links:
             self.links.pop(link.key, None)
-        writers = [self.modules.get(link.src) for link in links]
-        self._side_by_side([_Request(src.worker, "unlink_out", {"key": link.key})
-                            for link, src in zip(links, writers, strict=True)
-                            if src is not None and self._alive(src.worker)])
-        self._side_by_side([self._unlink_in_request(link) for link in links])
+        self._side_by_side([self._unlink_request(link, link.src, "unlink_out")
+                            for link in links])
+        self._side_by_side([self._unlink_request(link, link.dst, "unlink_in")
+                            for link in links])
         for link in links:
             self._close_ring(link)
 
     def _unlink_in(self, link: FlatLink) -> None:
-        self._side_by_side([self._unlink_in_request(link)])
+        self._side_by_side([self._unlink_request(link, link.dst, "unlink_in")])
         self._close_ring(link)
 
-    def _unlink_in_request(self, link: FlatLink) -> _Request | None:
-        dst = self.modules.get(link.dst)
-        if dst is None or not self._alive(dst.worker):
+    def _unlink_request(self, link: FlatLink, module: str, op: str) -> _Request | None:
+        """``op`` for ``link`` to the worker of one of its ends (none if it is gone)."""
+        record = self.modules.get(module)
+        if record is None or not self._alive(record.worker):
             return None
-        return _Request(dst.worker, "unlink_in", {"key": link.key})
+        return _Request(record.worker, op, {"key": link.key})
 
     def _close_ring(self, link: FlatLink) -> None:
         ring = self.rings.pop(link.key, None)
@@ -395,15 +395,18 @@ class Executor:
             ring.close()
 
     def _side_by_side(self, requests: list[_Request | None]) -> None:
-        """Send every request (None: nothing to do), then wait for every answer; the
-        first error, once all have answered. A worker takes its requests in order."""
+        """Send every request (None: nothing to do), then wait for every answer, all
+        within one ``REQUEST_TIMEOUT``; the first error, once all have answered or the
+        time is up. A worker takes its requests in order."""
         sent = [(request, self.workers.submit(request.worker, request.op, _fd=request.fd,
                                               **request.args))
                 for request in requests if request is not None]
+        deadline = time.monotonic() + REQUEST_TIMEOUT
         failure: BaseException | None = None
         for request, future in sent:
             try:
-                self.workers.result(future, request.op, request.worker, REQUEST_TIMEOUT)
+                self.workers.result(future, request.op, request.worker,
+                                    max(0.0, deadline - time.monotonic()))
             except (RuntimeFailure, RuntimeTimeout) as exc:
                 failure = failure or exc
         if failure is not None:
