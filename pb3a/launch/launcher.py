@@ -211,10 +211,11 @@ class Launcher:
                     self.node_of(name).resume(name)
 
     # -- links ------------------------------------------------------------------------
-    def connect(self, link: FlatLink) -> None:
-        """Add and wire a link."""
-        self.links[link.key] = link
-        self.attach(link)
+    def connect(self, *links: FlatLink) -> None:
+        """Add and wire links (those inside one node in one request to it)."""
+        for link in links:
+            self.links[link.key] = link
+        self.attach(*links)
 
     def attach(self, *links: FlatLink) -> None:
         """Wire known links where their ends run now: shared memory or in memory inside

@@ -257,8 +257,7 @@ class Operations:
             links = [link for link in launcher.links.values() if name in (link.src, link.dst)]
             launcher.remove_module(name)
             launcher.add_module(spec)
-            for link in links:
-                launcher.connect(link)
+            launcher.connect(*links)
             launcher.node_of(name).start_modules([name])
         self.events.record("module_restarted", name, node=spec.node, reason="asked")
 

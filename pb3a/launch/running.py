@@ -70,8 +70,7 @@ class Running(SystemHandle):
                 launcher.expect(list(self.plan.modules.values()))
                 for spec in self.plan.modules.values():
                     launcher.add_module(spec)
-                for link in self.plan.links:
-                    launcher.connect(link)
+                launcher.connect(*self.plan.links)
             for name in self.plan.modules:
                 with contextlib.suppress(ModuleNotFound):     # an agent removed it meanwhile
                     launcher.node_of(name).start_modules([name])
