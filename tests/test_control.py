@@ -190,3 +190,37 @@ def test_a_request_naming_a_module_not_imported_yet_waits_for_the_decode_lock() 
         sys.modules.pop(fresh, None)
 
 
+
+
+def test_a_request_naming_a_module_not_imported_yet_is_imported_off_the_socket_thread(
+        tmp_path, monkeypatch) -> None:
+    """A request that needs an import is handed to the handler thread unread, also when
+    no background import holds the lock: an import on the socket thread would hold up
+    the heartbeats behind it for as long as it takes."""
+    name = "pb3a_test_slow_import"
+    importing = tmp_path / "importing"
+    (tmp_path / f"{name}.py").write_text(
+        f"import pathlib, time\npathlib.Path({str(importing)!r}).touch()\ntime.sleep(1.5)\n"
+        "class Thing:\n    pass\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    # the request's pickle names the class, which this process has not imported
+    fake = types.ModuleType(name)
+    fake.Thing = type("Thing", (), {"__module__": name})
+    monkeypatch.setitem(sys.modules, name, fake)
+    blob = pickle.dumps(("add", {"a": fake.Thing, "b": 0}))
+    del sys.modules[name]
+    server = ControlServer(KEY, handler, decode_lock=threading.Lock())
+    client = ControlClient(KEY, server.address)
+    sender = zmq.Context.instance().socket(zmq.DEALER)
+    sender.setsockopt(zmq.LINGER, 0)
+    sender.connect(server.address)
+    try:
+        sender.send_multipart(Sealer(KEY).seal(REQUEST, [b"\2" * 8, blob]))
+        eventually(importing.exists, what="the module's import under way")
+        assert client.ping(0.5) is not None                # answered meanwhile
+        assert sender.poll(5000)                           # the request's answer, later
+    finally:
+        sender.close(0)
+        client.close()
+        server.close()
+        sys.modules.pop(name, None)

@@ -6,9 +6,9 @@ before it is unpickled: an unauthenticated frame is never deserialized. The serv
 takes requests in on its socket loop and runs them one at a time on a handler thread
 (in arrival order, so operations never interleave); ``ping`` and the server's
 ``instant`` operations (a node's lease) are answered at once on the socket thread,
-so heartbeats are not held up by a long operation. Nor by a request that must wait
-for an import before it can be read: the socket thread never waits, it hands such a
-request to the handler thread to be read there.
+so heartbeats are not held up by a long operation. Nor by a request that names a
+module not imported yet: the socket thread never imports, it hands such a request to
+the handler thread to be read there.
 
 A request the server cannot open is answered with a plain refusal that names the
 check it failed (another cluster key, clocks apart, an older run), at most once a
@@ -18,6 +18,7 @@ error, so that a wrong key is told apart from a server that does not answer at a
 
 from __future__ import annotations
 
+import contextlib
 import io
 import itertools
 import logging
@@ -78,7 +79,7 @@ class ControlServer:
         CPython may hand one thread a module another is still importing when the two
         imports go through a circular one."""
         self._handler = handler
-        self._decode_lock = decode_lock or threading.Lock()
+        self._decode_lock = decode_lock or contextlib.nullcontext()
         # answered on the socket thread, never queued: they must be quick and never block
         self._instant = {"ping": lambda args: "pong", **(instant or {})}
         self._loop = SocketLoop(f"{name}-io")
@@ -116,8 +117,8 @@ class ControlServer:
                 continue
             request_id = bytes(message.frames[0])
             try:
-                op, args = _decode(message.frames[1], self._decode_lock, wait=False)
-            except _MustWait:
+                op, args = _decode(message.frames[1], self._decode_lock, may_import=False)
+            except _MustImport:
                 self._work.put((peer, request_id, None, message.frames[1]))
                 continue
             except Exception as exc:
@@ -152,7 +153,7 @@ class ControlServer:
             peer, request_id, op, args = item
             if op is None:                 # one the socket thread could not read at once
                 try:
-                    op, args = _decode(args, self._decode_lock, wait=True)
+                    op, args = _decode(args, self._decode_lock, may_import=True)
                 except Exception as exc:
                     self._reply_undecodable(peer, request_id, exc)
                     continue
@@ -298,35 +299,33 @@ class ControlClient:
         self._dealer.close(0)
 
 
-class _MustWait(Exception):
-    """A request names a module that another thread is importing."""
+class _MustImport(Exception):
+    """A request names a module not imported yet (or still being imported)."""
 
 
 class _RequestUnpickler(pickle.Unpickler):
-    """Unpickles a request, importing a module it names only under ``lock``; without
-    ``wait``, a module it would have to wait for ``lock`` to import raises ``_MustWait``."""
+    """Unpickles a request, importing a module it names only under ``lock``, and only
+    if it ``may_import``: otherwise such a module raises ``_MustImport``."""
 
-    def __init__(self, data: Any, lock: threading.Lock, wait: bool) -> None:
+    def __init__(self, data: Any, lock: Any, may_import: bool) -> None:
         super().__init__(io.BytesIO(data))
-        self._lock, self._wait = lock, wait
+        self._lock, self._may_import = lock, may_import
 
     def find_class(self, module: str, name: str) -> Any:
         loaded = sys.modules.get(module)
         if loaded is None or getattr(getattr(loaded, "__spec__", None), "_initializing",
                                      False):
-            # (an import, or one under way elsewhere)
-            if not self._lock.acquire(blocking=self._wait):
-                raise _MustWait(module)
-            try:
+            if not self._may_import:
+                raise _MustImport(module)
+            with self._lock:                   # (an import, or one under way elsewhere)
                 return super().find_class(module, name)
-            finally:
-                self._lock.release()
         return super().find_class(module, name)
 
 
-def _decode(data: Any, lock: threading.Lock, *, wait: bool) -> Any:
+def _decode(data: Any, lock: Any, *, may_import: bool) -> Any:
     """A request's ``(op, args)``. Only a request that names a module not imported yet
-    takes ``lock``; on the socket thread (``wait`` False) it must not wait for it: a
-    heartbeat behind it would wait for a background import too (under load, longer than
-    a node's lease, and the node was lost while its launcher was still starting it)."""
-    return _RequestUnpickler(data, lock, wait).load()
+    imports it, under ``lock``, and never on the socket thread (``may_import`` False): an
+    import there, or a wait for a background one, held up the heartbeats behind it (under
+    load longer than a node's lease, and the node was lost while its launcher was still
+    starting it)."""
+    return _RequestUnpickler(data, lock, may_import).load()
