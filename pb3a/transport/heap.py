@@ -18,7 +18,6 @@ Only glibc has ``mallopt``; elsewhere this does nothing.
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import functools
 
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3     # glibc's malloc.h
@@ -30,10 +29,9 @@ MMAP_BYTES = 32 * 1024 * 1024                   # larger buffers are mapped on t
 @functools.cache
 def keep_freed_buffers() -> bool:
     """Set the thresholds, once per process; False where that is not possible."""
-    name = ctypes.util.find_library("c")
-    if name is None:
-        return False
-    libc = ctypes.CDLL(name)
+    # the process's own symbols, libc's among them: ``ctypes.util.find_library`` would
+    # run ``ldconfig`` in a subprocess, milliseconds inside a migration's preparation
+    libc = ctypes.CDLL(None)
     if not hasattr(libc, "gnu_get_libc_version") or not hasattr(libc, "mallopt"):
         return False
     return bool(libc.mallopt(M_MMAP_THRESHOLD, MMAP_BYTES)
