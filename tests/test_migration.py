@@ -4,7 +4,10 @@
 from __future__ import annotations
 
 import dataclasses
+import os
+import signal
 
+import psutil
 import pytest
 from conftest import assert_same_arrays, eventually
 from sample_modules import Collector, Counter, Hoard, Relay, RelayPair, Shepherd, Wanderer
@@ -246,6 +249,27 @@ def test_a_macro_that_cannot_be_readied_stays_and_leaves_no_worker_behind(monkey
                            timeout=30, what="every value through the pair")
     assert state["out_of_order"] == 0 and state["duplicates"] == 0
     assert state["last"] == state["received"]
+
+
+def test_a_module_that_arrives_takes_a_booted_spare_and_a_dead_spare_is_only_forgotten(
+        ) -> None:
+    with _through("move-spare", "relay", Relay).launch() as run:
+        pool = run._launcher.nodes["b"].workers
+        spares = eventually(lambda: len(pids := pool.spare_pids()) == 2 and pids,
+                            what="two spare workers booted at b")
+        os.kill(spares[0], signal.SIGKILL)
+        eventually(lambda: pool.spare_pids() == spares[1:], what="the dead spare forgotten")
+        run.migrate("relay", to="b")
+        assert pool["b/m-relay"].pid == spares[1]           # booted before the move
+        booted = eventually(lambda: len(pids := pool.spare_pids()) == 2 and pids,
+                            what="b's spares booted again")
+        before = run.state("relay")["relayed"]
+        state = eventually(lambda: (s := run.state("sink"))["received"] > before + 20 and s,
+                           what="values through the relay at b")
+        assert not [e for e in run.events() if e.kind in ("module_failed", "module_restarted")]
+    assert spares[1] not in booted and state["out_of_order"] == 0 and state["duplicates"] == 0
+    assert not [pid for pid in booted if psutil.pid_exists(pid)
+                and psutil.Process(pid).status() != psutil.STATUS_ZOMBIE]   # stopped with b
 
 
 def test_a_move_without_waiting_returns_a_pending_result_and_is_an_event() -> None:

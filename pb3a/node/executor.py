@@ -116,6 +116,9 @@ class Executor:
         settings.checkpoint_s, settings.log_level = checkpoint_s, log_level
         settings.code = code
         self.epoch = epoch
+        # a node of its own has remote links: its spare workers open their replicators
+        # as they boot, not in the preparation of a move to here
+        self.workers.spare_requests = [("ready_to_publish", self._publishing())]
         self.workers.warm()
         # This process resolves the classes of modules that come to the node (a move,
         # an add): import them now, in the background, not in a move's critical path;
@@ -231,6 +234,7 @@ class Executor:
                 continue
             for record in batch:
                 record.status = "running"
+        self.workers.replenish()          # for the spares they took
 
     def swap(self, name: str, spec: FlatModule) -> list[str]:
         """Replace a module's class by ``spec.cls`` in place; the state names kept."""
@@ -315,7 +319,7 @@ class Executor:
         unlink_name(segment)
         for key, handle in list(self.workers.handles.items()):
             if not handle.modules:
-                self.workers.retire(key)
+                self.workers.retire(key, wait=False)
                 self._budgets.pop(key, None)
 
     def _vacate(self, key: str, name: str) -> None:

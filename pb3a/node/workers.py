@@ -1,11 +1,13 @@
 """``WorkerPool``: the worker processes of one node and the requests sent to them.
 
 Workers start from a forkserver with numpy, cloudpickle and the worker code
-preloaded. Each has a private pipe: requests carry an id and wait on a future
-with a deadline. One monitor thread reads every pipe and every process
-sentinel; a worker's notices (checkpoints, errors, agents' requests) go to
-``on_notice``, its death, after every request waiting on it has failed, to
-``on_death``.
+preloaded. A pool keeps a few of them booted and idle (``WorkerSettings.spares``): a
+module that arrives (a migration, an add) takes one over instead of waiting for a
+process to start, which is most of a move's preparation. Each worker has a private
+pipe: requests carry an id and wait on a future with a deadline. One monitor thread
+reads every pipe and every process sentinel; a worker's notices (checkpoints,
+errors, agents' requests) go to ``on_notice``, its death, after every request
+waiting on it has failed, to ``on_death``.
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ _context = multiprocessing.get_context("forkserver")
 PRELOAD = ("pb3a.worker.process", "numpy", "numpy.random", "cloudpickle")
 
 
-@dataclass
+@dataclass(eq=False)
 class WorkerHandle:
     """One worker process: its pipe, its doorbell, the modules it hosts."""
 
@@ -77,6 +79,7 @@ class WorkerSettings:
     checkpoint_s: float = 1.0              # how often ``last-state`` modules checkpoint
     log_level: int = logging.WARNING
     code: CodeSources = field(default_factory=CodeSources)    # where workers import from
+    spares: int = 2                        # booted idle workers kept for modules that arrive
 
 
 class WorkerPool:
@@ -91,6 +94,12 @@ class WorkerPool:
         self._futures: dict[int, Future[Any]] = {}
         self._ids = itertools.count()
         self._stopping = threading.Event()
+        self._spares: list[WorkerHandle] = []      # booted, hosting nothing, not in handles
+        self._spares_lock = threading.Lock()
+        self._booting: threading.Thread | None = None      # booting spares
+        self._retiring: list[threading.Thread] = []        # stopping workers (retire, no wait)
+        # requests a spare is sent as it boots (its replicator opened, say): (op, args)
+        self.spare_requests: list[tuple[str, dict[str, Any]]] = []
         self._wake_r, self._wake_w = socket.socketpair()
         self._monitor = threading.Thread(target=self._watch, name="pb3a-monitor", daemon=True)
         self._monitor.start()
@@ -101,10 +110,18 @@ class WorkerPool:
         modules will move to) would otherwise pay for it in the first migration's
         critical path. One forkserver serves a process: the first pool to start it
         chooses what it preloads; a module that cannot be imported there, such as
-        served code, is skipped."""
+        served code, is skipped. Then the spares boot (again: the settings changed)."""
         _context.set_forkserver_preload([*PRELOAD, *self.settings.code.preload])
-        threading.Thread(target=forkserver.ensure_running, name="pb3a-forkserver",
-                         daemon=True).start()
+        with self._spares_lock:              # booted with the settings before these
+            stale, self._spares = self._spares, []
+        for handle in stale:
+            self._stop(handle, 1.0)
+        self._replenish_with(forkserver.ensure_running)
+
+    def spare_pids(self) -> list[int]:
+        """The process ids of the spare workers booted now."""
+        with self._spares_lock:
+            return [handle.pid for handle in self._spares if handle.alive]
 
     def __getitem__(self, key: str) -> WorkerHandle:
         return self.handles[key]
@@ -129,13 +146,66 @@ class WorkerPool:
         """The worker ``key``, started if it does not exist yet."""
         handle = self.handles.get(key)
         if handle is None:
+            with self._spares_lock:              # (one that died unseen yet is skipped)
+                while self._spares and not self._spares[0].process.is_alive():
+                    self._spares.pop(0)
+                spare = self._spares.pop(0) if self._spares else None
+            if spare is not None:                # booted already: only its name changes
+                spare.key, spare.node = key, node
+                self.handles[key] = spare
+                return spare
             handle = self.handles[key] = WorkerHandle(key, node)
             self.spawn(handle)
         return handle
 
-    def retire(self, key: str, timeout: float = 2.0) -> None:
-        """Stop worker ``key`` and forget it."""
-        self._stop(self.handles.pop(key), timeout)
+    def replenish(self) -> None:
+        """Boot spare workers until there are ``settings.spares`` again, in the background:
+        call it once the modules that took spares have started, so that the new ones
+        boot after a move's pause, not during it (their start takes CPU)."""
+        with self._spares_lock:
+            if len(self._spares) >= self.settings.spares:
+                return
+        self._replenish_with(lambda: None)
+
+    def _replenish_with(self, first: Callable[[], object]) -> None:
+        """``first()``, then spares booted, on one thread at a time (``close`` joins it)."""
+        with self._spares_lock:
+            if self._stopping.is_set() or (self._booting and self._booting.is_alive()):
+                return
+            self._booting = threading.Thread(target=self._replenish, args=(first,),
+                                             name="pb3a-spares", daemon=True)
+            self._booting.start()
+
+    def _replenish(self, first: Callable[[], object]) -> None:
+        first()
+        while not self._stopping.is_set():
+            with self._spares_lock:
+                if len(self._spares) >= self.settings.spares:
+                    return
+            handle = WorkerHandle("spare", "")
+            self.spawn(handle)
+            for op, args in self.spare_requests:
+                self._submit(handle, op, None, args)     # (answered before any other)
+            with self._spares_lock:
+                if not self._stopping.is_set():
+                    self._spares.append(handle)
+                    continue
+            self._stop(handle, 1.0)              # the pool closed meanwhile
+            return
+
+    def retire(self, key: str, timeout: float = 2.0, *, wait: bool = True) -> None:
+        """Stop worker ``key`` and forget it. With ``wait=False`` it is told to stop and
+        joined on another thread (``close`` waits for that): for a worker a move left
+        empty, whose exit need not hold up the move's end."""
+        handle = self.handles.pop(key)
+        if wait:
+            self._stop(handle, timeout)
+            return
+        stopping = threading.Thread(target=self._stop, args=(handle, timeout),
+                                    name="pb3a-retire", daemon=True)
+        self._retiring = [thread for thread in self._retiring if thread.is_alive()]
+        self._retiring.append(stopping)
+        stopping.start()
 
     # -- requests ------------------------------------------------------------
     def call(self, key: str, op: str, timeout: float = REQUEST_TIMEOUT, /,
@@ -146,21 +216,24 @@ class WorkerPool:
 
     def submit(self, key: str, op: str, /, _fd: int | None = None, **args: Any) -> Future[Any]:
         """Send one request to a worker; the future holds its answer."""
-        handle = self.handles[key]
+        return self._submit(self.handles[key], op, _fd, args)
+
+    def _submit(self, handle: WorkerHandle, op: str, fd: int | None,
+                args: dict[str, Any]) -> Future[Any]:
         future: Future[Any] = Future()
         if not handle.alive:
-            future.set_exception(RuntimeFailure(f"worker {key!r} is not running"))
+            future.set_exception(RuntimeFailure(f"worker {handle.key!r} is not running"))
             return future
         req_id = next(self._ids)
         self._futures[req_id] = future
-        future.pb3a_worker = key   # type: ignore[attr-defined]
+        future.pb3a_worker = handle   # type: ignore[attr-defined]
         try:
-            handle.send((req_id, op, args), _fd)
+            handle.send((req_id, op, args), fd)
         except (OSError, ValueError) as exc:
             # Whoever pops a future completes it: the monitor may have done so already
             # (the worker's death seen meanwhile).
             if self._futures.pop(req_id, None) is not None:
-                future.set_exception(RuntimeFailure(f"worker {key!r} is gone: {exc}"))
+                future.set_exception(RuntimeFailure(f"worker {handle.key!r} is gone: {exc}"))
         return future
 
     @staticmethod
@@ -181,7 +254,7 @@ class WorkerPool:
 
     def _watch(self) -> None:
         while not self._stopping.is_set():
-            handles = [h for h in list(self.handles.values()) if h.alive]
+            handles = [h for h in [*self.handles.values(), *self._spares] if h.alive]
             by_conn = {h.conn: h for h in handles}
             by_sentinel = {h.process.sentinel: h for h in handles}
             ready = multiprocessing.connection.wait(
@@ -224,9 +297,13 @@ class WorkerPool:
         with handle.read_lock, contextlib.suppress(OSError):
             handle.conn.close()
         for req_id, future in list(self._futures.items()):
-            if getattr(future, "pb3a_worker", None) == handle.key \
+            if getattr(future, "pb3a_worker", None) is handle \
                     and self._futures.pop(req_id, None) is not None:
                 future.set_exception(RuntimeFailure(f"worker {handle.key!r} died"))
+        if self.handles.get(handle.key) is not handle:     # a spare: it hosted nothing
+            with self._spares_lock:
+                self._spares = [spare for spare in self._spares if spare is not handle]
+            return
         if not self._stopping.is_set():
             self._on_death(handle)
 
@@ -255,8 +332,14 @@ class WorkerPool:
         the monitor. Deaths from here on are stops, not crashes."""
         deadline = time.monotonic() + timeout
         self._stopping.set()
-        for handle in reversed(list(self.handles.values())):
+        if self._booting is not None:            # (it stops what it booted meanwhile)
+            self._booting.join(max(0.1, deadline - time.monotonic()))
+        with self._spares_lock:
+            spares, self._spares = self._spares, []
+        for handle in [*spares, *reversed(list(self.handles.values()))]:
             self._stop(handle, max(0.1, min(2.0, deadline - time.monotonic())))
+        for thread in self._retiring:
+            thread.join(max(0.1, deadline - time.monotonic()))
         self._poke()
         self._monitor.join(2.0)
         self._wake_r.close()
