@@ -94,10 +94,14 @@ class RobotDriver(Driver):
         """Drive by ``command`` (none: the last one holds), or stop a disabled robot."""
         if not self.enabled:
             self.request("stop")
-            self._in_force = np.zeros(2)
+            self._taken(np.zeros(2))
         elif command is not None:
             self.request("drive", v=float(command[0]), w=float(command[1]))
-            self._in_force = np.array(command, dtype=np.float64)
+            self._taken(command)
+
+    def _taken(self, command: np.ndarray) -> None:
+        """The robot runs on ``command`` now, nothing is left to send."""
+        self._in_force = np.array(command, dtype=np.float64)
         self._unsent = None
 
     def _cycle(self, command: np.ndarray | None, advance: float) -> dict[str, Any]:
@@ -107,8 +111,7 @@ class RobotDriver(Driver):
             self._apply(command)                 # the last command holds, or stop
             return self.request("cycle", dt=advance)
         answer = self.request("cycle", dt=advance, v=float(command[0]), w=float(command[1]))
-        self._in_force = np.array(command, dtype=np.float64)
-        self._unsent = None
+        self._taken(command)
         return answer
 
     def _serve(self, command: np.ndarray | None, advance: float) -> None:
