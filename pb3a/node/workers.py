@@ -177,13 +177,21 @@ class WorkerPool:
             self._booting.start()
 
     def _replenish(self, first: Callable[[], object]) -> None:
-        first()
+        try:
+            first()
+        except (OSError, RuntimeError) as exc:    # the next spawn says it again, in its way
+            log.warning("the worker forkserver did not start: %s", exc)
+            return
         while not self._stopping.is_set():
             with self._spares_lock:
                 if len(self._spares) >= self.settings.spares:
                     return
             handle = WorkerHandle("spare", "")
-            self.spawn(handle)
+            try:
+                self.spawn(handle)
+            except (OSError, RuntimeError) as exc:   # (a worker that arrives starts its own)
+                log.warning("no spare worker booted: %s", exc)
+                return
             for op, args in self.spare_requests:
                 self._submit(handle, op, None, args)     # (answered before any other)
             with self._spares_lock:
