@@ -70,6 +70,36 @@ def test_a_migration_arrives_as_an_event_then_as_the_new_structure(run) -> None:
         assert "event" in kinds and kinds.index("event") < kinds.index("system")
 
 
+class _HeldEvents:
+    """The running system, but the feed's first look at its events (the one that waits)
+    is held until the page has its hello: events older than the hello come after it."""
+
+    def __init__(self, run: Running, hello: threading.Event) -> None:
+        self._run, self._hello = run, hello
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._run, name)
+
+    def events(self, since: int = 0, timeout: float = 0.0) -> list:
+        if timeout:
+            self._hello.wait(10)
+        return self._run.events(since, timeout=timeout)
+
+
+def test_a_page_gets_no_structure_again_for_changes_its_hello_showed(run) -> None:
+    run.migrate("map", to="a")                          # a change before the page opens
+    hello = threading.Event()
+    with manager_client(Session(Document.empty(), _HeldEvents(run, hello))) as client, \
+            client.websocket_connect("/api/live") as socket:
+        first = socket.receive_json()
+        hello.set()
+        assert first["type"] == "hello" and first["system"]["modules"]["map"]["node"] == "a"
+        kinds = []
+        while kinds.count("stats") < 3:                 # 1 s of the feed after the move's
+            kinds.append(socket.receive_json()["type"])    # event was read
+        assert "event" in kinds and "system" not in kinds, kinds
+
+
 def test_the_watched_module_s_state_comes_while_it_runs(run) -> None:
     with manager_client(Session(Document.empty(), run)) as client, \
             client.websocket_connect("/api/live") as socket:

@@ -116,10 +116,12 @@ class Feed:
             for event in events:
                 self._seen = max(self._seen, event.seq)
                 self.publish({"type": "event", "event": plain(asdict(event))})
-            if any(event.kind in STRUCTURAL for event in events):
+            changes = [event.seq for event in events if event.kind in STRUCTURAL]
+            if changes:
                 try:
-                    self.publish({"type": "system", **await self._blocking(
-                        structure, self.session)})
+                    now = await self._blocking(structure, self.session)
+                    self.publish(Message("system", encode({"type": "system", **now}),
+                                         max(changes)))
                 except PB3AError as exc:
                     log.warning("manager: reading the structure failed: %s", exc)
 
@@ -133,17 +135,19 @@ class Feed:
         await socket.accept()
         queue: asyncio.Queue[Message] = asyncio.Queue(CLIENT_BACKLOG)
         watched: list[str | None] = [None]
+        running = self.session.mode == "running"
         try:
+            # the last event first: the structure read after it shows what it did
+            at = await run_in_threadpool(self._last_event) if running else 0
             hello = await run_in_threadpool(structure, self.session)
         except PB3AError as exc:
             await socket.send_text(json.dumps({"type": "error", **_error(exc)}))
             await socket.close()
             return
-        if self.session.mode == "running":
-            self._seen = self._seen or await run_in_threadpool(self._last_event)
+        self._seen = self._seen or at
         self._clients.add(queue)
         await socket.send_text(encode({"type": "hello", **hello}))
-        tasks = [asyncio.create_task(self._send(socket, queue)),
+        tasks = [asyncio.create_task(self._send(socket, queue, at)),
                  asyncio.create_task(self._watch(queue, watched)),
                  asyncio.create_task(_listen(socket, watched))]
         try:
@@ -161,9 +165,15 @@ class Feed:
         events = self.session.handle.events(0)
         return events[-1].seq if events else 0
 
-    async def _send(self, socket: WebSocket, queue: asyncio.Queue[Message]) -> None:
+    async def _send(self, socket: WebSocket, queue: asyncio.Queue[Message],
+                    hello_at: int) -> None:
+        """Send what is published, but not the structure after events the hello (read
+        after event ``hello_at``) showed already: a page redrawn for nothing loses what
+        is being typed into it."""
         while True:
             message = await queue.get()
+            if message.type == "system" and message.seq <= hello_at:
+                continue
             await socket.send_text(message.text)
 
     async def _watch(self, queue: asyncio.Queue[Message],
@@ -198,10 +208,12 @@ async def _listen(socket: WebSocket, watched: list[str | None]) -> None:
 
 
 class Message(NamedTuple):
-    """A message as sent: its type and its JSON text, encoded once for every client."""
+    """A message as sent: its type and its JSON text, encoded once for every client;
+    for the structure, the last event it follows."""
 
     type: str
     text: str
+    seq: int = 0
 
 
 def encode(message: dict[str, Any]) -> str:
