@@ -95,6 +95,7 @@ class Executor:
         self.republished: Any = None                  # told (link, endpoint) after a restart
         self.on_event: Any = None                     # told (kind, module, detail): restarts
         self.on_checkpoint: Any = None                # told (module, state) for last-state
+        self._key: ClusterKey | None = None           # the cluster key (loaded on first use)
         self._bridge: Bridge | None = None            # remote links in (made on first use)
         self._budgets: dict[str, RestartBudget] = {}  # worker key -> its restarts
         self._last_errors: dict[str, str] = {}        # module -> its last exception, logged
@@ -128,10 +129,17 @@ class Executor:
 
     @property
     def bridge(self) -> Bridge:
-        """The receiving end of remote links (the cluster key is loaded on first use)."""
+        """The receiving end of remote links (made on first use)."""
         if self._bridge is None:
-            self._bridge = Bridge(ClusterKey.load(), self.epoch)
+            self._bridge = Bridge(self.key, self.epoch)
         return self._bridge
+
+    @property
+    def key(self) -> ClusterKey:
+        """The cluster key remote links are sealed with (loaded on first use)."""
+        if self._key is None:
+            self._key = ClusterKey.load()
+        return self._key
 
     def call(self, worker: str, op: str, timeout: float = REQUEST_TIMEOUT, /,
              _fd: int | None = None, **args: Any) -> Any:
@@ -441,7 +449,7 @@ class Executor:
 
     def _publishing(self) -> dict[str, Any]:
         """What a worker publishes with: the cluster key, this node's address, the epoch."""
-        return {"secret": self.bridge.key.secret, "host": self.host, "epoch": self.epoch}
+        return {"secret": self.key.secret, "host": self.host, "epoch": self.epoch}
 
     def unpublish(self, link: FlatLink) -> int:
         """Stop publishing for ``link``; the sequence number the sender reached."""
