@@ -113,7 +113,13 @@ def test_sim_to_real_learns_in_lock_step_then_moves_the_learner_to_the_robot(tmp
 
 
 def test_sim_to_real_counts_a_target_reached_only_when_it_is_kept() -> None:
-    from scenarios.sim_to_real import at_target_since, speed_up, time_to_target
+    from scenarios.sim_to_real import (
+        at_target_since,
+        baseline_time,
+        median_time,
+        speed_up,
+        time_to_target,
+    )
 
     def episodes(outcomes: str) -> list[dict]:
         return [{"success": o == "s", "clock": 10.0 * (i + 1)} for i, o in enumerate(outcomes)]
@@ -129,11 +135,45 @@ def test_sim_to_real_counts_a_target_reached_only_when_it_is_kept() -> None:
     assert at_target_since(late, 0.0) == 170.0 and at_target_since(lucky, 0.0) is None
 
     # a baseline not seen keeping the target is counted as keeping it from where it last
-    # came up to it, if it ended there: the soonest it can turn out to be
-    assert speed_up(50.0, 200.0, None, 720.0) == (4.0, "measured")
-    assert speed_up(50.0, None, at_target_since(late, 0.0), 720.0) == (3.4, "at least")
-    assert speed_up(50.0, None, at_target_since(lucky, 0.0), 720.0) == (14.4, "at least")
-    assert speed_up(None, 200.0, None, 720.0) == (None, None)
+    # came up to it, if it ended there (the soonest it can turn out to be), else from the
+    # end of its run
+    assert baseline_time(200.0, 150.0, 720.0) == (200.0, True)
+    assert baseline_time(None, at_target_since(late, 0.0), 720.0) == (170.0, False)
+    assert baseline_time(None, at_target_since(lucky, 0.0), 720.0) == (720.0, False)
+    assert speed_up(50.0, (200.0, True)) == (4.0, "measured")
+    assert speed_up(50.0, (170.0, False)) == (3.4, "at least")
+    assert speed_up(None, (200.0, True)) == (None, None)
+    # against several baselines, their median: one lucky learner does not decide it; the
+    # median is measured only if it and every time below it were
+    assert median_time([(720.0, False), (100.0, True), (600.0, True)]) == (600.0, True)
+    assert median_time([(720.0, False), (100.0, True), (400.0, False)]) == (400.0, False)
+    assert median_time([(300.0, True), (100.0, True), (400.0, False), (500.0, True)]) == (
+        300.0, True)                                          # the lower median of four
+
+
+def test_sim_to_real_gives_each_baseline_robot_its_node_brain_seed_and_recorder() -> None:
+    from types import SimpleNamespace
+
+    from scenarios.sim_to_real import baselines, configuration
+
+    def lab(port: int, *nodes: str) -> SimpleNamespace:
+        return SimpleNamespace(robots={"r1": f"tcp://127.0.0.1:{port}"}, nodes={
+            node: SimpleNamespace(address=f"tcp://127.0.0.1:{port + 100 + i}")
+            for i, node in enumerate(nodes)})
+
+    names = baselines(3)
+    assert names == [("alone", "other"), ("alone_2", "other_2"), ("alone_3", "other_3")]
+    labs = [lab(7500 + i, node) for i, (_, node) in enumerate(names)]
+    plan = configuration(lab(7400), lab(7450, "robot"), labs, 1.0, seed=31).plan()
+    for (name, node), offset, place in zip(names, (1, 2, 3), labs, strict=True):
+        assert plan.nodes[node].address == place.nodes[node].address
+        assert plan.modules[f"{name}/learner"].node == node
+        assert plan.modules[f"{name}/learner"].state["seed"] == 31 + offset
+        assert plan.modules[f"{name}/driver"].state["resource"] == place.robots["r1"]
+        assert plan.modules[f"{name}_recorder"].node == "ws"
+    episodes = {(link.src, link.dst) for link in plan.links if link.src_port == "episode"}
+    assert episodes == {("brain/learner", "transfer"), ("brain/learner", "recorder")} | {
+        (f"{name}/learner", f"{name}_recorder") for name, _ in names}
 
 
 def _check_traffic(figures: dict) -> None:
