@@ -10,7 +10,7 @@ table then goes on, with the agent's ``learner_state`` for the robot, for
 specular reflection), each command reaching the robot ``--lag`` s after the readings
 it answers; ``--guard`` gives every learner another speed guard than the file's
 (``guard_range``; 0: none). The baselines (``--baselines``, 3 as in the full
-scenario, seeds ``seed + 1`` on), learn on hardware robots from nothing for as long.
+scenario, seeds ``seed + 1`` on) learn on hardware robots from nothing for as long.
 Per run: the episodes in training, collisions and successes on the robot, the hardware
 s from which the success rate over 10 episodes stays at 70 % or more to the end (the
 scenario's measure; None: never) for each learner, and the speed-up over the
@@ -18,7 +18,7 @@ baselines' median as the scenario reports it ("at least" when the median was not
 kept: a baseline that was not is counted from where it last came up to 70 % if it
 ended there, else from the end).
 Without the scenario's processes, the figures are those of a full run with no latency
-between modules. Ten seeds take about five minutes on two cores.
+between modules. Ten seeds take about seven minutes on two cores.
 
 Run it: ``.venv/bin/python bench/transfer_gap.py [--seeds 1-10] [--lag 0.1]
 [--train hardware] [--guard 0] [--baselines 1]``.

@@ -11,11 +11,11 @@ the brain to the hardware robot's on-board computer (a node behind its own node
 controller) and re-points the driver at the emulated hardware robot (second-order
 dynamics, sonar noise and specular dropouts), where learning goes on at a lower
 learning rate. The baseline, ``alone``, is the same brain learning on another
-hardware robot (in a world of its own) from the start; the full run has three of them,
-with other seeds, and compares with their median, so that one learner's luck does not
-decide the comparison. The hardware robot's world is
-held (``pace`` 0: no time passes there) until the learner arrives, so that learning
-in simulation has the CPU.
+hardware robot (in a world of its own) from the start; the full run has three of
+them, with other seeds, and compares with their median, so that one learner's luck
+does not decide the comparison. The hardware robot's world is held (``pace`` 0: no
+time passes there) until the learner arrives, so that learning in simulation has the
+CPU.
 
 Measured in the run: the transfer time (the agent's decision to the driver
 re-pointed at the hardware robot, with the learner on its node), the success rate at
@@ -27,8 +27,8 @@ least 3x less hardware time with transfer than the baselines' median without. A
 pace each world kept), and gives the learner a coarser view of the world, which it can
 learn within the quick budget (``QUICK_VIEW``); the full run serves them in real time.
 
-Run it: ``pb3a scenario sim-to-real [--quick] [--seed N] [--out DIR]`` (or ``python
--m scenarios.sim_to_real``). It prints the report as JSON and writes
+Run it: ``pb3a scenario sim-to-real [--quick] [--seed N] [--baselines N] [--out DIR]``
+(or ``python -m scenarios.sim_to_real``). It prints the report as JSON and writes
 ``sim_to_real.json`` and ``sim_to_real.png`` to DIR.
 """
 

@@ -102,6 +102,7 @@ def test_sim_to_real_learns_in_lock_step_then_moves_the_learner_to_the_robot(tmp
     assert 0 < figures["move_pause_s"] + figures["move_prepare_s"] <= figures["transfer_s"] + 0.002
     assert figures["learner_node_at_end"] == "robot"
     assert figures["learner_situations"] == 128                 # the quick run's coarser view
+    assert figures["speedup"]["baselines"] == 1                 # and its one baseline robot
     # both learn on their robots (how well varies from run to run: see applications.md)
     for name in ("with_transfer", "alone"):
         assert figures["hardware"][name]["episodes"] >= 5, figures["hardware"]
