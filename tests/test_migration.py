@@ -7,9 +7,8 @@ import dataclasses
 import os
 import signal
 
-import psutil
 import pytest
-from conftest import assert_same_arrays, eventually
+from conftest import alive, assert_same_arrays, eventually
 from sample_modules import Collector, Counter, Hoard, Relay, RelayPair, Shepherd, Wanderer
 
 from pb3a import ConfigError, ModuleNotFound, RuntimeFailure, System
@@ -268,14 +267,7 @@ def test_a_module_that_arrives_takes_a_booted_spare_and_a_dead_spare_is_only_for
                            what="values through the relay at b")
         assert not [e for e in run.events() if e.kind in ("module_failed", "module_restarted")]
     assert spares[1] not in booted and state["out_of_order"] == 0 and state["duplicates"] == 0
-    assert not [pid for pid in booted if _running(pid)]             # stopped with node b
-
-
-def _running(pid: int) -> bool:
-    try:
-        return psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
-    except psutil.NoSuchProcess:
-        return False
+    assert not [pid for pid in booted if alive(pid)]                # stopped with node b
 
 
 def test_a_move_without_waiting_returns_a_pending_result_and_is_an_event() -> None:
