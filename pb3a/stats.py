@@ -98,6 +98,7 @@ class NodeStats:
     cpu: float | None = None                # percent busy of its CPUs (its pinned ones)
     memory_available: int | None = None     # bytes
     memory_total: int | None = None         # bytes
+    spare_workers: int | None = None        # booted idle workers (its ``spares`` setting)
 
 
 @dataclass(frozen=True)
@@ -118,6 +119,7 @@ class NodeReport:
     link_failures: dict[str, int]       # link key -> values lost for good on the way in
     failures: list[str]
     resources: NodeResources | None = None   # the machine's CPU and memory
+    spare_workers: int = 0              # booted idle workers, for modules that arrive
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,7 @@ from typing import Any
 
 from pb3a.config.compiler import build_plan, validate
 from pb3a.config.description import (
+    DEFAULT_SPARES,
     LinkSpec,
     ModuleSpec,
     NodeSpec,
@@ -58,14 +59,18 @@ class System:
         return self._spec.name
 
     def node(self, name: str, *, address: str | None = None, workers: int = 0,
-             cpus: list[int] | None = None, advertise: str | None = None) -> System:
+             cpus: list[int] | None = None, advertise: str | None = None,
+             spares: int = DEFAULT_SPARES) -> System:
         """Declare a node; without any, everything runs on ``"local"``. ``cpus`` pins
         the node's workers to those CPUs (nodes sharing a machine then share no core);
         ``advertise`` is the host other nodes reach it at (by default: a remote node's
-        address, and for a node started here the interface that reaches the remote ones)."""
+        address, and for a node started here the interface that reaches the remote ones);
+        ``spares`` is how many idle workers it keeps booted for modules that arrive (a
+        move, a restart, a spawn), 0 for none on a machine short of memory."""
         if name in self._spec.nodes:
             raise ValueError(f"system {self.name!r} already has a node {name!r}")
-        self._spec.nodes[name] = NodeSpec(name, address, workers, cpus=cpus, advertise=advertise)
+        self._spec.nodes[name] = NodeSpec(name, address, workers, cpus=cpus, advertise=advertise,
+                                          spares=spares)
         return self
 
     def add(self, name: str, cls: type | str, *, node: str | None = None,

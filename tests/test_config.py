@@ -758,6 +758,19 @@ def test_a_node_may_say_where_other_nodes_reach_it(tmp_path: Path) -> None:
             f"a name or an IP address such as '10.0.0.7' (no tcp://, no port), got {written!r}"]
 
 
+def test_a_node_keeps_the_spare_workers_it_is_given_and_a_bad_count_is_named(
+        tmp_path: Path) -> None:
+    plan = build_plan(load_toml(write(tmp_path, "[nodes.a]\nspares = 0\n[nodes.b]\n" + TWO)))
+    assert (plan.nodes["a"].spares, plan.nodes["b"].spares) == (0, 2)
+    assert System("s").node("a", spares=5).add("x", "parts_cfg:Src", node="a").plan(
+        ).nodes["a"].spares == 5
+    for written in ("-1", "17", "true", '"2"', "1.5"):
+        assert problems_of(tmp_path, f"[nodes.a]\nspares = {written}\n" + TWO) == [
+            "sys.toml [nodes.a]: spares must be a whole number from 0 to 16 (the worker "
+            "processes the node keeps booted for modules that arrive; 0 = none), got "
+            f"{tomllib.loads('v = ' + written)['v']!r}"]
+
+
 def test_a_description_read_by_a_program_and_filled_in_becomes_a_system() -> None:
     data = tomllib.loads(PIPELINE.read_text())
     data["modules"]["scale"]["state"] = {"gain": 5.0}      # what the program knows

@@ -28,12 +28,13 @@ def shape(plan: Plan) -> tuple[dict, dict, dict]:
     modules = {m.name: (class_ref(m.cls), m.node, m.period, m.state, m.restart, m.group, m.fallback)
                for m in plan.modules.values()}
     links = {link.key: str(link.policy) for link in plan.links}
-    nodes = {n.name: (n.address, n.workers, n.cpus, n.advertise) for n in plan.nodes.values()}
+    nodes = {n.name: (n.address, n.workers, n.cpus, n.advertise, n.spares)
+             for n in plan.nodes.values()}
     return modules, links, nodes
 
 
 def test_nested_macros_links_through_them_and_every_setting_come_back() -> None:
-    system = System("folded", timeout=12.0).node("a", workers=2).node("b", cpus=[0])
+    system = System("folded", timeout=12.0).node("a", workers=2).node("b", cpus=[0], spares=0)
     system.add("src", FloatSource, node="a", period=0.02, state={"value": 3.0})
     system.add("outer", Outer, node="b")
     system.add("pair", Chain, node="a")
@@ -57,7 +58,7 @@ def test_nested_macros_links_through_them_and_every_setting_come_back() -> None:
     assert tables["macros"]["outer-chain"]["exports"]["a_x"] == "a.x"
     assert {"from": "a.y", "to": "b.x"} in tables["macros"]["pair"]["links"]
     assert "env-a" not in tables["modules"]        # the compiler adds it again for the link
-    assert tables["timeout"] == 12.0 and tables["nodes"]["b"] == {"cpus": [0]}
+    assert tables["timeout"] == 12.0 and tables["nodes"]["b"] == {"cpus": [0], "spares": 0}
 
 
 def test_a_changed_system_and_what_toml_cannot_hold() -> None:

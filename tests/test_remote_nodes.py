@@ -178,6 +178,32 @@ def test_on_a_remote_node_a_restarted_writer_feeds_its_readers_and_agents_can_mo
                    timeout=30, what="values from the restarted writer on node b")
 
 
+def test_each_node_keeps_the_spare_workers_its_configuration_gives(controllers) -> None:
+    system = System("spare-counts").node("a", spares=0)
+    system.node("b", address=controllers["b"].address, spares=1)
+    system.node("c", address=controllers["c"].address)              # the default, 2
+    system.add("src", Counter, node="a", period=0.002)
+    system.add("relay", Relay, node="a")
+    system.add("sink", Collector, node="a")
+    system.link("src.out", "relay.x")
+    system.link("relay.out", "sink.x")
+
+    def spares() -> dict[str, int | None]:
+        return {name: node.spare_workers for name, node in run.stats().nodes.items()}
+
+    with system.launch() as run:
+        eventually(lambda: spares() == {"a": 0, "b": 1, "c": 2}, timeout=30,
+                   what="b's one spare and c's two booted, none at a")
+        for to in ("b", "a"):              # b's spare taken, then a worker started at a
+            assert run.migrate("relay", to=to).destination == to
+        eventually(lambda: spares() == {"a": 0, "b": 1, "c": 2}, timeout=30,
+                   what="b's spare booted again, still none at a")
+        n = run.state("relay")["relayed"] + 50
+        state = eventually(lambda: (s := run.state("sink"))["received"] >= n and s, timeout=30,
+                           what="values through the relay back at a")
+    assert _clean(state)
+
+
 def test_a_wrong_key_is_told_apart_from_no_answer_within_5_s() -> None:
     system = System("keys").node("a").node("b", address="tcp://127.0.0.1:1")
     system.add("far", Collector, node="b")

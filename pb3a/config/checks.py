@@ -20,6 +20,7 @@ from pb3a.model.displays import declared_displays
 from pb3a.model.module import RESTART_POLICIES, Module
 
 NAME = re.compile(r"^[A-Za-z0-9_-]+$")
+MAX_SPARES = 16                 # idle workers a node may keep (each an idle process)
 
 
 def did_you_mean(word: str, choices: Iterable[str]) -> str:
@@ -84,6 +85,14 @@ def workers(value: Any) -> list[str]:
         return []
     return [(f"workers must be a whole number >= 0 (0 = one process per module, N = pack the "
             f"node's modules into N processes), got {value!r}")]
+
+
+def spares(value: Any) -> list[str]:
+    """A whole number of idle workers from 0 to ``MAX_SPARES``."""
+    if isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= MAX_SPARES:
+        return []
+    return [(f"spares must be a whole number from 0 to {MAX_SPARES} (the worker processes the "
+             f"node keeps booted for modules that arrive; 0 = none), got {value!r}")]
 
 
 def timeout(value: Any) -> list[str]:

@@ -147,11 +147,12 @@ class _Planner:
             self.report(label, checks.workers(node.workers))
             self.report(label, checks.cpus(node.cpus))
             self.report(label, checks.advertise(node.advertise))
+            self.report(label, checks.spares(node.spares))
         if not spec.nodes:
             workers = spec.workers if not checks.workers(spec.workers) else 0
             return {DEFAULT_NODE: NodeSpec(DEFAULT_NODE, None, workers)}
         nodes = {name: NodeSpec(name, node.address, node.workers, cpus=node.cpus,
-                                advertise=node.advertise)
+                                advertise=node.advertise, spares=node.spares)
                  for name, node in spec.nodes.items()}
         if spec.workers and not checks.workers(spec.workers):
             if DEFAULT_NODE in nodes and not nodes[DEFAULT_NODE].workers:

@@ -14,6 +14,12 @@ from typing import Any, ClassVar
 
 from pb3a.errors import ConfigError
 
+# A node keeps this many worker processes booted and idle, so that a module that
+# arrives (a migration, a restart, a spawn) finds one and no process starts in its
+# critical path; two modules arriving together both find one. Each costs an idle
+# process's memory; 0 gives it back and makes every arrival start its process.
+DEFAULT_SPARES = 2
+
 
 # -- the description -------------------------------------------------------
 @dataclass
@@ -26,8 +32,9 @@ class NodeSpec:
     extra: dict[str, Any] = field(default_factory=dict)  # unknown keys, reported by validation
     cpus: list[int] | None = None     # CPUs the node's workers may run on (None: any)
     advertise: str | None = None      # the host other nodes reach this one at (None: found)
+    spares: int = DEFAULT_SPARES      # booted idle workers kept for modules that arrive
 
-    KEYS: ClassVar[tuple[str, ...]] = ("address", "workers", "cpus", "advertise")
+    KEYS: ClassVar[tuple[str, ...]] = ("address", "workers", "cpus", "advertise", "spares")
 
 
 @dataclass
@@ -157,10 +164,11 @@ def _read_system(data: dict[str, Any], source: str, default_name: str) -> System
         if isinstance(entry, dict):
             spec.nodes[name] = NodeSpec(name, entry.get("address"), entry.get("workers", 0),
                                         {k: v for k, v in entry.items() if k not in NodeSpec.KEYS},
-                                        entry.get("cpus"), entry.get("advertise"))
+                                        entry.get("cpus"), entry.get("advertise"),
+                                        entry.get("spares", DEFAULT_SPARES))
         else:
             spec.problems.append(f"{source} [nodes.{name}]: must be a table (address, workers, "
-                                 "cpus)")
+                                 "cpus, advertise, spares)")
     spec.modules = _read_modules(_table(data, "modules", source, spec.problems))
     spec.links = _read_links(data.get("links", []), f"{source} [[links]]", spec.problems)
     for name, entry in _table(data, "macros", source, spec.problems).items():

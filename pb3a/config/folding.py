@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from pb3a.config.checks import NAME
-from pb3a.config.description import NodeSpec
+from pb3a.config.description import DEFAULT_SPARES, NodeSpec
 from pb3a.config.plan import DEFAULT_NODE, FlatLink, FlatModule
 from pb3a.loading.references import class_ref
 from pb3a.model.environment import Environment, env_name
@@ -204,6 +204,8 @@ def _node_table(node: NodeSpec) -> dict[str, Any]:
         table["cpus"] = list(node.cpus)
     if node.advertise is not None:
         table["advertise"] = node.advertise
+    if node.spares != DEFAULT_SPARES:
+        table["spares"] = node.spares
     return table
 
 

@@ -26,6 +26,7 @@ import threading
 import time
 from typing import Any
 
+from pb3a.config.description import DEFAULT_SPARES
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
 from pb3a.logbook import LogBook
@@ -77,7 +78,7 @@ class NodeShare:
         if op == "bind":
             self.bind(args["launcher"], args["checkpoint_s"], args["log_level"],
                       args["code"], args.get("lease_s", LEASE_S), args.get("epoch", 0),
-                      args.get("node_epoch", 1))
+                      args.get("node_epoch", 1), args.get("spares", DEFAULT_SPARES))
             return None
         if op == "peers":
             self.meet(args["peers"])
@@ -94,14 +95,16 @@ class NodeShare:
         raise ValueError(f"a node executor has no operation {op!r}")
 
     def bind(self, launcher: str, checkpoint_s: float, log_level: int, code: CodeSources,
-             lease_s: float = LEASE_S, epoch: int = 0, node_epoch: int = 1) -> None:
+             lease_s: float = LEASE_S, epoch: int = 0, node_epoch: int = 1,
+             spares: int = DEFAULT_SPARES) -> None:
         """Work for the launcher at ``launcher`` (before any module is added), in its
         system's ``epoch`` (older requests and replication are refused from now on), as
-        the node's admission ``node_epoch``, on a lease of ``lease_s`` seconds."""
+        the node's admission ``node_epoch``, on a lease of ``lease_s`` seconds, keeping
+        ``spares`` idle workers booted."""
         if self.launcher is not None:
             raise RuntimeFailure(f"node {self.node} already works for {self.launcher.address}")
         self.executor.configure(checkpoint_s=checkpoint_s, log_level=log_level, code=code,
-                                epoch=epoch)
+                                epoch=epoch, spares=spares)
         if self.server is not None:
             self.server.advance_epoch(epoch)
         code.install(self.key)

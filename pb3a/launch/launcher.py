@@ -104,7 +104,7 @@ class Launcher:
                                     host=node.advertise or here,
                                     checkpoint_s=self.checkpoint_s, log_level=self.log_level,
                                     code=self.plan.code, lock=self.lock,
-                                    epoch=self.epoch)
+                                    epoch=self.epoch, spares=node.spares)
                 executor.handler = self._agent_request
                 executor.republished = self.republished
                 executor.on_event = self.events.record
@@ -132,7 +132,8 @@ class Launcher:
         return RemoteNode(name, node.address, config=self.plan.name, launcher=self._callback,
                           advertise=node.advertise, workers=node.workers, cpus=node.cpus,
                           checkpoint_s=self.checkpoint_s, log_level=self.log_level,
-                          code=self.plan.code, epoch=self.epoch, node_epoch=node_epoch)
+                          code=self.plan.code, epoch=self.epoch, node_epoch=node_epoch,
+                          spares=node.spares)
 
     def _introduce(self) -> None:
         """Tell every remote node where its peers are (for their round-trip times); the
@@ -273,11 +274,12 @@ class Launcher:
         failures = [*self.failures, *(f for report in reports.values() for f in report.failures)]
         nodes = self.node_table()
         for name, report in reports.items():
-            if report.resources is not None and name in nodes:
-                measured = report.resources
-                nodes[name] = dataclasses.replace(
-                    nodes[name], cpu=measured.cpu, memory_available=measured.memory_available,
-                    memory_total=measured.memory_total)
+            if name not in nodes:
+                continue
+            found: dict[str, Any] = {"spare_workers": report.spare_workers}
+            if report.resources is not None:        # (its fields are NodeStats' names)
+                found |= dataclasses.asdict(report.resources)
+            nodes[name] = dataclasses.replace(nodes[name], **found)
         return SystemStats(self.plan.name, modules,
                            _link_table(self.links, modules, list(reports.values()),
                                        self.lost_values),

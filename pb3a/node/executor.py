@@ -25,6 +25,7 @@ from typing import Any
 
 import cloudpickle
 
+from pb3a.config.description import DEFAULT_SPARES
 from pb3a.config.plan import FlatLink, FlatModule
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.served import forget
@@ -77,7 +78,8 @@ class Executor:
     def __init__(self, node: str, *, workers: int = 0, cpus: list[int] | None = None,
                  checkpoint_s: float = 1.0, log_level: int = logging.WARNING,
                  code: CodeSources | None = None, host: str = "127.0.0.1",
-                 lock: AbstractContextManager[Any] | None = None, epoch: int = 0) -> None:
+                 lock: AbstractContextManager[Any] | None = None, epoch: int = 0,
+                 spares: int = DEFAULT_SPARES) -> None:
         self.node = node
         self.epoch = epoch                  # the system's: older replication is refused
         self.packing = workers              # packed worker processes (0: one per module)
@@ -105,16 +107,17 @@ class Executor:
         self._stopping = threading.Event()
         reap_orphans()
         self.workers = WorkerPool(
-            WorkerSettings(cpus, checkpoint_s, log_level, code or CodeSources()),
+            WorkerSettings(cpus, checkpoint_s, log_level, code or CodeSources(), spares),
             self._notice, self._died)
         if code is not None:                # (a node share learns it later: configure)
             self.workers.warm()
 
     def configure(self, *, checkpoint_s: float, log_level: int, code: CodeSources,
-                  epoch: int) -> None:
+                  epoch: int, spares: int = DEFAULT_SPARES) -> None:
         """Settings a node executor process learns from its launcher (before any module)."""
         settings = self.workers.settings
         settings.checkpoint_s, settings.log_level = checkpoint_s, log_level
+        settings.spares = spares
         settings.code = code
         self.epoch = epoch
         # a node of its own has remote links: its spare workers open their replicators
@@ -491,7 +494,8 @@ class Executor:
     # -- figures ---------------------------------------------------------------
     def report(self) -> NodeReport:
         """Figures of every module of this node (one request to each worker), its rings'
-        fill, its remote links' losses, and its CPU (since the last report) and memory."""
+        fill, its remote links' losses, its CPU (since the last report) and memory, and
+        how many spare workers it has booted."""
         futures = {key: self.workers.submit(key, "stats")
                    for key, handle in list(self.workers.handles.items()) if handle.alive}
         reports: dict[str, Any] = {}
@@ -504,7 +508,8 @@ class Executor:
                  for key, ring in report.get("rings", {}).items()}
         lost = {key: self.bridge.link_failures(_topic(link))
                 for key, link in self.inbound.items()}
-        return NodeReport(modules, rings, lost, list(self.failures), self.meter.sample())
+        return NodeReport(modules, rings, lost, list(self.failures), self.meter.sample(),
+                          len(self.workers.spare_pids()))
 
     def worker_pids(self) -> list[int]:
         """The process ids of this node's running workers."""

@@ -20,6 +20,7 @@ import threading
 import time
 from typing import TYPE_CHECKING, Any
 
+from pb3a.config.description import DEFAULT_SPARES
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
 from pb3a.transport.auth import ClusterKey
@@ -49,7 +50,7 @@ class RemoteNode:
                  workers: int = 0, cpus: list[int] | None = None, checkpoint_s: float = 1.0,
                  log_level: int = 30, code: CodeSources | None = None,
                  advertise: str | None = None,
-                 epoch: int = 0, node_epoch: int = 1) -> None:
+                 epoch: int = 0, node_epoch: int = 1, spares: int = DEFAULT_SPARES) -> None:
         self.name, self.config = name, config
         self.node_epoch = node_epoch        # 1, then one more each time the node rejoins
         key = ClusterKey.load()
@@ -82,7 +83,8 @@ class RemoteNode:
             if reached:
                 self.client.call("bind", launcher=launcher, checkpoint_s=checkpoint_s,
                                  log_level=log_level, code=code or CodeSources(),
-                                 epoch=epoch, node_epoch=node_epoch, lease_s=LEASE_S)
+                                 epoch=epoch, node_epoch=node_epoch, lease_s=LEASE_S,
+                                 spares=spares)
         except (RuntimeFailure, RuntimeTimeout) as exc:
             if self.client is None:
                 self.close()

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from multiprocessing import forkserver, reduction
 from typing import TYPE_CHECKING, Any
 
+from pb3a.config.description import DEFAULT_SPARES
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
 from pb3a.processes import start_without_main
@@ -79,7 +80,7 @@ class WorkerSettings:
     checkpoint_s: float = 1.0              # how often ``last-state`` modules checkpoint
     log_level: int = logging.WARNING
     code: CodeSources = field(default_factory=CodeSources)    # where workers import from
-    spares: int = 2                        # booted idle workers kept for modules that arrive
+    spares: int = DEFAULT_SPARES           # booted idle workers kept for modules that arrive
 
 
 class WorkerPool:
