@@ -248,6 +248,22 @@ def test_an_edited_state_field_is_used_by_the_module(lab: ManagerProcess, page: 
     page.screenshot(path=str(screenshot_path(tmp_path, "manager_state.png")))
 
 
+def test_a_value_being_typed_survives_a_change_of_structure_elsewhere(
+        lab: ManagerProcess, page: Any) -> None:
+    page.click("[data-module='scale'] .module-title")
+    assert field_value(page, "scale", "gain") == "2.0"
+    gain = page.locator("[data-field='gain'] input")
+    gain.fill("7.5")                                    # typed, not applied yet
+    lab.api("POST", "/api/modules/mapper/migrate", {"to": "b"})     # another module moves
+    wait_until_inside(page, "[data-module='mapper'] .module-box", "[data-node='b'] > rect")
+    page.wait_for_selector(".event[data-kind='module_moved']", timeout=WAIT_MS)
+    assert gain.input_value() == "7.5" and "dirty" in gain.get_attribute("class")
+    assert page.evaluate("document.activeElement.closest('[data-field]')?.dataset.field") == "gain"
+    gain.press("Enter")                                 # and it is applied as typed
+    page.wait_for_selector("[data-field='gain'].applied", timeout=WAIT_MS)
+    assert lab.api("GET", "/api/modules/scale/state")["fields"]["gain"]["value"] == 7.5
+
+
 def test_dragging_a_module_onto_another_node_migrates_it(lab: ManagerProcess, page: Any,
                                                          tmp_path: Path) -> None:
     assert module_on_node(page, "probe", "b")
