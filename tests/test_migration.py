@@ -259,7 +259,8 @@ def test_a_module_that_arrives_takes_a_booted_spare_and_a_dead_spare_is_only_for
         os.kill(spares[0], signal.SIGKILL)
         eventually(lambda: pool.spare_pids() == spares[1:], what="the dead spare forgotten")
         run.migrate("relay", to="b")
-        assert pool["b/m-relay"].pid == spares[1]           # booted before the move
+        taken = pool["b/m-relay"]
+        assert taken.pid == spares[1] and taken.process.name == "pb3a-worker-b/m-relay"
         booted = eventually(lambda: len(pids := pool.spare_pids()) == 2 and pids,
                             what="b's spares booted again")
         before = run.state("relay")["relayed"]

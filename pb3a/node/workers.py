@@ -153,6 +153,7 @@ class WorkerPool:
                 spare = self._spares.pop(0) if self._spares else None
             if spare is not None:                # booted already: only its name changes
                 spare.key, spare.node = key, node
+                spare.process.name = f"pb3a-worker-{key}"
                 self.handles[key] = spare
                 return spare
             handle = self.handles[key] = WorkerHandle(key, node)
