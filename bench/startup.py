@@ -13,11 +13,13 @@ What is measured, for 100 and for 1,000 modules:
   every ring.
 
 How: ``System("big-N", workers=4)``: every module packed into 4 worker processes
-(placement: least-loaded worker, so consecutive modules land in different workers
-and most links are shared-memory rings). Modules form chains of 10: a threaded
-``Clock`` (period 0.1 s) feeding 9 event-driven ``Gain`` modules. Each size runs in
-a fresh interpreter (this script re-run with ``--modules N``), so each launch pays
-the same cold start a user's script pays and no run inherits another's memory.
+(placement: the workers filled in declaration order, so a chain shares a process and
+its links stay in memory; the report counts each kind). Modules form chains of 10:
+a threaded ``Clock`` (period 0.1 s) feeding 9 event-driven ``Gain`` modules. Each
+size runs in a fresh interpreter (this script re-run with ``--modules N``), so each
+launch pays the same cold start a user's script pays and no run inherits another's
+memory. The node keeps its two spare workers booted, as every node does by default;
+they are counted with the helpers.
 """
 
 from __future__ import annotations
