@@ -20,8 +20,9 @@ On the same network, demand and seed it runs:
 
 Figures per run (the driver's): mean delay per vehicle (tripinfo ``timeLoss +
 departDelay`` over every vehicle, counting those still in the network or never let
-in), mean vehicles halting at the signals, throughput, teleports, swaps made, and
-the delay over time. Goals: the swapping agents have less mean delay than every
+in), mean vehicles halting at the signals, throughput, teleports, swaps made, the
+delay over time, and the delay per period of the demand with the best controller in
+each. Goals: the swapping agents have less mean delay than every
 controller alone, than SUMO's ``delay_based`` and than max-pressure.
 
 Run it: ``pb3a scenario traffic [--quick] [--network ring|grid] [--seed N] [--out DIR]``
@@ -202,7 +203,24 @@ def report(resource: Path, seed: int, quick: bool,
             "agents_wall_s": runs["agents"]["wall_s"],
             "swap_events": runs["agents"]["swap_events"],
             "swaps": runs["agents"]["swaps"], "goals": goals,
+            "periods": periods(runs, own),
             "delay_over_time": {name: result["delay_by_window"] for name, result in runs.items()}}
+
+
+def periods(runs: dict[str, dict[str, Any]], own: list[str]) -> list[dict[str, Any]]:
+    """Per period of the demand: its span, each run's mean delay (s) of the vehicles
+    that left in it, and the agents' controller with the least. Where the best differs
+    from period to period, swapping has something to gain; where it does not, the
+    agents can at best equal that controller."""
+    found = []
+    for index, period in enumerate(runs["agents"]["delay_by_period"]):
+        delays = {name: _round(result["delay_by_period"][index]["mean_delay_s"])
+                  for name, result in runs.items()}
+        measured = [name for name in own if delays[name] is not None]
+        found.append({"period": period["period"], "begin_s": period["begin_s"],
+                      "end_s": period["end_s"], "mean_delay_s": delays,
+                      "best_alone": min(measured, key=lambda n: delays[n]) if measured else None})
+    return found
 
 
 def _round(value: Any) -> Any:
@@ -210,7 +228,8 @@ def _round(value: Any) -> Any:
 
 
 def plot(figures: dict[str, Any], path: Path) -> None:
-    """Mean delay of the vehicles that left in each minute, per run; swaps marked."""
+    """Mean delay of the vehicles that left in each minute, per run; swaps and
+    the demand's periods marked."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -225,10 +244,18 @@ def plot(figures: dict[str, Any], path: Path) -> None:
     for index, swap in enumerate(figures["swaps"]):
         axes.axvline(swap["time"], color="tab:red", alpha=0.25, linewidth=0.8,
                      label="a swap by an agent" if index == 0 else None)
+    for period in figures["periods"]:              # the demand's periods, named on top
+        if period["begin_s"] > 0:
+            axes.axvline(period["begin_s"], color="grey", linestyle=":", linewidth=1.0)
+        axes.text((period["begin_s"] + period["end_s"]) / 2, 1.0, period["period"],
+                  transform=axes.get_xaxis_transform(), ha="center", va="bottom",
+                  fontsize=8, color="dimgrey")
+    axes.set_xlim(0, figures["duration_s"])
     axes.set_xlabel("simulated time (s)")
     axes.set_ylabel("mean delay of the vehicles that left in the minute (s)")
     axes.set_title(f"{figures['network']}, seed {figures['seed']}: mean delay per vehicle "
-                   f"over the run (legend); {len(figures['swaps'])} swaps", fontsize=10)
+                   f"over the run (legend); {len(figures['swaps'])} swaps", fontsize=10,
+                   pad=16)
     axes.legend(fontsize=8, loc="upper left")
     fig.tight_layout()
     fig.savefig(path, dpi=100)

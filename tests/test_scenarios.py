@@ -194,6 +194,17 @@ def _check_traffic(figures: dict) -> None:
     # beating gap_out (and, on some seeds, q_learning) is therefore not met.
     assert runs["agents"]["swaps"] == 0 and figures["swap_events"] == 0
     assert agents == runs["gap_out"]["mean_delay_s"], runs
+    # per period of the demand: each run's delay, and the best of the agents' controllers
+    periods = figures["periods"]
+    heavy = {"ring": ["west heavy", "east heavy"],
+             "grid": ["east-west heavy", "north-south heavy"]}[figures["network"]]
+    assert [p["period"] for p in periods] == [*heavy, "balanced", "surge"]
+    for period in periods:
+        delays = period["mean_delay_s"]
+        assert set(delays) == set(runs) and delays["agents"] == delays["gap_out"], period
+        assert period["best_alone"] == min(
+            ("fixed_time", "max_pressure", "longest_queue", "gap_out", "q_learning"),
+            key=delays.__getitem__)
     assert figures["agents_wall_s"] < 30          # lock-step: as fast as they decide
 
 

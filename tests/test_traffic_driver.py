@@ -145,6 +145,14 @@ def test_at_the_end_the_run_s_figures_count_every_vehicle(driver) -> None:
     assert result["teleports"] == 0 and result["mean_halting"] > 0
     assert [w[0] for w in result["delay_by_window"]] == [60.0, 120.0, 180.0, 240.0]
     assert sum(w[2] for w in result["delay_by_window"]) == result["vehicles"]
+    # per period of the demand (cross.toml: four of a quarter each), every vehicle once
+    periods = result["delay_by_period"]
+    assert [(p["period"], p["begin_s"], p["end_s"]) for p in periods] == [
+        ("east-west heavy", 0.0, 60.0), ("north-south heavy", 60.0, 120.0),
+        ("balanced", 120.0, 180.0), ("surge", 180.0, 240.0)]
+    assert sum(p["vehicles"] for p in periods) == result["vehicles"]
+    assert sum(p["mean_delay_s"] * p["vehicles"] for p in periods) == pytest.approx(
+        result["mean_delay_s"] * result["vehicles"])
 
 
 def test_sumo_s_own_programs_run_free_for_the_baselines(driver) -> None:

@@ -103,6 +103,7 @@ class TrafficDriver(_JunctionSlots, Module):
         self._awaiting: set[str] = set()
         self._published_at = 0.0
         self._workdir: Path | None = None
+        self._periods: list[tuple[str, float, float]] = []   # the demand's, in this run
         if self.resource:
             self._begin()
 
@@ -217,6 +218,8 @@ class TrafficDriver(_JunctionSlots, Module):
             else:
                 self._workdir = Path(tempfile.mkdtemp(prefix="pb3a-traffic-"))
             routes = network.write_demand(self.duration_s, self._workdir / "demand.rou.xml")
+            self._periods = [(period.name, begin, end)
+                             for period, begin, end in network.schedule(self.duration_s)]
             self._simulation = Simulation(net, routes, seed=self.seed, end_s=self.duration_s,
                                           workdir=self._workdir)
         except Exception as exc:
@@ -246,7 +249,7 @@ class TrafficDriver(_JunctionSlots, Module):
             return
         if keep:
             self.result = {**self._identity, "late": self.late, "rejected": self.rejected,
-                           **simulation.finish()}
+                           **simulation.finish(periods=self._periods)}
             self.status = "finished"
             self.summary.write(self.result)
         else:

@@ -157,13 +157,14 @@ class Simulation:
             return -1, "green"
         return -1, "yellow" if any(c in "yY" for c in state) else "all_red"
 
-    def finish(self, window_s: float = 60.0) -> dict[str, Any]:
+    def finish(self, window_s: float = 60.0,
+               periods: list[tuple[str, float, float]] | None = None) -> dict[str, Any]:
         """End the simulation; the run's figures (see ``summarize``)."""
         pending = [float(self._sumo.vehicle.getDepartDelay(v))
                    for v in self._sumo.simulation.getPendingVehicles()]
         end = self.time
         self.close()
-        summary = summarize(self.tripinfo, pending, end, window_s)
+        summary = summarize(self.tripinfo, pending, end, window_s, periods)
         summary["teleports"] = self.teleports
         summary["mean_halting"] = self._halting_sum / max(self._readings, 1)
         return summary
@@ -176,14 +177,17 @@ class Simulation:
 
 
 def summarize(tripinfo: Path, pending_delays: list[float], end_s: float,
-              window_s: float = 60.0) -> dict[str, Any]:
+              window_s: float = 60.0,
+              periods: list[tuple[str, float, float]] | None = None) -> dict[str, Any]:
     """Per-vehicle figures from a tripinfo file written with ``write-unfinished`` and
     the depart delays of the vehicles that never entered.
 
     ``mean_delay_s`` is the mean of ``timeLoss + departDelay`` over every vehicle;
     ``delay_by_window`` gives, per ``window_s`` of simulated time, the end of the
     window, the mean delay of the vehicles that left the network in it (those still
-    in it at the end count in the last window) and their number.
+    in it at the end count in the last window) and their number. ``delay_by_period``
+    gives the same for each ``(name, begin_s, end_s)`` of ``periods`` (the demand's
+    schedule), so that a controller's delay can be told per kind of traffic.
     """
     delays: list[tuple[float, float]] = []       # (when it left, its delay)
     finished = unfinished = 0
@@ -221,5 +225,20 @@ def summarize(tripinfo: Path, pending_delays: list[float], end_s: float,
         "throughput": finished,
         "delay_by_window": [[(w + 1) * window_s, sum(v) / len(v), len(v)]
                             for w, v in sorted(windows.items())],
+        "delay_by_period": _by_period(delays, periods or []),
     }
+
+
+def _by_period(delays: list[tuple[float, float]],
+               periods: list[tuple[str, float, float]]) -> list[dict[str, Any]]:
+    """Per period, the mean delay of the vehicles that left in it and their number;
+    the last period also takes those that left at or after its end (still in the
+    network, or never let in)."""
+    found = []
+    for index, (name, begin, end) in enumerate(periods):
+        last = index == len(periods) - 1
+        chosen = [d for left, d in delays if left >= begin and (left < end or last)]
+        found.append({"period": name, "begin_s": begin, "end_s": end, "vehicles": len(chosen),
+                      "mean_delay_s": sum(chosen) / len(chosen) if chosen else None})
+    return found
 
