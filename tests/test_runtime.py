@@ -88,8 +88,9 @@ def test_stats_are_typed_records_with_a_json_form() -> None:
     node = stats.nodes["local"]
     assert node == NodeStats(up=True, rtt=0.0, address=None, cpu=node.cpu,
                              memory_available=node.memory_available,
-                             memory_total=node.memory_total)
+                             memory_total=node.memory_total, spare_workers=node.spare_workers)
     assert node.cpu is not None and node.memory_total is not None
+    assert node.spare_workers in (0, 1, 2)          # (the two booting in the background)
     plain = stats.to_json()
     text = json.dumps(plain, allow_nan=False)          # NaN (no latency yet) is null
     assert json.loads(text)["links"]["scale.y->sink.x"]["values"] >= 2
