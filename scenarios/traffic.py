@@ -22,8 +22,8 @@ Figures per run (the driver's): mean delay per vehicle (tripinfo ``timeLoss +
 departDelay`` over every vehicle, counting those still in the network or never let
 in), mean vehicles halting at the signals, throughput, teleports, swaps made, the
 delay over time, and the delay per period of the demand with the best controller in
-each. Goals: the swapping agents have less mean delay than every
-controller alone, than SUMO's ``delay_based`` and than max-pressure.
+each. Goals: the swapping agents have less mean delay than every controller alone,
+than SUMO's ``delay_based`` and than max-pressure.
 
 Run it: ``pb3a scenario traffic [--quick] [--network ring|grid] [--seed N] [--out DIR]``
 (or ``python -m scenarios.traffic``); ``--network`` also takes the path of another

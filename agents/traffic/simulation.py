@@ -241,4 +241,3 @@ def _by_period(delays: list[tuple[float, float]],
         found.append({"period": name, "begin_s": begin, "end_s": end, "vehicles": len(chosen),
                       "mean_delay_s": sum(chosen) / len(chosen) if chosen else None})
     return found
-
