@@ -31,8 +31,11 @@ LANES = {"ns": ("n_in", "s_in"), "ew": ("e_in", "w_in")}
 def reading(green: int = NS, elapsed: float = 0.0, *, step: int = 0, stage: str = "green",
             target: int | None = None, queues: dict[str, int] | None = None,
             vehicles: dict[str, int] | None = None, approaching: dict[str, int] | None = None,
-            outgoing: dict[str, int] | None = None) -> JunctionReading:
-    """A reading of the crossing; counts per lane group (``ns``/``ew``) or per lane."""
+            outgoing: dict[str, int] | None = None,
+            arriving_in: dict[str, float] | None = None) -> JunctionReading:
+    """A reading of the crossing; counts per lane group (``ns``/``ew``) or per lane. A
+    lane with vehicles ``approaching`` has its nearest due in 2 s unless ``arriving_in``
+    says otherwise."""
     def per_lane(counts: dict[str, int] | None, lanes: tuple[str, ...]) -> dict[str, int]:
         out = dict.fromkeys(lanes, 0)
         for name, count in (counts or {}).items():
@@ -41,12 +44,15 @@ def reading(green: int = NS, elapsed: float = 0.0, *, step: int = 0, stage: str 
         return out
 
     queue = per_lane(queues, LAYOUT.lanes_in)
+    coming = per_lane(approaching, LAYOUT.lanes_in)
+    due = {lane: 2.0 for lane, count in coming.items() if count}
+    for name, seconds in (arriving_in or {}).items():
+        due |= dict.fromkeys(LANES.get(name, (name,)), seconds)
     return JunctionReading(
         "J", step, float(step), LAYOUT, green, green if target is None else target, stage,
         elapsed, LAYOUT.greens[green], queue, dict.fromkeys(queue, 0.0),
         dict.fromkeys(queue, 0), per_lane(outgoing, LAYOUT.lanes_out),
-        per_lane(vehicles if vehicles is not None else queues, LAYOUT.lanes_in),
-        per_lane(approaching, LAYOUT.lanes_in))
+        per_lane(vehicles if vehicles is not None else queues, LAYOUT.lanes_in), coming, due)
 
 
 def asks(cls: type, state: dict[str, Any] | None = None, **fields: Any) -> int:
@@ -113,6 +119,10 @@ def test_gap_out_holds_while_vehicles_come_and_gives_way_when_they_stop() -> Non
     # a car braking for the red (not yet halting) counts as waiting there
     assert asks(GapOut, state, green=NS, elapsed=12.0, queues={},
                 vehicles={"e_in": 1}) == EW
+    # the passage time: a vehicle 3 s from its stop line holds the green at 4 s, not at 2
+    for passage, asked in ((4.0, NS), (2.0, EW)):
+        assert asks(GapOut, {**state, "passage_s": passage}, green=NS, elapsed=12.0,
+                    vehicles={"ew": 5}, arriving_in={"s_in": 3.0}) == asked
 
 
 def test_q_learning_acts_on_its_table_which_is_its_state() -> None:

@@ -15,6 +15,7 @@ from traffic_legality import illegal_steps
 
 from agents.traffic.driver import TrafficDriver
 from agents.traffic.messages import JunctionReading, NetworkReading, PhaseRequest
+from agents.traffic.simulation import APPROACH_S
 from pb3a import System
 from pb3a.testing import ModuleHarness
 
@@ -73,6 +74,14 @@ def test_it_writes_each_junctions_detectors_and_the_networks_totals(driver) -> N
     assert red >= 3 and green <= 1, reading.queues        # queues build up at red only
     assert sum(w for lane, w in reading.waiting.items() if lane not in ns_lanes) > 30
     assert sum(sum(r.arrivals.values()) for r in harness.written["reading_0"]) >= 15
+    # a lane whose vehicles approach has its nearest due within the approach time
+    readings = harness.written["reading_0"]
+    assert any(r.arriving_in for r in readings)
+    for r in readings:
+        assert set(r.arriving_in) <= set(layout.lanes_in)
+        assert all(seconds >= 0 for seconds in r.arriving_in.values())
+        assert all(r.arriving_in.get(lane, 1e9) <= APPROACH_S
+                   for lane, count in r.approaching.items() if count)
     assert reading.signal == layout.greens[NS] and reading.elapsed == 90.0
     traffic = harness.last("traffic")
     assert isinstance(traffic, NetworkReading) and traffic.step == 90

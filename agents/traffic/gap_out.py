@@ -1,7 +1,8 @@
 """``GapOut``: an actuated controller on local detectors. It holds a green while
-vehicles keep coming to its stop lines (the reading's ``approaching``: moving
-vehicles due within a few seconds) and gives way once that stream gaps out, or at
-``max_green_s``, to the green with the most vehicles on its lanes.
+vehicles keep coming to its stop lines (a moving vehicle due within ``passage_s``,
+the actuated signal's passage time, by the reading's ``arriving_in``) and gives way
+once that stream gaps out, or at ``max_green_s``, to the green with the most
+vehicles on its lanes.
 
 It wastes no green on an empty approach and cuts no platoon in half, which is what
 makes SUMO's actuated programs good. The red side is counted as every vehicle on
@@ -11,6 +12,8 @@ many times the vehicles the green still serves.
 """
 
 from __future__ import annotations
+
+import math
 
 from agents.traffic.controller import JunctionController, in_transition
 from agents.traffic.messages import JunctionReading
@@ -27,6 +30,7 @@ class GapOut(JunctionController):
 
     min_green_s = 5.0
     max_green_s = 40.0
+    passage_s = 4.0                 # a vehicle due within this holds the green
     switch_ratio = 0.0              # 0: never cut a stream short for the red side
 
     def choose(self, reading: JunctionReading) -> int:
@@ -39,10 +43,12 @@ class GapOut(JunctionController):
         busiest, green = max((waiting[g], g) for g in range(greens) if g != reading.green)
         if busiest == 0:                        # nobody at red
             return reading.green
-        coming = served(reading, reading.green, reading.approaching)
-        if coming == 0 or reading.elapsed + 1e-9 >= self.max_green_s:
+        lanes = {lane for lane, _ in reading.layout.movements(reading.green)}
+        due = any(reading.arriving_in.get(lane, math.inf) <= self.passage_s for lane in lanes)
+        if not due or reading.elapsed + 1e-9 >= self.max_green_s:
             return green
         if self.switch_ratio > 0 and busiest >= self.switch_ratio * (
-                coming + served(reading, reading.green, reading.queues)):
+                served(reading, reading.green, reading.approaching)
+                + served(reading, reading.green, reading.queues)):
             return green
         return reading.green

@@ -49,6 +49,10 @@ class JunctionReading:
                                          # too) on each incoming lane
     approaching: dict[str, int] = field(default_factory=dict)   # moving vehicles due
                                          # at the stop line within APPROACH_S, per lane
+    arriving_in: dict[str, float] = field(default_factory=dict)   # seconds until the
+                                         # nearest moving vehicle reaches the stop line,
+                                         # per lane that has one (an actuated signal's
+                                         # passage time is judged against it)
 
 
 @dataclass(frozen=True)

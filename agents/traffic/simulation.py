@@ -110,30 +110,40 @@ class Simulation:
         lane = self._sumo.lane
         layout = self.layouts[junction]
         queues, waiting, arrivals, vehicles, approaching = {}, {}, {}, {}, {}
+        arriving_in: dict[str, float] = {}
         for name in layout.lanes_in:
             queues[name] = int(lane.getLastStepHaltingNumber(name))
             waiting[name] = float(lane.getWaitingTime(name))
             present = set(lane.getLastStepVehicleIDs(name))
             vehicles[name] = len(present)
-            approaching[name] = self._approaching(name, present)
+            approaching[name], nearest = self._approaching(name, present)
+            if nearest is not None:
+                arriving_in[name] = nearest
             arrivals[name] = len(present - self._seen[name])
             self._seen[name] = present
         outgoing = {name: int(lane.getLastStepVehicleNumber(name)) for name in layout.lanes_out}
         return {"queues": queues, "waiting": waiting, "arrivals": arrivals,
-                "outgoing": outgoing, "vehicles": vehicles, "approaching": approaching}
+                "outgoing": outgoing, "vehicles": vehicles, "approaching": approaching,
+                "arriving_in": arriving_in}
 
-    def _approaching(self, lane: str, present: set[str]) -> int:
-        """The moving vehicles on ``lane`` due at its end within ``APPROACH_S``."""
+    def _approaching(self, lane: str, present: set[str]) -> tuple[int, float | None]:
+        """The moving vehicles on ``lane`` due at its end within ``APPROACH_S``, and the
+        seconds until the nearest of all moving ones gets there (None: none moves)."""
         vehicle = self._sumo.vehicle
         length = self._lengths.get(lane)
         if length is None:
             length = self._lengths[lane] = float(self._sumo.lane.getLength(lane))
-        due = 0
+        due, nearest = 0, None
         for name in present:
             speed = vehicle.getSpeed(name)
-            if speed >= MOVING_MPS and length - vehicle.getLanePosition(name) <= speed * APPROACH_S:
-                due += 1
-        return due
+            if speed >= MOVING_MPS:
+                distance = length - vehicle.getLanePosition(name)
+                if distance <= speed * APPROACH_S:
+                    due += 1
+                seconds = distance / speed
+                if nearest is None or seconds < nearest:
+                    nearest = seconds
+        return due, nearest
 
     def network_reading(self, step: int, halting: int) -> NetworkReading:
         """The network's totals now; ``halting`` (the vehicles standing at the
