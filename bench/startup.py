@@ -12,14 +12,14 @@ What is measured, for 100 and for 1,000 modules:
 - ``shutdown_s``: ``run.close()``, which stops every module and worker and frees
   every ring.
 
-How: ``System("big-N", workers=4)``: every module packed into 4 worker processes
+How: ``System("big-N")`` on one node of 4 workers: every module packed into them
 (placement: the workers filled in declaration order, so a chain shares a process and
 its links stay in memory; the report counts each kind). Modules form chains of 10:
 a threaded ``Clock`` (period 0.1 s) feeding 9 event-driven ``Gain`` modules. Each
 size runs in a fresh interpreter (this script re-run with ``--modules N``), so each
 launch pays the same cold start a user's script pays and no run inherits another's
-memory. The node keeps its two spare workers booted, as every node does by default;
-they are counted with the helpers.
+memory. The node keeps its two spare workers booted, as every node does by default
+(``--spares N`` for another count); they are counted with the helpers.
 """
 
 from __future__ import annotations
@@ -51,9 +51,11 @@ GOALS = {"launch_s": 10.0, "pss_gib": 4.0}
 GIB = 1 << 30
 
 
-def build(modules: int) -> System:
-    """``modules // CHAIN`` chains: a Clock feeding CHAIN - 1 Gains, one after the other."""
-    system = System(f"big-{modules}", workers=WORKERS)
+def build(modules: int, spares: int | None = None) -> System:
+    """``modules // CHAIN`` chains: a Clock feeding CHAIN - 1 Gains, one after the other,
+    on a node that keeps ``spares`` idle workers booted (None: the default)."""
+    system = System(f"big-{modules}").node(
+        "local", workers=WORKERS, **({} if spares is None else {"spares": spares}))
     for chain in range(modules // CHAIN):
         system.add(f"c{chain}m0", Clock, period=SOURCE_PERIOD)
         for i in range(1, CHAIN):
@@ -82,9 +84,9 @@ def memory(workers: set[int]) -> dict[str, Any]:
             "processes": kinds}
 
 
-def measure(modules: int) -> dict[str, Any]:
+def measure(modules: int, spares: int | None = None) -> dict[str, Any]:
     """Launch, settle, look, shut down: one size, in this interpreter."""
-    system = build(modules)
+    system = build(modules, spares)
     steal0, t_all = steal_seconds(), time.monotonic()
     t0 = time.monotonic()
     run = system.launch()
@@ -113,9 +115,11 @@ def measure(modules: int) -> dict[str, Any]:
     }
 
 
-def in_fresh_interpreter(modules: int) -> dict[str, Any]:
-    """Run ``measure(modules)`` in a new Python process; bounded by CHILD_TIMEOUT."""
+def in_fresh_interpreter(modules: int, spares: int | None) -> dict[str, Any]:
+    """Run ``measure(modules, spares)`` in a new Python process; bounded by CHILD_TIMEOUT."""
     command = [sys.executable, str(Path(__file__).resolve()), "--modules", str(modules)]
+    if spares is not None:
+        command += ["--spares", str(spares)]
     with subprocess.Popen(command, stdout=subprocess.PIPE, text=True) as child:
         try:
             out, _ = child.communicate(timeout=CHILD_TIMEOUT)
@@ -133,10 +137,11 @@ def in_fresh_interpreter(modules: int) -> dict[str, Any]:
                          f"{CHILD_TIMEOUT} s)"}
 
 
-def body(result: dict[str, Any]) -> None:
+def body(result: dict[str, Any], spares: int | None) -> None:
     result.update(benchmark="startup", machine=machine(), workers=WORKERS,
+                  spares="default" if spares is None else spares,
                   chain_length=CHAIN, source_period_s=SOURCE_PERIOD, settle_s=SETTLE_S)
-    runs = {str(n): in_fresh_interpreter(n) for n in SIZES}
+    runs = {str(n): in_fresh_interpreter(n, spares) for n in SIZES}
     result["runs"] = runs
     small, big = runs[str(SIZES[0])], runs[str(SIZES[-1])]
     if "error" in small or "error" in big:
@@ -151,15 +156,17 @@ def body(result: dict[str, Any]) -> None:
         for key, value in measured.items()}
 
 
-def one_size(modules: int) -> None:
-    main_guard(lambda result: result.update(measure(modules)))
+def one_size(modules: int, spares: int | None) -> None:
+    main_guard(lambda result: result.update(measure(modules, spares)))
 
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--modules", type=int, help="measure one size in this interpreter")
+    parser.add_argument("--spares", type=int,
+                        help="idle workers the node keeps booted (default: a node's, 2)")
     args = parser.parse_args()
     if args.modules:
-        one_size(args.modules)
+        one_size(args.modules, args.spares)
     else:
-        main_guard(body)
+        main_guard(lambda result: body(result, args.spares))
