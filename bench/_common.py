@@ -124,6 +124,14 @@ def _commit() -> str:
     return f"{head} (pb3a/ modified)" if dirty else head or "unknown"
 
 
+def parse_seeds(text: str) -> list[int]:
+    """A ``--seeds`` argument: a range ``1-4`` or a list ``1,5,9``."""
+    if "-" in text:
+        first, last = text.split("-")
+        return list(range(int(first), int(last) + 1))
+    return [int(seed) for seed in text.split(",")]
+
+
 def main_guard(body: Callable[[dict[str, Any]], None]) -> None:
     """Run ``body(result)``, then print ``result`` as JSON even if the body failed.
 

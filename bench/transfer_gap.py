@@ -39,6 +39,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import parse_seeds  # noqa: E402
 
 from agents.learner import SUCCESS, Parameters, ReactiveLearner  # noqa: E402
 from agents.transfer import success_rate  # noqa: E402
@@ -154,11 +157,7 @@ def main() -> None:
     args = parser.parse_args()
     if not 0 <= args.lag < DECISION_S:
         parser.error(f"--lag must be at least 0 and below the decision period {DECISION_S}")
-    if "-" in args.seeds:
-        first, last = args.seeds.split("-")
-        seeds = list(range(int(first), int(last) + 1))
-    else:
-        seeds = [int(s) for s in args.seeds.split(",")]
+    seeds = parse_seeds(args.seeds)
     n = len(seeds)
     with ProcessPoolExecutor(max_workers=2) as pool:
         runs = list(pool.map(run, seeds, [args.train] * n, [args.hardware_s] * n,
