@@ -32,6 +32,8 @@ def handler(op: str, args: dict[str, Any]) -> Any:
     if op == "block":
         release.wait(10.0)
         return "released"
+    if op == "elsewhere":
+        return _Elsewhere()
     raise KeyError(op)
 
 
@@ -150,6 +152,19 @@ def test_a_request_naming_a_module_the_server_cannot_import_is_answered_at_once(
         client.call("add", 10.0, a=_Elsewhere(), b=1)
     assert time.monotonic() - started < 2.0
     assert client.call("add", a=1, b=2) == 3            # the server goes on
+
+
+def test_an_answer_naming_a_module_the_client_cannot_import_fails_at_once(rpc) -> None:
+    """Such as a module's state holding a class only the server's process can import:
+    the caller is told so, not left to wait for its deadline."""
+    server, client = rpc
+    started = time.monotonic()
+    with pytest.raises(RuntimeFailure, match=f"the answer of {server.address} names Python "
+                                             "module 'pb3a_not_installed_here', which this "
+                                             "process cannot import: install it"):
+        client.call("elsewhere", 10.0)
+    assert time.monotonic() - started < 2.0
+    assert client.call("add", a=1, b=2) == 3            # the client goes on
 
 
 def test_a_request_naming_a_module_not_imported_yet_waits_for_the_decode_lock() -> None:

@@ -389,6 +389,39 @@ def test_a_follower_that_went_silent_holds_the_publisher_back_only_briefly(
     assert time.monotonic() - started < 5.0
 
 
+def test_a_follower_that_left_neither_holds_the_publisher_nor_counts_as_unacknowledged(
+        link) -> None:
+    """Its reader moved to another node, or its link was cut: what the publisher counts
+    as lost for the followers it has now is only what they did not acknowledge."""
+    replicator, first, _ = link
+    replicator.add("t")
+    _follow(first, replicator, "t", incarnation=replicator.incarnation)
+    assert first.wait_ready("t", TIMEOUT)
+    for i in range(10):
+        replicator.publish("t", i)
+    first.unfollow("t")                                     # says so: forgotten at once
+    eventually(lambda: replicator.unacknowledged("t") == 0, what="the follower forgotten")
+    inbox = Inbox()
+    second = Follower(KEY, inbox)
+    try:
+        _follow(second, replicator, "t", incarnation=replicator.incarnation)
+        assert second.wait_ready("t", TIMEOUT)
+        started = time.monotonic()
+        for i in range(10, 10 + 3 * replication.WINDOW):
+            replicator.publish("t", i)
+        assert time.monotonic() - started < 1.0, "held back by the follower that left"
+        inbox.wait("t", 3 * replication.WINDOW)
+        eventually(lambda: replicator.unacknowledged("t") == 0, what="all acknowledged")
+        second.close()                                      # its node is lost: silent
+        for i in range(5):
+            replicator.publish("t", i)
+        assert replicator.unacknowledged("t") == 5          # what the lost one missed
+        replicator.release("t")                             # and then it is forgotten
+        assert replicator.unacknowledged("t") == 0
+    finally:
+        second.close()
+
+
 def test_a_sender_of_an_earlier_epoch_is_refused_as_stale() -> None:
     old, current, inbox = Replicator(KEY, epoch=4), Replicator(KEY, epoch=5), Inbox()
     follower = Follower(KEY, inbox, epoch=5)

@@ -134,7 +134,8 @@ class ControlServer:
         """A key holder's request that cannot be read still gets an answer, saying why."""
         self._opener.rejected["undecodable"] += 1
         self._loop.submit(lambda: self._reply(
-            peer, request_id, False, RuntimeFailure(_undecodable(exc, self.address))))
+            peer, request_id, False,
+            RuntimeFailure(_undecodable(exc, "a request", f"the process at {self.address}"))))
 
     def _refuse(self, peer: Any, reason: str) -> None:
         """Tell an unauthenticated peer which check failed (rate-limited per peer)."""
@@ -180,13 +181,14 @@ class ControlServer:
         self._router.close(0)
 
 
-def _undecodable(exc: Exception, where: str) -> str:
-    """Why a request could not be read at ``where``, and what to do about it."""
+def _undecodable(exc: Exception, what: str, reader: str) -> str:
+    """Why ``what`` (a request, an answer) could not be read by ``reader`` (a
+    process), and what to do about it."""
     if isinstance(exc, ModuleNotFoundError):
-        return (f"a request names Python module {exc.name!r}, which the process at {where} "
-                "cannot import: install it on that machine (or put it on its PYTHONPATH), "
-                "or serve it from a module server (module_servers in the configuration)")
-    return f"a request could not be read at {where}: {type(exc).__name__}: {exc}"
+        return (f"{what} names Python module {exc.name!r}, which {reader} cannot import: "
+                "install it on that machine (or put it on its PYTHONPATH), or serve it "
+                "from a module server (module_servers in the configuration)")
+    return f"{what} could not be read by {reader}: {type(exc).__name__}: {exc}"
 
 
 class ControlClient:
@@ -257,7 +259,12 @@ class ControlClient:
                 waiter = self._waiting.get(bytes(message.frames[0]))
                 if waiter is None:
                     continue                     # answered after its caller gave up
-                waiter[1][:] = pickle.loads(message.frames[1])   # authenticated: safe
+                try:
+                    waiter[1][:] = pickle.loads(message.frames[1])   # authenticated: safe
+                except Exception as exc:     # the caller hears why now, not at its deadline
+                    self._opener.rejected["undecodable"] += 1
+                    waiter[1][:] = [False, RuntimeFailure(_undecodable(
+                        exc, f"the answer of {self.address}", "this process"))]
                 waiter[0].set()
             except Rejected:
                 continue

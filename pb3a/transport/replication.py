@@ -374,8 +374,9 @@ class Replicator:
             return self._topics[topic]
 
     def release(self, topic: str, silent_for: float = 0.0) -> None:
-        """Stop waiting for the lossless followers of ``topic`` that have been silent
-        for ``silent_for`` seconds or more (0: all of them): a link to them was cut."""
+        """Forget the followers of ``topic`` that have been silent for ``silent_for``
+        seconds or more (0: all of them), a link to them being cut: the publisher no
+        longer waits for them, nor counts what they did not acknowledge."""
         with self._lock:
             stream = self._topics.get(topic)
             if stream is None:
@@ -384,6 +385,9 @@ class Replicator:
             for peer in list(stream.holds):
                 if now - stream.acks.get(peer, (0, -math.inf))[1] >= silent_for:
                     del stream.holds[peer]
+            for peer, (_, when) in list(stream.acks.items()):
+                if now - when >= silent_for:
+                    del stream.acks[peer]
             self._acked.notify_all()
 
     def publish(self, topic: str, value: Any, timeout: float = WINDOW_WAIT) -> int:
@@ -821,8 +825,8 @@ class Follower:
         follow = self._follows.pop(name, None)
         if follow is not None:
             follow.data.setsockopt(zmq.UNSUBSCRIBE, name)
-            if name in self._lossless:           # the sender no longer waits for us
-                self._ask(follow, ACK, -1, 0)
+            self._ask(follow, ACK, -1, 0)        # the sender forgets us: no waiting for
+                                                 # us, nothing we did not see counted lost
         self._lossless.discard(name)
         self._drop_unused()
 
