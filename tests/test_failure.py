@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import os
 import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from pathlib import Path
 
@@ -26,7 +28,7 @@ from sample_modules import (
     Steady,
 )
 
-from pb3a import System
+from pb3a import Input, InputPort, Module, Output, RuntimeFailure, System
 from pb3a.transport.shm import live_segments
 
 pytestmark = pytest.mark.timeout(120)
@@ -230,3 +232,92 @@ def test_a_crash_loop_gives_up_after_the_restart_intensity() -> None:
         eventually(lambda: run.state("other")["count"] > before, what="the other goes on")
     assert figures.restarts == 5
     assert any("gave up" in failure and "crasher" in failure for failure in failures)
+
+
+class CancelledOnce(Steady):
+    """Its fifth step raises what is not an ``Exception``."""
+
+    def step(self) -> None:
+        super().step()
+        if self.count == 5:
+            raise asyncio.CancelledError("a task of mine was cancelled")
+
+
+class ExitsOnce(Module):
+    x = Input(int, policy="queue:64")
+    seen = 0
+
+    def on_input(self, port: InputPort) -> None:
+        port.read()
+        self.seen += 1
+        if self.seen == 5:
+            raise SystemExit("sys.exit() in a handler")
+
+
+class Counter(Module):
+    out = Output(int)
+    period = 0.01
+    n = 0
+
+    def step(self) -> None:
+        self.n += 1
+        self.out.write(self.n)
+
+
+def test_a_body_raising_what_is_not_an_exception_is_counted_and_runs_on() -> None:
+    """SystemExit or CancelledError from a body is an error of that body, like any
+    other: it must not end the thread that runs it (its step thread, the worker's
+    receiver), which would stop the module, or a whole worker's inputs, silently."""
+    system = System("base-exceptions")
+    system.add("stepper", CancelledOnce)
+    system.add("src", Counter)
+    system.add("sink", ExitsOnce)
+    system.link("src.out", "sink.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("stepper")["count"] > 10
+                   and run.state("sink")["seen"] > 10, what="both go on after raising")
+        figures = run.stats().modules
+        assert figures["stepper"].errors == 1 and "CancelledError" in figures["stepper"].last_error
+        assert figures["sink"].errors == 1 and "SystemExit" in figures["sink"].last_error
+
+
+class Refusal(Exception):
+    """Pickles, but does not unpickle: ``Refusal(message)`` lacks an argument."""
+
+    def __init__(self, code: int, why: str) -> None:
+        super().__init__(f"{code}: {why}")
+
+
+class HoldsUnreadable(Steady):
+    def step(self) -> None:
+        super().step()
+        self.last_refusal = Refusal(503, "busy")
+
+
+class HoldsLock(Steady):
+    def setup(self) -> None:
+        self.guard = threading.Lock()           # a public attribute: part of its state
+
+
+def test_a_state_that_cannot_cross_to_the_launcher_fails_at_once_and_harms_nothing() -> None:
+    """A state that cannot be pickled in its worker, or read in the launcher, fails
+    that one request at once, saying why; the node still reads its workers and
+    restarts a killed one."""
+    system = System("unsendable")
+    system.add("unreadable", HoldsUnreadable)
+    system.add("locked", HoldsLock)
+    system.add("other", Steady, restart="fresh")
+    with system.launch() as run:
+        eventually(lambda: run.state("other")["count"] > 3 and run.stats().modules[
+            "unreadable"].steps > 2, what="steps")
+        for name, why in (("unreadable", "could not be read here: TypeError"),
+                          ("locked", "could not be pickled: TypeError: cannot pickle")):
+            started = time.monotonic()
+            with pytest.raises(RuntimeFailure, match=why):
+                run.state(name, timeout=10.0)
+            assert time.monotonic() - started < 2.0
+        assert run.state("other")["count"] > 3               # the node still answers
+        pid = run.stats().modules["other"].pid
+        os.kill(pid, signal.SIGKILL)
+        eventually(lambda: run.stats().modules["other"].restarts == 1,
+                   what="the killed worker restarted")

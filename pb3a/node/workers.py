@@ -264,21 +264,28 @@ class WorkerPool:
 
     def _watch(self) -> None:
         while not self._stopping.is_set():
-            handles = [h for h in [*self.handles.values(), *self._spares] if h.alive]
-            by_conn = {h.conn: h for h in handles}
-            by_sentinel = {h.process.sentinel: h for h in handles}
-            ready = multiprocessing.connection.wait(
-                [self._wake_r, *by_conn, *by_sentinel], timeout=1.0)
-            for item in ready:
-                if item is self._wake_r:
-                    with contextlib.suppress(BlockingIOError):
-                        self._wake_r.recv(4096)
-                elif item in by_conn:
-                    self._read(by_conn[item])
-            for item in ready:
-                if item in by_sentinel and by_sentinel[item].alive:
-                    self._read(by_sentinel[item])      # replies sent before it died
-                    self._died(by_sentinel[item])
+            try:
+                self._watch_once()
+            except Exception:               # the node's only reader and watcher: never die
+                log.exception("worker monitor: unexpected error; going on")
+
+    def _watch_once(self) -> None:
+        """Read every worker's pipe that has something, and see every death."""
+        handles = [h for h in [*self.handles.values(), *self._spares] if h.alive]
+        by_conn = {h.conn: h for h in handles}
+        by_sentinel = {h.process.sentinel: h for h in handles}
+        ready = multiprocessing.connection.wait(
+            [self._wake_r, *by_conn, *by_sentinel], timeout=1.0)
+        for item in ready:
+            if item is self._wake_r:
+                with contextlib.suppress(BlockingIOError):
+                    self._wake_r.recv(4096)
+            elif item in by_conn:
+                self._read(by_conn[item])
+        for item in ready:
+            if item in by_sentinel and by_sentinel[item].alive:
+                self._read(by_sentinel[item])      # replies sent before it died
+                self._died(by_sentinel[item])
 
     def _read(self, handle: WorkerHandle) -> None:
         with handle.read_lock:
@@ -288,7 +295,18 @@ class WorkerPool:
     def _read_open(self, handle: WorkerHandle) -> None:
         try:
             while handle.conn.poll():
-                req_id, ok, result = handle.conn.recv()
+                req_id, ok = handle.conn.recv()            # the head, then the payload
+                try:
+                    result = reduction.ForkingPickler.loads(handle.conn.recv_bytes())
+                except (EOFError, OSError):
+                    raise
+                except Exception as exc:                   # fails its request, not the pipe
+                    if req_id is None:
+                        log.error("worker %s: a %s notice could not be read here: %s: %s",
+                                  handle.key, ok, type(exc).__name__, exc)
+                        continue
+                    ok, result = False, ("its answer could not be read here: "
+                                         f"{type(exc).__name__}: {exc}")
                 if req_id is None:
                     self._on_notice(handle, ok, result)
                     continue

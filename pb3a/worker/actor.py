@@ -93,7 +93,10 @@ class EventPool:
 
     def _run(self) -> None:
         while (task := self._tasks.get()) is not None:
-            task()
+            try:
+                task()
+            except BaseException:           # a thread of every module here: never die
+                log.exception("event pool: unexpected error; going on")
 
     def close(self, timeout: float = 2.0) -> None:
         for _ in self._threads:
@@ -236,8 +239,8 @@ class ModuleActor:
                 try:
                     fn(*args)
                     done += 1
-                except Exception as exc:
-                    self.errors += 1
+                except BaseException as exc:    # SystemExit, CancelledError too: counted,
+                    self.errors += 1            # never the end of a shared thread
                     self.last_error = f"{type(exc).__name__}: {exc}"
                     if self.on_error is not None:
                         self.on_error(self, hook, traceback.format_exc())

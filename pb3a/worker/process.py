@@ -170,10 +170,26 @@ class Worker:
             reply = (req_id, False, f"{type(exc).__name__}: {exc}")
         self.send(reply)
 
-    def send(self, message: Any) -> None:
+    def send(self, message: tuple[int | None, Any, Any]) -> None:
+        """Send a reply ``(req_id, ok, result)`` or a notice ``(None, kind, payload)``
+        to the executor: its head, then its payload pickled on its own. So a payload
+        that cannot be pickled here (a state holding a lock) or read there (a class
+        only this process can import) fails only its own request, saying why, and
+        never the pipe."""
+        req_id, kind, payload = message
+        try:
+            body = reduction.ForkingPickler.dumps(payload)
+        except Exception as exc:
+            if req_id is None:
+                log.error("a %s notice could not be pickled: %s: %s", kind,
+                          type(exc).__name__, exc)
+                return
+            kind, body = False, reduction.ForkingPickler.dumps(
+                f"its answer could not be pickled: {type(exc).__name__}: {exc}")
         with self._send_lock:
             try:
-                self.conn.send(message)
+                self.conn.send((req_id, kind))
+                self.conn.send_bytes(body)
             except (OSError, EOFError, BrokenPipeError):
                 self._closing.set()
 
