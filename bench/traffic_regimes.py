@@ -17,10 +17,13 @@ among (``scenarios/traffic.toml``), gap-out first. Run it::
 
     .venv/bin/python bench/traffic_regimes.py [--networks ring,grid] [--seeds 1-4]
         [--duration 3600] [--variant 'NAME=module:Class{"param": value}' ...]
+        [--scale [PERIOD=]FACTOR ...]
 
 for example ``--variant gap_out=agents.traffic.gap_out:GapOut --variant
 'p5=agents.traffic.gap_out:GapOut{"passage_s": 5.0}'``. Four seeds of both networks
 take about 100 s with three variants and 160 s with the scenario's five, on two cores.
+``--scale surge=2.2`` makes the surge heavier (the driver's ``demand_scale``), to see
+which controller a saturated network favours.
 """
 
 from __future__ import annotations
@@ -39,7 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import machine, main_guard, parse_seeds  # noqa: E402
 
-from scenarios.traffic import controllers, network_path, run_alone  # noqa: E402
+from scenarios.traffic import controllers, network_path, parse_scale, run_alone  # noqa: E402
 
 
 def parse_variant(text: str) -> tuple[str, dict[str, Any]]:
@@ -52,10 +55,11 @@ def parse_variant(text: str) -> tuple[str, dict[str, Any]]:
     return name, {"class": reference, "state": json.loads(brace + state) if brace else {}}
 
 
-def run_one(network: str, seed: int, spec: dict[str, Any], duration_s: float
-            ) -> dict[str, Any]:
+def run_one(network: str, seed: int, spec: dict[str, Any], duration_s: float,
+            demand_scale: dict[str, float]) -> dict[str, Any]:
     """One variant alone on one network and seed: its mean delay, overall and per period."""
-    result = run_alone(network_path(network), seed, duration_s, spec)
+    result = run_alone(network_path(network), seed, duration_s, spec,
+                       demand_scale=demand_scale)
     return {"mean_delay_s": result["mean_delay_s"], "teleports": result["teleports"],
             "periods": [(p["period"], p["mean_delay_s"]) for p in result["delay_by_period"]]}
 
@@ -91,14 +95,16 @@ def body(result: dict[str, Any], args: argparse.Namespace) -> None:
     variants = dict(parse_variant(text) for text in args.variant) if args.variant else \
         dict(sorted(controllers().items(), key=lambda item: item[0] != "gap_out"))
     networks, seeds = args.networks.split(","), parse_seeds(args.seeds)
+    demand_scale = parse_scale(args.scale)
     result.update(benchmark="traffic_regimes", machine=machine(), seeds=seeds,
-                  duration_s=args.duration, variants=variants, baseline=next(iter(variants)))
+                  duration_s=args.duration, demand_scale=demand_scale, variants=variants,
+                  baseline=next(iter(variants)))
     jobs = [(network, seed, name) for network in networks for seed in seeds
             for name in variants]
     started = time.monotonic()
     with ProcessPoolExecutor(args.processes) as pool:      # (libsumo: one per process)
-        futures = {job: pool.submit(run_one, job[0], job[1], variants[job[2]], args.duration)
-                   for job in jobs}
+        futures = {job: pool.submit(run_one, job[0], job[1], variants[job[2]], args.duration,
+                                    demand_scale) for job in jobs}
         runs = {job: future.result() for job, future in futures.items()}
     result["wall_s"] = round(time.monotonic() - started, 1)
     result["networks"] = {network: compare(variants, runs, network, seeds)
@@ -113,5 +119,7 @@ if __name__ == "__main__":
     parser.add_argument("--duration", type=float, default=3600.0, help="simulated seconds")
     parser.add_argument("--variant", action="append",
                         help='NAME=module:Class{"param": value}; the first is the baseline')
+    parser.add_argument("--scale", action="append", default=[], metavar="[PERIOD=]FACTOR",
+                        help="multiply the demand's rates in one period (surge=2) or all")
     parser.add_argument("--processes", type=int, default=2)
     main_guard(lambda result: body(result, parser.parse_args()))

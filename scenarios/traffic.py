@@ -25,9 +25,10 @@ delay over time, and the delay per period of the demand with the best controller
 each. Goals: the swapping agents have less mean delay than every controller alone,
 than SUMO's ``delay_based`` and than max-pressure.
 
-Run it: ``pb3a scenario traffic [--quick] [--network ring|grid] [--seed N] [--out DIR]``
-(or ``python -m scenarios.traffic``); ``--network`` also takes the path of another
-network description. It prints the report as JSON and writes ``traffic_NETWORK.json``
+Run it: ``pb3a scenario traffic [--quick] [--network ring|grid] [--seed N] [--out DIR]
+[--scale [PERIOD=]FACTOR]`` (or ``python -m scenarios.traffic``); ``--network`` also
+takes the path of another network description, ``--scale`` makes the demand heavier
+or lighter, in one period or all. It prints the report as JSON and writes ``traffic_NETWORK.json``
 and ``traffic_NETWORK.png`` to DIR.
 """
 
@@ -38,12 +39,14 @@ import json
 import sys
 import time
 import tomllib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from agents.traffic.driver import TrafficDriver
 from agents.traffic.lockstep import run_in_process
 from agents.traffic.messages import JunctionLayout
+from agents.traffic.networks import Network
 from pb3a import System
 from pb3a.cli.log_output import show_logs
 from pb3a.loading.references import resolve_class
@@ -93,15 +96,16 @@ def neighbours(found: dict[str, JunctionLayout]) -> dict[str, list[str]]:
 
 def configuration(resource: Path, seed: int, duration_s: float,
                   found: dict[str, JunctionLayout], cache: Path | None = None,
-                  agent_state: dict[str, Any] | None = None) -> System:
-    """``traffic.toml`` with this run's network, seed and length, one ``junction``
-    instance per signalized junction (the file's own, if it has one by the
-    junction's name; its agent's state over ``agent_state``), and the links between
-    neighbours."""
+                  agent_state: dict[str, Any] | None = None,
+                  demand_scale: Mapping[str, float] | None = None) -> System:
+    """``traffic.toml`` with this run's network, seed, length and demand scale, one
+    ``junction`` instance per signalized junction (the file's own, if it has one by
+    the junction's name; its agent's state over ``agent_state``), and the links
+    between neighbours."""
     data = tomllib.loads(CONFIG.read_text())
     data["modules"]["sumo"].setdefault("state", {}).update(
         resource=str(resource), seed=seed, duration_s=duration_s,
-        cache_dir=str(cache) if cache else "")
+        cache_dir=str(cache) if cache else "", demand_scale=dict(demand_scale or {}))
     links = data.setdefault("links", [])
     for slot, junction in enumerate(found):
         # an instance the file has for this junction keeps its own state
@@ -126,9 +130,11 @@ def controllers() -> dict[str, dict[str, Any]]:
 
 
 def run_agents(resource: Path, seed: int, duration_s: float, found: dict[str, JunctionLayout],
-               timeout_s: float, cache: Path | None = None) -> dict[str, Any]:
+               timeout_s: float, cache: Path | None = None,
+               demand_scale: Mapping[str, float] | None = None) -> dict[str, Any]:
     """The swapping agents' run: its figures, its swaps and the system's swap events."""
-    system = configuration(resource, seed, duration_s, found, cache)
+    system = configuration(resource, seed, duration_s, found, cache,
+                           demand_scale=demand_scale)
     with system.launch() as running:
         started = time.monotonic()
         deadline = started + timeout_s
@@ -148,20 +154,24 @@ def run_agents(resource: Path, seed: int, duration_s: float, found: dict[str, Ju
 
 
 def run_alone(resource: Path, seed: int, duration_s: float, spec: dict[str, Any],
-              cache: Path | None = None) -> dict[str, Any]:
+              cache: Path | None = None, demand_scale: Mapping[str, float] | None = None,
+              ) -> dict[str, Any]:
     """One controller at every junction, no agents."""
     cls = resolve_class(spec["class"])
     result, _ = run_in_process(resource, lambda _junction: (cls, dict(spec.get("state", {}))),
-                               seed=seed, duration_s=duration_s, cache=cache)
+                               seed=seed, duration_s=duration_s, cache=cache,
+                               demand_scale=demand_scale)
     return result
 
 
 def run_sumo(resource: Path, seed: int, duration_s: float, signals: str,
-             cache: Path | None = None) -> dict[str, Any]:
+             cache: Path | None = None, demand_scale: Mapping[str, float] | None = None,
+             ) -> dict[str, Any]:
     """SUMO's own programs of type ``signals`` drive the lights."""
     driver = ModuleHarness(TrafficDriver, state={
         "resource": str(resource), "seed": seed, "duration_s": duration_s,
-        "signals": signals, "own_programs": True, "cache_dir": str(cache) if cache else ""})
+        "signals": signals, "own_programs": True, "cache_dir": str(cache) if cache else "",
+        "demand_scale": dict(demand_scale or {})})
     try:
         while driver.module.status == "running":
             driver.step()
@@ -171,18 +181,23 @@ def run_sumo(resource: Path, seed: int, duration_s: float, signals: str,
 
 
 def run(network: str = "ring", seed: int = 1, quick: bool = False,
-        cache: Path | None = None) -> dict[str, Any]:
-    """Every run on ``network`` with ``seed``; the report (``report``)."""
+        cache: Path | None = None, demand_scale: Mapping[str, float] | None = None,
+        ) -> dict[str, Any]:
+    """Every run on ``network`` with ``seed``, its demand scaled by ``demand_scale``
+    (period name, or ``*``, to a factor); the report (``report``)."""
     resource = network_path(network)
+    Network.load(resource).scaled(demand_scale or {})     # a bad scale named at once
     mode = "quick" if quick else "full"
     duration_s = DURATION_S[mode]
     found = layouts(resource, cache)
     runs: dict[str, dict[str, Any]] = {}
     for name, spec in controllers().items():
-        runs[name] = run_alone(resource, seed, duration_s, spec, cache)
+        runs[name] = run_alone(resource, seed, duration_s, spec, cache, demand_scale)
     for signals in BASELINES:
-        runs[f"sumo_{signals}"] = run_sumo(resource, seed, duration_s, signals, cache)
-    runs["agents"] = run_agents(resource, seed, duration_s, found, RUN_TIMEOUT_S[mode], cache)
+        runs[f"sumo_{signals}"] = run_sumo(resource, seed, duration_s, signals, cache,
+                                           demand_scale)
+    runs["agents"] = run_agents(resource, seed, duration_s, found, RUN_TIMEOUT_S[mode], cache,
+                                demand_scale)
     return report(resource, seed, quick, runs)
 
 
@@ -198,6 +213,7 @@ def report(resource: Path, seed: int, quick: bool,
     goals["less delay than SUMO's delay_based"] = agents < runs["sumo_delay_based"]["mean_delay_s"]
     goals["no teleports"] = runs["agents"]["teleports"] == 0
     return {"scenario": "traffic", "network": resource.stem, "seed": seed, "quick": quick,
+            "demand_scale": runs["agents"].get("demand_scale", {}),
             "duration_s": runs["agents"]["end_s"], "runs": table,
             "best_alone": min(own, key=lambda n: runs[n]["mean_delay_s"]),
             "agents_wall_s": runs["agents"]["wall_s"],
@@ -253,13 +269,31 @@ def plot(figures: dict[str, Any], path: Path) -> None:
     axes.set_xlim(0, figures["duration_s"])
     axes.set_xlabel("simulated time (s)")
     axes.set_ylabel("mean delay of the vehicles that left in the minute (s)")
-    axes.set_title(f"{figures['network']}, seed {figures['seed']}: mean delay per vehicle "
-                   f"over the run (legend); {len(figures['swaps'])} swaps", fontsize=10,
-                   pad=16)
+    scale = "".join(f", {period} x{factor:g}" for period, factor in
+                    figures.get("demand_scale", {}).items())
+    axes.set_title(f"{figures['network']}, seed {figures['seed']}{scale}: mean delay per "
+                   f"vehicle over the run (legend); {len(figures['swaps'])} swaps",
+                   fontsize=10, pad=16)
     axes.legend(fontsize=8, loc="upper left")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def parse_scale(texts: list[str]) -> dict[str, float]:
+    """``--scale`` values (``surge=2``, or ``1.5`` for every period) as the driver's
+    ``demand_scale``."""
+    scale: dict[str, float] = {}
+    for text in texts:
+        period, equals, factor = text.rpartition("=")
+        try:
+            if equals and not period:
+                raise ValueError(text)
+            scale[period or "*"] = float(factor)
+        except ValueError:
+            raise ValueError(f"--scale {text!r}: give PERIOD=FACTOR (surge=2) or a "
+                             "FACTOR for every period (1.5)") from None
+    return scale
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -271,16 +305,21 @@ def main(argv: list[str] | None = None) -> int:
                         help="ring, grid, or the path of a network description (.toml)")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--out", default=".", help="directory for the JSON and the PNG")
+    parser.add_argument("--scale", action="append", default=[], metavar="[PERIOD=]FACTOR",
+                        help="multiply the demand's rates: in one period (surge=2), or "
+                             "in all (1.5); may be given for several periods")
     args = parser.parse_args(argv)
     try:
         resource = network_path(args.network)
+        demand_scale = parse_scale(args.scale)
+        Network.load(resource).scaled(demand_scale)
     except ValueError as exc:
         print(f"traffic: {exc}", file=sys.stderr)
         return 2
     show_logs()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    figures = run(str(resource), args.seed, args.quick)
+    figures = run(str(resource), args.seed, args.quick, demand_scale=demand_scale)
     png = out / f"traffic_{figures['network']}.png"
     plot(figures, png)
     figures["plot"] = str(png)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 
 import pytest
 
@@ -227,6 +228,19 @@ def test_traffic_on_the_grid(tmp_path) -> None:
     from scenarios import traffic
 
     _check_traffic(traffic.run("grid", seed=6, quick=True, cache=tmp_path))
+
+
+@pytest.mark.parametrize(("scale", "complaint"), [
+    ("surge=x", "--scale 'surge=x': give PERIOD=FACTOR (surge=2) or a FACTOR for every"),
+    ("rush=2", "no period rush to scale; its periods are west heavy, east heavy, balanced"),
+    ("surge=0", "the factor of period surge must be a number above 0"),
+])
+def test_traffic_names_what_is_wrong_with_a_demand_scale(tmp_path, capsys, scale,
+                                                         complaint) -> None:
+    started = time.monotonic()
+    assert main(["scenario", "traffic", "--scale", scale, "--out", str(tmp_path)]) == 2
+    assert complaint in capsys.readouterr().err
+    assert time.monotonic() - started < 5.0 and not any(tmp_path.iterdir())
 
 
 def test_traffic_names_the_networks_when_given_one_it_does_not_know(tmp_path, capsys) -> None:

@@ -193,6 +193,24 @@ def test_re_pointed_while_it_runs_it_ends_one_simulation_and_starts_the_other(dr
     assert harness.state["status"] == "failed" and "nowhere.toml" in harness.state["last_error"]
 
 
+def test_its_demand_scale_changes_the_vehicles_and_re_points_it(driver) -> None:
+    def vehicles(harness) -> int:
+        while harness.state["status"] == "running":
+            answer(harness, (harness.last("reading_0").step // 20) % 2)
+        return harness.state["result"]["vehicles"]
+
+    harness = driver(duration_s=240.0)
+    plain = vehicles(harness)
+    harness.module.set_state({"demand_scale": {"*": 3.0}})      # a new simulation
+    assert harness.state["status"] == "running" and harness.state["step_count"] == 0
+    tripled = vehicles(harness)
+    assert harness.state["result"]["demand_scale"] == {"*": 3.0}
+    assert 2.2 * plain < tripled < 3.8 * plain, (plain, tripled)    # Poisson, same seed
+    with pytest.raises(ValueError, match="no period rush to scale"):
+        harness.module.set_state({"demand_scale": {"rush": 2.0}})
+    assert harness.state["status"] == "failed" and "rush" in harness.state["last_error"]
+
+
 def test_in_its_own_worker_it_runs_in_lockstep_with_a_controller(cache: Path) -> None:
     system = System("traffic-lockstep")
     system.add("sumo", TrafficDriver, state={"resource": CROSS, "cache_dir": str(cache),

@@ -77,6 +77,25 @@ def test_the_demand_keeps_its_shape_in_a_shorter_run(tmp_path: Path) -> None:
     assert first.get("period") == f"exp({420 / 3600:.6f})"     # Poisson, seeded by SUMO
 
 
+def test_a_period_s_demand_scales_and_a_bad_scale_is_named(tmp_path: Path) -> None:
+    network = Network.load(NETWORKS / "ring.toml")
+    rates = {p.name: p.rates for p in network.scaled({"surge": 2.0, "*": 0.5}).periods}
+    assert rates["surge"] == {"west": 380.0, "east": 380.0}     # 380 x 2 x 0.5
+    assert rates["west heavy"] == {"west": 210.0, "east": 50.0}
+    assert network.scaled({}) == network
+    flows = ET.parse(network.scaled({"surge": 3.0}).write_demand(
+        900.0, tmp_path / "d.rou.xml")).findall("flow")
+    assert {f.get("id"): f for f in flows}["west_to_east.3"].get("period") == (
+        f"exp({3 * 380 / 3600:.6f})")
+    with pytest.raises(ValueError, match="no period rush to scale; its periods are west "
+                                         "heavy, east heavy, balanced, surge"):
+        network.scaled({"rush": 2.0})
+    for bad in (0.0, -1.0, float("nan"), "2"):
+        with pytest.raises(ValueError, match="the factor of period surge must be a number "
+                                             "above 0"):
+            network.scaled({"surge": bad})
+
+
 @pytest.mark.parametrize(("text", "complaint"), [
     ("", "needs exactly one of netconvert"),
     ('[build]\nnetgenerate = ["--grid"]\n', r"\[demand.streams\] is empty"),

@@ -6,8 +6,10 @@ driver's own process through libsumo (which allows one per process, so the drive
 needs a worker of its own). Its ``resource`` is the path of a network description
 (``scenarios/traffic/ring.toml``); the driver builds the network if needed
 (``agents.traffic.networks``), writes the demand for ``duration_s`` and starts SUMO
-with ``seed``. Setting ``resource`` (or ``seed``, ``signals``, ``duration_s``,
-``own_programs``) while it runs finishes the simulation it has, keeping its figures
+with ``seed``, its periods' rates scaled by ``demand_scale`` (period name, or ``*``
+for all, to a factor). Setting ``resource`` (or ``seed``, ``signals``, ``duration_s``,
+``own_programs``, ``demand_scale``) while it runs finishes the simulation it has,
+keeping its figures
 in ``result``, and starts the new one at once: like ``RobotDriver``, it is re-pointed
 while the system runs.
 
@@ -50,7 +52,8 @@ from agents.traffic.simulation import STEP_S, Simulation
 from pb3a import Input, InputPort, Module, Output
 
 MAX_JUNCTIONS = 16          # junction slots: ports are declared with the class
-_SIMULATION_KEYS = ("resource", "seed", "signals", "duration_s", "own_programs")
+_SIMULATION_KEYS = ("resource", "seed", "signals", "duration_s", "own_programs",
+                    "demand_scale")
 
 
 def _junction_ports() -> dict[str, Input | Output]:
@@ -76,6 +79,7 @@ class TrafficDriver(_JunctionSlots, Module):
     resource = ""                   # the network description (.toml) to simulate
     seed = 1                        # SUMO's random seed: the demand's arrivals
     duration_s = 3600.0             # simulated length of the run (the demand fits in it)
+    demand_scale: dict[str, float] = {}     # period name (or "*") -> factor of its rates
     signals = "static"              # SUMO's program type for the lights: static,
                                     # actuated or delay_based (used with own_programs)
     own_programs = False            # True: SUMO's programs run the lights (baselines)
@@ -108,9 +112,9 @@ class TrafficDriver(_JunctionSlots, Module):
             self._begin()
 
     def set_state(self, state: dict[str, Any]) -> None:
-        """Set state; a change of ``resource``, ``seed``, ``signals``, ``duration_s`` or
-        ``own_programs`` in a running driver ends its simulation and starts the new one
-        at once."""
+        """Set state; a change of ``resource``, ``seed``, ``signals``, ``duration_s``,
+        ``own_programs`` or ``demand_scale`` in a running driver ends its simulation and
+        starts the new one at once."""
         changed = any(k in state and state[k] != getattr(self, k) for k in _SIMULATION_KEYS)
         super().set_state(state)
         if changed and "_heads" in vars(self):
@@ -210,7 +214,7 @@ class TrafficDriver(_JunctionSlots, Module):
     def _begin(self) -> None:
         """Build the network and demand, start SUMO, write the first readings."""
         try:
-            network = Network.load(self.resource)
+            network = Network.load(self.resource).scaled(self.demand_scale)
             net = network.build(self.signals, Path(self.cache_dir) if self.cache_dir else None)
             if self.out_dir:
                 self._workdir = Path(self.out_dir)

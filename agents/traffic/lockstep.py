@@ -8,7 +8,7 @@ No worker, no IPC: an hour of the ring takes about 5 s.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -22,12 +22,15 @@ ControllerChoice = Callable[[str], tuple[type[JunctionController], dict[str, Any
 
 def run_in_process(resource: str | Path, make: ControllerChoice, *, seed: int,
                    duration_s: float, cache: Path | None = None, min_green_s: float = 5.0,
+                   demand_scale: Mapping[str, float] | None = None,
                    ) -> tuple[dict[str, Any], dict[str, ModuleHarness]]:
     """Simulate ``resource`` for ``duration_s`` with, per junction, the controller
-    ``make(junction)`` gives (class, state); the run's figures and the controllers."""
+    ``make(junction)`` gives (class, state); the run's figures and the controllers.
+    ``demand_scale`` is the driver's (period name, or ``*``, to a factor of its rates)."""
     driver = ModuleHarness(TrafficDriver, state={
         "resource": str(resource), "seed": seed, "duration_s": duration_s,
-        "cache_dir": str(cache) if cache else "", "min_green_s": min_green_s})
+        "cache_dir": str(cache) if cache else "", "min_green_s": min_green_s,
+        "demand_scale": dict(demand_scale or {})})
     try:
         junctions = driver.state["junctions"]
         controllers = {}

@@ -16,11 +16,13 @@ Nothing is fetched: SUMO comes from the project's ``traffic`` extra.
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 import subprocess
 import tempfile
 import tomllib
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 from xml.sax.saxutils import quoteattr
@@ -224,6 +226,24 @@ class Network:
         return digest.hexdigest()[:12]
 
     # -- demand ---------------------------------------------------------------------
+    def scaled(self, factors: Mapping[str, float]) -> Network:
+        """This network with the rates of some periods multiplied: ``factors`` maps a
+        period's name (or ``*``, every period) to its factor, for example
+        ``{"surge": 2.0}`` for a surge twice as heavy. Builds are unchanged."""
+        names = [period.name for period in self.periods]
+        unknown = set(factors) - {*names, "*"}
+        if unknown:
+            raise ValueError(f"{self.path}: no period {', '.join(sorted(unknown))} to scale; "
+                             f"its periods are {', '.join(names)} (or * for all)")
+        for name, factor in factors.items():
+            if not (isinstance(factor, (int, float)) and math.isfinite(factor) and factor > 0):
+                raise ValueError(f"{self.path}: the factor of period {name} must be a number "
+                                 f"above 0, got {factor!r}")
+        periods = tuple(replace(period, rates={
+            group: rate * factors.get("*", 1.0) * factors.get(period.name, 1.0)
+            for group, rate in period.rates.items()}) for period in self.periods)
+        return replace(self, periods=periods)
+
     def schedule(self, duration_s: float) -> list[tuple[Period, float, float]]:
         """Each period with its begin and end (s) in a run of ``duration_s``."""
         if not duration_s > 0:
