@@ -124,7 +124,8 @@ def test_forged_and_garbage_requests_are_never_unpickled(rpc) -> None:
     attacker.send_multipart([b"\0" * 8, bomb])
     attacker.send_multipart(wrong.seal(REQUEST, [b"\0" * 8, bomb]))
     attacker.send_multipart([bomb] * 200)
-    genuine = Sealer(KEY).seal(REQUEST, [b"\1" * 8, pickle.dumps(("add", {"a": 1, "b": 2}))])
+    genuine = Sealer(KEY).seal(REQUEST, [b"\1" * 8, server.instance,
+                                         pickle.dumps(("add", {"a": 1, "b": 2}))])
     attacker.send_multipart(genuine)
     attacker.send_multipart(genuine)                         # a replay
     assert client.call("add", a=40, b=2) == 42
@@ -230,7 +231,7 @@ def test_a_request_naming_a_module_not_imported_yet_is_imported_off_the_socket_t
     sender.setsockopt(zmq.LINGER, 0)
     sender.connect(server.address)
     try:
-        sender.send_multipart(Sealer(KEY).seal(REQUEST, [b"\2" * 8, blob]))
+        sender.send_multipart(Sealer(KEY).seal(REQUEST, [b"\2" * 8, server.instance, blob]))
         eventually(importing.exists, what="the module's import under way")
         assert client.ping(0.5) is not None                # answered meanwhile
         assert sender.poll(5000)                           # the request's answer, later
@@ -239,3 +240,46 @@ def test_a_request_naming_a_module_not_imported_yet_is_imported_off_the_socket_t
         client.close()
         server.close()
         sys.modules.pop(name, None)
+
+
+def test_a_captured_request_runs_only_at_the_server_instance_it_was_for() -> None:
+    """Replayed to another server of the cluster, or to the same address after its
+    server started anew, a request is refused; a client learns the new instance by
+    itself and goes on."""
+    ran: dict[str, list[str]] = {"a": [], "b": [], "again": []}
+
+    def recorder(name: str) -> Any:
+        return lambda op, args: ran[name].append(op)
+
+    def send(server: ControlServer, frames: list[Any]) -> None:
+        wire = zmq.Context.instance().socket(zmq.DEALER)
+        wire.setsockopt(zmq.LINGER, 1000)
+        wire.connect(server.address)
+        wire.send_multipart(frames)
+        wire.close()
+
+    a, b = ControlServer(KEY, recorder("a")), ControlServer(KEY, recorder("b"))
+    client = ControlClient(KEY, a.address)
+    again = None
+    try:
+        assert client.call("stop") is None and ran["a"] == ["stop"]
+        captured = Sealer(KEY).seal(REQUEST, [b"\1" * 8, a.instance,
+                                              pickle.dumps(("stop", {}))])
+        send(a, captured)                                  # as it went on the wire
+        eventually(lambda: ran["a"] == ["stop", "stop"], what="the request run")
+        send(a, captured)
+        send(b, captured)
+        eventually(lambda: a.rejected["replay"] == 1 and b.rejected["other instance"] == 1,
+                   what="the copies refused")
+        port = int(a.address.rpartition(":")[2])
+        a.close()
+        again = ControlServer(KEY, recorder("again"), port=port)     # started anew
+        send(again, captured)
+        eventually(lambda: again.rejected["other instance"] == 1, what="the copy refused")
+        assert client.call("stop") is None                 # the client learnt who it is
+        assert ran == {"a": ["stop", "stop"], "b": [], "again": ["stop"]}
+    finally:
+        client.close()
+        for server in (b, again):
+            if server is not None:
+                server.close()

@@ -67,7 +67,8 @@ def test_every_listening_socket_refuses_bad_frames_and_the_system_goes_on(remote
         assert controller.address in addresses                   # ... the controller too
         assert len(addresses) >= (5 if remote else 4)            # ... and b's executor
         context = zmq.Context.instance()
-        genuine = Sealer(ClusterKey.load()).seal(10, [b"\1" * 8, pickle.dumps(("stats", {}))])
+        genuine = Sealer(ClusterKey.load()).seal(10, [b"\1" * 8, bytes(16),   # (no instance:
+                                                      pickle.dumps(("stats", {}))])  # told it)
         for address in addresses:
             for kind in (zmq.DEALER, zmq.PUB):
                 sock = context.socket(kind)

@@ -10,6 +10,13 @@ so heartbeats are not held up by a long operation. Nor by a request that names a
 module not imported yet: the socket thread never imports, it hands such a request to
 the handler thread to be read there.
 
+A request names the server it is for: a random id each server draws when it starts
+(its instance), sealed in with the request. A client learns it from the server's
+signed answer to its first request (``INSTANCE``: this is who I am, send it again),
+and again after the server restarts. So a request captured on the wire and sent
+again is refused by every other server holding the cluster key, and by a server
+started anew at the same address, besides the replay check of the one it was for.
+
 A request the server cannot open is answered with a plain refusal that names the
 check it failed (another cluster key, clocks apart, an older run), at most once a
 second per peer; it carries nothing else and is only ever used to word the client's
@@ -25,6 +32,7 @@ import logging
 import math
 import pickle
 import queue
+import secrets
 import struct
 import sys
 import threading
@@ -44,7 +52,9 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("pb3a.control")
 
-REQUEST, REPLY = 10, 11
+REQUEST, REPLY, INSTANCE = 10, 11, 12
+_NOBODY = bytes(16)                   # the instance a client asks before it knows
+_SENDS = 4                            # times a request is sent, to instances it learns
 _ID = struct.Struct("<Q")
 _REFUSAL = b"PB3A-REFUSED:"            # + the failed check, in plain ASCII
 _REFUSAL_EVERY_S = 1.0                # per peer
@@ -87,6 +97,7 @@ class ControlServer:
         self.address = bind_advertised(self._router, host, port)
         self._sealer = Sealer(key, epoch)
         self._opener = Opener(key, epoch=epoch, max_bytes=MAX_MESSAGE)
+        self.instance = secrets.token_bytes(16)      # requests must name it (see above)
         # (peer, request id, op, args), or with op None the request's pickle, to read
         self._work: queue.SimpleQueue[tuple[Any, bytes, str | None, Any] | None] = (
             queue.SimpleQueue())
@@ -110,16 +121,22 @@ class ControlServer:
             peer, *frames = router.recv_multipart(copy=False)
             try:
                 message = self._opener.open(frames)
-                if message.kind != REQUEST or len(message.frames) != 2:
+                if message.kind != REQUEST or len(message.frames) != 3:
                     raise Rejected("unexpected")
             except Rejected as exc:
                 self._refuse(peer, exc.reason)
                 continue
-            request_id = bytes(message.frames[0])
+            request_id, blob = bytes(message.frames[0]), message.frames[2]
+            if bytes(message.frames[1]) != self.instance:     # for another server, or a
+                if bytes(message.frames[1]) != _NOBODY:       # run of this one before:
+                    self._opener.rejected["other instance"] += 1      # not run, and
+                self._router.send_multipart([peer, *self._sealer.seal(  # who we are said
+                    INSTANCE, [request_id, self.instance])])
+                continue
             try:
-                op, args = _decode(message.frames[1], self._decode_lock, may_import=False)
+                op, args = _decode(blob, self._decode_lock, may_import=False)
             except _MustImport:
-                self._work.put((peer, request_id, None, message.frames[1]))
+                self._work.put((peer, request_id, None, blob))
                 continue
             except Exception as exc:
                 self._reply_undecodable(peer, request_id, exc)
@@ -205,6 +222,8 @@ class ControlClient:
         self._opener = Opener(key, max_bytes=MAX_MESSAGE)
         self._ids = itertools.count(1)
         self._waiting: dict[bytes, tuple[threading.Event, list[Any]]] = {}
+        self._sent: dict[bytes, list[Any]] = {}     # request id -> [its pickle, times sent]
+        self._instance = _NOBODY                    # the server's, once it has said it
         self.refused = ""                    # why the server refused our requests, if it did
         self._closed = False
         self._loop.register(self._dealer, self._on_reply)
@@ -222,11 +241,11 @@ class ControlClient:
         blob = cloudpickle.dumps((op, args), protocol=5)
         done, box = threading.Event(), [False, None]
         self._waiting[request_id] = (done, box)
+        self._sent[request_id] = [blob, 0]
         try:
             if self._closed:      # (checked once registered: close fails what it finds)
                 raise RuntimeFailure(f"{op!r} to {self.address}: this client is closed")
-            self._loop.submit(lambda: self._dealer.send_multipart(
-                self._sealer.seal(REQUEST, [request_id, blob])))
+            self._loop.submit(lambda: self._send(request_id))
             if not done.wait(timeout):
                 raise RuntimeTimeout(
                     f"{self.address} did not answer {op!r} within {timeout:g} s: nothing "
@@ -234,6 +253,7 @@ class ControlClient:
                     "that the process runs and its port is open")
         finally:
             self._waiting.pop(request_id, None)
+            self._sent.pop(request_id, None)
         ok, result = box
         if ok is None:
             raise RuntimeFailure(self._refusal(op))
@@ -246,6 +266,15 @@ class ControlClient:
     def _refusal(self, op: str) -> str:
         return (f"{self.address} refused {op!r}: {_REFUSAL_HINTS.get(self.refused, self.refused)}")
 
+    def _send(self, request_id: bytes) -> None:
+        """Send a request (again), to the server instance last heard of (socket thread)."""
+        sent = self._sent.get(request_id)
+        if sent is None or sent[1] >= _SENDS:
+            return                         # answered, given up, or sent often enough
+        sent[1] += 1
+        self._dealer.send_multipart(self._sealer.seal(
+            REQUEST, [request_id, self._instance, sent[0]]))
+
     def _on_reply(self, dealer: zmq.Socket) -> None:
         while dealer.poll(0):
             frames = dealer.recv_multipart(copy=False)
@@ -254,6 +283,10 @@ class ControlClient:
                 continue
             try:
                 message = self._opener.open(frames)
+                if message.kind == INSTANCE and len(message.frames) == 2:
+                    self._instance = bytes(message.frames[1])    # (signed: it is the
+                    self._send(bytes(message.frames[0]))        # server, started anew)
+                    continue
                 if message.kind != REPLY or len(message.frames) != 2:
                     raise Rejected("unexpected")
                 waiter = self._waiting.get(bytes(message.frames[0]))
