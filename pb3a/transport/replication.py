@@ -374,9 +374,11 @@ class Replicator:
             return self._topics[topic]
 
     def release(self, topic: str, silent_for: float = 0.0) -> None:
-        """Forget the followers of ``topic`` that have been silent for ``silent_for``
-        seconds or more (0: all of them), a link to them being cut: the publisher no
-        longer waits for them, nor counts what they did not acknowledge."""
+        """Stop waiting for the lossless followers of ``topic`` that have been silent
+        for ``silent_for`` seconds or more, a link to them being cut; with 0 (its last
+        reader gone), forget every follower, also what they did not acknowledge. (A
+        silent follower's acknowledgement is kept otherwise: another link of the same
+        lost node counts its losses by it.)"""
         with self._lock:
             stream = self._topics.get(topic)
             if stream is None:
@@ -385,9 +387,8 @@ class Replicator:
             for peer in list(stream.holds):
                 if now - stream.acks.get(peer, (0, -math.inf))[1] >= silent_for:
                     del stream.holds[peer]
-            for peer, (_, when) in list(stream.acks.items()):
-                if now - when >= silent_for:
-                    del stream.acks[peer]
+            if not silent_for:
+                stream.acks.clear()
             self._acked.notify_all()
 
     def publish(self, topic: str, value: Any, timeout: float = WINDOW_WAIT) -> int:
