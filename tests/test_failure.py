@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
+import importlib
 import logging
 import os
 import signal
@@ -321,3 +323,37 @@ def test_a_state_that_cannot_cross_to_the_launcher_fails_at_once_and_harms_nothi
         os.kill(pid, signal.SIGKILL)
         eventually(lambda: run.stats().modules["other"].restarts == 1,
                    what="the killed worker restarted")
+
+
+class Tuned(Steady):
+    gains: object = None
+
+
+class _Elsewhere:
+    """Unpickles as an import of a module no worker has."""
+
+    def __reduce__(self) -> tuple:
+        return importlib.import_module, ("pb3a_not_installed_anywhere",)
+
+
+def test_a_value_of_the_launcher_s_code_arrives_and_one_a_worker_cannot_read_fails_alone(
+        ) -> None:
+    """A state value of a class the launcher's script defines (here, in a function)
+    travels by value and comes back; one that names a module the worker lacks fails
+    that request, saying so, and the worker and its module go on."""
+
+    @dataclasses.dataclass
+    class Gains:
+        p: float
+
+    system = System("values-by-value")
+    system.add("m", Tuned)
+    with system.launch() as run:
+        run.set_state("m", {"gains": Gains(2.5)})
+        assert run.state("m")["gains"].p == 2.5
+        with pytest.raises(RuntimeFailure, match=r"could not be read in worker .*"
+                                                 r"pb3a_not_installed_anywhere"):
+            run.set_state("m", {"gains": _Elsewhere()})
+        count = run.state("m")["count"]
+        eventually(lambda: run.state("m")["count"] > count, what="it steps on")
+        assert run.stats().modules["m"].restarts == 0

@@ -579,8 +579,14 @@ class Executor:
             answer = {"id": request["id"], "ok": True, "result": self.handler(request["op"], args)}
         except Exception as exc:
             answer = {"id": request["id"], "ok": False, "result": f"{type(exc).__name__}: {exc}"}
-        with contextlib.suppress(OSError, ValueError):
-            handle.send((None, "answer", answer))
+        try:
+            handle.send(None, "answer", answer)
+        except (OSError, ValueError):
+            pass                                   # the worker is gone
+        except Exception as exc:                   # the result cannot be pickled
+            with contextlib.suppress(OSError, ValueError):
+                handle.send(None, "answer", {"id": request["id"], "ok": False, "result": (
+                    f"the answer could not be pickled: {type(exc).__name__}: {exc}")})
 
     # -- restarts ----------------------------------------------------------------
     def _died(self, handle: WorkerHandle) -> None:

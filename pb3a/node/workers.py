@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 from multiprocessing import forkserver, reduction
 from typing import TYPE_CHECKING, Any
 
+import cloudpickle
+
 from pb3a.config.description import DEFAULT_SPARES
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
@@ -64,10 +66,16 @@ class WorkerHandle:
     # not have its pipe closed under the monitor reading it
     read_lock: threading.RLock = field(default_factory=threading.RLock)
 
-    def send(self, message: Any, fd: int | None = None) -> None:
-        """Send on the worker's pipe, with a descriptor right behind it if given."""
+    def send(self, req_id: int | None, op: str, args: Any, fd: int | None = None) -> None:
+        """Send a request (or, with ``req_id`` None, an answer to one of the worker's)
+        on its pipe: its head, its arguments pickled on their own, then a descriptor if
+        given. The arguments go by cloudpickle, so a class the launcher's own script
+        defines travels by value, and one the worker cannot read fails only its request.
+        A ``TypeError`` or ``PicklingError`` says they cannot be pickled: nothing went."""
+        body = cloudpickle.dumps(args, protocol=5)
         with self.send_lock:                     # several threads may send at once
-            self.conn.send(message)
+            self.conn.send((req_id, op, fd is not None))
+            self.conn.send_bytes(body)
             if fd is not None:
                 reduction.send_handle(self.conn, fd, self.pid)
 
@@ -238,12 +246,17 @@ class WorkerPool:
         self._futures[req_id] = future
         future.pb3a_worker = handle   # type: ignore[attr-defined]
         try:
-            handle.send((req_id, op, args), fd)
+            handle.send(req_id, op, args, fd)
         except (OSError, ValueError) as exc:
             # Whoever pops a future completes it: the monitor may have done so already
             # (the worker's death seen meanwhile).
             if self._futures.pop(req_id, None) is not None:
                 future.set_exception(RuntimeFailure(f"worker {handle.key!r} is gone: {exc}"))
+        except Exception as exc:                 # not picklable: nothing was sent
+            if self._futures.pop(req_id, None) is not None:
+                future.set_exception(RuntimeFailure(
+                    f"{op!r} for worker {handle.key!r}: its arguments cannot be pickled: "
+                    f"{type(exc).__name__}: {exc}"))
         return future
 
     @staticmethod
@@ -297,7 +310,7 @@ class WorkerPool:
             while handle.conn.poll():
                 req_id, ok = handle.conn.recv()            # the head, then the payload
                 try:
-                    result = reduction.ForkingPickler.loads(handle.conn.recv_bytes())
+                    result = cloudpickle.loads(handle.conn.recv_bytes())
                 except (EOFError, OSError):
                     raise
                 except Exception as exc:                   # fails its request, not the pipe

@@ -14,6 +14,7 @@ import functools
 import itertools
 import logging
 import os
+import pickle
 import signal
 import threading
 import time
@@ -144,12 +145,24 @@ class Worker:
     def serve(self) -> None:
         while True:
             try:
-                message = self.conn.recv()
+                head = self.conn.recv()
+                if head is None:
+                    break
+                req_id, op, with_fd = head
+                body = self.conn.recv_bytes()
             except (EOFError, OSError):
                 break                                   # the executor is gone
-            if message is None:
-                break
-            req_id, op, args = message
+            try:
+                args = pickle.loads(body)
+            except Exception as exc:                    # fails this request, not the worker
+                if with_fd:                             # (its descriptor is not for the next)
+                    os.close(reduction.recv_handle(self.conn))
+                why = f"could not be read in worker {self.key}: {type(exc).__name__}: {exc}"
+                if req_id is None:
+                    log.error("an answer to a request %s", why)
+                else:
+                    self.send((req_id, False, f"the request {op!r} {why}"))
+                continue
             if req_id is None:                          # an answer to one of our requests
                 self._answer(**args)
             elif op in _TAKES_A_MODULE_LOCK:
@@ -178,13 +191,13 @@ class Worker:
         never the pipe."""
         req_id, kind, payload = message
         try:
-            body = reduction.ForkingPickler.dumps(payload)
+            body = cloudpickle.dumps(payload, protocol=5)   # (a class sent by value, too)
         except Exception as exc:
             if req_id is None:
                 log.error("a %s notice could not be pickled: %s: %s", kind,
                           type(exc).__name__, exc)
                 return
-            kind, body = False, reduction.ForkingPickler.dumps(
+            kind, body = False, cloudpickle.dumps(
                 f"its answer could not be pickled: {type(exc).__name__}: {exc}")
         with self._send_lock:
             try:
