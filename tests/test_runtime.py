@@ -220,6 +220,37 @@ def test_add_and_remove_modules_while_running() -> None:
         eventually(lambda: run.state("probe")["seen"] > seen, what="flow goes on")
 
 
+def test_add_refuses_what_a_configuration_may_not_say_and_starts_nothing() -> None:
+    """``add`` (also an agent's spawn and ``pb3a add``) checks as the compiler does: every
+    problem in one ``ConfigError``, before anything starts."""
+    system = System("add-checked").node("a").node("b")
+    system.add("src", FloatSource, node="a", group="g")
+    with system.launch() as run:
+        before = set(run.stats().modules)
+        with pytest.raises(ConfigError) as caught:
+            run.add("bad.name", Last, period=-1.0, restart="sometimes", group=5,
+                    state={"valu": 1.0})
+        problems = caught.value.problems
+        for words in ("bad module instance name 'bad.name'", "period must be a non-negative",
+                      "restart must be one of", "bad group name 5", "has no state 'valu' "
+                      "(did you mean 'value'?)"):
+            assert [p for p in problems if words in p and p.startswith("module bad.name: ")], \
+                (words, problems)
+        for options, words in [({"period": "fast"}, "period must be"),
+                               ({"group": "g", "node": "b"},
+                                "group 'g' would span nodes 'a' (src) and 'b' (probe)"),
+                               ({"group": "a.b"}, "bad group name 'a.b'"),
+                               ({"state": [1]}, "state must be a table")]:
+            with pytest.raises(ConfigError) as caught:
+                run.add("probe", Last, **options)
+            assert any(words in p for p in caught.value.problems), caught.value.problems
+        assert set(run.stats().modules) == before
+        assert run.configuration()["problems"] == []
+        run.add("kit/probe", Last, node="a", group="g", period=0.5)   # a macro path is fine
+        run.link("src.out", "kit/probe.x")
+        eventually(lambda: run.state("kit/probe")["seen"] > 0, what="values at kit/probe")
+
+
 def test_nested_macros_run_with_exported_ports() -> None:
     system = System("macros")
     system.add("src", FloatSource, state={"value": 1.0})

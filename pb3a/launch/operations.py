@@ -23,7 +23,7 @@ from pb3a.errors import ConfigError
 from pb3a.launch.migration import MigrationReport, migrate
 from pb3a.loading.references import resolve_class
 from pb3a.loading.served import forget
-from pb3a.model.module import RESTART_POLICIES, Module
+from pb3a.model.module import Module
 from pb3a.model.ports import Policy
 from pb3a.pending import DONE, FAILED, RUNNING
 from pb3a.topology import Topology, topology_of
@@ -218,27 +218,23 @@ class Operations:
             period: float | None = None, restart: str | None = None, group: str | None = None,
             node: str | None = None, fallback: list[str] | None = None,
             timeout: float | None = None) -> None:
+        """Start a new module. It is checked as the compiler checks a configuration's
+        entry first (name, period, restart, state, group, node, fallback): one
+        ``ConfigError`` naming every problem, and nothing started."""
         module_cls = resolve_class(cls)
-        if not (isinstance(module_cls, type) and issubclass(module_cls, Module)):
-            raise ConfigError([f"module {name}: {module_cls!r} is not a pb3a.Module subclass"])
-        restart = restart or module_cls.restart
-        if restart not in RESTART_POLICIES:
-            raise ConfigError([f"module {name}: restart must be one of {RESTART_POLICIES}"])
         with self._held(f"add {name}", timeout):
-            if name in self.launcher.specs:
-                raise ConfigError([f"module {name}: a module of that name runs already"])
+            launcher = self.launcher
             node = node or next(iter(self.plan.nodes))
-            if node not in self.launcher.nodes:
-                raise ConfigError([f"module {name}: no node {node!r}; nodes: "
-                                   f"{', '.join(self.launcher.nodes)}"])
-            problems = checks.fallback(fallback, list(self.launcher.nodes))
+            problems = _add_problems(name, module_cls, state, period, restart, group, node,
+                                     fallback, launcher.specs, list(launcher.nodes))
             if problems:
                 raise ConfigError([f"module {name}: {problem}" for problem in problems])
             spec = FlatModule(name, module_cls, node,
-                              period if period is not None else module_cls.period,
-                              dict(state or {}), restart, group, list(fallback or []))
-            self.launcher.add_module(spec)
-            self.launcher.node_of(name).start_modules([name])
+                              float(period) if period is not None else module_cls.period,
+                              dict(state or {}), restart or module_cls.restart, group,
+                              list(fallback or []))
+            launcher.add_module(spec)
+            launcher.node_of(name).start_modules([name])
         self.events.record("module_added", name, node=node)
 
     def remove(self, name: str, *, timeout: float | None = None) -> None:
@@ -307,6 +303,36 @@ class Operations:
         if op == "events":
             return self.events_since(**args)
         return getattr(self, op)(**args)
+
+
+def _add_problems(name: Any, cls: Any, state: Any, period: Any, restart: Any, group: Any,
+                  node: str, fallback: Any, modules: dict[str, FlatModule],
+                  nodes: list[str]) -> list[str]:
+    """What keeps a new module from being added, in the compiler's words (a module
+    instance's name, or a group's, may be a macro path: each of its parts is checked)."""
+    problems = (checks.name(name, "module instance") if not isinstance(name, str) else
+                [p for part in name.split("/") for p in checks.name(part, "module instance")])
+    if isinstance(name, str) and name in modules:
+        problems.append("a module of that name runs already")
+    if not (isinstance(cls, type) and issubclass(cls, Module) and cls is not Module):
+        problems.append(f"{cls!r} is not a pb3a.Module subclass")
+    else:
+        problems += checks.state(cls, {} if state is None else state) + checks.displays(cls)
+    problems += checks.period(period) + checks.restart(restart)
+    if node not in nodes:
+        problems.append(f"no node {node!r}{checks.did_you_mean(node, nodes)}; nodes: "
+                        f"{checks.listing(nodes)}")
+    problems += checks.fallback(fallback, nodes)
+    if group is not None:
+        problems += (checks.name(group, "group") if not isinstance(group, str) else
+                     [p for part in group.split("/") for p in checks.name(part, "group")])
+        other = next((m for m in modules.values() if m.group == group and m.node != node),
+                     None)
+        if other is not None:
+            problems.append(f"group {group!r} would span nodes {other.node!r} ({other.name}) "
+                            f"and {node!r} ({name}); a group shares one worker process on one "
+                            "node: give them the same node or different groups")
+    return problems
 
 
 def _swap_problems(name: str, old: type, new: type, links: dict[str, FlatLink],
