@@ -10,6 +10,7 @@ when it runs out. Each change is recorded as an event.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 import threading
@@ -19,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 from pb3a.config import checks
 from pb3a.config.folding import fold
 from pb3a.config.plan import FlatLink, FlatModule
-from pb3a.errors import ConfigError
+from pb3a.errors import ConfigError, RuntimeFailure
 from pb3a.launch.migration import MigrationReport, migrate
 from pb3a.loading.references import resolve_class
 from pb3a.loading.served import forget
@@ -46,6 +47,7 @@ PUBLIC = frozenset({"state", "set_state", "swap", "relink", "link", "add", "remo
 # What an agent may ask through ``self.runtime`` (it spawns with "add").
 FOR_AGENTS = PUBLIC - {"reload"}
 KEEP_JOBS = 1000            # background operations whose outcome is kept for asking
+STATE_THEN_S = 1.0          # how long a restart waits for the state to put back on failure
 
 
 class Operations:
@@ -151,7 +153,11 @@ class Operations:
             problems = _swap_problems(name, spec.cls, new_cls, launcher.links, launcher.specs)
             if problems:
                 raise ConfigError(problems)
-            spec = replace(spec, cls=new_cls)
+            # its configured state (what a fresh restart starts from, what configuration()
+            # writes): only the keys the new class takes
+            spec = replace(spec, cls=new_cls, state={
+                key: value for key, value in spec.state.items()
+                if not checks.state(new_cls, {key: value})})
             kept = node.swap(name, spec)
             launcher.specs[name] = spec
         self.events.record("module_swapped", name, cls=f"{new_cls.__module__}:"
@@ -245,17 +251,84 @@ class Operations:
     def restart(self, name: str, *, timeout: float | None = None) -> None:
         """Stop a module (also a failed one) and start it again with its configured state
         in a new worker; its links are wired again. Values queued in its inputs go with
-        the old instance."""
+        the old instance. Its configuration is checked before anything stops
+        (``ConfigError``); if it cannot start again, it is put back with the state it had
+        and its links, and ``RuntimeFailure`` says why (the module is lost only if that
+        fails too, and the error then says so)."""
         with self._held(f"restart {name}", timeout):
             launcher = self.launcher
             launcher.node_of(name)                # ModuleNotFound for an unknown name
             spec = launcher.specs[name]
+            problems = (checks.state(spec.cls, spec.state) + checks.period(spec.period)
+                        + checks.restart(spec.restart))
+            if problems:
+                raise ConfigError([f"restart {name}: {problem}" for problem in problems])
             links = [link for link in launcher.links.values() if name in (link.src, link.dst)]
+            was = self._state_then(name)
             launcher.remove_module(name)
-            launcher.add_module(spec)
-            launcher.connect(*links)
-            launcher.node_of(name).start_modules([name])
+            try:
+                self._start(spec, links)
+            except Exception as exc:
+                raise self._put_back(spec, links, was, exc) from exc
         self.events.record("module_restarted", name, node=spec.node, reason="asked")
+
+    def _state_then(self, name: str) -> dict[str, Any] | None:
+        """The module's state now, to put it back with should its restart fail; None if
+        it cannot say (its worker is gone, it is stuck in a call, its state does not
+        pickle): then its configured state."""
+        try:
+            return self.launcher.call(name, "get_state", STATE_THEN_S)
+        except Exception:           # (whatever it is, the restart goes on without it)
+            return None
+
+    def _start(self, spec: FlatModule, links: list[FlatLink],
+               state: dict[str, Any] | None = None) -> None:
+        """Add, wire and start a module (with ``state``, else its configured one); what
+        of it was done is undone if a step fails."""
+        launcher = self.launcher
+        launcher.add_module(spec, state=state)
+        try:
+            launcher.connect(*links)
+            launcher.node_of(spec.name).start_modules([spec.name])
+        except BaseException:
+            self._drop(spec.name)
+            raise
+
+    def _drop(self, name: str) -> None:
+        """Remove what there is of a module that failed to start, each step whatever the
+        one before did."""
+        launcher = self.launcher
+        node = launcher.nodes[launcher.specs[name].node]
+        for key in [key for key, link in launcher.links.items() if name in (link.src, link.dst)]:
+            with contextlib.suppress(Exception):
+                launcher.detach(launcher.links[key])
+            del launcher.links[key]
+        with contextlib.suppress(Exception):
+            node.stop_module(name, 5.0)
+        with contextlib.suppress(Exception):
+            node.remove_module(name)
+        del launcher.specs[name]
+        launcher.checkpoints.pop(name, None)
+
+    def _put_back(self, spec: FlatModule, links: list[FlatLink], was: dict[str, Any] | None,
+                  failure: Exception) -> RuntimeFailure:
+        """After a failed restart: the module as it ran (``was``) and its links; the
+        error to raise, saying whether it is back."""
+        name = spec.name
+        try:
+            self._start(spec, links, state=was)
+        except Exception as exc:
+            log.warning("restart %s failed (%s), and putting it back failed too: %s",
+                        name, failure, exc)
+            self.events.record("module_removed", name, reason="restart failed")
+            return RuntimeFailure(f"restart {name} failed ({failure}), and putting it back "
+                                  f"failed too ({exc}): it and its links are no longer in the "
+                                  "system; add it again")
+        self.events.record("module_restarted", name, node=spec.node,
+                           reason="put back as it ran: the restart failed")
+        return RuntimeFailure(f"restart {name} failed ({failure}); it was put back as it ran, "
+                              f"with {'its state' if was is not None else 'its configured state'}"
+                              " and its links")
 
     # -- where things are, figures, events ---------------------------------------------------
     def where(self, name: str, *, timeout: float | None = None) -> str:
