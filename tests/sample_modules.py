@@ -681,3 +681,14 @@ class PhaseAlternator(Module):
             green = (reading.step // self.hold) % len(reading.layout.greens)
             self.request.write(PhaseRequest(reading.junction, reading.step, green))
             self.answered += 1
+
+
+class Shift(Module):
+    """Scale's ports with other state (no ``gain``): what a swap may bring in."""
+
+    x = Input(float)
+    y = Output(float)
+    offset = 1.0
+
+    def on_input(self, port) -> None:
+        self.y.write(port.read() + self.offset)

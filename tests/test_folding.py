@@ -79,3 +79,20 @@ def test_a_changed_system_and_what_toml_cannot_hold() -> None:
                         "form, left out: it starts with its class's value"]
     assert again.modules["held"].state == {"gain": 4.0}
     assert set(again.modules) == {"src", "scale", "held"}
+
+
+def test_a_declared_local_node_keeps_what_a_top_level_key_cannot_say() -> None:
+    """A lone node named "local" is written as no nodes only when it has nothing but
+    ``workers``; its cpus, spares and advertise need its table."""
+    declared = System("one-node").node("local", cpus=[0], spares=0, advertise="127.0.0.1")
+    declared.add("src", FloatSource)
+    plan = build_plan(declared._spec)
+    tables, problems, again = folded_again(plan)
+    assert problems == [] and shape(again) == shape(plan)
+    assert tables["nodes"] == {"local": {"cpus": [0], "advertise": "127.0.0.1", "spares": 0}}
+    assert tables["modules"]["src"]["node"] == "local"
+    only_workers = System("one-node").node("local", workers=2)
+    only_workers.add("src", FloatSource)
+    plan = build_plan(only_workers._spec)
+    tables, problems, again = folded_again(plan)
+    assert "nodes" not in tables and tables["workers"] == 2 and shape(again) == shape(plan)

@@ -227,6 +227,42 @@ def test_a_failed_landing_puts_a_whole_macro_back_where_it_was(monkeypatch) -> N
     assert state["last"] == state["received"]
 
 
+@pytest.mark.parametrize(("op", "which"), [("pause", "second"), ("migrate_out", "first")])
+def test_a_macro_move_that_fails_before_landing_leaves_nothing_paused_or_unwired(
+        op, which, monkeypatch) -> None:
+    """The second module cannot be paused (its call outlasts the wait), or the first
+    cannot be captured: the modules already paused go on, the links unwired are wired
+    again, and no value is lost, duplicated or reordered."""
+    with _through(f"move-macro-{op}", "pair", RelayPair).launch() as run:
+        eventually(lambda: run.state("sink")["received"] > 20, what="values through the pair")
+        executor = run._launcher.nodes["a"]
+        real_call = type(executor).call
+        failures = []
+
+        def flaky(self, worker, op_, *args, **kwargs):
+            if op_ == op and worker.startswith("a/") and worker.endswith(which) \
+                    and not failures:
+                failures.append(worker)
+                raise RuntimeFailure(f"module 'pair/{which}' did not finish its call")
+            return real_call(self, worker, op_, *args, **kwargs)
+        monkeypatch.setattr(type(executor), "call", flaky)
+        with pytest.raises(RuntimeFailure, match="did not finish its call"):
+            run.migrate("pair", to="b")
+        assert failures and {run.where("pair/first"), run.where("pair/second")} == {"a"}
+        relayed = {name: run.state(name)["relayed"] for name in ("pair/first", "pair/second")}
+        eventually(lambda: all(run.state(name)["relayed"] > count + 20
+                               for name, count in relayed.items()),
+                   what="both modules of the pair relaying again")
+        n = run.state("src")["count"]
+        state = eventually(lambda: (s := run.state("sink"))["received"] >= n and s,
+                           timeout=30, what="every value through the pair")
+        assert set(run.stats().links) >= {"src.out->pair/first.x",
+                                          "pair/first.out->pair/second.x",
+                                          "pair/second.out->sink.x"}
+    assert state["out_of_order"] == 0 and state["duplicates"] == 0
+    assert state["last"] == state["received"]
+
+
 def test_a_macro_that_cannot_be_readied_stays_and_leaves_no_worker_behind(monkeypatch) -> None:
     with _through("move-macro-unready", "pair", RelayPair).launch() as run:
         eventually(lambda: run.state("sink")["received"] > 20, what="values through the pair")

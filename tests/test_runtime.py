@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 
@@ -26,10 +27,13 @@ from sample_modules import (
     Overlap,
     Pid,
     Scale,
+    Shift,
     Spawner,
 )
 
-from pb3a import ConfigError, ModuleNotFound, System
+from pb3a import ConfigError, ModuleNotFound, RuntimeFailure, System
+from pb3a.config.compiler import validate
+from pb3a.config.description import read_description
 from pb3a.stats import InputStats, LinkStats, ModuleStats, NodeStats, SystemStats
 
 pytestmark = pytest.mark.timeout(90)
@@ -177,6 +181,75 @@ def test_swap_keeps_ports_and_state_and_runs_setup_again() -> None:
         assert run.stats().modules["scale"].cls.endswith("FastScale")
 
 
+def test_a_swap_keeps_the_configured_state_the_new_class_has_and_a_restart_uses_it() -> None:
+    system = System("swap-restart")
+    system.add("src", FloatSource, state={"value": 1.5})
+    system.add("scale", Scale, state={"gain": 3.0})
+    system.add("sink", Last)
+    system.link("src.out", "scale.x")
+    system.link("scale.y", "sink.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("sink")["value"] == 4.5, what="1.5 * 3")
+        run.swap("scale", FastScale)                    # a subclass: 'gain' stays configured
+        assert run.configuration()["system"]["modules"]["scale"]["state"] == {"gain": 3.0}
+        run.swap("scale", Shift)                        # no 'gain': it is configured no more
+        eventually(lambda: run.state("sink")["value"] == 2.5, what="1.5 + 1 after the swap")
+        folded = run.configuration()
+        assert "state" not in folded["system"]["modules"]["scale"] and not folded["problems"]
+        assert validate(read_description(folded["system"], "configuration()")) == []
+        run.set_state("scale", offset=2.0)
+        eventually(lambda: run.state("sink")["value"] == 3.5, what="1.5 + 2")
+        run.restart("scale")                            # fresh: the class's offset again
+        eventually(lambda: run.state("sink")["value"] == 2.5, what="1.5 + 1 after restart")
+        assert {"src.out->scale.x", "scale.y->sink.x"} <= set(run.stats().links)
+
+
+def test_a_restart_that_cannot_start_the_module_again_puts_it_back_as_it_ran(
+        monkeypatch) -> None:
+    with pipeline().launch() as run:
+        run.set_state("scale", gain=5.0)
+        eventually(lambda: run.state("sink")["value"] == 7.5, what="1.5 * 5")
+        launcher = run._launcher
+        spec = launcher.specs["scale"]
+        # a configured state the class lacks is refused before anything stops
+        launcher.specs["scale"] = dataclasses.replace(spec, state={"gian": 1.0})
+        pid = run.stats().modules["scale"].pid
+        with pytest.raises(ConfigError, match=r"restart scale: .*has no state 'gian'"):
+            run.restart("scale")
+        launcher.specs["scale"] = spec
+        assert run.stats().modules["scale"].pid == pid
+        executor = launcher.nodes["local"]
+        real_call = type(executor).call
+        failures: list[str] = []
+
+        def flaky(self, worker, op, *args, **kwargs):   # the new instance cannot start
+            if op == "start" and "scale" in worker and len(failures) < limit:
+                failures.append(worker)
+                raise RuntimeFailure(f"worker {worker!r} died")
+            return real_call(self, worker, op, *args, **kwargs)
+        monkeypatch.setattr(type(executor), "call", flaky)
+        limit = 1
+        with pytest.raises(RuntimeFailure, match="put back as it ran, with its state and "
+                                                 "its links"):
+            run.restart("scale")
+        assert failures and run.state("scale")["gain"] == 5.0      # as it ran, not fresh
+        assert {"src.out->scale.x", "scale.y->sink.x"} <= set(run.stats().links)
+        seen = run.state("sink")["seen"]
+        eventually(lambda: run.state("sink")["seen"] > seen + 5, what="values through again")
+        assert run.stats().modules["scale"].status == "running"
+        limit = 3                                       # putting it back fails too
+        with pytest.raises(RuntimeFailure, match="no longer in the system"):
+            run.restart("scale")
+        modules, links = run.stats().modules, run.stats().links
+        assert "scale" not in modules and not [key for key in links if "scale" in key]
+        assert run.events()[-1].kind == "module_removed"
+        monkeypatch.undo()
+        run.add("scale", Scale)                         # it may be added again
+        run.link("src.out", "scale.x")
+        run.link("scale.y", "sink.x")
+        eventually(lambda: run.state("sink")["value"] == 3.0, what="1.5 * 2 again")
+
+
 def test_relink_moves_an_input_to_another_output() -> None:
     system = pipeline()
     system.add("other", FloatSource, state={"value": 10.0})
@@ -218,6 +291,37 @@ def test_add_and_remove_modules_while_running() -> None:
             run.state("sink")
         seen = run.state("probe")["seen"]
         eventually(lambda: run.state("probe")["seen"] > seen, what="flow goes on")
+
+
+def test_add_refuses_what_a_configuration_may_not_say_and_starts_nothing() -> None:
+    """``add`` (also an agent's spawn and ``pb3a add``) checks as the compiler does: every
+    problem in one ``ConfigError``, before anything starts."""
+    system = System("add-checked").node("a").node("b")
+    system.add("src", FloatSource, node="a", group="g")
+    with system.launch() as run:
+        before = set(run.stats().modules)
+        with pytest.raises(ConfigError) as caught:
+            run.add("bad.name", Last, period=-1.0, restart="sometimes", group=5,
+                    state={"valu": 1.0})
+        problems = caught.value.problems
+        for words in ("bad module instance name 'bad.name'", "period must be a non-negative",
+                      "restart must be one of", "bad group name 5", "has no state 'valu' "
+                      "(did you mean 'value'?)"):
+            assert [p for p in problems if words in p and p.startswith("module bad.name: ")], \
+                (words, problems)
+        for options, words in [({"period": "fast"}, "period must be"),
+                               ({"group": "g", "node": "b"},
+                                "group 'g' would span nodes 'a' (src) and 'b' (probe)"),
+                               ({"group": "a.b"}, "bad group name 'a.b'"),
+                               ({"state": [1]}, "state must be a table")]:
+            with pytest.raises(ConfigError) as caught:
+                run.add("probe", Last, **options)
+            assert any(words in p for p in caught.value.problems), caught.value.problems
+        assert set(run.stats().modules) == before
+        assert run.configuration()["problems"] == []
+        run.add("kit/probe", Last, node="a", group="g", period=0.5)   # a macro path is fine
+        run.link("src.out", "kit/probe.x")
+        eventually(lambda: run.state("kit/probe")["seen"] > 0, what="values at kit/probe")
 
 
 def test_nested_macros_run_with_exported_ports() -> None:

@@ -66,9 +66,13 @@ class _Folder:
         self.modules = {module.name: module for module in modules}
         self.links = links
         self.problems: list[str] = []
-        # the default node of a system that declares none is written as no nodes at all
-        self.implicit_node = (list(nodes) == [DEFAULT_NODE]
-                              and nodes[DEFAULT_NODE].address is None)
+        # the default node of a system that declares none is written as no nodes at all,
+        # but only when a top-level key can say all it has (``workers``): a declared
+        # "local" node with an address, cpus, advertise or other spares keeps its table
+        only = nodes.get(DEFAULT_NODE)
+        self.implicit_node = (list(nodes) == [DEFAULT_NODE] and only is not None
+                              and (only.address, only.cpus, only.advertise) == (None,) * 3
+                              and only.spares == DEFAULT_SPARES)
         self.definitions: dict[str, _Definition] = {"": _Definition("")}
         taken: set[str] = set()
         for module in modules:

@@ -30,7 +30,9 @@ The hand-over, under the global configuration lock:
 ``pause_s`` is the time from step 2 (the module's pause) to its start at the
 destination; ``phases`` says where it went. If step 5 fails (the destination worker
 died, say), the module is put back on its source node the same way, with what was
-captured, and the migration raises ``RuntimeFailure``: the module is never lost.
+captured, and the migration raises ``RuntimeFailure``: the module is never lost. If
+step 2, 3 or 4 fails (a module's call outlasts the pause's wait, say), the links
+unwired are wired again and the modules paused go on where they ran.
 
 A macro's modules move together: each step is taken for all of them before the
 next, so they pause once, and a link between two of them is unwired where both ran
@@ -118,10 +120,15 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
         with launcher.paused(writers):
             # 2. and 3. pause the modules, unwire them; 4. the fence: retired at the source
             laps, snapshots = _Laps(), {}
+            paused: list[str] = []                  # what a failure here must undo
+            unwiring = unwired = False
             try:
                 for name in moving:
-                    launcher.nodes[homes[name].node].pause(name, 5.0)
+                    if launcher.nodes[homes[name].node].pause(name, 5.0):
+                        paused.append(name)
+                unwiring = True
                 launcher.detach(*links)
+                unwired = True
                 laps.mark("unwire")
                 for name in moving:
                     leaving = launcher.nodes[homes[name].node]
@@ -131,8 +138,10 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
             except BaseException:
                 for name in moving:
                     _quietly(arriving.remove_module, name)
-                if snapshots:                        # (the rest never left their node)
-                    _put_back(launcher, homes, snapshots, links)
+                if unwiring and not unwired:         # (a part may be wired still)
+                    for link in links:
+                        _quietly(launcher.detach, link)
+                _put_back(launcher, homes, snapshots, links, paused, rewire=unwiring)
                 raise
             for name in moving:
                 launcher.specs[name] = replace(homes[name], node=node)
@@ -144,7 +153,7 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
                     _quietly(launcher.detach, link)
                 for name in moving:
                     _quietly(arriving.remove_module, name)
-                _put_back(launcher, homes, snapshots, links)
+                _put_back(launcher, homes, snapshots, links, moving, rewire=True)
                 sources = ", ".join(sorted({home.node for home in homes.values()}))
                 what = (f"{moving[0]} to node {node} failed ({exc}); it runs on node "
                         f"{sources} again, with its state" if len(moving) == 1 else
@@ -189,15 +198,21 @@ def _prepare(launcher: Launcher, homes: dict[str, FlatModule], links: list[FlatL
 
 
 def _put_back(launcher: Launcher, homes: dict[str, FlatModule],
-              snapshots: dict[str, Snapshot], links: list[FlatLink]) -> None:
-    """What was captured, restored where it ran before, its links wired again there."""
+              snapshots: dict[str, Snapshot], links: list[FlatLink], paused: list[str],
+              rewire: bool) -> None:
+    """A failed move undone: what was captured restored where it ran before, the links
+    wired again there (with ``rewire``: they were, or may have been, unwired), then the
+    modules ``paused`` and never captured let go (after their links are back, so what
+    they write goes somewhere)."""
+    for name in homes:
+        launcher.specs[name] = homes[name]
     for name in snapshots:
-        launcher.specs[name] = homes[name]
         launcher.nodes[homes[name].node].add_module(homes[name], state={})
-    for name in set(homes) - set(snapshots):          # paused, never retired
-        launcher.specs[name] = homes[name]
-        _quietly(launcher.nodes[homes[name].node].resume, name)
-    _land(launcher, snapshots, links, _Laps())
+    if rewire:
+        _land(launcher, snapshots, links, _Laps())
+    for name in paused:
+        if name not in snapshots:
+            _quietly(launcher.nodes[homes[name].node].resume, name)
 
 
 def _land(launcher: Launcher, snapshots: dict[str, Snapshot], links: list[FlatLink],

@@ -10,6 +10,7 @@ when it runs out. Each change is recorded as an event.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 import threading
@@ -19,11 +20,11 @@ from typing import TYPE_CHECKING, Any
 from pb3a.config import checks
 from pb3a.config.folding import fold
 from pb3a.config.plan import FlatLink, FlatModule
-from pb3a.errors import ConfigError
+from pb3a.errors import ConfigError, RuntimeFailure
 from pb3a.launch.migration import MigrationReport, migrate
 from pb3a.loading.references import resolve_class
 from pb3a.loading.served import forget
-from pb3a.model.module import RESTART_POLICIES, Module
+from pb3a.model.module import Module
 from pb3a.model.ports import Policy
 from pb3a.pending import DONE, FAILED, RUNNING
 from pb3a.topology import Topology, topology_of
@@ -46,6 +47,7 @@ PUBLIC = frozenset({"state", "set_state", "swap", "relink", "link", "add", "remo
 # What an agent may ask through ``self.runtime`` (it spawns with "add").
 FOR_AGENTS = PUBLIC - {"reload"}
 KEEP_JOBS = 1000            # background operations whose outcome is kept for asking
+STATE_THEN_S = 1.0          # how long a restart waits for the state to put back on failure
 
 
 class Operations:
@@ -151,7 +153,11 @@ class Operations:
             problems = _swap_problems(name, spec.cls, new_cls, launcher.links, launcher.specs)
             if problems:
                 raise ConfigError(problems)
-            spec = replace(spec, cls=new_cls)
+            # its configured state (what a fresh restart starts from, what configuration()
+            # writes): only the keys the new class takes
+            spec = replace(spec, cls=new_cls, state={
+                key: value for key, value in spec.state.items()
+                if not checks.state(new_cls, {key: value})})
             kept = node.swap(name, spec)
             launcher.specs[name] = spec
         self.events.record("module_swapped", name, cls=f"{new_cls.__module__}:"
@@ -218,27 +224,23 @@ class Operations:
             period: float | None = None, restart: str | None = None, group: str | None = None,
             node: str | None = None, fallback: list[str] | None = None,
             timeout: float | None = None) -> None:
+        """Start a new module. It is checked as the compiler checks a configuration's
+        entry first (name, period, restart, state, group, node, fallback): one
+        ``ConfigError`` naming every problem, and nothing started."""
         module_cls = resolve_class(cls)
-        if not (isinstance(module_cls, type) and issubclass(module_cls, Module)):
-            raise ConfigError([f"module {name}: {module_cls!r} is not a pb3a.Module subclass"])
-        restart = restart or module_cls.restart
-        if restart not in RESTART_POLICIES:
-            raise ConfigError([f"module {name}: restart must be one of {RESTART_POLICIES}"])
         with self._held(f"add {name}", timeout):
-            if name in self.launcher.specs:
-                raise ConfigError([f"module {name}: a module of that name runs already"])
+            launcher = self.launcher
             node = node or next(iter(self.plan.nodes))
-            if node not in self.launcher.nodes:
-                raise ConfigError([f"module {name}: no node {node!r}; nodes: "
-                                   f"{', '.join(self.launcher.nodes)}"])
-            problems = checks.fallback(fallback, list(self.launcher.nodes))
+            problems = _add_problems(name, module_cls, state, period, restart, group, node,
+                                     fallback, launcher.specs, list(launcher.nodes))
             if problems:
                 raise ConfigError([f"module {name}: {problem}" for problem in problems])
             spec = FlatModule(name, module_cls, node,
-                              period if period is not None else module_cls.period,
-                              dict(state or {}), restart, group, list(fallback or []))
-            self.launcher.add_module(spec)
-            self.launcher.node_of(name).start_modules([name])
+                              float(period) if period is not None else module_cls.period,
+                              dict(state or {}), restart or module_cls.restart, group,
+                              list(fallback or []))
+            launcher.add_module(spec)
+            launcher.node_of(name).start_modules([name])
         self.events.record("module_added", name, node=node)
 
     def remove(self, name: str, *, timeout: float | None = None) -> None:
@@ -249,17 +251,84 @@ class Operations:
     def restart(self, name: str, *, timeout: float | None = None) -> None:
         """Stop a module (also a failed one) and start it again with its configured state
         in a new worker; its links are wired again. Values queued in its inputs go with
-        the old instance."""
+        the old instance. Its configuration is checked before anything stops
+        (``ConfigError``); if it cannot start again, it is put back with the state it had
+        and its links, and ``RuntimeFailure`` says why (the module is lost only if that
+        fails too, and the error then says so)."""
         with self._held(f"restart {name}", timeout):
             launcher = self.launcher
             launcher.node_of(name)                # ModuleNotFound for an unknown name
             spec = launcher.specs[name]
+            problems = (checks.state(spec.cls, spec.state) + checks.period(spec.period)
+                        + checks.restart(spec.restart))
+            if problems:
+                raise ConfigError([f"restart {name}: {problem}" for problem in problems])
             links = [link for link in launcher.links.values() if name in (link.src, link.dst)]
+            was = self._state_then(name)
             launcher.remove_module(name)
-            launcher.add_module(spec)
-            launcher.connect(*links)
-            launcher.node_of(name).start_modules([name])
+            try:
+                self._start(spec, links)
+            except Exception as exc:
+                raise self._put_back(spec, links, was, exc) from exc
         self.events.record("module_restarted", name, node=spec.node, reason="asked")
+
+    def _state_then(self, name: str) -> dict[str, Any] | None:
+        """The module's state now, to put it back with should its restart fail; None if
+        it cannot say (its worker is gone, it is stuck in a call, its state does not
+        pickle): then its configured state."""
+        try:
+            return self.launcher.call(name, "get_state", STATE_THEN_S)
+        except Exception:           # (whatever it is, the restart goes on without it)
+            return None
+
+    def _start(self, spec: FlatModule, links: list[FlatLink],
+               state: dict[str, Any] | None = None) -> None:
+        """Add, wire and start a module (with ``state``, else its configured one); what
+        of it was done is undone if a step fails."""
+        launcher = self.launcher
+        launcher.add_module(spec, state=state)
+        try:
+            launcher.connect(*links)
+            launcher.node_of(spec.name).start_modules([spec.name])
+        except BaseException:
+            self._drop(spec.name)
+            raise
+
+    def _drop(self, name: str) -> None:
+        """Remove what there is of a module that failed to start, each step whatever the
+        one before did."""
+        launcher = self.launcher
+        node = launcher.nodes[launcher.specs[name].node]
+        for key in [key for key, link in launcher.links.items() if name in (link.src, link.dst)]:
+            with contextlib.suppress(Exception):
+                launcher.detach(launcher.links[key])
+            del launcher.links[key]
+        with contextlib.suppress(Exception):
+            node.stop_module(name, 5.0)
+        with contextlib.suppress(Exception):
+            node.remove_module(name)
+        del launcher.specs[name]
+        launcher.checkpoints.pop(name, None)
+
+    def _put_back(self, spec: FlatModule, links: list[FlatLink], was: dict[str, Any] | None,
+                  failure: Exception) -> RuntimeFailure:
+        """After a failed restart: the module as it ran (``was``) and its links; the
+        error to raise, saying whether it is back."""
+        name = spec.name
+        try:
+            self._start(spec, links, state=was)
+        except Exception as exc:
+            log.warning("restart %s failed (%s), and putting it back failed too: %s",
+                        name, failure, exc)
+            self.events.record("module_removed", name, reason="restart failed")
+            return RuntimeFailure(f"restart {name} failed ({failure}), and putting it back "
+                                  f"failed too ({exc}): it and its links are no longer in the "
+                                  "system; add it again")
+        self.events.record("module_restarted", name, node=spec.node,
+                           reason="put back as it ran: the restart failed")
+        return RuntimeFailure(f"restart {name} failed ({failure}); it was put back as it ran, "
+                              f"with {'its state' if was is not None else 'its configured state'}"
+                              " and its links")
 
     # -- where things are, figures, events ---------------------------------------------------
     def where(self, name: str, *, timeout: float | None = None) -> str:
@@ -307,6 +376,36 @@ class Operations:
         if op == "events":
             return self.events_since(**args)
         return getattr(self, op)(**args)
+
+
+def _add_problems(name: Any, cls: Any, state: Any, period: Any, restart: Any, group: Any,
+                  node: str, fallback: Any, modules: dict[str, FlatModule],
+                  nodes: list[str]) -> list[str]:
+    """What keeps a new module from being added, in the compiler's words (a module
+    instance's name, or a group's, may be a macro path: each of its parts is checked)."""
+    problems = (checks.name(name, "module instance") if not isinstance(name, str) else
+                [p for part in name.split("/") for p in checks.name(part, "module instance")])
+    if isinstance(name, str) and name in modules:
+        problems.append("a module of that name runs already")
+    if not (isinstance(cls, type) and issubclass(cls, Module) and cls is not Module):
+        problems.append(f"{cls!r} is not a pb3a.Module subclass")
+    else:
+        problems += checks.state(cls, {} if state is None else state) + checks.displays(cls)
+    problems += checks.period(period) + checks.restart(restart)
+    if node not in nodes:
+        problems.append(f"no node {node!r}{checks.did_you_mean(node, nodes)}; nodes: "
+                        f"{checks.listing(nodes)}")
+    problems += checks.fallback(fallback, nodes)
+    if group is not None:
+        problems += (checks.name(group, "group") if not isinstance(group, str) else
+                     [p for part in group.split("/") for p in checks.name(part, "group")])
+        other = next((m for m in modules.values() if m.group == group and m.node != node),
+                     None)
+        if other is not None:
+            problems.append(f"group {group!r} would span nodes {other.node!r} ({other.name}) "
+                            f"and {node!r} ({name}); a group shares one worker process on one "
+                            "node: give them the same node or different groups")
+    return problems
 
 
 def _swap_problems(name: str, old: type, new: type, links: dict[str, FlatLink],
