@@ -692,3 +692,23 @@ class Shift(Module):
 
     def on_input(self, port) -> None:
         self.y.write(port.read() + self.offset)
+
+
+class AsksInSetup(Agent):
+    """Asks the runtime for module ``other``'s state from its ``setup`` (as agents may),
+    once ``ask`` is set."""
+
+    period = 0.02
+    other = "other"
+    ask = True
+    asked = -1
+    steps = 0
+    pid = 0
+
+    def setup(self) -> None:
+        if self.ask:
+            self.asked = self.runtime.state(self.other)["count"]
+
+    def step(self) -> None:
+        self.pid = os.getpid()
+        self.steps += 1

@@ -20,6 +20,7 @@ from conftest import alive, eventually
 from sample_modules import (
     ArrayHolder,
     ArraySource,
+    AsksInSetup,
     Crasher,
     Faulty,
     FloatSource,
@@ -195,6 +196,63 @@ def test_no_processes_or_segments_survive_a_killed_launcher(tmp_path: Path) -> N
         if proc.poll() is None:
             proc.kill()
         proc.stdout.close()
+
+
+def test_a_restarted_agent_may_ask_the_runtime_from_setup() -> None:
+    """A restart runs ``setup`` without the configuration lock, as a launch does: an
+    agent whose ``setup`` calls ``self.runtime`` restarts at once (not when its start
+    request times out, 10 s later), is reported running and its restart is an event."""
+    system = System("restart-asks")
+    system.add("other", Steady)
+    system.add("asker", AsksInSetup, restart="fresh")
+    with system.launch() as run:
+        eventually(lambda: run.state("asker")["steps"] > 2, what="the agent steps")
+        since = max((event.seq for event in run.events()), default=0)
+        old = _kill_worker(run, "asker")
+        killed = time.monotonic()
+        events = run.events(since, timeout=5.0)        # waits for the first one
+        state = eventually(lambda: (s := run.state("asker", timeout=2.0))["pid"]
+                           not in (0, old) and s["steps"] > 2 and s, timeout=5.0,
+                           what="the restarted agent steps")
+        took = time.monotonic() - killed
+        figures = run.stats().modules["asker"]
+        failures = run.stats().failures
+    assert [(e.kind, e.subject, e.detail["policy"]) for e in events] == [
+        ("module_restarted", "asker", "fresh")]
+    assert took < 5.0, took
+    assert state["asked"] > 0                          # its setup was answered
+    assert (figures.status, figures.running, figures.restarts) == ("running", True, 1)
+    assert failures == []
+
+
+def test_a_restart_that_fails_leaves_the_module_failed_saying_why(tmp_path: Path) -> None:
+    """A restart that fails halfway (here the new instance cannot be made) fails the
+    module, with the reason, as a status and a ``module_failed`` event, and stops the
+    worker it had started."""
+    refuse = tmp_path / "refuse"
+
+    class Fragile(Steady):
+        def __init__(self) -> None:
+            if refuse.exists():
+                raise RuntimeError("no second instance")
+            super().__init__()
+
+    system = System("restart-fails")
+    system.add("fragile", Fragile, restart="fresh")
+    system.add("other", Steady)
+    with system.launch() as run:
+        eventually(lambda: run.state("fragile")["count"] > 2, what="steps")
+        since = max((event.seq for event in run.events()), default=0)
+        refuse.touch()
+        _kill_worker(run, "fragile")
+        events = run.events(since, timeout=5.0)        # waits for the first one
+        figures = run.stats().modules["fragile"]
+        before = run.state("other")["count"]
+        eventually(lambda: run.state("other")["count"] > before, what="the other goes on")
+    assert [(e.kind, e.subject) for e in events] == [("module_failed", "fragile")]
+    assert "its restart failed" in events[0].detail["reason"]
+    assert "no second instance" in events[0].detail["reason"]
+    assert (figures.status, figures.running, figures.pid) == ("failed", False, None)
 
 
 def test_a_worker_stopped_by_sigterm_is_stopped_not_restarted() -> None:

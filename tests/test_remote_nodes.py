@@ -12,7 +12,17 @@ import time
 import psutil
 import pytest
 from conftest import alive, assert_same_arrays, eventually
-from sample_modules import Collector, Counter, Hoard, LossWatcher, NodeTable, Relay, Wanderer
+from sample_modules import (
+    AsksInSetup,
+    Collector,
+    Counter,
+    Hoard,
+    LossWatcher,
+    NodeTable,
+    Relay,
+    Steady,
+    Wanderer,
+)
 
 from pb3a import ModuleNotFound, RuntimeFailure, RuntimeTimeout, System
 from pb3a.cli.status import format_table
@@ -176,6 +186,38 @@ def test_on_a_remote_node_a_restarted_writer_feeds_its_readers_and_agents_can_mo
         eventually(lambda: run.state("dst")["received"] > before["dst"] + 10
                    and run.state("wanderer")["seen"] > before["wanderer"] + 10,
                    timeout=30, what="values from the restarted writer on node b")
+
+
+def test_on_a_remote_node_a_restarted_agent_may_ask_the_runtime_from_setup(
+        controllers) -> None:
+    """A restart there runs ``setup`` without the executor's lock: an agent whose
+    ``setup`` asks about a module of its own node (which takes that lock) restarts at
+    once, is reported running, and the launcher gets the event."""
+    system = System("remote-asks").node("a").node("b", address=controllers["b"].address)
+    system.add("other", Steady, node="b")
+    # it asks once restarted, from its last checkpoint (a launch on a remote node runs
+    # setup while its executor takes no other request: "Not promised" in guarantees.md)
+    system.add("asker", AsksInSetup, node="b", restart="last-state", state={"ask": False})
+    with system.launch(checkpoint_s=0.1) as run:
+        eventually(lambda: run.state("asker")["steps"] > 2, timeout=30, what="the agent steps")
+        run.set_state("asker", {"ask": True})
+        taken = run.stats().modules["asker"].checkpoints
+        eventually(lambda: run.stats().modules["asker"].checkpoints > taken + 1,
+                   what="a checkpoint with ask set")
+        since = max((event.seq for event in run.events()), default=0)
+        old = run.stats().modules["asker"].pid
+        os.kill(old, signal.SIGKILL)
+        killed = time.monotonic()
+        events = run.events(since, timeout=5.0)        # waits for the first one
+        state = eventually(lambda: (s := run.state("asker", timeout=2.0))["pid"]
+                           not in (0, old) and s["steps"] > 2 and s, timeout=5.0,
+                           what="the restarted agent steps")
+        took = time.monotonic() - killed
+        figures = run.stats().modules["asker"]
+    assert [(e.kind, e.subject) for e in events] == [("module_restarted", "asker")]
+    assert took < 5.0, took
+    assert state["asked"] > 0                          # its setup was answered
+    assert (figures.status, figures.running, figures.restarts) == ("running", True, 1)
 
 
 def test_each_node_keeps_the_spare_workers_its_configuration_gives(controllers) -> None:

@@ -19,6 +19,7 @@ import itertools
 import logging
 import threading
 import time
+from concurrent.futures import Future
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from typing import Any
@@ -58,7 +59,15 @@ class ModuleRecord:
     status: str = "starting"          # starting | running | failed | stopped
     checkpoint: bytes | None = None
     checkpoints: int = 0              # checkpoints received (restart = "last-state")
-    restarts: int = 0
+    restarts: int = 0                 # restarts of its worker tried
+
+
+@dataclass(frozen=True)
+class _Revival:
+    """A module a restart revived, and which of its restarts that was."""
+
+    record: ModuleRecord
+    restart: int                      # ``record.restarts`` then: a later restart changes it
 
 
 @dataclass(frozen=True)
@@ -603,17 +612,43 @@ class Executor:
                          name=f"pb3a-restart-{handle.key}").start()
 
     def _recover(self, handle: WorkerHandle, code: int | None) -> None:
-        with self.lock:
-            if not self._stopping.is_set():     # a shutdown may have come first
-                self._restart(handle, code)
+        """Restart what ran in a dead worker as a launch starts it (``Running.start``):
+        under the lock, the policies applied, the modules instantiated and rewired in a
+        new process (``_revive``) and their start sent; without it, their ``setup`` runs,
+        since an agent may call ``self.runtime`` from ``setup``, which takes the lock
+        (``_started``); under it again, what came of it (``_restarted``)."""
+        what = f"restart the modules of worker {handle.key}"
+        try:
+            with self._held(what):
+                if self._stopping.is_set():     # a shutdown may have come first
+                    return
+                revived = self._revive(handle, code)
+                if not revived:
+                    return
+                # sent now, to the process just set up, whatever happens once the lock is free
+                process = handle.process
+                future = self.workers.submit(handle.key, "start", names=list(revived))
+            started, error = self._started(future, handle.key, process)
+            with self._held(what):
+                if not self._stopping.is_set():
+                    self._restarted(handle, code, revived, started, error)
+        except RuntimeTimeout as exc:           # the lock was not free within its deadline
+            self.failures.append(f"restart of worker {handle.key} failed: {exc}")
+            log.error(self.failures[-1])
 
-    def _restart(self, handle: WorkerHandle, code: int | None) -> None:
-        """Apply the ``restart`` policy of every module that ran in the dead worker:
-        ``never`` leaves it failed; ``fresh`` starts it with its configured state,
-        ``last-state`` with its last checkpoint. Rings are kept, so a restarted reader
-        resumes where the dead one stopped and a restarted writer continues the
-        sequence; a restarted writer of a remote link publishes under a new
-        incarnation, which ``republished`` has the reader's node follow."""
+    def _held(self, what: str) -> AbstractContextManager[Any]:
+        """``self.lock``, held for ``what`` (which the launcher's lock names to a waiter)."""
+        held = getattr(self.lock, "held", None)
+        return self.lock if held is None else held(what)
+
+    def _revive(self, handle: WorkerHandle, code: int | None) -> dict[str, _Revival]:
+        """Apply the ``restart`` policy of every module that ran in the dead worker, up to
+        its start (lock held): ``never`` leaves it failed; ``fresh`` instantiates it with
+        its configured state, ``last-state`` with its last checkpoint, in a new process.
+        Rings are kept, so a restarted reader resumes where the dead one stopped and a
+        restarted writer continues the sequence; a restarted writer of a remote link
+        publishes under a new incarnation, which ``republished`` has the reader's node
+        follow. The modules revived, to start; none if it failed (they are failed)."""
         budget = self._budgets.setdefault(handle.key, RestartBudget())
         names = list(handle.modules)
         revive = [n for n in names if self.modules[n].spec.restart != "never"]
@@ -625,27 +660,71 @@ class Executor:
         for name in names:
             if name not in revive:
                 self._fail(name, code, reason)
-        if not revive:
-            return
+        records = {name: self.modules[name] for name in revive}
+        for record in records.values():
+            record.status = "starting"
+            record.restarts += 1            # (also tells this restart from a later one)
         try:
             self.workers.spawn(handle)
-            for name in revive:
-                record = self.modules[name]
+            for record in records.values():
                 state = record.spec.state
                 if record.spec.restart == "last-state" and record.checkpoint is not None:
                     state = cloudpickle.loads(record.checkpoint)
                 self._instantiate(record, state)
-                record.status = "starting"
-                record.restarts += 1
-            self._rewire(set(revive))
-            self.start_modules(revive)
-            log.warning("restarted %s (exit code %s)", ", ".join(revive), code)
-            for name in revive:
-                self._tell("module_restarted", name, reason="its worker died",
-                           exit_code=code, policy=self.modules[name].spec.restart)
+            self._rewire(set(records))
+        except Exception as exc:            # whatever it was, the modules say it
+            self._give_up(handle, code, records, f"its restart failed: {exc}")
+            return {}
+        return {name: _Revival(record, record.restarts) for name, record in records.items()}
+
+    def _started(self, future: Future[Any], key: str,
+                 process: Any) -> tuple[bool, Exception | None]:
+        """Wait, without the lock, for the revived modules' ``setup`` and start: (started,
+        the error if the start failed); neither if the new worker died too (its restart
+        policy applies again)."""
+        try:
+            self.workers.result(future, "start", key, REQUEST_TIMEOUT)
         except (RuntimeFailure, RuntimeTimeout) as exc:
-            self.failures.append(f"restart of worker {handle.key} failed: {exc}")
-            log.error(self.failures[-1])
+            process.join(1.0)                # a pipe error may come before the death is seen
+            return False, None if not process.is_alive() else exc
+        return True, None
+
+    def _restarted(self, handle: WorkerHandle, code: int | None, revived: dict[str, _Revival],
+                   started: bool, error: Exception | None) -> None:
+        """Record what came of a restart's start (lock held), for the revived modules
+        still this restart's and still starting: another operation may have moved,
+        removed or stopped one while the lock was free, or a later restart taken over."""
+        records = {name: revival.record for name, revival in revived.items()
+                   if self._current(name, revival) and revival.record.status == "starting"}
+        if not records:
+            return
+        if error is not None:
+            self._give_up(handle, code, records, f"its restart failed: {error}")
+            return
+        if not started:                      # the new worker died as well
+            return
+        for record in records.values():
+            record.status = "running"
+        log.warning("restarted %s (exit code %s)", ", ".join(records), code)
+        for name, record in records.items():
+            self._tell("module_restarted", name, reason="its worker died", exit_code=code,
+                       policy=record.spec.restart)
+
+    def _current(self, name: str, revival: _Revival) -> bool:
+        """Whether module ``name`` is still the one ``revival`` revived."""
+        record = revival.record
+        return self.modules.get(name) is record and record.restarts == revival.restart
+
+    def _give_up(self, handle: WorkerHandle, code: int | None,
+                 records: dict[str, ModuleRecord], reason: str) -> None:
+        """A restart failed: stop its new worker, unless it hosts others by now (none of
+        these modules may run while reported failed), and fail each module, saying why."""
+        others = [name for name in handle.modules if name not in records
+                  and name in self.modules and self.modules[name].status != "failed"]
+        if handle.alive and not others:
+            self.workers.halt(handle)
+        for name in records:
+            self._fail(name, code, reason)
 
     def _rewire(self, revived: set[str]) -> None:
         """Attach every link of restarted modules again, in the worker that replaced theirs."""
@@ -673,7 +752,10 @@ class Executor:
         for link in list(self.links.values()):
             src = self.modules.get(link.src)
             if link.dst == name and src is not None and self._alive(src.worker):
-                self.call(src.worker, "unlink_out", key=link.key)
+                try:
+                    self.call(src.worker, "unlink_out", key=link.key)
+                except (RuntimeFailure, RuntimeTimeout) as exc:     # (its writer goes on)
+                    log.warning("link %s: its writer was not unhooked: %s", link.key, exc)
         for link in list(self.inbound.values()):
             if link.dst == name:
                 self.bridge.close(link.key)

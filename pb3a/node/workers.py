@@ -337,10 +337,7 @@ class WorkerPool:
         handle.alive = False
         with handle.read_lock, contextlib.suppress(OSError):
             handle.conn.close()
-        for req_id, future in list(self._futures.items()):
-            if getattr(future, "pb3a_worker", None) is handle \
-                    and self._futures.pop(req_id, None) is not None:
-                future.set_exception(RuntimeFailure(f"worker {handle.key!r} died"))
+        self._fail_requests(handle, "died")
         if self.handles.get(handle.key) is not handle:     # a spare: it hosted nothing
             with self._spares_lock:
                 self._spares = [spare for spare in self._spares if spare is not handle]
@@ -349,10 +346,21 @@ class WorkerPool:
             self._on_death(handle)
 
     # -- stopping --------------------------------------------------------------
+    def halt(self, handle: WorkerHandle, timeout: float = 2.0) -> None:
+        """Stop the process behind ``handle`` (a restart that failed), not as a crash: the
+        handle stays, with its doorbell and its modules, failed, until they are removed
+        (``retire``)."""
+        handle.alive = False
+        self._end(handle, timeout)
+
     def _stop(self, handle: WorkerHandle, timeout: float) -> None:
         handle.alive = False
         with contextlib.suppress(OSError):
             os.close(handle.bell)              # writers hold their own duplicates
+        self._end(handle, timeout)
+
+    def _end(self, handle: WorkerHandle, timeout: float) -> None:
+        """Tell the process to exit, then terminate it, then kill it; close its pipe."""
         if handle.process is None:
             return
         with contextlib.suppress(OSError, ValueError):
@@ -366,7 +374,15 @@ class WorkerPool:
             handle.process.join(1.0)
         with handle.read_lock, contextlib.suppress(OSError):
             handle.conn.close()
+        self._fail_requests(handle, "was stopped")     # none waits for its deadline
         self._poke()
+
+    def _fail_requests(self, handle: WorkerHandle, what: str) -> None:
+        """Fail every request still waiting for ``handle``'s answer: its worker ``what``."""
+        for req_id, future in list(self._futures.items()):
+            if getattr(future, "pb3a_worker", None) is handle \
+                    and self._futures.pop(req_id, None) is not None:
+                future.set_exception(RuntimeFailure(f"worker {handle.key!r} {what}"))
 
     def close(self, timeout: float) -> None:
         """Stop every worker (in reverse start order) within about ``timeout`` seconds, then
