@@ -265,3 +265,19 @@ def test_a_wrong_key_is_told_apart_from_no_answer_within_5_s() -> None:
         assert time.monotonic() - started < 2        # told at once, not timed out
     finally:
         stranger.close()
+
+
+def test_a_module_on_a_remote_node_is_removed_with_its_links(controllers) -> None:
+    system = System("removing").node("a").node("b", address=controllers["b"].address)
+    system.add("src", Counter, node="a", period=0.002)
+    system.add("far", Collector, node="b")
+    system.link("src.out", "far.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("far")["received"] > 20, timeout=30, what="values at b")
+        pid = run.stats().modules["far"].pid
+        run.remove("far")
+        stats = run.stats()
+        assert "far" not in stats.modules and not stats.links
+        eventually(lambda: not alive(pid), what="its worker gone")
+        sent = run.state("src")["count"]
+        eventually(lambda: run.state("src")["count"] > sent + 20, what="the writer going on")

@@ -56,6 +56,7 @@ WATCH_S = 0.1           # how often the watchdog looks at the nodes' heartbeats
 ENV_S = 1.0             # how often it updates the env modules, merges logs
 REJOIN_S = 1.0          # how often it asks a lost node's controller whether it is back
 PLACE_TIMEOUT = 0.5     # a controller's answer about its load and admission
+STOP_TIMEOUT = 5.0      # a module's teardown when it is removed
 
 
 class Launcher:
@@ -190,7 +191,7 @@ class Launcher:
     def remove_module(self, name: str) -> None:
         """Stop a module, drop its links, free its process."""
         node = self.node_of(name)
-        node.stop_module(name)
+        node.stop_module(name, STOP_TIMEOUT)
         for key in [k for k, link in self.links.items() if name in (link.src, link.dst)]:
             self.disconnect(key)
         node.remove_module(name)
