@@ -46,6 +46,20 @@ def assert_same_arrays(got: dict[str, Any], want: dict[str, Any]) -> None:
         assert np.array_equal(array, expected), name
 
 
+def restart_after_kill(run: Any, name: str) -> tuple[list[Any], dict[str, Any], float]:
+    """SIGKILL module ``name``'s worker and wait for its restart: the events from then
+    (waiting for the first), its state once a new process has stepped it a few times,
+    and the seconds that took."""
+    since = max((event.seq for event in run.events()), default=0)
+    old = eventually(lambda: run.stats().modules[name].pid, what="a worker pid")
+    os.kill(old, signal.SIGKILL)
+    killed = time.monotonic()
+    events = run.events(since, timeout=5.0)
+    state = eventually(lambda: (s := run.state(name, timeout=2.0))["pid"] not in (0, old)
+                       and s["steps"] > 2 and s, timeout=5.0, what=f"the restarted {name} steps")
+    return events, state, time.monotonic() - killed
+
+
 def alive(pid: int) -> bool:
     """True while ``pid`` runs (a zombie waiting for its parent counts as gone)."""
     try:

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import alive, eventually
+from conftest import alive, eventually, restart_after_kill
 from sample_modules import (
     ArrayHolder,
     ArraySource,
@@ -207,14 +207,7 @@ def test_a_restarted_agent_may_ask_the_runtime_from_setup() -> None:
     system.add("asker", AsksInSetup, restart="fresh")
     with system.launch() as run:
         eventually(lambda: run.state("asker")["steps"] > 2, what="the agent steps")
-        since = max((event.seq for event in run.events()), default=0)
-        old = _kill_worker(run, "asker")
-        killed = time.monotonic()
-        events = run.events(since, timeout=5.0)        # waits for the first one
-        state = eventually(lambda: (s := run.state("asker", timeout=2.0))["pid"]
-                           not in (0, old) and s["steps"] > 2 and s, timeout=5.0,
-                           what="the restarted agent steps")
-        took = time.monotonic() - killed
+        events, state, took = restart_after_kill(run, "asker")
         figures = run.stats().modules["asker"]
         failures = run.stats().failures
     assert [(e.kind, e.subject, e.detail["policy"]) for e in events] == [

@@ -11,7 +11,7 @@ import time
 
 import psutil
 import pytest
-from conftest import alive, assert_same_arrays, eventually
+from conftest import alive, assert_same_arrays, eventually, restart_after_kill
 from sample_modules import (
     AsksInSetup,
     Collector,
@@ -204,15 +204,7 @@ def test_on_a_remote_node_a_restarted_agent_may_ask_the_runtime_from_setup(
         taken = run.stats().modules["asker"].checkpoints
         eventually(lambda: run.stats().modules["asker"].checkpoints > taken + 1,
                    what="a checkpoint with ask set")
-        since = max((event.seq for event in run.events()), default=0)
-        old = run.stats().modules["asker"].pid
-        os.kill(old, signal.SIGKILL)
-        killed = time.monotonic()
-        events = run.events(since, timeout=5.0)        # waits for the first one
-        state = eventually(lambda: (s := run.state("asker", timeout=2.0))["pid"]
-                           not in (0, old) and s["steps"] > 2 and s, timeout=5.0,
-                           what="the restarted agent steps")
-        took = time.monotonic() - killed
+        events, state, took = restart_after_kill(run, "asker")
         figures = run.stats().modules["asker"]
     assert [(e.kind, e.subject) for e in events] == [("module_restarted", "asker")]
     assert took < 5.0, took
