@@ -5,6 +5,7 @@ from __future__ import annotations
 import gc
 import os
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ import pytest
 from pb3a import RuntimeTimeout
 from pb3a.transport import codec
 from pb3a.transport.doorbell import new_bell
-from pb3a.transport.ring import ShmRing, sleep
+from pb3a.transport.ring import WRITE_TIMEOUT, ShmRing, sleep
 from pb3a.transport.shm import live_segments, segment_name
 
 
@@ -134,6 +135,24 @@ def test_write_many_publishes_in_order_and_counts_what_did_not_fit(ring) -> None
     writer.write("next")
     got, gaps = _drain(reader)
     assert got == ["next"] and gaps == 5000 - fitted
+
+
+def test_a_batch_into_a_stalled_reader_waits_once_in_all_then_drops_and_counts(ring) -> None:
+    _, writer, reader = ring
+    sent = 0
+    while writer.write(sent, timeout=0.0):               # the reader is stalled: ring full
+        sent += 1                                        # (the last write dropped)
+    waits = writer.waits
+    batch = [i if i % 2 else str(i) for i in range(50)]  # scalars and pickled values
+    started = time.monotonic()
+    assert writer.write_many(batch) == 0                 # the default wait, as a port's
+    took = time.monotonic() - started
+    assert writer.waits == waits + 1                     # one wait for the batch, not 50
+    assert took < 10 * WRITE_TIMEOUT                     # (it was 50 x WRITE_TIMEOUT)
+    got, _ = _drain(reader)
+    assert got == list(range(sent))
+    assert writer.write("next")
+    assert _drain(reader) == (["next"], 1 + 50)          # every dropped value counted
 
 
 def test_scalars_keep_their_exact_type_and_value(ring) -> None:

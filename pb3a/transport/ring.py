@@ -228,24 +228,28 @@ class ShmRing:
         """Append values in order and publish them at once; returns how many fit.
 
         ``sent_at`` (monotonic) is when they were written, if not now: values that
-        came from another node keep their time for the reader's latency figure. On a
-        lossless ring ``timeout`` bounds the batch's waits in all; then the values
-        that fit are published and RuntimeTimeout says how many did not go."""
+        came from another node keep their time for the reader's latency figure.
+        ``timeout`` bounds the batch's waits for room in all, not per value (a stalled
+        reader holds its writer once). Then a dropping ring drops what does not fit
+        (gaps the reader counts); a lossless one publishes the values that fit, and
+        RuntimeTimeout says how many did not go."""
         if self.lossless:
             return self._write_lossless(values, timeout, sent_at)
         core = self.core
         now = time.monotonic() if sent_at is None else sent_at   # one time for the batch
+        deadline = None        # the batch waits ``timeout`` in all, not that per value
         written = 0
         for value in values:
             done = core.stage(value, now)      # ints and floats: all in C
             if done < 0:                       # (-1 also for an int beyond 64 bits)
-                done = self._stage(value, now, timeout)
-                if not done:
-                    self._skip()
-            elif not done:
-                done = self._wait_space(_ALIGN, timeout) and core.stage(value, now) > 0
-                if not done:
-                    self._skip()
+                done = self._stage(value, now, 0.0)
+            if not done and timeout > 0:
+                if deadline is None:
+                    deadline = time.monotonic() + timeout
+                left = deadline - time.monotonic()
+                done = left > 0 and self._stage_waiting(value, now, left)
+            if not done:
+                self._skip()
             written += bool(done)
         core.publish()
         return written
