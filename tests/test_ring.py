@@ -9,6 +9,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import eventually
 
 from pb3a import RuntimeTimeout
 from pb3a.transport import codec
@@ -234,6 +235,96 @@ def test_a_corrupt_record_is_reported_not_followed(ring) -> None:
     owner._data[0:4] = b"\x00\x00\x00\x00"        # record length 0: a broken writer
     with pytest.raises(RuntimeError, match="corrupt ring record"):
         reader.drain()
+
+
+@pytest.fixture(params=[False, True], ids=["dropping", "lossless"])
+def either(request):
+    """A 64 KiB ring of each kind."""
+    yield from _ends(lossless=request.param)
+
+
+def test_a_record_over_half_the_ring_goes_at_any_offset_while_the_reader_keeps_up(
+        either) -> None:
+    """Where the record would straddle the end, the pad to the end and the record
+    together may not fit the ring even when it is empty: the pad goes first, the
+    reader takes it, then the record goes at the start."""
+    _, writer, reader = either
+    bell = new_bell()
+    writer.set_bell(bell)
+    got: list = []
+    gaps: list[int] = []
+    stop = threading.Event()
+
+    def receive() -> None:                               # a reader that keeps up
+        while not stop.is_set():
+            values, _, dropped = reader.drain()
+            got.extend(values)
+            gaps.append(dropped)
+            sleep(bell, [reader.core], 0.5)
+
+    receiver = threading.Thread(target=receive)
+    receiver.start()
+    try:
+        big = b"x" * (48 * 1024)                         # the ring holds 64 KiB
+        sent = []
+        for small in (100, 20_000, 40_000, 60_000, 10):  # so its record starts anywhere
+            for value in (b"s" * small, big):
+                assert writer.write(value, timeout=2.0)
+                sent.append(value)
+        eventually(lambda: len(got) == len(sent), what="every value read")
+    finally:
+        stop.set()
+        os.write(bell, (1).to_bytes(8, "little"))
+        receiver.join(5)
+        os.close(bell)
+    assert got == sent and sum(gaps) == 0
+
+
+def test_a_pad_to_the_end_written_for_a_record_that_then_has_no_room_is_harmless(
+        ring) -> None:
+    _, writer, reader = ring
+    big = b"x" * (48 * 1024)
+    assert writer.write(b"s" * 20_000, timeout=0.0)      # unread, at offset 0
+    assert writer.core.head + len(big) > writer.capacity  # big would straddle the end
+    assert not writer.write(big, timeout=0.0)            # padded to the end; no room after
+    assert writer.core.head == writer.capacity
+    assert not writer.write(big, timeout=0.0)            # no room at offset 0 either
+    assert _drain(reader) == ([b"s" * 20_000], 0)
+    assert writer.write(big, timeout=0.0)
+    assert _drain(reader) == ([big], 2)                  # the two dropped, counted
+
+
+def test_a_writer_waiting_for_room_publishes_the_pad_it_writes_meanwhile(either) -> None:
+    """The pad to the end may find room only while the writer waits: the reader must
+    see it then, or the record after it never has room (the wait runs out)."""
+    _, writer, reader = either
+    bell = new_bell()
+    writer.set_bell(bell)
+    assert writer.write(b"a" * 50_000, timeout=0.0)
+    assert _drain(reader) == ([b"a" * 50_000], 0)
+    unread = [b"b" * 10_000, b"c" * 3_000, b"d" * 17_000]   # the last one wraps around
+    assert all(writer.write(value, timeout=0.0) for value in unread)
+    big = b"x" * (48 * 1024)            # would straddle the end: a pad first, no room yet
+    got: list = []
+    stop = threading.Event()
+
+    def receive() -> None:              # takes the values only once the writer waits
+        eventually(lambda: writer.waits or stop.is_set(), what="the writer waiting")
+        while not stop.is_set():
+            got.extend(reader.drain()[0])
+            sleep(bell, [reader.core], 0.5)
+
+    receiver = threading.Thread(target=receive)
+    receiver.start()
+    try:
+        assert writer.write(big, timeout=2.0)
+        eventually(lambda: len(got) == 4, what="every value read")
+    finally:
+        stop.set()
+        os.write(bell, (1).to_bytes(8, "little"))
+        receiver.join(5)
+        os.close(bell)
+    assert got == [*unread, big] and writer.waits == 1
 
 
 @pytest.fixture

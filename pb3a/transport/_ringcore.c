@@ -191,21 +191,34 @@ static void publish(RingCore *self) {
     }
 }
 
-/* Room for `length` bytes at the writer's head: the record's start (after a pad
- * record if it would straddle the end), or -1 when the reader has not freed enough. */
+/* Room for `length` bytes at the writer's head: the record's start, or -1 when the
+ * reader has not freed enough. A record that would straddle the end goes after a pad
+ * record to the end, written and published as a step of its own: pad and record
+ * together may exceed the capacity even in an empty ring, where each alone does not,
+ * and then the record has room only once the reader has taken the pad (a writer
+ * polling for room publishes nothing else meanwhile). Records staged before the pad
+ * are published with it. */
 static long long reserve(RingCore *self, unsigned long long length) {
     unsigned long long cap = self->cap, head = self->head;
     unsigned long long offset = head % cap;
-    unsigned long long pad = offset + length > cap ? cap - offset : 0;
-    unsigned long long end = head + pad + length;
-    if (end - self->tail > cap) {
+    if (offset + length > cap) {
+        unsigned long long pad = cap - offset;
+        if (head + pad - self->tail > cap) {
+            self->tail = LOAD_ACQ(&self->words[W_TAIL]);
+            if (head + pad - self->tail > cap)
+                return -1;
+        }
+        put_header(self->data + offset, (uint32_t)pad, K_PAD, 0, 0, 0.0);
+        self->head = head = head + pad;
+        STORE_RLX(&self->words[W_SEQ], self->seq);
+        publish(self);
+    }
+    if (head + length - self->tail > cap) {
         self->tail = LOAD_ACQ(&self->words[W_TAIL]);
-        if (end - self->tail > cap)
+        if (head + length - self->tail > cap)
             return -1;
     }
-    if (pad)
-        put_header(self->data + offset, (uint32_t)pad, K_PAD, 0, 0, 0.0);
-    return (long long)(head + pad);
+    return (long long)head;
 }
 
 /* The lowest free slot, or -1. Large arrays travel in a pool of equal slots, not
@@ -223,7 +236,7 @@ static long long take_slot(RingCore *self) {
 }
 
 /* room(length, slot) -> whether a record of `length` bytes (and, if `slot`, a free
- * slot) is there now. */
+ * slot) is there now (it may write and publish a pad to the end: see reserve). */
 static PyObject *RingCore_room(RingCore *self, PyObject *const *args, Py_ssize_t nargs) {
     if (nargs != 2) {
         PyErr_SetString(PyExc_TypeError, "room takes (length, slot)");
