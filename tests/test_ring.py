@@ -394,6 +394,26 @@ def test_a_new_reader_gets_back_the_slots_a_dead_one_held_but_not_unread_ones(po
     assert len(held) == 2
 
 
+def test_a_new_reader_counts_what_the_writer_dropped_while_none_read(pool) -> None:
+    owner, writer, reader = pool
+    reader.resume_reader()                    # a new ring's first reader: no gap yet
+    array = np.ones(1 << 17)
+    assert all(writer.write(array, timeout=0.0) for _ in range(4))
+    held, _, gaps = reader.drain()            # the reader "dies" holding all four views
+    assert len(held) == 4 and gaps == 0
+    assert not any(writer.write(array, timeout=0.0) for _ in range(3))   # no slot: dropped
+    successor = ShmRing.attach(owner.name)
+    try:
+        successor.resume_reader()             # as a restarted worker's link does
+        assert writer.write(array * 2, timeout=0.0)
+        (value,), _, gaps = successor.drain()
+        assert value[0] == 2.0 and gaps == 3
+    finally:
+        value = None
+        gc.collect()
+        successor.close()
+
+
 @pytest.mark.parametrize("died", ["before publishing", "between its two publishing stores"])
 def test_a_new_writer_gets_back_slots_a_dead_one_took_but_never_published(pool, died) -> None:
     owner, writer, reader = pool

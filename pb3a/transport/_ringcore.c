@@ -547,11 +547,15 @@ static PyObject *RingCore_counters(RingCore *self, PyObject *unused) {
 static PyObject *RingCore_resume_reader(RingCore *self, PyObject *unused) {
     /* a new reader takes over: views held by a dead reader are gone, so are the
      * slots of records it read (seq below W_RSEQ); the writer marks a slot it takes
-     * with a later seq, so this cannot free one on its way */
+     * with a later seq, so this cannot free one on its way. It expects the record
+     * after the last one read (W_RSEQ, 0 in a new ring): values the writer dropped
+     * meanwhile are a gap it counts. */
     if (check_open(self) < 0)
         return NULL;
     self->rpos = LOAD_ACQ(&self->words[W_RPOS]);
-    free_slots(self, 0, __atomic_load_n(&self->words[W_RSEQ], __ATOMIC_RELAXED));
+    uint64_t rseq = __atomic_load_n(&self->words[W_RSEQ], __ATOMIC_RELAXED);
+    self->expected = (long long)rseq;
+    free_slots(self, 0, rseq);
     STORE_REL(&self->words[W_TAIL], self->rpos);
     Py_RETURN_NONE;
 }
