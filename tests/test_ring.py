@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gc
+import logging
 import os
 import threading
 import time
@@ -13,6 +14,7 @@ from conftest import eventually
 
 from pb3a import RuntimeTimeout
 from pb3a.transport import codec
+from pb3a.transport import ring as ring_module
 from pb3a.transport.doorbell import new_bell
 from pb3a.transport.ring import WRITE_TIMEOUT, ShmRing, sleep
 from pb3a.transport.shm import live_segments, segment_name
@@ -237,6 +239,32 @@ def test_a_corrupt_record_is_reported_not_followed(ring) -> None:
         reader.drain()
 
 
+class _Refusal(Exception):
+    """Pickles, but does not unpickle: ``_Refusal(message)`` lacks an argument."""
+
+    def __init__(self, code: int, why: str) -> None:
+        super().__init__(f"{code}: {why}")
+
+
+def test_a_value_the_reader_cannot_decode_is_logged_counted_and_skipped(
+        ring, caplog, monkeypatch) -> None:
+    _, writer, reader = ring
+    reader.label = "w.out->r.x"
+    monkeypatch.setattr(ring_module, "UNDECODABLE_REPORT_S", 3600.0)
+    caplog.set_level(logging.ERROR, logger="pb3a.ring")
+    writer.write_many([1, _Refusal(7, "arm"), "two", _Refusal(8, "leg"), 3.0])
+    values, _, gaps = reader.drain()
+    assert (values, gaps) == ([1, "two", 3.0], 2)
+    writer.write_many([_Refusal(9, "hand"), 4])
+    values, _, gaps = reader.drain()                     # the link goes on: nothing retried
+    assert (values, gaps) == ([4], 1)
+    assert not reader.has_data()
+    (record,) = [r for r in caplog.records if r.name == "pb3a.ring"]   # once per burst
+    message = record.getMessage()
+    assert "link w.out->r.x: 2 value(s) could not be decoded" in message
+    assert "TypeError" in message and "missing 1 required positional argument" in message
+
+
 @pytest.fixture(params=[False, True], ids=["dropping", "lossless"])
 def either(request):
     """A 64 KiB ring of each kind."""
@@ -441,13 +469,24 @@ def test_a_new_writer_gets_back_slots_a_dead_one_took_but_never_published(pool, 
         successor.close()
 
 
-def test_a_record_naming_a_slot_that_is_not_there_is_reported(pool) -> None:
+def test_a_record_naming_a_slot_that_is_not_there_is_reported_and_skipped(
+        pool, caplog) -> None:
+    """Not followed: logged and counted as a drop; the records after it still go, and
+    the slot of one whose array cannot be read is free again."""
     owner, writer, reader = pool
+    caplog.set_level(logging.ERROR, logger="pb3a.ring")
     writer.write(np.ones(1 << 17))
     body = 40                                 # after the header and "<f8;131072", 8-aligned
     owner._data[body:body + 8] = (99).to_bytes(8, "little")
-    with pytest.raises(RuntimeError, match="slot 99 of 4"):
-        reader.drain()
+    writer.write(np.ones(1 << 17))            # a slot too small for its array ...
+    second = writer.core.head - 64
+    owner._data[second + 24:second + 34] = b"<f8;999999"
+    writer.write(2.5)                         # ... and a value after them
+    assert writer.core.slots_used() == 2
+    values, _, gaps = reader.drain()
+    assert values == [2.5] and gaps == 2
+    assert "slot 99 of 4" in caplog.text
+    assert writer.core.slots_used() == 1      # the second's slot is free (not the lost one)
 
 
 @pytest.fixture
