@@ -6,6 +6,7 @@ import asyncio
 import dataclasses
 import importlib
 import logging
+import multiprocessing
 import os
 import signal
 import subprocess
@@ -15,6 +16,7 @@ import threading
 import time
 from pathlib import Path
 
+import psutil
 import pytest
 from conftest import alive, eventually, restart_after_kill
 from sample_modules import (
@@ -32,7 +34,10 @@ from sample_modules import (
 )
 
 from pb3a import Input, InputPort, Module, Output, RuntimeFailure, System
-from pb3a.transport.shm import live_segments
+from pb3a.transport.doorbell import new_bell
+from pb3a.transport.ring import ShmRing
+from pb3a.transport.shm import live_segments, segment_name
+from pb3a.worker.process import GUARD_TIMEOUT, Worker, _Inbound
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -408,3 +413,103 @@ def test_a_value_of_the_launcher_s_code_arrives_and_one_a_worker_cannot_read_fai
         count = run.state("m")["count"]
         eventually(lambda: run.state("m")["count"] > count, what="it steps on")
         assert run.stats().modules["m"].restarts == 0
+
+
+class ReportsRefusal(Module):
+    """Writes 1, 2, 3 ... and, as its 5th value, one its reader cannot unpickle."""
+
+    out = Output(object)
+    period = 0.01
+    count = 0
+
+    def step(self) -> None:
+        self.count += 1
+        self.out.write(Refusal(self.count, "busy") if self.count == 5 else self.count)
+
+
+class TwoInputs(Module):
+    """Counts what arrives on each of two unrelated inputs."""
+
+    a = Input(object, policy="queue:1000")
+    b = Input(int, policy="queue:1000")
+    got_a = 0
+    got_b = 0
+
+    def on_input(self, port: InputPort) -> None:
+        port.read()
+        if port.name == "a":
+            self.got_a += 1
+        else:
+            self.got_b += 1
+
+
+def test_a_value_its_reader_cannot_decode_is_logged_counted_and_skipped(caplog) -> None:
+    """One value that pickles in its writer but does not unpickle in its reader is
+    dropped there, logged naming its link and counted in the link's drops; that link
+    and the reader's others go on, and the reader does not spin."""
+    caplog.set_level(logging.ERROR, logger="pb3a.ring")
+    system = System("undecodable")
+    system.add("rep", ReportsRefusal)
+    system.add("tick", Counter)
+    system.add("sink", TwoInputs)
+    system.link("rep.out", "sink.a")
+    system.link("tick.out", "sink.b")
+    with system.launch() as run:
+        pid = eventually(lambda: run.stats().modules["sink"].pid, what="the reader's pid")
+        reader = psutil.Process(pid)
+        eventually(lambda: run.state("sink")["got_a"] >= 10, what="values after the bad one")
+        cpu, started = sum(reader.cpu_times()[:2]), time.monotonic()
+        eventually(lambda: (s := run.state("sink"))["got_a"] >= 60 and s["got_b"] >= 60,
+                   what="both links go on")
+        busy = (sum(reader.cpu_times()[:2]) - cpu) / (time.monotonic() - started)
+        link = eventually(lambda: (f := run.stats().links["rep.out->sink.a"]).drops and f,
+                          what="the bad value counted")
+        eventually(lambda: "rep.out->sink.a" in caplog.text, what="the bad value logged")
+    assert link.drops == 1
+    assert "1 value(s) could not be decoded" in caplog.text and "TypeError" in caplog.text
+    assert busy < 0.5, f"the reader's worker is busy {busy:.0%} of the time"
+
+
+def test_a_link_the_receiver_cannot_read_is_set_aside_while_the_others_flow(caplog) -> None:
+    """A ring whose drain fails (a record its writer broke) is logged and left alone for
+    a while: the worker's other inputs go on and its receiver does not spin on it."""
+    caplog.set_level(logging.ERROR, logger="pb3a.worker")
+    owners = [ShmRing.create(segment_name("ring"), 64 * 1024) for _ in range(2)]
+    writers = [ShmRing.attach(owner.name) for owner in owners]
+    ours, theirs = multiprocessing.Pipe()
+    worker = Worker(ours, "key", new_bell(), 3600.0)
+    attempts = []
+    try:
+        writers[0].write(1)
+        owners[0]._data[0:4] = bytes(4)            # its length 0: a broken writer
+        bad, good = (_Inbound(ShmRing.attach(owner.name), InputPort(TwoInputs.b, "sink"))
+                     for owner in owners)
+        bad.ring.label = "w.out->sink.bad"
+        real_drain = bad.drain
+        bad.drain = lambda: attempts.append(time.monotonic()) or real_drain()
+        worker.inbound = {"bad": bad, "good": good}
+        worker._inbound_changed()
+        writers[1].set_bell(worker._bell_fd)
+        receiver = worker._threads[0].native_id
+
+        def receiver_cpu() -> float:
+            return sum(t.user_time + t.system_time for t in psutil.Process().threads()
+                       if t.id == receiver)
+
+        cpu, started = receiver_cpu(), time.monotonic()
+        for i in range(100):
+            assert writers[1].write(i)
+        eventually(lambda: good.port.received == 100, what="the good link's values")
+        eventually(lambda: len(attempts) >= 3, what="the bad link tried again")
+        elapsed = time.monotonic() - started
+        busy = (receiver_cpu() - cpu) / elapsed
+    finally:
+        worker.shutdown()
+        ours.close()
+        theirs.close()
+        for ring in (*writers, *owners):
+            ring.close()
+    assert len(attempts) <= elapsed / GUARD_TIMEOUT + 2     # once a guard's sleep
+    assert busy < 0.5, f"the receiver is busy {busy:.0%} of the time"
+    assert "cannot read link w.out->sink.bad" in caplog.text
+    assert "corrupt ring record" in caplog.text

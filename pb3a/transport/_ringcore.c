@@ -191,21 +191,34 @@ static void publish(RingCore *self) {
     }
 }
 
-/* Room for `length` bytes at the writer's head: the record's start (after a pad
- * record if it would straddle the end), or -1 when the reader has not freed enough. */
+/* Room for `length` bytes at the writer's head: the record's start, or -1 when the
+ * reader has not freed enough. A record that would straddle the end goes after a pad
+ * record to the end, written and published as a step of its own: pad and record
+ * together may exceed the capacity even in an empty ring, where each alone does not,
+ * and then the record has room only once the reader has taken the pad (a writer
+ * polling for room publishes nothing else meanwhile). Records staged before the pad
+ * are published with it. */
 static long long reserve(RingCore *self, unsigned long long length) {
     unsigned long long cap = self->cap, head = self->head;
     unsigned long long offset = head % cap;
-    unsigned long long pad = offset + length > cap ? cap - offset : 0;
-    unsigned long long end = head + pad + length;
-    if (end - self->tail > cap) {
+    if (offset + length > cap) {
+        unsigned long long pad = cap - offset;
+        if (head + pad - self->tail > cap) {
+            self->tail = LOAD_ACQ(&self->words[W_TAIL]);
+            if (head + pad - self->tail > cap)
+                return -1;
+        }
+        put_header(self->data + offset, (uint32_t)pad, K_PAD, 0, 0, 0.0);
+        self->head = head = head + pad;
+        STORE_RLX(&self->words[W_SEQ], self->seq);
+        publish(self);
+    }
+    if (head + length - self->tail > cap) {
         self->tail = LOAD_ACQ(&self->words[W_TAIL]);
-        if (end - self->tail > cap)
+        if (head + length - self->tail > cap)
             return -1;
     }
-    if (pad)
-        put_header(self->data + offset, (uint32_t)pad, K_PAD, 0, 0, 0.0);
-    return (long long)(head + pad);
+    return (long long)head;
 }
 
 /* The lowest free slot, or -1. Large arrays travel in a pool of equal slots, not
@@ -223,7 +236,7 @@ static long long take_slot(RingCore *self) {
 }
 
 /* room(length, slot) -> whether a record of `length` bytes (and, if `slot`, a free
- * slot) is there now. */
+ * slot) is there now (it may write and publish a pad to the end: see reserve). */
 static PyObject *RingCore_room(RingCore *self, PyObject *const *args, Py_ssize_t nargs) {
     if (nargs != 2) {
         PyErr_SetString(PyExc_TypeError, "room takes (length, slot)");
@@ -534,11 +547,15 @@ static PyObject *RingCore_counters(RingCore *self, PyObject *unused) {
 static PyObject *RingCore_resume_reader(RingCore *self, PyObject *unused) {
     /* a new reader takes over: views held by a dead reader are gone, so are the
      * slots of records it read (seq below W_RSEQ); the writer marks a slot it takes
-     * with a later seq, so this cannot free one on its way */
+     * with a later seq, so this cannot free one on its way. It expects the record
+     * after the last one read (W_RSEQ, 0 in a new ring): values the writer dropped
+     * meanwhile are a gap it counts. */
     if (check_open(self) < 0)
         return NULL;
     self->rpos = LOAD_ACQ(&self->words[W_RPOS]);
-    free_slots(self, 0, __atomic_load_n(&self->words[W_RSEQ], __ATOMIC_RELAXED));
+    uint64_t rseq = __atomic_load_n(&self->words[W_RSEQ], __ATOMIC_RELAXED);
+    self->expected = (long long)rseq;
+    free_slots(self, 0, rseq);
     STORE_REL(&self->words[W_TAIL], self->rpos);
     Py_RETURN_NONE;
 }

@@ -20,6 +20,8 @@ A ring is dropping or lossless, as its link's policy says (a header word set by 
 creator). Without room, a dropping ring's writer waits briefly, then drops the value
 (the reader counts the sequence gap); a lossless ring's writer waits up to its
 timeout, then raises RuntimeTimeout and sends nothing: the value is never dropped.
+A value the reader cannot decode (one that pickles but does not unpickle) is skipped
+and counted like a drop, on either kind: the records after it still go.
 
 Memory ordering. Every access to the header words goes through the C half,
 ``_ringcore.RingCore``: the writer stores a record, then publishes ``head`` with
@@ -35,6 +37,7 @@ caches where every Python operation costs microseconds.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import pickle
 import threading
@@ -66,6 +69,10 @@ WRITE_TIMEOUT = 0.1              # how long a writer waits for space before drop
 _SPIN_S = 100e-6                 # a lossless writer polls this long for space before sleeping
 _ALIGN = 64
 _LAYOUTS = 64                    # array record layouts a writer remembers
+UNDECODABLE_REPORT_S = 1.0       # a link's undecodable values are logged at most this often
+_UNDECODABLE = object()          # what _decode returns for a record it cannot decode
+
+log = logging.getLogger("pb3a.ring")
 
 
 class RingSize(NamedTuple):
@@ -146,6 +153,10 @@ class ShmRing:
         self._leases: deque[list[Any]] = deque()   # [start, end, released, ref] per lease
         self._lease_lock = threading.Lock()
         self._closed = False
+        self._undecodable = 0         # values the current drain could not decode ...
+        self._first_error = ""        # ... the first one's error ...
+        self._unreported = 0          # ... and those not logged yet (at most once a second)
+        self._report_at = 0.0
         # writer side: record layout of each array (dtype, shape) this link has carried
         self._layouts: dict[tuple[np.dtype, tuple[int, ...]], tuple[int, bytes, int, int]] = {}
 
@@ -228,24 +239,28 @@ class ShmRing:
         """Append values in order and publish them at once; returns how many fit.
 
         ``sent_at`` (monotonic) is when they were written, if not now: values that
-        came from another node keep their time for the reader's latency figure. On a
-        lossless ring ``timeout`` bounds the batch's waits in all; then the values
-        that fit are published and RuntimeTimeout says how many did not go."""
+        came from another node keep their time for the reader's latency figure.
+        ``timeout`` bounds the batch's waits for room in all, not per value (a stalled
+        reader holds its writer once). Then a dropping ring drops what does not fit
+        (gaps the reader counts); a lossless one publishes the values that fit, and
+        RuntimeTimeout says how many did not go."""
         if self.lossless:
             return self._write_lossless(values, timeout, sent_at)
         core = self.core
         now = time.monotonic() if sent_at is None else sent_at   # one time for the batch
+        deadline = None        # the batch waits ``timeout`` in all, not that per value
         written = 0
         for value in values:
             done = core.stage(value, now)      # ints and floats: all in C
             if done < 0:                       # (-1 also for an int beyond 64 bits)
-                done = self._stage(value, now, timeout)
-                if not done:
-                    self._skip()
-            elif not done:
-                done = self._wait_space(_ALIGN, timeout) and core.stage(value, now) > 0
-                if not done:
-                    self._skip()
+                done = self._stage(value, now, 0.0)
+            if not done and timeout > 0:
+                if deadline is None:
+                    deadline = time.monotonic() + timeout
+                left = deadline - time.monotonic()
+                done = left > 0 and self._stage_waiting(value, now, left)
+            if not done:
+                self._skip()
             written += bool(done)
         core.publish()
         return written
@@ -416,12 +431,54 @@ class ShmRing:
         """Decode up to ``limit`` values.
 
         Returns ``(values, sent_at, gaps)``: ``sent_at`` is when the newest value
-        was written (monotonic clock), ``gaps`` how many values the writer dropped.
+        was written (monotonic clock), ``gaps`` how many values the writer dropped,
+        plus those that could not be decoded here (skipped, and logged).
         """
-        return self.core.drain(limit, self._decode)
+        self._undecodable = 0
+        values, sent_at, gaps = self.core.drain(limit, self._decode)
+        if self._undecodable:
+            values = [value for value in values if value is not _UNDECODABLE]
+            gaps += self._undecodable
+            self._report_undecodable()
+        return values, sent_at, gaps
 
     def _decode(self, kind: int, offset: int, length: int, meta_len: int, start: int) -> Any:
-        """A record the C half does not decode itself (anything but int and float)."""
+        """A record the C half does not decode itself (anything but int and float). One
+        that cannot be decoded (say, a pickled exception whose ``__init__`` takes other
+        arguments) is skipped and counted: records keep their bounds, so the ones after
+        it still go, where failing the drain would stop the link at it for good."""
+        try:
+            return self._decode_record(kind, offset, length, meta_len, start)
+        except Exception as exc:
+            if kind == codec.SLOT:
+                self._free_unread_slot(offset, length, meta_len)
+            if not self._undecodable:
+                self._first_error = f"{type(exc).__name__}: {exc}"   # (text: holds no view)
+            self._undecodable += 1
+            return _UNDECODABLE
+
+    def _report_undecodable(self) -> None:
+        self._unreported += self._undecodable
+        now = time.monotonic()
+        if now < self._report_at:
+            return
+        log.error("link %s: %d value(s) could not be decoded by the reader and were "
+                  "dropped (counted in the input's drops), e.g. %s",
+                  self.label, self._unreported, self._first_error)
+        self._unreported = 0
+        self._report_at = now + UNDECODABLE_REPORT_S
+
+    def _free_unread_slot(self, offset: int, length: int, meta_len: int) -> None:
+        """The slot named by a SLOT record that could not be decoded is free again (no
+        view of it will free it), if the record holds a slot of the pool not in view."""
+        body = offset + _body(codec.SLOT, meta_len)
+        if body + 8 <= offset + length:
+            slot = int.from_bytes(self._data[body:body + 8], "little")
+            if slot < self.core.slots and slot not in self._slot_views:
+                self.core.free_slot(slot)
+
+    def _decode_record(self, kind: int, offset: int, length: int, meta_len: int,
+                       start: int) -> Any:
         data = self._data
         if kind == codec.PICKLE and not meta_len:
             return pickle.loads(data[offset + _REC_HEAD:offset + length])

@@ -60,6 +60,8 @@ class _Inbound:
     port: InputPort
     lock: threading.Lock = field(default_factory=threading.Lock)
     closed: bool = False
+    resume_at: float = 0.0       # its drain failed: the receiver leaves it alone until then
+    report_at: float = 0.0       # when its next failure may be logged
 
     def drain(self, limit: int = 1024) -> int:
         self.lock.acquire()
@@ -79,14 +81,29 @@ class _Inbound:
         """Whether the receiver should drain this ring now (look at it before sleeping)."""
         return True
 
+    def set_aside(self) -> None:
+        """Its drain raised (a record its writer broke, say): the receiver logs it (at most
+        once a second) and leaves the link alone for a while, so that it neither keeps
+        the other links waiting nor makes the receiver spin; then it tries again."""
+        now = time.monotonic()
+        self.resume_at = now + GUARD_TIMEOUT
+        if now >= self.report_at:
+            self.report_at = now + ERROR_REPORT_S
+            log.exception("receiver: cannot read link %s; tried again every %.1f s",
+                          self.ring.label, GUARD_TIMEOUT)
+
     def close(self) -> int:
-        """Deliver everything left in the ring (room in the input or not), then detach."""
+        """Deliver everything left in the ring (room in the input or not), then detach
+        (also when that fails)."""
         drained = 0
-        while count := _Inbound.drain(self):
-            drained += count
-        with self.lock:
-            self.closed = True
-            self.ring.close()
+        try:
+            drained += _Inbound.drain(self)
+            while self.ring.has_data():          # (a batch may hold no decodable value)
+                drained += _Inbound.drain(self)
+        finally:
+            with self.lock:
+                self.closed = True
+                self.ring.close()
         return drained
 
 
@@ -216,7 +233,10 @@ class Worker:
             self.actors[name].stop(timeout=1.0)
         self.pool.close(timeout=1.0)
         for link in list(self.inbound.values()):
-            link.close()
+            try:
+                link.close()
+            except Exception:                 # (closed all the same)
+                log.exception("cannot take the rest of link %s", link.ring.label)
         for _, _, ring, pull in self.outbound.values():
             if ring is not None:
                 ring.close()
@@ -303,6 +323,7 @@ class Worker:
         port.set_policy(Policy.parse(policy))
         shm_ring = ShmRing.attach(ring)
         shm_ring.resume_reader()   # a restarted reader continues where the last one stopped
+        shm_ring.label = key       # a value it cannot decode is logged naming its link
         if shm_ring.lossless:
             port._on_room = self._room_made
             self.inbound[key] = _LosslessInbound(shm_ring, port)
@@ -499,13 +520,25 @@ class Worker:
         # Drain every ring, run what became ready, then announce sleep and look once
         # more (the announcement and the look are the reader's half of the ring's
         # wake-up hand-shake) before sleeping on the doorbell.
+        # A link whose drain fails is set aside for a while, out of the sleep too (its
+        # data would wake the receiver at once); the others go on.
         gap = last = 0.0                   # time between the last two deliveries
         while not self._closing.is_set():
             try:
                 links, cores, lossless = self._receiving
                 count = 0
+                aside = False
                 for link in links:
-                    count += link.drain()
+                    if link.resume_at:
+                        if time.monotonic() < link.resume_at:
+                            aside = True
+                            continue
+                        link.resume_at = 0.0
+                    try:
+                        count += link.drain()
+                    except Exception:
+                        link.set_aside()
+                        aside = True
                 if count:
                     now = time.monotonic()
                     gap, last = now - last, now
@@ -513,8 +546,8 @@ class Worker:
                     self._run_ready()
                     if self._ready:               # a module has more to do: drain first
                         continue
-                if lossless:              # a full input's ring waits for a read
-                    links = [link for link in links if link.wanted()]
+                if lossless or aside:     # a full input's ring waits for a read
+                    links = [link for link in links if not link.resume_at and link.wanted()]
                     cores = [link.ring.core for link in links]
                 if gap < SPIN_S and self._spin(links):
                     continue
