@@ -117,7 +117,8 @@ def test_a_writer_stuck_on_a_lossless_link_shows_in_stats_while_it_waits(where: 
 
 
 def test_a_lossless_link_stays_lossless_across_migrations_and_a_swap() -> None:
-    n = 20_000
+    n = 60_000                 # enough that the four moves happen mid-stream even when a
+                               # loaded machine makes each take seconds (20,000 did not)
     system = System("lossless-moves")
     system.node("a")
     system.node("b")
