@@ -23,6 +23,7 @@ from sample_modules import (
     ArrayHolder,
     ArraySource,
     AsksInSetup,
+    Counter,
     Crasher,
     Faulty,
     FloatSource,
@@ -312,23 +313,13 @@ class ExitsOnce(Module):
             raise SystemExit("sys.exit() in a handler")
 
 
-class Counter(Module):
-    out = Output(int)
-    period = 0.01
-    n = 0
-
-    def step(self) -> None:
-        self.n += 1
-        self.out.write(self.n)
-
-
 def test_a_body_raising_what_is_not_an_exception_is_counted_and_runs_on() -> None:
     """SystemExit or CancelledError from a body is an error of that body, like any
     other: it must not end the thread that runs it (its step thread, the worker's
     receiver), which would stop the module, or a whole worker's inputs, silently."""
     system = System("base-exceptions")
     system.add("stepper", CancelledOnce)
-    system.add("src", Counter)
+    system.add("src", Counter, period=0.01)
     system.add("sink", ExitsOnce)
     system.link("src.out", "sink.x")
     with system.launch() as run:
@@ -450,7 +441,7 @@ def test_a_value_its_reader_cannot_decode_is_logged_counted_and_skipped(caplog) 
     caplog.set_level(logging.ERROR, logger="pb3a.ring")
     system = System("undecodable")
     system.add("rep", ReportsRefusal)
-    system.add("tick", Counter)
+    system.add("tick", Counter, period=0.01)
     system.add("sink", TwoInputs)
     system.link("rep.out", "sink.a")
     system.link("tick.out", "sink.b")

@@ -246,24 +246,7 @@ class ShmRing:
         RuntimeTimeout says how many did not go."""
         if self.lossless:
             return self._write_lossless(values, timeout, sent_at)
-        core = self.core
-        now = time.monotonic() if sent_at is None else sent_at   # one time for the batch
-        deadline = None        # the batch waits ``timeout`` in all, not that per value
-        written = 0
-        for value in values:
-            done = core.stage(value, now)      # ints and floats: all in C
-            if done < 0:                       # (-1 also for an int beyond 64 bits)
-                done = self._stage(value, now, 0.0)
-            if not done and timeout > 0:
-                if deadline is None:
-                    deadline = time.monotonic() + timeout
-                left = deadline - time.monotonic()
-                done = left > 0 and self._stage_waiting(value, now, left)
-            if not done:
-                self._skip()
-            written += bool(done)
-        core.publish()
-        return written
+        return self._fill(values, sent_at, timeout, drop=True)
 
     def _write_lossless(self, values: Sequence[Any], timeout: float,
                         sent_at: float | None) -> int:
@@ -278,13 +261,20 @@ class ShmRing:
         room; publish them and return how many went (never drops, never raises for
         want of room). A lossless ring's feeder that must not block (the bridge) offers
         with no timeout and keeps the rest for later."""
+        return self._fill(values, sent_at, timeout, drop=False)
+
+    def _fill(self, values: Sequence[Any], sent_at: float | None, timeout: float, *,
+              drop: bool) -> int:
+        """Stage values in order, waiting up to ``timeout`` in all (not per value) for
+        room; a value that finds none is skipped, a gap the reader counts (``drop``), or
+        ends the batch. Publish what went; return how many."""
         core = self.core
-        now = time.monotonic() if sent_at is None else sent_at
+        now = time.monotonic() if sent_at is None else sent_at   # one time for the batch
         deadline = None
         written = 0
         for value in values:
-            done = core.stage(value, now)
-            if done < 0:
+            done = core.stage(value, now)      # ints and floats: all in C
+            if done < 0:                       # (-1 also for an int beyond 64 bits)
                 done = self._stage(value, now, 0.0)
             if not done and timeout > 0:
                 if deadline is None:
@@ -292,8 +282,10 @@ class ShmRing:
                 left = deadline - time.monotonic()
                 done = left > 0 and self._stage_waiting(value, now, left)
             if not done:
-                break
-            written += 1
+                if not drop:
+                    break
+                self._skip()
+            written += bool(done)
         core.publish()
         return written
 
