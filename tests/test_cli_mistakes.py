@@ -3,6 +3,7 @@ exit status, never a traceback (a user's ordinary mistakes, walked one by one)."
 
 from __future__ import annotations
 
+import socket
 from pathlib import Path
 
 import pytest
@@ -83,3 +84,23 @@ def test_a_key_of_the_wrong_length_is_a_sentence(tmp_path, capsys, monkeypatch) 
         err = capsys.readouterr().err
         assert "the cluster key from $PB3A_KEY is 5 bytes; use at least 32" in err, (argv, err)
         assert "Traceback" not in err
+
+
+def test_a_daemon_refuses_an_address_it_cannot_listen_on_saying_why(capsys) -> None:
+    """A port in use is a sentence (not a traceback), a port beyond 65535 is not wrapped
+    round to another, and a host that is not this machine's is not replaced by every
+    interface under a banner naming the host: each exits 1 at once, nothing listens."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        mistakes = [(f"tcp://127.0.0.1:{port}", f"port {port} is in use"),
+                    (f"tcp://127.0.0.1:{port + 65536}", "is not an address to listen on"),
+                    ("tcp://192.0.2.1:0", "192.0.2.1 is not an address of this machine")]
+        for daemon in (["node", "start", "--name", "n"],
+                       ["modules", "serve", str(REPO / "examples")]):
+            for listen, said in mistakes:
+                assert main([*daemon, "--listen", listen]) == 1, (daemon, listen)
+                out, err = capsys.readouterr()
+                assert said in err and "Traceback" not in err, (daemon, listen, err)
+                assert out == ""                            # no banner: it never served

@@ -5,11 +5,15 @@ listens, serve until SIGINT or SIGTERM, then close it."""
 from __future__ import annotations
 
 import argparse
+import errno
 import signal
+import socket
 import sys
 import threading
 from collections.abc import Callable
 from typing import Any
+
+import zmq
 
 from pb3a.transport.addresses import bind_address
 from pb3a.transport.auth import ClusterKey, ClusterKeyError
@@ -19,8 +23,11 @@ def serve_until_signalled(command: str, listen: str,
                            start: Callable[[Any, str, int], tuple[Any, str]]) -> int:
     """Start a daemon on ``listen``, print where, and run until SIGINT or SIGTERM."""
     try:
-        daemon, banner = start(ClusterKey.load(), *bind_address(listen))
-    except (OSError, ValueError, ClusterKeyError) as exc:
+        host, port = bind_address(listen)
+        key = ClusterKey.load()
+        _check_bindable(listen, host, port)
+        daemon, banner = start(key, host, port)
+    except (OSError, ValueError, ClusterKeyError, zmq.ZMQError) as exc:
         print(f"{command}: {exc}", file=sys.stderr)
         return 1
     stop = threading.Event()
@@ -33,6 +40,35 @@ def serve_until_signalled(command: str, listen: str,
     finally:
         daemon.close()
     return 0
+
+
+def _check_bindable(listen: str, host: str, port: int) -> None:
+    """ValueError saying why a daemon cannot listen on ``host:port``: the host
+    is not one of this machine's addresses (the socket would otherwise bind every
+    interface, and the banner would name an address nobody reaches), or the port is
+    taken."""
+    try:
+        found = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except socket.gaierror:
+        raise ValueError(f"cannot listen on {listen}: {host!r} is not a host name this "
+                         "machine can resolve; give one of its addresses, or 0.0.0.0 for "
+                         "every interface") from None
+    family, kind, proto, _, sockaddr = found[0]
+    with socket.socket(family, kind, proto) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)    # (as ZeroMQ binds)
+        try:
+            probe.bind(sockaddr)
+        except OSError as exc:
+            if exc.errno == errno.EADDRNOTAVAIL:
+                raise ValueError(f"cannot listen on {listen}: {host} is not an address of "
+                                 "this machine; give one of its addresses (`ip -brief "
+                                 "address` lists them), or 0.0.0.0 for every interface"
+                                 ) from None
+            if exc.errno == errno.EADDRINUSE:
+                raise ValueError(f"cannot listen on {listen}: port {port} is in use "
+                              "(is this daemon running already?); stop what listens there "
+                              "(`ss -ltnp` shows it), or choose another port") from None
+            raise
 
 
 def register(commands: argparse._SubParsersAction) -> None:

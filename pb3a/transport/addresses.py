@@ -33,7 +33,7 @@ def bind_address(address: str) -> tuple[str, int]:
     """The host and port a server binds for ``"[tcp://][host]:[port]"``: by default
     the loopback interface and any free port."""
     host, _, port = address.removeprefix("tcp://").rpartition(":")
-    if (port and not port.isdigit()) or "://" in host:
+    if (port and not (port.isdigit() and int(port) <= 65535)) or "://" in host:
         raise ValueError(f"{address!r} is not an address to listen on: give tcp://HOST:PORT "
                          "(PORT 0: any free port)")
     return host or "127.0.0.1", int(port or 0)
