@@ -4,12 +4,20 @@ its launcher's authenticated address."""
 from __future__ import annotations
 
 import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
 
+import pytest
 from conftest import eventually
 from sample_modules import Counter, FastScale, Last, Relay, Scale
 
 from pb3a import System
-from pb3a.cli.main import main
+from pb3a.cli.main import INTERRUPTED, main
+
+REPO = Path(__file__).resolve().parent.parent
 
 
 def test_the_command_line_reads_and_changes_a_running_system(capsys) -> None:
@@ -95,3 +103,31 @@ def test_mistakes_on_the_command_line_get_a_sentence_and_exit_1(capsys) -> None:
             assert main(argv) == 1, argv
             err = capsys.readouterr().err
             assert said in err and "Traceback" not in err, (argv, err)
+
+
+@pytest.mark.timeout(90)
+def test_ctrl_c_ends_a_command_on_a_running_system_with_status_130() -> None:
+    """Ctrl-C on ``pb3a events ADDR --follow`` (as on any command acting through the
+    launcher) ends it with 130 and one line, not 0 as if it had done its work."""
+    system = System("cli-interrupted")
+    system.node("a")
+    system.node("b")
+    system.add("relay", Relay, node="a")
+    with system.launch() as run:
+        address = run.listen()
+        run.migrate("relay", to="b")                       # one event to follow
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "tests"), str(REPO)])}
+        follower = subprocess.Popen([sys.executable, "-m", "pb3a", "events", address,
+                                     "--follow"], stdout=subprocess.PIPE,
+                                    stderr=subprocess.PIPE, text=True, env=env)
+        try:
+            assert "module_moved" in follower.stdout.readline()    # connected, following
+            follower.send_signal(signal.SIGINT)
+            assert follower.wait(timeout=20) == INTERRUPTED
+            assert follower.stderr.read().strip() == "pb3a: interrupted"
+        finally:
+            if follower.poll() is None:
+                follower.kill()
+                follower.wait(5)
+            follower.stdout.close()
+            follower.stderr.close()

@@ -73,15 +73,14 @@ def register(commands: argparse._SubParsersAction) -> None:
 
 def _act(name: str, run: Callable[[Connection, argparse.Namespace], Any],
          args: argparse.Namespace) -> int:
-    """Connect, run one command, print its result; a sentence on any error (exit 1)."""
+    """Connect, run one command, print its result; a sentence on any error (exit 1).
+    A Ctrl-C (also the end of ``--follow``) goes on to ``main``: exit 130, one line."""
     try:
         with connect(_address(args.address)) as system:
             shown = run(system, args)
     except (PB3AError, ClusterKeyError, ValueError) as exc:
         print(f"pb3a {name}: {exc}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        return 0
     if shown is not None:
         text, data = shown
         print(json.dumps(plain(data), indent=2, default=repr) if args.json else text)
