@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -137,3 +138,26 @@ def test_stats_report_each_nodes_cpu_and_memory() -> None:
                 assert 0 < node.memory_available <= node.memory_total
                 assert node.memory_total == psutil.virtual_memory().total
         assert far.nodes()["a"].cpu is None          # health only: nothing was measured
+
+
+def test_a_call_without_a_timeout_waits_as_long_as_the_system_s_default(monkeypatch) -> None:
+    """A connection's call without ``timeout=`` waits the system's default (here longer
+    than the library's), as the launcher does: it does not give up first, saying nobody
+    answered, while the operation goes on there."""
+    monkeypatch.setattr("pb3a.launch.connection.DEFAULT_TIMEOUT", 0.5)  # the library's
+    monkeypatch.setattr("pb3a.launch.connection._MARGIN", 0.5)
+    held, release = threading.Event(), threading.Event()
+    with _system().launch(timeout=30.0) as run, pb3a.connect(run.listen()) as far:
+        def hold() -> None:
+            with run._launcher.lock.held("a long reconfiguration", 30.0):
+                held.set()
+                release.wait(30.0)
+        holder = threading.Thread(target=hold)
+        holder.start()
+        try:
+            assert held.wait(10.0)
+            threading.Timer(2.0, release.set).start()       # the lock comes back in 2 s
+            assert far.where("relay") == "a"                # waited for it, as told
+        finally:
+            release.set()
+            holder.join(10.0)

@@ -52,10 +52,13 @@ class Connection(SystemHandle):
             self.close()
             raise RuntimeFailure(f"cannot connect: {exc}") from None
         self.name: str = described["name"]
+        # what a call without ``timeout=`` waits there: the system's default, which its
+        # file or launch() may set longer than the library's
+        self.timeout: float = described.get("timeout", DEFAULT_TIMEOUT)
 
     def _request(self, op: str, args: dict[str, Any]) -> Any:
         wait = args.get("timeout")
-        deadline = (DEFAULT_TIMEOUT if wait is None else wait) + _MARGIN
+        deadline = (self.timeout if wait is None else wait) + _MARGIN
         return self._client.request(op, args, deadline)
 
     def close(self) -> None:

@@ -123,7 +123,8 @@ class Running(SystemHandle):
         agent on a remote node, a node telling what happened there (refused if its
         executor belongs to an earlier admission of the node: it was fenced)."""
         if op == "describe":
-            return {"name": self.name, "nodes": list(self.plan.nodes)}
+            return {"name": self.name, "nodes": list(self.plan.nodes),
+                    "timeout": self._operations.timeout}     # a connection's default wait
         if op in ("agent", "republished", "event", "checkpoint"):
             self._launcher.check_node_epoch(args["node"], args["node_epoch"])
         if op == "agent":                      # an agent on a remote node
