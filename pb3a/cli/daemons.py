@@ -23,8 +23,8 @@ def serve_until_signalled(command: str, listen: str,
                            start: Callable[[Any, str, int], tuple[Any, str]]) -> int:
     """Start a daemon on ``listen``, print where, and run until SIGINT or SIGTERM."""
     try:
-        host, port = bind_address(listen)
         key = ClusterKey.load()
+        host, port = bind_address(listen)
         _check_bindable(listen, host, port)
         daemon, banner = start(key, host, port)
     except (OSError, ValueError, ClusterKeyError, zmq.ZMQError) as exc:
