@@ -307,6 +307,23 @@ def test_add_link_and_remove_modules_with_the_words_of_pb3a_check(client, run) -
     assert client.delete("/api/modules/probe").status_code == 404
 
 
+def test_an_add_or_link_with_a_field_of_the_wrong_kind_is_a_400_and_changes_nothing(
+        client, run) -> None:
+    for node in (["a"], {"a": 1}, 5):
+        refused = client.post("/api/modules", json={"name": "probe", "node": node,
+                                                    "class": "sample_modules:Last"})
+        assert refused.status_code == 400 and "'node'" in refused.json()["error"], node
+    assert "probe" not in run.topology().modules
+    # "false" as a string is not false: the input's link is not replaced
+    for replace in ("false", 0, "no", [True]):
+        refused = client.post("/api/links", json={"src": "src.out", "dst": "map.x",
+                                                  "replace": replace})
+        assert refused.status_code == 400 and "'replace'" in refused.json()["error"], replace
+    assert set(run.topology().links) == {"src.out->scale.x", "scale.y->map.x"}
+    kept = client.post("/api/links", json={"src": "src.out", "dst": "map.x", "replace": False})
+    assert kept.status_code == 409 and "is fed by scale.y already" in kept.json()["error"]
+    assert set(run.topology().links) == {"src.out->scale.x", "scale.y->map.x"}
+
 def test_reload_drops_a_module_s_code_everywhere(client) -> None:
     assert client.post("/api/reload", json={"module": "sample_modules"}).json() == {
         "reloaded": "sample_modules"}
