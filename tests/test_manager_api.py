@@ -152,6 +152,24 @@ def test_the_token_in_the_first_url_becomes_a_cookie_and_leaves_the_address_bar(
     assert TestClient(client.app, follow_redirects=False).get("/?token=nope").status_code == 401
 
 
+def test_a_page_of_another_origin_cannot_use_the_cookie(client, run) -> None:
+    # the cookie is SameSite=Strict, but a page served by anything else on this host (any
+    # other port: the same site) still sends it along with a form or a no-cors fetch
+    browser = TestClient(client.app, follow_redirects=False)
+    assert browser.get(f"/?token={client.token}").status_code == 303
+    for origin in ("http://testserver:9999", "http://evil.example", "null"):
+        for method, path, body in (("POST", "/api/modules/scale/state", {"gain": 99.0}),
+                                   ("POST", "/api/modules/map/migrate", {"to": "a"}),
+                                   ("DELETE", "/api/modules/src", None)):
+            forged = browser.request(method, path, json=body, headers={"Origin": origin})
+            assert forged.status_code == 403, (origin, path, forged.text)
+            assert "origin" in forged.json()["error"]
+    assert run.state("scale")["gain"] == 2.0 and run.where("map") == "b"
+    assert "src" in run.topology().modules
+    own = browser.post("/api/modules/scale/state", json={"gain": 3.0},
+                       headers={"Origin": "http://testserver"})
+    assert own.status_code == 200 and run.state("scale")["gain"] == 3.0
+
 def test_a_websocket_needs_the_token_and_the_page_s_origin(client) -> None:
     from starlette.websockets import WebSocketDisconnect
 
