@@ -152,6 +152,24 @@ def test_the_token_in_the_first_url_becomes_a_cookie_and_leaves_the_address_bar(
     assert TestClient(client.app, follow_redirects=False).get("/?token=nope").status_code == 401
 
 
+def test_a_page_of_another_origin_cannot_use_the_cookie(client, run) -> None:
+    # the cookie is SameSite=Strict, but a page served by anything else on this host (any
+    # other port: the same site) still sends it along with a form or a no-cors fetch
+    browser = TestClient(client.app, follow_redirects=False)
+    assert browser.get(f"/?token={client.token}").status_code == 303
+    for origin in ("http://testserver:9999", "http://evil.example", "null"):
+        for method, path, body in (("POST", "/api/modules/scale/state", {"gain": 99.0}),
+                                   ("POST", "/api/modules/map/migrate", {"to": "a"}),
+                                   ("DELETE", "/api/modules/src", None)):
+            forged = browser.request(method, path, json=body, headers={"Origin": origin})
+            assert forged.status_code == 403, (origin, path, forged.text)
+            assert "origin" in forged.json()["error"]
+    assert run.state("scale")["gain"] == 2.0 and run.where("map") == "b"
+    assert "src" in run.topology().modules
+    own = browser.post("/api/modules/scale/state", json={"gain": 3.0},
+                       headers={"Origin": "http://testserver"})
+    assert own.status_code == 200 and run.state("scale")["gain"] == 3.0
+
 def test_a_websocket_needs_the_token_and_the_page_s_origin(client) -> None:
     from starlette.websockets import WebSocketDisconnect
 
@@ -306,6 +324,23 @@ def test_add_link_and_remove_modules_with_the_words_of_pb3a_check(client, run) -
     assert "probe" not in run.topology().modules
     assert client.delete("/api/modules/probe").status_code == 404
 
+
+def test_an_add_or_link_with_a_field_of_the_wrong_kind_is_a_400_and_changes_nothing(
+        client, run) -> None:
+    for node in (["a"], {"a": 1}, 5):
+        refused = client.post("/api/modules", json={"name": "probe", "node": node,
+                                                    "class": "sample_modules:Last"})
+        assert refused.status_code == 400 and "'node'" in refused.json()["error"], node
+    assert "probe" not in run.topology().modules
+    # "false" as a string is not false: the input's link is not replaced
+    for replace in ("false", 0, "no", [True]):
+        refused = client.post("/api/links", json={"src": "src.out", "dst": "map.x",
+                                                  "replace": replace})
+        assert refused.status_code == 400 and "'replace'" in refused.json()["error"], replace
+    assert set(run.topology().links) == {"src.out->scale.x", "scale.y->map.x"}
+    kept = client.post("/api/links", json={"src": "src.out", "dst": "map.x", "replace": False})
+    assert kept.status_code == 409 and "is fed by scale.y already" in kept.json()["error"]
+    assert set(run.topology().links) == {"src.out->scale.x", "scale.y->map.x"}
 
 def test_reload_drops_a_module_s_code_everywhere(client) -> None:
     assert client.post("/api/reload", json={"module": "sample_modules"}).json() == {

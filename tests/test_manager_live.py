@@ -3,6 +3,7 @@ the structure after a change, and the watched module's state."""
 
 from __future__ import annotations
 
+import asyncio
 import itertools
 import threading
 import time
@@ -12,10 +13,12 @@ import pytest
 
 pytest.importorskip("starlette", reason="the manager needs the 'ui' extra")
 
+from starlette.websockets import WebSocketDisconnect
 from test_manager_api import managed, manager_client
 
 from pb3a import Running
 from pb3a.manager.document import Document
+from pb3a.manager.live import Feed
 from pb3a.manager.session import Session
 
 pytestmark = pytest.mark.timeout(60)
@@ -118,3 +121,38 @@ def test_the_watched_module_s_state_comes_while_it_runs(run) -> None:
             if message["type"] == "state" and message["module"] == "ghost":
                 assert "no module 'ghost'" in message["error"]
                 break
+
+
+class _GoneBeforeHello:
+    """A page that closed while its hello was being gathered: every send fails as
+    Starlette's ``send`` fails once the peer has gone (uvicorn: WebSocketDisconnect)."""
+
+    def __init__(self) -> None:
+        self.sent: list[str] = []
+
+    async def accept(self) -> None:
+        pass
+
+    async def send_text(self, text: str) -> None:
+        self.sent.append(text)
+        raise WebSocketDisconnect(code=1006)
+
+    async def receive_text(self) -> str:
+        raise WebSocketDisconnect(code=1006)
+
+    async def close(self, code: int = 1000) -> None:
+        pass
+
+
+def test_a_page_that_leaves_before_its_hello_leaves_nothing_behind(run) -> None:
+    feed = Feed(Session(Document.empty(), run), refresh=0.1)
+    pages = [_GoneBeforeHello() for _ in range(3)]
+
+    async def serve_all() -> None:
+        for page in pages:
+            await asyncio.wait_for(feed.serve(page), timeout=20)    # returns, raises nothing
+
+    asyncio.run(serve_all())
+    assert all(len(page.sent) == 1 and '"hello"' in page.sent[0] for page in pages)
+    # no queue left to fill, nor stats gathered for a page that is not there
+    assert not feed._clients

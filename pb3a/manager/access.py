@@ -8,9 +8,11 @@ and the page's own requests carry it without script access. A token in the query
 of any other request is refused: it would end up in logs and histories.
 
 The ``Host`` header must name the address served (DNS rebinding: a page of another
-site whose name resolves to 127.0.0.1 sends its own host name), and a websocket's
-``Origin``, when a browser sends one, must be that address too (a websocket is not
-bound by the same-origin policy).
+site whose name resolves to 127.0.0.1 sends its own host name), and a request's or
+websocket's ``Origin``, when a browser sends one, must be that address too: a
+websocket is not bound by the same-origin policy, and a page served from another
+port of this host is the same *site*, so its form posts and no-cors fetches carry
+the SameSite=Strict cookie.
 """
 
 from __future__ import annotations
@@ -86,7 +88,7 @@ class Access:
 
 class AccessMiddleware:
     """Refuses, before any route runs, a request with the wrong ``Host`` (403), a
-    websocket with the wrong ``Origin`` (403), and one without the token (401);
+    request or websocket with the wrong ``Origin`` (403), and one without the token (401);
     turns ``GET /?token=TOKEN`` into the cookie and a redirect to ``/``."""
 
     def __init__(self, app: ASGIApp, access: Access) -> None:
@@ -106,9 +108,10 @@ class AccessMiddleware:
             await _refuse(scope, send, 403, f"this manager does not serve the host "
                           f"{headers.get('host')!r}: open the URL pb3a manager printed")
             return
-        if scope["type"] == "websocket" and not access.origin_allowed(headers.get("origin")):
-            await _refuse(scope, send, 403, f"websocket from origin {headers.get('origin')!r} "
-                          "refused: only the manager's own page may open it")
+        if not access.origin_allowed(headers.get("origin")):
+            what = "websocket" if scope["type"] == "websocket" else "request"
+            await _refuse(scope, send, 403, f"{what} from origin {headers.get('origin')!r} "
+                          "refused: only the manager's own page may send it")
             return
         if "token" in query:
             if path == "/" and scope["type"] == "http" and access.is_token(query["token"][0]):

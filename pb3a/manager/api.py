@@ -143,7 +143,10 @@ def routes(session: Session) -> list[Route]:
         body = await body_of(request)
         if not isinstance(body, dict) or not isinstance(body.get("system"), dict):
             raise Malformed("send {\"system\": {...the tables of the TOML as JSON...}}")
-        await call(document.replace, body["system"])
+        try:
+            await call(document.replace, body["system"])
+        except ValueError as exc:                # TOML cannot hold it: nothing changed
+            raise Malformed(str(exc)) from None
         return await call(document.to_json)
 
     async def open_document(request: Request) -> Any:

@@ -10,7 +10,10 @@ and compiled; a half-built system is kept, its problems listed.
 
 from __future__ import annotations
 
+import copy
+import json
 import threading
+import tomllib
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -88,11 +91,24 @@ class Document:
     # -- changing -----------------------------------------------------------------
     def replace(self, system: dict[str, Any]) -> None:
         """Make the document say ``system`` (the tables as JSON), keeping the comments and
-        layout of everything that did not change. ``null`` values leave a key out."""
+        layout of everything that did not change. ``null`` values leave a key out. What
+        TOML cannot hold (a ``null`` inside an array) is a ValueError, and then nothing
+        changes: the edit is made on a copy, which replaces the document only once its
+        text reads back as what it holds."""
         if not isinstance(system, dict):
             raise ValueError(f"'system' must be an object of TOML tables, got {system!r}")
         with self._lock:
-            _merge(self._doc, system, ())
+            draft = copy.deepcopy(self._doc)
+            try:
+                _merge(draft, system, ())
+                text = tomlkit.dumps(draft)
+                same = _same(tomllib.loads(text), draft.unwrap())
+            except (TOMLKitError, tomllib.TOMLDecodeError, TypeError, ValueError) as exc:
+                raise ValueError(f"TOML cannot hold this document: {exc}") from None
+            if not same:
+                raise ValueError("TOML cannot hold this document: written, it would not "
+                                 "read back as sent")
+            self._doc = draft
 
     def open_text(self, text: str, name: str) -> None:
         """Make the document the TOML ``text`` of a file called ``name`` (one the page
@@ -215,6 +231,13 @@ def _plain_item(value: Any) -> Any:
 def _matches(where: tuple[str, ...], patterns: tuple[tuple[str, ...], ...]) -> bool:
     return any(len(where) == len(pattern) and all(p in ("*", w) for p, w in zip(
         pattern, where, strict=True)) for pattern in patterns)
+
+
+def _same(read: Any, held: Any) -> bool:
+    """Whether two documents' values are the same (NaN equal to NaN)."""
+    def text(value: Any) -> str:
+        return json.dumps(value, sort_keys=True, default=str)
+    return text(read) == text(held)
 
 
 def _plain(item: Any) -> Any:

@@ -141,17 +141,22 @@ class Feed:
             at = await run_in_threadpool(self._last_event) if running else 0
             hello = await run_in_threadpool(structure, self.session)
         except PB3AError as exc:
-            await socket.send_text(json.dumps({"type": "error", **_error(exc)}))
-            await socket.close()
+            with contextlib.suppress(WebSocketDisconnect, RuntimeError):    # it went
+                await socket.send_text(json.dumps({"type": "error", **_error(exc)}))
+                await socket.close()
             return
         self._seen = self._seen or at
         self._clients.add(queue)
-        await socket.send_text(encode({"type": "hello", **hello}))
-        tasks = [asyncio.create_task(self._send(socket, queue, at)),
-                 asyncio.create_task(self._watch(queue, watched)),
-                 asyncio.create_task(_listen(socket, watched))]
+        tasks: list[asyncio.Task[None]] = []
         try:
+            # the page may have gone while its hello was gathered: its queue goes too
+            await socket.send_text(encode({"type": "hello", **hello}))
+            tasks = [asyncio.create_task(self._send(socket, queue, at)),
+                     asyncio.create_task(self._watch(queue, watched)),
+                     asyncio.create_task(_listen(socket, watched))]
             await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        except WebSocketDisconnect:
+            pass
         finally:
             self._clients.discard(queue)
             for task in tasks:

@@ -239,6 +239,8 @@ class Session:
         if period is not None and (not isinstance(period, (int, float))
                                    or isinstance(period, bool) or period < 0):
             raise Malformed(f"'period' must be a number of seconds >= 0, got {period!r}")
+        if node is not None and not isinstance(node, str):
+            raise Malformed(f"a new module's 'node' must be the name of a node, got {node!r}")
         topology = self.topology()
         if name in topology.modules:
             raise ConfigError([f"module {name}: a module of that name runs already"])
@@ -261,7 +263,9 @@ class Session:
                                                  for k in ("src", "dst")):
             raise Malformed("send {\"src\": \"module.output\", \"dst\": \"module.input\", "
                             "\"policy\"?: \"queue:8\", \"replace\"?: false}")
-        policy = body.get("policy")
+        policy, replace = body.get("policy"), body.get("replace")
+        if replace is not None and not isinstance(replace, bool):
+            raise Malformed(f"a link's 'replace' must be true or false, got {replace!r}")
         if policy is not None:
             try:
                 Policy.parse(policy)
@@ -272,7 +276,7 @@ class Session:
             module = end.rpartition(".")[0]
             if module not in topology.modules:
                 raise NotFound(f"link {body['src']} -> {body['dst']}: no module {module!r}")
-        act = self.handle.relink if body.get("replace") else self.handle.link
+        act = self.handle.relink if replace else self.handle.link
         act(body["src"], body["dst"], policy=policy, timeout=self.timeout)
         return self.system()
 
