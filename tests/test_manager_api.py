@@ -286,6 +286,8 @@ def test_swap_offers_the_classes_whose_ports_fit_and_refuses_the_others(client, 
     unknown = client.post("/api/modules/scale/swap", json={"class": "sample_modules:Nope"})
     assert unknown.status_code == 404
     assert client.post("/api/modules/scale/swap", json={"class": 3}).status_code == 400
+    module = client.post("/api/modules/scale/swap", json={"class": "os:path"}).json()
+    assert module["error"].startswith("'os:path' is a module, not a class"), module
     assert run.topology().modules["scale"].cls == "sample_modules:Scale"
     swapped = client.post("/api/modules/scale/swap", json={"class": "sample_modules:FastScale"})
     assert swapped.json() == {"kept": ["gain", "setups"]}

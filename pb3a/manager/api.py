@@ -41,7 +41,7 @@ def error_response(exc: BaseException) -> JSONResponse:
     for kind, status in STATUS:
         if isinstance(exc, kind):
             problems = list(getattr(exc, "problems", []) or [])
-            message = "; ".join(problems) if problems else str(exc).strip("'\"")
+            message = "; ".join(problems) if problems else str(exc)
             return JSONResponse({"error": message, "problems": problems}, status_code=status)
     log.exception("the manager failed on a request", exc_info=exc)
     return JSONResponse({"error": f"the manager failed: {type(exc).__name__}: {exc}",
