@@ -66,6 +66,32 @@ def test_a_forced_stop_kills_the_executor(node) -> None:
     assert controller.executors() == {}
 
 
+def test_an_executor_that_dies_as_it_starts_is_reported_at_once(node, monkeypatch) -> None:
+    controller, client = node
+    monkeypatch.setenv("PB3A_KEY", "too short")          # the executor cannot load its key
+    started = time.monotonic()
+    with pytest.raises(RuntimeFailure, match="the executor for 'broken' exited with status "
+                                             "1 as it started: node n1's log says why"):
+        client.call("start_executor", timeout=60, config="broken")
+    assert time.monotonic() - started < 15.0                  # not START_TIMEOUT (30 s)
+    assert controller.executors() == {}
+    monkeypatch.undo()
+    address = client.call("start_executor", timeout=60, config="broken")   # it may try again
+    assert controller.executors() == {"broken": address}
+
+
+def test_closing_reaps_an_executor_that_died_on_its_own() -> None:
+    controller = NodeController("n1", KEY, limits=Limits(max_cpu_percent=101.0))
+    try:
+        controller.start_executor("killed")
+        process = controller._executors["killed"][0]
+        process.kill()
+        process.join(5.0)
+    finally:
+        controller.close()
+    assert controller._executors == {}, "its entry and pipe kept"
+
+
 def test_work_is_refused_with_the_reason_when_resources_are_short() -> None:
     for limits, reason in ((Limits(max_cpu_percent=101.0, min_memory_bytes=1 << 60),
                             "of memory available, below"),

@@ -91,12 +91,19 @@ class NodeController:
                 args=(config, self.name, workers, cpus, host, child))
             start_without_main(process)
             child.close()
-            if not parent.poll(START_TIMEOUT):
+            try:            # (the pipe is readable at once, empty, if the executor died)
+                address = parent.recv() if parent.poll(START_TIMEOUT) else None
+            except EOFError:
+                address = None
+            if address is None:
+                process.join(1.0)           # (dead: its exit status says so)
                 process.kill()
                 process.join(5.0)
-                raise RuntimeError(f"the executor for {config!r} did not start within "
-                                   f"{START_TIMEOUT} s")
-            address = parent.recv()
+                parent.close()
+                why = (f"did not start within {START_TIMEOUT:g} s" if process.exitcode in
+                       (None, -9) else f"exited with status {process.exitcode} as it started")
+                raise RuntimeError(f"the executor for {config!r} {why}: node {self.name}'s "
+                                   "log says why")
             self._executors[config] = (process, parent, address)
             return address
 
@@ -146,8 +153,11 @@ class NodeController:
         return self._server.rejected
 
     def close(self) -> None:
-        """Stop every executor (gracefully), then the controller."""
-        for config in list(self.executors()):
+        """Stop every executor (gracefully), then the controller; one that died on its
+        own is reaped too, and the segments it left removed."""
+        with self._lock:
+            configs = list(self._executors)
+        for config in configs:
             self.stop_executor(config)
         self._sampling.set()
         self._server.close()
