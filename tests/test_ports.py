@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import eventually
 
 from pb3a import Input, Module, Output, RuntimeTimeout
 from pb3a.model.ports import WRITE_WAIT_S, Policy, WaitCounter
@@ -264,3 +265,37 @@ def test_a_write_that_times_out_is_sent_on_no_link_and_its_wait_is_counted() -> 
                                            "links": {"stuck": (1, 0.25)}}
     sensor.label.disconnect("stuck")
     assert sensor.label.wait_figures() == {"waits": 0, "wait_s": 0, "links": {}}
+
+
+class Emitter(Module):
+    out = Output(int)
+
+
+def test_cutting_a_lossless_link_inside_one_process_stops_a_write_waiting_on_it() -> None:
+    # wired as a worker wires a lossless link inside one process: the write waits for
+    # room in the input itself; cutting the link (relink, remove, a move) must not wait
+    # for the write's timeout (it did: `remove` of the reader timed out after 10 s)
+    emitter, reader, counter = Emitter(), Careful(), WaitCounter()
+    target, key = reader.x, "w.out->r.x"
+    emitter.out.connect(key, lambda value, timeout: target.put([value], timeout, key, counter),
+                        lambda values, timeout: target.put(values, timeout, key, counter),
+                        lossless=True, counter=counter)
+    emitter.out.write_many([1, 2])
+    failures: list[BaseException] = []
+
+    def write() -> None:
+        try:
+            emitter.out.write(3, timeout=30.0)
+        except RuntimeTimeout as exc:
+            failures.append(exc)
+    writer = threading.Thread(target=write, daemon=True)
+    writer.start()
+    eventually(lambda: counter.waits == 1, what="the write waiting for room")
+    start = time.monotonic()
+    assert emitter.out.disconnect(key)
+    assert time.monotonic() - start < 2.0
+    writer.join(5.0)
+    assert not writer.is_alive() and len(failures) == 1
+    assert "lossless link w.out -> r.x gave up: the link was cut" in str(failures[0])
+    assert target.read_all() == [1, 2] and emitter.out.written == 2   # 3 was not sent
+    assert counter.waits == 1 and counter.wait_s > 0
