@@ -91,3 +91,12 @@ def test_each_harness_gets_its_own_copy_of_the_state_it_is_given() -> None:
     first.step()
     assert state == {"trail": [7]} and second.state["trail"] == [7]
     assert first.written["out"] == [[7, 1]]
+
+
+def test_an_int_may_be_fed_to_a_float_input_as_an_int_output_may_feed_it() -> None:
+    # in the pipeline Ticker's Output(int) feeds Scale's Input(float): ints arrive there
+    harness = ModuleHarness(Scale, state={"gain": 2.0})
+    harness.feed("x", 3)
+    assert harness.written["y"] == [6.0]
+    with pytest.raises(TypeError, match="port 'x' carries float, got str"):
+        harness.feed("x", "3")
