@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import threading
 import time
 
@@ -299,3 +300,25 @@ def test_cutting_a_lossless_link_inside_one_process_stops_a_write_waiting_on_it(
     assert "lossless link w.out -> r.x gave up: the link was cut" in str(failures[0])
     assert target.read_all() == [1, 2] and emitter.out.written == 2   # 3 was not sent
     assert counter.waits == 1 and counter.wait_s > 0
+
+
+class Cells:
+    """A mutable default of a class of the module's own."""
+
+    def __init__(self) -> None:
+        self.seen: dict = {}
+
+
+class Keeper(Module):
+    recent = collections.deque(maxlen=3)
+    cells = Cells()
+    label = "kept"
+
+
+def test_every_mutable_default_is_copied_per_instance_not_only_lists_and_dicts() -> None:
+    a, b = Keeper(), Keeper()
+    a.recent.append(1)
+    a.cells.seen[(0, 0)] = 1
+    assert list(b.recent) == [] and b.cells.seen == {} and b.recent.maxlen == 3
+    assert list(Keeper.recent) == [] and Keeper.cells.seen == {}
+    assert a.get_state()["label"] is Keeper.label
