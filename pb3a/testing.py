@@ -3,9 +3,11 @@
 A port-based module is meant to be testable on its own: its ports are its whole
 interface. The harness binds a module's ports, sets its state, calls ``setup``, and
 lets a test feed inputs (each fed value runs ``on_input`` at once, as a dispatch
-would) and call ``step``; everything the module writes is kept per output. An
-``Agent`` gets the ``runtime`` the test passes (any object with the methods the
-agent calls, e.g. a recording fake).
+would) and call ``step``; everything the module writes is kept per output. Values
+cross the harness as they cross a link: the module gets a copy of what it is fed
+(arrays read-only), each written value is kept as it was when written, and the
+module gets its own copy of ``state``. An ``Agent`` gets the ``runtime`` the test
+passes (any object with the methods the agent calls, e.g. a recording fake).
 
     harness = ModuleHarness(Scale, state={"gain": 2.0})
     harness.feed("x", 1.5)
@@ -14,10 +16,12 @@ agent calls, e.g. a recording fake).
 
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 from pb3a.model.module import Module
-from pb3a.model.ports import InputPort, OutputPort
+from pb3a.model.ports import _NUMERIC_PROMOTION, InputPort, OutputPort
+from pb3a.transport.codec import local_copy
 
 
 class ModuleHarness:
@@ -26,15 +30,15 @@ class ModuleHarness:
     def __init__(self, cls: type[Module], state: dict[str, Any] | None = None, *,
                  runtime: Any = None, name: str = "") -> None:
         self.module = cls()
-        if state:
-            self.module.set_state(state)
+        if state:       # its own copy, as a launched module's comes through a pipe
+            self.module.set_state(copy.deepcopy(state))
         ports = self.module._pb3a_bind_ports(name or cls.__name__)
         self.inputs = {n: p for n, p in ports.items() if isinstance(p, InputPort)}
         self.written: dict[str, list[Any]] = {}
         for port_name, port in ports.items():
             if isinstance(port, OutputPort):
                 self.written[port_name] = kept = []
-                port.connect("harness", kept.append)
+                port.connect("harness", lambda value, kept=kept: kept.append(local_copy(value)))
         if runtime is not None:
             self.module.__dict__["_pb3a_runtime"] = runtime
         self.module.setup()
@@ -46,8 +50,9 @@ class ModuleHarness:
         except KeyError:
             raise KeyError(f"{type(self.module).__name__} has no input {port!r}; its "
                            f"inputs: {', '.join(self.inputs) or '(none)'}") from None
-        target.spec.check(value)
-        target.deliver(value)
+        if not isinstance(value, _NUMERIC_PROMOTION.get(target.spec.type, ())):
+            target.spec.check(value)     # (an int output may feed a float input: as a link)
+        target.deliver(local_copy(value))        # what a link delivers: a copy, read-only
         if type(self.module).is_event_driven():
             self.module.on_input(target)
 

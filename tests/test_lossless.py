@@ -4,6 +4,8 @@ reordered, also across migrations and swaps; dropping links behave as before."""
 
 from __future__ import annotations
 
+import time
+
 import pytest
 from conftest import eventually
 from sample_modules import Burst, Collector, Pusher, Sipper, SipperV2
@@ -102,6 +104,24 @@ def test_a_write_to_a_reader_that_never_reads_times_out_naming_the_link(where: s
     assert state["out_of_order"] == 0 and state["duplicates"] == 0
     assert state["last"] == state["received"]
 
+
+
+def test_removing_a_stuck_reader_inside_one_process_ends_its_writer_s_wait_at_once() -> None:
+    # the writer waits for room in the reader's input itself (no ring): cutting the link
+    # must end that wait as it ends one on a ring, not leave the removal to time out
+    system = _system("lossless-cut-memory", 0, sip=0, timeout=60.0, workers=1)
+    with system.launch() as run:
+        eventually(lambda: run.stats().links[KEY].waits > 0, timeout=30,
+                   what="the writer waiting for room")
+        start = time.monotonic()
+        run.remove("dst", timeout=5.0)
+        took = time.monotonic() - start
+        writer = eventually(lambda: (m := run.stats().modules["src"]).errors and m,
+                            what="the write that gave up")
+        assert "dst" not in run.stats().modules
+    assert took < 3.0
+    assert writer.last_error.startswith("RuntimeTimeout: write on lossless link src.out -> "
+                                        "dst.x gave up: the link was cut")
 
 @pytest.mark.parametrize("where", ["shm", "memory", "zmq"])
 def test_a_writer_stuck_on_a_lossless_link_shows_in_stats_while_it_waits(where: str) -> None:

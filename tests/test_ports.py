@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import collections
 import threading
 import time
 
 import numpy as np
 import pytest
+from conftest import eventually
 
 from pb3a import Input, Module, Output, RuntimeTimeout
 from pb3a.model.ports import WRITE_WAIT_S, Policy, WaitCounter
@@ -264,3 +266,59 @@ def test_a_write_that_times_out_is_sent_on_no_link_and_its_wait_is_counted() -> 
                                            "links": {"stuck": (1, 0.25)}}
     sensor.label.disconnect("stuck")
     assert sensor.label.wait_figures() == {"waits": 0, "wait_s": 0, "links": {}}
+
+
+class Emitter(Module):
+    out = Output(int)
+
+
+def test_cutting_a_lossless_link_inside_one_process_stops_a_write_waiting_on_it() -> None:
+    # wired as a worker wires a lossless link inside one process: the write waits for
+    # room in the input itself; cutting the link (relink, remove, a move) must not wait
+    # for the write's timeout (it did: `remove` of the reader timed out after 10 s)
+    emitter, reader, counter = Emitter(), Careful(), WaitCounter()
+    target, key = reader.x, "w.out->r.x"
+    emitter.out.connect(key, lambda value, timeout: target.put([value], timeout, key, counter),
+                        lambda values, timeout: target.put(values, timeout, key, counter),
+                        lossless=True, counter=counter)
+    emitter.out.write_many([1, 2])
+    failures: list[BaseException] = []
+
+    def write() -> None:
+        try:
+            emitter.out.write(3, timeout=30.0)
+        except RuntimeTimeout as exc:
+            failures.append(exc)
+    writer = threading.Thread(target=write, daemon=True)
+    writer.start()
+    eventually(lambda: counter.waits == 1, what="the write waiting for room")
+    start = time.monotonic()
+    assert emitter.out.disconnect(key)
+    assert time.monotonic() - start < 2.0
+    writer.join(5.0)
+    assert not writer.is_alive() and len(failures) == 1
+    assert "lossless link w.out -> r.x gave up: the link was cut" in str(failures[0])
+    assert target.read_all() == [1, 2] and emitter.out.written == 2   # 3 was not sent
+    assert counter.waits == 1 and counter.wait_s > 0
+
+
+class Cells:
+    """A mutable default of a class of the module's own."""
+
+    def __init__(self) -> None:
+        self.seen: dict = {}
+
+
+class Keeper(Module):
+    recent = collections.deque(maxlen=3)
+    cells = Cells()
+    label = "kept"
+
+
+def test_every_mutable_default_is_copied_per_instance_not_only_lists_and_dicts() -> None:
+    a, b = Keeper(), Keeper()
+    a.recent.append(1)
+    a.cells.seen[(0, 0)] = 1
+    assert list(b.recent) == [] and b.cells.seen == {} and b.recent.maxlen == 3
+    assert list(Keeper.recent) == [] and Keeper.cells.seen == {}
+    assert a.get_state()["label"] is Keeper.label

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from examples.pipeline import Scale, Ticker
-from pb3a import Agent, Input, InputPort
+from pb3a import Agent, Input, InputPort, Module, Output
 from pb3a.testing import ModuleHarness
 
 
@@ -49,3 +50,53 @@ def test_an_agent_calls_the_runtime_it_is_given() -> None:
 
     ModuleHarness(Asker, runtime=Runtime()).feed("x", 1.0)
     assert calls == [("worker", "b", False)]
+
+
+class Doubler(Module):
+    x = Input(np.ndarray)
+    y = Output(np.ndarray)
+
+    def on_input(self, port: InputPort) -> None:
+        values = port.read()
+        values *= 2                  # a value that came over a link is read-only
+        self.y.write(values)
+
+
+class Trail(Module):
+    out = Output(list)
+    period = 0.01
+    trail: list = []
+
+    def step(self) -> None:
+        self.trail.append(len(self.trail))
+        self.out.write(self.trail)   # the same list each time, as it is now
+
+
+def test_values_cross_the_harness_as_they_cross_a_link() -> None:
+    # a launched module gets a read-only copy of what it is fed, and its readers get
+    # each value as it was when written; the harness must not pass what a system refuses
+    fed = np.ones(3)
+    harness = ModuleHarness(Doubler)
+    with pytest.raises(ValueError, match="read-only"):
+        harness.feed("x", fed)
+    assert list(fed) == [1.0, 1.0, 1.0] and harness.written["y"] == []
+    trail = ModuleHarness(Trail)
+    trail.step(2)
+    assert trail.written["out"] == [[0], [0, 1]]
+
+
+def test_each_harness_gets_its_own_copy_of_the_state_it_is_given() -> None:
+    state = {"trail": [7]}
+    first, second = ModuleHarness(Trail, state=state), ModuleHarness(Trail, state=state)
+    first.step()
+    assert state == {"trail": [7]} and second.state["trail"] == [7]
+    assert first.written["out"] == [[7, 1]]
+
+
+def test_an_int_may_be_fed_to_a_float_input_as_an_int_output_may_feed_it() -> None:
+    # in the pipeline Ticker's Output(int) feeds Scale's Input(float): ints arrive there
+    harness = ModuleHarness(Scale, state={"gain": 2.0})
+    harness.feed("x", 3)
+    assert harness.written["y"] == [6.0]
+    with pytest.raises(TypeError, match="port 'x' carries float, got str"):
+        harness.feed("x", "3")

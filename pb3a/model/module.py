@@ -8,11 +8,10 @@ The runtime calls every hook under the module's lock.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import types
 from typing import Any, ClassVar
-
-import numpy as np
 
 from pb3a.model.ports import Input, InputPort, Output, OutputPort, _Port
 
@@ -20,6 +19,8 @@ RESTART_POLICIES = ("never", "fresh", "last-state")
 
 # Attributes the runtime reads as configuration, never as state.
 _FRAMEWORK_NAMES = frozenset({"period", "restart", "runtime", "displays"})
+# State defaults that cannot change, shared as they are (everything else is copied).
+_ATOMS = frozenset({int, float, complex, bool, str, bytes, type(None), frozenset, range})
 _NOT_STATE = (_Port, types.FunctionType, classmethod, staticmethod, property, type,
               types.ModuleType, types.MethodType, types.BuiltinFunctionType)
 
@@ -56,13 +57,16 @@ class Module:
         cls.outputs = outputs
 
     def __init__(self) -> None:
-        # Mutable class defaults (lists, dicts, arrays) become per-instance copies,
-        # so that two instances never share state through their class.
+        # Mutable class defaults (lists, dicts, arrays, deques, objects of the module's
+        # own classes ...) become per-instance copies, so that two instances never share
+        # state through their class: all but the immutable atoms are deep-copied.
         for name in type(self).state_names():
             if name not in self.__dict__:
                 value = getattr(type(self), name)
-                if isinstance(value, (list, dict, set, bytearray, np.ndarray)):
-                    self.__dict__[name] = copy.deepcopy(value)
+                if type(value) not in _ATOMS:
+                    # (a value deepcopy refuses, a lock say, stays shared, as it was)
+                    with contextlib.suppress(TypeError, copy.Error):
+                        self.__dict__[name] = copy.deepcopy(value)
 
     # -- lifecycle hooks (override as needed) ------------------------------
     def setup(self) -> None:

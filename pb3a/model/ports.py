@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pb3a import latencies
-from pb3a.errors import link_stuck
+from pb3a.errors import RuntimeTimeout, link_stuck
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterable, Sequence
@@ -304,9 +304,11 @@ class InputPort:
             counter: WaitCounter | None = None) -> None:
         """Deliver values into a ``lossless`` queue, waiting for room whenever it is full
         (at most ``timeout`` seconds in all; ``counter`` counts the wait). Raises
-        RuntimeTimeout (naming ``link``) when the reader made no room in time; the values
-        not in yet are not delivered. For a writer in this process: it waits without
-        holding the reader's module lock, so the reader can read and wake it."""
+        RuntimeTimeout (naming ``link``) when the reader made no room in time, or at once
+        when the link is cut meanwhile (``counter.cancel()``, as ``OutputPort.disconnect``
+        calls it); the values not in yet are not delivered. For a writer in this process:
+        it waits without holding the reader's module lock, so the reader can read and wake
+        it."""
         waited, done, total = 0.0, 0, len(values)
         try:
             while done < total:
@@ -317,9 +319,13 @@ class InputPort:
                             counter.begin()
                         start = time.monotonic()
                         deadline = start + timeout - waited
+                        if counter is not None:
+                            counter.waiting_on = self      # (before it looks at cancelled)
                         try:
                             while room <= 0:
                                 left = deadline - time.monotonic()
+                                if counter is not None and counter.cancelled:
+                                    raise link_cut(link, total - done)
                                 if left <= 0:
                                     raise link_stuck(link, timeout, total - done)
                                 self._room_wanted = True
@@ -541,15 +547,34 @@ class OutputPort:
         return list(self._sinks)
 
 
+def link_cut(link: str, unsent: int) -> RuntimeTimeout:
+    """The error of a write that waited for room on a lossless link when it was cut."""
+    what = "the value was" if unsent == 1 else f"{unsent} values were"
+    return RuntimeTimeout(f"write on lossless link {link.replace('->', ' -> ')} gave up: the "
+                          f"link was cut while the write waited for room ({what} not sent)")
+
+
 class WaitCounter:
     """How many writes on a link waited for room, counted as each wait begins (so that
-    a writer stuck now shows), and how long in all those that ended waited."""
+    a writer stuck now shows), and how long in all those that ended waited. For a
+    lossless link inside one process (``InputPort.put``), ``cancel()`` cuts the link: a
+    write waiting for room on it gives up at once, as one waiting on a ring does."""
 
-    __slots__ = ("wait_s", "waits")
+    __slots__ = ("cancelled", "wait_s", "waiting_on", "waits")
 
     def __init__(self) -> None:
         self.waits = 0
         self.wait_s = 0.0
+        self.cancelled = False
+        self.waiting_on: InputPort | None = None    # the input a write last waited on
+
+    def cancel(self) -> None:
+        """The link is being cut: a write waiting for room on it gives up now."""
+        self.cancelled = True
+        port = self.waiting_on
+        if port is not None:
+            with port._lock:
+                port._room.notify_all()
 
     def begin(self) -> None:
         self.waits += 1
