@@ -98,7 +98,8 @@ class Launcher:
         logging.getLogger().addHandler(self.logbook)
         self._callback = callback
         # A node started here is reached where the remote nodes reach the launcher.
-        here = "127.0.0.1" if callback is None else callback.removeprefix("tcp://").rpartition(":")[0]
+        here = ("127.0.0.1" if callback is None
+                else callback.removeprefix("tcp://").rpartition(":")[0])
         for name, node in self.plan.nodes.items():
             if node.address is None:
                 executor = Executor(name, workers=node.workers, cpus=node.cpus,
