@@ -12,6 +12,7 @@ from conftest import eventually
 from sample_modules import Spinner
 
 from pb3a import ConfigError, Environment, Input, InputPort, Module, System
+from pb3a.testing import ModuleHarness
 
 # alone: it loads the CPUs or measures against them (see the Makefile's test target)
 pytestmark = pytest.mark.serial
@@ -146,3 +147,24 @@ def test_the_env_module_tells_the_system_s_own_load_from_outside_load() -> None:
     # all of node a's CPU goes to its own module, then to a process outside the system
     assert spinning["own"] > 60 and spinning["outside"] < 30, spinning
     assert burnt["outside"] > 60 and burnt["own"] < 20, burnt
+
+
+def test_the_env_module_tells_each_move_and_loss_once_however_many_came_before() -> None:
+    """It is given the latest moves and losses, numbered: one that comes when as many
+    old ones have been dropped (the event log keeps the last 10,000) is still told."""
+    def move(seq: int) -> dict:
+        return {"seq": seq, "module": f"m{seq}", "source": "a", "destination": "b"}
+
+    harness = ModuleHarness(Environment, state={"moves": [move(1), move(2)],
+                                                "losses": [{"seq": 3, "node": "c"}]})
+    try:
+        harness.step()
+        assert harness.written["module_moved"] == [] == harness.written["node_lost"]
+        harness.module.set_state({"moves": [move(2), move(4)],       # as many as before
+                                  "losses": [{"seq": 3, "node": "c"}, {"seq": 5, "node": "d"}]})
+        harness.step(2)
+        assert harness.written["module_moved"] == [
+            {"module": "m4", "source": "a", "destination": "b"}]
+        assert harness.written["node_lost"] == ["d"]
+    finally:
+        harness.close()

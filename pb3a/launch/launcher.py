@@ -54,6 +54,7 @@ log = logging.getLogger("pb3a.launcher")
 
 WATCH_S = 0.1           # how often the watchdog looks at the nodes' heartbeats
 ENV_S = 1.0             # how often it updates the env modules, merges logs
+ENV_TOLD = 256          # the latest moves (and losses) the env modules are given each time
 REJOIN_S = 1.0          # how often it asks a lost node's controller whether it is back
 PLACE_TIMEOUT = 0.5     # a controller's answer about its load and admission
 STOP_TIMEOUT = 5.0      # a module's teardown when it is removed
@@ -571,11 +572,13 @@ class Launcher:
     def update_env(self) -> None:
         """Tell every node's env module (as its state) the health of every node and its
         round-trip time to each, the node's worker processes (its own load) and the
-        moves made so far."""
+        latest moves and losses, each with its event's number (it tells each once)."""
         events = self.events.since(0)
-        moves = [{"module": event.subject, **event.detail} for event in events
-                 if event.kind in ("module_moved", "module_failed_over")]
-        losses = [event.subject for event in events if event.kind == "node_lost"]
+        moves = [{"seq": event.seq, "module": event.subject, **event.detail}
+                 for event in events
+                 if event.kind in ("module_moved", "module_failed_over")][-ENV_TOLD:]
+        losses = [{"seq": event.seq, "node": event.subject} for event in events
+                  if event.kind == "node_lost"][-ENV_TOLD:]
         for name, node in list(self.nodes.items()):
             env = env_name(name)
             if env not in self.specs or not self.health[name]["up"] or self._silent(name):

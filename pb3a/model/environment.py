@@ -50,16 +50,17 @@ class Environment(Module):
     node_lost = Output(str)              # a lost node's name (once)
     module_moved = Output(dict)          # module, source, destination, pause_s (once)
     period = 1.0
-    # set by the launcher: every node's health; this node's worker processes; the moves
-    # and the nodes lost so far (each told once, also one lost and back between samples)
+    # set by the launcher: every node's health; this node's worker processes; the latest
+    # moves and nodes lost, each with the sequence number of its event, so each is told
+    # once (also a node lost and back between two samples) however many came before
     health: dict = {}                    # node -> {"up", "rtt"}
     own_pids: list = []
-    moves: list = []
-    losses: list = []
+    moves: list = []                     # [{"seq", "module", "source", "destination", ...}]
+    losses: list = []                    # [{"seq", "node"}]
 
     def setup(self) -> None:
-        self._losses_told = len(self.losses)  # so are the losses
-        self._moves_told = len(self.moves)   # moves before this start are history
+        self._told = max((told["seq"] for told in (*self.moves, *self.losses)),
+                         default=0)     # what came before this start is history
         self._cpus = sorted(os.sched_getaffinity(0))   # the node's, if it is pinned
         self._processes: dict[int, psutil.Process] = {}
         self._cpu_s: dict[int, float] = {}      # worker pid -> its CPU seconds, last sample
@@ -84,12 +85,14 @@ class Environment(Module):
         self.load.write(np.asarray(psutil.getloadavg(), dtype=np.float64))
         if self.health:
             self.nodes.write(dict(self.health))
-        for node in self.losses[self._losses_told:]:
-            self.node_lost.write(node)
-        self._losses_told = len(self.losses)
-        for move in self.moves[self._moves_told:]:
-            self.module_moved.write(dict(move))
-        self._moves_told = len(self.moves)
+        told = self._told
+        for loss in self.losses:
+            if loss["seq"] > told:
+                self.node_lost.write(loss["node"])
+        for move in self.moves:
+            if move["seq"] > told:
+                self.module_moved.write({k: v for k, v in move.items() if k != "seq"})
+        self._told = max((t["seq"] for t in (*self.moves, *self.losses)), default=told)
 
     def _own_cpu(self) -> float:
         """CPU seconds this system's workers on this node used since the last sample (a
