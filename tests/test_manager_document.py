@@ -160,6 +160,9 @@ def test_a_file_opened_from_the_page_is_checked_then_becomes_the_document(
         assert client.put("/api/document", json={"system": edited}).json()["problems"] == []
         unsaved = client.post("/api/document/save")
         assert unsaved.status_code == 400 and "give the path" in unsaved.json()["error"]
+        nameless = client.post("/api/document/save", json={"path": " "})
+        assert nameless.status_code == 400, nameless.json()
+        assert nameless.json()["error"] == "'path' must be a file name, got ' '"
         saved = tmp_path / "saved.toml"
         assert client.post("/api/document/save", json={"path": str(saved)}).status_code == 200
         assert saved.read_text() == OPENED

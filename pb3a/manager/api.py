@@ -175,7 +175,7 @@ def routes(session: Session) -> list[Route]:
         raw = await request.body()
         body = await body_of(request) if raw else {}
         path = body.get("path") if isinstance(body, dict) else None
-        if path is not None and not isinstance(path, str):
+        if path is not None and not (isinstance(path, str) and path.strip()):
             raise Malformed(f"'path' must be a file name, got {path!r}")
         try:
             written = await call(_save, document, path)
@@ -216,4 +216,5 @@ def _save(document: Document, path: str | None) -> Any:
     try:
         return document.save(path)
     except OSError as exc:
-        raise Malformed(f"cannot write {path or document.path}: {exc.strerror or exc}") from None
+        where = path if path is not None else document.path
+        raise Malformed(f"cannot write {where}: {exc.strerror or exc}") from None
