@@ -20,7 +20,7 @@ import copy
 from typing import Any
 
 from pb3a.model.module import Module
-from pb3a.model.ports import _NUMERIC_PROMOTION, InputPort, OutputPort
+from pb3a.model.ports import InputPort, OutputPort
 from pb3a.transport.codec import local_copy
 
 
@@ -50,8 +50,7 @@ class ModuleHarness:
         except KeyError:
             raise KeyError(f"{type(self.module).__name__} has no input {port!r}; its "
                            f"inputs: {', '.join(self.inputs) or '(none)'}") from None
-        if not isinstance(value, _NUMERIC_PROMOTION.get(target.spec.type, ())):
-            target.spec.check(value)     # (an int output may feed a float input: as a link)
+        target.spec.check_fed(value)             # (an int may feed a float input)
         target.deliver(local_copy(value))        # what a link delivers: a copy, read-only
         if type(self.module).is_event_driven():
             self.module.on_input(target)

@@ -66,8 +66,9 @@ def _check_bindable(listen: str, host: str, port: int) -> None:
                                  ) from None
             if exc.errno == errno.EADDRINUSE:
                 raise ValueError(f"cannot listen on {listen}: port {port} is in use "
-                              "(is this daemon running already?); stop what listens there "
-                              "(`ss -ltnp` shows it), or choose another port") from None
+                                 "(is this daemon running already?); stop what listens "
+                                 "there (`ss -ltnp` shows it), or choose another port"
+                                 ) from None
             raise
 
 

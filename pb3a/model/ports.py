@@ -134,6 +134,12 @@ class Input(_Port):
         super().__init__(type_, shape=shape, dtype=dtype)
         self.policy = Policy.parse(policy)
 
+    def check_fed(self, value: Any) -> None:
+        """``check``, as for a value some output that may feed this input wrote: an int
+        on a float input passes (the promotion ``accepts`` allows links)."""
+        if not isinstance(value, _NUMERIC_PROMOTION.get(self.type, ())):
+            self.check(value)
+
     def accepts(self, output: Output) -> str | None:
         """Why ``output`` cannot feed this input, or None when it can."""
         promoted = _NUMERIC_PROMOTION.get(self.type, ())

@@ -591,7 +591,7 @@ class Executor:
         try:
             handle.send(None, "answer", answer)
         except (OSError, ValueError):
-            pass                                   # the worker is gone
+            return                                 # the worker is gone
         except Exception as exc:                   # the result cannot be pickled
             with contextlib.suppress(OSError, ValueError):
                 handle.send(None, "answer", {"id": request["id"], "ok": False, "result": (
