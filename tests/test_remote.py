@@ -5,11 +5,14 @@ from __future__ import annotations
 
 import os
 import signal
+from typing import Any
 
+import pytest
 from conftest import eventually
 from sample_modules import ArrayReuser, ArraySink, ArraySource, Burst, Collector, Counter
 
 from pb3a import System
+from pb3a.node.executor import Executor
 
 
 def _two_nodes(name: str) -> System:
@@ -76,6 +79,36 @@ def test_an_output_crosses_once_per_node_however_many_inputs_read_it_there() -> 
     assert followed == {"src.out": ["src.out->b1.x", "src.out->b2.x"]}
     assert transports == {"src.out->b1.x": "zmq", "src.out->b2.x": "zmq",
                           "src.out->a1.x": "shm"}
+
+
+def test_links_across_nodes_are_wired_in_one_request_per_node_and_step(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    calls: list[tuple[str, str, int]] = []
+
+    def counting(step: str) -> Any:
+        wrapped = getattr(Executor, step)
+
+        def counted(node: Executor, links: list) -> Any:
+            calls.append((step, node.node, len(links)))
+            return wrapped(node, links)
+        return counted
+    for step in ("open_inbound", "publish", "follow"):
+        monkeypatch.setattr(Executor, step, counting(step))
+    system = _two_nodes("remote-batch")
+    for i in range(6):                        # six links each way, packed in two workers
+        for here, there in (("a", "b"), ("b", "a")):
+            system.add(f"{here}{i}", Counter, node=here, period=0.01, group=f"w{here}")
+            system.add(f"{here}{i}_reader", Collector, node=there, group=f"w{there}")
+            system.link(f"{here}{i}.out", f"{here}{i}_reader.x")
+    with system.launch() as run:
+        for i in range(6):
+            for here in "ab":
+                eventually(lambda r=f"{here}{i}_reader": run.state(r)["received"] > 5,
+                           what=f"values at {here}{i}_reader")
+        transports = {link.transport for link in run.stats().links.values()}
+    assert transports == {"zmq"}
+    assert sorted(calls) == sorted((step, node, 6) for step in ("open_inbound", "publish",
+                                                                "follow") for node in "ab")
 
 
 def test_links_across_nodes_can_be_added_and_removed_while_running() -> None:

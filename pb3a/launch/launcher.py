@@ -48,7 +48,7 @@ if TYPE_CHECKING:
     from collections.abc import Iterator
 
     from pb3a.config.plan import FlatLink, FlatModule, Plan
-    from pb3a.node.protocol import Node
+    from pb3a.node.protocol import Endpoint, Node
 
 log = logging.getLogger("pb3a.launcher")
 
@@ -223,47 +223,56 @@ class Launcher:
 
     def attach(self, *links: FlatLink) -> None:
         """Wire known links where their ends run now: shared memory or in memory inside
-        a node, one request to the node for all of its own; across nodes, the reader's
-        ring first, then the writer publishes, then the reader follows (so nothing
-        published is missed)."""
-        for node, inside in self._by_node(links).items():
+        a node, one request to the node for all of its own; across nodes, the readers'
+        rings first, then the writers publish, then the readers follow (so nothing
+        published is missed), one request to a node for each of the three steps."""
+        for node, inside in self._by_node(links, "src", remote=False).items():
             self.nodes[node].connect(inside)
-        for link in links:
-            if self.remote(link):
-                reader, writer = self.node_of(link.dst), self.node_of(link.src)
-                reader.open_inbound(link, ring_size(self.specs[link.src].cls,
-                                                    link.src_port, link.policy))
-                reader.follow(link, writer.publish(link))
+        readers = self._by_node(links, "dst", remote=True)
+        for node, inbound in readers.items():
+            self.nodes[node].open_inbound([
+                (link, ring_size(self.specs[link.src].cls, link.src_port, link.policy))
+                for link in inbound])
+        endpoints: dict[str, Endpoint] = {}
+        for node, outbound in self._by_node(links, "src", remote=True).items():
+            endpoints.update(zip([link.key for link in outbound],
+                                 self.nodes[node].publish(outbound), strict=True))
+        for node, inbound in readers.items():
+            self.nodes[node].follow([(link, endpoints[link.key]) for link in inbound])
 
     def detach(self, *links: FlatLink) -> None:
         """Unwire links (they stay known): each writer stops first, then its reader
         takes in everything still on the way; one request to a node for all the links
-        inside it."""
-        for node, inside in self._by_node(links).items():
+        inside it, and one for each step of those that cross to another."""
+        for node, inside in self._by_node(links, "src", remote=False).items():
             self.nodes[node].detach(inside)
-        for link in links:
-            if self.remote(link):
-                reached = self.node_of(link.src).unpublish(link)
-                self.node_of(link.dst).close_inbound(link, reached)
+        reached: dict[str, int] = {}
+        for node, outbound in self._by_node(links, "src", remote=True).items():
+            reached.update(zip([link.key for link in outbound],
+                               self.nodes[node].unpublish(outbound), strict=True))
+        for node, inbound in self._by_node(links, "dst", remote=True).items():
+            self.nodes[node].close_inbound([(link, reached[link.key]) for link in inbound])
 
-    def _by_node(self, links: tuple[FlatLink, ...]) -> dict[str, list[FlatLink]]:
-        """The links with both ends on one node, by node."""
-        inside: dict[str, list[FlatLink]] = {}
+    def _by_node(self, links: tuple[FlatLink, ...], end: str,
+                 *, remote: bool) -> dict[str, list[FlatLink]]:
+        """The links that cross nodes (``remote``) or stay inside one, by the node of
+        their ``end`` (``"src"`` or ``"dst"``)."""
+        found: dict[str, list[FlatLink]] = {}
         for link in links:
-            if not self.remote(link):
-                inside.setdefault(self.specs[link.src].node, []).append(link)
-        return inside
+            if self.remote(link) == remote:
+                found.setdefault(self.specs[getattr(link, end)].node, []).append(link)
+        return found
 
     def disconnect(self, key: str) -> None:
         """Unwire a link and forget it."""
         self.detach(self.links[key])
         del self.links[key]
 
-    def republished(self, link: FlatLink, endpoint: tuple[str, str, bytes]) -> None:
+    def republished(self, link: FlatLink, endpoint: Endpoint) -> None:
         """A restarted writer publishes ``link`` anew: its reader follows the new sender."""
         with self.lock.held(f"follow the restarted writer of {link.key}"):
             if self.links.get(link.key) == link and link.dst in self.specs:
-                self.node_of(link.dst).follow(link, endpoint)
+                self.node_of(link.dst).follow([(link, endpoint)])
 
     # -- figures ----------------------------------------------------------------------
     def stats(self) -> SystemStats:
@@ -518,11 +527,11 @@ class Launcher:
         """Unwire the surviving half of a link whose other end was on a lost node; what
         its reader knows it never got is counted on the link."""
         if link.src in gone and link.dst not in gone:
-            self.lost_values[link.key] += self.node_of(link.dst).close_inbound(link)
+            self.lost_values[link.key] += self.node_of(link.dst).close_inbound([(link, 0)])[0]
         elif link.dst in gone and link.src not in gone:
             writer = self.node_of(link.src)
             self.lost_values[link.key] += writer.unacknowledged(link)
-            writer.unpublish(link)
+            writer.unpublish([link])
 
     def _rejoin(self, name: str) -> None:
         """Admit lost node ``name`` again if its controller answers: the fenced executor

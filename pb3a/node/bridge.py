@@ -78,18 +78,23 @@ class Bridge:
             lossless = self._lossless(topic)
         self._follower.set_lossless(topic, lossless)
 
-    def follow(self, topic: str, data: str, control: str, incarnation: bytes,
+    def follow(self, senders: list[tuple[str, str, str, bytes]],
                timeout: float = READY_TIMEOUT) -> None:
-        """Receive ``topic`` from this sender incarnation (a new one after the writer
-        restarted or moved); returns once nothing it writes from now on can be missed.
-        A topic already followed from that sender is left as it is."""
-        if self._senders.get(topic) == incarnation:
-            return
-        self._senders[topic] = incarnation
-        self._follower.follow(topic, data, control, incarnation=incarnation)
-        if not self._follower.wait_ready(topic, timeout):
-            raise RuntimeTimeout(f"no hand-shake with the sender of {topic} at {data} "
-                                 f"within {timeout} s")
+        """Receive each ``(topic, data address, control address, sender incarnation)``
+        (a new incarnation after the writer restarted or moved); returns once nothing
+        they write from now on can be missed. The hand-shakes run side by side, all
+        within ``timeout``. A topic already followed from that sender is left as it is."""
+        started = []
+        for topic, data, control, incarnation in senders:
+            if self._senders.get(topic) != incarnation:
+                self._senders[topic] = incarnation
+                self._follower.follow(topic, data, control, incarnation=incarnation)
+                started.append((topic, data))
+        deadline = time.monotonic() + timeout
+        for topic, data in started:
+            if not self._follower.wait_ready(topic, max(0.0, deadline - time.monotonic())):
+                raise RuntimeTimeout(f"no hand-shake with the sender of {topic} at {data} "
+                                     f"within {timeout} s")
 
     def close(self, link: str, reached: int = 0, timeout: float = READY_TIMEOUT) -> int:
         """Stop feeding ``link`` once the values before sequence number ``reached``

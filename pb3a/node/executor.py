@@ -31,7 +31,7 @@ from pb3a.config.plan import FlatLink, FlatModule
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
-from pb3a.node.bridge import Bridge
+from pb3a.node.bridge import READY_TIMEOUT, Bridge
 from pb3a.node.protocol import Endpoint
 from pb3a.node.resources import ResourceMeter
 from pb3a.node.restarts import RestartBudget
@@ -402,10 +402,6 @@ class Executor:
         for link in links:
             self._close_ring(link)
 
-    def _unlink_in(self, link: FlatLink) -> None:
-        self._side_by_side([self._unlink_request(link, link.dst, "unlink_in")])
-        self._close_ring(link)
-
     def _unlink_request(self, link: FlatLink, module: str, op: str) -> _Request | None:
         """``op`` for ``link`` to the worker of one of its ends (none if it is gone)."""
         record = self.modules.get(module)
@@ -418,23 +414,31 @@ class Executor:
         if ring is not None:
             ring.close()
 
-    def _side_by_side(self, requests: list[_Request | None]) -> None:
+    def _side_by_side(self, requests: list[_Request | None]) -> list[Any]:
         """Send every request (None: nothing to do), then wait for every answer, all
-        within one ``REQUEST_TIMEOUT``; the first error, once all have answered or the
-        time is up. A worker takes its requests in order."""
-        sent = [(request, self.workers.submit(request.worker, request.op, _fd=request.fd,
+        within one ``REQUEST_TIMEOUT``; the answers in order (None for None), or the
+        first error once all have answered or the time is up. A worker takes its
+        requests in order."""
+        sent = [None if request is None else
+                (request, self.workers.submit(request.worker, request.op, _fd=request.fd,
                                               **request.args))
-                for request in requests if request is not None]
+                for request in requests]
         deadline = time.monotonic() + REQUEST_TIMEOUT
+        answers: list[Any] = []
         failure: BaseException | None = None
-        for request, future in sent:
+        for pending in sent:
+            answers.append(None)
+            if pending is None:
+                continue
+            request, future = pending
             try:
-                self.workers.result(future, request.op, request.worker,
-                                    max(0.0, deadline - time.monotonic()))
+                answers[-1] = self.workers.result(future, request.op, request.worker,
+                                                  max(0.0, deadline - time.monotonic()))
             except (RuntimeFailure, RuntimeTimeout) as exc:
                 failure = failure or exc
         if failure is not None:
             raise failure
+        return answers
 
     def _ring(self, key: str, size: RingSize | None) -> ShmRing:
         ring = self.rings.get(key)
@@ -450,26 +454,30 @@ class Executor:
         bound), before a migration that will need it pauses anything."""
         self.call(self.modules[name].worker, "ready_to_publish", **self._publishing())
 
-    def publish(self, link: FlatLink) -> Endpoint:
-        """The writing half: publish the output (once per output, whoever reads it);
-        returns the endpoint (data address, control address, sender incarnation)."""
-        self.outbound[link.key] = link
-        data, control, incarnation = self.call(
-            self.modules[link.src].worker, "publish_out", key=link.key, src=link.src,
-            src_port=link.src_port, **self._publishing())
-        return data, control, incarnation
+    def publish(self, links: list[FlatLink]) -> list[Endpoint]:
+        """The writing half: publish each link's output (once per output, whoever reads
+        it), the workers asked side by side; the endpoints (data address, control
+        address, sender incarnation)."""
+        for link in links:
+            self.outbound[link.key] = link
+        answers = self._side_by_side([_Request(
+            self.modules[link.src].worker, "publish_out",
+            {"key": link.key, "src": link.src, "src_port": link.src_port,
+             **self._publishing()}) for link in links])
+        return [(data, control, incarnation) for data, control, incarnation in answers]
 
     def _publishing(self) -> dict[str, Any]:
         """What a worker publishes with: the cluster key, this node's address, the epoch."""
         return {"secret": self.key.secret, "host": self.host, "epoch": self.epoch}
 
-    def unpublish(self, link: FlatLink) -> int:
-        """Stop publishing for ``link``; the sequence number the sender reached."""
-        self.outbound.pop(link.key, None)
-        src = self.modules.get(link.src)
-        if src is None or not self._alive(src.worker):
-            return 0
-        return self.call(src.worker, "unpublish_out", key=link.key)
+    def unpublish(self, links: list[FlatLink]) -> list[int]:
+        """Stop publishing for each link; the sequence number its sender reached (0 if
+        its worker is gone)."""
+        for link in links:
+            self.outbound.pop(link.key, None)
+        answers = self._side_by_side([self._unlink_request(link, link.src, "unpublish_out")
+                                      for link in links])
+        return [reached or 0 for reached in answers]
 
     def unacknowledged(self, link: FlatLink) -> int:
         """How many values of ``link``'s output a follower has not acknowledged."""
@@ -478,26 +486,40 @@ class Executor:
             return 0
         return self.call(src.worker, "unacknowledged_out", key=link.key)
 
-    def open_inbound(self, link: FlatLink, size: RingSize | None) -> None:
-        """The reading half: a ring into the reader's worker, which the bridge fills
-        (``size`` None: the link's ring exists already)."""
-        self.inbound[link.key] = link
-        dst = self.modules[link.dst]
-        ring = self._ring(link.key, size)
-        self.call(dst.worker, "link_in", key=link.key, dst=link.dst, dst_port=link.dst_port,
-                  ring=ring.name, policy=str(link.policy))
-        self.bridge.open(link.key, _topic(link), ring.name, self.workers[dst.worker].bell)
+    def open_inbound(self, links: list[tuple[FlatLink, RingSize | None]]) -> None:
+        """The reading halves: each link's ring (of ``size``; None: the link's ring
+        exists already) attached in its reader's worker, the workers asked side by side,
+        then fed by the bridge."""
+        rings = {}
+        for link, size in links:
+            self.inbound[link.key] = link
+            rings[link.key] = self._ring(link.key, size)
+        self._side_by_side([_Request(self.modules[link.dst].worker, "link_in", {
+            "key": link.key, "dst": link.dst, "dst_port": link.dst_port,
+            "ring": rings[link.key].name, "policy": str(link.policy)}) for link, _ in links])
+        for link, _ in links:
+            self.bridge.open(link.key, _topic(link), rings[link.key].name,
+                             self.workers[self.modules[link.dst].worker].bell)
 
-    def follow(self, link: FlatLink, endpoint: Endpoint) -> None:
-        """Receive ``link``'s output from the sender at ``endpoint`` (see ``publish``)."""
-        self.bridge.follow(_topic(link), *endpoint)
+    def follow(self, links: list[tuple[FlatLink, Endpoint]]) -> None:
+        """Receive each link's output from the sender at its endpoint (see ``publish``)."""
+        self.bridge.follow([(_topic(link), *endpoint) for link, endpoint in links])
 
-    def close_inbound(self, link: FlatLink, reached: int = 0) -> int:
-        """Stop receiving ``link`` once the values before ``reached`` are in; how many
-        values its sender announced that never came."""
-        self.inbound.pop(link.key, None)
-        missing = self.bridge.close(link.key, reached)
-        self._unlink_in(link)
+    def close_inbound(self, links: list[tuple[FlatLink, int]]) -> list[int]:
+        """Stop receiving each link once the values before the sequence number given
+        are in (all within one ``READY_TIMEOUT``), then detach their rings from the
+        readers side by side; per link, how many values its sender announced that
+        never came."""
+        deadline = time.monotonic() + READY_TIMEOUT
+        missing = []
+        for link, reached in links:
+            self.inbound.pop(link.key, None)
+            missing.append(self.bridge.close(link.key, reached,
+                                             max(0.0, deadline - time.monotonic())))
+        self._side_by_side([self._unlink_request(link, link.dst, "unlink_in")
+                            for link, _ in links])
+        for link, _ in links:
+            self._close_ring(link)
         return missing
 
     # -- figures ---------------------------------------------------------------
@@ -733,14 +755,13 @@ class Executor:
                             if link.dst in revived and self.modules[link.src].status != "failed"])
         self._side_by_side([self._writer_request(link) for link in links
                             if link.src in revived and self.modules[link.dst].status != "failed"])
-        for link in list(self.inbound.values()):
-            if link.dst in revived:
-                self.open_inbound(link, None)          # the ring is kept: no size needed
-        for link in list(self.outbound.values()):
-            if link.src in revived:
-                endpoint = self.publish(link)
-                if self.republished is not None:
-                    self.republished(link, endpoint)
+        # (a remote link's ring is kept: no size needed)
+        self.open_inbound([(link, None) for link in self.inbound.values()
+                           if link.dst in revived])
+        republishing = [link for link in self.outbound.values() if link.src in revived]
+        for link, endpoint in zip(republishing, self.publish(republishing), strict=True):
+            if self.republished is not None:
+                self.republished(link, endpoint)
 
     def _fail(self, name: str, code: int | None, reason: str) -> None:
         record = self.modules[name]

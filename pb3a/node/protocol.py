@@ -90,29 +90,31 @@ class Node(Protocol):
         """Unwire links: the writers stop, then the readers take in what is on the way;
         in one request however many they are."""
 
-    # -- remote links, one half on each node
+    # -- remote links, one half on each node; each call takes any number of links
     def ready_to_publish(self, name: str) -> None:
         """Bind module ``name``'s publishing sockets now, not when a link first needs them."""
 
-    def publish(self, link: FlatLink) -> Endpoint:
-        """The writing half: publish the link's output; the endpoint to follow."""
+    def publish(self, links: list[FlatLink]) -> list[Endpoint]:
+        """The writing half: publish each link's output; the endpoints to follow."""
 
-    def unpublish(self, link: FlatLink) -> int:
-        """Stop publishing for ``link``; the sequence number its sender reached."""
+    def unpublish(self, links: list[FlatLink]) -> list[int]:
+        """Stop publishing for each link; the sequence number its sender reached."""
 
     def unacknowledged(self, link: FlatLink) -> int:
         """How many values of ``link``'s output a follower has not acknowledged (when
         the reader's node is lost: what it never confirmed)."""
 
-    def open_inbound(self, link: FlatLink, size: RingSize | None) -> None:
-        """The reading half: a ring into the reader's worker, filled by the bridge."""
+    def open_inbound(self, links: list[tuple[FlatLink, RingSize | None]]) -> None:
+        """The reading half: a ring of the size given (None: the one kept) into each
+        link's reader, which the bridge fills."""
 
-    def follow(self, link: FlatLink, endpoint: Endpoint) -> None:
-        """Receive the link's output from the sender at ``endpoint``."""
+    def follow(self, links: list[tuple[FlatLink, Endpoint]]) -> None:
+        """Receive each link's output from the sender at its endpoint."""
 
-    def close_inbound(self, link: FlatLink, reached: int = 0) -> int:
-        """Stop receiving ``link`` once the values before ``reached`` are in; how many
-        values its sender announced that never came (its node was lost)."""
+    def close_inbound(self, links: list[tuple[FlatLink, int]]) -> list[int]:
+        """Stop receiving each link once the values before the sequence number given are
+        in; per link, how many values its sender announced that never came (its node
+        was lost)."""
 
     # -- figures and the end
     def report(self) -> NodeReport:

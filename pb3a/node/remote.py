@@ -178,23 +178,23 @@ class RemoteNode:
     def ready_to_publish(self, name: str) -> None:
         self._forward("ready_to_publish", name)
 
-    def publish(self, link: FlatLink) -> Endpoint:
-        return self._forward("publish", link)
+    def publish(self, links: list[FlatLink]) -> list[Endpoint]:
+        return self._forward("publish", links)
 
-    def unpublish(self, link: FlatLink) -> int:
-        return self._forward("unpublish", link)
+    def unpublish(self, links: list[FlatLink]) -> list[int]:
+        return self._forward("unpublish", links)
 
     def unacknowledged(self, link: FlatLink) -> int:
         return self._forward("unacknowledged", link)
 
-    def open_inbound(self, link: FlatLink, size: RingSize | None) -> None:
-        self._forward("open_inbound", link, size)
+    def open_inbound(self, links: list[tuple[FlatLink, RingSize | None]]) -> None:
+        self._forward("open_inbound", links)
 
-    def follow(self, link: FlatLink, endpoint: Endpoint) -> None:
-        self._forward("follow", link, endpoint)
+    def follow(self, links: list[tuple[FlatLink, Endpoint]]) -> None:
+        self._forward("follow", links)
 
-    def close_inbound(self, link: FlatLink, reached: int = 0) -> int:
-        return self._forward("close_inbound", link, reached)
+    def close_inbound(self, links: list[tuple[FlatLink, int]]) -> list[int]:
+        return self._forward("close_inbound", links)
 
     def report(self) -> NodeReport:
         return self._forward("report")
