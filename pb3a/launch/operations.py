@@ -127,14 +127,15 @@ class Operations:
         threading.Thread(target=move, name=f"pb3a-migrate-{name}", daemon=True).start()
         return job
 
-    def migration(self, id: int, *, timeout: float = 0.0) -> tuple[str, Any]:
+    def migration(self, id: int, *, timeout: float | None = 0.0) -> tuple[str, Any]:
         """How background migration ``id`` went: ``("running", None)``, ``("done",
-        report)`` or ``("failed", message)``, waiting up to ``timeout`` for it to end."""
+        report)`` or ``("failed", message)``, waiting up to ``timeout`` for it to end
+        (None: the system's default)."""
         entry = self._jobs.get(id)
         if entry is None:
             raise ValueError(f"no migration {id} (only the last {KEEP_JOBS} are kept)")
         done, outcome = entry
-        done.wait(timeout)
+        done.wait(self._call_timeout(timeout))
         status, value = outcome             # (set before ``done``: never half written)
         return status, value
 
@@ -360,12 +361,12 @@ class Operations:
         with self._held("stats", timeout):
             return self.launcher.stats()
 
-    def events_since(self, since: int = 0, *, timeout: float = 0.0) -> list[Event]:
-        return self.events.since(since, timeout)
+    def events_since(self, since: int = 0, *, timeout: float | None = 0.0) -> list[Event]:
+        return self.events.since(since, self._call_timeout(timeout))
 
     def logs(self, since: int = 0, *, module: str | None = None,
-             timeout: float = 0.0) -> list[LogEntry]:
-        return self.launcher.logbook.since(since, timeout, module)
+             timeout: float | None = 0.0) -> list[LogEntry]:
+        return self.launcher.logbook.since(since, self._call_timeout(timeout), module)
 
     # -- requests from outside --------------------------------------------------------
     def apply(self, op: str, args: dict[str, Any], allowed: frozenset[str] = PUBLIC) -> Any:
