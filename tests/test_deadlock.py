@@ -8,7 +8,7 @@ import threading
 import time
 
 import pytest
-from sample_modules import Busybody, Locator, Scale
+from sample_modules import Busybody, Locator, Scale, SlowState
 
 import pb3a
 from pb3a import RuntimeTimeout, System
@@ -116,3 +116,29 @@ def test_events_and_logs_without_a_timeout_wait_the_system_s_default() -> None:
             with pytest.raises(TypeError, match="timeout"):
                 pool.since(0, None)
 
+
+def test_one_deadline_covers_the_wait_for_the_lock_and_the_module_s_answer() -> None:
+    """An operation given ``timeout`` T returns or raises within about T: the wait for the
+    configuration lock and the wait for the module's answer share it (the call got the
+    whole T again once it had the lock, so it took nearly 2 T)."""
+    system = System("one-deadline")
+    system.add("slow", SlowState, state={"slow_s": 3.0})       # its answer takes 3 s
+    with system.launch() as run:
+        held, release = threading.Event(), threading.Event()
+
+        def hold() -> None:
+            with run._launcher.lock.held("a long reconfiguration", 10.0):
+                held.set()
+                release.wait(1.2)                      # most of the state call's 1.5 s
+        holder = threading.Thread(target=hold)
+        holder.start()
+        try:
+            assert held.wait(10.0)
+            started = time.monotonic()
+            with pytest.raises(RuntimeTimeout, match="get_state"):
+                run.state("slow", timeout=1.5)
+            took = time.monotonic() - started
+        finally:
+            release.set()
+            holder.join(10.0)
+    assert 1.2 <= took < 2.1, took
