@@ -314,12 +314,13 @@ class InputPort:
         when the link is cut meanwhile (``counter.cancel()``, as ``OutputPort.disconnect``
         calls it); the values not in yet are not delivered. For a writer in this process:
         it waits without holding the reader's module lock, so the reader can read and wake
-        it."""
+        it. While the writer is being paused (``counter.let_through``) they go in, room or
+        not."""
         waited, done, total = 0.0, 0, len(values)
         try:
             while done < total:
                 with self._lock:
-                    room = self.policy.size - len(self._values)
+                    room = self._room_for(total - done, counter)
                     if room <= 0:
                         if not waited and counter is not None:
                             counter.begin()
@@ -336,7 +337,7 @@ class InputPort:
                                     raise link_stuck(link, timeout, total - done)
                                 self._room_wanted = True
                                 self._room.wait(left)
-                                room = self.policy.size - len(self._values)
+                                room = self._room_for(total - done, counter)
                         finally:
                             waited += time.monotonic() - start
                 chunk = values[done:done + room]
@@ -345,6 +346,13 @@ class InputPort:
         finally:
             if waited and counter is not None:
                 counter.wait_s += waited
+
+    def _room_for(self, want: int, counter: WaitCounter | None) -> int:
+        """How many values ``put`` may deliver now (under the lock): the queue's room, or
+        all ``want`` while its writer is let through."""
+        if counter is not None and counter.through:
+            return want
+        return self.policy.size - len(self._values)
 
     def _made_room(self) -> None:
         """A read made room in a full lossless queue: wake its feeders (under the lock)."""
@@ -556,6 +564,14 @@ class OutputPort:
         """Keys of the links this output feeds."""
         return list(self._sinks)
 
+    def let_through(self, on: bool) -> None:
+        """While ``on``, writes on this output's lossless links inside its process take no
+        heed of room: they go into the input, which holds more than its size for a
+        while (see ``WaitCounter.let_through``)."""
+        for counter in self._counters.values():
+            if isinstance(counter, WaitCounter):
+                counter.let_through(on)
+
 
 def _send_waiting(sinks: tuple[tuple[str, Callable[[Any, float], Any]], ...], payload: Any,
                   timeout: float) -> None:
@@ -590,19 +606,36 @@ class WaitCounter:
     """How many writes on a link waited for room, counted as each wait begins (so that
     a writer stuck now shows), and how long in all those that ended waited. For a
     lossless link inside one process (``InputPort.put``), ``cancel()`` cuts the link: a
-    write waiting for room on it gives up at once, as one waiting on a ring does."""
+    write waiting for room on it gives up at once, as one waiting on a ring does; and
+    ``let_through`` lets writes in without room while the writer is being paused."""
 
-    __slots__ = ("cancelled", "wait_s", "waiting_on", "waits")
+    __slots__ = ("cancelled", "through", "wait_s", "waiting_on", "waits")
 
     def __init__(self) -> None:
         self.waits = 0
         self.wait_s = 0.0
         self.cancelled = False
+        self.through: list[None] = []   # one per pause of the writer under way (append
+                                        # and pop are atomic: pauses may overlap)
         self.waiting_on: InputPort | None = None    # the input a write last waited on
 
     def cancel(self) -> None:
         """The link is being cut: a write waiting for room on it gives up now."""
         self.cancelled = True
+        self._wake()
+
+    def let_through(self, on: bool) -> None:
+        """A pause of the writer begins (``on``) or ends. A pause waits for the writer's
+        call, which may be a write waiting for a reader in the same process, and that
+        reader may be slow, or paused next (a move): while the pause waits, writes go in
+        room or not, so the call ends and nothing is lost (as a closing ring's flush)."""
+        if on:
+            self.through.append(None)
+        else:
+            self.through.pop()
+        self._wake()
+
+    def _wake(self) -> None:
         port = self.waiting_on
         if port is not None:
             with port._lock:
