@@ -43,6 +43,15 @@ class RuntimeFailure(PB3AError, RuntimeError):
     """A worker or node could not carry out a request; the message says why."""
 
 
+def bounded_wait(timeout: float | None, what: str) -> float:
+    """``timeout`` checked to be seconds, for a wait that must end: None (which a
+    ``Condition`` takes for "forever") is refused with ``TypeError`` naming ``what``."""
+    if timeout is None:
+        raise TypeError(f"{what}: timeout must be seconds to wait (0 for none), not None: "
+                        "every wait has a deadline")
+    return timeout
+
+
 def link_stuck(link: str, waited: float, unsent: int = 1) -> RuntimeTimeout:
     """The error of a write on a ``lossless`` link that found no room within its timeout.
 

@@ -16,6 +16,8 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
+from pb3a.errors import bounded_wait
+
 KINDS = ("module_added", "module_removed", "module_moved", "module_swapped",
          "module_restarted", "module_failed", "module_failed_over", "link_added",
          "link_removed", "node_lost", "node_joined")
@@ -53,7 +55,8 @@ class EventLog:
 
     def since(self, seq: int = 0, timeout: float = 0.0) -> list[Event]:
         """The events after ``seq`` (oldest first), waiting up to ``timeout`` seconds for
-        one when there is none yet."""
+        one when there is none yet (None is refused: ``TypeError``)."""
+        timeout = bounded_wait(timeout, "events since")
         with self._cond:
             self._cond.wait_for(lambda: self._seq > seq, timeout)
             return [event for event in self._events if event.seq > seq]

@@ -17,6 +17,8 @@ from collections import deque
 from dataclasses import dataclass
 from time import localtime, strftime
 
+from pb3a.errors import bounded_wait
+
 
 @dataclass(frozen=True)
 class LogEntry:
@@ -73,7 +75,8 @@ class LogBook(logging.Handler):
     def since(self, seq: int = 0, timeout: float = 0.0, module: str | None = None,
               ) -> list[LogEntry]:
         """The entries after ``seq`` (about ``module`` only, if given), waiting up to
-        ``timeout`` for one when there is none yet."""
+        ``timeout`` for one when there is none yet (None is refused: ``TypeError``)."""
+        timeout = bounded_wait(timeout, "log entries since")
         def found() -> list[LogEntry]:
             return [entry for entry in self._entries if entry.seq > seq
                     and (module is None or entry.module == module)]

@@ -40,6 +40,16 @@ class Burst(Module):
             self.out.write(self.sent)
 
 
+class SlowState(Module):
+    """A state that takes ``slow_s`` seconds to read (a large one, say)."""
+
+    slow_s = 0.0
+
+    def get_state(self) -> dict:
+        time.sleep(self.slow_s)
+        return super().get_state()
+
+
 class Collector(Module):
     """Checks the values it receives are 1, 2, 3, ... in order, counting any violation."""
 

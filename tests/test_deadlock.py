@@ -8,8 +8,9 @@ import threading
 import time
 
 import pytest
-from sample_modules import Busybody, Locator
+from sample_modules import Busybody, Locator, Scale, SlowState
 
+import pb3a
 from pb3a import RuntimeTimeout, System
 
 pytestmark = pytest.mark.timeout(120)
@@ -88,3 +89,56 @@ def test_a_call_that_waits_too_long_names_what_it_waited_for() -> None:
             holder.join(5)
         run.set_state("src", {"poked": 7})
         assert run.state("src")["poked"] == 7
+
+
+def test_events_and_logs_without_a_timeout_wait_the_system_s_default() -> None:
+    """``events``/``logs`` with ``timeout=None`` wait the system's default, as every other
+    call does (they waited forever), also through a connection; the launcher's own event
+    log and log book refuse a wait without a deadline."""
+    system = System("patient", timeout=0.3)
+    system.add("scale", Scale)
+    with system.launch() as run, pb3a.connect(run.listen()) as far:
+        for handle in (run, far):
+            last = run._launcher.events.last
+            answers: list = []
+
+            def ask(handle=handle, last=last, answers=answers) -> None:
+                answers.append(handle.events(last, timeout=None))
+                answers.append(handle.logs(10**9, timeout=None))
+            asking = threading.Thread(target=ask, daemon=True)
+            started = time.monotonic()
+            asking.start()
+            asking.join(5.0)
+            assert not asking.is_alive(), f"{handle!r}: events/logs(timeout=None) still waiting"
+            assert answers == [[], []]
+            assert 0.5 <= time.monotonic() - started < 3.0      # 0.3 s each, not 0
+        for pool in (run._launcher.events, run._launcher.logbook):
+            with pytest.raises(TypeError, match="timeout"):
+                pool.since(0, None)
+
+
+def test_one_deadline_covers_the_wait_for_the_lock_and_the_module_s_answer() -> None:
+    """An operation given ``timeout`` T returns or raises within about T: the wait for the
+    configuration lock and the wait for the module's answer share it (the call got the
+    whole T again once it had the lock, so it took nearly 2 T)."""
+    system = System("one-deadline")
+    system.add("slow", SlowState, state={"slow_s": 3.0})       # its answer takes 3 s
+    with system.launch() as run:
+        held, release = threading.Event(), threading.Event()
+
+        def hold() -> None:
+            with run._launcher.lock.held("a long reconfiguration", 10.0):
+                held.set()
+                release.wait(1.2)                      # most of the state call's 1.5 s
+        holder = threading.Thread(target=hold)
+        holder.start()
+        try:
+            assert held.wait(10.0)
+            started = time.monotonic()
+            with pytest.raises(RuntimeTimeout, match="get_state"):
+                run.state("slow", timeout=1.5)
+            took = time.monotonic() - started
+        finally:
+            release.set()
+            holder.join(10.0)
+    assert 1.2 <= took < 2.1, took

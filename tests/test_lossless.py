@@ -180,6 +180,33 @@ def test_a_stuck_lossless_reader_migrates_with_everything_on_the_way() -> None:
     assert link.policy == "lossless:8" and link.drops == 0 and link.link_failures == 0
 
 
+def test_a_reader_moves_away_from_a_writer_in_its_process_that_waits_for_it() -> None:
+    # writer and slow reader share a worker; the writer's step writes more than the
+    # reader takes in the pause's wait (10 s), each write waiting for room in the input.
+    # The move pauses the writer first: the pause waited for that step, which waited for
+    # the reader, and the move failed. Now the writes go into the input, room or not,
+    # while the pause waits: the step ends, and the reader moves with all of them.
+    n = 20_000                           # 40 s of the reader's 500 values a second
+    system = System("lossless-move-away")
+    system.node("a", workers=1)
+    system.node("b")
+    system.add("dst", Sipper, period=0.002, state={"sip": 1}, node="a")
+    system.add("src", Burst, state={"limit": n}, node="a")
+    system.link("src.out", "dst.x", policy="lossless:8")
+    with system.launch() as run:
+        eventually(lambda: run.stats().links[KEY].waits > 0, what="the writer waiting")
+        assert run.stats().links[KEY].transport == "memory"
+        run.migrate("dst", to="b")
+        assert run.where("dst") == "b" and run.stats().links[KEY].transport == "zmq"
+        run.set_state("dst", sip=50)
+        state = _every_value(run, n)
+        stats = run.stats()
+    link = stats.links[KEY]
+    assert _in_order(state, n)
+    assert link.policy == "lossless:8" and link.drops == 0 and link.link_failures == 0
+    assert stats.modules["src"].errors == 0
+
+
 def test_relink_may_make_a_dropping_link_lossless() -> None:
     n = 20_000
     system = System("lossless-relink")

@@ -302,6 +302,42 @@ def test_cutting_a_lossless_link_inside_one_process_stops_a_write_waiting_on_it(
     assert counter.waits == 1 and counter.wait_s > 0
 
 
+def _lossless_to(output, key: str) -> tuple:
+    """A reader wired to ``output`` as a worker wires a lossless link inside one process;
+    the reader's input, full (2 values), and the link's counter."""
+    target, counter = Careful().x, WaitCounter()
+    output.connect(key, lambda value, timeout: target.put([value], timeout, key, counter),
+                   lambda values, timeout: target.put(values, timeout, key, counter),
+                   lossless=True, counter=counter)
+    target.deliver_many([0, 0])
+    return target, counter
+
+
+@pytest.mark.parametrize("many", [False, True], ids=["write", "write_many"])
+def test_one_deadline_covers_a_write_on_every_lossless_link(many: bool) -> None:
+    # two lossless links, each full: the first reader makes room after a while, the
+    # second never does. The write waits its timeout in all (it waited the whole timeout
+    # on each link in turn), then says which link it timed out on and that the value
+    # went on the one before it (not taken back), and on no dropping link.
+    emitter, seen = Emitter(), []
+    first, _ = _lossless_to(emitter.out, "w.out->a.x")
+    second, _ = _lossless_to(emitter.out, "w.out->b.x")
+    emitter.out.connect("w.out->c.x", seen.append, lambda values: seen.extend(values))
+    write = (lambda: emitter.out.write_many([7], timeout=1.0)) if many else (
+        lambda: emitter.out.write(7, timeout=1.0))
+    reader = threading.Timer(0.7, first.read)
+    reader.start()
+    start = time.monotonic()
+    with pytest.raises(RuntimeTimeout, match=r"lossless link w.out -> b.x timed out.*"
+                       r"it went on w.out -> a.x already \(a write is not taken back\)"):
+        write()
+    took = time.monotonic() - start
+    reader.join()
+    assert 0.9 < took < 1.4, took                    # 1 s in all, not 0.7 + 1
+    assert first.read_all() == [0, 7] and second.read_all() == [0, 0] and seen == []
+    assert emitter.out.written == 0
+
+
 class Cells:
     """A mutable default of a class of the module's own."""
 

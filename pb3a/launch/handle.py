@@ -141,13 +141,15 @@ class SystemHandle(ABC):
         return self._request("stats", {"timeout": timeout})
 
     def logs(self, since: int = 0, *, module: str | None = None,
-             timeout: float = 0.0) -> list[LogEntry]:
+             timeout: float | None = 0.0) -> list[LogEntry]:
         """The system's log entries after sequence number ``since`` (about ``module`` only,
         if given), from the launcher and every node, oldest first; waits up to
-        ``timeout`` for one if there is none."""
+        ``timeout`` for one if there is none (0: not at all; None: the system's default,
+        as for every call)."""
         return self._request("logs", {"since": since, "module": module, "timeout": timeout})
 
-    def events(self, since: int = 0, *, timeout: float = 0.0) -> list[Event]:
+    def events(self, since: int = 0, *, timeout: float | None = 0.0) -> list[Event]:
         """The events after sequence number ``since`` (moves, swaps, restarts, failures,
-        lost nodes ...), oldest first; waits up to ``timeout`` for one if there is none."""
+        lost nodes ...), oldest first; waits up to ``timeout`` for one if there is none
+        (0: not at all; None: the system's default, as for every call)."""
         return self._request("events", {"since": since, "timeout": timeout})

@@ -5,7 +5,8 @@ through the launcher's control server) and agents (``self.runtime``) all end her
 Each operation that changes the configuration, or reads what a change may be
 halfway through, holds the configuration lock, whose wait is bounded by the
 operation's ``timeout`` (the system's default when None) and names what holds it
-when it runs out. Each change is recorded as an event.
+when it runs out; a module's answer (``state``, ``set_state``) is awaited for what
+is left of that timeout, one deadline for both. Each change is recorded as an event.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import contextlib
 import itertools
 import logging
 import threading
+import time
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
@@ -30,6 +32,8 @@ from pb3a.pending import DONE, FAILED, RUNNING
 from pb3a.topology import Topology, topology_of
 
 if TYPE_CHECKING:
+    from collections.abc import Callable, Iterator
+
     from pb3a.events import Event
     from pb3a.launch.launcher import Launcher
     from pb3a.logbook import LogEntry
@@ -62,21 +66,27 @@ class Operations:
         self._jobs: dict[int, tuple[threading.Event, list[Any]]] = {}   # background moves
         self._job_ids = itertools.count(1)
 
-    def _held(self, what: str, timeout: float | None) -> Any:
-        return self.lock.held(what, self.timeout if timeout is None else timeout)
+    @contextlib.contextmanager
+    def _held(self, what: str, timeout: float | None) -> Iterator[Callable[[], float]]:
+        """Hold the configuration lock for ``what``, waiting at most ``timeout``; gives
+        what is left of it then, for the operation's own waits (one deadline for all)."""
+        wait = self._call_timeout(timeout)
+        deadline = time.monotonic() + wait
+        with self.lock.held(what, wait):
+            yield lambda: max(0.0, deadline - time.monotonic())
 
     def _call_timeout(self, timeout: float | None) -> float:
         return self.timeout if timeout is None else timeout
 
     # -- state -------------------------------------------------------------------
     def state(self, name: str, *, timeout: float | None = None) -> dict[str, Any]:
-        with self._held(f"state {name}", timeout):
-            return self.launcher.call(name, "get_state", self._call_timeout(timeout))
+        with self._held(f"state {name}", timeout) as left:
+            return self.launcher.call(name, "get_state", left())
 
     def set_state(self, name: str, values: dict[str, Any], *,
                   timeout: float | None = None) -> None:
-        with self._held(f"set_state {name}", timeout):
-            self.launcher.call(name, "set_state", self._call_timeout(timeout), state=values)
+        with self._held(f"set_state {name}", timeout) as left:
+            self.launcher.call(name, "set_state", left(), state=values)
 
     # -- moving, swapping, reloading ----------------------------------------------------
     def migrate(self, name: str, to: str, *, state: dict[str, dict[str, Any]] | None = None,
@@ -127,14 +137,15 @@ class Operations:
         threading.Thread(target=move, name=f"pb3a-migrate-{name}", daemon=True).start()
         return job
 
-    def migration(self, id: int, *, timeout: float = 0.0) -> tuple[str, Any]:
+    def migration(self, id: int, *, timeout: float | None = 0.0) -> tuple[str, Any]:
         """How background migration ``id`` went: ``("running", None)``, ``("done",
-        report)`` or ``("failed", message)``, waiting up to ``timeout`` for it to end."""
+        report)`` or ``("failed", message)``, waiting up to ``timeout`` for it to end
+        (None: the system's default)."""
         entry = self._jobs.get(id)
         if entry is None:
             raise ValueError(f"no migration {id} (only the last {KEEP_JOBS} are kept)")
         done, outcome = entry
-        done.wait(timeout)
+        done.wait(self._call_timeout(timeout))
         status, value = outcome             # (set before ``done``: never half written)
         return status, value
 
@@ -360,12 +371,12 @@ class Operations:
         with self._held("stats", timeout):
             return self.launcher.stats()
 
-    def events_since(self, since: int = 0, *, timeout: float = 0.0) -> list[Event]:
-        return self.events.since(since, timeout)
+    def events_since(self, since: int = 0, *, timeout: float | None = 0.0) -> list[Event]:
+        return self.events.since(since, self._call_timeout(timeout))
 
     def logs(self, since: int = 0, *, module: str | None = None,
-             timeout: float = 0.0) -> list[LogEntry]:
-        return self.launcher.logbook.since(since, timeout, module)
+             timeout: float | None = 0.0) -> list[LogEntry]:
+        return self.launcher.logbook.since(since, self._call_timeout(timeout), module)
 
     # -- requests from outside --------------------------------------------------------
     def apply(self, op: str, args: dict[str, Any], allowed: frozenset[str] = PUBLIC) -> Any:

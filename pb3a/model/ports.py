@@ -314,12 +314,13 @@ class InputPort:
         when the link is cut meanwhile (``counter.cancel()``, as ``OutputPort.disconnect``
         calls it); the values not in yet are not delivered. For a writer in this process:
         it waits without holding the reader's module lock, so the reader can read and wake
-        it."""
+        it. While the writer is being paused (``counter.let_through``) they go in, room or
+        not."""
         waited, done, total = 0.0, 0, len(values)
         try:
             while done < total:
                 with self._lock:
-                    room = self.policy.size - len(self._values)
+                    room = self._room_for(total - done, counter)
                     if room <= 0:
                         if not waited and counter is not None:
                             counter.begin()
@@ -336,7 +337,7 @@ class InputPort:
                                     raise link_stuck(link, timeout, total - done)
                                 self._room_wanted = True
                                 self._room.wait(left)
-                                room = self.policy.size - len(self._values)
+                                room = self._room_for(total - done, counter)
                         finally:
                             waited += time.monotonic() - start
                 chunk = values[done:done + room]
@@ -345,6 +346,13 @@ class InputPort:
         finally:
             if waited and counter is not None:
                 counter.wait_s += waited
+
+    def _room_for(self, want: int, counter: WaitCounter | None) -> int:
+        """How many values ``put`` may deliver now (under the lock): the queue's room, or
+        all ``want`` while its writer is let through."""
+        if counter is not None and counter.through:
+            return want
+        return self.policy.size - len(self._values)
 
     def _made_room(self) -> None:
         """A read made room in a full lossless queue: wake its feeders (under the lock)."""
@@ -439,8 +447,9 @@ class OutputPort:
     Each link is a pair of sinks: ``one(value)`` for ``write`` and ``many(values)``
     for ``write_many``, which saves the per-value cost of the transport. The sinks of a
     ``lossless`` link take the writer's timeout too: ``one(value, timeout)``, and wait
-    for room up to it (then raise RuntimeTimeout). Each link may have a counter of the
-    writes that waited for room (attributes ``waits`` and ``wait_s``).
+    for room up to it (then raise RuntimeTimeout); one write's lossless links share its
+    timeout (see ``_send_waiting``). Each link may have a counter of the writes that
+    waited for room (attributes ``waits`` and ``wait_s``).
     """
 
     def __init__(self, spec: Output, owner: str = "") -> None:
@@ -450,25 +459,25 @@ class OutputPort:
         self.written = 0
         self._sinks: dict[str, tuple[Callable[..., Any], Callable[..., Any], bool]] = {}
         self._ones: tuple[Callable[[Any], Any], ...] = ()     # the write() path, prebuilt
-        self._waiting: tuple[Callable[[Any, float], Any], ...] = ()   # ... of lossless links
+        self._waiting: tuple[tuple[str, Callable[[Any, float], Any]], ...] = ()  # lossless
         self._counters: dict[str, Any] = {}    # link key -> its waits and wait_s
         self._lock = threading.Lock()
 
     def write(self, value: Any, timeout: float | None = None) -> None:
         """Send ``value`` on every link; TypeError (and nothing sent) if it does not fit.
 
-        On a ``lossless`` link a full reader makes the write wait, up to ``timeout``
-        seconds (None: ``WRITE_WAIT_S``), then raise RuntimeTimeout: the value did not
-        go on that link, nor on the dropping links (served after the lossless ones).
-        Dropping links (``latest``, ``queue``) never wait long."""
+        On a ``lossless`` link a full reader makes the write wait; its lossless links
+        wait ``timeout`` seconds in all (None: ``WRITE_WAIT_S``), then it raises
+        RuntimeTimeout: the value did not go on that link, nor on the links after it,
+        nor on the dropping links (served after the lossless ones); it did go on the
+        lossless links before it (the error names them). Dropping links (``latest``,
+        ``queue``) never wait long."""
         if type(value) is not self.spec.plain_type:
             self.spec.check(value)
         self._lock.acquire()            # (not ``with``: half the cost, paid per value)
         try:
             if self._waiting:
-                wait = WRITE_WAIT_S if timeout is None else timeout
-                for one in self._waiting:
-                    one(value, wait)
+                _send_waiting(self._waiting, value, WRITE_WAIT_S if timeout is None else timeout)
             for one in self._ones:
                 one(value)
             self.written += 1
@@ -477,7 +486,9 @@ class OutputPort:
 
     def write_many(self, values: Iterable[Any], timeout: float | None = None) -> None:
         """Send values in order, as repeated ``write`` would, but faster; all are checked
-        first. ``timeout`` bounds the whole batch's waits on each lossless link."""
+        first. ``timeout`` bounds the whole batch's waits on all lossless links together;
+        the batch goes on each link in turn, so one that times out on a link went whole
+        on the links before it and partly on that one (the error says how many did not)."""
         batch = list(values)
         check = self.spec.check
         for value in batch:
@@ -485,11 +496,11 @@ class OutputPort:
         if not batch:
             return
         with self._lock:
-            wait = WRITE_WAIT_S if timeout is None else timeout
             sinks = self._sinks.values()
-            for _, many, lossless in sinks:            # lossless links first, as in write
-                if lossless:
-                    many(batch, wait)
+            waiting = tuple((key, many) for key, (_, many, lossless) in self._sinks.items()
+                            if lossless)
+            if waiting:                                # lossless links first, as in write
+                _send_waiting(waiting, batch, WRITE_WAIT_S if timeout is None else timeout)
             for _, many, lossless in sinks:
                 if not lossless:
                     many(batch)
@@ -528,7 +539,8 @@ class OutputPort:
     def _prebuild(self) -> None:
         sinks = self._sinks.values()
         self._ones = tuple(one for one, _, lossless in sinks if not lossless)
-        self._waiting = tuple(one for one, _, lossless in sinks if lossless)
+        self._waiting = tuple((key, one) for key, (one, _, lossless) in self._sinks.items()
+                              if lossless)
 
     def track(self, key: str, counter: Any) -> None:
         """Count the waits of link ``key`` with ``counter`` (``waits``, ``wait_s``; one
@@ -552,6 +564,36 @@ class OutputPort:
         """Keys of the links this output feeds."""
         return list(self._sinks)
 
+    def let_through(self, on: bool) -> None:
+        """While ``on``, writes on this output's lossless links inside its process take no
+        heed of room: they go into the input, which holds more than its size for a
+        while (see ``WaitCounter.let_through``)."""
+        for counter in self._counters.values():
+            if isinstance(counter, WaitCounter):
+                counter.let_through(on)
+
+
+def _send_waiting(sinks: tuple[tuple[str, Callable[[Any, float], Any]], ...], payload: Any,
+                  timeout: float) -> None:
+    """Give ``payload`` to each lossless link's sink in turn, all within ``timeout``: one
+    deadline for the write, not one per link. A link that times out (or is cut) raises
+    RuntimeTimeout; the links before it have the payload, and the error says so: a
+    write is not taken back."""
+    deadline = time.monotonic() + timeout if len(sinks) > 1 else 0.0
+    left = timeout
+    for done, (_, sink) in enumerate(sinks):
+        if done:
+            left = max(0.0, deadline - time.monotonic())
+        try:
+            sink(payload, left)
+        except RuntimeTimeout as exc:
+            if not done:
+                raise
+            went = ", ".join(key.replace("->", " -> ") for key, _ in sinks[:done])
+            raise RuntimeTimeout(f"{exc}; the write's {timeout:g} s were for all its lossless "
+                                 f"links, and it went on {went} already (a write is not "
+                                 "taken back)") from None
+
 
 def link_cut(link: str, unsent: int) -> RuntimeTimeout:
     """The error of a write that waited for room on a lossless link when it was cut."""
@@ -564,19 +606,36 @@ class WaitCounter:
     """How many writes on a link waited for room, counted as each wait begins (so that
     a writer stuck now shows), and how long in all those that ended waited. For a
     lossless link inside one process (``InputPort.put``), ``cancel()`` cuts the link: a
-    write waiting for room on it gives up at once, as one waiting on a ring does."""
+    write waiting for room on it gives up at once, as one waiting on a ring does; and
+    ``let_through`` lets writes in without room while the writer is being paused."""
 
-    __slots__ = ("cancelled", "wait_s", "waiting_on", "waits")
+    __slots__ = ("cancelled", "through", "wait_s", "waiting_on", "waits")
 
     def __init__(self) -> None:
         self.waits = 0
         self.wait_s = 0.0
         self.cancelled = False
+        self.through: list[None] = []   # one per pause of the writer under way (append
+                                        # and pop are atomic: pauses may overlap)
         self.waiting_on: InputPort | None = None    # the input a write last waited on
 
     def cancel(self) -> None:
         """The link is being cut: a write waiting for room on it gives up now."""
         self.cancelled = True
+        self._wake()
+
+    def let_through(self, on: bool) -> None:
+        """A pause of the writer begins (``on``) or ends. A pause waits for the writer's
+        call, which may be a write waiting for a reader in the same process, and that
+        reader may be slow, or paused next (a move): while the pause waits, writes go in
+        room or not, so the call ends and nothing is lost (as a closing ring's flush)."""
+        if on:
+            self.through.append(None)
+        else:
+            self.through.pop()
+        self._wake()
+
+    def _wake(self) -> None:
         port = self.waiting_on
         if port is not None:
             with port._lock:

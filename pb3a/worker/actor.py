@@ -331,12 +331,19 @@ class ModuleActor:
 
     def acquire_stopped(self, timeout: float, why: str) -> bool:
         """Take the module lock with no body running, cancelling a runtime call a body
-        waits in (it raises there, see ``waits``); False after ``timeout``."""
+        waits in (it raises there, see ``waits``) and letting the writes of a body that
+        waits for room in a lossless input in this process through (see
+        ``WaitCounter.let_through``); False after ``timeout``."""
         self._stopping_for = why
+        outputs = self.outputs.values()
+        for port in outputs:
+            port.let_through(True)
         try:
             self._cancel_wait(why)
             return self.lock.acquire(timeout=timeout)
         finally:
+            for port in outputs:
+                port.let_through(False)
             self._stopping_for = ""
 
     # -- state and swap ----------------------------------------------------
