@@ -35,13 +35,21 @@ def start_without_main(process: Any) -> None:
             mp_spawn.get_preparation_data = original
 
 
+def stop_on_sigterm(stopped: threading.Event) -> None:
+    """From now on SIGTERM sets ``stopped``; SIGINT is ignored (the parent decides). A
+    child calls it first, before it makes anything it must close."""
+    signal.signal(signal.SIGTERM, lambda *_: stopped.set())
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def serve_as_child(conn: Any, address: str, stopped: threading.Event) -> None:
     """In a child that serves at ``address`` (an executor, a robot server): tell the
     parent where (over ``conn``), then block until ``stopped`` is set, which SIGTERM
-    and the parent's death (its end of ``conn`` closing) both do. SIGINT is ignored:
-    the parent decides."""
-    signal.signal(signal.SIGTERM, lambda *_: stopped.set())
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    and the parent's death (its end of ``conn`` closing) both do. Stopped already (a
+    SIGTERM as it started), it returns at once: the parent reads no address."""
+    stop_on_sigterm(stopped)
+    if stopped.is_set():
+        return
     conn.send(address)
     threading.Thread(target=_watch_parent, args=(conn, stopped), daemon=True,
                      name="pb3a-parent-watch").start()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import signal
 import socket
@@ -112,6 +113,71 @@ def no_leaks() -> Iterator[None]:
                     psutil.Process(pid).kill()
             pytest.fail(f"leaked processes {sorted(leaked_pids)} / segments {leaked_segments}")
         time.sleep(0.05)
+
+
+class HeldKey:
+    """A cluster key file that is a named pipe: a process started with ``env`` (or under
+    it, for a spawned child) blocks in its start as it loads the key, until ``give``
+    writes it. A deterministic point to signal a daemon at as it starts."""
+
+    def __init__(self, directory: Path) -> None:
+        self.path = directory / "cluster.key"
+        os.mkfifo(self.path, 0o600)
+        self.env = {**{k: v for k, v in os.environ.items() if k != "PB3A_KEY"},
+                    "PB3A_KEY_FILE": str(self.path)}
+        self._writer: int | None = None
+
+    def wait_for_reader(self, timeout: float = 30.0) -> None:
+        """Return once a process is loading the key (it then waits for ``give``)."""
+        deadline = time.monotonic() + timeout
+        while self._writer is None:
+            try:        # (a writer's open fails while no reader has the pipe open)
+                self._writer = os.open(self.path, os.O_WRONLY | os.O_NONBLOCK)
+            except OSError as exc:
+                if exc.errno != errno.ENXIO or time.monotonic() > deadline:
+                    raise
+                time.sleep(0.01)
+
+    def give(self) -> None:
+        """Write the key and close: the reader goes on (if it is still there)."""
+        assert self._writer is not None
+        with contextlib.suppress(BrokenPipeError):
+            os.write(self._writer, os.environ["PB3A_KEY"].encode())
+        os.close(self._writer)
+        self._writer = None
+
+    def users(self) -> list[int]:
+        """The live processes started with this key (their children inherit it too), but
+        this test process's own helpers (a spawn starts its resource tracker)."""
+        workers = _workers()                # (children, but no helpers)
+        found = []
+        for process in psutil.process_iter():
+            with contextlib.suppress(psutil.Error):
+                if process.environ().get("PB3A_KEY_FILE") == str(self.path) \
+                        and process.status() != psutil.STATUS_ZOMBIE \
+                        and (process.ppid() != os.getpid() or process.pid in workers):
+                    found.append(process.pid)
+        return found
+
+
+def daemon_signalled_as_it_starts(tmp_path: Path, *args: str) -> int:
+    """Run ``pb3a ARGS`` (a daemon), SIGTERM it while it is starting (loading its key),
+    and return its exit status, once it is seen to leave no process and no shared-memory
+    segment behind. The process is killed if it does not end."""
+    key = HeldKey(tmp_path)
+    process = subprocess.Popen([sys.executable, "-m", "pb3a", *args],
+                               stdout=subprocess.DEVNULL, env=key.env)
+    try:
+        key.wait_for_reader()
+        process.send_signal(signal.SIGTERM)
+        key.give()
+        status = process.wait(timeout=20)
+        assert not key.users() and not live_segments(process.pid)
+        return status
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(5)
 
 
 def daemon_banner_then_clean_exit(*args: str) -> str:

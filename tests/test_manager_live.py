@@ -156,3 +156,62 @@ def test_a_page_that_leaves_before_its_hello_leaves_nothing_behind(run) -> None:
     assert all(len(page.sent) == 1 and '"hello"' in page.sent[0] for page in pages)
     # no queue left to fill, nor stats gathered for a page that is not there
     assert not feed._clients
+
+
+class _Failing:
+    """The running system, but its next calls to ``stats`` (or ``events`` with a wait,
+    the feed's) raise what ``failures[name]`` holds, one each, before it answers again."""
+
+    def __init__(self, run: Running, failures: dict[str, list[Exception]]) -> None:
+        self._run, self._failures = run, failures
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._run, name)
+
+    def stats(self, timeout: float | None = None) -> object:
+        if self._failures["stats"]:
+            raise self._failures["stats"].pop(0)
+        return self._run.stats(timeout=timeout)
+
+    def events(self, since: int = 0, timeout: float = 0.0) -> list:
+        if timeout and self._failures["events"]:
+            raise self._failures["events"].pop(0)
+        return self._run.events(since, timeout=timeout)
+
+
+def test_the_feed_reports_an_unexpected_failure_and_goes_on(run) -> None:
+    # a dropped connection, a bad reply: not PB3AErrors, they once ended the feed's loop
+    # in silence and the page was never updated again
+    failures: dict[str, list[Exception]] = {"stats": [], "events": []}
+    with manager_client(Session(Document.empty(), _Failing(run, failures)),
+                        refresh=0.1) as client, \
+            client.websocket_connect("/api/live") as socket:
+        assert socket.receive_json()["type"] == "hello"
+        # armed once the page is there (the events loop reads with no page too)
+        failures["events"].append(KeyError("seq"))
+        failures["stats"] += [OSError("connection reset by peer"), ValueError("a bad reply")]
+        socket.send_json({"watch": "map"})      # state messages come even if the rest stop
+        errors, after = [], []
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and not (len(errors) == 3 and after):
+            message = socket.receive_json()
+            if message["type"] == "error":
+                errors.append(message)
+            elif message["type"] == "stats" and len(errors) == 3:
+                after.append(message)
+        assert sorted(e["source"] for e in errors) == ["events", "stats", "stats"], errors
+        assert any("OSError: connection reset by peer" in e["error"] for e in errors)
+        assert any("KeyError" in e["error"] for e in errors)
+        assert after, "no stats after the failures"
+        # the events loop goes on too: a move made now arrives
+        mover = threading.Thread(target=run.migrate, args=("map", "a"))
+        mover.start()
+        mover.join(30)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            message = socket.receive_json()
+            if message["type"] == "event":
+                assert message["event"]["kind"] == "module_moved"
+                break
+        else:
+            pytest.fail("no event after the events loop failed")

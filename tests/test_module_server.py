@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import daemon_banner_then_clean_exit, eventually
+from conftest import daemon_banner_then_clean_exit, daemon_signalled_as_it_starts, eventually
 
 from pb3a import System
 from pb3a.daemons.module_server import ModuleServer
@@ -105,6 +105,12 @@ def test_the_command_line_serves_until_signalled(tmp_path) -> None:
     line = daemon_banner_then_clean_exit("modules", "serve", str(tmp_path),
                                          "--listen", "tcp://127.0.0.1:0")
     assert line.startswith(f"serving {tmp_path.resolve()} at tcp://127.0.0.1:")
+
+
+def test_a_module_server_signalled_as_it_starts_stops_cleanly(tmp_path) -> None:
+    (tmp_path / "served").mkdir()
+    assert daemon_signalled_as_it_starts(tmp_path, "modules", "serve", str(tmp_path / "served"),
+                                         "--listen", "tcp://127.0.0.1:0") == 0
 
 
 def test_a_module_server_that_does_not_answer_holds_up_one_import_not_every_one(

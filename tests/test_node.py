@@ -3,19 +3,28 @@ graceful and forced stops, the command line, and frames it must refuse."""
 
 from __future__ import annotations
 
+import socket
 import time
 
 import pytest
 import zmq
-from conftest import daemon_banner_then_clean_exit, eventually
+from conftest import (
+    HeldKey,
+    daemon_banner_then_clean_exit,
+    daemon_signalled_as_it_starts,
+    eventually,
+)
 from sample_modules import Counter
 
 from pb3a import RuntimeFailure
 from pb3a.config.plan import FlatModule
-from pb3a.daemons.node_controller import Limits, NodeController
+from pb3a.daemons.node_controller import Limits, NodeController, _context
+from pb3a.daemons.node_share import executor_main
 from pb3a.loading.sources import CodeSources
+from pb3a.processes import start_without_main
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
+from pb3a.transport.shm import live_segments
 
 KEY = ClusterKey.load()
 
@@ -123,6 +132,43 @@ def test_the_command_line_runs_a_node_until_signalled() -> None:
     line = daemon_banner_then_clean_exit("node", "start", "--name", "cli",
                                          "--listen", "tcp://127.0.0.1:0")
     assert line.startswith("node cli at tcp://127.0.0.1:")
+
+
+def test_a_node_signalled_as_it_starts_stops_cleanly(tmp_path) -> None:
+    # (its handlers were set once it listened: killed by the signal, it never closed)
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    assert daemon_signalled_as_it_starts(tmp_path, "node", "start", "--name", "early",
+                                         "--listen", f"tcp://127.0.0.1:{port}") == 0
+    with socket.socket() as probe:                     # closed: the port is free again
+        probe.bind(("127.0.0.1", port))
+
+
+def test_an_executor_signalled_as_it_starts_ends_cleanly(tmp_path, monkeypatch) -> None:
+    key = HeldKey(tmp_path)
+    parent, child = _context.Pipe()
+    process = _context.Process(target=executor_main, args=("early", "n1", 0, None,
+                                                            "127.0.0.1", child))
+    with monkeypatch.context() as env:                 # the child's environment only
+        env.delenv("PB3A_KEY")
+        env.setenv("PB3A_KEY_FILE", str(key.path))
+        start_without_main(process)
+    child.close()
+    try:
+        key.wait_for_reader()
+        process.terminate()                            # as its controller stops it
+        key.give()
+        process.join(20)
+        assert process.exitcode == 0
+        with pytest.raises(EOFError):                  # it never said it serves
+            parent.recv()
+        assert not key.users() and not live_segments(process.pid)
+    finally:
+        if process.is_alive():
+            process.kill()
+            process.join(5)
+        parent.close()
 
 
 def test_an_executor_whose_lease_is_not_renewed_fences_itself(node) -> None:

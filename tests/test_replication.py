@@ -15,7 +15,7 @@ from conftest import eventually
 
 from pb3a import RuntimeTimeout
 from pb3a.transport import replication
-from pb3a.transport.auth import ClusterKey, Sealer
+from pb3a.transport.auth import ClusterKey, Opener, Sealer
 from pb3a.transport.replication import Follower, Replicator
 
 KEY = ClusterKey.load({"PB3A_KEY": "r" * 40})
@@ -595,3 +595,91 @@ def test_a_follower_lets_go_of_senders_it_no_longer_follows(link) -> None:
     finally:
         for sender in senders:
             sender.close()
+
+
+class Tap:
+    """A man in the middle on a follower's control connection: forwards both ways, and
+    keeps a copy of every message the follower sends (what an eavesdropper captures)."""
+
+    def __init__(self, target: str) -> None:
+        context = zmq.Context.instance()
+        self.front, self.back = context.socket(zmq.DEALER), context.socket(zmq.DEALER)
+        for sock in (self.front, self.back):
+            sock.setsockopt(zmq.LINGER, 0)
+        self.address = f"tcp://127.0.0.1:{self.front.bind_to_random_port('tcp://127.0.0.1')}"
+        self.back.connect(target)
+        self.captured: list[list[bytes]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        poller = zmq.Poller()
+        poller.register(self.front, zmq.POLLIN)
+        poller.register(self.back, zmq.POLLIN)
+        while not self._stop.is_set():
+            for sock, _ in poller.poll(50):
+                frames = sock.recv_multipart()
+                if sock is self.front:
+                    self.captured.append(frames)
+                    self.back.send_multipart(frames)
+                else:
+                    self.front.send_multipart(frames)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(TIMEOUT)
+        self.front.close(0)
+        self.back.close(0)
+
+
+@pytest.mark.parametrize("known", [False, True], ids=["learned", "handed-over"])
+def test_a_captured_hello_or_ack_is_refused_by_another_replicator(known: bool) -> None:
+    # the follower knows its replicator's incarnation from its WELCOME (learned), or
+    # from the start (a hand-over after a migration)
+    a, b, dam = Replicator(KEY), Replicator(KEY), Dam()
+    follower = Follower(KEY, dam)
+    tap = Tap(a.control_address)
+    context = zmq.Context.instance()
+    replayer = context.socket(zmq.DEALER)
+    replayer.setsockopt(zmq.LINGER, 0)
+    try:
+        for replicator in (a, b):
+            replicator.add("t")
+        follower.set_lossless("t", True)
+        follower.follow("t", a.data_address, tap.address, from_seq=0,
+                        incarnation=a.incarnation if known else None)
+        assert follower.wait_ready("t", TIMEOUT)
+        a.publish("t", "for the follower")
+        dam.open(follower, "t")
+        assert dam.inbox.wait("t", 1) == ["for the follower"]
+        def kinds() -> list[int]:                        # what the follower sent
+            peek = Opener(KEY)
+            return [peek.open(frames).kind for frames in list(tap.captured)]
+        eventually(lambda: replication.ACK in kinds(), what="an acknowledgement")
+        captured = list(tap.captured)
+        assert replication.HELLO in kinds()
+        # replayed to B within the freshness window: B takes none of them as a follower's
+        replayer.connect(b.control_address)
+        for frames in captured:
+            replayer.send_multipart(frames)
+        opener, answers = Opener(KEY), []
+
+        def heard() -> bool:
+            while replayer.poll(0):
+                answers.append(opener.open(replayer.recv_multipart()).kind)
+            return bool(set(answers) - {replication.WELCOME}) or \
+                b.rejected["other instance"] + answers.count(replication.WELCOME) == len(captured)
+        eventually(heard, what="B to refuse or merely greet each captured message")
+        assert set(answers) <= {replication.WELCOME}      # who B is, and nothing else
+        assert b.rejected["other instance"] >= 1
+        stream = b.counter("t")
+        assert not stream.acks and not stream.holds       # no follower there: B never waits
+        b.publish("t", "not held back", timeout=0.5)      # (on a lossless hold it would
+        assert b.unacknowledged("t") == 0                 # wait once WINDOW values ahead)
+    finally:
+        replayer.close(0)
+        tap.close()
+        follower.close()
+        a.close()
+        b.close()

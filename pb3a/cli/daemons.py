@@ -21,7 +21,12 @@ from pb3a.transport.auth import ClusterKey, ClusterKeyError
 
 def serve_until_signalled(command: str, listen: str,
                            start: Callable[[Any, str, int], tuple[Any, str]]) -> int:
-    """Start a daemon on ``listen``, print where, and run until SIGINT or SIGTERM."""
+    """Start a daemon on ``listen``, print where, and run until SIGINT or SIGTERM. The
+    handlers come first: a signal while it starts stops it once started, closed as
+    after any other signal (it would otherwise die there, unclosed)."""
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
     try:
         key = ClusterKey.load()
         host, port = bind_address(listen)
@@ -30,10 +35,8 @@ def serve_until_signalled(command: str, listen: str,
     except (OSError, ValueError, ClusterKeyError, zmq.ZMQError) as exc:
         print(f"{command}: {exc}", file=sys.stderr)
         return 1
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
-    print(banner, flush=True)
+    if not stop.is_set():
+        print(banner, flush=True)
     try:
         while not stop.wait(1.0):
             pass

@@ -33,7 +33,7 @@ from pb3a.logbook import LogBook
 from pb3a.node.executor import Executor
 from pb3a.node.protocol import REMOTE_OPERATIONS
 from pb3a.node.remote import LEASE_S
-from pb3a.processes import serve_as_child
+from pb3a.processes import serve_as_child, stop_on_sigterm
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient, ControlServer
 from pb3a.worker.process import AGENT_REQUEST_TIMEOUT
@@ -47,7 +47,8 @@ class NodeShare:
     """One configuration's share of a node: the handler of its control server."""
 
     def __init__(self, config: str, node: str, workers: int = 0,
-                 cpus: list[int] | None = None, host: str = "127.0.0.1") -> None:
+                 cpus: list[int] | None = None, host: str = "127.0.0.1",
+                 stopped: threading.Event | None = None) -> None:
         self.config, self.node = config, node
         self.key = ClusterKey.load()
         self.executor = Executor(node, workers=workers, cpus=cpus, host=host)
@@ -64,7 +65,7 @@ class NodeShare:
         self.server: ControlServer | None = None
         self.peers: dict[str, ControlClient] = {}     # other nodes, pinged for their RTT
         self.rtts: dict[str, float] = {}
-        self.stopped = threading.Event()
+        self.stopped = stopped if stopped is not None else threading.Event()
         self.logbook = LogBook()                       # the launcher merges it into its own
         logging.getLogger().addHandler(self.logbook)
 
@@ -202,8 +203,10 @@ def executor_main(config: str, node: str, workers: int, cpus: list[int] | None,
     """Entry point of an executor process: serve until shut down, signalled or orphaned."""
     logging.basicConfig(level=level, format=f"%(asctime)s pb3a[{config}@{node}] "
                                             "%(levelname)s %(message)s")
-    share = NodeShare(config, node, workers, cpus, host)
-    server = share.server = ControlServer(ClusterKey.load(), share.handle, host,
+    stopped = threading.Event()
+    stop_on_sigterm(stopped)            # before anything that must be closed
+    share = NodeShare(config, node, workers, cpus, host, stopped)
+    server = share.server = ControlServer(share.key, share.handle, host,
                                           name="pb3a-node-executor",
                                           instant={"lease": share.renew},
                                           decode_lock=share.executor.import_lock)

@@ -36,6 +36,7 @@ REFRESH_S = 0.5             # stats and watched state, by default
 EVENT_WAIT_S = 0.5          # one events() call waits this long for the next event
 STOP_WAIT_S = 5.0           # at the end, how long a call to the system still under way may take
 CLIENT_BACKLOG = 64         # messages queued for a client before stats are dropped
+MOST_BACKOFF_S = 5.0        # a loop that keeps failing tries again this often at least
 # events after which the structure (modules, links, nodes) is sent again
 STRUCTURAL = frozenset({"module_added", "module_removed", "module_moved", "module_swapped",
                         "module_failed_over", "module_failed", "link_added", "link_removed",
@@ -92,26 +93,32 @@ class Feed:
                 queue.put_nowait(message)
 
     async def _stats(self) -> None:
+        failures = 0
         while True:
             started = time.monotonic()
+            wait = self.refresh
             if self._clients and self.session.mode == "running":
                 try:
                     message = await self._blocking(stats_message, self.session)
                     self.publish(message)
-                except PB3AError as exc:
-                    log.warning("manager: no stats this time: %s", exc)
-            await asyncio.sleep(max(0.0, self.refresh - (time.monotonic() - started)))
+                    failures = 0
+                except Exception as exc:
+                    failures += 1
+                    wait = self._failed("stats", exc, failures)
+            await asyncio.sleep(max(0.0, wait - (time.monotonic() - started)))
 
     async def _events(self) -> None:
+        failures = 0
         while True:
             if self.session.mode != "running":
                 await asyncio.sleep(self.refresh)
                 continue
             try:
                 events = await self._blocking(self._next_events)
-            except PB3AError as exc:
-                log.warning("manager: reading events failed: %s", exc)
-                await asyncio.sleep(self.refresh)
+                failures = 0
+            except Exception as exc:
+                failures += 1
+                await asyncio.sleep(self._failed("events", exc, failures))
                 continue
             for event in events:
                 self._seen = max(self._seen, event.seq)
@@ -122,8 +129,22 @@ class Feed:
                     now = await self._blocking(structure, self.session)
                     self.publish(Message("system", encode({"type": "system", **now}),
                                          max(changes)))
-                except PB3AError as exc:
-                    log.warning("manager: reading the structure failed: %s", exc)
+                except Exception as exc:
+                    self._failed("structure", exc, 1)
+
+    def _failed(self, source: str, exc: Exception, failures: int) -> float:
+        """Log ``exc`` and tell every page (``{"type": "error", "source", "error"}``): a
+        failure ends no loop, whatever it is. Returns how long to wait before trying
+        again, longer after each failure in a row (to ``MOST_BACKOFF_S``)."""
+        if isinstance(exc, PB3AError):
+            log.warning("manager: reading the %s failed: %s", source, exc)
+            reason = str(exc)
+        else:       # a bug, or what the system's client let through: with its traceback
+            log.error("manager: reading the %s failed", source, exc_info=exc)
+            reason = f"{type(exc).__name__}: {exc}"
+        self.publish({"type": "error", "source": source,
+                      "error": f"the live {source} could not be read: {reason}"})
+        return min(self.refresh * 2 ** (failures - 1), MOST_BACKOFF_S)
 
     def _next_events(self) -> list[Any]:
         return self.session.handle.events(self._seen, timeout=EVENT_WAIT_S)

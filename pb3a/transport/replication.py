@@ -38,6 +38,13 @@ values in sequence order, exactly once:
   when the link to it is cut (``release``).
 - Fencing. A follower accepts one incarnation per topic. Values from any other (a
   sender that was migrated away, or a stale restart) are counted and dropped.
+- Destinations. HELLO, REPAIR and ACK name the replicator they are for, by its
+  incarnation (as control requests name their server's instance), so a copy captured
+  on the wire and sent to another replicator within the freshness window is refused
+  there (counted, ``rejected["other instance"]``), never taken as a follower's. A
+  follower that does not know the incarnation yet (it learns it from the first
+  WELCOME, SYNC or value) names nobody; such a HELLO is answered with a WELCOME and
+  nothing else, and the follower says HELLO again at once, naming it.
 
 Every message is sealed (``auth``) and opened before anything in it is decoded. A
 large payload is sealed on its own at write time (``auth.Payloads``): encrypted with
@@ -91,9 +98,11 @@ _INFO = struct.Struct("<16sQdBQ16s")    # VALUE: incarnation, sequence number, s
                                         # codec kind, payload nonce counter, payload tag
 _BATCH = struct.Struct("<16sQId")       # VALUES: incarnation, first sequence number, count,
                                         # sent at (unix: when the first was written)
-_ASK = struct.Struct("<qq")             # HELLO: first needed (-1: from now), flags; REPAIR:
+_ASK = struct.Struct("<qq16s")          # HELLO: first needed (-1: from now), flags; REPAIR:
                                         # first, last; ACK: delivered up to (exclusive, -1:
-                                        # unfollowed), flags
+                                        # unfollowed), flags; then the incarnation of the
+                                        # replicator it is for (_NOBODY: not known yet)
+_NOBODY = bytes(16)
 LOSSLESS = 1                            # flag of HELLO and ACK: hold the publisher back
 _ANSWER = struct.Struct("<16sqq")       # WELCOME: incarnation, next; REPLAYED: first, gone
 PLAIN = 0                               # a VALUES entry that is the value itself
@@ -581,9 +590,13 @@ class Replicator:
                 return
             peer, *frames = router.recv_multipart(copy=False)
             try:
-                self._answer(peer, self._opener.open(frames))
+                message = self._opener.open(frames)
             except Rejected:
                 continue                         # counted by the opener
+            try:
+                self._answer(peer, message)
+            except Rejected as exc:              # authentic, but refused all the same
+                self._opener.rejected[exc.reason] += 1
 
     def _heartbeat(self) -> None:
         """Announce every topic's next sequence number: a follower that missed the last
@@ -594,14 +607,22 @@ class Replicator:
                 self._send_pub(name, SYNC, [_ANSWER.pack(self.incarnation, stream.next_seq, 0)])
 
     def _answer(self, peer: Any, message: Any) -> None:
-        if message.kind not in (HELLO, REPAIR, ACK) or len(message.frames) != 2:
+        if message.kind not in (HELLO, REPAIR, ACK) or len(message.frames) != 2 \
+                or memoryview(message.frames[1]).nbytes != _ASK.size:
             raise Rejected("unexpected")
         name = bytes(message.frames[0])
-        first, last = _ASK.unpack(message.frames[1])
+        first, last, to = _ASK.unpack(message.frames[1])
+        if to != self.incarnation and to != _NOBODY:
+            raise Rejected("other instance")    # meant for another replicator: a copy
         with self._lock:
             stream = self._streams.get(name)
             if stream is None:
                 return                           # not (yet) published here: they retry
+            if to == _NOBODY:                    # who we are, and nothing else
+                if message.kind == HELLO:
+                    self._send_router(peer, WELCOME,
+                                      [name, _ANSWER.pack(self.incarnation, stream.next_seq, 0)])
+                return
             peer_id = bytes(peer)
             if message.kind == ACK:
                 if first < 0:                    # unfollowed: it holds nothing back now
@@ -663,6 +684,7 @@ class _Follow:
     # (values, sent at, bytes)
     held: dict[int, tuple[list[Any], float, int]] = field(default_factory=dict)
     asked: float = 0.0                        # when we last sent HELLO or REPAIR
+    hello_for: bytes | None = None            # the incarnation our last HELLO named
     repairing: bool = False
     announced: int = -1                       # the sender's next sequence number, as last heard
     acked: int = -1                           # what we last acknowledged
@@ -848,10 +870,14 @@ class Follower:
     def _hello(self, follow: _Follow) -> None:
         follow.asked = time.monotonic()
         follow.repairing = follow.next_seq >= 0   # the answer replays what we miss
+        follow.hello_for = follow.incarnation
         self._ask(follow, HELLO, follow.next_seq, self._flags(follow))
 
     def _ask(self, follow: _Follow, kind: int, first: int, last: int) -> None:
-        _send(follow.control, self._sealer.seal(kind, [follow.topic, _ASK.pack(first, last)]))
+        """Send HELLO, REPAIR or ACK to the replicator of ``follow``, naming it (nobody,
+        before it said who it is: then only a HELLO is answered, with a WELCOME)."""
+        to = follow.incarnation or _NOBODY
+        _send(follow.control, self._sealer.seal(kind, [follow.topic, _ASK.pack(first, last, to)]))
 
     # -- the follower's thread --------------------------------------------------
     def _on_data(self, sock: zmq.Socket) -> None:
@@ -908,6 +934,8 @@ class Follower:
                         follow.held[nxt] = (values[nxt - first:], sent_at, nbytes)
             follow.announced = max(follow.announced, nxt)
             follow.live = follow.live or live
+            if follow.hello_for is None and message.kind == WELCOME:
+                self._hello(follow)              # naming it now: see "Destinations"
             return follow
         if message.kind == VALUE:
             if (len(message.frames) != 3 or message.payload is None

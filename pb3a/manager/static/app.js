@@ -29,6 +29,7 @@ class Manager {
     this.lastMove = new Map();     // module -> its last MigrationReport, shown in the inspector
     this.updates = 0;              // live updates drawn, and what the last one cost (ms)
     this.drawMs = null;
+    this.feedError = null;         // the live feed's last error shown, until an update comes
     this.toasts = new Toasts($("toasts"));
     this.schematic = new Schematic($("schematic"), {
       select: (name, how) => this.select(name, how),
@@ -53,6 +54,7 @@ class Manager {
       stats: (m) => this.onStats(m),
       event: (m) => this.onEvent(m.event),
       state: (m) => this.onState(m),
+      error: (m) => this.onFeedError(m),
       status: (up) => this.onConnection(up),
     });
     $("fit").addEventListener("click", () => this.schematic.fit());
@@ -156,7 +158,16 @@ class Manager {
     $("cost").title = "the last update: when, what gathering it took on the server, " +
       "and what drawing it took in this page";
     this.stats = message.stats;
+    this.feedError = null;
     if (this.selected) this.describeSelected();
+  }
+
+  /** The server could not read the stats, events or structure this time; it tries
+   * again, more slowly while it fails. Shown once until an update comes through. */
+  onFeedError(message) {
+    if (message.error === this.feedError) return;
+    this.feedError = message.error;
+    this.toasts.error(new Error(message.error));
   }
 
   /** A refresh of the watched module's state, or why it could not be read (it may be

@@ -1,8 +1,8 @@
-// The websocket feed (/api/live): hello, stats, event, system and state messages, with
+// The websocket feed (/api/live): hello, stats, event, system, state and error messages, with
 // reconnection, and the one module whose state this page watches.
 
 export class LiveFeed {
-  /** handlers: {hello, stats, event, system, state, status(connected: bool)} */
+  /** handlers: {hello, stats, event, system, state, error, status(connected: bool)} */
   constructor(handlers) {
     this.handlers = handlers;
     this.watching = null;
