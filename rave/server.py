@@ -58,6 +58,7 @@ class WorldServer:
         self._lock = threading.Lock()                      # the world is not thread-safe
         self._stopping = threading.Event()
         self._paced = threading.Event()                    # the rate changed
+        self._failing = ""                                 # why the last step failed
         self._server = ControlServer(ClusterKey.load(), self._handle, host, port,
                                      name="rave-world")
         self.address = self._server.address
@@ -76,13 +77,26 @@ class WorldServer:
                 rate = self.rate               # world held by ``pace`` steps no more)
                 if rate:
                     steps = max(1, round(TICK_S * rate / PHYSICS_DT))
-                    self.world.step(steps * PHYSICS_DT)
+                    self._step(steps * PHYSICS_DT)
             if not rate:                       # held: no simulated time passes
                 self._paced.wait()
                 continue
             next_at += steps * PHYSICS_DT / rate
             # a real-time loop: wait for the next tick (or a new pace), never drift
             self._paced.wait(max(0.0, next_at - time.monotonic()))
+
+    def _step(self, dt: float) -> None:
+        """Step the world; a step that fails (a hardware robot's emulator gone) is logged
+        once and tried again at the next tick, so the world goes on as soon as it is
+        mended (the robot swapped to sim) instead of its stepper dying."""
+        try:
+            self.world.step(dt)
+        except Exception as exc:
+            if str(exc) != self._failing:
+                log.error("world %s cannot step: %s", self.world.name, exc)
+            self._failing = str(exc)
+        else:
+            self._failing = ""
 
     def pace(self, rate: float) -> float:
         """Run the world at ``rate`` times real time from now on; 0 holds it (no
