@@ -12,6 +12,7 @@ learns which back end serves the robot, and the back end can be swapped under it
 from __future__ import annotations
 
 import logging
+import math
 import multiprocessing
 import threading
 import time
@@ -173,9 +174,9 @@ def _apply(robot: Any, op: str, args: dict[str, Any], now: float) -> Any:
 
 
 def _check_rate(rate: float) -> None:
-    if not rate >= 0:
-        raise ValueError(f"a world's rate is how many times real time it runs, 0 or more "
-                         f"(0 holds it), not {rate}")
+    if not 0 <= rate < math.inf:
+        raise ValueError(f"a world's rate is how many times real time it runs, a finite "
+                         f"number, 0 or more (0 holds it), not {rate}")
 
 
 class WorldProcess:

@@ -116,6 +116,10 @@ def test_a_world_in_a_process_of_its_own_is_held_then_paced_and_stops_with_its_o
         assert client.call("describe")["time"] == held_at            # held again
         with pytest.raises(RuntimeFailure, match=r"0 or more \(0 holds it\), not -1.0"):
             client.call("pace", rate=-1.0)
+        with pytest.raises(RuntimeFailure, match=r"a finite number, 0 or more .*not inf"):
+            client.call("pace", rate=math.inf)               # (it killed the stepper)
+        time = client.call("pace", rate=20.0)
+        eventually(lambda: client.call("describe")["time"] > time + 0.5, what="time at 20x")
         with pytest.raises(RuntimeFailure, match="its operations: describe, pace"):
             client.call("fly", robot="r1")
     finally:
