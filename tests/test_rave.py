@@ -208,6 +208,15 @@ def test_dead_sonars_and_odometry_bias_are_injected_and_cleared(world_of: WorldM
     assert abs(robot.odometry()[2] - world.pose("hw")[2]) > 0.1  # heading drifts per metre
     robot.clear()
     assert robot.sonar()[3] < sonar.MAX_RANGE
+    # a wrong transducer number is refused before it reaches the robot (16 broke every
+    # later step, even after clear(); -1 silently killed transducer 15)
+    for wrong in ([16], [-1], [2.5], [True]):
+        with pytest.raises(ValueError, match=r"sonars must be transducer numbers 0-15"):
+            robot.inject("sonar_dead", sonars=wrong)
+    with pytest.raises(ValueError, match="bias must be a finite number"):
+        robot.inject("odometry_bias", bias=math.nan)
+    world.step(0.5)
+    assert robot.sonar()[3] < sonar.MAX_RANGE and not robot._body.faults
 
 
 def test_a_back_end_swap_mid_run_leaves_the_controller_untouched(world_of: WorldMaker) -> None:
