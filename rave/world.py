@@ -67,6 +67,7 @@ class World:
         self.space = pymunk.Space()
         self.obstacles: list[Obstacle] = []
         self.robots: dict[str, Robot] = {}
+        self._added = 0                              # robots added so far (their indices)
         self.time = 0.0
         self._steps = 0
         self._debt = 0.0
@@ -136,7 +137,8 @@ class World:
         if name in self.robots:
             raise ValueError(f"world {self.name} has a robot {name!r} already")
         robot = Robot(self, name, (float(pose[0]), float(pose[1]), float(pose[2])),
-                      backend=backend, color=color, index=len(self.robots))
+                      backend=backend, color=color, index=self._added)
+        self._added += 1                # (never reused: a robot's noise is its own)
         self.robots[name] = robot
         return robot
 

@@ -390,6 +390,16 @@ def test_robots_leaving_and_joining_mid_run_leave_the_others_driving_as_commande
     assert world.robot("r0").sonar()[3] == pytest.approx(5.0)    # r1 gone: nothing ahead
 
 
+def test_a_robot_added_after_another_left_draws_randomness_of_its_own() -> None:
+    world = World(seed=3)
+    world.add_robot("a", (1.0, 1.0, 0.0))
+    kept = world.add_robot("b", (3.0, 1.0, 0.0))
+    world.remove_robot("a")
+    added = world.add_robot("c", (5.0, 1.0, 0.0))        # (it had b's stream: b's errors)
+    assert not np.allclose(added.odometer.scale, kept.odometer.scale)
+    assert added.rng.random() != kept.rng.random()
+
+
 def test_a_simulated_robot_turning_steadily_drives_a_circle_back_to_its_start() -> None:
     world = World(size=(10, 10), seed=1)
     robot = world.add_robot("r", (5.0, 3.0, 0.0))
