@@ -95,13 +95,16 @@ class World:
     # -- building -----------------------------------------------------------------
     def add_wall(self, start: tuple[float, float], end: tuple[float, float], *,
                  virtual: bool = False) -> None:
-        self._add(Obstacle((_point(start), _point(end)), closed=False, virtual=virtual))
+        self._add(Obstacle((_point(start, "wall"), _point(end, "wall")), closed=False,
+                           virtual=virtual))
 
     def add_box(self, center: tuple[float, float], size: tuple[float, float], *,
                 angle: float = 0.0, virtual: bool = False, color: str | None = None) -> None:
         """A rectangle of ``size`` (width, height) around ``center``, turned by ``angle``
         radians."""
-        (cx, cy), (w, h) = _point(center), _point(size)
+        (cx, cy), (w, h) = _point(center, "box"), _point(size, "box")
+        if not (w > 0 and h > 0):
+            raise ValueError(f"box: size must be (width, height), both > 0, not {size}")
         c, s = math.cos(angle), math.sin(angle)
         corners = [(dx * w / 2, dy * h / 2) for dx, dy in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
         points = tuple((cx + c * x - s * y, cy + s * x + c * y) for x, y in corners)
@@ -111,7 +114,7 @@ class World:
                     color: str | None = None) -> None:
         if len(points) < 3:
             raise ValueError(f"a polygon needs at least 3 points, not {len(points)}")
-        corners = [_point(p) for p in points]
+        corners = [_point(p, "polygon") for p in points]
         if _signed_area(corners) < 0:
             corners.reverse()                   # anticlockwise: the inside on the left
         self._add(Obstacle(tuple(corners), closed=True, virtual=virtual, color=color))
@@ -136,8 +139,10 @@ class World:
         "hardware")."""
         if name in self.robots:
             raise ValueError(f"world {self.name} has a robot {name!r} already")
-        robot = Robot(self, name, (float(pose[0]), float(pose[1]), float(pose[2])),
-                      backend=backend, color=color, index=self._added)
+        place = (float(pose[0]), float(pose[1]), float(pose[2]))
+        if not all(map(math.isfinite, place)):
+            raise ValueError(f"robot {name}: pose must be finite (x, y, heading), not {place}")
+        robot = Robot(self, name, place, backend=backend, color=color, index=self._added)
         self._added += 1                # (never reused: a robot's noise is its own)
         self.robots[name] = robot
         return robot
@@ -168,8 +173,9 @@ class World:
     def step(self, dt: float) -> None:
         """Advance simulated time by ``dt`` seconds in fixed physics steps (a remainder
         shorter than one is carried to the next call)."""
-        if not dt >= 0:
-            raise ValueError(f"step({dt}): time only goes forward")
+        if not 0 <= dt < math.inf:
+            raise ValueError(f"step({dt}): dt must be a finite number of seconds, 0 or more "
+                             "(time only goes forward)")
         due = int((self._debt + dt + 1e-12) / PHYSICS_DT)
         if due:
             self._advance_hardware(due)
@@ -269,6 +275,11 @@ def _signed_area(points: list[tuple[float, float]]) -> float:
                in itertools.pairwise([*points, points[0]]))
 
 
-def _point(value: Any) -> tuple[float, float]:
+def _point(value: Any, what: str) -> tuple[float, float]:
+    """A point (or a size) as two floats; one that is not finite is refused, naming
+    ``what`` it belongs to (it would poison the physics and every robot's scan)."""
     x, y = value
-    return (float(x), float(y))
+    point = (float(x), float(y))
+    if not all(map(math.isfinite, point)):
+        raise ValueError(f"{what}: points must be finite (x, y), not {point}")
+    return point

@@ -390,6 +390,25 @@ def test_robots_leaving_and_joining_mid_run_leave_the_others_driving_as_commande
     assert world.robot("r0").sonar()[3] == pytest.approx(5.0)    # r1 gone: nothing ahead
 
 
+def test_a_pose_or_a_point_that_is_not_finite_is_refused_naming_it() -> None:
+    world = World(seed=3)
+    seer = world.add_robot("a", (2.0, 4.0, 0.0))
+    world.add_robot("b", (3.0, 4.0, 0.0))
+    with pytest.raises(ValueError, match=r"robot n: pose must be finite .*\(nan, 1.0, 0.0\)"):
+        world.add_robot("n", (math.nan, 1.0, 0.0))       # (it hid every robot from sonars)
+    world.step(0.1)
+    assert seer.sonar()[3] < 1.0 and list(world.robots) == ["a", "b"]
+    with pytest.raises(ValueError, match=r"wall: points must be finite .*\(nan, 0.0\)"):
+        world.add_wall((math.nan, 0.0), (1.0, 1.0))
+    with pytest.raises(ValueError, match=r"polygon: points must be finite"):
+        world.add_polygon([(0, 0), (1, 0), (math.inf, 1)])
+    with pytest.raises(ValueError, match=r"box: size must be \(width, height\), both > 0"):
+        world.add_box((5.0, 5.0), (-1.0, 1.0))
+    with pytest.raises(ValueError, match=r"step\(inf\): dt must be a finite"):
+        world.step(math.inf)
+    assert not world.obstacles
+
+
 def test_a_robot_added_after_another_left_draws_randomness_of_its_own() -> None:
     world = World(seed=3)
     world.add_robot("a", (1.0, 1.0, 0.0))
