@@ -88,9 +88,33 @@ class World:
             world.add_box(**box)
         for polygon in plan.polygons:
             world.add_polygon(**polygon)
+        problems = world._misplaced(plan, str(path))
+        if problems:                             # (before any emulator is started)
+            raise worldfile.WorldError(problems)
         for robot in plan.robots if robots else ():
             world.add_robot(**robot)
         return world
+
+    def _misplaced(self, plan: worldfile.Plan, source: str) -> list[str]:
+        """Every robot of ``plan`` that overlaps an obstacle it would collide with (a
+        hardware robot passes through virtual ones) or a robot placed before it: it
+        would run stuck, or be shoved through a wall."""
+        labels = [f"{table}[{i}]" for table in ("walls", "boxes", "polygons")
+                  for i in range(len(getattr(plan, table)))]
+        problems, placed = [], []
+        for i, robot in enumerate(plan.robots):
+            x, y, _ = robot["pose"]
+            hits = [label for label, obstacle in zip(labels, self.obstacles, strict=True)
+                    if not (obstacle.virtual and robot["backend"] == "hardware")
+                    and _clearance(obstacle, x, y) < RADIUS]
+            hits += [f"robot {name!r}" for name, (px, py) in placed
+                     if math.hypot(x - px, y - py) < 2 * RADIUS]
+            if hits:
+                problems.append(f"{source} robots[{i}] {robot['name']!r}: at ({x}, {y}) "
+                                f"it overlaps {', '.join(hits)}; a robot needs {RADIUS:g} m "
+                                "clear of obstacles and other robots")
+            placed.append((robot["name"], (x, y)))
+        return problems
 
     # -- building -----------------------------------------------------------------
     def add_wall(self, start: tuple[float, float], end: tuple[float, float], *,
@@ -267,6 +291,24 @@ class World:
                 "obstacles": [vars(o) for o in self.obstacles],
                 "robots": {name: {"pose": r.gps(), "backend": r.backend, "color": r.color}
                            for name, r in self.robots.items()}}
+
+
+def _clearance(obstacle: Obstacle, x: float, y: float) -> float:
+    """How far (x, y) lies from the obstacle's edges; 0 inside a closed one."""
+    edges = np.array(obstacle.edges(), dtype=np.float64)
+    start, along = edges[:, 0:2], edges[:, 2:4] - edges[:, 0:2]
+    rel = np.array([x, y]) - start
+    t = np.clip((rel * along).sum(axis=1) / np.maximum((along * along).sum(axis=1), 1e-12),
+                0.0, 1.0)
+    gap = float(np.hypot(*(rel - t[:, None] * along).T).min())
+    if obstacle.closed:                           # inside: an odd number of edges cross
+        y0, y1 = edges[:, 1], edges[:, 3]         # the ray from (x, y) towards +x
+        spans = (y0 > y) != (y1 > y)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cross = edges[:, 0] + (y - y0) * (edges[:, 2] - edges[:, 0]) / (y1 - y0)
+        if np.count_nonzero(spans & (x < cross)) % 2:
+            return 0.0
+    return gap
 
 
 def _signed_area(points: list[tuple[float, float]]) -> float:

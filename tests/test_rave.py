@@ -307,6 +307,52 @@ pose = [2, 2, 0]
         assert any(expected in p for p in problems), (expected, problems)
 
 
+def test_a_world_file_placing_a_robot_in_an_obstacle_or_another_robot_names_each(
+        tmp_path) -> None:
+    placed = tmp_path / "placed.toml"
+    placed.write_text("""
+size = [10.0, 8.0]
+[[walls]]
+from = [3.0, 0.0]
+to = [3.0, 8.0]
+[[boxes]]
+center = [6.0, 4.0]
+size = [2.0, 2.0]
+[[boxes]]
+center = [8.5, 6.5]
+size = [1.0, 1.0]
+virtual = true
+[[robots]]
+name = "across"
+pose = [3.1, 4.0, 0.0]
+[[robots]]
+name = "boxed"
+pose = [6.0, 4.0, 0.0]
+[[robots]]
+name = "a"
+pose = [1.0, 1.0, 0.0]
+[[robots]]
+name = "b"
+pose = [1.3, 1.0, 0.0]
+[[robots]]
+name = "ghost"
+pose = [8.5, 6.5, 0.0]
+backend = "hardware"
+[[robots]]
+name = "fine"
+pose = [1.0, 6.0, 0.0]
+""")
+    with pytest.raises(WorldError) as error:       # (before, they ran stuck or pushed through)
+        World.load(placed)
+    problems = error.value.problems
+    assert len(problems) == 3, problems       # not 'ghost': a hardware robot passes virtual
+    for expected in ("robots[0] 'across': at (3.1, 4.0) it overlaps walls[0]",
+                     "robots[1] 'boxed': at (6.0, 4.0) it overlaps boxes[0]",
+                     "robots[3] 'b': at (1.3, 1.0) it overlaps robot 'a'"):
+        assert any(expected in p for p in problems), (expected, problems)
+    assert "0.25 m clear" in problems[0]
+
+
 def test_the_batched_scan_of_a_crowd_equals_casting_every_ray_against_everything(
         world_of: WorldMaker) -> None:
     """Also after the robots have wandered (the neighbour lists are kept from scan to
