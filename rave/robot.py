@@ -102,13 +102,15 @@ class Robot:
     # -- back ends and faults ----------------------------------------------------------
     def swap(self, backend: str) -> None:
         """Serve this robot by the other back end from now on, at its current pose and
-        speed; commands, odometry and the controller's handle carry over."""
+        speed; commands, odometry and the controller's handle carry over (a hardware
+        robot's faults do not)."""
         _check_backend(self.name, backend)
         if backend == self.backend:
             return
         pose, (vx, vy, w) = self._body.pose(), self._body.velocity()
         command = self._body.commanded()
         self._body.close()
+        self.odometer.bias = 0.0        # its faults went with the hardware robot
         self._body = self._make(backend, pose, (math.hypot(vx, vy), w), command)
 
     def inject(self, fault: str, **params: Any) -> None:

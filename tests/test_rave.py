@@ -219,6 +219,18 @@ def test_dead_sonars_and_odometry_bias_are_injected_and_cleared(world_of: WorldM
     assert robot.sonar()[3] < sonar.MAX_RANGE and not robot._body.faults
 
 
+def test_a_swap_leaves_no_fault_of_the_old_hardware_robot_behind(world_of: WorldMaker) -> None:
+    world = world_of(size=(10, 8), seed=3)
+    robot = world.add_robot("hw", POSE, backend="hardware")
+    robot.inject("odometry_bias", bias=0.3)
+    robot.swap("sim")
+    robot.swap("hardware")                      # a fresh robot: no fault listed, none acting
+    assert robot._body.faults == {}
+    robot.drive(0.5, 0.0)
+    world.step(3.0)                             # (before, the bias drifted it 0.3 rad per m)
+    assert robot.odometry()[2] == pytest.approx(world.pose("hw")[2], abs=0.05)
+
+
 def test_a_back_end_swap_mid_run_leaves_the_controller_untouched(world_of: WorldMaker) -> None:
     world = world_of(size=(20, 20), seed=5)
     robot = world.add_robot("r", (10.0, 10.0, 0.0), backend="sim")
