@@ -8,7 +8,8 @@ talks to the robot's server (``rave start``) through its resource port, so the
 controller behind its ports can run on any node; re-pointing ``resource`` moves it
 to another robot while it runs (the old one is stopped first). Setting ``enabled`` to
 False stops the robot safely: it is told to stop every period and commands are
-ignored, while its sensors are still read out.
+ignored, while its sensors are still read out. A command that is not finite (a
+controller gone wrong) stops the robot too, and is counted in ``failures``.
 
 Against a world served in lock-step (``rave start --lockstep``), set ``lockstep_s``:
 each command then drives the robot, advances the world by ``lockstep_s`` simulated
@@ -65,7 +66,8 @@ class RobotDriver(Driver):
         super().set_state(state)
         if repointed and "_read_at" in vars(self):
             # the new robot has not taken the command in force yet
-            self._unsent = self.command.read() if self.command.has_value else None
+            held = self.command.read() if self.command.has_value else None
+            self._unsent = None if held is None else self._checked(held)
             self._serve(self._unsent, advance=0.0)
 
     def step(self) -> None:
@@ -74,8 +76,9 @@ class RobotDriver(Driver):
         self._serve(self._unsent, advance=0.0)
 
     def on_input(self, port: InputPort) -> None:
+        command = self._checked(port.read())
         if self.lockstep_s > 0:
-            self._serve(port.read(), advance=self.lockstep_s)
+            self._serve(command, advance=self.lockstep_s)
             return
         # A command is sent as it comes, not at the next period: waiting for the
         # period would add up to one (0.1 s) to the loop's latency, which a robot with
@@ -83,12 +86,23 @@ class RobotDriver(Driver):
         # again with the next period's reading.
         if not self.enabled:
             return               # ignored: every period tells the robot to stop
-        self._unsent = port.read()
+        self._unsent = command
         try:
             self._apply(self._unsent)
         except (RuntimeError, OSError) as exc:
             self.failures += 1
             self.last_error = str(exc)
+
+    def _checked(self, command: np.ndarray) -> np.ndarray:
+        """``command``, or a stop where it is not finite: the robot refuses it, so sent on
+        it would leave the robot on the last command and the driver resending it every
+        period, reading nothing. Counted, and said in ``last_error``."""
+        if np.isfinite(command).all():
+            return command
+        self.failures += 1
+        self.last_error = (f"command ({', '.join(map(str, command.tolist()))}) is not "
+                           "finite: the robot is stopped")
+        return np.zeros(2)
 
     def _apply(self, command: np.ndarray | None) -> None:
         """Drive by ``command`` (none: the last one holds), or stop a disabled robot."""

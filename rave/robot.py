@@ -9,11 +9,12 @@ sensors with no physical analogue.
 from __future__ import annotations
 
 import math
+from numbers import Integral, Real
 from typing import Any, Protocol
 
 import numpy as np
 
-from rave import camera
+from rave import camera, sonar
 from rave.emulator import FAULTS
 from rave.hardware import HardwareBody, HardwareHost
 from rave.odometry import Odometer
@@ -101,13 +102,15 @@ class Robot:
     # -- back ends and faults ----------------------------------------------------------
     def swap(self, backend: str) -> None:
         """Serve this robot by the other back end from now on, at its current pose and
-        speed; commands, odometry and the controller's handle carry over."""
+        speed; commands, odometry and the controller's handle carry over (a hardware
+        robot's faults do not)."""
         _check_backend(self.name, backend)
         if backend == self.backend:
             return
         pose, (vx, vy, w) = self._body.pose(), self._body.velocity()
         command = self._body.commanded()
         self._body.close()
+        self.odometer.bias = 0.0        # its faults went with the hardware robot
         self._body = self._make(backend, pose, (math.hypot(vx, vy), w), command)
 
     def inject(self, fault: str, **params: Any) -> None:
@@ -115,9 +118,13 @@ class Robot:
         (``sonars=[i, ...]``, all by default) or ``odometry_bias`` (``bias`` rad/m)."""
         body = self._hardware(fault)
         if fault == "sonar_dead":
-            body.inject(fault, tuple(params.get("sonars", range(16))))
+            body.inject(fault, self._sonars(params.get("sonars", range(sonar.COUNT))))
         elif fault == "odometry_bias":
-            self.odometer.bias = float(params.get("bias", 0.05))
+            bias = params.get("bias", 0.05)
+            if not (isinstance(bias, Real) and math.isfinite(bias)):
+                raise ValueError(f"robot {self.name}: odometry_bias's bias must be a finite "
+                                 f"number (rad per m), not {bias!r}")
+            self.odometer.bias = float(bias)
             body.inject(fault, self.odometer.bias)
         else:
             body.inject(fault, True)
@@ -129,6 +136,16 @@ class Robot:
             body.clear(name)
             if name == "odometry_bias":
                 self.odometer.bias = 0.0
+
+    def _sonars(self, sonars: Any) -> tuple[int, ...]:
+        """The transducers a ``sonar_dead`` fault names, checked here: a wrong one would
+        break the robot's emulator at every step, or (negative) silence another one."""
+        chosen = tuple(sonars) if isinstance(sonars, list | tuple | range) else (sonars,)
+        if not all(isinstance(i, Integral) and not isinstance(i, bool) and 0 <= i < sonar.COUNT
+                   for i in chosen):
+            raise ValueError(f"robot {self.name}: sonar_dead's sonars must be transducer "
+                             f"numbers 0-{sonar.COUNT - 1}, not {sonars!r}")
+        return tuple(int(i) for i in chosen)
 
     def _hardware(self, fault: str | None) -> HardwareBody:
         if fault is not None and fault not in FAULTS:

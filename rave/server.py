@@ -12,6 +12,7 @@ learns which back end serves the robot, and the back end can be swapped under it
 from __future__ import annotations
 
 import logging
+import math
 import multiprocessing
 import threading
 import time
@@ -58,6 +59,7 @@ class WorldServer:
         self._lock = threading.Lock()                      # the world is not thread-safe
         self._stopping = threading.Event()
         self._paced = threading.Event()                    # the rate changed
+        self._failing = ""                                 # why the last step failed
         self._server = ControlServer(ClusterKey.load(), self._handle, host, port,
                                      name="rave-world")
         self.address = self._server.address
@@ -76,13 +78,26 @@ class WorldServer:
                 rate = self.rate               # world held by ``pace`` steps no more)
                 if rate:
                     steps = max(1, round(TICK_S * rate / PHYSICS_DT))
-                    self.world.step(steps * PHYSICS_DT)
+                    self._step(steps * PHYSICS_DT)
             if not rate:                       # held: no simulated time passes
                 self._paced.wait()
                 continue
             next_at += steps * PHYSICS_DT / rate
             # a real-time loop: wait for the next tick (or a new pace), never drift
             self._paced.wait(max(0.0, next_at - time.monotonic()))
+
+    def _step(self, dt: float) -> None:
+        """Step the world; a step that fails (a hardware robot's emulator gone) is logged
+        once and tried again at the next tick, so the world goes on as soon as it is
+        mended (the robot swapped to sim) instead of its stepper dying."""
+        try:
+            self.world.step(dt)
+        except Exception as exc:
+            if str(exc) != self._failing:
+                log.error("world %s cannot step: %s", self.world.name, exc)
+            self._failing = str(exc)
+        else:
+            self._failing = ""
 
     def pace(self, rate: float) -> float:
         """Run the world at ``rate`` times real time from now on; 0 holds it (no
@@ -159,9 +174,9 @@ def _apply(robot: Any, op: str, args: dict[str, Any], now: float) -> Any:
 
 
 def _check_rate(rate: float) -> None:
-    if not rate >= 0:
-        raise ValueError(f"a world's rate is how many times real time it runs, 0 or more "
-                         f"(0 holds it), not {rate}")
+    if not 0 <= rate < math.inf:
+        raise ValueError(f"a world's rate is how many times real time it runs, a finite "
+                         f"number, 0 or more (0 holds it), not {rate}")
 
 
 class WorldProcess:

@@ -67,6 +67,7 @@ class World:
         self.space = pymunk.Space()
         self.obstacles: list[Obstacle] = []
         self.robots: dict[str, Robot] = {}
+        self._added = 0                              # robots added so far (their indices)
         self.time = 0.0
         self._steps = 0
         self._debt = 0.0
@@ -87,20 +88,47 @@ class World:
             world.add_box(**box)
         for polygon in plan.polygons:
             world.add_polygon(**polygon)
+        problems = world._misplaced(plan, str(path))
+        if problems:                             # (before any emulator is started)
+            raise worldfile.WorldError(problems)
         for robot in plan.robots if robots else ():
             world.add_robot(**robot)
         return world
 
+    def _misplaced(self, plan: worldfile.Plan, source: str) -> list[str]:
+        """Every robot of ``plan`` that overlaps an obstacle it would collide with (a
+        hardware robot passes through virtual ones) or a robot placed before it: it
+        would run stuck, or be shoved through a wall."""
+        labels = [f"{table}[{i}]" for table in ("walls", "boxes", "polygons")
+                  for i in range(len(getattr(plan, table)))]
+        problems, placed = [], []
+        for i, robot in enumerate(plan.robots):
+            x, y, _ = robot["pose"]
+            hits = [label for label, obstacle in zip(labels, self.obstacles, strict=True)
+                    if not (obstacle.virtual and robot["backend"] == "hardware")
+                    and _clearance(obstacle, x, y) < RADIUS]
+            hits += [f"robot {name!r}" for name, (px, py) in placed
+                     if math.hypot(x - px, y - py) < 2 * RADIUS]
+            if hits:
+                problems.append(f"{source} robots[{i}] {robot['name']!r}: at ({x}, {y}) "
+                                f"it overlaps {', '.join(hits)}; a robot needs {RADIUS:g} m "
+                                "clear of obstacles and other robots")
+            placed.append((robot["name"], (x, y)))
+        return problems
+
     # -- building -----------------------------------------------------------------
     def add_wall(self, start: tuple[float, float], end: tuple[float, float], *,
                  virtual: bool = False) -> None:
-        self._add(Obstacle((_point(start), _point(end)), closed=False, virtual=virtual))
+        self._add(Obstacle((_point(start, "wall"), _point(end, "wall")), closed=False,
+                           virtual=virtual))
 
     def add_box(self, center: tuple[float, float], size: tuple[float, float], *,
                 angle: float = 0.0, virtual: bool = False, color: str | None = None) -> None:
         """A rectangle of ``size`` (width, height) around ``center``, turned by ``angle``
         radians."""
-        (cx, cy), (w, h) = _point(center), _point(size)
+        (cx, cy), (w, h) = _point(center, "box"), _point(size, "box")
+        if not (w > 0 and h > 0):
+            raise ValueError(f"box: size must be (width, height), both > 0, not {size}")
         c, s = math.cos(angle), math.sin(angle)
         corners = [(dx * w / 2, dy * h / 2) for dx, dy in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
         points = tuple((cx + c * x - s * y, cy + s * x + c * y) for x, y in corners)
@@ -110,7 +138,7 @@ class World:
                     color: str | None = None) -> None:
         if len(points) < 3:
             raise ValueError(f"a polygon needs at least 3 points, not {len(points)}")
-        corners = [_point(p) for p in points]
+        corners = [_point(p, "polygon") for p in points]
         if _signed_area(corners) < 0:
             corners.reverse()                   # anticlockwise: the inside on the left
         self._add(Obstacle(tuple(corners), closed=True, virtual=virtual, color=color))
@@ -135,8 +163,11 @@ class World:
         "hardware")."""
         if name in self.robots:
             raise ValueError(f"world {self.name} has a robot {name!r} already")
-        robot = Robot(self, name, (float(pose[0]), float(pose[1]), float(pose[2])),
-                      backend=backend, color=color, index=len(self.robots))
+        place = (float(pose[0]), float(pose[1]), float(pose[2]))
+        if not all(map(math.isfinite, place)):
+            raise ValueError(f"robot {name}: pose must be finite (x, y, heading), not {place}")
+        robot = Robot(self, name, place, backend=backend, color=color, index=self._added)
+        self._added += 1                # (never reused: a robot's noise is its own)
         self.robots[name] = robot
         return robot
 
@@ -166,8 +197,9 @@ class World:
     def step(self, dt: float) -> None:
         """Advance simulated time by ``dt`` seconds in fixed physics steps (a remainder
         shorter than one is carried to the next call)."""
-        if not dt >= 0:
-            raise ValueError(f"step({dt}): time only goes forward")
+        if not 0 <= dt < math.inf:
+            raise ValueError(f"step({dt}): dt must be a finite number of seconds, 0 or more "
+                             "(time only goes forward)")
         due = int((self._debt + dt + 1e-12) / PHYSICS_DT)
         if due:
             self._advance_hardware(due)
@@ -261,12 +293,35 @@ class World:
                            for name, r in self.robots.items()}}
 
 
+def _clearance(obstacle: Obstacle, x: float, y: float) -> float:
+    """How far (x, y) lies from the obstacle's edges; 0 inside a closed one."""
+    edges = np.array(obstacle.edges(), dtype=np.float64)
+    start, along = edges[:, 0:2], edges[:, 2:4] - edges[:, 0:2]
+    rel = np.array([x, y]) - start
+    t = np.clip((rel * along).sum(axis=1) / np.maximum((along * along).sum(axis=1), 1e-12),
+                0.0, 1.0)
+    gap = float(np.hypot(*(rel - t[:, None] * along).T).min())
+    if obstacle.closed:                           # inside: an odd number of edges cross
+        y0, y1 = edges[:, 1], edges[:, 3]         # the ray from (x, y) towards +x
+        spans = (y0 > y) != (y1 > y)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cross = edges[:, 0] + (y - y0) * (edges[:, 2] - edges[:, 0]) / (y1 - y0)
+        if np.count_nonzero(spans & (x < cross)) % 2:
+            return 0.0
+    return gap
+
+
 def _signed_area(points: list[tuple[float, float]]) -> float:
     """Twice the area enclosed, positive when the points go round anticlockwise."""
     return sum(x0 * y1 - x1 * y0 for (x0, y0), (x1, y1)
                in itertools.pairwise([*points, points[0]]))
 
 
-def _point(value: Any) -> tuple[float, float]:
+def _point(value: Any, what: str) -> tuple[float, float]:
+    """A point (or a size) as two floats; one that is not finite is refused, naming
+    ``what`` it belongs to (it would poison the physics and every robot's scan)."""
     x, y = value
-    return (float(x), float(y))
+    point = (float(x), float(y))
+    if not all(map(math.isfinite, point)):
+        raise ValueError(f"{what}: points must be finite (x, y), not {point}")
+    return point

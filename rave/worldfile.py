@@ -26,7 +26,8 @@ color = "red"
 ```
 
 ``read`` turns a file into a ``Plan``, plain data that ``World.load`` builds. Every
-problem is reported at once (``WorldError``), each naming the entry.
+problem is reported at once (``WorldError``), each naming the entry; ``World.load``
+adds those of robots placed where they overlap an obstacle or another robot.
 """
 
 from __future__ import annotations

@@ -10,6 +10,7 @@ import pytest
 
 import pb3a.model.driver
 from agents.robot_driver import RobotDriver
+from pb3a import RuntimeFailure
 from pb3a.testing import ModuleHarness
 
 
@@ -25,6 +26,8 @@ class FakeRobotServer:
 
     def call(self, op: str, timeout: float, **args: Any) -> Any:
         self.requests.append((op, args))
+        if not np.isfinite([args.get("v", 0.0), args.get("w", 0.0)]).all():
+            raise RuntimeFailure(f"drive({args['v']}, {args['w']}) needs finite speeds")
         if op in ("advance", "cycle"):
             FakeRobotServer.time += args["dt"]
             if op == "advance":
@@ -128,3 +131,20 @@ def test_a_running_driver_re_pointed_at_another_robot_reads_it_at_once(robot) ->
     assert ops(robot) == ["sensors", "drive", "stop", "drive", "sensors"]
     harness.module.set_state({"enabled": True})                # not a re-point: no reading
     assert len(harness.written["sonar"]) == 2
+
+
+@pytest.mark.parametrize("lockstep_s", [0.0, 0.25])
+def test_a_command_that_is_not_finite_stops_the_robot_and_the_driver_senses_on(
+        robot, lockstep_s) -> None:
+    harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400",
+                                                "lockstep_s": lockstep_s})
+    harness.feed("command", np.array([0.4, 0.1]))
+    harness.feed("command", np.array([np.nan, 0.1]))          # a controller gone wrong
+    assert harness.module.failures == 1
+    assert "command (nan, 0.1) is not finite: the robot is stopped" in harness.module.last_error
+    assert robot.requests[1][1] == {"v": 0.0, "w": 0.0, **({"dt": 0.25} if lockstep_s else {})}
+    robot.requests.clear()
+    harness.module.set_state({"lockstep_s": 0.0})
+    harness.step(2)                        # (before, each period resent NaN and read nothing)
+    assert ops(robot) == ["sensors"] * 2 and harness.module.failures == 1
+    assert list(harness.last("applied")) == [0.0, 0.0]

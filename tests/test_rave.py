@@ -208,6 +208,27 @@ def test_dead_sonars_and_odometry_bias_are_injected_and_cleared(world_of: WorldM
     assert abs(robot.odometry()[2] - world.pose("hw")[2]) > 0.1  # heading drifts per metre
     robot.clear()
     assert robot.sonar()[3] < sonar.MAX_RANGE
+    # a wrong transducer number is refused before it reaches the robot (16 broke every
+    # later step, even after clear(); -1 silently killed transducer 15)
+    for wrong in ([16], [-1], [2.5], [True]):
+        with pytest.raises(ValueError, match=r"sonars must be transducer numbers 0-15"):
+            robot.inject("sonar_dead", sonars=wrong)
+    with pytest.raises(ValueError, match="bias must be a finite number"):
+        robot.inject("odometry_bias", bias=math.nan)
+    world.step(0.5)
+    assert robot.sonar()[3] < sonar.MAX_RANGE and not robot._body.faults
+
+
+def test_a_swap_leaves_no_fault_of_the_old_hardware_robot_behind(world_of: WorldMaker) -> None:
+    world = world_of(size=(10, 8), seed=3)
+    robot = world.add_robot("hw", POSE, backend="hardware")
+    robot.inject("odometry_bias", bias=0.3)
+    robot.swap("sim")
+    robot.swap("hardware")                      # a fresh robot: no fault listed, none acting
+    assert robot._body.faults == {}
+    robot.drive(0.5, 0.0)
+    world.step(3.0)                             # (before, the bias drifted it 0.3 rad per m)
+    assert robot.odometry()[2] == pytest.approx(world.pose("hw")[2], abs=0.05)
 
 
 def test_a_back_end_swap_mid_run_leaves_the_controller_untouched(world_of: WorldMaker) -> None:
@@ -298,6 +319,52 @@ pose = [2, 2, 0]
         assert any(expected in p for p in problems), (expected, problems)
 
 
+def test_a_world_file_placing_a_robot_in_an_obstacle_or_another_robot_names_each(
+        tmp_path) -> None:
+    placed = tmp_path / "placed.toml"
+    placed.write_text("""
+size = [10.0, 8.0]
+[[walls]]
+from = [3.0, 0.0]
+to = [3.0, 8.0]
+[[boxes]]
+center = [6.0, 4.0]
+size = [2.0, 2.0]
+[[boxes]]
+center = [8.5, 6.5]
+size = [1.0, 1.0]
+virtual = true
+[[robots]]
+name = "across"
+pose = [3.1, 4.0, 0.0]
+[[robots]]
+name = "boxed"
+pose = [6.0, 4.0, 0.0]
+[[robots]]
+name = "a"
+pose = [1.0, 1.0, 0.0]
+[[robots]]
+name = "b"
+pose = [1.3, 1.0, 0.0]
+[[robots]]
+name = "ghost"
+pose = [8.5, 6.5, 0.0]
+backend = "hardware"
+[[robots]]
+name = "fine"
+pose = [1.0, 6.0, 0.0]
+""")
+    with pytest.raises(WorldError) as error:       # (before, they ran stuck or pushed through)
+        World.load(placed)
+    problems = error.value.problems
+    assert len(problems) == 3, problems       # not 'ghost': a hardware robot passes virtual
+    for expected in ("robots[0] 'across': at (3.1, 4.0) it overlaps walls[0]",
+                     "robots[1] 'boxed': at (6.0, 4.0) it overlaps boxes[0]",
+                     "robots[3] 'b': at (1.3, 1.0) it overlaps robot 'a'"):
+        assert any(expected in p for p in problems), (expected, problems)
+    assert "0.25 m clear" in problems[0]
+
+
 def test_the_batched_scan_of_a_crowd_equals_casting_every_ray_against_everything(
         world_of: WorldMaker) -> None:
     """Also after the robots have wandered (the neighbour lists are kept from scan to
@@ -379,6 +446,35 @@ def test_robots_leaving_and_joining_mid_run_leave_the_others_driving_as_commande
         body = world.robot(name)._body.body
         assert world.pose(name)[:2] == pytest.approx(tuple(body.position), abs=1e-9)
     assert world.robot("r0").sonar()[3] == pytest.approx(5.0)    # r1 gone: nothing ahead
+
+
+def test_a_pose_or_a_point_that_is_not_finite_is_refused_naming_it() -> None:
+    world = World(seed=3)
+    seer = world.add_robot("a", (2.0, 4.0, 0.0))
+    world.add_robot("b", (3.0, 4.0, 0.0))
+    with pytest.raises(ValueError, match=r"robot n: pose must be finite .*\(nan, 1.0, 0.0\)"):
+        world.add_robot("n", (math.nan, 1.0, 0.0))       # (it hid every robot from sonars)
+    world.step(0.1)
+    assert seer.sonar()[3] < 1.0 and list(world.robots) == ["a", "b"]
+    with pytest.raises(ValueError, match=r"wall: points must be finite .*\(nan, 0.0\)"):
+        world.add_wall((math.nan, 0.0), (1.0, 1.0))
+    with pytest.raises(ValueError, match=r"polygon: points must be finite"):
+        world.add_polygon([(0, 0), (1, 0), (math.inf, 1)])
+    with pytest.raises(ValueError, match=r"box: size must be \(width, height\), both > 0"):
+        world.add_box((5.0, 5.0), (-1.0, 1.0))
+    with pytest.raises(ValueError, match=r"step\(inf\): dt must be a finite"):
+        world.step(math.inf)
+    assert not world.obstacles
+
+
+def test_a_robot_added_after_another_left_draws_randomness_of_its_own() -> None:
+    world = World(seed=3)
+    world.add_robot("a", (1.0, 1.0, 0.0))
+    kept = world.add_robot("b", (3.0, 1.0, 0.0))
+    world.remove_robot("a")
+    added = world.add_robot("c", (5.0, 1.0, 0.0))        # (it had b's stream: b's errors)
+    assert not np.allclose(added.odometer.scale, kept.odometer.scale)
+    assert added.rng.random() != kept.rng.random()
 
 
 def test_a_simulated_robot_turning_steadily_drives_a_circle_back_to_its_start() -> None:

@@ -5,6 +5,7 @@ it and can be re-pointed to another robot while running."""
 from __future__ import annotations
 
 import math
+import os
 import signal
 import subprocess
 import sys
@@ -115,6 +116,10 @@ def test_a_world_in_a_process_of_its_own_is_held_then_paced_and_stops_with_its_o
         assert client.call("describe")["time"] == held_at            # held again
         with pytest.raises(RuntimeFailure, match=r"0 or more \(0 holds it\), not -1.0"):
             client.call("pace", rate=-1.0)
+        with pytest.raises(RuntimeFailure, match=r"a finite number, 0 or more .*not inf"):
+            client.call("pace", rate=math.inf)               # (it killed the stepper)
+        time = client.call("pace", rate=20.0)
+        eventually(lambda: client.call("describe")["time"] > time + 0.5, what="time at 20x")
         with pytest.raises(RuntimeFailure, match="its operations: describe, pace"):
             client.call("fly", robot="r1")
     finally:
@@ -130,6 +135,24 @@ def test_a_lockstep_world_refuses_a_pace() -> None:
     try:
         with pytest.raises(RuntimeFailure, match="runs in lock-step: its controller advances"):
             client.call("pace", rate=2.0)
+    finally:
+        client.close()
+        server.close()
+
+
+def test_a_served_world_whose_emulator_dies_goes_on_once_the_robot_is_swapped(caplog) -> None:
+    world = World.load("rave/worlds/arena.toml", seed=2)       # r2 hardware
+    server = WorldServer(world)
+    client = ControlClient(ClusterKey.load(), server.address)
+    try:
+        os.kill(world.robot("r2")._body.emulator.pid, signal.SIGKILL)
+        eventually(lambda: "emulator of robot r2 is gone" in caplog.text,
+                   what="the failed step logged")
+        assert caplog.text.count("emulator of robot r2 is gone") == 1   # once, not per tick
+        stuck = client.call("describe")["time"]
+        client.call("swap", robot="r2", backend="sim")         # mended, as the error says
+        eventually(lambda: client.call("describe")["time"] > stuck + 0.3,
+                   what="the world stepping again")
     finally:
         client.close()
         server.close()
