@@ -55,7 +55,7 @@ def test_one_executor_per_configuration_runs_modules_and_stops_cleanly(node) -> 
         with pytest.raises(RuntimeFailure, match="no operation 'shutdown_everything'"):
             apply("shutdown_everything")
         apply("add_module", _counter())
-        apply("start_modules", ["tick"])
+        executor.call("start", names=["tick"])       # (beside the requests of "executor")
         eventually(lambda: apply("call_module", "tick", "get_state")["count"] > 10,
                    what="the module counting in the node's executor")
         assert executor.call("describe") == {"config": "demo", "node": "n1",

@@ -188,6 +188,23 @@ def test_on_a_remote_node_a_restarted_writer_feeds_its_readers_and_agents_can_mo
                    timeout=30, what="values from the restarted writer on node b")
 
 
+def test_on_a_remote_node_an_agent_may_ask_the_runtime_from_setup_as_the_system_starts(
+        controllers) -> None:
+    """The launch runs ``setup`` there as on an embedded node: the node's executor
+    takes other requests meanwhile, so an agent whose ``setup`` asks about a module of
+    its own node is answered at once, not when the start times out."""
+    system = System("remote-asks-at-start")
+    system.node("a").node("b", address=controllers["b"].address)
+    system.add("other", Steady, node="b")
+    system.add("asker", AsksInSetup, node="b")
+    started = time.monotonic()
+    with system.launch(timeout=10) as run:
+        took = time.monotonic() - started
+        state = run.state("asker")
+    assert state["asked"] >= 0                         # its setup was answered
+    assert took < 5.0, took
+
+
 def test_on_a_remote_node_a_restarted_agent_may_ask_the_runtime_from_setup(
         controllers) -> None:
     """A restart there runs ``setup`` without the executor's lock: an agent whose
@@ -195,8 +212,7 @@ def test_on_a_remote_node_a_restarted_agent_may_ask_the_runtime_from_setup(
     once, is reported running, and the launcher gets the event."""
     system = System("remote-asks").node("a").node("b", address=controllers["b"].address)
     system.add("other", Steady, node="b")
-    # it asks once restarted, from its last checkpoint (a launch on a remote node runs
-    # setup while its executor takes no other request: "Not promised" in guarantees.md)
+    # it asks once restarted, from its last checkpoint
     system.add("asker", AsksInSetup, node="b", restart="last-state", state={"ask": False})
     with system.launch(checkpoint_s=0.1) as run:
         eventually(lambda: run.state("asker")["steps"] > 2, timeout=30, what="the agent steps")

@@ -76,6 +76,9 @@ class NodeShare:
                 raise ValueError(f"a node executor has no operation {args['method']!r}")
             with ex.lock:
                 return getattr(ex, args["method"])(*args["args"], **args["kwargs"])
+        if op == "start":       # beside the executor's other requests, without its lock,
+            ex.start_modules(args["names"])   # as on an embedded node: see executor_main
+            return None
         if op == "bind":
             self.bind(args["launcher"], args["checkpoint_s"], args["log_level"],
                       args["code"], args.get("lease_s", LEASE_S), args.get("epoch", 0),
@@ -209,6 +212,9 @@ def executor_main(config: str, node: str, workers: int, cpus: list[int] | None,
     server = share.server = ControlServer(share.key, share.handle, host,
                                           name="pb3a-node-executor",
                                           instant={"lease": share.renew},
+                                          # setup may ask the launcher about this node,
+                                          # which asks this executor: not in one lane
+                                          aside={"start"},
                                           decode_lock=share.executor.import_lock)
     try:
         serve_as_child(conn, server.address, share.stopped)

@@ -127,8 +127,9 @@ class Node(Protocol):
         """Stop every module (reverse start order), every worker, free every segment."""
 
 
-# What a launcher may ask of a node executor process over the wire (its shutdown goes
-# through the node controller, which owns the process).
+# What a launcher may ask of a node executor process over the wire, one at a time (its
+# shutdown goes through the node controller, which owns the process; its start is a
+# request of its own, taken beside these).
 REMOTE_OPERATIONS = frozenset(
     name for name, member in vars(Node).items()
-    if callable(member) and not name.startswith("_")) - {"shutdown"}
+    if callable(member) and not name.startswith("_")) - {"shutdown", "start_modules"}

@@ -4,7 +4,9 @@ A ``ControlClient`` sends ``(op, args)`` to a ``ControlServer`` and waits for th
 answer. Every request and reply is sealed with the cluster key and opened (``auth``)
 before it is unpickled: an unauthenticated frame is never deserialized. The server
 takes requests in on its socket loop and runs them one at a time on a handler thread
-(in arrival order, so operations never interleave); ``ping`` and the server's
+(in arrival order, so operations never interleave), except its ``aside`` operations,
+each run on a thread of its own: a long one that others must get past (a node's
+start, during which an agent's ``setup`` asks about that node); ``ping`` and the server's
 ``instant`` operations (a node's lease) are answered at once on the socket thread,
 so heartbeats are not held up by a long operation. Nor by a request that names a
 module not imported yet: the socket thread never imports, it hands such a request to
@@ -48,7 +50,7 @@ from pb3a.transport.auth import ClusterKey, Opener, Rejected, Sealer
 from pb3a.transport.loop import SocketLoop
 
 if TYPE_CHECKING:
-    from collections.abc import Callable, Mapping
+    from collections.abc import Callable, Collection, Mapping
 
 log = logging.getLogger("pb3a.control")
 
@@ -83,12 +85,14 @@ class ControlServer:
                  host: str = "127.0.0.1", port: int = 0, *, epoch: int = 0,
                  name: str = "pb3a-control",
                  instant: Mapping[str, Callable[[dict[str, Any]], Any]] | None = None,
+                 aside: Collection[str] = (),
                  decode_lock: threading.Lock | None = None) -> None:
         """``decode_lock``: held while a request imports the modules of the classes it
         names (see ``_decode``), by a process that also imports in the background:
         CPython may hand one thread a module another is still importing when the two
         imports go through a circular one."""
         self._handler = handler
+        self._aside = frozenset(aside)
         self._decode_lock = decode_lock or contextlib.nullcontext()
         # answered on the socket thread, never queued: they must be quick and never block
         self._instant = {"ping": lambda args: "pong", **(instant or {})}
@@ -144,6 +148,9 @@ class ControlServer:
             answer = self._instant.get(op)
             if answer is not None:
                 self._reply(peer, request_id, True, answer(args))
+            elif op in self._aside:
+                threading.Thread(target=self._run, args=(peer, request_id, op, args),
+                                 name=f"{self._worker.name}-{op}", daemon=True).start()
             else:
                 self._work.put((peer, request_id, op, args))
 
@@ -175,14 +182,18 @@ class ControlServer:
                 except Exception as exc:
                     self._reply_undecodable(peer, request_id, exc)
                     continue
-            try:
-                result, ok = self._handler(op, args), True
-            except PB3AError as exc:               # the caller gets the same error
-                result, ok = exc, False
-            except Exception as exc:
-                log.debug("request %s failed", op, exc_info=True)
-                result, ok = f"{type(exc).__name__}: {exc}", False
-            self._loop.submit(lambda p=peer, r=request_id, k=ok, v=result: self._reply(p, r, k, v))
+            self._run(peer, request_id, op, args)
+
+    def _run(self, peer: Any, request_id: bytes, op: str, args: Any) -> None:
+        """Run one request and send its answer (from the socket thread)."""
+        try:
+            result, ok = self._handler(op, args), True
+        except PB3AError as exc:               # the caller gets the same error
+            result, ok = exc, False
+        except Exception as exc:
+            log.debug("request %s failed", op, exc_info=True)
+            result, ok = f"{type(exc).__name__}: {exc}", False
+        self._loop.submit(lambda: self._reply(peer, request_id, ok, result))
 
     def _reply(self, peer: Any, request_id: bytes, ok: bool, result: Any) -> None:
         try:
