@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from pb3a.processes import serve_as_child, start_without_main
+from pb3a.processes import serve_as_child, start_without_main, stop_on_sigterm
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient, ControlServer
 from rave.world import PHYSICS_DT, World
@@ -198,14 +198,7 @@ class WorldProcess:
         start_without_main(self._process)
         child.close()
         try:
-            if not parent.poll(START_TIMEOUT):
-                raise RuntimeError(f"the world server of {path} did not start within "
-                                   f"{START_TIMEOUT} s")
-            try:
-                self.address: str = parent.recv()
-            except EOFError:
-                raise RuntimeError(f"the world server of {path} stopped before serving "
-                                   "(its error is in the log above)") from None
+            self.address = _served_at(parent, f"the world server of {path}")
         except BaseException:
             self.close()
             raise
@@ -213,19 +206,15 @@ class WorldProcess:
     def close(self, timeout: float = 5.0) -> None:
         """Stop serving and close the world (its back ends' processes too)."""
         self._pipe.close()                   # (the child stops on its parent's EOF)
-        self._process.join(timeout)
-        if self._process.is_alive():
-            self._process.terminate()
-            self._process.join(timeout)
-        if self._process.is_alive():
-            self._process.kill()
-            self._process.join(1.0)
+        _stop(self._process, timeout)
 
 
 def world_server_main(path: str, seed: int, rate: float, lockstep: bool,
                       add: dict[str, tuple[float, float, float]], hardware: tuple[str, ...],
                       host: str, conn: Any) -> None:
     """A world server process (see ``WorldProcess``)."""
+    stopped = threading.Event()
+    stop_on_sigterm(stopped)                 # before the world's emulators are started
     world = World.load(path, seed=seed)
     try:
         for name, pose in add.items():
@@ -237,9 +226,32 @@ def world_server_main(path: str, seed: int, rate: float, lockstep: bool,
         world.close()
         raise
     try:
-        serve_as_child(conn, server.address, threading.Event())
+        serve_as_child(conn, server.address, stopped)
     finally:
         server.close()                       # (closes the world)
+
+
+def _stop(process: Any, timeout: float) -> None:
+    """Wait for a server process told to stop (its pipe closed); terminate it, then
+    kill it, if it does not within ``timeout``."""
+    process.join(timeout)
+    if process.is_alive():
+        process.terminate()
+        process.join(timeout)
+    if process.is_alive():
+        process.kill()
+        process.join(1.0)
+
+
+def _served_at(pipe: Any, what: str) -> str:
+    """The address a server process just started tells over ``pipe``, or why not."""
+    if not pipe.poll(START_TIMEOUT):
+        raise RuntimeError(f"{what} did not start within {START_TIMEOUT} s")
+    try:
+        return pipe.recv()
+    except EOFError:
+        raise RuntimeError(f"{what} stopped before serving (its error, if any, is in the "
+                           "log above)") from None
 
 
 class RobotServers:
@@ -258,35 +270,27 @@ class RobotServers:
                 start_without_main(process)
                 child.close()
                 self._processes.append(process)
-                if not parent.poll(START_TIMEOUT):
-                    raise RuntimeError(f"the robot server of {name} did not start within "
-                                       f"{START_TIMEOUT} s")
-                self.addresses[name] = parent.recv()
                 self._pipes.append(parent)
+                self.addresses[name] = _served_at(parent, f"the robot server of {name}")
         except BaseException:
             self.close()
             raise
 
     def close(self, timeout: float = 5.0) -> None:
-        for process in self._processes:
-            if process.is_alive():
-                process.terminate()
-        for process in self._processes:
-            process.join(timeout)
-            if process.is_alive():
-                process.kill()
-                process.join(1.0)
-        self._processes.clear()
         for pipe in self._pipes:
-            pipe.close()
+            pipe.close()                   # (each stops on its parent's EOF, side by side)
+        for process in self._processes:
+            _stop(process, timeout)
+        self._processes.clear()
         self._pipes.clear()
 
 
 def robot_server_main(name: str, world_address: str, host: str, conn: Any) -> None:
     """A robot server process: relay requests for robot ``name`` to the world server."""
+    stopped = threading.Event()
+    stop_on_sigterm(stopped)
     key = ClusterKey.load()
     world = ControlClient(key, world_address)
-    stopped = threading.Event()
 
     def relay(op: str, args: dict[str, Any]) -> Any:
         if op not in ROBOT_OPS:

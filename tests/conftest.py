@@ -126,6 +126,7 @@ class HeldKey:
         self.env = {**{k: v for k, v in os.environ.items() if k != "PB3A_KEY"},
                     "PB3A_KEY_FILE": str(self.path)}
         self._writer: int | None = None
+        self._key = os.environ["PB3A_KEY"]
 
     def wait_for_reader(self, timeout: float = 30.0) -> None:
         """Return once a process is loading the key (it then waits for ``give``)."""
@@ -142,7 +143,7 @@ class HeldKey:
         """Write the key and close: the reader goes on (if it is still there)."""
         assert self._writer is not None
         with contextlib.suppress(BrokenPipeError):
-            os.write(self._writer, os.environ["PB3A_KEY"].encode())
+            os.write(self._writer, self._key.encode())
         os.close(self._writer)
         self._writer = None
 

@@ -9,10 +9,11 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 
 import numpy as np
 import pytest
-from conftest import alive, eventually
+from conftest import HeldKey, alive, eventually
 from sample_modules import Cruise
 
 from pb3a import RuntimeFailure, System
@@ -60,6 +61,45 @@ def test_a_robot_server_relays_commands_sensors_and_faults(served) -> None:
     pids = [process.pid for process in robots._processes]
     robots.close()
     assert not any(alive(pid) for pid in pids)
+
+
+def test_a_robot_server_signalled_as_it_starts_stops_cleanly(tmp_path, monkeypatch) -> None:
+    """SIGTERM while a robot server process starts (held as it loads its key) ends it
+    closed, exit status 0, and its owner says it stopped before serving."""
+    server = WorldServer(World.load("rave/worlds/arena.toml", seed=2))
+    held = HeldKey(tmp_path)
+    monkeypatch.setenv("PB3A_KEY_FILE", str(held.path))      # (for the child it spawns)
+    monkeypatch.delenv("PB3A_KEY")
+    exits: list[int | None] = []
+    closing = RobotServers.close
+
+    def close(self: RobotServers, timeout: float = 5.0) -> None:
+        processes = list(self._processes)
+        closing(self, timeout)
+        exits.extend(process.exitcode for process in processes)
+    monkeypatch.setattr(RobotServers, "close", close)
+    failed: list[BaseException] = []
+
+    def start() -> None:
+        try:
+            RobotServers(server.address, ["r1"])
+        except BaseException as exc:        # (what its owner is told)
+            failed.append(exc)
+    starting = threading.Thread(target=start)
+    starting.start()
+    try:
+        held.wait_for_reader()
+        [pid] = held.users()
+        os.kill(pid, signal.SIGTERM)
+        held.give()
+        starting.join(30)
+    finally:
+        server.close()
+    assert not starting.is_alive()
+    assert exits == [0]
+    assert [str(exc) for exc in failed] == [
+        "the robot server of r1 stopped before serving (its error, if any, is in the log "
+        "above)"]
 
 
 def test_a_lockstep_world_advances_only_when_its_controller_asks() -> None:
