@@ -33,6 +33,9 @@ ROBOT_OPS = ("drive", "stop", "sensors", "camera", "inject", "clear", "swap", "a
              "cycle")
 MAX_ADVANCE_S = 10.0          # simulated seconds one ``advance`` may ask for
 TICK_S = 0.005                # s of wall time between a fast-paced world's steps (about)
+MOST_STEPS = 50               # physics steps in one world step at most: beyond 100x real
+                              # time the machine sets the pace, in holds short enough for
+                              # requests to get in between (and ``close`` to stop it)
 
 
 class WorldServer:
@@ -40,8 +43,9 @@ class WorldServer:
     between two world steps.
 
     A world step is one physics step (10 ms) up to twice real time; faster, it is the
-    whole number of physics steps nearest 5 ms of wall time (four at 8x), taken in
-    one round trip to each hardware robot's emulator, not one per physics step.
+    whole number of physics steps nearest 5 ms of wall time (four at 8x; at most
+    ``MOST_STEPS``), taken in one round trip to each hardware robot's emulator, not one
+    per physics step.
 
     With ``lockstep`` the world does not step by itself: it advances only when a
     controller asks (``advance``, ``dt`` simulated seconds, answered with the world's
@@ -77,7 +81,7 @@ class WorldServer:
             with self._lock:                   # (the rate is read with the world: a
                 rate = self.rate               # world held by ``pace`` steps no more)
                 if rate:
-                    steps = max(1, round(TICK_S * rate / PHYSICS_DT))
+                    steps = min(MOST_STEPS, max(1, round(TICK_S * rate / PHYSICS_DT)))
                     self._step(steps * PHYSICS_DT)
             if not rate:                       # held: no simulated time passes
                 self._paced.wait()

@@ -169,6 +169,20 @@ def test_a_world_in_a_process_of_its_own_is_held_then_paced_and_stops_with_its_o
     assert not alive(pid)
 
 
+def test_a_world_paced_beyond_what_the_machine_can_still_answers_and_stops() -> None:
+    """At a million times real time the world runs as fast as it can, in short holds:
+    requests are answered between them and ``close`` stops its stepper."""
+    server = WorldServer(World.load("rave/worlds/arena.toml", seed=2), rate=1e6)
+    client = ControlClient(ClusterKey.load(), server.address)
+    try:
+        first = client.call("describe", timeout=2.0)["time"]
+        assert client.call("describe", timeout=2.0)["time"] > first      # it runs
+    finally:
+        client.close()
+        server.close()
+    assert not server._stepper.is_alive()
+
+
 def test_a_lockstep_world_refuses_a_pace() -> None:
     server = WorldServer(World.load("rave/worlds/arena.toml", seed=2), lockstep=True)
     client = ControlClient(ClusterKey.load(), server.address)
