@@ -114,12 +114,17 @@ class Plan:
 def plan(base: CaseBase, situation: dict[str, Feature], placeholders: dict[str, Any],
          view: SystemView) -> Plan:
     """The remedy of the most similar case that adapts to ``placeholders`` and passes
-    ``check_remedy``; else stopping the robot (``placeholders["driver"]``)."""
+    ``check_remedy``; else stopping the robot (``placeholders["driver"]``). Carrying on
+    is refused when a module reads the failed sensor (``consumed``): a case for an
+    unread sensor may still be similar enough when the case made for it cannot be
+    adapted (no fallback class), and would carry on with a module reading bad data."""
     refused = []
     for match in base.retrieve(situation):
         try:
             remedy = adapt(match.case.remedy, placeholders)
             check_remedy(remedy, view)
+            if remedy.get("action") == "carry_on" and situation.get("consumed"):
+                raise AdaptationError("a module reads the failed sensor: cannot carry on")
         except AdaptationError as exc:
             refused.append(f"case {match.case.id!r}: {exc}")
             continue

@@ -10,10 +10,12 @@ waiting. The driver is re-pointed at the hardware robot (``resource``) and the
 learner given its state for the real robot (``learner_state``, e.g. a lower
 exploration rate) on arrival (``migrate(..., state=...)``): they start on the robot's
 node already set for it, and a move that fails leaves them as they were. It acts
-once. ``transfer`` reports when it decided and when the move ended (``moved_at``: the
-driver was re-pointed as it arrived, inside the move), in unix time, and the move's
-pause, where it went and the preparation before it (``pause_s``, ``phases``,
-``prepare_s``: see ``MigrationReport``).
+once. A move that fails gives the simulation back its lock-step (the learner goes on
+learning there), is said on ``transfer`` (``error``) and counted in ``failed_moves``,
+and the agent decides again at a later episode. ``transfer`` reports when it decided
+and when the move ended (``moved_at``: the driver was re-pointed as it arrived, inside
+the move), in unix time, and the move's pause, where it went and the preparation
+before it (``pause_s``, ``phases``, ``prepare_s``: see ``MigrationReport``).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import time
 from typing import Any
 
 from pb3a import Agent, Input, InputPort, Output
+from pb3a.errors import PB3AError
 
 
 def success_rate(outcomes: list[bool], window: int) -> float:
@@ -50,6 +53,8 @@ class TransferAgent(Agent):
     decided_at = 0.0                # unix times; 0: not yet
     moved_at = 0.0
     move: dict[str, Any] = {}       # the migration's pause_s, prepare_s and phases
+    failed_moves = 0
+    lockstep_s = 0.0                # the driver's before the move, given back if it fails
     period = 0.02                   # the longest a look at a move in progress waits
 
     def setup(self) -> None:
@@ -67,20 +72,29 @@ class TransferAgent(Agent):
             self.decided_at = time.time()
             # the simulation stops first (its lock-step loop would compete with the move
             # for the CPU), then the learner and its driver move
+            self.lockstep_s = float(self.runtime.state(self.driver).get("lockstep_s", 0.0))
             self.runtime.set_state(self.driver, {"lockstep_s": 0.0})
             arriving = {self.driver: {"resource": self.to_resource}}
             if self.learner_state:
                 arriving[self.learner] = dict(self.learner_state)
-            self._moving = self.runtime.migrate(self.macro, self.to_node, wait=False,
-                                                state=arriving)
+            try:
+                self._moving = self.runtime.migrate(self.macro, self.to_node, wait=False,
+                                                    state=arriving)
+            except PB3AError as exc:
+                self._failed(exc)
 
     def step(self) -> None:
         # waits for the move's end (a period at most): the transfer is timed to when the
         # agent knows it ended, and this knows it as it ends
         if self._moving is None or not self._moving.wait(self.period):
             return
-        report = self._moving.result(0)  # (a failed move raises here, in the agent's log)
-        self._moving = None
+        try:
+            report = self._moving.result(0)
+        except PB3AError as exc:
+            self._failed(exc)
+            return
+        finally:
+            self._moving = None
         self.moved_at = time.time()
         self.move = {"pause_s": report.pause_s, "prepare_s": report.prepare_s,
                      "phases": dataclasses.asdict(report.phases)}
@@ -88,3 +102,14 @@ class TransferAgent(Agent):
                              **self.move,
                              "episodes": len(self.outcomes),
                              "success_rate": success_rate(self.outcomes, self.window)})
+
+    def _failed(self, error: Exception) -> None:
+        """The move failed: the brain is where it was, so its simulation gets its
+        lock-step back; said once, and decided again at a later episode."""
+        self.failed_moves += 1
+        self.runtime.set_state(self.driver, {"lockstep_s": self.lockstep_s})
+        self.transfer.write({"decided_at": self.decided_at, "moved_at": 0.0,
+                             "error": f"{type(error).__name__}: {error}",
+                             "episodes": len(self.outcomes),
+                             "success_rate": success_rate(self.outcomes, self.window)})
+        self.decided_at = 0.0

@@ -52,7 +52,8 @@ PHASES = {"full": (150.0, 150.0), "quick": (45.0, 40.0)}   # s: mapping before t
 FAULT_COVERAGE = 0.5         # the fault comes once the map covers this share of the free space
 POSE_EVERY_S = 0.5                            # how often the robots' true paths are sampled
 DONE_EVERY_S = 1.0                            # how often the map's coverage is looked at
-HANDOFF_NEAR_M = 1.0                          # an update this near the standby robot is its
+HANDOFF_NEAR_M = 1.0                          # an update this near the standby robot (and
+                                              # nearer it than the failed one) is its
 CLEARANCE_M = 0.6                             # a standby robot placed by the scenario keeps this
 GOALS = {"handoff_s": 0.5, "accuracy": 0.9}
 
@@ -126,7 +127,8 @@ def run(out: Path, world: str = "lab", seed: int = 1, quick: bool = False) -> di
             _follow(lab, paths, time.monotonic() + before, time_for_the_fault)
             lab.robot(robots[0], "inject", fault="motors_off", params={})
             fault_at = time.time()
-            standby_at = lab.poses()[robots[1]]
+            poses = lab.poses()
+            failed_at, standby_at = poses[robots[0]], poses[robots[1]]
             _follow(lab, paths, time.monotonic() + after)
             recorder = running.state("recorder")
             remedy = running.state("remedy")
@@ -134,7 +136,8 @@ def run(out: Path, world: str = "lab", seed: int = 1, quick: bool = False) -> di
             where = running.where("control/mapper")
     return {"world": path.stem, "seed": seed, "quick": quick, "robots": robots,
             "size": size, "described": described, "started": started,
-            "fault_at": fault_at, "standby_at": standby_at, "ended": time.time(),
+            "fault_at": fault_at, "failed_at": failed_at, "standby_at": standby_at,
+            "ended": time.time(),
             "paths": paths, "recorder": recorder, "remedy": remedy,
             "final_map": _probabilities(final["log_odds"]), "resolution": final["resolution"],
             "mapper_node_at_end": where}
@@ -215,9 +218,13 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
     false_alarms = [f for f in recorder["failures"] if f["at"] < fault_at]
     handoff_at = None
     if detected is not None:
+        # an update from the standby robot: near where it stands, and nearer it than the
+        # failed robot, whose own readings are folded in until the control system moves
         sx, sy = record["standby_at"][:2]
+        fx, fy = record["failed_at"][:2]
         handoff_at = next((u[0] for u in recorder["updates"] if u[0] > detected["at"]
-                           and math.hypot(u[1] - sx, u[2] - sy) < HANDOFF_NEAR_M), None)
+                           and math.hypot(u[1] - sx, u[2] - sy)
+                           < min(HANDOFF_NEAR_M, math.hypot(u[1] - fx, u[2] - fy))), None)
     before = [s for at, s in recorder["snapshots"] if at <= fault_at]
     at_handoff = [s for at, s in recorder["snapshots"] if handoff_at and at <= handoff_at]
     figures: dict[str, Any] = {

@@ -273,3 +273,23 @@ def test_the_module_decides_on_the_reading_nearest_each_decision_even_when_readi
     gaps = np.diff(decided)
     assert len(decided) == 100 and gaps.max() < 0.21 and gaps.min() > 0.19
     harness.close()
+
+
+@pytest.mark.parametrize(("overrides", "named"), [
+    ({"thresholds": [1.0, 0.5]}, "thresholds"),       # unsorted: every sector mis-sensed
+    ({"thresholds": [0.0, 0.5]}, "thresholds"),
+    ({"bearings": 0}, "bearings"),
+    ({"gamma": 1.5}, "gamma"),
+    ({"alpha": 0.0}, "alpha"),
+    ({"epsilon_decay": 1.2}, "epsilon_decay"),
+    ({"trace_decay": -0.1}, "trace_decay"),
+    ({"actions": []}, "actions"),
+    ({"goal_radius": 0.0}, "goal_radius"),
+    ({"timeout": -1.0}, "timeout"),
+    ({"turn_time": [1.5, 0.5]}, "turn_time"),
+    ({"max_gap": float("nan")}, "max_gap"),
+])
+def test_a_parameter_out_of_range_is_refused_by_name(overrides, named) -> None:
+    with pytest.raises(ValueError, match=rf"out of range: {named} = "):
+        Parameters.of(overrides)
+    assert Parameters.of({"thresholds": [0.5, 1.0], "bearings": 16}).states == 3 ** 4 * 16

@@ -561,3 +561,19 @@ def test_a_sensor_nothing_reads_fails_and_the_mission_carries_on(tmp_path, clock
     harness.feed("failure", failure("motors", clock.now + 1))
     harness.step()                                # and a real fault is still acted on
     assert runtime.calls[-1] == MOVE
+
+
+def test_a_sensor_a_module_reads_is_never_carried_on_with(tmp_path, clock) -> None:
+    # the localizer reads odometry, and there is no class that does without it: the
+    # swap cannot be made, and carrying on ("no module reads it") would be false
+    runtime = FakeRuntime()
+    runtime.modules["control/localizer"] = FakeModule("my.localizers:Odometric", "r1")
+    harness = agent(tmp_path, runtime, consumers={"odometry": "control/localizer"})
+    harness.feed("failure", failure("odometry", clock.now, drift_per_m=0.05))
+    harness.step()
+    assert runtime.calls == [("set_state", "control/driver", {"enabled": False})]
+    chosen = harness.written["remedy"][0]
+    assert (chosen["action"], chosen["case"]) == ("stop", "")
+    assert "no value for {fallback}" in chosen["reason"]
+    assert "a module reads" in chosen["reason"]
+    assert not (tmp_path / "learned.toml").exists()   # no carry_on case learned for it

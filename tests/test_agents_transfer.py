@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 
 from agents.transfer import TransferAgent, success_rate
-from pb3a import MigrationReport
+from pb3a import MigrationReport, RuntimeFailure
 from pb3a.testing import ModuleHarness
 
 
@@ -16,12 +16,15 @@ class Move:
 
     def __init__(self) -> None:
         self.ended = False
+        self.failure = ""           # the move ends in this error
 
     def wait(self, timeout: float) -> bool:
         return self.ended
 
     def result(self, timeout: float) -> MigrationReport:
         assert self.ended
+        if self.failure:
+            raise RuntimeFailure(self.failure)
         return MigrationReport("brain", "ws", "robot", 0.02, 1000, 4, prepare_s=0.09)
 
 
@@ -29,6 +32,10 @@ class Runtime:
     def __init__(self) -> None:
         self.calls: list[tuple] = []
         self.move = Move()
+        self.driver = {"lockstep_s": 0.2}
+
+    def state(self, name: str) -> dict:
+        return dict(self.driver)
 
     def migrate(self, name: str, to: str, *, wait: bool = True,
                 state: dict | None = None) -> Move:
@@ -37,6 +44,7 @@ class Runtime:
 
     def set_state(self, name: str, values: dict) -> None:
         self.calls.append(("set_state", name, values))
+        self.driver.update(values)
 
 
 STATE = {"to_node": "robot", "to_resource": "tcp://127.0.0.1:7421", "window": 10,
@@ -80,3 +88,25 @@ def test_without_a_destination_it_says_what_to_set() -> None:
                           runtime=Runtime())
     with pytest.raises(ValueError, match="needs to_node and to_resource"):
         agent.feed("episode", {"success": True})
+
+
+def test_a_failed_move_gives_the_simulation_back_and_is_tried_again_later() -> None:
+    runtime = Runtime()
+    agent = ModuleHarness(TransferAgent, state=STATE, runtime=runtime)
+    for _ in range(10):
+        agent.feed("episode", {"success": True})
+    assert runtime.driver["lockstep_s"] == 0.0           # the simulation stopped for the move
+    runtime.move.ended, runtime.move.failure = True, "node 'robot' is not up"
+    agent.step()                                         # the move failed: said, not raised
+    (failed,) = agent.written["transfer"]
+    assert "node 'robot' is not up" in failed["error"] and not failed["moved_at"]
+    assert runtime.driver["lockstep_s"] == 0.2           # the simulation goes on as it was
+    assert agent.state["decided_at"] == 0.0 and agent.state["failed_moves"] == 1
+    agent.step()
+    assert len(agent.written["transfer"]) == 1           # said once
+    runtime.move = Move()
+    agent.feed("episode", {"success": True})             # at the next episode: again
+    assert runtime.calls[-1][0] == "migrate" and runtime.driver["lockstep_s"] == 0.0
+    runtime.move.ended = True
+    agent.step()
+    assert agent.written["transfer"][-1]["moved_at"] > 0
