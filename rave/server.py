@@ -131,21 +131,26 @@ class WorldServer:
                 if ("v" in args) != ("w" in args):
                     raise ValueError("cycle: give both v and w (drive, then advance), or "
                                      "neither (advance on the command in force)")
+                dt = float(args.get("dt", PHYSICS_DT))
+                self._check_advance(dt)     # before driving: a refused turn changes nothing
                 if "v" in args:
                     _apply(robot, "drive", args, self.world.time)
-                self._advance(float(args.get("dt", PHYSICS_DT)))
+                self._advance(dt)
                 return _apply(robot, "sensors", {}, self.world.time)
             return _apply(robot, op, args, self.world.time)
 
     def _advance(self, dt: float) -> float:
+        self._check_advance(dt)
+        self.world.step(dt)
+        return self.world.time
+
+    def _check_advance(self, dt: float) -> None:
         if not self.lockstep:
             raise ValueError(f"world {self.world.name} runs by itself ({self.rate} x real "
                              "time); serve it in lock-step (rave start --lockstep) to "
                              "advance it from a controller")
         if not 0 <= dt <= MAX_ADVANCE_S:
             raise ValueError(f"advance(dt={dt}): dt must be between 0 and {MAX_ADVANCE_S} s")
-        self.world.step(dt)
-        return self.world.time
 
     def close(self) -> None:
         """Stop stepping and serving, and close the world (it is this server's now)."""

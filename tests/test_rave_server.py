@@ -195,6 +195,21 @@ def test_a_lockstep_world_refuses_a_pace() -> None:
         server.close()
 
 
+@pytest.mark.parametrize(("lockstep", "dt", "refusal"), [
+    (False, 0.1, "runs by itself"), (True, -1.0, "dt must be between 0 and 10")])
+def test_a_refused_cycle_drives_nothing(lockstep: bool, dt: float, refusal: str) -> None:
+    world = World.load("rave/worlds/arena.toml", seed=2)       # r1 sim
+    server = WorldServer(world, rate=0.0, lockstep=lockstep)
+    client = ControlClient(ClusterKey.load(), server.address)
+    try:
+        with pytest.raises(RuntimeFailure, match=refusal):
+            client.call("cycle", robot="r1", v=0.5, w=0.2, dt=dt)
+        assert world.robot("r1")._body.commanded() == (0.0, 0.0)
+    finally:
+        client.close()
+        server.close()
+
+
 def test_a_served_world_whose_emulator_dies_goes_on_once_the_robot_is_swapped(caplog) -> None:
     world = World.load("rave/worlds/arena.toml", seed=2)       # r2 hardware
     server = WorldServer(world)
