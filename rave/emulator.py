@@ -171,8 +171,12 @@ class EmulatorProcess:
         self._conn = Connection(ours.detach())
         # Whoever forgets to close it, the child still goes with this handle.
         self._finalizer = weakref.finalize(self, _stop, self._process, self._conn)
-        self.report: Report = self._ask(("start", segments, pose, seed, velocity),
-                                        START_TIMEOUT)
+        try:
+            self.report: Report = self._ask(("start", segments, pose, seed, velocity),
+                                            START_TIMEOUT)
+        except BaseException:       # stopped now, not when the failed handle is collected
+            self._finalizer()
+            raise
 
     def command(self, v: float, w: float) -> None:
         self._ask(("command", v, w))

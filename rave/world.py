@@ -119,8 +119,10 @@ class World:
     # -- building -----------------------------------------------------------------
     def add_wall(self, start: tuple[float, float], end: tuple[float, float], *,
                  virtual: bool = False) -> None:
-        self._add(Obstacle((_point(start, "wall"), _point(end, "wall")), closed=False,
-                           virtual=virtual))
+        ends = (_point(start, "wall"), _point(end, "wall"))
+        if ends[0] == ends[1]:
+            raise ValueError(f"wall: both its ends are {ends[0]}: a wall needs a length")
+        self._add(Obstacle(ends, closed=False, virtual=virtual))
 
     def add_box(self, center: tuple[float, float], size: tuple[float, float], *,
                 angle: float = 0.0, virtual: bool = False, color: str | None = None) -> None:

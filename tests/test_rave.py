@@ -18,6 +18,7 @@ from conftest import alive, eventually
 
 from rave import World, WorldError, odometry, raycast, sonar
 from rave import fleet as fleet_module
+from rave.emulator import EmulatorProcess
 from rave.sonar import SonarNoise
 
 EXACT = SonarNoise(sigma0=0.0, sigma_per_m=0.0)
@@ -458,6 +459,8 @@ def test_a_pose_or_a_point_that_is_not_finite_is_refused_naming_it() -> None:
     assert seer.sonar()[3] < 1.0 and list(world.robots) == ["a", "b"]
     with pytest.raises(ValueError, match=r"wall: points must be finite .*\(nan, 0.0\)"):
         world.add_wall((math.nan, 0.0), (1.0, 1.0))
+    with pytest.raises(ValueError, match=r"wall: both its ends are \(1.0, 1.0\)"):
+        world.add_wall((1, 1), (1.0, 1.0))                # (a numpy warning at every scan)
     with pytest.raises(ValueError, match=r"polygon: points must be finite"):
         world.add_polygon([(0, 0), (1, 0), (math.inf, 1)])
     with pytest.raises(ValueError, match=r"box: size must be \(width, height\), both > 0"):
@@ -557,3 +560,13 @@ def test_new_commands_move_robots_alike_set_one_by_one_or_in_one_batch(
     one_by_one, batched = run(one_by_one=1000), run(one_by_one=0)
     np.testing.assert_array_equal(one_by_one, batched)
     assert np.ptp(one_by_one[:, 0]) > 15                        # they did move
+
+
+def test_an_emulator_that_fails_to_start_leaves_no_process_behind() -> None:
+    before = {child.pid for child in psutil.Process().children()}
+    with pytest.raises(RuntimeError, match="the emulator of robot r9 failed") as failed:
+        EmulatorProcess("r9", np.zeros((1, 3)), (0.0, 0.0, 0.0), seed=1)   # not segments
+    # the error (and through its traceback the failed handle) is still held here
+    assert failed.value is not None
+    started = {child.pid for child in psutil.Process().children()} - before
+    assert not [pid for pid in started if alive(pid)]
