@@ -58,6 +58,17 @@ class TransferAgent(Agent):
     period = 0.02                   # the longest a look at a move in progress waits
 
     def setup(self) -> None:
+        problems = [what for what, wrong in (
+            (f"window ({self.window!r}) must be a whole number of episodes, 1 or more",
+             isinstance(self.window, bool) or not isinstance(self.window, int)
+             or self.window < 1),
+            (f"threshold ({self.threshold!r}) must be a success rate above 0, at most 1",
+             not isinstance(self.threshold, int | float) or not 0 < self.threshold <= 1),
+            (f"min_episodes ({self.min_episodes!r}) must be a whole number, 0 or more",
+             not isinstance(self.min_episodes, int) or self.min_episodes < 0)) if wrong]
+        if problems:                # (a window of 0 read every episode; a threshold
+            raise ValueError(       # above 1 never transferred, silently)
+                "TransferAgent: " + "; ".join(problems))
         self._moving: Any = None    # the Pending of the move (not state: not picklable)
 
     def on_input(self, port: InputPort) -> None:

@@ -4,6 +4,8 @@ robot on arrival, and reports once the move has ended."""
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
 from agents.transfer import TransferAgent, success_rate
@@ -55,6 +57,18 @@ def test_success_rate_counts_the_last_window() -> None:
     assert success_rate([False] * 5 + [True] * 4, 4) == 1.0
     assert success_rate([True, False], 10) == 0.5
     assert success_rate([], 3) == 0.0
+
+
+@pytest.mark.parametrize(("wrong", "named"), [
+    ({"window": 0}, "window (0) must be a whole number of episodes, 1 or more"),
+    ({"window": 2.5}, "window (2.5)"),
+    ({"threshold": 1.2}, "threshold (1.2) must be a success rate above 0, at most 1"),
+    ({"threshold": 0}, "threshold (0)"),
+    ({"min_episodes": -1}, "min_episodes (-1) must be a whole number, 0 or more")])
+def test_settings_that_could_never_or_always_transfer_are_refused_by_name(
+        wrong: dict, named: str) -> None:
+    with pytest.raises(ValueError, match=re.escape(named)):
+        ModuleHarness(TransferAgent, state={**STATE, **wrong}, runtime=Runtime())
 
 
 def test_it_waits_for_the_success_rate_then_moves_with_the_driver_re_pointed_on_arrival() -> None:
