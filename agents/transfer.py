@@ -62,8 +62,8 @@ class TransferAgent(Agent):
             (f"window ({self.window!r}) must be a whole number of episodes, 1 or more",
              isinstance(self.window, bool) or not isinstance(self.window, int)
              or self.window < 1),
-            (f"threshold ({self.threshold!r}) must be a success rate above 0, at most 1",
-             not isinstance(self.threshold, int | float) or not 0 < self.threshold <= 1),
+            (f"threshold ({self.threshold!r}) must be a success rate from 0 (at once) to 1",
+             not isinstance(self.threshold, int | float) or not 0 <= self.threshold <= 1),
             (f"min_episodes ({self.min_episodes!r}) must be a whole number, 0 or more",
              not isinstance(self.min_episodes, int) or self.min_episodes < 0)) if wrong]
         if problems:                # (a window of 0 read every episode; a threshold

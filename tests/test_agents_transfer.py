@@ -62,8 +62,8 @@ def test_success_rate_counts_the_last_window() -> None:
 @pytest.mark.parametrize(("wrong", "named"), [
     ({"window": 0}, "window (0) must be a whole number of episodes, 1 or more"),
     ({"window": 2.5}, "window (2.5)"),
-    ({"threshold": 1.2}, "threshold (1.2) must be a success rate above 0, at most 1"),
-    ({"threshold": 0}, "threshold (0)"),
+    ({"threshold": 1.2}, "threshold (1.2) must be a success rate from 0 (at once) to 1"),
+    ({"threshold": -0.1}, "threshold (-0.1)"),
     ({"min_episodes": -1}, "min_episodes (-1) must be a whole number, 0 or more")])
 def test_settings_that_could_never_or_always_transfer_are_refused_by_name(
         wrong: dict, named: str) -> None:
