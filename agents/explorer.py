@@ -779,6 +779,14 @@ class Explorer(Module):
         self._explorer.restore({name: getattr(self, name) for name in FrontierExplorer.MEMORY})
         self._last: np.ndarray | None = None   # the command last written
 
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Set state; a running explorer goes by it from its next step (its settings,
+        and what it remembers: a target, a frontier set aside), rather than writing its
+        own memory back over it."""
+        super().set_state(state)
+        if "_explorer" in vars(self):            # running: made again from the state
+            self.setup()
+
     def step(self) -> None:
         if not (self.map.has_value and self.pose.has_value):
             self.command.write(np.zeros(2))      # nothing to go by yet: stand

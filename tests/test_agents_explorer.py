@@ -320,6 +320,34 @@ def test_a_frontier_behind_what_only_its_sonar_sees_is_given_up_not_pushed_at() 
     assert run.explorer.last("command").tolist() == [0.0, 0.0]
 
 
+def test_state_set_while_it_runs_is_what_it_goes_by() -> None:
+    """A setting or a memory set on a running explorer (the State Editor, an agent) is
+    taken at once, not overwritten by the explorer's own at its next step."""
+    world = _world_without_robots("arena")
+    try:
+        explorer = _explore(world, (1.0, 4.0, 0.0), seconds=20.0).explorer
+        aside = [9.5, 7.5, 1e9, 1.0]                 # (x, y, until, failures)
+        explorer.module.set_state({"max_speed": 0.1,
+                                   "blacklist": [*explorer.state["blacklist"], aside]})
+        grid = Grid.of(world.size)
+        occupied, probabilities = truth(world, grid), grid.blank()
+        robot, speeds = world.robot("explorer"), []
+        for _ in range(100):
+            pose = np.array(world.pose("explorer"))
+            _reveal(probabilities, occupied, grid, pose)
+            explorer.feed("map", probabilities)
+            explorer.feed("pose", pose)
+            explorer.feed("sonar", robot.sonar())
+            explorer.step()
+            speeds.append(explorer.last("command")[0])
+            robot.drive(*explorer.last("command"))
+            world.step(TICK)
+    finally:
+        world.close()
+    assert max(speeds) <= 0.1 + 1e-9 and max(speeds) > 0.05         # slower, and moving
+    assert aside in explorer.state["blacklist"]
+
+
 def test_after_a_move_it_carries_on_toward_the_same_target() -> None:
     world = _world_without_robots("arena")
     try:
