@@ -5,6 +5,7 @@ One system test runs it in its own worker with a controller in another."""
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -109,6 +110,44 @@ def test_a_controller_swapped_mid_phase_keeps_the_lights_legal(driver) -> None:
     assert illegal_steps(shown, greens, yellow_s=3) == []
     assert {greens[NS], greens[EW]} <= set(shown)                # and it did switch
     assert harness.state["rejected"] == 0
+
+
+def green_spans(readings: list[JunctionReading]) -> list[tuple[str, float]]:
+    """Each green the lights showed, whole (not the first nor the one the run ends
+    in), with the simulated seconds it lasted: a reading's signal is what was shown
+    since the reading before."""
+    spans: list[list] = []
+    for before, reading in itertools.pairwise(readings):
+        if spans and spans[-1][0] == reading.signal:
+            spans[-1][1] += reading.time - before.time
+        else:
+            spans.append([reading.signal, reading.time - before.time])
+    return [(state, seconds) for state, seconds in spans[1:-1] if "y" not in state]
+
+
+@pytest.mark.parametrize("control_step_s", [2.5, 1.4])
+def test_a_control_step_of_any_length_keeps_the_minimum_green(driver,
+                                                              control_step_s: float) -> None:
+    harness = driver(min_green_s=5.0, control_step_s=control_step_s, duration_s=120.0)
+    while harness.state["status"] == "running":      # a controller that always wants
+        reading = harness.last("reading_0")           # the other green
+        harness.feed("request_0", PhaseRequest("C", reading.step, 1 - reading.green))
+    spans = green_spans(harness.written["reading_0"])
+    assert len(spans) >= 5 and all(seconds >= 5.0 for _, seconds in spans), spans
+
+
+@pytest.mark.parametrize("bad", [{"control_step_s": 0.0}, {"control_step_s": -1.0},
+                                 {"control_step_s": float("nan")},
+                                 {"min_green_s": -5.0}, {"duration_s": float("inf")}])
+def test_a_step_green_or_duration_out_of_range_is_refused_by_name(driver, bad) -> None:
+    (name, _), = bad.items()
+    with pytest.raises(ValueError, match=f"{name} must be"):
+        driver(**bad)
+    harness = driver(duration_s=30.0)
+    before = harness.state[name]
+    with pytest.raises(ValueError, match=f"{name} must be"):
+        harness.module.set_state(bad)
+    assert harness.state[name] == before and harness.state["status"] == "running"
 
 
 def test_a_slow_controller_holds_the_simulation_and_a_missing_one_is_late(driver) -> None:
