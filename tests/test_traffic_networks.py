@@ -90,6 +90,9 @@ def test_a_period_s_demand_scales_and_a_bad_scale_is_named(tmp_path: Path) -> No
     with pytest.raises(ValueError, match="no period rush to scale; its periods are west "
                                          "heavy, east heavy, balanced, surge"):
         network.scaled({"rush": 2.0})
+    with pytest.raises(ValueError, match="period surge's rate of group west would be "
+                                         "infinite"):
+        network.scaled({"surge": 1e308})
     for bad in (0.0, -1.0, float("nan"), "2"):
         with pytest.raises(ValueError, match="the factor of period surge must be a number "
                                              "above 0"):
@@ -107,6 +110,15 @@ def test_a_period_s_demand_scales_and_a_bad_scale_is_named(tmp_path: Path) -> No
      "shares must add up to 1"),
     ('[build]\nnetconvert = { nodes = "no.nod.xml", edges = "no.edg.xml" }\n',
      "netconvert nodes: no file"),
+    ('[build]\nnetgenerate = ["--grid"]\n[demand]\nstreams = ["a"]\n',
+     r"\[demand.streams\] must be a table"),
+    ('[build]\nnetgenerate = ["--grid"]\n[demand.streams]\na = { from = "x", to = "y", '
+     'group = "g" }\n[[demand.periods]]\nshare = true\nrates = { g = 1 }\n',
+     "share must be a number above 0"),
+    *[('[build]\nnetgenerate = ["--grid"]\n[demand.streams]\na = { from = "x", to = "y", '
+       f'group = "g" }}\n[[demand.periods]]\nshare = 1.0\nrates = {{ g = {rate} }}\n',
+       "rate of group g must be a finite number of vehicles per hour, 0 or more")
+      for rate in ("nan", "inf", "-60", '"many"')],
 ])
 def test_a_bad_description_is_refused_saying_what_to_fix(tmp_path: Path, text: str,
                                                          complaint: str) -> None:

@@ -73,6 +73,11 @@ def default_cache() -> Path:
     return Path(base) / "pb3a" / "traffic"
 
 
+def _is_number(value: Any) -> bool:
+    """True for an int or a float (a TOML ``true`` is neither)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 @dataclass(frozen=True)
 class Stream:
     """Vehicles from road ``origin`` to road ``destination`` (SUMO edge ids), at the
@@ -140,9 +145,12 @@ class Network:
             raise fail("[build] netgenerate must be a list of strings (its arguments)")
 
         demand = doc.get("demand", {})
+        if not isinstance(demand.get("streams", {}), dict):
+            raise fail("[demand.streams] must be a table of streams "
+                       "(name = { from = EDGE, to = EDGE, group = G })")
         streams = []
         for name, stream in demand.get("streams", {}).items():
-            missing = {"from", "to", "group"} - set(stream)
+            missing = {"from", "to", "group"} - set(stream if isinstance(stream, dict) else ())
             if missing:
                 raise fail(f"[demand.streams] {name} lacks {', '.join(sorted(missing))}")
             streams.append(Stream(name, stream["from"], stream["to"], stream["group"]))
@@ -158,8 +166,13 @@ class Network:
                 raise fail(f"{label}: rates must give every group ({', '.join(sorted(groups))}), "
                            f"got {', '.join(sorted(rates)) or 'none'}")
             share = period.get("share", 0)
-            if not (isinstance(share, (int, float)) and share > 0):
+            if not (_is_number(share) and share > 0):
                 raise fail(f"{label}: share must be a number above 0")
+            for group, rate in sorted(rates.items()):
+                # (SUMO takes a rate of NaN or inf as vehicles without end, at once)
+                if not (_is_number(rate) and math.isfinite(rate) and rate >= 0):
+                    raise fail(f"{label}: the rate of group {group} must be a finite number "
+                               f"of vehicles per hour, 0 or more, got {rate!r}")
             periods.append(Period(str(period.get("name", number + 1)), float(share),
                                   {g: float(r) for g, r in rates.items()}))
         if not periods:
@@ -236,12 +249,18 @@ class Network:
             raise ValueError(f"{self.path}: no period {', '.join(sorted(unknown))} to scale; "
                              f"its periods are {', '.join(names)} (or * for all)")
         for name, factor in factors.items():
-            if not (isinstance(factor, (int, float)) and math.isfinite(factor) and factor > 0):
+            if not (_is_number(factor) and math.isfinite(factor) and factor > 0):
                 raise ValueError(f"{self.path}: the factor of period {name} must be a number "
                                  f"above 0, got {factor!r}")
         periods = tuple(replace(period, rates={
             group: rate * factors.get("*", 1.0) * factors.get(period.name, 1.0)
             for group, rate in period.rates.items()}) for period in self.periods)
+        for period in periods:
+            for group, rate in period.rates.items():
+                if not math.isfinite(rate):
+                    raise ValueError(f"{self.path}: scaled by {dict(factors)}, period "
+                                     f"{period.name}'s rate "
+                                     f"of group {group} would be infinite")
         return replace(self, periods=periods)
 
     def schedule(self, duration_s: float) -> list[tuple[Period, float, float]]:
