@@ -6,6 +6,7 @@ One system test runs it in its own worker with a controller in another."""
 from __future__ import annotations
 
 import itertools
+import shutil
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -230,6 +231,24 @@ def test_re_pointed_while_it_runs_it_ends_one_simulation_and_starts_the_other(dr
     with pytest.raises(ValueError, match="no network description"):
         harness.module.set_state({"resource": str(NETWORKS / "nowhere.toml")})
     assert harness.state["status"] == "failed" and "nowhere.toml" in harness.state["last_error"]
+
+
+def test_a_stream_without_a_route_is_refused_before_the_run(driver, tmp_path: Path) -> None:
+    """A stream with no route, due only in the last period, used to crash SUMO three
+    quarters into the run; the driver then failed every step and never finished."""
+    for suffix in (".nod.xml", ".edg.xml"):
+        shutil.copy(NETWORKS / f"cross{suffix}", tmp_path / f"cross{suffix}")
+    text = (NETWORKS / "cross.toml").read_text().replace(
+        'from = "w_C", to = "C_e", group = "ew"', 'from = "C_e", to = "w_C", group = "late"')
+    for rates in ("ew = 600, ns = 150", "ew = 150, ns = 600", "ew = 300, ns = 300"):
+        text = text.replace(rates, rates + ", late = 0")
+    (tmp_path / "late.toml").write_text(text.replace("ew = 550, ns = 550",
+                                                     "ew = 550, ns = 550, late = 600"))
+    with pytest.raises(ValueError, match="stream west_east: no route from edge C_e"):
+        driver(resource=str(tmp_path / "late.toml"), own_programs=True)
+    harness = driver(own_programs=True, duration_s=30.0)    # and SUMO is free for the next
+    eventually(lambda: harness.step() or harness.state["status"] == "finished",
+               timeout=20, what="the next run to end")
 
 
 def test_its_demand_scale_changes_the_vehicles_and_re_points_it(driver) -> None:

@@ -131,6 +131,27 @@ def test_a_bad_description_is_refused_saying_what_to_fix(tmp_path: Path, text: s
         Network.load(tmp_path / "missing.toml")
 
 
+@pytest.mark.parametrize(("stream", "complaint"), [
+    ('from = "nowhere", to = "C_e"', "stream west_east: no edge 'nowhere' in"),
+    ('from = "C_e", to = "w_C"', "stream west_east: no route from edge C_e to edge w_C"),
+])
+def test_a_stream_the_built_network_cannot_carry_is_refused_by_name(
+        cache: Path, tmp_path: Path, stream: str, complaint: str) -> None:
+    """Before, SUMO failed on it: at start, or (a stream of a later period with no
+    route) mid-run, the driver then failing every step without end."""
+    for suffix in (".nod.xml", ".edg.xml"):
+        shutil.copy(NETWORKS / f"cross{suffix}", tmp_path / f"cross{suffix}")
+    path = tmp_path / "cross.toml"
+    path.write_text((NETWORKS / "cross.toml").read_text().replace(
+        'from = "w_C", to = "C_e"', stream))
+    network = Network.load(path)
+    with pytest.raises(ValueError, match=complaint) as caught:
+        network.check_streams(network.build("static", cache))
+    assert str(path) in str(caught.value)
+    original = Network.load(NETWORKS / "cross.toml")
+    original.check_streams(original.build("static", cache))    # the bundled one is fine
+
+
 def test_without_sumo_the_error_says_how_to_install_it(monkeypatch) -> None:
     monkeypatch.setitem(sys.modules, "sumo", None)          # import sumo fails
     with pytest.raises(SumoMissing, match=r"pip install -e '\.\[traffic\]'"):

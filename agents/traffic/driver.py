@@ -229,6 +229,7 @@ class TrafficDriver(_JunctionSlots, Module):
         try:
             network = Network.load(self.resource).scaled(self.demand_scale)
             net = network.build(self.signals, Path(self.cache_dir) if self.cache_dir else None)
+            network.check_streams(net)
             if self.out_dir:
                 self._workdir = Path(self.out_dir)
                 self._workdir.mkdir(parents=True, exist_ok=True)

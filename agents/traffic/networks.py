@@ -21,6 +21,7 @@ import os
 import subprocess
 import tempfile
 import tomllib
+import xml.etree.ElementTree as ET
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -237,6 +238,36 @@ class Network:
                 digest.update((self.path.parent / self.netconvert[key]).read_bytes())
         digest.update(f"{signals} {sumo_version()} {_BUILD_OPTIONS}".encode())
         return digest.hexdigest()[:12]
+
+    def check_streams(self, net_file: Path) -> None:
+        """``ValueError`` naming the first stream the built network ``net_file`` cannot
+        carry: a road it does not have, or no way from the stream's origin to its
+        destination. SUMO would fail on it only when the stream's first vehicle is
+        loaded, which may be late in a run."""
+        roads: set[str] = set()
+        leads_to: dict[str, set[str]] = {}
+        for _, element in ET.iterparse(net_file):
+            if element.tag == "edge" and element.get("function") != "internal":
+                roads.add(element.get("id", ""))
+            elif element.tag == "connection" and not element.get("from", ":").startswith(":"):
+                leads_to.setdefault(element.get("from", ""), set()).add(element.get("to", ""))
+            element.clear()
+        for stream in self.streams:
+            for road in (stream.origin, stream.destination):
+                if road not in roads:
+                    raise ValueError(f"{self.path}: stream {stream.name}: no edge {road!r} "
+                                     f"in the built network (its edges: "
+                                     f"{', '.join(sorted(roads)[:20])}"
+                                     f"{', ...' if len(roads) > 20 else ''})")
+            reached, frontier = {stream.origin}, [stream.origin]
+            while frontier and stream.destination not in reached:
+                frontier = [n for road in frontier for n in leads_to.get(road, ())
+                            if n not in reached]
+                reached.update(frontier)
+            if stream.destination not in reached:
+                raise ValueError(f"{self.path}: stream {stream.name}: no route from edge "
+                                 f"{stream.origin} to edge {stream.destination} in the "
+                                 "built network")
 
     # -- demand ---------------------------------------------------------------------
     def scaled(self, factors: Mapping[str, float]) -> Network:
