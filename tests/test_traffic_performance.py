@@ -143,6 +143,30 @@ def test_detectors_silent_from_the_start_bring_fixed_time() -> None:
     assert runtime.swaps() == ["FixedTime"] and harness.state["detectors_ok"] is False
 
 
+def test_a_fallback_swap_that_fails_is_tried_again() -> None:
+    """The system could not swap (the controller busy past the swap's timeout): the
+    agent had marked the detectors failed first, so silence never tried again."""
+    harness, runtime = agent()
+    refused = [TimeoutError("module 'W/controller' was busy in a call for 10.0 s")]
+    swap = runtime.swap
+
+    def failing_swap(name: str, cls: str) -> list[str]:
+        if refused:
+            raise refused.pop()
+        return swap(name, cls)
+
+    runtime.swap = failing_swap
+    feed(harness, 0, 30, queue=1)
+    for second in range(30, 40):             # the readings stop
+        harness.feed("clock", float(second))
+    with pytest.raises(TimeoutError):
+        harness.feed("clock", 40.0)          # the fallback swap fails ...
+    assert runtime.swaps() == [] and harness.state["running"] == "gap_out"
+    harness.step()                           # ... and is made at the next look
+    assert runtime.swaps() == ["FixedTime"] and harness.state["running"] == "fixed_time"
+    assert harness.state["detectors_ok"] is False
+
+
 def test_implausible_readings_bring_fixed_time() -> None:
     harness, runtime = agent()
     feed(harness, 0, 30, queue=1)

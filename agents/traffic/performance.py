@@ -149,9 +149,10 @@ class PerformanceAgent(Agent):
             self._fail(now, f"no detector reading for {now - last:.0f} s")
 
     def _fail(self, now: float, why: str) -> None:
-        self.detectors_ok = False
         if self.running != self.fallback:
             self._swap(self.fallback, now, f"detectors failed: {why}")
+        # only once swapped: a swap that failed is tried again at the next look
+        self.detectors_ok = False
 
     # -- swapping ---------------------------------------------------------------------
     def _swap(self, name: str, now: float, reason: str) -> None:
