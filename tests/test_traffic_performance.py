@@ -136,6 +136,16 @@ def test_silence_is_noticed_in_a_re_pointed_driver_s_new_run() -> None:
     assert runtime.swaps() == ["FixedTime"] and harness.state["detectors_ok"] is False
 
 
+def test_it_comes_back_from_fixed_time_to_its_controller_when_no_rule_holds() -> None:
+    """Rules without a catch-all: the way back took the fallback as the choice."""
+    harness, runtime = agent(rules=[{"use": "max_pressure", "queue_at_least": 6.0}])
+    feed(harness, 0, 30, queue=1)
+    harness.feed("measures", measure(30.0, queue=1, plausible=False))
+    assert runtime.swaps() == ["FixedTime"]
+    feed(harness, 31, 92, queue=1)           # a whole window of good readings
+    assert runtime.swaps() == ["FixedTime", "GapOut"] and harness.state["detectors_ok"]
+
+
 def test_detectors_silent_from_the_start_bring_fixed_time() -> None:
     harness, runtime = agent()
     for second in range(12):

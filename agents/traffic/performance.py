@@ -59,9 +59,13 @@ class PerformanceAgent(Agent):
     detectors_ok = True
     swaps: list[dict[str, Any]] = []
     last_swap_s = -1e9
+    chosen = ""                     # the controller chosen ("": running's); the fallback
+                                    # stands in for it while the detectors fail
 
     def setup(self) -> None:
-        unknown = {self.running, self.fallback, *(r["use"] for r in self.rules)} - set(
+        self.chosen = self.chosen or self.running
+        unknown = {self.running, self.chosen, self.fallback,
+                   *(r["use"] for r in self.rules)} - set(
             self.controllers)
         if unknown:
             raise ValueError(f"{self.controller}'s performance agent: no controller "
@@ -122,10 +126,12 @@ class PerformanceAgent(Agent):
         if wanted != self.running and measure.time - self.last_swap_s >= self.min_between_swaps_s:
             self._swap(wanted, measure.time, f"demand {self.demand_per_min:.1f}/min, "
                                              f"queue {self.mean_queue:.1f}")
+            self.chosen = wanted
 
     def choice(self) -> str:
-        """The controller the rules give for the demand and queue measured now."""
-        chosen = self.running
+        """The controller the rules give for the demand and queue measured now (when
+        none holds, the one chosen before, not a fallback standing in for it)."""
+        chosen = self.chosen
         for rule in self.rules:
             if (self.demand_per_min >= rule.get("demand_at_least", 0.0)
                     and self.mean_queue >= rule.get("queue_at_least", 0.0)):
