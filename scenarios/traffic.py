@@ -312,7 +312,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         resource = network_path(args.network)
         demand_scale = parse_scale(args.scale)
-        Network.load(resource).scaled(demand_scale)
+        network = Network.load(resource).scaled(demand_scale)
+        network.check_streams(network.build())
     except ValueError as exc:
         print(f"traffic: {exc}", file=sys.stderr)
         return 2

@@ -5,6 +5,8 @@ One system test runs it in its own worker with a controller in another."""
 
 from __future__ import annotations
 
+import itertools
+import shutil
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -111,6 +113,44 @@ def test_a_controller_swapped_mid_phase_keeps_the_lights_legal(driver) -> None:
     assert harness.state["rejected"] == 0
 
 
+def green_spans(readings: list[JunctionReading]) -> list[tuple[str, float]]:
+    """Each green the lights showed, whole (not the first nor the one the run ends
+    in), with the simulated seconds it lasted: a reading's signal is what was shown
+    since the reading before."""
+    spans: list[list] = []
+    for before, reading in itertools.pairwise(readings):
+        if spans and spans[-1][0] == reading.signal:
+            spans[-1][1] += reading.time - before.time
+        else:
+            spans.append([reading.signal, reading.time - before.time])
+    return [(state, seconds) for state, seconds in spans[1:-1] if "y" not in state]
+
+
+@pytest.mark.parametrize("control_step_s", [2.5, 1.4])
+def test_a_control_step_of_any_length_keeps_the_minimum_green(driver,
+                                                              control_step_s: float) -> None:
+    harness = driver(min_green_s=5.0, control_step_s=control_step_s, duration_s=120.0)
+    while harness.state["status"] == "running":      # a controller that always wants
+        reading = harness.last("reading_0")           # the other green
+        harness.feed("request_0", PhaseRequest("C", reading.step, 1 - reading.green))
+    spans = green_spans(harness.written["reading_0"])
+    assert len(spans) >= 5 and all(seconds >= 5.0 for _, seconds in spans), spans
+
+
+@pytest.mark.parametrize("bad", [{"control_step_s": 0.0}, {"control_step_s": -1.0},
+                                 {"control_step_s": float("nan")},
+                                 {"min_green_s": -5.0}, {"duration_s": float("inf")}])
+def test_a_step_green_or_duration_out_of_range_is_refused_by_name(driver, bad) -> None:
+    (name, _), = bad.items()
+    with pytest.raises(ValueError, match=f"{name} must be"):
+        driver(**bad)
+    harness = driver(duration_s=30.0)
+    before = harness.state[name]
+    with pytest.raises(ValueError, match=f"{name} must be"):
+        harness.module.set_state(bad)
+    assert harness.state[name] == before and harness.state["status"] == "running"
+
+
 def test_a_slow_controller_holds_the_simulation_and_a_missing_one_is_late(driver) -> None:
     now = [100.0]
     harness = driver(lockstep_timeout_s=2.0)
@@ -191,6 +231,24 @@ def test_re_pointed_while_it_runs_it_ends_one_simulation_and_starts_the_other(dr
     with pytest.raises(ValueError, match="no network description"):
         harness.module.set_state({"resource": str(NETWORKS / "nowhere.toml")})
     assert harness.state["status"] == "failed" and "nowhere.toml" in harness.state["last_error"]
+
+
+def test_a_stream_without_a_route_is_refused_before_the_run(driver, tmp_path: Path) -> None:
+    """A stream with no route, due only in the last period, used to crash SUMO three
+    quarters into the run; the driver then failed every step and never finished."""
+    for suffix in (".nod.xml", ".edg.xml"):
+        shutil.copy(NETWORKS / f"cross{suffix}", tmp_path / f"cross{suffix}")
+    text = (NETWORKS / "cross.toml").read_text().replace(
+        'from = "w_C", to = "C_e", group = "ew"', 'from = "C_e", to = "w_C", group = "late"')
+    for rates in ("ew = 600, ns = 150", "ew = 150, ns = 600", "ew = 300, ns = 300"):
+        text = text.replace(rates, rates + ", late = 0")
+    (tmp_path / "late.toml").write_text(text.replace("ew = 550, ns = 550",
+                                                     "ew = 550, ns = 550, late = 600"))
+    with pytest.raises(ValueError, match="stream west_east: no route from edge C_e"):
+        driver(resource=str(tmp_path / "late.toml"), own_programs=True)
+    harness = driver(own_programs=True, duration_s=30.0)    # and SUMO is free for the next
+    eventually(lambda: harness.step() or harness.state["status"] == "finished",
+               timeout=20, what="the next run to end")
 
 
 def test_its_demand_scale_changes_the_vehicles_and_re_points_it(driver) -> None:

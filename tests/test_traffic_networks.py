@@ -90,6 +90,9 @@ def test_a_period_s_demand_scales_and_a_bad_scale_is_named(tmp_path: Path) -> No
     with pytest.raises(ValueError, match="no period rush to scale; its periods are west "
                                          "heavy, east heavy, balanced, surge"):
         network.scaled({"rush": 2.0})
+    with pytest.raises(ValueError, match="period surge's rate of group west would be "
+                                         "infinite"):
+        network.scaled({"surge": 1e308})
     for bad in (0.0, -1.0, float("nan"), "2"):
         with pytest.raises(ValueError, match="the factor of period surge must be a number "
                                              "above 0"):
@@ -107,6 +110,15 @@ def test_a_period_s_demand_scales_and_a_bad_scale_is_named(tmp_path: Path) -> No
      "shares must add up to 1"),
     ('[build]\nnetconvert = { nodes = "no.nod.xml", edges = "no.edg.xml" }\n',
      "netconvert nodes: no file"),
+    ('[build]\nnetgenerate = ["--grid"]\n[demand]\nstreams = ["a"]\n',
+     r"\[demand.streams\] must be a table"),
+    ('[build]\nnetgenerate = ["--grid"]\n[demand.streams]\na = { from = "x", to = "y", '
+     'group = "g" }\n[[demand.periods]]\nshare = true\nrates = { g = 1 }\n',
+     "share must be a number above 0"),
+    *[('[build]\nnetgenerate = ["--grid"]\n[demand.streams]\na = { from = "x", to = "y", '
+       f'group = "g" }}\n[[demand.periods]]\nshare = 1.0\nrates = {{ g = {rate} }}\n',
+       "rate of group g must be a finite number of vehicles per hour, 0 or more")
+      for rate in ("nan", "inf", "-60", '"many"')],
 ])
 def test_a_bad_description_is_refused_saying_what_to_fix(tmp_path: Path, text: str,
                                                          complaint: str) -> None:
@@ -117,6 +129,27 @@ def test_a_bad_description_is_refused_saying_what_to_fix(tmp_path: Path, text: s
     assert str(path) in str(caught.value)
     with pytest.raises(ValueError, match="no network description at"):
         Network.load(tmp_path / "missing.toml")
+
+
+@pytest.mark.parametrize(("stream", "complaint"), [
+    ('from = "nowhere", to = "C_e"', "stream west_east: no edge 'nowhere' in"),
+    ('from = "C_e", to = "w_C"', "stream west_east: no route from edge C_e to edge w_C"),
+])
+def test_a_stream_the_built_network_cannot_carry_is_refused_by_name(
+        cache: Path, tmp_path: Path, stream: str, complaint: str) -> None:
+    """Before, SUMO failed on it: at start, or (a stream of a later period with no
+    route) mid-run, the driver then failing every step without end."""
+    for suffix in (".nod.xml", ".edg.xml"):
+        shutil.copy(NETWORKS / f"cross{suffix}", tmp_path / f"cross{suffix}")
+    path = tmp_path / "cross.toml"
+    path.write_text((NETWORKS / "cross.toml").read_text().replace(
+        'from = "w_C", to = "C_e"', stream))
+    network = Network.load(path)
+    with pytest.raises(ValueError, match=complaint) as caught:
+        network.check_streams(network.build("static", cache))
+    assert str(path) in str(caught.value)
+    original = Network.load(NETWORKS / "cross.toml")
+    original.check_streams(original.build("static", cache))    # the bundled one is fine
 
 
 def test_without_sumo_the_error_says_how_to_install_it(monkeypatch) -> None:

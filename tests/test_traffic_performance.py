@@ -112,11 +112,69 @@ def test_silent_detectors_bring_fixed_time_at_once_and_it_comes_back_after() -> 
     assert runtime.swaps()[-1] == "GapOut" and harness.state["detectors_ok"] is True
 
 
+def test_a_re_pointed_driver_s_new_run_is_judged_on_its_own_with_the_guard_rails_kept() -> None:
+    """The driver re-pointed: its clock and the measures start again from 0. The old
+    run's window was kept (for as long as that run had lasted) and the time since a
+    swap counted back from the old clock."""
+    harness, runtime = agent()
+    feed(harness, 0, 200, queue=9)           # swapped at 60 s; then re-pointed
+    feed(harness, 0, 61, queue=0)            # a light run: a whole window of it
+    assert harness.state["mean_queue"] == 0.0 and harness.state["demand_per_min"] == 0.0
+    assert runtime.swaps() == ["MaxPressure", "GapOut"]
+    assert harness.state["swaps"][-1]["time"] == 60.0
+    feed(harness, 0, 119, queue=9)           # re-pointed at once: the swap was 0 s ago
+    assert runtime.swaps() == ["MaxPressure", "GapOut"]
+    feed(harness, 119, 121, queue=9)
+    assert runtime.swaps() == ["MaxPressure", "GapOut", "MaxPressure"]
+
+
+def test_silence_is_noticed_in_a_re_pointed_driver_s_new_run() -> None:
+    harness, runtime = agent()
+    feed(harness, 0, 200, queue=1)
+    for second in range(12):                 # re-pointed; no reading comes
+        harness.feed("clock", float(second))
+    assert runtime.swaps() == ["FixedTime"] and harness.state["detectors_ok"] is False
+
+
+def test_it_comes_back_from_fixed_time_to_its_controller_when_no_rule_holds() -> None:
+    """Rules without a catch-all: the way back took the fallback as the choice."""
+    harness, runtime = agent(rules=[{"use": "max_pressure", "queue_at_least": 6.0}])
+    feed(harness, 0, 30, queue=1)
+    harness.feed("measures", measure(30.0, queue=1, plausible=False))
+    assert runtime.swaps() == ["FixedTime"]
+    feed(harness, 31, 92, queue=1)           # a whole window of good readings
+    assert runtime.swaps() == ["FixedTime", "GapOut"] and harness.state["detectors_ok"]
+
+
 def test_detectors_silent_from_the_start_bring_fixed_time() -> None:
     harness, runtime = agent()
     for second in range(12):
         harness.feed("clock", float(second))
     assert runtime.swaps() == ["FixedTime"] and harness.state["detectors_ok"] is False
+
+
+def test_a_fallback_swap_that_fails_is_tried_again() -> None:
+    """The system could not swap (the controller busy past the swap's timeout): the
+    agent had marked the detectors failed first, so silence never tried again."""
+    harness, runtime = agent()
+    refused = [TimeoutError("module 'W/controller' was busy in a call for 10.0 s")]
+    swap = runtime.swap
+
+    def failing_swap(name: str, cls: str) -> list[str]:
+        if refused:
+            raise refused.pop()
+        return swap(name, cls)
+
+    runtime.swap = failing_swap
+    feed(harness, 0, 30, queue=1)
+    for second in range(30, 40):             # the readings stop
+        harness.feed("clock", float(second))
+    with pytest.raises(TimeoutError):
+        harness.feed("clock", 40.0)          # the fallback swap fails ...
+    assert runtime.swaps() == [] and harness.state["running"] == "gap_out"
+    harness.step()                           # ... and is made at the next look
+    assert runtime.swaps() == ["FixedTime"] and harness.state["running"] == "fixed_time"
+    assert harness.state["detectors_ok"] is False
 
 
 def test_implausible_readings_bring_fixed_time() -> None:

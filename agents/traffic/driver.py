@@ -39,6 +39,7 @@ delay over time.
 
 from __future__ import annotations
 
+import math
 import shutil
 import tempfile
 import time
@@ -54,6 +55,8 @@ from pb3a import Input, InputPort, Module, Output
 MAX_JUNCTIONS = 16          # junction slots: ports are declared with the class
 _SIMULATION_KEYS = ("resource", "seed", "signals", "duration_s", "own_programs",
                     "demand_scale")
+_SECONDS = ("control_step_s", "duration_s", "min_green_s")   # finite, above 0 (min_green_s:
+                                                            # at least 0)
 
 
 def _junction_ports() -> dict[str, Input | Output]:
@@ -114,7 +117,14 @@ class TrafficDriver(_JunctionSlots, Module):
     def set_state(self, state: dict[str, Any]) -> None:
         """Set state; a change of ``resource``, ``seed``, ``signals``, ``duration_s``,
         ``own_programs`` or ``demand_scale`` in a running driver ends its simulation and
-        starts the new one at once."""
+        starts the new one at once. ``ValueError`` (nothing set) for a control step,
+        minimum green or duration out of range."""
+        for key in _SECONDS:
+            value, zero_ok = state.get(key, 1.0), key == "min_green_s"
+            if not (isinstance(value, (int, float)) and math.isfinite(value)
+                    and (value >= 0 if zero_ok else value > 0)):
+                raise ValueError(f"{key} must be a finite number of seconds "
+                                 f"{'at least' if zero_ok else 'above'} 0, got {value!r}")
         changed = any(k in state and state[k] != getattr(self, k) for k in _SIMULATION_KEYS)
         super().set_state(state)
         if changed and "_heads" in vars(self):
@@ -176,10 +186,13 @@ class TrafficDriver(_JunctionSlots, Module):
         came of it (or end the run at ``duration_s``)."""
         simulation = self._simulation
         assert simulation is not None
+        # SUMO advances in whole steps: the heads count the time it really runs, so a
+        # control step of 2.5 s (two steps) cannot cut a green short of min_green_s
+        steps = max(1, round(self.control_step_s / STEP_S))
         if not self.own_programs:
             for junction, head in self._heads.items():
-                simulation.set_signal(junction, head.show(self.control_step_s))
-        simulation.advance(max(1, round(self.control_step_s / STEP_S)))
+                simulation.set_signal(junction, head.show(steps * STEP_S))
+        simulation.advance(steps)
         self.step_count += 1
         self.time_s = simulation.time
         if self.time_s >= self.duration_s:
@@ -216,6 +229,7 @@ class TrafficDriver(_JunctionSlots, Module):
         try:
             network = Network.load(self.resource).scaled(self.demand_scale)
             net = network.build(self.signals, Path(self.cache_dir) if self.cache_dir else None)
+            network.check_streams(net)
             if self.out_dir:
                 self._workdir = Path(self.out_dir)
                 self._workdir.mkdir(parents=True, exist_ok=True)

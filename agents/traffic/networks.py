@@ -21,6 +21,7 @@ import os
 import subprocess
 import tempfile
 import tomllib
+import xml.etree.ElementTree as ET
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -71,6 +72,11 @@ def default_cache() -> Path:
         return Path(os.environ["PB3A_TRAFFIC_CACHE"])
     base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
     return Path(base) / "pb3a" / "traffic"
+
+
+def _is_number(value: Any) -> bool:
+    """True for an int or a float (a TOML ``true`` is neither)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 @dataclass(frozen=True)
@@ -140,9 +146,12 @@ class Network:
             raise fail("[build] netgenerate must be a list of strings (its arguments)")
 
         demand = doc.get("demand", {})
+        if not isinstance(demand.get("streams", {}), dict):
+            raise fail("[demand.streams] must be a table of streams "
+                       "(name = { from = EDGE, to = EDGE, group = G })")
         streams = []
         for name, stream in demand.get("streams", {}).items():
-            missing = {"from", "to", "group"} - set(stream)
+            missing = {"from", "to", "group"} - set(stream if isinstance(stream, dict) else ())
             if missing:
                 raise fail(f"[demand.streams] {name} lacks {', '.join(sorted(missing))}")
             streams.append(Stream(name, stream["from"], stream["to"], stream["group"]))
@@ -158,8 +167,13 @@ class Network:
                 raise fail(f"{label}: rates must give every group ({', '.join(sorted(groups))}), "
                            f"got {', '.join(sorted(rates)) or 'none'}")
             share = period.get("share", 0)
-            if not (isinstance(share, (int, float)) and share > 0):
+            if not (_is_number(share) and share > 0):
                 raise fail(f"{label}: share must be a number above 0")
+            for group, rate in sorted(rates.items()):
+                # (SUMO takes a rate of NaN or inf as vehicles without end, at once)
+                if not (_is_number(rate) and math.isfinite(rate) and rate >= 0):
+                    raise fail(f"{label}: the rate of group {group} must be a finite number "
+                               f"of vehicles per hour, 0 or more, got {rate!r}")
             periods.append(Period(str(period.get("name", number + 1)), float(share),
                                   {g: float(r) for g, r in rates.items()}))
         if not periods:
@@ -225,6 +239,36 @@ class Network:
         digest.update(f"{signals} {sumo_version()} {_BUILD_OPTIONS}".encode())
         return digest.hexdigest()[:12]
 
+    def check_streams(self, net_file: Path) -> None:
+        """``ValueError`` naming the first stream the built network ``net_file`` cannot
+        carry: a road it does not have, or no way from the stream's origin to its
+        destination. SUMO would fail on it only when the stream's first vehicle is
+        loaded, which may be late in a run."""
+        roads: set[str] = set()
+        leads_to: dict[str, set[str]] = {}
+        for _, element in ET.iterparse(net_file):
+            if element.tag == "edge" and element.get("function") != "internal":
+                roads.add(element.get("id", ""))
+            elif element.tag == "connection" and not element.get("from", ":").startswith(":"):
+                leads_to.setdefault(element.get("from", ""), set()).add(element.get("to", ""))
+            element.clear()
+        for stream in self.streams:
+            for road in (stream.origin, stream.destination):
+                if road not in roads:
+                    raise ValueError(f"{self.path}: stream {stream.name}: no edge {road!r} "
+                                     f"in the built network (its edges: "
+                                     f"{', '.join(sorted(roads)[:20])}"
+                                     f"{', ...' if len(roads) > 20 else ''})")
+            reached, frontier = {stream.origin}, [stream.origin]
+            while frontier and stream.destination not in reached:
+                frontier = [n for road in frontier for n in leads_to.get(road, ())
+                            if n not in reached]
+                reached.update(frontier)
+            if stream.destination not in reached:
+                raise ValueError(f"{self.path}: stream {stream.name}: no route from edge "
+                                 f"{stream.origin} to edge {stream.destination} in the "
+                                 "built network")
+
     # -- demand ---------------------------------------------------------------------
     def scaled(self, factors: Mapping[str, float]) -> Network:
         """This network with the rates of some periods multiplied: ``factors`` maps a
@@ -236,12 +280,18 @@ class Network:
             raise ValueError(f"{self.path}: no period {', '.join(sorted(unknown))} to scale; "
                              f"its periods are {', '.join(names)} (or * for all)")
         for name, factor in factors.items():
-            if not (isinstance(factor, (int, float)) and math.isfinite(factor) and factor > 0):
+            if not (_is_number(factor) and math.isfinite(factor) and factor > 0):
                 raise ValueError(f"{self.path}: the factor of period {name} must be a number "
                                  f"above 0, got {factor!r}")
         periods = tuple(replace(period, rates={
             group: rate * factors.get("*", 1.0) * factors.get(period.name, 1.0)
             for group, rate in period.rates.items()}) for period in self.periods)
+        for period in periods:
+            for group, rate in period.rates.items():
+                if not math.isfinite(rate):
+                    raise ValueError(f"{self.path}: scaled by {dict(factors)}, period "
+                                     f"{period.name}'s rate "
+                                     f"of group {group} would be infinite")
         return replace(self, periods=periods)
 
     def schedule(self, duration_s: float) -> list[tuple[Period, float, float]]:

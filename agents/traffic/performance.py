@@ -10,7 +10,9 @@ each a class and the state it is given when swapped in).
 
 Guard rails:
 
-- at least ``min_between_swaps_s`` simulated seconds between two swaps by the rules;
+- at least ``min_between_swaps_s`` simulated seconds between two swaps by the rules,
+  also across a re-pointed driver's new run (its clock from 0), whose measures make a
+  window of their own;
 - when the detectors fail (an implausible measure, or none for ``silent_after_s``
   of the driver's clock and ``silent_wall_s`` of wall time: a lock-step run goes
   faster than the messages between modules, and their lag is no failure), it swaps
@@ -57,16 +59,21 @@ class PerformanceAgent(Agent):
     detectors_ok = True
     swaps: list[dict[str, Any]] = []
     last_swap_s = -1e9
+    chosen = ""                     # the controller chosen ("": running's); the fallback
+                                    # stands in for it while the detectors fail
 
     def setup(self) -> None:
-        unknown = {self.running, self.fallback, *(r["use"] for r in self.rules)} - set(
+        self.chosen = self.chosen or self.running
+        unknown = {self.running, self.chosen, self.fallback,
+                   *(r["use"] for r in self.rules)} - set(
             self.controllers)
         if unknown:
             raise ValueError(f"{self.controller}'s performance agent: no controller "
                              f"{', '.join(sorted(unknown))} in controllers "
                              f"({', '.join(sorted(self.controllers)) or 'none'})")
         self._window: deque[JunctionMeasures] = deque()
-        self._last_measure_s: float | None = None
+        self._last_measure_s: float | None = None   # (or the clock's start, for silence)
+        self._measured_s: float | None = None       # the time of the last measure taken
         self._plausible_since: float | None = None
         self._kept: dict[str, dict[str, Any]] = {}
         self._clock_s: float | None = None
@@ -88,6 +95,14 @@ class PerformanceAgent(Agent):
 
     # -- measuring --------------------------------------------------------------------
     def _take(self, measure: JunctionMeasures) -> None:
+        last = self._measured_s
+        if last is not None and measure.time < last:
+            # the driver was re-pointed (a new run, its clock from 0): the window starts
+            # afresh, and the time since the last swap carries over to the new clock
+            self.last_swap_s = measure.time - (last - self.last_swap_s)
+            self._window.clear()
+            self._plausible_since = None
+        self._measured_s = measure.time
         self._last_measure_s, self._behind_since = measure.time, None
         if not measure.plausible:
             self._plausible_since = None
@@ -111,10 +126,12 @@ class PerformanceAgent(Agent):
         if wanted != self.running and measure.time - self.last_swap_s >= self.min_between_swaps_s:
             self._swap(wanted, measure.time, f"demand {self.demand_per_min:.1f}/min, "
                                              f"queue {self.mean_queue:.1f}")
+            self.chosen = wanted
 
     def choice(self) -> str:
-        """The controller the rules give for the demand and queue measured now."""
-        chosen = self.running
+        """The controller the rules give for the demand and queue measured now (when
+        none holds, the one chosen before, not a fallback standing in for it)."""
+        chosen = self.chosen
         for rule in self.rules:
             if (self.demand_per_min >= rule.get("demand_at_least", 0.0)
                     and self.mean_queue >= rule.get("queue_at_least", 0.0)):
@@ -123,6 +140,11 @@ class PerformanceAgent(Agent):
 
     def _check_silence(self) -> None:
         now, last = self._clock_s, self._last_measure_s
+        if now is not None and last is not None and last > now:
+            # a measure ahead of the clock is of a run that ended (the driver was
+            # re-pointed, its clock from 0): silence counts from the new clock
+            self._last_measure_s = last = now
+            self._behind_since = None
         if now is None or last is None or now - last <= self.silent_after_s:
             return
         if self._behind_since is None:
@@ -133,9 +155,10 @@ class PerformanceAgent(Agent):
             self._fail(now, f"no detector reading for {now - last:.0f} s")
 
     def _fail(self, now: float, why: str) -> None:
-        self.detectors_ok = False
         if self.running != self.fallback:
             self._swap(self.fallback, now, f"detectors failed: {why}")
+        # only once swapped: a swap that failed is tried again at the next look
+        self.detectors_ok = False
 
     # -- swapping ---------------------------------------------------------------------
     def _swap(self, name: str, now: float, reason: str) -> None:
