@@ -114,9 +114,11 @@ class TrafficDriver(_JunctionSlots, Module):
     def set_state(self, state: dict[str, Any]) -> None:
         """Set state; a change of ``resource``, ``seed``, ``signals``, ``duration_s``,
         ``own_programs`` or ``demand_scale`` in a running driver ends its simulation and
-        starts the new one at once."""
+        starts the new one at once; a ``min_green_s`` holds from the green shown now."""
         changed = any(k in state and state[k] != getattr(self, k) for k in _SIMULATION_KEYS)
         super().set_state(state)
+        for head in vars(self).get("_heads", {}).values():
+            head.min_green_s = self.min_green_s
         if changed and "_heads" in vars(self):
             self._end(keep=True)
             if self.resource:
