@@ -782,7 +782,9 @@ class Explorer(Module):
     def set_state(self, state: dict[str, Any]) -> None:
         """Set state; a running explorer goes by it from its next step (its settings,
         and what it remembers: a target, a frontier set aside), rather than writing its
-        own memory back over it."""
+        own memory back over it. A size or resolution setup would refuse is refused, and
+        nothing is set."""
+        Grid.of(state.get("size", self.size), state.get("resolution", self.resolution))
         super().set_state(state)
         if "_explorer" in vars(self):            # running: made again from the state
             self.setup()

@@ -465,12 +465,25 @@ class PolicyLearner(Module):
             if key in learner.recovery:
                 learner.recovery[key] += gap
 
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Set state; goals, parameters or a table the learner could not decide by (what
+        setup refuses) are refused, naming the problem, and nothing is set: taken, they
+        failed every decision from then on."""
+        _learner_of({**self.get_state(), **state})
+        super().set_state(state)
+
     def teardown(self) -> None:
         self.command.write(np.zeros(2))      # the robot stands while the learner is away
 
     def _learner(self) -> ReactiveLearner:
-        return ReactiveLearner(
-            self.goals, Parameters.of(self.parameters), seed=self.seed, q=self.q,
-            trace=self.trace, epsilon=self.epsilon, goal_index=self.goal_index,
-            episodes=self.episodes, underway=self.underway, recovery=self.recovery,
-            rng_state=self.rng_state)
+        return _learner_of(self.get_state())
+
+
+def _learner_of(state: dict[str, Any]) -> ReactiveLearner:
+    """The learner a ``PolicyLearner`` of ``state`` decides by; ValueError for goals,
+    parameters or a table it could not decide by."""
+    return ReactiveLearner(
+        state["goals"], Parameters.of(state["parameters"]), seed=state["seed"], q=state["q"],
+        trace=state["trace"], epsilon=state["epsilon"], goal_index=state["goal_index"],
+        episodes=state["episodes"], underway=state["underway"], recovery=state["recovery"],
+        rng_state=state["rng_state"])

@@ -319,6 +319,13 @@ class NormalModel:
                 "trained": True}
 
 
+def check_vote(votes_needed: int, votes_of: int) -> None:
+    """ValueError unless an alarm's vote is k of n windows with 1 <= k <= n."""
+    if not 1 <= votes_needed <= votes_of:
+        raise ValueError(f"an alarm needs votes_needed k of votes_of n windows, with "
+                         f"1 <= k <= n, not {votes_needed} of {votes_of}")
+
+
 class FaultMonitor:
     """A trained ``NormalModel`` watching one robot's streams: ``update`` each sample
     returns the failures that start then, each reported once per onset. A failure
@@ -326,9 +333,7 @@ class FaultMonitor:
 
     def __init__(self, model: NormalModel, tracker: FeatureTracker | None = None,
                  votes_needed: int = 3, votes_of: int = 5, rearm: int = 50) -> None:
-        if not 1 <= votes_needed <= votes_of:
-            raise ValueError(f"an alarm needs 1 <= k <= n (k of n windows), not "
-                             f"{votes_needed} of {votes_of}")
+        check_vote(votes_needed, votes_of)
         self.model = model
         self.tracker = tracker or FeatureTracker()
         self.votes_needed = votes_needed
@@ -470,10 +475,7 @@ class HardwareMonitor(Module):
     robot_changes = 0
 
     def setup(self) -> None:
-        unknown = sorted(set(self.ready_windows) - set(GROUPS))
-        if unknown:
-            raise ValueError(f"ready_windows names no fault group {', '.join(unknown)}: "
-                             f"the groups are {', '.join(GROUPS)}")
+        _check_settings(self.get_state())
         self._tracker = FeatureTracker(self.sample_s)
         self._monitor: FaultMonitor | None = None
         if self.running:
@@ -484,6 +486,8 @@ class HardwareMonitor(Module):
             self._watch(self._model())
             if "votes" in self.running:
                 self._monitor.restore(self.running)
+                if len(self._monitor.votes) != self.votes_of:   # a vote of another length
+                    self._monitor.votes = np.zeros((self.votes_of, len(GROUPS)), dtype=bool)
         if self.trained:
             return
         wanted = math.ceil(self.training_s / self.sample_s - 1e-9)
@@ -495,6 +499,16 @@ class HardwareMonitor(Module):
             informative[:kept] = self.training_informative[:kept]
             self.training, self.training_informative = training, informative
             self.collected = kept
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Set state; a running monitor goes by it from its next sample (a threshold, a
+        vote, what it remembers), rather than by what it made of its state at setup and
+        writes back over it. A setting setup would refuse is refused, naming it, and
+        nothing is set."""
+        _check_settings({**self.get_state(), **state})
+        super().set_state(state)
+        if "_tracker" in vars(self):             # running: made again from the state
+            self.setup()
 
     def _watch(self, model: NormalModel) -> None:
         """Watch by ``model``: a first model starts a ``FaultMonitor``; a later one
@@ -568,7 +582,7 @@ class HardwareMonitor(Module):
                                     self.training_informative[:self.collected],
                                     self.quantile, self.margin, self.fault_prior,
                                     self.fault_breadth, ready)
-            self.set_state(model.state() | {"trained": done})
+            vars(self).update(model.state() | {"trained": done})   # (its own: no rebuild)
             self._watch(model)
         if done:
             if len(ready) < len(GROUPS):
@@ -579,6 +593,15 @@ class HardwareMonitor(Module):
             self.training = np.zeros((0, len(FEATURES)))
             self.training_informative = np.zeros((0, len(GROUPS)), dtype=bool)
             self.collected = 0
+
+
+def _check_settings(state: dict[str, Any]) -> None:
+    """ValueError, naming it, for a ``HardwareMonitor`` setting its setup would refuse."""
+    unknown = sorted(set(state["ready_windows"]) - set(GROUPS))
+    if unknown:
+        raise ValueError(f"ready_windows names no fault group {', '.join(unknown)}: "
+                         f"the groups are {', '.join(GROUPS)}")
+    check_vote(state["votes_needed"], state["votes_of"])
 
 
 class Wanderer:

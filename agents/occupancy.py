@@ -258,6 +258,12 @@ class Mapper(Module):
         if self.updates % max(1, int(self.publish_every)) == 0:
             self.map.write(mapper.probabilities())
 
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Set state; a size, resolution or sonar model setup would refuse is refused,
+        naming it, and nothing is set (taken, every reading failed from then on)."""
+        _grid_and_model({**self.get_state(), **state})
+        super().set_state(state)
+
     def _current(self) -> OccupancyGrid:
         """The core on the current state, rebuilt if a ``set_state`` changed it."""
         core: OccupancyGrid | None = self.__dict__.get("_core")
@@ -274,13 +280,7 @@ class Mapper(Module):
         """A core on the state, which is made to fit: the model completed with
         defaults, a fresh map if the old one is not of the grid's shape, a copy of a
         read-only one (arrays that came through a port are)."""
-        grid = Grid.of(self.size, self.resolution)
-        parameters = [field.name for field in fields(SonarModel)]
-        unknown = sorted(set(self.model) - set(parameters))
-        if unknown:
-            raise ValueError(f"the sonar model has no parameter {', '.join(unknown)}; "
-                             f"its parameters: {', '.join(parameters)}")
-        model = SonarModel(**self.model)
+        grid, model = _grid_and_model(self.get_state())
         self.model = asdict(model)
         self.log_odds = _writable(self.log_odds, np.float32)
         if self.log_odds.shape != grid.shape:
@@ -295,6 +295,18 @@ class Mapper(Module):
                              bool(self.skip_repeats), self.unfolded)
         self.__dict__["_core"] = core
         return core
+
+
+def _grid_and_model(state: dict[str, Any]) -> tuple[Grid, SonarModel]:
+    """The grid and sonar model of a ``Mapper`` of ``state`` (the model completed with
+    defaults); ValueError naming what they cannot be made of."""
+    grid = Grid.of(state["size"], state["resolution"])
+    parameters = [field.name for field in fields(SonarModel)]
+    unknown = sorted(set(state["model"]) - set(parameters))
+    if unknown:
+        raise ValueError(f"the sonar model has no parameter {', '.join(unknown)}; "
+                         f"its parameters: {', '.join(parameters)}")
+    return grid, SonarModel(**state["model"])
 
 
 def _writable(array: Any, dtype: type) -> np.ndarray:

@@ -141,6 +141,23 @@ def check_actions(base: CaseBase) -> None:
                                 f"{case.remedy['action']!r}; actions: {', '.join(ACTIONS)}")
 
 
+def _case_base(state: dict[str, Any]) -> CaseBase:
+    """The case base a ``RemedyAgent`` of ``state`` goes by: its ``case_base``, or ({})
+    the shipped cases and the user's file. ValueError for what it could not carry out: no
+    ``driver``, a case's unknown action (``CaseFileError``, naming its file and case)."""
+    if not state["driver"]:
+        raise ValueError("RemedyAgent needs its 'driver': the RobotDriver to stop or "
+                         "re-point (e.g. 'control/driver')")
+    if state["case_base"]:
+        base = CaseBase.from_dict(state["case_base"])
+    else:
+        path = state["cases_path"]
+        base = CaseBase.load([SHIPPED_CASES, *([path] if Path(path).expanduser().exists()
+                                               else [])])
+    check_actions(base)
+    return base
+
+
 class RemedyAgent(Agent):
     """Failures in, one remedy per failure onset, its outcome judged and learned.
 
@@ -183,20 +200,26 @@ class RemedyAgent(Agent):
     stopped = False
 
     def setup(self) -> None:
-        if not self.driver:
-            raise ValueError("RemedyAgent needs its 'driver': the RobotDriver to stop or "
-                             "re-point (e.g. 'control/driver')")
-        if self.case_base:
-            base = CaseBase.from_dict(self.case_base)
-        else:
-            mine = [self.cases_path] if Path(self.cases_path).expanduser().exists() else []
-            base = CaseBase.load([SHIPPED_CASES, *mine])
-            self.case_base = base.to_dict()
-        check_actions(base)
-        self._base = base
+        self._use(_case_base(self.get_state()))
         # A move's Pending cannot be pickled: a moved or restored agent has none, and
         # looks at where the driver runs instead.
         self._pending: Any = None
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Set state; a running agent plans by a ``case_base`` set (or, set to {}, by the
+        case files again) from its next failure, rather than by the base it made at setup,
+        which it wrote back over the state as it learnt. What setup would refuse is
+        refused, and nothing is set."""
+        base = _case_base({**self.get_state(), **state})
+        super().set_state(state)
+        if "_base" in vars(self):
+            self._use(base)
+
+    def _use(self, base: CaseBase) -> None:
+        """Plan by ``base`` (and keep it in the state, if the state had none)."""
+        self._base = base
+        if not self.case_base:
+            self.case_base = base.to_dict()
 
     def on_input(self, port: InputPort) -> None:
         self.step()            # a failure is acted on at once, not at the next period

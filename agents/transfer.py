@@ -34,6 +34,22 @@ def success_rate(outcomes: list[bool], window: int) -> float:
     return sum(recent) / len(recent) if recent else 0.0
 
 
+def _check_settings(state: dict[str, Any]) -> None:
+    """ValueError naming each setting of a ``TransferAgent`` that could never or would
+    always transfer (a window of 0 read every episode; a threshold above 1 never
+    transferred, silently)."""
+    window, threshold, least = state["window"], state["threshold"], state["min_episodes"]
+    problems = [what for what, wrong in (
+        (f"window ({window!r}) must be a whole number of episodes, 1 or more",
+         isinstance(window, bool) or not isinstance(window, int) or window < 1),
+        (f"threshold ({threshold!r}) must be a success rate from 0 (at once) to 1",
+         not isinstance(threshold, int | float) or not 0 <= threshold <= 1),
+        (f"min_episodes ({least!r}) must be a whole number, 0 or more",
+         not isinstance(least, int) or least < 0)) if wrong]
+    if problems:
+        raise ValueError("TransferAgent: " + "; ".join(problems))
+
+
 class TransferAgent(Agent):
     """Moves ``macro`` to ``to_node`` and re-points ``driver`` at ``to_resource`` once
     the learner succeeds often enough in simulation."""
@@ -58,18 +74,14 @@ class TransferAgent(Agent):
     period = 0.02                   # the longest a look at a move in progress waits
 
     def setup(self) -> None:
-        problems = [what for what, wrong in (
-            (f"window ({self.window!r}) must be a whole number of episodes, 1 or more",
-             isinstance(self.window, bool) or not isinstance(self.window, int)
-             or self.window < 1),
-            (f"threshold ({self.threshold!r}) must be a success rate from 0 (at once) to 1",
-             not isinstance(self.threshold, int | float) or not 0 <= self.threshold <= 1),
-            (f"min_episodes ({self.min_episodes!r}) must be a whole number, 0 or more",
-             not isinstance(self.min_episodes, int) or self.min_episodes < 0)) if wrong]
-        if problems:                # (a window of 0 read every episode; a threshold
-            raise ValueError(       # above 1 never transferred, silently)
-                "TransferAgent: " + "; ".join(problems))
+        _check_settings(self.get_state())
         self._moving: Any = None    # the Pending of the move (not state: not picklable)
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Set state; a setting setup would refuse is refused, naming it, and nothing is
+        set (a window of 0 set live would have read every episode from then on)."""
+        _check_settings({**self.get_state(), **state})
+        super().set_state(state)
 
     def on_input(self, port: InputPort) -> None:
         for episode in port.read_all():

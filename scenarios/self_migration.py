@@ -108,7 +108,15 @@ class Mover(Agent):
     def setup(self) -> None:
         self._started = time.monotonic()
         self._moving: Pending | None = None
-        self._here = self.runtime.where(self.target)
+        self._here: str | None = self.runtime.where(self.target)
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Set state; the node of a ``target`` set while it runs (where load is judged)
+        is looked up at the next sample, not in here: set_state comes under the
+        configuration lock a runtime request waits for."""
+        super().set_state(state)
+        if "target" in state:
+            self._here = None
 
     def on_input(self, port: InputPort) -> None:
         load = {"a": self.outside_a.read(0.0), "b": self.outside_b.read(0.0)}
@@ -117,7 +125,9 @@ class Mover(Agent):
         if self._moving is not None:
             if not self._moving.done():
                 return                            # one move at a time
-            self._moving, self._here = None, self.runtime.where(self.target)
+            self._moving, self._here = None, None
+        if self._here is None:
+            self._here = self.runtime.where(self.target)
         here = self._here
         there = min(load, key=load.__getitem__)
         if load[here] > self.busy_pct and load[there] < load[here] - self.margin_pct:

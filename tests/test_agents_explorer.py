@@ -391,6 +391,18 @@ def test_without_a_map_or_a_pose_it_stands() -> None:
     assert explorer.last("command")[0] != 0.0 or explorer.last("command")[1] != 0.0
 
 
+def test_a_grid_setup_would_refuse_set_while_it_runs_is_refused_and_nothing_is_set() -> None:
+    """A resolution of 0 set on a running explorer is refused as setup refuses it; before,
+    it stayed in the state (the explorer going by its old grid, and refusing to start again
+    after a move) with max_speed set alongside it."""
+    explorer = ModuleHarness(Explorer, state={"size": [6.0, 4.0]})
+    with pytest.raises(ValueError, match="positive size and resolution"):
+        explorer.module.set_state({"resolution": 0.0, "max_speed": 0.1})
+    assert (explorer.state["resolution"], explorer.state["max_speed"]) == (0.1, 0.4)
+    explorer.module.set_state({"resolution": 0.2})
+    assert explorer.state["trail"].shape == (20, 30)            # made again for it
+
+
 # -- on a hardware robot, with the mapper, as in the live pipeline ---------------------------
 def _explore_hardware(name: str, seed: int, seconds: float, delay: int = 1,
                       hand_over_at: float | None = None) -> dict[str, Any]:

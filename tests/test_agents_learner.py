@@ -293,3 +293,24 @@ def test_a_parameter_out_of_range_is_refused_by_name(overrides, named) -> None:
     with pytest.raises(ValueError, match=rf"out of range: {named} = "):
         Parameters.of(overrides)
     assert Parameters.of({"thresholds": [0.5, 1.0], "bearings": 16}).states == 3 ** 4 * 16
+
+
+def test_what_it_could_not_decide_by_set_while_it_runs_is_refused_and_nothing_is_set(
+        ) -> None:
+    """Goals, a parameter or a table set on a running learner that setup would refuse are
+    refused by name, and it decides on by what it had; what it can decide by is taken."""
+    harness = ModuleHarness(PolicyLearner, state={"goals": [[5.0, 0.0]], "seed": 2})
+    harness.feed("sonar", CLEAR)
+    harness.feed("pose", np.zeros(3))
+    harness.feed("clock", 0.0)
+    for wrong, named in (({"parameters": {"gamma": 1.5}}, "gamma = 1.5"),
+                         ({"parameters": {"speed": 1.0}}, "unknown learner parameter"),
+                         ({"goals": []}, "at least one goal"),
+                         ({"q": np.zeros((4, 3))}, "table of shape")):
+        with pytest.raises(ValueError, match=named):
+            harness.module.set_state({**wrong, "learning": False})
+    assert harness.state["parameters"] == {} and harness.state["learning"]
+    harness.module.set_state({"goals": [[0.0, 3.0]], "parameters": {"gamma": 0.5}})
+    harness.feed("clock", 0.2)
+    assert len(harness.written["command"]) == 2
+    assert harness.state["underway"]["distance"] == pytest.approx(3.0)    # the new goal

@@ -7,6 +7,7 @@ import itertools
 import math
 import statistics
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import cloudpickle
@@ -265,3 +266,20 @@ def test_a_map_set_while_the_mapper_runs_is_the_one_it_updates() -> None:
     updated = harness.state["log_odds"]
     assert (updated[:, 60:] == 2.0).all() and (updated[:, :45] < 2.0).any()
     assert (handed_over == 2.0).all()                        # copied, not written into
+
+
+def test_a_model_or_grid_setup_would_refuse_set_while_it_runs_is_refused_by_name() -> None:
+    """Taken, a sonar model or grid the mapper cannot map with failed every reading from
+    then on; it is refused as setup refuses it, nothing is set, and it maps on."""
+    harness = ModuleHarness(Mapper)
+    (reading, pose), (second, _) = _readings(2, seed=4)
+    harness.feed("pose", pose)
+    harness.feed("sonar", reading)
+    for wrong, named in (({"model": {"cone": 20.0}}, "no parameter cone"),
+                         ({"model": {"cone_deg": 200.0}}, "cone_deg=200.0"),
+                         ({"resolution": 0.0}, "positive size and resolution")):
+        with pytest.raises(ValueError, match=named):
+            harness.module.set_state({**wrong, "publish_every": 5})
+    assert harness.state["model"] == asdict(SonarModel()) and harness.state["publish_every"] == 1
+    harness.feed("sonar", second)
+    assert harness.state["updates"] == 2 and len(harness.written["map"]) == 2

@@ -279,3 +279,21 @@ def test_too_little_normal_running_is_refused() -> None:
         rows = [tracker.update(*sample) for sample in samples(world, ROBOT, 3.0)]
     with pytest.raises(ValueError, match="fewer than 10 informative samples of odometry"):
         NormalModel.fit(np.array([f for f, _ in rows]), np.array([i for _, i in rows]))
+
+
+def test_state_set_while_it_runs_is_what_it_goes_by(model: NormalModel) -> None:
+    """A threshold or a vote set on a running monitor (the State Editor, an agent) is
+    what it watches by from its next sample; a vote setup would refuse is refused by
+    name, and nothing is set."""
+    harness = ModuleHarness(HardwareMonitor, state=model.state())
+    with World.load(LAB, seed=6) as world:
+        for tick, sample in enumerate(samples(world, ROBOT, 15.0, Wanderer(6))):
+            if tick == 50:                           # 5 s: the motors' alarm silenced
+                harness.module.set_state({"thresholds": np.full(len(GROUPS), 1e9)})
+                with pytest.raises(ValueError, match="votes_needed k of votes_of n"):
+                    harness.module.set_state({"votes_needed": 6})
+                world.robot(ROBOT).inject("motors_off")
+            feed(harness, sample)
+    assert harness.written["failure"] == []
+    assert (harness.state["thresholds"] == 1e9).all() and harness.state["votes_needed"] == 3
+    assert harness.state["running"]["counted"].sum() > 0     # (it watched on)

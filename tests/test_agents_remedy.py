@@ -577,3 +577,23 @@ def test_a_sensor_a_module_reads_is_never_carried_on_with(tmp_path, clock) -> No
     assert "no value for {fallback}" in chosen["reason"]
     assert "a module reads" in chosen["reason"]
     assert not (tmp_path / "learned.toml").exists()   # no carry_on case learned for it
+
+
+def test_a_case_base_set_while_it_runs_is_what_it_goes_by(tmp_path, clock) -> None:
+    """A case base set on a running agent (the State Editor, another agent) is planned by
+    from the next failure, and kept as it learns; one with a remedy it cannot carry out
+    is refused, naming the case, and nothing is set."""
+    runtime = FakeRuntime()
+    harness = agent(tmp_path, runtime)
+    base = harness.state["case_base"]
+    odd = {**base["cases"][0], "id": "odd", "remedy": {"action": "reboot"}}
+    with pytest.raises(CaseFileError, match="case 'odd': unknown action 'reboot'"):
+        harness.module.set_state({"case_base": {**base, "cases": [*base["cases"], odd]}})
+    assert harness.state["case_base"] == base
+    without_motors = [case for case in base["cases"]
+                      if case["symptoms"].get("fault") != "motors"]
+    harness.module.set_state({"case_base": {**base, "cases": without_motors}})
+    harness.feed("failure", failure("motors", clock.now))
+    assert runtime.calls == [("set_state", "control/driver", {"enabled": False})]
+    assert events(harness) == [("chosen", "stop", ""), ("worked", "stop", "")]
+    assert harness.state["case_base"]["cases"] == without_motors

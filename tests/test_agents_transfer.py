@@ -59,16 +59,28 @@ def test_success_rate_counts_the_last_window() -> None:
     assert success_rate([], 3) == 0.0
 
 
-@pytest.mark.parametrize(("wrong", "named"), [
+WRONG = pytest.mark.parametrize(("wrong", "named"), [
     ({"window": 0}, "window (0) must be a whole number of episodes, 1 or more"),
     ({"window": 2.5}, "window (2.5)"),
     ({"threshold": 1.2}, "threshold (1.2) must be a success rate from 0 (at once) to 1"),
     ({"threshold": -0.1}, "threshold (-0.1)"),
     ({"min_episodes": -1}, "min_episodes (-1) must be a whole number, 0 or more")])
+
+
+@WRONG
 def test_settings_that_could_never_or_always_transfer_are_refused_by_name(
         wrong: dict, named: str) -> None:
     with pytest.raises(ValueError, match=re.escape(named)):
         ModuleHarness(TransferAgent, state={**STATE, **wrong}, runtime=Runtime())
+
+
+@WRONG
+def test_such_a_setting_set_while_it_runs_is_refused_by_name_and_nothing_is_set(
+        wrong: dict, named: str) -> None:
+    agent = ModuleHarness(TransferAgent, state=STATE, runtime=Runtime())
+    with pytest.raises(ValueError, match=re.escape(named)):
+        agent.module.set_state({**wrong, "to_node": "elsewhere"})
+    assert {name: agent.state[name] for name in STATE} == STATE
 
 
 def test_it_waits_for_the_success_rate_then_moves_with_the_driver_re_pointed_on_arrival() -> None:

@@ -11,6 +11,7 @@ import time
 import pytest
 
 from pb3a.cli.main import main
+from pb3a.testing import ModuleHarness
 from scenarios import mapping, self_migration
 
 # The robot applications and self-migration run alone (the Makefile's test target):
@@ -276,3 +277,32 @@ def test_traffic_names_the_networks_when_given_one_it_does_not_know(tmp_path, ca
     assert main(["scenario", "traffic", "--network", "moon", "--out", str(tmp_path)]) == 2
     assert "no network 'moon': the bundled networks are cross, grid, ring" in (
         capsys.readouterr().err)
+
+
+class _Runtime:
+    """Where each module runs, and the moves a ``Mover`` asks for."""
+
+    def __init__(self) -> None:
+        self.nodes = {"compute": "a", "other": "b"}
+        self.moves: list[tuple[str, str]] = []
+
+    def where(self, name: str) -> str:
+        return self.nodes[name]
+
+    def migrate(self, name: str, to: str, *, wait: bool = True) -> None:
+        self.moves.append((name, to))
+
+
+def test_the_mover_judges_the_load_where_a_target_set_while_it_runs_is() -> None:
+    """A target set on a running mover is judged by its own node's load: before, by the
+    node of the target it had at setup, so it moved ``other`` to where it already ran."""
+    runtime = _Runtime()
+    mover = ModuleHarness(self_migration.Mover, runtime=runtime,
+                          state={"warmup_s": 0.0, "patience": 1})
+    mover.module.set_state({"target": "other"})           # on b, which is quiet
+    mover.feed("outside_b", 10.0)
+    mover.feed("outside_a", 90.0)
+    assert runtime.moves == []
+    mover.module.set_state({"target": "compute"})         # on a, which is busy
+    mover.feed("outside_a", 90.0)
+    assert runtime.moves == [("compute", "b")]

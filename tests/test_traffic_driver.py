@@ -101,6 +101,17 @@ def test_a_requested_phase_comes_after_the_minimum_green_and_a_yellow(driver) ->
     assert (reading.green, reading.target, reading.stage, reading.elapsed) == (EW, EW, "green", 2.0)
 
 
+def test_a_minimum_green_set_while_it_runs_holds_from_the_green_shown_now(driver) -> None:
+    """Before, the lights went by the minimum green the run began with."""
+    harness = driver(min_green_s=5.0)
+    greens = harness.last("reading_0").layout.greens
+    answer(harness, NS)
+    harness.module.set_state({"min_green_s": 8.0})
+    shown = [harness.last("reading_0").signal] + [answer(harness, EW).signal
+                                                  for _ in range(8)]
+    assert shown[:8] == [greens[NS]] * 8 and shown[8] != greens[NS]
+
+
 def test_a_controller_swapped_mid_phase_keeps_the_lights_legal(driver) -> None:
     """A steady controller, then (mid-green) one that changes its mind every second:
     every step's lights are legal: no conflicting greens, yellow before red."""

@@ -204,6 +204,18 @@ def test_rules_naming_a_controller_it_does_not_have_are_refused_by_name() -> Non
         agent(rules=[{"use": "webster"}])
 
 
+def test_such_rules_set_while_it_runs_are_refused_by_name_and_nothing_is_set() -> None:
+    """Taken, they failed its next swap (a KeyError deep in it)."""
+    harness, runtime = agent()
+    with pytest.raises(ValueError, match="no controller webster in controllers"):
+        harness.module.set_state({"rules": [{"use": "webster", "queue_at_least": 6.0}],
+                                  "window_s": 30.0})
+    assert harness.state["rules"][-1]["use"] == "max_pressure"
+    assert harness.state["window_s"] == 60.0
+    feed(harness, 0, 61, queue=9)
+    assert runtime.swaps() == ["MaxPressure"]
+
+
 NETWORKS = Path(__file__).resolve().parent.parent / "scenarios" / "traffic"
 
 

@@ -117,8 +117,9 @@ class TrafficDriver(_JunctionSlots, Module):
     def set_state(self, state: dict[str, Any]) -> None:
         """Set state; a change of ``resource``, ``seed``, ``signals``, ``duration_s``,
         ``own_programs`` or ``demand_scale`` in a running driver ends its simulation and
-        starts the new one at once. ``ValueError`` (nothing set) for a control step,
-        minimum green or duration out of range."""
+        starts the new one at once; a ``min_green_s`` holds from the green shown now.
+        ``ValueError`` (nothing set) for a control step, minimum green or duration out
+        of range."""
         for key in _SECONDS:
             value, zero_ok = state.get(key, 1.0), key == "min_green_s"
             if not (isinstance(value, (int, float)) and math.isfinite(value)
@@ -127,6 +128,8 @@ class TrafficDriver(_JunctionSlots, Module):
                                  f"{'at least' if zero_ok else 'above'} 0, got {value!r}")
         changed = any(k in state and state[k] != getattr(self, k) for k in _SIMULATION_KEYS)
         super().set_state(state)
+        for head in vars(self).get("_heads", {}).values():
+            head.min_green_s = self.min_green_s
         if changed and "_heads" in vars(self):
             self._end(keep=True)
             if self.resource:

@@ -36,6 +36,18 @@ from pb3a import Agent, Input, InputPort, Output
 KEPT_STATE = ("table",)             # a controller's learnt state, kept across swaps
 
 
+def _check_controllers(state: dict[str, Any]) -> None:
+    """ValueError naming each controller a ``PerformanceAgent`` of ``state`` is told to
+    run (``running``, ``chosen``, ``fallback``, a rule's ``use``) that is not in its
+    ``controllers``."""
+    unknown = {state["running"], state["chosen"] or state["running"], state["fallback"],
+               *(r["use"] for r in state["rules"])} - set(state["controllers"])
+    if unknown:
+        raise ValueError(f"{state['controller']}'s performance agent: no controller "
+                         f"{', '.join(sorted(unknown))} in controllers "
+                         f"({', '.join(sorted(state['controllers'])) or 'none'})")
+
+
 class PerformanceAgent(Agent):
     """Swaps a junction's controller by measured demand and delay, with guard rails."""
 
@@ -64,13 +76,7 @@ class PerformanceAgent(Agent):
 
     def setup(self) -> None:
         self.chosen = self.chosen or self.running
-        unknown = {self.running, self.chosen, self.fallback,
-                   *(r["use"] for r in self.rules)} - set(
-            self.controllers)
-        if unknown:
-            raise ValueError(f"{self.controller}'s performance agent: no controller "
-                             f"{', '.join(sorted(unknown))} in controllers "
-                             f"({', '.join(sorted(self.controllers)) or 'none'})")
+        _check_controllers(self.get_state())
         self._window: deque[JunctionMeasures] = deque()
         self._last_measure_s: float | None = None   # (or the clock's start, for silence)
         self._measured_s: float | None = None       # the time of the last measure taken
@@ -79,6 +85,12 @@ class PerformanceAgent(Agent):
         self._clock_s: float | None = None
         self._behind_since: float | None = None     # wall time the measures fell behind
         self._wall = time.monotonic
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Set state; rules, a fallback or a running controller it has not got are
+        refused by name, as at setup, and nothing is set (taken, its next swap failed)."""
+        _check_controllers({**self.get_state(), **state})
+        super().set_state(state)
 
     def on_input(self, port: InputPort) -> None:
         if port.name == "clock":
