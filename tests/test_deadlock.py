@@ -11,7 +11,8 @@ import pytest
 from sample_modules import Busybody, Locator, Scale, SlowState
 
 import pb3a
-from pb3a import RuntimeTimeout, System
+from pb3a import Module, RuntimeTimeout, System
+from pb3a.worker.actor import ModuleActor
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -142,3 +143,68 @@ def test_one_deadline_covers_the_wait_for_the_lock_and_the_module_s_answer() -> 
             release.set()
             holder.join(10.0)
     assert 1.2 <= took < 2.1, took
+
+
+class _Stepper(Module):
+    """Steps as fast as it can, so its step thread always waits for the lock a swap holds."""
+
+    period = 0.0
+
+    def step(self) -> None:
+        pass
+
+
+class _Asker(Module):
+    """What the stepper is swapped for: its step stands for an agent's runtime request,
+    which waits for the configuration lock the swap's operation holds (``_asked``, set
+    once the swap returns, stands for that lock let go), at most ``WAIT_S``."""
+
+    WAIT_S = 3.0
+    set_up = False
+    steps_before_setup = 0
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._asked = threading.Event()
+
+    def setup(self) -> None:
+        self.set_up = True
+
+    def step(self) -> None:
+        if not self.set_up:
+            self.steps_before_setup += 1
+        self._asked.wait(self.WAIT_S)
+
+
+def test_a_swapped_module_runs_setup_before_its_step_can_take_the_lock() -> None:
+    """The swap keeps the module lock from the old instance's teardown to the new one's
+    ``setup``. It let the lock go in between: a step thread waiting for it stepped the
+    new instance before its ``setup``, and, an agent asking the runtime there, waited for
+    the configuration lock the swap's operation held while the swap waited for it: no
+    answer to the swap until the executor gave up (10 s; seen once in the agents' deadlock
+    test). Here the lock is handed to the waiting step thread whenever the swap lets it go."""
+    actor = ModuleActor("m", _Stepper(), lambda task: task(), 0.0)
+    actor.start()
+    lock, release, swapping = actor.lock, actor.lock.release, threading.current_thread()
+
+    def hand_over_at_once() -> None:          # as the scheduler may, on another core
+        deadline = time.monotonic() + 2.0
+        while not lock._waiting and time.monotonic() < deadline:
+            time.sleep(0.0005)
+        release()
+        while not lock.locked() and time.monotonic() < deadline:
+            time.sleep(0.0005)
+
+    new = _Asker()
+    try:
+        lock.release = lambda: (hand_over_at_once() if threading.current_thread() is swapping
+                                else release())
+        started = time.monotonic()
+        actor.swap(new, timeout=5.0)
+        took = time.monotonic() - started
+    finally:
+        lock.release = release
+        new._asked.set()
+        assert actor.stop(5.0)
+    assert new.set_up and new.steps_before_setup == 0
+    assert took < _Asker.WAIT_S / 2, took

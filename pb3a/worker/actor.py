@@ -222,11 +222,19 @@ class ModuleActor:
         With ``claim``, the calls are first claimed from that port's owed ``on_input``
         calls (at most ``times``), under the lock: a module paused for migration has
         no claimed-but-unrun call, so what it owes travels with it."""
-        done = 0
-        timed = self.timed if timed is None else timed
         lock = self.lock
         if not lock.try_acquire():
             lock.acquire()
+        try:
+            return self._call_held(hook, times, args, timed, claim)
+        finally:
+            lock.release()
+
+    def _call_held(self, hook: str, times: int, args: tuple[Any, ...] = (),
+                   timed: bool | None = None, claim: InputPort | None = None) -> int:
+        """``call_many`` for a caller that holds the module lock already."""
+        done = 0
+        timed = self.timed if timed is None else timed
         self._holder = threading.get_ident()
         try:
             if not self.running and hook in _BODIES:
@@ -251,7 +259,6 @@ class ModuleActor:
                 self.cpu += time.thread_time() - start
         finally:
             self._holder = 0
-            self.lock.release()
         return done
 
     # On the per-value path (a port's event, its dispatch, the call) locks are taken
@@ -429,9 +436,14 @@ class ModuleActor:
             new.set_state(kept)
             self.module = new
             self._event_driven = type(new).is_event_driven()
+            # under the same hold: a step thread waiting for the lock would otherwise
+            # step the new instance before its setup, and an agent's step asking the
+            # runtime there would wait for the configuration lock this swap's
+            # operation holds while the swap waited for the lock: no answer until the
+            # operation's timeout
+            self._call_held("setup", 1)
         finally:
             self.lock.release()
-        self.call("setup")
         return sorted(kept)
 
     def _step_thread_cpu(self) -> float:
