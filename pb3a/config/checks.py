@@ -42,6 +42,13 @@ def name(value: Any, what: str) -> list[str]:
             "(no '.', '/' or spaces)")]
 
 
+def path(value: Any, what: str) -> list[str]:
+    """A name that may be a macro path (``robot/mapper``): each of its parts a name."""
+    if not isinstance(value, str):
+        return name(value, what)
+    return [problem for part in value.split("/") for problem in name(part, what)]
+
+
 def unknown_keys(extra: dict[str, Any], allowed: Iterable[str]) -> list[str]:
     """One problem per key not in ``allowed`` (typos such as ``perod``)."""
     allowed = list(allowed)

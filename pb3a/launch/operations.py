@@ -394,8 +394,7 @@ def _add_problems(name: Any, cls: Any, state: Any, period: Any, restart: Any, gr
                   nodes: list[str]) -> list[str]:
     """What keeps a new module from being added, in the compiler's words (a module
     instance's name, or a group's, may be a macro path: each of its parts is checked)."""
-    problems = (checks.name(name, "module instance") if not isinstance(name, str) else
-                [p for part in name.split("/") for p in checks.name(part, "module instance")])
+    problems = checks.path(name, "module instance")
     if isinstance(name, str) and name in modules:
         problems.append("a module of that name runs already")
     if not (isinstance(cls, type) and issubclass(cls, Module) and cls is not Module):
@@ -408,8 +407,7 @@ def _add_problems(name: Any, cls: Any, state: Any, period: Any, restart: Any, gr
                         f"{checks.listing(nodes)}")
     problems += checks.fallback(fallback, nodes)
     if group is not None:
-        problems += (checks.name(group, "group") if not isinstance(group, str) else
-                     [p for part in group.split("/") for p in checks.name(part, "group")])
+        problems += checks.path(group, "group")
         other = next((m for m in modules.values() if m.group == group and m.node != node),
                      None)
         if other is not None:

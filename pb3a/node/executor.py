@@ -247,9 +247,7 @@ class Executor:
             try:
                 self.call(worker, "start", names=[r.spec.name for r in batch])
             except RuntimeFailure:
-                process = self.workers[worker].process
-                process.join(1.0)          # a pipe error may come before the death is seen
-                if process.is_alive():
+                if not _died(self.workers[worker].process):
                     raise
                 continue
             for record in batch:
@@ -707,8 +705,7 @@ class Executor:
         try:
             self.workers.result(future, "start", key, REQUEST_TIMEOUT)
         except (RuntimeFailure, RuntimeTimeout) as exc:
-            process.join(1.0)                # a pipe error may come before the death is seen
-            return False, None if not process.is_alive() else exc
+            return False, None if _died(process) else exc
         return True, None
 
     def _restarted(self, handle: WorkerHandle, code: int | None, revived: dict[str, _Revival],
@@ -803,6 +800,13 @@ class Executor:
             for ring in self.rings.values():
                 ring.close()
             self.rings.clear()
+
+
+def _died(process: Any) -> bool:
+    """Whether the worker process behind a failed request has died (a pipe error may
+    come before its death is seen)."""
+    process.join(1.0)
+    return not process.is_alive()
 
 
 def _topic(link: FlatLink) -> str:
