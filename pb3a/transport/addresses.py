@@ -11,9 +11,14 @@ address to hand out: ``tcp://HOST:PORT`` with that host.
 from __future__ import annotations
 
 import errno
+import logging
 import socket
+import time
 
 import zmq
+from zmq.utils.monitor import recv_monitor_message
+
+log = logging.getLogger("pb3a.addresses")
 
 
 def bind_advertised(sock: zmq.Socket, host: str, port: int = 0) -> str:
@@ -27,6 +32,22 @@ def bind_advertised(sock: zmq.Socket, host: str, port: int = 0) -> str:
         sock.bind(f"tcp://*:{port or '*'}")       # not an address of ours: all interfaces
     bound = sock.getsockopt_string(zmq.LAST_ENDPOINT)
     return f"tcp://{host}:{bound.rpartition(':')[2]}"
+
+
+def close_bound(sock: zmq.Socket, timeout: float = 2.0) -> None:
+    """Close a bound ``sock`` and wait (at most ``timeout`` seconds) until its ports are
+    free: ZeroMQ closes listeners on its own thread, after ``close`` has returned, so a
+    server started at once on the same port could otherwise find it still in use."""
+    monitor = sock.get_monitor_socket(zmq.EVENT_MONITOR_STOPPED)   # sent once all is shut
+    try:
+        sock.close(0)
+        deadline = time.monotonic() + timeout
+        while (left := deadline - time.monotonic()) > 0 and monitor.poll(left * 1000):
+            if recv_monitor_message(monitor)["event"] == zmq.EVENT_MONITOR_STOPPED:
+                return
+        log.warning("a socket's ports were not free %.0f s after it was closed", timeout)
+    finally:
+        monitor.close(0)
 
 
 def bind_address(address: str) -> tuple[str, int]:

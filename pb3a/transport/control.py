@@ -45,7 +45,7 @@ import cloudpickle
 import zmq
 
 from pb3a.errors import PB3AError, RuntimeFailure, RuntimeTimeout
-from pb3a.transport.addresses import bind_advertised
+from pb3a.transport.addresses import bind_advertised, close_bound
 from pb3a.transport.auth import ClusterKey, Opener, Rejected, Sealer
 from pb3a.transport.loop import SocketLoop
 
@@ -96,9 +96,13 @@ class ControlServer:
         self._decode_lock = decode_lock or contextlib.nullcontext()
         # answered on the socket thread, never queued: they must be quick and never block
         self._instant = {"ping": lambda args: "pong", **(instant or {})}
-        self._loop = SocketLoop(f"{name}-io")
-        self._router = _socket(self._loop.context, zmq.ROUTER)
-        self.address = bind_advertised(self._router, host, port)
+        self._router = _socket(zmq.Context.instance(), zmq.ROUTER)
+        try:
+            self.address = bind_advertised(self._router, host, port)
+        except BaseException:               # (a port in use): leave no socket behind
+            self._router.close(0)
+            raise
+        self._loop = SocketLoop(f"{name}-io", self._router.context)
         self._sealer = Sealer(key, epoch)
         self._opener = Opener(key, epoch=epoch, max_bytes=MAX_MESSAGE)
         self.instance = secrets.token_bytes(16)      # requests must name it (see above)
@@ -203,10 +207,11 @@ class ControlServer:
         self._router.send_multipart([peer, *self._sealer.seal(REPLY, [request_id, blob])])
 
     def close(self) -> None:
+        """Stop serving; on return the port is free, so a server may bind it again."""
         self._work.put(None)
         self._worker.join(5.0)
         self._loop.close()
-        self._router.close(0)
+        close_bound(self._router)
 
 
 def _undecodable(exc: Exception, what: str, reader: str) -> str:
