@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from agents.traffic.messages import JunctionReading, PhaseRequest
-from pb3a import Agent, Input, Macro, Module, Output
+from pb3a import Agent, Input, Macro, Module, Output, RuntimeFailure
 
 
 class Counter(Module):
@@ -590,6 +590,29 @@ class Locator(Agent):
 
     def setup(self) -> None:
         self.found = self.runtime.where(self.other)
+
+
+class LocatorToo(Locator):
+    """A ``Locator`` to swap in; it also reads ``other``'s state from its ``setup``."""
+
+    peers: list = []
+
+    def setup(self) -> None:
+        super().setup()
+        self.peers = self.runtime.state(self.other)["peers"]
+
+
+class RemovesInSetup(Agent):
+    """Tries to remove ``other`` from its ``setup``; keeps what the runtime said."""
+
+    other = "src"
+    refused = ""
+
+    def setup(self) -> None:
+        try:
+            self.runtime.remove(self.other)
+        except RuntimeFailure as exc:
+            self.refused = str(exc)
 
 
 class Chatty(Module):

@@ -8,7 +8,7 @@ import threading
 import time
 
 import pytest
-from sample_modules import Busybody, Locator, Scale, SlowState
+from sample_modules import Busybody, Locator, LocatorToo, RemovesInSetup, Scale, SlowState
 
 import pb3a
 from pb3a import Module, RuntimeTimeout, System
@@ -61,6 +61,41 @@ def test_an_agent_may_ask_the_runtime_from_setup_as_the_system_starts() -> None:
     system.add("locator", Locator, node="a")
     with system.launch(timeout=10) as run:
         assert run.state("locator")["found"] == "b"
+
+
+def test_an_agent_may_read_the_runtime_from_setup_inside_a_change() -> None:
+    """``add``, ``migrate``, ``swap`` and ``restart`` hold the configuration lock while
+    they wait for the ``setup`` of the module they start, and lend it to that module:
+    its ``setup`` may read. Before, each waited for the other until the worker's 10 s
+    deadline, and the change failed with ``RuntimeTimeout``."""
+    system = System("locating").node("a").node("b")
+    system.add("src", Busybody, node="b", period=1.0, state={"peers": ["src"]})
+    with system.launch(timeout=10) as run:
+        started = time.monotonic()
+        run.add("locator", Locator, node="a")
+        assert run.state("locator")["found"] == "b"
+        for change in (lambda: run.migrate("locator", "b"),
+                       lambda: run.swap("locator", LocatorToo),
+                       lambda: run.restart("locator")):
+            run.set_state("locator", found="")
+            change()
+            assert run.state("locator")["found"] == "b"      # its setup asked again
+        assert run.state("locator")["peers"] == ["src"]
+        assert time.monotonic() - started < 8.0
+
+
+def test_a_change_asked_from_setup_inside_a_change_is_refused_at_once() -> None:
+    """It would wait for the change waiting for that setup: refused, saying why."""
+    system = System("refusing")
+    system.add("src", Busybody, period=1.0, state={"peers": ["src"]})
+    with system.launch(timeout=10) as run:
+        started = time.monotonic()
+        run.add("remover", RemovesInSetup)
+        assert time.monotonic() - started < 3.0
+        refused = run.state("remover")["refused"]
+        assert "remove src: asked by agent 'remover' from its setup" in refused
+        assert "'add remover' waits for" in refused and "from step()" in refused
+        assert run.where("src") == "local"                 # nothing was removed
 
 
 def test_a_call_that_waits_too_long_names_what_it_waited_for() -> None:

@@ -289,3 +289,23 @@ def test_a_module_on_a_remote_node_is_removed_with_its_links(controllers) -> Non
         eventually(lambda: not alive(pid), what="its worker gone")
         sent = run.state("src")["count"]
         eventually(lambda: run.state("src")["count"] > sent + 20, what="the writer going on")
+
+
+def test_on_a_remote_node_an_agent_may_read_from_setup_inside_a_change(controllers) -> None:
+    """An agent added, moved, swapped or restarted there may read about a module of
+    its own node from ``setup``: the change lends it the configuration lock, and the
+    node's executor answers while it starts the agent."""
+    system = System("remote-asks-in-change")
+    system.node("a").node("b", address=controllers["b"].address)
+    system.add("other", Steady, node="b")
+    with system.launch(timeout=10) as run:
+        started = time.monotonic()
+        run.add("asker", AsksInSetup, node="b")
+        assert run.state("asker")["asked"] >= 0
+        for change in (lambda: run.migrate("asker", "a"), lambda: run.migrate("asker", "b"),
+                       lambda: run.restart("asker")):
+            run.set_state("asker", asked=-1)
+            change()
+            assert run.state("asker")["asked"] >= 0        # its setup asked again
+        took = time.monotonic() - started
+    assert took < 8.0, took

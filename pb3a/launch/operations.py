@@ -7,11 +7,17 @@ halfway through, holds the configuration lock, whose wait is bounded by the
 operation's ``timeout`` (the system's default when None) and names what holds it
 when it runs out; a module's answer (``state``, ``set_state``) is awaited for what
 is left of that timeout, one deadline for both. Each change is recorded as an event.
+
+A change that starts modules (``add``, ``migrate``, ``swap``, ``restart``) lends the
+lock to them while it waits for their ``setup`` (``ConfigurationLock``): an agent
+may then read from its ``setup`` (and set another module's state) as its guest; a
+change it asks for there would wait for itself, and is refused at once, saying so.
 """
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import itertools
 import logging
 import threading
@@ -32,7 +38,7 @@ from pb3a.pending import DONE, FAILED, RUNNING
 from pb3a.topology import Topology, topology_of
 
 if TYPE_CHECKING:
-    from collections.abc import Callable, Iterator
+    from collections.abc import Callable, Collection, Iterator
 
     from pb3a.events import Event
     from pb3a.launch.launcher import Launcher
@@ -52,6 +58,9 @@ PUBLIC = frozenset({"state", "set_state", "swap", "relink", "link", "add", "remo
 FOR_AGENTS = PUBLIC - {"reload"}
 KEEP_JOBS = 1000            # background operations whose outcome is kept for asking
 STATE_THEN_S = 1.0          # how long a restart waits for the state to put back on failure
+# The agent whose request runs on this thread, and whether it asks from its setup.
+_ASKER: contextvars.ContextVar[tuple[str, bool] | None] = contextvars.ContextVar(
+    "pb3a_asker", default=None)
 
 
 class Operations:
@@ -67,12 +76,27 @@ class Operations:
         self._job_ids = itertools.count(1)
 
     @contextlib.contextmanager
-    def _held(self, what: str, timeout: float | None) -> Iterator[Callable[[], float]]:
+    def _held(self, what: str, timeout: float | None, *, lend: Collection[str] = (),
+              changes: bool = True) -> Iterator[Callable[[], float]]:
         """Hold the configuration lock for ``what``, waiting at most ``timeout``; gives
-        what is left of it then, for the operation's own waits (one deadline for all)."""
+        what is left of it then, for the operation's own waits (one deadline for all).
+        ``lend``: the modules it starts (see the module's docstring); ``changes``: False
+        for what changes no configuration, which such a module may ask as a guest."""
         wait = self._call_timeout(timeout)
         deadline = time.monotonic() + wait
-        with self.lock.held(what, wait):
+        asker = _ASKER.get()
+        if asker is not None and asker[1] and self.lock.lends_to(asker[0]):
+            if changes:
+                raise RuntimeFailure(
+                    f"{what}: asked by agent {asker[0]!r} from its setup, which "
+                    f"{self.lock.doing()} waits for while it holds "
+                    "the system's configuration lock, so it would wait for itself: ask "
+                    "for changes from step() (reads, and setting another module's state, "
+                    "may be asked from setup)")
+            with self.lock.guest(what, wait):
+                yield lambda: max(0.0, deadline - time.monotonic())
+            return
+        with self.lock.held(what, wait, lend=lend):
             yield lambda: max(0.0, deadline - time.monotonic())
 
     def _call_timeout(self, timeout: float | None) -> float:
@@ -80,18 +104,18 @@ class Operations:
 
     # -- state -------------------------------------------------------------------
     def state(self, name: str, *, timeout: float | None = None) -> dict[str, Any]:
-        with self._held(f"state {name}", timeout) as left:
+        with self._held(f"state {name}", timeout, changes=False) as left:
             return self.launcher.call(name, "get_state", left())
 
     def set_state(self, name: str, values: dict[str, Any], *,
                   timeout: float | None = None) -> None:
-        with self._held(f"set_state {name}", timeout) as left:
+        with self._held(f"set_state {name}", timeout, changes=False) as left:
             self.launcher.call(name, "set_state", left(), state=values)
 
     # -- moving, swapping, reloading ----------------------------------------------------
     def migrate(self, name: str, to: str, *, state: dict[str, dict[str, Any]] | None = None,
                 timeout: float | None = None) -> MigrationReport:
-        with self._held(f"migrate {name} to {to}", timeout):
+        with self._held(f"migrate {name} to {to}", timeout, lend=[name]):
             if to not in self.plan.nodes:
                 raise ConfigError([f"migrate {name}: no node {to!r}; nodes: "
                                    f"{', '.join(self.plan.nodes)}"])
@@ -157,7 +181,7 @@ class Operations:
 
     def swap(self, name: str, cls: type | str, *, timeout: float | None = None) -> list[str]:
         new_cls = resolve_class(cls)
-        with self._held(f"swap {name}", timeout):
+        with self._held(f"swap {name}", timeout, lend=[name]):
             launcher = self.launcher
             node = launcher.node_of(name)
             spec = launcher.specs[name]
@@ -239,7 +263,7 @@ class Operations:
         entry first (name, period, restart, state, group, node, fallback): one
         ``ConfigError`` naming every problem, and nothing started."""
         module_cls = resolve_class(cls)
-        with self._held(f"add {name}", timeout):
+        with self._held(f"add {name}", timeout, lend=[name]):
             launcher = self.launcher
             node = node or next(iter(self.plan.nodes))
             problems = _add_problems(name, module_cls, state, period, restart, group, node,
@@ -266,7 +290,7 @@ class Operations:
         (``ConfigError``); if it cannot start again, it is put back with the state it had
         and its links, and ``RuntimeFailure`` says why (the module is lost only if that
         fails too, and the error then says so)."""
-        with self._held(f"restart {name}", timeout):
+        with self._held(f"restart {name}", timeout, lend=[name]):
             launcher = self.launcher
             launcher.node_of(name)                # ModuleNotFound for an unknown name
             spec = launcher.specs[name]
@@ -343,16 +367,16 @@ class Operations:
 
     # -- where things are, figures, events ---------------------------------------------------
     def where(self, name: str, *, timeout: float | None = None) -> str:
-        with self._held(f"where {name}", timeout):
+        with self._held(f"where {name}", timeout, changes=False):
             self.launcher.node_of(name)           # ModuleNotFound for an unknown name
             return self.launcher.specs[name].node
 
     def nodes(self, *, timeout: float | None = None) -> dict[str, NodeStats]:
-        with self._held("nodes", timeout):
+        with self._held("nodes", timeout, changes=False):
             return self.launcher.node_table()
 
     def topology(self, *, timeout: float | None = None) -> Topology:
-        with self._held("topology", timeout):
+        with self._held("topology", timeout, changes=False):
             launcher = self.launcher
             return topology_of(self.plan.name, self.plan.nodes, launcher.specs.values(),
                                launcher.links.values(), launcher.node_table(),
@@ -361,14 +385,14 @@ class Operations:
     def configuration(self, *, timeout: float | None = None) -> dict[str, Any]:
         """The system as it is now, as the tables of a configuration file:
         ``{"system": tables, "problems": [what could not be written]}``."""
-        with self._held("configuration", timeout):
+        with self._held("configuration", timeout, changes=False):
             plan = self.plan
             folded = fold(plan.name, plan.nodes, self.launcher.specs.values(),
                           self.launcher.links.values(), plan.code.module_servers, plan.timeout)
         return {"system": folded.tables, "problems": folded.problems}
 
     def stats(self, *, timeout: float | None = None) -> SystemStats:
-        with self._held("stats", timeout):
+        with self._held("stats", timeout, changes=False):
             return self.launcher.stats()
 
     def events_since(self, since: int = 0, *, timeout: float | None = 0.0) -> list[Event]:
@@ -379,14 +403,20 @@ class Operations:
         return self.launcher.logbook.since(since, self._call_timeout(timeout), module)
 
     # -- requests from outside --------------------------------------------------------
-    def apply(self, op: str, args: dict[str, Any], allowed: frozenset[str] = PUBLIC) -> Any:
-        """Run operation ``op`` with ``args`` (from a connection, the CLI or an agent)."""
+    def apply(self, op: str, args: dict[str, Any], allowed: frozenset[str] = PUBLIC, *,
+              asker: tuple[str, bool] | None = None) -> Any:
+        """Run operation ``op`` with ``args`` (from a connection, the CLI or an agent:
+        ``asker``, its name and whether it asks from its setup)."""
         if op not in allowed:
             raise ValueError(f"unknown operation {op!r}; the operations: "
                              f"{', '.join(sorted(allowed))}")
-        if op == "events":
-            return self.events_since(**args)
-        return getattr(self, op)(**args)
+        token = _ASKER.set(asker)
+        try:
+            if op == "events":
+                return self.events_since(**args)
+            return getattr(self, op)(**args)
+        finally:
+            _ASKER.reset(token)
 
 
 def _add_problems(name: Any, cls: Any, state: Any, period: Any, restart: Any, group: Any,

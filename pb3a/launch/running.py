@@ -115,8 +115,10 @@ class Running(SystemHandle):
 
     # -- requests from elsewhere ----------------------------------------------------
     def _agent_request(self, op: str, args: dict[str, Any]) -> Any:
-        """Apply a request an agent made through ``self.runtime``."""
-        return self._operations.apply(op, args, FOR_AGENTS)
+        """Apply a request an agent made through ``self.runtime``: its worker adds who
+        asks and whether from its setup (``_asker``)."""
+        asker = args.pop("_asker", None)
+        return self._operations.apply(op, args, FOR_AGENTS, asker=asker)
 
     def _remote_request(self, op: str, args: dict[str, Any]) -> Any:
         """A request to the launcher's address: a connection or the command line, an

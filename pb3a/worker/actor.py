@@ -124,6 +124,7 @@ class ModuleActor:
         self.timed = True
         self.last_error = ""
         self.running = False
+        self.in_setup = False         # its setup runs (its agent's requests say so)
         self._schedule = schedule     # runs a dispatch task: the event pool, or inline
         self._pending: deque[InputPort] = deque()
         self._scheduled = False
@@ -152,7 +153,11 @@ class ModuleActor:
     # -- life cycle --------------------------------------------------------
     def start(self) -> None:
         """Run ``setup``, then start stepping (threaded) and dispatching (event-driven)."""
-        self.call("setup")
+        self.in_setup = True
+        try:
+            self.call("setup")
+        finally:
+            self.in_setup = False
         self.running = True
         self._stop.acquire(blocking=False)      # held while running; stop() releases it
         if self.period is not None:
@@ -441,8 +446,10 @@ class ModuleActor:
             # runtime there would wait for the configuration lock this swap's
             # operation holds while the swap waited for the lock: no answer until the
             # operation's timeout
+            self.in_setup = True
             self._call_held("setup", 1)
         finally:
+            self.in_setup = False
             self.lock.release()
         return sorted(kept)
 

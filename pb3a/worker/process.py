@@ -480,8 +480,11 @@ class Worker:
         req_id = next(self._request_ids)
         self._requests[req_id] = wait
         try:
+            # who asks, and whether from its setup: a change that waits for that setup
+            # lets it read (``Operations``)
+            asker = {"_asker": (agent, actor.in_setup)}
             self.send((None, "request", {"id": req_id, "op": op,
-                                         "args": cloudpickle.dumps(args)}))
+                                         "args": cloudpickle.dumps({**args, **asker})}))
             return wait.result(timeout)
         finally:
             self._requests.pop(req_id, None)
