@@ -44,6 +44,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from pb3a.config.checks import finite
+
 Feature = str | bool | int | float
 SETTINGS = {"min_similarity": 0.75, "new_case_below": 0.95}
 _CASE_KEYS = {"id", "note", "tried", "worked", "symptoms", "remedy"}
@@ -283,14 +285,14 @@ def _read(path: str) -> tuple[list[Case], dict[str, Any]]:
 def _check_settings(path: str, settings: dict[str, Any]) -> None:
     for name in SETTINGS:
         value = settings.get(name, 0.0)
-        if not _is_number(value) or not 0.0 <= value <= 1.0:
+        if not finite(value) or not 0.0 <= value <= 1.0:
             raise CaseFileError(f"{path}: {name} must be a number from 0 to 1, got {value!r}")
     for table in ("weights", "scales"):
         entries = settings.get(table, {})
         if not isinstance(entries, dict):
             raise CaseFileError(f"{path}: [{table}] must be a table of feature = number")
         for name, value in entries.items():
-            if not _is_number(value) or value < 0 or (table == "scales" and value == 0):
+            if not finite(value) or value < 0 or (table == "scales" and value == 0):
                 bound = "positive" if table == "scales" else "zero or more"
                 raise CaseFileError(f"{path}: [{table}] {name} must be a number, {bound}; "
                                     f"got {value!r}")
@@ -327,19 +329,14 @@ def _case(path: str, number: int, raw: dict[str, Any]) -> Case:
     return Case(case_id, symptoms, remedy, note, tried, worked, path)
 
 
-def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) \
-        and math.isfinite(value)
-
-
 def _is_count(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool) and value >= 0
 
 
 def _is_symptom(value: Any) -> bool:
     if isinstance(value, list):
-        return len(value) == 2 and all(map(_is_number, value)) and value[0] <= value[1]
-    return isinstance(value, (str, bool)) or _is_number(value)
+        return len(value) == 2 and all(map(finite, value)) and value[0] <= value[1]
+    return isinstance(value, (str, bool)) or finite(value)
 
 
 # -- writing a case file ---------------------------------------------------------------

@@ -29,6 +29,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from pb3a import Input, InputPort, Module, Output
+from pb3a.config.checks import finite
 
 SUCCESS, COLLISION, TIMEOUT = "success", "collision", "timeout"
 EPSILON = 0.3        # the exploration rate an untrained learner starts with
@@ -93,30 +94,30 @@ class Parameters:
     # diverges) or fail at the first decision with no word of which parameter it was
     _CHECKS: ClassVar[tuple[tuple[str, str, Any], ...]] = (
         ("actions", "(v, w) pairs, at least one",
-         lambda a: len(a) > 0 and all(len(x) == 2 and all(map(_finite, x)) for x in a)),
+         lambda a: len(a) > 0 and all(len(x) == 2 and all(map(finite, x)) for x in a)),
         ("sectors", "transducer groups, at least one, none empty",
          lambda s: len(s) > 0 and all(len(x) > 0 for x in s)),
         ("thresholds", "ranges above 0 in increasing order",
-         lambda t: all(map(_finite, t)) and all(a < b for a, b in zip(
+         lambda t: all(map(finite, t)) and all(a < b for a, b in zip(
              (0.0, *t), t, strict=False))),
         ("bearings", "a whole number of sectors, 1 or more",
          lambda b: isinstance(b, int) and b >= 1),
-        ("alpha", "in (0, 1]", lambda x: _finite(x) and 0 < x <= 1),
-        ("gamma", "in [0, 1]", lambda x: _finite(x) and 0 <= x <= 1),
-        ("trace_decay", "in [0, 1]", lambda x: _finite(x) and 0 <= x <= 1),
-        ("epsilon_decay", "in (0, 1]", lambda x: _finite(x) and 0 < x <= 1),
-        ("epsilon_min", "in [0, 1]", lambda x: _finite(x) and 0 <= x <= 1),
-        ("goal_radius", "above 0", lambda x: _finite(x) and x > 0),
-        ("collision_range", "0 or more", lambda x: _finite(x) and x >= 0),
-        ("guard_range", "0 or more", lambda x: _finite(x) and x >= 0),
-        ("guard_gain", "above 0", lambda x: _finite(x) and x > 0),
-        ("timeout", "above 0", lambda x: _finite(x) and x > 0),
-        ("backup_speed", "0 or more", lambda x: _finite(x) and x >= 0),
-        ("clear_range", "0 or more", lambda x: _finite(x) and x >= 0),
-        ("backup_limit", "0 or more", lambda x: _finite(x) and x >= 0),
+        ("alpha", "in (0, 1]", lambda x: finite(x) and 0 < x <= 1),
+        ("gamma", "in [0, 1]", lambda x: finite(x) and 0 <= x <= 1),
+        ("trace_decay", "in [0, 1]", lambda x: finite(x) and 0 <= x <= 1),
+        ("epsilon_decay", "in (0, 1]", lambda x: finite(x) and 0 < x <= 1),
+        ("epsilon_min", "in [0, 1]", lambda x: finite(x) and 0 <= x <= 1),
+        ("goal_radius", "above 0", lambda x: finite(x) and x > 0),
+        ("collision_range", "0 or more", lambda x: finite(x) and x >= 0),
+        ("guard_range", "0 or more", lambda x: finite(x) and x >= 0),
+        ("guard_gain", "above 0", lambda x: finite(x) and x > 0),
+        ("timeout", "above 0", lambda x: finite(x) and x > 0),
+        ("backup_speed", "0 or more", lambda x: finite(x) and x >= 0),
+        ("clear_range", "0 or more", lambda x: finite(x) and x >= 0),
+        ("backup_limit", "0 or more", lambda x: finite(x) and x >= 0),
         ("turn_time", "(low, high) with 0 <= low <= high",
-         lambda t: len(t) == 2 and all(map(_finite, t)) and 0 <= t[0] <= t[1]),
-        ("max_gap", "above 0", lambda x: _finite(x) and x > 0),
+         lambda t: len(t) == 2 and all(map(finite, t)) and 0 <= t[0] <= t[1]),
+        ("max_gap", "above 0", lambda x: finite(x) and x > 0),
     )
 
     @classmethod
@@ -365,12 +366,6 @@ def _mirror(p: Parameters) -> tuple[np.ndarray, np.ndarray]:
     levels = codes[:, None] // weights % p.levels         # (situations, sectors)
     mirrored = levels[:, sector_mirror] @ weights          # a mirror is its own inverse
     return mirrored * p.bearings + (-bearings) % p.bearings, action_mirror
-
-
-def _finite(value: Any) -> bool:
-    """Whether ``value`` is a finite real number (not a bool)."""
-    return isinstance(value, int | float) and not isinstance(value, bool) \
-        and math.isfinite(value)
 
 
 def _frozen(value: Any) -> Any:

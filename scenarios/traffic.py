@@ -138,7 +138,10 @@ def run_agents(resource: Path, seed: int, duration_s: float, found: dict[str, Ju
     with system.launch() as running:
         started = time.monotonic()
         deadline = started + timeout_s
-        while not running.state("sumo")["result"]:
+        while not (driver := running.state("sumo"))["result"]:
+            if driver["status"] == "failed":
+                raise RuntimeError(f"the agents' run of {resource.name} failed: "
+                                   f"{driver['last_error']}")
             if time.monotonic() > deadline:
                 raise TimeoutError(f"the agents' run of {resource.name} did not end in "
                                    f"{timeout_s:.0f} s (at {running.state('sumo')['time_s']:.0f} "

@@ -162,6 +162,49 @@ def test_q_learning_starts_from_the_trained_table(tmp_path: Path) -> None:
         "k": [1.0, 2.0]}
 
 
+@pytest.mark.parametrize(("cls", "wrong", "named"), [
+    (FixedTime, {"green_s": -5.0}, "green_s must be a number of seconds, 1 or more"),
+    (FixedTime, {"green_s": float("nan")}, "green_s must be"),
+    (MaxPressure, {"hold_s": True}, "hold_s must be a number of seconds, 0 or more"),
+    (LongestQueueFirst, {"max_green_s": 4.0}, "max_green_s (4.0) must be at least "
+                                              "min_green_s (8.0)"),
+    (GapOut, {"passage_s": -1.0, "switch_ratio": "2"}, "passage_s must be a number of "
+                                                       "seconds, 0 or more, got -1.0; "
+                                                       "switch_ratio must be a number"),
+    (QLearning, {"alpha": 1.5}, "alpha must be a number from 0 to 1, got 1.5"),
+])
+def test_a_controller_refuses_a_setting_out_of_range_by_name(cls: type, wrong: dict[str, Any],
+                                                             named: str) -> None:
+    """At setup (from the configuration) and when set while it runs; nothing is set.
+    Before, a green of -5 s ran, the signal head quietly stretching it."""
+    with pytest.raises(ValueError, match="^" + cls.__name__) as refused:
+        ModuleHarness(cls, state=wrong)
+    assert named in str(refused.value)
+    harness = ModuleHarness(cls)
+    before = harness.state
+    with pytest.raises(ValueError, match="^" + cls.__name__) as refused:
+        harness.module.set_state(wrong)
+    assert named in str(refused.value)
+    assert harness.state == before
+
+
+def test_q_learning_draws_its_explorations_from_a_seed_set_while_it_runs() -> None:
+    def explorations(harness: ModuleHarness) -> list[int]:
+        asked = []
+        for second in range(6, 30):
+            harness.feed("reading", reading(NS, float(second), step=second,
+                                            vehicles={"ew": 3}, approaching={"n_in": 1}))
+            asked.append(harness.last("request").green)
+        return asked
+
+    settings = {"table_file": "", "epsilon": 1.0, "learning": False}
+    fresh = explorations(ModuleHarness(QLearning, state={**settings, "seed": 7}))
+    reseeded = ModuleHarness(QLearning, state={**settings, "seed": 1})
+    assert explorations(reseeded) != fresh           # (another seed, other draws)
+    reseeded.module.set_state({"seed": 7})
+    assert explorations(reseeded) == fresh           # before: seed 1's draws went on
+
+
 # -- against the driver, on the crossing in SUMO --------------------------------------
 NETWORKS = Path(__file__).resolve().parent.parent / "scenarios" / "traffic"
 

@@ -192,6 +192,28 @@ def test_requests_it_cannot_apply_are_counted_and_said(driver) -> None:
     assert harness.state["rejected"] == 3 and harness.last("reading_0").step == 0
 
 
+def test_sumo_failing_mid_run_ends_the_run_as_failed_saying_why(driver) -> None:
+    """Before, the error came back at every request and the run stayed ``running``: a
+    scenario waiting for its figures waited out its timeout."""
+    harness = driver()
+    for _ in range(5):
+        answer(harness, NS)
+
+    def broken(steps: int) -> None:
+        raise RuntimeError("connection closed by SUMO")
+    harness.module._simulation.advance = broken
+    with pytest.raises(RuntimeError, match="connection closed"):
+        answer(harness, NS)
+    state = harness.state
+    assert state["status"] == "failed" and state["result"] == {}
+    assert state["last_error"] == (f"{CROSS}: SUMO failed at 5 of 600 simulated s: "
+                                   "RuntimeError: connection closed by SUMO")
+    answer(harness, EW)                        # taken in silence: the run is over
+    assert harness.last("reading_0").step == 5
+    again = driver()                           # libsumo's one simulation is free again
+    assert again.state["status"] == "running"
+
+
 def test_at_the_end_the_run_s_figures_count_every_vehicle(driver) -> None:
     harness = driver(duration_s=240.0)
     while harness.state["status"] == "running":

@@ -8,16 +8,31 @@ lead into). Subclasses only say which green they want, in ``choose``. They decid
 from the reading's ``green``, ``target``, ``stage`` and ``elapsed`` (what the driver's
 ``SignalHead`` shows), not from a phase of their own: a controller swapped in
 mid-phase carries on from the phase in progress.
+
+Each subclass lists its numeric settings and what they must be (``_limits``): a
+value out of range is refused by name at ``setup`` and by ``set_state``, nothing
+set, instead of a green of -5 s that the signal head would quietly stretch.
 """
 
 from __future__ import annotations
 
 import abc
+from collections.abc import Callable
+from typing import Any, ClassVar
 
 from agents.traffic.messages import JunctionReading, NeighbourQueues, PhaseRequest
 from pb3a import Input, InputPort, Module, Output
+from pb3a.config.checks import finite
 
 NEIGHBOUR_SLOTS = 4             # a junction's neighbours downstream, at most
+
+# What a setting must be, in words, and the test of it.
+Limit = tuple[str, Callable[[Any], bool]]
+SECONDS: Limit = ("a number of seconds, 0 or more", lambda x: finite(x) and x >= 0)
+GREEN: Limit = ("a number of seconds, 1 or more (a control step)",
+                lambda x: finite(x) and x >= 1)
+RATIO: Limit = ("a number, 0 or more", lambda x: finite(x) and x >= 0)
+SHARE: Limit = ("a number from 0 to 1", lambda x: finite(x) and 0 <= x <= 1)
 
 
 def _neighbour_ports() -> dict[str, Input]:
@@ -35,9 +50,29 @@ class JunctionController(_NeighbourSlots, Module, abc.ABC):
     reading = Input(JunctionReading, policy="queue:8")
     request = Output(PhaseRequest)
     decisions = 0                           # readings answered
+    _limits: ClassVar[dict[str, Limit]] = {}     # each numeric setting: what it must be
 
     def setup(self) -> None:
         self._downstream: dict[str, int] = {}
+        self._check({})
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Set state; a setting out of its ``_limits`` is refused, naming it, and
+        nothing is set."""
+        self._check(state)
+        super().set_state(state)
+
+    def _check(self, state: dict[str, Any]) -> None:
+        """ValueError naming each setting that would be out of its limits with
+        ``state`` set (a maximum green below the minimum one too)."""
+        merged = {key: state.get(key, getattr(self, key)) for key in self._limits}
+        problems = [f"{key} must be {words}, got {merged[key]!r}"
+                    for key, (words, ok) in self._limits.items() if not ok(merged[key])]
+        if not problems and merged.get("max_green_s", 1) < merged.get("min_green_s", 0):
+            problems.append(f"max_green_s ({merged['max_green_s']!r}) must be at least "
+                            f"min_green_s ({merged['min_green_s']!r})")
+        if problems:
+            raise ValueError(f"{type(self).__name__}: " + "; ".join(problems))
 
     def on_input(self, port: InputPort) -> None:
         if port.name.startswith("neighbour_"):

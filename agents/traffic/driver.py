@@ -39,7 +39,7 @@ delay over time.
 
 from __future__ import annotations
 
-import math
+import contextlib
 import shutil
 import tempfile
 import time
@@ -51,6 +51,7 @@ from agents.traffic.networks import Network
 from agents.traffic.signals import SignalHead
 from agents.traffic.simulation import STEP_S, Simulation
 from pb3a import Input, InputPort, Module, Output
+from pb3a.config.checks import finite
 
 MAX_JUNCTIONS = 16          # junction slots: ports are declared with the class
 _SIMULATION_KEYS = ("resource", "seed", "signals", "duration_s", "own_programs",
@@ -122,8 +123,7 @@ class TrafficDriver(_JunctionSlots, Module):
         of range."""
         for key in _SECONDS:
             value, zero_ok = state.get(key, 1.0), key == "min_green_s"
-            if not (isinstance(value, (int, float)) and math.isfinite(value)
-                    and (value >= 0 if zero_ok else value > 0)):
+            if not (finite(value) and (value >= 0 if zero_ok else value > 0)):
                 raise ValueError(f"{key} must be a finite number of seconds "
                                  f"{'at least' if zero_ok else 'above'} 0, got {value!r}")
         changed = any(k in state and state[k] != getattr(self, k) for k in _SIMULATION_KEYS)
@@ -186,7 +186,21 @@ class TrafficDriver(_JunctionSlots, Module):
 
     def _advance(self) -> None:
         """Show each junction's next legal state, run one control step, write what
-        came of it (or end the run at ``duration_s``)."""
+        came of it (or end the run at ``duration_s``). If SUMO fails doing so, the run
+        ends as ``failed``, saying why in ``last_error``, and the error is raised."""
+        try:
+            self._run_step()
+        except Exception as exc:
+            self.last_error = (f"{self.resource}: SUMO failed at {self.time_s:g} of "
+                               f"{self.duration_s:g} simulated s: {type(exc).__name__}: {exc}")
+            with contextlib.suppress(Exception):      # (what is left of it)
+                self._end(keep=False)
+            self._simulation, self._heads, self._awaiting = None, {}, set()
+            self._remove_workdir()
+            self.status = "failed"
+            raise
+
+    def _run_step(self) -> None:
         simulation = self._simulation
         assert simulation is not None
         # SUMO advances in whole steps: the heads count the time it really runs, so a

@@ -6,7 +6,7 @@ junction's detectors fail: it needs nothing from them but the phase shown.
 
 from __future__ import annotations
 
-from agents.traffic.controller import JunctionController, in_transition
+from agents.traffic.controller import GREEN, JunctionController, in_transition
 from agents.traffic.messages import JunctionReading
 
 
@@ -14,6 +14,7 @@ class FixedTime(JunctionController):
     """Cycles through the junction's greens, ``green_s`` seconds each."""
 
     green_s = 25.0
+    _limits = {"green_s": GREEN}
 
     def choose(self, reading: JunctionReading) -> int:
         if in_transition(reading):

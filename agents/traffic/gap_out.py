@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 
-from agents.traffic.controller import JunctionController, in_transition
+from agents.traffic.controller import GREEN, RATIO, SECONDS, JunctionController, in_transition
 from agents.traffic.messages import JunctionReading
 
 
@@ -32,6 +32,8 @@ class GapOut(JunctionController):
     max_green_s = 40.0
     passage_s = 4.0                 # a vehicle due within this holds the green
     switch_ratio = 0.0              # 0: never cut a stream short for the red side
+    _limits = {"min_green_s": SECONDS, "max_green_s": GREEN, "passage_s": SECONDS,
+              "switch_ratio": RATIO}
 
     def choose(self, reading: JunctionReading) -> int:
         if in_transition(reading) or reading.elapsed + 1e-9 < self.min_green_s:

@@ -20,7 +20,13 @@ import random
 from pathlib import Path
 from typing import Any
 
-from agents.traffic.controller import JunctionController, in_transition
+from agents.traffic.controller import (
+    GREEN,
+    SECONDS,
+    SHARE,
+    JunctionController,
+    in_transition,
+)
 from agents.traffic.gap_out import served
 from agents.traffic.messages import JunctionReading
 
@@ -64,6 +70,8 @@ class QLearning(JunctionController):
     max_green_s = 60.0
     seed = 0
     updates = 0
+    _limits = {"epsilon": SHARE, "alpha": SHARE, "gamma": SHARE, "min_green_s": SECONDS,
+              "max_green_s": GREEN}
 
     def setup(self) -> None:
         super().setup()
@@ -74,6 +82,12 @@ class QLearning(JunctionController):
         self._random = random.Random(self.seed)
         self._pending: tuple[str, int] | None = None   # the decision not yet learnt from
         self._accrued, self._seconds = 0.0, 0           # its cost so far, and how long
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Set state; a ``seed`` set while it runs draws its explorations from then on."""
+        super().set_state(state)
+        if "seed" in state and "_random" in vars(self):
+            self._random = random.Random(self.seed)
 
     def choose(self, reading: JunctionReading) -> int:
         if len(reading.layout.greens) == 1:

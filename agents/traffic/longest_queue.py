@@ -8,7 +8,14 @@ its own, so it does not pay a yellow for every small difference.
 
 from __future__ import annotations
 
-from agents.traffic.controller import JunctionController, in_transition, served_queue
+from agents.traffic.controller import (
+    GREEN,
+    RATIO,
+    SECONDS,
+    JunctionController,
+    in_transition,
+    served_queue,
+)
 from agents.traffic.messages import JunctionReading
 
 
@@ -18,6 +25,7 @@ class LongestQueueFirst(JunctionController):
     min_green_s = 8.0
     max_green_s = 45.0
     switch_ratio = 2.0
+    _limits = {"min_green_s": SECONDS, "max_green_s": GREEN, "switch_ratio": RATIO}
 
     def choose(self, reading: JunctionReading) -> int:
         if in_transition(reading) or reading.elapsed + 1e-9 < self.min_green_s:

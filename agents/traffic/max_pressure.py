@@ -8,7 +8,7 @@ them (``neighbour_i``), else from the driver's count on the outgoing lane.
 
 from __future__ import annotations
 
-from agents.traffic.controller import JunctionController, in_transition
+from agents.traffic.controller import SECONDS, JunctionController, in_transition
 from agents.traffic.messages import JunctionReading
 
 
@@ -16,6 +16,7 @@ class MaxPressure(JunctionController):
     """Every ``hold_s`` seconds of green, the green of greatest pressure."""
 
     hold_s = 10.0
+    _limits = {"hold_s": SECONDS}
 
     def choose(self, reading: JunctionReading) -> int:
         if in_transition(reading):

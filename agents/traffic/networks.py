@@ -28,6 +28,8 @@ from pathlib import Path
 from typing import Any
 from xml.sax.saxutils import quoteattr
 
+from pb3a.config.checks import finite
+
 SIGNAL_TYPES = ("static", "actuated", "delay_based")   # netconvert's --tls.default-type
 BUILD_TIMEOUT_S = 120.0
 _BUILD_OPTIONS = ("--no-turnarounds", "true")           # U-turns at junctions only
@@ -72,11 +74,6 @@ def default_cache() -> Path:
         return Path(os.environ["PB3A_TRAFFIC_CACHE"])
     base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
     return Path(base) / "pb3a" / "traffic"
-
-
-def _is_number(value: Any) -> bool:
-    """True for an int or a float (a TOML ``true`` is neither)."""
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 @dataclass(frozen=True)
@@ -167,11 +164,11 @@ class Network:
                 raise fail(f"{label}: rates must give every group ({', '.join(sorted(groups))}), "
                            f"got {', '.join(sorted(rates)) or 'none'}")
             share = period.get("share", 0)
-            if not (_is_number(share) and share > 0):
+            if not (finite(share) and share > 0):
                 raise fail(f"{label}: share must be a number above 0")
             for group, rate in sorted(rates.items()):
                 # (SUMO takes a rate of NaN or inf as vehicles without end, at once)
-                if not (_is_number(rate) and math.isfinite(rate) and rate >= 0):
+                if not (finite(rate) and rate >= 0):
                     raise fail(f"{label}: the rate of group {group} must be a finite number "
                                f"of vehicles per hour, 0 or more, got {rate!r}")
             periods.append(Period(str(period.get("name", number + 1)), float(share),
@@ -280,7 +277,7 @@ class Network:
             raise ValueError(f"{self.path}: no period {', '.join(sorted(unknown))} to scale; "
                              f"its periods are {', '.join(names)} (or * for all)")
         for name, factor in factors.items():
-            if not (_is_number(factor) and math.isfinite(factor) and factor > 0):
+            if not (finite(factor) and factor > 0):
                 raise ValueError(f"{self.path}: the factor of period {name} must be a number "
                                  f"above 0, got {factor!r}")
         periods = tuple(replace(period, rates={

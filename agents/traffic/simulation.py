@@ -180,10 +180,13 @@ class Simulation:
         return summary
 
     def close(self) -> None:
-        """Stop SUMO (it writes the tripinfo of the vehicles still running)."""
+        """Stop SUMO (it writes the tripinfo of the vehicles still running); a SUMO
+        that fails to stop leaves the process free for another simulation all the same."""
         if Simulation._running is self:
-            self._sumo.close()
-            Simulation._running = None
+            try:
+                self._sumo.close()
+            finally:
+                Simulation._running = None
 
 
 def summarize(tripinfo: Path, pending_delays: list[float], end_s: float,

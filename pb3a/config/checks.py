@@ -56,10 +56,15 @@ def unknown_keys(extra: dict[str, Any], allowed: Iterable[str]) -> list[str]:
             for key in extra]
 
 
+def finite(value: Any) -> bool:
+    """True for a finite int or float (a TOML ``true`` is neither, nor is NaN)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) \
+        and math.isfinite(value)
+
+
 def period(value: Any) -> list[str]:
     """``None`` (keep the class's) or a non-negative, finite number of seconds."""
-    if value is None or (isinstance(value, (int, float)) and not isinstance(value, bool)
-                         and math.isfinite(value) and value >= 0):
+    if value is None or (finite(value) and value >= 0):
         return []
     return [(f"period must be a non-negative number of seconds (0 = as fast as possible; "
             f"leave it out to keep the class's), got {value!r}")]
@@ -104,8 +109,7 @@ def spares(value: Any) -> list[str]:
 
 def timeout(value: Any) -> list[str]:
     """Left out (the default) or a positive, finite number of seconds."""
-    if value is None or (isinstance(value, (int, float)) and not isinstance(value, bool)
-                         and math.isfinite(value) and value > 0):
+    if value is None or (finite(value) and value > 0):
         return []
     return [(f"timeout must be a positive number of seconds (how long an operation on the "
              f"running system may wait), got {value!r}")]
