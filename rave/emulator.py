@@ -190,6 +190,11 @@ class EmulatorProcess:
     def add_walls(self, segments: np.ndarray) -> None:
         self._ask(("walls", segments))
 
+    def check(self) -> None:
+        """RuntimeError, saying what to do, if the emulator's process is gone."""
+        if self._process.poll() is not None:
+            raise self._gone()
+
     def begin_advance(self, steps: int, dt: float) -> None:
         """Ask for ``steps`` physics steps of ``dt``; ``end_advance`` takes the answer
         (in between, other robots' emulators can be stepping too)."""

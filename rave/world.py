@@ -219,7 +219,11 @@ class World:
         """Step the hardware robots first, all at once in their emulators' processes:
         nothing in the world model pushes a physical robot. Their stand-ins then follow
         the reported poses step by step, pushing simulated robots. Every answer asked
-        for is taken, even when one robot fails, so that none is read out of turn."""
+        for is taken, even when one robot fails, so that none is read out of turn.
+        None is asked while one is known to be gone: the world cannot step then, and
+        the others would run ahead of it at every try."""
+        for hardware in self.hardware:
+            hardware.emulator.check()
         asked, failure = [], None
         for hardware in self.hardware:
             try:

@@ -177,6 +177,28 @@ def test_a_hardware_robot_is_emulated_in_a_process_of_its_own_that_goes_with_it(
     assert not alive(third)
 
 
+def test_other_hardware_robots_do_not_run_ahead_of_a_world_that_cannot_step(
+        world_of: WorldMaker) -> None:
+    """While one emulator is gone the world cannot step; before, each try still
+    advanced the other hardware robots, which then jumped ahead of the world."""
+    world = world_of(size=(10, 8), seed=1)
+    mover = world.add_robot("mover", POSE, backend="hardware")
+    lost = world.add_robot("lost", (6.0, 6.0, 0.0), backend="hardware")
+    mover.drive(0.5, 0.0)
+    world.step(0.5)
+    os.kill(lost._body.emulator.pid, signal.SIGKILL)
+    with pytest.raises(RuntimeError, match="emulator of robot lost"):
+        world.step(0.1)                # (the others may have stepped, its death unseen)
+    x = world.pose("mover")[0]
+    for _ in range(10):
+        with pytest.raises(RuntimeError, match="emulator of robot lost is gone"):
+            world.step(0.1)
+    assert world.pose("mover")[0] == x                  # its emulator waited too
+    lost.swap("sim")
+    world.step(0.1)
+    assert 0 < world.pose("mover")[0] - x <= 0.05        # 0.1 s at 0.5 m/s at most, not 1.1 s
+
+
 def test_an_emulator_outlives_no_world_process_even_killed() -> None:
     parent = subprocess.Popen(
         [sys.executable, "-c", "from rave import World; import sys, time;"
