@@ -33,6 +33,9 @@ from pb3a.config.checks import finite
 
 SUCCESS, COLLISION, TIMEOUT = "success", "collision", "timeout"
 EPSILON = 0.3        # the exploration rate an untrained learner starts with
+# Episodes kept (the last ones): its state, which moves and is checkpointed, would
+# otherwise grow by one at every episode for as long as it learns.
+KEEP_EPISODES = 1000
 
 
 @dataclass(frozen=True)
@@ -167,7 +170,8 @@ class ReactiveLearner:
                  q: np.ndarray | None = None, trace: np.ndarray | None = None,
                  epsilon: float = EPSILON, goal_index: int = 0,
                  episodes: list[tuple[str, int, float]] | None = None,
-                 underway: dict[str, Any] | None = None, recovery: dict[str, Any] | None = None,
+                 episode_count: int = 0, underway: dict[str, Any] | None = None,
+                 recovery: dict[str, Any] | None = None,
                  rng_state: dict[str, Any] | None = None) -> None:
         self.parameters = p = parameters or Parameters()
         self.goals = np.asarray(goals, dtype=np.float64).reshape(-1, 2)
@@ -177,7 +181,8 @@ class ReactiveLearner:
         self.trace = _table(trace, p, "trace")      # each cell's share in what comes next
         self.epsilon = float(epsilon)
         self.goal_index = int(goal_index) % len(self.goals)
-        self.episodes = [] if episodes is None else episodes
+        self.episodes = [] if episodes is None else episodes    # the last KEEP_EPISODES
+        self.episode_count = max(int(episode_count), len(self.episodes))   # all of them
         # the episode under way ({}: none, one begins at the next decision): when it
         # began, decisions so far, and the last one's situation, action, distance to
         # the goal and time, which the next decision learns from
@@ -198,6 +203,7 @@ class ReactiveLearner:
         an equal learner (with the same goals, parameters and seed)."""
         return {"q": self.q, "trace": self.trace, "epsilon": self.epsilon,
                 "goal_index": self.goal_index, "episodes": self.episodes,
+                "episode_count": self.episode_count,
                 "underway": self.underway, "recovery": self.recovery,
                 "rng_state": self.rng.bit_generator.state}
 
@@ -298,9 +304,11 @@ class ReactiveLearner:
     def _finish(self, outcome: str, now: float, learn: bool) -> Episode:
         p, underway = self.parameters, self.underway
         goal = self.goals[self.goal_index]
-        episode = Episode(len(self.episodes), outcome, underway["steps"],
+        episode = Episode(self.episode_count, outcome, underway["steps"],
                           now - underway["started"], (float(goal[0]), float(goal[1])))
         self.episodes.append((outcome, episode.steps, episode.seconds))
+        del self.episodes[:-KEEP_EPISODES]
+        self.episode_count += 1
         if learn:
             self.epsilon = max(p.epsilon_min, self.epsilon * p.epsilon_decay)
         self.goal_index = (self.goal_index + 1) % len(self.goals)
@@ -414,6 +422,7 @@ class PolicyLearner(Module):
     epsilon = EPSILON
     goal_index = 0
     episodes: list[tuple[str, int, float]] = []
+    episode_count = 0
     underway: dict[str, Any] = {}
     recovery: dict[str, Any] = {}
     rng_state: dict[str, Any] = {}
@@ -480,5 +489,6 @@ def _learner_of(state: dict[str, Any]) -> ReactiveLearner:
     return ReactiveLearner(
         state["goals"], Parameters.of(state["parameters"]), seed=state["seed"], q=state["q"],
         trace=state["trace"], epsilon=state["epsilon"], goal_index=state["goal_index"],
-        episodes=state["episodes"], underway=state["underway"], recovery=state["recovery"],
+        episodes=state["episodes"], episode_count=state["episode_count"],
+        underway=state["underway"], recovery=state["recovery"],
         rng_state=state["rng_state"])

@@ -34,6 +34,9 @@ def success_rate(outcomes: list[bool], window: int) -> float:
     return sum(recent) / len(recent) if recent else 0.0
 
 
+KEEP_OUTCOMES = 1000      # outcomes kept beyond the window (the state would grow without end)
+
+
 def _check_settings(state: dict[str, Any]) -> None:
     """ValueError naming each setting of a ``TransferAgent`` that could never or would
     always transfer (a window of 0 read every episode; a threshold above 1 never
@@ -65,7 +68,8 @@ class TransferAgent(Agent):
     window = 20
     threshold = 0.8
     min_episodes = 20
-    outcomes: list[bool] = []
+    outcomes: list[bool] = []       # the last ones: max(window, KEEP_OUTCOMES)
+    episodes = 0                    # heard of, all told
     decided_at = 0.0                # unix times; 0: not yet
     moved_at = 0.0
     move: dict[str, Any] = {}       # the migration's pause_s, prepare_s and phases
@@ -86,7 +90,9 @@ class TransferAgent(Agent):
     def on_input(self, port: InputPort) -> None:
         for episode in port.read_all():
             self.outcomes.append(bool(episode["success"]))
-        if self.decided_at or len(self.outcomes) < self.min_episodes:
+            self.episodes += 1
+        del self.outcomes[:-max(self.window, KEEP_OUTCOMES)]
+        if self.decided_at or self.episodes < self.min_episodes:
             return
         if success_rate(self.outcomes, self.window) >= self.threshold:
             if not (self.to_node and self.to_resource):
@@ -123,7 +129,7 @@ class TransferAgent(Agent):
                      "phases": dataclasses.asdict(report.phases)}
         self.transfer.write({"decided_at": self.decided_at, "moved_at": self.moved_at,
                              **self.move,
-                             "episodes": len(self.outcomes),
+                             "episodes": self.episodes,
                              "success_rate": success_rate(self.outcomes, self.window)})
 
     def _failed(self, error: Exception) -> None:
@@ -133,6 +139,6 @@ class TransferAgent(Agent):
         self.runtime.set_state(self.driver, {"lockstep_s": self.lockstep_s})
         self.transfer.write({"decided_at": self.decided_at, "moved_at": 0.0,
                              "error": f"{type(error).__name__}: {error}",
-                             "episodes": len(self.outcomes),
+                             "episodes": self.episodes,
                              "success_rate": success_rate(self.outcomes, self.window)})
         self.decided_at = 0.0

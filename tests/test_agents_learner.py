@@ -13,6 +13,7 @@ import pytest
 
 from agents.learner import (
     COLLISION,
+    KEEP_EPISODES,
     SUCCESS,
     Parameters,
     PolicyLearner,
@@ -46,8 +47,8 @@ def drive(learner: ReactiveLearner, world: World, episodes: int) -> float:
     """Run ``episodes`` more episodes, one decision per ``PERIOD`` of simulated time;
     the simulated seconds they took."""
     robot, start = world.robot("r"), world.time
-    stop = len(learner.episodes) + episodes
-    while len(learner.episodes) < stop:
+    stop = learner.episode_count + episodes
+    while learner.episode_count < stop:
         command, _ = learner.decide(robot.sonar(), np.asarray(robot.gps()), world.time)
         robot.drive(*command)
         world.step(PERIOD)
@@ -110,6 +111,25 @@ def test_after_a_collision_the_robot_backs_up_turns_away_and_goes_for_the_next_g
     assert 2 <= turned <= 6                      # 0.5-1.5 s, then the policy's action
     assert learner.underway["steps"] == 1 and learner.goal_index == 1
     assert [outcome for outcome, _, _ in learner.episodes] == [COLLISION]
+
+
+def test_its_state_keeps_the_last_episodes_and_counts_them_all() -> None:
+    """Its state moves with it and is checkpointed: one entry per episode for as long
+    as it learns made both cost more and more."""
+    done = [(SUCCESS, 3, 1.0)] * KEEP_EPISODES
+    learner = ReactiveLearner([[5.0, 0.0]], seed=3, episodes=list(done),
+                              episode_count=KEEP_EPISODES + 500)
+    pose = np.zeros(3)
+    learner.decide(CLEAR, pose, 0.0)
+    blocked = CLEAR.copy()
+    blocked[[2, 3]] = 0.2
+    _, finished = learner.decide(blocked, pose, 0.25)            # a collision ends it
+    assert finished.index == KEEP_EPISODES + 500
+    assert learner.episode_count == KEEP_EPISODES + 501
+    assert len(learner.episodes) == KEEP_EPISODES and learner.episodes[-1][0] == COLLISION
+    assert ReactiveLearner([[5.0, 0.0]], **{   # a state of before: counted by its list
+        k: v for k, v in learner.state().items() if k != "episode_count"}).episode_count \
+        == KEEP_EPISODES
 
 
 def test_the_speed_guard_slows_the_robot_as_it_nears_an_obstacle_whatever_it_decided(

@@ -8,7 +8,7 @@ import re
 
 import pytest
 
-from agents.transfer import TransferAgent, success_rate
+from agents.transfer import KEEP_OUTCOMES, TransferAgent, success_rate
 from pb3a import MigrationReport, RuntimeFailure
 from pb3a.testing import ModuleHarness
 
@@ -107,6 +107,18 @@ def test_it_waits_for_the_success_rate_then_moves_with_the_driver_re_pointed_on_
     assert set(report["phases"]) >= {"capture_s", "restore_s", "start_s"}
     agent.step()
     assert len(runtime.calls) == 2 and len(agent.written["transfer"]) == 1     # once
+
+
+def test_it_keeps_the_outcomes_its_window_needs_and_counts_every_episode() -> None:
+    agent = ModuleHarness(TransferAgent, state={"min_episodes": 5000, "window": 20},
+                          runtime=Runtime())
+    for index in range(KEEP_OUTCOMES + 300):
+        agent.feed("episode", {"success": index % 2 == 0})
+    assert agent.state["episodes"] == KEEP_OUTCOMES + 300
+    assert len(agent.state["outcomes"]) == KEEP_OUTCOMES      # before: one per episode
+    agent.module.set_state({"window": KEEP_OUTCOMES + 100})
+    agent.feed("episode", {"success": True})
+    assert len(agent.state["outcomes"]) == KEEP_OUTCOMES + 1  # growing to the new window
 
 
 def test_without_a_destination_it_says_what_to_set() -> None:
