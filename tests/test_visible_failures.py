@@ -55,7 +55,9 @@ def test_pb3a_run_shows_a_module_s_exception_once_then_counts_it(tmp_path: Path)
         "ValueError: odd step" in done.stderr
     table = done.stdout.rpartition("pb3a: stopped cleanly")[0]
     row = next(line for line in table.splitlines()[::-1] if line.startswith("faulty"))
-    assert int(row.split()[7]) > 100 and row.endswith("ValueError: odd step"), row
+    # every error counted, not only the few reported (about 250 in 2.5 s; the launch
+    # takes a good part of that on a loaded machine: one run under load counted 91)
+    assert int(row.split()[7]) >= 20 and row.endswith("ValueError: odd step"), row
 
 
 def test_a_plain_script_sees_a_module_s_exception_without_setting_up_logging() -> None:
