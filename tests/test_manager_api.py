@@ -152,6 +152,22 @@ def test_the_token_in_the_first_url_becomes_a_cookie_and_leaves_the_address_bar(
     assert TestClient(client.app, follow_redirects=False).get("/?token=nope").status_code == 401
 
 
+def test_each_manager_has_a_cookie_of_its_own_and_host_names_ignore_case() -> None:
+    """Cookies are not kept apart by port: two managers on one host overwrote each
+    other's (one page then got 401 for good). A host name with capitals was refused,
+    browsers sending it in lower case; on port 80 they leave the port out."""
+    one, other = Access("token-one"), Access("token-two")
+    one.serve_at("MyHost", 8001)
+    other.serve_at("127.0.0.1", 80)
+    assert one.cookie != other.cookie
+    both = {"cookie": f"{one.cookie}=token-one; {other.cookie}=token-two"}
+    assert one.authenticated(both) and other.authenticated(both)
+    assert not one.authenticated({"cookie": f"{other.cookie}=token-one"})
+    assert one.host_allowed("myhost:8001") and one.host_allowed("MyHost:8001")
+    assert other.host_allowed("127.0.0.1") and other.host_allowed("localhost:80")
+    assert not one.host_allowed("myhost")
+
+
 def test_a_page_of_another_origin_cannot_use_the_cookie(client, run) -> None:
     # the cookie is SameSite=Strict, but a page served by anything else on this host (any
     # other port: the same site) still sends it along with a form or a no-cors fetch
@@ -348,6 +364,57 @@ def test_reload_drops_a_module_s_code_everywhere(client) -> None:
     assert client.post("/api/reload", json={"module": "sample_modules"}).json() == {
         "reloaded": "sample_modules"}
     assert client.post("/api/reload", json={"module": "../etc"}).status_code == 400
+
+
+@pytest.mark.parametrize(("module", "why"), [
+    ("numpy", "numpy is an installed package"), ("json", "standard library"),
+    ("os.path", "standard library"), ("pb3a.system", "part of PB3A itself")])
+def test_reload_refuses_what_the_processes_run_on(client, module: str, why: str) -> None:
+    """Before, numpy was dropped from the launcher's cache (200), and could not be
+    imported there again."""
+    import sys
+
+    before = sys.modules.get(module)
+    refused = client.post("/api/reload", json={"module": module})
+    assert refused.status_code == 409 and why in refused.json()["error"], refused.text
+    assert "nothing was reloaded" in refused.json()["error"]
+    assert sys.modules.get(module) is before
+
+
+def test_a_body_that_is_not_plain_json_text_is_a_400_and_changes_nothing(client, run) -> None:
+    """A lone surrogate (which JSON allows) was taken, and then every answer carrying
+    it failed with a 500; a deep nesting was a 500 too."""
+    before = client.get("/api/document").json()
+    for body in (b'{"system": {"name": "s\\ud800"}}', b"[" * 100_000):
+        refused = client.put("/api/document", content=body,
+                             headers={"Content-Type": "application/json"})
+        assert refused.status_code == 400, refused.text
+    refused = client.post("/api/modules/scale/state", content=b'{"label": "x\\udfff"}',
+                          headers={"Content-Type": "application/json"})
+    assert refused.status_code == 400 and "not text" in refused.json()["error"]
+    assert client.get("/api/document").json() == before
+    huge = client.post("/api/modules/scale/state", content=b'{"gain": 1' + b"0" * 400 + b"}",
+                       headers={"Content-Type": "application/json"})
+    assert huge.status_code == 422 and "a number a float holds" in huge.json()["error"]
+    assert run.state("scale")["gain"] == 2.0
+    too_big = client.put("/api/document", content=b" " * 9_000_000,
+                         headers={"Content-Type": "application/json"})
+    assert too_big.status_code == 400 and "more than" in too_big.json()["error"]
+
+
+def test_an_edit_made_on_an_old_copy_of_the_document_is_refused(client) -> None:
+    """Two pages editing: before, the last put won, and the other page's work was gone."""
+    first = client.get("/api/document").json()
+    second = client.get("/api/document").json()           # another page, the same copy
+    first["system"]["modules"] = {"p": {"class": "sample_modules:Last"}}
+    done = client.put("/api/document", json={"system": first["system"],
+                                             "revision": first["revision"]})
+    assert done.status_code == 200 and done.json()["revision"] == first["revision"] + 1
+    second["system"]["modules"] = {"q": {"class": "sample_modules:Last"}}
+    stale = client.put("/api/document", json={"system": second["system"],
+                                              "revision": second["revision"]})
+    assert stale.status_code == 412 and "changed since" in stale.json()["error"]
+    assert set(client.get("/api/document").json()["system"]["modules"]) == {"p"}
 
 
 def test_classes_list_the_catalog_with_ports_state_and_origin(client) -> None:

@@ -18,7 +18,7 @@ from test_manager_api import managed, manager_client
 
 from pb3a import Running
 from pb3a.manager.document import Document
-from pb3a.manager.live import Feed
+from pb3a.manager.live import CLIENT_BACKLOG, CLIENT_MOST, Feed, Message, _enqueue
 from pb3a.manager.session import Session
 
 pytestmark = pytest.mark.timeout(60)
@@ -103,6 +103,41 @@ def test_a_page_gets_no_structure_again_for_changes_its_hello_showed(run) -> Non
         assert "event" in kinds and "system" not in kinds, kinds
 
 
+def test_a_lagging_page_loses_stats_and_states_never_an_event_until_it_is_let_go() -> None:
+    """Before, with 64 messages queued and no stats among them, new events were dropped
+    in silence; the page is now sent away (it reconnects) only 10,000 behind."""
+    queue: asyncio.Queue[Message] = asyncio.Queue()
+    for seq in range(CLIENT_BACKLOG + 10):
+        _enqueue(queue, Message("event", str(seq)))
+    _enqueue(queue, Message("stats", "s1"))             # nothing of its kind to give way
+    assert queue.qsize() == CLIENT_BACKLOG + 10
+    for kind in ("stats", "state"):
+        while not queue.empty():
+            queue.get_nowait()
+        for index in range(CLIENT_BACKLOG):
+            _enqueue(queue, Message(kind if index == 3 else "event", str(index)))
+        _enqueue(queue, Message(kind, "newest"))         # takes the oldest one's place
+        queued = [queue.get_nowait() for _ in range(queue.qsize())]
+        assert len(queued) == CLIENT_BACKLOG and queued[-1] == Message(kind, "newest")
+        assert [m.text for m in queued if m.type == "event"] == [
+            str(i) for i in range(CLIENT_BACKLOG) if i != 3]
+    for seq in range(CLIENT_MOST + 1):
+        _enqueue(queue, Message("event", str(seq)))
+    assert [queue.get_nowait().type for _ in range(queue.qsize())] == ["behind"]
+
+
+def test_a_binary_frame_from_a_page_is_ignored(run) -> None:
+    """It ended the page's connection with a traceback (KeyError: 'text')."""
+    with manager_client(Session(Document.empty(), run)) as client, \
+            client.websocket_connect("/api/live") as socket:
+        assert socket.receive_json()["type"] == "hello"
+        socket.send_bytes(b'{"watch": "map"}')
+        socket.send_json({"watch": "map"})
+        while (message := socket.receive_json())["type"] != "state":
+            pass
+        assert message["module"] == "map" and "state" in message
+
+
 def test_the_watched_module_s_state_comes_while_it_runs(run) -> None:
     with manager_client(Session(Document.empty(), run)) as client, \
             client.websocket_connect("/api/live") as socket:
@@ -137,8 +172,8 @@ class _GoneBeforeHello:
         self.sent.append(text)
         raise WebSocketDisconnect(code=1006)
 
-    async def receive_text(self) -> str:
-        raise WebSocketDisconnect(code=1006)
+    async def receive(self) -> dict:
+        return {"type": "websocket.disconnect", "code": 1006}
 
     async def close(self, code: int = 1000) -> None:
         pass

@@ -31,7 +31,7 @@ from pb3a.config.plan import FlatLink, FlatModule
 from pb3a.errors import ConfigError, RuntimeFailure
 from pb3a.launch.migration import MigrationReport, migrate
 from pb3a.loading.references import resolve_class
-from pb3a.loading.served import forget
+from pb3a.loading.served import forget, reload_problem
 from pb3a.model.module import Module
 from pb3a.model.ports import Policy
 from pb3a.pending import DONE, FAILED, RUNNING
@@ -174,6 +174,9 @@ class Operations:
         return status, value
 
     def reload(self, module: str, *, timeout: float | None = None) -> None:
+        problem = reload_problem(module)
+        if problem is not None:
+            raise ConfigError([f"reload {module}: {problem}; nothing was reloaded"])
         with self._held(f"reload {module}", timeout):
             forget(module)
             for node in self.launcher.nodes.values():

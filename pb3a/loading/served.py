@@ -12,8 +12,10 @@ import importlib
 import importlib.abc
 import importlib.util
 import sys
+import sysconfig
 import threading
 import time
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
@@ -85,6 +87,28 @@ def use_module_servers(addresses: Sequence[str], key: ClusterKey | None = None) 
             sys.meta_path.append(finder)
         for address in addresses:
             finder.add(address)
+
+
+def reload_problem(module: str) -> str | None:
+    """Why ``module`` may not be reloaded everywhere (dropped from every process's
+    cache), or None. Only a system's own code may be: Python's standard library, an
+    installed package (numpy, once dropped, cannot be imported again in that
+    process) and PB3A itself are what the launcher and its workers run on."""
+    top = module.partition(".")[0]
+    if top in sys.builtin_module_names or top in sys.stdlib_module_names:
+        return f"{module} is part of Python's standard library"
+    if top == "pb3a":
+        return f"{module} is part of PB3A itself"
+    try:
+        spec = importlib.util.find_spec(top)
+    except (ImportError, ValueError):
+        spec = None
+    origin = spec.origin if spec is not None else None
+    installed = {Path(sysconfig.get_paths()[key]).resolve() for key in ("purelib", "platlib")}
+    if origin and any(Path(origin).resolve().is_relative_to(p) for p in installed):
+        return (f"{module} is an installed package ({origin}): reload reloads your "
+                "system's code (install it editable, pip install -e, to change it live)")
+    return None
 
 
 def forget(module: str) -> list[str]:

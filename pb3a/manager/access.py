@@ -2,9 +2,11 @@
 
 The manager changes a running system, so it is a control surface: every request
 and websocket carries the token printed at start, as ``Authorization: Bearer TOKEN``
-or as the cookie ``pb3a_token``, which ``GET /?token=TOKEN`` sets (HttpOnly,
+or as the cookie ``pb3a_token_PORT``, which ``GET /?token=TOKEN`` sets (HttpOnly,
 SameSite=Strict) before redirecting to ``/``, so the token leaves the address bar
-and the page's own requests carry it without script access. A token in the query
+and the page's own requests carry it without script access. Cookies are not kept
+apart by port: named by its port, one manager's does not overwrite another's on the
+same host. A token in the query
 of any other request is refused: it would end up in logs and histories.
 
 The ``Host`` header must name the address served (DNS rebinding: a page of another
@@ -50,13 +52,18 @@ class Access:
 
     def __init__(self, token: str, hosts: set[str] | None = None) -> None:
         self.token = token
-        self.hosts: set[str] = set(hosts or ())      # exact Host header values allowed
+        self.hosts: set[str] = {h.lower() for h in hosts or ()}   # Host header values allowed
+        self.cookie = COOKIE
 
     def serve_at(self, host: str, port: int) -> None:
-        """Answer to ``host:port``, and to localhost and 127.0.0.1 with that port."""
-        for name in {host, "localhost", "127.0.0.1"}:
+        """Answer to ``host:port``, and to localhost and 127.0.0.1 with that port (on
+        port 80 also without it, as browsers send it); the cookie is the port's."""
+        for name in {host.lower(), "localhost", "127.0.0.1"}:
             shown = f"[{name}]" if ":" in name else name
             self.hosts.add(f"{shown}:{port}")
+            if port == 80:
+                self.hosts.add(shown)
+        self.cookie = f"{COOKIE}_{port}"
 
     def host_allowed(self, host: str | None) -> bool:
         return host is not None and host.lower() in self.hosts
@@ -83,7 +90,7 @@ class Access:
             cookie.load(headers.get("cookie", ""))
         except Exception:                   # a malformed cookie header: no token in it
             return False
-        return COOKIE in cookie and self.is_token(cookie[COOKIE].value)
+        return self.cookie in cookie and self.is_token(cookie[self.cookie].value)
 
 
 class AccessMiddleware:
@@ -115,7 +122,7 @@ class AccessMiddleware:
             return
         if "token" in query:
             if path == "/" and scope["type"] == "http" and access.is_token(query["token"][0]):
-                await _sign_in(send, access.token)
+                await _sign_in(send, access.cookie, access.token)
                 return
             await _refuse(scope, send, 401, "the token goes in the header 'Authorization: "
                           "Bearer TOKEN' (or the cookie the page sets), never in the URL of "
@@ -128,9 +135,10 @@ class AccessMiddleware:
         await self.app(scope, receive, send)
 
 
-async def _sign_in(send: Send, token: str) -> None:
-    """Set the cookie and send the browser to ``/`` (so the token leaves its address bar)."""
-    cookie = f"{COOKIE}={token}; HttpOnly; SameSite=Strict; Path=/"
+async def _sign_in(send: Send, name: str, token: str) -> None:
+    """Set the cookie ``name`` and send the browser to ``/`` (so the token leaves its
+    address bar)."""
+    cookie = f"{name}={token}; HttpOnly; SameSite=Strict; Path=/"
     await send({"type": "http.response.start", "status": 303,
                 "headers": [(b"location", b"/"), (b"set-cookie", cookie.encode()),
                             (b"cache-control", b"no-store"), (b"content-length", b"0")]})

@@ -23,14 +23,14 @@ from starlette.responses import JSONResponse, PlainTextResponse, Response
 from starlette.routing import Route
 
 from pb3a.errors import ConfigError, ModuleNotFound, RuntimeFailure, RuntimeTimeout
-from pb3a.manager.document import Document
+from pb3a.manager.document import Document, Stale
 from pb3a.manager.session import Malformed, NotFound, Session, Unfit
 
 log = logging.getLogger("pb3a.manager")
 
 # exception -> status, most specific first
 STATUS: list[tuple[type[BaseException], int]] = [
-    (Malformed, 400), (ModuleNotFound, 404), (NotFound, 404), (Unfit, 422),
+    (Malformed, 400), (ModuleNotFound, 404), (NotFound, 404), (Stale, 412), (Unfit, 422),
     (ConfigError, 409), (RuntimeTimeout, 504), (RuntimeFailure, 502),
 ]
 MOST_BODY_BYTES = 8_000_000          # a request body larger than this is refused
@@ -49,16 +49,33 @@ def error_response(exc: BaseException) -> JSONResponse:
 
 
 async def body_of(request: Request) -> Any:
-    """The request's JSON body; Malformed when it is not JSON."""
-    raw = await request.body()
-    if len(raw) > MOST_BODY_BYTES:
-        raise Malformed(f"the request body has {len(raw)} bytes; at most {MOST_BODY_BYTES}")
+    """The request's JSON body; Malformed when it is too large (refused as it comes,
+    not once it is all in memory), is not JSON, nests deeper than Python can read, or
+    holds a string that is not Unicode text (a lone surrogate, which JSON allows:
+    taken, it made every later answer that carried it fail)."""
+    too_large = Malformed(f"the request body has more than {MOST_BODY_BYTES} bytes")
+    declared = request.headers.get("content-length", "")
+    if declared.isdigit() and int(declared) > MOST_BODY_BYTES:
+        raise too_large
+    chunks, size = [], 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > MOST_BODY_BYTES:
+            raise too_large
+        chunks.append(chunk)
+    raw = b"".join(chunks)
     if not raw:
         raise Malformed("the request needs a JSON body")
     try:
-        return json.loads(raw)
+        body = json.loads(raw)
+        json.dumps(body, ensure_ascii=False).encode()
+    except RecursionError:
+        raise Malformed("the request body nests too deeply") from None
+    except UnicodeEncodeError as exc:
+        raise Malformed(f"the request body has a string that is not text: {exc}") from None
     except (ValueError, UnicodeDecodeError) as exc:
         raise Malformed(f"the request body is not JSON: {exc}") from None
+    return body
 
 
 def routes(session: Session) -> list[Route]:
@@ -141,10 +158,13 @@ def routes(session: Session) -> list[Route]:
 
     async def put_document(request: Request) -> Any:
         body = await body_of(request)
-        if not isinstance(body, dict) or not isinstance(body.get("system"), dict):
-            raise Malformed("send {\"system\": {...the tables of the TOML as JSON...}}")
+        revision = body.get("revision") if isinstance(body, dict) else None
+        if not isinstance(body, dict) or not isinstance(body.get("system"), dict) or not (
+                revision is None or (isinstance(revision, int) and not isinstance(revision, bool))):
+            raise Malformed("send {\"system\": {...the tables of the TOML as JSON...}, "
+                            "\"revision\": the revision of the document it was made on}")
         try:
-            await call(document.replace, body["system"])
+            await call(document.replace, body["system"], revision)
         except ValueError as exc:                # TOML cannot hold it: nothing changed
             raise Malformed(str(exc)) from None
         return await call(document.to_json)

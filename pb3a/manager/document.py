@@ -32,8 +32,15 @@ _TABLES = (("nodes",), ("modules",), ("macros",), ("macros", "*"), ("macros", "*
 _TABLE_ARRAYS = (("links",), ("macros", "*", "links"))   # lists of dicts as [[tables]]
 
 
+class Stale(Exception):
+    """An edit made on a copy of the document older than the document now."""
+
+
 class Document:
-    """One system description being edited (thread-safe)."""
+    """One system description being edited (thread-safe). Each change counts its
+    ``revision``: an edit sent with the revision it was made on is refused (``Stale``)
+    if another came in between (two pages, each editing its own copy, would otherwise
+    each overwrite the other's work)."""
 
     def __init__(self, text: str = "", path: Path | None = None) -> None:
         self.path = path
@@ -44,6 +51,7 @@ class Document:
             where = path if path is not None else "the document"
             raise ConfigError([f"{where}: not valid TOML: {exc}"]) from None
         self._lock = threading.Lock()
+        self.revision = 0
 
     @classmethod
     def open(cls, path: str | Path) -> Document:
@@ -84,20 +92,28 @@ class Document:
         return self.sketch()[1]
 
     def to_json(self) -> dict[str, Any]:
-        """``{"path", "system", "problems"}`` as ``GET /api/document`` answers."""
+        """``{"path", "system", "problems", "revision"}`` as ``GET /api/document``
+        answers (the revision read first: a change after it makes an edit on this
+        copy stale, never the other way round)."""
+        revision = self.revision
         return {"path": None if self.path is None else str(self.path), "system": self.data(),
-                "problems": self.problems()}
+                "problems": self.problems(), "revision": revision}
 
     # -- changing -----------------------------------------------------------------
-    def replace(self, system: dict[str, Any]) -> None:
+    def replace(self, system: dict[str, Any], revision: int | None = None) -> None:
         """Make the document say ``system`` (the tables as JSON), keeping the comments and
         layout of everything that did not change. ``null`` values leave a key out. What
         TOML cannot hold (a ``null`` inside an array) is a ValueError, and then nothing
         changes: the edit is made on a copy, which replaces the document only once its
-        text reads back as what it holds."""
+        text reads back as what it holds. With ``revision``, ``Stale`` if the document
+        has changed since that revision."""
         if not isinstance(system, dict):
             raise ValueError(f"'system' must be an object of TOML tables, got {system!r}")
         with self._lock:
+            if revision is not None and revision != self.revision:
+                raise Stale(f"the document changed since this copy of it was read "
+                            f"(revision {revision}, now {self.revision}), in another page "
+                            "or by an open: read it again and make the change there")
             draft = copy.deepcopy(self._doc)
             try:
                 _merge(draft, system, ())
@@ -109,6 +125,7 @@ class Document:
                 raise ValueError("TOML cannot hold this document: written, it would not "
                                  "read back as sent")
             self._doc = draft
+            self.revision += 1
 
     def open_text(self, text: str, name: str) -> None:
         """Make the document the TOML ``text`` of a file called ``name`` (one the page
@@ -123,6 +140,7 @@ class Document:
         with self._lock:
             self._doc = opened._doc
             self.path, self.name = None, name
+            self.revision += 1
 
     def check_link(self, src: str, dst: str) -> tuple[bool, str]:
         """Whether a link ``src -> dst`` added to the document would be fine, and if not

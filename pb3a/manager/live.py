@@ -6,8 +6,9 @@ One ``Feed`` serves every client: it gathers the stats every ``refresh`` seconds
 client's queue. After an event that changes the structure it sends the structure
 and its layout again. Each client also gets, every ``refresh``, the state of the one
 module it watches (``{"watch": name}``). A client that cannot keep up loses the
-oldest stats, never an event. Blocking calls run in worker threads, never on the
-event loop.
+oldest stats and states, never an event; one that falls ``CLIENT_MOST`` messages
+behind is disconnected (its page reconnects, and reads the system anew), so that it
+holds no more memory. Blocking calls run in worker threads, never on the event loop.
 """
 
 from __future__ import annotations
@@ -36,6 +37,8 @@ REFRESH_S = 0.5             # stats and watched state, by default
 EVENT_WAIT_S = 0.5          # one events() call waits this long for the next event
 STOP_WAIT_S = 5.0           # at the end, how long a call to the system still under way may take
 CLIENT_BACKLOG = 64         # messages queued for a client before stats are dropped
+CLIENT_MOST = 10_000        # ... before it is disconnected, to catch up from a new hello
+BEHIND = 4013               # the close code then: try again (the page reconnects)
 MOST_BACKOFF_S = 5.0        # a loop that keeps failing tries again this often at least
 # events after which the structure (modules, links, nodes) is sent again
 STRUCTURAL = frozenset({"module_added", "module_removed", "module_moved", "module_swapped",
@@ -87,10 +90,7 @@ class Feed:
         if isinstance(message, dict):
             message = Message(message["type"], encode(message))
         for queue in list(self._clients):
-            if queue.full():
-                _drop_a_stats_message(queue)
-            if not queue.full():
-                queue.put_nowait(message)
+            _enqueue(queue, message)
 
     async def _stats(self) -> None:
         failures = 0
@@ -154,7 +154,7 @@ class Feed:
         """Talk to one page until it goes: hello, then everything published, and the
         state of the module it watches."""
         await socket.accept()
-        queue: asyncio.Queue[Message] = asyncio.Queue(CLIENT_BACKLOG)
+        queue: asyncio.Queue[Message] = asyncio.Queue()       # (bounded by _enqueue)
         watched: list[str | None] = [None]
         running = self.session.mode == "running"
         try:
@@ -198,6 +198,9 @@ class Feed:
         is being typed into it."""
         while True:
             message = await queue.get()
+            if message.type == "behind":
+                await socket.close(BEHIND, "too far behind: reconnect")
+                return
             if message.type == "system" and message.seq <= hello_at:
                 continue
             await socket.send_text(message.text)
@@ -212,20 +215,20 @@ class Feed:
                     message: dict[str, Any] = {"type": "state", "module": name, "state": state}
                 except Exception as exc:        # reported to the page, which shows it
                     message = {"type": "state", "module": name, **_error(exc)}
-                if watched[0] == name and not queue.full():
-                    queue.put_nowait(Message("state", encode(message)))
+                if watched[0] == name:
+                    _enqueue(queue, Message("state", encode(message)))
             await asyncio.sleep(self.refresh)
 
 
 async def _listen(socket: WebSocket, watched: list[str | None]) -> None:
-    """Read the page's messages (``{"watch": name | null}``) until it closes."""
+    """Read the page's messages (``{"watch": name | null}``) until it closes; what is
+    not such a message (binary, not JSON) is ignored."""
     while True:
-        try:
-            text = await socket.receive_text()
-        except WebSocketDisconnect:
+        received = await socket.receive()
+        if received["type"] == "websocket.disconnect":
             return
         try:
-            message = json.loads(text)
+            message = json.loads(received.get("text") or "")
         except ValueError:
             continue
         if isinstance(message, dict) and "watch" in message:
@@ -277,15 +280,36 @@ def _settled(calls: set[asyncio.Future[Any]]) -> Callable[[asyncio.Future[Any]],
     return done
 
 
-def _drop_a_stats_message(queue: asyncio.Queue[Message]) -> None:
-    """Take the oldest stats message out of ``queue`` (events stay, in order)."""
+_FRESHEST_ONLY = frozenset({"stats", "state"})     # what a lagging client may miss
+
+
+def _enqueue(queue: asyncio.Queue[Message], message: Message) -> None:
+    """Queue ``message`` for one client. With ``CLIENT_BACKLOG`` queued, a stats or
+    state message takes the place of the oldest such (or is dropped, if there is
+    none); events and the structure always go in, until ``CLIENT_MOST``: then the
+    queue is emptied for one message telling the client's sender to disconnect."""
+    if queue.qsize() >= CLIENT_MOST:
+        while not queue.empty():
+            queue.get_nowait()
+        queue.put_nowait(Message("behind", ""))
+        return
+    if (queue.qsize() >= CLIENT_BACKLOG and message.type in _FRESHEST_ONLY
+            and not _drop_oldest(queue, _FRESHEST_ONLY)):
+        return                               # (nothing of its kind to give way)
+    queue.put_nowait(message)
+
+
+def _drop_oldest(queue: asyncio.Queue[Message], types: frozenset[str]) -> bool:
+    """Take the oldest message of one of ``types`` out of ``queue`` (the others stay,
+    in order); False if there was none."""
     kept = []
     dropped = False
     while not queue.empty():
         message = queue.get_nowait()
-        if not dropped and message.type == "stats":
+        if not dropped and message.type in types:
             dropped = True
             continue
         kept.append(message)
     for message in kept:
         queue.put_nowait(message)
+    return dropped

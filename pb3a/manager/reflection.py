@@ -151,11 +151,17 @@ def coerce(field: str, current: Any, new: Any) -> Any:
             new = int(new)
         if not isinstance(new, int) or isinstance(new, bool):
             raise refuse("a whole number")
-        return type(current)(new) if isinstance(current, np.integer) else new
+        try:
+            return type(current)(new) if isinstance(current, np.integer) else new
+        except OverflowError:
+            raise refuse(f"a whole number a {type(current).__name__} holds") from None
     if isinstance(current, (float, np.floating)):
         if not isinstance(new, (int, float)) or isinstance(new, bool):
             raise refuse("a number")
-        return type(current)(new)
+        try:
+            return type(current)(new)
+        except OverflowError:
+            raise refuse(f"a number a {type(current).__name__} holds") from None
     if isinstance(current, str):
         if not isinstance(new, str):
             raise refuse("a string")

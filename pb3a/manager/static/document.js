@@ -29,6 +29,8 @@ export class EditedDocument {
     this.path = null;
     this.system = {name: "untitled", modules: {}, links: []};
     this.problems = [];
+    this.revision = undefined;       // the document's, as last read (sent back with a put)
+    this.putting = null;             // the put under way, which the next one waits for
   }
 
   async load() {
@@ -42,10 +44,23 @@ export class EditedDocument {
     this.system.modules ??= {};
     this.system.links ??= [];
     this.problems = answer.problems || [];
+    this.revision = answer.revision;
   }
 
-  async put() {
-    this.take(await api.putDocument(this.system));
+  /** Put the document back; if another page changed it meanwhile (412), the change
+   * made here is dropped and the document read again, and the error says so. Puts go
+   * one after another, each with the revision the one before it answered. */
+  put() {
+    const putting = (this.putting || Promise.resolve()).catch(() => {}).then(async () => {
+      try {
+        this.take(await api.putDocument(this.system, this.revision));
+      } catch (error) {
+        if (error.status === 412) await this.load();
+        throw error;
+      }
+    });
+    this.putting = putting;
+    return putting;
   }
 
   nodes() {
