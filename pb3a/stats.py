@@ -138,8 +138,9 @@ class SystemStats:
 
 
 def plain(value: Any) -> Any:
-    """``value`` in JSON's terms: NaN as None, tuples as lists, keys as strings."""
-    if isinstance(value, float) and math.isnan(value):
+    """``value`` in JSON's terms: NaN and the infinities as None (as JavaScript writes
+    them: JSON has no such numbers), tuples as lists, keys as strings."""
+    if isinstance(value, float) and not math.isfinite(value):
         return None
     if isinstance(value, dict):
         return {str(key): plain(item) for key, item in value.items()}

@@ -46,6 +46,10 @@ def test_the_command_line_reads_and_changes_a_running_system(capsys) -> None:
         assert "no module 'ghost'" in capsys.readouterr().err
 
 
+def _no_constant(name: str) -> None:
+    raise AssertionError(f"--json printed {name}, which JSON has not")
+
+
 def test_every_command_changes_a_running_system_and_speaks_json(capsys) -> None:
     system = System("cli-more")
     system.node("a")
@@ -57,6 +61,11 @@ def test_every_command_changes_a_running_system_and_speaks_json(capsys) -> None:
     with system.launch() as run:
         address = run.listen()
         bare = address.removeprefix("tcp://")              # HOST:PORT works too
+        assert main(["set", bare, "src", "limit=Infinity"]) == 0
+        capsys.readouterr()
+        assert main(["state", bare, "src", "--json"]) == 0          # valid JSON: null
+        assert json.loads(capsys.readouterr().out, parse_constant=_no_constant)["limit"] \
+            is None
         assert main(["set", bare, "src", "limit=3"]) == 0
         assert "src: limit = 3" in capsys.readouterr().out
         assert run.state("src")["limit"] == 3

@@ -3,7 +3,12 @@ exit status, never a traceback (a user's ordinary mistakes, walked one by one)."
 
 from __future__ import annotations
 
+import json
+import os
+import signal
 import socket
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -20,9 +25,25 @@ def _mistakes(tmp: Path) -> list[tuple[list[str], int, str]]:
     (tmp / "far.toml").write_text('[nodes.far]\naddress = "tcp://127.0.0.1:1"\n'
                                   '[modules.t]\nclass = "examples.pipeline:Ticker"\n'
                                   'node = "far"\n')
+    (tmp / "latin1.toml").write_bytes(b'name = "\xff\xfe"\n')
+    (tmp / "nowhere.toml").write_text(
+        '[nodes.far]\naddress = "tcp://no-such-host.invalid:7100"\n'
+        '[modules.t]\nclass = "examples.pipeline:Ticker"\nnode = "far"\n')
     missing = str(tmp / "missing.toml")
     pipeline = str(REPO / "examples" / "pipeline.toml")
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        busy = taken.getsockname()[1]        # (free again: another test may take it)
     return [
+        # each of these was a traceback
+        (["check", str(tmp / "latin1.toml")], 1, "is not UTF-8 text"),
+        (["run", str(tmp / "nowhere.toml"), "--for", "1"], 1,
+         "no address is known for host 'no-such-host.invalid'"),
+        (["run", pipeline, "--for", "1", "--listen", "nonsense"], 1,
+         "is not an address to listen on"),
+        (["status", "tcp://a b:5"], 1, "pb3a status: cannot reach tcp://a b:5"),
+        (["status", f"tcp://127.0.0.1:{busy}", "--timeout", "0.2"], 1,
+         "no PB3A launcher answered"),
         (["check", missing], 1, "cannot read"),
         (["check", str(tmp / "broken.toml")], 1, "not valid TOML"),
         (["graph", missing], 1, "cannot read"),
@@ -62,6 +83,13 @@ def test_every_command_answers_a_mistake_with_a_sentence(tmp_path, capsys, monke
 
 
 @pytest.mark.parametrize("argv", [["check"], ["run", "x.toml", "--for", "soon"],
+                                  ["run", "x.toml", "--for", "-1"],
+                                  ["run", "x.toml", "--for", "nan"],
+                                  ["status", "tcp://h:1", "--timeout", "inf"],
+                                  ["state", "tcp://h:1", "m", "--timeout", "1e300"],
+                                  ["state", "tcp://h:1", "m", "--timeout", "-5"],
+                                  ["stress", "x.toml", "--for", "nan"],
+                                  ["stress", "x.toml", "--load", "0:50@nan"],
                                   ["node", "start"], ["migrate", "tcp://h:1", "m"],
                                   ["stress", "x.toml", "--load", "lots"],
                                   ["stress", "x.toml", "--load", "0:80@soon"],
@@ -104,3 +132,39 @@ def test_a_daemon_refuses_an_address_it_cannot_listen_on_saying_why(capsys) -> N
                 out, err = capsys.readouterr()
                 assert said in err and "Traceback" not in err, (daemon, listen, err)
                 assert out == ""                            # no banner: it never served
+
+
+def test_stress_interrupted_writes_its_report_then_exits_130(tmp_path: Path) -> None:
+    """It exited 0, as if it had run its whole time."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pb3a", "stress", str(REPO / "examples" / "pipeline.toml"),
+         "--for", "60", "--sample", "0.5", "--out", str(tmp_path)],
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True)
+    try:
+        assert "values/s" in proc.stdout.readline()          # it runs
+        os.killpg(proc.pid, signal.SIGINT)                     # a terminal's Ctrl-C
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130, err
+    assert "the report covers the run until it was interrupted" in err and "Traceback" not in err
+    report = json.loads((tmp_path / "stress.json").read_text())
+    assert [m["kind"] for m in report["marks"]][-1:] == ["interrupted"]
+
+
+def test_stress_that_cannot_write_its_report_says_so_after_its_summary(tmp_path: Path,
+                                                                       capsys,
+                                                                       monkeypatch) -> None:
+    """It ended in a traceback, and the run's figures were lost with it."""
+    monkeypatch.chdir(REPO)
+    (tmp_path / "stress.json").mkdir()
+    argv = ["stress", str(REPO / "examples" / "pipeline.toml"), "--for", "1", "--out",
+            str(tmp_path)]
+    assert main(argv) == 1
+    out, err = capsys.readouterr()
+    assert "values/s" in out                                  # the summary, first
+    assert f"pb3a stress: cannot write the report to {tmp_path}" in err
+    assert "Traceback" not in err

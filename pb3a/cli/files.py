@@ -8,6 +8,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+import zmq
+
+from pb3a.cli import arguments
 from pb3a.config.dot import plan_to_dot
 from pb3a.config.plan import Plan
 from pb3a.errors import ConfigError, PB3AError
@@ -30,7 +33,7 @@ def register(commands: argparse._SubParsersAction) -> None:
 
     run = commands.add_parser("run", help="launch a system and show its live status")
     run.add_argument("file", metavar="FILE", help="a system description (.toml)")
-    run.add_argument("--for", dest="seconds", type=float, metavar="SECONDS",
+    run.add_argument("--for", dest="seconds", type=arguments.seconds, metavar="SECONDS",
                      help="stop after this many seconds (default: until Ctrl-C)")
     run.add_argument("--listen", metavar="ADDR",
                      help="where the launcher takes `pb3a status ADDR` etc. and remote nodes "
@@ -92,8 +95,12 @@ def run_command(args: argparse.Namespace) -> int:
         return 1
     try:
         return run_with_status(plan, args.seconds, listen=args.listen)
-    except (PB3AError, ClusterKeyError) as exc:
+    except (PB3AError, ClusterKeyError, ValueError) as exc:
         print(f"pb3a run: {exc}", file=sys.stderr)
+        return 1
+    except (OSError, zmq.ZMQError) as exc:      # an address nobody has, a port in use
+        print(f"pb3a run: cannot reach or listen where {args.file} or --listen says "
+              f"({exc})", file=sys.stderr)
         return 1
 
 
@@ -105,6 +112,9 @@ def load_plan(file: str, command: str) -> Plan | None:
         print(f"pb3a {command}: {exc}", file=sys.stderr)
     except OSError as exc:
         print(f"pb3a {command}: cannot read {file}: {exc.strerror or exc}", file=sys.stderr)
+    except UnicodeDecodeError as exc:
+        print(f"pb3a {command}: {file} is not UTF-8 text (byte {exc.start}): save it as "
+              "UTF-8", file=sys.stderr)
     except ConfigError as exc:
         for problem in exc.problems:
             print(problem)

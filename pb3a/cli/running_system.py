@@ -13,6 +13,9 @@ import sys
 from collections.abc import Callable
 from typing import Any
 
+import zmq
+
+from pb3a.cli.arguments import wait_seconds
 from pb3a.cli.status import format_nodes, format_table
 from pb3a.errors import PB3AError
 from pb3a.events import Event
@@ -31,7 +34,7 @@ def register(commands: argparse._SubParsersAction) -> None:
         for arg, text in arguments:
             sub.add_argument(arg, metavar=arg.upper(), help=text)
         sub.add_argument("--json", action="store_true", help="print JSON, for scripts")
-        sub.add_argument("--timeout", type=float, default=None, metavar="SECONDS",
+        sub.add_argument("--timeout", type=wait_seconds, default=None, metavar="SECONDS",
                          help="how long the operation may wait (default: the system's)")
         sub.set_defaults(handler=lambda args: _act(name, run, args))
         return sub
@@ -81,9 +84,13 @@ def _act(name: str, run: Callable[[Connection, argparse.Namespace], Any],
     except (PB3AError, ClusterKeyError, ValueError) as exc:
         print(f"pb3a {name}: {exc}", file=sys.stderr)
         return 1
+    except zmq.ZMQError as exc:                 # an address ZeroMQ cannot use
+        print(f"pb3a {name}: cannot reach {args.address}: {exc}", file=sys.stderr)
+        return 1
     if shown is not None:
         text, data = shown
-        print(json.dumps(plain(data), indent=2, default=repr) if args.json else text)
+        print(json.dumps(plain(data), indent=2, default=repr, allow_nan=False)
+              if args.json else text)
     return 0
 
 

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from pb3a import latencies
+from pb3a.cli.arguments import MOST_SECONDS, seconds
 from pb3a.config.plan import Plan
 from pb3a.cpu_load import CPULoad, parse_levels
 from pb3a.errors import ModuleNotFound, PB3AError, RuntimeFailure, RuntimeTimeout
@@ -97,17 +98,17 @@ def register(commands: argparse._SubParsersAction) -> None:
         "stress", help="run a configuration under CPU load and faults; report per link "
                        "and node (JSON and PNG)")
     stress_.add_argument("file", metavar="FILE", help="a system description (.toml)")
-    stress_.add_argument("--for", dest="seconds", type=_positive, default=30.0,
+    stress_.add_argument("--for", dest="seconds", type=seconds, default=30.0,
                          metavar="SECONDS", help="how long to run (default 30)")
     stress_.add_argument("--load", action="append", default=[], type=_load,
                          metavar="CPUS:PERCENT[@T[+D]]",
                          help="hold CPUs at a level, e.g. 0,1:80, or 0:90@10+20 (from 10 s "
                               "for 20 s); repeatable")
-    stress_.add_argument("--kill-worker-every", dest="kill_every", type=_positive,
+    stress_.add_argument("--kill-worker-every", dest="kill_every", type=seconds,
                          metavar="SECONDS", help="SIGKILL a random worker this often")
     stress_.add_argument("--kill-among", type=_names, default=frozenset(), metavar="M1,M2",
                          help="kill only the workers of these modules")
-    stress_.add_argument("--migrate-every", dest="migrate_every", type=_positive,
+    stress_.add_argument("--migrate-every", dest="migrate_every", type=seconds,
                          metavar="SECONDS", help="move a random module to another node "
                                                  "this often")
     stress_.add_argument("--migrate-among", type=_names, default=frozenset(),
@@ -116,7 +117,7 @@ def register(commands: argparse._SubParsersAction) -> None:
                          metavar="NAME@T[+D]",
                          help="freeze node NAME (on this machine) at T s for D s (default "
                               "to the end), as if its cable were cut; repeatable")
-    stress_.add_argument("--sample", dest="sample_s", type=_positive, default=1.0,
+    stress_.add_argument("--sample", dest="sample_s", type=seconds, default=1.0,
                          metavar="SECONDS", help="how often to record figures (default 1)")
     stress_.add_argument("--out", default=".", metavar="DIR",
                          help="where stress.json and stress.png go (default: here)")
@@ -144,12 +145,21 @@ def stress_command(args: argparse.Namespace) -> int:
     except (PB3AError, ClusterKeyError, ValueError, OSError) as exc:
         print(f"pb3a stress: {exc}", file=sys.stderr)
         return 1
-    (out / "stress.json").write_text(json.dumps(report, indent=2))
-    from pb3a.cli.stress_plot import plot
-    drawn = plot(report, out / "stress.png")
     print(summary_text(report))
+    try:
+        (out / "stress.json").write_text(json.dumps(report, indent=2))
+        from pb3a.cli.stress_plot import plot
+        drawn = plot(report, out / "stress.png")
+    except OSError as exc:                # the run is over: its summary is above
+        print(f"pb3a stress: cannot write the report to {out}: {exc.strerror or exc}",
+              file=sys.stderr)
+        return 1
     print(f"pb3a stress: wrote {out / 'stress.json'}"
           + (f" and {out / 'stress.png'}" if drawn else " (no PNG: matplotlib is missing)"))
+    if any(mark["kind"] == "interrupted" for mark in report["marks"]):
+        print("pb3a stress: the report covers the run until it was interrupted",
+              file=sys.stderr)
+        raise KeyboardInterrupt         # (main: exit 130, as any command interrupted)
     return 0
 
 
@@ -461,16 +471,6 @@ def summary_text(report: dict[str, Any]) -> str:
 
 
 # -- option values ------------------------------------------------------------------------
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = -1.0
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of seconds")
-    return value
-
-
 def _window(text: str, what: str) -> Window:
     """``T`` or ``T+D`` (seconds) as a Window."""
     start, plus, length = text.partition("+")
@@ -478,7 +478,8 @@ def _window(text: str, what: str) -> Window:
         window = Window(float(start), float(length) if plus else None)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{what}: {text!r} is not T or T+D (seconds)") from None
-    if window.start < 0 or (window.seconds is not None and window.seconds <= 0):
+    if not (0 <= window.start <= MOST_SECONDS) or (
+            window.seconds is not None and not 0 < window.seconds <= MOST_SECONDS):
         raise argparse.ArgumentTypeError(f"{what}: {text!r}: T must be 0 or more and D more "
                                          "than 0")
     return window

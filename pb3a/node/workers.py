@@ -46,7 +46,8 @@ REQUEST_TIMEOUT = 10.0
 _context = multiprocessing.get_context("forkserver")
 # numpy imports numpy.random only when first used: 25-30 ms in a fresh worker, which
 # fell inside a migration's pause when a module made a generator in its ``setup``
-PRELOAD = ("pb3a.worker.process", "numpy", "numpy.random", "cloudpickle")
+PRELOAD = ("pb3a.node.forkserver_signals", "pb3a.worker.process", "numpy", "numpy.random",
+           "cloudpickle")
 
 
 @dataclass(eq=False)

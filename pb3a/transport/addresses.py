@@ -65,5 +65,9 @@ def reachable_from(peer: str) -> str:
     address of the interface this machine reaches the peer through (no packet is sent)."""
     host = peer.removeprefix("tcp://").rpartition(":")[0]
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.connect((host, 9))
+        try:
+            probe.connect((host, 9))
+        except socket.gaierror as exc:
+            raise OSError(f"no address is known for host {host!r} of {peer}: "
+                          f"{exc.strerror}") from None
         return probe.getsockname()[0]

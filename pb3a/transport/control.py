@@ -229,9 +229,13 @@ class ControlClient:
 
     def __init__(self, key: ClusterKey, address: str, *, epoch: int = 0) -> None:
         self.address = address
-        self._loop = SocketLoop("pb3a-control-client")
-        self._dealer = _socket(self._loop.context, zmq.DEALER)
-        self._dealer.connect(address)
+        self._dealer = _socket(zmq.Context.instance(), zmq.DEALER)
+        try:
+            self._dealer.connect(address)
+        except BaseException:               # (an address ZeroMQ cannot use): no socket left
+            self._dealer.close(0)
+            raise
+        self._loop = SocketLoop("pb3a-control-client", self._dealer.context)
         self._sealer = Sealer(key, epoch)
         # Replies count only if they answer a request this client is waiting for; the
         # epoch is the server's check (a launcher's server also answers the CLI in 0).

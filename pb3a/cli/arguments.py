@@ -1,0 +1,32 @@
+"""Types of the commands' numeric options, for ``argparse``: a value out of range is
+refused as the command line is read, with the usage and a sentence, never accepted
+to fail later (a NaN run length ran for no time; an infinite timeout overflowed a
+clock, with a traceback)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Callable
+
+MOST_SECONDS = 1e7          # about 116 days: beyond, clocks overflow
+
+
+def seconds(text: str) -> float:
+    """A finite number of seconds above 0 (how long to run, how often)."""
+    return _seconds(text, "a number of seconds above 0", lambda value: value > 0)
+
+
+def wait_seconds(text: str) -> float:
+    """A finite number of seconds, 0 or more (how long to wait for an answer)."""
+    return _seconds(text, "a number of seconds, 0 or more", lambda value: value >= 0)
+
+
+def _seconds(text: str, words: str, ok: Callable[[float], bool]) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and ok(value) and value <= MOST_SECONDS):
+        raise argparse.ArgumentTypeError(f"{text!r} is not {words} (at most {MOST_SECONDS:g})")
+    return value
