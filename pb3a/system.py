@@ -34,7 +34,9 @@ class System:
                  workers: int = 0, timeout: float | None = None) -> None:
         """``timeout``: how long an operation on the running system may wait by default
         (as ``timeout = ...`` at the top of a file; ``launch(timeout=...)`` wins)."""
-        self._spec = SystemSpec(name, module_servers=list(module_servers or []), workers=workers,
+        servers = module_servers if isinstance(module_servers, str) else list(
+            module_servers or [])       # (a string alone is refused as the file's would be)
+        self._spec = SystemSpec(name, module_servers=servers, workers=workers,
                                 timeout=timeout)
 
     @classmethod

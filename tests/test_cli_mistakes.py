@@ -36,7 +36,7 @@ def _mistakes(tmp: Path) -> list[tuple[list[str], int, str]]:
         busy = taken.getsockname()[1]        # (free again: another test may take it)
     return [
         # each of these was a traceback
-        (["check", str(tmp / "latin1.toml")], 1, "is not UTF-8 text"),
+        (["check", str(tmp / "latin1.toml")], 1, "latin1.toml: not UTF-8 text (byte 8)"),
         (["run", str(tmp / "nowhere.toml"), "--for", "1"], 1,
          "no address is known for host 'no-such-host.invalid'"),
         (["run", pipeline, "--for", "1", "--listen", "nonsense"], 1,

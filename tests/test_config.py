@@ -811,3 +811,84 @@ def test_displays_are_configuration_and_a_bad_table_is_reported() -> None:
     assert "displays['level'] = ('gauge', 1, 0)" in problems[0]
     assert "displays['other'] = 'picture'" in problems[0]
     assert 'use "image", "plot" or ("gauge", MIN, MAX) with MIN < MAX' in problems[0]
+
+
+def test_nested_macro_instances_each_set_state_and_the_outer_wins_key_by_key(
+        tmp_path: Path) -> None:
+    """The outer instance's entry replaced the inner one's for the module: the inner's
+    other keys were gone, and a mistake in them was never said."""
+    problems = problems_of(tmp_path, """
+        [macros.inner.modules.a]
+        class = "parts_cfg:Src"
+        [macros.outer.modules.inner]
+        macro = "inner"
+        state = { a = { value = 2.0, valu = 1.0 } }
+        [modules.o]
+        macro = "outer"
+        state = { "inner/a" = { value = 3.0 } }
+    """)
+    only(problems, "[macros.outer.modules.inner]: state of 'a'", "no state 'valu'")
+    plan = build_plan(load_toml(write(tmp_path, """
+        [macros.inner.modules.a]
+        class = "parts_cfg:Sink"
+        [macros.outer.modules.inner]
+        macro = "inner"
+        state = { a = { seen = 2 } }
+        [modules.o]
+        macro = "outer"
+        state = { "inner/a" = { seen = 3 } }
+        [modules.p]
+        macro = "outer"
+    """)))
+    assert plan.modules["o/inner/a"].state == {"seen": 3}
+    assert plan.modules["p/inner/a"].state == {"seen": 2}
+
+
+def test_a_class_that_does_not_resolve_hides_none_of_the_entry_s_other_mistakes(
+        tmp_path: Path) -> None:
+    problems = problems_of(tmp_path, """
+        [modules.t]
+        class = "parts_cfg:Srcc"
+        period = -1
+        restart = "sometimes"
+        state = "value"
+    """)
+    assert len(problems) == 4, problems
+    only(problems, "[modules.t]: module 'parts_cfg' has no class 'Srcc'")
+    only(problems, "[modules.t]: period must be")
+    only(problems, "[modules.t]: restart")
+    only(problems, "[modules.t]: state must be a table")
+
+
+def test_addresses_must_be_tcp_host_port_and_a_remote_node_s_cpus_are_its_own(
+        tmp_path: Path) -> None:
+    """A node address or module server without tcp:// passed pb3a check, and the launch
+    (or the check itself, for a server) ended in a ZeroMQ traceback; a remote node's
+    cpus were checked against this machine's."""
+    problems = problems_of(tmp_path, """
+        module_servers = ["localhost:7300", "tcp://127.0.0.1:7300"]
+        [nodes.a]
+        address = "127.0.0.1:7199"
+        [nodes.b]
+        address = "tcp://machine-b:7100"
+        cpus = [4, 5, 6, 7, 64]
+        [nodes.c]
+        address = "tcp://machine-c:99999"
+        [nodes.d]
+        cpus = [4096]
+    """ + TWO)
+    assert len(problems) == 4, problems
+    only(problems, "each of module_servers must be a string tcp://HOST:PORT", "'localhost:7300'")
+    only(problems, "[nodes.a]: address must be a string tcp://HOST:PORT", "'127.0.0.1:7199'")
+    only(problems, "[nodes.c]: address must be", "99999")
+    only(problems, "[nodes.d]: cpus must be a non-empty list of CPU numbers among this "
+                   "machine's")
+    wrong = System("s", module_servers="tcp://127.0.0.1:7300").check()  # not 't', 'c' ...
+    assert len(wrong) == 1 and "module_servers must be a list of addresses" in wrong[0]
+
+
+def test_a_file_that_is_not_utf8_is_a_config_error(tmp_path: Path) -> None:
+    path = tmp_path / "latin.toml"
+    path.write_bytes(b'name = "caf\xe9"\n')
+    with pytest.raises(ConfigError, match=r"latin.toml: not UTF-8 text \(byte 11\)"):
+        System.load(path)

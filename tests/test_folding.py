@@ -96,3 +96,34 @@ def test_a_declared_local_node_keeps_what_a_top_level_key_cannot_say() -> None:
     plan = build_plan(only_workers._spec)
     tables, problems, again = folded_again(plan)
     assert "nodes" not in tables and tables["workers"] == 2 and shape(again) == shape(plan)
+
+
+def test_a_declared_env_module_keeps_its_settings_and_only_the_compiler_s_own_is_left_out(
+        ) -> None:
+    """An env module read by a link was always left out as the compiler's own, so a
+    period of its own came back as the default, with no problem reported."""
+    for period, written in ((0.5, True), (1.0, False)):
+        system = System("env").node("a")
+        system.add("env-a", "pb3a.model.environment:Environment", node="a", period=period)
+        system.add("t", Last, node="a")
+        system.link("env-a.cpu", "t.x")
+        plan = build_plan(system._spec)
+        tables, problems, again = folded_again(plan)
+        assert problems == [] and shape(again) == shape(plan)
+        assert ("env-a" in tables["modules"]) is written
+
+
+def test_a_class_defined_in_a_script_is_named_as_a_problem_when_folded() -> None:
+    """Folded as __main__:Class, silently: pb3a check then refused the file."""
+    import types
+
+    script = types.ModuleType("__main__")
+    exec("from pb3a import Module, Output\n"
+         "class Ticker(Module):\n    out = Output(float)\n", script.__dict__)
+    plan = build_plan(System("script").add("tick", script.Ticker)._spec)
+    folded = fold(plan.name, plan.nodes, plan.modules.values(), plan.links,
+                  plan.code.module_servers, plan.timeout)
+    assert folded.problems == [
+        "module tick: its class __main__:Ticker is defined in a script (or a function), which "
+        "no file can name: `pb3a check` will refuse it; move the class into a module that can "
+        "be imported"]

@@ -112,9 +112,6 @@ def load_plan(file: str, command: str) -> Plan | None:
         print(f"pb3a {command}: {exc}", file=sys.stderr)
     except OSError as exc:
         print(f"pb3a {command}: cannot read {file}: {exc.strerror or exc}", file=sys.stderr)
-    except UnicodeDecodeError as exc:
-        print(f"pb3a {command}: {file} is not UTF-8 text (byte {exc.start}): save it as "
-              "UTF-8", file=sys.stderr)
     except ConfigError as exc:
         for problem in exc.problems:
             print(problem)

@@ -147,17 +147,20 @@ def displays(cls: type[Module]) -> list[str]:
     return []
 
 
-def cpus(value: Any) -> list[str]:
-    """Left out (any CPU) or a non-empty list of this machine's CPU numbers."""
+def cpus(value: Any, remote: bool = False) -> list[str]:
+    """Left out (any CPU) or a non-empty list of CPU numbers: on this machine, those this
+    process may run on; on a ``remote`` node's machine (its executor checks them), any."""
     if value is None:
         return []
-    count = os.cpu_count() or 1
+    usable = None if remote else sorted(os.sched_getaffinity(0))
     if isinstance(value, list) and value and all(
-            isinstance(cpu, int) and not isinstance(cpu, bool) and 0 <= cpu < count
-            for cpu in value):
+            isinstance(cpu, int) and not isinstance(cpu, bool) and cpu >= 0
+            and (usable is None or cpu in usable) for cpu in value):
         return []
-    return [(f"cpus must be a non-empty list of CPU numbers from 0 to {count - 1} (the CPUs "
-             f"the node's workers may run on), got {value!r}")]
+    which = ("numbers, 0 or more" if usable is None
+             else f"numbers among this machine's {listing(map(str, usable))}")
+    return [(f"cpus must be a non-empty list of CPU {which} (the CPUs the node's workers may "
+             f"run on), got {value!r}")]
 
 
 def advertise(value: Any) -> list[str]:
@@ -170,9 +173,16 @@ def advertise(value: Any) -> list[str]:
              f"address such as '10.0.0.7' (no tcp://, no port), got {value!r}")]
 
 
-def address(value: Any) -> list[str]:
-    """A node address: left out (started on this machine) or a non-empty string."""
-    if value is None or (isinstance(value, str) and value):
+def address(value: Any, what: str = "address") -> list[str]:
+    """A node's or module server's address, ``tcp://HOST:PORT``; a node's may be left
+    out (started on this machine)."""
+    if value is None and what == "address":
         return []
-    return [(f"address must be a string such as 'tcp://10.0.0.7:7100' (or left out to start "
-            f"the node on this machine), got {value!r}")]
+    if isinstance(value, str) and value.startswith("tcp://"):
+        host, _, port = value.removeprefix("tcp://").rpartition(":")
+        if host and not any(c in host for c in " /") and port.isdigit() \
+                and 0 < int(port) <= 65535:
+            return []
+    return [(f"{what} must be a string tcp://HOST:PORT such as 'tcp://10.0.0.7:7100'"
+             f"{' (or left out to start the node on this machine)' if what == 'address' else ''}"
+             f", got {value!r}")]

@@ -134,6 +134,9 @@ class _Planner:
             self.report(origin, [("module_servers must be a list of addresses such as "
                                  f"['tcp://127.0.0.1:7300'], got {servers!r}")])
             servers = []
+        for server in servers:
+            self.report(origin, checks.address(server, "each of module_servers"))
+        servers = [server for server in servers if not checks.address(server, "server")]
         here = () if spec.source is None else (str(Path(spec.source).resolve().parent),)
         self.code = CodeSources(here, tuple(servers))
         self.code.install()     # classes below may be next to the file, or only on servers
@@ -145,7 +148,7 @@ class _Planner:
             self.report(label, checks.unknown_keys(node.extra, NodeSpec.KEYS))
             self.report(label, checks.address(node.address))
             self.report(label, checks.workers(node.workers))
-            self.report(label, checks.cpus(node.cpus))
+            self.report(label, checks.cpus(node.cpus, remote=node.address is not None))
             self.report(label, checks.advertise(node.advertise))
             self.report(label, checks.spares(node.spares))
         if not spec.nodes:
@@ -261,6 +264,10 @@ class _Planner:
             problems += checks.period(entry.period) + checks.restart(entry.restart)
             problems += checks.state(child.cls, entry.state)
             problems += checks.displays(child.cls)
+        elif entry.cls is not None:      # a class that did not resolve: what needs none
+            problems += checks.period(entry.period) + checks.restart(entry.restart)
+            if not isinstance(entry.state, dict):
+                problems += checks.state(Module, entry.state)
         self.report(child.label, problems)
         return child
 
@@ -309,10 +316,12 @@ class _Planner:
     def instantiate(self, definition: Definition, prefix: str, node: str | None,
                     group: str | None, modules: dict[str, FlatModule],
                     labels: dict[str, str], links: list[tuple[str, FlatLink]],
-                    overrides: dict[str, Override] | None = None) -> None:
+                    overrides: dict[str, list[Override]] | None = None) -> None:
         """Expand ``definition`` under ``prefix``; ``overrides`` are the state its
         instance's ``state`` table (and those of the instances around it) sets on its
-        modules, keyed by their paths inside it."""
+        modules, keyed by their paths inside it: per module, the innermost instance's
+        first, each checked under its own entry and applied in turn (an outer instance's
+        value wins for the keys it sets, the inner one's others stay)."""
         overrides = dict(overrides or {})
         for name, child in definition.children.items():
             entry, path = child.spec, prefix + name
@@ -323,8 +332,7 @@ class _Planner:
                 period = entry.period if not checks.period(entry.period) else None
                 restart = entry.restart if not checks.restart(entry.restart) else None
                 state = dict(entry.state) if isinstance(entry.state, dict) else {}
-                if name in overrides:
-                    extra = overrides.pop(name)
+                for extra in overrides.pop(name, []):
                     self.report(extra.label, [f"state of {extra.key!r}: {problem}"
                                               for problem in checks.state(cls, extra.state)])
                     state.update(extra.state)
@@ -338,13 +346,14 @@ class _Planner:
                 labels[path] = child.label
             elif child.macro is not None:
                 own = entry.state if not checks.macro_state(entry.state) else {}
-                inner = {key: Override(value, child.label, key) for key, value in own.items()}
+                inner = {key: [Override(value, child.label, key)] for key, value in own.items()}
                 for key in [key for key in overrides if key.startswith(f"{name}/")]:
-                    inner[key.removeprefix(f"{name}/")] = overrides.pop(key)   # the outer wins
+                    inner.setdefault(key.removeprefix(f"{name}/"), []).extend(
+                        overrides.pop(key))             # after the inner one's: it wins
                 self.instantiate(child.macro, path + "/", here, team, modules, labels, links,
                                  inner)
         modules_here = [name for name, child in definition.children.items() if child.cls]
-        for extra in overrides.values():
+        for extra in [extra for layers in overrides.values() for extra in layers]:
             self.report(extra.label, [
                 f"state names {extra.key!r}, which is not a module of {definition.title}; its "
                 f"modules: {checks.listing(modules_here)} (a child macro's modules as "

@@ -147,6 +147,9 @@ def load_toml(path: str | Path) -> SystemSpec:
             data = tomllib.load(file)
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError([f"{path}: not valid TOML: {exc}"]) from exc
+        except UnicodeDecodeError as exc:
+            raise ConfigError([f"{path}: not UTF-8 text (byte {exc.start}): save it as "
+                               "UTF-8"]) from None
     return _read_system(data, str(path), default_name=path.stem)
 
 

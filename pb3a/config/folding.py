@@ -111,9 +111,13 @@ class _Folder:
 
     # -- modules ---------------------------------------------------------------------
     def _automatic(self, module: FlatModule) -> bool:
-        """A node's env module that the compiler adds again (a top-level link reads it)."""
+        """A node's env module that the compiler adds again, as it would add it (a
+        top-level link reads it; no settings of its own, which would be lost)."""
         return (module.cls is Environment and module.name == env_name(module.node)
-                and any(link.src == module.name for link in self.links))
+                and any(link.src == module.name for link in self.links)
+                and module.period == Environment.period and not module.state
+                and module.restart == Environment.restart and module.group is None
+                and not module.fallback)
 
     def _place(self, module: FlatModule) -> None:
         """The module's entry in its macro's definition (and each macro's in its parent's)."""
@@ -128,6 +132,11 @@ class _Folder:
     def _entry(self, module: FlatModule, parent: str) -> dict[str, Any]:
         cls = module.cls
         entry: dict[str, Any] = {"class": class_ref(cls)}
+        if cls.__module__ == "__main__" or "<locals>" in cls.__qualname__:
+            self.problems.append(
+                f"module {module.name}: its class {class_ref(cls)} is defined in a script "
+                "(or a function), which no file can name: `pb3a check` will refuse it; move "
+                "the class into a module that can be imported")
         if not self.implicit_node:
             entry["node"] = module.node
         if module.period != cls.period and module.period is not None:
