@@ -3,7 +3,9 @@ fencing, arrays as frames, and forged or garbage frames refused."""
 
 from __future__ import annotations
 
+import contextlib
 import pickle
+import socket
 import threading
 import time
 from typing import Any
@@ -16,7 +18,7 @@ from conftest import eventually
 from pb3a import RuntimeTimeout
 from pb3a.transport import replication
 from pb3a.transport.auth import ClusterKey, Opener, Sealer
-from pb3a.transport.replication import Follower, Replicator
+from pb3a.transport.replication import WINDOW, Follower, Replicator
 
 KEY = ClusterKey.load({"PB3A_KEY": "r" * 40})
 TIMEOUT = 20.0
@@ -204,6 +206,124 @@ def test_a_batch_mixes_plain_and_encoded_values_each_as_it_was_when_written(link
     got = inbox.wait("t", len(written))
     assert got[:4] == [{"a": [1, 2]}, 1, "two", None] and got[5:] == [b"\x00six", 7.5]
     assert np.array_equal(got[4], np.arange(4.0)) and not got[4].flags.writeable
+
+
+def test_a_large_value_after_small_ones_not_yet_sent_arrives_in_its_place(link) -> None:
+    """The large value took its number before the batch of small ones before it was
+    closed, which numbered them from it: one number was never sent (counted a lost
+    value), and the large value was dropped as a duplicate of the batch's last."""
+    replicator, follower, inbox = link
+    replicator.add("t")
+    _follow(follower, replicator, "t", from_seq=0)
+    assert follower.wait_ready("t", TIMEOUT)
+    big = np.full(100_000, 7.0)                  # sent as a message of its own
+    assert replicator.offer("t", ["a", "b", big, "c"]) == 4
+    got = inbox.wait("t", 4)
+    assert got[:2] == ["a", "b"] and np.array_equal(got[2], big) and got[3] == "c"
+    replicator.flush()
+    assert not follower.link_failures and not follower.duplicates
+
+
+@pytest.mark.parametrize("large", [b"y" * 100_000, "z" * 100_000, {"k": "v" * 100_000}],
+                         ids=["bytes", "text", "an object"])
+def test_a_large_value_that_is_not_an_array_goes_and_the_values_after_it(link,
+                                                                        large: Any) -> None:
+    """Its seal failed ('bytes' object has no attribute 'nbytes') after it had taken
+    its number: the writer got an AttributeError, and every later value waited behind
+    a gap no repair could fill."""
+    replicator, follower, inbox = link
+    replicator.add("t")
+    _follow(follower, replicator, "t", from_seq=0)
+    assert follower.wait_ready("t", TIMEOUT)
+    for value in (0, large, 2, 3):
+        replicator.publish("t", value)
+    assert inbox.wait("t", 4) == [0, large, 2, 3]
+    assert not follower.link_failures
+
+
+class _CuttableLink:
+    """A TCP forwarder to ``target`` whose connections ``cut`` closes (a cable pulled
+    for a moment: the follower's control socket then reconnects by itself)."""
+
+    def __init__(self, target: str) -> None:
+        host, _, port = target.removeprefix("tcp://").rpartition(":")
+        self.target, self.conns = (host, int(port)), []
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.address = f"tcp://127.0.0.1:{self.server.getsockname()[1]}"
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                near, _ = self.server.accept()
+            except OSError:
+                return
+            far = socket.create_connection(self.target)
+            self.conns += [near, far]
+            for source, sink in ((near, far), (far, near)):
+                threading.Thread(target=self._pipe, args=(source, sink), daemon=True).start()
+
+    @staticmethod
+    def _pipe(source: socket.socket, sink: socket.socket) -> None:
+        with contextlib.suppress(OSError):
+            while data := source.recv(65536):
+                sink.sendall(data)
+        for end in (source, sink):
+            with contextlib.suppress(OSError):
+                end.shutdown(socket.SHUT_RDWR)
+
+    def cut(self) -> None:
+        for conn in self.conns:
+            with contextlib.suppress(OSError):
+                conn.shutdown(socket.SHUT_RDWR)
+            conn.close()
+        self.conns = []
+
+    def close(self) -> None:
+        self.cut()
+        self.server.close()
+
+
+def test_a_follower_reconnected_keeps_one_hold_and_the_writer_goes_on(link) -> None:
+    """Its control socket got a new id from ZeroMQ at each reconnection: the old
+    lossless hold stayed, never released, and once the writer was a window past it
+    every write timed out although the follower had everything."""
+    replicator, follower, inbox = link
+    replicator.add("t")
+    cable = _CuttableLink(replicator.control_address)
+    try:
+        follower.set_lossless("t", True)
+        follower.follow("t", replicator.data_address, cable.address,
+                        incarnation=replicator.incarnation)
+        assert follower.wait_ready("t", TIMEOUT)
+        replicator.offer("t", list(range(100)), timeout=2.0)
+        inbox.wait("t", 100)
+        stream = replicator.counter("t")
+        eventually(lambda: len(stream.holds) == 1, what="the follower's hold")
+        cable.cut()
+        for value in range(100, 2 * WINDOW + 200):          # past a window: it went on
+            replicator.publish("t", value, timeout=5.0)
+        assert inbox.wait("t", 2 * WINDOW + 200) == list(range(2 * WINDOW + 200))
+        assert len(stream.holds) == 1
+    finally:
+        cable.close()
+
+
+def test_a_replicator_out_of_reach_never_blocks_the_follower_s_thread(monkeypatch) -> None:
+    """Its hellos queue up for the address nobody answers; once the queue was full
+    (10,000, some 8 minutes of them; 5 here), a blocking send stopped the follower's
+    one thread, and every remote link into the node with it."""
+    monkeypatch.setattr(replication, "HWM", 5)
+    follower = Follower(KEY, Inbox())
+    try:
+        with socket.create_server(("127.0.0.1", 0)) as taken:   # a port nobody serves
+            port = taken.getsockname()[1]
+        nowhere = f"tcp://127.0.0.1:{port}"
+        follower.follow("t", nowhere, nowhere)
+        eventually(lambda: follower.unsent > 0, what="a hello dropped, its queue full")
+        assert follower._loop.call(lambda: "answered", timeout=2.0) == "answered"
+    finally:
+        follower.close()
 
 
 def test_values_written_one_by_one_through_the_sink_arrive_in_order_once(link) -> None:

@@ -140,13 +140,15 @@ def _topic(name: bytes) -> str:
     return name[:-1].decode()
 
 
-def _send(sock: zmq.Socket, frames: list[Any]) -> None:
+def _send(sock: zmq.Socket, frames: list[Any], flags: int = 0) -> None:
     """Send a multipart message: small frames copied (cheaper than a frame object),
-    large ones zero-copy. (``send_multipart`` costs microseconds more per frame.)"""
+    large ones zero-copy. (``send_multipart`` costs microseconds more per frame.) With
+    ``zmq.NOBLOCK``, ``zmq.Again`` at the first frame if the queue is full (a message
+    goes whole or not at all)."""
     last = len(frames) - 1
     for index, frame in enumerate(frames):
         big = type(frame) is not bytes and memoryview(frame).nbytes >= ZERO_COPY_MIN
-        sock.send(frame, zmq.SNDMORE if index < last else 0, copy=not big)
+        sock.send(frame, (zmq.SNDMORE if index < last else 0) | flags, copy=not big)
 
 
 def _sealed(sealer: Sealer, kind: int, parts: list[Any]) -> list[Any]:
@@ -331,6 +333,9 @@ class Replicator:
         self._context = context or zmq.Context.instance()
         self._pub = _secure(self._context.socket(zmq.PUB), max_bytes)
         self._router = _secure(self._context.socket(zmq.ROUTER), max_bytes)
+        # a follower keeps its id across reconnections (see Follower): the new
+        # connection takes the id over from the old one, which may not be seen gone yet
+        self._router.setsockopt(zmq.ROUTER_HANDOVER, 1)
         # (host: where the readers' nodes reach this one; see ``addresses``)
         self.data_address = bind_advertised(self._pub, host)
         self.control_address = bind_advertised(self._router, host)
@@ -484,14 +489,16 @@ class Replicator:
 
     def _add(self, stream: _Stream, kind: int, entry: Any, size: int) -> None:
         """Publish one value (lock held): into the batch being filled, or, if large, as
-        a message of its own."""
-        seq = stream.next_seq
-        stream.next_seq = seq + 1
+        a message of its own. A large one's number is taken once the batch before it
+        is closed (which numbers its values back from ``next_seq``) and once it is
+        sealed: a seal that fails leaves no gap that no repair could fill."""
         if kind < 0:
             self._close_batch(stream)
+            seq = stream.next_seq
             meta, payload = entry
             bound = _bound(stream.name, self.incarnation, seq, -kind, meta)
             nonce, sealed = self._payloads.seal(payload, bound)
+            stream.next_seq = seq + 1
             info = _INFO.pack(self.incarnation, seq, time.time(), -kind, nonce,
                               sealed[-PAYLOAD_TAG:].tobytes())
             # one frame for every send (repairs too): ZeroMQ shares it by reference
@@ -499,6 +506,7 @@ class Replicator:
             stream.keep(sent)
             self._outbox.append((stream.name, sent))
             return
+        stream.next_seq += 1
         pending = stream.pending
         if not pending:
             stream.pending_at = time.time()
@@ -735,6 +743,7 @@ class Follower:
         self.link_failures: collections.Counter[str] = collections.Counter()
         self.fenced: collections.Counter[str] = collections.Counter()
         self.duplicates: collections.Counter[str] = collections.Counter()
+        self.unsent = 0                          # requests dropped, their queue full
         self._progress = threading.Condition()   # notified after every delivery
         self._loop = SocketLoop("pb3a-follower", self._context)
         self._loop.every(HELLO_EVERY, self._retry)
@@ -814,6 +823,10 @@ class Follower:
         dealer = self._controls.get(control)
         if dealer is None:
             dealer = _secure(self._context.socket(zmq.DEALER), self._max_bytes)
+            # One id for good: the replicator keys acknowledgements and lossless holds
+            # by it. Drawn by ZeroMQ at each reconnection, it left the old hold behind,
+            # never released, until it stopped the writer for good.
+            dealer.setsockopt(zmq.ROUTING_ID, b"f" + secrets.token_bytes(15))
             dealer.connect(control)
             self._controls[control] = dealer
             self._loop.register(dealer, self._on_control)
@@ -877,7 +890,11 @@ class Follower:
         """Send HELLO, REPAIR or ACK to the replicator of ``follow``, naming it (nobody,
         before it said who it is: then only a HELLO is answered, with a WELCOME)."""
         to = follow.incarnation or _NOBODY
-        _send(follow.control, self._sealer.seal(kind, [follow.topic, _ASK.pack(first, last, to)]))
+        frames = self._sealer.seal(kind, [follow.topic, _ASK.pack(first, last, to)])
+        try:           # never blocks the follower's one thread (every topic it follows)
+            _send(follow.control, frames, zmq.NOBLOCK)
+        except zmq.Again:       # a replicator out of reach, its queue full: asked again
+            self.unsent += 1
 
     # -- the follower's thread --------------------------------------------------
     def _on_data(self, sock: zmq.Socket) -> None:
