@@ -892,3 +892,21 @@ def test_a_file_that_is_not_utf8_is_a_config_error(tmp_path: Path) -> None:
     path.write_bytes(b'name = "caf\xe9"\n')
     with pytest.raises(ConfigError, match=r"latin.toml: not UTF-8 text \(byte 11\)"):
         System.load(path)
+
+
+def test_an_export_name_must_be_a_port_s_name(tmp_path: Path) -> None:
+    """'in-put' passed, and a link to it was then refused as not "module.port"."""
+    problems = problems_of(tmp_path, """
+        [macros.m]
+        modules = { s = { class = "parts_cfg:Sink" } }
+        exports = { in-put = "s.x" }
+    """)
+    only(problems, "export name 'in-put' names a port: use letters, digits and '_' only")
+
+
+def test_a_description_from_tables_adds_no_directory_to_the_import_path() -> None:
+    """Its default source, "a description", was taken for a file in the current
+    directory, which every process then imported from first."""
+    plan = System.from_dict({"name": "d", "modules": {
+        "t": {"class": "examples.pipeline:Ticker"}}}).plan()
+    assert plan.code.paths == ()

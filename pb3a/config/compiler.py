@@ -137,7 +137,10 @@ class _Planner:
         for server in servers:
             self.report(origin, checks.address(server, "each of module_servers"))
         servers = [server for server in servers if not checks.address(server, "server")]
-        here = () if spec.source is None else (str(Path(spec.source).resolve().parent),)
+        # a file's own directory, where its modules may be: not that of a source that
+        # only names a description (``System.from_dict``'s), which was the current one
+        here = (str(Path(spec.source).resolve().parent),) if spec.source is not None \
+            and Path(spec.source).is_file() else ()
         self.code = CodeSources(here, tuple(servers))
         self.code.install()     # classes below may be next to the file, or only on servers
         self.report(origin, [f"top-level {p}" for p in checks.workers(spec.workers)])

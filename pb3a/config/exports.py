@@ -46,6 +46,9 @@ class LinkResolver:
         try:
             label = definition.label("exports", name)
             problems = checks.name(name, "export")
+            if not problems and not name.isidentifier():     # it names a port
+                problems = [f"export name {name!r} names a port: use letters, digits and "
+                            "'_' only, not starting with a digit"]
             ref, found = self.endpoint(definition, definition.exports[name], "the export")
             self.problems.extend(f"{label}: {p}" for p in problems + found)
         finally:

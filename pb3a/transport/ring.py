@@ -351,9 +351,11 @@ class ShmRing:
         body = _body(kind, len(meta))
         length = _align(body + size)
         if length > self.capacity:
-            raise ValueError(
-                f"a value of {size} bytes does not fit this link's {self.capacity}-byte "
-                "ring; declare shape= and dtype= on the ports")
+            fix = ("declare shape= and dtype= on the output, which sizes its links for "
+                   "them" if kind == codec.ARRAY else "values this large need an output "
+                   "of type object (its links have 16 MiB rings), or send smaller ones")
+            raise ValueError(f"a value of {size} bytes does not fit this link's "
+                             f"{self.capacity}-byte ring: {fix}")
         return kind, meta, body, length
 
     def _skip(self) -> None:
