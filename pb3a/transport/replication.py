@@ -1088,6 +1088,9 @@ class Follower:
             held_back = 0
             try:
                 held_back = self._deliver(_topic(follow.topic), values, sent_at) or 0
+            except Exception:      # (a value too large for a reader's ring: not promised)
+                log.exception("remote link %s: values could not be handed to its readers",
+                              _topic(follow.topic))
             finally:
                 with self._progress:             # (one step: see wait_delivered)
                     follow.next_seq, follow.held_back = seq, held_back
