@@ -168,3 +168,23 @@ def test_stress_that_cannot_write_its_report_says_so_after_its_summary(tmp_path:
     assert "values/s" in out                                  # the summary, first
     assert f"pb3a stress: cannot write the report to {tmp_path}" in err
     assert "Traceback" not in err
+
+
+def test_a_second_ctrl_c_while_stress_stops_its_loads_leaves_no_node_frozen() -> None:
+    """The loads stopped first (up to seconds each): a Ctrl-C then ended the clean-up
+    before the frozen nodes were thawed, which stayed stopped (SIGSTOP) for good."""
+    from pb3a.cli.stress import Stress
+
+    thawed: list[str] = []
+
+    def stop_load(load: str, on: bool) -> None:
+        raise KeyboardInterrupt               # the second Ctrl-C, as a load stops
+
+    stress = Stress.__new__(Stress)
+    stress.loads, stress.freezes = [("load", None)], [("node b", None), ("node c", None)]
+    stress._go = lambda: None                                   # type: ignore[method-assign]
+    stress._load = stop_load                                    # type: ignore[method-assign]
+    stress._cut = lambda freeze, on: thawed.append(freeze)      # type: ignore[method-assign]
+    with pytest.raises(KeyboardInterrupt):
+        stress.run_on(None)                                     # type: ignore[arg-type]
+    assert thawed == ["node b", "node c"]

@@ -208,10 +208,12 @@ class Stress:
         try:
             self._go()
         finally:
-            for load, _ in self.loads:
-                self._load(load, on=False)
-            for freeze, _ in self.freezes:
-                self._cut(freeze, on=False)
+            try:        # thawed first: at once, and a second Ctrl-C while the loads stop
+                for freeze, _ in self.freezes:      # (up to seconds) left nodes stopped
+                    self._cut(freeze, on=False)
+            finally:
+                for load, _ in self.loads:
+                    self._load(load, on=False)
         self._sample()
         if self.out.isatty():
             self.out.write("\n")
