@@ -127,3 +127,15 @@ def test_a_class_defined_in_a_script_is_named_as_a_problem_when_folded() -> None
         "module tick: its class __main__:Ticker is defined in a script (or a function), which "
         "no file can name: `pb3a check` will refuse it; move the class into a module that can "
         "be imported"]
+
+
+def test_a_group_set_on_a_macro_instance_comes_back_on_the_instance() -> None:
+    """Its modules' group ('g', not 'm/...') cannot be written inside the macro: it was
+    left out, with a problem, and each module got a worker of its own."""
+    system = System("grp").add("m", Chain, group="g").add("n", Outer, group="h")
+    system.add("alone", Scale, group="g")
+    plan = build_plan(system._spec)
+    tables, problems, again = folded_again(plan)
+    assert problems == [] and shape(again) == shape(plan)
+    assert tables["modules"]["m"] == {"macro": tables["modules"]["m"]["macro"], "group": "g"}
+    assert tables["modules"]["n"]["group"] == "h"

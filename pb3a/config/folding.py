@@ -94,6 +94,7 @@ class _Folder:
                 tables["workers"] = workers
         else:
             tables["nodes"] = {node.name: _node_table(node) for node in self.nodes.values()}
+        self.instance_groups = self._instance_groups()
         for module in self.modules.values():
             if not self._automatic(module):
                 self._place(module)
@@ -119,14 +120,35 @@ class _Folder:
                 and module.restart == Environment.restart and module.group is None
                 and not module.fallback)
 
+    def _instance_groups(self) -> dict[str, str]:
+        """Macro instance path -> the group its entry says, for a group that every module
+        under it has and that no entry inside it can say (one set on the instance: its
+        modules' group is the instance's prefix plus it, never their macro's)."""
+        found: dict[str, str] = {}
+        for module in self.modules.values():
+            group, parts = module.group, module.name.split("/")
+            if group is None or group.startswith(f"{'/'.join(parts[:-1])}/"):
+                continue                                  # none, or written inside
+            for depth in range(1, len(parts)):
+                path, above = "/".join(parts[:depth]), "/".join(parts[:depth - 1])
+                said = group.removeprefix(f"{above}/") if above else group
+                if (group.startswith(f"{above}/") or not above) and NAME.match(said) and all(
+                        other.group == group for other in self.modules.values()
+                        if other.name.startswith(f"{path}/")):
+                    found[path] = said
+                    break
+        return found
+
     def _place(self, module: FlatModule) -> None:
         """The module's entry in its macro's definition (and each macro's in its parent's)."""
         parent, _, own = module.name.rpartition("/")
         self.definitions[parent].modules[own] = self._entry(module, parent)
         while parent:
             above, _, macro = parent.rpartition("/")
-            self.definitions[above].modules.setdefault(
+            entry = self.definitions[above].modules.setdefault(
                 macro, {"macro": self.definitions[parent].name})
+            if parent in self.instance_groups:
+                entry["group"] = self.instance_groups[parent]
             parent = above
 
     def _entry(self, module: FlatModule, parent: str) -> dict[str, Any]:
@@ -155,7 +177,8 @@ class _Folder:
                 state[key] = written
         if state:
             entry["state"] = state
-        if module.group is not None:
+        inherited = any(module.name.startswith(f"{path}/") for path in self.instance_groups)
+        if module.group is not None and not inherited:
             prefix = f"{parent}/" if parent else ""
             group = module.group.removeprefix(prefix) if module.group.startswith(prefix) \
                 else None
