@@ -139,3 +139,19 @@ def test_a_group_set_on_a_macro_instance_comes_back_on_the_instance() -> None:
     assert problems == [] and shape(again) == shape(plan)
     assert tables["modules"]["m"] == {"macro": tables["modules"]["m"]["macro"], "group": "g"}
     assert tables["modules"]["n"]["group"] == "h"
+
+
+def test_an_enum_in_the_configured_state_is_named_as_having_no_toml_form() -> None:
+    """An IntEnum was written as its int, silently: the module then started with an int."""
+    import enum
+
+    class Mode(enum.IntEnum):
+        FAST = 3
+
+    plan = build_plan(System("e").add("s", Scale, state={"gain": 2.0})._spec)
+    plan.modules["s"].state["gain"] = Mode.FAST                 # as a program may set it
+    folded = fold(plan.name, plan.nodes, plan.modules.values(), plan.links,
+                  plan.code.module_servers, plan.timeout)
+    assert "state" not in folded.tables["modules"]["s"]
+    assert folded.problems == ["module s: its configured state 'gain' (Mode) has no TOML "
+                               "form, left out: it starts with its class's value"]

@@ -28,7 +28,7 @@ from pb3a.loading.references import class_ref
 from pb3a.model.environment import Environment, env_name
 
 _NOT_IDENTIFIER = re.compile(r"\W")
-_TOML_SCALARS = (bool, int, float, str, datetime.date, datetime.time)
+_TOML_SCALARS = (bool, int, float, str, datetime.datetime, datetime.date, datetime.time)
 
 
 @dataclass
@@ -259,8 +259,8 @@ def _toml_value(value: Any) -> Any:
     when it cannot (None itself, arrays, objects): TOML has no null and no object."""
     if isinstance(value, np.generic):
         value = value.item()
-    if isinstance(value, _TOML_SCALARS):
-        return value
+    if type(value) in _TOML_SCALARS:  # (not a subclass: an IntEnum written as 3 would
+        return value                  # read back as an int, which the module never had)
     if isinstance(value, (list, tuple)):
         items = [_toml_value(item) for item in value]
         return None if any(item is None for item in items) else items
