@@ -745,3 +745,19 @@ class AsksInSetup(Agent):
     def step(self) -> None:
         self.pid = os.getpid()
         self.steps += 1
+
+
+class Join(Module):
+    """Counts what comes in on each of two inputs."""
+
+    x = Input(int, policy="queue:100000")
+    y = Input(int, policy="queue:100000")
+    xs = 0
+    ys = 0
+
+    def on_input(self, port) -> None:
+        port.read_all()
+        if port.name == "x":
+            self.xs += 1
+        else:
+            self.ys += 1

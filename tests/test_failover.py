@@ -12,7 +12,7 @@ from collections.abc import Iterator
 import cloudpickle
 import pytest
 from conftest import Daemon, eventually
-from sample_modules import Collector, Counter, MoveLog, Relay
+from sample_modules import Collector, Counter, Join, MoveLog, Relay
 
 from pb3a import RuntimeFailure, System
 from pb3a.daemons.node_controller import Limits, NodeController
@@ -149,3 +149,95 @@ def test_a_fenced_executors_word_is_refused_and_placement_follows_admission() ->
     assert moved[0].detail["destination"] == "a"          # c, its first fallback, refused
     assert joined[0].detail["epoch"] == 2
     assert not any("module_failed" in failure for failure in failures)
+
+
+def test_a_node_lost_while_a_change_holds_the_lock_long_still_fails_over(daemons,
+                                                                        monkeypatch) -> None:
+    """The failover's wait for the configuration lock ran out (60 s by default) inside
+    the watchdog's thread, which died of it: no node was ever lost, failed over or let
+    back in again."""
+    b = daemons["b"]
+    monkeypatch.setattr("pb3a.launch.launcher.FAIL_OVER_WAIT_S", 0.2)
+    system = System("patient").node("a").node("b", address=b.address)
+    system.add("src", Counter, node="a", period=0.005)
+    system.add("relay", Relay, node="b", restart="fresh")
+    system.add("sink", Collector, node="a")
+    system.link("src.out", "relay.x")
+    system.link("relay.out", "sink.x")
+    with system.launch() as run:
+        launcher = run._launcher
+        eventually(lambda: run.state("sink")["received"] > 20, timeout=30, what="values")
+        with launcher.lock.held("a long change"):
+            os.kill(b.executor_pid(), signal.SIGKILL)
+            assert launcher.wait_health("b", up=False, timeout=10)
+            eventually(lambda: any(e.kind == "node_lost" for e in run.events()),
+                       what="the loss")
+            assert not _events(run, "module_failed_over")       # (the lock is held)
+        moved = eventually(lambda: _events(run, "module_failed_over"), timeout=10,
+                           what="the failover once the lock is free")
+        received = run.state("sink")["received"]
+        eventually(lambda: run.state("sink")["received"] > received + 20, timeout=15,
+                   what="values through the relay failed over")
+        eventually(lambda: _events(run, "node_joined"), timeout=20, what="b back")
+    assert moved[0].subject == "relay" and moved[0].detail["destination"] == "a"
+
+
+def test_a_module_put_back_by_a_move_that_its_destination_s_loss_failed_is_left_alone(
+        daemons) -> None:
+    """The failover read which modules were on the lost node before it took the lock,
+    while the move still had the module there: once the move had put it back where it
+    ran, the failover dropped it (restart never; its worker ran on) or restarted it."""
+    b = daemons["b"]
+    system = System("put-back").node("a").node("b", address=b.address)
+    system.add("src", Counter, node="a", period=0.005)
+    system.add("relay", Relay, node="a", restart="never")
+    system.add("sink", Collector, node="a")
+    system.link("src.out", "relay.x")
+    system.link("relay.out", "sink.x")
+    with system.launch() as run:
+        launcher = run._launcher
+        eventually(lambda: run.state("relay")["relayed"] > 20, timeout=30, what="values")
+        node_b, land = launcher.nodes["b"], launcher.nodes["b"].land
+
+        def land_as_b_dies(name: str, snapshot: object) -> float:
+            os.kill(b.executor_pid(), signal.SIGKILL)          # b dies as it lands there
+            return land(name, snapshot)
+        node_b.land = land_as_b_dies
+        with pytest.raises(RuntimeFailure, match="it runs on node a again"):
+            run.migrate("relay", to="b")
+        eventually(lambda: any(e.kind == "node_lost" for e in run.events()), timeout=10,
+                   what="b lost")
+        relayed = run.state("relay")["relayed"]
+        eventually(lambda: run.state("relay")["relayed"] > relayed + 20, timeout=10,
+                   what="the relay running on a")
+        assert run.where("relay") == "a" and not _events(run, "module_failed_over")
+        assert run.state("sink")["received"] > relayed
+
+
+def test_a_move_that_a_writer_s_node_loss_failed_leaves_the_rest_running(daemons) -> None:
+    """The move's undoing wired the module's links again in one go: the link from the
+    lost node failed it, and the module, put back, was never started; the writer on a
+    surviving node resumed after the pause only if it came first."""
+    b = daemons["b"]
+    system = System("undone").node("a").node("b", address=b.address).node("c")
+    system.add("alpha", Counter, node="a", period=0.01)
+    system.add("beta", Counter, node="b", period=0.01)
+    system.add("join", Join, node="a")
+    system.link("alpha.out", "join.x")
+    system.link("beta.out", "join.y")
+    with system.launch() as run:
+        launcher = run._launcher
+        eventually(lambda: run.state("join")["ys"] > 20, timeout=30, what="values from b")
+        node_a, retire = launcher.nodes["a"], launcher.nodes["a"].retire
+
+        def retire_as_b_dies(*args: object) -> object:
+            os.kill(b.executor_pid(), signal.SIGKILL)           # b dies during the move
+            return retire(*args)
+        node_a.retire = retire_as_b_dies
+        with pytest.raises(RuntimeFailure, match="it runs on node a again"):
+            run.migrate("join", to="c")
+        node_a.retire = retire
+        assert run.stats().modules["join"].status == "running"
+        counted = run.state("join")["xs"]
+        eventually(lambda: run.state("join")["xs"] > counted + 20, timeout=10,
+                   what="values from alpha into join, put back on a")

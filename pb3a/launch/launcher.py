@@ -53,6 +53,7 @@ if TYPE_CHECKING:
 log = logging.getLogger("pb3a.launcher")
 
 WATCH_S = 0.1           # how often the watchdog looks at the nodes' heartbeats
+FAIL_OVER_WAIT_S = 1.0  # a failover's wait for the configuration lock, each look
 ENV_S = 1.0             # how often it updates the env modules, merges logs
 ENV_TOLD = 256          # the latest moves (and losses) the env modules are given each time
 REJOIN_S = 1.0          # how often it asks a lost node's controller whether it is back
@@ -79,6 +80,7 @@ class Launcher:
         self.checkpoints: dict[str, bytes] = {}      # module -> its newest (last-state)
         self.lost_values: collections.Counter[str] = collections.Counter()  # per link key
         self._rejoining: set[str] = set()
+        self._failing_over: dict[str, float] = {}     # lost node -> when, until done
         # a lost node's env module and the links from it, restored when it rejoins
         self._env_kept: dict[str, tuple[FlatModule, list[FlatLink]]] = {}
         self._callback: str | None = None            # where remote executors reach us
@@ -209,10 +211,13 @@ class Launcher:
                 if name in self.specs and self.node_of(name).pause(name, timeout):
                     held.append(name)
             yield
-        finally:
-            for name in reversed(held):
+        finally:        # each on its own: one on a node lost meanwhile stops none
+            for name in reversed(held):   # of the others from being resumed
                 if name in self.specs:
-                    self.node_of(name).resume(name)
+                    try:
+                        self.node_of(name).resume(name)
+                    except (RuntimeFailure, RuntimeTimeout) as exc:
+                        log.warning("module %s not resumed after a pause: %s", name, exc)
 
     # -- links ------------------------------------------------------------------------
     def connect(self, *links: FlatLink) -> None:
@@ -344,11 +349,14 @@ class Launcher:
                     self.health[name]["rtt"] = node.rtt
                     if node.silent_s() > LOSS_S and not self._stopping.is_set():
                         self._lose(name, node.silent_s())
+            for name, lost_at in list(self._failing_over.items()):
+                self._try_fail_over(name, lost_at)
             now = time.monotonic()
             if now >= next_rejoin:
                 next_rejoin = now + REJOIN_S
                 for name in list(self.remotes):
-                    if not self.health[name]["up"] and name not in self._rejoining:
+                    if not self.health[name]["up"] and name not in self._rejoining \
+                            and name not in self._failing_over:     # (its modules first)
                         self._rejoining.add(name)
                         threading.Thread(target=self._rejoin, args=(name,), daemon=True,
                                          name=f"pb3a-rejoin-{name}").start()
@@ -375,7 +383,8 @@ class Launcher:
     # -- a lost node ------------------------------------------------------------------
     def _lose(self, node: str, silent_s: float) -> None:
         """Declare ``node`` lost: every call to it fails at once from now on; its modules
-        fail over or are dropped, with their links; the env modules say so."""
+        fail over or are dropped, with their links (``_try_fail_over``); the env modules
+        say so."""
         lost_at = time.monotonic()
         self.remotes[node].lose()
         with self.changed:
@@ -386,7 +395,27 @@ class Launcher:
                              f"modules {', '.join(gone) or '(none)'} were there")
         log.error(self.failures[-1])
         self.events.record("node_lost", node, modules=gone, silent_s=silent_s)
-        with self.lock.held(f"fail over lost node {node}"):
+        self._failing_over[node] = lost_at
+        self._try_fail_over(node, lost_at)
+
+    def _try_fail_over(self, node: str, lost_at: float) -> None:
+        """Fail over lost ``node``'s modules, if the configuration lock comes within
+        ``FAIL_OVER_WAIT_S``; else the watchdog tries again at its next look (a change
+        holding the lock long, or failing, must not end the watchdog, which alone sees
+        nodes go and come back)."""
+        try:
+            self._fail_over_lost(node, lost_at)
+        except RuntimeTimeout:
+            return                          # the lock: next look
+        except Exception:
+            log.exception("failing over the modules of lost node %s failed", node)
+        self._failing_over.pop(node, None)
+
+    def _fail_over_lost(self, node: str, lost_at: float) -> None:
+        with self.lock.held(f"fail over lost node {node}", FAIL_OVER_WAIT_S):
+            # read under the lock: a move to the node that failed when it was lost put
+            # its modules back where they came from before it let the lock go
+            gone = sorted(name for name, spec in self.specs.items() if spec.node == node)
             touched = {key: link for key, link in self.links.items()
                        if link.src in gone or link.dst in gone}
             env = env_name(node)            # back with the node, if it rejoins

@@ -42,6 +42,7 @@ and wired again where both run, never across nodes on the way.
 from __future__ import annotations
 
 import contextlib
+import logging
 import time
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
@@ -55,6 +56,7 @@ if TYPE_CHECKING:
     from pb3a.launch.launcher import Launcher
     from pb3a.transport.snapshot import Snapshot
 
+log = logging.getLogger("pb3a")
 
 @dataclass(frozen=True)
 class MigrationPhases:
@@ -203,16 +205,33 @@ def _put_back(launcher: Launcher, homes: dict[str, FlatModule],
     """A failed move undone: what was captured restored where it ran before, the links
     wired again there (with ``rewire``: they were, or may have been, unwired), then the
     modules ``paused`` and never captured let go (after their links are back, so what
-    they write goes somewhere)."""
+    they write goes somewhere). A link that cannot be wired again (its other end on a
+    node lost meanwhile) is a failure of the system, logged; it keeps none of the rest
+    from being wired, started and let go."""
     for name in homes:
         launcher.specs[name] = homes[name]
     for name in snapshots:
         launcher.nodes[homes[name].node].add_module(homes[name], state={})
-    if rewire:
-        _land(launcher, snapshots, links, _Laps())
-    for name in paused:
-        if name not in snapshots:
-            _quietly(launcher.nodes[homes[name].node].resume, name)
+    try:
+        if rewire:
+            for name, snapshot in snapshots.items():
+                launcher.node_of(name).land(name, snapshot)
+            for link in links:
+                try:
+                    launcher.attach(link)
+                except (RuntimeFailure, RuntimeTimeout) as exc:
+                    launcher.failures.append(f"link {link.key} not wired again after a "
+                                             f"failed move: {exc}")
+                    log.error(launcher.failures[-1])
+            starting: dict[str, list[str]] = {}
+            for name in snapshots:
+                starting.setdefault(homes[name].node, []).append(name)
+            for node, names in starting.items():
+                launcher.nodes[node].start_modules(names)
+    finally:
+        for name in paused:
+            if name not in snapshots:
+                _quietly(launcher.nodes[homes[name].node].resume, name)
 
 
 def _land(launcher: Launcher, snapshots: dict[str, Snapshot], links: list[FlatLink],

@@ -625,14 +625,17 @@ def worker_main(conn: Any, key: str, checkpoint_s: float, level: int,
         os.sched_setaffinity(0, cpus)           # before any thread: they all inherit it
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _on_sigterm)
-    forward = _LogForwarder(level)
-    logging.getLogger().addHandler(forward)
-    logging.getLogger().setLevel(level)
-    bell = reduction.recv_handle(conn)          # the executor sends our doorbell first
-    (code or CodeSources()).install()
-    worker = Worker(conn, key, bell, checkpoint_s)
-    forward.send = worker.send
+    try:        # signalled as it starts (a SIGTERM to the whole group): nothing to stop
+        forward = _LogForwarder(level)
+        logging.getLogger().addHandler(forward)
+        logging.getLogger().setLevel(level)
+        bell = reduction.recv_handle(conn)      # the executor sends our doorbell first
+        (code or CodeSources()).install()
+        worker = Worker(conn, key, bell, checkpoint_s)
+    except _Terminated:
+        return                                  # exit 0: a stop, not a crash
     try:
+        forward.send = worker.send
         worker.serve()
     except _Terminated:
         worker.shutdown()
