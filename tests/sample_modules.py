@@ -761,3 +761,18 @@ class Join(Module):
             self.xs += 1
         else:
             self.ys += 1
+
+
+class Staller(Module):
+    """Counts up like ``Counter``; a step stalls for ``stall_s`` seconds once it is set."""
+
+    out = Output(int)
+    period = 0.01
+    count = 0
+    stall_s = 0.0
+
+    def step(self) -> None:
+        if self.stall_s:
+            time.sleep(self.stall_s)
+        self.count += 1
+        self.out.write(self.count)

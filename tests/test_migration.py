@@ -9,7 +9,16 @@ import signal
 
 import pytest
 from conftest import alive, assert_same_arrays, eventually
-from sample_modules import Collector, Counter, Hoard, Relay, RelayPair, Shepherd, Wanderer
+from sample_modules import (
+    Collector,
+    Counter,
+    Hoard,
+    Relay,
+    RelayPair,
+    Shepherd,
+    Staller,
+    Wanderer,
+)
 
 from pb3a import ConfigError, ModuleNotFound, RuntimeFailure, System
 from pb3a.node.executor import Executor
@@ -344,3 +353,31 @@ def test_an_agent_moves_a_module_without_waiting_and_sees_where_it_went() -> Non
     assert state["report"]["destination"] == "b" and state["where"] == "b"
     assert state["seen_moves"][0]["module"] == "relay"
     assert state["seen_moves"][0]["destination"] == "b"
+
+
+def test_a_move_whose_writer_will_not_pause_leaves_nothing_at_the_destination(
+        monkeypatch) -> None:
+    """The writers are paused after the destination is prepared, outside what undoes
+    a failed move: a writer busy past its pause's deadline left the prepared instance
+    and its worker at the destination (moving there and back later left it running)."""
+    from pb3a.launch.launcher import Launcher
+
+    monkeypatch.setattr(Launcher.paused.__wrapped__, "__defaults__", (1.0,))
+    system = System("stalled").node("a").node("b")
+    system.add("src", Staller, node="a")
+    system.add("relay", Relay, node="a")
+    system.add("sink", Collector, node="a")
+    system.link("src.out", "relay.x")
+    system.link("relay.out", "sink.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("relay")["relayed"] > 20, what="values")
+        b = run._launcher.nodes["b"]
+        run.set_state("src", stall_s=2.5)
+        with pytest.raises(RuntimeFailure, match="src"):
+            run.migrate("relay", to="b")
+        assert run.where("relay") == "a"
+        assert list(b.modules) == []
+        assert not [h for h in b.workers.handles.values() if "relay" in h.modules]
+        run.set_state("src", stall_s=0.0)
+        relayed = run.state("relay")["relayed"]
+        eventually(lambda: run.state("relay")["relayed"] > relayed + 20, what="it goes on")
