@@ -381,3 +381,36 @@ def test_a_move_whose_writer_will_not_pause_leaves_nothing_at_the_destination(
         run.set_state("src", stall_s=0.0)
         relayed = run.state("relay")["relayed"]
         eventually(lambda: run.state("relay")["relayed"] > relayed + 20, what="it goes on")
+
+
+def test_a_move_whose_module_s_worker_dies_on_the_way_stops_before_anything_is_unwired(
+        ) -> None:
+    """The move went on with a module it could not pause: it unwired its links, could
+    not retire it, and put it back with its writer's side never wired again; once the
+    worker restarted, nothing reached it, and nothing said so."""
+    system = System("died-on-the-way").node("a").node("b")
+    system.add("src", Counter, node="a", period=0.005)
+    system.add("relay", Relay, node="a", restart="fresh")
+    system.add("sink", Collector, node="a")
+    system.link("src.out", "relay.x")
+    system.link("relay.out", "sink.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("relay")["relayed"] > 20, what="values")
+        a, b = run._launcher.nodes["a"], run._launcher.nodes["b"]
+        add = b.add_module
+
+        def add_as_the_worker_dies(spec, **options) -> None:
+            add(spec, **options)
+            handle = a.workers[a.modules["relay"].worker]
+            os.kill(handle.pid, signal.SIGKILL)
+            eventually(lambda: not handle.alive, what="the worker seen dead")
+        b.add_module = add_as_the_worker_dies
+        with pytest.raises(RuntimeFailure, match=r"its worker is not running.*nothing moved"):
+            run.migrate("relay", to="b")
+        b.add_module = add
+        assert run.where("relay") == "a" and list(b.modules) == []
+        eventually(lambda: run.stats().modules["relay"].status == "running", timeout=15,
+                   what="relay restarted")
+        received = run.state("sink")["received"]
+        eventually(lambda: run.state("sink")["received"] > received + 20, timeout=10,
+                   what="values through the restarted relay")

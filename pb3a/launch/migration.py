@@ -129,8 +129,12 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
                 unwiring = unwired = False
                 try:
                     for name in moving:
-                        if launcher.nodes[homes[name].node].pause(name, 5.0):
-                            paused.append(name)
+                        if not launcher.nodes[homes[name].node].pause(name, 5.0):
+                            raise RuntimeFailure(    # (before anything is unwired)
+                                f"migration of {name} to node {node}: its worker is not "
+                                "running (it died, and comes back by its restart policy); "
+                                "nothing moved")
+                        paused.append(name)
                     unwiring = True
                     launcher.detach(*links)
                     unwired = True
