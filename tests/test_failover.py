@@ -151,6 +151,17 @@ def test_a_fenced_executors_word_is_refused_and_placement_follows_admission() ->
     assert not any("module_failed" in failure for failure in failures)
 
 
+def _relayed(name: str, b: Daemon, relay_on: str, restart: str) -> System:
+    """src -> relay -> sink, src and sink on a, b behind its node controller."""
+    system = System(name).node("a").node("b", address=b.address)
+    system.add("src", Counter, node="a", period=0.005)
+    system.add("relay", Relay, node=relay_on, restart=restart)
+    system.add("sink", Collector, node="a")
+    system.link("src.out", "relay.x")
+    system.link("relay.out", "sink.x")
+    return system
+
+
 def test_a_node_lost_while_a_change_holds_the_lock_long_still_fails_over(daemons,
                                                                         monkeypatch) -> None:
     """The failover's wait for the configuration lock ran out (60 s by default) inside
@@ -158,13 +169,7 @@ def test_a_node_lost_while_a_change_holds_the_lock_long_still_fails_over(daemons
     back in again."""
     b = daemons["b"]
     monkeypatch.setattr("pb3a.launch.launcher.FAIL_OVER_WAIT_S", 0.2)
-    system = System("patient").node("a").node("b", address=b.address)
-    system.add("src", Counter, node="a", period=0.005)
-    system.add("relay", Relay, node="b", restart="fresh")
-    system.add("sink", Collector, node="a")
-    system.link("src.out", "relay.x")
-    system.link("relay.out", "sink.x")
-    with system.launch() as run:
+    with _relayed("patient", b, relay_on="b", restart="fresh").launch() as run:
         launcher = run._launcher
         eventually(lambda: run.state("sink")["received"] > 20, timeout=30, what="values")
         with launcher.lock.held("a long change"):
@@ -188,13 +193,7 @@ def test_a_module_put_back_by_a_move_that_its_destination_s_loss_failed_is_left_
     while the move still had the module there: once the move had put it back where it
     ran, the failover dropped it (restart never; its worker ran on) or restarted it."""
     b = daemons["b"]
-    system = System("put-back").node("a").node("b", address=b.address)
-    system.add("src", Counter, node="a", period=0.005)
-    system.add("relay", Relay, node="a", restart="never")
-    system.add("sink", Collector, node="a")
-    system.link("src.out", "relay.x")
-    system.link("relay.out", "sink.x")
-    with system.launch() as run:
+    with _relayed("put-back", b, relay_on="a", restart="never").launch() as run:
         launcher = run._launcher
         eventually(lambda: run.state("relay")["relayed"] > 20, timeout=30, what="values")
         node_b, land = launcher.nodes["b"], launcher.nodes["b"].land

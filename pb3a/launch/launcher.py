@@ -220,6 +220,17 @@ class Launcher:
                         log.warning("module %s not resumed after a pause: %s", name, exc)
 
     # -- links ------------------------------------------------------------------------
+    def reattach(self, links: list[FlatLink], when: str) -> None:
+        """Wire each of ``links`` again on its own: one that cannot be (an end on a node
+        lost meanwhile) is a failure of the system, logged, and keeps none of the others
+        from being wired."""
+        for link in links:
+            try:
+                self.attach(link)
+            except (RuntimeFailure, RuntimeTimeout) as exc:
+                self.failures.append(f"link {link.key} not wired again {when}: {exc}")
+                log.error(self.failures[-1])
+
     def connect(self, *links: FlatLink) -> None:
         """Add and wire links (those inside one node in one request to it)."""
         for link in links:
@@ -434,13 +445,8 @@ class Launcher:
             for key, link in touched.items():
                 if link.src not in self.specs or link.dst not in self.specs:
                     del self.links[key]
-                    continue
-                try:
-                    self.attach(link)
-                except (RuntimeFailure, RuntimeTimeout) as exc:
-                    self.failures.append(f"link {key} not wired again after the loss of node "
-                                         f"{node}: {exc}")
-                    log.error(self.failures[-1])
+            self.reattach([link for key, link in touched.items() if key in self.links],
+                          f"after the loss of node {node}")
             rewired = [self.links[key] for key in written if key in self.links]
             for key, count in self._written(rewired).items():
                 self.lost_values[key] += max(0, count - written[key])

@@ -42,7 +42,6 @@ and wired again where both run, never across nodes on the way.
 from __future__ import annotations
 
 import contextlib
-import logging
 import time
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
@@ -56,7 +55,6 @@ if TYPE_CHECKING:
     from pb3a.launch.launcher import Launcher
     from pb3a.transport.snapshot import Snapshot
 
-log = logging.getLogger("pb3a")
 
 @dataclass(frozen=True)
 class MigrationPhases:
@@ -230,13 +228,7 @@ def _put_back(launcher: Launcher, homes: dict[str, FlatModule],
         if rewire:
             for name, snapshot in snapshots.items():
                 launcher.node_of(name).land(name, snapshot)
-            for link in links:
-                try:
-                    launcher.attach(link)
-                except (RuntimeFailure, RuntimeTimeout) as exc:
-                    launcher.failures.append(f"link {link.key} not wired again after a "
-                                             f"failed move: {exc}")
-                    log.error(launcher.failures[-1])
+            launcher.reattach(links, "after a failed move")
             starting: dict[str, list[str]] = {}
             for name in snapshots:
                 starting.setdefault(homes[name].node, []).append(name)
