@@ -414,57 +414,61 @@ class Launcher:
         ``FAIL_OVER_WAIT_S``; else the watchdog tries again at its next look (a change
         holding the lock long, or failing, must not end the watchdog, which alone sees
         nodes go and come back)."""
-        try:
-            self._fail_over_lost(node, lost_at)
-        except RuntimeTimeout:
-            return                          # the lock: next look
-        except Exception:
-            log.exception("failing over the modules of lost node %s failed", node)
-        self._failing_over.pop(node, None)
+        with contextlib.ExitStack() as held:
+            try:
+                held.enter_context(self.lock.held(f"fail over lost node {node}",
+                                                  FAIL_OVER_WAIT_S))
+            except RuntimeTimeout:
+                return                      # the lock: the next look (nothing done yet)
+            try:
+                self._fail_over_lost(node, lost_at)
+            except Exception:               # once begun, never again: logged
+                log.exception("failing over the modules of lost node %s failed", node)
+            self._failing_over.pop(node, None)
 
     def _fail_over_lost(self, node: str, lost_at: float) -> None:
-        with self.lock.held(f"fail over lost node {node}", FAIL_OVER_WAIT_S):
-            # read under the lock: a move to the node that failed when it was lost put
-            # its modules back where they came from before it let the lock go
-            gone = sorted(name for name, spec in self.specs.items() if spec.node == node)
-            touched = {key: link for key, link in self.links.items()
-                       if link.src in gone or link.dst in gone}
-            env = env_name(node)            # back with the node, if it rejoins
-            if env in self.specs:
-                self._env_kept[node] = (self.specs[env], [
-                    link for link in touched.values() if link.src == env])
-            # what a surviving writer writes while its link is unwired is lost: counted
-            written = self._written([link for link in touched.values() if link.src not in gone])
-            for link in touched.values():
-                with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
-                    self._drop_half(link, gone)
-            moved = self._fail_over(node, gone)
-            for name in gone:
-                if name not in moved:
-                    del self.specs[name]
-            for key, link in touched.items():
-                if link.src not in self.specs or link.dst not in self.specs:
-                    del self.links[key]
-            self.reattach([link for key, link in touched.items() if key in self.links],
-                          f"after the loss of node {node}")
-            rewired = [self.links[key] for key in written if key in self.links]
-            for key, count in self._written(rewired).items():
-                self.lost_values[key] += max(0, count - written[key])
-            for target in dict.fromkeys(moved.values()):
-                started = [name for name, to in moved.items() if to == target]
-                try:
-                    self.nodes[target].start_modules(started)
-                except (RuntimeFailure, RuntimeTimeout) as exc:
-                    self.failures.append(f"failover of {', '.join(started)} to node "
-                                         f"{target} failed: {exc}")
-                    log.error(self.failures[-1])
-            for name, target in moved.items():
-                self.events.record("module_failed_over", name, source=node,
-                                   destination=target, policy=self.specs[name].restart,
-                                   from_checkpoint=self.specs[name].restart == "last-state"
-                                   and name in self.checkpoints,
-                                   restart_s=time.monotonic() - lost_at)
-            self.update_env()
+        """``_try_fail_over``'s work, the configuration lock held."""
+        # read under the lock: a move to the node that failed when it was lost put
+        # its modules back where they came from before it let the lock go
+        gone = sorted(name for name, spec in self.specs.items() if spec.node == node)
+        touched = {key: link for key, link in self.links.items()
+                   if link.src in gone or link.dst in gone}
+        env = env_name(node)            # back with the node, if it rejoins
+        if env in self.specs:
+            self._env_kept[node] = (self.specs[env], [
+                link for link in touched.values() if link.src == env])
+        # what a surviving writer writes while its link is unwired is lost: counted
+        written = self._written([link for link in touched.values() if link.src not in gone])
+        for link in touched.values():
+            with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+                self._drop_half(link, gone)
+        moved = self._fail_over(node, gone)
+        for name in gone:
+            if name not in moved:
+                del self.specs[name]
+        for key, link in touched.items():
+            if link.src not in self.specs or link.dst not in self.specs:
+                del self.links[key]
+        self.reattach([link for key, link in touched.items() if key in self.links],
+                      f"after the loss of node {node}")
+        rewired = [self.links[key] for key in written if key in self.links]
+        for key, count in self._written(rewired).items():
+            self.lost_values[key] += max(0, count - written[key])
+        for target in dict.fromkeys(moved.values()):
+            started = [name for name, to in moved.items() if to == target]
+            try:
+                self.nodes[target].start_modules(started)
+            except (RuntimeFailure, RuntimeTimeout) as exc:
+                self.failures.append(f"failover of {', '.join(started)} to node "
+                                     f"{target} failed: {exc}")
+                log.error(self.failures[-1])
+        for name, target in moved.items():
+            self.events.record("module_failed_over", name, source=node,
+                               destination=target, policy=self.specs[name].restart,
+                               from_checkpoint=self.specs[name].restart == "last-state"
+                               and name in self.checkpoints,
+                               restart_s=time.monotonic() - lost_at)
+        self.update_env()
 
     def _fail_over(self, lost: str, gone: list[str]) -> dict[str, str]:
         """Instantiate each module of ``gone`` whose restart policy allows it on a
