@@ -117,63 +117,60 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
         preparing = time.perf_counter()
         segments = _prepare(launcher, homes, links, node, afterwards)
         prepare_s = time.perf_counter() - preparing
-        pausing = True                      # (until every writer is paused)
-        try:
-            with launcher.paused(writers):
-                pausing = False
-                # 2. and 3. pause the modules, unwire them; 4. the fence: retired at the source
-                laps, snapshots = _Laps(), {}
-                paused: list[str] = []                  # what a failure here must undo
-                unwiring = unwired = False
-                try:
-                    for name in moving:
-                        if not launcher.nodes[homes[name].node].pause(name, 5.0):
-                            raise RuntimeFailure(    # (before anything is unwired)
-                                f"migration of {name} to node {node}: its worker is not "
-                                "running (it died, and comes back by its restart policy); "
-                                "nothing moved")
-                        paused.append(name)
-                    unwiring = True
-                    launcher.detach(*links)
-                    unwired = True
-                    laps.mark("unwire")
-                    for name in moving:
-                        leaving = launcher.nodes[homes[name].node]
-                        carry = leaving.memory_domain() != arriving.memory_domain()
-                        snapshots[name] = leaving.retire(name, segments[name], carry)
-                    laps.mark("retire")
-                except BaseException:
-                    for name in moving:
-                        _quietly(arriving.remove_module, name)
-                    if unwiring and not unwired:         # (a part may be wired still)
-                        for link in links:
-                            _quietly(launcher.detach, link)
-                    _put_back(launcher, homes, snapshots, links, paused, rewire=unwiring)
-                    raise
-                for name in moving:
-                    launcher.specs[name] = replace(homes[name], node=node)
-                # 5. restored, re-wired, started (or, failing that, the same back home)
-                try:
-                    restore_s = _land(launcher, snapshots, links, laps, state)
-                except (RuntimeFailure, RuntimeTimeout) as exc:
-                    for link in links:
-                        _quietly(launcher.detach, link)
-                    for name in moving:
-                        _quietly(arriving.remove_module, name)
-                    _put_back(launcher, homes, snapshots, links, moving, rewire=True)
-                    sources = ", ".join(sorted({home.node for home in homes.values()}))
-                    what = (f"{moving[0]} to node {node} failed ({exc}); it runs on node "
-                            f"{sources} again, with its state" if len(moving) == 1 else
-                            f"{', '.join(moving)} to node {node} failed ({exc}); they run on "
-                            f"node {sources} again, with their state")
-                    raise RuntimeFailure(f"migration of {what}") from exc
-        except BaseException:
-            if pausing:     # a writer that would not pause: nothing moved, the prepared
-                for name in moving:     # instances and their workers go (they stayed)
-                    _quietly(arriving.remove_module, name)
-                _quietly(arriving.release_workers,
-                         [replace(home, node=node) for home in homes.values()])
+        try:            # (let go with the segments, afterwards, as the block ends)
+            afterwards.enter_context(launcher.paused(writers))
+        except BaseException:   # a writer that would not pause: nothing moved, and the
+            for name in moving:     # prepared instances and their workers go
+                _quietly(arriving.remove_module, name)
+            _quietly(arriving.release_workers,
+                     [replace(home, node=node) for home in homes.values()])
             raise
+        # 2. and 3. pause the modules, unwire them; 4. the fence: retired at the source
+        laps, snapshots = _Laps(), {}
+        paused: list[str] = []                  # what a failure here must undo
+        unwiring = unwired = False
+        try:
+            for name in moving:
+                if not launcher.nodes[homes[name].node].pause(name, 5.0):
+                    raise RuntimeFailure(    # (before anything is unwired)
+                        f"migration of {name} to node {node}: its worker is not "
+                        "running (it died, and comes back by its restart policy); "
+                        "nothing moved")
+                paused.append(name)
+            unwiring = True
+            launcher.detach(*links)
+            unwired = True
+            laps.mark("unwire")
+            for name in moving:
+                leaving = launcher.nodes[homes[name].node]
+                carry = leaving.memory_domain() != arriving.memory_domain()
+                snapshots[name] = leaving.retire(name, segments[name], carry)
+            laps.mark("retire")
+        except BaseException:
+            for name in moving:
+                _quietly(arriving.remove_module, name)
+            if unwiring and not unwired:         # (a part may be wired still)
+                for link in links:
+                    _quietly(launcher.detach, link)
+            _put_back(launcher, homes, snapshots, links, paused, rewire=unwiring)
+            raise
+        for name in moving:
+            launcher.specs[name] = replace(homes[name], node=node)
+        # 5. restored, re-wired, started (or, failing that, the same back home)
+        try:
+            restore_s = _land(launcher, snapshots, links, laps, state)
+        except (RuntimeFailure, RuntimeTimeout) as exc:
+            for link in links:
+                _quietly(launcher.detach, link)
+            for name in moving:
+                _quietly(arriving.remove_module, name)
+            _put_back(launcher, homes, snapshots, links, moving, rewire=True)
+            sources = ", ".join(sorted({home.node for home in homes.values()}))
+            what = (f"{moving[0]} to node {node} failed ({exc}); it runs on node "
+                    f"{sources} again, with its state" if len(moving) == 1 else
+                    f"{', '.join(moving)} to node {node} failed ({exc}); they run on "
+                    f"node {sources} again, with their state")
+            raise RuntimeFailure(f"migration of {what}") from exc
     lap = laps.seconds
     capture_s = sum(snapshot.capture_s for snapshot in snapshots.values())
     phases = MigrationPhases(
