@@ -39,7 +39,7 @@ import struct
 import sys
 import threading
 import time
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import cloudpickle
 import zmq
@@ -54,6 +54,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("pb3a.control")
 
+T = TypeVar("T")
 REQUEST, REPLY, INSTANCE = 10, 11, 12
 _NOBODY = bytes(16)                   # the instance a client asks before it knows
 _SENDS = 4                            # times a request is sent, to instances it learns
@@ -78,6 +79,17 @@ def _socket(context: zmq.Context, kind: int) -> zmq.Socket:
     return sock
 
 
+def _attached(kind: int, attach: Callable[[zmq.Socket], T]) -> tuple[zmq.Socket, T]:
+    """A new socket and what ``attach`` (its bind or connect) gives; if that fails (a
+    port in use, an address ZeroMQ cannot use), the socket is closed: none left behind."""
+    sock = _socket(zmq.Context.instance(), kind)
+    try:
+        return sock, attach(sock)
+    except BaseException:
+        sock.close(0)
+        raise
+
+
 class ControlServer:
     """Serves ``handler(op, args) -> result`` on a ROUTER socket bound to ``host``."""
 
@@ -96,12 +108,8 @@ class ControlServer:
         self._decode_lock = decode_lock or contextlib.nullcontext()
         # answered on the socket thread, never queued: they must be quick and never block
         self._instant = {"ping": lambda args: "pong", **(instant or {})}
-        self._router = _socket(zmq.Context.instance(), zmq.ROUTER)
-        try:
-            self.address = bind_advertised(self._router, host, port)
-        except BaseException:               # (a port in use): leave no socket behind
-            self._router.close(0)
-            raise
+        self._router, self.address = _attached(
+            zmq.ROUTER, lambda sock: bind_advertised(sock, host, port))    # (a port in use)
         self._loop = SocketLoop(f"{name}-io", self._router.context)
         self._sealer = Sealer(key, epoch)
         self._opener = Opener(key, epoch=epoch, max_bytes=MAX_MESSAGE)
@@ -229,12 +237,7 @@ class ControlClient:
 
     def __init__(self, key: ClusterKey, address: str, *, epoch: int = 0) -> None:
         self.address = address
-        self._dealer = _socket(zmq.Context.instance(), zmq.DEALER)
-        try:
-            self._dealer.connect(address)
-        except BaseException:               # (an address ZeroMQ cannot use): no socket left
-            self._dealer.close(0)
-            raise
+        self._dealer, _ = _attached(zmq.DEALER, lambda sock: sock.connect(address))
         self._loop = SocketLoop("pb3a-control-client", self._dealer.context)
         self._sealer = Sealer(key, epoch)
         # Replies count only if they answer a request this client is waiting for; the
