@@ -383,8 +383,8 @@ class Payloads:
         ``len(data) + PAYLOAD_TAG`` bytes (ciphertext, then the tag)."""
         if self._own is None:
             raise ValueError("this Payloads has no owner id: it can only open")
-        view = memoryview(data).cast("B")      # (bytes too: a long text, a pickle)
-        frame = np.empty(view.nbytes + _TAG, np.uint8)
+        view = _flat(data)                     # (bytes too: a long text, a pickle)
+        frame = np.empty(len(view) + _TAG, np.uint8)
         counter = next(self._counter)
         self._own.encrypt_into(_nonce(counter), view, bound, memoryview(frame))
         return counter, frame
