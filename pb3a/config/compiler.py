@@ -134,9 +134,9 @@ class _Planner:
             self.report(origin, [("module_servers must be a list of addresses such as "
                                  f"['tcp://127.0.0.1:7300'], got {servers!r}")])
             servers = []
-        for server in servers:
-            self.report(origin, checks.address(server, "each of module_servers"))
-        servers = [server for server in servers if not checks.address(server, "server")]
+        wrong = {server: checks.address(server, "each of module_servers") for server in servers}
+        self.report(origin, [problem for problems in wrong.values() for problem in problems])
+        servers = [server for server in servers if not wrong[server]]
         # a file's own directory, where its modules may be: not that of a source that
         # only names a description (``System.from_dict``'s), which was the current one
         here = (str(Path(spec.source).resolve().parent),) if spec.source is not None \
