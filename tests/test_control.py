@@ -22,6 +22,7 @@ from pb3a import RuntimeFailure, RuntimeTimeout
 from pb3a.transport.addresses import bind_advertised, close_bound
 from pb3a.transport.auth import ClusterKey, Sealer
 from pb3a.transport.control import REQUEST, ControlClient, ControlServer
+from pb3a.transport.loop import SocketLoop
 
 KEY = ClusterKey.load({"PB3A_KEY": "c" * 40})
 release = threading.Event()
@@ -328,3 +329,27 @@ def test_a_server_on_a_port_in_use_is_refused_and_leaves_no_socket_behind() -> N
         assert [w for w in caught if issubclass(w.category, ResourceWarning)] == []
     finally:
         server.close()
+
+
+def test_a_call_submitted_to_a_socket_loop_before_it_closes_still_runs() -> None:
+    """A server's answer is such a call: the answer to a request that closes the server
+    (a node executor's "shutdown") was dropped when the close came before the loop's
+    next turn, and its caller waited out its deadline for a request that had been done."""
+    context = zmq.Context.instance()
+    reader, writer = context.socket(zmq.PAIR), context.socket(zmq.PAIR)
+    reader.bind("inproc://loop-closing")
+    writer.connect("inproc://loop-closing")
+    loop, ran = SocketLoop("pb3a-test-loop", context), threading.Event()
+
+    def on_message(sock: zmq.Socket) -> None:     # on the loop's thread, after its calls
+        sock.recv()
+        loop.submit(ran.set)                      # the answer to send...
+        loop.close()                              # ...and the server closing at once
+    try:
+        loop.register(reader, on_message)
+        writer.send(b"bye")
+        assert ran.wait(5.0), "the call submitted before the close never ran"
+    finally:
+        loop.close()
+        reader.close(0)
+        writer.close(0)

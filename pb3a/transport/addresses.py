@@ -34,13 +34,14 @@ def bind_advertised(sock: zmq.Socket, host: str, port: int = 0) -> str:
     return f"tcp://{host}:{bound.rpartition(':')[2]}"
 
 
-def close_bound(sock: zmq.Socket, timeout: float = 2.0) -> None:
+def close_bound(sock: zmq.Socket, timeout: float = 2.0, linger_ms: int = 0) -> None:
     """Close a bound ``sock`` and wait (at most ``timeout`` seconds) until its ports are
     free: ZeroMQ closes listeners on its own thread, after ``close`` has returned, so a
-    server started at once on the same port could otherwise find it still in use."""
+    server started at once on the same port could otherwise find it still in use.
+    Messages sent and not yet delivered are given ``linger_ms`` to go."""
     monitor = sock.get_monitor_socket(zmq.EVENT_MONITOR_STOPPED)   # sent once all is shut
     try:
-        sock.close(0)
+        sock.close(linger_ms)
         deadline = time.monotonic() + timeout
         while (left := deadline - time.monotonic()) > 0 and monitor.poll(left * 1000):
             if recv_monitor_message(monitor)["event"] == zmq.EVENT_MONITOR_STOPPED:

@@ -70,6 +70,7 @@ _REFUSAL_HINTS = {
 }
 MAX_MESSAGE = 64 * 1024 * 1024          # control messages carry states and code, not streams
 DEFAULT_TIMEOUT = 10.0
+ANSWER_LINGER_MS = 500                   # how long a closing server gives its last answers
 
 
 def _socket(context: zmq.Context, kind: int) -> zmq.Socket:
@@ -218,8 +219,9 @@ class ControlServer:
         """Stop serving; on return the port is free, so a server may bind it again."""
         self._work.put(None)
         self._worker.join(5.0)
-        self._loop.close()
-        close_bound(self._router)
+        self._loop.close()                  # (after it sends the answers it was given)
+        # an answer just sent, such as the one to "shutdown", still reaches its caller
+        close_bound(self._router, linger_ms=ANSWER_LINGER_MS)
 
 
 def _undecodable(exc: Exception, what: str, reader: str) -> str:

@@ -145,6 +145,8 @@ class SocketLoop:
             for sock, handler in list(self._handlers.items()):
                 if sock in ready:
                     self._guarded(lambda handler=handler, sock=sock: handler(sock))
+        while self._calls:          # submitted before the close: an answer, say
+            self._guarded(self._calls.popleft())
 
     def _guarded(self, fn: Callable[[], None]) -> None:
         try:
