@@ -292,16 +292,19 @@ class Busy(Module):
 
 
 class Journal(Module):
-    """Appends its name to ``path`` in ``setup`` and ``teardown`` (start and stop order)."""
+    """Appends its name to ``path`` in ``setup`` and ``teardown`` (start and stop order);
+    its teardown takes ``teardown_s`` seconds first."""
 
     period = 0.05
     path = ""
     label = ""
+    teardown_s = 0.0
 
     def setup(self) -> None:
         self._note("start")
 
     def teardown(self) -> None:
+        time.sleep(self.teardown_s)
         self._note("stop")
 
     def _note(self, what: str) -> None:
@@ -776,3 +779,29 @@ class Staller(Module):
             time.sleep(self.stall_s)
         self.count += 1
         self.out.write(self.count)
+
+
+class StepStamps(Module):
+    """Appends the time (``time.monotonic``, one clock for every process) of each step
+    to ``path``: when a module last stepped, read after its process is gone."""
+
+    period = 0.01
+    path = ""
+
+    def step(self) -> None:
+        with open(self.path, "a") as stamps:
+            stamps.write(f"{time.monotonic()}\n")
+
+
+class BlocksInInit(Module):
+    """Its construction, which runs on its worker's control thread, writes the worker's
+    pid to ``pid_file`` (set on a subclass) and then blocks for ``BLOCK_S``."""
+
+    BLOCK_S = 30.0
+    pid_file = ""
+
+    def __init__(self) -> None:
+        super().__init__()
+        with open(self.pid_file, "w") as pid:
+            pid.write(str(os.getpid()))
+        time.sleep(self.BLOCK_S)

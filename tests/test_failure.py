@@ -32,6 +32,7 @@ from sample_modules import (
     Scale,
     SlowTeardown,
     Steady,
+    StepStamps,
 )
 
 from pb3a import Input, InputPort, Module, Output, RuntimeFailure, System
@@ -266,6 +267,28 @@ def test_a_worker_stopped_by_sigterm_is_stopped_not_restarted() -> None:
         before = run.state("other")["count"]
         eventually(lambda: run.state("other")["count"] > before, what="the other goes on")
     assert figures.restarts == 0
+
+
+def test_a_sigterm_stops_every_module_of_a_worker_at_once_then_tears_them_down(
+        tmp_path: Path) -> None:
+    """A fenced node signals its workers: one module's slow teardown must not leave
+    the others of its worker stepping (they would run beside their failed-over copies)."""
+    stamps, journal = tmp_path / "steps", tmp_path / "journal"
+    system = System("halted")
+    system.add("stepper", StepStamps, group="g", state={"path": str(stamps)})
+    system.add("slow", Journal, group="g",
+               state={"path": str(journal), "label": "slow", "teardown_s": 1.0})
+    with system.launch() as run:
+        pid = eventually(lambda: run.stats().modules["stepper"].pid, what="a pid")
+        eventually(stamps.exists, what="steps")
+        signalled = time.monotonic()
+        os.kill(pid, signal.SIGTERM)
+        eventually(lambda: not alive(pid), timeout=10, what="the worker gone")
+        gone = time.monotonic()
+    last_step = max(float(line) for line in stamps.read_text().split())
+    assert gone - signalled >= 1.0                     # the slow teardown ran, whole
+    assert journal.read_text().split("\n")[-2] == "stop slow"
+    assert last_step - signalled < 0.25, "the stepper stepped during the other's teardown"
 
 
 def test_modules_start_in_order_and_stop_in_reverse_order(tmp_path: Path) -> None:

@@ -3,20 +3,26 @@ graceful and forced stops, the command line, and frames it must refuse."""
 
 from __future__ import annotations
 
+import contextlib
+import os
+import signal
 import socket
+import threading
 import time
+from pathlib import Path
 
 import pytest
 import zmq
 from conftest import (
     HeldKey,
+    alive,
     daemon_banner_then_clean_exit,
     daemon_signalled_as_it_starts,
     eventually,
 )
-from sample_modules import Counter
+from sample_modules import BlocksInInit, Counter, StepStamps
 
-from pb3a import RuntimeFailure
+from pb3a import RuntimeFailure, RuntimeTimeout
 from pb3a.config.plan import FlatModule
 from pb3a.daemons.node_controller import Limits, NodeController, _context
 from pb3a.daemons.node_share import executor_main
@@ -184,3 +190,88 @@ def test_an_executor_whose_lease_is_not_renewed_fences_itself(node) -> None:
         assert time.monotonic() - started < 3.0
     finally:
         executor.close()
+
+
+def _blocker(pid_file: Path) -> FlatModule:
+    """A module whose construction blocks its worker's control thread (30 s)."""
+    cls = type("Blocker", (BlocksInInit,), {"pid_file": str(pid_file)})
+    return FlatModule("blocker", cls, "n1", 0.1, {}, "never")
+
+
+def _executor(client: ControlClient, config: str, lease_s: float) -> ControlClient:
+    address = client.call("start_executor", timeout=60, config=config)
+    executor = ControlClient(KEY, address)
+    executor.call("bind", launcher="tcp://127.0.0.1:9", checkpoint_s=1.0, log_level=30,
+                  code=CodeSources(), lease_s=lease_s)
+    return executor
+
+
+def _add_in_background(executor: ControlClient, spec: FlatModule) -> threading.Thread:
+    """``add_module`` (which holds the executor's lock until it is answered), in a thread;
+    it is expected to fail when the worker or the executor goes."""
+    def add() -> None:
+        with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+            executor.call("executor", 40.0, method="add_module", args=(spec,), kwargs={})
+    thread = threading.Thread(target=add, daemon=True)
+    thread.start()
+    return thread
+
+
+def test_a_worker_signalled_in_a_modules_construction_stops(node, tmp_path: Path,
+                                                           capfd) -> None:
+    """A module's ``__init__`` runs on its worker's control thread: a SIGTERM there once
+    failed the request and the worker served on. Its exit is a stop, not a crash (two
+    threads reading its exit status at once made one read 255)."""
+    _, client = node
+    executor = _executor(client, "signalled", lease_s=60.0)
+    pid_file = tmp_path / "pid"
+    try:
+        adding = _add_in_background(executor, _blocker(pid_file))
+        pid = int(eventually(lambda: pid_file.exists() and pid_file.read_text(),
+                             what="the module being made"))
+        os.kill(pid, signal.SIGTERM)
+        eventually(lambda: not alive(pid), timeout=5, what="the signalled worker gone")
+        adding.join(10)
+        assert not adding.is_alive()
+    finally:
+        executor.call("shutdown")
+        executor.close()
+    assert "died with exit code" not in capfd.readouterr().err
+
+
+def test_a_fenced_executor_stops_its_modules_at_once_whatever_holds_its_lock(
+        node, tmp_path: Path) -> None:
+    """The lease runs out while a request holds the executor's lock (a module being made):
+    every module stops stepping within a moment of the fence, not when the request ends."""
+    controller, client = node
+    lease_s = 1.0
+    executor = _executor(client, "fenced-busy", lease_s)
+    stamps, pid_file = tmp_path / "steps", tmp_path / "pid"
+    renewing, renewed = threading.Event(), [time.monotonic()]
+
+    def renew() -> None:
+        while renewing.wait(0.1):
+            if executor.ping(0.5, op="lease") is not None:
+                renewed.append(time.monotonic())
+    renewing.set()
+    renewer = threading.Thread(target=renew, daemon=True)
+    renewer.start()
+    try:
+        executor.call("executor", method="add_module",
+                      args=(FlatModule("stepper", StepStamps, "n1", 0.01,
+                                       {"path": str(stamps)}, "never"),), kwargs={})
+        executor.call("start", names=["stepper"])
+        eventually(stamps.exists, what="steps")
+        adding = _add_in_background(executor, _blocker(pid_file))
+        eventually(pid_file.exists, what="the lock held by a module being made")
+        renewing.clear()
+        renewer.join(2)
+        fenced_by = renewed[-1] + lease_s
+        eventually(lambda: controller.executors() == {}, timeout=30,
+                   what="the fenced executor gone")
+        adding.join(10)
+    finally:
+        renewing.clear()
+        executor.close()
+    last_step = max(float(line) for line in stamps.read_text().split())
+    assert last_step - fenced_by < 0.6, "a module stepped on long after its node was fenced"

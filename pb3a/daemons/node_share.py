@@ -10,7 +10,8 @@ node so that it can restart the modules elsewhere when the node is lost.
 
 The launcher holds the executor on a lease, renewed by its heartbeats. When the
 lease runs out (the launcher stopped, or a cable was cut) the executor fences
-itself: it stops its modules in reverse start order and exits, before the launcher
+itself: every module stops stepping at once (its workers are signalled, whatever
+request holds the executor's lock), each is torn down, and it exits, before the launcher
 can have declared the node lost and restarted those modules on another node (the
 lease is shorter than the launcher's loss timeout), so two copies of a module never
 run at once. The process also exits when told to (``shutdown``), when its controller
@@ -185,6 +186,7 @@ class NodeShare:
             if silent > lease_s:
                 log.error("node %s: no heartbeat from the launcher for %.1f s (its lease is "
                           "%.1f s): fenced, its modules stop", self.node, silent, lease_s)
+                self.executor.fence()      # at once: shutting down may wait for a request
                 self.stopped.set()
 
     def _measure_peers(self) -> None:

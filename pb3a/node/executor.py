@@ -22,7 +22,7 @@ import time
 from concurrent.futures import Future
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cloudpickle
 
@@ -43,10 +43,14 @@ from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import memory_domain, reap_orphans, segment_name, unlink_name
 from pb3a.transport.snapshot import Snapshot, make_room
 
+if TYPE_CHECKING:
+    from collections.abc import Iterator
+
 log = logging.getLogger("pb3a.executor")
 _module_log = logging.getLogger("pb3a.module")
 
 REPORT_TIMEOUT = 5.0
+LOCK_TIMEOUT = 60.0      # longest a restart or a shutdown waits for the node's lock
 
 
 @dataclass
@@ -656,10 +660,11 @@ class Executor:
             self.failures.append(f"restart of worker {handle.key} failed: {exc}")
             log.error(self.failures[-1])
 
-    def _held(self, what: str) -> AbstractContextManager[Any]:
-        """``self.lock``, held for ``what`` (which the launcher's lock names to a waiter)."""
+    def _held(self, what: str, timeout: float = LOCK_TIMEOUT) -> AbstractContextManager[Any]:
+        """``self.lock``, held for ``what`` (which the launcher's lock names to a waiter);
+        ``RuntimeTimeout`` if it is not free within ``timeout``."""
         held = getattr(self.lock, "held", None)
-        return self.lock if held is None else held(what)
+        return _within(self.lock, what, timeout) if held is None else held(what, timeout)
 
     def _revive(self, handle: WorkerHandle, code: int | None) -> dict[str, _Revival]:
         """Apply the ``restart`` policy of every module that ran in the dead worker, up to
@@ -783,10 +788,23 @@ class Executor:
             self.on_event(kind, name, **detail)
 
     # -- shutdown ------------------------------------------------------------
+    def fence(self) -> None:
+        """Stop every module's stepping now, without the executor's lock (a request may
+        hold it, waiting on a worker): its node's lease ran out, so its modules are about
+        to be restarted elsewhere. ``shutdown`` follows."""
+        self._stopping.set()
+        self.workers.fence()
+
     def shutdown(self, timeout: float = 10.0) -> None:
-        """Stop modules in reverse start order, then workers, then free every ring."""
+        """Stop modules in reverse start order, then workers, then free every ring. The
+        executor's lock is waited for half of ``timeout`` at most (a request holding it
+        fails once its worker is gone); the rest is done without it if need be."""
         deadline = time.monotonic() + timeout
-        with self.lock:
+        with contextlib.ExitStack() as held:
+            try:
+                held.enter_context(self._held(f"shut down node {self.node}", timeout / 2))
+            except RuntimeTimeout as exc:
+                log.warning("%s: shutting down without it", exc)
             for name in reversed(list(self.modules)):
                 left = max(0.1, deadline - time.monotonic())
                 try:
@@ -800,6 +818,17 @@ class Executor:
             for ring in self.rings.values():
                 ring.close()
             self.rings.clear()
+
+
+@contextlib.contextmanager
+def _within(lock: threading.RLock, what: str, timeout: float) -> Iterator[None]:
+    """Hold ``lock`` for ``what``, waiting ``timeout`` seconds at most."""
+    if not lock.acquire(timeout=timeout):
+        raise RuntimeTimeout(f"{what}: the node's lock was not free within {timeout:g} s")
+    try:
+        yield
+    finally:
+        lock.release()
 
 
 def _died(process: Any) -> bool:

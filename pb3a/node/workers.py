@@ -335,6 +335,9 @@ class WorkerPool:
             return                                     # it died: the sentinel reports it
 
     def _died(self, handle: WorkerHandle) -> None:
+        # Its exit status first, before a failed request wakes a thread that joins it:
+        # two threads reading a forkserver child's status at once, one reads 255.
+        handle.process.join(0)
         handle.alive = False
         with handle.read_lock, contextlib.suppress(OSError):
             handle.conn.close()
@@ -384,6 +387,17 @@ class WorkerPool:
             if getattr(future, "pb3a_worker", None) is handle \
                     and self._futures.pop(req_id, None) is not None:
                 future.set_exception(RuntimeFailure(f"worker {handle.key!r} {what}"))
+
+    def fence(self) -> None:
+        """SIGTERM every worker at once, taking no lock and waiting for nothing: each
+        stops its modules' stepping as the signal arrives, then tears them down and
+        exits, which fails the requests waiting on it (``close`` stops what is left)."""
+        with self._spares_lock:
+            handles = [*self._spares, *self.handles.values()]
+        for handle in handles:
+            if handle.alive and handle.process is not None:
+                with contextlib.suppress(OSError, ValueError):   # (gone meanwhile)
+                    handle.process.terminate()
 
     def close(self, timeout: float) -> None:
         """Stop every worker (in reverse start order) within about ``timeout`` seconds, then

@@ -175,9 +175,7 @@ class ModuleActor:
         if self._stopped:
             return True
         self._stopped = True
-        was_running, self.running = self.running, False
-        if was_running and self._stop.locked():
-            self._stop.release()                # wakes a step thread between two steps
+        self.halt()
         finished = True
         if self._thread is not None and self._thread is not threading.current_thread():
             self._cancel_wait("the module is stopping")
@@ -190,6 +188,13 @@ class ModuleActor:
         else:
             finished = False
         return finished
+
+    def halt(self) -> None:
+        """Stop stepping and dispatching now, without waiting for a body in progress;
+        ``stop`` then waits for it and runs ``teardown``."""
+        was_running, self.running = self.running, False
+        if was_running and self._stop.locked():
+            self._stop.release()                # wakes a step thread between two steps
 
     def _loop(self) -> None:
         # The step thread is the module's own: its CPU clock is the module's step

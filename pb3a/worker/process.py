@@ -229,6 +229,11 @@ class Worker:
         self._shut_down = True
         self._closing.set()
         self.bell_self()                      # the receiver leaves its sleep and its loop
+        # Every module stops stepping at once, then each is torn down in reverse start
+        # order: a slow teardown must not leave the others running (a fenced node's
+        # modules must be still before their failed-over copies start elsewhere).
+        for actor in self.actors.values():
+            actor.halt()
         for name in reversed(list(self.actors)):
             self.actors[name].stop(timeout=1.0)
         self.pool.close(timeout=1.0)
@@ -605,8 +610,10 @@ class _LogForwarder(logging.Handler):
             self.handleError(record)
 
 
-class _Terminated(Exception):
-    """SIGTERM arrived: stop the modules and exit cleanly."""
+class _Terminated(BaseException):
+    """SIGTERM arrived: stop the modules and exit cleanly. Not an ``Exception``: a
+    request running on the control thread (a module's ``__init__`` in ``add``) must
+    not catch it as its own failure and serve on."""
 
 
 def _on_sigterm(signum: int, frame: object) -> None:
