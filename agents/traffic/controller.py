@@ -17,23 +17,13 @@ set, instead of a green of -5 s that the signal head would quietly stretch.
 from __future__ import annotations
 
 import abc
-from collections.abc import Callable
 from typing import Any, ClassVar
 
+from agents.traffic.limits import Limit, out_of_limits, settings_with
 from agents.traffic.messages import JunctionReading, NeighbourQueues, PhaseRequest
 from pb3a import Input, InputPort, Module, Output
-from pb3a.config.checks import finite
 
 NEIGHBOUR_SLOTS = 4             # a junction's neighbours downstream, at most
-
-# What a setting must be, in words, and the test of it.
-Limit = tuple[str, Callable[[Any], bool]]
-SECONDS: Limit = ("a number of seconds, 0 or more", lambda x: finite(x) and x >= 0)
-GREEN: Limit = ("a number of seconds, 1 or more (a control step)",
-                lambda x: finite(x) and x >= 1)
-RATIO: Limit = ("a number, 0 or more", lambda x: finite(x) and x >= 0)
-SHARE: Limit = ("a number from 0 to 1", lambda x: finite(x) and 0 <= x <= 1)
-
 
 def _neighbour_ports() -> dict[str, Input]:
     return {f"neighbour_{slot}": Input(NeighbourQueues, policy="latest")
@@ -65,9 +55,8 @@ class JunctionController(_NeighbourSlots, Module, abc.ABC):
     def _check(self, state: dict[str, Any]) -> None:
         """ValueError naming each setting that would be out of its limits with
         ``state`` set (a maximum green below the minimum one too)."""
-        merged = {key: state.get(key, getattr(self, key)) for key in self._limits}
-        problems = [f"{key} must be {words}, got {merged[key]!r}"
-                    for key, (words, ok) in self._limits.items() if not ok(merged[key])]
+        merged = settings_with(self, self._limits, state)
+        problems = out_of_limits(self._limits, merged)
         if not problems and merged.get("max_green_s", 1) < merged.get("min_green_s", 0):
             problems.append(f"max_green_s ({merged['max_green_s']!r}) must be at least "
                             f"min_green_s ({merged['min_green_s']!r})")

@@ -46,18 +46,17 @@ import time
 from pathlib import Path
 from typing import Any
 
+from agents.traffic.limits import SECONDS, SPAN, out_of_limits, settings_with
 from agents.traffic.messages import JunctionReading, NetworkReading, PhaseRequest
 from agents.traffic.networks import Network
 from agents.traffic.signals import SignalHead
 from agents.traffic.simulation import STEP_S, Simulation
 from pb3a import Input, InputPort, Module, Output
-from pb3a.config.checks import finite
 
 MAX_JUNCTIONS = 16          # junction slots: ports are declared with the class
 _SIMULATION_KEYS = ("resource", "seed", "signals", "duration_s", "own_programs",
                     "demand_scale")
-_SECONDS = ("control_step_s", "duration_s", "min_green_s")   # finite, above 0 (min_green_s:
-                                                            # at least 0)
+_LIMITS = {"control_step_s": SPAN, "duration_s": SPAN, "min_green_s": SECONDS}
 
 
 def _junction_ports() -> dict[str, Input | Output]:
@@ -121,11 +120,9 @@ class TrafficDriver(_JunctionSlots, Module):
         starts the new one at once; a ``min_green_s`` holds from the green shown now.
         ``ValueError`` (nothing set) for a control step, minimum green or duration out
         of range."""
-        for key in _SECONDS:
-            value, zero_ok = state.get(key, 1.0), key == "min_green_s"
-            if not (finite(value) and (value >= 0 if zero_ok else value > 0)):
-                raise ValueError(f"{key} must be a finite number of seconds "
-                                 f"{'at least' if zero_ok else 'above'} 0, got {value!r}")
+        problems = out_of_limits(_LIMITS, settings_with(self, _LIMITS, state))
+        if problems:
+            raise ValueError("; ".join(problems))
         changed = any(k in state and state[k] != getattr(self, k) for k in _SIMULATION_KEYS)
         super().set_state(state)
         for head in vars(self).get("_heads", {}).values():

@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import math
 
-from agents.traffic.controller import GREEN, RATIO, SECONDS, JunctionController, in_transition
+from agents.traffic.controller import JunctionController, in_transition
+from agents.traffic.limits import GREEN, RATIO, SECONDS
 from agents.traffic.messages import JunctionReading
 
 

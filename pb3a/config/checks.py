@@ -173,16 +173,23 @@ def advertise(value: Any) -> list[str]:
              f"address such as '10.0.0.7' (no tcp://, no port), got {value!r}")]
 
 
-def address(value: Any, what: str = "address") -> list[str]:
-    """A node's or module server's address, ``tcp://HOST:PORT``; a node's may be left
-    out (started on this machine)."""
-    if value is None and what == "address":
+def node_address(value: Any) -> list[str]:
+    """A node's address, ``tcp://HOST:PORT``, or None: started on this machine."""
+    if value is None:
         return []
+    return _tcp(value, "address", " (or left out to start the node on this machine)")
+
+
+def server_address(value: Any) -> list[str]:
+    """A module server's address, ``tcp://HOST:PORT``."""
+    return _tcp(value, "each of module_servers", "")
+
+
+def _tcp(value: Any, what: str, otherwise: str) -> list[str]:
     if isinstance(value, str) and value.startswith("tcp://"):
         host, _, port = value.removeprefix("tcp://").rpartition(":")
         if host and not any(c in host for c in " /") and port.isdigit() \
                 and 0 < int(port) <= 65535:
             return []
-    return [(f"{what} must be a string tcp://HOST:PORT such as 'tcp://10.0.0.7:7100'"
-             f"{' (or left out to start the node on this machine)' if what == 'address' else ''}"
-             f", got {value!r}")]
+    return [f"{what} must be a string tcp://HOST:PORT such as 'tcp://10.0.0.7:7100'"
+            f"{otherwise}, got {value!r}"]

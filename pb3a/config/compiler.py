@@ -134,7 +134,7 @@ class _Planner:
             self.report(origin, [("module_servers must be a list of addresses such as "
                                  f"['tcp://127.0.0.1:7300'], got {servers!r}")])
             servers = []
-        wrong = {server: checks.address(server, "each of module_servers") for server in servers}
+        wrong = {server: checks.server_address(server) for server in servers}
         self.report(origin, [problem for problems in wrong.values() for problem in problems])
         servers = [server for server in servers if not wrong[server]]
         # a file's own directory, where its modules may be: not that of a source that
@@ -149,7 +149,7 @@ class _Planner:
             label = f"{origin} [nodes.{toml_key(name)}]"
             self.report(label, checks.name(name, "node"))
             self.report(label, checks.unknown_keys(node.extra, NodeSpec.KEYS))
-            self.report(label, checks.address(node.address))
+            self.report(label, checks.node_address(node.address))
             self.report(label, checks.workers(node.workers))
             self.report(label, checks.cpus(node.cpus, remote=node.address is not None))
             self.report(label, checks.advertise(node.advertise))

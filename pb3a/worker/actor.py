@@ -8,6 +8,7 @@ so none of them ever overlap.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import queue
@@ -24,7 +25,7 @@ from pb3a.model.ports import InputPort, OutputPort
 from pb3a.worker.waits import RuntimeWait, run_posted
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
+    from collections.abc import Callable, Iterator
 
     from pb3a.model.module import Module
 
@@ -153,11 +154,8 @@ class ModuleActor:
     # -- life cycle --------------------------------------------------------
     def start(self) -> None:
         """Run ``setup``, then start stepping (threaded) and dispatching (event-driven)."""
-        self.in_setup = True
-        try:
+        with self._setting_up():
             self.call("setup")
-        finally:
-            self.in_setup = False
         self.running = True
         self._stop.acquire(blocking=False)      # held while running; stop() releases it
         if self.period is not None:
@@ -188,6 +186,15 @@ class ModuleActor:
         else:
             finished = False
         return finished
+
+    @contextlib.contextmanager
+    def _setting_up(self) -> Iterator[None]:
+        """``in_setup`` while its ``setup`` runs."""
+        self.in_setup = True
+        try:
+            yield
+        finally:
+            self.in_setup = False
 
     def halt(self) -> None:
         """Stop stepping and dispatching now, without waiting for a body in progress;
@@ -451,10 +458,9 @@ class ModuleActor:
             # runtime there would wait for the configuration lock this swap's
             # operation holds while the swap waited for the lock: no answer until the
             # operation's timeout
-            self.in_setup = True
-            self._call_held("setup", 1)
+            with self._setting_up():
+                self._call_held("setup", 1)
         finally:
-            self.in_setup = False
             self.lock.release()
         return sorted(kept)
 

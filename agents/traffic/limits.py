@@ -1,0 +1,30 @@
+"""What each numeric setting of a traffic module must be (``Limit``: the rule in words,
+and its test), and the check of a state against them: the driver and the junction
+controllers refuse a setting out of its limits by name, and set nothing."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from pb3a.config.checks import finite
+
+Limit = tuple[str, Callable[[Any], bool]]
+SECONDS: Limit = ("a number of seconds, 0 or more", lambda x: finite(x) and x >= 0)
+SPAN: Limit = ("a number of seconds above 0", lambda x: finite(x) and x > 0)
+GREEN: Limit = ("a number of seconds, 1 or more (a control step)",
+                lambda x: finite(x) and x >= 1)
+RATIO: Limit = ("a number, 0 or more", lambda x: finite(x) and x >= 0)
+SHARE: Limit = ("a number from 0 to 1", lambda x: finite(x) and 0 <= x <= 1)
+
+
+def settings_with(owner: object, limits: dict[str, Limit],
+                  state: dict[str, Any]) -> dict[str, Any]:
+    """The limited settings ``owner`` would have with ``state`` set."""
+    return {key: state.get(key, getattr(owner, key)) for key in limits}
+
+
+def out_of_limits(limits: dict[str, Limit], settings: dict[str, Any]) -> list[str]:
+    """One sentence per setting out of its limits, naming it and what it must be."""
+    return [f"{key} must be {words}, got {settings[key]!r}"
+            for key, (words, ok) in limits.items() if not ok(settings[key])]
