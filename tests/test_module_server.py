@@ -4,6 +4,10 @@ reload with the state kept, and nothing served from outside its directory."""
 from __future__ import annotations
 
 import os
+import signal
+import socket
+import subprocess
+import sys
 import textwrap
 import time
 from pathlib import Path
@@ -105,6 +109,35 @@ def test_the_command_line_serves_until_signalled(tmp_path) -> None:
     line = daemon_banner_then_clean_exit("modules", "serve", str(tmp_path),
                                          "--listen", "tcp://127.0.0.1:0")
     assert line.startswith(f"serving {tmp_path.resolve()} at tcp://127.0.0.1:")
+
+
+def test_a_daemon_whose_reader_is_gone_serves_on_and_stops_cleanly(tmp_path) -> None:
+    """A script that starts a daemon and closes its end of the daemon's output (or a
+    ``| head`` that has its line) once ended the daemon in a traceback as it printed
+    where it listens."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    process = subprocess.Popen(
+        [sys.executable, "-m", "pb3a", "modules", "serve", str(tmp_path),
+         "--listen", f"tcp://127.0.0.1:{port}"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        process.stdout.close()                       # gone before the daemon's first line
+        client = ControlClient(ClusterKey.load(), f"tcp://127.0.0.1:{port}")
+        try:
+            # (it prints where it listens as its server starts, before it can answer)
+            assert client.call("list", timeout=20.0) == []
+        finally:
+            client.close()
+        process.send_signal(signal.SIGTERM)
+        assert "Traceback" not in process.stderr.read()
+        assert process.wait(timeout=10) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(5)
+        process.stderr.close()
 
 
 def test_a_module_server_signalled_as_it_starts_stops_cleanly(tmp_path) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import os
 import signal
 import socket
 import sys
@@ -36,13 +37,25 @@ def serve_until_signalled(command: str, listen: str,
         print(f"{command}: {exc}", file=sys.stderr)
         return 1
     if not stop.is_set():
-        print(banner, flush=True)
+        _announce(banner)
     try:
         while not stop.wait(1.0):
             pass
     finally:
         daemon.close()
     return 0
+
+
+def _announce(banner: str) -> None:
+    """Print where the daemon listens. A reader that is gone (a script that closed its
+    end, a ``| head`` that has its line) does not end the daemon: its output goes
+    nowhere from then on, as it would to a closed terminal."""
+    try:
+        print(banner, flush=True)
+    except BrokenPipeError:
+        nowhere = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(nowhere, sys.stdout.fileno())       # (Python's flush at exit too)
+        os.close(nowhere)
 
 
 def _check_bindable(listen: str, host: str, port: int) -> None:
