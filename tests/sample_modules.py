@@ -805,3 +805,33 @@ class BlocksInInit(Module):
         with open(self.pid_file, "w") as pid:
             pid.write(str(os.getpid()))
         time.sleep(self.BLOCK_S)
+
+
+class Oversize(Module):
+    """Tries to write ``size`` bytes once (keeping the error in ``refused``), then writes
+    a small value each step."""
+
+    out = Output(bytes)
+    period = 0.01
+    size = 2 << 20
+    refused = ""
+    sent = 0
+
+    def step(self) -> None:
+        if self.sent == 0 and not self.refused:
+            try:
+                self.out.write(b"x" * self.size)
+            except ValueError as exc:
+                self.refused = str(exc)
+        self.out.write(b"small")
+        self.sent += 1
+
+
+class Sizes(Module):
+    """Keeps the sizes of the byte strings it receives."""
+
+    x = Input(bytes, policy="queue:1000")
+    sizes: list[int] = []
+
+    def on_input(self, port) -> None:
+        self.sizes = [*self.sizes, *(len(value) for value in port.read_all())]

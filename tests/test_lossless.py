@@ -8,7 +8,7 @@ import time
 
 import pytest
 from conftest import eventually
-from sample_modules import Burst, Collector, Pusher, Sipper, SipperV2
+from sample_modules import Burst, Collector, Oversize, Pusher, Sipper, SipperV2, Sizes
 
 from pb3a import System
 
@@ -248,3 +248,25 @@ def test_a_latest_input_still_gives_the_newest_and_its_writer_does_not_wait() ->
         link = run.stats().links[KEY]
     assert state["received"] < n and state["out_of_order"] == 0
     assert link.drops == 0 and link.waits == 0
+
+
+@pytest.mark.parametrize("where", ["shm", "zmq"])
+def test_a_value_too_large_for_the_reader_s_ring_is_refused_as_it_is_written(where) -> None:
+    """Between nodes the writer once sent it, and the reader's node could only drop it
+    (logged), lossless link or not: the writer now checks it against the reader's ring."""
+    system = System(f"oversize-{where}")
+    if where == "zmq":
+        system.node("a")
+        system.node("b")
+    system.add("sink", Sizes, node="b" if where == "zmq" else None)
+    system.add("src", Oversize, node="a" if where == "zmq" else None)
+    system.link("src.out", "sink.x", policy="lossless:8")
+    with system.launch() as run:
+        sizes = eventually(lambda: len(s := run.state("sink")["sizes"]) >= 3 and s,
+                           what="the small values after the large one")
+        refused = run.state("src")["refused"]
+        transport = run.stats().links["src.out->sink.x"].transport
+    assert transport == where
+    assert refused.startswith("a value of 2097152 bytes does not fit this link's")
+    assert "need an output of type object" in refused
+    assert set(sizes) == {5}

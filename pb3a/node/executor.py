@@ -465,6 +465,8 @@ class Executor:
         answers = self._side_by_side([_Request(
             self.modules[link.src].worker, "publish_out",
             {"key": link.key, "src": link.src, "src_port": link.src_port,
+             # the reader's ring, which the writer checks each value against
+             "room": ring_size(self.modules[link.src].spec.cls, link.src_port, link.policy),
              **self._publishing()}) for link in links])
         return [(data, control, incarnation) for data, control, incarnation in answers]
 

@@ -84,6 +84,7 @@ from pb3a.transport.addresses import bind_advertised
 from pb3a.transport.auth import PAYLOAD_TAG, ClusterKey, Opener, Payloads, Rejected, Sealer
 from pb3a.transport.heap import keep_freed_buffers
 from pb3a.transport.loop import SocketLoop
+from pb3a.transport.ring import RingSize, check_fits
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Sequence
@@ -167,13 +168,15 @@ def _secure(sock: zmq.Socket, max_bytes: int = MAX_MESSAGE) -> zmq.Socket:
     return sock
 
 
-def _entry(value: Any, max_bytes: int) -> tuple[int, Any, int]:
+def _entry(value: Any, max_bytes: int, room: RingSize | None) -> tuple[int, Any, int]:
     """``(kind, entry, bytes)`` of one value, taken when it is written (the writer may
     change a mutable value right after): an immutable small value is its own entry
     (``PLAIN``), pickled later with the rest of its batch; anything else is encoded
     now, to ``(meta, payload)``. A payload of ``ZERO_COPY_MIN`` bytes or more is sent
     on its own (``kind`` negative): an array's is still the writer's memory here, and
-    is sealed (copied and authenticated in one pass) before ``offer`` returns."""
+    is sealed (copied and authenticated in one pass) before ``offer`` returns. A value
+    the readers' rings (``room``) cannot take is refused here, as a local ring's writer
+    refuses it: the reader's node could only drop it."""
     cls = type(value)
     if cls in _SCALARS:
         return PLAIN, value, SCALAR_BYTES
@@ -184,6 +187,8 @@ def _entry(value: Any, max_bytes: int) -> tuple[int, Any, int]:
     if nbytes + 1024 > max_bytes:
         raise ValueError(f"a value of {nbytes} bytes exceeds the {max_bytes}-byte message "
                          "limit of remote links; raise the limit")
+    if room is not None:
+        check_fits(kind, len(meta), nbytes, room)
     if nbytes >= ZERO_COPY_MIN:
         return -kind, (meta, payload), nbytes + 64
     if kind == codec.ARRAY:
@@ -239,6 +244,7 @@ class _Stream:
     credit: float = 0                   # ... while they take fewer bytes than this
     acks: dict[bytes, tuple[int, float]] = field(default_factory=dict)  # peer -> (seq, when)
     holds: dict[bytes, int] = field(default_factory=dict)   # lossless followers: peer -> seq
+    room: RingSize | None = None        # the readers' rings: what a value must fit
     waits: int = 0                      # values whose publish waited (or waits) for followers
     wait_s: float = 0.0                 # ... and the seconds those that ended waited
 
@@ -361,11 +367,12 @@ class Replicator:
         """Messages refused on the control socket, by reason."""
         return self._opener.rejected
 
-    def add(self, topic: str, next_seq: int = 0) -> None:
-        """Start publishing ``topic``; ``next_seq`` continues a migrated stream."""
+    def add(self, topic: str, next_seq: int = 0, room: RingSize | None = None) -> None:
+        """Start publishing ``topic``; ``next_seq`` continues a migrated stream; ``room``:
+        the rings its readers take values into (a value that fits none is refused)."""
         with self._lock:
             if topic not in self._topics:
-                stream = _Stream(_name(topic), next_seq)
+                stream = _Stream(_name(topic), next_seq, room=room)
                 self._streams[stream.name] = self._topics[topic] = stream
 
     def sequence(self, topic: str) -> int:
@@ -456,8 +463,8 @@ class Replicator:
         the replicator's thread gets to them (those published meanwhile go with them);
         a large one goes at once, from this thread: batching gains nothing for it, and
         a hand-over to the other thread costs a thread switch per value."""
-        max_bytes = self._max_bytes
-        entries = [_entry(value, max_bytes) for value in values]
+        max_bytes, room = self._max_bytes, self._topics[topic].room
+        entries = [_entry(value, max_bytes, room) for value in values]
         deadline = None
         went, large = 0, False
         with self._lock:

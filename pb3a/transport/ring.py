@@ -94,6 +94,25 @@ def _body(kind: int, meta_len: int) -> int:
     return _align(_REC_HEAD + meta_len, _ALIGN if kind == codec.ARRAY else 8)
 
 
+def check_fits(kind: int, meta_len: int, size: int, room: RingSize) -> None:
+    """``ValueError``, saying what to declare, unless a value encoded as ``kind`` (with
+    ``meta_len`` bytes of meta and ``size`` of payload) fits a ring made with ``room``:
+    what a ring's writer checks, for a writer on another node to check before sending."""
+    if kind == codec.ARRAY and ZERO_COPY_MIN <= size <= room.slot_bytes:
+        return                                        # a slot of the pool takes it
+    capacity = _align(max(room.capacity, 4096))       # (as ``create`` makes it)
+    if _align(_body(kind, meta_len) + size) > capacity:
+        raise _too_large(kind, size, capacity)
+
+
+def _too_large(kind: int, size: int, capacity: int) -> ValueError:
+    fix = ("declare shape= and dtype= on the output, which sizes its links for them"
+           if kind == codec.ARRAY else "values this large need an output of type object "
+           "(its links have 16 MiB rings), or send smaller ones")
+    return ValueError(f"a value of {size} bytes does not fit this link's {capacity}-byte "
+                      f"ring: {fix}")
+
+
 class Landed:
     """A large array written into a claimed slot of ``ring``, not staged yet: staged
     in that ring, it becomes the slot's record without a copy; anywhere else (or once
@@ -351,11 +370,7 @@ class ShmRing:
         body = _body(kind, len(meta))
         length = _align(body + size)
         if length > self.capacity:
-            fix = ("declare shape= and dtype= on the output, which sizes its links for "
-                   "them" if kind == codec.ARRAY else "values this large need an output "
-                   "of type object (its links have 16 MiB rings), or send smaller ones")
-            raise ValueError(f"a value of {size} bytes does not fit this link's "
-                             f"{self.capacity}-byte ring: {fix}")
+            raise _too_large(kind, size, self.capacity)
         return kind, meta, body, length
 
     def _skip(self) -> None:

@@ -30,7 +30,7 @@ from pb3a.model.agent import Agent, RuntimeClient
 from pb3a.model.ports import InputPort, Policy, WaitCounter
 from pb3a.transport.codec import local_copy
 from pb3a.transport.doorbell import BellPull
-from pb3a.transport.ring import ShmRing, sleep
+from pb3a.transport.ring import RingSize, ShmRing, sleep
 from pb3a.transport.snapshot import Snapshot
 from pb3a.worker.actor import EventPool, ModuleActor
 from pb3a.worker.publications import Publications
@@ -421,11 +421,13 @@ class Worker:
             pull.close()
 
     def op_publish_out(self, key: str, src: str, src_port: str, secret: bytes,
-                       host: str, epoch: int = 0) -> tuple[str, str, bytes]:
+                       host: str, epoch: int = 0,
+                       room: RingSize | None = None) -> tuple[str, str, bytes]:
         """Replicate an output to another node: (data address, control address,
         incarnation) for the reading node to follow."""
         return self.publications.add(key, f"{src}.{src_port}",
-                                     self.actors[src].outputs[src_port], secret, host, epoch)
+                                     self.actors[src].outputs[src_port], secret, host, epoch,
+                                     room)
 
     def op_ready_to_publish(self, secret: bytes, host: str, epoch: int = 0) -> None:
         """Bind the sockets that replicate outputs to other nodes before they are needed."""

@@ -17,6 +17,7 @@ from pb3a.transport.replication import SILENT_S, Replicator
 
 if TYPE_CHECKING:
     from pb3a.model.ports import OutputPort
+    from pb3a.transport.ring import RingSize
 
 
 class Publications:
@@ -35,13 +36,15 @@ class Publications:
         return self.replicator
 
     def add(self, key: str, topic: str, port: OutputPort, secret: bytes, host: str,
-            epoch: int = 0) -> tuple[str, str, bytes]:
+            epoch: int = 0, room: RingSize | None = None) -> tuple[str, str, bytes]:
         """Publish ``port`` for the link ``key``; the addresses and incarnation to follow.
-        Messages carry the system's ``epoch``; older ones are refused as stale."""
+        Messages carry the system's ``epoch``; older ones are refused as stale. ``room``:
+        the ring the link's reader takes values into (a value it cannot take is refused
+        as it is written)."""
         replicator = self.open(secret, host, epoch)
         readers = self._readers.setdefault(topic, set())
         if not readers:
-            replicator.add(topic)
+            replicator.add(topic, room=room)
             offer = replicator.offer
             one = replicator.sink(topic, lambda timeout: link_stuck(", ".join(sorted(readers)),
                                                                     timeout))
