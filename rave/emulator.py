@@ -39,6 +39,7 @@ from rave.pioneer import MASS, RADIUS
 
 START_TIMEOUT = 30.0                # s: a child imports numpy and pymunk first
 ANSWER_TIMEOUT = 5.0
+STEP_TIMEOUT = 1e-3      # and this per physics step asked for (an emulator does ~10,000/s)
 
 FAULTS = ("motors_off", "sonar_dead", "odometry_bias")
 FIRE_S = 0.040                      # one transducer per array per 40 ms (ARCOS)
@@ -162,6 +163,7 @@ class EmulatorProcess:
     def __init__(self, name: str, segments: np.ndarray, pose: tuple[float, float, float],
                  seed: int, velocity: tuple[float, float] = (0.0, 0.0)) -> None:
         self.name = name
+        self._advancing = 0                     # steps asked for by ``begin_advance``
         ours, theirs = socket.socketpair()
         with theirs:
             self._process = subprocess.Popen(
@@ -199,9 +201,11 @@ class EmulatorProcess:
         """Ask for ``steps`` physics steps of ``dt``; ``end_advance`` takes the answer
         (in between, other robots' emulators can be stepping too)."""
         self._send(("advance", steps, dt))
+        self._advancing = steps
 
     def end_advance(self) -> Report:
-        self.report = self._answer(ANSWER_TIMEOUT)
+        """The answer to ``begin_advance``, waited for as long as its steps may take."""
+        self.report = self._answer(ANSWER_TIMEOUT + self._advancing * STEP_TIMEOUT)
         return self.report
 
     def _ask(self, request: tuple[Any, ...], timeout: float = ANSWER_TIMEOUT) -> Any:
@@ -216,14 +220,16 @@ class EmulatorProcess:
 
     def _answer(self, timeout: float) -> Any:
         try:
-            if not self._conn.poll(timeout):
-                # A late answer would be taken for the next one: it is dead to us.
-                self._process.kill()
-                raise TimeoutError(f"the emulator of robot {self.name} did not answer "
-                                   f"within {timeout} s and was stopped")
-            status, value = self._conn.recv()
+            answered = self._conn.poll(timeout)
+            if answered:
+                status, value = self._conn.recv()
         except (EOFError, OSError):
             raise self._gone() from None
+        if not answered:        # (a TimeoutError is an OSError: not inside the try)
+            # A late answer would be taken for the next one: it is dead to us.
+            self._process.kill()
+            raise TimeoutError(f"the emulator of robot {self.name} did not answer "
+                               f"within {timeout:g} s and was stopped")
         if status == "error":
             raise RuntimeError(f"the emulator of robot {self.name} failed:\n{value}")
         return value

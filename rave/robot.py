@@ -109,9 +109,15 @@ class Robot:
             return
         pose, (vx, vy, w) = self._body.pose(), self._body.velocity()
         command = self._body.commanded()
-        self._body.close()
+        speed = vx * math.cos(pose[2]) + vy * math.sin(pose[2])   # (negative: reversing)
+        old = self._body
+        old.close()
         self.odometer.bias = 0.0        # its faults went with the hardware robot
-        self._body = self._make(backend, pose, (math.hypot(vx, vy), w), command)
+        try:
+            self._body = self._make(backend, pose, (speed, w), command)
+        except BaseException:           # (an emulator that would not start) as it was
+            self._body = self._make(old.kind, pose, (speed, w), command)
+            raise
 
     def inject(self, fault: str, **params: Any) -> None:
         """Inject a fault into a hardware robot: ``motors_off``, ``sonar_dead``

@@ -12,6 +12,7 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass
+from numbers import Real
 from pathlib import Path
 from typing import Any
 
@@ -91,8 +92,12 @@ class World:
         problems = world._misplaced(plan, str(path))
         if problems:                             # (before any emulator is started)
             raise worldfile.WorldError(problems)
-        for robot in plan.robots if robots else ():
-            world.add_robot(**robot)
+        try:
+            for robot in plan.robots if robots else ():
+                world.add_robot(**robot)
+        except BaseException:           # the emulators started so far stop with it
+            world.close()
+            raise
         return world
 
     def _misplaced(self, plan: worldfile.Plan, source: str) -> list[str]:
@@ -131,6 +136,8 @@ class World:
         (cx, cy), (w, h) = _point(center, "box"), _point(size, "box")
         if not (w > 0 and h > 0):
             raise ValueError(f"box: size must be (width, height), both > 0, not {size}")
+        if not (isinstance(angle, Real) and math.isfinite(angle)):
+            raise ValueError(f"box: angle must be a finite number of radians, not {angle!r}")
         c, s = math.cos(angle), math.sin(angle)
         corners = [(dx * w / 2, dy * h / 2) for dx, dy in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
         points = tuple((cx + c * x - s * y, cy + s * x + c * y) for x, y in corners)
@@ -146,6 +153,9 @@ class World:
         self._add(Obstacle(tuple(corners), closed=True, virtual=virtual, color=color))
 
     def _add(self, obstacle: Obstacle) -> None:
+        if not obstacle.virtual:         # not while a hardware robot is known to be gone
+            for body in self.hardware:
+                body.emulator.check()
         layer = VIRTUAL if obstacle.virtual else REAL
         for x0, y0, x1, y1 in obstacle.edges():
             shape = pymunk.Segment(self.space.static_body, (x0, y0), (x1, y1), WALL_RADIUS)
@@ -156,8 +166,14 @@ class World:
         self._segments.clear()
         if not obstacle.virtual:                 # hardware robots' physical worlds too
             edges = np.array(obstacle.edges(), dtype=np.float64)
-            for body in self.hardware:
-                body.emulator.add_walls(edges)
+            failure = None
+            for body in self.hardware:           # (one dying now leaves none behind it out)
+                try:
+                    body.emulator.add_walls(edges)
+                except (RuntimeError, TimeoutError) as exc:
+                    failure = failure or exc
+            if failure is not None:
+                raise failure
 
     def add_robot(self, name: str, pose: tuple[float, float, float], *, backend: str = "sim",
                   color: str = "red") -> Robot:

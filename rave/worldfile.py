@@ -130,6 +130,8 @@ def _entry(table: str, entry: dict[str, Any], where: str, names: set[str]) -> li
             problems.append(f"{where}: {key} must be [x, y] in metres")
     if table == "boxes" and not _numbers(entry.get("size"), 2, positive=True):
         problems.append(f"{where}: size must be [width, height] in metres, both > 0")
+    if table == "boxes" and "angle" in entry and not _numbers([entry["angle"]], 1):
+        problems.append(f"{where}: angle must be a finite number of degrees")
     if table == "polygons":
         pts = entry.get("points")
         if not (isinstance(pts, list) and len(pts) >= 3 and all(_numbers(p, 2) for p in pts)):

@@ -17,6 +17,7 @@ import pytest
 from conftest import alive, eventually
 
 from rave import World, WorldError, odometry, raycast, sonar
+from rave import emulator as rave_emulator
 from rave import fleet as fleet_module
 from rave.emulator import EmulatorProcess
 from rave.sonar import SonarNoise
@@ -590,5 +591,103 @@ def test_an_emulator_that_fails_to_start_leaves_no_process_behind() -> None:
         EmulatorProcess("r9", np.zeros((1, 3)), (0.0, 0.0, 0.0), seed=1)   # not segments
     # the error (and through its traceback the failed handle) is still held here
     assert failed.value is not None
+    started = {child.pid for child in psutil.Process().children()} - before
+    assert not [pid for pid in started if alive(pid)]
+
+
+def _failing_emulators(monkeypatch: pytest.MonkeyPatch, after: int = 0) -> None:
+    """Every emulator started after the first ``after`` fails to start (its child exits)."""
+    real, started = rave_emulator._CHILD, []
+    start = EmulatorProcess.__init__
+
+    def init(self: EmulatorProcess, *args: Any, **kwargs: Any) -> None:
+        started.append(1)
+        monkeypatch.setattr(rave_emulator, "_CHILD",
+                            real if len(started) <= after else "import sys; sys.exit(3)")
+        start(self, *args, **kwargs)
+    monkeypatch.setattr(EmulatorProcess, "__init__", init)
+
+
+def test_a_swap_whose_emulator_fails_to_start_leaves_the_robot_as_it_was(
+        world_of: WorldMaker, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The old body was closed first: the robot then drove another robot's row."""
+    world = world_of(size=(10, 8), seed=1)
+    a = world.add_robot("a", POSE)
+    b = world.add_robot("b", (6.0, 6.0, 0.0))
+    _failing_emulators(monkeypatch)
+    with pytest.raises(RuntimeError, match="emulator of robot a is gone"):
+        a.swap("hardware")
+    assert a.backend == "sim" and a.gps() == pytest.approx(POSE)
+    a.drive(1.0, 0.0)
+    world.step(1.0)
+    assert a.gps()[0] > POSE[0] + 0.5 and b.gps() == pytest.approx((6.0, 6.0, 0.0))
+    assert sorted(world.fleet.names) == ["a", "b"]
+
+
+def test_a_reversing_robot_swapped_to_hardware_goes_on_reversing(world_of: WorldMaker) -> None:
+    world = world_of(size=(10, 8), seed=1)
+    robot = world.add_robot("r", (5.0, 4.0, 0.0))
+    robot.drive(-0.5, 0.0)
+    world.step(1.0)
+    x = world.pose("r")[0]
+    robot.swap("hardware")
+    world.step(0.2)
+    assert world.pose("r")[0] < x              # (it went 0.2 m forward first, at +0.35 m/s)
+
+
+def test_a_silent_emulator_is_said_to_be_so_and_a_long_step_waits_for_its_steps(
+        world_of: WorldMaker) -> None:
+    world = world_of(size=(10, 8), seed=1)
+    robot = world.add_robot("hw", POSE, backend="hardware")
+    world.step(120.0)                   # 12,000 physics steps: more than 5 s on a slow day
+    os.kill(robot._body.emulator.pid, signal.SIGSTOP)
+    with pytest.raises(TimeoutError, match="emulator of robot hw did not answer within"):
+        world.step(0.1)                 # (before: "is gone ... exited with -9")
+
+
+def test_a_real_obstacle_is_not_added_while_a_hardware_robot_is_gone(
+        world_of: WorldMaker) -> None:
+    """Before, it went into the world and the emulators before the dead one, not into
+    those after it: a hardware robot drove through the new wall."""
+    world = world_of(size=(10, 8), seed=1)
+    dead = world.add_robot("dead", (2.0, 6.0, 0.0), backend="hardware")
+    live = world.add_robot("live", (4.0, 2.0, 0.0), backend="hardware")
+    os.kill(dead._body.emulator.pid, signal.SIGKILL)
+    with pytest.raises(RuntimeError, match="emulator of robot dead is gone"):
+        world.step(0.1)                 # (its death seen)
+    with pytest.raises(RuntimeError, match="emulator of robot dead is gone"):
+        world.add_wall((5.0, 0.0), (5.0, 8.0))
+    assert world.obstacles == []        # (before: in the world, not in "live"'s emulator)
+    world.robot("dead").swap("sim")
+    world.add_wall((5.0, 0.0), (5.0, 8.0))
+    live.drive(0.5, 0.0)
+    world.step(4.0)
+    assert world.pose("live")[0] < 5.0 - 0.2
+
+
+def test_a_box_angle_that_is_not_a_finite_number_is_refused(world_of: WorldMaker,
+                                                             tmp_path) -> None:
+    world = world_of(size=(10, 8), seed=1)
+    for angle in (math.nan, math.inf, "thirty"):
+        with pytest.raises(ValueError, match="box: angle must be a finite number"):
+            world.add_box((8.0, 2.0), (1.0, 1.0), angle=angle)
+    assert world.obstacles == []
+    for angle in ("nan", "inf", '"thirty"'):
+        path = tmp_path / "box.toml"
+        path.write_text(f"[[boxes]]\ncenter = [8.0, 2.0]\nsize = [1.0, 1.0]\nangle = {angle}\n")
+        with pytest.raises(WorldError, match=r"boxes\[0\]: angle must be a finite number"):
+            World.load(path)
+
+
+def test_a_world_file_whose_robot_fails_to_start_leaves_no_emulator_running(
+        tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "two.toml"
+    path.write_text('[[robots]]\nname = "a"\npose = [2.0, 2.0, 0.0]\nbackend = "hardware"\n'
+                    '[[robots]]\nname = "b"\npose = [6.0, 6.0, 0.0]\nbackend = "hardware"\n')
+    before = {child.pid for child in psutil.Process().children()}
+    _failing_emulators(monkeypatch, after=1)
+    with pytest.raises(RuntimeError, match="emulator of robot b is gone") as failed:
+        World.load(path, seed=1)
+    assert failed.value is not None         # (held: the world is not collected yet)
     started = {child.pid for child in psutil.Process().children()} - before
     assert not [pid for pid in started if alive(pid)]
