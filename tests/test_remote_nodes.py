@@ -24,6 +24,7 @@ from sample_modules import (
     Wanderer,
 )
 
+import pb3a
 from pb3a import ModuleNotFound, RuntimeFailure, RuntimeTimeout, System
 from pb3a.cli.status import format_table
 from pb3a.daemons.node_controller import Limits, NodeController
@@ -308,4 +309,11 @@ def test_on_a_remote_node_an_agent_may_read_from_setup_inside_a_change(controlle
             change()
             assert run.state("asker")["asked"] >= 0        # its setup asked again
         took = time.monotonic() - started
+        # through pb3a.connect the change is a request to the launcher's server, in
+        # whose one lane the agent's request once waited behind it: the change
+        # failed after 10 s and the module was lost
+        with pb3a.connect(run.listen()) as connection:
+            run.set_state("asker", asked=-1)
+            connection.restart("asker", timeout=10)
+            assert run.state("asker")["asked"] >= 0
     assert took < 8.0, took

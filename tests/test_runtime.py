@@ -419,6 +419,21 @@ def test_relink_may_change_the_input_policy() -> None:
     assert figures.errors == 0
 
 
+def test_relink_without_a_policy_keeps_the_link_s_own() -> None:
+    """It once took the input's declared policy: a lossless link relinked to another
+    source became lossy without a word."""
+    system = System("policy-kept")
+    system.add("src", Counter, state={"limit": 0}, period=0.001)
+    system.add("other", Counter, state={"limit": 0}, period=0.001)
+    system.add("dst", Collector)                  # declares queue:1000000
+    system.link("src.out", "dst.x", policy="lossless:8")
+    with system.launch() as run:
+        run.relink("other.out", "dst.x")
+        assert run.stats().links["other.out->dst.x"].policy == "lossless:8"
+        run.relink("src.out", "dst.x", policy="latest")        # (a policy given wins)
+        assert run.stats().links["src.out->dst.x"].policy == "latest"
+
+
 def test_packed_modules_fill_workers_in_declaration_order() -> None:
     system = System("packed", workers=2)
     for chain in range(4):

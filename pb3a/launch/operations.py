@@ -210,6 +210,8 @@ class Operations:
             launcher = self.launcher
             olds = [old for old in launcher.links.values()
                     if (old.dst, old.dst_port) == (link.dst, link.dst_port)]
+            if policy is None and olds:          # the link's own, not the input's declared
+                link = replace(link, policy=olds[0].policy)
             # Writers pause so that nothing is written while the input changes
             # source; the reader drains the old link before the new one opens.
             with launcher.paused([link.src, *(old.src for old in olds)]):

@@ -92,8 +92,11 @@ class Running(SystemHandle):
         """Take authenticated requests (``pb3a.connect``, ``pb3a status ADDR`` ...) at
         ``address``; returns the address bound."""
         if self._server is None:
+            # An agent's request from a remote node may be what the operation in
+            # progress waits for (the setup of the module it starts): not in its lane.
             self._server = ControlServer(ClusterKey.load(), self._remote_request,
-                                         *bind_address(address), name="pb3a-launcher")
+                                         *bind_address(address), name="pb3a-launcher",
+                                         aside={"agent"})
             self.address = self._server.address
         return self.address
 
