@@ -12,6 +12,9 @@ Each subclasses the nearest built-in, so callers may catch either.
 
 from __future__ import annotations
 
+import threading
+from numbers import Real
+
 
 class PB3AError(Exception):
     """Base class of every error PB3A raises on purpose."""
@@ -44,12 +47,19 @@ class RuntimeFailure(PB3AError, RuntimeError):
 
 
 def bounded_wait(timeout: float | None, what: str) -> float:
-    """``timeout`` checked to be seconds, for a wait that must end: None (which a
-    ``Condition`` takes for "forever") is refused with ``TypeError`` naming ``what``."""
+    """``timeout`` checked to be seconds, for a wait that must end, naming ``what``:
+    ``TypeError`` for None (which a ``Condition`` takes for "forever") or what is not a
+    number, ``ValueError`` for a negative one, NaN (a ``Condition`` spins on it) or one
+    no lock can wait (inf)."""
     if timeout is None:
         raise TypeError(f"{what}: timeout must be seconds to wait (0 for none), not None: "
                         "every wait has a deadline")
-    return timeout
+    if isinstance(timeout, bool) or not isinstance(timeout, Real):
+        raise TypeError(f"{what}: timeout must be a number of seconds, not {timeout!r}")
+    if not 0 <= timeout <= threading.TIMEOUT_MAX:            # (NaN is neither)
+        raise ValueError(f"{what}: timeout must be a finite number of seconds, 0 or more, "
+                         f"not {timeout!r}: every wait has a deadline")
+    return float(timeout)
 
 
 def link_stuck(link: str, waited: float, unsent: int = 1) -> RuntimeTimeout:

@@ -293,15 +293,18 @@ class Busy(Module):
 
 class Journal(Module):
     """Appends its name to ``path`` in ``setup`` and ``teardown`` (start and stop order);
-    its teardown takes ``teardown_s`` seconds first."""
+    its setup takes ``setup_s`` seconds after its note, its teardown ``teardown_s``
+    before."""
 
     period = 0.05
     path = ""
     label = ""
+    setup_s = 0.0
     teardown_s = 0.0
 
     def setup(self) -> None:
         self._note("start")
+        time.sleep(self.setup_s)
 
     def teardown(self) -> None:
         time.sleep(self.teardown_s)
@@ -835,3 +838,16 @@ class Sizes(Module):
 
     def on_input(self, port) -> None:
         self.sizes = [*self.sizes, *(len(value) for value in port.read_all())]
+
+
+class LongStep(Module):
+    """Each step takes ``step_s`` seconds (a long computation), holding its lock."""
+
+    period = 0.01
+    step_s = 1.0
+    steps = 0
+    gain = 1.0
+
+    def step(self) -> None:
+        time.sleep(self.step_s)
+        self.steps += 1

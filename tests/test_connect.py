@@ -161,3 +161,41 @@ def test_a_call_without_a_timeout_waits_as_long_as_the_system_s_default(monkeypa
         finally:
             release.set()
             holder.join(10.0)
+
+
+def test_a_timeout_that_is_not_seconds_is_refused_at_once_the_same_through_connect() -> None:
+    """-1 waited for the lock for good, NaN spun (events) or broke every later call
+    (launch), inf and text were bare built-in errors, and a launch timeout of 0 became
+    30 s."""
+    system = System("timeouts").add("count", Counter, period=0.01)
+    for bad in (float("nan"), -1.0):
+        with pytest.raises(ValueError, match="launch: timeout must be a finite number"):
+            system.launch(timeout=bad)
+    with system.launch(timeout=0.0) as run, pb3a.connect(run.listen()) as connection:
+        assert run._operations.timeout == 0.0
+        for bad in (-1, -0.5, float("nan"), float("inf"), "1", True):
+            errors = []
+            for handle in (run, connection):
+                started = time.monotonic()
+                for op, args in (("state", ("count",)), ("events", (0,))):
+                    with pytest.raises((ValueError, TypeError)) as refused:
+                        getattr(handle, op)(*args, timeout=bad)
+                    errors.append((type(refused.value), str(refused.value)))
+                assert time.monotonic() - started < 1.0
+            assert errors[:2] == errors[2:], errors            # the same, both ways
+            assert all("timeout must be a" in message for _, message in errors)
+
+
+def test_a_class_that_does_not_resolve_is_one_config_error_with_the_rest_both_ways() -> None:
+    """add() raised the bare LookupError of the class alone (a RuntimeFailure through
+    connect), hiding the entry's other mistakes, which pb3a check lists."""
+    system = System("unresolved").add("scale", Scale)
+    with system.launch() as run, pb3a.connect(run.listen()) as connection:
+        for handle in (run, connection):
+            with pytest.raises(ConfigError) as add:
+                handle.add("bad name!", "sample_modules:Nope", node="zz", period=-1)
+            assert len(add.value.problems) == 4
+            assert "module 'sample_modules' has no class 'Nope'" in add.value.problems[0]
+            with pytest.raises(ConfigError, match="swap scale: bad class reference"):
+                handle.swap("scale", "sample_modules.Nope")
+        assert set(run.stats().modules) == {"scale"}                # nothing added

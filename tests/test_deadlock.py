@@ -3,15 +3,27 @@ and moving each other while the program does the same to them."""
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import threading
 import time
 
 import pytest
-from sample_modules import Busybody, Locator, LocatorToo, RemovesInSetup, Scale, SlowState
+from conftest import eventually
+from sample_modules import (
+    Busybody,
+    Journal,
+    Locator,
+    LocatorToo,
+    LongStep,
+    RemovesInSetup,
+    Scale,
+    SlowState,
+    Steady,
+)
 
 import pb3a
-from pb3a import Module, RuntimeTimeout, System
+from pb3a import Module, RuntimeFailure, RuntimeTimeout, System
 from pb3a.worker.actor import ModuleActor
 
 pytestmark = pytest.mark.timeout(120)
@@ -243,3 +255,44 @@ def test_a_swapped_module_runs_setup_before_its_step_can_take_the_lock() -> None
         assert actor.stop(5.0)
     assert new.set_up and new.steps_before_setup == 0
     assert took < _Asker.WAIT_S / 2, took
+
+
+def test_close_keeps_its_timeout_with_a_change_in_progress_and_later_calls_are_refused(
+        tmp_path) -> None:
+    """close(timeout=1) waited for the configuration lock up to 60 s; calls on a closed
+    system waited for dead workers (an add 10 s, a restart 20 s)."""
+    journal = tmp_path / "journal"
+    system = System("closing").add("steady", Steady)
+    run = system.launch()
+
+    def add() -> None:                  # (it fails as the system stops under it)
+        with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+            run.add("slow", Journal,
+                    state={"path": str(journal), "label": "slow", "setup_s": 8.0})
+    adding = threading.Thread(target=add, daemon=True)
+    adding.start()
+    eventually(lambda: journal.exists() and "start slow" in journal.read_text(),
+               what="the add holding the configuration lock")
+    started = time.monotonic()
+    run.close(timeout=1.0)
+    assert time.monotonic() - started < 4.0
+    started = time.monotonic()
+    for call in (lambda: run.state("steady"), lambda: run.add("late", Steady),
+                 lambda: run.restart("steady"), lambda: run.events(0, timeout=1.0)):
+        with pytest.raises(RuntimeFailure, match="system 'closing' is stopped"):
+            call()
+    assert time.monotonic() - started < 1.0
+    adding.join(15)
+
+
+def test_a_state_edit_that_runs_out_of_time_was_not_done() -> None:
+    """It raised RuntimeTimeout and was applied later all the same, when the module's
+    step ended: a caller who took the error for "not done" was wrong."""
+    system = System("edit-in-time").add("slow", LongStep, state={"step_s": 1.5})
+    with system.launch() as run:
+        with pytest.raises(RuntimeFailure, match=r"busy in a call .*: nothing was done"):
+            run.set_state("slow", gain=42.0, timeout=0.5)
+        steps = run.state("slow", timeout=5.0)["steps"]
+        state = eventually(lambda: (s := run.state("slow", timeout=5.0))["steps"] > steps
+                           and s, timeout=10, what="a step after the edit's time ran out")
+    assert state["gain"] == 1.0

@@ -268,6 +268,16 @@ def test_a_write_that_times_out_is_sent_on_no_link_and_its_wait_is_counted() -> 
     assert sensor.label.wait_figures() == {"waits": 0, "wait_s": 0, "links": {}}
 
 
+@pytest.mark.parametrize("timeout", [float("nan"), float("inf"), -1.0, "1"])
+def test_a_write_timeout_that_is_not_seconds_is_refused_and_nothing_is_sent(timeout) -> None:
+    """NaN made the wait for room spin for good, inf an OverflowError at every write."""
+    sensor, seen = Sensor(), []
+    sensor.label.connect("waits", lambda value, wait: seen.append(value), lossless=True)
+    with pytest.raises((ValueError, TypeError), match="timeout must be a"):
+        sensor.label.write("a", timeout=timeout)
+    assert seen == [] and sensor.label.written == 0
+
+
 class Emitter(Module):
     out = Output(int)
 

@@ -56,7 +56,7 @@ class Connection(SystemHandle):
         # file or launch() may set longer than the library's
         self.timeout: float = described.get("timeout", DEFAULT_TIMEOUT)
 
-    def _request(self, op: str, args: dict[str, Any]) -> Any:
+    def _carry(self, op: str, args: dict[str, Any]) -> Any:
         wait = args.get("timeout")
         deadline = (self.timeout if wait is None else wait) + _MARGIN
         return self._client.request(op, args, deadline)

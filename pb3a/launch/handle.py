@@ -15,6 +15,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from typing import TYPE_CHECKING, Any
 
+from pb3a.errors import bounded_wait
 from pb3a.pending import Pending
 
 if TYPE_CHECKING:
@@ -30,8 +31,15 @@ class SystemHandle(ABC):
 
     name: str
 
-    @abstractmethod
     def _request(self, op: str, args: dict[str, Any]) -> Any:
+        """Check the call's ``timeout`` here (the same error embedded and through
+        ``pb3a.connect``), then carry it."""
+        if args.get("timeout") is not None:
+            bounded_wait(args["timeout"], op)
+        return self._carry(op, args)
+
+    @abstractmethod
+    def _carry(self, op: str, args: dict[str, Any]) -> Any:
         """Carry operation ``op`` with ``args`` to the system's ``Operations``."""
 
     # -- state -------------------------------------------------------------------

@@ -654,8 +654,15 @@ class Launcher:
             return self.changed.wait_for(lambda: self.health[node]["up"] == up, timeout)
 
     # -- shutdown ---------------------------------------------------------------------
+    @property
+    def stopped(self) -> bool:
+        """True once ``shutdown`` has begun."""
+        return self._stopping.is_set()
+
     def shutdown(self, timeout: float = 10.0) -> None:
-        """Stop modules in reverse start order (across nodes), then every node."""
+        """Stop modules in reverse start order (across nodes), then every node, within
+        about ``timeout`` seconds: a change in progress is waited for half of it at
+        most (then the system stops all the same, the change failing as it can)."""
         deadline = time.monotonic() + timeout
         self._stopping.set()
         for thread in (self._watchdog, self._env_keeper):
@@ -664,7 +671,11 @@ class Launcher:
         for name, remote in self.remotes.items():
             if self._silent(name):                    # gone, not yet declared: no waiting
                 remote.lose()
-        with self.lock.held("shut the system down"):
+        with contextlib.ExitStack() as held:
+            try:
+                held.enter_context(self.lock.held("shut the system down", timeout / 2))
+            except RuntimeTimeout as exc:
+                log.warning("%s: stopping it all the same", exc)
             for name in reversed(list(self.specs)):
                 left = max(0.1, deadline - time.monotonic())
                 try:

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 from pb3a.config import checks
 from pb3a.config.folding import fold
 from pb3a.config.plan import FlatLink, FlatModule
-from pb3a.errors import ConfigError, RuntimeFailure
+from pb3a.errors import ConfigError, RuntimeFailure, bounded_wait
 from pb3a.launch.migration import MigrationReport, migrate
 from pb3a.loading.references import resolve_class
 from pb3a.loading.served import forget, reload_problem
@@ -100,7 +100,8 @@ class Operations:
             yield lambda: max(0.0, deadline - time.monotonic())
 
     def _call_timeout(self, timeout: float | None) -> float:
-        return self.timeout if timeout is None else timeout
+        """The seconds a call may wait: its own, checked, else the system's default."""
+        return self.timeout if timeout is None else bounded_wait(timeout, "the call")
 
     # -- state -------------------------------------------------------------------
     def state(self, name: str, *, timeout: float | None = None) -> dict[str, Any]:
@@ -183,7 +184,9 @@ class Operations:
                 node.forget(module)
 
     def swap(self, name: str, cls: type | str, *, timeout: float | None = None) -> list[str]:
-        new_cls = resolve_class(cls)
+        new_cls, unresolved = _resolved(cls)
+        if new_cls is None:
+            raise ConfigError([f"swap {name}: {unresolved}"])
         with self._held(f"swap {name}", timeout, lend=[name]):
             launcher = self.launcher
             node = launcher.node_of(name)
@@ -267,12 +270,13 @@ class Operations:
         """Start a new module. It is checked as the compiler checks a configuration's
         entry first (name, period, restart, state, group, node, fallback): one
         ``ConfigError`` naming every problem, and nothing started."""
-        module_cls = resolve_class(cls)
+        module_cls, unresolved = _resolved(cls)
         with self._held(f"add {name}", timeout, lend=[name]):
             launcher = self.launcher
             node = node or next(iter(self.plan.nodes))
-            problems = _add_problems(name, module_cls, state, period, restart, group, node,
-                                     fallback, launcher.specs, list(launcher.nodes))
+            problems = [unresolved] if module_cls is None else []
+            problems += _add_problems(name, module_cls, state, period, restart, group, node,
+                                      fallback, launcher.specs, list(launcher.nodes))
             if problems:
                 raise ConfigError([f"module {name}: {problem}" for problem in problems])
             spec = FlatModule(name, module_cls, node,
@@ -415,6 +419,8 @@ class Operations:
         if op not in allowed:
             raise ValueError(f"unknown operation {op!r}; the operations: "
                              f"{', '.join(sorted(allowed))}")
+        if self.launcher.stopped:       # (an add waited 10 s for a worker, then failed)
+            raise RuntimeFailure(f"{op}: system {self.launcher.plan.name!r} is stopped")
         token = _ASKER.set(asker)
         try:
             if op == "events":
@@ -422,6 +428,15 @@ class Operations:
             return getattr(self, op)(**args)
         finally:
             _ASKER.reset(token)
+
+
+def _resolved(cls: type | str) -> tuple[type | None, str]:
+    """The class ``cls`` names and "", or None and why it names none (a problem the
+    operation reports with the others, in a ``ConfigError``)."""
+    try:
+        return resolve_class(cls), ""
+    except (ValueError, ImportError, LookupError, TypeError) as exc:
+        return None, str(exc)
 
 
 def _add_problems(name: Any, cls: Any, state: Any, period: Any, restart: Any, group: Any,
@@ -432,7 +447,9 @@ def _add_problems(name: Any, cls: Any, state: Any, period: Any, restart: Any, gr
     problems = checks.path(name, "module instance")
     if isinstance(name, str) and name in modules:
         problems.append("a module of that name runs already")
-    if not (isinstance(cls, type) and issubclass(cls, Module) and cls is not Module):
+    if cls is None:
+        pass                                    # (it names no class: the caller says why)
+    elif not (isinstance(cls, type) and issubclass(cls, Module) and cls is not Module):
         problems.append(f"{cls!r} is not a pb3a.Module subclass")
     else:
         problems += checks.state(cls, {} if state is None else state) + checks.displays(cls)

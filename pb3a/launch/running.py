@@ -13,7 +13,7 @@ import threading
 from typing import Any
 
 from pb3a.config.plan import Plan
-from pb3a.errors import ModuleNotFound
+from pb3a.errors import ModuleNotFound, bounded_wait
 from pb3a.launch.handle import SystemHandle
 from pb3a.launch.launcher import Launcher
 from pb3a.launch.operations import DEFAULT_TIMEOUT, FOR_AGENTS, Operations
@@ -39,15 +39,17 @@ class Running(SystemHandle):
                  listen: str | None = None) -> None:
         self.plan = plan
         self.name = plan.name
+        default = plan.timeout if timeout is None else bounded_wait(timeout, "launch")
         self._launcher = Launcher(plan, checkpoint_s=checkpoint_s, log_level=log_level)
-        self._operations = Operations(self._launcher, timeout or plan.timeout or DEFAULT_TIMEOUT)
+        self._operations = Operations(self._launcher,
+                                      DEFAULT_TIMEOUT if default is None else default)
         self._launcher.handler = self._agent_request
         self._stopped = threading.Event()
         self._server: ControlServer | None = None
         self.address: str | None = None       # where `pb3a status ADDR` etc. reach it
         self._listen_at = listen
 
-    def _request(self, op: str, args: dict[str, Any]) -> Any:
+    def _carry(self, op: str, args: dict[str, Any]) -> Any:
         return self._operations.apply(op, args)
 
     # -- life cycle ------------------------------------------------------------

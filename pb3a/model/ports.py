@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pb3a import latencies
-from pb3a.errors import RuntimeTimeout, link_stuck
+from pb3a.errors import RuntimeTimeout, bounded_wait, link_stuck
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterable, Sequence
@@ -579,6 +579,7 @@ def _send_waiting(sinks: tuple[tuple[str, Callable[[Any, float], Any]], ...], pa
     deadline for the write, not one per link. A link that times out (or is cut) raises
     RuntimeTimeout; the links before it have the payload, and the error says so: a
     write is not taken back."""
+    timeout = bounded_wait(timeout, "write on a lossless link")
     deadline = time.monotonic() + timeout if len(sinks) > 1 else 0.0
     left = timeout
     for done, (_, sink) in enumerate(sinks):

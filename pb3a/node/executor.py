@@ -51,6 +51,8 @@ _module_log = logging.getLogger("pb3a.module")
 
 REPORT_TIMEOUT = 5.0
 LOCK_TIMEOUT = 60.0      # longest a restart or a shutdown waits for the node's lock
+ANSWER_MARGIN_S = 0.25   # a worker gives up this much before its caller (its answer's way)
+_WAITS_FOR_THE_MODULE = frozenset({"get_state", "set_state"})
 
 
 @dataclass
@@ -164,7 +166,11 @@ class Executor:
 
     def call_module(self, name: str, op: str, timeout: float = REQUEST_TIMEOUT, /,
                     **args: Any) -> Any:
-        """Send one request about module ``name`` to its worker and wait for the answer."""
+        """Send one request about module ``name`` to its worker and wait for the answer.
+        One that waits for the module's lock gives up before its caller does: if its
+        caller's time runs out, it was not done, rather than done later."""
+        if op in _WAITS_FOR_THE_MODULE:
+            args["within"] = max(0.0, timeout - ANSWER_MARGIN_S)
         return self.call(self.modules[name].worker, op, timeout, name=name, **args)
 
     def _alive(self, key: str) -> bool:

@@ -351,7 +351,8 @@ class ModuleActor:
                 finally:
                     self.lock.release()
             if time.monotonic() >= deadline:
-                raise TimeoutError(f"module {self.name!r} was busy in a call for {timeout} s")
+                raise TimeoutError(f"module {self.name!r} was busy in a call for {timeout:g} "
+                                   "s: nothing was done")
 
     def acquire_stopped(self, timeout: float, why: str) -> bool:
         """Take the module lock with no body running, cancelling a runtime call a body

@@ -443,11 +443,11 @@ class Worker:
         """Drop cached copies of ``module``: the next load or swap gets the new code."""
         return forget(module)
 
-    def op_get_state(self, name: str) -> dict[str, Any]:
-        return self.actors[name].capture()
+    def op_get_state(self, name: str, within: float = 10.0) -> dict[str, Any]:
+        return self.actors[name].capture(within)
 
-    def op_set_state(self, name: str, state: dict[str, Any]) -> None:
-        self.actors[name].apply(state)
+    def op_set_state(self, name: str, state: dict[str, Any], within: float = 10.0) -> None:
+        self.actors[name].apply(state, within)
 
     def op_swap(self, name: str, cls: bytes) -> list[str]:
         module = cloudpickle.loads(cls)()
