@@ -33,6 +33,7 @@ ROBOT_OPS = ("drive", "stop", "sensors", "camera", "inject", "clear", "swap", "a
              "cycle")
 MAX_ADVANCE_S = 10.0          # simulated seconds one ``advance`` may ask for
 TICK_S = 0.005                # s of wall time between a fast-paced world's steps (about)
+MIN_RATE = 1e-6              # a world paced slower than this would wait longer than threads can
 MOST_STEPS = 50               # physics steps in one world step at most: beyond 100x real
                               # time the machine sets the pace, in holds short enough for
                               # requests to get in between (and ``close`` to stop it)
@@ -183,9 +184,10 @@ def _apply(robot: Any, op: str, args: dict[str, Any], now: float) -> Any:
 
 
 def _check_rate(rate: float) -> None:
-    if not 0 <= rate < math.inf:
+    # (below MIN_RATE a tick's wait is more than a thread can wait: the stepper died)
+    if not (rate == 0 or MIN_RATE <= rate < math.inf):
         raise ValueError(f"a world's rate is how many times real time it runs, a finite "
-                         f"number, 0 or more (0 holds it), not {rate}")
+                         f"number, 0 (holds it) or at least {MIN_RATE:g}, not {rate}")
 
 
 class WorldProcess:

@@ -110,8 +110,7 @@ class World:
         for i, robot in enumerate(plan.robots):
             x, y, _ = robot["pose"]
             hits = [label for label, obstacle in zip(labels, self.obstacles, strict=True)
-                    if not (obstacle.virtual and robot["backend"] == "hardware")
-                    and _clearance(obstacle, x, y) < RADIUS]
+                    if _blocks(obstacle, robot["backend"], x, y)]
             hits += [f"robot {name!r}" for name, (px, py) in placed
                      if math.hypot(x - px, y - py) < 2 * RADIUS]
             if hits:
@@ -184,6 +183,14 @@ class World:
         place = (float(pose[0]), float(pose[1]), float(pose[2]))
         if not all(map(math.isfinite, place)):
             raise ValueError(f"robot {name}: pose must be finite (x, y, heading), not {place}")
+        x, y, _ = place
+        hits = [f"obstacle {i} ({obstacle.points[0]}, ...)"
+                for i, obstacle in enumerate(self.obstacles) if _blocks(obstacle, backend, x, y)]
+        hits += [f"robot {other!r}" for other, robot in self.robots.items()
+                 if math.dist((x, y), robot.gps()[:2]) < 2 * RADIUS]
+        if hits:                        # (as a world file's robot is refused)
+            raise ValueError(f"robot {name}: at ({x:g}, {y:g}) it overlaps {', '.join(hits)}; "
+                             f"a robot needs {RADIUS:g} m clear of obstacles and other robots")
         robot = Robot(self, name, place, backend=backend, color=color, index=self._added)
         self._added += 1                # (never reused: a robot's noise is its own)
         self.robots[name] = robot
@@ -337,6 +344,12 @@ def _signed_area(points: list[tuple[float, float]]) -> float:
     """Twice the area enclosed, positive when the points go round anticlockwise."""
     return sum(x0 * y1 - x1 * y0 for (x0, y0), (x1, y1)
                in itertools.pairwise([*points, points[0]]))
+
+
+def _blocks(obstacle: Obstacle, backend: str, x: float, y: float) -> bool:
+    """Whether a robot on ``backend`` at (x, y) overlaps ``obstacle`` (a hardware robot
+    passes through virtual ones): it would run stuck, or be shoved through it."""
+    return not (obstacle.virtual and backend == "hardware") and _clearance(obstacle, x, y) < RADIUS
 
 
 def _point(value: Any, what: str) -> tuple[float, float]:

@@ -16,6 +16,7 @@ from sample_modules import Counter, FastScale, Last, Relay, Scale
 
 from pb3a import System
 from pb3a.cli.main import INTERRUPTED, main
+from pb3a.cli.standard_output import BROKEN_PIPE
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -140,3 +141,23 @@ def test_ctrl_c_ends_a_command_on_a_running_system_with_status_130() -> None:
                 follower.wait(5)
             follower.stdout.close()
             follower.stderr.close()
+
+
+@pytest.mark.timeout(90)
+def test_a_command_whose_reader_has_gone_ends_quietly() -> None:
+    """``pb3a status ADDR --json | head -c 300`` ended in a BrokenPipeError traceback."""
+    system = System("cli-reader-gone").add("count", Counter)
+    with system.launch() as run:
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "tests"), str(REPO)])}
+        command = subprocess.Popen([sys.executable, "-m", "pb3a", "status", run.listen(),
+                                    "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                   text=True, env=env)
+        try:
+            command.stdout.close()                  # gone before the command writes
+            assert command.wait(timeout=30) == BROKEN_PIPE
+            assert command.stderr.read() == ""
+        finally:
+            if command.poll() is None:
+                command.kill()
+                command.wait(5)
+            command.stderr.close()

@@ -453,6 +453,22 @@ def test_an_input_fed_twice(tmp_path: Path) -> None:
         "remove one of them or feed another input"]
 
 
+def test_a_link_with_a_bad_policy_still_counts_for_the_input_it_feeds(tmp_path: Path) -> None:
+    """Its input's other problems were hidden until the policy was mended."""
+    problems = problems_of(tmp_path, TWO + """
+        [[links]]
+        from = "src.out"
+        to = "sink.x"
+        policy = "queue:abc"
+        [[links]]
+        from = "sink.y"
+        to = "sink.x"
+    """)
+    assert len(problems) == 2
+    only(problems, "[[links]] #1 (src.out -> sink.x):", "queue:abc")
+    only(problems, "[[links]] #2 (sink.y -> sink.x):", "input sink.x is fed twice")
+
+
 def test_incompatible_types(tmp_path: Path) -> None:
     problems = problems_of(tmp_path, """
         [modules.w]

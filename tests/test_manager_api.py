@@ -4,6 +4,7 @@ that a refused request changes nothing."""
 from __future__ import annotations
 
 import struct
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -427,6 +428,22 @@ def test_classes_list_the_catalog_with_ports_state_and_origin(client) -> None:
     assert mapper["state"]["grid"]["type"] == "ndarray"
     doubler = next(c for c in catalog["classes"] if c["class"] == "sample_modules:Doubler")
     assert doubler["kind"] == "agent"
+
+
+def test_the_catalog_lists_the_classes_beside_the_document(tmp_path, monkeypatch) -> None:
+    """They were found there but imported by a name nothing could import (the document's
+    directory was not on the import path, as it is for `pb3a run`): the list was empty."""
+    project = tmp_path / "project_catalog"
+    project.mkdir()
+    (project / "controllers_beside.py").write_text(
+        "from pb3a import Module, Output\n\n\n"
+        "class Beside(Module):\n    out = Output(float)\n")
+    (project / "robot.toml").write_text('name = "robot"\n')
+    monkeypatch.setattr("sys.path", list(sys.path))         # (the test's own, restored)
+    document = Document.open(project / "robot.toml")
+    listed = Catalog(document).classes()
+    assert "controllers_beside:Beside" in [c["class"] for c in listed["classes"]]
+    assert not [p for p in listed["problems"] if p.startswith("controllers_beside")]
 
 
 def test_an_unknown_route_is_a_json_404(client) -> None:

@@ -18,6 +18,7 @@ from conftest import daemon_banner_then_clean_exit, daemon_signalled_as_it_start
 from pb3a import System
 from pb3a.daemons.module_server import ModuleServer
 from pb3a.loading import served as served_code
+from pb3a.loading.references import resolve_class
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 
@@ -161,3 +162,19 @@ def test_a_module_server_that_does_not_answer_holds_up_one_import_not_every_one(
         for client in finder.clients.values():
             client.close()
     assert waits[0] >= 0.3 and max(waits[1:]) < 0.05, waits
+
+
+def test_a_class_that_cannot_be_imported_names_the_module_server_that_did_not_answer(
+        monkeypatch) -> None:
+    """It said only to check the module path, with the server it needed down."""
+    monkeypatch.setattr(served_code, "FIND_TIMEOUT", 0.3)
+    finder = served_code.ServedModuleFinder(ClusterKey.load())
+    finder.add("tcp://127.0.0.1:9")                   # nobody listens there
+    monkeypatch.setattr(sys, "meta_path", [*sys.meta_path, finder])
+    try:
+        with pytest.raises(ImportError, match=r"module server tcp://127.0.0.1:9 did not "
+                                              "answer: start it"):
+            resolve_class("pb3a_nowhere_served:Thing")
+    finally:
+        for client in finder.clients.values():
+            client.close()

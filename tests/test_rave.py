@@ -3,6 +3,7 @@ back-end swap, the camera, world files and determinism."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import signal
@@ -400,11 +401,13 @@ def test_the_batched_scan_of_a_crowd_equals_casting_every_ray_against_everything
                       virtual=i % 2 == 0)
     world.add_polygon([(1, 1), (4, 1), (4, 3), (3, 2), (1, 3)])          # concave
     world.add_wall((0, 0), (12, 0))
-    rng = np.random.default_rng(8)
-    for i in range(24):
-        world.add_robot(f"r{i}", (*rng.uniform(0.5, 11.5, 2), rng.uniform(-3, 3)))
     world.add_robot("hugger", (2.0, 5.0, 0.0))                # 0.25 m off a box's side
     world.add_robot("h", (6.0, 9.0, 1.0), backend="hardware")
+    rng = np.random.default_rng(8)
+    while len(world.robots) < 26:               # (a pose that overlaps is refused)
+        with contextlib.suppress(ValueError):
+            world.add_robot(f"r{len(world.robots)}",
+                            (*rng.uniform(0.5, 11.5, 2), rng.uniform(-3, 3)))
     fleet = world.fleet
     start = fleet.pose.copy()
     for tick in range(30):
@@ -691,3 +694,16 @@ def test_a_world_file_whose_robot_fails_to_start_leaves_no_emulator_running(
     assert failed.value is not None         # (held: the world is not collected yet)
     started = {child.pid for child in psutil.Process().children()} - before
     assert not [pid for pid in started if alive(pid)]
+
+
+def test_a_robot_added_over_an_obstacle_or_a_robot_is_refused(world_of: WorldMaker) -> None:
+    """As a world file's robot is: it ran stuck, or backwards (the docs' own example
+    put one inside a box)."""
+    world = world_of(size=(10, 8), seed=1)
+    world.add_box((2.5, 2.0), (0.8, 0.8), virtual=True)
+    with pytest.raises(ValueError, match=r"robot r: at \(2, 2\) it overlaps obstacle 0"):
+        world.add_robot("r", (2.0, 2.0, 0.0))
+    world.add_robot("hw", (2.0, 2.0, 0.0), backend="hardware")      # it passes virtual ones
+    with pytest.raises(ValueError, match="it overlaps robot 'hw'"):
+        world.add_robot("s", (2.0, 2.4, 0.0), backend="hardware")
+    assert list(world.robots) == ["hw"]

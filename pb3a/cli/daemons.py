@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import argparse
 import errno
-import os
 import signal
 import socket
 import sys
@@ -16,6 +15,7 @@ from typing import Any
 
 import zmq
 
+from pb3a.cli.standard_output import output_gone
 from pb3a.transport.addresses import bind_address
 from pb3a.transport.auth import ClusterKey, ClusterKeyError
 
@@ -53,9 +53,7 @@ def _announce(banner: str) -> None:
     try:
         print(banner, flush=True)
     except BrokenPipeError:
-        nowhere = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(nowhere, sys.stdout.fileno())       # (Python's flush at exit too)
-        os.close(nowhere)
+        output_gone()
 
 
 def _check_bindable(listen: str, host: str, port: int) -> None:

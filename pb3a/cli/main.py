@@ -25,6 +25,8 @@ import argparse
 import sys
 from collections.abc import Callable, Sequence
 
+from pb3a.cli.standard_output import BROKEN_PIPE, output_gone
+
 INTERRUPTED = 130      # the shell's convention for a command ended by SIGINT
 
 
@@ -44,6 +46,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("pb3a: interrupted", file=sys.stderr)
         return INTERRUPTED
+    except BrokenPipeError:            # its reader went: quietly, as a Unix tool
+        output_gone()
+        return BROKEN_PIPE
 
 
 def _parser() -> argparse.ArgumentParser:

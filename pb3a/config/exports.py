@@ -116,14 +116,15 @@ class LinkResolver:
                         f"incompatible types: {link.src} gives {src.spec.describe()} but "
                         f"{link.dst} takes {dst.spec.describe()} ({reason}); link ports of "
                         "matching types, or change one port's type")
-            policy: Policy | None = None
+            declared = dst.spec.policy if dst is not None and isinstance(dst.spec, Input) \
+                else None
+            policy, wrong_policy = declared, []
             if link.policy is not None:
                 try:
                     policy = Policy.parse(link.policy)
-                except ValueError as exc:
-                    problems.append(f"{exc} (or leave 'policy' out to keep the input's own)")
-            elif dst is not None and isinstance(dst.spec, Input):
-                policy = dst.spec.policy
-            self.problems.extend(f"{label}: {p}" for p in problems)
+                except ValueError as exc:        # (the link still counts for the
+                    wrong_policy = [             # checks of the input it feeds)
+                        f"{exc} (or leave 'policy' out to keep the input's own)"]
+            self.problems.extend(f"{label}: {p}" for p in problems + wrong_policy)
             if not problems and src is not None and dst is not None and policy is not None:
                 definition.resolved.append((label, src, dst, policy))

@@ -44,6 +44,11 @@ class ServedModuleFinder(importlib.abc.MetaPathFinder):
         if address not in self.clients:
             self.clients[address] = ControlClient(self._key, address)
 
+    def silent(self) -> list[str]:
+        """The servers not asked now, since they did not answer lately."""
+        now = time.monotonic()
+        return [address for address, until in self._silent_until.items() if now < until]
+
     def find_spec(self, fullname: str, path: Any = None, target: Any = None) -> ModuleSpec | None:
         for address, client in list(self.clients.items()):
             if time.monotonic() < self._silent_until.get(address, 0.0):
@@ -74,6 +79,13 @@ class _SourceLoader(importlib.abc.Loader):
         if module.__spec__ is not None and module.__spec__.submodule_search_locations is not None:
             module.__path__ = []                   # a package: submodules come from servers
         exec(compile(self._source, self._origin, "exec"), module.__dict__)
+
+
+def silent_servers() -> list[str]:
+    """The module servers of this process that did not answer lately (an import that
+    fails may have needed one of them)."""
+    return [address for finder in sys.meta_path if isinstance(finder, ServedModuleFinder)
+            for address in finder.silent()]
 
 
 def use_module_servers(addresses: Sequence[str], key: ClusterKey | None = None) -> None:

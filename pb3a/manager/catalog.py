@@ -1,7 +1,8 @@
 """The module browser's catalog: the module classes a user can place, with their ports.
 
 Classes come from two places: the project's own directories (the document's
-directory and the directories on ``sys.path`` outside the Python installation),
+directory, the current one and the directories on ``sys.path`` outside the Python
+installation),
 and module servers (each lists what it serves): those the document names
 (``module_servers``) and, when the manager is attached to a running system, those
 that system's nodes import from (its topology's ``module_servers``). A Python file
@@ -122,7 +123,12 @@ class Catalog:
         problems: list[str] = []
         modules: dict[str, str] = {}            # dotted name -> origin
         for root in self._directories():
-            for name in _module_names(root, problems):
+            names = _module_names(root, problems)
+            if names and str(root) not in sys.path:
+                # imported by the names found there, as `pb3a run` imports a file's
+                # classes: the document's directory goes on the import path
+                sys.path.append(str(root))
+            for name in names:
                 modules.setdefault(name, "path")
         if servers:
             modules.update({name: origin for name, origin in self._served(servers, problems)
@@ -151,6 +157,7 @@ class Catalog:
             roots = [Path(entry or ".").resolve() for entry in sys.path]
             roots = [root for root in roots if root.is_dir()
                      and not any(root.is_relative_to(base) for base in installed)]
+            roots.insert(0, Path.cwd())      # (a console script's path does not have it)
         if self.document.path is not None:
             roots.insert(0, self.document.path.resolve().parent)
         return list(dict.fromkeys(roots))
