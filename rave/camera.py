@@ -71,12 +71,14 @@ class Blob:
 
 @dataclass(frozen=True)
 class Target:
-    """Something with a colour that a camera may see: a disc at (x, y)."""
+    """Something with a colour that a camera may see: a disc at (x, y), or, with an
+    ``outline``, the polygon of those corners (a coloured obstacle)."""
 
     x: float
     y: float
     radius: float
     color: str | tuple[float, float, float]
+    outline: tuple[tuple[float, float], ...] | None = None
 
 
 def look(pose: tuple[float, float, float], targets: list[Target], occluders: np.ndarray,
@@ -92,15 +94,58 @@ def look(pose: tuple[float, float, float], targets: list[Target], occluders: np.
             continue
         if hue is not None and hue_distance(h, hue) > tolerance:
             continue
-        dx, dy = target.x - x, target.y - y
-        distance = math.hypot(dx, dy)
-        bearing = math.remainder(math.atan2(dy, dx) - theta, math.tau)
-        if distance <= target.radius or distance > RANGE or abs(bearing) > FOV / 2:
+        seen = _view(x, y, target)
+        if seen is None:
             continue
-        ray = np.array([[dx / distance, dy / distance]])
-        hidden = raycast.cast(np.array([[x, y]]), ray, distance - target.radius, occluders)
+        near, (nx, ny), bearing, size = seen
+        bearing = math.remainder(bearing - theta, math.tau)
+        if near > RANGE or abs(bearing) > FOV / 2:
+            continue
+        ray = np.array([[(nx - x) / near, (ny - y) / near]])
+        # (a hair short of the nearest point: the target's own edges must not hide it)
+        hidden = raycast.cast(np.array([[x, y]]), ray, near * (1 - 1e-9), occluders)
         if np.isfinite(hidden.ranges[0]):
             continue
-        size = 2.0 * math.asin(min(1.0, target.radius / distance))
-        blobs.append(Blob(bearing, size, h, distance - target.radius))
+        blobs.append(Blob(bearing, size, h, near))
     return sorted(blobs, key=lambda blob: blob.distance)
+
+
+def _view(x: float, y: float, target: Target,
+          ) -> tuple[float, tuple[float, float], float, float] | None:
+    """How ``target`` looks from (x, y): the distance to its nearest point, that point,
+    the bearing of its middle (world frame) and the angle it spans; None from inside."""
+    dx, dy = target.x - x, target.y - y
+    distance = math.hypot(dx, dy)
+    if target.outline is None:
+        if distance <= target.radius:
+            return None
+        near = distance - target.radius
+        point = (x + dx * near / distance, y + dy * near / distance)
+        return near, point, math.atan2(dy, dx), 2.0 * math.asin(target.radius / distance)
+    corners = np.asarray(target.outline, dtype=np.float64)
+    if _inside(x, y, corners):
+        return None
+    starts, ends = corners, np.roll(corners, -1, axis=0)
+    edges = ends - starts
+    t = np.clip(((x - starts[:, 0]) * edges[:, 0] + (y - starts[:, 1]) * edges[:, 1])
+                / np.maximum((edges ** 2).sum(axis=1), 1e-18), 0.0, 1.0)
+    nearest = starts + t[:, None] * edges
+    gaps = np.hypot(nearest[:, 0] - x, nearest[:, 1] - y)
+    i = int(np.argmin(gaps))
+    if gaps[i] <= 0.0:
+        return None
+    toward = math.atan2(dy, dx)        # corners' bearings, unwrapped round the middle's
+    turns = np.remainder(np.arctan2(corners[:, 1] - y, corners[:, 0] - x) - toward
+                         + math.pi, math.tau) - math.pi
+    low, high = float(turns.min()), float(turns.max())
+    return (float(gaps[i]), (float(nearest[i, 0]), float(nearest[i, 1])),
+            toward + (low + high) / 2, high - low)
+
+
+def _inside(x: float, y: float, corners: np.ndarray) -> bool:
+    """Whether (x, y) is inside the polygon ``corners`` (even-odd rule)."""
+    inside = False
+    for (x0, y0), (x1, y1) in zip(corners, np.roll(corners, -1, axis=0), strict=True):
+        if (y0 > y) != (y1 > y) and x < x0 + (y - y0) * (x1 - x0) / (y1 - y0):
+            inside = not inside
+    return inside

@@ -303,7 +303,8 @@ class World:
                          if name != exclude], dtype=np.float64).reshape(-1, 3)
 
     def targets(self, exclude: str | None = None) -> list[Target]:
-        """What cameras may see: every other robot, and coloured obstacles (as discs)."""
+        """What cameras may see: every other robot, and coloured obstacles (their
+        outlines)."""
         found = [Target(*robot.gps()[:2], RADIUS, robot.color)
                  for name, robot in self.robots.items() if name != exclude]
         for obstacle in self.obstacles:
@@ -311,7 +312,8 @@ class World:
                 pts = np.asarray(obstacle.points)
                 center = pts.mean(axis=0)
                 radius = float(np.hypot(*(pts - center).T).max())
-                found.append(Target(float(center[0]), float(center[1]), radius, obstacle.color))
+                found.append(Target(float(center[0]), float(center[1]), radius, obstacle.color,
+                                    outline=tuple(obstacle.points)))
         return found
 
     def describe(self) -> dict[str, Any]:
