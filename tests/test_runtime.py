@@ -434,6 +434,29 @@ def test_relink_without_a_policy_keeps_the_link_s_own() -> None:
         assert run.stats().links["src.out->dst.x"].policy == "latest"
 
 
+@pytest.mark.parametrize("workers", [0, 1])
+def test_a_relinked_input_s_figures_are_its_new_link_s(workers: int) -> None:
+    """They were the input's since it started: the new link showed the values of the old
+    writer (903 values from a writer that wrote none), and written less received went
+    negative. A move of the reader keeps them (the same link)."""
+    system = System(f"relinked-figures-{workers}")
+    system.node("a", workers=workers).node("b")
+    system.add("src", Counter, state={"limit": 0}, period=0.001, node="a")
+    system.add("quiet", Counter, state={"limit": 1, "count": 1}, node="a")   # writes none
+    system.add("dst", Collector, node="a")
+    system.link("src.out", "dst.x")
+    with system.launch() as run:
+        eventually(lambda: run.stats().links["src.out->dst.x"].values > 100, what="values")
+        run.relink("quiet.out", "dst.x")
+        link = run.stats().links["quiet.out->dst.x"]
+        assert (link.values, link.drops, link.latency_counts) == (0, 0, {})
+        run.relink("src.out", "dst.x")
+        eventually(lambda: run.stats().links["src.out->dst.x"].values > 50, what="values")
+        run.migrate("dst", "b")
+        before = run.stats().links["src.out->dst.x"].values
+        assert before > 50                        # (carried with the reader)
+
+
 def test_packed_modules_fill_workers_in_declaration_order() -> None:
     system = System("packed", workers=2)
     for chain in range(4):

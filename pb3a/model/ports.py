@@ -175,6 +175,7 @@ class InputPort:
         self.latency = math.nan      # smoothed seconds from write to delivery
         self.latency_counts = [0] * latencies.BUCKETS   # values per latency bucket
         self.rate = 0.0              # smoothed values per second
+        self.source = ""             # the link that feeds it (its counters are that link's)
         self._values: collections.deque[Any] = collections.deque()
         self._latest: Any = _MISSING
         self._fresh = False
@@ -411,6 +412,19 @@ class InputPort:
             if self._room_wanted and len(self._values) < policy.size:   # a larger queue
                 self._made_room()
 
+    def fed_by(self, link: str) -> None:
+        """``link`` feeds the port from now on. Its counters are its link's: a new link
+        (a relink) starts them again, so that the link's figures are its own (the old
+        writer's values were counted as the new one's); the same link (a move of the
+        reader, which carried the counters) keeps them."""
+        with self._lock:
+            if self.source and link != self.source:
+                self.received = self.drops = self.link_failures = self._window_count = 0
+                self.latency_counts = [0] * latencies.BUCKETS
+                self.latency = self._last_arrival = math.nan
+                self.rate, self._window_start = 0.0, -math.inf
+            self.source = link
+
     def export(self) -> dict[str, Any]:
         """Unconsumed values and counters, for a migration (see ``restore``)."""
         with self._lock:
@@ -418,7 +432,7 @@ class InputPort:
                     "latest": None if self._latest is _MISSING else (self._latest,),
                     "undispatched": self._undispatched, "received": self.received,
                     "drops": self.drops, "link_failures": self.link_failures,
-                    "latency_counts": list(self.latency_counts)}
+                    "latency_counts": list(self.latency_counts), "source": self.source}
 
     def restore(self, held: dict[str, Any]) -> None:
         """Take over an exported port: its values come before anything delivered later
@@ -433,6 +447,7 @@ class InputPort:
             self.link_failures += held["link_failures"]
             for index, count in enumerate(held["latency_counts"]):
                 self.latency_counts[index] += count
+            self.source = self.source or held.get("source", "")
             owed = self._undispatched > 0
         if owed and self._notify is not None:
             self._notify(self)

@@ -326,6 +326,7 @@ class Worker:
     def op_link_in(self, key: str, dst: str, dst_port: str, ring: str, policy: str) -> None:
         port = self.actors[dst].inputs[dst_port]
         port.set_policy(Policy.parse(policy))
+        port.fed_by(key)
         shm_ring = ShmRing.attach(ring)
         shm_ring.resume_reader()   # a restarted reader continues where the last one stopped
         shm_ring.label = key       # a value it cannot decode is logged naming its link
@@ -375,6 +376,7 @@ class Worker:
         target = self.actors[dst].inputs[dst_port]
         parsed = Policy.parse(policy)
         target.set_policy(parsed)
+        target.fed_by(key)
         if parsed.lossless:
             # The writer waits for room in the input itself (outside the reader's module
             # lock: the reader's read wakes it), as it would for room in a ring.
