@@ -54,6 +54,7 @@ DEFAULT_TIMEOUT = 30.0      # seconds an operation may wait, unless told otherwi
 PUBLIC = frozenset({"state", "set_state", "swap", "relink", "link", "add", "remove",
                     "restart", "migrate", "begin_migration", "migration", "reload", "stats",
                     "where", "nodes", "topology", "configuration", "events", "logs"})
+_HISTORY = frozenset({"events", "logs"})      # what a stopped system still answers
 # What an agent may ask through ``self.runtime`` (it spawns with "add").
 FOR_AGENTS = PUBLIC - {"reload"}
 KEEP_JOBS = 1000            # background operations whose outcome is kept for asking
@@ -405,11 +406,17 @@ class Operations:
             return self.launcher.stats()
 
     def events_since(self, since: int = 0, *, timeout: float | None = 0.0) -> list[Event]:
-        return self.events.since(since, self._call_timeout(timeout))
+        return self.events.since(since, self._history_wait(timeout))
 
     def logs(self, since: int = 0, *, module: str | None = None,
              timeout: float | None = 0.0) -> list[LogEntry]:
-        return self.launcher.logbook.since(since, self._call_timeout(timeout), module)
+        return self.launcher.logbook.since(since, self._history_wait(timeout), module)
+
+    def _history_wait(self, timeout: float | None) -> float:
+        """How long a read of the events or the log waits for a first new entry: none
+        once the system is stopped (no entry will come), which is still read."""
+        wait = self._call_timeout(timeout)
+        return 0.0 if self.launcher.stopped else wait
 
     # -- requests from outside --------------------------------------------------------
     def apply(self, op: str, args: dict[str, Any], allowed: frozenset[str] = PUBLIC, *,
@@ -419,8 +426,9 @@ class Operations:
         if op not in allowed:
             raise ValueError(f"unknown operation {op!r}; the operations: "
                              f"{', '.join(sorted(allowed))}")
-        if self.launcher.stopped:       # (an add waited 10 s for a worker, then failed)
-            raise RuntimeFailure(f"{op}: system {self.launcher.plan.name!r} is stopped")
+        if self.launcher.stopped and op not in _HISTORY:   # (an add waited for dead workers)
+            raise RuntimeFailure(f"{op}: system {self.launcher.plan.name!r} is stopped "
+                                 "(its events and log can still be read)")
         token = _ASKER.set(asker)
         try:
             if op == "events":
