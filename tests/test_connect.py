@@ -199,3 +199,21 @@ def test_a_class_that_does_not_resolve_is_one_config_error_with_the_rest_both_wa
             with pytest.raises(ConfigError, match="swap scale: bad class reference"):
                 handle.swap("scale", "sample_modules.Nope")
         assert set(run.stats().modules) == {"scale"}                # nothing added
+
+
+def test_one_connection_waiting_for_events_holds_up_no_other() -> None:
+    """The launcher's server ran requests one at a time: a follower's events(timeout=3)
+    (as `pb3a events --follow` and the manager poll) made another connection's
+    state(timeout=1) wait for it, past its own timeout."""
+    with System("busy-lane").add("scale", Scale).launch() as run:
+        address = run.listen()
+        with pb3a.connect(address) as follower, pb3a.connect(address) as other:
+            waiting = threading.Thread(target=lambda: follower.events(10**6, timeout=3.0))
+            waiting.start()
+            try:
+                time.sleep(0.2)          # (its request in the server before ours)
+                started = time.monotonic()
+                other.state("scale", timeout=1.0)
+                assert time.monotonic() - started < 1.0
+            finally:
+                waiting.join(10)

@@ -22,6 +22,7 @@ from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlServer
 
 log = logging.getLogger("pb3a")
+_ASIDE = frozenset({"agent", "event", "checkpoint", "republished", "events", "logs", "migration"})
 
 
 def launch(plan: Plan, **options: Any) -> Running:
@@ -94,11 +95,13 @@ class Running(SystemHandle):
         """Take authenticated requests (``pb3a.connect``, ``pb3a status ADDR`` ...) at
         ``address``; returns the address bound."""
         if self._server is None:
-            # An agent's request from a remote node may be what the operation in
-            # progress waits for (the setup of the module it starts): not in its lane.
+            # Not in the lane of operations, one at a time: an agent's request from a
+            # remote node (the operation in progress may wait for it: the setup of the
+            # module it starts), what nodes report, and the reads that wait for news
+            # (a follower's events held the lane 1 s in 1.2, and other callers' waits).
             self._server = ControlServer(ClusterKey.load(), self._remote_request,
                                          *bind_address(address), name="pb3a-launcher",
-                                         aside={"agent"})
+                                         aside=_ASIDE)
             self.address = self._server.address
         return self.address
 
