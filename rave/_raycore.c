@@ -109,7 +109,8 @@ static void cast_segment(const Ring *ring, double *row, double ax, double ay,
     }
 }
 
-/* Disc at c (robot's frame) of radius r against its run of rays, from outside. */
+/* Disc at c (robot's frame) of radius r against its run of rays (a ray from inside
+ * it meets it at once). */
 static void cast_disc(const Ring *ring, double *row, double cx, double cy, double r) {
     const double *ox = ring->rays, *oy = ox + ring->m, *dx = oy + ring->m, *dy = dx + ring->m;
     double distance = sqrt(cx * cx + cy * cy);
@@ -123,7 +124,11 @@ static void cast_disc(const Ring *ring, double *row, double cx, double cy, doubl
         double b = mx * dx[j] + my * dy[j];
         double c = mx * mx + my * my - r * r;
         double disc = b * b - c;
-        if (disc < 0 || c <= 0)
+        if (c <= 0) {                        /* from inside the disc: met at once */
+            row[ring->order[j]] = MIN(row[ring->order[j]], 0.0);
+            continue;
+        }
+        if (disc < 0)
             continue;
         double t = -b - sqrt(disc);
         if (t >= 0 && t <= ring->max_range)

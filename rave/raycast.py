@@ -107,15 +107,17 @@ def segment_hits(ox: np.ndarray, oy: np.ndarray, dx: np.ndarray, dy: np.ndarray,
 def disc_hits(ox: np.ndarray, oy: np.ndarray, dx: np.ndarray, dy: np.ndarray,
               cx: np.ndarray, cy: np.ndarray, radius: np.ndarray, max_range: float,
               ) -> np.ndarray:
-    """How far along rays ``o + t d`` (unit ``d``) each meets the disc at ``c`` from
-    outside, ``inf`` where it does not within ``max_range``; arrays broadcast."""
+    """How far along rays ``o + t d`` (unit ``d``) each meets the disc at ``c``, ``inf``
+    where it does not within ``max_range``; arrays broadcast. A ray from inside the
+    disc meets it at once (0): a transducer off the robot's rim, touching another
+    robot, is inside that robot's disc, and read no echo from it."""
     mx, my = ox - cx, oy - cy
     b = mx * dx + my * dy
     c = mx * mx + my * my - radius * radius
     disc = b * b - c
     with np.errstate(invalid="ignore"):
-        t = -b - np.sqrt(disc)
-    t[~((disc >= 0) & (c > 0) & (t >= 0) & (t <= max_range))] = np.inf
+        t = np.where(c > 0, -b - np.sqrt(disc), 0.0)
+    t[~((disc >= 0) & (t >= 0) & (t <= max_range))] = np.inf
     return t
 
 

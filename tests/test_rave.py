@@ -720,3 +720,18 @@ def test_the_camera_sees_a_coloured_obstacle_at_its_nearest_point(world_of: Worl
         assert blob.distance == pytest.approx(face) and blob.bearing == pytest.approx(0.0)
         assert blob.size == pytest.approx(2 * math.atan2(1.5, face))     # its near corners
         world.remove_robot(robot.name)
+
+
+def test_a_robot_backed_against_another_senses_it_behind(world_of: WorldMaker) -> None:
+    """The rear transducers sit just off the rim (0.256 m from the centre): touching
+    another robot they are inside its disc, and their rays, cast from outside only,
+    read no echo (5 m) from a robot pressed against them."""
+    world = world_of(size=(10, 8), seed=1)
+    backing = world.add_robot("a", (5.0, 4.0, 0.0))
+    world.add_robot("b", (4.3, 4.0, 0.0))
+    backing.drive(-0.3, 0.0)
+    world.step(3.0)                                  # it backs into b and stays there
+    assert world.pose("a")[0] - world.pose("b")[0] < 2 * 0.256
+    rear = backing.sonar()[11:13]                    # the two pointing straight back
+    assert (rear <= 0.15).all(), rear
+    _assert_scan_equals_casting_every_ray(world)     # the same, cast one by one
