@@ -50,6 +50,7 @@ from agents.grid import (
     classify,
 )
 from pb3a import Input, Module, Output
+from pb3a.config.checks import finite
 from rave.pioneer import RADIUS
 from rave.sonar import RING
 
@@ -768,7 +769,7 @@ class Explorer(Module):
                                            # setup)
 
     def setup(self) -> None:
-        grid = Grid.of(self.size, self.resolution)
+        grid = _checked(self.get_state())
         if self.trail.shape != grid.shape:       # a fresh explorer
             self.trail = np.zeros(grid.shape, dtype=bool)
         if self.echoes.shape != grid.shape:
@@ -782,9 +783,9 @@ class Explorer(Module):
     def set_state(self, state: dict[str, Any]) -> None:
         """Set state; a running explorer goes by it from its next step (its settings,
         and what it remembers: a target, a frontier set aside), rather than writing its
-        own memory back over it. A size or resolution setup would refuse is refused, and
+        own memory back over it. A setting setup would refuse is refused, naming it, and
         nothing is set."""
-        Grid.of(state.get("size", self.size), state.get("resolution", self.resolution))
+        _checked({**self.get_state(), **state})
         super().set_state(state)
         if "_explorer" in vars(self):            # running: made again from the state
             self.setup()
@@ -806,3 +807,18 @@ class Explorer(Module):
         for name, value in self._explorer.memory().items():
             setattr(self, name, value)
         self.command.write(np.array([v, w], dtype=np.float64))
+
+
+def _checked(state: dict[str, Any]) -> Grid:
+    """The grid of an ``Explorer`` of ``state``; ValueError naming each setting it could
+    not go by (a negative max_speed drove it backwards, where its reflexes do not look)."""
+    grid = Grid.of(state["size"], state["resolution"])
+    rules = (("max_speed", "a speed above 0 (m/s)", lambda v: v > 0),
+             ("clearance", "a distance, 0 or more (m)", lambda v: v >= 0),
+             ("replan_every", "a number of seconds above 0", lambda v: v > 0),
+             ("forget_after", "a number of seconds above 0", lambda v: v > 0))
+    wrong = [f"{key} must be {words}, got {state[key]!r}" for key, words, ok in rules
+             if not (finite(state[key]) and ok(state[key]))]
+    if wrong:
+        raise ValueError("Explorer: " + "; ".join(wrong))
+    return grid

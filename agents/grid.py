@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 UNKNOWN = 0.5
+MOST_CELLS = 10_000_000   # a map larger than this is a mistaken size or resolution
 FREE_BELOW = 0.35
 OCCUPIED_ABOVE = 0.65
 # what ``classify`` says of a cell
@@ -32,9 +33,15 @@ class Grid:
     resolution: float = 0.1
 
     def __post_init__(self) -> None:
-        if not (self.width > 0 and self.height > 0 and self.resolution > 0):
-            raise ValueError(f"a grid needs a positive size and resolution, not "
+        sides = (self.width, self.height, self.resolution)
+        if not all(math.isfinite(side) and side > 0 for side in sides):
+            raise ValueError(f"a grid needs a positive size and resolution (finite), not "
                              f"{self.width} x {self.height} m at {self.resolution} m")
+        rows, columns = self.shape
+        if rows * columns > MOST_CELLS:      # (every reading, every move pickles it)
+            raise ValueError(f"a grid of {self.width} x {self.height} m at "
+                             f"{self.resolution} m has {rows * columns:,} cells, more than "
+                             f"{MOST_CELLS:,}: make the resolution coarser")
 
     @classmethod
     def of(cls, size: Any, resolution: float = 0.1) -> Grid:

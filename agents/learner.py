@@ -459,12 +459,15 @@ class PolicyLearner(Module):
 
     def _carry_over(self, learner: ReactiveLearner, now: float) -> None:
         """If the clock is another world's, move the episode under way (and a recovery
-        manoeuvre) onto it, and learn nothing from the transition across."""
-        underway = learner.underway
-        gap = now - underway.get("at", now)
-        if 0 <= gap <= learner.parameters.max_gap:
+        manoeuvre) onto it, and learn nothing from the transition across. The gap is
+        from the last decision (a recovery has no episode under way: measured from the
+        episode, a robot moved while recovering turned until the clock caught up)."""
+        gap = now - self.decided_at
+        if not self.decided_at or 0 <= gap <= learner.parameters.max_gap:
             return
-        underway.update(started=underway["started"] + gap, at=now, state=-1)
+        underway = learner.underway
+        if underway:
+            underway.update(started=underway["started"] + gap, at=now, state=-1)
         for key in ("since", "until"):
             if key in learner.recovery:
                 learner.recovery[key] += gap

@@ -48,6 +48,7 @@ import numpy as np
 from scipy.special import expit, logsumexp
 
 from pb3a import Input, InputPort, Module, Output
+from pb3a.config.checks import finite
 from rave.sonar import COUNT as SONARS
 from rave.sonar import MAX_RANGE
 
@@ -595,12 +596,35 @@ class HardwareMonitor(Module):
             self.collected = 0
 
 
+_RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
+    # (a negative jump_m took every sample for another robot's: nothing was ever
+    # watched; a fault_prior of 0 divided by zero at every sample)
+    "sample_s": ("a number of seconds above 0", lambda v: finite(v) and v > 0),
+    "training_s": ("a number of seconds above 0", lambda v: finite(v) and v > 0),
+    "jump_m": ("a distance above 0", lambda v: finite(v) and v > 0),
+    "jump_rad": ("an angle above 0", lambda v: finite(v) and v > 0),
+    "quantile": ("a share from 0 to 1", lambda v: finite(v) and 0 <= v <= 1),
+    "margin": ("a finite number (nats)", finite),
+    "fault_prior": ("a probability above 0 and below 1", lambda v: finite(v) and 0 < v < 1),
+    "fault_breadth": ("a number above 1", lambda v: finite(v) and v > 1),
+    "rearm": ("a whole number of windows, 1 or more",
+              lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 1),
+}
+
+
 def _check_settings(state: dict[str, Any]) -> None:
     """ValueError, naming it, for a ``HardwareMonitor`` setting its setup would refuse."""
     unknown = sorted(set(state["ready_windows"]) - set(GROUPS))
     if unknown:
         raise ValueError(f"ready_windows names no fault group {', '.join(unknown)}: "
                          f"the groups are {', '.join(GROUPS)}")
+    windows = [f"ready_windows[{group!r}] must be a whole number, 0 or more, got {n!r}"
+               for group, n in state["ready_windows"].items()
+               if isinstance(n, bool) or not isinstance(n, int) or n < 0]
+    wrong = [f"{key} must be {words}, got {state[key]!r}"
+             for key, (words, ok) in _RULES.items() if not ok(state[key])]
+    if windows or wrong:
+        raise ValueError("HardwareMonitor: " + "; ".join(windows + wrong))
     check_vote(state["votes_needed"], state["votes_of"])
 
 

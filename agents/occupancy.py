@@ -255,7 +255,7 @@ class Mapper(Module):
         self.updates += 1
         self.last_update = time.time()
         self.updated.write(np.array([self.last_update, *pose[:3]]))
-        if self.updates % max(1, int(self.publish_every)) == 0:
+        if self.updates % self.publish_every == 0:
             self.map.write(mapper.probabilities())
 
     def set_state(self, state: dict[str, Any]) -> None:
@@ -301,6 +301,10 @@ def _grid_and_model(state: dict[str, Any]) -> tuple[Grid, SonarModel]:
     """The grid and sonar model of a ``Mapper`` of ``state`` (the model completed with
     defaults); ValueError naming what they cannot be made of."""
     grid = Grid.of(state["size"], state["resolution"])
+    every = state["publish_every"]       # (a NaN failed every reading)
+    if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+        raise ValueError(f"publish_every must be a whole number of readings, 1 or more, "
+                         f"got {every!r}")
     parameters = [field.name for field in fields(SonarModel)]
     unknown = sorted(set(state["model"]) - set(parameters))
     if unknown:

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 from agents.case_base import AdaptationError, CaseBase, CaseFileError, Feature, Match, adapt
 from pb3a import Agent, Input, InputPort, Output
+from pb3a.config.checks import finite
 from pb3a.errors import PB3AError
 
 if TYPE_CHECKING:
@@ -148,6 +149,14 @@ def _case_base(state: dict[str, Any]) -> CaseBase:
     if not state["driver"]:
         raise ValueError("RemedyAgent needs its 'driver': the RobotDriver to stop or "
                          "re-point (e.g. 'control/driver')")
+    # (a NaN verify_s never judged a remedy, and every later failure waited for good)
+    wrong = [f"{key} must be a finite number of seconds, {least}, got {state[key]!r}"
+             for key, least, ok in (("settle_s", "0 or more", lambda v: v >= 0),
+                                    ("verify_s", "0 or more", lambda v: v >= 0),
+                                    ("move_timeout_s", "above 0", lambda v: v > 0))
+             if not (finite(state[key]) and ok(state[key]))]
+    if wrong:
+        raise ValueError("RemedyAgent: " + "; ".join(wrong))
     if state["case_base"]:
         base = CaseBase.from_dict(state["case_base"])
     else:

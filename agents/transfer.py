@@ -20,6 +20,7 @@ before it (``pause_s``, ``phases``, ``prepare_s``: see ``MigrationReport``).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 from typing import Any
@@ -99,20 +100,24 @@ class TransferAgent(Agent):
                 raise ValueError("TransferAgent needs to_node and to_resource: the hardware "
                                  "robot's node and its robot server's address")
             self.decided_at = time.time()
-            # the simulation stops first (its lock-step loop would compete with the move
-            # for the CPU), then the learner and its driver move
-            self.lockstep_s = float(self.runtime.state(self.driver).get("lockstep_s", 0.0))
-            self.runtime.set_state(self.driver, {"lockstep_s": 0.0})
             arriving = {self.driver: {"resource": self.to_resource}}
             if self.learner_state:
                 arriving[self.learner] = dict(self.learner_state)
             try:
+                # the simulation stops first (its lock-step loop would compete with the
+                # move for the CPU), then the learner and its driver move
+                self.lockstep_s = float(self.runtime.state(self.driver).get("lockstep_s",
+                                                                            0.0))
+                self.runtime.set_state(self.driver, {"lockstep_s": 0.0})
                 self._moving = self.runtime.migrate(self.macro, self.to_node, wait=False,
                                                     state=arriving)
-            except PB3AError as exc:
+            except PB3AError as exc:        # (any of the three: decided again later)
                 self._failed(exc)
 
     def step(self) -> None:
+        if self.decided_at and not self.moved_at and self._moving is None:
+            self._resume()
+            return
         # waits for the move's end (a period at most): the transfer is timed to when the
         # agent knows it ended, and this knows it as it ends
         if self._moving is None or not self._moving.wait(self.period):
@@ -132,11 +137,30 @@ class TransferAgent(Agent):
                              "episodes": self.episodes,
                              "success_rate": success_rate(self.outcomes, self.window)})
 
+    def _resume(self) -> None:
+        """Decided, but the move's handle is gone (this agent was restored from its
+        state: a checkpoint, a move of its own): where the learner runs says whether
+        the move happened."""
+        try:
+            arrived = self.runtime.where(self.learner) == self.to_node
+        except PB3AError as exc:
+            self._failed(exc)
+            return
+        if not arrived:
+            self._failed(RuntimeError("the move was lost with the agent's own restart or "
+                                      "move, and the learner is not on the robot's node"))
+            return
+        self.moved_at = time.time()         # (no report of its pause: it is gone)
+        self.transfer.write({"decided_at": self.decided_at, "moved_at": self.moved_at,
+                             "episodes": self.episodes,
+                             "success_rate": success_rate(self.outcomes, self.window)})
+
     def _failed(self, error: Exception) -> None:
         """The move failed: the brain is where it was, so its simulation gets its
         lock-step back; said once, and decided again at a later episode."""
         self.failed_moves += 1
-        self.runtime.set_state(self.driver, {"lockstep_s": self.lockstep_s})
+        with contextlib.suppress(PB3AError):        # (tried again at the next decision)
+            self.runtime.set_state(self.driver, {"lockstep_s": self.lockstep_s})
         self.transfer.write({"decided_at": self.decided_at, "moved_at": 0.0,
                              "error": f"{type(error).__name__}: {error}",
                              "episodes": self.episodes,

@@ -401,6 +401,16 @@ def test_a_grid_setup_would_refuse_set_while_it_runs_is_refused_and_nothing_is_s
     assert (explorer.state["resolution"], explorer.state["max_speed"]) == (0.1, 0.4)
     explorer.module.set_state({"resolution": 0.2})
     assert explorer.state["trail"].shape == (20, 30)            # made again for it
+    # an infinite size was stored before setup failed on it; a negative speed drove
+    # the explorer backwards, where its reflexes do not look; a tiny resolution would
+    # have made a map of billions of cells
+    for wrong, named in (({"size": [math.inf, 4.0]}, "positive size and resolution"),
+                         ({"max_speed": -0.4}, "max_speed must be a speed above 0"),
+                         ({"replan_every": math.nan}, "replan_every must be a number of"),
+                         ({"resolution": 1e-5}, "cells, more than 10,000,000")):
+        with pytest.raises(ValueError, match=named):
+            explorer.module.set_state(wrong)
+    assert (explorer.state["size"], explorer.state["max_speed"]) == ([6.0, 4.0], 0.4)
 
 
 # -- on a hardware robot, with the mapper, as in the live pipeline ---------------------------

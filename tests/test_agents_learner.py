@@ -334,3 +334,32 @@ def test_what_it_could_not_decide_by_set_while_it_runs_is_refused_and_nothing_is
     harness.feed("clock", 0.2)
     assert len(harness.written["command"]) == 2
     assert harness.state["underway"]["distance"] == pytest.approx(3.0)    # the new goal
+
+
+def test_a_learner_moved_while_recovering_carries_its_manoeuvre_onto_the_new_clock() -> None:
+    """The gap between the worlds' clocks was measured from the episode under way,
+    which a recovery does not have: moved while turning away from an obstacle, at 500 s
+    of simulation to a robot at 20 s, it turned in place for 480 s of robot time."""
+    learner = ModuleHarness(PolicyLearner, state={"goals": [[5.0, 5.0]], "decision_s": 0.2,
+                                                  "seed": 3})
+    clear, hit = np.full(16, 3.0), np.full(16, 3.0)
+    hit[3] = 0.1
+    pose = np.array([1.0, 1.0, 0.0])
+
+    def tick(harness: ModuleHarness, sonar: np.ndarray, now: float) -> None:
+        harness.feed("sonar", sonar)
+        harness.feed("pose", pose)
+        harness.feed("clock", now)
+    for now, sonar in ((500.2, clear), (500.4, clear), (500.6, hit), (500.8, clear)):
+        tick(learner, sonar, now)                        # a collision, then its recovery
+    assert learner.state["recovery"] and not learner.state["underway"]
+    moved = ModuleHarness(PolicyLearner, state=cloudpickle.loads(cloudpickle.dumps(
+        learner.state)))
+    turning = 0
+    for step in range(1, 100):
+        tick(moved, clear, 20.0 + 0.2 * step)
+        v, w = moved.last("command")
+        if not (v == 0.0 and w != 0.0):
+            break
+        turning += 1
+    assert turning < 20, f"turned in place for {turning} decisions"   # (its own 0.8 s)

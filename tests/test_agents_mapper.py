@@ -277,9 +277,12 @@ def test_a_model_or_grid_setup_would_refuse_set_while_it_runs_is_refused_by_name
     harness.feed("sonar", reading)
     for wrong, named in (({"model": {"cone": 20.0}}, "no parameter cone"),
                          ({"model": {"cone_deg": 200.0}}, "cone_deg=200.0"),
-                         ({"resolution": 0.0}, "positive size and resolution")):
+                         ({"resolution": 0.0}, "positive size and resolution"),
+                         # (an infinite size, a NaN publish_every failed every reading)
+                         ({"size": [math.inf, 8.0]}, "positive size and resolution"),
+                         ({"publish_every": math.nan}, "publish_every must be a whole")):
         with pytest.raises(ValueError, match=named):
-            harness.module.set_state({**wrong, "publish_every": 5})
+            harness.module.set_state({"publish_every": 5, **wrong})
     assert harness.state["model"] == asdict(SonarModel()) and harness.state["publish_every"] == 1
     harness.feed("sonar", second)
     assert harness.state["updates"] == 2 and len(harness.written["map"]) == 2

@@ -297,3 +297,26 @@ def test_state_set_while_it_runs_is_what_it_goes_by(model: NormalModel) -> None:
     assert harness.written["failure"] == []
     assert (harness.state["thresholds"] == 1e9).all() and harness.state["votes_needed"] == 3
     assert harness.state["running"]["counted"].sum() > 0     # (it watched on)
+
+
+@pytest.mark.parametrize(("wrong", "named"), [
+    ({"jump_m": -1.0}, "jump_m must be a distance above 0"),
+    ({"training_s": math.nan}, "training_s must be a number of seconds above 0"),
+    ({"fault_prior": 0.0}, "fault_prior must be a probability above 0 and below 1"),
+    ({"quantile": 1.5}, "quantile must be a share from 0 to 1"),
+    ({"sample_s": 0}, "sample_s must be a number of seconds above 0"),
+    ({"rearm": math.nan}, "rearm must be a whole number of windows"),
+    ({"ready_windows": {"motors": -3}}, r"ready_windows\['motors'\] must be a whole number"),
+])
+def test_a_monitor_setting_that_would_blind_or_break_it_is_refused(wrong, named) -> None:
+    """Taken, a negative jump_m took every sample for another robot's (nothing ever
+    watched, silently), a NaN training_s was stored before it failed (and then failed
+    the monitor's setup wherever it moved), a fault_prior of 0 divided by zero."""
+    with pytest.raises(ValueError, match=named):
+        ModuleHarness(HardwareMonitor, state=wrong)
+    harness = ModuleHarness(HardwareMonitor)
+    before = harness.state
+    with pytest.raises(ValueError, match=named):
+        harness.module.set_state(wrong)
+    key, = wrong
+    assert repr(harness.state[key]) == repr(before[key])         # nothing set

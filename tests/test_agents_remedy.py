@@ -255,6 +255,16 @@ def test_an_agent_refuses_a_case_whose_action_it_cannot_carry_out(tmp_path) -> N
         ModuleHarness(RemedyAgent, state={"cases_path": str(path)}, runtime=FakeRuntime())
 
 
+@pytest.mark.parametrize("wrong", [{"verify_s": float("nan")}, {"settle_s": -1.0},
+                                   {"move_timeout_s": 0.0}, {"verify_s": "6"}])
+def test_an_agent_refuses_timings_it_could_never_judge_a_remedy_by(wrong) -> None:
+    """A NaN verify_s was taken: the remedy stayed 'verifying' for good, and every later
+    failure of another kind waited behind it."""
+    (key, _), = wrong.items()
+    with pytest.raises(ValueError, match=f"{key} must be a finite number of seconds"):
+        ModuleHarness(RemedyAgent, state=wrong, runtime=FakeRuntime())
+
+
 # -- the agent, through its ports, against a recording runtime --------------------------
 
 @dataclass

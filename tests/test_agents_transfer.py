@@ -6,10 +6,11 @@ from __future__ import annotations
 
 import re
 
+import cloudpickle
 import pytest
 
 from agents.transfer import KEEP_OUTCOMES, TransferAgent, success_rate
-from pb3a import MigrationReport, RuntimeFailure
+from pb3a import MigrationReport, RuntimeFailure, RuntimeTimeout
 from pb3a.testing import ModuleHarness
 
 
@@ -47,6 +48,9 @@ class Runtime:
     def set_state(self, name: str, values: dict) -> None:
         self.calls.append(("set_state", name, values))
         self.driver.update(values)
+
+    def where(self, name: str) -> str:
+        return "robot" if self.move.ended else "sim"
 
 
 STATE = {"to_node": "robot", "to_resource": "tcp://127.0.0.1:7421", "window": 10,
@@ -148,3 +152,46 @@ def test_a_failed_move_gives_the_simulation_back_and_is_tried_again_later() -> N
     runtime.move.ended = True
     agent.step()
     assert agent.written["transfer"][-1]["moved_at"] > 0
+
+
+@pytest.mark.parametrize("arrived", [True, False])
+def test_an_agent_restored_while_its_move_was_under_way_finds_out_how_it_ended(
+        arrived: bool) -> None:
+    """The move's handle is not state: restored from a checkpoint (or moved itself)
+    mid-move, the agent neither reported nor decided again, for good."""
+    runtime = Runtime()
+    agent = ModuleHarness(TransferAgent, state=STATE, runtime=runtime)
+    for _ in range(10):
+        agent.feed("episode", {"success": True})
+    assert agent.state["decided_at"] and not agent.state["moved_at"]
+    later = Runtime()
+    later.move.ended = arrived
+    restored = ModuleHarness(TransferAgent, state=cloudpickle.loads(cloudpickle.dumps(
+        agent.state)), runtime=later)
+    restored.step()
+    transfer, = restored.written["transfer"]
+    if arrived:
+        assert restored.state["moved_at"] and "error" not in transfer
+    else:
+        assert "is not on the robot's node" in transfer["error"]
+        assert restored.state["failed_moves"] == 1 and not restored.state["decided_at"]
+
+
+def test_a_runtime_error_as_it_decides_is_a_failed_move_decided_again_later() -> None:
+    """A timeout reading the driver's state, after deciding, left the agent decided for
+    good: never moving, never deciding again."""
+    class Flaky(Runtime):
+        failures = 1
+
+        def state(self, name: str) -> dict:
+            if self.failures:
+                self.failures -= 1
+                raise RuntimeTimeout("node busy")
+            return super().state(name)
+    runtime = Flaky()
+    agent = ModuleHarness(TransferAgent, state=STATE, runtime=runtime)
+    for _ in range(10):
+        agent.feed("episode", {"success": True})
+    assert agent.state["failed_moves"] == 1 and "node busy" in agent.written["transfer"][0]["error"]
+    agent.feed("episode", {"success": True})
+    assert [call[0] for call in runtime.calls].count("migrate") == 1     # decided again
