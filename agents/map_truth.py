@@ -12,6 +12,10 @@ map with it:
   rasterization, and a sonar arc placed half a cell off is not a wrong map.
 - *coverage*: of the free cells a robot could sense (free cells connected to where
   it starts), the share the map calls free.
+- *walls*: of the occupied cells that face that free space (the walls a robot could
+  sense), the share the map calls occupied within ``tolerance`` cells. Accuracy
+  alone does not ask for walls: a map that calls every cell free, knowing no wall,
+  is right about 0.89 of the bundled worlds' cells.
 """
 
 from __future__ import annotations
@@ -61,6 +65,7 @@ class MapScore:
     accuracy: float          # of the cells the map classifies, the share classified right
     coverage: float          # of the reachable free cells, the share the map calls free
     classified: int          # cells the map classifies (free or occupied)
+    walls: float = 0.0       # of the wall cells facing them, the share it calls occupied
 
 
 def score(probabilities: np.ndarray, occupied: np.ndarray, free_space: np.ndarray,
@@ -76,10 +81,15 @@ def score(probabilities: np.ndarray, occupied: np.ndarray, free_space: np.ndarra
     right = np.count_nonzero(said_free & ~occupied) + np.count_nonzero(said_occupied & near_wall)
     classified = int(np.count_nonzero(said_free | said_occupied))
     reachable_free = int(np.count_nonzero(free_space))
+    faces = occupied & ndimage.binary_dilation(free_space)
+    found = ndimage.binary_dilation(said_occupied, iterations=tolerance) if tolerance \
+        else said_occupied
     return MapScore(accuracy=float(right / classified) if classified else 0.0,
                     coverage=(float(np.count_nonzero(said_free & free_space) / reachable_free)
                               if reachable_free else 0.0),
-                    classified=classified)
+                    classified=classified,
+                    walls=(float(np.count_nonzero(faces & found) / np.count_nonzero(faces))
+                           if faces.any() else 0.0))
 
 
 def _distance(xs: np.ndarray, ys: np.ndarray, x0: float, y0: float, x1: float,

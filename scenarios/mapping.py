@@ -209,7 +209,8 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
 
     def quality(probabilities: np.ndarray) -> dict[str, float]:
         figures = score(probabilities, occupied, free_space)
-        return {"accuracy": round(figures.accuracy, 4), "coverage": round(figures.coverage, 4)}
+        return {"accuracy": round(figures.accuracy, 4), "coverage": round(figures.coverage, 4),
+                "walls": round(figures.walls, 4)}
 
     over_time = [{"t": round(at - started, 2), **quality(snapshot)}
                  for at, snapshot in recorder["snapshots"]]
