@@ -41,7 +41,7 @@ class Pending:
         deadline = time.monotonic() + timeout
         outcome = self._look(timeout)
         while outcome is None and time.monotonic() < deadline:
-            outcome = self._look(deadline - time.monotonic())
+            outcome = self._look(max(0.0, deadline - time.monotonic()))
         return outcome is not None
 
     def result(self, timeout: float = 60.0) -> Any:

@@ -786,10 +786,18 @@ class Staller(Module):
 
 class StepStamps(Module):
     """Appends the time (``time.monotonic``, one clock for every process) of each step
-    to ``path``: when a module last stepped, read after its process is gone."""
+    to ``path``: when a module last stepped, read after its process is gone. Its setup
+    writes its pid to ``path``.pid and then takes ``setup_s``."""
 
     period = 0.01
     path = ""
+    setup_s = 0.0
+
+    def setup(self) -> None:
+        if self.setup_s:
+            with open(f"{self.path}.pid", "w") as pid:
+                pid.write(str(os.getpid()))
+            time.sleep(self.setup_s)
 
     def step(self) -> None:
         with open(self.path, "a") as stamps:

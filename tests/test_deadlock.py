@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import os
+import signal
 import threading
 import time
 
 import pytest
-from conftest import eventually
+from conftest import alive, eventually
 from sample_modules import (
     Busybody,
     Journal,
@@ -24,6 +26,7 @@ from sample_modules import (
 
 import pb3a
 from pb3a import Module, RuntimeFailure, RuntimeTimeout, System
+from pb3a.node.executor import Executor
 from pb3a.worker.actor import ModuleActor
 
 pytestmark = pytest.mark.timeout(120)
@@ -284,6 +287,10 @@ def test_close_keeps_its_timeout_with_a_change_in_progress_and_later_calls_are_r
     history = run.events(0, timeout=5.0)        # still read, and no new one waited for
     assert time.monotonic() - started < 1.0
     assert history and history == run.events(0)
+    # a follower asking for newer ones is told none will come (it asked again at once,
+    # thousands of times a second)
+    with pytest.raises(RuntimeFailure, match="is stopped: no new entry will come"):
+        run.events(history[-1].seq, timeout=1.0)
     adding.join(15)
 
 
@@ -298,3 +305,79 @@ def test_a_state_edit_that_runs_out_of_time_was_not_done() -> None:
         state = eventually(lambda: (s := run.state("slow", timeout=5.0))["steps"] > steps
                            and s, timeout=10, what="a step after the edit's time ran out")
     assert state["gain"] == 1.0
+
+
+def test_close_without_the_lock_stops_everything_though_a_change_removes_a_module(
+        tmp_path) -> None:
+    """close(timeout) goes on without the configuration lock after half its timeout; a
+    remove in progress then took a module from under it: close raised ModuleNotFound,
+    shut no node down, and left the workers running."""
+    journal = tmp_path / "journal"
+    system = System("closing-remove")
+    system.add("victim", Journal, state={"path": str(journal), "label": "victim",
+                                         "teardown_s": 2.5})
+    # stopped before it, for long enough that the remove ends meanwhile
+    system.add("other", Journal, state={"path": str(journal), "label": "other",
+                                        "teardown_s": 1.8})
+    system.add("steady", Steady)
+    run = system.launch()
+    pids = [module.pid for module in run.stats().modules.values()]
+    removing = threading.Thread(target=_removes, args=(run, "victim"), daemon=True)
+    removing.start()
+    eventually(lambda: run._launcher.lock.doing() != "nothing", what="the remove under way")
+    run.close(timeout=2.0)
+    removing.join(15)
+    eventually(lambda: not any(map(alive, pids)), timeout=10, what="every worker gone")
+
+
+def _removes(run: pb3a.Running, name: str) -> None:
+    with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+        run.remove(name)
+
+
+def test_a_state_edit_given_up_on_while_a_body_waits_for_the_runtime_is_not_done() -> None:
+    """Posted to a body that waits for the runtime, an edit whose time ran out said
+    TimeoutError('') and then ran all the same."""
+    actor = ModuleActor("a", Scale(), lambda task: task(), None)
+    waiting, done = threading.Event(), threading.Event()
+
+    def body() -> None:                 # holds the module lock, waiting for the runtime
+        actor.lock.acquire()
+        actor._holder = threading.get_ident()      # (as a body's call marks it)
+        wait = actor.begin_wait("events")
+        waiting.set()
+        with contextlib.suppress(RuntimeTimeout):
+            wait.result(0.5)
+        actor.end_wait(wait)
+        actor.lock.release()
+        done.set()
+    threading.Thread(target=body, daemon=True).start()
+    assert waiting.wait(5)
+    with pytest.raises(TimeoutError, match=r"busy in a call .*: nothing was done"):
+        actor.apply({"gain": 5.0}, 0.0)
+    assert done.wait(5) and actor.module.gain == 2.0
+
+
+def test_a_short_timeout_still_reads_a_module_between_its_steps() -> None:
+    """The worker's share of a call's time was the timeout less 0.25 s: none at all for
+    0.2 s, and every such read of a module stepping every 50 ms failed."""
+    system = System("short-reads").add("slow", LongStep, state={"step_s": 0.05})
+    with system.launch() as run:
+        for timeout in (0.1, 0.2):
+            for _ in range(5):
+                assert run.state("slow", timeout=timeout)["step_s"] == 0.05
+
+
+def test_a_restart_that_cannot_take_the_lock_reports_its_modules_failed(monkeypatch) -> None:
+    """It left them 'running', with no event, for good."""
+    monkeypatch.setattr(Executor._held, "__defaults__", (1.0,))     # (60 s)
+    system = System("late-restart").add("dies", Steady, restart="fresh")
+    with system.launch() as run:
+        pid = eventually(lambda: run.stats().modules["dies"].pid, what="its worker")
+        with run._launcher.lock.held("a long operation", 5.0):
+            os.kill(pid, signal.SIGKILL)
+            event = eventually(lambda: [e for e in run.events(0)
+                                        if e.kind == "module_failed"], timeout=10,
+                               what="the failure said")
+        assert run.stats().modules["dies"].status == "failed"
+    assert "could not take the node's lock" in event[0].detail["reason"]

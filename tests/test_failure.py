@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import importlib
 import logging
@@ -14,6 +15,7 @@ import sys
 import textwrap
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import psutil
@@ -35,7 +37,7 @@ from sample_modules import (
     StepStamps,
 )
 
-from pb3a import Input, InputPort, Module, Output, RuntimeFailure, System
+from pb3a import Input, InputPort, Module, Output, RuntimeFailure, RuntimeTimeout, System
 from pb3a.transport.doorbell import new_bell
 from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import live_segments, segment_name
@@ -289,6 +291,32 @@ def test_a_sigterm_stops_every_module_of_a_worker_at_once_then_tears_them_down(
     assert gone - signalled >= 1.0                     # the slow teardown ran, whole
     assert journal.read_text().split("\n")[-2] == "stop slow"
     assert last_step - signalled < 0.25, "the stepper stepped during the other's teardown"
+
+
+def test_a_module_signalled_to_stop_during_its_setup_never_steps(tmp_path: Path) -> None:
+    """Halted as its setup ran, it was torn down and then started stepping all the
+    same (97 steps, until its worker exited), beside its failed-over copy on a fence."""
+    stamps = tmp_path / "steps"
+    system = System("halted-in-setup")
+    system.add("other", Journal, group="g", state={"path": str(tmp_path / "journal"),
+                                                  "label": "other", "teardown_s": 1.0})
+    with system.launch() as run:
+        adding = threading.Thread(target=_quietly, args=(lambda: run.add(
+            "late", StepStamps, group="g", state={"path": str(stamps), "setup_s": 0.6}),),
+            daemon=True)
+        adding.start()
+        pid_file = Path(f"{stamps}.pid")
+        pid = int(eventually(lambda: pid_file.exists() and pid_file.read_text(),
+                             what="its setup running"))
+        os.kill(pid, signal.SIGTERM)
+        eventually(lambda: not alive(pid), timeout=10, what="the worker gone")
+        adding.join(15)
+    assert not stamps.exists(), "it stepped after it was stopped"
+
+
+def _quietly(change: Callable[[], object]) -> None:
+    with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+        change()
 
 
 def test_modules_start_in_order_and_stop_in_reverse_order(tmp_path: Path) -> None:

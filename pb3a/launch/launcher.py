@@ -676,14 +676,19 @@ class Launcher:
                 held.enter_context(self.lock.held("shut the system down", timeout / 2))
             except RuntimeTimeout as exc:
                 log.warning("%s: stopping it all the same", exc)
+            # Without the lock, a change may remove a module or a node meanwhile: each is
+            # stopped on its own, and nothing that fails keeps the rest from stopping.
             for name in reversed(list(self.specs)):
                 left = max(0.1, deadline - time.monotonic())
                 try:
                     self.node_of(name).stop_module(name, min(2.0, left))
-                except (RuntimeFailure, RuntimeTimeout) as exc:
+                except Exception as exc:
                     log.warning("stopping module %r: %s", name, exc)
-            for node in reversed(list(self.nodes.values())):
-                node.shutdown(max(0.5, deadline - time.monotonic()))
+            for name, node in reversed(list(self.nodes.items())):
+                try:
+                    node.shutdown(max(0.5, deadline - time.monotonic()))
+                except Exception:
+                    log.exception("shutting node %s down", name)
         logging.getLogger().removeHandler(self.logbook)
 
 

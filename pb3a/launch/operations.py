@@ -406,17 +406,27 @@ class Operations:
             return self.launcher.stats()
 
     def events_since(self, since: int = 0, *, timeout: float | None = 0.0) -> list[Event]:
-        return self.events.since(since, self._history_wait(timeout))
+        return self._history("events", lambda wait: self.events.since(since, wait), timeout)
 
     def logs(self, since: int = 0, *, module: str | None = None,
              timeout: float | None = 0.0) -> list[LogEntry]:
-        return self.launcher.logbook.since(since, self._history_wait(timeout), module)
+        return self._history("logs", lambda wait: self.launcher.logbook.since(
+            since, wait, module), timeout)
 
-    def _history_wait(self, timeout: float | None) -> float:
-        """How long a read of the events or the log waits for a first new entry: none
-        once the system is stopped (no entry will come), which is still read."""
+    def _history(self, what: str, read: Callable[[float], list[Any]],
+                 timeout: float | None) -> list[Any]:
+        """The events or log entries ``read`` gives, waiting up to ``timeout`` for a
+        first new one. A stopped system's are still read, without waiting; one asked to
+        wait for a new one there is told that none will come (a follower ends, rather
+        than asking again and again)."""
         wait = self._call_timeout(timeout)
-        return 0.0 if self.launcher.stopped else wait
+        if not self.launcher.stopped:
+            return read(wait)
+        entries = read(0.0)
+        if entries or not wait:
+            return entries
+        raise RuntimeFailure(f"{what}: system {self.launcher.plan.name!r} is stopped: "
+                             "no new entry will come")
 
     # -- requests from outside --------------------------------------------------------
     def apply(self, op: str, args: dict[str, Any], allowed: frozenset[str] = PUBLIC, *,

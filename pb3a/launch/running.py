@@ -87,9 +87,11 @@ class Running(SystemHandle):
         """Stop every module (reverse start order) and worker; free every segment."""
         if not self._stopped.is_set():
             self._stopped.set()
-            self._launcher.shutdown(timeout)
-            if self._server is not None:
-                self._server.close()
+            try:
+                self._launcher.shutdown(timeout)
+            finally:
+                if self._server is not None:
+                    self._server.close()
 
     def listen(self, address: str = "tcp://127.0.0.1:0") -> str:
         """Take authenticated requests (``pb3a.connect``, ``pb3a status ADDR`` ...) at

@@ -169,8 +169,8 @@ class Executor:
         """Send one request about module ``name`` to its worker and wait for the answer.
         One that waits for the module's lock gives up before its caller does: if its
         caller's time runs out, it was not done, rather than done later."""
-        if op in _WAITS_FOR_THE_MODULE:
-            args["within"] = max(0.0, timeout - ANSWER_MARGIN_S)
+        if op in _WAITS_FOR_THE_MODULE:      # (a short timeout keeps most of its time)
+            args["within"] = timeout - min(ANSWER_MARGIN_S, timeout / 4)
         return self.call(self.modules[name].worker, op, timeout, name=name, **args)
 
     def _alive(self, key: str) -> bool:
@@ -667,6 +667,13 @@ class Executor:
         except RuntimeTimeout as exc:           # the lock was not free within its deadline
             self.failures.append(f"restart of worker {handle.key} failed: {exc}")
             log.error(self.failures[-1])
+            # its modules are not running, whatever their records said: failed, and said
+            for name in list(handle.modules):
+                record = self.modules.get(name)
+                if record is not None and record.status != "failed":
+                    record.status = "failed"
+                    self._tell("module_failed", name, exit_code=code,
+                               reason=f"its restart could not take the node's lock: {exc}")
 
     def _held(self, what: str, timeout: float = LOCK_TIMEOUT) -> AbstractContextManager[Any]:
         """``self.lock``, held for ``what`` (which the launcher's lock names to a waiter);
@@ -815,15 +822,16 @@ class Executor:
                 log.warning("%s: shutting down without it", exc)
             for name in reversed(list(self.modules)):
                 left = max(0.1, deadline - time.monotonic())
-                try:
-                    self.stop_module(name, timeout=min(2.0, left))
-                except (RuntimeFailure, RuntimeTimeout) as exc:
+                try:            # (without the lock, a request may have removed it)
+                    if name in self.modules:
+                        self.stop_module(name, timeout=min(2.0, left))
+                except Exception as exc:
                     log.warning("stopping module %r: %s", name, exc)
             self._stopping.set()
             self.workers.close(max(0.1, deadline - time.monotonic()))
             if self._bridge is not None:
                 self._bridge.shutdown()
-            for ring in self.rings.values():
+            for ring in list(self.rings.values()):
                 ring.close()
             self.rings.clear()
 

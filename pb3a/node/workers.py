@@ -153,9 +153,12 @@ class WorkerPool:
         self._poke()
 
     def ensure(self, key: str, node: str) -> WorkerHandle:
-        """The worker ``key``, started if it does not exist yet."""
+        """The worker ``key``, started if it does not exist yet (not once the pool is
+        stopping: a change that goes on without the lock of a shutdown starts none)."""
         handle = self.handles.get(key)
         if handle is None:
+            if self._stopping.is_set():
+                raise RuntimeFailure(f"node {node} is shutting down: no worker is started")
             with self._spares_lock:              # (one that died unseen yet is skipped)
                 while self._spares and not self._spares[0].process.is_alive():
                     self._spares.pop(0)
@@ -359,8 +362,10 @@ class WorkerPool:
 
     def _stop(self, handle: WorkerHandle, timeout: float) -> None:
         handle.alive = False
-        with contextlib.suppress(OSError):
-            os.close(handle.bell)              # writers hold their own duplicates
+        bell, handle.bell = handle.bell, -1    # closed once (the number may be reused)
+        if bell >= 0:
+            with contextlib.suppress(OSError):
+                os.close(bell)                 # writers hold their own duplicates
         self._end(handle, timeout)
 
     def _end(self, handle: WorkerHandle, timeout: float) -> None:

@@ -134,6 +134,7 @@ class ModuleActor:
         self._step_clock: int | None = None
         self._step_cpu = 0.0
         self._stopped = False
+        self._halted = False                    # stopping: it does not start any more
         self._thread: threading.Thread | None = None
         self._holder = 0                        # the thread running a body now (0: none)
         self._wait: RuntimeWait | None = None   # its runtime call in progress, if any
@@ -156,8 +157,11 @@ class ModuleActor:
         """Run ``setup``, then start stepping (threaded) and dispatching (event-driven)."""
         with self._setting_up():
             self.call("setup")
-        self.running = True
-        self._stop.acquire(blocking=False)      # held while running; stop() releases it
+        with self._sched_lock:
+            if self._halted:                    # stopped while it set up: it never runs
+                return
+            self.running = True
+            self._stop.acquire(blocking=False)  # held while running; stop() releases it
         if self.period is not None:
             self._thread = threading.Thread(target=self._loop, name=f"pb3a-step-{self.name}",
                                             daemon=True)
@@ -198,10 +202,13 @@ class ModuleActor:
 
     def halt(self) -> None:
         """Stop stepping and dispatching now, without waiting for a body in progress;
-        ``stop`` then waits for it and runs ``teardown``."""
-        was_running, self.running = self.running, False
-        if was_running and self._stop.locked():
-            self._stop.release()                # wakes a step thread between two steps
+        ``stop`` then waits for it and runs ``teardown``. One halted during its
+        ``setup`` does not start after it."""
+        with self._sched_lock:
+            self._halted = True
+            was_running, self.running = self.running, False
+            if was_running and self._stop.locked():
+                self._stop.release()            # wakes a step thread between two steps
 
     def _loop(self) -> None:
         # The step thread is the module's own: its CPU clock is the module's step

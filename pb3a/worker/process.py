@@ -227,12 +227,16 @@ class Worker:
         if self._shut_down:
             return
         self._shut_down = True
+        if threading.current_thread() is threading.main_thread():
+            # a second SIGTERM (the executor's, once its wait runs out) must not cut the
+            # teardowns short: SIGKILL is what ends a worker that overruns them
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
         self._closing.set()
         self.bell_self()                      # the receiver leaves its sleep and its loop
         # Every module stops stepping at once, then each is torn down in reverse start
         # order: a slow teardown must not leave the others running (a fenced node's
         # modules must be still before their failed-over copies start elsewhere).
-        for actor in self.actors.values():
+        for actor in list(self.actors.values()):        # (a removal may run meanwhile)
             actor.halt()
         for name in reversed(list(self.actors)):
             self.actors[name].stop(timeout=1.0)

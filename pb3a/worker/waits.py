@@ -24,9 +24,12 @@ import threading
 import time
 from collections import deque
 from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
 from typing import TYPE_CHECKING, Any
 
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
+
+RUNNING_S = 10.0     # the longest posted work that has begun is waited for past its deadline
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -97,7 +100,8 @@ class RuntimeWait:
             self._open = False
             left, self._posted = self._posted, deque()
         for _, future in left:
-            future.set_exception(_Closed())
+            if future.set_running_or_notify_cancel():     # (not given up on already)
+                future.set_exception(_Closed())
 
 
 class _Closed(Exception):
@@ -105,6 +109,8 @@ class _Closed(Exception):
 
 
 def _run(work: Callable[[], Any], future: Future[Any]) -> None:
+    if not future.set_running_or_notify_cancel():
+        return                     # its poster gave up waiting: it is not done at all
     try:
         future.set_result(work())
     except BaseException as exc:
@@ -118,3 +124,7 @@ def run_posted(future: Future[Any], timeout: float) -> tuple[bool, Any]:
         return True, future.result(timeout)
     except _Closed:
         return False, None
+    except FutureTimeout:
+        if future.cancel():        # not begun: it never will be
+            return False, None
+        return True, future.result(RUNNING_S)     # begun: it ends soon (a state's copy)
