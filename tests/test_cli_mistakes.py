@@ -104,7 +104,11 @@ def test_arguments_that_do_not_parse_get_the_usage(argv, capsys) -> None:
 
 
 def test_a_key_of_the_wrong_length_is_a_sentence(tmp_path, capsys, monkeypatch) -> None:
+    """... said before anything starts: `pb3a run` started its nodes' workers (and the
+    process's forkserver, which every later worker inherits the bad key from) first."""
     monkeypatch.setenv("PB3A_KEY", "short")
+    launched = []
+    monkeypatch.setattr("pb3a.launch.running.Launcher", lambda *a, **k: launched.append(a))
     for argv in (["status", "tcp://127.0.0.1:1"],
                  ["node", "start", "--name", "n", "--listen", "tcp://127.0.0.1:0"],
                  ["run", str(REPO / "examples" / "pipeline.toml"), "--for", "1"]):
@@ -112,6 +116,7 @@ def test_a_key_of_the_wrong_length_is_a_sentence(tmp_path, capsys, monkeypatch) 
         err = capsys.readouterr().err
         assert "the cluster key from $PB3A_KEY is 5 bytes; use at least 32" in err, (argv, err)
         assert "Traceback" not in err
+    assert launched == []
 
 
 def test_a_daemon_refuses_an_address_it_cannot_listen_on_saying_why(capsys) -> None:

@@ -15,7 +15,7 @@ from pb3a.config.dot import plan_to_dot
 from pb3a.config.plan import Plan
 from pb3a.errors import ConfigError, PB3AError
 from pb3a.system import System
-from pb3a.transport.auth import ClusterKeyError
+from pb3a.transport.auth import ClusterKey, ClusterKeyError
 
 
 def register(commands: argparse._SubParsersAction) -> None:
@@ -94,6 +94,7 @@ def run_command(args: argparse.Namespace) -> int:
     if plan is None:
         return 1
     try:
+        ClusterKey.load()       # before anything starts (its workers would inherit it)
         return run_with_status(plan, args.seconds, listen=args.listen)
     except (PB3AError, ClusterKeyError, ValueError) as exc:
         print(f"pb3a run: {exc}", file=sys.stderr)

@@ -11,6 +11,7 @@ address to hand out: ``tcp://HOST:PORT`` with that host.
 from __future__ import annotations
 
 import errno
+import itertools
 import logging
 import socket
 import time
@@ -19,6 +20,7 @@ import zmq
 from zmq.utils.monitor import recv_monitor_message
 
 log = logging.getLogger("pb3a.addresses")
+_CLOSINGS = itertools.count()        # names the monitor of each socket close_bound closes
 
 
 def bind_advertised(sock: zmq.Socket, host: str, port: int = 0) -> str:
@@ -39,7 +41,14 @@ def close_bound(sock: zmq.Socket, timeout: float = 2.0, linger_ms: int = 0) -> N
     free: ZeroMQ closes listeners on its own thread, after ``close`` has returned, so a
     server started at once on the same port could otherwise find it still in use.
     Messages sent and not yet delivered are given ``linger_ms`` to go."""
-    monitor = sock.get_monitor_socket(zmq.EVENT_MONITOR_STOPPED)   # sent once all is shut
+    # (a name of its own: pyzmq's default names the socket's descriptor, which a socket
+    # closed a moment ago may still hold as its monitor's address: "in use")
+    try:
+        monitor = sock.get_monitor_socket(zmq.EVENT_MONITOR_STOPPED,
+                                          addr=f"inproc://pb3a-closing-{next(_CLOSINGS)}")
+    except zmq.ZMQError:
+        sock.close(linger_ms)                  # closed all the same, not waited for
+        raise
     try:
         sock.close(linger_ms)
         deadline = time.monotonic() + timeout
