@@ -9,7 +9,10 @@ controller behind its ports can run on any node; re-pointing ``resource`` moves 
 to another robot while it runs (the old one is stopped first). Setting ``enabled`` to
 False stops the robot safely: it is told to stop every period and commands are
 ignored, while its sensors are still read out. A command that is not finite (a
-controller gone wrong) stops the robot too, and is counted in ``failures``.
+controller gone wrong) stops the robot too, and is counted in ``failures``. A robot
+that does not answer for ``silent_after`` periods in a row is said once on ``failure``
+(fault ``robot_link``), as a monitor says a fault: nothing downstream of a driver
+whose robot server died would otherwise hear of it (no reading comes to be judged).
 
 Against a world served in lock-step (``rave start --lockstep``), set ``lockstep_s``:
 each command then drives the robot, advances the world by ``lockstep_s`` simulated
@@ -46,14 +49,20 @@ class RobotDriver(Driver):
     applied = Output(np.ndarray, shape=(2,), dtype="float64")   # what drove the robot up to
                                                                 # these readings (v, w)
     camera = Output(list)
+    # once per onset, when the robot has not answered for ``silent_after`` periods in a
+    # row: {"fault": "robot_link", "probability": 1.0, "detail", "at"}, as a monitor's
+    failure = Output(dict)
     period = 0.1
     with_camera = False          # the camera costs a request more per period
     enabled = True               # False: keep the robot standing, ignore commands
     lockstep_s = 0.0             # > 0: each command advances a lock-step world this long
     failures = 0                 # periods in which the robot did not answer
     last_error = ""
+    silent_after = 5             # periods without an answer that make a failure
+    silent = 0                   # periods in a row the robot has not answered
 
     def setup(self) -> None:
+        _check_silent_after(self.silent_after)
         self._read_at = 0.0      # (monotonic) when readings were last written
         self._in_force = np.zeros(2)     # the command the robot runs on now
         self._unsent: np.ndarray | None = None   # a command the robot has not taken yet
@@ -62,6 +71,7 @@ class RobotDriver(Driver):
         """Set state; a running driver re-pointed at another robot reads it at once,
         rather than at its next period (a control system handed to a standby robot
         sees that robot a period sooner)."""
+        _check_silent_after(state.get("silent_after", self.silent_after))
         repointed = state.get("resource", self.resource) != self.resource
         super().set_state(state)
         if repointed and "_read_at" in vars(self):
@@ -143,7 +153,14 @@ class RobotDriver(Driver):
         except (RuntimeError, OSError) as exc:
             self.failures += 1
             self.last_error = str(exc)
+            self.silent += 1
+            if self.silent == self.silent_after:      # said once, until it answers again
+                self.failure.write({"fault": "robot_link", "probability": 1.0,
+                                    "detail": {"resource": self.resource,
+                                               "periods": self.silent, "error": str(exc)},
+                                    "at": time.time()})
             return
+        self.silent = 0
         sensed = {key: np.asarray(answer[key], dtype=np.float64)
                   for key in ("sonar", "odometry", "gps")}
         self._read_at = time.monotonic()
@@ -160,3 +177,9 @@ class RobotDriver(Driver):
 
     def release(self, client: Any) -> None:
         client.call("stop", self.timeout)          # leave the robot standing
+
+
+def _check_silent_after(periods: Any) -> None:
+    if isinstance(periods, bool) or not isinstance(periods, int) or periods < 1:
+        raise ValueError(f"silent_after must be a whole number of periods, 1 or more, "
+                         f"got {periods!r}")

@@ -148,3 +148,29 @@ def test_a_command_that_is_not_finite_stops_the_robot_and_the_driver_senses_on(
     harness.step(2)                        # (before, each period resent NaN and read nothing)
     assert ops(robot) == ["sensors"] * 2 and harness.module.failures == 1
     assert list(harness.last("applied")) == [0.0, 0.0]
+
+
+def test_a_robot_that_stops_answering_is_said_once_per_onset_on_failure(
+        robot, monkeypatch) -> None:
+    """The driver only counted its failures: with the robot server gone, nothing was
+    written, so nothing downstream (the monitor samples readings) ever heard of it."""
+    harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400",
+                                                "silent_after": 3})
+    answer, down = FakeRobotServer.call, [True]
+
+    def gone(self, op: str, timeout: float, **args: Any) -> Any:
+        if down[0]:
+            raise RuntimeError(f"{self.address} did not answer {op!r}")
+        return answer(self, op, timeout, **args)
+    monkeypatch.setattr(FakeRobotServer, "call", gone)
+    harness.step(5)
+    failure, = harness.written["failure"]
+    assert failure["fault"] == "robot_link" and failure["detail"]["periods"] == 3
+    assert "did not answer 'sensors'" in failure["detail"]["error"]
+    down[0] = False
+    harness.step()                                  # it answers: a new onset may come
+    down[0] = True
+    harness.step(3)
+    assert len(harness.written["failure"]) == 2
+    with pytest.raises(ValueError, match="silent_after must be a whole number"):
+        harness.module.set_state({"silent_after": 0})
