@@ -142,6 +142,9 @@ def check_actions(base: CaseBase) -> None:
                                 f"{case.remedy['action']!r}; actions: {', '.join(ACTIONS)}")
 
 
+_ALWAYS_CONSUMED = ("motors", "robot_link")   # faults the whole robot's work depends on
+
+
 def _case_base(state: dict[str, Any]) -> CaseBase:
     """The case base a ``RemedyAgent`` of ``state`` goes by: its ``case_base``, or ({})
     the shipped cases and the user's file. ValueError for what it could not carry out: no
@@ -182,6 +185,8 @@ class RemedyAgent(Agent):
     """
 
     failure = Input(dict, policy="queue:64")     # {"fault", "probability", "at", "detail"}
+    driver_failure = Input(dict, policy="queue:64")   # the same, from the RobotDriver
+                                                      # (robot_link: its robot is silent)
     # {"event": "chosen" | "worked" | "failed", "at", "fault", "action", "remedy", "case"
     # ("" for the fallback stop), "similarity", "reason" (cases passed over), "outcome",
     # and for a move the agent saw end, "move": {"prepare_s", "pause_s", "phases",
@@ -235,7 +240,7 @@ class RemedyAgent(Agent):
 
     def step(self) -> None:
         now = time.time()      # wall time: it goes into state that may move between nodes
-        for failure in self.failure.read_all():
+        for failure in [*self.failure.read_all(), *self.driver_failure.read_all()]:
             self._receive(failure, now)
         if self.action:
             self._advance(now)
@@ -274,7 +279,8 @@ class RemedyAgent(Agent):
         standby = (bool(self.standby_resource) and self.standby_node in view.up
                    and view.nodes.get(self.driver) != self.standby_node)
         situation = situation_of(failure, standby=standby,
-                                 consumed=fault in self.consumers or fault == "motors")
+                                 consumed=fault in self.consumers
+                                 or fault in _ALWAYS_CONSUMED)
         placeholders = {"macro": self.macro, "driver": self.driver, "fault": fault,
                         "standby_node": self.standby_node,
                         "standby_resource": self.standby_resource,

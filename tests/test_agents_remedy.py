@@ -42,6 +42,8 @@ def situation(fault: str, *, standby: bool = False, failed: int = 0,
     (situation("sonar", failed=9, standby=True), "sonar-many-standby"),
     (situation("sonar", failed=9, standby=False), "sonar-many-alone"),
     (situation("odometry"), "odometry-drift"),
+    (situation("robot_link", standby=True, probability=1.0), "robot-link-standby"),
+    (situation("robot_link", standby=False, probability=1.0), "robot-link-alone"),
 ])
 def test_the_shipped_base_retrieves_the_case_made_for_each_failure(symptoms, expected) -> None:
     matches = CaseBase.load([SHIPPED_CASES]).retrieve(symptoms)
@@ -430,6 +432,18 @@ def test_motors_failure_moves_the_macro_with_the_driver_re_pointed_on_arrival(tm
     assert runtime.calls[1] == ("set_state", "control/driver", {"enabled": False})
     assert events(harness)[-2:] == [("chosen", "stop", "motors-alone"),
                                     ("worked", "stop", "motors-alone")]
+
+
+def test_a_robot_its_driver_cannot_reach_is_left_for_the_standby(tmp_path, clock) -> None:
+    """The driver's word that its robot is silent (its server died): mapping stopped
+    without a remedy, since the monitor, which judges readings, got none."""
+    runtime = FakeRuntime()
+    harness = agent(tmp_path, runtime)
+    harness.feed("driver_failure", {"fault": "robot_link", "probability": 1.0,
+                                    "at": clock.now, "detail": {"periods": 5}})
+    harness.step()
+    assert runtime.calls == [MOVE]
+    assert events(harness) == [("chosen", "move_macro", "robot-link-standby")]
 
 
 def test_a_fault_that_comes_back_after_the_move_fails_it_and_stops(tmp_path, clock) -> None:
