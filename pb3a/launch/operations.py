@@ -465,12 +465,12 @@ def _add_problems(name: Any, cls: Any, state: Any, period: Any, restart: Any, gr
     problems = checks.path(name, "module instance")
     if isinstance(name, str) and name in modules:
         problems.append("a module of that name runs already")
-    if cls is None:
-        pass                                    # (it names no class: the caller says why)
-    elif not (isinstance(cls, type) and issubclass(cls, Module) and cls is not Module):
-        problems.append(f"{cls!r} is not a pb3a.Module subclass")
-    else:
-        problems += checks.state(cls, {} if state is None else state) + checks.displays(cls)
+    if cls is not None:                         # (None names no class: the caller says why)
+        if not (isinstance(cls, type) and issubclass(cls, Module) and cls is not Module):
+            problems.append(f"{cls!r} is not a pb3a.Module subclass")
+        else:
+            problems += checks.state(cls, {} if state is None else state) \
+                + checks.displays(cls)
     problems += checks.period(period) + checks.restart(restart)
     if node not in nodes:
         problems.append(f"no node {node!r}{checks.did_you_mean(node, nodes)}; nodes: "
