@@ -49,6 +49,7 @@ from agents.grid import (
     Grid,
     classify,
 )
+from agents.limits import SPAN, Limit, out_of_limits
 from pb3a import Input, Module, Output
 from pb3a.config.checks import finite
 from rave.pioneer import RADIUS
@@ -809,16 +810,19 @@ class Explorer(Module):
         self.command.write(np.array([v, w], dtype=np.float64))
 
 
+_LIMITS: dict[str, Limit] = {
+    "max_speed": ("a speed above 0 (m/s)", lambda v: finite(v) and v > 0),
+    "clearance": ("a distance, 0 or more (m)", lambda v: finite(v) and v >= 0),
+    "replan_every": SPAN,
+    "forget_after": SPAN,
+}
+
+
 def _checked(state: dict[str, Any]) -> Grid:
     """The grid of an ``Explorer`` of ``state``; ValueError naming each setting it could
     not go by (a negative max_speed drove it backwards, where its reflexes do not look)."""
     grid = Grid.of(state["size"], state["resolution"])
-    rules = (("max_speed", "a speed above 0 (m/s)", lambda v: v > 0),
-             ("clearance", "a distance, 0 or more (m)", lambda v: v >= 0),
-             ("replan_every", "a number of seconds above 0", lambda v: v > 0),
-             ("forget_after", "a number of seconds above 0", lambda v: v > 0))
-    wrong = [f"{key} must be {words}, got {state[key]!r}" for key, words, ok in rules
-             if not (finite(state[key]) and ok(state[key]))]
+    wrong = out_of_limits(_LIMITS, state)
     if wrong:
         raise ValueError("Explorer: " + "; ".join(wrong))
     return grid

@@ -47,6 +47,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy.special import expit, logsumexp
 
+from agents.limits import SPAN, Limit, out_of_limits
 from pb3a import Input, InputPort, Module, Output
 from pb3a.config.checks import finite
 from rave.sonar import COUNT as SONARS
@@ -596,11 +597,11 @@ class HardwareMonitor(Module):
             self.collected = 0
 
 
-_RULES: dict[str, tuple[str, Callable[[Any], bool]]] = {
+_LIMITS: dict[str, Limit] = {
     # (a negative jump_m took every sample for another robot's: nothing was ever
     # watched; a fault_prior of 0 divided by zero at every sample)
-    "sample_s": ("a number of seconds above 0", lambda v: finite(v) and v > 0),
-    "training_s": ("a number of seconds above 0", lambda v: finite(v) and v > 0),
+    "sample_s": SPAN,
+    "training_s": SPAN,
     "jump_m": ("a distance above 0", lambda v: finite(v) and v > 0),
     "jump_rad": ("an angle above 0", lambda v: finite(v) and v > 0),
     "quantile": ("a share from 0 to 1", lambda v: finite(v) and 0 <= v <= 1),
@@ -621,8 +622,7 @@ def _check_settings(state: dict[str, Any]) -> None:
     windows = [f"ready_windows[{group!r}] must be a whole number, 0 or more, got {n!r}"
                for group, n in state["ready_windows"].items()
                if isinstance(n, bool) or not isinstance(n, int) or n < 0]
-    wrong = [f"{key} must be {words}, got {state[key]!r}"
-             for key, (words, ok) in _RULES.items() if not ok(state[key])]
+    wrong = out_of_limits(_LIMITS, state)
     if windows or wrong:
         raise ValueError("HardwareMonitor: " + "; ".join(windows + wrong))
     check_vote(state["votes_needed"], state["votes_of"])

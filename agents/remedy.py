@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from agents.case_base import AdaptationError, CaseBase, CaseFileError, Feature, Match, adapt
+from agents.limits import Limit, out_of_limits
 from pb3a import Agent, Input, InputPort, Output
 from pb3a.config.checks import finite
 from pb3a.errors import PB3AError
@@ -143,6 +144,11 @@ def check_actions(base: CaseBase) -> None:
 
 
 _ALWAYS_CONSUMED = ("motors", "robot_link")   # faults the whole robot's work depends on
+_LIMITS: dict[str, Limit] = {
+    "settle_s": ("a finite number of seconds, 0 or more", lambda v: finite(v) and v >= 0),
+    "verify_s": ("a finite number of seconds, 0 or more", lambda v: finite(v) and v >= 0),
+    "move_timeout_s": ("a finite number of seconds, above 0", lambda v: finite(v) and v > 0),
+}
 
 
 def _case_base(state: dict[str, Any]) -> CaseBase:
@@ -153,11 +159,7 @@ def _case_base(state: dict[str, Any]) -> CaseBase:
         raise ValueError("RemedyAgent needs its 'driver': the RobotDriver to stop or "
                          "re-point (e.g. 'control/driver')")
     # (a NaN verify_s never judged a remedy, and every later failure waited for good)
-    wrong = [f"{key} must be a finite number of seconds, {least}, got {state[key]!r}"
-             for key, least, ok in (("settle_s", "0 or more", lambda v: v >= 0),
-                                    ("verify_s", "0 or more", lambda v: v >= 0),
-                                    ("move_timeout_s", "above 0", lambda v: v > 0))
-             if not (finite(state[key]) and ok(state[key]))]
+    wrong = out_of_limits(_LIMITS, state)
     if wrong:
         raise ValueError("RemedyAgent: " + "; ".join(wrong))
     if state["case_base"]:

@@ -19,7 +19,7 @@ from __future__ import annotations
 import abc
 from typing import Any, ClassVar
 
-from agents.traffic.limits import Limit, out_of_limits, settings_with
+from agents.limits import Limit, out_of_limits, settings_with
 from agents.traffic.messages import JunctionReading, NeighbourQueues, PhaseRequest
 from pb3a import Input, InputPort, Module, Output
 

@@ -46,7 +46,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from agents.traffic.limits import SECONDS, SPAN, out_of_limits, settings_with
+from agents.limits import SECONDS, SPAN, out_of_limits, settings_with
 from agents.traffic.messages import JunctionReading, NetworkReading, PhaseRequest
 from agents.traffic.networks import Network
 from agents.traffic.signals import SignalHead

@@ -6,8 +6,8 @@ junction's detectors fail: it needs nothing from them but the phase shown.
 
 from __future__ import annotations
 
+from agents.limits import GREEN
 from agents.traffic.controller import JunctionController, in_transition
-from agents.traffic.limits import GREEN
 from agents.traffic.messages import JunctionReading
 
 

@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import math
 
+from agents.limits import GREEN, RATIO, SECONDS
 from agents.traffic.controller import JunctionController, in_transition
-from agents.traffic.limits import GREEN, RATIO, SECONDS
 from agents.traffic.messages import JunctionReading
 
 

@@ -20,9 +20,9 @@ import random
 from pathlib import Path
 from typing import Any
 
+from agents.limits import GREEN, SECONDS, SHARE
 from agents.traffic.controller import JunctionController, in_transition
 from agents.traffic.gap_out import served
-from agents.traffic.limits import GREEN, SECONDS, SHARE
 from agents.traffic.messages import JunctionReading
 
 TRAINED = Path(__file__).with_name("q_table.json")

@@ -8,8 +8,8 @@ its own, so it does not pay a yellow for every small difference.
 
 from __future__ import annotations
 
+from agents.limits import GREEN, RATIO, SECONDS
 from agents.traffic.controller import JunctionController, in_transition, served_queue
-from agents.traffic.limits import GREEN, RATIO, SECONDS
 from agents.traffic.messages import JunctionReading
 
 

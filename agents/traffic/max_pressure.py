@@ -8,8 +8,8 @@ them (``neighbour_i``), else from the driver's count on the outgoing lane.
 
 from __future__ import annotations
 
+from agents.limits import SECONDS
 from agents.traffic.controller import JunctionController, in_transition
-from agents.traffic.limits import SECONDS
 from agents.traffic.messages import JunctionReading
 
 

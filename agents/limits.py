@@ -1,6 +1,7 @@
-"""What each numeric setting of a traffic module must be (``Limit``: the rule in words,
-and its test), and the check of a state against them: the driver and the junction
-controllers refuse a setting out of its limits by name, and set nothing."""
+"""What each numeric setting of an agent or module of ``agents`` must be (``Limit``: the
+rule in words, and its test), and the check of a state against them: the traffic
+driver and controllers, the monitor, the remedy agent and the explorer refuse a
+setting out of its limits by name, and set nothing."""
 
 from __future__ import annotations
 
