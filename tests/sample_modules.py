@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from agents.traffic.messages import JunctionReading, PhaseRequest
-from pb3a import Agent, Input, Macro, Module, Output, RuntimeFailure
+from pb3a import Agent, Driver, Input, Macro, Module, Output, RuntimeFailure, RuntimeTimeout
 
 
 class Counter(Module):
@@ -859,3 +859,26 @@ class LongStep(Module):
     def step(self) -> None:
         time.sleep(self.step_s)
         self.steps += 1
+
+
+class DeviceReader(Driver):
+    """Asks its device for a reading every period, waiting up to 30 s for each; counts
+    what it asked and why a request failed."""
+
+    period = 0.05
+    timeout = 30.0
+    asked = 0
+    answered = 0
+    last_error = ""
+
+    def step(self) -> None:
+        self.asked += 1
+        try:
+            self.request("read")
+            self.answered += 1
+        except (RuntimeFailure, RuntimeTimeout) as exc:
+            self.last_error = str(exc)
+
+
+class DeviceReaderV2(DeviceReader):
+    """The same, another class (to swap to)."""

@@ -7,6 +7,7 @@ import contextlib
 import itertools
 import os
 import signal
+import socket
 import threading
 import time
 
@@ -14,6 +15,8 @@ import pytest
 from conftest import alive, eventually
 from sample_modules import (
     Busybody,
+    DeviceReader,
+    DeviceReaderV2,
     Journal,
     Locator,
     LocatorToo,
@@ -239,7 +242,7 @@ def test_a_swapped_module_runs_setup_before_its_step_can_take_the_lock() -> None
 
     def hand_over_at_once() -> None:          # as the scheduler may, on another core
         deadline = time.monotonic() + 2.0
-        while not lock._waiting and time.monotonic() < deadline:
+        while not lock.waiters and time.monotonic() < deadline:
             time.sleep(0.0005)
         release()
         while not lock.locked() and time.monotonic() < deadline:
@@ -344,11 +347,10 @@ def test_a_state_edit_given_up_on_while_a_body_waits_for_the_runtime_is_not_done
     def body() -> None:                 # holds the module lock, waiting for the runtime
         actor.lock.acquire()
         actor._holder = threading.get_ident()      # (as a body's call marks it)
-        wait = actor.begin_wait("events")
-        waiting.set()
-        with contextlib.suppress(RuntimeTimeout):
-            wait.result(0.5)
-        actor.end_wait(wait)
+        with actor.waiting("events") as wait:
+            waiting.set()
+            with contextlib.suppress(RuntimeTimeout):
+                wait.result(0.5)
         actor.lock.release()
         done.set()
     threading.Thread(target=body, daemon=True).start()
@@ -381,3 +383,28 @@ def test_a_restart_that_cannot_take_the_lock_reports_its_modules_failed(monkeypa
                                what="the failure said")
         assert run.stats().modules["dies"].status == "failed"
     assert "could not take the node's lock" in event[0].detail["reason"]
+
+
+def test_a_driver_waiting_for_its_device_holds_up_no_read_swap_or_stop() -> None:
+    """A driver's request to a device that does not answer held its module's lock for
+    the request's whole deadline (30 s here): a read of its state, a swap, a move or a
+    stop waited for it, or failed ("busy in a call"); a robot driver whose server died
+    could not be moved to the standby robot. Now a read runs while it waits, and a swap
+    or a stop cancels the request."""
+    with socket.socket() as probe:              # an address nothing listens at
+        probe.bind(("127.0.0.1", 0))
+        resource = f"tcp://127.0.0.1:{probe.getsockname()[1]}"
+    system = System("device").add("reader", DeviceReader, state={"resource": resource})
+    with system.launch() as run:
+        eventually(lambda: run.state("reader", timeout=2.0)["asked"] == 1,
+                   what="the first request under way")
+        started = time.monotonic()
+        assert run.state("reader", timeout=1.0)["answered"] == 0
+        run.swap("reader", DeviceReaderV2, timeout=5.0)
+        state = run.state("reader", timeout=1.0)
+        assert time.monotonic() - started < 2.0
+        assert "request 'read' cancelled: the module is being swapped" in state["last_error"]
+        eventually(lambda: run.state("reader", timeout=2.0)["asked"] == 2,
+                   what="the new instance's request under way")
+        started = time.monotonic()
+    assert time.monotonic() - started < 5.0

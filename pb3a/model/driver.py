@@ -6,7 +6,10 @@ re-pointed at another device with ``run.set_state(name, resource=ADDR)`` (or by 
 agent): its next request goes to the new device, after ``release`` let go of the
 old one. Requests are authenticated with the cluster key (the program serves them
 with a ``ControlServer``), have a deadline, and fail with an error naming the
-device; a driver whose device does not answer keeps running and says so.
+device; a driver whose device does not answer keeps running and says so. A request
+in progress does not hold up a move, swap or stop of the driver: they cancel it
+(``RuntimeFailure``, "cancelled: ...") rather than wait out its deadline; a read of
+its state runs meanwhile (an edit waits for the request's end).
 """
 
 from __future__ import annotations
@@ -30,8 +33,12 @@ class Driver(Module):
         """Ask the device to do ``op``; its answer, or ``RuntimeFailure``/``RuntimeTimeout``
         naming the device."""
         client = self._client()
+        giving_way = self.__dict__.get("_pb3a_giving_way")     # (set by its worker)
         try:
-            return client.call(op, self.timeout, **args)
+            if giving_way is None:
+                return client.call(op, self.timeout, **args)
+            with giving_way(f"request {op!r}", takes_edits=False) as wait:
+                return client.request(op, args, self.timeout, wait=wait)
         except (RuntimeFailure, RuntimeTimeout) as exc:
             raise type(exc)(f"{type(self).__name__} at {self.resource}: {exc}") from None
 

@@ -370,6 +370,12 @@ class InputPort:
         self._lock.release()
         return claimed
 
+    def give_back(self, calls: int) -> None:
+        """Return ``calls`` claimed by ``take_events`` and not made: they are owed again."""
+        self._lock.acquire()
+        self._undispatched += calls
+        self._lock.release()
+
     @property
     def owes_calls(self) -> bool:
         """True while values are waiting for their ``on_input`` call."""

@@ -39,7 +39,7 @@ import struct
 import sys
 import threading
 import time
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 import cloudpickle
 import zmq
@@ -258,20 +258,23 @@ class ControlClient:
         or ``RuntimeTimeout`` when no answer came within ``timeout`` seconds."""
         return self.request(op, args, timeout)
 
-    def request(self, op: str, args: dict[str, Any], timeout: float = DEFAULT_TIMEOUT) -> Any:
-        """``call`` with the arguments as a dict (which may then name one ``timeout``)."""
+    def request(self, op: str, args: dict[str, Any], timeout: float = DEFAULT_TIMEOUT, *,
+                wait: Waiting | None = None) -> Any:
+        """``call`` with the arguments as a dict (which may then name one ``timeout``).
+        With ``wait`` (a module body's, see ``pb3a.worker.waits``) it waits there, so
+        the module's runtime can cancel it (``RuntimeFailure``)."""
         if self.refused == "bad tag":           # it will not change its mind
             raise RuntimeFailure(self._refusal(op))
         request_id = _ID.pack(next(self._ids))
         blob = cloudpickle.dumps((op, args), protocol=5)
-        done, box = threading.Event(), [False, None]
+        done, box = _Done(wait), [False, None]
         self._waiting[request_id] = (done, box)
         self._sent[request_id] = [blob, 0]
         try:
             if self._closed:      # (checked once registered: close fails what it finds)
                 raise RuntimeFailure(f"{op!r} to {self.address}: this client is closed")
             self._loop.submit(lambda: self._send(request_id))
-            if not done.wait(timeout):
+            if not done.answered(timeout):
                 raise RuntimeTimeout(
                     f"{self.address} did not answer {op!r} within {timeout:g} s: nothing "
                     "listens there, it is cut off, or it is busy; check the address and "
@@ -362,6 +365,39 @@ class ControlClient:
         self.fail_pending("this client was closed while it waited")
         self._loop.close()
         self._dealer.close(0)
+
+
+class Waiting(Protocol):
+    """What a request may wait in instead of its own event: told of the answer (or the
+    client's end), and waited on; its ``result`` may raise to end the wait early."""
+
+    def answer(self, ok: bool, result: Any) -> None: ...
+
+    def result(self, timeout: float) -> Any: ...
+
+
+class _Done(threading.Event):
+    """Set when a request's answer (or its refusal, or the client's end) is in; tells
+    the request's ``Waiting`` too, when it has one."""
+
+    def __init__(self, wait: Waiting | None) -> None:
+        super().__init__()
+        self._in = wait
+
+    def set(self) -> None:
+        super().set()
+        if self._in is not None:
+            self._in.answer(True, None)
+
+    def answered(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` for the answer: True once it is in."""
+        if self._in is None:
+            return self.wait(timeout)
+        try:
+            self._in.result(timeout)
+        except RuntimeTimeout:
+            return self.is_set()
+        return True
 
 
 class _MustImport(Exception):

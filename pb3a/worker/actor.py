@@ -43,20 +43,21 @@ class HandOverLock:
 
     Locks are not fair: a module with period 0 releases its lock after a step and
     takes it again before a waiting state request, swap or event has even woken up,
-    starving them for hundreds of steps. Every taker counts itself while it waits,
-    and the step loop hands over between two steps.
+    starving them for hundreds of steps; so does a dispatch task with more events to
+    run. Every taker counts itself in ``waiters`` while it waits; the step loop hands
+    over between two steps, and a dispatch task between two events.
     """
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._waiting: list[None] = []    # one entry per waiting thread (append/pop are atomic)
+        self.waiters: list[None] = []     # one entry per waiting thread (append/pop are atomic)
         self.release = self._lock.release
         self.locked = self._lock.locked
         # the per-value path: one C call when the lock is free (then nobody waits)
         self.try_acquire = functools.partial(self._lock.acquire, False)
 
     def acquire(self, timeout: float = -1) -> bool:
-        waiting = self._waiting
+        waiting = self.waiters
         waiting.append(None)
         try:
             return self._lock.acquire(timeout=timeout)
@@ -72,10 +73,10 @@ class HandOverLock:
 
     def hand_over(self) -> None:
         """Called without the lock: let the threads waiting for it take it first."""
-        if not self._waiting:
+        if not self.waiters:
             return
         deadline = time.monotonic() + _HAND_OVER_S
-        while self._waiting and time.monotonic() < deadline:
+        while self.waiters and time.monotonic() < deadline:
             time.sleep(0)             # (releases the GIL: the waiter can run)
 
 
@@ -116,6 +117,7 @@ class ModuleActor:
         self.name = name
         self.on_error = on_error
         self.module = module
+        module.__dict__["_pb3a_giving_way"] = self.waiting   # (see Driver.request)
         self.period = period
         self.lock = HandOverLock()
         self.steps = self.events = self.errors = 0
@@ -245,7 +247,11 @@ class ModuleActor:
 
         With ``claim``, the calls are first claimed from that port's owed ``on_input``
         calls (at most ``times``), under the lock: a module paused for migration has
-        no claimed-but-unrun call, so what it owes travels with it."""
+        no claimed-but-unrun call, so what it owes travels with it. Such a batch ends
+        early when another thread waits for the lock (a state request, a swap, the
+        step), the calls it did not make given back to the port: a module whose events
+        come faster than it handles them would otherwise hold its lock for the whole
+        batch (256 events, each as long as the module takes)."""
         lock = self.lock
         if not lock.try_acquire():
             lock.acquire()
@@ -267,7 +273,11 @@ class ModuleActor:
                 times = claim.take_events(times)
             start = time.thread_time() if timed else 0.0
             fn = getattr(self.module, hook)
-            for _ in range(times):
+            waiters = self.lock.waiters if claim is not None else None
+            for made in range(times):
+                if made and waiters:            # (one list's truth: the per-value path)
+                    claim.give_back(times - made)
+                    break
                 try:
                     fn(*args)
                     done += 1
@@ -312,6 +322,7 @@ class ModuleActor:
             port = pending.popleft()
             lock.release()
             done = self.call_many("on_input", budget, port, claim=port)
+            self.lock.hand_over()               # (to a thread that ended the batch early)
             self.events += done
             budget -= max(done, 1)
             if port.owes_calls and self.running:
@@ -320,34 +331,38 @@ class ModuleActor:
                         self._pending.append(port)
         self._schedule(self._dispatch)   # more to do: let other modules have a turn
 
-    # -- a body waiting for the runtime (see ``waits``) ----------------------
-    def begin_wait(self, what: str) -> RuntimeWait:
-        """A runtime call from this module: while it waits, requests that need the lock
-        for a moment run on the calling thread, if that thread holds the lock (a body)."""
-        wait = RuntimeWait(what)
+    # -- a body waiting for the runtime, or a device (see ``waits``) ----------
+    @contextlib.contextmanager
+    def waiting(self, what: str, takes_edits: bool = True) -> Iterator[RuntimeWait]:
+        """A body of this module waits for ``what`` (a runtime call, a device's answer).
+        If the waiting thread holds the lock (a body), a request that needs the module
+        stopped cancels the wait, and requests that need the lock for a moment (reads,
+        and edits if it ``takes_edits``) run on that thread meanwhile."""
+        wait = RuntimeWait(what, takes_edits)
         if self._holder == threading.get_ident():
             self._wait = wait
             if self._stopping_for:              # asked again after a cancellation
                 wait.cancel(self._stopping_for)
-        return wait
-
-    def end_wait(self, wait: RuntimeWait) -> None:
-        if self._wait is wait:
-            self._wait = None
-        wait.close()
+        try:
+            yield wait
+        finally:
+            if self._wait is wait:
+                self._wait = None
+            wait.close()
 
     def _cancel_wait(self, reason: str) -> None:
         wait = self._wait
         if wait is not None:
             wait.cancel(reason)
 
-    def with_lock(self, work: Callable[[], Any], timeout: float) -> Any:
+    def with_lock(self, work: Callable[[], Any], timeout: float, edit: bool = False) -> Any:
         """Run ``work`` under the module lock, or on the thread of a body that holds it
-        while it waits for the runtime; TimeoutError after ``timeout``."""
+        while it waits (see ``waiting``; ``edit``: work that sets the module's state);
+        TimeoutError after ``timeout``."""
         deadline = time.monotonic() + timeout
         while True:
             wait = self._wait
-            if wait is not None and (future := wait.post(work)) is not None:
+            if wait is not None and (future := wait.post(work, edit)) is not None:
                 ran, result = run_posted(future, max(0.0, deadline - time.monotonic()))
                 if ran:
                     return result
@@ -430,7 +445,7 @@ class ModuleActor:
 
     def apply(self, state: dict[str, Any], timeout: float = 10.0) -> None:
         """Set state under the module lock (KeyError for unknown names)."""
-        self.with_lock(lambda: self.module.set_state(state), timeout)
+        self.with_lock(lambda: self.module.set_state(state), timeout, edit=True)
 
     def swap(self, new: Module, timeout: float = 10.0) -> list[str]:
         """Replace the module by ``new`` keeping ports, queued values and matching state.
@@ -456,6 +471,7 @@ class ModuleActor:
                         port._notify = self._on_port_event
                 port.spec = spec
             new._pb3a_adopt_ports(self.ports)
+            new.__dict__["_pb3a_giving_way"] = self.waiting
             accepted = set(type(new).state_names()) | set(new.get_state())
             kept = {k: v for k, v in state.items() if k in accepted}
             new.set_state(kept)

@@ -489,19 +489,18 @@ class Worker:
         """An agent's request to the runtime (a configuration change, a read); waits for
         the answer, giving way meanwhile to requests that need the agent (``waits``)."""
         actor = self.actors[agent]
-        wait = actor.begin_wait(f"{agent}'s request {op!r}")
         req_id = next(self._request_ids)
-        self._requests[req_id] = wait
-        try:
-            # who asks, and whether from its setup: a change that waits for that setup
-            # lets it read (``Operations``)
-            asker = {"_asker": (agent, actor.in_setup)}
-            self.send((None, "request", {"id": req_id, "op": op,
-                                         "args": cloudpickle.dumps({**args, **asker})}))
-            return wait.result(timeout)
-        finally:
-            self._requests.pop(req_id, None)
-            actor.end_wait(wait)
+        with actor.waiting(f"{agent}'s request {op!r}") as wait:
+            self._requests[req_id] = wait
+            try:
+                # who asks, and whether from its setup: a change that waits for that
+                # setup lets it read (``Operations``)
+                asker = {"_asker": (agent, actor.in_setup)}
+                self.send((None, "request", {"id": req_id, "op": op,
+                                             "args": cloudpickle.dumps({**args, **asker})}))
+                return wait.result(timeout)
+            finally:
+                self._requests.pop(req_id, None)
 
     def _answer(self, id: int, ok: bool, result: Any) -> None:
         wait = self._requests.get(id)

@@ -15,6 +15,11 @@ then module locks; and a body that waits for the runtime gives way:
   stop, remove) cancels the wait: the body's runtime call raises ``RuntimeFailure``
   ("cancelled: ..."), the body returns, and the lock is free.
 
+A driver waiting for its device (``Driver.request``) gives way too, but takes no
+edits: an edit runs the module's own ``set_state``, which may make a request of its
+own inside the one waiting (a re-pointed driver reads its new device at once), so it
+waits for the request to end, as for any body. Reads run on its thread.
+
 Nothing else ever waits for a module lock while holding one.
 """
 
@@ -36,10 +41,12 @@ if TYPE_CHECKING:
 
 
 class RuntimeWait:
-    """One runtime call in progress: the answer to come, and work posted meanwhile."""
+    """One runtime call (or device request) in progress: the answer to come, and work
+    posted meanwhile (edits of the module's state only if it ``takes_edits``)."""
 
-    def __init__(self, what: str) -> None:
+    def __init__(self, what: str, takes_edits: bool = True) -> None:
         self.what = what                          # the request, for messages
+        self._takes_edits = takes_edits
         self._cond = threading.Condition()
         self._posted: deque[tuple[Callable[[], Any], Future[Any]]] = deque()
         self._answer: tuple[bool, Any] | None = None
@@ -59,9 +66,12 @@ class RuntimeWait:
                 self._cancelled = reason
             self._cond.notify_all()
 
-    def post(self, work: Callable[[], Any]) -> Future[Any] | None:
+    def post(self, work: Callable[[], Any], edit: bool = False) -> Future[Any] | None:
         """Run ``work`` on the waiting thread (which holds the module lock); its future,
-        or None when the call has ended (then take the lock as usual)."""
+        or None when the call has ended, or ``work`` is an ``edit`` and this wait takes
+        none (then take the lock as usual)."""
+        if edit and not self._takes_edits:
+            return None
         future: Future[Any] = Future()
         with self._cond:
             if not self._open:
