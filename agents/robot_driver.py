@@ -36,6 +36,7 @@ import numpy as np
 
 from pb3a import Driver, Input, InputPort, Output
 
+SILENT_STOP_S = 0.1          # how long a silent robot's stop is waited for, when let go
 
 class RobotDriver(Driver):
     """Velocity command in; sonar, odometry, gps, clock and camera out, every
@@ -97,6 +98,11 @@ class RobotDriver(Driver):
         if not self.enabled:
             return               # ignored: every period tells the robot to stop
         self._unsent = command
+        if self.silent:
+            # A robot that did not answer at the last period is tried at the next one
+            # only: each try may last the whole request timeout, and with a command
+            # every period the driver's lock would never be free (for a move, say).
+            return
         try:
             self._apply(self._unsent)
         except (RuntimeError, OSError) as exc:
@@ -176,7 +182,10 @@ class RobotDriver(Driver):
             self.camera.write(blobs)
 
     def release(self, client: Any) -> None:
-        client.call("stop", self.timeout)          # leave the robot standing
+        # Leave the robot standing. One that did not answer at the last period is told
+        # too, but not waited for long: a move away from a robot whose server died
+        # (its teardown runs this) would wait the whole timeout.
+        client.call("stop", min(self.timeout, SILENT_STOP_S) if self.silent else self.timeout)
 
 
 def _check_silent_after(periods: Any) -> None:

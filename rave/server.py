@@ -266,12 +266,12 @@ def _served_at(pipe: Any, what: str) -> str:
 
 
 class RobotServers:
-    """One robot server process per robot of a served world; stops them all."""
+    """One robot server process per robot of a served world; stops them all, or one."""
 
     def __init__(self, world_address: str, robots: list[str], host: str = "127.0.0.1") -> None:
         self.addresses: dict[str, str] = {}
-        self._processes: list[Any] = []
-        self._pipes: list[Any] = []        # held open: a server stops when its closes
+        self._processes: dict[str, Any] = {}
+        self._pipes: dict[str, Any] = {}   # held open: a server stops when its closes
         try:
             for name in robots:
                 parent, child = _context.Pipe()
@@ -280,17 +280,29 @@ class RobotServers:
                                            args=(name, world_address, host, child))
                 start_without_main(process)
                 child.close()
-                self._processes.append(process)
-                self._pipes.append(parent)
+                self._processes[name] = process
+                self._pipes[name] = parent
                 self.addresses[name] = _served_at(parent, f"the robot server of {name}")
         except BaseException:
             self.close()
             raise
 
+    def kill(self, name: str) -> None:
+        """Kill robot ``name``'s server at once, as a crash or a cut cable would end it:
+        its driver's calls go unanswered from now on (the robot keeps its last command)."""
+        if name not in self._processes:
+            raise KeyError(f"no robot server of {name!r} runs; those running: "
+                           f"{', '.join(self._processes) or 'none'}")
+        process = self._processes.pop(name)
+        process.kill()
+        process.join(5.0)
+        self._pipes.pop(name).close()
+        del self.addresses[name]
+
     def close(self, timeout: float = 5.0) -> None:
-        for pipe in self._pipes:
+        for pipe in self._pipes.values():
             pipe.close()                   # (each stops on its parent's EOF, side by side)
-        for process in self._processes:
+        for process in self._processes.values():
             _stop(process, timeout)
         self._processes.clear()
         self._pipes.clear()

@@ -120,6 +120,12 @@ class Lab:
         ``rave fault`` would."""
         return self._client(self.robots[name]).call(op, CALL_TIMEOUT, **args)
 
+    def kill_robot_server(self, name: str) -> None:
+        """Kill robot ``name``'s server, as a crash or a cut cable would end it: its
+        driver hears nothing from the robot from now on."""
+        assert self.robot_servers is not None
+        self.robot_servers.kill(name)
+
     def describe(self) -> dict[str, Any]:
         """The world as plain data now (``World.describe``), from the world server."""
         assert self.world_server is not None

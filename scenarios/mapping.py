@@ -8,18 +8,21 @@ robot, also emulated hardware, stands by with a node of its own (a world with on
 robot gets a standby placed as far from it as its free space allows). Once the
 monitor has learnt the motors' normal running (in the mission's first seconds) and
 the map covers ``FAULT_COVERAGE`` of the free space (or at the end of the first
-phase), the scenario cuts the first robot's motor power (``motors_off``, through its
-robot server, as ``rave fault`` would): half the free space is left to map, however
-small the world. The monitor reports the failure; the remedy agent (case-based
-reasoning) moves the control macro to the standby robot's node and re-points its
-driver at that robot; mapping goes on from the map the mapper carried.
+phase), the scenario makes the first robot fail (``FAULTS``): by default it cuts its
+motor power (``motors_off``, through its robot server, as ``rave fault`` would), or
+with ``--fault robot_link`` it kills its robot server, as a crash or a cut cable
+would. Half the free space is left to map, however small the world. The monitor
+(dead motors) or the driver (a robot that stopped answering) reports the failure; the
+remedy agent (case-based reasoning) moves the control macro to the standby robot's
+node and re-points its driver at that robot; mapping goes on from the map the mapper
+carried.
 
-Measured in the run: detection time (fault to the monitor's failure event), hand-off
+Measured in the run: detection time (fault to its failure event), hand-off
 time (that event to the first map update made from the standby robot's readings),
 and the map against the world's ground truth (accuracy of the classified cells,
 coverage of the reachable free space) before the fault, at the hand-off and at the end.
 
-Run it: ``pb3a scenario mapping [--quick] [--world W] [--seed N] [--out DIR]`` (or
+Run it: ``pb3a scenario mapping [--quick] [--world W] [--seed N] [--fault F] [--out DIR]`` (or
 ``python -m scenarios.mapping``). It prints the report as JSON and writes
 ``mapping.json`` and ``mapping.png`` to DIR.
 """
@@ -56,15 +59,20 @@ HANDOFF_NEAR_M = 1.0                          # an update this near the standby 
                                               # nearer it than the failed one) is its
 CLEARANCE_M = 0.6                             # a standby robot placed by the scenario keeps this
 GOALS = {"handoff_s": 0.5, "accuracy": 0.9}
+FAULTS = {                    # what --fault does to the first robot, and who says so
+    "motors": "its motor power cut (motors_off); its hardware monitor says so",
+    "robot_link": "its robot server killed; its driver says so once the robot is silent",
+}
 
 
 class MappingRecorder(Module):
     """Keeps what the report needs: a map snapshot every ``snapshot_s``, every map
-    update (when, where), and every failure and remedy."""
+    update (when, where), every failure (the monitor's and the driver's) and remedy."""
 
     map = Input(np.ndarray)
     updated = Input(np.ndarray, shape=(4,), dtype="float64", policy="queue:100000")
     failure = Input(dict, policy="queue:1000")
+    driver_failure = Input(dict, policy="queue:1000")
     remedy = Input(dict, policy="queue:1000")
     snapshot_s = 2.0
     snapshots: list[tuple[float, np.ndarray]] = []     # (unix time, map)
@@ -80,7 +88,7 @@ class MappingRecorder(Module):
                 self.snapshots.append((now, np.array(latest)))
         elif port.name == "updated":
             self.updates.extend(row.tolist() for row in port.read_all())
-        elif port.name == "failure":
+        elif port.name in ("failure", "driver_failure"):
             self.failures.extend(port.read_all())
         else:
             self.remedies.extend(port.read_all())
@@ -102,9 +110,12 @@ def configuration(lab: Lab, robots: tuple[str, str], cases: Path) -> System:
     return System.from_dict(data, source=str(CONFIG))
 
 
-def run(out: Path, world: str = "lab", seed: int = 1, quick: bool = False) -> dict[str, Any]:
-    """One run; what happened, for ``report``. The remedy agent's learned cases go to
-    ``out``/remedy-cases.toml."""
+def run(out: Path, world: str = "lab", seed: int = 1, quick: bool = False,
+        fault: str = "motors") -> dict[str, Any]:
+    """One run with ``fault`` (one of ``FAULTS``); what happened, for ``report``. The
+    remedy agent's learned cases go to ``out``/remedy-cases.toml."""
+    if fault not in FAULTS:
+        raise ValueError(f"no fault {fault!r}: the faults are {', '.join(FAULTS)}")
     before, after = PHASES["quick" if quick else "full"]
     path = world_file(world)
     robots, added = place_robots(path)
@@ -125,7 +136,10 @@ def run(out: Path, world: str = "lab", seed: int = 1, quick: bool = False) -> di
                              _free_space(occupied, grid, starts)).coverage >= FAULT_COVERAGE
 
             _follow(lab, paths, time.monotonic() + before, time_for_the_fault)
-            lab.robot(robots[0], "inject", fault="motors_off", params={})
+            if fault == "motors":
+                lab.robot(robots[0], "inject", fault="motors_off", params={})
+            else:
+                lab.kill_robot_server(robots[0])
             fault_at = time.time()
             poses = lab.poses()
             failed_at, standby_at = poses[robots[0]], poses[robots[1]]
@@ -134,7 +148,7 @@ def run(out: Path, world: str = "lab", seed: int = 1, quick: bool = False) -> di
             remedy = running.state("remedy")
             final = running.state("control/mapper")
             where = running.where("control/mapper")
-    return {"world": path.stem, "seed": seed, "quick": quick, "robots": robots,
+    return {"world": path.stem, "seed": seed, "quick": quick, "fault": fault, "robots": robots,
             "size": size, "described": described, "started": started,
             "fault_at": fault_at, "failed_at": failed_at, "standby_at": standby_at,
             "ended": time.time(),
@@ -215,7 +229,7 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
     over_time = [{"t": round(at - started, 2), **quality(snapshot)}
                  for at, snapshot in recorder["snapshots"]]
     detected = next((f for f in recorder["failures"]
-                     if f.get("fault") == "motors" and f["at"] >= fault_at), None)
+                     if f.get("fault") == record["fault"] and f["at"] >= fault_at), None)
     false_alarms = [f for f in recorder["failures"] if f["at"] < fault_at]
     handoff_at = None
     if detected is not None:
@@ -230,7 +244,7 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
     at_handoff = [s for at, s in recorder["snapshots"] if handoff_at and at <= handoff_at]
     figures: dict[str, Any] = {
         "scenario": "mapping", "world": record["world"], "seed": record["seed"],
-        "quick": record["quick"], "robots": list(record["robots"]),
+        "quick": record["quick"], "fault": record["fault"], "robots": list(record["robots"]),
         "fault_at_s": round(fault_at - started, 2),
         "detection_s": round(detected["at"] - fault_at, 3) if detected else None,
         "detected_fault": detected, "false_alarms": len(false_alarms),
@@ -267,6 +281,7 @@ def plot(record: dict[str, Any], figures: dict[str, Any], path: Path) -> None:
     occupied = truth(record["described"], grid)
     extent = (0, grid.width, 0, grid.height)
     started, fault_at = record["started"], record["fault_at"]
+    struck = {"motors": "motors cut", "robot_link": "robot server killed"}[record["fault"]]
     before = [s for at, s in record["recorder"]["snapshots"] if at <= fault_at]
     fig = plt.figure(figsize=(13, 8))
     panels = [("ground truth", np.where(occupied, 1.0, 0.0)),
@@ -289,7 +304,7 @@ def plot(record: dict[str, Any], figures: dict[str, Any], path: Path) -> None:
                          None)
             if stuck:
                 axis.plot(stuck[1], stuck[2], "x", color="black", markersize=9,
-                          label="motors cut")
+                          label=struck)
         axis.set_title(title, fontsize=10)
         axis.set_xticks([])
         axis.set_yticks([])
@@ -299,7 +314,7 @@ def plot(record: dict[str, Any], figures: dict[str, Any], path: Path) -> None:
     over = figures["map_quality_over_time"]
     quality.plot([q["t"] for q in over], [q["accuracy"] for q in over], label="accuracy")
     quality.plot([q["t"] for q in over], [q["coverage"] for q in over], label="coverage")
-    quality.axvline(fault_at - started, color="black", linestyle=":", label="motors cut")
+    quality.axvline(fault_at - started, color="black", linestyle=":", label=struck)
     if figures["detection_s"] is not None:
         quality.axvline(fault_at - started + figures["detection_s"], color="tab:red",
                         linestyle="--", label="failure detected")
@@ -327,13 +342,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--world", default="lab",
                         help="a bundled world (lab, arena, room) or a world file (default lab)")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--fault", choices=tuple(FAULTS), default="motors",
+                        help="how the first robot fails: " + "; ".join(
+                            f"{name}: {what}" for name, what in FAULTS.items()))
     parser.add_argument("--out", default=".", help="directory for mapping.json and .png")
     args = parser.parse_args(argv)
     show_logs()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     try:
-        record = run(out, args.world, args.seed, args.quick)
+        record = run(out, args.world, args.seed, args.quick, args.fault)
     except ValueError as exc:
         print(f"mapping: {exc}", file=sys.stderr)
         return 2

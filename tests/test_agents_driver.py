@@ -10,7 +10,7 @@ import pytest
 
 import pb3a.model.driver
 from agents.robot_driver import RobotDriver
-from pb3a import RuntimeFailure
+from pb3a import RuntimeFailure, RuntimeTimeout
 from pb3a.testing import ModuleHarness
 
 
@@ -148,6 +148,54 @@ def test_a_command_that_is_not_finite_stops_the_robot_and_the_driver_senses_on(
     harness.step(2)                        # (before, each period resent NaN and read nothing)
     assert ops(robot) == ["sensors"] * 2 and harness.module.failures == 1
     assert list(harness.last("applied")) == [0.0, 0.0]
+
+
+def test_commands_to_a_silent_robot_wait_for_the_next_period(robot, monkeypatch) -> None:
+    """Each command was sent as it came, each waiting out the request's timeout: with
+    the robot server dead and a command every period, the driver's lock was never
+    free, and the move away from that robot failed ("busy in a call for 5 s")."""
+    harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400"})
+    answer, down = FakeRobotServer.call, [True]
+
+    def gone(self, op: str, timeout: float, **args: Any) -> Any:
+        if down[0]:
+            robot.requests.append((op, args))
+            raise RuntimeError(f"{self.address} did not answer {op!r}")
+        return answer(self, op, timeout, **args)
+    monkeypatch.setattr(FakeRobotServer, "call", gone)
+    harness.step()                                  # the robot is silent
+    harness.feed("command", np.array([0.1, 0.0]))
+    harness.feed("command", np.array([0.3, 0.0]))
+    assert ops(robot) == ["sensors"]                # not tried as they came
+    down[0] = False
+    harness.step()                                  # the period tries the latest one
+    assert robot.requests[1:] == [("drive", {"v": 0.3, "w": 0.0}), ("sensors", {})]
+    harness.feed("command", np.array([0.2, 0.0]))  # it answers again: sent at once
+    assert robot.requests[-1] == ("drive", {"v": 0.2, "w": 0.0})
+
+
+def test_a_silent_robot_is_told_to_stop_when_let_go_but_not_waited_for_long(
+        robot, monkeypatch) -> None:
+    """Its teardown (a move away from it, a re-point) waited the whole request timeout
+    for the stop of a robot whose server had died: a move's capture took 1 s."""
+    harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400"})
+    harness.step()
+    waited: list[tuple[str, float]] = []
+    answer, down = FakeRobotServer.call, [False]
+
+    def gone(self, op: str, timeout: float, **args: Any) -> Any:
+        waited.append((op, timeout))
+        if down[0]:
+            raise RuntimeTimeout(f"{self.address} did not answer {op!r}")
+        return answer(self, op, timeout, **args)
+    monkeypatch.setattr(FakeRobotServer, "call", gone)
+    harness.module.set_state({"resource": "tcp://robot:7401"})     # let go while it answers
+    assert waited[0] == ("stop", 1.0)
+    down[0] = True
+    harness.step()                                  # silent now
+    waited.clear()
+    harness.module.teardown()
+    assert waited == [("stop", 0.1)]
 
 
 def test_a_robot_that_stops_answering_is_said_once_per_onset_on_failure(

@@ -16,7 +16,7 @@ import pytest
 from conftest import HeldKey, alive, eventually
 from sample_modules import Cruise
 
-from pb3a import RuntimeFailure, System
+from pb3a import RuntimeFailure, RuntimeTimeout, System
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 from rave import World, cli, render
@@ -58,9 +58,24 @@ def test_a_robot_server_relays_commands_sensors_and_faults(served) -> None:
         clients["r1"].call("inject", fault="motors_off", params={})
     with pytest.raises(RuntimeFailure, match="robot r1 has no operation 'describe'"):
         clients["r1"].call("describe")
-    pids = [process.pid for process in robots._processes]
+    pids = [process.pid for process in robots._processes.values()]
     robots.close()
     assert not any(alive(pid) for pid in pids)
+
+
+def test_a_killed_robot_server_stops_answering_and_the_others_serve_on(served) -> None:
+    """``kill`` ends one robot's server at once, as a crash would: its calls go
+    unanswered, the other robot's server serves on, and a name with no server is
+    named with those running."""
+    robots, clients = served
+    pid = robots._processes["r2"].pid
+    robots.kill("r2")
+    assert not alive(pid) and set(robots.addresses) == {"r1"}
+    with pytest.raises(RuntimeTimeout):
+        clients["r2"].call("sensors", timeout=0.5)
+    assert len(clients["r1"].call("sensors")["sonar"]) == 16
+    with pytest.raises(KeyError, match="no robot server of 'r2' runs; those running: r1"):
+        robots.kill("r2")
 
 
 def test_a_robot_server_signalled_as_it_starts_stops_cleanly(tmp_path, monkeypatch) -> None:
@@ -74,7 +89,7 @@ def test_a_robot_server_signalled_as_it_starts_stops_cleanly(tmp_path, monkeypat
     closing = RobotServers.close
 
     def close(self: RobotServers, timeout: float = 5.0) -> None:
-        processes = list(self._processes)
+        processes = list(self._processes.values())
         closing(self, timeout)
         exits.extend(process.exitcode for process in processes)
     monkeypatch.setattr(RobotServers, "close", close)
