@@ -94,7 +94,7 @@ def look(pose: tuple[float, float, float], targets: list[Target], occluders: np.
             continue
         if hue is not None and hue_distance(h, hue) > tolerance:
             continue
-        seen = _view(x, y, target)
+        seen = _view(x, y, theta, target)
         if seen is None:
             continue
         near, (nx, ny), bearing, size = seen
@@ -110,36 +110,74 @@ def look(pose: tuple[float, float, float], targets: list[Target], occluders: np.
     return sorted(blobs, key=lambda blob: blob.distance)
 
 
-def _view(x: float, y: float, target: Target,
+def _view(x: float, y: float, theta: float, target: Target,
           ) -> tuple[float, tuple[float, float], float, float] | None:
-    """How ``target`` looks from (x, y): the distance to its nearest point, that point,
-    the bearing of its middle (world frame) and the angle it spans; None from inside."""
+    """How ``target`` looks from (x, y), facing ``theta``: the distance to its nearest
+    point, that point, the bearing of its middle (world frame) and the angle it spans;
+    None from inside. A disc is seen whole (a robot: its centre must be in view); an
+    outline only as far as it lies in the field of view, as the camera's image holds
+    it (``_outline_view``)."""
+    if target.outline is not None:
+        return _outline_view(x, y, theta, np.asarray(target.outline, dtype=np.float64))
     dx, dy = target.x - x, target.y - y
     distance = math.hypot(dx, dy)
-    if target.outline is None:
-        if distance <= target.radius:
-            return None
-        near = distance - target.radius
-        point = (x + dx * near / distance, y + dy * near / distance)
-        return near, point, math.atan2(dy, dx), 2.0 * math.asin(target.radius / distance)
-    corners = np.asarray(target.outline, dtype=np.float64)
+    if distance <= target.radius:
+        return None
+    near = distance - target.radius
+    point = (x + dx * near / distance, y + dy * near / distance)
+    return near, point, math.atan2(dy, dx), 2.0 * math.asin(target.radius / distance)
+
+
+def _outline_view(x: float, y: float, theta: float, corners: np.ndarray,
+                  ) -> tuple[float, tuple[float, float], float, float] | None:
+    """The part of polygon ``corners`` within the field of view from (x, y) facing
+    ``theta``: its nearest point and the bearings it spans, from each edge's share of
+    the view (an edge subtends less than half a turn, its bearings in order along it).
+    So a camera inside a U-shaped obstacle's pocket sees its back, and one beside a
+    long bench sees the bench fill its view, not the disc round its corners."""
     if _inside(x, y, corners):
         return None
-    starts, ends = corners, np.roll(corners, -1, axis=0)
-    edges = ends - starts
-    t = np.clip(((x - starts[:, 0]) * edges[:, 0] + (y - starts[:, 1]) * edges[:, 1])
-                / np.maximum((edges ** 2).sum(axis=1), 1e-18), 0.0, 1.0)
-    nearest = starts + t[:, None] * edges
-    gaps = np.hypot(nearest[:, 0] - x, nearest[:, 1] - y)
-    i = int(np.argmin(gaps))
-    if gaps[i] <= 0.0:
+    half, viewer = FOV / 2, np.array([x, y])
+    low, high, nearest = math.inf, -math.inf, None
+    for start, end in zip(corners, np.roll(corners, -1, axis=0), strict=True):
+        first = math.atan2(start[1] - y, start[0] - x)
+        turn = math.remainder(math.atan2(end[1] - y, end[0] - x) - first, math.tau)
+        a = math.remainder(first - theta, math.tau)
+        lo, hi = max(min(a, a + turn), -half), min(max(a, a + turn), half)
+        if lo > hi:
+            continue                                # this edge is out of view
+        ends = [_along(viewer, theta + bearing, start, end) for bearing in (lo, hi)]
+        point, gap = _nearest_on(viewer, *ends)
+        if gap <= 0.0:
+            return None                             # touching it
+        low, high = min(low, lo), max(high, hi)
+        if nearest is None or gap < nearest[0]:
+            nearest = (gap, point)
+    if nearest is None:
         return None
-    toward = math.atan2(dy, dx)        # corners' bearings, unwrapped round the middle's
-    turns = np.remainder(np.arctan2(corners[:, 1] - y, corners[:, 0] - x) - toward
-                         + math.pi, math.tau) - math.pi
-    low, high = float(turns.min()), float(turns.max())
-    return (float(gaps[i]), (float(nearest[i, 0]), float(nearest[i, 1])),
-            toward + (low + high) / 2, high - low)
+    return nearest[0], nearest[1], theta + (low + high) / 2, high - low
+
+
+def _along(viewer: np.ndarray, bearing: float, start: np.ndarray, end: np.ndarray,
+           ) -> np.ndarray:
+    """Where the ray from ``viewer`` at ``bearing`` meets the line start-end, clamped to
+    the segment (an edge seen end-on: its nearer end)."""
+    u, edge = np.array([math.cos(bearing), math.sin(bearing)]), end - start
+    across = edge[0] * u[1] - edge[1] * u[0]
+    if abs(across) < 1e-12:
+        return start if np.hypot(*(start - viewer)) <= np.hypot(*(end - viewer)) else end
+    offset = viewer - start
+    t = (offset[0] * u[1] - offset[1] * u[0]) / across
+    return start + min(max(t, 0.0), 1.0) * edge
+
+
+def _nearest_on(viewer: np.ndarray, a: np.ndarray, b: np.ndarray,
+                ) -> tuple[tuple[float, float], float]:
+    """The point of segment a-b nearest ``viewer``, and its distance."""
+    ab = b - a
+    t = float(np.clip(np.dot(viewer - a, ab) / max(float(np.dot(ab, ab)), 1e-18), 0.0, 1.0))
+    point = a + t * ab
+    return (float(point[0]), float(point[1])), float(np.hypot(*(point - viewer)))
 
 
 def _inside(x: float, y: float, corners: np.ndarray) -> bool:

@@ -17,7 +17,7 @@ import psutil
 import pytest
 from conftest import alive, eventually
 
-from rave import World, WorldError, odometry, raycast, sonar
+from rave import World, WorldError, camera, odometry, raycast, sonar
 from rave import emulator as rave_emulator
 from rave import fleet as fleet_module
 from rave.emulator import EmulatorProcess
@@ -711,14 +711,43 @@ def test_a_robot_added_over_an_obstacle_or_a_robot_is_refused(world_of: WorldMak
 
 def test_the_camera_sees_a_coloured_obstacle_at_its_nearest_point(world_of: WorldMaker) -> None:
     """It took an obstacle for the disc round its corners: a 3 m bench 1.3 m ahead was
-    not seen at all, and 1.8 m ahead it was 0.49 m away."""
+    not seen at all, and 1.8 m ahead it was 0.49 m away. Near, the bench fills the
+    view: it spans the field of view, not more."""
     world = world_of(size=(10, 8), seed=1)
     world.add_box(center=(5.0, 4.0), size=(3.0, 0.4), color="orange")
-    for y, face in ((2.0, 1.8), (2.5, 1.3), (3.0, 0.8)):
+    for y, face in ((0.8, 3.0), (2.0, 1.8), (2.5, 1.3), (3.0, 0.8)):
         robot = world.add_robot(f"r{y}", (5.0, y, math.pi / 2))
         blob, = robot.camera()
         assert blob.distance == pytest.approx(face) and blob.bearing == pytest.approx(0.0)
-        assert blob.size == pytest.approx(2 * math.atan2(1.5, face))     # its near corners
+        assert blob.size == pytest.approx(min(2 * math.atan2(1.5, face), camera.FOV))
+        world.remove_robot(robot.name)
+
+
+def test_the_camera_sees_the_part_of_an_obstacle_in_its_view(world_of: WorldMaker) -> None:
+    """Of a U-shaped obstacle it saw the disc round its corners: inside the pocket,
+    facing the back, nothing (the middle of the corners was behind); between the arms,
+    an arm 1.2 m to the side, out of view, spanning 260 degrees."""
+    world = world_of(size=(10, 8), seed=1)
+    world.add_polygon([(3.5, 3.0), (3.8, 3.0), (3.8, 5.7), (6.2, 5.7), (6.2, 3.0),
+                       (6.5, 3.0), (6.5, 6.0), (3.5, 6.0)], color="orange")
+    for (y, heading), seen in {(5.0, math.pi / 2): (0.7, 0.0, camera.FOV),   # the back
+                               (4.0, math.pi / 2): (1.7, 0.0, camera.FOV),
+                               (2.0, math.pi / 2): (math.hypot(1.2, 1.2 / math.tan(camera.FOV / 2)),
+                                                    0.0, camera.FOV),    # the arms' insides
+                               # into its corner: the back and an arm at the view's edges
+                               (4.5, math.pi / 4): (1.2 / math.cos(math.pi / 4 - camera.FOV / 2),
+                                                    0.0, camera.FOV),
+                               (5.0, -math.pi / 2): None}.items():      # facing out of it
+        robot = world.add_robot(f"r{y}-{heading:.2f}", (5.0, y, heading))
+        blobs = robot.camera()
+        if seen is None:
+            assert blobs == []
+        else:
+            blob, = blobs
+            assert blob.distance == pytest.approx(seen[0])
+            assert abs(blob.bearing) + blob.size / 2 <= camera.FOV / 2 + 1e-9   # in view
+            assert blob.bearing == pytest.approx(seen[1], abs=1e-9)
+            assert blob.size == pytest.approx(seen[2])
         world.remove_robot(robot.name)
 
 
