@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from pb3a import Driver, Input, InputPort, Output
+from pb3a import Driver, Input, InputPort, Output, RuntimeCancelled
 
 SILENT_STOP_S = 0.1          # how long a silent robot's stop is waited for, when let go
 
@@ -105,6 +105,8 @@ class RobotDriver(Driver):
             return
         try:
             self._apply(self._unsent)
+        except RuntimeCancelled:
+            pass                 # the runtime stops the driver: sent again by the next one
         except (RuntimeError, OSError) as exc:
             self.failures += 1
             self.last_error = str(exc)
@@ -156,6 +158,8 @@ class RobotDriver(Driver):
                 self._apply(command)
                 answer = self.request("sensors")
             blobs = self.request("camera") if self.with_camera else None
+        except RuntimeCancelled:
+            return               # the runtime stops the driver (a move, a swap): not silence
         except (RuntimeError, OSError) as exc:
             self.failures += 1
             self.last_error = str(exc)

@@ -30,6 +30,7 @@ _HOME = {
     "OutputPort": "pb3a.model.ports",
     "PB3AError": "pb3a.errors",
     "Running": "pb3a.launch.running",
+    "RuntimeCancelled": "pb3a.errors",
     "RuntimeFailure": "pb3a.errors",
     "RuntimeTimeout": "pb3a.errors",
     "System": "pb3a.system",
@@ -56,6 +57,7 @@ if TYPE_CHECKING:                 # what type checkers see: the same names, eage
     from pb3a.errors import ConfigError as ConfigError
     from pb3a.errors import ModuleNotFound as ModuleNotFound
     from pb3a.errors import PB3AError as PB3AError
+    from pb3a.errors import RuntimeCancelled as RuntimeCancelled
     from pb3a.errors import RuntimeFailure as RuntimeFailure
     from pb3a.errors import RuntimeTimeout as RuntimeTimeout
     from pb3a.launch.connection import Connection as Connection

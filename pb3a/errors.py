@@ -6,6 +6,8 @@
     ├── RuntimeTimeout (TimeoutError) a runtime request got no answer in time, or a
     │                                 write found no room on a lossless link in time
     └── RuntimeFailure (RuntimeError) a worker or node failed to carry out a request
+        └── RuntimeCancelled          a body's wait (a runtime call, a driver's request
+                                      to its device) ended by the runtime stopping it
 
 Each subclasses the nearest built-in, so callers may catch either.
 """
@@ -44,6 +46,12 @@ class RuntimeTimeout(PB3AError, TimeoutError):
 
 class RuntimeFailure(PB3AError, RuntimeError):
     """A worker or node could not carry out a request; the message says why."""
+
+
+class RuntimeCancelled(RuntimeFailure):
+    """A module body's runtime call or device request was cancelled: the runtime needs
+    the module stopped (a pause for a move or relink, a swap, a stop). The body should
+    return; nothing is wrong with what it asked (a device did not fail)."""
 
 
 def bounded_wait(timeout: float | None, what: str) -> float:

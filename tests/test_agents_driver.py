@@ -10,7 +10,7 @@ import pytest
 
 import pb3a.model.driver
 from agents.robot_driver import RobotDriver
-from pb3a import RuntimeFailure, RuntimeTimeout
+from pb3a import RuntimeCancelled, RuntimeFailure, RuntimeTimeout
 from pb3a.testing import ModuleHarness
 
 
@@ -172,6 +172,30 @@ def test_commands_to_a_silent_robot_wait_for_the_next_period(robot, monkeypatch)
     assert robot.requests[1:] == [("drive", {"v": 0.3, "w": 0.0}), ("sensors", {})]
     harness.feed("command", np.array([0.2, 0.0]))  # it answers again: sent at once
     assert robot.requests[-1] == ("drive", {"v": 0.2, "w": 0.0})
+
+
+def test_a_request_the_runtime_cancels_is_not_taken_for_a_silent_robot(robot,
+                                                                       monkeypatch) -> None:
+    """A pause, swap or move cancels the driver's request in progress; it was counted as
+    the robot's silence (a failure, silent 1), so the next command waited for the next
+    period, and a few in a row made a false robot_link failure."""
+    harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400",
+                                                "silent_after": 1})
+    answer, cancel = FakeRobotServer.call, [True]
+
+    def paused(self, op: str, timeout: float, **args: Any) -> Any:
+        if cancel[0]:
+            raise RuntimeCancelled(f"request {op!r} cancelled: the module is being paused")
+        return answer(self, op, timeout, **args)
+    monkeypatch.setattr(FakeRobotServer, "call", paused)
+    harness.step()
+    harness.feed("command", np.array([0.1, 0.0]))
+    module = harness.module
+    assert (module.silent, module.failures, module.last_error) == (0, 0, "")
+    assert harness.written["failure"] == []
+    cancel[0] = False
+    harness.feed("command", np.array([0.3, 0.0]))       # sent as it comes
+    assert robot.requests == [("drive", {"v": 0.3, "w": 0.0})]
 
 
 def test_a_silent_robot_is_told_to_stop_when_let_go_but_not_waited_for_long(

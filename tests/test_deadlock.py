@@ -10,6 +10,7 @@ import signal
 import socket
 import threading
 import time
+from collections.abc import Iterator
 
 import pytest
 from conftest import alive, eventually
@@ -28,8 +29,10 @@ from sample_modules import (
 )
 
 import pb3a
-from pb3a import Module, RuntimeFailure, RuntimeTimeout, System
+from pb3a import Driver, Module, RuntimeFailure, RuntimeTimeout, System
 from pb3a.node.executor import Executor
+from pb3a.transport.auth import ClusterKey
+from pb3a.transport.control import ControlServer
 from pb3a.worker.actor import ModuleActor
 
 pytestmark = pytest.mark.timeout(120)
@@ -408,3 +411,75 @@ def test_a_driver_waiting_for_its_device_holds_up_no_read_swap_or_stop() -> None
                    what="the new instance's request under way")
         started = time.monotonic()
     assert time.monotonic() - started < 5.0
+
+
+@pytest.fixture
+def device() -> Iterator[ControlServer]:
+    """A device in this process: each op sleeps ``sleep`` seconds, then answers its name."""
+    def handler(op: str, args: dict) -> str:
+        time.sleep(args.get("sleep", 0.0))
+        return op
+    server = ControlServer(ClusterKey.load(), handler, aside=("slow", "battery"))
+    yield server
+    server.close()
+
+
+class _Meter(Driver):
+    """Its step waits 8 s for its device; its state holds a reading it asks the device."""
+
+    timeout = 8.0
+    errors = ""
+
+    def step(self) -> None:
+        try:
+            self.request("slow", sleep=8.0)
+        except RuntimeFailure as exc:
+            self.errors = f"{type(exc).__name__}: {exc}"
+
+    def get_state(self) -> dict:
+        return {**super().get_state(), "battery": self.request("battery")}
+
+
+def test_a_read_that_asks_the_device_inside_a_driver_s_request_leaves_it_cancellable(
+        device) -> None:
+    """The read ran on the waiting thread, and its own request's wait replaced the
+    outer one, then cleared it: a pause could no longer cancel the step's request and
+    waited out its 8 s deadline."""
+    actor = ModuleActor("meter", _Meter(), lambda task: task(), 0.05)
+    actor.module.resource = device.address
+    actor.start()
+    try:
+        eventually(lambda: actor._wait is not None, what="the step's request waiting")
+        assert actor.capture(2.0)["battery"] == "battery"        # read while it waits
+        started = time.monotonic()
+        assert actor.acquire_stopped(2.0, "the module is being paused")
+        actor.lock.release()
+        assert time.monotonic() - started < 1.0
+        eventually(lambda: actor.module.errors.startswith("RuntimeCancelled: ") and
+                   "cancelled: the module is being paused" in actor.module.errors,
+                   what="the step's request cancelled")
+    finally:
+        assert actor.stop(5.0)
+
+
+class _TwoReads(Driver):
+    """Each step reads two slow sensors, each in a try of its own."""
+
+    timeout = 10.0
+
+    def step(self) -> None:
+        for _ in range(2):
+            with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+                self.request("slow", sleep=10.0)
+
+
+def test_stop_cancels_every_request_a_step_makes_after_the_first(device) -> None:
+    """It cancelled the first; the step's second request waited its deadline, and stop
+    gave up, saying a body overran."""
+    actor = ModuleActor("reads", _TwoReads(), lambda task: task(), 0.05)
+    actor.module.resource = device.address
+    actor.start()
+    eventually(lambda: actor._wait is not None, what="the step's first request waiting")
+    started = time.monotonic()
+    assert actor.stop(3.0)
+    assert time.monotonic() - started < 1.0

@@ -32,10 +32,11 @@ from sample_modules import (
     Spawner,
 )
 
-from pb3a import ConfigError, ModuleNotFound, RuntimeFailure, System
+from pb3a import ConfigError, Input, Module, ModuleNotFound, RuntimeFailure, System
 from pb3a.config.compiler import validate
 from pb3a.config.description import read_description
 from pb3a.stats import InputStats, LinkStats, ModuleStats, NodeStats, SystemStats
+from pb3a.worker.actor import EventPool, ModuleActor
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -422,6 +423,38 @@ def test_a_module_flooded_with_events_still_lets_state_requests_in() -> None:
         state = eventually(lambda: (s := run.state("sink"))["received"] == 300 and s,
                            timeout=30, what="every value handled")
     assert state["last"] == 300 and state["out_of_order"] == state["duplicates"] == 0
+
+
+class _StepsAndEvents(Module):
+    """Steps back to back (period 0, 1 ms each) and handles events (0.2 ms each)."""
+
+    x = Input(int, policy="queue:100000")
+    handled = 0
+    steps = 0
+
+    def step(self) -> None:
+        self.steps += 1
+        time.sleep(0.001)
+
+    def on_input(self, port) -> None:
+        port.read()
+        time.sleep(0.0002)
+        self.handled += 1
+
+
+def test_a_module_stepping_back_to_back_handles_its_events_in_batches() -> None:
+    """Its own step thread always waits for the lock; a batch of events ended for it
+    too, so the module handled one event per step (3000 events took 3000 steps)."""
+    pool = EventPool(2)
+    actor = ModuleActor("both", _StepsAndEvents(), pool.submit, period=0.0)
+    actor.start()
+    try:
+        actor.inputs["x"].deliver_many(list(range(3000)))
+        eventually(lambda: actor.module.handled == 3000, timeout=30, what="every event")
+        assert actor.module.steps < 1500, actor.module.steps
+    finally:
+        actor.stop(5.0)
+        pool.close()
 
 
 def test_relink_may_change_the_input_policy() -> None:

@@ -8,7 +8,7 @@ old one. Requests are authenticated with the cluster key (the program serves the
 with a ``ControlServer``), have a deadline, and fail with an error naming the
 device; a driver whose device does not answer keeps running and says so. A request
 in progress does not hold up a move, swap or stop of the driver: they cancel it
-(``RuntimeFailure``, "cancelled: ...") rather than wait out its deadline; a read of
+(``RuntimeCancelled``, "cancelled: ...") rather than wait out its deadline; a read of
 its state runs meanwhile (an edit waits for the request's end).
 """
 
@@ -17,7 +17,7 @@ from __future__ import annotations
 import contextlib
 from typing import Any
 
-from pb3a.errors import RuntimeFailure, RuntimeTimeout
+from pb3a.errors import RuntimeCancelled, RuntimeFailure, RuntimeTimeout
 from pb3a.model.module import Module
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
@@ -38,6 +38,8 @@ class Driver(Module):
             if giving_way is None:
                 return client.call(op, self.timeout, **args)
             with giving_way(f"request {op!r}", takes_edits=False) as wait:
+                if wait.cancelled:      # (the runtime stops the driver: nothing is sent)
+                    raise RuntimeCancelled(f"request {op!r} cancelled: {wait.cancelled}")
                 return client.request(op, args, self.timeout, wait=wait)
         except (RuntimeFailure, RuntimeTimeout) as exc:
             raise type(exc)(f"{type(self).__name__} at {self.resource}: {exc}") from None

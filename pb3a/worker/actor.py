@@ -44,25 +44,32 @@ class HandOverLock:
     Locks are not fair: a module with period 0 releases its lock after a step and
     takes it again before a waiting state request, swap or event has even woken up,
     starving them for hundreds of steps; so does a dispatch task with more events to
-    run. Every taker counts itself in ``waiters`` while it waits; the step loop hands
-    over between two steps, and a dispatch task between two events.
+    run. Every taker counts itself in ``waiters`` while it waits, and a request (a state
+    read or edit, a pause, swap or stop) in ``requests`` too; the step loop hands over
+    between two steps, and a dispatch task ends its batch for a request (not for the
+    module's own step thread, which waits there all the time when its period is 0).
     """
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self.waiters: list[None] = []     # one entry per waiting thread (append/pop are atomic)
+        self.requests: list[None] = []    # ... per waiting request
         self.release = self._lock.release
         self.locked = self._lock.locked
         # the per-value path: one C call when the lock is free (then nobody waits)
         self.try_acquire = functools.partial(self._lock.acquire, False)
 
-    def acquire(self, timeout: float = -1) -> bool:
+    def acquire(self, timeout: float = -1, request: bool = False) -> bool:
         waiting = self.waiters
         waiting.append(None)
+        if request:
+            self.requests.append(None)
         try:
             return self._lock.acquire(timeout=timeout)
         finally:
             waiting.pop()
+            if request:
+                self.requests.pop()
 
     def __enter__(self) -> HandOverLock:
         self.acquire()
@@ -121,6 +128,7 @@ class ModuleActor:
         self.period = period
         self.lock = HandOverLock()
         self.steps = self.events = self.errors = 0
+        self.cut = False         # a batch of events ended early for a request (see call_many)
         self.cpu = 0.0
         # Per-call CPU timing costs two system calls; a worker hosting one module
         # turns it off and reports its whole process's CPU time instead.
@@ -182,8 +190,11 @@ class ModuleActor:
         self.halt()
         finished = True
         if self._thread is not None and self._thread is not threading.current_thread():
-            self._cancel_wait("the module is stopping")
+            # (set through the join: a second wait the step starts is cancelled too)
+            self._stopping_for = "the module is stopping"
+            self._cancel_wait(self._stopping_for)
             self._thread.join(timeout)
+            self._stopping_for = ""
             finished = not self._thread.is_alive()
             self._thread = None
         if self.acquire_stopped(timeout, "the module is stopping"):
@@ -248,10 +259,10 @@ class ModuleActor:
         With ``claim``, the calls are first claimed from that port's owed ``on_input``
         calls (at most ``times``), under the lock: a module paused for migration has
         no claimed-but-unrun call, so what it owes travels with it. Such a batch ends
-        early when another thread waits for the lock (a state request, a swap, the
-        step), the calls it did not make given back to the port: a module whose events
-        come faster than it handles them would otherwise hold its lock for the whole
-        batch (256 events, each as long as the module takes)."""
+        early when a request waits for the lock (a state read or edit, a pause, a
+        swap), the calls it did not make given back to the port (``cut``): a module
+        whose events come faster than it handles them would otherwise hold its lock for
+        the whole batch (256 events, each as long as the module takes)."""
         lock = self.lock
         if not lock.try_acquire():
             lock.acquire()
@@ -273,10 +284,11 @@ class ModuleActor:
                 times = claim.take_events(times)
             start = time.thread_time() if timed else 0.0
             fn = getattr(self.module, hook)
-            waiters = self.lock.waiters if claim is not None else None
+            requests = self.lock.requests if claim is not None else ()
             for made in range(times):
-                if made and waiters:            # (one list's truth: the per-value path)
+                if requests:                    # (one list's truth: the per-value path)
                     claim.give_back(times - made)
+                    self.cut = True
                     break
                 try:
                     fn(*args)
@@ -322,7 +334,9 @@ class ModuleActor:
             port = pending.popleft()
             lock.release()
             done = self.call_many("on_input", budget, port, claim=port)
-            self.lock.hand_over()               # (to a thread that ended the batch early)
+            if self.cut:                        # (a request waits: let it in first)
+                self.cut = False
+                self.lock.hand_over()
             self.events += done
             budget -= max(done, 1)
             if port.owes_calls and self.running:
@@ -338,8 +352,10 @@ class ModuleActor:
         If the waiting thread holds the lock (a body), a request that needs the module
         stopped cancels the wait, and requests that need the lock for a moment (reads,
         and edits if it ``takes_edits``) run on that thread meanwhile."""
-        wait = RuntimeWait(what, takes_edits)
+        wait, outer = RuntimeWait(what, takes_edits), self._wait
         if self._holder == threading.get_ident():
+            # (one wait inside another: a read posted to a driver's request that asks the
+            # device too; the outer one is the wait again after it)
             self._wait = wait
             if self._stopping_for:              # asked again after a cancellation
                 wait.cancel(self._stopping_for)
@@ -347,7 +363,9 @@ class ModuleActor:
             yield wait
         finally:
             if self._wait is wait:
-                self._wait = None
+                self._wait = outer
+                if outer is not None and self._stopping_for:
+                    outer.cancel(self._stopping_for)
             wait.close()
 
     def _cancel_wait(self, reason: str) -> None:
@@ -367,7 +385,8 @@ class ModuleActor:
                 if ran:
                     return result
             # in slices: a body may start waiting for the runtime meanwhile
-            if self.lock.acquire(timeout=min(_WAIT_SLICE, max(0.0, deadline - time.monotonic()))):
+            if self.lock.acquire(timeout=min(_WAIT_SLICE, max(0.0, deadline - time.monotonic())),
+                                 request=True):
                 try:
                     return work()
                 finally:
@@ -387,7 +406,7 @@ class ModuleActor:
             port.let_through(True)
         try:
             self._cancel_wait(why)
-            return self.lock.acquire(timeout=timeout)
+            return self.lock.acquire(timeout=timeout, request=True)
         finally:
             for port in outputs:
                 port.let_through(False)

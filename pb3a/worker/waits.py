@@ -12,8 +12,8 @@ then module locks; and a body that waits for the runtime gives way:
   state) is run on the waiting body's own thread, which holds the lock: the body is
   suspended at a known point, inside its runtime call;
 - a request that needs the module stopped (pause for a migration or a relink, swap,
-  stop, remove) cancels the wait: the body's runtime call raises ``RuntimeFailure``
-  ("cancelled: ..."), the body returns, and the lock is free.
+  stop, remove) cancels the wait: the body's runtime call raises ``RuntimeCancelled``
+  (a ``RuntimeFailure``, "cancelled: ..."), the body returns, and the lock is free.
 
 A driver waiting for its device (``Driver.request``) gives way too, but takes no
 edits: an edit runs the module's own ``set_state``, which may make a request of its
@@ -32,7 +32,7 @@ from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from typing import TYPE_CHECKING, Any
 
-from pb3a.errors import RuntimeFailure, RuntimeTimeout
+from pb3a.errors import RuntimeCancelled, RuntimeFailure, RuntimeTimeout
 
 RUNNING_S = 10.0     # the longest posted work that has begun is waited for past its deadline
 
@@ -59,8 +59,13 @@ class RuntimeWait:
             self._answer = (ok, result)
             self._cond.notify_all()
 
+    @property
+    def cancelled(self) -> str:
+        """Why the wait was cancelled ("": it was not)."""
+        return self._cancelled
+
     def cancel(self, reason: str) -> None:
-        """Make the waiting call raise ``RuntimeFailure("cancelled: reason")``."""
+        """Make the waiting call raise ``RuntimeCancelled("cancelled: reason")``."""
         with self._cond:
             if not self._cancelled:
                 self._cancelled = reason
@@ -93,7 +98,7 @@ class RuntimeWait:
                             raise RuntimeTimeout(
                                 f"the runtime did not answer {self.what} within {timeout} s")
                     if self._cancelled:
-                        raise RuntimeFailure(f"{self.what} cancelled: {self._cancelled}")
+                        raise RuntimeCancelled(f"{self.what} cancelled: {self._cancelled}")
                     if self._answer is not None and not self._posted:
                         ok, result = self._answer
                         if not ok:
