@@ -72,3 +72,16 @@ class Mapper(Module):
         self.grid[max(r - brush, 0):r + brush + 1, max(c - brush, 0):c + brush + 1] = 1.0
         self.coverage_now = float((self.grid > 0.5).mean())
         self.coverage.write(self.coverage_now)
+
+
+class Holder(Module):
+    """State of the kinds the State Editor must keep as they are: a dict of floats, a
+    list of float pairs, small and narrow number arrays, a grid whose unreached cells
+    hold the largest float (a common sentinel)."""
+
+    settings: dict = {"decay": 1.0, "brush": 2.5}
+    waypoints: list = [(0.0, 0.0), (1.0, 2.0)]
+    small = np.zeros(3, dtype=np.int8)
+    narrow = np.zeros(2, dtype=np.float32)
+    level = np.float32(1.0)
+    cost = np.full((4, 4), np.finfo(np.float64).max)

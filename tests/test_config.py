@@ -639,6 +639,8 @@ def test_bad_instance_names_and_class_macro_choice(tmp_path: Path) -> None:
         class = "parts_cfg:Src"
         [modules."a b"]
         class = "parts_cfg:Src"
+        [modules."probe\\n"]
+        class = "parts_cfg:Src"
         [modules.both]
         class = "parts_cfg:Src"
         macro = "pair"
@@ -649,9 +651,10 @@ def test_bad_instance_names_and_class_macro_choice(tmp_path: Path) -> None:
         period = 1
         state = { x = 1 }
     """)
-    assert len(problems) == 6
+    assert len(problems) == 7
     only(problems, 'sys.toml [modules."my.tick"]: bad module instance name', "letters, digits")
     only(problems, 'sys.toml [modules."a b"]: bad module instance name')
+    only(problems, 'sys.toml [modules."probe\n"]: bad module instance name')   # ("$" took it)
     only(problems, "[modules.both]: give exactly one of 'class'", "it has both")
     only(problems, "[modules.neither]: give exactly one of 'class'", "'macro' (the name of")
     only(problems, "[modules.m]: 'period' applies to modules, not to a macro")

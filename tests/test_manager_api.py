@@ -12,6 +12,7 @@ import pytest
 
 pytest.importorskip("starlette", reason="the manager needs the 'ui' extra")
 
+from manager_modules import Holder
 from sample_modules import FloatSource, Mapper, Scale
 from starlette.testclient import TestClient
 
@@ -282,6 +283,34 @@ def test_an_edit_is_coerced_applied_and_used_and_a_bad_one_changes_nothing(clien
     assert run.state("scale")["gain"] == 5.0 and run.state("map")["grid"][7][7] == 63.0
 
 
+def test_values_keep_their_types_and_a_value_that_does_not_fit_is_refused() -> None:
+    """An int8 array set to [300, -200, 5] was stored as [44, 56, 5] and a float32 of
+    1e300 as inf; "Edit as JSON" turned untouched floats into ints and float pairs into
+    int lists (JSON has no tuples and writes 1.0 as 1); a grid whose mean overflows made
+    every read of the module a bare 500, after the edit it answered was made."""
+    system = System("held").add("h", Holder)
+    with system.launch() as run, manager_client(Session(Document.empty(), run)) as client:
+        view = client.get("/api/modules/h/state")
+        assert view.status_code == 200, view.text
+        assert view.json()["fields"]["cost"]["summary"]["mean"] is None      # (overflows)
+        assert client.post("/api/modules/h/state", json={
+            "settings": {"decay": 1, "brush": 3.5},                 # as the page sends them
+            "waypoints": [[0, 0], [1, 2], [3, 4]]}).status_code == 200
+        state = run.state("h")
+        assert state["settings"] == {"decay": 1.0, "brush": 3.5}
+        assert isinstance(state["settings"]["decay"], float)
+        assert state["waypoints"] == [(0.0, 0.0), (1.0, 2.0), (3.0, 4.0)]
+        assert all(isinstance(x, float) for pair in state["waypoints"] for x in pair)
+        for body, words in (({"small": [300, -200, 5]}, "each from -128 to 127"),
+                            ({"narrow": [1e300, 0.0]}, "each within"),
+                            ({"level": 1e300}, "a number a float32 holds")):
+            refused = client.post("/api/modules/h/state", json=body)
+            assert refused.status_code == 422 and words in refused.json()["error"], body
+        state = run.state("h")
+        assert state["small"].tolist() == [0, 0, 0] and state["narrow"].tolist() == [0, 0]
+        assert state["level"] == 1.0
+
+
 # -- changing the system -------------------------------------------------------------------
 def test_migrate_answers_the_report_and_refuses_an_unknown_node(client, run) -> None:
     refused = client.post("/api/modules/map/migrate", json={"to": "mars"})
@@ -322,6 +351,13 @@ def test_add_link_and_remove_modules_with_the_words_of_pb3a_check(client, run) -
                                              "node": "mars"}).status_code == 404
     assert client.post("/api/modules", json={"name": "bad name", "class":
                                              "sample_modules:Last"}).status_code == 400
+    # "$" matches before a final newline: "probe\n" was taken as a name, and a DELETE
+    # of it removed probe
+    assert client.post("/api/modules", json={"name": "probe\n", "class":
+                                             "sample_modules:Last"}).status_code == 400
+    newline = client.delete("/api/modules/probe%0A")
+    assert newline.status_code == 400 and "line break" in newline.json()["error"]
+    assert "probe" in run.topology().modules
     twice = client.post("/api/links", json={"src": "src.out", "dst": "map.x"})
     assert twice.status_code == 409 and "is fed by scale.y already" in twice.json()["error"]
     backwards = client.post("/api/links", json={"src": "probe.x", "dst": "scale.x"})
@@ -444,6 +480,35 @@ def test_the_catalog_lists_the_classes_beside_the_document(tmp_path, monkeypatch
     listed = Catalog(document).classes()
     assert "controllers_beside:Beside" in [c["class"] for c in listed["classes"]]
     assert not [p for p in listed["problems"] if p.startswith("controllers_beside")]
+
+
+def test_the_catalog_leaves_out_a_file_whose_assignment_does_a_script_s_work(
+        tmp_path, monkeypatch) -> None:
+    """Any assignment counted as defining a constant, so opening the module browser ran
+    ``results = run_experiment()`` and wrote the file of ``done = path.write_text(...)``.
+    A constant a library builds is still fine."""
+    project = tmp_path / "project_scripts"
+    project.mkdir()
+    head = "from pathlib import Path\nfrom pb3a import Module\n\n"
+    (project / "experiment.py").write_text(
+        head + "def run_experiment():\n    Path(__file__).with_name('RAN').write_text('x')\n\n"
+        "results = run_experiment()\n\nclass Trial(Module):\n    pass\n")
+    (project / "writer.py").write_text(
+        head + "done = Path(__file__).with_name('RAN').write_text('x')\n\n"
+        "class Writer(Module):\n    pass\n")
+    (project / "constants.py").write_text(
+        head + "import logging\nLOG = logging.getLogger(__name__)\n"
+        "CONFIG = Path(__file__).with_name('x.toml')\n\nclass Steady(Module):\n    pass\n")
+    (project / "lab.toml").write_text('name = "lab"\n')
+    monkeypatch.setattr("sys.path", list(sys.path))
+    listed = Catalog(Document.open(project / "lab.toml")).classes()
+    classes = [c["class"] for c in listed["classes"]]
+    assert "constants:Steady" in classes
+    assert "experiment:Trial" not in classes and "writer:Writer" not in classes
+    assert not (project / "RAN").exists()
+    for name, line in (("experiment.py", 7), ("writer.py", 4)):
+        said = f"{project / name}: not imported: line {line} runs code at import"
+        assert any(p.startswith(said) for p in listed["problems"]), listed["problems"]
 
 
 def test_an_unknown_route_is_a_json_404(client) -> None:

@@ -225,10 +225,14 @@ def test_an_edited_state_field_is_used_by_the_module(lab: ManagerProcess, page: 
                            timeout=WAIT_MS)                       # level 1.0 x gain 2.0
     page.click("[data-module='scale'] .module-title")
     assert field_value(page, "scale", "gain") == "2.0"
+    edits: list[str | None] = []
+    page.on("request", lambda request: edits.append(request.post_data)
+            if request.method == "POST" and request.url.endswith("/scale/state") else None)
     page.fill("[data-field='gain'] input", "5")
     page.press("[data-field='gain'] input", "Enter")
     page.wait_for_selector("[data-field='gain'].applied", timeout=WAIT_MS)
     assert lab.api("GET", "/api/modules/scale/state")["fields"]["gain"]["value"] == 5.0
+    assert edits == ['{"gain":5}']           # once: Enter fires "change" too, sent twice
     # the probe downstream now receives level x 5: the scale uses the new gain
     page.click("[data-module='probe'] .module-title")
     page.wait_for_function("document.querySelector(\"[data-field='last'] input\")?.value === '5.0'",
@@ -594,6 +598,25 @@ def test_a_file_opened_in_the_page_is_checked_and_becomes_the_document(tmp_path:
         page.wait_for_function("document.querySelector('#mode').textContent === 'running'",
                                timeout=WAIT_MS)
         assert set(manager.api("GET", "/api/system")["modules"]) == {"tick", "double"}
+
+
+def test_two_quick_edits_in_the_editor_are_both_saved(tmp_path: Path) -> None:
+    """An edit made while the one before it was being saved was made on the page's copy,
+    which that save's answer then replaced: the second edit was lost, and both said
+    they were saved."""
+    config = tmp_path / "chain.toml"
+    config.write_text(CHAIN)
+    with editor(config, 3) as (manager, page):
+        outcome = page.evaluate("""async () => {
+            const document = window.pb3aManager.document;
+            const first = document.setPeriod("ticker", 0.5);
+            await new Promise((done) => setTimeout(done, 0));    // its save under way
+            const second = document.setState("scale", {gain: 7.5});
+            return (await Promise.allSettled([first, second])).map((o) => o.status);
+        }""")
+        assert outcome == ["fulfilled", "fulfilled"]
+        modules = document_of(manager)["system"]["modules"]
+        assert modules["ticker"]["period"] == 0.5 and modules["scale"]["state"] == {"gain": 7.5}
 
 
 def test_modules_grouped_into_a_macro_open_close_place_again_and_take_overrides(

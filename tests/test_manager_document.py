@@ -54,6 +54,28 @@ def test_an_unchanged_document_saves_byte_for_byte_and_an_edit_keeps_the_comment
     assert System.load(check).check() == []                  # pb3a check accepts it
 
 
+def test_values_the_page_cannot_hold_exactly_come_back_unchanged(tmp_path: Path) -> None:
+    """The page holds the document as JSON: a date in a state made GET /api/document a
+    500, and a whole number beyond 2**53, read by the browser as a double, was written
+    back rounded (1700000000123456789 became ...800) though nobody touched it."""
+    original = ('name = "stamped"\n\n[modules.stamp]\nclass = "examples.pipeline:Scale"\n'
+                "state = { started = 2024-05-01T12:00:00Z, count = 1700000000123456789 }\n")
+    path = tmp_path / "stamped.toml"
+    path.write_text(original)
+    with manager_client(Session(Document.open(path))) as client:
+        document = client.get("/api/document")
+        assert document.status_code == 200, document.text
+        system = document.json()["system"]
+        state = system["modules"]["stamp"]["state"]
+        assert state["started"] == "2024-05-01T12:00:00+00:00"
+        state["count"] = int(float(state["count"]))          # as the browser holds it
+        assert client.put("/api/document", json={"system": system}).status_code == 200
+        assert client.get("/api/document/toml").text == original
+        state["count"] = 5                                     # an edit is still an edit
+        client.put("/api/document", json={"system": system})
+        assert "count = 5 }" in client.get("/api/document/toml").text
+
+
 def test_problems_and_drawn_links_use_the_words_of_pb3a_check(pipeline: Path) -> None:
     with manager_client(Session(Document.open(pipeline))) as client:
         system = client.get("/api/document").json()["system"]

@@ -250,3 +250,24 @@ def test_the_feed_reports_an_unexpected_failure_and_goes_on(run) -> None:
                 break
         else:
             pytest.fail("no event after the events loop failed")
+
+
+def test_a_page_open_while_another_launches_is_told_the_system_runs(tmp_path) -> None:
+    """A launch records no event, so a page open in editing mode was never told: its
+    State Editor went on editing the document of a system that ran (the page showed the
+    edits applied; the running modules never changed)."""
+    from test_manager_document import PIPELINE
+    from test_manager_failures import receive_until
+
+    path = tmp_path / "pipeline.toml"
+    path.write_text(PIPELINE.read_text())
+    session = Session(Document.open(path))
+    try:
+        with manager_client(session, refresh=0.2) as client, \
+                client.websocket_connect("/api/live") as socket:
+            assert socket.receive_json()["system"]["mode"] == "editing"
+            assert client.post("/api/document/launch", json={}).status_code == 200
+            told = receive_until(socket, lambda m: m["type"] == "system", "the structure")
+            assert told[-1]["system"]["mode"] == "running"
+    finally:
+        session.close()

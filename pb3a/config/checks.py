@@ -19,7 +19,7 @@ from pb3a.loading.references import class_ref
 from pb3a.model.displays import declared_displays
 from pb3a.model.module import RESTART_POLICIES, Module
 
-NAME = re.compile(r"^[A-Za-z0-9_-]+$")
+NAME = re.compile(r"\A[A-Za-z0-9_-]+\Z")     # (\Z: "$" also matches before a final newline)
 MAX_SPARES = 16                 # idle workers a node may keep (each an idle process)
 
 

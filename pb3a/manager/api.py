@@ -86,17 +86,23 @@ def routes(session: Session) -> list[Route]:
         async def endpoint(request: Request) -> Response:
             try:
                 result = await work(request)
+                if isinstance(result, Response):
+                    return result
+                # (encoded here: an answer JSON cannot say is an error of its own, not a
+                # bare 500 after the change was made)
+                return JSONResponse(result, status_code=status)
             except Exception as exc:
                 return error_response(exc)
-            if isinstance(result, Response):
-                return result
-            return JSONResponse(result, status_code=status)
         return endpoint
 
     def call(method: Callable[..., Any], *args: Any) -> Awaitable[Any]:
         return run_in_threadpool(method, *args)
 
     def name(request: Request) -> str:
+        # (a route's pattern ends in "$", which also matches before a final newline:
+        # DELETE /api/modules/probe%0A removed the module probe)
+        if "\n" in request.scope["path"]:
+            raise Malformed(f"no module name holds a line break: {request.scope['path']!r}")
         return request.path_params["name"]
 
     async def system(request: Request) -> Any:

@@ -51,6 +51,10 @@ _SKIPPED_DIRS = {"build", "dist", "node_modules", "site-packages", "venv", "test
 _SAFE_STATEMENTS = (ast.Import, ast.ImportFrom, ast.ClassDef, ast.FunctionDef,
                     ast.AsyncFunctionDef, ast.Assign, ast.AnnAssign, ast.AugAssign, ast.Pass)
 REPR_CHARS = 200
+# calls that act on the world: an assignment of their result is a script's work
+_ACTIONS = frozenset({"write_text", "write_bytes", "mkdir", "makedirs", "unlink", "rmdir",
+                      "rmtree", "touch", "run", "call", "check_call", "check_output", "Popen",
+                      "system", "launch", "start", "serve", "main", "connect", "urlopen"})
 
 
 class Catalog:
@@ -242,14 +246,30 @@ def _defines_classes(source: bytes, where: str, problems: list[str]) -> bool:
     has_class = any(isinstance(node, ast.ClassDef) and node.bases for node in tree.body)
     if not has_class:
         return False
+    own = {node.name for node in tree.body
+           if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))}
     for node in tree.body:
-        if isinstance(node, _SAFE_STATEMENTS) or _docstring(node) or _guarded(node) \
-                or _optional_import(node):
+        if (isinstance(node, _SAFE_STATEMENTS) and not _does_work(node, own)) \
+                or _docstring(node) or _guarded(node) or _optional_import(node):
             continue
         problems.append(f"{where}: not imported: line {node.lineno} runs code at import "
                         "(move it under if __name__ == \"__main__\":)")
         return False
     return True
+
+
+def _does_work(node: ast.stmt, own: set[str]) -> bool:
+    """Whether an assignment's value is a call that does a script's work: of a function
+    the file defines (``results = run()``) or of one that acts on the world (writes a
+    file, starts a process or a system). A value built by a library (``np.array(...)``,
+    ``Path(__file__).with_name(...)``, ``logging.getLogger(...)``) defines a constant."""
+    value = getattr(node, "value", None)
+    if not isinstance(node, (ast.Assign, ast.AnnAssign, ast.AugAssign)) \
+            or not isinstance(value, ast.Call):
+        return False
+    func = value.func
+    name = func.attr if isinstance(func, ast.Attribute) else getattr(func, "id", "")
+    return (isinstance(func, ast.Name) and name in own) or name in _ACTIONS
 
 
 def _docstring(node: ast.stmt) -> bool:

@@ -11,6 +11,7 @@ and compiled; a half-built system is kept, its problems listed.
 from __future__ import annotations
 
 import copy
+import datetime
 import json
 import threading
 import tomllib
@@ -96,8 +97,9 @@ class Document:
         answers (the revision read first: a change after it makes an edit on this
         copy stale, never the other way round)."""
         revision = self.revision
-        return {"path": None if self.path is None else str(self.path), "system": self.data(),
-                "problems": self.problems(), "revision": revision}
+        return {"path": None if self.path is None else str(self.path),
+                "system": _dates_as_text(self.data()), "problems": self.problems(),
+                "revision": revision}
 
     # -- changing -----------------------------------------------------------------
     def replace(self, system: dict[str, Any], revision: int | None = None) -> None:
@@ -191,7 +193,7 @@ def _merge(container: Any, new: dict[str, Any], where: tuple[str, ...]) -> None:
             continue
         place = (*where, key)
         old = container.get(key)
-        if old is not None and _plain(old) == value:
+        if old is not None and _unchanged(old, value):
             continue
         if isinstance(value, dict) and isinstance(old, (Table, InlineTable)):
             _merge(old, value, place)
@@ -205,7 +207,7 @@ def _merge(container: Any, new: dict[str, Any], where: tuple[str, ...]) -> None:
 def _merge_array(old: AoT, new: list[dict[str, Any]], where: tuple[str, ...]) -> None:
     """An array of tables entry by entry (links keep their comments when others change)."""
     for index, value in enumerate(new[:len(old)]):
-        if _plain(old[index]) != value:
+        if not _unchanged(old[index], value):
             _merge(old[index], value, where)
     while len(old) > len(new):
         del old[len(old) - 1]
@@ -260,3 +262,35 @@ def _same(read: Any, held: Any) -> bool:
 
 def _plain(item: Any) -> Any:
     return item.unwrap() if hasattr(item, "unwrap") else item
+
+
+def _unchanged(old: Any, new: Any) -> bool:
+    """Whether ``new`` (from the page) says what the document's item ``old`` says. The
+    page holds the document as JSON: a date as its text, a whole number beyond 2**53
+    as the nearest double (JavaScript's numbers), so an entry it did not touch comes
+    back so, and must keep its value (1700000000123456789 was rewritten ...800)."""
+    held = _plain(old)
+    return held == new or _as_shown(held) == _as_shown(new)
+
+
+def _as_shown(value: Any) -> Any:
+    """``value`` as the page holds it (see ``_unchanged``)."""
+    if isinstance(value, dict):
+        return {key: _as_shown(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_as_shown(item) for item in value]
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) > 2 ** 53:
+        return float(value)
+    return _dates_as_text(value)
+
+
+def _dates_as_text(value: Any) -> Any:
+    """``value`` with TOML's dates and times as their ISO text, which JSON can carry
+    (a date in a module's state made ``GET /api/document`` a 500)."""
+    if isinstance(value, dict):
+        return {key: _dates_as_text(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_dates_as_text(item) for item in value]
+    if isinstance(value, (datetime.date, datetime.time)):       # (a datetime is a date)
+        return value.isoformat()
+    return value

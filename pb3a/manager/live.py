@@ -4,7 +4,8 @@ One ``Feed`` serves every client: it gathers the stats every ``refresh`` seconds
 (one ``stats()`` call however many pages are open) and follows the events
 (``events(since, timeout=...)`` in a worker thread), and hands each message to every
 client's queue. After an event that changes the structure it sends the structure
-and its layout again. Each client also gets, every ``refresh``, the state of the one
+and its layout again, and so it does when the session's mode changes (a launch from
+another page, or from the API). Each client also gets, every ``refresh``, the state of the one
 module it watches (``{"watch": name}``). A client that cannot keep up loses the
 oldest stats and states, never an event; one that falls ``CLIENT_MOST`` messages
 behind is disconnected (its page reconnects, and reads the system anew), so that it
@@ -17,6 +18,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict
@@ -56,6 +58,7 @@ class Feed:
         self._tasks: list[asyncio.Task[None]] = []
         self._calls: set[asyncio.Future[Any]] = set()     # blocking calls under way
         self._seen = 0                      # the last event sent
+        self._mode = session.mode           # the mode the pages were last told
 
     # -- life cycle (the app's lifespan) ---------------------------------------------
     def start(self) -> None:
@@ -110,6 +113,11 @@ class Feed:
     async def _events(self) -> None:
         failures = 0
         while True:
+            if self.session.mode != self._mode:
+                # (a page that did not launch would edit the document of a running system;
+                # past every hello: no event tells of it)
+                self._mode = self.session.mode
+                await self._send_structure(sys.maxsize)
             if self.session.mode != "running":
                 await asyncio.sleep(self.refresh)
                 continue
@@ -125,12 +133,15 @@ class Feed:
                 self.publish({"type": "event", "event": plain(asdict(event))})
             changes = [event.seq for event in events if event.kind in STRUCTURAL]
             if changes:
-                try:
-                    now = await self._blocking(structure, self.session)
-                    self.publish(Message("system", encode({"type": "system", **now}),
-                                         max(changes)))
-                except Exception as exc:
-                    self._failed("structure", exc, 1)
+                await self._send_structure(max(changes))
+
+    async def _send_structure(self, seq: int) -> None:
+        """Send the structure (and the mode) as it is now, after event ``seq``."""
+        try:
+            now = await self._blocking(structure, self.session)
+            self.publish(Message("system", encode({"type": "system", **now}), seq))
+        except Exception as exc:
+            self._failed("structure", exc, 1)
 
     def _failed(self, source: str, exc: Exception, failures: int) -> float:
         """Log ``exc`` and tell every page (``{"type": "error", "source", "error"}``): a

@@ -103,8 +103,11 @@ def _array_view(array: np.ndarray, module: str, path: str) -> dict[str, Any]:
     if numeric and array.size:
         finite = array[np.isfinite(array)] if array.dtype.kind == "f" else array
         if finite.size:
-            shown["summary"] = {"min": float(finite.min()), "max": float(finite.max()),
-                                "mean": float(finite.mean(dtype=np.float64))}
+            # (the mean of values near the largest float overflows: JSON has no inf)
+            with np.errstate(over="ignore"):
+                mean = float(finite.mean(dtype=np.float64))
+            shown["summary"] = _plain_values({"min": float(finite.min()),
+                                              "max": float(finite.max()), "mean": mean})
     if array.size <= ARRAY_VALUES:
         shown["value"] = _plain_values(array.tolist()) if numeric else None
         if not numeric:
@@ -115,9 +118,12 @@ def _array_view(array: np.ndarray, module: str, path: str) -> dict[str, Any]:
 
 
 def _plain_values(value: Any) -> Any:
-    """Nested lists of numbers with NaN and infinities as None (JSON has none)."""
+    """Nested lists (or a dict) of numbers with NaN and infinities as None (JSON has
+    none)."""
     if isinstance(value, list):
         return [_plain_values(item) for item in value]
+    if isinstance(value, dict):
+        return {key: _plain_values(item) for key, item in value.items()}
     if isinstance(value, float) and not math.isfinite(value):
         return None
     return value
@@ -159,9 +165,13 @@ def coerce(field: str, current: Any, new: Any) -> Any:
         if not isinstance(new, (int, float)) or isinstance(new, bool):
             raise refuse("a number")
         try:
-            return type(current)(new)
+            with np.errstate(over="ignore"):
+                number = type(current)(new)
         except OverflowError:
             raise refuse(f"a number a {type(current).__name__} holds") from None
+        if math.isfinite(new) and not math.isfinite(number):    # (1e300 as a float32: inf)
+            raise refuse(f"a number a {type(current).__name__} holds")
+        return number
     if isinstance(current, str):
         if not isinstance(new, str):
             raise refuse("a string")
@@ -174,7 +184,7 @@ def coerce(field: str, current: Any, new: Any) -> Any:
         want = dict if isinstance(current, dict) else list
         if not isinstance(new, want):
             raise refuse("an object ({...})" if want is dict else "a list ([...])")
-        return tuple(new) if isinstance(current, tuple) else new
+        return _like(current, new)
     raise ValueError(f"state {field!r} is a {type(current).__name__}, which the State Editor "
                      "cannot set: set it from a program (run.set_state)")
 
@@ -197,7 +207,40 @@ def _coerce_array(field: str, current: np.ndarray, new: Any) -> np.ndarray:
         raise ValueError(f"state {field!r} takes {what}, got {array.dtype} values")
     if current.dtype.kind in "iu" and not np.array_equal(array, np.round(array)):
         raise ValueError(f"state {field!r} takes {what}: whole numbers only")
-    return array.astype(current.dtype)
+    # (astype wraps what does not fit: 300 as an int8 was 44, 1e300 as a float32 inf)
+    if current.dtype.kind in "iu" and array.size:
+        held = np.iinfo(current.dtype)
+        if array.min() < held.min or array.max() > held.max:
+            raise ValueError(f"state {field!r} takes {what}: each from {held.min} to "
+                             f"{held.max}")
+    with np.errstate(over="ignore"):
+        converted = array.astype(current.dtype)
+    if current.dtype.kind == "f" and not np.isfinite(converted[np.isfinite(array)]).all():
+        raise ValueError(f"state {field!r} takes {what}: each within "
+                         f"±{float(np.finfo(current.dtype).max):g}")
+    return converted
+
+
+def _like(current: Any, new: Any) -> Any:
+    """``new`` (from JSON) in the types of ``current``, item by item: JSON has no
+    tuples and writes 1.0 as 1, so an edited list of float pairs came back a list of
+    int lists. An item beyond ``current``'s takes the type of its last item; a value of
+    another kind is kept as sent."""
+    if isinstance(current, bool) or current is None:
+        return new
+    if isinstance(current, float) and isinstance(new, int) and not isinstance(new, bool):
+        return float(new)
+    if isinstance(current, int) and isinstance(new, float) and new.is_integer():
+        return int(new)
+    if isinstance(current, dict) and isinstance(new, dict):
+        return {key: _like(current[key], item) if key in current else item
+                for key, item in new.items()}
+    if isinstance(current, (list, tuple)) and isinstance(new, list):
+        last = len(current) - 1
+        items = [_like(current[min(index, last)], item) if current else item
+                 for index, item in enumerate(new)]
+        return tuple(items) if isinstance(current, tuple) else items
+    return new
 
 
 def png_of(array: Any) -> bytes:

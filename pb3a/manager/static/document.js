@@ -31,6 +31,7 @@ export class EditedDocument {
     this.problems = [];
     this.revision = undefined;       // the document's, as last read (sent back with a put)
     this.putting = null;             // the put under way, which the next one waits for
+    this.unsent = [];                // changes made here that no put has sent yet
   }
 
   async load() {
@@ -38,6 +39,8 @@ export class EditedDocument {
     return this;
   }
 
+  /** The server's document; the changes made here since the last put was sent are
+   * made again on it (they are not in it yet). */
   take(answer) {
     this.path = answer.path ?? this.path;
     this.system = answer.system || {};
@@ -45,22 +48,45 @@ export class EditedDocument {
     this.system.links ??= [];
     this.problems = answer.problems || [];
     this.revision = answer.revision;
+    for (const change of this.unsent) {
+      try {
+        change(this.system);
+      } catch (error) {
+        console.warn("a change made while the document was being saved no longer applies", error);
+      }
+    }
   }
 
-  /** Put the document back; if another page changed it meanwhile (412), the change
-   * made here is dropped and the document read again, and the error says so. Puts go
-   * one after another, each with the revision the one before it answered. */
-  put() {
+  /**
+   * Change the document by `change(system)` (which throws, before changing anything,
+   * for a change it refuses) and put it back; answers what `change` answers. Puts go
+   * one after another, each with the revision the one before it answered. A change
+   * made while a put is on its way is made again on that put's answer, which replaces
+   * this copy: made on the copy alone, the answer dropped it, and the next put sent
+   * the document without it (two quick edits: the second lost, both "saved"). If
+   * another page changed the document meanwhile (412), the changes not yet put are
+   * dropped and the document read again, and the error says so.
+   */
+  async edit(change) {
+    const result = change(this.system);
+    this.unsent.push(change);
     const putting = (this.putting || Promise.resolve()).catch(() => {}).then(async () => {
+      const sending = this.unsent;
+      if (!sending.length) return;           // a put before this one sent it
+      this.unsent = [];
       try {
         this.take(await api.putDocument(this.system, this.revision));
       } catch (error) {
-        if (error.status === 412) await this.load();
+        if (error.status === 412) {
+          this.unsent = [];
+          await this.load();
+        }
         throw error;
       }
     });
     this.putting = putting;
-    return putting;
+    await putting;
+    return result;
   }
 
   nodes() {
@@ -71,65 +97,69 @@ export class EditedDocument {
     return this.system.macros || {};
   }
 
-  /** A name no entry has yet: `base`, else `base2`, `base3`, ... */
-  freeName(base) {
+  /** A name no entry of `system` has yet: `base`, else `base2`, `base3`, ... */
+  freeName(base, system = this.system) {
     let name = base || "module";
-    for (let i = 2; name in this.system.modules; i += 1) name = `${base}${i}`;
+    for (let i = 2; name in system.modules; i += 1) name = `${base}${i}`;
     return name;
   }
 
   /** A name for a new module of this class ("examples.pipeline:FastScale" -> fast_scale). */
-  nameFor(cls) {
-    return this.freeName(fmt.shortClass(cls).replace(/([a-z0-9])([A-Z])/g, "$1_$2").toLowerCase());
+  nameFor(cls, system = this.system) {
+    return this.freeName(fmt.shortClass(cls).replace(/([a-z0-9])([A-Z])/g, "$1_$2").toLowerCase(),
+                         system);
   }
 
-  async place(cls, node) {
-    const name = this.nameFor(cls);
-    this.system.modules[name] = node ? {class: cls, node} : {class: cls};
-    await this.put();
-    return name;
+  place(cls, node) {
+    return this.edit((system) => {
+      const name = this.nameFor(cls, system);
+      system.modules[name] = node ? {class: cls, node} : {class: cls};
+      return name;
+    });
   }
 
   /** A new instance of one of the document's macros. */
-  async placeMacro(macro, node) {
-    if (!(macro in this.macros())) throw new Error(`the document defines no macro ${macro}`);
-    const name = this.freeName(macro);
-    this.system.modules[name] = node ? {macro, node} : {macro};
-    await this.put();
-    return name;
+  placeMacro(macro, node) {
+    return this.edit((system) => {
+      if (!(macro in (system.macros || {}))) throw new Error(`the document defines no macro ${macro}`);
+      const name = this.freeName(macro, system);
+      system.modules[name] = node ? {macro, node} : {macro};
+      return name;
+    });
   }
 
   async link(src, dst) {
     const check = await api.checkLink(src, dst);
     if (!check.ok) return check;
-    this.system.links.push({from: src, to: dst});
-    await this.put();
+    await this.edit((system) => system.links.push({from: src, to: dst}));
     return check;
   }
 
-  async setNode(name, node) {
-    this.module(name).node = node;
-    await this.put();
+  setNode(name, node) {
+    return this.edit((system) => { entryIn(system, name).node = node; });
   }
 
-  async setState(name, fields) {
-    const module = this.module(name);
-    module.state = {...(module.state || {}), ...fields};
-    await this.put();
+  setState(name, fields) {
+    return this.edit((system) => {
+      const module = entryIn(system, name);
+      module.state = {...(module.state || {}), ...fields};
+    });
   }
 
-  async setPeriod(name, period) {
-    const module = this.module(name);
-    if (period === null) delete module.period;
-    else module.period = period;
-    await this.put();
+  setPeriod(name, period) {
+    return this.edit((system) => {
+      const module = entryIn(system, name);
+      if (period === null) delete module.period;
+      else module.period = period;
+    });
   }
 
-  async remove(name) {
-    this.module(name);
-    delete this.system.modules[name];
-    this.system.links = this.system.links.filter((l) => ![l.from, l.to].some((end) => moduleOf(end) === name));
-    await this.put();
+  remove(name) {
+    return this.edit((system) => {
+      entryIn(system, name);
+      delete system.modules[name];
+      system.links = system.links.filter((l) => ![l.from, l.to].some((end) => moduleOf(end) === name));
+    });
   }
 
   /** Give an entry a new name; the links that name it follow. */
@@ -138,13 +168,15 @@ export class EditedDocument {
     to = to.trim();
     if (to === name) return name;
     checkName(to, "a module name");
-    if (to in this.system.modules) throw new Error(`there is a module ${to} already: choose another name`);
-    this.system.modules = Object.fromEntries(Object.entries(this.system.modules)
-      .map(([key, entry]) => [key === name ? to : key, entry]));
-    const follow = (end) => (moduleOf(end) === name ? `${to}.${portOf(end)}` : end);
-    this.system.links = this.system.links.map((l) => ({...l, from: follow(l.from), to: follow(l.to)}));
-    await this.put();
-    return to;
+    return this.edit((system) => {
+      entryIn(system, name);
+      if (to in system.modules) throw new Error(`there is a module ${to} already: choose another name`);
+      system.modules = Object.fromEntries(Object.entries(system.modules)
+        .map(([key, entry]) => [key === name ? to : key, entry]));
+      const follow = (end) => (moduleOf(end) === name ? `${to}.${portOf(end)}` : end);
+      system.links = system.links.map((l) => ({...l, from: follow(l.from), to: follow(l.to)}));
+      return to;
+    });
   }
 
   /**
@@ -153,47 +185,48 @@ export class EditedDocument {
    * instance of it in their place (on their node, if they share one), the outside
    * links now ending on its exports. Answers the instance's name.
    */
-  async group(names, macro) {
+  group(names, macro) {
     checkName(macro, "a macro name");
-    if (macro in this.macros()) throw new Error(`there is a macro ${macro} already: choose another name`);
-    const members = [...new Set(names)].filter((name) => name in this.system.modules);
-    if (!members.length) throw new Error("select the modules to group first");
-    const inside = new Set(members);
-    const nodes = new Set(members.map((name) => this.system.modules[name].node ?? ""));
-    const node = nodes.size === 1 ? [...nodes][0] : "";
-    const children = {};
-    for (const name of members) {
-      const {...entry} = this.system.modules[name];
-      if (node) delete entry.node;            // the instance's node is theirs
-      children[name] = entry;
-    }
-    const exports = {};
-    const exportOf = (end) => {
-      const known = Object.keys(exports).find((key) => exports[key] === end);
-      if (known) return known;
-      let key = portOf(end);
-      for (let i = 1; key in exports; i += 1) key = `${moduleOf(end)}_${portOf(end)}${i > 1 ? i : ""}`;
-      exports[key] = end;
-      return key;
-    };
-    const instance = this.freeName(macro);
-    const inner = [], outer = [];
-    for (const link of this.system.links) {
-      const from = inside.has(moduleOf(link.from)), to = inside.has(moduleOf(link.to));
-      if (from && to) inner.push(link);
-      else if (from) outer.push({...link, from: `${instance}.${exportOf(link.from)}`});
-      else if (to) outer.push({...link, to: `${instance}.${exportOf(link.to)}`});
-      else outer.push(link);
-    }
-    const definition = {modules: children};
-    if (inner.length) definition.links = inner;
-    if (Object.keys(exports).length) definition.exports = exports;
-    this.system.macros = {...this.macros(), [macro]: definition};
-    for (const name of members) delete this.system.modules[name];
-    this.system.modules[instance] = node ? {macro, node} : {macro};
-    this.system.links = outer;
-    await this.put();
-    return instance;
+    return this.edit((system) => {
+      if (macro in (system.macros || {})) throw new Error(`there is a macro ${macro} already: choose another name`);
+      const members = [...new Set(names)].filter((name) => name in system.modules);
+      if (!members.length) throw new Error("select the modules to group first");
+      const inside = new Set(members);
+      const nodes = new Set(members.map((name) => system.modules[name].node ?? ""));
+      const node = nodes.size === 1 ? [...nodes][0] : "";
+      const children = {};
+      for (const name of members) {
+        const {...entry} = system.modules[name];
+        if (node) delete entry.node;            // the instance's node is theirs
+        children[name] = entry;
+      }
+      const exports = {};
+      const exportOf = (end) => {
+        const known = Object.keys(exports).find((key) => exports[key] === end);
+        if (known) return known;
+        let key = portOf(end);
+        for (let i = 1; key in exports; i += 1) key = `${moduleOf(end)}_${portOf(end)}${i > 1 ? i : ""}`;
+        exports[key] = end;
+        return key;
+      };
+      const instance = this.freeName(macro, system);
+      const inner = [], outer = [];
+      for (const link of system.links) {
+        const from = inside.has(moduleOf(link.from)), to = inside.has(moduleOf(link.to));
+        if (from && to) inner.push(link);
+        else if (from) outer.push({...link, from: `${instance}.${exportOf(link.from)}`});
+        else if (to) outer.push({...link, to: `${instance}.${exportOf(link.to)}`});
+        else outer.push(link);
+      }
+      const definition = {modules: children};
+      if (inner.length) definition.links = inner;
+      if (Object.keys(exports).length) definition.exports = exports;
+      system.macros = {...(system.macros || {}), [macro]: definition};
+      for (const name of members) delete system.modules[name];
+      system.modules[instance] = node ? {macro, node} : {macro};
+      system.links = outer;
+      return instance;
+    });
   }
 
   /**
@@ -218,39 +251,46 @@ export class EditedDocument {
 
   /** Set state on a module inside a macro instance, as the instance's override
    * (`state = { "child" = { field = value } }`), leaving the macro as it is. */
-  async setOverride(path, fields) {
+  setOverride(path, fields) {
     const instance = entryOf(path), key = path.slice(instance.length + 1);
-    const entry = this.module(instance);
-    if (!entry.macro || !key) throw new Error(`${path} is not a module inside a macro instance`);
-    entry.state = {...(entry.state || {}), [key]: {...(entry.state?.[key] || {}), ...fields}};
-    await this.put();
+    return this.edit((system) => {
+      const entry = entryIn(system, instance);
+      if (!entry.macro || !key) throw new Error(`${path} is not a module inside a macro instance`);
+      entry.state = {...(entry.state || {}), [key]: {...(entry.state?.[key] || {}), ...fields}};
+    });
   }
 
   /** Drop an instance's override of one field (or of all of a module's, without `field`). */
-  async clearOverride(instance, key, field) {
-    const entry = this.module(instance);
-    const own = {...(entry.state?.[key] || {})};
-    if (field === undefined) for (const name of Object.keys(own)) delete own[name];
-    else delete own[field];
-    const state = {...(entry.state || {})};
-    if (Object.keys(own).length) state[key] = own;
-    else delete state[key];
-    if (Object.keys(state).length) entry.state = state;
-    else delete entry.state;
-    await this.put();
+  clearOverride(instance, key, field) {
+    return this.edit((system) => {
+      const entry = entryIn(system, instance);
+      const own = {...(entry.state?.[key] || {})};
+      if (field === undefined) for (const name of Object.keys(own)) delete own[name];
+      else delete own[field];
+      const state = {...(entry.state || {})};
+      if (Object.keys(own).length) state[key] = own;
+      else delete state[key];
+      if (Object.keys(state).length) entry.state = state;
+      else delete entry.state;
+    });
   }
 
-  async addNode(name) {
-    this.system.nodes = {...(this.system.nodes || {}), [name]: {}};
-    await this.put();
+  addNode(name) {
+    return this.edit((system) => { system.nodes = {...(system.nodes || {}), [name]: {}}; });
   }
 
   module(name) {
-    const module = this.system.modules[name];
-    if (!module) {
-      throw new Error(`${name} is part of a macro: change its macro instance ${entryOf(name)}, ` +
-                      "or the macro's entry in the file");
-    }
-    return module;
+    return entryIn(this.system, name);
   }
+}
+
+/** The entry `name` of `system`; an error saying what to change for a drawn module
+ * that is part of a macro instance. */
+function entryIn(system, name) {
+  const module = system.modules[name];
+  if (!module) {
+    throw new Error(`${name} is part of a macro: change its macro instance ${entryOf(name)}, ` +
+                    "or the macro's entry in the file");
+  }
+  return module;
 }

@@ -229,9 +229,10 @@ function scalarEditor(field, commit) {
                             disabled: !field.editable, autocomplete: "off"});
   let dirty = false;
   let shown = null;
+  let sending = null;        // the text being sent: Enter fires "change" too, one POST
   input.addEventListener("input", () => { dirty = true; input.classList.add("dirty"); });
   const send = async () => {
-    if (!dirty) return;
+    if (!dirty || sending === input.value) return;
     let value = input.value;
     if (numeric) {
       value = Number(input.value.trim());
@@ -243,7 +244,12 @@ function scalarEditor(field, commit) {
       }
     }
     input.classList.remove("invalid");
-    if (await commit(value)) { dirty = false; input.classList.remove("dirty"); }
+    sending = input.value;
+    try {
+      if (await commit(value)) { dirty = false; input.classList.remove("dirty"); }
+    } finally {
+      sending = null;
+    }
   };
   input.addEventListener("keydown", (ev) => {
     if (ev.key === "Enter") send();
