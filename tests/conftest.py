@@ -202,17 +202,19 @@ class Daemon:
     """``pb3a node start`` in a process of its own, so that it can be killed and started
     again at the same address."""
 
-    def __init__(self, name: str) -> None:
+    def __init__(self, name: str, path: tuple[str, ...] = ()) -> None:
         with socket.socket() as probe:
             probe.bind(("127.0.0.1", 0))
             port = probe.getsockname()[1]
         self.name, self.address = name, f"tcp://127.0.0.1:{port}"
+        self.path = path            # more directories on its import path (a robot's own)
         self.process: subprocess.Popen[str] | None = None
         self.start()
 
     def start(self) -> None:
         repo = Path(__file__).resolve().parent.parent
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(repo / "tests"), str(repo)])}
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(repo / "tests"), str(repo),
+                                                            *self.path])}
         self.process = subprocess.Popen(
             [sys.executable, "-m", "pb3a", "node", "start", "--name", self.name,
              "--listen", self.address, "--max-cpu", "101"],

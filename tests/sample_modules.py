@@ -785,9 +785,9 @@ class Staller(Module):
 
 
 class StepStamps(Module):
-    """Appends the time (``time.monotonic``, one clock for every process) of each step
-    to ``path``: when a module last stepped, read after its process is gone. Its setup
-    writes its pid to ``path``.pid and then takes ``setup_s``."""
+    """Appends its pid and the time (``time.monotonic``, one clock for every process) of
+    each step to ``path``: when a module (or a copy of it) last stepped, read after its
+    process is gone. Its setup writes its pid to ``path``.pid and then takes ``setup_s``."""
 
     period = 0.01
     path = ""
@@ -801,7 +801,7 @@ class StepStamps(Module):
 
     def step(self) -> None:
         with open(self.path, "a") as stamps:
-            stamps.write(f"{time.monotonic()}\n")
+            stamps.write(f"{os.getpid()} {time.monotonic()}\n")
 
 
 class BlocksInInit(Module):
@@ -882,3 +882,26 @@ class DeviceReader(Driver):
 
 class DeviceReaderV2(DeviceReader):
     """The same, another class (to swap to)."""
+
+
+class RobotPose(Module):
+    """Counts the values it is given in ``seen`` (written on ``count``) and in its
+    ``pose``, an object of a class installed on the robots only (``robot_types``, on the
+    path of the nodes' daemons, not the launcher's, which cannot read its state):
+    restart ``last-state`` puts that object in its checkpoints."""
+
+    x = Input(int, policy="queue:100000")
+    count = Output(float)
+    pose = None
+    seen = 0
+
+    def setup(self) -> None:
+        if self.pose is None:
+            from robot_types import Pose
+            self.pose = Pose()
+
+    def on_input(self, port) -> None:
+        port.read()
+        self.seen += 1
+        self.pose.x += 1.0
+        self.count.write(float(self.seen))

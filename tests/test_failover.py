@@ -7,16 +7,27 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import cloudpickle
 import pytest
 from conftest import Daemon, eventually
-from sample_modules import Collector, Counter, Join, MoveLog, Relay
+from sample_modules import (
+    Collector,
+    Counter,
+    Join,
+    Last,
+    MoveLog,
+    Relay,
+    RobotPose,
+    StepStamps,
+)
 
 from pb3a import RuntimeFailure, System
 from pb3a.daemons.node_controller import Limits, NodeController
-from pb3a.transport.auth import ClusterKey
+from pb3a.transport.auth import ClusterKey, Rejected
 from pb3a.transport.control import ControlClient
 
 pytestmark = pytest.mark.timeout(120)
@@ -240,3 +251,138 @@ def test_a_move_that_a_writer_s_node_loss_failed_leaves_the_rest_running(daemons
         counted = run.state("join")["xs"]
         eventually(lambda: run.state("join")["xs"] > counted + 20, timeout=10,
                    what="values from alpha into join, put back on a")
+
+
+def test_two_nodes_lost_at_once_fail_over_to_the_node_that_lives(daemons) -> None:
+    """Node c, dead too but not yet declared lost when b was, was given b's relay (its
+    controller still admitted it): the add waited 60 s for c's dead executor, on the
+    watchdog's thread, which alone could declare c lost; then the relay was dropped
+    and its next fallback never tried."""
+    b, c = daemons["b"], daemons["c"]
+    system = System("two-lost").node("a").node("b", address=b.address)
+    system.node("c", address=c.address)
+    system.add("src", Counter, node="a", period=0.001)
+    system.add("relay", Relay, node="b", restart="fresh", fallback=["c", "a"])
+    system.add("near", Collector, node="a")
+    system.link("src.out", "relay.x")
+    system.link("relay.out", "near.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("near")["received"] > 100, timeout=30,
+                   what="values through the relay on b")
+        for daemon in (b, c):
+            os.kill(daemon.executor_pid(), signal.SIGKILL)
+        moved = eventually(lambda: _events(run, "module_failed_over"), timeout=20,
+                           what="the relay failed over")
+        received = run.state("near")["received"]
+        eventually(lambda: run.state("near")["received"] > received + 100, timeout=15,
+                   what="values through the relay on a")
+        lost = {event.subject for event in _events(run, "node_lost")}
+    assert moved[0].detail["destination"] == "a" and moved[0].detail["restart_s"] < 3.0
+    assert lost == {"b", "c"}
+
+
+def test_a_node_that_hears_the_heartbeats_but_whose_answers_are_lost_stops_before_its_module_runs_elsewhere(  # noqa: E501
+        daemons, tmp_path: Path) -> None:
+    """Its executor renewed its lease on every heartbeat it heard; the launcher, hearing
+    no answer for 2 s (a saturated uplink: its answers dropped here for 4 s), failed
+    its module over while the old copy stepped on for 1.2 s more. Heartbeats renew the
+    lease now only while the node's answers are fresh."""
+    b, stamps = daemons["b"], tmp_path / "steps"
+    system = System("uplink").node("a").node("b", address=b.address)
+    system.add("stepper", StepStamps, node="b", restart="fresh", fallback=["a"],
+               state={"path": str(stamps)})
+    with system.launch() as run:
+        eventually(lambda: stamps.exists() and stamps.read_text().count("\n") > 20,
+                   what="steps on b")
+        remote = run._launcher.remotes["b"]
+        until = time.monotonic() + 4.0
+        for client in (remote.client, remote.controller):       # everything b answers
+            def dropped(frames, opened=client._opener.open):
+                if time.monotonic() < until:
+                    raise Rejected("the uplink lost it")
+                return opened(frames)
+            client._opener.open = dropped
+        eventually(lambda: _events(run, "module_failed_over"), timeout=15, what="failover")
+        eventually(lambda: len({line.split()[0] for line in stamps.read_text().splitlines()})
+                   == 2, what="steps of the copy on a")
+    steps = [line.split() for line in stamps.read_text().splitlines()]
+    old, new = dict.fromkeys(pid for pid, _ in steps)
+    assert max(float(at) for pid, at in steps if pid == old) \
+        < min(float(at) for pid, at in steps if pid == new)
+
+
+def test_a_checkpoint_only_the_robots_can_read_still_fails_over(tmp_path: Path) -> None:
+    """The launcher read the checkpoint itself: a state holding an object of a class
+    installed on the robots only (as docs/deploy.md allows) failed the whole failover
+    there, and no module of the lost node restarted, the others neither."""
+    robot_path = tmp_path / "robot_path"
+    robot_path.mkdir()
+    (robot_path / "robot_types.py").write_text("class Pose:\n    x = 0.0\n")
+    b, c = Daemon("b", (str(robot_path),)), Daemon("c", (str(robot_path),))
+    try:
+        system = System("robot-types").node("a").node("b", address=b.address)
+        system.node("c", address=c.address)
+        system.add("src", Counter, node="a", period=0.001)
+        system.add("pose", RobotPose, node="b", restart="last-state", fallback=["c"])
+        system.add("tally", Last, node="a")
+        system.add("relay", Relay, node="b", restart="fresh", fallback=["c"])
+        system.add("near", Collector, node="a")
+        system.link("src.out", "pose.x")
+        system.link("pose.count", "tally.x")
+        system.link("src.out", "relay.x")
+        system.link("relay.out", "near.x")
+        with system.launch(checkpoint_s=0.2) as run:
+            launcher = run._launcher
+            eventually(lambda: run.state("tally")["value"] > 500
+                       and "pose" in launcher.checkpoints, timeout=30,
+                       what="a checkpoint of the pose off node b")
+            with pytest.raises(ModuleNotFoundError):
+                cloudpickle.loads(launcher.checkpoints["pose"])   # (not here: on the robots)
+            os.kill(b.executor_pid(), signal.SIGKILL)
+            moved = eventually(lambda: len(_events(run, "module_failed_over")) == 2
+                               and _events(run, "module_failed_over"), what="both failed over")
+            seen = run.state("tally")["seen"]
+            eventually(lambda: run.state("tally")["seen"] > seen + 100, timeout=15,
+                       what="counts from the pose on c")
+            received = run.state("near")["received"]
+            eventually(lambda: run.state("near")["received"] > received + 100, timeout=15,
+                       what="values through the relay on c")
+            tally = run.state("tally")
+    finally:
+        b.stop()
+        c.stop()
+    assert {event.subject: event.detail["destination"] for event in moved} == {
+        "pose": "c", "relay": "c"}
+    assert next(e for e in moved if e.subject == "pose").detail["from_checkpoint"]
+    # counting on from its checkpoint (taken at some 300 or more), not from 0
+    assert tally["value"] >= tally["seen"] - seen + 50
+
+
+def test_close_keeps_its_timeout_with_machines_that_do_not_answer(daemons) -> None:
+    """close(3) took 13-24 s with two machines hung (their controllers and executors
+    stopped): the modules and then the nodes were stopped one after another, each call
+    waiting 5 s past its own deadline."""
+    b, c = daemons["b"], daemons["c"]
+    system = System("hung").node("a").node("b", address=b.address)
+    system.node("c", address=c.address)
+    system.add("src", Counter, node="a", period=0.001)
+    for node in ("b", "c"):
+        system.add(f"far-{node}", Collector, node=node)
+        system.link("src.out", f"far-{node}.x")
+    run = system.launch()
+    hung: list[int] = []
+    try:
+        eventually(lambda: all(run.state(f"far-{node}")["received"] > 100 for node in "bc"),
+                   timeout=30, what="values on b and c")
+        hung = [pid for daemon in (b, c) for pid in (daemon.process.pid,
+                                                     daemon.executor_pid())]
+        for pid in hung:
+            os.kill(pid, signal.SIGSTOP)
+        started = time.monotonic()
+        run.close(timeout=3.0)
+        took = time.monotonic() - started
+    finally:
+        run.close()
+        for pid in hung:
+            os.kill(pid, signal.SIGCONT)
+    assert took < 4.0, took

@@ -19,6 +19,7 @@ from typing import Any
 import psutil
 
 from pb3a.daemons.node_share import executor_main
+from pb3a.errors import bounded_wait
 from pb3a.processes import start_without_main
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlServer
@@ -138,7 +139,8 @@ class NodeController:
             return self.start_executor(args["config"], args.get("workers", 0),
                                        args.get("cpus"), args.get("host", "127.0.0.1"))
         if op == "stop_executor":
-            return self.stop_executor(args["config"], bool(args.get("force", False)))
+            return self.stop_executor(args["config"], bool(args.get("force", False)),
+                                      bounded_wait(args.get("timeout", 15.0), "stop_executor"))
         if op == "admit":
             self.admit(str(args.get("what", "work")))
             return True

@@ -29,7 +29,6 @@ import threading
 import time
 from typing import TYPE_CHECKING, Any
 
-import cloudpickle
 import psutil
 
 from pb3a.errors import ModuleNotFound, RuntimeFailure, RuntimeTimeout
@@ -81,6 +80,7 @@ class Launcher:
         self.lost_values: collections.Counter[str] = collections.Counter()  # per link key
         self._rejoining: set[str] = set()
         self._failing_over: dict[str, float] = {}     # lost node -> when, until done
+        self._failovers: list[threading.Thread] = []    # one per lost node, while it works
         # a lost node's env module and the links from it, restored when it rejoins
         self._env_kept: dict[str, tuple[FlatModule, list[FlatLink]]] = {}
         self._callback: str | None = None            # where remote executors reach us
@@ -360,8 +360,6 @@ class Launcher:
                     self.health[name]["rtt"] = node.rtt
                     if node.silent_s() > LOSS_S and not self._stopping.is_set():
                         self._lose(name, node.silent_s())
-            for name, lost_at in list(self._failing_over.items()):
-                self._try_fail_over(name, lost_at)
             now = time.monotonic()
             if now >= next_rejoin:
                 next_rejoin = now + REJOIN_S
@@ -407,13 +405,28 @@ class Launcher:
         log.error(self.failures[-1])
         self.events.record("node_lost", node, modules=gone, silent_s=silent_s)
         self._failing_over[node] = lost_at
-        self._try_fail_over(node, lost_at)
+        # on a thread of its own: placing the modules may wait for a node that went too,
+        # which only the watchdog, free, declares lost (then the wait fails at once)
+        failover = threading.Thread(target=self._fail_over_until_done, args=(node, lost_at),
+                                    name=f"pb3a-failover-{node}", daemon=True)
+        self._failovers = [*(t for t in self._failovers if t.is_alive()), failover]
+        failover.start()
+
+    def _fail_over_until_done(self, node: str, lost_at: float) -> None:
+        """Try to fail ``node``'s modules over every ``WATCH_S`` until it is done."""
+        while node in self._failing_over and not self._stopping.is_set():
+            self._try_fail_over(node, lost_at)
+            if node in self._failing_over:
+                self._stopping.wait(WATCH_S)
 
     def _try_fail_over(self, node: str, lost_at: float) -> None:
-        """Fail over lost ``node``'s modules, if the configuration lock comes within
-        ``FAIL_OVER_WAIT_S``; else the watchdog tries again at its next look (a change
-        holding the lock long, or failing, must not end the watchdog, which alone sees
-        nodes go and come back)."""
+        """Fail over lost ``node``'s modules once its executor has fenced itself, if the
+        configuration lock comes within ``FAIL_OVER_WAIT_S``; else the watchdog tries
+        again at its next look (a change holding the lock long, or failing, must not end
+        the watchdog, which alone sees nodes go and come back)."""
+        remote = self.remotes.get(node)
+        if remote is not None and time.monotonic() < remote.fenced_by():
+            return                          # its modules may still run there
         with contextlib.ExitStack() as held:
             try:
                 held.enter_context(self.lock.held(f"fail over lost node {node}",
@@ -497,18 +510,27 @@ class Launcher:
                 self.nodes[target].spawn_workers(specs)                 # them, failing this)
         moved = {}
         for name, moved_spec in placed.items():
-            state = moved_spec.state
-            if moved_spec.restart == "last-state" and name in self.checkpoints:
-                state = cloudpickle.loads(self.checkpoints[name])
-            try:
-                self.nodes[moved_spec.node].add_module(moved_spec, state=state)
-            except (RuntimeFailure, RuntimeTimeout) as exc:
-                self.failures.append(f"module {name} not restarted on node "
-                                     f"{moved_spec.node}: {exc}")
-                log.error(self.failures[-1])
+            # a checkpoint goes as it came, read in the worker: its classes may be
+            # installed on the robots only, not where the launcher runs
+            state: dict[str, Any] | bytes = (
+                self.checkpoints[name] if moved_spec.restart == "last-state"
+                and name in self.checkpoints else moved_spec.state)
+            target: str | None = moved_spec.node
+            while target is not None:
+                try:
+                    self.nodes[target].add_module(dataclasses.replace(moved_spec, node=target),
+                                                  state=state)
+                    break
+                except (RuntimeFailure, RuntimeTimeout) as exc:
+                    self.failures.append(f"module {name} not restarted on node {target}: "
+                                         f"{exc}")
+                    log.error(self.failures[-1])
+                    loads.pop(target, None)     # the next that admits it, if any
+                    target = self._place(self.specs[name], loads)
+            if target is None:
                 continue
-            self.specs[name] = moved_spec
-            moved[name] = moved_spec.node
+            self.specs[name] = dataclasses.replace(moved_spec, node=target)
+            moved[name] = target
         return moved
 
     def _loads(self, lost: str) -> dict[str, tuple[float, int]]:
@@ -517,8 +539,8 @@ class Launcher:
         loads = {}
         here = psutil.cpu_percent(interval=None)
         for name in self.nodes:
-            if name == lost or not self.health[name]["up"]:
-                continue
+            if name == lost or not self.health[name]["up"] or self._silent(name):
+                continue                    # (a node gone too, not declared lost yet)
             cpu = here
             if name in self.remotes:
                 try:
@@ -665,10 +687,11 @@ class Launcher:
         most (then the system stops all the same, the change failing as it can)."""
         deadline = time.monotonic() + timeout
         self._stopping.set()
-        for thread in (self._watchdog, self._env_keeper):
+        for thread in (self._watchdog, self._env_keeper, *self._failovers):
             if thread is not None:
-                thread.join(2.0)
+                thread.join(max(0.0, min(2.0, deadline - time.monotonic())))
         for name, remote in self.remotes.items():
+            remote.wind_down(deadline)   # (one that does not answer fences itself anyway)
             if self._silent(name):                    # gone, not yet declared: no waiting
                 remote.lose()
         with contextlib.ExitStack() as held:
@@ -680,16 +703,35 @@ class Launcher:
             # stopped on its own, and nothing that fails keeps the rest from stopping.
             for name in reversed(list(self.specs)):
                 left = max(0.1, deadline - time.monotonic())
+                node = self.specs[name].node if name in self.specs else None
+                if node in self.remotes and self._silent(node):
+                    self.remotes[node].lose()         # it went meanwhile: no waiting
                 try:
                     self.node_of(name).stop_module(name, min(2.0, left))
                 except Exception as exc:
                     log.warning("stopping module %r: %s", name, exc)
+            # side by side: a node that does not answer holds up no other; this machine's
+            # own nodes (their processes and segments are here) are waited for
+            remote = [threading.Thread(target=self._shut_node, args=(name, node, deadline),
+                                       name=f"pb3a-shutdown-{name}", daemon=True)
+                      for name, node in reversed(list(self.nodes.items()))
+                      if name in self.remotes]
+            for thread in remote:
+                thread.start()
             for name, node in reversed(list(self.nodes.items())):
-                try:
-                    node.shutdown(max(0.5, deadline - time.monotonic()))
-                except Exception:
-                    log.exception("shutting node %s down", name)
+                if name not in self.remotes:
+                    self._shut_node(name, node, deadline)
+            for thread in remote:
+                thread.join(max(0.0, deadline - time.monotonic()) + 0.5)
         logging.getLogger().removeHandler(self.logbook)
+
+    @staticmethod
+    def _shut_node(name: str, node: Node, deadline: float) -> None:
+        """Shut node ``name`` down in what is left of the time; log what fails."""
+        try:
+            node.shutdown(max(0.5, deadline - time.monotonic()))
+        except Exception:
+            log.exception("shutting node %s down", name)
 
 
 def _link_table(links: dict[str, FlatLink], modules: dict[str, ModuleStats],

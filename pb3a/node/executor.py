@@ -223,7 +223,8 @@ class Executor:
                     self._budgets.pop(key, None)
 
     # -- modules -------------------------------------------------------------
-    def add_module(self, spec: FlatModule, *, state: dict[str, Any] | None = None) -> None:
+    def add_module(self, spec: FlatModule, *,
+                   state: dict[str, Any] | bytes | None = None) -> None:
         """Instantiate a module in its worker (not started)."""
         key = self.place(spec)
         handle = self.workers.ensure(key, spec.node)
@@ -237,7 +238,7 @@ class Executor:
             self._vacate(key, spec.name)
             raise
 
-    def _instantiate(self, record: ModuleRecord, state: dict[str, Any]) -> None:
+    def _instantiate(self, record: ModuleRecord, state: dict[str, Any] | bytes) -> None:
         spec = record.spec
         self.call(record.worker, "add", name=spec.name, cls=record.blob, period=spec.period,
                   restart=spec.restart, state=state)

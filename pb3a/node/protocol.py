@@ -35,8 +35,10 @@ class Node(Protocol):
         """Stop the workers ``spawn_workers`` started for ``specs`` that host nothing:
         what was spawned for modules that are not coming after all."""
 
-    def add_module(self, spec: FlatModule, *, state: dict[str, Any] | None = None) -> None:
-        """Instantiate a module in its worker (not started); ``state`` overrides the spec's."""
+    def add_module(self, spec: FlatModule, *,
+                   state: dict[str, Any] | bytes | None = None) -> None:
+        """Instantiate a module in its worker (not started); ``state`` overrides the spec's
+        (as bytes: a checkpoint, unpickled in the worker, where the module's code is)."""
 
     def start_modules(self, names: list[str]) -> None:
         """Run ``setup`` and start the modules, in order."""

@@ -16,6 +16,7 @@ before its modules are started anywhere else.
 from __future__ import annotations
 
 import contextlib
+import math
 import threading
 import time
 from typing import TYPE_CHECKING, Any
@@ -41,6 +42,10 @@ MARGIN_S = 5.0             # beyond an operation's own deadline: the way there a
 HEARTBEAT_S = 0.25         # how often the launcher's side pings the executor
 LEASE_S = 1.5              # an executor that hears no heartbeat this long fences itself
 LOSS_S = 2.0               # no answer for this long: the node is lost (reported within 3 s)
+# A heartbeat renews the lease only while the node's answers are this fresh: renewals
+# stop once they do, so the lease runs out by the time the node is declared lost, even
+# when heartbeats still reach it but its answers do not (a saturated uplink)
+RENEW_WITHIN_S = LOSS_S - LEASE_S
 
 
 class RemoteNode:
@@ -62,6 +67,7 @@ class RemoteNode:
         self._closed = threading.Event()
         self._heart: threading.Thread | None = None
         self._domain: str | None = None
+        self._ends_by = math.inf            # (monotonic) no call waits past it: see wind_down
         # where the other nodes reach its executor and publications
         host = advertise or address.removeprefix("tcp://").rpartition(":")[0]
         try:
@@ -102,7 +108,7 @@ class RemoteNode:
                 f"[nodes.{name}] advertise an address of that machine which this one and the "
                 "other nodes reach, and open its ports to them")
         self.address = executor
-        self._answered = time.monotonic()
+        self._answered = self.renewed_at = time.monotonic()     # (bind renewed the lease)
         self._heart = threading.Thread(target=self._beat, name=f"pb3a-heartbeat-{name}",
                                        daemon=True)
         self._heart.start()
@@ -112,7 +118,17 @@ class RemoteNode:
         that, plus ``MARGIN_S`` for the way there and back."""
         if self.lost or self.client is None:
             raise RuntimeFailure(f"node {self.name} is lost")
-        return self.client.call("executor", within, method=op, args=args, kwargs=kwargs)
+        return self.client.call("executor", self._within(within), method=op, args=args,
+                                kwargs=kwargs)
+
+    def wind_down(self, deadline: float) -> None:
+        """No call to this node waits past ``deadline`` (monotonic) from now on: the
+        system is being shut down within a time, and a node that does not answer fences
+        itself once the heartbeats stop."""
+        self._ends_by = deadline
+
+    def _within(self, seconds: float) -> float:
+        return max(0.0, min(seconds, self._ends_by - time.monotonic()))
 
     # -- Node ------------------------------------------------------------------
     def expect(self, specs: list[FlatModule]) -> None:
@@ -124,7 +140,8 @@ class RemoteNode:
     def release_workers(self, specs: list[FlatModule]) -> None:
         self._forward("release_workers", specs)
 
-    def add_module(self, spec: FlatModule, *, state: dict[str, Any] | None = None) -> None:
+    def add_module(self, spec: FlatModule, *,
+                   state: dict[str, Any] | bytes | None = None) -> None:
         self._forward("add_module", spec, state=state)
 
     def start_modules(self, names: list[str]) -> None:
@@ -208,12 +225,22 @@ class RemoteNode:
 
     # -- what only a remote node has ------------------------------------------------
     def _beat(self) -> None:
-        """Renew the executor's lease every ``HEARTBEAT_S``; note when it answered."""
+        """Every ``HEARTBEAT_S``, renew the executor's lease while its answers are
+        fresh (``RENEW_WITHIN_S``), else only ping it; note when it answered."""
         assert self.client is not None
         while not self._closed.wait(HEARTBEAT_S) and not self.lost:
-            rtt = self.client.ping(2 * HEARTBEAT_S, op="lease")
+            renew = self.silent_s() < RENEW_WITHIN_S
+            if renew:
+                self.renewed_at = time.monotonic()
+            rtt = self.client.ping(2 * HEARTBEAT_S, op="lease" if renew else "ping")
             if rtt is not None:
                 self.rtt, self._answered = rtt, time.monotonic()
+
+    def fenced_by(self) -> float:
+        """When (monotonic) the executor has fenced itself at the latest, its last
+        renewal taken as it was sent (a heartbeat's way there: ``HEARTBEAT_S``), if the
+        launcher has stopped renewing: its modules may run elsewhere from then on."""
+        return self.renewed_at + LEASE_S + HEARTBEAT_S
 
     def silent_s(self) -> float:
         """Seconds since the executor last answered a heartbeat."""
@@ -250,8 +277,9 @@ class RemoteNode:
         """Have the controller stop the executor (modules stop in reverse order), or kill
         it if the node was lost; the controller stays reachable."""
         with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
-            self.controller.call("stop_executor", timeout + 5.0, config=self.config,
-                                 force=self.lost)
+            self.controller.request("stop_executor", {"config": self.config, "force": self.lost,
+                                                      "timeout": timeout},
+                                    self._within(timeout + 5.0))
 
     def shutdown(self, timeout: float = 10.0) -> None:
         """Stop the executor, then close the connections."""

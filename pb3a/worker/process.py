@@ -258,9 +258,11 @@ class Worker:
 
     # -- requests from the executor ----------------------------------------
     def op_add(self, name: str, cls: bytes, period: float | None, restart: str,
-               state: dict[str, Any]) -> None:
+               state: dict[str, Any] | bytes) -> None:
         module = cloudpickle.loads(cls)()
         self._give_runtime(name, module)
+        if isinstance(state, bytes):        # a checkpoint, read where the module's code is
+            state = cloudpickle.loads(state)
         if state:
             module.set_state(state)
         actor = ModuleActor(name, module, self._schedule, period, on_error=self._report_error)
