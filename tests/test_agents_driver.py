@@ -53,6 +53,22 @@ def ops(robot: type[FakeRobotServer]) -> list[str]:
     return [op for op, _ in robot.requests]
 
 
+def failing(monkeypatch, error: type[Exception], record: bool = False) -> list[bool]:
+    """Make the fake robot raise ``error`` for every request while the flag returned is
+    up (it is at first: ``flag[0] = False`` lets requests through); with ``record``, the
+    failed requests are recorded too."""
+    answer, down = FakeRobotServer.call, [True]
+
+    def call(self, op: str, timeout: float, **args: Any) -> Any:
+        if down[0]:
+            if record:
+                FakeRobotServer.requests.append((op, args))
+            raise error(f"{self.address} did not answer {op!r}")
+        return answer(self, op, timeout, **args)
+    monkeypatch.setattr(FakeRobotServer, "call", call)
+    return down
+
+
 def test_a_command_drives_the_robot_as_it_comes_and_each_period_writes_the_readings(
         robot) -> None:
     harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400"})
@@ -155,14 +171,7 @@ def test_commands_to_a_silent_robot_wait_for_the_next_period(robot, monkeypatch)
     the robot server dead and a command every period, the driver's lock was never
     free, and the move away from that robot failed ("busy in a call for 5 s")."""
     harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400"})
-    answer, down = FakeRobotServer.call, [True]
-
-    def gone(self, op: str, timeout: float, **args: Any) -> Any:
-        if down[0]:
-            robot.requests.append((op, args))
-            raise RuntimeError(f"{self.address} did not answer {op!r}")
-        return answer(self, op, timeout, **args)
-    monkeypatch.setattr(FakeRobotServer, "call", gone)
+    down = failing(monkeypatch, RuntimeError, record=True)
     harness.step()                                  # the robot is silent
     harness.feed("command", np.array([0.1, 0.0]))
     harness.feed("command", np.array([0.3, 0.0]))
@@ -181,13 +190,7 @@ def test_a_request_the_runtime_cancels_is_not_taken_for_a_silent_robot(robot,
     period, and a few in a row made a false robot_link failure."""
     harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400",
                                                 "silent_after": 1})
-    answer, cancel = FakeRobotServer.call, [True]
-
-    def paused(self, op: str, timeout: float, **args: Any) -> Any:
-        if cancel[0]:
-            raise RuntimeCancelled(f"request {op!r} cancelled: the module is being paused")
-        return answer(self, op, timeout, **args)
-    monkeypatch.setattr(FakeRobotServer, "call", paused)
+    cancel = failing(monkeypatch, RuntimeCancelled)      # (a pause, say)
     harness.step()
     harness.feed("command", np.array([0.1, 0.0]))
     module = harness.module
@@ -228,13 +231,7 @@ def test_a_robot_that_stops_answering_is_said_once_per_onset_on_failure(
     written, so nothing downstream (the monitor samples readings) ever heard of it."""
     harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400",
                                                 "silent_after": 3})
-    answer, down = FakeRobotServer.call, [True]
-
-    def gone(self, op: str, timeout: float, **args: Any) -> Any:
-        if down[0]:
-            raise RuntimeError(f"{self.address} did not answer {op!r}")
-        return answer(self, op, timeout, **args)
-    monkeypatch.setattr(FakeRobotServer, "call", gone)
+    down = failing(monkeypatch, RuntimeError)
     harness.step(5)
     failure, = harness.written["failure"]
     assert failure["fault"] == "robot_link" and failure["detail"]["periods"] == 3

@@ -115,18 +115,23 @@ def test_modules_of_a_lost_node_fail_over_within_1_s_and_the_node_rejoins(
         (name, detail["destination"]) for name, detail in where.items()}
 
 
+def _relayed_over_c(name: str, b: str, c: str) -> System:
+    """src -> relay -> near: src and near on a, the relay on b (at ``b``), failing over
+    to c (at ``c``), then a."""
+    system = System(name).node("a").node("b", address=b).node("c", address=c)
+    system.add("src", Counter, node="a", period=0.001)
+    system.add("relay", Relay, node="b", restart="fresh", fallback=["c", "a"])
+    system.add("near", Collector, node="a")
+    system.link("src.out", "relay.x")
+    system.link("relay.out", "near.x")
+    return system
+
+
 def test_a_fenced_executors_word_is_refused_and_placement_follows_admission() -> None:
     b = NodeController("b", ClusterKey.load(), limits=Limits(max_cpu_percent=101.0))
     c = NodeController("c", ClusterKey.load(), limits=Limits(max_cpu_percent=101.0))
     try:
-        system = System("fenced").node("a").node("b", address=b.address)
-        system.node("c", address=c.address)
-        system.add("src", Counter, node="a", period=0.001)
-        system.add("relay", Relay, node="b", restart="fresh", fallback=["c", "a"])
-        system.add("near", Collector, node="a")
-        system.link("src.out", "relay.x")
-        system.link("relay.out", "near.x")
-        with system.launch() as run:
+        with _relayed_over_c("fenced", b.address, c.address).launch() as run:
             launcher = run._launcher
             eventually(lambda: run.state("near")["received"] > 10, timeout=30,
                        what="values through b")
@@ -259,14 +264,7 @@ def test_two_nodes_lost_at_once_fail_over_to_the_node_that_lives(daemons) -> Non
     watchdog's thread, which alone could declare c lost; then the relay was dropped
     and its next fallback never tried."""
     b, c = daemons["b"], daemons["c"]
-    system = System("two-lost").node("a").node("b", address=b.address)
-    system.node("c", address=c.address)
-    system.add("src", Counter, node="a", period=0.001)
-    system.add("relay", Relay, node="b", restart="fresh", fallback=["c", "a"])
-    system.add("near", Collector, node="a")
-    system.link("src.out", "relay.x")
-    system.link("relay.out", "near.x")
-    with system.launch() as run:
+    with _relayed_over_c("two-lost", b.address, c.address).launch() as run:
         eventually(lambda: run.state("near")["received"] > 100, timeout=30,
                    what="values through the relay on b")
         for daemon in (b, c):
