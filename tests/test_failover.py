@@ -7,17 +7,20 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import cloudpickle
+import psutil
 import pytest
 from conftest import Daemon, eventually
 from sample_modules import (
     Collector,
     Counter,
     Join,
+    Journal,
     Last,
     MoveLog,
     Relay,
@@ -309,6 +312,59 @@ def test_a_node_that_hears_the_heartbeats_but_whose_answers_are_lost_stops_befor
         < min(float(at) for pid, at in steps if pid == new)
 
 
+@pytest.mark.parametrize("lost", ["request", "answer"])
+def test_a_slow_node_that_loses_one_heartbeat_keeps_its_lease(daemons, lost: str) -> None:
+    """With heartbeats renewing the lease only while the answers were fresh, a 0.3 s
+    round trip and one heartbeat (or its answer) lost made the next one a mere ping, and
+    the node fenced itself: declared lost, its module failed over. Two heartbeats, each
+    with its own wait, keep the pace whatever befalls one."""
+    b = daemons["b"]
+    system = System("slow-link").node("a").node("b", address=b.address)
+    system.add("far", Counter, node="b", restart="fresh", fallback=["a"])
+    with system.launch() as run:
+        eventually(lambda: run.state("far")["count"] > 5, timeout=30, what="steps on b")
+        launcher, once = run._launcher, threading.Event()
+        remote = launcher.remotes["b"]
+        ping = remote.client.ping
+
+        def over_a_slow_link(timeout: float, op: str = "ping") -> float | None:
+            if once.is_set():                       # this one is lost
+                once.clear()
+                if lost == "answer":
+                    ping(timeout, op)               # (it arrives; its answer does not)
+                time.sleep(timeout)
+                return None
+            time.sleep(0.15)                        # 0.3 s there and back
+            rtt = ping(timeout, op)
+            time.sleep(0.15)
+            return None if rtt is None else rtt + 0.3
+        remote.client.ping = over_a_slow_link
+        assert not launcher.wait_health("b", up=False, timeout=2.0)     # slow, not lost
+        once.set()
+        assert not launcher.wait_health("b", up=False, timeout=4.0)
+        assert not _events(run, "node_lost") and run.where("far") == "b"
+
+
+def test_a_slow_node_that_missed_two_heartbeats_still_takes_a_failing_over_module(
+        daemons) -> None:
+    """Placement passed over every node silent for 0.5 s (two heartbeats): a node with a
+    slow link often is, and a module whose only fallback it was, was dropped. Only a
+    node silent half the loss timeout is passed over now."""
+    b, c = daemons["b"], daemons["c"]
+    system = System("slow-fallback").node("a").node("b", address=b.address)
+    system.node("c", address=c.address)
+    system.add("far", Counter, node="b", restart="fresh", fallback=["c"])
+    with system.launch() as run:
+        eventually(lambda: run.state("far")["count"] > 5, timeout=30, what="steps on b")
+        slow = run._launcher.remotes["c"]
+        answered = slow.silent_s
+        slow.silent_s = lambda: max(0.7, answered())     # its answers 0.7 s old, always
+        os.kill(b.executor_pid(), signal.SIGKILL)
+        moved = eventually(lambda: _events(run, "module_failed_over"), timeout=15,
+                           what="the failover")
+    assert moved[0].detail["destination"] == "c"
+
+
 def test_a_checkpoint_only_the_robots_can_read_still_fails_over(tmp_path: Path) -> None:
     """The launcher read the checkpoint itself: a state holding an object of a class
     installed on the robots only (as docs/deploy.md allows) failed the whole failover
@@ -384,3 +440,44 @@ def test_close_keeps_its_timeout_with_machines_that_do_not_answer(daemons) -> No
         for pid in hung:
             os.kill(pid, signal.SIGCONT)
     assert took < 4.0, took
+
+
+def test_a_close_out_of_time_still_stops_a_remote_node_s_executor(daemons,
+                                                                    tmp_path: Path) -> None:
+    """A slow teardown spent close's time; the executor's stop then went with no time
+    to wait, and a request with none was never sent: the executor ran on, and the same
+    system launched again at once found node b working for the old launch."""
+    b = daemons["b"]
+
+    def system() -> System:
+        made = System("again").node("a").node("b", address=b.address)
+        made.add("slow", Journal, node="b", state={"path": str(tmp_path / "journal"),
+                                                   "teardown_s": 2.5})
+        return made
+    run = system().launch()
+    executor = psutil.Process(b.executor_pid())
+    run.close(timeout=2.0)
+    executor.wait(5.0)                  # psutil.TimeoutExpired if it ran on
+    with system().launch() as again:
+        assert again.where("slow") == "b"
+
+
+def test_the_watchdog_goes_on_after_a_look_that_fails(daemons, monkeypatch) -> None:
+    """A look that raised (another node's failover thread changed the specs while the
+    loss of a node read them) ended the watchdog: no node was declared lost any more."""
+    b = daemons["b"]
+    system = System("watched").node("a").node("b", address=b.address)
+    system.add("far", Counter, node="b")
+    with system.launch() as run:
+        launcher, looks = run._launcher, []
+        look = launcher._look
+
+        def failing_once(next_rejoin: float) -> float:
+            looks.append(next_rejoin)
+            if len(looks) == 1:
+                raise RuntimeError("dictionary changed size during iteration")
+            return look(next_rejoin)
+        monkeypatch.setattr(launcher, "_look", failing_once)
+        eventually(lambda: len(looks) > 1, what="a look after the one that failed")
+        os.kill(b.executor_pid(), signal.SIGKILL)
+        assert launcher.wait_health("b", up=False, timeout=10)

@@ -486,7 +486,8 @@ def test_the_catalog_leaves_out_a_file_whose_assignment_does_a_script_s_work(
         tmp_path, monkeypatch) -> None:
     """Any assignment counted as defining a constant, so opening the module browser ran
     ``results = run_experiment()`` and wrote the file of ``done = path.write_text(...)``.
-    A constant a library builds is still fine."""
+    A constant a library or a helper of the file builds is still fine (a first version
+    of the rule left out ``KERNEL = _gaussian(5)`` and ``platform.system()``)."""
     project = tmp_path / "project_scripts"
     project.mkdir()
     head = "from pathlib import Path\nfrom pb3a import Module\n\n"
@@ -497,8 +498,10 @@ def test_the_catalog_leaves_out_a_file_whose_assignment_does_a_script_s_work(
         head + "done = Path(__file__).with_name('RAN').write_text('x')\n\n"
         "class Writer(Module):\n    pass\n")
     (project / "constants.py").write_text(
-        head + "import logging\nLOG = logging.getLogger(__name__)\n"
-        "CONFIG = Path(__file__).with_name('x.toml')\n\nclass Steady(Module):\n    pass\n")
+        head + "import logging\nimport platform\nLOG = logging.getLogger(__name__)\n"
+        "CONFIG = Path(__file__).with_name('x.toml')\nSYSTEM = platform.system()\n\n"
+        "def _gaussian(n):\n    return [1.0] * n\n\nKERNEL = _gaussian(5)\n\n"
+        "class Steady(Module):\n    pass\n")
     (project / "lab.toml").write_text('name = "lab"\n')
     monkeypatch.setattr("sys.path", list(sys.path))
     listed = Catalog(Document.open(project / "lab.toml")).classes()

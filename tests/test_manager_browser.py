@@ -617,6 +617,18 @@ def test_two_quick_edits_in_the_editor_are_both_saved(tmp_path: Path) -> None:
         assert outcome == ["fulfilled", "fulfilled"]
         modules = document_of(manager)["system"]["modules"]
         assert modules["ticker"]["period"] == 0.5 and modules["scale"]["state"] == {"gain": 7.5}
+        # a save the server refuses (TOML holds no null in an array) fails every edit it
+        # carried, not only the first (a later one was told saved), and the page reads
+        # the document again
+        outcome = page.evaluate("""async () => {
+            const document = window.pb3aManager.document;
+            const first = document.setState("scale", {weights: [1, null]});
+            const second = document.setPeriod("ticker", 0.25);
+            const told = (await Promise.allSettled([first, second])).map((o) => o.status);
+            return [told, document.system.modules.ticker.period];
+        }""")
+        assert outcome == [["rejected", "rejected"], 0.5]
+        assert document_of(manager)["system"]["modules"]["ticker"]["period"] == 0.5
 
 
 def test_modules_grouped_into_a_macro_open_close_place_again_and_take_overrides(

@@ -56,24 +56,37 @@ def test_an_unchanged_document_saves_byte_for_byte_and_an_edit_keeps_the_comment
 
 def test_values_the_page_cannot_hold_exactly_come_back_unchanged(tmp_path: Path) -> None:
     """The page holds the document as JSON: a date in a state made GET /api/document a
-    500, and a whole number beyond 2**53, read by the browser as a double, was written
-    back rounded (1700000000123456789 became ...800) though nobody touched it."""
+    500; a whole number beyond 2**53, read by the browser as a double, was written back
+    rounded (1700000000123456789 became ...800) though nobody touched it, also when the
+    list it is in was edited; an edited date was saved as a string."""
+    big = 1700000000123456789
     original = ('name = "stamped"\n\n[modules.stamp]\nclass = "examples.pipeline:Scale"\n'
-                "state = { started = 2024-05-01T12:00:00Z, count = 1700000000123456789 }\n")
+                f"state = {{ started = 2024-05-01T12:00:00Z, count = {big}, ids = [{big}, 5], "
+                "days = [2024-01-01, 2024-02-01] }\n")
     path = tmp_path / "stamped.toml"
     path.write_text(original)
+
+    def as_the_browser_holds(value: object) -> object:      # its numbers are doubles
+        if isinstance(value, list):
+            return [as_the_browser_holds(item) for item in value]
+        return int(float(value)) if isinstance(value, int) and value > 2 ** 53 else value
+
     with manager_client(Session(Document.open(path))) as client:
         document = client.get("/api/document")
         assert document.status_code == 200, document.text
         system = document.json()["system"]
         state = system["modules"]["stamp"]["state"]
         assert state["started"] == "2024-05-01T12:00:00+00:00"
-        state["count"] = int(float(state["count"]))          # as the browser holds it
+        state.update({key: as_the_browser_holds(state[key]) for key in ("count", "ids")})
         assert client.put("/api/document", json={"system": system}).status_code == 200
         assert client.get("/api/document/toml").text == original
-        state["count"] = 5                                     # an edit is still an edit
+        state["ids"][1], state["days"][1] = 6, "2024-03-01"          # edits in the page
         client.put("/api/document", json={"system": system})
-        assert "count = 5 }" in client.get("/api/document/toml").text
+        text = client.get("/api/document/toml").text
+        assert f"ids = [{big}, 6]" in text and "days = [2024-01-01, 2024-03-01]" in text
+        state["count"] = big + 22                                    # a script's, exact
+        client.put("/api/document", json={"system": system})
+        assert f"count = {big + 22}," in client.get("/api/document/toml").text
 
 
 def test_problems_and_drawn_links_use_the_words_of_pb3a_check(pipeline: Path) -> None:

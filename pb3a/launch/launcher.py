@@ -341,6 +341,12 @@ class Launcher:
         remote = self.remotes.get(name)
         return remote is not None and remote.silent_s() > 2 * HEARTBEAT_S
 
+    def _going(self, name: str) -> bool:
+        """Whether remote node ``name`` has been silent half the time that makes it lost:
+        no place for a module failing over (a slow node that missed two heartbeats is)."""
+        remote = self.remotes.get(name)
+        return remote is not None and remote.silent_s() > LOSS_S / 2
+
     def node_table(self) -> dict[str, NodeStats]:
         """Every node's health as the heartbeats see it."""
         return {name: NodeStats(health["up"], health["rtt"], health["address"],
@@ -355,20 +361,28 @@ class Launcher:
         whether they are back. (Nothing here waits for a node that may be gone.)"""
         next_rejoin = time.monotonic()
         while not self._stopping.wait(WATCH_S):
-            for name, node in list(self.remotes.items()):
-                if self.health[name]["up"]:
-                    self.health[name]["rtt"] = node.rtt
-                    if node.silent_s() > LOSS_S and not self._stopping.is_set():
-                        self._lose(name, node.silent_s())
-            now = time.monotonic()
-            if now >= next_rejoin:
-                next_rejoin = now + REJOIN_S
-                for name in list(self.remotes):
-                    if not self.health[name]["up"] and name not in self._rejoining \
-                            and name not in self._failing_over:     # (its modules first)
-                        self._rejoining.add(name)
-                        threading.Thread(target=self._rejoin, args=(name,), daemon=True,
-                                         name=f"pb3a-rejoin-{name}").start()
+            try:
+                next_rejoin = self._look(next_rejoin)
+            except Exception:               # (the watchdog alone sees nodes go: it goes on)
+                log.exception("the watchdog's look at the nodes failed")
+
+    def _look(self, next_rejoin: float) -> float:
+        """One look of the watchdog; when to look for lost nodes' return next."""
+        for name, node in list(self.remotes.items()):
+            if self.health[name]["up"]:
+                self.health[name]["rtt"] = node.rtt
+                if node.silent_s() > LOSS_S and not self._stopping.is_set():
+                    self._lose(name, node.silent_s())
+        now = time.monotonic()
+        if now < next_rejoin:
+            return next_rejoin
+        for name in list(self.remotes):
+            if not self.health[name]["up"] and name not in self._rejoining \
+                    and name not in self._failing_over:     # (its modules first)
+                self._rejoining.add(name)
+                threading.Thread(target=self._rejoin, args=(name,), daemon=True,
+                                 name=f"pb3a-rejoin-{name}").start()
+        return now + REJOIN_S
 
     def _keep_env(self) -> None:
         """Every ``ENV_S``: each remote node's controller health and log, and the env
@@ -399,7 +413,8 @@ class Launcher:
         with self.changed:
             self.health[node]["up"] = False
             self.changed.notify_all()
-        gone = sorted(name for name, spec in self.specs.items() if spec.node == node)
+        # (a copy: another node's failover thread may change the specs meanwhile)
+        gone = sorted(name for name, spec in list(self.specs.items()) if spec.node == node)
         self.failures.append(f"node {node} lost (no heartbeat for {silent_s:.1f} s); its "
                              f"modules {', '.join(gone) or '(none)'} were there")
         log.error(self.failures[-1])
@@ -539,7 +554,7 @@ class Launcher:
         loads = {}
         here = psutil.cpu_percent(interval=None)
         for name in self.nodes:
-            if name == lost or not self.health[name]["up"] or self._silent(name):
+            if name == lost or not self.health[name]["up"] or self._going(name):
                 continue                    # (a node gone too, not declared lost yet)
             cpu = here
             if name in self.remotes:

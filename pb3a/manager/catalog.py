@@ -52,9 +52,17 @@ _SAFE_STATEMENTS = (ast.Import, ast.ImportFrom, ast.ClassDef, ast.FunctionDef,
                     ast.AsyncFunctionDef, ast.Assign, ast.AnnAssign, ast.AugAssign, ast.Pass)
 REPR_CHARS = 200
 # calls that act on the world: an assignment of their result is a script's work
-_ACTIONS = frozenset({"write_text", "write_bytes", "mkdir", "makedirs", "unlink", "rmdir",
-                      "rmtree", "touch", "run", "call", "check_call", "check_output", "Popen",
-                      "system", "launch", "start", "serve", "main", "connect", "urlopen"})
+# calls that act on the world (by their qualified name; or, for methods, by their own
+# name, whatever they are called on): an assignment of what one returns, directly or
+# through a function of the file, is a script's work
+_ACTIONS = frozenset({
+    "subprocess.run", "subprocess.call", "subprocess.check_call", "subprocess.check_output",
+    "subprocess.Popen", "os.system", "os.remove", "os.unlink", "os.mkdir", "os.makedirs",
+    "os.rmdir", "os.rename", "os.replace", "shutil.rmtree", "shutil.copy", "shutil.copyfile",
+    "shutil.move", "urllib.request.urlopen", "requests.get", "requests.post",
+    "socket.create_connection"})
+_ACTING_METHODS = frozenset({"write_text", "write_bytes", "mkdir", "unlink", "rmdir",
+                             "touch", "launch", "serve_forever"})
 
 
 class Catalog:
@@ -246,10 +254,11 @@ def _defines_classes(source: bytes, where: str, problems: list[str]) -> bool:
     has_class = any(isinstance(node, ast.ClassDef) and node.bases for node in tree.body)
     if not has_class:
         return False
-    own = {node.name for node in tree.body
-           if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))}
+    own: dict[str, ast.AST] = {node.name: node for node in tree.body
+                               if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))}
+    imported = _imported(tree)
     for node in tree.body:
-        if (isinstance(node, _SAFE_STATEMENTS) and not _does_work(node, own)) \
+        if (isinstance(node, _SAFE_STATEMENTS) and not _does_work(node, own, imported)) \
                 or _docstring(node) or _guarded(node) or _optional_import(node):
             continue
         problems.append(f"{where}: not imported: line {node.lineno} runs code at import "
@@ -258,18 +267,55 @@ def _defines_classes(source: bytes, where: str, problems: list[str]) -> bool:
     return True
 
 
-def _does_work(node: ast.stmt, own: set[str]) -> bool:
-    """Whether an assignment's value is a call that does a script's work: of a function
-    the file defines (``results = run()``) or of one that acts on the world (writes a
-    file, starts a process or a system). A value built by a library (``np.array(...)``,
-    ``Path(__file__).with_name(...)``, ``logging.getLogger(...)``) defines a constant."""
+def _does_work(node: ast.stmt, own: dict[str, ast.AST], imported: dict[str, str]) -> bool:
+    """Whether an assignment's value is a call that does a script's work: one that acts
+    on the world (``_ACTIONS``: writes a file, starts a process or a system), directly
+    or through the file's own functions (``results = run_experiment()``). A value built
+    by a library or a helper of the file (``np.array(...)``, ``_gaussian(5)``,
+    ``Path(__file__).with_name(...)``, ``platform.system()``) defines a constant."""
     value = getattr(node, "value", None)
-    if not isinstance(node, (ast.Assign, ast.AnnAssign, ast.AugAssign)) \
-            or not isinstance(value, ast.Call):
-        return False
-    func = value.func
-    name = func.attr if isinstance(func, ast.Attribute) else getattr(func, "id", "")
-    return (isinstance(func, ast.Name) and name in own) or name in _ACTIONS
+    return isinstance(node, (ast.Assign, ast.AnnAssign, ast.AugAssign)) \
+        and isinstance(value, ast.Call) and _acts(value, own, imported, set())
+
+
+def _acts(call: ast.Call, own: dict[str, ast.AST], imported: dict[str, str],
+          seen: set[str]) -> bool:
+    func = call.func
+    if isinstance(func, ast.Attribute) and func.attr in _ACTING_METHODS:
+        return True
+    name = _dotted(func, imported)
+    if name in _ACTIONS:
+        return True
+    if isinstance(func, ast.Name) and func.id in own and func.id not in seen:
+        seen.add(func.id)
+        return any(_acts(inner, own, imported, seen) for inner in ast.walk(own[func.id])
+                   if isinstance(inner, ast.Call))
+    return False
+
+
+def _dotted(func: ast.expr, imported: dict[str, str]) -> str:
+    """``subprocess.run`` for ``sp.run`` (``import subprocess as sp``) or ``run`` (``from
+    subprocess import run``); "" for what is not a plain name or attribute chain."""
+    if isinstance(func, ast.Name):
+        return imported.get(func.id, func.id)
+    if isinstance(func, ast.Attribute):
+        head = _dotted(func.value, imported)
+        return f"{head}.{func.attr}" if head else ""
+    return ""
+
+
+def _imported(tree: ast.Module) -> dict[str, str]:
+    """Each name the file's imports bind, to what it names (``sp`` -> ``subprocess``)."""
+    names = {}
+    for node in tree.body:
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                names[alias.asname or alias.name.partition(".")[0]] = \
+                    alias.name if alias.asname else alias.name.partition(".")[0]
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            for alias in node.names:
+                names[alias.asname or alias.name] = f"{node.module}.{alias.name}"
+    return names
 
 
 def _docstring(node: ast.stmt) -> bool:

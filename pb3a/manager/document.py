@@ -10,8 +10,10 @@ and compiled; a half-built system is kept, its problems listed.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import datetime
+import decimal
 import json
 import threading
 import tomllib
@@ -193,8 +195,11 @@ def _merge(container: Any, new: dict[str, Any], where: tuple[str, ...]) -> None:
             continue
         place = (*where, key)
         old = container.get(key)
-        if old is not None and _unchanged(old, value):
-            continue
+        if old is not None:
+            held = _plain(old)
+            value = _resolved(held, value)
+            if value == held:
+                continue
         if isinstance(value, dict) and isinstance(old, (Table, InlineTable)):
             _merge(old, value, place)
         elif (isinstance(value, list) and isinstance(old, AoT)
@@ -207,7 +212,7 @@ def _merge(container: Any, new: dict[str, Any], where: tuple[str, ...]) -> None:
 def _merge_array(old: AoT, new: list[dict[str, Any]], where: tuple[str, ...]) -> None:
     """An array of tables entry by entry (links keep their comments when others change)."""
     for index, value in enumerate(new[:len(old)]):
-        if not _unchanged(old[index], value):
+        if _resolved(_plain(old[index]), value) != _plain(old[index]):
             _merge(old[index], value, where)
     while len(old) > len(new):
         del old[len(old) - 1]
@@ -264,17 +269,29 @@ def _plain(item: Any) -> Any:
     return item.unwrap() if hasattr(item, "unwrap") else item
 
 
-def _unchanged(old: Any, new: Any) -> bool:
-    """Whether ``new`` (from the page) says what the document's item ``old`` says. The
-    page holds the document as JSON: a date as its text, a whole number beyond 2**53
-    as the nearest double (JavaScript's numbers), so an entry it did not touch comes
-    back so, and must keep its value (1700000000123456789 was rewritten ...800)."""
-    held = _plain(old)
-    return held == new or _as_shown(held) == _as_shown(new)
+def _resolved(held: Any, new: Any) -> Any:
+    """What to store for ``new`` (from the page) where the document holds ``held``. The
+    page holds the document as JSON: a date as its text, a whole number beyond 2**53 as
+    the nearest double (JavaScript's numbers). So ``held`` itself where ``new`` says
+    what it says as the page shows it, item by item in a list or table (1700000000123456789
+    was saved ...800, though nobody touched it); a date again where ``held`` was one and
+    ``new`` is such text (an edited date was saved as a string); else ``new``."""
+    if _as_shown(held) == _as_sent(new):
+        return held
+    if isinstance(held, list) and isinstance(new, list):
+        return [_resolved(held[index], item) if index < len(held) else item
+                for index, item in enumerate(new)]
+    if isinstance(held, dict) and isinstance(new, dict):
+        return {key: _resolved(held[key], item) if key in held else item
+                for key, item in new.items()}
+    if isinstance(held, (datetime.date, datetime.time)) and isinstance(new, str):
+        with contextlib.suppress(ValueError):
+            return type(held).fromisoformat(new)
+    return new
 
 
 def _as_shown(value: Any) -> Any:
-    """``value`` as the page holds it (see ``_unchanged``)."""
+    """``value`` as the page holds it (see ``_resolved``)."""
     if isinstance(value, dict):
         return {key: _as_shown(item) for key, item in value.items()}
     if isinstance(value, list):
@@ -282,6 +299,20 @@ def _as_shown(value: Any) -> Any:
     if isinstance(value, int) and not isinstance(value, bool) and abs(value) > 2 ** 53:
         return float(value)
     return _dates_as_text(value)
+
+
+def _as_sent(value: Any) -> Any:
+    """``value`` (from the page) as a double where it is how a browser writes one: the
+    shortest decimal of that double. Any other whole number is a script's, exact (an
+    exact change of a big number is an edit, not the page's rounding)."""
+    if isinstance(value, dict):
+        return {key: _as_sent(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_as_sent(item) for item in value]
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) > 2 ** 53:
+        double = float(value)
+        return double if int(decimal.Decimal(repr(double))) == value else value
+    return value
 
 
 def _dates_as_text(value: Any) -> Any:

@@ -40,12 +40,14 @@ START_TIMEOUT = 60.0       # an executor process imports numpy and friends first
 CALL_TIMEOUT = 60.0        # the executor's own requests to its workers have deadlines
 MARGIN_S = 5.0             # beyond an operation's own deadline: the way there and back
 HEARTBEAT_S = 0.25         # how often the launcher's side pings the executor
-LEASE_S = 1.5              # an executor that hears no heartbeat this long fences itself
+LEASE_S = 1.25             # an executor that hears no renewal this long fences itself
 LOSS_S = 2.0               # no answer for this long: the node is lost (reported within 3 s)
-# A heartbeat renews the lease only while the node's answers are this fresh: renewals
-# stop once they do, so the lease runs out by the time the node is declared lost, even
-# when heartbeats still reach it but its answers do not (a saturated uplink)
-RENEW_WITHIN_S = LOSS_S - LEASE_S
+# A heartbeat renews the lease only while the node's answers are this fresh (one or two
+# heartbeats lost: they still are), so renewals stop once its answers do, and the lease
+# runs out by the time the node is declared lost, even when heartbeats still reach it
+# but its answers do not (a saturated uplink): LOSS_S >= RENEW_WITHIN_S + LEASE_S
+RENEW_WITHIN_S = 0.75
+STOP_AT_LEAST_S = 0.5      # a shutdown out of time still asks the controller this long
 
 
 class RemoteNode:
@@ -65,7 +67,7 @@ class RemoteNode:
         self.rtt = float("nan")             # of the last answered heartbeat
         self._answered = time.monotonic()
         self._closed = threading.Event()
-        self._heart: threading.Thread | None = None
+        self._hearts: list[threading.Thread] = []
         self._domain: str | None = None
         self._ends_by = math.inf            # (monotonic) no call waits past it: see wind_down
         # where the other nodes reach its executor and publications
@@ -109,9 +111,11 @@ class RemoteNode:
                 "other nodes reach, and open its ports to them")
         self.address = executor
         self._answered = self.renewed_at = time.monotonic()     # (bind renewed the lease)
-        self._heart = threading.Thread(target=self._beat, name=f"pb3a-heartbeat-{name}",
-                                       daemon=True)
-        self._heart.start()
+        self._hearts = [threading.Thread(target=self._beat, args=(offset,), daemon=True,
+                                         name=f"pb3a-heartbeat-{name}")
+                        for offset in (HEARTBEAT_S, 2 * HEARTBEAT_S)]
+        for heart in self._hearts:
+            heart.start()
 
     def _forward(self, op: str, *args: Any, within: float = CALL_TIMEOUT, **kwargs: Any) -> Any:
         """Apply ``op`` at the executor; an operation with a deadline of its own gets
@@ -224,11 +228,15 @@ class RemoteNode:
         return self._forward("worker_pids")
 
     # -- what only a remote node has ------------------------------------------------
-    def _beat(self) -> None:
-        """Every ``HEARTBEAT_S``, renew the executor's lease while its answers are
-        fresh (``RENEW_WITHIN_S``), else only ping it; note when it answered."""
+    def _beat(self, offset: float) -> None:
+        """One of two heartbeats, each every ``2 * HEARTBEAT_S`` (that long for its
+        answer), the second ``HEARTBEAT_S`` after the first: a heartbeat lost, or its
+        answer, holds up no other. Each renews the executor's lease while its answers
+        are fresh (``RENEW_WITHIN_S``), else only pings it; an answer is noted."""
         assert self.client is not None
-        while not self._closed.wait(HEARTBEAT_S) and not self.lost:
+        due = time.monotonic() + offset
+        while not self._closed.wait(max(0.0, due - time.monotonic())) and not self.lost:
+            due += 2 * HEARTBEAT_S
             renew = self.silent_s() < RENEW_WITHIN_S
             if renew:
                 self.renewed_at = time.monotonic()
@@ -276,10 +284,12 @@ class RemoteNode:
     def stop_executor(self, timeout: float = 10.0) -> None:
         """Have the controller stop the executor (modules stop in reverse order), or kill
         it if the node was lost; the controller stays reachable."""
+        # (at least a moment: sent with no time at all, the request was never sent, and
+        # the executor ran on, its node taken for the next launch)
         with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
             self.controller.request("stop_executor", {"config": self.config, "force": self.lost,
                                                       "timeout": timeout},
-                                    self._within(timeout + 5.0))
+                                    max(STOP_AT_LEAST_S, self._within(timeout + 5.0)))
 
     def shutdown(self, timeout: float = 10.0) -> None:
         """Stop the executor, then close the connections."""
@@ -288,8 +298,8 @@ class RemoteNode:
 
     def close(self) -> None:
         self._closed.set()
-        if self._heart is not None:
-            self._heart.join(1.0)
+        for heart in self._hearts:
+            heart.join(1.0)
         self.controller.close()
         if self.client is not None:
             self.client.close()

@@ -48,7 +48,7 @@ export class EditedDocument {
     this.system.links ??= [];
     this.problems = answer.problems || [];
     this.revision = answer.revision;
-    for (const change of this.unsent) {
+    for (const {change} of this.unsent) {
       try {
         change(this.system);
       } catch (error) {
@@ -59,34 +59,42 @@ export class EditedDocument {
 
   /**
    * Change the document by `change(system)` (which throws, before changing anything,
-   * for a change it refuses) and put it back; answers what `change` answers. Puts go
-   * one after another, each with the revision the one before it answered. A change
-   * made while a put is on its way is made again on that put's answer, which replaces
-   * this copy: made on the copy alone, the answer dropped it, and the next put sent
-   * the document without it (two quick edits: the second lost, both "saved"). If
-   * another page changed the document meanwhile (412), the changes not yet put are
-   * dropped and the document read again, and the error says so.
+   * for a change it refuses) and put it back; answers what `change` answers once the
+   * put that sends it is answered, or that put's error. Puts go one after another,
+   * each with the revision the one before it answered, and each sends every change
+   * made since the one before. A change made while a put is on its way is made again
+   * on that put's answer, which replaces this copy: made on the copy alone, the answer
+   * dropped it, and the next put sent the document without it (two quick edits: the
+   * second lost, both "saved"). A put that fails fails the changes it sent; the
+   * document is read again and the changes not yet sent are made on it, except after
+   * a 412 (another page changed it meanwhile): they are dropped, failing with it.
    */
-  async edit(change) {
+  edit(change) {
     const result = change(this.system);
-    this.unsent.push(change);
-    const putting = (this.putting || Promise.resolve()).catch(() => {}).then(async () => {
-      const sending = this.unsent;
-      if (!sending.length) return;           // a put before this one sent it
-      this.unsent = [];
-      try {
-        this.take(await api.putDocument(this.system, this.revision));
-      } catch (error) {
-        if (error.status === 412) {
-          this.unsent = [];
-          await this.load();
-        }
-        throw error;
-      }
+    const sent = new Promise((resolve, reject) => {
+      this.unsent.push({change, resolve: () => resolve(result), reject});
     });
-    this.putting = putting;
-    await putting;
-    return result;
+    this.putting = (this.putting || Promise.resolve()).then(() => this.#send());
+    return sent;
+  }
+
+  /** The put of every change not sent yet (it settles them; it never rejects). */
+  async #send() {
+    const sending = this.unsent;
+    if (!sending.length) return;             // a put before this one sent them
+    this.unsent = [];
+    try {
+      this.take(await api.putDocument(this.system, this.revision));
+      for (const one of sending) one.resolve();
+    } catch (error) {
+      const failed = error.status === 412 ? [...sending, ...this.unsent.splice(0)] : sending;
+      try {
+        await this.load();                   // (what the server holds, the rest made again)
+      } catch (reading) {
+        console.warn("the document could not be read again", reading);
+      }
+      for (const one of failed) one.reject(error);
+    }
   }
 
   nodes() {
