@@ -54,6 +54,10 @@ class RuntimeCancelled(RuntimeFailure):
     return; nothing is wrong with what it asked (a device did not fail)."""
 
 
+MOST_SECONDS = 1e7       # the longest wait or period taken (about 116 days): clocks overflow
+                         # beyond (a step thread's deadline past 1e308 s ended it)
+
+
 def bounded_wait(timeout: float | None, what: str) -> float:
     """``timeout`` checked to be seconds, for a wait that must end, naming ``what``:
     ``TypeError`` for None (which a ``Condition`` takes for "forever") or what is not a

@@ -94,7 +94,10 @@ def test_every_command_answers_a_mistake_with_a_sentence(tmp_path, capsys, monke
                                   ["stress", "x.toml", "--load", "lots"],
                                   ["stress", "x.toml", "--load", "0:80@soon"],
                                   ["stress", "x.toml", "--cut-node", "b"],
-                                  ["stress", "x.toml", "--for", "-1"]])
+                                  ["stress", "x.toml", "--for", "-1"],
+                                  # (a step thread's clock overflowed: it died, "running")
+                                  ["add", "tcp://h:1", "t", "m:C", "--period", "1e308"],
+                                  ["manager", "x.toml", "--refresh", "1e308"]])
 def test_arguments_that_do_not_parse_get_the_usage(argv, capsys) -> None:
     with pytest.raises(SystemExit) as stopped:
         main(argv)

@@ -592,12 +592,19 @@ def test_bad_period_restart_and_state(tmp_path: Path) -> None:
         state = { anything = 1, whatever = 2 }
     """)
     assert len(problems) == 5
-    only(problems, "[modules.a]: period must be a non-negative number of seconds", "'fast'")
+    only(problems, "[modules.a]: period must be a number of seconds from 0 to 1e+07", "'fast'")
     only(problems, "[modules.a]: restart must be one of 'never', 'fresh', 'last-state'",
          "'always'")
     only(problems, "[modules.a]: examples.pipeline:Scale has no state 'gian'",
          "did you mean 'gain'", "its state is: gain")
-    only(problems, "[modules.b]: period must be a non-negative number", "got -1")
+    only(problems, "[modules.b]: period must be a number of seconds from 0", "got -1")
+    # (a period past 1e308 s overflowed the step thread's clock: it died, "running")
+    assert problems_of(tmp_path, """
+        [modules.t]
+        class = "examples.pipeline:Ticker"
+        period = 1e308
+    """) == ["sys.toml [modules.t]: period must be a number of seconds from 0 to 1e+07 (0 = "
+             "as fast as possible; leave it out to keep the class's), got 1e+308"]
     only(problems, "[modules.b]: state must be a table")
 
 
@@ -682,6 +689,16 @@ def test_bad_workers_and_node_values(tmp_path: Path) -> None:
     bad = problems_of(tmp_path, "workers = true\n" + TWO)
     assert bad == [("sys.toml: top-level workers must be a whole number >= 0 (0 = one process "
                     "per module, N = pack the node's modules into N processes), got True")]
+    # two nodes behind one controller: the run failed, the node "already working for"
+    # the launcher itself
+    shared = problems_of(tmp_path, """
+        [nodes.r1]
+        address = "tcp://10.0.0.7:7100"
+        [nodes.r2]
+        address = "tcp://10.0.0.7:7100"
+    """)
+    only(shared, "[nodes.r2]: address 'tcp://10.0.0.7:7100' is node r1's too",
+         "one node controller serves one node")
 
 
 def test_a_group_cannot_span_nodes(tmp_path: Path) -> None:
@@ -732,7 +749,7 @@ def test_python_systems_and_macros_name_themselves_in_problems() -> None:
     problems = system.check()
     assert len(problems) == 4
     only(problems, "system 'demo' [modules.t]: module 'examples.pipeline' has no class 'Tickr'")
-    only(problems, "system 'demo' [modules.s]: period must be a non-negative number")
+    only(problems, "system 'demo' [modules.s]: period must be a number of seconds from 0")
     only(problems, "macro parts_cfg:BadMacro [modules.s]: unknown key 'perod'")
     only(problems, "macro parts_cfg:BadMacro [[links]] #1 (s.y -> s.nope): module 's' "
          "(parts_cfg:Sink) has no port 'nope'")
@@ -762,10 +779,11 @@ def test_a_file_sets_the_default_timeout_of_operations(tmp_path: Path) -> None:
     plan = build_plan(load_toml(write(tmp_path, "timeout = 2.5\n" + TWO)))
     assert plan.timeout == 2.5
     assert build_plan(load_toml(write(tmp_path, TWO))).timeout is None
-    for written, shown in (("0", "0"), ("-1", "-1"), ("'soon'", "'soon'"), ("true", "True")):
+    for written, shown in (("0", "0"), ("-1", "-1"), ("'soon'", "'soon'"), ("true", "True"),
+                           ("1e308", "1e+308")):
         assert problems_of(tmp_path, f"timeout = {written}\n" + TWO) == [
-            "sys.toml: timeout must be a positive number of seconds (how long an operation "
-            f"on the running system may wait), got {shown}"]
+            "sys.toml: timeout must be a positive number of seconds, at most 1e+07 (how long "
+            f"an operation on the running system may wait), got {shown}"]
 
 
 def test_a_node_may_say_where_other_nodes_reach_it(tmp_path: Path) -> None:

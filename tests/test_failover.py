@@ -270,8 +270,8 @@ def test_two_nodes_lost_at_once_fail_over_to_the_node_that_lives(daemons) -> Non
     with _relayed_over_c("two-lost", b.address, c.address).launch() as run:
         eventually(lambda: run.state("near")["received"] > 100, timeout=30,
                    what="values through the relay on b")
-        for daemon in (b, c):
-            os.kill(daemon.executor_pid(), signal.SIGKILL)
+        os.kill(b.executor_pid(), signal.SIGKILL)
+        c.kill()                        # (its controller too: c cannot come back meanwhile)
         moved = eventually(lambda: _events(run, "module_failed_over"), timeout=20,
                            what="the relay failed over")
         received = run.state("near")["received"]
@@ -481,3 +481,43 @@ def test_the_watchdog_goes_on_after_a_look_that_fails(daemons, monkeypatch) -> N
         eventually(lambda: len(looks) > 1, what="a look after the one that failed")
         os.kill(b.executor_pid(), signal.SIGKILL)
         assert launcher.wait_health("b", up=False, timeout=10)
+
+
+def test_a_second_launch_of_a_running_configuration_is_refused_and_leaves_the_first(
+        daemons) -> None:
+    """The second launch, refused by node b ("already works for" the first launcher),
+    stopped b's executor on its way out, the first system's: b was lost to it, its
+    module gone for good."""
+    b = daemons["b"]
+    system = System("twice").node("a").node("b", address=b.address)
+    system.add("far", Counter, node="b")
+    with system.launch() as first:
+        eventually(lambda: first.state("far")["count"] > 5, timeout=30, what="steps on b")
+        with pytest.raises(RuntimeFailure, match="node b already works for"):
+            system.launch()
+        assert not first._launcher.wait_health("b", up=False, timeout=3.0)
+        count = first.state("far")["count"]
+        eventually(lambda: first.state("far")["count"] > count + 5, what="steps on b go on")
+
+
+def test_a_launch_interrupted_as_a_node_starts_its_executor_leaves_none(
+        daemons, monkeypatch) -> None:
+    """A Ctrl-C while the launcher bound the executor it had a node start left that
+    executor running, with no lease, until its controller stopped."""
+    b = daemons["b"]
+    call = ControlClient.call
+
+    def interrupted(self, op: str, timeout: float = 10.0, **args):
+        if op == "bind":
+            raise KeyboardInterrupt
+        return call(self, op, timeout, **args)
+    monkeypatch.setattr(ControlClient, "call", interrupted)
+    system = System("interrupted").node("a").node("b", address=b.address)
+    system.add("far", Counter, node="b")
+    with pytest.raises(KeyboardInterrupt):
+        system.launch()
+    monkeypatch.undo()
+    controller = psutil.Process(b.process.pid)
+    eventually(lambda: not [child for child in controller.children()
+                            if "resource_tracker" not in " ".join(child.cmdline())],
+               what="no executor under b's controller")

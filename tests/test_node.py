@@ -51,8 +51,10 @@ def _counter() -> FlatModule:
 
 def test_one_executor_per_configuration_runs_modules_and_stops_cleanly(node) -> None:
     _, client = node
-    address = client.call("start_executor", timeout=60, config="demo")
-    assert client.call("start_executor", timeout=60, config="demo") == address   # again: same
+    address, started = client.call("start_executor", timeout=60, config="demo")
+    assert started
+    # again: the same, not started now (it may be another launch's: not to be stopped)
+    assert tuple(client.call("start_executor", timeout=60, config="demo")) == (address, False)
     executor = ControlClient(KEY, address)
 
     def apply(op, *args, **kwargs):
@@ -91,7 +93,7 @@ def test_an_executor_that_dies_as_it_starts_is_reported_at_once(node, monkeypatc
     assert time.monotonic() - started < 15.0                  # not START_TIMEOUT (30 s)
     assert controller.executors() == {}
     monkeypatch.undo()
-    address = client.call("start_executor", timeout=60, config="broken")   # it may try again
+    address, _ = client.call("start_executor", timeout=60, config="broken")   # it may try again
     assert controller.executors() == {"broken": address}
 
 
@@ -105,6 +107,20 @@ def test_closing_reaps_an_executor_that_died_on_its_own() -> None:
     finally:
         controller.close()
     assert controller._executors == {}, "its entry and pipe kept"
+
+
+def test_an_executor_no_launcher_takes_stops() -> None:
+    """Its lease begins when a launcher binds it: one whose launcher went as it was being
+    started (a Ctrl-C there) ran with no lease, for good."""
+    controller = NodeController("n1", KEY, limits=Limits(max_cpu_percent=101.0))
+    controller.unbound_s = 1.0
+    try:
+        controller.start_executor("unbound")
+        process = controller._executors["unbound"][0]
+        process.join(10.0)
+        assert process.exitcode == 0, "it ran on with no launcher"
+    finally:
+        controller.close()
 
 
 def test_work_is_refused_with_the_reason_when_resources_are_short() -> None:
@@ -179,7 +195,7 @@ def test_an_executor_signalled_as_it_starts_ends_cleanly(tmp_path, monkeypatch) 
 
 def test_an_executor_whose_lease_is_not_renewed_fences_itself(node) -> None:
     controller, client = node
-    address = client.call("start_executor", timeout=60, config="orphan")
+    address, _ = client.call("start_executor", timeout=60, config="orphan")
     executor = ControlClient(KEY, address)
     try:
         executor.call("bind", launcher="tcp://127.0.0.1:9", checkpoint_s=1.0, log_level=30,
@@ -199,7 +215,7 @@ def _blocker(pid_file: Path) -> FlatModule:
 
 
 def _executor(client: ControlClient, config: str, lease_s: float) -> ControlClient:
-    address = client.call("start_executor", timeout=60, config=config)
+    address, _ = client.call("start_executor", timeout=60, config=config)
     executor = ControlClient(KEY, address)
     executor.call("bind", launcher="tcp://127.0.0.1:9", checkpoint_s=1.0, log_level=30,
                   code=CodeSources(), lease_s=lease_s)

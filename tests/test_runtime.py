@@ -306,7 +306,8 @@ def test_add_refuses_what_a_configuration_may_not_say_and_starts_nothing() -> No
             run.add("bad.name", Last, period=-1.0, restart="sometimes", group=5,
                     state={"valu": 1.0})
         problems = caught.value.problems
-        for words in ("bad module instance name 'bad.name'", "period must be a non-negative",
+        for words in ("bad module instance name 'bad.name'",
+                      "period must be a number of seconds from 0",
                       "restart must be one of", "bad group name 5", "has no state 'valu' "
                       "(did you mean 'value'?)"):
             assert [p for p in problems if words in p and p.startswith("module bad.name: ")], \

@@ -9,7 +9,7 @@ import argparse
 import math
 from collections.abc import Callable
 
-MOST_SECONDS = 1e7          # about 116 days: beyond, clocks overflow
+from pb3a.errors import MOST_SECONDS
 
 
 def seconds(text: str) -> float:

@@ -15,6 +15,8 @@ import socket
 import sys
 from pathlib import Path
 
+from pb3a.cli import arguments
+
 UI_PACKAGES = ("starlette", "uvicorn", "websockets", "tomlkit")
 DEFAULT_LISTEN = "127.0.0.1:0"
 
@@ -31,9 +33,9 @@ def register(commands: argparse._SubParsersAction) -> None:
     manager.add_argument("--listen", default=DEFAULT_LISTEN, metavar="HOST:PORT",
                          help=f"where the app listens (default {DEFAULT_LISTEN}: loopback, "
                               "any free port)")
-    manager.add_argument("--refresh", type=float, default=0.5, metavar="S",
+    manager.add_argument("--refresh", type=arguments.seconds, default=0.5, metavar="S",
                          help="seconds between live updates of the page (default 0.5)")
-    manager.add_argument("--timeout", type=float, default=10.0, metavar="S",
+    manager.add_argument("--timeout", type=arguments.seconds, default=10.0, metavar="S",
                          help="seconds a call to the system may take (default 10)")
     manager.set_defaults(handler=manager_command)
 

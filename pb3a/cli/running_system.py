@@ -57,7 +57,8 @@ def register(commands: argparse._SubParsersAction) -> None:
     add = command("add", "start a new module", _add,
                   ("module", "the new module's name"), ("cls", "its class, module:Class"))
     add.add_argument("--node", help="where it runs (default: the first node)")
-    add.add_argument("--period", type=float, metavar="SECONDS", help="its step period")
+    add.add_argument("--period", type=wait_seconds, metavar="SECONDS",
+                     help="its step period (0: as fast as it can)")
     add.add_argument("--state", nargs="*", default=[], metavar="NAME=VALUE",
                      help="its initial state, as for `pb3a set`")
     command("remove", "stop and remove a module", _remove, ("module", "the module's name"))

@@ -15,6 +15,7 @@ import re
 from collections.abc import Iterable
 from typing import Any
 
+from pb3a.errors import MOST_SECONDS
 from pb3a.loading.references import class_ref
 from pb3a.model.displays import declared_displays
 from pb3a.model.module import RESTART_POLICIES, Module
@@ -63,11 +64,11 @@ def finite(value: Any) -> bool:
 
 
 def period(value: Any) -> list[str]:
-    """``None`` (keep the class's) or a non-negative, finite number of seconds."""
-    if value is None or (finite(value) and value >= 0):
+    """``None`` (keep the class's) or a number of seconds from 0 to ``MOST_SECONDS``."""
+    if value is None or (finite(value) and 0 <= value <= MOST_SECONDS):
         return []
-    return [(f"period must be a non-negative number of seconds (0 = as fast as possible; "
-            f"leave it out to keep the class's), got {value!r}")]
+    return [(f"period must be a number of seconds from 0 to {MOST_SECONDS:g} (0 = as fast as "
+            f"possible; leave it out to keep the class's), got {value!r}")]
 
 
 def fallback(value: Any, nodes: list[str]) -> list[str]:
@@ -109,10 +110,10 @@ def spares(value: Any) -> list[str]:
 
 def timeout(value: Any) -> list[str]:
     """Left out (the default) or a positive, finite number of seconds."""
-    if value is None or (finite(value) and value > 0):
+    if value is None or (finite(value) and 0 < value <= MOST_SECONDS):
         return []
-    return [(f"timeout must be a positive number of seconds (how long an operation on the "
-             f"running system may wait), got {value!r}")]
+    return [(f"timeout must be a positive number of seconds, at most {MOST_SECONDS:g} (how "
+             f"long an operation on the running system may wait), got {value!r}")]
 
 
 def state(cls: type[Module], value: Any) -> list[str]:

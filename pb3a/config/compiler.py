@@ -154,6 +154,15 @@ class _Planner:
             self.report(label, checks.cpus(node.cpus, remote=node.address is not None))
             self.report(label, checks.advertise(node.advertise))
             self.report(label, checks.spares(node.spares))
+        seen: dict[str, str] = {}
+        for name, node in spec.nodes.items():
+            if isinstance(node.address, str) and node.address in seen:
+                self.report(f"{origin} [nodes.{toml_key(name)}]", [
+                    f"address {node.address!r} is node {seen[node.address]}'s too: one "
+                    "node controller serves one node of a system; give each its own "
+                    "(pb3a node start --listen on another port)"])
+            elif isinstance(node.address, str):
+                seen[node.address] = name
         if not spec.nodes:
             workers = spec.workers if not checks.workers(spec.workers) else 0
             return {DEFAULT_NODE: NodeSpec(DEFAULT_NODE, None, workers)}

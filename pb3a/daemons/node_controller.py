@@ -18,7 +18,7 @@ from typing import Any
 
 import psutil
 
-from pb3a.daemons.node_share import executor_main
+from pb3a.daemons.node_share import UNBOUND_S, executor_main
 from pb3a.errors import bounded_wait
 from pb3a.processes import start_without_main
 from pb3a.transport.auth import ClusterKey
@@ -51,6 +51,7 @@ class NodeController:
                  limits: Limits | None = None) -> None:
         self.name = name
         self.limits = limits or Limits()
+        self.unbound_s = UNBOUND_S          # an executor not taken by a launcher this long stops
         self._executors: dict[str, tuple[Any, Any, str]] = {}   # config -> process, pipe, addr
         self._lock = threading.Lock()
         self._cpu = psutil.cpu_percent(interval=None)
@@ -79,17 +80,20 @@ class NodeController:
 
     # -- executors ----------------------------------------------------------------
     def start_executor(self, config: str, workers: int = 0, cpus: list[int] | None = None,
-                       host: str = "127.0.0.1") -> str:
-        """The address of ``config``'s executor here, started if it does not run yet."""
+                       host: str = "127.0.0.1") -> tuple[str, bool]:
+        """The address of ``config``'s executor here, and whether it was started now
+        (False: it ran already, perhaps for another launch, which its caller must not
+        stop)."""
         with self._lock:
             running = self._executors.get(config)
             if running is not None and running[0].is_alive():
-                return running[2]
+                return running[2], False
             self.admit(f"an executor for {config!r}")
             parent, child = _context.Pipe()
             process = _context.Process(
                 target=executor_main, name=f"pb3a-executor-{config}",
-                args=(config, self.name, workers, cpus, host, child))
+                args=(config, self.name, workers, cpus, host, child, logging.WARNING,
+                      self.unbound_s))
             start_without_main(process)
             child.close()
             try:            # (the pipe is readable at once, empty, if the executor died)
@@ -106,7 +110,7 @@ class NodeController:
                 raise RuntimeError(f"the executor for {config!r} {why}: node {self.name}'s "
                                    "log says why")
             self._executors[config] = (process, parent, address)
-            return address
+            return address, True
 
     def stop_executor(self, config: str, force: bool = False, timeout: float = 15.0) -> bool:
         """Stop ``config``'s executor: SIGTERM (modules stop in order), or SIGKILL with

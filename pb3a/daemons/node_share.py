@@ -42,6 +42,8 @@ from pb3a.worker.process import AGENT_REQUEST_TIMEOUT
 log = logging.getLogger("pb3a.node")
 
 PEER_PING_S = 1.0         # how often the round-trip time to each peer is measured
+UNBOUND_S = 30.0          # an executor no launcher binds within this stops (the launcher
+                          # that had it started went meanwhile: a Ctrl-C, a crash)
 
 
 class NodeShare:
@@ -49,7 +51,7 @@ class NodeShare:
 
     def __init__(self, config: str, node: str, workers: int = 0,
                  cpus: list[int] | None = None, host: str = "127.0.0.1",
-                 stopped: threading.Event | None = None) -> None:
+                 stopped: threading.Event | None = None, unbound_s: float = UNBOUND_S) -> None:
         self.config, self.node = config, node
         self.key = ClusterKey.load()
         self.executor = Executor(node, workers=workers, cpus=cpus, host=host)
@@ -69,6 +71,17 @@ class NodeShare:
         self.stopped = stopped if stopped is not None else threading.Event()
         self.logbook = LogBook()                       # the launcher merges it into its own
         logging.getLogger().addHandler(self.logbook)
+        self._bound = threading.Event()
+        threading.Thread(target=self._await_bind, args=(unbound_s,), daemon=True,
+                         name="pb3a-unbound").start()
+
+    def _await_bind(self, unbound_s: float) -> None:
+        """Stop unless a launcher binds this executor within ``unbound_s``: no lease
+        runs before, and nobody else would stop it."""
+        if not self._bound.wait(unbound_s) and not self.stopped.is_set():
+            log.error("node %s: no launcher took this executor for %r within %g s: it "
+                      "stops", self.node, self.config, unbound_s)
+            self.stopped.set()
 
     def handle(self, op: str, args: dict[str, Any]) -> Any:
         ex = self.executor
@@ -115,6 +128,7 @@ class NodeShare:
         code.install(self.key)
         self.node_epoch, self._lease_s = node_epoch, lease_s
         self.launcher = ControlClient(self.key, launcher)
+        self._bound.set()
         self.renew()
         for target, name in ((self._keep_lease, "lease"), (self._measure_peers, "peers"),
                              (self._send_checkpoints, "checkpoints")):
@@ -204,13 +218,14 @@ class NodeShare:
 
 
 def executor_main(config: str, node: str, workers: int, cpus: list[int] | None,
-                  host: str, conn: Any, level: int = logging.WARNING) -> None:
+                  host: str, conn: Any, level: int = logging.WARNING,
+                  unbound_s: float = UNBOUND_S) -> None:
     """Entry point of an executor process: serve until shut down, signalled or orphaned."""
     logging.basicConfig(level=level, format=f"%(asctime)s pb3a[{config}@{node}] "
                                             "%(levelname)s %(message)s")
     stopped = threading.Event()
     stop_on_sigterm(stopped)            # before anything that must be closed
-    share = NodeShare(config, node, workers, cpus, host, stopped)
+    share = NodeShare(config, node, workers, cpus, host, stopped, unbound_s)
     server = share.server = ControlServer(share.key, share.handle, host,
                                           name="pb3a-node-executor",
                                           instant={"lease": share.renew},

@@ -83,9 +83,11 @@ class RemoteNode:
         except RuntimeFailure as exc:
             self.close()
             raise RuntimeFailure(f"node {name}: {exc}") from None
+        started = False
         try:
-            executor = self.controller.call("start_executor", START_TIMEOUT, config=config,
-                                            workers=workers, cpus=cpus, host=host)
+            executor, started = self.controller.call("start_executor", START_TIMEOUT,
+                                                     config=config, workers=workers,
+                                                     cpus=cpus, host=host)
             self.client = ControlClient(key, executor, epoch=epoch)
             reached = self.client.ping(CONNECT_TIMEOUT) is not None
             if reached:
@@ -93,12 +95,14 @@ class RemoteNode:
                                  log_level=log_level, code=code or CodeSources(),
                                  epoch=epoch, node_epoch=node_epoch, lease_s=LEASE_S,
                                  spares=spares)
-        except (RuntimeFailure, RuntimeTimeout) as exc:
-            if self.client is None:
-                self.close()
-            else:                          # started but not bound: do not leave it running
+        except BaseException as exc:       # (Ctrl-C too: nothing started is left running)
+            if started:                    # started, not bound: do not leave it running
                 self.lost = True
                 self.shutdown()
+            else:                          # (one that ran already is another launch's)
+                self.close()
+            if not isinstance(exc, (RuntimeFailure, RuntimeTimeout)):
+                raise
             raise RuntimeFailure(f"node {name} at {address} did not start an executor for "
                                  f"{config!r}: {exc}") from None
         if not reached:                # its controller answers, but not where it is reached
