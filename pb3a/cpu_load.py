@@ -142,6 +142,7 @@ def _burn(cpu: int, share: Any, stop: Any, owner: int) -> None:
     """In a burner: spin ``share`` of every period on ``cpu`` until told to stop or
     until its owner is gone."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)     # a terminal's Ctrl-C: the owner decides
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)     # (its closing: the same)
     os.sched_setaffinity(0, [cpu])
     start = time.monotonic()
     while True:

@@ -36,10 +36,12 @@ def start_without_main(process: Any) -> None:
 
 
 def stop_on_sigterm(stopped: threading.Event) -> None:
-    """From now on SIGTERM sets ``stopped``; SIGINT is ignored (the parent decides). A
-    child calls it first, before it makes anything it must close."""
+    """From now on SIGTERM sets ``stopped``; SIGINT and SIGHUP are ignored (a terminal's:
+    the parent decides). A child calls it first, before it makes anything it must
+    close."""
     signal.signal(signal.SIGTERM, lambda *_: stopped.set())
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)
 
 
 def serve_as_child(conn: Any, address: str, stopped: threading.Event) -> None:

@@ -43,10 +43,13 @@ def test_run_for_seconds_shows_the_table_and_stops_cleanly(tmp_path: Path) -> No
     assert "stopped cleanly" in out
 
 
-@pytest.mark.parametrize("how", ["SIGTERM", "Ctrl-C", "SIGTERM to the group"])
+@pytest.mark.parametrize("how", ["SIGTERM", "Ctrl-C", "SIGTERM to the group",
+                                 "the terminal closed"])
 def test_a_signal_stops_everything_and_leaves_nothing_behind(tmp_path: Path, how: str) -> None:
     """The group's SIGTERM is what timeout, kill -- -PGID and systemd send: it killed
-    the workers' forkserver too, and every module was then reported failed."""
+    the workers' forkserver too, and every module was then reported failed. A closing
+    terminal (an ssh session cut) sends the group SIGHUP: it killed the launcher at once,
+    a segment left behind, and the resource tracker, whose successor printed tracebacks."""
     proc = subprocess.Popen([sys.executable, "-m", "pb3a", "run", str(PIPELINE)], cwd=tmp_path,
                             env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
@@ -59,6 +62,8 @@ def test_a_signal_stops_everything_and_leaves_nothing_behind(tmp_path: Path, how
             proc.send_signal(signal.SIGTERM)
         elif how == "Ctrl-C":     # a terminal's Ctrl-C: SIGINT to the whole process group
             os.killpg(proc.pid, signal.SIGINT)
+        elif how == "the terminal closed":
+            os.killpg(proc.pid, signal.SIGHUP)
         else:
             os.killpg(proc.pid, signal.SIGTERM)
         out, err = proc.communicate(timeout=30)
@@ -71,6 +76,31 @@ def test_a_signal_stops_everything_and_leaves_nothing_behind(tmp_path: Path, how
     assert "Traceback" not in err and "died" not in err and "failed" not in err
     assert not live_segments(proc.pid)
     assert not [p for p in workers if alive(p)]
+
+
+def test_a_run_whose_output_has_no_reader_runs_its_time(tmp_path: Path) -> None:
+    """`pb3a run F | head -1` stopped the system at its next table, saying it could not
+    reach or listen where F says (a BrokenPipeError); with stdout closed (`>&-`, some
+    supervisors) it failed at once on stdout.isatty()."""
+    command = [sys.executable, "-m", "pb3a", "run", str(PIPELINE), "--for", "2"]
+    reader_gone = subprocess.Popen(command, cwd=tmp_path, env=_env(), stdout=subprocess.PIPE,
+                                   stderr=subprocess.PIPE, text=True)
+    try:
+        assert "running" in reader_gone.stdout.readline()
+        reader_gone.stdout.close()                   # as head does after its line
+        err = reader_gone.stderr.read()
+        assert reader_gone.wait(30) == 0, err
+    finally:
+        if reader_gone.poll() is None:
+            reader_gone.kill()
+            reader_gone.wait()
+        reader_gone.stderr.close()
+    assert "cannot reach" not in err and "Traceback" not in err
+    closed = subprocess.run(command, cwd=tmp_path, env=_env(), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, timeout=60,
+                            preexec_fn=lambda: os.close(1))       # (stdout closed)
+    assert closed.returncode == 0, closed.stderr
+    assert "Traceback" not in closed.stderr
 
 
 def test_run_reports_an_invalid_file_and_starts_nothing(tmp_path: Path) -> None:

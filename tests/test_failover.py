@@ -440,6 +440,7 @@ def test_close_keeps_its_timeout_with_machines_that_do_not_answer(daemons) -> No
         for pid in hung:
             os.kill(pid, signal.SIGCONT)
     assert took < 4.0, took
+    assert sorted(run.unconfirmed) == ["b", "c"]   # (said "stopped cleanly" all the same)
 
 
 def test_a_close_out_of_time_still_stops_a_remote_node_s_executor(daemons,
@@ -458,6 +459,7 @@ def test_a_close_out_of_time_still_stops_a_remote_node_s_executor(daemons,
     executor = psutil.Process(b.executor_pid())
     run.close(timeout=2.0)
     executor.wait(5.0)                  # psutil.TimeoutExpired if it ran on
+    assert run.unconfirmed == []
     with system().launch() as again:
         assert again.where("slow") == "b"
 

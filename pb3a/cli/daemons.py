@@ -22,11 +22,12 @@ from pb3a.transport.auth import ClusterKey, ClusterKeyError
 
 def serve_until_signalled(command: str, listen: str,
                            start: Callable[[Any, str, int], tuple[Any, str]]) -> int:
-    """Start a daemon on ``listen``, print where, and run until SIGINT or SIGTERM. The
-    handlers come first: a signal while it starts stops it once started, closed as
-    after any other signal (it would otherwise die there, unclosed)."""
+    """Start a daemon on ``listen``, print where, and run until SIGINT, SIGTERM or SIGHUP
+    (its terminal closed). The handlers come first: a signal while it starts stops it
+    once started, closed as after any other signal (it would otherwise die there,
+    unclosed)."""
     stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(signum, lambda *_: stop.set())
     try:
         key = ClusterKey.load()

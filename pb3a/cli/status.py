@@ -8,13 +8,16 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 import signal
 import sys
 import time
 from collections.abc import Iterator
 from typing import TYPE_CHECKING, TextIO
 
+from pb3a.cli.standard_output import output_gone
 from pb3a.launch.running import launch
+from pb3a.transport.shm import keep_tracker_through_hangups
 
 if TYPE_CHECKING:
     from pb3a.config.plan import Plan
@@ -79,41 +82,61 @@ def run_with_status(plan: Plan, seconds: float | None, out: TextIO | None = None
     ``out`` (default: stdout); 0 on a clean stop. The launcher takes ``pb3a.connect``
     and ``pb3a status ADDR`` ... at ``listen`` (default: where the remote nodes reach
     it, else loopback)."""
-    out = out or sys.stdout
+    # (no stdout at all when started with it closed: `pb3a run F >&-`)
+    out = out or sys.stdout or open(os.devnull, "w")  # noqa: SIM115
     live = out.isatty()
     started = time.monotonic()
+
+    def show(text: str) -> None:
+        """Write ``text``; a reader gone (`pb3a run F | head`) stops no system: the
+        output goes nowhere from then on (it was taken for an address error)."""
+        try:
+            out.write(text)
+            out.flush()
+        except BrokenPipeError:
+            if out is sys.stdout:
+                output_gone()
+
     with sigterm_interrupts():
         with launch(plan, listen=listen) as run:
             try:     # (from the first line on, a signal means a clean stop)
                 address = run.address or run.listen()
-                out.write(f"pb3a: system {run.name!r} running"
-                          f"{f' for {seconds:g} s' if seconds else ''}; Ctrl-C stops it; "
-                          f"launcher at {address}\n")
-                out.flush()
+                show(f"pb3a: system {run.name!r} running"
+                     f"{f' for {seconds:g} s' if seconds else ''}; Ctrl-C stops it; "
+                     f"launcher at {address}\n")
                 while seconds is None or time.monotonic() - started < seconds:
                     left = REFRESH_S if seconds is None else min(
                         REFRESH_S, seconds - (time.monotonic() - started))
                     if run.wait(max(0.0, left)):
                         break
                     table = format_table(run.stats())
-                    out.write(("\x1b[H\x1b[2J" if live else "\n") + table + "\n")
-                    out.flush()
+                    show(("\x1b[H\x1b[2J" if live else "\n") + table + "\n")
             except KeyboardInterrupt:
-                out.write("\npb3a: stopping\n")
+                show("\npb3a: stopping\n")
             final = run.stats()
-        out.write("\n" + format_table(final) + "\npb3a: stopped cleanly\n")
+        show("\n" + format_table(final) + "\n")
+        if run.unconfirmed:     # (it said "stopped cleanly" with a node's executor running)
+            show(f"pb3a: stopped; node{'s' if len(run.unconfirmed) > 1 else ''} "
+                 f"{', '.join(run.unconfirmed)} did not confirm: its executor stops "
+                 "itself when its lease runs out (about a second)\n")
+        else:
+            show("pb3a: stopped cleanly\n")
         return 0
 
 
 @contextlib.contextmanager
 def sigterm_interrupts() -> Iterator[None]:
-    """Inside the block, SIGTERM raises KeyboardInterrupt as Ctrl-C does: either ends a
-    run the same clean way."""
-    previous = signal.signal(signal.SIGTERM, _interrupt)
+    """Inside the block, SIGTERM and SIGHUP (the terminal closed, an ssh session cut)
+    raise KeyboardInterrupt as Ctrl-C does: each ends a run the same clean way (a
+    SIGHUP killed it, its segments left behind)."""
+    keep_tracker_through_hangups()
+    previous = {signum: signal.signal(signum, _interrupt)
+                for signum in (signal.SIGTERM, signal.SIGHUP)}
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
 
 
 def _interrupt(signum: int, frame: object) -> None:

@@ -81,6 +81,7 @@ class Launcher:
         self._rejoining: set[str] = set()
         self._failing_over: dict[str, float] = {}     # lost node -> when, until done
         self._failovers: list[threading.Thread] = []    # one per lost node, while it works
+        self.unconfirmed: list[str] = []    # remote nodes whose stop was not confirmed
         # a lost node's env module and the links from it, restored when it rejoins
         self._env_kept: dict[str, tuple[FlatModule, list[FlatLink]]] = {}
         self._callback: str | None = None            # where remote executors reach us
@@ -738,6 +739,7 @@ class Launcher:
                     self._shut_node(name, node, deadline)
             for thread in remote:
                 thread.join(max(0.0, deadline - time.monotonic()) + 0.5)
+        self.unconfirmed = [name for name, node in self.remotes.items() if not node.stopped]
         logging.getLogger().removeHandler(self.logbook)
 
     @staticmethod

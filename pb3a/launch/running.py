@@ -123,6 +123,12 @@ class Running(SystemHandle):
     def running(self) -> bool:
         return not self._stopped.is_set()
 
+    @property
+    def unconfirmed(self) -> list[str]:
+        """After ``close``: the remote nodes that did not confirm their executor stopped
+        (gone, frozen, or out of time); each stops itself when its lease runs out."""
+        return list(self._launcher.unconfirmed)
+
     # -- requests from elsewhere ----------------------------------------------------
     def _agent_request(self, op: str, args: dict[str, Any]) -> Any:
         """Apply a request an agent made through ``self.runtime``: its worker adds who

@@ -70,6 +70,7 @@ class RemoteNode:
         self._hearts: list[threading.Thread] = []
         self._domain: str | None = None
         self._ends_by = math.inf            # (monotonic) no call waits past it: see wind_down
+        self.stopped = False                # its controller confirmed the executor's stop
         # where the other nodes reach its executor and publications
         host = advertise or address.removeprefix("tcp://").rpartition(":")[0]
         try:
@@ -287,13 +288,17 @@ class RemoteNode:
 
     def stop_executor(self, timeout: float = 10.0) -> None:
         """Have the controller stop the executor (modules stop in reverse order), or kill
-        it if the node was lost; the controller stays reachable."""
+        it if the node was lost; the controller stays reachable. ``stopped`` says
+        whether it confirmed (an executor it could not be told of stops by itself when
+        its lease runs out)."""
         # (at least a moment: sent with no time at all, the request was never sent, and
         # the executor ran on, its node taken for the next launch)
-        with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
-            self.controller.request("stop_executor", {"config": self.config, "force": self.lost,
-                                                      "timeout": timeout},
-                                    max(STOP_AT_LEAST_S, self._within(timeout + 5.0)))
+        wait = max(STOP_AT_LEAST_S, self._within(timeout + 5.0))
+        with contextlib.suppress(RuntimeFailure, RuntimeTimeout):   # (killed in time to say so)
+            self.controller.request("stop_executor", {
+                "config": self.config, "force": self.lost,
+                "timeout": min(timeout, max(0.0, wait - STOP_AT_LEAST_S / 2))}, wait)
+            self.stopped = True
 
     def shutdown(self, timeout: float = 10.0) -> None:
         """Stop the executor, then close the connections."""

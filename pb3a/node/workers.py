@@ -193,8 +193,8 @@ class WorkerPool:
     def _replenish(self, first: Callable[[], object]) -> None:
         try:
             first()
-        except (OSError, RuntimeError) as exc:    # the next spawn says it again, in its way
-            log.warning("the worker forkserver did not start: %s", exc)
+        except (OSError, RuntimeError, EOFError) as exc:   # (EOF: it was interrupted as
+            log.warning("the worker forkserver did not start: %s", exc)   # it started)
             return
         while not self._stopping.is_set():
             with self._spares_lock:
@@ -203,7 +203,7 @@ class WorkerPool:
             handle = WorkerHandle("spare", "")
             try:
                 self.spawn(handle)
-            except (OSError, RuntimeError) as exc:   # (a worker that arrives starts its own)
+            except (OSError, RuntimeError, EOFError) as exc:   # (one that arrives starts its own)
                 log.warning("no spare worker booted: %s", exc)
                 return
             for op, args in self.spare_requests:

@@ -633,13 +633,15 @@ def worker_main(conn: Any, key: str, checkpoint_s: float, level: int,
                 cpus: list[int] | None = None, code: CodeSources | None = None) -> None:
     """Entry point of a worker process.
 
-    Ctrl-C in a terminal reaches every process of the group: workers ignore it and
-    let their launcher stop them in order. SIGTERM stops the worker's modules and
-    exits with status 0, which the executor takes as a stop, not a crash.
+    Ctrl-C in a terminal reaches every process of the group, and so does a SIGHUP when
+    the terminal closes: workers ignore both and let their launcher stop them in order.
+    SIGTERM stops the worker's modules and exits with status 0, which the executor takes
+    as a stop, not a crash.
     """
     if cpus:
         os.sched_setaffinity(0, cpus)           # before any thread: they all inherit it
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)          # (the terminal closed: the same)
     signal.signal(signal.SIGTERM, _on_sigterm)
     try:        # signalled as it starts (a SIGTERM to the whole group): nothing to stop
         forward = _LogForwarder(level)
@@ -648,8 +650,8 @@ def worker_main(conn: Any, key: str, checkpoint_s: float, level: int,
         bell = reduction.recv_handle(conn)      # the executor sends our doorbell first
         (code or CodeSources()).install()
         worker = Worker(conn, key, bell, checkpoint_s)
-    except _Terminated:
-        return                                  # exit 0: a stop, not a crash
+    except (_Terminated, EOFError):             # (EOF: the executor went as it started us,
+        return                                  # a Ctrl-C then) exit 0: a stop, not a crash
     try:
         forward.send = worker.send
         worker.serve()
