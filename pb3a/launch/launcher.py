@@ -437,9 +437,9 @@ class Launcher:
 
     def _try_fail_over(self, node: str, lost_at: float) -> None:
         """Fail over lost ``node``'s modules once its executor has fenced itself, if the
-        configuration lock comes within ``FAIL_OVER_WAIT_S``; else the watchdog tries
-        again at its next look (a change holding the lock long, or failing, must not end
-        the watchdog, which alone sees nodes go and come back)."""
+        configuration lock comes within ``FAIL_OVER_WAIT_S``; else its failover thread
+        tries again ``WATCH_S`` later (a change holding the lock long, or failing, must
+        not end it)."""
         remote = self.remotes.get(node)
         if remote is not None and time.monotonic() < remote.fenced_by():
             return                          # its modules may still run there
