@@ -142,16 +142,20 @@ def test_a_daemon_refuses_an_address_it_cannot_listen_on_saying_why(capsys) -> N
                 assert out == ""                            # no banner: it never served
 
 
-def test_stress_interrupted_writes_its_report_then_exits_130(tmp_path: Path) -> None:
-    """It exited 0, as if it had run its whole time."""
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGHUP], ids=["Ctrl-C", "hangup"])
+def test_stress_interrupted_writes_its_report_then_exits_130(tmp_path: Path,
+                                                             signum: int) -> None:
+    """It exited 0, as if it had run its whole time. Its terminal closing (SIGHUP to the
+    group) killed the resource tracker its CPU load had started, whose successor
+    printed a traceback for each segment freed."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "pb3a", "stress", str(REPO / "examples" / "pipeline.toml"),
-         "--for", "60", "--sample", "0.5", "--out", str(tmp_path)],
+         "--for", "60", "--sample", "0.5", "--load", "0:20", "--out", str(tmp_path)],
         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         start_new_session=True)
     try:
         assert "values/s" in proc.stdout.readline()          # it runs
-        os.killpg(proc.pid, signal.SIGINT)                     # a terminal's Ctrl-C
+        os.killpg(proc.pid, signum)                            # a terminal's Ctrl-C, closing
         _, err = proc.communicate(timeout=30)
     finally:
         if proc.poll() is None:
@@ -160,7 +164,7 @@ def test_stress_interrupted_writes_its_report_then_exits_130(tmp_path: Path) -> 
     assert proc.returncode == 130, err
     assert "the report covers the run until it was interrupted" in err and "Traceback" not in err
     report = json.loads((tmp_path / "stress.json").read_text())
-    assert [m["kind"] for m in report["marks"]][-1:] == ["interrupted"]
+    assert "interrupted" in [m["kind"] for m in report["marks"]]     # (then the load's end)
 
 
 def test_stress_that_cannot_write_its_report_says_so_after_its_summary(tmp_path: Path,

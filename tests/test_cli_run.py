@@ -103,6 +103,26 @@ def test_a_run_whose_output_has_no_reader_runs_its_time(tmp_path: Path) -> None:
     assert "Traceback" not in closed.stderr
 
 
+def test_a_scenario_whose_terminal_closes_stops_and_leaves_nothing_behind(
+        tmp_path: Path) -> None:
+    """`pb3a scenario` took no signal but Ctrl-C: a closing terminal (SIGHUP to the
+    group) killed it, its segments left in /dev/shm."""
+    proc = subprocess.Popen([sys.executable, "-m", "pb3a", "scenario", "self-migration",
+                             "--quick", "--out", str(tmp_path)], cwd=tmp_path, env=_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        eventually(lambda: live_segments(proc.pid), timeout=30, what="the scenario running")
+        os.killpg(proc.pid, signal.SIGHUP)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130 and err.strip() == "pb3a: interrupted", err
+    assert not live_segments(proc.pid)
+
+
 def test_run_reports_an_invalid_file_and_starts_nothing(tmp_path: Path) -> None:
     bad = tmp_path / "bad.toml"
     bad.write_text('name = "bad"\n[modules.x]\nclass = "examples.pipeline:Nope"\n')

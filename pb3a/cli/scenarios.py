@@ -38,4 +38,8 @@ def scenario_command(args: argparse.Namespace) -> int:
         print(f"pb3a scenario: no scenario {args.name!r}; the scenarios: "
               f"{', '.join(sorted(found)) or '(none installed)'}", file=sys.stderr)
         return 2
-    return int(point.load()(args.args) or 0)
+    from pb3a.cli.status import sigterm_interrupts
+
+    main = point.load()
+    with sigterm_interrupts():          # (SIGTERM, or the terminal closing: as Ctrl-C)
+        return int(main(args.args) or 0)

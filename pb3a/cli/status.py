@@ -78,8 +78,9 @@ def _columns(rows: list[tuple[str, ...]]) -> list[str]:
 
 def run_with_status(plan: Plan, seconds: float | None, out: TextIO | None = None,
                     listen: str | None = None) -> int:
-    """Run ``plan`` until ``seconds`` pass (None: until Ctrl-C or SIGTERM), the table on
-    ``out`` (default: stdout); 0 on a clean stop. The launcher takes ``pb3a.connect``
+    """Run ``plan`` until ``seconds`` pass (None: until Ctrl-C, SIGTERM or SIGHUP), the
+    table on ``out`` (default: stdout); 0 once stopped (the nodes that did not confirm
+    their stop, if any, named). The launcher takes ``pb3a.connect``
     and ``pb3a status ADDR`` ... at ``listen`` (default: where the remote nodes reach
     it, else loopback)."""
     # (no stdout at all when started with it closed: `pb3a run F >&-`)

@@ -121,6 +121,7 @@ class NodeShare:
         ``spares`` idle workers booted."""
         if self.launcher is not None:
             raise RuntimeFailure(f"node {self.node} already works for {self.launcher.address}")
+        self._bound.set()                   # (a slow bind, a large code install: not stopped)
         self.executor.configure(checkpoint_s=checkpoint_s, log_level=log_level, code=code,
                                 epoch=epoch, spares=spares)
         if self.server is not None:
@@ -128,7 +129,6 @@ class NodeShare:
         code.install(self.key)
         self.node_epoch, self._lease_s = node_epoch, lease_s
         self.launcher = ControlClient(self.key, launcher)
-        self._bound.set()
         self.renew()
         for target, name in ((self._keep_lease, "lease"), (self._measure_peers, "peers"),
                              (self._send_checkpoints, "checkpoints")):
