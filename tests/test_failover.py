@@ -523,3 +523,31 @@ def test_a_launch_interrupted_as_a_node_starts_its_executor_leaves_none(
     eventually(lambda: not [child for child in controller.children()
                             if "resource_tracker" not in " ".join(child.cmdline())],
                what="no executor under b's controller")
+
+
+def test_a_frozen_executor_s_workers_stop_before_their_modules_run_elsewhere(
+        daemons, tmp_path: Path) -> None:
+    """A frozen executor (SIGSTOP) cannot fence itself: its workers stepped on beside
+    their modules' failed-over copies until it ran again. Workers hold a lease of their
+    own from a remote node's executor now, which lapses first."""
+    b, stamps = daemons["b"], tmp_path / "steps"
+    system = System("frozen").node("a").node("b", address=b.address)
+    system.add("stepper", StepStamps, node="b", restart="fresh", fallback=["a"],
+               state={"path": str(stamps)})
+    with system.launch() as run:
+        eventually(lambda: stamps.exists() and stamps.read_text().count("\n") > 20,
+                   what="steps on b")
+        executor = b.executor_pid()
+        os.kill(executor, signal.SIGSTOP)
+        try:
+            eventually(lambda: _events(run, "module_failed_over"), timeout=15,
+                       what="failover")
+            eventually(lambda: len({line.split()[0] for line in
+                                    stamps.read_text().splitlines()}) == 2,
+                       what="steps of the copy on a")
+        finally:
+            os.kill(executor, signal.SIGCONT)
+    steps = [line.split() for line in stamps.read_text().splitlines()]
+    old, new = dict.fromkeys(pid for pid, _ in steps)
+    assert max(float(at) for pid, at in steps if pid == old) \
+        < min(float(at) for pid, at in steps if pid == new)

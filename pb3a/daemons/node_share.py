@@ -42,6 +42,7 @@ from pb3a.worker.process import AGENT_REQUEST_TIMEOUT
 log = logging.getLogger("pb3a.node")
 
 PEER_PING_S = 1.0         # how often the round-trip time to each peer is measured
+LEASE_GRANT_S = 0.25      # how often a remote node's executor renews its workers' leases
 UNBOUND_S = 30.0          # an executor no launcher binds within this stops (the launcher
                           # that had it started went meanwhile: a Ctrl-C, a crash)
 
@@ -130,7 +131,8 @@ class NodeShare:
         self.node_epoch, self._lease_s = node_epoch, lease_s
         self.launcher = ControlClient(self.key, launcher)
         self.renew()
-        for target, name in ((self._keep_lease, "lease"), (self._measure_peers, "peers"),
+        for target, name in ((self._keep_lease, "lease"), (self._grant_leases, "leases"),
+                             (self._measure_peers, "peers"),
                              (self._send_checkpoints, "checkpoints")):
             threading.Thread(target=target, name=f"pb3a-{name}", daemon=True).start()
 
@@ -202,6 +204,20 @@ class NodeShare:
                           "%.1f s): fenced, its modules stop", self.node, silent, lease_s)
                 self.executor.fence()      # at once: shutting down may wait for a request
                 self.stopped.set()
+
+    def _grant_leases(self) -> None:
+        """While its own lease runs, give every worker one (``Worker.op_lease``), every
+        ``LEASE_GRANT_S``: a frozen executor (SIGSTOP, hung) fences nothing itself, and
+        its workers would step on beside their modules' failed-over copies; theirs
+        lapses first (the lease, and a grant's way, before the launcher's failover)."""
+        workers = self.executor.workers
+        while not self.stopped.wait(LEASE_GRANT_S):
+            if time.monotonic() - self._leased_at > self._lease_s:
+                continue                    # (fencing: no more grants)
+            for key, handle in list(workers.handles.items()):
+                if handle.alive:
+                    with contextlib.suppress(RuntimeFailure, KeyError):
+                        workers.submit(key, "lease", seconds=self._lease_s)
 
     def _measure_peers(self) -> None:
         """Ping every peer now and then: the round-trip times the env module shows."""

@@ -46,6 +46,7 @@ SPIN_S = 100e-6          # values closer than this count as dense; poll this lon
 ERROR_REPORT_S = 1.0     # a module's exceptions are reported at most this often (all counted)
 AGENT_REQUEST_TIMEOUT = 30.0   # an agent's request to the runtime (a migration, say)
 MEASURE_TIMEOUT = 5.0    # how long measuring a snapshot waits for a busy module's lock
+LEASE_CHECK_S = 0.1      # how often a worker with a lease (see op_lease) looks at it
 # Requests that wait for a module's lock (and may run its hooks, which may call the
 # runtime, whose answer this thread reads): never on the control thread.
 _TAKES_A_MODULE_LOCK = frozenset({"get_state", "set_state", "pause", "start", "swap", "stop",
@@ -148,6 +149,7 @@ class Worker:
         self._ready: list[Callable[[], None]] = []
         self._request_ids = itertools.count()
         self._closing = threading.Event()
+        self._lease_until: float | None = None     # see op_lease
         self._shut_down = False
         self._checkpoint_s = checkpoint_s
         self._threads = [threading.Thread(target=self._receive, name="pb3a-receiver", daemon=True),
@@ -461,6 +463,26 @@ class Worker:
         module = cloudpickle.loads(cls)()
         self._give_runtime(name, module)
         return self.actors[name].swap(module)
+
+    def op_lease(self, seconds: float) -> None:
+        """The executor is alive: run on for ``seconds`` more. A worker whose lease runs
+        out stops its modules (as on SIGTERM): its executor is frozen (stopped, hung)
+        and cannot fence it, and the launcher starts its modules elsewhere. Only a
+        remote node's executor grants leases; a worker that never got one never
+        lapses."""
+        first = self._lease_until is None
+        self._lease_until = time.monotonic() + seconds
+        if first:
+            threading.Thread(target=self._keep_lease, daemon=True, name="pb3a-lease").start()
+
+    def _keep_lease(self) -> None:
+        while not self._closing.wait(LEASE_CHECK_S):
+            until = self._lease_until
+            if until is not None and time.monotonic() > until:
+                log.error("worker %s: its executor granted no lease for too long (frozen "
+                          "or hung): its modules stop", self.key)
+                os.kill(os.getpid(), signal.SIGTERM)     # (the stop a SIGTERM makes)
+                return
 
     def op_stats(self) -> dict[str, Any]:
         modules = {name: actor.statistics() for name, actor in self.actors.items()}
