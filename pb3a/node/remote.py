@@ -97,18 +97,13 @@ class RemoteNode:
                                  epoch=epoch, node_epoch=node_epoch, lease_s=LEASE_S,
                                  spares=spares)
         except BaseException as exc:       # (Ctrl-C too: nothing started is left running)
-            if started:                    # started, not bound: do not leave it running
-                self.lost = True
-                self.shutdown()
-            else:                          # (one that ran already is another launch's)
-                self.close()
+            self._let_go(started)
             if not isinstance(exc, (RuntimeFailure, RuntimeTimeout)):
                 raise
             raise RuntimeFailure(f"node {name} at {address} did not start an executor for "
                                  f"{config!r}: {exc}") from None
         if not reached:                # its controller answers, but not where it is reached
-            self.lost = True                           # (shutdown then kills the executor)
-            self.shutdown()
+            self._let_go(started)
             raise RuntimeFailure(
                 f"node {name}: its executor did not answer within {CONNECT_TIMEOUT:g} s at "
                 f"{executor}, on the host other nodes reach node {name} at ({host}); make "
@@ -121,6 +116,15 @@ class RemoteNode:
                         for offset in (HEARTBEAT_S, 2 * HEARTBEAT_S)]
         for heart in self._hearts:
             heart.start()
+
+    def _let_go(self, started: bool) -> None:
+        """A start that failed: kill the executor if this launch started it (not bound, it
+        must not run on); one that ran already is another launch's, and is left alone."""
+        if started:
+            self.lost = True                           # (shutdown then kills it)
+            self.shutdown()
+        else:
+            self.close()
 
     def _forward(self, op: str, *args: Any, within: float = CALL_TIMEOUT, **kwargs: Any) -> Any:
         """Apply ``op`` at the executor; an operation with a deadline of its own gets

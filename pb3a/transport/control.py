@@ -262,7 +262,7 @@ class ControlClient:
                 wait: Waiting | None = None) -> Any:
         """``call`` with the arguments as a dict (which may then name one ``timeout``).
         With ``wait`` (a module body's, see ``pb3a.worker.waits``) it waits there, so
-        the module's runtime can cancel it (``RuntimeFailure``)."""
+        the module's runtime can cancel it (``RuntimeCancelled``)."""
         if self.refused == "bad tag":           # it will not change its mind
             raise RuntimeFailure(self._refusal(op))
         request_id = _ID.pack(next(self._ids))
