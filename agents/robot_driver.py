@@ -106,7 +106,7 @@ class RobotDriver(Driver):
         try:
             self._apply(self._unsent)
         except RuntimeCancelled:
-            pass                 # the runtime stops the driver: sent again by the next one
+            return               # the runtime stops the driver: sent again by the next one
         except (RuntimeError, OSError) as exc:
             self.failures += 1
             self.last_error = str(exc)

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import psutil
@@ -25,6 +27,24 @@ def _env() -> dict[str, str]:
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
     return env
+
+
+def _in_its_own_group(*argv: str, cwd: Path) -> subprocess.Popen[str]:
+    """``pb3a ARGV`` started as a terminal starts it (a process group of its own)."""
+    return subprocess.Popen([sys.executable, "-m", "pb3a", *argv], cwd=cwd, env=_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+
+
+@contextlib.contextmanager
+def _killed_if_left(proc: subprocess.Popen[str]) -> Iterator[None]:
+    """Kill ``proc`` on the way out if it still runs (a test that failed midway)."""
+    try:
+        yield
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
 
 
 def _workers_of(launcher: psutil.Process) -> list[int]:
@@ -50,10 +70,8 @@ def test_a_signal_stops_everything_and_leaves_nothing_behind(tmp_path: Path, how
     the workers' forkserver too, and every module was then reported failed. A closing
     terminal (an ssh session cut) sends the group SIGHUP: it killed the launcher at once,
     a segment left behind, and the resource tracker, whose successor printed tracebacks."""
-    proc = subprocess.Popen([sys.executable, "-m", "pb3a", "run", str(PIPELINE)], cwd=tmp_path,
-                            env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
-    try:
+    proc = _in_its_own_group("run", str(PIPELINE), cwd=tmp_path)
+    with _killed_if_left(proc):
         assert "running" in proc.stdout.readline()
         launcher = psutil.Process(proc.pid)
         workers = eventually(lambda: _workers_of(launcher), what="worker processes")
@@ -67,10 +85,6 @@ def test_a_signal_stops_everything_and_leaves_nothing_behind(tmp_path: Path, how
         else:
             os.killpg(proc.pid, signal.SIGTERM)
         out, err = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
     assert proc.returncode == 0, err
     assert "stopped cleanly" in out
     assert "Traceback" not in err and "died" not in err and "failed" not in err
@@ -107,18 +121,12 @@ def test_a_scenario_whose_terminal_closes_stops_and_leaves_nothing_behind(
         tmp_path: Path) -> None:
     """`pb3a scenario` took no signal but Ctrl-C: a closing terminal (SIGHUP to the
     group) killed it, its segments left in /dev/shm."""
-    proc = subprocess.Popen([sys.executable, "-m", "pb3a", "scenario", "self-migration",
-                             "--quick", "--out", str(tmp_path)], cwd=tmp_path, env=_env(),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
-    try:
+    proc = _in_its_own_group("scenario", "self-migration", "--quick", "--out", str(tmp_path),
+                             cwd=tmp_path)
+    with _killed_if_left(proc):
         eventually(lambda: live_segments(proc.pid), timeout=30, what="the scenario running")
         os.killpg(proc.pid, signal.SIGHUP)
         _, err = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
     assert proc.returncode == 130 and err.strip() == "pb3a: interrupted", err
     assert not live_segments(proc.pid)
 

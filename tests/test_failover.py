@@ -289,10 +289,7 @@ def test_a_node_that_hears_the_heartbeats_but_whose_answers_are_lost_stops_befor
     its module over while the old copy stepped on for 1.2 s more. Heartbeats renew the
     lease now only while the node's answers are fresh."""
     b, stamps = daemons["b"], tmp_path / "steps"
-    system = System("uplink").node("a").node("b", address=b.address)
-    system.add("stepper", StepStamps, node="b", restart="fresh", fallback=["a"],
-               state={"path": str(stamps)})
-    with system.launch() as run:
+    with _stamping_on_b("uplink", b, stamps).launch() as run:
         eventually(lambda: stamps.exists() and stamps.read_text().count("\n") > 20,
                    what="steps on b")
         remote = run._launcher.remotes["b"]
@@ -303,9 +300,26 @@ def test_a_node_that_hears_the_heartbeats_but_whose_answers_are_lost_stops_befor
                     raise Rejected("the uplink lost it")
                 return opened(frames)
             client._opener.open = dropped
-        eventually(lambda: _events(run, "module_failed_over"), timeout=15, what="failover")
-        eventually(lambda: len({line.split()[0] for line in stamps.read_text().splitlines()})
-                   == 2, what="steps of the copy on a")
+        _wait_for_the_copy_on_a(run, stamps)
+    _assert_one_copy_at_a_time(stamps)
+
+
+def _stamping_on_b(name: str, b: Daemon, stamps: Path) -> System:
+    """A module on b stamping each step, with its pid, in ``stamps``; failing over to a."""
+    system = System(name).node("a").node("b", address=b.address)
+    system.add("stepper", StepStamps, node="b", restart="fresh", fallback=["a"],
+               state={"path": str(stamps)})
+    return system
+
+
+def _wait_for_the_copy_on_a(run, stamps: Path) -> None:
+    eventually(lambda: _events(run, "module_failed_over"), timeout=15, what="failover")
+    eventually(lambda: len({line.split()[0] for line in stamps.read_text().splitlines()}) == 2,
+               what="steps of the copy on a")
+
+
+def _assert_one_copy_at_a_time(stamps: Path) -> None:
+    """The old copy's last step came before the new copy's first."""
     steps = [line.split() for line in stamps.read_text().splitlines()]
     old, new = dict.fromkeys(pid for pid, _ in steps)
     assert max(float(at) for pid, at in steps if pid == old) \
@@ -531,23 +545,13 @@ def test_a_frozen_executor_s_workers_stop_before_their_modules_run_elsewhere(
     their modules' failed-over copies until it ran again. Workers hold a lease of their
     own from a remote node's executor now, which lapses first."""
     b, stamps = daemons["b"], tmp_path / "steps"
-    system = System("frozen").node("a").node("b", address=b.address)
-    system.add("stepper", StepStamps, node="b", restart="fresh", fallback=["a"],
-               state={"path": str(stamps)})
-    with system.launch() as run:
+    with _stamping_on_b("frozen", b, stamps).launch() as run:
         eventually(lambda: stamps.exists() and stamps.read_text().count("\n") > 20,
                    what="steps on b")
         executor = b.executor_pid()
         os.kill(executor, signal.SIGSTOP)
         try:
-            eventually(lambda: _events(run, "module_failed_over"), timeout=15,
-                       what="failover")
-            eventually(lambda: len({line.split()[0] for line in
-                                    stamps.read_text().splitlines()}) == 2,
-                       what="steps of the copy on a")
+            _wait_for_the_copy_on_a(run, stamps)
         finally:
             os.kill(executor, signal.SIGCONT)
-    steps = [line.split() for line in stamps.read_text().splitlines()]
-    old, new = dict.fromkeys(pid for pid, _ in steps)
-    assert max(float(at) for pid, at in steps if pid == old) \
-        < min(float(at) for pid, at in steps if pid == new)
+    _assert_one_copy_at_a_time(stamps)
