@@ -137,13 +137,14 @@ class SystemStats:
         return plain(dataclasses.asdict(self))
 
 
-def plain(value: Any) -> Any:
+def plain(value: Any, finite: bool = True) -> Any:
     """``value`` in JSON's terms: NaN and the infinities as None (as JavaScript writes
-    them: JSON has no such numbers), tuples as lists, keys as strings."""
-    if isinstance(value, float) and not math.isfinite(value):
+    them: JSON has no such numbers; kept with ``finite=False``, for people to read),
+    tuples as lists, keys as strings."""
+    if finite and isinstance(value, float) and not math.isfinite(value):
         return None
     if isinstance(value, dict):
-        return {str(key): plain(item) for key, item in value.items()}
+        return {str(key): plain(item, finite) for key, item in value.items()}
     if isinstance(value, (list, tuple)):
-        return [plain(item) for item in value]
+        return [plain(item, finite) for item in value]
     return value

@@ -31,6 +31,9 @@ def test_key_new_writes_a_private_key_once(tmp_path, capsys) -> None:
     assert path.read_bytes() == written and ClusterKey.load(named) == key
     assert main(["key", "new", str(tmp_path / "nowhere" / "k")]) == 1
     assert "No such file or directory" in capsys.readouterr().err
+    for where, said in (("", "'' is empty"), (str(tmp_path), "is a directory")):
+        assert main(["key", "new", where]) == 1
+        assert said in capsys.readouterr().err                  # not ". exists"
 
 
 def test_every_command_refuses_a_key_file_others_can_read(tmp_path) -> None:

@@ -64,6 +64,8 @@ def test_every_command_changes_a_running_system_and_speaks_json(capsys) -> None:
         bare = address.removeprefix("tcp://")              # HOST:PORT works too
         assert main(["set", bare, "src", "limit=Infinity"]) == 0
         capsys.readouterr()
+        assert main(["state", bare, "src"]) == 0                    # for people: as set
+        assert '"limit": Infinity' in capsys.readouterr().out
         assert main(["state", bare, "src", "--json"]) == 0          # valid JSON: null
         assert json.loads(capsys.readouterr().out, parse_constant=_no_constant)["limit"] \
             is None

@@ -22,6 +22,11 @@ def register(commands: argparse._SubParsersAction) -> None:
 def key_new_command(args: argparse.Namespace) -> int:
     """``pb3a key new PATH``: a new key file, never over an existing one."""
     path = Path(args.path).expanduser()
+    if not args.path.strip() or path.is_dir():
+        print(f"pb3a key new: {args.path!r} is {'a directory' if args.path.strip() else 'empty'}"
+              "; give the path of the key file to create, e.g. ~/.pb3a/cluster.key",
+              file=sys.stderr)
+        return 1
     try:
         ClusterKey.create(path)
     except FileExistsError:

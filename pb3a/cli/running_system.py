@@ -102,7 +102,8 @@ def _status(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
 
 def _state(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
     state = system.state(args.module, timeout=args.timeout)
-    return json.dumps(plain(state), indent=2, default=repr), state
+    # Shown as Python writes a NaN or an infinity (--json: null, JSON has neither).
+    return json.dumps(plain(state, finite=False), indent=2, default=repr), state
 
 
 def _set(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:

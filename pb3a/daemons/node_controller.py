@@ -18,6 +18,7 @@ from typing import Any
 
 import psutil
 
+from pb3a.config import checks
 from pb3a.daemons.node_share import UNBOUND_S, executor_main
 from pb3a.errors import bounded_wait
 from pb3a.processes import start_without_main
@@ -49,6 +50,8 @@ class NodeController:
 
     def __init__(self, name: str, key: ClusterKey, host: str = "127.0.0.1", port: int = 0,
                  limits: Limits | None = None) -> None:
+        if problems := checks.name(name, "node"):    # configurations could never name it
+            raise ValueError(problems[0])
         self.name = name
         self.limits = limits or Limits()
         self.unbound_s = UNBOUND_S          # an executor not taken by a launcher this long stops
