@@ -115,6 +115,28 @@ def no_leaks() -> Iterator[None]:
         time.sleep(0.05)
 
 
+# The per-test check above sees only the segments of the test's own process; those of
+# the processes it started elsewhere (a node controller's executor, its workers) are
+# checked once, when the whole run is over: a segment made during the run whose owner
+# is gone was left behind. (In pytest-xdist's controller, after every worker is done.)
+_SEGMENTS_AT_START: set[str] = set()
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    _SEGMENTS_AT_START.update(live_segments())
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    if hasattr(session.config, "workerinput"):         # an xdist worker
+        return
+    left = [name for name in live_segments() if name not in _SEGMENTS_AT_START
+            and not psutil.pid_exists(int(name.split("_")[1]))]
+    if left:
+        print(f"\nleft behind by processes of this run, now gone: segments {left}",
+              file=sys.stderr)
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
 class HeldKey:
     """A cluster key file that is a named pipe: a process started with ``env`` (or under
     it, for a spawned child) blocks in its start as it loads the key, until ``give``

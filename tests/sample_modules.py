@@ -194,11 +194,13 @@ class ArraySink(Module):
     x = Input(np.ndarray, shape=(1024, 128), dtype="float64")
     sums_ok = 0
     scribbled = 0          # arrays holding what the writer put in after writing them
+    owned = 0              # arrays that own their memory (copies, not views of a ring)
     writable = False
 
     def on_input(self, port) -> None:
         arr = port.read()
         self.writable = bool(arr.flags.writeable)
+        self.owned += bool(arr.flags.owndata)
         if float(arr[0, 0]) * arr.size == float(arr.sum()):
             self.sums_ok += 1
         if float(arr.min()) < 0:
@@ -905,3 +907,33 @@ class RobotPose(Module):
         self.seen += 1
         self.pose.x += 1.0
         self.count.write(float(self.seen))
+
+
+class ListScribbler(Module):
+    """Writes one list again and again, scribbling over it (-1) right after each write."""
+
+    out = Output(list)
+    period = 0.002
+    n = 0
+
+    def setup(self) -> None:
+        self._items = [0, 0, 0]
+
+    def step(self) -> None:
+        self.n += 1
+        self._items[:] = [self.n] * 3
+        self.out.write(self._items)
+        self._items[:] = [-1] * 3
+
+
+class ListSink(Module):
+    """Counts lists whose items differ (scribbled over after they were written)."""
+
+    x = Input(list, policy="queue:1000")
+    received = 0
+    scribbled = 0
+
+    def on_input(self, port) -> None:
+        for items in port.read_all():
+            self.received += 1
+            self.scribbled += len(set(items)) != 1 or items[0] < 0

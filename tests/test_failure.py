@@ -485,16 +485,19 @@ class TwoInputs(Module):
             self.got_b += 1
 
 
-def test_a_value_its_reader_cannot_decode_is_logged_counted_and_skipped(caplog) -> None:
+@pytest.mark.parametrize("policy", [None, "lossless:8"])
+def test_a_value_its_reader_cannot_decode_is_logged_counted_and_skipped(policy,
+                                                                        caplog) -> None:
     """One value that pickles in its writer but does not unpickle in its reader is
-    dropped there, logged naming its link and counted in the link's drops; that link
-    and the reader's others go on, and the reader does not spin."""
+    dropped there, logged naming its link and counted in the link's drops (a lossless
+    link's too: it cannot be delivered); that link and the reader's others go on, and
+    the reader does not spin."""
     caplog.set_level(logging.ERROR, logger="pb3a.ring")
     system = System("undecodable")
     system.add("rep", ReportsRefusal)
     system.add("tick", Counter, period=0.01)
     system.add("sink", TwoInputs)
-    system.link("rep.out", "sink.a")
+    system.link("rep.out", "sink.a", policy=policy)
     system.link("tick.out", "sink.b")
     with system.launch() as run:
         pid = eventually(lambda: run.stats().modules["sink"].pid, what="the reader's pid")

@@ -135,7 +135,8 @@ def test_state_is_reflected_from_public_attributes() -> None:
     assert reader.get_state()["note"] == "instance attributes count too"
     reader.set_state({"gain": 4.0, "offset": 2})
     assert reader.gain == 4.0 and reader.offset == 2
-    with pytest.raises(KeyError, match=r"gian.*its state is"):
+    with pytest.raises(KeyError, match=r"no state 'gian'; its state is: gain, history, "
+                                       r"note, offset"):
         reader.set_state({"gian": 1.0})
 
 
@@ -358,6 +359,8 @@ class Cells:
 class Keeper(Module):
     recent = collections.deque(maxlen=3)
     cells = Cells()
+    table: dict = {}
+    grid = np.zeros(3)
     label = "kept"
 
 
@@ -365,6 +368,10 @@ def test_every_mutable_default_is_copied_per_instance_not_only_lists_and_dicts()
     a, b = Keeper(), Keeper()
     a.recent.append(1)
     a.cells.seen[(0, 0)] = 1
+    a.table["x"] = 1
+    a.grid[0] = 1.0
     assert list(b.recent) == [] and b.cells.seen == {} and b.recent.maxlen == 3
+    assert b.table == {} and not b.grid.any()
     assert list(Keeper.recent) == [] and Keeper.cells.seen == {}
+    assert Keeper.table == {} and not Keeper.grid.any()
     assert a.get_state()["label"] is Keeper.label

@@ -151,7 +151,7 @@ def test_a_batch_into_a_stalled_reader_waits_once_in_all_then_drops_and_counts(r
     assert writer.write_many(batch) == 0                 # the default wait, as a port's
     took = time.monotonic() - started
     assert writer.waits == waits + 1                     # one wait for the batch, not 50
-    assert took < 10 * WRITE_TIMEOUT                     # (it was 50 x WRITE_TIMEOUT)
+    assert 0.9 * WRITE_TIMEOUT <= took < 3 * WRITE_TIMEOUT          # (it was 50 x WRITE_TIMEOUT)
     got, _ = _drain(reader)
     assert got == list(range(sent))
     assert writer.write("next")

@@ -11,6 +11,7 @@ import pytest
 from conftest import eventually
 from sample_modules import (
     ArrayHolder,
+    ArrayReuser,
     ArraySink,
     ArraySource,
     Burst,
@@ -23,6 +24,8 @@ from sample_modules import (
     FastScale,
     FloatSource,
     Last,
+    ListScribbler,
+    ListSink,
     Offset,
     Outer,
     Overlap,
@@ -77,6 +80,25 @@ def test_values_flow_through_threaded_and_event_driven_modules(workers: int) -> 
     assert link.transport == ("shm" if workers == 0 else "memory")
     assert link.values > 0 and link.rate > 0
     assert 0 <= link.latency < 0.5
+
+
+def test_a_link_inside_one_process_gives_the_reader_a_copy() -> None:
+    """A writer that changes a list or an array right after writing it changes nothing
+    its reader in the same process got (the reader's array is read-only too)."""
+    system = System("one-process", workers=1)
+    system.add("lists", ListScribbler)
+    system.add("list_sink", ListSink)
+    system.add("arrays", ArrayReuser)
+    system.add("array_sink", ArraySink)
+    system.link("lists.out", "list_sink.x")
+    system.link("arrays.out", "array_sink.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("list_sink")["received"] >= 50
+                   and run.state("array_sink")["sums_ok"] >= 20, what="values in")
+        assert {link.transport for link in run.stats().links.values()} == {"memory"}
+        assert run.state("list_sink")["scribbled"] == 0
+        array_sink = run.state("array_sink")
+    assert array_sink["scribbled"] == 0 and array_sink["writable"] is False
 
 
 def test_stats_are_typed_records_with_a_json_form() -> None:
@@ -154,7 +176,7 @@ def test_large_arrays_arrive_read_only_and_intact() -> None:
     system.link("src.out", "dst.x")
     with system.launch() as run:
         state = eventually(lambda: (s := run.state("dst"))["sums_ok"] >= 20 and s, what="arrays")
-    assert state["writable"] is False
+    assert state["writable"] is False and state["owned"] == 0     # views of the ring
 
 
 def test_state_read_and_live_edit() -> None:
@@ -163,7 +185,7 @@ def test_state_read_and_live_edit() -> None:
         run.set_state("scale", gain=5.0)
         assert run.state("scale")["gain"] == 5.0
         eventually(lambda: run.state("sink")["value"] == 7.5, what="1.5 * 5 at the sink")
-        with pytest.raises(Exception, match="gian"):
+        with pytest.raises(Exception, match=r"no state 'gian'; its state is: gain, setups"):
             run.set_state("scale", gian=1.0)
         with pytest.raises(ModuleNotFound, match="nope"):
             run.state("nope")
@@ -181,6 +203,12 @@ def test_swap_keeps_ports_and_state_and_runs_setup_again() -> None:
         with pytest.raises(ConfigError, match="str"):
             run.swap("scale", Offset)
         assert run.stats().modules["scale"].cls.endswith("FastScale")
+        run.add("off", Offset)                  # a new link is checked as a swap is
+        links = set(run.stats().links)
+        for change in (run.link, run.relink):
+            with pytest.raises(ConfigError, match="incompatible types"):
+                change("src.out", "off.x")
+        assert set(run.stats().links) == links
 
 
 def test_a_swap_keeps_the_configured_state_the_new_class_has_and_a_restart_uses_it() -> None:
