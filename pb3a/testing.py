@@ -17,6 +17,7 @@ passes (any object with the methods the agent calls, e.g. a recording fake).
 from __future__ import annotations
 
 import copy
+from collections import deque
 from typing import Any
 
 from pb3a.model.module import Module
@@ -28,16 +29,20 @@ class ModuleHarness:
     """A module of class ``cls`` with ``state``, ready to be fed and stepped."""
 
     def __init__(self, cls: type[Module], state: dict[str, Any] | None = None, *,
-                 runtime: Any = None, name: str = "") -> None:
+                 runtime: Any = None, name: str = "", keep: int | None = None) -> None:
+        """``keep``: how many of the newest values to keep per output (all by default;
+        a long run that only looks at ``last`` keeps 1, and its memory stays flat)."""
+        if keep is not None and keep < 1:
+            raise ValueError(f"keep must be at least 1 (or None, for all), not {keep!r}")
         self.module = cls()
         if state:       # its own copy, as a launched module's comes through a pipe
             self.module.set_state(copy.deepcopy(state))
         ports = self.module._pb3a_bind_ports(name or cls.__name__)
         self.inputs = {n: p for n, p in ports.items() if isinstance(p, InputPort)}
-        self.written: dict[str, list[Any]] = {}
+        self.written: dict[str, list[Any] | deque[Any]] = {}
         for port_name, port in ports.items():
             if isinstance(port, OutputPort):
-                self.written[port_name] = kept = []
+                self.written[port_name] = kept = [] if keep is None else deque(maxlen=keep)
                 port.connect("harness", lambda value, kept=kept: kept.append(local_copy(value)))
         if runtime is not None:
             self.module.__dict__["_pb3a_runtime"] = runtime

@@ -43,14 +43,13 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from agents.traffic.driver import TrafficDriver
+from agents.traffic import lockstep
 from agents.traffic.lockstep import run_in_process
 from agents.traffic.messages import JunctionLayout
 from agents.traffic.networks import Network
 from pb3a import System
 from pb3a.cli.log_output import show_logs
 from pb3a.loading.references import resolve_class
-from pb3a.testing import ModuleHarness
 
 CONFIG = Path(__file__).with_name("traffic.toml")
 NETWORKS = Path(__file__).with_name("traffic")
@@ -77,14 +76,12 @@ def network_path(network: str) -> Path:
 
 def layouts(resource: Path, cache: Path | None = None) -> dict[str, JunctionLayout]:
     """The network's signalized junctions, in the driver's slot order."""
-    driver = ModuleHarness(TrafficDriver, state={
-        "resource": str(resource), "duration_s": 10.0,
-        "cache_dir": str(cache) if cache else ""})
+    simulation = lockstep.driver(resource, cache, duration_s=10.0)
     try:
-        return {junction: driver.last(f"reading_{slot}").layout
-                for slot, junction in enumerate(driver.state["junctions"])}
+        return {junction: simulation.last(f"reading_{slot}").layout
+                for slot, junction in enumerate(simulation.state["junctions"])}
     finally:
-        driver.close()
+        simulation.close()
 
 
 def neighbours(found: dict[str, JunctionLayout]) -> dict[str, list[str]]:
@@ -171,16 +168,15 @@ def run_sumo(resource: Path, seed: int, duration_s: float, signals: str,
              cache: Path | None = None, demand_scale: Mapping[str, float] | None = None,
              ) -> dict[str, Any]:
     """SUMO's own programs of type ``signals`` drive the lights."""
-    driver = ModuleHarness(TrafficDriver, state={
-        "resource": str(resource), "seed": seed, "duration_s": duration_s,
-        "signals": signals, "own_programs": True, "cache_dir": str(cache) if cache else "",
-        "demand_scale": dict(demand_scale or {})})
+    simulation = lockstep.driver(resource, cache, seed=seed, duration_s=duration_s,
+                                 signals=signals, own_programs=True,
+                                 demand_scale=dict(demand_scale or {}))
     try:
-        while driver.module.status == "running":
-            driver.step()
-        return driver.state["result"]
+        while simulation.module.status == "running":
+            simulation.step()
+        return simulation.state["result"]
     finally:
-        driver.close()
+        simulation.close()
 
 
 def run(network: str = "ring", seed: int = 1, quick: bool = False,

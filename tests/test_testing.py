@@ -25,6 +25,14 @@ def test_steps_run_the_threaded_body() -> None:
     assert harness.state["count"] == 3
 
 
+def test_keep_holds_only_the_newest_values_of_each_output() -> None:
+    harness = ModuleHarness(Ticker, keep=2)
+    harness.step(5)
+    assert list(harness.written["out"]) == [4, 5] and harness.last("out") == 5
+    with pytest.raises(ValueError, match="keep must be at least 1"):
+        ModuleHarness(Ticker, keep=0)
+
+
 def test_a_wrong_port_or_type_is_named() -> None:
     harness = ModuleHarness(Scale)
     with pytest.raises(KeyError, match="no input 'z'; its inputs: x"):

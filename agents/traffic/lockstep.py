@@ -20,6 +20,14 @@ from pb3a.testing import ModuleHarness
 ControllerChoice = Callable[[str], tuple[type[JunctionController], dict[str, Any]]]
 
 
+def driver(resource: str | Path, cache: Path | None = None, **state: Any) -> ModuleHarness:
+    """A ``TrafficDriver`` on ``resource`` in this process, with ``state``; it keeps only
+    its newest value per output, so an hour of readings does not pile up."""
+    return ModuleHarness(TrafficDriver, state={
+        "resource": str(resource), "cache_dir": str(cache) if cache else "", **state},
+        keep=1)
+
+
 def run_in_process(resource: str | Path, make: ControllerChoice, *, seed: int,
                    duration_s: float, cache: Path | None = None, min_green_s: float = 5.0,
                    demand_scale: Mapping[str, float] | None = None,
@@ -27,20 +35,18 @@ def run_in_process(resource: str | Path, make: ControllerChoice, *, seed: int,
     """Simulate ``resource`` for ``duration_s`` with, per junction, the controller
     ``make(junction)`` gives (class, state); the run's figures and the controllers.
     ``demand_scale`` is the driver's (period name, or ``*``, to a factor of its rates)."""
-    driver = ModuleHarness(TrafficDriver, state={
-        "resource": str(resource), "seed": seed, "duration_s": duration_s,
-        "cache_dir": str(cache) if cache else "", "min_green_s": min_green_s,
-        "demand_scale": dict(demand_scale or {})})
+    simulation = driver(resource, cache, seed=seed, duration_s=duration_s,
+                        min_green_s=min_green_s, demand_scale=dict(demand_scale or {}))
     try:
-        junctions = driver.state["junctions"]
+        junctions = simulation.state["junctions"]
         controllers = {}
         for junction in junctions:
             cls, state = make(junction)
-            controllers[junction] = ModuleHarness(cls, state=state, name=junction)
+            controllers[junction] = ModuleHarness(cls, state=state, name=junction, keep=1)
         seen = dict.fromkeys(range(len(junctions)), -1)
-        while driver.module.status == "running":
+        while simulation.module.status == "running":
             for slot, junction in enumerate(junctions):
-                reading = driver.last(f"reading_{slot}")
+                reading = simulation.last(f"reading_{slot}")
                 if reading is None or reading.step == seen[slot]:
                     continue
                 seen[slot] = reading.step
@@ -48,11 +54,11 @@ def run_in_process(resource: str | Path, make: ControllerChoice, *, seed: int,
                 for controller in controllers.values():
                     controller.feed("neighbour_0", queues)
             for slot, junction in enumerate(junctions):
-                reading = driver.last(f"reading_{slot}")
-                if driver.module.status != "running":
+                reading = simulation.last(f"reading_{slot}")
+                if simulation.module.status != "running":
                     break
                 controllers[junction].feed("reading", reading)
-                driver.feed(f"request_{slot}", controllers[junction].last("request"))
-        return driver.state["result"], controllers
+                simulation.feed(f"request_{slot}", controllers[junction].last("request"))
+        return simulation.state["result"], controllers
     finally:
-        driver.close()
+        simulation.close()
