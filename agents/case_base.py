@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pb3a.config.checks import finite
+from agents.limits import finite, whole
 
 Feature = str | bool | int | float
 SETTINGS = {"min_similarity": 0.75, "new_case_below": 0.95}
@@ -320,17 +320,13 @@ def _case(path: str, number: int, raw: dict[str, Any]) -> Case:
     if not isinstance(remedy, dict) or not isinstance(remedy.get("action"), str):
         raise fail("no remedy action: add a [case.remedy] table with action = \"...\"")
     tried, worked = raw.get("tried", 0), raw.get("worked", 0)
-    if not (_is_count(tried) and _is_count(worked) and worked <= tried):
+    if not (whole(tried) and whole(worked) and worked <= tried):
         raise fail(f"tried = {tried!r} and worked = {worked!r} must be whole numbers with "
                    "0 <= worked <= tried")
     note = raw.get("note", "")
     if not isinstance(note, str):
         raise fail(f"note must be a string, got {note!r}")
     return Case(case_id, symptoms, remedy, note, tried, worked, path)
-
-
-def _is_count(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
 
 
 def _is_symptom(value: Any) -> bool:

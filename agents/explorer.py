@@ -49,9 +49,8 @@ from agents.grid import (
     Grid,
     classify,
 )
-from agents.limits import SPAN, Limit, out_of_limits
+from agents.limits import SPAN, Limit, finite, out_of_limits
 from pb3a import Input, Module, Output
-from pb3a.config.checks import finite
 from rave.pioneer import RADIUS
 from rave.sonar import RING
 

@@ -28,8 +28,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from agents.limits import finite
 from pb3a import Input, InputPort, Module, Output
-from pb3a.config.checks import finite
 
 SUCCESS, COLLISION, TIMEOUT = "success", "collision", "timeout"
 EPSILON = 0.3        # the exploration rate an untrained learner starts with

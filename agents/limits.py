@@ -19,6 +19,11 @@ RATIO: Limit = ("a number, 0 or more", lambda x: finite(x) and x >= 0)
 SHARE: Limit = ("a number from 0 to 1", lambda x: finite(x) and 0 <= x <= 1)
 
 
+def whole(value: Any, least: int = 0) -> bool:
+    """True for a whole number (an int, not a bool: TOML's ``true``) of ``least`` or more."""
+    return isinstance(value, int) and not isinstance(value, bool) and value >= least
+
+
 def settings_with(owner: object, limits: dict[str, Limit],
                   state: dict[str, Any]) -> dict[str, Any]:
     """The limited settings ``owner`` would have with ``state`` set."""

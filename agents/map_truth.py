@@ -30,16 +30,15 @@ from scipy import ndimage
 from agents.grid import FREE, OCCUPIED, Grid, classify
 
 
-def truth(world: Any, grid: Grid, virtual: bool = True) -> np.ndarray:
-    """The world's true map on ``grid``: a bool array, True where occupied. ``world``
-    is a ``rave.World`` or its ``describe()``."""
+def truth(world: Any, grid: Grid) -> np.ndarray:
+    """The world's true map on ``grid``: a bool array, True where occupied (by real and
+    virtual obstacles alike: a robot maps both). ``world`` is a ``rave.World`` or its
+    ``describe()``."""
     obstacles = world.describe()["obstacles"] if hasattr(world, "describe") else world["obstacles"]
     xs, ys = grid.centers()
     occupied = np.zeros(grid.shape, dtype=bool)
     reach = grid.resolution / np.sqrt(2.0)         # a segment through a cell passes this near
     for obstacle in obstacles:                     # its centre
-        if obstacle["virtual"] and not virtual:
-            continue
         points = np.asarray(obstacle["points"], dtype=np.float64)
         ends = np.vstack([points, points[:1]]) if obstacle["closed"] else points
         for (x0, y0), (x1, y1) in itertools.pairwise(ends):

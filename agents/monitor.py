@@ -47,9 +47,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy.special import expit, logsumexp
 
-from agents.limits import SPAN, Limit, out_of_limits
+from agents.limits import SPAN, Limit, finite, out_of_limits, whole
 from pb3a import Input, InputPort, Module, Output
-from pb3a.config.checks import finite
+from rave.pioneer import ACCEL, ANGULAR_ACCEL, MOTOR_LAG_S
 from rave.sonar import COUNT as SONARS
 from rave.sonar import MAX_RANGE
 
@@ -97,8 +97,8 @@ class FeatureTracker:
     a loaded machine reads late now and then, and a sample 0.2 s after the last read as
     0.1 s doubles the speed), else over the nominal ``sample_s``."""
 
-    def __init__(self, sample_s: float = 0.1, lag_s: float = 0.25, accel: float = 0.3,
-                 angular_accel: float = math.radians(100.0), motor_window: int = 5,
+    def __init__(self, sample_s: float = 0.1, lag_s: float = MOTOR_LAG_S, accel: float = ACCEL,
+                 angular_accel: float = ANGULAR_ACCEL, motor_window: int = 5,
                  odometry_window: int = 40, min_speed: float = 0.05, min_turn: float = 0.15,
                  heading_noise: float = 0.0005, drift_resolution: float = 0.005) -> None:
         self.sample_s, self.lag_s = sample_s, lag_s
@@ -609,7 +609,7 @@ _LIMITS: dict[str, Limit] = {
     "fault_prior": ("a probability above 0 and below 1", lambda v: finite(v) and 0 < v < 1),
     "fault_breadth": ("a number above 1", lambda v: finite(v) and v > 1),
     "rearm": ("a whole number of windows, 1 or more",
-              lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 1),
+              lambda v: whole(v, 1)),
 }
 
 
@@ -621,7 +621,7 @@ def _check_settings(state: dict[str, Any]) -> None:
                          f"the groups are {', '.join(GROUPS)}")
     windows = [f"ready_windows[{group!r}] must be a whole number, 0 or more, got {n!r}"
                for group, n in state["ready_windows"].items()
-               if isinstance(n, bool) or not isinstance(n, int) or n < 0]
+               if not whole(n)]
     wrong = out_of_limits(_LIMITS, state)
     if windows or wrong:
         raise ValueError("HardwareMonitor: " + "; ".join(windows + wrong))

@@ -19,6 +19,7 @@ import numpy as np
 from scipy import ndimage
 
 from agents.grid import Grid
+from agents.limits import whole
 from pb3a import Input, InputPort, Module, Output
 from rave.sonar import MAX_RANGE, RING
 
@@ -302,7 +303,7 @@ def _grid_and_model(state: dict[str, Any]) -> tuple[Grid, SonarModel]:
     defaults); ValueError naming what they cannot be made of."""
     grid = Grid.of(state["size"], state["resolution"])
     every = state["publish_every"]       # (a NaN failed every reading)
-    if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+    if not whole(every, 1):
         raise ValueError(f"publish_every must be a whole number of readings, 1 or more, "
                          f"got {every!r}")
     parameters = [field.name for field in fields(SonarModel)]

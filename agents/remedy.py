@@ -22,9 +22,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from agents.case_base import AdaptationError, CaseBase, CaseFileError, Feature, Match, adapt
-from agents.limits import Limit, out_of_limits
+from agents.limits import Limit, finite, out_of_limits
 from pb3a import Agent, Input, InputPort, Output
-from pb3a.config.checks import finite
 from pb3a.errors import PB3AError
 
 if TYPE_CHECKING:

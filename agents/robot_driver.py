@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from agents.limits import whole
 from pb3a import Driver, Input, InputPort, Output, RuntimeCancelled
 
 SILENT_STOP_S = 0.1          # how long a silent robot's stop is waited for, when let go
@@ -193,6 +194,6 @@ class RobotDriver(Driver):
 
 
 def _check_silent_after(periods: Any) -> None:
-    if isinstance(periods, bool) or not isinstance(periods, int) or periods < 1:
+    if not whole(periods, 1):
         raise ValueError(f"silent_after must be a whole number of periods, 1 or more, "
                          f"got {periods!r}")

@@ -25,6 +25,7 @@ import dataclasses
 import time
 from typing import Any
 
+from agents.limits import whole
 from pb3a import Agent, Input, InputPort, Output
 from pb3a.errors import PB3AError
 
@@ -45,11 +46,11 @@ def _check_settings(state: dict[str, Any]) -> None:
     window, threshold, least = state["window"], state["threshold"], state["min_episodes"]
     problems = [what for what, wrong in (
         (f"window ({window!r}) must be a whole number of episodes, 1 or more",
-         isinstance(window, bool) or not isinstance(window, int) or window < 1),
+         not whole(window, 1)),
         (f"threshold ({threshold!r}) must be a success rate from 0 (at once) to 1",
          not isinstance(threshold, int | float) or not 0 <= threshold <= 1),
         (f"min_episodes ({least!r}) must be a whole number, 0 or more",
-         not isinstance(least, int) or least < 0)) if wrong]
+         not whole(least))) if wrong]
     if problems:
         raise ValueError("TransferAgent: " + "; ".join(problems))
 

@@ -35,7 +35,7 @@ import pymunk
 
 from rave import sonar
 from rave.layers import REAL, ROBOT, WALL_RADIUS
-from rave.pioneer import MASS, RADIUS
+from rave.pioneer import ACCEL, ANGULAR_ACCEL, MASS, MOTOR_LAG_S, RADIUS
 
 START_TIMEOUT = 30.0                # s: a child imports numpy and pymunk first
 ANSWER_TIMEOUT = 5.0
@@ -50,9 +50,9 @@ REAL_NOISE = sonar.SonarNoise(sigma0=0.01, sigma_per_m=0.01, dropout=0.02, specu
 class Dynamics:
     """How the physical robot answers a command."""
 
-    lag_s: float = 0.25              # first-order motor lag
-    accel: float = 0.3               # m/s^2
-    angular_accel: float = math.radians(100.0)
+    lag_s: float = MOTOR_LAG_S
+    accel: float = ACCEL
+    angular_accel: float = ANGULAR_ACCEL
     slip_sigma: float = 0.02         # wheel slip: random walk of the fraction lost
 
 
@@ -61,9 +61,9 @@ class Emulator:
 
     def __init__(self, segments: np.ndarray, pose: tuple[float, float, float],
                  rng: np.random.Generator, velocity: tuple[float, float] = (0.0, 0.0),
-                 dynamics: Dynamics | None = None) -> None:
+                 ) -> None:
         self.rng = rng
-        self.dynamics = dynamics or Dynamics()
+        self.dynamics = Dynamics()
         self.segments = np.empty((0, 4))
         self.space = pymunk.Space()
         self.add_walls(segments)

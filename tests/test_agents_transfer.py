@@ -68,7 +68,8 @@ WRONG = pytest.mark.parametrize(("wrong", "named"), [
     ({"window": 2.5}, "window (2.5)"),
     ({"threshold": 1.2}, "threshold (1.2) must be a success rate from 0 (at once) to 1"),
     ({"threshold": -0.1}, "threshold (-0.1)"),
-    ({"min_episodes": -1}, "min_episodes (-1) must be a whole number, 0 or more")])
+    ({"min_episodes": -1}, "min_episodes (-1) must be a whole number, 0 or more"),
+    ({"min_episodes": True}, "min_episodes (True)")])         # (TOML's true was taken as 1)
 
 
 @WRONG

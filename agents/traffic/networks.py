@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 from xml.sax.saxutils import quoteattr
 
-from pb3a.config.checks import finite
+from agents.limits import finite
 
 SIGNAL_TYPES = ("static", "actuated", "delay_based")   # netconvert's --tls.default-type
 BUILD_TIMEOUT_S = 120.0

@@ -9,7 +9,6 @@ wording here keeps every message of one kind the same wherever it is found.
 from __future__ import annotations
 
 import difflib
-import math
 import os
 import re
 from collections.abc import Iterable
@@ -17,7 +16,7 @@ from typing import Any
 
 from pb3a.errors import MOST_SECONDS
 from pb3a.loading.references import class_ref
-from pb3a.model.displays import declared_displays
+from pb3a.model.displays import declared_displays, finite
 from pb3a.model.module import RESTART_POLICIES, Module
 
 NAME = re.compile(r"\A[A-Za-z0-9_-]+\Z")     # (\Z: "$" also matches before a final newline)
@@ -55,12 +54,6 @@ def unknown_keys(extra: dict[str, Any], allowed: Iterable[str]) -> list[str]:
     allowed = list(allowed)
     return [f"unknown key {key!r}{did_you_mean(key, allowed)}; allowed keys: {listing(allowed)}"
             for key in extra]
-
-
-def finite(value: Any) -> bool:
-    """True for a finite int or float (a TOML ``true`` is neither, nor is NaN)."""
-    return isinstance(value, (int, float)) and not isinstance(value, bool) \
-        and math.isfinite(value)
 
 
 def period(value: Any) -> list[str]:

@@ -94,6 +94,7 @@ class _Planner:
         ``partial`` asks for what resolved."""
         spec = self.spec
         nodes = self.check_system()
+        self.code = self.install_code()
         top = self.define(Definition(f"system {spec.name!r}", spec.origin, "",
                                      {**spec.modules, **self.env_modules(nodes)}, spec.links,
                                      {}))
@@ -123,12 +124,12 @@ class _Planner:
                     dataclasses.replace(self.code, preload=preload), timeout), problems
 
     # -- the system's own tables ------------------------------------------
-    def check_system(self) -> dict[str, NodeSpec]:
+    def install_code(self) -> CodeSources:
+        """Where the system's classes come from, installed in this process (its finders
+        on ``sys.meta_path``): the file's own directory and the module servers it
+        names, those that are addresses. The classes checked next may be next to the
+        file, or only on a server."""
         spec, origin = self.spec, self.spec.origin
-        self.report(origin, [p.replace("unknown key", "unknown top-level key")
-                             for p in checks.unknown_keys(spec.extra, SystemSpec.KEYS)])
-        if not isinstance(spec.name, str) or not spec.name:
-            self.report(origin, [f"name must be a non-empty string, got {spec.name!r}"])
         servers = spec.module_servers
         if not isinstance(servers, list) or not all(isinstance(s, str) for s in servers):
             self.report(origin, [("module_servers must be a list of addresses such as "
@@ -141,8 +142,18 @@ class _Planner:
         # only names a description (``System.from_dict``'s), which was the current one
         here = (str(Path(spec.source).resolve().parent),) if spec.source is not None \
             and Path(spec.source).is_file() else ()
-        self.code = CodeSources(here, tuple(servers))
-        self.code.install()     # classes below may be next to the file, or only on servers
+        code = CodeSources(here, tuple(servers))
+        code.install()
+        return code
+
+    def check_system(self) -> dict[str, NodeSpec]:
+        """The nodes the system names, its own tables checked (name, workers, timeout,
+        nodes)."""
+        spec, origin = self.spec, self.spec.origin
+        self.report(origin, [p.replace("unknown key", "unknown top-level key")
+                             for p in checks.unknown_keys(spec.extra, SystemSpec.KEYS)])
+        if not isinstance(spec.name, str) or not spec.name:
+            self.report(origin, [f"name must be a non-empty string, got {spec.name!r}"])
         self.report(origin, [f"top-level {p}" for p in checks.workers(spec.workers)])
         self.report(origin, checks.timeout(spec.timeout))
         for name, node in spec.nodes.items():

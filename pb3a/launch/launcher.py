@@ -119,7 +119,7 @@ class Launcher:
                 self.health[name] = {"up": True, "rtt": 0.0, "address": None, "epoch": 1}
             else:
                 assert callback is not None, "remote nodes call the launcher back"
-                self.nodes[name] = self.remotes[name] = self._remote(name, node_epoch=1)
+                self.nodes[name] = self.remotes[name] = self._start_remote_node(name, node_epoch=1)
                 self.health[name] = {"up": True, "rtt": float("nan"), "address": node.address,
                                      "controller": True, "epoch": 1}
         self._introduce()
@@ -131,7 +131,7 @@ class Launcher:
                                           daemon=True)
         self._watchdog.start()
 
-    def _remote(self, name: str, node_epoch: int) -> RemoteNode:
+    def _start_remote_node(self, name: str, node_epoch: int) -> RemoteNode:
         """Have node ``name``'s controller start an executor for this system."""
         node = self.plan.nodes[name]
         assert node.address is not None and self._callback is not None
@@ -174,7 +174,7 @@ class Launcher:
                                  f"modules: {known}")
         return self.nodes[spec.node]
 
-    def remote(self, link: FlatLink) -> bool:
+    def crosses_nodes(self, link: FlatLink) -> bool:
         """True if the link joins two nodes (it then goes over ZeroMQ)."""
         return self.specs[link.src].node != self.specs[link.dst].node
 
@@ -276,7 +276,7 @@ class Launcher:
         their ``end`` (``"src"`` or ``"dst"``)."""
         found: dict[str, list[FlatLink]] = {}
         for link in links:
-            if self.remote(link) == remote:
+            if self.crosses_nodes(link) == remote:
                 found.setdefault(self.specs[getattr(link, end)].node, []).append(link)
         return found
 
@@ -621,7 +621,7 @@ class Launcher:
             old.stop_executor(timeout=5.0)        # (it fenced itself; killed if it did not)
             epoch = old.node_epoch + 1
             try:
-                node = self._remote(name, node_epoch=epoch)
+                node = self._start_remote_node(name, node_epoch=epoch)
             except (RuntimeFailure, RuntimeTimeout) as exc:   # (asked again in a second)
                 log.warning("node %s answers again but could not be admitted: %s", name, exc)
                 return

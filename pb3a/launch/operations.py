@@ -71,7 +71,7 @@ class Operations:
         self.launcher = launcher
         self.plan = launcher.plan
         self.lock = launcher.lock
-        self.events = launcher.events
+        self.event_log = launcher.events
         self.timeout = timeout
         self._jobs: dict[int, tuple[threading.Event, list[Any]]] = {}   # background moves
         self._job_ids = itertools.count(1)
@@ -130,7 +130,7 @@ class Operations:
             moved = {report.module for report in reports if report.source != to}
             for report in reports:
                 if report.module in moved:
-                    self.events.record("module_moved", report.module, source=report.source,
+                    self.event_log.record("module_moved", report.module, source=report.source,
                                        destination=report.destination, pause_s=report.pause_s)
             rewired = sum(1 for link in self.launcher.links.values()
                           if moved & {link.src, link.dst})
@@ -202,7 +202,7 @@ class Operations:
                 if not checks.state(new_cls, {key: value})})
             kept = node.swap(name, spec)
             launcher.specs[name] = spec
-        self.events.record("module_swapped", name, cls=f"{new_cls.__module__}:"
+        self.event_log.record("module_swapped", name, cls=f"{new_cls.__module__}:"
                            f"{new_cls.__qualname__}", kept=kept)
         return kept
 
@@ -223,8 +223,8 @@ class Operations:
                     launcher.disconnect(old.key)
                 launcher.connect(link)
         for old in olds:
-            self.events.record("link_removed", old.key)
-        self.events.record("link_added", link.key, policy=str(link.policy))
+            self.event_log.record("link_removed", old.key)
+        self.event_log.record("link_added", link.key, policy=str(link.policy))
 
     def link(self, src: str, dst: str, *, policy: str | None = None,
              timeout: float | None = None) -> None:
@@ -235,7 +235,7 @@ class Operations:
                     raise ConfigError([f"input {dst} is fed by {old.src}.{old.src_port} "
                                        "already; use relink() to replace its source"])
             self.launcher.connect(link)
-        self.events.record("link_added", link.key, policy=str(link.policy))
+        self.event_log.record("link_added", link.key, policy=str(link.policy))
 
     def _new_link(self, src: str, dst: str, policy: str | None) -> FlatLink:
         problems = []
@@ -286,12 +286,12 @@ class Operations:
                               list(fallback or []))
             launcher.add_module(spec)
             launcher.node_of(name).start_modules([name])
-        self.events.record("module_added", name, node=node)
+        self.event_log.record("module_added", name, node=node)
 
     def remove(self, name: str, *, timeout: float | None = None) -> None:
         with self._held(f"remove {name}", timeout):
             self.launcher.remove_module(name)
-        self.events.record("module_removed", name)
+        self.event_log.record("module_removed", name)
 
     def restart(self, name: str, *, timeout: float | None = None) -> None:
         """Stop a module (also a failed one) and start it again with its configured state
@@ -315,7 +315,7 @@ class Operations:
                 self._start(spec, links)
             except Exception as exc:
                 raise self._put_back(spec, links, was, exc) from exc
-        self.events.record("module_restarted", name, node=spec.node, reason="asked")
+        self.event_log.record("module_restarted", name, node=spec.node, reason="asked")
 
     def _state_then(self, name: str) -> dict[str, Any] | None:
         """The module's state now, to put it back with should its restart fail; None if
@@ -365,11 +365,11 @@ class Operations:
         except Exception as exc:
             log.warning("restart %s failed (%s), and putting it back failed too: %s",
                         name, failure, exc)
-            self.events.record("module_removed", name, reason="restart failed")
+            self.event_log.record("module_removed", name, reason="restart failed")
             return RuntimeFailure(f"restart {name} failed ({failure}), and putting it back "
                                   f"failed too ({exc}): it and its links are no longer in the "
                                   "system; add it again")
-        self.events.record("module_restarted", name, node=spec.node,
+        self.event_log.record("module_restarted", name, node=spec.node,
                            reason="put back as it ran: the restart failed")
         return RuntimeFailure(f"restart {name} failed ({failure}); it was put back as it ran, "
                               f"with {'its state' if was is not None else 'its configured state'}"
@@ -405,8 +405,8 @@ class Operations:
         with self._held("stats", timeout, changes=False):
             return self.launcher.stats()
 
-    def events_since(self, since: int = 0, *, timeout: float | None = 0.0) -> list[Event]:
-        return self._history("events", lambda wait: self.events.since(since, wait), timeout)
+    def events(self, since: int = 0, *, timeout: float | None = 0.0) -> list[Event]:
+        return self._history("events", lambda wait: self.event_log.since(since, wait), timeout)
 
     def logs(self, since: int = 0, *, module: str | None = None,
              timeout: float | None = 0.0) -> list[LogEntry]:
@@ -441,8 +441,6 @@ class Operations:
                                  "(its events and log can still be read)")
         token = _ASKER.set(asker)
         try:
-            if op == "events":
-                return self.events_since(**args)
             return getattr(self, op)(**args)
         finally:
             _ASKER.reset(token)

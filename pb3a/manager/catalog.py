@@ -30,7 +30,7 @@ from pb3a.errors import PB3AError
 from pb3a.loading.references import class_ref, resolve_class
 from pb3a.loading.served import forget as forget_module
 from pb3a.loading.served import use_module_servers
-from pb3a.manager.reflection import plain
+from pb3a.manager.reflection import is_plain
 from pb3a.model.macro import Macro
 from pb3a.model.module import Module
 from pb3a.topology import class_kind, displays_of, ports
@@ -202,7 +202,7 @@ def describe_class(cls: type[Module], origin: str) -> dict[str, Any]:
     state = {}
     for name in cls.state_names():
         value = getattr(cls, name, None)
-        default = value if plain(value) else _short_repr(value)
+        default = value if is_plain(value) else _short_repr(value)
         state[name] = {"type": type(value).__name__, "default": default}
     return {"class": class_ref(cls), "kind": class_kind(cls),
             "doc": doc.split("\n\n")[0].replace("\n", " "),

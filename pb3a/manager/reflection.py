@@ -81,7 +81,7 @@ def view(value: Any, module: str, path: str, depth: int) -> dict[str, Any]:
     if isinstance(value, (list, tuple, dict)):
         kind = "dict" if isinstance(value, dict) else "tuple" if isinstance(
             value, tuple) else "list"
-        shown = {"type": kind, "length": len(value), "editable": plain(value)}
+        shown = {"type": kind, "length": len(value), "editable": is_plain(value)}
         if depth <= 0:
             shown["truncated"] = True
             return shown
@@ -129,16 +129,16 @@ def _plain_values(value: Any) -> Any:
     return value
 
 
-def plain(value: Any) -> bool:
+def is_plain(value: Any) -> bool:
     """Whether ``value`` is made of JSON types only (so it can be edited as JSON)."""
     if value is None or isinstance(value, (bool, int, str)):
         return True
     if isinstance(value, float):
         return math.isfinite(value)
     if isinstance(value, (list, tuple)):
-        return all(plain(item) for item in value)
+        return all(is_plain(item) for item in value)
     if isinstance(value, dict):
-        return all(isinstance(key, str) and plain(item) for key, item in value.items())
+        return all(isinstance(key, str) and is_plain(item) for key, item in value.items())
     return False
 
 
@@ -180,7 +180,7 @@ def coerce(field: str, current: Any, new: Any) -> Any:
         return new
     if isinstance(current, np.ndarray):
         return _coerce_array(field, current, new)
-    if isinstance(current, (list, tuple, dict)) and plain(current):
+    if isinstance(current, (list, tuple, dict)) and is_plain(current):
         want = dict if isinstance(current, dict) else list
         if not isinstance(new, want):
             raise refuse("an object ({...})" if want is dict else "a list ([...])")

@@ -31,7 +31,7 @@ class Display:
         if value in ("image", "plot"):
             return cls(value)
         if (isinstance(value, (tuple, list)) and len(value) == 3 and value[0] == "gauge"
-                and all(_finite(bound) for bound in value[1:]) and value[1] < value[2]):
+                and all(finite(bound) for bound in value[1:]) and value[1] < value[2]):
             return cls("gauge", float(value[1]), float(value[2]))
         raise ValueError(f"displays[{field!r}] = {value!r}: use \"image\", \"plot\" or "
                          "(\"gauge\", MIN, MAX) with MIN < MAX")
@@ -60,6 +60,7 @@ def declared_displays(cls: type) -> dict[str, Display]:
     return found
 
 
-def _finite(value: Any) -> bool:
+def finite(value: Any) -> bool:
+    """True for a finite int or float (a TOML ``true`` is neither, nor is NaN)."""
     return (isinstance(value, (int, float)) and not isinstance(value, bool)
             and math.isfinite(value))

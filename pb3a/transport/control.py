@@ -95,8 +95,7 @@ class ControlServer:
     """Serves ``handler(op, args) -> result`` on a ROUTER socket bound to ``host``."""
 
     def __init__(self, key: ClusterKey, handler: Callable[[str, dict[str, Any]], Any],
-                 host: str = "127.0.0.1", port: int = 0, *, epoch: int = 0,
-                 name: str = "pb3a-control",
+                 host: str = "127.0.0.1", port: int = 0, *, name: str = "pb3a-control",
                  instant: Mapping[str, Callable[[dict[str, Any]], Any]] | None = None,
                  aside: Collection[str] = (),
                  decode_lock: threading.Lock | None = None) -> None:
@@ -112,8 +111,9 @@ class ControlServer:
         self._router, self.address = _attached(
             zmq.ROUTER, lambda sock: bind_advertised(sock, host, port))    # (a port in use)
         self._loop = SocketLoop(f"{name}-io", self._router.context)
-        self._sealer = Sealer(key, epoch)
-        self._opener = Opener(key, epoch=epoch, max_bytes=MAX_MESSAGE)
+        # (epoch 0 until ``advance_epoch``: a node share's server moves on with its runs)
+        self._sealer = Sealer(key, 0)
+        self._opener = Opener(key, epoch=0, max_bytes=MAX_MESSAGE)
         self.instance = secrets.token_bytes(16)      # requests must name it (see above)
         # (peer, request id, op, args), or with op None the request's pickle, to read
         self._work: queue.SimpleQueue[tuple[Any, bytes, str | None, Any] | None] = (

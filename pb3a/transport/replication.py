@@ -331,12 +331,12 @@ class Replicator:
     (ROUTER) on its own thread. ``publish`` and ``offer`` may be called from any thread."""
 
     def __init__(self, key: ClusterKey, host: str = "127.0.0.1", *, epoch: int = 0,
-                 max_bytes: int = MAX_MESSAGE, context: zmq.Context | None = None) -> None:
+                 max_bytes: int = MAX_MESSAGE) -> None:
         keep_freed_buffers()                     # (the copies of large values: see heap)
         self.incarnation = secrets.token_bytes(16)
         self._max_bytes = max_bytes
         self._batch_bytes = min(BATCH_BYTES, max_bytes // 2)
-        self._context = context or zmq.Context.instance()
+        self._context = zmq.Context.instance()
         self._pub = _secure(self._context.socket(zmq.PUB), max_bytes)
         self._router = _secure(self._context.socket(zmq.ROUTER), max_bytes)
         # a follower keeps its id across reconnections (see Follower): the new
@@ -732,15 +732,14 @@ class Follower:
 
     def __init__(self, key: ClusterKey, deliver: Callable[[str, list[Any], float], None], *,
                  land: Callable[[str, bytes, int], Landed | None] | None = None,
-                 epoch: int = 0, max_bytes: int = MAX_MESSAGE,
-                 context: zmq.Context | None = None) -> None:
+                 epoch: int = 0, max_bytes: int = MAX_MESSAGE) -> None:
         keep_freed_buffers()                     # (ZeroMQ's receive buffers: see heap)
         self._key = key
         self._deliver = deliver
         self._land = land
         self._payloads = Payloads(key)
         self._max_bytes = max_bytes
-        self._context = context or zmq.Context.instance()
+        self._context = zmq.Context.instance()
         self._opener = Opener(key, epoch=epoch, max_bytes=max_bytes)
         self._sealer = Sealer(key, epoch)        # used only on the follower's thread
         self._follows: dict[bytes, _Follow] = {}
