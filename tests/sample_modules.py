@@ -347,6 +347,20 @@ class Crasher(Module):
         os._exit(3)
 
 
+class CrashesWhileFlagged(Module):
+    """Kills its own worker process on its first step while the file ``flag`` exists;
+    steps and counts once it is gone."""
+
+    period = 0.01
+    flag = ""
+    steps = 0
+
+    def step(self) -> None:
+        if os.path.exists(self.flag):
+            os._exit(3)
+        self.steps += 1
+
+
 class ArrayHolder(Module):
     """Keeps up to 10 arrays as zero-copy views and never reads them."""
 

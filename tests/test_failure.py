@@ -27,6 +27,7 @@ from sample_modules import (
     AsksInSetup,
     Counter,
     Crasher,
+    CrashesWhileFlagged,
     Faulty,
     FloatSource,
     Journal,
@@ -86,9 +87,46 @@ def test_sigkill_with_restart_never_leaves_module_failed_and_others_running() ->
         eventually(lambda: run.state("other")["count"] > before, what="the other module goes on")
         assert any("victim" in f for f in run.stats().failures)
         failed = [e for e in run.events() if e.kind == "module_failed"]
+        run.restart("victim")                   # asked: it runs again, fresh
+        eventually(lambda: run.state("victim")["count"] > 3, what="the restarted victim steps")
+        assert run.stats().modules["victim"].status == "running"
+        assert run.events()[-1].kind == "module_restarted"
     assert figures["victim"].restarts == 0
     assert [e.subject for e in failed] == ["victim"]
     assert failed[0].detail["reason"] == "restart = 'never'"
+
+
+def test_a_module_left_failed_beside_a_restarted_one_restarts_when_asked() -> None:
+    """A worker of two modules dies: the ``fresh`` one comes back in a new process, the
+    ``never`` one stays failed; asked, it restarts, its link wired again (it was lost:
+    its worker had no such module to remove)."""
+    system = System("never-beside-fresh")
+    system.add("src", FloatSource, restart="fresh", group="pair")
+    system.add("victim", Last, restart="never", group="pair")
+    system.link("src.out", "victim.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("victim")["value"] == 1.0, what="a value")
+        _kill_worker(run, "victim")
+        eventually(lambda: (m := run.stats().modules)["victim"].status == "failed"
+                   and m["src"].status == "running", what="src restarted, victim failed")
+        run.restart("victim")
+        run.set_state("src", value=2.0)
+        eventually(lambda: run.state("victim")["value"] == 2.0, what="values through again")
+        assert set(run.stats().links) == {"src.out->victim.x"}
+
+
+def test_a_module_whose_restarts_ran_out_restarts_when_asked(tmp_path: Path) -> None:
+    flag = tmp_path / "crash"
+    flag.touch()
+    system = System("ran-out")
+    system.add("crasher", CrashesWhileFlagged, restart="fresh", state={"flag": str(flag)})
+    with system.launch() as run:
+        eventually(lambda: run.stats().modules["crasher"].status == "failed", timeout=30,
+                   what="giving up")
+        flag.unlink()                               # mended: asked, it runs again
+        run.restart("crasher")
+        eventually(lambda: run.state("crasher")["steps"] > 3, what="the restarted module steps")
+        assert run.stats().modules["crasher"].status == "running"
 
 
 def test_sigkill_with_restart_fresh_starts_from_the_configured_state() -> None:

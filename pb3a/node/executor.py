@@ -701,6 +701,8 @@ class Executor:
         for name in names:
             if name not in revive:
                 self._fail(name, code, reason)
+        if not revive:      # no process for modules left failed (run.restart makes one)
+            return {}
         records = {name: self.modules[name] for name in revive}
         for record in records.values():
             record.status = "starting"

@@ -325,7 +325,9 @@ class Worker:
         return time.perf_counter() - started
 
     def op_remove(self, name: str) -> None:
-        actor = self.actors.pop(name)
+        actor = self.actors.pop(name, None)
+        if actor is None:       # failed in the process this one replaced: never made here
+            return
         if actor.running:
             actor.stop(timeout=1.0)
         self.restart_policy.pop(name, None)
