@@ -951,3 +951,20 @@ class ListSink(Module):
         for items in port.read_all():
             self.received += 1
             self.scribbled += len(set(items)) != 1 or items[0] < 0
+
+
+class OpensDevice(Module):
+    """Its ``setup`` opens a device: it raises while ``missing``; counts its steps."""
+
+    period = 0.01
+    missing = False
+    steps = 0
+    setups = 0
+
+    def setup(self) -> None:
+        self.setups += 1
+        if self.missing:
+            raise RuntimeError("device /dev/video7 not found")
+
+    def step(self) -> None:
+        self.steps += 1

@@ -284,8 +284,7 @@ class Operations:
                               float(period) if period is not None else module_cls.period,
                               dict(state or {}), restart or module_cls.restart, group,
                               list(fallback or []))
-            launcher.add_module(spec)
-            launcher.node_of(name).start_modules([name])
+            self._start(spec, [])           # (one that cannot start is not added)
         self.event_log.record("module_added", name, node=node)
 
     def remove(self, name: str, *, timeout: float | None = None) -> None:

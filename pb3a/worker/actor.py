@@ -32,6 +32,10 @@ if TYPE_CHECKING:
 log = logging.getLogger("pb3a.module")
 
 _BODIES = ("step", "on_input")   # hooks that run only while the module runs
+
+
+class SetupError(Exception):
+    """A module's ``setup`` raised: it does not run (its start, its swap, fails)."""
 _EVENT_BUDGET = 256  # events handled per dispatch task before yielding to other modules
 _HAND_OVER_S = 0.01  # longest a step loop waits for a waiter to take the lock it left
 _WAIT_SLICE = 0.02   # a request waiting for a module lock looks this often for a body that
@@ -164,12 +168,17 @@ class ModuleActor:
 
     # -- life cycle --------------------------------------------------------
     def start(self) -> None:
-        """Run ``setup``, then start stepping (threaded) and dispatching (event-driven)."""
+        """Run ``setup``, then start stepping (threaded) and dispatching (event-driven);
+        ``SetupError`` if ``setup`` raised: the module never runs (a driver whose device
+        did not open would otherwise step against it, the error only in the log)."""
         with self._setting_up():
-            self.call("setup")
+            set_up = self.call("setup")
         with self._sched_lock:
             if self._halted:                    # stopped while it set up: it never runs
                 return
+            if not set_up:
+                self._halted = True
+                raise SetupError(f"module {self.name!r} raised in setup: {self.last_error}")
             self.running = True
             self._stop.acquire(blocking=False)  # held while running; stop() releases it
         if self.period is not None:
@@ -481,31 +490,49 @@ class ModuleActor:
             except Exception:
                 log.exception("module %r raised in teardown during swap", self.name)
             state = old.get_state()
-            for name, spec in (*type(new).inputs.items(), *type(new).outputs.items()):
-                port = self.ports.get(name)
-                if port is None:
-                    kind = InputPort if name in type(new).inputs else OutputPort
-                    port = self.ports[name] = kind(spec, self.name)
-                    if isinstance(port, InputPort):
-                        port._notify = self._on_port_event
-                port.spec = spec
-            new._pb3a_adopt_ports(self.ports)
-            new.__dict__["_pb3a_giving_way"] = self.waiting
-            accepted = set(type(new).state_names()) | set(new.get_state())
-            kept = {k: v for k, v in state.items() if k in accepted}
-            new.set_state(kept)
-            self.module = new
-            self._event_driven = type(new).is_event_driven()
+            specs = {name: port.spec for name, port in self.ports.items()}
+            kept = self._take(new, state)
             # under the same hold: a step thread waiting for the lock would otherwise
             # step the new instance before its setup, and an agent's step asking the
             # runtime there would wait for the configuration lock this swap's
             # operation holds while the swap waited for the lock: no answer until the
             # operation's timeout
             with self._setting_up():
+                if self._call_held("setup", 1) == 1:
+                    return sorted(kept)
+            # the new class cannot start: the old instance back, set up again
+            error = self.last_error
+            for name in [name for name in self.ports if name not in specs]:
+                del self.ports[name]                    # (the one dict both instances hold)
+            for name, spec in specs.items():
+                self.ports[name].spec = spec
+            self.module, self._event_driven = old, type(old).is_event_driven()
+            with self._setting_up():
                 self._call_held("setup", 1)
+            raise SetupError(f"module {self.name!r}: {type(new).__name__} raised in setup: "
+                             f"{error}; not swapped, {type(old).__name__} runs on")
         finally:
             self.lock.release()
-        return sorted(kept)
+
+    def _take(self, new: Module, state: dict[str, Any]) -> dict[str, Any]:
+        """Make ``new`` the module, on these ports (those it adds made), with the part of
+        ``state`` it has; that part."""
+        for name, spec in (*type(new).inputs.items(), *type(new).outputs.items()):
+            port = self.ports.get(name)
+            if port is None:
+                kind = InputPort if name in type(new).inputs else OutputPort
+                port = self.ports[name] = kind(spec, self.name)
+                if isinstance(port, InputPort):
+                    port._notify = self._on_port_event
+            port.spec = spec
+        new._pb3a_adopt_ports(self.ports)
+        new.__dict__["_pb3a_giving_way"] = self.waiting
+        accepted = set(type(new).state_names()) | set(new.get_state())
+        kept = {k: v for k, v in state.items() if k in accepted}
+        new.set_state(kept)
+        self.module = new
+        self._event_driven = type(new).is_event_driven()
+        return kept
 
     def _step_thread_cpu(self) -> float:
         clock = self._step_clock

@@ -32,7 +32,7 @@ from pb3a.transport.codec import local_copy
 from pb3a.transport.doorbell import BellPull
 from pb3a.transport.ring import RingSize, ShmRing, sleep
 from pb3a.transport.snapshot import Snapshot
-from pb3a.worker.actor import EventPool, ModuleActor
+from pb3a.worker.actor import EventPool, ModuleActor, SetupError
 from pb3a.worker.publications import Publications
 from pb3a.worker.waits import RuntimeWait
 
@@ -278,8 +278,16 @@ class Worker:
             actor.timed = not solo
 
     def op_start(self, names: list[str]) -> None:
+        """Start the modules in order; ``SetupError`` naming every one whose ``setup``
+        raised (the others start all the same)."""
+        failed = []
         for name in names:
-            self.actors[name].start()
+            try:
+                self.actors[name].start()
+            except SetupError as exc:
+                failed.append(str(exc))
+        if failed:
+            raise SetupError("; ".join(failed))
 
     def op_stop(self, name: str, grace: float) -> bool:
         return self.actors[name].stop(grace)
