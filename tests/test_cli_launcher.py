@@ -72,6 +72,12 @@ def test_every_command_changes_a_running_system_and_speaks_json(capsys) -> None:
         assert main(["set", bare, "src", "limit=3"]) == 0
         assert "src: limit = 3" in capsys.readouterr().out
         assert run.state("src")["limit"] == 3
+        # text for a field that holds no text is refused (it was set, as text: a bool's
+        # "False" left the module enabled, a float's "0,3" made every step raise)
+        assert main(["set", bare, "src", "count=5", "limit=3,5"]) == 1
+        assert ("limit=3,5 is not JSON, and src.limit is int (3), not text: give it as "
+                "JSON") in capsys.readouterr().err
+        assert run.state("src")["limit"] == 3
         assert main(["relink", address, "other.out", "relay.x", "--json"]) == 0
         assert json.loads(capsys.readouterr().out)["from"] == "other.out"
         eventually(lambda: "other.out->relay.x" in run.stats().links, what="the new link")

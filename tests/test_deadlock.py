@@ -305,12 +305,53 @@ def test_a_state_edit_that_runs_out_of_time_was_not_done() -> None:
     step ended: a caller who took the error for "not done" was wrong."""
     system = System("edit-in-time").add("slow", LongStep, state={"step_s": 1.5})
     with system.launch() as run:
-        with pytest.raises(RuntimeFailure, match=r"busy in a call .*: nothing was done"):
+        with pytest.raises(RuntimeTimeout, match=r"busy in a call .*: nothing was done"):
             run.set_state("slow", gain=42.0, timeout=0.5)
         steps = run.state("slow", timeout=5.0)["steps"]
         state = eventually(lambda: (s := run.state("slow", timeout=5.0))["steps"] > steps
                            and s, timeout=10, what="a step after the edit's time ran out")
     assert state["gain"] == 1.0
+
+
+def test_a_read_of_a_module_stuck_in_a_step_holds_up_no_other_request(monkeypatch) -> None:
+    """A state read waiting for a module in a long step runs out as ``RuntimeTimeout``
+    (a ``TimeoutError``: it was a ``RuntimeFailure``), and meanwhile every other request
+    is answered at once: it held the configuration lock, so ``stats()``, ``where()``
+    and another module's state waited out its timeout (``pb3a status`` said no launcher
+    answered, Ctrl-C waited 30 s)."""
+    system = System("stuck-read")
+    system.add("slow", LongStep, state={"step_s": 3.0})
+    system.add("ok", Steady)
+    with system.launch() as run:
+        node = run._launcher.node_of("slow")
+        asking, real = threading.Event(), type(node).call_module
+
+        def call_module(self, name, op, *args, **kwargs):
+            if (name, op) == ("slow", "get_state"):
+                asking.set()
+            return real(self, name, op, *args, **kwargs)
+        monkeypatch.setattr(type(node), "call_module", call_module)
+        eventually(lambda: run.state("ok")["count"] > 2, what="steps")
+        outcome: list[BaseException] = []
+
+        def read() -> None:
+            try:
+                run.state("slow", timeout=2.0)
+            except BaseException as exc:       # (checked below)
+                outcome.append(exc)
+        reader = threading.Thread(target=read)
+        reader.start()
+        try:
+            assert asking.wait(5.0)
+            started = time.monotonic()
+            assert run.stats().modules["ok"].status == "running"
+            assert run.where("ok") == "local" and run.state("ok")["count"] > 0
+            answered = time.monotonic() - started
+        finally:
+            reader.join(10.0)
+    assert answered < 0.5, answered
+    assert len(outcome) == 1 and isinstance(outcome[0], RuntimeTimeout), outcome
+    assert isinstance(outcome[0], TimeoutError) and "busy in a call" in str(outcome[0])
 
 
 def test_close_without_the_lock_stops_everything_though_a_change_removes_a_module(

@@ -20,7 +20,7 @@ from sample_modules import (
     Wanderer,
 )
 
-from pb3a import ConfigError, ModuleNotFound, RuntimeFailure, System
+from pb3a import ConfigError, ModuleNotFound, RuntimeFailure, RuntimeTimeout, System
 from pb3a.node.executor import Executor
 
 
@@ -373,7 +373,7 @@ def test_a_move_whose_writer_will_not_pause_leaves_nothing_at_the_destination(
         eventually(lambda: run.state("relay")["relayed"] > 20, what="values")
         b = run._launcher.nodes["b"]
         run.set_state("src", stall_s=2.5)
-        with pytest.raises(RuntimeFailure, match="src"):
+        with pytest.raises(RuntimeTimeout, match="src"):
             run.migrate("relay", to="b")
         assert run.where("relay") == "a"
         assert list(b.modules) == []

@@ -189,6 +189,8 @@ def test_state_read_and_live_edit() -> None:
             run.set_state("scale", gian=1.0)
         with pytest.raises(ModuleNotFound, match="nope"):
             run.state("nope")
+        with pytest.raises(ValueError, match=r"nothing to set.*\{'timeout': 3.0\}"):
+            run.set_state("scale", timeout=3.0)         # (the call's deadline, no field)
 
 
 def test_swap_keeps_ports_and_state_and_runs_setup_again() -> None:
@@ -377,6 +379,13 @@ def test_macro_class_exports_resolve_in_single_use() -> None:
     system.link("c.y", "sink.x")
     with system.launch() as run:
         eventually(lambda: run.state("sink")["value"] == 12.0, what="2 * 2 * 3")
+        # at run time the macro's own name is not a module: the error names its modules
+        hint = "it is a macro instance: name one of its modules, c/a, c/b"
+        with pytest.raises(ConfigError, match=f"no module 'c'; {hint}"):
+            run.relink("c.y", "sink.x")
+        with pytest.raises(ModuleNotFound, match=hint):
+            run.state("c")
+        run.relink("c/b.y", "sink.x")
 
 
 def test_an_agent_adapts_another_module_through_its_runtime() -> None:

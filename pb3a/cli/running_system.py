@@ -108,6 +108,17 @@ def _state(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
 
 def _set(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
     values = _values(args.values)
+    texts = [name for name, value in values.items() if isinstance(value, _Text)]
+    if texts:               # text for a field that holds no text is a mistyped value
+        now = system.state(args.module, timeout=args.timeout)
+        wrong = [f"{name}={values[name]} is not JSON, and {args.module}.{name} is "
+                 f"{type(now[name]).__name__} ({now[name]!r}), not text: give it as JSON "
+                 "(true, false, 0.3, NaN, [1, 2], \"text\")" for name in texts
+                 if now.get(name) is not None and not isinstance(now[name], str)]
+        if wrong:
+            raise ValueError("; ".join(wrong) + "; nothing was set")
+        values = {name: str(value) if isinstance(value, _Text) else value
+                  for name, value in values.items()}
     system.set_state(args.module, values, timeout=args.timeout)
     told = ", ".join(f"{key} = {value!r}" for key, value in values.items())
     return f"{args.module}: {told}", {"module": args.module, "set": values}
@@ -202,5 +213,9 @@ def _values(pairs: list[str]) -> dict[str, Any]:
         try:
             values[name] = json.loads(text)
         except json.JSONDecodeError:
-            values[name] = text
+            values[name] = _Text(text)
     return values
+
+
+class _Text(str):
+    """A VALUE that is not JSON, taken as text (if the field holds text)."""

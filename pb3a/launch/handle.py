@@ -50,9 +50,16 @@ class SystemHandle(ABC):
     def set_state(self, name: str, values: dict[str, Any] | None = None, /, *,
                   timeout: float | None = None, **fields: Any) -> None:
         """Set state attributes of a running module, between two of its calls:
-        ``set_state("scale", gain=5.0)``, or with a dict for names such as ``timeout``."""
-        self._request("set_state", {"name": name, "values": {**(values or {}), **fields},
-                                    "timeout": timeout})
+        ``set_state("scale", gain=5.0)``, or with a dict for names such as ``timeout``.
+        Nothing to set is a ``ValueError`` (``set_state("m", timeout=3.0)`` meant to set
+        the module's ``timeout`` and set nothing)."""
+        values = {**(values or {}), **fields}
+        if not values:
+            raise ValueError(f"set_state({name!r}): nothing to set; give fields "
+                             f"(set_state({name!r}, gain=2.0)) or a dict; timeout= is the "
+                             f"call's own deadline, so a field named timeout goes in the "
+                             f"dict: set_state({name!r}, {{'timeout': 3.0}})")
+        self._request("set_state", {"name": name, "values": values, "timeout": timeout})
 
     # -- moving, swapping, reloading ---------------------------------------------------
     def migrate(self, name: str, to: str, *, wait: bool = True,

@@ -169,10 +169,20 @@ class Launcher:
         """The executor of the node module ``name`` runs on."""
         spec = self.specs.get(name)
         if spec is None:
-            known = ", ".join(self.specs) or "(none)"
             raise ModuleNotFound(f"no module {name!r} in system {self.plan.name!r}; "
-                                 f"modules: {known}")
+                                 + self.which_modules(name))
         return self.nodes[spec.node]
+
+    def which_modules(self, name: str) -> str:
+        """What to name instead of ``name``, which no module has: a macro instance's
+        modules (its name and exports are the configuration's, not the running system's:
+        only a move takes a macro whole), else every module."""
+        inner = [module for module in self.specs if module.startswith(f"{name}/")]
+        if inner:
+            return (f"it is a macro instance: name one of its modules, {', '.join(inner)} "
+                    "(a macro's exported ports are wired when the system is built; at run "
+                    "time links join its modules' own ports)")
+        return f"modules: {', '.join(self.specs) or '(none)'}"
 
     def crosses_nodes(self, link: FlatLink) -> bool:
         """True if the link joins two nodes (it then goes over ZeroMQ)."""

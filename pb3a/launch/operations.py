@@ -106,8 +106,17 @@ class Operations:
 
     # -- state -------------------------------------------------------------------
     def state(self, name: str, *, timeout: float | None = None) -> dict[str, Any]:
+        """The module's state. Its node is looked up under the configuration lock, but
+        asked without it: a module stuck in a long call holds up this read only, not
+        every request to the system for the read's timeout. Moved or removed meanwhile,
+        it is asked once more under the lock."""
         with self._held(f"state {name}", timeout, changes=False) as left:
-            return self.launcher.call(name, "get_state", left())
+            node = self.launcher.node_of(name)
+        try:
+            return node.call_module(name, "get_state", left())
+        except (RuntimeFailure, KeyError):
+            with self._held(f"state {name}", left(), changes=False) as still:
+                return self.launcher.call(name, "get_state", still())
 
     def set_state(self, name: str, values: dict[str, Any], *,
                   timeout: float | None = None) -> None:
@@ -244,7 +253,8 @@ class Operations:
             module, _, port = text.rpartition(".")
             spec = self.launcher.specs.get(module)
             if spec is None:
-                problems.append(f"link {src} -> {dst}: no module {module!r}")
+                problems.append(f"link {src} -> {dst}: no module {module!r}; "
+                                + self.launcher.which_modules(module))
             elif port not in getattr(spec.cls, side):
                 names = ", ".join(getattr(spec.cls, side)) or "(none)"
                 problems.append(f"link {src} -> {dst}: {module} has no {side[:-1]} {port!r}; "

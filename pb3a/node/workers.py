@@ -34,7 +34,7 @@ from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
 from pb3a.processes import start_without_main
 from pb3a.transport.doorbell import new_bell
-from pb3a.worker.process import worker_main
+from pb3a.worker.process import TIMED_OUT, worker_main
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -269,6 +269,8 @@ class WorkerPool:
         try:
             return future.result(timeout)
         except FutureTimeout:
+            if future.done():        # the answer itself: RuntimeTimeout is a TimeoutError,
+                raise                # which concurrent.futures' TimeoutError is too
             raise RuntimeTimeout(
                 f"worker {key!r} did not answer {op!r} within {timeout:g} s: a module there "
                 "is stuck in a long call (step, on_input, setup), or its machine is "
@@ -332,6 +334,8 @@ class WorkerPool:
                     continue
                 if ok is True:
                     future.set_result(result)
+                elif ok == TIMED_OUT:                      # the caller may try again
+                    future.set_exception(RuntimeTimeout(f"worker {handle.key!r}: {result}"))
                 else:
                     future.set_exception(RuntimeFailure(f"worker {handle.key!r}: {result}"))
         except (EOFError, OSError):

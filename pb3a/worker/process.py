@@ -47,6 +47,7 @@ ERROR_REPORT_S = 1.0     # a module's exceptions are reported at most this often
 AGENT_REQUEST_TIMEOUT = 30.0   # an agent's request to the runtime (a migration, say)
 MEASURE_TIMEOUT = 5.0    # how long measuring a snapshot waits for a busy module's lock
 LEASE_CHECK_S = 0.1      # how often a worker with a lease (see op_lease) looks at it
+TIMED_OUT = "timed out"   # a reply's status for a request that ran out of time (not False)
 # Requests that wait for a module's lock (and may run its hooks, which may call the
 # runtime, whose answer this thread reads): never on the control thread.
 _TAKES_A_MODULE_LOCK = frozenset({"get_state", "set_state", "pause", "start", "swap", "stop",
@@ -197,6 +198,8 @@ class Worker:
         try:
             result = getattr(self, f"op_{op}")(**args)
             reply = (req_id, True, result)
+        except TimeoutError as exc:             # (a module busy past the request's wait)
+            reply = (req_id, TIMED_OUT, f"{type(exc).__name__}: {exc}")
         except Exception as exc:
             log.debug("request %s failed", op, exc_info=True)
             reply = (req_id, False, f"{type(exc).__name__}: {exc}")
