@@ -34,6 +34,7 @@ _HOME = {
     "RuntimeFailure": "pb3a.errors",
     "RuntimeTimeout": "pb3a.errors",
     "System": "pb3a.system",
+    "SystemStopped": "pb3a.errors",
     "connect": "pb3a.launch.connection",
 }
 
@@ -60,6 +61,7 @@ if TYPE_CHECKING:                 # what type checkers see: the same names, eage
     from pb3a.errors import RuntimeCancelled as RuntimeCancelled
     from pb3a.errors import RuntimeFailure as RuntimeFailure
     from pb3a.errors import RuntimeTimeout as RuntimeTimeout
+    from pb3a.errors import SystemStopped as SystemStopped
     from pb3a.launch.connection import Connection as Connection
     from pb3a.launch.connection import connect as connect
     from pb3a.launch.migration import MigrationReport as MigrationReport

@@ -48,6 +48,11 @@ class RuntimeFailure(PB3AError, RuntimeError):
     """A worker or node could not carry out a request; the message says why."""
 
 
+class SystemStopped(RuntimeFailure):
+    """The system has stopped: nothing more will happen there (a follower of its events
+    or log is told so; what it recorded can still be read)."""
+
+
 class RuntimeCancelled(RuntimeFailure):
     """A module body's runtime call or device request was cancelled: the runtime needs
     the module stopped (a pause for a move or relink, a swap, a stop). The body should

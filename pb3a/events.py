@@ -40,6 +40,7 @@ class EventLog:
     def __init__(self, keep: int = 10_000) -> None:
         self._events: deque[Event] = deque(maxlen=keep)
         self._seq = 0
+        self._ended = False
         self._cond = threading.Condition()
 
     def record(self, kind: str, subject: str, **detail: Any) -> Event:
@@ -58,8 +59,15 @@ class EventLog:
         one when there is none yet (None is refused: ``TypeError``)."""
         timeout = bounded_wait(timeout, "events since")
         with self._cond:
-            self._cond.wait_for(lambda: self._seq > seq, timeout)
+            self._cond.wait_for(lambda: self._seq > seq or self._ended, timeout)
             return [event for event in self._events if event.seq > seq]
+
+    def end(self) -> None:
+        """No more events will come (the system stopped): every wait returns now, and
+        later ones at once."""
+        with self._cond:
+            self._ended = True
+            self._cond.notify_all()
 
     @property
     def last(self) -> int:

@@ -45,6 +45,7 @@ class LogBook(logging.Handler):
         super().__init__(level)
         self._entries: deque[LogEntry] = deque(maxlen=keep)
         self._seq = 0
+        self._ended = False
         self._cond = threading.Condition()
 
     def emit(self, record: logging.LogRecord) -> None:
@@ -81,8 +82,15 @@ class LogBook(logging.Handler):
             return [entry for entry in self._entries if entry.seq > seq
                     and (module is None or entry.module == module)]
         with self._cond:
-            self._cond.wait_for(found, timeout)
+            self._cond.wait_for(lambda: found() or self._ended, timeout)
             return found()
+
+    def end(self) -> None:
+        """The system stopped: every wait for an entry returns now, and later ones at
+        once (an entry logged after still comes to a reader who asks)."""
+        with self._cond:
+            self._ended = True
+            self._cond.notify_all()
 
 
 def _handled_elsewhere(record: logging.LogRecord) -> bool:

@@ -4,6 +4,7 @@ its launcher's authenticated address."""
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -144,6 +145,41 @@ def test_ctrl_c_ends_a_command_on_a_running_system_with_status_130() -> None:
             assert follower.wait(timeout=20) == INTERRUPTED
             assert follower.stderr.read().strip() == "pb3a: interrupted"
         finally:
+            if follower.poll() is None:
+                follower.kill()
+                follower.wait(5)
+            follower.stdout.close()
+            follower.stderr.close()
+
+
+@pytest.mark.timeout(90)
+def test_followers_end_with_status_0_when_the_system_stops() -> None:
+    """``events --follow`` and ``logs --follow`` are told the system stopped as it
+    stops, and end with 0 (they waited out their timeout for a launcher that had
+    gone, and said it did not answer: exit 1, as for a network failure)."""
+    system = System("cli-followed").add("steady", Counter, period=0.05)
+    run = system.launch()
+    followers = []
+    try:
+        address = run.listen()
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "tests"), str(REPO)])}
+        for command in ("events", "logs"):
+            followers.append(subprocess.Popen(
+                [sys.executable, "-m", "pb3a", command, address, "--follow"],
+                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env))
+        run.add("late", Counter)
+        logging.getLogger("pb3a.test").warning("a line to follow")
+        assert "module_added" in followers[0].stdout.readline()    # connected, following
+        assert "a line to follow" in followers[1].stdout.readline()
+    finally:
+        run.close()
+    try:
+        for follower, what in zip(followers, ("events", "logs"), strict=True):
+            assert follower.wait(timeout=10) == 0, follower.stderr.read()
+            assert (f"{what}: system 'cli-followed' is stopped: no new entry will come "
+                    "(the system stopped)") in follower.stderr.read()
+    finally:
+        for follower in followers:
             if follower.poll() is None:
                 follower.kill()
                 follower.wait(5)

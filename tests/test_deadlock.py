@@ -29,7 +29,7 @@ from sample_modules import (
 )
 
 import pb3a
-from pb3a import Driver, Module, RuntimeFailure, RuntimeTimeout, System
+from pb3a import Driver, Module, RuntimeFailure, RuntimeTimeout, System, SystemStopped
 from pb3a.node.executor import Executor
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlServer
@@ -288,14 +288,14 @@ def test_close_keeps_its_timeout_with_a_change_in_progress_and_later_calls_are_r
     started = time.monotonic()
     for call in (lambda: run.state("steady"), lambda: run.add("late", Steady),
                  lambda: run.restart("steady")):
-        with pytest.raises(RuntimeFailure, match="system 'closing' is stopped"):
+        with pytest.raises(SystemStopped, match="system 'closing' is stopped"):
             call()
     history = run.events(0, timeout=5.0)        # still read, and no new one waited for
     assert time.monotonic() - started < 1.0
     assert history and history == run.events(0)
     # a follower asking for newer ones is told none will come (it asked again at once,
     # thousands of times a second)
-    with pytest.raises(RuntimeFailure, match="is stopped: no new entry will come"):
+    with pytest.raises(SystemStopped, match="is stopped: no new entry will come"):
         run.events(history[-1].seq, timeout=1.0)
     adding.join(15)
 

@@ -11,7 +11,7 @@ def test_public_names_are_exactly_the_documented_ones() -> None:
         "Agent", "ConfigError", "Connection", "connect", "Driver", "Environment", "Input",
         "InputPort", "Macro", "MigrationReport",
         "Module", "ModuleNotFound", "Output", "OutputPort", "PB3AError", "Running",
-        "RuntimeCancelled", "RuntimeFailure", "RuntimeTimeout", "System"}
+        "RuntimeCancelled", "RuntimeFailure", "RuntimeTimeout", "System", "SystemStopped"}
     for name in pb3a.__all__:
         assert getattr(pb3a, name).__doc__, f"{name} has no docstring"
 
@@ -22,5 +22,6 @@ def test_errors_subclass_the_nearest_builtin() -> None:
     assert issubclass(pb3a.RuntimeTimeout, TimeoutError)
     assert issubclass(pb3a.RuntimeFailure, RuntimeError)
     assert issubclass(pb3a.RuntimeCancelled, pb3a.RuntimeFailure)    # caught as before
+    assert issubclass(pb3a.SystemStopped, pb3a.RuntimeFailure)       # caught as before
     assert all(issubclass(e, pb3a.PB3AError) for e in (
         pb3a.ConfigError, pb3a.ModuleNotFound, pb3a.RuntimeTimeout, pb3a.RuntimeFailure))

@@ -373,6 +373,14 @@ def test_a_move_whose_writer_will_not_pause_leaves_nothing_at_the_destination(
         eventually(lambda: run.state("relay")["relayed"] > 20, what="values")
         b = run._launcher.nodes["b"]
         run.set_state("src", stall_s=2.5)
+
+        def stalled() -> bool:                  # (a read runs out: it is in its long step)
+            try:
+                run.state("src", timeout=0.3)
+            except RuntimeTimeout:
+                return True
+            return False
+        eventually(stalled, what="the writer in its long step")
         with pytest.raises(RuntimeTimeout, match="src"):
             run.migrate("relay", to="b")
         assert run.where("relay") == "a"

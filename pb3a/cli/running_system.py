@@ -17,7 +17,7 @@ import zmq
 
 from pb3a.cli.arguments import wait_seconds
 from pb3a.cli.status import format_nodes, format_table
-from pb3a.errors import PB3AError
+from pb3a.errors import PB3AError, SystemStopped
 from pb3a.events import Event
 from pb3a.launch.connection import Connection, connect
 from pb3a.stats import plain
@@ -185,7 +185,12 @@ def _follow(fetch: Callable[[int, float], list[Any]], line: Callable[[Any], str]
     a line or as JSON; with ``--follow``, until Ctrl-C."""
     seen = 0
     while True:
-        for item in fetch(seen, 1.0 if args.follow else 0.0):
+        try:
+            items = fetch(seen, 1.0 if args.follow else 0.0)
+        except SystemStopped as exc:              # a follower's normal end
+            print(f"{exc} (the system stopped)", file=sys.stderr)
+            return
+        for item in items:
             seen = item.seq
             print(json.dumps(plain(dataclasses.asdict(item))) if args.json else line(item),
                   flush=True)

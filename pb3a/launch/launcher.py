@@ -751,6 +751,8 @@ class Launcher:
                 thread.join(max(0.0, deadline - time.monotonic()) + 0.5)
         self.unconfirmed = [name for name, node in self.remotes.items() if not node.stopped]
         logging.getLogger().removeHandler(self.logbook)
+        self.events.end()            # (a follower waiting for more is told there is none)
+        self.logbook.end()
 
     @staticmethod
     def _shut_node(name: str, node: Node, deadline: float) -> None:

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 from pb3a.config import checks
 from pb3a.config.folding import fold
 from pb3a.config.plan import FlatLink, FlatModule
-from pb3a.errors import ConfigError, RuntimeFailure, bounded_wait
+from pb3a.errors import ConfigError, RuntimeFailure, SystemStopped, bounded_wait
 from pb3a.launch.migration import MigrationReport, migrate
 from pb3a.loading.references import resolve_class
 from pb3a.loading.served import forget, reload_problem
@@ -427,15 +427,14 @@ class Operations:
         """The events or log entries ``read`` gives, waiting up to ``timeout`` for a
         first new one. A stopped system's are still read, without waiting; one asked to
         wait for a new one there is told that none will come (a follower ends, rather
-        than asking again and again)."""
+        than asking again and again): ``SystemStopped``, also when the system stops
+        while it waits."""
         wait = self._call_timeout(timeout)
-        if not self.launcher.stopped:
-            return read(wait)
-        entries = read(0.0)
-        if entries or not wait:
+        entries = read(0.0 if self.launcher.stopped else wait)
+        if entries or not wait or not self.launcher.stopped:
             return entries
-        raise RuntimeFailure(f"{what}: system {self.launcher.plan.name!r} is stopped: "
-                             "no new entry will come")
+        raise SystemStopped(f"{what}: system {self.launcher.plan.name!r} is stopped: "
+                            "no new entry will come")
 
     # -- requests from outside --------------------------------------------------------
     def apply(self, op: str, args: dict[str, Any], allowed: frozenset[str] = PUBLIC, *,
@@ -446,8 +445,8 @@ class Operations:
             raise ValueError(f"unknown operation {op!r}; the operations: "
                              f"{', '.join(sorted(allowed))}")
         if self.launcher.stopped and op not in _HISTORY:   # (an add waited for dead workers)
-            raise RuntimeFailure(f"{op}: system {self.launcher.plan.name!r} is stopped "
-                                 "(its events and log can still be read)")
+            raise SystemStopped(f"{op}: system {self.launcher.plan.name!r} is stopped "
+                                "(its events and log can still be read)")
         token = _ASKER.set(asker)
         try:
             return getattr(self, op)(**args)

@@ -71,6 +71,7 @@ _REFUSAL_HINTS = {
 MAX_MESSAGE = 64 * 1024 * 1024          # control messages carry states and code, not streams
 DEFAULT_TIMEOUT = 10.0
 ANSWER_LINGER_MS = 500                   # how long a closing server gives its last answers
+ASIDE_ANSWER_S = 1.0                     # ... and its requests running aside to give theirs
 
 
 def _socket(context: zmq.Context, kind: int) -> zmq.Socket:
@@ -105,6 +106,7 @@ class ControlServer:
         imports go through a circular one."""
         self._handler = handler
         self._aside = frozenset(aside)
+        self._asides: set[threading.Thread] = set()     # requests running aside now
         self._decode_lock = decode_lock or contextlib.nullcontext()
         # answered on the socket thread, never queued: they must be quick and never block
         self._instant = {"ping": lambda args: "pong", **(instant or {})}
@@ -162,8 +164,11 @@ class ControlServer:
             if answer is not None:
                 self._reply(peer, request_id, True, answer(args))
             elif op in self._aside:
-                threading.Thread(target=self._run, args=(peer, request_id, op, args),
-                                 name=f"{self._worker.name}-{op}", daemon=True).start()
+                aside = threading.Thread(target=self._run_aside,
+                                         args=(peer, request_id, op, args),
+                                         name=f"{self._worker.name}-{op}", daemon=True)
+                self._asides.add(aside)
+                aside.start()
             else:
                 self._work.put((peer, request_id, op, args))
 
@@ -197,6 +202,12 @@ class ControlServer:
                     continue
             self._run(peer, request_id, op, args)
 
+    def _run_aside(self, peer: Any, request_id: bytes, op: str, args: Any) -> None:
+        try:
+            self._run(peer, request_id, op, args)
+        finally:
+            self._asides.discard(threading.current_thread())
+
     def _run(self, peer: Any, request_id: bytes, op: str, args: Any) -> None:
         """Run one request and send its answer (from the socket thread)."""
         try:
@@ -219,6 +230,11 @@ class ControlServer:
         """Stop serving; on return the port is free, so a server may bind it again."""
         self._work.put(None)
         self._worker.join(5.0)
+        # a request running aside and about to answer (a follower told the system
+        # stopped) gets its answer out; one that goes on longer is left unanswered
+        deadline = time.monotonic() + ASIDE_ANSWER_S
+        for aside in list(self._asides):
+            aside.join(max(0.0, deadline - time.monotonic()))
         self._loop.close()                  # (after it sends the answers it was given)
         # an answer just sent, such as the one to "shutdown", still reaches its caller
         close_bound(self._router, linger_ms=ANSWER_LINGER_MS)
