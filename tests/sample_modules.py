@@ -954,17 +954,66 @@ class ListSink(Module):
 
 
 class OpensDevice(Module):
-    """Its ``setup`` opens a device: it raises while ``missing``; counts its steps."""
+    """Its ``setup`` opens a device: it raises while ``missing`` or while the file
+    ``unplugged`` exists; counts its steps (in the file ``steps_to`` too, if given, so
+    that steps can be seen once it is out of the system); notes its teardowns."""
 
+    x = Input(int, policy="queue:100")
     period = 0.01
     missing = False
+    unplugged = ""
+    steps_to = ""
+    ready = ""              # (for NoDevice, which a swap gives it to)
     steps = 0
     setups = 0
+    teardowns = 0
+    handled = 0
 
     def setup(self) -> None:
         self.setups += 1
-        if self.missing:
+        if self.missing or (self.unplugged and os.path.exists(self.unplugged)):
             raise RuntimeError("device /dev/video7 not found")
 
     def step(self) -> None:
         self.steps += 1
+        if self.steps_to:
+            with open(self.steps_to, "a") as steps:
+                steps.write("step\n")
+
+    def on_input(self, port) -> None:
+        self.handled += len(port.read_all())
+
+    def teardown(self) -> None:
+        self.teardowns += 1
+
+
+class OnFlag(Module):
+    """Writes one value each time the file ``flag`` appears (and removes it)."""
+
+    out = Output(int)
+    period = 0.01
+    flag = ""
+    sent = 0
+
+    def step(self) -> None:
+        if self.flag and os.path.exists(self.flag):
+            os.remove(self.flag)
+            self.sent += 1
+            self.out.write(self.sent)
+
+
+class NoDevice(Module):
+    """Handles no events; its ``setup`` waits (5 s at most) for a value on ``x``, then
+    raises: what ``OpensDevice`` is swapped for, to fail with a value come meanwhile."""
+
+    x = Input(int, policy="queue:100")
+    period = 0.01
+    ready = ""              # a file it makes as its setup begins
+
+    def setup(self) -> None:
+        if self.ready:
+            open(self.ready, "a").close()
+        deadline = time.monotonic() + 5.0
+        while not self.x.owes_calls and time.monotonic() < deadline:
+            time.sleep(0.01)
+        raise RuntimeError("device /dev/video7 not found")

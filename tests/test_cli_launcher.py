@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 from conftest import eventually
-from sample_modules import Counter, FastScale, Last, Relay, Scale
+from sample_modules import Counter, FastScale, Last, OnFlag, Relay, Scale
 
 from pb3a import System
 from pb3a.cli.main import INTERRUPTED, main
@@ -86,6 +86,11 @@ def test_every_command_changes_a_running_system_and_speaks_json(capsys) -> None:
                      "--state", "value=1.5"]) == 0
         assert "probe" in capsys.readouterr().out and run.where("probe") == "b"
         assert run.state("probe")["value"] == 1.5
+        assert main(["add", address, "tag", f"{OnFlag.__module__}:OnFlag",
+                     "--state", "flag=nowhere"]) == 0      # text, as text (a str, kept)
+        capsys.readouterr()
+        assert type(run.state("tag")["flag"]) is str
+        assert run.configuration()["system"]["modules"]["tag"]["state"] == {"flag": "nowhere"}
         assert main(["restart", address, "probe", "--json"]) == 0
         assert json.loads(capsys.readouterr().out) == {"module": "probe", "restarted": True}
         assert main(["remove", address, "probe"]) == 0
@@ -100,11 +105,11 @@ def test_every_command_changes_a_running_system_and_speaks_json(capsys) -> None:
         assert json.loads(capsys.readouterr().out)["destination"] == "b"
         assert main(["events", address]) == 0
         kinds = [line.split()[1] for line in capsys.readouterr().out.splitlines()]
-        assert kinds == ["link_removed", "link_added", "module_added", "module_restarted",
-                         "module_removed", "module_moved"]
+        assert kinds == ["link_removed", "link_added", "module_added", "module_added",
+                         "module_restarted", "module_removed", "module_moved"]
         assert main(["events", address, "--json"]) == 0
         events = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
-        assert [e["seq"] for e in events] == list(range(1, 7))
+        assert [e["seq"] for e in events] == list(range(1, 8))
         assert events[-1]["detail"]["destination"] == "b"
 
 

@@ -115,6 +115,25 @@ def test_a_module_left_failed_beside_a_restarted_one_restarts_when_asked() -> No
         assert set(run.stats().links) == {"src.out->victim.x"}
 
 
+def test_a_group_whose_modules_all_stay_failed_takes_them_back_and_new_ones() -> None:
+    """A worker of two ``never`` modules dies: both stay failed; asked, each restarts,
+    and a module added to their group runs (the dead worker was not replaced, so it was
+    'not running' to both)."""
+    system = System("never-pair")
+    system.add("a", Steady, restart="never", group="pair")
+    system.add("b", Steady, restart="never", group="pair")
+    with system.launch() as run:
+        eventually(lambda: run.state("a")["count"] > 3, what="steps")
+        _kill_worker(run, "a")
+        eventually(lambda: {m.status for m in run.stats().modules.values()} == {"failed"},
+                   what="both failed")
+        run.restart("a")
+        run.add("c", Steady, group="pair")
+        eventually(lambda: run.state("a")["count"] > 3 and run.state("c")["count"] > 3,
+                   what="the restarted and the added module step")
+        assert run.stats().modules["b"].status == "failed"
+
+
 def test_a_module_whose_restarts_ran_out_restarts_when_asked(tmp_path: Path) -> None:
     flag = tmp_path / "crash"
     flag.touch()

@@ -4,15 +4,20 @@ was (it ran, stepping against a device that never opened, the error only in the 
 
 from __future__ import annotations
 
+import os
+import signal
+import threading
+from pathlib import Path
+
 import pytest
 from conftest import eventually
-from sample_modules import OpensDevice, Steady
+from sample_modules import NoDevice, OnFlag, OpensDevice, Steady
 
-from pb3a import RuntimeFailure, System
+from pb3a import RuntimeFailure, RuntimeTimeout, System
 
 pytestmark = pytest.mark.timeout(60)
 
-SAID = r"SetupError: module '{}' raised in setup: RuntimeError: device /dev/video7 not found"
+SAID = r"module '{}' raised in setup: RuntimeError: device /dev/video7 not found"
 
 
 def test_a_launch_whose_module_raises_in_setup_fails_naming_it() -> None:
@@ -69,3 +74,96 @@ def test_a_move_whose_setup_raises_at_the_destination_runs_at_the_source_again()
         assert run.where("cam") == "a"
         steps = run.state("cam")["steps"]
         eventually(lambda: run.state("cam")["steps"] > steps, what="it steps on at a")
+
+
+def test_a_value_that_came_during_a_failed_swap_is_handled_by_the_old_class(
+        tmp_path: Path) -> None:
+    """The new class handles no events: a value that came while it was set up waited,
+    undispatched, for the next one after the old class was back."""
+    flag, ready = tmp_path / "send", tmp_path / "ready"
+    system = System("setup-swap-value")
+    system.add("src", OnFlag, state={"flag": str(flag)})
+    system.add("cam", OpensDevice, state={"ready": str(ready)})
+    system.link("src.out", "cam.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("cam")["steps"] > 3, what="steps")
+        failed: list[BaseException] = []
+
+        def swap() -> None:
+            try:
+                run.swap("cam", NoDevice)
+            except RuntimeFailure as exc:
+                failed.append(exc)
+        swapping = threading.Thread(target=swap)
+        swapping.start()
+        eventually(ready.exists, what="NoDevice setting up")
+        flag.touch()                              # one value, while NoDevice sets up
+        swapping.join(20)
+        assert failed and "NoDevice raised in setup" in str(failed[0])
+        eventually(lambda: run.state("cam")["handled"] == 1, what="the value handled")
+
+
+def test_a_setup_error_in_a_restarted_worker_fails_that_module_only(tmp_path: Path) -> None:
+    """Two modules of one worker restart after it dies; one's setup raises (its device
+    unplugged meanwhile): it fails, the other runs (both failed, the worker halted); and
+    each restarts when asked, the failed one once its device is back."""
+    unplugged = tmp_path / "unplugged"
+    system = System("setup-crash-restart")
+    system.add("cam", OpensDevice, restart="fresh", group="g",
+               state={"unplugged": str(unplugged)})
+    system.add("other", Steady, restart="fresh", group="g")
+    with system.launch() as run:
+        eventually(lambda: run.state("other")["count"] > 3, what="steps")
+        unplugged.touch()
+        os.kill(run.stats().modules["cam"].pid, signal.SIGKILL)
+        modules = eventually(lambda: (m := run.stats().modules)["cam"].status == "failed"
+                             and m["other"].status == "running" and m, what="the restart")
+        assert modules["other"].restarts == 1
+        count = run.state("other")["count"]
+        eventually(lambda: run.state("other")["count"] > count, what="the other steps on")
+        reason = [e for e in run.events() if e.kind == "module_failed"][-1].detail["reason"]
+        assert "module 'cam' raised in setup: RuntimeError: device" in reason
+        run.restart("other")
+        unplugged.unlink()
+        run.restart("cam")
+        eventually(lambda: run.state("cam")["steps"] > 3, what="the mended module steps")
+
+
+def test_a_module_whose_setup_outlasts_its_add_never_runs(tmp_path: Path,
+                                                          monkeypatch) -> None:
+    """An ``add`` whose start runs out of time (setup still going) removes the module:
+    it does not start stepping once its setup returns, unknown to the system (it did,
+    in the worker it shared)."""
+    from pb3a.node.executor import Executor
+    real = Executor.call
+
+    def call(self, worker, op, timeout=10.0, /, **args):
+        return real(self, worker, op, 1.0 if op == "start" else timeout, **args)
+    monkeypatch.setattr(Executor, "call", call)
+    steps = tmp_path / "steps"
+    system = System("setup-outlasts")
+    system.add("other", Steady, group="g")
+    with system.launch() as run:
+        with pytest.raises(RuntimeTimeout, match="'start'"):
+            run.add("slow", SlowToOpen, group="g", state={"steps_to": str(steps)})
+        assert "slow" not in run.stats().modules
+        # its setup ends 2 s after it began: a step would follow within 10 ms
+        eventually(lambda: SlowToOpen.done(steps), timeout=10,
+                   what="the removed module's setup over")
+        count = run.state("other")["count"]     # (10 ms steps: a while after its setup)
+        eventually(lambda: run.state("other")["count"] > count + 10, what="time passing")
+        assert "step" not in steps.read_text()
+
+
+class SlowToOpen(OpensDevice):
+    """Its setup takes 2 s, then notes that it returned (in ``steps_to``)."""
+
+    def setup(self) -> None:
+        import time
+        time.sleep(2.0)
+        with open(self.steps_to, "a") as notes:
+            notes.write("set up\n")
+
+    @staticmethod
+    def done(path: Path) -> bool:
+        return path.exists() and "set up" in path.read_text()

@@ -10,6 +10,7 @@ import argparse
 import dataclasses
 import json
 import sys
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -107,19 +108,21 @@ def _state(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
 
 
 def _set(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
-    values = _values(args.values)
-    texts = [name for name, value in values.items() if isinstance(value, _Text)]
+    values, texts = _values(args.values)
+    deadline = None if args.timeout is None else time.monotonic() + args.timeout
     if texts:               # text for a field that holds no text is a mistyped value
-        now = system.state(args.module, timeout=args.timeout)
+        try:
+            now = system.state(args.module, timeout=args.timeout)
+        except PB3AError:   # (a state this process cannot read: set as given, as before)
+            now = {}
         wrong = [f"{name}={values[name]} is not JSON, and {args.module}.{name} is "
                  f"{type(now[name]).__name__} ({now[name]!r}), not text: give it as JSON "
                  "(true, false, 0.3, NaN, [1, 2], \"text\")" for name in texts
                  if now.get(name) is not None and not isinstance(now[name], str)]
         if wrong:
             raise ValueError("; ".join(wrong) + "; nothing was set")
-        values = {name: str(value) if isinstance(value, _Text) else value
-                  for name, value in values.items()}
-    system.set_state(args.module, values, timeout=args.timeout)
+    system.set_state(args.module, values,            # (one timeout for both calls)
+                     timeout=None if deadline is None else max(0.1, deadline - time.monotonic()))
     told = ", ".join(f"{key} = {value!r}" for key, value in values.items())
     return f"{args.module}: {told}", {"module": args.module, "set": values}
 
@@ -144,7 +147,7 @@ def _relink(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
 
 
 def _add(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
-    state = _values(args.state)
+    state, _ = _values(args.state)
     system.add(args.module, args.cls, node=args.node, period=args.period, state=state,
                timeout=args.timeout)
     where = system.where(args.module, timeout=args.timeout)
@@ -208,9 +211,10 @@ def _address(text: str) -> str:
     return address
 
 
-def _values(pairs: list[str]) -> dict[str, Any]:
-    """``NAME=VALUE`` pairs; a VALUE that is JSON is read as JSON, else kept as text."""
-    values = {}
+def _values(pairs: list[str]) -> tuple[dict[str, Any], list[str]]:
+    """``NAME=VALUE`` pairs, and the names of those kept as text: a VALUE that is JSON
+    is read as JSON, else kept as text."""
+    values, texts = {}, []
     for pair in pairs:
         name, equals, text = pair.partition("=")
         if not equals or not name.isidentifier():
@@ -218,9 +222,6 @@ def _values(pairs: list[str]) -> dict[str, Any]:
         try:
             values[name] = json.loads(text)
         except json.JSONDecodeError:
-            values[name] = _Text(text)
-    return values
-
-
-class _Text(str):
-    """A VALUE that is not JSON, taken as text (if the field holds text)."""
+            values[name] = text
+            texts.append(name)
+    return values, texts

@@ -247,23 +247,31 @@ class Executor:
         """Run ``setup`` and start the modules, in order (those not running yet: a module
         an agent moved while the system started runs already).
 
-        A worker that dies meanwhile is left to its modules' restart policies.
+        A worker that dies meanwhile is left to its modules' restart policies. A module
+        whose ``setup`` raises does not run: it is failed, the others start all the
+        same, and ``RuntimeFailure`` names each that failed, with its error.
         """
         # one request per run of modules that share a worker (a group, a packed worker)
         waiting = [self.modules[name] for name in names]
         runs = itertools.groupby((r for r in waiting if r.status != "running"),
                                  key=lambda record: record.worker)
+        failed: dict[str, str] = {}
         for worker, records in runs:
             batch = list(records)
             try:
-                self.call(worker, "start", names=[r.spec.name for r in batch])
+                failed.update(self.call(worker, "start", names=[r.spec.name for r in batch]))
             except RuntimeFailure:
                 if not _died(self.workers[worker].process):
                     raise
                 continue
             for record in batch:
-                record.status = "running"
+                if record.spec.name not in failed:
+                    record.status = "running"
         self.workers.replenish()          # for the spares they took
+        for name, error in failed.items():
+            self._fail(name, None, error)
+        if failed:
+            raise RuntimeFailure("; ".join(failed.values()))
 
     def swap(self, name: str, spec: FlatModule) -> list[str]:
         """Replace a module's class by ``spec.cls`` in place; the state names kept."""
@@ -661,10 +669,10 @@ class Executor:
                 # sent now, to the process just set up, whatever happens once the lock is free
                 process = handle.process
                 future = self.workers.submit(handle.key, "start", names=list(revived))
-            started, error = self._started(future, handle.key, process)
+            outcome = self._started(future, handle.key, process)
             with self._held(what):
                 if not self._stopping.is_set():
-                    self._restarted(handle, code, revived, started, error)
+                    self._restarted(handle, code, revived, outcome)
         except RuntimeTimeout as exc:           # the lock was not free within its deadline
             self.failures.append(f"restart of worker {handle.key} failed: {exc}")
             log.error(self.failures[-1])
@@ -701,8 +709,6 @@ class Executor:
         for name in names:
             if name not in revive:
                 self._fail(name, code, reason)
-        if not revive:      # no process for modules left failed (run.restart makes one)
-            return {}
         records = {name: self.modules[name] for name in revive}
         for record in records.values():
             record.status = "starting"
@@ -721,30 +727,36 @@ class Executor:
         return {name: _Revival(record, record.restarts) for name, record in records.items()}
 
     def _started(self, future: Future[Any], key: str,
-                 process: Any) -> tuple[bool, Exception | None]:
-        """Wait, without the lock, for the revived modules' ``setup`` and start: (started,
-        the error if the start failed); neither if the new worker died too (its restart
-        policy applies again)."""
+                 process: Any) -> tuple[bool, Exception | None, dict[str, str]]:
+        """Wait, without the lock, for the revived modules' ``setup`` and start:
+        (started, the error if the start failed, the modules whose ``setup`` raised
+        with their errors); neither if the new worker died too (its restart policy
+        applies again)."""
         try:
-            self.workers.result(future, "start", key, REQUEST_TIMEOUT)
+            failed = self.workers.result(future, "start", key, REQUEST_TIMEOUT)
         except (RuntimeFailure, RuntimeTimeout) as exc:
-            return False, None if _died(process) else exc
-        return True, None
+            return False, None if _died(process) else exc, {}
+        return True, None, failed
 
     def _restarted(self, handle: WorkerHandle, code: int | None, revived: dict[str, _Revival],
-                   started: bool, error: Exception | None) -> None:
+                   outcome: tuple[bool, Exception | None, dict[str, str]]) -> None:
         """Record what came of a restart's start (lock held), for the revived modules
         still this restart's and still starting: another operation may have moved,
         removed or stopped one while the lock was free, or a later restart taken over."""
+        started, error, failed = outcome
         records = {name: revival.record for name, revival in revived.items()
                    if self._current(name, revival) and revival.record.status == "starting"}
         if not records:
             return
-        if error is not None:
-            self._give_up(handle, code, records, f"its restart failed: {error}")
+        if error is not None or (failed and set(records) <= set(failed)):
+            self._give_up(handle, code, records, f"its restart failed: "
+                          f"{error or '; '.join(failed.values())}")
             return
         if not started:                      # the new worker died as well
             return
+        for name in [name for name in records if name in failed]:   # the others run
+            self._fail(name, code, f"its restart failed: {failed[name]}")
+            del records[name]
         for record in records.values():
             record.status = "running"
         log.warning("restarted %s (exit code %s)", ", ".join(records), code)

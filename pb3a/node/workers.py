@@ -269,8 +269,10 @@ class WorkerPool:
         try:
             return future.result(timeout)
         except FutureTimeout:
-            if future.done():        # the answer itself: RuntimeTimeout is a TimeoutError,
-                raise                # which concurrent.futures' TimeoutError is too
+            # the answer itself may be a RuntimeTimeout, which is a TimeoutError as
+            # concurrent.futures' is; or it came just after the wait ran out
+            if future.done():
+                return future.result()
             raise RuntimeTimeout(
                 f"worker {key!r} did not answer {op!r} within {timeout:g} s: a module there "
                 "is stuck in a long call (step, on_input, setup), or its machine is "

@@ -153,6 +153,7 @@ class ModuleActor:
         self._holder = 0                        # the thread running a body now (0: none)
         self._wait: RuntimeWait | None = None   # its runtime call in progress, if any
         self._stopping_for = ""                 # why someone waits to stop it, if anyone
+        self._setup_failed = False              # its setup raised: it never ran
         self.ports = module._pb3a_bind_ports(name)
         self._event_driven = type(module).is_event_driven()
         for port in self.inputs.values():
@@ -177,7 +178,7 @@ class ModuleActor:
             if self._halted:                    # stopped while it set up: it never runs
                 return
             if not set_up:
-                self._halted = True
+                self._halted = self._setup_failed = True
                 raise SetupError(f"module {self.name!r} raised in setup: {self.last_error}")
             self.running = True
             self._stop.acquire(blocking=False)  # held while running; stop() releases it
@@ -208,7 +209,8 @@ class ModuleActor:
             self._thread = None
         if self.acquire_stopped(timeout, "the module is stopping"):
             self.lock.release()
-            self.call("teardown")
+            if not self._setup_failed:      # (as a test's tearDown after a failed setUp)
+                self.call("teardown")
         else:
             finished = False
         return finished
@@ -499,6 +501,7 @@ class ModuleActor:
             # operation's timeout
             with self._setting_up():
                 if self._call_held("setup", 1) == 1:
+                    self._dispatch_owed()
                     return sorted(kept)
             # the new class cannot start: the old instance back, set up again
             error = self.last_error
@@ -509,10 +512,18 @@ class ModuleActor:
             self.module, self._event_driven = old, type(old).is_event_driven()
             with self._setting_up():
                 self._call_held("setup", 1)
+            self._dispatch_owed()
             raise SetupError(f"module {self.name!r}: {type(new).__name__} raised in setup: "
                              f"{error}; not swapped, {type(old).__name__} runs on")
         finally:
             self.lock.release()
+
+    def _dispatch_owed(self) -> None:
+        """Schedule the calls its inputs owe: values that came while an instance that
+        handles no events held the ports (the swap's) were not dispatched."""
+        for port in self.inputs.values():
+            if port.owes_calls:
+                self._on_port_event(port)
 
     def _take(self, new: Module, state: dict[str, Any]) -> dict[str, Any]:
         """Make ``new`` the module, on these ports (those it adds made), with the part of

@@ -280,17 +280,16 @@ class Worker:
         for actor in self.actors.values():
             actor.timed = not solo
 
-    def op_start(self, names: list[str]) -> None:
-        """Start the modules in order; ``SetupError`` naming every one whose ``setup``
-        raised (the others start all the same)."""
-        failed = []
+    def op_start(self, names: list[str]) -> dict[str, str]:
+        """Start the modules in order: those whose ``setup`` raised do not run (the
+        others start all the same), each named with its error."""
+        failed = {}
         for name in names:
             try:
                 self.actors[name].start()
             except SetupError as exc:
-                failed.append(str(exc))
-        if failed:
-            raise SetupError("; ".join(failed))
+                failed[name] = str(exc)
+        return failed
 
     def op_stop(self, name: str, grace: float) -> bool:
         return self.actors[name].stop(grace)
@@ -341,6 +340,8 @@ class Worker:
             return
         if actor.running:
             actor.stop(timeout=1.0)
+        else:
+            actor.halt()        # (a start whose setup still runs does not run it after)
         self.restart_policy.pop(name, None)
         self._retime()
 
