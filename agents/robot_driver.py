@@ -10,7 +10,8 @@ to another robot while it runs (the old one is stopped first). Setting ``enabled
 False stops the robot safely: it is told to stop every period and commands are
 ignored, while its sensors are still read out. A command that is not finite (a
 controller gone wrong) stops the robot too, and is counted in ``failures``. A robot
-that does not answer for ``silent_after`` periods in a row is said once on ``failure``
+that does not answer ``silent_after`` requests in a row (a period's, or a command's
+sent as it came) is said once on ``failure``
 (fault ``robot_link``), as a monitor says a fault: nothing downstream of a driver
 whose robot server died would otherwise hear of it (no reading comes to be judged).
 
@@ -51,17 +52,17 @@ class RobotDriver(Driver):
     applied = Output(np.ndarray, shape=(2,), dtype="float64")   # what drove the robot up to
                                                                 # these readings (v, w)
     camera = Output(list)
-    # once per onset, when the robot has not answered for ``silent_after`` periods in a
+    # once per onset, when the robot has not answered ``silent_after`` requests in a
     # row: {"fault": "robot_link", "probability": 1.0, "detail", "at"}, as a monitor's
     failure = Output(dict)
     period = 0.1
     with_camera = False          # the camera costs a request more per period
     enabled = True               # False: keep the robot standing, ignore commands
     lockstep_s = 0.0             # > 0: each command advances a lock-step world this long
-    failures = 0                 # periods in which the robot did not answer
+    failures = 0                 # requests the robot did not answer
     last_error = ""
-    silent_after = 5             # periods without an answer that make a failure
-    silent = 0                   # periods in a row the robot has not answered
+    silent_after = 5             # requests in a row without an answer that make a failure
+    silent = 0                   # requests in a row the robot has not answered
 
     def setup(self) -> None:
         _check_silent_after(self.silent_after)
@@ -109,8 +110,7 @@ class RobotDriver(Driver):
         except RuntimeCancelled:
             return               # the runtime stops the driver: sent again by the next one
         except (RuntimeError, OSError) as exc:
-            self.failures += 1
-            self.last_error = str(exc)
+            self._unanswered(exc)
 
     def _checked(self, command: np.ndarray) -> np.ndarray:
         """``command``, or a stop where it is not finite: the robot refuses it, so sent on
@@ -162,14 +162,7 @@ class RobotDriver(Driver):
         except RuntimeCancelled:
             return               # the runtime stops the driver (a move, a swap): not silence
         except (RuntimeError, OSError) as exc:
-            self.failures += 1
-            self.last_error = str(exc)
-            self.silent += 1
-            if self.silent == self.silent_after:      # said once, until it answers again
-                self.failure.write({"fault": "robot_link", "probability": 1.0,
-                                    "detail": {"resource": self.resource,
-                                               "periods": self.silent, "error": str(exc)},
-                                    "at": time.time()})
+            self._unanswered(exc)
             return
         self.silent = 0
         sensed = {key: np.asarray(answer[key], dtype=np.float64)
@@ -186,6 +179,20 @@ class RobotDriver(Driver):
         if blobs is not None:
             self.camera.write(blobs)
 
+    def _unanswered(self, exc: Exception) -> None:
+        """A request the robot did not answer (a period's, or a command sent as it
+        came): counted, and said on ``failure`` at the ``silent_after``-th in a row.
+        A command's counts too: up to two of them, each waiting out the deadline, could
+        come before the first period's, and detection took 5, 7 or 9 s at random."""
+        self.failures += 1
+        self.last_error = str(exc)
+        self.silent += 1
+        if self.silent == self.silent_after:          # said once, until it answers again
+            self.failure.write({"fault": "robot_link", "probability": 1.0,
+                                "detail": {"resource": self.resource,
+                                           "unanswered": self.silent, "error": str(exc)},
+                                "at": time.time()})
+
     def release(self, client: Any) -> None:
         # Leave the robot standing. One that did not answer at the last period is told
         # too, but not waited for long: a move away from a robot whose server died
@@ -193,7 +200,7 @@ class RobotDriver(Driver):
         client.call("stop", min(self.timeout, SILENT_STOP_S) if self.silent else self.timeout)
 
 
-def _check_silent_after(periods: Any) -> None:
-    if not whole(periods, 1):
-        raise ValueError(f"silent_after must be a whole number of periods, 1 or more, "
-                         f"got {periods!r}")
+def _check_silent_after(requests: Any) -> None:
+    if not whole(requests, 1):
+        raise ValueError(f"silent_after must be a whole number of requests, 1 or more, "
+                         f"got {requests!r}")
