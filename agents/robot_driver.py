@@ -77,6 +77,8 @@ class RobotDriver(Driver):
         _check_silent_after(state.get("silent_after", self.silent_after))
         repointed = state.get("resource", self.resource) != self.resource
         super().set_state(state)
+        if repointed and "silent" not in state:
+            self.silent = 0          # the old robot's silence: the new one is judged anew
         if repointed and "_read_at" in vars(self):
             # the new robot has not taken the command in force yet
             held = self.command.read() if self.command.has_value else None

@@ -260,3 +260,18 @@ def test_a_command_the_robot_does_not_take_counts_toward_its_silence(
     harness.step(2)
     failure, = harness.written["failure"]
     assert failure["detail"]["unanswered"] == 3 and harness.state["failures"] == 3
+
+
+def test_a_re_pointed_driver_judges_its_new_robot_anew(robot, monkeypatch) -> None:
+    """The old robot's silence carried over: a dead new robot was said after fewer of
+    its own requests, or never, if the old one had been said already."""
+    harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400",
+                                                "silent_after": 3})
+    failing(monkeypatch, RuntimeError)
+    harness.step(3)                                 # the old robot said, once
+    harness.module.set_state({"resource": "tcp://standby:7400"})   # dead too
+    assert harness.state["silent"] == 1             # the new robot's first request
+    harness.step(2)
+    old, new = harness.written["failure"]
+    assert (old["detail"]["resource"], new["detail"]["resource"]) == (
+        "tcp://robot:7400", "tcp://standby:7400")

@@ -23,8 +23,10 @@ from sample_modules import (
     Journal,
     Last,
     MoveLog,
+    OpensDevice,
     Relay,
     RobotPose,
+    Steady,
     StepStamps,
 )
 
@@ -555,3 +557,35 @@ def test_a_frozen_executor_s_workers_stop_before_their_modules_run_elsewhere(
         finally:
             os.kill(executor, signal.SIGCONT)
     _assert_one_copy_at_a_time(stamps)
+
+
+def test_a_module_whose_setup_raises_where_it_fails_over_is_failed_not_failed_over(
+        daemons, tmp_path: Path) -> None:
+    """Node b is lost; its three modules fail over to a, where one's setup raises (its
+    device is not there either): that one is failed (``module_failed``, not
+    ``module_failed_over``, and the env modules are not told it moved), the other two
+    run there (they were left "starting", never started)."""
+    unplugged = tmp_path / "unplugged"
+    b = daemons["b"]
+    system = System("failover-setup").node("a").node("b", address=b.address)
+    system.add("cam", OpensDevice, node="b", restart="fresh", fallback=["a"],
+               state={"unplugged": str(unplugged)})
+    for name in ("one", "two"):
+        system.add(name, Steady, node="b", restart="fresh", fallback=["a"])
+    system.add("moves", MoveLog, node="a")
+    system.link("env-a.module_moved", "moves.moved")
+    with system.launch() as run:
+        eventually(lambda: run.state("cam")["steps"] > 3, timeout=20, what="steps on b")
+        unplugged.touch()
+        os.kill(b.executor_pid(), signal.SIGKILL)
+        def failed_over() -> dict | None:
+            modules = run.stats().modules                # (gone a moment in the failover)
+            return modules if all(name in modules and modules[name].status == "running"
+                                  for name in ("one", "two")) else None
+        modules = eventually(failed_over, timeout=30, what="the failover")
+        assert (modules["cam"].node, modules["cam"].status) == ("a", "failed")
+        eventually(lambda: run.state("two")["count"] > 3, what="two steps on a")
+        assert sorted(e.subject for e in _events(run, "module_failed_over")) == ["one", "two"]
+        failed, = [e for e in _events(run, "module_failed") if e.subject == "cam"]
+        assert "raised in setup" in failed.detail["reason"]
+        assert "cam" not in [move["module"] for move in run.state("moves")["moves"]]

@@ -13,7 +13,7 @@ import pytest
 from conftest import eventually
 from sample_modules import NoDevice, OnFlag, OpensDevice, Steady
 
-from pb3a import RuntimeFailure, RuntimeTimeout, System
+from pb3a import RuntimeFailure, System
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -35,6 +35,9 @@ def test_an_added_module_that_raises_in_setup_is_not_added() -> None:
         with pytest.raises(RuntimeFailure, match=SAID.format("cam")):
             run.add("cam", OpensDevice, state={"missing": True})
         assert "cam" not in run.stats().modules
+        # refused, not failed: no module_failed, no failure kept (it said both)
+        assert "module_failed" not in [event.kind for event in run.events()]
+        assert run.stats().failures == []
         run.add("cam", OpensDevice)                     # mended, it may be added
         eventually(lambda: run.state("cam")["steps"] > 3, what="it steps")
 
@@ -144,7 +147,7 @@ def test_a_module_whose_setup_outlasts_its_add_never_runs(tmp_path: Path,
     system = System("setup-outlasts")
     system.add("other", Steady, group="g")
     with system.launch() as run:
-        with pytest.raises(RuntimeTimeout, match="'start'"):
+        with pytest.raises(RuntimeFailure, match="did not answer 'start'"):
             run.add("slow", SlowToOpen, group="g", state={"steps_to": str(steps)})
         assert "slow" not in run.stats().modules
         # its setup ends 2 s after it began: a step would follow within 10 ms
@@ -153,6 +156,7 @@ def test_a_module_whose_setup_outlasts_its_add_never_runs(tmp_path: Path,
         count = run.state("other")["count"]     # (10 ms steps: a while after its setup)
         eventually(lambda: run.state("other")["count"] > count + 10, what="time passing")
         assert "step" not in steps.read_text()
+    assert steps.read_text().endswith("set up\nclosed\n")     # what it opened, closed
 
 
 class SlowToOpen(OpensDevice):
@@ -163,6 +167,10 @@ class SlowToOpen(OpensDevice):
         time.sleep(2.0)
         with open(self.steps_to, "a") as notes:
             notes.write("set up\n")
+
+    def teardown(self) -> None:
+        with open(self.steps_to, "a") as notes:
+            notes.write("closed\n")
 
     @staticmethod
     def done(path: Path) -> bool:

@@ -92,7 +92,8 @@ class NodeShare:
             with ex.lock:
                 return getattr(ex, args["method"])(*args["args"], **args["kwargs"])
         if op == "start":       # beside the executor's other requests, without its lock,
-            ex.start_modules(args["names"])   # as on an embedded node: see executor_main
+            ex.start_modules(args["names"], args.get("failing", False))   # as on an
+            # embedded node: see executor_main
             return None
         if op == "bind":
             self.bind(args["launcher"], args["checkpoint_s"], args["log_level"],

@@ -493,15 +493,19 @@ class Launcher:
         rewired = [self.links[key] for key in written if key in self.links]
         for key, count in self._written(rewired).items():
             self.lost_values[key] += max(0, count - written[key])
+        not_started: set[str] = set()
         for target in dict.fromkeys(moved.values()):
             started = [name for name, to in moved.items() if to == target]
             try:
-                self.nodes[target].start_modules(started)
+                self.nodes[target].start_modules(started, failing=True)
             except (RuntimeFailure, RuntimeTimeout) as exc:
+                not_started.update(getattr(exc, "failed", started))
                 self.failures.append(f"failover of {', '.join(started)} to node "
                                      f"{target} failed: {exc}")
                 log.error(self.failures[-1])
         for name, target in moved.items():
+            if name in not_started:             # failed there (module_failed), not over
+                continue
             self.events.record("module_failed_over", name, source=node,
                                destination=target, policy=self.specs[name].restart,
                                from_checkpoint=self.specs[name].restart == "last-state"

@@ -243,13 +243,16 @@ class Executor:
         self.call(record.worker, "add", name=spec.name, cls=record.blob, period=spec.period,
                   restart=spec.restart, state=state)
 
-    def start_modules(self, names: list[str]) -> None:
+    def start_modules(self, names: list[str], failing: bool = False) -> None:
         """Run ``setup`` and start the modules, in order (those not running yet: a module
         an agent moved while the system started runs already).
 
         A worker that dies meanwhile is left to its modules' restart policies. A module
-        whose ``setup`` raises does not run: it is failed, the others start all the
-        same, and ``RuntimeFailure`` names each that failed, with its error.
+        whose ``setup`` raises, or whose worker's start runs out of time (it is halted
+        there), does not run; the others start all the same, and ``RuntimeFailure``
+        names each that did not, with why (its ``failed``: their names). With
+        ``failing`` they are failed here too (``module_failed``), for a caller that
+        keeps them (failover); others drop them or put them back.
         """
         # one request per run of modules that share a worker (a group, a packed worker)
         waiting = [self.modules[name] for name in names]
@@ -258,20 +261,29 @@ class Executor:
         failed: dict[str, str] = {}
         for worker, records in runs:
             batch = list(records)
+            names = [record.spec.name for record in batch]
             try:
-                failed.update(self.call(worker, "start", names=[r.spec.name for r in batch]))
-            except RuntimeFailure:
-                if not _died(self.workers[worker].process):
-                    raise
+                failed.update(self.call(worker, "start", names=names))
+            except (RuntimeFailure, RuntimeTimeout) as exc:
+                # (out of time, it runs on: halted at once, before its setup returns)
+                if not isinstance(exc, RuntimeTimeout) and _died(self.workers[worker].process):
+                    continue
+                # (a start out of time may still go through: halted, they never run)
+                with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+                    self.call(worker, "halt", names=names)
+                failed.update(dict.fromkeys(names, str(exc)))
                 continue
             for record in batch:
                 if record.spec.name not in failed:
                     record.status = "running"
         self.workers.replenish()          # for the spares they took
-        for name, error in failed.items():
-            self._fail(name, None, error)
+        if failing:
+            for name, error in failed.items():
+                self._fail(name, None, error)
         if failed:
-            raise RuntimeFailure("; ".join(failed.values()))
+            error = RuntimeFailure("; ".join(dict.fromkeys(failed.values())))
+            error.failed = sorted(failed)           # type: ignore[attr-defined]
+            raise error
 
     def swap(self, name: str, spec: FlatModule) -> list[str]:
         """Replace a module's class by ``spec.cls`` in place; the state names kept."""
@@ -707,14 +719,17 @@ class Executor:
                       f"died {budget.deaths} times in {budget.window:.0f} s: gave up")
             revive = []
         for name in names:
-            if name not in revive:
+            if name not in revive and self.modules[name].status != "failed":
                 self._fail(name, code, reason)
+        if not revive:      # (a restart or an add later gets a new process: ensure)
+            return {}
         records = {name: self.modules[name] for name in revive}
         for record in records.values():
             record.status = "starting"
             record.restarts += 1            # (also tells this restart from a later one)
         try:
-            self.workers.spawn(handle)
+            if not handle.alive:            # (an add may have started one meanwhile)
+                self.workers.spawn(handle)
             for record in records.values():
                 state = record.spec.state
                 if record.spec.restart == "last-state" and record.checkpoint is not None:

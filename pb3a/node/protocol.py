@@ -40,8 +40,9 @@ class Node(Protocol):
         """Instantiate a module in its worker (not started); ``state`` overrides the spec's
         (as bytes: a checkpoint, unpickled in the worker, where the module's code is)."""
 
-    def start_modules(self, names: list[str]) -> None:
-        """Run ``setup`` and start the modules, in order."""
+    def start_modules(self, names: list[str], failing: bool = False) -> None:
+        """Run ``setup`` and start the modules, in order; ``RuntimeFailure`` naming those
+        that did not start (its ``failed``), failed here too with ``failing``."""
 
     def call_module(self, name: str, op: str, timeout: float, /, **args: Any) -> Any:
         """One request about module ``name`` to its worker (state, set_state, ...)."""

@@ -157,12 +157,12 @@ class RemoteNode:
                    state: dict[str, Any] | bytes | None = None) -> None:
         self._forward("add_module", spec, state=state)
 
-    def start_modules(self, names: list[str]) -> None:
+    def start_modules(self, names: list[str], failing: bool = False) -> None:
         # not one of the executor's requests taken one at a time: the modules' setup
         # may ask about this node meanwhile (an agent's ``self.runtime``)
         if self.lost or self.client is None:
             raise RuntimeFailure(f"node {self.name} is lost")
-        self.client.call("start", CALL_TIMEOUT, names=names)
+        self.client.call("start", CALL_TIMEOUT, names=names, failing=failing)
 
     def call_module(self, name: str, op: str, timeout: float, /, **args: Any) -> Any:
         return self._forward("call_module", name, op, timeout, within=timeout + MARGIN_S,

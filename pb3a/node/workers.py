@@ -156,6 +156,8 @@ class WorkerPool:
         """The worker ``key``, started if it does not exist yet (not once the pool is
         stopping: a change that goes on without the lock of a shutdown starts none)."""
         handle = self.handles.get(key)
+        if handle is not None and not handle.alive and not self._stopping.is_set():
+            self.spawn(handle)          # its modules died with it, none restarted
         if handle is None:
             if self._stopping.is_set():
                 raise RuntimeFailure(f"node {node} is shutting down: no worker is started")

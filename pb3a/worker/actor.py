@@ -175,13 +175,19 @@ class ModuleActor:
         with self._setting_up():
             set_up = self.call("setup")
         with self._sched_lock:
-            if self._halted:                    # stopped while it set up: it never runs
-                return
-            if not set_up:
+            halted = self._halted
+            if not halted and set_up:
+                self.running = True
+                self._stop.acquire(blocking=False)  # held while running; stop() releases it
+            elif not halted:
                 self._halted = self._setup_failed = True
-                raise SetupError(f"module {self.name!r} raised in setup: {self.last_error}")
-            self.running = True
-            self._stop.acquire(blocking=False)  # held while running; stop() releases it
+        if halted:                              # stopped while it set up: it never runs,
+            if set_up and not self._stopped:    # and what its setup opened is closed
+                self._stopped = True
+                self.call("teardown")
+            return
+        if not set_up:
+            raise SetupError(f"module {self.name!r} raised in setup: {self.last_error}")
         if self.period is not None:
             self._thread = threading.Thread(target=self._loop, name=f"pb3a-step-{self.name}",
                                             daemon=True)

@@ -51,7 +51,7 @@ TIMED_OUT = "timed out"   # a reply's status for a request that ran out of time 
 # Requests that wait for a module's lock (and may run its hooks, which may call the
 # runtime, whose answer this thread reads): never on the control thread.
 _TAKES_A_MODULE_LOCK = frozenset({"get_state", "set_state", "pause", "start", "swap", "stop",
-                                  "remove", "snapshot_size"})
+                                  "remove", "snapshot_size", "halt"})
 
 
 @dataclass
@@ -290,6 +290,18 @@ class Worker:
             except SetupError as exc:
                 failed[name] = str(exc)
         return failed
+
+    def op_halt(self, names: list[str]) -> None:
+        """Modules whose start was given up on: one still in its ``setup`` never runs
+        once it returns, one that started meanwhile is stopped."""
+        for name in names:
+            actor = self.actors.get(name)
+            if actor is None:
+                continue
+            if actor.running:
+                actor.stop(timeout=1.0)
+            else:
+                actor.halt()
 
     def op_stop(self, name: str, grace: float) -> bool:
         return self.actors[name].stop(grace)
