@@ -261,17 +261,17 @@ class Executor:
         failed: dict[str, str] = {}
         for worker, records in runs:
             batch = list(records)
-            names = [record.spec.name for record in batch]
+            starting = [record.spec.name for record in batch]
             try:
-                failed.update(self.call(worker, "start", names=names))
+                failed.update(self.call(worker, "start", names=starting))
             except (RuntimeFailure, RuntimeTimeout) as exc:
-                # (out of time, it runs on: halted at once, before its setup returns)
                 if not isinstance(exc, RuntimeTimeout) and _died(self.workers[worker].process):
                     continue
-                # (a start out of time may still go through: halted, they never run)
+                # a start out of time may still go through once a setup returns: halted
+                # now, they never run
                 with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
-                    self.call(worker, "halt", names=names)
-                failed.update(dict.fromkeys(names, str(exc)))
+                    self.call(worker, "halt", names=starting)
+                failed.update(dict.fromkeys(starting, str(exc)))
                 continue
             for record in batch:
                 if record.spec.name not in failed:

@@ -32,14 +32,14 @@ if TYPE_CHECKING:
 log = logging.getLogger("pb3a.module")
 
 _BODIES = ("step", "on_input")   # hooks that run only while the module runs
-
-
-class SetupError(Exception):
-    """A module's ``setup`` raised: it does not run (its start, its swap, fails)."""
 _EVENT_BUDGET = 256  # events handled per dispatch task before yielding to other modules
 _HAND_OVER_S = 0.01  # longest a step loop waits for a waiter to take the lock it left
 _WAIT_SLICE = 0.02   # a request waiting for a module lock looks this often for a body that
                      # has started waiting for the runtime (then runs on its thread)
+
+
+class SetupError(Exception):
+    """A module's ``setup`` raised: it does not run (its start, its swap, fails)."""
 
 
 class HandOverLock:
