@@ -14,7 +14,7 @@ import pytest
 from conftest import eventually
 from sample_modules import Chatty, Faulty
 
-from pb3a import System
+from pb3a import Module, System
 from pb3a.cli.main import main
 from pb3a.daemons.node_controller import Limits, NodeController
 from pb3a.transport.auth import ClusterKey
@@ -68,6 +68,44 @@ def test_a_plain_script_sees_a_module_s_exception_without_setting_up_logging() -
     assert done.returncode == 0, done.stderr
     assert "module 'faulty' raised in step" in done.stderr and "odd step" in done.stderr
     assert logging.getLogger("pb3a").handlers == []         # the library installs none
+
+
+def test_a_script_s_module_class_fails_with_a_traceback_naming_the_script(
+        tmp_path: Path) -> None:
+    # (a class defined in the script travels by value: cloudpickle named its code
+    # "<dynamic-code>", and the traceback named no file and showed no line)
+    script = tmp_path / "own.py"
+    script.write_text(FAULTY + "\n\nimport time\nfrom pb3a import System\n"
+                      "with System('own').add('faulty', Faulty).launch():\n"
+                      "    time.sleep(1.5)\n")
+    done = subprocess.run([sys.executable, str(script)], env=_env(), capture_output=True,
+                          text=True, timeout=60, check=False)
+    assert done.returncode == 0, done.stderr
+    assert f'File "{script}", line 12, in step\n    raise ValueError("odd step")' \
+        in done.stderr, done.stderr
+    assert "<dynamic-code>" not in done.stderr
+
+
+def test_a_remote_module_s_traceback_names_the_file_its_class_was_written_in() -> None:
+    class Local(Module):                    # (by value too: no import names it)
+        period = 0.01
+
+        def step(self) -> None:
+            (lambda: 1 / 0)()               # a code object inside another
+
+    far = NodeController("b", ClusterKey.load(), limits=Limits(max_cpu_percent=101.0))
+    try:
+        system = System("located").node("a").node("b", address=far.address)
+        system.add("far_fault", Local, node="b")
+        with system.launch() as run:
+            entry = eventually(lambda: next(iter(run.logs(module="far_fault")), None),
+                               timeout=15, what="node b's module error")
+    finally:
+        far.close()
+    line = Local.step.__code__.co_firstlineno + 1
+    assert f'File "{__file__}", line {line}, in step' in entry.message, entry.message
+    assert f'File "{__file__}", line {line}, in <lambda>' in entry.message
+    assert "(lambda: 1 / 0)()" in entry.message and "<dynamic-code>" not in entry.message
 
 
 def test_logs_come_from_every_node_and_follow_one_module(capsys) -> None:

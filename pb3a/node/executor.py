@@ -38,6 +38,7 @@ from pb3a.node.restarts import RestartBudget
 from pb3a.node.ring_sizes import RingSize, ring_size
 from pb3a.node.workers import REQUEST_TIMEOUT, WorkerHandle, WorkerPool, WorkerSettings
 from pb3a.stats import InputStats, ModuleStats, NodeReport, WaitStats
+from pb3a.transport import pickling
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import memory_domain, reap_orphans, segment_name, unlink_name
@@ -228,7 +229,7 @@ class Executor:
         """Instantiate a module in its worker (not started)."""
         key = self.place(spec)
         handle = self.workers.ensure(key, spec.node)
-        record = ModuleRecord(spec, key, cloudpickle.dumps(spec.cls))
+        record = ModuleRecord(spec, key, pickling.dumps(spec.cls))
         self.modules[spec.name] = record
         handle.modules.append(spec.name)
         try:
@@ -288,7 +289,7 @@ class Executor:
     def swap(self, name: str, spec: FlatModule) -> list[str]:
         """Replace a module's class by ``spec.cls`` in place; the state names kept."""
         record = self.modules[name]
-        blob = cloudpickle.dumps(spec.cls)
+        blob = pickling.dumps(spec.cls)
         kept = self.call(record.worker, "swap", name=name, cls=blob)
         record.spec, record.blob = spec, blob
         return kept

@@ -33,6 +33,7 @@ from pb3a.config.description import DEFAULT_SPARES
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
 from pb3a.processes import start_without_main
+from pb3a.transport import pickling
 from pb3a.transport.doorbell import new_bell
 from pb3a.worker.process import TIMED_OUT, worker_main
 
@@ -73,7 +74,7 @@ class WorkerHandle:
         given. The arguments go by cloudpickle, so a class the launcher's own script
         defines travels by value, and one the worker cannot read fails only its request.
         A ``TypeError`` or ``PicklingError`` says they cannot be pickled: nothing went."""
-        body = cloudpickle.dumps(args, protocol=5)
+        body = pickling.dumps(args)
         with self.send_lock:                     # several threads may send at once
             self.conn.send((req_id, op, fd is not None))
             self.conn.send_bytes(body)

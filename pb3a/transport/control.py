@@ -41,10 +41,10 @@ import threading
 import time
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
-import cloudpickle
 import zmq
 
 from pb3a.errors import PB3AError, RuntimeFailure, RuntimeTimeout
+from pb3a.transport import pickling
 from pb3a.transport.addresses import bind_advertised, close_bound
 from pb3a.transport.auth import ClusterKey, Opener, Rejected, Sealer
 from pb3a.transport.loop import SocketLoop
@@ -221,9 +221,9 @@ class ControlServer:
 
     def _reply(self, peer: Any, request_id: bytes, ok: bool, result: Any) -> None:
         try:
-            blob = cloudpickle.dumps((ok, result), protocol=5)
+            blob = pickling.dumps((ok, result))
         except Exception as exc:
-            blob = cloudpickle.dumps((False, f"the result could not be pickled: {exc}"))
+            blob = pickling.dumps((False, f"the result could not be pickled: {exc}"))
         self._router.send_multipart([peer, *self._sealer.seal(REPLY, [request_id, blob])])
 
     def close(self) -> None:
@@ -282,7 +282,7 @@ class ControlClient:
         if self.refused == "bad tag":           # it will not change its mind
             raise RuntimeFailure(self._refusal(op))
         request_id = _ID.pack(next(self._ids))
-        blob = cloudpickle.dumps((op, args), protocol=5)
+        blob = pickling.dumps((op, args))
         done, box = _Done(wait), [False, None]
         self._waiting[request_id] = (done, box)
         self._sent[request_id] = [blob, 0]

@@ -28,6 +28,7 @@ from typing import Any
 
 import cloudpickle
 
+from pb3a.transport import pickling
 from pb3a.transport.shm import segment_path, unlink_name
 
 _ALIGN = 64                     # each buffer starts on a cache line (numpy wants alignment)
@@ -105,7 +106,7 @@ def make_room(segment: str, size: int) -> None:
 def _pickled(value: Any) -> list[memoryview]:
     """``value`` pickled: the pickle, then its out-of-band buffers (not copied)."""
     buffers: list[pickle.PickleBuffer] = []
-    pickled = cloudpickle.dumps(value, protocol=5, buffer_callback=buffers.append)
+    pickled = pickling.dumps(value, buffer_callback=buffers.append)
     return [memoryview(pickled), *(buffer.raw() for buffer in buffers)]
 
 

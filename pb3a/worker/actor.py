@@ -18,10 +18,9 @@ import traceback
 from collections import deque
 from typing import TYPE_CHECKING, Any
 
-import cloudpickle
-
 from pb3a import latencies
 from pb3a.model.ports import InputPort, OutputPort
+from pb3a.transport import pickling
 from pb3a.worker.waits import RuntimeWait, run_posted
 
 if TYPE_CHECKING:
@@ -437,7 +436,7 @@ class ModuleActor:
     def checkpoint(self, timeout: float = 10.0) -> bytes:
         """The module's state, pickled under its lock: a body cannot change a list or an
         array halfway through (the state names the module's objects, not copies)."""
-        return self.with_lock(lambda: cloudpickle.dumps(self.module.get_state()), timeout)
+        return self.with_lock(lambda: pickling.dumps(self.module.get_state()), timeout)
 
     def retire(self) -> dict[str, Any]:
         """Leave this process (migration); the caller holds the module lock (paused).

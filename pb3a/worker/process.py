@@ -28,6 +28,7 @@ from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
 from pb3a.model.agent import Agent, RuntimeClient
 from pb3a.model.ports import InputPort, Policy, WaitCounter
+from pb3a.transport import pickling
 from pb3a.transport.codec import local_copy
 from pb3a.transport.doorbell import BellPull
 from pb3a.transport.ring import RingSize, ShmRing, sleep
@@ -213,13 +214,13 @@ class Worker:
         never the pipe."""
         req_id, kind, payload = message
         try:
-            body = cloudpickle.dumps(payload, protocol=5)   # (a class sent by value, too)
+            body = pickling.dumps(payload)   # (a class sent by value, too)
         except Exception as exc:
             if req_id is None:
                 log.error("a %s notice could not be pickled: %s: %s", kind,
                           type(exc).__name__, exc)
                 return
-            kind, body = False, cloudpickle.dumps(
+            kind, body = False, pickling.dumps(
                 f"its answer could not be pickled: {type(exc).__name__}: {exc}")
         with self._send_lock:
             try:
@@ -547,7 +548,7 @@ class Worker:
                 # setup lets it read (``Operations``)
                 asker = {"_asker": (agent, actor.in_setup)}
                 self.send((None, "request", {"id": req_id, "op": op,
-                                             "args": cloudpickle.dumps({**args, **asker})}))
+                                             "args": pickling.dumps({**args, **asker})}))
                 return wait.result(timeout)
             finally:
                 self._requests.pop(req_id, None)

@@ -1,0 +1,46 @@
+"""``dumps``: objects pickled to travel between pb3a's processes, with cloudpickle, which
+sends by value what the far side cannot import (a module class defined in the
+launching script), keeping the file its code was written in.
+
+cloudpickle names every code object it sends by value ``<dynamic-code>``, so that a
+payload does not depend on where the code was written. A script's module class then
+failed in its worker with a traceback that named no file. Here each such code object
+keeps its ``co_filename``: the traceback names the script and the line, and shows the
+line where the file is on that machine. The far side needs nothing but pb3a.
+"""
+
+from __future__ import annotations
+
+import io
+import pickle
+import types
+from collections.abc import Callable
+from typing import Any
+
+import cloudpickle
+
+_DYNAMIC = "<dynamic-code>"         # (what cloudpickle names code it sends by value)
+
+
+class _Pickler(cloudpickle.Pickler):
+    """cloudpickle's pickler; code by value is sent with its file's name beside it."""
+
+    def reducer_override(self, obj: Any) -> Any:
+        if type(obj) is types.CodeType and obj.co_filename != _DYNAMIC:
+            # the copy named as cloudpickle would name it goes its way (its own nested
+            # code objects come back here); the name is put back on arrival
+            return _located, (obj.replace(co_filename=_DYNAMIC), obj.co_filename)
+        return super().reducer_override(obj)
+
+
+def _located(code: types.CodeType, filename: str) -> types.CodeType:
+    return code.replace(co_filename=filename)
+
+
+def dumps(obj: Any, *,
+          buffer_callback: Callable[[pickle.PickleBuffer], Any] | None = None) -> bytes:
+    """``obj`` pickled (protocol 5; ``buffer_callback`` takes its out-of-band buffers);
+    read with ``pickle.loads`` or ``cloudpickle.loads``."""
+    with io.BytesIO() as file:
+        _Pickler(file, protocol=5, buffer_callback=buffer_callback).dump(obj)
+        return file.getvalue()
