@@ -217,3 +217,17 @@ def test_one_connection_waiting_for_events_holds_up_no_other() -> None:
                 assert time.monotonic() - started < 1.0
             finally:
                 waiting.join(10)
+
+
+@pytest.mark.parametrize("every", ["*", "0.0.0.0"])
+def test_a_launcher_listening_on_every_interface_hands_out_an_address_of_this_machine(
+        every: str) -> None:
+    # (it handed out tcp://*:PORT, which `pb3a status` and another host cannot use)
+    with System("everywhere").add("scale", Scale).launch() as run:
+        address = run.listen(f"tcp://{every}:0")
+        host, _, port = address.removeprefix("tcp://").rpartition(":")
+        ours = {entry.address for entries in psutil.net_if_addrs().values()
+                for entry in entries}
+        assert host in ours and host not in ("*", "0.0.0.0"), address
+        with pb3a.connect(f"tcp://127.0.0.1:{port}") as far:      # every interface: here too
+            assert far.name == "everywhere"

@@ -193,6 +193,20 @@ def test_on_a_remote_node_a_restarted_writer_feeds_its_readers_and_agents_can_mo
                    timeout=30, what="values from the restarted writer on node b")
 
 
+def test_a_launcher_listening_on_every_interface_is_called_back_where_its_nodes_reach_it(
+        controllers) -> None:
+    # (the nodes were handed tcp://*:PORT to call the launcher back: an agent's request
+    # there never arrived)
+    system = System("wildcard").node("a").node("b", address=controllers["b"].address)
+    system.add("src", Counter, node="a", period=0.002)
+    system.add("wanderer", Wanderer, node="b", state={"to": "a"})
+    system.link("src.out", "wanderer.x")
+    with system.launch(listen="tcp://*:0") as run:
+        assert run.address.startswith("tcp://127.0.0.1:")        # where b reaches it
+        eventually(lambda: run.where("wanderer") == "a", timeout=30,
+                   what="the agent on b moved itself, asking the launcher")
+
+
 def test_on_a_remote_node_an_agent_may_ask_the_runtime_from_setup_as_the_system_starts(
         controllers) -> None:
     """The launch runs ``setup`` there as on an embedded node: the node's executor

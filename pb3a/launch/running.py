@@ -17,7 +17,12 @@ from pb3a.errors import ModuleNotFound, bounded_wait
 from pb3a.launch.handle import SystemHandle
 from pb3a.launch.launcher import Launcher
 from pb3a.launch.operations import DEFAULT_TIMEOUT, FOR_AGENTS, Operations
-from pb3a.transport.addresses import bind_address, reachable_from
+from pb3a.transport.addresses import (
+    EVERY_INTERFACE,
+    bind_address,
+    default_route_host,
+    reachable_from,
+)
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlServer
 
@@ -65,8 +70,7 @@ class Running(SystemHandle):
         try:
             with launcher.lock.held(f"start system {self.name!r}"):
                 # remote nodes call the launcher back where they reach each other
-                remote = [f"tcp://{node.advertise}:0" if node.advertise else node.address
-                          for node in self.plan.nodes.values() if node.address]
+                remote = self._remote_nodes()
                 if self._listen_at is not None or remote:
                     self.listen(self._listen_at or f"tcp://{reachable_from(remote[0])}:0")
                 launcher.start_nodes(self.address if remote else None)
@@ -93,18 +97,30 @@ class Running(SystemHandle):
                 if self._server is not None:
                     self._server.close()
 
+    def _remote_nodes(self) -> list[str]:
+        """Where the remote nodes are reached (an address on their hosts)."""
+        return [f"tcp://{node.advertise}:0" if node.advertise else node.address
+                for node in self.plan.nodes.values() if node.address]
+
     def listen(self, address: str = "tcp://127.0.0.1:0") -> str:
         """Take authenticated requests (``pb3a.connect``, ``pb3a status ADDR`` ...) at
-        ``address``; returns the address bound."""
+        ``address``; returns the address to reach it at. Bound to every interface
+        (``tcp://*:0``, ``tcp://0.0.0.0:0``), that is the host the remote nodes reach
+        this machine at, else the one of its default route: ``tcp://*:PORT`` reaches
+        nobody, and it was handed to the nodes to call the launcher back at."""
         if self._server is None:
+            host, port = bind_address(address)
             # Not in the lane of operations, one at a time: an agent's request from a
             # remote node (the operation in progress may wait for it: the setup of the
             # module it starts), what nodes report, and the reads that wait for news
             # (a follower's events held the lane 1 s in 1.2, and other callers' waits).
             self._server = ControlServer(ClusterKey.load(), self._remote_request,
-                                         *bind_address(address), name="pb3a-launcher",
-                                         aside=_ASIDE)
+                                         host, port, name="pb3a-launcher", aside=_ASIDE)
             self.address = self._server.address
+            if host in EVERY_INTERFACE:
+                remote = self._remote_nodes()
+                here = reachable_from(remote[0]) if remote else default_route_host()
+                self.address = f"tcp://{here}:{self.address.rpartition(':')[2]}"
         return self.address
 
     stop = close

@@ -36,6 +36,19 @@ def bind_advertised(sock: zmq.Socket, host: str, port: int = 0) -> str:
     return f"tcp://{host}:{bound.rpartition(':')[2]}"
 
 
+EVERY_INTERFACE = ("*", "0.0.0.0")           # hosts that mean: bind every interface
+_ROUTED = "198.51.100.1"        # (TEST-NET-2: an address only the default route leads to)
+
+
+def default_route_host() -> str:
+    """This machine's address on the interface of its default route, else loopback's
+    (no packet is sent)."""
+    try:
+        return reachable_from(f"tcp://{_ROUTED}:9")
+    except OSError:                     # no route out of this machine
+        return "127.0.0.1"
+
+
 def close_bound(sock: zmq.Socket, timeout: float = 2.0, linger_ms: int = 0) -> None:
     """Close a bound ``sock`` and wait (at most ``timeout`` seconds) until its ports are
     free: ZeroMQ closes listeners on its own thread, after ``close`` has returned, so a
