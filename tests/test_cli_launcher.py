@@ -15,7 +15,7 @@ import pytest
 from conftest import eventually
 from sample_modules import Counter, FastScale, Last, OnFlag, Relay, Scale
 
-from pb3a import System
+from pb3a import Module, System
 from pb3a.cli.main import INTERRUPTED, main
 from pb3a.cli.standard_output import BROKEN_PIPE
 
@@ -46,6 +46,24 @@ def test_the_command_line_reads_and_changes_a_running_system(capsys) -> None:
         assert "state kept: gain, setups" in capsys.readouterr().out
         assert main(["state", address, "ghost"]) == 1
         assert "no module 'ghost'" in capsys.readouterr().err
+
+
+def test_set_sets_text_as_given_when_the_module_s_state_cannot_be_read(capsys) -> None:
+    # (set asks the state to refuse text for a field that holds none; a state it cannot
+    # read must not keep it from setting)
+    class Unreadable(Module):
+        label = "none"
+
+        def get_state(self) -> dict:
+            if self.label == "none":
+                raise ValueError("this state is not for reading")
+            return super().get_state()
+
+    with System("unreadable").add("m", Unreadable).launch() as run:
+        assert main(["set", run.listen(), "m", "label=hello"]) == 0
+        assert "m: label = 'hello'" in capsys.readouterr().out
+        assert run.state("m")["label"] == "hello"
+
 
 
 def _no_constant(name: str) -> None:
