@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -222,3 +223,103 @@ def test_an_edit_toml_cannot_hold_is_refused_and_changes_nothing(pipeline: Path)
             assert client.get("/api/document/toml").text == before
         assert client.put("/api/document", json={"system": system}).status_code == 200
         assert client.get("/api/document/toml").text == before
+
+
+COMMENTED = '''\
+# A commented system.
+name = "commented"
+
+# the modules
+[modules.tick]
+class = "examples.pipeline:Ticker"
+period = 0.005  # fast
+
+# the first scale
+[modules.a]
+class = "examples.pipeline:Scale"
+
+# the second scale
+[modules.b]
+class = "examples.pipeline:Scale"
+# where it runs
+node = "n"
+
+# the last scale
+[modules.c]
+class = "examples.pipeline:Scale"
+
+# ---- links ----
+
+# link one
+[[links]]
+from = "tick.out"
+to = "a.x"
+
+# link two
+[[links]]
+from = "a.y"
+to = "b.x"  # two's to
+
+# link three
+[[links]]
+from = "b.y"
+to = "c.x"
+# the last link's own
+'''
+LINK_ONE = '# link one\n[[links]]\nfrom = "tick.out"\nto = "a.x"\n\n'
+LINK_TWO = '# link two\n[[links]]\nfrom = "a.y"\nto = "b.x"  # two\'s to\n\n'
+LINK_THREE = '\n# link three\n[[links]]\nfrom = "b.y"\nto = "c.x"\n# the last link\'s own\n'
+SCALE = 'class = "examples.pipeline:Scale"\n'
+TICK = ('\n# the modules\n[modules.tick]\nclass = "examples.pipeline:Ticker"\n'
+        'period = 0.005  # fast\n')
+LAST = f'# the last scale\n[modules.c]\n{SCALE}\n'
+NEW_LINK = '[[links]]\nfrom = "c.y"\nto = "tick.in"\n\n'
+
+
+def _without(text: str, *parts: str) -> str:
+    for part in parts:
+        assert text.count(part) == 1, part
+        text = text.replace(part, "")
+    return text
+
+
+def _links(edit: Any) -> Any:
+    return lambda system: system.__setitem__("links", edit(system["links"]))
+
+
+@pytest.mark.parametrize(("edit", "expected"), [
+    (_links(lambda links: links[1:]), _without(COMMENTED, LINK_ONE)),
+    (_links(lambda links: [links[0], links[2]]), _without(COMMENTED, LINK_TWO)),
+    (_links(lambda links: links[:2]), _without(COMMENTED, LINK_THREE)),
+    (_links(lambda links: links[2:]), _without(COMMENTED, LINK_ONE, LINK_TWO)),
+    (lambda system: system.pop("links"), COMMENTED.split("\n# link one")[0]),
+    (lambda system: system["modules"].pop("tick"), _without(COMMENTED, TICK)),
+    (lambda system: system["modules"].pop("c"), _without(COMMENTED, LAST)),
+    (lambda system: system["modules"]["b"].pop("node"),
+     _without(COMMENTED, '# where it runs\nnode = "n"\n')),
+    (lambda system: system["modules"].__setitem__("d", {"class": "examples.pipeline:Scale"}),
+     COMMENTED.replace("# ---- links", f"[modules.d]\n{SCALE}\n# ---- links")),
+    (_links(lambda links: [{"from": "c.y", "to": "tick.in"}, *links]),
+     COMMENTED.replace("# link one\n", NEW_LINK + "# link one\n")),
+    (_links(lambda links: [links[0], {"from": "c.y", "to": "tick.in"}, *links[1:]]),
+     COMMENTED.replace("# link two\n", NEW_LINK + "# link two\n")),
+    (_links(lambda links: [{**links[0], "to": "b.x"}, *links[1:]]),
+     COMMENTED.replace('to = "a.x"', 'to = "b.x"')),
+], ids=["first link", "middle link", "last link", "first two links", "all links",
+        "first module", "last module", "a key", "a new module", "a new first link",
+        "a new middle link", "a relinked link"])
+def test_an_entry_removed_or_added_takes_its_own_comments_and_leaves_the_others(
+        edit: Any, expected: str) -> None:
+    """A comment directly above an entry (a link, a module, a key) is its own: it goes
+    with it, and one below a table's last line before a blank line or the end; one after
+    a blank line is the section's and stays; one blank line is left where there was one.
+    Links were merged by place: with the first one removed, each took the next one's
+    values under the comments of the one before, and the last one's comments were lost;
+    a removed module's comment stayed above the next one, whose own was lost; a new module
+    went in below the links' heading comments."""
+    document = Document(COMMENTED)
+    system = document.data()
+    edit(system)
+    document.replace(system)
+    assert document.toml() == expected
+    assert document.data() == system

@@ -14,6 +14,7 @@ import contextlib
 import copy
 import datetime
 import decimal
+import difflib
 import json
 import threading
 import tomllib
@@ -23,7 +24,7 @@ from typing import Any
 
 import tomlkit
 from tomlkit.exceptions import TOMLKitError
-from tomlkit.items import AoT, InlineTable, Table
+from tomlkit.items import AoT, Comment, InlineTable, Null, Table, Whitespace
 
 from pb3a.config.compiler import sketch_plan
 from pb3a.config.description import read_description
@@ -185,11 +186,15 @@ def check_data(data: dict[str, Any], source: str) -> tuple[Plan, list[str]]:
     return sketch_plan(read_description(data, source))
 
 
-def _merge(container: Any, new: dict[str, Any], where: tuple[str, ...]) -> None:
+def _merge(container: Any, new: dict[str, Any], where: tuple[str, ...],
+           root: Any = None) -> None:
     """Update a tomlkit table in place to hold ``new``: unchanged values keep their
-    formatting, changed ones are replaced, missing ones removed."""
+    formatting, changed ones are replaced, missing ones removed (with the comment right
+    above them, see ``_drop``), new tables placed before the comments of what follows
+    (``_place``). ``root``: the document ``container`` is in (itself at the top)."""
+    root = container if root is None else root
     for key in [key for key in container if key not in new or new[key] is None]:
-        del container[key]
+        _drop(root, container.item(key), lambda key=key: container.__delitem__(key))
     for key, value in new.items():
         if value is None:
             continue
@@ -201,23 +206,182 @@ def _merge(container: Any, new: dict[str, Any], where: tuple[str, ...]) -> None:
             if value == held:
                 continue
         if isinstance(value, dict) and isinstance(old, (Table, InlineTable)):
-            _merge(old, value, place)
+            _merge(old, value, place, root)
         elif (isinstance(value, list) and isinstance(old, AoT)
               and all(isinstance(item, dict) for item in value)):
-            _merge_array(old, value, place)
+            _merge_array(old, value, place, root)
         else:
             container[key] = _item(value, place)
+            if old is None:
+                _place(root, container.item(key))
 
 
-def _merge_array(old: AoT, new: list[dict[str, Any]], where: tuple[str, ...]) -> None:
-    """An array of tables entry by entry (links keep their comments when others change)."""
-    for index, value in enumerate(new[:len(old)]):
-        if _resolved(_plain(old[index]), value) != _plain(old[index]):
-            _merge(old[index], value, where)
-    while len(old) > len(new):
-        del old[len(old) - 1]
-    for value in new[len(old):]:
-        old.append(_table(value, where, tomlkit.table()))
+def _merge_array(old: AoT, new: list[dict[str, Any]], where: tuple[str, ...],
+                 root: Any) -> None:
+    """An array of tables entry by entry, matched by what they say (not by place: with
+    the first link removed, each link took the next one's values and the first one's
+    comments stayed on what became the second); an entry edited in place keeps its
+    comments."""
+    def text(value: Any) -> str:
+        return json.dumps(value, sort_keys=True, default=str)
+    held = [text(_as_shown(_plain(entry))) for entry in old]
+    matcher = difflib.SequenceMatcher(None, held, [text(_as_sent(value)) for value in new],
+                                      autojunk=False)
+    for tag, i1, i2, j1, j2 in reversed(matcher.get_opcodes()):   # later ones first
+        if tag == "equal":
+            continue
+        edited = min(i2 - i1, j2 - j1)
+        for index in range(edited):
+            _merge(old[i1 + index], new[j1 + index], where, root)
+        for index in reversed(range(i1 + edited, i2)):
+            _drop(root, old[index], lambda index=index: old.__delitem__(index))
+        for offset, value in enumerate(new[j1 + edited:j2]):
+            old.insert(i1 + edited + offset, _table(value, where, tomlkit.table()))
+            _place(root, old[i1 + edited + offset], old)
+
+
+# -- comments and blank lines around what an edit adds or removes ---------------------
+# A comment directly above an entry (no blank line between) is the entry's and goes with
+# it; one separated by a blank line is the section's and stays. tomlkit keeps the lines
+# before a table header at the end of the table before it: ``_drop`` and ``_place`` work
+# on the file's lines in order (``_tokens``), whatever tables hold them.
+
+def _tokens(container: Any) -> list[tuple[str, Any, int, Any]]:
+    """The document's items in the order they are written: ``("trivia", container,
+    index, item)`` for a comment or blank line, ``("solid", container, index, item)`` for
+    a key and value or a header (index -1 in its table's own body), and ``"start"`` and
+    ``"end"`` marks around each table and array of tables."""
+    tokens: list[tuple[str, Any, int, Any]] = []
+    for index, (key, item) in enumerate(container.body):
+        if key is None:
+            if isinstance(item, (Comment, Whitespace)):
+                tokens.append(("trivia", container, index, item))
+        elif isinstance(item, AoT):
+            tokens.append(("start", container, index, item))
+            for table in item.body:
+                tokens.extend(_table_tokens(table, True))
+            tokens.append(("end", container, index, item))
+        elif isinstance(item, Table) and not key.is_dotted():
+            tokens.extend(_table_tokens(item, not item.is_super_table()))
+        elif not isinstance(item, Null):
+            tokens.append(("start", container, index, item))
+            tokens.append(("solid", container, index, item))
+            tokens.append(("end", container, index, item))
+    return tokens
+
+
+def _table_tokens(table: Table, header: bool) -> list[tuple[str, Any, int, Any]]:
+    return [("start", None, 0, table), *([("solid", table.value, -1, table)] if header else []),
+            *_tokens(table.value), ("end", None, 0, table)]
+
+
+def _span(tokens: list[tuple[str, Any, int, Any]], item: Any) -> tuple[int, int]:
+    """Where ``item`` starts and ends in ``tokens`` (-1, -1: not there, in an inline
+    table or an array)."""
+    marks = [at for at, token in enumerate(tokens) if token[3] is item and token[0] in (
+        "start", "end")]
+    return (marks[0], marks[-1]) if marks else (-1, -1)
+
+
+def _run(tokens: list[tuple[str, Any, int, Any]], at: int, step: int) -> list[int]:
+    """The comments and blank lines next to ``tokens[at]`` (before it with step -1, after
+    with +1), in the file's order, the marks skipped."""
+    found, at = [], at + step
+    while 0 <= at < len(tokens) and tokens[at][0] != "solid":
+        if tokens[at][0] == "trivia":
+            found.append(at)
+        at += step
+    return found[::-1] if step < 0 else found
+
+
+def _split(tokens: list[tuple[str, Any, int, Any]], run: list[int], kind: type) -> int:
+    """How many of ``run`` are ``kind`` (comment or blank line) at its end."""
+    count = 0
+    while count < len(run) and isinstance(tokens[run[-1 - count]][3], kind):
+        count += 1
+    return count
+
+
+def _drop(root: Any, item: Any, delete: Any) -> None:
+    """``delete()`` ``item`` from the document ``root``, with the comments directly above
+    it and, for a table, those directly below its last line (the table's own, followed by
+    a blank line or the end of the file). Comments after a blank line stay where they are
+    in the file, and so one blank line, not two or none, is left where it was."""
+    tokens = _tokens(root)
+    start, end = _span(tokens, item)
+    if start < 0:                                   # in an inline table: no lines its own
+        delete()
+        return
+    before = _run(tokens, start, -1)
+    lead = before[len(before) - _split(tokens, before, Comment):]
+    blank = before[:len(before) - len(lead)]
+    blank = blank[len(blank) - _split(tokens, blank, Whitespace):]
+    after = [*_run(tokens, end + 1, -1), *_run(tokens, end, 1)]
+    last = not any(token[0] == "solid" for token in tokens[end:])
+    first_blank = next((n for n, at in enumerate(after)
+                        if isinstance(tokens[at][3], Whitespace)), None)
+    if not isinstance(item, (Table, AoT)):              # a key: no comment below is its
+        own = 0
+    elif first_blank is None:
+        own = len(after) if last else 0
+    else:
+        own = first_blank
+    kept = after[own:]
+    if (kept and isinstance(tokens[kept[0]][3], Whitespace)) or (not kept and last):
+        lead = blank + lead                     # what follows has its own blank line
+    for at in (*lead, *after[:own]):
+        _, container, index, _ = tokens[at]
+        container.body[index] = (None, Null())
+    inside = [tokens[at][3] for at in kept if start < at < end]
+    anchor = next((token for token in reversed(tokens[:start])
+                   if token[0] in ("solid", "trivia")), ("solid", root, -1, None))
+    delete()
+    _insert(anchor[1], anchor[2] + 1, inside)
+
+
+def _place(root: Any, item: Any, array: AoT | None = None) -> None:
+    """Put a new table, array of tables, or entry of ``array``, ``item``, before the
+    comments that belong to what follows it: those directly above the next entry of the
+    same array, else all after the first blank line (the next section's)."""
+    if not isinstance(item, (Table, AoT)) or isinstance(item, InlineTable):
+        return
+    tokens = _tokens(root)
+    start, end = _span(tokens, item)
+    if start < 0:
+        return
+    before = _run(tokens, start, -1)
+    following = next((token[3] for token in tokens[end:] if token[0] == "solid"), None)
+    blank = next((n for n, at in enumerate(before)
+                  if isinstance(tokens[at][3], Whitespace)), None)
+    if array is not None and any(entry is following for entry in array.body):
+        moved = before[len(before) - _split(tokens, before, Comment):]
+    elif blank is None:                 # no blank line: all directly above what follows
+        moved = before if following is not None else []
+    else:                               # the first blank line (or lines) stays before it
+        while blank < len(before) and isinstance(tokens[before[blank]][3], Whitespace):
+            blank += 1
+        moved = before[blank:]
+    for at in moved:
+        _, container, index, _ = tokens[at]
+        container.body[index] = (None, Null())
+    table = item if isinstance(item, Table) else item.body[-1]
+    _insert(table.value, len(table.value.body), [tokens[at][3] for at in moved])
+    stays = before[:len(before) - len(moved)]
+    if stays and _split(tokens, stays, Whitespace):     # a blank line before it already:
+        first = item if isinstance(item, Table) else item.body[0]    # not tomlkit's too
+        first.trivia.indent = first.trivia.indent.lstrip("\n")
+
+
+def _insert(container: Any, index: int, items: list[Any]) -> None:
+    """Put comments and blank lines ``items`` at ``index`` of a tomlkit container's body
+    (tomlkit inserts only keys there; its index of keys is moved on by as many)."""
+    if not items:
+        return
+    container.body[index:index] = [(None, item) for item in items]
+    for key, at in container._map.items():
+        container._map[key] = (tuple(i + len(items) if i >= index else i for i in at)
+                               if isinstance(at, tuple) else
+                               at + len(items) if at >= index else at)
 
 
 def _item(value: Any, where: tuple[str, ...]) -> Any:
