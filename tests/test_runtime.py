@@ -213,6 +213,46 @@ def test_swap_keeps_ports_and_state_and_runs_setup_again() -> None:
         assert set(run.stats().links) == links
 
 
+def test_a_swapped_in_class_steps_at_its_own_period_unless_the_module_was_given_one(
+        ) -> None:
+    # (the old period was kept: an event-driven module swapped for a class that steps
+    # every 10 ms never stepped, and the remedy agent's swap of a consumer failed)
+    class Listener(Module):
+        x = Input(int, policy="queue:1000")
+        heard = steps_run = 0
+
+        def on_input(self, port) -> None:
+            self.heard += len(port.read_all())
+
+        def step(self) -> None:
+            self.steps_run += 1
+
+    class Stepper(Listener):
+        period = 0.01
+
+    system = System("periods")
+    system.add("src", Counter, period=0.002)
+    system.add("ear", Listener)
+    system.add("own", Listener, period=0.02)          # a period of its own
+    system.link("src.out", "ear.x")
+    system.link("src.out", "own.x")
+    with system.launch() as run:
+        run.swap("ear", Stepper)
+        eventually(lambda: run.state("ear")["steps_run"] > 10, what="the new class stepping")
+        assert run.topology().modules["ear"].period == 0.01
+        run.swap("ear", Listener)                       # steps no more: events only
+        run.swap("own", Stepper)                        # keeps its own 20 ms
+        before = run.state("ear")                       # (its state kept: its count)
+        eventually(lambda: run.state("ear")["heard"] > before["heard"] + 100,
+                   what="values at ear")
+        assert run.state("ear")["steps_run"] <= before["steps_run"] + 1   # (one begun)
+        eventually(lambda: run.state("own")["steps_run"] > 10, what="own stepping")
+        assert run.topology().modules["own"].period == 0.02
+        run.restart("ear")                              # the swapped class's period
+        eventually(lambda: run.state("ear")["heard"] > 100, what="values after the restart")
+        assert run.state("ear")["steps_run"] == 0
+
+
 def test_a_swap_keeps_the_configured_state_the_new_class_has_and_a_restart_uses_it() -> None:
     system = System("swap-restart")
     system.add("src", FloatSource, state={"value": 1.5})

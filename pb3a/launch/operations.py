@@ -205,10 +205,12 @@ class Operations:
             if problems:
                 raise ConfigError(problems)
             # its configured state (what a fresh restart starts from, what configuration()
-            # writes): only the keys the new class takes
+            # writes): only the keys the new class takes; its period the new class's,
+            # unless the configuration gave the module one of its own
             spec = replace(spec, cls=new_cls, state={
                 key: value for key, value in spec.state.items()
-                if not checks.state(new_cls, {key: value})})
+                if not checks.state(new_cls, {key: value})},
+                period=new_cls.period if spec.period == spec.cls.period else spec.period)
             kept = node.swap(name, spec)
             launcher.specs[name] = spec
         self.event_log.record("module_swapped", name, cls=f"{new_cls.__module__}:"

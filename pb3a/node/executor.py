@@ -290,7 +290,7 @@ class Executor:
         """Replace a module's class by ``spec.cls`` in place; the state names kept."""
         record = self.modules[name]
         blob = pickling.dumps(spec.cls)
-        kept = self.call(record.worker, "swap", name=name, cls=blob)
+        kept = self.call(record.worker, "swap", name=name, cls=blob, period=spec.period)
         record.spec, record.blob = spec, blob
         return kept
 

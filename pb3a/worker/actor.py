@@ -188,9 +188,7 @@ class ModuleActor:
         if not set_up:
             raise SetupError(f"module {self.name!r} raised in setup: {self.last_error}")
         if self.period is not None:
-            self._thread = threading.Thread(target=self._loop, name=f"pb3a-step-{self.name}",
-                                            daemon=True)
-            self._thread.start()
+            self._start_stepping()
         with self._sched_lock:   # values that arrived before start
             kick = bool(self._pending) and not self._scheduled
             self._scheduled = self._scheduled or kick
@@ -239,14 +237,20 @@ class ModuleActor:
             if was_running and self._stop.locked():
                 self._stop.release()            # wakes a step thread between two steps
 
-    def _loop(self) -> None:
+    def _start_stepping(self) -> None:
+        """A step thread at ``period``; one stepping already ends at its next turn."""
+        self._thread = threading.Thread(target=self._loop, args=(self.period,),
+                                        name=f"pb3a-step-{self.name}", daemon=True)
+        self._thread.start()
+
+    def _loop(self, period: float) -> None:
         # The step thread is the module's own: its CPU clock is the module's step
         # CPU time, read without a system call per step (see ``statistics``).
         clock = time.pthread_getcpuclockid(threading.get_ident())
         self._step_clock = clock
-        period = self.period or 0.0
+        mine = threading.current_thread()
         try:
-            while self.running:
+            while self.running and self._thread is mine:
                 if self.call_many("step", 1, timed=False):
                     self.steps += 1
                 self.lock.hand_over()
@@ -255,7 +259,8 @@ class ModuleActor:
                     break
         finally:
             self._step_cpu += time.clock_gettime(clock)
-            self._step_clock = None
+            if self._step_clock == clock:
+                self._step_clock = None
 
     # -- calls under the lock ---------------------------------------------
     def call(self, hook: str, *args: Any) -> bool:
@@ -482,10 +487,9 @@ class ModuleActor:
         """Set state under the module lock (KeyError for unknown names)."""
         self.with_lock(lambda: self.module.set_state(state), timeout, edit=True)
 
-    def swap(self, new: Module, timeout: float = 10.0) -> list[str]:
-        """Replace the module by ``new`` keeping ports, queued values and matching state.
-
-        The new instance runs with the period the module was configured with.
+    def swap(self, new: Module, period: float | None, timeout: float = 10.0) -> list[str]:
+        """Replace the module by ``new`` keeping ports, queued values and matching state,
+        stepping it every ``period`` seconds (None: only on events) from then on.
         Returns the names of the state attributes carried over.
         """
         if not self.acquire_stopped(timeout, "the module is being swapped"):
@@ -507,6 +511,7 @@ class ModuleActor:
             with self._setting_up():
                 if self._call_held("setup", 1) == 1:
                     self._dispatch_owed()
+                    self._step_every(period)
                     return sorted(kept)
             # the new class cannot start: the old instance back, set up again
             error = self.last_error
@@ -522,6 +527,16 @@ class ModuleActor:
                              f"{error}; not swapped, {type(old).__name__} runs on")
         finally:
             self.lock.release()
+
+    def _step_every(self, period: float | None) -> None:
+        """Step at ``period`` from now on (None: no more): a new step thread, if it
+        steps; the one at the old period ends when it wakes (its step waits for the
+        module's lock, held here: it may take one more, on the new instance)."""
+        if period == self.period:
+            return
+        self.period, self._thread = period, None
+        if period is not None and self.running:
+            self._start_stepping()
 
     def _dispatch_owed(self) -> None:
         """Schedule the calls its inputs owe: values that came while an instance that

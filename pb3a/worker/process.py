@@ -486,10 +486,10 @@ class Worker:
     def op_set_state(self, name: str, state: dict[str, Any], within: float = 10.0) -> None:
         self.actors[name].apply(state, within)
 
-    def op_swap(self, name: str, cls: bytes) -> list[str]:
+    def op_swap(self, name: str, cls: bytes, period: float | None) -> list[str]:
         module = cloudpickle.loads(cls)()
         self._give_runtime(name, module)
-        return self.actors[name].swap(module)
+        return self.actors[name].swap(module, period)
 
     def op_lease(self, seconds: float) -> None:
         """The executor is alive: run on for ``seconds`` more. A worker whose lease runs
