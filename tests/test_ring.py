@@ -575,3 +575,34 @@ def test_a_writer_waiting_for_room_gives_up_when_its_link_is_cut(lossless) -> No
     with pytest.raises(RuntimeTimeout):
         writer.write(1, timeout=10.0)
     assert writer.wait_s < 5
+
+
+def _interrupted(*args: object, **kwargs: object) -> None:
+    raise KeyboardInterrupt
+
+
+def test_a_ring_interrupted_as_it_is_made_leaves_no_segment(monkeypatch) -> None:
+    # (a Ctrl-C or SIGHUP that came as `pb3a scenario` made its first ring left that
+    # segment behind, for the resource tracker to unlink after the process was gone)
+    from types import SimpleNamespace
+
+    from pb3a.node.executor import Executor
+
+    before = live_segments(os.getpid())
+    monkeypatch.setattr(ring_module, "RingCore", _interrupted)       # inside create
+    with pytest.raises(KeyboardInterrupt):
+        ShmRing.create(segment_name("ring"), 4096)
+    assert live_segments(os.getpid()) == before
+    monkeypatch.undo()
+    create, made = ShmRing.create, []
+
+    def made_then_interrupted(*args: object) -> ShmRing:
+        made.append(create(*args))        # as if the signal came as create returned
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ShmRing, "create", made_then_interrupted)
+    executor = SimpleNamespace(rings={})
+    with pytest.raises(KeyboardInterrupt):
+        Executor._ring(executor, "a.out->b.x", ring_module.RingSize(4096, 0, 0))
+    assert live_segments(os.getpid()) == before and executor.rings == {}
+    made[0].close()                       # (this process's mapping, the name gone already)

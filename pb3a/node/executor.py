@@ -475,7 +475,13 @@ class Executor:
         if ring is None:
             if size is None:
                 raise RuntimeError(f"link {key} has no ring to reopen")
-            ring = self.rings[key] = ShmRing.create(segment_name("ring"), *size)
+            name = segment_name("ring")
+            try:
+                ring = ShmRing.create(name, *size)
+            except BaseException:       # a Ctrl-C even as it returns: nobody knows of it
+                unlink_name(name)
+                raise
+            self.rings[key] = ring      # (from here shutdown frees it)
         return ring
 
     # -- remote links, one half each ---------------------------------------------------

@@ -188,14 +188,18 @@ class ShmRing:
         its writer waits for room instead of dropping."""
         capacity = _align(max(capacity, 4096))
         segment = create_segment(name, segment_size(capacity, slots, slot_bytes))
-        words = segment.buf[:_DATA].cast("Q")
-        words[_W_CAP] = capacity
-        words[_W_SLOTS] = slots
-        words[_W_SLOT_BYTES] = slot_bytes
-        words[_W_FLAGS] = _LOSSLESS if lossless else 0
-        words[_W_MAGIC] = _MAGIC
-        words.release()
-        return cls(segment, owner=True)
+        try:
+            words = segment.buf[:_DATA].cast("Q")
+            words[_W_CAP] = capacity
+            words[_W_SLOTS] = slots
+            words[_W_SLOT_BYTES] = slot_bytes
+            words[_W_FLAGS] = _LOSSLESS if lossless else 0
+            words[_W_MAGIC] = _MAGIC
+            words.release()
+            return cls(segment, owner=True)
+        except BaseException:       # (Ctrl-C too: nobody else knows of the segment yet)
+            unlink_segment(segment)
+            raise
 
     @classmethod
     def attach(cls, name: str) -> ShmRing:

@@ -64,7 +64,13 @@ def keep_tracker_through_hangups() -> None:
 
 def create_segment(name: str, size: int) -> shared_memory.SharedMemory:
     """Create a segment (owner side). The resource tracker unlinks it if we die."""
-    return shared_memory.SharedMemory(name=name, create=True, size=size)
+    try:
+        return shared_memory.SharedMemory(name=name, create=True, size=size)
+    except FileExistsError:
+        raise                           # (not ours to unlink)
+    except BaseException:               # an error or a Ctrl-C once it was made: the
+        unlink_name(name)               # file may be there, known to nobody
+        raise
 
 
 def attach_segment(name: str) -> shared_memory.SharedMemory:
