@@ -256,7 +256,7 @@ def test_a_swapped_module_runs_setup_before_its_step_can_take_the_lock() -> None
         lock.release = lambda: (hand_over_at_once() if threading.current_thread() is swapping
                                 else release())
         started = time.monotonic()
-        actor.swap(new, timeout=5.0)
+        actor.swap(new, 0.0, timeout=5.0)
         took = time.monotonic() - started
     finally:
         lock.release = release

@@ -25,7 +25,7 @@ from sample_modules import (
 )
 
 import pb3a
-from pb3a import ModuleNotFound, RuntimeFailure, RuntimeTimeout, System
+from pb3a import Agent, ModuleNotFound, PB3AError, RuntimeFailure, RuntimeTimeout, System
 from pb3a.cli.status import format_table
 from pb3a.daemons.node_controller import Limits, NodeController
 from pb3a.transport.auth import ClusterKey
@@ -335,3 +335,31 @@ def test_on_a_remote_node_an_agent_may_read_from_setup_inside_a_change(controlle
             connection.restart("asker", timeout=10)
             assert run.state("asker")["asked"] >= 0
     assert took < 8.0, took
+
+
+def test_an_agent_s_request_raises_the_error_the_runtime_raised_on_any_node(
+        controllers) -> None:
+    # (every refusal came as a RuntimeFailure "...'s request 'where' failed: ModuleNotFound:
+    # ...": an agent could not tell a module that is not there from a node that failed)
+    class Asker(Agent):
+        period = 0.05
+        seen: list = []
+
+        def step(self) -> None:
+            if self.seen:
+                return
+            for ask in (lambda: self.runtime.where("nope"),
+                        lambda: self.runtime.swap("src", "sample_modules:Nope")):
+                try:
+                    ask()
+                except PB3AError as exc:
+                    self.seen = [*self.seen, type(exc).__name__]
+
+    system = System("errors").node("a").node("b", address=controllers["b"].address)
+    system.add("src", Counter, node="a")
+    system.add("near", Asker, node="a")
+    system.add("far", Asker, node="b")
+    with system.launch() as run:
+        for name in ("near", "far"):
+            assert eventually(lambda name=name: run.state(name)["seen"], timeout=30,
+                              what=f"{name}'s answers") == ["ModuleNotFound", "ConfigError"]

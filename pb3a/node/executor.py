@@ -28,7 +28,7 @@ import cloudpickle
 
 from pb3a.config.description import DEFAULT_SPARES
 from pb3a.config.plan import FlatLink, FlatModule
-from pb3a.errors import RuntimeFailure, RuntimeTimeout
+from pb3a.errors import PB3AError, RuntimeFailure, RuntimeTimeout
 from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
 from pb3a.node.bridge import READY_TIMEOUT, Bridge
@@ -646,6 +646,8 @@ class Executor:
             if self.handler is None:
                 raise RuntimeFailure("this executor takes no requests from agents")
             answer = {"id": request["id"], "ok": True, "result": self.handler(request["op"], args)}
+        except PB3AError as exc:        # the agent gets the same error (ModuleNotFound ...)
+            answer = {"id": request["id"], "ok": False, "result": exc}
         except Exception as exc:
             answer = {"id": request["id"], "ok": False, "result": f"{type(exc).__name__}: {exc}"}
         try:

@@ -32,7 +32,7 @@ from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from typing import TYPE_CHECKING, Any
 
-from pb3a.errors import RuntimeCancelled, RuntimeFailure, RuntimeTimeout
+from pb3a.errors import PB3AError, RuntimeCancelled, RuntimeFailure, RuntimeTimeout
 
 RUNNING_S = 10.0     # the longest posted work that has begun is waited for past its deadline
 
@@ -87,7 +87,9 @@ class RuntimeWait:
 
     def result(self, timeout: float) -> Any:
         """Wait for the answer, running posted work meanwhile; the answer's result, or
-        ``RuntimeFailure`` (refused or cancelled) or ``RuntimeTimeout``."""
+        the PB3A error the runtime raised (``ModuleNotFound``, ``ConfigError`` ...), or
+        ``RuntimeFailure`` (refused, cancelled: ``RuntimeCancelled``) or
+        ``RuntimeTimeout``."""
         deadline = time.monotonic() + timeout
         try:
             while True:
@@ -101,6 +103,8 @@ class RuntimeWait:
                         raise RuntimeCancelled(f"{self.what} cancelled: {self._cancelled}")
                     if self._answer is not None and not self._posted:
                         ok, result = self._answer
+                        if not ok and isinstance(result, PB3AError):
+                            raise result        # (ModuleNotFound, ConfigError ...: as asked)
                         if not ok:
                             raise RuntimeFailure(f"{self.what} failed: {result}")
                         return result
