@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 from agents.case_base import AdaptationError, CaseBase, CaseFileError, Feature, Match, adapt
 from agents.limits import Limit, finite, out_of_limits
 from pb3a import Agent, Input, InputPort, Output
-from pb3a.errors import PB3AError
+from pb3a.errors import ModuleNotFound, PB3AError
 
 if TYPE_CHECKING:
     from pb3a.stats import SystemStats
@@ -63,13 +63,15 @@ class SystemView:
     classes: dict[str, str]          # module -> "package.module:Class"
     nodes: dict[str, str]            # module -> the node it runs on
     up: frozenset[str]               # the nodes that are up
+    known: frozenset[str] = frozenset()   # every node of the system, up or not
 
     @classmethod
     def of(cls, stats: SystemStats) -> SystemView:
         """The view of a system's figures (``runtime.stats()``)."""
         return cls({name: module.cls for name, module in stats.modules.items()},
                    {name: module.node for name, module in stats.modules.items()},
-                   frozenset(name for name, node in stats.nodes.items() if node.up))
+                   frozenset(name for name, node in stats.nodes.items() if node.up),
+                   frozenset(stats.nodes))
 
 
 def check_remedy(remedy: dict[str, Any], view: SystemView) -> None:
@@ -150,15 +152,39 @@ _LIMITS: dict[str, Limit] = {
 }
 
 
+_NAMES = ("macro", "driver", "standby_node", "standby_resource", "watch", "cases_path")
+
+
+def _shape_problems(state: dict[str, Any]) -> list[str]:
+    """What in ``state`` is not of the kind the agent reads: names and addresses are
+    text, ``consumers`` and ``fallbacks`` map a sensor to a module or to a class (a list
+    of consumers was taken, and the first failure raised inside the agent: no remedy,
+    not even the stop)."""
+    problems = [f"{key} must be text, got {state[key]!r}" for key in _NAMES
+                if not isinstance(state[key], str)]
+    for key, what in (("consumers", "the module that reads it"),
+                      ("fallbacks", "a class doing without it, 'package.module:Class'")):
+        value = state[key]
+        if not isinstance(value, dict) or not all(
+                isinstance(k, str) and isinstance(v, str) for k, v in value.items()):
+            problems.append(f"{key} must map each sensor (a fault's kind) to {what}, "
+                            f"as {{\"sonar\": ...}}, got {value!r}")
+        elif key == "fallbacks":
+            problems += [f"fallbacks[{sensor!r}] = {ref!r} is not 'package.module:Class'"
+                         for sensor, ref in value.items() if not _CLASS_REF.match(ref)]
+    return problems
+
+
 def _case_base(state: dict[str, Any]) -> CaseBase:
     """The case base a ``RemedyAgent`` of ``state`` goes by: its ``case_base``, or ({})
     the shipped cases and the user's file. ValueError for what it could not carry out: no
-    ``driver``, a case's unknown action (``CaseFileError``, naming its file and case)."""
+    ``driver``, settings of the wrong kind or out of range, a case's unknown action
+    (``CaseFileError``, naming its file and case)."""
     if not state["driver"]:
         raise ValueError("RemedyAgent needs its 'driver': the RobotDriver to stop or "
                          "re-point (e.g. 'control/driver')")
     # (a NaN verify_s never judged a remedy, and every later failure waited for good)
-    wrong = out_of_limits(_LIMITS, state)
+    wrong = _shape_problems(state) + out_of_limits(_LIMITS, state)
     if wrong:
         raise ValueError("RemedyAgent: " + "; ".join(wrong))
     if state["case_base"]:
@@ -216,9 +242,30 @@ class RemedyAgent(Agent):
 
     def setup(self) -> None:
         self._use(_case_base(self.get_state()))
+        self._check_modules()
         # A move's Pending cannot be pickled: a moved or restored agent has none, and
         # looks at where the driver runs instead.
         self._pending: Any = None
+
+    def _check_modules(self) -> None:
+        """ValueError naming each module the settings name that the system does not
+        have (a misspelt driver was found only by the fallback stop, which failed: the
+        robot drove on). A runtime that cannot answer now leaves it to the remedies."""
+        named = [("driver", self.driver), ("watch", self.watch),
+                 *((f"consumers[{sensor!r}]", module)
+                   for sensor, module in self.consumers.items())]
+        problems = []
+        for key, module in named:
+            if not module:
+                continue
+            try:
+                self.runtime.where(module)
+            except ModuleNotFound as exc:
+                problems.append(f"{key}: {exc}")
+            except PB3AError:
+                return
+        if problems:
+            raise ValueError("RemedyAgent: " + "; ".join(problems))
 
     def set_state(self, state: dict[str, Any]) -> None:
         """Set state; a running agent plans by a ``case_base`` set (or, set to {}, by the
@@ -288,6 +335,12 @@ class RemedyAgent(Agent):
                         "consumer": self.consumers.get(fault, ""),
                         "fallback": self.fallbacks.get(fault, "")}
         chosen = plan(self._base, situation, placeholders, view)
+        if self.standby_node and view.known and self.standby_node not in view.known:
+            # (a misspelt standby node made it stop the robot, saying nothing of why)
+            missing = (f"standby_node {self.standby_node!r} is no node of the system "
+                       f"(nodes: {', '.join(sorted(view.known))})")
+            chosen = dataclasses.replace(chosen, reason="; ".join(
+                filter(None, (missing, chosen.reason))))
         self._start(failure, situation, chosen, now)
 
     def _start(self, failure: dict[str, Any], situation: dict[str, Feature], chosen: Plan,

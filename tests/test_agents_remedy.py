@@ -15,7 +15,7 @@ import pytest
 import agents.remedy as remedy_module
 from agents.case_base import AdaptationError, Case, CaseBase, CaseFileError, Match, adapt
 from agents.remedy import SHIPPED_CASES, RemedyAgent, SystemView, check_remedy, plan
-from pb3a import MigrationReport, RuntimeFailure
+from pb3a import MigrationReport, ModuleNotFound, RuntimeFailure
 from pb3a.launch.migration import MigrationPhases
 from pb3a.testing import ModuleHarness
 
@@ -267,6 +267,37 @@ def test_an_agent_refuses_timings_it_could_never_judge_a_remedy_by(wrong) -> Non
         ModuleHarness(RemedyAgent, state=wrong, runtime=FakeRuntime())
 
 
+@pytest.mark.parametrize(("wrong", "problem"), [
+    ({"consumers": ["control/explorer"]}, "consumers must map each sensor"),
+    ({"consumers": {"sonar": 3}}, "consumers must map each sensor"),
+    ({"fallbacks": {"sonar": "SonarFree"}}, "fallbacks['sonar'] = 'SonarFree' is not "
+                                             "'package.module:Class'"),
+    ({"standby_node": 2}, "standby_node must be text, got 2"),
+])
+def test_an_agent_refuses_settings_of_a_kind_it_cannot_read(wrong, problem) -> None:
+    """A list of consumers was taken: the first failure raised inside the agent, and the
+    robot was neither remedied nor stopped."""
+    with pytest.raises(ValueError, match=re.escape(problem)):
+        ModuleHarness(RemedyAgent, state=wrong, runtime=FakeRuntime())
+    harness = ModuleHarness(RemedyAgent, runtime=FakeRuntime())
+    with pytest.raises(ValueError, match=re.escape(problem)):
+        harness.module.set_state(wrong)
+    assert harness.state["consumers"] == {} and harness.state["fallbacks"] == {}
+
+
+@pytest.mark.parametrize(("wrong", "problem"), [
+    ({"driver": "control/drvr"}, "driver: no module 'control/drvr'"),
+    ({"consumers": {"sonar": "control/explore"}}, "consumers['sonar']: no module "
+                                                  "'control/explore'"),
+    ({"watch": "control/mapr"}, "watch: no module 'control/mapr'"),
+])
+def test_an_agent_refuses_at_setup_a_module_the_system_does_not_have(wrong, problem) -> None:
+    """A misspelt driver was found only when the fallback stop failed: the robot drove
+    on."""
+    with pytest.raises(ValueError, match=re.escape(problem)):
+        ModuleHarness(RemedyAgent, state=wrong, runtime=FakeRuntime())
+
+
 # -- the agent, through its ports, against a recording runtime --------------------------
 
 @dataclass
@@ -330,6 +361,8 @@ class FakeRuntime:
                                                           phases=phases, prepare_s=0.1))
 
     def where(self, name: str) -> str:
+        if name not in self.modules:
+            raise ModuleNotFound(f"no module {name!r} in system 'lab'")
         return self.modules[name].node
 
     def set_state(self, name: str, values: dict[str, Any]) -> None:
@@ -621,3 +654,16 @@ def test_a_case_base_set_while_it_runs_is_what_it_goes_by(tmp_path, clock) -> No
     assert runtime.calls == [("set_state", "control/driver", {"enabled": False})]
     assert events(harness) == [("chosen", "stop", ""), ("worked", "stop", "")]
     assert harness.state["case_base"]["cases"] == without_motors
+
+
+def test_a_standby_node_the_system_does_not_have_is_named_as_the_robot_is_stopped(
+        tmp_path, clock) -> None:
+    """A misspelt standby node made the agent stop the robot, its reason empty."""
+    runtime = FakeRuntime()
+    harness = agent(tmp_path, runtime, standby_node="robot2")
+    harness.feed("failure", failure("motors", clock.now))
+    harness.step()
+    chosen = harness.written["remedy"][0]
+    assert (chosen["event"], chosen["action"]) == ("chosen", "stop")
+    assert chosen["reason"].startswith("standby_node 'robot2' is no node of the system "
+                                       "(nodes: r1, r2)")
