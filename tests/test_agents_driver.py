@@ -275,3 +275,24 @@ def test_a_re_pointed_driver_judges_its_new_robot_anew(robot, monkeypatch) -> No
     old, new = harness.written["failure"]
     assert (old["detail"]["resource"], new["detail"]["resource"]) == (
         "tcp://robot:7400", "tcp://standby:7400")
+
+
+def test_a_resource_that_is_not_an_address_is_refused_or_taken_for_a_silent_robot(
+        robot) -> None:
+    """'127.0.0.1:7400' (no tcp://) was kept: every request failed with ZeroMQ's
+    "Invalid argument", counted as no silence, so no robot_link failure ever came."""
+    harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400"})
+    with pytest.raises(ValueError, match=r"RobotDriver's resource must be a string "
+                                         r"tcp://HOST:PORT .*got '10\.0\.0\.7:7400'"):
+        harness.module.set_state({"resource": "10.0.0.7:7400"})
+    assert harness.state["resource"] == "tcp://robot:7400"
+
+    class Misaddressed(RobotDriver):
+        resource = "robot:7400"                 # a class's own: no set_state saw it
+        silent_after = 2
+
+    harness = ModuleHarness(Misaddressed)
+    harness.step(3)
+    failure, = harness.written["failure"]
+    assert failure["fault"] == "robot_link"
+    assert "resource must be a string tcp://HOST:PORT" in failure["detail"]["error"]

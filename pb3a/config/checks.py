@@ -18,6 +18,7 @@ from pb3a.errors import MOST_SECONDS
 from pb3a.loading.references import class_ref
 from pb3a.model.displays import declared_displays, finite
 from pb3a.model.module import RESTART_POLICIES, Module
+from pb3a.transport.addresses import tcp_address_problems
 
 NAME = re.compile(r"\A[A-Za-z0-9_-]+\Z")     # (\Z: "$" also matches before a final newline)
 MAX_SPARES = 16                 # idle workers a node may keep (each an idle process)
@@ -171,19 +172,11 @@ def node_address(value: Any) -> list[str]:
     """A node's address, ``tcp://HOST:PORT``, or None: started on this machine."""
     if value is None:
         return []
-    return _tcp(value, "address", " (or left out to start the node on this machine)")
+    return tcp_address_problems(value, "address",
+                                " (or left out to start the node on this machine)")
 
 
 def server_address(value: Any) -> list[str]:
     """A module server's address, ``tcp://HOST:PORT``."""
-    return _tcp(value, "each of module_servers", "")
+    return tcp_address_problems(value, "each of module_servers")
 
-
-def _tcp(value: Any, what: str, otherwise: str) -> list[str]:
-    if isinstance(value, str) and value.startswith("tcp://"):
-        host, _, port = value.removeprefix("tcp://").rpartition(":")
-        if host and not any(c in host for c in " /") and port.isdigit() \
-                and 0 < int(port) <= 65535:
-            return []
-    return [f"{what} must be a string tcp://HOST:PORT such as 'tcp://10.0.0.7:7100'"
-            f"{otherwise}, got {value!r}"]

@@ -19,6 +19,7 @@ from typing import Any
 
 from pb3a.errors import RuntimeCancelled, RuntimeFailure, RuntimeTimeout
 from pb3a.model.module import Module
+from pb3a.transport.addresses import tcp_address_problems
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 
@@ -44,6 +45,16 @@ class Driver(Module):
         except (RuntimeFailure, RuntimeTimeout) as exc:
             raise type(exc)(f"{type(self).__name__} at {self.resource}: {exc}") from None
 
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Set state; a ``resource`` that is not an address (``tcp://HOST:PORT``) is
+        refused, naming it, and nothing is set (it was kept, and every request failed
+        with ZeroMQ's "Invalid argument")."""
+        wrong = "resource" in state and state["resource"] != "" and tcp_address_problems(
+            state["resource"], f"{type(self).__name__}'s resource")
+        if wrong:
+            raise ValueError(wrong[0])
+        super().set_state(state)
+
     def release(self, client: ControlClient) -> None:
         """Called with the old device's connection before the driver is re-pointed or
         stopped: override to leave the device safe (stop a robot, say)."""
@@ -59,6 +70,9 @@ class Driver(Module):
         if current is not None and current[0] == self.resource:
             return current[1]
         self._disconnect()
+        wrong = tcp_address_problems(self.resource, f"{type(self).__name__}'s resource")
+        if wrong:                   # (a class default, not set through set_state)
+            raise RuntimeFailure(wrong[0])
         client = ControlClient(ClusterKey.load(), self.resource)
         self.__dict__["_pb3a_device"] = (self.resource, client)
         return client

@@ -49,6 +49,18 @@ def default_route_host() -> str:
         return "127.0.0.1"
 
 
+def tcp_address_problems(value: object, what: str, otherwise: str = "") -> list[str]:
+    """Why ``value`` is not an address to connect to, ``tcp://HOST:PORT``, naming
+    ``what`` it is (``otherwise``: what else it may be); none if it is one."""
+    if isinstance(value, str) and value.startswith("tcp://"):
+        host, _, port = value.removeprefix("tcp://").rpartition(":")
+        if host and not any(c in host for c in " /") and port.isdigit() \
+                and 0 < int(port) <= 65535:
+            return []
+    return [f"{what} must be a string tcp://HOST:PORT such as 'tcp://10.0.0.7:7100'"
+            f"{otherwise}, got {value!r}"]
+
+
 def close_bound(sock: zmq.Socket, timeout: float = 2.0, linger_ms: int = 0) -> None:
     """Close a bound ``sock`` and wait (at most ``timeout`` seconds) until its ports are
     free: ZeroMQ closes listeners on its own thread, after ``close`` has returned, so a
