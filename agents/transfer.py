@@ -12,7 +12,8 @@ exploration rate) on arrival (``migrate(..., state=...)``): they start on the ro
 node already set for it, and a move that fails leaves them as they were. It acts
 once. A move that fails gives the simulation back its lock-step (the learner goes on
 learning there), is said on ``transfer`` (``error``) and counted in ``failed_moves``,
-and the agent decides again at a later episode. ``transfer`` reports when it decided
+and the agent decides again at a later episode, unless the runtime refused the move as
+asked (a node the system does not have: ``refused`` says why). ``transfer`` reports when it decided
 and when the move ended (``moved_at``: the driver was re-pointed as it arrived, inside
 the move), in unix time, and the move's pause, where it went and the preparation
 before it (``pause_s``, ``phases``, ``prepare_s``: see ``MigrationReport``).
@@ -27,7 +28,8 @@ from typing import Any
 
 from agents.limits import whole
 from pb3a import Agent, Input, InputPort, Output
-from pb3a.errors import PB3AError
+from pb3a.errors import ConfigError, ModuleNotFound, PB3AError
+from pb3a.transport.addresses import tcp_address_problems
 
 
 def success_rate(outcomes: list[bool], window: int) -> float:
@@ -42,15 +44,21 @@ KEEP_OUTCOMES = 1000      # outcomes kept beyond the window (the state would gro
 def _check_settings(state: dict[str, Any]) -> None:
     """ValueError naming each setting of a ``TransferAgent`` that could never or would
     always transfer (a window of 0 read every episode; a threshold above 1 never
-    transferred, silently)."""
+    transferred, silently; without a destination it raised at every episode once
+    learning was done)."""
     window, threshold, least = state["window"], state["threshold"], state["min_episodes"]
+    node, resource = state["to_node"], state["to_resource"]
     problems = [what for what, wrong in (
         (f"window ({window!r}) must be a whole number of episodes, 1 or more",
          not whole(window, 1)),
         (f"threshold ({threshold!r}) must be a success rate from 0 (at once) to 1",
-         not isinstance(threshold, int | float) or not 0 <= threshold <= 1),
+         isinstance(threshold, bool) or not isinstance(threshold, int | float)
+         or not 0 <= threshold <= 1),
         (f"min_episodes ({least!r}) must be a whole number, 0 or more",
-         not whole(least))) if wrong]
+         not whole(least)),
+        (f"to_node ({node!r}) must name the hardware robot's node",
+         not isinstance(node, str) or not node)) if wrong]
+    problems += tcp_address_problems(resource, "to_resource, the hardware robot's server,")
     if problems:
         raise ValueError("TransferAgent: " + "; ".join(problems))
 
@@ -76,12 +84,29 @@ class TransferAgent(Agent):
     moved_at = 0.0
     move: dict[str, Any] = {}       # the migration's pause_s, prepare_s and phases
     failed_moves = 0
+    refused = ""                    # why the move can never be made, once the runtime said
     lockstep_s = 0.0                # the driver's before the move, given back if it fails
     period = 0.02                   # the longest a look at a move in progress waits
 
     def setup(self) -> None:
         _check_settings(self.get_state())
+        self._check_modules()
         self._moving: Any = None    # the Pending of the move (not state: not picklable)
+
+    def _check_modules(self) -> None:
+        """ValueError naming the driver or learner the system does not have (found
+        when the move was tried, after learning). A runtime that cannot answer now
+        leaves it to the move."""
+        problems = []
+        for key in ("driver", "learner"):
+            try:
+                self.runtime.where(getattr(self, key))
+            except ModuleNotFound as exc:
+                problems.append(f"{key}: {exc}")
+            except PB3AError:
+                return
+        if problems:
+            raise ValueError("TransferAgent: " + "; ".join(problems))
 
     def set_state(self, state: dict[str, Any]) -> None:
         """Set state; a setting setup would refuse is refused, naming it, and nothing is
@@ -94,12 +119,9 @@ class TransferAgent(Agent):
             self.outcomes.append(bool(episode["success"]))
             self.episodes += 1
         del self.outcomes[:-max(self.window, KEEP_OUTCOMES)]
-        if self.decided_at or self.episodes < self.min_episodes:
+        if self.decided_at or self.refused or self.episodes < self.min_episodes:
             return
         if success_rate(self.outcomes, self.window) >= self.threshold:
-            if not (self.to_node and self.to_resource):
-                raise ValueError("TransferAgent needs to_node and to_resource: the hardware "
-                                 "robot's node and its robot server's address")
             self.decided_at = time.time()
             arriving = {self.driver: {"resource": self.to_resource}}
             if self.learner_state:
@@ -158,8 +180,13 @@ class TransferAgent(Agent):
 
     def _failed(self, error: Exception) -> None:
         """The move failed: the brain is where it was, so its simulation gets its
-        lock-step back; said once, and decided again at a later episode."""
+        lock-step back; said once, and decided again at a later episode, unless the
+        runtime refused the move as it was asked (``ConfigError``: no such node, say),
+        which no later episode changes (``refused`` says why; it was tried again at
+        every episode)."""
         self.failed_moves += 1
+        if isinstance(error, ConfigError):
+            self.refused = str(error)
         with contextlib.suppress(PB3AError):        # (tried again at the next decision)
             self.runtime.set_state(self.driver, {"lockstep_s": self.lockstep_s})
         self.transfer.write({"decided_at": self.decided_at, "moved_at": 0.0,

@@ -5,12 +5,13 @@ robot on arrival, and reports once the move has ended."""
 from __future__ import annotations
 
 import re
+from typing import Any
 
 import cloudpickle
 import pytest
 
 from agents.transfer import KEEP_OUTCOMES, TransferAgent, success_rate
-from pb3a import MigrationReport, RuntimeFailure, RuntimeTimeout
+from pb3a import ConfigError, MigrationReport, ModuleNotFound, RuntimeFailure, RuntimeTimeout
 from pb3a.testing import ModuleHarness
 
 
@@ -50,6 +51,8 @@ class Runtime:
         self.driver.update(values)
 
     def where(self, name: str) -> str:
+        if name not in ("brain/driver", "brain/learner"):
+            raise ModuleNotFound(f"no module {name!r} in system 'lab'")
         return "robot" if self.move.ended else "sim"
 
 
@@ -69,7 +72,11 @@ WRONG = pytest.mark.parametrize(("wrong", "named"), [
     ({"threshold": 1.2}, "threshold (1.2) must be a success rate from 0 (at once) to 1"),
     ({"threshold": -0.1}, "threshold (-0.1)"),
     ({"min_episodes": -1}, "min_episodes (-1) must be a whole number, 0 or more"),
-    ({"min_episodes": True}, "min_episodes (True)")])         # (TOML's true was taken as 1)
+    ({"min_episodes": True}, "min_episodes (True)"),          # (TOML's true was taken as 1)
+    ({"threshold": True}, "threshold (True)"),
+    ({"to_node": ""}, "to_node ('') must name the hardware robot's node"),
+    ({"to_resource": "127.0.0.1:7421"}, "to_resource, the hardware robot's server, must be "
+                                        "a string tcp://HOST:PORT")])
 
 
 @WRONG
@@ -84,7 +91,7 @@ def test_such_a_setting_set_while_it_runs_is_refused_by_name_and_nothing_is_set(
         wrong: dict, named: str) -> None:
     agent = ModuleHarness(TransferAgent, state=STATE, runtime=Runtime())
     with pytest.raises(ValueError, match=re.escape(named)):
-        agent.module.set_state({**wrong, "to_node": "elsewhere"})
+        agent.module.set_state({"min_episodes": 3, **wrong})
     assert {name: agent.state[name] for name in STATE} == STATE
 
 
@@ -115,7 +122,7 @@ def test_it_waits_for_the_success_rate_then_moves_with_the_driver_re_pointed_on_
 
 
 def test_it_keeps_the_outcomes_its_window_needs_and_counts_every_episode() -> None:
-    agent = ModuleHarness(TransferAgent, state={"min_episodes": 5000, "window": 20},
+    agent = ModuleHarness(TransferAgent, state={**STATE, "min_episodes": 5000, "window": 20},
                           runtime=Runtime())
     for index in range(KEEP_OUTCOMES + 300):
         agent.feed("episode", {"success": index % 2 == 0})
@@ -126,11 +133,32 @@ def test_it_keeps_the_outcomes_its_window_needs_and_counts_every_episode() -> No
     assert len(agent.state["outcomes"]) == KEEP_OUTCOMES + 1  # growing to the new window
 
 
-def test_without_a_destination_it_says_what_to_set() -> None:
-    agent = ModuleHarness(TransferAgent, state={"min_episodes": 1, "window": 1},
-                          runtime=Runtime())
-    with pytest.raises(ValueError, match="needs to_node and to_resource"):
+def test_without_a_destination_or_a_learner_it_is_refused_at_setup() -> None:
+    """Both were found once learning was done: a destination missing raised at every
+    episode from then on, a misspelt learner failed every move."""
+    with pytest.raises(ValueError, match=r"to_node .* must name the hardware robot's node"):
+        ModuleHarness(TransferAgent, state={"min_episodes": 1, "window": 1},
+                      runtime=Runtime())
+    with pytest.raises(ValueError, match="learner: no module 'brain/lerner'"):
+        ModuleHarness(TransferAgent, state={**STATE, "learner": "brain/lerner"},
+                      runtime=Runtime())
+
+
+def test_a_move_the_runtime_refuses_as_asked_is_not_tried_again() -> None:
+    """A node the system does not have was asked for again at every episode (56 failed
+    moves in 3 s, the simulation's lock-step switched off and on each time)."""
+    class NoSuchNode(Runtime):
+        def migrate(self, name: str, to: str, **options: Any) -> Move:
+            super().migrate(name, to, **options)
+            raise ConfigError([f"migrate {name}: no node {to!r}; nodes: ws, robot"])
+    runtime = NoSuchNode()
+    agent = ModuleHarness(TransferAgent, state={**STATE, "to_node": "robt"}, runtime=runtime)
+    for _ in range(30):
         agent.feed("episode", {"success": True})
+    (failed,) = agent.written["transfer"]
+    assert "no node 'robt'" in failed["error"] and "no node 'robt'" in agent.state["refused"]
+    assert [call[0] for call in runtime.calls].count("migrate") == 1
+    assert runtime.driver["lockstep_s"] == 0.2          # the simulation goes on
 
 
 def test_a_failed_move_gives_the_simulation_back_and_is_tried_again_later() -> None:
