@@ -14,6 +14,8 @@ from conftest import eventually
 
 from agents.traffic.messages import JunctionMeasures
 from agents.traffic.performance import PerformanceAgent
+from pb3a import System
+from pb3a.errors import ModuleNotFound, RuntimeFailure
 from pb3a.testing import ModuleHarness
 
 CONTROLLERS = {
@@ -42,6 +44,12 @@ class RecordingRuntime:
     def set_state(self, name: str, values: dict[str, Any]) -> None:
         self.calls.append(("set_state", name, tuple(sorted(values))))
         self.controller_state.update(values)
+
+    def where(self, name: str) -> str:
+        if name != "W/controller":
+            raise ModuleNotFound(f"no module {name!r} in system 'city'; modules: "
+                                 "W/controller, W/agent")
+        return "local"
 
     def swaps(self) -> list[str]:
         return [call[2] for call in self.calls if call[0] == "swap"]
@@ -214,6 +222,154 @@ def test_such_rules_set_while_it_runs_are_refused_by_name_and_nothing_is_set() -
     assert harness.state["window_s"] == 60.0
     feed(harness, 0, 61, queue=9)
     assert runtime.swaps() == ["MaxPressure"]
+
+
+def test_a_swap_whose_state_cannot_be_set_is_recorded_said_once_and_not_made_again() -> None:
+    """Swap and state are two requests. Before, a state the new controller refused left
+    it running with ``running`` naming the old one: the agent swapped again at every
+    measure (an error each), and the new class's table was kept under the old name."""
+    harness, runtime = agent(running="q_learning", rules=[
+        {"use": "q_learning"}, {"use": "gap_out", "queue_at_least": 6.0}])
+    table = {"1|0|0|2": [-3.0, -4.0]}
+    runtime.controller_state = {"table": table, "updates": 7}
+    set_state = runtime.set_state
+
+    def refusing_set_state(name: str, values: dict[str, Any]) -> None:
+        if runtime.swaps()[-1] == "GapOut":
+            raise KeyError("GapOut has no state 'max_gren_s'")
+        set_state(name, values)
+
+    runtime.set_state = refusing_set_state
+    feed(harness, 0, 60, queue=9)
+    with pytest.raises(RuntimeError, match=r"swapped it from q_learning to gap_out .*"
+                       r"could not set its state: KeyError") as said:
+        harness.feed("measures", measure(60.0, queue=9))
+    assert "runs on with the state the swap carried over" in str(said.value)
+    assert runtime.swaps() == ["GapOut"] and harness.state["running"] == "gap_out"
+    swap = harness.state["swaps"][-1]
+    assert (swap["from"], swap["to"]) == ("q_learning", "gap_out")
+    assert "max_gren_s" in swap["state_error"] and harness.last("swapped") == swap
+    feed(harness, 61, 120, queue=9)          # no error again, no swap again
+    assert runtime.swaps() == ["GapOut"] and len(harness.state["swaps"]) == 1
+    feed(harness, 120, 181, queue=0)         # back to the learner: its own table
+    assert runtime.swaps() == ["GapOut", "QLearning"]
+    assert runtime.controller_state["table"] == table
+    assert harness.state["running"] == "q_learning" and "state_error" not in \
+        harness.state["swaps"][-1]
+
+
+def test_a_fallback_swap_whose_state_cannot_be_set_is_made_once() -> None:
+    harness, runtime = agent()
+    set_state = runtime.set_state
+
+    def refusing_set_state(name: str, values: dict[str, Any]) -> None:
+        if runtime.swaps()[-1] == "FixedTime":
+            raise ValueError("FixedTime: green_s must be ...")
+        set_state(name, values)
+
+    runtime.set_state = refusing_set_state
+    feed(harness, 0, 30, queue=1)
+    with pytest.raises(RuntimeError, match="to fixed_time"):
+        harness.feed("measures", measure(30.0, queue=1, plausible=False))
+    assert harness.state["running"] == "fixed_time" and harness.state["detectors_ok"] is False
+    harness.feed("measures", measure(31.0, queue=1, plausible=False))
+    harness.step()
+    assert runtime.swaps() == ["FixedTime"]
+
+
+BAD_SETTINGS = [             # (settings, what the refusal names)
+    ({"window_s": -10.0}, "window_s must be a number of seconds above 0, got -10.0"),
+    ({"window_s": float("nan")}, "window_s must be"),
+    ({"min_between_swaps_s": float("nan")}, "min_between_swaps_s must be a number of "
+                                            "seconds, 0 or more, got nan"),
+    ({"min_between_swaps_s": -1.0}, "min_between_swaps_s must be"),
+    ({"silent_after_s": float("inf")}, "silent_after_s must be"),
+    ({"silent_after_s": 0.0}, "silent_after_s must be"),
+    ({"silent_wall_s": True}, "silent_wall_s must be"),
+    ({"rules": [{"use": "max_pressure", "demand_atleast": 100.0}]},
+     "rules[0]: unknown key 'demand_atleast' (did you mean 'demand_at_least'?)"),
+    ({"rules": [{"use": "gap_out"}, {"use": "max_pressure", "queue_at_least": float("nan")}]},
+     "rules[1].queue_at_least must be a number, 0 or more, got nan"),
+    ({"rules": [{"queue_at_least": 6.0}]}, "rules[0] needs 'use'"),
+    ({"rules": {"use": "gap_out"}}, "rules must be a list"),
+    ({"controller": ""}, "controller must be the controller's module name"),
+    ({"controllers": {**CONTROLLERS, "gap_out": {
+        "class": "agents.traffic.gap_out:GapOot", "state": {}}}},
+     "controllers.gap_out.class: module 'agents.traffic.gap_out' has no class 'GapOot' "
+     "(did you mean 'GapOut'?)"),
+    ({"controllers": {**CONTROLLERS, "gap_out": {"class": "agents.traffic.gapout:GapOut"}}},
+     "controllers.gap_out.class: cannot import module 'agents.traffic.gapout'"),
+    ({"controllers": {**CONTROLLERS, "gap_out": {
+        "class": "agents.traffic.gap_out:GapOut", "state": {"max_gren_s": 40.0}}}},
+     "controllers.gap_out.state: GapOut refuses it: KeyError"),
+    ({"controllers": {**CONTROLLERS, "gap_out": {
+        "class": "agents.traffic.gap_out:GapOut", "state": {"max_green_s": -5.0}}}},
+     "controllers.gap_out.state: GapOut refuses it: ValueError: GapOut: max_green_s"),
+    ({"controllers": {**CONTROLLERS, "gap_out": {
+        "class": "agents.traffic.gap_out:GapOut", "sate": {}}}},
+     "controllers.gap_out: unknown key 'sate' (did you mean 'state'?)"),
+    ({"controllers": {**CONTROLLERS, "gap_out": {"class": "pb3a:System"}}},
+     "controllers.gap_out.class: pb3a.system:System is not a pb3a.Module"),
+]
+
+
+@pytest.mark.parametrize(("wrong", "named"), BAD_SETTINGS,
+                         ids=[next(iter(w)) + f"-{i}" for i, (w, _) in enumerate(BAD_SETTINGS)])
+def test_a_setting_it_could_not_go_by_is_refused_by_name_at_setup(
+        wrong: dict[str, Any], named: str) -> None:
+    """Before, each was taken: a negative window failed every measure (IndexError), a
+    NaN minimum time never swapped, a misspelt threshold was 0 (the rule always held),
+    a class or a controller's state that would not do failed every swap to it."""
+    with pytest.raises(ValueError, match=r"^(W/controller's performance agent|"
+                       r"PerformanceAgent): ") as refused:
+        agent(**wrong)
+    assert named in str(refused.value)
+
+
+@pytest.mark.parametrize(("wrong", "named"), BAD_SETTINGS,
+                         ids=[next(iter(w)) + f"-{i}" for i, (w, _) in enumerate(BAD_SETTINGS)])
+def test_such_a_setting_set_while_it_runs_is_refused_by_name_and_nothing_is_set(
+        wrong: dict[str, Any], named: str) -> None:
+    harness, runtime = agent()
+    before = harness.state
+    with pytest.raises(ValueError, match=r"^(W/controller's performance agent|"
+                       r"PerformanceAgent): ") as refused:
+        harness.module.set_state({"fallback": "gap_out", "silent_after_s": 20.0, **wrong})
+    assert named in str(refused.value)
+    assert harness.state == before
+    feed(harness, 0, 61, queue=9)            # it goes on by its settings
+    assert runtime.swaps() == ["MaxPressure"]
+
+
+def test_a_controller_that_is_no_module_of_the_system_is_refused_at_setup() -> None:
+    with pytest.raises(ValueError, match="controller must be a module of the system: "
+                       "no module 'W/controler'"):
+        agent(controller="W/controler")
+    # without a system to ask (a harness of its own), it cannot tell: it sets up
+    harness = ModuleHarness(PerformanceAgent, state={
+        "controller": "W/controler", "controllers": CONTROLLERS, "running": "gap_out"})
+    assert harness.state["controller"] == "W/controler"
+
+
+@pytest.mark.timeout(60)
+def test_in_a_system_a_controller_that_is_no_module_fails_the_launch_naming_it() -> None:
+    """Asked from setup, the system answers (from its worker, as text): before, every
+    measure failed ('no module') for as long as it ran."""
+    from agents.traffic.gap_out import GapOut
+
+    system = System("junction")
+    system.add("controller", GapOut)
+    system.add("agent", PerformanceAgent, state={
+        "controller": "controler", "controllers": CONTROLLERS, "running": "gap_out"})
+    with pytest.raises(RuntimeFailure, match="controller must be a module of the system: "
+                       "no module 'controler' in system 'junction'; modules: controller"):
+        system.launch().close()
+    system = System("junction")
+    system.add("controller", GapOut)
+    system.add("agent", PerformanceAgent, state={
+        "controller": "controller", "controllers": CONTROLLERS, "running": "gap_out"})
+    with system.launch() as running:
+        assert running.state("agent")["controller"] == "controller"
 
 
 NETWORKS = Path(__file__).resolve().parent.parent / "scenarios" / "traffic"

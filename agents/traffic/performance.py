@@ -26,30 +26,134 @@ given back when it is swapped in again, so a learner does not forget. Each swap 
 
 from __future__ import annotations
 
+import copy
 import time
 from collections import deque
 from typing import Any
 
+from agents.limits import RATIO, SECONDS, SPAN, Limit, out_of_limits
 from agents.traffic.messages import JunctionMeasures
-from pb3a import Agent, Input, InputPort, Output
+from pb3a import Agent, Input, InputPort, Module, Output
+from pb3a.config import checks
+from pb3a.errors import ModuleNotFound, PB3AError
+from pb3a.loading.references import class_ref, resolve_class
 
 KEPT_STATE = ("table",)             # a controller's learnt state, kept across swaps
+RULE_THRESHOLDS = ("demand_at_least", "queue_at_least")
+RULE_KEYS = ("use", *RULE_THRESHOLDS)
+CONTROLLER_KEYS = ("class", "state")
+_LIMITS: dict[str, Limit] = {
+    "window_s": SPAN, "min_between_swaps_s": SECONDS, "silent_after_s": SPAN,
+    "silent_wall_s": SECONDS}
 
 
-def _check_controllers(state: dict[str, Any]) -> None:
-    """ValueError naming each controller a ``PerformanceAgent`` of ``state`` is told to
-    run (``running``, ``chosen``, ``fallback``, a rule's ``use``) that is not in its
-    ``controllers``."""
-    unknown = {state["running"], state["chosen"] or state["running"], state["fallback"],
-               *(r["use"] for r in state["rules"])} - set(state["controllers"])
-    if unknown:
-        raise ValueError(f"{state['controller']}'s performance agent: no controller "
-                         f"{', '.join(sorted(unknown))} in controllers "
-                         f"({', '.join(sorted(state['controllers'])) or 'none'})")
+def _check_settings(state: dict[str, Any]) -> None:
+    """ValueError naming each setting of a ``PerformanceAgent`` of ``state`` that it
+    could not go by (see the module's docstring); every problem in one message."""
+    problems = out_of_limits(_LIMITS, state)
+    if not isinstance(state["controller"], str) or checks.path(state["controller"], "module"):
+        problems.append(f"controller must be the controller's module name (e.g. "
+                        f"'W/controller'), got {state['controller']!r}")
+    controllers, rules = state["controllers"], state["rules"]
+    if not isinstance(controllers, dict):
+        problems.append(f"controllers must be a table of name = {{ class, state }}, "
+                        f"got {controllers!r}")
+        controllers = {}
+    for name, spec in controllers.items():
+        problems += _controller_problems(name, spec)
+    if not isinstance(rules, list):
+        problems.append(f"rules must be a list of {{ use, demand_at_least, queue_at_least }}"
+                        f", got {rules!r}")
+        rules = []
+    for index, rule in enumerate(rules):
+        problems += _rule_problems(index, rule)
+    if not problems:
+        unknown = {state["running"], state["chosen"] or state["running"], state["fallback"],
+                   *(r["use"] for r in rules)} - set(controllers)
+        if unknown:
+            problems.append(f"no controller {', '.join(sorted(map(str, unknown)))} in "
+                            f"controllers ({', '.join(sorted(controllers)) or 'none'})")
+    if problems:
+        raise ValueError(f"{_who(state['controller'])}: " + "; ".join(problems))
+
+
+def _who(controller: Any) -> str:
+    """The agent, as its errors name it: by the controller it swaps, if it has one."""
+    return f"{controller}'s performance agent" if controller and isinstance(
+        controller, str) else "PerformanceAgent"
+
+
+def _controller_problems(name: str, spec: Any) -> list[str]:
+    """What keeps ``controllers[name]`` from being swapped in: not a table, a key other
+    than class and state, a class that does not resolve to a module, a state the class
+    refuses (set on a fresh instance, as the system sets a module's configured state)."""
+    where = f"controllers.{name}"
+    if not isinstance(spec, dict):
+        return [f"{where} must be a table {{ class = 'package.module:Class', state = "
+                f"{{ ... }} }}, got {spec!r}"]
+    problems = [f"{where}: {problem}" for problem in checks.unknown_keys(
+        {key: None for key in spec if key not in CONTROLLER_KEYS}, CONTROLLER_KEYS)]
+    if "class" not in spec:
+        return [*problems, f"{where} has no class ('package.module:Class')"]
+    try:
+        cls = resolve_class(spec["class"])
+    except (ValueError, ImportError, LookupError, TypeError) as exc:
+        return [*problems, f"{where}.class: {exc}"]
+    if not issubclass(cls, Module):
+        return [*problems, f"{where}.class: {class_ref(cls)} is not a pb3a.Module"]
+    given = spec.get("state", {})
+    wrong = checks.state(cls, given)
+    if not wrong:
+        try:
+            cls().set_state(copy.deepcopy(given))
+        except Exception as exc:  # the class's own check: whatever it raises, it refuses
+            wrong = [f"{cls.__name__} refuses it: {type(exc).__name__}: {exc}"]
+    return [*problems, *(f"{where}.state: {problem}" for problem in wrong)]
+
+
+def _rule_problems(index: int, rule: Any) -> list[str]:
+    """What is wrong with ``rules[index]``: not a table, no ``use``, a key it does not
+    know (a misspelt threshold was taken as 0: the rule always held), a threshold that
+    is not a finite number, 0 or more (NaN never held)."""
+    where = f"rules[{index}]"
+    if not isinstance(rule, dict):
+        return [f"{where} must be a table {{ use, demand_at_least, queue_at_least }}, "
+                f"got {rule!r}"]
+    problems = [f"{where}: {problem}" for problem in checks.unknown_keys(
+        {key: None for key in rule if key not in RULE_KEYS}, RULE_KEYS)]
+    if not isinstance(rule.get("use"), str):
+        problems.append(f"{where} needs 'use', the name of a controller, got "
+                        f"{rule.get('use')!r}")
+    words, ok = RATIO
+    problems += [f"{where}.{key} must be {words}, got {rule[key]!r}"
+                 for key in RULE_THRESHOLDS if key in rule and not ok(rule[key])]
+    return problems
 
 
 class PerformanceAgent(Agent):
-    """Swaps a junction's controller by measured demand and delay, with guard rails."""
+    """Swaps a junction's controller by measured demand and delay, with guard rails.
+
+    A swap is two requests: the class, then the controller's state. ``running`` and the
+    record follow the class, as soon as the system has swapped it: what ``running`` names
+    is what the junction runs. A state the new controller refuses (or a request that
+    fails) leaves it running with the state the swap carried over: its record says so
+    (``state_error``), the error is raised once (the system logs it), and the agent does
+    not swap again for it, so it neither loops nor keeps a learner's table under another
+    controller's name. A swap the system refuses changes nothing and is tried again at
+    the next look (a controller busy past the timeout, say).
+
+    Its settings are checked at setup and by ``set_state`` (which then sets nothing),
+    each problem named: the times finite (``window_s`` and ``silent_after_s`` above 0,
+    ``min_between_swaps_s`` and ``silent_wall_s`` 0 or more), ``controller`` a module
+    name, each of ``controllers`` a class that resolves to a module with a ``state`` the
+    class takes (tried on a fresh instance, as the system gives a module its configured
+    state), each rule a table of ``use`` and thresholds (finite, 0 or more) with no other
+    key, and every controller it may run one of ``controllers``. At setup it also asks
+    the system whether ``controller`` is one of its modules (reads may be asked from
+    setup); ``set_state`` cannot ask (whoever sets the state holds the system's
+    configuration lock), nor can setup outside a launched system (a ``ModuleHarness``
+    without a runtime), so a ``controller`` set later is checked only by its first swap.
+    """
 
     measures = Input(JunctionMeasures, policy="queue:512")
     clock = Input(float, policy="latest")
@@ -76,7 +180,11 @@ class PerformanceAgent(Agent):
 
     def setup(self) -> None:
         self.chosen = self.chosen or self.running
-        _check_controllers(self.get_state())
+        _check_settings(self.get_state())
+        missing = self._missing_controller()
+        if missing:
+            raise ValueError(f"{self.controller}'s performance agent: controller must be "
+                             f"a module of the system: {missing}")
         self._window: deque[JunctionMeasures] = deque()
         self._last_measure_s: float | None = None   # (or the clock's start, for silence)
         self._measured_s: float | None = None       # the time of the last measure taken
@@ -87,10 +195,32 @@ class PerformanceAgent(Agent):
         self._wall = time.monotonic
 
     def set_state(self, state: dict[str, Any]) -> None:
-        """Set state; rules, a fallback or a running controller it has not got are
-        refused by name, as at setup, and nothing is set (taken, its next swap failed)."""
-        _check_controllers({**self.get_state(), **state})
+        """Set state; what setup would refuse (a time out of range, a rule key it does
+        not know, a controller class that does not resolve or refuses its state, rules,
+        a fallback or a running controller it has not got) is refused by name, and
+        nothing is set. (Whether ``controller`` is a module of the system is not asked
+        here: see the module's docstring.)"""
+        _check_settings({**self.get_state(), **state})
         super().set_state(state)
+
+    def _missing_controller(self) -> str:
+        """Why ``controller`` is no module of the system, as the system says; "" when
+        it is, or when the system cannot be asked (no runtime: a ``ModuleHarness``) or
+        does not answer (the first swap will tell)."""
+        try:
+            where = getattr(self.runtime, "where", None)
+        except RuntimeError:                # not in a launched system
+            return ""
+        if where is None:
+            return ""
+        try:
+            where(self.controller)
+        except ModuleNotFound as exc:
+            return str(exc)
+        except PB3AError as exc:            # from a worker: the executor's error, as text
+            text = str(exc)
+            return text.partition("ModuleNotFound: ")[2] if "ModuleNotFound: " in text else ""
+        return ""
 
     def on_input(self, port: InputPort) -> None:
         if port.name == "clock":
@@ -137,8 +267,7 @@ class PerformanceAgent(Agent):
         wanted = self.choice()
         if wanted != self.running and measure.time - self.last_swap_s >= self.min_between_swaps_s:
             self._swap(wanted, measure.time, f"demand {self.demand_per_min:.1f}/min, "
-                                             f"queue {self.mean_queue:.1f}")
-            self.chosen = wanted
+                                             f"queue {self.mean_queue:.1f}", chosen=True)
 
     def choice(self) -> str:
         """The controller the rules give for the demand and queue measured now (when
@@ -167,22 +296,44 @@ class PerformanceAgent(Agent):
             self._fail(now, f"no detector reading for {now - last:.0f} s")
 
     def _fail(self, now: float, why: str) -> None:
-        if self.running != self.fallback:
-            self._swap(self.fallback, now, f"detectors failed: {why}")
-        # only once swapped: a swap that failed is tried again at the next look
-        self.detectors_ok = False
+        try:
+            if self.running != self.fallback:
+                self._swap(self.fallback, now, f"detectors failed: {why}")
+        finally:
+            # only once swapped: a swap that failed is tried again at the next look (a
+            # swap made whose state could not be set is made: it is not tried again)
+            if self.running == self.fallback:
+                self.detectors_ok = False
 
     # -- swapping ---------------------------------------------------------------------
-    def _swap(self, name: str, now: float, reason: str) -> None:
+    def _swap(self, name: str, now: float, reason: str, *, chosen: bool = False) -> None:
+        """Swap the controller for ``name`` (``chosen``: the rules' choice, not the
+        fallback) and give it its state; recorded as soon as the class is swapped. A
+        state that cannot be set is in the record (``state_error``) and raised once."""
         leaving = self.running
         live = self.runtime.state(self.controller)
-        self._kept[leaving] = {k: live[k] for k in KEPT_STATE if k in live}
+        kept = {k: live[k] for k in KEPT_STATE if k in live}
         spec = self.controllers[name]
-        self.runtime.swap(self.controller, spec["class"])
-        self.runtime.set_state(self.controller, {**spec.get("state", {}),
-                                                 **self._kept.get(name, {})})
+        self.runtime.swap(self.controller, spec["class"])   # raises: nothing has changed
+        # From here the junction runs the new class: so says the record, whatever comes.
+        self._kept[leaving] = kept
         self.running, self.last_swap_s = name, now
+        if chosen:
+            self.chosen = name
         record = {"time": now, "controller": self.controller, "from": leaving, "to": name,
                   "reason": reason}
+        failure: Exception | None = None
+        try:
+            self.runtime.set_state(self.controller, {**spec.get("state", {}),
+                                                     **self._kept.get(name, {})})
+        except Exception as exc:  # whatever it is, the swap was made: record it first
+            failure = exc
+            record["state_error"] = f"{type(exc).__name__}: {exc}"
         self.swaps = [*self.swaps, record]
         self.swapped.write(record)
+        if failure is not None:
+            raise RuntimeError(
+                f"{self.controller}'s performance agent swapped it from {leaving} to "
+                f"{name} ({spec['class']}), but could not set its state: "
+                f"{record['state_error']}; it runs on with the state the swap carried over "
+                f"(the agent does not try again)") from failure
