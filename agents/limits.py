@@ -1,14 +1,17 @@
 """What each numeric setting of an agent or module of ``agents`` must be (``Limit``: the
 rule in words, and its test), and the check of a state against them: the traffic
 driver and controllers, the monitor, the remedy agent and the explorer refuse a
-setting out of its limits by name, and set nothing."""
+setting out of its limits by name, and set nothing. ``missing_modules``: the modules
+an agent's settings name that its system does not have, asked at setup."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
+from pb3a import Agent
 from pb3a.config.checks import finite
+from pb3a.errors import ModuleNotFound, PB3AError
 
 Limit = tuple[str, Callable[[Any], bool]]
 SECONDS: Limit = ("a number of seconds, 0 or more", lambda x: finite(x) and x >= 0)
@@ -34,3 +37,22 @@ def out_of_limits(limits: dict[str, Limit], settings: dict[str, Any]) -> list[st
     """One sentence per setting out of its limits, naming it and what it must be."""
     return [f"{key} must be {words}, got {settings[key]!r}"
             for key, (words, ok) in limits.items() if not ok(settings[key])]
+
+
+def missing_modules(agent: Agent, named: Iterable[tuple[str, str]]) -> list[str]:
+    """``"SETTING: no module ..."`` for each (setting, module name) whose module the
+    system does not have, as its runtime says (asked from ``setup``: a misspelt name was
+    found only when the agent acted, often after the robot needed it). None when the
+    runtime cannot be asked now (none: a ``ModuleHarness`` without one; not answering):
+    what the agent does with the module tells then."""
+    problems = []
+    for setting, module in named:
+        if not module:
+            continue
+        try:
+            agent.runtime.where(module)
+        except ModuleNotFound as exc:
+            problems.append(f"{setting}: {exc}")
+        except (PB3AError, RuntimeError, AttributeError):
+            return []
+    return problems

@@ -22,9 +22,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from agents.case_base import AdaptationError, CaseBase, CaseFileError, Feature, Match, adapt
-from agents.limits import Limit, finite, out_of_limits
+from agents.limits import Limit, finite, missing_modules, out_of_limits
 from pb3a import Agent, Input, InputPort, Output
-from pb3a.errors import ModuleNotFound, PB3AError
+from pb3a.errors import PB3AError
 
 if TYPE_CHECKING:
     from pb3a.stats import SystemStats
@@ -250,20 +250,10 @@ class RemedyAgent(Agent):
     def _check_modules(self) -> None:
         """ValueError naming each module the settings name that the system does not
         have (a misspelt driver was found only by the fallback stop, which failed: the
-        robot drove on). A runtime that cannot answer now leaves it to the remedies."""
-        named = [("driver", self.driver), ("watch", self.watch),
-                 *((f"consumers[{sensor!r}]", module)
-                   for sensor, module in self.consumers.items())]
-        problems = []
-        for key, module in named:
-            if not module:
-                continue
-            try:
-                self.runtime.where(module)
-            except ModuleNotFound as exc:
-                problems.append(f"{key}: {exc}")
-            except PB3AError:
-                return
+        robot drove on)."""
+        problems = missing_modules(self, [
+            ("driver", self.driver), ("watch", self.watch),
+            *((f"consumers[{sensor!r}]", module) for sensor, module in self.consumers.items())])
         if problems:
             raise ValueError("RemedyAgent: " + "; ".join(problems))
 

@@ -26,9 +26,9 @@ import dataclasses
 import time
 from typing import Any
 
-from agents.limits import whole
+from agents.limits import missing_modules, whole
 from pb3a import Agent, Input, InputPort, Output
-from pb3a.errors import ConfigError, ModuleNotFound, PB3AError
+from pb3a.errors import ConfigError, PB3AError
 from pb3a.transport.addresses import tcp_address_problems
 
 
@@ -95,16 +95,8 @@ class TransferAgent(Agent):
 
     def _check_modules(self) -> None:
         """ValueError naming the driver or learner the system does not have (found
-        when the move was tried, after learning). A runtime that cannot answer now
-        leaves it to the move."""
-        problems = []
-        for key in ("driver", "learner"):
-            try:
-                self.runtime.where(getattr(self, key))
-            except ModuleNotFound as exc:
-                problems.append(f"{key}: {exc}")
-            except PB3AError:
-                return
+        when the move was tried, after learning)."""
+        problems = missing_modules(self, [("driver", self.driver), ("learner", self.learner)])
         if problems:
             raise ValueError("TransferAgent: " + "; ".join(problems))
 

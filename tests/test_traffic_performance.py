@@ -342,7 +342,7 @@ def test_such_a_setting_set_while_it_runs_is_refused_by_name_and_nothing_is_set(
 
 
 def test_a_controller_that_is_no_module_of_the_system_is_refused_at_setup() -> None:
-    with pytest.raises(ValueError, match="controller must be a module of the system: "
+    with pytest.raises(ValueError, match="performance agent: controller: "
                        "no module 'W/controler'"):
         agent(controller="W/controler")
     # without a system to ask (a harness of its own), it cannot tell: it sets up
@@ -353,7 +353,7 @@ def test_a_controller_that_is_no_module_of_the_system_is_refused_at_setup() -> N
 
 @pytest.mark.timeout(60)
 def test_in_a_system_a_controller_that_is_no_module_fails_the_launch_naming_it() -> None:
-    """Asked from setup, the system answers (from its worker, as text): before, every
+    """Asked from setup, the system answers (ModuleNotFound, from its worker): before, every
     measure failed ('no module') for as long as it ran."""
     from agents.traffic.gap_out import GapOut
 
@@ -361,7 +361,7 @@ def test_in_a_system_a_controller_that_is_no_module_fails_the_launch_naming_it()
     system.add("controller", GapOut)
     system.add("agent", PerformanceAgent, state={
         "controller": "controler", "controllers": CONTROLLERS, "running": "gap_out"})
-    with pytest.raises(RuntimeFailure, match="controller must be a module of the system: "
+    with pytest.raises(RuntimeFailure, match="performance agent: controller: "
                        "no module 'controler' in system 'junction'; modules: controller"):
         system.launch().close()
     system = System("junction")

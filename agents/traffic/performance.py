@@ -31,11 +31,10 @@ import time
 from collections import deque
 from typing import Any
 
-from agents.limits import RATIO, SECONDS, SPAN, Limit, out_of_limits
+from agents.limits import RATIO, SECONDS, SPAN, Limit, missing_modules, out_of_limits
 from agents.traffic.messages import JunctionMeasures
 from pb3a import Agent, Input, InputPort, Module, Output
 from pb3a.config import checks
-from pb3a.errors import ModuleNotFound, PB3AError
 from pb3a.loading.references import class_ref, resolve_class
 
 KEPT_STATE = ("table",)             # a controller's learnt state, kept across swaps
@@ -181,10 +180,9 @@ class PerformanceAgent(Agent):
     def setup(self) -> None:
         self.chosen = self.chosen or self.running
         _check_settings(self.get_state())
-        missing = self._missing_controller()
+        missing = missing_modules(self, [("controller", self.controller)])
         if missing:
-            raise ValueError(f"{self.controller}'s performance agent: controller must be "
-                             f"a module of the system: {missing}")
+            raise ValueError(f"{self.controller}'s performance agent: {missing[0]}")
         self._window: deque[JunctionMeasures] = deque()
         self._last_measure_s: float | None = None   # (or the clock's start, for silence)
         self._measured_s: float | None = None       # the time of the last measure taken
@@ -202,25 +200,6 @@ class PerformanceAgent(Agent):
         here: see the module's docstring.)"""
         _check_settings({**self.get_state(), **state})
         super().set_state(state)
-
-    def _missing_controller(self) -> str:
-        """Why ``controller`` is no module of the system, as the system says; "" when
-        it is, or when the system cannot be asked (no runtime: a ``ModuleHarness``) or
-        does not answer (the first swap will tell)."""
-        try:
-            where = getattr(self.runtime, "where", None)
-        except RuntimeError:                # not in a launched system
-            return ""
-        if where is None:
-            return ""
-        try:
-            where(self.controller)
-        except ModuleNotFound as exc:
-            return str(exc)
-        except PB3AError as exc:            # from a worker: the executor's error, as text
-            text = str(exc)
-            return text.partition("ModuleNotFound: ")[2] if "ModuleNotFound: " in text else ""
-        return ""
 
     def on_input(self, port: InputPort) -> None:
         if port.name == "clock":
