@@ -524,3 +524,39 @@ def test_stop_cancels_every_request_a_step_makes_after_the_first(device) -> None
     started = time.monotonic()
     assert actor.stop(3.0)
     assert time.monotonic() - started < 1.0
+
+
+def test_a_body_whose_runtime_call_the_runtime_cancels_is_not_counted_as_failing() -> None:
+    """An agent waiting on the runtime as it was swapped, moved or stopped raised
+    ``RuntimeCancelled`` out of its step, by design: it was logged with its traceback
+    ("raised in step") and counted among its errors at every stop."""
+    class Sleeper(Module):
+        period = 0.01
+        busy = False
+
+        def step(self) -> None:
+            if self.busy:
+                time.sleep(3.0)             # holds its lock: a read of it waits
+
+    class Asker(pb3a.Agent):
+        period = 0.01
+        asked = 0
+
+        def step(self) -> None:
+            self.asked += 1
+            self.runtime.state("sleeper")
+
+    class Quiet(pb3a.Agent):
+        asked = 0
+
+    system = System("cancelled").add("sleeper", Sleeper).add("asker", Asker)
+    with system.launch() as run:
+        eventually(lambda: run.state("asker")["asked"] > 3, what="the agent asking")
+        run.set_state("sleeper", busy=True)
+        time.sleep(0.3)                     # the sleeper in its step, the agent's read
+        asked = run.state("asker")["asked"]     # of it waiting
+        time.sleep(0.2)
+        assert run.state("asker")["asked"] == asked
+        run.swap("asker", Quiet, timeout=5.0)   # cancels that wait
+        assert run.stats().modules["asker"].errors == 0
+        assert not [e for e in run.logs() if e.module == "asker" and e.level == "ERROR"]

@@ -19,6 +19,7 @@ from collections import deque
 from typing import TYPE_CHECKING, Any
 
 from pb3a import latencies
+from pb3a.errors import RuntimeCancelled
 from pb3a.model.ports import InputPort, OutputPort
 from pb3a.transport import pickling
 from pb3a.worker.waits import RuntimeWait, run_posted
@@ -314,6 +315,8 @@ class ModuleActor:
                 try:
                     fn(*args)
                     done += 1
+                except RuntimeCancelled as exc:     # the runtime ended the body's wait
+                    log.debug("module %r: %s ended: %s", self.name, hook, exc)   # (by design)
                 except BaseException as exc:    # SystemExit, CancelledError too: counted,
                     self.errors += 1            # never the end of a shared thread
                     self.last_error = f"{type(exc).__name__}: {exc}"
