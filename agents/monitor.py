@@ -615,6 +615,10 @@ _LIMITS: dict[str, Limit] = {
 
 def _check_settings(state: dict[str, Any]) -> None:
     """ValueError, naming it, for a ``HardwareMonitor`` setting its setup would refuse."""
+    if not isinstance(state["ready_windows"], dict):    # (a list failed with AttributeError)
+        raise ValueError(f"HardwareMonitor: ready_windows must map a fault group to the "
+                         f"windows it needs, as {{\"motors\": 150}}, got "
+                         f"{state['ready_windows']!r}")
     unknown = sorted(set(state["ready_windows"]) - set(GROUPS))
     if unknown:
         raise ValueError(f"ready_windows names no fault group {', '.join(unknown)}: "

@@ -307,6 +307,7 @@ def test_state_set_while_it_runs_is_what_it_goes_by(model: NormalModel) -> None:
     ({"sample_s": 0}, "sample_s must be a number of seconds above 0"),
     ({"rearm": math.nan}, "rearm must be a whole number of windows"),
     ({"ready_windows": {"motors": -3}}, r"ready_windows\['motors'\] must be a whole number"),
+    ({"ready_windows": ["motors"]}, r"ready_windows must map a fault group to the windows"),
 ])
 def test_a_monitor_setting_that_would_blind_or_break_it_is_refused(wrong, named) -> None:
     """Taken, a negative jump_m took every sample for another robot's (nothing ever
