@@ -361,5 +361,6 @@ def test_an_agent_s_request_raises_the_error_the_runtime_raised_on_any_node(
     system.add("far", Asker, node="b")
     with system.launch() as run:
         for name in ("near", "far"):
-            assert eventually(lambda name=name: run.state(name)["seen"], timeout=30,
-                              what=f"{name}'s answers") == ["ModuleNotFound", "ConfigError"]
+            seen = eventually(lambda name=name: len(s := run.state(name)["seen"]) == 2 and s,
+                              timeout=30, what=f"{name}'s two answers")
+            assert seen == ["ModuleNotFound", "ConfigError"]
