@@ -10,7 +10,7 @@ from __future__ import annotations
 import time
 from typing import TYPE_CHECKING, Any
 
-from pb3a.errors import RuntimeFailure, RuntimeTimeout
+from pb3a.errors import PB3AError, RuntimeFailure, RuntimeTimeout
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -23,7 +23,7 @@ class Pending:
 
     ``poll(timeout)`` asks the runtime for ``(status, value)``, waiting up to ``timeout``
     for the operation to end: ``("running", None)``, ``("done", result)`` or
-    ``("failed", message)``.
+    ``("failed", error)``: the PB3A error it raised, or a message.
     """
 
     def __init__(self, what: str, poll: Callable[[float], tuple[str, Any]]) -> None:
@@ -45,11 +45,14 @@ class Pending:
         return outcome is not None
 
     def result(self, timeout: float = 60.0) -> Any:
-        """Its result, waiting up to ``timeout`` seconds; ``RuntimeFailure`` if it failed,
-        ``RuntimeTimeout`` if it has not ended in time."""
+        """Its result, waiting up to ``timeout`` seconds; if it failed, the PB3A error it
+        raised (``ConfigError`` for a node the system does not have ...) or else
+        ``RuntimeFailure``; ``RuntimeTimeout`` if it has not ended in time."""
         if not self.wait(timeout):
             raise RuntimeTimeout(f"{self.what} had not ended after {timeout:g} s")
         status, value = self._outcome
+        if status == FAILED and isinstance(value, PB3AError):
+            raise value
         if status == FAILED:
             raise RuntimeFailure(f"{self.what} failed: {value}")
         return value

@@ -285,6 +285,8 @@ def test_a_resource_that_is_not_an_address_is_refused_or_taken_for_a_silent_robo
     with pytest.raises(ValueError, match=r"RobotDriver's resource must be a string "
                                          r"tcp://HOST:PORT .*got '10\.0\.0\.7:7400'"):
         harness.module.set_state({"resource": "10.0.0.7:7400"})
+    with pytest.raises(ValueError, match=r"'tcp://\*:7400' names every interface"):
+        harness.module.set_state({"resource": "tcp://*:7400"})     # (what a listener binds)
     assert harness.state["resource"] == "tcp://robot:7400"
 
     class Misaddressed(RobotDriver):

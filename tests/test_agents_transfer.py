@@ -21,12 +21,15 @@ class Move:
     def __init__(self) -> None:
         self.ended = False
         self.failure = ""           # the move ends in this error
+        self.error: Exception | None = None     # or in this one, as it is
 
     def wait(self, timeout: float) -> bool:
         return self.ended
 
     def result(self, timeout: float) -> MigrationReport:
         assert self.ended
+        if self.error is not None:
+            raise self.error
         if self.failure:
             raise RuntimeFailure(self.failure)
         return MigrationReport("brain", "ws", "robot", 0.02, 1000, 4, prepare_s=0.09)
@@ -147,14 +150,20 @@ def test_without_a_destination_or_a_learner_it_is_refused_at_setup() -> None:
 def test_a_move_the_runtime_refuses_as_asked_is_not_tried_again() -> None:
     """A node the system does not have was asked for again at every episode (56 failed
     moves in 3 s, the simulation's lock-step switched off and on each time)."""
-    class NoSuchNode(Runtime):
+    class NoSuchNode(Runtime):            # (a Pending: the error comes as its result)
         def migrate(self, name: str, to: str, **options: Any) -> Move:
-            super().migrate(name, to, **options)
-            raise ConfigError([f"migrate {name}: no node {to!r}; nodes: ws, robot"])
+            move = super().migrate(name, to, **options)
+            move.ended, move.error = True, ConfigError([
+                f"migrate {name}: no node {to!r}; nodes: ws, robot"])
+            return move
     runtime = NoSuchNode()
     agent = ModuleHarness(TransferAgent, state={**STATE, "to_node": "robt"}, runtime=runtime)
-    for _ in range(30):
+    for _ in range(10):
         agent.feed("episode", {"success": True})
+    agent.step()                                        # the move's end: refused
+    for _ in range(20):
+        agent.feed("episode", {"success": True})
+        agent.step()
     (failed,) = agent.written["transfer"]
     assert "no node 'robt'" in failed["error"] and "no node 'robt'" in agent.state["refused"]
     assert [call[0] for call in runtime.calls].count("migrate") == 1

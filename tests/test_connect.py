@@ -219,7 +219,7 @@ def test_one_connection_waiting_for_events_holds_up_no_other() -> None:
                 waiting.join(10)
 
 
-@pytest.mark.parametrize("every", ["*", "0.0.0.0"])
+@pytest.mark.parametrize("every", ["*", "0.0.0.0", "[::]"])
 def test_a_launcher_listening_on_every_interface_hands_out_an_address_of_this_machine(
         every: str) -> None:
     # (it handed out tcp://*:PORT, which `pb3a status` and another host cannot use)
@@ -228,6 +228,6 @@ def test_a_launcher_listening_on_every_interface_hands_out_an_address_of_this_ma
         host, _, port = address.removeprefix("tcp://").rpartition(":")
         ours = {entry.address for entries in psutil.net_if_addrs().values()
                 for entry in entries}
-        assert host in ours and host not in ("*", "0.0.0.0"), address
+        assert host in ours and host not in ("*", "0.0.0.0", "[::]"), address
         with pb3a.connect(f"tcp://127.0.0.1:{port}") as far:      # every interface: here too
             assert far.name == "everywhere"

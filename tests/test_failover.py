@@ -17,6 +17,7 @@ import psutil
 import pytest
 from conftest import Daemon, eventually
 from sample_modules import (
+    AsksInSetup,
     Collector,
     Counter,
     Join,
@@ -589,3 +590,23 @@ def test_a_module_whose_setup_raises_where_it_fails_over_is_failed_not_failed_ov
         failed, = [e for e in _events(run, "module_failed") if e.subject == "cam"]
         assert "raised in setup" in failed.detail["reason"]
         assert "cam" not in [move["module"] for move in run.state("moves")["moves"]]
+
+
+def test_an_agent_that_reads_the_runtime_from_its_setup_fails_over(daemons) -> None:
+    """The failover held the configuration lock without lending it to the modules it
+    starts: an agent asking the runtime from its setup (the shipped agents check the
+    modules their settings name) waited for it, its start ran out of time after 10 s,
+    and it was failed, not failed over."""
+    b = daemons["b"]
+    system = System("asking").node("a").node("b", address=b.address)
+    system.add("other", Counter, node="a", period=0.01)
+    system.add("agent", AsksInSetup, node="b", restart="fresh", fallback=["a"])
+    with system.launch() as run:
+        eventually(lambda: run.state("agent")["steps"] > 0, timeout=30, what="the agent on b")
+        b.kill()
+        moved = eventually(lambda: _events(run, "module_failed_over"), timeout=15,
+                           what="the agent failed over")
+        assert moved[0].detail["restart_s"] < 3.0 and not _events(run, "module_failed")
+        state = eventually(lambda: (s := run.state("agent"))["steps"] > 0 and s,
+                           what="the agent stepping on a")
+        assert run.where("agent") == "a" and state["asked"] >= 0

@@ -340,7 +340,8 @@ def test_on_a_remote_node_an_agent_may_read_from_setup_inside_a_change(controlle
 def test_an_agent_s_request_raises_the_error_the_runtime_raised_on_any_node(
         controllers) -> None:
     # (every refusal came as a RuntimeFailure "...'s request 'where' failed: ModuleNotFound:
-    # ...": an agent could not tell a module that is not there from a node that failed)
+    # ...": an agent could not tell a module that is not there from a node that failed;
+    # a move without waiting, as "migrate src to mars failed: ConfigError: ...")
     class Asker(Agent):
         period = 0.05
         seen: list = []
@@ -349,7 +350,8 @@ def test_an_agent_s_request_raises_the_error_the_runtime_raised_on_any_node(
             if self.seen:
                 return
             for ask in (lambda: self.runtime.where("nope"),
-                        lambda: self.runtime.swap("src", "sample_modules:Nope")):
+                        lambda: self.runtime.swap("src", "sample_modules:Nope"),
+                        lambda: self.runtime.migrate("src", "mars", wait=False).result(10)):
                 try:
                     ask()
                 except PB3AError as exc:
@@ -361,6 +363,6 @@ def test_an_agent_s_request_raises_the_error_the_runtime_raised_on_any_node(
     system.add("far", Asker, node="b")
     with system.launch() as run:
         for name in ("near", "far"):
-            seen = eventually(lambda name=name: len(s := run.state(name)["seen"]) == 2 and s,
-                              timeout=30, what=f"{name}'s two answers")
-            assert seen == ["ModuleNotFound", "ConfigError"]
+            seen = eventually(lambda name=name: len(s := run.state(name)["seen"]) == 3 and s,
+                              timeout=30, what=f"{name}'s three answers")
+            assert seen == ["ModuleNotFound", "ConfigError", "ConfigError"]

@@ -606,3 +606,23 @@ def test_a_ring_interrupted_as_it_is_made_leaves_no_segment(monkeypatch) -> None
         Executor._ring(executor, "a.out->b.x", ring_module.RingSize(4096, 0, 0))
     assert live_segments(os.getpid()) == before and executor.rings == {}
     made[0].close()                       # (this process's mapping, the name gone already)
+
+
+def test_a_ring_whose_name_is_taken_leaves_that_segment_alone() -> None:
+    # (the executor unlinked whatever held the name, a segment it had not made)
+    from types import SimpleNamespace
+
+    from pb3a.node.executor import Executor
+    from pb3a.transport import shm
+
+    taken = segment_name("ring")
+    other = shm.create_segment(taken, 4096)
+    try:
+        executor = SimpleNamespace(rings={})
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr("pb3a.node.executor.segment_name", lambda kind: taken)
+            with pytest.raises(FileExistsError):
+                Executor._ring(executor, "a.out->b.x", ring_module.RingSize(4096, 0, 0))
+        assert taken in live_segments(os.getpid())
+    finally:
+        shm.unlink_segment(other)

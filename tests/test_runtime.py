@@ -234,6 +234,7 @@ def test_a_swapped_in_class_steps_at_its_own_period_unless_the_module_was_given_
     system.add("src", Counter, period=0.002)
     system.add("ear", Listener)
     system.add("own", Listener, period=0.02)          # a period of its own
+    system.add("given", Stepper, period=0.01)         # given, as its class's
     system.link("src.out", "ear.x")
     system.link("src.out", "own.x")
     with system.launch() as run:
@@ -248,6 +249,9 @@ def test_a_swapped_in_class_steps_at_its_own_period_unless_the_module_was_given_
         assert run.state("ear")["steps_run"] <= before["steps_run"] + 1   # (one begun)
         eventually(lambda: run.state("own")["steps_run"] > 10, what="own stepping")
         assert run.topology().modules["own"].period == 0.02
+        run.swap("given", Listener)                     # (it was taken for the class's)
+        assert run.topology().modules["given"].period == 0.01
+        assert run.configuration()["system"]["modules"]["given"]["period"] == 0.01
         run.restart("ear")                              # the swapped class's period
         eventually(lambda: run.state("ear")["heard"] > 100, what="values after the restart")
         assert run.state("ear")["steps_run"] == 0

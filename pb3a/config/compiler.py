@@ -365,7 +365,8 @@ class _Planner:
                     float(period) if period is not None else cls.period, state,
                     restart or cls.restart, team,
                     list(entry.fallback or []) if not checks.fallback(
-                        entry.fallback, self.node_names) else [])
+                        entry.fallback, self.node_names) else [],
+                    own_period=period is not None)
                 labels[path] = child.label
             elif child.macro is not None:
                 own = entry.state if not checks.macro_state(entry.state) else {}

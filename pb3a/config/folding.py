@@ -161,7 +161,7 @@ class _Folder:
                 "the class into a module that can be imported")
         if not self.implicit_node:
             entry["node"] = module.node
-        if module.period != cls.period and module.period is not None:
+        if module.own_period or (module.period != cls.period and module.period is not None):
             entry["period"] = module.period
         if module.restart != cls.restart:
             entry["restart"] = module.restart

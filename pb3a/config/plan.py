@@ -28,6 +28,7 @@ class FlatModule:
     restart: str              # "never" | "fresh" | "last-state"
     group: str | None = None  # modules with the same group share one worker process
     fallback: list[str] = field(default_factory=list)   # failover nodes, in order
+    own_period: bool = False  # the configuration gave the period (a swap keeps it)
 
 
 @dataclass

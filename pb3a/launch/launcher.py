@@ -453,10 +453,15 @@ class Launcher:
         remote = self.remotes.get(node)
         if remote is not None and time.monotonic() < remote.fenced_by():
             return                          # its modules may still run there
+        # lent to the modules it starts: one that reads the runtime from its setup (an
+        # agent checking the modules its settings name) is answered, as in a move (it
+        # waited for the lock the failover held, the start ran out of time, and the
+        # module was failed, not failed over)
+        moving = [name for name, spec in list(self.specs.items()) if spec.node == node]
         with contextlib.ExitStack() as held:
             try:
                 held.enter_context(self.lock.held(f"fail over lost node {node}",
-                                                  FAIL_OVER_WAIT_S))
+                                                  FAIL_OVER_WAIT_S, lend=moving))
             except RuntimeTimeout:
                 return                      # the lock: the next look (nothing done yet)
             try:

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 from pb3a.config import checks
 from pb3a.config.folding import fold
 from pb3a.config.plan import FlatLink, FlatModule
-from pb3a.errors import ConfigError, RuntimeFailure, SystemStopped, bounded_wait
+from pb3a.errors import ConfigError, PB3AError, RuntimeFailure, SystemStopped, bounded_wait
 from pb3a.launch.migration import MigrationReport, migrate
 from pb3a.loading.references import resolve_class
 from pb3a.loading.served import forget, reload_problem
@@ -167,15 +167,17 @@ class Operations:
                 outcome[:] = [DONE, self.migrate(name, to, state=state, timeout=timeout)]
             except Exception as exc:
                 log.warning("migrate %s to %s failed: %s", name, to, exc)
-                outcome[:] = [FAILED, f"{type(exc).__name__}: {exc}"]
+                # (a PB3A error as it is: a ConfigError, say, is told from a failure)
+                outcome[:] = [FAILED, exc if isinstance(exc, PB3AError) else
+                              f"{type(exc).__name__}: {exc}"]
             done.set()
         threading.Thread(target=move, name=f"pb3a-migrate-{name}", daemon=True).start()
         return job
 
     def migration(self, id: int, *, timeout: float | None = 0.0) -> tuple[str, Any]:
         """How background migration ``id`` went: ``("running", None)``, ``("done",
-        report)`` or ``("failed", message)``, waiting up to ``timeout`` for it to end
-        (None: the system's default)."""
+        report)`` or ``("failed", error)`` (the PB3A error it raised, else a message),
+        waiting up to ``timeout`` for it to end (None: the system's default)."""
         entry = self._jobs.get(id)
         if entry is None:
             raise ValueError(f"no migration {id} (only the last {KEEP_JOBS} are kept)")
@@ -210,7 +212,7 @@ class Operations:
             spec = replace(spec, cls=new_cls, state={
                 key: value for key, value in spec.state.items()
                 if not checks.state(new_cls, {key: value})},
-                period=new_cls.period if spec.period == spec.cls.period else spec.period)
+                period=spec.period if spec.own_period else new_cls.period)
             kept = node.swap(name, spec)
             launcher.specs[name] = spec
         self.event_log.record("module_swapped", name, cls=f"{new_cls.__module__}:"
@@ -295,7 +297,7 @@ class Operations:
             spec = FlatModule(name, module_cls, node,
                               float(period) if period is not None else module_cls.period,
                               dict(state or {}), restart or module_cls.restart, group,
-                              list(fallback or []))
+                              list(fallback or []), own_period=period is not None)
             self._start(spec, [])           # (one that cannot start is not added)
         self.event_log.record("module_added", name, node=node)
 

@@ -17,6 +17,8 @@ from __future__ import annotations
 import contextlib
 from typing import Any
 
+import zmq
+
 from pb3a.errors import RuntimeCancelled, RuntimeFailure, RuntimeTimeout
 from pb3a.model.module import Module
 from pb3a.transport.addresses import tcp_address_problems
@@ -73,7 +75,11 @@ class Driver(Module):
         wrong = tcp_address_problems(self.resource, f"{type(self).__name__}'s resource")
         if wrong:                   # (a class default, not set through set_state)
             raise RuntimeFailure(wrong[0])
-        client = ControlClient(ClusterKey.load(), self.resource)
+        try:
+            client = ControlClient(ClusterKey.load(), self.resource)
+        except zmq.ZMQError as exc:     # (a request's failure, as any: a driver counts it)
+            raise RuntimeFailure(f"{type(self).__name__} cannot connect to "
+                                 f"{self.resource}: {exc}") from None
         self.__dict__["_pb3a_device"] = (self.resource, client)
         return client
 

@@ -478,6 +478,8 @@ class Executor:
             name = segment_name("ring")
             try:
                 ring = ShmRing.create(name, *size)
+            except FileExistsError:
+                raise                   # (not ours to unlink)
             except BaseException:       # a Ctrl-C even as it returns: nobody knows of it
                 unlink_name(name)
                 raise

@@ -36,7 +36,7 @@ def bind_advertised(sock: zmq.Socket, host: str, port: int = 0) -> str:
     return f"tcp://{host}:{bound.rpartition(':')[2]}"
 
 
-EVERY_INTERFACE = ("*", "0.0.0.0")           # hosts that mean: bind every interface
+EVERY_INTERFACE = ("*", "0.0.0.0", "[::]", "::")   # hosts that mean: every interface
 _ROUTED = "198.51.100.1"        # (TEST-NET-2: an address only the default route leads to)
 
 
@@ -54,6 +54,9 @@ def tcp_address_problems(value: object, what: str, otherwise: str = "") -> list[
     ``what`` it is (``otherwise``: what else it may be); none if it is one."""
     if isinstance(value, str) and value.startswith("tcp://"):
         host, _, port = value.removeprefix("tcp://").rpartition(":")
+        if host in EVERY_INTERFACE:     # (what a listener binds, not where it is reached)
+            return [f"{what} must be an address to connect to: {value!r} names every "
+                    "interface; give the host's name or one of its addresses"]
         if host and not any(c in host for c in " /") and port.isdigit() \
                 and 0 < int(port) <= 65535:
             return []
