@@ -87,11 +87,10 @@ def _controller_problems(name: str, spec: Any) -> list[str]:
     than class and state, a class that does not resolve to a module, a state the class
     refuses (set on a fresh instance, as the system sets a module's configured state)."""
     where = f"controllers.{name}"
+    problems = _table_problems(where, spec, CONTROLLER_KEYS,
+                               "{ class = 'package.module:Class', state = { ... } }")
     if not isinstance(spec, dict):
-        return [f"{where} must be a table {{ class = 'package.module:Class', state = "
-                f"{{ ... }} }}, got {spec!r}"]
-    problems = [f"{where}: {problem}" for problem in checks.unknown_keys(
-        {key: None for key in spec if key not in CONTROLLER_KEYS}, CONTROLLER_KEYS)]
+        return problems
     if "class" not in spec:
         return [*problems, f"{where} has no class ('package.module:Class')"]
     try:
@@ -110,16 +109,23 @@ def _controller_problems(name: str, spec: Any) -> list[str]:
     return [*problems, *(f"{where}.state: {problem}" for problem in wrong)]
 
 
+def _table_problems(where: str, value: Any, keys: tuple[str, ...], shape: str) -> list[str]:
+    """``value`` (at ``where``) not a table of ``shape``, or its keys not among ``keys``."""
+    if not isinstance(value, dict):
+        return [f"{where} must be a table {shape}, got {value!r}"]
+    return [f"{where}: {problem}" for problem in checks.unknown_keys(
+        {key: None for key in value if key not in keys}, keys)]
+
+
 def _rule_problems(index: int, rule: Any) -> list[str]:
     """What is wrong with ``rules[index]``: not a table, no ``use``, a key it does not
     know (a misspelt threshold was taken as 0: the rule always held), a threshold that
     is not a finite number, 0 or more (NaN never held)."""
     where = f"rules[{index}]"
+    problems = _table_problems(where, rule, RULE_KEYS,
+                               "{ use, demand_at_least, queue_at_least }")
     if not isinstance(rule, dict):
-        return [f"{where} must be a table {{ use, demand_at_least, queue_at_least }}, "
-                f"got {rule!r}"]
-    problems = [f"{where}: {problem}" for problem in checks.unknown_keys(
-        {key: None for key in rule if key not in RULE_KEYS}, RULE_KEYS)]
+        return problems
     if not isinstance(rule.get("use"), str):
         problems.append(f"{where} needs 'use', the name of a controller, got "
                         f"{rule.get('use')!r}")
