@@ -11,6 +11,7 @@ line where the file is on that machine. The far side needs nothing but pb3a.
 
 from __future__ import annotations
 
+import collections
 import io
 import pickle
 import types
@@ -20,21 +21,27 @@ from typing import Any
 import cloudpickle
 
 _DYNAMIC = "<dynamic-code>"         # (what cloudpickle names code it sends by value)
+_reduce_code = cloudpickle.Pickler.dispatch_table[types.CodeType]
 
 
-class _Pickler(cloudpickle.Pickler):
-    """cloudpickle's pickler; code by value is sent with its file's name beside it."""
-
-    def reducer_override(self, obj: Any) -> Any:
-        if type(obj) is types.CodeType and obj.co_filename != _DYNAMIC:
-            # the copy named as cloudpickle would name it goes its way (its own nested
-            # code objects come back here); the name is put back on arrival
-            return _located, (obj.replace(co_filename=_DYNAMIC), obj.co_filename)
-        return super().reducer_override(obj)
+def _code_with_its_file(code: types.CodeType) -> Any:
+    """The reduction of ``code``: cloudpickle's, of a copy named as cloudpickle names it,
+    and the file's name beside it, put back on arrival (``_located``)."""
+    if code.co_filename == _DYNAMIC:
+        return _reduce_code(code)           # (the copy: its nested code comes back here)
+    return _located, (code.replace(co_filename=_DYNAMIC), code.co_filename)
 
 
 def _located(code: types.CodeType, filename: str) -> types.CodeType:
     return code.replace(co_filename=filename)
+
+
+class _Pickler(cloudpickle.Pickler):
+    """cloudpickle's pickler; code by value is sent with its file's name beside it. (A
+    dispatch table entry, not a ``reducer_override``: that runs for every object.)"""
+
+    dispatch_table = collections.ChainMap({types.CodeType: _code_with_its_file},
+                                          *cloudpickle.Pickler.dispatch_table.maps)
 
 
 def dumps(obj: Any, *,
