@@ -22,6 +22,7 @@ import cloudpickle
 
 _DYNAMIC = "<dynamic-code>"         # (what cloudpickle names code it sends by value)
 _reduce_code = cloudpickle.Pickler.dispatch_table[types.CodeType]
+_CLOUDPICKLE_OWN, *_COPYREG = cloudpickle.Pickler.dispatch_table.maps
 
 
 def _code_with_its_file(code: types.CodeType) -> Any:
@@ -40,8 +41,8 @@ class _Pickler(cloudpickle.Pickler):
     """cloudpickle's pickler; code by value is sent with its file's name beside it. (A
     dispatch table entry, not a ``reducer_override``: that runs for every object.)"""
 
-    dispatch_table = collections.ChainMap({types.CodeType: _code_with_its_file},
-                                          *cloudpickle.Pickler.dispatch_table.maps)
+    dispatch_table = collections.ChainMap(    # (as deep as cloudpickle's; copyreg's live)
+        {**_CLOUDPICKLE_OWN, types.CodeType: _code_with_its_file}, *_COPYREG)
 
 
 def dumps(obj: Any, *,
