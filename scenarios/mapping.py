@@ -47,6 +47,7 @@ from agents.map_truth import reachable, score, truth
 from pb3a import Input, InputPort, Module, System
 from pb3a.cli.log_output import show_logs
 from rave import World
+from scenarios import output_directory
 from scenarios.lab import Lab, wait_until, world_file
 
 CONFIG = Path(__file__).with_name("mapping.toml")
@@ -348,8 +349,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=".", help="directory for mapping.json and .png")
     args = parser.parse_args(argv)
     show_logs()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out = output_directory(args.out)
+    except ValueError as exc:
+        print(f"mapping: {exc}", file=sys.stderr)
+        return 2
     try:
         record = run(out, args.world, args.seed, args.quick, args.fault)
     except ValueError as exc:

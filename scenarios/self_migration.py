@@ -33,6 +33,7 @@ from pb3a import Agent, Environment, Input, InputPort, Module, Output, System
 from pb3a.cli.log_output import show_logs
 from pb3a.cpu_load import CPULoad
 from pb3a.pending import Pending
+from scenarios import output_directory
 from scenarios.lab import wait_until
 
 RATE_HZ = 200.0
@@ -254,10 +255,13 @@ def main(argv: list[str] | None = None) -> int:
     if (os.cpu_count() or 1) < 2:
         print("self_migration needs two CPUs (one per node)", file=sys.stderr)
         return 2
+    try:
+        out = output_directory(args.out)
+    except ValueError as exc:
+        print(f"self_migration: {exc}", file=sys.stderr)
+        return 2
     phases = PHASES["quick" if args.quick else "full"]
     records = {"adaptive": run_once(True, phases), "static": run_once(False, phases)}
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     report = {"scenario": "self-migration", "phases_s": dict(zip(
         ("quiet", "loaded", "after"), phases, strict=True)),
         "rate_hz": RATE_HZ, "work_ms_per_value": WORK_S * 1e3,

@@ -48,6 +48,7 @@ from typing import Any
 from agents.learner import Parameters
 from pb3a import Input, InputPort, Module, System
 from pb3a.cli.log_output import show_logs
+from scenarios import output_directory
 from scenarios.lab import Lab, wait_until
 
 CONFIG = Path(__file__).with_name("sim_to_real.toml")
@@ -412,8 +413,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.baselines is not None and args.baselines < 1:
         parser.error("--baselines must be at least 1")
     show_logs()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out = output_directory(args.out)
+    except ValueError as exc:
+        print(f"sim_to_real: {exc}", file=sys.stderr)
+        return 2
     figures = report(run(args.seed, args.quick, args.baselines))
     plot(figures, out / "sim_to_real.png")
     figures["plot"] = str(out / "sim_to_real.png")

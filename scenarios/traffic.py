@@ -50,6 +50,7 @@ from agents.traffic.networks import Network
 from pb3a import System
 from pb3a.cli.log_output import show_logs
 from pb3a.loading.references import resolve_class
+from scenarios import output_directory
 
 CONFIG = Path(__file__).with_name("traffic.toml")
 NETWORKS = Path(__file__).with_name("traffic")
@@ -317,8 +318,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"traffic: {exc}", file=sys.stderr)
         return 2
     show_logs()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out = output_directory(args.out)
+    except ValueError as exc:
+        print(f"traffic: {exc}", file=sys.stderr)
+        return 2
     figures = run(str(resource), args.seed, args.quick, demand_scale=demand_scale)
     png = out / f"traffic_{figures['network']}.png"
     plot(figures, png)

@@ -313,3 +313,25 @@ def test_the_mover_judges_the_load_where_a_target_set_while_it_runs_is() -> None
     mover.module.set_state({"target": "compute"})         # on a, which is busy
     mover.feed("outside_a", 90.0)
     assert runtime.moves == [("compute", "b")]
+
+
+@pytest.mark.parametrize("scenario", ["mapping", "sim-to-real", "self-migration", "traffic"])
+def test_a_scenario_whose_out_cannot_hold_the_report_says_so_before_it_runs(
+        tmp_path, capsys, scenario) -> None:
+    """A file for --out ended in a FileExistsError traceback; a directory that cannot be
+    written in failed once the run was over, its figures lost."""
+    taken = tmp_path / "report.json"
+    taken.write_text("{}")
+    started = time.monotonic()
+    assert main(["scenario", scenario, "--quick", "--out", str(taken)]) == 2
+    assert f"--out {taken}: it is a file; give a directory for the report" in \
+        capsys.readouterr().err
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    if os.access(locked, os.W_OK) and os.geteuid() == 0:
+        locked = tmp_path / "not-a-dir" / "x"       # (root writes anywhere: a file's child)
+        (tmp_path / "not-a-dir").write_text("")
+    assert main(["scenario", scenario, "--quick", "--out", str(locked)]) == 2
+    assert "the report cannot be written there" in capsys.readouterr().err
+    assert time.monotonic() - started < 10
