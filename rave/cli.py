@@ -30,7 +30,7 @@ def _parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(required=True, metavar="COMMAND")
     start = commands.add_parser("start", help="serve a world and one server per robot")
     start.add_argument("world", help="a world file (TOML)")
-    start.add_argument("--seed", type=int, default=0)
+    start.add_argument("--seed", type=_seed, default=0, help="0 or more (default 0)")
     start.add_argument("--listen", default="127.0.0.1", metavar="HOST",
                        help="the interface to serve on (default 127.0.0.1)")
     start.add_argument("--rate", type=float, default=1.0,
@@ -51,6 +51,18 @@ def _parser() -> argparse.ArgumentParser:
     render.add_argument("-o", "--output", default=None, help="image file (default WORLD.png)")
     render.set_defaults(handler=render_command)
     return parser
+
+
+def _seed(text: str) -> int:
+    """A seed, a whole number 0 or more (numpy takes no other)."""
+    try:
+        seed = int(text)
+    except ValueError:
+        seed = -1
+    if seed < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a seed: give a whole number, 0 "
+                                         "or more")
+    return seed
 
 
 def start_command(args: argparse.Namespace) -> int:
@@ -90,9 +102,14 @@ class _Served:
 
 def fault_command(args: argparse.Namespace) -> int:
     from pb3a.errors import RuntimeFailure, RuntimeTimeout
+    from pb3a.transport.addresses import tcp_address_problems
     from pb3a.transport.auth import ClusterKey, ClusterKeyError
     from pb3a.transport.control import ControlClient
 
+    wrong = tcp_address_problems(args.robot, "ROBOT_ADDR, the robot server's address,")
+    if wrong:                           # (ZeroMQ's "Invalid argument" traceback, before)
+        print(f"rave fault: {wrong[0]}", file=sys.stderr)
+        return 1
     try:
         client = ControlClient(ClusterKey.load(), args.robot)
     except ClusterKeyError as exc:
@@ -121,12 +138,16 @@ def render_command(args: argparse.Namespace) -> int:
     from rave.world import World
     from rave.worldfile import WorldError
 
+    output = Path(args.output or Path(args.world).with_suffix(".png").name)
+    if output.is_dir() or not output.suffix:    # (matplotlib wrote NAME.png, beside it)
+        print(f"rave render: -o {output}: give an image file, its suffix the format "
+              "(.png, .svg, .pdf)", file=sys.stderr)
+        return 1
     try:
         world = World.load(args.world)
     except WorldError as exc:
         print(f"rave render: {exc}", file=sys.stderr)
         return 1
-    output = Path(args.output or Path(args.world).with_suffix(".png").name)
     with world:
         render(world, output)
     print(f"wrote {output}")

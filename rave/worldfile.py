@@ -128,6 +128,8 @@ def _entry(table: str, entry: dict[str, Any], where: str, names: set[str]) -> li
     for key in points:
         if not _numbers(entry.get(key), 2):
             problems.append(f"{where}: {key} must be [x, y] in metres")
+    if (table == "walls" and not problems and entry["from"] == entry["to"]):
+        problems.append(f"{where}: from and to are the same point: a wall needs a length")
     if table == "boxes" and not _numbers(entry.get("size"), 2, positive=True):
         problems.append(f"{where}: size must be [width, height] in metres, both > 0")
     if table == "boxes" and "angle" in entry and not _numbers([entry["angle"]], 1):

@@ -160,7 +160,8 @@ def run(out: Path, world: str = "lab", seed: int = 1, quick: bool = False,
 
 def place_robots(path: Path) -> tuple[tuple[str, str], dict[str, tuple[float, float, float]]]:
     """The robot that maps and the standby: the world's first two robots. A world with
-    only one gets a standby ("standby") placed where it is furthest from the first
+    only one gets a standby ("standby", or "standby-2" when the first has that name)
+    placed where it is furthest from the first
     while keeping ``CLEARANCE_M`` from every obstacle; a world with none is refused."""
     with World.load(path) as world:
         described = world.describe()
@@ -181,7 +182,9 @@ def place_robots(path: Path) -> tuple[tuple[str, str], dict[str, tuple[float, fl
     if far[row, col] < 0:
         raise ValueError(f"no room for a standby robot in {path}: add a second [[robots]] "
                          "entry")
-    return (declared[0], "standby"), {"standby": (float(xs[row, col]), float(ys[row, col]), 0.0)}
+    # (a robot of the world's own may have that name: the placed one takes another)
+    standby = "standby" if declared[0] != "standby" else "standby-2"
+    return (declared[0], standby), {standby: (float(xs[row, col]), float(ys[row, col]), 0.0)}
 
 
 def _follow(lab: Lab, paths: dict[str, list[tuple[float, ...]]], until: float,

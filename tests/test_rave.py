@@ -321,6 +321,9 @@ size = [10, -1]
 colour = "red"
 [[walls]]
 from = [0, 0]
+[[walls]]
+from = [1, 1]
+to = [1, 1]
 [[boxes]]
 center = [1, 1]
 size = [1, 1]
@@ -340,7 +343,8 @@ pose = [2, 2, 0]
                      "walls[0]: to must be [x, y]", "boxes[0]: unknown colour 'mauve'",
                      "robots[0]: pose must be [x, y, heading in degrees]",
                      "robots[0]: backend must be one of sim, hardware",
-                     "robots[1]: a robot named 'r1' comes earlier"):
+                     "robots[1]: a robot named 'r1' comes earlier",
+                     "walls[1]: from and to are the same point: a wall needs a length"):
         assert any(expected in p for p in problems), (expected, problems)
 
 

@@ -296,6 +296,21 @@ def test_the_rave_command_serves_a_world_injects_faults_and_renders(tmp_path, ca
     assert (tmp_path / "lab.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_the_rave_command_names_a_mistake_instead_of_a_traceback(tmp_path, capsys) -> None:
+    """A seed below 0 and an address without tcp:// ended in numpy's and ZeroMQ's
+    tracebacks; -o without a suffix printed one name and wrote NAME.png beside it."""
+    with pytest.raises(SystemExit):
+        cli.main(["start", "rave/worlds/lab.toml", "--seed", "-1"])
+    assert "'-1' is not a seed: give a whole number, 0 or more" in capsys.readouterr().err
+    assert cli.main(["fault", "127.0.0.1:7400", "motors_off"]) == 1
+    assert "must be a string tcp://HOST:PORT" in capsys.readouterr().err
+    for output in (tmp_path / "lab", tmp_path):
+        assert cli.main(["render", "rave/worlds/lab.toml", "-o", str(output)]) == 1
+        assert "give an image file, its suffix the format" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == [] and not (tmp_path.parent / f"{tmp_path.name}.png"
+                                                   ).exists()
+
+
 def test_a_recorded_run_becomes_an_animated_gif(tmp_path) -> None:
     frames = []
     with World.load("rave/worlds/arena.toml", seed=1) as world:

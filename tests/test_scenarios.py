@@ -335,3 +335,14 @@ def test_a_scenario_whose_out_cannot_hold_the_report_says_so_before_it_runs(
     assert main(["scenario", scenario, "--quick", "--out", str(locked)]) == 2
     assert "the report cannot be written there" in capsys.readouterr().err
     assert time.monotonic() - started < 10
+
+
+@pytest.mark.parametrize(("name", "standby"), [("r1", "standby"), ("standby", "standby-2")])
+def test_a_one_robot_world_gets_a_standby_of_another_name(tmp_path, name, standby) -> None:
+    """A world whose one robot was named 'standby' crashed the mapping scenario: the
+    standby placed beside it took the same name."""
+    world = tmp_path / "room.toml"
+    world.write_text(f'name = "room"\nsize = [6.0, 4.0]\n[[robots]]\nname = "{name}"\n'
+                     'pose = [1.0, 1.0, 0.0]\n')
+    robots, placed = mapping.place_robots(world)
+    assert robots == (name, standby) and list(placed) == [standby]
