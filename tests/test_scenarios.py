@@ -110,7 +110,13 @@ def test_mapping_times_the_hand_off_by_the_standby_robots_readings_not_the_faile
               "mapper_node_at_end": "r2"}
     figures = mapping.report(record)
     assert figures["handoff_s"] == pytest.approx(1.5)
-    assert not figures["goals"]["handoff_s <= 0.5"]
+    assert not figures["goals"]["handoff_s <= 0.5"] and "why_undetected" not in figures
+    # a small world, mapped before the monitor had learnt the motors: said, not a silent
+    # null detection with exit 0
+    unseen = mapping.report({**record, "motors_watched_at_fault": False,
+                             "recorder": {**record["recorder"], "failures": []}})
+    assert unseen["detection_s"] is None
+    assert unseen["why_undetected"].startswith("the monitor was not yet watching the motors")
 
 
 def test_mapping_names_the_worlds_when_given_one_it_does_not_know(tmp_path, capsys) -> None:
