@@ -246,7 +246,9 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
                            and math.hypot(u[1] - sx, u[2] - sy)
                            < min(HANDOFF_NEAR_M, math.hypot(u[1] - fx, u[2] - fy))), None)
     before = [s for at, s in recorder["snapshots"] if at <= fault_at]
-    at_handoff = [s for at, s in recorder["snapshots"] if handoff_at and at <= handoff_at]
+    # the first snapshot after the hand-off (the last before it was, snapshots coming
+    # every 2 s and hand-offs in 0.1-0.4 s, the one before the fault)
+    at_handoff = [s for at, s in recorder["snapshots"] if handoff_at and at >= handoff_at]
     figures: dict[str, Any] = {
         "scenario": "mapping", "world": record["world"], "seed": record["seed"],
         "quick": record["quick"], "fault": record["fault"], "robots": list(record["robots"]),
@@ -259,7 +261,7 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
         "remedies": recorder["remedies"],
         "mapper_node_at_end": record["mapper_node_at_end"],
         "map": {"before_fault": quality(before[-1]) if before else None,
-                "at_handoff": quality(at_handoff[-1]) if at_handoff else None,
+                "at_handoff": quality(at_handoff[0]) if at_handoff else None,
                 "end": quality(record["final_map"])},
         "map_quality_over_time": over_time,
     }

@@ -8,6 +8,7 @@ import json
 import os
 import time
 
+import numpy as np
 import pytest
 
 from pb3a.cli.main import main
@@ -103,7 +104,8 @@ def test_mapping_times_the_hand_off_by_the_standby_robots_readings_not_the_faile
               "failed_at": (10.2, 1.5, 0.0), "ended": fault_at + 40.0,
               "paths": {"r1": [(fault_at - 30.0, 1.0, 1.5, 0.0)],
                         "r2": [(fault_at - 30.0, 11.0, 1.5, 3.14)]},
-              "recorder": {"snapshots": [(fault_at - 1.0, blank), (fault_at + 5.0, blank)],
+              "recorder": {"snapshots": [(fault_at - 1.0, blank),
+                                         (fault_at + 5.0, np.zeros_like(blank))],
                            "updates": updates, "remedies": [],
                            "failures": [{"fault": "motors", "at": detected_at}]},
               "remedy": {}, "final_map": blank, "resolution": 0.1,
@@ -111,6 +113,8 @@ def test_mapping_times_the_hand_off_by_the_standby_robots_readings_not_the_faile
     figures = mapping.report(record)
     assert figures["handoff_s"] == pytest.approx(1.5)
     assert not figures["goals"]["handoff_s <= 0.5"] and "why_undetected" not in figures
+    # the map just after the hand-off, not the snapshot before the fault it was
+    assert figures["map"]["at_handoff"]["coverage"] > figures["map"]["before_fault"]["coverage"]
     # a small world, mapped before the monitor had learnt the motors: said, not a silent
     # null detection with exit 0
     unseen = mapping.report({**record, "motors_watched_at_fault": False,
