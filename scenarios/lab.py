@@ -48,7 +48,11 @@ class NodeControllerProcess:
         self.process = subprocess.Popen(
             [sys.executable, "-m", "pb3a", "node", "start", "--name", name,
              "--listen", "tcp://127.0.0.1:0", "--max-cpu", "101"],
-            stdout=subprocess.PIPE, text=True)
+            stdout=subprocess.PIPE, text=True,
+            # another machine's daemon: a Ctrl-C at the terminal is the launcher's to
+            # act on (it stops these with the rest); sent to these too, they stopped
+            # under the running system, which then took 12 s to end, reporting them lost
+            start_new_session=True)
         try:
             self.address = self._banner(timeout).rpartition(" at ")[2]
         except BaseException:

@@ -8,6 +8,7 @@ import signal
 import socket
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -128,6 +129,34 @@ def test_a_scenario_whose_terminal_closes_stops_and_leaves_nothing_behind(
         os.killpg(proc.pid, signal.SIGHUP)
         _, err = proc.communicate(timeout=30)
     assert proc.returncode == 130 and err.strip() == "pb3a: interrupted", err
+    assert not live_segments(proc.pid)
+
+
+@pytest.mark.timeout(120)
+def test_a_robot_scenario_interrupted_at_its_terminal_ends_at_once(tmp_path: Path) -> None:
+    """Ctrl-C reached the robots' node controllers too (another machine's daemons, in the
+    terminal's process group): they stopped under the running system, which took 12 s to
+    end, saying its nodes were lost."""
+    proc = _in_its_own_group("scenario", "mapping", "--quick", "--out", str(tmp_path),
+                             cwd=tmp_path)
+    launcher = psutil.Process(proc.pid)
+
+    def node_controllers() -> int:
+        found = 0
+        for child in launcher.children():
+            with contextlib.suppress(psutil.Error):       # (one that ended meanwhile)
+                found += child.cmdline()[3:5] == ["node", "start"]
+        return found
+
+    with _killed_if_left(proc):
+        eventually(lambda: node_controllers() == 2, timeout=60,
+                   what="the robots' node controllers")
+        eventually(lambda: live_segments(proc.pid), timeout=60, what="the system running")
+        os.killpg(proc.pid, signal.SIGINT)
+        interrupted = time.monotonic()
+        _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and err.strip() == "pb3a: interrupted", err
+    assert time.monotonic() - interrupted < 6.0
     assert not live_segments(proc.pid)
 
 
