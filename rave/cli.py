@@ -134,14 +134,20 @@ def fault_command(args: argparse.Namespace) -> int:
 def render_command(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from matplotlib.backend_bases import FigureCanvasBase
+
     from rave.render import render
     from rave.world import World
     from rave.worldfile import WorldError
 
     output = Path(args.output or Path(args.world).with_suffix(".png").name)
-    if output.is_dir() or not output.suffix:    # (matplotlib wrote NAME.png, beside it)
+    formats = FigureCanvasBase.get_supported_filetypes()
+    # (no suffix: matplotlib wrote NAME.png, beside it; one it has no format for, or a
+    # directory's: its ValueError's traceback, once the world was loaded)
+    if output.is_dir() or output.suffix[1:].lower() not in formats:
         print(f"rave render: -o {output}: give an image file, its suffix the format "
-              "(.png, .svg, .pdf)", file=sys.stderr)
+              f"(.png, .svg, .pdf; the formats: {', '.join(sorted(formats))})",
+              file=sys.stderr)
         return 1
     try:
         world = World.load(args.world)
@@ -149,7 +155,12 @@ def render_command(args: argparse.Namespace) -> int:
         print(f"rave render: {exc}", file=sys.stderr)
         return 1
     with world:
-        render(world, output)
+        try:
+            render(world, output)
+        except OSError as exc:          # (a directory that is not there, or read-only)
+            print(f"rave render: -o {output}: cannot be written ({exc.strerror or exc}); "
+                  "give a file in a directory you can write in", file=sys.stderr)
+            return 1
     print(f"wrote {output}")
     return 0
 

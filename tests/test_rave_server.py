@@ -309,6 +309,15 @@ def test_the_rave_command_names_a_mistake_instead_of_a_traceback(tmp_path, capsy
         assert "give an image file, its suffix the format" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == [] and not (tmp_path.parent / f"{tmp_path.name}.png"
                                                    ).exists()
+    # a suffix matplotlib has no format for, and a directory that is not there: their
+    # tracebacks (ValueError, FileNotFoundError) once the world was loaded
+    assert cli.main(["render", "rave/worlds/lab.toml", "-o", str(tmp_path / "lab.v2")]) == 1
+    assert "give an image file, its suffix the format" in capsys.readouterr().err
+    missing = tmp_path / "no-such-dir" / "lab.png"
+    assert cli.main(["render", "rave/worlds/lab.toml", "-o", str(missing)]) == 1
+    assert f"-o {missing}: cannot be written (No such file or directory)" in \
+        capsys.readouterr().err
+    assert cli.main(["render", "rave/worlds/lab.toml", "-o", str(tmp_path / "lab.PNG")]) == 0
 
 
 def test_a_recorded_run_becomes_an_animated_gif(tmp_path) -> None:
