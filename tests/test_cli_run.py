@@ -160,6 +160,49 @@ def test_a_robot_scenario_interrupted_at_its_terminal_ends_at_once(tmp_path: Pat
     assert not live_segments(proc.pid)
 
 
+@pytest.mark.timeout(120)
+def test_a_robot_scenario_killed_with_its_group_leaves_no_node_controller(
+        tmp_path: Path) -> None:
+    """The robots' node controllers, in sessions of their own (out of the terminal's
+    Ctrl-C), outlived a launcher killed with its group (kill -9 -- -PGID; a Ctrl-C
+    repeated through the lab's close too): they served on, nobody to stop them."""
+    proc = subprocess.Popen([sys.executable, "-m", "pb3a", "scenario", "mapping", "--quick",
+                             "--out", str(tmp_path)], cwd=tmp_path, env=_env(),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)  # (not piped: the orphans held them)
+    launcher = psutil.Process(proc.pid)
+    controllers: list[psutil.Process] = []
+
+    def node_controllers() -> list[psutil.Process]:
+        found = []
+        for child in launcher.children():
+            with contextlib.suppress(psutil.Error):       # (one that ended meanwhile)
+                if child.cmdline()[3:5] == ["node", "start"]:
+                    found.append(child)
+        return found if len(found) == 2 else []
+
+    try:
+        controllers = eventually(node_controllers, timeout=60,
+                                 what="the robots' node controllers")
+        eventually(lambda: live_segments(proc.pid), timeout=60, what="the system running")
+        theirs = [*controllers, *(p for c in controllers for p in c.children(recursive=True))]
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+        eventually(lambda: not [p.pid for p in theirs if alive(p.pid)], timeout=20,
+                   what="the node controllers (and what they run) ending with their launcher")
+    finally:
+        for controller in controllers:
+            with contextlib.suppress(psutil.Error):
+                for process in [*controller.children(recursive=True), controller]:
+                    process.kill()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        for name in live_segments(proc.pid):    # (the launcher's, SIGKILLed: nobody's)
+            with contextlib.suppress(OSError):
+                os.unlink(f"/dev/shm/{name}")
+
+
 def test_run_reports_an_invalid_file_and_starts_nothing(tmp_path: Path) -> None:
     bad = tmp_path / "bad.toml"
     bad.write_text('name = "bad"\n[modules.x]\nclass = "examples.pipeline:Nope"\n')
