@@ -344,6 +344,9 @@ def test_a_scenario_whose_out_cannot_hold_the_report_says_so_before_it_runs(
         (tmp_path / "not-a-dir").write_text("")
     assert main(["scenario", scenario, "--quick", "--out", str(locked)]) == 2
     assert "the report cannot be written there" in capsys.readouterr().err
+    if os.geteuid() == 0:   # (a directory even root cannot write in: what the probe finds)
+        assert main(["scenario", scenario, "--quick", "--out", "/proc"]) == 2
+        assert "--out /proc: the report cannot be written there" in capsys.readouterr().err
     assert time.monotonic() - started < 10
 
 
