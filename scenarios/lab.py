@@ -41,35 +41,20 @@ def world_file(name: str) -> Path:
     return bundled
 
 
-_LAUNCHER = "PB3A_LAB_LAUNCHER"
-# ``pb3a node start`` that ends (SIGTERM, a clean stop) when the process that started
-# it does, however it ends. Out of the terminal's session, it outlived a launcher
-# killed (kill -9 -- -PGID, a Ctrl-C repeated through the lab's close), serving on with
-# nobody to stop it. (Linux: PR_SET_PDEATHSIG, set before anything else runs; the
-# launcher gone already, it ends at once.)
-_ENDS_WITH_ITS_LAUNCHER = """\
-import ctypes, os, runpy, signal, sys
-if sys.platform == "linux":
-    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)    # PR_SET_PDEATHSIG
-    if os.getppid() != int(os.environ.pop("PB3A_LAB_LAUNCHER")):
-        sys.exit(0)
-runpy.run_module("pb3a", run_name="__main__", alter_sys=True)
-"""
-
-
 class NodeControllerProcess:
     """``pb3a node start --name NAME`` on a free loopback port, in a child process."""
 
     def __init__(self, name: str, timeout: float = START_TIMEOUT) -> None:
         self.name = name
         self.process = subprocess.Popen(
-            [sys.executable, "-c", _ENDS_WITH_ITS_LAUNCHER, "node", "start", "--name", name,
-             "--listen", "tcp://127.0.0.1:0", "--max-cpu", "101"],
+            [sys.executable, "-m", "scenarios.lab_node", str(os.getpid()), "node", "start",
+             "--name", name, "--listen", "tcp://127.0.0.1:0", "--max-cpu", "101"],
             stdout=subprocess.PIPE, text=True,
-            env={**os.environ, _LAUNCHER: str(os.getpid())},
             # another machine's daemon: a Ctrl-C at the terminal is the launcher's to
             # act on (it stops these with the rest); sent to these too, they stopped
-            # under the running system, which then took 12 s to end, reporting them lost
+            # under the running system, which then took 12 s to end, reporting them
+            # lost. Out of the terminal's session, it ends with this process
+            # (``lab_node``), however this one ends.
             start_new_session=True)
         try:
             self.address = self._banner(timeout).rpartition(" at ")[2]
