@@ -178,3 +178,24 @@ def test_a_class_that_cannot_be_imported_names_the_module_server_that_did_not_an
     finally:
         for client in finder.clients.values():
             client.close()
+
+
+def test_a_class_that_cannot_be_imported_names_the_module_server_that_refused_the_key(
+        tmp_path, monkeypatch) -> None:
+    """A server with another cluster key has the module, but refuses to say: it said
+    only to check the module path, as if no server were involved."""
+    root = tmp_path / "code"
+    root.mkdir()
+    (root / "pb3a_served_elsewhere.py").write_text("class Thing:\n    pass\n")
+    server = ModuleServer(root, ClusterKey.from_material(b"k" * 32))
+    finder = served_code.ServedModuleFinder(ClusterKey.from_material(b"j" * 32))
+    finder.add(server.address)
+    monkeypatch.setattr(sys, "meta_path", [*sys.meta_path, finder])
+    try:
+        with pytest.raises(ImportError, match=rf"module server {server.address} refused "
+                                              "'find': it runs with another cluster key"):
+            resolve_class("pb3a_served_elsewhere:Thing")
+    finally:
+        for client in finder.clients.values():
+            client.close()
+        server.close()

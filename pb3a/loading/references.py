@@ -47,6 +47,7 @@ def resolve_class(ref: str | type) -> type:
         silent = served.silent_servers()
         where = (f"; module server {', '.join(silent)} did not answer: start it, or check "
                  "its address and that its port is open" if silent else "")
+        where += "".join(f"; module server {why}" for why in served.refusing_servers().values())
         raise ImportError(f"cannot import module {module_name!r} for {ref!r}: {exc}; "
                           "check the module path and that it is installed or on sys.path"
                           f"{where}") from exc

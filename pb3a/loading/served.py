@@ -39,10 +39,16 @@ class ServedModuleFinder(importlib.abc.MetaPathFinder):
         self._key = key
         self.clients: dict[str, ControlClient] = {}
         self._silent_until: dict[str, float] = {}    # address -> when to ask it again
+        self.refusals: dict[str, str] = {}            # address -> why it refused, lately
 
     def add(self, address: str) -> None:
         if address not in self.clients:
             self.clients[address] = ControlClient(self._key, address)
+
+    def refused(self) -> dict[str, str]:
+        """The servers that refused their last request, and why (another cluster key,
+        clocks apart ...): an import that fails may have needed one of them."""
+        return dict(self.refusals)
 
     def silent(self) -> list[str]:
         """The servers not asked now, since they did not answer lately."""
@@ -58,8 +64,10 @@ class ServedModuleFinder(importlib.abc.MetaPathFinder):
             except RuntimeTimeout:
                 self._silent_until[address] = time.monotonic() + SILENT_FOR_S
                 continue
-            except RuntimeFailure:
-                continue                          # it refused: try the next
+            except RuntimeFailure as exc:         # it refused: say why, try the next
+                self.refusals[address] = str(exc)
+                continue
+            self.refusals.pop(address, None)
             if found is not None:
                 loader = _SourceLoader(found["source"], found["origin"])
                 return importlib.util.spec_from_loader(
@@ -86,6 +94,12 @@ def silent_servers() -> list[str]:
     fails may have needed one of them)."""
     return [address for finder in sys.meta_path if isinstance(finder, ServedModuleFinder)
             for address in finder.silent()]
+
+
+def refusing_servers() -> dict[str, str]:
+    """The module servers of this process that refused their last request, and why."""
+    return {address: why for finder in sys.meta_path if isinstance(finder, ServedModuleFinder)
+            for address, why in finder.refused().items()}
 
 
 def use_module_servers(addresses: Sequence[str], key: ClusterKey | None = None) -> None:
