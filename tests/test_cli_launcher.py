@@ -65,6 +65,19 @@ def test_set_sets_text_as_given_when_the_module_s_state_cannot_be_read(capsys) -
         assert run.state("m")["label"] == "hello"
 
 
+def test_set_gives_a_float_field_a_float_for_a_whole_number(capsys) -> None:
+    """JSON writes 4.0 as 4: `pb3a set ADDR scale gain=4` set an int, and a Scale whose
+    float input took an int then wrote int * int on its float output, refused at each
+    value (TypeError: port 'y' carries float, got int)."""
+    with System("set-float").add("scale", Scale).add("src", Counter, period=0.002) \
+            .link("src.out", "scale.x").launch() as run:
+        assert main(["set", run.listen(), "scale", "gain=4", "setups=2"]) == 0
+        assert "scale: gain = 4.0, setups = 2" in capsys.readouterr().out
+        state = run.state("scale")
+        assert type(state["gain"]) is float and type(state["setups"]) is int
+        run.wait(0.3)
+        assert run.stats().modules["scale"].errors == 0
+
 
 def _no_constant(name: str) -> None:
     raise AssertionError(f"--json printed {name}, which JSON has not")
@@ -94,8 +107,8 @@ def test_every_command_changes_a_running_system_and_speaks_json(capsys) -> None:
         # text for a field that holds no text is refused (it was set, as text: a bool's
         # "False" left the module enabled, a float's "0,3" made every step raise)
         assert main(["set", bare, "src", "count=5", "limit=3,5"]) == 1
-        assert ("limit=3,5 is not JSON, and src.limit is int (3), not text: give it as "
-                "JSON") in capsys.readouterr().err
+        assert ("limit=3,5 is not JSON, and src.limit is float (3.0), not text: give it "
+                "as JSON") in capsys.readouterr().err
         assert run.state("src")["limit"] == 3
         assert main(["relink", address, "other.out", "relay.x", "--json"]) == 0
         assert json.loads(capsys.readouterr().out)["from"] == "other.out"

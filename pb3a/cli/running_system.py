@@ -110,11 +110,15 @@ def _state(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
 def _set(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
     values, texts = _values(args.values)
     deadline = None if args.timeout is None else time.monotonic() + args.timeout
-    if texts:               # text for a field that holds no text is a mistyped value
+    whole = [name for name, value in values.items() if type(value) is int]
+    if texts or whole:      # text for a field that holds no text is a mistyped value
         try:
             now = system.state(args.module, timeout=args.timeout)
         except PB3AError:   # (a state this process cannot read: set as given, as before)
             now = {}
+        for name in whole:  # JSON writes 4.0 as 4: a float field stays a float (as the
+            if type(now.get(name)) is float:         # manager's State Editor converts it;
+                values[name] = float(values[name])   # gain=4 made Scale's output an int)
         wrong = [f"{name}={values[name]} is not JSON, and {args.module}.{name} is "
                  f"{type(now[name]).__name__} ({now[name]!r}), not text: give it as JSON "
                  "(true, false, 0.3, NaN, [1, 2], \"text\")" for name in texts
