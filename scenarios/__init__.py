@@ -2,8 +2,22 @@
 
 from __future__ import annotations
 
+import argparse
 import tempfile
 from pathlib import Path
+
+
+def seed(text: str) -> int:
+    """``--seed``: a whole number, 0 or more (numpy takes no other: -1 crashed the world
+    server's process, and the scenario ended in two tracebacks)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a seed: give a whole number, 0 "
+                                         "or more")
+    return value
 
 
 def output_directory(text: str) -> Path:

@@ -47,7 +47,7 @@ from agents.map_truth import reachable, score, truth
 from pb3a import Input, InputPort, Module, System
 from pb3a.cli.log_output import show_logs
 from rave import World
-from scenarios import output_directory
+from scenarios import output_directory, seed
 from scenarios.lab import Lab, wait_until, world_file
 
 CONFIG = Path(__file__).with_name("mapping.toml")
@@ -355,7 +355,7 @@ def main(argv: list[str] | None = None) -> int:
                              f"then {PHASES['quick'][1]:.0f} s of mapping after it)")
     parser.add_argument("--world", default="lab",
                         help="a bundled world (lab, arena, room) or a world file (default lab)")
-    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--seed", type=seed, default=1, help="0 or more (default 1)")
     parser.add_argument("--fault", choices=tuple(FAULTS), default="motors",
                         help="how the first robot fails: " + "; ".join(
                             f"{name}: {what}" for name, what in FAULTS.items()))

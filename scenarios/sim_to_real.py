@@ -48,7 +48,7 @@ from typing import Any
 from agents.learner import Parameters
 from pb3a import Input, InputPort, Module, System
 from pb3a.cli.log_output import show_logs
-from scenarios import output_directory
+from scenarios import output_directory, seed
 from scenarios.lab import Lab, wait_until
 
 CONFIG = Path(__file__).with_name("sim_to_real.toml")
@@ -405,7 +405,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true",
                         help="at most 30 s in simulation and 55 s on the hardware robots, "
                              "whose worlds run at 8x real time, with a coarser learner")
-    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--seed", type=seed, default=1, help="0 or more (default 1)")
     parser.add_argument("--baselines", type=int, metavar="N",
                         help="baseline robots learning alone (default: 3, and 1 with --quick)")
     parser.add_argument("--out", default=".", help="directory for sim_to_real.json and .png")

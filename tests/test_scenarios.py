@@ -359,3 +359,15 @@ def test_a_one_robot_world_gets_a_standby_of_another_name(tmp_path, name, standb
                      'pose = [1.0, 1.0, 0.0]\n')
     robots, placed = mapping.place_robots(world)
     assert robots == (name, standby) and list(placed) == [standby]
+
+
+@pytest.mark.parametrize("scenario", ["mapping", "sim-to-real", "traffic"])
+def test_a_seed_numpy_cannot_take_is_refused_as_the_arguments_are_read(capsys,
+                                                                       scenario) -> None:
+    """--seed -1 started the worlds, whose process died in numpy: two tracebacks, exit 1."""
+    started = time.monotonic()
+    with pytest.raises(SystemExit) as ended:
+        main(["scenario", scenario, "--quick", "--seed", "-1"])
+    assert ended.value.code == 2
+    assert "'-1' is not a seed: give a whole number, 0 or more" in capsys.readouterr().err
+    assert time.monotonic() - started < 10
