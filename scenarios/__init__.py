@@ -7,6 +7,12 @@ import tempfile
 from pathlib import Path
 
 
+def summary(doc: str | None) -> str:
+    """A scenario's ``--help`` description: its docstring's first paragraph (its first
+    line ended mid-sentence)."""
+    return " ".join((doc or "").split("\n\n")[0].split())
+
+
 def seed(text: str) -> int:
     """``--seed``: a whole number, 0 or more (numpy takes no other: -1 crashed the world
     server's process, and the scenario ended in two tracebacks)."""

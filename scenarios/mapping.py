@@ -47,7 +47,7 @@ from agents.map_truth import reachable, score, truth
 from pb3a import Input, InputPort, Module, System
 from pb3a.cli.log_output import show_logs
 from rave import World
-from scenarios import output_directory, seed
+from scenarios import output_directory, seed, summary
 from scenarios.lab import Lab, wait_until, world_file
 
 CONFIG = Path(__file__).with_name("mapping.toml")
@@ -349,7 +349,8 @@ def plot(record: dict[str, Any], figures: dict[str, Any], path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="mapping", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="pb3a scenario mapping",
+                                     description=summary(__doc__))
     parser.add_argument("--quick", action="store_true",
                         help=f"shorter phases (the fault within {PHASES['quick'][0]:.0f} s, "
                              f"then {PHASES['quick'][1]:.0f} s of mapping after it)")

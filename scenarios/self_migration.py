@@ -33,7 +33,7 @@ from pb3a import Agent, Environment, Input, InputPort, Module, Output, System
 from pb3a.cli.log_output import show_logs
 from pb3a.cpu_load import CPULoad
 from pb3a.pending import Pending
-from scenarios import output_directory
+from scenarios import output_directory, summary
 from scenarios.lab import wait_until
 
 RATE_HZ = 200.0
@@ -247,7 +247,8 @@ def plot(records: dict[str, dict[str, Any]], path: Path) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="self_migration", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="pb3a scenario self-migration",
+                                     description=summary(__doc__))
     parser.add_argument("--out", default=".", help="directory for the PNG and JSON")
     parser.add_argument("--quick", action="store_true", help="shorter phases (2/5/2 s)")
     args = parser.parse_args(argv)

@@ -48,7 +48,7 @@ from typing import Any
 from agents.learner import Parameters
 from pb3a import Input, InputPort, Module, System
 from pb3a.cli.log_output import show_logs
-from scenarios import output_directory, seed
+from scenarios import output_directory, seed, summary
 from scenarios.lab import Lab, wait_until
 
 CONFIG = Path(__file__).with_name("sim_to_real.toml")
@@ -401,7 +401,8 @@ def plot(figures: dict[str, Any], path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="sim_to_real", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="pb3a scenario sim-to-real",
+                                     description=summary(__doc__))
     parser.add_argument("--quick", action="store_true",
                         help="at most 30 s in simulation and 55 s on the hardware robots, "
                              "whose worlds run at 8x real time, with a coarser learner")

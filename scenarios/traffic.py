@@ -50,7 +50,7 @@ from agents.traffic.networks import Network
 from pb3a import System
 from pb3a.cli.log_output import show_logs
 from pb3a.loading.references import resolve_class
-from scenarios import output_directory, seed
+from scenarios import output_directory, seed, summary
 
 CONFIG = Path(__file__).with_name("traffic.toml")
 NETWORKS = Path(__file__).with_name("traffic")
@@ -297,7 +297,8 @@ def parse_scale(texts: list[str]) -> dict[str, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="traffic", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="pb3a scenario traffic",
+                                     description=summary(__doc__))
     parser.add_argument("--quick", action="store_true",
                         help="15 simulated minutes (the demand's four periods shortened) "
                              "instead of an hour")

@@ -371,3 +371,18 @@ def test_a_seed_numpy_cannot_take_is_refused_as_the_arguments_are_read(capsys,
     assert ended.value.code == 2
     assert "'-1' is not a seed: give a whole number, 0 or more" in capsys.readouterr().err
     assert time.monotonic() - started < 10
+
+
+@pytest.mark.parametrize(("scenario", "ends"), [
+    ("mapping", "maps on."), ("sim-to-real", "finishes learning there."),
+    ("self-migration", "stress processes load."), ("traffic", "actuated programs.")])
+def test_a_scenario_s_help_says_its_command_and_its_whole_summary(capsys, scenario,
+                                                                    ends) -> None:
+    """Its description was the docstring's first line, cut mid-sentence ("... and moves
+    a"), under the usage of a program named self_migration."""
+    with pytest.raises(SystemExit) as ended:
+        main(["scenario", scenario, "--help"])
+    assert ended.value.code == 0
+    shown = capsys.readouterr().out
+    assert shown.startswith(f"usage: pb3a scenario {scenario} ")
+    assert " ".join(shown.split()).split(" options:")[0].endswith(ends)
