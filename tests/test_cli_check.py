@@ -138,3 +138,16 @@ def test_the_two_node_example_is_valid_and_runs_across_nodes(capsys) -> None:
         eventually(lambda: run.stats().links["tick.out->scale.x"].values > 5,
                    what="values at node b")
         assert run.stats().links["tick.out->scale.x"].transport == "zmq"
+
+
+@pytest.mark.parametrize("output", ["drawings", "out"])
+def test_graph_to_a_directory_or_a_name_without_suffix_is_refused(tmp_path: Path,
+                                                                 output: str) -> None:
+    """-o DIR wrote DIR.dot beside the directory, then failed in dot's words; -o out
+    wrote SVG into a file named out."""
+    (tmp_path / "drawings").mkdir()
+    done = pb3a("graph", str(PIPELINE), "-o", output, cwd=tmp_path)
+    assert done.returncode == 1
+    assert f"-o {output}: give a file, its suffix the format" in done.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["drawings"]
+    assert not list((tmp_path / "drawings").iterdir())

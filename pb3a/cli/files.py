@@ -61,6 +61,12 @@ def graph_command(args: argparse.Namespace) -> int:
         sys.stdout.write(text)
         return 0
     out = Path(args.output) if args.output else Path(Path(args.file).stem + ".svg")
+    if out.is_dir() or not out.suffix:
+        # (a directory got NAME.dot beside it, then dot's own error; a NAME without a
+        # suffix got SVG in a file of that name)
+        print(f"pb3a graph: -o {args.output}: give a file, its suffix the format (.svg, "
+              ".png, .pdf; .dot for DOT only; - for DOT on stdout)", file=sys.stderr)
+        return 1
     dot_path = out if out.suffix == ".dot" else out.with_suffix(".dot")
     try:
         dot_path.write_text(text)
