@@ -151,3 +151,11 @@ def test_graph_to_a_directory_or_a_name_without_suffix_is_refused(tmp_path: Path
     assert f"-o {output}: give a file, its suffix the format" in done.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["drawings"]
     assert not list((tmp_path / "drawings").iterdir())
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="the example pins node a to CPU 1")
+def test_the_stress_example_of_the_readme_is_valid(capsys) -> None:
+    """README's `pb3a stress` example named stressed.toml, which the repository lacked."""
+    assert main(["check", str(REPO / "examples" / "stressed.toml")]) == 0
+    assert capsys.readouterr().out == "ok: 2 modules, 1 links\n"
+    assert "pb3a stress examples/stressed.toml " in (REPO / "README.md").read_text()
