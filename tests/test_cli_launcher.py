@@ -212,8 +212,8 @@ def test_followers_end_with_status_0_when_the_system_stops() -> None:
     try:
         for follower, what in zip(followers, ("events", "logs"), strict=True):
             assert follower.wait(timeout=10) == 0, follower.stderr.read()
-            assert (f"{what}: system 'cli-followed' is stopped: no new entry will come "
-                    "(the system stopped)") in follower.stderr.read()
+            assert follower.stderr.read().endswith(
+                f"pb3a {what}: system 'cli-followed' is stopped: no new entry will come\n")
     finally:
         for follower in followers:
             if follower.poll() is None:

@@ -146,6 +146,17 @@ def test_a_daemon_refuses_an_address_it_cannot_listen_on_saying_why(capsys) -> N
                 assert out == ""                            # no banner: it never served
 
 
+def test_modules_serve_names_a_directory_that_is_not_there(tmp_path: Path, capsys) -> None:
+    """It said only "[Errno 2] No such file or directory: ..."."""
+    (tmp_path / "a_file.py").write_text("")
+    for root, said in ((tmp_path / "nowhere", "no directory"), (tmp_path / "a_file.py",
+                                                               "it is a file")):
+        assert main(["modules", "serve", str(root), "--listen", "tcp://127.0.0.1:0"]) == 1
+        out, err = capsys.readouterr()
+        assert f"pb3a modules serve: no directory {root} to serve modules from" in err, err
+        assert said in err and "Errno" not in err and out == ""
+
+
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGHUP], ids=["Ctrl-C", "hangup"])
 def test_stress_interrupted_writes_its_report_then_exits_130(tmp_path: Path,
                                                              signum: int) -> None:

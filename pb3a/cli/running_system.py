@@ -195,7 +195,7 @@ def _follow(fetch: Callable[[int, float], list[Any]], line: Callable[[Any], str]
         try:
             items = fetch(seen, 1.0 if args.follow else 0.0)
         except SystemStopped as exc:              # a follower's normal end
-            print(f"{exc} (the system stopped)", file=sys.stderr)
+            print(f"pb3a {exc}", file=sys.stderr)
             return
         for item in items:
             seen = item.seq

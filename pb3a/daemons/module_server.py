@@ -27,9 +27,11 @@ class ModuleServer:
 
     def __init__(self, root: str | Path, key: ClusterKey, host: str = "127.0.0.1",
                  port: int = 0) -> None:
-        self.root = Path(root).resolve(strict=True)
-        if not self.root.is_dir():
-            raise NotADirectoryError(f"module server root {root} is not a directory")
+        self.root = Path(root).resolve()
+        if not self.root.is_dir():      # (resolve(strict=True) said only "[Errno 2] ...")
+            raise ValueError(f"no directory {root} to serve modules from"
+                             + (": it is a file" if self.root.exists() else "")
+                             + "; give the directory that holds the modules' packages")
         self._server = ControlServer(key, self._handle, host, port, name="pb3a-modules")
         self.address = self._server.address
 
