@@ -4,9 +4,12 @@ graceful and forced stops, the command line, and frames it must refuse."""
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -81,6 +84,46 @@ def test_a_forced_stop_kills_the_executor(node) -> None:
     client.call("start_executor", timeout=60, config="doomed")
     assert client.call("stop_executor", config="doomed", force=True) is True
     assert controller.executors() == {}
+
+
+_KILLED_OWNER = """
+import json, multiprocessing, signal
+from pb3a.transport.ring import ShmRing
+from pb3a.transport.shm import RING, live_segments, reap_child, segment_name
+from pb3a.transport.snapshot import make_room
+
+def owner(names):
+    ring = ShmRing.create(segment_name(RING), 64, 8, 64)    # on the shared tracker's list
+    make_room(segment_name("state"), 4096)                 # a snapshot's: not on it
+    names.put(live_segments())
+    signal.pause()
+
+if __name__ == "__main__":
+    context = multiprocessing.get_context("spawn")
+    names = context.Queue()
+    child = context.Process(target=owner, args=(names,))
+    child.start()
+    made = names.get(timeout=60)
+    child.kill()
+    child.join(10)
+    reaped = reap_child(child.pid)
+    print(json.dumps({"made": made, "reaped": sorted(reaped), "left": live_segments(child.pid)}))
+"""
+
+
+def test_a_killed_executors_segments_are_reaped_and_not_called_leaked(tmp_path) -> None:
+    """A node controller that had to kill an executor (fenced, frozen) reaped its rings
+    but left them on the resource tracker's list, which it shares with its executors:
+    when it stopped, the tracker named each "leaked", then failed to unlink it again."""
+    script = tmp_path / "owner.py"
+    script.write_text(_KILLED_OWNER)
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                          timeout=60, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    segments = json.loads(done.stdout)
+    assert len(segments["made"]) == 2 and segments["reaped"] == segments["made"], segments
+    assert segments["left"] == []
+    assert "leaked" not in done.stderr and "Traceback" not in done.stderr, done.stderr
 
 
 def test_an_executor_that_dies_as_it_starts_is_reported_at_once(node, monkeypatch) -> None:

@@ -24,7 +24,7 @@ from pb3a.errors import bounded_wait
 from pb3a.processes import start_without_main
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlServer
-from pb3a.transport.shm import reap_orphans
+from pb3a.transport.shm import reap_child, reap_orphans
 
 log = logging.getLogger("pb3a.node")
 
@@ -132,7 +132,8 @@ class NodeController:
             process.kill()
             process.join(5.0)
         pipe.close()
-        reap_orphans()              # the segments of an executor that could not free them
+        reap_child(process.pid)     # the segments of an executor that could not free them
+        reap_orphans()              # (and of its workers)
         return True
 
     def executors(self) -> dict[str, str]:

@@ -41,7 +41,7 @@ from pb3a.stats import InputStats, ModuleStats, NodeReport, WaitStats
 from pb3a.transport import pickling
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.ring import ShmRing
-from pb3a.transport.shm import memory_domain, reap_orphans, segment_name, unlink_name
+from pb3a.transport.shm import RING, memory_domain, reap_orphans, segment_name, unlink_name
 from pb3a.transport.snapshot import Snapshot, make_room
 
 if TYPE_CHECKING:
@@ -475,7 +475,7 @@ class Executor:
         if ring is None:
             if size is None:
                 raise RuntimeError(f"link {key} has no ring to reopen")
-            name = segment_name("ring")
+            name = segment_name(RING)
             try:
                 ring = ShmRing.create(name, *size)
             except FileExistsError:

@@ -20,6 +20,7 @@ from multiprocessing import resource_tracker, shared_memory
 import psutil
 
 PREFIX = "pb3a_"
+RING = "ring"                   # the kind of the segments ``create_segment`` makes
 _SHM_DIR = "/dev/shm"
 _counter = itertools.count()
 
@@ -113,6 +114,23 @@ def reap_orphans() -> list[str]:
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(segment_path(name))
                 reaped.append(name)
+    return reaped
+
+
+def reap_child(pid: int) -> list[str]:
+    """Unlink the segments of ``pid``, a dead child that shared this process's resource
+    tracker (multiprocessing hands it down), and take them off the tracker's list: left
+    on it, they were named "leaked" when this process ended, and the tracker failed to
+    unlink each again (a node controller whose executor was killed, fenced)."""
+    reaped = []
+    for name in live_segments(pid):
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(segment_path(name))
+            reaped.append(name)
+            # Rings (``create_segment``) are on its list; a snapshot's segment is not,
+            # and the tracker prints a traceback for a name it does not hold.
+            if name.startswith(f"{PREFIX}{pid}_{RING}"):
+                resource_tracker.unregister(f"/{name}", "shared_memory")
     return reaped
 
 
