@@ -270,8 +270,9 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
         # motors from the windows of driving it needs: the cut was seen by nobody)
         figures["why_undetected"] = (
             "the monitor was not yet watching the motors when they were cut: it learns "
-            "them from the robot's first seconds of driving, and the robot had stopped "
-            "(the world was mapped first); use a larger world, or --fault robot_link")
+            "them from windows of the robot driving, and had not seen enough of them (a "
+            "small world is mapped first, the robot then standing; a busy machine is slow "
+            "to learn); use a larger world, or --fault robot_link")
     maps = figures["map"]
     figures["goals"] = {
         "handoff_s <= 0.5": figures["handoff_s"] is not None
