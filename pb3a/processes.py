@@ -9,16 +9,57 @@ import threading
 from multiprocessing import spawn as mp_spawn
 from typing import Any
 
+from pb3a.errors import RuntimeTimeout
+
 _start_lock = threading.Lock()
 
 
-def start_without_main(process: Any) -> None:
+def start_without_main(process: Any, timeout: float | None = None) -> None:
     """Start a worker without re-running the user's ``__main__`` in it.
 
     multiprocessing re-imports the main script in every child, which breaks
     scripts without an ``if __name__ == "__main__"`` guard. Workers never need
     it: module classes travel with cloudpickle (by value when defined in main).
+
+    With a ``timeout``, a start that has not returned within it raises
+    ``RuntimeTimeout``: a forkserver that is frozen (stopped, hung) answers no
+    request for a process, and ``Process.start`` would wait for it for good, holding
+    whatever its caller holds (a change's configuration lock). The start given up on
+    goes on in the background; if a process comes of it, it is killed.
     """
+    if timeout is None:
+        _start(process)
+        return
+    done, outcome = threading.Event(), []
+    decided = threading.Lock()
+
+    def start() -> None:
+        try:
+            _start(process)
+        except BaseException as exc:          # (given to the caller, if it still waits)
+            outcome.append(exc)
+        with decided:
+            done.set()
+            abandoned = given_up.is_set() and not outcome
+        if abandoned:
+            with contextlib.suppress(OSError, ValueError, AttributeError):
+                process.kill()
+                process.join(1.0)
+
+    given_up = threading.Event()
+    threading.Thread(target=start, daemon=True, name="pb3a-start").start()
+    done.wait(timeout)
+    with decided:
+        if not done.is_set():
+            given_up.set()
+            raise RuntimeTimeout(
+                f"no process started within {timeout:g} s: the forkserver that starts "
+                "this node's workers does not answer (stopped or hung?)")
+    if outcome:
+        raise outcome[0]
+
+
+def _start(process: Any) -> None:
     original = mp_spawn.get_preparation_data
 
     def preparation(name: str) -> dict[str, Any]:

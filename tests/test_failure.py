@@ -615,3 +615,42 @@ def test_a_link_the_receiver_cannot_read_is_set_aside_while_the_others_flow(capl
     assert busy < 0.5, f"the receiver is busy {busy:.0%} of the time"
     assert "cannot read link w.out->sink.bad" in caplog.text
     assert "corrupt ring record" in caplog.text
+
+
+def test_an_add_whose_worker_the_frozen_forkserver_cannot_start_fails_within_its_deadline(
+        monkeypatch) -> None:
+    """A forkserver that is frozen (SIGSTOP, hung) answers no request for a worker: the
+    add that needs one raised nothing and held the configuration lock for good (every
+    later change waited behind it); it fails with ``RuntimeTimeout`` saying why, and the
+    node starts workers again once the forkserver runs."""
+    import pb3a.node.workers as workers
+    monkeypatch.setattr(workers, "SPAWN_TIMEOUT_S", 2.0, raising=False)
+    system = System("frozen-forkserver").node("a", spares=0)
+    system.add("first", Steady, node="a")
+    with system.launch(timeout=5) as run:
+        (forkserver,) = [child for child in psutil.Process().children()
+                         if "forkserver" in " ".join(child.cmdline()) and child.children()]
+        outcome: list[object] = []
+        adding = threading.Thread(target=lambda: outcome.append(_outcome(
+            lambda: run.add("second", Steady, node="a", timeout=5))), daemon=True)
+        forkserver.suspend()
+        try:
+            started = time.monotonic()
+            adding.start()
+            adding.join(10)
+            took = time.monotonic() - started
+        finally:
+            forkserver.resume()
+        adding.join(30)
+        assert took < 10 and isinstance(outcome[0], RuntimeTimeout), outcome
+        assert "forkserver" in str(outcome[0])
+        assert "second" not in run.stats().modules
+        run.add("second", Steady, node="a", timeout=30)       # it starts workers again
+        eventually(lambda: run.state("second")["count"] > 0, what="the added module's steps")
+
+
+def _outcome(call: Callable[[], object]) -> object:
+    try:
+        return call()
+    except Exception as exc:        # (what the call raised, for the test to judge)
+        return exc

@@ -45,6 +45,10 @@ log = logging.getLogger("pb3a.executor")
 REQUEST_TIMEOUT = 10.0
 
 _context = multiprocessing.get_context("forkserver")
+# A worker's start waits this long for the forkserver (its first start includes the
+# forkserver's own, with the preload): one frozen (stopped, hung) fails the start
+# instead of holding it, and the lock of the change that asked, for good.
+SPAWN_TIMEOUT_S = 30.0
 # numpy imports numpy.random only when first used: 25-30 ms in a fresh worker, which
 # fell inside a migration's pause when a module made a generator in its ``setup``
 PRELOAD = ("pb3a.node.forkserver_signals", "pb3a.worker.process", "numpy", "numpy.random",
@@ -146,7 +150,12 @@ class WorkerPool:
             target=worker_main, name=f"pb3a-worker-{handle.key}", daemon=True,
             args=(child, handle.key, settings.checkpoint_s, settings.log_level,
                   settings.cpus, settings.code))
-        start_without_main(process)
+        try:
+            start_without_main(process, timeout=SPAWN_TIMEOUT_S)
+        except BaseException:
+            parent.close()
+            child.close()
+            raise
         child.close()
         # The doorbell is the worker's first read: send it before anyone can send a request.
         reduction.send_handle(parent, handle.bell, process.pid)
