@@ -366,3 +366,28 @@ def test_an_agent_s_request_raises_the_error_the_runtime_raised_on_any_node(
             seen = eventually(lambda name=name: len(s := run.state(name)["seen"]) == 3 and s,
                               timeout=30, what=f"{name}'s three answers")
             assert seen == ["ModuleNotFound", "ConfigError", "ConfigError"]
+
+
+def test_a_worker_frozen_past_its_lease_while_its_executor_runs_restarts_its_modules(
+        controllers) -> None:
+    """A worker stopped (SIGSTOP) past its lease while its node's executor runs on finds
+    its lease lapsed when it runs again and stops its modules, as it must if its executor
+    were frozen; but the executor, whose own lease runs, knows nothing ran them elsewhere,
+    and restarts them by their policy (they were reported ``stopped`` for good, though
+    no one had stopped them and their ``restart`` said ``fresh``)."""
+    system = System("frozen-worker").node("a").node("b", address=controllers["b"].address)
+    system.add("steady", Steady, node="b", restart="fresh")
+    with system.launch() as run:
+        old = eventually(lambda: run.stats().modules["steady"].pid, what="a worker pid")
+        time.sleep(1.0)                       # its first lease granted (every 0.25 s)
+        os.kill(old, signal.SIGSTOP)
+        time.sleep(2.0)                       # past its lease (1.25 s)
+        os.kill(old, signal.SIGCONT)
+        eventually(lambda: not alive(old), what="the frozen worker stopping its module")
+        state = eventually(lambda: (s := run.state("steady", timeout=2.0))["pid"] not in (0, old)
+                           and s["count"] > 2 and s, timeout=10,
+                           what="the module restarted in a new worker")
+        module = run.stats().modules["steady"]
+        assert run.stats().nodes["b"].up
+    assert module.status == "running" and module.pid == state["pid"]
+

@@ -64,6 +64,7 @@ class NodeShare:
         self.node_epoch = 0                            # this admission of the node
         self._lease_s = LEASE_S
         self._leased_at = time.monotonic()             # the launcher's last heartbeat
+        self.executor.leased = lambda: time.monotonic() - self._leased_at <= self._lease_s
         self._checkpoints: dict[str, bytes] = {}       # the newest, not yet sent
         self._checkpointed = threading.Condition()
         self.server: ControlServer | None = None

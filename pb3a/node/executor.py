@@ -43,9 +43,10 @@ from pb3a.transport.auth import ClusterKey
 from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import RING, memory_domain, reap_orphans, segment_name, unlink_name
 from pb3a.transport.snapshot import Snapshot, make_room
+from pb3a.worker.process import LEASE_LAPSED
 
 if TYPE_CHECKING:
-    from collections.abc import Iterator
+    from collections.abc import Callable, Iterator
 
 log = logging.getLogger("pb3a.executor")
 _module_log = logging.getLogger("pb3a.module")
@@ -113,6 +114,9 @@ class Executor:
         self.republished: Any = None                  # told (link, endpoint) after a restart
         self.on_event: Any = None                     # told (kind, module, detail): restarts
         self.on_checkpoint: Any = None                # told (module, state) for last-state
+        # whether this node's lease runs now (a remote node's share sets it: an embedded
+        # node has none, and never lapses)
+        self.leased: Callable[[], bool] = lambda: True
         self._key: ClusterKey | None = None           # the cluster key (loaded on first use)
         self._bridge: Bridge | None = None            # remote links in (made on first use)
         self._budgets: dict[str, RestartBudget] = {}  # worker key -> its restarts
@@ -664,14 +668,22 @@ class Executor:
     # -- restarts ----------------------------------------------------------------
     def _died(self, handle: WorkerHandle) -> None:
         code = handle.process.exitcode
-        if code == 0:                 # stopped on purpose (SIGTERM): not a crash
+        if code == LEASE_LAPSED and self.leased() and not self._stopping.is_set():
+            # Its lease lapsed, but this executor's runs: the worker alone was frozen
+            # (stopped, starved), not its node, and nothing runs its modules elsewhere.
+            # They were stopped as no one asked: their restart policy says what comes.
+            log.warning("worker %s (pid %s, modules %s) stopped them: it was frozen past "
+                        "its lease while its executor ran", handle.key, handle.pid,
+                        ", ".join(handle.modules))
+        elif code in (0, LEASE_LAPSED):   # stopped on purpose (SIGTERM), or fenced: not a crash
             log.warning("worker %s (pid %s) stopped; its modules %s are stopped", handle.key,
                         handle.pid, ", ".join(handle.modules))
             for name in handle.modules:
                 self.modules[name].status = "stopped"
             return
-        log.warning("worker %s (pid %s, modules %s) died with exit code %s",
-                    handle.key, handle.pid, ", ".join(handle.modules), code)
+        else:
+            log.warning("worker %s (pid %s, modules %s) died with exit code %s",
+                        handle.key, handle.pid, ", ".join(handle.modules), code)
         threading.Thread(target=self._recover, args=(handle, code), daemon=True,
                          name=f"pb3a-restart-{handle.key}").start()
 

@@ -16,6 +16,7 @@ import logging
 import os
 import pickle
 import signal
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -48,6 +49,10 @@ ERROR_REPORT_S = 1.0     # a module's exceptions are reported at most this often
 AGENT_REQUEST_TIMEOUT = 30.0   # an agent's request to the runtime (a migration, say)
 MEASURE_TIMEOUT = 5.0    # how long measuring a snapshot waits for a busy module's lock
 LEASE_CHECK_S = 0.1      # how often a worker with a lease (see op_lease) looks at it
+# The exit status of a worker that stopped its modules because its lease lapsed: its
+# executor tells it from a stop it asked for (0) and, if its own lease runs, restarts
+# the modules (the worker alone was frozen; see Executor._died).
+LEASE_LAPSED = 3
 TIMED_OUT = "timed out"   # a reply's status for a request that ran out of time (not False)
 # Requests that wait for a module's lock (and may run its hooks, which may call the
 # runtime, whose answer this thread reads): never on the control thread.
@@ -152,6 +157,7 @@ class Worker:
         self._request_ids = itertools.count()
         self._closing = threading.Event()
         self._lease_until: float | None = None     # see op_lease
+        self.lapsed = False                        # its lease ran out: exit LEASE_LAPSED
         self._shut_down = False
         self._checkpoint_s = checkpoint_s
         self._threads = [threading.Thread(target=self._receive, name="pb3a-receiver", daemon=True),
@@ -508,6 +514,7 @@ class Worker:
             if until is not None and time.monotonic() > until:
                 log.error("worker %s: its executor granted no lease for too long (frozen "
                           "or hung): its modules stop", self.key)
+                self.lapsed = True
                 os.kill(os.getpid(), signal.SIGTERM)     # (the stop a SIGTERM makes)
                 return
 
@@ -706,3 +713,5 @@ def worker_main(conn: Any, key: str, checkpoint_s: float, level: int,
         worker.serve()
     except _Terminated:
         worker.shutdown()
+        if worker.lapsed:
+            sys.exit(LEASE_LAPSED)
