@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from conftest import daemon_banner_then_clean_exit, daemon_signalled_as_it_starts, eventually
 
-from pb3a import System
+from pb3a import RuntimeFailure, System
 from pb3a.daemons.module_server import ModuleServer
 from pb3a.loading import served as served_code
 from pb3a.loading.references import resolve_class
@@ -199,3 +199,20 @@ def test_a_class_that_cannot_be_imported_names_the_module_server_that_refused_th
         for client in finder.clients.values():
             client.close()
         server.close()
+
+
+def test_a_class_a_worker_cannot_import_names_the_module_server_that_did_not_answer(
+        served) -> None:
+    """In a worker too (an add, a restart, a swap): its error said only which module
+    was not found, with the server it needed gone."""
+    root, server = served
+    _write(root / "pb3a_served_ticker.py", TICKER.format(factor=1))
+    system = System("served-gone", module_servers=[server.address])
+    system.add("t", "pb3a_served_ticker:Ticker")
+    with system.launch() as run:
+        eventually(lambda: run.state("t")["count"] > 5, what="the served class stepping")
+        server.close()                             # the server's host is gone
+        server.close = lambda: None                # (closed once: the fixture need not)
+        with pytest.raises(RuntimeFailure, match=rf"No module named 'pb3a_served_ticker'; "
+                           rf"module server {server.address} did not answer: start it"):
+            run.add("t2", "pb3a_served_ticker:Ticker", timeout=30)

@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 import cloudpickle
 
+from pb3a.loading import served
 from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
 from pb3a.model.agent import Agent, RuntimeClient
@@ -271,7 +272,7 @@ class Worker:
     # -- requests from the executor ----------------------------------------
     def op_add(self, name: str, cls: bytes, period: float | None, restart: str,
                state: dict[str, Any] | bytes) -> None:
-        module = cloudpickle.loads(cls)()
+        module = _load_class(cls)()
         self._give_runtime(name, module)
         if isinstance(state, bytes):        # a checkpoint, read where the module's code is
             state = cloudpickle.loads(state)
@@ -493,7 +494,7 @@ class Worker:
         self.actors[name].apply(state, within)
 
     def op_swap(self, name: str, cls: bytes, period: float | None) -> list[str]:
-        module = cloudpickle.loads(cls)()
+        module = _load_class(cls)()
         self._give_runtime(name, module)
         return self.actors[name].swap(module, period)
 
@@ -673,6 +674,21 @@ class _LogForwarder(logging.Handler):
                                      "message": message}))
         except Exception:
             self.handleError(record)
+
+
+def _load_class(cls: bytes) -> type:
+    """A module's class, sent by reference or by value. One whose module cannot be
+    imported while a module server of this process does not answer names that server,
+    as ``resolve_class`` does (the error said only which module was not found)."""
+    try:
+        return cloudpickle.loads(cls)
+    except ImportError as exc:
+        silent = served.silent_servers()
+        if not silent:
+            raise
+        raise type(exc)(f"{exc}; module server {', '.join(silent)} did not answer: start "
+                        "it, or check its address and that its port is open",
+                        name=exc.name) from exc
 
 
 class _Terminated(BaseException):
