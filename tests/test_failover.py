@@ -5,6 +5,7 @@ new epoch and modules can be moved back; a fenced executor's word is refused."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import threading
@@ -557,6 +558,33 @@ def test_a_frozen_executor_s_workers_stop_before_their_modules_run_elsewhere(
             _wait_for_the_copy_on_a(run, stamps)
         finally:
             os.kill(executor, signal.SIGCONT)
+    _assert_one_copy_at_a_time(stamps)
+
+
+def test_a_frozen_node_let_run_again_steps_nothing_beside_its_failed_over_copies(
+        daemons, tmp_path: Path) -> None:
+    """A whole node frozen (its controller, executor and workers SIGSTOPped, as
+    ``pb3a stress`` cuts a node) and let run again after its module failed over: its
+    worker, let run first, stepped its module at once, beside the copy, before it
+    looked at its lease (and a lease grant or a heartbeat read late, queued while the
+    node was stopped, counted as a fresh one). No body runs once the lease is out; a
+    grant ends when the executor's lease does; an executor frozen past its lease fences
+    itself whatever heartbeats it reads then."""
+    b, stamps = daemons["b"], tmp_path / "steps"
+    with _stamping_on_b("thawed", b, stamps).launch() as run:
+        eventually(lambda: stamps.exists() and stamps.read_text().count("\n") > 20,
+                   what="steps on b")
+        controller = psutil.Process(b.process.pid)
+        frozen = [controller, *controller.children(recursive=True)]
+        for process in frozen:
+            process.suspend()
+        try:
+            _wait_for_the_copy_on_a(run, stamps)
+        finally:
+            for process in reversed(frozen):            # the workers first, as Freeze
+                with contextlib.suppress(psutil.NoSuchProcess):
+                    process.resume()
+        time.sleep(1.0)                                 # what the thawed node does
     _assert_one_copy_at_a_time(stamps)
 
 

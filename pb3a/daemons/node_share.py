@@ -64,7 +64,8 @@ class NodeShare:
         self.node_epoch = 0                            # this admission of the node
         self._lease_s = LEASE_S
         self._leased_at = time.monotonic()             # the launcher's last heartbeat
-        self.executor.leased = lambda: time.monotonic() - self._leased_at <= self._lease_s
+        self._ticked_at = time.monotonic()             # the lease's watch last looked
+        self.executor.leased = self._leased
         self._checkpoints: dict[str, bytes] = {}       # the newest, not yet sent
         self._checkpointed = threading.Condition()
         self.server: ControlServer | None = None
@@ -133,6 +134,7 @@ class NodeShare:
         self.node_epoch, self._lease_s = node_epoch, lease_s
         self.launcher = ControlClient(self.key, launcher)
         self.renew()
+        self._ticked_at = time.monotonic()
         for target, name in ((self._keep_lease, "lease"), (self._grant_leases, "leases"),
                              (self._measure_peers, "peers"),
                              (self._send_checkpoints, "checkpoints")):
@@ -196,14 +198,28 @@ class NodeShare:
             with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
                 self.launcher.call(op, **args, **self._signed())
 
+    def _leased(self) -> bool:
+        """Whether this executor's lease runs now: renewed within the lease, and its watch
+        not held up as long (this process frozen: the heartbeats it then reads late,
+        queued while it was stopped, renew nothing the launcher still counts on)."""
+        now = time.monotonic()
+        return (not self.stopped.is_set() and now - self._leased_at <= self._lease_s
+                and now - self._ticked_at <= self._lease_s)
+
     def _keep_lease(self) -> None:
-        """Fence: stop everything once the launcher's heartbeats stop for the lease."""
+        """Fence: stop everything once the launcher's heartbeats stop for the lease, or
+        once this process was frozen (stopped, starved) that long: the launcher may have
+        failed its modules over meanwhile, whatever heartbeats were queued for it."""
         lease_s = self._lease_s
         while not self.stopped.wait(min(0.1, lease_s / 4)):
-            silent = time.monotonic() - self._leased_at
-            if silent > lease_s:
-                log.error("node %s: no heartbeat from the launcher for %.1f s (its lease is "
-                          "%.1f s): fenced, its modules stop", self.node, silent, lease_s)
+            now = time.monotonic()
+            silent, held_up = now - self._leased_at, now - self._ticked_at
+            self._ticked_at = now
+            if silent > lease_s or held_up > lease_s:
+                why = (f"no heartbeat from the launcher for {silent:.1f} s" if silent > lease_s
+                       else f"it was frozen for {held_up:.1f} s")
+                log.error("node %s: %s (its lease is %.1f s): fenced, its modules stop",
+                          self.node, why, lease_s)
                 self.executor.fence()      # at once: shutting down may wait for a request
                 self.stopped.set()
 
@@ -214,12 +230,13 @@ class NodeShare:
         lapses first (the lease, and a grant's way, before the launcher's failover)."""
         workers = self.executor.workers
         while not self.stopped.wait(LEASE_GRANT_S):
-            if time.monotonic() - self._leased_at > self._lease_s:
+            if not self._leased():
                 continue                    # (fencing: no more grants)
             for key, handle in list(workers.handles.items()):
                 if handle.alive:
                     with contextlib.suppress(RuntimeFailure, KeyError):
-                        workers.submit(key, "lease", seconds=self._lease_s)
+                        workers.submit(key, "lease", seconds=self._lease_s,
+                                       until=self._leased_at + self._lease_s)
 
     def _measure_peers(self) -> None:
         """Ping every peer now and then: the round-trip times the env module shows."""

@@ -119,6 +119,10 @@ class EventPool:
             thread.join(max(0.0, deadline - time.monotonic()))
 
 
+def _always() -> bool:
+    return True
+
+
 class ModuleActor:
     """Runs one module: its lock, its step thread, its event dispatch and counters."""
 
@@ -149,6 +153,8 @@ class ModuleActor:
         self._step_cpu = 0.0
         self._stopped = False
         self._halted = False                    # stopping: it does not start any more
+        # whether its bodies may run now (its worker's lease holds: Worker.lease_holds)
+        self.may_run: Callable[[], bool] = _always
         self._thread: threading.Thread | None = None
         self._holder = 0                        # the thread running a body now (0: none)
         self._wait: RuntimeWait | None = None   # its runtime call in progress, if any
@@ -300,8 +306,9 @@ class ModuleActor:
         timed = self.timed if timed is None else timed
         self._holder = threading.get_ident()
         try:
-            if not self.running and hook in _BODIES:
-                return 0                        # stopped or migrated while waiting
+            if hook in _BODIES and not (self.running and self.may_run()):
+                return 0                        # stopped or migrated while waiting, or
+                                                # its worker's lease ran out (fenced)
             if claim is not None:
                 times = claim.take_events(times)
             start = time.thread_time() if timed else 0.0

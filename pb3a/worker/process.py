@@ -279,6 +279,7 @@ class Worker:
         if state:
             module.set_state(state)
         actor = ModuleActor(name, module, self._schedule, period, on_error=self._report_error)
+        actor.may_run = self.lease_holds
         self.actors[name] = actor
         self.restart_policy[name] = restart
         self._retime()
@@ -498,16 +499,25 @@ class Worker:
         self._give_runtime(name, module)
         return self.actors[name].swap(module, period)
 
-    def op_lease(self, seconds: float) -> None:
-        """The executor is alive: run on for ``seconds`` more. A worker whose lease runs
+    def op_lease(self, seconds: float, until: float | None = None) -> None:
+        """The executor is alive: run on for ``seconds`` more, or until ``until`` (the
+        executor's ``time.monotonic()``, the same clock on one machine: a grant read
+        late, after this worker was frozen, extends nothing). A worker whose lease runs
         out stops its modules (as on SIGTERM): its executor is frozen (stopped, hung)
-        and cannot fence it, and the launcher starts its modules elsewhere. Only a
-        remote node's executor grants leases; a worker that never got one never
+        and cannot fence it, and the launcher starts its modules elsewhere. Until it
+        does, no body runs (``lease_holds``): a frozen node let run again stepped its
+        modules once beside their failed-over copies before its lease was looked at.
+        Only a remote node's executor grants leases; a worker that never got one never
         lapses."""
         first = self._lease_until is None
-        self._lease_until = time.monotonic() + seconds
+        self._lease_until = until if until is not None else time.monotonic() + seconds
         if first:
             threading.Thread(target=self._keep_lease, daemon=True, name="pb3a-lease").start()
+
+    def lease_holds(self) -> bool:
+        """Whether this worker's modules may run now: it has no lease, or one that runs."""
+        until = self._lease_until
+        return until is None or time.monotonic() <= until
 
     def _keep_lease(self) -> None:
         while not self._closing.wait(LEASE_CHECK_S):
