@@ -654,3 +654,30 @@ def _outcome(call: Callable[[], object]) -> object:
         return call()
     except Exception as exc:        # (what the call raised, for the test to judge)
         return exc
+
+
+def test_stats_with_several_frozen_workers_waits_one_report_timeout_in_all(
+        monkeypatch) -> None:
+    """A node's report asks all its workers at once, but waited for each answer in turn
+    for the whole report timeout: with three workers frozen (SIGSTOP), ``stats()`` (and
+    ``pb3a status``) took three times it, 15 s, whatever its ``timeout``. One deadline
+    covers them all; the others' figures come."""
+    import pb3a.node.executor as executor
+    monkeypatch.setattr(executor, "REPORT_TIMEOUT", 1.0)
+    system = System("frozen-workers").node("a")
+    for index in range(4):
+        system.add(f"m{index}", Steady, node="a")
+    with system.launch() as run:
+        pids = [eventually(lambda i=index: run.stats().modules[f"m{i}"].pid,
+                           what="a worker pid") for index in range(3)]
+        for pid in pids:
+            os.kill(pid, signal.SIGSTOP)
+        try:
+            started = time.monotonic()
+            stats = run.stats(timeout=5)
+            took = time.monotonic() - started
+        finally:
+            for pid in pids:
+                os.kill(pid, signal.SIGCONT)
+    assert took < 2.0, f"stats took {took:.1f} s"
+    assert stats.modules["m3"].steps > 0 and stats.modules["m3"].pid

@@ -574,9 +574,11 @@ class Executor:
         futures = {key: self.workers.submit(key, "stats")
                    for key, handle in list(self.workers.handles.items()) if handle.alive}
         reports: dict[str, Any] = {}
-        for key, future in futures.items():
+        deadline = time.monotonic() + REPORT_TIMEOUT    # one for all: they answer at once
+        for key, future in futures.items():             # (each frozen worker took 5 s more)
             with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
-                reports[key] = self.workers.result(future, "stats", key, REPORT_TIMEOUT)
+                reports[key] = self.workers.result(future, "stats", key,
+                                                   max(0.0, deadline - time.monotonic()))
         modules = {name: self._module_stats(record, reports.get(record.worker))
                    for name, record in self.modules.items()}
         rings = {key: ring.get("used", 0) for report in reports.values()
