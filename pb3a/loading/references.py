@@ -44,13 +44,9 @@ def resolve_class(ref: str | type) -> type:
     try:
         module = importlib.import_module(module_name)
     except ImportError as exc:
-        silent = served.silent_servers()
-        where = (f"; module server {', '.join(silent)} did not answer: start it, or check "
-                 "its address and that its port is open" if silent else "")
-        where += "".join(f"; module server {why}" for why in served.refusing_servers().values())
         raise ImportError(f"cannot import module {module_name!r} for {ref!r}: {exc}; "
                           "check the module path and that it is installed or on sys.path"
-                          f"{where}") from exc
+                          f"{served.server_trouble()}") from exc
     except Exception as exc:  # a module that fails while importing: say which and why
         raise ImportError(f"importing module {module_name!r} for {ref!r} failed: "
                           f"{type(exc).__name__}: {exc}") from exc

@@ -39,7 +39,7 @@ class ServedModuleFinder(importlib.abc.MetaPathFinder):
         self._key = key
         self.clients: dict[str, ControlClient] = {}
         self._silent_until: dict[str, float] = {}    # address -> when to ask it again
-        self.refusals: dict[str, str] = {}            # address -> why it refused, lately
+        self._refused: dict[str, str] = {}            # address -> why it refused, lately
 
     def add(self, address: str) -> None:
         if address not in self.clients:
@@ -48,7 +48,7 @@ class ServedModuleFinder(importlib.abc.MetaPathFinder):
     def refused(self) -> dict[str, str]:
         """The servers that refused their last request, and why (another cluster key,
         clocks apart ...): an import that fails may have needed one of them."""
-        return dict(self.refusals)
+        return dict(self._refused)
 
     def silent(self) -> list[str]:
         """The servers not asked now, since they did not answer lately."""
@@ -65,9 +65,9 @@ class ServedModuleFinder(importlib.abc.MetaPathFinder):
                 self._silent_until[address] = time.monotonic() + SILENT_FOR_S
                 continue
             except RuntimeFailure as exc:         # it refused: say why, try the next
-                self.refusals[address] = str(exc)
+                self._refused[address] = str(exc)
                 continue
-            self.refusals.pop(address, None)
+            self._refused.pop(address, None)
             if found is not None:
                 loader = _SourceLoader(found["source"], found["origin"])
                 return importlib.util.spec_from_loader(
@@ -89,17 +89,17 @@ class _SourceLoader(importlib.abc.Loader):
         exec(compile(self._source, self._origin, "exec"), module.__dict__)
 
 
-def silent_servers() -> list[str]:
-    """The module servers of this process that did not answer lately (an import that
-    fails may have needed one of them)."""
-    return [address for finder in sys.meta_path if isinstance(finder, ServedModuleFinder)
-            for address in finder.silent()]
-
-
-def refusing_servers() -> dict[str, str]:
-    """The module servers of this process that refused their last request, and why."""
-    return {address: why for finder in sys.meta_path if isinstance(finder, ServedModuleFinder)
-            for address, why in finder.refused().items()}
+def server_trouble() -> str:
+    """What a failed import's error adds about this process's module servers, one of
+    which it may have needed: "; module server ADDRESS did not answer: ..." for those
+    that did not answer lately, and the reason each that refused its last request gave
+    (another cluster key, clocks apart); "" when all answered."""
+    finders = [finder for finder in sys.meta_path if isinstance(finder, ServedModuleFinder)]
+    silent = [address for finder in finders for address in finder.silent()]
+    said = (f"; module server {', '.join(silent)} did not answer: start it, or check its "
+            "address and that its port is open" if silent else "")
+    return said + "".join(f"; module server {why}" for finder in finders
+                          for why in finder.refused().values())
 
 
 def use_module_servers(addresses: Sequence[str], key: ClusterKey | None = None) -> None:

@@ -688,17 +688,16 @@ class _LogForwarder(logging.Handler):
 
 def _load_class(cls: bytes) -> type:
     """A module's class, sent by reference or by value. One whose module cannot be
-    imported while a module server of this process does not answer names that server,
-    as ``resolve_class`` does (the error said only which module was not found)."""
+    imported while a module server of this process does not answer, or refuses, names
+    that server, as ``resolve_class`` does (the error said only which module was not
+    found)."""
     try:
         return cloudpickle.loads(cls)
     except ImportError as exc:
-        silent = served.silent_servers()
-        if not silent:
+        trouble = served.server_trouble()
+        if not trouble:
             raise
-        raise type(exc)(f"{exc}; module server {', '.join(silent)} did not answer: start "
-                        "it, or check its address and that its port is open",
-                        name=exc.name) from exc
+        raise type(exc)(f"{exc}{trouble}", name=exc.name) from exc
 
 
 class _Terminated(BaseException):
