@@ -353,3 +353,10 @@ def test_a_call_submitted_to_a_socket_loop_before_it_closes_still_runs() -> None
         loop.close()
         reader.close(0)
         writer.close(0)
+
+
+def test_closing_a_server_twice_does_nothing_the_second_time() -> None:
+    """A second ``close`` (an owner's, then a fixture's) raised ZeroMQ's error."""
+    server = ControlServer(KEY, lambda op, args: op)
+    server.close()
+    server.close()

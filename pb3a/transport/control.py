@@ -121,6 +121,7 @@ class ControlServer:
         self._work: queue.SimpleQueue[tuple[Any, bytes, str | None, Any] | None] = (
             queue.SimpleQueue())
         self._refused_at: dict[bytes, float] = {}      # peer -> when we last told it
+        self._closed = False
         self._worker = threading.Thread(target=self._serve, name=name, daemon=True)
         self._worker.start()
         self._loop.register(self._router, self._on_request)
@@ -227,7 +228,11 @@ class ControlServer:
         self._router.send_multipart([peer, *self._sealer.seal(REPLY, [request_id, blob])])
 
     def close(self) -> None:
-        """Stop serving; on return the port is free, so a server may bind it again."""
+        """Stop serving; on return the port is free, so a server may bind it again.
+        Closing again does nothing."""
+        if self._closed:
+            return
+        self._closed = True
         self._work.put(None)
         self._worker.join(5.0)
         # a request running aside and about to answer (a follower told the system
