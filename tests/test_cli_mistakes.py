@@ -62,7 +62,7 @@ def _mistakes(tmp: Path) -> list[tuple[list[str], int, str]]:
         (["node", "start", "--name", "a b", "--listen", "tcp://127.0.0.1:0"], 1,
          "bad node name 'a b'"),
         (["modules", "serve", str(tmp / "nowhere")], 1, "nowhere"),
-        (["modules", "serve", str(tmp / "broken.toml")], 1, "is not a directory"),
+        (["modules", "serve", str(tmp / "broken.toml")], 1, "to serve modules from: it is a file"),
         (["scenario", "nope"], 2,
          "no scenario 'nope'; the scenarios: mapping, self-migration, sim-to-real"),
         (["stress", missing], 1, "cannot read"),

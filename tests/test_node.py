@@ -87,7 +87,7 @@ def test_a_forced_stop_kills_the_executor(node) -> None:
 
 
 _KILLED_OWNER = """
-import json, multiprocessing, signal
+import json, multiprocessing, os, signal
 from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import RING, live_segments, reap_child, segment_name
 from pb3a.transport.snapshot import make_room
@@ -95,7 +95,7 @@ from pb3a.transport.snapshot import make_room
 def owner(names):
     ring = ShmRing.create(segment_name(RING), 64, 8, 64)    # on the shared tracker's list
     make_room(segment_name("state"), 4096)                 # a snapshot's: not on it
-    names.put(live_segments())
+    names.put(live_segments(os.getpid()))
     signal.pause()
 
 if __name__ == "__main__":
