@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import eventually
 from sample_modules import Counter, FastScale, Last, OnFlag, Relay, Scale
@@ -77,6 +78,34 @@ def test_set_gives_a_float_field_a_float_for_a_whole_number(capsys) -> None:
         assert type(state["gain"]) is float and type(state["setups"]) is int
         run.wait(0.3)
         assert run.stats().modules["scale"].errors == 0
+
+
+class Weighted(Module):
+    """Float state of other shapes than a plain float: a numpy float, a list of floats."""
+
+    gain = np.float64(1.5)
+    weights = [0.5, 1.5]
+    limits = {"low": 0.5}
+
+
+def test_set_gives_floats_in_numpy_fields_and_lists_and_names_a_number_too_large(
+        capsys) -> None:
+    """Only a plain float field was converted: a numpy float field or a list of floats
+    took ints (the State Editor gives floats), and a whole number beyond any float ended
+    in OverflowError's traceback."""
+    with System("set-floats").add("w", Weighted).launch() as run:
+        address = run.listen()
+        assert main(["set", address, "w", "gain=4", "weights=[1, 2, 3]",
+                     "limits={\"low\": 1, \"new\": 2}"]) == 0
+        capsys.readouterr()
+        state = run.state("w")
+        assert type(state["gain"]) is float and state["gain"] == 4.0
+        assert [type(item) for item in state["weights"]] == [float] * 3
+        assert state["limits"] == {"low": 1.0, "new": 2} and type(state["limits"]["low"]) \
+            is float and type(state["limits"]["new"]) is int
+        assert main(["set", address, "w", "weights=[0.5]", "gain=1" + "0" * 400]) == 1
+        assert "w.gain holds a float, and 1000" in capsys.readouterr().err
+        assert run.state("w")["gain"] == 4.0 and len(run.state("w")["weights"]) == 3
 
 
 def _no_constant(name: str) -> None:
