@@ -13,17 +13,28 @@ def summary(doc: str | None) -> str:
     return " ".join((doc or "").split("\n\n")[0].split())
 
 
-def seed(text: str) -> int:
+SUMO_SEED_MAX = 2**31 - 1       # SUMO reads its --seed as a C int
+
+
+def seed(text: str, most: int | None = None) -> int:
     """``--seed``: a whole number, 0 or more (numpy takes no other: -1 crashed the world
-    server's process, and the scenario ended in two tracebacks)."""
+    server's process, and the scenario ended in two tracebacks), and at most ``most``."""
     try:
         value = int(text)
     except ValueError:
         value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a seed: give a whole number, 0 "
-                                         "or more")
+    if value < 0 or (most is not None and value > most):
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a seed: give a whole number, 0 or more"
+            + ("" if most is None else f" and at most {most}"))
     return value
+
+
+def sumo_seed(text: str) -> int:
+    """``--seed`` of a run on SUMO, which takes none above ``SUMO_SEED_MAX``: 2147483648
+    passed, and the traffic scenario ended in libsumo's traceback ("Could not parse
+    commandline options")."""
+    return seed(text, SUMO_SEED_MAX)
 
 
 def output_directory(text: str) -> Path:

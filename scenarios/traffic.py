@@ -50,7 +50,7 @@ from agents.traffic.networks import Network
 from pb3a import System
 from pb3a.cli.log_output import show_logs
 from pb3a.loading.references import resolve_class
-from scenarios import output_directory, seed, summary
+from scenarios import SUMO_SEED_MAX, output_directory, summary, sumo_seed
 
 CONFIG = Path(__file__).with_name("traffic.toml")
 NETWORKS = Path(__file__).with_name("traffic")
@@ -304,7 +304,8 @@ def main(argv: list[str] | None = None) -> int:
                              "instead of an hour")
     parser.add_argument("--network", default="ring",
                         help="ring, grid, or the path of a network description (.toml)")
-    parser.add_argument("--seed", type=seed, default=1, help="0 or more (default 1)")
+    parser.add_argument("--seed", type=sumo_seed, default=1,
+                        help=f"0 to {SUMO_SEED_MAX} (default 1)")
     parser.add_argument("--out", default=".", help="directory for the JSON and the PNG")
     parser.add_argument("--scale", action="append", default=[], metavar="[PERIOD=]FACTOR",
                         help="multiply the demand's rates: in one period (surge=2), or "

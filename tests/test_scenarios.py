@@ -373,6 +373,16 @@ def test_a_seed_numpy_cannot_take_is_refused_as_the_arguments_are_read(capsys,
     assert time.monotonic() - started < 10
 
 
+def test_a_seed_sumo_cannot_take_is_refused_as_the_arguments_are_read(capsys) -> None:
+    """SUMO reads --seed as a C int: 2147483648 passed the check, and the traffic
+    scenario ended in libsumo's traceback ("Could not parse commandline options")."""
+    with pytest.raises(SystemExit) as ended:
+        main(["scenario", "traffic", "--quick", "--seed", "2147483648"])
+    assert ended.value.code == 2
+    assert ("'2147483648' is not a seed: give a whole number, 0 or more and at most "
+            "2147483647") in capsys.readouterr().err
+
+
 @pytest.mark.parametrize(("scenario", "ends"), [
     ("mapping", "maps on."), ("sim-to-real", "finishes learning there."),
     ("self-migration", "stress processes load."), ("traffic", "actuated programs.")])
