@@ -203,6 +203,49 @@ def test_a_robot_scenario_killed_with_its_group_leaves_no_node_controller(
                 os.unlink(f"/dev/shm/{name}")
 
 
+_LAB_NODE_ON_A_THREAD = """
+import threading, time
+from scenarios.lab import NodeControllerProcess
+
+made = []
+thread = threading.Thread(target=lambda: made.append(NodeControllerProcess("r1")))
+thread.start()
+thread.join()
+print(made[0].process.pid, flush=True)
+time.sleep(60)
+"""
+
+
+@pytest.mark.timeout(60)
+def test_a_lab_node_made_on_a_thread_that_ends_serves_on_until_its_launcher_ends(
+        tmp_path: Path) -> None:
+    """PR_SET_PDEATHSIG fires when the *thread* that started the child ends: a lab's
+    node controller made on a thread that then ended stopped at once, its launcher
+    alive."""
+    script = tmp_path / "launcher.py"
+    script.write_text(_LAB_NODE_ON_A_THREAD)
+    proc = subprocess.Popen([sys.executable, str(script)], env=_env(), cwd=tmp_path,
+                            stdout=subprocess.PIPE, text=True)
+    controller = None
+    try:
+        controller = psutil.Process(int(proc.stdout.readline()))
+        time.sleep(2.0)
+        assert alive(controller.pid), "it stopped, its launcher alive"
+        proc.kill()                                 # the launcher's end still ends it
+        proc.wait(10)
+        eventually(lambda: not alive(controller.pid), timeout=20,
+                   what="the node controller ending with its launcher")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        if controller is not None:
+            with contextlib.suppress(psutil.Error):
+                for process in [*controller.children(recursive=True), controller]:
+                    process.kill()
+        proc.stdout.close()
+
+
 def test_run_reports_an_invalid_file_and_starts_nothing(tmp_path: Path) -> None:
     bad = tmp_path / "bad.toml"
     bad.write_text('name = "bad"\n[modules.x]\nclass = "examples.pipeline:Nope"\n')
