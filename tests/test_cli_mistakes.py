@@ -157,6 +157,16 @@ def test_modules_serve_names_a_directory_that_is_not_there(tmp_path: Path, capsy
         assert said in err and "Errno" not in err and out == ""
 
 
+def test_modules_serve_names_a_symlink_loop(tmp_path: Path, capsys) -> None:
+    """A DIR that is a symlink to itself ended in a RuntimeError traceback."""
+    loop = tmp_path / "loop"
+    loop.symlink_to(loop)
+    assert main(["modules", "serve", str(loop), "--listen", "tcp://127.0.0.1:0"]) == 1
+    out, err = capsys.readouterr()
+    assert f"pb3a modules serve: no directory {loop} to serve modules from" in err, err
+    assert out == ""
+
+
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGHUP], ids=["Ctrl-C", "hangup"])
 def test_stress_interrupted_writes_its_report_then_exits_130(tmp_path: Path,
                                                              signum: int) -> None:

@@ -27,7 +27,11 @@ class ModuleServer:
 
     def __init__(self, root: str | Path, key: ClusterKey, host: str = "127.0.0.1",
                  port: int = 0) -> None:
-        self.root = Path(root).resolve()
+        try:
+            self.root = Path(root).resolve()
+        except (OSError, RuntimeError) as exc:      # (a symlink loop: its traceback)
+            raise ValueError(f"no directory {root} to serve modules from ({exc}); give the "
+                             "directory that holds the modules' packages") from None
         if not self.root.is_dir():      # (resolve(strict=True) said only "[Errno 2] ...")
             raise ValueError(f"no directory {root} to serve modules from"
                              + (": it is a file" if self.root.exists() else "")
