@@ -91,20 +91,22 @@ class Weighted(Module):
 def test_set_gives_floats_in_numpy_fields_and_lists_and_names_a_number_too_large(
         capsys) -> None:
     """Only a plain float field was converted: a numpy float field or a list of floats
-    took ints (the State Editor gives floats), and a whole number beyond any float ended
-    in OverflowError's traceback."""
+    took ints (the State Editor gives floats, and so does pb3a set now, through the same
+    ``coerce``), and a whole number beyond any float ended in OverflowError's
+    traceback."""
     with System("set-floats").add("w", Weighted).launch() as run:
         address = run.listen()
         assert main(["set", address, "w", "gain=4", "weights=[1, 2, 3]",
                      "limits={\"low\": 1, \"new\": 2}"]) == 0
         capsys.readouterr()
         state = run.state("w")
-        assert type(state["gain"]) is float and state["gain"] == 4.0
+        assert type(state["gain"]) is np.float64 and state["gain"] == 4.0
         assert [type(item) for item in state["weights"]] == [float] * 3
         assert state["limits"] == {"low": 1.0, "new": 2} and type(state["limits"]["low"]) \
             is float and type(state["limits"]["new"]) is int
         assert main(["set", address, "w", "weights=[0.5]", "gain=1" + "0" * 400]) == 1
-        assert "w.gain holds a float, and 1000" in capsys.readouterr().err
+        assert "w: state 'gain' takes a number a float64 holds, got 1000" in \
+            capsys.readouterr().err
         assert run.state("w")["gain"] == 4.0 and len(run.state("w")["weights"]) == 3
 
 
@@ -123,22 +125,18 @@ def test_every_command_changes_a_running_system_and_speaks_json(capsys) -> None:
     with system.launch() as run:
         address = run.listen()
         bare = address.removeprefix("tcp://")              # HOST:PORT works too
-        assert main(["set", bare, "src", "limit=Infinity"]) == 0
-        capsys.readouterr()
-        assert main(["state", bare, "src"]) == 0                    # for people: as set
-        assert '"limit": Infinity' in capsys.readouterr().out
-        assert main(["state", bare, "src", "--json"]) == 0          # valid JSON: null
-        assert json.loads(capsys.readouterr().out, parse_constant=_no_constant)["limit"] \
-            is None
-        assert main(["set", bare, "src", "limit=3"]) == 0
+        assert main(["set", bare, "src", "limit=Infinity"]) == 1    # an int field
+        assert "src: state 'limit' takes a whole number, got inf; nothing was set" in \
+            capsys.readouterr().err
+        assert main(["set", bare, "src", "limit=3.0"]) == 0         # (JSON's 3.0 is 3)
         assert "src: limit = 3" in capsys.readouterr().out
-        assert run.state("src")["limit"] == 3
+        assert type(run.state("src")["limit"]) is int and run.state("src")["limit"] == 3
         # text for a field that holds no text is refused (it was set, as text: a bool's
         # "False" left the module enabled, a float's "0,3" made every step raise)
         assert main(["set", bare, "src", "count=5", "limit=3,5"]) == 1
-        assert ("limit=3,5 is not JSON, and src.limit is float (3.0), not text: give it "
+        assert ("limit=3,5 is not JSON, and src.limit is int (3), not text: give it "
                 "as JSON") in capsys.readouterr().err
-        assert run.state("src")["limit"] == 3
+        assert run.state("src")["limit"] == 3 and run.state("src")["count"] != 5
         assert main(["relink", address, "other.out", "relay.x", "--json"]) == 0
         assert json.loads(capsys.readouterr().out)["from"] == "other.out"
         eventually(lambda: "other.out->relay.x" in run.stats().links, what="the new link")
@@ -146,6 +144,13 @@ def test_every_command_changes_a_running_system_and_speaks_json(capsys) -> None:
                      "--state", "value=1.5"]) == 0
         assert "probe" in capsys.readouterr().out and run.where("probe") == "b"
         assert run.state("probe")["value"] == 1.5
+        assert main(["set", bare, "probe", "value=Infinity"]) == 0
+        capsys.readouterr()
+        assert main(["state", bare, "probe"]) == 0                  # for people: as set
+        assert '"value": Infinity' in capsys.readouterr().out
+        assert main(["state", bare, "probe", "--json"]) == 0        # valid JSON: null
+        assert json.loads(capsys.readouterr().out, parse_constant=_no_constant)["value"] \
+            is None
         assert main(["add", address, "tag", f"{OnFlag.__module__}:OnFlag",
                      "--state", "flag=nowhere"]) == 0      # text, as text (a str, kept)
         capsys.readouterr()

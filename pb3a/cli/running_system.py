@@ -14,7 +14,6 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
 import zmq
 
 from pb3a.cli.arguments import wait_seconds
@@ -22,6 +21,7 @@ from pb3a.cli.status import format_nodes, format_table
 from pb3a.errors import PB3AError, SystemStopped
 from pb3a.events import Event
 from pb3a.launch.connection import Connection, connect
+from pb3a.model.state_edits import coerce
 from pb3a.stats import plain
 from pb3a.transport.auth import ClusterKeyError
 
@@ -109,24 +109,27 @@ def _state(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
 
 
 def _set(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
+    """Each value made the type of the field's current value, as the State Editor makes
+    it (``coerce``: JSON writes 4.0 as 4, and gain=4 made Scale's float output an int);
+    nothing is set unless every field fits. A state this process cannot read is set as
+    given."""
     values, texts = _values(args.values)
     deadline = None if args.timeout is None else time.monotonic() + args.timeout
-    whole = [name for name, value in values.items() if _has_whole_number(value)]
-    if texts or whole:      # text for a field that holds no text is a mistyped value
+    try:
+        now = system.state(args.module, timeout=args.timeout)
+    except PB3AError:
+        now = {}
+    wrong = [f"{name}={values[name]} is not JSON, and {args.module}.{name} is "
+             f"{type(now[name]).__name__} ({now[name]!r}), not text: give it as JSON "
+             "(true, false, 0.3, NaN, [1, 2], \"text\")" for name in texts
+             if now.get(name) is not None and not isinstance(now[name], str)]
+    for name in [name for name in values if name in now and name not in texts]:
         try:
-            now = system.state(args.module, timeout=args.timeout)
-        except PB3AError:   # (a state this process cannot read: set as given, as before)
-            now = {}
-        for name in whole:  # JSON writes 4.0 as 4: a float field stays a float (as the
-            if name in now:  # manager's State Editor converts it; gain=4 made Scale's
-                values[name] = _floats_as_held(f"{args.module}.{name}",  # output an int)
-                                               now[name], values[name])
-        wrong = [f"{name}={values[name]} is not JSON, and {args.module}.{name} is "
-                 f"{type(now[name]).__name__} ({now[name]!r}), not text: give it as JSON "
-                 "(true, false, 0.3, NaN, [1, 2], \"text\")" for name in texts
-                 if now.get(name) is not None and not isinstance(now[name], str)]
-        if wrong:
-            raise ValueError("; ".join(wrong) + "; nothing was set")
+            values[name] = coerce(name, now[name], values[name])
+        except ValueError as exc:
+            wrong.append(f"{args.module}: {exc}")
+    if wrong:
+        raise ValueError("; ".join(wrong) + "; nothing was set")
     system.set_state(args.module, values,            # (one timeout for both calls)
                      timeout=None if deadline is None else max(0.1, deadline - time.monotonic()))
     told = ", ".join(f"{key} = {value!r}" for key, value in values.items())
@@ -215,36 +218,6 @@ def _address(text: str) -> str:
         raise ValueError(f"{text!r} is not a launcher's address: give tcp://HOST:PORT (or "
                          "HOST:PORT), as pb3a run prints it")
     return address
-
-
-def _has_whole_number(value: Any) -> bool:
-    """Whether JSON ``value`` is, or holds, a whole number (which a float may have been)."""
-    if isinstance(value, list):
-        return any(_has_whole_number(item) for item in value)
-    if isinstance(value, dict):
-        return any(_has_whole_number(item) for item in value.values())
-    return type(value) is int
-
-
-def _floats_as_held(field: str, current: Any, new: Any) -> Any:
-    """``new`` (from JSON) with each whole number a float where ``current`` holds a float
-    (a numpy one too), in lists and dicts as well, as the State Editor converts it: a
-    list of floats was set as ints. ValueError naming ``field`` for a whole number no
-    float holds (``OverflowError``'s traceback)."""
-    if isinstance(current, (float, np.floating)) and type(new) is int:
-        try:
-            return float(new)
-        except OverflowError:
-            raise ValueError(f"{field} holds a float, and {str(new)[:20]}... ({len(str(new))} "
-                             "digits) is beyond any float; nothing was set") from None
-    if isinstance(current, (list, tuple)) and current and isinstance(new, list):
-        last = len(current) - 1
-        return [_floats_as_held(field, current[min(index, last)], item)
-                for index, item in enumerate(new)]
-    if isinstance(current, dict) and isinstance(new, dict):
-        return {key: _floats_as_held(field, current[key], item) if key in current else item
-                for key, item in new.items()}
-    return new
 
 
 def _values(pairs: list[str]) -> tuple[dict[str, Any], list[str]]:

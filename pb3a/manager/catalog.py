@@ -30,9 +30,9 @@ from pb3a.errors import PB3AError
 from pb3a.loading.references import class_ref, resolve_class
 from pb3a.loading.served import forget as forget_module
 from pb3a.loading.served import use_module_servers
-from pb3a.manager.reflection import is_plain
 from pb3a.model.macro import Macro
 from pb3a.model.module import Module
+from pb3a.model.state_edits import is_plain
 from pb3a.topology import class_kind, displays_of, ports
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient

@@ -4,9 +4,8 @@
 strings and booleans as they are; lists, tuples and dicts with their first items
 (to a bounded depth); numpy arrays with shape, dtype and a summary, small ones with
 their values, 2-D numeric ones as a picture (``png_of``); anything else by its class
-and ``repr``. ``coerce`` checks a value a user typed against the field's current
-value and converts it to the field's type (an int for a float, a nested list for an
-array of the same shape and dtype), or says what the field takes.
+and ``repr``. A value typed into it is made the field's type by
+``pb3a.model.state_edits.coerce``, as ``pb3a set`` does.
 """
 
 from __future__ import annotations
@@ -18,6 +17,8 @@ from typing import Any
 from urllib.parse import quote
 
 import numpy as np
+
+from pb3a.model.state_edits import is_plain
 
 ITEMS_SHOWN = 50            # items of a list or dict shown at once
 DEPTH = 3                   # container levels shown below the path asked for
@@ -127,120 +128,6 @@ def _plain_values(value: Any) -> Any:
     if isinstance(value, float) and not math.isfinite(value):
         return None
     return value
-
-
-def is_plain(value: Any) -> bool:
-    """Whether ``value`` is made of JSON types only (so it can be edited as JSON)."""
-    if value is None or isinstance(value, (bool, int, str)):
-        return True
-    if isinstance(value, float):
-        return math.isfinite(value)
-    if isinstance(value, (list, tuple)):
-        return all(is_plain(item) for item in value)
-    if isinstance(value, dict):
-        return all(isinstance(key, str) and is_plain(item) for key, item in value.items())
-    return False
-
-
-def coerce(field: str, current: Any, new: Any) -> Any:
-    """``new`` (from JSON) as the type of the field's ``current`` value; ValueError
-    naming the field and what it takes."""
-    def refuse(takes: str) -> ValueError:
-        return ValueError(f"state {field!r} takes {takes}, got {new!r}")
-
-    if isinstance(current, (bool, np.bool_)):
-        if not isinstance(new, bool):
-            raise refuse("true or false")
-        return type(current)(new) if isinstance(current, np.bool_) else new
-    if isinstance(current, (int, np.integer)):
-        if isinstance(new, float) and new.is_integer():
-            new = int(new)
-        if not isinstance(new, int) or isinstance(new, bool):
-            raise refuse("a whole number")
-        try:
-            return type(current)(new) if isinstance(current, np.integer) else new
-        except OverflowError:
-            raise refuse(f"a whole number a {type(current).__name__} holds") from None
-    if isinstance(current, (float, np.floating)):
-        if not isinstance(new, (int, float)) or isinstance(new, bool):
-            raise refuse("a number")
-        try:
-            with np.errstate(over="ignore"):
-                number = type(current)(new)
-        except OverflowError:
-            raise refuse(f"a number a {type(current).__name__} holds") from None
-        if math.isfinite(new) and not math.isfinite(number):    # (1e300 as a float32: inf)
-            raise refuse(f"a number a {type(current).__name__} holds")
-        return number
-    if isinstance(current, str):
-        if not isinstance(new, str):
-            raise refuse("a string")
-        return new
-    if current is None:
-        return new
-    if isinstance(current, np.ndarray):
-        return _coerce_array(field, current, new)
-    if isinstance(current, (list, tuple, dict)) and is_plain(current):
-        want = dict if isinstance(current, dict) else list
-        if not isinstance(new, want):
-            raise refuse("an object ({...})" if want is dict else "a list ([...])")
-        return _like(current, new)
-    raise ValueError(f"state {field!r} is a {type(current).__name__}, which the State Editor "
-                     "cannot set: set it from a program (run.set_state)")
-
-
-def _coerce_array(field: str, current: np.ndarray, new: Any) -> np.ndarray:
-    what = f"a nested list of shape {list(current.shape)} of {current.dtype} values"
-    if current.dtype.kind not in "biuf":
-        raise ValueError(f"state {field!r} is an array of {current.dtype}, which the State "
-                         "Editor cannot set: set it from a program (run.set_state)")
-    if not isinstance(new, list):
-        raise ValueError(f"state {field!r} takes {what}, got {new!r}")
-    try:
-        array = np.asarray(new, dtype=np.float64 if current.dtype.kind == "f" else None)
-    except (ValueError, TypeError):
-        raise ValueError(f"state {field!r} takes {what}; the lists given are ragged or "
-                         "hold something else than numbers") from None
-    if array.shape != current.shape:
-        raise ValueError(f"state {field!r} takes {what}, got shape {list(array.shape)}")
-    if array.dtype.kind not in "biuf":
-        raise ValueError(f"state {field!r} takes {what}, got {array.dtype} values")
-    if current.dtype.kind in "iu" and not np.array_equal(array, np.round(array)):
-        raise ValueError(f"state {field!r} takes {what}: whole numbers only")
-    # (astype wraps what does not fit: 300 as an int8 was 44, 1e300 as a float32 inf)
-    if current.dtype.kind in "iu" and array.size:
-        held = np.iinfo(current.dtype)
-        if array.min() < held.min or array.max() > held.max:
-            raise ValueError(f"state {field!r} takes {what}: each from {held.min} to "
-                             f"{held.max}")
-    with np.errstate(over="ignore"):
-        converted = array.astype(current.dtype)
-    if current.dtype.kind == "f" and not np.isfinite(converted[np.isfinite(array)]).all():
-        raise ValueError(f"state {field!r} takes {what}: each within "
-                         f"±{float(np.finfo(current.dtype).max):g}")
-    return converted
-
-
-def _like(current: Any, new: Any) -> Any:
-    """``new`` (from JSON) in the types of ``current``, item by item: JSON has no
-    tuples and writes 1.0 as 1, so an edited list of float pairs came back a list of
-    int lists. An item beyond ``current``'s takes the type of its last item; a value of
-    another kind is kept as sent."""
-    if isinstance(current, bool) or current is None:
-        return new
-    if isinstance(current, float) and isinstance(new, int) and not isinstance(new, bool):
-        return float(new)
-    if isinstance(current, int) and isinstance(new, float) and new.is_integer():
-        return int(new)
-    if isinstance(current, dict) and isinstance(new, dict):
-        return {key: _like(current[key], item) if key in current else item
-                for key, item in new.items()}
-    if isinstance(current, (list, tuple)) and isinstance(new, list):
-        last = len(current) - 1
-        items = [_like(current[min(index, last)], item) if current else item
-                 for index, item in enumerate(new)]
-        return tuple(items) if isinstance(current, tuple) else items
-    return new
 
 
 def png_of(array: Any) -> bytes:

@@ -29,6 +29,7 @@ from pb3a.manager.catalog import Catalog
 from pb3a.manager.document import Document, toml_text
 from pb3a.manager.layout import layout
 from pb3a.model.ports import Policy
+from pb3a.model.state_edits import coerce
 from pb3a.system import System
 from pb3a.topology import Topology, plan_topology
 
@@ -193,7 +194,7 @@ class Session:
         problems, fitted = [], {}
         for field, value in values.items():
             try:
-                fitted[field] = reflection.coerce(field, current[field], value)
+                fitted[field] = coerce(field, current[field], value)
             except ValueError as exc:
                 problems.append(f"module {name}: {exc}")
         if problems:
