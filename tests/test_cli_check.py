@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -140,17 +141,31 @@ def test_the_two_node_example_is_valid_and_runs_across_nodes(capsys) -> None:
         assert run.stats().links["tick.out->scale.x"].transport == "zmq"
 
 
-@pytest.mark.parametrize("output", ["drawings", "out"])
+@pytest.mark.parametrize("output", ["drawings", "out", ""])
 def test_graph_to_a_directory_or_a_name_without_suffix_is_refused(tmp_path: Path,
                                                                  output: str) -> None:
     """-o DIR wrote DIR.dot beside the directory, then failed in dot's words; -o out
-    wrote SVG into a file named out."""
+    wrote SVG into a file named out; -o '' was taken for no -o."""
     (tmp_path / "drawings").mkdir()
     done = pb3a("graph", str(PIPELINE), "-o", output, cwd=tmp_path)
     assert done.returncode == 1
-    assert f"-o {output}: give a file, its suffix the format" in done.stderr
+    assert f"-o {output!r}: give a file, its suffix the format" in done.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["drawings"]
     assert not list((tmp_path / "drawings").iterdir())
+
+
+@pytest.mark.skipif(shutil.which("dot") is None, reason="needs Graphviz's dot")
+def test_graph_to_a_format_graphviz_has_not_writes_nothing(tmp_path: Path) -> None:
+    """-o map.v2 wrote map.dot, then failed with dot's list of formats; -o out.DOT ran
+    dot -TDOT, which failed."""
+    done = pb3a("graph", str(PIPELINE), "-o", "map.v2", cwd=tmp_path)
+    assert done.returncode == 1
+    assert "dot could not write map.v2" in done.stderr and "not recognized" in done.stderr
+    assert list(tmp_path.iterdir()) == []
+    done = pb3a("graph", str(PIPELINE), "-o", "out.DOT", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert [p.name for p in tmp_path.iterdir()] == ["out.DOT"]
+    assert (tmp_path / "out.DOT").read_text().startswith("digraph")
 
 
 @pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="the example pins node a to CPU 1")

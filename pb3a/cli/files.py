@@ -60,33 +60,35 @@ def graph_command(args: argparse.Namespace) -> int:
     if args.output == "-":
         sys.stdout.write(text)
         return 0
-    out = Path(args.output) if args.output else Path(Path(args.file).stem + ".svg")
-    if out.is_dir() or not out.suffix:
+    out = Path(args.output) if args.output is not None else Path(Path(args.file).stem + ".svg")
+    fmt = out.suffix.lstrip(".").lower()
+    if out.is_dir() or not fmt:
         # (a directory got NAME.dot beside it, then dot's own error; a NAME without a
         # suffix got SVG in a file of that name)
-        print(f"pb3a graph: -o {args.output}: give a file, its suffix the format (.svg, "
+        print(f"pb3a graph: -o {args.output!r}: give a file, its suffix the format (.svg, "
               ".png, .pdf; .dot for DOT only; - for DOT on stdout)", file=sys.stderr)
         return 1
-    dot_path = out if out.suffix == ".dot" else out.with_suffix(".dot")
+    dot_path = out if fmt == "dot" else out.with_suffix(".dot")
+    dot = shutil.which("dot")
+    if fmt != "dot" and dot is not None:        # drawn first: a format dot has not (.v2)
+        done = subprocess.run([dot, f"-T{fmt}", "-o", str(out)], input=text,   # writes
+                              capture_output=True, text=True, timeout=120, check=False)
+        if done.returncode != 0:                                # nothing, DOT neither
+            print(f"pb3a graph: dot could not write {out}: {done.stderr.strip()}",
+                  file=sys.stderr)
+            return 1
     try:
         dot_path.write_text(text)
     except OSError as exc:
         print(f"pb3a graph: cannot write {dot_path}: {exc.strerror or exc}", file=sys.stderr)
         return 1
-    if out == dot_path:
+    if fmt == "dot":
         print(f"wrote {dot_path}")
         return 0
-    dot = shutil.which("dot")
     if dot is None:
         print(f"pb3a graph: wrote {dot_path}, but Graphviz's 'dot' program is not on PATH, so "
               f"no {out.name}: install Graphviz (e.g. apt-get install graphviz), or ask for DOT "
               "only with -o FILE.dot", file=sys.stderr)
-        return 1
-    fmt = out.suffix.lstrip(".") or "svg"
-    done = subprocess.run([dot, f"-T{fmt}", str(dot_path), "-o", str(out)],
-                          capture_output=True, text=True, timeout=120, check=False)
-    if done.returncode != 0:
-        print(f"pb3a graph: dot could not write {out}: {done.stderr.strip()}", file=sys.stderr)
         return 1
     print(f"wrote {dot_path} and {out}")
     return 0

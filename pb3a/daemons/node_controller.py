@@ -132,7 +132,8 @@ class NodeController:
             process.kill()
             process.join(5.0)
         pipe.close()
-        reap_child(process.pid)     # the segments of an executor that could not free them
+        if not process.is_alive():  # (one stuck in the kernel still uses its segments)
+            reap_child(process.pid)  # the segments of an executor that could not free them
         reap_orphans()              # (and of its workers)
         return True
 
