@@ -48,13 +48,17 @@ def start_without_main(process: Any, timeout: float | None = None) -> None:
 
     given_up = threading.Event()
     threading.Thread(target=start, daemon=True, name="pb3a-start").start()
-    done.wait(timeout)
-    with decided:
-        if not done.is_set():
-            given_up.set()
-            raise RuntimeTimeout(
-                f"no process started within {timeout:g} s: the forkserver that starts "
-                "this node's workers does not answer (stopped or hung?)")
+    try:
+        done.wait(timeout)
+    finally:                        # (a Ctrl-C as it waits gives up too: the process,
+        with decided:               # if one comes, is nobody's)
+            late = not done.is_set()
+            if late:
+                given_up.set()
+    if late:
+        raise RuntimeTimeout(f"no process started within {timeout:g} s: the forkserver "
+                             "that starts this node's workers does not answer (stopped "
+                             "or hung?)")
     if outcome:
         raise outcome[0]
 

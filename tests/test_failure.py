@@ -38,7 +38,7 @@ from sample_modules import (
     StepStamps,
 )
 
-from pb3a import Input, InputPort, Module, Output, RuntimeFailure, RuntimeTimeout, System
+from pb3a import Input, InputPort, Module, Output, RuntimeFailure, RuntimeTimeout, System, processes
 from pb3a.transport.doorbell import new_bell
 from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import live_segments, segment_name
@@ -615,6 +615,39 @@ def test_a_link_the_receiver_cannot_read_is_set_aside_while_the_others_flow(capl
     assert busy < 0.5, f"the receiver is busy {busy:.0%} of the time"
     assert "cannot read link w.out->sink.bad" in caplog.text
     assert "corrupt ring record" in caplog.text
+
+
+def test_a_start_interrupted_as_it_waits_kills_the_process_that_comes_later(
+        monkeypatch) -> None:
+    """A Ctrl-C while a worker's start waited for the forkserver left the start going on
+    beside it, and the process it made was nobody's: it is killed once it comes."""
+    release, killed = threading.Event(), threading.Event()
+
+    class Started:
+        def kill(self) -> None:
+            killed.set()
+
+        def join(self, timeout: float) -> None:
+            pass
+
+    class Interrupted(Exception):
+        pass
+
+    def interrupt(*_: object) -> None:
+        raise Interrupted
+
+    monkeypatch.setattr(processes, "_start", lambda process: release.wait(10))
+    previous = signal.signal(signal.SIGUSR1, interrupt)     # (a Ctrl-C's stand-in)
+    try:
+        threading.Timer(0.2, signal.pthread_kill,
+                        (threading.main_thread().ident, signal.SIGUSR1)).start()
+        with pytest.raises(Interrupted):
+            processes.start_without_main(Started(), timeout=30)
+    finally:
+        signal.signal(signal.SIGUSR1, previous)
+    assert not killed.is_set()
+    release.set()                                   # the forkserver answers, late
+    assert killed.wait(5)
 
 
 def test_an_add_whose_worker_the_frozen_forkserver_cannot_start_fails_within_its_deadline(
