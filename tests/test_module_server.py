@@ -3,6 +3,7 @@ reload with the state kept, and nothing served from outside its directory."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -10,6 +11,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -50,12 +52,16 @@ def _write(path: Path, text: str) -> None:
     os.utime(path)                             # (a new mtime, whatever the clock's grain)
 
 
+def _served_ticker(root: Path, server: str) -> System:
+    """A system of one ticker ``t``, whose class only the module server at ``server``
+    has (written into its directory ``root``)."""
+    _write(root / "pb3a_served_ticker.py", TICKER.format(factor=1))
+    return System("served", module_servers=[server]).add("t", "pb3a_served_ticker:Ticker")
+
+
 def test_a_class_only_the_server_has_runs_and_a_changed_file_is_swapped_in(served) -> None:
     root, server = served
-    _write(root / "pb3a_served_ticker.py", TICKER.format(factor=1))
-    system = System("served", module_servers=[server.address])
-    system.add("t", "pb3a_served_ticker:Ticker")
-    with system.launch() as run:
+    with _served_ticker(root, server.address).launch() as run:
         eventually(lambda: run.state("t")["count"] > 5, what="the served class stepping")
         _write(root / "pb3a_served_ticker.py", TICKER.format(factor=1000))
         run.reload("pb3a_served_ticker")
@@ -164,20 +170,27 @@ def test_a_module_server_that_does_not_answer_holds_up_one_import_not_every_one(
     assert waits[0] >= 0.3 and max(waits[1:]) < 0.05, waits
 
 
+@contextlib.contextmanager
+def _importing_from(address: str, key: ClusterKey, monkeypatch) -> Iterator[None]:
+    """This process imports from the module server at ``address`` too, for the test."""
+    finder = served_code.ServedModuleFinder(key)
+    finder.add(address)
+    monkeypatch.setattr(sys, "meta_path", [*sys.meta_path, finder])
+    try:
+        yield
+    finally:
+        for client in finder.clients.values():
+            client.close()
+
+
 def test_a_class_that_cannot_be_imported_names_the_module_server_that_did_not_answer(
         monkeypatch) -> None:
     """It said only to check the module path, with the server it needed down."""
     monkeypatch.setattr(served_code, "FIND_TIMEOUT", 0.3)
-    finder = served_code.ServedModuleFinder(ClusterKey.load())
-    finder.add("tcp://127.0.0.1:9")                   # nobody listens there
-    monkeypatch.setattr(sys, "meta_path", [*sys.meta_path, finder])
-    try:
-        with pytest.raises(ImportError, match=r"module server tcp://127.0.0.1:9 did not "
-                                              "answer: start it"):
-            resolve_class("pb3a_nowhere_served:Thing")
-    finally:
-        for client in finder.clients.values():
-            client.close()
+    with _importing_from("tcp://127.0.0.1:9", ClusterKey.load(), monkeypatch), \
+            pytest.raises(ImportError, match=r"module server tcp://127.0.0.1:9 did not "
+                                             "answer: start it"):    # (nobody listens there)
+        resolve_class("pb3a_nowhere_served:Thing")
 
 
 def test_a_class_that_cannot_be_imported_names_the_module_server_that_refused_the_key(
@@ -188,16 +201,12 @@ def test_a_class_that_cannot_be_imported_names_the_module_server_that_refused_th
     root.mkdir()
     (root / "pb3a_served_elsewhere.py").write_text("class Thing:\n    pass\n")
     server = ModuleServer(root, ClusterKey.from_material(b"k" * 32))
-    finder = served_code.ServedModuleFinder(ClusterKey.from_material(b"j" * 32))
-    finder.add(server.address)
-    monkeypatch.setattr(sys, "meta_path", [*sys.meta_path, finder])
     try:
-        with pytest.raises(ImportError, match=rf"module server {server.address} refused "
-                                              "'find': it runs with another cluster key"):
+        with _importing_from(server.address, ClusterKey.from_material(b"j" * 32), monkeypatch), \
+                pytest.raises(ImportError, match=rf"module server {server.address} refused "
+                                                 "'find': it runs with another cluster key"):
             resolve_class("pb3a_served_elsewhere:Thing")
     finally:
-        for client in finder.clients.values():
-            client.close()
         server.close()
 
 
@@ -206,13 +215,9 @@ def test_a_class_a_worker_cannot_import_names_the_module_server_that_did_not_ans
     """In a worker too (an add, a restart, a swap): its error said only which module
     was not found, with the server it needed gone."""
     root, server = served
-    _write(root / "pb3a_served_ticker.py", TICKER.format(factor=1))
-    system = System("served-gone", module_servers=[server.address])
-    system.add("t", "pb3a_served_ticker:Ticker")
-    with system.launch() as run:
+    with _served_ticker(root, server.address).launch() as run:
         eventually(lambda: run.state("t")["count"] > 5, what="the served class stepping")
         server.close()                             # the server's host is gone
-        server.close = lambda: None                # (closed once: the fixture need not)
         with pytest.raises(RuntimeFailure, match=rf"No module named 'pb3a_served_ticker'; "
                            rf"module server {server.address} did not answer: start it"):
             run.add("t2", "pb3a_served_ticker:Ticker", timeout=30)
