@@ -235,8 +235,7 @@ class NodeShare:
             for key, handle in list(workers.handles.items()):
                 if handle.alive:
                     with contextlib.suppress(RuntimeFailure, KeyError):
-                        workers.submit(key, "lease", seconds=self._lease_s,
-                                       until=self._leased_at + self._lease_s)
+                        workers.submit(key, "lease", until=self._leased_at + self._lease_s)
 
     def _measure_peers(self) -> None:
         """Ping every peer now and then: the round-trip times the env module shows."""

@@ -499,10 +499,10 @@ class Worker:
         self._give_runtime(name, module)
         return self.actors[name].swap(module, period)
 
-    def op_lease(self, seconds: float, until: float | None = None) -> None:
-        """The executor is alive: run on for ``seconds`` more, or until ``until`` (the
-        executor's ``time.monotonic()``, the same clock on one machine: a grant read
-        late, after this worker was frozen, extends nothing). A worker whose lease runs
+    def op_lease(self, until: float) -> None:
+        """The executor is alive: run on until ``until``, its own lease's end (its
+        ``time.monotonic()``, the same clock on one machine: a grant read late, after
+        this worker was frozen, extends nothing). A worker whose lease runs
         out stops its modules (as on SIGTERM): its executor is frozen (stopped, hung)
         and cannot fence it, and the launcher starts its modules elsewhere. Until it
         does, no body runs (``lease_holds``): a frozen node let run again stepped its
@@ -510,7 +510,7 @@ class Worker:
         Only a remote node's executor grants leases; a worker that never got one never
         lapses."""
         first = self._lease_until is None
-        self._lease_until = until if until is not None else time.monotonic() + seconds
+        self._lease_until = until
         if first:
             threading.Thread(target=self._keep_lease, daemon=True, name="pb3a-lease").start()
 
