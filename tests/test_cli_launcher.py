@@ -184,14 +184,16 @@ def test_mistakes_on_the_command_line_get_a_sentence_and_exit_1(capsys) -> None:
         for argv, said in (
                 (["status", "7300"], "is not a launcher's address: give tcp://HOST:PORT"),
                 (["set", address, "src", "limit"], "'limit' is not NAME=VALUE"),
-                (["set", address, "src", "nosuch=1"], "has no state 'nosuch'"),
+                (["set", address, "src", "nosuch=1", "limit=2"],      # (not the worker's
+                 "pb3a set: src has no state 'nosuch'; its state: "),   # KeyError: nothing set)
                 (["swap", address, "src", "nowhere:Nothing"], "cannot import module 'nowhere'"),
                 (["migrate", address, "src", "mars"], "no node 'mars'"),
                 (["relink", address, "src.out", "src.nope"], "src has no input 'nope'"),
                 (["remove", address, "ghost"], "no module 'ghost'")):
             assert main(argv) == 1, argv
             err = capsys.readouterr().err
-            assert said in err and "Traceback" not in err, (argv, err)
+            assert said in err and "Traceback" not in err and "KeyError" not in err, (argv, err)
+        assert run.state("src")["limit"] == 0
 
 
 @pytest.mark.timeout(90)

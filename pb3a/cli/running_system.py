@@ -123,6 +123,10 @@ def _set(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
              f"{type(now[name]).__name__} ({now[name]!r}), not text: give it as JSON "
              "(true, false, 0.3, NaN, [1, 2], \"text\")" for name in texts
              if now.get(name) is not None and not isinstance(now[name], str)]
+    unknown = sorted(set(values) - set(now)) if now else []
+    if unknown:             # (the worker's KeyError said it, behind "worker 'node/m-x'")
+        wrong.append(f"{args.module} has no state {', '.join(map(repr, unknown))}; its "
+                     f"state: {', '.join(now)}")
     for name in [name for name in values if name in now and name not in texts]:
         try:
             values[name] = coerce(name, now[name], values[name])
