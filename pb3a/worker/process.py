@@ -523,8 +523,10 @@ class Worker:
         while not self._closing.wait(LEASE_CHECK_S):
             until = self._lease_until
             if until is not None and time.monotonic() > until:
-                log.error("worker %s: its executor granted no lease for too long (frozen "
-                          "or hung): its modules stop", self.key)
+                # (its modules named: a spare that took them still has the key "spare")
+                log.error("the worker of %s: its executor granted no lease for too long "
+                          "(frozen or hung): its modules stop",
+                          ", ".join(self.actors) or "no module")
                 self.lapsed = True
                 os.kill(os.getpid(), signal.SIGTERM)     # (the stop a SIGTERM makes)
                 return
