@@ -16,6 +16,7 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
+from pb3a.cli.arguments import seed
 from pb3a.cli.log_output import show_logs
 
 
@@ -30,7 +31,7 @@ def _parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(required=True, metavar="COMMAND")
     start = commands.add_parser("start", help="serve a world and one server per robot")
     start.add_argument("world", help="a world file (TOML)")
-    start.add_argument("--seed", type=_seed, default=0, help="0 or more (default 0)")
+    start.add_argument("--seed", type=seed, default=0, help="0 or more (default 0)")
     start.add_argument("--listen", default="127.0.0.1", metavar="HOST",
                        help="the interface to serve on (default 127.0.0.1)")
     start.add_argument("--rate", type=float, default=1.0,
@@ -51,18 +52,6 @@ def _parser() -> argparse.ArgumentParser:
     render.add_argument("-o", "--output", default=None, help="image file (default WORLD.png)")
     render.set_defaults(handler=render_command)
     return parser
-
-
-def _seed(text: str) -> int:
-    """A seed, a whole number 0 or more (numpy takes no other)."""
-    try:
-        seed = int(text)
-    except ValueError:
-        seed = -1
-    if seed < 0:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a seed: give a whole number, 0 "
-                                         "or more")
-    return seed
 
 
 def start_command(args: argparse.Namespace) -> int:

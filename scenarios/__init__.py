@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-import argparse
 import tempfile
 from pathlib import Path
+
+from pb3a.cli.arguments import seed
 
 
 def summary(doc: str | None) -> str:
@@ -14,20 +15,6 @@ def summary(doc: str | None) -> str:
 
 
 SUMO_SEED_MAX = 2**31 - 1       # SUMO reads its --seed as a C int
-
-
-def seed(text: str, most: int | None = None) -> int:
-    """``--seed``: a whole number, 0 or more (numpy takes no other: -1 crashed the world
-    server's process, and the scenario ended in two tracebacks), and at most ``most``."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0 or (most is not None and value > most):
-        raise argparse.ArgumentTypeError(
-            f"{text!r} is not a seed: give a whole number, 0 or more"
-            + ("" if most is None else f" and at most {most}"))
-    return value
 
 
 def sumo_seed(text: str) -> int:

@@ -45,9 +45,10 @@ from scipy import ndimage
 from agents.grid import Grid
 from agents.map_truth import reachable, score, truth
 from pb3a import Input, InputPort, Module, System
+from pb3a.cli.arguments import seed
 from pb3a.cli.log_output import show_logs
 from rave import World
-from scenarios import output_directory, seed, summary
+from scenarios import output_directory, summary
 from scenarios.lab import Lab, wait_until, world_file
 
 CONFIG = Path(__file__).with_name("mapping.toml")

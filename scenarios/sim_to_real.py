@@ -47,8 +47,9 @@ from typing import Any
 
 from agents.learner import Parameters
 from pb3a import Input, InputPort, Module, System
+from pb3a.cli.arguments import seed
 from pb3a.cli.log_output import show_logs
-from scenarios import output_directory, seed, summary
+from scenarios import output_directory, summary
 from scenarios.lab import Lab, wait_until
 
 CONFIG = Path(__file__).with_name("sim_to_real.toml")

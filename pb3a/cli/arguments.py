@@ -1,7 +1,7 @@
-"""Types of the commands' numeric options, for ``argparse``: a value out of range is
-refused as the command line is read, with the usage and a sentence, never accepted
-to fail later (a NaN run length ran for no time; an infinite timeout overflowed a
-clock, with a traceback)."""
+"""Types of the commands' numeric options (seconds, seeds), for ``argparse``: a value
+out of range is refused as the command line is read, with the usage and a sentence,
+never accepted to fail later (a NaN run length ran for no time; an infinite timeout
+overflowed a clock, with a traceback; a seed of -1 ended in numpy's)."""
 
 from __future__ import annotations
 
@@ -20,6 +20,20 @@ def seconds(text: str) -> float:
 def wait_seconds(text: str) -> float:
     """A finite number of seconds, 0 or more (how long to wait for an answer)."""
     return _seconds(text, "a number of seconds, 0 or more", lambda value: value >= 0)
+
+
+def seed(text: str, most: int | None = None) -> int:
+    """A random seed: a whole number, 0 or more (numpy takes no other: -1 ended in its
+    traceback, from a world server's process), and at most ``most``."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0 or (most is not None and value > most):
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a seed: give a whole number, 0 or more"
+            + ("" if most is None else f" and at most {most}"))
+    return value
 
 
 def _seconds(text: str, words: str, ok: Callable[[float], bool]) -> float:
