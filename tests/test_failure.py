@@ -714,3 +714,67 @@ def test_stats_with_several_frozen_workers_waits_one_report_timeout_in_all(
                 os.kill(pid, signal.SIGCONT)
     assert took < 2.0, f"stats took {took:.1f} s"
     assert stats.modules["m3"].steps > 0 and stats.modules["m3"].pid
+
+
+def test_a_killed_forkserver_takes_no_worker_with_it() -> None:
+    """The executor watched each worker through the status pipe of the forkserver that
+    started it: a forkserver killed (SIGKILL, the OOM killer) closed them all, so every
+    worker of the node was taken for dead (exit code 255), its modules restarted or
+    failed by their policy, and the live processes stopped. Each worker is watched
+    through a pidfd of its own: the modules run on in the same processes, a worker
+    killed later is still seen and restarted, and new workers start from a new
+    forkserver."""
+    system = System("forkserver-killed").node("a", spares=0)
+    system.add("kept", Steady, node="a", restart="never")
+    system.add("restarted", Steady, node="a", restart="fresh")
+    with system.launch(timeout=5) as run:
+        pids = {name: eventually(lambda n=name: run.state(n)["pid"], what=f"{name} steps")
+                for name in ("kept", "restarted")}
+        (forkserver,) = [child for child in psutil.Process().children()
+                         if "forkserver" in " ".join(child.cmdline()) and child.children()]
+        since = max((event.seq for event in run.events()), default=0)
+        forkserver.kill()               # (not reaped here: its owner reaps it, as it restarts it)
+        eventually(lambda: forkserver.status() == psutil.STATUS_ZOMBIE, what="its death")
+        for name in pids:
+            before = run.state(name)["count"]
+            eventually(lambda n=name, b=before: run.state(n)["count"] > b + 20,
+                       what=f"{name} stepping on")
+        assert {name: run.state(name)["pid"] for name in pids} == pids
+        assert {m.status for m in run.stats().modules.values()} == {"running"}
+        assert [e.kind for e in run.events(since)] == []
+        run.add("added", Steady, node="a", timeout=30)         # from a new forkserver
+        eventually(lambda: run.state("added")["count"] > 0, what="the added module's steps")
+        since = max((event.seq for event in run.events()), default=0)
+        os.kill(pids["restarted"], signal.SIGKILL)           # a death is still seen
+        assert [e.kind for e in run.events(since, timeout=5.0)] == ["module_restarted"]
+        eventually(lambda: run.state("restarted")["pid"] not in (0, pids["restarted"]),
+                   what="the restarted module steps in a new process")
+        assert run.state("kept")["pid"] == pids["kept"]
+    for pid in pids.values():
+        eventually(lambda p=pid: not alive(p), what=f"worker {pid} stopped")
+
+
+def test_a_worker_killed_while_its_forkserver_is_frozen_is_seen_dead(monkeypatch) -> None:
+    """Its death was known only from the forkserver's report, which a frozen forkserver
+    never sent: the module showed ``running`` with no process behind it. Its own pidfd
+    says it ended; its restart needs the forkserver, so it fails within the start's
+    deadline, naming the forkserver, and the module runs again once asked."""
+    import pb3a.node.workers as workers
+    monkeypatch.setattr(workers, "SPAWN_TIMEOUT_S", 2.0)
+    system = System("forkserver-frozen-kill").node("a", spares=0)
+    system.add("victim", Steady, node="a", restart="fresh")
+    with system.launch(timeout=5) as run:
+        pid = eventually(lambda: run.state("victim")["pid"], what="victim steps")
+        (forkserver,) = [child for child in psutil.Process().children()
+                         if "forkserver" in " ".join(child.cmdline()) and child.children()]
+        since = max((event.seq for event in run.events()), default=0)
+        forkserver.suspend()
+        try:
+            os.kill(pid, signal.SIGKILL)
+            (failed,) = run.events(since, timeout=10.0)
+        finally:
+            forkserver.resume()
+        assert failed.kind == "module_failed" and failed.subject == "victim", failed
+        assert "forkserver" in failed.detail["reason"], failed.detail
+        run.restart("victim")
+        eventually(lambda: run.state("victim")["pid"] not in (0, pid), what="victim again")

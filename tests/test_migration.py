@@ -305,7 +305,7 @@ def test_a_module_that_arrives_takes_a_booted_spare_and_a_dead_spare_is_only_for
         eventually(lambda: pool.spare_pids() == spares[1:], what="the dead spare forgotten")
         run.migrate("relay", to="b")
         taken = pool["b/m-relay"]
-        assert taken.pid == spares[1] and taken.process.name == "pb3a-worker-b/m-relay"
+        assert taken.pid == spares[1] and taken.key == "b/m-relay"
         booted = eventually(lambda: len(pids := pool.spare_pids()) == 2 and pids,
                             what="b's spares booted again")
         before = run.state("relay")["relayed"]

@@ -32,6 +32,7 @@ import cloudpickle
 from pb3a.config.description import DEFAULT_SPARES
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
+from pb3a.node.watched_process import STATUS_WAIT_S, WatchedProcess
 from pb3a.processes import start_without_main
 from pb3a.transport import pickling
 from pb3a.transport.doorbell import new_bell
@@ -62,7 +63,7 @@ class WorkerHandle:
     key: str
     node: str
     bell: int = field(default_factory=new_bell)    # the worker's doorbell (an eventfd)
-    process: Any = None
+    process: WatchedProcess | None = None
     conn: Any = None
     modules: list[str] = field(default_factory=list)
     alive: bool = False
@@ -157,9 +158,16 @@ class WorkerPool:
             child.close()
             raise
         child.close()
+        try:
+            watched = WatchedProcess(process)
+        except ProcessLookupError:
+            parent.close()
+            process.join(STATUS_WAIT_S)
+            raise RuntimeFailure(f"worker {handle.key!r} ended as it started (exit code "
+                                 f"{process.exitcode})") from None
         # The doorbell is the worker's first read: send it before anyone can send a request.
         reduction.send_handle(parent, handle.bell, process.pid)
-        handle.process, handle.conn, handle.alive, handle.pid = process, parent, True, process.pid
+        handle.process, handle.conn, handle.alive, handle.pid = watched, parent, True, process.pid
         self._poke()
 
     def ensure(self, key: str, node: str) -> WorkerHandle:
@@ -177,7 +185,6 @@ class WorkerPool:
                 spare = self._spares.pop(0) if self._spares else None
             if spare is not None:                # booted already: only its name changes
                 spare.key, spare.node = key, node
-                spare.process.name = f"pb3a-worker-{key}"
                 self.handles[key] = spare
                 return spare
             handle = self.handles[key] = WorkerHandle(key, node)
@@ -356,10 +363,8 @@ class WorkerPool:
             return                                     # it died: the sentinel reports it
 
     def _died(self, handle: WorkerHandle) -> None:
-        # Its exit status first, before a failed request wakes a thread that joins it:
-        # two threads reading a forkserver child's status at once, one reads 255.
-        handle.process.join(0)
         handle.alive = False
+        handle.process.close()              # (seen ended: what it says is kept)
         with handle.read_lock, contextlib.suppress(OSError):
             handle.conn.close()
         self._fail_requests(handle, "died")

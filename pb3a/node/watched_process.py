@@ -1,0 +1,88 @@
+"""``WatchedProcess``: a worker process from the forkserver, watched through a pidfd of
+its own.
+
+multiprocessing learns how a forkserver's child ended from the forkserver, which writes
+its exit status to a pipe. A forkserver that dies (SIGKILL, the OOM killer) closes all
+those pipes at once, and every worker it had started looked dead (exit code 255) while
+it ran on. A pidfd (Linux 5.3) becomes readable when that one process ends, whoever its
+parent is, and a signal sent through it cannot reach another process that took its
+number. The exit status still comes from the forkserver's pipe, read once the pidfd
+says the process ended.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import select
+import signal
+import threading
+import weakref
+from typing import Any
+
+# How long an ended worker's exit status is waited for from its forkserver: it writes
+# it as soon as it reaps the child, unless it is frozen or gone (then it is unknown).
+STATUS_WAIT_S = 1.0
+
+
+class WatchedProcess:
+    """A started ``multiprocessing`` process, with the calls the pool makes on it:
+    ``is_alive``, ``join``, ``exitcode``, ``terminate``, ``kill``, and ``sentinel`` (a
+    descriptor readable once it ended) for the pool's monitor."""
+
+    def __init__(self, process: Any) -> None:
+        self._process = process
+        self.pid: int = process.pid
+        # ProcessLookupError if it ended and was reaped already: its start failed
+        self.sentinel: int = os.pidfd_open(process.pid)
+        self._close = weakref.finalize(self, os.close, self.sentinel)
+        self._ended = False
+        # one thread at a time reads the status pipe: two at once split its bytes
+        self._status_lock = threading.Lock()
+
+    def is_alive(self) -> bool:
+        """Whether the process runs (its forkserver's state does not matter)."""
+        return not self._wait(0)
+
+    def join(self, timeout: float | None = None) -> None:
+        """Wait up to ``timeout`` seconds for the process to end (None: for good)."""
+        self._wait(timeout)
+
+    @property
+    def exitcode(self) -> int | None:
+        """None while it runs; once ended, its status as its forkserver reported it (a
+        negative signal number if a signal ended it), None if the forkserver does not
+        answer, 255 if it is gone: the status went with it."""
+        if not self._wait(0):
+            return None
+        with self._status_lock:
+            self._process.join(STATUS_WAIT_S)
+            return self._process.exitcode
+
+    def terminate(self) -> None:
+        """SIGTERM the process, if it has not ended."""
+        self._signal(signal.SIGTERM)
+
+    def kill(self) -> None:
+        """SIGKILL the process, if it has not ended."""
+        self._signal(signal.SIGKILL)
+
+    def close(self) -> None:
+        """Close the pidfd if the process ended (the monitor that polls it calls it):
+        later calls answer from what was seen."""
+        if self._wait(0):
+            self._close()
+
+    def _wait(self, timeout: float | None) -> bool:
+        """Whether the process ended, waiting up to ``timeout`` seconds for it."""
+        if not self._ended:
+            poller = select.poll()
+            poller.register(self.sentinel, select.POLLIN)
+            self._ended = bool(poller.poll(None if timeout is None else timeout * 1000))
+        return self._ended
+
+    def _signal(self, number: int) -> None:
+        if self._ended:
+            return
+        with contextlib.suppress(ProcessLookupError):   # (it ended meanwhile)
+            signal.pidfd_send_signal(self.sentinel, number)
