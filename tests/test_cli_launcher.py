@@ -80,6 +80,21 @@ def test_set_gives_a_float_field_a_float_for_a_whole_number(capsys) -> None:
         assert run.stats().modules["scale"].errors == 0
 
 
+def test_add_gives_a_float_field_a_float_and_names_a_value_that_does_not_fit(capsys) -> None:
+    """``pb3a add --state gain=4`` set an int, as ``pb3a set`` did (the CLI had no state
+    to follow): each value is made the type of the class's default, and one that does
+    not fit is named before anything is added."""
+    with System("add-float").add("src", Counter, period=0.002).launch() as run:
+        address, ref = run.listen(), f"{Scale.__module__}:Scale"
+        assert main(["add", address, "late", ref, "--state", "gain=[1]"]) == 1
+        assert "late: state 'gain' takes a number, got [1]; nothing was added" in \
+            capsys.readouterr().err
+        assert "late" not in run.stats().modules
+        assert main(["add", address, "scale", ref, "--state", "gain=4", "setups=2"]) == 0
+        state = run.state("scale")
+        assert type(state["gain"]) is float and type(state["setups"]) is int
+
+
 class Weighted(Module):
     """Float state of other shapes than a plain float: a numpy float, a list of floats."""
 

@@ -21,6 +21,8 @@ from pb3a.cli.status import format_nodes, format_table
 from pb3a.errors import PB3AError, SystemStopped
 from pb3a.events import Event
 from pb3a.launch.connection import Connection, connect
+from pb3a.loading.references import resolve_class
+from pb3a.model.module import Module
 from pb3a.model.state_edits import coerce
 from pb3a.stats import plain
 from pb3a.transport.auth import ClusterKeyError
@@ -109,35 +111,45 @@ def _state(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
 
 
 def _set(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
-    """Each value made the type of the field's current value, as the State Editor makes
-    it (``coerce``: JSON writes 4.0 as 4, and gain=4 made Scale's float output an int);
-    nothing is set unless every field fits. A state this process cannot read is set as
-    given."""
+    """Each value made the type of the field's current value (``_fit``); nothing is set
+    unless every field fits and the module has it. A state this process cannot read is
+    set as given."""
     values, texts = _values(args.values)
     deadline = None if args.timeout is None else time.monotonic() + args.timeout
     try:
         now = system.state(args.module, timeout=args.timeout)
     except PB3AError:
         now = {}
-    wrong = [f"{name}={values[name]} is not JSON, and {args.module}.{name} is "
-             f"{type(now[name]).__name__} ({now[name]!r}), not text: give it as JSON "
-             "(true, false, 0.3, NaN, [1, 2], \"text\")" for name in texts
-             if now.get(name) is not None and not isinstance(now[name], str)]
+    wrong = _fit(args.module, values, texts, now)
     unknown = sorted(set(values) - set(now)) if now else []
     if unknown:             # (the worker's KeyError said it, behind "worker 'node/m-x'")
         wrong.append(f"{args.module} has no state {', '.join(map(repr, unknown))}; its "
                      f"state: {', '.join(now)}")
-    for name in [name for name in values if name in now and name not in texts]:
-        try:
-            values[name] = coerce(name, now[name], values[name])
-        except ValueError as exc:
-            wrong.append(f"{args.module}: {exc}")
     if wrong:
         raise ValueError("; ".join(wrong) + "; nothing was set")
     system.set_state(args.module, values,            # (one timeout for both calls)
                      timeout=None if deadline is None else max(0.1, deadline - time.monotonic()))
     told = ", ".join(f"{key} = {value!r}" for key, value in values.items())
     return f"{args.module}: {told}", {"module": args.module, "set": values}
+
+
+def _fit(module: str, values: dict[str, Any], texts: list[str],
+         like: dict[str, Any]) -> list[str]:
+    """Make each of ``values`` the type of the same field in ``like`` (a module's state,
+    or its class's defaults), as the State Editor does (``coerce``: JSON writes 4.0 as
+    4, and gain=4 made Scale's float output an int, refused at every value); the
+    sentences saying what does not fit. Text (not JSON) is refused for a field that
+    holds no text."""
+    wrong = [f"{name}={values[name]} is not JSON, and {module}.{name} is "
+             f"{type(like[name]).__name__} ({like[name]!r}), not text: give it as JSON "
+             "(true, false, 0.3, NaN, [1, 2], \"text\")" for name in texts
+             if like.get(name) is not None and not isinstance(like[name], str)]
+    for name in [name for name in values if name in like and name not in texts]:
+        try:
+            values[name] = coerce(name, like[name], values[name])
+        except ValueError as exc:
+            wrong.append(f"{module}: {exc}")
+    return wrong
 
 
 def _migrate(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
@@ -160,12 +172,32 @@ def _relink(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
 
 
 def _add(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
-    state, _ = _values(args.state)
+    """Each value made the type of the class's default for that field, as ``pb3a set``
+    does with the current state; a class this process cannot import (served code, say)
+    is added with the values as given."""
+    state, texts = _values(args.state)
+    wrong = _fit(args.module, state, texts, _class_defaults(args.cls))
+    if wrong:
+        raise ValueError("; ".join(wrong) + "; nothing was added")
     system.add(args.module, args.cls, node=args.node, period=args.period, state=state,
                timeout=args.timeout)
     where = system.where(args.module, timeout=args.timeout)
     return (f"{args.module} ({args.cls}) runs on node {where}",
             {"module": args.module, "class": args.cls, "node": where})
+
+
+def _class_defaults(ref: str) -> dict[str, Any]:
+    """The class-level state of the module class ``ref`` names, if this process can
+    import it and the class reads its state by reflection (one that defines its own
+    ``get_state`` alone knows its fields); else nothing."""
+    try:
+        cls = resolve_class(ref)
+    except Exception:               # (its own problems are the launcher's to name)
+        return {}
+    if not issubclass(cls, Module) or cls.get_state is not Module.get_state \
+            or cls.set_state is not Module.set_state:
+        return {}
+    return {name: getattr(cls, name) for name in cls.state_names()}
 
 
 def _remove(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
