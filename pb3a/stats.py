@@ -48,6 +48,8 @@ class ModuleStats:
     status: str                 # starting | running | failed | stopped
     pid: int | None = None      # the worker process (None while it has none)
     running: bool = False       # stepping or dispatching now
+    silent: bool = False        # its worker did not answer within the report's deadline
+                                # (frozen, starved, stuck): no figures are its own
     restarts: int = 0           # times its worker was restarted under it
     checkpoints: int = 0        # checkpoints taken (restart = "last-state")
     steps: int = 0

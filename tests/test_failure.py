@@ -39,6 +39,7 @@ from sample_modules import (
 )
 
 from pb3a import Input, InputPort, Module, Output, RuntimeFailure, RuntimeTimeout, System, processes
+from pb3a.cli.status import format_table
 from pb3a.transport.doorbell import new_bell
 from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import live_segments, segment_name
@@ -714,6 +715,13 @@ def test_stats_with_several_frozen_workers_waits_one_report_timeout_in_all(
                 os.kill(pid, signal.SIGCONT)
     assert took < 2.0, f"stats took {took:.1f} s"
     assert stats.modules["m3"].steps > 0 and stats.modules["m3"].pid
+    assert not stats.modules["m3"].silent
+    # a frozen worker's modules are named silent, with their process (shown as running
+    # with no process, as if they had none)
+    frozen = [stats.modules[f"m{index}"] for index in range(3)]
+    assert [(m.pid, m.silent, m.status) for m in frozen] == [
+        (pid, True, "running") for pid in pids]
+    assert "running (silent)" in format_table(stats)
 
 
 def test_a_killed_forkserver_takes_no_worker_with_it() -> None:

@@ -32,7 +32,8 @@ def format_table(stats: SystemStats) -> str:
     rows = [("module", "node", "pid", "status", "steps", "events", "cpu s", "errors",
              "last error")]
     for name, m in stats.modules.items():
-        status = m.status + (f" (restarts {m.restarts})" if m.restarts else "")
+        status = m.status + (" (silent)" if m.silent else "") \
+            + (f" (restarts {m.restarts})" if m.restarts else "")
         rows.append((name, m.node, str(m.pid or "-"), status, str(m.steps), str(m.events),
                      f"{m.cpu:.2f}", str(m.errors), _shortened(m.last_error)))
     lines = _columns(rows)

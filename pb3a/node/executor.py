@@ -571,15 +571,19 @@ class Executor:
         """Figures of every module of this node (one request to each worker), its rings'
         fill, its remote links' losses, its CPU (since the last report) and memory, and
         how many spare workers it has booted."""
-        futures = {key: self.workers.submit(key, "stats")
-                   for key, handle in list(self.workers.handles.items()) if handle.alive}
+        asked = {key: handle for key, handle in list(self.workers.handles.items())
+                 if handle.alive}
+        futures = {key: self.workers.submit(key, "stats") for key in asked}
         reports: dict[str, Any] = {}
         deadline = time.monotonic() + REPORT_TIMEOUT    # one for all: they answer at once
         for key, future in futures.items():             # (each frozen worker took 5 s more)
             with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
                 reports[key] = self.workers.result(future, "stats", key,
                                                    max(0.0, deadline - time.monotonic()))
-        modules = {name: self._module_stats(record, reports.get(record.worker))
+        silent = {key: handle.pid for key, handle in asked.items()
+                  if key not in reports and handle.alive}
+        modules = {name: self._module_stats(record, reports.get(record.worker),
+                                            silent.get(record.worker))
                    for name, record in self.modules.items()}
         rings = {key: ring.get("used", 0) for report in reports.values()
                  for key, ring in report.get("rings", {}).items()}
@@ -593,14 +597,18 @@ class Executor:
         return [handle.pid for handle in list(self.workers.handles.values()) if handle.alive]
 
     @staticmethod
-    def _module_stats(record: ModuleRecord, report: dict[str, Any] | None) -> ModuleStats:
+    def _module_stats(record: ModuleRecord, report: dict[str, Any] | None,
+                      silent_pid: int | None) -> ModuleStats:
+        """A module's figures from its worker's ``report``; ``silent_pid``: its worker's
+        process id if it runs but did not answer in time (``silent``: it was shown
+        with no process, as if it had none)."""
         spec = record.spec
         base = {"cls": f"{spec.cls.__module__}:{spec.cls.__qualname__}", "node": spec.node,
                 "worker": record.worker, "status": record.status,
                 "restarts": record.restarts, "checkpoints": record.checkpoints}
         figures = None if report is None else report["modules"].get(spec.name)
         if figures is None:
-            return ModuleStats(**base)
+            return ModuleStats(**base, pid=silent_pid, silent=silent_pid is not None)
         return ModuleStats(
             **{**base, "cls": figures["class"]}, pid=report["pid"],
             running=figures["running"] and record.status == "running",
