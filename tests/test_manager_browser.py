@@ -218,6 +218,26 @@ def test_the_live_view_shows_every_module_on_its_node_with_live_figures(
     assert page.locator("[data-module='sensor']").get_attribute("class").count("status-running")
 
 
+def test_a_module_whose_worker_does_not_answer_is_shown_silent(
+        lab: ManagerProcess, page: Any, tmp_path: Path) -> None:
+    """A frozen worker (SIGSTOP, starved, stuck) answers no report: its module showed
+    ``running`` and no figures, as if all were well. It is shown silent until its
+    worker answers again."""
+    figures = "document.querySelector(\"[data-module='probe'] .module-figures\").textContent"
+    page.wait_for_function(f"/\\d/.test({figures})", timeout=WAIT_MS)     # its calls/s
+    pid = lab.api("GET", "/api/stats")["modules"]["probe"]["pid"]
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        page.wait_for_function(f"{figures} === 'silent'", timeout=WAIT_MS)
+        page.screenshot(path=str(screenshot_path(tmp_path, "manager_silent.png")))
+        page.click("[data-module='probe'] .module-title")
+        page.wait_for_selector(".status-silent", timeout=WAIT_MS)
+    finally:
+        os.kill(pid, signal.SIGCONT)
+    page.wait_for_function(f"{figures} !== 'silent'", timeout=WAIT_MS)
+    assert lab.api("GET", "/api/stats")["modules"]["probe"]["pid"] == pid
+
+
 def test_an_edited_state_field_is_used_by_the_module(lab: ManagerProcess, page: Any,
                                                      tmp_path: Path) -> None:
     page.click("[data-module='probe'] .module-title")

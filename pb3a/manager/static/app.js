@@ -261,7 +261,8 @@ class Manager {
     const meta = [
       h("span", {class: "mono"}, info.class),
       h("span", {}, ["on ", h("strong", {}, live?.node ?? info.node ?? "the default node")]),
-      status ? h("span", {class: `status status-${status}`}, status) : null,
+      status ? h("span", {class: `status status-${live?.silent ? "silent" : status}`},
+                 live?.silent ? `${status} (silent: its worker does not answer)` : status) : null,
       info.period !== null && info.period !== undefined ? h("span", {}, `period ${fmt.seconds(info.period)}`) : null,
       info.macro ? h("span", {}, `in macro ${info.macro}`) : null,
       this.mode() === "editing" && name.includes("/")
