@@ -13,6 +13,7 @@ says the process ended.
 from __future__ import annotations
 
 import contextlib
+import multiprocessing.process
 import os
 import select
 import signal
@@ -37,8 +38,12 @@ class WatchedProcess:
         self.sentinel: int = os.pidfd_open(process.pid)
         self._close = weakref.finalize(self, os.close, self.sentinel)
         self._ended = False
-        # one thread at a time reads the status pipe: two at once split its bytes
+        # One thread at a time reads the status pipe: two at once split its bytes, and
+        # one read 255. multiprocessing reads it too, for every child on its list, at
+        # each start, from whichever thread starts: the process leaves that list (its
+        # pool stops it; it ends by itself with its node's end, a SIGKILL's too).
         self._status_lock = threading.Lock()
+        multiprocessing.process._children.discard(process)   # type: ignore[attr-defined]
 
     def is_alive(self) -> bool:
         """Whether the process runs (its forkserver's state does not matter)."""
