@@ -213,6 +213,56 @@ def test_swap_keeps_ports_and_state_and_runs_setup_again() -> None:
         assert set(run.stats().links) == links
 
 
+class TextPeriod(Module):
+    period = "0.01"
+
+    def step(self) -> None:
+        pass
+
+
+class NegativePeriod(TextPeriod):
+    period = -1
+    restart = "always"
+
+
+def test_a_class_s_own_period_and_restart_are_checked_too() -> None:
+    """Checked only where the configuration gave them: a class's own ``period = "0.01"``
+    or ``-1`` passed, and its step thread died after one step (or waited for good),
+    the module shown running with no error; ``restart = "always"`` passed too."""
+    system = System("class-values").add("text", TextPeriod).add("negative", NegativePeriod)
+    problems = system.check()
+    text, negative = f"{__name__}:TextPeriod", f"{__name__}:NegativePeriod"
+    assert problems == [
+        f"system 'class-values' [modules.text]: {text} has period = '0.01': a class's "
+        "period is None (no steps, only on_input) or a number of seconds from 0 to 1e+07",
+        f"system 'class-values' [modules.negative]: {negative} has period = -1: a class's "
+        "period is None (no steps, only on_input) or a number of seconds from 0 to 1e+07",
+        f"system 'class-values' [modules.negative]: {negative} has restart = 'always': a "
+        "class's restart is one of 'never', 'fresh', 'last-state'"], problems
+    ticking = System("swap-to-bad").add("tick", Counter, period=0.01)
+    with ticking.launch() as run:
+        with pytest.raises(ConfigError, match=r"swap tick: .*TextPeriod has period = '0\.01'"):
+            run.swap("tick", TextPeriod)
+        with pytest.raises(ConfigError, match="NegativePeriod has period = -1"):
+            run.add("late", NegativePeriod)
+        assert set(run.stats().modules) == {"tick"}
+
+
+def test_a_module_that_defines_step_but_has_no_period_is_told_it_never_steps(
+        caplog) -> None:
+    """The newcomer's trap: ``step`` written, ``period`` forgotten. The module showed
+    running, 0 steps, and nothing said why."""
+    class Forgetful(Module):
+        def step(self) -> None:
+            pass
+
+    with System("forgetful").add("idle", Forgetful).launch() as run:
+        eventually(lambda: "never called" in caplog.text, what="the warning")
+        assert run.stats().modules["idle"].status == "running"
+    assert "module 'idle': Forgetful defines step() but has no period, so step() is " \
+        "never called: give the class or the module a period" in caplog.text
+
+
 def test_a_swapped_in_class_steps_at_its_own_period_unless_the_module_was_given_one(
         ) -> None:
     # (the old period was kept: an event-driven module swapped for a class that steps

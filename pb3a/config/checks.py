@@ -132,6 +132,23 @@ def macro_state(value: Any) -> list[str]:
              f"{value!r}")]
 
 
+def module_class(cls: type[Module]) -> list[str]:
+    """What a module class declares itself: its ``period`` and ``restart`` (a module the
+    configuration gives none of runs with them) and its ``displays`` table. A bad
+    period on the class passed every check, and its step thread died after one step,
+    the module shown running."""
+    ref = class_ref(cls)
+    problems = []
+    if cls.period is not None and not (finite(cls.period) and 0 <= cls.period <= MOST_SECONDS):
+        problems.append(f"{ref} has period = {cls.period!r}: a class's period is None (no "
+                        f"steps, only on_input) or a number of seconds from 0 to "
+                        f"{MOST_SECONDS:g}")
+    if cls.restart not in RESTART_POLICIES:
+        problems.append(f"{ref} has restart = {cls.restart!r}: a class's restart is one of "
+                        f"{listing(map(repr, RESTART_POLICIES))}")
+    return problems + displays(cls)
+
+
 def displays(cls: type[Module]) -> list[str]:
     """The class's ``displays`` table is well formed. (The fields it names are not
     checked: state may be set first in ``setup``.)"""

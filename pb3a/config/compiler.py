@@ -286,7 +286,7 @@ class _Planner:
         elif child.cls is not None:
             problems += checks.period(entry.period) + checks.restart(entry.restart)
             problems += checks.state(child.cls, entry.state)
-            problems += checks.displays(child.cls)
+            problems += checks.module_class(child.cls)
         elif entry.cls is not None:      # a class that did not resolve: what needs none
             problems += checks.period(entry.period) + checks.restart(entry.restart)
             if not isinstance(entry.state, dict):

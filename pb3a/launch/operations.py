@@ -480,7 +480,7 @@ def _add_problems(name: Any, cls: Any, state: Any, period: Any, restart: Any, gr
             problems.append(f"{cls!r} is not a pb3a.Module subclass")
         else:
             problems += checks.state(cls, {} if state is None else state) \
-                + checks.displays(cls)
+                + checks.module_class(cls)
     problems += checks.period(period) + checks.restart(restart)
     if node not in nodes:
         problems.append(f"no node {node!r}{checks.did_you_mean(node, nodes)}; nodes: "
@@ -499,9 +499,9 @@ def _add_problems(name: Any, cls: Any, state: Any, period: Any, restart: Any, gr
 
 def _swap_problems(name: str, old: type, new: type, links: dict[str, FlatLink],
                    modules: dict[str, FlatModule]) -> list[str]:
-    problems = []
     if not (isinstance(new, type) and issubclass(new, Module)):
         return [f"swap {name}: {new!r} is not a pb3a.Module subclass"]
+    problems = [f"swap {name}: {problem}" for problem in checks.module_class(new)]
     for side in ("inputs", "outputs"):
         missing = sorted(set(getattr(old, side)) - set(getattr(new, side)))
         if missing:

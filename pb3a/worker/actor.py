@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 from pb3a import latencies
 from pb3a.errors import RuntimeCancelled
+from pb3a.model.module import Module
 from pb3a.model.ports import InputPort, OutputPort
 from pb3a.transport import pickling
 from pb3a.worker.waits import RuntimeWait, run_posted
@@ -196,6 +197,11 @@ class ModuleActor:
             raise SetupError(f"module {self.name!r} raised in setup: {self.last_error}")
         if self.period is not None:
             self._start_stepping()
+        elif type(self.module).step is not Module.step:
+            # (not an error: a base class may step for subclasses that set a period)
+            log.warning("module %r: %s defines step() but has no period, so step() is "
+                        "never called: give the class or the module a period (0 = as fast "
+                        "as possible)", self.name, type(self.module).__qualname__)
         with self._sched_lock:   # values that arrived before start
             kick = bool(self._pending) and not self._scheduled
             self._scheduled = self._scheduled or kick
