@@ -50,6 +50,8 @@ class ModuleStats:
     running: bool = False       # stepping or dispatching now
     silent: bool = False        # its worker did not answer within the report's deadline
                                 # (frozen, starved, stuck): no figures are its own
+    calling: str = ""           # the body or hook it is in now ("step", "on_input", ...)
+    calling_s: float = 0.0      # for how long: a stuck call shows here
     restarts: int = 0           # times its worker was restarted under it
     checkpoints: int = 0        # checkpoints taken (restart = "last-state")
     steps: int = 0

@@ -8,6 +8,7 @@ import logging
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -134,3 +135,30 @@ def test_what_a_worker_logs_reaches_the_launcher_s_log() -> None:
                            what="the module's own warning in the launcher's log")
     assert entry.level == "WARNING"
     assert entry.message == "[worker local/m-chatty] hello from a module's own logger"
+
+
+class Stuck(Module):
+    """Its step blocks until a file appears (a blocking call gone wrong)."""
+
+    period = 0.01
+    release = ""
+
+    def step(self) -> None:
+        while not os.path.exists(self.release):
+            time.sleep(0.02)
+
+
+def test_a_module_stuck_in_a_call_shows_it_in_its_figures_and_the_status_table(
+        tmp_path: Path, capsys) -> None:
+    """A stuck module's requests time out saying "its log and `pb3a status` may say
+    which", but the status showed it running, nothing amiss: its figures say which call
+    it is in and for how long, and the table shows it from a second on."""
+    release = tmp_path / "release"
+    with System("stuck").add("m", Stuck, state={"release": str(release)}).launch() as run:
+        stuck = eventually(lambda: (m := run.stats().modules["m"]).calling_s > 1.5 and m,
+                           what="the call's length in the figures")
+        assert stuck.calling == "step" and stuck.status == "running"
+        assert main(["status", run.listen()]) == 0
+        assert "running (in step for" in capsys.readouterr().out
+        release.touch()
+        eventually(lambda: run.stats().modules["m"].calling_s < 0.5, what="the call's end")

@@ -25,6 +25,7 @@ if TYPE_CHECKING:
 
 REFRESH_S = 1.0
 LAST_ERROR_WIDTH = 60        # characters of a module's last error in the table
+STUCK_S = 1.0                # a call this long is shown beside the module's status
 
 
 def format_table(stats: SystemStats) -> str:
@@ -33,6 +34,7 @@ def format_table(stats: SystemStats) -> str:
              "last error")]
     for name, m in stats.modules.items():
         status = m.status + (" (silent)" if m.silent else "") \
+            + (f" (in {m.calling} for {m.calling_s:.0f} s)" if m.calling_s >= STUCK_S else "") \
             + (f" (restarts {m.restarts})" if m.restarts else "")
         rows.append((name, m.node, str(m.pid or "-"), status, str(m.steps), str(m.events),
                      f"{m.cpu:.2f}", str(m.errors), _shortened(m.last_error)))

@@ -609,9 +609,11 @@ class Executor:
         figures = None if report is None else report["modules"].get(spec.name)
         if figures is None:
             return ModuleStats(**base, pid=silent_pid, silent=silent_pid is not None)
+        calling, calling_s = figures["calling"] or ("", 0.0)
         return ModuleStats(
             **{**base, "cls": figures["class"]}, pid=report["pid"],
             running=figures["running"] and record.status == "running",
+            calling=calling, calling_s=calling_s,
             steps=figures["steps"], events=figures["events"], errors=figures["errors"],
             last_error=figures["last_error"], cpu=figures["cpu"],
             inputs={name: InputStats(**port) for name, port in figures["inputs"].items()},

@@ -158,6 +158,7 @@ class ModuleActor:
         self.may_run: Callable[[], bool] = _always
         self._thread: threading.Thread | None = None
         self._holder = 0                        # the thread running a body now (0: none)
+        self._calling: tuple[str, float] | None = None   # the hook called now, since when
         self._wait: RuntimeWait | None = None   # its runtime call in progress, if any
         self._stopping_for = ""                 # why someone waits to stop it, if anyone
         self._setup_failed = False              # its setup raised: it never ran
@@ -311,6 +312,7 @@ class ModuleActor:
         done = 0
         timed = self.timed if timed is None else timed
         self._holder = threading.get_ident()
+        self._calling = (hook, time.monotonic())
         try:
             if hook in _BODIES and not (self.running and self.may_run()):
                 return 0                        # stopped or migrated while waiting, or
@@ -341,7 +343,7 @@ class ModuleActor:
             if timed:
                 self.cpu += time.thread_time() - start
         finally:
-            self._holder = 0
+            self._holder, self._calling = 0, None
         return done
 
     # On the per-value path (a port's event, its dispatch, the call) locks are taken
@@ -602,7 +604,9 @@ class ModuleActor:
                             "policy": str(port.policy)}
         outputs = {name: port.written for name, port in self.outputs.items()}
         waits = {name: port.wait_figures() for name, port in self.outputs.items()}
-        return {"class": f"{type(self.module).__module__}:{type(self.module).__qualname__}",
+        calling = self._calling
+        return {"calling": calling and (calling[0], time.monotonic() - calling[1]),
+                "class": f"{type(self.module).__module__}:{type(self.module).__qualname__}",
                 "steps": self.steps, "events": self.events, "errors": self.errors,
                 "cpu": self.cpu + self._step_thread_cpu(), "last_error": self.last_error,
                 "running": self.running,
