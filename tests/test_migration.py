@@ -66,6 +66,23 @@ def test_a_module_moves_with_its_state_and_its_links_follow() -> None:
     assert sink["last"] == sink["received"]                          # 1, 2, 3, ... no gap
 
 
+def test_a_moved_module_keeps_its_counters() -> None:
+    """Its steps, calls, errors and values written started from 0 in the new process:
+    an agent reading a rate or an error trend from ``stats()`` saw them fall at every
+    move (steps from 148 to 6). They go with it, as its inputs' counters did."""
+    with _through("move-counters", "relay", Relay).launch() as run:
+        eventually(lambda: run.stats().modules["relay"].events > 500, what="calls")
+        run.set_state("relay", relayed="not a number")      # its calls raise
+        eventually(lambda: run.stats().modules["relay"].errors > 500, what="errors")
+        before = run.stats().modules["relay"]
+        run.migrate("relay", to="b")
+        after = run.stats().modules["relay"]
+    # (a new process's counts in the moment since could not reach them)
+    assert after.node == "b" and after.events >= before.events > 500
+    assert after.errors >= before.errors and after.last_error == before.last_error
+    assert after.outputs["out"] >= before.outputs["out"] > 0
+
+
 def test_100_migrations_under_a_steady_flow_lose_duplicate_and_reorder_nothing() -> None:
     n = 4000
     system = _nodes(System("move-many"), "a", "b", "c")

@@ -479,10 +479,16 @@ class ModuleActor:
         return self.holdings()
 
     def holdings(self) -> dict[str, Any]:
-        """What a migration captures: the state and every input's unconsumed values (the
-        caller holds the module lock, and pickles them before letting it go)."""
+        """What a migration captures: the state, every input's unconsumed values, and the
+        module's counters (the caller holds the module lock, and pickles them before
+        letting it go). The counters go too: an agent reading a rate or an error trend
+        from ``stats()`` saw steps fall from 148 to 6 at every move."""
         return {"state": self.module.get_state(),
-                "inputs": {name: port.export() for name, port in self.inputs.items()}}
+                "inputs": {name: port.export() for name, port in self.inputs.items()},
+                "counters": {"steps": self.steps, "events": self.events,
+                             "errors": self.errors, "last_error": self.last_error,
+                             "written": {name: port.written
+                                         for name, port in self.outputs.items()}}}
 
     def join(self, timeout: float) -> bool:
         """Wait until the step thread has ended (after ``retire``); False on time-out."""
@@ -500,6 +506,14 @@ class ModuleActor:
             port = self.inputs.get(name)
             if port is not None:
                 port.restore(held)
+        counters = captured["counters"]
+        self.steps += counters["steps"]
+        self.events += counters["events"]
+        self.errors += counters["errors"]
+        self.last_error = self.last_error or counters["last_error"]
+        for name, written in counters["written"].items():
+            if name in self.outputs:
+                self.outputs[name].written += written
 
     def apply(self, state: dict[str, Any], timeout: float = 10.0) -> None:
         """Set state under the module lock (KeyError for unknown names)."""
