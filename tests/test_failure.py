@@ -38,7 +38,17 @@ from sample_modules import (
     StepStamps,
 )
 
-from pb3a import Input, InputPort, Module, Output, RuntimeFailure, RuntimeTimeout, System, processes
+from pb3a import (
+    ConfigError,
+    Input,
+    InputPort,
+    Module,
+    Output,
+    RuntimeFailure,
+    RuntimeTimeout,
+    System,
+    processes,
+)
 from pb3a.cli.status import format_table
 from pb3a.transport.doorbell import new_bell
 from pb3a.transport.ring import ShmRing
@@ -469,7 +479,8 @@ def test_a_state_that_cannot_cross_to_the_launcher_fails_at_once_and_harms_nothi
         eventually(lambda: run.state("other")["count"] > 3 and run.stats().modules[
             "unreadable"].steps > 2, what="steps")
         for name, why in (("unreadable", "could not be read here: TypeError"),
-                          ("locked", "could not be pickled: TypeError: cannot pickle")):
+                          ("locked", "could not be pickled: TypeError: cannot pickle "
+                                     "'_thread.lock' object \\(in 'guard': state that")):
             started = time.monotonic()
             with pytest.raises(RuntimeFailure, match=why):
                 run.state(name, timeout=10.0)
@@ -479,6 +490,18 @@ def test_a_state_that_cannot_cross_to_the_launcher_fails_at_once_and_harms_nothi
         os.kill(pid, signal.SIGKILL)
         eventually(lambda: run.stats().modules["other"].restarts == 1,
                    what="the killed worker restarted")
+
+
+def test_a_class_whose_attribute_cannot_travel_to_its_worker_is_named() -> None:
+    """A class defined in a script goes to its worker by value, with its attributes: one
+    holding a lock failed the launch with pickle's bare ``TypeError``, which named
+    neither the module nor the attribute."""
+    class Guarded(Steady):
+        guard = threading.Lock()
+
+    with pytest.raises(ConfigError, match=r"module g: its class .*Guarded cannot be sent to "
+                       r"its worker: .* \(class attributes 'guard': make what holds a lock"):
+        System("guarded").add("g", Guarded).launch(timeout=10)
 
 
 class Tuned(Steady):

@@ -28,7 +28,7 @@ import cloudpickle
 
 from pb3a.config.description import DEFAULT_SPARES
 from pb3a.config.plan import FlatLink, FlatModule
-from pb3a.errors import PB3AError, RuntimeFailure, RuntimeTimeout
+from pb3a.errors import ConfigError, PB3AError, RuntimeFailure, RuntimeTimeout
 from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
 from pb3a.node.bridge import READY_TIMEOUT, Bridge
@@ -231,9 +231,10 @@ class Executor:
     def add_module(self, spec: FlatModule, *,
                    state: dict[str, Any] | bytes | None = None) -> None:
         """Instantiate a module in its worker (not started)."""
+        blob = _class_blob(spec)
         key = self.place(spec)
         handle = self.workers.ensure(key, spec.node)
-        record = ModuleRecord(spec, key, pickling.dumps(spec.cls))
+        record = ModuleRecord(spec, key, blob)
         self.modules[spec.name] = record
         handle.modules.append(spec.name)
         try:
@@ -293,7 +294,7 @@ class Executor:
     def swap(self, name: str, spec: FlatModule) -> list[str]:
         """Replace a module's class by ``spec.cls`` in place; the state names kept."""
         record = self.modules[name]
-        blob = pickling.dumps(spec.cls)
+        blob = _class_blob(spec)
         kept = self.call(record.worker, "swap", name=name, cls=blob, period=spec.period)
         record.spec, record.blob = spec, blob
         return kept
@@ -910,6 +911,23 @@ def _within(lock: threading.RLock, what: str, timeout: float) -> Iterator[None]:
         yield
     finally:
         lock.release()
+
+
+def _class_blob(spec: FlatModule) -> bytes:
+    """The module's class pickled for its worker; ``ConfigError`` naming the class
+    attributes that cannot travel (a class defined in a script goes by value, with
+    them), where pickle's own error named only a type."""
+    try:
+        return pickling.dumps(spec.cls)
+    except Exception as exc:
+        names = pickling.unpicklable({name: value for name, value in vars(spec.cls).items()
+                                      if not name.startswith("__")})
+        raise ConfigError([
+            f"module {spec.name}: its class {spec.cls.__qualname__} cannot be sent to its "
+            f"worker: {type(exc).__name__}: {exc}" + (
+                f" (class attributes {', '.join(map(repr, names))}: make what holds a "
+                "lock, a file or a socket in setup(), under a name beginning with '_')"
+                if names else "")]) from None
 
 
 def _died(process: Any) -> bool:

@@ -15,7 +15,7 @@ import collections
 import io
 import pickle
 import types
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import cloudpickle
@@ -52,3 +52,16 @@ def dumps(obj: Any, *,
     with io.BytesIO() as file:
         _Pickler(file, protocol=5, buffer_callback=buffer_callback).dump(obj)
         return file.getvalue()
+
+
+def unpicklable(items: Mapping[str, Any]) -> list[str]:
+    """The names of ``items`` whose values cannot be pickled: what to name when a whole
+    state or class could not be (pickle's own error names only the type, such as
+    ``'_thread.lock'``)."""
+    names = []
+    for name, value in items.items():
+        try:
+            dumps(value)
+        except Exception:
+            names.append(name)
+    return names

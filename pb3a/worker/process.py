@@ -227,8 +227,12 @@ class Worker:
                 log.error("a %s notice could not be pickled: %s: %s", kind,
                           type(exc).__name__, exc)
                 return
+            fields = pickling.unpicklable(payload) if isinstance(payload, dict) else []
             kind, body = False, pickling.dumps(
-                f"its answer could not be pickled: {type(exc).__name__}: {exc}")
+                f"its answer could not be pickled: {type(exc).__name__}: {exc}" + (
+                    f" (in {', '.join(map(repr, fields))}: state that holds a lock, a "
+                    "file or a socket cannot leave its module; a name beginning with '_' "
+                    "keeps it out of the state)" if fields else ""))
         with self._send_lock:
             try:
                 self.conn.send((req_id, kind))
