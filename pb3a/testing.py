@@ -34,6 +34,10 @@ class ModuleHarness:
         a long run that only looks at ``last`` keeps 1, and its memory stays flat)."""
         if keep is not None and keep < 1:
             raise ValueError(f"keep must be at least 1 (or None, for all), not {keep!r}")
+        if not (isinstance(cls, type) and issubclass(cls, Module)):
+            raise TypeError(f"ModuleHarness takes a pb3a.Module subclass, got {cls!r}: a "
+                            "macro is tested launched (System(...).add(name, TheMacro)), or "
+                            "each of its modules in a harness of its own")
         self.module = cls()
         if state:       # its own copy, as a launched module's comes through a pipe
             self.module.set_state(copy.deepcopy(state))
@@ -67,7 +71,11 @@ class ModuleHarness:
 
     def last(self, output: str, default: Any = None) -> Any:
         """The newest value written on ``output`` (``default`` if none yet)."""
-        values = self.written[output]
+        try:
+            values = self.written[output]
+        except KeyError:
+            raise KeyError(f"{type(self.module).__name__} has no output {output!r}; its "
+                           f"outputs: {', '.join(self.written) or '(none)'}") from None
         return values[-1] if values else default
 
     @property

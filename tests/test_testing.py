@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from examples.pipeline import Scale, Ticker
-from pb3a import Agent, Input, InputPort, Module, Output
+from pb3a import Agent, Input, InputPort, Macro, Module, Output
 from pb3a.testing import ModuleHarness
 
 
@@ -39,7 +39,16 @@ def test_a_wrong_port_or_type_is_named() -> None:
         harness.feed("z", 1.0)
     with pytest.raises(TypeError, match="port 'x' carries"):
         harness.feed("x", "one")
+    with pytest.raises(KeyError, match="Scale has no output 'z'; its outputs: y"):
+        harness.last("z")                   # (a bare KeyError: 'z')
     assert harness.written["y"] == []
+    with pytest.raises(TypeError, match=r"ModuleHarness takes a pb3a\.Module subclass, got "
+                       r".*Pair.*: a macro is tested launched"):
+        ModuleHarness(Pair)                 # (AttributeError: '_pb3a_bind_ports')
+
+
+class Pair(Macro):
+    modules = {"scale": Scale, "tick": Ticker}
 
 
 class Asker(Agent):
