@@ -51,6 +51,34 @@ def test_write_type_checks_in_the_writer_and_sends_nothing_on_error() -> None:
     assert seen == ["ok"]
 
 
+class Numbers(Module):
+    level = Output(float)
+    count = Output(int)
+
+
+def test_a_number_of_another_numeric_type_is_written_as_the_port_s() -> None:
+    """A float output refused 1 and ``np.float32(0.5)`` (and ``np.clip`` of an int
+    gives an ``int64``, which an int output refused), though an int output may feed a
+    float input: each is written as the port's own type. A bool is no number here."""
+    numbers = Numbers()
+    levels: list = []
+    counts: list = []
+    numbers.level.connect("probe", levels.append, lambda batch: levels.extend(batch))
+    numbers.count.connect("probe", counts.append, lambda batch: counts.extend(batch))
+    for value in (1, np.float32(0.5), np.int64(3), np.float64(2.5)):
+        numbers.level.write(value)
+    numbers.level.write_many([2, np.float32(1.5)])
+    numbers.count.write(np.int64(7))
+    numbers.count.write_many([np.int32(8), 9])
+    assert levels == [1.0, 0.5, 3.0, 2.5, 2.0, 1.5]
+    assert [type(value) for value in levels] == [float] * 6
+    assert counts == [7, 8, 9] and [type(value) for value in counts] == [int] * 3
+    for port, value in ((numbers.level, True), (numbers.level, "1"), (numbers.count, 1.0)):
+        with pytest.raises(TypeError, match="carries"):
+            port.write(value)
+    assert numbers.level.written == 6 and numbers.count.written == 3
+
+
 def test_write_checks_array_shape_and_dtype() -> None:
     sensor = Sensor()
     sensor.ranges.write(np.zeros(16, dtype="float32"))

@@ -110,6 +110,21 @@ class _Port:
             text += f"[{self.shape}, {self.dtype}]"
         return text
 
+    def fit(self, value: Any) -> Any:
+        """``value`` as the port carries it, else TypeError (``check``): a number of
+        another numeric type made the port's, as a link promotes an int output to a
+        float input. A float output takes an int or a numpy number (``np.clip`` of a
+        float gives a ``float64``, of an int an ``int64``) as a float; an int output a
+        numpy integer as an int. A bool stays no number here."""
+        if isinstance(value, (bool, np.bool_)):
+            pass
+        elif self.type is float and isinstance(value, (int, np.integer, np.floating)):
+            return float(value)
+        elif self.type is int and isinstance(value, np.integer):
+            return int(value)
+        self.check(value)
+        return value
+
     def check(self, value: Any) -> None:
         """Raise TypeError unless ``value`` is an instance of the port's type (and shape/dtype)."""
         if not isinstance(value, self.type):
@@ -494,7 +509,7 @@ class OutputPort:
         lossless links before it (the error names them). Dropping links (``latest``,
         ``queue``) never wait long."""
         if type(value) is not self.spec.plain_type:
-            self.spec.check(value)
+            value = self.spec.fit(value)
         self._lock.acquire()            # (not ``with``: half the cost, paid per value)
         try:
             if self._waiting:
@@ -510,10 +525,8 @@ class OutputPort:
         first. ``timeout`` bounds the whole batch's waits on all lossless links together;
         the batch goes on each link in turn, so one that times out on a link went whole
         on the links before it and partly on that one (the error says how many did not)."""
-        batch = list(values)
-        check = self.spec.check
-        for value in batch:
-            check(value)
+        fit, plain = self.spec.fit, self.spec.plain_type
+        batch = [value if type(value) is plain else fit(value) for value in values]
         if not batch:
             return
         with self._lock:
