@@ -163,9 +163,11 @@ def test_state_is_reflected_from_public_attributes() -> None:
     assert reader.get_state()["note"] == "instance attributes count too"
     reader.set_state({"gain": 4.0, "offset": 2})
     assert reader.gain == 4.0 and reader.offset == 2
-    with pytest.raises(KeyError, match=r"no state 'gian'; its state is: gain, history, "
-                                       r"note, offset"):
+    with pytest.raises(KeyError, match=r"no state 'gian' \(did you mean 'gain'\?\); its "
+                                       r"state is: gain, history, note, offset"):
         reader.set_state({"gian": 1.0})
+    with pytest.raises(KeyError, match=r"no state 'zzz'; its state is"):
+        reader.set_state({"zzz": 1.0})
 
 
 def test_mutable_defaults_are_not_shared_between_instances() -> None:

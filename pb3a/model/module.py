@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import difflib
 import types
 from typing import Any, ClassVar
 
@@ -108,8 +109,10 @@ class Module:
             name for name, value in self.__dict__.items() if _is_state(name, value)}
         unknown = sorted(set(state) - known)
         if unknown:
+            close = difflib.get_close_matches(unknown[0], known, n=1)
             raise KeyError(
-                f"{type(self).__name__} has no state {', '.join(map(repr, unknown))}; "
+                f"{type(self).__name__} has no state {', '.join(map(repr, unknown))}"
+                f"{f' (did you mean {close[0]!r}?)' if close else ''}; "
                 f"its state is: {', '.join(sorted(known)) or '(none)'}"
             )
         for name, value in state.items():
