@@ -93,6 +93,23 @@ def test_a_signal_stops_everything_and_leaves_nothing_behind(tmp_path: Path, how
     assert not [p for p in workers if alive(p)]
 
 
+def test_a_second_ctrl_c_while_it_stops_lets_the_stop_finish(tmp_path: Path) -> None:
+    """An impatient second Ctrl-C cut the clean stop short: exit 130 after "stopping",
+    and BufferError and "leaked shared_memory objects" on the terminal. It is answered
+    with a line, and the stop goes on (a third would leave it unfinished)."""
+    proc = _in_its_own_group("run", str(PIPELINE), cwd=tmp_path)
+    with _killed_if_left(proc):
+        assert "running" in proc.stdout.readline()
+        os.killpg(proc.pid, signal.SIGINT)
+        while "stopping" not in (line := proc.stdout.readline()):
+            assert line, "pb3a run ended without saying it stops"
+        os.killpg(proc.pid, signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    assert "still stopping" in out and "stopped cleanly" in out
+    assert err == "" and not live_segments(proc.pid)
+
+
 def test_a_run_whose_output_has_no_reader_runs_its_time(tmp_path: Path) -> None:
     """`pb3a run F | head -1` stopped the system at its next table, saying it could not
     reach or listen where F says (a BrokenPipeError); with stdout closed (`>&-`, some

@@ -12,7 +12,7 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, TextIO
 
 from pb3a.cli.standard_output import output_gone
@@ -101,7 +101,7 @@ def run_with_status(plan: Plan, seconds: float | None, out: TextIO | None = None
             if out is sys.stdout:
                 output_gone()
 
-    with sigterm_interrupts():
+    with sigterm_interrupts(), patient_stop(show) as stopping:
         with launch(plan, listen=listen) as run:
             try:     # (from the first line on, a signal means a clean stop)
                 address = run.address or run.listen()
@@ -117,6 +117,7 @@ def run_with_status(plan: Plan, seconds: float | None, out: TextIO | None = None
                     show(("\x1b[H\x1b[2J" if live else "\n") + table + "\n")
             except KeyboardInterrupt:
                 show("\npb3a: stopping\n")
+            stopping()
             final = run.stats()
         show("\n" + format_table(final) + "\n")
         if run.unconfirmed:     # (it said "stopped cleanly" with a node's executor running)
@@ -145,3 +146,33 @@ def sigterm_interrupts() -> Iterator[None]:
 
 def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def patient_stop(show: Callable[[str], None]) -> Iterator[Callable[[], None]]:
+    """Inside the block, once the callable it gives is called (the stop has begun), a
+    second Ctrl-C (SIGTERM, SIGHUP) is answered with a line and the stop goes on, which
+    takes seconds at most; a third leaves it unfinished. An impatient second Ctrl-C cut
+    the stop short: exit 130 after "stopping", and teardown noise (BufferError, "leaked
+    shared_memory objects") on the terminal."""
+    signals = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+    previous = {signum: signal.getsignal(signum) for signum in signals}
+    asked = 0
+
+    def again(signum: int, frame: object) -> None:
+        nonlocal asked
+        asked += 1
+        if asked > 1:
+            raise KeyboardInterrupt
+        show("pb3a: still stopping (seconds at most); interrupt once more to leave it "
+             "unfinished\n")
+
+    def begin() -> None:
+        for signum in signals:
+            signal.signal(signum, again)
+
+    try:
+        yield begin
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
