@@ -27,7 +27,28 @@ from pb3a.transport.control import ControlClient
 
 
 class Driver(Module):
-    """Subclass it, declare ports, and call ``request(op, **args)`` from ``step``."""
+    """A module that talks to a device (a robot, a simulator, a legacy program): subclass
+    it, declare ports, and call ``request(op, **args)`` from ``step`` or ``on_input``.
+
+        class PlantDriver(Driver):
+            u = Input(float)
+            y = Output(float)
+            period = 0.01
+            resource = "tcp://127.0.0.1:7400"
+
+            def step(self) -> None:
+                self.y.write(self.request("read"))
+
+            def on_input(self, port) -> None:
+                self.request("apply", u=port.read())
+
+    The device serves the requests with a ``pb3a.transport.control.ControlServer``
+    given the cluster key (``pb3a.transport.auth.ClusterKey.load()``: the one the
+    system uses, as ``rave``'s robot server does): ``ControlServer(key, handler, host,
+    port)`` calls ``handler(op, args)`` and sends back what it returns; its ``address``
+    is the driver's ``resource``; ``close()`` stops it. ``timeout`` is
+    each request's deadline (``RuntimeTimeout`` names the device).
+    """
 
     resource = ""            # the device's resource port, e.g. "tcp://10.0.0.7:7400"
     timeout = 1.0            # seconds a request may take
