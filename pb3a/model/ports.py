@@ -115,13 +115,13 @@ class _Port:
         another numeric type made the port's, as a link promotes an int output to a
         float input. A float output takes an int or a numpy number (``np.clip`` of a
         float gives a ``float64``, of an int an ``int64``) as a float; an int output a
-        numpy integer as an int. A bool stays no number here."""
-        if isinstance(value, (bool, np.bool_)):
-            pass
-        elif self.type is float and isinstance(value, (int, np.integer, np.floating)):
-            return float(value)
-        elif self.type is int and isinstance(value, np.integer):
-            return int(value)
+        numpy integer as an int. A value of the port's type (a subclass too) is kept as
+        it is, and a bool stays no number here."""
+        if not isinstance(value, (self.type, bool, np.bool_)):
+            if self.type is float and isinstance(value, (int, np.integer, np.floating)):
+                return float(value)
+            if self.type is int and isinstance(value, np.integer):
+                return int(value)
         self.check(value)
         return value
 
