@@ -113,8 +113,8 @@ class _Port:
     def fit(self, value: Any) -> Any:
         """``value`` as the port carries it, else TypeError (``check``): a number of
         another numeric type made the port's, as a link promotes an int output to a
-        float input. A float output takes an int or a numpy number (``np.clip`` of a
-        float gives a ``float64``, of an int an ``int64``) as a float; an int output a
+        float input. A float output takes an int or a numpy number (a ``float32``, or
+        the ``int64`` that ``np.clip`` of an int gives) as a float; an int output a
         numpy integer as an int. A value of the port's type (a subclass too) is kept as
         it is, and a bool stays no number here."""
         if not isinstance(value, (self.type, bool, np.bool_)):
