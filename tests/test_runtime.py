@@ -185,7 +185,8 @@ def test_state_read_and_live_edit() -> None:
         run.set_state("scale", gain=5.0)
         assert run.state("scale")["gain"] == 5.0
         eventually(lambda: run.state("sink")["value"] == 7.5, what="1.5 * 5 at the sink")
-        with pytest.raises(Exception, match=r"no state 'gian'; its state is: gain, setups"):
+        with pytest.raises(Exception, match=r"no state 'gian' \(did you mean 'gain'\?\); "
+                           r"its state is: gain, setups"):
             run.set_state("scale", gian=1.0)
         with pytest.raises(ModuleNotFound, match="nope"):
             run.state("nope")
