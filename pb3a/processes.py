@@ -12,6 +12,21 @@ from typing import Any
 from pb3a.errors import RuntimeTimeout
 
 _start_lock = threading.Lock()
+# What PB3A started this process as ("a worker", "a node's executor"); None in a process
+# of the user's own. Fork copies it: a worker forked from a marked forkserver is marked.
+_role: str | None = None
+
+
+def mark_as(role: str) -> None:
+    """Mark this process as one PB3A started, ``role`` saying which (a worker, a
+    forkserver, a node's executor): ``System.launch`` refuses to run in it."""
+    global _role
+    _role = role
+
+
+def role() -> str | None:
+    """What PB3A started this process as; None in a process of the user's own."""
+    return _role
 
 
 def start_without_main(process: Any, timeout: float | None = None) -> None:

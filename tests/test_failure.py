@@ -809,3 +809,98 @@ def test_a_worker_killed_while_its_forkserver_is_frozen_is_seen_dead(monkeypatch
         assert "forkserver" in failed.detail["reason"], failed.detail
         run.restart("victim")
         eventually(lambda: run.state("victim")["pid"] not in (0, pid), what="victim again")
+
+
+def _import_in_a_new_process(tmp_path: Path, module: str, source: str,
+                             env: dict[str, str] | None = None) -> tuple[int, str, float]:
+    """Write ``module``, import it in a new interpreter (a forkserver of its own) and
+    return its exit code, stderr and time taken; every process whose command line names
+    the module (a forkserver preloading it) is killed after, whatever happened."""
+    (tmp_path / f"{module}.py").write_text(textwrap.dedent(source))
+    environment = {**os.environ, **(env or {}),
+                   "PYTHONPATH": os.pathsep.join([str(tmp_path), *sys.path])}
+    began = time.monotonic()
+    try:
+        done = subprocess.run([sys.executable, "-c", f"import {module}"], env=environment,
+                              capture_output=True, text=True, timeout=60)
+        return done.returncode, done.stderr, time.monotonic() - began
+    finally:
+        left = _kill_every_process_naming(module)
+        assert not left, f"processes left behind: {left}"
+
+
+def _kill_every_process_naming(word: str) -> list[psutil.Process]:
+    """SIGKILL every process whose command line holds ``word``, again until none is
+    left (a chain of them may start new ones as it is killed); those found first."""
+    first: list[psutil.Process] | None = None
+    for _ in range(20):
+        found = [p for p in psutil.process_iter(["cmdline"])
+                 if word in " ".join(p.info["cmdline"] or ())]
+        first = found if first is None else first
+        if not found:
+            break
+        for process in found:
+            with contextlib.suppress(psutil.Error):
+                process.kill()
+        psutil.wait_procs(found, timeout=1.0)
+    return first or []
+
+
+def test_a_file_that_launches_a_system_when_imported_fails_naming_it(tmp_path: Path) -> None:
+    """A file that defines module classes and launches a system when imported (no
+    ``__main__`` guard), imported rather than run: the forkserver preloads the classes'
+    file and so launched the system again, whose forkserver imported it again, without
+    end (a chain of processes that ignored SIGTERM and outlived the script). A launch
+    inside PB3A's own processes is refused: the import fails within seconds, naming the
+    file, its line and the guard, and leaves no process behind."""
+    module = f"launches_at_import_{os.getpid()}"
+    code, stderr, took = _import_in_a_new_process(tmp_path, module, """
+        from pb3a import Module, System
+
+        class Counter(Module):
+            period = 0.05
+            count = 0
+
+            def step(self):
+                self.count += 1
+
+        system = System("launched-at-import")
+        system.add("counter", Counter)
+        with system.launch(timeout=10) as run:
+            run.wait(0.2)
+        """)
+    assert code == 1, stderr
+    assert f"{module}.py launches system 'launched-at-import' when it is imported " \
+           "(line 13)" in stderr
+    assert 'under `if __name__ == "__main__":`' in stderr
+    assert took < 30
+
+
+def test_a_class_file_that_raises_only_in_the_forkserver_fails_its_module_naming_it(
+        tmp_path: Path) -> None:
+    """The forkserver imports the configuration's class files as it starts; one that
+    raised there (anything but an ImportError) killed it, and every worker start failed
+    with a bare ``EOFError: unexpected EOF``. A new forkserver is started without them:
+    the worker imports the file itself, and the module's start fails with the file's own
+    error."""
+    module = f"raises_in_forkserver_{os.getpid()}"
+    code, stderr, took = _import_in_a_new_process(tmp_path, module, """
+        import os
+        from pb3a import Module, System
+
+        if os.environ.pop("CLASSES_IMPORTABLE", None) is None:
+            raise RuntimeError("this file needs CLASSES_IMPORTABLE")
+
+        class Counter(Module):
+            period = 0.05
+
+            def step(self):
+                pass
+
+        system = System("raises-in-forkserver")
+        system.add("counter", Counter)
+        system.launch(timeout=10).stop()
+        """, env={"CLASSES_IMPORTABLE": "1"})
+    assert code == 1, stderr
+    assert "RuntimeError: this file needs CLASSES_IMPORTABLE" in stderr.splitlines()[-1]
+    assert took < 30

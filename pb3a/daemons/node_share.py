@@ -34,7 +34,7 @@ from pb3a.logbook import LogBook
 from pb3a.node.executor import Executor
 from pb3a.node.protocol import REMOTE_OPERATIONS
 from pb3a.node.remote import LEASE_S
-from pb3a.processes import serve_as_child, stop_on_sigterm
+from pb3a.processes import mark_as, serve_as_child, stop_on_sigterm
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient, ControlServer
 from pb3a.worker.process import AGENT_REQUEST_TIMEOUT
@@ -257,6 +257,7 @@ def executor_main(config: str, node: str, workers: int, cpus: list[int] | None,
     """Entry point of an executor process: serve until shut down, signalled or orphaned."""
     logging.basicConfig(level=level, format=f"%(asctime)s pb3a[{config}@{node}] "
                                             "%(levelname)s %(message)s")
+    mark_as("a node's executor")
     stopped = threading.Event()
     stop_on_sigterm(stopped)            # before anything that must be closed
     share = NodeShare(config, node, workers, cpus, host, stopped, unbound_s)

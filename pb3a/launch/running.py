@@ -9,14 +9,16 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import sys
 import threading
 from typing import Any
 
 from pb3a.config.plan import Plan
-from pb3a.errors import ModuleNotFound, bounded_wait
+from pb3a.errors import ConfigError, ModuleNotFound, bounded_wait
 from pb3a.launch.handle import SystemHandle
 from pb3a.launch.launcher import Launcher
 from pb3a.launch.operations import DEFAULT_TIMEOUT, FOR_AGENTS, Operations
+from pb3a.processes import role
 from pb3a.transport.addresses import (
     EVERY_INTERFACE,
     bind_address,
@@ -32,9 +34,32 @@ _ASIDE = frozenset({"agent", "event", "checkpoint", "republished", "events", "lo
 
 def launch(plan: Plan, **options: Any) -> Running:
     """Start every module of ``plan`` on this machine and return the running handle."""
+    _refuse_inside_own_process(plan.name)
     running = Running(plan, **options)
     running.start()
     return running
+
+
+def _refuse_inside_own_process(name: str) -> None:
+    """Refuse a launch in a process PB3A started (a worker, a node's executor). The
+    usual cause is a file that launches a system when imported and also defines module
+    classes: a worker imports it to load one, which launched the system again, whose
+    forkserver imported it again, and so on, for good."""
+    inside = role()
+    if inside is None:
+        return
+    frame = sys._getframe(1)
+    while frame is not None and frame.f_code.co_name != "<module>":
+        frame = frame.f_back
+    if frame is None:
+        raise ConfigError([f"system {name!r} is launched inside {inside}: a module's "
+                           "code does not launch systems; it adds modules to the one it "
+                           "runs in (an agent's `self.runtime.spawn`)"])
+    raise ConfigError([
+        f"{frame.f_code.co_filename} launches system {name!r} when it is imported (line "
+        f"{frame.f_lineno}), and it was imported inside {inside} to load a module class "
+        "it defines: each such import would launch the system again. Launch it under "
+        '`if __name__ == "__main__":`, or from a file other than the classes\''])
 
 
 class Running(SystemHandle):

@@ -56,6 +56,26 @@ PRELOAD = ("pb3a.node.forkserver_signals", "pb3a.worker.process", "numpy", "nump
            "cloudpickle")
 
 
+def _start_forkserver_child(process: Any) -> None:
+    """Start ``process`` from the forkserver. One that ends as it starts, before it
+    answers, most likely died preloading a module of the configuration that raises when
+    imported (its traceback is on stderr): the start is tried once more from a
+    forkserver without those, and the worker's own import of the module then fails the
+    module's start with the module's error."""
+    try:
+        start_without_main(process, timeout=SPAWN_TIMEOUT_S)
+    except EOFError:
+        preload = list(PRELOAD)
+        if forkserver._forkserver._preload_modules == preload:
+            raise RuntimeFailure("the forkserver that starts this node's workers ended as "
+                                 "it started; its error, if it had one, is on stderr") from None
+        log.warning("the forkserver ended as it preloaded the configuration's modules "
+                    "(one raised as it was imported? see above); workers import them "
+                    "themselves from now on")
+        _context.set_forkserver_preload(preload)
+        start_without_main(process, timeout=SPAWN_TIMEOUT_S)
+
+
 @dataclass(eq=False)
 class WorkerHandle:
     """One worker process: its pipe, its doorbell, the modules it hosts."""
@@ -152,7 +172,7 @@ class WorkerPool:
             args=(child, handle.key, settings.checkpoint_s, settings.log_level,
                   settings.cpus, settings.code))
         try:
-            start_without_main(process, timeout=SPAWN_TIMEOUT_S)
+            _start_forkserver_child(process)
         except BaseException:
             parent.close()
             child.close()

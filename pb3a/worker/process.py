@@ -30,6 +30,7 @@ from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
 from pb3a.model.agent import Agent, RuntimeClient
 from pb3a.model.ports import InputPort, Policy, WaitCounter
+from pb3a.processes import mark_as
 from pb3a.transport import pickling
 from pb3a.transport.codec import local_copy
 from pb3a.transport.doorbell import BellPull
@@ -725,6 +726,7 @@ def worker_main(conn: Any, key: str, checkpoint_s: float, level: int,
     SIGTERM stops the worker's modules and exits with status 0, which the executor takes
     as a stop, not a crash.
     """
+    mark_as("a worker")
     if cpus:
         os.sched_setaffinity(0, cpus)           # before any thread: they all inherit it
     signal.signal(signal.SIGINT, signal.SIG_IGN)
