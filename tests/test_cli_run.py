@@ -8,6 +8,7 @@ import signal
 import socket
 import subprocess
 import sys
+import textwrap
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -96,8 +97,24 @@ def test_a_signal_stops_everything_and_leaves_nothing_behind(tmp_path: Path, how
 def test_a_second_ctrl_c_while_it_stops_lets_the_stop_finish(tmp_path: Path) -> None:
     """An impatient second Ctrl-C cut the clean stop short: exit 130 after "stopping",
     and BufferError and "leaked shared_memory objects" on the terminal. It is answered
-    with a line, and the stop goes on (a third would leave it unfinished)."""
-    proc = _in_its_own_group("run", str(PIPELINE), cwd=tmp_path)
+    with a line, and the stop goes on (a third would leave it unfinished). The module's
+    teardown takes a second, so that the second Ctrl-C comes while it stops."""
+    (tmp_path / "lingering.py").write_text(textwrap.dedent("""
+        import time
+        from pb3a import Module
+
+        class Lingers(Module):
+            period = 0.05
+
+            def step(self):
+                pass
+
+            def teardown(self):
+                time.sleep(1.0)
+        """))
+    (tmp_path / "lingering.toml").write_text(
+        'name = "lingering"\n[modules.lingers]\nclass = "lingering:Lingers"\n')
+    proc = _in_its_own_group("run", str(tmp_path / "lingering.toml"), cwd=tmp_path)
     with _killed_if_left(proc):
         assert "running" in proc.stdout.readline()
         os.killpg(proc.pid, signal.SIGINT)
