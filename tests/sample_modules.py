@@ -412,6 +412,17 @@ class Relay(Module):
 
 
 
+class FailingRelay(Relay):
+    """A relay whose every call raises, once its value is passed on, while ``failing``."""
+
+    failing = False
+
+    def on_input(self, port) -> None:
+        super().on_input(port)
+        if self.failing:
+            raise RuntimeError("told to fail")
+
+
 class RelayPair(Macro):
     """relay -> relay: a macro the migration tests move under a steady flow."""
 

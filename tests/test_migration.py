@@ -12,6 +12,7 @@ from conftest import alive, assert_same_arrays, eventually
 from sample_modules import (
     Collector,
     Counter,
+    FailingRelay,
     Hoard,
     Relay,
     RelayPair,
@@ -70,9 +71,9 @@ def test_a_moved_module_keeps_its_counters() -> None:
     """Its steps, calls, errors and values written started from 0 in the new process:
     an agent reading a rate or an error trend from ``stats()`` saw them fall at every
     move (steps from 148 to 6). They go with it, as its inputs' counters did."""
-    with _through("move-counters", "relay", Relay).launch() as run:
+    with _through("move-counters", "relay", FailingRelay).launch() as run:
         eventually(lambda: run.stats().modules["relay"].events > 500, what="calls")
-        run.set_state("relay", relayed="not a number")      # its calls raise
+        run.set_state("relay", failing=True)                # its calls raise
         eventually(lambda: run.stats().modules["relay"].errors > 500, what="errors")
         before = run.stats().modules["relay"]
         run.migrate("relay", to="b")

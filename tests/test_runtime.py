@@ -194,6 +194,24 @@ def test_state_read_and_live_edit() -> None:
             run.set_state("scale", timeout=3.0)         # (the call's deadline, no field)
 
 
+def test_a_live_edit_of_the_wrong_kind_is_refused_and_an_int_for_a_float_is_made_one() -> None:
+    """``set_state("scale", gain="2.5")`` from a program was set as given, and the module
+    then failed at every value (the command line refused it). A value not of its field's
+    kind is a failure naming the field, nothing set; an int for a float field is made a
+    float, as an output's write makes it."""
+    with pipeline().launch() as run:
+        run.set_state("scale", gain=5.0)
+        with pytest.raises(RuntimeFailure, match=r"TypeError: state 'gain' takes a number "
+                           r"\(it is 5.0\), got '2.5'"):
+            run.set_state("scale", gain="2.5", setups=7)
+        assert run.state("scale")["setups"] == 1                  # nothing was set
+        run.set_state("scale", gain=4)
+        gain = run.state("scale")["gain"]
+        assert gain == 4.0 and type(gain) is float
+        eventually(lambda: run.state("sink")["value"] == 6.0, what="1.5 * 4 at the sink")
+        assert run.stats().modules["scale"].errors == 0
+
+
 def test_swap_keeps_ports_and_state_and_runs_setup_again() -> None:
     with pipeline().launch() as run:
         run.set_state("scale", gain=4.0)

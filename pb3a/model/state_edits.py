@@ -1,5 +1,6 @@
 """A module's state set from JSON (the State Editor, ``pb3a set``): each value made the
-type of the field's current value, or refused saying what the field takes.
+type of the field's current value, or refused saying what the field takes; and set from
+a program, checked against the field's kind (``checked``).
 
 JSON writes 4.0 as 4 and has no tuples, numpy scalars or arrays, so a value sent as
 JSON is not yet the value to set: ``coerce`` makes an int a float for a float field (a
@@ -74,6 +75,29 @@ def coerce(field: str, current: Any, new: Any) -> Any:
         return _like(current, new)
     raise ValueError(f"state {field!r} is a {type(current).__name__}, which cannot be set "
                      "from JSON: set it from a program (run.set_state)")
+
+
+def checked(field: str, current: Any, new: Any) -> Any:
+    """``new``, set from a program (``run.set_state``), checked against the kind of the
+    field's ``current`` value: a number for a number (an int made a float for a float
+    field, as an output's write does), true or false for a flag, text for text; a field
+    of another kind, or None, takes anything. ``TypeError`` naming the field: ``kp="2.5"``
+    was set, and the module then failed at every step."""
+    def refuse(takes: str) -> TypeError:
+        return TypeError(f"state {field!r} takes {takes} (it is {current!r}), got {new!r}")
+
+    number = (int, float, np.integer, np.floating)
+    if isinstance(current, (bool, np.bool_)):
+        if not isinstance(new, (bool, np.bool_)):
+            raise refuse("true or false")
+    elif isinstance(current, number):
+        if not isinstance(new, number) or isinstance(new, (bool, np.bool_)):
+            raise refuse("a number")
+        if isinstance(current, (float, np.floating)) and not isinstance(new, type(current)):
+            return type(current)(new)
+    elif isinstance(current, str) and not isinstance(new, str):
+        raise refuse("text")
+    return new
 
 
 def _coerce_array(field: str, current: np.ndarray, new: Any) -> np.ndarray:

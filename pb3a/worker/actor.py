@@ -22,6 +22,7 @@ from pb3a import latencies
 from pb3a.errors import RuntimeCancelled
 from pb3a.model.module import Module
 from pb3a.model.ports import InputPort, OutputPort
+from pb3a.model.state_edits import checked
 from pb3a.transport import pickling
 from pb3a.worker.waits import RuntimeWait, run_posted
 
@@ -516,8 +517,17 @@ class ModuleActor:
                 self.outputs[name].written += written
 
     def apply(self, state: dict[str, Any], timeout: float = 10.0) -> None:
-        """Set state under the module lock (KeyError for unknown names)."""
-        self.with_lock(lambda: self.module.set_state(state), timeout, edit=True)
+        """Set state under the module lock: a live edit, each value checked against the
+        kind of the field's value now (``checked``: TypeError, nothing set); the module's
+        ``set_state`` raises KeyError for names it lacks."""
+        def edit() -> None:
+            try:
+                now = self.module.get_state()
+            except Exception:           # (one that cannot say its state: set as given)
+                now = {}
+            self.module.set_state({name: checked(name, now[name], value) if name in now
+                                   else value for name, value in state.items()})
+        self.with_lock(edit, timeout, edit=True)
 
     def swap(self, new: Module, period: float | None, timeout: float = 10.0) -> list[str]:
         """Replace the module by ``new`` keeping ports, queued values and matching state,
