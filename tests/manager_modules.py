@@ -5,6 +5,8 @@ and a mapper that builds an occupancy grid (a live image) while it runs."""
 from __future__ import annotations
 
 import math
+import os
+import time
 
 import numpy as np
 
@@ -35,9 +37,13 @@ class Probe(Module):
     seen = 0
     recent: list = []
     load = 0.0
+    hold = ""                       # a file: while it exists, each call waits (up to 30 s)
     displays = {"last": "plot", "load": ("gauge", 0.0, 10.0)}
 
     def on_input(self, port: InputPort) -> None:
+        until = time.monotonic() + 30.0
+        while self.hold and os.path.exists(self.hold) and time.monotonic() < until:
+            time.sleep(0.01)
         self.last = float(port.read())
         self.seen += 1
         self.load = min(abs(self.last), 10.0)

@@ -238,6 +238,28 @@ def test_a_module_whose_worker_does_not_answer_is_shown_silent(
     assert lab.api("GET", "/api/stats")["modules"]["probe"]["pid"] == pid
 
 
+def test_a_module_in_a_long_call_is_shown_with_the_call_and_its_length(
+        lab: ManagerProcess, page: Any, tmp_path: Path) -> None:
+    """A module stuck in a call showed ``running`` and no figures; `pb3a status` said
+    which call and for how long, the page did not. Its box and its inspector say it,
+    from a second on, until the call returns."""
+    figures = "document.querySelector(\"[data-module='probe'] .module-figures\").textContent"
+    page.wait_for_function(f"/\\d/.test({figures})", timeout=WAIT_MS)     # its calls/s
+    hold = tmp_path / "hold"
+    hold.touch()
+    lab.api("POST", "/api/modules/probe/state", {"hold": str(hold)})
+    try:
+        page.wait_for_function(f"/^in on_input for \\d+ s$/.test({figures})", timeout=WAIT_MS)
+        assert "in-long-call" in page.locator("[data-module='probe']").get_attribute("class")
+        page.screenshot(path=str(screenshot_path(tmp_path, "manager_long_call.png")))
+        page.click("[data-module='probe'] .module-title")
+        page.wait_for_selector(".status-in-long-call", timeout=WAIT_MS)
+    finally:
+        hold.unlink()
+    page.wait_for_function(f"!{figures}.startsWith('in ')", timeout=WAIT_MS)
+    page.wait_for_selector(".status-in-long-call", state="detached", timeout=WAIT_MS)
+
+
 def test_an_edited_state_field_is_used_by_the_module(lab: ManagerProcess, page: Any,
                                                      tmp_path: Path) -> None:
     page.click("[data-module='probe'] .module-title")

@@ -263,6 +263,7 @@ class Manager {
       h("span", {}, ["on ", h("strong", {}, live?.node ?? info.node ?? "the default node")]),
       status ? h("span", {class: `status status-${live?.silent ? "silent" : status}`},
                  live?.silent ? `${status} (silent: its worker does not answer)` : status) : null,
+      fmt.longCall(live) ? h("span", {class: "status status-in-long-call"}, fmt.longCall(live)) : null,
       info.period !== null && info.period !== undefined ? h("span", {}, `period ${fmt.seconds(info.period)}`) : null,
       info.macro ? h("span", {}, `in macro ${info.macro}`) : null,
       this.mode() === "editing" && name.includes("/")

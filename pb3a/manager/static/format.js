@@ -14,6 +14,15 @@ export function seconds(value) {
   return `${value.toFixed(2)} s`;
 }
 
+// A call this long is shown beside a module's status, as `pb3a status` shows it.
+const LONG_CALL_S = 1;
+
+/** "in step for 12 s" for a module in a call that has lasted a second or more, else "". */
+export function longCall(module) {
+  return module?.calling && module.calling_s >= LONG_CALL_S
+    ? `in ${module.calling} for ${module.calling_s.toFixed(0)} s` : "";
+}
+
 export function bytes(value) {
   if (value === null || value === undefined) return "–";
   const units = ["B", "KiB", "MiB", "GiB", "TiB"];

@@ -333,16 +333,20 @@ export class Schematic {
       } else if (m.status !== "failed") {
         text = m.status;
       }
+      const longCall = fmt.longCall(m);
+      if (longCall) text = longCall;         // stuck, or slow: which call, for how long
       if (m.silent) text = "silent";         // its worker did not answer: no figures
       if (m.errors) text += ` · ${m.errors} err`;
       setText(box.figures, text);
       box.group.classList.toggle("silent", !!m.silent);
+      box.group.classList.toggle("in-long-call", !!longCall && !m.silent);
       box.group.classList.toggle("has-errors", m.errors > 0);
       box.group.classList.toggle("on-lost-node", stats.nodes?.[m.node]?.up === false);
       const tip = box.group.querySelector("title");
       const error = m.last_error ? `\nlast error: ${m.last_error}` : "";
       const silent = m.silent ? " (silent: its worker did not answer)" : "";
-      setText(tip, `${name}\n${m.cls}\nnode ${m.node} · ${m.status}${silent}${error}`);
+      const calling = longCall ? ` (${longCall})` : "";
+      setText(tip, `${name}\n${m.cls}\nnode ${m.node} · ${m.status}${silent}${calling}${error}`);
     }
     for (const [key, entry] of this.links) {
       const l = stats.links?.[key];
