@@ -36,6 +36,7 @@ _HOME = {
     "System": "pb3a.system",
     "SystemStopped": "pb3a.errors",
     "connect": "pb3a.launch.connection",
+    "serve_device": "pb3a.model.driver",
 }
 
 __all__ = sorted(_HOME, key=lambda name: (name[0].islower(), name))
@@ -68,6 +69,7 @@ if TYPE_CHECKING:                 # what type checkers see: the same names, eage
     from pb3a.launch.running import Running as Running
     from pb3a.model.agent import Agent as Agent
     from pb3a.model.driver import Driver as Driver
+    from pb3a.model.driver import serve_device as serve_device
     from pb3a.model.environment import Environment as Environment
     from pb3a.model.macro import Macro as Macro
     from pb3a.model.module import Module as Module

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
+import threading
 import time
 
 import pytest
@@ -20,6 +21,7 @@ from sample_modules import (
     Collector,
     CollectorV2,
     Counter,
+    DeviceReader,
     Doubler,
     FastScale,
     FloatSource,
@@ -35,7 +37,15 @@ from sample_modules import (
     Spawner,
 )
 
-from pb3a import ConfigError, Input, Module, ModuleNotFound, RuntimeFailure, System
+from pb3a import (
+    ConfigError,
+    Input,
+    Module,
+    ModuleNotFound,
+    RuntimeFailure,
+    System,
+    serve_device,
+)
 from pb3a.config.compiler import validate
 from pb3a.config.description import read_description
 from pb3a.stats import InputStats, LinkStats, ModuleStats, NodeStats, SystemStats
@@ -705,3 +715,26 @@ def test_an_input_may_hold_its_whole_queue_of_zero_copy_arrays() -> None:
                              .received >= 25 and i, timeout=30, what="25 arrays")
     assert figures.pending == 10                   # ten views held in the ring at once
     assert figures.drops == figures.received - 10   # only queue overflow, no ring gaps
+
+
+def test_a_driver_talks_to_a_device_served_with_serve_device() -> None:
+    """The device's side of a ``Driver`` is one public call: ``serve_device(handler)``
+    answers each request with what the handler returns, and what the handler raises
+    fails the driver's request, naming the device and the error (it took
+    ``pb3a.transport.control.ControlServer`` and ``ClusterKey.load()``, found only in a
+    docstring)."""
+    broken = threading.Event()
+
+    def handler(op: str, args: dict) -> float:
+        if broken.is_set():
+            raise ValueError("sensor unplugged")
+        return 0.5
+
+    with serve_device(handler) as device:
+        system = System("device").add("reader", DeviceReader,
+                                      state={"resource": device.address})
+        with system.launch() as run:
+            eventually(lambda: run.state("reader")["answered"] >= 3, what="answers")
+            broken.set()
+            error = eventually(lambda: run.state("reader")["last_error"], what="a failure")
+    assert f"DeviceReader at {device.address}" in error and "sensor unplugged" in error

@@ -15,6 +15,7 @@ its state runs meanwhile (an edit waits for the request's end).
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Callable
 from typing import Any
 
 import zmq
@@ -23,7 +24,7 @@ from pb3a.errors import RuntimeCancelled, RuntimeFailure, RuntimeTimeout
 from pb3a.model.module import Module
 from pb3a.transport.addresses import tcp_address_problems
 from pb3a.transport.auth import ClusterKey
-from pb3a.transport.control import ControlClient
+from pb3a.transport.control import ControlClient, ControlServer
 
 
 class Driver(Module):
@@ -42,12 +43,11 @@ class Driver(Module):
             def on_input(self, port) -> None:
                 self.request("apply", u=port.read())
 
-    The device serves the requests with a ``pb3a.transport.control.ControlServer``
-    given the cluster key (``pb3a.transport.auth.ClusterKey.load()``: the one the
-    system uses, as ``rave``'s robot server does): ``ControlServer(key, handler, host,
-    port)`` calls ``handler(op, args)`` and sends back what it returns; its ``address``
-    is the driver's ``resource``; ``close()`` stops it. ``timeout`` is
-    each request's deadline (``RuntimeTimeout`` names the device).
+    The device serves the requests with ``pb3a.serve_device(handler, host, port)``,
+    which calls ``handler(op, args)`` and sends back what it returns (what it raises
+    fails the request, naming the device); its ``address`` is the driver's
+    ``resource``. ``timeout`` is each request's deadline (``RuntimeTimeout`` names the
+    device).
     """
 
     resource = ""            # the device's resource port, e.g. "tcp://10.0.0.7:7400"
@@ -110,3 +110,17 @@ class Driver(Module):
             with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
                 self.release(current[1])
             current[1].close()
+
+
+def serve_device(handler: Callable[[str, dict[str, Any]], Any], host: str = "127.0.0.1",
+                 port: int = 0) -> ControlServer:
+    """Serve a device's side of its ``Driver``: ``handler(op, args)`` answers each request,
+    one at a time, in order; what it raises fails the driver's request with its message.
+    Requests are authenticated with this machine's cluster key (``pb3a key``), as the
+    system's own. ``address`` (``tcp://HOST:PORT``; port 0: a free one) is what the
+    driver's ``resource`` is set to; ``close()``, or leaving a ``with`` block, stops it.
+
+        with pb3a.serve_device(lambda op, args: plant.call(op, **args), port=7400):
+            ...                                 # the device runs; drivers reach it
+    """
+    return ControlServer(ClusterKey.load(), handler, host, port, name="pb3a-device")

@@ -227,6 +227,12 @@ class ControlServer:
             blob = pickling.dumps((False, f"the result could not be pickled: {exc}"))
         self._router.send_multipart([peer, *self._sealer.seal(REPLY, [request_id, blob])])
 
+    def __enter__(self) -> ControlServer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
     def close(self) -> None:
         """Stop serving; on return the port is free, so a server may bind it again.
         Closing again does nothing."""
