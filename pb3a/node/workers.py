@@ -65,15 +65,28 @@ def _start_forkserver_child(process: Any) -> None:
     try:
         start_without_main(process, timeout=SPAWN_TIMEOUT_S)
     except EOFError:
-        preload = list(PRELOAD)
-        if forkserver._forkserver._preload_modules == preload:
+        if not _preloading_configuration.is_set():
             raise RuntimeFailure("the forkserver that starts this node's workers ended as "
                                  "it started; its error, if it had one, is on stderr") from None
         log.warning("the forkserver ended as it preloaded the configuration's modules "
                     "(one raised as it was imported? see above); workers import them "
                     "themselves from now on")
-        _context.set_forkserver_preload(preload)
+        _preload(())
         start_without_main(process, timeout=SPAWN_TIMEOUT_S)
+
+
+# Set while the forkserver (the next to start, if none runs) preloads a configuration's
+# modules: one process has one forkserver, whichever pool set it.
+_preloading_configuration = threading.Event()
+
+
+def _preload(configuration: tuple[str, ...]) -> None:
+    """What the next forkserver to start imports: PB3A's worker code, and ``configuration``."""
+    _context.set_forkserver_preload([*PRELOAD, *configuration])
+    if configuration:
+        _preloading_configuration.set()
+    else:
+        _preloading_configuration.clear()
 
 
 @dataclass(eq=False)
@@ -147,7 +160,7 @@ class WorkerPool:
         critical path. One forkserver serves a process: the first pool to start it
         chooses what it preloads; a module that cannot be imported there, such as
         served code, is skipped. Then the spares boot (again: the settings changed)."""
-        _context.set_forkserver_preload([*PRELOAD, *self.settings.code.preload])
+        _preload(self.settings.code.preload)
         with self._spares_lock:              # booted with the settings before these
             stale, self._spares = self._spares, []
         for handle in stale:
