@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import re
+import shutil
+import subprocess
 import sys
 import textwrap
 import tomllib
@@ -17,6 +20,7 @@ from pb3a.config.description import NodeSpec, SystemSpec, load_toml
 from pb3a.config.plan import FlatLink, Plan
 from pb3a.errors import ConfigError
 from pb3a.loading.references import resolve_class
+from pb3a.model.macro import Macro
 from pb3a.model.ports import Policy
 from pb3a.system import System
 
@@ -247,6 +251,7 @@ FILE_MACROS = """
 def test_file_macros_expand_in_place_and_links_resolve_through_exports(tmp_path: Path) -> None:
     plan = build_plan(load_toml(write(tmp_path, FILE_MACROS)))
     assert list(plan.modules) == ["src", "m/first/a", "m/first/b", "m/last", "sink"]
+    assert plan.macros == {"m": "[macros.outer]", "m/first": "[macros.pair]"}
     assert {link.key: str(link.policy) for link in plan.links} == {
         "m/first/a.y->m/first/b.x": "latest",
         "m/first/b.y->m/last.x": "queue:8",
@@ -383,6 +388,60 @@ def test_to_dot_draws_nodes_modules_ports_and_links() -> None:
     assert '"scale" [label="{{<i_x> x}|scale\\nScale|{<o_y> y}}"];' in dot
     assert '"tick":"o_out" -> "scale":"i_x" [label="queue:64"];' in dot
     assert '"scale":"o_y" -> "fast":"i_x";' in dot           # default policy: no label
+
+
+def clusters_of(dot: str) -> tuple[dict[str, list[str]], dict[str, str]]:
+    """Each module the DOT text draws, with the clusters it is in (outermost first), and
+    each cluster's label."""
+    inside: list[str] = []
+    modules: dict[str, list[str]] = {}
+    labels: dict[str, str] = {}
+    for line in dot.splitlines():
+        line = line.strip()
+        if opened := re.fullmatch(r'subgraph "(.+)" \{', line):
+            inside.append(opened[1])
+        elif line == "}" and inside:
+            inside.pop()
+        elif (label := re.fullmatch(r'label="(.*)";', line)) and inside:
+            labels[inside[-1]] = label[1]
+        elif module := re.match(r'"([^"]+)" \[label=', line):
+            modules[module[1]] = list(inside)
+    return modules, labels
+
+
+def test_to_dot_nests_macros_in_their_node_and_draws_a_macro_on_two_nodes_on_each() -> None:
+    import sample_modules as sm
+
+    class Brain(Macro):
+        """A nested macro (Outer holds Chain), a module of its own, and one on node b."""
+
+        modules = {"sensor": Scale, "arm": sm.Outer, "far": {"class": Scale, "node": "b"}}
+        links = [("sensor.y", "arm.x"), ("arm.y", "far.x")]
+        exports = {"x": "sensor.x", "y": "far.y"}
+
+    dot = (System("robot").node("a").node("b").add("tick", Ticker, node="a")
+           .add("brain", Brain, node="a").add("sink", Scale, node="b")
+           .link("tick.out", "brain.x").link("brain.y", "sink.x").to_dot())
+    modules, labels = clusters_of(dot)
+    a, b = "cluster_a", "cluster_b"
+    brain, arm, chain = f"{a}/brain", f"{a}/brain/arm", f"{a}/brain/arm/chain"
+    assert modules == {"tick": [a], "brain/sensor": [a, brain],
+                       "brain/arm/tail": [a, brain, arm],
+                       "brain/arm/chain/a": [a, brain, arm, chain],
+                       "brain/arm/chain/b": [a, brain, arm, chain],
+                       "sink": [b], "brain/far": [b, f"{b}/brain"]}
+    assert labels[arm] == "brain/arm\\lOuter\\l"
+    assert labels[chain] == "brain/arm/chain\\lChain\\l"
+    # the macro's part on each node, labelled alike, each naming where the rest runs
+    assert labels[brain] == "brain\\lBrain\\l(part: the rest on node b)\\l"
+    assert labels[f"{b}/brain"] == "brain\\lBrain\\l(part: the rest on node a)\\l"
+    assert '"brain/arm/tail":"o_y" -> "brain/far":"i_x";' in dot
+    if shutil.which("dot"):
+        drawn = subprocess.run(["dot", "-Tsvg"], input=dot, text=True, capture_output=True,
+                               timeout=60, check=False)
+        assert drawn.returncode == 0 and not drawn.stderr, drawn.stderr
+        drawn_clusters = re.findall(r'class="cluster">\s*<title>(.+?)</title>', drawn.stdout)
+        assert sorted(drawn_clusters) == sorted(labels)         # all six, none lost
 
 
 # -- every problem, with its place and its fix --------------------------------

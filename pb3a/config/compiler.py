@@ -12,8 +12,9 @@ The work goes in phases, each collecting problems instead of stopping at one:
 4. *links* of every definition are resolved through exports and checked
    (direction, types, policy);
 5. *instances*: the tree is expanded from the top into instance paths
-   (``robot/mapper/grid``), nodes and groups inherited; then inputs fed twice
-   and groups spread over nodes are reported.
+   (``robot/mapper/grid``), nodes and groups inherited, each macro instance's
+   macro recorded by its path; then inputs fed twice and groups spread over
+   nodes are reported.
 
 A module that names no node runs on the first declared node ("local" when the
 system declares none). Problems name the file (or ``system 'name'``) and the entry, e.g.
@@ -111,7 +112,8 @@ class _Planner:
         modules: dict[str, FlatModule] = {}
         labels: dict[str, str] = {}
         links: list[tuple[str, FlatLink]] = []
-        self.instantiate(top, "", None, None, modules, labels, links)
+        macros: dict[str, str] = {}
+        self.instantiate(top, "", None, None, modules, labels, links, macros)
         self.check_inputs(links)
         self.check_groups(modules, labels)
         problems = list(dict.fromkeys(self.problems))
@@ -121,7 +123,7 @@ class _Planner:
                    else float(spec.timeout))
         preload = tuple(sorted({m.cls.__module__ for m in modules.values()} - {"__main__"}))
         return Plan(spec.name, nodes, modules, [link for _, link in links],
-                    dataclasses.replace(self.code, preload=preload), timeout), problems
+                    dataclasses.replace(self.code, preload=preload), timeout, macros), problems
 
     # -- the system's own tables ------------------------------------------
     def install_code(self) -> CodeSources:
@@ -217,7 +219,8 @@ class _Planner:
         if macro is None:
             return None
         definition = Definition(f"macro {name!r}", self.spec.origin, f"macros.{toml_key(name)}.",
-                                macro.modules, macro.links, macro.exports)
+                                macro.modules, macro.links, macro.exports,
+                                name=f"[macros.{toml_key(name)}]")
         self.file_defs[name] = definition
         self.report(f"{self.spec.origin} [macros.{toml_key(name)}]",
                     checks.name(name, "macro") + checks.unknown_keys(macro.extra,
@@ -248,7 +251,7 @@ class _Planner:
         self.report(origin, problems)
         definition = Definition(origin, origin, "",
                                 {n: ModuleSpec.from_entry(n, e) for n, e in modules.items()},
-                                specs, exports)
+                                specs, exports, name=cls.__name__)
         self.class_defs[cls] = definition
         return self.define(definition)
 
@@ -339,12 +342,14 @@ class _Planner:
     def instantiate(self, definition: Definition, prefix: str, node: str | None,
                     group: str | None, modules: dict[str, FlatModule],
                     labels: dict[str, str], links: list[tuple[str, FlatLink]],
+                    macros: dict[str, str],
                     overrides: dict[str, list[Override]] | None = None) -> None:
-        """Expand ``definition`` under ``prefix``; ``overrides`` are the state its
-        instance's ``state`` table (and those of the instances around it) sets on its
-        modules, keyed by their paths inside it: per module, the innermost instance's
-        first, each checked under its own entry and applied in turn (an outer instance's
-        value wins for the keys it sets, the inner one's others stay)."""
+        """Expand ``definition`` under ``prefix``, naming each macro instance's macro in
+        ``macros``; ``overrides`` are the state its instance's ``state`` table (and those
+        of the instances around it) sets on its modules, keyed by their paths inside it:
+        per module, the innermost instance's first, each checked under its own entry and
+        applied in turn (an outer instance's value wins for the keys it sets, the inner
+        one's others stay)."""
         overrides = dict(overrides or {})
         for name, child in definition.children.items():
             entry, path = child.spec, prefix + name
@@ -374,8 +379,9 @@ class _Planner:
                 for key in [key for key in overrides if key.startswith(f"{name}/")]:
                     inner.setdefault(key.removeprefix(f"{name}/"), []).extend(
                         overrides.pop(key))             # after the inner one's: it wins
+                macros[path] = child.macro.name
                 self.instantiate(child.macro, path + "/", here, team, modules, labels, links,
-                                 inner)
+                                 macros, inner)
         modules_here = [name for name, child in definition.children.items() if child.cls]
         for extra in [extra for layers in overrides.values() for extra in layers]:
             self.report(extra.label, [

@@ -55,6 +55,8 @@ class Definition:
     exports: dict[str, object]
     children: dict[str, Child] = field(default_factory=dict)
     resolved: list[tuple[str, PortRef, PortRef, Policy]] = field(default_factory=list)
+    name: str = ""                   # what a plan's ``macros`` calls it: "Filter" (a Macro
+                                     # class), "[macros.filter]"; "" for the system
 
     def label(self, table: str, key: str) -> str:
         """``origin [prefix.table.key]``, the key quoted as TOML would need it."""

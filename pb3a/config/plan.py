@@ -1,11 +1,13 @@
 """The plan: what the runtime runs, after the compiler expanded and checked a description.
 
 Macros are expanded into instance paths, classes resolved, links rewired through
-macro exports onto leaf module ports, and every value checked.
+macro exports onto leaf module ports, and every value checked. Each macro instance's
+path is kept with the macro it is (``macros``), for drawings.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -48,7 +50,8 @@ class FlatLink:
 
 @dataclass
 class Plan:
-    """What the executor runs: nodes, modules in start order, links."""
+    """What the executor runs: nodes, modules in start order, links; and, for drawings,
+    the macro instances the modules came from."""
 
     name: str
     nodes: dict[str, NodeSpec]            # always at least one node; "local" if none declared
@@ -56,3 +59,22 @@ class Plan:
     links: list[FlatLink]
     code: CodeSources = field(default_factory=CodeSources)   # the file's directory, servers
     timeout: float | None = None          # the file's default for operations, if it sets one
+    macros: dict[str, str] = field(default_factory=dict)   # macro instance path -> its macro:
+                                          # the Macro class's name, or "[macros.NAME]"
+
+
+def split_by_macro(names: Iterable[str],
+                   prefix: str = "") -> tuple[list[str], dict[str, list[str]]]:
+    """Of the instance paths ``names``, all below macro instance path ``prefix`` (``""``
+    for the system, ``"robot/"``): those directly in it, and the others by the child
+    macro instance that holds them (``"robot/arm"``), in order of first appearance.
+    Every ``/`` in a path is a macro's: a name cannot hold one."""
+    direct: list[str] = []
+    below: dict[str, list[str]] = {}
+    for name in names:
+        head, slash, _ = name.removeprefix(prefix).partition("/")
+        if slash:
+            below.setdefault(prefix + head, []).append(name)
+        else:
+            direct.append(name)
+    return direct, below

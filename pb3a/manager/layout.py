@@ -22,6 +22,7 @@ import subprocess
 from dataclasses import dataclass
 from typing import Any
 
+from pb3a.config.plan import split_by_macro
 from pb3a.topology import ModuleInfo, Topology
 
 log = logging.getLogger("pb3a.manager")
@@ -125,16 +126,12 @@ def _nested(topology: Topology, names: list[str], prefix: str, node: str,
             indent: str) -> list[str]:
     """The modules ``names`` (all below macro path ``prefix``) as DOT: those directly
     in it as boxes, those in each child macro inside a cluster of its own."""
-    lines, macros = [], {}
-    for name in names:
-        rest = name.removeprefix(prefix)
-        head, slash, _ = rest.partition("/")
-        if slash:
-            macros.setdefault(prefix + head, []).append(name)
-        else:
-            width, height = module_size(name, topology.modules[name])
-            lines.append(f"{indent}{ids[name]} [width={width / POINTS_PER_INCH:.3f}, "
-                         f"height={height / POINTS_PER_INCH:.3f}];")
+    lines = []
+    direct, macros = split_by_macro(names, prefix)
+    for name in direct:
+        width, height = module_size(name, topology.modules[name])
+        lines.append(f"{indent}{ids[name]} [width={width / POINTS_PER_INCH:.3f}, "
+                     f"height={height / POINTS_PER_INCH:.3f}];")
     for macro, inside in macros.items():
         cluster = f"cluster_m{len(clusters)}"
         clusters[cluster] = (node, macro)
