@@ -160,6 +160,7 @@ class Worker:
         self._closing = threading.Event()
         self._lease_until: float | None = None     # see op_lease
         self.lapsed = False                        # its lease ran out: exit LEASE_LAPSED
+        self._lapsing = threading.Lock()
         self._shut_down = False
         self._checkpoint_s = checkpoint_s
         self._threads = [threading.Thread(target=self._receive, name="pb3a-receiver", daemon=True),
@@ -513,8 +514,13 @@ class Worker:
         does, no body runs (``lease_holds``): a frozen node let run again stepped its
         modules once beside their failed-over copies before its lease was looked at.
         Only a remote node's executor grants leases; a worker that never got one never
-        lapses."""
+        lapses. A grant that finds the lease run out already (this worker was frozen
+        past it, the grants queued meanwhile) revives nothing: it lapses all the same,
+        whichever of its threads runs first."""
         first = self._lease_until is None
+        if not first and time.monotonic() > self._lease_until:
+            self._lapse()
+            return
         self._lease_until = until
         if first:
             threading.Thread(target=self._keep_lease, daemon=True, name="pb3a-lease").start()
@@ -528,13 +534,19 @@ class Worker:
         while not self._closing.wait(LEASE_CHECK_S):
             until = self._lease_until
             if until is not None and time.monotonic() > until:
-                # (its modules named: a spare that took them still has the key "spare")
-                log.error("the worker of %s: its executor granted no lease for too long "
-                          "(frozen or hung): its modules stop",
-                          ", ".join(self.actors) or "no module")
-                self.lapsed = True
-                os.kill(os.getpid(), signal.SIGTERM)     # (the stop a SIGTERM makes)
+                self._lapse()
                 return
+
+    def _lapse(self) -> None:
+        """The lease ran out: stop every module, as a SIGTERM does (once)."""
+        with self._lapsing:             # (its two threads may find it at once: one stop)
+            if self.lapsed:
+                return
+            self.lapsed = True
+        # (its modules named: a spare that took them still has the key "spare")
+        log.error("the worker of %s: its executor granted no lease for too long "
+                  "(frozen or hung): its modules stop", ", ".join(self.actors) or "no module")
+        os.kill(os.getpid(), signal.SIGTERM)     # (the stop a SIGTERM makes)
 
     def op_stats(self) -> dict[str, Any]:
         modules = {name: actor.statistics() for name, actor in self.actors.items()}
