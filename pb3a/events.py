@@ -19,8 +19,8 @@ from typing import Any
 from pb3a.errors import bounded_wait
 
 KINDS = ("module_added", "module_removed", "module_moved", "module_swapped",
-         "module_restarted", "module_failed", "module_failed_over", "link_added",
-         "link_removed", "node_lost", "node_joined")
+         "module_restarted", "module_failed", "module_failed_over", "module_lost",
+         "link_added", "link_removed", "node_lost", "node_joined")
 
 
 @dataclass(frozen=True)

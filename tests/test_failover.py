@@ -105,6 +105,7 @@ def test_modules_of_a_lost_node_fail_over_within_1_s_and_the_node_rejoins(
                    and run.state("near")["received"] > before["near"] + 200, timeout=15,
                    what="values through the relay moved back to b")
         lost_event = _events(run, "node_lost")[0]
+        lost_modules = _events(run, "module_lost")
     assert lost_event.detail["modules"] == ["far", "gone", "relay"]
     where = {event.subject: event.detail for event in moved}
     assert where["relay"]["destination"] == "c"                   # its first fallback
@@ -113,6 +114,12 @@ def test_modules_of_a_lost_node_fail_over_within_1_s_and_the_node_rejoins(
     assert all(detail["restart_s"] < 1.0 for detail in where.values()), where
     assert relay["setups"] == kept["setups"] + 1 >= 2             # its checkpoint, restored
     assert "gone" not in stats.modules and "src.out->gone.x" not in stats.links
+    (gone,) = lost_modules                                        # said, with what it was
+    assert gone.subject == "gone" and gone.detail["node"] == "b"
+    assert gone.detail["reason"] == "its restart policy is never"
+    assert gone.detail["cls"] == "sample_modules:Collector"
+    assert gone.detail["links"] == [                              # (Collector's own policy)
+        {"from": "src.out", "to": "gone.x", "policy": "queue:1000000"}]
     assert stats.modules["relay"].node == "c" and stats.modules["far"].node in ("a", "c")
     # what src wrote while nobody on b read it is counted, never silently gone
     assert stats.links["src.out->relay.x"].link_failures > 500
@@ -172,6 +179,47 @@ def test_a_fenced_executors_word_is_refused_and_placement_follows_admission() ->
     assert moved[0].detail["destination"] == "a"          # c, its first fallback, refused
     assert joined[0].detail["epoch"] == 2
     assert not any("module_failed" in failure for failure in failures)
+
+
+def test_a_module_no_node_takes_is_said_lost_with_what_it_takes_to_add_it_again() -> None:
+    """A module whose failover no node admitted was taken out of the system with its
+    links, said only in ``stats().failures``: no event an agent could act on, and what
+    it was (class, state, links) gone with it. The event ``module_lost`` says why, and
+    holds what it takes to add it again."""
+    b = NodeController("b", ClusterKey.load(), limits=Limits(max_cpu_percent=101.0))
+    c = NodeController("c", ClusterKey.load(), limits=Limits(max_cpu_percent=101.0))
+    system = System("unplaced").node("a").node("b", address=b.address)
+    system.node("c", address=c.address)
+    system.add("src", Counter, node="a", period=0.005)
+    system.add("relay", Relay, node="b", restart="fresh", fallback=["c"],
+               state={"relayed": 0})
+    system.add("sink", Collector, node="a")
+    system.link("src.out", "relay.x")
+    system.link("relay.out", "sink.x", policy="queue:32")
+    try:
+        with system.launch() as run:
+            eventually(lambda: run.state("sink")["received"] > 10, timeout=30,
+                       what="values through b")
+            c.limits.max_cpu_percent = -1.0           # its only fallback refuses it
+            os.kill(b._executors["unplaced"][0].pid, signal.SIGKILL)
+            (lost,) = eventually(lambda: _events(run, "module_lost"), timeout=15,
+                                 what="the relay said lost")
+            assert "relay" not in run.stats().modules
+            detail = lost.detail                      # enough to add it again, elsewhere
+            run.add("relay", detail["cls"], node="a", state=detail["state"])
+            for link in detail["links"]:
+                run.link(link["from"], link["to"], policy=link["policy"])
+            received = run.state("sink")["received"]
+            eventually(lambda: run.state("sink")["received"] > received + 10,
+                       what="values through the relay added again")
+    finally:
+        b.close()
+        c.close()
+    assert lost.subject == "relay" and lost.detail["node"] == "b"
+    assert lost.detail["reason"] == "no surviving node of its fallback admits it"
+    assert lost.detail["links"] == [
+        {"from": "src.out", "to": "relay.x", "policy": "queue:100000"},    # (Relay's own)
+        {"from": "relay.out", "to": "sink.x", "policy": "queue:32"}]
 
 
 def _relayed(name: str, b: Daemon, relay_on: str, restart: str) -> System:

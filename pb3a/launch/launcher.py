@@ -14,9 +14,10 @@ again on a surviving node (their ``fallback`` nodes in order, else the least bus
 one, either only if its controller admits them), ``last-state`` ones from their last
 checkpoint, which every node sends here, off the node that runs the module. Their
 links are wired again and what is known lost counted on them. The others are
-dropped with their links. A lost node whose controller answers again is admitted
-under a new node epoch; anything the fenced executor of an older epoch says is
-refused.
+dropped with their links, each said by a ``module_lost`` event that holds what it takes
+to add it again (class, configured state, links). A lost node whose controller answers
+again is admitted under a new node epoch; anything the fenced executor of an older
+epoch says is refused.
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ from pb3a.node.workers import REQUEST_TIMEOUT
 from pb3a.stats import LinkStats, ModuleStats, NodeReport, NodeStats, SystemStats
 
 if TYPE_CHECKING:
-    from collections.abc import Iterator
+    from collections.abc import Iterable, Iterator
 
     from pb3a.config.plan import FlatLink, FlatModule, Plan
     from pb3a.node.protocol import Endpoint, Node
@@ -486,10 +487,12 @@ class Launcher:
         for link in touched.values():
             with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
                 self._drop_half(link, gone)
-        moved = self._fail_over(node, gone)
+        moved, refused = self._fail_over(node, gone)
         for name in gone:
             if name not in moved:
-                del self.specs[name]
+                spec = self.specs.pop(name)
+                if name != env:         # (an env module belongs to its node: back with it)
+                    self._tell_lost(spec, node, refused.get(name), touched.values())
         for key, link in touched.items():
             if link.src not in self.specs or link.dst not in self.specs:
                 del self.links[key]
@@ -518,22 +521,38 @@ class Launcher:
                                restart_s=time.monotonic() - lost_at)
         self.update_env()
 
-    def _fail_over(self, lost: str, gone: list[str]) -> dict[str, str]:
+    def _tell_lost(self, spec: FlatModule, node: str, refused: str | None,
+                   links: Iterable[FlatLink]) -> None:
+        """Say that module ``spec`` went with lost ``node`` (its policy, or ``refused``:
+        why no node took it), with what it takes to add it again: an agent or a user
+        reading the event can (it was gone from the system without a word)."""
+        cls = f"{spec.cls.__module__}:{spec.cls.__qualname__}"
+        reason = refused or "its restart policy is never"
+        self.failures.append(f"module {spec.name} ({cls}) went with node {node}: {reason}")
+        log.error(self.failures[-1])
+        self.events.record("module_lost", spec.name, node=node, reason=reason, cls=cls,
+                           state=dict(spec.state), restart=spec.restart,
+                           links=[{"from": f"{link.src}.{link.src_port}",
+                                   "to": f"{link.dst}.{link.dst_port}",
+                                   "policy": str(link.policy)} for link in links
+                                  if spec.name in (link.src, link.dst)])
+
+    def _fail_over(self, lost: str, gone: list[str]) -> tuple[dict[str, str], dict[str, str]]:
         """Instantiate each module of ``gone`` whose restart policy allows it on a
-        surviving node, from its last checkpoint for ``last-state``; module -> node.
-        All are placed first, so that each target boots their workers side by side."""
+        surviving node, from its last checkpoint for ``last-state``: module -> node, and
+        module -> why no node took it. All are placed first, so that each target boots
+        their workers side by side."""
         movers = [name for name in gone if self.specs[name].restart != "never"
                   and name != env_name(lost)]        # an env module belongs to its node
         loads = self._loads(lost) if movers else {}
         placed: dict[str, FlatModule] = {}
+        refused: dict[str, str] = {}
         for name in movers:
             spec = self.specs[name]
             target = self._place(spec, loads)
             if target is None:
-                self.failures.append(f"module {name} not restarted after the loss of node "
-                                     f"{lost}: no surviving node "
-                                     f"{'of its fallback ' if spec.fallback else ''}admits it")
-                log.error(self.failures[-1])
+                refused[name] = (f"no surviving node {'of its fallback ' if spec.fallback else ''}"
+                                 "admits it")
                 continue
             placed[name] = dataclasses.replace(spec, node=target)
             loads[target] = loads[target][0], loads[target][1] + 1
@@ -563,10 +582,11 @@ class Launcher:
                     loads.pop(target, None)     # the next that admits it, if any
                     target = self._place(self.specs[name], loads)
             if target is None:
+                refused[name] = f"no surviving node could start it ({self.failures[-1]})"
                 continue
             self.specs[name] = dataclasses.replace(moved_spec, node=target)
             moved[name] = target
-        return moved
+        return moved, refused
 
     def _loads(self, lost: str) -> dict[str, tuple[float, int]]:
         """Each surviving node's CPU use (percent, as its controller or, embedded, this

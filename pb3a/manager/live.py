@@ -44,7 +44,8 @@ BEHIND = 4013               # the close code then: try again (the page reconnect
 MOST_BACKOFF_S = 5.0        # a loop that keeps failing tries again this often at least
 # events after which the structure (modules, links, nodes) is sent again
 STRUCTURAL = frozenset({"module_added", "module_removed", "module_moved", "module_swapped",
-                        "module_failed_over", "module_failed", "link_added", "link_removed",
+                        "module_failed_over", "module_failed", "module_lost", "link_added",
+                        "link_removed",
                         "node_lost", "node_joined"})
 
 

@@ -12,6 +12,7 @@ const LOOK = {
   module_restarted: ["restart", "restarted"],
   module_failed: ["failure", "failed"],
   module_failed_over: ["failure", "failed over"],
+  module_lost: ["failure", "lost"],
   module_added: ["add", "added"],
   module_removed: ["remove", "removed"],
   link_added: ["link", "linked"],
@@ -29,6 +30,8 @@ function describe(event) {
       return `now ${fmt.shortClass(d.cls)}${d.kept?.length ? `, kept ${d.kept.join(", ")}` : ""}`;
     case "module_failed_over":
       return `from ${d.source ?? "?"} to ${d.destination ?? "?"}`;
+    case "module_lost":
+      return `with node ${d.node}: ${d.reason}`;
     case "module_restarted":
       return [d.node && `on ${d.node}`, d.reason].filter(Boolean).join(", ");
     case "node_lost":
