@@ -30,6 +30,7 @@ from typing import Any
 
 import pytest
 from browser import chromium_page, skip_reason
+from conftest import eventually
 
 REPO = Path(__file__).resolve().parent.parent
 START_TIMEOUT = 30.0        # seconds for `pb3a manager` to print its URL
@@ -671,6 +672,28 @@ def test_two_quick_edits_in_the_editor_are_both_saved(tmp_path: Path) -> None:
         }""")
         assert outcome == [["rejected", "rejected"], 0.5]
         assert document_of(manager)["system"]["modules"]["ticker"]["period"] == 0.5
+
+
+def test_save_asks_before_it_overwrites_a_file_edited_on_disk(tmp_path: Path) -> None:
+    """Save overwrote a file edited in another editor since the page opened it, without
+    a word. It asks first: Cancel leaves the file as it is, Overwrite writes it."""
+    config = tmp_path / "chain.toml"
+    config.write_text(CHAIN)
+    with editor(config, 3) as (_manager, page):
+        edited_there = CHAIN + "\n# added in another editor\n"
+        config.write_text(edited_there)
+        page.click("#save")
+        page.wait_for_selector("dialog.confirm[open]", timeout=WAIT_MS)
+        assert "changed on disk" in page.locator("dialog.confirm").text_content()
+        page.click("dialog.confirm button[value='cancel']")
+        page.wait_for_selector("dialog.confirm", state="detached", timeout=WAIT_MS)
+        assert config.read_text() == edited_there
+        page.click("#save")
+        page.click("dialog.confirm button[value='ok']")
+        page.wait_for_function("() => !document.querySelector('dialog.confirm')",
+                               timeout=WAIT_MS)
+        eventually(lambda: config.read_text() != edited_there, what="the file overwritten")
+        assert "# added in another editor" not in config.read_text()
 
 
 def test_modules_grouped_into_a_macro_open_close_place_again_and_take_overrides(

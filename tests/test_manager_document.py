@@ -55,6 +55,37 @@ def test_an_unchanged_document_saves_byte_for_byte_and_an_edit_keeps_the_comment
     assert System.load(check).check() == []                  # pb3a check accepts it
 
 
+def test_a_save_over_edits_made_on_disk_is_refused_unless_asked_to_overwrite(
+        pipeline: Path, tmp_path: Path) -> None:
+    """A file edited in another editor while the page had it open was overwritten by
+    Save without a word (a module and a comment added there were gone). A save over
+    what this document never read there, or over another file, is a 409 naming the
+    file, nothing written; ``overwrite`` writes it all the same."""
+    with manager_client(Session(Document.open(pipeline))) as client:
+        system = client.get("/api/document").json()["system"]
+        system["modules"]["scale"]["state"]["gain"] = 4.0
+        assert client.put("/api/document", json={"system": system}).status_code == 200
+        edited_there = pipeline.read_text() + "\n# added in another editor\n"
+        pipeline.write_text(edited_there)
+        refused = client.post("/api/document/save")
+        assert refused.status_code == 409, refused.json()
+        assert refused.json()["error"] == f"{pipeline} changed on disk since it was opened here"
+        assert pipeline.read_text() == edited_there                       # nothing written
+        other = tmp_path / "other.toml"
+        other.write_text('name = "other"\n')
+        onto = client.post("/api/document/save", json={"path": str(other)})
+        assert onto.status_code == 409 and "is another file" in onto.json()["error"]
+        assert other.read_text() == 'name = "other"\n'
+        assert client.post("/api/document/save", json={"overwrite": True}).status_code == 200
+        assert "gain = 4.0" in pipeline.read_text()
+        system["modules"]["scale"]["state"]["gain"] = 5.0             # saved again: its own
+        assert client.put("/api/document", json={"system": system}).status_code == 200
+        assert client.post("/api/document/save").status_code == 200
+        assert "gain = 5.0" in pipeline.read_text()
+        malformed = client.post("/api/document/save", json={"overwrite": "yes"})
+        assert malformed.status_code == 400, malformed.json()
+
+
 def test_values_the_page_cannot_hold_exactly_come_back_unchanged(tmp_path: Path) -> None:
     """The page holds the document as JSON: a date in a state made GET /api/document a
     500; a whole number beyond 2**53, read by the browser as a double, was written back

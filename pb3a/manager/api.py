@@ -23,7 +23,7 @@ from starlette.responses import JSONResponse, PlainTextResponse, Response
 from starlette.routing import Route
 
 from pb3a.errors import ConfigError, ModuleNotFound, RuntimeFailure, RuntimeTimeout
-from pb3a.manager.document import Document, Stale
+from pb3a.manager.document import ChangedOnDisk, Document, Stale
 from pb3a.manager.session import Malformed, NotFound, Session, Unfit
 
 log = logging.getLogger("pb3a.manager")
@@ -31,7 +31,7 @@ log = logging.getLogger("pb3a.manager")
 # exception -> status, most specific first
 STATUS: list[tuple[type[BaseException], int]] = [
     (Malformed, 400), (ModuleNotFound, 404), (NotFound, 404), (Stale, 412), (Unfit, 422),
-    (ConfigError, 409), (RuntimeTimeout, 504), (RuntimeFailure, 502),
+    (ConfigError, 409), (ChangedOnDisk, 409), (RuntimeTimeout, 504), (RuntimeFailure, 502),
 ]
 MOST_BODY_BYTES = 8_000_000          # a request body larger than this is refused
 
@@ -203,8 +203,11 @@ def routes(session: Session) -> list[Route]:
         path = body.get("path") if isinstance(body, dict) else None
         if path is not None and not (isinstance(path, str) and path.strip()):
             raise Malformed(f"'path' must be a file name, got {path!r}")
+        overwrite = body.get("overwrite", False) if isinstance(body, dict) else False
+        if not isinstance(overwrite, bool):
+            raise Malformed(f"'overwrite' must be true or false, got {overwrite!r}")
         try:
-            written = await call(_save, document, path)
+            written = await call(_save, document, path, overwrite)
         except ValueError as exc:
             raise Malformed(str(exc)) from None
         return {"path": str(written)}
@@ -238,9 +241,9 @@ def routes(session: Session) -> list[Route]:
     ]
 
 
-def _save(document: Document, path: str | None) -> Any:
+def _save(document: Document, path: str | None, overwrite: bool) -> Any:
     try:
-        return document.save(path)
+        return document.save(path, overwrite=overwrite)
     except OSError as exc:
         where = path if path is not None else document.path
         raise Malformed(f"cannot write {where}: {exc.strerror or exc}") from None

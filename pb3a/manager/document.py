@@ -40,6 +40,11 @@ class Stale(Exception):
     """An edit made on a copy of the document older than the document now."""
 
 
+class ChangedOnDisk(Exception):
+    """A save would overwrite a file that says something this document never read there
+    (it was edited on disk since, or it is another file)."""
+
+
 class Document:
     """One system description being edited (thread-safe). Each change counts its
     ``revision``: an edit sent with the revision it was made on is refused (``Stale``)
@@ -56,6 +61,7 @@ class Document:
             raise ConfigError([f"{where}: not valid TOML: {exc}"]) from None
         self._lock = threading.Lock()
         self.revision = 0
+        self._on_disk = text if path is not None else None   # what ``path`` said, last seen
 
     @classmethod
     def open(cls, path: str | Path) -> Document:
@@ -158,14 +164,29 @@ class Document:
                  if problem not in before]
         return (not after, "; ".join(after) or f"{src} -> {dst} fits")
 
-    def save(self, path: str | Path | None = None) -> Path:
-        """Write the TOML to ``path`` (default: where it came from); the path written."""
+    def save(self, path: str | Path | None = None, *, overwrite: bool = False) -> Path:
+        """Write the TOML to ``path`` (default: where it came from); the path written.
+        ``ChangedOnDisk``, nothing written, if the file there says something this
+        document did not read or write there (edited in another editor since it was
+        opened: a save overwrote those edits without a word), unless ``overwrite``."""
         target = Path(path) if path is not None else self.path
         if target is None:
             raise ValueError("the document has no file yet: give the path to save it to")
         text = self.toml()
+        known = self._on_disk if self.path is not None and target == self.path else None
+        if not overwrite:
+            try:
+                there = target.read_text(encoding="utf-8")
+            except FileNotFoundError:
+                there = known
+            except (OSError, UnicodeDecodeError):
+                there = ""                  # (unreadable: not what this document wrote)
+            if there != known and there != text:
+                raise ChangedOnDisk(
+                    f"{target} changed on disk since it was opened here" if known is not None
+                    else f"{target} is another file, which a save would overwrite")
         target.write_text(text, encoding="utf-8")
-        self.path = target
+        self.path, self._on_disk = target, text
         return target
 
 

@@ -61,7 +61,8 @@ export const api = {
   putDocument: (system, revision) => request("PUT", "/api/document", {system, revision}),
   open: (name, toml) => request("POST", "/api/document/open", {name, toml}),
   checkLink: (src, dst) => request("POST", "/api/document/check-link", {src, dst}),
-  save: (path) => request("POST", "/api/document/save", path ? {path} : {}),
+  save: (path, overwrite = false) => request("POST", "/api/document/save",
+                                             {...(path ? {path} : {}), ...(overwrite ? {overwrite} : {})}),
   launch: () => request("POST", "/api/document/launch", {}),
 };
 

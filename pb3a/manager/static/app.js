@@ -641,12 +641,18 @@ class Manager {
     await this.loadClasses();          // its module servers may offer other classes
   }
 
-  async save() {
+  async save(overwrite = false) {
     const path = $("save-path").value.trim() || undefined;
     try {
-      const answer = await api.save(path);
+      const answer = await api.save(path, overwrite);
       this.toasts.show("ok", `Saved ${answer.path ?? path ?? this.document.path}`);
     } catch (error) {
+      // the file says what this page never read (edited on disk since): ask first
+      if (error.status === 409 && !overwrite
+          && await confirmAction("Overwrite the file?", `${error.message}: saving loses what it ` +
+                                 "says now.", "Overwrite")) {
+        return this.save(true);
+      }
       this.toasts.error(error);
     }
   }
