@@ -27,7 +27,8 @@ from sample_modules import BlocksInInit, Counter, StepStamps
 
 from pb3a import RuntimeFailure, RuntimeTimeout
 from pb3a.config.plan import FlatModule
-from pb3a.daemons.node_controller import Limits, NodeController, _context
+from pb3a.daemons import node_controller
+from pb3a.daemons.node_controller import Limits, NodeController, Refused, _context
 from pb3a.daemons.node_share import executor_main
 from pb3a.loading.sources import CodeSources
 from pb3a.processes import start_without_main
@@ -179,6 +180,27 @@ def test_work_is_refused_with_the_reason_when_resources_are_short() -> None:
         finally:
             client.close()
             controller.close()
+
+
+def test_admission_judges_the_cpu_over_seconds_not_one_busy_sample(monkeypatch) -> None:
+    """The CPU admission looked at was one half-second sample: on a 2-core machine one
+    busy moment (94 %) refused launches and failovers at random. It is the mean of the
+    last 5 s: a moment's peak is admitted, a load that lasts is refused."""
+    readings = iter([20.0] * 9 + [97.0] * 11)
+    monkeypatch.setattr(node_controller.psutil, "cpu_percent",
+                        lambda interval=None: next(readings))
+    monkeypatch.setattr(node_controller, "SAMPLE_S", 3600.0)     # samples taken here only
+    controller = NodeController("busy", KEY, limits=Limits(max_cpu_percent=90.0))
+    try:
+        for _ in range(9):
+            controller._cpu = controller._sample_cpu()
+        controller.admit("a peak")                    # nine quiet samples and one at 97 %
+        for _ in range(10):
+            controller._cpu = controller._sample_cpu()
+        with pytest.raises(Refused, match=r"CPU 9\d% busy, above its limit of 90%"):
+            controller.admit("a load that lasts")
+    finally:
+        controller.close()
 
 
 def test_garbage_and_forged_frames_do_not_disturb_the_controller(node) -> None:

@@ -10,6 +10,7 @@ with it.
 
 from __future__ import annotations
 
+import collections
 import logging
 import multiprocessing
 import threading
@@ -31,6 +32,9 @@ log = logging.getLogger("pb3a.node")
 _context = multiprocessing.get_context("spawn")      # a clean interpreter per executor
 START_TIMEOUT = 30.0
 SAMPLE_S = 0.5
+# Admission judges the CPU over this many samples (5 s): one busy half-second on a
+# small machine refused launches and failovers at random.
+CPU_WINDOW = 10
 
 
 class Refused(Exception):
@@ -41,7 +45,7 @@ class Refused(Exception):
 class Limits:
     """What a node accepts work under."""
 
-    max_cpu_percent: float = 90.0         # mean over the machine's CPUs, last sample
+    max_cpu_percent: float = 90.0         # mean over the machine's CPUs and the last 5 s
     min_memory_bytes: int = 256 << 20     # available memory that must remain
 
 
@@ -57,7 +61,8 @@ class NodeController:
         self.unbound_s = UNBOUND_S          # an executor not taken by a launcher this long stops
         self._executors: dict[str, tuple[Any, Any, str]] = {}   # config -> process, pipe, addr
         self._lock = threading.Lock()
-        self._cpu = psutil.cpu_percent(interval=None)
+        self._cpu_samples: collections.deque[float] = collections.deque(maxlen=CPU_WINDOW)
+        self._cpu = self._sample_cpu()
         self._sampling = threading.Event()
         self._sampler = threading.Thread(target=self._sample, name="pb3a-node-sampler",
                                          daemon=True)
@@ -68,7 +73,12 @@ class NodeController:
     # -- admission ----------------------------------------------------------------
     def _sample(self) -> None:
         while not self._sampling.wait(SAMPLE_S):
-            self._cpu = psutil.cpu_percent(interval=None)
+            self._cpu = self._sample_cpu()
+
+    def _sample_cpu(self) -> float:
+        """One more CPU sample; the mean of the window's."""
+        self._cpu_samples.append(psutil.cpu_percent(interval=None))
+        return sum(self._cpu_samples) / len(self._cpu_samples)
 
     def admit(self, what: str) -> None:
         """Raise ``Refused`` with the reason if the node cannot take ``what`` now."""
