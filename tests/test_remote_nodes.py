@@ -273,6 +273,21 @@ def test_each_node_keeps_the_spare_workers_its_configuration_gives(controllers) 
     assert _clean(state)
 
 
+def test_a_node_address_that_does_not_resolve_is_named_so() -> None:
+    """A node whose address names a host that does not resolve was told, after 5 s, to
+    start a node controller there (``pb3a node start ... --listen`` at that name), as
+    if the name were right and the daemon missing (with the launcher's own address
+    given: without, finding it names the host first)."""
+    system = System("unresolved").node("a").node("b", address="tcp://robot2.invalid:7100")
+    system.add("far", Collector, node="b")
+    started = time.monotonic()
+    with pytest.raises(RuntimeFailure, match=r"node b: its address tcp://robot2\.invalid:7100 "
+                                             r"names a host that does not resolve \(.+\): "
+                                             r"fix the node's address"):
+        system.launch(listen="tcp://127.0.0.1:0")
+    assert time.monotonic() - started < 2.0                        # at once, no wait
+
+
 def test_a_wrong_key_is_told_apart_from_no_answer_within_5_s() -> None:
     system = System("keys").node("a").node("b", address="tcp://127.0.0.1:1")
     system.add("far", Collector, node="b")

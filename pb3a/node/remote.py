@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import socket
 import threading
 import time
 from typing import TYPE_CHECKING, Any
@@ -73,6 +74,12 @@ class RemoteNode:
         self.stopped = False                # its controller confirmed the executor's stop
         # where the other nodes reach its executor and publications
         host = advertise or address.removeprefix("tcp://").rpartition(":")[0]
+        unknown = _unresolved(address)      # (said at once, not after the ping's wait)
+        if unknown:
+            self.close()
+            raise RuntimeFailure(f"node {name}: its address {address} names a host that "
+                                 f"does not resolve ({unknown}): fix the node's address (a "
+                                 "name the launcher's machine resolves, or an IP address)")
         try:
             self.controller.call("ping", CONNECT_TIMEOUT)
         except RuntimeTimeout:
@@ -316,3 +323,13 @@ class RemoteNode:
         self.controller.close()
         if self.client is not None:
             self.client.close()
+
+
+def _unresolved(address: str) -> str:
+    """Why the host of ``address`` (``tcp://HOST:PORT``) does not resolve; "" if it does."""
+    host = address.removeprefix("tcp://").rpartition(":")[0].strip("[]")
+    try:
+        socket.getaddrinfo(host, None)
+    except (socket.gaierror, UnicodeError) as exc:
+        return getattr(exc, "strerror", None) or str(exc)
+    return ""
