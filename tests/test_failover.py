@@ -33,6 +33,7 @@ from sample_modules import (
 )
 
 from pb3a import RuntimeFailure, System
+from pb3a.cli.status import format_table
 from pb3a.daemons.node_controller import Limits, NodeController
 from pb3a.transport.auth import ClusterKey, Rejected
 from pb3a.transport.control import ControlClient
@@ -123,6 +124,9 @@ def test_modules_of_a_lost_node_fail_over_within_1_s_and_the_node_rejoins(
     assert stats.modules["relay"].node == "c" and stats.modules["far"].node in ("a", "c")
     # what src wrote while nobody on b read it is counted, never silently gone
     assert stats.links["src.out->relay.x"].link_failures > 500
+    (row,) = [line.split() for line in format_table(stats).splitlines()
+              if line.startswith("src.out -> relay.x ")]
+    assert int(row[8]) == stats.links["src.out->relay.x"].link_failures   # `pb3a status`: lost
     assert stats.links["src.out->far.x"].link_failures > 500
     assert joined[0].detail["epoch"] == 2
     assert {(move["module"], move["destination"]) for move in told} == {

@@ -41,13 +41,14 @@ def format_table(stats: SystemStats) -> str:
     lines = _columns(rows)
     if stats.links:
         lines.append("")
-        link_rows = [("link", "transport", "policy", "values", "rate/s", "drops", "waits",
-                      "latency")]
+        # (lost: values known lost with a node or a cut link, which drops do not count)
+        link_rows = [("link", "transport", "policy", "values", "rate/s", "drops", "lost",
+                      "waits", "latency")]
         for link in stats.links.values():
             latency = link.latency
             link_rows.append((f"{link.src} -> {link.dst}", link.transport, link.policy,
                               str(link.values), f"{link.rate:.0f}", str(link.drops),
-                              str(link.waits),
+                              str(link.link_failures), str(link.waits),
                               "-" if math.isnan(latency) else f"{latency * 1e6:.0f} us"))
         lines += _columns(link_rows)
     remote = {name: health for name, health in stats.nodes.items() if health.address}
