@@ -121,6 +121,19 @@ def test_values_the_page_cannot_hold_exactly_come_back_unchanged(tmp_path: Path)
         assert f"count = {big + 22}," in client.get("/api/document/toml").text
 
 
+
+def test_a_whole_number_typed_into_a_float_field_is_saved_as_a_float(pipeline: Path) -> None:
+    """JSON writes 7.0 as 7: a float field edited in the page to a whole number was
+    saved as an int (``gain = 7``), which ``pb3a check`` then took for another type."""
+    with manager_client(Session(Document.open(pipeline))) as client:
+        system = client.get("/api/document").json()["system"]
+        system["modules"]["scale"]["state"]["gain"] = 7
+        system["modules"]["tick"]["state"]["count"] = 5             # an int stays one
+        assert client.put("/api/document", json={"system": system}).status_code == 200
+        text = client.get("/api/document/toml").text
+    assert "gain = 7.0" in text and "count = 5" in text, text
+
+
 def test_problems_and_drawn_links_use_the_words_of_pb3a_check(pipeline: Path) -> None:
     with manager_client(Session(Document.open(pipeline))) as client:
         system = client.get("/api/document").json()["system"]

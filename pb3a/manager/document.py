@@ -460,7 +460,9 @@ def _resolved(held: Any, new: Any) -> Any:
     the nearest double (JavaScript's numbers). So ``held`` itself where ``new`` says
     what it says as the page shows it, item by item in a list or table (1700000000123456789
     was saved ...800, though nobody touched it); a date again where ``held`` was one and
-    ``new`` is such text (an edited date was saved as a string); else ``new``."""
+    ``new`` is such text (an edited date was saved as a string); a float where ``held``
+    was one and ``new`` is a whole number (7 typed into a float field was saved 7);
+    else ``new``."""
     if _as_shown(held) == _as_sent(new):
         return held
     if isinstance(held, list) and isinstance(new, list):
@@ -472,6 +474,8 @@ def _resolved(held: Any, new: Any) -> Any:
     if isinstance(held, (datetime.date, datetime.time)) and isinstance(new, str):
         with contextlib.suppress(ValueError):
             return type(held).fromisoformat(new)
+    if isinstance(held, float) and type(new) is int:     # (JSON writes 7.0 as 7)
+        return float(new)
     return new
 
 
