@@ -73,6 +73,12 @@ def test_a_module_that_raises_and_one_whose_worker_dies_are_seen_failing() -> No
         assert stats["modules"]["steady"]["status"] == "failed"
         assert any("module steady failed" in failure for failure in stats["failures"])
         assert stats["modules"]["boom"]["status"] == "running"
+        # restarted from the page (it had no way to: `pb3a restart` alone)
+        assert client.post("/api/modules/steady/restart").status_code == 200
+        receive_until(socket, stats_where(
+            lambda s: s["modules"]["steady"]["status"] == "running"
+            and s["modules"]["steady"]["pid"] not in (None, pid)), "steady running again")
+        assert client.post("/api/modules/nope/restart").status_code == 404
 
 
 def test_a_restart_appears_on_the_feed_as_it_happens() -> None:

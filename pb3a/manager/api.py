@@ -148,6 +148,9 @@ def routes(session: Session) -> list[Route]:
     async def remove(request: Request) -> Any:
         return await call(session.remove, name(request))
 
+    async def restart(request: Request) -> Any:
+        return await call(session.restart, name(request))
+
     async def link(request: Request) -> Any:
         return await call(session.link, await body_of(request))
 
@@ -228,6 +231,7 @@ def routes(session: Session) -> list[Route]:
         Route("/api/modules/{name:path}/migrate", answer(migrate), methods=["POST"]),
         Route("/api/modules/{name:path}/swap", answer(swap), methods=["POST"]),
         Route("/api/modules/{name:path}/swaps", answer(swaps)),
+        Route("/api/modules/{name:path}/restart", answer(restart), methods=["POST"]),
         Route("/api/modules/{name:path}", answer(remove), methods=["DELETE"]),
         Route("/api/links", answer(link), methods=["POST"]),
         Route("/api/reload", answer(reload), methods=["POST"]),

@@ -252,6 +252,13 @@ class Session:
                         timeout=self.timeout)
         return self.system()
 
+    def restart(self, name: str) -> dict[str, Any]:
+        """``POST /api/modules/{name}/restart``: start the module afresh, a failed one too
+        (its configured state, its links wired again), as ``pb3a restart`` does."""
+        self.topology_of(name)
+        self.handle.restart(name, timeout=MOVE_TIMEOUT)
+        return self.system()
+
     def remove(self, name: str) -> dict[str, Any]:
         """``DELETE /api/modules/{name}``."""
         self.topology_of(name)

@@ -57,6 +57,7 @@ export const api = {
   removeModule: (name) => request("DELETE", `/api/modules/${q(name)}`),
   link: (spec) => request("POST", "/api/links", spec),
   reload: (module) => request("POST", "/api/reload", {module}),
+  restart: (name) => request("POST", `/api/modules/${q(name)}/restart`, {}),
   document: () => request("GET", "/api/document"),
   putDocument: (system, revision) => request("PUT", "/api/document", {system, revision}),
   open: (name, toml) => request("POST", "/api/document/open", {name, toml}),

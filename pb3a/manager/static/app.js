@@ -293,6 +293,8 @@ class Manager {
       actions.push(...this.macroActions(name, button));
     } else if (this.mode() === "running") {
       actions.push(this.moveMenu(name));
+      actions.push(button("Restart", () => this.restart(name),
+                          this.stats?.modules?.[name]?.status === "failed" ? "primary" : ""));
       actions.push(button("Swap class…", () => this.openSwaps(name)));
       actions.push(button("Reload code", () => this.reload(name)));
       actions.push(button("Remove", () => this.requestRemove(name), "danger"));
@@ -486,6 +488,18 @@ class Manager {
 
   /** Drop the cached code of the module's file everywhere, then swap each module whose
    * class comes from that file to the same class: the new code runs, the state is kept. */
+  /** Start a module afresh (a failed one too), as `pb3a restart` does. */
+  async restart(name) {
+    try {
+      await api.restart(name);
+      this.toasts.show("ok", `Restarted ${name}`);
+      await this.refreshStructure();
+      if (this.selected === name) this.select(name);
+    } catch (error) {
+      this.toasts.error(error);
+    }
+  }
+
   async reload(name) {
     const module = this.system.modules[name].class.split(":")[0];
     const users = Object.entries(this.system.modules).filter(([, info]) => info.class.startsWith(`${module}:`));
