@@ -288,7 +288,7 @@ def test_a_node_address_that_does_not_resolve_is_named_so() -> None:
     assert time.monotonic() - started < 2.0                        # at once, no wait
 
 
-def test_a_wrong_key_is_told_apart_from_no_answer_within_5_s() -> None:
+def test_a_wrong_key_is_told_apart_from_no_answer_within_5_s(caplog) -> None:
     system = System("keys").node("a").node("b", address="tcp://127.0.0.1:1")
     system.add("far", Collector, node="b")
     started = time.monotonic()
@@ -305,6 +305,10 @@ def test_a_wrong_key_is_told_apart_from_no_answer_within_5_s() -> None:
                                                  r"make PB3A_KEY"):
             system.launch()
         assert time.monotonic() - started < 2        # told at once, not timed out
+        # and the node's own log says so, where deploy.md says to look first (it was silent)
+        assert any(record.levelname == "WARNING" and f"{stranger.address} refused a request "
+                   "from 127.0.0.1: it runs with another cluster key" in record.getMessage()
+                   for record in caplog.records), [r.getMessage() for r in caplog.records]
     finally:
         stranger.close()
 
