@@ -9,10 +9,12 @@ import signal
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 
+from pb3a import System
 from pb3a.cli.main import main
 
 pytestmark = pytest.mark.timeout(120)
@@ -144,6 +146,33 @@ def test_a_daemon_refuses_an_address_it_cannot_listen_on_saying_why(capsys) -> N
                 out, err = capsys.readouterr()
                 assert said in err and "Traceback" not in err, (daemon, listen, err)
                 assert out == ""                            # no banner: it never served
+
+
+def test_a_launcher_refuses_a_listen_address_that_is_not_this_machines(
+        tmp_path: Path, capsys) -> None:
+    """``pb3a run --listen`` (and ``System.launch(listen=...)``, ``Running.listen``) with a
+    host no name server knows, or one that is not this machine's, bound every interface
+    and printed "launcher at tcp://nowhere.invalid:7200", which nobody reaches: it is
+    refused at once as ``pb3a node start`` refuses it, naming the address and what to
+    give instead."""
+    pipeline = str(REPO / "examples" / "pipeline.toml")
+    mistakes = [("tcp://nowhere.invalid:7200",
+                 "'nowhere.invalid' is not a host name this machine can resolve"),
+                ("tcp://10.255.255.1:7200", "10.255.255.1 is not an address of this machine")]
+    for listen, said in mistakes:
+        started = time.monotonic()
+        assert main(["run", pipeline, "--for", "5", "--listen", listen]) == 1, listen
+        out, err = capsys.readouterr()
+        assert f"pb3a run: cannot listen on {listen}: {said}" in err, err
+        assert "0.0.0.0 for every interface" in err and "Traceback" not in err
+        assert "launcher at" not in out and time.monotonic() - started < 4
+    (tmp_path / "empty.toml").write_text('name = "empty"\n')
+    with pytest.raises(ValueError, match=r"10\.255\.255\.1 is not an address of this machine"):
+        System.load(tmp_path / "empty.toml").launch(listen="tcp://10.255.255.1:0")
+    with System.load(tmp_path / "empty.toml").launch() as run:
+        with pytest.raises(ValueError, match=r"'nowhere\.invalid' is not a host name"):
+            run.listen("tcp://nowhere.invalid:0")
+        assert run.listen("tcp://*:0").rpartition(":")[0] != "tcp://*"    # (still taken)
 
 
 def test_modules_serve_names_a_directory_that_is_not_there(tmp_path: Path, capsys) -> None:

@@ -5,9 +5,7 @@ listens, serve until SIGINT or SIGTERM, then close it."""
 from __future__ import annotations
 
 import argparse
-import errno
 import signal
-import socket
 import sys
 import threading
 from collections.abc import Callable
@@ -16,7 +14,7 @@ from typing import Any
 import zmq
 
 from pb3a.cli.standard_output import output_gone
-from pb3a.transport.addresses import bind_address
+from pb3a.transport.addresses import bind_address, check_bindable
 from pb3a.transport.auth import ClusterKey, ClusterKeyError
 
 
@@ -32,7 +30,7 @@ def serve_until_signalled(command: str, listen: str,
     try:
         key = ClusterKey.load()
         host, port = bind_address(listen)
-        _check_bindable(listen, host, port)
+        check_bindable(listen, host, port)
         daemon, banner = start(key, host, port)
     except (OSError, ValueError, ClusterKeyError, zmq.ZMQError) as exc:
         print(f"{command}: {exc}", file=sys.stderr)
@@ -55,36 +53,6 @@ def _announce(banner: str) -> None:
         print(banner, flush=True)
     except BrokenPipeError:
         output_gone()
-
-
-def _check_bindable(listen: str, host: str, port: int) -> None:
-    """ValueError saying why a daemon cannot listen on ``host:port``: the host
-    is not one of this machine's addresses (the socket would otherwise bind every
-    interface, and the banner would name an address nobody reaches), or the port is
-    taken."""
-    try:
-        found = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
-    except socket.gaierror:
-        raise ValueError(f"cannot listen on {listen}: {host!r} is not a host name this "
-                         "machine can resolve; give one of its addresses, or 0.0.0.0 for "
-                         "every interface") from None
-    family, kind, proto, _, sockaddr = found[0]
-    with socket.socket(family, kind, proto) as probe:
-        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)    # (as ZeroMQ binds)
-        try:
-            probe.bind(sockaddr)
-        except OSError as exc:
-            if exc.errno == errno.EADDRNOTAVAIL:
-                raise ValueError(f"cannot listen on {listen}: {host} is not an address of "
-                                 "this machine; give one of its addresses (`ip -brief "
-                                 "address` lists them), or 0.0.0.0 for every interface"
-                                 ) from None
-            if exc.errno == errno.EADDRINUSE:
-                raise ValueError(f"cannot listen on {listen}: port {port} is in use "
-                                 "(is this daemon running already?); stop what listens "
-                                 "there (`ss -ltnp` shows it), or choose another port"
-                                 ) from None
-            raise
 
 
 def register(commands: argparse._SubParsersAction) -> None:

@@ -22,6 +22,7 @@ from pb3a.processes import role
 from pb3a.transport.addresses import (
     EVERY_INTERFACE,
     bind_address,
+    check_bindable,
     default_route_host,
     reachable_from,
 )
@@ -132,9 +133,14 @@ class Running(SystemHandle):
         ``address``; returns the address to reach it at. Bound to every interface
         (``tcp://*:0``, ``tcp://0.0.0.0:0``), that is the host the remote nodes reach
         this machine at, else the one of its default route: ``tcp://*:PORT`` reaches
-        nobody, and it was handed to the nodes to call the launcher back at."""
+        nobody, and it was handed to the nodes to call the launcher back at. A host
+        that is not one of this machine's addresses is refused (ValueError), as
+        ``pb3a node start`` refuses it: it bound every interface and handed out an
+        address nobody reaches."""
         if self._server is None:
             host, port = bind_address(address)
+            if host not in EVERY_INTERFACE:
+                check_bindable(address, host, port)
             # Not in the lane of operations, one at a time: an agent's request from a
             # remote node (the operation in progress may wait for it: the setup of the
             # module it starts), what nodes report, and the reads that wait for news

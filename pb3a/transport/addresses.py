@@ -64,6 +64,36 @@ def tcp_address_problems(value: object, what: str, otherwise: str = "") -> list[
             f"{otherwise}, got {value!r}"]
 
 
+def check_bindable(listen: str, host: str, port: int) -> None:
+    """ValueError saying why a daemon or a launcher cannot listen on ``host:port``: the
+    host is not one of this machine's addresses (the socket would otherwise bind every
+    interface, and the address printed would name a host nobody reaches it at), or the
+    port is taken."""
+    try:
+        found = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except socket.gaierror:
+        raise ValueError(f"cannot listen on {listen}: {host!r} is not a host name this "
+                         "machine can resolve; give one of its addresses, or 0.0.0.0 for "
+                         "every interface") from None
+    family, kind, proto, _, sockaddr = found[0]
+    with socket.socket(family, kind, proto) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)    # (as ZeroMQ binds)
+        try:
+            probe.bind(sockaddr)
+        except OSError as exc:
+            if exc.errno == errno.EADDRNOTAVAIL:
+                raise ValueError(f"cannot listen on {listen}: {host} is not an address of "
+                                 "this machine; give one of its addresses (`ip -brief "
+                                 "address` lists them), or 0.0.0.0 for every interface"
+                                 ) from None
+            if exc.errno == errno.EADDRINUSE:
+                raise ValueError(f"cannot listen on {listen}: port {port} is in use "
+                                 "(is it running already?); stop what listens "
+                                 "there (`ss -ltnp` shows it), or choose another port"
+                                 ) from None
+            raise
+
+
 def close_bound(sock: zmq.Socket, timeout: float = 2.0, linger_ms: int = 0) -> None:
     """Close a bound ``sock`` and wait (at most ``timeout`` seconds) until its ports are
     free: ZeroMQ closes listeners on its own thread, after ``close`` has returned, so a
