@@ -94,10 +94,12 @@ class NodeStats:
 
     up: bool
     rtt: float                  # seconds; 0 for embedded nodes, NaN before the first beat
+    #                             and while lost (none measured: it showed the last one)
     address: str | None         # None: embedded in the launcher's process
     controller: bool | None = None   # its node controller answers (remote nodes)
     epoch: int = 1              # its admission: one more each time it rejoins after a loss
-    silent_s: float = 0.0       # since its executor last answered a heartbeat (remote nodes)
+    silent_s: float = 0.0       # since its executor last answered a heartbeat (remote
+    #                             nodes, lost ones too: it said 0.0 for those)
     # the node's resources as its executor last measured them (None: not asked, or lost)
     cpu: float | None = None                # percent busy of its CPUs (its pinned ones)
     memory_available: int | None = None     # bytes

@@ -6,7 +6,9 @@ new epoch and modules can be moved back; a fenced executor's word is refused."""
 from __future__ import annotations
 
 import contextlib
+import math
 import os
+import re
 import signal
 import threading
 import time
@@ -33,7 +35,7 @@ from sample_modules import (
 )
 
 from pb3a import RuntimeFailure, System
-from pb3a.cli.status import format_table
+from pb3a.cli.status import format_nodes, format_table
 from pb3a.daemons.node_controller import Limits, NodeController
 from pb3a.transport.auth import ClusterKey, Rejected
 from pb3a.transport.control import ControlClient
@@ -315,6 +317,29 @@ def test_a_move_that_a_writer_s_node_loss_failed_leaves_the_rest_running(daemons
         counted = run.state("join")["xs"]
         eventually(lambda: run.state("join")["xs"] > counted + 20, timeout=10,
                    what="values from alpha into join, put back on a")
+
+
+def test_a_lost_node_shows_no_round_trip_and_its_real_silence(daemons) -> None:
+    """A lost node showed the last round-trip time measured, unchanged (``pb3a nodes``),
+    ``silent_s`` 0.0 however long it had been silent, and its controller answering after
+    it was gone: it shows no round trip ("-"; NaN, null in JSON), the seconds since its
+    executor last answered, and whether its controller answers now."""
+    b = daemons["b"]
+    system = System("silent").node("a").node("b", address=b.address)
+    system.add("far", Collector, node="b")
+    with system.launch() as run:
+        eventually(lambda: run.stats().nodes["b"].rtt > 0, what="a round trip to b")
+        executor = b.executor_pid()
+        b.kill()                        # (its controller first: b is not admitted again)
+        os.kill(executor, signal.SIGKILL)
+        assert run._launcher.wait_health("b", up=False, timeout=10)
+        time.sleep(1.0)
+        node = eventually(lambda: (n := run.stats().nodes["b"]).controller is False and n,
+                          what="b's controller said gone")
+        shown = format_nodes(run.nodes())
+    assert not node.up and math.isnan(node.rtt)
+    assert node.silent_s > 2.9            # lost after 2 s of silence, looked at 1 s later
+    assert re.search(r"^b +tcp://\S+ +LOST +-$", shown, re.M), shown
 
 
 def test_two_nodes_lost_at_once_fail_over_to_the_node_that_lives(daemons) -> None:

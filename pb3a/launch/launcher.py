@@ -360,11 +360,12 @@ class Launcher:
         return remote is not None and remote.silent_s() > LOSS_S / 2
 
     def node_table(self) -> dict[str, NodeStats]:
-        """Every node's health as the heartbeats see it."""
+        """Every node's health as the heartbeats see it: a lost node's silence goes on
+        counting (it said 0.0 once the node was lost)."""
         return {name: NodeStats(health["up"], health["rtt"], health["address"],
                                 health.get("controller"), health["epoch"],
                                 self.remotes[name].silent_s() if name in self.remotes
-                                and health["up"] else 0.0)
+                                else 0.0)
                 for name, health in self.health.items()}
 
     # -- heartbeats -------------------------------------------------------------------
@@ -423,7 +424,8 @@ class Launcher:
         lost_at = time.monotonic()
         self.remotes[node].lose()
         with self.changed:
-            self.health[node]["up"] = False
+            # no round trip now: its last one, shown on, was made up
+            self.health[node].update(up=False, rtt=float("nan"))
             self.changed.notify_all()
         # (a copy: another node's failover thread may change the specs meanwhile)
         gone = sorted(name for name, spec in list(self.specs.items()) if spec.node == node)
@@ -655,7 +657,11 @@ class Launcher:
         back. Its modules stay where they failed over to: move them back at will."""
         try:
             old = self.remotes[name]
-            if self._stopping.is_set() or not old.controller_answers(HEARTBEAT_S * 2):
+            if self._stopping.is_set():
+                return
+            # (said while it is lost too: it said the last answer before the loss)
+            self.health[name]["controller"] = old.controller_answers(HEARTBEAT_S * 2)
+            if not self.health[name]["controller"]:
                 return
             old.stop_executor(timeout=5.0)        # (it fenced itself; killed if it did not)
             epoch = old.node_epoch + 1
