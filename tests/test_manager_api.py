@@ -514,6 +514,23 @@ def test_the_catalog_leaves_out_a_file_whose_assignment_does_a_script_s_work(
         assert any(p.startswith(said) for p in listed["problems"]), listed["problems"]
 
 
+def test_the_catalog_names_a_file_with_a_syntax_error_in_its_problems(
+        tmp_path, monkeypatch) -> None:
+    """A file Python cannot parse was left out of the module browser without a word
+    (``problems`` empty, though they list "files not imported, and why"): it is named
+    there, with the line and Python's message."""
+    project = tmp_path / "project_typos"
+    project.mkdir()
+    (project / "typo.py").write_text("from pb3a import Input, Module\n"
+                                     "class Typo(Module)\n    x = Input(float)\n")
+    (project / "lab.toml").write_text('name = "lab"\n')
+    monkeypatch.setattr("sys.path", list(sys.path))
+    listed = Catalog(Document.open(project / "lab.toml")).classes()
+    assert not [c for c in listed["classes"] if c["class"].startswith("typo:")]
+    assert f"{project / 'typo.py'}: not imported: line 2: expected ':'" in listed["problems"], \
+        listed["problems"]
+
+
 def test_an_unknown_route_is_a_json_404(client) -> None:
     missing = client.get("/api/nothing")
     assert missing.status_code == 404 and "docs/manager.md" in missing.json()["error"]

@@ -9,8 +9,8 @@ that system's nodes import from (its topology's ``module_servers``). A Python fi
 is imported only if its top level merely defines things (imports, classes,
 functions, assignments, an ``if __name__ == "__main__"`` block):
 a script that does its work when imported (``examples/quickstart.py`` launches a
-system) is left out, and said so in ``problems``. What one import finds is kept
-until ``forget`` (after a reload).
+system) is left out, and said so in ``problems``, as is a file Python cannot parse.
+What one import finds is kept until ``forget`` (after a reload).
 """
 
 from __future__ import annotations
@@ -246,10 +246,15 @@ def _module_names(root: Path, problems: list[str]) -> list[str]:
 
 def _defines_classes(source: bytes, where: str, problems: list[str]) -> bool:
     """Whether ``source`` has a class with a base and, at its top level, only statements
-    that define things (so importing it runs nothing else)."""
+    that define things (so importing it runs nothing else). Source Python cannot read
+    is said in ``problems`` (it was left out without a word)."""
     try:
         tree = ast.parse(source)
-    except (SyntaxError, ValueError):
+    except SyntaxError as exc:
+        problems.append(f"{where}: not imported: line {exc.lineno}: {exc.msg}")
+        return False
+    except ValueError as exc:                   # (a null byte)
+        problems.append(f"{where}: not imported: {exc}")
         return False
     has_class = any(isinstance(node, ast.ClassDef) and node.bases for node in tree.body)
     if not has_class:
