@@ -311,6 +311,37 @@ def test_a_value_being_typed_survives_a_change_of_structure_elsewhere(
     assert lab.api("GET", "/api/modules/scale/state")["fields"]["gain"]["value"] == 7.5
 
 
+def test_a_module_selected_while_editing_shows_its_live_state_after_launch(
+        tmp_path: Path) -> None:
+    """The module shown while the document was edited kept the document's values after
+    Launch (the page never watched it) until another module was clicked: the State
+    Editor follows the running module as soon as it runs."""
+    config = tmp_path / "lab.toml"
+    config.write_text(LAB)
+    manager = ManagerProcess(str(config))
+    try:
+        with chromium_page() as tab:
+            page = tab.page
+            page.goto(manager.url)
+            page.wait_for_function("document.querySelector('#mode').textContent === 'editing'",
+                                   timeout=WAIT_MS)
+            page.click("[data-module='sensor'] .module-title")
+            assert field_value(page, "sensor", "steps") == "0"         # the document's
+            page.click("#launch")
+            page.wait_for_function("document.querySelector('#mode').textContent === 'running'",
+                                   timeout=WAIT_MS)
+            steps = "Number(document.querySelector(\"[data-field='steps'] input\")?.value)"
+            page.wait_for_function(f"{steps} > 0", timeout=WAIT_MS)    # the running sensor's
+            first = int(field_value(page, "sensor", "steps"))
+            page.wait_for_function(f"{steps} > {first}", timeout=WAIT_MS)    # and live
+            running = manager.api("GET", "/api/modules/sensor/state")["fields"]["steps"]
+            assert running["value"] > first
+            page.screenshot(path=str(screenshot_path(tmp_path, "manager_launched_state.png")))
+            assert tab.errors == [], f"the page threw: {tab.errors}"
+    finally:
+        manager.stop()
+
+
 def test_dragging_a_module_onto_another_node_migrates_it(lab: ManagerProcess, page: Any,
                                                          tmp_path: Path) -> None:
     assert module_on_node(page, "probe", "b")

@@ -117,6 +117,10 @@ class Manager {
     if (gone.length) {
       for (const name of gone) this.selection.delete(name);
       this.select([...this.selection].at(-1) ?? null);
+    } else if (modeChanged && this.selected) {
+      // launched (or back to editing): the State Editor shows the other mode's state,
+      // and the live feed watches the module only once it runs
+      this.select(this.selected);
     } else if (this.selected) {
       this.describeSelected();
     }
