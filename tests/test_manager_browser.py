@@ -342,6 +342,38 @@ def test_a_module_selected_while_editing_shows_its_live_state_after_launch(
         manager.stop()
 
 
+def test_the_state_editor_comes_back_whole_when_a_failed_module_is_restarted(
+        lab: ManagerProcess, page: Any, tmp_path: Path) -> None:
+    """A module selected while its state could not be read (its worker killed, a read
+    timed out) kept the error, with no fields or some missing, after it ran again: the
+    fields come back, all of them, by themselves."""
+    page.click("[data-module='probe'] .module-title")
+    page.wait_for_function("document.querySelector(\"[data-field='last'] input\")?.value === '2.0'",
+                           timeout=WAIT_MS)
+    os.kill(lab.api("GET", "/api/stats")["modules"]["probe"]["pid"], signal.SIGKILL)
+    page.wait_for_selector("#state-fields .state-problem", timeout=WAIT_MS)
+    page.keyboard.press("Escape")
+    page.click("[data-module='probe'] .module-title")       # selected while it is down
+    page.wait_for_function("document.querySelector('#state-fields .problem')?.textContent"
+                           ".includes('not running')", timeout=WAIT_MS)
+    assert page.locator("[data-field]").count() == 0
+    address = lab.api("GET", "/api/system")["address"]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "tests"), str(REPO)])}
+    restart = subprocess.run([sys.executable, "-m", "pb3a", "restart", address, "probe"],
+                             capture_output=True, text=True, timeout=60, cwd=REPO, env=env)
+    assert restart.returncode == 0, restart.stdout + restart.stderr
+    page.wait_for_function("document.querySelector(\"[data-field='last'] input\")?.value === '2.0'",
+                           timeout=WAIT_MS)
+    page.wait_for_selector("#state-fields .problem", state="detached", timeout=WAIT_MS)
+    fields = lab.api("GET", "/api/modules/probe/state")["fields"]
+    shown = page.eval_on_selector_all("#state-fields > [data-field]",
+                                      "rows => rows.map(r => r.dataset.field)")
+    assert sorted(shown) == sorted(fields)
+    page.wait_for_selector("#inspector-meta .status-running", timeout=WAIT_MS)
+    page.wait_for_timeout(1500)      # a few refreshes: the plot has a line to draw
+    page.screenshot(path=str(screenshot_path(tmp_path, "manager_restarted_state.png")))
+
+
 def test_dragging_a_module_onto_another_node_migrates_it(lab: ManagerProcess, page: Any,
                                                          tmp_path: Path) -> None:
     assert module_on_node(page, "probe", "b")

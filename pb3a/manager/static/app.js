@@ -239,14 +239,13 @@ class Manager {
       return;
     }
     this.live.watch(name);
-    $("state-fields").replaceChildren(h("p", {class: "muted"}, "Reading its state…"));
+    this.editor.pending("Reading its state…", displays);
     try {
       const view = await api.state(name);
       if (this.selected === name) this.editor.show(view, displays);
     } catch (error) {
-      if (this.selected === name) {
-        $("state-fields").replaceChildren(h("p", {class: "problem"}, error.message));
-      }
+      // the live feed's next state draws the fields (once it can be read again)
+      if (this.selected === name) this.editor.pending(error.message, displays, true);
     }
   }
 

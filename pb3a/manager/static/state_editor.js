@@ -34,6 +34,15 @@ export class StateEditor {
     this.update(view);
   }
 
+  /** No fields yet, a line in their place saying why (being read, or a problem): the
+   * next update draws them all anew, rows of an earlier view are not kept out of sight. */
+  pending(message, displays, problem = false) {
+    this.displays = displays || {};
+    this.rows.clear();
+    this.open.clear();
+    this.root.replaceChildren(h("p", {class: problem ? "problem state-problem" : "muted"}, message));
+  }
+
   /** Refresh in place: what the user is typing is kept; a field whose kind changed is
    * drawn anew. */
   update(view) {
