@@ -374,6 +374,44 @@ def test_the_state_editor_comes_back_whole_when_a_failed_module_is_restarted(
     page.screenshot(path=str(screenshot_path(tmp_path, "manager_restarted_state.png")))
 
 
+def test_a_float_that_is_not_finite_is_shown_as_such_and_plotted_as_a_gap(
+        lab: ManagerProcess, page: Any, tmp_path: Path) -> None:
+    """inf and nan came as ``{"value": null, "text": "inf"}``: the field showed nothing
+    and a gauge 0. The field shows the text, marked; a plot and a gauge show no value."""
+    page.click("[data-module='probe'] .module-title")
+    page.wait_for_function("document.querySelector(\"[data-field='last'] input\")?.value === '2.0'",
+                           timeout=WAIT_MS)
+    page.wait_for_function("document.querySelector(\"[data-field='load'] .gauge-number\")"
+                           "?.textContent === '2'", timeout=WAIT_MS)
+    page.wait_for_timeout(1500)      # a few refreshes: the plot has a line before the gap
+    lab.api("POST", "/api/modules/sensor/state", {"level": float("nan")})   # nan downstream
+    page.wait_for_function("document.querySelector(\"[data-field='last'] input\").value === 'nan'",
+                           timeout=WAIT_MS)
+    last = page.locator("[data-field='last'] input")
+    assert "nonfinite" in last.get_attribute("class")
+    assert last.get_attribute("title") == "not a finite number"
+    assert page.locator("[data-field='load'] input").input_value() == "nan"
+    page.wait_for_function("document.querySelector(\"[data-field='load'] .gauge-number\")"
+                           ".textContent === '\u2013'", timeout=WAIT_MS)
+    assert page.locator("[data-field='load'] .gauge-value").count() == 0     # no arc, not 0
+    page.locator("[data-field='load'] .gauge-svg").scroll_into_view_if_needed()
+    page.screenshot(path=str(screenshot_path(tmp_path, "manager_not_finite_gauge.png")))
+    page.locator("[data-field='last']").scroll_into_view_if_needed()
+    # the plot's scale is still the finite values' (1.8 to 2.2): a nan drawn as 0 pulled it to 0
+    page.wait_for_timeout(1500)
+    ticks = page.locator("[data-field='last'] .tick").all_text_contents()
+    assert ticks[:2] == ["2.2", "1.8"] and ticks[2].endswith("now \u2013"), ticks
+    assert "nan" in page.locator("[data-field='recent'] .tree-level").text_content()
+    lab.api("POST", "/api/modules/sensor/state", {"level": float("-inf")})
+    page.wait_for_function("document.querySelector(\"[data-field='last'] input\").value === '-inf'",
+                           timeout=WAIT_MS)
+    page.screenshot(path=str(screenshot_path(tmp_path, "manager_not_finite.png")))
+    lab.api("POST", "/api/modules/sensor/state", {"level": 1.5})             # and back
+    page.wait_for_function("document.querySelector(\"[data-field='last'] input\").value === '3.0'",
+                           timeout=WAIT_MS)
+    assert "nonfinite" not in last.get_attribute("class") and not last.get_attribute("title")
+
+
 def test_dragging_a_module_onto_another_node_migrates_it(lab: ManagerProcess, page: Any,
                                                          tmp_path: Path) -> None:
     assert module_on_node(page, "probe", "b")

@@ -22,7 +22,8 @@ export class Plot {
     else if (view.type === "ndarray" && Array.isArray(view.value)) values = view.value.flat().slice(0, SERIES);
     else if (view.type === "ndarray") values = [view.summary?.mean];
     else return;
-    this.samples.push([performance.now() / 1000, values.map(Number)]);
+    // a null is a float that is not finite (inf, nan): a gap in its line, not a 0
+    this.samples.push([performance.now() / 1000, values.map((v) => v === null ? NaN : Number(v))]);
     if (this.samples.length > HISTORY) this.samples.shift();
     this.draw();
   }
@@ -39,10 +40,16 @@ export class Plot {
     const width = this.samples[0][1].length;
     const lines = [];
     for (let i = 0; i < width; i += 1) {
-      const points = this.samples.filter(([, v]) => Number.isFinite(v[i]))
-        .map(([t, v]) => `${x(t).toFixed(1)},${y(v[i]).toFixed(1)}`).join(" ");
-      lines.push(s("polyline", {points, fill: "none", stroke: COLOURS[i % COLOURS.length],
-                                "stroke-width": 1.8, "stroke-linejoin": "round"}));
+      // one polyline per run of finite values: a value that is not one leaves a gap
+      const runs = [[]];
+      for (const [t, v] of this.samples) {
+        if (Number.isFinite(v[i])) runs.at(-1).push(`${x(t).toFixed(1)},${y(v[i]).toFixed(1)}`);
+        else if (runs.at(-1).length) runs.push([]);
+      }
+      for (const run of runs.filter((r) => r.length)) {
+        lines.push(s("polyline", {points: run.join(" "), fill: "none", stroke: COLOURS[i % COLOURS.length],
+                                  "stroke-width": 1.8, "stroke-linejoin": "round"}));
+      }
     }
     const last = this.samples.at(-1)[1];
     this.element.replaceChildren(s("svg", {viewBox: `0 0 ${W} ${H}`, class: "plot-svg"}, [
@@ -51,7 +58,7 @@ export class Plot {
       s("text", {x: L - 5, y: y(hi) + 4, "text-anchor": "end", class: "tick"}, fmt.tick(hi)),
       s("text", {x: L - 5, y: y(lo) + 4, "text-anchor": "end", class: "tick"}, fmt.tick(lo)),
       s("text", {x: W - 6, y: H - 2, "text-anchor": "end", class: "tick"},
-        `last ${(t1 - t0).toFixed(0)} s · now ${last.map(fmt.number).join(", ")}`),
+        `last ${(t1 - t0).toFixed(0)} s · now ${last.map((v) => Number.isFinite(v) ? fmt.number(v) : "–").join(", ")}`),
       ...lines,
     ]));
   }
@@ -66,9 +73,10 @@ export class Gauge {
   }
 
   push(view) {
-    const value = Number(view.type === "ndarray" ? view.summary?.mean : view.value);
+    const raw = view.type === "ndarray" ? view.summary?.mean : view.value;
+    const value = raw === null || raw === undefined ? NaN : Number(raw);    // null: inf or nan
     const span = this.max - this.min || 1;
-    const f = Math.min(1, Math.max(0, (value - this.min) / span));
+    const f = Number.isFinite(value) ? Math.min(1, Math.max(0, (value - this.min) / span)) : 0;
     const R = 52, cx = 70, cy = 64;
     const at = (k) => [cx - R * Math.cos(Math.PI * k), cy - R * Math.sin(Math.PI * k)];
     const [ex, ey] = at(f);
@@ -76,8 +84,9 @@ export class Gauge {
     const tone = f > 0.9 ? "#dc2626" : f > 0.7 ? "#ea580c" : "#2563eb";
     this.element.replaceChildren(s("svg", {viewBox: "0 0 140 84", class: "gauge-svg"}, [
       s("path", {d: `M${sx},${sy} A${R},${R} 0 0 1 ${tx},${ty}`, class: "gauge-track"}),
-      s("path", {d: `M${sx},${sy} A${R},${R} 0 0 1 ${ex.toFixed(2)},${ey.toFixed(2)}`,
-                 class: "gauge-value", stroke: tone}),
+      // no value, no arc: a gauge at its minimum would say the value is the minimum
+      Number.isFinite(value) ? s("path", {d: `M${sx},${sy} A${R},${R} 0 0 1 ${ex.toFixed(2)},${ey.toFixed(2)}`,
+                                          class: "gauge-value", stroke: tone}) : null,
       s("text", {x: cx, y: cy - 8, "text-anchor": "middle", class: "gauge-number"},
         Number.isFinite(value) ? fmt.number(value) : "–"),
       s("text", {x: sx, y: cy + 16, "text-anchor": "middle", class: "tick"}, fmt.number(this.min)),

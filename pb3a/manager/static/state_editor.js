@@ -266,8 +266,13 @@ function scalarEditor(field, commit) {
   });
   input.addEventListener("change", send);
   const refresh = (view) => {
-    shown = !numeric ? String(view.value)
+    // JSON has no inf or nan: such a float comes as null with its text, shown marked
+    const nonFinite = numeric && view.value === null && typeof view.text === "string";
+    shown = nonFinite ? view.text : !numeric ? String(view.value)
       : field.type === "float" && Number.isInteger(view.value) ? view.value.toFixed(1) : fmt.number(view.value);
+    input.classList.toggle("nonfinite", nonFinite);
+    if (nonFinite) input.title = "not a finite number";
+    else if (input.title === "not a finite number") input.title = "";
     if (!dirty && document.activeElement !== input) input.value = shown;
   };
   return {inline: input, below: null, refresh};
@@ -362,6 +367,7 @@ function leafText(view) {
   if (view.type === "str") return JSON.stringify(view.value);
   if (view.type === "none") return "None";
   if (view.type === "bool") return view.value ? "True" : "False";
+  if (view.type === "float" && view.value === null && view.text) return view.text;    // inf, nan
   if (view.type === "float" && Number.isInteger(view.value)) return view.value.toFixed(1);
   if (view.type === "int" || view.type === "float") return fmt.number(view.value);
   if (view.type === "ndarray") {
