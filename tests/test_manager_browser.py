@@ -318,28 +318,19 @@ def test_a_module_selected_while_editing_shows_its_live_state_after_launch(
     Editor follows the running module as soon as it runs."""
     config = tmp_path / "lab.toml"
     config.write_text(LAB)
-    manager = ManagerProcess(str(config))
-    try:
-        with chromium_page() as tab:
-            page = tab.page
-            page.goto(manager.url)
-            page.wait_for_function("document.querySelector('#mode').textContent === 'editing'",
-                                   timeout=WAIT_MS)
-            page.click("[data-module='sensor'] .module-title")
-            assert field_value(page, "sensor", "steps") == "0"         # the document's
-            page.click("#launch")
-            page.wait_for_function("document.querySelector('#mode').textContent === 'running'",
-                                   timeout=WAIT_MS)
-            steps = "Number(document.querySelector(\"[data-field='steps'] input\")?.value)"
-            page.wait_for_function(f"{steps} > 0", timeout=WAIT_MS)    # the running sensor's
-            first = int(field_value(page, "sensor", "steps"))
-            page.wait_for_function(f"{steps} > {first}", timeout=WAIT_MS)    # and live
-            running = manager.api("GET", "/api/modules/sensor/state")["fields"]["steps"]
-            assert running["value"] > first
-            page.screenshot(path=str(screenshot_path(tmp_path, "manager_launched_state.png")))
-            assert tab.errors == [], f"the page threw: {tab.errors}"
-    finally:
-        manager.stop()
+    with editor(config, 4) as (manager, page):
+        page.click("[data-module='sensor'] .module-title")
+        assert field_value(page, "sensor", "steps") == "0"         # the document's
+        page.click("#launch")
+        page.wait_for_function("document.querySelector('#mode').textContent === 'running'",
+                               timeout=WAIT_MS)
+        steps = "Number(document.querySelector(\"[data-field='steps'] input\")?.value)"
+        page.wait_for_function(f"{steps} > 0", timeout=WAIT_MS)    # the running sensor's
+        first = int(field_value(page, "sensor", "steps"))
+        page.wait_for_function(f"{steps} > {first}", timeout=WAIT_MS)    # and live
+        running = manager.api("GET", "/api/modules/sensor/state")["fields"]["steps"]
+        assert running["value"] > first
+        page.screenshot(path=str(screenshot_path(tmp_path, "manager_launched_state.png")))
 
 
 def test_the_state_editor_comes_back_whole_when_a_failed_module_is_restarted(
