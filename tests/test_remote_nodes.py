@@ -11,7 +11,7 @@ import time
 
 import psutil
 import pytest
-from conftest import alive, assert_same_arrays, eventually, restart_after_kill
+from conftest import Daemon, alive, assert_same_arrays, eventually, restart_after_kill
 from sample_modules import (
     AsksInSetup,
     Collector,
@@ -286,6 +286,26 @@ def test_a_node_address_that_does_not_resolve_is_named_so() -> None:
                                              r"fix the node's address"):
         system.launch(listen="tcp://127.0.0.1:0")
     assert time.monotonic() - started < 2.0                        # at once, no wait
+
+
+def test_a_class_the_remote_node_cannot_import_is_named_with_the_node(tmp_path,
+                                                                       monkeypatch) -> None:
+    """A module class the launcher's machine has and the node's does not failed the launch
+    naming "the process at tcp://127.0.0.1:40733": the node's executor, named so."""
+    (tmp_path / "only_on_the_launcher.py").write_text(
+        "from pb3a import Module\n\nclass Local(Module):\n    period = 0.1\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    from only_on_the_launcher import Local
+    daemon = Daemon("b")                  # (its import path: the repository's only)
+    try:
+        system = System("missing").node("a").node("b", address=daemon.address)
+        system.add("local", Local, node="b")
+        with pytest.raises(RuntimeFailure, match=r"names Python module 'only_on_the_launcher', "
+                                                 r"which node b's executor at tcp://\S+ cannot "
+                                                 r"import: install it on that machine"):
+            system.launch()
+    finally:
+        daemon.stop()
 
 
 def test_a_wrong_key_is_told_apart_from_no_answer_within_5_s(caplog) -> None:

@@ -267,7 +267,8 @@ def executor_main(config: str, node: str, workers: int, cpus: list[int] | None,
                                           # setup may ask the launcher about this node,
                                           # which asks this executor: not in one lane
                                           aside={"start"},
-                                          decode_lock=share.executor.import_lock)
+                                          decode_lock=share.executor.import_lock,
+                                          title=f"node {node}'s executor")
     try:
         serve_as_child(conn, server.address, share.stopped)
     finally:

@@ -99,11 +99,13 @@ class ControlServer:
                  host: str = "127.0.0.1", port: int = 0, *, name: str = "pb3a-control",
                  instant: Mapping[str, Callable[[dict[str, Any]], Any]] | None = None,
                  aside: Collection[str] = (),
-                 decode_lock: threading.Lock | None = None) -> None:
+                 decode_lock: threading.Lock | None = None, title: str = "the process") -> None:
         """``decode_lock``: held while a request imports the modules of the classes it
         names (see ``_decode``), by a process that also imports in the background:
         CPython may hand one thread a module another is still importing when the two
-        imports go through a circular one."""
+        imports go through a circular one. ``title`` is how a request it cannot read
+        names it ("node b's executor"), before its address."""
+        self._title = title
         self._handler = handler
         self._aside = frozenset(aside)
         self._asides: set[threading.Thread] = set()     # requests running aside now
@@ -178,7 +180,7 @@ class ControlServer:
         self._opener.rejected["undecodable"] += 1
         self._loop.submit(lambda: self._reply(
             peer, request_id, False,
-            RuntimeFailure(_undecodable(exc, "a request", f"the process at {self.address}"))))
+            RuntimeFailure(_undecodable(exc, "a request", f"{self._title} at {self.address}"))))
 
     def _refuse(self, peer: Any, reason: str) -> None:
         """Tell an unauthenticated peer which check failed (rate-limited per peer)."""
