@@ -30,7 +30,7 @@ from typing import Any
 
 import pytest
 from browser import chromium_page, skip_reason
-from conftest import eventually
+from conftest import alive, eventually
 
 REPO = Path(__file__).resolve().parent.parent
 START_TIMEOUT = 30.0        # seconds for `pb3a manager` to print its URL
@@ -482,9 +482,21 @@ def test_a_system_built_in_the_editor_is_checked_as_drawn_and_launches(tmp_path:
             page.wait_for_function(
                 "document.querySelector(\"[data-module='ticker'] .module-figures\")"
                 ".textContent.includes('steps')", timeout=WAIT_MS)
+            assert manager.api("GET", "/api/stats")["modules"]["scale2"]["events"] > 0
+            gain = manager.api("GET", "/api/modules/scale2/state")["fields"]["gain"]["value"]
+            assert gain == 3.0
+            # stopped from the page (it could not be), the document is edited again
+            pids = [m["pid"] for m in manager.api("GET", "/api/stats")["modules"].values()]
+            page.screenshot(path=str(screenshot_path(tmp_path, "manager_running_stop.png")))
+            page.click("#stop")
+            page.click("dialog.confirm button[value='ok']")
+            page.wait_for_function("document.querySelector('#mode').textContent === 'editing'",
+                                   timeout=WAIT_MS)
+            assert page.locator("#running-actions").is_hidden()
+            assert page.locator("#launch").is_visible()
+            assert pids and not any(alive(pid) for pid in pids if pid)
+            assert len(manager.api("GET", "/api/document")["system"]["modules"]) == 3
             assert tab.errors == [], f"the page threw: {tab.errors}"
-        assert manager.api("GET", "/api/stats")["modules"]["scale2"]["events"] > 0
-        assert manager.api("GET", "/api/modules/scale2/state")["fields"]["gain"]["value"] == 3.0
     finally:
         manager.stop()
 

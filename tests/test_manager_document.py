@@ -169,6 +169,31 @@ def test_a_document_launched_from_the_page_runs_and_stops_with_the_app(pipeline:
     assert pids and not any(alive(pid) for pid in pids if pid)
 
 
+def test_a_system_launched_from_the_page_stops_from_it_and_its_document_is_edited_again(
+        pipeline: Path) -> None:
+    """Once launched, the page had no way to stop the system and edit on: Stop stops the
+    one it launched (every worker gone) and the document is edited again; a system the
+    manager only attached to is not its to stop."""
+    with manager_client(Session(Document.open(pipeline))) as client:
+        assert client.post("/api/system/stop").status_code == 409          # nothing runs
+        launched = client.post("/api/document/launch").json()
+        assert launched["mode"] == "running" and launched["stoppable"] is True
+        pids = [m["pid"] for m in client.get("/api/stats").json()["modules"].values()]
+        stopped = client.post("/api/system/stop")
+        assert stopped.status_code == 200, stopped.json()
+        assert stopped.json()["mode"] == "editing" and stopped.json()["stoppable"] is False
+        assert pids and not any(alive(pid) for pid in pids if pid)
+        assert client.get("/api/document").json()["problems"] == []
+        assert client.post("/api/document/launch").json()["mode"] == "running"   # again
+    with System.load(pipeline).launch() as run, \
+            manager_client(Session(Document.empty(), run)) as client:
+        attached = client.get("/api/system").json()
+        assert attached["mode"] == "running" and attached["stoppable"] is False
+        refused = client.post("/api/system/stop")
+        assert refused.status_code == 409 and "stop it where it runs" in refused.json()["error"]
+        assert run.stats().modules["tick"].status == "running"
+
+
 def test_nothing_runs_in_an_empty_document_and_saving_needs_a_path() -> None:
     with manager_client(Session(Document.empty())) as client:
         assert client.get("/api/system").json()["modules"] == {}

@@ -218,6 +218,9 @@ def routes(session: Session) -> list[Route]:
     async def launch(request: Request) -> Any:
         return await call(session.launch)
 
+    async def stop(request: Request) -> Any:
+        return await call(session.stop)
+
     return [
         Route("/api/system", answer(system)),
         Route("/api/system/toml", answer(system_toml)),
@@ -242,6 +245,7 @@ def routes(session: Session) -> list[Route]:
         Route("/api/document/toml", answer(toml)),
         Route("/api/document/save", answer(save), methods=["POST"]),
         Route("/api/document/launch", answer(launch), methods=["POST"]),
+        Route("/api/system/stop", answer(stop), methods=["POST"]),
     ]
 
 

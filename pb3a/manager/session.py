@@ -103,6 +103,20 @@ class Session:
             self._handle, self._owns_handle = running, True
         return self.system()
 
+    def stop(self) -> dict[str, Any]:
+        """``POST /api/system/stop``: stop the system this session launched and go back
+        to editing its document; ConfigError when nothing runs, or when the system is
+        one this manager attached to (it stops where it runs)."""
+        with self._lock:
+            if self._handle is None:
+                raise ConfigError([NOTHING_RUNS])
+            if not self._owns_handle:
+                raise ConfigError(["this manager did not launch the system it shows (it "
+                                   "attached to it): stop it where it runs"])
+            handle, self._handle = self._handle, None
+            handle.close()
+        return self.system()
+
     def close(self) -> None:
         """Close the handle if the session owns it (a system it launched stops)."""
         with self._lock:
@@ -122,7 +136,8 @@ class Session:
         topology = topology or self.topology()
         handle = self._handle
         return {**topology.to_json(), "mode": self.mode,
-                "address": getattr(handle, "address", None) if handle is not None else None}
+                "address": getattr(handle, "address", None) if handle is not None else None,
+                "stoppable": handle is not None and self._owns_handle}
 
     def system_toml(self) -> str:
         """``GET /api/system/toml``: the running system as it is now, as a configuration

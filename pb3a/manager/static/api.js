@@ -65,6 +65,7 @@ export const api = {
   save: (path, overwrite = false) => request("POST", "/api/document/save",
                                              {...(path ? {path} : {}), ...(overwrite ? {overwrite} : {})}),
   launch: () => request("POST", "/api/document/launch", {}),
+  stop: () => request("POST", "/api/system/stop", {}),
 };
 
 /** The URL of a module's 2-D array as a PNG (the server answers it fresh each time). */

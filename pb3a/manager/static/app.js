@@ -64,6 +64,7 @@ class Manager {
     $("open").addEventListener("click", () => $("open-file").click());
     $("open-file").addEventListener("change", () => this.open($("open-file")));
     $("launch").addEventListener("click", () => this.launch());
+    $("stop").addEventListener("click", () => this.stop());
     $("add-node").addEventListener("click", () => this.addNode());
     document.addEventListener("keydown", (ev) => {
       if (ev.target.closest("input, textarea, select, dialog")) return;
@@ -110,6 +111,7 @@ class Manager {
     $("mode").className = `mode-badge ${system.mode}`;
     $("address").textContent = system.address || "";
     $("document-actions").hidden = system.mode !== "editing";
+    $("running-actions").hidden = !(system.mode === "running" && system.stoppable);
     if (modeChanged) await this.enterMode(system.mode);
     if (this.document) this.browser.setMacros(this.document.macros());
     this.schematic.render(system, layout);
@@ -670,6 +672,19 @@ class Manager {
                                  "says now.", "Overwrite")) {
         return this.save(true);
       }
+      this.toasts.error(error);
+    }
+  }
+
+  /** Stop the system launched from this page, after asking; the page edits its document again. */
+  async stop() {
+    if (!await confirmAction(`Stop ${this.system.name}?`, "Every module stops; what they " +
+                             "hold now is lost. The document stays as it was launched.", "Stop")) return;
+    try {
+      await api.stop();
+      this.toasts.show("ok", `${this.system.name} stopped`);
+      await this.refreshStructure();
+    } catch (error) {
       this.toasts.error(error);
     }
   }
