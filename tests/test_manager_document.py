@@ -122,6 +122,22 @@ def test_values_the_page_cannot_hold_exactly_come_back_unchanged(tmp_path: Path)
 
 
 
+def test_modules_grouped_into_a_macro_keep_their_floats(pipeline: Path) -> None:
+    """Grouping moves module entries into a macro's table, where nothing held them to
+    compare with: ``gain = 3.0``, untouched, came back as the page holds it, ``gain = 3``."""
+    with manager_client(Session(Document.open(pipeline))) as client:
+        system = client.get("/api/document").json()["system"]
+        scale = system["modules"].pop("scale")
+        scale["state"]["gain"] = 3                        # as the page holds 3.0 (JavaScript)
+        system["macros"] = {"stage": {"modules": {"scale": scale}, "exports": {"x": "scale.x"}}}
+        system["modules"]["stage"] = {"macro": "stage"}
+        system["links"] = [{"from": "tick.out", "to": "stage.x", "policy": "queue:64"}]
+        answer = client.put("/api/document", json={"system": system})
+        assert answer.status_code == 200 and answer.json()["problems"] == [], answer.json()
+        text = client.get("/api/document/toml").text
+    assert "gain = 3.0" in text, text
+
+
 def test_a_whole_number_typed_into_a_float_field_is_saved_as_a_float(pipeline: Path) -> None:
     """JSON writes 7.0 as 7: a float field edited in the page to a whole number was
     saved as an int (``gain = 7``), which ``pb3a check`` then took for another type."""

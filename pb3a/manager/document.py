@@ -126,6 +126,7 @@ class Document:
                             f"(revision {revision}, now {self.revision}), in another page "
                             "or by an open: read it again and make the change there")
             draft = copy.deepcopy(self._doc)
+            system = _moves_resolved(draft.unwrap(), system)
             try:
                 _merge(draft, system, ())
                 text = tomlkit.dumps(draft)
@@ -452,6 +453,40 @@ def _same(read: Any, held: Any) -> bool:
 
 def _plain(item: Any) -> Any:
     return item.unwrap() if hasattr(item, "unwrap") else item
+
+
+def _entries(system: dict[str, Any]) -> dict[tuple[str, ...], Any]:
+    """Every module entry of ``system`` by where it is: ``("modules", NAME)`` or
+    ``("macros", MACRO, "modules", NAME)``."""
+    found: dict[tuple[str, ...], Any] = {}
+    if isinstance(system.get("modules"), dict):
+        found.update({("modules", name): entry for name, entry in system["modules"].items()})
+    for macro, body in (system.get("macros") or {}).items():
+        if isinstance(body, dict) and isinstance(body.get("modules"), dict):
+            found.update({("macros", macro, "modules", name): entry
+                          for name, entry in body["modules"].items()})
+    return found
+
+
+def _moves_resolved(held: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
+    """``new`` with each module entry that moved (grouped into a macro, or out of one)
+    resolved against the entry it was (``_resolved``): the page holds it as JSON, so
+    ``gain = 1.0`` came back ``1`` in its new place, where nothing held it to compare."""
+    before, after = _entries(held), _entries(new)
+    by_name: dict[str, list[Any]] = {}
+    for where, entry in before.items():
+        by_name.setdefault(where[-1], []).append(entry)
+    moved = {where: by_name[where[-1]][0] for where in after
+             if where not in before and len(by_name.get(where[-1], ())) == 1}
+    if not moved:
+        return new
+    new = copy.deepcopy(new)
+    for where, was in moved.items():
+        table = new
+        for key in where[:-1]:
+            table = table[key]
+        table[where[-1]] = _resolved(was, table[where[-1]])
+    return new
 
 
 def _resolved(held: Any, new: Any) -> Any:
