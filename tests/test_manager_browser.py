@@ -360,6 +360,10 @@ def test_the_state_editor_comes_back_whole_when_a_failed_module_is_restarted(
     page.wait_for_selector("#inspector-meta .status-running", timeout=WAIT_MS)
     page.wait_for_timeout(1500)      # a few refreshes: the plot has a line to draw
     page.screenshot(path=str(screenshot_path(tmp_path, "manager_restarted_state.png")))
+    # reloaded, the page lists what happened before it (its Events panel was empty)
+    page.reload()
+    page.wait_for_selector("#events li[data-kind='module_failed']", timeout=WAIT_MS)
+    assert page.locator("#events li[data-kind='module_failed']").count() == 1
 
 
 def test_a_float_that_is_not_finite_is_shown_as_such_and_plotted_as_a_gap(

@@ -79,6 +79,11 @@ def test_a_module_that_raises_and_one_whose_worker_dies_are_seen_failing() -> No
             lambda s: s["modules"]["steady"]["status"] == "running"
             and s["modules"]["steady"]["pid"] not in (None, pid)), "steady running again")
         assert client.post("/api/modules/nope/restart").status_code == 404
+        # a page that connects now (a reload) is told what happened before it (it was not)
+        with client.websocket_connect("/api/live") as later:
+            hello = later.receive_json()
+        told = [(event["kind"], event["subject"]) for event in hello["events"]]
+        assert ("module_failed", "steady") in told, told
 
 
 def test_a_restart_appears_on_the_feed_as_it_happens() -> None:

@@ -42,6 +42,7 @@ CLIENT_BACKLOG = 64         # messages queued for a client before stats are drop
 CLIENT_MOST = 10_000        # ... before it is disconnected, to catch up from a new hello
 BEHIND = 4013               # the close code then: try again (the page reconnects)
 MOST_BACKOFF_S = 5.0        # a loop that keeps failing tries again this often at least
+RECENT_EVENTS = 100         # the events a page is sent as it connects (a reload kept none)
 # events after which the structure (modules, links, nodes) is sent again
 STRUCTURAL = frozenset({"module_added", "module_removed", "module_moved", "module_swapped",
                         "module_failed_over", "module_failed", "module_lost", "link_added",
@@ -170,8 +171,9 @@ class Feed:
         watched: list[str | None] = [None]
         running = self.session.mode == "running"
         try:
-            # the last event first: the structure read after it shows what it did
-            at = await run_in_threadpool(self._last_event) if running else 0
+            # the last events first: the structure read after them shows what they did
+            recent = await run_in_threadpool(self._recent_events) if running else []
+            at = recent[-1]["seq"] if recent else 0
             hello = await run_in_threadpool(structure, self.session)
         except PB3AError as exc:
             with contextlib.suppress(WebSocketDisconnect, RuntimeError):    # it went
@@ -183,7 +185,7 @@ class Feed:
         tasks: list[asyncio.Task[None]] = []
         try:
             # the page may have gone while its hello was gathered: its queue goes too
-            await socket.send_text(encode({"type": "hello", **hello}))
+            await socket.send_text(encode({"type": "hello", **hello, "events": recent}))
             tasks = [asyncio.create_task(self._send(socket, queue, at)),
                      asyncio.create_task(self._watch(queue, watched)),
                      asyncio.create_task(_listen(socket, watched))]
@@ -199,9 +201,9 @@ class Feed:
                                          RuntimeError):
                     await task
 
-    def _last_event(self) -> int:
-        events = self.session.handle.events(0)
-        return events[-1].seq if events else 0
+    def _recent_events(self) -> list[dict[str, Any]]:
+        """The last ``RECENT_EVENTS`` events, oldest first, as the feed sends them."""
+        return [plain(asdict(event)) for event in self.session.handle.events(0)[-RECENT_EVENTS:]]
 
     async def _send(self, socket: WebSocket, queue: asyncio.Queue[Message],
                     hello_at: int) -> None:

@@ -49,7 +49,10 @@ class Manager {
       placeMacro: (macro) => this.placeMacro(macro, null),
     });
     this.live = new LiveFeed({
-      hello: (m) => this.setStructure(m.system, m.layout),
+      hello: (m) => {
+        this.setStructure(m.system, m.layout);
+        for (const event of m.events || []) this.events.add(event, false);   // before this page
+      },
       system: (m) => this.setStructure(m.system, m.layout),
       stats: (m) => this.onStats(m),
       event: (m) => this.onEvent(m.event),
@@ -103,6 +106,7 @@ class Manager {
   // -- structure and live figures ---------------------------------------------------
   async setStructure(system, layout) {
     const modeChanged = this.system?.mode !== system.mode;
+    if (modeChanged) this.events.last = 0;     // (a system launched anew numbers from 1)
     this.system = system;
     this.layout = layout;
     document.body.dataset.mode = system.mode;

@@ -49,11 +49,15 @@ export class EventList {
     this.list = list;
     this.counter = counter;
     this.seen = 0;
+    this.last = 0;          // the newest event's number: one sent again (a reconnection) is shown once
   }
 
-  add(event) {
+  /** Show ``event`` on top; ``fresh``: highlighted for a moment (not one from before the page). */
+  add(event, fresh = true) {
+    if (event.seq <= this.last) return;
+    this.last = event.seq;
     const [tone, verb] = LOOK[event.kind] || ["other", event.kind.replaceAll("_", " ")];
-    const item = h("li", {class: `event tone-${tone} fresh`, dataset: {kind: event.kind}}, [
+    const item = h("li", {class: `event tone-${tone}${fresh ? " fresh" : ""}`, dataset: {kind: event.kind}}, [
       h("time", {}, fmt.clock(event.time)),
       h("span", {class: "event-kind"}, verb),
       h("span", {class: "event-subject"}, event.subject),
