@@ -194,10 +194,11 @@ class ControlServer:
         self._refused_at[who] = now
         self._router.send_multipart([peer, _REFUSAL + reason.encode()])
         if reason != "stale epoch":         # (a mistake in the set-up, not a fenced peer)
+            sender = "a peer"
             with contextlib.suppress(zmq.ZMQError, AttributeError, TypeError):
-                who = peer.get("Peer-Address")     # (the sender's IP, on TCP)
-            log.warning("%s refused a request from %s: %s", self.address,
-                        who if isinstance(who, str) else "a peer", _REFUSAL_HINTS[reason])
+                sender = peer.get("Peer-Address") or sender     # (its IP, on TCP)
+            log.warning("%s refused a request from %s: %s", self.address, sender,
+                        _REFUSAL_HINTS[reason])
 
     def _serve(self) -> None:
         while (item := self._work.get()) is not None:

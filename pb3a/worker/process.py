@@ -518,7 +518,7 @@ class Worker:
         past it, the grants queued meanwhile) revives nothing: it lapses all the same,
         whichever of its threads runs first."""
         first = self._lease_until is None
-        if not first and time.monotonic() > self._lease_until:
+        if not self.lease_holds():
             self._lapse()
             return
         self._lease_until = until
@@ -532,8 +532,7 @@ class Worker:
 
     def _keep_lease(self) -> None:
         while not self._closing.wait(LEASE_CHECK_S):
-            until = self._lease_until
-            if until is not None and time.monotonic() > until:
+            if not self.lease_holds():
                 self._lapse()
                 return
 

@@ -495,8 +495,6 @@ class Manager {
     }
   }
 
-  /** Drop the cached code of the module's file everywhere, then swap each module whose
-   * class comes from that file to the same class: the new code runs, the state is kept. */
   /** Start a module afresh (a failed one too), as `pb3a restart` does. */
   async restart(name) {
     try {
@@ -509,6 +507,8 @@ class Manager {
     }
   }
 
+  /** Drop the cached code of the module's file everywhere, then swap each module whose
+   * class comes from that file to the same class: the new code runs, the state is kept. */
   async reload(name) {
     const module = this.system.modules[name].class.split(":")[0];
     const users = Object.entries(this.system.modules).filter(([, info]) => info.class.startsWith(`${module}:`));
