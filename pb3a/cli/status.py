@@ -117,8 +117,12 @@ def run_with_status(plan: Plan, seconds: float | None, out: TextIO | None = None
                     table = format_table(run.stats())
                     show(("\x1b[H\x1b[2J" if live else "\n") + table + "\n")
             except KeyboardInterrupt:
+                # the second Ctrl-C answered before the line that may prompt it (one
+                # that came between the two was taken for a third: exit 130)
+                stopping()
                 show("\npb3a: stopping\n")
-            stopping()
+            else:
+                stopping()
             final = run.stats()
         show("\n" + format_table(final) + "\n")
         if run.unconfirmed:     # (it said "stopped cleanly" with a node's executor running)
