@@ -247,8 +247,8 @@ def test_a_module_in_a_long_call_is_shown_with_the_call_and_its_length(
     figures = "document.querySelector(\"[data-module='probe'] .module-figures\").textContent"
     page.wait_for_function(f"/\\d/.test({figures})", timeout=WAIT_MS)     # its calls/s
     hold = tmp_path / "hold"
-    hold.touch()
     lab.api("POST", "/api/modules/probe/state", {"hold": str(hold)})
+    hold.touch()            # (after: the edit's answer reads the state, between two calls)
     try:
         page.wait_for_function(f"/^in on_input for \\d+ s$/.test({figures})", timeout=WAIT_MS)
         assert "in-long-call" in page.locator("[data-module='probe']").get_attribute("class")
