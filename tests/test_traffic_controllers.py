@@ -216,6 +216,16 @@ def cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tmp_path_factory.mktemp("traffic-cache")
 
 
+def test_training_learns_one_table_every_junction_shares(cache: Path) -> None:
+    """Each junction's controller gets a copy of the state it is given: the table it was
+    given stayed empty, and the training wrote an empty table (it ran all the same)."""
+    from agents.traffic.training import train
+
+    table, history = train(networks=("ring",), episodes=2, duration_s=300.0, cache=cache)
+    assert 20 < history[0]["states"] < history[1]["states"] == len(table), history
+    assert all(len(values) == 2 for values in table.values())
+
+
 @pytest.mark.parametrize(("cls", "worst_delay_s"), [
     (FixedTime, 60.0), (MaxPressure, 40.0), (LongestQueueFirst, 40.0), (GapOut, 25.0),
     (QLearning, 30.0)])

@@ -34,13 +34,15 @@ def train(networks: tuple[str, ...] = ("ring", "grid"), episodes: int = 24,
         seed = TRAINING_SEEDS[episode]
 
         def make(junction: str, episode: int = episode) -> tuple[type[QLearning], dict]:
-            # every junction learns into the one table (the same dict object)
             explorer = episode * 101 + zlib.crc32(junction.encode())
-            return QLearning, {"table": table, "table_file": "", "epsilon": epsilon,
-                               "learning": True, "seed": explorer}
+            return QLearning, {"table_file": "", "epsilon": epsilon, "learning": True,
+                               "seed": explorer}
+
+        def share(_junction: str, controller: QLearning) -> None:
+            controller.table = table        # every junction learns into the one table
 
         result, _ = run_in_process(NETWORKS / f"{network}.toml", make, seed=seed,
-                                             duration_s=duration_s, cache=cache)
+                                   duration_s=duration_s, cache=cache, adopt=share)
         history.append({"episode": episode, "network": network, "seed": seed,
                         "mean_delay_s": round(result["mean_delay_s"], 2),
                         "states": len(table)})
