@@ -9,6 +9,7 @@ import itertools
 import shutil
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 from conftest import eventually
@@ -16,8 +17,8 @@ from sample_modules import PhaseAlternator
 from traffic_legality import illegal_steps
 
 from agents.traffic.driver import TrafficDriver
-from agents.traffic.messages import JunctionReading, NetworkReading, PhaseRequest
-from agents.traffic.simulation import APPROACH_S
+from agents.traffic.messages import JunctionLayout, JunctionReading, NetworkReading, PhaseRequest
+from agents.traffic.simulation import APPROACH_S, Simulation
 from pb3a import System
 from pb3a.testing import ModuleHarness
 
@@ -84,11 +85,59 @@ def test_it_writes_each_junctions_detectors_and_the_networks_totals(driver) -> N
         assert all(seconds >= 0 for seconds in r.arriving_in.values())
         assert all(r.arriving_in.get(lane, 1e9) <= APPROACH_S
                    for lane, count in r.approaching.items() if count)
+    # a vehicle standing at the red has lost time there: delayed; the green's flow has not
+    assert set(reading.delayed) == set(layout.lanes_in)
+    assert all(reading.delayed[lane] <= reading.vehicles[lane] for lane in layout.lanes_in)
+    assert sum(d for lane, d in reading.delayed.items() if lane not in ns_lanes) >= red
+    assert sum(d for lane, d in reading.delayed.items() if lane in ns_lanes) <= 1
     assert reading.signal == layout.greens[NS] and reading.elapsed == 90.0
     traffic = harness.last("traffic")
     assert isinstance(traffic, NetworkReading) and traffic.step == 90
     assert traffic.departed >= 15 and traffic.halting == red + green
     assert harness.written["clock"][:3] == [0.0, 1.0, 2.0]
+
+
+class ScriptedSumo:
+    """libsumo's lane and vehicle calls, answered from ``vehicles``: per vehicle, its
+    lane, position (m), speed (m/s) and time loss (s) so far."""
+
+    def __init__(self) -> None:
+        self.vehicles: dict[str, tuple[str, float, float, float]] = {}
+        on = lambda lane: [v for v, (at, *_) in self.vehicles.items() if at == lane]  # noqa: E731
+        self.lane = SimpleNamespace(
+            getLastStepVehicleIDs=on, getLastStepHaltingNumber=lambda lane: sum(
+                self.vehicles[v][2] < 0.1 for v in on(lane)),
+            getWaitingTime=lambda lane: 0.0, getLength=lambda lane: 200.0,
+            getLastStepVehicleNumber=lambda lane: len(on(lane)))
+        self.vehicle = SimpleNamespace(
+            getLanePosition=lambda v: self.vehicles[v][1],
+            getSpeed=lambda v: self.vehicles[v][2], getTimeLoss=lambda v: self.vehicles[v][3])
+
+
+def test_a_vehicle_is_an_arrival_once_and_delayed_by_the_time_it_lost_on_its_lane() -> None:
+    """Before, a vehicle that changed lanes on its way in was an arrival again, and the
+    demand the agents measured on the ring's two-lane loop was a third too high."""
+    sumo = ScriptedSumo()
+    simulation = Simulation.__new__(Simulation)        # no SUMO: its calls are scripted
+    simulation._sumo = sumo
+    simulation.layouts = {"J": JunctionLayout("J", (("in_0", "out_0"), ("in_1", "out_0")),
+                                              ("GG",), ("in_0", "in_1"), ("out_0",))}
+    simulation._seen = {"in_0": set(), "in_1": set()}
+    simulation._loss_on_entry = {"in_0": {}, "in_1": {}}
+    simulation._lengths = {}
+    sumo.vehicles = {"a": ("in_0", 20.0, 13.0, 5.0)}   # came in having lost 5 s elsewhere
+    first = simulation.junction_detectors("J")
+    assert first["arrivals"] == {"in_0": 1, "in_1": 0}
+    assert first["delayed"] == {"in_0": 0, "in_1": 0}  # near, but lost nothing here yet
+    sumo.vehicles = {"a": ("in_1", 120.0, 12.0, 5.5), "b": ("in_0", 30.0, 13.0, 0.0)}
+    moved = simulation.junction_detectors("J")
+    assert moved["arrivals"] == {"in_0": 1, "in_1": 0}  # a changed lanes: b is the new one
+    sumo.vehicles = {"a": ("in_1", 190.0, 0.0, 7.0), "b": ("in_0", 60.0, 13.0, 0.5)}
+    braking = simulation.junction_detectors("J")
+    assert braking["delayed"] == {"in_0": 0, "in_1": 1}    # a: 1.5 s lost on its lane
+    assert braking["arrivals"] == {"in_0": 0, "in_1": 0} and braking["queues"]["in_1"] == 1
+    sumo.vehicles = {"b": ("in_0", 10.0, 13.0, 9.0)}       # far from the stop line
+    assert simulation.junction_detectors("J")["delayed"] == {"in_0": 0, "in_1": 0}
 
 
 def test_a_requested_phase_comes_after_the_minimum_green_and_a_yellow(driver) -> None:

@@ -53,6 +53,9 @@ class JunctionReading:
                                          # nearest moving vehicle reaches the stop line,
                                          # per lane that has one (an actuated signal's
                                          # passage time is judged against it)
+    delayed: dict[str, int] = field(default_factory=dict)   # vehicles within 100 m of
+                                         # the stop line that have lost over 1 s since
+                                         # they came onto the lane (SUMO's delay_based)
 
 
 @dataclass(frozen=True)

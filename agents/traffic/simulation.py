@@ -1,8 +1,9 @@
 """``Simulation``: one SUMO simulation in this process, through libsumo.
 
 It starts SUMO on a built network and its demand, advances it, reads the detectors
-of every signalized junction (the halting vehicles, their waiting time and the new
-arrivals per incoming lane, the vehicles on each outgoing lane), sets the lights,
+of every signalized junction (the halting, approaching and delayed vehicles, their
+waiting time and the new arrivals per incoming lane, the vehicles on each outgoing
+lane), sets the lights,
 and at the end gives the figures the traffic-signal benchmarks report, per vehicle:
 SUMO's tripinfo ``timeLoss + departDelay``, over every vehicle, also those still on
 the roads at the end and those still waiting to enter.
@@ -26,6 +27,9 @@ STEP_S = 1.0                   # SUMO's step: one simulated second
 APPROACH_S = 4.0               # "approaching": due at the stop line within this, at
                                # the speed it has (an actuated signal's passage time)
 MOVING_MPS = 1.0
+DELAY_RANGE_M = 100.0          # "delayed": within this of the stop line, and ...
+MIN_TIME_LOSS_S = 1.0          # ... this much time lost since it came onto the lane
+                               # (SUMO's delay_based defaults, detectorRange, minTimeLoss)
 
 
 def _libsumo() -> Any:
@@ -72,6 +76,8 @@ class Simulation:
                 tuple(dict.fromkeys(o for _, o in links if o)))
         self._seen: dict[str, set[str]] = {lane: set() for layout in self.layouts.values()
                                            for lane in layout.lanes_in}
+        # per incoming lane, each vehicle's time loss when it came onto the lane
+        self._loss_on_entry: dict[str, dict[str, float]] = {lane: {} for lane in self._seen}
         self._signals: dict[str, str] = {}
         self._lengths: dict[str, float] = {}
         self.departed = self.arrived = self.teleports = 0
@@ -106,44 +112,55 @@ class Simulation:
     def junction_detectors(self, junction: str) -> dict[str, dict[str, Any]]:
         """``queues``, ``waiting``, ``arrivals``, ``vehicles`` per incoming lane and
         ``outgoing`` per outgoing lane of ``junction``, now. Arrivals are the vehicles on a lane now
-        that were not there at the previous reading."""
+        that were on none of the junction's incoming lanes at the previous reading."""
         lane = self._sumo.lane
         layout = self.layouts[junction]
-        queues, waiting, arrivals, vehicles, approaching = {}, {}, {}, {}, {}
+        queues, waiting, arrivals, vehicles, approaching, delayed = {}, {}, {}, {}, {}, {}
         arriving_in: dict[str, float] = {}
+        # on any of its incoming lanes at the last reading: a vehicle that changed lanes
+        # there is no new arrival at the junction
+        there_before = set().union(*(self._seen[name] for name in layout.lanes_in))
         for name in layout.lanes_in:
             queues[name] = int(lane.getLastStepHaltingNumber(name))
             waiting[name] = float(lane.getWaitingTime(name))
             present = set(lane.getLastStepVehicleIDs(name))
             vehicles[name] = len(present)
-            approaching[name], nearest = self._approaching(name, present)
+            approaching[name], nearest, delayed[name] = self._on_lane(name, present)
             if nearest is not None:
                 arriving_in[name] = nearest
-            arrivals[name] = len(present - self._seen[name])
+            arrivals[name] = len(present - there_before)
             self._seen[name] = present
         outgoing = {name: int(lane.getLastStepVehicleNumber(name)) for name in layout.lanes_out}
         return {"queues": queues, "waiting": waiting, "arrivals": arrivals,
                 "outgoing": outgoing, "vehicles": vehicles, "approaching": approaching,
-                "arriving_in": arriving_in}
+                "arriving_in": arriving_in, "delayed": delayed}
 
-    def _approaching(self, lane: str, present: set[str]) -> tuple[int, float | None]:
-        """The moving vehicles on ``lane`` due at its end within ``APPROACH_S``, and the
-        seconds until the nearest of all moving ones gets there (None: none moves)."""
+    def _on_lane(self, lane: str, present: set[str]) -> tuple[int, float | None, int]:
+        """On ``lane``: the moving vehicles due at its end within ``APPROACH_S``, the
+        seconds until the nearest of all moving ones gets there (None: none moves), and
+        the vehicles delayed near its end (``DELAY_RANGE_M``, ``MIN_TIME_LOSS_S``)."""
         vehicle = self._sumo.vehicle
         length = self._lengths.get(lane)
         if length is None:
             length = self._lengths[lane] = float(self._sumo.lane.getLength(lane))
-        due, nearest = 0, None
+        on_entry = self._loss_on_entry[lane]
+        for gone in on_entry.keys() - present:
+            del on_entry[gone]
+        due, nearest, delayed = 0, None, 0
         for name in present:
             speed = vehicle.getSpeed(name)
+            distance = length - vehicle.getLanePosition(name)
+            loss = vehicle.getTimeLoss(name)         # since it entered the network
+            lost_here = loss - on_entry.setdefault(name, loss)
+            if distance <= DELAY_RANGE_M and lost_here > MIN_TIME_LOSS_S:
+                delayed += 1
             if speed >= MOVING_MPS:
-                distance = length - vehicle.getLanePosition(name)
                 if distance <= speed * APPROACH_S:
                     due += 1
                 seconds = distance / speed
                 if nearest is None or seconds < nearest:
                     nearest = seconds
-        return due, nearest
+        return due, nearest, delayed
 
     def network_reading(self, step: int, halting: int) -> NetworkReading:
         """The network's totals now; ``halting`` (the vehicles standing at the
