@@ -17,6 +17,7 @@ from agents.traffic.learning import QLearning, state_key
 from agents.traffic.longest_queue import LongestQueueFirst
 from agents.traffic.max_pressure import MaxPressure
 from agents.traffic.messages import JunctionLayout, JunctionReading, NeighbourQueues
+from agents.traffic.time_loss import TimeLoss
 from pb3a.testing import ModuleHarness
 
 # north-south (phase 0) and east-west (phase 1), one lane each way
@@ -32,7 +33,8 @@ def reading(green: int = NS, elapsed: float = 0.0, *, step: int = 0, stage: str 
             target: int | None = None, queues: dict[str, int] | None = None,
             vehicles: dict[str, int] | None = None, approaching: dict[str, int] | None = None,
             outgoing: dict[str, int] | None = None,
-            arriving_in: dict[str, float] | None = None) -> JunctionReading:
+            arriving_in: dict[str, float] | None = None,
+            delayed: dict[str, int] | None = None) -> JunctionReading:
     """A reading of the crossing; counts per lane group (``ns``/``ew``) or per lane. A
     lane with vehicles ``approaching`` has its nearest due in 2 s unless ``arriving_in``
     says otherwise."""
@@ -52,7 +54,8 @@ def reading(green: int = NS, elapsed: float = 0.0, *, step: int = 0, stage: str 
         "J", step, float(step), LAYOUT, green, green if target is None else target, stage,
         elapsed, LAYOUT.greens[green], queue, dict.fromkeys(queue, 0.0),
         dict.fromkeys(queue, 0), per_lane(outgoing, LAYOUT.lanes_out),
-        per_lane(vehicles if vehicles is not None else queues, LAYOUT.lanes_in), coming, due)
+        per_lane(vehicles if vehicles is not None else queues, LAYOUT.lanes_in), coming, due,
+        per_lane(delayed, LAYOUT.lanes_in))
 
 
 def asks(cls: type, state: dict[str, Any] | None = None, **fields: Any) -> int:
@@ -64,7 +67,8 @@ def asks(cls: type, state: dict[str, Any] | None = None, **fields: Any) -> int:
     return request.green
 
 
-@pytest.mark.parametrize("cls", [FixedTime, MaxPressure, LongestQueueFirst, GapOut, QLearning])
+@pytest.mark.parametrize("cls", [FixedTime, MaxPressure, LongestQueueFirst, GapOut, TimeLoss,
+                                 QLearning])
 def test_every_controller_lets_a_transition_finish(cls: type) -> None:
     # mid-yellow from north-south to east-west, with everybody waiting north-south
     assert asks(cls, green=NS, target=EW, stage="yellow", elapsed=1.0,
@@ -125,6 +129,20 @@ def test_gap_out_holds_while_vehicles_come_and_gives_way_when_they_stop() -> Non
                     vehicles={"ew": 5}, arriving_in={"s_in": 3.0}) == asked
 
 
+def test_time_loss_holds_while_its_vehicles_lose_time_then_serves_the_most_delayed() -> None:
+    state = {"min_green_s": 5.0, "max_green_s": 50.0}
+    # a queue still starting up holds the green however long it has been shown ...
+    assert asks(TimeLoss, state, green=NS, elapsed=35.0, delayed={"ns": 4, "ew": 6}) == NS
+    # ... a stream at full speed does not (nobody on it delayed), unlike gap-out
+    assert asks(TimeLoss, state, green=NS, elapsed=12.0, approaching={"ns": 3},
+                delayed={"ew": 2}) == EW
+    assert asks(TimeLoss, state, green=NS, elapsed=50.0, delayed={"ns": 4, "ew": 1}) == EW
+    assert asks(TimeLoss, state, green=NS, elapsed=4.0, delayed={"ew": 9}) == NS    # minimum
+    assert asks(TimeLoss, state, green=NS, elapsed=12.0, vehicles={"ew": 3}) == NS  # none lose
+    assert asks(TimeLoss, {"max_green_s": 60.0}, green=EW, elapsed=20.0,
+                delayed={"n_in": 1, "w_in": 2}) == EW
+
+
 def test_q_learning_acts_on_its_table_which_is_its_state() -> None:
     seen = reading(NS, 12.0, vehicles={"ew": 5}, approaching={"n_in": 1})
     key = state_key(seen)
@@ -171,6 +189,7 @@ def test_q_learning_starts_from_the_trained_table(tmp_path: Path) -> None:
     (GapOut, {"passage_s": -1.0, "switch_ratio": "2"}, "passage_s must be a number of "
                                                        "seconds, 0 or more, got -1.0; "
                                                        "switch_ratio must be a number"),
+    (TimeLoss, {"max_green_s": 0.5}, "max_green_s must be a number of seconds, 1 or more"),
     (QLearning, {"alpha": 1.5}, "alpha must be a number from 0 to 1, got 1.5"),
 ])
 def test_a_controller_refuses_a_setting_out_of_range_by_name(cls: type, wrong: dict[str, Any],
@@ -228,7 +247,7 @@ def test_training_learns_one_table_every_junction_shares(cache: Path) -> None:
 
 @pytest.mark.parametrize(("cls", "worst_delay_s"), [
     (FixedTime, 60.0), (MaxPressure, 40.0), (LongestQueueFirst, 40.0), (GapOut, 25.0),
-    (QLearning, 30.0)])
+    (TimeLoss, 30.0), (QLearning, 30.0)])
 def test_each_controller_runs_the_crossing_through_the_driver(cache: Path, cls: type,
                                                               worst_delay_s: float) -> None:
     from agents.traffic.lockstep import run_in_process
