@@ -101,6 +101,21 @@ def test_it_waits_the_minimum_time_between_two_swaps() -> None:
     assert [s["time"] for s in harness.state["swaps"]] == [60.0, 180.0]
 
 
+def test_with_hysteresis_the_chosen_rule_holds_until_its_measure_falls_well_below() -> None:
+    """A saturated junction lets fewer vehicles in, so the demand it measures falls
+    while the surge lasts: without hysteresis it swapped back mid-surge."""
+    rules = [{"use": "gap_out"}, {"use": "max_pressure", "demand_at_least": 45.0}]
+    for hysteresis, mid_surge in ((0.0, ["MaxPressure", "GapOut"]), (0.35, ["MaxPressure"])):
+        harness, runtime = agent(rules=rules, hysteresis=hysteresis)
+        feed(harness, 0, 61, arrivals=1)                  # 60 a minute: swapped at 60 s
+        for second in range(61, 400):                     # 30 a minute: above 45 * 0.65
+            harness.feed("measures", measure(float(second), arrivals=second % 2))
+            harness.feed("clock", float(second))
+        assert runtime.swaps() == mid_surge, hysteresis
+        feed(harness, 400, 600, arrivals=0)               # light again: back for both
+        assert runtime.swaps() == ["MaxPressure", "GapOut"], hysteresis
+
+
 def test_silent_detectors_bring_fixed_time_at_once_and_it_comes_back_after() -> None:
     harness, runtime = agent(silent_wall_s=0.5)
     wall = [50.0]
@@ -286,6 +301,7 @@ BAD_SETTINGS = [             # (settings, what the refusal names)
     ({"silent_after_s": float("inf")}, "silent_after_s must be"),
     ({"silent_after_s": 0.0}, "silent_after_s must be"),
     ({"silent_wall_s": True}, "silent_wall_s must be"),
+    ({"hysteresis": 1.5}, "hysteresis must be a number from 0 to 1, got 1.5"),
     ({"rules": [{"use": "max_pressure", "demand_atleast": 100.0}]},
      "rules[0]: unknown key 'demand_atleast' (did you mean 'demand_at_least'?)"),
     ({"rules": [{"use": "gap_out"}, {"use": "max_pressure", "queue_at_least": float("nan")}]},

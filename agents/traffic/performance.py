@@ -6,7 +6,10 @@ Over the last ``window_s`` simulated seconds it measures demand (vehicles arrivi
 per minute) and delay (vehicles halting, on average: vehicle-seconds of waiting per
 second). ``rules`` map them to a controller: the last rule whose ``demand_at_least``
 and ``queue_at_least`` both hold names the controller (a key of ``controllers``,
-each a class and the state it is given when swapped in).
+each a class and the state it is given when swapped in). The rule of the controller
+chosen holds down to ``1 - hysteresis`` of its thresholds, so a measure that wobbles
+about a threshold does not swap back and forth: in a saturated junction fewer
+vehicles get in, and the demand it measures falls while the surge lasts.
 
 Guard rails:
 
@@ -31,7 +34,7 @@ import time
 from collections import deque
 from typing import Any
 
-from agents.limits import RATIO, SECONDS, SPAN, Limit, missing_modules, out_of_limits
+from agents.limits import RATIO, SECONDS, SHARE, SPAN, Limit, missing_modules, out_of_limits
 from agents.traffic.messages import JunctionMeasures
 from pb3a import Agent, Input, InputPort, Module, Output
 from pb3a.config import checks
@@ -43,7 +46,7 @@ RULE_KEYS = ("use", *RULE_THRESHOLDS)
 CONTROLLER_KEYS = ("class", "state")
 _LIMITS: dict[str, Limit] = {
     "window_s": SPAN, "min_between_swaps_s": SECONDS, "silent_after_s": SPAN,
-    "silent_wall_s": SECONDS}
+    "silent_wall_s": SECONDS, "hysteresis": SHARE}
 
 
 def _check_settings(state: dict[str, Any]) -> None:
@@ -149,11 +152,12 @@ class PerformanceAgent(Agent):
 
     Its settings are checked at setup and by ``set_state`` (which then sets nothing),
     each problem named: the times finite (``window_s`` and ``silent_after_s`` above 0,
-    ``min_between_swaps_s`` and ``silent_wall_s`` 0 or more), ``controller`` a module
-    name, each of ``controllers`` a class that resolves to a module with a ``state`` the
-    class takes (tried on a fresh instance, as the system gives a module its configured
-    state), each rule a table of ``use`` and thresholds (finite, 0 or more) with no other
-    key, and every controller it may run one of ``controllers``. At setup it also asks
+    ``min_between_swaps_s`` and ``silent_wall_s`` 0 or more), ``hysteresis`` from 0 to
+    1, ``controller`` a module name, each of ``controllers`` a class that resolves to a
+    module with a ``state`` the class takes (tried on a fresh instance, as the system
+    gives a module its configured state), each rule a table of ``use`` and thresholds
+    (finite, 0 or more) with no other key, and every controller it may run one of
+    ``controllers``. At setup it also asks
     the system whether ``controller`` is one of its modules (reads may be asked from
     setup); ``set_state`` cannot ask (whoever sets the state holds the system's
     configuration lock), nor can setup outside a launched system (a ``ModuleHarness``
@@ -170,6 +174,8 @@ class PerformanceAgent(Agent):
     running = ""                    # the controller's name (a key of controllers) now
     fallback = "fixed_time"         # the controller for failed detectors
     window_s = 60.0
+    hysteresis = 0.0                # the chosen controller's rule holds down to
+                                    # (1 - hysteresis) of its thresholds
     min_between_swaps_s = 120.0
     silent_after_s = 10.0           # simulated seconds without a measure ...
     silent_wall_s = 0.5             # ... for at least this long in wall time
@@ -259,8 +265,9 @@ class PerformanceAgent(Agent):
         none holds, the one chosen before, not a fallback standing in for it)."""
         chosen = self.chosen
         for rule in self.rules:
-            if (self.demand_per_min >= rule.get("demand_at_least", 0.0)
-                    and self.mean_queue >= rule.get("queue_at_least", 0.0)):
+            keep = 1.0 - self.hysteresis if rule["use"] == self.chosen else 1.0
+            if (self.demand_per_min >= keep * rule.get("demand_at_least", 0.0)
+                    and self.mean_queue >= keep * rule.get("queue_at_least", 0.0)):
                 chosen = rule["use"]
         return chosen
 
