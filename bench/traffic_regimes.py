@@ -21,7 +21,7 @@ among (``scenarios/traffic.toml``), gap-out first. Run it::
 
 for example ``--variant gap_out=agents.traffic.gap_out:GapOut --variant
 'p5=agents.traffic.gap_out:GapOut{"passage_s": 5.0}'``. Four seeds of both networks
-take about 100 s with three variants and 160 s with the scenario's five, on two cores.
+take about 280 s with the scenario's six controllers, on two cores.
 ``--scale surge=2.2`` makes the surge heavier (the driver's ``demand_scale``), to see
 which controller a saturated network favours.
 """

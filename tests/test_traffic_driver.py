@@ -116,7 +116,7 @@ class ScriptedSumo:
 
 def test_a_vehicle_is_an_arrival_once_and_delayed_by_the_time_it_lost_on_its_lane() -> None:
     """Before, a vehicle that changed lanes on its way in was an arrival again, and the
-    demand the agents measured on the ring's two-lane loop was a third too high."""
+    demand the agents measured on the ring's two-lane loop was 23-42 % too high."""
     sumo = ScriptedSumo()
     simulation = Simulation.__new__(Simulation)        # no SUMO: its calls are scripted
     simulation._sumo = sumo
