@@ -20,6 +20,7 @@ import psutil
 
 from pb3a.config.plan import Plan
 from pb3a.launch.handle import SystemHandle
+from pb3a.transport.addresses import host_of
 
 
 @dataclass(frozen=True)
@@ -111,7 +112,7 @@ def node_is_here(address: str | None) -> bool:
     """True for a node in the launcher (no address) or at an address of this machine."""
     if not address:
         return True
-    host = address.removeprefix("tcp://").rpartition(":")[0].strip("[]")
+    host = host_of(address).strip("[]")
     if host in ("localhost", "*"):
         return True
     with contextlib.suppress(ValueError):

@@ -43,6 +43,7 @@ from pb3a.node.remote import HEARTBEAT_S, LOSS_S, RemoteNode
 from pb3a.node.ring_sizes import ring_size
 from pb3a.node.workers import REQUEST_TIMEOUT
 from pb3a.stats import LinkStats, ModuleStats, NodeReport, NodeStats, SystemStats
+from pb3a.transport.addresses import host_of
 
 if TYPE_CHECKING:
     from collections.abc import Iterable, Iterator
@@ -103,8 +104,7 @@ class Launcher:
         logging.getLogger().addHandler(self.logbook)
         self._callback = callback
         # A node started here is reached where the remote nodes reach the launcher.
-        here = ("127.0.0.1" if callback is None
-                else callback.removeprefix("tcp://").rpartition(":")[0])
+        here = "127.0.0.1" if callback is None else host_of(callback)
         for name, node in self.plan.nodes.items():
             if node.address is None:
                 executor = Executor(name, workers=node.workers, cpus=node.cpus,

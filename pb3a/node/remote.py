@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 from pb3a.config.description import DEFAULT_SPARES
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
+from pb3a.transport.addresses import host_of
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 
@@ -73,7 +74,7 @@ class RemoteNode:
         self._ends_by = math.inf            # (monotonic) no call waits past it: see wind_down
         self.stopped = False                # its controller confirmed the executor's stop
         # where the other nodes reach its executor and publications
-        host = advertise or address.removeprefix("tcp://").rpartition(":")[0]
+        host = advertise or host_of(address)
         unknown = _unresolved(address)      # (said at once, not after the ping's wait)
         if unknown:
             self.close()
@@ -327,7 +328,7 @@ class RemoteNode:
 
 def _unresolved(address: str) -> str:
     """Why the host of ``address`` (``tcp://HOST:PORT``) does not resolve; "" if it does."""
-    host = address.removeprefix("tcp://").rpartition(":")[0].strip("[]")
+    host = host_of(address).strip("[]")
     try:
         socket.getaddrinfo(host, None)
     except (socket.gaierror, UnicodeError) as exc:

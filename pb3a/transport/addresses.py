@@ -49,6 +49,12 @@ def default_route_host() -> str:
         return "127.0.0.1"
 
 
+def host_of(address: str) -> str:
+    """The host of ``[tcp://]HOST:PORT`` as written (an IPv6 host in its brackets, as
+    an address is composed again from it); ``.strip("[]")`` for the bare host."""
+    return address.removeprefix("tcp://").rpartition(":")[0]
+
+
 def tcp_address_problems(value: object, what: str, otherwise: str = "") -> list[str]:
     """Why ``value`` is not an address to connect to, ``tcp://HOST:PORT``, naming
     ``what`` it is (``otherwise``: what else it may be); none if it is one."""
@@ -131,7 +137,7 @@ def bind_address(address: str) -> tuple[str, int]:
 def reachable_from(peer: str) -> str:
     """The host of this machine that ``peer`` ("tcp://HOST:PORT") can reach it at: the
     address of the interface this machine reaches the peer through (no packet is sent)."""
-    host = peer.removeprefix("tcp://").rpartition(":")[0]
+    host = host_of(peer)
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
         try:
             probe.connect((host, 9))
