@@ -9,9 +9,35 @@ which JSON cannot carry, becomes ``null``).
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
+import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
+
+FAILURES_KEPT = 100             # lines of stats().failures a launcher or node keeps
+
+
+class FailureLog:
+    """What went wrong in a launcher or on a node, for ``stats().failures``: the newest
+    ``FAILURES_KEPT`` lines, each dated, so a long-running system's list does not grow
+    without end and a line says when, not only what (it outlives a node's rejoining)."""
+
+    def __init__(self, log: logging.Logger) -> None:
+        self._lines: deque[str] = deque(maxlen=FAILURES_KEPT)
+        self._log = log
+
+    def add(self, text: str) -> str:
+        """Keep ``text``, prefixed with the local date and time, and log it as an
+        error; ``text`` back, undated."""
+        self._lines.append(f"{time.strftime('%Y-%m-%d %H:%M:%S')} {text}")
+        self._log.error(text)
+        return text
+
+    def lines(self) -> list[str]:
+        """The lines kept, oldest first."""
+        return list(self._lines)
 
 
 @dataclass(frozen=True)
@@ -136,7 +162,8 @@ class SystemStats:
     modules: dict[str, ModuleStats]
     links: dict[str, LinkStats]         # keyed "src.port->dst.port"
     nodes: dict[str, NodeStats]
-    failures: list[str]
+    failures: list[str]                 # the newest of the launcher's and every node's,
+                                        # dated ("YYYY-MM-DD HH:MM:SS what"), oldest first
 
     def to_json(self) -> dict[str, Any]:
         """The figures as JSON types (NaN as None)."""

@@ -9,6 +9,7 @@ import importlib
 import logging
 import multiprocessing
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -96,7 +97,8 @@ def test_sigkill_with_restart_never_leaves_module_failed_and_others_running() ->
                              and m, what="failure detected")
         before = run.state("other")["count"]
         eventually(lambda: run.state("other")["count"] > before, what="the other module goes on")
-        assert any("victim" in f for f in run.stats().failures)
+        assert any(re.match(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d module victim failed", f)
+                   for f in run.stats().failures)
         failed = [e for e in run.events() if e.kind == "module_failed"]
         run.restart("victim")                   # asked: it runs again, fresh
         eventually(lambda: run.state("victim")["count"] > 3, what="the restarted victim steps")

@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
+import logging
+import re
 import threading
 import time
 
@@ -48,7 +50,15 @@ from pb3a import (
 )
 from pb3a.config.compiler import validate
 from pb3a.config.description import read_description
-from pb3a.stats import InputStats, LinkStats, ModuleStats, NodeStats, SystemStats
+from pb3a.stats import (
+    FAILURES_KEPT,
+    FailureLog,
+    InputStats,
+    LinkStats,
+    ModuleStats,
+    NodeStats,
+    SystemStats,
+)
 from pb3a.worker.actor import EventPool, ModuleActor
 
 pytestmark = pytest.mark.timeout(90)
@@ -133,6 +143,21 @@ def test_stats_are_typed_records_with_a_json_form() -> None:
     text = json.dumps(plain, allow_nan=False)          # NaN (no latency yet) is null
     assert json.loads(text)["links"]["scale.y->sink.x"]["values"] >= 2
     assert plain["modules"]["src"]["inputs"] == {} and plain["failures"] == []
+
+
+def test_the_failures_kept_are_the_newest_each_dated(caplog: pytest.LogCaptureFixture) -> None:
+    """Before, a launcher's or node's failures were kept for good, undated: a long run
+    with a flapping node grew its list (sent with every report) without end, and a
+    line said what went wrong but not when."""
+    failures = FailureLog(logging.getLogger("test"))
+    with caplog.at_level(logging.ERROR, logger="test"):
+        for number in range(FAILURES_KEPT + 5):
+            assert failures.add(f"failure {number}") == f"failure {number}"
+    lines = failures.lines()
+    assert len(lines) == FAILURES_KEPT
+    assert [line.split(" ", 2)[2] for line in lines[:2]] == ["failure 5", "failure 6"]
+    assert re.fullmatch(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d failure 104", lines[-1])
+    assert caplog.messages[-1] == "failure 104"          # the log has its own time
 
 
 @pytest.mark.parametrize("workers", [0, 1])

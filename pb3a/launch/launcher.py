@@ -42,7 +42,7 @@ from pb3a.node.executor import Executor
 from pb3a.node.remote import HEARTBEAT_S, LOSS_S, RemoteNode
 from pb3a.node.ring_sizes import ring_size
 from pb3a.node.workers import REQUEST_TIMEOUT
-from pb3a.stats import LinkStats, ModuleStats, NodeReport, NodeStats, SystemStats
+from pb3a.stats import FailureLog, LinkStats, ModuleStats, NodeReport, NodeStats, SystemStats
 from pb3a.transport.addresses import host_of
 
 if TYPE_CHECKING:
@@ -77,7 +77,7 @@ class Launcher:
         self.remotes: dict[str, RemoteNode] = {}      # the nodes that run elsewhere
         self.specs: dict[str, FlatModule] = {}       # every module; its node is spec.node
         self.links: dict[str, FlatLink] = {}
-        self.failures: list[str] = []
+        self.failures = FailureLog(log)
         self.checkpoints: dict[str, bytes] = {}      # module -> its newest (last-state)
         self.lost_values: collections.Counter[str] = collections.Counter()  # per link key
         self._rejoining: set[str] = set()
@@ -240,8 +240,7 @@ class Launcher:
             try:
                 self.attach(link)
             except (RuntimeFailure, RuntimeTimeout) as exc:
-                self.failures.append(f"link {link.key} not wired again {when}: {exc}")
-                log.error(self.failures[-1])
+                self.failures.add(f"link {link.key} not wired again {when}: {exc}")
 
     def connect(self, *links: FlatLink) -> None:
         """Add and wire links (those inside one node in one request to it)."""
@@ -311,7 +310,9 @@ class Launcher:
         modules = {name: entry for report in reports.values()
                    for name, entry in report.modules.items()
                    if name in self.specs and entry.node == self.specs[name].node}
-        failures = [*self.failures, *(f for report in reports.values() for f in report.failures)]
+        # (dated alike: sorted, they are in the order they happened, wherever)
+        failures = sorted([*self.failures.lines(),
+                           *(f for report in reports.values() for f in report.failures)])
         nodes = self.node_table()
         for name, report in reports.items():
             if name not in nodes:
@@ -429,9 +430,8 @@ class Launcher:
             self.changed.notify_all()
         # (a copy: another node's failover thread may change the specs meanwhile)
         gone = sorted(name for name, spec in list(self.specs.items()) if spec.node == node)
-        self.failures.append(f"node {node} lost (no heartbeat for {silent_s:.1f} s); its "
-                             f"modules {', '.join(gone) or '(none)'} were there")
-        log.error(self.failures[-1])
+        self.failures.add(f"node {node} lost (no heartbeat for {silent_s:.1f} s); its "
+                          f"modules {', '.join(gone) or '(none)'} were there")
         self.events.record("node_lost", node, modules=gone, silent_s=silent_s)
         self._failing_over[node] = lost_at
         # on a thread of its own: placing the modules may wait for a node that went too,
@@ -510,9 +510,8 @@ class Launcher:
                 self.nodes[target].start_modules(started, failing=True)
             except (RuntimeFailure, RuntimeTimeout) as exc:
                 not_started.update(getattr(exc, "failed", started))
-                self.failures.append(f"failover of {', '.join(started)} to node "
-                                     f"{target} failed: {exc}")
-                log.error(self.failures[-1])
+                self.failures.add(f"failover of {', '.join(started)} to node "
+                                  f"{target} failed: {exc}")
         for name, target in moved.items():
             if name in not_started:             # failed there (module_failed), not over
                 continue
@@ -530,8 +529,7 @@ class Launcher:
         reading the event can (it was gone from the system without a word)."""
         cls = f"{spec.cls.__module__}:{spec.cls.__qualname__}"
         reason = refused or "its restart policy is never"
-        self.failures.append(f"module {spec.name} ({cls}) went with node {node}: {reason}")
-        log.error(self.failures[-1])
+        self.failures.add(f"module {spec.name} ({cls}) went with node {node}: {reason}")
         self.events.record("module_lost", spec.name, node=node, reason=reason, cls=cls,
                            state=dict(spec.state), restart=spec.restart,
                            links=[{"from": f"{link.src}.{link.src_port}",
@@ -572,19 +570,19 @@ class Launcher:
                 self.checkpoints[name] if moved_spec.restart == "last-state"
                 and name in self.checkpoints else moved_spec.state)
             target: str | None = moved_spec.node
+            last = ""                           # why the last node tried did not take it
             while target is not None:
                 try:
                     self.nodes[target].add_module(dataclasses.replace(moved_spec, node=target),
                                                   state=state)
                     break
                 except (RuntimeFailure, RuntimeTimeout) as exc:
-                    self.failures.append(f"module {name} not restarted on node {target}: "
-                                         f"{exc}")
-                    log.error(self.failures[-1])
+                    last = self.failures.add(f"module {name} not restarted on node "
+                                             f"{target}: {exc}")
                     loads.pop(target, None)     # the next that admits it, if any
                     target = self._place(self.specs[name], loads)
             if target is None:
-                refused[name] = f"no surviving node could start it ({self.failures[-1]})"
+                refused[name] = f"no surviving node could start it ({last})"
                 continue
             self.specs[name] = dataclasses.replace(moved_spec, node=target)
             moved[name] = target

@@ -37,7 +37,7 @@ from pb3a.node.resources import ResourceMeter
 from pb3a.node.restarts import RestartBudget
 from pb3a.node.ring_sizes import RingSize, ring_size
 from pb3a.node.workers import REQUEST_TIMEOUT, WorkerHandle, WorkerPool, WorkerSettings
-from pb3a.stats import InputStats, ModuleStats, NodeReport, WaitStats
+from pb3a.stats import FailureLog, InputStats, ModuleStats, NodeReport, WaitStats
 from pb3a.transport import pickling
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.ring import ShmRing
@@ -107,7 +107,7 @@ class Executor:
         self.inbound: dict[str, FlatLink] = {}        # remote links read here
         self.outbound: dict[str, FlatLink] = {}       # remote links written here
         self.rings: dict[str, ShmRing] = {}
-        self.failures: list[str] = []                 # what went wrong, for stats and logs
+        self.failures = FailureLog(log)               # what went wrong, for stats and logs
         self.meter = ResourceMeter(cpus)              # the machine's CPU and memory
         self.import_lock = threading.Lock()           # background imports vs requests
         self.handler: Any = None                      # applies agents' requests (op, args)
@@ -590,7 +590,7 @@ class Executor:
                  for key, ring in report.get("rings", {}).items()}
         lost = {key: self.bridge.link_failures(_topic(link))
                 for key, link in self.inbound.items()}
-        return NodeReport(modules, rings, lost, list(self.failures), self.meter.sample(),
+        return NodeReport(modules, rings, lost, self.failures.lines(), self.meter.sample(),
                           len(self.workers.spare_pids()))
 
     def worker_pids(self) -> list[int]:
@@ -722,8 +722,7 @@ class Executor:
                 if not self._stopping.is_set():
                     self._restarted(handle, code, revived, outcome)
         except RuntimeTimeout as exc:           # the lock was not free within its deadline
-            self.failures.append(f"restart of worker {handle.key} failed: {exc}")
-            log.error(self.failures[-1])
+            self.failures.add(f"restart of worker {handle.key} failed: {exc}")
             # its modules are not running, whatever their records said: failed, and said
             for name in list(handle.modules):
                 record = self.modules.get(name)
@@ -849,8 +848,7 @@ class Executor:
     def _fail(self, name: str, code: int | None, reason: str) -> None:
         record = self.modules[name]
         record.status = "failed"
-        self.failures.append(f"module {name} failed (worker exit code {code}); {reason}")
-        log.error(self.failures[-1])
+        self.failures.add(f"module {name} failed (worker exit code {code}); {reason}")
         self._tell("module_failed", name, exit_code=code, reason=reason)
         # Writers into a dead reader would only fill its ring: unhook them.
         for link in list(self.links.values()):
