@@ -32,7 +32,7 @@ class FailureLog:
         """Keep ``text``, prefixed with the local date and time, and log it as an
         error; ``text`` back, undated."""
         self._lines.append(f"{time.strftime('%Y-%m-%d %H:%M:%S')} {text}")
-        self._log.error(text)
+        self._log.error(text, stacklevel=2)     # (the record names the caller's line)
         return text
 
     def lines(self) -> list[str]:

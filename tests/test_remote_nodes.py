@@ -4,6 +4,7 @@ detected within 3 s and reported (env value and event) while the rest goes on.""
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import signal
@@ -87,6 +88,25 @@ def test_a_system_spans_node_controllers_and_migrates_across_them(controllers) -
     assert pids["far"] != pids["near"] != os.getpid()
     assert all(c.executors() == {} for c in controllers.values())      # stopped with the run
     assert not any(alive(pid) for pid in pids.values())
+
+
+def test_a_remote_node_s_env_gives_a_lost_peer_no_round_trip_time(controllers) -> None:
+    """Before, node b's env table went on giving lost node c the last round-trip time b
+    had measured to it, as though it were still there (from the hosts review)."""
+    system = System("peers").node("a")
+    for name, controller in controllers.items():
+        system.node(name, address=controller.address)
+    system.add("far", Collector, node="c", restart="never")
+    system.add("table", NodeTable, node="a")
+    system.link("env-b.nodes", "table.nodes")
+    with system.launch() as run:
+        eventually(lambda: run.state("table")["table"].get("c", {}).get("rtt", 0) > 0,
+                   timeout=15, what="node b's round-trip time to c in its env")
+        os.kill(controllers["c"]._executors["peers"][0].pid, signal.SIGKILL)
+        assert run._launcher.wait_health("c", up=False, timeout=10)
+        table = eventually(lambda: not (t := run.state("table")["table"])["c"]["up"] and t,
+                           what="node c down in b's env table")
+    assert math.isnan(table["c"]["rtt"]) and table["a"]["up"] and table["a"]["rtt"] > 0
 
 
 def test_megabytes_of_numpy_state_move_intact_between_node_controllers(controllers) -> None:

@@ -714,7 +714,9 @@ class Launcher:
                 continue
             with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
                 rtts = self._rtts_from(name)
-                table = {peer: {"up": health["up"], "rtt": rtts.get(peer, float("nan"))}
+                # (a lost peer has no round-trip time: the node's last one to it is past)
+                table = {peer: {"up": health["up"], "rtt": rtts.get(peer, float("nan"))
+                                if health["up"] else float("nan")}
                          for peer, health in self.health.items()}
                 self.call(env, "set_state", ENV_S, state={
                     "health": table, "moves": moves, "losses": losses,
