@@ -88,7 +88,20 @@ def in_transition(reading: JunctionReading) -> bool:
     return reading.stage != "green" or reading.target != reading.green
 
 
+def served(reading: JunctionReading, green: int, counts: dict[str, int]) -> int:
+    """The sum of ``counts`` (a reading's count per lane) over the lanes green phase
+    ``green`` lets go."""
+    lanes = {lane for lane, _ in reading.layout.movements(green)}
+    return sum(counts.get(lane, 0) for lane in lanes)
+
+
 def served_queue(reading: JunctionReading, green: int) -> int:
     """The halting vehicles on the lanes that green phase ``green`` lets go."""
-    lanes = {lane for lane, _ in reading.layout.movements(green)}
-    return sum(reading.queues.get(lane, 0) for lane in lanes)
+    return served(reading, green, reading.queues)
+
+
+def busiest_red(reading: JunctionReading, counts: dict[str, int]) -> tuple[int, int]:
+    """(count, green) of the green phase not shown with the most of ``counts`` on its
+    lanes (a junction of two greens or more)."""
+    greens = range(len(reading.layout.greens))
+    return max((served(reading, g, counts), g) for g in greens if g != reading.green)

@@ -16,14 +16,8 @@ from __future__ import annotations
 import math
 
 from agents.limits import GREEN, RATIO, SECONDS
-from agents.traffic.controller import JunctionController, in_transition
+from agents.traffic.controller import JunctionController, busiest_red, in_transition, served
 from agents.traffic.messages import JunctionReading
-
-
-def served(reading: JunctionReading, green: int, counts: dict[str, int]) -> int:
-    """The sum of ``counts`` over the lanes green phase ``green`` lets go."""
-    lanes = {lane for lane, _ in reading.layout.movements(green)}
-    return sum(counts.get(lane, 0) for lane in lanes)
 
 
 class GapOut(JunctionController):
@@ -39,11 +33,9 @@ class GapOut(JunctionController):
     def choose(self, reading: JunctionReading) -> int:
         if in_transition(reading) or reading.elapsed + 1e-9 < self.min_green_s:
             return reading.target
-        greens = len(reading.layout.greens)
-        if greens == 1:
+        if len(reading.layout.greens) == 1:
             return 0
-        waiting = [served(reading, g, reading.vehicles) for g in range(greens)]
-        busiest, green = max((waiting[g], g) for g in range(greens) if g != reading.green)
+        busiest, green = busiest_red(reading, reading.vehicles)
         if busiest == 0:                        # nobody at red
             return reading.green
         lanes = {lane for lane, _ in reading.layout.movements(reading.green)}

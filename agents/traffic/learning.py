@@ -21,8 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from agents.limits import GREEN, SECONDS, SHARE
-from agents.traffic.controller import JunctionController, in_transition
-from agents.traffic.gap_out import served
+from agents.traffic.controller import JunctionController, busiest_red, in_transition, served
 from agents.traffic.messages import JunctionReading
 
 TRAINED = Path(__file__).with_name("q_table.json")
@@ -36,18 +35,11 @@ def _band(value: float, starts: tuple[float, ...]) -> int:
     return sum(value >= start for start in starts) - 1
 
 
-def busiest_red(reading: JunctionReading) -> tuple[int, int]:
-    """(vehicles, green) of the green phase not shown with the most vehicles."""
-    greens = range(len(reading.layout.greens))
-    return max((served(reading, g, reading.vehicles), g) for g in greens
-               if g != reading.green)
-
-
 def state_key(reading: JunctionReading) -> str:
     """What the learner sees of ``reading``, as the table's key."""
     coming = served(reading, reading.green, reading.approaching)
     halting = served(reading, reading.green, reading.queues)
-    red, _ = busiest_red(reading)
+    red, _ = busiest_red(reading, reading.vehicles)
     return (f"{_band(reading.elapsed, ELAPSED_BANDS)}|{_band(coming, COMING_BANDS)}|"
             f"{_band(halting, COUNT_BANDS)}|{_band(red, COUNT_BANDS)}")
 
@@ -95,7 +87,7 @@ class QLearning(JunctionController):
         key = state_key(reading)
         if self.learning and self._pending is not None:
             self._learn(key)
-        red, green = busiest_red(reading)
+        red, green = busiest_red(reading, reading.vehicles)
         if red == 0:
             action = HOLD
         elif reading.elapsed + 1e-9 >= self.max_green_s:

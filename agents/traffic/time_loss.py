@@ -12,8 +12,7 @@ green has a standing queue to discharge, it wins (``docs/applications.md``).
 from __future__ import annotations
 
 from agents.limits import GREEN, SECONDS
-from agents.traffic.controller import JunctionController, in_transition
-from agents.traffic.gap_out import served
+from agents.traffic.controller import JunctionController, busiest_red, in_transition, served
 from agents.traffic.messages import JunctionReading
 
 
@@ -27,13 +26,12 @@ class TimeLoss(JunctionController):
     def choose(self, reading: JunctionReading) -> int:
         if in_transition(reading) or reading.elapsed + 1e-9 < self.min_green_s:
             return reading.target
-        greens = len(reading.layout.greens)
-        if greens == 1:
+        if len(reading.layout.greens) == 1:
             return 0
-        delayed = [served(reading, g, reading.delayed) for g in range(greens)]
-        most, green = max((delayed[g], g) for g in range(greens) if g != reading.green)
+        most, green = busiest_red(reading, reading.delayed)
         if most == 0:                               # nobody losing time at red
             return reading.green
-        if delayed[reading.green] == 0 or reading.elapsed + 1e-9 >= self.max_green_s:
+        if (served(reading, reading.green, reading.delayed) == 0
+                or reading.elapsed + 1e-9 >= self.max_green_s):
             return green
         return reading.green
