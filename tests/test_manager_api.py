@@ -283,6 +283,21 @@ def test_an_edit_is_coerced_applied_and_used_and_a_bad_one_changes_nothing(clien
     assert run.state("scale")["gain"] == 5.0 and run.state("map")["grid"][7][7] == 63.0
 
 
+def test_a_float_field_takes_inf_and_nan_and_an_int_field_refuses_them(client, run) -> None:
+    """JSON has no inf or nan, so the page could not set one (it wrote null). Sent as
+    ``{"$float": "inf"}`` it is set on a float field; an int field refuses it by name."""
+    for word in ("inf", "-inf", "nan"):
+        changed = client.post("/api/modules/scale/state", json={"gain": {"$float": word}})
+        assert changed.status_code == 200, changed.text
+        assert changed.json()["fields"]["gain"] == {"type": "float", "value": None,
+                                                    "text": word, "editable": True}
+        assert repr(run.state("scale")["gain"]) == word
+    refused = client.post("/api/modules/scale/state", json={"setups": {"$float": "inf"}})
+    assert refused.status_code == 422
+    assert "state 'setups' takes a whole number, got inf" in refused.json()["error"]
+    assert run.state("scale")["setups"] == 1
+
+
 def test_values_keep_their_types_and_a_value_that_does_not_fit_is_refused() -> None:
     """An int8 array set to [300, -200, 5] was stored as [44, 56, 5] and a float32 of
     1e300 as inf; "Edit as JSON" turned untouched floats into ints and float pairs into

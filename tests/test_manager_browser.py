@@ -779,6 +779,47 @@ def test_two_quick_edits_in_the_editor_are_both_saved(tmp_path: Path) -> None:
         assert document_of(manager)["system"]["modules"]["ticker"]["period"] == 0.5
 
 
+def test_inf_typed_into_a_float_field_is_set_and_an_int_field_refuses_it_by_name(
+        tmp_path: Path) -> None:
+    """The page shows inf and nan, but typed into a float field they were refused as no
+    number (and JSON, had they been sent, writes them null). A float field takes them,
+    in the document (TOML's ``inf``) and on the running module; an int field says why
+    it does not, naming the field."""
+    config = tmp_path / "chain.toml"
+    config.write_text(CHAIN)
+    with editor(config, 3) as (manager, page):
+        page.click("[data-module='scale'] .module-title")
+        assert field_value(page, "scale", "gain") == "2.0"        # the class's, not set yet
+        page.fill("[data-field='gain'] input", "inf")
+        page.press("[data-field='gain'] input", "Enter")
+        page.wait_for_selector("[data-field='gain'].applied", timeout=WAIT_MS)
+        assert document_of(manager)["system"]["modules"]["scale"]["state"] == {
+            "gain": {"$float": "inf"}}                          # written gain = inf
+        gain = page.locator("[data-field='gain'] input")
+        assert gain.input_value() == "inf" and "nonfinite" in gain.get_attribute("class")
+        page.click("[data-module='ticker'] .module-title")
+        assert field_value(page, "ticker", "count") == "0"
+        page.fill("[data-field='count'] input", "inf")
+        page.press("[data-field='count'] input", "Enter")
+        page.wait_for_selector("[data-field='count'].refused", timeout=WAIT_MS)
+        assert page.locator("[data-field='count'] .field-message").text_content() == \
+            "state 'count' takes a whole number, got inf"
+        assert "count" not in document_of(manager)["system"]["modules"]["ticker"].get("state", {})
+        # running: the module's own field, sent as {"$float": "-inf"}
+        page.click("#launch")
+        page.wait_for_function("document.querySelector('#mode').textContent === 'running'",
+                               timeout=WAIT_MS)
+        assert manager.api("GET", "/api/modules/scale/state")["fields"]["gain"]["text"] == "inf"
+        page.click("[data-module='scale'] .module-title")
+        page.wait_for_function("document.querySelector('#inspector-name').textContent === 'scale'"
+                               " && document.querySelector(\"[data-field='gain'] input\")?.value"
+                               " === 'inf'", timeout=WAIT_MS)
+        page.fill("[data-field='gain'] input", "-inf")
+        page.press("[data-field='gain'] input", "Enter")
+        page.wait_for_selector("[data-field='gain'].applied", timeout=WAIT_MS)
+        assert manager.api("GET", "/api/modules/scale/state")["fields"]["gain"]["text"] == "-inf"
+
+
 def test_save_asks_before_it_overwrites_a_file_edited_on_disk(tmp_path: Path) -> None:
     """Save overwrote a file edited in another editor since the page opened it, without
     a word. It asks first: Cancel leaves the file as it is, Overwrite writes it."""

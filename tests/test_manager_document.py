@@ -150,6 +150,31 @@ def test_a_whole_number_typed_into_a_float_field_is_saved_as_a_float(pipeline: P
     assert "gain = 7.0" in text and "count = 5" in text, text
 
 
+def test_a_float_that_is_not_finite_travels_as_its_toml_word_and_is_saved_so(
+        tmp_path: Path) -> None:
+    """JSON has no inf or nan: a document holding ``inf`` made GET /api/document a 500,
+    and the page had no way to send one. Both ways it travels as ``{"$float": "inf"}``,
+    is written ``inf`` in the TOML, and one left untouched (nan too) keeps its line."""
+    original = ('name = "bounds"\n\n[modules.scale]\nclass = "examples.pipeline:Scale"\n'
+                "state = { gain = nan, low = -inf }  # not set yet\n")
+    path = tmp_path / "bounds.toml"
+    path.write_text(original)
+    with manager_client(Session(Document.open(path))) as client:
+        document = client.get("/api/document")
+        assert document.status_code == 200, document.text
+        system = document.json()["system"]
+        assert system["modules"]["scale"]["state"] == {"gain": {"$float": "nan"},
+                                                        "low": {"$float": "-inf"}}
+        assert client.put("/api/document", json={"system": system}).status_code == 200
+        assert client.get("/api/document/toml").text == original
+        system["modules"]["scale"]["state"]["gain"] = {"$float": "inf"}     # typed inf
+        answer = client.put("/api/document", json={"system": system})
+        assert answer.status_code == 200, answer.text
+        assert answer.json()["system"]["modules"]["scale"]["state"]["gain"] == {"$float": "inf"}
+        text = client.get("/api/document/toml").text
+    assert "state = { gain = inf, low = -inf }  # not set yet" in text, text
+
+
 def test_problems_and_drawn_links_use_the_words_of_pb3a_check(pipeline: Path) -> None:
     with manager_client(Session(Document.open(pipeline))) as client:
         system = client.get("/api/document").json()["system"]

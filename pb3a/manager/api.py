@@ -23,7 +23,7 @@ from starlette.responses import JSONResponse, PlainTextResponse, Response
 from starlette.routing import Route
 
 from pb3a.errors import ConfigError, ModuleNotFound, RuntimeFailure, RuntimeTimeout
-from pb3a.manager.document import ChangedOnDisk, Document, Stale
+from pb3a.manager.document import ChangedOnDisk, Document, Stale, float_of_json
 from pb3a.manager.session import Malformed, NotFound, Session, Unfit
 
 log = logging.getLogger("pb3a.manager")
@@ -52,7 +52,8 @@ async def body_of(request: Request) -> Any:
     """The request's JSON body; Malformed when it is too large (refused as it comes,
     not once it is all in memory), is not JSON, nests deeper than Python can read, or
     holds a string that is not Unicode text (a lone surrogate, which JSON allows:
-    taken, it made every later answer that carried it fail)."""
+    taken, it made every later answer that carried it fail). ``{"$float": "inf"}``
+    ("-inf", "nan") is that float, which JSON cannot write."""
     too_large = Malformed(f"the request body has more than {MOST_BODY_BYTES} bytes")
     declared = request.headers.get("content-length", "")
     if declared.isdigit() and int(declared) > MOST_BODY_BYTES:
@@ -67,7 +68,7 @@ async def body_of(request: Request) -> Any:
     if not raw:
         raise Malformed("the request needs a JSON body")
     try:
-        body = json.loads(raw)
+        body = json.loads(raw, object_pairs_hook=float_of_json)
         json.dumps(body, ensure_ascii=False).encode()
     except RecursionError:
         raise Malformed("the request body nests too deeply") from None

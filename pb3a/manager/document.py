@@ -16,6 +16,7 @@ import datetime
 import decimal
 import difflib
 import json
+import math
 import threading
 import tomllib
 from collections.abc import Sequence
@@ -107,7 +108,7 @@ class Document:
         copy stale, never the other way round)."""
         revision = self.revision
         return {"path": None if self.path is None else str(self.path),
-                "system": _dates_as_text(self.data()), "problems": self.problems(),
+                "system": as_json(self.data()), "problems": self.problems(),
                 "revision": revision}
 
     # -- changing -----------------------------------------------------------------
@@ -225,7 +226,7 @@ def _merge(container: Any, new: dict[str, Any], where: tuple[str, ...],
         if old is not None:
             held = _plain(old)
             value = _resolved(held, value)
-            if value == held:
+            if value is held or value == held:          # (nan is not == nan)
                 continue
         if isinstance(value, dict) and isinstance(old, (Table, InlineTable)):
             _merge(old, value, place, root)
@@ -498,7 +499,8 @@ def _resolved(held: Any, new: Any) -> Any:
     ``new`` is such text (an edited date was saved as a string); a float where ``held``
     was one and ``new`` is a whole number (7 typed into a float field was saved 7);
     else ``new``."""
-    if _as_shown(held) == _as_sent(new):
+    shown, sent = _as_shown(held), _as_sent(new)
+    if shown == sent or (isinstance(held, float) and _same(shown, sent)):   # nan too
         return held
     if isinstance(held, list) and isinstance(new, list):
         return [_resolved(held[index], item) if index < len(held) else item
@@ -537,6 +539,33 @@ def _as_sent(value: Any) -> Any:
         double = float(value)
         return double if int(decimal.Decimal(repr(double))) == value else value
     return value
+
+
+# JSON has no inf or nan: the page and the API carry such a float as {"$float": "inf"}
+# ("-inf", "nan"), TOML's own words for it (an object that says exactly this is read as
+# the float)
+NON_FINITE = "$float"
+
+
+def as_json(value: Any) -> Any:
+    """``value`` as JSON can carry it: TOML's dates and times as their ISO text, a float
+    that is not finite as ``{"$float": "inf"}`` (a document holding ``inf`` made
+    ``GET /api/document`` a 500)."""
+    if isinstance(value, dict):
+        return {key: as_json(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [as_json(item) for item in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return {NON_FINITE: repr(value)}
+    return _dates_as_text(value)
+
+
+def float_of_json(pairs: list[tuple[str, Any]]) -> Any:
+    """A JSON object read (``json.loads``'s ``object_pairs_hook``): the float it stands
+    for if it is ``{"$float": "inf" | "-inf" | "nan"}``, else a dict."""
+    if len(pairs) == 1 and pairs[0][0] == NON_FINITE and pairs[0][1] in ("inf", "-inf", "nan"):
+        return float(pairs[0][1])
+    return dict(pairs)
 
 
 def _dates_as_text(value: Any) -> Any:

@@ -10,6 +10,26 @@ export class ApiError extends Error {
   }
 }
 
+// JSON has no inf or nan: such a float travels as {"$float": "inf"} ("-inf", "nan"),
+// TOML's words for it, both ways (as a number it was written null, which drops a key)
+const NON_FINITE = "$float";
+
+/** `value` as JSON text, a float that is not finite as {"$float": "inf"}. */
+export function toJson(value) {
+  return JSON.stringify(value, (key, item) => (typeof item === "number" && !Number.isFinite(item)
+    ? {[NON_FINITE]: Number.isNaN(item) ? "nan" : item > 0 ? "inf" : "-inf"} : item));
+}
+
+/** JSON text as values, {"$float": "inf"} as Infinity (and -Infinity, NaN). */
+export function fromJson(text) {
+  return JSON.parse(text, (key, item) => {
+    if (item === null || typeof item !== "object" || Array.isArray(item)) return item;
+    const keys = Object.keys(item);
+    if (keys.length !== 1 || keys[0] !== NON_FINITE) return item;
+    return {inf: Infinity, "-inf": -Infinity, nan: NaN}[item[NON_FINITE]] ?? item;
+  });
+}
+
 const TIMEOUT_MS = 30000;   // a migration or a launch may take seconds, never this long
 
 async function request(method, path, body) {
@@ -22,7 +42,7 @@ async function request(method, path, body) {
       credentials: "same-origin",
       signal: controller.signal,
       headers: body === undefined ? {} : {"Content-Type": "application/json"},
-      body: body === undefined ? undefined : JSON.stringify(body),
+      body: body === undefined ? undefined : toJson(body),
     });
   } catch (error) {
     const why = error.name === "AbortError" ? `no answer in ${TIMEOUT_MS / 1000} s`
@@ -32,7 +52,8 @@ async function request(method, path, body) {
     clearTimeout(timer);
   }
   const type = response.headers.get("Content-Type") || "";
-  const payload = type.includes("json") ? await response.json() : await response.text();
+  const text = await response.text();
+  const payload = type.includes("json") ? fromJson(text) : text;
   if (!response.ok) {
     const message = (payload && payload.error) || `${method} ${path}: HTTP ${response.status}`;
     throw new ApiError(response.status, message, payload && payload.problems);

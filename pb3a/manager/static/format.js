@@ -59,6 +59,19 @@ export function number(value) {
     ? value.toExponential(4) : String(Number(value.toPrecision(6)));
 }
 
+const SPECIAL = new Map([["inf", Infinity], ["+inf", Infinity], ["-inf", -Infinity],
+                         ["infinity", Infinity], ["+infinity", Infinity],
+                         ["-infinity", -Infinity], ["nan", NaN]]);
+
+/** The number typed in a field: a decimal, or inf, -inf, nan (as a field shows them);
+ * undefined when the text is no number. */
+export function parseNumber(text) {
+  const typed = String(text).trim().toLowerCase();
+  if (SPECIAL.has(typed)) return SPECIAL.get(typed);
+  const value = Number(typed);
+  return typed === "" || !Number.isFinite(value) ? undefined : value;
+}
+
 /** An axis label: three significant digits. */
 export function tick(value) {
   return Math.abs(value) >= 1e4 || (Math.abs(value) < 1e-2 && value !== 0)

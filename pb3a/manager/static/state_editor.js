@@ -83,8 +83,9 @@ export class StateEditor {
     const message = h("div", {class: "field-message"});
     const element = h("div", {class: `field type-${field.type}`, dataset: {field: name}});
     const commit = (value) => this.commit(name, value, element, message);
+    const refuse = (words) => { message.textContent = words; element.classList.add("refused"); };
     let editor;
-    if (SCALARS.has(field.type)) editor = scalarEditor(field, commit);
+    if (SCALARS.has(field.type)) editor = scalarEditor(name, field, commit, refuse);
     else if (field.type === "ndarray") editor = arrayEditor(field, commit, this.displays[name]);
     else if (CONTAINERS.has(field.type)) editor = this.containerEditor(name, field, commit);
     else editor = objectViewer(field);
@@ -222,7 +223,7 @@ export class StateEditor {
 
 // -- editors --------------------------------------------------------------------------
 
-function scalarEditor(field, commit) {
+function scalarEditor(name, field, commit, refuse) {
   if (field.type === "bool") {
     const box = h("input", {type: "checkbox", class: "switch", disabled: !field.editable});
     box.addEventListener("change", () => commit(box.checked));
@@ -244,11 +245,13 @@ function scalarEditor(field, commit) {
     if (!dirty || sending === input.value) return;
     let value = input.value;
     if (numeric) {
-      value = Number(input.value.trim());
-      if (input.value.trim() === "" || !Number.isFinite(value) ||
-          (field.type === "int" && !Number.isInteger(value))) {
+      // a float takes inf, -inf and nan too (as the field shows them); an int does not
+      value = fmt.parseNumber(input.value);
+      if (value === undefined || (field.type === "int" && !Number.isInteger(value))) {
+        const takes = field.type === "int" ? "a whole number" : "a number (or inf, -inf, nan)";
         input.classList.add("invalid");
-        input.title = field.type === "int" ? "a whole number" : "a number";
+        input.title = takes;
+        refuse(`state '${name}' takes ${takes}, got ${input.value.trim() || "nothing"}`);
         return;
       }
     }
@@ -388,6 +391,10 @@ function plainValue(view) {
 }
 
 function viewOf(value, type) {
+  if (typeof value === "number" && !Number.isFinite(value)) {      // as a live view has it
+    return {type: "float", value: null, editable: true,
+            text: Number.isNaN(value) ? "nan" : value > 0 ? "inf" : "-inf"};
+  }
   const kind = value === null ? "none" : typeof value === "boolean" ? "bool"
     : typeof value === "number" ? (type === "float" || !Number.isInteger(value) ? "float" : "int")
     : typeof value === "string" ? "str" : Array.isArray(value) ? "list" : "dict";
