@@ -779,6 +779,36 @@ def test_two_quick_edits_in_the_editor_are_both_saved(tmp_path: Path) -> None:
         assert document_of(manager)["system"]["modules"]["ticker"]["period"] == 0.5
 
 
+def another_page_sets(manager: ManagerProcess, module: str, state: dict[str, Any]) -> None:
+    """What another page editing the document does: read it, set ``module``'s state,
+    put it back with the revision it read."""
+    document = document_of(manager)
+    document["system"]["modules"][module]["state"] = state
+    manager.api("PUT", "/api/document", {"system": document["system"],
+                                         "revision": document["revision"]})
+
+
+def test_a_refused_edit_gives_the_field_the_document_s_value_back(tmp_path: Path) -> None:
+    """A refused edit left its value in the field, so the page showed a value the
+    document did not hold. The field shows the document's again; the message says why."""
+    config = tmp_path / "chain.toml"
+    config.write_text(CHAIN)
+    with editor(config, 3) as (manager, page):
+        page.click("[data-module='scale'] .module-title")
+        assert field_value(page, "scale", "gain") == "2.0"
+        another_page_sets(manager, "scale", {"gain": 3.0})      # the same entry, meanwhile
+        page.fill("[data-field='gain'] input", "5")
+        page.press("[data-field='gain'] input", "Enter")
+        page.wait_for_selector("[data-field='gain'].refused", timeout=WAIT_MS)
+        page.wait_for_function("document.querySelector(\"[data-field='gain'] input\").value"
+                               " === '3.0'", timeout=WAIT_MS)
+        gain = page.locator("[data-field='gain'] input")
+        assert "dirty" not in gain.get_attribute("class")
+        assert "changed" in page.locator("[data-field='gain'] .field-message").text_content()
+        assert "changed" in page.locator(".toast.error").first.text_content()
+        assert document_of(manager)["system"]["modules"]["scale"]["state"] == {"gain": 3.0}
+
+
 def test_inf_typed_into_a_float_field_is_set_and_an_int_field_refuses_it_by_name(
         tmp_path: Path) -> None:
     """The page shows inf and nan, but typed into a float field they were refused as no

@@ -42,6 +42,8 @@ class Manager {
     this.editor = new StateEditor($("state-fields"), {
       apply: (fields) => this.applyState(fields),
       drill: (path) => api.state(this.selected, path),
+      current: async () => (this.mode() === "editing" ? this.documentState(this.selected)
+                                                      : api.state(this.selected)),
       error: (error, loud) => { if (loud) this.toasts.error(error); },
     });
     this.browser = new ModuleBrowser($("classes"), $("class-filter"), {

@@ -15,7 +15,7 @@ export class StateEditor {
   /**
    * root: the element the fields go in.
    * actions: {apply(fields) -> Promise<state view>, drill(path) -> Promise<state view>,
-   *           error(err)}
+   *           current() -> Promise<state view>, error(err)}
    */
   constructor(root, actions) {
     this.root = root;
@@ -120,6 +120,13 @@ export class StateEditor {
       element.classList.add("refused");
       message.textContent = error.message;
       this.actions.error(error, false);
+      // refused: the field shows what the module or document holds again (the editor
+      // puts it back when it is told false), not the value that was not taken
+      try {
+        this.update(await this.actions.current());
+      } catch (reading) {
+        console.warn("the state could not be read again", reading);
+      }
       return false;
     }
   }
@@ -226,9 +233,10 @@ export class StateEditor {
 function scalarEditor(name, field, commit, refuse) {
   if (field.type === "bool") {
     const box = h("input", {type: "checkbox", class: "switch", disabled: !field.editable});
-    box.addEventListener("change", () => commit(box.checked));
+    let held = !!field.value;
+    box.addEventListener("change", async () => { if (!await commit(box.checked)) box.checked = held; });
     return {inline: box, below: null,
-            refresh: (view) => { if (document.activeElement !== box) box.checked = !!view.value; }};
+            refresh: (view) => { held = !!view.value; if (document.activeElement !== box) box.checked = held; }};
   }
   if (field.type === "none") {
     return {inline: h("span", {class: "muted mono"}, "None"), below: null, refresh: () => {}};
@@ -258,7 +266,10 @@ function scalarEditor(name, field, commit, refuse) {
     input.classList.remove("invalid");
     sending = input.value;
     try {
-      if (await commit(value)) { dirty = false; input.classList.remove("dirty"); }
+      const taken = await commit(value);
+      dirty = false;
+      input.classList.remove("dirty");
+      if (!taken) input.value = shown;     // refused: what is held, not what was refused
     } finally {
       sending = null;
     }
@@ -335,11 +346,16 @@ function arrayGrid(field, commit) {
     const nested = field.shape.length === 2
       ? Array.from({length: rows}, (_, r) => values.slice(r * field.shape[1], (r + 1) * field.shape[1]))
       : field.shape.length === 0 ? values[0] : values;
-    if (await commit(nested)) { dirty = false; apply.disabled = true; }
+    const taken = await commit(nested);
+    dirty = false;
+    apply.disabled = true;
+    if (!taken && latest) refresh(latest, true);     // refused: what is held again
   };
   apply.addEventListener("click", send);
-  const refresh = (view) => {
-    if (dirty || inputs.includes(document.activeElement)) return;
+  let latest = null;
+  const refresh = (view, force = false) => {
+    latest = view;
+    if (!force && (dirty || inputs.includes(document.activeElement))) return;
     const flat = [view.value].flat(Infinity);
     inputs.forEach((input, i) => { input.value = boolean ? String(flat[i]) : fmt.number(flat[i]); });
   };
