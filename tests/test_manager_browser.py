@@ -788,6 +788,38 @@ def another_page_sets(manager: ManagerProcess, module: str, state: dict[str, Any
                                          "revision": document["revision"]})
 
 
+def test_an_edit_after_another_page_s_is_made_unless_it_touches_the_same_entry(
+        tmp_path: Path) -> None:
+    """Two pages on one document: an edit in one made the next edit in the other a 412,
+    whatever it touched. Now the page reads the document again and makes its edit there
+    when the other page changed other entries; one of the same entry is refused, named."""
+    config = tmp_path / "chain.toml"
+    config.write_text(CHAIN)
+    with editor(config, 3) as (manager, page):
+        puts: list[int] = []
+        page.on("response", lambda response: puts.append(response.status)
+                if response.request.method == "PUT" else None)
+        page.click("[data-module='scale'] .module-title")
+        assert field_value(page, "scale", "gain") == "2.0"
+        another_page_sets(manager, "scale2", {"gain": 4.0})     # another entry
+        page.fill("[data-field='gain'] input", "5")
+        page.press("[data-field='gain'] input", "Enter")
+        page.wait_for_selector("[data-field='gain'].applied", timeout=WAIT_MS)
+        modules = document_of(manager)["system"]["modules"]
+        assert modules["scale"]["state"] == {"gain": 5.0}
+        assert modules["scale2"]["state"] == {"gain": 4.0}       # the other page's kept
+        assert puts == [412, 200]                                # made again, once
+        assert page.locator(".toast.error").count() == 0
+        another_page_sets(manager, "scale", {"gain": 6.0})      # the same entry
+        page.fill("[data-field='gain'] input", "7")
+        page.press("[data-field='gain'] input", "Enter")
+        page.wait_for_selector("[data-field='gain'].refused", timeout=WAIT_MS)
+        assert page.locator("[data-field='gain'] .field-message").text_content().startswith(
+            "modules.scale changed in another page")
+        assert puts == [412, 200, 412]
+        assert document_of(manager)["system"]["modules"]["scale"]["state"] == {"gain": 6.0}
+
+
 def test_a_refused_edit_gives_the_field_the_document_s_value_back(tmp_path: Path) -> None:
     """A refused edit left its value in the field, so the page showed a value the
     document did not hold. The field shows the document's again; the message says why."""

@@ -6,7 +6,7 @@
 // macro instance); the schematic draws the modules they expand to, a macro's as
 // "instance/child". `entryOf` maps one to the other.
 
-import {api} from "./api.js";
+import {api, ApiError, toJson} from "./api.js";
 import * as fmt from "./format.js";
 
 const NAME = /^[A-Za-z0-9_-]+$/;       // what `pb3a check` takes as a module or macro name
@@ -17,6 +17,32 @@ const portOf = (end) => String(end).slice(String(end).lastIndexOf(".") + 1);
 
 /** The document entry a drawn module belongs to ("chain/scale" -> "chain"). */
 export const entryOf = (path) => path.split("/")[0];
+
+/** The entries of the document that differ between `a` and `b` (two of its systems), by
+ * name: "modules.scale", "nodes.a", "macros.stage", "link ticker.out -> scale.x",
+ * "name". */
+function changedEntries(a, b) {
+  const changed = new Set();
+  const isTable = (value) => value !== null && typeof value === "object" && !Array.isArray(value);
+  for (const key of new Set([...Object.keys(a || {}), ...Object.keys(b || {})])) {
+    const [x, y] = [a?.[key], b?.[key]];
+    if (isTable(x) && isTable(y) || isTable(x) && y === undefined || x === undefined && isTable(y)) {
+      for (const name of new Set([...Object.keys(x || {}), ...Object.keys(y || {})])) {
+        if (toJson(x?.[name]) !== toJson(y?.[name])) changed.add(`${key}.${name}`);
+      }
+    } else if (Array.isArray(x) || Array.isArray(y)) {
+      const texts = (list) => new Set((Array.isArray(list) ? list : []).map(toJson));
+      const [xs, ys] = [texts(x), texts(y)];
+      for (const text of [...xs].filter((t) => !ys.has(t)).concat([...ys].filter((t) => !xs.has(t)))) {
+        const item = JSON.parse(text);
+        changed.add(item?.from && item?.to ? `link ${item.from} -> ${item.to}` : `${key} ${text}`);
+      }
+    } else if (toJson(x) !== toJson(y)) {
+      changed.add(key);
+    }
+  }
+  return changed;
+}
 
 function checkName(name, what) {
   if (!NAME.test(name || "")) {
@@ -30,6 +56,7 @@ export class EditedDocument {
     this.system = {name: "untitled", modules: {}, links: []};
     this.problems = [];
     this.revision = undefined;       // the document's, as last read (sent back with a put)
+    this.base = null;                // the system as last read, before the changes made here
     this.putting = null;             // the put under way, which the next one waits for
     this.unsent = [];                // changes made here that no put has sent yet
   }
@@ -44,6 +71,7 @@ export class EditedDocument {
   take(answer) {
     this.path = answer.path ?? this.path;
     this.system = answer.system || {};
+    this.base = structuredClone(this.system);
     this.system.modules ??= {};
     this.system.links ??= [];
     this.problems = answer.problems || [];
@@ -66,8 +94,11 @@ export class EditedDocument {
    * on that put's answer, which replaces this copy: made on the copy alone, the answer
    * dropped it, and the next put sent the document without it (two quick edits: the
    * second lost, both "saved"). A put that fails fails the changes it sent; the
-   * document is read again and the changes not yet sent are made on it, except after
-   * a 412 (another page changed it meanwhile): they are dropped, failing with it.
+   * document is read again and the changes not yet sent are made on it. A 412 (another
+   * page changed the document since it was read here) is no failure when the entries
+   * the changes touch are not among those the other page changed: they are made again
+   * on the document as it is now and put once more. When one is, they fail (and the
+   * changes not yet sent with them) with a 412 naming it.
    */
   edit(change) {
     const result = change(this.system);
@@ -79,7 +110,7 @@ export class EditedDocument {
   }
 
   /** The put of every change not sent yet (it settles them; it never rejects). */
-  async #send() {
+  async #send(again = false) {
     const sending = this.unsent;
     if (!sending.length) return;             // a put before this one sent them
     this.unsent = [];
@@ -87,6 +118,11 @@ export class EditedDocument {
       this.take(await api.putDocument(this.system, this.revision));
       for (const one of sending) one.resolve();
     } catch (error) {
+      if (error.status === 412 && !again) {
+        const retry = await this.#onStale(sending, error);
+        if (retry) return this.#send(true);
+        return;
+      }
       const failed = error.status === 412 ? [...sending, ...this.unsent.splice(0)] : sending;
       try {
         await this.load();                   // (what the server holds, the rest made again)
@@ -95,6 +131,33 @@ export class EditedDocument {
       }
       for (const one of failed) one.reject(error);
     }
+  }
+
+  /** After a 412: read the document; if no entry these changes touch was changed by
+   * the other page, make them again on it and answer true (put them once more); else
+   * fail them, and those made since, with a 412 naming the entries, and answer false. */
+  async #onStale(sending, error) {
+    let fresh;
+    try {
+      fresh = await api.document();
+    } catch (reading) {
+      console.warn("the document could not be read again", reading);
+      for (const one of [...sending, ...this.unsent.splice(0)]) one.reject(error);
+      return false;
+    }
+    const theirs = changedEntries(this.base, fresh.system || {});
+    const both = [...changedEntries(this.base, this.system)].filter((entry) => theirs.has(entry));
+    if (!both.length) {
+      this.unsent = [...sending, ...this.unsent];
+      this.take(fresh);                       // (the changes made again on it)
+      return true;
+    }
+    const failed = [...sending, ...this.unsent.splice(0)];
+    this.take(fresh);
+    const refusal = new ApiError(412, `${both.join(", ")} changed in another page since this one `
+      + "read the document: this edit was not made; the page shows the document as it is now");
+    for (const one of failed) one.reject(refusal);
+    return false;
   }
 
   nodes() {
