@@ -3,6 +3,7 @@ that a refused request changes nothing."""
 
 from __future__ import annotations
 
+import os
 import struct
 import sys
 from collections.abc import Iterator
@@ -495,6 +496,35 @@ def test_the_catalog_lists_the_classes_beside_the_document(tmp_path, monkeypatch
     listed = Catalog(document).classes()
     assert "controllers_beside:Beside" in [c["class"] for c in listed["classes"]]
     assert not [p for p in listed["problems"] if p.startswith("controllers_beside")]
+
+
+def test_the_catalog_sees_a_class_file_written_changed_or_removed_while_it_runs(
+        tmp_path, monkeypatch) -> None:
+    """The catalog was read once: a class written while the manager ran was not in the
+    module browser until a module was reloaded, nor was a port added to one."""
+    project = tmp_path / "project_growing"
+    project.mkdir()
+    (project / "lab.toml").write_text('name = "lab"\n')
+    monkeypatch.setattr("sys.path", list(sys.path))
+    monkeypatch.setattr("sys.modules", dict(sys.modules))
+    catalog = Catalog(Document.open(project / "lab.toml"))
+    first = catalog.classes()
+    assert catalog.classes() is first                      # nothing changed: not read again
+
+    def later() -> dict | None:
+        return next((c for c in catalog.classes()["classes"] if c["class"] == "later:Later"),
+                    None)
+
+    head = "from pb3a import Input, Module, Output\n\n\nclass Later(Module):\n"
+    source = project / "later.py"
+    source.write_text(head + "    out = Output(float)\n")
+    assert later()["inputs"] == {} and set(later()["outputs"]) == {"out"}
+    source.write_text(head + "    out = Output(float)\n    x = Input(float)\n")
+    stamp = source.stat().st_mtime_ns + 1_000_000_000      # (a change within the second)
+    os.utime(source, ns=(stamp, stamp))
+    assert later()["inputs"] == {"x": {"type": "float", "policy": "latest"}}
+    source.unlink()
+    assert later() is None
 
 
 def test_the_catalog_leaves_out_a_file_whose_assignment_does_a_script_s_work(

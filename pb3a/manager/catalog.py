@@ -74,17 +74,29 @@ class Catalog:
         self._lock = threading.Lock()
         self._found: dict[str, Any] | None = None
         self._servers: tuple[str, ...] = ()   # the servers asked for ``_found``
+        self._files: dict[str, tuple[Path, int, int]] = {}   # ... and the files: name ->
+                                                            # (path, mtime_ns, size)
         self._classes: dict[str, type] = {}
 
     def classes(self, servers: Sequence[str] = ()) -> dict[str, Any]:
         """``GET /api/classes``: ``{"classes": [...], "problems": [...]}``; ``servers``:
-        module servers to ask besides the document's (a running system's)."""
+        module servers to ask besides the document's (a running system's). Looked at
+        again when a file on the path was added, changed or removed since (a class
+        written while the manager ran was not listed until a module was reloaded);
+        a changed module is imported afresh."""
         wanted = self._servers_with(servers)
         with self._lock:
-            if self._found is None or self._servers != wanted:
+            files: dict[str, tuple[Path, int, int]] = {}
+            for root in self._directories():          # (the first of a name is imported)
+                for name, path in _candidates(root):
+                    files.setdefault(name, (path, *_stamp(path)))
+            if self._found is None or self._servers != wanted or files != self._files:
+                for name, seen in self._files.items():
+                    if files.get(name) != seen and name in sys.modules:
+                        forget_module(name)
                 self._classes.clear()
                 self._found = self._scan(wanted)
-                self._servers = wanted
+                self._servers, self._files = wanted, files
             return self._found
 
     def forget(self, module: str | None = None) -> None:
@@ -217,6 +229,32 @@ def _module_names(root: Path, problems: list[str]) -> list[str]:
     """The dotted names of the modules under ``root`` that define module classes and
     nothing else at their top level."""
     names = []
+    for name, path in _candidates(root):
+        try:
+            if path.stat().st_size > MOST_FILE_BYTES:
+                continue
+            source = path.read_bytes()
+        except OSError:
+            continue
+        if _defines_classes(source, str(path), problems):
+            names.append(name)
+    return names
+
+
+def _stamp(path: Path) -> tuple[int, int]:
+    """(mtime in ns, size) of ``path``; (0, 0) for one gone meanwhile."""
+    try:
+        found = path.stat()
+    except OSError:
+        return 0, 0
+    return found.st_mtime_ns, found.st_size
+
+
+def _candidates(root: Path) -> list[tuple[str, Path]]:
+    """The Python files under ``root`` the catalog looks into, with their dotted names:
+    public modules at its top and in its packages (not tests, at most ``MOST_DEPTH``
+    down)."""
+    found = []
 
     def walk(directory: Path, prefix: str, depth: int) -> None:
         try:
@@ -231,17 +269,10 @@ def _module_names(root: Path, problems: list[str]) -> list[str]:
                     and stem not in _SKIPPED_DIRS and (path / "__init__.py").is_file():
                 walk(path, f"{prefix}{stem}.", depth + 1)
             elif path.suffix == ".py" and path.is_file() and (prefix or depth == 0):
-                try:
-                    if path.stat().st_size > MOST_FILE_BYTES:
-                        continue
-                    source = path.read_bytes()
-                except OSError:
-                    continue
-                if _defines_classes(source, str(path), problems):
-                    names.append(prefix + stem)
+                found.append((prefix + stem, path))
 
     walk(root, "", 0)
-    return names
+    return found
 
 
 def _defines_classes(source: bytes, where: str, problems: list[str]) -> bool:

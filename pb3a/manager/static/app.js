@@ -71,6 +71,8 @@ class Manager {
     $("launch").addEventListener("click", () => this.launch());
     $("stop").addEventListener("click", () => this.stop());
     $("add-node").addEventListener("click", () => this.addNode());
+    // back from the editor where a class was written: the module browser lists it
+    window.addEventListener("focus", () => { if (!$("browser").hidden) this.loadClasses(); });
     document.addEventListener("keydown", (ev) => {
       if (ev.target.closest("input, textarea, select, dialog")) return;
       if (ev.key === "Escape") this.select(null);
