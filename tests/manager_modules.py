@@ -91,3 +91,29 @@ class Holder(Module):
     narrow = np.zeros(2, dtype=np.float32)
     level = np.float32(1.0)
     cost = np.full((4, 4), np.finfo(np.float64).max)
+
+
+class Controller(Module):
+    """A PID controller whose gains are tuned while it runs: settings on the class (kp,
+    ki, kd, limits, mode); read-outs it makes itself (``error``, made in setup, and the
+    array ``trace``), which a document cannot hold."""
+
+    measured = Input(float)
+    command = Output(float)
+    period = 0.02
+    kp = 1.0
+    ki = 0.0
+    kd = 0.0
+    limits = (-1.0, 1.0)
+    mode = "auto"
+    trace = np.zeros(4)
+
+    def setup(self) -> None:
+        self.error = 0.0
+        self.integral = 0.0
+
+    def step(self) -> None:
+        self.error = 1.0 - self.error * 0.5
+        self.integral += self.error * self.period
+        low, high = self.limits
+        self.command.write(min(max(self.kp * self.error + self.ki * self.integral, low), high))

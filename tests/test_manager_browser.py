@@ -1219,3 +1219,58 @@ def test_a_folded_macro_dragged_to_another_node_moves_with_all_its_modules(
             assert tab.errors == [], f"the page threw: {tab.errors}"
     finally:
         manager.stop()
+
+
+TUNING = """\
+# A controller tuned while it runs.
+name = "tuning"
+
+[modules.ctl]
+class = "manager_modules:Controller"
+state = { kp = 2.0 }   # start gentle
+"""
+
+
+def test_a_gain_tuned_live_is_kept_in_the_document_and_shown_after_stop(
+        tmp_path: Path) -> None:
+    """A gain tuned in the State Editor was lost at Stop: the document kept what it was
+    launched with. **Keep in document** offers the settings that differ (those tuned here
+    ticked; the controller's own read-outs not offered), writes them, and after Stop the
+    document shows the tuned value; saved, the file has it."""
+    config = tmp_path / "tuning.toml"
+    config.write_text(TUNING)
+    with editor(config, 1) as (manager, page):
+        page.click("#launch")
+        page.wait_for_function("document.querySelector('#mode').textContent === 'running'",
+                               timeout=WAIT_MS)
+        page.click("[data-module='ctl'] .module-title")
+        page.wait_for_function("document.querySelector(\"[data-field='kp'] input\")?.value "
+                               "=== '2.0'", timeout=WAIT_MS)
+        page.fill("[data-field='kp'] input", "3.25")
+        page.press("[data-field='kp'] input", "Enter")
+        page.wait_for_selector("[data-field='kp'].applied", timeout=WAIT_MS)
+        page.click("#keep")
+        page.wait_for_selector("#keep-picker [data-keep='kp']", timeout=WAIT_MS)
+        assert page.locator("#keep-picker [data-keep='kp']").is_checked()
+        offered = page.locator("#keep-picker [data-keep]").evaluate_all(
+            "boxes => boxes.map(b => b.dataset.keep)")
+        assert offered == ["kp"]               # kd, limits ... are the document's already
+        assert "not kept (read-outs): " in page.locator("#keep-picker").text_content()
+        page.locator("#inspector").screenshot(
+            path=str(screenshot_path(tmp_path, "manager_keep.png")))
+        page.click("#keep-go")
+        page.wait_for_selector(".toast.ok >> text=Kept in the document: ctl", timeout=WAIT_MS)
+        page.wait_for_selector("#keep-picker", state="hidden", timeout=WAIT_MS)
+        assert document_of(manager)["system"]["modules"]["ctl"]["state"] == {"kp": 3.25}
+        page.click("#stop")
+        page.click("dialog.confirm button[value='ok']")
+        page.wait_for_function("document.querySelector('#mode').textContent === 'editing'",
+                               timeout=WAIT_MS)
+        page.wait_for_function("document.querySelector(\"[data-field='kp'] input\")?.value "
+                               "=== '3.25'", timeout=WAIT_MS)
+        assert field_value(page, "ctl", "kp") == "3.25"
+        page.fill("#save-path", str(config))
+        page.click("#save")
+        page.wait_for_selector(f".toast.ok >> text=Saved {config}", timeout=WAIT_MS)
+    text = config.read_text()
+    assert "state = { kp = 3.25 }   # start gentle" in text and "# A controller" in text

@@ -5,6 +5,7 @@ launch from the page."""
 from __future__ import annotations
 
 import shutil
+import tomllib
 from pathlib import Path
 from typing import Any
 
@@ -433,3 +434,100 @@ def test_an_entry_removed_or_added_takes_its_own_comments_and_leaves_the_others(
     document.replace(system)
     assert document.toml() == expected
     assert document.data() == system
+
+
+TUNING = """\
+# A controller tuned while it runs.
+name = "tuning"
+
+# the loop's controller: its gains were found by hand
+[modules.ctl]
+class = "manager_modules:Controller"
+state = { kp = 2.0, mode = "auto" }   # start gentle
+
+[modules.loop]
+macro = "loop"
+
+[macros.loop.modules.inner]
+class = "manager_modules:Controller"
+state = { kd = 0.1 }
+"""
+
+
+def test_live_tuned_settings_are_kept_in_the_document_and_launch_again(
+        tmp_path: Path) -> None:
+    """Gains tuned in the State Editor could not be written back: GET /api/system/toml
+    gave the configured state and Stop lost them. Keep writes the live values of the
+    settings that differ from the document into the module's state (a macro's module:
+    its instance's override), comments kept; read-outs and arrays are left out."""
+    path = tmp_path / "tuning.toml"
+    path.write_text(TUNING)
+    with manager_client(Session(Document.open(path))) as client:
+        assert client.get("/api/document").json()["problems"] == []
+        assert client.post("/api/document/launch").status_code == 200
+        assert client.post("/api/modules/ctl/state", json={"kp": 2.5, "ki": 0.25}).status_code \
+            == 200
+        offer = client.get("/api/modules/ctl/keep").json()
+        assert offer["changes"] == {"kp": {"document": 2.0, "live": 2.5, "tuned": True},
+                                    "ki": {"document": 0.0, "live": 0.25, "tuned": True}}
+        assert set(offer["same"]) == {"kd", "limits", "mode"}
+        assert set(offer["not_kept"]) == {"trace", "error", "integral"}
+        revision = offer["revision"]
+        assert client.get("/api/document").json()["revision"] == revision     # untouched
+
+        kept = client.post("/api/modules/ctl/keep", json={"revision": revision})
+        assert kept.status_code == 200, kept.json()
+        assert kept.json()["kept"] == {"kp": 2.5, "ki": 0.25}
+        assert kept.json()["where"] == "modules.ctl.state"
+        assert kept.json()["revision"] == revision + 1
+        text = client.get("/api/document/toml").text
+        assert "# the loop's controller: its gains were found by hand" in text
+        assert "# start gentle" in text and "# A controller tuned while it runs." in text
+        ctl = tomllib.loads(text)["modules"]["ctl"]
+        assert ctl["state"] == {"kp": 2.5, "mode": "auto", "ki": 0.25}
+        # the page's copy of the document is older now: its edit is refused, as any other
+        stale = client.post("/api/modules/ctl/keep", json={"revision": revision})
+        assert stale.status_code == 412
+        # kept again, nothing differs: nothing is written
+        again = client.post("/api/modules/ctl/keep").json()
+        assert again["kept"] == {} and again["revision"] == revision + 1
+
+        # a module inside a macro instance: the instance's override, the macro untouched
+        client.post("/api/modules/loop/inner/state", json={"kd": 0.3, "kp": 4})
+        inner = client.post("/api/modules/loop/inner/keep", json={"fields": ["kd"]})
+        assert inner.status_code == 200, inner.json()
+        assert inner.json()["kept"] == {"kd": 0.3}
+        assert inner.json()["where"] == "modules.loop.state.inner"
+        saved = tomllib.loads(client.get("/api/document/toml").text)
+        assert saved["modules"]["loop"] == {"macro": "loop", "state": {"inner": {"kd": 0.3}}}
+        assert saved["macros"]["loop"]["modules"]["inner"]["state"] == {"kd": 0.1}
+
+        # what cannot be kept is refused by name, and nothing changes
+        for fields, status, words in ((["trace"], 422, "no value TOML holds"),
+                                      (["integral"], 422, "not declared on Controller"),
+                                      (["ghost"], 404, "has no state 'ghost'")):
+            refused = client.post("/api/modules/ctl/keep", json={"fields": fields})
+            assert refused.status_code == status and words in refused.json()["error"], fields
+        unknown = client.post("/api/modules/nobody/keep")
+        assert unknown.status_code == 404 and "no module 'nobody'" in unknown.json()["error"]
+        assert client.post("/api/modules/ctl/keep", json=[1]).status_code == 400
+        assert tomllib.loads(client.get("/api/document/toml").text) == saved
+
+        # Stop, Save: the file launches with the tuned values
+        assert client.post("/api/system/stop").status_code == 200
+        refused = client.post("/api/modules/ctl/keep")
+        assert refused.status_code == 409 and "nothing runs" in refused.json()["error"]
+        assert client.post("/api/document/save", json={}).status_code == 200
+    with System.load(path).launch() as run:
+        assert (run.state("ctl")["kp"], run.state("ctl")["ki"]) == (2.5, 0.25)
+        assert run.state("loop/inner")["kd"] == 0.3
+
+    # attached to a system it did not launch, the manager has no document it came from
+    with System.load(path).launch() as run, \
+            manager_client(Session(Document.empty(), run)) as client:
+        client.post("/api/modules/ctl/state", json={"kp": 9.0})
+        for method in ("GET", "POST"):
+            refused = client.request(method, "/api/modules/ctl/keep")
+            assert refused.status_code == 409, refused.json()
+            assert "attached" in refused.json()["error"]
+        assert "ctl" not in client.get("/api/document").json()["system"].get("modules", {})

@@ -126,6 +126,14 @@ def routes(session: Session) -> list[Route]:
         values = await body_of(request)
         return await call(session.set_state, name(request), values)
 
+    async def keep_offer(request: Request) -> Any:
+        return await call(session.keep_offer, name(request))
+
+    async def keep(request: Request) -> Any:
+        raw = await request.body()
+        body = await body_of(request) if raw else None
+        return await call(session.keep, name(request), body)
+
     async def image(request: Request) -> Any:
         png = await call(session.image, name(request), request.query_params.get("path", ""))
         return Response(png, media_type="image/png", headers={"cache-control": "no-store"})
@@ -231,6 +239,8 @@ def routes(session: Session) -> list[Route]:
         Route("/api/modules", answer(add, 201), methods=["POST"]),
         Route("/api/modules/{name:path}/state", answer(get_state), methods=["GET"]),
         Route("/api/modules/{name:path}/state", answer(set_state), methods=["POST"]),
+        Route("/api/modules/{name:path}/keep", answer(keep_offer), methods=["GET"]),
+        Route("/api/modules/{name:path}/keep", answer(keep), methods=["POST"]),
         Route("/api/modules/{name:path}/image", answer(image)),
         Route("/api/modules/{name:path}/migrate", answer(migrate), methods=["POST"]),
         Route("/api/modules/{name:path}/swap", answer(swap), methods=["POST"]),

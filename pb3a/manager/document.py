@@ -19,7 +19,7 @@ import json
 import math
 import threading
 import tomllib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -122,23 +122,42 @@ class Document:
         if not isinstance(system, dict):
             raise ValueError(f"'system' must be an object of TOML tables, got {system!r}")
         with self._lock:
-            if revision is not None and revision != self.revision:
-                raise Stale(f"the document changed since this copy of it was read "
-                            f"(revision {revision}, now {self.revision}), in another page "
-                            "or by an open: read it again and make the change there")
-            draft = copy.deepcopy(self._doc)
-            system = _moves_resolved(draft.unwrap(), system)
-            try:
-                _merge(draft, system, ())
-                text = tomlkit.dumps(draft)
-                same = _same(tomllib.loads(text), draft.unwrap())
-            except (TOMLKitError, tomllib.TOMLDecodeError, TypeError, ValueError) as exc:
-                raise ValueError(f"TOML cannot hold this document: {exc}") from None
-            if not same:
-                raise ValueError("TOML cannot hold this document: written, it would not "
-                                 "read back as sent")
-            self._doc = draft
-            self.revision += 1
+            self._current(revision)
+            self._replace(system)
+
+    def edit(self, change: Callable[[dict[str, Any]], bool], revision: int | None = None
+             ) -> None:
+        """Change the document as ``change`` changes its tables (as plain values, changed
+        in place; it answers whether it changed anything), with no other change in
+        between: as ``replace`` does, comments and layout kept, ``Stale`` with a
+        ``revision`` that is not the document's. What ``change`` raises changes nothing."""
+        with self._lock:
+            self._current(revision)
+            system = self._doc.unwrap()
+            if change(system):
+                self._replace(system)
+
+    def _current(self, revision: int | None) -> None:
+        if revision is not None and revision != self.revision:
+            raise Stale(f"the document changed since this copy of it was read "
+                        f"(revision {revision}, now {self.revision}), in another page "
+                        "or by an open: read it again and make the change there")
+
+    def _replace(self, system: dict[str, Any]) -> None:
+        """``replace``'s work, the lock held."""
+        draft = copy.deepcopy(self._doc)
+        system = _moves_resolved(draft.unwrap(), system)
+        try:
+            _merge(draft, system, ())
+            text = tomlkit.dumps(draft)
+            same = _same(tomllib.loads(text), draft.unwrap())
+        except (TOMLKitError, tomllib.TOMLDecodeError, TypeError, ValueError) as exc:
+            raise ValueError(f"TOML cannot hold this document: {exc}") from None
+        if not same:
+            raise ValueError("TOML cannot hold this document: written, it would not "
+                             "read back as sent")
+        self._doc = draft
+        self.revision += 1
 
     def open_text(self, text: str, name: str) -> None:
         """Make the document the TOML ``text`` of a file called ``name`` (one the page

@@ -24,9 +24,9 @@ from typing import TYPE_CHECKING, Any
 from pb3a.config.checks import NAME
 from pb3a.errors import ConfigError, ModuleNotFound
 from pb3a.loading.references import resolve_class
-from pb3a.manager import reflection
+from pb3a.manager import keeping, reflection
 from pb3a.manager.catalog import Catalog
-from pb3a.manager.document import Document, toml_text
+from pb3a.manager.document import Document, as_json, check_data, toml_text
 from pb3a.manager.layout import layout
 from pb3a.model.ports import Policy
 from pb3a.model.state_edits import coerce
@@ -74,6 +74,7 @@ class Session:
         self.catalog = catalog or Catalog(document)
         self._lock = threading.Lock()       # launching and closing
         self._layouts: dict[Any, dict[str, Any]] = {}     # structure -> its layout
+        self._tuned: dict[str, set[str]] = {}     # module -> fields set here since the launch
 
     # -- what runs ----------------------------------------------------------------
     @property
@@ -101,6 +102,7 @@ class Session:
                 raise ConfigError(problems)
             running: Running = system.launch(listen="tcp://127.0.0.1:0")
             self._handle, self._owns_handle = running, True
+            self._tuned = {}
         return self.system()
 
     def stop(self) -> dict[str, Any]:
@@ -114,6 +116,7 @@ class Session:
                 raise ConfigError(["this manager did not launch the system it shows (it "
                                    "attached to it): stop it where it runs"])
             handle, self._handle = self._handle, None
+            self._tuned = {}
             handle.close()
         return self.system()
 
@@ -215,7 +218,92 @@ class Session:
         if problems:
             raise Unfit(problems)
         self.handle.set_state(name, fitted, timeout=self.timeout)
+        self._tuned.setdefault(name, set()).update(fitted)
         return self.state(name)
+
+    # -- keeping live state in the document -------------------------------------------
+    def keep_offer(self, name: str) -> dict[str, Any]:
+        """``GET /api/modules/{name}/keep``: what **Keep in document** would write (see
+        ``keep``), nothing written: ``{"module", "where", "changes": {field: {"document",
+        "live", "tuned"}}, "same": [...], "not_kept": {field: why}, "revision"}``."""
+        revision = self.document.revision
+        live, running = self._live(name)
+        found = keeping.proposal(self.document.data(), self.document.source, name, running,
+                                 live)
+        return {**self._answer(found), "revision": revision}
+
+    def keep(self, name: str, body: Any) -> dict[str, Any]:
+        """``POST /api/modules/{name}/keep``: write the module's live values of its
+        settings that differ from what the document gives it into the document (its
+        entry's ``state``, or its macro instance's override); ``{"fields": [...]}``: only
+        those, ``{"revision": N}``: refused (``Stale``) if the document changed since.
+        ConfigError when nothing runs, when the system is one the manager attached to
+        (there is no document it came from) or when the document has no place for the
+        module. Answers ``{"module", "where", "kept": {field: value}, "same", "not_kept",
+        "revision"}``."""
+        body = {} if body is None else body
+        if not isinstance(body, dict):
+            raise Malformed("send {\"fields\"?: [\"kp\", ...], \"revision\"?: N} or nothing")
+        fields, revision = body.get("fields"), body.get("revision")
+        if fields is not None and not (isinstance(fields, list)
+                                       and all(isinstance(f, str) for f in fields)):
+            raise Malformed(f"'fields' must be a list of state field names, got {fields!r}")
+        if revision is not None and (not isinstance(revision, int) or isinstance(revision, bool)):
+            raise Malformed(f"'revision' must be the document's revision, got {revision!r}")
+        live, running = self._live(name)
+        kept: dict[str, Any] = {}
+        answer: dict[str, Any] = {}
+
+        def change(system: dict[str, Any]) -> bool:
+            found = keeping.proposal(system, self.document.source, name, running, live)
+            chosen = list(found.changes) if fields is None else [
+                f for f in dict.fromkeys(fields) if f not in found.same]   # (kept already)
+            unknown = [f for f in chosen if f not in live]
+            if unknown:
+                raise NotFound(f"module {name} has no state {', '.join(map(repr, unknown))}; "
+                               f"its state: {', '.join(live) or '(none)'}")
+            wrong = [f for f in chosen if f not in found.changes]
+            if wrong:
+                raise Unfit([f"module {name}: state {f!r} is not kept: {found.not_kept[f]}"
+                             for f in wrong])
+            answer.update(self._answer(found))
+            if not chosen:
+                return False
+            before = set(check_data(system, self.document.source)[1])
+            keeping.write(system, found, chosen)
+            added = [p for p in check_data(system, self.document.source)[1] if p not in before]
+            if added:
+                raise ConfigError(added)
+            kept.update({f: found.changes[f][1] for f in chosen})
+            return True
+
+        try:
+            self.document.edit(change, revision)
+        except (Unfit, Malformed):
+            raise
+        except ValueError as exc:                   # TOML cannot hold it: nothing changed
+            raise Unfit([f"module {name}: {exc}"]) from None
+        answer.pop("changes", None)
+        return {**answer, "kept": as_json(kept), "revision": self.document.revision}
+
+    def _live(self, name: str) -> tuple[dict[str, Any], str]:
+        """Module ``name``'s live state and the class it runs as; refused (see ``keep``)
+        when nothing runs, the system is not the document's, or there is no such module."""
+        handle = self.handle
+        if not self._owns_handle:
+            raise ConfigError(["this manager attached to the system it shows: there is no "
+                               "document it was launched from to keep its state in (GET "
+                               "/api/system/toml writes the running system as a file)"])
+        topology = self.topology_of(name)
+        return handle.state(name, timeout=self.timeout), topology.modules[name].cls
+
+    def _answer(self, found: keeping.Proposal) -> dict[str, Any]:
+        tuned = self._tuned.get(found.module, set())
+        return {"module": found.module, "where": ".".join(found.where),
+                "changes": {f: {"document": as_json(held), "live": as_json(now),
+                                "tuned": f in tuned}
+                            for f, (held, now) in found.changes.items()},
+                "same": found.same, "not_kept": found.not_kept}
 
     # -- changes ------------------------------------------------------------------
     def migrate(self, name: str, to: Any) -> dict[str, Any]:

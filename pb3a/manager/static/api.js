@@ -71,6 +71,8 @@ export const api = {
   state: (name, path = "") =>
     request("GET", `/api/modules/${q(name)}/state${path ? `?path=${encodeURIComponent(path)}` : ""}`),
   setState: (name, fields) => request("POST", `/api/modules/${q(name)}/state`, fields),
+  keepOffer: (name) => request("GET", `/api/modules/${q(name)}/keep`),
+  keep: (name, fields, revision) => request("POST", `/api/modules/${q(name)}/keep`, {fields, revision}),
   migrate: (name, to) => request("POST", `/api/modules/${q(name)}/migrate`, {to}),
   swaps: (name) => request("GET", `/api/modules/${q(name)}/swaps`),
   swap: (name, cls) => request("POST", `/api/modules/${q(name)}/swap`, {class: cls}),

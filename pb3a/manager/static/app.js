@@ -226,6 +226,7 @@ class Manager {
     this.selected = name;
     this.schematic.select(name, [...this.selection]);
     $("swap-picker").hidden = true;
+    $("keep-picker").hidden = true;
     if (!name) {
       $("inspector-body").hidden = true;
       $("inspector-empty").hidden = false;
@@ -310,6 +311,12 @@ class Manager {
                           this.stats?.modules?.[name]?.status === "failed" ? "primary" : ""));
       actions.push(button("Swap class…", () => this.openSwaps(name)));
       actions.push(button("Reload code", () => this.reload(name)));
+      if (this.system.stoppable) {          // launched from the document: it can keep state
+        const keep = button("Keep in document", () => this.openKeep(name));
+        keep.id = "keep";
+        keep.title = "write the values tuned here into the document's state for this module";
+        actions.push(keep);
+      }
       actions.push(button("Remove", () => this.requestRemove(name), "danger"));
       ports = this.ports(name, (m) => m !== name);
     } else if (this.isEntry(name)) {
@@ -483,6 +490,67 @@ class Manager {
       );
     } catch (error) {
       picker.replaceChildren(h("p", {class: "problem"}, error.message));
+    }
+  }
+
+  /** "Keep in document": the module's settings whose live value differs from what the
+   * document gives it, each with a box (ticked: those tuned here; all when none was);
+   * "Keep" writes the ticked ones into the document (Save writes the file, after Stop). */
+  async openKeep(name) {
+    const picker = $("keep-picker");
+    $("swap-picker").hidden = true;
+    picker.hidden = false;
+    picker.replaceChildren(h("p", {class: "muted"}, "Comparing its live state with the document…"));
+    let offer;
+    try {
+      offer = await api.keepOffer(name);
+    } catch (error) {
+      picker.replaceChildren(h("p", {class: "problem"}, error.message));
+      return;
+    }
+    if (this.selected !== name) return;
+    const changes = Object.entries(offer.changes);
+    const anyTuned = changes.some(([, change]) => change.tuned);
+    const boxes = changes.map(([field, change]) => {
+      const box = h("input", {type: "checkbox", dataset: {keep: field}});
+      box.checked = anyTuned ? change.tuned : true;
+      return [field, change, box];
+    });
+    const head = h("div", {class: "picker-head"}, [h("strong", {}, "Keep in document"),
+      h("button", {type: "button", class: "icon ghost", "aria-label": "close", onclick: () => { picker.hidden = true; }}, "✕")]);
+    const readOuts = Object.keys(offer.not_kept);
+    const note = readOuts.length
+      ? h("p", {class: "muted", title: Object.entries(offer.not_kept).map(([f, why]) => `${f}: ${why}`).join("\n")},
+          `not kept (read-outs): ${readOuts.join(", ")}`) : null;
+    if (!boxes.length) {
+      picker.replaceChildren(head, h("p", {class: "muted"}, "Its settings are what the document gives it already."),
+                             ...[note].filter(Boolean));
+      return;
+    }
+    const go = h("button", {type: "button", class: "small primary keep-go", id: "keep-go"}, "Keep");
+    go.addEventListener("click", () => this.keep(name, boxes.filter(([, , box]) => box.checked).map(([field]) => field), offer.revision));
+    picker.replaceChildren(head,
+      h("div", {class: "keep-fields"}, boxes.map(([field, change, box]) => h("label", {}, [
+        box, h("span", {class: "mono"}, field),
+        h("span", {class: "mono was"}, JSON.stringify(change.document)), "→",
+        h("span", {class: "mono"}, JSON.stringify(change.live)),
+        change.tuned ? h("span", {class: "muted"}, "tuned here") : ""]))),
+      go, ...[note].filter(Boolean));
+  }
+
+  async keep(name, fields, revision) {
+    if (!fields.length) return this.toasts.error(new Error("tick the fields to keep"));
+    try {
+      const answer = await api.keep(name, fields, revision);
+      $("keep-picker").hidden = true;
+      const kept = Object.entries(answer.kept).map(([field, value]) => `${field} = ${JSON.stringify(value)}`);
+      this.toasts.show("ok", kept.length ? `Kept in the document: ${name}` : `Nothing to keep for ${name}`, {
+        lines: kept.length ? [kept.join(", "), "after Stop, Save writes the file"] : [],
+      });
+    } catch (error) {
+      // another page or a script changed the document meanwhile: offer again on the new one
+      if (error.status === 412) return this.openKeep(name);
+      this.toasts.error(error);
     }
   }
 
