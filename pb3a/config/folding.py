@@ -167,7 +167,7 @@ class _Folder:
             entry["restart"] = module.restart
         state = {}
         for key, value in module.state.items():
-            written = _toml_value(value)
+            written = toml_value(value)
             if written is None:
                 self.problems.append(
                     f"module {module.name}: its configured state {key!r} "
@@ -254,7 +254,7 @@ def _macro_table(definition: _Definition) -> dict[str, Any]:
     return table
 
 
-def _toml_value(value: Any) -> Any:
+def toml_value(value: Any) -> Any:
     """``value`` as TOML can hold it (tuples as lists, numpy scalars as Python's), or None
     when it cannot (None itself, arrays, objects): TOML has no null and no object."""
     if isinstance(value, np.generic):
@@ -262,10 +262,10 @@ def _toml_value(value: Any) -> Any:
     if type(value) in _TOML_SCALARS:  # (not a subclass: an IntEnum written as 3 would
         return value                  # read back as an int, which the module never had)
     if isinstance(value, (list, tuple)):
-        items = [_toml_value(item) for item in value]
+        items = [toml_value(item) for item in value]
         return None if any(item is None for item in items) else items
     if isinstance(value, dict) and all(isinstance(key, str) for key in value):
-        table = {key: _toml_value(item) for key, item in value.items()}
+        table = {key: toml_value(item) for key, item in value.items()}
         return None if any(item is None for item in table.values()) else table
     return None
 

@@ -24,11 +24,11 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from pb3a.config.folding import _toml_value
+from pb3a.config.folding import toml_value
 from pb3a.errors import ConfigError
 from pb3a.loading.references import class_ref
 from pb3a.manager.document import check_data
-from pb3a.model.module import _NOT_STATE
+from pb3a.model.module import NOT_STATE
 
 
 @dataclass
@@ -69,8 +69,8 @@ def proposal(data: dict[str, Any], source: str, name: str, running_cls: str,
         if why:
             found.not_kept[key] = why
             continue
-        now = _toml_value(value)
-        held = _toml_value(given.state[key] if key in given.state else getattr(given.cls, key))
+        now = toml_value(value)
+        held = toml_value(given.state[key] if key in given.state else getattr(given.cls, key))
         if _same(held, now):
             found.same.append(key)
         else:
@@ -119,10 +119,10 @@ def _not_a_setting(cls: type, key: str, value: Any) -> str:
     if default is _MISSING:
         return (f"not declared on {cls.__name__} (made while the module runs): a read-out, "
                 "not a setting")
-    if _toml_value(default) is None:
+    if toml_value(default) is None:
         return (f"its class's default ({type(default).__name__}) is no value TOML holds: a "
                 "read-out, not a setting")
-    if _toml_value(value) is None:
+    if toml_value(value) is None:
         return f"its value now ({type(value).__name__}) is no value TOML holds"
     return ""
 
@@ -135,7 +135,7 @@ def _class_default(cls: type, key: str) -> Any:
     for klass in cls.__mro__:
         if key in vars(klass):
             value = vars(klass)[key]
-            return _MISSING if isinstance(value, _NOT_STATE) else value
+            return _MISSING if isinstance(value, NOT_STATE) else value
     return _MISSING
 
 
