@@ -1262,6 +1262,12 @@ def test_a_gain_tuned_live_is_kept_in_the_document_and_shown_after_stop(
         page.wait_for_selector(".toast.ok >> text=Kept in the document: ctl", timeout=WAIT_MS)
         page.wait_for_selector("#keep-picker", state="hidden", timeout=WAIT_MS)
         assert document_of(manager)["system"]["modules"]["ctl"]["state"] == {"kp": 3.25}
+        # saved while it runs (Save was hidden until Stop): the file has the kept value
+        assert page.locator("#launch").is_hidden()
+        page.fill("#save-path", str(config))
+        page.click("#save")
+        page.wait_for_selector(f".toast.ok >> text=Saved {config}", timeout=WAIT_MS)
+        assert "state = { kp = 3.25 }" in config.read_text()
         page.click("#stop")
         page.click("dialog.confirm button[value='ok']")
         page.wait_for_function("document.querySelector('#mode').textContent === 'editing'",
@@ -1269,8 +1275,5 @@ def test_a_gain_tuned_live_is_kept_in_the_document_and_shown_after_stop(
         page.wait_for_function("document.querySelector(\"[data-field='kp'] input\")?.value "
                                "=== '3.25'", timeout=WAIT_MS)
         assert field_value(page, "ctl", "kp") == "3.25"
-        page.fill("#save-path", str(config))
-        page.click("#save")
-        page.wait_for_selector(f".toast.ok >> text=Saved {config}", timeout=WAIT_MS)
     text = config.read_text()
     assert "state = { kp = 3.25 }   # start gentle" in text and "# A controller" in text

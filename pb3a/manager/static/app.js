@@ -118,8 +118,12 @@ class Manager {
     $("mode").textContent = system.mode;
     $("mode").className = `mode-badge ${system.mode}`;
     $("address").textContent = system.address || "";
+    const launched = system.mode === "running" && system.stoppable;   // from the document
     $("document-actions").hidden = system.mode !== "editing";
-    $("running-actions").hidden = !(system.mode === "running" && system.stoppable);
+    $("launch-actions").hidden = system.mode !== "editing";
+    // (saved while it runs: the document as launched, with the values kept in it)
+    $("save-actions").hidden = !(system.mode === "editing" || launched);
+    $("running-actions").hidden = !launched;
     if (modeChanged) await this.enterMode(system.mode);
     if (this.document) this.browser.setMacros(this.document.macros());
     this.schematic.render(system, layout);
@@ -495,7 +499,7 @@ class Manager {
 
   /** "Keep in document": the module's settings whose live value differs from what the
    * document gives it, each with a box (ticked: those tuned here; all when none was);
-   * "Keep" writes the ticked ones into the document (Save writes the file, after Stop). */
+   * "Keep" writes the ticked ones into the document (Save writes the file). */
   async openKeep(name) {
     const picker = $("keep-picker");
     $("swap-picker").hidden = true;
@@ -545,7 +549,7 @@ class Manager {
       $("keep-picker").hidden = true;
       const kept = Object.entries(answer.kept).map(([field, value]) => `${field} = ${JSON.stringify(value)}`);
       this.toasts.show("ok", kept.length ? `Kept in the document: ${name}` : `Nothing to keep for ${name}`, {
-        lines: kept.length ? [kept.join(", "), "after Stop, Save writes the file"] : [],
+        lines: kept.length ? [kept.join(", "), "Save writes the file"] : [],
       });
     } catch (error) {
       // another page or a script changed the document meanwhile: offer again on the new one
@@ -755,7 +759,7 @@ class Manager {
   /** Stop the system launched from this page, after asking; the page edits its document again. */
   async stop() {
     if (!await confirmAction(`Stop ${this.system.name}?`, "Every module stops; what they " +
-                             "hold now is lost. The document stays as it was launched.", "Stop")) return;
+                             "hold now is lost. The document stays as it was launched, with what was kept in it.", "Stop")) return;
     try {
       await api.stop();
       this.toasts.show("ok", `${this.system.name} stopped`);
