@@ -122,8 +122,7 @@ def test_a_vehicle_is_an_arrival_once_and_delayed_by_the_time_it_lost_on_its_lan
     simulation._sumo = sumo
     simulation.layouts = {"J": JunctionLayout("J", (("in_0", "out_0"), ("in_1", "out_0")),
                                               ("GG",), ("in_0", "in_1"), ("out_0",))}
-    simulation._seen = {"in_0": set(), "in_1": set()}
-    simulation._loss_on_entry = {"in_0": {}, "in_1": {}}
+    simulation._entered = {"in_0": {}, "in_1": {}}
     simulation._lengths = {}
     sumo.vehicles = {"a": ("in_0", 20.0, 13.0, 5.0)}   # came in having lost 5 s elsewhere
     first = simulation.junction_detectors("J")

@@ -74,10 +74,10 @@ class Simulation:
                 junction, links, plan.greens,
                 tuple(dict.fromkeys(i for i, _ in links if i)),
                 tuple(dict.fromkeys(o for _, o in links if o)))
-        self._seen: dict[str, set[str]] = {lane: set() for layout in self.layouts.values()
-                                           for lane in layout.lanes_in}
-        # per incoming lane, each vehicle's time loss when it came onto the lane
-        self._loss_on_entry: dict[str, dict[str, float]] = {lane: {} for lane in self._seen}
+        # per incoming lane, the vehicles on it at the last reading, each with its time
+        # loss when it came onto the lane
+        self._entered: dict[str, dict[str, float]] = {
+            lane: {} for layout in self.layouts.values() for lane in layout.lanes_in}
         self._signals: dict[str, str] = {}
         self._lengths: dict[str, float] = {}
         self.departed = self.arrived = self.teleports = 0
@@ -119,7 +119,7 @@ class Simulation:
         arriving_in: dict[str, float] = {}
         # on any of its incoming lanes at the last reading: a vehicle that changed lanes
         # there is no new arrival at the junction
-        there_before = set().union(*(self._seen[name] for name in layout.lanes_in))
+        there_before = set().union(*(self._entered[name].keys() for name in layout.lanes_in))
         for name in layout.lanes_in:
             queues[name] = int(lane.getLastStepHaltingNumber(name))
             waiting[name] = float(lane.getWaitingTime(name))
@@ -129,7 +129,6 @@ class Simulation:
             if nearest is not None:
                 arriving_in[name] = nearest
             arrivals[name] = len(present - there_before)
-            self._seen[name] = present
         outgoing = {name: int(lane.getLastStepVehicleNumber(name)) for name in layout.lanes_out}
         return {"queues": queues, "waiting": waiting, "arrivals": arrivals,
                 "outgoing": outgoing, "vehicles": vehicles, "approaching": approaching,
@@ -143,7 +142,7 @@ class Simulation:
         length = self._lengths.get(lane)
         if length is None:
             length = self._lengths[lane] = float(self._sumo.lane.getLength(lane))
-        on_entry = self._loss_on_entry[lane]
+        on_entry = self._entered[lane]          # (left as the vehicles present now)
         for gone in on_entry.keys() - present:
             del on_entry[gone]
         due, nearest, delayed = 0, None, 0
