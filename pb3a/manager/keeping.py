@@ -28,7 +28,7 @@ from pb3a.config.folding import toml_value
 from pb3a.errors import ConfigError
 from pb3a.loading.references import class_ref
 from pb3a.manager.document import check_data
-from pb3a.model.module import NOT_STATE
+from pb3a.model.module import Module
 
 
 @dataclass
@@ -113,30 +113,18 @@ def _place(data: dict[str, Any], name: str) -> list[str]:
     return ["modules", instance, "state", rest] if rest else ["modules", instance, "state"]
 
 
-def _not_a_setting(cls: type, key: str, value: Any) -> str:
+def _not_a_setting(cls: type[Module], key: str, value: Any) -> str:
     """Why field ``key`` (now ``value``) is not one the document keeps; "" when it is."""
-    default = _class_default(cls, key)
-    if default is _MISSING:
+    if key not in cls.state_names():
         return (f"not declared on {cls.__name__} (made while the module runs): a read-out, "
                 "not a setting")
+    default = getattr(cls, key)
     if toml_value(default) is None:
         return (f"its class's default ({type(default).__name__}) is no value TOML holds: a "
                 "read-out, not a setting")
     if toml_value(value) is None:
         return f"its value now ({type(value).__name__}) is no value TOML holds"
     return ""
-
-
-_MISSING = object()
-
-
-def _class_default(cls: type, key: str) -> Any:
-    """The class attribute ``key`` as the class declares it (its MRO's), if it is state."""
-    for klass in cls.__mro__:
-        if key in vars(klass):
-            value = vars(klass)[key]
-            return _MISSING if isinstance(value, NOT_STATE) else value
-    return _MISSING
 
 
 def _same(a: Any, b: Any) -> bool:

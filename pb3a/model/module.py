@@ -22,10 +22,8 @@ RESTART_POLICIES = ("never", "fresh", "last-state")
 _FRAMEWORK_NAMES = frozenset({"period", "restart", "runtime", "displays"})
 # State defaults that cannot change, shared as they are (everything else is copied).
 _ATOMS = frozenset({int, float, complex, bool, str, bytes, type(None), frozenset, range})
-# What a class attribute that is not state is (ports, methods, classes, modules): the
-# manager's Keep in document asks it too.
-NOT_STATE = (_Port, types.FunctionType, classmethod, staticmethod, property, type,
-             types.ModuleType, types.MethodType, types.BuiltinFunctionType)
+_NOT_STATE = (_Port, types.FunctionType, classmethod, staticmethod, property, type,
+              types.ModuleType, types.MethodType, types.BuiltinFunctionType)
 
 
 class Module:
@@ -141,4 +139,4 @@ class Module:
 
 def _is_state(name: str, value: Any) -> bool:
     return (not name.startswith("_") and name not in _FRAMEWORK_NAMES
-            and name not in ("inputs", "outputs") and not isinstance(value, NOT_STATE))
+            and name not in ("inputs", "outputs") and not isinstance(value, _NOT_STATE))
