@@ -86,16 +86,17 @@ class Catalog:
         a changed module is imported afresh."""
         wanted = self._servers_with(servers)
         with self._lock:
+            found = [(root, _candidates(root)) for root in self._directories()]
             files: dict[str, tuple[Path, int, int]] = {}
-            for root in self._directories():          # (the first of a name is imported)
-                for name, path in _candidates(root):
+            for _, candidates in found:               # (the first of a name is imported)
+                for name, path in candidates:
                     files.setdefault(name, (path, *_stamp(path)))
             if self._found is None or self._servers != wanted or files != self._files:
                 for name, seen in self._files.items():
                     if files.get(name) != seen and name in sys.modules:
                         forget_module(name)
                 self._classes.clear()
-                self._found = self._scan(wanted)
+                self._found = self._scan(wanted, found)
                 self._servers, self._files = wanted, files
             return self._found
 
@@ -143,11 +144,14 @@ class Catalog:
         named = [s for s in named if isinstance(s, str)] if isinstance(named, list) else []
         return tuple(dict.fromkeys([*named, *servers]))
 
-    def _scan(self, servers: tuple[str, ...]) -> dict[str, Any]:
+    def _scan(self, servers: tuple[str, ...],
+              found: list[tuple[Path, list[tuple[str, Path]]]]) -> dict[str, Any]:
+        """The catalog of the candidate files ``found`` under each root and of the
+        module servers ``servers``."""
         problems: list[str] = []
         modules: dict[str, str] = {}            # dotted name -> origin
-        for root in self._directories():
-            names = _module_names(root, problems)
+        for root, candidates in found:
+            names = _module_names(candidates, problems)
             if names and str(root) not in sys.path:
                 # imported by the names found there, as `pb3a run` imports a file's
                 # classes: the document's directory goes on the import path
@@ -225,11 +229,11 @@ def describe_class(cls: type[Module], origin: str) -> dict[str, Any]:
             "origin": origin}
 
 
-def _module_names(root: Path, problems: list[str]) -> list[str]:
-    """The dotted names of the modules under ``root`` that define module classes and
-    nothing else at their top level."""
+def _module_names(candidates: list[tuple[str, Path]], problems: list[str]) -> list[str]:
+    """The dotted names of the ``candidates`` (``_candidates``' files under a root) that
+    define module classes and nothing else at their top level."""
     names = []
-    for name, path in _candidates(root):
+    for name, path in candidates:
         try:
             if path.stat().st_size > MOST_FILE_BYTES:
                 continue
