@@ -906,3 +906,55 @@ def test_a_class_file_that_raises_only_in_the_forkserver_fails_its_module_naming
     assert code == 1, stderr
     assert "RuntimeError: this file needs CLASSES_IMPORTABLE" in stderr.splitlines()[-1]
     assert took < 30
+
+
+def test_two_starts_that_meet_the_same_dying_preloading_forkserver_both_retry(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """A module's worker and a spare can start at once from a forkserver that dies
+    preloading the configuration. The first to see it die stopped the preload and
+    retried; the second then found the preload already stopped and failed its start
+    with "the forkserver ... ended as it started" (seen once in six suite runs). Both
+    retry now, and the preload is stopped (and said) once."""
+    from pb3a.node import workers
+
+    both_started = threading.Barrier(2, timeout=10)
+    first_retried = threading.Event()
+    calls: list[str] = []
+    lock = threading.Lock()
+
+    def start(process: object, timeout: float) -> None:
+        with lock:
+            calls.append(str(process))
+            attempt = len(calls)
+        if attempt <= 2:                       # both meet the forkserver as it dies
+            both_started.wait()
+            if attempt == 2:                   # ... and this one hears of it late
+                assert first_retried.wait(10)
+            raise EOFError
+        first_retried.set()                    # a retry, from a new forkserver
+
+    monkeypatch.setattr(workers, "start_without_main", start)
+    workers._preload(("a_module_that_raises_as_it_is_imported",))
+    failures: list[BaseException] = []
+
+    def start_one(name: str) -> None:
+        try:
+            workers._start_forkserver_child(name)
+        except BaseException as exc:           # asserted below, in the test's thread
+            failures.append(exc)
+
+    try:
+        with caplog.at_level(logging.WARNING, logger="pb3a.executor"):
+            threads = [threading.Thread(target=start_one, args=(name,))
+                       for name in ("module", "spare")]
+            for thread in threads:
+                thread.start()
+            for thread in threads:
+                thread.join(15)
+    finally:
+        workers._preload(())
+    assert not failures
+    assert len(calls) == 4
+    assert not workers._preloading_configuration.is_set()
+    assert sum("preloaded the configuration" in record.message
+               for record in caplog.records) == 1

@@ -62,22 +62,28 @@ def _start_forkserver_child(process: Any) -> None:
     imported (its traceback is on stderr): the start is tried once more from a
     forkserver without those, and the worker's own import of the module then fails the
     module's start with the module's error."""
+    # Read before the start: several starts (a module's, a spare's) can meet the same
+    # dying forkserver, and the first to see it die stops the preload for all of them.
+    preloading = _preloading_configuration.is_set()
     try:
         start_without_main(process, timeout=SPAWN_TIMEOUT_S)
     except EOFError:
-        if not _preloading_configuration.is_set():
+        if not preloading:
             raise RuntimeFailure("the forkserver that starts this node's workers ended as "
                                  "it started; its error, if it had one, is on stderr") from None
-        log.warning("the forkserver ended as it preloaded the configuration's modules "
-                    "(one raised as it was imported? see above); workers import them "
-                    "themselves from now on")
-        _preload(())
+        with _preload_lock:
+            if _preloading_configuration.is_set():
+                log.warning("the forkserver ended as it preloaded the configuration's "
+                            "modules (one raised as it was imported? see above); workers "
+                            "import them themselves from now on")
+                _preload(())
         start_without_main(process, timeout=SPAWN_TIMEOUT_S)
 
 
 # Set while the forkserver (the next to start, if none runs) preloads a configuration's
 # modules: one process has one forkserver, whichever pool set it.
 _preloading_configuration = threading.Event()
+_preload_lock = threading.Lock()
 
 
 def _preload(configuration: tuple[str, ...]) -> None:
