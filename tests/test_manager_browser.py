@@ -882,6 +882,26 @@ def test_inf_typed_into_a_float_field_is_set_and_an_int_field_refuses_it_by_name
         assert manager.api("GET", "/api/modules/scale/state")["fields"]["gain"]["text"] == "-inf"
 
 
+def test_a_list_edited_as_json_keeps_its_infinities(tmp_path: Path) -> None:
+    """Edit as JSON showed inf and nan as null (JSON has no word for them) and Apply
+    wrote the nulls into the document. The text shows them as TOML writes them, bare
+    words that Apply reads back, and a word inside a string stays a string."""
+    config = tmp_path / "held.toml"
+    config.write_text('name = "held"\n\n[modules.held]\nclass = "manager_modules:Holder"\n'
+                      'state = { waypoints = [[0.0, inf], [1.0, 2.0]] }\n')
+    with editor(config, 1) as (manager, page):
+        page.click("[data-module='held'] .module-title")
+        page.click("[data-field='waypoints'] button:has-text('Edit as JSON')")
+        area = page.locator("[data-field='waypoints'] textarea")
+        assert " ".join(area.input_value().split()) == "[ [ 0, inf ], [ 1, 2 ] ]"
+        area.fill('[[0.0, -inf], [1.0, nan], [2.0, "inf"]]')
+        page.click("[data-field='waypoints'] button:has-text('Apply')")
+        page.wait_for_selector("[data-field='waypoints'] textarea", state="detached",
+                               timeout=WAIT_MS)
+        held = document_of(manager)["system"]["modules"]["held"]["state"]["waypoints"]
+        assert held == [[0.0, {"$float": "-inf"}], [1.0, {"$float": "nan"}], [2.0, "inf"]]
+
+
 def test_save_asks_before_it_overwrites_a_file_edited_on_disk(tmp_path: Path) -> None:
     """Save overwrote a file edited in another editor since the page opened it, without
     a word. It asks first: Cancel leaves the file as it is, Overwrite writes it."""

@@ -30,6 +30,28 @@ export function fromJson(text) {
   });
 }
 
+// A text shown to a person writes such a float as TOML does, a bare word. This mark
+// stands for one while JSON.stringify writes the text; it begins with a NUL, which
+// nobody types
+const WORD_MARK = "\u0000pb3a-float:";
+
+/** `value` as JSON text for a person to read or edit, a float that is not finite as
+ * TOML writes it (inf, -inf, nan): JSON.stringify wrote it null, and an edited list
+ * of them went back as nulls. `fromEditableJson` reads it back. */
+export function toEditableJson(value, indent) {
+  const text = JSON.stringify(value, (key, item) => (typeof item === "number" && !Number.isFinite(item)
+    ? WORD_MARK + (Number.isNaN(item) ? "nan" : item > 0 ? "inf" : "-inf") : item), indent);
+  return text === undefined ? text
+    : text.replace(/"\\u0000pb3a-float:(-?inf|nan)"/g, (mark, word) => word);
+}
+
+/** JSON text, with inf, -inf and nan as bare words (outside strings), as values. */
+export function fromEditableJson(text) {
+  // strings are matched whole first, so a word inside one is left as it is
+  return fromJson(text.replace(/"(?:[^"\\]|\\.)*"|(-?\binf\b|\bnan\b)/g,
+    (match, word) => (word ? toJson(word === "nan" ? NaN : word === "inf" ? Infinity : -Infinity) : match)));
+}
+
 const TIMEOUT_MS = 30000;   // a migration or a launch may take seconds, never this long
 
 async function request(method, path, body) {

@@ -2,7 +2,7 @@
 // with the State Editor beside it. It wires the views to the API and the live feed;
 // each view lives in its own module.
 
-import {api, ApiError} from "./api.js";
+import {api, ApiError, toEditableJson, toJson} from "./api.js";
 import {confirmAction} from "./confirm.js";
 import {h} from "./dom.js";
 import {EditedDocument, entryOf} from "./document.js";
@@ -411,7 +411,7 @@ class Manager {
     const entry = this.isEntry(macro) ? this.document.system.modules[macro] : null;
     const nodes = [...new Set(modules.map((m) => this.stats?.modules?.[m]?.node ?? this.system.modules[m]?.node))];
     // redrawn only when it changed: a refresh must not take the focus from its buttons
-    const drawn = JSON.stringify([macro, modules, nodes, entry]);
+    const drawn = toJson([macro, modules, nodes, entry]);
     if (drawn === this.macroDrawn) return;
     this.macroDrawn = drawn;
     $("inspector-meta").replaceChildren(...[
@@ -428,7 +428,7 @@ class Manager {
       extra.push(h("h3", {}, "State it sets on them"));
       extra.push(overrides.length ? h("ul", {class: "overrides"}, overrides.flatMap(([key, fields]) =>
         Object.entries(fields || {}).map(([field, value]) => h("li", {dataset: {override: `${key}.${field}`}}, [
-          h("span", {class: "mono"}, `${key}.${field} = ${JSON.stringify(value)}`),
+          h("span", {class: "mono"}, `${key}.${field} = ${toEditableJson(value)}`),
           h("button", {type: "button", class: "icon ghost", title: "drop this override",
                        "aria-label": `drop ${key}.${field}`,
                        onclick: () => this.editDocument(() => this.document.clearOverride(macro, key, field))}, "✕"),
@@ -536,8 +536,8 @@ class Manager {
     picker.replaceChildren(head,
       h("div", {class: "keep-fields"}, boxes.map(([field, change, box]) => h("label", {}, [
         box, h("span", {class: "mono"}, field),
-        h("span", {class: "mono was"}, JSON.stringify(change.document)), "→",
-        h("span", {class: "mono"}, JSON.stringify(change.live)),
+        h("span", {class: "mono was"}, toEditableJson(change.document)), "→",
+        h("span", {class: "mono"}, toEditableJson(change.live)),
         change.tuned ? h("span", {class: "muted"}, "tuned here") : ""]))),
       go, ...[note].filter(Boolean));
   }
@@ -547,7 +547,7 @@ class Manager {
     try {
       const answer = await api.keep(name, fields, revision);
       $("keep-picker").hidden = true;
-      const kept = Object.entries(answer.kept).map(([field, value]) => `${field} = ${JSON.stringify(value)}`);
+      const kept = Object.entries(answer.kept).map(([field, value]) => `${field} = ${toEditableJson(value)}`);
       this.toasts.show("ok", kept.length ? `Kept in the document: ${name}` : `Nothing to keep for ${name}`, {
         lines: kept.length ? [kept.join(", "), "Save writes the file"] : [],
       });

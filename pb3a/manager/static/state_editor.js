@@ -4,6 +4,7 @@
 // with shape, dtype and summary (small ones editable, 2-D ones as an image), and the
 // custom displays the module declares.
 
+import {fromEditableJson, toEditableJson} from "./api.js";
 import {h} from "./dom.js";
 import * as fmt from "./format.js";
 import {LiveImage, makeDisplay} from "./displays.js";
@@ -143,7 +144,7 @@ export class StateEditor {
       const value = plainValue(latest);
       if (value === undefined) return;
       editing = true;
-      const area = h("textarea", {rows: 6, spellcheck: "false"}, JSON.stringify(value, null, 1));
+      const area = h("textarea", {rows: 6, spellcheck: "false"}, toEditableJson(value, 1));
       const apply = h("button", {class: "small primary", type: "button"}, "Apply");
       const cancel = h("button", {class: "small ghost", type: "button"}, "Cancel");
       const close = () => { editing = false; box.hidden = true; box.replaceChildren(); };
@@ -151,7 +152,7 @@ export class StateEditor {
       apply.addEventListener("click", async () => {
         let parsed;
         try {
-          parsed = JSON.parse(area.value);
+          parsed = fromEditableJson(area.value);
         } catch (error) {
           this.actions.error(new Error(`${name}: not valid JSON (${error.message})`), true);
           return;
@@ -398,6 +399,9 @@ function leafText(view) {
 
 /** The JSON value of a view, when the view holds all of it (else undefined). */
 function plainValue(view) {
+  if (view.type === "float" && view.value === null && view.text) {          // inf, nan
+    return {inf: Infinity, "-inf": -Infinity, nan: NaN}[view.text];
+  }
   if (SCALARS.has(view.type)) return view.type === "none" ? null : view.value;
   if (view.type === "ndarray") return Array.isArray(view.value) || "value" in view ? view.value : undefined;
   if (!CONTAINERS.has(view.type) || view.truncated || view.more || !view.items) return undefined;
