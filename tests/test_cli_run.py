@@ -69,7 +69,9 @@ def test_run_for_seconds_shows_the_table_and_stops_cleanly(tmp_path: Path) -> No
                                  "the terminal closed"])
 def test_a_signal_stops_everything_and_leaves_nothing_behind(tmp_path: Path, how: str) -> None:
     """The group's SIGTERM is what timeout, kill -- -PGID and systemd send: it killed
-    the workers' forkserver too, and every module was then reported failed. A closing
+    the workers' forkserver too, and every module was then reported failed. It also
+    stopped the workers before the launcher asked for its last table, which read zeros
+    with a warning per worker; the workers tell their figures as they stop. A closing
     terminal (an ssh session cut) sends the group SIGHUP: it killed the launcher at once,
     a segment left behind, and the resource tracker, whose successor printed tracebacks."""
     proc = _in_its_own_group("run", str(PIPELINE), cwd=tmp_path)
@@ -78,6 +80,8 @@ def test_a_signal_stops_everything_and_leaves_nothing_behind(tmp_path: Path, how
         launcher = psutil.Process(proc.pid)
         workers = eventually(lambda: _workers_of(launcher), what="worker processes")
         assert live_segments(proc.pid)
+        while not proc.stdout.readline().startswith("tick.out -> scale.x"):
+            pass                                          # a first table: values went
         if how == "SIGTERM":
             proc.send_signal(signal.SIGTERM)
         elif how == "Ctrl-C":     # a terminal's Ctrl-C: SIGINT to the whole process group
@@ -90,6 +94,11 @@ def test_a_signal_stops_everything_and_leaves_nothing_behind(tmp_path: Path, how
     assert proc.returncode == 0, err
     assert "stopped cleanly" in out
     assert "Traceback" not in err and "died" not in err and "failed" not in err
+    assert "WARNING" not in err, err
+    last_table = out.rpartition("module  ")[2].splitlines()
+    (tick,) = [line.split() for line in last_table if line.startswith("tick ")]
+    (link,) = [line.split() for line in last_table if line.startswith("tick.out -> scale.x")]
+    assert int(tick[4]) > 0 and int(link[6]) > 0, out        # its steps, the values sent
     assert not live_segments(proc.pid)
     assert not [p for p in workers if alive(p)]
 

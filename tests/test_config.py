@@ -98,11 +98,13 @@ def parts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
     folder = tmp_path_factory.mktemp("parts")
     (folder / "parts_cfg.py").write_text(PARTS)
     (folder / "parts_boom.py").write_text("raise RuntimeError('boom')\n")
+    (folder / "parts_needs.py").write_text("import math\nimport no_such_dependency\n")
     sys.path.insert(0, str(folder))
     yield
     sys.path.remove(str(folder))
     sys.modules.pop("parts_cfg", None)
     sys.modules.pop("parts_boom", None)
+    sys.modules.pop("parts_needs", None)
 
 
 def write(tmp_path: Path, text: str, name: str = "sys.toml") -> Path:
@@ -147,8 +149,16 @@ def test_resolve_class_errors_say_what_to_change() -> None:
         resolve_class("no_such_pkg.mod:Thing")
     with pytest.raises(TypeError, match="not a class"):
         resolve_class("parts_cfg:helper")
-    with pytest.raises(ImportError, match=r"importing module 'parts_boom'.*RuntimeError: boom"):
+    with pytest.raises(ImportError, match=r"importing module 'parts_boom' for 'parts_boom:"
+                                          r"Thing' failed at .*parts_boom\.py, line 1: "
+                                          r"RuntimeError: boom"):
         resolve_class("parts_boom:Thing")
+    # found, but an import of its own failed: that import is named, not the module path
+    with pytest.raises(ImportError, match=r"importing module 'parts_needs' for 'parts_needs:"
+                                          r"Thing' failed at .*parts_needs\.py, line 2: No "
+                                          r"module named 'no_such_dependency'; install "
+                                          r"'no_such_dependency' or correct that import"):
+        resolve_class("parts_needs:Thing")
 
 
 # -- valid descriptions -------------------------------------------------------

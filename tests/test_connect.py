@@ -71,7 +71,7 @@ def test_a_connection_offers_what_launch_offers_with_the_same_errors() -> None:
         assert set(far.nodes()) == {"a", "b"}
         kinds = [event.kind for event in far.events()]
         assert kinds == ["module_swapped", "module_added", "link_added", "module_restarted",
-                         "module_removed"]
+                         "link_removed", "module_removed"]      # its link goes with it
         with pytest.raises(ModuleNotFound, match="no module 'ghost'"):
             far.state("ghost")
         with pytest.raises(ConfigError, match="no node 'mars'") as caught:

@@ -958,3 +958,46 @@ def test_two_starts_that_meet_the_same_dying_preloading_forkserver_both_retry(
     assert not workers._preloading_configuration.is_set()
     assert sum("preloaded the configuration" in record.message
                for record in caplog.records) == 1
+
+
+def test_a_script_that_never_closes_its_system_stops_it_as_it_exits(tmp_path: Path) -> None:
+    """``run = System(...).launch()`` without ``with`` or ``close()``: at the script's
+    end the workers went with the interpreter, and the resource tracker warned of leaked
+    shared memory. The system is stopped in order as the script exits: its modules'
+    teardowns run, and nothing is left."""
+    (tmp_path / "never_closed.py").write_text(textwrap.dedent("""
+        import os
+        from pb3a import Input, Module, Output, System
+        from pb3a.transport.shm import live_segments
+
+        class Ticks(Module):
+            out = Output(int)
+            period = 0.01
+
+            def step(self):
+                self.out.write(1)
+
+        class Counts(Module):
+            x = Input(int)
+
+            def on_input(self, port):
+                port.read()
+
+            def teardown(self):
+                print("torn down", flush=True)
+
+        if __name__ == "__main__":
+            system = System("never-closed").add("ticks", Ticks).add("counts", Counts)
+            run = system.link("ticks.out", "counts.x").launch(timeout=10)
+            assert live_segments(os.getpid())
+            print("launched", os.getpid(), run.stats().modules["counts"].pid, flush=True)
+        """))
+    done = subprocess.run([sys.executable, str(tmp_path / "never_closed.py")], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 0, done.stderr
+    assert "leaked" not in done.stderr and "Traceback" not in done.stderr, done.stderr
+    launched, torn_down = done.stdout.splitlines()
+    assert torn_down == "torn down"
+    launcher, worker = (int(pid) for pid in launched.split()[1:])
+    eventually(lambda: not alive(worker), what="the worker's end")
+    assert not live_segments(launcher)

@@ -15,7 +15,7 @@ import pytest
 from conftest import eventually
 from sample_modules import Chatty, Faulty
 
-from pb3a import Module, System
+from pb3a import Module, ModuleNotFound, System
 from pb3a.cli.main import main
 from pb3a.daemons.node_controller import Limits, NodeController
 from pb3a.transport.auth import ClusterKey
@@ -125,6 +125,13 @@ def test_logs_come_from_every_node_and_follow_one_module(capsys) -> None:
             shown = capsys.readouterr().out
             assert "module 'near_fault' raised in step" in shown and "far_fault" not in shown
             assert {e.module for e in run.logs()} >= {"near_fault", "far_fault"}
+            # a name no module has read nothing, for good: it is refused, naming them
+            assert main(["logs", run.listen(), "--module", "near_falt"]) == 1
+            assert "no module 'near_falt'" in capsys.readouterr().err
+            with pytest.raises(ModuleNotFound, match="modules: near_fault, far_fault"):
+                run.logs(module="near_falt")
+            run.remove("far_fault")           # removed: what it logged is still read
+            assert run.logs(module="far_fault")
     finally:
         far.close()
 

@@ -28,7 +28,14 @@ from typing import TYPE_CHECKING, Any
 from pb3a.config import checks
 from pb3a.config.folding import fold
 from pb3a.config.plan import FlatLink, FlatModule
-from pb3a.errors import ConfigError, PB3AError, RuntimeFailure, SystemStopped, bounded_wait
+from pb3a.errors import (
+    ConfigError,
+    ModuleNotFound,
+    PB3AError,
+    RuntimeFailure,
+    SystemStopped,
+    bounded_wait,
+)
 from pb3a.launch.migration import MigrationReport, migrate
 from pb3a.loading.references import resolve_class
 from pb3a.loading.served import forget, reload_problem
@@ -303,7 +310,11 @@ class Operations:
 
     def remove(self, name: str, *, timeout: float | None = None) -> None:
         with self._held(f"remove {name}", timeout):
+            links = [key for key, link in self.launcher.links.items()
+                     if name in (link.src, link.dst)]
             self.launcher.remove_module(name)
+        for key in links:       # (a reader of the events kept a link to nowhere)
+            self.event_log.record("link_removed", key)
         self.event_log.record("module_removed", name)
 
     def restart(self, name: str, *, timeout: float | None = None) -> None:
@@ -423,6 +434,13 @@ class Operations:
 
     def logs(self, since: int = 0, *, module: str | None = None,
              timeout: float | None = 0.0) -> list[LogEntry]:
+        launcher = self.launcher
+        if (module is not None and module not in launcher.specs
+                and not launcher.logbook.since(0, 0.0, module)):
+            # a misspelt name read nothing, and a follower waited for it for good (one
+            # removed since is still read: its entries are there)
+            raise ModuleNotFound(f"no module {module!r} in system {launcher.plan.name!r} "
+                                 f"nor in its log; {launcher.which_modules(module)}")
         return self._history("logs", lambda wait: self.launcher.logbook.since(
             since, wait, module), timeout)
 

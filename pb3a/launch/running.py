@@ -7,6 +7,7 @@ everything. Its live operations are ``SystemHandle``'s, applied here directly.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import logging
 import sys
@@ -38,6 +39,10 @@ def launch(plan: Plan, **options: Any) -> Running:
     _refuse_inside_own_process(plan.name)
     running = Running(plan, **options)
     running.start()
+    # A script that never closes it (no `with`, no `close()`) stops it as it exits, in
+    # order: left to the interpreter's exit, the workers went with their segments and
+    # the resource tracker warned of leaked shared memory.
+    atexit.register(running.close)
     return running
 
 
@@ -117,6 +122,7 @@ class Running(SystemHandle):
         """Stop every module (reverse start order) and worker; free every segment."""
         if not self._stopped.is_set():
             self._stopped.set()
+            atexit.unregister(self.close)
             try:
                 self._launcher.shutdown(timeout)
             finally:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import difflib
 import importlib
 import re
+import traceback
 
 from pb3a.loading import served
 
@@ -44,12 +45,18 @@ def resolve_class(ref: str | type) -> type:
     try:
         module = importlib.import_module(module_name)
     except ImportError as exc:
+        missing = exc.name or ""
+        if missing and not (module_name == missing or module_name.startswith(f"{missing}.")):
+            # found, but an import of its own failed: the path is not what to check
+            raise ImportError(f"importing module {module_name!r} for {ref!r} failed"
+                              f"{_where_it_failed(exc)}: {exc}; install {missing!r} or "
+                              f"correct that import{served.server_trouble()}") from exc
         raise ImportError(f"cannot import module {module_name!r} for {ref!r}: {exc}; "
                           "check the module path and that it is installed or on sys.path"
                           f"{served.server_trouble()}") from exc
     except Exception as exc:  # a module that fails while importing: say which and why
-        raise ImportError(f"importing module {module_name!r} for {ref!r} failed: "
-                          f"{type(exc).__name__}: {exc}") from exc
+        raise ImportError(f"importing module {module_name!r} for {ref!r} failed"
+                          f"{_where_it_failed(exc)}: {type(exc).__name__}: {exc}") from exc
     target: object = module
     where = f"module {module_name!r}"
     for part in attr_path.split("."):
@@ -60,6 +67,14 @@ def resolve_class(ref: str | type) -> type:
     if not isinstance(target, type):
         raise TypeError(f"{ref!r} is a {type(target).__name__}, not a class")
     return target
+
+
+def _where_it_failed(exc: BaseException) -> str:
+    """`` at FILE, line N``: the line of the user's code the import failed on (the
+    deepest frame outside the import machinery), or nothing if there is none."""
+    frames = [frame for frame in traceback.extract_tb(exc.__traceback__)
+              if not frame.filename.startswith("<frozen ")]
+    return f" at {frames[-1].filename}, line {frames[-1].lineno}" if frames else ""
 
 
 def _suggest(namespace: object, name: str) -> str:

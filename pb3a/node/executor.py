@@ -179,7 +179,10 @@ class Executor:
         return self.call(self.modules[name].worker, op, timeout, name=name, **args)
 
     def _alive(self, key: str) -> bool:
-        return self.workers[key].alive
+        """Whether worker ``key`` takes requests: it runs, and has not begun to stop (a
+        worker that did, on a SIGTERM, has told its last figures and reads no more)."""
+        handle = self.workers[key]
+        return handle.alive and handle.last_figures is None
 
     # -- placement -------------------------------------------------------------
     def place(self, spec: FlatModule) -> str:
@@ -573,7 +576,7 @@ class Executor:
         fill, its remote links' losses, its CPU (since the last report) and memory, and
         how many spare workers it has booted."""
         asked = {key: handle for key, handle in list(self.workers.handles.items())
-                 if handle.alive}
+                 if handle.alive and handle.last_figures is None}   # (told: it stops)
         futures = {key: self.workers.submit(key, "stats") for key in asked}
         reports: dict[str, Any] = {}
         deadline = time.monotonic() + REPORT_TIMEOUT    # one for all: they answer at once
@@ -583,6 +586,9 @@ class Executor:
                                                    max(0.0, deadline - time.monotonic()))
         silent = {key: handle.pid for key, handle in asked.items()
                   if key not in reports and handle.alive}
+        for key, handle in list(self.workers.handles.items()):      # stopped, or stopping
+            if key not in reports and handle.last_figures:
+                reports[key] = {**handle.last_figures, "pid": None}
         modules = {name: self._module_stats(record, reports.get(record.worker),
                                             silent.get(record.worker))
                    for name, record in self.modules.items()}
@@ -626,7 +632,9 @@ class Executor:
 
     # -- what workers tell ---------------------------------------------------------
     def _notice(self, handle: WorkerHandle, kind: str, args: dict[str, Any]) -> None:
-        if kind == "checkpoint":
+        if kind == "figures":
+            handle.last_figures = args
+        elif kind == "checkpoint":
             record = self.modules.get(args["name"])
             if record is not None:
                 record.checkpoint = args["state"]
@@ -689,8 +697,12 @@ class Executor:
                         "its lease while its executor ran", handle.key, handle.pid,
                         ", ".join(handle.modules))
         elif code in (0, LEASE_LAPSED):   # stopped on purpose (SIGTERM), or fenced: not a crash
-            log.warning("worker %s (pid %s) stopped; its modules %s are stopped", handle.key,
-                        handle.pid, ", ".join(handle.modules))
+            # A SIGTERM is someone's stop, most often of everything: sent to the whole
+            # process group (`timeout`, `kill -- -PGID`), it ends the launcher too, and a
+            # warning per worker was noise on a clean stop. The table shows them stopped.
+            log.log(logging.INFO if code == 0 else logging.WARNING,
+                    "worker %s (pid %s) stopped; its modules %s are stopped", handle.key,
+                    handle.pid, ", ".join(handle.modules))
             for name in handle.modules:
                 self.modules[name].status = "stopped"
             return

@@ -107,6 +107,8 @@ class WorkerHandle:
     modules: list[str] = field(default_factory=list)
     alive: bool = False
     pid: int = 0
+    # what the worker's modules had done when it stopped (its stats), told as it stopped
+    last_figures: dict[str, Any] | None = None
     send_lock: threading.Lock = field(default_factory=threading.Lock)
     # held to read the pipe and to close it: a worker stopped by another thread must
     # not have its pipe closed under the monitor reading it
@@ -207,6 +209,7 @@ class WorkerPool:
         # The doorbell is the worker's first read: send it before anyone can send a request.
         reduction.send_handle(parent, handle.bell, process.pid)
         handle.process, handle.conn, handle.alive, handle.pid = watched, parent, True, process.pid
+        handle.last_figures = None
         self._poke()
 
     def ensure(self, key: str, node: str) -> WorkerHandle:

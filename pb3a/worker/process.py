@@ -257,6 +257,13 @@ class Worker:
         # modules must be still before their failed-over copies start elsewhere).
         for actor in list(self.actors.values()):        # (a removal may run meanwhile)
             actor.halt()
+        # Their figures as they stopped, which the executor shows for them once this
+        # process is gone: a SIGTERM to the whole process group stops the workers before
+        # the launcher asks for its last table, which then read zeros.
+        try:
+            self.send((None, "figures", self.op_stats()))
+        except Exception:                    # (a removal changed the modules meanwhile)
+            log.debug("the worker's last figures could not be taken", exc_info=True)
         for name in reversed(list(self.actors)):
             self.actors[name].stop(timeout=1.0)
         self.pool.close(timeout=1.0)
