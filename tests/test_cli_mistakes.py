@@ -28,6 +28,7 @@ def _mistakes(tmp: Path) -> list[tuple[list[str], int, str]]:
                                   '[modules.t]\nclass = "examples.pipeline:Ticker"\n'
                                   'node = "far"\n')
     (tmp / "latin1.toml").write_bytes(b'name = "\xff\xfe"\n')
+    (tmp / "script.py").write_text("print('a script')\n")
     (tmp / "nowhere.toml").write_text(
         '[nodes.far]\naddress = "tcp://no-such-host.invalid:7100"\n'
         '[modules.t]\nclass = "examples.pipeline:Ticker"\nnode = "far"\n')
@@ -43,11 +44,17 @@ def _mistakes(tmp: Path) -> list[tuple[list[str], int, str]]:
          "no address is known for host 'no-such-host.invalid'"),
         (["run", pipeline, "--for", "1", "--listen", "nonsense"], 1,
          "is not an address to listen on"),
-        (["status", "tcp://a b:5"], 1, "pb3a status: cannot reach tcp://a b:5"),
+        (["status", "tcp://a b:5"], 1, "pb3a status: no address is known for host 'a b'"),
         (["status", f"tcp://127.0.0.1:{busy}", "--timeout", "0.2"], 1,
          "no PB3A launcher answered"),
         (["check", missing], 1, "cannot read"),
         (["check", str(tmp / "broken.toml")], 1, "not valid TOML"),
+        # a script given where a configuration goes: it said "not valid TOML"
+        (["run", str(tmp / "script.py")], 1,
+         "a Python script, not a configuration (a TOML file): run it with python"),
+        # a misspelt host: it waited 5 s, then said that no launcher answered
+        (["status", "tcp://no-such-host.invalid:7000"], 1,
+         "no address is known for host 'no-such-host.invalid'"),
         (["graph", missing], 1, "cannot read"),
         (["run", missing], 1, "cannot read"),
         (["run", str(tmp / "far.toml"), "--for", "1"], 1,

@@ -142,6 +142,9 @@ def load_toml(path: str | Path) -> SystemSpec:
     TOML; every other mistake is kept for ``validate``/``build_plan`` to report.
     """
     path = Path(path)
+    if path.suffix == ".py":             # a script where a configuration was asked for
+        raise ConfigError([f"{path}: a Python script, not a configuration (a TOML file): "
+                           f"run it with python {path}"])
     with path.open("rb") as file:
         try:
             data = tomllib.load(file)

@@ -7,11 +7,13 @@ Closing it closes the connection only: the system goes on.
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.launch.handle import SystemHandle
 from pb3a.launch.operations import DEFAULT_TIMEOUT
+from pb3a.transport.addresses import unknown_host
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 
@@ -39,10 +41,14 @@ class Connection(SystemHandle):
         if not address.startswith("tcp://"):
             raise ValueError(f"a launcher's address looks like tcp://HOST:PORT (pb3a run "
                              f"prints it), got {address!r}")
+        deadline = time.monotonic() + timeout
+        unknown = unknown_host(address, timeout)
+        if unknown is not None:
+            raise RuntimeFailure(f"{unknown}: check the address (pb3a run prints it)")
         self.address = address
         self._client = ControlClient(_key(key), address)
         try:
-            described = self._client.call("describe", timeout)
+            described = self._client.call("describe", max(0.0, deadline - time.monotonic()))
         except RuntimeTimeout:
             self.close()
             raise RuntimeTimeout(f"no PB3A launcher answered at {address} within {timeout:g} s: "

@@ -14,6 +14,7 @@ import errno
 import itertools
 import logging
 import socket
+import threading
 import time
 
 import zmq
@@ -53,6 +54,28 @@ def host_of(address: str) -> str:
     """The host of ``[tcp://]HOST:PORT`` as written (an IPv6 host in its brackets, as
     an address is composed again from it); ``.strip("[]")`` for the bare host."""
     return address.removeprefix("tcp://").rpartition(":")[0]
+
+
+def unknown_host(address: str, timeout: float) -> str | None:
+    """Why the host of ``address`` ("tcp://HOST:PORT") has no address, if the resolver
+    says so within ``timeout``; None if it has one, or the resolver did not answer in
+    time (the connection's own deadline then tells). A misspelt host was waited for to
+    the end of that deadline, and named only as "no answer"."""
+    host = host_of(address).strip("[]")
+    answer: list[str | None] = []
+
+    def resolve() -> None:
+        try:
+            socket.getaddrinfo(host, None)
+            answer.append(None)
+        except (socket.gaierror, UnicodeError) as exc:
+            answer.append(f"no address is known for host {host!r} of {address}: "
+                          f"{getattr(exc, 'strerror', None) or exc}")
+
+    resolver = threading.Thread(target=resolve, name="pb3a-resolve", daemon=True)
+    resolver.start()
+    resolver.join(timeout)
+    return answer[0] if answer else None
 
 
 def tcp_address_problems(value: object, what: str, otherwise: str = "") -> list[str]:
