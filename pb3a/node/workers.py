@@ -36,7 +36,7 @@ from pb3a.node.watched_process import STATUS_WAIT_S, WatchedProcess
 from pb3a.processes import start_without_main
 from pb3a.transport import pickling
 from pb3a.transport.doorbell import new_bell
-from pb3a.worker.process import TIMED_OUT, worker_main
+from pb3a.worker.process import REFUSED, TIMED_OUT, worker_main
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -399,6 +399,8 @@ class WorkerPool:
                     future.set_result(result)
                 elif ok == TIMED_OUT:                      # the caller may try again
                     future.set_exception(RuntimeTimeout(f"worker {handle.key!r}: {result}"))
+                elif ok == REFUSED:                        # the caller's to mend, as said
+                    future.set_exception(RuntimeFailure(result))
                 else:
                     future.set_exception(RuntimeFailure(f"worker {handle.key!r}: {result}"))
         except (EOFError, OSError):

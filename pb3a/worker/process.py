@@ -56,6 +56,12 @@ LEASE_CHECK_S = 0.1      # how often a worker with a lease (see op_lease) looks 
 # the modules (the worker alone was frozen; see Executor._died).
 LEASE_LAPSED = 3
 TIMED_OUT = "timed out"   # a reply's status for a request that ran out of time (not False)
+REFUSED = "refused"       # for one whose arguments the module refused: the message is whole
+
+
+class Refused(Exception):
+    """A request the module refused for what it asked (a state name it lacks, a value
+    of the wrong kind): its message is for the caller as it is, with no worker named."""
 # Requests that wait for a module's lock (and may run its hooks, which may call the
 # runtime, whose answer this thread reads): never on the control thread.
 _TAKES_A_MODULE_LOCK = frozenset({"get_state", "set_state", "pause", "start", "swap", "stop",
@@ -210,6 +216,8 @@ class Worker:
             reply = (req_id, True, result)
         except TimeoutError as exc:             # (a module busy past the request's wait)
             reply = (req_id, TIMED_OUT, f"{type(exc).__name__}: {exc}")
+        except Refused as exc:
+            reply = (req_id, REFUSED, str(exc))
         except Exception as exc:
             log.debug("request %s failed", op, exc_info=True)
             reply = (req_id, False, f"{type(exc).__name__}: {exc}")
@@ -505,7 +513,11 @@ class Worker:
         return self.actors[name].capture(within)
 
     def op_set_state(self, name: str, state: dict[str, Any], within: float = 10.0) -> None:
-        self.actors[name].apply(state, within)
+        try:
+            self.actors[name].apply(state, within)
+        except (KeyError, TypeError) as exc:    # a name it lacks, a value of another kind
+            why = exc.args[0] if len(exc.args) == 1 else exc
+            raise Refused(f"module {name!r}: {why}; nothing was set") from None
 
     def op_swap(self, name: str, cls: bytes, period: float | None) -> list[str]:
         module = _load_class(cls)()
