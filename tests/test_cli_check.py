@@ -45,7 +45,7 @@ def pb3a(*args: str, cwd: Path, path: str | None = None) -> subprocess.Completed
 def test_check_accepts_the_pipeline_example(tmp_path: Path) -> None:
     done = pb3a("check", str(PIPELINE), cwd=tmp_path)
     assert done.returncode == 0, done.stdout + done.stderr
-    assert done.stdout == "ok: 2 modules, 1 links\n"
+    assert done.stdout == "ok: 2 modules, 1 link\n"
 
 
 def test_check_prints_every_problem_on_its_own_line_and_exits_1(tmp_path: Path) -> None:
@@ -124,7 +124,7 @@ def test_graph_of_an_invalid_file_lists_its_problems(tmp_path: Path) -> None:
 
 def test_main_in_process(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["check", str(PIPELINE)]) == 0
-    assert capsys.readouterr().out == "ok: 2 modules, 1 links\n"
+    assert capsys.readouterr().out == "ok: 2 modules, 1 link\n"
     assert main(["graph", str(PIPELINE), "-o", "-"]) == 0
     assert capsys.readouterr().out.startswith('digraph "pipeline"')
     assert main([]) == 2
@@ -134,7 +134,7 @@ def test_main_in_process(capsys: pytest.CaptureFixture[str]) -> None:
 def test_the_two_node_example_is_valid_and_runs_across_nodes(capsys) -> None:
     example = REPO / "examples" / "two_nodes.toml"
     assert main(["check", str(example)]) == 0
-    assert capsys.readouterr().out == "ok: 2 modules, 1 links\n"
+    assert capsys.readouterr().out == "ok: 2 modules, 1 link\n"
     with System.load(example).launch() as run:
         eventually(lambda: run.stats().links["tick.out->scale.x"].values > 5,
                    what="values at node b")
@@ -172,5 +172,5 @@ def test_graph_to_a_format_graphviz_has_not_writes_nothing(tmp_path: Path) -> No
 def test_the_stress_example_of_the_readme_is_valid(capsys) -> None:
     """README's `pb3a stress` example named stressed.toml, which the repository lacked."""
     assert main(["check", str(REPO / "examples" / "stressed.toml")]) == 0
-    assert capsys.readouterr().out == "ok: 2 modules, 1 links\n"
+    assert capsys.readouterr().out == "ok: 2 modules, 1 link\n"
     assert "pb3a stress examples/stressed.toml " in (REPO / "README.md").read_text()

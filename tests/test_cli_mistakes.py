@@ -95,7 +95,8 @@ def test_every_command_answers_a_mistake_with_a_sentence(tmp_path, capsys, monke
         assert "Traceback" not in out + err, (argv, err)
 
 
-@pytest.mark.parametrize("argv", [["check"], ["run", "x.toml", "--for", "soon"],
+@pytest.mark.parametrize("argv", [["check"], ["key"], ["node"], ["modules"],
+                                  ["run", "x.toml", "--for", "soon"],
                                   ["run", "x.toml", "--for", "-1"],
                                   ["run", "x.toml", "--for", "nan"],
                                   ["status", "tcp://h:1", "--timeout", "inf"],

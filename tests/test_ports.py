@@ -97,6 +97,10 @@ def test_shape_and_dtype_only_for_arrays() -> None:
         Output(float, shape=(3,))
     with pytest.raises(TypeError, match="class"):
         Input("float")
+    # a policy belongs to the input or the link: it named _Port.__init__, which nobody wrote
+    with pytest.raises(TypeError, match=r"Output\(\) takes no 'policy'.*Input\(float, "
+                                        r"policy=\.\.\.\)"):
+        Output(float, policy="queue:8")
 
 
 def test_compatibility_follows_subclasses() -> None:

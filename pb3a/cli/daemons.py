@@ -58,7 +58,8 @@ def _announce(banner: str) -> None:
 def register(commands: argparse._SubParsersAction) -> None:
     """Add ``modules serve`` and ``node start``."""
     modules = commands.add_parser("modules", help="the module server")
-    modules_commands = modules.add_subparsers(title="commands", metavar="COMMAND")
+    modules_commands = modules.add_subparsers(title="commands", metavar="COMMAND",
+                                               required=True)
     serve = modules_commands.add_parser("serve", help="serve the Python modules under DIR")
     serve.add_argument("dir", metavar="DIR", help="the directory of module files")
     serve.add_argument("--listen", default="tcp://127.0.0.1:7300", metavar="ADDR",
@@ -66,7 +67,8 @@ def register(commands: argparse._SubParsersAction) -> None:
     serve.set_defaults(handler=modules_serve_command)
 
     node = commands.add_parser("node", help="the node controller")
-    node_commands = node.add_subparsers(title="commands", metavar="COMMAND")
+    node_commands = node.add_subparsers(title="commands", metavar="COMMAND",
+                                         required=True)
     start = node_commands.add_parser("start", help="run this machine's node controller")
     start.add_argument("--name", required=True, help="the node's name in configurations")
     start.add_argument("--listen", default="tcp://127.0.0.1:7100", metavar="ADDR",

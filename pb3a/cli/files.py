@@ -47,7 +47,8 @@ def check_command(args: argparse.Namespace) -> int:
     plan = load_plan(args.file, "check")
     if plan is None:
         return 1
-    print(f"ok: {len(plan.modules)} modules, {len(plan.links)} links")
+    modules, links = len(plan.modules), len(plan.links)
+    print(f"ok: {modules} module{'s' * (modules != 1)}, {links} link{'s' * (links != 1)}")
     return 0
 
 

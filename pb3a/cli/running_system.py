@@ -156,7 +156,7 @@ def _migrate(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
     report = system.migrate(args.module, args.node, timeout=args.timeout)
     return (f"{report.module}: {report.source} -> {report.destination}, paused "
             f"{report.pause_s * 1e3:.1f} ms, {report.state_bytes} bytes of state, "
-            f"{report.links} links re-wired"), dataclasses.asdict(report)
+            f"{report.links} link{'s' * (report.links != 1)} re-wired"), dataclasses.asdict(report)
 
 
 def _swap(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:

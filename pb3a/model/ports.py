@@ -170,6 +170,15 @@ class Input(_Port):
 class Output(_Port):
     """An output port: ``Output(int)``. ``write()`` type-checks in the writer."""
 
+    def __init__(self, type_: type = object, *, shape: tuple[int, ...] | None = None,
+                 dtype: str | np.dtype | None = None, **other: Any) -> None:
+        if other:       # (Python named _Port.__init__, which no user wrote)
+            hint = ("; a policy is the input's (Input(float, policy=...)) or the link's"
+                    if "policy" in other else "")
+            raise TypeError(f"Output() takes no {', '.join(map(repr, other))}: its type, "
+                            f"and shape and dtype for an np.ndarray{hint}")
+        super().__init__(type_, shape=shape, dtype=dtype)
+
 
 class InputPort:
     """An input bound to one module instance: holds received values by its policy.
