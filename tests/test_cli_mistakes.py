@@ -45,8 +45,9 @@ def _mistakes(tmp: Path) -> list[tuple[list[str], int, str]]:
         (["run", pipeline, "--for", "1", "--listen", "nonsense"], 1,
          "is not an address to listen on"),
         (["status", "tcp://a b:5"], 1, "pb3a status: no address is known for host 'a b'"),
+        # --timeout bounds the connection too (it waited 5 s whatever it said)
         (["status", f"tcp://127.0.0.1:{busy}", "--timeout", "0.2"], 1,
-         "no PB3A launcher answered"),
+         "within 0.2 s: check the address"),
         (["check", missing], 1, "cannot read"),
         (["check", str(tmp / "broken.toml")], 1, "not valid TOML"),
         # a script given where a configuration goes: it said "not valid TOML"
@@ -61,7 +62,8 @@ def _mistakes(tmp: Path) -> list[tuple[list[str], int, str]]:
          "no node controller answered at tcp://127.0.0.1:1"),
         (["status", "nonsense"], 1, "is not a launcher's address"),
         (["status", "127.0.0.1:1"], 1, "no PB3A launcher answered"),
-        (["state", "tcp://127.0.0.1:1", "m"], 1, "no PB3A launcher answered"),
+        (["state", "tcp://127.0.0.1:1", "m", "--timeout", "0.3"], 1,
+         "no PB3A launcher answered at tcp://127.0.0.1:1 within 0.3 s"),
         (["node", "start", "--name", "n", "--listen", "nonsense"], 1,
          "is not an address to listen on"),
         (["node", "start", "--name", "n", "--listen", "tcp://127.0.0.1:http"], 1,

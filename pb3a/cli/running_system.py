@@ -20,7 +20,7 @@ from pb3a.cli.arguments import wait_seconds
 from pb3a.cli.status import format_nodes, format_table
 from pb3a.errors import PB3AError, SystemStopped
 from pb3a.events import Event
-from pb3a.launch.connection import Connection, connect
+from pb3a.launch.connection import CONNECT_TIMEOUT, Connection, connect
 from pb3a.loading.references import resolve_class
 from pb3a.model.module import Module
 from pb3a.model.state_edits import coerce
@@ -84,7 +84,9 @@ def _act(name: str, run: Callable[[Connection, argparse.Namespace], Any],
     """Connect, run one command, print its result; a sentence on any error (exit 1).
     A Ctrl-C (also the end of ``--follow``) goes on to ``main``: exit 130, one line."""
     try:
-        with connect(_address(args.address)) as system:
+        # a --timeout below the connection's own wait bounds it too (it waited 5 s)
+        wait = CONNECT_TIMEOUT if args.timeout is None else min(CONNECT_TIMEOUT, args.timeout)
+        with connect(_address(args.address), timeout=wait) as system:
             shown = run(system, args)
     except (PB3AError, ClusterKeyError, ValueError) as exc:
         print(f"pb3a {name}: {exc}", file=sys.stderr)
