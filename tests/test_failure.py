@@ -1001,3 +1001,34 @@ def test_a_script_that_never_closes_its_system_stops_it_as_it_exits(tmp_path: Pa
     launcher, worker = (int(pid) for pid in launched.split()[1:])
     eventually(lambda: not alive(worker), what="the worker's end")
     assert not live_segments(launcher)
+
+
+def test_check_of_a_file_whose_classes_launch_a_system_as_imported_says_so_at_once(
+        tmp_path: Path) -> None:
+    """`pb3a check` imports the classes a configuration names: one whose file launches a
+    system when imported launched that system inside the check, whose workers then
+    refused it, with a forkserver's traceback and the error wrapped three times. The
+    launch is refused as the class is loaded, naming the file, its line and the fix."""
+    module = f"launches_when_checked_{os.getpid()}"
+    (tmp_path / f"{module}.py").write_text(textwrap.dedent("""
+        from pb3a import Module, System
+
+        class Counter(Module):
+            period = 0.05
+
+        System("launched-when-checked").add("counter", Counter).launch(timeout=10).close()
+        """))
+    (tmp_path / "checked.toml").write_text(f'[modules.c]\nclass = "{module}:Counter"\n')
+    try:
+        began = time.monotonic()
+        done = subprocess.run([sys.executable, "-m", "pb3a", "check", "checked.toml"],
+                              cwd=tmp_path, capture_output=True, text=True, timeout=60,
+                              check=False)
+        took = time.monotonic() - began
+    finally:
+        left = _kill_every_process_naming(module)
+    assert done.returncode == 1 and not left, (done.stderr, left)
+    assert f"{module}.py launches system 'launched-when-checked' when it is imported " \
+           f"(line 7), and it was imported to load its class '{module}:Counter'" in done.stdout
+    assert "Traceback" not in done.stderr and "forkserver" not in done.stderr, done.stderr
+    assert took < 10

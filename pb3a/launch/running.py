@@ -19,6 +19,7 @@ from pb3a.errors import ConfigError, ModuleNotFound, bounded_wait
 from pb3a.launch.handle import SystemHandle
 from pb3a.launch.launcher import Launcher
 from pb3a.launch.operations import DEFAULT_TIMEOUT, FOR_AGENTS, Operations
+from pb3a.loading.references import importing_for
 from pb3a.processes import role
 from pb3a.transport.addresses import (
     EVERY_INTERFACE,
@@ -47,24 +48,29 @@ def launch(plan: Plan, **options: Any) -> Running:
 
 
 def _refuse_inside_own_process(name: str) -> None:
-    """Refuse a launch in a process PB3A started (a worker, a node's executor). The
-    usual cause is a file that launches a system when imported and also defines module
-    classes: a worker imports it to load one, which launched the system again, whose
-    forkserver imported it again, and so on, for good."""
+    """Refuse a launch in a process PB3A started (a worker, a node's executor), or made
+    while PB3A imports a module to load a class of a configuration. The usual cause is
+    a file that launches a system when imported and also defines module classes: a
+    worker imports it to load one, which launched the system again, whose forkserver
+    imported it again, and so on, for good; `pb3a check` of a configuration naming one
+    of its classes launched that system, and then the same for good."""
     inside = role()
-    if inside is None:
+    if inside is None and importing_for() is None:
         return
+    how = (f"inside {inside} to load a module class it defines" if inside is not None
+           else f"to load its class {importing_for()!r}")
     frame = sys._getframe(1)
     while frame is not None and frame.f_code.co_name != "<module>":
         frame = frame.f_back
     if frame is None:
-        raise ConfigError([f"system {name!r} is launched inside {inside}: a module's "
+        where = f"inside {inside}" if inside is not None else f"as {importing_for()!r} loads"
+        raise ConfigError([f"system {name!r} is launched {where}: a module's "
                            "code does not launch systems; it adds modules to the one it "
                            "runs in (an agent's `self.runtime.spawn`)"])
     raise ConfigError([
         f"{frame.f_code.co_filename} launches system {name!r} when it is imported (line "
-        f"{frame.f_lineno}), and it was imported inside {inside} to load a module class "
-        "it defines: each such import would launch the system again. Launch it under "
+        f"{frame.f_lineno}), and it was imported {how}: each such import would "
+        "launch the system again. Launch it under "
         '`if __name__ == "__main__":`, or from a file other than the classes\''])
 
 

@@ -11,8 +11,12 @@ from __future__ import annotations
 import difflib
 import importlib
 import re
+import sysconfig
+import threading
 import traceback
+from pathlib import Path
 
+from pb3a.errors import ConfigError
 from pb3a.loading import served
 
 _REF = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_][\w.]*$")
@@ -42,6 +46,7 @@ def resolve_class(ref: str | type) -> type:
             hint = f"here probably '{module}:{name}'"
         raise ValueError(f"bad class reference {ref!r}: use 'module:Class', {hint}")
     module_name, _, attr_path = ref.partition(":")
+    before, _importing.ref = importing_for(), ref
     try:
         module = importlib.import_module(module_name)
     except ImportError as exc:
@@ -54,9 +59,14 @@ def resolve_class(ref: str | type) -> type:
         raise ImportError(f"cannot import module {module_name!r} for {ref!r}: {exc}; "
                           "check the module path and that it is installed or on sys.path"
                           f"{served.server_trouble()}") from exc
+    except ConfigError as exc:  # it launched a system as it was imported: said in full
+        raise ImportError(f"importing module {module_name!r} for {ref!r} failed: "
+                          f"{'; '.join(exc.problems)}") from None
     except Exception as exc:  # a module that fails while importing: say which and why
         raise ImportError(f"importing module {module_name!r} for {ref!r} failed"
                           f"{_where_it_failed(exc)}: {type(exc).__name__}: {exc}") from exc
+    finally:
+        _importing.ref = before
     target: object = module
     where = f"module {module_name!r}"
     for part in attr_path.split("."):
@@ -69,12 +79,28 @@ def resolve_class(ref: str | type) -> type:
     return target
 
 
+# While resolve_class imports a class's module, the reference it imports for: a system
+# launched then is launched by that module as it is imported (pb3a.launch refuses it).
+_importing = threading.local()
+
+
+def importing_for() -> str | None:
+    """The class reference this thread imports a module for, if it is doing so now."""
+    return getattr(_importing, "ref", None)
+
+
 def _where_it_failed(exc: BaseException) -> str:
     """`` at FILE, line N``: the line of the user's code the import failed on (the
-    deepest frame outside the import machinery), or nothing if there is none."""
+    deepest frame outside Python's own library and PB3A), or nothing if there is none
+    (a failure a worker reported: its frames are PB3A's)."""
     frames = [frame for frame in traceback.extract_tb(exc.__traceback__)
-              if not frame.filename.startswith("<frozen ")]
+              if not frame.filename.startswith(("<frozen ", *_NOT_THE_USERS))]
     return f" at {frames[-1].filename}, line {frames[-1].lineno}" if frames else ""
+
+
+# (the folders of Python's own library, and PB3A's package folder)
+_NOT_THE_USERS = (*{sysconfig.get_paths()[kind] for kind in ("stdlib", "platstdlib")},
+                  str(Path(__file__).resolve().parent.parent))
 
 
 def _suggest(namespace: object, name: str) -> str:
