@@ -99,12 +99,14 @@ def parts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
     (folder / "parts_cfg.py").write_text(PARTS)
     (folder / "parts_boom.py").write_text("raise RuntimeError('boom')\n")
     (folder / "parts_needs.py").write_text("import math\nimport no_such_dependency\n")
+    (folder / "parts_names.py").write_text("from parts_cfg import no_such_name\n")
     sys.path.insert(0, str(folder))
     yield
     sys.path.remove(str(folder))
     sys.modules.pop("parts_cfg", None)
     sys.modules.pop("parts_boom", None)
     sys.modules.pop("parts_needs", None)
+    sys.modules.pop("parts_names", None)
 
 
 def write(tmp_path: Path, text: str, name: str = "sys.toml") -> Path:
@@ -159,6 +161,10 @@ def test_resolve_class_errors_say_what_to_change() -> None:
                                           r"module named 'no_such_dependency'; install "
                                           r"'no_such_dependency' or correct that import"):
         resolve_class("parts_needs:Thing")
+    with pytest.raises(ImportError, match=r"importing module 'parts_names' for 'parts_names:"
+                                          r"Thing' failed at .*parts_names\.py, line 1: "
+                                          r"cannot import name 'no_such_name' from 'parts_cfg'"):
+        resolve_class("parts_names:Thing")
 
 
 # -- valid descriptions -------------------------------------------------------

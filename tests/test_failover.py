@@ -211,6 +211,8 @@ def test_a_module_no_node_takes_is_said_lost_with_what_it_takes_to_add_it_again(
             (lost,) = eventually(lambda: _events(run, "module_lost"), timeout=15,
                                  what="the relay said lost")
             assert "relay" not in run.stats().modules
+            assert {event.subject for event in _events(run, "link_removed")} == {
+                "src.out->relay.x", "relay.out->sink.x"}      # its links went with it
             detail = lost.detail                      # enough to add it again, elsewhere
             run.add("relay", detail["cls"], node="a", state=detail["state"])
             for link in detail["links"]:

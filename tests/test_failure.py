@@ -327,18 +327,25 @@ def test_a_restart_that_fails_leaves_the_module_failed_saying_why(tmp_path: Path
     assert (figures.status, figures.running, figures.pid) == ("failed", False, None)
 
 
-def test_a_worker_stopped_by_sigterm_is_stopped_not_restarted() -> None:
+def test_a_worker_stopped_by_sigterm_is_stopped_not_restarted(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """... with what its module did kept (its worker tells it as it stops), and a
+    warning, since its node does not stop (a SIGTERM to the whole group stops both: no
+    warning then, see test_cli_run.py)."""
     system = System("terminated")
     system.add("victim", Steady, restart="fresh")
     system.add("other", Steady)
-    with system.launch() as run:
+    with caplog.at_level(logging.WARNING, logger="pb3a.executor"), system.launch() as run:
         pid = eventually(lambda: run.stats().modules["victim"].pid, what="a pid")
+        eventually(lambda: run.stats().modules["victim"].steps > 0, what="steps")
         os.kill(pid, signal.SIGTERM)
         figures = eventually(lambda: (m := run.stats().modules["victim"]).status
                              == "stopped" and m, what="the stop seen")
         before = run.state("other")["count"]
         eventually(lambda: run.state("other")["count"] > before, what="the other goes on")
-    assert figures.restarts == 0
+        eventually(lambda: any("its modules victim are stopped" in record.getMessage()
+                               for record in caplog.records), what="the warning")
+    assert figures.restarts == 0 and figures.steps > 0 and figures.pid is None
 
 
 def test_a_sigterm_stops_every_module_of_a_worker_at_once_then_tears_them_down(
@@ -964,7 +971,7 @@ def test_a_script_that_never_closes_its_system_stops_it_as_it_exits(tmp_path: Pa
     """``run = System(...).launch()`` without ``with`` or ``close()``: at the script's
     end the workers went with the interpreter, and the resource tracker warned of leaked
     shared memory. The system is stopped in order as the script exits: its modules'
-    teardowns run, and nothing is left."""
+    teardowns run, and nothing is left. Not by a child the script forks, as it exits."""
     (tmp_path / "never_closed.py").write_text(textwrap.dedent("""
         import os
         from pb3a import Input, Module, Output, System
@@ -990,6 +997,11 @@ def test_a_script_that_never_closes_its_system_stops_it_as_it_exits(tmp_path: Pa
             system = System("never-closed").add("ticks", Ticks).add("counts", Counts)
             run = system.link("ticks.out", "counts.x").launch(timeout=10)
             assert live_segments(os.getpid())
+            child = os.fork()              # a child that ends as scripts do: not its to stop
+            if child == 0:
+                raise SystemExit(0)
+            os.waitpid(child, 0)
+            assert run.stats().modules["counts"].status == "running"
             print("launched", os.getpid(), run.stats().modules["counts"].pid, flush=True)
         """))
     done = subprocess.run([sys.executable, str(tmp_path / "never_closed.py")], cwd=tmp_path,
@@ -1032,3 +1044,64 @@ def test_check_of_a_file_whose_classes_launch_a_system_as_imported_says_so_at_on
            f"(line 7), and it was imported to load its class '{module}:Counter'" in done.stdout
     assert "Traceback" not in done.stderr and "forkserver" not in done.stderr, done.stderr
     assert took < 10
+
+
+def _blocked_sending(pid: int) -> bool:
+    """Whether a thread of process ``pid`` waits for room to send on a socket or pipe."""
+    waits = set()
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(OSError):
+            waits.add((task / "wchan").read_text())
+    return bool(waits & {"sock_alloc_send_pskb", "unix_wait_for_peer", "pipe_write"})
+
+
+def test_a_worker_stopped_while_its_executor_is_frozen_still_tears_down_and_exits(
+        tmp_path: Path) -> None:
+    """A stopping worker tells its executor its last figures. With the executor frozen
+    and the worker's socket to it full (checkpoints of a large state), that send waited
+    for good: the worker stopped by SIGTERM never ran its teardowns nor exited. It gives
+    up on the figures after half a second."""
+    mark = tmp_path / "torn_down"
+    (tmp_path / "frozen_executor.py").write_text(textwrap.dedent(f"""
+        import time
+        from pb3a import Module, System
+
+        class Big(Module):
+            period = 0.01
+            restart = "last-state"
+            blob = "x" * 150_000          # checkpointed every 50 ms: the socket fills
+
+            def step(self):
+                pass
+
+            def teardown(self):
+                open({str(mark)!r}, "w").write("torn down")
+
+        if __name__ == "__main__":
+            with System("frozen").add("big", Big).launch(checkpoint_s=0.05,
+                                                         timeout=10) as run:
+                print(run.stats().modules["big"].pid, flush=True)
+                while True:
+                    time.sleep(1)
+        """))
+    proc = subprocess.Popen([sys.executable, str(tmp_path / "frozen_executor.py")],
+                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    try:
+        worker = int(proc.stdout.readline())
+        os.kill(proc.pid, signal.SIGSTOP)                      # the executor freezes
+        eventually(lambda: _blocked_sending(worker), timeout=10,
+                   what="the worker's socket to its frozen executor full")
+        os.kill(worker, signal.SIGTERM)
+        eventually(lambda: not alive(worker), timeout=5, what="the worker's exit")
+        assert mark.read_text() == "torn down"
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(proc.pid, signal.SIGCONT)
+            os.killpg(proc.pid, signal.SIGINT)
+        try:
+            proc.communicate(timeout=20)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    assert not live_segments(proc.pid)

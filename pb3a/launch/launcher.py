@@ -490,14 +490,15 @@ class Launcher:
             with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
                 self._drop_half(link, gone)
         moved, refused = self._fail_over(node, gone)
-        for name in gone:
-            if name not in moved:
-                spec = self.specs.pop(name)
-                if name != env:         # (an env module belongs to its node: back with it)
-                    self._tell_lost(spec, node, refused.get(name), touched.values())
+        lost = [self.specs.pop(name) for name in gone if name not in moved]
         for key, link in touched.items():
             if link.src not in self.specs or link.dst not in self.specs:
                 del self.links[key]
+                if env not in (link.src, link.dst):     # (an env's come back with it)
+                    self.events.record("link_removed", key)
+        for spec in lost:
+            if spec.name != env:        # (an env module belongs to its node: back with it)
+                self._tell_lost(spec, node, refused.get(spec.name), touched.values())
         self.reattach([link for key, link in touched.items() if key in self.links],
                       f"after the loss of node {node}")
         rewired = [self.links[key] for key in written if key in self.links]

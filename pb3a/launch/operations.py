@@ -389,6 +389,8 @@ class Operations:
         except Exception as exc:
             log.warning("restart %s failed (%s), and putting it back failed too: %s",
                         name, failure, exc)
+            for link in links:
+                self.event_log.record("link_removed", link.key)
             self.event_log.record("module_removed", name, reason="restart failed")
             return RuntimeFailure(f"restart {name} failed ({failure}), and putting it back "
                                   f"failed too ({exc}): it and its links are no longer in the "
@@ -435,14 +437,20 @@ class Operations:
     def logs(self, since: int = 0, *, module: str | None = None,
              timeout: float | None = 0.0) -> list[LogEntry]:
         launcher = self.launcher
-        if (module is not None and module not in launcher.specs
-                and not launcher.logbook.since(0, 0.0, module)):
-            # a misspelt name read nothing, and a follower waited for it for good (one
-            # removed since is still read: its entries are there)
+        if module is not None and not self._ever_ran(module):
+            # a misspelt name read nothing, and a follower waited for it for good
             raise ModuleNotFound(f"no module {module!r} in system {launcher.plan.name!r} "
                                  f"nor in its log; {launcher.which_modules(module)}")
         return self._history("logs", lambda wait: self.launcher.logbook.since(
             since, wait, module), timeout)
+
+    def _ever_ran(self, name: str) -> bool:
+        """Whether module ``name`` is in the system, or was: in its configuration, added
+        since (one being restarted is briefly in neither list of the modules), or named
+        in its log. Read without the configuration lock, which a reader must not wait for."""
+        return (name in self.launcher.specs or name in self.plan.modules
+                or any(event.subject == name for event in self.event_log.since(0))
+                or bool(self.launcher.logbook.since(0, 0.0, name)))
 
     def _history(self, what: str, read: Callable[[float], list[Any]],
                  timeout: float | None) -> list[Any]:

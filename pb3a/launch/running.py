@@ -10,6 +10,7 @@ from __future__ import annotations
 import atexit
 import contextlib
 import logging
+import os
 import sys
 import threading
 from typing import Any
@@ -40,10 +41,7 @@ def launch(plan: Plan, **options: Any) -> Running:
     _refuse_inside_own_process(plan.name)
     running = Running(plan, **options)
     running.start()
-    # A script that never closes it (no `with`, no `close()`) stops it as it exits, in
-    # order: left to the interpreter's exit, the workers went with their segments and
-    # the resource tracker warned of leaked shared memory.
-    atexit.register(running.close)
+    atexit.register(running.close_at_exit)
     return running
 
 
@@ -88,6 +86,7 @@ class Running(SystemHandle):
                                       DEFAULT_TIMEOUT if default is None else default)
         self._launcher.handler = self._agent_request
         self._stopped = threading.Event()
+        self._owner = os.getpid()             # (a forked child inherits this handle)
         self._server: ControlServer | None = None
         self.address: str | None = None       # where `pb3a status ADDR` etc. reach it
         self._listen_at = listen
@@ -128,12 +127,20 @@ class Running(SystemHandle):
         """Stop every module (reverse start order) and worker; free every segment."""
         if not self._stopped.is_set():
             self._stopped.set()
-            atexit.unregister(self.close)
+            atexit.unregister(self.close_at_exit)
             try:
                 self._launcher.shutdown(timeout)
             finally:
                 if self._server is not None:
                     self._server.close()
+
+    def close_at_exit(self) -> None:
+        """``close``, as the script that launched the system exits without having
+        closed it (no `with`, no `close()`): left to the interpreter's exit, the workers
+        went with their segments, and the resource tracker warned of leaked shared
+        memory. Not in a child the script forked, which would stop its parent's system."""
+        if os.getpid() == self._owner:
+            self.close()
 
     def _remote_nodes(self) -> list[str]:
         """Where the remote nodes are reached (an address on their hosts)."""

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import difflib
 import importlib
+import os
 import re
 import sysconfig
 import threading
@@ -50,14 +51,16 @@ def resolve_class(ref: str | type) -> type:
     try:
         module = importlib.import_module(module_name)
     except ImportError as exc:
-        missing = exc.name or ""
-        if missing and not (module_name == missing or module_name.startswith(f"{missing}.")):
-            # found, but an import of its own failed: the path is not what to check
-            raise ImportError(f"importing module {module_name!r} for {ref!r} failed"
-                              f"{_where_it_failed(exc)}: {exc}; install {missing!r} or "
-                              f"correct that import{served.server_trouble()}") from exc
-        raise ImportError(f"cannot import module {module_name!r} for {ref!r}: {exc}; "
-                          "check the module path and that it is installed or on sys.path"
+        missing = exc.name if isinstance(exc, ModuleNotFoundError) else None
+        if missing and (module_name == missing or module_name.startswith(f"{missing}.")):
+            raise ImportError(f"cannot import module {module_name!r} for {ref!r}: {exc}; "
+                              "check the module path and that it is installed or on "
+                              f"sys.path{served.server_trouble()}") from exc
+        # found, but an import of its own failed: the path is not what to check
+        fix = ("" if missing is None else "; correct that import" if _top(missing) ==
+               _top(module_name) else f"; install {missing!r} or correct that import")
+        raise ImportError(f"importing module {module_name!r} for {ref!r} failed"
+                          f"{_where_it_failed(exc)}: {exc}{fix}"
                           f"{served.server_trouble()}") from exc
     except ConfigError as exc:  # it launched a system as it was imported: said in full
         raise ImportError(f"importing module {module_name!r} for {ref!r} failed: "
@@ -98,9 +101,15 @@ def _where_it_failed(exc: BaseException) -> str:
     return f" at {frames[-1].filename}, line {frames[-1].lineno}" if frames else ""
 
 
-# (the folders of Python's own library, and PB3A's package folder)
-_NOT_THE_USERS = (*{sysconfig.get_paths()[kind] for kind in ("stdlib", "platstdlib")},
-                  str(Path(__file__).resolve().parent.parent))
+# (the folders of Python's own library, of installed packages, and PB3A's own)
+_NOT_THE_USERS = tuple(os.path.join(folder, "") for folder in {
+    *(sysconfig.get_paths()[kind] for kind in ("stdlib", "platstdlib", "purelib", "platlib")),
+    str(Path(__file__).resolve().parent.parent)})
+
+
+def _top(module: str) -> str:
+    """The top-level package of a dotted module name."""
+    return module.partition(".")[0]
 
 
 def _suggest(namespace: object, name: str) -> str:

@@ -52,6 +52,9 @@ log = logging.getLogger("pb3a.executor")
 _module_log = logging.getLogger("pb3a.module")
 
 REPORT_TIMEOUT = 5.0
+# A worker stopped by a SIGTERM is warned of unless its node begins to stop within this:
+# the same signal reached the launcher (sent to the whole process group)
+STOP_FOLLOWS_S = 2.0
 LOCK_TIMEOUT = 60.0      # longest a restart or a shutdown waits for the node's lock
 ANSWER_MARGIN_S = 0.25   # a worker gives up this much before its caller (its answer's way)
 _WAITS_FOR_THE_MODULE = frozenset({"get_state", "set_state"})
@@ -125,6 +128,7 @@ class Executor:
         # global lock when the executor runs in the launcher's process).
         self.lock = lock or threading.RLock()
         self._stopping = threading.Event()
+        self._closing = threading.Event()       # a shutdown or a fence has begun
         reap_orphans()
         self.workers = WorkerPool(
             WorkerSettings(cpus, checkpoint_s, log_level, code or CodeSources(), spares),
@@ -697,12 +701,13 @@ class Executor:
                         "its lease while its executor ran", handle.key, handle.pid,
                         ", ".join(handle.modules))
         elif code in (0, LEASE_LAPSED):   # stopped on purpose (SIGTERM), or fenced: not a crash
-            # A SIGTERM is someone's stop, most often of everything: sent to the whole
-            # process group (`timeout`, `kill -- -PGID`), it ends the launcher too, and a
-            # warning per worker was noise on a clean stop. The table shows them stopped.
-            log.log(logging.INFO if code == 0 else logging.WARNING,
-                    "worker %s (pid %s) stopped; its modules %s are stopped", handle.key,
+            said = ("worker %s (pid %s) stopped; its modules %s are stopped", handle.key,
                     handle.pid, ", ".join(handle.modules))
+            if code == 0:
+                threading.Thread(target=self._say_stopped, args=said, daemon=True,
+                                 name="pb3a-stopped").start()
+            else:
+                log.warning(*said)
             for name in handle.modules:
                 self.modules[name].status = "stopped"
             return
@@ -711,6 +716,16 @@ class Executor:
                         handle.key, handle.pid, ", ".join(handle.modules), code)
         threading.Thread(target=self._recover, args=(handle, code), daemon=True,
                          name=f"pb3a-restart-{handle.key}").start()
+
+    def _say_stopped(self, *said: object) -> None:
+        """Warn of a worker stopped by a SIGTERM, unless this node stops meanwhile: a
+        SIGTERM to the whole process group (`timeout`, `kill -- -PGID`) reaches the
+        launcher and its nodes with their workers, and a warning per worker was noise on
+        a clean stop. One that stops alone (someone's SIGTERM, a module's exit) is said."""
+        if self._closing.wait(STOP_FOLLOWS_S):
+            log.info(*said)
+        else:
+            log.warning(*said)
 
     def _recover(self, handle: WorkerHandle, code: int | None) -> None:
         """Restart what ran in a dead worker as a launch starts it (``Running.start``):
@@ -883,6 +898,7 @@ class Executor:
         """Stop every module's stepping now, without the executor's lock (a request may
         hold it, waiting on a worker): its node's lease ran out, so its modules are about
         to be restarted elsewhere. ``shutdown`` follows."""
+        self._closing.set()
         self._stopping.set()
         self.workers.fence()
 
@@ -890,6 +906,7 @@ class Executor:
         """Stop modules in reverse start order, then workers, then free every ring. The
         executor's lock is waited for half of ``timeout`` at most (a request holding it
         fails once its worker is gone); the rest is done without it if need be."""
+        self._closing.set()
         deadline = time.monotonic() + timeout
         with contextlib.ExitStack() as held:
             try:

@@ -62,22 +62,26 @@ def _start_forkserver_child(process: Any) -> None:
     imported (its traceback is on stderr): the start is tried once more from a
     forkserver without those, and the worker's own import of the module then fails the
     module's start with the module's error."""
-    # Read before the start: several starts (a module's, a spare's) can meet the same
-    # dying forkserver, and the first to see it die stops the preload for all of them.
-    preloading = _preloading_configuration.is_set()
     try:
         start_without_main(process, timeout=SPAWN_TIMEOUT_S)
-    except EOFError:
-        if not preloading:
-            raise RuntimeFailure("the forkserver that starts this node's workers ended as "
-                                 "it started; its error, if it had one, is on stderr") from None
-        with _preload_lock:
-            if _preloading_configuration.is_set():
-                log.warning("the forkserver ended as it preloaded the configuration's "
-                            "modules (one raised as it was imported? see above); workers "
-                            "import them themselves from now on")
-                _preload(())
+        return
+    except (EOFError, ConnectionError):
+        pass
+    # Every start that met a dying forkserver tries again, whichever saw it first: a
+    # module's and a spare's start met the same one, and the second found the preload
+    # dropped by the first and failed (with a third start, a second forkserver could
+    # die preloading before the drop). One new forkserver then serves them all.
+    with _preload_lock:
+        if _preloading_configuration.is_set():
+            log.warning("the forkserver ended as it preloaded the configuration's "
+                        "modules (one raised as it was imported? see above); workers "
+                        "import them themselves from now on")
+            _preload(())
+    try:
         start_without_main(process, timeout=SPAWN_TIMEOUT_S)
+    except (EOFError, ConnectionError):
+        raise RuntimeFailure("the forkserver that starts this node's workers ended as "
+                             "it started; its error, if it had one, is on stderr") from None
 
 
 # Set while the forkserver (the next to start, if none runs) preloads a configuration's
@@ -221,8 +225,9 @@ class WorkerPool:
         if handle is None:
             if self._stopping.is_set():
                 raise RuntimeFailure(f"node {node} is shutting down: no worker is started")
-            with self._spares_lock:              # (one that died unseen yet is skipped)
-                while self._spares and not self._spares[0].process.is_alive():
+            with self._spares_lock:    # (one that died unseen yet, or stops, is skipped)
+                while self._spares and (not self._spares[0].process.is_alive()
+                                        or self._spares[0].last_figures is not None):
                     self._spares.pop(0)
                 spare = self._spares.pop(0) if self._spares else None
             if spare is not None:                # booted already: only its name changes
@@ -304,7 +309,7 @@ class WorkerPool:
     def _submit(self, handle: WorkerHandle, op: str, fd: int | None,
                 args: dict[str, Any]) -> Future[Any]:
         future: Future[Any] = Future()
-        if not handle.alive:
+        if not handle.alive or handle.last_figures is not None:   # (told them: it stops)
             future.set_exception(RuntimeFailure(f"worker {handle.key!r} is not running"))
             return future
         req_id = next(self._ids)

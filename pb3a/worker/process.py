@@ -57,6 +57,7 @@ LEASE_CHECK_S = 0.1      # how often a worker with a lease (see op_lease) looks 
 LEASE_LAPSED = 3
 TIMED_OUT = "timed out"   # a reply's status for a request that ran out of time (not False)
 REFUSED = "refused"       # for one whose arguments the module refused: the message is whole
+LAST_WORDS_S = 0.5        # a stopping worker's wait to tell its figures (the executor frozen?)
 
 
 class Refused(Exception):
@@ -243,12 +244,30 @@ class Worker:
                     f" (in {', '.join(map(repr, fields))}: state that holds a lock, a "
                     "file or a socket cannot leave its module; a name beginning with '_' "
                     "keeps it out of the state)" if fields else ""))
-        with self._send_lock:
-            try:
-                self.conn.send((req_id, kind))
-                self.conn.send_bytes(body)
-            except (OSError, EOFError, BrokenPipeError):
-                self._closing.set()
+        # A SIGTERM between the head and the payload (the main thread's handler raises)
+        # would leave the next message read as this one's payload: held until both went.
+        held = threading.current_thread() is threading.main_thread()
+        if held:
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
+        try:
+            with self._send_lock:
+                try:
+                    self.conn.send((req_id, kind))
+                    self.conn.send_bytes(body)
+                except (OSError, EOFError, BrokenPipeError):
+                    self._closing.set()
+        finally:
+            if held:
+                signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
+
+    def send_within(self, message: tuple[int | None, Any, Any], timeout: float) -> None:
+        """``send``, given up after ``timeout``: an executor that is frozen reads nothing,
+        and a send to its full pipe waited for good (a stopping worker's last figures
+        then held its teardowns and its exit)."""
+        sender = threading.Thread(target=self.send, args=(message,), daemon=True,
+                                  name="pb3a-send")
+        sender.start()
+        sender.join(timeout)
 
     def shutdown(self) -> None:
         if self._shut_down:
@@ -269,7 +288,7 @@ class Worker:
         # process is gone: a SIGTERM to the whole process group stops the workers before
         # the launcher asks for its last table, which then read zeros.
         try:
-            self.send((None, "figures", self.op_stats()))
+            self.send_within((None, "figures", self.op_stats()), LAST_WORDS_S)
         except Exception:                    # (a removal changed the modules meanwhile)
             log.debug("the worker's last figures could not be taken", exc_info=True)
         for name in reversed(list(self.actors)):
@@ -561,10 +580,12 @@ class Worker:
             if self.lapsed:
                 return
             self.lapsed = True
+        # The stop first: the log goes to the executor, which is frozen, and its pipe may
+        # be full: a log that waited for room there kept the modules running for good.
+        os.kill(os.getpid(), signal.SIGTERM)     # (the stop a SIGTERM makes)
         # (its modules named: a spare that took them still has the key "spare")
         log.error("the worker of %s: its executor granted no lease for too long "
                   "(frozen or hung): its modules stop", ", ".join(self.actors) or "no module")
-        os.kill(os.getpid(), signal.SIGTERM)     # (the stop a SIGTERM makes)
 
     def op_stats(self) -> dict[str, Any]:
         modules = {name: actor.statistics() for name, actor in self.actors.items()}
