@@ -46,7 +46,12 @@ class Grid:
     @classmethod
     def of(cls, size: Any, resolution: float = 0.1) -> Grid:
         """The grid over a world of ``size`` (width, height), e.g. ``world.size``."""
-        return cls(float(size[0]), float(size[1]), float(resolution))
+        try:       # (a number alone said only "'float' object is not subscriptable")
+            width, height = (float(side) for side in size)
+        except (TypeError, ValueError):
+            raise ValueError(f"a grid's size is [width, height] in metres, not "
+                             f"{size!r}") from None
+        return cls(width, height, float(resolution))
 
     @property
     def shape(self) -> tuple[int, int]:

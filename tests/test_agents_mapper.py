@@ -284,6 +284,8 @@ def test_a_model_or_grid_setup_would_refuse_set_while_it_runs_is_refused_by_name
                          ({"resolution": 0.0}, "positive size and resolution"),
                          # (an infinite size, a NaN publish_every failed every reading)
                          ({"size": [math.inf, 8.0]}, "positive size and resolution"),
+                         # (a number alone said "'float' object is not subscriptable")
+                         ({"size": 10.0}, r"size is \[width, height\] in metres, not 10.0"),
                          ({"publish_every": math.nan}, "publish_every must be a whole")):
         with pytest.raises(ValueError, match=named):
             harness.module.set_state({"publish_every": 5, **wrong})

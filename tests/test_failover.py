@@ -540,6 +540,34 @@ def test_close_keeps_its_timeout_with_machines_that_do_not_answer(daemons) -> No
     assert sorted(run.unconfirmed) == ["b", "c"]   # (said "stopped cleanly" all the same)
 
 
+def test_a_stop_with_a_node_lost_does_not_wait_for_it(daemons) -> None:
+    """A node lost for good (its machine cut off: controller and executor silent) held
+    the stop of the rest for the whole of close's time, 10 s, waiting for its controller
+    to kill an executor that had fenced itself. A lost node's controller is asked
+    briefly; the stop is said unconfirmed for it."""
+    b = daemons["b"]
+    system = System("lost-then-stopped").node("a").node("b", address=b.address)
+    system.add("near", Collector, node="a")
+    system.add("far", Collector, node="b")
+    run = system.launch()
+    hung: list[int] = []
+    try:
+        eventually(lambda: run.stats().nodes["b"].rtt > 0, what="a round trip to b")
+        hung = [b.process.pid, b.executor_pid()]
+        for pid in hung:                        # the machine cut off: nothing answers
+            os.kill(pid, signal.SIGSTOP)
+        assert run._launcher.wait_health("b", up=False, timeout=10)
+        started = time.monotonic()
+        run.close()                             # (timeout 10 s)
+        took = time.monotonic() - started
+    finally:
+        run.close()
+        for pid in hung:
+            os.kill(pid, signal.SIGCONT)
+    assert took < 3.0, took
+    assert run.unconfirmed == ["b"]
+
+
 def test_a_close_out_of_time_still_stops_a_remote_node_s_executor(daemons,
                                                                     tmp_path: Path) -> None:
     """A slow teardown spent close's time; the executor's stop then went with no time
@@ -592,7 +620,8 @@ def test_a_second_launch_of_a_running_configuration_is_refused_and_leaves_the_fi
     system.add("far", Counter, node="b")
     with system.launch() as first:
         eventually(lambda: first.state("far")["count"] > 5, timeout=30, what="steps on b")
-        with pytest.raises(RuntimeFailure, match="node b already works for"):
+        with pytest.raises(RuntimeFailure, match=r"node b already works for .*: stop that "
+                                                 r"system first"):
             system.launch()
         assert not first._launcher.wait_health("b", up=False, timeout=3.0)
         count = first.state("far")["count"]

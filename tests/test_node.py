@@ -169,12 +169,13 @@ def test_an_executor_no_launcher_takes_stops() -> None:
 
 def test_work_is_refused_with_the_reason_when_resources_are_short() -> None:
     for limits, reason in ((Limits(max_cpu_percent=101.0, min_memory_bytes=1 << 60),
-                            "of memory available, below"),
-                           (Limits(max_cpu_percent=-1.0), "CPU .* busy, above its limit")):
+                            r"of memory available, below .*--min-memory: lower it"),
+                           (Limits(max_cpu_percent=-1.0),
+                            r"CPU .* busy, above its limit .*--max-cpu: raise it")):
         controller = NodeController("tight", KEY, limits=limits)
         client = ControlClient(KEY, controller.address)
-        try:
-            with pytest.raises(RuntimeFailure, match=f"node tight refuses .*{reason}"):
+        try:       # as it is said there, with the limit to change (not "... failed: Refused:")
+            with pytest.raises(RuntimeFailure, match=f"^node tight refuses .*{reason}"):
                 client.call("start_executor", config="demo")
             assert controller.executors() == {}
         finally:

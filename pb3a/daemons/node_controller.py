@@ -21,7 +21,7 @@ import psutil
 
 from pb3a.config import checks
 from pb3a.daemons.node_share import UNBOUND_S, executor_main
-from pb3a.errors import bounded_wait
+from pb3a.errors import RuntimeFailure, bounded_wait
 from pb3a.processes import start_without_main
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlServer
@@ -37,8 +37,10 @@ SAMPLE_S = 0.5
 CPU_WINDOW = 10
 
 
-class Refused(Exception):
-    """The node will not take this work; the message says which resource is short."""
+class Refused(RuntimeFailure):
+    """The node will not take this work; the message says which resource is short, and
+    the limit to raise. A PB3A error, so that the caller gets it as it is (it read
+    "start_executor at ... failed: Refused: ...")."""
 
 
 @dataclass
@@ -85,11 +87,12 @@ class NodeController:
         cpu, memory = self._cpu, psutil.virtual_memory().available
         if cpu > self.limits.max_cpu_percent:
             raise Refused(f"node {self.name} refuses {what}: CPU {cpu:.0f}% busy, above its "
-                          f"limit of {self.limits.max_cpu_percent:.0f}%")
+                          f"limit of {self.limits.max_cpu_percent:.0f}% (its controller's "
+                          "--max-cpu: raise it, or free the CPU)")
         if memory < self.limits.min_memory_bytes:
             raise Refused(f"node {self.name} refuses {what}: {memory >> 20} MiB of memory "
                           f"available, below its limit of {self.limits.min_memory_bytes >> 20}"
-                          " MiB")
+                          " MiB (its controller's --min-memory: lower it, or free memory)")
 
     # -- executors ----------------------------------------------------------------
     def start_executor(self, config: str, workers: int = 0, cpus: list[int] | None = None,

@@ -124,7 +124,9 @@ class NodeShare:
         the node's admission ``node_epoch``, on a lease of ``lease_s`` seconds, keeping
         ``spares`` idle workers booted."""
         if self.launcher is not None:
-            raise RuntimeFailure(f"node {self.node} already works for {self.launcher.address}")
+            raise RuntimeFailure(f"node {self.node} already works for {self.launcher.address}: "
+                                 "stop that system first, or launch this one under another "
+                                 "name")
         self._bound.set()                   # (a slow bind, a large code install: not stopped)
         self.executor.configure(checkpoint_s=checkpoint_s, log_level=log_level, code=code,
                                 epoch=epoch, spares=spares)

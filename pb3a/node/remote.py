@@ -50,6 +50,10 @@ LOSS_S = 2.0               # no answer for this long: the node is lost (reported
 # but its answers do not (a saturated uplink): LOSS_S >= RENEW_WITHIN_S + LEASE_S
 RENEW_WITHIN_S = 0.75
 STOP_AT_LEAST_S = 0.5      # a shutdown out of time still asks the controller this long
+# ... and a lost node's controller at most this long: one that answers does so at once,
+# and the executor of one that does not has fenced itself (a stop with a robot lost
+# waited for its controller the whole shutdown, 10 s)
+STOP_LOST_S = 1.5
 
 
 class RemoteNode:
@@ -306,6 +310,8 @@ class RemoteNode:
         # (at least a moment: sent with no time at all, the request was never sent, and
         # the executor ran on, its node taken for the next launch)
         wait = max(STOP_AT_LEAST_S, self._within(timeout + 5.0))
+        if self.lost:
+            wait = min(wait, STOP_LOST_S)
         with contextlib.suppress(RuntimeFailure, RuntimeTimeout):   # (killed in time to say so)
             self.controller.request("stop_executor", {
                 "config": self.config, "force": self.lost,
