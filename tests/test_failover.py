@@ -509,6 +509,20 @@ def test_a_checkpoint_only_the_robots_can_read_still_fails_over(tmp_path: Path) 
     assert tally["value"] >= tally["seen"] - seen + 50
 
 
+@contextlib.contextmanager
+def _frozen(*daemons: Daemon) -> Iterator[None]:
+    """Node controllers and their executors stopped (SIGSTOP), as machines that hang or
+    are cut off; let run again on the way out."""
+    pids = [pid for daemon in daemons for pid in (daemon.process.pid, daemon.executor_pid())]
+    for pid in pids:
+        os.kill(pid, signal.SIGSTOP)
+    try:
+        yield
+    finally:
+        for pid in pids:
+            os.kill(pid, signal.SIGCONT)
+
+
 def test_close_keeps_its_timeout_with_machines_that_do_not_answer(daemons) -> None:
     """close(3) took 13-24 s with two machines hung (their controllers and executors
     stopped): the modules and then the nodes were stopped one after another, each call
@@ -520,22 +534,13 @@ def test_close_keeps_its_timeout_with_machines_that_do_not_answer(daemons) -> No
     for node in ("b", "c"):
         system.add(f"far-{node}", Collector, node=node)
         system.link("src.out", f"far-{node}.x")
-    run = system.launch()
-    hung: list[int] = []
-    try:
+    with system.launch() as run:
         eventually(lambda: all(run.state(f"far-{node}")["received"] > 100 for node in "bc"),
                    timeout=30, what="values on b and c")
-        hung = [pid for daemon in (b, c) for pid in (daemon.process.pid,
-                                                     daemon.executor_pid())]
-        for pid in hung:
-            os.kill(pid, signal.SIGSTOP)
-        started = time.monotonic()
-        run.close(timeout=3.0)
-        took = time.monotonic() - started
-    finally:
-        run.close()
-        for pid in hung:
-            os.kill(pid, signal.SIGCONT)
+        with _frozen(b, c):
+            started = time.monotonic()
+            run.close(timeout=3.0)
+            took = time.monotonic() - started
     assert took < 4.0, took
     assert sorted(run.unconfirmed) == ["b", "c"]   # (said "stopped cleanly" all the same)
 
@@ -549,21 +554,13 @@ def test_a_stop_with_a_node_lost_does_not_wait_for_it(daemons) -> None:
     system = System("lost-then-stopped").node("a").node("b", address=b.address)
     system.add("near", Collector, node="a")
     system.add("far", Collector, node="b")
-    run = system.launch()
-    hung: list[int] = []
-    try:
+    with system.launch() as run:
         eventually(lambda: run.stats().nodes["b"].rtt > 0, what="a round trip to b")
-        hung = [b.process.pid, b.executor_pid()]
-        for pid in hung:                        # the machine cut off: nothing answers
-            os.kill(pid, signal.SIGSTOP)
-        assert run._launcher.wait_health("b", up=False, timeout=10)
-        started = time.monotonic()
-        run.close()                             # (timeout 10 s)
-        took = time.monotonic() - started
-    finally:
-        run.close()
-        for pid in hung:
-            os.kill(pid, signal.SIGCONT)
+        with _frozen(b):                        # the machine cut off: nothing answers
+            assert run._launcher.wait_health("b", up=False, timeout=10)
+            started = time.monotonic()
+            run.close()                         # (timeout 10 s)
+            took = time.monotonic() - started
     assert took < 3.0, took
     assert run.unconfirmed == ["b"]
 
