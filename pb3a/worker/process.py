@@ -159,6 +159,7 @@ class Worker:
         self.outbound: dict[str, tuple[str, str, ShmRing | None, BellPull | None]] = {}
         self.publications = Publications()       # outputs replicated to other nodes
         self._send_lock = threading.Lock()
+        self._torn = False                  # a message was cut short: the pipe is out of step
         self._requests: dict[int, RuntimeWait] = {}    # agents' requests awaiting answers
         self._paused: set[str] = set()
         self._error_times: dict[str, tuple[float, int]] = {}
@@ -244,21 +245,21 @@ class Worker:
                     f" (in {', '.join(map(repr, fields))}: state that holds a lock, a "
                     "file or a socket cannot leave its module; a name beginning with '_' "
                     "keeps it out of the state)" if fields else ""))
-        # A SIGTERM between the head and the payload (the main thread's handler raises)
-        # would leave the next message read as this one's payload: held until both went.
-        held = threading.current_thread() is threading.main_thread()
-        if held:
-            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
-        try:
-            with self._send_lock:
-                try:
-                    self.conn.send((req_id, kind))
-                    self.conn.send_bytes(body)
-                except (OSError, EOFError, BrokenPipeError):
-                    self._closing.set()
-        finally:
-            if held:
-                signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
+        with self._send_lock:
+            if self._torn:
+                return
+            try:
+                self.conn.send((req_id, kind))
+                self.conn.send_bytes(body)
+            except (OSError, EOFError, BrokenPipeError):
+                self._closing.set()
+            except BaseException:
+                # A SIGTERM (the main thread's handler raises) cut this message short: the
+                # executor would read the next one's head as its payload. Nothing more
+                # goes; the executor reads the end of the pipe instead. (Masking SIGTERM
+                # over the writes instead left a send to a frozen executor unstoppable.)
+                self._torn = True
+                raise
 
     def send_within(self, message: tuple[int | None, Any, Any], timeout: float) -> None:
         """``send``, given up after ``timeout``: an executor that is frozen reads nothing,
