@@ -26,6 +26,7 @@ from pb3a.processes import start_without_main
 PERIOD_S = 0.01           # one busy-then-idle cycle of a burner
 ADJUST_S = 0.5            # how often the controller corrects the burners' share
 GAIN = 0.8                # share of the error corrected at each adjustment
+BURNER_START_S = 30.0     # a burner's start from the forkserver, at the most
 
 # (the forkserver PB3A starts its workers from: quick, and safe from a threaded process)
 _context = multiprocessing.get_context("forkserver")
@@ -90,7 +91,8 @@ class CPULoad:
                                                               os.getpid()),
                                           daemon=True, name=f"pb3a-burn-cpu{cpu}")
                 self._burners.append(burner)
-                start_without_main(burner)
+                # (the forkserver the workers use may be frozen: a start waits so long)
+                start_without_main(burner, timeout=BURNER_START_S)
         self._controller.start()
 
     def stop(self, timeout: float = 5.0) -> None:

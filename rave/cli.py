@@ -16,7 +16,7 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
-from pb3a.cli.arguments import seed
+from pb3a.cli.arguments import seed, wait_seconds
 from pb3a.cli.log_output import show_logs
 
 
@@ -46,6 +46,8 @@ def _parser() -> argparse.ArgumentParser:
     fault.add_argument("--sonars", type=int, nargs="+", help="for sonar_dead (default all)")
     fault.add_argument("--bias", type=float, default=0.05, help="odometry_bias, rad per m")
     fault.add_argument("--clear", action="store_true", help="clear the fault instead")
+    fault.add_argument("--timeout", type=wait_seconds, default=5.0, metavar="SECONDS",
+                       help="how long to wait for the robot server (default 5)")
     fault.set_defaults(handler=fault_command)
     render = commands.add_parser("render", help="draw a world to an image")
     render.add_argument("world", help="a world file (TOML)")
@@ -106,11 +108,11 @@ def fault_command(args: argparse.Namespace) -> int:
         return 1
     try:
         if args.clear:
-            client.call("clear", fault=args.fault)
+            client.call("clear", args.timeout, fault=args.fault)
         else:
             params = {"sonar_dead": {"sonars": args.sonars} if args.sonars else {},
                       "odometry_bias": {"bias": args.bias}}.get(args.fault, {})
-            client.call("inject", fault=args.fault, params=params)
+            client.call("inject", args.timeout, fault=args.fault, params=params)
     except (RuntimeFailure, RuntimeTimeout) as exc:
         print(f"rave fault: {exc}", file=sys.stderr)
         return 1

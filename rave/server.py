@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.processes import serve_as_child, start_without_main, stop_on_sigterm
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient, ControlServer
@@ -319,7 +320,15 @@ def robot_server_main(name: str, world_address: str, host: str, conn: Any) -> No
         if op not in ROBOT_OPS:
             raise ValueError(f"robot {name} has no operation {op!r}; operations: "
                              f"{', '.join(ROBOT_OPS)}")
-        return world.call(op, RELAY_TIMEOUT, robot=name, **args)
+        try:
+            return world.call(op, RELAY_TIMEOUT, robot=name, **args)
+        except RuntimeTimeout:
+            raise
+        except RuntimeFailure as exc:
+            # said as the world said it: the world server's address, which the caller
+            # never gave, and the exception's name meant nothing to it
+            said = str(exc).removeprefix(f"{op} at {world_address} failed: ")
+            raise RuntimeFailure(said.removeprefix("ValueError: ")) from None
 
     server = ControlServer(key, relay, host, name=f"rave-robot-{name}")
     try:

@@ -362,7 +362,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fault", choices=tuple(FAULTS), default="motors",
                         help="how the first robot fails: " + "; ".join(
                             f"{name}: {what}" for name, what in FAULTS.items()))
-    parser.add_argument("--out", default=".", help="directory for mapping.json and .png")
+    parser.add_argument("--out", default=".",
+                        help="directory for mapping.json, mapping.png and the remedy "
+                             "agent's remedy-cases.toml (default: this one)")
     args = parser.parse_args(argv)
     show_logs()
     try:

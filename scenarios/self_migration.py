@@ -249,7 +249,8 @@ def plot(records: dict[str, dict[str, Any]], path: Path) -> bool:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="pb3a scenario self-migration",
                                      description=summary(__doc__))
-    parser.add_argument("--out", default=".", help="directory for the PNG and JSON")
+    parser.add_argument("--out", default=".",
+                        help="directory for the PNG and JSON (default: this one)")
     parser.add_argument("--quick", action="store_true", help="shorter phases (2/5/2 s)")
     args = parser.parse_args(argv)
     show_logs()

@@ -410,7 +410,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=seed, default=1, help="0 or more (default 1)")
     parser.add_argument("--baselines", type=int, metavar="N",
                         help="baseline robots learning alone (default: 3, and 1 with --quick)")
-    parser.add_argument("--out", default=".", help="directory for sim_to_real.json and .png")
+    parser.add_argument("--out", default=".",
+                        help="directory for sim_to_real.json and .png (default: this one)")
     args = parser.parse_args(argv)
     if args.baselines is not None and args.baselines < 1:
         parser.error("--baselines must be at least 1")

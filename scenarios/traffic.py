@@ -306,7 +306,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="ring, grid, or the path of a network description (.toml)")
     parser.add_argument("--seed", type=sumo_seed, default=1,
                         help=f"0 to {SUMO_SEED_MAX} (default 1)")
-    parser.add_argument("--out", default=".", help="directory for the JSON and the PNG")
+    parser.add_argument("--out", default=".",
+                        help="directory for the JSON and the PNG (default: this one)")
     parser.add_argument("--scale", action="append", default=[], metavar="[PERIOD=]FACTOR",
                         help="multiply the demand's rates: in one period (surge=2), or "
                              "in all (1.5); may be given for several periods")

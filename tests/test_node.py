@@ -357,3 +357,32 @@ def test_a_fenced_executor_stops_its_modules_at_once_whatever_holds_its_lock(
         executor.close()
     last_step = max(float(line.split()[1]) for line in stamps.read_text().splitlines())
     assert last_step - fenced_by < 0.6, "a module stepped on long after its node was fenced"
+
+
+def test_a_lease_grant_never_waits_for_a_worker_that_reads_nothing() -> None:
+    """A node's executor grants its workers' leases from one thread. A worker frozen
+    (SIGSTOP) reads nothing; once its pipe was full, the grant to it waited for room for
+    good, and no other worker got a lease again: every healthy worker lapsed and
+    stopped its modules (36 s after the freeze, measured). A grant goes only if it can
+    go at once; the frozen worker's is skipped, and only its lease lapses."""
+    import multiprocessing
+
+    from pb3a.node.workers import WorkerHandle
+
+    ours, frozen = multiprocessing.Pipe()
+    handle = WorkerHandle("a/m-frozen", "a", conn=ours, alive=True, pid=os.getpid())
+    try:
+        assert handle.send_now(1, "lease", {"until": 1.0})        # room: it goes
+        os.set_blocking(ours.fileno(), False)
+        with contextlib.suppress(BlockingIOError):               # nobody reads: full
+            while True:
+                os.write(ours.fileno(), b"\0" * 65536)
+        os.set_blocking(ours.fileno(), True)
+        started = time.monotonic()
+        assert not handle.send_now(2, "lease", {"until": 2.0})
+        with handle.send_lock:                                   # another sender's turn
+            assert not handle.send_now(3, "lease", {"until": 3.0})
+        assert time.monotonic() - started < 0.5
+    finally:
+        ours.close()
+        frozen.close()

@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -284,7 +285,9 @@ def test_the_rave_command_serves_a_world_injects_faults_and_renders(tmp_path, ca
             client.close()
         assert sonar[3] == sonar[4] == 5.0
         assert cli.main(["fault", robots["r1"], "motors_off"]) == 1        # simulated
-        assert "faults are injected into hardware robots" in capsys.readouterr().err
+        said = capsys.readouterr().err     # as the world says it, not at the world's address
+        assert said.startswith("rave fault: robot r1 is simulated: faults are injected "
+                               "into hardware robots"), said
         process.send_signal(signal.SIGTERM)
         assert process.wait(timeout=15) == 0
     finally:
@@ -304,6 +307,10 @@ def test_the_rave_command_names_a_mistake_instead_of_a_traceback(tmp_path, capsy
     assert "'-1' is not a seed: give a whole number, 0 or more" in capsys.readouterr().err
     assert cli.main(["fault", "127.0.0.1:7400", "motors_off"]) == 1
     assert "must be a string tcp://HOST:PORT" in capsys.readouterr().err
+    started = time.monotonic()            # nobody there: it waited 10 s, with no --timeout
+    assert cli.main(["fault", "tcp://127.0.0.1:1", "motors_off", "--timeout", "0.3"]) == 1
+    assert "did not answer 'inject' within 0.3 s" in capsys.readouterr().err
+    assert time.monotonic() - started < 3
     for output in (tmp_path / "lab", tmp_path):
         assert cli.main(["render", "rave/worlds/lab.toml", "-o", str(output)]) == 1
         assert "give an image file, its suffix the format" in capsys.readouterr().err

@@ -234,10 +234,11 @@ class NodeShare:
         while not self.stopped.wait(LEASE_GRANT_S):
             if not self._leased():
                 continue                    # (fencing: no more grants)
-            for key, handle in list(workers.handles.items()):
-                if handle.alive:
-                    with contextlib.suppress(RuntimeFailure, KeyError):
-                        workers.submit(key, "lease", until=self._leased_at + self._lease_s)
+            for key in list(workers.handles):
+                # never waits: a frozen worker that reads nothing is skipped (its lease
+                # then lapses, as it should); a grant that waited for room in its pipe
+                # stopped the grants of every other worker, whose leases lapsed too
+                workers.tell_now(key, "lease", until=self._leased_at + self._lease_s)
 
     def _measure_peers(self) -> None:
         """Ping every peer now and then: the round-trip times the env module shows."""

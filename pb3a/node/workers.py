@@ -18,6 +18,7 @@ import logging
 import multiprocessing
 import multiprocessing.connection
 import os
+import select
 import socket
 import threading
 import time
@@ -130,6 +131,22 @@ class WorkerHandle:
             self.conn.send_bytes(body)
             if fd is not None:
                 reduction.send_handle(self.conn, fd, self.pid)
+
+    def send_now(self, req_id: int, op: str, args: Any) -> bool:
+        """``send`` a small request only if it cannot wait: no other thread is sending
+        to the worker, and its pipe has room now. False if it did not go. (A worker that
+        reads nothing, frozen, fills its pipe: a send that waited for room held its
+        caller for good, and every later grant of a lease behind it.)"""
+        if not self.send_lock.acquire(blocking=False):
+            return False
+        try:
+            if not select.select([], [self.conn.fileno()], [], 0)[1]:
+                return False
+            self.conn.send((req_id, op, False))
+            self.conn.send_bytes(pickling.dumps(args))
+            return True
+        finally:
+            self.send_lock.release()
 
 
 @dataclass
@@ -301,6 +318,18 @@ class WorkerPool:
         """Send one request to a worker (a descriptor right behind it if given) and wait
         for its answer."""
         return self.result(self.submit(key, op, _fd=_fd, **args), op, key, timeout)
+
+    def tell_now(self, key: str, op: str, /, **args: Any) -> bool:
+        """Send worker ``key`` a request whose answer nobody waits for, if it can go at
+        once (``WorkerHandle.send_now``); False if it could not (the worker is gone,
+        stopping, or does not read its pipe)."""
+        handle = self.handles.get(key)
+        if handle is None or not handle.alive or handle.last_figures is not None:
+            return False
+        try:
+            return handle.send_now(next(self._ids), op, args)
+        except (OSError, ValueError):
+            return False
 
     def submit(self, key: str, op: str, /, _fd: int | None = None, **args: Any) -> Future[Any]:
         """Send one request to a worker; the future holds its answer."""
