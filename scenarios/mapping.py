@@ -287,6 +287,9 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
     return figures
 
 
+VIRTUAL_TINT = (0.6, 0.75, 0.95)     # a virtual obstacle's colour in the true map
+
+
 def plot(record: dict[str, Any], figures: dict[str, Any], path: Path) -> None:
     """The true map and the learnt ones with both robots' paths; quality over time."""
     import matplotlib
@@ -300,7 +303,16 @@ def plot(record: dict[str, Any], figures: dict[str, Any], path: Path) -> None:
     struck = {"motors": "motors cut", "robot_link": "robot server killed"}[record["fault"]]
     before = [s for at, s in record["recorder"]["snapshots"] if at <= fault_at]
     fig = plt.figure(figsize=(13, 8))
-    panels = [("ground truth", np.where(occupied, 1.0, 0.0)),
+    # a virtual obstacle is mapped as any other (the sonars see it), but a real robot
+    # drives through it: drawn black, a path across it read as a collision
+    described = record["described"]
+    solid = truth({**described, "obstacles": [o for o in described["obstacles"]
+                                              if not o.get("virtual")]}, grid)
+    tint = np.array(VIRTUAL_TINT)
+    true_map = np.ones((*grid.shape, 3))                  # white: free
+    true_map[occupied & ~solid] = tint
+    true_map[solid] = 0.0
+    panels = [("ground truth (blue: virtual, seen but not solid)", true_map),
               (f"map at the fault ({figures['fault_at_s']:.0f} s)",
                before[-1] if before else grid.blank()),
               ("map at the end", record["final_map"])]
