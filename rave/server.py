@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from pb3a.errors import RuntimeFailure, RuntimeTimeout
+from pb3a.errors import RuntimeFailure
 from pb3a.processes import serve_as_child, start_without_main, stop_on_sigterm
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient, ControlServer
@@ -322,9 +322,7 @@ def robot_server_main(name: str, world_address: str, host: str, conn: Any) -> No
                              f"{', '.join(ROBOT_OPS)}")
         try:
             return world.call(op, RELAY_TIMEOUT, robot=name, **args)
-        except RuntimeTimeout:
-            raise
-        except RuntimeFailure as exc:
+        except RuntimeFailure as exc:           # (a RuntimeTimeout is not one: as it is)
             # said as the world said it: the world server's address, which the caller
             # never gave, and the exception's name meant nothing to it
             said = str(exc).removeprefix(f"{op} at {world_address} failed: ")

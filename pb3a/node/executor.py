@@ -183,10 +183,7 @@ class Executor:
         return self.call(self.modules[name].worker, op, timeout, name=name, **args)
 
     def _alive(self, key: str) -> bool:
-        """Whether worker ``key`` takes requests: it runs, and has not begun to stop (a
-        worker that did, on a SIGTERM, has told its last figures and reads no more)."""
-        handle = self.workers[key]
-        return handle.alive and handle.last_figures is None
+        return self.workers[key].serving
 
     # -- placement -------------------------------------------------------------
     def place(self, spec: FlatModule) -> str:
@@ -580,7 +577,7 @@ class Executor:
         fill, its remote links' losses, its CPU (since the last report) and memory, and
         how many spare workers it has booted."""
         asked = {key: handle for key, handle in list(self.workers.handles.items())
-                 if handle.alive and handle.last_figures is None}   # (told: it stops)
+                 if handle.serving}
         futures = {key: self.workers.submit(key, "stats") for key in asked}
         reports: dict[str, Any] = {}
         deadline = time.monotonic() + REPORT_TIMEOUT    # one for all: they answer at once

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import socket
 import threading
 import time
 from typing import TYPE_CHECKING, Any
@@ -25,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 from pb3a.config.description import DEFAULT_SPARES
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
-from pb3a.transport.addresses import host_of
+from pb3a.transport.addresses import host_of, unresolved
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 
@@ -79,7 +78,7 @@ class RemoteNode:
         self.stopped = False                # its controller confirmed the executor's stop
         # where the other nodes reach its executor and publications
         host = advertise or host_of(address)
-        unknown = _unresolved(address)      # (said at once, not after the ping's wait)
+        unknown = unresolved(address)      # (said at once, not after the ping's wait)
         if unknown:
             self.close()
             raise RuntimeFailure(f"node {name}: its address {address} names a host that "
@@ -330,13 +329,3 @@ class RemoteNode:
         self.controller.close()
         if self.client is not None:
             self.client.close()
-
-
-def _unresolved(address: str) -> str:
-    """Why the host of ``address`` (``tcp://HOST:PORT``) does not resolve; "" if it does."""
-    host = host_of(address).strip("[]")
-    try:
-        socket.getaddrinfo(host, None)
-    except (socket.gaierror, UnicodeError) as exc:
-        return getattr(exc, "strerror", None) or str(exc)
-    return ""

@@ -119,6 +119,12 @@ class WorkerHandle:
     # not have its pipe closed under the monitor reading it
     read_lock: threading.RLock = field(default_factory=threading.RLock)
 
+    @property
+    def serving(self) -> bool:
+        """Whether the worker takes requests: it runs, and has not begun to stop (one
+        that did, on a SIGTERM, has told its last figures and reads no more)."""
+        return self.alive and self.last_figures is None
+
     def send(self, req_id: int | None, op: str, args: Any, fd: int | None = None) -> None:
         """Send a request (or, with ``req_id`` None, an answer to one of the worker's)
         on its pipe: its head, its arguments pickled on their own, then a descriptor if
@@ -243,8 +249,8 @@ class WorkerPool:
             if self._stopping.is_set():
                 raise RuntimeFailure(f"node {node} is shutting down: no worker is started")
             with self._spares_lock:    # (one that died unseen yet, or stops, is skipped)
-                while self._spares and (not self._spares[0].process.is_alive()
-                                        or self._spares[0].last_figures is not None):
+                while self._spares and not (self._spares[0].serving
+                                            and self._spares[0].process.is_alive()):
                     self._spares.pop(0)
                 spare = self._spares.pop(0) if self._spares else None
             if spare is not None:                # booted already: only its name changes
@@ -324,7 +330,7 @@ class WorkerPool:
         once (``WorkerHandle.send_now``); False if it could not (the worker is gone,
         stopping, or does not read its pipe)."""
         handle = self.handles.get(key)
-        if handle is None or not handle.alive or handle.last_figures is not None:
+        if handle is None or not handle.serving:
             return False
         try:
             return handle.send_now(next(self._ids), op, args)
@@ -338,7 +344,7 @@ class WorkerPool:
     def _submit(self, handle: WorkerHandle, op: str, fd: int | None,
                 args: dict[str, Any]) -> Future[Any]:
         future: Future[Any] = Future()
-        if not handle.alive or handle.last_figures is not None:   # (told them: it stops)
+        if not handle.serving:
             future.set_exception(RuntimeFailure(f"worker {handle.key!r} is not running"))
             return future
         req_id = next(self._ids)

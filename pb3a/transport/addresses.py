@@ -56,26 +56,30 @@ def host_of(address: str) -> str:
     return address.removeprefix("tcp://").rpartition(":")[0]
 
 
+def unresolved(address: str) -> str:
+    """Why the host of ``address`` ("tcp://HOST:PORT") does not resolve; "" if it does.
+    It asks the system's resolver, which may take its time: see ``unknown_host``."""
+    try:
+        socket.getaddrinfo(host_of(address).strip("[]"), None)
+    except (socket.gaierror, UnicodeError) as exc:
+        return getattr(exc, "strerror", None) or str(exc)
+    return ""
+
+
 def unknown_host(address: str, timeout: float) -> str | None:
     """Why the host of ``address`` ("tcp://HOST:PORT") has no address, if the resolver
     says so within ``timeout``; None if it has one, or the resolver did not answer in
     time (the connection's own deadline then tells). A misspelt host was waited for to
     the end of that deadline, and named only as "no answer"."""
-    host = host_of(address).strip("[]")
-    answer: list[str | None] = []
-
-    def resolve() -> None:
-        try:
-            socket.getaddrinfo(host, None)
-            answer.append(None)
-        except (socket.gaierror, UnicodeError) as exc:
-            answer.append(f"no address is known for host {host!r} of {address}: "
-                          f"{getattr(exc, 'strerror', None) or exc}")
-
-    resolver = threading.Thread(target=resolve, name="pb3a-resolve", daemon=True)
+    answer: list[str] = []
+    resolver = threading.Thread(target=lambda: answer.append(unresolved(address)),
+                                name="pb3a-resolve", daemon=True)
     resolver.start()
     resolver.join(timeout)
-    return answer[0] if answer else None
+    if not answer or not answer[0]:
+        return None
+    return (f"no address is known for host {host_of(address).strip('[]')!r} of {address}: "
+            f"{answer[0]}")
 
 
 def tcp_address_problems(value: object, what: str, otherwise: str = "") -> list[str]:
