@@ -19,6 +19,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import psutil
 import pytest
 from conftest import alive, eventually, restart_after_kill
@@ -31,6 +32,7 @@ from sample_modules import (
     CrashesWhileFlagged,
     Faulty,
     FloatSource,
+    Hoard,
     Journal,
     Last,
     Scale,
@@ -1105,3 +1107,50 @@ def test_a_worker_stopped_while_its_executor_is_frozen_still_tears_down_and_exit
             os.killpg(proc.pid, signal.SIGKILL)
             proc.communicate()
     assert not live_segments(proc.pid)
+
+
+def _bounded(call: Callable[[], object], timeout: float) -> tuple[object, float]:
+    """What ``call`` returned or raised, and how long it took; a call still running
+    after ``timeout`` is what it returned (a hang)."""
+    outcome: list[object] = []
+    caller = threading.Thread(target=lambda: outcome.append(_outcome(call)), daemon=True)
+    started = time.monotonic()
+    caller.start()
+    caller.join(timeout)
+    return (outcome[0] if outcome else "still waiting"), time.monotonic() - started
+
+
+def test_a_request_to_a_worker_that_reads_nothing_keeps_its_deadline() -> None:
+    """A worker frozen (SIGSTOP, starved, its reader stuck) reads nothing from its pipe.
+    A request bigger than the pipe's room (a 4 MiB state) waited for room for good,
+    past its timeout and holding the system's lock, and the system's close hung behind
+    it. Now: the request that began to go times out, and runs when the worker wakes;
+    one that could not begin is withdrawn at its timeout, and never runs; a close with
+    the worker still frozen ends."""
+    system = System("reads-nothing").node("a")
+    system.add("h", Hoard, node="a")
+    run = system.launch(timeout=30)
+    try:
+        pid = eventually(lambda: run.stats().modules["h"].pid, what="the worker's pid")
+        zeros = np.zeros(Hoard.shape, np.float32)
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            began, took = _bounded(lambda: run.set_state("h", grid=zeros, timeout=1), 10)
+            assert isinstance(began, RuntimeTimeout) and "did not answer" in str(began), began
+            assert took < 2, f"the request that began to go took {took:.1f} s"
+            queued, took = _bounded(lambda: run.set_state(
+                "h", marks=zeros.astype(np.int16), timeout=1), 10)
+            assert isinstance(queued, RuntimeTimeout) and "withdrawn" in str(queued), queued
+            assert took < 2, f"the request that could not go took {took:.1f} s"
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        state = run.state("h", timeout=10)               # (behind the first, which runs)
+        assert not state["grid"].any()
+        assert np.array_equal(state["marks"], Hoard.expected(0)[1])
+        os.kill(pid, signal.SIGSTOP)                     # frozen for good this time
+        assert isinstance(_bounded(lambda: run.set_state("h", grid=zeros + 1, timeout=1),
+                                   10)[0], RuntimeTimeout)
+    finally:
+        closed, took = _bounded(lambda: run.close(timeout=5), 30)
+    assert closed is None and took < 15, f"close: {closed!r} after {took:.1f} s"
+    assert not alive(pid)

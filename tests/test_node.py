@@ -367,10 +367,12 @@ def test_a_lease_grant_never_waits_for_a_worker_that_reads_nothing() -> None:
     go at once; the frozen worker's is skipped, and only its lease lapses."""
     import multiprocessing
 
+    from pb3a.node.worker_pipe import Outbox
     from pb3a.node.workers import WorkerHandle
 
     ours, frozen = multiprocessing.Pipe()
-    handle = WorkerHandle("a/m-frozen", "a", conn=ours, alive=True, pid=os.getpid())
+    handle = WorkerHandle("a/m-frozen", "a", conn=ours, outbox=Outbox(ours.fileno()),
+                          alive=True, pid=os.getpid())
     try:
         assert handle.send_now(1, "lease", {"until": 1.0})        # room: it goes
         os.set_blocking(ours.fileno(), False)
@@ -380,9 +382,9 @@ def test_a_lease_grant_never_waits_for_a_worker_that_reads_nothing() -> None:
         os.set_blocking(ours.fileno(), True)
         started = time.monotonic()
         assert not handle.send_now(2, "lease", {"until": 2.0})
-        with handle.send_lock:                                   # another sender's turn
-            assert not handle.send_now(3, "lease", {"until": 3.0})
+        handle.send(3, "stats", {})                              # queued behind, not sent
+        assert not handle.send_now(4, "lease", {"until": 4.0})   # (nor jumps the queue)
         assert time.monotonic() - started < 0.5
     finally:
-        ours.close()
+        handle.close_pipe()
         frozen.close()

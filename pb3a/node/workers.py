@@ -5,7 +5,8 @@ preloaded. A pool keeps a few of them booted and idle (``WorkerSettings.spares``
 module that arrives (a migration, an add) takes one over instead of waiting for a
 process to start, which is most of a move's preparation. Each worker has a private
 pipe: requests carry an id and wait on a future with a deadline. One monitor thread
-reads every pipe and every process sentinel; a worker's notices (checkpoints,
+reads every pipe and every process sentinel; neither it nor a sender ever waits for a
+worker that reads or writes nothing (``worker_pipe``); a worker's notices (checkpoints,
 errors, agents' requests) go to ``on_notice``, its death, after every request
 waiting on it has failed, to ``on_death``.
 """
@@ -18,7 +19,7 @@ import logging
 import multiprocessing
 import multiprocessing.connection
 import os
-import select
+import pickle
 import socket
 import threading
 import time
@@ -34,6 +35,7 @@ from pb3a.config.description import DEFAULT_SPARES
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
 from pb3a.node.watched_process import STATUS_WAIT_S, WatchedProcess
+from pb3a.node.worker_pipe import Inbox, Outbox, Outgoing
 from pb3a.processes import start_without_main
 from pb3a.transport import pickling
 from pb3a.transport.doorbell import new_bell
@@ -108,13 +110,15 @@ class WorkerHandle:
     node: str
     bell: int = field(default_factory=new_bell)    # the worker's doorbell (an eventfd)
     process: WatchedProcess | None = None
-    conn: Any = None
+    conn: Any = None                       # the pipe (the two ends below are ours)
+    outbox: Outbox | None = None
+    inbox: Inbox | None = None
+    head: tuple[int | None, Any] | None = None    # a message whose payload is to come
     modules: list[str] = field(default_factory=list)
     alive: bool = False
     pid: int = 0
     # what the worker's modules had done when it stopped (its stats), told as it stopped
     last_figures: dict[str, Any] | None = None
-    send_lock: threading.Lock = field(default_factory=threading.Lock)
     # held to read the pipe and to close it: a worker stopped by another thread must
     # not have its pipe closed under the monitor reading it
     read_lock: threading.RLock = field(default_factory=threading.RLock)
@@ -125,34 +129,29 @@ class WorkerHandle:
         that did, on a SIGTERM, has told its last figures and reads no more)."""
         return self.alive and self.last_figures is None
 
-    def send(self, req_id: int | None, op: str, args: Any, fd: int | None = None) -> None:
+    def send(self, req_id: int | None, op: str, args: Any,
+             fd: int | None = None) -> Outgoing:
         """Send a request (or, with ``req_id`` None, an answer to one of the worker's)
-        on its pipe: its head, its arguments pickled on their own, then a descriptor if
-        given. The arguments go by cloudpickle, so a class the launcher's own script
-        defines travels by value, and one the worker cannot read fails only its request.
-        A ``TypeError`` or ``PicklingError`` says they cannot be pickled: nothing went."""
+        through its outbox, never waiting: its head, its arguments pickled on their own,
+        then a descriptor if given. The arguments go by cloudpickle, so a class the
+        launcher's own script defines travels by value, and one the worker cannot read
+        fails only its request. A ``TypeError`` or ``PicklingError`` says they cannot be
+        pickled, an ``OSError`` that the pipe is closed: nothing went."""
         body = pickling.dumps(args)
-        with self.send_lock:                     # several threads may send at once
-            self.conn.send((req_id, op, fd is not None))
-            self.conn.send_bytes(body)
-            if fd is not None:
-                reduction.send_handle(self.conn, fd, self.pid)
+        return self.outbox.put([pickle.dumps((req_id, op, fd is not None)), body], fd)
 
     def send_now(self, req_id: int, op: str, args: Any) -> bool:
-        """``send`` a small request only if it cannot wait: no other thread is sending
-        to the worker, and its pipe has room now. False if it did not go. (A worker that
-        reads nothing, frozen, fills its pipe: a send that waited for room held its
-        caller for good, and every later grant of a lease behind it.)"""
-        if not self.send_lock.acquire(blocking=False):
-            return False
-        try:
-            if not select.select([], [self.conn.fileno()], [], 0)[1]:
-                return False
-            self.conn.send((req_id, op, False))
-            self.conn.send_bytes(pickling.dumps(args))
-            return True
-        finally:
-            self.send_lock.release()
+        """``send`` a request only if it goes at once (``Outbox.put_now``); False if it
+        did not go. (A worker that reads nothing, frozen, fills its pipe: a lease's
+        renewal queued behind the others would only come too late.)"""
+        return self.outbox.put_now([pickle.dumps((req_id, op, False)), pickling.dumps(args)])
+
+    def close_pipe(self) -> None:
+        """Close both ends of ours (the worker then reads the end of its pipe)."""
+        with self.read_lock, contextlib.suppress(OSError):
+            for end in (self.outbox, self.inbox, self.conn):
+                if end is not None:
+                    end.close()
 
 
 @dataclass
@@ -236,6 +235,8 @@ class WorkerPool:
         # The doorbell is the worker's first read: send it before anyone can send a request.
         reduction.send_handle(parent, handle.bell, process.pid)
         handle.process, handle.conn, handle.alive, handle.pid = watched, parent, True, process.pid
+        handle.outbox, handle.inbox = Outbox(parent.fileno()), Inbox(parent.fileno())
+        handle.head = None
         handle.last_figures = None
         self._poke()
 
@@ -350,8 +351,9 @@ class WorkerPool:
         req_id = next(self._ids)
         self._futures[req_id] = future
         future.pb3a_worker = handle   # type: ignore[attr-defined]
+        future.pb3a_request = req_id   # type: ignore[attr-defined]
         try:
-            handle.send(req_id, op, args, fd)
+            future.pb3a_outgoing = handle.send(req_id, op, args, fd)   # type: ignore[attr-defined]
         except (OSError, ValueError) as exc:
             # Whoever pops a future completes it: the monitor may have done so already
             # (the worker's death seen meanwhile).
@@ -364,8 +366,7 @@ class WorkerPool:
                     f"{type(exc).__name__}: {exc}"))
         return future
 
-    @staticmethod
-    def result(future: Future[Any], op: str, key: str, timeout: float) -> Any:
+    def result(self, future: Future[Any], op: str, key: str, timeout: float) -> Any:
         """The answer ``future`` holds within ``timeout``, else ``RuntimeTimeout``."""
         try:
             return future.result(timeout)
@@ -374,10 +375,19 @@ class WorkerPool:
             # concurrent.futures' is; or it came just after the wait ran out
             if future.done():
                 return future.result()
+        handle: WorkerHandle = future.pb3a_worker   # type: ignore[attr-defined]
+        outgoing = getattr(future, "pb3a_outgoing", None)
+        if outgoing is not None and handle.outbox.withdraw(outgoing):
+            self._futures.pop(future.pb3a_request, None)   # type: ignore[attr-defined]
             raise RuntimeTimeout(
-                f"worker {key!r} did not answer {op!r} within {timeout:g} s: a module there "
-                "is stuck in a long call (step, on_input, setup), or its machine is "
-                "overloaded; its log and `pb3a status` may say which") from None
+                f"worker {key!r} read nothing of {op!r} within {timeout:g} s, so it was "
+                "withdrawn and will not run: the worker reads nothing from its pipe "
+                "(stopped, starved, or stuck in a call); its log and `pb3a status` may "
+                "say which")
+        raise RuntimeTimeout(
+            f"worker {key!r} did not answer {op!r} within {timeout:g} s: a module there "
+            "is stuck in a long call (step, on_input, setup), or its machine is "
+            "overloaded; its log and `pb3a status` may say which")
 
     # -- the monitor -----------------------------------------------------------
     def _poke(self) -> None:
@@ -416,41 +426,42 @@ class WorkerPool:
 
     def _read_open(self, handle: WorkerHandle) -> None:
         try:
-            while handle.conn.poll():
-                req_id, ok = handle.conn.recv()            # the head, then the payload
-                try:
-                    result = cloudpickle.loads(handle.conn.recv_bytes())
-                except (EOFError, OSError):
-                    raise
-                except Exception as exc:                   # fails its request, not the pipe
-                    if req_id is None:
-                        log.error("worker %s: a %s notice could not be read here: %s: %s",
-                                  handle.key, ok, type(exc).__name__, exc)
-                        continue
-                    ok, result = False, ("its answer could not be read here: "
-                                         f"{type(exc).__name__}: {exc}")
-                if req_id is None:
-                    self._on_notice(handle, ok, result)
-                    continue
-                future = self._futures.pop(req_id, None)
-                if future is None:
-                    continue
-                if ok is True:
-                    future.set_result(result)
-                elif ok == TIMED_OUT:                      # the caller may try again
-                    future.set_exception(RuntimeTimeout(f"worker {handle.key!r}: {result}"))
-                elif ok == REFUSED:                        # the caller's to mend, as said
-                    future.set_exception(RuntimeFailure(result))
-                else:
-                    future.set_exception(RuntimeFailure(f"worker {handle.key!r}: {result}"))
+            messages = handle.inbox.read()
         except (EOFError, OSError):
             return                                     # it died: the sentinel reports it
+        for message in messages:
+            if handle.head is None:                    # the head, then the payload
+                handle.head = pickle.loads(message)
+                continue
+            (req_id, ok), handle.head = handle.head, None
+            try:
+                result = cloudpickle.loads(message)
+            except Exception as exc:                   # fails its request, not the pipe
+                if req_id is None:
+                    log.error("worker %s: a %s notice could not be read here: %s: %s",
+                              handle.key, ok, type(exc).__name__, exc)
+                    continue
+                ok, result = False, ("its answer could not be read here: "
+                                     f"{type(exc).__name__}: {exc}")
+            if req_id is None:
+                self._on_notice(handle, ok, result)
+                continue
+            future = self._futures.pop(req_id, None)
+            if future is None:
+                continue
+            if ok is True:
+                future.set_result(result)
+            elif ok == TIMED_OUT:                      # the caller may try again
+                future.set_exception(RuntimeTimeout(f"worker {handle.key!r}: {result}"))
+            elif ok == REFUSED:                        # the caller's to mend, as said
+                future.set_exception(RuntimeFailure(result))
+            else:
+                future.set_exception(RuntimeFailure(f"worker {handle.key!r}: {result}"))
 
     def _died(self, handle: WorkerHandle) -> None:
         handle.alive = False
         handle.process.close()              # (seen ended: what it says is kept)
-        with handle.read_lock, contextlib.suppress(OSError):
-            handle.conn.close()
+        handle.close_pipe()
         self._fail_requests(handle, "died")
         if self.handles.get(handle.key) is not handle:     # a spare: it hosted nothing
             with self._spares_lock:
@@ -479,8 +490,8 @@ class WorkerPool:
         """Tell the process to exit, then terminate it, then kill it; close its pipe."""
         if handle.process is None:
             return
-        with contextlib.suppress(OSError, ValueError):
-            handle.conn.send(None)
+        with contextlib.suppress(OSError):
+            handle.outbox.put([pickle.dumps(None)])
         handle.process.join(timeout)
         if handle.process.is_alive():
             handle.process.terminate()
@@ -488,8 +499,7 @@ class WorkerPool:
         if handle.process.is_alive():
             handle.process.kill()
             handle.process.join(1.0)
-        with handle.read_lock, contextlib.suppress(OSError):
-            handle.conn.close()
+        handle.close_pipe()
         self._fail_requests(handle, "was stopped")     # none waits for its deadline
         self._poke()
 

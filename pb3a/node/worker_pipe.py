@@ -1,0 +1,253 @@
+"""The executor's ends of a worker's pipe, neither of which ever waits for the worker.
+
+``Outbox`` sends. A worker that reads nothing (stopped, starved, or its reading thread
+stuck) fills its pipe, and a plain ``Connection.send`` then waits for room for good:
+past its caller's timeout, holding whatever lock its caller holds (a change's
+configuration lock, a stop's). An outbox writes what the pipe takes at once and
+leaves the rest, in order, to a thread that runs only while something is left. A
+message none of which has gone can be withdrawn: a request whose caller gave up
+before the worker read a byte of it never runs later.
+
+``Inbox`` reads. One thread reads every worker of a node; a worker frozen halfway
+through a large message (a checkpoint, a state) held it waiting for the rest, and
+every other worker's answers and death with it. An inbox takes in what the pipe holds
+and hands out only whole messages.
+
+Messages are framed as ``multiprocessing.connection.Connection`` frames them, and a
+descriptor goes as ``multiprocessing.reduction.send_handle`` sends it, so the worker
+uses a plain ``Connection`` (``send_bytes``, ``recv_bytes``, ``reduction.recv_handle``).
+"""
+
+from __future__ import annotations
+
+import array
+import contextlib
+import os
+import select
+import socket
+import struct
+import threading
+from collections import deque
+from dataclasses import dataclass
+
+_LENGTH = struct.Struct("!i")            # Connection's frame header
+_LONG_LENGTH = struct.Struct("!Q")       # after a header of -1, for 2 GiB and more
+# How often a drain that waits for room looks whether its outbox was closed.
+DRAIN_POLL_S = 0.5
+# What an inbox asks of its pipe per read (a socket pair holds about 200 KiB).
+READ_CHUNK = 256 * 1024
+
+
+def frame(payload: bytes) -> list[memoryview]:
+    """``payload`` with the header ``Connection.recv_bytes`` reads it by (no empty piece:
+    a write of nothing would never be done)."""
+    if len(payload) > 0x7fffffff:
+        header = _LENGTH.pack(-1) + _LONG_LENGTH.pack(len(payload))
+    else:
+        header = _LENGTH.pack(len(payload))
+    return [memoryview(header)] + ([memoryview(payload)] if payload else [])
+
+
+@dataclass(eq=False)
+class Outgoing:
+    """One message in an outbox: the bytes still to go, then a descriptor."""
+
+    pieces: list[memoryview]
+    fd: int | None = None                  # our duplicate, closed once it went
+    started: bool = False                  # some of it went: it can no longer be withdrawn
+    done: bool = False                     # all of it went, or it was dropped
+
+    def _consume(self, count: int) -> None:
+        self.started = True
+        while count:
+            first = self.pieces[0]
+            if count < len(first):
+                self.pieces[0] = first[count:]
+                return
+            count -= len(first)
+            self.pieces.pop(0)
+
+    def _close_fd(self) -> None:
+        if self.fd is not None:
+            with contextlib.suppress(OSError):
+                os.close(self.fd)
+            self.fd = None
+
+
+class Outbox:
+    """The sending end of one pipe (a Unix stream socket): ``put`` never waits."""
+
+    def __init__(self, fileno: int) -> None:
+        # A duplicate of the pipe's descriptor, so that the drain never writes to a
+        # number the connection closed and the system gave to another file; ``close``
+        # must therefore be called with the connection's (the worker sees the end of
+        # its pipe only once both are closed).
+        self._socket = socket.socket(fileno=os.dup(fileno))
+        self._lock = threading.Lock()
+        self._queue: deque[Outgoing] = deque()
+        self._closed = False
+        self._draining = False
+
+    def put(self, payloads: list[bytes], fd: int | None = None) -> Outgoing:
+        """Send ``payloads``, each framed, then ``fd`` (duplicated: the caller may close
+        its own at once). What the pipe has no room for now goes later, in order;
+        ``OSError`` if the pipe is closed or broken (the worker is gone)."""
+        item = Outgoing([piece for payload in payloads for piece in frame(payload)],
+                        None if fd is None else os.dup(fd))
+        with self._lock:
+            self._enqueue(item)
+            self._drain_rest()
+        return item
+
+    def put_now(self, payloads: list[bytes]) -> bool:
+        """``put`` only if nothing of ours waits and the pipe takes some of it at once
+        (the rest follows, in order); False, nothing sent, if not. For what is worth
+        sending only now, such as a lease's renewal."""
+        with self._lock:
+            if self._closed or self._queue:
+                return False
+            item = Outgoing([piece for payload in payloads for piece in frame(payload)])
+            self._enqueue(item)
+            if not item.started:
+                self._queue.clear()
+                return False
+            self._drain_rest()
+            return True
+
+    def withdraw(self, item: Outgoing) -> bool:
+        """Take ``item`` back if none of it went; True if so (the worker never sees it)."""
+        with self._lock:
+            if item.started or item.done:
+                return False
+            self._queue.remove(item)
+            item._close_fd()
+            item.done = True
+            return True
+
+    def waiting(self) -> int:
+        """How many messages wait for room in the pipe."""
+        with self._lock:
+            return len(self._queue)
+
+    def close(self) -> None:
+        """Drop what has not gone and close our end (with the connection's, the worker
+        reads the end of its pipe)."""
+        with self._lock:
+            self._closed = True
+            self._discard()
+            self._socket.close()
+
+    # -- writing (the lock held) -------------------------------------------------------
+    def _enqueue(self, item: Outgoing) -> None:
+        if self._closed:
+            item._close_fd()
+            raise BrokenPipeError("its pipe is closed")
+        self._queue.append(item)
+        if len(self._queue) == 1:
+            try:
+                self._flush()
+            except OSError:
+                self._closed = True
+                self._discard()
+                raise
+
+    def _flush(self) -> None:
+        """Write what the pipe takes now, first message first."""
+        while self._queue:
+            item = self._queue[0]
+            try:
+                while item.pieces:
+                    item._consume(self._socket.sendmsg(item.pieces, (), socket.MSG_DONTWAIT))
+                if item.fd is not None:
+                    # as multiprocessing.reduction.sendfds: one byte, the count, with it
+                    rights = array.array("i", [item.fd])
+                    self._socket.sendmsg([b"\x01"], [(socket.SOL_SOCKET, socket.SCM_RIGHTS,
+                                                      rights)], socket.MSG_DONTWAIT)
+                    item.started = True
+                    item._close_fd()
+            except BlockingIOError:
+                return
+            self._queue.popleft()
+            item.done = True
+
+    def _drain_rest(self) -> None:
+        """Leave what is still queued to the drain thread, started if none runs."""
+        if self._queue and not self._draining:
+            self._draining = True
+            threading.Thread(target=self._drain, name="pb3a-outbox",
+                             daemon=True).start()
+
+    def _discard(self) -> None:
+        for item in self._queue:
+            item._close_fd()
+            item.done = True
+        self._queue.clear()
+
+    def _drain(self) -> None:
+        """Write the rest as the pipe makes room, until nothing is left or it closes."""
+        while True:
+            with self._lock:
+                if not self._closed:
+                    try:
+                        self._flush()
+                    except OSError:              # the worker is gone: its death fails
+                        self._closed = True      # the requests that wait on it
+                        self._discard()
+                if self._closed or not self._queue:
+                    self._draining = False
+                    return
+            with contextlib.suppress(OSError, ValueError):    # (closed meanwhile)
+                select.select([], [self._socket], [], DRAIN_POLL_S)
+
+
+class Inbox:
+    """The reading end of one pipe: ``read`` takes what has come, never waiting."""
+
+    def __init__(self, fileno: int) -> None:
+        # a duplicate, as the outbox's: ``close`` goes with the connection's
+        self._socket = socket.socket(fileno=os.dup(fileno))
+        self._buffer = bytearray()
+        self._ended = False
+
+    def read(self) -> list[bytes]:
+        """The whole messages that came since the last read, oldest first (part of
+        one stays for the next read); ``EOFError`` once the pipe ended and every whole
+        message was read."""
+        while not self._ended:
+            try:
+                chunk = self._socket.recv(READ_CHUNK, socket.MSG_DONTWAIT)
+            except BlockingIOError:
+                break
+            except ConnectionResetError:
+                chunk = b""
+            self._buffer += chunk
+            self._ended = not chunk
+        messages, start = [], 0
+        while True:
+            size, header = self._frame_at(start)
+            if size is None or len(self._buffer) < start + header + size:
+                break
+            messages.append(bytes(self._buffer[start + header:start + header + size]))
+            start += header + size
+        del self._buffer[:start]
+        if self._ended and not messages:
+            raise EOFError("the worker's pipe ended" + (
+                " in the middle of a message" if self._buffer else ""))
+        return messages
+
+    def _frame_at(self, start: int) -> tuple[int | None, int]:
+        """The size of the message whose header begins at ``start``, and the header's
+        (None: its header has not all come)."""
+        if len(self._buffer) < start + _LENGTH.size:
+            return None, 0
+        (size,) = _LENGTH.unpack_from(self._buffer, start)
+        if size != -1:
+            return size, _LENGTH.size
+        if len(self._buffer) < start + _LENGTH.size + _LONG_LENGTH.size:
+            return None, 0
+        return _LONG_LENGTH.unpack_from(self._buffer, start + _LENGTH.size)[0], \
+            _LENGTH.size + _LONG_LENGTH.size
+
+    def close(self) -> None:
+        """Close our end (with the connection's)."""
+        self._socket.close()

@@ -1,0 +1,186 @@
+"""The executor's ends of a worker's pipe: what the outbox sends is read by a plain
+``Connection``, in order, and no ``put`` waits for a reader that reads nothing; the
+inbox hands out whole messages only, and never waits for the rest of one."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import pickle
+import queue
+import struct
+import time
+from collections.abc import Iterator
+from multiprocessing import reduction
+from multiprocessing.connection import Connection
+
+import pytest
+from conftest import eventually
+
+from pb3a.node.watched_process import WatchedProcess
+from pb3a.node.worker_pipe import Inbox, Outbox
+from pb3a.node.workers import WorkerHandle, WorkerPool, WorkerSettings
+from pb3a.transport import pickling
+
+BIG = 4 * 1024 * 1024       # far more than a socket pair's buffers hold
+
+
+@pytest.fixture
+def pipe() -> Iterator[tuple[Outbox, Connection]]:
+    ours, theirs = multiprocessing.Pipe()
+    outbox = Outbox(ours.fileno())
+    ours.close()               # the outbox holds its own descriptor
+    yield outbox, theirs
+    outbox.close()
+    theirs.close()
+
+
+def _open_fds() -> int:
+    return len(os.listdir("/proc/self/fd"))
+
+
+def test_what_it_sends_reads_as_a_connection_sends_it(pipe, tmp_path) -> None:
+    outbox, theirs = pipe
+    path = tmp_path / "passed"
+    path.write_text("through the pipe")
+    with open(path) as file:
+        outbox.put([b"small", bytes(range(256)) * 100], fd=file.fileno())
+    outbox.put([b""])
+    assert theirs.recv_bytes() == b"small"
+    assert theirs.recv_bytes() == bytes(range(256)) * 100     # (over 16 KiB: a header alone)
+    with os.fdopen(reduction.recv_handle(theirs)) as passed:  # the caller closed its own
+        assert passed.read() == "through the pipe"
+    assert theirs.recv_bytes() == b""
+
+
+def test_a_full_pipe_never_holds_a_put_and_the_rest_follows_in_order(pipe) -> None:
+    outbox, theirs = pipe
+    big = os.urandom(BIG)
+    started = time.monotonic()
+    outbox.put([big])
+    outbox.put([b"after"])
+    assert time.monotonic() - started < 0.5
+    assert outbox.waiting() == 2
+    assert theirs.recv_bytes() == big               # read: the drain writes the rest
+    assert theirs.recv_bytes() == b"after"
+    eventually(lambda: outbox.waiting() == 0, what="the outbox drained")
+
+
+def test_a_message_none_of_which_went_is_withdrawn_and_never_read(pipe) -> None:
+    outbox, theirs = pipe
+    began = outbox.put([os.urandom(BIG)])
+    behind = outbox.put([b"withdrawn"])
+    last = outbox.put([b"kept"])
+    assert not outbox.withdraw(began)               # half gone: the stream needs the rest
+    assert outbox.withdraw(behind)
+    assert not outbox.withdraw(behind)
+    assert len(theirs.recv_bytes()) == BIG
+    assert theirs.recv_bytes() == b"kept"
+    eventually(lambda: outbox.waiting() == 0, what="the outbox drained")
+    assert not outbox.withdraw(last)                # gone whole
+
+
+def test_put_now_sends_only_what_can_go_at_once(pipe) -> None:
+    outbox, theirs = pipe
+    assert outbox.put_now([b"lease 1"])
+    outbox.put([os.urandom(BIG)])                   # fills the pipe, the rest queued
+    assert not outbox.put_now([b"lease 2"])         # behind it: it would come too late
+    assert theirs.recv_bytes() == b"lease 1"
+    assert len(theirs.recv_bytes()) == BIG
+    eventually(lambda: outbox.waiting() == 0, what="the outbox drained")
+    assert outbox.put_now([b"lease 3"])
+    assert theirs.recv_bytes() == b"lease 3"
+
+
+def test_closing_drops_what_waits_and_the_reader_sees_the_end(pipe, tmp_path) -> None:
+    outbox, theirs = pipe
+    fds = _open_fds()
+    outbox.put([os.urandom(BIG)])
+    with open(tmp_path / "f", "w") as file:
+        outbox.put([b"with a descriptor"], fd=file.fileno())
+    assert _open_fds() == fds + 1                   # our duplicate, until it goes
+    outbox.close()
+    assert _open_fds() == fds - 1                   # and the pipe's
+    with pytest.raises(OSError, match="closed"):
+        outbox.put([b"late"])
+    assert not outbox.put_now([b"late"])
+    with pytest.raises(OSError, match="end of file during message"):   # (cut short)
+        theirs.recv_bytes()
+
+
+def test_a_pipe_whose_reader_is_gone_fails_the_put(pipe) -> None:
+    outbox, theirs = pipe
+    theirs.close()
+    with pytest.raises(BrokenPipeError):
+        outbox.put([b"to nobody"])
+    assert outbox.waiting() == 0
+
+
+def test_the_inbox_hands_out_whole_messages_only(tmp_path) -> None:
+    ours, theirs = multiprocessing.Pipe()
+    inbox = Inbox(ours.fileno())
+    try:
+        big = os.urandom(100_000)                            # (what the pipe holds)
+        assert inbox.read() == []                            # nothing came: no wait
+        theirs.send_bytes(b"first")
+        os.write(theirs.fileno(), struct.pack("!i", len(big)) + big[:1000])   # a part
+        assert inbox.read() == [b"first"]
+        os.write(theirs.fileno(), big[1000:2000])
+        assert inbox.read() == []
+        os.write(theirs.fileno(), big[2000:] + struct.pack("!iQ", -1, 3) + b"xyz")
+        assert inbox.read() == [big, b"xyz"]                 # (and the long header)
+        theirs.send_bytes(b"last")
+        theirs.close()
+        assert inbox.read() == [b"last"]
+        with pytest.raises(EOFError):
+            inbox.read()
+    finally:
+        inbox.close()
+        ours.close()
+        theirs.close()
+
+
+class _ThisProcess:
+    """The test's own process, as the pool's stand-in worker (it never ends)."""
+
+    pid = os.getpid()
+
+
+def test_a_worker_frozen_halfway_through_a_message_holds_up_no_other_worker() -> None:
+    """One monitor thread reads every worker of a node. A worker frozen halfway through
+    a large message (a checkpoint) held it waiting for the rest, and with it every other
+    worker's answers and deaths. The rest is read when it comes."""
+    notices: queue.Queue[tuple[str, str, object]] = queue.Queue()
+    pool = WorkerPool(WorkerSettings(spares=0),
+                      on_notice=lambda handle, kind, payload: notices.put(
+                          (handle.key, kind, payload)),
+                      on_death=lambda handle: None)
+    workers: dict[str, Connection] = {}
+    try:
+        for key in ("frozen", "other"):
+            ours, workers[key] = multiprocessing.Pipe()
+            pool.handles[key] = WorkerHandle(
+                key, "a", conn=ours, outbox=Outbox(ours.fileno()), inbox=Inbox(ours.fileno()),
+                alive=True, pid=os.getpid(), process=WatchedProcess(_ThisProcess()))
+        pool._poke()                               # the monitor sees them
+        checkpoint = pickling.dumps({"state": os.urandom(BIG)})
+        workers["frozen"].send((None, "checkpoint"))
+        os.write(workers["frozen"].fileno(),
+                 struct.pack("!i", len(checkpoint)) + checkpoint[:100_000])
+        workers["other"].send((None, "checkpoint"))
+        workers["other"].send_bytes(pickling.dumps({"state": "small"}))
+        assert notices.get(timeout=5) == ("other", "checkpoint", {"state": "small"})
+        os.write(workers["frozen"].fileno(), checkpoint[100_000:200_000])
+        writing = workers["frozen"].fileno()           # (the monitor reads as it goes)
+        for start in range(200_000, len(checkpoint), 100_000):
+            os.write(writing, checkpoint[start:start + 100_000])
+        assert notices.get(timeout=5) == ("frozen", "checkpoint",
+                                          pickle.loads(checkpoint))
+    finally:
+        handles = list(pool.handles.values())
+        pool.handles.clear()                       # (the stand-in must not be stopped)
+        pool.close(1.0)
+        for handle in handles:
+            handle.close_pipe()
+        for worker in workers.values():
+            worker.close()
