@@ -450,3 +450,25 @@ def test_a_worker_frozen_past_its_lease_while_its_executor_runs_restarts_its_mod
         assert run.stats().nodes["b"].up
     assert module.status == "running" and module.pid == state["pid"]
 
+
+
+def test_stats_with_a_remote_worker_frozen_keeps_the_callers_timeout(controllers) -> None:
+    """A remote node's report waited for its frozen worker (SIGSTOP) the report timeout,
+    5 s, whatever the caller's ``timeout``, then the way back. The caller's covers both;
+    the frozen worker's module is named silent, the other module's figures come."""
+    system = System("frozen-remote").node("a").node("b", address=controllers["b"].address)
+    system.add("frozen", Steady, node="b")
+    system.add("other", Steady, node="b")
+    with system.launch() as run:
+        pid = eventually(lambda: run.stats().modules["frozen"].pid, what="a worker pid")
+        eventually(lambda: run.stats().modules["other"].steps > 0, what="the other's steps")
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            started = time.monotonic()
+            stats = run.stats(timeout=1)
+            took = time.monotonic() - started
+        finally:
+            os.kill(pid, signal.SIGCONT)
+    assert took < 1.5, f"stats took {took:.1f} s"
+    assert stats.modules["frozen"].silent and stats.modules["frozen"].pid == pid
+    assert stats.modules["other"].steps > 0 and not stats.modules["other"].silent

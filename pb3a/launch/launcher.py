@@ -38,7 +38,7 @@ from pb3a.latencies import percentile
 from pb3a.launch.configuration_lock import ConfigurationLock
 from pb3a.logbook import LogBook
 from pb3a.model.environment import env_name
-from pb3a.node.executor import Executor
+from pb3a.node.executor import REPORT_TIMEOUT, Executor
 from pb3a.node.remote import HEARTBEAT_S, LOSS_S, RemoteNode
 from pb3a.node.ring_sizes import ring_size
 from pb3a.node.workers import REQUEST_TIMEOUT
@@ -302,10 +302,11 @@ class Launcher:
                 self.node_of(link.dst).follow([(link, endpoint)])
 
     # -- figures ----------------------------------------------------------------------
-    def stats(self) -> SystemStats:
+    def stats(self, timeout: float = REPORT_TIMEOUT) -> SystemStats:
         """Every node's report, joined: modules where the launcher says they run, the
-        per-link table (from the reader's side), failures, node health."""
-        reports = self._reports()
+        per-link table (from the reader's side), failures, node health; within
+        ``timeout``, a node whose report has not come by then left out."""
+        reports = self._reports(timeout)
         # a module being migrated is on two nodes for a moment: the launcher says where
         modules = {name: entry for report in reports.values()
                    for name, entry in report.modules.items()
@@ -326,15 +327,18 @@ class Launcher:
                                        self.lost_values),
                            nodes, failures)
 
-    def _reports(self) -> dict[str, NodeReport]:
-        """Every node's report, by node, asked of all at once. A node that stops answering its
-        heartbeats meanwhile is not waited for (until it is declared lost): its modules
-        are absent from this report."""
+    def _reports(self, timeout: float) -> dict[str, NodeReport]:
+        """Every node's report, by node, asked of all at once, within ``timeout``. A node
+        that stops answering its heartbeats meanwhile is not waited for (until it is
+        declared lost), nor one whose report is late: their modules are absent."""
         reports: dict[str, NodeReport] = {}
+        deadline = time.monotonic() + timeout
+        # the workers' figures get four fifths of the time, the way back the rest
+        workers_s = min(REPORT_TIMEOUT, 0.8 * timeout)
 
         def ask(name: str, node: Node) -> None:
             try:
-                reports[name] = node.report()
+                reports[name] = node.report(workers_s)
             except (RuntimeFailure, RuntimeTimeout) as exc:
                 log.warning("node %s did not report: %s", name, exc)
 
@@ -345,8 +349,10 @@ class Launcher:
         for thread in asked.values():
             thread.start()
         for name, thread in asked.items():
-            while thread.is_alive() and not self._silent(name):
-                thread.join(WATCH_S)
+            while thread.is_alive() and not self._silent(name) and time.monotonic() < deadline:
+                thread.join(max(0.0, min(WATCH_S, deadline - time.monotonic())))
+            if thread.is_alive() and not self._silent(name):
+                log.warning("node %s did not report within %g s", name, timeout)
         return {name: reports[name] for name in asked if name in reports}
 
     def _silent(self, name: str) -> bool:
@@ -632,7 +638,7 @@ class Launcher:
             node = self.specs[link.src].node
             if node not in reports:
                 try:
-                    reports[node] = self.nodes[node].report()
+                    reports[node] = self.nodes[node].report(REPORT_TIMEOUT)
                 except (RuntimeFailure, RuntimeTimeout):
                     reports[node] = None
             report = reports[node]

@@ -428,8 +428,8 @@ class Operations:
         return {"system": folded.tables, "problems": folded.problems}
 
     def stats(self, *, timeout: float | None = None) -> SystemStats:
-        with self._held("stats", timeout, changes=False):
-            return self.launcher.stats()
+        with self._held("stats", timeout, changes=False) as left:
+            return self.launcher.stats(left())
 
     def events(self, since: int = 0, *, timeout: float | None = 0.0) -> list[Event]:
         return self._history("events", lambda wait: self.event_log.since(since, wait), timeout)

@@ -572,15 +572,15 @@ class Executor:
         return missing
 
     # -- figures ---------------------------------------------------------------
-    def report(self) -> NodeReport:
-        """Figures of every module of this node (one request to each worker), its rings'
-        fill, its remote links' losses, its CPU (since the last report) and memory, and
-        how many spare workers it has booted."""
+    def report(self, timeout: float = REPORT_TIMEOUT) -> NodeReport:
+        """Figures of every module of this node (one request to each worker, waited for
+        ``timeout`` in all), its rings' fill, its remote links' losses, its CPU (since
+        the last report) and memory, and how many spare workers it has booted."""
         asked = {key: handle for key, handle in list(self.workers.handles.items())
                  if handle.serving}
         futures = {key: self.workers.submit(key, "stats") for key in asked}
         reports: dict[str, Any] = {}
-        deadline = time.monotonic() + REPORT_TIMEOUT    # one for all: they answer at once
+        deadline = time.monotonic() + timeout           # one for all: they answer at once
         for key, future in futures.items():             # (each frozen worker took 5 s more)
             with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
                 reports[key] = self.workers.result(future, "stats", key,

@@ -120,8 +120,9 @@ class Node(Protocol):
         was lost)."""
 
     # -- figures and the end
-    def report(self) -> NodeReport:
-        """This node's figures."""
+    def report(self, timeout: float) -> NodeReport:
+        """This node's figures; a worker that has not answered within ``timeout`` is
+        reported silent."""
 
     def worker_pids(self) -> list[int]:
         """The process ids of the node's running workers (its env module's own load)."""

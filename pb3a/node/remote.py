@@ -241,8 +241,8 @@ class RemoteNode:
     def close_inbound(self, links: list[tuple[FlatLink, int]]) -> list[int]:
         return self._forward("close_inbound", links)
 
-    def report(self) -> NodeReport:
-        return self._forward("report")
+    def report(self, timeout: float) -> NodeReport:
+        return self._forward("report", timeout, within=timeout + MARGIN_S)
 
     def worker_pids(self) -> list[int]:
         return self._forward("worker_pids")
