@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import psutil
 import pytest
-from conftest import alive, eventually, restart_after_kill
+from conftest import alive, eventually, frozen, restart_after_kill
 from sample_modules import (
     ArrayHolder,
     ArraySource,
@@ -736,22 +736,17 @@ def test_stats_with_several_frozen_workers_keeps_the_callers_timeout() -> None:
     with system.launch() as run:
         pids = [eventually(lambda i=index: run.stats().modules[f"m{i}"].pid,
                            what="a worker pid") for index in range(3)]
-        for pid in pids:
-            os.kill(pid, signal.SIGSTOP)
-        try:
+        with frozen(*pids):
             started = time.monotonic()
             stats = run.stats(timeout=1)
             took = time.monotonic() - started
-        finally:
-            for pid in pids:
-                os.kill(pid, signal.SIGCONT)
     assert took < 1.5, f"stats took {took:.1f} s"
     assert stats.modules["m3"].steps > 0 and stats.modules["m3"].pid
     assert not stats.modules["m3"].silent
     # a frozen worker's modules are named silent, with their process (shown as running
     # with no process, as if they had none)
-    frozen = [stats.modules[f"m{index}"] for index in range(3)]
-    assert [(m.pid, m.silent, m.status) for m in frozen] == [
+    stopped = [stats.modules[f"m{index}"] for index in range(3)]
+    assert [(m.pid, m.silent, m.status) for m in stopped] == [
         (pid, True, "running") for pid in pids]
     assert "running (silent)" in format_table(stats)
 
@@ -1131,8 +1126,7 @@ def test_a_request_to_a_worker_that_reads_nothing_keeps_its_deadline() -> None:
     try:
         pid = eventually(lambda: run.stats().modules["h"].pid, what="the worker's pid")
         zeros = np.zeros(Hoard.shape, np.float32)
-        os.kill(pid, signal.SIGSTOP)
-        try:
+        with frozen(pid):
             began, took = _bounded(lambda: run.set_state("h", grid=zeros, timeout=1), 10)
             assert isinstance(began, RuntimeTimeout) and "did not answer" in str(began), began
             assert took < 2, f"the request that began to go took {took:.1f} s"
@@ -1140,8 +1134,6 @@ def test_a_request_to_a_worker_that_reads_nothing_keeps_its_deadline() -> None:
                 "h", marks=zeros.astype(np.int16), timeout=1), 10)
             assert isinstance(queued, RuntimeTimeout) and "withdrawn" in str(queued), queued
             assert took < 2, f"the request that could not go took {took:.1f} s"
-        finally:
-            os.kill(pid, signal.SIGCONT)
         state = run.state("h", timeout=10)               # (behind the first, which runs)
         assert not state["grid"].any()
         assert np.array_equal(state["marks"], Hoard.expected(0)[1])

@@ -12,7 +12,7 @@ import time
 
 import psutil
 import pytest
-from conftest import Daemon, alive, assert_same_arrays, eventually, restart_after_kill
+from conftest import Daemon, alive, assert_same_arrays, eventually, frozen, restart_after_kill
 from sample_modules import (
     AsksInSetup,
     Collector,
@@ -443,9 +443,14 @@ def test_a_worker_frozen_past_its_lease_while_its_executor_runs_restarts_its_mod
         time.sleep(2.0)                       # past its lease (1.25 s)
         os.kill(old, signal.SIGCONT)
         eventually(lambda: not alive(old), what="the frozen worker stopping its module")
-        state = eventually(lambda: (s := run.state("steady", timeout=2.0))["pid"] not in (0, old)
-                           and s["count"] > 2 and s, timeout=10,
-                           what="the module restarted in a new worker")
+        def restarted() -> dict | None:
+            try:
+                state = run.state("steady", timeout=2.0)
+            except RuntimeFailure:                 # (its worker seen gone, not restarted yet)
+                return None
+            return state if state["pid"] not in (0, old) and state["count"] > 2 else None
+
+        state = eventually(restarted, timeout=10, what="the module restarted in a new worker")
         module = run.stats().modules["steady"]
         assert run.stats().nodes["b"].up
     assert module.status == "running" and module.pid == state["pid"]
@@ -462,13 +467,10 @@ def test_stats_with_a_remote_worker_frozen_keeps_the_callers_timeout(controllers
     with system.launch() as run:
         pid = eventually(lambda: run.stats().modules["frozen"].pid, what="a worker pid")
         eventually(lambda: run.stats().modules["other"].steps > 0, what="the other's steps")
-        os.kill(pid, signal.SIGSTOP)
-        try:
+        with frozen(pid):
             started = time.monotonic()
             stats = run.stats(timeout=1)
             took = time.monotonic() - started
-        finally:
-            os.kill(pid, signal.SIGCONT)
     assert took < 1.5, f"stats took {took:.1f} s"
     assert stats.modules["frozen"].silent and stats.modules["frozen"].pid == pid
     assert stats.modules["other"].steps > 0 and not stats.modules["other"].silent
