@@ -102,6 +102,8 @@ def test_sigkill_with_restart_never_leaves_module_failed_and_others_running() ->
         assert any(re.match(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d module victim failed", f)
                    for f in run.stats().failures)
         failed = [e for e in run.events() if e.kind == "module_failed"]
+        with pytest.raises(RuntimeFailure, match=r"^module 'victim' has failed; `pb3a status`"):
+            run.state("victim")                 # (said of the module, not of its worker)
         run.restart("victim")                   # asked: it runs again, fresh
         eventually(lambda: run.state("victim")["count"] > 3, what="the restarted victim steps")
         assert run.stats().modules["victim"].status == "running"
@@ -1144,3 +1146,28 @@ def test_a_request_to_a_worker_that_reads_nothing_keeps_its_deadline() -> None:
         closed, took = _bounded(lambda: run.close(timeout=5), 30)
     assert closed is None and took < 15, f"close: {closed!r} after {took:.1f} s"
     assert not alive(pid)
+
+
+def test_a_node_whose_report_is_late_shows_its_modules_silent() -> None:
+    """``stats(timeout=...)`` waits for each node's report within the caller's timeout;
+    a node whose report is late (its executor busy, its link slow) has its modules as
+    its last report had them, silent, not dropped from the figures."""
+    system = System("late-node").node("a").node("b")
+    system.add("here", Steady, node="a")
+    system.add("late", Steady, node="b")
+    with system.launch() as run:
+        pid = eventually(lambda: run.stats().modules["late"].pid, what="b's report")
+        node = run._launcher.nodes["b"]
+        answered, report = threading.Event(), node.report
+        node.report = lambda timeout: answered.wait(10) and report(timeout)
+        try:
+            started = time.monotonic()
+            stats = run.stats(timeout=1)
+            took = time.monotonic() - started
+        finally:
+            answered.set()
+    assert took < 1.5, f"stats took {took:.1f} s"
+    late = stats.modules["late"]
+    assert (late.silent, late.pid, late.node, late.status, late.steps) == (
+        True, pid, "b", "running", 0)
+    assert stats.modules["here"].steps > 0 and not stats.modules["here"].silent

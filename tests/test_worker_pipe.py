@@ -4,16 +4,19 @@ inbox hands out whole messages only, and never waits for the rest of one."""
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
 import pickle
 import queue
 import struct
+import threading
 import time
 from collections.abc import Iterator
 from multiprocessing import reduction
 from multiprocessing.connection import Connection
 
+import psutil
 import pytest
 from conftest import eventually
 
@@ -146,36 +149,20 @@ class _ThisProcess:
     pid = os.getpid()
 
 
-def test_a_worker_frozen_halfway_through_a_message_holds_up_no_other_worker() -> None:
-    """One monitor thread reads every worker of a node. A worker frozen halfway through
-    a large message (a checkpoint) held it waiting for the rest, and with it every other
-    worker's answers and deaths. The rest is read when it comes."""
-    notices: queue.Queue[tuple[str, str, object]] = queue.Queue()
-    pool = WorkerPool(WorkerSettings(spares=0),
-                      on_notice=lambda handle, kind, payload: notices.put(
-                          (handle.key, kind, payload)),
+@contextlib.contextmanager
+def _pool(keys: list[str], on_notice) -> Iterator[tuple[WorkerPool, dict[str, Connection]]]:
+    """A pool whose workers ``keys`` are stand-ins: the test writes their messages."""
+    pool = WorkerPool(WorkerSettings(spares=0), on_notice=on_notice,
                       on_death=lambda handle: None)
     workers: dict[str, Connection] = {}
     try:
-        for key in ("frozen", "other"):
+        for key in keys:
             ours, workers[key] = multiprocessing.Pipe()
             pool.handles[key] = WorkerHandle(
                 key, "a", conn=ours, outbox=Outbox(ours.fileno()), inbox=Inbox(ours.fileno()),
                 alive=True, pid=os.getpid(), process=WatchedProcess(_ThisProcess()))
         pool._poke()                               # the monitor sees them
-        checkpoint = pickling.dumps({"state": os.urandom(BIG)})
-        workers["frozen"].send((None, "checkpoint"))
-        os.write(workers["frozen"].fileno(),
-                 struct.pack("!i", len(checkpoint)) + checkpoint[:100_000])
-        workers["other"].send((None, "checkpoint"))
-        workers["other"].send_bytes(pickling.dumps({"state": "small"}))
-        assert notices.get(timeout=5) == ("other", "checkpoint", {"state": "small"})
-        os.write(workers["frozen"].fileno(), checkpoint[100_000:200_000])
-        writing = workers["frozen"].fileno()           # (the monitor reads as it goes)
-        for start in range(200_000, len(checkpoint), 100_000):
-            os.write(writing, checkpoint[start:start + 100_000])
-        assert notices.get(timeout=5) == ("frozen", "checkpoint",
-                                          pickle.loads(checkpoint))
+        yield pool, workers
     finally:
         handles = list(pool.handles.values())
         pool.handles.clear()                       # (the stand-in must not be stopped)
@@ -184,3 +171,73 @@ def test_a_worker_frozen_halfway_through_a_message_holds_up_no_other_worker() ->
             handle.close_pipe()
         for worker in workers.values():
             worker.close()
+
+
+def _notice(worker: Connection, kind: str, payload: object) -> None:
+    worker.send((None, kind))
+    worker.send_bytes(pickling.dumps(payload))
+
+
+def test_a_worker_frozen_halfway_through_a_message_holds_up_no_other_worker() -> None:
+    """One monitor thread reads every worker of a node. A worker frozen halfway through
+    a large message (a checkpoint) held it waiting for the rest, and with it every other
+    worker's answers and deaths. The rest is read when it comes."""
+    notices: queue.Queue[tuple[str, str, object]] = queue.Queue()
+    with _pool(["frozen", "other"], lambda handle, kind, payload: notices.put(
+            (handle.key, kind, payload))) as (_, workers):
+        checkpoint = pickling.dumps({"state": os.urandom(BIG)})
+        workers["frozen"].send((None, "checkpoint"))
+        writing = workers["frozen"].fileno()
+        os.write(writing, struct.pack("!i", len(checkpoint)) + checkpoint[:100_000])
+        _notice(workers["other"], "checkpoint", {"state": "small"})
+        assert notices.get(timeout=5) == ("other", "checkpoint", {"state": "small"})
+        for start in range(100_000, len(checkpoint), 100_000):   # (read as it goes)
+            os.write(writing, checkpoint[start:start + 100_000])
+        assert notices.get(timeout=5) == ("frozen", "checkpoint", pickle.loads(checkpoint))
+
+
+def test_a_message_that_fails_where_it_is_taken_loses_none_after_it() -> None:
+    """The monitor takes a worker's messages a read at a time: one whose handling
+    raised (a notice's handler, a head that cannot be read) lost the rest of that read,
+    and a head lost made every later payload be taken for a head."""
+    taken: queue.Queue[object] = queue.Queue()
+
+    def on_notice(handle, kind, payload) -> None:
+        if payload == "raises":
+            raise RuntimeError("a handler's fault")
+        taken.put(payload)
+
+    with _pool(["w"], on_notice) as (_, workers):
+        worker = workers["w"]
+        _notice(worker, "log", "raises")
+        worker.send_bytes(b"not a pickle")                # a head that cannot be read
+        worker.send_bytes(pickling.dumps("its payload"))
+        for index in range(3):
+            _notice(worker, "log", index)
+        assert [taken.get(timeout=5) for _ in range(3)] == [0, 1, 2]
+        assert taken.empty()
+
+
+def test_a_drain_waits_for_room_whatever_its_descriptor_number(pipe) -> None:
+    """A drain waits for room with poll(): select() fails for a descriptor numbered
+    1024 or more, and the drain, its failure suppressed, spun a CPU for as long as the
+    worker read nothing (146,625 passes a second)."""
+    _, theirs = pipe
+    taken = [os.dup(theirs.fileno()) for _ in range(1100)]   # (the numbers below 1024)
+    try:
+        outbox = Outbox(theirs.fileno())
+        threads = set(threading.enumerate())
+        outbox.put([os.urandom(BIG)])
+        (drain,) = set(threading.enumerate()) - threads
+
+        def cpu() -> float:
+            (times,) = [t for t in psutil.Process().threads() if t.id == drain.native_id]
+            return times.user_time + times.system_time
+
+        before = cpu()
+        time.sleep(0.5)                 # (its CPU time over half a second: no event to await)
+        assert cpu() - before < 0.03        # (spinning: 0.13 s and more)
+        outbox.close()
+    finally:
+        for fd in taken:
+            os.close(fd)

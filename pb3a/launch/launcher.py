@@ -92,6 +92,7 @@ class Launcher:
         self._log_seen: dict[str, int] = {}           # remote node -> its last entry merged
         self.handler: Any = None                      # applies agents' requests (op, args)
         self.health: dict[str, dict[str, Any]] = {}   # node -> up, rtt, address
+        self._last_reports: dict[str, NodeReport] = {}  # node -> the last it gave in time
         self.changed = threading.Condition()          # notified when a node's health changes
         self._stopping = threading.Event()
         self._watchdog: threading.Thread | None = None
@@ -330,15 +331,18 @@ class Launcher:
     def _reports(self, timeout: float) -> dict[str, NodeReport]:
         """Every node's report, by node, asked of all at once, within ``timeout``. A node
         that stops answering its heartbeats meanwhile is not waited for (until it is
-        declared lost), nor one whose report is late: their modules are absent."""
+        declared lost): its modules are absent. One whose report is late has its modules
+        as its last report had them, silent (no figures of their own)."""
         reports: dict[str, NodeReport] = {}
         deadline = time.monotonic() + timeout
-        # the workers' figures get four fifths of the time, the way back the rest
-        workers_s = min(REPORT_TIMEOUT, 0.8 * timeout)
 
         def ask(name: str, node: Node) -> None:
+            # the workers' figures get what the way back leaves of the timeout
+            rtt = self.health[name]["rtt"] if name in self.remotes else 0.0
+            way_back = 0.1 + 2 * (rtt if rtt == rtt else HEARTBEAT_S)     # (NaN: unknown)
             try:
-                reports[name] = node.report(workers_s)
+                reports[name] = node.report(min(REPORT_TIMEOUT,
+                                                max(timeout / 2, timeout - way_back)))
             except (RuntimeFailure, RuntimeTimeout) as exc:
                 log.warning("node %s did not report: %s", name, exc)
 
@@ -351,9 +355,13 @@ class Launcher:
         for name, thread in asked.items():
             while thread.is_alive() and not self._silent(name) and time.monotonic() < deadline:
                 thread.join(max(0.0, min(WATCH_S, deadline - time.monotonic())))
-            if thread.is_alive() and not self._silent(name):
+        given = {name: reports[name] for name in asked if name in reports}
+        self._last_reports.update(given)
+        for name in asked.keys() - given.keys():
+            if not self._silent(name) and name in self._last_reports:
                 log.warning("node %s did not report within %g s", name, timeout)
-        return {name: reports[name] for name in asked if name in reports}
+                given[name] = _silenced(self._last_reports[name])
+        return given
 
     def _silent(self, name: str) -> bool:
         """Whether remote node ``name`` missed its last two heartbeats."""
@@ -833,3 +841,13 @@ def _link_table(links: dict[str, FlatLink], modules: dict[str, ModuleStats],
                                str(link.policy), transport, **figures,
                                ring_bytes_used=rings.get(key, 0))
     return table
+
+
+def _silenced(report: NodeReport) -> NodeReport:
+    """``report``'s modules as a node that did not answer in time shows them: where they
+    run, silent, no figures of their own."""
+    modules = {name: ModuleStats(entry.cls, entry.node, entry.worker, entry.status,
+                                 entry.pid, silent=True, restarts=entry.restarts,
+                                 checkpoints=entry.checkpoints)
+               for name, entry in report.modules.items()}
+    return NodeReport(modules, {}, {}, [], None, report.spare_workers)

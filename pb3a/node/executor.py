@@ -178,9 +178,13 @@ class Executor:
         """Send one request about module ``name`` to its worker and wait for the answer.
         One that waits for the module's lock gives up before its caller does: if its
         caller's time runs out, it was not done, rather than done later."""
+        record = self.modules[name]
+        handle = self.workers.handles.get(record.worker)
+        if handle is None or not handle.serving:
+            raise RuntimeFailure(_not_running(name, record))
         if op in _WAITS_FOR_THE_MODULE:      # (a short timeout keeps most of its time)
             args["within"] = timeout - min(ANSWER_MARGIN_S, timeout / 4)
-        return self.call(self.modules[name].worker, op, timeout, name=name, **args)
+        return self.call(record.worker, op, timeout, name=name, **args)
 
     def _alive(self, key: str) -> bool:
         return self.workers[key].serving
@@ -972,3 +976,13 @@ def _import_quietly(modules: tuple[str, ...], lock: threading.Lock) -> None:
     for name in modules:
         with lock, contextlib.suppress(Exception):
             importlib.import_module(name)
+
+
+def _not_running(name: str, record: ModuleRecord) -> str:
+    """Why a request about module ``name`` cannot go: said of the module, not its worker."""
+    if record.status == "failed":
+        return f"module {name!r} has failed; `pb3a status` and its log say why"
+    if record.status == "stopped":
+        return f"module {name!r} is stopped"
+    return (f"module {name!r} is not running now: its worker has gone, and its restart "
+            f"policy ({record.spec.restart!r}) says what comes; ask again once it runs")

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import array
 import contextlib
+import logging
 import os
 import select
 import socket
@@ -29,6 +30,8 @@ import struct
 import threading
 from collections import deque
 from dataclasses import dataclass
+
+log = logging.getLogger("pb3a.executor")
 
 _LENGTH = struct.Struct("!i")            # Connection's frame header
 _LONG_LENGTH = struct.Struct("!Q")       # after a header of -1, for 2 GiB and more
@@ -133,8 +136,7 @@ class Outbox:
         """Drop what has not gone and close our end (with the connection's, the worker
         reads the end of its pipe)."""
         with self._lock:
-            self._closed = True
-            self._discard()
+            self._break()
             self._socket.close()
 
     # -- writing (the lock held) -------------------------------------------------------
@@ -147,8 +149,7 @@ class Outbox:
             try:
                 self._flush()
             except OSError:
-                self._closed = True
-                self._discard()
+                self._break()
                 raise
 
     def _flush(self) -> None:
@@ -177,6 +178,11 @@ class Outbox:
             threading.Thread(target=self._drain, name="pb3a-outbox",
                              daemon=True).start()
 
+    def _break(self) -> None:
+        """The pipe is broken: nothing more goes."""
+        self._closed = True
+        self._discard()
+
     def _discard(self) -> None:
         for item in self._queue:
             item._close_fd()
@@ -185,19 +191,26 @@ class Outbox:
 
     def _drain(self) -> None:
         """Write the rest as the pipe makes room, until nothing is left or it closes."""
+        room = select.poll()      # (not select(): it fails for descriptors past 1023)
         while True:
             with self._lock:
-                if not self._closed:
-                    try:
+                try:
+                    if not self._closed:
                         self._flush()
-                    except OSError:              # the worker is gone: its death fails
-                        self._closed = True      # the requests that wait on it
-                        self._discard()
+                except OSError:                  # the worker is gone: its death fails
+                    self._break()                # the requests that wait on it
+                except Exception:                # (left, it would stall them all)
+                    log.exception("the drain of a worker's pipe failed; it is closed")
+                    self._break()
                 if self._closed or not self._queue:
                     self._draining = False
                     return
-            with contextlib.suppress(OSError, ValueError):    # (closed meanwhile)
-                select.select([], [self._socket], [], DRAIN_POLL_S)
+                fd = self._socket.fileno()
+            # Closed meanwhile, its number may be another file's by now: a wait on that
+            # ends early or late, and the next pass, under the lock, sees it closed.
+            room.register(fd, select.POLLOUT)
+            room.poll(DRAIN_POLL_S * 1000)
+            room.unregister(fd)
 
 
 class Inbox:
@@ -223,12 +236,13 @@ class Inbox:
             self._buffer += chunk
             self._ended = not chunk
         messages, start = [], 0
-        while True:
-            size, header = self._frame_at(start)
-            if size is None or len(self._buffer) < start + header + size:
-                break
-            messages.append(bytes(self._buffer[start + header:start + header + size]))
-            start += header + size
+        with memoryview(self._buffer) as buffer:     # (a slice of it is not a copy)
+            while True:
+                size, header = self._frame_at(start)
+                if size is None or len(buffer) < start + header + size:
+                    break
+                messages.append(bytes(buffer[start + header:start + header + size]))
+                start += header + size
         del self._buffer[:start]
         if self._ended and not messages:
             raise EOFError("the worker's pipe ended" + (

@@ -47,6 +47,7 @@ if TYPE_CHECKING:
 log = logging.getLogger("pb3a.executor")
 
 REQUEST_TIMEOUT = 10.0
+_UNREADABLE = (None, None)      # the head of a message that could not be read
 
 _context = multiprocessing.get_context("forkserver")
 # A worker's start waits this long for the forkserver (its first start includes the
@@ -148,10 +149,11 @@ class WorkerHandle:
 
     def close_pipe(self) -> None:
         """Close both ends of ours (the worker then reads the end of its pipe)."""
-        with self.read_lock, contextlib.suppress(OSError):
+        with self.read_lock:
             for end in (self.outbox, self.inbox, self.conn):
                 if end is not None:
-                    end.close()
+                    with contextlib.suppress(OSError):
+                        end.close()
 
 
 @dataclass
@@ -233,10 +235,18 @@ class WorkerPool:
             raise RuntimeFailure(f"worker {handle.key!r} ended as it started (exit code "
                                  f"{process.exitcode})") from None
         # The doorbell is the worker's first read: send it before anyone can send a request.
-        reduction.send_handle(parent, handle.bell, process.pid)
-        handle.process, handle.conn, handle.alive, handle.pid = watched, parent, True, process.pid
-        handle.outbox, handle.inbox = Outbox(parent.fileno()), Inbox(parent.fileno())
-        handle.head = None
+        try:
+            reduction.send_handle(parent, handle.bell, process.pid)
+            outbox, inbox = Outbox(parent.fileno()), Inbox(parent.fileno())
+        except OSError:
+            parent.close()
+            watched.kill()
+            watched.join(STATUS_WAIT_S)
+            raise
+        # its ends before ``alive``: the monitor reads every live handle's inbox
+        handle.process, handle.conn, handle.pid = watched, parent, process.pid
+        handle.outbox, handle.inbox, handle.head = outbox, inbox, None
+        handle.alive = True
         handle.last_figures = None
         self._poke()
 
@@ -382,8 +392,10 @@ class WorkerPool:
             raise RuntimeTimeout(
                 f"worker {key!r} read nothing of {op!r} within {timeout:g} s, so it was "
                 "withdrawn and will not run: the worker reads nothing from its pipe "
-                "(stopped, starved, or stuck in a call); its log and `pb3a status` may "
-                "say which")
+                "(stopped, starved, or stuck in a call), or not fast enough for what "
+                "was sent before; its log and `pb3a status` may say which")
+        if future.done():                        # (it died meanwhile, say)
+            return future.result()
         raise RuntimeTimeout(
             f"worker {key!r} did not answer {op!r} within {timeout:g} s: a module there "
             "is stuck in a long call (step, on_input, setup), or its machine is "
@@ -430,33 +442,44 @@ class WorkerPool:
         except (EOFError, OSError):
             return                                     # it died: the sentinel reports it
         for message in messages:
-            if handle.head is None:                    # the head, then the payload
-                handle.head = pickle.loads(message)
-                continue
-            (req_id, ok), handle.head = handle.head, None
             try:
-                result = cloudpickle.loads(message)
-            except Exception as exc:                   # fails its request, not the pipe
-                if req_id is None:
-                    log.error("worker %s: a %s notice could not be read here: %s: %s",
-                              handle.key, ok, type(exc).__name__, exc)
-                    continue
-                ok, result = False, ("its answer could not be read here: "
-                                     f"{type(exc).__name__}: {exc}")
+                self._take(handle, message)
+            except Exception:          # (one that raises must not lose those after it)
+                log.exception("worker %s: a message from it could not be taken", handle.key)
+
+    def _take(self, handle: WorkerHandle, message: bytes) -> None:
+        """One message from ``handle``'s worker: a head, or the payload of the last."""
+        if handle.head is None:
+            handle.head = _UNREADABLE      # (if it cannot be read, its payload still comes)
+            handle.head = pickle.loads(message)
+            return
+        head, handle.head = handle.head, None
+        if head is _UNREADABLE:
+            return
+        req_id, ok = head
+        try:
+            result = cloudpickle.loads(message)
+        except Exception as exc:                       # fails its request, not the pipe
             if req_id is None:
-                self._on_notice(handle, ok, result)
-                continue
-            future = self._futures.pop(req_id, None)
-            if future is None:
-                continue
-            if ok is True:
-                future.set_result(result)
-            elif ok == TIMED_OUT:                      # the caller may try again
-                future.set_exception(RuntimeTimeout(f"worker {handle.key!r}: {result}"))
-            elif ok == REFUSED:                        # the caller's to mend, as said
-                future.set_exception(RuntimeFailure(result))
-            else:
-                future.set_exception(RuntimeFailure(f"worker {handle.key!r}: {result}"))
+                log.error("worker %s: a %s notice could not be read here: %s: %s",
+                          handle.key, ok, type(exc).__name__, exc)
+                return
+            ok, result = False, ("its answer could not be read here: "
+                                 f"{type(exc).__name__}: {exc}")
+        if req_id is None:
+            self._on_notice(handle, ok, result)
+            return
+        future = self._futures.pop(req_id, None)
+        if future is None:
+            return
+        if ok is True:
+            future.set_result(result)
+        elif ok == TIMED_OUT:                          # the caller may try again
+            future.set_exception(RuntimeTimeout(f"worker {handle.key!r}: {result}"))
+        elif ok == REFUSED:                            # the caller's to mend, as said
+            future.set_exception(RuntimeFailure(result))
+        else:
+            future.set_exception(RuntimeFailure(f"worker {handle.key!r}: {result}"))
 
     def _died(self, handle: WorkerHandle) -> None:
         handle.alive = False
