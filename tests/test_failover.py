@@ -360,9 +360,11 @@ def test_two_nodes_lost_at_once_fail_over_to_the_node_that_lives(daemons) -> Non
         received = run.state("near")["received"]
         eventually(lambda: run.state("near")["received"] > received + 100, timeout=15,
                    what="values through the relay on a")
-        lost = {event.subject for event in _events(run, "node_lost")}
+        # (c's executor outlives its killed controller a moment: under load, c was
+        # declared lost after the relay's values came on a)
+        eventually(lambda: {event.subject for event in _events(run, "node_lost")}
+                   == {"b", "c"}, timeout=10, what="both nodes lost")
     assert moved[0].detail["destination"] == "a" and moved[0].detail["restart_s"] < 3.0
-    assert lost == {"b", "c"}
 
 
 def test_a_node_that_hears_the_heartbeats_but_whose_answers_are_lost_stops_before_its_module_runs_elsewhere(  # noqa: E501

@@ -102,7 +102,8 @@ def test_sigkill_with_restart_never_leaves_module_failed_and_others_running() ->
         assert any(re.match(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d module victim failed", f)
                    for f in run.stats().failures)
         failed = [e for e in run.events() if e.kind == "module_failed"]
-        with pytest.raises(RuntimeFailure, match=r"^module 'victim' has failed; `pb3a status`"):
+        with pytest.raises(RuntimeFailure,
+                           match=r"^module 'victim' is not running: it failed \(`pb3a status`"):
             run.state("victim")                 # (said of the module, not of its worker)
         run.restart("victim")                   # asked: it runs again, fresh
         eventually(lambda: run.state("victim")["count"] > 3, what="the restarted victim steps")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import gc
 import logging
 import os
+import sys
 import threading
 import time
 
@@ -626,3 +627,26 @@ def test_a_ring_whose_name_is_taken_leaves_that_segment_alone() -> None:
         assert taken in live_segments(os.getpid())
     finally:
         shm.unlink_segment(other)
+
+
+def test_a_segment_whose_views_outlive_its_close_goes_quietly() -> None:
+    """A segment closed while a view of it lives is left to the garbage collector, whose
+    ``__del__`` closed it again and printed "Exception ignored ... BufferError" (at an
+    interrupted launcher's exit: `pb3a scenario` stopped by a SIGHUP said so)."""
+    from pb3a.transport.shm import close_segment, create_segment
+
+    segment = create_segment(segment_name("ring"), 4096)
+    part = segment.buf[:16]
+    close_segment(segment)                     # (the view: it cannot close yet)
+    segment.unlink()
+    unraisable = []
+    hook, sys.unraisablehook = sys.unraisablehook, unraisable.append
+    try:
+        del segment
+        gc.collect()
+        assert bytes(part[:2]) == b"\0\0"      # the view still reads its mapping
+        del part
+        gc.collect()
+    finally:
+        sys.unraisablehook = hook
+    assert unraisable == []

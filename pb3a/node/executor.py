@@ -981,8 +981,9 @@ def _import_quietly(modules: tuple[str, ...], lock: threading.Lock) -> None:
 def _not_running(name: str, record: ModuleRecord) -> str:
     """Why a request about module ``name`` cannot go: said of the module, not its worker."""
     if record.status == "failed":
-        return f"module {name!r} has failed; `pb3a status` and its log say why"
+        return (f"module {name!r} is not running: it failed (`pb3a status` and its log "
+                "say why; a restart runs it again)")
     if record.status == "stopped":
-        return f"module {name!r} is stopped"
+        return f"module {name!r} is not running: it is stopped"
     return (f"module {name!r} is not running now: its worker has gone, and its restart "
             f"policy ({record.spec.restart!r}) says what comes; ask again once it runs")

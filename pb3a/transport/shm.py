@@ -11,6 +11,7 @@ another process still uses (cpython#82300). Names carry the owner's pid, so
 from __future__ import annotations
 
 import contextlib
+import functools
 import itertools
 import os
 import signal
@@ -87,9 +88,18 @@ def attach_segment(name: str) -> shared_memory.SharedMemory:
 
 
 def close_segment(segment: shared_memory.SharedMemory) -> None:
-    """Close our mapping; if array views still use it, leave it to the garbage collector."""
-    with contextlib.suppress(BufferError):
+    """Close our mapping; if array views still use it, leave it to the garbage collector
+    (whose ``__del__`` of the segment tries again, quietly: at an interrupted launcher's
+    exit it printed "Exception ignored ... BufferError" when the views outlived it)."""
+    try:
         segment.close()
+    except BufferError:
+        segment.close = functools.partial(_close_quietly, segment)   # type: ignore[method-assign]
+
+
+def _close_quietly(segment: shared_memory.SharedMemory) -> None:
+    with contextlib.suppress(BufferError):
+        shared_memory.SharedMemory.close(segment)
 
 
 def unlink_segment(segment: shared_memory.SharedMemory) -> None:
