@@ -360,3 +360,29 @@ def test_closing_a_server_twice_does_nothing_the_second_time() -> None:
     server = ControlServer(KEY, lambda op, args: op)
     server.close()
     server.close()
+
+
+def test_a_client_of_a_server_that_reads_nothing_never_blocks_its_thread() -> None:
+    """Requests to a server that reads nothing (frozen: a node controller SIGSTOPped,
+    pinged once a second by the launcher's keepers) queue up; once ZeroMQ's queue was
+    full, the client's thread blocked in its send, and from then on every call, ping
+    and close raised ``zmq.Again`` (the launcher's keeper threads died of it). A
+    request that cannot go now is dropped, and times out as any unanswered one."""
+    context = zmq.Context.instance()
+    deaf = context.socket(zmq.ROUTER)                 # binds, never reads
+    deaf.setsockopt(zmq.RCVHWM, 10)
+    deaf.setsockopt(zmq.LINGER, 0)
+    port = deaf.bind_to_random_port("tcp://127.0.0.1")
+    client = ControlClient(ClusterKey(b"k" * 32), f"tcp://127.0.0.1:{port}")
+    try:
+        pad = b"x" * 16384
+        for _ in range(1500):                          # past every queue on the way
+            with pytest.raises(RuntimeTimeout):
+                client.call("ping", 0.001, pad=pad)
+        assert client._loop.call(lambda: "on its thread", timeout=1.0) == "on its thread"
+        assert client.ping(0.05) is None               # (it raised zmq.Again)
+    finally:
+        started = time.monotonic()
+        client.close()
+        deaf.close()
+    assert time.monotonic() - started < 3.0

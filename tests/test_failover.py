@@ -34,7 +34,7 @@ from sample_modules import (
     StepStamps,
 )
 
-from pb3a import RuntimeFailure, System
+from pb3a import RuntimeFailure, RuntimeTimeout, System
 from pb3a.cli.status import format_nodes, format_table
 from pb3a.daemons.node_controller import Limits, NodeController
 from pb3a.transport.auth import ClusterKey, Rejected
@@ -745,3 +745,30 @@ def test_an_agent_that_reads_the_runtime_from_its_setup_fails_over(daemons) -> N
         state = eventually(lambda: (s := run.state("agent"))["steps"] > 0 and s,
                            what="the agent stepping on a")
         assert run.where("agent") == "a" and state["asked"] >= 0
+
+
+def test_a_rejoin_that_cannot_take_the_lock_stops_the_executor_it_started(daemons) -> None:
+    """A lost node's controller answering again gets a new executor, then the launcher
+    takes its lock to admit it. When the lock was not free in time, the new executor
+    and the heartbeats that renewed its lease were left running for good, one pair per
+    attempt. It is stopped, and the node is admitted at the next attempt."""
+    b = daemons["b"]
+    system = System("rejoin-lock").node("a").node("b", address=b.address)
+    system.add("tick", Counter, node="a")
+    with system.launch() as run:
+        launcher = run._launcher
+        started, start = [], launcher._start_remote_node
+        launcher._start_remote_node = lambda *a, **k: started.append(start(*a, **k)) or started[-1]
+        acquire, refused = launcher.lock._acquire, []
+
+        def busy_once(what: str, timeout: float | None) -> None:
+            if what.startswith("admit node b") and not refused:
+                refused.append(what)
+                raise RuntimeTimeout(f"{what}: the lock is busy")
+            acquire(what, timeout)
+        launcher.lock._acquire = busy_once
+        os.kill(b.executor_pid(), signal.SIGKILL)
+        eventually(lambda: _events(run, "node_joined"), timeout=30, what="node b admitted again")
+        assert refused and len(started) == 2
+        assert started[0]._closed.is_set() and not started[1]._closed.is_set()
+        assert launcher.remotes["b"] is started[1]

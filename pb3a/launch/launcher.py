@@ -683,19 +683,27 @@ class Launcher:
             except (RuntimeFailure, RuntimeTimeout) as exc:   # (asked again in a second)
                 log.warning("node %s answers again but could not be admitted: %s", name, exc)
                 return
-            with self.lock.held(f"admit node {name} again"):
-                if self._stopping.is_set():
+            adopted = False
+            try:
+                with self.lock.held(f"admit node {name} again"):
+                    if self._stopping.is_set():
+                        return
+                    old.close()
+                    self.nodes[name] = self.remotes[name] = node
+                    adopted = True
+                    with self.changed:
+                        self.health[name].update(up=True, rtt=node.rtt, controller=True,
+                                                 epoch=epoch)
+                        self.changed.notify_all()
+                    self._introduce()
+                    self._restore_env(name)
+                    self.update_env()
+            except RuntimeTimeout as exc:               # (the lock: asked again in a second)
+                log.warning("node %s answers again but could not be admitted: %s", name, exc)
+                return
+            finally:
+                if not adopted:          # its executor, and the heartbeats that renew it
                     node.shutdown()
-                    return
-                old.close()
-                self.nodes[name] = self.remotes[name] = node
-                with self.changed:
-                    self.health[name].update(up=True, rtt=node.rtt, controller=True,
-                                             epoch=epoch)
-                    self.changed.notify_all()
-                self._introduce()
-                self._restore_env(name)
-                self.update_env()
             log.warning("node %s is back (epoch %d)", name, epoch)
             self.events.record("node_joined", name, epoch=epoch, address=node.address)
         finally:

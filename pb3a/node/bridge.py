@@ -24,7 +24,7 @@ from typing import Any
 from pb3a.errors import RuntimeTimeout
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.replication import Follower
-from pb3a.transport.ring import Landed, ShmRing
+from pb3a.transport.ring import WRITE_TIMEOUT, Landed, ShmRing
 
 READY_TIMEOUT = 10.0
 RETRY_S = 0.001            # how often a lossless link's backlog is offered to its ring again
@@ -38,6 +38,9 @@ class _Feed:
     ring: ShmRing
     backlog: deque[tuple[list[Any], float]] = field(default_factory=deque)
     waiting: int = 0                  # values in the backlog
+    # a dropping ring that was full after its wait: its reader is stalled (frozen,
+    # gone), and the next writes do not wait, for every link's values wait behind them
+    stalled: bool = False
 
     def offer(self) -> None:
         """Put as much of the backlog into the ring as fits now."""
@@ -170,7 +173,9 @@ class Bridge:
         with self._lock:                         # (close waits: no write to a closed ring)
             for feed in self._rings.get(topic, {}).values():
                 if not feed.ring.lossless:
-                    feed.ring.write_many(values, sent_at=sent)
+                    went = feed.ring.write_many(values, 0.0 if feed.stalled else WRITE_TIMEOUT,
+                                                sent_at=sent)
+                    feed.stalled = went < len(values)
                     continue
                 went = 0 if feed.backlog else feed.ring.offer(values, sent)
                 if went < len(values):

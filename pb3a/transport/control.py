@@ -335,8 +335,12 @@ class ControlClient:
         if sent is None or sent[1] >= _SENDS:
             return                         # answered, given up, or sent often enough
         sent[1] += 1
-        self._dealer.send_multipart(self._sealer.seal(
-            REQUEST, [request_id, self._instance, sent[0]]))
+        # Never waits: a server that reads nothing (frozen) fills the queue, and a
+        # blocking send held this socket's thread, every call's answer, and its close.
+        # A request that cannot go now is sent again, or times out.
+        with contextlib.suppress(zmq.Again):
+            self._dealer.send_multipart(self._sealer.seal(
+                REQUEST, [request_id, self._instance, sent[0]]), zmq.NOBLOCK)
 
     def _on_reply(self, dealer: zmq.Socket) -> None:
         while dealer.poll(0):

@@ -9,6 +9,7 @@ for the result, ``submit`` does not). A PUSH/PULL pair over inproc wakes it.
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import secrets
 import threading
@@ -79,7 +80,7 @@ class SocketLoop:
         if self._closing:
             return
         self._calls.append(fn)
-        with self._wake_lock:
+        with self._wake_lock, contextlib.suppress(zmq.Again):   # (full: it wakes anyway)
             if not self._wake_w.closed:
                 self._wake_w.send(b"", zmq.NOBLOCK)
 
@@ -109,7 +110,7 @@ class SocketLoop:
         if self._closing:
             return
         self._closing = True
-        with self._wake_lock:
+        with self._wake_lock, contextlib.suppress(zmq.Again):
             self._wake_w.send(b"", zmq.NOBLOCK)
         if not self.on_loop:
             self._thread.join(timeout)
