@@ -18,7 +18,7 @@ from pathlib import Path
 import cloudpickle
 import psutil
 import pytest
-from conftest import Daemon, eventually
+from conftest import Daemon, eventually, frozen
 from sample_modules import (
     AsksInSetup,
     Collector,
@@ -515,14 +515,9 @@ def test_a_checkpoint_only_the_robots_can_read_still_fails_over(tmp_path: Path) 
 def _frozen(*daemons: Daemon) -> Iterator[None]:
     """Node controllers and their executors stopped (SIGSTOP), as machines that hang or
     are cut off; let run again on the way out."""
-    pids = [pid for daemon in daemons for pid in (daemon.process.pid, daemon.executor_pid())]
-    for pid in pids:
-        os.kill(pid, signal.SIGSTOP)
-    try:
+    with frozen(*(pid for daemon in daemons
+                  for pid in (daemon.process.pid, daemon.executor_pid()))):
         yield
-    finally:
-        for pid in pids:
-            os.kill(pid, signal.SIGCONT)
 
 
 def test_close_keeps_its_timeout_with_machines_that_do_not_answer(daemons) -> None:
