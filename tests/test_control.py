@@ -19,7 +19,7 @@ import zmq
 from conftest import eventually
 
 from pb3a import RuntimeFailure, RuntimeTimeout
-from pb3a.transport.addresses import bind_advertised, close_bound
+from pb3a.transport.addresses import bind_advertised, close_bound, numeric
 from pb3a.transport.auth import ClusterKey, Sealer
 from pb3a.transport.control import REQUEST, ControlClient, ControlServer
 from pb3a.transport.loop import SocketLoop
@@ -386,3 +386,25 @@ def test_a_client_of_a_server_that_reads_nothing_never_blocks_its_thread() -> No
         client.close()
         deaf.close()
     assert time.monotonic() - started < 3.0
+
+
+def test_sockets_connect_to_a_name_by_its_address_resolved_once() -> None:
+    """ZeroMQ resolves a host name again at every reconnection, in the one I/O thread
+    all the process's sockets share: a peer's name that stopped resolving promptly
+    stalled every socket, heartbeats to healthy nodes too (libzmq #2961). A name is
+    resolved here, once, within a deadline, and the socket connects to the address."""
+    assert numeric("tcp://localhost:7100") == "tcp://127.0.0.1:7100"
+    assert numeric("tcp://10.0.0.7:7100") == "tcp://10.0.0.7:7100"
+    assert numeric("tcp://[::1]:7100") == "tcp://[::1]:7100"
+    unknown = "tcp://no-such-host.invalid:7100"       # (left to ZeroMQ, as before)
+    assert numeric(unknown, timeout=5.0) == unknown
+    server = ControlServer(ClusterKey(b"k" * 32), lambda op, args: op)
+    port = server.address.rpartition(":")[2]
+    client = ControlClient(ClusterKey(b"k" * 32), f"tcp://localhost:{port}")
+    try:
+        assert client.call("hello", 5.0) == "hello"
+        assert client._dealer.getsockopt(zmq.LAST_ENDPOINT) == f"tcp://127.0.0.1:{port}".encode()
+        assert client.address == f"tcp://localhost:{port}"     # (said as given)
+    finally:
+        client.close()
+        server.close()

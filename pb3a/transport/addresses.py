@@ -10,7 +10,9 @@ address to hand out: ``tcp://HOST:PORT`` with that host.
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import ipaddress
 import itertools
 import logging
 import socket
@@ -39,6 +41,7 @@ def bind_advertised(sock: zmq.Socket, host: str, port: int = 0) -> str:
 
 EVERY_INTERFACE = ("*", "0.0.0.0", "[::]", "::")   # hosts that mean: every interface
 _ROUTED = "198.51.100.1"        # (TEST-NET-2: an address only the default route leads to)
+RESOLVE_S = 2.0                 # how long ``numeric`` waits for the resolver
 
 
 def default_route_host() -> str:
@@ -80,6 +83,31 @@ def unknown_host(address: str, timeout: float) -> str | None:
         return None
     return (f"no address is known for host {host_of(address).strip('[]')!r} of {address}: "
             f"{answer[0]}")
+
+
+def numeric(address: str, timeout: float = RESOLVE_S) -> str:
+    """``address`` ("tcp://HOST:PORT") with a host name replaced by its IPv4 address,
+    resolved here within ``timeout``: connect ZeroMQ sockets to that. ZeroMQ resolves a
+    name again at every reconnection, in the one I/O thread all the process's sockets
+    share, so a peer's name that stopped resolving promptly stalled every socket (the
+    heartbeats to healthy nodes too, which were then lost: libzmq #2961). An address
+    already numeric, or a name not resolved in time, is given back as it is."""
+    host = host_of(address).strip("[]")
+    with contextlib.suppress(ValueError):
+        ipaddress.ip_address(host)
+        return address
+    found: list[tuple] = []
+
+    def resolve() -> None:
+        with contextlib.suppress(OSError, UnicodeError):
+            found.extend(socket.getaddrinfo(host, None, socket.AF_INET, socket.SOCK_STREAM))
+
+    resolver = threading.Thread(target=resolve, name="pb3a-resolve", daemon=True)
+    resolver.start()
+    resolver.join(timeout)
+    if not found:
+        return address
+    return f"tcp://{found[0][4][0]}:{address.rpartition(':')[2]}"
 
 
 def tcp_address_problems(value: object, what: str, otherwise: str = "") -> list[str]:

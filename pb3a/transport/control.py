@@ -45,7 +45,7 @@ import zmq
 
 from pb3a.errors import PB3AError, RuntimeFailure, RuntimeTimeout
 from pb3a.transport import pickling
-from pb3a.transport.addresses import bind_advertised, close_bound
+from pb3a.transport.addresses import bind_advertised, close_bound, numeric
 from pb3a.transport.auth import ClusterKey, Opener, Rejected, Sealer
 from pb3a.transport.loop import SocketLoop
 
@@ -274,7 +274,7 @@ class ControlClient:
 
     def __init__(self, key: ClusterKey, address: str, *, epoch: int = 0) -> None:
         self.address = address
-        self._dealer, _ = _attached(zmq.DEALER, lambda sock: sock.connect(address))
+        self._dealer, _ = _attached(zmq.DEALER, lambda sock: sock.connect(numeric(address)))
         self._loop = SocketLoop("pb3a-control-client", self._dealer.context)
         self._sealer = Sealer(key, epoch)
         # Replies count only if they answer a request this client is waiting for; the

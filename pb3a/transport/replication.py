@@ -80,7 +80,7 @@ import zmq
 
 from pb3a.errors import link_stuck
 from pb3a.transport import codec
-from pb3a.transport.addresses import bind_advertised
+from pb3a.transport.addresses import bind_advertised, numeric
 from pb3a.transport.auth import PAYLOAD_TAG, ClusterKey, Opener, Payloads, Rejected, Sealer
 from pb3a.transport.heap import keep_freed_buffers
 from pb3a.transport.loop import SocketLoop
@@ -764,8 +764,9 @@ class Follower:
         """Receive ``topic`` from the replicator at these addresses, starting at
         ``from_seq`` (-1: whatever comes next). With ``incarnation``, only that sender
         is accepted (a hand-over after migration); following again re-points."""
-        self._loop.call(lambda: self._follow(_name(topic), data_address, control_address,
-                                             from_seq, incarnation))
+        data, control = numeric(data_address), numeric(control_address)   # (not on the loop)
+        self._loop.call(lambda: self._follow(_name(topic), data, control, from_seq,
+                                             incarnation))
 
     def wait_ready(self, topic: str, timeout: float) -> bool:
         """Block until the hand-shake for ``topic`` is done: from then on nothing
