@@ -26,6 +26,7 @@ import collections
 import contextlib
 import dataclasses
 import logging
+import math
 import threading
 import time
 from typing import TYPE_CHECKING, Any
@@ -339,7 +340,7 @@ class Launcher:
         def ask(name: str, node: Node) -> None:
             # the workers' figures get what the way back leaves of the timeout
             rtt = self.health[name]["rtt"] if name in self.remotes else 0.0
-            way_back = 0.1 + 2 * (rtt if rtt == rtt else HEARTBEAT_S)     # (NaN: unknown)
+            way_back = 0.1 + 2 * (HEARTBEAT_S if math.isnan(rtt) else rtt)   # (NaN: unknown)
             try:
                 reports[name] = node.report(min(REPORT_TIMEOUT,
                                                 max(timeout / 2, timeout - way_back)))

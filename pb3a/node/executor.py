@@ -179,8 +179,7 @@ class Executor:
         One that waits for the module's lock gives up before its caller does: if its
         caller's time runs out, it was not done, rather than done later."""
         record = self.modules[name]
-        handle = self.workers.handles.get(record.worker)
-        if handle is None or not handle.serving:
+        if not self._alive(record.worker):
             raise RuntimeFailure(_not_running(name, record))
         if op in _WAITS_FOR_THE_MODULE:      # (a short timeout keeps most of its time)
             args["within"] = timeout - min(ANSWER_MARGIN_S, timeout / 4)

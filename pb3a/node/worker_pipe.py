@@ -60,6 +60,12 @@ class Outgoing:
     started: bool = False                  # some of it went: it can no longer be withdrawn
     done: bool = False                     # all of it went, or it was dropped
 
+    @classmethod
+    def framed(cls, payloads: list[bytes], fd: int | None = None) -> Outgoing:
+        """``payloads``, each framed, then a duplicate of ``fd`` (the caller's may close)."""
+        return cls([piece for payload in payloads for piece in frame(payload)],
+                   None if fd is None else os.dup(fd))
+
     def _consume(self, count: int) -> None:
         self.started = True
         while count:
@@ -95,8 +101,7 @@ class Outbox:
         """Send ``payloads``, each framed, then ``fd`` (duplicated: the caller may close
         its own at once). What the pipe has no room for now goes later, in order;
         ``OSError`` if the pipe is closed or broken (the worker is gone)."""
-        item = Outgoing([piece for payload in payloads for piece in frame(payload)],
-                        None if fd is None else os.dup(fd))
+        item = Outgoing.framed(payloads, fd)
         with self._lock:
             self._enqueue(item)
             self._drain_rest()
@@ -109,7 +114,7 @@ class Outbox:
         with self._lock:
             if self._closed or self._queue:
                 return False
-            item = Outgoing([piece for payload in payloads for piece in frame(payload)])
+            item = Outgoing.framed(payloads)
             self._enqueue(item)
             if not item.started:
                 self._queue.clear()
@@ -179,11 +184,8 @@ class Outbox:
                              daemon=True).start()
 
     def _break(self) -> None:
-        """The pipe is broken: nothing more goes."""
+        """The pipe is broken (or closed): what waits is dropped, nothing more goes."""
         self._closed = True
-        self._discard()
-
-    def _discard(self) -> None:
         for item in self._queue:
             item._close_fd()
             item.done = True

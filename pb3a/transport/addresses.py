@@ -18,9 +18,15 @@ import logging
 import socket
 import threading
 import time
+from typing import TYPE_CHECKING, TypeVar
 
 import zmq
 from zmq.utils.monitor import recv_monitor_message
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+T = TypeVar("T")
 
 log = logging.getLogger("pb3a.addresses")
 _CLOSINGS = itertools.count()        # names the monitor of each socket close_bound closes
@@ -69,16 +75,23 @@ def unresolved(address: str) -> str:
     return ""
 
 
+def _within(resolve: Callable[[], T], timeout: float) -> list[T]:
+    """What ``resolve()`` gives, on a thread of its own, waited for ``timeout`` at most
+    (the system's resolver may take its time): in a list, empty if it did not answer."""
+    answer: list[T] = []
+    resolver = threading.Thread(target=lambda: answer.append(resolve()),
+                                name="pb3a-resolve", daemon=True)
+    resolver.start()
+    resolver.join(timeout)
+    return answer
+
+
 def unknown_host(address: str, timeout: float) -> str | None:
     """Why the host of ``address`` ("tcp://HOST:PORT") has no address, if the resolver
     says so within ``timeout``; None if it has one, or the resolver did not answer in
     time (the connection's own deadline then tells). A misspelt host was waited for to
     the end of that deadline, and named only as "no answer"."""
-    answer: list[str] = []
-    resolver = threading.Thread(target=lambda: answer.append(unresolved(address)),
-                                name="pb3a-resolve", daemon=True)
-    resolver.start()
-    resolver.join(timeout)
+    answer = _within(lambda: unresolved(address), timeout)
     if not answer or not answer[0]:
         return None
     return (f"no address is known for host {host_of(address).strip('[]')!r} of {address}: "
@@ -96,18 +109,18 @@ def numeric(address: str, timeout: float = RESOLVE_S) -> str:
     with contextlib.suppress(ValueError):
         ipaddress.ip_address(host)
         return address
-    found: list[tuple] = []
+    def resolve() -> list[tuple]:
+        try:
+            return socket.getaddrinfo(host, None, socket.AF_INET, socket.SOCK_STREAM)
+        except (OSError, UnicodeError):
+            return []
 
-    def resolve() -> None:
-        with contextlib.suppress(OSError, UnicodeError):
-            found.extend(socket.getaddrinfo(host, None, socket.AF_INET, socket.SOCK_STREAM))
-
-    resolver = threading.Thread(target=resolve, name="pb3a-resolve", daemon=True)
-    resolver.start()
-    resolver.join(timeout)
+    answer = _within(resolve, timeout)
+    found = answer[0] if answer else []
     if not found:
         return address
-    return f"tcp://{found[0][4][0]}:{address.rpartition(':')[2]}"
+    ip = found[0][4][0]                          # (family, type, proto, name, (ip, port))
+    return f"tcp://{ip}:{address.rpartition(':')[2]}"
 
 
 def tcp_address_problems(value: object, what: str, otherwise: str = "") -> list[str]:
