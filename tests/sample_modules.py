@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 
@@ -1028,3 +1029,28 @@ class NoDevice(Module):
         while not self.x.owes_calls and time.monotonic() < deadline:
             time.sleep(0.01)
         raise RuntimeError("device /dev/video7 not found")
+
+
+class Chatterbox(Agent):
+    """Once file ``go`` exists: logs 300 long warnings, then asks the runtime to spawn
+    ``late`` within ``ask_s``, and writes how that ended (and how long it took) to file
+    ``told``."""
+
+    period = 0.01
+    go = ""
+    told = ""
+    ask_s = 0.5
+
+    def step(self) -> None:
+        if not os.path.exists(self.go) or os.path.exists(self.told):
+            return
+        for i in range(300):
+            logging.getLogger("chatterbox").warning("chatter %d %s", i, "x" * 4000)
+        started = time.monotonic()
+        try:
+            self.runtime.spawn("late", Steady, timeout=self.ask_s)
+            outcome = "spawned"
+        except RuntimeTimeout as exc:
+            outcome = str(exc)
+        with open(self.told, "w") as told:
+            told.write(f"{time.monotonic() - started}\n{outcome}")

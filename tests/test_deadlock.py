@@ -416,7 +416,7 @@ def test_a_short_timeout_still_reads_a_module_between_its_steps() -> None:
 
 def test_a_restart_that_cannot_take_the_lock_reports_its_modules_failed(monkeypatch) -> None:
     """It left them 'running', with no event, for good."""
-    monkeypatch.setattr(Executor._held, "__defaults__", (1.0,))     # (60 s)
+    monkeypatch.setattr(Executor.held, "__defaults__", (1.0,))     # (60 s)
     system = System("late-restart").add("dies", Steady, restart="fresh")
     with system.launch() as run:
         pid = eventually(lambda: run.stats().modules["dies"].pid, what="its worker")

@@ -27,6 +27,7 @@ from sample_modules import (
     ArrayHolder,
     ArraySource,
     AsksInSetup,
+    Chatterbox,
     Counter,
     Crasher,
     CrashesWhileFlagged,
@@ -1044,21 +1045,21 @@ def test_check_of_a_file_whose_classes_launch_a_system_as_imported_says_so_at_on
     assert took < 10
 
 
-def _blocked_sending(pid: int) -> bool:
-    """Whether a thread of process ``pid`` waits for room to send on a socket or pipe."""
-    waits = set()
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        with contextlib.suppress(OSError):
-            waits.add((task / "wchan").read_text())
-    return bool(waits & {"sock_alloc_send_pskb", "unix_wait_for_peer", "pipe_write"})
+def _unread(pid: int) -> int:
+    """The most bytes waiting to be read on a Unix socket of process ``pid`` (`ss`)."""
+    listing = subprocess.run(["ss", "-xpn"], capture_output=True, text=True, timeout=10,
+                             check=True).stdout
+    return max([int(line.split()[2]) for line in listing.splitlines()[1:]
+                if f"pid={pid}," in line] or [0])
 
 
 def test_a_worker_stopped_while_its_executor_is_frozen_still_tears_down_and_exits(
         tmp_path: Path) -> None:
     """A stopping worker tells its executor its last figures. With the executor frozen
     and the worker's socket to it full (checkpoints of a large state), that send waited
-    for good: the worker stopped by SIGTERM never ran its teardowns nor exited. It gives
-    up on the figures after half a second."""
+    for good: the worker stopped by SIGTERM never ran its teardowns nor exited. No send
+    of a worker waits for room now, and it gives up on the figures after half a
+    second."""
     mark = tmp_path / "torn_down"
     (tmp_path / "frozen_executor.py").write_text(textwrap.dedent(f"""
         import time
@@ -1088,7 +1089,7 @@ def test_a_worker_stopped_while_its_executor_is_frozen_still_tears_down_and_exit
     try:
         worker = int(proc.stdout.readline())
         os.kill(proc.pid, signal.SIGSTOP)                      # the executor freezes
-        eventually(lambda: _blocked_sending(worker), timeout=10,
+        eventually(lambda: _unread(proc.pid) > 150_000, timeout=10,
                    what="the worker's socket to its frozen executor full")
         os.kill(worker, signal.SIGTERM)
         eventually(lambda: not alive(worker), timeout=5, what="the worker's exit")
@@ -1147,6 +1148,46 @@ def test_a_request_to_a_worker_that_reads_nothing_keeps_its_deadline() -> None:
         closed, took = _bounded(lambda: run.close(timeout=5), 30)
     assert closed is None and took < 15, f"close: {closed!r} after {took:.1f} s"
     assert not alive(pid)
+
+
+def test_a_worker_whose_executor_reads_nothing_never_waits_to_send(tmp_path, caplog) -> None:
+    """A worker's sends to its executor went through a plain pipe: with the executor
+    frozen (for an embedded node, the launcher itself) or its reader stuck, the pipe
+    filled, and then a module that logged, or raised, blocked holding its lock, and an
+    agent's request hung past its deadline. Now nothing a worker sends waits: log
+    records and error reports past a backlog are dropped and counted in a warning once
+    the executor reads again, and an agent's request none of which went is withdrawn at
+    its timeout and never runs."""
+    caplog.set_level(logging.WARNING)
+    go, told = tmp_path / "go", tmp_path / "told"
+    system = System("executor-reads-nothing").node("a")
+    system.add("chatter", Chatterbox, node="a", state={"go": str(go), "told": str(told)})
+    with system.launch(timeout=30) as run:
+        eventually(lambda: run.stats().modules["chatter"].steps > 0, what="the agent runs")
+        pool, read, reading = run._launcher.nodes["a"].workers, None, threading.Event()
+        read = pool._read
+
+        def stuck(handle):                # the node's monitor reads no worker's pipe
+            reading.wait(30)
+            read(handle)
+
+        pool._read = stuck
+        try:
+            go.touch()
+            eventually(told.exists, timeout=15, what="the agent's request ended")
+            took, outcome = told.read_text().split("\n", 1)
+        finally:
+            pool._read = read
+            reading.set()
+        assert "withdrawn and will not run" in outcome, outcome
+        assert float(took) < 2.5, f"the request took {float(took):.1f} s"
+        eventually(lambda: "log records and error reports of this worker were dropped"
+                   in caplog.text, what="the count of what was dropped")
+        run.state("chatter", timeout=10)           # (everything sent before it is read)
+        assert "late" not in run.stats().modules
+    dropped = int(re.search(r"(\d+) log records and error reports", caplog.text)[1])
+    chattered = len(re.findall(r"chatter \d+ x", caplog.text))
+    assert dropped > 0 and dropped + chattered == 300, (dropped, chattered)
 
 
 def test_a_node_whose_report_is_late_shows_its_modules_silent() -> None:

@@ -367,8 +367,8 @@ def test_a_lease_grant_never_waits_for_a_worker_that_reads_nothing() -> None:
     go at once; the frozen worker's is skipped, and only its lease lapses."""
     import multiprocessing
 
-    from pb3a.node.worker_pipe import Outbox
     from pb3a.node.workers import WorkerHandle
+    from pb3a.transport.pipe import Outbox
 
     ours, frozen = multiprocessing.Pipe()
     handle = WorkerHandle("a/m-frozen", "a", conn=ours, outbox=Outbox(ours.fileno()),

@@ -50,6 +50,7 @@ from pb3a import (
 )
 from pb3a.config.compiler import validate
 from pb3a.config.description import read_description
+from pb3a.model.agent import RuntimeClient
 from pb3a.stats import (
     FAILURES_KEPT,
     FailureLog,
@@ -769,3 +770,21 @@ def test_a_driver_talks_to_a_device_served_with_serve_device() -> None:
             broken.set()
             error = eventually(lambda: run.state("reader")["last_error"], what="a failure")
     assert f"DeviceReader at {device.address}" in error and "sensor unplugged" in error
+
+
+def test_an_agent_s_runtime_call_carries_its_timeout_and_refuses_a_bad_one() -> None:
+    """As the launcher's calls, each of ``self.runtime``'s takes a ``timeout``: the
+    operation's deadline, which the request carries, and the agent's wait for it."""
+    asked = []
+    client = RuntimeClient("me", lambda op, args, timeout: asked.append((op, args, timeout)))
+    client.state("other", timeout=2)
+    client.set_state("other", {"timeout": 3.0}, timeout=1)       # (a field named so)
+    client.spawn("new", "pkg:Cls", period=0.1)
+    assert asked == [
+        ("state", {"name": "other", "timeout": 2.0}, 2),
+        ("set_state", {"values": {"timeout": 3.0}, "name": "other", "timeout": 1.0}, 1),
+        ("add", {"cls": "pkg:Cls", "period": 0.1, "name": "new"}, None)]
+    for bad in (-1, float("nan"), "1", float("inf")):
+        with pytest.raises((TypeError, ValueError), match=r"runtime\.state: timeout must be"):
+            client.state("other", timeout=bad)
+    assert len(asked) == 3

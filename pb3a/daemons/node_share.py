@@ -31,13 +31,13 @@ from pb3a.config.description import DEFAULT_SPARES
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
 from pb3a.logbook import LogBook
-from pb3a.node.executor import Executor
+from pb3a.node.executor import LOCK_TIMEOUT, Executor
 from pb3a.node.protocol import REMOTE_OPERATIONS
 from pb3a.node.remote import LEASE_S
 from pb3a.processes import mark_as, serve_as_child, stop_on_sigterm
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient, ControlServer
-from pb3a.worker.process import AGENT_REQUEST_TIMEOUT
+from pb3a.worker.process import agent_wait
 
 log = logging.getLogger("pb3a.node")
 
@@ -91,7 +91,9 @@ class NodeShare:
         if op == "executor":
             if args["method"] not in REMOTE_OPERATIONS:
                 raise ValueError(f"a node executor has no operation {args['method']!r}")
-            with ex.lock:
+            # (the lock within the launcher's wait: a later answer would find nobody)
+            with ex.held(f"{args['method']} from the launcher",
+                         args.get("within", LOCK_TIMEOUT)):
                 return getattr(ex, args["method"])(*args["args"], **args["kwargs"])
         if op == "start":       # beside the executor's other requests, without its lock,
             ex.start_modules(args["names"], args.get("failing", False))   # as on an
@@ -159,8 +161,8 @@ class NodeShare:
     def _agent_request(self, op: str, args: dict[str, Any]) -> Any:
         if self.launcher is None:
             raise RuntimeFailure(f"node {self.node} has no launcher to ask")
-        return self.launcher.call("agent", AGENT_REQUEST_TIMEOUT, request=op, args=args,
-                                  **self._signed())
+        return self.launcher.call("agent", agent_wait(args.get("timeout")), request=op,
+                                  args=args, **self._signed())
 
     def _signed(self) -> dict[str, Any]:
         """What the launcher checks before it takes anything from this executor: an

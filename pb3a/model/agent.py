@@ -3,10 +3,11 @@
 ``self.runtime`` offers the launcher's operations (read or set another
 module's state, swap, relink, spawn, remove, figures). Each request travels
 to the executor and is applied under the global configuration lock, one at a
-time with every other change. A request blocks the agent's call until answered
-(30 s at most). Meanwhile the agent gives way (``pb3a.worker.waits``): its
-state may be read or set on its own thread, and if the runtime must pause it
-(to move or swap it) the call raises ``RuntimeFailure`` ("... cancelled: ...").
+time with every other change. A request blocks the agent's call until answered,
+within its ``timeout`` (30 s at most without one). Meanwhile the agent gives way
+(``pb3a.worker.waits``): its state may be read or set on its own thread, and if the
+runtime must pause it (to move or swap it) the call raises ``RuntimeFailure``
+("... cancelled: ...").
 An agent must not target itself (except to migrate): it owns its own state.
 """
 
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+from pb3a.errors import bounded_wait
 from pb3a.model.module import Module
 from pb3a.pending import Pending
 
@@ -25,9 +27,16 @@ if TYPE_CHECKING:
 
 
 class RuntimeClient:
-    """What ``Agent.runtime`` returns: the running system, seen from inside."""
+    """What ``Agent.runtime`` returns: the running system, seen from inside.
 
-    def __init__(self, agent: str, request: Callable[[str, dict[str, Any]], Any]) -> None:
+    Each call takes a ``timeout``, as the launcher's do: the operation's own deadline
+    (the configuration lock's wait included), after which it raises ``RuntimeTimeout``;
+    the agent waits that long and a second more for the answer to come back. Without
+    one, the system's default applies, and the agent waits 30 s at most.
+    """
+
+    def __init__(self, agent: str,
+                 request: Callable[[str, dict[str, Any], float | None], Any]) -> None:
         self._agent = agent
         self._request = request
 
@@ -36,69 +45,78 @@ class RuntimeClient:
         """This agent's instance name in the system (e.g. to move itself)."""
         return self._agent
 
-    def _call(self, op: str, target: str | None = None, **args: Any) -> Any:
+    def _call(self, op: str, target: str | None = None, *, timeout: float | None = None,
+              **args: Any) -> Any:
         if target is not None:
             if target == self._agent:
                 raise ValueError(f"agent {self._agent!r} cannot {op} itself; "
                                  "change its own attributes directly")
             args["name"] = target
-        return self._request(op, args)
+        if timeout is not None:
+            args["timeout"] = bounded_wait(timeout, f"runtime.{op}")
+        return self._request(op, args, timeout)
 
-    def state(self, name: str) -> dict[str, Any]:
+    def state(self, name: str, *, timeout: float | None = None) -> dict[str, Any]:
         """Another module's live state."""
-        return self._call("state", name)
+        return self._call("state", name, timeout=timeout)
 
-    def set_state(self, name: str, values: dict[str, Any] | None = None, /,
-                  **fields: Any) -> None:
-        """Set state attributes of another module (as ``Running.set_state``)."""
-        self._call("set_state", name, values={**(values or {}), **fields})
+    def set_state(self, name: str, values: dict[str, Any] | None = None, /, *,
+                  timeout: float | None = None, **fields: Any) -> None:
+        """Set state attributes of another module (as ``Running.set_state``; a dict for
+        names such as ``timeout``)."""
+        self._call("set_state", name, values={**(values or {}), **fields}, timeout=timeout)
 
-    def swap(self, name: str, cls: type | str) -> list[str]:
+    def swap(self, name: str, cls: type | str, *, timeout: float | None = None) -> list[str]:
         """Swap another module for ``cls``, keeping ports and matching state."""
-        return self._call("swap", name, cls=cls)
+        return self._call("swap", name, cls=cls, timeout=timeout)
 
-    def relink(self, src: str, dst: str, *, policy: str | None = None) -> None:
+    def relink(self, src: str, dst: str, *, policy: str | None = None,
+               timeout: float | None = None) -> None:
         """Feed input ``dst`` from output ``src`` instead of its old source."""
-        self._call("relink", src=src, dst=dst, policy=policy)
+        self._call("relink", src=src, dst=dst, policy=policy, timeout=timeout)
 
-    def link(self, src: str, dst: str, *, policy: str | None = None) -> None:
+    def link(self, src: str, dst: str, *, policy: str | None = None,
+             timeout: float | None = None) -> None:
         """Add a link to an input that has no source yet."""
-        self._call("link", src=src, dst=dst, policy=policy)
+        self._call("link", src=src, dst=dst, policy=policy, timeout=timeout)
 
-    def spawn(self, name: str, cls: type | str, **options: Any) -> None:
+    def spawn(self, name: str, cls: type | str, *, timeout: float | None = None,
+              **options: Any) -> None:
         """Start a new module (options as for ``System.add``)."""
-        self._call("add", name, cls=cls, **options)
+        self._call("add", name, cls=cls, timeout=timeout, **options)
 
-    def remove(self, name: str) -> None:
+    def remove(self, name: str, *, timeout: float | None = None) -> None:
         """Stop and remove another module."""
-        self._call("remove", name)
+        self._call("remove", name, timeout=timeout)
 
-    def stats(self) -> SystemStats:
+    def stats(self, *, timeout: float | None = None) -> SystemStats:
         """The figures of the whole system, as ``Running.stats()``."""
-        return self._call("stats")
+        return self._call("stats", timeout=timeout)
 
-    def where(self, name: str) -> str:
+    def where(self, name: str, *, timeout: float | None = None) -> str:
         """The node module ``name`` (this agent too) runs on now."""
-        return self._request("where", {"name": name})
+        return self._call("where", timeout=timeout, name=name)
 
     def events(self, since: int = 0) -> list[Event]:
         """The system's events after sequence number ``since`` (as ``Running.events``);
         an agent does not wait for them: it looks again at its next step."""
-        return self._request("events", {"since": since})
+        return self._request("events", {"since": since}, None)
 
     def migrate(self, name: str, to: str, *, wait: bool = True,
-                state: dict[str, dict[str, Any]] | None = None) -> Any:
+                state: dict[str, dict[str, Any]] | None = None,
+                timeout: float | None = None) -> Any:
         """Move a module (or macro) to node ``to``; its ``MigrationReport``. ``state``
         (module name -> fields) is set on arrival, before the module runs there. With
         ``wait=False``, or when an agent moves itself (or its own macro: the move can
         only pause it once its body returns), a ``Pending`` instead: the agent goes on,
         and ``pending.done()`` / ``pending.result()`` or the ``module_moved`` event of
-        its ``env`` port tell it when the move ended."""
+        its ``env`` port tell it when the move ended (``timeout`` is then the move's
+        own, from its start)."""
         if wait and not (name == self._agent or self._agent.startswith(f"{name}/")):
-            return self._call("migrate", name, to=to, state=state)
-        job = self._request("begin_migration", {"name": name, "to": to, "state": state})
-        return Pending(f"migrate {name} to {to}",
-                       lambda wait_s: self._request("migration", {"id": job, "timeout": wait_s}))
+            return self._call("migrate", name, to=to, state=state, timeout=timeout)
+        job = self._call("begin_migration", timeout=timeout, name=name, to=to, state=state)
+        return Pending(f"migrate {name} to {to}", lambda wait_s: self._request(
+            "migration", {"id": job, "timeout": wait_s}, wait_s))
 
 
 class Agent(Module):

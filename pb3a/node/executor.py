@@ -735,7 +735,7 @@ class Executor:
         (``_started``); under it again, what came of it (``_restarted``)."""
         what = f"restart the modules of worker {handle.key}"
         try:
-            with self._held(what):
+            with self.held(what):
                 if self._stopping.is_set():     # a shutdown may have come first
                     return
                 revived = self._revive(handle, code)
@@ -745,7 +745,7 @@ class Executor:
                 process = handle.process
                 future = self.workers.submit(handle.key, "start", names=list(revived))
             outcome = self._started(future, handle.key, process)
-            with self._held(what):
+            with self.held(what):
                 if not self._stopping.is_set():
                     self._restarted(handle, code, revived, outcome)
         except RuntimeTimeout as exc:           # the lock was not free within its deadline
@@ -758,7 +758,7 @@ class Executor:
                     self._tell("module_failed", name, exit_code=code,
                                reason=f"its restart could not take the node's lock: {exc}")
 
-    def _held(self, what: str, timeout: float = LOCK_TIMEOUT) -> AbstractContextManager[Any]:
+    def held(self, what: str, timeout: float = LOCK_TIMEOUT) -> AbstractContextManager[Any]:
         """``self.lock``, held for ``what`` (which the launcher's lock names to a waiter);
         ``RuntimeTimeout`` if it is not free within ``timeout``."""
         held = getattr(self.lock, "held", None)
@@ -910,7 +910,7 @@ class Executor:
         deadline = time.monotonic() + timeout
         with contextlib.ExitStack() as held:
             try:
-                held.enter_context(self._held(f"shut down node {self.node}", timeout / 2))
+                held.enter_context(self.held(f"shut down node {self.node}", timeout / 2))
             except RuntimeTimeout as exc:
                 log.warning("%s: shutting down without it", exc)
             for name in reversed(list(self.modules)):

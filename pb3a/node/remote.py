@@ -142,8 +142,9 @@ class RemoteNode:
         that, plus ``MARGIN_S`` for the way there and back."""
         if self.lost or self.client is None:
             raise RuntimeFailure(f"node {self.name} is lost")
-        return self.client.call("executor", self._within(within), method=op, args=args,
-                                kwargs=kwargs)
+        within = self._within(within)
+        return self.client.call("executor", within, method=op, args=args, kwargs=kwargs,
+                                within=within)
 
     def wind_down(self, deadline: float) -> None:
         """No call to this node waits past ``deadline`` (monotonic) from now on: the

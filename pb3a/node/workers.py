@@ -6,7 +6,7 @@ module that arrives (a migration, an add) takes one over instead of waiting for 
 process to start, which is most of a move's preparation. Each worker has a private
 pipe: requests carry an id and wait on a future with a deadline. One monitor thread
 reads every pipe and every process sentinel; neither it nor a sender ever waits for a
-worker that reads or writes nothing (``worker_pipe``); a worker's notices (checkpoints,
+worker that reads or writes nothing (``transport.pipe``); a worker's notices (checkpoints,
 errors, agents' requests) go to ``on_notice``, its death, after every request
 waiting on it has failed, to ``on_death``.
 """
@@ -35,10 +35,10 @@ from pb3a.config.description import DEFAULT_SPARES
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
 from pb3a.node.watched_process import STATUS_WAIT_S, WatchedProcess
-from pb3a.node.worker_pipe import Inbox, Outbox, Outgoing
 from pb3a.processes import start_without_main
 from pb3a.transport import pickling
 from pb3a.transport.doorbell import new_bell
+from pb3a.transport.pipe import Inbox, Outbox, Outgoing
 from pb3a.worker.process import REFUSED, TIMED_OUT, worker_main
 
 if TYPE_CHECKING:

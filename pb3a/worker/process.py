@@ -10,6 +10,7 @@ executor says so or when the pipe closes (the executor died).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import itertools
 import logging
@@ -25,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 
 import cloudpickle
 
+from pb3a.errors import RuntimeTimeout
 from pb3a.loading import served
 from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
@@ -34,6 +36,7 @@ from pb3a.processes import mark_as
 from pb3a.transport import pickling
 from pb3a.transport.codec import local_copy
 from pb3a.transport.doorbell import BellPull
+from pb3a.transport.pipe import Outbox, Outgoing
 from pb3a.transport.ring import RingSize, ShmRing, sleep
 from pb3a.transport.snapshot import Snapshot
 from pb3a.worker.actor import EventPool, ModuleActor, SetupError
@@ -49,6 +52,7 @@ GUARD_TIMEOUT = 0.5      # longest sleep of the receiver (a guard; wake-ups are 
 SPIN_S = 100e-6          # values closer than this count as dense; poll this long for the next
 ERROR_REPORT_S = 1.0     # a module's exceptions are reported at most this often (all counted)
 AGENT_REQUEST_TIMEOUT = 30.0   # an agent's request to the runtime (a migration, say)
+RUNTIME_WAY_BACK_S = 1.0       # ... given a timeout: its answer's way back beyond it
 MEASURE_TIMEOUT = 5.0    # how long measuring a snapshot waits for a busy module's lock
 LEASE_CHECK_S = 0.1      # how often a worker with a lease (see op_lease) looks at it
 # The exit status of a worker that stopped its modules because its lease lapsed: its
@@ -58,6 +62,10 @@ LEASE_LAPSED = 3
 TIMED_OUT = "timed out"   # a reply's status for a request that ran out of time (not False)
 REFUSED = "refused"       # for one whose arguments the module refused: the message is whole
 LAST_WORDS_S = 0.5        # a stopping worker's wait to tell its figures (the executor frozen?)
+# Log records and error reports are dropped (and counted) while this many messages wait
+# for the executor to read: a module logging in a loop must not fill the memory.
+NOTICE_BACKLOG = 100
+_DROPPABLE = frozenset({"log", "error"})
 
 
 class Refused(Exception):
@@ -158,8 +166,12 @@ class Worker:
         self._receiving: tuple[list[_Inbound], list[Any], bool] = ([], [], False)
         self.outbound: dict[str, tuple[str, str, ShmRing | None, BellPull | None]] = {}
         self.publications = Publications()       # outputs replicated to other nodes
-        self._send_lock = threading.Lock()
-        self._torn = False                  # a message was cut short: the pipe is out of step
+        # What goes to the executor never waits for it (a frozen executor reads
+        # nothing): a module's log record or error report, an agent's request.
+        self.outbox = Outbox(conn.fileno())
+        self._checkpoints: dict[str, Outgoing] = {}    # the last one each, if unsent
+        self._dropped = 0                   # notices dropped while the executor read nothing
+        self._dropping = threading.Lock()   # (counted by any module's thread)
         self._requests: dict[int, RuntimeWait] = {}    # agents' requests awaiting answers
         self._paused: set[str] = set()
         self._error_times: dict[str, tuple[float, int]] = {}
@@ -225,50 +237,60 @@ class Worker:
             reply = (req_id, False, f"{type(exc).__name__}: {exc}")
         self.send(reply)
 
-    def send(self, message: tuple[int | None, Any, Any]) -> None:
+    def send(self, message: tuple[int | None, Any, Any]) -> Outgoing | None:
         """Send a reply ``(req_id, ok, result)`` or a notice ``(None, kind, payload)``
-        to the executor: its head, then its payload pickled on its own. So a payload
-        that cannot be pickled here (a state holding a lock) or read there (a class
-        only this process can import) fails only its own request, saying why, and
-        never the pipe."""
+        to the executor, never waiting for it: what its pipe has no room for goes later,
+        in order. Its head goes, then its payload pickled on its own, so a payload that
+        cannot be pickled here (a state holding a lock) or read there (a class only this
+        process can import) fails only its own request, saying why, and never the pipe.
+
+        While the executor reads nothing, a module's checkpoint replaces its last one
+        not yet gone, and log records and error reports past ``NOTICE_BACKLOG`` waiting
+        messages are dropped, and counted in a warning sent once there is room. The
+        message, or None if it was not sent."""
         req_id, kind, payload = message
+        if req_id is None and kind in _DROPPABLE and self.outbox.waiting() >= NOTICE_BACKLOG:
+            with self._dropping:
+                self._dropped += 1
+            return None
         try:
             body = pickling.dumps(payload)   # (a class sent by value, too)
         except Exception as exc:
             if req_id is None:
                 log.error("a %s notice could not be pickled: %s: %s", kind,
                           type(exc).__name__, exc)
-                return
+                return None
             fields = pickling.unpicklable(payload) if isinstance(payload, dict) else []
             kind, body = False, pickling.dumps(
                 f"its answer could not be pickled: {type(exc).__name__}: {exc}" + (
                     f" (in {', '.join(map(repr, fields))}: state that holds a lock, a "
                     "file or a socket cannot leave its module; a name beginning with '_' "
                     "keeps it out of the state)" if fields else ""))
-        with self._send_lock:
-            if self._torn:
-                return
-            try:
-                self.conn.send((req_id, kind))
-                self.conn.send_bytes(body)
-            except (OSError, EOFError, BrokenPipeError):
-                self._closing.set()
-            except BaseException:
-                # A SIGTERM (the main thread's handler raises) cut this message short: the
-                # executor would read the next one's head as its payload. Nothing more
-                # goes; the executor reads the end of the pipe instead. (Masking SIGTERM
-                # over the writes instead left a send to a frozen executor unstoppable.)
-                self._torn = True
-                raise
+        if kind == "checkpoint":
+            earlier = self._checkpoints.pop(payload["name"], None)
+            if earlier is not None:
+                self.outbox.withdraw(earlier)        # (unless it began to go)
+        try:
+            if self._dropped and not self.outbox.waiting():
+                self._tell_dropped()
+            sent = self.outbox.put([pickle.dumps((req_id, kind)), body])
+        except OSError:                              # the executor is gone
+            self._closing.set()
+            return None
+        if kind == "checkpoint":
+            self._checkpoints[payload["name"]] = sent
+        return sent
 
-    def send_within(self, message: tuple[int | None, Any, Any], timeout: float) -> None:
-        """``send``, given up after ``timeout``: an executor that is frozen reads nothing,
-        and a send to its full pipe waited for good (a stopping worker's last figures
-        then held its teardowns and its exit)."""
-        sender = threading.Thread(target=self.send, args=(message,), daemon=True,
-                                  name="pb3a-send")
-        sender.start()
-        sender.join(timeout)
+    def _tell_dropped(self) -> None:
+        """A warning with how many notices were dropped since the last one."""
+        with self._dropping:
+            dropped, self._dropped = self._dropped, 0
+        if dropped:
+            self.outbox.put([pickle.dumps((None, "log")), pickling.dumps({
+                "level": logging.WARNING, "logger": log.name, "message": (
+                    f"{dropped} log records and error reports of this worker were "
+                    "dropped: its executor read nothing for a while (frozen, or "
+                    "starved of CPU)")})])
 
     def shutdown(self) -> None:
         if self._shut_down:
@@ -289,9 +311,12 @@ class Worker:
         # process is gone: a SIGTERM to the whole process group stops the workers before
         # the launcher asks for its last table, which then read zeros.
         try:
-            self.send_within((None, "figures", self.op_stats()), LAST_WORDS_S)
+            figures = self.send((None, "figures", self.op_stats()))
         except Exception:                    # (a removal changed the modules meanwhile)
             log.debug("the worker's last figures could not be taken", exc_info=True)
+        else:             # (if the executor is frozen, the teardowns and the exit go on)
+            if figures is not None:
+                self.outbox.wait_sent(figures, LAST_WORDS_S)
         for name in reversed(list(self.actors)):
             self.actors[name].stop(timeout=1.0)
         self.pool.close(timeout=1.0)
@@ -309,6 +334,9 @@ class Worker:
         self._threads[0].join(1.0)            # (before its doorbell's descriptor goes)
         os.close(self._bell_fd)
         self._wake.close()
+        # what is still going (an answer, the teardowns' log records) goes before the
+        # process ends, unless the executor is frozen
+        self.outbox.close(LAST_WORDS_S)
 
     # -- requests from the executor ----------------------------------------
     def op_add(self, name: str, cls: bytes, period: float | None, restart: str,
@@ -613,9 +641,11 @@ class Worker:
                 name, functools.partial(self.request, name))
 
     def request(self, agent: str, op: str, args: dict[str, Any],
-                timeout: float = AGENT_REQUEST_TIMEOUT) -> Any:
+                timeout: float | None = None) -> Any:
         """An agent's request to the runtime (a configuration change, a read); waits for
-        the answer, giving way meanwhile to requests that need the agent (``waits``)."""
+        the answer (the request's ``timeout`` and the way back), giving way meanwhile to
+        requests that need the agent (``waits``)."""
+        timeout = agent_wait(timeout)
         actor = self.actors[agent]
         req_id = next(self._request_ids)
         with actor.waiting(f"{agent}'s request {op!r}") as wait:
@@ -624,9 +654,17 @@ class Worker:
                 # who asks, and whether from its setup: a change that waits for that
                 # setup lets it read (``Operations``)
                 asker = {"_asker": (agent, actor.in_setup)}
-                self.send((None, "request", {"id": req_id, "op": op,
-                                             "args": pickling.dumps({**args, **asker})}))
-                return wait.result(timeout)
+                sent = self.send((None, "request", {"id": req_id, "op": op,
+                                                    "args": pickling.dumps({**args, **asker})}))
+                try:
+                    return wait.result(timeout)
+                except RuntimeTimeout:
+                    if sent is None or not self.outbox.withdraw(sent):
+                        raise
+                raise RuntimeTimeout(
+                    f"the runtime read nothing of {wait.what} within {timeout:g} s, so it "
+                    "was withdrawn and will not run: this module's executor reads nothing "
+                    "from its workers (frozen, or starved of CPU)")
             finally:
                 self._requests.pop(req_id, None)
 
@@ -711,7 +749,12 @@ class Worker:
         return False
 
     def _checkpoint(self) -> None:
+        """Every ``checkpoint_s``: the ``last-state`` modules' checkpoints, and how many
+        notices were dropped, once the executor reads again (none may come to carry it)."""
         while not self._closing.wait(self._checkpoint_s):
+            if self._dropped and not self.outbox.waiting():
+                with contextlib.suppress(OSError):
+                    self._tell_dropped()
             for name, policy in list(self.restart_policy.items()):
                 actor = self.actors.get(name)
                 if policy == "last-state" and actor is not None and actor.running:
@@ -721,6 +764,12 @@ class Worker:
                         log.exception("cannot checkpoint module %r", name)
                         continue
                     self.send((None, "checkpoint", {"name": name, "state": blob}))
+
+
+def agent_wait(timeout: float | None) -> float:
+    """How long an agent's request is waited for, given its own ``timeout`` (None: the
+    system's default, within ``AGENT_REQUEST_TIMEOUT``)."""
+    return AGENT_REQUEST_TIMEOUT if timeout is None else timeout + RUNTIME_WAY_BACK_S
 
 
 class _LogForwarder(logging.Handler):

@@ -1,21 +1,22 @@
-"""The executor's ends of a worker's pipe, neither of which ever waits for the worker.
+"""The ends of a worker's pipe, neither of which ever waits for the other side.
 
-``Outbox`` sends. A worker that reads nothing (stopped, starved, or its reading thread
-stuck) fills its pipe, and a plain ``Connection.send`` then waits for room for good:
-past its caller's timeout, holding whatever lock its caller holds (a change's
-configuration lock, a stop's). An outbox writes what the pipe takes at once and
-leaves the rest, in order, to a thread that runs only while something is left. A
-message none of which has gone can be withdrawn: a request whose caller gave up
-before the worker read a byte of it never runs later.
+``Outbox`` sends, from the executor to a worker and from the worker back. A side
+that reads nothing (stopped, starved, or its reading thread stuck) fills its pipe,
+and a plain ``Connection.send`` then waits for room for good: past its caller's
+timeout, holding whatever lock its caller holds (a change's configuration lock, a
+stop's, a module's). An outbox writes what the pipe takes at once and leaves the
+rest, in order, to a thread that runs only while something is left. A message none
+of which has gone can be withdrawn: a request whose caller gave up before the other
+side read a byte of it never runs later.
 
-``Inbox`` reads. One thread reads every worker of a node; a worker frozen halfway
-through a large message (a checkpoint, a state) held it waiting for the rest, and
-every other worker's answers and death with it. An inbox takes in what the pipe holds
-and hands out only whole messages.
+``Inbox`` reads, on the executor's side. One thread reads every worker of a node;
+a worker frozen halfway through a large message (a checkpoint, a state) held it
+waiting for the rest, and every other worker's answers and death with it. An inbox
+takes in what the pipe holds and hands out only whole messages.
 
 Messages are framed as ``multiprocessing.connection.Connection`` frames them, and a
 descriptor goes as ``multiprocessing.reduction.send_handle`` sends it, so the worker
-uses a plain ``Connection`` (``send_bytes``, ``recv_bytes``, ``reduction.recv_handle``).
+reads with a plain ``Connection`` (``recv_bytes``, ``reduction.recv_handle``).
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ import threading
 from collections import deque
 from dataclasses import dataclass
 
-log = logging.getLogger("pb3a.executor")
+log = logging.getLogger("pb3a.pipe")
 
 _LENGTH = struct.Struct("!i")            # Connection's frame header
 _LONG_LENGTH = struct.Struct("!Q")       # after a header of -1, for 2 GiB and more
@@ -59,6 +60,7 @@ class Outgoing:
     fd: int | None = None                  # our duplicate, closed once it went
     started: bool = False                  # some of it went: it can no longer be withdrawn
     done: bool = False                     # all of it went, or it was dropped
+    sent: bool = False                     # all of it went
 
     @classmethod
     def framed(cls, payloads: list[bytes], fd: int | None = None) -> Outgoing:
@@ -93,6 +95,7 @@ class Outbox:
         # its pipe only once both are closed).
         self._socket = socket.socket(fileno=os.dup(fileno))
         self._lock = threading.Lock()
+        self._sent = threading.Condition(self._lock)    # a message went, or was dropped
         self._queue: deque[Outgoing] = deque()
         self._closed = False
         self._draining = False
@@ -130,17 +133,25 @@ class Outbox:
             self._queue.remove(item)
             item._close_fd()
             item.done = True
+            self._sent.notify_all()
             return True
+
+    def wait_sent(self, item: Outgoing, timeout: float) -> bool:
+        """Wait up to ``timeout`` for all of ``item`` to go; True if it did (False: it
+        still waits, or was dropped with a broken pipe)."""
+        with self._sent:
+            return self._sent.wait_for(lambda: item.done, timeout) and item.sent
 
     def waiting(self) -> int:
         """How many messages wait for room in the pipe."""
         with self._lock:
             return len(self._queue)
 
-    def close(self) -> None:
-        """Drop what has not gone and close our end (with the connection's, the worker
-        reads the end of its pipe)."""
-        with self._lock:
+    def close(self, timeout: float = 0.0) -> None:
+        """Drop what has not gone within ``timeout`` and close our end (with the
+        connection's, the other side reads the end of its pipe)."""
+        with self._sent:
+            self._sent.wait_for(lambda: self._closed or not self._queue, timeout)
             self._break()
             self._socket.close()
 
@@ -173,8 +184,17 @@ class Outbox:
                     item._close_fd()
             except BlockingIOError:
                 return
+            except BaseException as exc:
+                # A signal's exception (a worker's SIGTERM, a Ctrl-C) raised as a write
+                # returned: how much of it went is unknown, and the other side would
+                # read the rest of the stream out of step. Nothing more goes; it reads
+                # the end of the pipe instead.
+                if not isinstance(exc, Exception):
+                    self._break()
+                raise
             self._queue.popleft()
-            item.done = True
+            item.done = item.sent = True
+            self._sent.notify_all()
 
     def _drain_rest(self) -> None:
         """Leave what is still queued to the drain thread, started if none runs."""
@@ -190,24 +210,30 @@ class Outbox:
             item._close_fd()
             item.done = True
         self._queue.clear()
+        self._sent.notify_all()
 
     def _drain(self) -> None:
         """Write the rest as the pipe makes room, until nothing is left or it closes."""
         room = select.poll()      # (not select(): it fails for descriptors past 1023)
         while True:
+            failure = None
             with self._lock:
                 try:
                     if not self._closed:
                         self._flush()
-                except OSError:                  # the worker is gone: its death fails
-                    self._break()                # the requests that wait on it
-                except Exception:                # (left, it would stall them all)
-                    log.exception("the drain of a worker's pipe failed; it is closed")
+                except OSError:                  # the other side is gone: its death
+                    self._break()                # fails the requests that wait on it
+                except Exception as exc:         # (left, it would stall them all)
+                    failure = exc
                     self._break()
                 if self._closed or not self._queue:
                     self._draining = False
-                    return
-                fd = self._socket.fileno()
+                fd = None if not self._draining else self._socket.fileno()
+            if failure is not None:    # (not under the lock: a worker's log goes by it)
+                log.error("the drain of a worker's pipe failed; it is closed",
+                          exc_info=failure)
+            if fd is None:
+                return
             # Closed meanwhile, its number may be another file's by now: a wait on that
             # ends early or late, and the next pass, under the lock, sees it closed.
             room.register(fd, select.POLLOUT)

@@ -21,9 +21,9 @@ import pytest
 from conftest import eventually
 
 from pb3a.node.watched_process import WatchedProcess
-from pb3a.node.worker_pipe import Inbox, Outbox
 from pb3a.node.workers import WorkerHandle, WorkerPool, WorkerSettings
 from pb3a.transport import pickling
+from pb3a.transport.pipe import Inbox, Outbox
 
 BIG = 4 * 1024 * 1024       # far more than a socket pair's buffers hold
 
@@ -117,6 +117,57 @@ def test_a_pipe_whose_reader_is_gone_fails_the_put(pipe) -> None:
     with pytest.raises(BrokenPipeError):
         outbox.put([b"to nobody"])
     assert outbox.waiting() == 0
+
+
+def test_wait_sent_and_a_closing_wait_end_when_the_reader_has_it_or_the_time_is_up(
+        pipe) -> None:
+    """A stopping worker waits for its last words to go, within a deadline: its
+    executor may be frozen."""
+    outbox, theirs = pipe
+    big = outbox.put([os.urandom(BIG)])
+    started = time.monotonic()
+    assert not outbox.wait_sent(big, 0.2)             # nobody reads
+    assert 0.2 <= time.monotonic() - started < 1
+    got: queue.Queue[bytes] = queue.Queue()
+    reader = threading.Thread(target=lambda: [got.put(theirs.recv_bytes()) for _ in "ab"])
+    reader.start()
+    assert outbox.wait_sent(big, 10)
+    outbox.put([os.urandom(BIG)])
+    outbox.close(timeout=10)                          # once the reader has it all
+    reader.join(10)
+    assert [len(got.get_nowait()) for _ in "ab"] == [BIG, BIG]
+    ours, unread = multiprocessing.Pipe()             # another, which nobody reads
+    with ours, unread:
+        other = Outbox(ours.fileno())
+        first, second = other.put([os.urandom(BIG)]), other.put([b"never"])
+        assert other.withdraw(second) and not other.wait_sent(second, 10)
+        started = time.monotonic()
+        other.close(timeout=0.2)                      # gives up on the rest
+        assert time.monotonic() - started < 1 and first.done and not first.sent
+
+
+def test_an_interrupt_as_a_write_returns_sends_nothing_more(pipe, monkeypatch) -> None:
+    """A signal's exception (a worker's SIGTERM, a Ctrl-C) raised as a write returned
+    leaves how much went unknown: what is still queued, sent again, or a message after
+    it, would be read out of step, so nothing more goes: the reader sees the pipe end."""
+    outbox, theirs = pipe
+    write = outbox._socket.sendmsg
+
+    def interrupted(*args):
+        write(*args)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(outbox, "_socket", type("Interrupted", (), {
+        "sendmsg": staticmethod(interrupted), "fileno": outbox._socket.fileno,
+        "close": outbox._socket.close}))
+    with pytest.raises(KeyboardInterrupt):
+        outbox.put([b"sent", b"unrecorded"])
+    with pytest.raises(BrokenPipeError):
+        outbox.put([b"out of step"])
+    outbox.close()
+    assert [theirs.recv_bytes(), theirs.recv_bytes()] == [b"sent", b"unrecorded"]
+    with pytest.raises(EOFError):                     # not sent again, nor what followed
+        theirs.recv_bytes()
 
 
 def test_the_inbox_hands_out_whole_messages_only(tmp_path) -> None:
