@@ -828,8 +828,9 @@ class StepStamps(Module):
             time.sleep(self.setup_s)
 
     def step(self) -> None:
+        began = time.monotonic()    # (a step frozen in its open() began before the freeze)
         with open(self.path, "a") as stamps:
-            stamps.write(f"{os.getpid()} {time.monotonic()}\n")
+            stamps.write(f"{os.getpid()} {began}\n")
 
 
 class BlocksInInit(Module):

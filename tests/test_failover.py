@@ -676,18 +676,40 @@ def test_a_frozen_node_let_run_again_steps_nothing_beside_its_failed_over_copies
     with _stamping_on_b("thawed", b, stamps).launch() as run:
         eventually(lambda: stamps.exists() and stamps.read_text().count("\n") > 20,
                    what="steps on b")
-        controller = psutil.Process(b.process.pid)
-        frozen = [controller, *controller.children(recursive=True)]
-        for process in frozen:
-            process.suspend()
-        try:
-            _wait_for_the_copy_on_a(run, stamps)
-        finally:
-            for process in reversed(frozen):            # the workers first, as Freeze
-                with contextlib.suppress(psutil.NoSuchProcess):
-                    process.resume()
-        time.sleep(1.0)                                 # what the thawed node does
+        _frozen_until_the_copy_runs_on_a(b, run, stamps)
     _assert_one_copy_at_a_time(stamps)
+
+
+def test_a_node_frozen_as_its_module_begins_to_step_steps_nothing_beside_its_copy(
+        daemons, tmp_path: Path) -> None:
+    """... frozen as soon as its module stepped: its worker took the module before its
+    first lease grant (up to 0.25 s later; a spare has none), so it held no lease and,
+    let run again, stepped beside the copy until its executor fenced it (a step begun
+    after the thaw). A worker takes a module with its executor's lease now."""
+    b, stamps = daemons["b"], tmp_path / "steps"
+    with _stamping_on_b("begun", b, stamps).launch() as run:
+        deadline = time.monotonic() + 30
+        while not (stamps.exists() and "\n" in stamps.read_text()):   # (before a grant)
+            assert time.monotonic() < deadline, "no step on b"
+            time.sleep(0.001)
+        _frozen_until_the_copy_runs_on_a(b, run, stamps)
+    _assert_one_copy_at_a_time(stamps)
+
+
+def _frozen_until_the_copy_runs_on_a(b: Daemon, run, stamps: Path) -> None:
+    """Node b frozen whole (SIGSTOP: its controller, executor and workers) until its
+    module's copy steps on a, then let run again (the workers first, as Freeze) for 1 s."""
+    controller = psutil.Process(b.process.pid)
+    frozen = [controller, *controller.children(recursive=True)]
+    for process in frozen:
+        process.suspend()
+    try:
+        _wait_for_the_copy_on_a(run, stamps)
+    finally:
+        for process in reversed(frozen):
+            with contextlib.suppress(psutil.NoSuchProcess):
+                process.resume()
+    time.sleep(1.0)                                     # what the thawed node does
 
 
 def test_a_module_whose_setup_raises_where_it_fails_over_is_failed_not_failed_over(

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import threading
 import time
 from typing import Any
@@ -66,6 +67,7 @@ class NodeShare:
         self._leased_at = time.monotonic()             # the launcher's last heartbeat
         self._ticked_at = time.monotonic()             # the lease's watch last looked
         self.executor.leased = self._leased
+        self.executor.lease_end = self._lease_end
         self._checkpoints: dict[str, bytes] = {}       # the newest, not yet sent
         self._checkpointed = threading.Condition()
         self.server: ControlServer | None = None
@@ -210,6 +212,11 @@ class NodeShare:
         return (not self.stopped.is_set() and now - self._leased_at <= self._lease_s
                 and now - self._ticked_at <= self._lease_s)
 
+    def _lease_end(self) -> float:
+        """Where this executor's lease ends (``time.monotonic``), what its workers may run
+        until: in the past if it does not run now (a worker told so lapses at once)."""
+        return self._leased_at + self._lease_s if self._leased() else -math.inf
+
     def _keep_lease(self) -> None:
         """Fence: stop everything once the launcher's heartbeats stop for the lease, or
         once this process was frozen (stopped, starved) that long: the launcher may have
@@ -218,14 +225,18 @@ class NodeShare:
         while not self.stopped.wait(min(0.1, lease_s / 4)):
             now = time.monotonic()
             silent, held_up = now - self._leased_at, now - self._ticked_at
-            self._ticked_at = now
             if silent > lease_s or held_up > lease_s:
+                # (its watch's last look stays where it was: until ``stopped`` is set, a
+                # heartbeat read late, queued while it was frozen, renewed the lease for
+                # its grants and restarts, after the watch had seen the freeze)
                 why = (f"no heartbeat from the launcher for {silent:.1f} s" if silent > lease_s
                        else f"it was frozen for {held_up:.1f} s")
                 log.error("node %s: %s (its lease is %.1f s): fenced, its modules stop",
                           self.node, why, lease_s)
                 self.executor.fence()      # at once: shutting down may wait for a request
                 self.stopped.set()
+            else:
+                self._ticked_at = now
 
     def _grant_leases(self) -> None:
         """While its own lease runs, give every worker one (``Worker.op_lease``), every

@@ -120,6 +120,9 @@ class Executor:
         # whether this node's lease runs now (a remote node's share sets it: an embedded
         # node has none, and never lapses)
         self.leased: Callable[[], bool] = lambda: True
+        # the end (monotonic) of the lease a worker takes a module with: its executor's,
+        # or None (an embedded node's workers get none)
+        self.lease_end: Callable[[], float | None] = lambda: None
         self._key: ClusterKey | None = None           # the cluster key (loaded on first use)
         self._bridge: Bridge | None = None            # remote links in (made on first use)
         self._budgets: dict[str, RestartBudget] = {}  # worker key -> its restarts
@@ -254,7 +257,7 @@ class Executor:
     def _instantiate(self, record: ModuleRecord, state: dict[str, Any] | bytes) -> None:
         spec = record.spec
         self.call(record.worker, "add", name=spec.name, cls=record.blob, period=spec.period,
-                  restart=spec.restart, state=state)
+                  restart=spec.restart, state=state, lease=self.lease_end())
 
     def start_modules(self, names: list[str], failing: bool = False) -> None:
         """Run ``setup`` and start the modules, in order (those not running yet: a module

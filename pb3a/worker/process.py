@@ -340,7 +340,13 @@ class Worker:
 
     # -- requests from the executor ----------------------------------------
     def op_add(self, name: str, cls: bytes, period: float | None, restart: str,
-               state: dict[str, Any] | bytes) -> None:
+               state: dict[str, Any] | bytes, lease: float | None = None) -> None:
+        """A module, with its executor's lease (``op_lease``) on a remote node: a worker
+        that took one before its first grant (which comes up to ``LEASE_GRANT_S`` later,
+        a spare having none) held no lease, and a node frozen meanwhile and let run
+        again stepped it beside its failed-over copy until its executor fenced it."""
+        if lease is not None:
+            self.op_lease(lease)
         module = _load_class(cls)()
         self._give_runtime(name, module)
         if isinstance(state, bytes):        # a checkpoint, read where the module's code is
