@@ -1297,3 +1297,47 @@ def test_a_gain_tuned_live_is_kept_in_the_document_and_shown_after_stop(
         assert field_value(page, "ctl", "kp") == "3.25"
     text = config.read_text()
     assert "state = { kp = 3.25 }   # start gentle" in text and "# A controller" in text
+
+
+# Installed in the page: the answers to its GETs of a path matching `pattern` are held
+# back, as a loaded machine may be slow to give them, until the page has applied a state
+# (its POST answered), 3 s at most; window.pb3aHeld counts them.
+HOLD_ANSWERS = """(pattern) => {
+    const fetch = window.fetch, late = new RegExp(pattern);
+    let applied;
+    const done = new Promise((resolve) => { applied = resolve; });
+    window.pb3aHeld = 0;
+    window.fetch = async (path, init) => {
+        const answer = await fetch(path, init);
+        if (init.method === "POST" && /[/]state$/.test(path)) applied();
+        if (init.method === "GET" && late.test(path)) {
+            window.pb3aHeld += 1;
+            await Promise.race([done, new Promise((resolve) => setTimeout(resolve, 3000))]);
+        }
+        return answer;
+    };
+}"""
+
+
+@pytest.mark.parametrize("late", ["^/api/modules/ctl/state$", "^/api/classes$"],
+                         ids=["first-state-read", "classes-read-at-launch"])
+def test_a_field_applied_keeps_its_mark_when_an_earlier_read_answers_late(
+        tmp_path: Path, late: str) -> None:
+    """A read the page made before a field was applied, answered after it (a machine under
+    load): the module's first state read, the live feed having drawn the fields meanwhile,
+    or the classes read as the launch is entered, the module clicked meanwhile. Its answer
+    drew the State Editor anew: the field lost its "applied" mark (or the edit itself)."""
+    config = tmp_path / "tuning.toml"
+    config.write_text(TUNING)
+    with editor(config, 1) as (_manager, page):
+        page.evaluate(HOLD_ANSWERS, late)
+        page.click("#launch")
+        page.wait_for_function("document.querySelector('#mode').textContent === 'running'",
+                               timeout=WAIT_MS)
+        page.click("[data-module='ctl'] .module-title")
+        page.wait_for_function("document.querySelector(\"[data-field='kp'] input\")?.value "
+                               "=== '2.0'", timeout=WAIT_MS)
+        page.fill("[data-field='kp'] input", "3.25")
+        page.press("[data-field='kp'] input", "Enter")
+        page.wait_for_selector("[data-field='kp'].applied", timeout=WAIT_MS)
+        assert page.evaluate("window.pb3aHeld") >= 1       # the late answer was made

@@ -25,6 +25,7 @@ class Manager {
     this.selected = null;          // the module or macro instance the inspector shows
     this.selection = new Set();    // everything selected (Shift-click adds), the last one shown
     this.document = null;          // an EditedDocument in FILE mode
+    this.entering = false;         // a mode being entered: select() leaves the inspector to it
     this.macroDrawn = null;        // what the inspector last drew for a macro instance
     this.lastMove = new Map();     // module -> its last MigrationReport, shown in the inspector
     this.updates = 0;              // live updates drawn, and what the last one cost (ms)
@@ -124,7 +125,15 @@ class Manager {
     // (saved while it runs: the document as launched, with the values kept in it)
     $("save-actions").hidden = !(system.mode === "editing" || launched);
     $("running-actions").hidden = !launched;
-    if (modeChanged) await this.enterMode(system.mode);
+    if (modeChanged) {
+      // a module selected before the mode is entered is drawn once, by the select below
+      this.entering = true;
+      try {
+        await this.enterMode(system.mode);
+      } finally {
+        this.entering = false;
+      }
+    }
     if (this.document) this.browser.setMacros(this.document.macros());
     this.schematic.render(system, layout);
     const gone = [...this.selection].filter((name) => !this.exists(name));
@@ -237,6 +246,9 @@ class Manager {
       this.live.watch(null);
       return;
     }
+    // a launch or a stop under way: setStructure selects it again once the mode is entered
+    // (drawn now, it was drawn anew then, what was typed in it and its marks lost)
+    if (this.entering) return;
     $("inspector-empty").hidden = true;
     $("inspector-body").hidden = false;
     $("inspector-name").textContent = this.selection.size > 1 ? `${this.selection.size} selected` : name;
@@ -254,13 +266,15 @@ class Manager {
       return;
     }
     this.live.watch(name);
-    this.editor.pending("Reading its state…", displays);
+    const reading = this.editor.pending("Reading its state…", displays);
     try {
       const view = await api.state(name);
-      if (this.selected === name) this.editor.show(view, displays);
+      // (not when the live feed drew the fields first: this answer is no newer, and
+      // drawn anew the fields lost what was typed in them and their applied marks)
+      if (this.selected === name && this.editor.awaits(reading)) this.editor.show(view, displays);
     } catch (error) {
       // the live feed's next state draws the fields (once it can be read again)
-      if (this.selected === name) this.editor.pending(error.message, displays, true);
+      if (this.selected === name && this.editor.awaits(reading)) this.editor.pending(error.message, displays, true);
     }
   }
 

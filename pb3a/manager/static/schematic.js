@@ -428,10 +428,12 @@ export class Schematic {
           entry.group.classList.toggle("drop-target", each === target && each !== node);
         }
       };
+      // (on the window: the release reaches it also when a redraw took the handle away
+      // between press and release, which lost the click)
       const up = () => {
-        handle.removeEventListener("pointermove", move);
-        handle.removeEventListener("pointerup", up);
-        handle.removeEventListener("pointercancel", up);
+        window.removeEventListener("pointermove", move);
+        window.removeEventListener("pointerup", up);
+        window.removeEventListener("pointercancel", up);
         element.classList.remove("dragging");
         for (const entry of this.clusters.values()) entry.group.classList.remove("drop-target");
         if (!dragging) return this.actions.select(name, {add});
@@ -445,9 +447,9 @@ export class Schematic {
           snapBack(element, rest);
         }
       };
-      handle.addEventListener("pointermove", move);
-      handle.addEventListener("pointerup", up);
-      handle.addEventListener("pointercancel", up);
+      window.addEventListener("pointermove", move);
+      window.addEventListener("pointerup", up);
+      window.addEventListener("pointercancel", up);
     });
   }
 

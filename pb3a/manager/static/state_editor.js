@@ -24,6 +24,7 @@ export class StateEditor {
     this.rows = new Map();       // field -> {signature, element, refresh(view), display}
     this.open = new Set();       // paths of the containers the user opened
     this.displays = {};
+    this.awaited = null;         // what pending() handed out, until a view is drawn
   }
 
   /** Show these fields (a state view), with the module's declared displays. */
@@ -36,17 +37,28 @@ export class StateEditor {
   }
 
   /** No fields yet, a line in their place saying why (being read, or a problem): the
-   * next update draws them all anew, rows of an earlier view are not kept out of sight. */
+   * next update draws them all anew, rows of an earlier view are not kept out of sight.
+   * Returns a token that `awaits(token)` tells apart until a view is drawn. */
   pending(message, displays, problem = false) {
     this.displays = displays || {};
     this.rows.clear();
     this.open.clear();
     this.root.replaceChildren(h("p", {class: problem ? "problem state-problem" : "muted"}, message));
+    this.awaited = {};
+    return this.awaited;
+  }
+
+  /** Whether no view was drawn since pending() gave this token: a read answered after
+   * the live feed drew the fields (and the user began to edit them) must not draw them
+   * anew, which dropped what was typed and a field's "applied" mark. */
+  awaits(token) {
+    return token !== null && this.awaited === token;
   }
 
   /** Refresh in place: what the user is typing is kept; a field whose kind changed is
    * drawn anew. */
   update(view) {
+    this.awaited = null;
     const fields = view.fields || {};
     if (!Object.keys(fields).length) {
       this.root.replaceChildren(h("p", {class: "muted"}, "This module has no state."));
