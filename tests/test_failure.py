@@ -966,6 +966,33 @@ def test_two_starts_that_meet_the_same_dying_preloading_forkserver_both_retry(
                for record in caplog.records) == 1
 
 
+def test_a_retry_that_meets_a_second_dying_preloading_forkserver_tries_again(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A start made before the preload was dropped may have started a second forkserver
+    with it, which dies as the first did: the retry met that one, and the module's start
+    failed with "the forkserver ... ended as it started" (one run in three of a loaded
+    subset). A start is tried until a forkserver started without the preload answers,
+    four times at most."""
+    from pb3a.node import workers
+
+    calls: list[str] = []
+
+    def start(process: object, timeout: float) -> None:
+        calls.append(str(process))
+        if process == "dies" or len(calls) <= 2:    # the first, then the second, die
+            raise EOFError
+
+    monkeypatch.setattr(workers, "start_without_main", start)
+    workers._preload(("a_module_that_raises_as_it_is_imported",))
+    try:
+        workers._start_forkserver_child("module")
+    finally:
+        workers._preload(())
+    assert calls == ["module"] * 3
+    with pytest.raises(RuntimeFailure, match="ended as it started, 4 times"):
+        workers._start_forkserver_child("dies")
+
+
 def test_a_script_that_never_closes_its_system_stops_it_as_it_exits(tmp_path: Path) -> None:
     """``run = System(...).launch()`` without ``with`` or ``close()``: at the script's
     end the workers went with the interpreter, and the resource tracker warned of leaked

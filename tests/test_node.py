@@ -359,6 +359,37 @@ def test_a_fenced_executor_stops_its_modules_at_once_whatever_holds_its_lock(
     assert last_step - fenced_by < 0.6, "a module stepped on long after its node was fenced"
 
 
+def test_a_lease_grant_gets_no_answer_that_would_pile_up_unread() -> None:
+    """Nobody waits for a grant's answer; each was sent all the same, 4 a second, and
+    while the executor's monitor read nothing they piled up in the worker's outbox
+    (20,000 grants held 32 MB)."""
+    import multiprocessing
+    import pickle
+
+    from pb3a.transport.doorbell import new_bell
+    from pb3a.worker.process import UNANSWERED, Worker
+
+    ours, theirs = multiprocessing.Pipe()
+    worker = Worker(ours, "key", new_bell(), 3600.0)
+    server = threading.Thread(target=worker.serve, daemon=True)
+    server.start()
+    try:
+        for until in range(1000):
+            theirs.send((UNANSWERED, "lease", False))
+            theirs.send_bytes(pickle.dumps({"until": time.monotonic() + 3600 + until}))
+        theirs.send((7, "stats", False))           # answered: the grants were all read
+        theirs.send_bytes(pickle.dumps({}))
+        assert theirs.poll(10)
+        assert pickle.loads(theirs.recv_bytes()) == (7, True)     # the first answer
+        assert "modules" in pickle.loads(theirs.recv_bytes())
+        assert not theirs.poll(0.2) and worker.outbox.waiting() == 0
+    finally:
+        theirs.send(None)
+        server.join(10)
+        theirs.close()
+        ours.close()
+
+
 def test_a_lease_grant_never_waits_for_a_worker_that_reads_nothing() -> None:
     """A node's executor grants its workers' leases from one thread. A worker frozen
     (SIGSTOP) reads nothing; once its pipe was full, the grant to it waited for room for
@@ -374,16 +405,16 @@ def test_a_lease_grant_never_waits_for_a_worker_that_reads_nothing() -> None:
     handle = WorkerHandle("a/m-frozen", "a", conn=ours, outbox=Outbox(ours.fileno()),
                           alive=True, pid=os.getpid())
     try:
-        assert handle.send_now(1, "lease", {"until": 1.0})        # room: it goes
+        assert handle.send_now("lease", {"until": 1.0})        # room: it goes
         os.set_blocking(ours.fileno(), False)
         with contextlib.suppress(BlockingIOError):               # nobody reads: full
             while True:
                 os.write(ours.fileno(), b"\0" * 65536)
         os.set_blocking(ours.fileno(), True)
         started = time.monotonic()
-        assert not handle.send_now(2, "lease", {"until": 2.0})
+        assert not handle.send_now("lease", {"until": 2.0})
         handle.send(3, "stats", {})                              # queued behind, not sent
-        assert not handle.send_now(4, "lease", {"until": 4.0})   # (nor jumps the queue)
+        assert not handle.send_now("lease", {"until": 4.0})   # (nor jumps the queue)
         assert time.monotonic() - started < 0.5
     finally:
         handle.close_pipe()

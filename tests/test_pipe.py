@@ -146,21 +146,34 @@ def test_wait_sent_and_a_closing_wait_end_when_the_reader_has_it_or_the_time_is_
         assert time.monotonic() - started < 1 and first.done and not first.sent
 
 
-def test_an_interrupt_as_a_write_returns_sends_nothing_more(pipe, monkeypatch) -> None:
-    """A signal's exception (a worker's SIGTERM, a Ctrl-C) raised as a write returned
-    leaves how much went unknown: what is still queued, sent again, or a message after
-    it, would be read out of step, so nothing more goes: the reader sees the pipe end."""
+class _Alarm(Exception):
+    """A signal handler's own exception (an alarm bounding a call)."""
+
+
+def _interrupting(outbox: Outbox, exc_type: type[BaseException]) -> None:
+    """Make ``outbox``'s writes raise ``exc_type`` as they return, as a signal's handler
+    does when the signal comes then."""
+    real = outbox._socket
+
+    class Interrupted:
+        fileno, close, shutdown = real.fileno, real.close, real.shutdown
+
+        def sendmsg(self, *args):
+            real.sendmsg(*args)
+            raise exc_type
+
+    outbox._socket = Interrupted()
+
+
+@pytest.mark.parametrize("exc_type", [KeyboardInterrupt, _Alarm])
+def test_an_interrupt_as_a_write_returns_sends_nothing_more(pipe, exc_type) -> None:
+    """A signal's exception (a worker's SIGTERM, a Ctrl-C, a handler's own) raised as a
+    write returned leaves how much went unknown: what is still queued, sent again, or a
+    message after it, would be read out of step (a handler's own exception had the
+    drain send the message again: the request ran twice), so nothing more goes."""
     outbox, theirs = pipe
-    write = outbox._socket.sendmsg
-
-    def interrupted(*args):
-        write(*args)
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(outbox, "_socket", type("Interrupted", (), {
-        "sendmsg": staticmethod(interrupted), "fileno": outbox._socket.fileno,
-        "close": outbox._socket.close}))
-    with pytest.raises(KeyboardInterrupt):
+    _interrupting(outbox, exc_type)
+    with pytest.raises(exc_type):
         outbox.put([b"sent", b"unrecorded"])
     with pytest.raises(BrokenPipeError):
         outbox.put([b"out of step"])
@@ -168,6 +181,38 @@ def test_an_interrupt_as_a_write_returns_sends_nothing_more(pipe, monkeypatch) -
     assert [theirs.recv_bytes(), theirs.recv_bytes()] == [b"sent", b"unrecorded"]
     with pytest.raises(EOFError):                     # not sent again, nor what followed
         theirs.recv_bytes()
+
+
+def test_a_ctrl_c_as_a_request_is_written_leaves_no_unreachable_worker() -> None:
+    """The executor's outbox broken by a Ctrl-C, its worker reads the end of its pipe
+    and exits, its death seen (it waited for good, alive to its pool, every request to
+    it failing, its modules running on, never restarted)."""
+    deaths: list[WorkerHandle] = []
+    pool = WorkerPool(WorkerSettings(spares=0), on_notice=lambda *_: None,
+                      on_death=deaths.append)
+    try:
+        handle = pool.ensure("a/m", "a")
+        pool.call("a/m", "stats", 10)
+        _interrupting(handle.outbox, KeyboardInterrupt)
+        with pytest.raises(KeyboardInterrupt):
+            pool.call("a/m", "stats", 2)
+        eventually(lambda: deaths == [handle] and not handle.alive, what="the worker's exit")
+    finally:
+        pool.close(5.0)
+
+
+def test_a_drain_that_cannot_start_leaves_the_next_put_to_start_one(pipe, monkeypatch) -> None:
+    """A drain thread whose start failed (a signal's exception, no thread to be had)
+    left the outbox sure one ran: nothing more was ever written."""
+    outbox, theirs = pipe
+    start = threading.Thread.start
+    monkeypatch.setattr(threading.Thread, "start", lambda self: (_ for _ in ()).throw(
+        RuntimeError("can't start new thread")))
+    with pytest.raises(RuntimeError):
+        outbox.put([os.urandom(BIG)])
+    monkeypatch.setattr(threading.Thread, "start", start)
+    outbox.put([b"after"])
+    assert len(theirs.recv_bytes()) == BIG and theirs.recv_bytes() == b"after"
 
 
 def test_the_inbox_hands_out_whole_messages_only(tmp_path) -> None:

@@ -93,7 +93,7 @@ class NodeShare:
         if op == "executor":
             if args["method"] not in REMOTE_OPERATIONS:
                 raise ValueError(f"a node executor has no operation {args['method']!r}")
-            # (the lock within the launcher's wait: a later answer would find nobody)
+            # (the lock within the launcher's wait: past it, nobody waits for the answer)
             with ex.held(f"{args['method']} from the launcher",
                          args.get("within", LOCK_TIMEOUT)):
                 return getattr(ex, args["method"])(*args["args"], **args["kwargs"])

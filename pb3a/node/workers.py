@@ -39,7 +39,7 @@ from pb3a.processes import start_without_main
 from pb3a.transport import pickling
 from pb3a.transport.doorbell import new_bell
 from pb3a.transport.pipe import Inbox, Outbox, Outgoing
-from pb3a.worker.process import REFUSED, TIMED_OUT, worker_main
+from pb3a.worker.process import REFUSED, TIMED_OUT, UNANSWERED, worker_main
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -63,29 +63,41 @@ PRELOAD = ("pb3a.node.forkserver_signals", "pb3a.worker.process", "numpy", "nump
 def _start_forkserver_child(process: Any) -> None:
     """Start ``process`` from the forkserver. One that ends as it starts, before it
     answers, most likely died preloading a module of the configuration that raises when
-    imported (its traceback is on stderr): the start is tried once more from a
-    forkserver without those, and the worker's own import of the module then fails the
-    module's start with the module's error."""
-    try:
-        start_without_main(process, timeout=SPAWN_TIMEOUT_S)
-        return
-    except (EOFError, ConnectionError):
-        pass
-    # Every start that met a dying forkserver tries again, whichever saw it first: a
-    # module's and a spare's start met the same one, and the second found the preload
-    # dropped by the first and failed (with a third start, a second forkserver could
-    # die preloading before the drop). One new forkserver then serves them all.
-    with _preload_lock:
-        if _preloading_configuration.is_set():
-            log.warning("the forkserver ended as it preloaded the configuration's "
-                        "modules (one raised as it was imported? see above); workers "
-                        "import them themselves from now on")
-            _preload(())
-    try:
-        start_without_main(process, timeout=SPAWN_TIMEOUT_S)
-    except (EOFError, ConnectionError):
-        raise RuntimeFailure("the forkserver that starts this node's workers ended as "
-                             "it started; its error, if it had one, is on stderr") from None
+    imported (its traceback is on stderr): the start is tried again from a forkserver
+    without those, and the worker's own import of the module then fails the module's
+    start with the module's error."""
+    for attempt in range(_FORKSERVER_ATTEMPTS):
+        if attempt:
+            # multiprocessing starts a new forkserver only once the last has exited
+            # (``waitpid``), which comes a moment after it closed its end: tried at
+            # once, every retry met the dying one again
+            time.sleep(_FORKSERVER_BACKOFF_S * 2 ** (attempt - 1))
+        try:
+            start_without_main(process, timeout=SPAWN_TIMEOUT_S)
+            return
+        except (EOFError, ConnectionError):
+            pass
+        # Every start that met a dying forkserver tries again, whichever saw it first: a
+        # module's and a spare's start met the same one, and the second found the
+        # preload dropped by the first and failed. And more than once: a start made
+        # before the drop may have started another forkserver with the preload, which
+        # dies as the first did, and the retry met that one.
+        with _preload_lock:
+            if _preloading_configuration.is_set():
+                log.warning("the forkserver ended as it preloaded the configuration's "
+                            "modules (one raised as it was imported? see above); workers "
+                            "import them themselves from now on")
+                _preload(())
+    raise RuntimeFailure("the forkserver that starts this node's workers ended as it "
+                         f"started, {_FORKSERVER_ATTEMPTS} times; its error, if it had one, "
+                         "is on stderr")
+
+
+# How often a worker's start is tried when the forkserver ends as it starts (each
+# forkserver started before the preload was dropped may die of it once), the first
+# retry after a pause of this, each later one after twice the last.
+_FORKSERVER_ATTEMPTS = 4
+_FORKSERVER_BACKOFF_S = 0.05
 
 
 # Set while the forkserver (the next to start, if none runs) preloads a configuration's
@@ -141,11 +153,13 @@ class WorkerHandle:
         body = pickling.dumps(args)
         return self.outbox.put([pickle.dumps((req_id, op, fd is not None)), body], fd)
 
-    def send_now(self, req_id: int, op: str, args: Any) -> bool:
-        """``send`` a request only if it goes at once (``Outbox.put_now``); False if it
-        did not go. (A worker that reads nothing, frozen, fills its pipe: a lease's
-        renewal queued behind the others would only come too late.)"""
-        return self.outbox.put_now([pickle.dumps((req_id, op, False)), pickling.dumps(args)])
+    def send_now(self, op: str, args: Any) -> bool:
+        """``send`` a request whose answer nobody waits for, only if it goes at once
+        (``Outbox.put_now``); False if it did not go. (A worker that reads nothing,
+        frozen, fills its pipe: a lease's renewal queued behind the others would only
+        come too late.)"""
+        return self.outbox.put_now([pickle.dumps((UNANSWERED, op, False)),
+                                    pickling.dumps(args)])
 
     def close_pipe(self) -> None:
         """Close both ends of ours (the worker then reads the end of its pipe)."""
@@ -237,7 +251,8 @@ class WorkerPool:
         # The doorbell is the worker's first read: send it before anyone can send a request.
         try:
             reduction.send_handle(parent, handle.bell, process.pid)
-            outbox, inbox = Outbox(parent.fileno()), Inbox(parent.fileno())
+            outbox = Outbox(parent.fileno(), ends_on_break=True)
+            inbox = Inbox(parent.fileno())
         except OSError:
             parent.close()
             watched.kill()
@@ -344,7 +359,7 @@ class WorkerPool:
         if handle is None or not handle.serving:
             return False
         try:
-            return handle.send_now(next(self._ids), op, args)
+            return handle.send_now(op, args)
         except (OSError, ValueError):
             return False
 

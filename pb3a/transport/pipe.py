@@ -88,7 +88,7 @@ class Outgoing:
 class Outbox:
     """The sending end of one pipe (a Unix stream socket): ``put`` never waits."""
 
-    def __init__(self, fileno: int) -> None:
+    def __init__(self, fileno: int, *, ends_on_break: bool = False) -> None:
         # A duplicate of the pipe's descriptor, so that the drain never writes to a
         # number the connection closed and the system gave to another file; ``close``
         # must therefore be called with the connection's (the worker sees the end of
@@ -99,6 +99,9 @@ class Outbox:
         self._queue: deque[Outgoing] = deque()
         self._closed = False
         self._draining = False
+        # the executor's: broken by a signal (a Ctrl-C), the worker must read the end of
+        # its pipe (and exit), not wait for good, alive and unreachable
+        self._ends_on_break = ends_on_break
 
     def put(self, payloads: list[bytes], fd: int | None = None) -> Outgoing:
         """Send ``payloads``, each framed, then ``fd`` (duplicated: the caller may close
@@ -184,13 +187,15 @@ class Outbox:
                     item._close_fd()
             except BlockingIOError:
                 return
-            except BaseException as exc:
-                # A signal's exception (a worker's SIGTERM, a Ctrl-C) raised as a write
-                # returned: how much of it went is unknown, and the other side would
-                # read the rest of the stream out of step. Nothing more goes; it reads
-                # the end of the pipe instead.
-                if not isinstance(exc, Exception):
-                    self._break()
+            except BaseException:
+                # The pipe failed, or a signal's exception (a worker's SIGTERM, a Ctrl-C,
+                # a handler's own Exception) was raised as a write returned: how much of
+                # it went is unknown, and the other side would read the rest of the
+                # stream out of step (or a message twice). Nothing more goes.
+                self._break()
+                if self._ends_on_break:       # (the worker reads the end of its pipe)
+                    with contextlib.suppress(OSError):
+                        self._socket.shutdown(socket.SHUT_WR)
                 raise
             self._queue.popleft()
             item.done = item.sent = True
@@ -199,9 +204,16 @@ class Outbox:
     def _drain_rest(self) -> None:
         """Leave what is still queued to the drain thread, started if none runs."""
         if self._queue and not self._draining:
+            drain = threading.Thread(target=self._drain, name="pb3a-outbox", daemon=True)
             self._draining = True
-            threading.Thread(target=self._drain, name="pb3a-outbox",
-                             daemon=True).start()
+            try:
+                drain.start()
+            except BaseException:
+                # (a signal's exception as it starts, or no thread to be had: left set,
+                # nothing more ever went; the next put starts one. A second drain, if
+                # this one started after all, is harmless: both write under the lock)
+                self._draining = False
+                raise
 
     def _break(self) -> None:
         """The pipe is broken (or closed): what waits is dropped, nothing more goes."""

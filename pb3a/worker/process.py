@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any
 
 import cloudpickle
 
-from pb3a.errors import RuntimeTimeout
+from pb3a.errors import RuntimeCancelled, RuntimeTimeout
 from pb3a.loading import served
 from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
@@ -59,6 +59,7 @@ LEASE_CHECK_S = 0.1      # how often a worker with a lease (see op_lease) looks 
 # executor tells it from a stop it asked for (0) and, if its own lease runs, restarts
 # the modules (the worker alone was frozen; see Executor._died).
 LEASE_LAPSED = 3
+UNANSWERED = -1            # the id of a request whose answer nobody waits for
 TIMED_OUT = "timed out"   # a reply's status for a request that ran out of time (not False)
 REFUSED = "refused"       # for one whose arguments the module refused: the message is whole
 LAST_WORDS_S = 0.5        # a stopping worker's wait to tell its figures (the executor frozen?)
@@ -225,6 +226,14 @@ class Worker:
         self.shutdown()
 
     def _handle(self, req_id: int, op: str, args: dict[str, Any]) -> None:
+        if req_id == UNANSWERED:
+            # (a lease grant: its answers piled up in the outbox, 4 a second, while the
+            # executor's monitor read nothing)
+            try:
+                getattr(self, f"op_{op}")(**args)
+            except Exception:
+                log.exception("the request %r, which wants no answer, failed", op)
+            return
         try:
             result = getattr(self, f"op_{op}")(**args)
             reply = (req_id, True, result)
@@ -664,6 +673,10 @@ class Worker:
                                                     "args": pickling.dumps({**args, **asker})}))
                 try:
                     return wait.result(timeout)
+                except RuntimeCancelled:            # (the agent is being paused: moved,
+                    if sent is not None:            # swapped, stopped) nor will it run
+                        self.outbox.withdraw(sent)
+                    raise
                 except RuntimeTimeout:
                     if sent is None or not self.outbox.withdraw(sent):
                         raise
