@@ -1251,6 +1251,19 @@ state = { kp = 2.0 }   # start gentle
 """
 
 
+def _launch_and_tune_kp(page) -> None:
+    """Launch, show ctl, and set its kp from 2.0 to 3.25 in the State Editor, applied."""
+    page.click("#launch")
+    page.wait_for_function("document.querySelector('#mode').textContent === 'running'",
+                           timeout=WAIT_MS)
+    page.click("[data-module='ctl'] .module-title")
+    page.wait_for_function("document.querySelector(\"[data-field='kp'] input\")?.value "
+                           "=== '2.0'", timeout=WAIT_MS)
+    page.fill("[data-field='kp'] input", "3.25")
+    page.press("[data-field='kp'] input", "Enter")
+    page.wait_for_selector("[data-field='kp'].applied", timeout=WAIT_MS)
+
+
 def test_a_gain_tuned_live_is_kept_in_the_document_and_shown_after_stop(
         tmp_path: Path) -> None:
     """A gain tuned in the State Editor was lost at Stop: the document kept what it was
@@ -1260,15 +1273,7 @@ def test_a_gain_tuned_live_is_kept_in_the_document_and_shown_after_stop(
     config = tmp_path / "tuning.toml"
     config.write_text(TUNING)
     with editor(config, 1) as (manager, page):
-        page.click("#launch")
-        page.wait_for_function("document.querySelector('#mode').textContent === 'running'",
-                               timeout=WAIT_MS)
-        page.click("[data-module='ctl'] .module-title")
-        page.wait_for_function("document.querySelector(\"[data-field='kp'] input\")?.value "
-                               "=== '2.0'", timeout=WAIT_MS)
-        page.fill("[data-field='kp'] input", "3.25")
-        page.press("[data-field='kp'] input", "Enter")
-        page.wait_for_selector("[data-field='kp'].applied", timeout=WAIT_MS)
+        _launch_and_tune_kp(page)
         page.click("#keep")
         page.wait_for_selector("#keep-picker [data-keep='kp']", timeout=WAIT_MS)
         assert page.locator("#keep-picker [data-keep='kp']").is_checked()
@@ -1331,13 +1336,5 @@ def test_a_field_applied_keeps_its_mark_when_an_earlier_read_answers_late(
     config.write_text(TUNING)
     with editor(config, 1) as (_manager, page):
         page.evaluate(HOLD_ANSWERS, late)
-        page.click("#launch")
-        page.wait_for_function("document.querySelector('#mode').textContent === 'running'",
-                               timeout=WAIT_MS)
-        page.click("[data-module='ctl'] .module-title")
-        page.wait_for_function("document.querySelector(\"[data-field='kp'] input\")?.value "
-                               "=== '2.0'", timeout=WAIT_MS)
-        page.fill("[data-field='kp'] input", "3.25")
-        page.press("[data-field='kp'] input", "Enter")
-        page.wait_for_selector("[data-field='kp'].applied", timeout=WAIT_MS)
+        _launch_and_tune_kp(page)
         assert page.evaluate("window.pb3aHeld") >= 1       # the late answer was made
