@@ -656,3 +656,56 @@ def test_nothing_running_has_no_system_to_save() -> None:
     with manager_client(Session(Document.empty())) as client:
         refused = client.get("/api/system/toml")
         assert refused.status_code == 409 and "nothing runs" in refused.json()["error"]
+
+
+def test_a_body_over_the_limit_is_refused_as_it_comes_on_every_route() -> None:
+    """The keep and save routes (whose body may be left out) read the whole body before
+    they looked at it: a client sending 20 MB, or declaring 100 MB, was buffered in full
+    before it got its 400."""
+    import asyncio
+
+    token = new_token()
+    app = create_app(Session(Document.empty()), Access(token, {"testserver"}))
+
+    async def post(path: str) -> tuple[int, int]:
+        chunks = 0
+
+        async def receive() -> dict:
+            nonlocal chunks
+            chunks += 1
+            return {"type": "http.request", "body": b" " * 1_000_000, "more_body": chunks < 20}
+
+        sent: list[dict] = []
+
+        async def send(message: dict) -> None:
+            sent.append(message)
+
+        await app({"type": "http", "http_version": "1.1", "method": "POST", "scheme": "http",
+                   "path": path, "raw_path": path.encode(), "root_path": "",
+                   "query_string": b"", "server": ("testserver", 80),
+                   "client": ("127.0.0.1", 1),
+                   "headers": [(b"host", b"testserver"), (b"content-type", b"application/json"),
+                               (b"authorization", f"Bearer {token}".encode())]},
+                  receive, send)
+        return sent[0]["status"], chunks
+
+    for path in ("/api/modules/scale/state", "/api/modules/scale/keep", "/api/document/save"):
+        status, chunks = asyncio.run(post(path))
+        assert status == 400 and chunks <= 9, (path, chunks)
+
+
+def test_a_save_whose_body_is_not_an_object_is_a_400_and_writes_nothing(tmp_path) -> None:
+    """A bare JSON string (the path, not {"path": ...}) was taken as no body: the
+    document was written over its own file, not where it was asked."""
+    own = tmp_path / "system.toml"
+    own.write_text('name = "s"\n')
+    with manager_client(Session(Document.open(own))) as client:
+        revision = client.get("/api/document").json()["revision"]
+        assert client.put("/api/document", json={"system": {"name": "renamed"},
+                                                 "revision": revision}).status_code == 200
+        for body in (str(tmp_path / "copy.toml"), ["x"], 5):
+            refused = client.post("/api/document/save", json=body)
+            assert refused.status_code == 400 and "\"path\"" in refused.json()["error"], body
+        assert own.read_text() == 'name = "s"\n' and not (tmp_path / "copy.toml").exists()
+        assert client.post("/api/document/save").status_code == 200      # no body: its file
+        assert "renamed" in own.read_text()

@@ -164,3 +164,28 @@ def test_reload_through_the_manager_runs_the_served_code_as_changed_and_the_brow
             assert run.state("sink")["seen"] > 0            # attached only: it still runs
     finally:
         served_code.forget("pb3a_manager_reloaded")
+
+
+def test_attached_as_the_command_does_stop_is_refused_and_the_system_stays_followed() -> None:
+    """`pb3a manager tcp://...` owns its connection (it closes it at the end), and that
+    was taken for a system it launched: the page offered Stop, whose 200 left the system
+    running and the manager let go of it (an empty document, nothing to show)."""
+    from sample_modules import FloatSource, Last
+
+    system = System("attached")
+    system.add("src", FloatSource)
+    system.add("sink", Last)
+    system.link("src.out", "sink.x")
+    with system.launch(listen="tcp://127.0.0.1:0") as run:
+        session = Session(Document.empty(), connect(run.address), owns_handle=True)
+        with manager_client(session) as client:
+            shown = client.get("/api/system").json()
+            assert shown["mode"] == "running" and shown["stoppable"] is False
+            refused = client.post("/api/system/stop")
+            assert refused.status_code == 409, refused.text
+            assert "stop it where it runs" in refused.json()["error"]
+            kept = client.post("/api/modules/sink/keep")
+            assert kept.status_code == 409 and "attached" in kept.json()["error"]
+            assert client.get("/api/system").json()["mode"] == "running"
+            assert set(client.get("/api/stats").json()["modules"]) == {"src", "sink"}
+        assert set(run.topology().modules) == {"src", "sink"}    # still runs: attached only

@@ -387,6 +387,27 @@ LAST = f'# the last scale\n[modules.c]\n{SCALE}\n'
 NEW_LINK = '[[links]]\nfrom = "c.y"\nto = "tick.in"\n\n'
 
 
+def test_a_module_or_node_added_to_a_file_that_writes_them_inline_stays_inline() -> None:
+    """A file with ``modules = { tick = {...} }``: a module (or node) added from the page
+    was made a [table] inside that inline table, and the edit refused as one "TOML
+    cannot hold"."""
+    text = ('name = "s"\nnodes = { a = {} }\n'
+            'modules = { tick = { class = "examples.pipeline:Ticker" } }  # the modules\n')
+    with manager_client(Session(Document(text))) as client:
+        document = client.get("/api/document").json()
+        system = document["system"]
+        system["modules"]["scale"] = {"class": "examples.pipeline:Scale",
+                                      "state": {"gain": 2.0}}
+        system["nodes"]["b"] = {}
+        put = client.put("/api/document", json={"system": system,
+                                                "revision": document["revision"]})
+        assert put.status_code == 200, put.text
+        written = client.get("/api/document/toml").text
+        assert tomllib.loads(written) == system
+        assert written.startswith('name = "s"\nnodes = { a = {}, b = {}}\nmodules = { tick = ')
+        assert written.rstrip().endswith("# the modules")
+
+
 def _without(text: str, *parts: str) -> str:
     for part in parts:
         assert text.count(part) == 1, part
@@ -531,3 +552,28 @@ def test_live_tuned_settings_are_kept_in_the_document_and_launch_again(
             assert refused.status_code == 409, refused.json()
             assert "attached" in refused.json()["error"]
         assert "ctl" not in client.get("/api/document").json()["system"].get("modules", {})
+
+
+def test_a_document_whose_macros_are_not_a_table_can_be_mended_from_the_page(
+        tmp_path: Path) -> None:
+    """``[[macros]]`` (an array of tables where ``[macros.NAME]`` was meant) is listed as
+    a problem, but every edit of such a document was a 500, the one that removes it too."""
+    path = tmp_path / "system.toml"
+    path.write_text('name = "s"\n\n[[macros]]\nname = "stage"\n\n[modules.tick]\n'
+                    'class = "examples.pipeline:Ticker"\n')
+    with manager_client(Session(Document.open(path))) as client:
+        document = client.get("/api/document").json()
+        assert any("'macros' must be a table" in p for p in document["problems"])
+        for macros in (5, "stage", [1]):
+            refused = client.put("/api/document", json={
+                "system": {**document["system"], "macros": macros},
+                "revision": document["revision"]})
+            assert refused.status_code == 200, refused.text
+            document = refused.json()
+            assert any("'macros' must be a table" in p for p in document["problems"])
+        mended = {key: value for key, value in document["system"].items() if key != "macros"}
+        put = client.put("/api/document", json={"system": mended,
+                                                "revision": document["revision"]})
+        assert put.status_code == 200, put.text
+        assert put.json()["problems"] == []
+        assert "macros" not in client.get("/api/document/toml").text

@@ -271,3 +271,52 @@ def test_a_page_open_while_another_launches_is_told_the_system_runs(tmp_path) ->
             assert told[-1]["system"]["mode"] == "running"
     finally:
         session.close()
+
+
+def test_a_system_launched_again_is_followed_from_its_first_event_and_a_stop_is_no_failure(
+        tmp_path) -> None:
+    """Each system numbers its events from 1, but after Stop and Launch the feed asked the
+    new one for the events after the last of the old one: the new system's first events
+    and the structure after them never came (a page whose hello came after the old
+    events was not sent the new structure either), and each Stop came to every page as
+    an error of the live events."""
+    from test_manager_document import PIPELINE
+    from test_manager_failures import event_of, receive_until
+
+    path = tmp_path / "pipeline.toml"
+    path.write_text(PIPELINE.read_text())
+    session = Session(Document.open(path))
+    scale = {"class": "examples.pipeline:Scale"}
+
+    def running(message: dict) -> bool:
+        return message["type"] == "system" and message["system"]["mode"] == "running"
+
+    def shows_three(message: dict) -> bool:
+        return message["type"] == "system" and "three" in message["system"]["modules"]
+
+    try:
+        with manager_client(session, refresh=0.2) as client, \
+                client.websocket_connect("/api/live") as first:
+            assert first.receive_json()["type"] == "hello"
+            assert client.post("/api/document/launch", json={}).status_code == 200
+            for name in ("one", "two"):                 # events 1 and 2 of the first run
+                assert client.post("/api/modules", json={"name": name, **scale}).status_code \
+                    == 201
+            receive_until(first, event_of("module_added", "two"), "the second add")
+            with client.websocket_connect("/api/live") as second:
+                hello = second.receive_json()
+                assert [e["seq"] for e in hello["events"]][-1] == 2
+                assert client.post("/api/system/stop", json={}).status_code == 200
+                seen = receive_until(first, lambda m: m["type"] == "system"
+                                     and m["system"]["mode"] == "editing", "the stop")
+                assert client.post("/api/document/launch", json={}).status_code == 200
+                seen += receive_until(first, running, "the launch")
+                receive_until(second, running, "the launch")
+                assert client.post("/api/modules", json={"name": "three", **scale}) \
+                    .status_code == 201                 # event 1 of the second run
+                seen += receive_until(first, shows_three, "the structure after the add")
+                assert any(event_of("module_added", "three")(m) for m in seen)
+                receive_until(second, shows_three, "the structure after the add")
+                assert [m["error"] for m in seen if m["type"] == "error"] == []
+    finally:
+        session.close()

@@ -48,8 +48,9 @@ def error_response(exc: BaseException) -> JSONResponse:
                          "problems": []}, status_code=500)
 
 
-async def body_of(request: Request) -> Any:
-    """The request's JSON body; Malformed when it is too large (refused as it comes,
+async def body_of(request: Request, *, optional: bool = False) -> Any:
+    """The request's JSON body (``optional``: None when there is none); Malformed when
+    it is too large (refused as it comes,
     not once it is all in memory), is not JSON, nests deeper than Python can read, or
     holds a string that is not Unicode text (a lone surrogate, which JSON allows:
     taken, it made every later answer that carried it fail). ``{"$float": "inf"}``
@@ -66,6 +67,8 @@ async def body_of(request: Request) -> Any:
         chunks.append(chunk)
     raw = b"".join(chunks)
     if not raw:
+        if optional:
+            return None
         raise Malformed("the request needs a JSON body")
     try:
         body = json.loads(raw, object_pairs_hook=float_of_json)
@@ -130,8 +133,7 @@ def routes(session: Session) -> list[Route]:
         return await call(session.keep_offer, name(request))
 
     async def keep(request: Request) -> Any:
-        raw = await request.body()
-        body = await body_of(request) if raw else None
+        body = await body_of(request, optional=True)
         return await call(session.keep, name(request), body)
 
     async def image(request: Request) -> Any:
@@ -210,12 +212,15 @@ def routes(session: Session) -> list[Route]:
                                  media_type="application/toml; charset=utf-8")
 
     async def save(request: Request) -> Any:
-        raw = await request.body()
-        body = await body_of(request) if raw else {}
-        path = body.get("path") if isinstance(body, dict) else None
+        body = await body_of(request, optional=True)
+        body = {} if body is None else body
+        if not isinstance(body, dict):
+            raise Malformed(f"send {{\"path\"?: \"system.toml\", \"overwrite\"?: false}} or "
+                            f"nothing, got {body!r}")
+        path = body.get("path")
         if path is not None and not (isinstance(path, str) and path.strip()):
             raise Malformed(f"'path' must be a file name, got {path!r}")
-        overwrite = body.get("overwrite", False) if isinstance(body, dict) else False
+        overwrite = body.get("overwrite", False)
         if not isinstance(overwrite, bool):
             raise Malformed(f"'overwrite' must be true or false, got {overwrite!r}")
         try:

@@ -253,7 +253,7 @@ def _merge(container: Any, new: dict[str, Any], where: tuple[str, ...],
               and all(isinstance(item, dict) for item in value)):
             _merge_array(old, value, place, root)
         else:
-            container[key] = _item(value, place)
+            container[key] = _item(value, place, inline=isinstance(container, InlineTable))
             if old is None:
                 _place(root, container.item(key))
 
@@ -426,13 +426,14 @@ def _insert(container: Any, index: int, items: list[Any]) -> None:
                                at + len(items) if at >= index else at)
 
 
-def _item(value: Any, where: tuple[str, ...]) -> Any:
-    """A new tomlkit value: tables where a configuration has them, inline otherwise."""
+def _item(value: Any, where: tuple[str, ...], inline: bool = False) -> Any:
+    """A new tomlkit value: tables where a configuration has them, inline otherwise (and
+    always inside an inline table, ``inline``: the file wrote ``modules = {...}``)."""
     if isinstance(value, dict):
-        tabled = _matches(where, _TABLES) or _matches(where[:-1], _TABLES)
+        tabled = not inline and (_matches(where, _TABLES) or _matches(where[:-1], _TABLES))
         return _table(value, where, tomlkit.table() if tabled else tomlkit.inline_table())
     if isinstance(value, list) and value and all(isinstance(item, dict) for item in value) \
-            and _matches(where, _TABLE_ARRAYS):
+            and _matches(where, _TABLE_ARRAYS) and not inline:
         array = tomlkit.aot()
         for item in value:
             array.append(_table(item, where, tomlkit.table()))
@@ -445,7 +446,7 @@ def _item(value: Any, where: tuple[str, ...]) -> Any:
 def _table(value: dict[str, Any], where: tuple[str, ...], table: Any) -> Any:
     for key, item in value.items():
         if item is not None:
-            table[key] = _item(item, (*where, key))
+            table[key] = _item(item, (*where, key), isinstance(table, InlineTable))
     if isinstance(table, Table) and not isinstance(table, InlineTable):
         table.add(tomlkit.nl())              # a blank line before the next table
     return table
@@ -481,7 +482,8 @@ def _entries(system: dict[str, Any]) -> dict[tuple[str, ...], Any]:
     found: dict[tuple[str, ...], Any] = {}
     if isinstance(system.get("modules"), dict):
         found.update({("modules", name): entry for name, entry in system["modules"].items()})
-    for macro, body in (system.get("macros") or {}).items():
+    macros = system.get("macros")
+    for macro, body in (macros.items() if isinstance(macros, dict) else ()):
         if isinstance(body, dict) and isinstance(body.get("modules"), dict):
             found.update({("macros", macro, "modules", name): entry
                           for name, entry in body["modules"].items()})

@@ -58,8 +58,10 @@ class Feed:
         self._clients: set[asyncio.Queue[Message]] = set()
         self._tasks: list[asyncio.Task[None]] = []
         self._calls: set[asyncio.Future[Any]] = set()     # blocking calls under way
-        self._seen = 0                      # the last event sent
-        self._mode = session.mode           # the mode the pages were last told
+        self._seen = 0                      # the last event sent, of the system followed
+        self._system = session.running      # the system the pages were last told of
+        self._epoch = 0                     # one more at each system followed (a launch,
+        # a stop): each numbers its events from 1, so a structure is (epoch, event)
 
     # -- life cycle (the app's lifespan) ---------------------------------------------
     def start(self) -> None:
@@ -101,31 +103,38 @@ class Feed:
         while True:
             started = time.monotonic()
             wait = self.refresh
-            if self._clients and self.session.mode == "running":
+            handle = self.session.running
+            if self._clients and handle is not None:
                 try:
                     message = await self._blocking(stats_message, self.session)
                     self.publish(message)
                     failures = 0
                 except Exception as exc:
-                    failures += 1
-                    wait = self._failed("stats", exc, failures)
+                    if self.session.running is handle:  # (not: stopped from here meanwhile)
+                        failures += 1
+                        wait = self._failed("stats", exc, failures)
             await asyncio.sleep(max(0.0, wait - (time.monotonic() - started)))
 
     async def _events(self) -> None:
         failures = 0
         while True:
-            if self.session.mode != self._mode:
-                # (a page that did not launch would edit the document of a running system;
-                # past every hello: no event tells of it)
-                self._mode = self.session.mode
+            handle = self.session.running
+            if handle is not self._system:
+                # a launch or a stop (or both) since the last look: a page that did not
+                # launch would edit the document of a running system (past every hello:
+                # no event tells of it); a system launched again numbers its events from 1
+                self._system, self._seen = handle, 0
+                self._epoch += 1
                 await self._send_structure(sys.maxsize)
-            if self.session.mode != "running":
+            if handle is None:
                 await asyncio.sleep(self.refresh)
                 continue
             try:
-                events = await self._blocking(self._next_events)
+                events = await self._blocking(self._next_events, handle)
                 failures = 0
             except Exception as exc:
+                if self.session.running is not handle:   # stopped from here: no failure
+                    continue
                 failures += 1
                 await asyncio.sleep(self._failed("events", exc, failures))
                 continue
@@ -140,7 +149,8 @@ class Feed:
         """Send the structure (and the mode) as it is now, after event ``seq``."""
         try:
             now = await self._blocking(structure, self.session)
-            self.publish(Message("system", encode({"type": "system", **now}), seq))
+            self.publish(Message("system", encode({"type": "system", **now}),
+                                 (self._epoch, seq)))
         except Exception as exc:
             self._failed("structure", exc, 1)
 
@@ -158,8 +168,8 @@ class Feed:
                       "error": f"the live {source} could not be read: {reason}"})
         return min(self.refresh * 2 ** (failures - 1), MOST_BACKOFF_S)
 
-    def _next_events(self) -> list[Any]:
-        return self.session.handle.events(self._seen, timeout=EVENT_WAIT_S)
+    def _next_events(self, handle: Any) -> list[Any]:
+        return handle.events(self._seen, timeout=EVENT_WAIT_S)
 
     # -- one client --------------------------------------------------------------------
     async def serve(self, socket: WebSocket) -> None:
@@ -169,6 +179,7 @@ class Feed:
         queue: asyncio.Queue[Message] = asyncio.Queue()       # (bounded by _enqueue)
         watched: list[str | None] = [None]
         running = self.session.mode == "running"
+        epoch = self._epoch                 # (a later one: the structure is sent again)
         try:
             # the last events first: the structure read after them shows what they did
             recent = await run_in_threadpool(self._recent_events) if running else []
@@ -185,7 +196,7 @@ class Feed:
         try:
             # the page may have gone while its hello was gathered: its queue goes too
             await socket.send_text(encode({"type": "hello", **hello, "events": recent}))
-            tasks = [asyncio.create_task(self._send(socket, queue, at)),
+            tasks = [asyncio.create_task(self._send(socket, queue, (epoch, at))),
                      asyncio.create_task(self._watch(queue, watched)),
                      asyncio.create_task(_listen(socket, watched))]
             await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
@@ -205,7 +216,7 @@ class Feed:
         return [plain(asdict(event)) for event in self.session.handle.events(0)[-RECENT_EVENTS:]]
 
     async def _send(self, socket: WebSocket, queue: asyncio.Queue[Message],
-                    hello_at: int) -> None:
+                    hello_at: tuple[int, int]) -> None:
         """Send what is published, but not the structure after events the hello (read
         after event ``hello_at``) showed already: a page redrawn for nothing loses what
         is being typed into it."""
@@ -255,7 +266,7 @@ class Message(NamedTuple):
 
     type: str
     text: str
-    seq: int = 0
+    seq: tuple[int, int] = (0, 0)            # (the feed's epoch, the event)
 
 
 def encode(message: dict[str, Any]) -> str:

@@ -70,6 +70,10 @@ class Session:
         self.document = document
         self._handle = handle
         self._owns_handle = owns_handle
+        # the handle is a system this session launched (Stop stops it, Keep keeps into the
+        # document it came from); one it was given and owns is a connection it closes
+        self._launched = False
+        self._launches = 0          # systems launched here: each numbers its events from 1
         self.timeout = timeout
         self.catalog = catalog or Catalog(document)
         self._lock = threading.Lock()       # launching and closing
@@ -80,6 +84,11 @@ class Session:
     @property
     def mode(self) -> str:
         return "running" if self._handle is not None else "editing"
+
+    @property
+    def running(self) -> SystemHandle | None:
+        """The running system's handle, None when nothing runs (each launch: a new one)."""
+        return self._handle
 
     @property
     def handle(self) -> SystemHandle:
@@ -101,7 +110,8 @@ class Session:
             if problems:
                 raise ConfigError(problems)
             running: Running = system.launch(listen="tcp://127.0.0.1:0")
-            self._handle, self._owns_handle = running, True
+            self._handle, self._owns_handle, self._launched = running, True, True
+            self._launches += 1
             self._tuned = {}
         return self.system()
 
@@ -112,10 +122,10 @@ class Session:
         with self._lock:
             if self._handle is None:
                 raise ConfigError([NOTHING_RUNS])
-            if not self._owns_handle:
+            if not self._launched:
                 raise ConfigError(["this manager did not launch the system it shows (it "
                                    "attached to it): stop it where it runs"])
-            handle, self._handle = self._handle, None
+            handle, self._handle, self._launched = self._handle, None, False
             self._tuned = {}
             handle.close()
         return self.system()
@@ -140,7 +150,9 @@ class Session:
         handle = self._handle
         return {**topology.to_json(), "mode": self.mode,
                 "address": getattr(handle, "address", None) if handle is not None else None,
-                "stoppable": handle is not None and self._owns_handle}
+                "stoppable": handle is not None and self._launched,
+                # which launch (a page that saw no Stop between two tells them apart by it)
+                "launch": self._launches if handle is not None else None}
 
     def system_toml(self) -> str:
         """``GET /api/system/toml``: the running system as it is now, as a configuration
@@ -290,7 +302,7 @@ class Session:
         """Module ``name``'s live state and the class it runs as; refused (see ``keep``)
         when nothing runs, the system is not the document's, or there is no such module."""
         handle = self.handle
-        if not self._owns_handle:
+        if not self._launched:
             raise ConfigError(["this manager attached to the system it shows: there is no "
                                "document it was launched from to keep its state in (GET "
                                "/api/system/toml writes the running system as a file)"])

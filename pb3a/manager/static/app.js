@@ -111,7 +111,9 @@ class Manager {
   // -- structure and live figures ---------------------------------------------------
   async setStructure(system, layout) {
     const modeChanged = this.system?.mode !== system.mode;
-    if (modeChanged) this.events.last = 0;     // (a system launched anew numbers from 1)
+    // a system launched anew numbers its events from 1 (a Stop and a Launch may both
+    // come between two of the feed's looks: then only the launch's number changes)
+    if (modeChanged || this.system?.launch !== system.launch) this.events.last = 0;
     this.system = system;
     this.layout = layout;
     document.body.dataset.mode = system.mode;
