@@ -321,6 +321,38 @@ def test_a_move_that_a_writer_s_node_loss_failed_leaves_the_rest_running(daemons
                    what="values from alpha into join, put back on a")
 
 
+def test_a_module_whose_node_is_lost_as_it_lands_elsewhere_lands_with_its_state(
+        daemons) -> None:
+    """The move from b had captured the relay when b was lost (its executor killed as the
+    relay landed on a): wiring its link to its reader on b failed, and the move put it
+    back on b, where it went with the node, the state it had captured with it (restart
+    never: said lost; otherwise started afresh elsewhere). It lands, and runs on, on a."""
+    b = daemons["b"]
+    system = System("source-lost").node("a").node("b", address=b.address)
+    system.add("src", Counter, node="a", period=0.005)
+    system.add("relay", Relay, node="b", restart="never")
+    system.add("sink", Collector, node="b")
+    system.link("src.out", "relay.x")
+    system.link("relay.out", "sink.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("relay")["relayed"] > 20, timeout=30, what="values")
+        node_a, land = run._launcher.nodes["a"], run._launcher.nodes["a"].land
+
+        def land_as_b_dies(name: str, snapshot: object) -> float:
+            os.kill(b.executor_pid(), signal.SIGKILL)
+            return land(name, snapshot)
+        node_a.land = land_as_b_dies
+        report = run.migrate("relay", to="a")
+        node_a.land = land
+        assert report.source == "b" and run.where("relay") == "a"
+        relayed = run.state("relay")["relayed"]
+        assert relayed > 20                             # its state came with it
+        eventually(lambda: run.state("relay")["relayed"] > relayed + 20, timeout=10,
+                   what="the relay relaying on a")
+        eventually(lambda: _events(run, "module_lost"), timeout=10, what="b's loss handled")
+        assert [e.subject for e in _events(run, "module_lost")] == ["sink"]
+
+
 def test_a_lost_node_shows_no_round_trip_and_its_real_silence(daemons) -> None:
     """A lost node showed the last round-trip time measured, unchanged (``pb3a nodes``),
     ``silent_s`` 0.0 however long it had been silent, and its controller answering after

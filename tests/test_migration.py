@@ -6,6 +6,8 @@ from __future__ import annotations
 import dataclasses
 import os
 import signal
+import threading
+import time
 
 import pytest
 from conftest import alive, assert_same_arrays, eventually
@@ -440,3 +442,131 @@ def test_a_move_whose_module_s_worker_dies_on_the_way_stops_before_anything_is_u
         received = run.state("sink")["received"]
         eventually(lambda: run.state("sink")["received"] > received + 20, timeout=10,
                    what="values through the restarted relay")
+
+
+def test_a_move_whose_pause_a_frozen_worker_reads_late_leaves_the_module_running(
+        monkeypatch) -> None:
+    """The module's worker is frozen (SIGSTOP) as the move asks to pause it, and runs again
+    after the move gave the pause up: it took the module's lock then, and nobody ever let
+    it go (the module stayed paused for good, every read of it 'busy in a call')."""
+    with _through("move-frozen-pause", "relay", Relay).launch() as run:
+        eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")
+        pid = run.stats().modules["relay"].pid
+        real_pause = Executor.pause
+        thaw = threading.Timer(7.5, os.kill, (pid, signal.SIGCONT))
+
+        def freezing(self, name, timeout=10.0):
+            if name == "relay" and not thaw.is_alive():
+                os.kill(pid, signal.SIGSTOP)
+                thaw.start()                    # (after the pause's 5 s + 1 s)
+            return real_pause(self, name, timeout)
+        monkeypatch.setattr(Executor, "pause", freezing)
+        try:
+            with pytest.raises(RuntimeTimeout, match="pause"):
+                run.migrate("relay", to="b")
+        finally:
+            thaw.join()
+        monkeypatch.setattr(Executor, "pause", real_pause)
+        assert run.where("relay") == "a"
+        relayed = eventually(lambda: run.state("relay", timeout=2)["relayed"],
+                             what="a read of relay")
+        eventually(lambda: run.state("relay", timeout=2)["relayed"] > relayed + 20,
+                   what="relay relaying again")
+
+
+class LeavesSlowly(Relay):
+    """A relay whose ``teardown`` takes ``linger`` seconds."""
+
+    linger = 0.0
+
+    def teardown(self) -> None:
+        time.sleep(self.linger)
+
+
+@pytest.mark.parametrize("late", ["frozen", "teardown"])
+def test_a_move_whose_capture_comes_too_late_leaves_the_module_running_where_it_was(
+        late, monkeypatch) -> None:
+    """The move gave up on the capture after 10 s: the module's worker was frozen
+    (SIGSTOP) as it was asked, or the module's teardown overran. The worker retired it
+    all the same once it got there, and the module ran nowhere: the system had it on node
+    a, "running", every request to it a KeyError, its links not wired again, and no
+    event or error said so."""
+    with _through(f"move-late-{late}", "relay", LeavesSlowly).launch() as run:
+        eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")
+        executor = run._launcher.nodes["a"]
+        real_call = type(executor).call
+        pid = run.stats().modules["relay"].pid
+        thaw = threading.Timer(10.5, os.kill, (pid, signal.SIGCONT))
+
+        def freezing(self, worker, op, *args, **kwargs):
+            if op == "migrate_out" and not thaw.is_alive():
+                os.kill(pid, signal.SIGSTOP)
+                thaw.start()                    # (after the capture's 10 s)
+            return real_call(self, worker, op, *args, **kwargs)
+        if late == "frozen":
+            monkeypatch.setattr(type(executor), "call", freezing)
+        else:
+            run.set_state("relay", linger=10.5)
+        try:
+            with pytest.raises(RuntimeTimeout, match="migrate_out"):
+                run.migrate("relay", to="b")
+        finally:
+            if thaw.is_alive():
+                thaw.join()
+        monkeypatch.setattr(type(executor), "call", real_call)
+        assert run.where("relay") == "a"
+        run.set_state("relay", {"linger": 0.0}, timeout=5)
+        relayed = run.state("relay")["relayed"]
+        eventually(lambda: run.state("relay")["relayed"] > relayed + 20,
+                   what="relay relaying again where it was")
+        n = run.state("src")["count"]
+        state = eventually(lambda: (s := run.state("sink"))["received"] >= n and s,
+                           timeout=30, what="every value through relay")
+    assert state["out_of_order"] == 0 and state["duplicates"] == 0
+    assert state["last"] == state["received"]
+
+
+@pytest.mark.parametrize("ends", ["a", "c"])
+def test_a_module_whose_worker_dies_as_its_move_captures_it_restarts_with_its_links(
+        ends, monkeypatch) -> None:
+    """The module's worker dies (SIGKILL) once the move has paused it and unwired its links,
+    as it is captured. The move put its links back while its worker was dead: the wiring
+    of each failed at the dead end, and its live end was never wired; the module restarted
+    (``module_restarted``, "running"), and nothing reached it again. Its links' other ends
+    on its node (``a``) or on another (``c``: ZeroMQ)."""
+    system = _nodes(System(f"dies-in-capture-{ends}"), "a", "b", "c")
+    system.add("src", Counter, node=ends, period=0.005)
+    system.add("relay", Relay, node="a", restart="fresh")
+    system.add("sink", Collector, node=ends)
+    system.link("src.out", "relay.x")
+    system.link("relay.out", "sink.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")
+        executor = run._launcher.nodes["a"]
+        real_call = type(executor).call
+        old = run.stats().modules["relay"].pid
+
+        def dying(self, worker, op, *args, **kwargs):
+            if op == "migrate_out":
+                os.kill(old, signal.SIGKILL)
+                eventually(lambda: not self.workers[worker].serving, what="the death seen")
+            return real_call(self, worker, op, *args, **kwargs)
+        monkeypatch.setattr(type(executor), "call", dying)
+        with pytest.raises(RuntimeFailure):
+            run.migrate("relay", to="b")
+        monkeypatch.setattr(type(executor), "call", real_call)
+        assert run.where("relay") == "a"
+
+        def restarted() -> dict | None:
+            try:
+                state = run.state("relay", timeout=2.0)
+            except RuntimeFailure:                 # (not restarted yet)
+                return None
+            return state if run.stats().modules["relay"].pid not in (None, old) else None
+        eventually(restarted, timeout=15, what="relay restarted")
+        eventually(lambda: run.state("relay")["relayed"] > 20, timeout=10,
+                   what="values through the restarted relay")
+        received = run.state("sink")["received"]
+        eventually(lambda: run.state("sink")["received"] > received + 20,
+                   what="values at the sink again")
+        assert not [line for line in run.stats().failures if "not wired again" in line]

@@ -79,6 +79,29 @@ def test_a_move_whose_setup_raises_at_the_destination_runs_at_the_source_again()
         eventually(lambda: run.state("cam")["steps"] > steps, what="it steps on at a")
 
 
+def test_a_move_whose_setup_raises_at_both_ends_leaves_the_module_failed_and_said(
+        tmp_path: Path) -> None:
+    """Its device unplugged, the module's setup raised at the destination and again at the
+    source, where the failed move put it back: it was left "starting" for good, running
+    nowhere, with no event and no failure said (and the error did not say so)."""
+    unplugged = tmp_path / "unplugged"
+    system = System("setup-move-both").node("a").node("b")
+    system.add("cam", OpensDevice, node="a", state={"unplugged": str(unplugged)})
+    with system.launch() as run:
+        eventually(lambda: run.state("cam")["steps"] > 3, what="steps")
+        unplugged.touch()
+        with pytest.raises(RuntimeFailure, match=r"migration of cam to node b failed .*"
+                                                 r"putting it back on node a failed too"):
+            run.migrate("cam", to="b")
+        assert run.where("cam") == "a"
+        assert run.stats().modules["cam"].status == "failed"
+        assert [e.subject for e in run.events() if e.kind == "module_failed"] == ["cam"]
+        unplugged.unlink()
+        run.restart("cam")
+        steps = run.state("cam")["steps"]
+        eventually(lambda: run.state("cam")["steps"] > steps, what="it steps again at a")
+
+
 def test_a_value_that_came_during_a_failed_swap_is_handled_by_the_old_class(
         tmp_path: Path) -> None:
     """The new class handles no events: a value that came while it was set up waited,

@@ -266,8 +266,9 @@ class Launcher:
         for node, outbound in self._by_node(links, "src", remote=True).items():
             endpoints.update(zip([link.key for link in outbound],
                                  self.nodes[node].publish(outbound), strict=True))
-        for node, inbound in readers.items():
-            self.nodes[node].follow([(link, endpoints[link.key]) for link in inbound])
+        for node, inbound in readers.items():      # (a writer that restarts: when it has)
+            self.nodes[node].follow([(link, endpoints[link.key]) for link in inbound
+                                     if endpoints[link.key] is not None])
 
     def detach(self, *links: FlatLink) -> None:
         """Unwire links (they stay known): each writer stops first, then its reader

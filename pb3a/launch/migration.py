@@ -42,11 +42,14 @@ and wired again where both run, never across nodes on the way.
 from __future__ import annotations
 
 import contextlib
+import logging
 import time
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
+
+log = logging.getLogger("pb3a.launcher")
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -157,20 +160,17 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
         for name in moving:
             launcher.specs[name] = replace(homes[name], node=node)
         # 5. restored, re-wired, started (or, failing that, the same back home)
+        landed: list[str] = []
         try:
-            restore_s = _land(launcher, snapshots, links, laps, state)
+            restore_s = _land(launcher, snapshots, links, laps, state, landed)
         except (RuntimeFailure, RuntimeTimeout) as exc:
-            for link in links:
-                _quietly(launcher.detach, link)
-            for name in moving:
-                _quietly(arriving.remove_module, name)
-            _put_back(launcher, homes, snapshots, links, moving, rewire=True)
-            sources = ", ".join(sorted({home.node for home in homes.values()}))
-            what = (f"{moving[0]} to node {node} failed ({exc}); it runs on node "
-                    f"{sources} again, with its state" if len(moving) == 1 else
-                    f"{', '.join(moving)} to node {node} failed ({exc}); they run on "
-                    f"node {sources} again, with their state")
-            raise RuntimeFailure(f"migration of {what}") from exc
+            lost = sorted({home.node for home in homes.values() if home.node in
+                           launcher.remotes and launcher.remotes[home.node].lost})
+            if not lost:
+                _undo(launcher, homes, snapshots, links, moving, node, exc)
+            # no way back (put back there, they went with it, captured state and all):
+            # they land here all the same, with the links that can be wired
+            restore_s = _stay(launcher, snapshots, links, laps, landed, lost, exc)
     lap = laps.seconds
     capture_s = sum(snapshot.capture_s for snapshot in snapshots.values())
     phases = MigrationPhases(
@@ -180,6 +180,56 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
         reports[name] = MigrationReport(
             name, homes[name].node, node, sum(lap.values()), snapshots[name].nbytes,
             sum(name in (link.src, link.dst) for link in links), phases, prepare_s)
+
+
+def _undo(launcher: Launcher, homes: dict[str, FlatModule], snapshots: dict[str, Snapshot],
+          links: list[FlatLink], moving: list[str], node: str, exc: Exception) -> None:
+    """A landing at ``node`` that failed (``exc``): the modules back where they ran."""
+    for link in links:
+        _quietly(launcher.detach, link)
+    for name in moving:
+        _quietly(launcher.nodes[node].remove_module, name)
+    sources = ", ".join(sorted({home.node for home in homes.values()}))
+    try:
+        _put_back(launcher, homes, snapshots, links, moving, rewire=True)
+    except (RuntimeFailure, RuntimeTimeout) as back:
+        raise RuntimeFailure(
+            f"migration of {', '.join(moving)} to node {node} failed ({exc}), and "
+            f"putting {'it' if len(moving) == 1 else 'them'} back on node {sources} "
+            f"failed too ({back})") from back
+    what = (f"{moving[0]} to node {node} failed ({exc}); it runs on node "
+            f"{sources} again, with its state" if len(moving) == 1 else
+            f"{', '.join(moving)} to node {node} failed ({exc}); they run on "
+            f"node {sources} again, with their state")
+    raise RuntimeFailure(f"migration of {what}") from exc
+
+
+def _stay(launcher: Launcher, snapshots: dict[str, Snapshot], links: list[FlatLink],
+          laps: _Laps, landed: list[str], lost: list[str], exc: Exception) -> float:
+    """A landing that failed (``exc``) as the modules' source node was ``lost``: they land
+    all the same, with every link that can be wired (those to the lost node's modules
+    are its failover's, which waits for this move); the seconds the workers took to
+    restore."""
+    log.warning("node %s was lost as modules moved from it landed (%s): they land all "
+                "the same", ", ".join(lost), exc)
+    restore_s = 0.0
+    for name, snapshot in snapshots.items():
+        if name not in landed:
+            restore_s += launcher.node_of(name).land(name, snapshot)
+    laps.mark("land")
+    kept = [link for link in links if not set(lost) & {
+        launcher.specs[link.src].node, launcher.specs[link.dst].node}]
+    for link in kept:
+        _quietly(launcher.detach, link)
+    launcher.reattach(kept, f"after node {', '.join(lost)} was lost during a move")
+    laps.mark("rewire")
+    starting: dict[str, list[str]] = {}
+    for name in snapshots:
+        starting.setdefault(launcher.specs[name].node, []).append(name)
+    for node, names in starting.items():
+        launcher.nodes[node].start_modules(names, failing=True)
+    laps.mark("start")
+    return restore_s
 
 
 def _prepare(launcher: Launcher, homes: dict[str, FlatModule], links: list[FlatLink],
@@ -229,8 +279,8 @@ def _put_back(launcher: Launcher, homes: dict[str, FlatModule],
             starting: dict[str, list[str]] = {}
             for name in snapshots:
                 starting.setdefault(homes[name].node, []).append(name)
-            for node, names in starting.items():
-                launcher.nodes[node].start_modules(names)
+            for node, names in starting.items():   # (one that cannot start is failed, and
+                launcher.nodes[node].start_modules(names, failing=True)   # said so)
     finally:
         for name in paused:
             if name not in snapshots:
@@ -238,12 +288,16 @@ def _put_back(launcher: Launcher, homes: dict[str, FlatModule],
 
 
 def _land(launcher: Launcher, snapshots: dict[str, Snapshot], links: list[FlatLink],
-          laps: _Laps, arriving: dict[str, dict[str, Any]] | None = None) -> float:
-    """Restore what was captured in the modules' (new) workers, set ``arriving`` on
-    them, re-wire them, start them; the seconds the workers took to restore."""
+          laps: _Laps, arriving: dict[str, dict[str, Any]] | None = None,
+          landed: list[str] | None = None) -> float:
+    """Restore what was captured in the modules' (new) workers (noted in ``landed``),
+    set ``arriving`` on them, re-wire them, start them; the seconds the workers took to
+    restore."""
     restore_s = 0.0
     for name, snapshot in snapshots.items():
         restore_s += launcher.node_of(name).land(name, snapshot)
+        if landed is not None:
+            landed.append(name)
         if arriving and name in arriving:
             started = time.perf_counter()
             launcher.call(name, "set_state", state=arriving[name])

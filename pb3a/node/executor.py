@@ -191,6 +191,13 @@ class Executor:
     def _alive(self, key: str) -> bool:
         return self.workers[key].serving
 
+    def _restarting(self, record: ModuleRecord) -> bool:
+        """Whether the module's worker is gone and its restart policy has yet to say what
+        comes: a link wired meanwhile is wired at its end by that restart (``_rewire``),
+        from the executor's tables and rings; a request to the dead worker would fail,
+        and leave the other end unwired (a move failed as its module's worker died)."""
+        return not self._alive(record.worker) and record.status not in ("failed", "stopped")
+
     # -- placement -------------------------------------------------------------
     def place(self, spec: FlatModule) -> str:
         """The worker key a module runs in: its group, its own process, or a packed one.
@@ -315,7 +322,10 @@ class Executor:
         record = self.modules.get(name)
         if record is None or not self._alive(record.worker):
             return False
-        self.call(record.worker, "pause", timeout + 1.0, name=name, timeout=timeout)
+        # ``until``: a worker that reads this late (it was frozen) must not pause the
+        # module once this call has given up: nobody would resume it
+        self.call(record.worker, "pause", timeout + 1.0, name=name, timeout=timeout,
+                  until=time.monotonic() + timeout)
         return True
 
     def resume(self, name: str) -> None:
@@ -361,7 +371,12 @@ class Executor:
         memory domain) the parts travel in the snapshot instead. The worker the module
         leaves is stopped by ``release``, after the pause, if nothing else runs there."""
         record = self.modules[name]
-        snapshot: Snapshot = self.call(record.worker, "migrate_out", name=name, segment=segment)
+        # ``until``: a worker that is late (frozen, or a teardown that overran) keeps the
+        # module, as this executor then does
+        snapshot: Snapshot = self.call(record.worker, "migrate_out", REQUEST_TIMEOUT,
+                                       name=name, segment=segment,
+                                       until=time.monotonic() + REQUEST_TIMEOUT
+                                       - ANSWER_MARGIN_S)
         del self.modules[name]
         self.workers[record.worker].modules.remove(name)
         return snapshot.carry() if carry else snapshot
@@ -419,13 +434,17 @@ class Executor:
         if src.worker == dst.worker:
             return None
         ring = self._ring(link.key, ring_size(src.spec.cls, link.src_port, link.policy))
+        if self._restarting(dst):
+            return None
         return _Request(dst.worker, "link_in", {
             "key": link.key, "dst": link.dst, "dst_port": link.dst_port, "ring": ring.name,
             "policy": str(link.policy)})
 
-    def _writer_request(self, link: FlatLink) -> _Request:
+    def _writer_request(self, link: FlatLink) -> _Request | None:
         """The writing side: connect the output to the ring, or straight to the input."""
         src, dst = self.modules[link.src], self.modules[link.dst]
+        if self._restarting(src):
+            return None
         if src.worker == dst.worker:
             return _Request(src.worker, "link_out", {
                 "key": link.key, "src": link.src, "src_port": link.src_port, "dst": link.dst,
@@ -510,16 +529,19 @@ class Executor:
     def publish(self, links: list[FlatLink]) -> list[Endpoint]:
         """The writing half: publish each link's output (once per output, whoever reads
         it), the workers asked side by side; the endpoints (data address, control
-        address, sender incarnation)."""
+        address, sender incarnation); None for a writer whose worker restarts (it
+        publishes anew then: ``republished``)."""
         for link in links:
             self.outbound[link.key] = link
-        answers = self._side_by_side([_Request(
-            self.modules[link.src].worker, "publish_out",
-            {"key": link.key, "src": link.src, "src_port": link.src_port,
-             # the reader's ring, which the writer checks each value against
-             "room": ring_size(self.modules[link.src].spec.cls, link.src_port, link.policy),
-             **self._publishing()}) for link in links])
-        return [(data, control, incarnation) for data, control, incarnation in answers]
+        answers = self._side_by_side([
+            None if self._restarting(self.modules[link.src]) else _Request(
+                self.modules[link.src].worker, "publish_out",
+                {"key": link.key, "src": link.src, "src_port": link.src_port,
+                 # the reader's ring, which the writer checks each value against
+                 "room": ring_size(self.modules[link.src].spec.cls, link.src_port,
+                                   link.policy),
+                 **self._publishing()}) for link in links])
+        return [None if answer is None else tuple(answer) for answer in answers]
 
     def _publishing(self) -> dict[str, Any]:
         """What a worker publishes with: the cluster key, this node's address, the epoch."""
@@ -549,9 +571,11 @@ class Executor:
         for link, size in links:
             self.inbound[link.key] = link
             rings[link.key] = self._ring(link.key, size)
-        self._side_by_side([_Request(self.modules[link.dst].worker, "link_in", {
-            "key": link.key, "dst": link.dst, "dst_port": link.dst_port,
-            "ring": rings[link.key].name, "policy": str(link.policy)}) for link, _ in links])
+        self._side_by_side([None if self._restarting(self.modules[link.dst]) else _Request(
+            self.modules[link.dst].worker, "link_in", {
+                "key": link.key, "dst": link.dst, "dst_port": link.dst_port,
+                "ring": rings[link.key].name, "policy": str(link.policy)})
+            for link, _ in links])
         for link, _ in links:
             self.bridge.open(link.key, _topic(link), rings[link.key].name,
                              self.workers[self.modules[link.dst].worker].bell)
@@ -872,7 +896,7 @@ class Executor:
                            if link.dst in revived])
         republishing = [link for link in self.outbound.values() if link.src in revived]
         for link, endpoint in zip(republishing, self.publish(republishing), strict=True):
-            if self.republished is not None:
+            if self.republished is not None and endpoint is not None:
                 self.republished(link, endpoint)
 
     def _fail(self, name: str, code: int | None, reason: str) -> None:

@@ -479,6 +479,10 @@ class ModuleActor:
             log.exception("module %r raised in teardown before migrating", self.name)
         return self.holdings()
 
+    def reinstate(self) -> None:
+        """Undo ``retire`` (a move that failed after it): ``start`` sets it up again."""
+        self._stopped = False
+
     def holdings(self) -> dict[str, Any]:
         """What a migration captures: the state, every input's unconsumed values, and the
         module's counters (the caller holds the module lock, and pickles them before

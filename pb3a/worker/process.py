@@ -175,6 +175,7 @@ class Worker:
         self._dropping = threading.Lock()   # (counted by any module's thread)
         self._requests: dict[int, RuntimeWait] = {}    # agents' requests awaiting answers
         self._paused: set[str] = set()
+        self._set_up_on_resume: set[str] = set()     # see op_migrate_out
         self._error_times: dict[str, tuple[float, int]] = {}
         self._ready: list[Callable[[], None]] = []
         self._request_ids = itertools.count()
@@ -399,17 +400,42 @@ class Worker:
     def op_stop(self, name: str, grace: float) -> bool:
         return self.actors[name].stop(grace)
 
-    def op_pause(self, name: str, timeout: float) -> None:
-        """Hold the module's lock so it neither steps nor handles events (for rewiring)."""
-        if not self.actors[name].acquire_stopped(timeout, f"module {name!r} is being paused "
-                                                 "(to move it, or to rewire its links)"):
+    def op_pause(self, name: str, timeout: float, until: float | None = None) -> None:
+        """Hold the module's lock so it neither steps nor handles events (for rewiring),
+        not past ``until`` (``time.monotonic()``), when its executor stops waiting: a
+        pause read late (this worker was frozen) or taken late would never be resumed."""
+        actor = self.actors[name]
+        wait = timeout if until is None else min(timeout, until - time.monotonic())
+        late = TimeoutError(f"module {name!r} was not paused in time: its executor "
+                            "stopped waiting (this worker was frozen)")
+        if wait <= 0:
+            raise late
+        if not actor.acquire_stopped(wait, f"module {name!r} is being paused (to move "
+                                     "it, or to rewire its links)"):
             raise TimeoutError(f"module {name!r} did not finish its call within {timeout} s")
+        if until is not None and time.monotonic() > until:    # (frozen as it took it)
+            actor.lock.release()
+            raise late
         self._paused.add(name)
 
     def op_resume(self, name: str) -> None:
         if name in self._paused:
             self._paused.discard(name)
-            self.actors[name].lock.release()
+            actor = self.actors[name]
+            actor.lock.release()
+            if name in self._set_up_on_resume:      # (its move failed after its teardown)
+                self._set_up_on_resume.discard(name)
+                threading.Thread(target=self._set_up_again, args=(name, actor), daemon=True,
+                                 name="pb3a-start").start()
+
+    def _set_up_again(self, name: str, actor: ModuleActor) -> None:
+        """Start a module again whose move failed after its ``teardown`` (see
+        ``op_migrate_out``), once its old step thread has ended."""
+        actor.join(timeout=1.0)
+        failed = self.op_start([name])
+        if failed:
+            log.error("module %r did not start again after its move failed: %s", name,
+                      failed[name])
 
     def op_snapshot_size(self, name: str) -> int:
         """The bytes a migration's snapshot of the module would take now (measured under
@@ -417,20 +443,38 @@ class Worker:
         actor = self.actors[name]
         return actor.with_lock(lambda: Snapshot.measure(actor.holdings()), MEASURE_TIMEOUT)
 
-    def op_migrate_out(self, name: str, segment: str) -> Snapshot:
+    def op_migrate_out(self, name: str, segment: str, until: float | None = None) -> Snapshot:
         """Retire a paused module for its move: its state and unconsumed inputs, laid out
-        in shared-memory segment ``segment`` (which its executor made and unlinks)."""
+        in shared-memory segment ``segment`` (which its executor made and unlinks).
+
+        Not past ``until`` (``time.monotonic()``), when its executor stops waiting and
+        keeps the module here: one read late (this worker was frozen) is not retired; one
+        whose retirement fails or ends late (its ``teardown`` overran) stays here, paused,
+        and is set up again when the failed move lets it go (``op_resume``)."""
         started = time.perf_counter()
         if name not in self._paused:
             raise RuntimeError(f"module {name!r} must be paused before it migrates")
-        actor = self.actors.pop(name)
+        if until is not None and time.monotonic() > until:
+            raise TimeoutError(f"module {name!r} was not retired: its move had stopped "
+                               "waiting (this worker was frozen); it stays here")
+        actor = self.actors[name]
         captured = actor.retire()
+        try:
+            snapshot = Snapshot.capture(captured, segment, since=started)
+            if until is not None and time.monotonic() > until:
+                raise TimeoutError(f"module {name!r} was retired too late for its move "
+                                   "(its teardown, or this worker, was slow): it stays here")
+        except BaseException:
+            actor.reinstate()
+            self._set_up_on_resume.add(name)
+            raise
+        del self.actors[name]
         self._paused.discard(name)
         actor.lock.release()
         actor.join(timeout=1.0)
         self.restart_policy.pop(name, None)
         self._retime()
-        return Snapshot.capture(captured, segment, since=started)
+        return snapshot
 
     def op_migrate_in(self, name: str, snapshot: Snapshot) -> float:
         """Take over a module's state and unconsumed inputs (added, not yet started);
