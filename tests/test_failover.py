@@ -342,11 +342,12 @@ def test_a_module_whose_node_is_lost_as_it_lands_elsewhere_lands_with_its_state(
             os.kill(b.executor_pid(), signal.SIGKILL)
             return land(name, snapshot)
         node_a.land = land_as_b_dies
-        report = run.migrate("relay", to="a")
+        report = run.migrate("relay", to="a", state={"relay": {"setups": 100}})
         node_a.land = land
         assert report.source == "b" and run.where("relay") == "a"
         relayed = run.state("relay")["relayed"]
         assert relayed > 20                             # its state came with it
+        assert run.state("relay")["setups"] >= 100      # and what the move set on arrival
         eventually(lambda: run.state("relay")["relayed"] > relayed + 20, timeout=10,
                    what="the relay relaying on a")
         eventually(lambda: _events(run, "module_lost"), timeout=10, what="b's loss handled")

@@ -170,7 +170,8 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
                 _undo(launcher, homes, snapshots, links, moving, node, exc)
             # no way back (put back there, they went with it, captured state and all):
             # they land here all the same, with the links that can be wired
-            restore_s = _stay(launcher, snapshots, links, laps, landed, lost, exc)
+            restore_s = _stay(launcher, snapshots, links, laps, state, landed, lost,
+                              exc)
     lap = laps.seconds
     capture_s = sum(snapshot.capture_s for snapshot in snapshots.values())
     phases = MigrationPhases(
@@ -205,17 +206,18 @@ def _undo(launcher: Launcher, homes: dict[str, FlatModule], snapshots: dict[str,
 
 
 def _stay(launcher: Launcher, snapshots: dict[str, Snapshot], links: list[FlatLink],
-          laps: _Laps, landed: list[str], lost: list[str], exc: Exception) -> float:
+          laps: _Laps, arriving: dict[str, dict[str, Any]] | None, landed: list[str],
+          lost: list[str], exc: Exception) -> float:
     """A landing that failed (``exc``) as the modules' source node was ``lost``: they land
-    all the same, with every link that can be wired (those to the lost node's modules
-    are its failover's, which waits for this move); the seconds the workers took to
-    restore."""
+    all the same (``arriving`` set on them), with every link that can be wired (those to
+    the lost node's modules are its failover's, which waits for this move); the seconds
+    the workers took to restore."""
     log.warning("node %s was lost as modules moved from it landed (%s): they land all "
                 "the same", ", ".join(lost), exc)
     restore_s = 0.0
     for name, snapshot in snapshots.items():
         if name not in landed:
-            restore_s += launcher.node_of(name).land(name, snapshot)
+            restore_s += _land_one(launcher, name, snapshot, arriving)
     laps.mark("land")
     kept = [link for link in links if not set(lost) & {
         launcher.specs[link.src].node, launcher.specs[link.dst].node}]
@@ -287,21 +289,29 @@ def _put_back(launcher: Launcher, homes: dict[str, FlatModule],
                 _quietly(launcher.nodes[homes[name].node].resume, name)
 
 
+def _land_one(launcher: Launcher, name: str, snapshot: Snapshot,
+              arriving: dict[str, dict[str, Any]] | None) -> float:
+    """Restore module ``name`` from ``snapshot`` in its (new) worker and set what
+    ``arriving`` gives it; the seconds that took."""
+    restore_s = launcher.node_of(name).land(name, snapshot)
+    if arriving and name in arriving:
+        started = time.perf_counter()
+        launcher.call(name, "set_state", state=arriving[name])
+        restore_s += time.perf_counter() - started
+    return restore_s
+
+
 def _land(launcher: Launcher, snapshots: dict[str, Snapshot], links: list[FlatLink],
           laps: _Laps, arriving: dict[str, dict[str, Any]] | None = None,
           landed: list[str] | None = None) -> float:
-    """Restore what was captured in the modules' (new) workers (noted in ``landed``),
-    set ``arriving`` on them, re-wire them, start them; the seconds the workers took to
-    restore."""
+    """Restore what was captured in the modules' (new) workers and set ``arriving`` on
+    them (each noted in ``landed`` then), re-wire them, start them; the seconds the
+    workers took to restore."""
     restore_s = 0.0
     for name, snapshot in snapshots.items():
-        restore_s += launcher.node_of(name).land(name, snapshot)
+        restore_s += _land_one(launcher, name, snapshot, arriving)
         if landed is not None:
             landed.append(name)
-        if arriving and name in arriving:
-            started = time.perf_counter()
-            launcher.call(name, "set_state", state=arriving[name])
-            restore_s += time.perf_counter() - started
     laps.mark("land")
     launcher.attach(*links)
     laps.mark("rewire")
