@@ -285,6 +285,9 @@ def test_a_file_opened_from_the_page_is_checked_then_becomes_the_document(
         assert refused.status_code == 409 and refused.json()["problems"] == checked
         for malformed in ({}, {"toml": 3}, {"name": 3, "toml": OPENED}, ["x"]):
             assert client.post("/api/document/open", json=malformed).status_code == 400
+        long = client.post("/api/document/open", json={"name": "x" * 300 + ".toml",
+                                                       "toml": OPENED})     # (it was a 500)
+        assert long.status_code == 400 and "at most 255 bytes" in long.json()["error"]
         assert client.get("/api/document/toml").text == before
         assert client.get("/api/system").json()["name"] == "pipeline"
         # a good file: the document, as written (comments too), with no path to save to

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -34,6 +35,7 @@ STATUS: list[tuple[type[BaseException], int]] = [
     (ConfigError, 409), (ChangedOnDisk, 409), (RuntimeTimeout, 504), (RuntimeFailure, 502),
 ]
 MOST_BODY_BYTES = 8_000_000          # a request body larger than this is refused
+_LONGEST_NAME = 255                  # bytes in a file's name (Linux's NAME_MAX)
 
 
 def error_response(exc: BaseException) -> JSONResponse:
@@ -196,6 +198,9 @@ def routes(session: Session) -> list[Route]:
             raise Malformed("send {\"name\": \"system.toml\", \"toml\": \"...the file's "
                             "text...\"}")
         name = Path(body.get("name") or "opened.toml").name or "opened.toml"
+        if len(os.fsencode(name)) > _LONGEST_NAME:        # (no file may have it: a 500)
+            raise Malformed(f"'name' must be a file name of at most {_LONGEST_NAME} bytes, "
+                            f"got one of {len(os.fsencode(name))}")
         await call(document.open_text, body["toml"], name)
         return await call(document.to_json)
 
