@@ -225,11 +225,8 @@ def _stay(launcher: Launcher, snapshots: dict[str, Snapshot], links: list[FlatLi
         _quietly(launcher.detach, link)
     launcher.reattach(kept, f"after node {', '.join(lost)} was lost during a move")
     laps.mark("rewire")
-    starting: dict[str, list[str]] = {}
-    for name in snapshots:
-        starting.setdefault(launcher.specs[name].node, []).append(name)
-    for node, names in starting.items():
-        launcher.nodes[node].start_modules(names, failing=True)
+    _start_where(launcher, {name: launcher.specs[name].node for name in snapshots},
+                 failing=True)
     laps.mark("start")
     return restore_s
 
@@ -278,11 +275,9 @@ def _put_back(launcher: Launcher, homes: dict[str, FlatModule],
             for name, snapshot in snapshots.items():
                 launcher.node_of(name).land(name, snapshot)
             launcher.reattach(links, "after a failed move")
-            starting: dict[str, list[str]] = {}
-            for name in snapshots:
-                starting.setdefault(homes[name].node, []).append(name)
-            for node, names in starting.items():   # (one that cannot start is failed, and
-                launcher.nodes[node].start_modules(names, failing=True)   # said so)
+            # (one that cannot start is failed, and said so)
+            _start_where(launcher, {name: homes[name].node for name in snapshots},
+                         failing=True)
     finally:
         for name in paused:
             if name not in snapshots:
@@ -315,13 +310,19 @@ def _land(launcher: Launcher, snapshots: dict[str, Snapshot], links: list[FlatLi
     laps.mark("land")
     launcher.attach(*links)
     laps.mark("rewire")
-    starting: dict[str, list[str]] = {}
-    for name in snapshots:
-        starting.setdefault(launcher.specs[name].node, []).append(name)
-    for node, names in starting.items():
-        launcher.nodes[node].start_modules(names)
+    _start_where(launcher, {name: launcher.specs[name].node for name in snapshots})
     laps.mark("start")
     return restore_s
+
+
+def _start_where(launcher: Launcher, nodes: dict[str, str], failing: bool = False) -> None:
+    """Start each module on its node (module -> node), one request per node, in order;
+    ``failing``: one that cannot start is failed, and said so (``start_modules``)."""
+    starting: dict[str, list[str]] = {}
+    for name, node in nodes.items():
+        starting.setdefault(node, []).append(name)
+    for node, names in starting.items():
+        launcher.nodes[node].start_modules(names, failing)
 
 
 class _Laps:

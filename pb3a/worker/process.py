@@ -281,8 +281,7 @@ class Worker:
             if earlier is not None:
                 self.outbox.withdraw(earlier)        # (unless it began to go)
         try:
-            if self._dropped and not self.outbox.waiting():
-                self._tell_dropped()
+            self._tell_dropped()
             sent = self.outbox.put([pickle.dumps((req_id, kind)), body])
         except OSError:                              # the executor is gone
             self._closing.set()
@@ -292,7 +291,10 @@ class Worker:
         return sent
 
     def _tell_dropped(self) -> None:
-        """A warning with how many notices were dropped since the last one."""
+        """A warning with how many notices were dropped since the last one, once nothing
+        waits to go (the executor reads again)."""
+        if not self._dropped or self.outbox.waiting():
+            return
         with self._dropping:
             dropped, self._dropped = self._dropped, 0
         if dropped:
@@ -815,9 +817,8 @@ class Worker:
         """Every ``checkpoint_s``: the ``last-state`` modules' checkpoints, and how many
         notices were dropped, once the executor reads again (none may come to carry it)."""
         while not self._closing.wait(self._checkpoint_s):
-            if self._dropped and not self.outbox.waiting():
-                with contextlib.suppress(OSError):
-                    self._tell_dropped()
+            with contextlib.suppress(OSError):
+                self._tell_dropped()
             for name, policy in list(self.restart_policy.items()):
                 actor = self.actors.get(name)
                 if policy == "last-state" and actor is not None and actor.running:
