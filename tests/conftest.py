@@ -61,6 +61,15 @@ def restart_after_kill(run: Any, name: str) -> tuple[list[Any], dict[str, Any], 
     return events, state, time.monotonic() - killed
 
 
+def asked_as_it_restarts(run: Any, name: str) -> tuple[int, dict[str, Any]]:
+    """SIGKILL module ``name``'s worker, then at once set its ``count`` and read its
+    state (each with a 10 s timeout): the worker's pid before, and the state read."""
+    old = eventually(lambda: run.stats().modules[name].pid, what="a worker pid")
+    os.kill(old, signal.SIGKILL)
+    run.set_state(name, {"count": 10**6}, timeout=10.0)
+    return old, run.state(name, timeout=10.0)
+
+
 def alive(pid: int) -> bool:
     """True while ``pid`` runs (a zombie waiting for its parent counts as gone)."""
     try:

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import psutil
 import pytest
-from conftest import alive, eventually, frozen, restart_after_kill
+from conftest import alive, asked_as_it_restarts, eventually, frozen, restart_after_kill
 from sample_modules import (
     ArrayHolder,
     ArraySource,
@@ -87,6 +87,22 @@ def _kill_worker(run, name: str) -> int:
     pid = eventually(lambda: run.stats().modules[name].pid, what="a worker pid")
     os.kill(pid, signal.SIGKILL)
     return pid
+
+
+def test_a_request_in_the_restart_window_waits_for_the_restart() -> None:
+    """Asked just as its worker died, a module's state is set and read in the restarted
+    process (both failed at once, on the dead worker's broken pipe); with ``never``,
+    the request fails saying the module failed, not that a pipe broke."""
+    system = System("window")
+    system.add("victim", Steady, restart="fresh")
+    system.add("never", Steady, restart="never")
+    with system.launch() as run:
+        eventually(lambda: run.state("victim")["count"] > 3, what="steps")
+        old, state = asked_as_it_restarts(run, "victim")
+        assert state["count"] >= 10**6 and state["pid"] not in (0, old), state
+        assert run.stats().modules["victim"].restarts == 1
+        with pytest.raises(RuntimeFailure, match=r"^module 'never' is not running: it failed"):
+            asked_as_it_restarts(run, "never")
 
 
 def test_sigkill_with_restart_never_leaves_module_failed_and_others_running() -> None:

@@ -12,7 +12,15 @@ import time
 
 import psutil
 import pytest
-from conftest import Daemon, alive, assert_same_arrays, eventually, frozen, restart_after_kill
+from conftest import (
+    Daemon,
+    alive,
+    asked_as_it_restarts,
+    assert_same_arrays,
+    eventually,
+    frozen,
+    restart_after_kill,
+)
 from sample_modules import (
     AsksInSetup,
     Collector,
@@ -265,6 +273,18 @@ def test_on_a_remote_node_a_restarted_agent_may_ask_the_runtime_from_setup(
     assert took < 5.0, took
     assert state["asked"] > 0                          # its setup was answered
     assert (figures.status, figures.running, figures.restarts) == ("running", True, 1)
+
+
+def test_on_a_remote_node_a_request_in_the_restart_window_waits_for_the_restart(
+        controllers) -> None:
+    """As on an embedded node: the wait is on the node's executor, beside its requests,
+    since the restart takes the executor's lock."""
+    system = System("remote-window").node("a").node("b", address=controllers["b"].address)
+    system.add("victim", Steady, node="b", restart="fresh")
+    with system.launch() as run:
+        eventually(lambda: run.state("victim")["count"] > 3, timeout=30, what="steps")
+        old, state = asked_as_it_restarts(run, "victim")
+        assert state["count"] >= 10**6 and state["pid"] not in (0, old), state
 
 
 def test_each_node_keeps_the_spare_workers_its_configuration_gives(controllers) -> None:

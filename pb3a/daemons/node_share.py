@@ -101,6 +101,8 @@ class NodeShare:
             ex.start_modules(args["names"], args.get("failing", False))   # as on an
             # embedded node: see executor_main
             return None
+        if op == "await_restart":   # without the lock too: the restart takes it
+            return ex.await_restart(args["name"], args["timeout"])
         if op == "bind":
             self.bind(args["launcher"], args["checkpoint_s"], args["log_level"],
                       args["code"], args.get("lease_s", LEASE_S), args.get("epoch", 0),
@@ -281,8 +283,9 @@ def executor_main(config: str, node: str, workers: int, cpus: list[int] | None,
                                           name="pb3a-node-executor",
                                           instant={"lease": share.renew},
                                           # setup may ask the launcher about this node,
-                                          # which asks this executor: not in one lane
-                                          aside={"start"},
+                                          # which asks this executor, and a restart
+                                          # waited for takes its lock: not in one lane
+                                          aside={"start", "await_restart"},
                                           decode_lock=share.executor.import_lock,
                                           title=f"node {node}'s executor")
     try:

@@ -116,19 +116,33 @@ class Operations:
         """The module's state. Its node is looked up under the configuration lock, but
         asked without it: a module stuck in a long call holds up this read only, not
         every request to the system for the read's timeout. Moved or removed meanwhile,
-        it is asked once more under the lock."""
+        it is asked once more under the lock; its worker dead, once its restart is done
+        (which takes that lock, so it is waited for without)."""
         with self._held(f"state {name}", timeout, changes=False) as left:
             node = self.launcher.node_of(name)
         try:
             return node.call_module(name, "get_state", left())
         except (RuntimeFailure, KeyError):
+            node.await_restart(name, left())
             with self._held(f"state {name}", left(), changes=False) as still:
                 return self.launcher.call(name, "get_state", still())
 
     def set_state(self, name: str, values: dict[str, Any], *,
                   timeout: float | None = None) -> None:
+        """Set fields of the module's state, under the configuration lock (a move must
+        not capture the state before it and land it after). Its worker dead, the state
+        is set once its restart is done, in the new process, within the same timeout."""
         with self._held(f"set_state {name}", timeout, changes=False) as left:
-            self.launcher.call(name, "set_state", left(), state=values)
+            node = self.launcher.node_of(name)
+            try:
+                node.call_module(name, "set_state", left(), state=values)
+                return
+            except RuntimeFailure as exc:
+                failure = exc
+        if not node.await_restart(name, left()):
+            raise failure
+        with self._held(f"set_state {name}", left(), changes=False) as still:
+            self.launcher.call(name, "set_state", still(), state=values)
 
     # -- moving, swapping, reloading ----------------------------------------------------
     def migrate(self, name: str, to: str, *, state: dict[str, dict[str, Any]] | None = None,

@@ -132,6 +132,10 @@ class Executor:
         self.lock = lock or threading.RLock()
         self._stopping = threading.Event()
         self._closing = threading.Event()       # a shutdown or a fence has begun
+        # notified when a worker's death is seen and when a restart has ended, for
+        # requests that wait for the restart (``await_restart``)
+        self._restarts_settle = threading.Condition()
+        self._reviving: set[str] = set()        # modules whose restart is under way
         reap_orphans()
         self.workers = WorkerPool(
             WorkerSettings(cpus, checkpoint_s, log_level, code or CodeSources(), spares),
@@ -190,6 +194,40 @@ class Executor:
 
     def _alive(self, key: str) -> bool:
         return self.workers[key].serving
+
+    def await_restart(self, name: str, timeout: float) -> bool:
+        """If module ``name``'s worker has died and its restart policy is still to act
+        (or its restart is under way), wait up to ``timeout`` for that to end, without
+        the node's lock, which the restart takes; True if it had to wait (a request
+        that failed in the window is worth asking again), False at once otherwise."""
+        deadline = time.monotonic() + timeout
+        waited = False
+        with self._restarts_settle:
+            while self._between_lives(name):
+                waited = True
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                # (in slices: a module removed or moved meanwhile is not notified of)
+                self._restarts_settle.wait(min(left, 0.1))
+        return waited
+
+    def _between_lives(self, name: str) -> bool:
+        """Whether module ``name`` is between its worker's death (seen or not yet) and
+        the end of what its restart policy does about it."""
+        record = self.modules.get(name)
+        if record is None or record.status in ("failed", "stopped") or self._closing.is_set():
+            return False
+        if name in self._reviving:
+            return True
+        handle = self.workers.handles.get(record.worker)
+        # (a request may fail on the broken pipe of a worker whose death is not yet seen)
+        return handle is not None and not (
+            handle.serving and not handle.outbox.closed and handle.process.is_alive())
+
+    def _settled(self) -> None:
+        with self._restarts_settle:
+            self._restarts_settle.notify_all()
 
     def _restarting(self, record: ModuleRecord) -> bool:
         """Whether the module's worker is gone and its restart policy has yet to say what
@@ -719,6 +757,12 @@ class Executor:
 
     # -- restarts ----------------------------------------------------------------
     def _died(self, handle: WorkerHandle) -> None:
+        try:
+            self._after_death(handle)
+        finally:
+            self._settled()
+
+    def _after_death(self, handle: WorkerHandle) -> None:
         code = handle.process.exitcode
         if code == LEASE_LAPSED and self.leased() and not self._stopping.is_set():
             # Its lease lapsed, but this executor's runs: the worker alone was frozen
@@ -761,6 +805,8 @@ class Executor:
         since an agent may call ``self.runtime`` from ``setup``, which takes the lock
         (``_started``); under it again, what came of it (``_restarted``)."""
         what = f"restart the modules of worker {handle.key}"
+        reviving = set(handle.modules)
+        self._reviving |= reviving
         try:
             with self.held(what):
                 if self._stopping.is_set():     # a shutdown may have come first
@@ -784,6 +830,9 @@ class Executor:
                     record.status = "failed"
                     self._tell("module_failed", name, exit_code=code,
                                reason=f"its restart could not take the node's lock: {exc}")
+        finally:
+            self._reviving -= reviving
+            self._settled()
 
     def held(self, what: str, timeout: float = LOCK_TIMEOUT) -> AbstractContextManager[Any]:
         """``self.lock``, held for ``what`` (which the launcher's lock names to a waiter);

@@ -47,6 +47,10 @@ class Node(Protocol):
     def call_module(self, name: str, op: str, timeout: float, /, **args: Any) -> Any:
         """One request about module ``name`` to its worker (state, set_state, ...)."""
 
+    def await_restart(self, name: str, timeout: float) -> bool:
+        """Wait up to ``timeout``, without the node's lock, while module ``name``'s
+        worker is dead and its restart is to come or under way; whether it waited."""
+
     def swap(self, name: str, spec: FlatModule) -> list[str]:
         """Replace a module's class in place; the state names kept."""
 
@@ -132,8 +136,9 @@ class Node(Protocol):
 
 
 # What a launcher may ask of a node executor process over the wire, one at a time (its
-# shutdown goes through the node controller, which owns the process; its start is a
-# request of its own, taken beside these).
+# shutdown goes through the node controller, which owns the process; its start, and a
+# wait for a restart, which takes the lock, are requests of their own, taken beside these).
 REMOTE_OPERATIONS = frozenset(
     name for name, member in vars(Node).items()
-    if callable(member) and not name.startswith("_")) - {"shutdown", "start_modules"}
+    if callable(member) and not name.startswith("_")) - {"shutdown", "start_modules",
+                                                         "await_restart"}

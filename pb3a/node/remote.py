@@ -180,6 +180,14 @@ class RemoteNode:
         return self._forward("call_module", name, op, timeout, within=timeout + MARGIN_S,
                              **args)
 
+    def await_restart(self, name: str, timeout: float) -> bool:
+        # beside the executor's requests, not one of them: the restart takes its lock
+        if self.lost or self.client is None:
+            return False
+        timeout = self._within(timeout)
+        return self.client.request("await_restart", {"name": name, "timeout": timeout},
+                                   timeout + MARGIN_S)
+
     def swap(self, name: str, spec: FlatModule) -> list[str]:
         return self._forward("swap", name, spec)
 

@@ -103,6 +103,11 @@ class Outbox:
         # its pipe (and exit), not wait for good, alive and unreachable
         self._ends_on_break = ends_on_break
 
+    @property
+    def closed(self) -> bool:
+        """Whether nothing more goes: closed, or broken (the other end is gone)."""
+        return self._closed
+
     def put(self, payloads: list[bytes], fd: int | None = None) -> Outgoing:
         """Send ``payloads``, each framed, then ``fd`` (duplicated: the caller may close
         its own at once). What the pipe has no room for now goes later, in order;
