@@ -771,6 +771,37 @@ def test_stats_with_several_frozen_workers_keeps_the_callers_timeout() -> None:
     assert "running (silent)" in format_table(stats)
 
 
+def test_a_frozen_worker_is_waited_for_once_not_at_every_report() -> None:
+    """Each report asked every worker again and waited its whole deadline for one that
+    was frozen (SIGSTOP, stuck): every ``stats()`` took its timeout, and the manager's
+    live figures, asked twice a second, came every 5 s. A worker that has not answered
+    a report's request is silent in the next at once, not asked again; once it answers
+    (let run), its figures come again."""
+    system = System("frozen-reports").node("a")
+    for name in ("frozen", "steady"):
+        system.add(name, Steady, node="a")
+    with system.launch() as run:
+        pid = eventually(lambda: run.stats().modules["frozen"].pid, what="a worker pid")
+        with frozen(pid):
+            first = _timed(lambda: run.stats(timeout=1))
+            later = [_timed(lambda: run.stats(timeout=1)) for _ in range(3)]
+        for _, stats in [first, *later]:
+            assert stats.modules["frozen"].silent and stats.modules["frozen"].pid == pid
+            assert not stats.modules["steady"].silent and stats.modules["steady"].steps > 0
+        assert first[0] < 1.5, f"the first report took {first[0]:.1f} s"
+        assert max(took for took, _ in later) < 0.5, [round(took, 2) for took, _ in later]
+        assert later[-1][1].modules["steady"].steps > first[1].modules["steady"].steps
+        answered = eventually(lambda: (m := run.stats().modules["frozen"]).steps and m,
+                              what="the frozen worker's figures once it runs")
+        assert not answered.silent and answered.pid == pid
+
+
+def _timed(call: Callable[[], object]) -> tuple[float, object]:
+    started = time.monotonic()
+    result = call()
+    return time.monotonic() - started, result
+
+
 def test_a_killed_forkserver_takes_no_worker_with_it() -> None:
     """The executor watched each worker through the status pipe of the forkserver that
     started it: a forkserver killed (SIGKILL, the OOM killer) closed them all, so every

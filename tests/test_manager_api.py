@@ -3,11 +3,16 @@ that a refused request changes nothing."""
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
+import socket
 import struct
 import sys
+import threading
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -709,3 +714,85 @@ def test_a_save_whose_body_is_not_an_object_is_a_400_and_writes_nothing(tmp_path
         assert own.read_text() == 'name = "s"\n' and not (tmp_path / "copy.toml").exists()
         assert client.post("/api/document/save").status_code == 200      # no body: its file
         assert "renamed" in own.read_text()
+
+
+class _Records(logging.Handler):
+    """The log records of ``pb3a.manager`` and uvicorn; ``came`` is set at the first."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.DEBUG)
+        self.records: list[logging.LogRecord] = []
+        self.came = threading.Event()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+        self.came.set()
+
+
+@contextlib.contextmanager
+def served(app: Any, access: Access) -> Iterator[int]:
+    """``app`` served by uvicorn (as ``pb3a manager`` serves it) on a port of its own,
+    in a thread, until the end; the port. The socket listens before uvicorn runs: a
+    connection made at once waits to be taken."""
+    import uvicorn
+
+    from pb3a.manager.app import bind
+
+    sock = bind("127.0.0.1", 0)
+    port = sock.getsockname()[1]
+    access.serve_at("127.0.0.1", port)
+    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", access_log=False,
+                                           lifespan="on"))
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]},
+                              name="test-manager-server")
+    thread.start()
+    try:
+        yield port
+    finally:
+        server.should_exit = True
+        thread.join(20)
+        sock.close()
+        assert not thread.is_alive(), "the server did not stop"
+
+
+def test_a_client_gone_in_the_middle_of_its_body_is_one_line_and_changes_nothing(
+        tmp_path) -> None:
+    """A client that closed its connection halfway through a request's body (a page
+    closed as it saved) was logged as the manager failing, with the whole traceback of
+    Starlette's ClientDisconnect. It is one line, no traceback, and nothing changed."""
+    pytest.importorskip("uvicorn", reason="the manager needs the 'ui' extra")
+    own = tmp_path / "system.toml"
+    own.write_text('name = "s"\n')
+    document = Document.open(own)
+    token = new_token()
+    access = Access(token)
+    records = _Records()
+    watched = [logging.getLogger(name) for name in ("pb3a.manager", "uvicorn.error")]
+    for logger in watched:
+        logger.addHandler(records)
+    level, watched[0].level = watched[0].level, logging.INFO
+    body = b'{"system": {"name": "renamed"}, "revision": 0, "path": "elsewhere.toml"}'
+    try:
+        with served(create_app(Session(document), access), access) as port:
+            for method, path in (("POST", "/api/document/save"), ("PUT", "/api/document"),
+                                 ("POST", "/api/modules/scale/keep"),
+                                 ("POST", "/api/modules/scale/state")):
+                records.records.clear()
+                records.came.clear()
+                with socket.create_connection(("127.0.0.1", port), timeout=10) as client:
+                    client.sendall(f"{method} {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n"
+                                   f"Authorization: Bearer {token}\r\n"
+                                   "Content-Type: application/json\r\n"
+                                   f"Content-Length: {len(body)}\r\n\r\n".encode()
+                                   + body[:len(body) // 2])
+                assert records.came.wait(10), f"{method} {path}: nothing logged"
+                lines = [(r.levelno, r.getMessage(), r.exc_info) for r in records.records]
+                assert len(lines) == 1 and lines[0][0] <= logging.INFO, lines
+                assert "\n" not in lines[0][1] and lines[0][2] is None, lines
+                assert path in lines[0][1] and "went" in lines[0][1], lines
+    finally:
+        watched[0].level = level
+        for logger in watched:
+            logger.removeHandler(records)
+    assert document.revision == 0 and document.data()["name"] == "s"
+    assert own.read_text() == 'name = "s"\n' and not (tmp_path / "elsewhere.toml").exists()

@@ -339,6 +339,38 @@ def test_an_edit_toml_cannot_hold_is_refused_and_changes_nothing(pipeline: Path)
         assert client.get("/api/document/toml").text == before
 
 
+
+def test_a_value_nested_deeper_than_toml_reads_is_a_400_and_the_document_stays_editable(
+        pipeline: Path) -> None:
+    """A value nested 200 levels deep (the page's Edit as JSON can send one) was taken:
+    every later edit of the document was a 500 (RecursionError, copying it), and the
+    file saved would not open again (the TOML reader takes 100 levels); 500 deep, the
+    edit itself was a 500. Such an edit is a 400 naming where, nothing changed; 100
+    levels are fine, and open again."""
+    def nested(levels: int) -> str:
+        return '{"k": ' * levels + "1" + "}" * levels
+
+    with manager_client(Session(Document.open(pipeline))) as client:
+        before = client.get("/api/document/toml").text
+        for levels in (101, 200, 500):
+            refused = client.put("/api/document", content='{"system": {"name": "deep", '
+                                 f'"state_of_the_art": {nested(levels)}}}}}')
+            assert refused.status_code == 400, (levels, refused.text[:300])
+            assert "state_of_the_art.k.k" in refused.json()["error"]
+            assert "more than 100 levels" in refused.json()["error"]
+            assert client.get("/api/document/toml").text == before
+        system = client.get("/api/document").json()["system"]
+        system["modules"]["scale"]["state"] = {"deep": {"k": 1}}
+        for _ in range(100 - 4):            # modules.scale.state.deep: 4 levels of the 100
+            system["modules"]["scale"]["state"]["deep"] = {
+                "k": system["modules"]["scale"]["state"]["deep"]}
+        assert client.put("/api/document", json={"system": system}).status_code == 200
+        system["name"] = "renamed"                  # and the next edit is made
+        assert client.put("/api/document", json={"system": system}).status_code == 200
+        text = client.get("/api/document/toml").text
+    assert Document(text).data()["name"] == "renamed"            # it opens again
+
+
 COMMENTED = '''\
 # A commented system.
 name = "commented"

@@ -13,6 +13,8 @@ import pytest
 
 pytest.importorskip("starlette", reason="the manager needs the 'ui' extra")
 
+from conftest import frozen
+from sample_modules import Journal
 from starlette.websockets import WebSocketDisconnect
 from test_manager_api import managed, manager_client
 
@@ -49,6 +51,43 @@ def test_hello_then_stats_at_least_twice_a_second(run) -> None:
         assert times[-1] - started < 2.1
         gaps = [later - earlier for earlier, later in itertools.pairwise(times)]
         assert max(gaps) < 0.75, gaps
+
+
+def test_figures_keep_their_pace_with_a_worker_frozen_which_is_shown_silent(
+        run, tmp_path) -> None:
+    """With one worker frozen (SIGSTOP, stuck), each stats call of the feed waited half
+    its 10 s deadline for it: the figures of every module came every 5 s, not every
+    0.5 s. The feed waits a second at most, once: the frozen module is shown silent,
+    with its process, and the others' figures keep their pace. A change that holds the
+    system longer than that second (an add whose setup takes 2.5 s) is waited for, no
+    error."""
+    pid = run.stats().modules["map"].pid
+    with manager_client(Session(Document.empty(), run)) as client, \
+            client.websocket_connect("/api/live") as socket:
+        assert socket.receive_json()["type"] == "hello"
+        while socket.receive_json()["type"] != "stats":
+            pass
+        times, shown = [], []
+        with frozen(pid):
+            started = time.monotonic()
+            while len(times) < 6 and time.monotonic() - started < 40:
+                message = socket.receive_json()
+                if message["type"] == "stats":
+                    times.append(time.monotonic())
+                    shown.append(message["stats"]["modules"])
+        adding = threading.Thread(target=run.add, args=("slow", Journal), kwargs={
+            "state": {"path": str(tmp_path / "journal"), "setup_s": 2.5}, "timeout": 30})
+        adding.start()
+        kinds: list[str] = []
+        while (adding.is_alive() or kinds[-2:] != ["stats", "stats"]) and len(kinds) < 100:
+            kinds.append(socket.receive_json()["type"])
+        adding.join(30)
+    gaps = [later - earlier for earlier, later in itertools.pairwise([started, *times])]
+    assert max(gaps[:2]) < 2.0 and max(gaps[2:]) < 1.0, [round(gap, 2) for gap in gaps]
+    assert (shown[-1]["map"]["silent"], shown[-1]["map"]["pid"]) == (True, pid)
+    assert not any(shown[-1][name]["silent"] for name in ("src", "scale"))
+    assert shown[-1]["src"]["steps"] > shown[1]["src"]["steps"]       # live, not the last
+    assert "error" not in kinds and kinds[-2:] == ["stats", "stats"], kinds
 
 
 def test_a_migration_arrives_as_an_event_then_as_the_new_structure(run) -> None:

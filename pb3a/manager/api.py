@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from starlette.concurrency import run_in_threadpool
-from starlette.requests import Request
+from starlette.requests import ClientDisconnect, Request
 from starlette.responses import JSONResponse, PlainTextResponse, Response
 from starlette.routing import Route
 
@@ -97,6 +97,12 @@ def routes(session: Session) -> list[Route]:
                 # (encoded here: an answer JSON cannot say is an error of its own, not a
                 # bare 500 after the change was made)
                 return JSONResponse(result, status_code=status)
+            except ClientDisconnect:
+                # gone before its body was in (a page closed or reloaded as it sent):
+                # nothing was done, and there is no one to answer; no bug, no traceback
+                log.info("manager: %s %s: the client went before its request was read "
+                         "whole; nothing done", request.method, request.url.path)
+                return Response(status_code=400)
             except Exception as exc:
                 return error_response(exc)
         return endpoint

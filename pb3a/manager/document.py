@@ -26,6 +26,7 @@ from typing import Any
 import tomlkit
 from tomlkit.exceptions import TOMLKitError
 from tomlkit.items import AoT, Comment, InlineTable, Null, Table, Whitespace
+from tomlkit.parser import Parser
 
 from pb3a.config.compiler import sketch_plan
 from pb3a.config.description import read_description
@@ -35,6 +36,9 @@ from pb3a.errors import ConfigError
 # dicts at these places are written as [tables]; every other dict inline ({...})
 _TABLES = (("nodes",), ("modules",), ("macros",), ("macros", "*"), ("macros", "*", "modules"))
 _TABLE_ARRAYS = (("links",), ("macros", "*", "links"))   # lists of dicts as [[tables]]
+# levels of tables and arrays a document may nest: the TOML reader (tomlkit's) refuses a
+# value nested deeper, so such a file would not open again
+MOST_NESTING = Parser.MAX_NESTING_DEPTH
 
 
 class Stale(Exception):
@@ -145,6 +149,12 @@ class Document:
 
     def _replace(self, system: dict[str, Any]) -> None:
         """``replace``'s work, the lock held."""
+        deep = _too_deep(system, MOST_NESTING)
+        if deep is not None:
+            # (taken, the file would not open again, and every later edit failed copying
+            # the document: RecursionError, a 500)
+            raise ValueError(f"TOML cannot hold this document: {'.'.join(deep[:6])}... nests "
+                             f"more than {MOST_NESTING} levels of tables and arrays")
         draft = copy.deepcopy(self._doc)
         system = _moves_resolved(draft.unwrap(), system)
         try:
@@ -209,6 +219,21 @@ class Document:
         target.write_text(text, encoding="utf-8")
         self.path, self._on_disk = target, text
         return target
+
+
+def _too_deep(value: Any, most: int, where: tuple[str, ...] = ()) -> tuple[str, ...] | None:
+    """Where ``value`` nests more than ``most`` levels of dicts and lists (the keys and
+    indexes on the way), or None; it looks no deeper than that."""
+    items = value.items() if isinstance(value, dict) else enumerate(value) \
+        if isinstance(value, list) else ()
+    for key, item in items:
+        if isinstance(item, (dict, list)):
+            if most <= 0:
+                return (*where, str(key))
+            found = _too_deep(item, most - 1, (*where, str(key)))
+            if found is not None:
+                return found
+    return None
 
 
 def toml_text(tables: dict[str, Any], comments: Sequence[str] = ()) -> str:

@@ -27,7 +27,7 @@ from typing import Any, NamedTuple, TypeVar
 from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
-from pb3a.errors import PB3AError
+from pb3a.errors import PB3AError, RuntimeTimeout
 from pb3a.manager.api import error_response
 from pb3a.manager.session import Session
 from pb3a.stats import plain
@@ -36,6 +36,9 @@ log = logging.getLogger("pb3a.manager")
 T = TypeVar("T")
 
 REFRESH_S = 0.5             # stats and watched state, by default
+STATS_WAIT_S = 1.0          # the stats wait this long (or a refresh, if longer) for a worker:
+# one frozen (SIGSTOP, stuck) is shown silent and its figures come without it (the call
+# waited half the session's 10 s, so figures came every 5 s with one worker frozen)
 EVENT_WAIT_S = 0.5          # one events() call waits this long for the next event
 STOP_WAIT_S = 5.0           # at the end, how long a call to the system still under way may take
 CLIENT_BACKLOG = 64         # messages queued for a client before stats are dropped
@@ -100,17 +103,28 @@ class Feed:
 
     async def _stats(self) -> None:
         failures = 0
+        busy_since: float | None = None     # since when the stats wait for a change
         while True:
             started = time.monotonic()
             wait = self.refresh
             handle = self.session.running
             if self._clients and handle is not None:
                 try:
-                    message = await self._blocking(stats_message, self.session)
+                    message = await self._blocking(stats_message, self.session,
+                                                   max(STATS_WAIT_S, self.refresh))
                     self.publish(message)
-                    failures = 0
+                    failures, busy_since = 0, None
                 except Exception as exc:
-                    if self.session.running is handle:  # (not: stopped from here meanwhile)
+                    # stats time out only waiting for a change that holds the system (a
+                    # move, an add): the figures wait for it, up to the session's timeout
+                    # (as when each call waited that long), before that is an error
+                    busy = isinstance(exc, RuntimeTimeout)
+                    busy_since = (busy_since or started) if busy else None
+                    if self.session.running is not handle:  # stopped from here meanwhile
+                        pass
+                    elif busy and started - (busy_since or started) < self.session.timeout:
+                        log.debug("manager: the stats wait for a change: %s", exc)
+                    else:
                         failures += 1
                         wait = self._failed("stats", exc, failures)
             await asyncio.sleep(max(0.0, wait - (time.monotonic() - started)))
@@ -273,12 +287,12 @@ def encode(message: dict[str, Any]) -> str:
     return json.dumps(message, allow_nan=False, separators=(",", ":"))
 
 
-def stats_message(session: Session) -> Message:
-    """``{"type": "stats", "time", "cost_ms", "stats"}``, its text built once; ``cost_ms``
-    is what gathering the figures and encoding them took (the server's share of the
-    cost of one update)."""
+def stats_message(session: Session, timeout: float | None = None) -> Message:
+    """``{"type": "stats", "time", "cost_ms", "stats"}``, its text built once, gathered
+    within ``timeout`` (see ``Session.stats``); ``cost_ms`` is what gathering the figures
+    and encoding them took (the server's share of the cost of one update)."""
     started = time.perf_counter()
-    stats = encode(session.stats())
+    stats = encode(session.stats(timeout))
     cost_ms = (time.perf_counter() - started) * 1e3
     return Message("stats", f'{{"type":"stats","time":{time.time()!r},'
                             f'"cost_ms":{cost_ms:.3f},"stats":{stats}}}')

@@ -183,9 +183,11 @@ class Session:
         servers = self.topology().module_servers if self._handle is not None else ()
         return self.catalog.classes(servers)
 
-    def stats(self) -> dict[str, Any]:
-        """``GET /api/stats``."""
-        return self.handle.stats(timeout=self.timeout).to_json()
+    def stats(self, timeout: float | None = None) -> dict[str, Any]:
+        """``GET /api/stats``; within ``timeout`` (default: the session's), a module whose
+        worker has not answered by then shown ``silent``."""
+        return self.handle.stats(timeout=self.timeout if timeout is None else timeout
+                                 ).to_json()
 
     # -- state --------------------------------------------------------------------
     def state(self, name: str, path: str = "") -> dict[str, Any]:

@@ -127,6 +127,9 @@ class Executor:
         self._bridge: Bridge | None = None            # remote links in (made on first use)
         self._budgets: dict[str, RestartBudget] = {}  # worker key -> its restarts
         self._last_errors: dict[str, str] = {}        # module -> its last exception, logged
+        # worker key -> a report's stats request it has not answered yet (frozen, stuck):
+        # not asked again, nor waited for, until it does
+        self._unanswered: dict[str, Future[Any]] = {}
         # Held by a restart and by whoever changes the configuration (the launcher's
         # global lock when the executor runs in the launcher's process).
         self.lock = lock or threading.RLock()
@@ -646,13 +649,22 @@ class Executor:
         the last report) and memory, and how many spare workers it has booted."""
         asked = {key: handle for key, handle in list(self.workers.handles.items())
                  if handle.serving}
-        futures = {key: self.workers.submit(key, "stats") for key in asked}
+        # a worker that has not answered an earlier report is silent at once: waited for
+        # at each report, one frozen worker made every report wait its whole deadline
+        # (the manager's live figures came every 5 s, not every 0.5 s)
+        unanswered = {key: future for key, future in self._unanswered.items()
+                      if not future.done() and asked.get(key) is getattr(
+                          future, "pb3a_worker", None)}
+        futures = {key: self.workers.submit(key, "stats") for key in asked
+                   if key not in unanswered}
         reports: dict[str, Any] = {}
         deadline = time.monotonic() + timeout           # one for all: they answer at once
         for key, future in futures.items():             # (each frozen worker took 5 s more)
             with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
                 reports[key] = self.workers.result(future, "stats", key,
                                                    max(0.0, deadline - time.monotonic()))
+        self._unanswered = {**unanswered, **{key: future for key, future in futures.items()
+                                             if not future.done()}}
         silent = {key: handle.pid for key, handle in asked.items()
                   if key not in reports and handle.alive}
         for key, handle in list(self.workers.handles.items()):      # stopped, or stopping

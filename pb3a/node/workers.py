@@ -404,6 +404,7 @@ class WorkerPool:
         outgoing = getattr(future, "pb3a_outgoing", None)
         if outgoing is not None and handle.outbox.withdraw(outgoing):
             self._futures.pop(future.pb3a_request, None)   # type: ignore[attr-defined]
+            future.cancel()                     # (done: no answer will ever come)
             raise RuntimeTimeout(
                 f"worker {key!r} read nothing of {op!r} within {timeout:g} s, so it was "
                 "withdrawn and will not run: the worker reads nothing from its pipe "
