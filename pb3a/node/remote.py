@@ -185,8 +185,11 @@ class RemoteNode:
         if self.lost or self.client is None:
             return False
         timeout = self._within(timeout)
-        return self.client.request("await_restart", {"name": name, "timeout": timeout},
-                                   timeout + MARGIN_S)
+        try:
+            return self.client.request("await_restart", {"name": name, "timeout": timeout},
+                                       timeout + MARGIN_S)
+        except (RuntimeFailure, RuntimeTimeout):    # (the request it follows said why)
+            return False
 
     def swap(self, name: str, spec: FlatModule) -> list[str]:
         return self._forward("swap", name, spec)
