@@ -4,13 +4,19 @@ fencing, arrays as frames, and forged or garbage frames refused."""
 from __future__ import annotations
 
 import contextlib
+import os
 import pickle
+import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+import psutil
 import pytest
 import zmq
 from conftest import eventually
@@ -803,3 +809,84 @@ def test_a_captured_hello_or_ack_is_refused_by_another_replicator(known: bool) -
         follower.close()
         a.close()
         b.close()
+
+
+def test_flow_control_waits_end_at_the_writer_s_timeout(link) -> None:
+    """A follower gone silent is waited for (0.1 s) until it counts as gone: each value
+    past its window waited so, whatever the writer's timeout (20 values given 0.3 s
+    took 2 s)."""
+    replicator, follower, inbox = link
+    replicator.add("t")
+    _follow(follower, replicator, "t", from_seq=0)
+    assert follower.wait_ready("t", TIMEOUT)
+    replicator.publish("t", 0)
+    inbox.wait("t", 1)
+    stream = replicator.counter("t")
+    eventually(lambda: stream.acks, what="an acknowledgement")
+    follower.close()                          # gone without a word: live a while still
+    replicator.offer("t", list(range(WINDOW)), timeout=5.0)      # a window ahead of it
+    started = time.monotonic()
+    assert replicator.offer("t", list(range(20)), timeout=0.3) == 20  # (paced, not held)
+    assert time.monotonic() - started < 0.8
+
+
+_FROZEN_FOLLOWER = """
+import sys
+from pb3a.transport.auth import ClusterKey
+from pb3a.transport.replication import Follower
+got = []
+follower = Follower(ClusterKey.load({"PB3A_KEY": "r" * 40}), lambda t, v, s: got.extend(v))
+follower.follow("t", sys.argv[1], sys.argv[2], from_seq=0)
+print("ready" if follower.wait_ready("t", 20) else "not ready", flush=True)
+for _ in sys.stdin:
+    print(got[-1] if got else None, follower.link_failures["t"], flush=True)
+"""
+
+
+@pytest.mark.timeout(60)
+def test_nothing_piles_up_for_a_frozen_follower_and_it_recovers(monkeypatch) -> None:
+    """A follower frozen (SIGSTOP: its node, or a cable pulled) is disconnected once it
+    has answered nothing for the peer timeout, so nothing is queued for it any more:
+    its publisher's queue, counted in messages, held up to 10,000 large values (GiBs)
+    long after the replay buffer had let them go. Let run again, it reconnects and
+    gets what comes next, the values no longer kept counted lost."""
+    monkeypatch.setattr(replication, "PEER_PING_MS", 200, raising=False)
+    monkeypatch.setattr(replication, "PEER_TIMEOUT_MS", 1000, raising=False)
+    monkeypatch.setattr(replication, "FOLLOWER_TIMEOUT", 0.5)   # (not paced meanwhile)
+    monkeypatch.setattr(replication, "REPLAY_BYTES", 4 << 20)
+    replicator = Replicator(KEY)
+    replicator.add("t")
+    monitor = replicator._pub.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+    child = subprocess.Popen(
+        [sys.executable, "-c", _FROZEN_FOLLOWER, replicator.data_address,
+         replicator.control_address], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+        text=True, env={**os.environ, "PYTHONPATH": str(Path(__file__).parent.parent)})
+    try:
+        assert child.stdout.readline().strip() == "ready"
+        me, image = psutil.Process(), np.ones(32 * 1024)          # 256 KiB
+        os.kill(child.pid, signal.SIGSTOP)
+        disconnected = monitor.poll(10_000)                    # (bounded: see below)
+        before = me.memory_info().rss
+        for i in range(400):                                   # 100 MiB
+            replicator.publish("t", image * i, timeout=5.0)
+        replicator.flush()
+        grown = (me.memory_info().rss - before) >> 20
+        assert disconnected and grown < 50, f"{grown} MiB queued for a frozen follower"
+        os.kill(child.pid, signal.SIGCONT)
+        replicator.publish("t", "after", timeout=5.0)
+
+        def last() -> list[str]:
+            child.stdin.write("?\n")
+            child.stdin.flush()
+            return child.stdout.readline().split()
+        _, lost = eventually(lambda: (answer := last())[0] == "after" and answer,
+                                  timeout=15.0, what="the follower let run again")
+        assert int(lost) > 0                     # (said: not kept for it)
+    finally:
+        os.kill(child.pid, signal.SIGCONT)
+        child.kill()
+        child.wait()
+        child.stdin.close()
+        child.stdout.close()
+        monitor.close()
+        replicator.close()

@@ -125,6 +125,8 @@ REPLAY_BYTES = 2 * WINDOW_BYTES         # ... and at most this many bytes (the n
 HELLO_EVERY = 0.05                      # seconds between unanswered HELLOs
 HEARTBEAT_S = 0.5                       # how often a replicator announces its topics
 LINGER_MS = 500                         # a closed DEALER's last messages may still go
+PEER_PING_MS = 1000                     # each connection pings its peer this often ...
+PEER_TIMEOUT_MS = 5000                  # ... and is closed when it hears nothing this long
 DRAIN_BATCH = 1024                      # messages taken in before delivering them
 ZERO_COPY_MIN = 64 * 1024               # frames at least this large are sent without a copy
 _SCALARS = frozenset({int, float, bool, complex, type(None)})   # immutable: kept as they are
@@ -161,10 +163,20 @@ def _sealed(sealer: Sealer, kind: int, parts: list[Any]) -> list[Any]:
 
 
 def _secure(sock: zmq.Socket, max_bytes: int = MAX_MESSAGE) -> zmq.Socket:
+    """Limits every replication socket sets. A connection whose peer answers nothing
+    (frozen, its cable pulled) is closed after ``PEER_TIMEOUT_MS``: what was queued
+    for it is freed, and the connecting side reconnects by itself. (A PUB socket's
+    queue for a peer is counted in messages, not bytes: a follower frozen for minutes
+    had up to ``HWM`` large values queued for it, gigabytes, long after the replay
+    buffer had let them go.) Any traffic from the peer counts as an answer; a
+    sender's ping waits behind what its kernel still has to send, so a link that
+    cannot move a few MiB within the timeout may be cut too, and is then repaired."""
     sock.setsockopt(zmq.LINGER, 0)
     sock.setsockopt(zmq.MAXMSGSIZE, max_bytes)
     sock.setsockopt(zmq.SNDHWM, HWM)
     sock.setsockopt(zmq.RCVHWM, HWM)
+    sock.setsockopt(zmq.HEARTBEAT_IVL, PEER_PING_MS)
+    sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, PEER_TIMEOUT_MS)
     return sock
 
 
@@ -456,8 +468,10 @@ class Replicator:
         Flow control: a publisher more than ``WINDOW`` values or ``WINDOW_BYTES`` bytes
         ahead of its slowest follower waits for it (up to ``WINDOW_WAIT``, then goes on
         and lets the repair or the link-failure count deal with it), so a burst never
-        overruns the high-water marks. A lossless follower holds it back up to ``timeout`` (the
-        writer's) in all; the values that found no room by then are not sent.
+        overruns the high-water marks; those waits end at ``timeout`` too, counted
+        from the first (they took 0.1 s per value: 20 values given 0.3 s took 2 s).
+        A lossless follower holds it back up to ``timeout`` (the writer's) in all;
+        the values that found no room by then are not sent.
 
         Values are taken as they are now (see ``_entry``). Small ones go out as soon as
         the replicator's thread gets to them (those published meanwhile go with them);
@@ -542,8 +556,8 @@ class Replicator:
         window_end = None
         while (acked := stream.acknowledged(time.monotonic())) is not None \
                 and (stream.next_seq - acked >= WINDOW or not stream.fits(acked, size)):
-            if window_end is None:
-                window_end = time.monotonic() + WINDOW_WAIT
+            if window_end is None:           # (never past the writer's deadline)
+                window_end = min(time.monotonic() + WINDOW_WAIT, deadline)
                 if started is None:
                     started = time.monotonic()
                     stream.waits += 1
