@@ -69,6 +69,10 @@ class Robot:
     def stop(self) -> None:
         self.drive(0.0, 0.0)
 
+    def commanded(self) -> tuple[float, float]:
+        """The command in force (v, w), as clipped to the robot's limits."""
+        return self._body.commanded()
+
     # -- sensors ---------------------------------------------------------------------
     def sonar(self) -> np.ndarray:
         """16 ranges in metres, Pioneer ring order (0-7 front, left to right; 8-15

@@ -55,13 +55,24 @@ class WorldServer:
     decide, faster than real time on a fast machine and never ahead of them. Meant for
     one controlling client (several would each advance the shared clock). ``cycle`` is
     a lock-step controller's whole turn in one request: drive by ``v`` and ``w`` if
-    given, advance ``dt``, and answer with the robot's readings then."""
+    given, advance ``dt``, and answer with the robot's readings then.
+
+    With ``watchdog_s`` (> 0), a robot none of whose requests has come for that long
+    in the world's time is stopped, as a Pioneer's controller stops the motors when
+    its client falls silent (ARCOS's communication watchdog): a robot whose server
+    crashed or whose link was cut stands, instead of running on its last command
+    for good. Any request for the robot (``sensors`` too, which a driver sends every
+    period) feeds it; a ``drive`` after it bit sets the robot going again. 0 (the
+    default) keeps the last command however long the robot is silent."""
 
     def __init__(self, world: World, host: str = "127.0.0.1", port: int = 0,
-                 rate: float = 1.0, lockstep: bool = False) -> None:
+                 rate: float = 1.0, lockstep: bool = False, watchdog_s: float = 0.0) -> None:
         if not lockstep:
             _check_rate(rate)
+        _check_watchdog(watchdog_s)
         self.world, self.rate, self.lockstep = world, rate, lockstep
+        self.watchdog_s = watchdog_s
+        self._heard: dict[str, float] = {}   # robot: the world's time of its last request
         self._lock = threading.Lock()                      # the world is not thread-safe
         self._stopping = threading.Event()
         self._paced = threading.Event()                    # the rate changed
@@ -98,12 +109,25 @@ class WorldServer:
         mended (the robot swapped to sim) instead of its stepper dying."""
         try:
             self.world.step(dt)
+            self._watch()
         except Exception as exc:
             if str(exc) != self._failing:
                 log.error("world %s cannot step: %s", self.world.name, exc)
             self._failing = str(exc)
         else:
             self._failing = ""
+
+    def _watch(self) -> None:
+        """Stop each moving robot that has been silent for ``watchdog_s`` of the world's
+        time (see the class docstring). Called with the world's lock held."""
+        if not self.watchdog_s:
+            return
+        now = self.world.time
+        for name, robot in self.world.robots.items():
+            # (a robot not heard from yet: silent since the server started)
+            silent = now - self._heard.setdefault(name, now)
+            if silent > self.watchdog_s and robot.commanded() != (0.0, 0.0):
+                robot.stop()
 
     def pace(self, rate: float) -> float:
         """Run the world at ``rate`` times real time from now on; 0 holds it (no
@@ -126,9 +150,11 @@ class WorldServer:
             if op not in ROBOT_OPS:
                 raise ValueError(f"the world server has no operation {op!r}; its operations: "
                                  f"describe, pace, and the robots' {', '.join(ROBOT_OPS)}")
-            robot = self.world.robot(args.pop("robot"))
+            name = args.pop("robot")
+            robot = self.world.robot(name)
+            self._heard[name] = self.world.time          # (the watchdog's food)
             if op == "advance":
-                return self._advance(float(args.get("dt", PHYSICS_DT)))
+                return self._advance(float(args.get("dt", PHYSICS_DT)), name)
             if op == "cycle":
                 if ("v" in args) != ("w" in args):
                     raise ValueError("cycle: give both v and w (drive, then advance), or "
@@ -137,13 +163,15 @@ class WorldServer:
                 self._check_advance(dt)     # before driving: a refused turn changes nothing
                 if "v" in args:
                     _apply(robot, "drive", args, self.world.time)
-                self._advance(dt)
+                self._advance(dt, name)
                 return _apply(robot, "sensors", {}, self.world.time)
             return _apply(robot, op, args, self.world.time)
 
-    def _advance(self, dt: float) -> float:
+    def _advance(self, dt: float, asking: str) -> float:
         self._check_advance(dt)
         self.world.step(dt)
+        self._heard[asking] = self.world.time   # (its controller was there all along)
+        self._watch()
         return self.world.time
 
     def _check_advance(self, dt: float) -> None:
@@ -184,6 +212,13 @@ def _apply(robot: Any, op: str, args: dict[str, Any], now: float) -> Any:
     return None
 
 
+def _check_watchdog(watchdog_s: float) -> None:
+    if not (isinstance(watchdog_s, int | float) and 0 <= watchdog_s < math.inf):
+        raise ValueError(f"a world server's watchdog_s is the seconds of silence after "
+                         f"which a robot is stopped, a finite number, 0 (none) or more, "
+                         f"not {watchdog_s!r}")
+
+
 def _check_rate(rate: float) -> None:
     # (below MIN_RATE a tick's wait is more than a thread can wait: the stepper died)
     if not (rate == 0 or MIN_RATE <= rate < math.inf):
@@ -194,19 +229,21 @@ def _check_rate(rate: float) -> None:
 class WorldProcess:
     """A ``WorldServer`` in a process of its own, serving the world file ``path``
     (``seed``; robots ``add``-ed as name: pose; the robots named in ``hardware`` on the
-    emulated hardware back end). Its physics and its requests then never wait for the
-    interpreter lock of the process that started it (a scenario serving several
-    worlds, or a launcher)."""
+    emulated hardware back end; the server's ``watchdog_s``). Its physics and its
+    requests then never wait for the interpreter lock of the process that started it
+    (a scenario serving several worlds, or a launcher)."""
 
     def __init__(self, path: str | Path, *, seed: int = 0, rate: float = 1.0,
                  lockstep: bool = False, add: dict[str, tuple[float, float, float]] | None = None,
-                 hardware: tuple[str, ...] = (), host: str = "127.0.0.1") -> None:
+                 hardware: tuple[str, ...] = (), host: str = "127.0.0.1",
+                 watchdog_s: float = 0.0) -> None:
+        _check_watchdog(watchdog_s)          # (here: the child's error would be lost)
         parent, child = _context.Pipe()
         self._pipe = parent                  # held open: the server stops when it closes
         self._process = _context.Process(
             target=world_server_main, daemon=True, name=f"rave-world-{Path(path).stem}",
             args=(str(path), seed, rate, lockstep, dict(add or {}), tuple(hardware), host,
-                  child))
+                  watchdog_s, child))
         start_without_main(self._process)
         child.close()
         try:
@@ -223,7 +260,7 @@ class WorldProcess:
 
 def world_server_main(path: str, seed: int, rate: float, lockstep: bool,
                       add: dict[str, tuple[float, float, float]], hardware: tuple[str, ...],
-                      host: str, conn: Any) -> None:
+                      host: str, watchdog_s: float, conn: Any) -> None:
     """A world server process (see ``WorldProcess``)."""
     stopped = threading.Event()
     stop_on_sigterm(stopped)                 # before the world's emulators are started
@@ -233,7 +270,8 @@ def world_server_main(path: str, seed: int, rate: float, lockstep: bool,
             world.add_robot(name, pose, color="blue")
         for name in hardware:
             world.robot(name).swap("hardware")
-        server = WorldServer(world, host, rate=rate, lockstep=lockstep)
+        server = WorldServer(world, host, rate=rate, lockstep=lockstep,
+                             watchdog_s=watchdog_s)
     except BaseException:
         world.close()
         raise
@@ -290,7 +328,8 @@ class RobotServers:
 
     def kill(self, name: str) -> None:
         """Kill robot ``name``'s server at once, as a crash or a cut cable would end it:
-        its driver's calls go unanswered from now on (the robot keeps its last command)."""
+        its driver's calls go unanswered from now on (the robot keeps its last command,
+        unless the world server's watchdog stops it)."""
         if name not in self._processes:
             raise KeyError(f"no robot server of {name!r} runs; those running: "
                            f"{', '.join(self._processes) or 'none'}")

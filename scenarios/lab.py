@@ -93,11 +93,13 @@ class Lab:
     """A served world (``rate`` simulated seconds per second, or in ``lockstep``), its
     robot servers, and a node controller per name in ``onboard``. ``add`` places more
     robots (name: pose); ``hardware`` names robots to serve by the emulated hardware
-    back end whatever the world file says."""
+    back end whatever the world file says; ``watchdog_s`` stops a robot silent that
+    long, as its controller would (``WorldServer``)."""
 
     def __init__(self, world: str | Path, *, seed: int = 0, onboard: tuple[str, ...] = (),
                  hardware: tuple[str, ...] = (), rate: float = 1.0, lockstep: bool = False,
-                 add: dict[str, tuple[float, float, float]] | None = None) -> None:
+                 add: dict[str, tuple[float, float, float]] | None = None,
+                 watchdog_s: float = 0.0) -> None:
         self.world_server: WorldProcess | None = None
         self.robot_servers: RobotServers | None = None
         self.nodes: dict[str, NodeControllerProcess] = {}
@@ -105,7 +107,8 @@ class Lab:
         try:
             # (each world in a process of its own: see WorldProcess)
             self.world_server = WorldProcess(world_file(str(world)), seed=seed, rate=rate,
-                                             lockstep=lockstep, add=add, hardware=hardware)
+                                             lockstep=lockstep, add=add, hardware=hardware,
+                                             watchdog_s=watchdog_s)
             self.described = self.describe()
             self.size: tuple[float, float] = tuple(self.described["size"])
             self.robot_servers = RobotServers(self.world_server.address,

@@ -11,16 +11,18 @@ the map covers ``FAULT_COVERAGE`` of the free space (or at the end of the first
 phase), the scenario makes the first robot fail (``FAULTS``): by default it cuts its
 motor power (``motors_off``, through its robot server, as ``rave fault`` would), or
 with ``--fault robot_link`` it kills its robot server, as a crash or a cut cable
-would. Half the free space is left to map, however small the world. The monitor
-(dead motors) or the driver (a robot that stopped answering) reports the failure; the
-remedy agent (case-based reasoning) moves the control macro to the standby robot's
-node and re-points its driver at that robot; mapping goes on from the map the mapper
-carried.
+would (the robot's controller then stops it ``WATCHDOG_S`` later, as a Pioneer's
+stops a robot whose client fell silent). Half the free space is left to map, however
+small the world. The monitor (dead motors) or the driver (a robot that stopped
+answering) reports the failure; the remedy agent (case-based reasoning) moves the
+control macro to the standby robot's node and re-points its driver at that robot;
+mapping goes on from the map the mapper carried.
 
 Measured in the run: detection time (fault to its failure event), hand-off
 time (that event to the first map update made from the standby robot's readings),
 and the map against the world's ground truth (accuracy of the classified cells,
-coverage of the reachable free space) before the fault, at the hand-off and at the end.
+coverage of the reachable free space) before the fault, at the hand-off and at the end,
+and how far the failed robot went after the fault.
 
 Run it: ``pb3a scenario mapping [--quick] [--world W] [--seed N] [--fault F] [--out DIR]`` (or
 ``python -m scenarios.mapping``). It prints the report as JSON and writes
@@ -30,6 +32,7 @@ Run it: ``pb3a scenario mapping [--quick] [--world W] [--seed N] [--fault F] [--
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import sys
@@ -60,10 +63,13 @@ DONE_EVERY_S = 1.0                            # how often the map's coverage is 
 HANDOFF_NEAR_M = 1.0                          # an update this near the standby robot (and
                                               # nearer it than the failed one) is its
 CLEARANCE_M = 0.6                             # a standby robot placed by the scenario keeps this
+WATCHDOG_S = 2.0             # a robot silent this long (world time) is stopped by its
+                             # controller: one whose server died does not run on for good
 GOALS = {"handoff_s": 0.5, "accuracy": 0.9}
 FAULTS = {                    # what --fault does to the first robot, and who says so
     "motors": "its motor power cut (motors_off); its hardware monitor says so",
-    "robot_link": "its robot server killed; its driver says so once the robot is silent",
+    "robot_link": f"its robot server killed (its controller's watchdog stops it "
+                  f"{WATCHDOG_S:g} s later); its driver says so once the robot is silent",
 }
 
 
@@ -121,7 +127,8 @@ def run(out: Path, world: str = "lab", seed: int = 1, quick: bool = False,
     before, after = PHASES["quick" if quick else "full"]
     path = world_file(world)
     robots, added = place_robots(path)
-    with Lab(path, seed=seed, onboard=("r1", "r2"), hardware=robots, add=added) as lab:
+    with Lab(path, seed=seed, onboard=("r1", "r2"), hardware=robots, add=added,
+             watchdog_s=WATCHDOG_S) as lab:
         size, described = lab.size, lab.described
         starts = [lab.poses()[name] for name in robots]
         with configuration(lab, robots, out / "remedy-cases.toml").launch() as running:
@@ -206,6 +213,11 @@ def _follow(lab: Lab, paths: dict[str, list[tuple[float, ...]]], until: float,
         wait_until(min(until, time.monotonic() + POSE_EVERY_S))
 
 
+def _travel(path: list[tuple[float, ...]]) -> float:
+    """How far (m) a robot went along its sampled ``path`` ((time, x, y, heading) each)."""
+    return float(sum(math.dist(a[1:3], b[1:3]) for a, b in itertools.pairwise(path)))
+
+
 def _free_space(occupied: np.ndarray, grid: Grid,
                 starts: list[tuple[float, ...]]) -> np.ndarray:
     """The free space the robots can reach from where they start."""
@@ -261,6 +273,8 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
         "handoff_s": round(handoff_at - detected["at"], 3) if handoff_at else None,
         "remedies": recorder["remedies"],
         "mapper_node_at_end": record["mapper_node_at_end"],
+        "failed_robot_travel_m": round(_travel(
+            [p for p in record["paths"][record["robots"][0]] if p[0] >= fault_at]), 3),
         "map": {"before_fault": quality(before[-1]) if before else None,
                 "at_handoff": quality(at_handoff[0]) if at_handoff else None,
                 "end": quality(record["final_map"])},

@@ -79,6 +79,79 @@ def test_a_killed_robot_server_stops_answering_and_the_others_serve_on(served) -
         robots.kill("r2")
 
 
+def test_a_robot_silent_for_the_watchdog_s_of_world_time_is_stopped() -> None:
+    """With ``watchdog_s``, a robot none of whose requests came for that long in the
+    world's time is stopped, as a Pioneer's controller stops when its client falls
+    silent: requests of any kind feed it, a drive sets the robot going again. (Without
+    it, the mapping scenario's robot whose server was killed ran on its last command
+    for good, circling or sliding along walls into the standby robot's view, which
+    mapped it as walls that are not there.)"""
+    world = World.load("rave/worlds/arena.toml", seed=2)       # r1 sim, r2 hardware
+    server = WorldServer(world, lockstep=True, watchdog_s=1.0)
+    client = ControlClient(ClusterKey.load(), server.address)
+    r1, r2 = world.robot("r1"), world.robot("r2")
+    try:
+        client.call("drive", robot="r1", v=0.3, w=0.1)
+        client.call("drive", robot="r2", v=0.3, w=0.0)
+        for _ in range(4):          # r2's controller moves the world on; r1 is heard too
+            client.call("advance", robot="r2", dt=0.5)
+            client.call("sensors", robot="r1")
+        assert r1.commanded() == pytest.approx((0.3, 0.1)) and r2.commanded() != (0, 0)
+        start = r1.gps()
+        client.call("advance", robot="r2", dt=0.9)       # r1 silent for 0.9 s: not yet
+        assert r1.commanded() == pytest.approx((0.3, 0.1))
+        client.call("advance", robot="r2", dt=0.2)       # ... past 1 s: stopped
+        assert r1.commanded() == (0.0, 0.0) and r2.commanded() == pytest.approx((0.3, 0.0))
+        assert math.dist(r1.gps()[:2], start[:2]) > 0.2  # (it did drive until then)
+        client.call("advance", robot="r2", dt=2.0)
+        stopped_at = r1.gps()
+        client.call("advance", robot="r2", dt=2.0)
+        assert r1.gps() == pytest.approx(stopped_at, abs=1e-9)     # it stands
+        client.call("drive", robot="r1", v=0.3, w=0.0)              # and goes again
+        client.call("advance", robot="r1", dt=3.0)       # (its own advance feeds it)
+        assert r1.commanded() == pytest.approx((0.3, 0.0))
+        assert math.dist(r1.gps()[:2], stopped_at[:2]) > 0.5
+        assert r2.commanded() == (0.0, 0.0)              # r2 silent through r1's 3 s
+    finally:
+        client.close()
+        server.close()
+    with World.load("rave/worlds/arena.toml", robots=False) as bare:
+        for wrong in (-1.0, math.inf, math.nan):
+            with pytest.raises(ValueError, match="watchdog_s is the seconds of silence"):
+                WorldServer(bare, watchdog_s=wrong)
+
+
+def test_a_robot_whose_server_is_killed_is_stopped_by_the_watchdog() -> None:
+    """The mapping scenario's ``robot_link`` fault, in a world run in real time: the
+    robot driving when its server dies stands within ``watchdog_s`` of world time."""
+    world = World.load("rave/worlds/arena.toml", seed=2)
+    server = WorldServer(world, watchdog_s=1.0)
+    robots = RobotServers(server.address, ["r1"])
+    client = ControlClient(ClusterKey.load(), robots.addresses["r1"])
+    r1 = world.robot("r1")
+    try:
+        client.call("drive", v=0.2, w=0.3)
+        start = client.call("sensors")["time"]
+        # asked for its readings all along (as its driver would), it drives on
+        eventually(lambda: client.call("sensors")["time"] > start + 1.5,
+                   what="1.5 s of world time")
+        with server._lock:
+            assert r1.commanded() == pytest.approx((0.2, 0.3))
+            killed_at = world.time
+        robots.kill("r1")
+
+        def stopped() -> bool:
+            with server._lock:
+                return r1.commanded() == (0.0, 0.0)
+        eventually(stopped, timeout=10.0, what="the silent robot stopped")
+        with server._lock:
+            assert world.time > killed_at + 1.0
+    finally:
+        client.close()
+        robots.close()
+        server.close()
+
+
 def test_a_robot_server_signalled_as_it_starts_stops_cleanly(tmp_path, monkeypatch) -> None:
     """SIGTERM while a robot server process starts (held as it loads its key) ends it
     closed, exit status 0, and its owner says it stopped before serving."""
