@@ -1,5 +1,5 @@
-"""What happened to a running system, as numbered events: moves, swaps, restarts,
-failures, lost nodes, modules and links added or removed.
+"""What happened to a running system, as numbered events: moves (and moves that
+failed), swaps, restarts, failures, lost nodes, modules and links added or removed.
 
 The launcher keeps the most recent ones (``EventLog``); ``run.events(since)`` returns
 those after a sequence number, waiting up to a timeout for the next, so a program
@@ -18,9 +18,9 @@ from typing import Any
 
 from pb3a.errors import bounded_wait
 
-KINDS = ("module_added", "module_removed", "module_moved", "module_swapped",
-         "module_restarted", "module_failed", "module_failed_over", "module_lost",
-         "link_added", "link_removed", "node_lost", "node_joined")
+KINDS = ("module_added", "module_removed", "module_moved", "migration_failed",
+         "module_swapped", "module_restarted", "module_failed", "module_failed_over",
+         "module_lost", "link_added", "link_removed", "node_lost", "node_joined")
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,7 @@ from typing import Any
 
 import pytest
 from browser import chromium_page, skip_reason
-from conftest import alive, eventually
+from conftest import alive, eventually, frozen
 
 REPO = Path(__file__).resolve().parent.parent
 START_TIMEOUT = 30.0        # seconds for `pb3a manager` to print its URL
@@ -402,6 +402,21 @@ def test_a_float_that_is_not_finite_is_shown_as_such_and_plotted_as_a_gap(
     page.wait_for_function("document.querySelector(\"[data-field='last'] input\").value === '3.0'",
                            timeout=WAIT_MS)
     assert "nonfinite" not in last.get_attribute("class") and not last.get_attribute("title")
+
+
+def test_a_move_that_fails_is_listed_among_the_events(lab: ManagerProcess, page: Any) -> None:
+    """A move that failed showed nothing in the events panel (the system recorded no
+    event for it): it is listed as "move failed", with its nodes and the error."""
+    pid = lab.api("GET", "/api/stats")["modules"]["probe"]["pid"]
+    with frozen(pid), pytest.raises(urllib.error.HTTPError):   # (it answers nothing)
+        lab.api("POST", "/api/modules/probe/migrate", {"to": "a"})
+    page.wait_for_selector(".event[data-kind='migration_failed']", timeout=WAIT_MS)
+    shown = page.locator(".event[data-kind='migration_failed']").first
+    assert "tone-failure" in shown.get_attribute("class")
+    assert shown.locator(".event-kind").text_content() == "move failed"
+    assert shown.locator(".event-subject").text_content() == "probe"
+    assert shown.locator(".event-detail").text_content().startswith("b → a: ")
+    assert lab.api("GET", "/api/system")["modules"]["probe"]["node"] == "b"
 
 
 def test_dragging_a_module_onto_another_node_migrates_it(lab: ManagerProcess, page: Any,

@@ -24,6 +24,7 @@ from sample_modules import (
 )
 
 from pb3a import ConfigError, ModuleNotFound, RuntimeFailure, RuntimeTimeout, System
+from pb3a.cli.main import main
 from pb3a.node.executor import Executor
 
 
@@ -357,6 +358,38 @@ def test_a_move_without_waiting_returns_a_pending_result_and_is_an_event() -> No
         state = eventually(lambda: (s := run.state("sink"))["received"] >= n and s, timeout=30,
                            what="values after the move")
     assert state["out_of_order"] == 0 and state["duplicates"] == 0
+
+
+def test_a_move_that_fails_is_an_event_and_one_refused_is_not(capsys) -> None:
+    """A move that failed (the module put back where it ran) recorded no event, where one
+    that succeeds is ``module_moved`` and a module that fails ``module_failed``: it is
+    ``migration_failed``, naming the module, its source and destination and the error,
+    in ``run.events()`` and ``pb3a events``, waited for or not. A move refused before
+    anything was tried (no such node, state for a module that does not move) is none."""
+    system = _nodes(System("failed-move-event"), "a", "b")
+    system.add("relay", Relay, node="a")
+    with system.launch() as run:
+        address = run.listen()
+        with pytest.raises(ConfigError, match="no node 'mars'"):
+            run.migrate("relay", to="mars")
+        with pytest.raises(ValueError, match="which does not move"):
+            run.migrate("relay", to="b", state={"elsewhere": {"x": 1}})
+        with pytest.raises(RuntimeFailure, match="it runs on node a again") as failed:
+            run.migrate("relay", to="b", state={"relay": {"no_such_field": 1}})
+        pending = run.migrate("relay", to="b", state={"relay": {"no_such_field": 2}},
+                              wait=False)
+        with pytest.raises(RuntimeFailure) as failed_later:
+            pending.result(30)
+        assert run.where("relay") == "a"
+        moves = [e for e in run.events() if e.kind in ("module_moved", "migration_failed")]
+        assert [(e.kind, e.subject, e.detail["source"], e.detail["destination"])
+                for e in moves] == [("migration_failed", "relay", "a", "b")] * 2
+        assert [e.detail["error"] for e in moves] == [str(failed.value),
+                                                      str(failed_later.value)]
+        assert main(["events", address]) == 0
+        listed = [line.split() for line in capsys.readouterr().out.splitlines()]
+        assert [(seq, kind, subject) for seq, kind, subject, *_ in listed
+                if kind == "migration_failed"] == [(str(e.seq), e.kind, "relay") for e in moves]
 
 
 def test_an_agent_moves_a_module_without_waiting_and_sees_where_it_went() -> None:

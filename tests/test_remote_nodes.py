@@ -8,6 +8,7 @@ import math
 import os
 import re
 import signal
+import threading
 import time
 
 import psutil
@@ -37,6 +38,7 @@ import pb3a
 from pb3a import Agent, ModuleNotFound, PB3AError, RuntimeFailure, RuntimeTimeout, System
 from pb3a.cli.status import format_table
 from pb3a.daemons.node_controller import Limits, NodeController
+from pb3a.node.remote import RemoteNode
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 from pb3a.transport.shm import live_segments
@@ -494,3 +496,104 @@ def test_stats_with_a_remote_worker_frozen_keeps_the_callers_timeout(controllers
     assert took < 1.5, f"stats took {took:.1f} s"
     assert stats.modules["frozen"].silent and stats.modules["frozen"].pid == pid
     assert stats.modules["other"].steps > 0 and not stats.modules["other"].silent
+
+
+def _last_seq(run) -> int:
+    return max((event.seq for event in run.events()), default=0)
+
+
+@pytest.mark.parametrize("home", ["a", "c", "b"])    # its reader's node, another, a remote one
+def test_a_move_whose_module_s_worker_dies_once_paused_fails_at_once_saying_so(
+        controllers, home, monkeypatch) -> None:
+    """The module's worker is killed (SIGKILL) once its move has paused it. On a remote
+    node its restart ran between two of the move's requests (each takes the node's lock
+    on its own): the module came back unpaused in a new worker, its output published
+    anew, and the move failed saying it 'must be paused before it migrates', or waited
+    10 s for its reader to get from the dead sender what the new one wrote, then said
+    values were 'still in flight'. On every node the move fails at once, saying that the
+    module's worker died during it; the module restarts where it ran once the move has
+    let go of it, and its values reach its reader again."""
+    system = System(f"dies-paused-{home}").node("a").node("c")
+    system.node("b", address=controllers["b"].address)
+    system.add("src", Counter, node=home, period=0.002, restart="fresh")
+    system.add("sink", Collector, node="a")
+    system.link("src.out", "sink.x")
+    to = "c" if home == "a" else "a"
+    with system.launch() as run:
+        eventually(lambda: run.state("sink")["received"] > 20, timeout=30, what="values")
+        node = run._launcher.nodes[home]
+        real_pause = type(node).pause
+        old = run.stats().modules["src"].pid
+        killed = []
+
+        def pause(self, name, timeout):
+            paused = real_pause(self, name, timeout)
+            if self is node and name == "src" and not killed:
+                os.kill(old, signal.SIGKILL)
+                killed.append(time.monotonic())
+                eventually(lambda: self.report(2.0).modules["src"].pid != old,
+                           what="the worker's death seen by its node")
+            return paused
+        monkeypatch.setattr(type(node), "pause", pause)
+        since = _last_seq(run)
+        with pytest.raises(RuntimeFailure, match="the worker of module 'src' died during "
+                                                 "its move, so it was not moved"):
+            run.migrate("src", to=to)
+        failed_after = time.monotonic() - killed[0]
+        monkeypatch.setattr(type(node), "pause", real_pause)
+        assert failed_after < 5.0 and run.where("src") == home
+        eventually(lambda: "module_restarted" in [e.kind for e in run.events(since)],
+                   timeout=15, what="src restarted")
+        said = [(e.kind, e.subject) for e in run.events(since)]
+        assert said[:2] == [("migration_failed", "src"), ("module_restarted", "src")], said
+        received = run.state("sink")["received"]
+        eventually(lambda: run.state("sink")["received"] > received + 20, timeout=15,
+                   what="values from the restarted src at the sink")
+
+
+@pytest.mark.parametrize("moving", ["src", "sink"])      # the writer, or its reader
+def test_a_move_just_after_a_remote_restart_goes_ahead_and_the_values_follow(
+        controllers, moving, monkeypatch) -> None:
+    """The worker of writer src on remote node b is killed as a move of src (or of its
+    reader) begins, and restarted before the move pauses src: the new src publishes
+    anew, which its node tells the launcher, who has the reader follow it once the
+    configuration lock is free, after the move. The move waited 10 s for the reader to
+    get, from the dead sender, what the new one had written, then failed ('values of
+    src.out still in flight'). It goes ahead; and the restart's word that comes after it
+    does not take the reader back to where src ran (it got nothing more from src)."""
+    system = System(f"revived-{moving}").node("a").node("c")
+    system.node("b", address=controllers["b"].address)
+    system.add("src", Counter, node="b", period=0.002, restart="fresh")
+    system.add("sink", Collector, node="a")
+    system.link("src.out", "sink.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("sink")["received"] > 5, timeout=30, what="values")
+        old = run.stats().modules["src"].pid
+        real_pause = RemoteNode.pause
+        killed = []
+
+        def pause(self, name, timeout):
+            if name == "src" and not killed:
+                killed.append(_last_seq(run))
+                before = self.report(2.0).modules["src"].outputs.get("out", 0)
+                os.kill(old, signal.SIGKILL)
+                eventually(lambda: "module_restarted" in [e.kind for e in run.events(
+                    killed[0])], what="src restarted on node b")
+                eventually(lambda: self.report(2.0).modules["src"].outputs.get("out", 0)
+                           > before + 20, what="the new src past what the old one wrote")
+            return real_pause(self, name, timeout)
+        monkeypatch.setattr(RemoteNode, "pause", pause)
+        told = threading.Event()
+        real_republished = run._launcher.republished
+
+        def republished(*args):
+            real_republished(*args)
+            told.set()
+        monkeypatch.setattr(run._launcher, "republished", republished)
+        report = run.migrate(moving, to="c")
+        monkeypatch.setattr(RemoteNode, "pause", real_pause)
+        assert report.destination == run.where(moving) == "c" and report.pause_s < 5.0
+        assert told.wait(15), "node b's word of src's restart never came"
+        received = run.state("sink")["received"]
+        eventually(lambda: run.state("sink")["received"] > received + 50, timeout=15,
+                   what="values from src at the sink after the move")

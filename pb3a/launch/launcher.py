@@ -25,6 +25,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import dataclasses
+import functools
 import logging
 import math
 import threading
@@ -50,7 +51,7 @@ if TYPE_CHECKING:
     from collections.abc import Iterable, Iterator
 
     from pb3a.config.plan import FlatLink, FlatModule, Plan
-    from pb3a.node.protocol import Endpoint, Node
+    from pb3a.node.protocol import Endpoint, Node, Reached
 
 log = logging.getLogger("pb3a.launcher")
 
@@ -115,7 +116,7 @@ class Launcher:
                                     code=self.plan.code, lock=self.lock,
                                     epoch=self.epoch, spares=node.spares)
                 executor.handler = self._agent_request
-                executor.republished = self.republished
+                executor.republished = functools.partial(self.republished, node=name)
                 executor.on_event = self.events.record
                 executor.on_checkpoint = self.checkpoints.__setitem__
                 self.nodes[name] = executor
@@ -276,7 +277,7 @@ class Launcher:
         inside it, and one for each step of those that cross to another."""
         for node, inside in self._by_node(links, "src", remote=False).items():
             self.nodes[node].detach(inside)
-        reached: dict[str, int] = {}
+        reached: dict[str, Reached] = {}
         for node, outbound in self._by_node(links, "src", remote=True).items():
             reached.update(zip([link.key for link in outbound],
                                self.nodes[node].unpublish(outbound), strict=True))
@@ -298,10 +299,16 @@ class Launcher:
         self.detach(self.links[key])
         del self.links[key]
 
-    def republished(self, link: FlatLink, endpoint: Endpoint) -> None:
-        """A restarted writer publishes ``link`` anew: its reader follows the new sender."""
+    def republished(self, link: FlatLink, endpoint: Endpoint, node: str) -> None:
+        """A writer restarted on ``node`` publishes ``link`` anew: its reader follows the
+        new sender, if the writer still runs there and the link still crosses nodes. (A
+        remote node says so once the configuration lock is free: a move that held it
+        meanwhile may have taken the writer elsewhere, or the reader to the writer's
+        node; following this sender then stopped the values from where it runs now.)"""
         with self.lock.held(f"follow the restarted writer of {link.key}"):
-            if self.links.get(link.key) == link and link.dst in self.specs:
+            if (self.links.get(link.key) == link and link.src in self.specs
+                    and link.dst in self.specs and self.specs[link.src].node == node
+                    and self.crosses_nodes(link)):
                 self.node_of(link.dst).follow([(link, endpoint)])
 
     # -- figures ----------------------------------------------------------------------
@@ -660,7 +667,8 @@ class Launcher:
         """Unwire the surviving half of a link whose other end was on a lost node; what
         its reader knows it never got is counted on the link."""
         if link.src in gone and link.dst not in gone:
-            self.lost_values[link.key] += self.node_of(link.dst).close_inbound([(link, 0)])[0]
+            self.lost_values[link.key] += self.node_of(link.dst).close_inbound(
+                [(link, (0, None))])[0]
         elif link.dst in gone and link.src not in gone:
             writer = self.node_of(link.src)
             self.lost_values[link.key] += writer.unacknowledged(link)

@@ -156,7 +156,18 @@ class Operations:
                 child for child in specs if child.startswith(f"{name}/")]
             if not names:
                 self.launcher.node_of(name)           # raises ModuleNotFound
-            reports = migrate(self.launcher, names, to, state)    # (a macro's: one pause)
+            sources = {child: specs[child].node for child in names}
+            try:
+                reports = migrate(self.launcher, names, to, state)    # (a macro's: one pause)
+            except ValueError:                  # refused (a ConfigError too): nothing tried
+                raise
+            except Exception as exc:            # tried, and failed: said, as a move is
+                for child, source in sources.items():
+                    if source != to:
+                        self.event_log.record("migration_failed", child, source=source,
+                                              destination=to, error=str(exc) or
+                                              type(exc).__name__)
+                raise
             moved = {report.module for report in reports if report.source != to}
             for report in reports:
                 if report.module in moved:

@@ -215,7 +215,7 @@ class Running(SystemHandle):
             return self._agent_request(args["request"], args["args"])
         if op == "republished":                # a writer restarted on a remote node
             threading.Thread(target=self._launcher.republished, daemon=True,
-                             args=(args["link"], args["endpoint"])).start()
+                             args=(args["link"], args["endpoint"], args["node"])).start()
             return None
         if op == "event":                      # a restart or failure on a remote node
             self._launcher.events.record(args["kind"], args["subject"], **args["detail"])

@@ -99,11 +99,16 @@ class Bridge:
                 raise RuntimeTimeout(f"no hand-shake with the sender of {topic} at {data} "
                                      f"within {timeout} s")
 
-    def close(self, link: str, reached: int = 0, timeout: float = READY_TIMEOUT) -> int:
+    def close(self, link: str, reached: int = 0, timeout: float = READY_TIMEOUT,
+              sender: bytes | None = None) -> int:
         """Stop feeding ``link`` once the values before sequence number ``reached``
-        (the sender's position when it stopped) are in; the output is unfollowed when
-        no local input reads it. Returns how many values the sender announced that
-        never came (it is gone: they are lost)."""
+        (the position of ``sender``, an incarnation, when it stopped) are in; the output
+        is unfollowed when no local input reads it. Returns how many values the sender
+        announced that never came (it is gone: they are lost). A ``sender`` other than
+        the one followed (a writer restarted on another node since, whose new
+        incarnation is not followed yet) sends this bridge nothing: not waited for (the
+        sequence numbers are not the followed one's; the wait ran out after
+        ``timeout``, saying values were still in flight)."""
         topic = self._topics.get(link)
         missing = 0
         if topic is not None:
@@ -111,6 +116,8 @@ class Bridge:
                 feed = self._rings.get(topic, {}).get(link)
             if feed is not None and feed.ring.lossless:
                 feed.ring.request_flush()        # its reader may be paused: take it all
+            if sender is not None and self._senders.get(topic) != sender:
+                reached = 0              # (the one followed is gone: no more comes)
             if not self._follower.wait_delivered(topic, reached, timeout):
                 raise RuntimeTimeout(f"values of {topic} still in flight after {timeout} s")
             missing = self._follower.missing(topic)

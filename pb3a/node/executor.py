@@ -32,7 +32,7 @@ from pb3a.errors import ConfigError, PB3AError, RuntimeFailure, RuntimeTimeout
 from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
 from pb3a.node.bridge import READY_TIMEOUT, Bridge
-from pb3a.node.protocol import Endpoint
+from pb3a.node.protocol import Endpoint, Reached
 from pb3a.node.resources import ResourceMeter
 from pb3a.node.restarts import RestartBudget
 from pb3a.node.ring_sizes import RingSize, ring_size
@@ -71,6 +71,9 @@ class ModuleRecord:
     checkpoint: bytes | None = None
     checkpoints: int = 0              # checkpoints received (restart = "last-state")
     restarts: int = 0                 # restarts of its worker tried
+    # paused by a change (a move, a relink): a restart of its worker waits until the
+    # change lets go of it (``Executor._await_let_go``)
+    held: bool = False
 
 
 @dataclass(frozen=True)
@@ -139,6 +142,7 @@ class Executor:
         # requests that wait for the restart (``await_restart``)
         self._restarts_settle = threading.Condition()
         self._reviving: set[str] = set()        # modules whose restart is under way
+        self._let_go = threading.Condition()    # notified as a change lets go of a module
         reap_orphans()
         self.workers = WorkerPool(
             WorkerSettings(cpus, checkpoint_s, log_level, code or CodeSources(), spares),
@@ -363,17 +367,54 @@ class Executor:
         record = self.modules.get(name)
         if record is None or not self._alive(record.worker):
             return False
-        # ``until``: a worker that reads this late (it was frozen) must not pause the
-        # module once this call has given up: nobody would resume it
-        self.call(record.worker, "pause", timeout + 1.0, name=name, timeout=timeout,
-                  until=time.monotonic() + timeout)
+        # held before it is asked: a worker that dies from here on is restarted once the
+        # change lets go of the module, not meanwhile (in a new worker, unpaused, its
+        # outputs published anew: the change went on as if it still held it)
+        self._hold(record, True)
+        try:
+            # ``until``: a worker that reads this late (it was frozen) must not pause the
+            # module once this call has given up: nobody would resume it
+            self.call(record.worker, "pause", timeout + 1.0, name=name, timeout=timeout,
+                      until=time.monotonic() + timeout)
+        except BaseException:
+            self._hold(record, False)
+            raise
         return True
 
     def resume(self, name: str) -> None:
-        """Release a module paused by ``pause``."""
+        """Release a module paused by ``pause`` (one whose worker died meanwhile is
+        restarted now)."""
         record = self.modules.get(name)
-        if record is not None and self._alive(record.worker):
-            self.call(record.worker, "resume", name=name)
+        try:
+            if record is not None and self._alive(record.worker):
+                self.call(record.worker, "resume", name=name)
+        finally:
+            if record is not None:
+                self._hold(record, False)
+
+    def _hold(self, record: ModuleRecord, held: bool) -> None:
+        """Note whether a change holds ``record``'s module paused (see ``pause``)."""
+        with self._let_go:
+            record.held = held
+            if not held:
+                self._let_go.notify_all()
+
+    def _await_let_go(self, handle: WorkerHandle, what: str) -> None:
+        """Wait (without the node's lock) until no change holds a module of dead worker
+        ``handle`` paused, up to ``LOCK_TIMEOUT``: its restart must not revive a module a
+        move has paused (and goes on to capture). Once the worker is dead no change can
+        pause its modules again (``pause`` finds it gone), so this holds once it
+        returns. On an embedded node the restart then waits for the configuration lock,
+        which the change holds throughout; on a remote one each of the change's requests
+        takes the node's lock on its own, and a restart could run between two."""
+        def held() -> list[str]:
+            return [name for name in list(handle.modules)
+                    if (record := self.modules.get(name)) is not None and record.held]
+        with self._let_go:
+            if not self._let_go.wait_for(lambda: not held() or self._stopping.is_set(),
+                                         LOCK_TIMEOUT):
+                log.warning("%s: %s held paused by a change for %g s; restarted all the "
+                            "same", what, ", ".join(held()), LOCK_TIMEOUT)
 
     def stop_module(self, name: str, timeout: float = 5.0) -> None:
         """Stop stepping and dispatching, then run the module's ``teardown``."""
@@ -381,10 +422,12 @@ class Executor:
         if record.status == "running" and self._alive(record.worker):
             self.call(record.worker, "stop", timeout + 1.0, name=name, grace=timeout)
         record.status = "stopped"
+        self._hold(record, False)
 
     def remove_module(self, name: str) -> None:
         """Drop a module (its links are gone) and stop its worker if it hosted nothing else."""
         record = self.modules.pop(name)
+        self._hold(record, False)
         if self._alive(record.worker):
             self.call(record.worker, "remove", name=name)
         self._vacate(record.worker, name)
@@ -412,14 +455,22 @@ class Executor:
         memory domain) the parts travel in the snapshot instead. The worker the module
         leaves is stopped by ``release``, after the pause, if nothing else runs there."""
         record = self.modules[name]
-        # ``until``: a worker that is late (frozen, or a teardown that overran) keeps the
-        # module, as this executor then does
-        snapshot: Snapshot = self.call(record.worker, "migrate_out", REQUEST_TIMEOUT,
-                                       name=name, segment=segment,
-                                       until=time.monotonic() + REQUEST_TIMEOUT
-                                       - ANSWER_MARGIN_S)
+        if not self._alive(record.worker):
+            raise RuntimeFailure(_died_moving(name, record))
+        try:
+            # ``until``: a worker that is late (frozen, or a teardown that overran) keeps
+            # the module, as this executor then does
+            snapshot: Snapshot = self.call(record.worker, "migrate_out", REQUEST_TIMEOUT,
+                                           name=name, segment=segment,
+                                           until=time.monotonic() + REQUEST_TIMEOUT
+                                           - ANSWER_MARGIN_S)
+        except RuntimeFailure as exc:
+            if self._alive(record.worker):
+                raise
+            raise RuntimeFailure(_died_moving(name, record)) from exc
         del self.modules[name]
         self.workers[record.worker].modules.remove(name)
+        self._hold(record, False)
         return snapshot.carry() if carry else snapshot
 
     def land(self, name: str, snapshot: Snapshot) -> float:
@@ -588,14 +639,14 @@ class Executor:
         """What a worker publishes with: the cluster key, this node's address, the epoch."""
         return {"secret": self.key.secret, "host": self.host, "epoch": self.epoch}
 
-    def unpublish(self, links: list[FlatLink]) -> list[int]:
-        """Stop publishing for each link; the sequence number its sender reached (0 if
-        its worker is gone)."""
+    def unpublish(self, links: list[FlatLink]) -> list[Reached]:
+        """Stop publishing for each link; the sequence number its sender reached and the
+        sender's incarnation ((0, None) if its worker is gone)."""
         for link in links:
             self.outbound.pop(link.key, None)
         answers = self._side_by_side([self._unlink_request(link, link.src, "unpublish_out")
                                       for link in links])
-        return [reached or 0 for reached in answers]
+        return [(0, None) if answer is None else (answer[0], answer[1]) for answer in answers]
 
     def unacknowledged(self, link: FlatLink) -> int:
         """How many values of ``link``'s output a follower has not acknowledged."""
@@ -625,17 +676,17 @@ class Executor:
         """Receive each link's output from the sender at its endpoint (see ``publish``)."""
         self.bridge.follow([(_topic(link), *endpoint) for link, endpoint in links])
 
-    def close_inbound(self, links: list[tuple[FlatLink, int]]) -> list[int]:
+    def close_inbound(self, links: list[tuple[FlatLink, Reached]]) -> list[int]:
         """Stop receiving each link once the values before the sequence number given
-        are in (all within one ``READY_TIMEOUT``), then detach their rings from the
-        readers side by side; per link, how many values its sender announced that
-        never came."""
+        are in (all within one ``READY_TIMEOUT``), if they come from the sender the
+        bridge follows (see ``Bridge.close``), then detach their rings from the readers
+        side by side; per link, how many values its sender announced that never came."""
         deadline = time.monotonic() + READY_TIMEOUT
         missing = []
-        for link, reached in links:
+        for link, (reached, sender) in links:
             self.inbound.pop(link.key, None)
             missing.append(self.bridge.close(link.key, reached,
-                                             max(0.0, deadline - time.monotonic())))
+                                             max(0.0, deadline - time.monotonic()), sender))
         self._side_by_side([self._unlink_request(link, link.dst, "unlink_in")
                             for link, _ in links])
         for link, _ in links:
@@ -820,6 +871,7 @@ class Executor:
         reviving = set(handle.modules)
         self._reviving |= reviving
         try:
+            self._await_let_go(handle, what)
             with self.held(what):
                 if self._stopping.is_set():     # a shutdown may have come first
                     return
@@ -981,6 +1033,11 @@ class Executor:
         if self.on_event is not None:
             self.on_event(kind, name, **detail)
 
+    def _wake(self) -> None:
+        """Stopping: a restart waiting for a change to let go of its modules waits no more."""
+        with self._let_go:
+            self._let_go.notify_all()
+
     # -- shutdown ------------------------------------------------------------
     def fence(self) -> None:
         """Stop every module's stepping now, without the executor's lock (a request may
@@ -988,6 +1045,7 @@ class Executor:
         to be restarted elsewhere. ``shutdown`` follows."""
         self._closing.set()
         self._stopping.set()
+        self._wake()
         self.workers.fence()
 
     def shutdown(self, timeout: float = 10.0) -> None:
@@ -1009,6 +1067,7 @@ class Executor:
                 except Exception as exc:
                     log.warning("stopping module %r: %s", name, exc)
             self._stopping.set()
+            self._wake()
             self.workers.close(max(0.1, deadline - time.monotonic()))
             if self._bridge is not None:
                 self._bridge.shutdown()
@@ -1063,6 +1122,13 @@ def _import_quietly(modules: tuple[str, ...], lock: threading.Lock) -> None:
     for name in modules:
         with lock, contextlib.suppress(Exception):
             importlib.import_module(name)
+
+
+def _died_moving(name: str, record: ModuleRecord) -> str:
+    """Why module ``name``, paused for a move, cannot be captured: its worker died."""
+    return (f"the worker of module {name!r} died during its move, so it was not moved; "
+            f"its restart policy ({record.spec.restart!r}) says what comes on node "
+            f"{record.spec.node} once the move has let go of it")
 
 
 def _not_running(name: str, record: ModuleRecord) -> str:

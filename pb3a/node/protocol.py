@@ -17,6 +17,9 @@ if TYPE_CHECKING:
     from pb3a.transport.snapshot import Snapshot
 
 Endpoint = tuple[str, str, bytes]   # a published output: data address, control address, sender
+# where a link's sender stopped: the sequence number it reached, and which sender (its
+# incarnation; None if none published it: its worker is gone)
+Reached = tuple[int, bytes | None]
 
 
 @runtime_checkable
@@ -55,7 +58,9 @@ class Node(Protocol):
         """Replace a module's class in place; the state names kept."""
 
     def pause(self, name: str, timeout: float) -> bool:
-        """Hold the module's lock until ``resume``; False if it does not run here."""
+        """Hold the module's lock until ``resume``; False if it does not run here. A
+        worker of it that dies meanwhile is restarted once it is let go of (resumed,
+        retired, stopped or removed), not before."""
 
     def resume(self, name: str) -> None:
         """Release a paused module."""
@@ -104,8 +109,9 @@ class Node(Protocol):
     def publish(self, links: list[FlatLink]) -> list[Endpoint]:
         """The writing half: publish each link's output; the endpoints to follow."""
 
-    def unpublish(self, links: list[FlatLink]) -> list[int]:
-        """Stop publishing for each link; the sequence number its sender reached."""
+    def unpublish(self, links: list[FlatLink]) -> list[Reached]:
+        """Stop publishing for each link; the sequence number its sender reached, and
+        that sender's incarnation."""
 
     def unacknowledged(self, link: FlatLink) -> int:
         """How many values of ``link``'s output a follower has not acknowledged (when
@@ -118,10 +124,11 @@ class Node(Protocol):
     def follow(self, links: list[tuple[FlatLink, Endpoint]]) -> None:
         """Receive each link's output from the sender at its endpoint."""
 
-    def close_inbound(self, links: list[tuple[FlatLink, int]]) -> list[int]:
+    def close_inbound(self, links: list[tuple[FlatLink, Reached]]) -> list[int]:
         """Stop receiving each link once the values before the sequence number given are
-        in; per link, how many values its sender announced that never came (its node
-        was lost)."""
+        in, if they come from the sender followed (one the reader does not follow, a
+        writer restarted since, sends it nothing); per link, how many values its sender
+        announced that never came (its node was lost)."""
 
     # -- figures and the end
     def report(self, timeout: float) -> NodeReport:

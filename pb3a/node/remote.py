@@ -31,7 +31,7 @@ from pb3a.transport.control import ControlClient
 if TYPE_CHECKING:
     from pb3a.config.plan import FlatLink, FlatModule
     from pb3a.logbook import LogEntry
-    from pb3a.node.protocol import Endpoint
+    from pb3a.node.protocol import Endpoint, Reached
     from pb3a.node.ring_sizes import RingSize
     from pb3a.stats import NodeReport
     from pb3a.transport.snapshot import Snapshot
@@ -238,8 +238,8 @@ class RemoteNode:
     def publish(self, links: list[FlatLink]) -> list[Endpoint]:
         return self._forward("publish", links)
 
-    def unpublish(self, links: list[FlatLink]) -> list[int]:
-        return self._forward("unpublish", links)
+    def unpublish(self, links: list[FlatLink]) -> list[Reached]:
+        return [(reached, sender) for reached, sender in self._forward("unpublish", links)]
 
     def unacknowledged(self, link: FlatLink) -> int:
         return self._forward("unacknowledged", link)
@@ -250,7 +250,7 @@ class RemoteNode:
     def follow(self, links: list[tuple[FlatLink, Endpoint]]) -> None:
         self._forward("follow", links)
 
-    def close_inbound(self, links: list[tuple[FlatLink, int]]) -> list[int]:
+    def close_inbound(self, links: list[tuple[FlatLink, Reached]]) -> list[int]:
         return self._forward("close_inbound", links)
 
     def report(self, timeout: float) -> NodeReport:

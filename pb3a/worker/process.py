@@ -608,7 +608,7 @@ class Worker:
         """Bind the sockets that replicate outputs to other nodes before they are needed."""
         self.publications.open(secret, host, epoch)
 
-    def op_unpublish_out(self, key: str) -> int:
+    def op_unpublish_out(self, key: str) -> tuple[int, bytes | None]:
         return self.publications.remove(key)
 
     def op_unacknowledged_out(self, key: str) -> int:

@@ -59,11 +59,12 @@ class Publications:
         self._ports[topic].track(key, replicator.counter(topic))
         return replicator.data_address, replicator.control_address, replicator.incarnation
 
-    def remove(self, key: str) -> int:
+    def remove(self, key: str) -> tuple[int, bytes | None]:
         """The link ``key`` no longer reads; unhook its output if nothing else does.
         Returns the sequence number its topic had reached (what the reader must
-        have received before the link may close)."""
-        reached = 0
+        have received before the link may close) and the incarnation of the sender
+        that reached it (None if the link was not published here)."""
+        reached, incarnation = 0, None
         for topic, readers in list(self._readers.items()):
             if key not in readers:
                 continue
@@ -77,7 +78,8 @@ class Publications:
                 del self._readers[topic]
                 self._ports.pop(topic).disconnect(_sink(topic))
             reached = self.replicator.sequence(topic)
-        return reached
+            incarnation = self.replicator.incarnation
+        return reached, incarnation
 
     def unacknowledged(self, key: str) -> int:
         """Values of the output the link ``key`` reads that some follower has not

@@ -209,7 +209,7 @@ class Manager {
 
   onEvent(event) {
     this.events.add(event);
-    if (event.kind.startsWith("module_")) this.schematic.flash(event.subject);
+    if (event.kind.startsWith("module_") || event.kind === "migration_failed") this.schematic.flash(event.subject);
     if (event.kind === "module_swapped" && event.subject === this.selected) this.select(this.selected);
   }
 

@@ -1,5 +1,5 @@
-// The event list: moves, swaps, restarts, failures, lost nodes, adds and removes, as
-// they happen (also those an agent makes), newest first.
+// The event list: moves (and moves that failed), swaps, restarts, failures, lost nodes,
+// adds and removes, as they happen (also those an agent makes), newest first.
 
 import {h} from "./dom.js";
 import * as fmt from "./format.js";
@@ -8,6 +8,7 @@ const KEEP = 200;
 
 const LOOK = {
   module_moved: ["move", "moved"],
+  migration_failed: ["failure", "move failed"],
   module_swapped: ["swap", "swapped"],
   module_restarted: ["restart", "restarted"],
   module_failed: ["failure", "failed"],
@@ -26,6 +27,8 @@ function describe(event) {
   switch (event.kind) {
     case "module_moved":
       return `${d.source} → ${d.destination}, paused ${fmt.seconds(d.pause_s)}`;
+    case "migration_failed":
+      return `${d.source} → ${d.destination}: ${d.error}`;
     case "module_swapped":
       return `now ${fmt.shortClass(d.cls)}${d.kept?.length ? `, kept ${d.kept.join(", ")}` : ""}`;
     case "module_failed_over":
