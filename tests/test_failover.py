@@ -39,6 +39,7 @@ from pb3a.cli.status import format_nodes, format_table
 from pb3a.daemons.node_controller import Limits, NodeController
 from pb3a.transport.auth import ClusterKey, Rejected
 from pb3a.transport.control import ControlClient
+from pb3a.transport.replication import ACK_EVERY
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -145,6 +146,35 @@ def _relayed_over_c(name: str, b: str, c: str) -> System:
     system.link("src.out", "relay.x")
     system.link("relay.out", "near.x")
     return system
+
+
+def test_a_reader_node_lost_after_another_counts_only_what_it_did_not_acknowledge(
+        daemons) -> None:
+    """Readers of one output on nodes b and c; b lost; 1000 more values, which c
+    acknowledges; c lost: its link said 1000 values lost (b's acknowledgement, left at the
+    writer while c still read, was the least advanced, and counted for c)."""
+    b, c = daemons["b"], daemons["c"]
+    system = System("stale-ack").node("a").node("b", address=b.address)
+    system.node("c", address=c.address)
+    system.add("src", Counter, node="a", period=0.001, state={"limit": 100})
+    system.add("on_b", Collector, node="b", restart="never")
+    system.add("on_c", Collector, node="c", restart="fresh", fallback=["a"])
+    system.link("src.out", "on_b.x")
+    system.link("src.out", "on_c.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("on_b")["received"] == run.state("on_c")["received"]
+                   == 100, timeout=30, what="the first 100 values on b and c")
+        os.kill(b.executor_pid(), signal.SIGKILL)
+        eventually(lambda: _events(run, "module_lost"), timeout=20, what="b's reader lost")
+        run.set_state("src", limit=1100)
+        eventually(lambda: run.state("on_c")["received"] == 1100, timeout=20,
+                   what="1000 more values on c")
+        os.kill(c.executor_pid(), signal.SIGKILL)
+        eventually(lambda: _events(run, "module_failed_over"), timeout=20,
+                   what="c's reader failed over")
+        lost = run.stats().links["src.out->on_c.x"].link_failures
+    # c acknowledges at least every ACK_EVERY values: it confirmed all but its last few
+    assert lost < ACK_EVERY, f"{lost} values counted lost for c"
 
 
 def test_a_fenced_executors_word_is_refused_and_placement_follows_admission() -> None:

@@ -135,7 +135,7 @@ class NodeShare:
                                  "name")
         self._bound.set()                   # (a slow bind, a large code install: not stopped)
         self.executor.configure(checkpoint_s=checkpoint_s, log_level=log_level, code=code,
-                                epoch=epoch, spares=spares)
+                                epoch=epoch, spares=spares, node_epoch=node_epoch)
         if self.server is not None:
             self.server.advance_epoch(epoch)
         code.install(self.key)

@@ -46,6 +46,7 @@ from pb3a.node.ring_sizes import ring_size
 from pb3a.node.workers import REQUEST_TIMEOUT
 from pb3a.stats import FailureLog, LinkStats, ModuleStats, NodeReport, NodeStats, SystemStats
 from pb3a.transport.addresses import host_of
+from pb3a.transport.replication import follower_id
 
 if TYPE_CHECKING:
     from collections.abc import Iterable, Iterator
@@ -509,9 +510,10 @@ class Launcher:
                 link for link in touched.values() if link.src == env])
         # what a surviving writer writes while its link is unwired is lost: counted
         written = self._written([link for link in touched.values() if link.src not in gone])
+        reader = follower_id(node, self.remotes[node].node_epoch)   # (the lost admission's)
         for link in touched.values():
             with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
-                self._drop_half(link, gone)
+                self._drop_half(link, gone, reader)
         moved, refused = self._fail_over(node, gone)
         lost = [self.specs.pop(name) for name in gone if name not in moved]
         for key, link in touched.items():
@@ -663,15 +665,16 @@ class Launcher:
             counts[link.key] = 0 if entry is None else entry.outputs.get(link.src_port, 0)
         return counts
 
-    def _drop_half(self, link: FlatLink, gone: list[str]) -> None:
+    def _drop_half(self, link: FlatLink, gone: list[str], reader: bytes) -> None:
         """Unwire the surviving half of a link whose other end was on a lost node; what
-        its reader knows it never got is counted on the link."""
+        its reader knows it never got, or what the lost node's follower (``reader``)
+        never acknowledged to its writer, is counted on the link."""
         if link.src in gone and link.dst not in gone:
             self.lost_values[link.key] += self.node_of(link.dst).close_inbound(
                 [(link, (0, None))])[0]
         elif link.dst in gone and link.src not in gone:
             writer = self.node_of(link.src)
-            self.lost_values[link.key] += writer.unacknowledged(link)
+            self.lost_values[link.key] += writer.unacknowledged(link, reader)
             writer.unpublish([link])
 
     def _rejoin(self, name: str) -> None:

@@ -58,14 +58,16 @@ class _Feed:
 class Bridge:
     """Follows remote outputs and fans their values out into local rings."""
 
-    def __init__(self, key: ClusterKey, epoch: int = 0) -> None:
+    def __init__(self, key: ClusterKey, epoch: int = 0, identity: bytes | None = None) -> None:
+        """``identity``: the follower's id at the writers (``follower_id`` of the node)."""
         self.key = key
         self._lock = threading.Lock()
         self._rings: dict[str, dict[str, _Feed]] = {}       # topic -> link key -> its ring
         self._topics: dict[str, str] = {}                   # link key -> topic
         self._senders: dict[str, bytes] = {}                # topic -> incarnation followed
         self._retrying = False                              # a retry is due on the loop
-        self._follower = Follower(key, self._deliver, land=self._land, epoch=epoch)
+        self._follower = Follower(key, self._deliver, land=self._land, epoch=epoch,
+                                  identity=identity)
 
     def open(self, link: str, topic: str, ring: str, bell: int) -> None:
         """Write ``topic``'s values into ``ring`` (the link's, read by a local worker

@@ -40,6 +40,7 @@ from pb3a.node.workers import REQUEST_TIMEOUT, WorkerHandle, WorkerPool, WorkerS
 from pb3a.stats import FailureLog, InputStats, ModuleStats, NodeReport, WaitStats
 from pb3a.transport import pickling
 from pb3a.transport.auth import ClusterKey
+from pb3a.transport.replication import follower_id
 from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import RING, memory_domain, reap_orphans, segment_name, unlink_name
 from pb3a.transport.snapshot import Snapshot, make_room
@@ -105,6 +106,7 @@ class Executor:
                  spares: int = DEFAULT_SPARES) -> None:
         self.node = node
         self.epoch = epoch                  # the system's: older replication is refused
+        self.node_epoch = 1                 # this admission of the node (a remote one's)
         self.packing = workers              # packed worker processes (0: one per module)
         self.quota = 0                      # modules per packed worker at start
         self.host = host                    # where remote readers reach this node's outputs
@@ -151,13 +153,13 @@ class Executor:
             self.workers.warm()
 
     def configure(self, *, checkpoint_s: float, log_level: int, code: CodeSources,
-                  epoch: int, spares: int = DEFAULT_SPARES) -> None:
+                  epoch: int, spares: int = DEFAULT_SPARES, node_epoch: int = 1) -> None:
         """Settings a node executor process learns from its launcher (before any module)."""
         settings = self.workers.settings
         settings.checkpoint_s, settings.log_level = checkpoint_s, log_level
         settings.spares = spares
         settings.code = code
-        self.epoch = epoch
+        self.epoch, self.node_epoch = epoch, node_epoch
         # a node of its own has remote links: its spare workers open their replicators
         # as they boot, not in the preparation of a move to here
         self.workers.spare_requests = [("ready_to_publish", self._publishing())]
@@ -172,7 +174,8 @@ class Executor:
     def bridge(self) -> Bridge:
         """The receiving end of remote links (made on first use)."""
         if self._bridge is None:
-            self._bridge = Bridge(self.key, self.epoch)
+            self._bridge = Bridge(self.key, self.epoch,
+                                  follower_id(self.node, self.node_epoch))
         return self._bridge
 
     @property
@@ -648,12 +651,13 @@ class Executor:
                                       for link in links])
         return [(0, None) if answer is None else (answer[0], answer[1]) for answer in answers]
 
-    def unacknowledged(self, link: FlatLink) -> int:
-        """How many values of ``link``'s output a follower has not acknowledged."""
+    def unacknowledged(self, link: FlatLink, reader: bytes) -> int:
+        """How many values of ``link``'s output the follower ``reader`` of a lost node has
+        not acknowledged; the writer forgets it (``Replicator.forget``)."""
         src = self.modules.get(link.src)
         if link.key not in self.outbound or src is None or not self._alive(src.worker):
             return 0
-        return self.call(src.worker, "unacknowledged_out", key=link.key)
+        return self.call(src.worker, "unacknowledged_out", key=link.key, reader=reader)
 
     def open_inbound(self, links: list[tuple[FlatLink, RingSize | None]]) -> None:
         """The reading halves: each link's ring (of ``size``; None: the link's ring

@@ -113,9 +113,10 @@ class Node(Protocol):
         """Stop publishing for each link; the sequence number its sender reached, and
         that sender's incarnation."""
 
-    def unacknowledged(self, link: FlatLink) -> int:
-        """How many values of ``link``'s output a follower has not acknowledged (when
-        the reader's node is lost: what it never confirmed)."""
+    def unacknowledged(self, link: FlatLink, reader: bytes) -> int:
+        """How many values of ``link``'s output the follower ``reader`` (``follower_id``
+        of the reader's node, lost) has not acknowledged: what it never confirmed. The
+        writer forgets that follower: it holds nothing back from then on."""
 
     def open_inbound(self, links: list[tuple[FlatLink, RingSize | None]]) -> None:
         """The reading half: a ring of the size given (None: the one kept) into each

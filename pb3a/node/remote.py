@@ -241,8 +241,8 @@ class RemoteNode:
     def unpublish(self, links: list[FlatLink]) -> list[Reached]:
         return [(reached, sender) for reached, sender in self._forward("unpublish", links)]
 
-    def unacknowledged(self, link: FlatLink) -> int:
-        return self._forward("unacknowledged", link)
+    def unacknowledged(self, link: FlatLink, reader: bytes) -> int:
+        return self._forward("unacknowledged", link, reader)
 
     def open_inbound(self, links: list[tuple[FlatLink, RingSize | None]]) -> None:
         self._forward("open_inbound", links)

@@ -38,6 +38,15 @@ values in sequence order, exactly once:
   when the link to it is cut (``release``).
 - Fencing. A follower accepts one incarnation per topic. Values from any other (a
   sender that was migrated away, or a stale restart) are counted and dropped.
+- Followers of lost nodes. A node's follower has one id at every replicator
+  (``follower_id``: the node and its admission, its node epoch), by which acknowledgements
+  and lossless holds are kept. When a reader's node is lost, the launcher asks the
+  writer what that node's follower never acknowledged (``forget``): only its own
+  acknowledgement counts (the least advanced follower's, a node lost earlier's left
+  behind, said 1000 values lost of a node that had acknowledged them all). The follower
+  is forgotten then: it holds nothing back, and what it says later (its node cut off,
+  not dead) is refused, counted (``rejected["lost follower"]``). A node that rejoins
+  has another id.
 - Destinations. HELLO, REPAIR and ACK name the replicator they are for, by its
   incarnation (as control requests name their server's instance), so a copy captured
   on the wire and sent to another replicator within the freshness window is refused
@@ -65,6 +74,7 @@ and the link from 0.65x to 0.80x raw pyzmq (``bench/local_link.py --remote``).
 from __future__ import annotations
 
 import collections
+import hashlib
 import logging
 import math
 import pickle
@@ -132,6 +142,14 @@ ZERO_COPY_MIN = 64 * 1024               # frames at least this large are sent wi
 _SCALARS = frozenset({int, float, bool, complex, type(None)})   # immutable: kept as they are
 SCALAR_BYTES = 9                        # what a scalar counts for in a batch's bytes
 _TEXT = frozenset({str, bytes})         # immutable too, when small
+
+
+def follower_id(node: str, node_epoch: int) -> bytes:
+    """The id a node's follower has at every replicator (see "Followers of lost nodes"):
+    one per admission of the node (``node_epoch``), so the launcher can name it, and an
+    executor of an earlier admission is not taken for the node's current one."""
+    digest = hashlib.blake2b(f"{node}\0{node_epoch}".encode(), digest_size=15).digest()
+    return b"f" + digest                 # (a routing id must not begin with a zero byte)
 
 
 def _name(topic: str) -> bytes:
@@ -256,6 +274,9 @@ class _Stream:
     credit: float = 0                   # ... while they take fewer bytes than this
     acks: dict[bytes, tuple[int, float]] = field(default_factory=dict)  # peer -> (seq, when)
     holds: dict[bytes, int] = field(default_factory=dict)   # lossless followers: peer -> seq
+    gone: dict[bytes, int] = field(default_factory=dict)    # lost nodes' followers: peer -> the
+                                                            # seq they had acknowledged (kept:
+                                                            # a rejoined node has another id)
     room: RingSize | None = None        # the readers' rings: what a value must fit
     waits: int = 0                      # values whose publish waited (or waits) for followers
     wait_s: float = 0.0                 # ... and the seconds those that ended waited
@@ -392,14 +413,22 @@ class Replicator:
         with self._lock:
             return self._topics[topic].next_seq
 
-    def unacknowledged(self, topic: str) -> int:
-        """How many values of ``topic`` its least advanced follower, live or silent, has
-        not acknowledged (a follower on a lost node: what it never confirmed)."""
+    def forget(self, topic: str, follower: bytes) -> int:
+        """The follower ``follower`` (``follower_id``) of ``topic`` went with its lost node:
+        how many values it never acknowledged (0 if it never said anything here). It is
+        forgotten: it holds nothing back, and what it says from now on is ignored; asked
+        again (another link of that node reading ``topic``), counted from the same
+        acknowledgement."""
         with self._lock:
-            stream = self._streams.get(_name(topic))
-            if stream is None or not stream.acks:
+            stream = self._topics.get(topic)
+            if stream is None:
                 return 0
-            return max(0, stream.next_seq - min(seq for seq, _ in stream.acks.values()))
+            if follower not in stream.gone:
+                acked = stream.acks.pop(follower, None)
+                stream.holds.pop(follower, None)
+                stream.gone[follower] = stream.next_seq if acked is None else acked[0]
+                self._acked.notify_all()         # (a write it held back goes on)
+            return max(0, stream.next_seq - stream.gone[follower])
 
     def counter(self, topic: str) -> Any:
         """What counts the publishes of ``topic`` that waited (``waits``, ``wait_s``)."""
@@ -410,8 +439,8 @@ class Replicator:
         """Stop waiting for the lossless followers of ``topic`` that have been silent
         for ``silent_for`` seconds or more, a link to them being cut; with 0 (its last
         reader gone), forget every follower, also what they did not acknowledge. (A
-        silent follower's acknowledgement is kept otherwise: another link of the same
-        lost node counts its losses by it.)"""
+        silent follower's acknowledgement is kept otherwise: it may be a live one's, late;
+        a lost node's is dropped by ``forget``.)"""
         with self._lock:
             stream = self._topics.get(topic)
             if stream is None:
@@ -653,6 +682,8 @@ class Replicator:
                                       [name, _ANSWER.pack(self.incarnation, stream.next_seq, 0)])
                 return
             peer_id = bytes(peer)
+            if peer_id in stream.gone:           # its node was lost: see ``forget``
+                raise Rejected("lost follower")
             if message.kind == ACK:
                 if first < 0:                    # unfollowed: it holds nothing back now
                     stream.acks.pop(peer_id, None)
@@ -741,14 +772,18 @@ class Follower:
     return how many of the topic's newest values it holds back, not put through yet (a
     full lossless receiver), and report later with ``release``; acknowledgements cover
     only what it put through.
+    ``identity``: its id at the replicators (``follower_id`` of its node; None: one
+    drawn at random, for a follower no launcher needs to name).
     Counters: ``link_failures`` (values lost for good, per topic), ``fenced`` (values
     from a sender that is not the accepted one), ``duplicates`` (dropped)."""
 
     def __init__(self, key: ClusterKey, deliver: Callable[[str, list[Any], float], None], *,
                  land: Callable[[str, bytes, int], Landed | None] | None = None,
-                 epoch: int = 0, max_bytes: int = MAX_MESSAGE) -> None:
+                 epoch: int = 0, max_bytes: int = MAX_MESSAGE,
+                 identity: bytes | None = None) -> None:
         keep_freed_buffers()                     # (ZeroMQ's receive buffers: see heap)
         self._key = key
+        self._identity = identity or b"f" + secrets.token_bytes(15)
         self._deliver = deliver
         self._land = land
         self._payloads = Payloads(key)
@@ -844,10 +879,11 @@ class Follower:
         dealer = self._controls.get(control)
         if dealer is None:
             dealer = _secure(self._context.socket(zmq.DEALER), self._max_bytes)
-            # One id for good: the replicator keys acknowledgements and lossless holds
-            # by it. Drawn by ZeroMQ at each reconnection, it left the old hold behind,
-            # never released, until it stopped the writer for good.
-            dealer.setsockopt(zmq.ROUTING_ID, b"f" + secrets.token_bytes(15))
+            # One id for good (its node's: see ``follower_id``): the replicator keys
+            # acknowledgements and lossless holds by it. Drawn by ZeroMQ at each
+            # reconnection, it left the old hold behind, never released, until it
+            # stopped the writer for good.
+            dealer.setsockopt(zmq.ROUTING_ID, self._identity)
             dealer.connect(control)
             self._controls[control] = dealer
             self._loop.register(dealer, self._on_control)

@@ -611,8 +611,8 @@ class Worker:
     def op_unpublish_out(self, key: str) -> tuple[int, bytes | None]:
         return self.publications.remove(key)
 
-    def op_unacknowledged_out(self, key: str) -> int:
-        return self.publications.unacknowledged(key)
+    def op_unacknowledged_out(self, key: str, reader: bytes) -> int:
+        return self.publications.unacknowledged(key, reader)
 
     def op_forget(self, module: str) -> list[str]:
         """Drop cached copies of ``module``: the next load or swap gets the new code."""

@@ -81,12 +81,12 @@ class Publications:
             incarnation = self.replicator.incarnation
         return reached, incarnation
 
-    def unacknowledged(self, key: str) -> int:
-        """Values of the output the link ``key`` reads that some follower has not
-        acknowledged."""
+    def unacknowledged(self, key: str, reader: bytes) -> int:
+        """Values of the output the link ``key`` reads that the follower ``reader`` of a
+        lost node has not acknowledged; it is forgotten (``Replicator.forget``)."""
         for topic, readers in self._readers.items():
             if key in readers and self.replicator is not None:
-                return self.replicator.unacknowledged(topic)
+                return self.replicator.forget(topic, reader)
         return 0
 
     def close(self) -> None:
