@@ -22,7 +22,15 @@ exactly as fast as the controller decides. A controller that waits for a first r
 gets one every ``period`` until commands come. ``clock`` carries the world's time of
 each reading, for controllers that must keep time by the world rather than the wall
 clock, and ``applied`` the command that moved the robot up to those readings, for
-monitors that compare commanded with measured motion. A step's outputs are written
+monitors that compare commanded with measured motion: over the robot's time since the
+last reading, the mean of the commands it ran on, each from when it took it (the
+robot server's answer to ``drive`` says when, in the world's time; a server that does
+not say is taken to have taken it as long after the last reading as the driver's own
+clock says). A command that came late in the interval drove only the end of it: named
+as the interval's command, it is the step response of a robot told to turn that
+turned the other way most of the interval (a monitor read 0.5 rad/s of a standby
+robot's turn, the one its control system gave it on arrival, as its motors failing).
+A step's outputs are written
 ``applied``, ``gps``, ``sonar``, ``odometry``, ``clock``: the pose before the
 reading taken there, and the clock last. A command is sent to the robot
 as it comes, not at the driver's next period.
@@ -69,6 +77,10 @@ class RobotDriver(Driver):
         self._read_at = 0.0      # (monotonic) when readings were last written
         self._in_force = np.zeros(2)     # the command the robot runs on now
         self._unsent: np.ndarray | None = None   # a command the robot has not taken yet
+        self._since: float | None = None         # the world's time of the last reading
+        # the commands the robot ran on since then: (world time it took each, command),
+        # the first the one in force at the last reading
+        self._drove: list[tuple[float, np.ndarray]] = []
 
     def set_state(self, state: dict[str, Any]) -> None:
         """Set state; a running driver re-pointed at another robot reads it at once,
@@ -80,6 +92,7 @@ class RobotDriver(Driver):
         if repointed and "silent" not in state:
             self.silent = 0          # the old robot's silence: the new one is judged anew
         if repointed and "_read_at" in vars(self):
+            self._since, self._drove = None, []  # (another robot, maybe another clock)
             # the new robot has not taken the command in force yet
             held = self.command.read() if self.command.has_value else None
             self._unsent = None if held is None else self._checked(held)
@@ -128,16 +141,35 @@ class RobotDriver(Driver):
     def _apply(self, command: np.ndarray | None) -> None:
         """Drive by ``command`` (none: the last one holds), or stop a disabled robot."""
         if not self.enabled:
-            self.request("stop")
-            self._taken(np.zeros(2))
+            self._taken(np.zeros(2), self.request("stop"))
         elif command is not None:
-            self.request("drive", v=float(command[0]), w=float(command[1]))
-            self._taken(command)
+            self._taken(command, self.request("drive", v=float(command[0]),
+                                              w=float(command[1])))
 
-    def _taken(self, command: np.ndarray) -> None:
-        """The robot runs on ``command`` now, nothing is left to send."""
+    def _taken(self, command: np.ndarray, answer: Any = None) -> None:
+        """The robot runs on ``command`` now (since the world's time the robot server's
+        ``answer`` gives, if it gives one), nothing is left to send."""
         self._in_force = np.array(command, dtype=np.float64)
         self._unsent = None
+        if self._since is None:
+            return                   # no reading yet: no interval to account for
+        at = answer.get("time") if isinstance(answer, dict) else None
+        if not isinstance(at, int | float) or not np.isfinite(at):
+            at = self._since + (time.monotonic() - self._read_at)
+        self._drove.append((float(at), self._in_force))
+
+    def _applied(self, now: float, before: np.ndarray) -> np.ndarray:
+        """What drove the robot from the last reading to one at the world's time ``now``:
+        the commands it ran on, each weighted by how long; ``before`` (the command in
+        force when this reading was asked for) when no time has passed, or at the first
+        reading."""
+        since, drove = self._since, self._drove
+        self._since, self._drove = now, [(now, self._in_force)]
+        if since is None or not now > since or not drove:
+            return before
+        starts = np.clip([at for at, _ in drove], since, now)
+        lasted = np.diff(np.maximum.accumulate([*starts, now]))   # (times in order)
+        return np.array(lasted @ np.array([command for _, command in drove])) / (now - since)
 
     def _cycle(self, command: np.ndarray | None, advance: float) -> dict[str, Any]:
         """Drive by ``command``, advance a lock-step world and read the robot, in one
@@ -157,6 +189,7 @@ class RobotDriver(Driver):
             if advance:
                 answer = self._cycle(command, advance)
                 before = self._in_force          # (the world moved under the new one)
+                self._since = None               # (it did, all the step long)
             else:
                 self._apply(command)
                 answer = self.request("sensors")
@@ -170,10 +203,11 @@ class RobotDriver(Driver):
         sensed = {key: np.asarray(answer[key], dtype=np.float64)
                   for key in ("sonar", "odometry", "gps")}
         self._read_at = time.monotonic()
+        applied = self._applied(float(answer["time"]), before)
         # In this order: a consumer that takes the pose at each reading (a mapper) has
         # the reading's own pose by then, and one that waits for a whole step's readings
         # (a monitor, a learner) waits for ``clock``, written last.
-        self.applied.write(before)
+        self.applied.write(applied)
         self.gps.write(sensed["gps"])
         self.sonar.write(sensed["sonar"])
         self.odometry.write(sensed["odometry"])

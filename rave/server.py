@@ -199,11 +199,15 @@ def _apply(robot: Any, op: str, args: dict[str, Any], now: float) -> Any:
     if op == "camera":
         return [vars(blob) for blob in robot.camera(args.get("hue"),
                                                      args.get("tolerance", 15.0))]
-    if op == "drive":
-        robot.drive(float(args["v"]), float(args["w"]))
-    elif op == "stop":
-        robot.stop()
-    elif op == "inject":
+    if op in ("drive", "stop"):
+        if op == "drive":
+            robot.drive(float(args["v"]), float(args["w"]))
+        else:
+            robot.stop()
+        # the world's time from which the robot runs on it: a driver tells by it what
+        # drove the robot between two readings (``RobotDriver``'s ``applied``)
+        return {"time": now}
+    if op == "inject":
         robot.inject(args["fault"], **args.get("params", {}))
     elif op == "clear":
         robot.clear(args.get("fault"))

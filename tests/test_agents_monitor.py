@@ -26,8 +26,12 @@ from agents.monitor import (
     record_normal_running,
     samples,
 )
+from agents.robot_driver import RobotDriver
 from pb3a.testing import ModuleHarness
+from pb3a.transport.auth import ClusterKey
+from pb3a.transport.control import ControlClient
 from rave import World
+from rave.server import RobotServers, WorldServer
 
 LAB = "rave/worlds/lab.toml"
 ROBOT = "r1"                     # the lab's hardware robot
@@ -137,6 +141,100 @@ def test_late_samples_are_measured_over_the_robots_time_not_read_as_a_fault(
                 world.step(0.2 if late.random() < 0.1 else SAMPLE_S)
     assert raised[True] == []
     assert raised[False]                 # (measured: 2 false motor alarms in 1200 samples)
+
+
+def test_a_command_that_came_late_in_a_long_step_is_not_read_as_a_motor_fault(
+        model: NormalModel) -> None:
+    """The mapping scenario's hand-off on a loaded machine: the standby robot turns left
+    on the command its control system brought along, the world then runs 0.4 s on it
+    between two readings (its stepper catching up), and the command for the standby
+    (turn right, hard) comes 0.05 s before the next reading. Named as that step's whole
+    command, the robot seemed to turn left when told to turn right, for half a second:
+    a false motors alarm (w residual 0.5 rad/s) and the standby stopped. A served world
+    in lock-step, moved on by the test; a real robot server and ``RobotDriver``."""
+    world = World.load(LAB, seed=2)
+    server = WorldServer(world, lockstep=True)
+    robots = RobotServers(server.address, [ROBOT])
+    clock = ControlClient(ClusterKey.load(), server.address)
+    driver = ModuleHarness(RobotDriver, state={"resource": robots.addresses[ROBOT]})
+    monitors = {"driver's": FaultMonitor(model), "by arrival": FaultMonitor(model)}
+    raised: dict[str, list[dict[str, Any]]] = {name: [] for name in monitors}
+    stale, meant = np.array([0.0, 0.5]), np.array([0.0, -1.0])
+
+    def read(by_arrival: np.ndarray | None = None) -> None:
+        driver.step()
+        sample = [driver.last(port) for port in ("applied", "odometry", "sonar", "gps")]
+        for name, monitor in monitors.items():
+            command = by_arrival if name == "by arrival" and by_arrival is not None \
+                else sample[0]
+            raised[name] += monitor.update(command, *sample[1:], driver.last("clock"))
+
+    def advance(seconds: float) -> None:
+        clock.call("advance", robot=ROBOT, dt=seconds)
+
+    try:
+        for _ in range(10):                        # standing by
+            read()
+            advance(SAMPLE_S)
+        driver.feed("command", stale)              # the command the control system brought
+        for _ in range(4):
+            advance(SAMPLE_S)
+            read()
+        turned = driver.last("odometry")[2]
+        advance(0.4)                               # the world catches up on it ...
+        driver.feed("command", meant)              # ... and the standby's own comes late
+        advance(0.05)
+        read(by_arrival=meant)
+        assert driver.last("odometry")[2] > turned + 0.05     # it turned left all the same
+        late = driver.last("applied")
+        for _ in range(20):
+            advance(SAMPLE_S)
+            read()
+        assert driver.last("odometry")[2] < turned             # and then right, as told
+    finally:
+        driver.close()
+        clock.close()
+        robots.close()
+        server.close()
+    assert raised["driver's"] == []
+    assert late == pytest.approx((stale * 0.4 + meant * 0.05) / 0.45)   # what drove it
+    # the same readings, the late command named as the step's: the false alarm
+    assert [failure["fault"] for failure in raised["by arrival"]] == ["motors"]
+    assert raised["by arrival"][0]["detail"]["w_residual"] > 0.3
+
+
+def test_a_monitor_started_on_a_robot_speeding_up_takes_up_its_speed_not_its_mean(
+        model: NormalModel) -> None:
+    """The hand-off again: the standby robot takes the command its control system
+    brought (turn left) at its first reading, and the monitor, started afresh on it,
+    took its mean turn over the next step (half what it turned at by the end) for its
+    speed; told to turn right hard 0.02 s later, robot and model each turned at the
+    acceleration limit, the gap kept all the way: 0.17 rad/s of w residual for half a
+    second, a false motors alarm (mapping run, room 3, two CPU-burning loops)."""
+    raised = []
+    with World.load(LAB, seed=2) as world:
+        body, monitor = world.robot(ROBOT), FaultMonitor(model)
+
+        def read(command: np.ndarray) -> None:
+            raised.extend(monitor.update(command, np.array(body.odometry()),
+                                         np.asarray(body.sonar(), dtype=np.float64),
+                                         np.array(body.gps()), world.time))
+
+        world.step(1.0)                       # standing by
+        read(np.zeros(2))                     # the first reading on it ...
+        body.drive(0.0, 1.0)                  # ... and the command brought along
+        world.step(0.15)
+        read(np.array([0.0, 1.0]))
+        turned = body.odometry()[2]
+        world.step(0.02)
+        body.drive(0.0, -1.0)                 # its own
+        world.step(0.09)
+        read(np.array([0.0, (1.0 * 0.02 - 1.0 * 0.09) / 0.11]))   # (what a driver names)
+        for _ in range(20):
+            world.step(SAMPLE_S)
+            read(np.array([0.0, -1.0]))
+        assert body.odometry()[2] < turned - 0.5               # it turned right, as told
+    assert raised == []
 
 
 def feed(harness: ModuleHarness, sample: tuple[np.ndarray, ...]) -> None:
