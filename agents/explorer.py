@@ -769,6 +769,17 @@ class Explorer(Module):
                                            # setup)
 
     def setup(self) -> None:
+        self._make()
+        # Set up with a pose already in (moved with its ports, maybe to another robot:
+        # the remedy's hand-over), it stands until the robot reports again: that pose
+        # may be the one the robot it drove before last had, and a step on it sent the
+        # standby robot the failed one's command.
+        self._stale_pose = self.pose.has_value
+        if self._stale_pose:
+            self.pose.read()
+
+    def _make(self) -> None:
+        """The planner, made from the state (its memory restored)."""
         grid = _checked(self.get_state())
         if self.trail.shape != grid.shape:       # a fresh explorer
             self.trail = np.zeros(grid.shape, dtype=bool)
@@ -788,12 +799,17 @@ class Explorer(Module):
         _checked({**self.get_state(), **state})
         super().set_state(state)
         if "_explorer" in vars(self):            # running: made again from the state
-            self.setup()
+            self._make()
 
     def step(self) -> None:
         if not (self.map.has_value and self.pose.has_value):
             self.command.write(np.zeros(2))      # nothing to go by yet: stand
             return
+        if self._stale_pose:                     # (see setup)
+            if not self.pose.pending:
+                self.command.write(np.zeros(2))
+                return
+            self._stale_pose = False
         if not self.pose.pending and self._last is not None:
             # No report from the robot since the last step: its time has not moved on
             # as far as the explorer can tell (a step that runs early, a driver that

@@ -391,6 +391,26 @@ def test_without_a_map_or_a_pose_it_stands() -> None:
     assert explorer.last("command")[0] != 0.0 or explorer.last("command")[1] != 0.0
 
 
+def test_set_up_again_with_a_pose_in_it_stands_until_the_robot_reports_again() -> None:
+    """Moved with its ports (handed to the standby robot), the pose it holds may be the
+    failed robot's: it stepped on it and sent the standby that robot's command. It stands
+    until a new report comes, then goes by that."""
+    _, probabilities = _room()
+    probabilities[:, 45:59] = UNKNOWN
+    explorer = ModuleHarness(Explorer, state={"size": [6.0, 4.0]})
+    explorer.feed("map", probabilities)
+    explorer.feed("pose", np.array([1.0, 2.0, 0.0]))
+    explorer.step()
+    assert np.any(explorer.last("command") != 0.0)
+    explorer.feed("pose", np.array([1.2, 2.0, 0.0]))    # a report not yet stepped on
+    explorer.module.setup()                 # as after a move or a swap: ports kept
+    explorer.step(3)
+    assert explorer.last("command").tolist() == [0.0, 0.0]
+    explorer.feed("pose", np.array([1.0, 1.0, math.pi / 2]))
+    explorer.step()
+    assert np.any(explorer.last("command") != 0.0)
+
+
 def test_a_grid_setup_would_refuse_set_while_it_runs_is_refused_and_nothing_is_set() -> None:
     """A resolution of 0 set on a running explorer is refused as setup refuses it; before,
     it stayed in the state (the explorer going by its old grid, and refusing to start again
