@@ -122,7 +122,7 @@ class Feed:
                     busy_since = (busy_since or started) if busy else None
                     if self.session.running is not handle:  # stopped from here meanwhile
                         pass
-                    elif busy and started - (busy_since or started) < self.session.timeout:
+                    elif busy_since is not None and started - busy_since < self.session.timeout:
                         log.debug("manager: the stats wait for a change: %s", exc)
                     else:
                         failures += 1

@@ -140,11 +140,11 @@ class Executor:
         self.lock = lock or threading.RLock()
         self._stopping = threading.Event()
         self._closing = threading.Event()       # a shutdown or a fence has begun
-        # notified when a worker's death is seen and when a restart has ended, for
-        # requests that wait for the restart (``await_restart``)
-        self._restarts_settle = threading.Condition()
+        # notified as a module's life changes: its worker's death seen, its restart
+        # ended, a change letting go of it, the node stopping (``await_restart``,
+        # ``_await_let_go``)
+        self._lives = threading.Condition()
         self._reviving: set[str] = set()        # modules whose restart is under way
-        self._let_go = threading.Condition()    # notified as a change lets go of a module
         reap_orphans()
         self.workers = WorkerPool(
             WorkerSettings(cpus, checkpoint_s, log_level, code or CodeSources(), spares),
@@ -212,14 +212,14 @@ class Executor:
         that failed in the window is worth asking again), False at once otherwise."""
         deadline = time.monotonic() + timeout
         waited = False
-        with self._restarts_settle:
+        with self._lives:
             while self._between_lives(name):
                 waited = True
                 left = deadline - time.monotonic()
                 if left <= 0:
                     break
                 # (in slices: a module removed or moved meanwhile is not notified of)
-                self._restarts_settle.wait(min(left, 0.1))
+                self._lives.wait(min(left, 0.1))
         return waited
 
     def _between_lives(self, name: str) -> bool:
@@ -235,9 +235,9 @@ class Executor:
         return handle is not None and not (
             handle.serving and not handle.outbox.closed and handle.process.is_alive())
 
-    def _settled(self) -> None:
-        with self._restarts_settle:
-            self._restarts_settle.notify_all()
+    def _life_changed(self) -> None:
+        with self._lives:
+            self._lives.notify_all()
 
     def _restarting(self, record: ModuleRecord) -> bool:
         """Whether the module's worker is gone and its restart policy has yet to say what
@@ -397,10 +397,10 @@ class Executor:
 
     def _hold(self, record: ModuleRecord, held: bool) -> None:
         """Note whether a change holds ``record``'s module paused (see ``pause``)."""
-        with self._let_go:
+        with self._lives:
             record.held = held
             if not held:
-                self._let_go.notify_all()
+                self._lives.notify_all()
 
     def _await_let_go(self, handle: WorkerHandle, what: str) -> None:
         """Wait (without the node's lock) until no change holds a module of dead worker
@@ -413,8 +413,8 @@ class Executor:
         def held() -> list[str]:
             return [name for name in list(handle.modules)
                     if (record := self.modules.get(name)) is not None and record.held]
-        with self._let_go:
-            if not self._let_go.wait_for(lambda: not held() or self._stopping.is_set(),
+        with self._lives:
+            if not self._lives.wait_for(lambda: not held() or self._stopping.is_set(),
                                          LOCK_TIMEOUT):
                 log.warning("%s: %s held paused by a change for %g s; restarted all the "
                             "same", what, ", ".join(held()), LOCK_TIMEOUT)
@@ -649,7 +649,7 @@ class Executor:
             self.outbound.pop(link.key, None)
         answers = self._side_by_side([self._unlink_request(link, link.src, "unpublish_out")
                                       for link in links])
-        return [(0, None) if answer is None else (answer[0], answer[1]) for answer in answers]
+        return [answer or (0, None) for answer in answers]
 
     def unacknowledged(self, link: FlatLink, reader: bytes) -> int:
         """How many values of ``link``'s output the follower ``reader`` of a lost node has
@@ -827,7 +827,7 @@ class Executor:
         try:
             self._after_death(handle)
         finally:
-            self._settled()
+            self._life_changed()
 
     def _after_death(self, handle: WorkerHandle) -> None:
         code = handle.process.exitcode
@@ -900,7 +900,7 @@ class Executor:
                                reason=f"its restart could not take the node's lock: {exc}")
         finally:
             self._reviving -= reviving
-            self._settled()
+            self._life_changed()
 
     def held(self, what: str, timeout: float = LOCK_TIMEOUT) -> AbstractContextManager[Any]:
         """``self.lock``, held for ``what`` (which the launcher's lock names to a waiter);
@@ -1037,11 +1037,6 @@ class Executor:
         if self.on_event is not None:
             self.on_event(kind, name, **detail)
 
-    def _wake(self) -> None:
-        """Stopping: a restart waiting for a change to let go of its modules waits no more."""
-        with self._let_go:
-            self._let_go.notify_all()
-
     # -- shutdown ------------------------------------------------------------
     def fence(self) -> None:
         """Stop every module's stepping now, without the executor's lock (a request may
@@ -1049,7 +1044,7 @@ class Executor:
         to be restarted elsewhere. ``shutdown`` follows."""
         self._closing.set()
         self._stopping.set()
-        self._wake()
+        self._life_changed()     # (a restart waiting for a change to let go waits no more)
         self.workers.fence()
 
     def shutdown(self, timeout: float = 10.0) -> None:
@@ -1071,7 +1066,7 @@ class Executor:
                 except Exception as exc:
                     log.warning("stopping module %r: %s", name, exc)
             self._stopping.set()
-            self._wake()
+            self._life_changed()
             self.workers.close(max(0.1, deadline - time.monotonic()))
             if self._bridge is not None:
                 self._bridge.shutdown()

@@ -239,7 +239,7 @@ class RemoteNode:
         return self._forward("publish", links)
 
     def unpublish(self, links: list[FlatLink]) -> list[Reached]:
-        return [(reached, sender) for reached, sender in self._forward("unpublish", links)]
+        return self._forward("unpublish", links)
 
     def unacknowledged(self, link: FlatLink, reader: bytes) -> int:
         return self._forward("unacknowledged", link, reader)
