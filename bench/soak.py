@@ -37,7 +37,8 @@ from _common import machine, main_guard, steal_report, steal_seconds, wait_for
 from _modules import SequenceChecker, SequenceSource
 
 from pb3a import System
-from pb3a.cli.stress import Stress, StressOptions
+from pb3a.cli.stress import Stress
+from pb3a.cli.stress_options import StressOptions
 from pb3a.transport.shm import live_segments
 
 NODES = ("n1", "n2", "n3")

@@ -55,31 +55,6 @@ def _announce(banner: str) -> None:
         output_gone()
 
 
-def register(commands: argparse._SubParsersAction) -> None:
-    """Add ``modules serve`` and ``node start``."""
-    modules = commands.add_parser("modules", help="the module server")
-    modules_commands = modules.add_subparsers(title="commands", metavar="COMMAND",
-                                               required=True)
-    serve = modules_commands.add_parser("serve", help="serve the Python modules under DIR")
-    serve.add_argument("dir", metavar="DIR", help="the directory of module files")
-    serve.add_argument("--listen", default="tcp://127.0.0.1:7300", metavar="ADDR",
-                       help="address to listen on (default tcp://127.0.0.1:7300; port 0: any)")
-    serve.set_defaults(handler=modules_serve_command)
-
-    node = commands.add_parser("node", help="the node controller")
-    node_commands = node.add_subparsers(title="commands", metavar="COMMAND",
-                                         required=True)
-    start = node_commands.add_parser("start", help="run this machine's node controller")
-    start.add_argument("--name", required=True, help="the node's name in configurations")
-    start.add_argument("--listen", default="tcp://127.0.0.1:7100", metavar="ADDR",
-                       help="address to listen on (default tcp://127.0.0.1:7100; port 0: any)")
-    start.add_argument("--max-cpu", type=float, default=90.0, metavar="PERCENT",
-                       help="refuse work while the CPU is busier than this (default 90)")
-    start.add_argument("--min-memory", type=int, default=256, metavar="MIB",
-                       help="refuse work that would leave less memory available (default 256)")
-    start.set_defaults(handler=node_start_command)
-
-
 def modules_serve_command(args: argparse.Namespace) -> int:
     """``pb3a modules serve DIR --listen ADDR``: serve until SIGINT or SIGTERM."""
     from pb3a.daemons.module_server import ModuleServer

@@ -10,36 +10,11 @@ from pathlib import Path
 
 import zmq
 
-from pb3a.cli import arguments
 from pb3a.config.dot import plan_to_dot
 from pb3a.config.plan import Plan
 from pb3a.errors import ConfigError, PB3AError
 from pb3a.system import System
 from pb3a.transport.auth import ClusterKey, ClusterKeyError
-
-
-def register(commands: argparse._SubParsersAction) -> None:
-    """Add ``check``, ``graph`` and ``run`` to the command line."""
-    check = commands.add_parser("check", help="validate a configuration file; exit 1 on errors")
-    check.add_argument("file", metavar="FILE", help="a system description (.toml)")
-    check.set_defaults(handler=check_command)
-
-    graph = commands.add_parser("graph", help="draw a configuration: nodes, modules, ports, links")
-    graph.add_argument("file", metavar="FILE", help="a system description (.toml)")
-    graph.add_argument("-o", "--output", metavar="OUT",
-                       help="output file: .svg (default: FILE's name with .svg), .png, .pdf, "
-                            "or .dot for DOT only; '-' prints DOT")
-    graph.set_defaults(handler=graph_command)
-
-    run = commands.add_parser("run", help="launch a system and show its live status")
-    run.add_argument("file", metavar="FILE", help="a system description (.toml)")
-    run.add_argument("--for", dest="seconds", type=arguments.seconds, metavar="SECONDS",
-                     help="stop after this many seconds (default: until Ctrl-C)")
-    run.add_argument("--listen", metavar="ADDR",
-                     help="where the launcher takes `pb3a status ADDR` etc. and remote nodes "
-                          "call it back (default: any port on the interface that reaches "
-                          "the remote nodes; loopback without)")
-    run.set_defaults(handler=run_command)
 
 
 def check_command(args: argparse.Namespace) -> int:

@@ -10,16 +10,6 @@ from pathlib import Path
 from pb3a.transport.auth import KEY_FILE_ENV, ClusterKey
 
 
-def register(commands: argparse._SubParsersAction) -> None:
-    """Add ``key new``."""
-    key = commands.add_parser("key", help="the cluster key")
-    key_commands = key.add_subparsers(title="commands", metavar="COMMAND",
-                                       required=True)
-    new = key_commands.add_parser("new", help="write a new cluster key to PATH (mode 0600)")
-    new.add_argument("path", metavar="PATH", help="the key file to create (it must not exist)")
-    new.set_defaults(handler=key_new_command)
-
-
 def key_new_command(args: argparse.Namespace) -> int:
     """``pb3a key new PATH``: a new key file, never over an existing one."""
     path = Path(args.path).expanduser()

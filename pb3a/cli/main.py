@@ -13,15 +13,18 @@
     pb3a key new PATH             write a new cluster key file (mode 0600)
     pb3a manager [FILE | ADDR]    the ModuleManager web app (needs the 'ui' extra)
 
-Each module of this package registers its subcommands; each subcommand is a function
-taking the parsed arguments and returning the exit code. The command modules are
-imported inside ``main``, so that a Ctrl-C at any moment ends the command with exit
-status 130 and one line, not a traceback.
+``pb3a.cli.commands`` declares every subcommand's arguments and names the function
+that runs it (``"module:function"``: it takes the parsed arguments and returns the
+exit code); ``main`` imports that function only once the arguments have parsed, so
+``--help`` and a mistaken argument are answered without importing the runtime. The
+command's module is imported inside ``main``, so that a Ctrl-C at any moment ends the
+command with exit status 130 and one line, not a traceback.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from collections.abc import Callable, Sequence
 
@@ -33,16 +36,17 @@ INTERRUPTED = 130      # the shell's convention for a command ended by SIGINT
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line with ``argv`` (default: ``sys.argv[1:]``); returns the exit code."""
     try:
+        from pb3a.cli.commands import parser as command_line
         from pb3a.cli.log_output import show_logs
 
-        parser = _parser()
+        parser = command_line()
         args = parser.parse_args(argv)
         show_logs()
-        handler: Callable[[argparse.Namespace], int] | None = getattr(args, "handler", None)
+        handler: str | None = getattr(args, "handler", None)
         if handler is None:
             parser.print_help()
             return 2
-        return handler(args)
+        return handler_of(handler)(args)
     except KeyboardInterrupt:
         print("pb3a: interrupted", file=sys.stderr)
         return INTERRUPTED
@@ -51,12 +55,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return BROKEN_PIPE
 
 
-def _parser() -> argparse.ArgumentParser:
-    from pb3a.cli import daemons, files, keys, manager, running_system, scenarios, stress
-
-    parser = argparse.ArgumentParser(
-        prog="pb3a", description="Port-based modules that run, swap and move while they run.")
-    commands = parser.add_subparsers(title="commands", metavar="COMMAND")
-    for group in (files, running_system, stress, scenarios, daemons, keys, manager):
-        group.register(commands)
-    return parser
+def handler_of(name: str) -> Callable[[argparse.Namespace], int]:
+    """The function ``name`` (``"module:function"``) names, its module imported now."""
+    module, _, function = name.partition(":")
+    return getattr(importlib.import_module(module), function)

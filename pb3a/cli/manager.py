@@ -15,29 +15,7 @@ import socket
 import sys
 from pathlib import Path
 
-from pb3a.cli import arguments
-
 UI_PACKAGES = ("starlette", "uvicorn", "websockets", "tomlkit")
-DEFAULT_LISTEN = "127.0.0.1:0"
-
-
-def register(commands: argparse._SubParsersAction) -> None:
-    """Add ``manager``."""
-    manager = commands.add_parser(
-        "manager", help="the ModuleManager and State Editor: a web app to build, see and "
-                        "change a system live")
-    manager.add_argument("target", nargs="?", metavar="FILE | ADDR",
-                         help="a configuration (.toml) to edit and launch, or the address "
-                              "tcp://HOST:PORT of a running system's launcher (default: a "
-                              "new, empty document)")
-    manager.add_argument("--listen", default=DEFAULT_LISTEN, metavar="HOST:PORT",
-                         help=f"where the app listens (default {DEFAULT_LISTEN}: loopback, "
-                              "any free port)")
-    manager.add_argument("--refresh", type=arguments.seconds, default=0.5, metavar="S",
-                         help="seconds between live updates of the page (default 0.5)")
-    manager.add_argument("--timeout", type=arguments.seconds, default=10.0, metavar="S",
-                         help="seconds a call to the system may take (default 10)")
-    manager.set_defaults(handler=manager_command)
 
 
 def manager_command(args: argparse.Namespace) -> int:

@@ -16,7 +16,6 @@ from typing import Any
 
 import zmq
 
-from pb3a.cli.arguments import wait_seconds
 from pb3a.cli.status import format_nodes, format_table
 from pb3a.errors import PB3AError, SystemStopped
 from pb3a.events import Event
@@ -28,55 +27,10 @@ from pb3a.stats import plain
 from pb3a.transport.auth import ClusterKeyError
 
 
-def register(commands: argparse._SubParsersAction) -> None:
-    """Add one subcommand per operation on a running system."""
-    def command(name: str, helptext: str, run: Callable[[Connection, argparse.Namespace], Any],
-                *arguments: tuple[str, str]) -> argparse.ArgumentParser:
-        sub = commands.add_parser(name, help=f"{helptext}, through its launcher")
-        sub.add_argument("address", metavar="ADDR",
-                         help="the launcher's address, tcp://HOST:PORT (pb3a run prints it)")
-        for arg, text in arguments:
-            sub.add_argument(arg, metavar=arg.upper(), help=text)
-        sub.add_argument("--json", action="store_true", help="print JSON, for scripts")
-        sub.add_argument("--timeout", type=wait_seconds, default=None, metavar="SECONDS",
-                         help="how long the operation may wait (default: the system's)")
-        sub.set_defaults(handler=lambda args: _act(name, run, args))
-        return sub
-
-    command("status", "the live status table of a running system", _status)
-    command("state", "a module's live state", _state, ("module", "the module's name"))
-    set_ = command("set", "set state attributes of a running module", _set,
-                   ("module", "the module's name"))
-    set_.add_argument("values", nargs="+", metavar="NAME=VALUE",
-                      help="VALUE is read as JSON when it is (5, 2.5, true, [1, 2], "
-                           "\"text\"), else as text")
-    command("migrate", "move a module (or macro) to another node", _migrate,
-            ("module", "the module's (or macro's) name"), ("node", "the node to move it to"))
-    command("swap", "swap a module's class", _swap,
-            ("module", "the module's name"), ("cls", "the new class, module:Class"))
-    relink = command("relink", "feed an input from another output", _relink,
-                     ("src", "the output, module.port"), ("dst", "the input, module.port"))
-    relink.add_argument("--policy", help="the input's policy on the new link (latest, "
-                                         "queue:N ...)")
-    add = command("add", "start a new module", _add,
-                  ("module", "the new module's name"), ("cls", "its class, module:Class"))
-    add.add_argument("--node", help="where it runs (default: the first node)")
-    add.add_argument("--period", type=wait_seconds, metavar="SECONDS",
-                     help="its step period (0: as fast as it can)")
-    add.add_argument("--state", nargs="*", default=[], metavar="NAME=VALUE",
-                     help="its initial state, as for `pb3a set`")
-    command("remove", "stop and remove a module", _remove, ("module", "the module's name"))
-    command("restart", "start a module again (also a failed one) with its configured state",
-            _restart, ("module", "the module's name"))
-    command("nodes", "every node's health", _nodes)
-    logs = command("logs", "the system's log, from every node", _logs)
-    logs.add_argument("--module", help="only what is about this module")
-    logs.add_argument("--follow", action="store_true", help="keep printing new entries "
-                                                            "until Ctrl-C")
-    events = command("events", "what happened: moves, swaps, restarts, failures, lost nodes",
-                     _events)
-    events.add_argument("--follow", action="store_true", help="keep printing new events "
-                                                              "until Ctrl-C")
+def operation_command(args: argparse.Namespace) -> int:
+    """``pb3a OPERATION ADDR ...``: the operation ``args.operation`` names, on the system
+    whose launcher is at ADDR."""
+    return _act(args.operation, OPERATIONS[args.operation], args)
 
 
 def _act(name: str, run: Callable[[Connection, argparse.Namespace], Any],
@@ -227,6 +181,13 @@ def _events(system: Connection, args: argparse.Namespace) -> None:
 def _logs(system: Connection, args: argparse.Namespace) -> None:
     _follow(lambda seen, wait: system.logs(seen, module=args.module, timeout=wait),
             lambda entry: entry.line(), args)
+
+
+# what each command on a running system does, by its name on the command line
+OPERATIONS: dict[str, Callable[[Connection, argparse.Namespace], Any]] = {
+    "status": _status, "state": _state, "set": _set, "migrate": _migrate, "swap": _swap,
+    "relink": _relink, "add": _add, "remove": _remove, "restart": _restart,
+    "nodes": _nodes, "logs": _logs, "events": _events}
 
 
 def _follow(fetch: Callable[[int, float], list[Any]], line: Callable[[Any], str],

@@ -19,17 +19,6 @@ def scenarios() -> dict[str, EntryPoint]:
     return {point.name: point for point in entry_points(group=GROUP)}
 
 
-def register(commands: argparse._SubParsersAction) -> None:
-    """Add ``scenario NAME [ARGS]``."""
-    names = ", ".join(sorted(scenarios())) or "(none installed)"
-    scenario = commands.add_parser("scenario", help="run a bundled application",
-                                   description=f"Bundled applications: {names}")
-    scenario.add_argument("name", metavar="NAME", help=names)
-    scenario.add_argument("args", nargs=argparse.REMAINDER,
-                          help="the scenario's own options (NAME --help lists them)")
-    scenario.set_defaults(handler=scenario_command)
-
-
 def scenario_command(args: argparse.Namespace) -> int:
     """Hand over to the scenario's own ``main``."""
     found = scenarios()

@@ -26,14 +26,13 @@ import random
 import sys
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
 from pb3a import latencies
-from pb3a.cli.arguments import MOST_SECONDS, seconds
+from pb3a.cli.stress_options import StressOptions, Window
 from pb3a.config.plan import Plan
-from pb3a.cpu_load import CPULoad, parse_levels
+from pb3a.cpu_load import CPULoad
 from pb3a.errors import ModuleNotFound, PB3AError, RuntimeFailure, RuntimeTimeout
 from pb3a.launch.faults import Freeze, kill_worker
 from pb3a.launch.running import Running, launch
@@ -52,32 +51,6 @@ EVENTS_MARKED = ("module_restarted", "module_failed", "module_failed_over", "nod
                  "node_joined")
 
 
-@dataclass(frozen=True)
-class Window:
-    """From ``start`` seconds into the run, for ``seconds`` (None: to the end)."""
-
-    start: float = 0.0
-    seconds: float | None = None
-
-    def end(self, run_s: float) -> float:
-        return run_s if self.seconds is None else min(run_s, self.start + self.seconds)
-
-
-@dataclass(frozen=True)
-class StressOptions:
-    """What to do to the system, and how often to look."""
-
-    seconds: float
-    loads: list[tuple[dict[int, float], Window]] = field(default_factory=list)
-    kill_every: float | None = None
-    kill_among: frozenset[str] = frozenset()         # empty: every module of the system
-    migrate_every: float | None = None
-    migrate_among: frozenset[str] = frozenset()      # empty: every module of the system
-    cuts: list[tuple[str, Window]] = field(default_factory=list)
-    sample_s: float = 1.0
-    seed: int | None = None
-
-
 class EnvProbe(Module):
     """Keeps the latest CPU and memory readings of its node's ``env`` module."""
 
@@ -90,39 +63,6 @@ class EnvProbe(Module):
         value = port.read()
         self.readings = {**self.readings, port.name: (
             [float(v) for v in value] if port.name == "cpu_per_core" else float(value))}
-
-
-def register(commands: argparse._SubParsersAction) -> None:
-    """Add ``stress FILE``."""
-    stress_ = commands.add_parser(
-        "stress", help="run a configuration under CPU load and faults; report per link "
-                       "and node (JSON and PNG)")
-    stress_.add_argument("file", metavar="FILE", help="a system description (.toml)")
-    stress_.add_argument("--for", dest="seconds", type=seconds, default=30.0,
-                         metavar="SECONDS", help="how long to run (default 30)")
-    stress_.add_argument("--load", action="append", default=[], type=_load,
-                         metavar="CPUS:PERCENT[@T[+D]]",
-                         help="hold CPUs at a level, e.g. 0,1:80, or 0:90@10+20 (from 10 s "
-                              "for 20 s); repeatable")
-    stress_.add_argument("--kill-worker-every", dest="kill_every", type=seconds,
-                         metavar="SECONDS", help="SIGKILL a random worker this often")
-    stress_.add_argument("--kill-among", type=_names, default=frozenset(), metavar="M1,M2",
-                         help="kill only the workers of these modules")
-    stress_.add_argument("--migrate-every", dest="migrate_every", type=seconds,
-                         metavar="SECONDS", help="move a random module to another node "
-                                                 "this often")
-    stress_.add_argument("--migrate-among", type=_names, default=frozenset(),
-                         metavar="M1,M2", help="move only these modules")
-    stress_.add_argument("--cut-node", dest="cuts", action="append", default=[], type=_cut,
-                         metavar="NAME@T[+D]",
-                         help="freeze node NAME (on this machine) at T s for D s (default "
-                              "to the end), as if its cable were cut; repeatable")
-    stress_.add_argument("--sample", dest="sample_s", type=seconds, default=1.0,
-                         metavar="SECONDS", help="how often to record figures (default 1)")
-    stress_.add_argument("--out", default=".", metavar="DIR",
-                         help="where stress.json and stress.png go (default: here)")
-    stress_.add_argument("--seed", type=int, help="seed of the random choices")
-    stress_.set_defaults(handler=stress_command)
 
 
 def stress_command(args: argparse.Namespace) -> int:
@@ -472,39 +412,3 @@ def summary_text(report: dict[str, Any]) -> str:
             lines.append(f"  node {name}: cpu mean {node['cpu_mean']:.0f}%, max "
                          f"{node['cpu_max']:.0f}%")
     return "\n".join(lines)
-
-
-# -- option values ------------------------------------------------------------------------
-def _window(text: str, what: str) -> Window:
-    """``T`` or ``T+D`` (seconds) as a Window."""
-    start, plus, length = text.partition("+")
-    try:
-        window = Window(float(start), float(length) if plus else None)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{what}: {text!r} is not T or T+D (seconds)") from None
-    if not (0 <= window.start <= MOST_SECONDS) or (
-            window.seconds is not None and not 0 < window.seconds <= MOST_SECONDS):
-        raise argparse.ArgumentTypeError(f"{what}: {text!r}: T must be 0 or more and D more "
-                                         "than 0")
-    return window
-
-
-def _load(text: str) -> tuple[dict[int, float], Window]:
-    levels, at, when = text.partition("@")
-    try:
-        parsed = parse_levels(levels)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-    return parsed, _window(when, text) if at else Window()
-
-
-def _cut(text: str) -> tuple[str, Window]:
-    node, at, when = text.partition("@")
-    if not node or not at:
-        raise argparse.ArgumentTypeError(f"{text!r} is not NAME@T[+D] (e.g. b@10+5 cuts node b "
-                                         "at 10 s for 5 s)")
-    return node, _window(when, text)
-
-
-def _names(text: str) -> frozenset[str]:
-    return frozenset(name.strip() for name in text.split(",") if name.strip())
