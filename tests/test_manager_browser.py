@@ -998,7 +998,9 @@ def test_modules_grouped_into_a_macro_open_close_place_again_and_take_overrides(
 
         saved = tomllib.loads(saved_and_checked(manager, page, tmp_path / "saved.toml"))
         assert saved["modules"]["stage2"] == {"macro": "stage", "node": "a",
-                                              "state": {"scale": {"gain": 4}}}
+                                              "state": {"scale": {"gain": 4.0}}}
+        # (typed as 4, a whole number, for a float field: saved as the float 4.0)
+        assert isinstance(saved["modules"]["stage2"]["state"]["scale"]["gain"], float)
         assert saved["macros"]["stage"]["exports"] == {"x": "scale.x"}
         page.click("#launch")
         page.wait_for_function("document.querySelector('#mode').textContent === 'running'",

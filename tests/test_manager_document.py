@@ -151,6 +151,69 @@ def test_a_whole_number_typed_into_a_float_field_is_saved_as_a_float(pipeline: P
     assert "gain = 7.0" in text and "count = 5" in text, text
 
 
+UNSET = """\
+name = "unset"
+
+[modules.scale]
+class = "examples.pipeline:Scale"
+
+[modules.ctl]
+class = "manager_modules:Controller"
+state = { kp = 3, limits = [-1, 1] }  # written by hand
+
+[modules.held]
+class = "manager_modules:Holder"
+
+[modules.loop]
+macro = "loop"
+
+[macros.loop.modules.inner]
+class = "manager_modules:Controller"
+"""
+
+
+def test_a_whole_number_for_a_float_field_the_document_did_not_set_is_saved_as_a_float(
+        tmp_path: Path) -> None:
+    """Only a float the document held made a whole number typed over it a float: set in
+    a field the document did not set yet, 3 was saved ``gain = 3`` (and ``[-2, 2]`` for a
+    pair of floats, an instance's override ``kd = 1``), and the module got an int. The
+    class's declared type decides, in a module's state, a macro's module's and an
+    instance's overrides, item by item in lists, dicts and float arrays; an edit made by
+    the server (``Document.edit``, as Keep writes) too; an int field keeps its int, and
+    a whole number the file holds and nobody changed stays as written."""
+    path = tmp_path / "unset.toml"
+    path.write_text(UNSET)
+    document = Document.open(path)
+    with manager_client(Session(document)) as client:
+        system = client.get("/api/document").json()["system"]
+        modules = system["modules"]
+        modules["scale"]["state"] = {"gain": 3}
+        modules["ctl"]["state"]["ki"] = 2
+        modules["held"]["state"] = {"settings": {"decay": 1, "brush": 2}, "narrow": [1, 2],
+                                    "small": [1, 2], "waypoints": [[0, 0], [3, 4], [5, 6]]}
+        modules["loop"]["state"] = {"inner": {"kd": 1}}
+        system["macros"]["loop"]["modules"]["inner"]["state"] = {"ki": 4, "mode": "manual"}
+        answer = client.put("/api/document", json={"system": system})
+        assert answer.status_code == 200 and answer.json()["problems"] == [], answer.text
+        text = client.get("/api/document/toml").text
+        assert "state = {gain = 3.0}" in text, text
+        assert "state = { kp = 3, limits = [-1, 1], ki = 2.0}  # written by hand" in text
+        assert "state = {inner = {kd = 1.0}}" in text
+        assert 'state = {ki = 4.0, mode = "manual"}' in text
+        held = tomllib.loads(text)["modules"]["held"]["state"]
+        assert held == {"settings": {"decay": 1.0, "brush": 2.0}, "narrow": [1.0, 2.0],
+                        "small": [1, 2], "waypoints": [[0.0, 0.0], [3.0, 4.0], [5.0, 6.0]]}
+        assert [type(number) for number in (*held["settings"].values(), *held["narrow"],
+                                            *held["waypoints"][2])] == [float] * 6
+        assert [type(number) for number in held["small"]] == [int, int]      # an int8 array
+        modules["ctl"]["state"]["limits"] = [-1, 2]          # a list written anew: all floats
+        client.put("/api/document", json={"system": system})
+        assert "kp = 3, limits = [-1.0, 2.0], ki = 2.0}" in client.get(
+            "/api/document/toml").text
+    document.edit(lambda tables: tables["modules"]["scale"]["state"].update(gain=5) is None)
+    assert "state = {gain = 5.0}" in document.toml()
+
+
 def test_a_float_that_is_not_finite_travels_as_its_toml_word_and_is_saved_so(
         tmp_path: Path) -> None:
     """JSON has no inf or nan: a document holding ``inf`` made GET /api/document a 500,

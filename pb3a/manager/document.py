@@ -29,9 +29,11 @@ from tomlkit.items import AoT, Comment, InlineTable, Null, Table, Whitespace
 from tomlkit.parser import Parser
 
 from pb3a.config.compiler import sketch_plan
+from pb3a.config.definitions import toml_key
 from pb3a.config.description import read_description
 from pb3a.config.plan import Plan
 from pb3a.errors import ConfigError
+from pb3a.model.state_edits import floats_as_declared
 
 # dicts at these places are written as [tables]; every other dict inline ({...})
 _TABLES = (("nodes",), ("modules",), ("macros",), ("macros", "*"), ("macros", "*", "modules"))
@@ -156,7 +158,7 @@ class Document:
             raise ValueError(f"TOML cannot hold this document: {'.'.join(deep[:6])}... nests "
                              f"more than {MOST_NESTING} levels of tables and arrays")
         draft = copy.deepcopy(self._doc)
-        system = _moves_resolved(draft.unwrap(), system)
+        system = _floats_declared(_moves_resolved(draft.unwrap(), system), self.source)
         try:
             _merge(draft, system, ())
             text = tomlkit.dumps(draft)
@@ -536,7 +538,60 @@ def _moves_resolved(held: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]
     return new
 
 
-def _resolved(held: Any, new: Any) -> Any:
+def _floats_declared(system: dict[str, Any], source: str) -> dict[str, Any]:
+    """``system`` with each whole number in a module's state a float where the module's
+    class declares a float for that field (``floats_as_declared``), as ``pb3a check``
+    resolves the classes: in a module entry's state, a macro's module's, and an instance's
+    overrides of its modules. JSON writes 3.0 as 3, and in a field the document did not
+    set yet nothing held a float to compare with (``_resolved``): 3 typed there was saved
+    ``gain = 3``. A whole number the document holds as it is stays as written."""
+    if not any(isinstance(entry, dict) and _whole_numbers(entry.get("state"))
+               for entry in _entries(system).values()):
+        return system
+    plan = check_data(system, source)[0]
+    instances: dict[str, str] = {}       # a file macro's name in the plan -> an instance's path
+    for path, macro in plan.macros.items():
+        instances.setdefault(macro, path)
+    system = copy.deepcopy(system)
+    for where, entry in _entries(system).items():
+        state = entry.get("state") if isinstance(entry, dict) else None
+        if not isinstance(state, dict):
+            continue
+        if where[0] == "modules":
+            path: str | None = where[-1]
+        else:                                   # a macro's module: as in one of its instances
+            instance = instances.get(f"[macros.{toml_key(where[1])}]")
+            path = None if instance is None else f"{instance}/{where[-1]}"
+        if path is None:
+            continue
+        if "macro" in entry and "class" not in entry:      # its modules' state, by path
+            entry["state"] = {key: _as_declared(plan, f"{path}/{key}", fields)
+                              for key, fields in state.items()}
+        else:
+            entry["state"] = _as_declared(plan, path, state)
+    return system
+
+
+def _as_declared(plan: Plan, path: str, state: Any) -> Any:
+    """The state table ``state`` of module ``path`` of ``plan`` with its whole numbers
+    floats where its class declares a float (as it is when there is no such module)."""
+    module = plan.modules.get(path)
+    if module is None or not isinstance(state, dict):
+        return state
+    return {name: floats_as_declared(getattr(module.cls, name, None), value)
+            for name, value in state.items()}
+
+
+def _whole_numbers(value: Any) -> bool:
+    """Whether ``value`` is or holds an int (not a bool)."""
+    if isinstance(value, dict):
+        return any(_whole_numbers(item) for item in value.values())
+    if isinstance(value, list):
+        return any(_whole_numbers(item) for item in value)
+    return type(value) is int
+
+
+def _resolved(held: Any, new: Any, rewritten: bool = False) -> Any:
     """What to store for ``new`` (from the page) where the document holds ``held``. The
     page holds the document as JSON: a date as its text, a whole number beyond 2**53 as
     the nearest double (JavaScript's numbers). So ``held`` itself where ``new`` says
@@ -544,15 +599,19 @@ def _resolved(held: Any, new: Any) -> Any:
     was saved ...800, though nobody touched it); a date again where ``held`` was one and
     ``new`` is such text (an edited date was saved as a string); a float where ``held``
     was one and ``new`` is a whole number (7 typed into a float field was saved 7);
-    else ``new``."""
+    else ``new``. In a list, which is written anew whole (``rewritten``), a float sent for
+    a whole number held stays a float: the page never sends one, a field declared float
+    does (``_floats_declared``; ``[-1, 1]`` edited was saved ``[-1, 2.0]``)."""
+    if rewritten and type(held) is int and type(new) is float:
+        return new
     shown, sent = _as_shown(held), _as_sent(new)
     if shown == sent or (isinstance(held, float) and _same(shown, sent)):   # nan too
         return held
     if isinstance(held, list) and isinstance(new, list):
-        return [_resolved(held[index], item) if index < len(held) else item
+        return [_resolved(held[index], item, True) if index < len(held) else item
                 for index, item in enumerate(new)]
     if isinstance(held, dict) and isinstance(new, dict):
-        return {key: _resolved(held[key], item) if key in held else item
+        return {key: _resolved(held[key], item, rewritten) if key in held else item
                 for key, item in new.items()}
     if isinstance(held, (datetime.date, datetime.time)) and isinstance(new, str):
         with contextlib.suppress(ValueError):

@@ -6,7 +6,8 @@ JSON writes 4.0 as 4 and has no tuples, numpy scalars or arrays, so a value sent
 JSON is not yet the value to set: ``coerce`` makes an int a float for a float field (a
 numpy one of the same dtype), a nested list an array of the field's shape and dtype,
 a list of int pairs the list of float pairs it replaces, and refuses what does not fit
-(text for a number, 300 for an int8, 1e300 for a float32).
+(text for a number, 300 for an int8, 1e300 for a float32). ``floats_as_declared``
+does the one part of this a configuration file needs: 3 for a float field is 3.0.
 """
 
 from __future__ import annotations
@@ -98,6 +99,33 @@ def checked(field: str, current: Any, new: Any) -> Any:
     elif isinstance(current, str) and not isinstance(new, str):
         raise refuse("text")
     return new
+
+
+def floats_as_declared(declared: Any, value: Any) -> Any:
+    """``value`` (read from JSON or TOML) with each whole number made a float where the
+    field's ``declared`` value (its class's default) holds a float: item by item in a list
+    or tuple (an item beyond ``declared``'s takes the kind of its last), every item of a
+    float array, key by key in a dict; anything else as it is. JSON writes 3.0 as 3: a
+    configuration written from it gave a float field an int."""
+    if type(value) is int and isinstance(declared, (float, np.floating)):
+        return float(value)
+    if isinstance(value, list) and isinstance(declared, np.ndarray):
+        return _all_floats(value) if declared.dtype.kind == "f" else value
+    if isinstance(value, list) and isinstance(declared, (list, tuple)) and declared:
+        last = len(declared) - 1
+        return [floats_as_declared(declared[min(index, last)], item)
+                for index, item in enumerate(value)]
+    if isinstance(value, dict) and isinstance(declared, dict):
+        return {key: floats_as_declared(declared[key], item) if key in declared else item
+                for key, item in value.items()}
+    return value
+
+
+def _all_floats(value: Any) -> Any:
+    """Nested lists with every whole number in them made a float."""
+    if isinstance(value, list):
+        return [_all_floats(item) for item in value]
+    return float(value) if type(value) is int else value
 
 
 def _coerce_array(field: str, current: np.ndarray, new: Any) -> np.ndarray:
