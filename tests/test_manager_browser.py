@@ -657,6 +657,14 @@ to = "scale.x"
 from = "scale.y"
 to = "scale2.x"
 """
+# CHAIN with what a user writes on it: comments above a module, on its header and keys,
+# above a link
+CHAIN_COMMENTED = (
+    CHAIN.replace("[modules.scale]\n", "# the first scale\n[modules.scale]  # doubles\n")
+    .replace('[modules.scale2]\nclass = "examples.pipeline:Scale"\n',
+             '[modules.scale2]\nclass = "examples.pipeline:Scale"  # the same class\n')
+    .replace('[[links]]\nfrom = "scale.y"',
+             '# one scale into the other\n[[links]]\nfrom = "scale.y"'))
 
 
 @contextlib.contextmanager
@@ -942,7 +950,7 @@ def test_save_asks_before_it_overwrites_a_file_edited_on_disk(tmp_path: Path) ->
 def test_modules_grouped_into_a_macro_open_close_place_again_and_take_overrides(
         tmp_path: Path) -> None:
     config = tmp_path / "chain.toml"
-    config.write_text(CHAIN)
+    config.write_text(CHAIN_COMMENTED)
     with editor(config, 3) as (manager, page):
         # Shift-click adds to the selection; the two scales become macro "stage"
         page.click("[data-module='scale'] .module-title")
@@ -996,7 +1004,13 @@ def test_modules_grouped_into_a_macro_open_close_place_again_and_take_overrides(
         page.locator(".toast .icon").evaluate_all("buttons => buttons.forEach(b => b.click())")
         page.screenshot(path=str(screenshot_path(tmp_path, "manager_macro.png")))
 
-        saved = tomllib.loads(saved_and_checked(manager, page, tmp_path / "saved.toml"))
+        text = saved_and_checked(manager, page, tmp_path / "saved.toml")
+        # the comments written on the grouped modules and their link went with them
+        assert "# the first scale\n[macros.stage.modules.scale]  # doubles\n" in text, text
+        assert ('[macros.stage.modules.scale2]\nclass = "examples.pipeline:Scale"  # the same '
+                'class\n') in text
+        assert "# one scale into the other\n[[macros.stage.links]]\n" in text
+        saved = tomllib.loads(text)
         assert saved["modules"]["stage2"] == {"macro": "stage", "node": "a",
                                               "state": {"scale": {"gain": 4.0}}}
         # (typed as 4, a whole number, for a float field: saved as the float 4.0)

@@ -4,6 +4,7 @@ launch from the page."""
 
 from __future__ import annotations
 
+import copy
 import shutil
 import tomllib
 from pathlib import Path
@@ -137,6 +138,147 @@ def test_modules_grouped_into_a_macro_keep_their_floats(pipeline: Path) -> None:
         assert answer.status_code == 200 and answer.json()["problems"] == [], answer.json()
         text = client.get("/api/document/toml").text
     assert "gain = 3.0" in text, text
+
+
+CHAIN = """\
+# A chain of scales.
+name = "chain"
+
+[nodes.a]
+[nodes.b]
+
+# the source
+[modules.ticker]
+class = "examples.pipeline:Ticker"
+node = "a"
+
+# the first scale: doubles
+[modules.scale]   # first
+class = "examples.pipeline:Scale"  # the class
+node = "b"
+# found by hand
+state = { gain = 2.0 }  # doubles
+# end of scale
+
+# the second scale
+[modules.scale2]
+class = "examples.pipeline:Scale"
+node = "b"
+
+[modules.scale2.state]
+gain = 0.5  # halves
+
+# ---- links
+
+# scale into scale2
+[[links]]
+from = "scale.y"
+to = "scale2.x"
+policy = "queue:8"  # no loss
+
+# ticker into the chain
+[[links]]
+from = "ticker.out"
+to = "scale.x"  # the first input
+"""
+
+CHAIN_GROUPED = """\
+# A chain of scales.
+name = "chain"
+
+[nodes.a]
+[nodes.b]
+
+# the source
+[modules.ticker]
+class = "examples.pipeline:Ticker"
+node = "a"
+
+[modules.stage]
+macro = "stage"
+node = "b"
+
+# ---- links
+
+# ticker into the chain
+[[links]]
+from = "ticker.out"
+to = "stage.x"  # the first input
+
+# the first scale: doubles
+[macros.stage.modules.scale]   # first
+class = "examples.pipeline:Scale"  # the class
+# found by hand
+state = { gain = 2.0 }  # doubles
+# end of scale
+
+# the second scale
+[macros.stage.modules.scale2]
+class = "examples.pipeline:Scale"
+
+[macros.stage.modules.scale2.state]
+gain = 0.5  # halves
+
+# scale into scale2
+[[macros.stage.links]]
+from = "scale.y"
+to = "scale2.x"
+policy = "queue:8"  # no loss
+
+[macros.stage.exports]
+x = "scale.x"
+
+"""
+
+
+def _grouped(system: dict[str, Any]) -> dict[str, Any]:
+    """``CHAIN``'s system as the page's Group into macro sends it: scale and scale2 in
+    macro stage (their node the instance's), the link between them its own, the one
+    from outside ending on its export."""
+    system = copy.deepcopy(system)
+    modules = system["modules"]
+    children = {name: {key: value for key, value in modules.pop(name).items() if key != "node"}
+                for name in ("scale", "scale2")}
+    modules["stage"] = {"macro": "stage", "node": "b"}
+    inner, outer = system["links"]
+    system["links"] = [{**outer, "to": "stage.x"}]
+    system["macros"] = {"stage": {"modules": children, "links": [inner],
+                                  "exports": {"x": "scale.x"}}}
+    return system
+
+
+def test_modules_grouped_into_a_macro_keep_their_comments_and_so_do_their_links(
+        tmp_path: Path) -> None:
+    """Grouping rebuilt the moved modules' tables from their values: the comments above
+    them, on their headers, keys and state, and on the link between them, were lost.
+    They move with them into the macro (a key dropped takes its own), the others stay
+    where they were, the outside link keeps its own (the link that moved is not taken
+    for it), and the file is saved as before; placing the macro again changes none of
+    them, nor does moving the modules out of it again."""
+    path = tmp_path / "chain.toml"
+    path.write_text(CHAIN)
+    with manager_client(Session(Document.open(path))) as client:
+        original = client.get("/api/document").json()["system"]
+        answer = client.put("/api/document", json={"system": _grouped(original)})
+        assert answer.status_code == 200 and answer.json()["problems"] == [], answer.text
+        assert client.get("/api/document/toml").text == CHAIN_GROUPED
+        assert client.post("/api/document/save", json={"overwrite": True}).status_code == 200
+        assert path.read_text() == CHAIN_GROUPED
+        assert Document.open(path).data() == client.get("/api/document").json()["system"]
+
+        system = client.get("/api/document").json()["system"]
+        system["modules"]["stage2"] = {"macro": "stage", "node": "a"}      # placed again
+        assert client.put("/api/document", json={"system": system}).status_code == 200
+        assert client.get("/api/document/toml").text == CHAIN_GROUPED.replace(
+            '# ---- links', '[modules.stage2]\nmacro = "stage"\nnode = "a"\n\n# ---- links')
+
+        del system["modules"]["stage2"]
+        assert client.put("/api/document", json={"system": system}).status_code == 200
+        assert client.put("/api/document", json={"system": original}).status_code == 200
+        ungrouped = client.get("/api/document/toml").text
+    assert tomllib.loads(ungrouped) == tomllib.loads(CHAIN)
+    assert sorted(line for line in ungrouped.splitlines() if "#" in line) == sorted(
+        line for line in CHAIN.splitlines() if "#" in line)
 
 
 def test_a_whole_number_typed_into_a_float_field_is_saved_as_a_float(pipeline: Path) -> None:

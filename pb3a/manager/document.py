@@ -158,11 +158,16 @@ class Document:
             raise ValueError(f"TOML cannot hold this document: {'.'.join(deep[:6])}... nests "
                              f"more than {MOST_NESTING} levels of tables and arrays")
         draft = copy.deepcopy(self._doc)
-        system = _floats_declared(_moves_resolved(draft.unwrap(), system), self.source)
+        held = draft.unwrap()
+        system = _floats_declared(_moves_resolved(held, system), self.source)
         try:
-            _merge(draft, system, ())
+            moves = _Moves.taken(draft, held, system)
+            _merge(draft, system, (), moves=moves)
+            moves.lead_in()
             text = tomlkit.dumps(draft)
             same = _same(tomllib.loads(text), draft.unwrap())
+            if moves.placed:            # (its comments above a header: read as a file's)
+                draft = tomlkit.parse(text)
         except (TOMLKitError, tomllib.TOMLDecodeError, TypeError, ValueError) as exc:
             raise ValueError(f"TOML cannot hold this document: {exc}") from None
         if not same:
@@ -256,11 +261,12 @@ def check_data(data: dict[str, Any], source: str) -> tuple[Plan, list[str]]:
 
 
 def _merge(container: Any, new: dict[str, Any], where: tuple[str, ...],
-           root: Any = None) -> None:
+           root: Any = None, moves: _Moves | None = None) -> None:
     """Update a tomlkit table in place to hold ``new``: unchanged values keep their
     formatting, changed ones are replaced, missing ones removed (with the comment right
     above them, see ``_drop``), new tables placed before the comments of what follows
-    (``_place``). ``root``: the document ``container`` is in (itself at the top)."""
+    (``_place``); ``moves``: what came from elsewhere in the document, put in as it was
+    written. ``root``: the document ``container`` is in (itself at the top)."""
     root = container if root is None else root
     for key in [key for key in container if key not in new or new[key] is None]:
         _drop(root, container.item(key), lambda key=key: container.__delitem__(key))
@@ -275,38 +281,52 @@ def _merge(container: Any, new: dict[str, Any], where: tuple[str, ...],
             if value is held or value == held:          # (nan is not == nan)
                 continue
         if isinstance(value, dict) and isinstance(old, (Table, InlineTable)):
-            _merge(old, value, place, root)
+            _merge(old, value, place, root, moves)
         elif (isinstance(value, list) and isinstance(old, AoT)
               and all(isinstance(item, dict) for item in value)):
-            _merge_array(old, value, place, root)
+            _merge_array(old, value, place, root, moves)
         else:
-            container[key] = _item(value, place, inline=isinstance(container, InlineTable))
+            container[key] = _item(value, place, isinstance(container, InlineTable), moves)
             if old is None:
                 _place(root, container.item(key))
 
 
 def _merge_array(old: AoT, new: list[dict[str, Any]], where: tuple[str, ...],
-                 root: Any) -> None:
+                 root: Any, moves: _Moves | None = None) -> None:
     """An array of tables entry by entry, matched by what they say (not by place: with
     the first link removed, each link took the next one's values and the first one's
     comments stayed on what became the second); an entry edited in place keeps its
-    comments."""
-    def text(value: Any) -> str:
-        return json.dumps(value, sort_keys=True, default=str)
-    held = [text(_as_shown(_plain(entry))) for entry in old]
-    matcher = difflib.SequenceMatcher(None, held, [text(_as_sent(value)) for value in new],
+    comments. Entries that ``moves`` takes elsewhere go, and those it brings come in as
+    they were written, before the others are matched (an entry that moved away was
+    edited into one that stayed, its comments on it)."""
+    if moves is not None:
+        for index in reversed(range(len(old))):
+            if moves.gone(old[index]):
+                _drop(root, old[index], lambda index=index: old.__delitem__(index))
+    brought = moves.brought(where, new) if moves is not None else {}
+    rest = [value for index, value in enumerate(new) if index not in brought]
+    held = [_text(_as_shown(_plain(entry))) for entry in old]
+    matcher = difflib.SequenceMatcher(None, held, [_text(_as_sent(value)) for value in rest],
                                       autojunk=False)
     for tag, i1, i2, j1, j2 in reversed(matcher.get_opcodes()):   # later ones first
         if tag == "equal":
             continue
         edited = min(i2 - i1, j2 - j1)
         for index in range(edited):
-            _merge(old[i1 + index], new[j1 + index], where, root)
+            _merge(old[i1 + index], rest[j1 + index], where, root, moves)
         for index in reversed(range(i1 + edited, i2)):
             _drop(root, old[index], lambda index=index: old.__delitem__(index))
-        for offset, value in enumerate(new[j1 + edited:j2]):
-            old.insert(i1 + edited + offset, _table(value, where, tomlkit.table()))
+        for offset, value in enumerate(rest[j1 + edited:j2]):
+            old.insert(i1 + edited + offset, _table(value, where, tomlkit.table(), moves))
             _place(root, old[i1 + edited + offset], old)
+    for index, entry in sorted(brought.items()):        # (each after those before it)
+        old.insert(index, entry)
+        _place(root, old[index], old)
+
+
+def _text(value: Any) -> str:
+    """A value as text, to compare array entries by what they say."""
+    return json.dumps(value, sort_keys=True, default=str)
 
 
 # -- comments and blank lines around what an edit adds or removes ---------------------
@@ -381,6 +401,25 @@ def _drop(root: Any, item: Any, delete: Any) -> None:
     if start < 0:                                   # in an inline table: no lines its own
         delete()
         return
+    lead, blank, own, kept, last = _lines(tokens, item, start, end)
+    if (kept and isinstance(tokens[kept[0]][3], Whitespace)) or (not kept and last):
+        lead = blank + lead                     # what follows has its own blank line
+    for at in (*lead, *own):
+        _, container, index, _ = tokens[at]
+        container.body[index] = (None, Null())
+    inside = [tokens[at][3] for at in kept if start < at < end]
+    anchor = next((token for token in reversed(tokens[:start])
+                   if token[0] in ("solid", "trivia")), ("solid", root, -1, None))
+    delete()
+    _insert(anchor[1], anchor[2] + 1, inside)
+
+
+def _lines(tokens: list[tuple[str, Any, int, Any]], item: Any, start: int, end: int
+           ) -> tuple[list[int], list[int], list[int], list[int], bool]:
+    """The comments and blank lines around ``item`` (``tokens[start:end + 1]``), as
+    ``_drop`` takes them: the comments directly above it, the blank lines above those,
+    its own below its last line (a table's, up to a blank line or the end of the file),
+    the others after it, and whether it is the last entry of the file."""
     before = _run(tokens, start, -1)
     lead = before[len(before) - _split(tokens, before, Comment):]
     blank = before[:len(before) - len(lead)]
@@ -395,17 +434,7 @@ def _drop(root: Any, item: Any, delete: Any) -> None:
         own = len(after) if last else 0
     else:
         own = first_blank
-    kept = after[own:]
-    if (kept and isinstance(tokens[kept[0]][3], Whitespace)) or (not kept and last):
-        lead = blank + lead                     # what follows has its own blank line
-    for at in (*lead, *after[:own]):
-        _, container, index, _ = tokens[at]
-        container.body[index] = (None, Null())
-    inside = [tokens[at][3] for at in kept if start < at < end]
-    anchor = next((token for token in reversed(tokens[:start])
-                   if token[0] in ("solid", "trivia")), ("solid", root, -1, None))
-    delete()
-    _insert(anchor[1], anchor[2] + 1, inside)
+    return lead, blank, after[:own], after[own:], last
 
 
 def _place(root: Any, item: Any, array: AoT | None = None) -> None:
@@ -453,29 +482,186 @@ def _insert(container: Any, index: int, items: list[Any]) -> None:
                                at + len(items) if at >= index else at)
 
 
-def _item(value: Any, where: tuple[str, ...], inline: bool = False) -> Any:
+class _Moves:
+    """What an edit moves from one place of the document to another, as the user wrote
+    it: module entries grouped into a macro or out of one (``_moved``), and the links
+    among them, from ``[[links]]`` to a macro's ``links`` or back. Grouping rebuilt them
+    from their values, and every comment on them was lost. Each is taken with its own
+    lines, as ``_drop`` would take them: a copy of its table (or array entry, or inline
+    table) with the comments in it and on its keys, and the comments directly above it.
+    ``_merge`` puts the copy in at the new place (``table``, ``brought``) instead of one
+    made anew; ``lead_in`` then puts the comments above it there."""
+
+    def __init__(self) -> None:
+        self.tables: dict[tuple[str, ...], Any] = {}             # new place -> the copy
+        self.entries: dict[tuple[tuple[str, ...], str], list[Any]] = {}  # (array, value)
+        self.away: list[Any] = []             # array entries taken elsewhere (originals)
+        self.leads: dict[int, tuple[Any, str]] = {}   # id(copy) -> (copy, comments above)
+        self.placed: list[Any] = []           # the copies put in
+
+    @classmethod
+    def taken(cls, root: Any, held: dict[str, Any], new: dict[str, Any]) -> _Moves:
+        """What moves from ``held`` (the values of document ``root``) to ``new``; each
+        module entry is first made what ``new`` says where it was (a key dropped takes
+        its comment, as it would in place), then taken."""
+        moves = cls()
+        after = _entries(new)
+        for there, here in _moved(held, new).items():
+            if here in after:                       # copied, not moved: its lines stay
+                continue
+            container = _table_at(root, here[:-1])
+            item = container.item(here[-1]) if container is not None else None
+            if isinstance(item, (Table, InlineTable)) and isinstance(after[there], dict):
+                _merge(item, after[there], there, root)
+                moves.tables[there] = moves._lift(root, item)
+        for there, text, item in _moved_entries(root, held, new):
+            moves.entries.setdefault((there, text), []).append(moves._lift(root, item))
+            moves.away.append(item)
+        return moves
+
+    def table(self, where: tuple[str, ...]) -> Any:
+        """The copy to put at ``where``, or None."""
+        carried = self.tables.pop(where, None)
+        if carried is not None:
+            self.placed.append(carried)
+        return carried
+
+    def brought(self, where: tuple[str, ...], values: list[Any]) -> dict[int, Any]:
+        """The copies to put in array ``where`` (which is to say ``values``), by index."""
+        found = {}
+        for index, value in enumerate(values):
+            waiting = self.entries.get((where, _text(_as_sent(value))))
+            if waiting:
+                found[index] = waiting.pop(0)
+                self.placed.append(found[index])
+        return found
+
+    def gone(self, entry: Any) -> bool:
+        """Whether array entry ``entry`` of the document moved elsewhere."""
+        return any(entry is away for away in self.away)
+
+    def lead_in(self) -> None:
+        """Put the comments that were directly above each copy above it where it is now:
+        before its header or key, after the blank lines there (as the file has them, in
+        the copy's indent: the text is read again as a file's once written)."""
+        for carried in self.placed:
+            comments = self.leads.get(id(carried), (None, ""))[1]
+            indent = carried.trivia.indent
+            blank = indent[:len(indent) - len(indent.lstrip("\n"))]
+            carried.trivia.indent = blank + comments + indent[len(blank):]
+
+    def _lift(self, root: Any, item: Any) -> Any:
+        """A copy of ``item`` with its own lines (``_lines``), to put in elsewhere; the
+        comments directly above it kept for ``lead_in``."""
+        carried = copy.deepcopy(item)
+        tokens = _tokens(root)
+        start, end = _span(tokens, item)
+        if start < 0:                             # in an inline table: no lines its own
+            return carried
+        lead, _, _, kept, _ = _lines(tokens, item, start, end)
+        if isinstance(item, Table):
+            header = tokens[start + 1][0] == "solid" and tokens[start + 1][3] is item
+            inside = _table_tokens(carried, header)        # (the copy's, token for token)
+            for at in kept:
+                if start < at < end:                       # the next section's lines
+                    _, container, index, _ = inside[at - start]
+                    container.body[index] = (None, Null())
+            carried.invalidate_display_name()      # (a header as written: [modules.scale])
+            if not any(isinstance(line, Whitespace) for _, line in carried.value.body[-1:]):
+                carried.add(tomlkit.nl())          # a blank line before what follows
+        self.leads[id(carried)] = (carried, "".join(tokens[at][3].as_string() for at in lead))
+        return carried
+
+
+def _table_at(root: Any, keys: tuple[str, ...]) -> Any:
+    """The table of document ``root`` at ``keys``, or None."""
+    table = root
+    for key in keys:
+        table = table.get(key) if isinstance(table, (Table, InlineTable, tomlkit.TOMLDocument)
+                                             ) else None
+    return table if isinstance(table, (Table, InlineTable, tomlkit.TOMLDocument)) else None
+
+
+def _moved_entries(root: Any, held: dict[str, Any], new: dict[str, Any]
+                   ) -> list[tuple[tuple[str, ...], str, Any]]:
+    """The links (entries of ``[[links]]`` and of the macros' ``links``) that moved from
+    one of these arrays to another, unchanged: ``(new array, the value as text, the
+    entry in document root)``."""
+    def arrays(system: dict[str, Any], form: Callable[[Any], Any]
+               ) -> dict[tuple[str, ...], list[str]]:
+        found = {("links",): system.get("links")}
+        macros = system.get("macros")
+        for name, body in (macros.items() if isinstance(macros, dict) else ()):
+            found[("macros", name, "links")] = body.get("links") if isinstance(
+                body, dict) else None
+        return {where: [_text(form(item)) for item in items] for where, items
+                in found.items() if isinstance(items, list)
+                and all(isinstance(item, dict) for item in items)}
+    before, after = arrays(held, _as_shown), arrays(new, _as_sent)
+    left = {where: _count_out(texts, after.get(where, [])) for where, texts in before.items()}
+    moved: list[tuple[tuple[str, ...], str, Any]] = []
+    for there, texts in after.items():
+        for text in _count_out(texts, before.get(there, [])):
+            here = next((where for where, texts in left.items()
+                         if where != there and text in texts), None)
+            table = _table_at(root, here[:-1]) if here is not None else None
+            array = table.get(here[-1]) if table is not None and here is not None else None
+            if not isinstance(array, AoT):
+                continue
+            left[here].remove(text)
+            entry = next((entry for entry in array.body
+                          if not any(entry is taken for _, _, taken in moved)
+                          and _text(_as_shown(_plain(entry))) == text), None)
+            if entry is not None:
+                moved.append((there, text, entry))
+    return moved
+
+
+def _count_out(texts: list[str], others: list[str]) -> list[str]:
+    """``texts`` without as many of each as ``others`` has."""
+    rest = list(texts)
+    for text in others:
+        if text in rest:
+            rest.remove(text)
+    return rest
+
+
+def _item(value: Any, where: tuple[str, ...], inline: bool = False,
+          moves: _Moves | None = None) -> Any:
     """A new tomlkit value: tables where a configuration has them, inline otherwise (and
-    always inside an inline table, ``inline``: the file wrote ``modules = {...}``)."""
+    always inside an inline table, ``inline``: the file wrote ``modules = {...}``); what
+    ``moves`` brings to ``where`` as it was written."""
     if isinstance(value, dict):
+        carried = moves.table(where) if moves is not None and not inline else None
+        if carried is not None:
+            return carried
         tabled = not inline and (_matches(where, _TABLES) or _matches(where[:-1], _TABLES))
-        return _table(value, where, tomlkit.table() if tabled else tomlkit.inline_table())
+        return _table(value, where, tomlkit.table() if tabled else tomlkit.inline_table(),
+                      moves)
     if isinstance(value, list) and value and all(isinstance(item, dict) for item in value) \
             and _matches(where, _TABLE_ARRAYS) and not inline:
         array = tomlkit.aot()
-        for item in value:
-            array.append(_table(item, where, tomlkit.table()))
+        brought = moves.brought(where, value) if moves is not None else {}
+        for index, item in enumerate(value):
+            entry = brought.get(index)
+            array.append(entry if entry is not None else
+                         _table(item, where, tomlkit.table(), moves))
         return array
     if isinstance(value, list):
         return tomlkit.item([_plain_item(item) for item in value])
     return tomlkit.item(value)
 
 
-def _table(value: dict[str, Any], where: tuple[str, ...], table: Any) -> Any:
+def _table(value: dict[str, Any], where: tuple[str, ...], table: Any,
+           moves: _Moves | None = None) -> Any:
     for key, item in value.items():
         if item is not None:
-            table[key] = _item(item, (*where, key), isinstance(table, InlineTable))
-    if isinstance(table, Table) and not isinstance(table, InlineTable):
-        table.add(tomlkit.nl())              # a blank line before the next table
+            table[key] = _item(item, (*where, key), isinstance(table, InlineTable), moves)
+    inner = [item for _, item in table.value.body] if isinstance(table, Table) else []
+    if isinstance(table, Table) and not (inner and all(isinstance(item, (Table, AoT))
+                                                       for item in inner)):
+        table.add(tomlkit.nl())     # a blank line before the next table (a table of
+                                    # tables has its last one's: two blank lines)
     return table
 
 
@@ -521,12 +707,7 @@ def _moves_resolved(held: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]
     """``new`` with each module entry that moved (grouped into a macro, or out of one)
     resolved against the entry it was (``_resolved``): the page holds it as JSON, so
     ``gain = 1.0`` came back ``1`` in its new place, where nothing held it to compare."""
-    before, after = _entries(held), _entries(new)
-    by_name: dict[str, list[Any]] = {}
-    for where, entry in before.items():
-        by_name.setdefault(where[-1], []).append(entry)
-    moved = {where: by_name[where[-1]][0] for where in after
-             if where not in before and len(by_name.get(where[-1], ())) == 1}
+    before, moved = _entries(held), _moved(held, new)
     if not moved:
         return new
     new = copy.deepcopy(new)
@@ -534,8 +715,20 @@ def _moves_resolved(held: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]
         table = new
         for key in where[:-1]:
             table = table[key]
-        table[where[-1]] = _resolved(was, table[where[-1]])
+        table[where[-1]] = _resolved(before[was], table[where[-1]])
     return new
+
+
+def _moved(held: dict[str, Any], new: dict[str, Any]) -> dict[tuple[str, ...], tuple[str, ...]]:
+    """The module entries of ``new`` at a place ``held`` does not have whose name
+    ``held`` has at one place only (grouped into a macro, or out of one): each new place
+    with the place it had."""
+    before = _entries(held)
+    by_name: dict[str, list[tuple[str, ...]]] = {}
+    for where in before:
+        by_name.setdefault(where[-1], []).append(where)
+    return {where: by_name[where[-1]][0] for where in _entries(new)
+            if where not in before and len(by_name.get(where[-1], ())) == 1}
 
 
 def _floats_declared(system: dict[str, Any], source: str) -> dict[str, Any]:
