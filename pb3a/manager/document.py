@@ -265,8 +265,9 @@ def _merge(container: Any, new: dict[str, Any], where: tuple[str, ...],
     """Update a tomlkit table in place to hold ``new``: unchanged values keep their
     formatting, changed ones are replaced, missing ones removed (with the comment right
     above them, see ``_drop``), new tables placed before the comments of what follows
-    (``_place``); ``moves``: what came from elsewhere in the document, put in as it was
-    written. ``root``: the document ``container`` is in (itself at the top)."""
+    (``_place``), a new key right after its table's keys (``_add_key``); ``moves``:
+    what came from elsewhere in the document, put in as it was written. ``root``: the
+    document ``container`` is in (itself at the top)."""
     root = container if root is None else root
     for key in [key for key in container if key not in new or new[key] is None]:
         _drop(root, container.item(key), lambda key=key: container.__delitem__(key))
@@ -286,9 +287,14 @@ def _merge(container: Any, new: dict[str, Any], where: tuple[str, ...],
               and all(isinstance(item, dict) for item in value)):
             _merge_array(old, value, place, root, moves)
         else:
-            container[key] = _item(value, place, isinstance(container, InlineTable), moves)
-            if old is None:
-                _place(root, container.item(key))
+            made = _item(value, place, isinstance(container, InlineTable), moves)
+            if old is None and not isinstance(made, (Table, AoT)) \
+                    and isinstance(container, (Table, tomlkit.TOMLDocument)):
+                _add_key(container, key, made)
+            else:
+                container[key] = made
+                if old is None:
+                    _place(root, container.item(key))
 
 
 def _merge_array(old: AoT, new: list[dict[str, Any]], where: tuple[str, ...],
@@ -468,6 +474,38 @@ def _place(root: Any, item: Any, array: AoT | None = None) -> None:
     if stays and _split(tokens, stays, Whitespace):     # a blank line before it already:
         first = item if isinstance(item, Table) else item.body[0]    # not tomlkit's too
         first.trivia.indent = first.trivia.indent.lstrip("\n")
+
+
+def _add_key(container: Table | tomlkit.TOMLDocument, key: str, item: Any) -> None:
+    """Add ``key`` = ``item`` to a table (or the document) that has no ``key``, right
+    after the keys it has: tomlkit puts it after the comments and blank lines that end
+    the table, which are the next entry's (a module given a ``state`` or a ``node`` had
+    it written under the next module's comment, no blank line before that module's
+    header), and gives what follows a line break of its own. With no key there, it
+    goes before the first blank line."""
+    body = container.value.body if isinstance(container, Table) else container.body
+    indents = [(line, line.trivia.indent) for _, line in body
+               if not isinstance(line, (Whitespace, Null))]
+    container[key] = item
+    for line, indent in indents:
+        line.trivia.indent = indent
+    at = next((n for n, (name, _) in enumerate(body) if name is not None and name.key == key),
+              None)
+    if at is None:
+        return
+    last = next((n for n in reversed(range(at))
+                 if not isinstance(body[n][1], (Comment, Whitespace, Null))), None)
+    if last is not None and isinstance(body[last][1], (Table, AoT)):
+        return                                  # (a key after a table is the table's)
+    to = last + 1 if last is not None else next(
+        (n for n in range(at) if isinstance(body[n][1], Whitespace)), at)
+    if to < at:
+        body.insert(to, body.pop(at))
+        index = container.value._map if isinstance(container, Table) else container._map
+        for name, where in index.items():
+            index[name] = (tuple(n + 1 if to <= n < at else n for n in where)
+                           if isinstance(where, tuple) else to if where == at
+                           else where + 1 if to <= where < at else where)
 
 
 def _insert(container: Any, index: int, items: list[Any]) -> None:
