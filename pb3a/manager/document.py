@@ -3,9 +3,10 @@
 The document is held as a ``tomlkit`` document, not as plain dicts: an edit from
 the page (the whole system as JSON) is merged into it key by key, so entries that
 did not change keep their comments, order and formatting, and a file opened and
-saved unchanged is the same file (the round trip). Problems are found as ``pb3a
-check`` finds them, with the same words: the document is read as a description
-and compiled; a half-built system is kept, its problems listed.
+saved unchanged is the same file (the round trip); the comments and blank lines around
+an entry added, removed or moved go as ``pb3a.manager.lines`` says. Problems are found
+as ``pb3a check`` finds them, with the same words: the document is read as a
+description and compiled; a half-built system is kept, its problems listed.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from typing import Any
 
 import tomlkit
 from tomlkit.exceptions import TOMLKitError
-from tomlkit.items import AoT, Comment, InlineTable, Null, Table, Whitespace
+from tomlkit.items import AoT, InlineTable, Table
 from tomlkit.parser import Parser
 
 from pb3a.config.compiler import sketch_plan
@@ -33,6 +34,7 @@ from pb3a.config.definitions import toml_key
 from pb3a.config.description import read_description
 from pb3a.config.plan import Plan
 from pb3a.errors import ConfigError
+from pb3a.manager import lines
 from pb3a.model.state_edits import floats_as_declared
 
 # dicts at these places are written as [tables]; every other dict inline ({...})
@@ -161,7 +163,7 @@ class Document:
         held = draft.unwrap()
         system = _floats_declared(_moves_resolved(held, system), self.source)
         try:
-            moves = _Moves.taken(draft, held, system)
+            moves = _carried(draft, held, system)
             _merge(draft, system, (), moves=moves)
             moves.lead_in()
             text = tomlkit.dumps(draft)
@@ -261,16 +263,16 @@ def check_data(data: dict[str, Any], source: str) -> tuple[Plan, list[str]]:
 
 
 def _merge(container: Any, new: dict[str, Any], where: tuple[str, ...],
-           root: Any = None, moves: _Moves | None = None) -> None:
+           root: Any = None, moves: lines.Carried | None = None) -> None:
     """Update a tomlkit table in place to hold ``new``: unchanged values keep their
     formatting, changed ones are replaced, missing ones removed (with the comment right
-    above them, see ``_drop``), new tables placed before the comments of what follows
-    (``_place``), a new key right after its table's keys (``_add_key``); ``moves``:
-    what came from elsewhere in the document, put in as it was written. ``root``: the
-    document ``container`` is in (itself at the top)."""
+    above them, see ``lines.drop``), new tables placed before the comments of what
+    follows (``lines.place``), a new key right after its table's keys
+    (``lines.add_key``); ``moves``: what came from elsewhere in the document, put in as
+    it was written. ``root``: the document ``container`` is in (itself at the top)."""
     root = container if root is None else root
     for key in [key for key in container if key not in new or new[key] is None]:
-        _drop(root, container.item(key), lambda key=key: container.__delitem__(key))
+        lines.drop(root, container.item(key), lambda key=key: container.__delitem__(key))
     for key, value in new.items():
         if value is None:
             continue
@@ -290,15 +292,15 @@ def _merge(container: Any, new: dict[str, Any], where: tuple[str, ...],
             made = _item(value, place, isinstance(container, InlineTable), moves)
             if old is None and not isinstance(made, (Table, AoT)) \
                     and isinstance(container, (Table, tomlkit.TOMLDocument)):
-                _add_key(container, key, made)
+                lines.add_key(container, key, made)
             else:
                 container[key] = made
                 if old is None:
-                    _place(root, container.item(key))
+                    lines.place(root, container.item(key))
 
 
 def _merge_array(old: AoT, new: list[dict[str, Any]], where: tuple[str, ...],
-                 root: Any, moves: _Moves | None = None) -> None:
+                 root: Any, moves: lines.Carried | None = None) -> None:
     """An array of tables entry by entry, matched by what they say (not by place: with
     the first link removed, each link took the next one's values and the first one's
     comments stayed on what became the second); an entry edited in place keeps its
@@ -308,8 +310,8 @@ def _merge_array(old: AoT, new: list[dict[str, Any]], where: tuple[str, ...],
     if moves is not None:
         for index in reversed(range(len(old))):
             if moves.gone(old[index]):
-                _drop(root, old[index], lambda index=index: old.__delitem__(index))
-    brought = moves.brought(where, new) if moves is not None else {}
+                lines.drop(root, old[index], lambda index=index: old.__delitem__(index))
+    brought = _brought(moves, where, new)
     rest = [value for index, value in enumerate(new) if index not in brought]
     held = [_text(_as_shown(_plain(entry))) for entry in old]
     matcher = difflib.SequenceMatcher(None, held, [_text(_as_sent(value)) for value in rest],
@@ -321,13 +323,21 @@ def _merge_array(old: AoT, new: list[dict[str, Any]], where: tuple[str, ...],
         for index in range(edited):
             _merge(old[i1 + index], rest[j1 + index], where, root, moves)
         for index in reversed(range(i1 + edited, i2)):
-            _drop(root, old[index], lambda index=index: old.__delitem__(index))
+            lines.drop(root, old[index], lambda index=index: old.__delitem__(index))
         for offset, value in enumerate(rest[j1 + edited:j2]):
             old.insert(i1 + edited + offset, _table(value, where, tomlkit.table(), moves))
-            _place(root, old[i1 + edited + offset], old)
+            lines.place(root, old[i1 + edited + offset], old)
     for index, entry in sorted(brought.items()):        # (each after those before it)
         old.insert(index, entry)
-        _place(root, old[index], old)
+        lines.place(root, old[index], old)
+
+
+def _brought(moves: lines.Carried | None, where: tuple[str, ...], values: list[Any]
+             ) -> dict[int, Any]:
+    """The entries ``moves`` brings into the array of tables at ``where``, which is to
+    say ``values``, by index."""
+    return {} if moves is None else moves.brought(where, [_text(_as_sent(value))
+                                                          for value in values])
 
 
 def _text(value: Any) -> str:
@@ -335,280 +345,25 @@ def _text(value: Any) -> str:
     return json.dumps(value, sort_keys=True, default=str)
 
 
-# -- comments and blank lines around what an edit adds or removes ---------------------
-# A comment directly above an entry (no blank line between) is the entry's and goes with
-# it; one separated by a blank line is the section's and stays. tomlkit keeps the lines
-# before a table header at the end of the table before it: ``_drop`` and ``_place`` work
-# on the file's lines in order (``_tokens``), whatever tables hold them.
-
-def _tokens(container: Any) -> list[tuple[str, Any, int, Any]]:
-    """The document's items in the order they are written: ``("trivia", container,
-    index, item)`` for a comment or blank line, ``("solid", container, index, item)`` for
-    a key and value or a header (index -1 in its table's own body), and ``"start"`` and
-    ``"end"`` marks around each table and array of tables."""
-    tokens: list[tuple[str, Any, int, Any]] = []
-    for index, (key, item) in enumerate(container.body):
-        if key is None:
-            if isinstance(item, (Comment, Whitespace)):
-                tokens.append(("trivia", container, index, item))
-        elif isinstance(item, AoT):
-            tokens.append(("start", container, index, item))
-            for table in item.body:
-                tokens.extend(_table_tokens(table, True))
-            tokens.append(("end", container, index, item))
-        elif isinstance(item, Table) and not key.is_dotted():
-            tokens.extend(_table_tokens(item, not item.is_super_table()))
-        elif not isinstance(item, Null):
-            tokens.append(("start", container, index, item))
-            tokens.append(("solid", container, index, item))
-            tokens.append(("end", container, index, item))
-    return tokens
-
-
-def _table_tokens(table: Table, header: bool) -> list[tuple[str, Any, int, Any]]:
-    return [("start", None, 0, table), *([("solid", table.value, -1, table)] if header else []),
-            *_tokens(table.value), ("end", None, 0, table)]
-
-
-def _span(tokens: list[tuple[str, Any, int, Any]], item: Any) -> tuple[int, int]:
-    """Where ``item`` starts and ends in ``tokens`` (-1, -1: not there, in an inline
-    table or an array)."""
-    marks = [at for at, token in enumerate(tokens) if token[3] is item and token[0] in (
-        "start", "end")]
-    return (marks[0], marks[-1]) if marks else (-1, -1)
-
-
-def _run(tokens: list[tuple[str, Any, int, Any]], at: int, step: int) -> list[int]:
-    """The comments and blank lines next to ``tokens[at]`` (before it with step -1, after
-    with +1), in the file's order, the marks skipped."""
-    found, at = [], at + step
-    while 0 <= at < len(tokens) and tokens[at][0] != "solid":
-        if tokens[at][0] == "trivia":
-            found.append(at)
-        at += step
-    return found[::-1] if step < 0 else found
-
-
-def _split(tokens: list[tuple[str, Any, int, Any]], run: list[int], kind: type) -> int:
-    """How many of ``run`` are ``kind`` (comment or blank line) at its end."""
-    count = 0
-    while count < len(run) and isinstance(tokens[run[-1 - count]][3], kind):
-        count += 1
-    return count
-
-
-def _drop(root: Any, item: Any, delete: Any) -> None:
-    """``delete()`` ``item`` from the document ``root``, with the comments directly above
-    it and, for a table, those directly below its last line (the table's own, followed by
-    a blank line or the end of the file). Comments after a blank line stay where they are
-    in the file, and so one blank line, not two or none, is left where it was."""
-    tokens = _tokens(root)
-    start, end = _span(tokens, item)
-    if start < 0:                                   # in an inline table: no lines its own
-        delete()
-        return
-    lead, blank, own, kept, last = _lines(tokens, item, start, end)
-    if (kept and isinstance(tokens[kept[0]][3], Whitespace)) or (not kept and last):
-        lead = blank + lead                     # what follows has its own blank line
-    for at in (*lead, *own):
-        _, container, index, _ = tokens[at]
-        container.body[index] = (None, Null())
-    inside = [tokens[at][3] for at in kept if start < at < end]
-    anchor = next((token for token in reversed(tokens[:start])
-                   if token[0] in ("solid", "trivia")), ("solid", root, -1, None))
-    delete()
-    _insert(anchor[1], anchor[2] + 1, inside)
-
-
-def _lines(tokens: list[tuple[str, Any, int, Any]], item: Any, start: int, end: int
-           ) -> tuple[list[int], list[int], list[int], list[int], bool]:
-    """The comments and blank lines around ``item`` (``tokens[start:end + 1]``), as
-    ``_drop`` takes them: the comments directly above it, the blank lines above those,
-    its own below its last line (a table's, up to a blank line or the end of the file),
-    the others after it, and whether it is the last entry of the file."""
-    before = _run(tokens, start, -1)
-    lead = before[len(before) - _split(tokens, before, Comment):]
-    blank = before[:len(before) - len(lead)]
-    blank = blank[len(blank) - _split(tokens, blank, Whitespace):]
-    after = [*_run(tokens, end + 1, -1), *_run(tokens, end, 1)]
-    last = not any(token[0] == "solid" for token in tokens[end:])
-    first_blank = next((n for n, at in enumerate(after)
-                        if isinstance(tokens[at][3], Whitespace)), None)
-    if not isinstance(item, (Table, AoT)):              # a key: no comment below is its
-        own = 0
-    elif first_blank is None:
-        own = len(after) if last else 0
-    else:
-        own = first_blank
-    return lead, blank, after[:own], after[own:], last
-
-
-def _place(root: Any, item: Any, array: AoT | None = None) -> None:
-    """Put a new table, array of tables, or entry of ``array``, ``item``, before the
-    comments that belong to what follows it: those directly above the next entry of the
-    same array, else all after the first blank line (the next section's)."""
-    if not isinstance(item, (Table, AoT)) or isinstance(item, InlineTable):
-        return
-    tokens = _tokens(root)
-    start, end = _span(tokens, item)
-    if start < 0:
-        return
-    before = _run(tokens, start, -1)
-    following = next((token[3] for token in tokens[end:] if token[0] == "solid"), None)
-    blank = next((n for n, at in enumerate(before)
-                  if isinstance(tokens[at][3], Whitespace)), None)
-    if array is not None and any(entry is following for entry in array.body):
-        moved = before[len(before) - _split(tokens, before, Comment):]
-    elif blank is None:                 # no blank line: all directly above what follows
-        moved = before if following is not None else []
-    else:                               # the first blank line (or lines) stays before it
-        while blank < len(before) and isinstance(tokens[before[blank]][3], Whitespace):
-            blank += 1
-        moved = before[blank:]
-    for at in moved:
-        _, container, index, _ = tokens[at]
-        container.body[index] = (None, Null())
-    table = item if isinstance(item, Table) else item.body[-1]
-    _insert(table.value, len(table.value.body), [tokens[at][3] for at in moved])
-    stays = before[:len(before) - len(moved)]
-    if stays and _split(tokens, stays, Whitespace):     # a blank line before it already:
-        first = item if isinstance(item, Table) else item.body[0]    # not tomlkit's too
-        first.trivia.indent = first.trivia.indent.lstrip("\n")
-
-
-def _add_key(container: Table | tomlkit.TOMLDocument, key: str, item: Any) -> None:
-    """Add ``key`` = ``item`` to a table (or the document) that has no ``key``, right
-    after the keys it has: tomlkit puts it after the comments and blank lines that end
-    the table, which are the next entry's (a module given a ``state`` or a ``node`` had
-    it written under the next module's comment, no blank line before that module's
-    header), and gives what follows a line break of its own. With no key there, it
-    goes before the first blank line."""
-    body = container.value.body if isinstance(container, Table) else container.body
-    indents = [(line, line.trivia.indent) for _, line in body
-               if not isinstance(line, (Whitespace, Null))]
-    container[key] = item
-    for line, indent in indents:
-        line.trivia.indent = indent
-    at = next((n for n, (name, _) in enumerate(body) if name is not None and name.key == key),
-              None)
-    if at is None:
-        return
-    last = next((n for n in reversed(range(at))
-                 if not isinstance(body[n][1], (Comment, Whitespace, Null))), None)
-    if last is not None and isinstance(body[last][1], (Table, AoT)):
-        return                                  # (a key after a table is the table's)
-    to = last + 1 if last is not None else next(
-        (n for n in range(at) if isinstance(body[n][1], Whitespace)), at)
-    if to < at:
-        body.insert(to, body.pop(at))
-        index = container.value._map if isinstance(container, Table) else container._map
-        for name, where in index.items():
-            index[name] = (tuple(n + 1 if to <= n < at else n for n in where)
-                           if isinstance(where, tuple) else to if where == at
-                           else where + 1 if to <= where < at else where)
-
-
-def _insert(container: Any, index: int, items: list[Any]) -> None:
-    """Put comments and blank lines ``items`` at ``index`` of a tomlkit container's body
-    (tomlkit inserts only keys there; its index of keys is moved on by as many)."""
-    if not items:
-        return
-    container.body[index:index] = [(None, item) for item in items]
-    for key, at in container._map.items():
-        container._map[key] = (tuple(i + len(items) if i >= index else i for i in at)
-                               if isinstance(at, tuple) else
-                               at + len(items) if at >= index else at)
-
-
-class _Moves:
-    """What an edit moves from one place of the document to another, as the user wrote
-    it: module entries grouped into a macro or out of one (``_moved``), and the links
-    among them, from ``[[links]]`` to a macro's ``links`` or back. Grouping rebuilt them
-    from their values, and every comment on them was lost. Each is taken with its own
-    lines, as ``_drop`` would take them: a copy of its table (or array entry, or inline
-    table) with the comments in it and on its keys, and the comments directly above it.
-    ``_merge`` puts the copy in at the new place (``table``, ``brought``) instead of one
-    made anew; ``lead_in`` then puts the comments above it there."""
-
-    def __init__(self) -> None:
-        self.tables: dict[tuple[str, ...], Any] = {}             # new place -> the copy
-        self.entries: dict[tuple[tuple[str, ...], str], list[Any]] = {}  # (array, value)
-        self.away: list[Any] = []             # array entries taken elsewhere (originals)
-        self.leads: dict[int, tuple[Any, str]] = {}   # id(copy) -> (copy, comments above)
-        self.placed: list[Any] = []           # the copies put in
-
-    @classmethod
-    def taken(cls, root: Any, held: dict[str, Any], new: dict[str, Any]) -> _Moves:
-        """What moves from ``held`` (the values of document ``root``) to ``new``; each
-        module entry is first made what ``new`` says where it was (a key dropped takes
-        its comment, as it would in place), then taken."""
-        moves = cls()
-        after = _entries(new)
-        for there, here in _moved(held, new).items():
-            if here in after:                       # copied, not moved: its lines stay
-                continue
-            container = _table_at(root, here[:-1])
-            item = container.item(here[-1]) if container is not None else None
-            if isinstance(item, (Table, InlineTable)) and isinstance(after[there], dict):
-                _merge(item, after[there], there, root)
-                moves.tables[there] = moves._lift(root, item)
-        for there, text, item in _moved_entries(root, held, new):
-            moves.entries.setdefault((there, text), []).append(moves._lift(root, item))
-            moves.away.append(item)
-        return moves
-
-    def table(self, where: tuple[str, ...]) -> Any:
-        """The copy to put at ``where``, or None."""
-        carried = self.tables.pop(where, None)
-        if carried is not None:
-            self.placed.append(carried)
-        return carried
-
-    def brought(self, where: tuple[str, ...], values: list[Any]) -> dict[int, Any]:
-        """The copies to put in array ``where`` (which is to say ``values``), by index."""
-        found = {}
-        for index, value in enumerate(values):
-            waiting = self.entries.get((where, _text(_as_sent(value))))
-            if waiting:
-                found[index] = waiting.pop(0)
-                self.placed.append(found[index])
-        return found
-
-    def gone(self, entry: Any) -> bool:
-        """Whether array entry ``entry`` of the document moved elsewhere."""
-        return any(entry is away for away in self.away)
-
-    def lead_in(self) -> None:
-        """Put the comments that were directly above each copy above it where it is now:
-        before its header or key, after the blank lines there (as the file has them, in
-        the copy's indent: the text is read again as a file's once written)."""
-        for carried in self.placed:
-            comments = self.leads.get(id(carried), (None, ""))[1]
-            indent = carried.trivia.indent
-            blank = indent[:len(indent) - len(indent.lstrip("\n"))]
-            carried.trivia.indent = blank + comments + indent[len(blank):]
-
-    def _lift(self, root: Any, item: Any) -> Any:
-        """A copy of ``item`` with its own lines (``_lines``), to put in elsewhere; the
-        comments directly above it kept for ``lead_in``."""
-        carried = copy.deepcopy(item)
-        tokens = _tokens(root)
-        start, end = _span(tokens, item)
-        if start < 0:                             # in an inline table: no lines its own
-            return carried
-        lead, _, _, kept, _ = _lines(tokens, item, start, end)
-        if isinstance(item, Table):
-            header = tokens[start + 1][0] == "solid" and tokens[start + 1][3] is item
-            inside = _table_tokens(carried, header)        # (the copy's, token for token)
-            for at in kept:
-                if start < at < end:                       # the next section's lines
-                    _, container, index, _ = inside[at - start]
-                    container.body[index] = (None, Null())
-            carried.invalidate_display_name()      # (a header as written: [modules.scale])
-            if not any(isinstance(line, Whitespace) for _, line in carried.value.body[-1:]):
-                carried.add(tomlkit.nl())          # a blank line before what follows
-        self.leads[id(carried)] = (carried, "".join(tokens[at][3].as_string() for at in lead))
-        return carried
+def _carried(root: Any, held: dict[str, Any], new: dict[str, Any]) -> lines.Carried:
+    """What an edit moves from ``held`` (the values of document ``root``) to ``new``, as
+    written (``lines.Carried``): module entries grouped into a macro or out of one
+    (``_moved``), and the links among them, from ``[[links]]`` to a macro's ``links`` or
+    back. Each module entry is first made what ``new`` says where it is (a key dropped
+    takes its comment, as it would in place), then taken."""
+    moves = lines.Carried()
+    after = _entries(new)
+    for there, here in _moved(held, new).items():
+        if here in after:                       # copied, not moved: its lines stay
+            continue
+        container = _table_at(root, here[:-1])
+        item = container.item(here[-1]) if container is not None else None
+        if isinstance(item, (Table, InlineTable)) and isinstance(after[there], dict):
+            _merge(item, after[there], there, root)
+            moves.take(root, item, there)
+    for there, text, item in _moved_entries(root, held, new):
+        moves.take(root, item, there, text)
+    return moves
 
 
 def _table_at(root: Any, keys: tuple[str, ...]) -> Any:
@@ -665,7 +420,7 @@ def _count_out(texts: list[str], others: list[str]) -> list[str]:
 
 
 def _item(value: Any, where: tuple[str, ...], inline: bool = False,
-          moves: _Moves | None = None) -> Any:
+          moves: lines.Carried | None = None) -> Any:
     """A new tomlkit value: tables where a configuration has them, inline otherwise (and
     always inside an inline table, ``inline``: the file wrote ``modules = {...}``); what
     ``moves`` brings to ``where`` as it was written."""
@@ -679,7 +434,7 @@ def _item(value: Any, where: tuple[str, ...], inline: bool = False,
     if isinstance(value, list) and value and all(isinstance(item, dict) for item in value) \
             and _matches(where, _TABLE_ARRAYS) and not inline:
         array = tomlkit.aot()
-        brought = moves.brought(where, value) if moves is not None else {}
+        brought = _brought(moves, where, value)
         for index, item in enumerate(value):
             entry = brought.get(index)
             array.append(entry if entry is not None else
@@ -691,7 +446,7 @@ def _item(value: Any, where: tuple[str, ...], inline: bool = False,
 
 
 def _table(value: dict[str, Any], where: tuple[str, ...], table: Any,
-           moves: _Moves | None = None) -> Any:
+           moves: lines.Carried | None = None) -> Any:
     for key, item in value.items():
         if item is not None:
             table[key] = _item(item, (*where, key), isinstance(table, InlineTable), moves)
