@@ -330,6 +330,24 @@ def test_an_integer_for_a_float_state_field_becomes_a_float() -> None:
     assert type(state["gain"]) is float and type(state["setups"]) is int
 
 
+def test_whole_numbers_in_a_float_list_or_table_field_become_floats() -> None:
+    from pb3a import Module
+
+    class Limited(Module):
+        limits = [-1.0, 1.0]
+        gains = {"kp": 1.0, "steps": 3}
+        counts = [1, 2]
+
+    state = System("w").add("m", Limited, state={
+        "limits": [-2, 2], "gains": {"kp": 4, "steps": 5}, "counts": [3, 4]}
+    ).plan().modules["m"].state
+    assert state == {"limits": [-2.0, 2.0], "gains": {"kp": 4.0, "steps": 5},
+                     "counts": [3, 4]}
+    assert [type(v) for v in state["limits"]] == [float, float]
+    assert type(state["gains"]["kp"]) is float and type(state["gains"]["steps"]) is int
+    assert [type(v) for v in state["counts"]] == [int, int]
+
+
 def test_a_macro_instance_naming_a_module_it_lacks_or_bad_state_is_reported() -> None:
     import sample_modules as sm
 

@@ -40,6 +40,7 @@ from pb3a.loading.sources import CodeSources
 from pb3a.model.environment import Environment, env_name
 from pb3a.model.macro import Macro
 from pb3a.model.module import Module
+from pb3a.model.state_edits import floats_as_declared
 
 
 def plan_system(spec: SystemSpec) -> tuple[Plan | None, list[str]]:
@@ -416,9 +417,8 @@ class _Planner:
 
 
 def _widened(cls: type[Module], state: dict[str, Any]) -> dict[str, Any]:
-    """``state`` with an integer given for a field whose class default is a float as
-    that float: TOML and JSON write 4.0 as 4 as often as not, and the module should not
-    get an int it never had."""
-    return {name: float(value) if type(value) is int
-            and type(getattr(cls, name, None)) is float else value
+    """``state`` with each whole number given where the class default holds a float made
+    that float, in lists, tuples and dicts too (``floats_as_declared``): TOML and JSON
+    write 4.0 as 4 as often as not, and the module should not get an int it never had."""
+    return {name: floats_as_declared(getattr(cls, name, None), value)
             for name, value in state.items()}
