@@ -100,6 +100,7 @@ def parts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
     (folder / "parts_boom.py").write_text("raise RuntimeError('boom')\n")
     (folder / "parts_needs.py").write_text("import math\nimport no_such_dependency\n")
     (folder / "parts_names.py").write_text("from parts_cfg import no_such_name\n")
+    (folder / "parts_exits.py").write_text("import sys\nsys.exit(4)\n")
     sys.path.insert(0, str(folder))
     yield
     sys.path.remove(str(folder))
@@ -107,6 +108,7 @@ def parts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
     sys.modules.pop("parts_boom", None)
     sys.modules.pop("parts_needs", None)
     sys.modules.pop("parts_names", None)
+    sys.modules.pop("parts_exits", None)
 
 
 def write(tmp_path: Path, text: str, name: str = "sys.toml") -> Path:
@@ -165,6 +167,18 @@ def test_resolve_class_errors_say_what_to_change() -> None:
                                           r"Thing' failed at .*parts_names\.py, line 1: "
                                           r"cannot import name 'no_such_name' from 'parts_cfg'"):
         resolve_class("parts_names:Thing")
+
+
+def test_a_module_that_calls_sys_exit_as_it_is_imported_is_an_import_error() -> None:
+    """A module file's sys.exit() as resolve_class imported it went through: it ended the
+    process that loaded the class (`pb3a check` with the file's status and not a word, a
+    launcher); it is an import error naming the file and line, and the fix."""
+    with pytest.raises(ImportError, match=r"importing module 'parts_exits' for 'parts_exits:"
+                                          r"Thing' failed at .*parts_exits\.py, line 2: it "
+                                          r"calls sys\.exit\(4\) as it is imported; a module "
+                                          r"must not exit when imported \(put that code under "
+                                          r"if __name__ == '__main__':\)"):
+        resolve_class("parts_exits:Thing")
 
 
 # -- valid descriptions -------------------------------------------------------

@@ -65,6 +65,11 @@ def resolve_class(ref: str | type) -> type:
     except ConfigError as exc:  # it launched a system as it was imported: said in full
         raise ImportError(f"importing module {module_name!r} for {ref!r} failed: "
                           f"{'; '.join(exc.problems)}") from None
+    except SystemExit as exc:   # a script's exit, run as it is imported: not this process's
+        raise ImportError(f"importing module {module_name!r} for {ref!r} failed"
+                          f"{_where_it_failed(exc)}: it calls sys.exit({exc.code!r}) as it is "
+                          "imported; a module must not exit when imported (put that code "
+                          "under if __name__ == '__main__':)") from exc
     except Exception as exc:  # a module that fails while importing: say which and why
         raise ImportError(f"importing module {module_name!r} for {ref!r} failed"
                           f"{_where_it_failed(exc)}: {type(exc).__name__}: {exc}") from exc
