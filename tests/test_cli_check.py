@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import pytest
-from conftest import eventually
+from conftest import alive, eventually
 
 import examples.pipeline
 from pb3a import System
@@ -33,13 +36,66 @@ BROKEN = """
 """
 
 
-def pb3a(*args: str, cwd: Path, path: str | None = None) -> subprocess.CompletedProcess[str]:
+def pb3a(*args: str, cwd: Path, path: str | None = None,
+         stdin: int | None = None) -> subprocess.CompletedProcess[str]:
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
     if path is not None:
         env["PATH"] = path
-    return subprocess.run([sys.executable, "-m", "pb3a", *args], cwd=cwd, env=env,
+    return subprocess.run([sys.executable, "-m", "pb3a", *args], cwd=cwd, env=env, stdin=stdin,
                           capture_output=True, text=True, timeout=60, check=False)
+
+
+# Module files that harm whoever imports them, each ending in a class ``Bad`` with an output
+# ``out``; ``imported_hangs`` starts a process first and writes its pid to ``started.pid``.
+HARMFUL = {
+    "imported_hangs": """
+        import pathlib, subprocess
+        started = subprocess.Popen(["sleep", "600"])
+        pathlib.Path("started.pid").write_text(str(started.pid))
+        while True:
+            pass
+        """,
+    "imported_ends": "import os\nos._exit(3)\n",
+    "imported_crashes": "import ctypes\nctypes.string_at(0)\n",
+    "imported_exits": "import sys\nsys.exit(2)\n",
+    "imported_prints": "print('hello from an import')\n",
+    "imported_reads": "answer = input('password? ')\n",
+}
+GOOD = """
+    from pb3a import Input, Module, Output
+
+    class Src(Module):
+        out = Output(float)
+
+    class Dst(Module):
+        x = Input(float)
+    """
+
+
+def _harmful_files(directory: Path, *names: str) -> None:
+    """The module files ``names`` of ``HARMFUL`` and ``imported_good.py`` in ``directory``."""
+    (directory / "imported_good.py").write_text(textwrap.dedent(GOOD))
+    for name in names:
+        (directory / f"{name}.py").write_text(textwrap.dedent(HARMFUL[name]) + textwrap.dedent(
+            """
+            from pb3a import Module, Output
+
+            class Bad(Module):
+                out = Output(float)
+            """))
+
+
+def _system(directory: Path, *names: str) -> Path:
+    """A file naming ``imported_good:Dst`` (as ``dst``) and each module ``names`` (its
+    ``Bad`` as a module of that name), the first linked to ``dst``."""
+    lines = ['name = "harmed"', "[modules.dst]", 'class = "imported_good:Dst"']
+    for name in names:
+        lines += [f"[modules.{name}]", f'class = "{name}:Bad"']
+    lines += ["[[links]]", f'from = "{names[0]}.out"', 'to = "dst.x"']
+    path = directory / "harmed.toml"
+    path.write_text("\n".join(lines) + "\n")
+    return path
 
 
 def test_check_accepts_the_pipeline_example(tmp_path: Path) -> None:
@@ -174,3 +230,87 @@ def test_the_stress_example_of_the_readme_is_valid(capsys) -> None:
     assert main(["check", str(REPO / "examples" / "stressed.toml")]) == 0
     assert capsys.readouterr().out == "ok: 2 modules, 1 link\n"
     assert "pb3a stress examples/stressed.toml " in (REPO / "README.md").read_text()
+
+
+def test_check_names_a_module_file_that_hangs_ends_or_crashes_as_imported_and_the_rest_too(
+        tmp_path: Path) -> None:
+    """`pb3a check` imported the classes in its own process: a module file that looped as
+    it was imported hung it for good, one that called os._exit() or sys.exit() ended it
+    with that status and not a word (os._exit(0): "valid"), one that crashed killed it
+    (SIGSEGV). Each is now a problem of the entry naming it, saying what happened and what
+    to do, with the file's other problems, within seconds; the looping import and the
+    process it started are gone when check returns."""
+    harmful = ("imported_hangs", "imported_ends", "imported_crashes", "imported_exits")
+    _harmful_files(tmp_path, *harmful)
+    _system(tmp_path, *harmful)
+    with (tmp_path / "harmed.toml").open("a") as file:
+        file.write('[modules.typo]\nclass = "imported_good:Dts"\n')
+    try:
+        began = time.monotonic()
+        done = pb3a("check", "--import-timeout", "1", "harmed.toml", cwd=tmp_path)
+        took = time.monotonic() - began
+    finally:
+        pid_file = tmp_path / "started.pid"
+        started = int(pid_file.read_text()) if pid_file.exists() else None
+        with contextlib.suppress(ProcessLookupError):
+            if started is not None and alive(started):
+                os.kill(started, signal.SIGKILL)      # (the old check left it running)
+    assert done.returncode == 1, done.stdout + done.stderr
+    lines = done.stdout.splitlines()
+    assert lines == [
+        "harmed.toml [modules.imported_hangs]: importing module 'imported_hangs' for "
+        "'imported_hangs:Bad' did not finish within 1 s: it loops or waits (for input, a "
+        "lock, the network) as it is imported; make it return, or give a longer "
+        "--import-timeout",
+        "harmed.toml [modules.imported_ends]: importing module 'imported_ends' for "
+        "'imported_ends:Bad' exited with status 3: it ends the process as it is imported "
+        "(os._exit()?); a module must not exit when imported (put that code under if "
+        "__name__ == '__main__':)",
+        "harmed.toml [modules.imported_crashes]: importing module 'imported_crashes' for "
+        "'imported_crashes:Bad' was killed by signal SIGSEGV (a crash in native code it runs "
+        "as it is imported?): fix or remove that code",
+        f"harmed.toml [modules.imported_exits]: importing module 'imported_exits' for "
+        f"'imported_exits:Bad' failed at {tmp_path / 'imported_exits.py'}, line 2: it calls "
+        "sys.exit(2) as it is imported; a module must not exit when imported (put that code "
+        "under if __name__ == '__main__':)",
+        "harmed.toml [modules.typo]: module 'imported_good' has no class 'Dts' (did you mean "
+        "'Dst'?)"], done.stdout
+    assert "pb3a check: 5 problems in harmed.toml" in done.stderr
+    assert took < 20, took
+    assert started is not None
+    eventually(lambda: not alive(started), what="the end of the process the import started")
+
+
+def test_check_and_graph_keep_what_an_import_prints_off_their_output(tmp_path: Path) -> None:
+    """What a module file printed as it was imported came first on check's stdout (before
+    "ok: ...") and inside graph's DOT (`-o -`); it goes to stderr now, nothing lost."""
+    _harmful_files(tmp_path, "imported_prints")
+    _system(tmp_path, "imported_prints")
+    done = pb3a("check", "harmed.toml", cwd=tmp_path)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert done.stdout == "ok: 2 modules, 1 link\n"
+    assert "hello from an import" in done.stderr
+    drawn = pb3a("graph", "harmed.toml", "-o", "-", cwd=tmp_path)
+    assert drawn.returncode == 0, drawn.stderr
+    assert drawn.stdout.startswith('digraph "harmed" {') and "hello" not in drawn.stdout
+    assert '"imported_prints":"o_out" -> "dst":"i_x"' in drawn.stdout
+    assert "hello from an import" in drawn.stderr
+
+
+def test_check_of_a_module_file_that_reads_input_as_imported_does_not_wait_for_it(
+        tmp_path: Path) -> None:
+    """A module file that called input() as it was imported made `pb3a check` wait for a
+    line on its stdin (a terminal's: for good); the import now reads none, and fails at
+    once at its line."""
+    _harmful_files(tmp_path, "imported_reads")
+    _system(tmp_path, "imported_reads")
+    held, open_end = os.pipe()                  # a stdin that never ends, as a terminal's
+    try:
+        done = pb3a("check", "harmed.toml", cwd=tmp_path, stdin=held)
+    finally:
+        os.close(held)
+        os.close(open_end)
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert done.stdout.startswith(
+        "harmed.toml [modules.imported_reads]: importing module 'imported_reads' for "
+        f"'imported_reads:Bad' failed at {tmp_path / 'imported_reads.py'}, line 1: EOFError")

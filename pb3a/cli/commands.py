@@ -15,6 +15,7 @@ from typing import Any
 from pb3a.cli import arguments, stress_options
 
 MANAGER_LISTEN = "127.0.0.1:0"      # pb3a manager's default: loopback, any free port
+IMPORT_TIMEOUT_S = 10.0             # check's and graph's: one module file's import, at most
 
 
 def parser() -> argparse.ArgumentParser:
@@ -31,6 +32,7 @@ def _files(commands: argparse._SubParsersAction) -> None:
     """``check``, ``graph`` and ``run``: commands on a configuration file."""
     check = commands.add_parser("check", help="validate a configuration file; exit 1 on errors")
     check.add_argument("file", metavar="FILE", help="a system description (.toml)")
+    _import_timeout(check)
     check.set_defaults(handler="pb3a.cli.files:check_command")
 
     graph = commands.add_parser("graph", help="draw a configuration: nodes, modules, ports, links")
@@ -38,6 +40,7 @@ def _files(commands: argparse._SubParsersAction) -> None:
     graph.add_argument("-o", "--output", metavar="OUT",
                        help="output file: .svg (default: FILE's name with .svg), .png, .pdf, "
                             "or .dot for DOT only; '-' prints DOT")
+    _import_timeout(graph)
     graph.set_defaults(handler="pb3a.cli.files:graph_command")
 
     run = commands.add_parser("run", help="launch a system and show its live status")
@@ -49,6 +52,13 @@ def _files(commands: argparse._SubParsersAction) -> None:
                           "call it back (default: any port on the interface that reaches "
                           "the remote nodes; loopback without)")
     run.set_defaults(handler="pb3a.cli.files:run_command")
+
+
+def _import_timeout(command: argparse.ArgumentParser) -> None:
+    command.add_argument("--import-timeout", type=arguments.seconds, default=IMPORT_TIMEOUT_S,
+                         metavar="SECONDS",
+                         help="longest the import of one module file may take; one that takes "
+                              f"longer is reported as hanging (default {IMPORT_TIMEOUT_S:g})")
 
 
 def _running_system(commands: argparse._SubParsersAction) -> None:

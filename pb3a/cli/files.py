@@ -1,4 +1,9 @@
-"""Commands on a configuration file: ``pb3a check``, ``pb3a graph``, ``pb3a run``."""
+"""Commands on a configuration file: ``pb3a check``, ``pb3a graph``, ``pb3a run``.
+
+``check`` and ``graph`` import none of the runtime nor the file's classes here: a
+child process plans the file (``pb3a.config.isolated``). ``run`` plans it in this
+process, which launches it.
+"""
 
 from __future__ import annotations
 
@@ -6,33 +11,37 @@ import argparse
 import shutil
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, TypeVar
 
-import zmq
-
-from pb3a.config.dot import plan_to_dot
-from pb3a.config.plan import Plan
+from pb3a.config.isolated import check_file
 from pb3a.errors import ConfigError, PB3AError
-from pb3a.system import System
-from pb3a.transport.auth import ClusterKey, ClusterKeyError
+
+if TYPE_CHECKING:
+    from pb3a.config.plan import Plan
+
+T = TypeVar("T")
 
 
 def check_command(args: argparse.Namespace) -> int:
     """``pb3a check FILE``: every problem on its own line (exit 1), or a one-line summary."""
-    plan = load_plan(args.file, "check")
-    if plan is None:
+    checked = _reported(args.file, "check", lambda: check_file(
+        args.file, import_timeout=args.import_timeout))
+    if checked is None:
         return 1
-    modules, links = len(plan.modules), len(plan.links)
+    modules, links = checked.modules, checked.links
     print(f"ok: {modules} module{'s' * (modules != 1)}, {links} link{'s' * (links != 1)}")
     return 0
 
 
 def graph_command(args: argparse.Namespace) -> int:
     """``pb3a graph FILE [-o OUT]``: write DOT, then render OUT with Graphviz unless it is .dot."""
-    plan = load_plan(args.file, "graph")
-    if plan is None:
+    checked = _reported(args.file, "graph", lambda: check_file(
+        args.file, import_timeout=args.import_timeout, dot=True))
+    if checked is None:
         return 1
-    text = plan_to_dot(plan)
+    text = checked.dot or ""
     if args.output == "-":
         sys.stdout.write(text)
         return 0
@@ -72,7 +81,10 @@ def graph_command(args: argparse.Namespace) -> int:
 
 def run_command(args: argparse.Namespace) -> int:
     """``pb3a run FILE [--for SECONDS]``: launch with a live status display."""
+    import zmq
+
     from pb3a.cli.status import run_with_status
+    from pb3a.transport.auth import ClusterKey, ClusterKeyError
 
     plan = load_plan(args.file, "run")
     if plan is None:
@@ -90,11 +102,19 @@ def run_command(args: argparse.Namespace) -> int:
 
 
 def load_plan(file: str, command: str) -> Plan | None:
-    """The plan of ``file``, or None after printing why there is none."""
+    """The plan of ``file``, planned in this process, or None after printing why there
+    is none."""
+    from pb3a.system import System
+
+    return _reported(file, command, lambda: System.load(file).plan())
+
+
+def _reported(file: str, command: str, plan: Callable[[], T]) -> T | None:
+    """What ``plan()`` returns, or None after printing why it raised: ``file`` cannot be
+    read, is not a valid configuration, or (a ``PB3AError`` saying so) the cluster key
+    that its module servers need is unusable."""
     try:
-        return System.load(file).plan()
-    except ClusterKeyError as exc:              # (module servers need the key)
-        print(f"pb3a {command}: {exc}", file=sys.stderr)
+        return plan()
     except OSError as exc:
         print(f"pb3a {command}: cannot read {file}: {exc.strerror or exc}", file=sys.stderr)
     except ConfigError as exc:
@@ -103,4 +123,6 @@ def load_plan(file: str, command: str) -> Plan | None:
         count = len(exc.problems)
         print(f"pb3a {command}: {count} problem{'s' if count != 1 else ''} in {file}",
               file=sys.stderr)
+    except PB3AError as exc:                    # (module servers need the key)
+        print(f"pb3a {command}: {exc}", file=sys.stderr)
     return None

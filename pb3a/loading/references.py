@@ -8,6 +8,7 @@ attribute path inside it begins (``"pkg.mod:Outer.Inner"`` works too).
 
 from __future__ import annotations
 
+import contextlib
 import difflib
 import importlib
 import os
@@ -15,6 +16,8 @@ import re
 import sysconfig
 import threading
 import traceback
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from pathlib import Path
 
 from pb3a.errors import ConfigError
@@ -49,7 +52,10 @@ def resolve_class(ref: str | type) -> type:
     module_name, _, attr_path = ref.partition(":")
     before, _importing.ref = importing_for(), ref
     try:
-        module = importlib.import_module(module_name)
+        with _watch(module_name, ref):
+            module = importlib.import_module(module_name)
+    except ImportRefused:                       # said in full by whoever refused it
+        raise
     except ImportError as exc:
         missing = exc.name if isinstance(exc, ModuleNotFoundError) else None
         if missing and (module_name == missing or module_name.startswith(f"{missing}.")):
@@ -85,6 +91,30 @@ def resolve_class(ref: str | type) -> type:
     if not isinstance(target, type):
         raise TypeError(f"{ref!r} is a {type(target).__name__}, not a class")
     return target
+
+
+class ImportRefused(ImportError):
+    """An import that the process's import watcher refused (see ``watch_imports``); its
+    message is the whole sentence to show, naming the module and the reference."""
+
+
+ImportWatch = Callable[[str, str], AbstractContextManager[object]]
+
+
+def _unwatched(module: str, ref: str) -> AbstractContextManager[object]:
+    return contextlib.nullcontext()
+
+
+_watch: ImportWatch = _unwatched
+
+
+def watch_imports(watch: ImportWatch) -> None:
+    """From now on, ``resolve_class`` imports a class's module inside ``watch(module,
+    ref)``, which may raise ``ImportRefused`` instead. A process that imports classes on
+    another's behalf (``pb3a check``'s, see ``pb3a.config.isolated``) tells it so which
+    import it is in when it hangs or dies, and refuses one that did so before."""
+    global _watch
+    _watch = watch
 
 
 # While resolve_class imports a class's module, the reference it imports for: a system
