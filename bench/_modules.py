@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from pb3a import Input, InputPort, Module, Output
+from pb3a import Input, InputPort, Module, Output, RuntimeTimeout
 
 ARRAY_SHAPE = (131072,)        # 1 MiB of float64
 IDLE_S = 0.02                  # how long an idle burst writer sleeps inside step()
@@ -234,3 +234,47 @@ class SequenceChecker(Module):
             else:
                 self.skipped += value - self.expected
                 self.expected = value + 1
+
+
+class Camera(Module):
+    """Writes a ``size``-byte frame every ``period``, numbered, with when it was written
+    (unix seconds) in its first 16 bytes; ``sent`` counts the frames that went, and
+    ``timeouts`` the writes a lossless link held back past the writer's timeout."""
+
+    out = Output(np.ndarray)
+    period = 0.1
+    size = 1 << 20
+    sent = 0
+    timeouts = 0
+
+    def step(self) -> None:
+        frame = np.zeros(self.size, np.uint8)
+        frame[:16].view(np.float64)[:] = (self.sent + 1, time.time())
+        try:
+            self.out.write(frame)
+        except RuntimeTimeout:
+            self.timeouts += 1
+            return
+        self.sent += 1
+
+
+class Viewer(Module):
+    """Reads a ``Camera``'s frames: how many came, how many it never saw (``skipped``),
+    any that came again or out of order, and the oldest a frame was on arrival."""
+
+    x = Input(np.ndarray, policy="queue:8")
+    received = 0
+    last = 0
+    skipped = 0
+    repeated = 0
+    max_age_s = 0.0
+
+    def on_input(self, port: InputPort) -> None:
+        number, written = port.read()[:16].view(np.float64)
+        if number <= self.last:
+            self.repeated += 1
+            return
+        self.skipped += int(number) - self.last - 1
+        self.last = int(number)
+        self.received += 1
+        self.max_age_s = max(self.max_age_s, time.time() - written)

@@ -20,6 +20,7 @@ import psutil
 import pytest
 import zmq
 from conftest import eventually
+from throttle import Throttle
 
 from pb3a import RuntimeTimeout
 from pb3a.transport import replication
@@ -938,4 +939,41 @@ def test_nothing_piles_up_for_a_frozen_follower_and_it_recovers(monkeypatch) -> 
         child.stdin.close()
         child.stdout.close()
         monitor.close()
+        replicator.close()
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("lossless", [False, True], ids=["queue", "lossless"])
+def test_a_link_slower_per_value_than_the_peer_timeout_is_not_cut(monkeypatch,
+                                                                  lossless: bool) -> None:
+    """A link so slow that one large value takes longer than the peer timeout to cross
+    (a 1 MiB camera frame on a 1 Mbit/s radio link: 8 s; here 256 KiB at 1 Mbit/s, 2 s,
+    against 1 s) keeps its connections: every value arrives, in order, once. ZeroMQ
+    counts only whole messages as signs of life, so the follower's sockets closed
+    their connections while each value was still coming in, the value and its repair
+    were lost again at every reconnection, and nothing ever arrived (1 MiB frames at
+    1 Mbit/s: none in 30 s, a reconnection every 5 s). Its writer still hears the
+    follower: its pings go the other way, where nothing large waits."""
+    monkeypatch.setattr(replication, "PEER_PING_MS", 200)
+    monkeypatch.setattr(replication, "PEER_TIMEOUT_MS", 1000)
+    frames = [np.full(32 * 1024, float(i)) for i in range(3)]        # 256 KiB each
+    replicator, inbox = Replicator(KEY), Inbox()
+    follower = Follower(KEY, inbox)
+    try:
+        with Throttle(1e6) as radio:
+            replicator.add("camera")
+            follower.set_lossless("camera", lossless)
+            follower.follow("camera", radio.route(replicator.data_address),
+                            radio.route(replicator.control_address), from_seq=0)
+            assert follower.wait_ready("camera", TIMEOUT)
+            for frame in frames:
+                replicator.publish("camera", frame, timeout=TIMEOUT)
+            got = inbox.wait("camera", len(frames), timeout=30.0)
+            connections, ended = dict(radio.connections), dict(radio.ended_by)
+        assert [frame[0] for frame in got] == [0.0, 1.0, 2.0]
+        assert all(np.array_equal(a, b) for a, b in zip(got, frames, strict=True))
+        assert list(connections.values()) == [1, 1] and not ended     # none was cut
+        assert not follower.link_failures and not follower.duplicates
+    finally:
+        follower.close()
         replicator.close()

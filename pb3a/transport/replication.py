@@ -136,7 +136,8 @@ HELLO_EVERY = 0.05                      # seconds between unanswered HELLOs
 HEARTBEAT_S = 0.5                       # how often a replicator announces its topics
 LINGER_MS = 500                         # a closed DEALER's last messages may still go
 PEER_PING_MS = 1000                     # each connection pings its peer this often ...
-PEER_TIMEOUT_MS = 5000                  # ... and is closed when it hears nothing this long
+PEER_TIMEOUT_MS = 5000                  # ... and a sender's is closed when it hears nothing
+                                        # this long (see ``_secure``)
 DRAIN_BATCH = 1024                      # messages taken in before delivering them
 ZERO_COPY_MIN = 64 * 1024               # frames at least this large are sent without a copy
 _SCALARS = frozenset({int, float, bool, complex, type(None)})   # immutable: kept as they are
@@ -180,21 +181,28 @@ def _sealed(sealer: Sealer, kind: int, parts: list[Any]) -> list[Any]:
     return sealer.seal(kind, parts)
 
 
-def _secure(sock: zmq.Socket, max_bytes: int = MAX_MESSAGE) -> zmq.Socket:
-    """Limits every replication socket sets. A connection whose peer answers nothing
-    (frozen, its cable pulled) is closed after ``PEER_TIMEOUT_MS``: what was queued
-    for it is freed, and the connecting side reconnects by itself. (A PUB socket's
-    queue for a peer is counted in messages, not bytes: a follower frozen for minutes
-    had up to ``HWM`` large values queued for it, gigabytes, long after the replay
-    buffer had let them go.) Any traffic from the peer counts as an answer; a
-    sender's ping waits behind what its kernel still has to send, so a link that
-    cannot move a few MiB within the timeout may be cut too, and is then repaired."""
+def _secure(sock: zmq.Socket, max_bytes: int = MAX_MESSAGE, *, sender: bool) -> zmq.Socket:
+    """Limits every replication socket sets, and its heartbeats. Every socket pings its
+    peers each ``PEER_PING_MS``. A sender's socket (PUB, ROUTER) closes a connection that
+    has brought it nothing for ``PEER_TIMEOUT_MS``: its follower is frozen or cut off,
+    and what was queued for it is freed (a PUB socket's queue for a peer is counted in
+    messages, not bytes: a follower frozen for minutes had up to ``HWM`` large values
+    queued for it, gigabytes, long after the replay buffer had let them go); the
+    follower reconnects by itself when it can. A follower sends only small messages, so
+    its pings, which reset that timeout, never wait behind large ones however slow the
+    link. A follower's socket (SUB, DEALER) pings but never closes a connection for
+    silence: ZeroMQ counts only whole messages as signs of life, and on a slow link a
+    large value takes longer than any fixed timeout to come in whole (1 MiB at 1 Mbit/s:
+    8 s); it cut such a link at every value, and nothing ever arrived. (A dead sender's
+    host resets its connections; one whose sender closed it while the cable was out
+    resets it at the follower's next ping; a sender's node that answers nothing is the
+    launcher's to find, as a lost node.)"""
     sock.setsockopt(zmq.LINGER, 0)
     sock.setsockopt(zmq.MAXMSGSIZE, max_bytes)
     sock.setsockopt(zmq.SNDHWM, HWM)
     sock.setsockopt(zmq.RCVHWM, HWM)
     sock.setsockopt(zmq.HEARTBEAT_IVL, PEER_PING_MS)
-    sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, PEER_TIMEOUT_MS)
+    sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, PEER_TIMEOUT_MS if sender else 0)   # 0: never
     return sock
 
 
@@ -370,8 +378,8 @@ class Replicator:
         self._max_bytes = max_bytes
         self._batch_bytes = min(BATCH_BYTES, max_bytes // 2)
         self._context = zmq.Context.instance()
-        self._pub = _secure(self._context.socket(zmq.PUB), max_bytes)
-        self._router = _secure(self._context.socket(zmq.ROUTER), max_bytes)
+        self._pub = _secure(self._context.socket(zmq.PUB), max_bytes, sender=True)
+        self._router = _secure(self._context.socket(zmq.ROUTER), max_bytes, sender=True)
         # a follower keeps its id across reconnections (see Follower): the new
         # connection takes the id over from the old one, which may not be seen gone yet
         self._router.setsockopt(zmq.ROUTER_HANDOVER, 1)
@@ -873,12 +881,13 @@ class Follower:
                 incarnation: bytes | None) -> None:
         sub = self._subs.get(data)
         if sub is None:
-            sub = self._subs[data] = _secure(self._context.socket(zmq.SUB), self._max_bytes)
+            sub = self._subs[data] = _secure(self._context.socket(zmq.SUB), self._max_bytes,
+                                             sender=False)
             sub.connect(data)
             self._loop.register(sub, self._on_data)
         dealer = self._controls.get(control)
         if dealer is None:
-            dealer = _secure(self._context.socket(zmq.DEALER), self._max_bytes)
+            dealer = _secure(self._context.socket(zmq.DEALER), self._max_bytes, sender=False)
             # One id for good (its node's: see ``follower_id``): the replicator keys
             # acknowledgements and lossless holds by it. Drawn by ZeroMQ at each
             # reconnection, it left the old hold behind, never released, until it
