@@ -119,6 +119,18 @@ def test_a_period_s_demand_scales_and_a_bad_scale_is_named(tmp_path: Path) -> No
        f'group = "g" }}\n[[demand.periods]]\nshare = 1.0\nrates = {{ g = {rate} }}\n',
        "rate of group g must be a finite number of vehicles per hour, 0 or more")
       for rate in ("nan", "inf", "-60", '"many"')],
+    # a table of the wrong shape was an AttributeError or TypeError traceback
+    ("build = 3\n", r"\[build\] must be a table, got 3"),
+    ('[build]\nnetconvert = 3\n', "netconvert needs nodes and edges"),
+    ('demand = 3\n[build]\nnetgenerate = ["--grid"]\n', r"\[demand\] must be a table"),
+    ('[build]\nnetgenerate = ["--grid"]\n[demand]\nperiods = [3]\n[demand.streams]\n'
+     'a = { from = "x", to = "y", group = "g" }\n', r"\[\[demand.periods\]\] must be tables"),
+    ('[build]\nnetgenerate = ["--grid"]\n[demand.streams]\na = { from = "x", to = "y", '
+     'group = "g" }\n[[demand.periods]]\nshare = 1.0\nrates = 3\n',
+     "rates must give every group \\(g\\), got 3"),
+    ('[build]\nnetgenerate = ["--grid"]\n[demand.streams]\na = { from = 3, to = "y", '
+     'group = "g" }\n', r"\[demand.streams\] a: from must be text"),
+    ('name = "west/ring"\n', "name must be text that can name a file"),
 ])
 def test_a_bad_description_is_refused_saying_what_to_fix(tmp_path: Path, text: str,
                                                          complaint: str) -> None:

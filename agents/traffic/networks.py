@@ -126,13 +126,21 @@ class Network:
         def fail(what: str) -> ValueError:
             return ValueError(f"{path}: {what}")
 
+        title = doc.get("name", path.stem)
+        if not (isinstance(title, str) and title.strip() and "/" not in title
+                and "\\" not in title and title not in (".", "..")):
+            raise fail(f"name must be text that can name a file (no '/'), got {title!r}: "
+                       "built networks are kept under it")
         build = doc.get("build", {})
+        if not isinstance(build, dict):
+            raise fail(f"[build] must be a table, got {build!r}")
         netconvert, netgenerate = build.get("netconvert"), build.get("netgenerate")
         if (netconvert is None) == (netgenerate is None):
             raise fail("[build] needs exactly one of netconvert = { nodes = ..., edges = "
                        "... } or netgenerate = [arguments]")
         if netconvert is not None:
-            if set(netconvert) != {"nodes", "edges"}:
+            if not (isinstance(netconvert, dict) and set(netconvert) == {"nodes", "edges"}
+                    and all(isinstance(v, str) for v in netconvert.values())):
                 raise fail("[build] netconvert needs nodes and edges (file names beside "
                            "the description) and nothing else")
             for key in ("nodes", "edges"):
@@ -143,6 +151,8 @@ class Network:
             raise fail("[build] netgenerate must be a list of strings (its arguments)")
 
         demand = doc.get("demand", {})
+        if not isinstance(demand, dict):
+            raise fail(f"[demand] must be a table of streams and periods, got {demand!r}")
         if not isinstance(demand.get("streams", {}), dict):
             raise fail("[demand.streams] must be a table of streams "
                        "(name = { from = EDGE, to = EDGE, group = G })")
@@ -151,18 +161,28 @@ class Network:
             missing = {"from", "to", "group"} - set(stream if isinstance(stream, dict) else ())
             if missing:
                 raise fail(f"[demand.streams] {name} lacks {', '.join(sorted(missing))}")
+            wrong = [key for key in ("from", "to", "group") if not isinstance(stream[key], str)]
+            if wrong:
+                raise fail(f"[demand.streams] {name}: {', '.join(wrong)} must be text (an "
+                           f"edge's id, a group's name), got "
+                           f"{', '.join(repr(stream[key]) for key in wrong)}")
             streams.append(Stream(name, stream["from"], stream["to"], stream["group"]))
         if not streams:
             raise fail("[demand.streams] is empty: name at least one stream "
                        "(name = { from = EDGE, to = EDGE, group = G })")
         groups = {s.group for s in streams}
         periods = []
-        for number, period in enumerate(demand.get("periods", [])):
+        listed = demand.get("periods", [])
+        if not (isinstance(listed, list) and all(isinstance(p, dict) for p in listed)):
+            raise fail("[[demand.periods]] must be tables, each with a name, a share and "
+                       f"rates, got {listed!r}")
+        for number, period in enumerate(listed):
             label = f"[[demand.periods]] {period.get('name', number + 1)}"
             rates = period.get("rates", {})
-            if set(rates) != groups:
+            if not isinstance(rates, dict) or set(rates) != groups:
+                given = ", ".join(sorted(rates)) if isinstance(rates, dict) else repr(rates)
                 raise fail(f"{label}: rates must give every group ({', '.join(sorted(groups))}), "
-                           f"got {', '.join(sorted(rates)) or 'none'}")
+                           f"got {given or 'none'}")
             share = period.get("share", 0)
             if not (finite(share) and share > 0):
                 raise fail(f"{label}: share must be a number above 0")
@@ -177,7 +197,7 @@ class Network:
             raise fail("[[demand.periods]] is missing: give at least one period")
         if abs(sum(p.share for p in periods) - 1.0) > 1e-6:
             raise fail("the periods' shares must add up to 1")
-        return cls(str(doc.get("name", path.stem)), path, netconvert,
+        return cls(title, path, netconvert,
                    tuple(netgenerate) if netgenerate is not None else None,
                    tuple(streams), tuple(periods))
 
