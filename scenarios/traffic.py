@@ -44,9 +44,10 @@ from pathlib import Path
 from typing import Any
 
 from agents.traffic import lockstep
+from agents.traffic.driver import MAX_JUNCTIONS
 from agents.traffic.lockstep import run_in_process
 from agents.traffic.messages import JunctionLayout
-from agents.traffic.networks import Network
+from agents.traffic.networks import BuildFailed, Network, SumoMissing
 from pb3a import System
 from pb3a.cli.log_output import show_logs
 from pb3a.loading.references import resolve_class
@@ -73,6 +74,24 @@ def network_path(network: str) -> Path:
         raise ValueError(f"no network {network!r}: the bundled networks are "
                          f"{', '.join(names)} (or give the path of a .toml description)")
     return bundled
+
+
+def check_network(network: Network, cache: Path | None = None) -> None:
+    """``ValueError`` saying what keeps ``network`` from the scenario, found before
+    anything runs: a stream its built network cannot carry, no signalized junction (no
+    controller to compare), more than the driver has slots for. (A failed build raises
+    ``BuildFailed``, no SUMO ``SumoMissing``.)"""
+    net_file = network.build(cache=cache)
+    network.check_streams(net_file)
+    junctions = network.signalized(net_file)
+    if not junctions:
+        raise ValueError(f"{network.path}: the built network has no signalized junction, "
+                         "so there is nothing for the controllers to run: mark the junctions "
+                         "to signalize (type=\"traffic_light\" in the nodes for netconvert, "
+                         "--tls.set or --default-junction-type traffic_light for netgenerate)")
+    if len(junctions) > MAX_JUNCTIONS:
+        raise ValueError(f"{network.path}: the built network has {len(junctions)} signalized "
+                         f"junctions; the traffic driver has slots for {MAX_JUNCTIONS}")
 
 
 def layouts(resource: Path, cache: Path | None = None) -> dict[str, JunctionLayout]:
@@ -315,9 +334,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         resource = network_path(args.network)
         demand_scale = parse_scale(args.scale)
-        network = Network.load(resource).scaled(demand_scale)
-        network.check_streams(network.build())
-    except ValueError as exc:
+        check_network(Network.load(resource).scaled(demand_scale))
+    except (ValueError, BuildFailed, SumoMissing) as exc:
         print(f"traffic: {exc}", file=sys.stderr)
         return 2
     show_logs()

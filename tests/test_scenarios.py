@@ -318,6 +318,56 @@ def test_traffic_names_the_networks_when_given_one_it_does_not_know(tmp_path, ca
         capsys.readouterr().err)
 
 
+_GRID = ('name = "{name}"\n[build]\nnetgenerate = [{arguments}]\n[demand.streams]\n'
+         'a = {{ from = "left0A0", to = "A0bottom0", group = "g" }}\n'
+         '[[demand.periods]]\nshare = 1.0\nrates = {{ g = 100 }}\n')
+
+
+@pytest.mark.parametrize(("arguments", "complaint"), [
+    ('"--grid", "--grid.number", "many"',
+     "failed (netgenerate exit 1): Error: While processing option 'grid.number'"),
+    ('"--grid", "--grid.number", "2", "--grid.attach-length", "100"',
+     "the built network has no signalized junction, so there is nothing for the "
+     "controllers to run: mark the junctions to signalize"),
+    ('"--grid", "--grid.number", "5", "--grid.attach-length", "100", '
+     '"--default-junction-type", "traffic_light"',
+     "the built network has 25 signalized junctions; the traffic driver has slots for 16"),
+])
+def test_traffic_names_what_keeps_a_network_from_it_before_it_runs(
+        tmp_path, capsys, monkeypatch, arguments, complaint) -> None:
+    """A network its tool could not build ended in a RuntimeError traceback; one with
+    more junctions than the driver's slots in a ValueError traceback from the driver's
+    setup; one with no signalized junction ran on for good, a loop at full CPU."""
+    pytest.importorskip("libsumo", reason="SUMO (the traffic extra) is not installed")
+    monkeypatch.setenv("PB3A_TRAFFIC_CACHE", str(tmp_path / "cache"))
+    network = tmp_path / "mine.toml"
+    network.write_text(_GRID.format(name="mine", arguments=arguments))
+    started = time.monotonic()
+    assert main(["scenario", "traffic", "--quick", "--network", str(network),
+                 "--out", str(tmp_path / "out")]) == 2
+    said = capsys.readouterr().err
+    assert complaint in said and f"{network}" in said and "Traceback" not in said
+    assert time.monotonic() - started < 10 and not (tmp_path / "out").exists()
+
+
+def test_traffic_names_a_network_file_its_tool_cannot_read(tmp_path, capsys,
+                                                           monkeypatch) -> None:
+    """Its nodes file cut short: a RuntimeError traceback, exit 1."""
+    pytest.importorskip("libsumo", reason="SUMO (the traffic extra) is not installed")
+    monkeypatch.setenv("PB3A_TRAFFIC_CACHE", str(tmp_path / "cache"))
+    (tmp_path / "mine.nod.xml").write_text('<nodes><node id="C" x="0" y="0"')
+    (tmp_path / "mine.edg.xml").write_text("<edges/>")
+    network = tmp_path / "mine.toml"
+    network.write_text('[build]\nnetconvert = { nodes = "mine.nod.xml", edges = '
+                       '"mine.edg.xml" }\n[demand.streams]\na = { from = "x", to = "y", '
+                       'group = "g" }\n[[demand.periods]]\nshare = 1.0\nrates = { g = 1 }\n')
+    assert main(["scenario", "traffic", "--network", str(network),
+                 "--out", str(tmp_path / "out")]) == 2
+    said = capsys.readouterr().err
+    assert f"traffic: building network mine from {network} failed (netconvert exit 1)" in said
+    assert f"In file '{tmp_path / 'mine.nod.xml'}'" in said and "Traceback" not in said
+
+
 class _Runtime:
     """Where each module runs, and the moves a ``Mover`` asks for."""
 

@@ -40,6 +40,11 @@ class SumoMissing(RuntimeError):
     """SUMO (the ``traffic`` extra) is not installed in this Python environment."""
 
 
+class BuildFailed(RuntimeError):
+    """SUMO's tool could not build a network from its description (its files, its
+    arguments), or took too long: the error says which and what the tool said."""
+
+
 def sumo_home() -> Path:
     """Where the ``eclipse-sumo`` package keeps SUMO's binaries and data."""
     try:
@@ -239,12 +244,12 @@ class Network:
             done = subprocess.run(command, capture_output=True, text=True,
                                   timeout=BUILD_TIMEOUT_S, check=False)
         except subprocess.TimeoutExpired:
-            raise RuntimeError(f"building network {self.name} ({self.path}) took more "
-                               f"than {BUILD_TIMEOUT_S:.0f} s: {' '.join(command)}") from None
+            raise BuildFailed(f"building network {self.name} ({self.path}) took more "
+                              f"than {BUILD_TIMEOUT_S:.0f} s: {' '.join(command)}") from None
         if done.returncode != 0 or not output.stat().st_size:
-            raise RuntimeError(f"building network {self.name} from {self.path} failed "
-                               f"({Path(command[0]).name} exit {done.returncode}): "
-                               f"{(done.stderr or done.stdout).strip()[-2000:]}")
+            raise BuildFailed(f"building network {self.name} from {self.path} failed "
+                              f"({Path(command[0]).name} exit {done.returncode}): "
+                              f"{(done.stderr or done.stdout).strip()[-2000:]}")
 
     def _fingerprint(self, signals: str) -> str:
         """A digest of everything the built network depends on."""
@@ -255,6 +260,16 @@ class Network:
                 digest.update((self.path.parent / self.netconvert[key]).read_bytes())
         digest.update(f"{signals} {sumo_version()} {_BUILD_OPTIONS}".encode())
         return digest.hexdigest()[:12]
+
+    def signalized(self, net_file: Path) -> list[str]:
+        """The ids of the built network's traffic lights (its signalized junctions, as
+        SUMO and the driver name them), sorted."""
+        found = set()
+        for _, element in ET.iterparse(net_file):
+            if element.tag == "tlLogic":
+                found.add(element.get("id", ""))
+            element.clear()
+        return sorted(found)
 
     def check_streams(self, net_file: Path) -> None:
         """``ValueError`` naming the first stream the built network ``net_file`` cannot
