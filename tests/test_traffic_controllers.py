@@ -259,6 +259,23 @@ def test_each_controller_runs_the_crossing_through_the_driver(cache: Path, cls: 
     assert result["finished"] > 100 and 0 < result["mean_delay_s"] < worst_delay_s, result
 
 
+@pytest.mark.timeout(60)
+def test_a_network_without_signalized_junctions_runs_to_its_end_in_process(
+        cache: Path, tmp_path: Path) -> None:
+    """Its driver runs free, and nothing stepped it: run_in_process looped for good at
+    full CPU (pb3a scenario traffic on such a network never ended)."""
+    from agents.traffic.lockstep import run_in_process
+
+    network = tmp_path / "plain.toml"
+    network.write_text(
+        '[build]\nnetgenerate = ["--grid", "--grid.number", "2", "--grid.attach-length", '
+        '"100"]\n[demand.streams]\na = { from = "left0A0", to = "A0bottom0", group = "g" }'
+        '\n[[demand.periods]]\nshare = 1.0\nrates = { g = 600 }\n')
+    result, controllers = run_in_process(network, lambda _: (GapOut, {}), seed=1,
+                                         duration_s=120.0, cache=cache)
+    assert controllers == {} and result["end_s"] == 120.0 and result["vehicles"] > 5
+
+
 def test_gap_out_beats_fixed_time_on_the_crossing(cache: Path) -> None:
     from agents.traffic.lockstep import run_in_process
 

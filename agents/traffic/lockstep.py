@@ -51,6 +51,9 @@ def run_in_process(resource: str | Path, make: ControllerChoice, *, seed: int,
                 adopt(junction, controllers[junction].module)
         seen = dict.fromkeys(range(len(junctions)), -1)
         while simulation.module.status == "running":
+            if not junctions:           # nothing to wait for: it runs free, when stepped
+                simulation.step()
+                continue
             for slot, junction in enumerate(junctions):
                 reading = simulation.last(f"reading_{slot}")
                 if reading is None or reading.step == seen[slot]:
