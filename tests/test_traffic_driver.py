@@ -210,6 +210,29 @@ def test_a_step_green_or_duration_out_of_range_is_refused_by_name(driver, bad) -
     assert harness.state[name] == before and harness.state["status"] == "running"
 
 
+@pytest.mark.parametrize("bad", [
+    {"seed": -1}, {"seed": 2**31}, {"seed": "7"}, {"seed": 1.5}, {"seed": True},
+    {"lockstep_timeout_s": float("nan")}, {"lockstep_timeout_s": -1.0},
+    {"lockstep_timeout_s": float("inf")}])
+def test_a_seed_or_lock_step_timeout_it_cannot_go_by_is_refused_and_the_run_goes_on(
+        driver, bad) -> None:
+    """A seed SUMO cannot take ended the running simulation, then failed the new one in
+    libsumo ("Could not parse commandline options"; "7" in int()); 1.5 and True ran as
+    1. A lock-step timeout of NaN never ran out (a stuck controller stopped the run for
+    good), a negative one counted every junction late at every step."""
+    (name, _), = bad.items()
+    with pytest.raises(ValueError, match=f"{name} must be"):
+        driver(**bad)
+    harness = driver(duration_s=30.0)
+    for _ in range(3):
+        answer(harness, NS)
+    with pytest.raises(ValueError, match=f"{name} must be"):
+        harness.module.set_state(bad)
+    state = harness.state
+    assert state["status"] == "running" and state["step_count"] == 3
+    assert state["seed"] == 1 and state["lockstep_timeout_s"] == 2.0 and state["result"] == {}
+
+
 def test_a_slow_controller_holds_the_simulation_and_a_missing_one_is_late(driver) -> None:
     now = [100.0]
     harness = driver(lockstep_timeout_s=2.0)

@@ -46,17 +46,18 @@ import time
 from pathlib import Path
 from typing import Any
 
-from agents.limits import SECONDS, SPAN, out_of_limits, settings_with
+from agents.limits import SECONDS, SPAN, out_of_limits, settings_with, whole
 from agents.traffic.messages import JunctionReading, NetworkReading, PhaseRequest
 from agents.traffic.networks import Network
 from agents.traffic.signals import SignalHead
-from agents.traffic.simulation import STEP_S, Simulation
+from agents.traffic.simulation import SEED_MAX, STEP_S, Simulation
 from pb3a import Input, InputPort, Module, Output
 
 MAX_JUNCTIONS = 16          # junction slots: ports are declared with the class
 _SIMULATION_KEYS = ("resource", "seed", "signals", "duration_s", "own_programs",
                     "demand_scale")
-_LIMITS = {"control_step_s": SPAN, "duration_s": SPAN, "min_green_s": SECONDS}
+_LIMITS = {"control_step_s": SPAN, "duration_s": SPAN, "min_green_s": SECONDS,
+           "lockstep_timeout_s": SECONDS}
 
 
 def _junction_ports() -> dict[str, Input | Output]:
@@ -118,9 +119,13 @@ class TrafficDriver(_JunctionSlots, Module):
         """Set state; a change of ``resource``, ``seed``, ``signals``, ``duration_s``,
         ``own_programs`` or ``demand_scale`` in a running driver ends its simulation and
         starts the new one at once; a ``min_green_s`` holds from the green shown now.
-        ``ValueError`` (nothing set) for a control step, minimum green or duration out
-        of range."""
+        ``ValueError`` (nothing set, the simulation running on) for a control step,
+        minimum green, duration, lock-step timeout or seed out of range."""
         problems = out_of_limits(_LIMITS, settings_with(self, _LIMITS, state))
+        seed = state.get("seed", self.seed)
+        if not (whole(seed) and seed <= SEED_MAX):
+            problems.append(f"seed must be a whole number from 0 to {SEED_MAX} (SUMO's "
+                            f"--seed), got {seed!r}")
         if problems:
             raise ValueError("; ".join(problems))
         changed = any(k in state and state[k] != getattr(self, k) for k in _SIMULATION_KEYS)

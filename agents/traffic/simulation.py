@@ -24,6 +24,7 @@ from agents.traffic.networks import SumoMissing
 from agents.traffic.signals import SignalPlan, is_green_phase
 
 STEP_S = 1.0                   # SUMO's step: one simulated second
+SEED_MAX = 2**31 - 1           # SUMO reads its --seed as a C int
 APPROACH_S = 4.0               # "approaching": due at the stop line within this, at
                                # the speed it has (an actuated signal's passage time)
 MOVING_MPS = 1.0
