@@ -258,9 +258,30 @@ def test_requests_it_cannot_apply_are_counted_and_said(driver) -> None:
     assert "request_0 is junction 'C'" in harness.state["last_error"]
     harness.feed("request_0", PhaseRequest("C", 0, 5))
     assert "no green phase 5" in harness.state["last_error"]
+    assert harness.last("reading_0").step == 1      # (its answer, refused: see below)
     harness.feed("request_0", PhaseRequest("C", 7, NS))
     assert "step 7, which has not begun" in harness.state["last_error"]
-    assert harness.state["rejected"] == 3 and harness.last("reading_0").step == 0
+    assert harness.state["rejected"] == 3 and harness.last("reading_0").step == 1
+
+
+def test_a_junction_answering_with_a_green_it_lacks_is_refused_and_not_waited_for(
+        driver) -> None:
+    """The answer was refused and the step waited out the lock-step timeout for another
+    that never came (a controller answers each reading once): 2 s a step, each counted
+    late as well as rejected. Now the step goes on at once, the green it asked before
+    standing."""
+    now = [100.0]
+    harness = driver(lockstep_timeout_s=2.0)
+    harness.module._clock = lambda: now[0]
+    answer(harness, EW)
+    for _ in range(3):
+        reading = harness.last("reading_0")
+        harness.feed("request_0", PhaseRequest("C", reading.step, 2))
+        assert harness.last("reading_0").step == reading.step + 1     # no wait
+    state = harness.state
+    assert state["rejected"] == 3 and state["late"] == 0
+    assert "C: no green phase 2: this junction has 2 (0..1)" in state["last_error"]
+    assert harness.module._heads["C"].requested == EW                 # it stands
 
 
 def test_sumo_failing_mid_run_ends_the_run_as_failed_saying_why(driver) -> None:

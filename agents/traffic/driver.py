@@ -178,11 +178,13 @@ class TrafficDriver(_JunctionSlots, Module):
                 self._heads[junction].request(request.green)
             except ValueError as exc:
                 problem = f"{junction}: {exc}"
+            if request.step == self.step_count:
+                # its answer to this step, applied or not: a green it lacks is refused
+                # and the one it asked before stands, and no other answer is coming
+                self._awaiting.discard(junction)
         if problem is not None:
             self.rejected += 1
             self.last_error = problem
-        elif request.step == self.step_count:
-            self._awaiting.discard(junction)
         # (an older step's request came after its step was counted late: it still
         # stands as the junction's wish)
 
