@@ -746,7 +746,8 @@ class PhaseAlternator(Module):
     def on_input(self, port) -> None:
         for reading in port.read_all():
             green = (reading.step // self.hold) % len(reading.layout.greens)
-            self.request.write(PhaseRequest(reading.junction, reading.step, green))
+            self.request.write(PhaseRequest(reading.junction, reading.step, green,
+                                            reading.run))
             self.answered += 1
 
 

@@ -358,6 +358,30 @@ def test_re_pointed_while_it_runs_it_ends_one_simulation_and_starts_the_other(dr
     assert harness.state["status"] == "failed" and "nowhere.toml" in harness.state["last_error"]
 
 
+def test_answers_to_a_re_pointed_simulation_are_not_taken_for_the_new_one(driver) -> None:
+    """A controller's answer to the last reading of the simulation the driver left
+    reached it in the new one: counted in the new run's rejected ("a request for step
+    20, which has not begun (now 0)"), which no request of its own had made."""
+    from agents.traffic.fixed_time import FixedTime
+
+    harness = driver()
+    controller = ModuleHarness(FixedTime)
+    for _ in range(20):
+        controller.feed("reading", harness.last("reading_0"))
+        harness.feed("request_0", controller.last("request"))
+    controller.feed("reading", harness.last("reading_0"))   # answered, not yet delivered
+    harness.module.set_state({"seed": 2})                   # re-pointed meanwhile
+    harness.feed("request_0", controller.last("request"))
+    state = harness.state
+    assert state["step_count"] == 0 and state["rejected"] == 0 and state["last_error"] == ""
+    assert harness.state["result"]["seed"] == 1 and harness.state["result"]["end_s"] == 20.0
+    for _ in range(10):                                     # the new one's go on as ever
+        controller.feed("reading", harness.last("reading_0"))
+        harness.feed("request_0", controller.last("request"))
+    assert harness.state["step_count"] == 10 and harness.state["rejected"] == 0
+    assert harness.state["late"] == 0 and harness.last("reading_0").run == 2
+
+
 def test_a_stream_without_a_route_is_refused_before_the_run(driver, tmp_path: Path) -> None:
     """A stream with no route, due only in the last period, used to crash SUMO three
     quarters into the run; the driver then failed every step and never finished."""

@@ -70,7 +70,8 @@ class JunctionController(_NeighbourSlots, Module, abc.ABC):
             return
         for reading in port.read_all():
             green = self.choose(reading)
-            self.request.write(PhaseRequest(reading.junction, reading.step, green))
+            self.request.write(PhaseRequest(reading.junction, reading.step, green,
+                                            reading.run))
             self.decisions += 1
 
     @abc.abstractmethod

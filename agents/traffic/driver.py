@@ -101,6 +101,8 @@ class TrafficDriver(_JunctionSlots, Module):
     late = 0                        # requests that had not come by the timeout
     late_by_junction: dict[str, int] = {}
     rejected = 0                    # requests that could not be applied
+    run = 0                         # simulations begun: this one's number, which its
+                                    # readings carry and its requests echo
     last_error = ""
     result: dict[str, Any] = {}     # the figures of the last simulation that ended
 
@@ -165,6 +167,8 @@ class TrafficDriver(_JunctionSlots, Module):
         """Apply a junction's request; a wrong one is counted and said in last_error."""
         if self.status != "running" or self.own_programs:
             return
+        if request.run and request.run != self.run:
+            return          # an answer to a simulation that has ended (re-pointed since)
         junction = self.junctions[slot] if slot < len(self.junctions) else None
         problem = None
         if request.junction != junction:
@@ -238,7 +242,7 @@ class TrafficDriver(_JunctionSlots, Module):
                 junction=junction, step=self.step_count, time=simulation.time,
                 layout=simulation.layouts[junction], green=green, target=target,
                 stage=stage, elapsed=elapsed, signal=simulation.signal(junction),
-                **detectors))
+                run=self.run, **detectors))
         self.traffic.write(simulation.network_reading(self.step_count, halting))
         self.clock.write(simulation.time)
         self._awaiting = set() if self.own_programs else set(self.junctions)
@@ -274,6 +278,7 @@ class TrafficDriver(_JunctionSlots, Module):
         # what this simulation is, for its figures (state may change before it ends)
         self._identity = {key: getattr(self, key) for key in _SIMULATION_KEYS}
         self.junctions = list(layouts)
+        self.run += 1
         self._heads = {} if self.own_programs else {
             j: SignalHead(self._simulation.plans[j], self.min_green_s) for j in self.junctions}
         self.status, self.step_count, self.time_s = "running", 0, 0.0

@@ -56,16 +56,20 @@ class JunctionReading:
     delayed: dict[str, int] = field(default_factory=dict)   # vehicles within 100 m of
                                          # the stop line that have lost over 1 s since
                                          # they came onto the lane (SUMO's delay_based)
+    run: int = 0                         # which of the driver's simulations it is of
+                                         # (it counts them: a re-pointed one is another)
 
 
 @dataclass(frozen=True)
 class PhaseRequest:
-    """A controller's answer to the reading of step ``step``: show green phase
+    """A controller's answer to the reading of step ``step`` (of the driver's simulation
+    ``run``, the reading's; 0: not said, taken as the one running): show green phase
     ``green`` (an index into the layout's ``greens``) as soon as it is legal."""
 
     junction: str
     step: int
     green: int
+    run: int = 0
 
 
 @dataclass(frozen=True)
