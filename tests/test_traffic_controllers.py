@@ -191,6 +191,17 @@ def test_q_learning_starts_from_the_trained_table(tmp_path: Path) -> None:
                                                        "switch_ratio must be a number"),
     (TimeLoss, {"max_green_s": 0.5}, "max_green_s must be a number of seconds, 1 or more"),
     (QLearning, {"alpha": 1.5}, "alpha must be a number from 0 to 1, got 1.5"),
+    # a table it could not act on raised at every reading (no request: the lock-step
+    # waited out its timeout each step); a learning of "no" learnt
+    (QLearning, {"table": {"0|0|0|0": [1.0]}}, "table['0|0|0|0'] must be [value of "
+                                                "holding, value of giving way], two finite"),
+    (QLearning, {"table": {"k": ["a", "b"]}}, "table['k'] must be [value of holding"),
+    (QLearning, {"table": {"k": [float("nan"), 0.0]}}, "table['k'] must be"),
+    (QLearning, {"table": []}, "table must be a table of state key = [value of holding"),
+    (QLearning, {"learning": "no"}, "learning must be true or false, got 'no'"),
+    (QLearning, {"seed": [1]}, "seed must be a whole number, 0 or more, got [1]"),
+    (QLearning, {"table_file": "/nowhere/table.json"},
+     "table_file /nowhere/table.json: it holds no table (FileNotFoundError"),
 ])
 def test_a_controller_refuses_a_setting_out_of_range_by_name(cls: type, wrong: dict[str, Any],
                                                              named: str) -> None:
@@ -205,6 +216,26 @@ def test_a_controller_refuses_a_setting_out_of_range_by_name(cls: type, wrong: d
         harness.module.set_state(wrong)
     assert named in str(refused.value)
     assert harness.state == before
+
+
+def test_q_learning_goes_by_a_table_file_given_once_it_is_set_up(tmp_path: Path) -> None:
+    """A performance agent gives a controller its state after the swap's setup, and a
+    table_file read only at setup was not read then: the learner swapped in with a
+    table file of its own went by the trained table (so did one set while it ran),
+    though its state named the file. A file that holds no table is refused by name."""
+    own = tmp_path / "table.json"
+    own.write_text(json.dumps({"table": {"k": [1.0, 2.0]}}))
+    learner = ModuleHarness(QLearning)                  # set up on the trained table
+    assert len(learner.state["table"]) > 50
+    learner.module.set_state({"min_green_s": 5.0, "table_file": str(own)})
+    assert learner.state["table"] == {"k": [1.0, 2.0]}
+    learner.module.set_state({"table_file": str(own), "table": {"j": [0.0, 1.0]}})
+    assert learner.state["table"] == {"j": [0.0, 1.0]}  # a table given goes first
+    own.write_text("{not json")
+    with pytest.raises(ValueError, match=f"QLearning: table_file {own}: it holds no table "
+                                         r"\(JSONDecodeError"):
+        learner.module.set_state({"table_file": str(own)})
+    assert learner.state["table"] == {"j": [0.0, 1.0]}      # nothing set
 
 
 def test_q_learning_draws_its_explorations_from_a_seed_set_while_it_runs() -> None:

@@ -60,8 +60,14 @@ class JunctionController(_NeighbourSlots, Module, abc.ABC):
         if not problems and merged.get("max_green_s", 1) < merged.get("min_green_s", 0):
             problems.append(f"max_green_s ({merged['max_green_s']!r}) must be at least "
                             f"min_green_s ({merged['min_green_s']!r})")
+        problems += self._other_problems(state)
         if problems:
             raise ValueError(f"{type(self).__name__}: " + "; ".join(problems))
+
+    def _other_problems(self, state: dict[str, Any]) -> list[str]:
+        """What else would be wrong with ``state`` set (a subclass's settings that are
+        not numbers in limits)."""
+        return []
 
     def on_input(self, port: InputPort) -> None:
         if port.name.startswith("neighbour_"):

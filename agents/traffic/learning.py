@@ -20,7 +20,7 @@ import random
 from pathlib import Path
 from typing import Any
 
-from agents.limits import GREEN, SECONDS, SHARE
+from agents.limits import GREEN, SECONDS, SHARE, finite, whole
 from agents.traffic.controller import JunctionController, busiest_red, in_transition, served
 from agents.traffic.messages import JunctionReading
 
@@ -63,7 +63,7 @@ class QLearning(JunctionController):
     def setup(self) -> None:
         super().setup()
         if not self.table and self.table_file and Path(self.table_file).is_file():
-            self.table = json.loads(Path(self.table_file).read_text())["table"]
+            self.table = read_table(self.table_file, type(self).__name__)
         elif self.table is type(self).table:
             self.table = {}                     # its own, not the class's
         self._random = random.Random(self.seed)
@@ -71,10 +71,36 @@ class QLearning(JunctionController):
         self._accrued, self._seconds = 0.0, 0           # its cost so far, and how long
 
     def set_state(self, state: dict[str, Any]) -> None:
-        """Set state; a ``seed`` set while it runs draws its explorations from then on."""
+        """Set state; a ``seed`` set while it runs draws its explorations from then on. A
+        ``table_file`` given without a table (or with an empty one) is read now, so the
+        learner set up already (running, or swapped in by a performance agent, which
+        gives the state after the swap's setup) goes by it; a file that holds no table,
+        a table that is not one of state key -> [value of holding, value of giving way]
+        (two finite numbers), a ``learning`` that is not true or false or a ``seed`` that
+        is not a whole number is refused by name, nothing set."""
+        loaded = None
+        if state.get("table_file") and not state.get("table"):
+            loaded = read_table(state["table_file"], type(self).__name__)
         super().set_state(state)
+        if loaded is not None:
+            self.table = loaded
+            if "_random" in vars(self):
+                self._pending = None            # (a decision taken on another table)
         if "seed" in state and "_random" in vars(self):
             self._random = random.Random(self.seed)
+
+    def _other_problems(self, state: dict[str, Any]) -> list[str]:
+        problems = table_problems(state["table"]) if "table" in state else []
+        learning, seed, table_file = (state.get(key, getattr(self, key))
+                                      for key in ("learning", "seed", "table_file"))
+        if not isinstance(learning, bool):
+            problems.append(f"learning must be true or false, got {learning!r}")
+        if not whole(seed):
+            problems.append(f"seed must be a whole number, 0 or more, got {seed!r}")
+        if not isinstance(table_file, str):
+            problems.append(f"table_file must be the path of a table's file, or '' for "
+                            f"none, got {table_file!r}")
+        return problems
 
     def choose(self, reading: JunctionReading) -> int:
         if len(reading.layout.greens) == 1:
@@ -115,6 +141,35 @@ class QLearning(JunctionController):
         else:
             values[action] += self.alpha * (target - values[action])
         self.updates += 1
+
+
+def table_problems(table: Any) -> list[str]:
+    """What keeps ``table`` from being a learner's: not a table of state key -> [value of
+    holding, value of giving way], two finite numbers (the first such entry named)."""
+    if not isinstance(table, dict):
+        return [f"table must be a table of state key = [value of holding, value of giving "
+                f"way], got {table!r:.80}"]
+    for key, values in table.items():
+        if not (isinstance(key, str) and isinstance(values, (list, tuple))
+                and len(values) == 2 and all(finite(v) for v in values)):
+            return [f"table[{key!r}] must be [value of holding, value of giving way], two "
+                    f"finite numbers, got {values!r:.80}"]
+    return []
+
+
+def read_table(path: str | Path, who: str = "QLearning") -> dict[str, list[float]]:
+    """The table kept in the file at ``path`` (as ``save_table`` writes it); ValueError
+    naming the file and what is wrong with it."""
+    try:
+        table = json.loads(Path(path).read_text())["table"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        reason = f"no key {exc}" if isinstance(exc, KeyError) else (
+            f"{type(exc).__name__}: {exc}")
+        raise ValueError(f"{who}: table_file {path}: it holds no table ({reason})") from None
+    problems = table_problems(table)
+    if problems:
+        raise ValueError(f"{who}: table_file {path}: {problems[0]}")
+    return {key: [float(v) for v in values] for key, values in table.items()}
 
 
 def save_table(table: dict[str, Any], path: Path, how: dict[str, Any]) -> Path:
