@@ -135,6 +135,24 @@ def test_silent_detectors_bring_fixed_time_at_once_and_it_comes_back_after() -> 
     assert runtime.swaps()[-1] == "GapOut" and harness.state["detectors_ok"] is True
 
 
+def test_a_failure_met_on_fixed_time_its_rules_chose_keeps_the_time_between_swaps() -> None:
+    """The rules had chosen fixed time, the fallback too, so a failure needed no swap;
+    yet coming back from it dropped the time of the last swap, and the rules swapped
+    again 71 s after it, for a minimum of 120."""
+    harness, runtime = agent(rules=[{"use": "gap_out"},
+                                    {"use": "fixed_time", "queue_at_least": 6.0}])
+    feed(harness, 0, 61, queue=9)             # the rules' fixed time, at 60 s
+    feed(harness, 61, 70, queue=9)
+    harness.feed("measures", measure(70.0, queue=9, plausible=False))
+    assert runtime.swaps() == ["FixedTime"] and harness.state["detectors_ok"] is False
+    feed(harness, 71, 179, queue=0)           # back after a window (131 s); light
+    assert harness.state["detectors_ok"] is True
+    assert runtime.swaps() == ["FixedTime"]   # not before 120 s after the last swap
+    feed(harness, 179, 181, queue=0)
+    assert runtime.swaps() == ["FixedTime", "GapOut"]
+    assert [s["time"] for s in harness.state["swaps"]] == [60.0, 180.0]
+
+
 def test_a_re_pointed_driver_s_new_run_is_judged_on_its_own_with_the_guard_rails_kept() -> None:
     """The driver re-pointed: its clock and the measures start again from 0. The old
     run's window was kept (for as long as that run had lasted) and the time since a

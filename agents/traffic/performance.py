@@ -254,7 +254,10 @@ class PerformanceAgent(Agent):
             return                                  # not a whole window to judge by yet
         if not self.detectors_ok:
             self.detectors_ok = True
-            self.last_swap_s = -1e9                 # the way back is not held up
+            if self.running != self.chosen:         # the fallback stands in for the
+                self.last_swap_s = -1e9             # rules' choice: the way back is not
+                                                    # held up (when the rules chose it,
+                                                    # no swap was made: their time holds)
         wanted = self.choice()
         if wanted != self.running and measure.time - self.last_swap_s >= self.min_between_swaps_s:
             self._swap(wanted, measure.time, f"demand {self.demand_per_min:.1f}/min, "
