@@ -218,6 +218,36 @@ def test_a_fallback_swap_that_fails_is_tried_again() -> None:
     assert harness.state["detectors_ok"] is False
 
 
+def test_a_swap_by_the_rules_the_system_refuses_is_tried_again_after_the_minimum_time(
+        ) -> None:
+    """A class whose setup fails could never be swapped in, and the agent tried at every
+    measure, each time the class set up in the controller's worker and an error (59 in
+    a second of a run of the crossing); the measures that came with a refused one were
+    dropped from its window."""
+    harness, runtime = agent()
+
+    def refusing_swap(name: str, cls: str) -> list[str]:
+        runtime.calls.append(("swap", name, cls.rpartition(":")[2]))
+        raise RuntimeFailure(f"worker 'local-p1': SetupError: module {name!r}: MaxPressure "
+                             "raised in setup: RuntimeError: no; not swapped, GapOut runs on")
+
+    runtime.swap = refusing_swap
+    port = harness.inputs["measures"]
+    refused = []
+    for second in range(0, 400, 5):         # the measures come five at a time
+        for each in range(second, second + 5):
+            port.deliver(measure(float(each), queue=9))
+        try:
+            harness.module.on_input(port)
+        except RuntimeFailure as exc:
+            refused.append((second, exc))
+        assert harness.state["mean_queue"] == 9.0 and len(harness.module._window) == (
+            min(second + 5, 60)), second
+    assert [second for second, _ in refused] == [60, 180, 300]
+    assert runtime.swaps() == ["MaxPressure"] * 3 and harness.state["running"] == "gap_out"
+    assert "not swapped, GapOut runs on" in str(refused[0][1])
+
+
 def test_implausible_readings_bring_fixed_time() -> None:
     harness, runtime = agent()
     feed(harness, 0, 30, queue=1)

@@ -147,8 +147,9 @@ class PerformanceAgent(Agent):
     fails) leaves it running with the state the swap carried over: its record says so
     (``state_error``), the error is raised once (the system logs it), and the agent does
     not swap again for it, so it neither loops nor keeps a learner's table under another
-    controller's name. A swap the system refuses changes nothing and is tried again at
-    the next look (a controller busy past the timeout, say).
+    controller's name. A swap the system refuses (a controller busy past the timeout, a
+    class whose setup fails) changes nothing and raises; a swap to the fallback is
+    tried again at the next look, one by the rules after ``min_between_swaps_s``.
 
     Its settings are checked at setup and by ``set_state`` (which then sets nothing),
     each problem named: the times finite (``window_s`` and ``silent_after_s`` above 0,
@@ -220,8 +221,14 @@ class PerformanceAgent(Agent):
                 self._last_measure_s = self._clock_s
             self._check_silence()
             return
-        for measure in port.read_all():
-            self._take(measure)
+        failure: Exception | None = None
+        for measure in port.read_all():         # every one taken, a swap failing or not
+            try:
+                self._take(measure)
+            except Exception as exc:  # (a swap the system refused: said once, below)
+                failure = failure or exc
+        if failure is not None:
+            raise failure
 
     def step(self) -> None:
         self._check_silence()
@@ -309,7 +316,12 @@ class PerformanceAgent(Agent):
         live = self.runtime.state(self.controller)
         kept = {k: live[k] for k in KEPT_STATE if k in live}
         spec = self.controllers[name]
-        self.runtime.swap(self.controller, spec["class"])   # raises: nothing has changed
+        try:
+            self.runtime.swap(self.controller, spec["class"])
+        except Exception:   # nothing has changed; the rules' swap is tried again after
+            if chosen:      # min_between_swaps_s, not at every measure (a class whose
+                self.last_swap_s = now      # setup fails failed each second), the
+            raise                           # fallback's at the next look
         # From here the junction runs the new class: so says the record, whatever comes.
         self._kept[leaving] = kept
         self.running, self.last_swap_s = name, now
