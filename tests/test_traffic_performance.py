@@ -6,6 +6,7 @@ running system, where its swaps are the system's events."""
 
 from __future__ import annotations
 
+import pickle
 from pathlib import Path
 from typing import Any
 
@@ -266,6 +267,22 @@ def test_a_learners_table_is_kept_when_swapped_out_and_given_back() -> None:
     feed(harness, 0, 61, queue=9)
     assert runtime.swaps() == ["GapOut"]
     feed(harness, 61, 181, queue=0)
+    assert runtime.swaps() == ["GapOut", "QLearning"]
+    assert runtime.controller_state["table"] == {"1|0|0|2": [-3.0, -4.0]}
+
+
+def test_the_tables_it_keeps_move_with_it() -> None:
+    """They were kept out of its state (set empty by setup), so an agent moved to
+    another node, or restarted from its last state, gave a learner swapped back in the
+    table it started from, all it had learnt lost."""
+    harness, runtime = agent(running="q_learning", rules=[
+        {"use": "q_learning"}, {"use": "gap_out", "queue_at_least": 6.0}])
+    runtime.controller_state = {"table": {"1|0|0|2": [-3.0, -4.0]}}
+    feed(harness, 0, 61, queue=9)            # swapped out at 60 s: its table kept
+    assert runtime.swaps() == ["GapOut"]
+    moved = ModuleHarness(PerformanceAgent, runtime=runtime,   # (as a move carries it)
+                          state=pickle.loads(pickle.dumps(harness.state)))
+    feed(moved, 61, 181, queue=0)
     assert runtime.swaps() == ["GapOut", "QLearning"]
     assert runtime.controller_state["table"] == {"1|0|0|2": [-3.0, -4.0]}
 

@@ -22,8 +22,9 @@ Guard rails:
   to ``fallback`` (fixed time, which needs no detector) at once, and leaves it only
   after a whole window of plausible measures.
 
-A controller's table or weights (state ``table``) is kept when it is swapped out and
-given back when it is swapped in again, so a learner does not forget. Each swap is a
+A controller's table or weights (state ``table``) is kept (``kept``, the agent's
+state: it moves with the agent) when it is swapped out and given back when it is
+swapped in again, so a learner does not forget. Each swap is a
 ``module_swapped`` event of the system, and a record on ``swapped`` and in ``swaps``.
 """
 
@@ -189,6 +190,9 @@ class PerformanceAgent(Agent):
     last_swap_s = -1e9
     chosen = ""                     # the controller chosen ("": running's); the fallback
                                     # stands in for it while the detectors fail
+    kept: dict[str, dict[str, Any]] = {}    # per controller swapped out, its learnt
+                                    # state (KEPT_STATE: a learner's table), given back
+                                    # when it is swapped in again; state, so it moves
 
     def setup(self) -> None:
         self.chosen = self.chosen or self.running
@@ -200,7 +204,6 @@ class PerformanceAgent(Agent):
         self._last_measure_s: float | None = None   # (or the clock's start, for silence)
         self._measured_s: float | None = None       # the time of the last measure taken
         self._plausible_since: float | None = None
-        self._kept: dict[str, dict[str, Any]] = {}
         self._clock_s: float | None = None
         self._behind_since: float | None = None     # wall time the measures fell behind
         self._wall = time.monotonic
@@ -323,7 +326,7 @@ class PerformanceAgent(Agent):
                 self.last_swap_s = now      # setup fails failed each second), the
             raise                           # fallback's at the next look
         # From here the junction runs the new class: so says the record, whatever comes.
-        self._kept[leaving] = kept
+        self.kept = {**self.kept, leaving: kept}
         self.running, self.last_swap_s = name, now
         if chosen:
             self.chosen = name
@@ -332,7 +335,7 @@ class PerformanceAgent(Agent):
         failure: Exception | None = None
         try:
             self.runtime.set_state(self.controller, {**spec.get("state", {}),
-                                                     **self._kept.get(name, {})})
+                                                     **self.kept.get(name, {})})
         except Exception as exc:  # whatever it is, the swap was made: record it first
             failure = exc
             record["state_error"] = f"{type(exc).__name__}: {exc}"
