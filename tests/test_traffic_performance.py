@@ -17,6 +17,7 @@ from agents.traffic.messages import JunctionMeasures
 from agents.traffic.performance import PerformanceAgent
 from pb3a import System
 from pb3a.errors import ModuleNotFound, RuntimeFailure
+from pb3a.loading.references import resolve_class
 from pb3a.testing import ModuleHarness
 
 CONTROLLERS = {
@@ -269,6 +270,50 @@ def test_a_learners_table_is_kept_when_swapped_out_and_given_back() -> None:
     feed(harness, 61, 181, queue=0)
     assert runtime.swaps() == ["GapOut", "QLearning"]
     assert runtime.controller_state["table"] == {"1|0|0|2": [-3.0, -4.0]}
+
+
+class CarryingRuntime(RecordingRuntime):
+    """One real controller; a swap carries its state over where the new class has the
+    same setting, as the system's swap does."""
+
+    def __init__(self, controller: Any) -> None:
+        super().__init__()
+        self.controller = controller
+
+    def state(self, name: str) -> dict[str, Any]:
+        return self.controller.get_state()
+
+    def swap(self, name: str, cls: str) -> list[str]:
+        self.calls.append(("swap", name, cls.rpartition(":")[2]))
+        old, self.controller = self.controller.get_state(), resolve_class(cls)()
+        self.controller.set_state({k: v for k, v in old.items()
+                                   if k in self.controller.state_names()})
+        return []
+
+    def set_state(self, name: str, values: dict[str, Any]) -> None:
+        self.calls.append(("set_state", name, tuple(sorted(values))))
+        self.controller.set_state(values)
+
+
+def test_a_controller_swapped_in_has_its_class_s_settings_where_its_spec_gives_none() -> None:
+    """The swap carries a setting over where both classes have it: Q-learning (given no
+    state) ran with the gap-out's minimum and maximum greens of 8 and 40 s, not its own
+    5 and 60, as it does alone; after longest-queue-first, with its 12 and 30."""
+    from agents.traffic.gap_out import GapOut
+
+    gap_out = GapOut()
+    gap_out.set_state({"min_green_s": 8.0, "max_green_s": 40.0})
+    runtime = CarryingRuntime(gap_out)
+    harness = ModuleHarness(PerformanceAgent, runtime=runtime, state={
+        "controller": "W/controller", "controllers": CONTROLLERS, "running": "gap_out",
+        "rules": [{"use": "gap_out"}, {"use": "q_learning", "queue_at_least": 6.0}]})
+    feed(harness, 0, 61, queue=9)
+    assert runtime.swaps() == ["QLearning"]
+    learner = runtime.controller.get_state()
+    assert (learner["min_green_s"], learner["max_green_s"]) == (5.0, 60.0)
+    feed(harness, 61, 200, queue=0)          # and back: gap-out as its spec says
+    assert runtime.swaps() == ["QLearning", "GapOut"]
+    assert (runtime.controller.min_green_s, runtime.controller.max_green_s) == (5.0, 40.0)
 
 
 def test_the_tables_it_keeps_move_with_it() -> None:

@@ -139,6 +139,18 @@ def _rule_problems(index: int, rule: Any) -> list[str]:
     return problems
 
 
+def _own_defaults(ref: str, live: dict[str, Any], given: dict[str, Any]) -> dict[str, Any]:
+    """The settings a controller of class ``ref`` swapped in for one whose state was
+    ``live`` takes from its class: those both classes have (a swap carries them over:
+    GapOut's ``max_green_s`` into QLearning) and ``given`` does not set. So it runs with
+    the state its spec gives and its class's own for the rest, as it does alone, not
+    with what the controller before it happened to have."""
+    cls = resolve_class(ref)
+    names = set(cls.state_names())
+    return {key: copy.deepcopy(getattr(cls, key)) for key in live
+            if key in names and key not in given}
+
+
 class PerformanceAgent(Agent):
     """Swaps a junction's controller by measured demand and delay, with guard rails.
 
@@ -334,8 +346,9 @@ class PerformanceAgent(Agent):
                   "reason": reason}
         failure: Exception | None = None
         try:
-            self.runtime.set_state(self.controller, {**spec.get("state", {}),
-                                                     **self.kept.get(name, {})})
+            given = spec.get("state", {})
+            self.runtime.set_state(self.controller, {**_own_defaults(spec["class"], live, given),
+                                                     **given, **self.kept.get(name, {})})
         except Exception as exc:  # whatever it is, the swap was made: record it first
             failure = exc
             record["state_error"] = f"{type(exc).__name__}: {exc}"
