@@ -436,6 +436,20 @@ BAD_SETTINGS = [             # (settings, what the refusal names)
      "controllers.gap_out: unknown key 'sate' (did you mean 'state'?)"),
     ({"controllers": {**CONTROLLERS, "gap_out": {"class": "pb3a:System"}}},
      "controllers.gap_out.class: pb3a.system:System is not a pb3a.Module"),
+    # what it keeps of its own (moved with it, set in the State Editor): a last swap
+    # at "x" failed every measure (TypeError) and at NaN never swapped again, swaps
+    # that were no list failed the next swap after it was made, a detectors_ok of
+    # "no" read as true
+    ({"last_swap_s": "x"}, "last_swap_s must be a number (simulated seconds), got 'x'"),
+    ({"last_swap_s": float("nan")}, "last_swap_s must be a number"),
+    ({"swaps": None}, "swaps must be a list of the swaps' records, got None"),
+    ({"detectors_ok": "no"}, "detectors_ok must be true or false, got 'no'"),
+    ({"kept": {"q_learning": [1]}}, "kept must be a table of controller name = { its "
+                                    "learnt state }, got {'q_learning': [1]}"),
+    ({"controllers": {**CONTROLLERS, "q_learning": {
+        "class": "agents.traffic.learning:QLearning", "state": {"table": {"k": [1.0]}}}}},
+     "controllers.q_learning.state: QLearning refuses it: ValueError: QLearning: "
+     "table['k'] must be"),
 ]
 
 

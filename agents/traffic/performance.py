@@ -35,7 +35,7 @@ import time
 from collections import deque
 from typing import Any
 
-from agents.limits import RATIO, SECONDS, SHARE, SPAN, Limit, missing_modules, out_of_limits
+from agents.limits import RATIO, SECONDS, SHARE, SPAN, Limit, finite, missing_modules, out_of_limits
 from agents.traffic.messages import JunctionMeasures
 from pb3a import Agent, Input, InputPort, Module, Output
 from pb3a.config import checks
@@ -70,6 +70,7 @@ def _check_settings(state: dict[str, Any]) -> None:
         rules = []
     for index, rule in enumerate(rules):
         problems += _rule_problems(index, rule)
+    problems += _kept_problems(state)
     if not problems:
         unknown = {state["running"], state["chosen"] or state["running"], state["fallback"],
                    *(r["use"] for r in rules)} - set(controllers)
@@ -78,6 +79,25 @@ def _check_settings(state: dict[str, Any]) -> None:
                             f"controllers ({', '.join(sorted(controllers)) or 'none'})")
     if problems:
         raise ValueError(f"{_who(state['controller'])}: " + "; ".join(problems))
+
+
+def _kept_problems(state: dict[str, Any]) -> list[str]:
+    """What is wrong with what the agent keeps of its own (it moves with it, and may be
+    set in the State Editor): the time of its last swap, its record, its judgement of
+    the detectors, the learnt state it keeps."""
+    problems = []
+    if not finite(state["last_swap_s"]):
+        problems.append(f"last_swap_s must be a number (simulated seconds), got "
+                        f"{state['last_swap_s']!r}")
+    if not isinstance(state["swaps"], list):
+        problems.append(f"swaps must be a list of the swaps' records, got {state['swaps']!r}")
+    if not isinstance(state["detectors_ok"], bool):
+        problems.append(f"detectors_ok must be true or false, got {state['detectors_ok']!r}")
+    kept = state["kept"]
+    if not (isinstance(kept, dict) and all(isinstance(v, dict) for v in kept.values())):
+        problems.append(f"kept must be a table of controller name = {{ its learnt state }}, "
+                        f"got {kept!r:.80}")
+    return problems
 
 
 def _who(controller: Any) -> str:
@@ -170,8 +190,10 @@ class PerformanceAgent(Agent):
     1, ``controller`` a module name, each of ``controllers`` a class that resolves to a
     module with a ``state`` the class takes (tried on a fresh instance, as the system
     gives a module its configured state), each rule a table of ``use`` and thresholds
-    (finite, 0 or more) with no other key, and every controller it may run one of
-    ``controllers``. At setup it also asks
+    (finite, 0 or more) with no other key, every controller it may run one of
+    ``controllers``, and what it keeps of its own (moved with it, or set in the State
+    Editor) of its kind: ``last_swap_s`` a number, ``swaps`` a list, ``detectors_ok``
+    true or false, ``kept`` a table of tables. At setup it also asks
     the system whether ``controller`` is one of its modules (reads may be asked from
     setup); ``set_state`` cannot ask (whoever sets the state holds the system's
     configuration lock), nor can setup outside a launched system (a ``ModuleHarness``
