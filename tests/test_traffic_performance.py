@@ -16,7 +16,7 @@ from conftest import eventually
 from agents.traffic.messages import JunctionMeasures
 from agents.traffic.performance import PerformanceAgent
 from pb3a import System
-from pb3a.errors import ModuleNotFound, RuntimeFailure
+from pb3a.errors import ModuleNotFound, RuntimeCancelled, RuntimeFailure
 from pb3a.loading.references import resolve_class
 from pb3a.testing import ModuleHarness
 
@@ -381,6 +381,26 @@ def test_a_swap_whose_state_cannot_be_set_is_recorded_said_once_and_not_made_aga
     assert runtime.controller_state["table"] == table
     assert harness.state["running"] == "q_learning" and "state_error" not in \
         harness.state["swaps"][-1]
+
+
+def test_a_swap_cut_short_by_the_system_stopping_is_recorded_and_said_quietly() -> None:
+    """A swap in flight as the system stops (the driver's run over, the agents still
+    taking their last measures): the controller's state request is cancelled, and the
+    agent wrapped that in a RuntimeError, a traceback in the scenario's output ("could
+    not set its state: RuntimeCancelled: ... the module is stopping"). Cancelled, a
+    body's request is no error: the worker logs it at debug level."""
+    harness, runtime = agent()
+
+    def cancelled(name: str, values: dict[str, Any]) -> None:
+        raise RuntimeCancelled("W/agent's request 'set_state' cancelled: the module is "
+                               "stopping")
+
+    runtime.set_state = cancelled
+    feed(harness, 0, 60, queue=9)
+    with pytest.raises(RuntimeCancelled):
+        harness.feed("measures", measure(60.0, queue=9))
+    swap, = harness.state["swaps"]
+    assert swap["to"] == "max_pressure" and "the module is stopping" in swap["state_error"]
 
 
 def test_a_fallback_swap_whose_state_cannot_be_set_is_made_once() -> None:

@@ -39,6 +39,7 @@ from agents.limits import RATIO, SECONDS, SHARE, SPAN, Limit, finite, missing_mo
 from agents.traffic.messages import JunctionMeasures
 from pb3a import Agent, Input, InputPort, Module, Output
 from pb3a.config import checks
+from pb3a.errors import RuntimeCancelled
 from pb3a.loading.references import class_ref, resolve_class
 
 KEPT_STATE = ("table",)             # a controller's learnt state, kept across swaps
@@ -355,6 +356,8 @@ class PerformanceAgent(Agent):
         spec = self.controllers[name]
         try:
             self.runtime.swap(self.controller, spec["class"])
+        except RuntimeCancelled:
+            raise           # the agent is stopping: not a swap refused
         except Exception:   # nothing has changed; the rules' swap is tried again after
             if chosen:      # min_between_swaps_s, not at every measure (a class whose
                 self.last_swap_s = now      # setup fails failed each second), the
@@ -376,6 +379,8 @@ class PerformanceAgent(Agent):
             record["state_error"] = f"{type(exc).__name__}: {exc}"
         self.swaps = [*self.swaps, record]
         self.swapped.write(record)
+        if isinstance(failure, RuntimeCancelled):
+            raise failure       # the agent is stopping (the system stops, say): said quietly
         if failure is not None:
             raise RuntimeError(
                 f"{self.controller}'s performance agent swapped it from {leaving} to "
