@@ -238,6 +238,26 @@ def test_q_learning_goes_by_a_table_file_given_once_it_is_set_up(tmp_path: Path)
     assert learner.state["table"] == {"j": [0.0, 1.0]}      # nothing set
 
 
+def test_the_sensors_judge_plausibility_by_a_lane_capacity_they_check() -> None:
+    """A lane_capacity below 1 (or not a number) was taken: every reading was judged a
+    failed detector (or raised), and each junction's agent ran fixed time for good,
+    blaming its detectors."""
+    from agents.traffic.sensors import JunctionSensors
+
+    sensors = ModuleHarness(JunctionSensors, state={"lane_capacity": 8})
+    sensors.feed("reading", reading(queues={"ns": 8}))
+    sensors.feed("reading", reading(queues={"ns": 9}))
+    assert [m.plausible for m in sensors.written["measures"]] == [True, False]
+    assert sensors.written["measures"][0].queue == 16
+    for bad in (0, -1, 2.5, float("nan"), "200", True):
+        with pytest.raises(ValueError, match="JunctionSensors: lane_capacity must be a "
+                                             "whole number of vehicles, 1 or more"):
+            ModuleHarness(JunctionSensors, state={"lane_capacity": bad})
+        with pytest.raises(ValueError, match="lane_capacity must be"):
+            sensors.module.set_state({"lane_capacity": bad})
+        assert sensors.state["lane_capacity"] == 8
+
+
 def test_q_learning_draws_its_explorations_from_a_seed_set_while_it_runs() -> None:
     def explorations(harness: ModuleHarness) -> list[int]:
         asked = []

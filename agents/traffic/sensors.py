@@ -8,6 +8,9 @@ halting on a lane than ``lane_capacity`` is a failed detector, not traffic.
 
 from __future__ import annotations
 
+from typing import Any
+
+from agents.limits import whole
 from agents.traffic.messages import JunctionMeasures, JunctionReading, NeighbourQueues
 from pb3a import Input, InputPort, Module, Output
 
@@ -27,6 +30,19 @@ class JunctionSensors(Module):
     queues = Output(NeighbourQueues)
     lane_capacity = 200                 # halting vehicles a lane can hold, at most
     implausible = 0                     # readings judged implausible
+
+    def setup(self) -> None:
+        self.set_state({})
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Set state; a ``lane_capacity`` that is not a whole number, 1 or more, is
+        refused by name, nothing set (below 1, every reading was a failed detector, and
+        the junction ran fixed time for good, blamed on its detectors)."""
+        capacity = state.get("lane_capacity", self.lane_capacity)
+        if not whole(capacity, 1):
+            raise ValueError(f"JunctionSensors: lane_capacity must be a whole number of "
+                             f"vehicles, 1 or more, got {capacity!r}")
+        super().set_state(state)
 
     def on_input(self, port: InputPort) -> None:
         for reading in port.read_all():
