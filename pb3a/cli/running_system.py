@@ -21,10 +21,13 @@ from pb3a.errors import PB3AError, SystemStopped
 from pb3a.events import Event
 from pb3a.launch.connection import CONNECT_TIMEOUT, Connection, connect
 from pb3a.loading.references import resolve_class
+from pb3a.loading.trial import tried_first
 from pb3a.model.module import Module
 from pb3a.model.state_edits import coerce
 from pb3a.stats import plain
 from pb3a.transport.auth import ClusterKeyError
+
+CLASS_IMPORT_TIMEOUT = 10.0     # s: `pb3a add`'s own import of the class, for its defaults
 
 
 def operation_command(args: argparse.Namespace) -> int:
@@ -132,7 +135,8 @@ def _add(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
     does with the current state; a class this process cannot import (served code, say)
     is added with the values as given."""
     state, texts = _values(args.state)
-    wrong = _fit(args.module, state, texts, _class_defaults(args.cls))
+    defaults = _class_defaults(args.cls, args.timeout) if state else {}
+    wrong = _fit(args.module, state, texts, defaults)
     if wrong:
         raise ValueError("; ".join(wrong) + "; nothing was added")
     system.add(args.module, args.cls, node=args.node, period=args.period, state=state,
@@ -142,12 +146,16 @@ def _add(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
             {"module": args.module, "class": args.cls, "node": where})
 
 
-def _class_defaults(ref: str) -> dict[str, Any]:
+def _class_defaults(ref: str, timeout: float | None) -> dict[str, Any]:
     """The class-level state of the module class ``ref`` names, if this process can
     import it and the class reads its state by reflection (one that defines its own
-    ``get_state`` alone knows its fields); else nothing."""
+    ``get_state`` alone knows its fields); else nothing. Its module file is tried in a
+    child process first, within ``timeout`` (at most ``CLASS_IMPORT_TIMEOUT``): one that
+    loops, exits or crashes as it is imported hung or ended this command, and is now
+    left for the launcher to refuse, saying so."""
+    wait = CLASS_IMPORT_TIMEOUT if timeout is None else min(timeout, CLASS_IMPORT_TIMEOUT)
     try:
-        cls = resolve_class(ref)
+        cls = resolve_class(ref, watch=tried_first(wait, "give a longer --timeout"))
     except Exception:               # (its own problems are the launcher's to name)
         return {}
     if not issubclass(cls, Module) or cls.get_state is not Module.get_state \

@@ -37,6 +37,7 @@ from pb3a.errors import (
     bounded_wait,
 )
 from pb3a.launch.migration import MigrationReport, migrate
+from pb3a.loading import trial
 from pb3a.loading.references import resolve_class
 from pb3a.loading.served import forget, reload_problem
 from pb3a.model.module import Module
@@ -66,6 +67,7 @@ _HISTORY = frozenset({"events", "logs"})      # what a stopped system still answ
 FOR_AGENTS = PUBLIC - {"reload"}
 KEEP_JOBS = 1000            # background operations whose outcome is kept for asking
 STATE_THEN_S = 1.0          # how long a restart waits for the state to put back on failure
+CHANGE_LONGER = "give the change a longer timeout"     # (an import that took too long)
 # The agent whose request runs on this thread, and whether it asks from its setup.
 _ASKER: contextvars.ContextVar[tuple[str, bool] | None] = contextvars.ContextVar(
     "pb3a_asker", default=None)
@@ -224,14 +226,20 @@ class Operations:
             raise ConfigError([f"reload {module}: {problem}; nothing was reloaded"])
         with self._held(f"reload {module}", timeout):
             forget(module)
+            trial.forget(module)
             for node in self.launcher.nodes.values():
                 node.forget(module)
 
     def swap(self, name: str, cls: type | str, *, timeout: float | None = None) -> list[str]:
-        new_cls, unresolved = _resolved(cls)
+        """Run module ``name`` as class ``cls`` from now on, keeping its ports and the
+        state names the new class has (the names kept). A module file not imported yet
+        is tried in a child process first (``_resolved``), within the timeout."""
+        wait = self._call_timeout(timeout)
+        deadline = time.monotonic() + wait
+        new_cls, unresolved = _resolved(cls, wait)
         if new_cls is None:
             raise ConfigError([f"swap {name}: {unresolved}"])
-        with self._held(f"swap {name}", timeout, lend=[name]):
+        with self._held(f"swap {name}", _left(deadline), lend=[name]):
             launcher = self.launcher
             node = launcher.node_of(name)
             spec = launcher.specs[name]
@@ -316,9 +324,13 @@ class Operations:
             timeout: float | None = None) -> None:
         """Start a new module. It is checked as the compiler checks a configuration's
         entry first (name, period, restart, state, group, node, fallback): one
-        ``ConfigError`` naming every problem, and nothing started."""
-        module_cls, unresolved = _resolved(cls)
-        with self._held(f"add {name}", timeout, lend=[name]):
+        ``ConfigError`` naming every problem, and nothing started. A module file not
+        imported yet is tried in a child process first (``_resolved``), within the
+        timeout."""
+        wait = self._call_timeout(timeout)
+        deadline = time.monotonic() + wait
+        module_cls, unresolved = _resolved(cls, wait)
+        with self._held(f"add {name}", _left(deadline), lend=[name]):
             launcher = self.launcher
             node = node or next(iter(self.plan.nodes))
             problems = [unresolved] if module_cls is None else []
@@ -509,11 +521,19 @@ class Operations:
             _ASKER.reset(token)
 
 
-def _resolved(cls: type | str) -> tuple[type | None, str]:
+def _left(deadline: float) -> float:
+    """The seconds left until ``deadline`` (of ``time.monotonic()``), none if past."""
+    return max(0.0, deadline - time.monotonic())
+
+
+def _resolved(cls: type | str, timeout: float) -> tuple[type | None, str]:
     """The class ``cls`` names and "", or None and why it names none (a problem the
-    operation reports with the others, in a ``ConfigError``)."""
+    operation reports with the others, in a ``ConfigError``). A module file this process
+    has not imported is imported in a child process first, within ``timeout``: one that
+    loops as it is imported, ends the process or crashes it is refused, saying so,
+    instead of holding up or taking down the launcher (``pb3a.loading.trial``)."""
     try:
-        return resolve_class(cls), ""
+        return resolve_class(cls, watch=trial.tried_first(timeout, CHANGE_LONGER)), ""
     except (ValueError, ImportError, LookupError, TypeError) as exc:
         return None, str(exc)
 

@@ -19,8 +19,9 @@ from pb3a.config.plan import Plan
 from pb3a.errors import ConfigError, ModuleNotFound, bounded_wait
 from pb3a.launch.handle import SystemHandle
 from pb3a.launch.launcher import Launcher
-from pb3a.launch.operations import DEFAULT_TIMEOUT, FOR_AGENTS, Operations
+from pb3a.launch.operations import CHANGE_LONGER, DEFAULT_TIMEOUT, FOR_AGENTS, Operations
 from pb3a.loading.references import importing_for
+from pb3a.loading.trial import try_import
 from pb3a.processes import role
 from pb3a.transport.addresses import (
     EVERY_INTERFACE,
@@ -164,8 +165,12 @@ class Running(SystemHandle):
             # remote node (the operation in progress may wait for it: the setup of the
             # module it starts), what nodes report, and the reads that wait for news
             # (a follower's events held the lane 1 s in 1.2, and other callers' waits).
+            # A class a request names by reference (a program's connection passing a
+            # class object) is imported here to read the request: tried in a child
+            # process first, as a change naming it does (Operations._resolved).
             self._server = ControlServer(ClusterKey.load(), self._remote_request,
-                                         host, port, name="pb3a-launcher", aside=_ASIDE)
+                                         host, port, name="pb3a-launcher", aside=_ASIDE,
+                                         import_first=self._import_first)
             self.address = self._server.address
             if host in EVERY_INTERFACE:
                 remote = self._remote_nodes()
@@ -196,6 +201,11 @@ class Running(SystemHandle):
         return list(self._launcher.unconfirmed)
 
     # -- requests from elsewhere ----------------------------------------------------
+    def _import_first(self, module: str, name: str) -> None:
+        """Before a request's class ``name`` is imported from ``module`` to read the
+        request: the import tried in a child process, within the system's timeout."""
+        try_import(module, f"{module}:{name}", self._operations.timeout, CHANGE_LONGER)
+
     def _agent_request(self, op: str, args: dict[str, Any]) -> Any:
         """Apply a request an agent made through ``self.runtime``: its worker adds who
         asks and whether from its setup (``_asker``)."""

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import importlib
 import json
 import os
 import selectors
@@ -30,7 +31,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NoReturn
 
 OUTPUT_KEPT = 2000          # bytes of a child's output kept, when it is kept: the last ones
 
@@ -158,6 +159,36 @@ def answering() -> Callable[..., None]:
             data = data[os.write(answers, data):]
 
     return send
+
+
+def import_each(request: dict[str, Any]) -> NoReturn:
+    """In the child: import ``request["modules"]`` one after another (from the module
+    servers ``request["servers"]`` too), saying ``importing`` and ``imported`` around
+    each, then ``done``; then exit at once. A module that raises is imported all the same:
+    the parent's own import says why, in its words. Run as ``IMPORT_EACH``, never by a
+    user."""
+    send = answering()
+    from pb3a.processes import mark_as
+
+    mark_as("a process that tries imports")    # (a launch as it is imported: refused)
+    if request["servers"]:
+        from pb3a.loading.served import use_module_servers
+
+        with contextlib.suppress(Exception):    # (then the import says what is missing)
+            use_module_servers(request["servers"])
+    send(ready=True)
+    for module in request["modules"]:
+        send(importing=module)
+        with contextlib.suppress(BaseException):
+            importlib.import_module(module)
+        send(imported=module)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    send(done=True)
+    os._exit(0)
+
+
+IMPORT_EACH = "pb3a.loading.import_child:import_each"
 
 
 def _exit_with(parent: int) -> None:

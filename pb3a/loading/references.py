@@ -31,12 +31,13 @@ def class_ref(cls: type) -> str:
     return f"{cls.__module__}:{cls.__qualname__}"
 
 
-def resolve_class(ref: str | type) -> type:
+def resolve_class(ref: str | type, *, watch: ImportWatch | None = None) -> type:
     """The class ``ref`` names: a class is returned as is, a ``"module:Class"`` is imported.
 
     Raises ValueError for a malformed reference, ImportError when the module cannot
     be imported, LookupError when it has no such attribute and TypeError when the
-    attribute is not a class; each message says what to change.
+    attribute is not a class; each message says what to change. The import runs inside
+    ``watch`` (see ``watch_imports``), else the process's watch.
     """
     if isinstance(ref, type):
         return ref
@@ -52,7 +53,7 @@ def resolve_class(ref: str | type) -> type:
     module_name, _, attr_path = ref.partition(":")
     before, _importing.ref = importing_for(), ref
     try:
-        with _watch(module_name, ref):
+        with (watch or _watch)(module_name, ref):
             module = importlib.import_module(module_name)
     except ImportRefused:                       # said in full by whoever refused it
         raise
@@ -108,13 +109,16 @@ def _unwatched(module: str, ref: str) -> AbstractContextManager[object]:
 _watch: ImportWatch = _unwatched
 
 
-def watch_imports(watch: ImportWatch) -> None:
+def watch_imports(watch: ImportWatch | None) -> ImportWatch:
     """From now on, ``resolve_class`` imports a class's module inside ``watch(module,
-    ref)``, which may raise ``ImportRefused`` instead. A process that imports classes on
-    another's behalf (``pb3a check``'s, see ``pb3a.config.isolated``) tells it so which
-    import it is in when it hangs or dies, and refuses one that did so before."""
+    ref)`` (None: none), which may raise ``ImportRefused`` instead; gives the watch
+    before it. A process that imports classes on another's behalf tells it so which
+    import it is in when it hangs or dies, and refuses one that did so before (``pb3a
+    check``'s, see ``pb3a.config.isolated``), or tries each in a child process first
+    (the manager's, see ``pb3a.loading.trial``)."""
     global _watch
-    _watch = watch
+    before, _watch = _watch, watch or _unwatched
+    return before
 
 
 # While resolve_class imports a class's module, the reference it imports for: a system

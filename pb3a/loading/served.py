@@ -115,6 +115,12 @@ def use_module_servers(addresses: Sequence[str], key: ClusterKey | None = None) 
             finder.add(address)
 
 
+def module_servers() -> list[str]:
+    """The module servers this process imports from (``use_module_servers``), in order."""
+    return [address for finder in sys.meta_path if isinstance(finder, ServedModuleFinder)
+            for address in finder.clients]
+
+
 def reload_problem(module: str) -> str | None:
     """Why ``module`` may not be reloaded everywhere (dropped from every process's
     cache), or None. Only a system's own code may be: Python's standard library, an

@@ -99,17 +99,23 @@ class ControlServer:
                  host: str = "127.0.0.1", port: int = 0, *, name: str = "pb3a-control",
                  instant: Mapping[str, Callable[[dict[str, Any]], Any]] | None = None,
                  aside: Collection[str] = (),
-                 decode_lock: threading.Lock | None = None, title: str = "the process") -> None:
+                 decode_lock: threading.Lock | None = None, title: str = "the process",
+                 import_first: Callable[[str, str], None] | None = None) -> None:
         """``decode_lock``: held while a request imports the modules of the classes it
         names (see ``_decode``), by a process that also imports in the background:
         CPython may hand one thread a module another is still importing when the two
         imports go through a circular one. ``title`` is how a request it cannot read
-        names it ("node b's executor"), before its address."""
+        names it ("node b's executor"), before its address. ``import_first(module,
+        name)``: called before a request imports a module for its class ``name``, to
+        refuse it (an ``ImportError``: the request cannot be read) rather than import a
+        module that would harm this process (a launcher's, see
+        ``pb3a.loading.trial``)."""
         self._title = title
         self._handler = handler
         self._aside = frozenset(aside)
         self._asides: set[threading.Thread] = set()     # requests running aside now
         self._decode_lock = decode_lock or contextlib.nullcontext()
+        self._import_first = import_first
         # answered on the socket thread, never queued: they must be quick and never block
         self._instant = {"ping": lambda args: "pong", **(instant or {})}
         self._router, self.address = _attached(
@@ -205,7 +211,8 @@ class ControlServer:
             peer, request_id, op, args = item
             if op is None:                 # one the socket thread could not read at once
                 try:
-                    op, args = _decode(args, self._decode_lock, may_import=True)
+                    op, args = _decode(args, self._decode_lock, may_import=True,
+                                       first=self._import_first)
                 except Exception as exc:
                     self._reply_undecodable(peer, request_id, exc)
                     continue
@@ -445,11 +452,13 @@ class _MustImport(Exception):
 
 class _RequestUnpickler(pickle.Unpickler):
     """Unpickles a request, importing a module it names only under ``lock``, and only
-    if it ``may_import``: otherwise such a module raises ``_MustImport``."""
+    if it ``may_import``: otherwise such a module raises ``_MustImport``. ``first``: see
+    ``ControlServer``'s ``import_first``."""
 
-    def __init__(self, data: Any, lock: Any, may_import: bool) -> None:
+    def __init__(self, data: Any, lock: Any, may_import: bool,
+                 first: Callable[[str, str], None] | None) -> None:
         super().__init__(io.BytesIO(data))
-        self._lock, self._may_import = lock, may_import
+        self._lock, self._may_import, self._first = lock, may_import, first
 
     def find_class(self, module: str, name: str) -> Any:
         loaded = sys.modules.get(module)
@@ -457,15 +466,18 @@ class _RequestUnpickler(pickle.Unpickler):
                                      False):
             if not self._may_import:
                 raise _MustImport(module)
+            if loaded is None and self._first is not None:
+                self._first(module, name)
             with self._lock:                   # (an import, or one under way elsewhere)
                 return super().find_class(module, name)
         return super().find_class(module, name)
 
 
-def _decode(data: Any, lock: Any, *, may_import: bool) -> Any:
+def _decode(data: Any, lock: Any, *, may_import: bool,
+            first: Callable[[str, str], None] | None = None) -> Any:
     """A request's ``(op, args)``. Only a request that names a module not imported yet
-    imports it, under ``lock``, and never on the socket thread (``may_import`` False): an
-    import there, or a wait for a background one, held up the heartbeats behind it (under
-    load longer than a node's lease, and the node was lost while its launcher was still
-    starting it)."""
-    return _RequestUnpickler(data, lock, may_import).load()
+    imports it, under ``lock``, after ``first`` (see ``ControlServer``) and never on the
+    socket thread (``may_import`` False): an import there, or a wait for a background
+    one, held up the heartbeats behind it (under load longer than a node's lease, and
+    the node was lost while its launcher was still starting it)."""
+    return _RequestUnpickler(data, lock, may_import, first).load()
