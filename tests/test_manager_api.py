@@ -581,6 +581,45 @@ def test_the_catalog_names_a_file_with_a_syntax_error_in_its_problems(
         listed["problems"]
 
 
+def test_the_catalog_leaves_out_a_file_that_loops_as_imported_and_names_it(
+        tmp_path, monkeypatch) -> None:
+    """A file whose top level only defines things may still loop as it is imported (in a
+    class body, or a module it imports): opening the module browser hung for good, and
+    every later look waited for the catalog behind it. It is tried in a child process
+    first now, for ``import_timeout`` seconds: left out, named in ``problems`` with what
+    to do, and not tried again while the file is unchanged; the rest is listed."""
+    project = tmp_path / "project_loops"
+    project.mkdir()
+    head = "from pb3a import Module, Output\n\n\n"
+    (project / "loops_in_body.py").write_text(
+        head + "class Looping(Module):\n    out = Output(float)\n    while True:\n"
+        "        pass\n")
+    (project / "fine_beside.py").write_text(head + "class Fine(Module):\n    out = Output(float)\n")
+    (project / "lab.toml").write_text('name = "lab"\n')
+    monkeypatch.setattr("sys.path", list(sys.path))
+    monkeypatch.setattr("sys.modules", dict(sys.modules))
+    catalog = Catalog(Document.open(project / "lab.toml"), roots=[project], import_timeout=1.0)
+    listed = _bounded(catalog.classes, 30)
+    assert [c["class"] for c in listed["classes"]] == ["fine_beside:Fine"]
+    assert listed["problems"] == [
+        "loops_in_body: not imported: importing it did not finish within 1 s: it loops or "
+        "waits (for input, a lock, the network) as it is imported; make it return, or give "
+        "pb3a manager a longer --import-timeout"]
+    catalog.forget()                                  # (looked at again: not tried again)
+    again = _bounded(catalog.classes, 0.9)
+    assert again["problems"] == listed["problems"]
+
+
+def _bounded(call: Any, timeout: float) -> Any:
+    """What ``call()`` returns, failing the test if it takes longer than ``timeout``."""
+    outcome: list[Any] = []
+    caller = threading.Thread(target=lambda: outcome.append(call()), daemon=True)
+    caller.start()
+    caller.join(timeout)
+    assert outcome, f"it did not return within {timeout} s"
+    return outcome[0]
+
+
 def test_an_unknown_route_is_a_json_404(client) -> None:
     missing = client.get("/api/nothing")
     assert missing.status_code == 404 and "docs/manager.md" in missing.json()["error"]

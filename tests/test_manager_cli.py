@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+import urllib.error
 import urllib.request
 from pathlib import Path
 
@@ -118,3 +119,47 @@ def test_without_the_ui_extra_it_says_what_to_install(monkeypatch, capsys) -> No
     monkeypatch.setitem(sys.modules, "starlette", None)      # as if not installed
     assert main(["manager"]) == 1
     assert "pip install 'pb3a[ui]'" in capsys.readouterr().err
+
+
+def test_a_module_file_that_ends_or_crashes_as_imported_does_not_end_the_manager(
+        tmp_path: Path) -> None:
+    """The manager imported the module browser's files and a swap's class in its own
+    process, which runs the system it launched: a file that crashed (SIGSEGV) or called
+    os._exit() as it was imported (in a class body, or at its top) ended the manager and
+    that system, without a word. Each is tried in a child process first now: the browser
+    names the file and what happened, the swap is refused saying so, and the manager and
+    its system run on."""
+    pytest.importorskip("uvicorn", reason="the manager needs the 'ui' extra")
+    from test_manager_browser import ManagerProcess
+
+    head = "import ctypes, os\nfrom pb3a import Input, Module, Output\n\n"
+    body = "class Bad(Module):\n    x = Input(float)\n    y = Output(float)\n"
+    (tmp_path / "browsed_crashes.py").write_text(f"{head}{body}    ctypes.string_at(0)\n")
+    (tmp_path / "browsed_ends.py").write_text(f"{head}{body}    os._exit(3)\n")
+    (tmp_path / "swapped_ends.py").write_text(f"{head}os._exit(4)\n\n{body}")
+    (tmp_path / "lab.toml").write_text(
+        'name = "lab"\n[modules.src]\nclass = "sample_modules:FloatSource"\n'
+        '[modules.scale]\nclass = "sample_modules:Scale"\n'
+        '[[links]]\nfrom = "src.out"\nto = "scale.x"\n')
+    manager = ManagerProcess(str(tmp_path / "lab.toml"))
+    try:
+        problems = manager.api("GET", "/api/classes")["problems"]
+        assert "browsed_crashes: not imported: importing it was killed by signal SIGSEGV (a " \
+               "crash in native code it runs as it is imported?): fix or remove that code" \
+               in problems, problems
+        assert "browsed_ends: not imported: importing it exited with status 3: it ends the " \
+               "process as it is imported (os._exit()?); a module must not exit when " \
+               "imported (put that code under if __name__ == '__main__':)" in problems, problems
+        assert manager.api("POST", "/api/document/launch")["mode"] == "running"
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            manager.api("POST", "/api/modules/scale/swap", {"class": "swapped_ends:Bad"})
+        assert refused.value.code == 404
+        assert json.loads(refused.value.read())["error"].startswith(
+            "importing module 'swapped_ends' for 'swapped_ends:Bad' exited with status 4")
+        stats = manager.api("GET", "/api/stats")
+        assert stats["modules"]["scale"]["cls"] == "sample_modules:Scale"
+        pids = [module["pid"] for module in stats["modules"].values()]
+        assert all(alive(pid) for pid in pids)
+    finally:
+        manager.stop()
+    assert manager.process.returncode in (0, 130, -signal.SIGINT)

@@ -230,4 +230,5 @@ def _manager(commands: argparse._SubParsersAction) -> None:
                          help="seconds between live updates of the page (default 0.5)")
     manager.add_argument("--timeout", type=arguments.seconds, default=10.0, metavar="S",
                          help="seconds a call to the system may take (default 10)")
+    _import_timeout(manager)
     manager.set_defaults(handler="pb3a.cli.manager:manager_command")

@@ -29,9 +29,27 @@ def manager_command(args: argparse.Namespace) -> int:
         host, port = listen_address(args.listen)
     except ValueError as exc:
         return _fail(str(exc))
-    if not args.refresh > 0 or not args.timeout > 0:
-        return _fail("--refresh and --timeout take a number of seconds above 0")
+    if not args.refresh > 0 or not args.timeout > 0 or not args.import_timeout > 0:
+        return _fail("--refresh, --timeout and --import-timeout take a number of seconds "
+                     "above 0")
 
+    from pb3a.loading.references import watch_imports
+    from pb3a.loading.trial import tried_first
+    from pb3a.manager.catalog import LONGER
+
+    # Every class this process imports for the page (its document's, the module
+    # browser's, a swap's) is tried in a child process first: a module file that loops,
+    # exits or crashes as it is imported is refused, saying so, and does not hold up or
+    # end the manager and the system it launched.
+    before = watch_imports(tried_first(args.import_timeout, LONGER))
+    try:
+        return _serve(args, host, port)
+    finally:
+        watch_imports(before)
+
+
+def _serve(args: argparse.Namespace, host: str, port: int) -> int:
+    """Serve the manager at ``host:port`` until signalled."""
     from pb3a.cli.status import sigterm_interrupts
     from pb3a.errors import ConfigError, PB3AError
     from pb3a.launch.connection import connect
@@ -41,17 +59,17 @@ def manager_command(args: argparse.Namespace) -> int:
     from pb3a.manager.session import Session
 
     target = args.target
+    options = {"timeout": args.timeout, "import_timeout": args.import_timeout}
     try:
         if target is None:
-            session = Session(Document.empty(), timeout=args.timeout)
+            session = Session(Document.empty(), **options)
         elif target.startswith("tcp://"):
-            session = Session(Document.empty(), connect(target), owns_handle=True,
-                              timeout=args.timeout)
+            session = Session(Document.empty(), connect(target), owns_handle=True, **options)
         else:
             if not Path(target).is_file():
                 return _fail(f"no file {target!r}: give a configuration file (.toml) or the "
                              "address tcp://HOST:PORT of a running system")
-            session = Session(Document.open(target), timeout=args.timeout)
+            session = Session(Document.open(target), **options)
     except ConfigError as exc:
         return _fail("; ".join(exc.problems) or str(exc))
     except (PB3AError, OSError, ValueError) as exc:

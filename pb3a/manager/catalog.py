@@ -10,7 +10,12 @@ is imported only if its top level merely defines things (imports, classes,
 functions, assignments, an ``if __name__ == "__main__"`` block):
 a script that does its work when imported (``examples/quickstart.py`` launches a
 system) is left out, and said so in ``problems``, as is a file Python cannot parse.
-What one import finds is kept until ``forget`` (after a reload).
+A file not imported yet is imported in a child process first, each with a deadline
+(``import_timeout``): one that loops, exits or crashes as it is imported all the same
+(in a class body, a module it imports) is left out and said so too, instead of
+holding the catalog (and the manager's requests behind it) for good, or ending the
+manager and the system it launched (``pb3a.loading.trial``). What one import finds
+is kept until ``forget`` (after a reload).
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from pb3a.errors import PB3AError
+from pb3a.loading import trial
 from pb3a.loading.references import class_ref, resolve_class
 from pb3a.loading.served import forget as forget_module
 from pb3a.loading.served import use_module_servers
@@ -44,6 +50,8 @@ if TYPE_CHECKING:
 log = logging.getLogger("pb3a.manager")
 
 LIST_TIMEOUT = 3.0           # seconds a module server may take to list its modules
+IMPORT_TIMEOUT = 10.0        # seconds the import of one module file may take (in a child)
+LONGER = "give pb3a manager a longer --import-timeout"    # (to an import that hung)
 MOST_FILE_BYTES = 256_000    # larger files are not looked into
 MOST_DEPTH = 4               # package levels looked into below a directory
 _SKIPPED_DIRS = {"build", "dist", "node_modules", "site-packages", "venv", "tests", "test",
@@ -68,9 +76,11 @@ _ACTING_METHODS = frozenset({"write_text", "write_bytes", "mkdir", "unlink", "rm
 class Catalog:
     """The classes on the project's path and on module servers."""
 
-    def __init__(self, document: Document, roots: list[Path] | None = None) -> None:
+    def __init__(self, document: Document, roots: list[Path] | None = None, *,
+                 import_timeout: float = IMPORT_TIMEOUT) -> None:
         self.document = document
         self._roots = roots                 # None: the project's directories on sys.path
+        self.import_timeout = import_timeout
         self._lock = threading.Lock()
         self._found: dict[str, Any] | None = None
         self._servers: tuple[str, ...] = ()   # the servers asked for ``_found``
@@ -108,6 +118,7 @@ class Catalog:
         with self._lock:
             if module is not None:
                 forget_module(module)
+                trial.forget(module)
             self._found = None
             self._classes.clear()
 
@@ -162,7 +173,11 @@ class Catalog:
             modules.update({name: origin for name, origin in self._served(servers, problems)
                             .items() if name not in modules})
         entries = []
+        harmful = trial.import_problems(sorted(modules), self.import_timeout, longer=LONGER)
         for name, origin in sorted(modules.items()):
+            if name in harmful:
+                problems.append(f"{name}: not imported: importing it {harmful[name]}")
+                continue
             try:
                 module = importlib.import_module(name)
             except Exception as exc:               # whatever a user's module raises

@@ -25,7 +25,7 @@ from pb3a.config.checks import NAME
 from pb3a.errors import ConfigError, ModuleNotFound
 from pb3a.loading.references import resolve_class
 from pb3a.manager import keeping, reflection
-from pb3a.manager.catalog import Catalog
+from pb3a.manager.catalog import IMPORT_TIMEOUT, Catalog
 from pb3a.manager.document import Document, as_json, check_data, toml_text
 from pb3a.manager.layout import layout
 from pb3a.model.ports import Policy
@@ -64,9 +64,11 @@ class Session:
 
     def __init__(self, document: Document, handle: SystemHandle | None = None, *,
                  owns_handle: bool = False, timeout: float = CALL_TIMEOUT,
-                 catalog: Catalog | None = None) -> None:
+                 catalog: Catalog | None = None, import_timeout: float = IMPORT_TIMEOUT
+                 ) -> None:
         """``owns_handle``: close ``handle`` when the session closes (a ``Running``: the
-        system stops; a ``Connection``: only the connection closes)."""
+        system stops; a ``Connection``: only the connection closes); ``import_timeout``:
+        the catalog's, for each module file it imports (see ``Catalog``)."""
         self.document = document
         self._handle = handle
         self._owns_handle = owns_handle
@@ -75,7 +77,7 @@ class Session:
         self._launched = False
         self._launches = 0          # systems launched here: each numbers its events from 1
         self.timeout = timeout
-        self.catalog = catalog or Catalog(document)
+        self.catalog = catalog or Catalog(document, import_timeout=import_timeout)
         self._lock = threading.Lock()       # launching and closing
         self._layouts: dict[Any, dict[str, Any]] = {}     # structure -> its layout
         self._tuned: dict[str, set[str]] = {}     # module -> fields set here since the launch
