@@ -152,6 +152,8 @@ class NodeReport:
     failures: list[str]
     resources: NodeResources | None = None   # the machine's CPU and memory
     spare_workers: int = 0              # booted idle workers, for modules that arrive
+    link_drops: dict[str, int] = field(default_factory=dict)   # link key -> values its
+                                        # sender did not send, the link slower than its writer
 
 
 @dataclass(frozen=True)

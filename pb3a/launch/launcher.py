@@ -836,13 +836,15 @@ class Launcher:
 
 def _link_table(links: dict[str, FlatLink], modules: dict[str, ModuleStats],
                 reports: list[NodeReport], lost_values: dict[str, int]) -> dict[str, LinkStats]:
-    """Per link: values, drops, pending, latency, rate, transport, from the reader's node;
-    the writes that waited for room, from the writer's; the values lost for good, from
-    the reader's node and from the failovers."""
+    """Per link: values, drops, pending, latency, rate, transport, from the reader's node
+    (drops: its ring's and, on a remote link, the values its sender did not send); the
+    writes that waited for room, from the writer's; the values lost for good, from the
+    reader's node and from the failovers."""
     rings = {key: used for report in reports for key, used in report.ring_bytes_used.items()}
-    lost = collections.Counter(lost_values)
+    lost, dropped = collections.Counter(lost_values), collections.Counter()
     for report in reports:
         lost.update(report.link_failures)
+        dropped.update(report.link_drops)
     table = {}
     for key, link in links.items():
         src, dst = modules.get(link.src), modules.get(link.dst)
@@ -855,6 +857,7 @@ def _link_table(links: dict[str, FlatLink], modules: dict[str, ModuleStats],
             "latency_counts": port.latency_counts,
             **{f"latency_p{q}": percentile(port.latency_counts, q) for q in (50, 90, 99)}}
         figures["link_failures"] = figures.get("link_failures", 0) + lost.get(key, 0)
+        figures["drops"] = figures.get("drops", 0) + dropped.get(key, 0)   # (not sent)
         waits = src.link_waits.get(key) if src else None
         if waits is not None:
             figures.update(waits=waits.waits, wait_s=waits.wait_s)

@@ -152,6 +152,11 @@ class Bridge:
         """Values of ``topic`` lost for good (gone from the sender's replay buffer)."""
         return self._follower.link_failures[topic]
 
+    def drops(self, topic: str) -> int:
+        """Values of ``topic`` its sender did not send: the link was slower than its
+        writer (see "Slow links")."""
+        return self._follower.dropped[topic]
+
     @property
     def rejected(self) -> Any:
         return self._follower.rejected

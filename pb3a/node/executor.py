@@ -732,8 +732,9 @@ class Executor:
                  for key, ring in report.get("rings", {}).items()}
         lost = {key: self.bridge.link_failures(_topic(link))
                 for key, link in self.inbound.items()}
+        drops = {key: self.bridge.drops(_topic(link)) for key, link in self.inbound.items()}
         return NodeReport(modules, rings, lost, self.failures.lines(), self.meter.sample(),
-                          len(self.workers.spare_pids()))
+                          len(self.workers.spare_pids()), drops)
 
     def worker_pids(self) -> list[int]:
         """The process ids of this node's running workers."""

@@ -30,6 +30,21 @@ values in sequence order, exactly once:
   for it, briefly. The replay buffer holds twice the bytes of that window: everything
   a live follower may still need, and a bounded number of large values alive (the
   fewer, the warmer the memory the next one is copied into).
+- Slow links. A dropping link (no lossless follower) slower than its writer must not
+  queue at the writer: ZeroMQ counts its queue in messages, so large values piled up
+  there by the hundred MiB and arrived ever later (tens of seconds). So the publisher
+  keeps at most ``flight`` bytes on the way to its lead follower (the most advanced
+  live one: a slower one beside it is not held to it): ``FLIGHT_START`` at first,
+  doubled at each acknowledgement of a message that went less than ``FRESH_S / 2``
+  ago, up to ``WINDOW_BYTES``. A value that does not fit waits for an acknowledgement
+  while what is on the way is fresh; once the oldest of it went ``FRESH_S`` ago, or
+  an acknowledgement comes that late, the link is *slow*: a message goes only when
+  nothing is on the way, and the others are not sent (nor sealed, nor kept), without
+  waiting. The values not sent are announced (SKIPPED before the next message that
+  goes, a SYNC's count, a repair's answer): the follower counts them ``dropped`` and
+  never asks for them. A link is not slow once a lone message is acknowledged within
+  ``FRESH_S / 2``. So a `latest` reader gets a value about one message's crossing
+  old, and the writer holds one message for the link.
 - Lossless followers. A follower whose receiver must not drop (a ``lossless`` link)
   says so in its HELLO and ACKs, and acknowledges only what its receiver has put
   through. Such a follower holds the publisher back for as long as the writer's
@@ -104,7 +119,7 @@ if TYPE_CHECKING:
 log = logging.getLogger("pb3a.replication")
 
 # message kinds
-VALUE, SYNC, HELLO, REPAIR, WELCOME, REPLAYED, ACK, VALUES = 1, 2, 3, 4, 5, 6, 7, 8
+VALUE, SYNC, HELLO, REPAIR, WELCOME, REPLAYED, ACK, VALUES, SKIPPED = 1, 2, 3, 4, 5, 6, 7, 8, 9
 _INFO = struct.Struct("<16sQdBQ16s")    # VALUE: incarnation, sequence number, sent at (unix),
                                         # codec kind, payload nonce counter, payload tag
 _BATCH = struct.Struct("<16sQId")       # VALUES: incarnation, first sequence number, count,
@@ -115,7 +130,8 @@ _ASK = struct.Struct("<qq16s")          # HELLO: first needed (-1: from now), fl
                                         # replicator it is for (_NOBODY: not known yet)
 _NOBODY = bytes(16)
 LOSSLESS = 1                            # flag of HELLO and ACK: hold the publisher back
-_ANSWER = struct.Struct("<16sqq")       # WELCOME: incarnation, next; REPLAYED: first, gone
+_ANSWER = struct.Struct("<16sqq")       # WELCOME: incarnation, next; REPLAYED: first, gone;
+                                        # SKIPPED: first, count; SYNC: next, skipped before it
 PLAIN = 0                               # a VALUES entry that is the value itself
 BATCH_VALUES = 1024                     # small values of one topic sent as one message, at most
 BATCH_BYTES = 1 << 20                   # ... and at most this many bytes of them
@@ -140,6 +156,11 @@ PEER_TIMEOUT_MS = 5000                  # ... and a sender's is closed when it h
                                         # this long (see ``_secure``)
 DRAIN_BATCH = 1024                      # messages taken in before delivering them
 ZERO_COPY_MIN = 64 * 1024               # frames at least this large are sent without a copy
+FLIGHT_START = 256 * 1024               # bytes on the way to a dropping link at first (it doubles
+                                        # at each timely acknowledgement, up to WINDOW_BYTES)
+FRESH_S = 0.5                           # a value not acknowledged this long after it went: the
+                                        # link is slower than its writer (see "Slow links")
+SKIP_RUNS = 256                         # runs of values not sent, kept to answer repairs
 _SCALARS = frozenset({int, float, bool, complex, type(None)})   # immutable: kept as they are
 SCALAR_BYTES = 9                        # what a scalar counts for in a batch's bytes
 _TEXT = frozenset({str, bytes})         # immutable too, when small
@@ -247,9 +268,10 @@ class _Sent(NamedTuple):
 
     first: int
     end: int
-    kind: int                           # VALUE or VALUES
+    kind: int                           # VALUE or VALUES (SKIPPED: a notice, never kept)
     parts: list[Any]
     nbytes: int
+    at: float = 0.0                     # when it went (monotonic): see "Slow links"
 
     def replayable(self) -> list[Any]:
         """The message of the values it still holds: the one sent, or one without the
@@ -288,11 +310,42 @@ class _Stream:
     room: RingSize | None = None        # the readers' rings: what a value must fit
     waits: int = 0                      # values whose publish waited (or waits) for followers
     wait_s: float = 0.0                 # ... and the seconds those that ended waited
+    # a dropping link slower than its writer (see "Slow links" above)
+    flight: int = FLIGHT_START          # bytes that may be on the way to the lead follower
+    slow: bool = False                  # it is slower than the writer: what does not fit
+                                        # is not sent, without waiting
+    skip_from: int = -1                 # the first of the values not sent since the last
+                                        # message that went (-1: none)
+    skips: collections.deque[tuple[int, int]] = field(
+        default_factory=lambda: collections.deque(maxlen=SKIP_RUNS))   # (first, end) not sent
+    dropped: int = 0                    # values not sent, in all
 
     def acknowledged(self, now: float) -> int | None:
         """Where the slowest live follower is (None: nobody follows)."""
         live = [seq for seq, when in self.acks.values() if now - when < FOLLOWER_TIMEOUT]
         return min(live) if live else None
+
+    def lead(self, now: float) -> int | None:
+        """Where the most advanced live follower is (None: nobody follows)."""
+        live = [seq for seq, when in self.acks.values() if now - when < FOLLOWER_TIMEOUT]
+        return max(live) if live else None
+
+    def on_the_way(self, acked: int) -> tuple[int, float, float]:
+        """Bytes of the messages sent from sequence number ``acked`` on, when the oldest
+        of them went (inf: none), and when the newest message before them went."""
+        total, oldest = 0, math.inf
+        for sent in reversed(self.replay):
+            if sent.end <= acked:
+                return total, oldest, sent.at
+            total += sent.nbytes
+            oldest = sent.at
+        return total, oldest, -math.inf
+
+    def skip(self, first: int, end: int) -> None:
+        """Values ``first..end - 1`` are not sent (lock held)."""
+        if self.skip_from < 0:
+            self.skip_from = first
+        self.dropped += end - first
 
     def ahead(self, acked: int) -> int:
         """Bytes of the values from sequence number ``acked`` on (whole messages)."""
@@ -553,6 +606,10 @@ class Replicator:
         if kind < 0:
             self._close_batch(stream)
             seq = stream.next_seq
+            if self._too_slow(stream, size):     # (not sealed: it does not go)
+                stream.next_seq = seq + 1
+                stream.skip(seq, seq + 1)
+                return
             meta, payload = entry
             bound = _bound(stream.name, self.incarnation, seq, -kind, meta)
             nonce, sealed = self._payloads.seal(payload, bound)
@@ -560,9 +617,9 @@ class Replicator:
             info = _INFO.pack(self.incarnation, seq, time.time(), -kind, nonce,
                               sealed[-PAYLOAD_TAG:].tobytes())
             # one frame for every send (repairs too): ZeroMQ shares it by reference
-            sent = _Sent(seq, seq + 1, VALUE, [info, meta, zmq.Frame(sealed, copy=False)], size)
-            stream.keep(sent)
-            self._outbox.append((stream.name, sent))
+            self._send_soon(stream, _Sent(seq, seq + 1, VALUE,
+                                          [info, meta, zmq.Frame(sealed, copy=False)], size,
+                                          time.monotonic()))
             return
         stream.next_seq += 1
         pending = stream.pending
@@ -590,8 +647,27 @@ class Replicator:
                 stream.wait_s += now - started
                 return False
             self._acked.wait(deadline - now)
+        while not stream.holds and not stream.slow \
+                and stream.replay_bytes + stream.pending_bytes + size > stream.flight:
+            # the lead follower has its flight of bytes on the way: wait for it while
+            # they are fresh (see "Slow links"); past that, what does not fit does not go
+            now = time.monotonic()
+            lead = stream.lead(now)
+            if lead is None:
+                break
+            on_way, oldest, _ = stream.on_the_way(lead)
+            if not on_way or on_way + stream.pending_bytes + size <= stream.flight:
+                break
+            late = min(oldest + FRESH_S, deadline)
+            if now >= late:
+                break
+            if started is None:
+                started = now
+                stream.waits += 1
+            self._acked.wait(late - now)
         window_end = None
-        while (acked := stream.acknowledged(time.monotonic())) is not None \
+        while not (stream.slow and not stream.holds) \
+                and (acked := stream.acknowledged(time.monotonic())) is not None \
                 and (stream.next_seq - acked >= WINDOW or not stream.fits(acked, size)):
             if window_end is None:           # (never past the writer's deadline)
                 window_end = min(time.monotonic() + WINDOW_WAIT, deadline)
@@ -603,13 +679,18 @@ class Replicator:
                 break
         if started is not None:
             stream.wait_s += time.monotonic() - started
-        if stream.holds or started is not None:
+        acked = stream.acknowledged(time.monotonic())
+        if stream.holds or started is not None or stream.slow:
             stream.clear_until = stream.next_seq + 1    # ask again for the next value
         elif acked is None:
             stream.clear_until = stream.credit = math.inf
         else:            # (only a new follower brings the window's end closer: see ACK)
             stream.clear_until = acked + WINDOW
-            stream.credit = WINDOW_BYTES - stream.ahead(acked)
+            lead = stream.lead(time.monotonic())
+            on_way = (stream.on_the_way(lead)[0] if lead is not None
+                      and stream.replay_bytes > stream.flight else stream.replay_bytes)
+            stream.credit = min(WINDOW_BYTES - stream.ahead(acked),
+                                stream.flight - on_way - stream.pending_bytes)
         return True
 
     def _close_batch(self, stream: _Stream) -> None:
@@ -618,15 +699,69 @@ class Replicator:
         if not pending:
             return
         first = stream.next_seq - len(pending)
-        kinds = bytes(stream.kinds) if stream.kinds is not None else b""
-        parts = [_BATCH.pack(self.incarnation, first, len(pending), stream.pending_at), kinds,
-                 pickle.dumps(pending, protocol=5)]
-        sent = _Sent(first, stream.next_seq, VALUES, parts, stream.pending_bytes)
+        sent = None
+        if self._too_slow(stream, stream.pending_bytes):
+            stream.skip(first, stream.next_seq)
+        else:
+            kinds = bytes(stream.kinds) if stream.kinds is not None else b""
+            parts = [_BATCH.pack(self.incarnation, first, len(pending), stream.pending_at),
+                     kinds, pickle.dumps(pending, protocol=5)]
+            sent = _Sent(first, stream.next_seq, VALUES, parts, stream.pending_bytes,
+                         time.monotonic())
         pending.clear()                          # (the same list: offer holds it)
         stream.kinds, stream.pending_bytes = None, 0
         self._filling.discard(stream.name)
+        if sent is not None:
+            self._send_soon(stream, sent)
+
+    def _send_soon(self, stream: _Stream, sent: _Sent) -> None:
+        """Keep a message for repairs and put it in the outbox (lock held), after the
+        notice of the values not sent before it, if any: its followers count them
+        dropped, and do not ask for them."""
+        if stream.skip_from >= 0:
+            first, count = stream.skip_from, sent.first - stream.skip_from
+            stream.skips.append((first, sent.first))
+            notice = _ANSWER.pack(self.incarnation, first, count)
+            self._outbox.append((stream.name, _Sent(first, sent.first, SKIPPED, [notice], 0)))
+            stream.skip_from = -1
         stream.keep(sent)
         self._outbox.append((stream.name, sent))
+
+    def _too_slow(self, stream: _Stream, size: int) -> bool:
+        """Whether a message of ``size`` bytes must not go (lock held): no lossless
+        follower, the lead follower has more than ``flight`` bytes on the way, and it is
+        slow (it became so if the oldest of them went ``FRESH_S`` ago)."""
+        if stream.holds or stream.replay_bytes + size <= stream.flight:
+            return False                         # (no scan: all kept fits, small values)
+        now = time.monotonic()
+        lead = stream.lead(now)
+        if lead is None:
+            return False
+        on_way, oldest, _ = stream.on_the_way(lead)
+        if not on_way or on_way + size <= stream.flight:
+            return False
+        if not stream.slow and now - oldest >= FRESH_S:
+            stream.slow, stream.flight = True, 0
+        return stream.slow
+
+    def _pace(self, stream: _Stream, before: int | None, now: float) -> None:
+        """An acknowledgement came (lock held): if it moves the lead follower on, the
+        age of the newest message it acknowledges (from when it went) says whether
+        the link keeps up: FRESH_S or more, it is slow (one message on the way at a
+        time); under half of it, a slow link is not any more, and the bytes that may be
+        on the way double."""
+        lead = stream.lead(now)
+        if stream.holds or lead is None or (before is not None and lead <= before):
+            return
+        on_way, _, went = stream.on_the_way(lead)
+        age = now - went
+        if age >= FRESH_S:
+            stream.slow, stream.flight = True, 0
+        elif stream.slow:
+            if age < FRESH_S / 2 and not on_way:
+                stream.slow, stream.flight = False, FLIGHT_START
+        elif age < FRESH_S / 2:
+            stream.flight = min(WINDOW_BYTES, max(FLIGHT_START, 2 * stream.flight))
 
     def flush(self) -> None:
         """Send everything published so far now (it goes soon anyway); waits for it."""
@@ -670,7 +805,13 @@ class Replicator:
         with self._lock:
             self._flush_locked()                 # (what it announces has gone out first)
             for name, stream in self._streams.items():
-                self._send_pub(name, SYNC, [_ANSWER.pack(self.incarnation, stream.next_seq, 0)])
+                self._send_pub(name, SYNC, [self._sync(stream)])
+
+    def _sync(self, stream: _Stream) -> bytes:
+        """A SYNC's body: the next sequence number, and how many values before it were
+        not sent (a follower counts them dropped; it does not ask for them)."""
+        skipped = stream.next_seq - stream.skip_from if stream.skip_from >= 0 else 0
+        return _ANSWER.pack(self.incarnation, stream.next_seq, skipped)
 
     def _answer(self, peer: Any, message: Any) -> None:
         if message.kind not in (HELLO, REPAIR, ACK) or len(message.frames) != 2 \
@@ -693,12 +834,15 @@ class Replicator:
             if peer_id in stream.gone:           # its node was lost: see ``forget``
                 raise Rejected("lost follower")
             if message.kind == ACK:
+                now = time.monotonic()
+                before = stream.lead(now)
                 if first < 0:                    # unfollowed: it holds nothing back now
                     stream.acks.pop(peer_id, None)
                     stream.holds.pop(peer_id, None)
                 else:
                     stream.acks[peer_id] = (first, time.monotonic())
                     stream.hold(peer_id, first, last)
+                    self._pace(stream, before, now)
                 stream.clear_until = 0           # (a lossless follower may have come)
                 self._acked.notify_all()
             elif message.kind == HELLO:
@@ -708,7 +852,7 @@ class Replicator:
                 stream.hold(peer_id, first if first >= 0 else nxt, last)
                 stream.clear_until = 0           # a new follower: the window moved back
                 self._send_router(peer, WELCOME, [name, _ANSWER.pack(self.incarnation, nxt, 0)])
-                self._send_pub(name, SYNC, [_ANSWER.pack(self.incarnation, nxt, 0)])
+                self._send_pub(name, SYNC, [self._sync(stream)])
                 if first >= 0:                   # (an empty replay still says so)
                     self._replay(peer, name, stream, first, nxt - 1)
             else:
@@ -720,6 +864,13 @@ class Replicator:
         those values are gone."""
         oldest = stream.replay[0].first if stream.replay else stream.next_seq
         gone = max(0, min(last + 1, oldest) - first)
+        runs = list(stream.skips)
+        if stream.skip_from >= 0:
+            runs.append((stream.skip_from, stream.next_seq))
+        for start, end in runs:                  # (not sent: never replayed, nor gone)
+            if start <= last and end > first:
+                self._send_router(peer, SKIPPED,
+                                  [name, _ANSWER.pack(self.incarnation, start, end - start)])
         for sent in stream.replay:
             if sent.first <= last and sent.end > first:
                 self._send_router(peer, sent.kind, [name, *sent.replayable()])
@@ -751,6 +902,8 @@ class _Follow:
     # runs of values beyond a gap, or waiting for delivery: first sequence number ->
     # (values, sent at, bytes)
     held: dict[int, tuple[list[Any], float, int]] = field(default_factory=dict)
+    skips: dict[int, int] = field(default_factory=dict)   # values the sender did not send:
+                                                          # first -> end
     asked: float = 0.0                        # when we last sent HELLO or REPAIR
     hello_for: bytes | None = None            # the incarnation our last HELLO named
     repairing: bool = False
@@ -783,7 +936,8 @@ class Follower:
     ``identity``: its id at the replicators (``follower_id`` of its node; None: one
     drawn at random, for a follower no launcher needs to name).
     Counters: ``link_failures`` (values lost for good, per topic), ``fenced`` (values
-    from a sender that is not the accepted one), ``duplicates`` (dropped)."""
+    from a sender that is not the accepted one), ``duplicates`` (dropped), ``dropped``
+    (values the sender did not send: the link was slower than its writer)."""
 
     def __init__(self, key: ClusterKey, deliver: Callable[[str, list[Any], float], None], *,
                  land: Callable[[str, bytes, int], Landed | None] | None = None,
@@ -806,6 +960,7 @@ class Follower:
         self.link_failures: collections.Counter[str] = collections.Counter()
         self.fenced: collections.Counter[str] = collections.Counter()
         self.duplicates: collections.Counter[str] = collections.Counter()
+        self.dropped: collections.Counter[str] = collections.Counter()
         self.unsent = 0                          # requests dropped, their queue full
         self._progress = threading.Condition()   # notified after every delivery
         self._loop = SocketLoop("pb3a-follower", self._context)
@@ -850,7 +1005,9 @@ class Follower:
             if follow is None or follow.next_seq < 0:
                 return 0
             newest = max(follow.announced, max(follow.held, default=-1) + 1)
-            return max(0, newest - follow.next_seq)
+            skipped = sum(max(0, min(end, newest) - max(first, follow.next_seq))
+                          for first, end in follow.skips.items())
+            return max(0, newest - follow.next_seq - skipped)
         return self._loop.call(count)
 
     def set_lossless(self, topic: str, lossless: bool) -> None:
@@ -1006,9 +1163,11 @@ class Follower:
         if follow is None:
             return None                          # unfollowed meanwhile
         if message.kind in (SYNC, WELCOME):
-            incarnation, nxt, _ = _ANSWER.unpack(message.frames[1])
+            incarnation, nxt, skipped = _ANSWER.unpack(message.frames[1])
             if not self._accept(follow, incarnation):
                 return None
+            if message.kind == SYNC and 0 < skipped <= nxt:
+                self._skipped(follow, nxt - skipped, nxt)
             if follow.next_seq < 0:             # from now on: what came earlier goes
                 follow.next_seq = nxt
                 for first in [first for first in follow.held if first < nxt]:
@@ -1055,16 +1214,25 @@ class Follower:
             values = _entries(body, bytes(kinds), count)
             nbytes = memoryview(body).nbytes
             return follow if self._take(follow, first, values, sent_at, nbytes, live) else None
+        if message.kind == SKIPPED:
+            incarnation, first, count = _ANSWER.unpack(message.frames[1])
+            if not self._accept(follow, incarnation):
+                return None
+            if first < 0 or count <= 0:
+                raise Rejected("malformed")
+            self._skipped(follow, first, first + count)
+            return follow
         if message.kind == REPLAYED:
             incarnation, first, gone = _ANSWER.unpack(message.frames[1])
             if not self._accept(follow, incarnation):
                 return None
             follow.repairing = False
             if gone and follow.next_seq < first + gone:
-                lost = first + gone - follow.next_seq
-                self.link_failures[_topic(follow.topic)] += lost
-                log.error("remote link %s lost %d values (gone from the sender's replay "
-                          "buffer)", _topic(follow.topic), lost)
+                lost = first + gone - follow.next_seq - self._pass_skips(follow, first + gone)
+                if lost:
+                    self.link_failures[_topic(follow.topic)] += lost
+                    log.error("remote link %s lost %d values (gone from the sender's replay "
+                              "buffer)", _topic(follow.topic), lost)
                 follow.next_seq = first + gone
             return follow
         raise Rejected("unexpected")
@@ -1099,6 +1267,26 @@ class Follower:
             landed.abandon()                     # (the slot holds unchecked bytes)
             raise
         return landed
+
+    @staticmethod
+    def _skipped(follow: _Follow, first: int, end: int) -> None:
+        """The sender did not send values ``first..end - 1``: they are passed over when
+        delivery gets there, counted as dropped, never asked for."""
+        if follow.next_seq < 0 or end > follow.next_seq:
+            follow.skips[first] = max(end, follow.skips.get(first, end))
+
+    def _pass_skips(self, follow: _Follow, until: int) -> int:
+        """Count as dropped the values not sent before ``until`` from ``next_seq`` on,
+        and forget those runs (a repair says the values before them are gone): how
+        many."""
+        passed = 0
+        for first in [first for first in follow.skips if first < until]:
+            end = follow.skips.pop(first)
+            passed += max(0, min(end, until) - max(first, follow.next_seq))
+            if end > until:
+                follow.skips[until] = end
+        self.dropped[_topic(follow.topic)] += passed
+        return passed
 
     @staticmethod
     def _delivered(follow: _Follow, seq: int) -> bool:
@@ -1138,8 +1326,16 @@ class Follower:
         if follow.live and follow.next_seq >= 0:
             follow.ready.set()
         values, sent_at, size, seq = [], 0.0, 0, follow.next_seq
-        held = follow.held
-        while seq >= 0 and held:
+        held, skips = follow.held, follow.skips
+        while seq >= 0 and (held or skips):
+            passed = [first for first in skips if first <= seq] if skips else None
+            if passed:                           # values the sender did not send
+                for first in passed:
+                    end = skips.pop(first)
+                    if end > seq:
+                        self.dropped[_topic(follow.topic)] += end - seq
+                        seq = end
+                continue
             first = seq if seq in held else next((k for k in held if k < seq), None)
             if first is None:
                 break
@@ -1164,9 +1360,14 @@ class Follower:
             follow.moved_bytes += size
             if self._ack_due(follow):
                 self._acknowledge(follow)
-        # a gap before held values, or behind what the sender announced (values lost
-        # at the end of a burst show up only in its heartbeat)
-        last = min(follow.held) - 1 if follow.held else follow.announced - 1
+        elif seq != follow.next_seq:             # (only values not sent were passed)
+            with self._progress:
+                follow.next_seq = seq
+                self._progress.notify_all()
+        # a gap before held values or values not sent, or behind what the sender
+        # announced (values lost at the end of a burst show up only in its heartbeat)
+        starts = [*follow.held, *follow.skips]
+        last = min(starts) - 1 if starts else follow.announced - 1
         if follow.live and not follow.repairing and 0 <= follow.next_seq <= last:
             follow.repairing = True
             follow.asked = time.monotonic()
