@@ -58,10 +58,11 @@ def _mistakes(tmp: Path) -> list[tuple[list[str], int, str]]:
          "no address is known for host 'no-such-host.invalid'"),
         (["graph", missing], 1, "cannot read"),
         (["run", missing], 1, "cannot read"),
+        # (the node's wait for its controller is cut short by the test: see below)
         (["run", str(tmp / "far.toml"), "--for", "1"], 1,
          "no node controller answered at tcp://127.0.0.1:1"),
         (["status", "nonsense"], 1, "is not a launcher's address"),
-        (["status", "127.0.0.1:1"], 1, "no PB3A launcher answered"),
+        (["status", "127.0.0.1:1", "--timeout", "0.5"], 1, "no PB3A launcher answered"),
         (["state", "tcp://127.0.0.1:1", "m", "--timeout", "0.3"], 1,
          "no PB3A launcher answered at tcp://127.0.0.1:1 within 0.3 s"),
         (["node", "start", "--name", "n", "--listen", "nonsense"], 1,
@@ -90,6 +91,9 @@ def _mistakes(tmp: Path) -> list[tuple[list[str], int, str]]:
 
 def test_every_command_answers_a_mistake_with_a_sentence(tmp_path, capsys, monkeypatch) -> None:
     monkeypatch.chdir(REPO)                      # (far.toml names examples.pipeline)
+    # Nothing listens at 127.0.0.1:1: a node's controller is waited for 0.5 s, not the
+    # 5 s a real one may take to answer (the same sentence, 4.5 s sooner)
+    monkeypatch.setattr("pb3a.node.remote.CONNECT_TIMEOUT", 0.5)
     for argv, status, said in _mistakes(tmp_path):
         assert main(argv) == status, argv
         out, err = capsys.readouterr()
