@@ -486,12 +486,14 @@ def test_a_move_whose_pause_a_frozen_worker_reads_late_leaves_the_module_running
         eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")
         pid = run.stats().modules["relay"].pid
         real_pause = Executor.pause
-        thaw = threading.Timer(7.5, os.kill, (pid, signal.SIGCONT))
+        thaw = threading.Timer(3.5, os.kill, (pid, signal.SIGCONT))
 
         def freezing(self, name, timeout=10.0):
             if name == "relay" and not thaw.is_alive():
                 os.kill(pid, signal.SIGSTOP)
-                thaw.start()                    # (after the pause's 5 s + 1 s)
+                thaw.start()                    # (after the pause's 1 s + 1 s)
+                # (the move gives its pause 5 s; 1 s here: the same give-up, sooner)
+                timeout = min(timeout, 1.0)
             return real_pause(self, name, timeout)
         monkeypatch.setattr(Executor, "pause", freezing)
         try:
@@ -523,26 +525,29 @@ def test_a_move_whose_capture_comes_too_late_leaves_the_module_running_where_it_
     (SIGSTOP) as it was asked, or the module's teardown overran. The worker retired it
     all the same once it got there, and the module ran nowhere: the system had it on node
     a, "running", every request to it a KeyError, its links not wired again, and no
-    event or error said so."""
+    event or error said so. (The capture's 10 s, ``REQUEST_TIMEOUT``, is 3 s here: the
+    same give-up, and the worker as late after it.)"""
     with _through(f"move-late-{late}", "relay", LeavesSlowly).launch() as run:
         eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")
         executor = run._launcher.nodes["a"]
         real_call = type(executor).call
         pid = run.stats().modules["relay"].pid
-        thaw = threading.Timer(10.5, os.kill, (pid, signal.SIGCONT))
+        thaw = threading.Timer(3.5, os.kill, (pid, signal.SIGCONT))
 
         def freezing(self, worker, op, *args, **kwargs):
             if op == "migrate_out" and not thaw.is_alive():
                 os.kill(pid, signal.SIGSTOP)
-                thaw.start()                    # (after the capture's 10 s)
+                thaw.start()                    # (after the capture's 3 s)
             return real_call(self, worker, op, *args, **kwargs)
         if late == "frozen":
             monkeypatch.setattr(type(executor), "call", freezing)
         else:
-            run.set_state("relay", linger=10.5)
+            run.set_state("relay", linger=3.5)
         try:
-            with pytest.raises(RuntimeTimeout, match="migrate_out"):
-                run.migrate("relay", to="b")
+            with monkeypatch.context() as capture:
+                capture.setattr("pb3a.node.executor.REQUEST_TIMEOUT", 3.0)
+                with pytest.raises(RuntimeTimeout, match="migrate_out"):
+                    run.migrate("relay", to="b")
         finally:
             if thaw.is_alive():
                 thaw.join()
