@@ -51,6 +51,7 @@ def test_agents_and_the_program_act_on_each_other_without_deadlock(workers: int)
     program = 0
     deadline = time.monotonic() + 90
     with system.launch() as run:
+        seen: dict[str, dict] = {}
         for i in itertools.count():
             agent = AGENTS[i % len(AGENTS)]
             match i % 5:
@@ -65,10 +66,15 @@ def test_agents_and_the_program_act_on_each_other_without_deadlock(workers: int)
                 case _:
                     run.migrate(agent, to="n2" if i % 2 else "n1")
             program += 1
-            states = [run.state(name) for name in AGENTS]
-            answered = sum(s["asked"] - s["refused"] for s in states)
+            # one agent's counts read each turn, in turn (they only grow: the sum of the
+            # latest reads is at most what the agents have answered by now)
+            reader = AGENTS[(i + 1) % len(AGENTS)]
+            seen[reader] = run.state(reader)
+            answered = sum(s["asked"] - s["refused"] for s in seen.values())
             if (program >= 500 and answered >= 1000) or time.monotonic() > deadline:
                 break
+        states = [run.state(name) for name in AGENTS]
+        answered = sum(s["asked"] - s["refused"] for s in states)
     # every request of the program was answered (else it raised); the agents' were too,
     # except those cut short because their agent had to be paused (to move or swap it):
     # never a time-out, never another error
