@@ -245,16 +245,33 @@ class Daemon:
     """``pb3a node start`` in a process of its own, so that it can be killed and started
     again at the same address."""
 
-    def __init__(self, name: str, path: tuple[str, ...] = ()) -> None:
+    def __init__(self, name: str, path: tuple[str, ...] = (), *, ready: bool = True) -> None:
         with socket.socket() as probe:
             probe.bind(("127.0.0.1", 0))
             port = probe.getsockname()[1]
         self.name, self.address = name, f"tcp://127.0.0.1:{port}"
         self.path = path            # more directories on its import path (a robot's own)
         self.process: subprocess.Popen[str] | None = None
-        self.start()
+        self.start(ready)
 
-    def start(self) -> None:
+    @classmethod
+    def several(cls, *names: str, path: tuple[str, ...] = ()) -> dict[str, Daemon]:
+        """Daemons ``names``, started side by side (each takes a moment to import); all
+        stopped again if one does not come up."""
+        made: dict[str, Daemon] = {}
+        try:
+            for name in names:
+                made[name] = cls(name, path, ready=False)
+            for daemon in made.values():
+                daemon.ready()
+        except BaseException:
+            for daemon in made.values():
+                daemon.stop()
+            raise
+        return made
+
+    def start(self, ready: bool = True) -> None:
+        """Start it; with ``ready``, return once it says where it listens (else ``ready``)."""
         repo = Path(__file__).resolve().parent.parent
         env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(repo / "tests"), str(repo),
                                                             *self.path])}
@@ -262,6 +279,11 @@ class Daemon:
             [sys.executable, "-m", "pb3a", "node", "start", "--name", self.name,
              "--listen", self.address, "--max-cpu", "101"],
             stdout=subprocess.PIPE, text=True, env=env)
+        if ready:
+            self.ready()
+
+    def ready(self) -> None:
+        """Wait for the line it prints once it listens."""
         assert self.process.stdout.readline().strip() == f"node {self.name} at {self.address}"
 
     def executor_pid(self) -> int:

@@ -46,10 +46,8 @@ pytestmark = pytest.mark.timeout(120)
 
 @pytest.fixture
 def daemons() -> Iterator[dict[str, Daemon]]:
-    made: dict[str, Daemon] = {}
+    made = Daemon.several("b", "c")
     try:
-        for name in ("b", "c"):
-            made[name] = Daemon(name)
         yield made
     finally:
         for daemon in made.values():
@@ -534,7 +532,7 @@ def test_a_checkpoint_only_the_robots_can_read_still_fails_over(tmp_path: Path) 
     robot_path = tmp_path / "robot_path"
     robot_path.mkdir()
     (robot_path / "robot_types.py").write_text("class Pose:\n    x = 0.0\n")
-    b, c = Daemon("b", (str(robot_path),)), Daemon("c", (str(robot_path),))
+    b, c = Daemon.several("b", "c", path=(str(robot_path),)).values()
     try:
         system = System("robot-types").node("a").node("b", address=b.address)
         system.node("c", address=c.address)
