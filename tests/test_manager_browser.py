@@ -159,6 +159,14 @@ def screenshot_path(tmp_path: Path, name: str) -> Path:
     return (REPO / folder if folder else tmp_path) / name
 
 
+def for_the_picture(page: Any, ms: int) -> None:
+    """A pause only a screenshot for the docs needs (a few refreshes drawn into its
+    plots): made when the screenshots go to PB3A_SCREENSHOTS; otherwise nothing looks
+    at the picture, and the test's checks come before it."""
+    if os.environ.get("PB3A_SCREENSHOTS"):
+        page.wait_for_timeout(ms)
+
+
 def box_of(page: Any, selector: str) -> dict[str, float]:
     box = page.locator(selector).bounding_box()
     assert box is not None, f"{selector} is not drawn"
@@ -291,7 +299,7 @@ def test_an_edited_state_field_is_used_by_the_module(lab: ManagerProcess, page: 
     page.click("[data-module='mapper'] .module-title")
     page.wait_for_selector("[data-field='grid'] canvas.drawn", timeout=WAIT_MS)
     page.wait_for_selector("[data-field='coverage_now'] polyline", timeout=WAIT_MS)
-    page.wait_for_timeout(2500)      # a few refreshes: the plot has a history to draw
+    for_the_picture(page, 2500)      # a few refreshes: the plot has a history to draw
     page.screenshot(path=str(screenshot_path(tmp_path, "manager_state.png")))
 
 
@@ -358,7 +366,7 @@ def test_the_state_editor_comes_back_whole_when_a_failed_module_is_restarted(
                                       "rows => rows.map(r => r.dataset.field)")
     assert sorted(shown) == sorted(fields)
     page.wait_for_selector("#inspector-meta .status-running", timeout=WAIT_MS)
-    page.wait_for_timeout(1500)      # a few refreshes: the plot has a line to draw
+    for_the_picture(page, 1500)      # a few refreshes: the plot has a line to draw
     page.screenshot(path=str(screenshot_path(tmp_path, "manager_restarted_state.png")))
     # reloaded, the page lists what happened before it (its Events panel was empty)
     page.reload()
@@ -435,7 +443,7 @@ def test_dragging_a_module_onto_another_node_migrates_it(lab: ManagerProcess, pa
     lab.api("POST", "/api/modules/sensor/state", {"ripple": 0.4})
     page.click("[data-module='probe'] .module-title")
     page.wait_for_selector("[data-field='load'] .gauge-svg", timeout=WAIT_MS)
-    page.wait_for_timeout(4000)
+    for_the_picture(page, 4000)
     page.screenshot(path=str(screenshot_path(tmp_path, "manager_live.png")))
 
 
