@@ -52,7 +52,7 @@ def _serve(args: argparse.Namespace, host: str, port: int) -> int:
     """Serve the manager at ``host:port`` until signalled."""
     from pb3a.cli.status import sigterm_interrupts
     from pb3a.errors import ConfigError, PB3AError
-    from pb3a.launch.connection import connect
+    from pb3a.launch.connection import CONNECT_TIMEOUT, connect
     from pb3a.manager.access import Access, new_token
     from pb3a.manager.app import bind, create_app, serve
     from pb3a.manager.document import Document
@@ -63,8 +63,9 @@ def _serve(args: argparse.Namespace, host: str, port: int) -> int:
     try:
         if target is None:
             session = Session(Document.empty(), **options)
-        elif target.startswith("tcp://"):
-            session = Session(Document.empty(), connect(target), owns_handle=True, **options)
+        elif target.startswith("tcp://"):   # (a --timeout under 5 s bounds the connecting too)
+            system = connect(target, timeout=min(CONNECT_TIMEOUT, args.timeout))
+            session = Session(Document.empty(), system, owns_handle=True, **options)
         else:
             if not Path(target).is_file():
                 return _fail(f"no file {target!r}: give a configuration file (.toml) or the "
