@@ -330,6 +330,17 @@ class _Stream:
         live = [seq for seq, when in self.acks.values() if now - when < FOLLOWER_TIMEOUT]
         return max(live) if live else None
 
+    def over_flight(self, size: int) -> float | None:
+        """When the oldest of the bytes on the way to the lead follower went, if ``size``
+        more would not fit in ``flight`` beside them; None if they fit, or none follows."""
+        if self.replay_bytes + size <= self.flight:
+            return None                          # (no scan: all kept fits, small values)
+        lead = self.lead(time.monotonic())
+        if lead is None:
+            return None
+        on_way, oldest, _ = self.on_the_way(lead)
+        return oldest if on_way and on_way + size > self.flight else None
+
     def on_the_way(self, acked: int) -> tuple[int, float, float]:
         """Bytes of the messages sent from sequence number ``acked`` on, when the oldest
         of them went (inf: none), and when the newest message before them went."""
@@ -647,16 +658,12 @@ class Replicator:
                 stream.wait_s += now - started
                 return False
             self._acked.wait(deadline - now)
-        while not stream.holds and not stream.slow \
-                and stream.replay_bytes + stream.pending_bytes + size > stream.flight:
+        while not stream.holds and not stream.slow:
             # the lead follower has its flight of bytes on the way: wait for it while
             # they are fresh (see "Slow links"); past that, what does not fit does not go
             now = time.monotonic()
-            lead = stream.lead(now)
-            if lead is None:
-                break
-            on_way, oldest, _ = stream.on_the_way(lead)
-            if not on_way or on_way + stream.pending_bytes + size <= stream.flight:
+            oldest = stream.over_flight(stream.pending_bytes + size)
+            if oldest is None:
                 break
             late = min(oldest + FRESH_S, deadline)
             if now >= late:
@@ -731,16 +738,10 @@ class Replicator:
         """Whether a message of ``size`` bytes must not go (lock held): no lossless
         follower, the lead follower has more than ``flight`` bytes on the way, and it is
         slow (it became so if the oldest of them went ``FRESH_S`` ago)."""
-        if stream.holds or stream.replay_bytes + size <= stream.flight:
-            return False                         # (no scan: all kept fits, small values)
-        now = time.monotonic()
-        lead = stream.lead(now)
-        if lead is None:
+        oldest = None if stream.holds else stream.over_flight(size)
+        if oldest is None:
             return False
-        on_way, oldest, _ = stream.on_the_way(lead)
-        if not on_way or on_way + size <= stream.flight:
-            return False
-        if not stream.slow and now - oldest >= FRESH_S:
+        if not stream.slow and time.monotonic() - oldest >= FRESH_S:
             stream.slow, stream.flight = True, 0
         return stream.slow
 
