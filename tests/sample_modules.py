@@ -297,13 +297,14 @@ class Busy(Module):
 class Journal(Module):
     """Appends its name to ``path`` in ``setup`` and ``teardown`` (start and stop order);
     its setup takes ``setup_s`` seconds after its note, its teardown ``teardown_s``
-    before."""
+    before, and waits while the file ``hold`` exists (up to 30 s)."""
 
     period = 0.05
     path = ""
     label = ""
     setup_s = 0.0
     teardown_s = 0.0
+    hold = ""
 
     def setup(self) -> None:
         self._note("start")
@@ -311,6 +312,9 @@ class Journal(Module):
 
     def teardown(self) -> None:
         time.sleep(self.teardown_s)
+        until = time.monotonic() + 30.0
+        while self.hold and os.path.exists(self.hold) and time.monotonic() < until:
+            time.sleep(0.01)
         self._note("stop")
 
     def _note(self, what: str) -> None:

@@ -359,3 +359,45 @@ def test_a_system_launched_again_is_followed_from_its_first_event_and_a_stop_is_
                 assert [m["error"] for m in seen if m["type"] == "error"] == []
     finally:
         session.close()
+
+
+def test_a_stop_is_told_as_it_begins_and_editing_only_once_its_workers_are_gone(
+        tmp_path) -> None:
+    """The feed told every page ``editing`` as soon as Stop began, while the modules'
+    teardown and the workers' exit were still to come: a page (or a test) that acted on
+    it found the system's processes running. Now the mode is ``stopping`` until the stop
+    is done, then ``editing``."""
+    from conftest import alive
+    from test_manager_failures import receive_until
+
+    hold = tmp_path / "hold"
+    hold.touch()                            # the module's teardown waits while it exists
+    path = tmp_path / "held.toml"
+    path.write_text('name = "held"\n[modules.held]\nclass = "sample_modules:Journal"\n'
+                    f'state = {{ path = "{tmp_path / "journal"}", hold = "{hold}" }}\n')
+    session = Session(Document.open(path))
+
+    def mode_is(mode: str):
+        return lambda m: m["type"] == "system" and m["system"]["mode"] == mode
+
+    try:
+        with manager_client(session, refresh=0.1) as client, \
+                client.websocket_connect("/api/live") as socket:
+            assert client.post("/api/document/launch", json={}).status_code == 200
+            receive_until(socket, mode_is("running"), "the launch")
+            pid = client.get("/api/stats").json()["modules"]["held"]["pid"]
+            stopped: list[int] = []
+            stop = threading.Thread(target=lambda: stopped.append(
+                client.post("/api/system/stop", json={}).status_code), daemon=True)
+            stop.start()
+            seen = receive_until(socket, mode_is("stopping"), "the stop beginning")
+            assert not any(mode_is("editing")(m) for m in seen)
+            assert client.get("/api/system").json()["mode"] == "stopping"
+            hold.unlink()
+            receive_until(socket, mode_is("editing"), "the stop done")
+            assert not alive(pid)
+            stop.join(20.0)
+            assert stopped == [200]
+            assert client.get("/api/system").json()["mode"] == "editing"
+    finally:
+        session.close()

@@ -63,6 +63,7 @@ class Feed:
         self._calls: set[asyncio.Future[Any]] = set()     # blocking calls under way
         self._seen = 0                      # the last event sent, of the system followed
         self._system = session.running      # the system the pages were last told of
+        self._mode = session.mode           # and its mode (a stop ends in two steps)
         self._epoch = 0                     # one more at each system followed (a launch,
         # a stop): each numbers its events from 1, so a structure is (epoch, event)
 
@@ -132,12 +133,13 @@ class Feed:
     async def _events(self) -> None:
         failures = 0
         while True:
-            handle = self.session.running
-            if handle is not self._system:
+            handle, mode = self.session.running, self.session.mode
+            if handle is not self._system or mode != self._mode:
                 # a launch or a stop (or both) since the last look: a page that did not
                 # launch would edit the document of a running system (past every hello:
-                # no event tells of it); a system launched again numbers its events from 1
-                self._system, self._seen = handle, 0
+                # no event tells of it); a system launched again numbers its events from
+                # 1. A stop is told twice: as it begins (stopping) and once it is done.
+                self._system, self._mode, self._seen = handle, mode, 0
                 self._epoch += 1
                 await self._send_structure(sys.maxsize)
             if handle is None:

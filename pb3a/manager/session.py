@@ -75,6 +75,7 @@ class Session:
         # the handle is a system this session launched (Stop stops it, Keep keeps into the
         # document it came from); one it was given and owns is a connection it closes
         self._launched = False
+        self._stopping: SystemHandle | None = None    # a system this session is stopping
         self._launches = 0          # systems launched here: each numbers its events from 1
         self.timeout = timeout
         self.catalog = catalog or Catalog(document, import_timeout=import_timeout)
@@ -85,7 +86,11 @@ class Session:
     # -- what runs ----------------------------------------------------------------
     @property
     def mode(self) -> str:
-        return "running" if self._handle is not None else "editing"
+        """``running``, ``stopping`` (Stop has begun; its modules and workers may still
+        run), or ``editing`` (nothing of a system this session launched is left)."""
+        if self._handle is not None:
+            return "running"
+        return "stopping" if self._stopping is not None else "editing"
 
     @property
     def running(self) -> SystemHandle | None:
@@ -127,9 +132,13 @@ class Session:
             if not self._launched:
                 raise ConfigError(["this manager did not launch the system it shows (it "
                                    "attached to it): stop it where it runs"])
+            # from here nothing reads the system, but it is not stopped until close returns
             handle, self._handle, self._launched = self._handle, None, False
-            self._tuned = {}
-            handle.close()
+            self._stopping, self._tuned = handle, {}
+            try:
+                handle.close()
+            finally:
+                self._stopping = None
         return self.system()
 
     def close(self) -> None:

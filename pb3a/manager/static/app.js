@@ -267,6 +267,11 @@ class Manager {
       this.editor.show(this.documentState(name), displays);
       return;
     }
+    if (this.mode() === "stopping") {       // (its state can no longer be read)
+      this.live.watch(null);
+      this.editor.pending("The system is stopping…", displays);
+      return;
+    }
     this.live.watch(name);
     const reading = this.editor.pending("Reading its state…", displays);
     try {
