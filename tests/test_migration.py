@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import signal
@@ -608,3 +609,122 @@ def test_a_module_whose_worker_dies_as_its_move_captures_it_restarts_with_its_li
         eventually(lambda: run.state("sink")["received"] > received + 20,
                    what="values at the sink again")
         assert not [line for line in run.stats().failures if "not wired again" in line]
+
+
+class ArrivesSlowly(Relay):
+    """A relay whose ``setup`` takes ``arrive_s`` seconds from its second on (on arrival)."""
+
+    arrive_s = 0.0
+
+    def setup(self) -> None:
+        super().setup()
+        if self.setups > 1:
+            time.sleep(self.arrive_s)
+
+
+# A move's timeout bounds the whole call: what a test allows beyond it (the landing's
+# floor, LANDING_FLOOR_S, and the bookkeeping once the time is up)
+MOVE_SLACK_S = 0.75
+
+
+def _move_timed(run, name: str, to: str, timeout: float) -> tuple[BaseException, float]:
+    """``run.migrate(name, to, timeout=timeout)``, which must fail: its error, and the
+    seconds the call took."""
+    started = time.monotonic()
+    with pytest.raises(RuntimeTimeout) as raised:
+        run.migrate(name, to=to, timeout=timeout)
+    return raised.value, time.monotonic() - started
+
+
+def _every_value_once_in_order(run) -> None:
+    n = run.state("src")["count"]
+    state = eventually(lambda: (s := run.state("sink"))["received"] >= n and s,
+                       timeout=30, what="every value through relay")
+    assert state["out_of_order"] == 0 and state["duplicates"] == 0
+    assert state["last"] == state["received"]
+
+
+def test_a_move_whose_setup_outlasts_its_timeout_returns_in_time_and_runs_there() -> None:
+    """The module's ``setup`` at the destination takes 3 s, the move's timeout is 1 s: the
+    call waited for the setup (3 s and more: the timeout bounded only the wait for the
+    configuration lock). Past its point of no return (the start), it returns within its
+    timeout, saying the setup had not returned, and the module runs there once it has,
+    with every value."""
+    with _through("move-slow-setup", "relay", ArrivesSlowly).launch() as run:
+        eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")
+        run.set_state("relay", arrive_s=3.0)
+        error, took = _move_timed(run, "relay", "b", 1.0)
+        assert took < 1.0 + MOVE_SLACK_S, took
+        assert "ran out while starting relay at node b" in str(error)
+        assert "runs there once its setup returns" in str(error)
+        assert run.where("relay") == "b"
+        moved = [e for e in run.events() if e.kind in ("module_moved", "migration_failed")]
+        assert [(e.kind, e.detail["destination"]) for e in moved] == [("module_moved", "b")]
+        eventually(lambda: run.stats().modules["relay"].status == "running", timeout=10,
+                   what="relay running at b once its setup returned")
+        relayed = run.state("relay")["relayed"]
+        eventually(lambda: run.state("relay")["relayed"] > relayed + 20,
+                   what="relay relaying at b")
+        _every_value_once_in_order(run)
+
+
+def test_a_move_to_a_frozen_node_returns_in_time_and_leaves_the_module_where_it_was(
+        ) -> None:
+    """The destination's workers are frozen (SIGSTOP): the move waited 10 s for the
+    module's instance there, then 3 s more for the worker to stop (13 s for a 1 s
+    timeout). It returns within its timeout, naming the step, and nothing moved."""
+    with _through("move-frozen-node", "relay", Relay).launch() as run:
+        eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")
+        b = run._launcher.nodes["b"]
+        spares = eventually(lambda: len(pids := b.workers.spare_pids()) == 2 and pids,
+                            what="two spare workers booted at b")
+        for pid in spares:
+            os.kill(pid, signal.SIGSTOP)
+        try:
+            error, took = _move_timed(run, "relay", "b", 1.0)
+        finally:
+            for pid in spares:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGCONT)
+        assert took < 1.0 + MOVE_SLACK_S, took
+        assert "ran out while preparing node b" in str(error)
+        assert "nothing moved: relay runs on node a as before" in str(error)
+        assert run.where("relay") == "a" and list(b.modules) == []
+        relayed = run.state("relay")["relayed"]
+        eventually(lambda: run.state("relay")["relayed"] > relayed + 20,
+                   what="relay relaying where it was")
+        _every_value_once_in_order(run)
+
+
+def test_a_move_whose_pause_outlasts_its_timeout_returns_in_time_where_it_was(
+        monkeypatch) -> None:
+    """The module's worker is frozen (SIGSTOP) as the move pauses it: the move waited the
+    pause's own 5 s, whatever its timeout. It gives up with what is left of its 1 s,
+    naming the step, and the module goes on where it was (the pause the worker reads
+    late is not taken), with every value."""
+    with _through("move-pause-in-time", "relay", Relay).launch() as run:
+        eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")
+        pid = run.stats().modules["relay"].pid
+        thaw = threading.Timer(1.5, os.kill, (pid, signal.SIGCONT))
+        real_pause = Executor.pause
+
+        def freezing(self, name, timeout=10.0):
+            if name == "relay" and not thaw.is_alive():
+                os.kill(pid, signal.SIGSTOP)
+                thaw.start()
+            return real_pause(self, name, timeout)
+        monkeypatch.setattr(Executor, "pause", freezing)
+        try:
+            error, took = _move_timed(run, "relay", "b", 1.0)
+        finally:
+            thaw.join()
+        monkeypatch.setattr(Executor, "pause", real_pause)
+        assert took < 1.0 + MOVE_SLACK_S, took
+        assert "ran out while pausing relay at node a" in str(error), str(error)
+        assert "nothing moved: relay runs on node a as before" in str(error)
+        assert run.where("relay") == "a"
+        relayed = eventually(lambda: run.state("relay", timeout=2)["relayed"],
+                             what="a read of relay")
+        eventually(lambda: run.state("relay")["relayed"] > relayed + 20,
+                   what="relay relaying where it was")
+        _every_value_once_in_order(run)

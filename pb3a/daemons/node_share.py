@@ -29,6 +29,7 @@ import time
 from typing import Any
 
 from pb3a.config.description import DEFAULT_SPARES
+from pb3a.deadline import bounding
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
 from pb3a.logbook import LogBook
@@ -95,11 +96,12 @@ class NodeShare:
                 raise ValueError(f"a node executor has no operation {args['method']!r}")
             # (the lock within the launcher's wait: past it, nobody waits for the answer)
             with ex.held(f"{args['method']} from the launcher",
-                         args.get("within", LOCK_TIMEOUT)):
+                         args.get("within", LOCK_TIMEOUT)), _bounded(args):
                 return getattr(ex, args["method"])(*args["args"], **args["kwargs"])
         if op == "start":       # beside the executor's other requests, without its lock,
-            ex.start_modules(args["names"], args.get("failing", False))   # as on an
-            # embedded node: see executor_main
+            with _bounded(args):    # as on an embedded node: see executor_main
+                ex.start_modules(args["names"], args.get("failing", False),
+                                 args.get("leave_late", False))
             return None
         if op == "await_restart":   # without the lock too: the restart takes it
             return ex.await_restart(args["name"], args["timeout"])
@@ -267,6 +269,13 @@ class NodeShare:
         self.executor.shutdown()
         for client in [*self.peers.values(), *filter(None, [self.launcher])]:
             client.close()
+
+
+def _bounded(args: dict[str, Any]) -> contextlib.AbstractContextManager[Any]:
+    """The deadline a launcher's request carries (``bound``: seconds, when a call of its
+    is bounded, a move say), for every wait it makes here; none without."""
+    bound = args.get("bound")
+    return contextlib.nullcontext() if bound is None else bounding(bound)
 
 
 def executor_main(config: str, node: str, workers: int, cpus: list[int] | None,

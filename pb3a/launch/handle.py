@@ -75,6 +75,11 @@ class SystemHandle(ABC):
         node already pointed at that robot); a move that fails leaves it unset. With
         ``wait=False`` the move goes on in the background: a ``Pending`` whose
         ``result()`` is the report (and the event ``module_moved`` says when).
+
+        ``timeout`` bounds the whole move, the wait for the configuration lock and every
+        step after it: one that runs out raises ``RuntimeTimeout`` naming the step, the
+        module running where it was, or, once its ``setup`` has begun at ``to``, there
+        (see ``pb3a.launch.migration``).
         """
         args = {"name": name, "to": to, "state": state, "timeout": timeout}
         if wait:

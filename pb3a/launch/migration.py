@@ -37,6 +37,12 @@ unwired are wired again and the modules paused go on where they ran.
 A macro's modules move together: each step is taken for all of them before the
 next, so they pause once, and a link between two of them is unwired where both ran
 and wired again where both run, never across nodes on the way.
+
+The caller's ``timeout`` bounds every step (``_Clock``, ``pb3a.deadline``): before the
+capture a step out of time undoes the move as any failure there; once captured, the
+landing gets at least ``LANDING_FLOOR_S``; the start at the destination is the point
+of no return, and a ``setup`` still running when the time is up is left to finish
+there (``MovedLate``). Undoing keeps its own deadlines, not the caller's.
 """
 
 from __future__ import annotations
@@ -47,12 +53,21 @@ import time
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
+from pb3a.deadline import bounding, lifted
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 
 log = logging.getLogger("pb3a.launcher")
 
+# Once captured, a module runs nowhere until it lands: its landing (restore, rewire,
+# start) gets at least this long, however little is left of the call's timeout, since
+# giving it up means putting the module back, which takes as long.
+LANDING_FLOOR_S = 0.5
+# A step's RuntimeTimeout this close to the end of its time is the call's timeout
+# running out (a worker gives up its answer's margin before: ``ANSWER_MARGIN_S``).
+RAN_OUT_SLACK_S = 0.3
+
 if TYPE_CHECKING:
-    from collections.abc import Callable
+    from collections.abc import Callable, Iterator
 
     from pb3a.config.plan import FlatLink, FlatModule
     from pb3a.launch.launcher import Launcher
@@ -85,13 +100,32 @@ class MigrationReport:
     prepare_s: float = 0.0    # before the pause: segments, destination workers, instances
 
 
+class MovedLate(RuntimeTimeout):
+    """The call's timeout ran out while the moved modules' ``setup`` ran at the
+    destination: past the point of no return, so they stay there, and run once it
+    returns. ``reports``: the move's, as if it had ended."""
+
+    def __init__(self, message: str, reports: list[MigrationReport]) -> None:
+        super().__init__(message)
+        self.reports = reports
+
+
 def migrate(launcher: Launcher, names: list[str], node: str,
-            state: dict[str, dict[str, Any]] | None = None) -> list[MigrationReport]:
+            state: dict[str, dict[str, Any]] | None = None,
+            timeout: float = 30.0) -> list[MigrationReport]:
     """Move modules ``names`` to ``node`` together, one report each (the caller holds
     the configuration lock). A macro's modules move as one: prepared together, paused
     together, and its inner links never cross nodes on the way. ``state`` (module name
     -> fields) is set as each arrives, after its state is restored and before it
-    starts; a move that fails puts the modules back without it."""
+    starts; a move that fails puts the modules back without it.
+
+    ``timeout`` bounds every step: each gets what is left of it (``_Clock``). A step
+    that runs out fails the move with ``RuntimeTimeout`` naming it; before the capture
+    the modules are put back where they ran, after it they land all the same (at least
+    ``LANDING_FLOOR_S``), or are put back if they cannot; undoing keeps its own
+    deadlines. A ``setup`` at the destination still running when the time is up is
+    left to finish there: ``MovedLate``."""
+    clock = _Clock(f"migrate {', '.join(names)} to {node}", timeout)
     state = state or {}
     strangers = sorted(set(state) - set(names))
     if strangers:
@@ -101,15 +135,24 @@ def migrate(launcher: Launcher, names: list[str], node: str,
     moving = [name for name in dict.fromkeys(names) if launcher.specs[name].node != node]
     reports = {name: MigrationReport(name, node, node, 0.0, 0, 0) for name in names}
     if moving:
-        _move(launcher, moving, node, state, reports)
+        late = _move(launcher, moving, node, state, reports, clock)
+        if late is not None:
+            raise MovedLate(clock.named(
+                f"starting {late} at node {node}",
+                f"{late}'s setup had not returned; the move is done otherwise (state, "
+                f"inputs and links at node {node}), and {late} runs there once its setup "
+                "returns (a setup that raises then, or outlasts its own deadline, fails "
+                "it there: module_failed)"), list(reports.values()))
     for name in set(state) - set(moving):           # there already: set once all are
-        launcher.call(name, "set_state", state=state[name])
+        with clock.step(f"setting the state of {name} at node {node}"):
+            launcher.call(name, "set_state", state=state[name])
     return list(reports.values())
 
 
 def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dict[str, Any]],
-          reports: dict[str, MigrationReport]) -> None:
-    """``migrate`` for the modules not on ``node`` yet, filling in their ``reports``."""
+          reports: dict[str, MigrationReport], clock: _Clock) -> str | None:
+    """``migrate`` for the modules not on ``node`` yet, filling in their ``reports``;
+    the modules whose ``setup`` was left to finish at ``node``, if any (in words)."""
     homes = {name: launcher.specs[name] for name in moving}
     group = set(moving)
     links = [link for link in launcher.links.values() if group & {link.src, link.dst}]
@@ -118,15 +161,22 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
     with contextlib.ExitStack() as afterwards:      # (called once the writers go on)
         # 1. room for the snapshots and the destination, ready before anything pauses
         preparing = time.perf_counter()
-        segments = _prepare(launcher, homes, links, node, afterwards)
+        try:
+            with clock.step(f"preparing node {node} (a worker, the code loaded)"):
+                segments = _prepare(launcher, homes, links, node, afterwards)
+        except RuntimeTimeout as exc:           # (what was prepared is gone again)
+            _unmoved(exc, homes)
+            raise
         prepare_s = time.perf_counter() - preparing
         try:            # (let go with the segments, afterwards, as the block ends)
-            afterwards.enter_context(launcher.paused(writers))
-        except BaseException:   # a writer that would not pause: nothing moved, and the
-            for name in moving:     # prepared instances and their workers go
+            with clock.step(f"pausing the writers {', '.join(writers)}"):
+                afterwards.enter_context(launcher.paused(writers))
+        except BaseException as exc:    # a writer that would not pause: nothing moved,
+            for name in moving:         # and the prepared instances and their workers go
                 _quietly(arriving.remove_module, name)
             _quietly(arriving.release_workers,
                      [replace(home, node=node) for home in homes.values()])
+            _unmoved(exc, homes)
             raise
         # 2. and 3. pause the modules, unwire them; 4. the fence: retired at the source
         laps, snapshots = _Laps(), {}
@@ -134,44 +184,52 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
         unwiring = unwired = False
         try:
             for name in moving:
-                if not launcher.nodes[homes[name].node].pause(name, 5.0):
-                    raise RuntimeFailure(    # (before anything is unwired)
-                        f"migration of {name} to node {node}: its worker is not "
-                        "running (it died, and comes back by its restart policy); "
-                        "nothing moved")
+                with clock.step(f"pausing {name} at node {homes[name].node}"):
+                    if not launcher.nodes[homes[name].node].pause(name, 5.0):
+                        raise RuntimeFailure(    # (before anything is unwired)
+                            f"migration of {name} to node {node}: its worker is not "
+                            "running (it died, and comes back by its restart policy); "
+                            "nothing moved")
                 paused.append(name)
             unwiring = True
-            launcher.detach(*links)
+            with clock.step("unwiring the links (taking in what is on the way)"):
+                launcher.detach(*links)
             unwired = True
             laps.mark("unwire")
             for name in moving:
                 leaving = launcher.nodes[homes[name].node]
-                carry = leaving.memory_domain() != arriving.memory_domain()
-                snapshots[name] = leaving.retire(name, segments[name], carry)
+                with clock.step(f"capturing {name} at node {homes[name].node}"):
+                    carry = leaving.memory_domain() != arriving.memory_domain()
+                    snapshots[name] = leaving.retire(name, segments[name], carry)
             laps.mark("retire")
-        except BaseException:
-            for name in moving:
-                _quietly(arriving.remove_module, name)
-            if unwiring and not unwired:         # (a part may be wired still)
-                for link in links:
-                    _quietly(launcher.detach, link)
-            _put_back(launcher, homes, snapshots, links, paused, rewire=unwiring)
+        except BaseException as exc:
+            with lifted():                      # (the undo keeps its own deadlines)
+                for name in moving:
+                    _quietly(arriving.remove_module, name)
+                if unwiring and not unwired:         # (a part may be wired still)
+                    for link in links:
+                        _quietly(launcher.detach, link)
+                _put_back(launcher, homes, snapshots, links, paused, rewire=unwiring)
+            _unmoved(exc, homes)
             raise
         for name in moving:
             launcher.specs[name] = replace(homes[name], node=node)
         # 5. restored, re-wired, started (or, failing that, the same back home)
         landed: list[str] = []
+        late: str | None = None
+        clock.at_least(LANDING_FLOOR_S)
         try:
-            restore_s = _land(launcher, snapshots, links, laps, state, landed)
+            restore_s, late = _land(launcher, snapshots, links, laps, state, landed, clock)
         except (RuntimeFailure, RuntimeTimeout) as exc:
             lost = sorted({home.node for home in homes.values() if home.node in
                            launcher.remotes and launcher.remotes[home.node].lost})
-            if not lost:
-                _undo(launcher, homes, snapshots, links, moving, node, exc)
-            # no way back (put back there, they went with it, captured state and all):
-            # they land here all the same, with the links that can be wired
-            restore_s = _stay(launcher, snapshots, links, laps, state, landed, lost,
-                              exc)
+            with lifted():                      # (the undo keeps its own deadlines)
+                if not lost:
+                    _undo(launcher, homes, snapshots, links, moving, node, exc)
+                # no way back (put back there, they went with it, captured state and
+                # all): they land here all the same, with the links that can be wired
+                restore_s = _stay(launcher, snapshots, links, laps, state, landed, lost,
+                                  exc)
     lap = laps.seconds
     capture_s = sum(snapshot.capture_s for snapshot in snapshots.values())
     phases = MigrationPhases(
@@ -181,6 +239,7 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
         reports[name] = MigrationReport(
             name, homes[name].node, node, sum(lap.values()), snapshots[name].nbytes,
             sum(name in (link.src, link.dst) for link in links), phases, prepare_s)
+    return late
 
 
 def _undo(launcher: Launcher, homes: dict[str, FlatModule], snapshots: dict[str, Snapshot],
@@ -202,7 +261,9 @@ def _undo(launcher: Launcher, homes: dict[str, FlatModule], snapshots: dict[str,
             f"{sources} again, with its state" if len(moving) == 1 else
             f"{', '.join(moving)} to node {node} failed ({exc}); they run on "
             f"node {sources} again, with their state")
-    raise RuntimeFailure(f"migration of {what}") from exc
+    # (the call's time ran out: said as such, as before the capture)
+    failure = RuntimeTimeout if getattr(exc, "ran_out", False) else RuntimeFailure
+    raise failure(f"migration of {what}") from exc
 
 
 def _stay(launcher: Launcher, snapshots: dict[str, Snapshot], links: list[FlatLink],
@@ -297,32 +358,96 @@ def _land_one(launcher: Launcher, name: str, snapshot: Snapshot,
 
 
 def _land(launcher: Launcher, snapshots: dict[str, Snapshot], links: list[FlatLink],
-          laps: _Laps, arriving: dict[str, dict[str, Any]] | None = None,
-          landed: list[str] | None = None) -> float:
+          laps: _Laps, arriving: dict[str, dict[str, Any]], landed: list[str],
+          clock: _Clock) -> tuple[float, str | None]:
     """Restore what was captured in the modules' (new) workers and set ``arriving`` on
-    them (each noted in ``landed`` then), re-wire them, start them; the seconds the
-    workers took to restore."""
+    them (each noted in ``landed`` then), re-wire them, start them, each step within
+    what is left of the ``clock``; the seconds the workers took to restore, and the
+    modules whose ``setup`` was left to finish when the time ran out (in words), if
+    any: the point of no return is their start's request, which their worker took."""
     restore_s = 0.0
+    nodes = {name: launcher.specs[name].node for name in snapshots}
     for name, snapshot in snapshots.items():
-        restore_s += _land_one(launcher, name, snapshot, arriving)
-        if landed is not None:
-            landed.append(name)
+        with clock.step(f"restoring {name} at node {nodes[name]}"):
+            restore_s += _land_one(launcher, name, snapshot, arriving)
+        landed.append(name)
     laps.mark("land")
-    launcher.attach(*links)
+    with clock.step("wiring the links where the modules run now"):
+        launcher.attach(*links)
     laps.mark("rewire")
-    _start_where(launcher, {name: launcher.specs[name].node for name in snapshots})
+    late = None
+    try:
+        with clock.step(f"starting {', '.join(snapshots)}"):
+            _start_where(launcher, nodes, leave_late=True)
+    except RuntimeTimeout as exc:
+        if not getattr(exc, "late", None):
+            raise
+        late = ", ".join(exc.late)              # type: ignore[attr-defined]
     laps.mark("start")
-    return restore_s
+    return restore_s, late
 
 
-def _start_where(launcher: Launcher, nodes: dict[str, str], failing: bool = False) -> None:
+def _start_where(launcher: Launcher, nodes: dict[str, str], failing: bool = False,
+                 leave_late: bool = False) -> None:
     """Start each module on its node (module -> node), one request per node, in order;
-    ``failing``: one that cannot start is failed, and said so (``start_modules``)."""
+    ``failing``: one that cannot start is failed, and said so; ``leave_late``: one whose
+    ``setup`` outlasts the call's deadline is left to finish (``start_modules``)."""
     starting: dict[str, list[str]] = {}
     for name, node in nodes.items():
         starting.setdefault(node, []).append(name)
     for node, names in starting.items():
-        launcher.nodes[node].start_modules(names, failing)
+        launcher.nodes[node].start_modules(names, failing, leave_late)
+
+
+def _unmoved(exc: BaseException | None, homes: dict[str, FlatModule]) -> None:
+    """If the call's time ran out (``exc``) before the capture: the error saying so,
+    and that the modules run where they did, once that is true (undone)."""
+    if isinstance(exc, RuntimeTimeout) and getattr(exc, "ran_out", False):
+        where = ", ".join(sorted({home.node for home in homes.values()}))
+        error = RuntimeTimeout(f"{exc}; nothing moved: {', '.join(homes)} "
+                               f"{'runs' if len(homes) == 1 else 'run'} on node {where} "
+                               "as before")
+        error.ran_out = True                    # type: ignore[attr-defined]
+        raise error from exc
+
+
+class _Clock:
+    """A move's one deadline, from its caller's ``timeout``: each step runs within what
+    is left of it (``pb3a.deadline``: every request the step makes to a node or worker
+    waits no longer), and a step that runs out of it is named."""
+
+    def __init__(self, what: str, timeout: float) -> None:
+        self.what, self.timeout = what, timeout
+        self.end = time.monotonic() + timeout
+
+    def at_least(self, seconds: float) -> None:
+        """From now on, ``seconds`` at least, whatever the timeout leaves (a floor)."""
+        self.end = max(self.end, time.monotonic() + seconds)
+
+    def named(self, step: str, what_then: str) -> str:
+        """The sentence for the call's timeout running out at ``step``."""
+        return (f"{self.what}: its timeout ({self.timeout:.3g} s) ran out while {step}; "
+                f"{what_then}")
+
+    @contextlib.contextmanager
+    def step(self, step: str) -> Iterator[None]:
+        """Run ``step`` within what is left; ``RuntimeTimeout`` naming it if nothing is
+        left, or if it runs out (its ``ran_out`` set: the caller's time, not a fault)."""
+        left = self.end - time.monotonic()
+        if left <= 0:
+            error = RuntimeTimeout(self.named(step, "it was not begun"))
+            error.ran_out = True                # type: ignore[attr-defined]
+            raise error
+        try:
+            with bounding(left):
+                yield
+        except RuntimeTimeout as exc:
+            if getattr(exc, "ran_out", False) or getattr(exc, "late", None) \
+                    or self.end - time.monotonic() > RAN_OUT_SLACK_S:
+                raise                           # (its own deadline, or said already)
+            error = RuntimeTimeout(self.named(step, str(exc)))
+            error.ran_out = True                # type: ignore[attr-defined]
+            raise error from exc
 
 
 class _Laps:
@@ -338,5 +463,7 @@ class _Laps:
 
 
 def _quietly(action: Callable[..., Any], *args: Any) -> None:
-    with contextlib.suppress(RuntimeFailure, RuntimeTimeout):   # its node may be gone
+    """``action``, which undoes or frees (with its own deadlines, not the call's), its
+    failure ignored: its node may be gone."""
+    with lifted(), contextlib.suppress(RuntimeFailure, RuntimeTimeout):
         action(*args)

@@ -33,10 +33,11 @@ from pb3a.errors import (
     ModuleNotFound,
     PB3AError,
     RuntimeFailure,
+    RuntimeTimeout,
     SystemStopped,
     bounded_wait,
 )
-from pb3a.launch.migration import MigrationReport, migrate
+from pb3a.launch.migration import MigrationReport, MovedLate, migrate
 from pb3a.loading import trial
 from pb3a.loading.references import resolve_class
 from pb3a.loading.served import forget, reload_problem
@@ -149,7 +150,7 @@ class Operations:
     # -- moving, swapping, reloading ----------------------------------------------------
     def migrate(self, name: str, to: str, *, state: dict[str, dict[str, Any]] | None = None,
                 timeout: float | None = None) -> MigrationReport:
-        with self._held(f"migrate {name} to {to}", timeout, lend=[name]):
+        with self._held(f"migrate {name} to {to}", timeout, lend=[name]) as left:
             if to not in self.plan.nodes:
                 raise ConfigError([f"migrate {name}: no node {to!r}; nodes: "
                                    f"{', '.join(self.plan.nodes)}"])
@@ -159,10 +160,13 @@ class Operations:
             if not names:
                 self.launcher.node_of(name)           # raises ModuleNotFound
             sources = {child: specs[child].node for child in names}
-            try:
-                reports = migrate(self.launcher, names, to, state)    # (a macro's: one pause)
+            late: MovedLate | None = None
+            try:        # (a macro's: one pause) every step within what the lock left
+                reports = migrate(self.launcher, names, to, state, left())
             except ValueError:                  # refused (a ConfigError too): nothing tried
                 raise
+            except MovedLate as exc:            # moved, its setup there not returned yet
+                late, reports = exc, exc.reports
             except Exception as exc:            # tried, and failed: said, as a move is
                 for child, source in sources.items():
                     if source != to:
@@ -178,6 +182,8 @@ class Operations:
             rewired = sum(1 for link in self.launcher.links.values()
                           if moved & {link.src, link.dst})
             self.launcher.update_env()          # the moves and the workers, for agents
+        if late is not None:        # (a plain RuntimeTimeout: the same through connect)
+            raise RuntimeTimeout(str(late)) from None
         if len(reports) == 1:
             return reports[0]
         longest = max(reports, key=lambda r: r.pause_s)       # its phases stand for all

@@ -111,7 +111,7 @@ class RuntimeClient:
         only pause it once its body returns), a ``Pending`` instead: the agent goes on,
         and ``pending.done()`` / ``pending.result()`` or the ``module_moved`` event of
         its ``env`` port tell it when the move ended (``timeout`` is then the move's
-        own, from its start)."""
+        own, from its start). The timeout bounds the whole move, as the API's does."""
         if wait and not (name == self._agent or self._agent.startswith(f"{name}/")):
             return self._call("migrate", name, to=to, state=state, timeout=timeout)
         job = self._call("begin_migration", timeout=timeout, name=name, to=to, state=state)

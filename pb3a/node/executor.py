@@ -28,6 +28,7 @@ import cloudpickle
 
 from pb3a.config.description import DEFAULT_SPARES
 from pb3a.config.plan import FlatLink, FlatModule
+from pb3a.deadline import capped, lifted
 from pb3a.errors import ConfigError, PB3AError, RuntimeFailure, RuntimeTimeout
 from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
@@ -187,8 +188,9 @@ class Executor:
 
     def call(self, worker: str, op: str, timeout: float = REQUEST_TIMEOUT, /,
              _fd: int | None = None, **args: Any) -> Any:
-        """One request to a worker; its answer."""
-        return self.workers.call(worker, op, timeout, _fd=_fd, **args)
+        """One request to a worker; its answer (waited for no longer than the deadline of
+        the call in progress, if it has one: ``pb3a.deadline``)."""
+        return self.workers.call(worker, op, capped(timeout), _fd=_fd, **args)
 
     def call_module(self, name: str, op: str, timeout: float = REQUEST_TIMEOUT, /,
                     **args: Any) -> Any:
@@ -198,6 +200,7 @@ class Executor:
         record = self.modules[name]
         if not self._alive(record.worker):
             raise RuntimeFailure(_not_running(name, record))
+        timeout = capped(timeout)
         if op in _WAITS_FOR_THE_MODULE:      # (a short timeout keeps most of its time)
             args["within"] = timeout - min(ANSWER_MARGIN_S, timeout / 4)
         return self.call(record.worker, op, timeout, name=name, **args)
@@ -306,7 +309,9 @@ class Executor:
             self._instantiate(record, spec.state if state is None else state)
         except BaseException:
             del self.modules[spec.name]
-            self._vacate(key, spec.name)
+            # (stopped on another thread: a worker that did not answer, frozen say,
+            # takes seconds to end, which the caller's deadline has not)
+            self._vacate(key, spec.name, wait=False)
             raise
 
     def _instantiate(self, record: ModuleRecord, state: dict[str, Any] | bytes) -> None:
@@ -314,7 +319,8 @@ class Executor:
         self.call(record.worker, "add", name=spec.name, cls=record.blob, period=spec.period,
                   restart=spec.restart, state=state, lease=self.lease_end())
 
-    def start_modules(self, names: list[str], failing: bool = False) -> None:
+    def start_modules(self, names: list[str], failing: bool = False,
+                      leave_late: bool = False) -> None:
         """Run ``setup`` and start the modules, in order (those not running yet: a module
         an agent moved while the system started runs already).
 
@@ -324,23 +330,48 @@ class Executor:
         names each that did not, with why (its ``failed``: their names). With
         ``failing`` they are failed here too (``module_failed``), for a caller that
         keeps them (failover); others drop them or put them back.
+
+        With ``leave_late``, a start its worker has taken but whose ``setup`` outlasts the
+        deadline of the call in progress (``pb3a.deadline``) is not halted: it is left
+        to finish (``_finish_late``), and ``RuntimeTimeout`` names those modules (its
+        ``late``); those that failed are then failed here, as with ``failing`` (a move
+        past its point of no return keeps them where they are).
         """
         # one request per run of modules that share a worker (a group, a packed worker)
         waiting = [self.modules[name] for name in names]
         runs = itertools.groupby((r for r in waiting if r.status != "running"),
                                  key=lambda record: record.worker)
         failed: dict[str, str] = {}
+        late: list[str] = []
         for worker, records in runs:
             batch = list(records)
             starting = [record.spec.name for record in batch]
+            future, sent = None, time.monotonic()
             try:
-                failed.update(self.call(worker, "start", names=starting))
+                if leave_late:          # (its future kept: a late answer is awaited)
+                    future = self.workers.submit(worker, "start", names=starting)
+                    failed.update(self.workers.result(future, "start", worker,
+                                                      capped(REQUEST_TIMEOUT)))
+                else:
+                    failed.update(self.call(worker, "start", names=starting))
             except (RuntimeFailure, RuntimeTimeout) as exc:
                 if not isinstance(exc, RuntimeTimeout) and _died(self.workers[worker].process):
                     continue
+                if future is not None and isinstance(exc, RuntimeTimeout) \
+                        and not future.done():
+                    late += starting        # (taken by the worker: not withdrawn)
+                    future.add_done_callback(lambda done, batch=batch: threading.Thread(
+                        target=self._finish_late, args=(done, batch), daemon=True,
+                        name="pb3a-late-start").start())
+                    giving_up = threading.Timer(
+                        max(0.0, sent + REQUEST_TIMEOUT - time.monotonic()),
+                        self._give_up_late, (future, worker, batch))
+                    giving_up.daemon = True
+                    giving_up.start()
+                    continue
                 # a start out of time may still go through once a setup returns: halted
                 # now, they never run
-                with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+                with lifted(), contextlib.suppress(RuntimeFailure, RuntimeTimeout):
                     self.call(worker, "halt", names=starting)
                 failed.update(dict.fromkeys(starting, str(exc)))
                 continue
@@ -348,13 +379,63 @@ class Executor:
                 if record.spec.name not in failed:
                     record.status = "running"
         self.workers.replenish()          # for the spares they took
-        if failing:
+        if failing or late:
             for name, error in failed.items():
                 self._fail(name, None, error)
+        if late:
+            error = RuntimeTimeout(
+                f"the setup of {', '.join(late)} at node {self.node} had not returned when "
+                "the call's time ran out; left to finish there")
+            error.late = late                       # type: ignore[attr-defined]
+            error.failed = sorted(failed)           # type: ignore[attr-defined]
+            raise error
         if failed:
             error = RuntimeFailure("; ".join(dict.fromkeys(failed.values())))
             error.failed = sorted(failed)           # type: ignore[attr-defined]
             raise error
+
+    def _give_up_late(self, future: Future[Any], worker: str,
+                      batch: list[ModuleRecord]) -> None:
+        """A start left to finish (``start_modules``) that outlasts the start's own
+        deadline (``REQUEST_TIMEOUT`` from when it was sent) is given up, as any start
+        out of time is: halted, its modules never run, and are failed."""
+        if future.done():
+            return
+        with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+            self.call(worker, "halt", names=[record.spec.name for record in batch])
+        self._record_late(batch, dict.fromkeys(
+            (record.spec.name for record in batch),
+            f"its setup did not return within {REQUEST_TIMEOUT:g} s"))
+
+    def _finish_late(self, future: Future[Any], batch: list[ModuleRecord]) -> None:
+        """What came of a start left to finish (its answer, or its worker's death)."""
+        try:
+            failed = future.result(0)
+        except (RuntimeFailure, RuntimeTimeout) as exc:
+            handle = self.workers.handles.get(batch[0].worker)
+            if handle is None or _died(handle.process):     # its restart policies'
+                return
+            failed = {record.spec.name: str(exc) for record in batch}
+        except Exception as exc:                # (whatever it was, the modules say it)
+            failed = {record.spec.name: f"{type(exc).__name__}: {exc}" for record in batch}
+        self._record_late(batch, failed)
+
+    def _record_late(self, batch: list[ModuleRecord], failed: dict[str, str]) -> None:
+        """Under the node's lock: the modules of a start left to finish that are still
+        starting running, or failed (those in ``failed``, with why); one moved, removed
+        or given up on meanwhile is left alone."""
+        try:
+            with self.held(f"finish the start of {', '.join(r.spec.name for r in batch)}"):
+                for record in batch:
+                    name = record.spec.name
+                    if self.modules.get(name) is not record or record.status != "starting":
+                        continue
+                    if name in failed:
+                        self._fail(name, None, failed[name])
+                    else:
+                        record.status = "running"
+        except RuntimeTimeout as exc:
+            log.warning("a start left to finish was not recorded: %s", exc)
 
     def swap(self, name: str, spec: FlatModule) -> list[str]:
         """Replace a module's class by ``spec.cls`` in place; the state names kept."""
@@ -374,10 +455,14 @@ class Executor:
         # change lets go of the module, not meanwhile (in a new worker, unpaused, its
         # outputs published anew: the change went on as if it still held it)
         self._hold(record, True)
+        # the answer's wait, a second more than the pause's own (less, for a caller's
+        # deadline: then the pause gives up a margin before it)
+        answer_s = capped(timeout + 1.0)
+        timeout = min(timeout, answer_s - min(ANSWER_MARGIN_S, answer_s / 4))
         try:
             # ``until``: a worker that reads this late (it was frozen) must not pause the
             # module once this call has given up: nobody would resume it
-            self.call(record.worker, "pause", timeout + 1.0, name=name, timeout=timeout,
+            self.call(record.worker, "pause", answer_s, name=name, timeout=timeout,
                       until=time.monotonic() + timeout)
         except BaseException:
             self._hold(record, False)
@@ -386,11 +471,13 @@ class Executor:
 
     def resume(self, name: str) -> None:
         """Release a module paused by ``pause`` (one whose worker died meanwhile is
-        restarted now)."""
+        restarted now), whatever the deadline of the call in progress: a module left
+        paused would stay so."""
         record = self.modules.get(name)
         try:
             if record is not None and self._alive(record.worker):
-                self.call(record.worker, "resume", name=name)
+                with lifted():
+                    self.call(record.worker, "resume", name=name)
         finally:
             if record is not None:
                 self._hold(record, False)
@@ -462,11 +549,13 @@ class Executor:
             raise RuntimeFailure(_died_moving(name, record))
         try:
             # ``until``: a worker that is late (frozen, or a teardown that overran) keeps
-            # the module, as this executor then does
-            snapshot: Snapshot = self.call(record.worker, "migrate_out", REQUEST_TIMEOUT,
+            # the module, as this executor then does (what is left of a caller's
+            # deadline, if less than the capture's own)
+            answer_s = capped(REQUEST_TIMEOUT)
+            snapshot: Snapshot = self.call(record.worker, "migrate_out", answer_s,
                                            name=name, segment=segment,
-                                           until=time.monotonic() + REQUEST_TIMEOUT
-                                           - ANSWER_MARGIN_S)
+                                           until=time.monotonic() + answer_s
+                                           - min(ANSWER_MARGIN_S, answer_s / 4))
         except RuntimeFailure as exc:
             if self._alive(record.worker):
                 raise
@@ -497,12 +586,13 @@ class Executor:
                 self.workers.retire(key, wait=False)
                 self._budgets.pop(key, None)
 
-    def _vacate(self, key: str, name: str) -> None:
-        """``name`` no longer runs in worker ``key``; stop the worker if it is empty now."""
+    def _vacate(self, key: str, name: str, wait: bool = True) -> None:
+        """``name`` no longer runs in worker ``key``; stop the worker if it is empty now
+        (``wait``: until it has ended, else on another thread)."""
         handle = self.workers[key]
         handle.modules.remove(name)
         if not handle.modules:
-            self.workers.retire(key)
+            self.workers.retire(key, wait=wait)
             self._budgets.pop(key, None)
 
     def forget(self, module: str) -> None:
@@ -582,7 +672,7 @@ class Executor:
                 (request, self.workers.submit(request.worker, request.op, _fd=request.fd,
                                               **request.args))
                 for request in requests]
-        deadline = time.monotonic() + REQUEST_TIMEOUT
+        deadline = time.monotonic() + capped(REQUEST_TIMEOUT)
         answers: list[Any] = []
         failure: BaseException | None = None
         for pending in sent:
@@ -685,7 +775,7 @@ class Executor:
         are in (all within one ``READY_TIMEOUT``), if they come from the sender the
         bridge follows (see ``Bridge.close``), then detach their rings from the readers
         side by side; per link, how many values its sender announced that never came."""
-        deadline = time.monotonic() + READY_TIMEOUT
+        deadline = time.monotonic() + capped(READY_TIMEOUT)
         missing = []
         for link, (reached, sender) in links:
             self.inbound.pop(link.key, None)

@@ -24,7 +24,9 @@ Reached = tuple[int, bytes | None]
 
 @runtime_checkable
 class Node(Protocol):
-    """The operations of one node's supervisor; each has a deadline of its own."""
+    """The operations of one node's supervisor; each has a deadline of its own, and
+    keeps the deadline of the call in progress if that comes first (``pb3a.deadline``:
+    a move bounded by its caller's timeout)."""
 
     # -- modules
     def expect(self, specs: list[FlatModule]) -> None:
@@ -43,9 +45,13 @@ class Node(Protocol):
         """Instantiate a module in its worker (not started); ``state`` overrides the spec's
         (as bytes: a checkpoint, unpickled in the worker, where the module's code is)."""
 
-    def start_modules(self, names: list[str], failing: bool = False) -> None:
+    def start_modules(self, names: list[str], failing: bool = False,
+                      leave_late: bool = False) -> None:
         """Run ``setup`` and start the modules, in order; ``RuntimeFailure`` naming those
-        that did not start (its ``failed``), failed here too with ``failing``."""
+        that did not start (its ``failed``), failed here too with ``failing``. With
+        ``leave_late``, those whose ``setup`` outlasts the deadline of the call in
+        progress (``pb3a.deadline``) are left to finish, not halted: ``RuntimeTimeout``
+        naming them (its ``late``)."""
 
     def call_module(self, name: str, op: str, timeout: float, /, **args: Any) -> Any:
         """One request about module ``name`` to its worker (state, set_state, ...)."""

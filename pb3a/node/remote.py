@@ -22,6 +22,7 @@ import time
 from typing import TYPE_CHECKING, Any
 
 from pb3a.config.description import DEFAULT_SPARES
+from pb3a.deadline import capped, left, lifted
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
 from pb3a.transport.addresses import host_of, unresolved
@@ -40,6 +41,7 @@ CONNECT_TIMEOUT = 5.0      # a node controller answers a ping at once, or is not
 START_TIMEOUT = 60.0       # an executor process imports numpy and friends first
 CALL_TIMEOUT = 60.0        # the executor's own requests to its workers have deadlines
 MARGIN_S = 5.0             # beyond an operation's own deadline: the way there and back
+ANSWER_MARGIN_S = 0.25     # under a caller's deadline: the executor's answer's way back
 HEARTBEAT_S = 0.25         # how often the launcher's side pings the executor
 LEASE_S = 1.25             # an executor that hears no renewal this long fences itself
 LOSS_S = 2.0               # no answer for this long: the node is lost (reported within 3 s)
@@ -139,12 +141,14 @@ class RemoteNode:
 
     def _forward(self, op: str, *args: Any, within: float = CALL_TIMEOUT, **kwargs: Any) -> Any:
         """Apply ``op`` at the executor; an operation with a deadline of its own gets
-        that, plus ``MARGIN_S`` for the way there and back."""
+        that, plus ``MARGIN_S`` for the way there and back. Under the deadline of a
+        call in progress (``pb3a.deadline``) no longer than what is left of it, and the
+        executor's own waits end ``_way_back`` before."""
         if self.lost or self.client is None:
             raise RuntimeFailure(f"node {self.name} is lost")
-        within = self._within(within)
+        within = self._within(capped(within))
         return self.client.call("executor", within, method=op, args=args, kwargs=kwargs,
-                                within=within)
+                                within=within, **_bound(within))
 
     def wind_down(self, deadline: float) -> None:
         """No call to this node waits past ``deadline`` (monotonic) from now on: the
@@ -169,12 +173,24 @@ class RemoteNode:
                    state: dict[str, Any] | bytes | None = None) -> None:
         self._forward("add_module", spec, state=state)
 
-    def start_modules(self, names: list[str], failing: bool = False) -> None:
+    def start_modules(self, names: list[str], failing: bool = False,
+                      leave_late: bool = False) -> None:
         # not one of the executor's requests taken one at a time: the modules' setup
         # may ask about this node meanwhile (an agent's ``self.runtime``)
         if self.lost or self.client is None:
             raise RuntimeFailure(f"node {self.name} is lost")
-        self.client.call("start", CALL_TIMEOUT, names=names, failing=failing)
+        within = self._within(capped(CALL_TIMEOUT))
+        try:
+            self.client.call("start", within, names=names, failing=failing,
+                             leave_late=leave_late, **_bound(within))
+        except RuntimeTimeout as exc:
+            if not leave_late or getattr(exc, "late", None) is not None:
+                raise
+            # no answer in time: the executor may have left the starts to finish (its
+            # answer saying so was late), so they are taken to go on there, never put
+            # back beside themselves
+            exc.late = list(names)              # type: ignore[attr-defined]
+            raise
 
     def call_module(self, name: str, op: str, timeout: float, /, **args: Any) -> Any:
         return self._forward("call_module", name, op, timeout, within=timeout + MARGIN_S,
@@ -198,7 +214,8 @@ class RemoteNode:
         return self._forward("pause", name, timeout, within=timeout + MARGIN_S)
 
     def resume(self, name: str) -> None:
-        self._forward("resume", name)
+        with lifted():                  # (whatever the call's time: see Executor.resume)
+            self._forward("resume", name)
 
     def stop_module(self, name: str, timeout: float) -> None:
         self._forward("stop_module", name, timeout, within=timeout + MARGIN_S)
@@ -341,3 +358,12 @@ class RemoteNode:
         self.controller.close()
         if self.client is not None:
             self.client.close()
+
+
+def _bound(within: float) -> dict[str, float]:
+    """What a request under the deadline of a call in progress tells the executor: to end
+    its own waits (``bound``) an answer's way back (a quarter, ``ANSWER_MARGIN_S`` at
+    most) before the launcher stops waiting for the answer; nothing otherwise."""
+    if left() is None:
+        return {}
+    return {"bound": within - min(ANSWER_MARGIN_S, within / 4)}
