@@ -832,3 +832,247 @@ def test_a_document_whose_macros_are_not_a_table_can_be_mended_from_the_page(
         assert put.status_code == 200, put.text
         assert put.json()["problems"] == []
         assert "macros" not in client.get("/api/document/toml").text
+
+
+# macros and modules written in pieces: [macros.junction]'s tables apart, with a module
+# between them; [modules.j]'s state at the end of the file, after the links
+SPLIT = '''\
+# A system whose tables are written in pieces.
+name = "split"
+
+[nodes.a]   # the only node
+
+# the junction: two scales in a row
+[macros.junction]
+# what it shows outside
+exports = { x = "s1.x", y = "s2.y" }
+
+# the first scale
+[macros.junction.modules.s1]
+class = "examples.pipeline:Scale"
+state = { gain = 2.0 }  # doubles
+
+# the source
+[modules.tick]
+class = "examples.pipeline:Ticker"
+node = "a"   # here
+
+# the second scale, written after the modules
+[macros.junction.modules.s2]
+class = "examples.pipeline:Scale"
+
+# s1 into s2
+[[macros.junction.links]]
+from = "s1.y"
+to = "s2.x"   # inside
+
+# the instance
+[modules.j]
+macro = "junction"
+node = "a"
+
+# ---- links
+
+# tick into the junction
+[[links]]
+from = "tick.out"
+to = "j.x"  # in
+
+# the instance's settings, at the end
+[modules.j.state]
+s2 = { gain = 0.5 }  # halves
+'''
+INSTANCE = '# the instance\n[modules.j]\nmacro = "junction"\nnode = "a"\n\n'
+PROBE = f'\n[modules.probe]\n{SCALE}\n'
+INNER_LINK = '# s1 into s2\n[[macros.junction.links]]\nfrom = "s1.y"\nto = "s2.x"   # inside\n\n'
+
+
+def _replaced(text: str, *pairs: tuple[str, str]) -> str:
+    for old, new in pairs:
+        assert text.count(old) == 1, old
+        text = text.replace(old, new)
+    return text
+
+
+def _junction(system: dict[str, Any]) -> dict[str, Any]:
+    return system["macros"]["junction"]
+
+
+def _renamed(system: dict[str, Any]) -> None:
+    """As the page renames a module: the same entries, one under another name."""
+    system["modules"] = {("tock" if name == "tick" else name): entry
+                         for name, entry in system["modules"].items()}
+    system["links"][0]["from"] = "tock.out"
+
+
+def _grouped_tick(system: dict[str, Any]) -> None:
+    """As the page groups module tick into macro src."""
+    tick = system["modules"].pop("tick")
+    node = tick.pop("node")
+    system["macros"]["src"] = {"modules": {"tick": tick}, "exports": {"out": "tick.out"}}
+    system["modules"]["src"] = {"macro": "src", "node": node}
+    system["links"] = [{"from": "src.out", "to": "j.x"}]
+
+
+@pytest.mark.parametrize(("edit", "expected"), [
+    (lambda system: system["modules"]["tick"].__setitem__("state", {"count": 1}),
+     SPLIT.replace('node = "a"   # here\n', 'node = "a"   # here\nstate = {count = 1}\n')),
+    (lambda system: _junction(system)["modules"]["s1"]["state"].__setitem__("gain", 4.0),
+     SPLIT.replace("gain = 2.0", "gain = 4.0")),
+    (lambda system: _junction(system)["modules"]["s2"].__setitem__("state", {"gain": 5.0}),
+     _replaced(SPLIT, (f"modules.s2]\n{SCALE}", f"modules.s2]\n{SCALE}state = {{gain = 5.0}}\n"))),
+    (lambda system: system["modules"]["j"]["state"]["s2"].__setitem__("gain", 0.25),
+     SPLIT.replace("gain = 0.5", "gain = 0.25")),
+    (lambda system: system["modules"]["j"]["state"].__setitem__("s1", {"gain": 3.0}),
+     SPLIT + "s1 = {gain = 3.0}\n"),
+    (lambda system: (system["modules"].__setitem__("probe", {"class": "examples.pipeline:Scale"}),
+                     system["links"].append({"from": "j.y", "to": "probe.x"})),
+     _replaced(SPLIT, ('to = "j.x"  # in\n\n',
+                       'to = "j.x"  # in\n\n[[links]]\nfrom = "j.y"\nto = "probe.x"\n\n'))
+     + PROBE),
+    (lambda system: _junction(system).pop("links"), _replaced(SPLIT, (INNER_LINK, ""))),
+    (lambda system: (_junction(system)["modules"].__setitem__(
+        "s3", {"class": "examples.pipeline:Scale"}), _junction(system)["links"].append(
+        {"from": "s2.y", "to": "s3.x"})),
+     _replaced(SPLIT, (INNER_LINK, f"[macros.junction.modules.s3]\n{SCALE}\n{INNER_LINK}"),
+               ('to = "s2.x"   # inside\n', 'to = "s2.x"   # inside\n\n[[macros.junction.'
+                'links]]\nfrom = "s2.y"\nto = "s3.x"\n'))),
+    (lambda system: _junction(system)["exports"].__setitem__("z", "s1.y"),
+     SPLIT.replace('y = "s2.y" }', 'y = "s2.y", z = "s1.y"}')),
+    (_renamed, SPLIT.replace("[modules.tick]", "[modules.tock]").replace(
+        'from = "tick.out"', 'from = "tock.out"')),
+    (_grouped_tick, _replaced(
+        SPLIT, ('# the source\n[modules.tick]\nclass = "examples.pipeline:Ticker"\n'
+                'node = "a"   # here\n\n', ""),
+        ('to = "s2.x"   # inside\n', 'to = "s2.x"   # inside\n\n# the source\n'
+         '[macros.src.modules.tick]\nclass = "examples.pipeline:Ticker"\n\n'
+         '[macros.src.exports]\nout = "tick.out"\n'),
+        ('from = "tick.out"', 'from = "src.out"'))
+     + '\n[modules.src]\nmacro = "src"\nnode = "a"\n\n'),
+    (lambda system: (system["modules"].pop("j"), system.__setitem__("links", [])),
+     _replaced(SPLIT, ('name = "split"\n', 'name = "split"\nlinks = []\n'), (INSTANCE, ""))
+     .split("\n# tick into the junction")[0]),
+], ids=["a module's new key", "a macro's module's state", "a key new in a macro's module",
+        "an instance's override", "a new override", "a new module and link",
+        "a macro's links removed", "a new module and link in a macro", "a macro's export",
+        "a module renamed", "a module grouped into a macro", "an instance removed"])
+def test_tables_written_in_pieces_keep_every_comment_and_their_order_through_an_edit(
+        edit: Any, expected: str) -> None:
+    """A table written in pieces apart in the file (``[macros.junction]``, a module,
+    then ``[macros.junction.modules.s2]``; a module's ``state`` after the links) is a
+    proxy in tomlkit, and a value set through it made the whole table anew: any edit of
+    a module lost the comments of every module, any edit in a macro those of every
+    macro (and the lines of what followed them). Each piece is edited where it is; what
+    is added goes in the last piece, a key in its table; a module renamed keeps its
+    place and its comments; the file reads as the document and ``pb3a check`` accepts
+    it."""
+    document = Document(SPLIT)
+    system = document.data()
+    edit(system)
+    document.replace(copy.deepcopy(system))
+    assert document.toml() == expected
+    assert document.data() == system == tomllib.loads(expected)
+    assert Document(expected).problems() == []
+
+
+DOTTED = '''\
+# modules in dotted keys
+name = "dotted"
+
+[modules]
+# the ticker
+tick.class = "examples.pipeline:Ticker"
+tick.period = 0.01   # slow
+# the scale
+scale.class = "examples.pipeline:Scale"
+scale.state = { gain = 2.0 }  # doubles
+
+# the link
+[[links]]
+from = "tick.out"
+to = "scale.x"  # into the scale
+'''
+
+
+def test_a_module_written_in_dotted_keys_keeps_its_comments_when_edited() -> None:
+    """``tick.class = ...`` then ``tick.period = ...``: each line is a piece of module
+    tick, a proxy in tomlkit; an edit of it wrote all the modules anew, without their
+    comments."""
+    document = Document(DOTTED)
+    system = document.data()
+    system["modules"]["tick"]["period"] = 0.02
+    system["modules"]["scale"]["state"]["gain"] = 3.0
+    system["modules"]["scale"]["node"] = "n"
+    system["nodes"] = {"n": {}}
+    document.replace(copy.deepcopy(system))
+    assert document.toml() == _replaced(
+        DOTTED, ("0.01   # slow", "0.02   # slow"), ("gain = 2.0", "gain = 3.0"),
+        ("scale.class = \"examples.pipeline:Scale\"\n",
+         "scale.class = \"examples.pipeline:Scale\"\nscale.node = \"n\"\n")) + "\n[nodes.n]\n\n"
+    assert document.data() == system
+
+
+def test_a_module_renamed_in_the_page_keeps_its_place_and_its_comments(
+        tmp_path: Path) -> None:
+    """The page renames a module by sending its entry under the new name: it was
+    removed, with the comments above it and on its keys, and written anew at the end of
+    the modules. It keeps its place and every comment; only its header changes."""
+    path = tmp_path / "chain.toml"
+    path.write_text(CHAIN)
+    with manager_client(Session(Document.open(path))) as client:
+        system = client.get("/api/document").json()["system"]
+        system["modules"] = {("first" if name == "scale" else name): entry
+                             for name, entry in system["modules"].items()}
+        system["links"] = [{**link, **{end: link[end].replace("scale.", "first.")
+                                       for end in ("from", "to")}}
+                           for link in system["links"]]
+        answer = client.put("/api/document", json={"system": system})
+        assert answer.status_code == 200 and answer.json()["problems"] == [], answer.text
+        assert client.get("/api/document/toml").text == CHAIN.replace(
+            "[modules.scale]", "[modules.first]").replace('"scale.', '"first.')
+        assert client.get("/api/document").json()["system"] == system     # (in its order)
+
+
+def test_the_last_module_or_link_removed_is_written_where_a_key_goes(pipeline: Path) -> None:
+    """The page removes a module with its links: the last link gone, ``links = []`` was
+    written on the first line of the file, above its comments; the last module gone, the
+    edit was refused as one TOML "cannot hold" (``[modules]`` emptied is not written at
+    all). ``links = []`` goes after the file's keys and an empty ``[modules]`` is
+    written, which takes the next module."""
+    original = pipeline.read_text()
+    with manager_client(Session(Document.open(pipeline))) as client:
+        system = client.get("/api/document").json()["system"]
+        del system["modules"]["tick"]
+        system["links"] = []
+        assert client.put("/api/document", json={"system": system}).status_code == 200
+        assert client.get("/api/document/toml").text == _replaced(
+            original, ('name = "pipeline"\n', 'name = "pipeline"\nlinks = []\n'),
+            ('[modules.tick]\nclass = "examples.pipeline:Ticker"\nperiod = 0.005\n'
+             'state = { count = 0 }\n\n', "")).split("\n[[links]]")[0]
+        del system["modules"]["scale"]
+        put = client.put("/api/document", json={"system": system})
+        assert put.status_code == 200, put.text
+        assert client.get("/api/document").json()["system"] == system
+        system["modules"]["probe"] = {"class": "examples.pipeline:Scale"}
+        assert client.put("/api/document", json={"system": system}).status_code == 200
+        text = client.get("/api/document/toml").text
+    assert text.startswith(original.split("[modules.tick]")[0].replace(
+        'name = "pipeline"\n', 'name = "pipeline"\nlinks = []\n'))
+    assert tomllib.loads(text) == system and Document(text).problems() == []
+
+
+def test_links_written_in_two_runs_are_saved_unchanged_byte_for_byte(tmp_path: Path) -> None:
+    """``[[links]]``, a module's table, ``[[links]]`` again: tomlkit writes what it read
+    of such a file with the links together, the table after them (and no blank line
+    before it); opened and saved unchanged, or put back as it was, the file was not the
+    same file."""
+    text = (f'name = "runs"\n\n[modules.a]\n{SCALE}\n[[links]]\nfrom = "a.y"\nto = "b.x"\n\n'
+            f'[modules.b]\n{SCALE}\n[[links]]\nfrom = "b.y"\nto = "a.x"\n')
+    path = tmp_path / "runs.toml"
+    path.write_text(text)
+    with manager_client(Session(Document.open(path))) as client:
+        assert client.get("/api/document/toml").text == text
+        system = client.get("/api/document").json()["system"]
+        assert client.put("/api/document", json={"system": system}).status_code == 200
+        assert client.post("/api/document/save", json={"overwrite": True}).status_code == 200
+    assert path.read_text() == text

@@ -4,7 +4,9 @@ The document is held as a ``tomlkit`` document, not as plain dicts: an edit from
 the page (the whole system as JSON) is merged into it key by key, so entries that
 did not change keep their comments, order and formatting, and a file opened and
 saved unchanged is the same file (the round trip); the comments and blank lines around
-an entry added, removed or moved go as ``pb3a.manager.lines`` says. Problems are found
+an entry added, removed, renamed or moved go as ``pb3a.manager.lines`` says. A table
+written in pieces (its headers apart in the file, or dotted keys) is edited piece by
+piece where each is (``_holders``). Problems are found
 as ``pb3a check`` finds them, with the same words: the document is read as a
 description and compiled; a half-built system is kept, its problems listed.
 """
@@ -65,6 +67,9 @@ class Document:
         self.name: str | None = None     # the file's name when opened in the page (no path)
         try:
             self._doc = tomlkit.parse(text)
+            # the text it says: tomlkit writes some files otherwise than it reads them
+            # (an array of tables in two runs with a table between, it writes as one run)
+            self._text = text
         except TOMLKitError as exc:
             where = path if path is not None else "the document"
             raise ConfigError([f"{where}: not valid TOML: {exc}"]) from None
@@ -93,7 +98,7 @@ class Document:
     def toml(self) -> str:
         """The document's TOML text."""
         with self._lock:
-            return tomlkit.dumps(self._doc)
+            return self._text
 
     @property
     def source(self) -> str:
@@ -170,11 +175,17 @@ class Document:
             same = _same(tomllib.loads(text), draft.unwrap())
             if moves.placed:            # (its comments above a header: read as a file's)
                 draft = tomlkit.parse(text)
+            elif moves.renamed:         # (tomlkit keeps the keys in the order they came)
+                again = tomlkit.parse(text)
+                if tomlkit.dumps(again) == text:    # (not so for every file: see _text)
+                    draft = again
         except (TOMLKitError, tomllib.TOMLDecodeError, TypeError, ValueError) as exc:
             raise ValueError(f"TOML cannot hold this document: {exc}") from None
         if not same:
             raise ValueError("TOML cannot hold this document: written, it would not "
                              "read back as sent")
+        if not _same(held, draft.unwrap()):     # (nothing changed: the text as it was)
+            self._text = text
         self._doc = draft
         self.revision += 1
 
@@ -189,7 +200,7 @@ class Document:
         if problems:
             raise ConfigError(problems)
         with self._lock:
-            self._doc = opened._doc
+            self._doc, self._text = opened._doc, opened._text
             self.path, self.name = None, name
             self.revision += 1
 
@@ -262,74 +273,205 @@ def check_data(data: dict[str, Any], source: str) -> tuple[Plan, list[str]]:
     return sketch_plan(read_description(data, source))
 
 
-def _merge(container: Any, new: dict[str, Any], where: tuple[str, ...],
+def _merge(parts: Any, new: dict[str, Any], where: tuple[str, ...],
            root: Any = None, moves: lines.Carried | None = None) -> None:
     """Update a tomlkit table in place to hold ``new``: unchanged values keep their
     formatting, changed ones are replaced, missing ones removed (with the comment right
     above them, see ``lines.drop``), new tables placed before the comments of what
     follows (``lines.place``), a new key right after its table's keys
     (``lines.add_key``); ``moves``: what came from elsewhere in the document, put in as
-    it was written. ``root``: the document ``container`` is in (itself at the top)."""
-    root = container if root is None else root
-    for key in [key for key in container if key not in new or new[key] is None]:
-        lines.drop(root, container.item(key), lambda key=key: container.__delitem__(key))
+    it was written. ``parts``: the table, or the tables it is written as in the file
+    (``_holders``); ``root``: the document they are in (the table itself at the top)."""
+    parts = parts if isinstance(parts, list) else [parts]
+    root = parts[0] if root is None else root
+    for old, name in _renamed(parts, new).items():
+        lines.rename(_holders(parts, old)[0][0], old, name)
+        if moves is not None:
+            moves.renamed.append(name)
+    for key in [key for key in dict.fromkeys(key for part in parts for key in part)
+                if key not in new or new[key] is None]:
+        _drop(root, _holders(parts, key), key)
     for key, value in new.items():
         if value is None:
             continue
         place = (*where, key)
-        old = container.get(key)
-        if old is not None:
-            held = _plain(old)
+        holders = _holders(parts, key)
+        olds = [item for _, item in holders]
+        if olds:
+            held = _joined([_plain(item) for item in olds])
             value = _resolved(held, value)
             if value is held or value == held:          # (nan is not == nan)
                 continue
-        if isinstance(value, dict) and isinstance(old, (Table, InlineTable)):
-            _merge(old, value, place, root, moves)
-        elif (isinstance(value, list) and isinstance(old, AoT)
+        if isinstance(value, dict) and olds and all(isinstance(old, (Table, InlineTable))
+                                                    for old in olds):
+            _merge(olds, value, place, root, moves)
+            if not value and all(isinstance(old, Table) and old.is_super_table() and not old
+                                 for old in olds):
+                # (a table emptied that had no header, [modules] of [modules.a]..., is
+                # not written at all: the edit was refused as one TOML cannot hold; its
+                # lines went with what it held, the ones above it are the next one's)
+                for part in {id(part): part for part, _ in holders}.values():
+                    del part[key]
+                _add(root, parts, key, _item(value, place))
+        elif (isinstance(value, list) and value and olds
+              and all(isinstance(old, AoT) for old in olds)
               and all(isinstance(item, dict) for item in value)):
-            _merge_array(old, value, place, root, moves)
+            _merge_array(holders, value, place, root, moves)
         else:
-            made = _item(value, place, isinstance(container, InlineTable), moves)
-            if old is None and not isinstance(made, (Table, AoT)) \
-                    and isinstance(container, (Table, tomlkit.TOMLDocument)):
-                lines.add_key(container, key, made)
-            else:
-                container[key] = made
-                if old is None:
-                    lines.place(root, container.item(key))
+            made = _item(value, place, any(isinstance(part, InlineTable) for part in parts),
+                         moves)
+            if len(holders) == 1 and (isinstance(made, (Table, AoT)) or not isinstance(
+                    olds[0], (Table, AoT))):
+                holders[0][0][key] = made
+                continue
+            # (a table or array of tables that is now a value, `links = []`, goes where a
+            # new key would: set in its place it was written after the tables, at the top
+            # of the file or in the table before it; one written in pieces goes whole)
+            if holders:
+                _drop(root, holders, key)
+            _add(root, parts, key, made)
 
 
-def _merge_array(old: AoT, new: list[dict[str, Any]], where: tuple[str, ...],
-                 root: Any, moves: lines.Carried | None = None) -> None:
+def _add(root: Any, parts: list[Any], key: str, made: Any) -> None:
+    """Put new key ``key`` = ``made`` in a table written as ``parts`` (``_part_for``):
+    a value right after the keys there (``lines.add_key``), a table before the comments
+    of what follows it (``lines.place``)."""
+    container = _part_for(parts, made)
+    if not isinstance(made, (Table, AoT)) \
+            and isinstance(container, (Table, tomlkit.TOMLDocument)):
+        lines.add_key(container, key, made)
+    else:
+        container[key] = made
+        lines.place(root, container.item(key))
+
+
+def _renamed(parts: list[Any], new: dict[str, Any]) -> dict[str, str]:
+    """The tables of a table written as ``parts`` that ``new`` gives another name, as it
+    was (a module renamed in the page): each old name with its new one. Removed and
+    added, such a table lost its comments and went to the end of the file."""
+    keys = dict.fromkeys(key for part in parts for key in part)
+    gone = [key for key in keys if key not in new or new[key] is None]
+    renamed: dict[str, str] = {}
+    for name in [name for name, value in new.items() if value is not None and name not in keys]:
+        for old in gone:
+            holders = _holders(parts, old)
+            if old in renamed or len(holders) != 1 or not isinstance(holders[0][1], Table) \
+                    or isinstance(holders[0][1], InlineTable):
+                continue
+            held = _plain(holders[0][1])
+            value = _resolved(held, new[name])
+            if value is held or value == held:
+                renamed[old] = name
+                break
+    return renamed
+
+
+def _holders(parts: list[Any], key: str) -> list[tuple[Any, Any]]:
+    """Each place ``key`` is written in a table written as ``parts``: ``(part, item)``.
+    A table is written in pieces when its headers are apart in the file
+    (``[macros.stage]``, other tables, then ``[macros.stage.modules.scale]``), or in
+    dotted keys (``scale.class = ...``, ``scale.node = ...``); tomlkit reads such a table
+    as a proxy, and a value set through it rebuilt the whole table (every comment in
+    it lost), so each piece is edited where it is."""
+    found = []
+    for part in parts:
+        body = part.body if isinstance(part, tomlkit.TOMLDocument) else part.value.body
+        found.extend((part, item) for name, item in body
+                     if name is not None and name.key == key)
+    return found
+
+
+def _holders_at(root: Any, keys: tuple[str, ...]) -> list[Any]:
+    """Each place the value at ``keys`` of document ``root`` is written (``_holders``)."""
+    found = [root]
+    for key in keys:
+        found = [item for _, item in _holders(
+            [table for table in found
+             if isinstance(table, (Table, InlineTable, tomlkit.TOMLDocument))], key)]
+    return found
+
+
+def _joined(values: list[Any]) -> Any:
+    """The value of a table or array of tables written in pieces, from its pieces'
+    values: the tables' keys together, the arrays' entries one after the other."""
+    if len(values) == 1:
+        return values[0]
+    if all(isinstance(value, dict) for value in values):
+        keys = dict.fromkeys(key for value in values for key in value)
+        return {key: _joined([value[key] for value in values if key in value])
+                for key in keys}
+    if all(isinstance(value, list) for value in values):
+        return [item for value in values for item in value]
+    return values[-1]
+
+
+def _part_for(parts: list[Any], made: Any) -> Any:
+    """Which piece of a table written in pieces a new key goes in: a table or array of
+    tables in the last (after what the file wrote last in it), a value in the first
+    with a header (a piece without one holds tables only)."""
+    if isinstance(made, (Table, AoT)):
+        return parts[-1]
+    return next((part for part in parts
+                 if not (isinstance(part, Table) and part.is_super_table())), parts[0])
+
+
+def _drop(root: Any, holders: list[tuple[Any, Any]], key: str) -> None:
+    """Remove ``key`` from each piece of a table that holds it, with its lines."""
+    pieces = list({id(part): part for part, _ in holders}.values())
+    lines.drop(root, [item for _, item in holders],
+               lambda: [part.__delitem__(key) for part in pieces])
+
+
+def _merge_array(holders: list[tuple[Any, AoT]], new: list[dict[str, Any]],
+                 where: tuple[str, ...], root: Any, moves: lines.Carried | None = None
+                 ) -> None:
     """An array of tables entry by entry, matched by what they say (not by place: with
     the first link removed, each link took the next one's values and the first one's
     comments stayed on what became the second); an entry edited in place keeps its
     comments. Entries that ``moves`` takes elsewhere go, and those it brings come in as
     they were written, before the others are matched (an entry that moved away was
-    edited into one that stayed, its comments on it)."""
+    edited into one that stayed, its comments on it). ``holders``: the array, or the
+    pieces it is written in (``_holders``: ``[[macros.stage.links]]`` apart in the
+    file), each with the table it is in; a new entry goes after the one before it."""
+    def entries() -> list[tuple[AoT, int]]:
+        return [(array, index) for _, array in holders for index in range(len(array))]
+
+    def remove(array: AoT, index: int) -> None:
+        lines.drop(root, [array[index]], lambda: array.__delitem__(index))
+
+    def insert(at: int, entry: Any) -> None:
+        array, index = (holders[0][1], 0) if at == 0 else entries()[at - 1]
+        index = 0 if at == 0 else index + 1
+        array.insert(index, entry)
+        lines.place(root, array[index], array)
+
     if moves is not None:
-        for index in reversed(range(len(old))):
-            if moves.gone(old[index]):
-                lines.drop(root, old[index], lambda index=index: old.__delitem__(index))
+        for array, index in reversed(entries()):
+            if moves.gone(array[index]):
+                remove(array, index)
     brought = _brought(moves, where, new)
     rest = [value for index, value in enumerate(new) if index not in brought]
-    held = [_text(_as_shown(_plain(entry))) for entry in old]
+    held = [_text(_as_shown(_plain(array[index]))) for array, index in entries()]
     matcher = difflib.SequenceMatcher(None, held, [_text(_as_sent(value)) for value in rest],
                                       autojunk=False)
     for tag, i1, i2, j1, j2 in reversed(matcher.get_opcodes()):   # later ones first
         if tag == "equal":
             continue
         edited = min(i2 - i1, j2 - j1)
+        at = entries()
         for index in range(edited):
-            _merge(old[i1 + index], rest[j1 + index], where, root, moves)
+            array, inside = at[i1 + index]
+            _merge(array[inside], rest[j1 + index], where, root, moves)
         for index in reversed(range(i1 + edited, i2)):
-            lines.drop(root, old[index], lambda index=index: old.__delitem__(index))
+            remove(*at[index])
         for offset, value in enumerate(rest[j1 + edited:j2]):
-            old.insert(i1 + edited + offset, _table(value, where, tomlkit.table(), moves))
-            lines.place(root, old[i1 + edited + offset], old)
+            insert(i1 + edited + offset, _table(value, where, tomlkit.table(), moves))
     for index, entry in sorted(brought.items()):        # (each after those before it)
-        old.insert(index, entry)
-        lines.place(root, old[index], old)
+        insert(index, entry)
+    if any(len(array) for _, array in holders):         # (a piece left empty: gone)
+        for part, array in holders:
+            if not len(array):
+                part.__delitem__(where[-1])
 
 
 def _brought(moves: lines.Carried | None, where: tuple[str, ...], values: list[Any]
@@ -356,23 +498,14 @@ def _carried(root: Any, held: dict[str, Any], new: dict[str, Any]) -> lines.Carr
     for there, here in _moved(held, new).items():
         if here in after:                       # copied, not moved: its lines stay
             continue
-        container = _table_at(root, here[:-1])
-        item = container.item(here[-1]) if container is not None else None
+        found = _holders_at(root, here)      # (one written in pieces is made anew there)
+        item = found[0] if len(found) == 1 else None
         if isinstance(item, (Table, InlineTable)) and isinstance(after[there], dict):
             _merge(item, after[there], there, root)
             moves.take(root, item, there)
     for there, text, item in _moved_entries(root, held, new):
         moves.take(root, item, there, text)
     return moves
-
-
-def _table_at(root: Any, keys: tuple[str, ...]) -> Any:
-    """The table of document ``root`` at ``keys``, or None."""
-    table = root
-    for key in keys:
-        table = table.get(key) if isinstance(table, (Table, InlineTable, tomlkit.TOMLDocument)
-                                             ) else None
-    return table if isinstance(table, (Table, InlineTable, tomlkit.TOMLDocument)) else None
 
 
 def _moved_entries(root: Any, held: dict[str, Any], new: dict[str, Any]
@@ -397,12 +530,12 @@ def _moved_entries(root: Any, held: dict[str, Any], new: dict[str, Any]
         for text in _count_out(texts, before.get(there, [])):
             here = next((where for where, texts in left.items()
                          if where != there and text in texts), None)
-            table = _table_at(root, here[:-1]) if here is not None else None
-            array = table.get(here[-1]) if table is not None and here is not None else None
-            if not isinstance(array, AoT):
+            pieces = [array for array in _holders_at(root, here) if isinstance(array, AoT)
+                      ] if here is not None else []
+            if here is None or not pieces:
                 continue
             left[here].remove(text)
-            entry = next((entry for entry in array.body
+            entry = next((entry for array in pieces for entry in array.body
                           if not any(entry is taken for _, _, taken in moved)
                           and _text(_as_shown(_plain(entry))) == text), None)
             if entry is not None:

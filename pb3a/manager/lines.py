@@ -4,8 +4,9 @@ moves one of its entries (a module's table, a link, a key).
 A comment directly above an entry (no blank line between) is the entry's and goes with
 it; one separated by a blank line is the section's and stays. tomlkit keeps the lines
 before a table header at the end of the table before it: ``drop``, ``place`` and
-``Carried`` work on the file's lines in order (``_tokens``), whatever tables hold them.
-``pb3a.manager.document`` merges an edit into the document with them.
+``Carried`` work on the file's lines in order (``_tokens``), whatever tables hold them
+(a table written in pieces, ``[macros.m]`` here and ``[macros.m.modules.a]`` there,
+is several). ``pb3a.manager.document`` merges an edit into the document with them.
 """
 
 from __future__ import annotations
@@ -73,27 +74,30 @@ def _split(tokens: list[tuple[str, Any, int, Any]], run: list[int], kind: type) 
     return count
 
 
-def drop(root: Any, item: Any, delete: Any) -> None:
-    """``delete()`` ``item`` from the document ``root``, with the comments directly above
-    it and, for a table, those directly below its last line (the table's own, followed by
-    a blank line or the end of the file). Comments after a blank line stay where they are
-    in the file, and so one blank line, not two or none, is left where it was."""
+def drop(root: Any, items: list[Any], delete: Any) -> None:
+    """``delete()`` ``items`` from the document ``root`` (an entry, or each piece of a
+    table written in pieces), each with the comments directly above it and, for a
+    table, those directly below its last line (the table's own, followed by a blank
+    line or the end of the file). Comments after a blank line stay where they are in the
+    file, and so one blank line, not two or none, is left where it was."""
     tokens = _tokens(root)
-    start, end = _span(tokens, item)
-    if start < 0:                                   # in an inline table: no lines its own
-        delete()
-        return
-    lead, blank, own, kept, last = _lines(tokens, item, start, end)
-    if (kept and isinstance(tokens[kept[0]][3], Whitespace)) or (not kept and last):
-        lead = blank + lead                     # what follows has its own blank line
-    for at in (*lead, *own):
-        _, container, index, _ = tokens[at]
-        container.body[index] = (None, Null())
-    inside = [tokens[at][3] for at in kept if start < at < end]
-    anchor = next((token for token in reversed(tokens[:start])
-                   if token[0] in ("solid", "trivia")), ("solid", root, -1, None))
+    spans = sorted(span for span in (_span(tokens, item) for item in items) if span[0] >= 0)
+    gone = {at for start, end in spans for at in range(start, end + 1)}
+    stays: dict[int, list[Any]] = {}        # the line they go after -> the lines kept
+    for start, end in spans:        # (none in an inline table: no lines of their own)
+        lead, blank, own, kept, last = _lines(tokens, tokens[start][3], start, end)
+        if (kept and isinstance(tokens[kept[0]][3], Whitespace)) or (not kept and last):
+            lead = blank + lead                 # what follows has its own blank line
+        for at in (*lead, *own):
+            _, container, index, _ = tokens[at]
+            container.body[index] = (None, Null())
+        anchor = next((at for at in reversed(range(start)) if at not in gone
+                       and tokens[at][0] in ("solid", "trivia")), -1)
+        stays.setdefault(anchor, []).extend(tokens[at][3] for at in kept if start < at < end)
     delete()
-    _insert(anchor[1], anchor[2] + 1, inside)
+    for anchor, inside in sorted(stays.items(), reverse=True):
+        _, container, index, _ = tokens[anchor] if anchor >= 0 else ("solid", root, -1, None)
+        _insert(container, index + 1, inside)     # (later ones first: each its index)
 
 
 def _lines(tokens: list[tuple[str, Any, int, Any]], item: Any, start: int, end: int
@@ -144,12 +148,27 @@ def place(root: Any, item: Any, array: AoT | None = None) -> None:
     for at in moved:
         _, container, index, _ = tokens[at]
         container.body[index] = (None, Null())
-    table = item if isinstance(item, Table) else item.body[-1]
-    _insert(table.value, len(table.value.body), [tokens[at][3] for at in moved])
+    last = _last_table(item)
+    _insert(last.value, len(last.value.body), [tokens[at][3] for at in moved])
     stays = before[:len(before) - len(moved)]
     if stays and _split(tokens, stays, Whitespace):     # a blank line before it already:
         first = item if isinstance(item, Table) else item.body[0]    # not tomlkit's too
         first.trivia.indent = first.trivia.indent.lstrip("\n")
+
+
+def _last_table(item: Table | AoT) -> Table:
+    """The table whose lines end where ``item`` ends in the file: its last table (and
+    that one's, ...; an array's last entry). Lines put at the end of a table that holds
+    only tables gave it a header of its own (``[macros.stage]`` over
+    ``[macros.stage.modules.scale]``)."""
+    table = item if isinstance(item, Table) else item.body[-1]
+    while True:                     # (lines after its last table end it: there)
+        name, last = next(((name, line) for name, line in reversed(table.value.body)
+                           if not isinstance(line, Null)), (None, None))
+        if name is None or name.is_dotted() or not isinstance(last, (Table, AoT)) \
+                or (isinstance(last, AoT) and not last.body):
+            return table
+        table = last if isinstance(last, Table) else last.body[-1]
 
 
 def add_key(container: Table | tomlkit.TOMLDocument, key: str, item: Any) -> None:
@@ -177,24 +196,46 @@ def add_key(container: Table | tomlkit.TOMLDocument, key: str, item: Any) -> Non
         (n for n in range(at) if isinstance(body[n][1], Whitespace)), at)
     if to < at:
         body.insert(to, body.pop(at))
-        index = container.value._map if isinstance(container, Table) else container._map
-        for name, where in index.items():
-            index[name] = (tuple(n + 1 if to <= n < at else n for n in where)
-                           if isinstance(where, tuple) else to if where == at
-                           else where + 1 if to <= where < at else where)
+        _reindex(container.value if isinstance(container, Table) else container,
+                 lambda n: to if n == at else n + 1 if to <= n < at else n)
+
+
+def rename(container: Table | tomlkit.TOMLDocument, old: str, new: str) -> None:
+    """Give table ``old`` of a table (or the document) the name ``new`` where it is, its
+    comments and blank lines kept around it (tomlkit has no call for it: removed and
+    added anew, it lost them and went to the end of its table)."""
+    body = container.value.body if isinstance(container, Table) else container.body
+    at = next(n for n, (name, _) in enumerate(body) if name is not None and name.key == old)
+    item = body[at][1]
+    indent = item.trivia.indent
+    del container[old]                  # (its place is left as tomlkit leaves it: empty)
+    container[new] = item               # (tomlkit puts it last)
+    item.trivia.indent = indent
+    item.invalidate_display_name()      # (a header as written names it: [modules.old])
+    end = next(n for n, (name, _) in enumerate(body) if name is not None and name.key == new)
+    body[at], body[end] = body[end], body[at]
+    _reindex(container.value if isinstance(container, Table) else container,
+             lambda n: at if n == end else n)
 
 
 def _insert(container: Any, index: int, items: list[Any]) -> None:
     """Put comments and blank lines ``items`` at ``index`` of a tomlkit container's body
-    (tomlkit inserts only keys there; its index of keys is moved on by as many)."""
+    (tomlkit inserts only keys there)."""
     if not items:
         return
     container.body[index:index] = [(None, item) for item in items]
-    for key, at in container._map.items():
-        container._map[key] = (tuple(i + len(items) if i >= index else i for i in at)
-                               if isinstance(at, tuple) else
-                               at + len(items) if at >= index else at)
+    _reindex(container, lambda n: n + len(items) if n >= index else n)
 
+
+def _reindex(container: Any, moved: Any) -> None:
+    """Tell a tomlkit container that the lines of its body moved: ``moved`` gives the
+    new place of each line at an old one. tomlkit finds a key's line through an index
+    of its own (``_map``) and has no public call to move a line or put one between two
+    others: this is the one place that knows it (setup.cfg pins the versions it was
+    tested on)."""
+    index = container._map
+    for key, at in index.items():
+        index[key] = tuple(moved(n) for n in at) if isinstance(at, tuple) else moved(at)
 
 
 class Carried:
@@ -203,7 +244,8 @@ class Carried:
     (or array entry, or inline table) with the comments in it and on its keys, and the
     comments directly above it. The copy is put in at the new place (``table``,
     ``brought``) instead of one made anew from the values (grouping modules into a macro
-    lost every comment on them); ``lead_in`` then puts the comments above it there."""
+    lost every comment on them); ``lead_in`` then puts the comments above it there. A
+    table renamed where it is (``rename``) is noted in ``renamed``."""
 
     def __init__(self) -> None:
         self.tables: dict[tuple[str, ...], Any] = {}             # new place -> the copy
@@ -211,6 +253,7 @@ class Carried:
         self.away: list[Any] = []             # array entries taken elsewhere (originals)
         self.leads: dict[int, tuple[Any, str]] = {}   # id(copy) -> (copy, comments above)
         self.placed: list[Any] = []           # the copies put in
+        self.renamed: list[str] = []          # tables given another name where they are
 
     def take(self, root: Any, item: Any, where: tuple[str, ...], text: str | None = None
              ) -> None:
