@@ -59,6 +59,8 @@ DURATION_S = {"quick": 900.0, "full": 3600.0}
 BASELINES = ("actuated", "delay_based")
 RUN_TIMEOUT_S = {"quick": 120.0, "full": 600.0}    # wall seconds for the agents' run
 POLL_S = 0.2
+SETTLE_S = 10.0                 # wall seconds for the swaps in flight at the end to be
+                                # recorded by their agents
 FIGURES = ("mean_delay_s", "mean_halting", "throughput", "teleports", "vehicles",
            "mean_time_loss_s", "mean_depart_delay_s")
 
@@ -149,7 +151,10 @@ def controllers() -> dict[str, dict[str, Any]]:
 def run_agents(resource: Path, seed: int, duration_s: float, found: dict[str, JunctionLayout],
                timeout_s: float, cache: Path | None = None,
                demand_scale: Mapping[str, float] | None = None) -> dict[str, Any]:
-    """The swapping agents' run: its figures, its swaps and the system's swap events."""
+    """The swapping agents' run: its figures, its swaps and the system's swap events.
+    ``swaps`` has one record per swap the system made (``swap_events``): an agent's, or,
+    for a swap its agent had not recorded when the system stopped, one made from the
+    system's event (``"unrecorded": true``)."""
     system = configuration(resource, seed, duration_s, found, cache,
                            demand_scale=demand_scale)
     with system.launch() as running:
@@ -166,11 +171,47 @@ def run_agents(resource: Path, seed: int, duration_s: float, found: dict[str, Ju
             time.sleep(POLL_S)
         wall_s = time.monotonic() - started
         result = running.state("sumo")["result"]
-        swaps = sorted((swap for junction in found
+        swaps = recorded_swaps(running, list(found), time.monotonic() + SETTLE_S)
+    # stopped: every swap the system made is among its events now, also one cut short
+    events = [e for e in running.events(since=0, timeout=0) if e.kind == "module_swapped"]
+    swaps = with_unrecorded(swaps, events, result["end_s"])
+    return {**result, "swaps": swaps, "swap_events": len(events), "wall_s": round(wall_s, 1)}
+
+
+def recorded_swaps(running: Any, junctions: list[str], settle_by: float) -> list[dict[str, Any]]:
+    """The junctions' agents' swap records, in time order, once they record every swap
+    the system has made: an agent records a swap after the system has made it and the
+    new controller has its state, so one swapping as the run ends is waited for, until
+    ``settle_by`` (``time.monotonic()``)."""
+    while True:
+        swaps = sorted((swap for junction in junctions
                         for swap in running.state(f"{junction}/agent")["swaps"]),
                        key=lambda swap: swap["time"])
-        events = [e for e in running.events(since=0, timeout=1.0) if e.kind == "module_swapped"]
-    return {**result, "swaps": swaps, "swap_events": len(events), "wall_s": round(wall_s, 1)}
+        made = sum(e.kind == "module_swapped" for e in running.events(since=0, timeout=0))
+        if len(swaps) >= made or time.monotonic() >= settle_by:
+            return swaps
+        time.sleep(POLL_S)
+
+
+def with_unrecorded(swaps: list[dict[str, Any]], events: list[Any],
+                    end_s: float) -> list[dict[str, Any]]:
+    """``swaps`` and, per controller the system swapped more often than its agent's
+    records say (a swap made as the system stopped, whose record was made too late to
+    be read, or not at all), a record of each of its last swaps made from the system's
+    event: at ``end_s``, ``from`` the controller recorded before (None: none was)."""
+    names = {spec["class"]: name for name, spec in controllers().items()}
+    added = []
+    for controller in dict.fromkeys(e.subject for e in events):
+        made = [e for e in events if e.subject == controller]
+        recorded = [s for s in swaps if s["controller"] == controller]
+        before = recorded[-1]["to"] if recorded else None
+        for event in made[len(recorded):]:
+            to = names.get(event.detail.get("cls", ""), event.detail.get("cls", ""))
+            added.append({"time": end_s, "controller": controller, "from": before, "to": to,
+                          "reason": "made by the system as the run ended; its agent's "
+                                    "record was not read", "unrecorded": True})
+            before = to
+    return sorted([*swaps, *added], key=lambda swap: swap["time"])
 
 
 def run_alone(resource: Path, seed: int, duration_s: float, spec: dict[str, Any],
