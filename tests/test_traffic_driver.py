@@ -6,6 +6,7 @@ One system test runs it in its own worker with a controller in another."""
 from __future__ import annotations
 
 import itertools
+import re
 import shutil
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -20,6 +21,7 @@ from agents.traffic.driver import TrafficDriver
 from agents.traffic.messages import JunctionLayout, JunctionReading, NetworkReading, PhaseRequest
 from agents.traffic.simulation import APPROACH_S, Simulation
 from pb3a import System
+from pb3a.errors import RuntimeFailure
 from pb3a.testing import ModuleHarness
 
 pytest.importorskip("libsumo", reason="SUMO (the traffic extra) is not installed: "
@@ -353,9 +355,31 @@ def test_re_pointed_while_it_runs_it_ends_one_simulation_and_starts_the_other(dr
     for slot, junction in enumerate(junctions):                 # every junction answers:
         harness.feed(f"request_{slot}", PhaseRequest(junction, 0, 0))
     assert harness.last("reading_0").step == 1                  # then the ring moves on
-    with pytest.raises(ValueError, match="no network description"):
-        harness.module.set_state({"resource": str(NETWORKS / "nowhere.toml")})
-    assert harness.state["status"] == "failed" and "nowhere.toml" in harness.state["last_error"]
+
+
+@pytest.mark.parametrize(("bad", "named"), [
+    ({"resource": str(NETWORKS / "nowhere.toml")}, "no network description at "),
+    ({"demand_scale": {"rush": 2.0}}, "no period rush to scale; its periods are"),
+    ({"demand_scale": 2.0}, "a demand scale is a table of period name (or *) to factor"),
+    ({"signals": "actuatd", "seed": 2}, "signals must be one of static, actuated, "),
+    ({"resource": RING, "demand_scale": {"rush": 2.0}}, "ring.toml: no period rush to"),
+])
+def test_a_new_simulation_that_cannot_start_is_refused_by_name_and_the_run_goes_on(
+        driver, bad, named) -> None:
+    """A mistyped resource (or demand scale, or signals) set while it ran ended the
+    running simulation, then failed: the driver was left failed, its run gone."""
+    harness = driver()
+    for _ in range(5):
+        answer(harness, NS)
+    with pytest.raises(ValueError, match=re.escape(named)) as refused:
+        harness.module.set_state(bad)
+    assert "nothing was set: the simulation it has goes on" in str(refused.value)
+    state = harness.state
+    assert (state["status"], state["step_count"], state["run"]) == ("running", 5, 1)
+    assert (state["resource"], state["demand_scale"], state["signals"], state["seed"]) == (
+        CROSS, {}, "static", 1)
+    assert state["result"] == {} and state["last_error"] == ""
+    assert answer(harness, EW).step == 6                    # and on it goes
 
 
 def test_answers_to_a_re_pointed_simulation_are_not_taken_for_the_new_one(driver) -> None:
@@ -413,9 +437,6 @@ def test_its_demand_scale_changes_the_vehicles_and_re_points_it(driver) -> None:
     tripled = vehicles(harness)
     assert harness.state["result"]["demand_scale"] == {"*": 3.0}
     assert 2.2 * plain < tripled < 3.8 * plain, (plain, tripled)    # Poisson, same seed
-    with pytest.raises(ValueError, match="no period rush to scale"):
-        harness.module.set_state({"demand_scale": {"rush": 2.0}})
-    assert harness.state["status"] == "failed" and "rush" in harness.state["last_error"]
 
 
 def test_in_its_own_worker_it_runs_in_lockstep_with_a_controller(cache: Path) -> None:
@@ -431,3 +452,47 @@ def test_in_its_own_worker_it_runs_in_lockstep_with_a_controller(cache: Path) ->
         state = run.state("sumo")
     assert result["end_s"] == 300.0 and result["vehicles"] > 30
     assert state["late"] == 0 and state["rejected"] == 0
+
+
+def test_launched_on_a_network_with_junctions_no_controller_answers_it_fails_its_setup(
+        cache: Path) -> None:
+    system = System("traffic-too-few")
+    system.add("sumo", TrafficDriver, state={"resource": RING, "cache_dir": str(cache)})
+    system.add("signal", PhaseAlternator)
+    system.link("sumo.reading_0", "signal.reading")
+    system.link("signal.request", "sumo.request_0")
+    with pytest.raises(RuntimeFailure, match=re.escape(
+            "ring.toml: no controller answers 5 of its 6 signalized junctions: N1 (request_1)")):
+        system.launch().close()
+
+
+def test_re_pointed_at_a_network_with_junctions_no_controller_answers_it_refuses(
+        cache: Path) -> None:
+    """A running system's driver re-pointed at a network with more signalized junctions
+    than it has controllers waited out lockstep_timeout_s at every step, for the
+    junctions whose slots nothing answers."""
+    system = System("traffic-re-pointed")
+    system.add("sumo", TrafficDriver, state={"resource": CROSS, "cache_dir": str(cache),
+                                             "duration_s": 36000.0})
+    system.add("signal", PhaseAlternator, state={"hold": 20})
+    system.link("sumo.reading_0", "signal.reading")
+    system.link("signal.request", "sumo.request_0")
+    with system.launch() as run:
+        eventually(lambda: run.state("sumo")["step_count"] > 10, timeout=30,
+                   what="the crossing's run to go")
+        with pytest.raises(Exception, match=re.escape(
+                "ring.toml: no controller answers 5 of its 6 signalized junctions: N1 "
+                "(request_1), N2 (request_2), S1 (request_3), S2 (request_4), W "
+                "(request_5); no link feeds their slots' requests")):
+            run.set_state("sumo", {"resource": RING})
+        state = run.state("sumo")
+        assert (state["resource"], state["status"], state["run"]) == (CROSS, "running", 1)
+        assert state["junctions"] == ["C"] and state["result"] == {}
+        steps = state["step_count"]
+        eventually(lambda: run.state("sumo")["step_count"] > steps + 100, timeout=30,
+                   what="the crossing's run to go on")
+        assert run.state("sumo")["late"] == 0
+        run.set_state("sumo", {"resource": RING, "own_programs": True})   # SUMO's programs:
+        eventually(lambda: run.state("sumo")["junctions"] == sorted(      # nothing to answer
+            ["N1", "N2", "E", "S2", "S1", "W"]), timeout=30, what="the ring to start")
+        assert run.state("sumo")["result"]["resource"] == CROSS

@@ -11,7 +11,9 @@ for all, to a factor). Setting ``resource`` (or ``seed``, ``signals``, ``duratio
 ``own_programs``, ``demand_scale``) while it runs finishes the simulation it has,
 keeping its figures
 in ``result``, and starts the new one at once: like ``RobotDriver``, it is re-pointed
-while the system runs.
+while the system runs. A new simulation that could not start (a mistake in its
+network or demand scale, a signalized junction no controller is linked to answer) is
+refused before anything changes, naming what is wrong, and the running one goes on.
 
 Each signalized junction has a slot: the i-th junction (in ``junctions``, sorted by
 id) writes a ``JunctionReading`` on ``reading_i`` at the start of every control step
@@ -48,7 +50,7 @@ from typing import Any
 
 from agents.limits import SECONDS, SPAN, out_of_limits, settings_with, whole
 from agents.traffic.messages import JunctionReading, NetworkReading, PhaseRequest
-from agents.traffic.networks import Network
+from agents.traffic.networks import BuildFailed, Network, SumoMissing
 from agents.traffic.signals import SignalHead
 from agents.traffic.simulation import SEED_MAX, STEP_S, Simulation
 from pb3a import Input, InputPort, Module, Output
@@ -56,6 +58,7 @@ from pb3a import Input, InputPort, Module, Output
 MAX_JUNCTIONS = 16          # junction slots: ports are declared with the class
 _SIMULATION_KEYS = ("resource", "seed", "signals", "duration_s", "own_programs",
                     "demand_scale")
+_PREPARED_BY = (*_SIMULATION_KEYS, "cache_dir")    # what a simulation's network needs
 _LIMITS = {"control_step_s": SPAN, "duration_s": SPAN, "min_green_s": SECONDS,
            "lockstep_timeout_s": SECONDS}
 
@@ -70,6 +73,14 @@ def _junction_ports() -> dict[str, Input | Output]:
 
 # The slots' ports, one pair per junction, declared once for the class below.
 _JunctionSlots = type("_JunctionSlots", (), _junction_ports())
+
+
+def _said(exc: Exception) -> str:
+    """``exc`` as a sentence: its own words, naming its type where they may not say
+    what it is (a ``TypeError`` from a value of the wrong kind, say)."""
+    if isinstance(exc, ValueError | BuildFailed | SumoMissing):
+        return str(exc)
+    return f"{type(exc).__name__}: {exc}"
 
 
 class TrafficDriver(_JunctionSlots, Module):
@@ -119,10 +130,12 @@ class TrafficDriver(_JunctionSlots, Module):
 
     def set_state(self, state: dict[str, Any]) -> None:
         """Set state; a change of ``resource``, ``seed``, ``signals``, ``duration_s``,
-        ``own_programs`` or ``demand_scale`` in a running driver ends its simulation and
+        ``own_programs`` or ``demand_scale`` in a driver set up ends its simulation and
         starts the new one at once; a ``min_green_s`` holds from the green shown now.
         ``ValueError`` (nothing set, the simulation running on) for a control step,
-        minimum green, duration, lock-step timeout or seed out of range."""
+        minimum green, duration, lock-step timeout or seed out of range, and for a new
+        simulation that could not start: its network, demand scale or signals wrong, or
+        a signalized junction of it without a controller (see ``_prepare``)."""
         problems = out_of_limits(_LIMITS, settings_with(self, _LIMITS, state))
         seed = state.get("seed", self.seed)
         if not (whole(seed) and seed <= SEED_MAX):
@@ -131,13 +144,22 @@ class TrafficDriver(_JunctionSlots, Module):
         if problems:
             raise ValueError("; ".join(problems))
         changed = any(k in state and state[k] != getattr(self, k) for k in _SIMULATION_KEYS)
+        prepared = None
+        if changed and "_heads" in vars(self):
+            settings = {key: state.get(key, getattr(self, key)) for key in _PREPARED_BY}
+            if settings["resource"]:
+                try:
+                    prepared = self._prepare(settings)
+                except Exception as exc:      # whatever it is, the new one cannot start
+                    raise ValueError(f"{_said(exc)} (nothing was set: the simulation it "
+                                     f"has goes on)") from exc
         super().set_state(state)
         for head in vars(self).get("_heads", {}).values():
             head.min_green_s = self.min_green_s
         if changed and "_heads" in vars(self):
             self._end(keep=True)
-            if self.resource:
-                self._begin()
+            if prepared is not None:
+                self._begin(prepared)
 
     def teardown(self) -> None:
         self._end(keep=False)
@@ -249,12 +271,43 @@ class TrafficDriver(_JunctionSlots, Module):
         self._published_at = self._clock()
 
     # -- a simulation's life ---------------------------------------------------------
-    def _begin(self) -> None:
-        """Build the network and demand, start SUMO, write the first readings."""
+    def _prepare(self, settings: dict[str, Any]) -> tuple[Network, Path]:
+        """The network of a simulation with ``settings`` (``_PREPARED_BY``), built and
+        checked, before anything of the running one changes: ``ValueError`` (or the
+        build's ``BuildFailed``, ``SumoMissing``) says what keeps it from starting. That
+        is a description or demand scale with a mistake, a stream it cannot carry, more
+        signalized junctions than the slots and, in lock-step, a junction whose slot's
+        ``request_i`` no link feeds while others are fed: no controller would answer it,
+        and every step would wait ``lockstep_timeout_s`` for it. (In a harness no slot is
+        fed by a link, and none is asked about.)"""
+        resource = settings["resource"]
+        network = Network.load(resource).scaled(settings["demand_scale"])
+        net = network.build(settings["signals"],
+                            Path(settings["cache_dir"]) if settings["cache_dir"] else None)
+        network.check_streams(net)
+        junctions = network.signalized(net)
+        if len(junctions) > MAX_JUNCTIONS:
+            raise ValueError(f"{resource} has {len(junctions)} signalized junctions; the "
+                             f"driver has slots for {MAX_JUNCTIONS}")
+        if not settings["own_programs"]:
+            fed = [bool(getattr(self, f"request_{slot}").source)
+                   for slot in range(MAX_JUNCTIONS)]
+            alone = [f"{junction} (request_{slot})" for slot, junction in enumerate(junctions)
+                     if not fed[slot]]
+            if any(fed) and alone:
+                raise ValueError(
+                    f"{resource}: no controller answers {len(alone)} of its {len(junctions)} "
+                    f"signalized junctions: {', '.join(alone)}; no link feeds their slots' "
+                    f"requests, and each step would wait lockstep_timeout_s for them (link a "
+                    f"controller to each, or run SUMO's programs: own_programs)")
+        return network, net
+
+    def _begin(self, prepared: tuple[Network, Path] | None = None) -> None:
+        """Build the network and demand (unless ``prepared`` already), start SUMO, write
+        the first readings."""
         try:
-            network = Network.load(self.resource).scaled(self.demand_scale)
-            net = network.build(self.signals, Path(self.cache_dir) if self.cache_dir else None)
-            network.check_streams(net)
+            network, net = prepared or self._prepare(
+                {key: getattr(self, key) for key in _PREPARED_BY})
             if self.out_dir:
                 self._workdir = Path(self.out_dir)
                 self._workdir.mkdir(parents=True, exist_ok=True)
@@ -270,11 +323,6 @@ class TrafficDriver(_JunctionSlots, Module):
             self._remove_workdir()
             raise
         layouts = self._simulation.layouts
-        if len(layouts) > MAX_JUNCTIONS:
-            self._end(keep=False)
-            self.status = "failed"
-            raise ValueError(f"{self.resource} has {len(layouts)} signalized junctions; "
-                             f"the driver has slots for {MAX_JUNCTIONS}")
         # what this simulation is, for its figures (state may change before it ends)
         self._identity = {key: getattr(self, key) for key in _SIMULATION_KEYS}
         self.junctions = list(layouts)

@@ -306,6 +306,9 @@ class Network:
         """This network with the rates of some periods multiplied: ``factors`` maps a
         period's name (or ``*``, every period) to its factor, for example
         ``{"surge": 2.0}`` for a surge twice as heavy. Builds are unchanged."""
+        if not isinstance(factors, Mapping):
+            raise ValueError(f"{self.path}: a demand scale is a table of period name (or *) "
+                             f"to factor, e.g. {{ surge = 2.0 }}, got {factors!r}")
         names = [period.name for period in self.periods]
         unknown = set(factors) - {*names, "*"}
         if unknown:
