@@ -50,6 +50,7 @@ from agents.traffic.messages import JunctionLayout
 from agents.traffic.networks import BuildFailed, Network, SumoMissing
 from pb3a import System
 from pb3a.cli.log_output import show_logs
+from pb3a.config.checks import NAME
 from pb3a.loading.references import resolve_class
 from scenarios import SUMO_SEED_MAX, output_directory, summary, sumo_seed
 
@@ -81,8 +82,9 @@ def network_path(network: str) -> Path:
 def check_network(network: Network, cache: Path | None = None) -> None:
     """``ValueError`` saying what keeps ``network`` from the scenario, found before
     anything runs: a stream its built network cannot carry, no signalized junction (no
-    controller to compare), more than the driver has slots for. (A failed build raises
-    ``BuildFailed``, no SUMO ``SumoMissing``.)"""
+    controller to compare), more than the driver has slots for, a junction whose id
+    cannot name its modules (the system's configuration refused it after every run
+    alone). (A failed build raises ``BuildFailed``, no SUMO ``SumoMissing``.)"""
     net_file = network.build(cache=cache)
     network.check_streams(net_file)
     junctions = network.signalized(net_file)
@@ -94,6 +96,16 @@ def check_network(network: Network, cache: Path | None = None) -> None:
     if len(junctions) > MAX_JUNCTIONS:
         raise ValueError(f"{network.path}: the built network has {len(junctions)} signalized "
                          f"junctions; the traffic driver has slots for {MAX_JUNCTIONS}")
+    taken = [name for name, module in tomllib.loads(CONFIG.read_text())["modules"].items()
+             if module.get("macro") != "junction"]
+    unnamable = [junction for junction in junctions
+                 if not NAME.match(junction) or junction in taken]
+    if unnamable:
+        raise ValueError(f"{network.path}: the scenario names each signalized junction's "
+                         f"modules after it, and {', '.join(map(repr, unnamable))} cannot "
+                         "name them: a module's name has only letters, digits, '_' and '-', "
+                         f"and is not that of another module of {CONFIG.name} "
+                         f"({', '.join(taken)}); rename the junction in the network's nodes")
 
 
 def layouts(resource: Path, cache: Path | None = None) -> dict[str, JunctionLayout]:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -397,12 +398,18 @@ _GRID = ('name = "{name}"\n[build]\nnetgenerate = [{arguments}]\n[demand.streams
     ('"--grid", "--grid.number", "5", "--grid.attach-length", "100", '
      '"--default-junction-type", "traffic_light"',
      "the built network has 25 signalized junctions; the traffic driver has slots for 16"),
+    ('"--grid", "--grid.number", "2", "--grid.attach-length", "100", '
+     '"--default-junction-type", "traffic_light", "--prefix.junction", "x."',
+     "the scenario names each signalized junction's modules after it, and 'x.A0', "
+     "'x.A1', 'x.B0', 'x.B1' cannot name them: a module's name has only letters"),
 ])
 def test_traffic_names_what_keeps_a_network_from_it_before_it_runs(
         tmp_path, capsys, monkeypatch, arguments, complaint) -> None:
     """A network its tool could not build ended in a RuntimeError traceback; one with
     more junctions than the driver's slots in a ValueError traceback from the driver's
-    setup; one with no signalized junction ran on for good, a loop at full CPU."""
+    setup; one with no signalized junction ran on for good, a loop at full CPU; one
+    whose junction ids cannot name modules ('x.A0', or the driver's 'sumo') failed in
+    a ConfigError traceback blaming traffic.toml, after every controller's run alone."""
     pytest.importorskip("libsumo", reason="SUMO (the traffic extra) is not installed")
     monkeypatch.setenv("PB3A_TRAFFIC_CACHE", str(tmp_path / "cache"))
     network = tmp_path / "mine.toml"
@@ -413,6 +420,28 @@ def test_traffic_names_what_keeps_a_network_from_it_before_it_runs(
     said = capsys.readouterr().err
     assert complaint in said and f"{network}" in said and "Traceback" not in said
     assert time.monotonic() - started < 10 and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("junction", ["sumo", "C#1"])
+def test_traffic_names_a_junction_whose_id_cannot_name_its_modules(tmp_path, capsys,
+                                                                  monkeypatch, junction) -> None:
+    """The crossing, its junction renamed: the driver's name, or one no module can have
+    (netconvert's joined junctions are "cluster_J1_J2_#3more"). The system's
+    configuration refused it after every controller's run alone: a ConfigError traceback
+    that blamed traffic.toml ('sumo' gave the driver the junction's state)."""
+    pytest.importorskip("libsumo", reason="SUMO (the traffic extra) is not installed")
+    monkeypatch.setenv("PB3A_TRAFFIC_CACHE", str(tmp_path / "cache"))
+    here = Path(__file__).resolve().parent.parent / "scenarios" / "traffic"
+    for suffix in (".nod.xml", ".edg.xml"):
+        text = (here / f"cross{suffix}").read_text()
+        (tmp_path / f"cross{suffix}").write_text(text.replace('id="C"', f'id="{junction}"')
+                                                 .replace('"C"', f'"{junction}"'))
+    (tmp_path / "cross.toml").write_text((here / "cross.toml").read_text())
+    assert main(["scenario", "traffic", "--quick", "--network", str(tmp_path / "cross.toml"),
+                 "--out", str(tmp_path / "out")]) == 2
+    said = capsys.readouterr().err
+    assert f"and {junction!r} cannot name them: a module's name has only letters" in said
+    assert "rename the junction in the network's nodes" in said and "Traceback" not in said
 
 
 def test_traffic_names_a_network_file_its_tool_cannot_read(tmp_path, capsys,
