@@ -296,6 +296,23 @@ def test_training_learns_one_table_every_junction_shares(cache: Path) -> None:
     assert all(len(values) == 2 for values in table.values())
 
 
+@pytest.mark.parametrize("count", ["0", "-3", "101", "two"])
+def test_training_refuses_a_number_of_episodes_it_has_no_seeds_for(
+        tmp_path: Path, capsys, count: str) -> None:
+    """--episodes 0 wrote an empty table over the trained one; 101 trained 100 episodes
+    (about seven minutes), then failed (IndexError) before writing anything."""
+    from agents.traffic.training import main, train
+
+    out = tmp_path / "table.json"
+    with pytest.raises(SystemExit) as ended:
+        main(["--episodes", count, "--out", str(out)])
+    assert ended.value.code == 2 and not out.exists()
+    assert ("give a whole number of episodes from 1 to 100 (one seed of its own each), "
+            f"got {count!r}") in capsys.readouterr().err
+    with pytest.raises(ValueError, match="episodes must be from 1 to 100"):
+        train(episodes=101)
+
+
 @pytest.mark.parametrize(("cls", "worst_delay_s"), [
     (FixedTime, 60.0), (MaxPressure, 40.0), (LongestQueueFirst, 40.0), (GapOut, 25.0),
     (TimeLoss, 30.0), (QLearning, 30.0)])

@@ -26,7 +26,11 @@ TRAINING_SEEDS = range(1000, 1100)      # far from the seeds runs use (1..100)
 def train(networks: tuple[str, ...] = ("ring", "grid"), episodes: int = 24,
           duration_s: float = 900.0, epsilon: float = 0.1,
           cache: Path | None = None) -> tuple[dict[str, list[float]], list[dict[str, Any]]]:
-    """The learnt table, and each episode's figures."""
+    """The learnt table, and each episode's figures (``episodes``: 1 to one per
+    training seed)."""
+    if not 1 <= episodes <= len(TRAINING_SEEDS):
+        raise ValueError(f"episodes must be from 1 to {len(TRAINING_SEEDS)} (one training "
+                         f"seed each), got {episodes!r}")
     table: dict[str, list[float]] = {}
     history = []
     for episode in range(episodes):
@@ -50,9 +54,25 @@ def train(networks: tuple[str, ...] = ("ring", "grid"), episodes: int = 24,
     return table, history
 
 
+def episodes(text: str) -> int:
+    """``--episodes``: a whole number from 1 to one per training seed. None (0, or
+    below) wrote an empty table over the trained one; more than the seeds failed on
+    the first episode past them, the training before it lost."""
+    try:
+        count = int(text)
+    except ValueError:
+        count = 0
+    if not 1 <= count <= len(TRAINING_SEEDS):
+        raise argparse.ArgumentTypeError(
+            f"give a whole number of episodes from 1 to {len(TRAINING_SEEDS)} (one seed of "
+            f"its own each), got {text!r}")
+    return count
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--episodes", type=int, default=24)
+    parser.add_argument("--episodes", type=episodes, default=24,
+                        help=f"1 to {len(TRAINING_SEEDS)} (default 24)")
     parser.add_argument("--out", type=Path, default=TRAINED)
     args = parser.parse_args(argv)
     table, history = train(episodes=args.episodes)
