@@ -292,6 +292,12 @@ class PerformanceAgent(Agent):
         self._window.append(measure)
         while self._window and self._window[0].time <= measure.time - self.window_s:
             self._window.popleft()
+        # (a measure's arrivals came since the one before it, so a whole window of 60
+        # measures a second apart holds 60 s of arrivals, divided here by the 59 s from
+        # its first to its last: 60/59 of what came. Left so: the scenario's grid rules
+        # were set and measured with it, and counting 60 s would let a junction at 29
+        # vehicles a minute late in the grid's surge, at its hysteresis bound of 29.25,
+        # swap back; see docs/applications.md, the scenario's goals.)
         span = max(measure.time - self._window[0].time, 1.0)
         self.demand_per_min = 60.0 * sum(m.arrivals for m in self._window) / span
         self.mean_queue = sum(m.queue for m in self._window) / len(self._window)
