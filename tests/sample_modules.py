@@ -1060,3 +1060,41 @@ class Chatterbox(Agent):
             outcome = str(exc)
         with open(self.told, "w") as told:
             told.write(f"{time.monotonic() - started}\n{outcome}")
+
+
+class Frames(Module):
+    """A camera: writes ``limit`` frames of ``size`` bytes, one every period, each
+    numbered 1, 2, 3, ... in its first 8 bytes; ``sent`` counts them."""
+
+    out = Output(np.ndarray)
+    period = 0.05
+    size = 64 * 1024
+    limit = 0
+    sent = 0
+
+    def step(self) -> None:
+        if self.sent >= self.limit:
+            return
+        frame = np.zeros(self.size, np.uint8)
+        frame[:8].view(np.int64)[0] = self.sent + 1
+        self.out.write(frame)
+        self.sent += 1
+
+
+class FrameSink(Module):
+    """Reads ``Frames``: the numbers it got, in order, and any that came again or late."""
+
+    x = Input(np.ndarray, policy="queue:1000")
+    numbers: list[int] = []
+    out_of_order = 0
+    duplicates = 0
+
+    def on_input(self, port) -> None:
+        for frame in port.read_all():
+            number = int(frame[:8].view(np.int64)[0])
+            last = self.numbers[-1] if self.numbers else 0
+            if number in self.numbers:
+                self.duplicates += 1
+            elif number < last:
+                self.out_of_order += 1
+            self.numbers = [*self.numbers, number]
