@@ -991,6 +991,52 @@ def test_a_link_slower_per_value_than_the_peer_timeout_is_not_cut(monkeypatch,
         replicator.close()
 
 
+@pytest.mark.timeout(60)
+def test_a_repair_slower_to_cross_than_the_follower_waits_is_asked_again_ever_less_often(
+        monkeypatch) -> None:
+    """A repair whose answer takes longer to cross than the follower waits before asking
+    again (a 512 KiB value on a 1 Mbit/s link: 4.2 s) is asked again after 1 s, then
+    2 s, 4 s... (up to 30 s): every time, the whole answer is sent again behind the
+    first, so here the link carries the value three times at most. The follower asked
+    every second: the value was sent five times, 17 s of the link spent on copies the
+    follower then dropped (a repair of a 32 MiB replay buffer at 2 Mbit/s, 134 s to
+    cross, was sent again every second; now 8 times). The reader gets each value once."""
+    replayed, lost = [], []
+    send_router, handle = Replicator._send_router, Follower._handle
+
+    def counted(self: Replicator, peer: Any, kind: int, parts: list[Any]) -> None:
+        if kind == replication.VALUE:
+            replayed.append(time.monotonic())
+        send_router(self, peer, kind, parts)
+
+    def losing(self: Follower, message: Any, live: bool) -> Any:
+        if live and message.kind == replication.VALUE and not lost:
+            lost.append(message)                 # (lost on the way: it is repaired)
+            return None
+        return handle(self, message, live)
+    monkeypatch.setattr(Replicator, "_send_router", counted)
+    monkeypatch.setattr(Follower, "_handle", losing)
+    replicator, inbox = Replicator(KEY), Inbox()
+    follower = Follower(KEY, inbox)
+    try:
+        with Throttle(1e6) as radio:
+            replicator.add("camera")
+            follower.set_lossless("camera", True)    # (every value goes: no flight)
+            follower.follow("camera", radio.route(replicator.data_address),
+                            radio.route(replicator.control_address), from_seq=0)
+            assert follower.wait_ready("camera", TIMEOUT)
+            replicator.publish("camera", np.full(64 * 1024, 7.0), timeout=TIMEOUT)
+            replicator.publish("camera", 8, timeout=TIMEOUT)     # (the gap shows)
+            got = inbox.wait("camera", 2, timeout=40.0)
+            sent_again = len(replayed)
+        assert lost and got[1] == 8 and np.array_equal(got[0], np.full(64 * 1024, 7.0))
+        assert sent_again <= 3, f"the repair's value was sent {sent_again} times"
+        assert not follower.link_failures
+    finally:
+        follower.close()
+        replicator.close()
+
+
 @pytest.mark.timeout(30)
 def test_a_writer_faster_than_its_link_sends_fresh_values_and_counts_the_rest_dropped() -> None:
     """A camera writing faster than a dropping link carries (64 KiB frames, 20 a second,

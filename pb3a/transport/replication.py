@@ -24,7 +24,9 @@ values in sequence order, exactly once:
   heartbeat (SYNC every 0.5 s with the next sequence number) reveals values lost at
   the end of a burst. A repair re-sends whole messages: what of them was delivered
   already is counted as duplicates and dropped. What the replay buffer no longer
-  holds is counted as a link failure, loudly.
+  holds is counted as a link failure, loudly. A repair not answered is asked again
+  after ``REPAIR_RETRY_S``, then after twice as long each time (on a slow link the
+  answer itself takes seconds to cross, and each request sends it again).
 - Flow control. Followers acknowledge (ACK) how far they are; a publisher more than
   ``WINDOW`` values or ``WINDOW_BYTES`` bytes ahead of its slowest live follower waits
   for it, briefly. The replay buffer holds twice the bytes of that window: everything
@@ -149,6 +151,8 @@ REPLAY_VALUES = 4096                    # per topic, at most ...
 REPLAY_BYTES = 2 * WINDOW_BYTES         # ... and at most this many bytes (the newest message
                                         # is always kept, however large)
 HELLO_EVERY = 0.05                      # seconds between unanswered HELLOs
+REPAIR_RETRY_S = 1.0                    # a repair not answered this long is asked again ...
+REPAIR_RETRY_MAX_S = 30.0               # ... after twice as long each time, up to this
 HEARTBEAT_S = 0.5                       # how often a replicator announces its topics
 LINGER_MS = 500                         # a closed DEALER's last messages may still go
 PEER_PING_MS = 1000                     # each connection pings its peer this often ...
@@ -908,6 +912,7 @@ class _Follow:
     asked: float = 0.0                        # when we last sent HELLO or REPAIR
     hello_for: bytes | None = None            # the incarnation our last HELLO named
     repairing: bool = False
+    repair_wait: float = REPAIR_RETRY_S       # before asking the repair again
     announced: int = -1                       # the sender's next sequence number, as last heard
     acked: int = -1                           # what we last acknowledged
     acked_at: float = 0.0
@@ -1227,7 +1232,7 @@ class Follower:
             incarnation, first, gone = _ANSWER.unpack(message.frames[1])
             if not self._accept(follow, incarnation):
                 return None
-            follow.repairing = False
+            follow.repairing, follow.repair_wait = False, REPAIR_RETRY_S
             if gone and follow.next_seq < first + gone:
                 lost = first + gone - follow.next_seq - self._pass_skips(follow, first + gone)
                 if lost:
@@ -1399,8 +1404,12 @@ class Follower:
                 continue
             if not follow.live:
                 self._hello(follow)              # the slow-joiner hand-shake
-            elif follow.repairing and now - follow.asked > 1.0:
-                follow.repairing = False         # lost request: ask again
+            elif follow.repairing and now - follow.asked > follow.repair_wait:
+                # a lost request, or an answer slower to cross than the wait (a large
+                # value on a slow link): each time asked again, the whole answer is
+                # sent again behind the first, so the wait doubles (until answered)
+                follow.repairing = False
+                follow.repair_wait = min(2 * follow.repair_wait, REPAIR_RETRY_MAX_S)
                 self._advance(follow)
 
     def close(self) -> None:
