@@ -6,7 +6,9 @@ the tests use: one token bucket per direction, shared by the link's connections,
 small buffers of its own, so the writer feels the pace through TCP), for each rate
 (``--mbit``), link policy (``--policies``) and frame size (``--sizes``), ``--seconds``
 each. Node b is embedded: its follower reaches the writer through the proxy because
-``Follower.follow`` is wrapped to follow the proxy's addresses.
+``Follower.follow`` is wrapped to follow the proxy's addresses. With ``--fast-reader``,
+a second viewer on node c reads the same frames straight over loopback, beside the
+slow one (a topic read by two nodes, one behind a slow link).
 
 Per run: the connections made through the proxy (2, data and control, for a link never
 cut; each reconnection adds one) and which end closed those that ended; the repairs
@@ -15,7 +17,7 @@ never saw (``skipped``: a dropping queue's overflow, a lossless writer's timeout
 and saw twice; the writer's and the reader's memory growth (the peak RSS over the
 run less the RSS at its start: the writer's worker process, this process); the
 goodput (frames received, in Mbit/s) against what crossed the proxy; and the oldest
-a frame was on arrival.
+a frame was on arrival (per viewer, with ``--fast-reader``).
 """
 
 from __future__ import annotations
@@ -37,19 +39,23 @@ from throttle import Throttle
 
 from pb3a import System
 from pb3a.transport import replication
-from pb3a.transport.replication import Follower
+from pb3a.transport.replication import Follower, follower_id
 
 SAMPLE_S = 0.5             # how often memory is read
 
 
-def one_run(mbit: float, policy: str, size: int, period: float, seconds: float) -> dict:
+def one_run(mbit: float, policy: str, size: int, period: float, seconds: float,
+            fast_reader: bool = False) -> dict:
     """One camera stream through the slow link for ``seconds``: its figures."""
     follow, ask = Follower.follow, Follower._ask
     asked: collections.Counter[int] = collections.Counter()
+    slow_ids = {follower_id("b", epoch) for epoch in range(4)}     # (node b's follower)
     with Throttle(mbit * 1e6) as radio:
         def slow_follow(self: Follower, topic: str, data: str, control: str,
                         **kwargs: Any) -> None:
-            follow(self, topic, radio.route(data), radio.route(control), **kwargs)
+            if self._identity in slow_ids:
+                data, control = radio.route(data), radio.route(control)
+            follow(self, topic, data, control, **kwargs)
 
         def counted_ask(self: Follower, *args: Any) -> None:
             asked[args[1]] += 1
@@ -62,6 +68,10 @@ def one_run(mbit: float, policy: str, size: int, period: float, seconds: float) 
             system.add("camera", Camera, node="a", period=period, state={"size": size})
             system.add("viewer", Viewer, node="b")
             system.link("camera.out", "viewer.x", policy=policy)
+            if fast_reader:
+                system.node("c")
+                system.add("fast_viewer", Viewer, node="c")
+                system.link("camera.out", "fast_viewer.x", policy=policy)
             with system.launch() as run:
                 pid = wait_for(lambda: run.stats().modules["camera"].pid, 10, "a writer pid")
                 writer, reader = psutil.Process(pid), psutil.Process()
@@ -73,6 +83,7 @@ def one_run(mbit: float, policy: str, size: int, period: float, seconds: float) 
                     for i, process in enumerate((writer, reader)):
                         grown[i] = max(grown[i], process.memory_info().rss - base[i])
                 camera, viewer = run.state("camera"), run.state("viewer")
+                fast = run.state("fast_viewer") if fast_reader else None
                 link = run.stats().links["camera.out->viewer.x"]
                 # (before the nodes stop: they close their connections then)
                 connections, ended = sum(radio.connections.values()), dict(radio.ended_by)
@@ -88,7 +99,9 @@ def one_run(mbit: float, policy: str, size: int, period: float, seconds: float) 
             "writer_grew_mib": grown[0] >> 20, "reader_grew_mib": grown[1] >> 20,
             "goodput_mbit": round(viewer["received"] * size * 8 / seconds / 1e6, 2),
             "crossed_mbit": round(forwarded * 8 / seconds / 1e6, 2),
-            "oldest_frame_s": round(viewer["max_age_s"], 1)}
+            "oldest_frame_s": round(viewer["max_age_s"], 1),
+            **({"fast_received": fast["received"], "fast_skipped": fast["skipped"],
+                "fast_oldest_frame_s": round(fast["max_age_s"], 2)} if fast else {})}
 
 
 def main() -> None:
@@ -98,6 +111,8 @@ def main() -> None:
     parser.add_argument("--sizes", default=str(1 << 20), help="frame sizes, bytes")
     parser.add_argument("--period", type=float, default=0.1, help="seconds between frames")
     parser.add_argument("--seconds", type=float, default=15.0, help="of each run")
+    parser.add_argument("--fast-reader", action="store_true",
+                        help="a second viewer, on node c, reads the frames unthrottled")
     args = parser.parse_args()
 
     def body(result: dict[str, Any]) -> None:
@@ -107,7 +122,8 @@ def main() -> None:
         for size in (int(s) for s in args.sizes.split(",")):
             for mbit in (float(m) for m in args.mbit.split(",")):
                 for policy in args.policies.split(","):
-                    runs.append(one_run(mbit, policy, size, args.period, args.seconds))
+                    runs.append(one_run(mbit, policy, size, args.period, args.seconds,
+                                        args.fast_reader))
     main_guard(body)
 
 
