@@ -156,6 +156,27 @@ def test_stale_epochs_and_stale_times_are_refused(monkeypatch) -> None:
     _rejected(opener, old, "not fresh")
 
 
+def test_a_known_sender_s_message_that_waited_out_the_window_is_taken_in_order(
+        monkeypatch) -> None:
+    """Freshness is asked of a sender's first message only: its later ones are ordered
+    by its counters, so one that spent longer than the window in a slow link's queue is
+    taken (a lossless link a minute behind had each refused, and sent again behind the
+    rest), while a replay of it is still refused."""
+    sealer, opener = Sealer(KEY), Opener(KEY, fresh_s=10.0)
+    opener.open(sealer.seal(1, [b"first"]))
+    queued = [sealer.seal(1, [bytes([n])]) for n in range(3)]
+    now = auth.time.time()
+    monkeypatch.setattr(auth.time, "time", lambda: now + 60.0)
+    assert [bytes(opener.open(message).frames[0]) for message in queued] == [b"\0", b"\1",
+                                                                           b"\2"]
+    _rejected(opener, queued[1], "replay")
+    stranger = Sealer(KEY)
+    monkeypatch.setattr(auth.time, "time", lambda: now)
+    recorded = stranger.seal(1, [b"recorded"])
+    monkeypatch.setattr(auth.time, "time", lambda: now + 60.0)
+    _rejected(opener, recorded, "not fresh")      # a sender not known here: its first
+
+
 def test_size_and_frame_count_are_bounded_before_anything_else() -> None:
     sealer, opener = Sealer(KEY), Opener(KEY, max_bytes=1000, max_frames=3)
     _rejected(opener, sealer.seal(1, [b"x" * 2000]), "too large")

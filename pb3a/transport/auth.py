@@ -23,10 +23,10 @@ and tag, which it does cover, and the payload's associated data names what it is
 another value. Payload keys use an HKDF label of their own: never a message key.
 
 ``Opener.open`` refuses, counts and never decodes: wrong frame count or size, a
-malformed header, an unknown version, a stale epoch, a send time outside the
-freshness window, a counter not above the last one from that sender (replay), and
-any tag that does not verify. Only then does a caller unpickle anything (or open the
-attached payload: ``Payloads.open_into``).
+malformed header, an unknown version, a stale epoch, a first message from a sender
+whose send time is outside the freshness window, a counter not above the last one
+from that sender (replay), and any tag that does not verify. Only then does a caller
+unpickle anything (or open the attached payload: ``Payloads.open_into``).
 """
 
 from __future__ import annotations
@@ -302,9 +302,14 @@ class Opener:
             raise Rejected("frame count")
         if epoch < self.epoch:
             raise Rejected("stale epoch")
-        if not abs(time.time() - sent) <= self.fresh_s:
-            raise Rejected("not fresh")
         known = self._senders.get(sender)
+        # Freshness is asked of a sender's first message (or its first after it was
+        # forgotten): it keeps out a message recorded from a sender not known here.
+        # Afterwards the sender's counters refuse any replay, and a message that waited
+        # out the window in a slow link's queue (a lossless link a minute behind) is
+        # its, in order, not a replay: refused, it was sent again, behind the rest.
+        if known is None and not abs(time.time() - sent) <= self.fresh_s:
+            raise Rejected("not fresh")
         if known is not None and counter <= known[2]:
             raise Rejected("replay")
         if known is None:
