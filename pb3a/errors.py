@@ -68,6 +68,8 @@ def bounded_wait(timeout: float | None, what: str) -> float:
     ``TypeError`` for None (which a ``Condition`` takes for "forever") or what is not a
     number, ``ValueError`` for a negative one, NaN (a ``Condition`` spins on it) or one
     no lock can wait (inf)."""
+    if type(timeout) is float and 0.0 <= timeout <= threading.TIMEOUT_MAX:
+        return timeout                  # (the common case, on per-value paths: no abc check)
     if timeout is None:
         raise TypeError(f"{what}: timeout must be seconds to wait (0 for none), not None: "
                         "every wait has a deadline")

@@ -505,6 +505,9 @@ class OutputPort:
         self._sinks: dict[str, tuple[Callable[..., Any], Callable[..., Any], bool]] = {}
         self._ones: tuple[Callable[[Any], Any], ...] = ()     # the write() path, prebuilt
         self._waiting: tuple[tuple[str, Callable[[Any, float], Any]], ...] = ()  # lossless
+        self._lone: Callable[[Any, float], Any] | None = None   # ... if there is one only
+        self._manys: tuple[Callable[[Sequence[Any]], Any], ...] = ()   # write_many's, prebuilt
+        self._waiting_many: tuple[tuple[str, Callable[[Sequence[Any], float], Any]], ...] = ()
         self._counters: dict[str, Any] = {}    # link key -> its waits and wait_s
         self._lock = threading.Lock()
 
@@ -522,7 +525,13 @@ class OutputPort:
         self._lock.acquire()            # (not ``with``: half the cost, paid per value)
         try:
             if self._waiting:
-                _send_waiting(self._waiting, value, WRITE_WAIT_S if timeout is None else timeout)
+                if timeout is None and self._lone is not None:
+                    # one lossless link and the default wait (every remote link's write):
+                    # no deadline to share, no timeout to check (0.8 us of 1.3 per value)
+                    self._lone(value, WRITE_WAIT_S)
+                else:
+                    _send_waiting(self._waiting, value,
+                                  WRITE_WAIT_S if timeout is None else timeout)
             for one in self._ones:
                 one(value)
             self.written += 1
@@ -539,14 +548,11 @@ class OutputPort:
         if not batch:
             return
         with self._lock:
-            sinks = self._sinks.values()
-            waiting = tuple((key, many) for key, (_, many, lossless) in self._sinks.items()
-                            if lossless)
-            if waiting:                                # lossless links first, as in write
-                _send_waiting(waiting, batch, WRITE_WAIT_S if timeout is None else timeout)
-            for _, many, lossless in sinks:
-                if not lossless:
-                    many(batch)
+            if self._waiting_many:                     # lossless links first, as in write
+                _send_waiting(self._waiting_many, batch,
+                              WRITE_WAIT_S if timeout is None else timeout)
+            for many in self._manys:
+                many(batch)
             self.written += len(batch)
 
     def connect(self, key: str, one: Callable[..., Any], many: Callable[..., Any] | None = None,
@@ -584,6 +590,10 @@ class OutputPort:
         self._ones = tuple(one for one, _, lossless in sinks if not lossless)
         self._waiting = tuple((key, one) for key, (one, _, lossless) in self._sinks.items()
                               if lossless)
+        self._lone = self._waiting[0][1] if len(self._waiting) == 1 else None
+        self._manys = tuple(many for _, many, lossless in sinks if not lossless)
+        self._waiting_many = tuple((key, many) for key, (_, many, lossless)
+                                   in self._sinks.items() if lossless)
 
     def track(self, key: str, counter: Any) -> None:
         """Count the waits of link ``key`` with ``counter`` (``waits``, ``wait_s``; one

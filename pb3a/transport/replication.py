@@ -583,7 +583,8 @@ class Replicator:
         a large one goes at once, from this thread: batching gains nothing for it, and
         a hand-over to the other thread costs a thread switch per value."""
         max_bytes, room = self._max_bytes, self._topics[topic].room
-        entries = [_entry(value, max_bytes, room) for value in values]
+        entries = [(PLAIN, value, SCALAR_BYTES) if type(value) in _SCALARS
+                   else _entry(value, max_bytes, room) for value in values]
         deadline = None
         went, large = 0, False
         with self._lock:
