@@ -18,8 +18,8 @@ ROOT = Path(__file__).resolve().parent.parent
 # itself (launch and daemons, say, know nothing of each other).
 LAYERS: list[set[str]] = [
     {"pb3a.errors"},                                    # the exception tree, under all
-    {"pb3a.events", "pb3a.latencies", "pb3a.logbook", "pb3a.pending", "pb3a.processes",
-     "pb3a.stats"},
+    {"pb3a.deadline", "pb3a.events", "pb3a.latencies", "pb3a.logbook", "pb3a.pending",
+     "pb3a.processes", "pb3a.stats"},
     {"pb3a.cpu_load"},                                  # load for experiments, in processes
     {"pb3a.transport"},                                 # how bytes move
     {"pb3a.model", "pb3a.loading"},                     # what users write; code by reference
