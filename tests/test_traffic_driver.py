@@ -11,6 +11,7 @@ import shutil
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import pytest
 from conftest import eventually
@@ -439,13 +440,19 @@ def test_its_demand_scale_changes_the_vehicles_and_re_points_it(driver) -> None:
     assert 2.2 * plain < tripled < 3.8 * plain, (plain, tripled)    # Poisson, same seed
 
 
-def test_in_its_own_worker_it_runs_in_lockstep_with_a_controller(cache: Path) -> None:
-    system = System("traffic-lockstep")
-    system.add("sumo", TrafficDriver, state={"resource": CROSS, "cache_dir": str(cache),
-                                             "duration_s": 300.0})
-    system.add("signal", PhaseAlternator, state={"hold": 20})
+def _driver_and_signal(name: str, sumo: dict[str, Any], signal: dict[str, Any]) -> System:
+    """A driver in its own worker (state ``sumo``) and one controller on its first slot."""
+    system = System(name)
+    system.add("sumo", TrafficDriver, state=sumo)
+    system.add("signal", PhaseAlternator, state=signal)
     system.link("sumo.reading_0", "signal.reading")
     system.link("signal.request", "sumo.request_0")
+    return system
+
+
+def test_in_its_own_worker_it_runs_in_lockstep_with_a_controller(cache: Path) -> None:
+    system = _driver_and_signal("traffic-lockstep", {
+        "resource": CROSS, "cache_dir": str(cache), "duration_s": 300.0}, {"hold": 20})
     with system.launch() as run:
         result = eventually(lambda: run.state("sumo")["result"], timeout=60,
                             what="the 300 s simulation to end")
@@ -456,11 +463,8 @@ def test_in_its_own_worker_it_runs_in_lockstep_with_a_controller(cache: Path) ->
 
 def test_launched_on_a_network_with_junctions_no_controller_answers_it_fails_its_setup(
         cache: Path) -> None:
-    system = System("traffic-too-few")
-    system.add("sumo", TrafficDriver, state={"resource": RING, "cache_dir": str(cache)})
-    system.add("signal", PhaseAlternator)
-    system.link("sumo.reading_0", "signal.reading")
-    system.link("signal.request", "sumo.request_0")
+    system = _driver_and_signal("traffic-too-few",
+                                {"resource": RING, "cache_dir": str(cache)}, {})
     with pytest.raises(RuntimeFailure, match=re.escape(
             "ring.toml: no controller answers 5 of its 6 signalized junctions: N1 (request_1)")):
         system.launch().close()
@@ -471,12 +475,8 @@ def test_re_pointed_at_a_network_with_junctions_no_controller_answers_it_refuses
     """A running system's driver re-pointed at a network with more signalized junctions
     than it has controllers waited out lockstep_timeout_s at every step, for the
     junctions whose slots nothing answers."""
-    system = System("traffic-re-pointed")
-    system.add("sumo", TrafficDriver, state={"resource": CROSS, "cache_dir": str(cache),
-                                             "duration_s": 36000.0})
-    system.add("signal", PhaseAlternator, state={"hold": 20})
-    system.link("sumo.reading_0", "signal.reading")
-    system.link("signal.request", "sumo.request_0")
+    system = _driver_and_signal("traffic-re-pointed", {
+        "resource": CROSS, "cache_dir": str(cache), "duration_s": 36000.0}, {"hold": 20})
     with system.launch() as run:
         eventually(lambda: run.state("sumo")["step_count"] > 10, timeout=30,
                    what="the crossing's run to go")
