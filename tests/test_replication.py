@@ -1033,7 +1033,7 @@ def test_a_repair_slower_to_cross_than_the_follower_waits_is_asked_again_ever_le
         monkeypatch) -> None:
     """A repair whose answer takes longer to cross than the follower waits before asking
     again (a 512 KiB value on a 1 Mbit/s link: 4.2 s) is asked again after 1 s, then
-    2 s, 4 s... (up to 30 s): every time, the whole answer is sent again behind the
+    2 s, 4 s... (up to 8 s): every time, the whole answer is sent again behind the
     first, so here the link carries the value three times at most. The follower asked
     every second: the value was sent five times, 17 s of the link spent on copies the
     follower then dropped (a repair of a 32 MiB replay buffer at 2 Mbit/s, 134 s to

@@ -152,7 +152,9 @@ REPLAY_BYTES = 2 * WINDOW_BYTES         # ... and at most this many bytes (the n
                                         # is always kept, however large)
 HELLO_EVERY = 0.05                      # seconds between unanswered HELLOs
 REPAIR_RETRY_S = 1.0                    # a repair not answered this long is asked again ...
-REPAIR_RETRY_MAX_S = 30.0               # ... after twice as long each time, up to this
+REPAIR_RETRY_MAX_S = 8.0                # ... after twice as long each time, up to this: a
+                                        # repair asked as a link went down is asked again
+                                        # within it once the link is back
 HEARTBEAT_S = 0.5                       # how often a replicator announces its topics
 LINGER_MS = 500                         # a closed DEALER's last messages may still go
 PEER_PING_MS = 1000                     # each connection pings its peer this often ...
