@@ -41,7 +41,8 @@ def _mistakes(tmp: Path) -> list[tuple[list[str], int, str]]:
         # each of these was a traceback
         (["check", str(tmp / "latin1.toml")], 1, "latin1.toml: not UTF-8 text (byte 8)"),
         (["run", str(tmp / "nowhere.toml"), "--for", "1"], 1,
-         "no address is known for host 'no-such-host.invalid'"),
+         "node far: its address tcp://no-such-host.invalid:7100 names a host that does not "
+         "resolve"),
         (["run", pipeline, "--for", "1", "--listen", "nonsense"], 1,
          "is not an address to listen on"),
         (["status", "tcp://a b:5"], 1, "pb3a status: no address is known for host 'a b'"),

@@ -330,6 +330,28 @@ def test_a_node_address_that_does_not_resolve_is_named_so() -> None:
     assert time.monotonic() - started < 2.0                        # at once, no wait
 
 
+@pytest.mark.parametrize("field", ["address", "advertise"])
+def test_an_unresolvable_first_node_is_named_without_a_listen_address(field) -> None:
+    """Without a launcher address given (``pb3a run lab.toml``, no ``--listen``), the
+    launcher finds its own through the first remote node's host, and a name there that
+    did not resolve failed the launch with "cannot reach or listen where lab.toml or
+    --listen says (no address is known for host ...)", naming no node and no setting
+    (deploy.md promises the node's name, as with ``--listen``)."""
+    system = System("unresolved").node("a")
+    if field == "address":
+        system.node("b", address="tcp://robot2.invalid:7100")
+    else:
+        system.node("b", address="tcp://127.0.0.1:1", advertise="robot2.invalid")
+    system.add("far", Collector, node="b")
+    started = time.monotonic()
+    written = ("tcp://robot2.invalid:7100" if field == "address" else "robot2.invalid")
+    with pytest.raises(RuntimeFailure, match=rf"node b: its {field} {re.escape(written)} "
+                                             r"names a host that does not resolve \(.+\): "
+                                             rf"fix the node's {field}"):
+        system.launch()
+    assert time.monotonic() - started < 2.0
+
+
 def test_a_class_the_remote_node_cannot_import_is_named_with_the_node(tmp_path,
                                                                        monkeypatch) -> None:
     """A module class the launcher's machine has and the node's does not failed the launch

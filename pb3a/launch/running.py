@@ -16,7 +16,7 @@ import threading
 from typing import Any
 
 from pb3a.config.plan import Plan
-from pb3a.errors import ConfigError, ModuleNotFound, bounded_wait
+from pb3a.errors import ConfigError, ModuleNotFound, RuntimeFailure, bounded_wait
 from pb3a.launch.handle import SystemHandle
 from pb3a.launch.launcher import Launcher
 from pb3a.launch.operations import CHANGE_LONGER, DEFAULT_TIMEOUT, FOR_AGENTS, Operations
@@ -28,7 +28,9 @@ from pb3a.transport.addresses import (
     bind_address,
     check_bindable,
     default_route_host,
+    host_of,
     reachable_from,
+    unresolved,
 )
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlServer
@@ -109,7 +111,7 @@ class Running(SystemHandle):
                 # remote nodes call the launcher back where they reach each other
                 remote = self._remote_nodes()
                 if self._listen_at is not None or remote:
-                    self.listen(self._listen_at or f"tcp://{reachable_from(remote[0])}:0")
+                    self.listen(self._listen_at or f"tcp://{self._here_towards_nodes()}:0")
                 launcher.start_nodes(self.address if remote else None)
                 launcher.expect(list(self.plan.modules.values()))
                 for spec in self.plan.modules.values():
@@ -148,6 +150,24 @@ class Running(SystemHandle):
         return [f"tcp://{node.advertise}:0" if node.advertise else node.address
                 for node in self.plan.nodes.values() if node.address]
 
+    def _here_towards_nodes(self) -> str:
+        """The host of this machine that the first remote node reaches it at (the
+        interface this machine reaches that node through). A node whose address (or
+        ``advertise``) names a host that does not resolve is named, as ``RemoteNode``
+        names it: found here first, it failed the launch with "cannot reach or listen
+        where FILE or --listen says", naming no node."""
+        node = next(node for node in self.plan.nodes.values() if node.address)
+        towards = self._remote_nodes()[0]
+        try:
+            return reachable_from(towards)
+        except OSError as exc:
+            field, value = (("advertise", host_of(towards)) if node.advertise
+                            else ("address", towards))
+            raise RuntimeFailure(f"node {node.name}: its {field} {value} names a host that "
+                                 f"does not resolve ({unresolved(towards) or exc}): fix the "
+                                 f"node's {field} (a name the launcher's machine resolves, "
+                                 "or an IP address)") from None
+
     def listen(self, address: str = "tcp://127.0.0.1:0") -> str:
         """Take authenticated requests (``pb3a.connect``, ``pb3a status ADDR`` ...) at
         ``address``; returns the address to reach it at. Bound to every interface
@@ -174,7 +194,7 @@ class Running(SystemHandle):
             self.address = self._server.address
             if host in EVERY_INTERFACE:
                 remote = self._remote_nodes()
-                here = reachable_from(remote[0]) if remote else default_route_host()
+                here = self._here_towards_nodes() if remote else default_route_host()
                 self.address = f"tcp://{here}:{self.address.rpartition(':')[2]}"
         return self.address
 
