@@ -6,6 +6,7 @@ one the other hosts can reach. The namespaces are made and removed here (root an
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -18,7 +19,7 @@ import pytest
 from conftest import alive, eventually
 from sample_modules import Chain, Collector, Copies, Counter, Relay, Stamped
 
-from pb3a import RuntimeFailure, System
+from pb3a import RuntimeFailure, RuntimeTimeout, System
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 
@@ -343,3 +344,35 @@ def test_a_cut_off_node_fences_itself_its_modules_fail_over_and_it_rejoins(
     old, _ = copies["copies"]                   # moving back kept the copy it was
     assert float(stopped[old]) < copies["first_at"][1], "two copies delivered at once"
     assert copies["stale"] == 0 and rejoined.epoch == 2
+
+
+def test_a_node_controller_not_reached_is_told_refused_or_unanswered(lan: Lan) -> None:
+    """A launch whose node controller did not answer said, whatever the reason, "start
+    one there": also to someone whose controller ran, listening on 127.0.0.1 only, and
+    to someone whose robot was cut off. A plain connection there now tells which: the
+    port refused (nothing listens there: start one, or see where it listens), or the
+    host did not answer (the machine, the network, a firewall)."""
+    far = lan.host("b")
+    assert far.start("node", "start", "--name", "b", "--listen", "tcp://127.0.0.1:7100",
+                     "--max-cpu", "101") == "node b at tcp://127.0.0.1:7100"
+    address = f"tcp://{far.address}:7100"
+    prefix = (rf"node b: no node controller answered at tcp://{re.escape(far.address)}:7100 "
+              r"within 5 s; ")
+
+    def refused_to_launch() -> str:
+        system = System("unreached").node("a").node("b", address=address)
+        system.add("far", Collector, node="b")
+        started = time.monotonic()
+        with pytest.raises(RuntimeTimeout) as raised:
+            system.launch()
+        assert time.monotonic() - started < 10
+        return str(raised.value)
+
+    assert re.match(prefix + rf"nothing listens on port 7100 at {re.escape(far.address)} "
+                    r"\(the connection was refused\): start a node controller there .*one "
+                    r"that listens on 127\.0\.0\.1, or on another of that machine's "
+                    r"addresses, is not reached there", refused_to_launch())
+    far.cut()
+    assert re.match(prefix + rf"{re.escape(far.address)} did not answer on port 7100 "
+                    r"\((no answer|No route to host)\): check that the machine is up and on "
+                    r"this network", refused_to_launch())

@@ -377,7 +377,10 @@ def test_a_wrong_key_is_told_apart_from_no_answer_within_5_s(caplog) -> None:
     system.add("far", Collector, node="b")
     started = time.monotonic()
     with pytest.raises(RuntimeTimeout, match=r"node b: no node controller answered at "
-                                             r"tcp://127\.0\.0\.1:1 within 5 s; start one"):
+                                             r"tcp://127\.0\.0\.1:1 within 5 s; nothing "
+                                             r"listens on port 1 at 127\.0\.0\.1 \(the "
+                                             r"connection was refused\): start a node "
+                                             r"controller"):
         system.launch()
     assert time.monotonic() - started < 8
     stranger = NodeController("b", ClusterKey(os.urandom(32)), limits=Limits(101.0))

@@ -25,7 +25,7 @@ from pb3a.config.description import DEFAULT_SPARES
 from pb3a.deadline import capped, left, lifted
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
-from pb3a.transport.addresses import host_of, unresolved
+from pb3a.transport.addresses import connection_failure, host_of, unresolved
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 
@@ -38,6 +38,7 @@ if TYPE_CHECKING:
     from pb3a.transport.snapshot import Snapshot
 
 CONNECT_TIMEOUT = 5.0      # a node controller answers a ping at once, or is not there
+PROBE_S = 1.0              # ... and then a plain connection there tells why it did not
 START_TIMEOUT = 60.0       # an executor process imports numpy and friends first
 CALL_TIMEOUT = 60.0        # the executor's own requests to its workers have deadlines
 MARGIN_S = 5.0             # beyond an operation's own deadline: the way there and back
@@ -55,6 +56,32 @@ STOP_AT_LEAST_S = 0.5      # a shutdown out of time still asks the controller th
 # and the executor of one that does not has fenced itself (a stop with a robot lost
 # waited for its controller the whole shutdown, 10 s)
 STOP_LOST_S = 1.5
+
+
+def _unanswered(node: str, address: str) -> str:
+    """What to do about a node controller that did not answer at ``address``, told by a
+    plain TCP connection there: refused (nothing listens on that port there: not
+    started, or listening elsewhere, 127.0.0.1 say), not answered (the machine off, cut
+    off, a firewall, or the wrong address), or accepted (something that is no node
+    controller, or one that is frozen). It said "start one there" in all three cases,
+    also to someone whose controller ran, on 127.0.0.1 only."""
+    host, _, port = address.removeprefix("tcp://").rpartition(":")
+    start = f"pb3a node start --name {node} --listen {address}"
+    failure = connection_failure(address, PROBE_S)
+    if isinstance(failure, ConnectionRefusedError):
+        return (f"nothing listens on port {port} at {host} (the connection was refused): "
+                f"start a node controller there ({start}), or fix the port; one that "
+                f"listens on 127.0.0.1, or on another of that machine's addresses, is not "
+                f"reached there (`ss -ltn` on that machine shows where it listens)")
+    if failure is not None:
+        why = ("no answer" if isinstance(failure, TimeoutError)
+               else failure.strerror or str(failure))
+        return (f"{host} did not answer on port {port} ({why}): check that the machine is "
+                f"up and on this network, that {host} is its address, and that a firewall "
+                f"lets port {port} through")
+    return (f"something accepts connections on port {port} at {host}, but does not answer "
+            f"as a node controller: check that it is one ({start}), and that it runs "
+            "(not stopped or hung)")
 
 
 class RemoteNode:
@@ -90,10 +117,9 @@ class RemoteNode:
             self.controller.call("ping", CONNECT_TIMEOUT)
         except RuntimeTimeout:
             self.close()
-            raise RuntimeTimeout(
-                f"node {name}: no node controller answered at {address} within "
-                f"{CONNECT_TIMEOUT:g} s; start one there (pb3a node start --name {name} "
-                f"--listen {address}), or fix the node's address, or open its port") from None
+            raise RuntimeTimeout(f"node {name}: no node controller answered at {address} "
+                                 f"within {CONNECT_TIMEOUT:g} s; "
+                                 f"{_unanswered(name, address)}") from None
         except RuntimeFailure as exc:
             self.close()
             raise RuntimeFailure(f"node {name}: {exc}") from None

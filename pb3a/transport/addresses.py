@@ -98,6 +98,20 @@ def unknown_host(address: str, timeout: float) -> str | None:
             f"{answer[0]}")
 
 
+def connection_failure(address: str, timeout: float) -> OSError | None:
+    """What a plain TCP connection to ``address`` ("tcp://HOST:PORT") meets within
+    ``timeout``: None if it is accepted, else the error (``ConnectionRefusedError``:
+    nothing listens on that port at that host; ``TimeoutError``: no answer; another
+    ``OSError``: no route ...). ZeroMQ retries a connection on its own and tells nobody
+    why it failed; this tells a port nothing listens on from a host out of reach."""
+    host, _, port = address.removeprefix("tcp://").rpartition(":")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
+    except OSError as exc:
+        return exc
+    return None
+
+
 def numeric(address: str, timeout: float = RESOLVE_S) -> str:
     """``address`` ("tcp://HOST:PORT") with a host name replaced by its IPv4 address,
     resolved here within ``timeout``: connect ZeroMQ sockets to that. ZeroMQ resolves a
