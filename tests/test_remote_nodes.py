@@ -352,6 +352,40 @@ def test_an_unresolvable_first_node_is_named_without_a_listen_address(field) -> 
     assert time.monotonic() - started < 2.0
 
 
+def test_a_stop_delivered_late_leaves_the_next_launch_s_executor_running(monkeypatch) -> None:
+    """A launcher stopped while a robot is cut off asks that robot's controller to stop
+    the system's executor; TCP delivers the request once the cable is back, by then
+    perhaps to the executor of the next launch of the same system, which it killed
+    (deploy.md's lab: the next ``pb3a run``, started as the cable came back, lost the
+    robot within 3 s, its modules gone, or failed "node robot2 is lost"). The stop names
+    the executor it means; here the first launch's stop is sent again, late."""
+    controller = NodeController("b", ClusterKey.load(), limits=Limits(101.0))
+    sent: list[tuple[str, dict]] = []
+    request = ControlClient.request
+
+    def recorded(self, op, args, *rest, **options):
+        if op == "stop_executor":
+            sent.append((self.address, dict(args)))
+        return request(self, op, args, *rest, **options)
+    monkeypatch.setattr(ControlClient, "request", recorded)
+    late = ControlClient(ClusterKey.load(), controller.address)
+    try:
+        system = System("again").node("a").node("b", address=controller.address)
+        system.add("far", Collector, node="b")
+        with system.launch():
+            pass
+        (stop,) = [args for address, args in sent if address == controller.address]
+        with system.launch() as run:
+            running = controller.executors()
+            assert late.request("stop_executor", stop, 10.0) is False
+            assert controller.executors() == running
+            assert run.state("far")["received"] == 0            # its executor answers
+            assert run.stats().nodes["b"].up
+    finally:
+        late.close()
+        controller.close()
+
+
 def test_a_class_the_remote_node_cannot_import_is_named_with_the_node(tmp_path,
                                                                        monkeypatch) -> None:
     """A module class the launcher's machine has and the node's does not failed the launch

@@ -128,10 +128,21 @@ class NodeController:
             self._executors[config] = (process, parent, address)
             return address, True
 
-    def stop_executor(self, config: str, force: bool = False, timeout: float = 15.0) -> bool:
+    def stop_executor(self, config: str, force: bool = False, timeout: float = 15.0,
+                      executor: str | None = None) -> bool:
         """Stop ``config``'s executor: SIGTERM (modules stop in order), or SIGKILL with
-        ``force`` or when it does not end within ``timeout``. False if none ran."""
+        ``force`` or when it does not end within ``timeout``. False if none ran, or if
+        ``executor`` (its address, as ``start_executor`` gave it) names another one: a
+        stop sent by a launcher while this machine was cut off is delivered when the
+        cable is back, by then perhaps to the executor of the next launch of the same
+        system, which it killed."""
         with self._lock:
+            entry = self._executors.get(config)
+            if entry is not None and executor is not None and entry[2] != executor:
+                log.warning("node %s: a stop of the executor for %r at %s, which runs no "
+                            "more, left the one at %s running (a request sent before, "
+                            "delivered late)", self.name, config, executor, entry[2])
+                return False
             entry = self._executors.pop(config, None)
         if entry is None:
             return False
@@ -162,7 +173,8 @@ class NodeController:
                                        args.get("cpus"), args.get("host", "127.0.0.1"))
         if op == "stop_executor":
             return self.stop_executor(args["config"], bool(args.get("force", False)),
-                                      bounded_wait(args.get("timeout", 15.0), "stop_executor"))
+                                      bounded_wait(args.get("timeout", 15.0), "stop_executor"),
+                                      args.get("executor"))
         if op == "admit":
             self.admit(str(args.get("what", "work")))
             return True

@@ -105,6 +105,7 @@ class RemoteNode:
         self._domain: str | None = None
         self._ends_by = math.inf            # (monotonic) no call waits past it: see wind_down
         self.stopped = False                # its controller confirmed the executor's stop
+        self.executor: str | None = None    # its executor's address, once started
         # where the other nodes reach its executor and publications
         host = advertise or host_of(address)
         unknown = unresolved(address)      # (said at once, not after the ping's wait)
@@ -128,6 +129,7 @@ class RemoteNode:
             executor, started = self.controller.call("start_executor", START_TIMEOUT,
                                                      config=config, workers=workers,
                                                      cpus=cpus, host=host)
+            self.executor = executor
             self.client = ControlClient(key, executor, epoch=epoch)
             reached = self.client.ping(CONNECT_TIMEOUT) is not None
             if reached:
@@ -367,8 +369,10 @@ class RemoteNode:
         if self.lost:
             wait = min(wait, STOP_LOST_S)
         with contextlib.suppress(RuntimeFailure, RuntimeTimeout):   # (killed in time to say so)
+            # (naming its executor: a stop delivered late, the machine cut off as it was
+            # sent, stops no executor of a later launch)
             self.controller.request("stop_executor", {
-                "config": self.config, "force": self.lost,
+                "config": self.config, "force": self.lost, "executor": self.executor,
                 "timeout": min(timeout, max(0.0, wait - STOP_AT_LEAST_S / 2))}, wait)
             self.stopped = True
 
