@@ -193,6 +193,30 @@ def test_a_class_that_cannot_be_imported_names_the_module_server_that_did_not_an
         resolve_class("pb3a_nowhere_served:Thing")
 
 
+def test_a_class_the_module_server_does_not_have_names_the_server_and_the_file_to_put(
+        served, monkeypatch) -> None:
+    """A module file missing from the server's directory (copied elsewhere, misspelt)
+    said only to check this machine's module path, where a module meant to be served
+    was never to be; the server that answered without it is named, and the file it
+    needs, a package's module too."""
+    root, server = served
+    (root / "pb3a_served_pkg").mkdir()
+    (root / "pb3a_served_pkg" / "__init__.py").write_text("")
+    for name in ("pb3a_served_absent", "pb3a_served_pkg"):    # (imported here: not kept)
+        monkeypatch.delitem(sys.modules, name, raising=False)
+    with _importing_from(server.address, ClusterKey.load(), monkeypatch):
+        with pytest.raises(ImportError, match=rf"No module named 'pb3a_served_absent'; check "
+                           rf"the module path .*; module server {server.address} has no module "
+                           r"'pb3a_served_absent' either: put pb3a_served_absent\.py \(or "
+                           r"pb3a_served_absent/__init__\.py\) in the directory it serves"):
+            resolve_class("pb3a_served_absent:Thing")
+        with pytest.raises(ImportError, match=rf"module server {server.address} has no module "
+                           r"'pb3a_served_pkg\.absent' either: put pb3a_served_pkg/absent\.py"):
+            resolve_class("pb3a_served_pkg.absent:Thing")
+        (root / "pb3a_served_absent.py").write_text("class Thing:\n    pass\n")
+        assert resolve_class("pb3a_served_absent:Thing").__name__ == "Thing"
+
+
 def test_a_class_that_cannot_be_imported_names_the_module_server_that_refused_the_key(
         tmp_path, monkeypatch) -> None:
     """A server with another cluster key has the module, but refuses to say: it said

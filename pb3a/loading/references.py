@@ -62,7 +62,8 @@ def resolve_class(ref: str | type, *, watch: ImportWatch | None = None) -> type:
         if missing and (module_name == missing or module_name.startswith(f"{missing}.")):
             raise ImportError(f"cannot import module {module_name!r} for {ref!r}: {exc}; "
                               "check the module path and that it is installed or on "
-                              f"sys.path{served.server_trouble()}") from exc
+                              f"sys.path{served.not_served(missing)}"
+                              f"{served.server_trouble()}") from exc
         # found, but an import of its own failed: the path is not what to check
         fix = ("" if missing is None else "; correct that import" if _top(missing) ==
                _top(module_name) else f"; install {missing!r} or correct that import")

@@ -40,6 +40,7 @@ class ServedModuleFinder(importlib.abc.MetaPathFinder):
         self.clients: dict[str, ControlClient] = {}
         self._silent_until: dict[str, float] = {}    # address -> when to ask it again
         self._refused: dict[str, str] = {}            # address -> why it refused, lately
+        self._lacking: dict[str, list[str]] = {}      # module -> servers that have it not
 
     def add(self, address: str) -> None:
         if address not in self.clients:
@@ -50,12 +51,17 @@ class ServedModuleFinder(importlib.abc.MetaPathFinder):
         clocks apart ...): an import that fails may have needed one of them."""
         return dict(self._refused)
 
+    def lacking(self, module: str) -> list[str]:
+        """The servers that answered, when last asked, that they have no ``module``."""
+        return list(self._lacking.get(module, []))
+
     def silent(self) -> list[str]:
         """The servers not asked now, since they did not answer lately."""
         now = time.monotonic()
         return [address for address, until in self._silent_until.items() if now < until]
 
     def find_spec(self, fullname: str, path: Any = None, target: Any = None) -> ModuleSpec | None:
+        lacking = self._lacking[fullname] = []
         for address, client in list(self.clients.items()):
             if time.monotonic() < self._silent_until.get(address, 0.0):
                 continue              # it did not answer lately: no import waits for it
@@ -68,7 +74,10 @@ class ServedModuleFinder(importlib.abc.MetaPathFinder):
                 self._refused[address] = str(exc)
                 continue
             self._refused.pop(address, None)
-            if found is not None:
+            if found is None:
+                lacking.append(address)
+            else:
+                self._lacking.pop(fullname, None)
                 loader = _SourceLoader(found["source"], found["origin"])
                 return importlib.util.spec_from_loader(
                     fullname, loader, origin=found["origin"], is_package=found["package"])
@@ -100,6 +109,21 @@ def server_trouble() -> str:
             "address and that its port is open" if silent else "")
     return said + "".join(f"; module server {why}" for finder in finders
                           for why in finder.refused().values())
+
+
+def not_served(module: str) -> str:
+    """What a failed import of ``module`` adds about the module servers that answered
+    without it: "; module server ADDRESS has no module 'a.b' either: put ..." ("" if
+    none did). The error said only to check this machine's path, where a module meant
+    to be served was never to be."""
+    finders = [finder for finder in sys.meta_path if isinstance(finder, ServedModuleFinder)]
+    lacking = [address for finder in finders for address in finder.lacking(module)]
+    if not lacking:
+        return ""
+    path = module.replace(".", "/")
+    return (f"; module server{'s' if len(lacking) > 1 else ''} {', '.join(lacking)} "
+            f"{'have' if len(lacking) > 1 else 'has'} no module {module!r} either: put "
+            f"{path}.py (or {path}/__init__.py) in the directory it serves")
 
 
 def use_module_servers(addresses: Sequence[str], key: ClusterKey | None = None) -> None:
