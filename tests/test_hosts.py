@@ -376,3 +376,27 @@ def test_a_node_controller_not_reached_is_told_refused_or_unanswered(lan: Lan) -
     assert re.match(prefix + rf"{re.escape(far.address)} did not answer on port 7100 "
                     r"\((no answer|No route to host)\): check that the machine is up and on "
                     r"this network", refused_to_launch())
+
+
+def test_a_node_that_does_not_reach_another_s_publications_is_named_with_the_fix(
+        lan: Lan) -> None:
+    """Node r, on the lab's network only, cannot reach node m, on another network that
+    only the launcher's host shares: the launch failed "no hand-shake with the sender of
+    tick.out at tcp://...", naming neither node nor what to open or set (deploy.md's
+    table had to)."""
+    other = Lan(net=1)
+    try:
+        r, m = lan.host("r"), other.host("m")
+        system = System("unreached").node("a").node("r", address=r.node("r"))
+        system.node("m", address=m.node("m"))
+        system.add("tick", Counter, node="m", period=0.01)
+        system.add("at_r", Collector, node="r")
+        system.link("tick.out", "at_r.x")
+        with pytest.raises(RuntimeTimeout, match=(
+                rf"node r: no hand-shake with the sender of tick\.out at "
+                rf"tcp://{re.escape(m.address)}:\d+ within 10 s: node r does not reach where m "
+                r"publishes; open the ephemeral ports of m to r, or set advertise in "
+                r"\[nodes\.m\] to an address r reaches there")):
+            system.launch()
+    finally:
+        other.remove()

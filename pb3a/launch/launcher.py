@@ -40,6 +40,7 @@ from pb3a.latencies import percentile
 from pb3a.launch.configuration_lock import ConfigurationLock
 from pb3a.logbook import LogBook
 from pb3a.model.environment import env_name
+from pb3a.node.bridge import NoHandshake
 from pb3a.node.executor import REPORT_TIMEOUT, Executor
 from pb3a.node.remote import HEARTBEAT_S, LOSS_S, RemoteNode
 from pb3a.node.ring_sizes import ring_size
@@ -269,8 +270,22 @@ class Launcher:
             endpoints.update(zip([link.key for link in outbound],
                                  self.nodes[node].publish(outbound), strict=True))
         for node, inbound in readers.items():      # (a writer that restarts: when it has)
-            self.nodes[node].follow([(link, endpoints[link.key]) for link in inbound
-                                     if endpoints[link.key] is not None])
+            try:
+                self.nodes[node].follow([(link, endpoints[link.key]) for link in inbound
+                                         if endpoints[link.key] is not None])
+            except NoHandshake as exc:
+                raise NoHandshake(self._unreached(node, inbound, exc)) from None
+
+    def _unreached(self, node: str, inbound: list[FlatLink], exc: NoHandshake) -> str:
+        """What to do when ``node`` could not follow the senders of ``inbound``: it said
+        which address had no hand-shake, not which nodes, nor what to open or set."""
+        senders = sorted({self.specs[link.src].node for link in inbound} - {node})
+        whose = " and ".join(senders)
+        tables = ", ".join(f"[nodes.{sender}]" for sender in senders)
+        return (f"node {node}: {exc}: node {node} does not reach where {whose} "
+                f"publish{'es' if len(senders) == 1 else ''}; open the ephemeral ports of "
+                f"{whose} to {node}, or set advertise in {tables} to an address {node} "
+                "reaches there")
 
     def detach(self, *links: FlatLink) -> None:
         """Unwire links (they stay known): each writer stops first, then its reader

@@ -30,6 +30,12 @@ READY_TIMEOUT = 10.0
 RETRY_S = 0.001            # how often a lossless link's backlog is offered to its ring again
 
 
+class NoHandshake(RuntimeTimeout):
+    """A node could not begin to receive a link's values: the sender, on another node,
+    did not answer its hand-shake in time. The node does not reach where that sender
+    publishes (the launcher names both nodes and what to open or set)."""
+
+
 @dataclass
 class _Feed:
     """One local input's ring fed by a followed topic and, on a lossless link, the
@@ -98,8 +104,8 @@ class Bridge:
         deadline = time.monotonic() + timeout
         for topic, data in started:
             if not self._follower.wait_ready(topic, max(0.0, deadline - time.monotonic())):
-                raise RuntimeTimeout(f"no hand-shake with the sender of {topic} at {data} "
-                                     f"within {timeout} s")
+                raise NoHandshake(f"no hand-shake with the sender of {topic} at {data} "
+                                  f"within {timeout:g} s")
 
     def close(self, link: str, reached: int = 0, timeout: float = READY_TIMEOUT,
               sender: bytes | None = None) -> int:
