@@ -217,6 +217,20 @@ def test_a_class_the_module_server_does_not_have_names_the_server_and_the_file_t
         assert resolve_class("pb3a_served_absent:Thing").__name__ == "Thing"
 
 
+def test_a_module_server_whose_host_does_not_resolve_here_is_named_so(monkeypatch) -> None:
+    """A server named by a host name this machine does not resolve (the workstation's
+    /etc/hosts has it, a robot's not) was said not to answer: "start it, or check its
+    address and that its port is open", though it ran and answered the workstation."""
+    monkeypatch.setattr(served_code, "FIND_TIMEOUT", 0.3)
+    with _importing_from("tcp://no-such-host.invalid:7300", ClusterKey.load(), monkeypatch), \
+            pytest.raises(ImportError, match=r"module server tcp://no-such-host\.invalid:7300 is "
+                                             r"not reached from this machine: no address is "
+                                             r"known for host 'no-such-host\.invalid'.*give "
+                                             r"module_servers a name every node's machine "
+                                             r"resolves, or an IP address"):
+        resolve_class("pb3a_nowhere_served:Thing")
+
+
 def test_a_class_that_cannot_be_imported_names_the_module_server_that_refused_the_key(
         tmp_path, monkeypatch) -> None:
     """A server with another cluster key has the module, but refuses to say: it said

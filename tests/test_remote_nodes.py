@@ -406,6 +406,33 @@ def test_a_class_the_remote_node_cannot_import_is_named_with_the_node(tmp_path,
         daemon.stop()
 
 
+def test_a_class_the_remote_node_cannot_get_from_its_module_server_says_why(
+        tmp_path, monkeypatch) -> None:
+    """A node that cannot import a class, its module server named by a host its machine
+    does not resolve, was told to "serve it from a module server (module_servers in the
+    configuration)", which the configuration did: the node's error names the server and
+    why it was not reached from there (deploy.md's lab, names in the workstation's
+    /etc/hosts only)."""
+    (tmp_path / "only_here_not_served.py").write_text(
+        "from pb3a import Module\n\nclass Local(Module):\n    period = 0.1\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    from only_here_not_served import Local
+    daemon = Daemon("b")
+    try:
+        system = System("unserved", module_servers=["tcp://no-such-host.invalid:7300"])
+        system.node("a").node("b", address=daemon.address)
+        system.add("local", Local, node="b")
+        with pytest.raises(RuntimeFailure, match=r"names Python module 'only_here_not_served', "
+                                                 r"which node b's executor at tcp://\S+ cannot "
+                                                 r"import: .*; module server "
+                                                 r"tcp://no-such-host\.invalid:7300 is not "
+                                                 r"reached from this machine: no address is "
+                                                 r"known for host 'no-such-host\.invalid'"):
+            system.launch()
+    finally:
+        daemon.stop()
+
+
 def test_a_wrong_key_is_told_apart_from_no_answer_within_5_s(caplog) -> None:
     system = System("keys").node("a").node("b", address="tcp://127.0.0.1:1")
     system.add("far", Collector, node="b")

@@ -19,8 +19,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
+from pb3a.transport.addresses import RESOLVE_S, unknown_host
 from pb3a.transport.auth import ClusterKey
-from pb3a.transport.control import ControlClient
+from pb3a.transport.control import ControlClient, add_import_hint
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -105,10 +106,22 @@ def server_trouble() -> str:
     (another cluster key, clocks apart); "" when all answered."""
     finders = [finder for finder in sys.meta_path if isinstance(finder, ServedModuleFinder)]
     silent = [address for finder in finders for address in finder.silent()]
+    # (a name only some machines resolve: the workstation's /etc/hosts has it, a robot's not)
+    unknown = {address: why for address in silent
+               if (why := unknown_host(address, RESOLVE_S)) is not None}
+    silent = [address for address in silent if address not in unknown]
     said = (f"; module server {', '.join(silent)} did not answer: start it, or check its "
             "address and that its port is open" if silent else "")
+    said += "".join(f"; module server {address} is not reached from this machine: {why} "
+                    "(give module_servers a name every node's machine resolves, or an IP "
+                    "address)" for address, why in unknown.items())
     return said + "".join(f"; module server {why}" for finder in finders
                           for why in finder.refused().values())
+
+
+def _not_given(module: str) -> str:
+    """Why the module servers did not give ``module`` (see ``add_import_hint``)."""
+    return not_served(module) + server_trouble()
 
 
 def not_served(module: str) -> str:
@@ -135,6 +148,7 @@ def use_module_servers(addresses: Sequence[str], key: ClusterKey | None = None) 
         if finder is None:
             finder = ServedModuleFinder(key or ClusterKey.load())
             sys.meta_path.append(finder)
+            add_import_hint(_not_given)
         for address in addresses:
             finder.add(address)
 

@@ -39,6 +39,7 @@ import struct
 import sys
 import threading
 import time
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 import zmq
@@ -266,13 +267,26 @@ class ControlServer:
         close_bound(self._router, linger_ms=ANSWER_LINGER_MS)
 
 
+_import_hints: list[Callable[[str], str]] = []
+
+
+def add_import_hint(hint: Callable[[str], str]) -> None:
+    """Have ``hint(module)`` add to what this process says of a request or answer naming
+    a module it cannot import (``pb3a.loading.served`` adds why its module servers did
+    not give it: one without it, one that did not answer or refused, one whose host
+    does not resolve here). Added once."""
+    if hint not in _import_hints:
+        _import_hints.append(hint)
+
+
 def _undecodable(exc: Exception, what: str, reader: str) -> str:
     """Why ``what`` (a request, an answer) could not be read by ``reader`` (a
     process), and what to do about it."""
     if isinstance(exc, ModuleNotFoundError):
         return (f"{what} names Python module {exc.name!r}, which {reader} cannot import: "
                 "install it on that machine (or put it on its PYTHONPATH), or serve it "
-                "from a module server (module_servers in the configuration)")
+                "from a module server (module_servers in the configuration)"
+                + "".join(hint(exc.name or "") for hint in _import_hints))
     return f"{what} could not be read by {reader}: {type(exc).__name__}: {exc}"
 
 
