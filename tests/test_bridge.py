@@ -5,9 +5,10 @@ from __future__ import annotations
 import os
 import time
 
+import pytest
 from conftest import eventually
 
-from pb3a.node.bridge import Bridge
+from pb3a.node.bridge import Bridge, NoHandshake
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.replication import Replicator
 from pb3a.transport.ring import ShmRing
@@ -56,3 +57,20 @@ def test_a_stalled_reader_holds_up_no_other_remote_link_into_its_node() -> None:
     assert len(latencies) > 150
     slowest = sorted(latencies)[int(0.99 * len(latencies))]
     assert slowest < 0.05, f"p99 {slowest * 1000:.0f} ms"
+
+
+def test_a_sender_whose_host_does_not_resolve_here_is_named_so() -> None:
+    """A node following a publication at a host name its machine does not resolve (the
+    sender's node named in the workstation's /etc/hosts only) had no hand-shake, and
+    was told only that, as if the ports were closed; the resolver's answer is added."""
+    bridge = Bridge(ClusterKey(os.urandom(32)))
+    try:
+        with pytest.raises(NoHandshake, match=r"no hand-shake with the sender of m\.out at "
+                                              r"tcp://no-such-host\.invalid:7 within 0\.5 s "
+                                              r"\(no address is known for host "
+                                              r"'no-such-host\.invalid'.*on this node's "
+                                              r"machine\)"):
+            bridge.follow([("m.out", "tcp://no-such-host.invalid:7",
+                            "tcp://no-such-host.invalid:8", b"incarnation")], timeout=0.5)
+    finally:
+        bridge.shutdown()

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from pb3a.errors import RuntimeTimeout
+from pb3a.transport.addresses import RESOLVE_S, unknown_host
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.replication import Follower
 from pb3a.transport.ring import WRITE_TIMEOUT, Landed, ShmRing
@@ -104,8 +105,11 @@ class Bridge:
         deadline = time.monotonic() + timeout
         for topic, data in started:
             if not self._follower.wait_ready(topic, max(0.0, deadline - time.monotonic())):
+                # (a sender's host name this machine does not resolve: said so)
+                unknown = unknown_host(data, RESOLVE_S)
                 raise NoHandshake(f"no hand-shake with the sender of {topic} at {data} "
-                                  f"within {timeout:g} s")
+                                  f"within {timeout:g} s"
+                                  + (f" ({unknown}, on this node's machine)" if unknown else ""))
 
     def close(self, link: str, reached: int = 0, timeout: float = READY_TIMEOUT,
               sender: bytes | None = None) -> int:
