@@ -433,6 +433,33 @@ def test_a_class_the_remote_node_cannot_get_from_its_module_server_says_why(
         daemon.stop()
 
 
+def test_a_node_whose_controller_has_another_name_is_the_configuration_s_node() -> None:
+    """A robot's controller started under another name than the configuration gives
+    the node (node.env copied from robot1 unedited, PB3A_NODE=robot1 on robot2) ran its
+    executor under that name, which signed what it told the launcher: the launcher
+    knew no such node, or another, and refused it. A module restarted there was told
+    to nobody (no module_restarted event) and its link stopped (the reader never
+    followed the restarted sender). The executor is the configuration's node."""
+    controller = NodeController("robot1", ClusterKey.load(), limits=Limits(101.0))
+    try:
+        system = System("misnamed").node("a").node("b", address=controller.address)
+        system.add("tick", Counter, node="b", period=0.01, restart="fresh")
+        system.add("at_a", Collector, node="a")
+        system.link("tick.out", "at_a.x")
+        with system.launch() as run:
+            eventually(lambda: run.state("at_a")["received"] > 10, timeout=30,
+                       what="values from b")
+            os.kill(run.stats().modules["tick"].pid, signal.SIGKILL)
+            eventually(lambda: ("module_restarted", "tick") in
+                       [(event.kind, event.subject) for event in run.events()], timeout=20,
+                       what="the restart on b, told to the launcher")
+            before = run.state("at_a")["received"]
+            eventually(lambda: run.state("at_a")["received"] > before + 20, timeout=20,
+                       what="values from the restarted tick")
+    finally:
+        controller.close()
+
+
 def test_a_wrong_key_is_told_apart_from_no_answer_within_5_s(caplog) -> None:
     system = System("keys").node("a").node("b", address="tcp://127.0.0.1:1")
     system.add("far", Collector, node="b")

@@ -96,10 +96,13 @@ class NodeController:
 
     # -- executors ----------------------------------------------------------------
     def start_executor(self, config: str, workers: int = 0, cpus: list[int] | None = None,
-                       host: str = "127.0.0.1") -> tuple[str, bool]:
+                       host: str = "127.0.0.1", node: str | None = None) -> tuple[str, bool]:
         """The address of ``config``'s executor here, and whether it was started now
         (False: it ran already, perhaps for another launch, which its caller must not
-        stop)."""
+        stop). The executor is node ``node``, as the configuration names it (by default
+        this controller's ``--name``): one named otherwise signed what it told the
+        launcher with a name the launcher did not know as that node's, and was refused
+        (a restarted module's events, its link's new sender, checkpoints, agents)."""
         with self._lock:
             running = self._executors.get(config)
             if running is not None and running[0].is_alive():
@@ -108,7 +111,7 @@ class NodeController:
             parent, child = _context.Pipe()
             process = _context.Process(
                 target=executor_main, name=f"pb3a-executor-{config}",
-                args=(config, self.name, workers, cpus, host, child, logging.WARNING,
+                args=(config, node or self.name, workers, cpus, host, child, logging.WARNING,
                       self.unbound_s))
             start_without_main(process)
             child.close()
@@ -170,7 +173,8 @@ class NodeController:
     def _handle(self, op: str, args: dict[str, Any]) -> Any:
         if op == "start_executor":
             return self.start_executor(args["config"], args.get("workers", 0),
-                                       args.get("cpus"), args.get("host", "127.0.0.1"))
+                                       args.get("cpus"), args.get("host", "127.0.0.1"),
+                                       args.get("node"))
         if op == "stop_executor":
             return self.stop_executor(args["config"], bool(args.get("force", False)),
                                       bounded_wait(args.get("timeout", 15.0), "stop_executor"),

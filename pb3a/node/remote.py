@@ -128,7 +128,7 @@ class RemoteNode:
         try:
             executor, started = self.controller.call("start_executor", START_TIMEOUT,
                                                      config=config, workers=workers,
-                                                     cpus=cpus, host=host)
+                                                     cpus=cpus, host=host, node=name)
             self.executor = executor
             self.client = ControlClient(key, executor, epoch=epoch)
             reached = self.client.ping(CONNECT_TIMEOUT) is not None
