@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -350,8 +351,9 @@ def test_a_node_controller_not_reached_is_told_refused_or_unanswered(lan: Lan) -
     """A launch whose node controller did not answer said, whatever the reason, "start
     one there": also to someone whose controller ran, listening on 127.0.0.1 only, and
     to someone whose robot was cut off. A plain connection there now tells which: the
-    port refused (nothing listens there: start one, or see where it listens), or the
-    host did not answer (the machine, the network, a firewall)."""
+    port refused (nothing listens there: start one, or see where it listens), something
+    accepted that is no controller answering (a frozen one), or the host did not
+    answer (the machine, the network, a firewall)."""
     far = lan.host("b")
     assert far.start("node", "start", "--name", "b", "--listen", "tcp://127.0.0.1:7100",
                      "--max-cpu", "101") == "node b at tcp://127.0.0.1:7100"
@@ -372,10 +374,19 @@ def test_a_node_controller_not_reached_is_told_refused_or_unanswered(lan: Lan) -
                     r"\(the connection was refused\): start a node controller there .*one "
                     r"that listens on 127\.0\.0\.1, or on another of that machine's "
                     r"addresses, is not reached there", refused_to_launch())
-    far.cut()
-    assert re.match(prefix + rf"{re.escape(far.address)} did not answer on port 7100 "
-                    r"\((no answer|No route to host)\): check that the machine is up and on "
-                    r"this network", refused_to_launch())
+    frozen = far.node("b")                         # now on its address, but stopped
+    os.kill(far.daemons[-1].pid, signal.SIGSTOP)
+    try:
+        assert re.match(prefix + rf"something accepts connections on port 7100 at "
+                        rf"{re.escape(far.address)}, but does not answer as a node "
+                        r"controller: check that it is one", refused_to_launch())
+        far.cut()
+        assert re.match(prefix + rf"{re.escape(far.address)} did not answer on port 7100 "
+                        r"\((no answer|No route to host)\): check that the machine is up "
+                        r"and on this network", refused_to_launch())
+    finally:
+        os.kill(far.daemons[-1].pid, signal.SIGCONT)
+    assert frozen == address
 
 
 def test_a_node_that_does_not_reach_another_s_publications_is_named_with_the_fix(
