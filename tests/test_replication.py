@@ -1143,10 +1143,10 @@ def test_a_write_on_a_remote_link_makes_two_python_calls_and_every_value_arrives
         def count(frame: Any, event: str, arg: Any) -> None:
             if event != "call":
                 return
-            caller = frame.f_back               # (a batch flushed meanwhile by the
+            caller = frame                      # (a batch flushed meanwhile by the
             while caller is not None:           # replicator's thread: the next value
-                if caller.f_code.co_name == "offer":    # starts one, through offer)
-                    return
+                if caller.f_code.co_name == "offer":    # starts one, through offer, which
+                    return                      # is not counted, nor what it calls)
                 caller = caller.f_back
             calls[frame.f_code.co_name] += 1
         sys.setprofile(count)

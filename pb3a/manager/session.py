@@ -76,6 +76,9 @@ class Session:
         # document it came from); one it was given and owns is a connection it closes
         self._launched = False
         self._stopping: SystemHandle | None = None    # a system this session is stopping
+        # one more at each change of mode: a page takes no structure older than the one
+        # it shows (a feed's "stopping" may reach it after Stop's own "editing")
+        self._mode_changes = 0
         self._launches = 0          # systems launched here: each numbers its events from 1
         self.timeout = timeout
         self.catalog = catalog or Catalog(document, import_timeout=import_timeout)
@@ -119,6 +122,7 @@ class Session:
             running: Running = system.launch(listen="tcp://127.0.0.1:0")
             self._handle, self._owns_handle, self._launched = running, True, True
             self._launches += 1
+            self._mode_changes += 1
             self._tuned = {}
         return self.system()
 
@@ -135,16 +139,19 @@ class Session:
             # from here nothing reads the system, but it is not stopped until close returns
             handle, self._handle, self._launched = self._handle, None, False
             self._stopping, self._tuned = handle, {}
+            self._mode_changes += 1
             try:
                 handle.close()
             finally:
                 self._stopping = None
+                self._mode_changes += 1
         return self.system()
 
     def close(self) -> None:
         """Close the handle if the session owns it (a system it launched stops)."""
         with self._lock:
             handle, self._handle = self._handle, None
+            self._mode_changes += handle is not None
             if handle is not None and self._owns_handle:
                 handle.close()
 
@@ -158,8 +165,9 @@ class Session:
     def system(self, topology: Topology | None = None) -> dict[str, Any]:
         """``GET /api/system``."""
         topology = topology or self.topology()
+        changes = self._mode_changes         # (read before the mode: never newer than it)
         handle = self._handle
-        return {**topology.to_json(), "mode": self.mode,
+        return {**topology.to_json(), "mode": self.mode, "mode_change": changes,
                 "address": getattr(handle, "address", None) if handle is not None else None,
                 "stoppable": handle is not None and self._launched,
                 # which launch (a page that saw no Stop between two tells them apart by it)

@@ -110,6 +110,9 @@ class Manager {
 
   // -- structure and live figures ---------------------------------------------------
   async setStructure(system, layout) {
+    // a structure older than the one shown (the feed's "stopping", say, after Stop's own
+    // answer said "editing") is not taken: it would undo the newer mode
+    if (system.mode_change < (this.system?.mode_change ?? 0)) return;
     const modeChanged = this.system?.mode !== system.mode;
     // a system launched anew numbers its events from 1 (a Stop and a Launch may both
     // come between two of the feed's looks: then only the launch's number changes)
