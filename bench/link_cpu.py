@@ -15,11 +15,13 @@ sealing one array into a fresh frame and opening it into a buffer (``payload_us`
 Their sum is CPU a sealed link spends per array on top of everything raw pyzmq does;
 on a CPU whose AES-GCM runs without VAES it alone exceeds raw pyzmq's whole transfer.
 
+Both runs report how long the PB3A writer waited for its follower's acknowledgements
+(flow control: ``writer_waits``) beside how long its bursts took: a writer that waits
+most of its bursts is held by what comes after it, not by its own thread.
+
 With ``--small`` it does the same for small ints written one ``write()`` each
 (``IntBurst`` -> ``IntCounter``, bursts of ``SMALL_BURST`` for ``SECONDS``; raw pyzmq
-sends each int as 8 bytes, ``SMALL_RAW_N`` of them), in nanoseconds of CPU per value,
-and reports how long the PB3A writer waited for its follower's acknowledgements
-(flow control: ``writer_waits``) beside how long its bursts took.
+sends each int as 8 bytes, ``SMALL_RAW_N`` of them), in nanoseconds of CPU per value.
 
 Run: ``.venv/bin/python bench/link_cpu.py`` (about 20 s; ``--small``: about 10 s).
 """
@@ -111,9 +113,10 @@ def pb3a_side(small: bool = False) -> dict[str, Any]:
         waits = link.run.stats().modules["writer"].output_waits["out"]
     finally:
         link.close()
-    if not small:
-        return _side(per_array(before, after, roles, n), busy_s / n * 1e6, n)
-    side = _small_side(per_array(before, after, roles, n, 1e9), busy_s / n * 1e9, n)
+    if small:
+        side = _small_side(per_array(before, after, roles, n, 1e9), busy_s / n * 1e9, n)
+    else:
+        side = _side(per_array(before, after, roles, n), busy_s / n * 1e6, n)
     side["writer_waits"] = {"waits": waits.waits - waits_before.waits,
                             "wait_s": round(waits.wait_s - waits_before.wait_s, 3),
                             "writing_s": round(writing_s, 3)}

@@ -1159,3 +1159,29 @@ def test_a_write_on_a_remote_link_makes_two_python_calls_and_every_value_arrives
         assert inbox.wait("w.out", 201) == list(range(-1, 200))
     finally:
         publications.close()
+
+
+def test_a_follower_takes_each_large_value_in_with_no_poll_of_its_socket(link,
+                                                                         monkeypatch) -> None:
+    # Each 1 MiB array is a message of its own. The follower polled its socket (a new
+    # poller each time) and read the frames with recv_multipart (an option read per
+    # frame) for every message: about 5 us of its thread per array. Now one
+    # non-blocking receive per frame, and the array still arrives whole, in order.
+    replicator, follower, inbox = link
+    replicator.add("cam.out")
+    _follow(follower, replicator, "cam.out", from_seq=0)
+    assert follower.wait_ready("cam.out", TIMEOUT)
+    polls = collections.Counter()
+    socket_poll = zmq.Socket.poll
+
+    def poll(sock: zmq.Socket, *args: Any, **kwargs: Any) -> int:
+        polls[threading.current_thread().name] += 1
+        return socket_poll(sock, *args, **kwargs)
+    monkeypatch.setattr(zmq.Socket, "poll", poll)
+    frames = [np.full(131072, float(i)) for i in range(20)]
+    for frame in frames:
+        replicator.publish("cam.out", frame)
+    got = inbox.wait("cam.out", len(frames))
+    assert [float(array[0]) for array in got] == [float(i) for i in range(len(frames))]
+    assert all(np.array_equal(a, b) for a, b in zip(got, frames, strict=True))
+    assert polls["pb3a-follower"] == 0, polls
