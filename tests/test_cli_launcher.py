@@ -49,6 +49,22 @@ def test_the_command_line_reads_and_changes_a_running_system(capsys) -> None:
         assert "no module 'ghost'" in capsys.readouterr().err
 
 
+def test_status_shows_every_node_as_nodes_does(capsys) -> None:
+    """`pb3a status` (and `pb3a run`'s table) left the launcher's own, embedded nodes out
+    of its node rows, which `pb3a nodes` showed (from the deploy walkthrough)."""
+    system = System("cli-every-node").node("a").node("idle")
+    system.add("src", Counter, node="a", period=0.002)
+    with system.launch() as run:
+        address = run.listen()
+        assert main(["nodes", address]) == 0
+        listed = capsys.readouterr().out.strip().splitlines()
+        assert main(["status", address]) == 0
+        table = capsys.readouterr().out.splitlines()
+    assert [line.split()[:3] for line in listed[1:]] == [
+        ["a", "(embedded)", "up"], ["idle", "(embedded)", "up"]]
+    assert all(line in table for line in listed), (listed, table)
+
+
 def test_set_sets_text_as_given_when_the_module_s_state_cannot_be_read(capsys) -> None:
     # (set asks the state to refuse text for a field that holds none; a state it cannot
     # read must not keep it from setting)

@@ -29,7 +29,8 @@ STUCK_S = 1.0                # a call this long is shown beside the module's sta
 
 
 def format_table(stats: SystemStats) -> str:
-    """The status table: one row per module, one per link, one per remote node."""
+    """The status table: one row per module, one per link, one per node (the rows
+    ``pb3a nodes`` prints: it left out the embedded nodes, which ``pb3a nodes`` showed)."""
     rows = [("module", "node", "pid", "status", "steps", "events", "cpu s", "errors",
              "last error")]
     for name, m in stats.modules.items():
@@ -51,9 +52,8 @@ def format_table(stats: SystemStats) -> str:
                               str(link.link_failures), str(link.waits),
                               "-" if math.isnan(latency) else f"{latency * 1e6:.0f} us"))
         lines += _columns(link_rows)
-    remote = {name: health for name, health in stats.nodes.items() if health.address}
-    if remote:
-        lines += ["", format_nodes(remote)]
+    if stats.nodes:
+        lines += ["", format_nodes(stats.nodes)]
     for failure in stats.failures[-5:]:
         lines.append(f"! {failure}")
     return "\n".join(lines)
