@@ -76,7 +76,10 @@ def start_command(args: argparse.Namespace) -> int:
         lines += [f"robot {name} at {address}"
                   for name, address in served.robots.addresses.items()]
         return served, "\n".join(lines)
-    return serve_until_signalled("rave start", f"tcp://{args.listen}:0", start)
+    # (the simulator serves the launchers of its own machine, which share its
+    # ~/.pb3a/cluster.key: it may make that key on first use, as they do)
+    return serve_until_signalled("rave start", f"tcp://{args.listen}:0", start,
+                                 create_key=True)
 
 
 class _Served:

@@ -7,6 +7,7 @@ import os
 import stat
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -53,3 +54,35 @@ def test_every_command_refuses_a_key_file_others_can_read(tmp_path) -> None:
         done = subprocess.run([sys.executable, "-m", "pb3a", *command.split(), *args],
                               env=env, capture_output=True, text=True, timeout=30, check=False)
         assert (done.returncode, done.stderr) == (1, f"pb3a {command}: {refusal}\n"), command
+
+
+def test_a_daemon_without_a_key_refuses_to_start_and_makes_none(tmp_path) -> None:
+    """`pb3a node start` and `pb3a modules serve` with no key set and none in ~/.pb3a
+    made one there that no other machine had, served with it, and only the launcher's
+    side said, later, that the node "runs with another cluster key" (the deploy
+    walkthrough). `pb3a run` still makes one for its own machine's nodes."""
+    home = tmp_path / "home"
+    home.mkdir()
+    env = {**{k: v for k, v in os.environ.items() if k not in ("PB3A_KEY", "PB3A_KEY_FILE")},
+           "HOME": str(home), "PYTHONPATH": str(REPO)}
+    where = home / ".pb3a" / "cluster.key"
+    for command, args in (("node start", ["--name", "n", "--listen", "tcp://127.0.0.1:0"]),
+                          ("modules serve", [str(tmp_path)])):
+        began = time.monotonic()
+        done = subprocess.run([sys.executable, "-m", "pb3a", *command.split(), *args],
+                              env=env, capture_output=True, text=True, timeout=10, check=False)
+        took = time.monotonic() - began
+        assert (done.returncode, done.stdout) == (2, ""), (command, done.stderr)
+        assert done.stderr == (
+            f"pb3a {command}: no cluster key: $PB3A_KEY and $PB3A_KEY_FILE are not set, and "
+            f"{where} does not exist; a daemon makes no key of its own, which no other "
+            f"machine would have: copy the cluster's key file here (`pb3a key new PATH` "
+            f"makes the first one), then set PB3A_KEY_FILE=PATH or put it at {where} "
+            f"(mode 0600)\n"), command
+        assert took < 5.0, (command, took)          # (about 0.25 s: the interpreter's start)
+        assert not (home / ".pb3a").exists(), command
+    done = subprocess.run([sys.executable, "-m", "pb3a", "run",
+                           str(REPO / "examples" / "pipeline.toml"), "--for", "0.5"],
+                          env=env, capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 0, done.stderr
+    assert stat.S_IMODE(where.stat().st_mode) == 0o600          # made on first use, as before

@@ -15,23 +15,31 @@ import zmq
 
 from pb3a.cli.standard_output import output_gone
 from pb3a.transport.addresses import bind_address, check_bindable
-from pb3a.transport.auth import ClusterKey, ClusterKeyError
+from pb3a.transport.auth import ClusterKey, ClusterKeyError, ClusterKeyMissing
+
+KEY_MISSING = 2         # the exit status of a daemon started with no cluster key
 
 
 def serve_until_signalled(command: str, listen: str,
-                           start: Callable[[Any, str, int], tuple[Any, str]]) -> int:
+                           start: Callable[[Any, str, int], tuple[Any, str]],
+                           create_key: bool = False) -> int:
     """Start a daemon on ``listen``, print where, and run until SIGINT, SIGTERM or SIGHUP
     (its terminal closed). The handlers come first: a signal while it starts stops it
     once started, closed as after any other signal (it would otherwise die there,
-    unclosed)."""
+    unclosed). Without a cluster key it exits 2 at once, saying where it looked, unless
+    ``create_key`` (it made one in ``~/.pb3a`` that no other machine had, and only their
+    refusals said so, later)."""
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(signum, lambda *_: stop.set())
     try:
-        key = ClusterKey.load()
+        key = ClusterKey.load(create=create_key)
         host, port = bind_address(listen)
         check_bindable(listen, host, port)
         daemon, banner = start(key, host, port)
+    except ClusterKeyMissing as exc:
+        print(f"{command}: {exc}", file=sys.stderr)
+        return KEY_MISSING
     except (OSError, ValueError, ClusterKeyError, zmq.ZMQError) as exc:
         print(f"{command}: {exc}", file=sys.stderr)
         return 1

@@ -80,6 +80,11 @@ class ClusterKeyError(PB3AError, ValueError):
     """The cluster key is missing, unreadable or too short."""
 
 
+class ClusterKeyMissing(ClusterKeyError):
+    """No cluster key is set and none is at ``~/.pb3a/cluster.key``, where it may not be
+    created (a daemon's: a key nobody else has would refuse every launcher)."""
+
+
 class Rejected(PB3AError):
     """A message failed authentication or validation; ``reason`` says which check."""
 
@@ -95,10 +100,13 @@ class ClusterKey:
     secret: bytes
 
     @classmethod
-    def load(cls, environ: dict[str, str] | None = None, home: Path | None = None) -> ClusterKey:
+    def load(cls, environ: dict[str, str] | None = None, home: Path | None = None,
+             create: bool = True) -> ClusterKey:
         """From ``PB3A_KEY``, else the file named by ``PB3A_KEY_FILE``, else
-        ``~/.pb3a/cluster.key``, which is created (mode 0600) on first use. A key file
-        another user could read or change is refused (``ClusterKeyError``)."""
+        ``~/.pb3a/cluster.key``, which is created (mode 0600) on first use unless
+        ``create`` is false (``ClusterKeyMissing``: a daemon serves other machines, which
+        cannot have a key it made up). A key file another user could read or change is
+        refused (``ClusterKeyError``)."""
         env = os.environ if environ is None else environ
         if env.get(KEY_ENV):
             return cls._checked(env[KEY_ENV].encode(), f"${KEY_ENV}")
@@ -106,6 +114,13 @@ class ClusterKey:
             return cls._read(Path(env[KEY_FILE_ENV]).expanduser(), f" named by ${KEY_FILE_ENV}")
         path = (home / ".pb3a" / "cluster.key") if home else DEFAULT_KEY_FILE.expanduser()
         if not path.exists():
+            if not create:
+                raise ClusterKeyMissing(
+                    f"no cluster key: ${KEY_ENV} and ${KEY_FILE_ENV} are not set, and "
+                    f"{path} does not exist; a daemon makes no key of its own, which no "
+                    f"other machine would have: copy the cluster's key file here "
+                    f"(`pb3a key new PATH` makes the first one), then set "
+                    f"{KEY_FILE_ENV}=PATH or put it at {path} (mode 0600)")
             path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
             with contextlib.suppress(FileExistsError):   # two processes starting at once
                 cls.create(path)                         # agree on one key
