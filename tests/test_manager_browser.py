@@ -1339,6 +1339,16 @@ def test_a_gain_tuned_live_is_kept_in_the_document_and_shown_after_stop(
         page.wait_for_function("document.querySelector(\"[data-field='kp'] input\")?.value "
                                "=== '3.25'", timeout=WAIT_MS)
         assert field_value(page, "ctl", "kp") == "3.25"
+        # the feed's "stopping" coming after Stop's own "editing" is not taken: it put the
+        # page back to stopping, and the State Editor was drawn from no document (kp 1.0)
+        page.evaluate("""async () => {
+            const manager = window.pb3aManager;
+            const late = {...manager.system, mode: "stopping",
+                          mode_change: manager.system.mode_change - 1};
+            await manager.setStructure(late, manager.layout);
+        }""")
+        assert page.locator("#mode").text_content() == "editing"
+        assert field_value(page, "ctl", "kp") == "3.25"
     text = config.read_text()
     assert "state = { kp = 3.25 }   # start gentle" in text and "# A controller" in text
 

@@ -26,6 +26,7 @@ class Manager {
     this.selection = new Set();    // everything selected (Shift-click adds), the last one shown
     this.document = null;          // an EditedDocument in FILE mode
     this.entering = false;         // a mode being entered: select() leaves the inspector to it
+    this.structures = Promise.resolve();   // the structures being shown, one at a time
     this.macroDrawn = null;        // what the inspector last drew for a macro instance
     this.lastMove = new Map();     // module -> its last MigrationReport, shown in the inspector
     this.updates = 0;              // live updates drawn, and what the last one cost (ms)
@@ -109,7 +110,18 @@ class Manager {
   }
 
   // -- structure and live figures ---------------------------------------------------
-  async setStructure(system, layout) {
+  /** Show ``system`` and its layout once those before it are shown: one at a time, in
+   * the order they came. Two that overlapped (the feed's and Stop's own answer) took
+   * turns at their awaits, and the older one, ending last, drew the State Editor as of
+   * its mode. */
+  setStructure(system, layout) {
+    this.structures = this.structures
+      .then(() => this.showStructure(system, layout))
+      .catch((error) => this.toasts.error(error));
+    return this.structures;
+  }
+
+  async showStructure(system, layout) {
     // a structure older than the one shown (the feed's "stopping", say, after Stop's own
     // answer said "editing") is not taken: it would undo the newer mode
     if (system.mode_change < (this.system?.mode_change ?? 0)) return;
