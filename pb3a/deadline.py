@@ -21,6 +21,8 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from collections.abc import Iterator
 
+# what one who answers leaves of a wait for its answer's way back (a quarter, if less)
+ANSWER_MARGIN_S = 0.25
 # the end (``time.monotonic()``) of the call in progress on this thread, None if unbounded
 _END: contextvars.ContextVar[float | None] = contextvars.ContextVar("pb3a_deadline",
                                                                    default=None)
@@ -58,3 +60,10 @@ def capped(seconds: float) -> float:
     """``seconds``, or what is left of the bound in force if that is less."""
     remaining = left()
     return seconds if remaining is None else min(seconds, remaining)
+
+
+def before_answer(seconds: float) -> float:
+    """How much of a wait of ``seconds`` for an answer the one answering may use: it
+    gives up ``ANSWER_MARGIN_S`` (a quarter of a short wait) before, so that its answer
+    arrives while it is still waited for."""
+    return seconds - min(ANSWER_MARGIN_S, seconds / 4)

@@ -63,7 +63,7 @@ log = logging.getLogger("pb3a.launcher")
 # giving it up means putting the module back, which takes as long.
 LANDING_FLOOR_S = 0.5
 # A step's RuntimeTimeout this close to the end of its time is the call's timeout
-# running out (a worker gives up its answer's margin before: ``ANSWER_MARGIN_S``).
+# running out (a worker gives up its answer's margin before: ``deadline.before_answer``).
 RAN_OUT_SLACK_S = 0.3
 
 if TYPE_CHECKING:

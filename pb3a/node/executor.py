@@ -28,7 +28,7 @@ import cloudpickle
 
 from pb3a.config.description import DEFAULT_SPARES
 from pb3a.config.plan import FlatLink, FlatModule
-from pb3a.deadline import capped, lifted
+from pb3a.deadline import before_answer, capped, lifted
 from pb3a.errors import ConfigError, PB3AError, RuntimeFailure, RuntimeTimeout
 from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
@@ -58,7 +58,6 @@ REPORT_TIMEOUT = 5.0
 # the same signal reached the launcher (sent to the whole process group)
 STOP_FOLLOWS_S = 2.0
 LOCK_TIMEOUT = 60.0      # longest a restart or a shutdown waits for the node's lock
-ANSWER_MARGIN_S = 0.25   # a worker gives up this much before its caller (its answer's way)
 _WAITS_FOR_THE_MODULE = frozenset({"get_state", "set_state"})
 
 
@@ -202,7 +201,7 @@ class Executor:
             raise RuntimeFailure(_not_running(name, record))
         timeout = capped(timeout)
         if op in _WAITS_FOR_THE_MODULE:      # (a short timeout keeps most of its time)
-            args["within"] = timeout - min(ANSWER_MARGIN_S, timeout / 4)
+            args["within"] = before_answer(timeout)
         return self.call(record.worker, op, timeout, name=name, **args)
 
     def _alive(self, key: str) -> bool:
@@ -458,7 +457,7 @@ class Executor:
         # the answer's wait, a second more than the pause's own (less, for a caller's
         # deadline: then the pause gives up a margin before it)
         answer_s = capped(timeout + 1.0)
-        timeout = min(timeout, answer_s - min(ANSWER_MARGIN_S, answer_s / 4))
+        timeout = min(timeout, before_answer(answer_s))
         try:
             # ``until``: a worker that reads this late (it was frozen) must not pause the
             # module once this call has given up: nobody would resume it
@@ -554,8 +553,8 @@ class Executor:
             answer_s = capped(REQUEST_TIMEOUT)
             snapshot: Snapshot = self.call(record.worker, "migrate_out", answer_s,
                                            name=name, segment=segment,
-                                           until=time.monotonic() + answer_s
-                                           - min(ANSWER_MARGIN_S, answer_s / 4))
+                                           until=time.monotonic()
+                                           + before_answer(answer_s))
         except RuntimeFailure as exc:
             if self._alive(record.worker):
                 raise

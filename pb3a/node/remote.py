@@ -22,7 +22,7 @@ import time
 from typing import TYPE_CHECKING, Any
 
 from pb3a.config.description import DEFAULT_SPARES
-from pb3a.deadline import capped, left, lifted
+from pb3a.deadline import before_answer, capped, left, lifted
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
 from pb3a.transport.addresses import connection_failure, host_of, unresolved
@@ -42,7 +42,6 @@ PROBE_S = 1.0              # ... and then a plain connection there tells why it 
 START_TIMEOUT = 60.0       # an executor process imports numpy and friends first
 CALL_TIMEOUT = 60.0        # the executor's own requests to its workers have deadlines
 MARGIN_S = 5.0             # beyond an operation's own deadline: the way there and back
-ANSWER_MARGIN_S = 0.25     # under a caller's deadline: the executor's answer's way back
 HEARTBEAT_S = 0.25         # how often the launcher's side pings the executor
 LEASE_S = 1.25             # an executor that hears no renewal this long fences itself
 LOSS_S = 2.0               # no answer for this long: the node is lost (reported within 3 s)
@@ -392,8 +391,8 @@ class RemoteNode:
 
 def _bound(within: float) -> dict[str, float]:
     """What a request under the deadline of a call in progress tells the executor: to end
-    its own waits (``bound``) an answer's way back (a quarter, ``ANSWER_MARGIN_S`` at
-    most) before the launcher stops waiting for the answer; nothing otherwise."""
+    its own waits (``bound``) an answer's way back before the launcher stops waiting
+    for the answer (``before_answer``); nothing otherwise."""
     if left() is None:
         return {}
-    return {"bound": within - min(ANSWER_MARGIN_S, within / 4)}
+    return {"bound": before_answer(within)}
