@@ -361,10 +361,15 @@ def test_the_state_editor_comes_back_whole_when_a_failed_module_is_restarted(
     page.wait_for_function("document.querySelector(\"[data-field='last'] input\")?.value === '2.0'",
                            timeout=WAIT_MS)
     page.wait_for_selector("#state-fields .problem", state="detached", timeout=WAIT_MS)
-    fields = lab.api("GET", "/api/modules/probe/state")["fields"]
+    fields = sorted(lab.api("GET", "/api/modules/probe/state")["fields"])
+    # (the page reads the state again once Restart's answer came, and the fields are
+    # drawn anew from it: waited for, not read in between)
+    page.wait_for_function("(fields) => JSON.stringify([...document.querySelectorAll("
+                           "'#state-fields > [data-field]')].map(r => r.dataset.field).sort())"
+                           " === JSON.stringify(fields)", arg=fields, timeout=WAIT_MS)
     shown = page.eval_on_selector_all("#state-fields > [data-field]",
                                       "rows => rows.map(r => r.dataset.field)")
-    assert sorted(shown) == sorted(fields)
+    assert sorted(shown) == fields
     page.wait_for_selector("#inspector-meta .status-running", timeout=WAIT_MS)
     for_the_picture(page, 1500)      # a few refreshes: the plot has a line to draw
     page.screenshot(path=str(screenshot_path(tmp_path, "manager_restarted_state.png")))
