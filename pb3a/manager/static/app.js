@@ -274,7 +274,7 @@ class Manager {
     this.drawActions(name);
     if (this.selection.size > 1 || this.isMacro(name)) {
       this.live.watch(null);
-      $("state-fields").replaceChildren();
+      this.editor.clear();
       return;
     }
     const displays = this.system.modules[name]?.displays;
@@ -288,16 +288,40 @@ class Manager {
       return;
     }
     this.live.watch(name);
-    const reading = this.editor.pending("Reading its state…", displays);
+    const subject = this.stateSubject(name);
+    if (this.editor.shows(subject)) {
+      // selected again (after Restart, say) with the fields of this same state drawn,
+      // the live feed's: read into them, not from nothing ("Reading its state…" in their
+      // place a moment, then drawn anew, was a flicker that lost what was typed)
+      try {
+        const view = await api.state(name);
+        if (this.selected === name && this.editor.shows(subject)) this.editor.update(view);
+      } catch (error) {
+        if (this.selected === name && this.editor.shows(subject)) this.editor.pending(error.message, displays, true, subject);
+      }
+      return;
+    }
+    const reading = this.editor.pending("Reading its state…", displays, false, subject);
     try {
       const view = await api.state(name);
       // (not when the live feed drew the fields first: this answer is no newer, and
       // drawn anew the fields lost what was typed in them and their applied marks)
-      if (this.selected === name && this.editor.awaits(reading)) this.editor.show(view, displays);
+      if (this.selected === name && this.editor.awaits(reading)) this.editor.show(view, displays, subject);
     } catch (error) {
       // the live feed's next state draws the fields (once it can be read again)
-      if (this.selected === name && this.editor.awaits(reading)) this.editor.pending(error.message, displays, true);
+      if (this.selected === name && this.editor.awaits(reading)) this.editor.pending(error.message, displays, true, subject);
     }
+  }
+
+  /** Whose state the State Editor shows for running module `name`: the module in this
+   * launch and mode, of its class and displays. Fields drawn for the same subject are
+   * read into again; another one (another module, a launch, a swap to another class) is
+   * read from nothing, "Reading its state…" in the fields' place. */
+  stateSubject(name) {
+    const info = this.system.modules[name];
+    return JSON.stringify([name, this.system.mode, this.system.mode_change ?? null,
+                           this.system.launch ?? null, info?.class ?? null,
+                           info?.displays ?? null]);
   }
 
   describeSelected() {

@@ -25,11 +25,14 @@ export class StateEditor {
     this.open = new Set();       // paths of the containers the user opened
     this.displays = {};
     this.awaited = null;         // what pending() handed out, until a view is drawn
+    this.subject = null;         // whose state the fields are (see shows()), or null
   }
 
-  /** Show these fields (a state view), with the module's declared displays. */
-  show(view, displays) {
+  /** Show these fields (a state view), with the module's declared displays; `subject`
+   * says whose state they are (see `shows`). */
+  show(view, displays, subject = null) {
     this.displays = displays || {};
+    this.subject = subject;
     this.rows.clear();
     this.open.clear();
     this.root.replaceChildren();
@@ -38,9 +41,11 @@ export class StateEditor {
 
   /** No fields yet, a line in their place saying why (being read, or a problem): the
    * next update draws them all anew, rows of an earlier view are not kept out of sight.
-   * Returns a token that `awaits(token)` tells apart until a view is drawn. */
-  pending(message, displays, problem = false) {
+   * Returns a token that `awaits(token)` tells apart until a view is drawn; `subject`
+   * says whose state the view to come is (see `shows`). */
+  pending(message, displays, problem = false, subject = null) {
     this.displays = displays || {};
+    this.subject = subject;
     this.rows.clear();
     this.open.clear();
     this.root.replaceChildren(h("p", {class: problem ? "problem state-problem" : "muted"}, message));
@@ -53,6 +58,24 @@ export class StateEditor {
    * anew, which dropped what was typed and a field's "applied" mark. */
   awaits(token) {
     return token !== null && this.awaited === token;
+  }
+
+  /** Whether the fields of `subject`'s state are drawn (by a read or the live feed) with
+   * no problem above them: read again, the state is drawn into them; put back to "Reading
+   * its state…" they flickered (after a Restart the live feed drew them first). */
+  shows(subject) {
+    return subject !== null && this.subject === subject && this.awaited === null
+      && !!this.root.querySelector(":scope > [data-field]")
+      && !this.root.querySelector(":scope > .state-problem");
+  }
+
+  /** No fields and no line: nothing of one module's state is shown (several selected). */
+  clear() {
+    this.subject = null;
+    this.awaited = null;
+    this.rows.clear();
+    this.open.clear();
+    this.root.replaceChildren();
   }
 
   /** Refresh in place: what the user is typing is kept; a field whose kind changed is
