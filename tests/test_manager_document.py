@@ -1076,3 +1076,76 @@ def test_links_written_in_two_runs_are_saved_unchanged_byte_for_byte(tmp_path: P
         assert client.put("/api/document", json={"system": system}).status_code == 200
         assert client.post("/api/document/save", json={"overwrite": True}).status_code == 200
     assert path.read_text() == text
+
+
+# arrays of values written over several lines, a comment on an item's line or on a
+# line of its own: a list-valued state field, and links written as an array of inline
+# tables
+LISTS = '''\
+# lists commented item by item
+name = "lists"
+links = [
+    { from = "first.y", to = "second.x" },   # the chain
+    # and the way back
+    { from = "second.y", to = "first.x" },   # back
+]
+
+[modules.first]
+class = "examples.pipeline:Scale"
+
+[modules.second]
+class = "examples.pipeline:Scale"
+
+[modules.third]
+class = "examples.pipeline:Scale"
+
+[modules.held]
+class = "manager_modules:Holder"
+
+[modules.held.state]
+waypoints = [
+    [0.0, 0.0],   # the start
+    [1.0,  2.0],  # halfway
+    [2.0, 4.0],   # the end
+]
+'''
+
+
+def _waypoints(system: dict[str, Any]) -> list[Any]:
+    return system["modules"]["held"]["state"]["waypoints"]
+
+
+@pytest.mark.parametrize(("edit", "expected"), [
+    (lambda system: _waypoints(system)[1].__setitem__(1, 3.0),
+     LISTS.replace("[1.0,  2.0],  # halfway", "[1.0,  3.0],  # halfway")),
+    (lambda system: _waypoints(system).__setitem__(2, [5.0, 6.0]),
+     LISTS.replace("[2.0, 4.0],   # the end", "[5.0, 6.0],   # the end")),
+    (lambda system: _waypoints(system).pop(1),
+     LISTS.replace("    [1.0,  2.0],  # halfway\n", "")),
+    (lambda system: _waypoints(system).append([3.0, 6.0]),
+     LISTS.replace("# the end\n", "# the end\n    [3.0, 6.0],\n")),
+    (lambda system: system["links"][1].__setitem__("to", "third.x"),
+     LISTS.replace('{ from = "second.y", to = "first.x" }',
+                   '{ from = "second.y", to = "third.x" }')),
+    (lambda system: system["links"].pop(0),
+     LISTS.replace('    { from = "first.y", to = "second.x" },   # the chain\n', "")),
+], ids=["an item of an item", "an item", "an item removed", "an item added",
+        "an inline link's end", "an inline link removed"])
+def test_an_array_edited_item_by_item_keeps_the_comments_and_lines_of_the_others(
+        tmp_path: Path, edit: Any, expected: str) -> None:
+    """An array of values edited from the page (a list-valued state field, links written
+    as ``links = [{...}, ...]``) was written anew from its values: one item changed, the
+    comments on every item's line and on lines of their own were lost, and an array
+    written on several lines came back on one. It is edited item by item where each is:
+    the others keep their comments, the array its lines, byte for byte."""
+    path = tmp_path / "lists.toml"
+    path.write_text(LISTS)
+    with manager_client(Session(Document.open(path))) as client:
+        system = client.get("/api/document").json()["system"]
+        edit(system)
+        answer = client.put("/api/document", json={"system": system})
+        assert answer.status_code == 200 and answer.json()["problems"] == [], answer.text
+        assert client.get("/api/document/toml").text == expected
+        assert client.get("/api/document").json()["system"] == system
+    assert tomllib.loads(expected) == Document(expected).data()
+

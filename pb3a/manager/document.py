@@ -1,10 +1,11 @@
 """The configuration being edited: a TOML document that keeps what the user wrote.
 
 The document is held as a ``tomlkit`` document, not as plain dicts: an edit from
-the page (the whole system as JSON) is merged into it key by key, so entries that
-did not change keep their comments, order and formatting, and a file opened and
-saved unchanged is the same file (the round trip); the comments and blank lines around
-an entry added, removed, renamed or moved go as ``pb3a.manager.lines`` says. A table
+the page (the whole system as JSON) is merged into it key by key (an array of values
+item by item), so entries that did not change keep their comments, order and
+formatting, and a file opened and saved unchanged is the same file (the round trip);
+the comments and blank lines around an entry added, removed, renamed or moved go as
+``pb3a.manager.lines`` says. A table
 written in pieces (its headers apart in the file, or dotted keys) is edited piece by
 piece where each is (``_holders``). Problems are found
 as ``pb3a check`` finds them, with the same words: the document is read as a
@@ -28,7 +29,7 @@ from typing import Any
 
 import tomlkit
 from tomlkit.exceptions import TOMLKitError
-from tomlkit.items import AoT, InlineTable, Table
+from tomlkit.items import AoT, Array, InlineTable, Table
 from tomlkit.parser import Parser
 
 from pb3a.config.compiler import sketch_plan
@@ -317,6 +318,8 @@ def _merge(parts: Any, new: dict[str, Any], where: tuple[str, ...],
               and all(isinstance(old, AoT) for old in olds)
               and all(isinstance(item, dict) for item in value)):
             _merge_array(holders, value, place, root, moves)
+        elif isinstance(value, list) and len(olds) == 1 and isinstance(olds[0], Array):
+            _merge_values(olds[0], value, place, root)
         else:
             made = _item(value, place, any(isinstance(part, InlineTable) for part in parts),
                          moves)
@@ -472,6 +475,33 @@ def _merge_array(holders: list[tuple[Any, AoT]], new: list[dict[str, Any]],
         for part, array in holders:
             if not len(array):
                 part.__delitem__(where[-1])
+
+
+def _merge_values(array: Array, new: list[Any], where: tuple[str, ...], root: Any) -> None:
+    """An array of values (``[...]``, inline tables in it too) item by item, matched by
+    what they say, in place: the comment on an item's line stays with it, and the array
+    stays written on one line or on several, as it was (made anew from the values, an
+    edit of one item lost the comments of all and put the array on one line). An item
+    edited is set where it is (an inline table or array in it merged likewise)."""
+    held = [_text(_as_shown(_plain(item))) for item in array]
+    matcher = difflib.SequenceMatcher(None, held, [_text(_as_sent(value)) for value in new],
+                                      autojunk=False)
+    for tag, i1, i2, j1, j2 in reversed(matcher.get_opcodes()):   # later ones first
+        if tag == "equal":
+            continue
+        edited = min(i2 - i1, j2 - j1)
+        for index in range(edited):
+            old, value = array[i1 + index], new[j1 + index]
+            if isinstance(old, InlineTable) and isinstance(value, dict):
+                _merge(old, value, where, root)
+            elif isinstance(old, Array) and isinstance(value, list):
+                _merge_values(old, value, where, root)
+            else:
+                array[i1 + index] = _plain_item(value)
+        for index in reversed(range(i1 + edited, i2)):
+            del array[index]
+        for offset, value in enumerate(new[j1 + edited:j2]):
+            array.insert(i1 + edited + offset, _plain_item(value))
 
 
 def _brought(moves: lines.Carried | None, where: tuple[str, ...], values: list[Any]
