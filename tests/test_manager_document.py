@@ -1149,3 +1149,114 @@ def test_an_array_edited_item_by_item_keeps_the_comments_and_lines_of_the_others
         assert client.get("/api/document").json()["system"] == system
     assert tomllib.loads(expected) == Document(expected).data()
 
+
+# a module written in pieces under headers of its own, each commented: [modules.tick]
+# and its [modules.tick.state] apart, after the links (or before its header)
+TICK = '''\
+# the source
+[modules.tick]
+class = "examples.pipeline:Ticker"   # ticks
+node = "a"   # here
+
+'''
+TICK_STATE = '''\
+# where the ticker starts
+[modules.tick.state]
+count = 5   # not zero
+'''
+PIECES = f'''\
+# a module in pieces
+name = "pieces"
+
+[nodes.a]
+
+{TICK}# the scale
+[modules.scale]
+class = "examples.pipeline:Scale"
+
+# tick into the scale
+[[links]]
+from = "tick.out"
+to = "scale.x"
+
+{TICK_STATE}'''
+PIECES_GROUPED = '''\
+# a module in pieces
+name = "pieces"
+
+[nodes.a]
+
+# the scale
+[modules.scale]
+class = "examples.pipeline:Scale"
+
+# tick into the scale
+[[links]]
+from = "src.out"
+to = "scale.x"
+
+[modules.src]
+macro = "src"
+node = "a"
+
+# the source
+[macros.src.modules.tick]
+class = "examples.pipeline:Ticker"   # ticks
+
+# where the ticker starts
+[macros.src.modules.tick.state]
+count = 5   # not zero
+
+[macros.src.exports]
+out = "tick.out"
+
+'''
+
+
+INSTANCE_SRC = '[modules.src]\nmacro = "src"\nnode = "a"\n\n'
+STATE_FIRST = PIECES.replace(TICK, "").replace(TICK_STATE, "").replace(
+    "[nodes.a]\n\n", f"[nodes.a]\n\n{TICK_STATE}\n{TICK}")
+
+
+@pytest.mark.parametrize(("text", "expected"), [
+    (PIECES, PIECES_GROUPED),
+    (STATE_FIRST,
+     _replaced(PIECES_GROUPED, (INSTANCE_SRC, ""),      # (after the modules' last piece)
+               ("# tick into the scale\n", f"{INSTANCE_SRC}# tick into the scale\n")))],
+    ids=["its state after the links", "its state before its header"])
+def test_a_module_written_in_pieces_grouped_into_a_macro_keeps_the_comments_of_each(
+        tmp_path: Path, text: str, expected: str) -> None:
+    """A module whose table is written in pieces (``[modules.tick]`` and its
+    ``[modules.tick.state]`` apart, each with its comments) grouped into a macro was made
+    anew there from its values: every comment on it lost, its state written inline. Its
+    pieces go into the macro's table together, the header's first, each with the
+    comments above it and on its lines, byte for byte; the file reads back as the
+    document and ``pb3a check`` accepts it."""
+    path = tmp_path / "pieces.toml"
+    path.write_text(text)
+    with manager_client(Session(Document.open(path))) as client:
+        system = client.get("/api/document").json()["system"]
+        system["macros"] = {}
+        _grouped_tick(system)
+        system["links"] = [{"from": "src.out", "to": "scale.x"}]
+        answer = client.put("/api/document", json={"system": system})
+        assert answer.status_code == 200 and answer.json()["problems"] == [], answer.text
+        assert client.get("/api/document/toml").text == expected
+        assert client.get("/api/document").json()["system"] == system
+    assert tomllib.loads(expected) == system and Document(expected).problems() == []
+
+
+def test_a_module_written_in_pieces_removed_takes_the_comments_of_each_piece() -> None:
+    """``[modules.tick.state]`` written before ``[modules.tick]``: the comment above the
+    header is read as the end of the state's table, and removing the module kept it
+    there as the next section's, alone above nothing of its own. Each piece goes with
+    the comments directly above it."""
+    document = Document(STATE_FIRST)
+    system = document.data()
+    del system["modules"]["tick"]
+    system["links"] = []
+    document.replace(copy.deepcopy(system))
+    assert document.toml() == _replaced(
+        STATE_FIRST, ('name = "pieces"\n', 'name = "pieces"\nlinks = []\n'),
+        (f"{TICK_STATE}\n{TICK}", "")).split("\n# tick into the scale")[0] + "\n"
+    assert document.data() == system

@@ -528,11 +528,17 @@ def _carried(root: Any, held: dict[str, Any], new: dict[str, Any]) -> lines.Carr
     for there, here in _moved(held, new).items():
         if here in after:                       # copied, not moved: its lines stay
             continue
-        found = _holders_at(root, here)      # (one written in pieces is made anew there)
-        item = found[0] if len(found) == 1 else None
-        if isinstance(item, (Table, InlineTable)) and isinstance(after[there], dict):
-            _merge(item, after[there], there, root)
-            moves.take(root, item, there)
+        found = _holders_at(root, here)
+        if not isinstance(after[there], dict):
+            continue
+        if len(found) == 1 and isinstance(found[0], (Table, InlineTable)):
+            _merge(found[0], after[there], there, root)
+            moves.take(root, found[0], there)
+        elif len(found) > 1 and lines.Carried.pieces(root, found):
+            # ([modules.a] and [modules.a.state] apart: taken together, each piece's
+            # comments with it; one in dotted keys is made anew there)
+            _merge(found, after[there], there, root)
+            moves.take(root, found, there)
     for there, text, item in _moved_entries(root, held, new):
         moves.take(root, item, there, text)
     return moves

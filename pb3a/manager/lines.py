@@ -84,16 +84,23 @@ def drop(root: Any, items: list[Any], delete: Any) -> None:
     spans = sorted(span for span in (_span(tokens, item) for item in items) if span[0] >= 0)
     gone = {at for start, end in spans for at in range(start, end + 1)}
     stays: dict[int, list[Any]] = {}        # the line they go after -> the lines kept
+    found = []
     for start, end in spans:        # (none in an inline table: no lines of their own)
         lead, blank, own, kept, last = _lines(tokens, tokens[start][3], start, end)
         if (kept and isinstance(tokens[kept[0]][3], Whitespace)) or (not kept and last):
             lead = blank + lead                 # what follows has its own blank line
-        for at in (*lead, *own):
+        found.append((start, end, [*lead, *own], kept))
+    # (a line inside one piece that is the next one's, `[modules.a.state]` then the
+    # comment above `[modules.a]`, goes with that one: not kept as well)
+    taken = {at for _, _, theirs, _ in found for at in theirs}
+    for start, end, theirs, kept in found:
+        for at in theirs:
             _, container, index, _ = tokens[at]
             container.body[index] = (None, Null())
         anchor = next((at for at in reversed(range(start)) if at not in gone
                        and tokens[at][0] in ("solid", "trivia")), -1)
-        stays.setdefault(anchor, []).extend(tokens[at][3] for at in kept if start < at < end)
+        stays.setdefault(anchor, []).extend(tokens[at][3] for at in kept
+                                            if start < at < end and at not in taken)
     delete()
     for anchor, inside in sorted(stays.items(), reverse=True):
         _, container, index, _ = tokens[anchor] if anchor >= 0 else ("solid", root, -1, None)
@@ -257,9 +264,11 @@ class Carried:
 
     def take(self, root: Any, item: Any, where: tuple[str, ...], text: str | None = None
              ) -> None:
-        """Take ``item`` of document ``root`` to put at ``where``: a table, or with
-        ``text`` (what it says) an entry of the array of tables there."""
-        carried = self._lift(root, item)
+        """Take ``item`` of document ``root`` to put at ``where``: a table (or the list
+        of the pieces a table is written in, ``pieces``), or with ``text`` (what it
+        says) an entry of the array of tables there."""
+        carried = self._lift_pieces(root, item) if isinstance(item, list) \
+            else self._lift(root, item)
         if text is None:
             self.tables[where] = carried
         else:
@@ -297,6 +306,50 @@ class Carried:
             indent = carried.trivia.indent
             blank = indent[:len(indent) - len(indent.lstrip("\n"))]
             carried.trivia.indent = blank + comments + indent[len(blank):]
+
+    @staticmethod
+    def pieces(root: Any, items: list[Any]) -> bool:
+        """Whether ``items`` are the pieces of one table of document ``root`` under
+        headers of their own (``[modules.a]``, other tables, then ``[modules.a.state]``),
+        which ``take`` moves together; not a table in dotted keys (``a.class = ...``)."""
+        tokens = _tokens(root)
+        for item in items:
+            start = _span(tokens, item)[0] if isinstance(item, Table) \
+                and not isinstance(item, InlineTable) else -1
+            if start < 0 or tokens[start][1] is not None:       # (a dotted key's: inline)
+                return False
+        # one piece under the table's own header, the others holding its tables only
+        return sum(not item.is_super_table() for item in items) == 1
+
+    def _lift_pieces(self, root: Any, pieces: list[Any]) -> Any:
+        """One copy of a table written in ``pieces`` (see ``pieces``), to put in elsewhere
+        whole: the first one's copy (``_lift``), then each later one's lines, the
+        comments directly above it before its first line (grouped into a macro, such a
+        module was made anew from its values, every comment on it lost). The piece
+        under the table's header comes first wherever it was: the keys it holds go
+        before the tables of the others."""
+        first, *rest = sorted(pieces, key=lambda piece: piece.is_super_table())
+        carried = self._lift(root, first)
+        for piece in rest:
+            part = self._lift(root, piece)
+            lead = self.leads.pop(id(part))[1]
+            body = [(name, line) for name, line in part.value.body if not isinstance(line, Null)]
+            head = next((line for name, line in body if name is not None), None)
+            if head is not None and lead:       # (as lead_in puts them above a header)
+                indent = head.trivia.indent
+                blank = indent[:len(indent) - len(indent.lstrip("\n"))]
+                head.trivia.indent = blank + lead + indent[len(blank):]
+            # a blank line after its last table (the one _lift gives it) is one too
+            # many when that table ends with its own; the last one is seen to below
+            while len(body) > 1 and isinstance(body[-1][1], Whitespace) \
+                    and isinstance(body[-2][1], Table):
+                body.pop()
+            for name, line in body:
+                carried.value.append(name, line)
+        last = _last_table(carried)     # a blank line before what follows, one
+        if not any(isinstance(line, Whitespace) for _, line in last.value.body[-1:]):
+            last.add(tomlkit.nl())
+        return carried
 
     def _lift(self, root: Any, item: Any) -> Any:
         """A copy of ``item`` with its own lines (``_lines``), to put in elsewhere; the
