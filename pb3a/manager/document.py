@@ -454,13 +454,8 @@ def _merge_array(holders: list[tuple[Any, AoT]], new: list[dict[str, Any]],
                 remove(array, index)
     brought = _brought(moves, where, new)
     rest = [value for index, value in enumerate(new) if index not in brought]
-    held = [_text(_as_shown(_plain(array[index]))) for array, index in entries()]
-    matcher = difflib.SequenceMatcher(None, held, [_text(_as_sent(value)) for value in rest],
-                                      autojunk=False)
-    for tag, i1, i2, j1, j2 in reversed(matcher.get_opcodes()):   # later ones first
-        if tag == "equal":
-            continue
-        edited = min(i2 - i1, j2 - j1)
+    held = [array[index] for array, index in entries()]
+    for i1, i2, j1, j2, edited in _edits(held, rest):
         at = entries()
         for index in range(edited):
             array, inside = at[i1 + index]
@@ -477,19 +472,25 @@ def _merge_array(holders: list[tuple[Any, AoT]], new: list[dict[str, Any]],
                 part.__delitem__(where[-1])
 
 
+def _edits(held: list[Any], new: list[Any]) -> list[tuple[int, int, int, int, int]]:
+    """How the items ``held`` in the document become the ``new`` ones the page sent,
+    matched by what they say: ``(i1, i2, j1, j2, edited)`` for each run that differs,
+    the later ones first (so that the indices of those before stay true); its first
+    ``edited`` items are edited in place, the rest of ``held[i1:i2]`` removed and the
+    rest of ``new[j1:j2]`` inserted."""
+    matcher = difflib.SequenceMatcher(None, [_text(_as_shown(_plain(item))) for item in held],
+                                      [_text(_as_sent(value)) for value in new], autojunk=False)
+    return [(i1, i2, j1, j2, min(i2 - i1, j2 - j1))
+            for tag, i1, i2, j1, j2 in reversed(matcher.get_opcodes()) if tag != "equal"]
+
+
 def _merge_values(array: Array, new: list[Any], where: tuple[str, ...], root: Any) -> None:
     """An array of values (``[...]``, inline tables in it too) item by item, matched by
     what they say, in place: the comment on an item's line stays with it, and the array
     stays written on one line or on several, as it was (made anew from the values, an
     edit of one item lost the comments of all and put the array on one line). An item
     edited is set where it is (an inline table or array in it merged likewise)."""
-    held = [_text(_as_shown(_plain(item))) for item in array]
-    matcher = difflib.SequenceMatcher(None, held, [_text(_as_sent(value)) for value in new],
-                                      autojunk=False)
-    for tag, i1, i2, j1, j2 in reversed(matcher.get_opcodes()):   # later ones first
-        if tag == "equal":
-            continue
-        edited = min(i2 - i1, j2 - j1)
+    for i1, i2, j1, j2, edited in _edits(list(array), new):
         for index in range(edited):
             old, value = array[i1 + index], new[j1 + index]
             if isinstance(old, InlineTable) and isinstance(value, dict):
