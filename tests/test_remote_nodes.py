@@ -389,7 +389,8 @@ def test_a_stop_delivered_late_leaves_the_next_launch_s_executor_running(monkeyp
 def test_a_class_the_remote_node_cannot_import_is_named_with_the_node(tmp_path,
                                                                        monkeypatch) -> None:
     """A module class the launcher's machine has and the node's does not failed the launch
-    naming "the process at tcp://127.0.0.1:40733": the node's executor, named so."""
+    naming "the process at tcp://127.0.0.1:40733": the node, its address and the module
+    are named, and what to do on that machine."""
     (tmp_path / "only_on_the_launcher.py").write_text(
         "from pb3a import Module\n\nclass Local(Module):\n    period = 0.1\n")
     monkeypatch.syspath_prepend(str(tmp_path))
@@ -398,9 +399,9 @@ def test_a_class_the_remote_node_cannot_import_is_named_with_the_node(tmp_path,
     try:
         system = System("missing").node("a").node("b", address=daemon.address)
         system.add("local", Local, node="b")
-        with pytest.raises(RuntimeFailure, match=r"names Python module 'only_on_the_launcher', "
-                                                 r"which node b's executor at tcp://\S+ cannot "
-                                                 r"import: install it on that machine"):
+        with pytest.raises(RuntimeFailure, match=r"node b \(tcp://\S+\): module 'local', class "
+                                                 r"'only_on_the_launcher:Local': cannot import "
+                                                 r".*: install it there"):
             system.launch()
     finally:
         daemon.stop()
@@ -422,15 +423,82 @@ def test_a_class_the_remote_node_cannot_get_from_its_module_server_says_why(
         system = System("unserved", module_servers=["tcp://no-such-host.invalid:7300"])
         system.node("a").node("b", address=daemon.address)
         system.add("local", Local, node="b")
-        with pytest.raises(RuntimeFailure, match=r"names Python module 'only_here_not_served', "
-                                                 r"which node b's executor at tcp://\S+ cannot "
-                                                 r"import: .*; module server "
+        with pytest.raises(RuntimeFailure, match=r"node b \(tcp://\S+\): module 'local', class "
+                                                 r"'only_here_not_served:Local': cannot import "
+                                                 r".*; module server "
                                                  r"tcp://no-such-host\.invalid:7300 is not "
                                                  r"reached from this machine: no address is "
                                                  r"known for host 'no-such-host\.invalid'"):
             system.launch()
     finally:
         daemon.stop()
+
+
+_SINK = ("from pb3a import Input, Module\n\n\nclass Sink(Module):\n    x = Input(int)\n"
+         "    period = 0.1\n\n\nclass Other(Module):\n    period = 0.1\n")
+
+
+def test_every_class_a_remote_node_cannot_load_is_named_before_anything_starts(
+        tmp_path, monkeypatch) -> None:
+    """Each remote node loads the classes of its own modules before any module is added
+    anywhere, side by side; every one it cannot load is named at once, with its node,
+    module and class, and what to fix. The launch stopped at the first node that could
+    not read a request naming one ("a request could not be read by node b's executor:
+    AttributeError: Can't get attribute 'Sink'"), saying nothing of the others."""
+    here, robot = tmp_path / "launcher", tmp_path / "robot"
+    here.mkdir()
+    robot.mkdir()
+    for name in ("lacks_class", "fails_import", "needs_dependency", "only_on_launcher"):
+        (here / f"{name}.py").write_text(_SINK)
+    (robot / "lacks_class.py").write_text(_SINK.replace("class Sink", "class Sonk"))
+    (robot / "fails_import.py").write_text("from os import no_such_name\n" + _SINK)
+    (robot / "needs_dependency.py").write_text("import no_such_dependency\n" + _SINK)
+    (here / "marks.py").write_text(
+        "from pb3a import Module, Output\n\n\nclass Marks(Module):\n    out = Output(int)\n"
+        "    period = 0.1\n    path = ''\n\n    def setup(self):\n"
+        "        open(self.path, 'w').close()\n")
+    monkeypatch.syspath_prepend(str(here))
+    daemons = Daemon.several("b", "c", path=(str(robot),))
+    marker = tmp_path / "started"               # (the embedded node's module, set up)
+    try:
+        system = System("unloadable").node("a")
+        for name, daemon in daemons.items():
+            system.node(name, address=daemon.address)
+        system.add("here", "marks:Marks", node="a", state={"path": str(marker)})
+        system.add("mapper", "lacks_class:Sink", node="b")
+        system.add("fine", "lacks_class:Other", node="b")
+        system.add("planner", "fails_import:Sink", node="b")
+        system.add("driver", "needs_dependency:Sink", node="c")
+        system.add("camera", "only_on_launcher:Sink", node="c")
+        system.link("here.out", "mapper.x")
+        began = time.monotonic()
+        with pytest.raises(RuntimeFailure) as raised:
+            system.launch(timeout=10)
+        took = time.monotonic() - began
+        said = str(raised.value)
+        assert said.startswith("system 'unloadable' was not started: 4 classes cannot be "
+                               "loaded on the nodes that run them (no module was started)")
+        b, c = daemons["b"].address, daemons["c"].address
+        for line in (
+                f"node b ({b}): module 'mapper', class 'lacks_class:Sink': module "
+                "'lacks_class' has no class 'Sink' (did you mean 'Sonk'?)",
+                f"node b ({b}): module 'planner', class 'fails_import:Sink': importing "
+                f"module 'fails_import' for 'fails_import:Sink' failed at "
+                f"{robot / 'fails_import.py'}, line 1: cannot import name 'no_such_name'",
+                f"node c ({c}): module 'driver', class 'needs_dependency:Sink': importing "
+                f"module 'needs_dependency' for 'needs_dependency:Sink' failed at "
+                f"{robot / 'needs_dependency.py'}, line 1: No module named "
+                "'no_such_dependency'; install 'no_such_dependency' or correct that import",
+                f"node c ({c}): module 'camera', class 'only_on_launcher:Sink': cannot "
+                "import module 'only_on_launcher' for 'only_on_launcher:Sink'"):
+            assert f"\n  {line}" in said, (line, said)
+        assert "this node's machine lacks it: install it there" in said
+        assert "'fine'" not in said and "'here'" not in said
+        assert took < 10, took         # (two executors start, then one check each)
+        assert not marker.exists()
+    finally:
+        for daemon in daemons.values():
+            daemon.stop()
 
 
 def test_a_node_whose_controller_has_another_name_is_the_configuration_s_node() -> None:

@@ -33,6 +33,7 @@ from pb3a.deadline import bounding
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
 from pb3a.logbook import LogBook
+from pb3a.node.class_check import unloadable
 from pb3a.node.executor import LOCK_TIMEOUT, Executor
 from pb3a.node.protocol import REMOTE_OPERATIONS
 from pb3a.node.remote import LEASE_S
@@ -110,6 +111,8 @@ class NodeShare:
                       args["code"], args.get("lease_s", LEASE_S), args.get("epoch", 0),
                       args.get("node_epoch", 1), args.get("spares", DEFAULT_SPARES))
             return None
+        if op == "unloadable":      # before any module: see pb3a.node.class_check
+            return unloadable(args["refs"], ex.imports, args["timeout"], args["longer"])
         if op == "peers":
             self.meet(args["peers"])
             return None

@@ -38,6 +38,7 @@ from pb3a.errors import ModuleNotFound, RuntimeFailure, RuntimeTimeout
 from pb3a.events import EventLog
 from pb3a.latencies import percentile
 from pb3a.launch.configuration_lock import ConfigurationLock
+from pb3a.loading.references import by_reference, class_ref
 from pb3a.logbook import LogBook
 from pb3a.model.environment import env_name
 from pb3a.node.bridge import NoHandshake
@@ -64,6 +65,9 @@ ENV_TOLD = 256          # the latest moves (and losses) the env modules are give
 REJOIN_S = 1.0          # how often it asks a lost node's controller whether it is back
 PLACE_TIMEOUT = 0.5     # a controller's answer about its load and admission
 STOP_TIMEOUT = 5.0      # a module's teardown when it is removed
+# how to give a launch's check of the nodes' classes more time
+LAUNCH_LONGER = ("give the system a longer timeout (timeout = SECONDS at the top of its "
+                 "file, or launch(timeout=...))")
 
 
 class Launcher:
@@ -136,6 +140,47 @@ class Launcher:
         self._watchdog = threading.Thread(target=self._watch, name="pb3a-heartbeat",
                                           daemon=True)
         self._watchdog.start()
+
+    def check_classes(self, timeout: float) -> None:
+        """Have every remote node load the classes of the modules it is to run, all nodes
+        side by side, before any module is added anywhere: ``RuntimeFailure`` naming
+        each class some node cannot load (the node, the module, the class, why and what
+        to do), within ``timeout`` seconds. It was found as the first node that could
+        not read a request naming one, in words that named no module and no file, and
+        one that hung held the launch up for a minute. The embedded nodes run in this
+        process, which loaded every class as the plan was made: they are not asked."""
+        asked = {node: {spec.name: class_ref(spec.cls) for spec in self.plan.modules.values()
+                        if spec.node == node and by_reference(spec.cls)}
+                 for node in self.remotes}
+        answers: dict[str, dict[str, str]] = {}
+
+        def ask(node: str) -> None:
+            try:
+                answers[node] = self.remotes[node].unloadable(asked[node], timeout,
+                                                              LAUNCH_LONGER)
+            except (RuntimeFailure, RuntimeTimeout) as exc:
+                answers[node] = {"": f"it did not say whether it loads them: {exc}"}
+
+        threads = [threading.Thread(target=ask, args=(node,), name=f"pb3a-classes-{node}",
+                                    daemon=True) for node, refs in asked.items() if refs]
+        for thread in threads:
+            thread.start()
+        for thread in threads:      # (each call is bounded by ``timeout``: this is slack)
+            thread.join(timeout + 1.0)
+        problems = []
+        for node, refs in asked.items():
+            silent = {"": f"it did not answer within {timeout:g} s"} if refs else {}
+            for name, why in answers.get(node, silent).items():
+                address = self.plan.nodes[node].address
+                problems.append(
+                    f"node {node} ({address}): {why}" if not name else
+                    f"node {node} ({address}): module {name!r}, class {refs[name]!r}: {why}")
+        if problems:
+            which = ("1 class cannot be loaded on the node that runs it" if len(problems) == 1
+                     else f"{len(problems)} classes cannot be loaded on the nodes that run them")
+            raise RuntimeFailure("\n  ".join([
+                f"system {self.plan.name!r} was not started: {which} (no module was "
+                "started):", *problems]))
 
     def _start_remote_node(self, name: str, node_epoch: int) -> RemoteNode:
         """Have node ``name``'s controller start an executor for this system."""

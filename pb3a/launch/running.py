@@ -113,6 +113,7 @@ class Running(SystemHandle):
                 if self._listen_at is not None or remote:
                     self.listen(self._listen_at or f"tcp://{self._here_towards_nodes()}:0")
                 launcher.start_nodes(self.address if remote else None)
+                launcher.check_classes(self._operations.timeout)
                 launcher.expect(list(self.plan.modules.values()))
                 for spec in self.plan.modules.values():
                     launcher.add_module(spec)

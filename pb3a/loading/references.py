@@ -31,6 +31,14 @@ def class_ref(cls: type) -> str:
     return f"{cls.__module__}:{cls.__qualname__}"
 
 
+def by_reference(cls: type) -> bool:
+    """Whether ``cls`` travels to another process by reference (its ``class_ref``, which
+    the far side imports), not by value: a class of an importable module's top level,
+    not of a script run as ``__main__`` nor defined inside a function (those are
+    pickled whole, code and all; see ``pb3a.transport.pickling``)."""
+    return cls.__module__ != "__main__" and "<locals>" not in cls.__qualname__
+
+
 def resolve_class(ref: str | type, *, watch: ImportWatch | None = None) -> type:
     """The class ``ref`` names: a class is returned as is, a ``"module:Class"`` is imported.
 

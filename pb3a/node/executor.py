@@ -33,6 +33,7 @@ from pb3a.errors import ConfigError, PB3AError, RuntimeFailure, RuntimeTimeout
 from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
 from pb3a.node.bridge import READY_TIMEOUT, Bridge
+from pb3a.node.class_check import ImportLane
 from pb3a.node.protocol import Endpoint, Reached
 from pb3a.node.resources import ResourceMeter
 from pb3a.node.restarts import RestartBudget
@@ -117,7 +118,8 @@ class Executor:
         self.rings: dict[str, ShmRing] = {}
         self.failures = FailureLog(log)               # what went wrong, for stats and logs
         self.meter = ResourceMeter(cpus)              # the machine's CPU and memory
-        self.import_lock = threading.Lock()           # background imports vs requests
+        self.imports = ImportLane()                   # background imports vs requests
+        self.import_lock = self.imports.lock
         self.handler: Any = None                      # applies agents' requests (op, args)
         self.republished: Any = None                  # told (link, endpoint) after a restart
         self.on_event: Any = None                     # told (kind, module, detail): restarts
@@ -167,7 +169,7 @@ class Executor:
         # This process resolves the classes of modules that come to the node (a move,
         # an add): import them now, in the background, not in a move's critical path;
         # one at a time under ``import_lock``, which requests are decoded under too.
-        threading.Thread(target=_import_quietly, args=(code.preload, self.import_lock),
+        threading.Thread(target=_import_quietly, args=(code.preload, self.imports),
                          name="pb3a-preload", daemon=True).start()
 
     @property
@@ -1205,11 +1207,11 @@ def _topic(link: FlatLink) -> str:
     return f"{link.src}.{link.src_port}"
 
 
-def _import_quietly(modules: tuple[str, ...], lock: threading.Lock) -> None:
-    """Import ``modules``, each holding ``lock``; one that fails is left to fail, with
-    its message, when a module of it is added."""
+def _import_quietly(modules: tuple[str, ...], lane: ImportLane) -> None:
+    """Import ``modules``, each in ``lane``; one that fails is left to fail, with its
+    message, when a module of it is added (or when the launch checks its classes)."""
     for name in modules:
-        with lock, contextlib.suppress(Exception):
+        with lane.importing(name), contextlib.suppress(Exception):
             importlib.import_module(name)
 
 

@@ -334,6 +334,15 @@ class RemoteNode:
         """True if the node's controller answered within ``timeout`` seconds."""
         return self.controller.ping(timeout) is not None
 
+    def unloadable(self, refs: dict[str, str], timeout: float, longer: str) -> dict[str, str]:
+        """Which of ``refs`` (module name -> ``"module:Class"``) the node's executor cannot
+        load, each with why, answered within ``timeout`` seconds (see
+        ``pb3a.node.class_check``; ``longer``: how to give it more time)."""
+        if self.client is None or self.lost:
+            raise RuntimeFailure(f"node {self.name} is lost")
+        return self.client.request("unloadable", {
+            "refs": refs, "timeout": before_answer(timeout), "longer": longer}, timeout)
+
     def meet(self, peers: dict[str, str]) -> None:
         """Have the node measure its RTT to each peer (name -> control address)."""
         if self.client is not None and not self.lost:
