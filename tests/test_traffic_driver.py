@@ -496,3 +496,27 @@ def test_re_pointed_at_a_network_with_junctions_no_controller_answers_it_refuses
         eventually(lambda: run.state("sumo")["junctions"] == sorted(      # nothing to answer
             ["N1", "N2", "E", "S2", "S1", "W"]), timeout=30, what="the ring to start")
         assert run.state("sumo")["result"]["resource"] == CROSS
+
+
+def test_a_junction_whose_controller_was_removed_is_named_at_the_next_simulation(
+        cache: Path) -> None:
+    """A controller removed from a running system leaves its junction's slot unfed: the
+    next simulation (a new demand scale) is refused, naming that junction. The check
+    read the input's ``source``, which its unlink kept, so it took the slot for fed, and
+    every step would have waited lockstep_timeout_s for a controller that is gone."""
+    system = System("traffic-removed")
+    system.add("sumo", TrafficDriver, state={"resource": RING, "cache_dir": str(cache),
+                                             "duration_s": 36000.0})
+    for slot in range(6):
+        system.add(f"signal_{slot}", PhaseAlternator, state={"hold": 20})
+        system.link(f"sumo.reading_{slot}", f"signal_{slot}.reading")
+        system.link(f"signal_{slot}.request", f"sumo.request_{slot}")
+    with system.launch() as run:
+        eventually(lambda: run.state("sumo")["step_count"] > 10, timeout=60,
+                   what="the ring's run to go")
+        run.remove("signal_5")
+        with pytest.raises(Exception, match=re.escape(
+                "ring.toml: no controller answers 1 of its 6 signalized junctions: W "
+                "(request_5); no link feeds their slots' requests")):
+            run.set_state("sumo", {"demand_scale": {"*": 2.0}})
+        assert run.state("sumo")["status"] == "running"

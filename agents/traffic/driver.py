@@ -290,7 +290,7 @@ class TrafficDriver(_JunctionSlots, Module):
             raise ValueError(f"{resource} has {len(junctions)} signalized junctions; the "
                              f"driver has slots for {MAX_JUNCTIONS}")
         if not settings["own_programs"]:
-            fed = [bool(getattr(self, f"request_{slot}").source)
+            fed = [bool(getattr(self, f"request_{slot}").linked)
                    for slot in range(MAX_JUNCTIONS)]
             alone = [f"{junction} (request_{slot})" for slot, junction in enumerate(junctions)
                      if not fed[slot]]

@@ -199,7 +199,8 @@ class InputPort:
         self.latency = math.nan      # smoothed seconds from write to delivery
         self.latency_counts = [0] * latencies.BUCKETS   # values per latency bucket
         self.rate = 0.0              # smoothed values per second
-        self.source = ""             # the link that feeds it (its counters are that link's)
+        self.source = ""             # the link its counters are of (kept once unlinked)
+        self.linked: set[str] = set()  # the links that feed it now (an unlink drops one)
         self._values: collections.deque[Any] = collections.deque()
         self._latest: Any = _MISSING
         self._fresh = False
@@ -454,6 +455,14 @@ class InputPort:
                 self.latency = self._last_arrival = math.nan
                 self.rate, self._window_start = 0.0, -math.inf
             self.source = link
+            self.linked.add(link)
+
+    def unfed_by(self, link: str) -> None:
+        """``link`` feeds the port no more (it was unlinked). Its counters stay, and
+        ``source`` with them: a new link starts them again (``fed_by``); ``linked``
+        says whether any link feeds it now (``source`` said so after an unlink too)."""
+        with self._lock:
+            self.linked.discard(link)
 
     def export(self) -> dict[str, Any]:
         """Unconsumed values and counters, for a migration (see ``restore``)."""

@@ -514,6 +514,7 @@ class Worker:
         link = self.inbound.pop(key, None)
         if link is None:
             return 0
+        link.port.unfed_by(key)
         self._inbound_changed()
         return link.close()
 
@@ -589,6 +590,10 @@ class Worker:
         src, src_port, ring, pull = entry
         if src in self.actors:
             self.actors[src].outputs[src_port].disconnect(key)
+        if ring is None:                # in memory: the reader's input is in this worker
+            for actor in self.actors.values():
+                for port in actor.inputs.values():
+                    port.unfed_by(key)
         if ring is not None:
             ring.close()
         if pull is not None:
