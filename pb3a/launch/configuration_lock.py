@@ -10,6 +10,10 @@ whose ``setup`` asks the runtime would wait for the lock in turn, each for the o
 So the holder lends the lock to the modules it starts (``held(..., lend=names)``):
 while it holds, requests of theirs that change nothing may run as its ``guest``, one
 at a time.
+
+A change may leave part of its work running past its hold (undoing a move whose
+module's worker is still busy: ``carry_on``): until that part ends, every other wait
+for the lock waits for it too, so no later change races it.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ from typing import TYPE_CHECKING
 from pb3a.errors import RuntimeTimeout
 
 if TYPE_CHECKING:
-    from collections.abc import Collection, Iterator
+    from collections.abc import Callable, Collection, Iterator
 
 DEFAULT_TIMEOUT = 60.0      # longest a change waits for the one in progress
 
@@ -36,6 +40,10 @@ class ConfigurationLock:
         self._doing: list[tuple[str, float]] = []     # (what, since), outermost first
         self._lent: frozenset[str] = frozenset()      # modules the holder lends it to
         self._guests = threading.Lock()               # one guest at a time
+        self._owner: int | None = None                # the holder's thread ident
+        # work a change left running past its hold (``carry_on``): thread -> (what, since)
+        self._tails: dict[threading.Thread, tuple[str, float]] = {}
+        self._tails_changed = threading.Condition()
 
     @contextlib.contextmanager
     def held(self, what: str, timeout: float | None = None, *,
@@ -68,14 +76,36 @@ class ConfigurationLock:
         finally:
             self._guests.release()
 
+    def carry_on(self, what: str, work: Callable[[], None]) -> threading.Thread:
+        """Run ``work`` (part of the change that holds the lock: undoing it, say) on a
+        thread of its own, which may outlast the hold: until ``work`` returns, every
+        other wait for the lock waits for it too. Asked by the holder, under the lock
+        (so that no other change comes in between); the thread, started."""
+        if self._owner != threading.get_ident():
+            raise RuntimeError(f"{what}: carried on by a thread that does not hold the "
+                               "configuration lock")
+
+        def run() -> None:
+            try:
+                work()
+            finally:
+                with self._tails_changed:
+                    del self._tails[thread]
+                    self._tails_changed.notify_all()
+        thread = threading.Thread(target=run, name="pb3a-carry-on", daemon=True)
+        with self._tails_changed:
+            self._tails[thread] = (what, time.monotonic())
+        thread.start()
+        return thread
+
     def doing(self) -> str:
         """What the holder does, quoted ("'add spy'"), or "nothing"."""
         doing = self._doing[:1]
         return repr(doing[0][0]) if doing else "nothing"
 
     def holder(self) -> str:
-        """What holds the lock, in words."""
-        doing = self._doing[:1]
+        """What holds the lock, in words (work a change left running, if none)."""
+        doing = self._doing[:1] or list(self._tails.values())[:1]
         if not doing:
             return "nothing holds now"
         what, since = doing[0]
@@ -90,11 +120,37 @@ class ConfigurationLock:
 
     def _acquire(self, what: str, timeout: float | None) -> None:
         wait = self.timeout if timeout is None else timeout
-        if not self._lock.acquire(timeout=wait):
-            raise RuntimeTimeout(f"{what}: waited {wait:g} s for the system's configuration "
-                                 f"lock, which {self.holder()}; try again when it is done")
+        deadline = time.monotonic() + wait
+        while True:
+            if not self._after_tails(deadline) or not self._lock.acquire(
+                    timeout=max(0.0, deadline - time.monotonic())):
+                raise RuntimeTimeout(f"{what}: waited {wait:g} s for the system's "
+                                     f"configuration lock, which {self.holder()}; try "
+                                     "again when it is done")
+            # (a tail is begun under the lock only: none can begin once it is held)
+            if self._owner == threading.get_ident() or not self._others_tails():
+                break
+            self._lock.release()
+        if not self._doing:
+            self._owner = threading.get_ident()
         self._doing.append((what, time.monotonic()))
+
+    def _after_tails(self, deadline: float) -> bool:
+        """Wait until no work a change left running (``carry_on``) runs, but this
+        thread's own, or its holder's, up to ``deadline``; whether none does."""
+        if self._owner == threading.get_ident():
+            return True                 # (re-entered: what it left running it waits for)
+        with self._tails_changed:
+            return self._tails_changed.wait_for(
+                lambda: not self._others_tails(), max(0.0, deadline - time.monotonic()))
+
+    def _others_tails(self) -> bool:
+        """Whether work a change left running runs on a thread other than this one."""
+        me = threading.current_thread()
+        return any(thread is not me for thread in list(self._tails))   # (one copy, atomic)
 
     def _release(self) -> None:
         self._doing.pop()
+        if not self._doing:
+            self._owner = None
         self._lock.release()

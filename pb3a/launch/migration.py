@@ -42,13 +42,18 @@ The caller's ``timeout`` bounds every step (``_Clock``, ``pb3a.deadline``): befo
 capture a step out of time undoes the move as any failure there; once captured, the
 landing gets at least ``LANDING_FLOOR_S``; the start at the destination is the point
 of no return, and a ``setup`` still running when the time is up is left to finish
-there (``MovedLate``). Undoing keeps its own deadlines, not the caller's.
+there (``MovedLate``). Undoing keeps its own deadlines, not the caller's, on a
+thread of its own (``_Undoing``): the call waits for it ``UNDO_GRACE_S`` beyond its
+time at most; an undo still running then (a worker still busy in a ``teardown`` that
+overran) goes on, every later change waiting for it (``ConfigurationLock.carry_on``),
+and the error says so.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
+import threading
 import time
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
@@ -65,6 +70,9 @@ LANDING_FLOOR_S = 0.5
 # A step's RuntimeTimeout this close to the end of its time is the call's timeout
 # running out (a worker gives up its answer's margin before: ``deadline.before_answer``).
 RAN_OUT_SLACK_S = 0.3
+# How long beyond its time (its timeout, or the landing's floor) a failed move waits for
+# its undo: one that takes longer (a worker still busy) goes on after the call returns.
+UNDO_GRACE_S = 0.25
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterator
@@ -203,13 +211,15 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
                     snapshots[name] = leaving.retire(name, segments[name], carry)
             laps.mark("retire")
         except BaseException as exc:
-            with lifted():                      # (the undo keeps its own deadlines)
+            def undo() -> None:
                 for name in moving:
                     _quietly(arriving.remove_module, name)
                 if unwiring and not unwired:         # (a part may be wired still)
                     for link in links:
                         _quietly(launcher.detach, link)
                 _put_back(launcher, homes, snapshots, links, paused, rewire=unwiring)
+            if not _Undoing(launcher, clock, undo, afterwards).ended():
+                _unmoved_yet(exc, homes)
             _unmoved(exc, homes)
             raise
         for name in moving:
@@ -223,9 +233,10 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
         except (RuntimeFailure, RuntimeTimeout) as exc:
             lost = sorted({home.node for home in homes.values() if home.node in
                            launcher.remotes and launcher.remotes[home.node].lost})
-            with lifted():                      # (the undo keeps its own deadlines)
-                if not lost:
-                    _undo(launcher, homes, snapshots, links, moving, node, exc)
+            if not lost:
+                _undo(launcher, homes, snapshots, links, moving, node, exc, clock,
+                      afterwards)
+            with lifted():                      # (it keeps its own deadlines)
                 # no way back (put back there, they went with it, captured state and
                 # all): they land here all the same, with the links that can be wired
                 restore_s = _stay(launcher, snapshots, links, laps, state, landed, lost,
@@ -243,22 +254,36 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
 
 
 def _undo(launcher: Launcher, homes: dict[str, FlatModule], snapshots: dict[str, Snapshot],
-          links: list[FlatLink], moving: list[str], node: str, exc: Exception) -> None:
-    """A landing at ``node`` that failed (``exc``): the modules back where they ran."""
-    for link in links:
-        _quietly(launcher.detach, link)
-    for name in moving:
-        _quietly(launcher.nodes[node].remove_module, name)
+          links: list[FlatLink], moving: list[str], node: str, exc: Exception,
+          clock: _Clock, afterwards: contextlib.ExitStack) -> None:
+    """A landing at ``node`` that failed (``exc``): the modules back where they ran,
+    and the error saying so (or that it goes on after the call: ``_Undoing``, which
+    then lets go of the writers and the segments ``afterwards``)."""
+    one = len(moving) == 1
     sources = ", ".join(sorted({home.node for home in homes.values()}))
-    try:
-        _put_back(launcher, homes, snapshots, links, moving, rewire=True)
-    except (RuntimeFailure, RuntimeTimeout) as back:
-        raise RuntimeFailure(
-            f"migration of {', '.join(moving)} to node {node} failed ({exc}), and "
-            f"putting {'it' if len(moving) == 1 else 'them'} back on node {sources} "
-            f"failed too ({back})") from back
+
+    def undo() -> None:
+        for link in links:
+            _quietly(launcher.detach, link)
+        for name in moving:
+            _quietly(launcher.nodes[node].remove_module, name)
+        try:
+            _put_back(launcher, homes, snapshots, links, moving, rewire=True)
+        except (RuntimeFailure, RuntimeTimeout) as back:
+            raise RuntimeFailure(
+                f"migration of {', '.join(moving)} to node {node} failed ({exc}), and "
+                f"putting {'it' if one else 'them'} back on node {sources} "
+                f"failed too ({back})") from back
+    if not _Undoing(launcher, clock, undo, afterwards).ended():
+        error = RuntimeTimeout(
+            f"migration of {', '.join(moving)} to node {node} failed ({exc}); "
+            f"{'it is' if one else 'they are'} being put back on node {sources} with "
+            f"{'its' if one else 'their'} state, which goes on after this call (a worker "
+            "did not answer in time), and a later change waits for it")
+        error.ran_out = True                    # type: ignore[attr-defined]
+        raise error from exc
     what = (f"{moving[0]} to node {node} failed ({exc}); it runs on node "
-            f"{sources} again, with its state" if len(moving) == 1 else
+            f"{sources} again, with its state" if one else
             f"{', '.join(moving)} to node {node} failed ({exc}); they run on "
             f"node {sources} again, with their state")
     # (the call's time ran out: said as such, as before the capture)
@@ -409,6 +434,73 @@ def _unmoved(exc: BaseException | None, homes: dict[str, FlatModule]) -> None:
                                "as before")
         error.ran_out = True                    # type: ignore[attr-defined]
         raise error from exc
+
+
+def _unmoved_yet(exc: BaseException, homes: dict[str, FlatModule]) -> None:
+    """A move that failed before the capture (``exc``) whose undo goes on after the call
+    (``_Undoing``): the error saying nothing moved, and that the modules run where they
+    did once it ends."""
+    one = len(homes) == 1
+    where = ", ".join(sorted({home.node for home in homes.values()}))
+    error = RuntimeTimeout(
+        f"{exc}; nothing moved: {', '.join(homes)} {'stays' if one else 'stay'} on node "
+        f"{where}, and {'runs' if one else 'run'} there as before once undoing the move "
+        "ends: it goes on after this call (a worker did not answer in time: busy in a "
+        "teardown that overran, say), and a later change waits for it")
+    error.ran_out = True                        # type: ignore[attr-defined]
+    raise error from exc
+
+
+class _Undoing:
+    """A failed move's undo, on a thread of its own that every later change waits for
+    (``ConfigurationLock.carry_on``): the call waits for it until the end of its time, or
+    ``UNDO_GRACE_S`` from now if that is later, and no longer, since the undo keeps its
+    own deadlines (a worker busy in a ``teardown`` that overran is waited for). One that
+    goes on after the call has returned then lets go of what the move holds until its
+    end (``afterwards``: the writers paused, the snapshots' segments), is logged, and a
+    failure of it is one of the system's (``stats().failures``)."""
+
+    def __init__(self, launcher: Launcher, clock: _Clock, undo: Callable[[], None],
+                 afterwards: contextlib.ExitStack) -> None:
+        self._launcher, self._what, self._undo = launcher, clock.what, undo
+        self._afterwards = afterwards
+        self._lock = threading.Lock()
+        self._outcome: list[BaseException | None] = []      # once it has ended
+        self._left: contextlib.ExitStack | None = None       # the call returned before
+        thread = launcher.lock.carry_on(f"undo {clock.what}", self._run)
+        thread.join(max(clock.end - time.monotonic(), UNDO_GRACE_S))
+
+    def ended(self) -> bool:
+        """Whether the undo ended in the call's time (what it raised, raised here); if
+        not, it goes on, holding what the move held until its end, and says how it
+        ended once it does."""
+        with self._lock:
+            if not self._outcome:
+                self._left = self._afterwards.pop_all()
+                return False
+        if self._outcome[0] is not None:
+            raise self._outcome[0]
+        return True
+
+    def _run(self) -> None:
+        try:
+            with lifted():                          # (it keeps its own deadlines)
+                self._undo()
+        except BaseException as exc:
+            outcome: BaseException | None = exc
+        else:
+            outcome = None
+        with self._lock:
+            self._outcome.append(outcome)
+            if self._left is None:
+                return
+        with lifted():                              # (the writers go on: see ``_move``)
+            self._left.close()
+        if outcome is None:
+            log.warning("%s: undone after the call returned", self._what)
+        else:
+            self._launcher.failures.add(f"{self._what}: undoing it after the call returned "
+                                        f"failed: {outcome}")
 
 
 class _Clock:
