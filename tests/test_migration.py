@@ -758,3 +758,43 @@ def test_a_move_whose_undo_waits_for_a_busy_worker_returns_in_time_and_finishes_
         assert run.migrate("relay", to="b", timeout=10).destination == "b"
         _every_value_once_in_order(run)
 
+
+def test_a_move_whose_destination_freezes_after_the_capture_returns_in_time_where_it_was(
+        monkeypatch) -> None:
+    """The destination's worker is frozen (SIGSTOP) right after the module is captured:
+    the restore there runs out, and putting the module back waited 10 s for each request
+    to the frozen worker (its two links unwired there, the module removed: 31 s for a
+    1 s timeout). It returns within its timeout and the landing's floor, the module
+    running where it was with its state and every value once, in order; the frozen
+    worker is stopped."""
+    with _through("move-frozen-landing", "relay", Relay).launch() as run:
+        eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")
+        b = run._launcher.nodes["b"]
+        real_retire = Executor.retire
+        frozen: list[int] = []
+
+        def captured_then_frozen(self, name, segment, carry):
+            snapshot = real_retire(self, name, segment, carry)
+            frozen.append(b.workers[b.modules[name].worker].pid)
+            os.kill(frozen[-1], signal.SIGSTOP)
+            return snapshot
+        monkeypatch.setattr(Executor, "retire", captured_then_frozen)
+        relayed = run.state("relay")["relayed"]
+        try:                                    # (frozen until it is stopped)
+            error, took = _move_timed(run, "relay", "b", 1.0)
+            monkeypatch.setattr(Executor, "retire", real_retire)
+            assert took < 1.0 + MOVE_SLACK_S, took
+            assert "ran out while restoring relay at node b" in str(error), str(error)
+            # (put back in its time, or, on a loaded machine, just after: said so)
+            assert ("it runs on node a again, with its state" in str(error)
+                    or "it is being put back on node a with its state" in str(error))
+            assert run.where("relay", timeout=5) == "a" and "relay" not in b.modules
+            assert run.state("relay")["relayed"] >= relayed        # its state, not anew
+            eventually(lambda: run.state("relay")["relayed"] > relayed + 20,
+                       what="relay relaying where it was")
+            _every_value_once_in_order(run)
+            eventually(lambda: not alive(frozen[0]), what="the frozen worker stopped")
+        finally:
+            for pid in frozen:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGCONT)

@@ -46,7 +46,9 @@ there (``MovedLate``). Undoing keeps its own deadlines, not the caller's, on a
 thread of its own (``_Undoing``): the call waits for it ``UNDO_GRACE_S`` beyond its
 time at most; an undo still running then (a worker still busy in a ``teardown`` that
 overran) goes on, every later change waiting for it (``ConfigurationLock.carry_on``),
-and the error says so.
+and the error says so. A landing's undo drops the modules at the destination first,
+waiting for its workers ``DROP_S`` at most: they never started there, and a worker
+that does not answer (frozen) is stopped without its answer.
 """
 
 from __future__ import annotations
@@ -73,6 +75,9 @@ RAN_OUT_SLACK_S = 0.3
 # How long beyond its time (its timeout, or the landing's floor) a failed move waits for
 # its undo: one that takes longer (a worker still busy) goes on after the call returns.
 UNDO_GRACE_S = 0.25
+# How long undoing a landing waits for the destination to drop the modules that did not
+# land (never started there): a worker that does not answer is stopped without it.
+DROP_S = 0.1
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterator
@@ -263,10 +268,16 @@ def _undo(launcher: Launcher, homes: dict[str, FlatModule], snapshots: dict[str,
     sources = ", ".join(sorted({home.node for home in homes.values()}))
 
     def undo() -> None:
+        # dropped at the destination first, not waiting long for its workers: the
+        # modules never started there, and one frozen there held up every request to it
+        # (a link's, the removal's: 10 s each)
+        arriving = launcher.nodes[node]
+        with bounding(DROP_S):
+            for name in moving:
+                with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+                    arriving.remove_module(name)
         for link in links:
             _quietly(launcher.detach, link)
-        for name in moving:
-            _quietly(launcher.nodes[node].remove_module, name)
         try:
             _put_back(launcher, homes, snapshots, links, moving, rewire=True)
         except (RuntimeFailure, RuntimeTimeout) as back:

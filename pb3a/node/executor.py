@@ -516,11 +516,18 @@ class Executor:
         self._hold(record, False)
 
     def remove_module(self, name: str) -> None:
-        """Drop a module (its links are gone) and stop its worker if it hosted nothing else."""
+        """Drop a module (its links are gone) and stop its worker if it hosted nothing else.
+        A worker that does not answer in time (frozen, stuck) has the module dropped all
+        the same: it takes the request when it can, and, left empty, is stopped on another
+        thread (not waited for), and the call raises."""
         record = self.modules.pop(name)
         self._hold(record, False)
-        if self._alive(record.worker):
-            self.call(record.worker, "remove", name=name)
+        try:
+            if self._alive(record.worker):
+                self.call(record.worker, "remove", name=name)
+        except (RuntimeFailure, RuntimeTimeout):
+            self._vacate(record.worker, name, wait=False)
+            raise
         self._vacate(record.worker, name)
 
     def memory_domain(self) -> str:

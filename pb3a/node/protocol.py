@@ -75,7 +75,8 @@ class Node(Protocol):
         """Stop stepping and dispatching, then run ``teardown``."""
 
     def remove_module(self, name: str) -> None:
-        """Drop a stopped module whose links are gone."""
+        """Drop a stopped module whose links are gone; one whose worker does not answer
+        in time is dropped all the same (the worker, left empty, stopped), and it raises."""
 
     def memory_domain(self) -> str:
         """Where the node's shared-memory segments can be seen: nodes of one domain hand
