@@ -512,6 +512,34 @@ def test_unknown_class_import_error_and_not_a_module(tmp_path: Path) -> None:
     only(problems, "sys.toml [modules.d]:", "use 'module:Class'", "'examples.pipeline:Ticker'")
 
 
+def test_an_env_module_of_a_node_the_system_lacks_is_named_with_the_nodes_it_has(
+        tmp_path: Path) -> None:
+    # env-NODE modules exist for the system's nodes only: "env-c" (no node c), or
+    # "env-local" once nodes are declared, named "its modules: src, sink", none of them
+    # an env module, and not what to change
+    problems = problems_of(tmp_path, """
+        [nodes.a]
+        [nodes.b]
+        [modules.src]
+        class = "parts_cfg:Src"
+        node = "a"
+        [modules.sink]
+        class = "parts_cfg:Sink"
+        node = "b"
+        [[links]]
+        from = "env-c.cpu"
+        to = "sink.x"
+    """)
+    only(problems, "[[links]] #1 (env-c.cpu -> sink.x):", "no module 'env-c'",
+         "no node 'c'", "env-NODE", "env-a, env-b")
+    problems = problems_of(tmp_path, TWO + """
+        [[links]]
+        from = "env-a.cpu"
+        to = "sink.x"
+    """)
+    only(problems, "[[links]] #1 (env-a.cpu -> sink.x):", "no node 'a'", "env-local")
+
+
 def test_unknown_ports_modules_and_malformed_endpoints(tmp_path: Path) -> None:
     problems = problems_of(tmp_path, TWO + """
         [[links]]

@@ -74,6 +74,25 @@ def test_the_env_module_is_there_without_being_declared() -> None:
         assert run.stats().modules["env-local"].node == "local"
 
 
+def test_an_env_module_linked_at_run_time_is_named_with_what_starts_it() -> None:
+    # env-a runs once a link read it at launch; linked later, the error said only
+    # "no module 'env-a'; modules: watcher", as for a misspelt module
+    system = System("env-later")
+    system.node("a")
+    system.node("b")
+    system.add("watcher", Watcher, node="b")
+    with system.launch() as run:
+        with pytest.raises(ConfigError) as lacking:
+            run.link("env-a.cpu", "watcher.cpu")
+        assert "node a's env module" in str(lacking.value)
+        assert 'run.add("env-a", pb3a.Environment, node="a")' in str(lacking.value)
+        with pytest.raises(ConfigError, match=r"no node 'c' \(nodes: a, b\)"):
+            run.link("env-c.cpu", "watcher.cpu")
+        run.add("env-a", Environment, node="a", period=0.05)   # what the error says
+        run.link("env-a.cpu", "watcher.cpu")
+        eventually(lambda: run.state("watcher")["seen"] >= 1, timeout=10, what="a sample")
+
+
 def test_workers_of_a_pinned_node_run_on_its_cpus_only() -> None:
     system = System("pinned")
     system.node("a", cpus=[0])

@@ -102,7 +102,7 @@ class _Planner:
                                      {}))
         for name in spec.macros:
             self.file_macro(name)
-        resolver = LinkResolver(self.problems)
+        resolver = LinkResolver(self.problems, top, list(nodes))
         for definition in list(self.order):
             for export in definition.exports:
                 resolver.export(definition, export)

@@ -10,12 +10,15 @@ compatible types, with a valid policy.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 from pb3a.config import checks
 from pb3a.config.definitions import PortRef
 from pb3a.config.description import LinkSpec
 from pb3a.loading.references import class_ref
+from pb3a.model.environment import PREFIX as ENV_PREFIX
+from pb3a.model.environment import env_name
 from pb3a.model.ports import Input, Output, Policy
 
 if TYPE_CHECKING:
@@ -25,8 +28,11 @@ if TYPE_CHECKING:
 class LinkResolver:
     """Resolves exports (memoized, cycle-checked) and links, appending problems to a list."""
 
-    def __init__(self, problems: list[str]) -> None:
+    def __init__(self, problems: list[str], system: Definition | None = None,
+                 nodes: Sequence[str] = ()) -> None:
         self.problems = problems
+        self.system = system            # whose links may read the nodes' env modules
+        self.nodes = list(nodes)
         self._cache: dict[tuple[int, str], PortRef | None] = {}
         self._trail: list[tuple[Definition, str]] = []
 
@@ -66,6 +72,8 @@ class LinkResolver:
             return None, [f"{what} must be \"module.port\" (e.g. \"tick.out\"), got {text!r}"]
         child = definition.children.get(child_name)
         if child is None:
+            if definition is self.system and child_name.startswith(ENV_PREFIX):
+                return None, [self.no_env_module(definition, child_name)]
             return None, [(f"{definition.title} has no module {child_name!r}"
                           f"{checks.did_you_mean(child_name, definition.children)}; its modules: "
                           f"{checks.listing(definition.children)}")]
@@ -89,6 +97,15 @@ class LinkResolver:
                 return None, []
             return PortRef(f"{child_name}/{inner.path}", inner.cls, inner.port, inner.spec), []
         return None, []           # the child itself is broken and already reported
+
+    def no_env_module(self, definition: Definition, name: str) -> str:
+        """``env-X`` read where the system has no node X: the env modules it does have
+        (they are made for its nodes, so the list of its modules named none of them)."""
+        node = name[len(ENV_PREFIX):]
+        envs = [env_name(n) for n in self.nodes]
+        return (f"{definition.title} has no module {name!r}: it has no node {node!r}, and "
+                f"each node's built-in env module is env-NODE, here {checks.listing(envs)}; "
+                f"read one of those, or declare [nodes.{node}]")
 
     def links(self, definition: Definition) -> None:
         """Check every link of ``definition``; the valid ones go to ``definition.resolved``."""

@@ -40,6 +40,7 @@ from pb3a.latencies import percentile
 from pb3a.launch.configuration_lock import ConfigurationLock
 from pb3a.loading.references import by_reference, class_ref
 from pb3a.logbook import LogBook
+from pb3a.model.environment import PREFIX as ENV_PREFIX
 from pb3a.model.environment import env_name
 from pb3a.node.bridge import NoHandshake
 from pb3a.node.executor import REPORT_TIMEOUT, Executor
@@ -227,13 +228,24 @@ class Launcher:
     def which_modules(self, name: str) -> str:
         """What to name instead of ``name``, which no module has: a macro instance's
         modules (its name and exports are the configuration's, not the running system's:
-        only a move takes a macro whole), else every module."""
+        only a move takes a macro whole); for an ``env-NODE`` module, how to start it
+        (only a link at launch does) or that there is no such node; else every module."""
         inner = [module for module in self.specs if module.startswith(f"{name}/")]
         if inner:
             return (f"it is a macro instance: name one of its modules, {', '.join(inner)} "
                     "(a macro's exported ports are wired when the system is built; at run "
                     "time links join its modules' own ports)")
-        return f"modules: {', '.join(self.specs) or '(none)'}"
+        modules = f"modules: {', '.join(self.specs) or '(none)'}"
+        if name.startswith(ENV_PREFIX):
+            node = name[len(ENV_PREFIX):]
+            if node not in self.plan.nodes:
+                return (f"there is no node {node!r} (nodes: {', '.join(self.plan.nodes)}); "
+                        f"{modules}")
+            return (f"it is node {node}'s env module, which starts at launch only when a "
+                    f'link reads it: add it first, run.add("{name}", pb3a.Environment, '
+                    f'node="{node}") (pb3a add ADDR {name} pb3a:Environment --node {node}); '
+                    f"{modules}")
+        return modules
 
     def crosses_nodes(self, link: FlatLink) -> bool:
         """True if the link joins two nodes (it then goes over ZeroMQ)."""
