@@ -11,7 +11,15 @@ import pytest
 from conftest import eventually
 from sample_modules import Spinner
 
-from pb3a import ConfigError, Environment, Input, InputPort, Module, System
+from pb3a import (
+    ConfigError,
+    Environment,
+    Input,
+    InputPort,
+    Module,
+    ModuleNotFound,
+    System,
+)
 from pb3a.testing import ModuleHarness
 
 # alone: it loads the CPUs or measures against them (see the Makefile's test target)
@@ -74,23 +82,27 @@ def test_the_env_module_is_there_without_being_declared() -> None:
         assert run.stats().modules["env-local"].node == "local"
 
 
-def test_an_env_module_linked_at_run_time_is_named_with_what_starts_it() -> None:
-    # env-a runs once a link read it at launch; linked later, the error said only
-    # "no module 'env-a'; modules: watcher", as for a misspelt module
+def test_a_node_s_env_module_linked_at_run_time_starts_with_the_link() -> None:
+    # env-a runs once a link reads it; at launch only, it was: linked later, the error
+    # said "no module 'env-a'; modules: watcher", as for a misspelt module
     system = System("env-later")
     system.node("a")
     system.node("b")
     system.add("watcher", Watcher, node="b")
     with system.launch() as run:
-        with pytest.raises(ConfigError) as lacking:
-            run.link("env-a.cpu", "watcher.cpu")
-        assert "node a's env module" in str(lacking.value)
-        assert 'run.add("env-a", pb3a.Environment, node="a")' in str(lacking.value)
+        with pytest.raises(ModuleNotFound) as unread:
+            run.state("env-a")
+        assert "node a's env module, which runs once a link reads it" in str(unread.value)
         with pytest.raises(ConfigError, match=r"no node 'c' \(nodes: a, b\)"):
             run.link("env-c.cpu", "watcher.cpu")
-        run.add("env-a", Environment, node="a", period=0.05)   # what the error says
+        with pytest.raises(ConfigError, match="env-a has no output 'cpus'"):
+            run.link("env-a.cpus", "watcher.cpu")
+        assert "env-a" not in run.topology().modules          # (a refused link: not started)
         run.link("env-a.cpu", "watcher.cpu")
+        assert run.where("env-a") == "a"
         eventually(lambda: run.state("watcher")["seen"] >= 1, timeout=10, what="a sample")
+        kinds = [(event.kind, event.subject) for event in run.events()][-2:]
+        assert kinds == [("module_added", "env-a"), ("link_added", "env-a.cpu->watcher.cpu")]
 
 
 def test_workers_of_a_pinned_node_run_on_its_cpus_only() -> None:

@@ -229,7 +229,7 @@ class Launcher:
         """What to name instead of ``name``, which no module has: a macro instance's
         modules (its name and exports are the configuration's, not the running system's:
         only a move takes a macro whole); for an ``env-NODE`` module, how to start it
-        (only a link at launch does) or that there is no such node; else every module."""
+        (a link reading it does) or that there is no such node; else every module."""
         inner = [module for module in self.specs if module.startswith(f"{name}/")]
         if inner:
             return (f"it is a macro instance: name one of its modules, {', '.join(inner)} "
@@ -241,10 +241,10 @@ class Launcher:
             if node not in self.plan.nodes:
                 return (f"there is no node {node!r} (nodes: {', '.join(self.plan.nodes)}); "
                         f"{modules}")
-            return (f"it is node {node}'s env module, which starts at launch only when a "
-                    f'link reads it: add it first, run.add("{name}", pb3a.Environment, '
-                    f'node="{node}") (pb3a add ADDR {name} pb3a:Environment --node {node}); '
-                    f"{modules}")
+            return (f"it is node {node}'s env module, which runs once a link reads it "
+                    f'(at launch, or linked since), or added: run.add("{name}", '
+                    f'pb3a.Environment, node="{node}") (pb3a add ADDR {name} '
+                    f"pb3a:Environment --node {node}); {modules}")
         return modules
 
     def crosses_nodes(self, link: FlatLink) -> bool:

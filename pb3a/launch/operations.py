@@ -41,6 +41,8 @@ from pb3a.launch.migration import MigrationReport, MovedLate, migrate
 from pb3a.loading import trial
 from pb3a.loading.references import resolve_class
 from pb3a.loading.served import forget, reload_problem
+from pb3a.model.environment import PREFIX as ENV_PREFIX
+from pb3a.model.environment import Environment
 from pb3a.model.module import Module
 from pb3a.model.ports import Policy
 from pb3a.pending import DONE, FAILED, RUNNING
@@ -269,18 +271,28 @@ class Operations:
     def relink(self, src: str, dst: str, *, policy: str | None = None,
                timeout: float | None = None) -> None:
         with self._held(f"relink {src} -> {dst}", timeout):
-            link = self._new_link(src, dst, policy)
+            env = self._unstarted_env(src)
+            link = self._new_link(src, dst, policy, env)
             launcher = self.launcher
             olds = [old for old in launcher.links.values()
                     if (old.dst, old.dst_port) == (link.dst, link.dst_port)]
             if policy is None and olds:          # the link's own, not the input's declared
                 link = replace(link, policy=olds[0].policy)
-            # Writers pause so that nothing is written while the input changes
-            # source; the reader drains the old link before the new one opens.
-            with launcher.paused([link.src, *(old.src for old in olds)]):
-                for old in olds:
-                    launcher.disconnect(old.key)
-                launcher.connect(link)
+            if env is not None:
+                self._start(env, [])
+            try:
+                # Writers pause so that nothing is written while the input changes
+                # source; the reader drains the old link before the new one opens.
+                with launcher.paused([link.src, *(old.src for old in olds)]):
+                    for old in olds:
+                        launcher.disconnect(old.key)
+                    launcher.connect(link)
+            except BaseException:
+                if env is not None:
+                    self._drop(env.name)
+                raise
+        if env is not None:
+            self.event_log.record("module_added", env.name, node=env.node)
         for old in olds:
             self.event_log.record("link_removed", old.key)
         self.event_log.record("link_added", link.key, policy=str(link.policy))
@@ -288,20 +300,42 @@ class Operations:
     def link(self, src: str, dst: str, *, policy: str | None = None,
              timeout: float | None = None) -> None:
         with self._held(f"link {src} -> {dst}", timeout):
-            link = self._new_link(src, dst, policy)
+            env = self._unstarted_env(src)
+            link = self._new_link(src, dst, policy, env)
             for old in self.launcher.links.values():
                 if (old.dst, old.dst_port) == (link.dst, link.dst_port):
                     raise ConfigError([f"input {dst} is fed by {old.src}.{old.src_port} "
                                        "already; use relink() to replace its source"])
-            self.launcher.connect(link)
+            if env is None:
+                self.launcher.connect(link)
+            else:                       # (wired as it starts: one that fails, dropped)
+                self._start(env, [link])
+        if env is not None:
+            self.event_log.record("module_added", env.name, node=env.node)
         self.event_log.record("link_added", link.key, policy=str(link.policy))
 
-    def _new_link(self, src: str, dst: str, policy: str | None) -> FlatLink:
+    def _unstarted_env(self, src: str) -> FlatModule | None:
+        """The built-in env module that ``src`` ("env-NODE.port") reads, of a node of the
+        system, if it does not run: a link reading it starts it, as one in the
+        configuration does at launch (it said "no module 'env-a'")."""
+        module = src.rpartition(".")[0]
+        node = module[len(ENV_PREFIX):]
+        if (not module.startswith(ENV_PREFIX) or module in self.launcher.specs
+                or node not in self.launcher.nodes):
+            return None
+        return FlatModule(module, Environment, node, Environment.period, {},
+                          Environment.restart)
+
+    def _new_link(self, src: str, dst: str, policy: str | None,
+                  env: FlatModule | None = None) -> FlatLink:
+        """The link ``src`` -> ``dst`` checked (``ConfigError`` naming every problem); its
+        source may be ``env``, an env module to start with it (``_unstarted_env``)."""
         problems = []
         ends = []
         for text, side in ((src, "outputs"), (dst, "inputs")):
             module, _, port = text.rpartition(".")
-            spec = self.launcher.specs.get(module)
+            spec = env if env is not None and module == env.name else \
+                self.launcher.specs.get(module)
             if spec is None:
                 problems.append(f"link {src} -> {dst}: no module {module!r}; "
                                 + self.launcher.which_modules(module))
