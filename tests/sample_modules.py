@@ -1064,34 +1064,47 @@ class Chatterbox(Agent):
 
 class Frames(Module):
     """A camera: writes ``limit`` frames of ``size`` bytes, one every period, each
-    numbered 1, 2, 3, ... in its first 8 bytes; ``sent`` counts them."""
+    numbered 1, 2, 3, ... in its first 8 bytes and with when it was written (unix) in
+    the next 8; ``sent`` counts them, ``first_at`` and ``last_at`` are when the first
+    and the last were written, ``longest_write_s`` the longest a write took."""
 
     out = Output(np.ndarray)
     period = 0.05
     size = 64 * 1024
     limit = 0
     sent = 0
+    first_at = 0.0
+    last_at = 0.0
+    longest_write_s = 0.0
 
     def step(self) -> None:
         if self.sent >= self.limit:
             return
         frame = np.zeros(self.size, np.uint8)
         frame[:8].view(np.int64)[0] = self.sent + 1
+        frame[8:16].view(np.float64)[0] = now = time.time()
         self.out.write(frame)
+        self.longest_write_s = max(self.longest_write_s, time.time() - now)
+        self.first_at = self.first_at or now
+        self.last_at = now
         self.sent += 1
 
 
 class FrameSink(Module):
-    """Reads ``Frames``: the numbers it got, in order, and any that came again or late."""
+    """Reads ``Frames``: the numbers it got, in order, how old each was on arrival
+    (``ages``, seconds), and any that came again or late."""
 
     x = Input(np.ndarray, policy="queue:1000")
     numbers: list[int] = []
+    ages: list[float] = []
     out_of_order = 0
     duplicates = 0
 
     def on_input(self, port) -> None:
         for frame in port.read_all():
             number = int(frame[:8].view(np.int64)[0])
+            self.ages = [*self.ages, round(time.time() - float(frame[8:16].view(np.float64)[0]),
+                                           3)]
             last = self.numbers[-1] if self.numbers else 0
             if number in self.numbers:
                 self.duplicates += 1

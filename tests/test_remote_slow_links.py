@@ -18,7 +18,7 @@ from throttle import Throttle
 from pb3a import System
 from pb3a.transport import replication
 from pb3a.transport.auth import Opener
-from pb3a.transport.replication import Follower
+from pb3a.transport.replication import Follower, follower_id
 
 FRAMES = 60                # 64 KiB frames, 20 a second: 3 s of writing
 LINK = "camera.out->viewer.x"
@@ -37,28 +37,30 @@ def radio(monkeypatch: pytest.MonkeyPatch) -> Iterator[Throttle]:
         yield link
 
 
-def _camera_to_viewer(name: str, policy: str = "queue:1000") -> System:
+def _camera_to_viewer(name: str, policy: str = "queue:1000", size: int = Frames.size,
+                      frames: int = FRAMES) -> System:
     system = System(name)
     system.node("a")
     system.node("b")
-    system.add("camera", Frames, node="a", state={"limit": FRAMES})
+    system.add("camera", Frames, node="a", state={"limit": frames, "size": size})
     system.add("viewer", FrameSink, node="b")
     system.link("camera.out", "viewer.x", policy=policy)
     return system
 
 
-def _settled(run: Any) -> tuple[Any, dict[str, Any], Follower]:
+def _settled(run: Any, accounted_in: float = 20.0,
+             frames: int = FRAMES) -> tuple[Any, dict[str, Any], Follower]:
     """Once the camera wrote every frame and each was received or counted dropped: the
     link's figures, the viewer's state and node b's follower; checked again a second
     later (two heartbeats, whose SYNC repeats what was not sent), so a count that
     overshoots fails too."""
-    eventually(lambda: run.state("camera")["sent"] == FRAMES, timeout=30.0,
+    eventually(lambda: run.state("camera")["sent"] == frames, timeout=30.0,
                what="the camera's frames written")
 
     def accounted() -> Any:
         link = run.stats().links[LINK]
-        return link.values + link.drops >= FRAMES and link.pending == 0 and link
-    eventually(accounted, timeout=20.0, what="every frame received or counted dropped")
+        return link.values + link.drops >= frames and link.pending == 0 and link
+    eventually(accounted, timeout=accounted_in, what="every frame received or counted dropped")
     time.sleep(2 * replication.HEARTBEAT_S)     # (what a count overshoots by, if it does)
     follower = run._launcher.nodes["b"].bridge._follower
     return run.stats().links[LINK], run.state("viewer"), follower
@@ -131,3 +133,91 @@ def test_a_lossless_link_further_behind_than_the_freshness_window_takes_each_val
     assert viewer["duplicates"] == viewer["out_of_order"] == 0
     assert follower._opener.rejected["not fresh"] == 0, follower._opener.rejected
     assert link.drops == 0 and link.link_failures == 0
+
+
+@pytest.fixture
+def radio_to_b(monkeypatch: pytest.MonkeyPatch) -> Iterator[Throttle]:
+    """A 2 Mbit/s link that node b's follower (embedded here) reaches every writer
+    through; the other nodes' followers reach them straight, over loopback."""
+    follow = Follower.follow
+    slow = {follower_id("b", epoch) for epoch in range(4)}
+    with Throttle(2e6) as link:
+        def slow_follow(self: Follower, topic: str, data: str, control: str,
+                        **kwargs: Any) -> None:
+            if self._identity in slow:
+                data, control = link.route(data), link.route(control)
+            follow(self, topic, data, control, **kwargs)
+        monkeypatch.setattr(Follower, "follow", slow_follow)
+        yield link
+
+
+def _beside_a_fast_viewer(name: str, size: int, frames: int = FRAMES) -> System:
+    """``_camera_to_viewer``, and a second viewer of the frames on node c."""
+    system = _camera_to_viewer(name, size=size, frames=frames)
+    system.node("c")
+    system.add("fast_viewer", FrameSink, node="c")
+    system.link("camera.out", "fast_viewer.x", policy="queue:1000")
+    return system
+
+
+@pytest.mark.timeout(90)
+def test_a_slow_follower_beside_a_fast_one_gets_fresh_frames_and_holds_nobody_back(
+        radio_to_b: Throttle) -> None:
+    """A camera's 128 KiB frames, 20 a second, read on node c over loopback and on node
+    b through the 2 Mbit/s link: the slow follower is served on its own (over its
+    control connection, one frame on the way at a time), so its frames arrive fresh (a
+    frame's crossing: 0.52 s), the rest counted in its link's ``drops`` exactly, in
+    order, once; the fast viewer gets every frame at once and the camera writes at its
+    own pace. (Before, the publisher queued every frame for the slow follower: they
+    arrived up to 28 s late, the last 31 s after the first was written.)"""
+    with _beside_a_fast_viewer("slow-beside-fast", 128 * 1024).launch() as run:
+        # (before, the slow link took 31 s to carry every frame queued for it)
+        link, viewer, follower = _settled(run, accounted_in=45.0)
+        camera, fast = run.state("camera"), run.state("fast_viewer")
+    assert radio_to_b.connections, "node b's follower did not go through the slow link"
+    numbers, ages = viewer["numbers"], viewer["ages"]
+    assert max(ages) < 2.5, ages
+    going = [age for number, age in zip(numbers, ages, strict=True) if number > FRAMES // 3]
+    assert going and max(going) < 1.5, ages                      # (measured: about 0.6)
+    assert link.values + link.drops == FRAMES, (link.values, link.drops)
+    assert link.values == len(numbers) and link.drops > FRAMES // 2
+    assert link.drops == follower.dropped["camera.out"]
+    assert numbers == sorted(set(numbers))
+    assert viewer["duplicates"] == viewer["out_of_order"] == 0
+    assert link.link_failures == 0 and not follower.link_failures
+    assert fast["numbers"] == list(range(1, FRAMES + 1))         # every frame ...
+    assert max(fast["ages"]) < 1.0, fast["ages"]                 # ... at once
+    assert fast["duplicates"] == fast["out_of_order"] == 0
+    # the camera's pace: 20 frames a second (3 s), no write held back
+    assert camera["last_at"] - camera["first_at"] < 3 * FRAMES * Frames.period, camera
+    assert camera["longest_write_s"] < 0.5, camera
+
+
+@pytest.mark.timeout(90)
+def test_a_slow_follower_whose_link_gets_fast_goes_back_to_pub_and_gets_every_frame(
+        radio_to_b: Throttle) -> None:
+    """Node b's follower, served on its own while its link is slow, goes back to PUB
+    once a frame crosses in time (the link got fast): from then on it gets every frame,
+    in order, once (what was published before its subscription took is counted
+    dropped, not replayed over the link), and the accounting stays exact."""
+    frames = 120                                                 # 6 s of writing
+    with _beside_a_fast_viewer("slow-then-fast", 128 * 1024, frames).launch() as run:
+        follower = run._launcher.nodes["b"].bridge._follower
+        def mode() -> Any:
+            return follower._follows[b"camera.out\0"]
+        eventually(lambda: mode().direct, timeout=10.0, what="node b served on its own")
+        radio_to_b.set_rate(1e9)
+        eventually(lambda: not mode().direct and not mode().joining, timeout=10.0,
+                   what="node b back on PUB")
+        back_at = run.state("camera")["sent"]
+        link, viewer, follower = _settled(run, frames=frames)
+    numbers = viewer["numbers"]
+    assert back_at < frames - 20, "the camera was done before node b went back to PUB"
+    tail = [number for number in numbers if number > back_at + 5]
+    assert tail == list(range(back_at + 6, frames + 1)), numbers
+    assert link.values + link.drops == frames, (link.values, link.drops)
+    assert link.values == len(numbers) and link.drops == follower.dropped["camera.out"]
+    assert numbers == sorted(set(numbers))
+    assert viewer["duplicates"] == viewer["out_of_order"] == 0
+    assert link.link_failures == 0 and not follower.link_failures
+    assert not follower.duplicates

@@ -61,6 +61,13 @@ class Throttle:
         self.ended_by: collections.Counter[str] = collections.Counter()     # "reader", "writer"
         self.forwarded = 0                       # bytes, down
 
+    def set_rate(self, down_bps: float, up_bps: float | None = None) -> None:
+        """Carry each direction at another rate from now on (a radio link that got better
+        or worse)."""
+        def change() -> None:
+            self._down.rate, self._up.rate = down_bps / 8, (up_bps or down_bps) / 8
+        self._call(change)
+
     def _call(self, fn: Any) -> Any:
         async def run() -> Any:
             return fn()

@@ -47,6 +47,23 @@ values in sequence order, exactly once:
   never asks for them. A link is not slow once a lone message is acknowledged within
   ``FRESH_S / 2``. So a `latest` reader gets a value about one message's crossing
   old, and the writer holds one message for the link.
+- Slow followers. The flight follows the lead follower, and a PUB socket sends every
+  message to every subscriber, queued per peer in messages: a slower follower beside
+  a fast one had every value queued for it (hundreds of MiB, tens of seconds late),
+  and flow control held the writer to it. So a live dropping follower behind another
+  whose oldest message on the way went ``FRESH_S`` ago (once it has taken in what its
+  hand-shake replayed: those went long ago) is served on its own (DIRECT):
+  it closes its SUB connection (what PUB still queued for it is freed with it; an
+  unsubscription would leave that queue to cross the slow link first) and counts the
+  values it did not get before the switch dropped; the publisher sends it the newest
+  message over its control connection whenever nothing sent to it there is on the
+  way, the values before it announced not sent (SKIPPED), and leaves it out of flow
+  control and of the flight. Its queue at the ROUTER is bounded so (one message of
+  values, small notices), and a ROUTER never blocks: it drops for a peer at its
+  high-water mark (ROUTER_MANDATORY is not set). A DIRECT every heartbeat is its SYNC
+  (how far it was sent) and says its mode again. Once a lone message is acknowledged
+  within ``FRESH_S / 2`` it goes back to PUB (RESUME): it subscribes, and what was
+  published before its subscription took is counted dropped, not replayed.
 - Lossless followers. A follower whose receiver must not drop (a ``lossless`` link)
   says so in its HELLO and ACKs, and acknowledges only what its receiver has put
   through. Such a follower holds the publisher back for as long as the writer's
@@ -122,6 +139,7 @@ log = logging.getLogger("pb3a.replication")
 
 # message kinds
 VALUE, SYNC, HELLO, REPAIR, WELCOME, REPLAYED, ACK, VALUES, SKIPPED = 1, 2, 3, 4, 5, 6, 7, 8, 9
+DIRECT, RESUME = 10, 11                 # a slow follower beside a fast one: see "Slow followers"
 _INFO = struct.Struct("<16sQdBQ16s")    # VALUE: incarnation, sequence number, sent at (unix),
                                         # codec kind, payload nonce counter, payload tag
 _BATCH = struct.Struct("<16sQId")       # VALUES: incarnation, first sequence number, count,
@@ -133,7 +151,8 @@ _ASK = struct.Struct("<qq16s")          # HELLO: first needed (-1: from now), fl
 _NOBODY = bytes(16)
 LOSSLESS = 1                            # flag of HELLO and ACK: hold the publisher back
 _ANSWER = struct.Struct("<16sqq")       # WELCOME: incarnation, next; REPLAYED: first, gone;
-                                        # SKIPPED: first, count; SYNC: next, skipped before it
+                                        # SKIPPED: first, count; SYNC: next, skipped before it;
+                                        # DIRECT: from, next; RESUME: from, 0
 PLAIN = 0                               # a VALUES entry that is the value itself
 BATCH_VALUES = 1024                     # small values of one topic sent as one message, at most
 BATCH_BYTES = 1 << 20                   # ... and at most this many bytes of them
@@ -311,6 +330,25 @@ class _Sent(NamedTuple):
 
 
 @dataclass
+class _Direct:
+    """A slow follower of a topic that has a fast one too, served over the control
+    connection (see "Slow followers"): one message on the way to it at a time."""
+
+    start: int                          # the first value it gets here (the older ones went
+                                        # over PUB, or it counts them dropped)
+    sent: int                           # values before this one were sent to it or announced
+                                        # not sent (SKIPPED)
+    went: float = 0.0                   # when the last message to it went (monotonic)
+    latest: _Sent | None = None         # the newest message not sent to it yet
+    skips: collections.deque[tuple[int, int]] = field(
+        default_factory=lambda: collections.deque(maxlen=SKIP_RUNS))   # (first, end) not sent
+
+    def free(self, acked: int) -> bool:
+        """Whether nothing sent to it is on the way, it having acknowledged ``acked``."""
+        return acked >= self.sent
+
+
+@dataclass
 class _Stream:
     """One published output: its next sequence number, the values published but not
     sent yet (one batch), and its replay buffer."""
@@ -342,15 +380,26 @@ class _Stream:
     skips: collections.deque[tuple[int, int]] = field(
         default_factory=lambda: collections.deque(maxlen=SKIP_RUNS))   # (first, end) not sent
     dropped: int = 0                    # values not sent, in all
+    direct: dict[bytes, _Direct] = field(default_factory=dict)   # slow followers served over
+                                        # the control connection, not PUB (nor counted by
+                                        # flow control and the flight)
+    joined: dict[bytes, int] = field(default_factory=dict)  # peer -> the next sequence number
+                                        # at its last HELLO (what it had replayed ends there)
+
+    def _live(self, now: float) -> list[int]:
+        """Where the live followers served over PUB are."""
+        direct = self.direct
+        return [seq for peer, (seq, when) in self.acks.items()
+                if now - when < FOLLOWER_TIMEOUT and peer not in direct]
 
     def acknowledged(self, now: float) -> int | None:
         """Where the slowest live follower is (None: nobody follows)."""
-        live = [seq for seq, when in self.acks.values() if now - when < FOLLOWER_TIMEOUT]
+        live = self._live(now)
         return min(live) if live else None
 
     def lead(self, now: float) -> int | None:
         """Where the most advanced live follower is (None: nobody follows)."""
-        live = [seq for seq, when in self.acks.values() if now - when < FOLLOWER_TIMEOUT]
+        live = self._live(now)
         return max(live) if live else None
 
     def over_flight(self, size: int) -> float | None:
@@ -521,6 +570,8 @@ class Replicator:
             if follower not in stream.gone:
                 acked = stream.acks.pop(follower, None)
                 stream.holds.pop(follower, None)
+                stream.direct.pop(follower, None)
+                stream.joined.pop(follower, None)
                 stream.gone[follower] = stream.next_seq if acked is None else acked[0]
                 self._acked.notify_all()         # (a write it held back goes on)
             return max(0, stream.next_seq - stream.gone[follower])
@@ -546,6 +597,8 @@ class Replicator:
                     del stream.holds[peer]
             if not silent_for:
                 stream.acks.clear()
+                stream.direct.clear()
+                stream.joined.clear()
             self._acked.notify_all()
 
     def publish(self, topic: str, value: Any, timeout: float = WINDOW_WAIT) -> int:
@@ -788,6 +841,67 @@ class Replicator:
         elif age < FRESH_S / 2:
             stream.flight = min(WINDOW_BYTES, max(FLIGHT_START, 2 * stream.flight))
 
+    # -- slow followers beside fast ones (see "Slow followers") ---------------------
+    def _find_slow(self, stream: _Stream, now: float) -> None:
+        """Serve over the control connection each live dropping follower served over PUB
+        that is behind another one and whose oldest message on the way went ``FRESH_S``
+        ago, once it has taken in what its hand-shake replayed (a reader that moved
+        there, say, with values from before) (lock held, on the loop's thread)."""
+        if stream.holds or len(stream.acks) - len(stream.direct) < 2:
+            return
+        lead = stream.lead(now)
+        for peer, (acked, when) in list(stream.acks.items()):
+            if (peer in stream.direct or now - when >= FOLLOWER_TIMEOUT or lead is None
+                    or acked >= lead or acked < stream.joined.get(peer, 0)):
+                continue             # (nor one still taking in a replay: those went long ago)
+            if now - stream.on_the_way(acked)[1] >= FRESH_S:
+                self._go_direct(stream, peer)
+
+    def _go_direct(self, stream: _Stream, peer: bytes) -> None:
+        """From the next value on, send ``peer`` the values of ``stream`` over the control
+        connection, one message on the way at a time; it stops taking them over PUB
+        (DIRECT: it closes its SUB connection, which frees what PUB still queues for
+        it) and counts those it misses before then dropped (lock held, loop thread)."""
+        self._flush_locked()                     # (what was published went over PUB)
+        start = stream.next_seq
+        stream.direct[peer] = _Direct(start, start, time.monotonic())
+        self._send_router(peer, DIRECT, [stream.name, _ANSWER.pack(self.incarnation, start,
+                                                                   start)])
+        stream.clear_until = 0                   # (flow control no longer counts it)
+        self._acked.notify_all()
+        log.info("remote link %s: a follower too slow beside a faster one is served on its "
+                 "own from value %d", _topic(stream.name), start)
+
+    def _resume(self, stream: _Stream, peer: bytes, now: float, start: int | None = None) -> None:
+        """A follower served on its own keeps up again: back to PUB from ``start`` (None:
+        the next value; the values before it are not sent to it, and it counts them
+        dropped), with RESUME (lock held, on the loop's thread). A follower that became
+        lossless resumes from where it is, and says HELLO to have the rest replayed."""
+        self._flush_locked()
+        del stream.direct[peer]
+        if start is None:
+            start = stream.next_seq
+            stream.acks[peer] = (start, now)     # (so it is not found slow for them)
+        self._send_router(peer, RESUME, [stream.name, _ANSWER.pack(self.incarnation, start, 0)])
+        stream.clear_until = 0
+
+    def _serve_direct(self, stream: _Stream) -> None:
+        """Send each follower served on its own the newest message it has not had, if
+        nothing sent to it is on the way; the values before it that it did not get are
+        announced (SKIPPED) (lock held, on the loop's thread)."""
+        now = time.monotonic()
+        for peer, direct in stream.direct.items():
+            sent = direct.latest
+            if sent is None or not direct.free(stream.acks.get(peer, (-1, 0.0))[0]):
+                continue
+            direct.latest = None
+            if sent.first > direct.sent:
+                direct.skips.append((direct.sent, sent.first))
+                self._send_router(peer, SKIPPED, [stream.name, _ANSWER.pack(
+                    self.incarnation, direct.sent, sent.first - direct.sent)])
+            self._send_router(peer, sent.kind, [stream.name, *sent.parts])
+            direct.sent, direct.went = sent.end, now
+
     def flush(self) -> None:
         """Send everything published so far now (it goes soon anyway); waits for it."""
         self._loop.call(self._flush)
@@ -802,8 +916,21 @@ class Replicator:
         for name in list(self._filling):
             self._close_batch(self._streams[name])
         outbox, self._outbox = self._outbox, []
+        direct = False
         for name, sent in outbox:
             self._send_pub(name, sent.kind, sent.parts)
+            if sent.kind != SKIPPED and (followers := self._streams[name].direct):
+                for one in followers.values():   # (the newest message: see "Slow followers")
+                    if sent.end > one.sent:
+                        one.latest = sent
+                direct = True
+        if self._loop.on_loop:                   # (the ROUTER is the loop thread's alone)
+            for stream in self._streams.values():
+                if stream.direct:
+                    self._serve_direct(stream)
+        elif direct and not self._flush_due:
+            self._flush_due = True
+            self._loop.submit(self._flush)
 
     def _send_pub(self, name: bytes, kind: int, parts: list[Any]) -> None:
         # topic first (SUB filters on it), then the sealed message, which holds the
@@ -830,8 +957,15 @@ class Replicator:
         values of a burst learns of them here and asks for a repair."""
         with self._lock:
             self._flush_locked()                 # (what it announces has gone out first)
+            now = time.monotonic()
             for name, stream in self._streams.items():
                 self._send_pub(name, SYNC, [self._sync(stream)])
+                for peer, direct in list(stream.direct.items()):   # (their SYNC, and mode)
+                    if now - stream.acks.get(peer, (0, -math.inf))[1] >= FOLLOWER_TIMEOUT:
+                        del stream.direct[peer]  # (gone, or frozen: found slow again if not)
+                        continue
+                    self._send_router(peer, DIRECT, [name, _ANSWER.pack(
+                        self.incarnation, direct.start, direct.sent)])
 
     def _sync(self, stream: _Stream) -> bytes:
         """A SYNC's body: the next sequence number, and how many values before it were
@@ -862,18 +996,34 @@ class Replicator:
             if message.kind == ACK:
                 now = time.monotonic()
                 before = stream.lead(now)
+                direct = stream.direct.get(peer_id)
                 if first < 0:                    # unfollowed: it holds nothing back now
                     stream.acks.pop(peer_id, None)
                     stream.holds.pop(peer_id, None)
+                    stream.direct.pop(peer_id, None)
+                    stream.joined.pop(peer_id, None)
                 else:
-                    stream.acks[peer_id] = (first, time.monotonic())
+                    # (never back: an ACK sent before a RESUME came says less than it)
+                    known = stream.acks.get(peer_id)
+                    stream.acks[peer_id] = (max(first, known[0]) if known else first, now)
                     stream.hold(peer_id, first, last)
-                    self._pace(stream, before, now)
+                    if direct is None:
+                        self._pace(stream, before, now)
+                        self._find_slow(stream, now)
+                    elif last & LOSSLESS:            # (it must not drop now)
+                        self._resume(stream, peer_id, now, first)
+                    elif direct.sent > direct.start and first >= direct.sent \
+                            and now - direct.went < FRESH_S / 2:
+                        self._resume(stream, peer_id, now)   # a lone message, in time
+                    else:
+                        self._serve_direct(stream)
                 stream.clear_until = 0           # (a lossless follower may have come)
                 self._acked.notify_all()
             elif message.kind == HELLO:
                 self._flush_locked()             # (all it may need is in the buffer)
                 nxt = stream.next_seq
+                stream.direct.pop(peer_id, None)  # (subscribed: it follows over PUB again)
+                stream.joined[peer_id] = nxt
                 stream.acks[peer_id] = (first if first >= 0 else nxt, time.monotonic())
                 stream.hold(peer_id, first if first >= 0 else nxt, last)
                 stream.clear_until = 0           # a new follower: the window moved back
@@ -893,12 +1043,17 @@ class Replicator:
         runs = list(stream.skips)
         if stream.skip_from >= 0:
             runs.append((stream.skip_from, stream.next_seq))
+        direct = stream.direct.get(bytes(peer))
+        if direct is not None:       # a follower served on its own: nor what it was not sent
+            runs += [(min(first, direct.start), direct.start), *direct.skips]
         for start, end in runs:                  # (not sent: never replayed, nor gone)
             if start <= last and end > first:
                 self._send_router(peer, SKIPPED,
                                   [name, _ANSWER.pack(self.incarnation, start, end - start)])
         for sent in stream.replay:
-            if sent.first <= last and sent.end > first:
+            if sent.first <= last and sent.end > first and not (
+                    direct is not None
+                    and any(start <= sent.first and sent.end <= end for start, end in runs)):
                 self._send_router(peer, sent.kind, [name, *sent.replayable()])
         self._send_router(peer, REPLAYED, [name, _ANSWER.pack(self.incarnation, first, gone)])
 
@@ -920,7 +1075,7 @@ class _Follow:
     """What a follower knows of one topic."""
 
     topic: bytes
-    data: zmq.Socket                          # SUB to the topic's replicator
+    data: zmq.Socket | None                   # SUB to the topic's replicator (None: direct)
     control: zmq.Socket                       # DEALER to the topic's replicator
     next_seq: int                             # the next sequence number to deliver (-1: any)
     incarnation: bytes | None                 # the accepted sender (None: the first to answer)
@@ -940,6 +1095,11 @@ class _Follow:
     held_back: int = 0                        # delivered values the receiver holds back
     moved_bytes: int = 0                      # bytes delivered ...
     acked_bytes: int = 0                      # ... as of the last acknowledgement
+    data_address: str = ""                    # where its SUB connects
+    direct: bool = False                      # its values come over the control connection,
+                                              # not PUB (see "Slow followers")
+    joining: bool = False                     # back on PUB: what was published before the
+                                              # first message that comes there is not asked
 
     @property
     def through(self) -> int:
@@ -1063,12 +1223,7 @@ class Follower:
 
     def _follow(self, name: bytes, data: str, control: str, from_seq: int,
                 incarnation: bytes | None) -> None:
-        sub = self._subs.get(data)
-        if sub is None:
-            sub = self._subs[data] = _secure(self._context.socket(zmq.SUB), self._max_bytes,
-                                             sender=False)
-            sub.connect(data)
-            self._loop.register(sub, self._on_data)
+        sub = self._sub(data)
         dealer = self._controls.get(control)
         if dealer is None:
             dealer = _secure(self._context.socket(zmq.DEALER), self._max_bytes, sender=False)
@@ -1083,13 +1238,75 @@ class Follower:
         old = self._follows.get(name)
         if old is None or old.data is not sub:
             sub.setsockopt(zmq.SUBSCRIBE, name)
-        if old is not None and old.data is not sub:
+        if old is not None and old.data is not sub and old.data is not None:
             old.data.setsockopt(zmq.UNSUBSCRIBE, name)
         if old is not None and from_seq < 0 and incarnation in (None, old.incarnation):
             from_seq = old.next_seq               # the same sender: go on where we are
-        self._follows[name] = _Follow(name, sub, dealer, from_seq, incarnation)
+        self._follows[name] = _Follow(name, sub, dealer, from_seq, incarnation,
+                                      data_address=data)
         self._hello(self._follows[name])
         self._drop_unused()
+
+    def _sub(self, data: str) -> zmq.Socket:
+        """The SUB socket to the replicator publishing at ``data`` (made if none)."""
+        sub = self._subs.get(data)
+        if sub is None:
+            sub = self._subs[data] = _secure(self._context.socket(zmq.SUB), self._max_bytes,
+                                             sender=False)
+            sub.connect(data)
+            self._loop.register(sub, self._on_data)
+        return sub
+
+    def _go_direct(self, follow: _Follow) -> None:
+        """The sender serves this topic over the control connection now: stop taking it
+        over PUB. Its SUB socket is closed, which frees what the sender's PUB socket still
+        queues for it (unsubscribing would not: that queue would take the slow link's
+        time for tens of seconds); the other topics it carried get a new one (what they
+        miss meanwhile is repaired)."""
+        old, follow.data, follow.direct, follow.joining = follow.data, None, True, False
+        if old is None:
+            return
+        others = [other for other in self._follows.values() if other.data is old]
+        self._loop.unregister(old)
+        old.close(0)
+        self._subs.pop(follow.data_address, None)
+        if others:
+            sub = self._sub(follow.data_address)
+            for other in others:
+                sub.setsockopt(zmq.SUBSCRIBE, other.topic)
+                other.data = sub
+
+    def _resume(self, follow: _Follow) -> None:
+        """The sender serves this topic over PUB again: subscribe. What it publishes
+        before the subscription reaches it is not asked for (a hand-shake would have it
+        replayed over the slow link that just caught up): the first message that comes
+        over PUB says where the follower joins, and the values before it are counted
+        dropped (``_joined``)."""
+        follow.direct, follow.joining = False, True
+        follow.data = self._sub(follow.data_address)
+        follow.data.setsockopt(zmq.SUBSCRIBE, follow.topic)
+
+    def _joined(self, follow: _Follow, first: int) -> None:
+        """The first message of a topic back on PUB concerns values from ``first`` on:
+        the ones before it were published before the subscription was live."""
+        follow.joining = False
+        self._not_sent_before(follow, first)
+
+    @staticmethod
+    def _not_sent_before(follow: _Follow, start: int) -> None:
+        """Values before ``start`` not held nor delivered will not come (they went over
+        PUB, or not at all): they are passed over, counted dropped, never asked for."""
+        seq = follow.next_seq
+        if seq < 0:
+            return
+        for first in sorted(follow.held):
+            if first >= start:
+                break
+            if first > seq:
+                Follower._skipped(follow, seq, first)
+            seq = max(seq, first + len(follow.held[first][0]))
+        if seq < start:
+            Follower._skipped(follow, seq, start)
 
     def _drop_unused(self) -> None:
         """Close the sockets to senders no followed topic comes from any more (they
@@ -1099,7 +1316,7 @@ class Follower:
         from one of its publishers while a message is half taken in aborts libzmq:
         zeromq/libzmq#2163.)"""
         used = {id(sock) for follow in self._follows.values()
-                for sock in (follow.data, follow.control)}
+                for sock in (follow.data, follow.control) if sock is not None}
         for sockets, linger in ((self._subs, 0), (self._controls, LINGER_MS)):
             for address, sock in list(sockets.items()):
                 if id(sock) not in used:
@@ -1110,7 +1327,8 @@ class Follower:
     def _unfollow(self, name: bytes) -> None:
         follow = self._follows.pop(name, None)
         if follow is not None:
-            follow.data.setsockopt(zmq.UNSUBSCRIBE, name)
+            if follow.data is not None:
+                follow.data.setsockopt(zmq.UNSUBSCRIBE, name)
             self._ask(follow, ACK, -1, 0)        # the sender forgets us: no waiting for
                                                  # us, nothing we did not see counted lost
         self._lossless.discard(name)
@@ -1155,6 +1373,8 @@ class Follower:
 
     def _drain(self, sock: zmq.Socket, live: bool) -> None:
         """Take in what has arrived (a bounded batch), then deliver per topic at once."""
+        if sock.closed:
+            return                  # (a SUB closed by a DIRECT taken in just before it)
         touched: dict[bytes, _Follow] = {}
         for _ in range(DRAIN_BATCH):
             try:
@@ -1194,6 +1414,8 @@ class Follower:
             incarnation, nxt, skipped = _ANSWER.unpack(message.frames[1])
             if not self._accept(follow, incarnation):
                 return None
+            if live and follow.joining:
+                self._joined(follow, nxt)
             if message.kind == SYNC and 0 < skipped <= nxt:
                 self._skipped(follow, nxt - skipped, nxt)
             if follow.next_seq < 0:             # from now on: what came earlier goes
@@ -1215,6 +1437,9 @@ class Follower:
             incarnation, seq, sent_at, kind, nonce, tag = _INFO.unpack(info)
             if not self._accept(follow, incarnation):
                 return None
+            if live and follow.joining:
+                self._joined(follow, seq)
+                self._advance(follow)            # (so that it lands in order: below)
             if self._delivered(follow, seq):     # (a repair re-sent it: not decrypted again)
                 self.duplicates[_topic(follow.topic)] += 1
                 return None
@@ -1239,6 +1464,8 @@ class Follower:
             incarnation, first, count, sent_at = _BATCH.unpack(header)
             if not self._accept(follow, incarnation):
                 return None
+            if live and follow.joining:
+                self._joined(follow, first)
             values = _entries(body, bytes(kinds), count)
             nbytes = memoryview(body).nbytes
             return follow if self._take(follow, first, values, sent_at, nbytes, live) else None
@@ -1248,7 +1475,28 @@ class Follower:
                 return None
             if first < 0 or count <= 0:
                 raise Rejected("malformed")
+            if live and follow.joining:
+                self._joined(follow, first)
             self._skipped(follow, first, first + count)
+            return follow
+        if message.kind in (DIRECT, RESUME):
+            incarnation, start, nxt = _ANSWER.unpack(message.frames[1])
+            if not self._accept(follow, incarnation):
+                return None
+            if live or start < 0 or follow.next_seq < 0:
+                raise Rejected("malformed")
+            self._not_sent_before(follow, start)
+            if message.kind == RESUME:
+                if follow.direct:
+                    self._resume(follow)
+                    if follow.topic in self._lossless:   # (nothing may be dropped: the
+                        follow.joining = False           # hand-shake replays the rest)
+                        follow.live = False
+                        self._hello(follow)
+            else:
+                if not follow.direct:
+                    self._go_direct(follow)
+                follow.announced = max(follow.announced, nxt)
             return follow
         if message.kind == REPLAYED:
             incarnation, first, gone = _ANSWER.unpack(message.frames[1])
