@@ -8,6 +8,7 @@ import math
 import os
 import re
 import signal
+import socket
 import threading
 import time
 
@@ -778,3 +779,124 @@ def test_a_move_just_after_a_remote_restart_goes_ahead_and_the_values_follow(
         received = run.state("sink")["received"]
         eventually(lambda: run.state("sink")["received"] > received + 50, timeout=15,
                    what="values from src at the sink after the move")
+
+
+def _recording_starts(controllers: dict[str, NodeController]) -> list[tuple[str, int]]:
+    """Each executor the controllers start, as (node, pid), as they start it."""
+    started: list[tuple[str, int]] = []
+    for name, controller in controllers.items():
+        def recorded(config, *args, _start=controller.start_executor, _made=controller,
+                     _name=name, **kwargs):
+            answer = _start(config, *args, **kwargs)
+            started.append((_name, _made._executors[config][0].pid))
+            return answer
+        controller.start_executor = recorded
+    return started
+
+
+def test_every_unreachable_node_is_named_at_once_and_the_started_executors_stop(
+        controllers) -> None:
+    """The nodes' executors start side by side: of four remote nodes, one a port nothing
+    listens on and one that accepts connections but never answers (a frozen
+    controller), both are named in one error, about one connection timeout (5 s) after
+    the launch began. The launch asked the nodes one after another and stopped at the
+    first that did not answer, naming it alone; the others were never asked. The
+    executors of the two nodes that did start are stopped again, their processes and
+    segments gone."""
+    started = _recording_starts(controllers)
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        refused = f"tcp://127.0.0.1:{probe.getsockname()[1]}"
+    with socket.socket() as silent:                  # (the kernel accepts; nobody answers)
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(8)
+        system = System("unreachable", timeout=10).node("a")
+        system.node("b", address=controllers["b"].address).node("x", address=refused)
+        system.node("c", address=controllers["c"].address)
+        system.node("y", address=f"tcp://127.0.0.1:{silent.getsockname()[1]}")
+        for node in ("a", "b", "x", "c", "y"):
+            system.add(f"at_{node}", Collector, node=node)
+        began = time.monotonic()
+        with pytest.raises(RuntimeTimeout) as raised:
+            system.launch()
+        took = time.monotonic() - began
+    said = str(raised.value)
+    assert said.startswith("system 'unreachable' was not started: 2 of its 4 remote nodes "
+                           "did not start an executor (no module was started):"), said
+    assert re.search(rf"\n  node x: no node controller answered at {refused} within 5 s; "
+                     r"nothing listens on port", said), said
+    assert re.search(r"\n  node y: no node controller answered at \S+ within 5 s; something "
+                     r"accepts connections on port \d+ at 127\.0\.0\.1, but does not answer",
+                     said), said
+    assert not re.search(r"\bnode [bc]\b", said), said
+    assert took < 9.0, took                     # one timeout and its probe, not two
+    assert sorted(node for node, _ in started) == ["b", "c"]
+    assert controllers["b"].executors() == {} and controllers["c"].executors() == {}
+    for _, pid in started:
+        eventually(lambda pid=pid: not psutil.pid_exists(pid) or
+                   psutil.Process(pid).status() == psutil.STATUS_ZOMBIE, timeout=10,
+                   what=f"executor {pid} gone")
+        assert live_segments(pid) == []
+
+
+def test_a_launch_over_several_nodes_keeps_their_order_and_introduces_each(
+        controllers) -> None:
+    """Started side by side, three remote nodes run their modules, linked across them,
+    in the order the configuration gives them (a shutdown stops them in reverse), and
+    each is told where every other node is: it measures a round-trip time to each."""
+    third = NodeController("d", ClusterKey.load(), limits=Limits(max_cpu_percent=101.0))
+    try:
+        system = System("several").node("a")
+        for name, address in (("b", controllers["b"].address), ("c", controllers["c"].address),
+                              ("d", third.address)):
+            system.node(name, address=address)
+        system.add("tick", Counter, node="a", period=0.01)
+        system.add("relay_b", Relay, node="b")
+        system.add("relay_c", Relay, node="c")
+        system.add("end", Collector, node="d")
+        system.link("tick.out", "relay_b.x").link("relay_b.out", "relay_c.x")
+        system.link("relay_c.out", "end.x")
+        with system.launch() as run:
+            assert list(run._launcher.nodes) == ["a", "b", "c", "d"]
+            state = eventually(lambda: (s := run.state("end"))["received"] > 20 and s,
+                               timeout=30, what="values through b and c to d")
+            assert _clean(state)
+            for node in ("b", "c", "d"):
+                eventually(lambda node=node: set(run._launcher.remotes[node].rtts()) ==
+                           {"a", "b", "c", "d"} - {node}, timeout=10,
+                           what=f"node {node}'s round-trip times to every peer")
+    finally:
+        third.close()
+    for controller in (*controllers.values(), third):
+        assert controller.executors() == {}
+
+
+def test_a_node_whose_executor_outlasts_the_launch_timeout_is_named_and_stopped_later(
+        controllers) -> None:
+    """A controller that answers but takes longer than the launch's timeout to start its
+    executor fails the launch within that timeout, naming the node and how to give it
+    more time, not after the slow start (which the launch waited for, up to a minute);
+    the executor it then starts is stopped by the start's own thread."""
+    slow, start = controllers["c"], controllers["c"].start_executor
+    release = threading.Event()
+
+    def delayed(*args, **kwargs):
+        release.wait(15)
+        return start(*args, **kwargs)
+    slow.start_executor = delayed
+    system = System("slow", timeout=6).node("a")
+    system.node("b", address=controllers["b"].address).node("c", address=slow.address)
+    system.add("at_b", Collector, node="b")
+    system.add("at_c", Collector, node="c")
+    began = time.monotonic()
+    try:
+        with pytest.raises(RuntimeTimeout, match=r"node c at tcp://\S+ did not start an "
+                                                 r"executor within 6 s .*: give the system a "
+                                                 r"longer timeout"):
+            system.launch()
+        assert time.monotonic() - began < 9.0
+        assert controllers["b"].executors() == {}
+    finally:
+        release.set()
+    eventually(lambda: slow.executors() == {} and not slow._executors, timeout=20,
+               what="the late executor stopped by its start's thread")

@@ -38,6 +38,7 @@ from pb3a.errors import ModuleNotFound, RuntimeFailure, RuntimeTimeout
 from pb3a.events import EventLog
 from pb3a.latencies import percentile
 from pb3a.launch.configuration_lock import ConfigurationLock
+from pb3a.launch.remote_starts import RemoteStarts, not_started
 from pb3a.loading.references import by_reference, class_ref
 from pb3a.logbook import LogBook
 from pb3a.model.environment import PREFIX as ENV_PREFIX
@@ -108,31 +109,45 @@ class Launcher:
         self._env_keeper: threading.Thread | None = None
 
     # -- nodes ----------------------------------------------------------------------
-    def start_nodes(self, callback: str | None) -> None:
+    def start_nodes(self, callback: str | None, timeout: float) -> None:
         """One executor per node; ``callback`` is where remote executors reach this
-        launcher (agents' requests, restarts), needed when any node has an address."""
+        launcher (agents' requests, restarts), needed when any node has an address.
+
+        The remote nodes' controllers start their executors side by side
+        (``RemoteStarts``), within about ``timeout`` seconds: one after another, ten
+        robots paid each one's start in turn, and the first that did not answer ended
+        the launch (5 s later) naming it alone. One error names every node that did not
+        start one (a single node's own error as it was); the executors that did
+        start are left in ``nodes`` for the shutdown that follows to stop."""
         logging.getLogger().addHandler(self.logbook)
         self._callback = callback
         # A node started here is reached where the remote nodes reach the launcher.
         here = "127.0.0.1" if callback is None else host_of(callback)
-        for name, node in self.plan.nodes.items():
-            if node.address is None:
-                executor = Executor(name, workers=node.workers, cpus=node.cpus,
-                                    host=node.advertise or here,
-                                    checkpoint_s=self.checkpoint_s, log_level=self.log_level,
-                                    code=self.plan.code, lock=self.lock,
-                                    epoch=self.epoch, spares=node.spares)
-                executor.handler = self._agent_request
-                executor.republished = functools.partial(self.republished, node=name)
-                executor.on_event = self.events.record
-                executor.on_checkpoint = self.checkpoints.__setitem__
-                self.nodes[name] = executor
-                self.health[name] = {"up": True, "rtt": 0.0, "address": None, "epoch": 1}
-            else:
-                assert callback is not None, "remote nodes call the launcher back"
-                self.nodes[name] = self.remotes[name] = self._start_remote_node(name, node_epoch=1)
-                self.health[name] = {"up": True, "rtt": float("nan"), "address": node.address,
-                                     "controller": True, "epoch": 1}
+        remote = [name for name, node in self.plan.nodes.items() if node.address is not None]
+        assert callback is not None or not remote, "remote nodes call the launcher back"
+        starts = RemoteStarts(self._start_remote_node, remote,
+                              {name: str(self.plan.nodes[name].address) for name in remote},
+                              timeout, LAUNCH_LONGER)
+        embedded: dict[str, Executor] = {}
+        try:
+            for name, node in self.plan.nodes.items():    # (meanwhile, on this thread)
+                if node.address is None:
+                    embedded[name] = self._embedded_executor(name, here)
+        finally:
+            started, failures = starts.settle()
+            # in the plan's order, as they were started before: a shutdown stops them
+            # in reverse
+            for name, node in self.plan.nodes.items():
+                if name in embedded:
+                    self.nodes[name] = embedded[name]
+                    self.health[name] = {"up": True, "rtt": 0.0, "address": None, "epoch": 1}
+                elif name in started:
+                    self.nodes[name] = self.remotes[name] = started[name]
+                    self.health[name] = {"up": True, "rtt": float("nan"),
+                                         "address": node.address, "controller": True,
+                                         "epoch": 1}
+        if failures:
+            raise not_started(self.plan.name, len(remote), failures)
         self._introduce()
         # (also without remote nodes: it keeps the env modules' view up to date)
         self._env_keeper = threading.Thread(target=self._keep_env, name="pb3a-env",
@@ -141,6 +156,21 @@ class Launcher:
         self._watchdog = threading.Thread(target=self._watch, name="pb3a-heartbeat",
                                           daemon=True)
         self._watchdog.start()
+
+    def _embedded_executor(self, name: str, here: str) -> Executor:
+        """The executor of node ``name``, which has no address: it runs in this process,
+        reached by the other nodes at ``here`` (unless it advertises a host)."""
+        node = self.plan.nodes[name]
+        executor = Executor(name, workers=node.workers, cpus=node.cpus,
+                            host=node.advertise or here,
+                            checkpoint_s=self.checkpoint_s, log_level=self.log_level,
+                            code=self.plan.code, lock=self.lock,
+                            epoch=self.epoch, spares=node.spares)
+        executor.handler = self._agent_request
+        executor.republished = functools.partial(self.republished, node=name)
+        executor.on_event = self.events.record
+        executor.on_checkpoint = self.checkpoints.__setitem__
+        return executor
 
     def check_classes(self, timeout: float) -> None:
         """Have every remote node load the classes of the modules it is to run, all nodes

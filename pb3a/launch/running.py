@@ -112,7 +112,7 @@ class Running(SystemHandle):
                 remote = self._remote_nodes()
                 if self._listen_at is not None or remote:
                     self.listen(self._listen_at or f"tcp://{self._here_towards_nodes()}:0")
-                launcher.start_nodes(self.address if remote else None)
+                launcher.start_nodes(self.address if remote else None, self._operations.timeout)
                 launcher.check_classes(self._operations.timeout)
                 launcher.expect(list(self.plan.modules.values()))
                 for spec in self.plan.modules.values():
