@@ -840,6 +840,93 @@ def test_a_file_opened_in_the_page_is_checked_and_becomes_the_document(tmp_path:
         assert set(manager.api("GET", "/api/system")["modules"]) == {"tick", "double"}
 
 
+def save_box(page: Any) -> dict[str, Any]:
+    """What the header's save box shows: whether it is, its value and its placeholder."""
+    box = page.locator("#save-path")
+    return {"visible": box.is_visible(), "value": box.input_value(),
+            "placeholder": box.get_attribute("placeholder")}
+
+
+def save_box_says(page: Any, value: str) -> dict[str, Any]:
+    """Wait for the save box to hold ``value`` (the page reads it from the server), then
+    what it shows; fail naming what it shows instead."""
+    from playwright.sync_api import TimeoutError as PageTimeout
+
+    try:
+        page.wait_for_function("(value) => document.querySelector('#save-path').value "
+                               "=== value", arg=value, timeout=WAIT_MS)
+    except PageTimeout:
+        pytest.fail(f"the save box shows {save_box(page)}, not {value!r}")
+    return save_box(page)
+
+
+def test_the_save_box_shows_the_document_s_path_in_every_mode_it_is_opened_in(
+        tmp_path: Path) -> None:
+    """A page opened on a system launched from its document (through the API, or before a
+    reload) showed the placeholder ``system.toml`` in the save box, not the document's
+    path, which Save writes: the path was set only on entering editing. It is the
+    document's in every mode; attached to a system (no document) there is no Save, and
+    a document with no file shows an empty box whose hint names no file."""
+    config = tmp_path / "lab.toml"
+    config.write_text(LAB)
+    manager = ManagerProcess(str(config))
+    attached = None
+    try:
+        manager.api("POST", "/api/document/launch", {})
+        with chromium_page() as tab:
+            page = tab.page
+            for opened in ("launched", "reloaded"):
+                page.goto(manager.url if opened == "launched" else manager.base)
+                page.wait_for_function(
+                    "document.querySelector('#mode').textContent === 'running'"
+                    " && document.querySelectorAll('.module').length === 4", timeout=WAIT_MS)
+                shown = save_box_says(page, str(config))
+                assert shown["visible"], (opened, shown)
+            # Save with the box as shown writes the document's file
+            page.click("#save")
+            page.wait_for_selector(f".toast.ok >> text=Saved {config}", timeout=WAIT_MS)
+            # attached to the running system: no document of its own, so no Save
+            address = manager.api("GET", "/api/system")["address"]
+            attached = ManagerProcess(address)
+            page.goto(attached.url)
+            page.wait_for_function("document.querySelectorAll('.module').length === 4",
+                                   timeout=WAIT_MS)
+            assert page.locator("#mode").text_content() == "running"
+            assert not save_box(page)["visible"]
+            # stopped, the document is edited again: the box says its file still
+            page.goto(manager.base)
+            page.wait_for_function("document.querySelector('#mode').textContent === "
+                                   "'running'", timeout=WAIT_MS)
+            manager.api("POST", "/api/system/stop", {})
+            page.wait_for_function("document.querySelector('#mode').textContent === "
+                                   "'editing'", timeout=WAIT_MS)
+            assert save_box_says(page, str(config))["visible"]
+            assert tab.errors == [], f"the page threw: {tab.errors}"
+    finally:
+        if attached is not None:
+            attached.stop()
+        manager.stop()
+    # a document with no file: the box is empty, its hint names no file Save would write,
+    # and Save asks for one
+    empty = ManagerProcess()
+    try:
+        with chromium_page() as tab:
+            page = tab.page
+            page.goto(empty.url)
+            page.wait_for_function("document.querySelector('#mode').textContent === 'editing'",
+                                   timeout=WAIT_MS)
+            shown = save_box(page)
+            assert shown["visible"] and shown["value"] == ""
+            assert ".toml" not in shown["placeholder"], shown
+            page.click("#save")
+            refusal = page.locator(".toast.error").first
+            refusal.wait_for(timeout=WAIT_MS)
+            assert "give the path to save it to" in refusal.text_content()
+            assert tab.errors == [], f"the page threw: {tab.errors}"
+    finally:
+        empty.stop()
+
+
 def test_two_quick_edits_in_the_editor_are_both_saved(tmp_path: Path) -> None:
     """An edit made while the one before it was being saved was made on the page's copy,
     which that save's answer then replaced: the second edit was lost, and both said

@@ -125,7 +125,8 @@ class Manager {
     // a structure older than the one shown (the feed's "stopping", say, after Stop's own
     // answer said "editing") is not taken: it would undo the newer mode
     if (system.mode_change < (this.system?.mode_change ?? 0)) return;
-    const modeChanged = this.system?.mode !== system.mode;
+    const before = this.system?.mode;
+    const modeChanged = before !== system.mode;
     // a system launched anew numbers its events from 1 (a Stop and a Launch may both
     // come between two of the feed's looks: then only the launch's number changes)
     if (modeChanged || this.system?.launch !== system.launch) this.events.last = 0;
@@ -146,7 +147,7 @@ class Manager {
       // a module selected before the mode is entered is drawn once, by the select below
       this.entering = true;
       try {
-        await this.enterMode(system.mode);
+        await this.enterMode(system.mode, {launched, before});
       } finally {
         this.entering = false;
       }
@@ -167,15 +168,30 @@ class Manager {
     this.showProblems();
   }
 
-  async enterMode(mode) {
+  /** Enter ``mode`` (``launched``: a system launched from the document runs; ``before``:
+   * the mode the page showed, if any). */
+  async enterMode(mode, {launched = false, before} = {}) {
     if (mode === "editing") {
       this.document = await new EditedDocument().load().catch((error) => { this.toasts.error(error); return null; });
       $("save-path").value = this.document?.path || "";
       $("browser").hidden = false;
     } else {
       this.document = null;
+      // Save writes the launched document: the box says its file, as while editing (a
+      // page opened on the running system, or reloaded, never saw it; one launched here
+      // keeps what the box said)
+      if (launched && before !== "editing") await this.showDocumentPath();
     }
     if (mode === "editing" || !$("browser").hidden) await this.loadClasses();
+  }
+
+  /** Put the document's file into the save box (empty when it has none: Save asks). */
+  async showDocumentPath() {
+    try {
+      $("save-path").value = (await api.document()).path || "";
+    } catch (error) {
+      this.toasts.error(error);
+    }
   }
 
   async loadClasses() {
