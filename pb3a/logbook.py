@@ -15,9 +15,9 @@ import logging
 import threading
 from collections import deque
 from dataclasses import dataclass
-from time import localtime, strftime
 
 from pb3a.errors import bounded_wait
+from pb3a.log_format import line, process_label
 
 
 @dataclass(frozen=True)
@@ -31,11 +31,13 @@ class LogEntry:
     message: str                # with the traceback, if the record had one
     node: str = ""              # where it was logged ("": the launcher's process)
     module: str = ""            # the PB3A module it is about, if any
+    process: str = ""           # the process that logged it, as its log lines name it
 
     def line(self) -> str:
-        """The entry as one line of text (and its traceback below)."""
-        where = f"[{self.node}] " if self.node else ""
-        return f"{_clock(self.time)} {self.level:<7} {where}{self.message}"
+        """The entry as one line of text (and its traceback below), as the process that
+        logged it printed it (``pb3a.log_format``)."""
+        process = self.process or (f"@{self.node}" if self.node else "launcher")
+        return line(self.time, self.level, process, self.logger, self.message)
 
 
 class LogBook(logging.Handler):
@@ -58,17 +60,18 @@ class LogBook(logging.Handler):
             message = record.getMessage()
             if record.exc_info:
                 message += "\n" + logging.Formatter().formatException(record.exc_info)
-            self.add(record.created, record.levelname, record.name, message,
-                     getattr(record, "pb3a_node", ""), getattr(record, "pb3a_module", ""))
+            node = getattr(record, "pb3a_node", "")
+            self.add(record.created, record.levelname, record.name, message, node,
+                     getattr(record, "pb3a_module", ""), process_label(node))
         except Exception:
             self.handleError(record)
 
     def add(self, time: float, level: str, logger: str, message: str, node: str = "",
-            module: str = "") -> LogEntry:
+            module: str = "", process: str = "") -> LogEntry:
         """Keep one entry (a record of this process, or one a remote node kept)."""
         with self._cond:
             self._seq += 1
-            entry = LogEntry(self._seq, time, level, logger, message, node, module)
+            entry = LogEntry(self._seq, time, level, logger, message, node, module, process)
             self._entries.append(entry)
             self._cond.notify_all()
         return entry
@@ -102,6 +105,3 @@ def _handled_elsewhere(record: logging.LogRecord) -> bool:
         logger = logger.parent if logger.propagate else None
     return False
 
-
-def _clock(when: float) -> str:
-    return strftime("%H:%M:%S", localtime(when)) + f".{int(when % 1 * 1000):03d}"

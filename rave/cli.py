@@ -22,7 +22,7 @@ from pb3a.cli.log_output import show_logs
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    show_logs()
+    show_logs(role="rave")
     return int(args.handler(args))
 
 

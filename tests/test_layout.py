@@ -17,7 +17,8 @@ ROOT = Path(__file__).resolve().parent.parent
 # Each layer may import the layers before it; inside a layer, a package imports only
 # itself (launch and daemons, say, know nothing of each other).
 LAYERS: list[set[str]] = [
-    {"pb3a.errors"},                                    # the exception tree, under all
+    {"pb3a.errors", "pb3a.log_format"},                 # the exception tree and the log
+                                                        # line's format, under all
     {"pb3a.deadline", "pb3a.events", "pb3a.latencies", "pb3a.logbook", "pb3a.pending",
      "pb3a.processes", "pb3a.stats"},
     {"pb3a.cpu_load"},                                  # load for experiments, in processes

@@ -1,5 +1,6 @@
 """The ``pb3a`` command line's grammar: every command, its arguments and help, and the
-function that runs it, named as ``"module:function"`` (``set_defaults(handler=...)``).
+function that runs it, named as ``"module:function"`` (``set_defaults(handler=...)``),
+and what its process is in its log lines (``log_role``; by default ``launcher``).
 
 Nothing here imports a command's implementation: ``main`` imports the one function it
 names once the arguments have parsed. So ``pb3a --help``, ``pb3a COMMAND --help`` and a
@@ -33,7 +34,7 @@ def _files(commands: argparse._SubParsersAction) -> None:
     check = commands.add_parser("check", help="validate a configuration file; exit 1 on errors")
     check.add_argument("file", metavar="FILE", help="a system description (.toml)")
     _import_timeout(check)
-    check.set_defaults(handler="pb3a.cli.files:check_command")
+    check.set_defaults(handler="pb3a.cli.files:check_command", log_role="pb3a check")
 
     graph = commands.add_parser("graph", help="draw a configuration: nodes, modules, ports, links")
     graph.add_argument("file", metavar="FILE", help="a system description (.toml)")
@@ -41,7 +42,7 @@ def _files(commands: argparse._SubParsersAction) -> None:
                        help="output file: .svg (default: FILE's name with .svg), .png, .pdf, "
                             "or .dot for DOT only; '-' prints DOT")
     _import_timeout(graph)
-    graph.set_defaults(handler="pb3a.cli.files:graph_command")
+    graph.set_defaults(handler="pb3a.cli.files:graph_command", log_role="pb3a graph")
 
     run = commands.add_parser("run", help="launch a system and show its live status")
     run.add_argument("file", metavar="FILE", help="a system description (.toml)")
@@ -75,7 +76,8 @@ def _running_system(commands: argparse._SubParsersAction) -> None:
         sub.add_argument("--timeout", type=arguments.wait_seconds, default=None,
                          metavar="SECONDS",
                          help="how long the operation may wait (default: the system's)")
-        sub.set_defaults(handler="pb3a.cli.running_system:operation_command", operation=name)
+        sub.set_defaults(handler="pb3a.cli.running_system:operation_command", operation=name,
+                         log_role=f"pb3a {name}")
         return sub
 
     command("status", "the live status table of a running system")
@@ -188,7 +190,7 @@ def _daemons(commands: argparse._SubParsersAction) -> None:
     serve.add_argument("dir", metavar="DIR", help="the directory of module files")
     serve.add_argument("--listen", default="tcp://127.0.0.1:7300", metavar="ADDR",
                        help="address to listen on (default tcp://127.0.0.1:7300; port 0: any)")
-    serve.set_defaults(handler="pb3a.cli.daemons:modules_serve_command")
+    serve.set_defaults(handler="pb3a.cli.daemons:modules_serve_command", log_role="module server")
 
     node = commands.add_parser("node", help="the node controller")
     node_commands = node.add_subparsers(title="commands", metavar="COMMAND",
@@ -201,7 +203,7 @@ def _daemons(commands: argparse._SubParsersAction) -> None:
                        help="refuse work while the CPU is busier than this (default 90)")
     start.add_argument("--min-memory", type=int, default=256, metavar="MIB",
                        help="refuse work that would leave less memory available (default 256)")
-    start.set_defaults(handler="pb3a.cli.daemons:node_start_command")
+    start.set_defaults(handler="pb3a.cli.daemons:node_start_command", log_role="controller")
 
 
 def _key(commands: argparse._SubParsersAction) -> None:
@@ -211,7 +213,7 @@ def _key(commands: argparse._SubParsersAction) -> None:
                                        required=True)
     new = key_commands.add_parser("new", help="write a new cluster key to PATH (mode 0600)")
     new.add_argument("path", metavar="PATH", help="the key file to create (it must not exist)")
-    new.set_defaults(handler="pb3a.cli.keys:key_new_command")
+    new.set_defaults(handler="pb3a.cli.keys:key_new_command", log_role="pb3a key")
 
 
 def _manager(commands: argparse._SubParsersAction) -> None:
@@ -231,4 +233,4 @@ def _manager(commands: argparse._SubParsersAction) -> None:
     manager.add_argument("--timeout", type=arguments.seconds, default=10.0, metavar="S",
                          help="seconds a call to the system may take (default 10)")
     _import_timeout(manager)
-    manager.set_defaults(handler="pb3a.cli.manager:manager_command")
+    manager.set_defaults(handler="pb3a.cli.manager:manager_command", log_role="manager")

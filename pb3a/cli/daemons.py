@@ -76,7 +76,9 @@ def modules_serve_command(args: argparse.Namespace) -> int:
 def node_start_command(args: argparse.Namespace) -> int:
     """``pb3a node start --name N --listen ADDR``: a node controller until signalled."""
     from pb3a.daemons.node_controller import Limits, NodeController
+    from pb3a.log_format import name_process
 
+    name_process("controller", args.name)        # its log lines: [controller@NAME]
     def start(key: Any, host: str, port: int) -> Any:
         limits = Limits(args.max_cpu, args.min_memory << 20)
         controller = NodeController(args.name, key, host, port, limits)

@@ -2,9 +2,10 @@
 
 PB3A, as a library, installs no handler that prints (logging's convention: the
 application decides). A command is the application: ``pb3a run``, ``scenario``,
-``node start``, ``modules serve`` and ``rave`` install one, so that a module's
-exception appears where the user looks (its name and traceback once, then one line
-with how many more).
+``node start``, ``modules serve``, ``manager`` and ``rave`` install one, so that a
+module's exception appears where the user looks (its name and traceback once, then
+one line with how many more), in the format every PB3A process writes
+(``pb3a.log_format``).
 """
 
 from __future__ import annotations
@@ -12,14 +13,11 @@ from __future__ import annotations
 import logging
 import sys
 
-FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+from pb3a.log_format import log_to, name_process
 
 
-def show_logs(level: int = logging.WARNING) -> None:
-    """Print records of ``level`` and above to stderr, unless logging is set up already."""
-    root = logging.getLogger()
-    if not root.handlers:
-        handler = logging.StreamHandler(sys.stderr)
-        handler.setFormatter(logging.Formatter(FORMAT, "%H:%M:%S"))
-        root.addHandler(handler)
-        root.setLevel(level)
+def show_logs(level: int = logging.WARNING, role: str = "launcher", node: str = "") -> None:
+    """Print records of ``level`` and above on stderr, unless logging is set up already;
+    the lines name this process ``role`` (``@node``: the node it is)."""
+    name_process(role, node)
+    log_to(sys.stderr, level)

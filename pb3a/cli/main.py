@@ -41,7 +41,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         parser = command_line()
         args = parser.parse_args(argv)
-        show_logs()
+        # the process its log lines name: a command that launches is the launcher
+        show_logs(role=getattr(args, "log_role", "launcher"))
         handler: str | None = getattr(args, "handler", None)
         if handler is None:
             parser.print_help()

@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import sys
 import threading
 import time
 from typing import Any
@@ -32,6 +33,7 @@ from pb3a.config.description import DEFAULT_SPARES
 from pb3a.deadline import bounding
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
+from pb3a.log_format import log_to, name_process
 from pb3a.logbook import LogBook
 from pb3a.node.class_check import unloadable
 from pb3a.node.executor import LOCK_TIMEOUT, Executor
@@ -285,8 +287,8 @@ def executor_main(config: str, node: str, workers: int, cpus: list[int] | None,
                   host: str, conn: Any, level: int = logging.WARNING,
                   unbound_s: float = UNBOUND_S) -> None:
     """Entry point of an executor process: serve until shut down, signalled or orphaned."""
-    logging.basicConfig(level=level, format=f"%(asctime)s pb3a[{config}@{node}] "
-                                            "%(levelname)s %(message)s")
+    name_process(f"executor {config}", node)        # its log lines: [executor CONFIG@NODE]
+    log_to(sys.stderr, level)
     mark_as("a node's executor")
     stopped = threading.Event()
     stop_on_sigterm(stopped)            # before anything that must be closed

@@ -541,7 +541,7 @@ class Launcher:
             for entry in node.logs(self._log_seen.get(name, 0)):
                 self._log_seen[name] = entry.seq
                 self.logbook.add(entry.time, entry.level, entry.logger, entry.message,
-                                 name, entry.module)
+                                 name, entry.module, entry.process)
 
     # -- a lost node ------------------------------------------------------------------
     def _lose(self, node: str, silent_s: float) -> None:

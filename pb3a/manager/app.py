@@ -92,8 +92,10 @@ def bind(host: str, port: int) -> socket.socket:
 def serve(app: Any, sock: socket.socket) -> None:
     """Serve ``app`` on ``sock`` until SIGINT or SIGTERM (uvicorn's own handling: the
     lifespan ends, so the session closes, then the signal is raised again)."""
+    # log_config=None: uvicorn's records go to the root logger, in the format every PB3A
+    # process writes (pb3a.log_format), not in a format of its own
     config = uvicorn.Config(app, log_level="warning", access_log=False, lifespan="on",
-                            ws="auto", timeout_graceful_shutdown=5)
+                            ws="auto", timeout_graceful_shutdown=5, log_config=None)
     try:
         uvicorn.Server(config).run(sockets=[sock])
     finally:
