@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import multiprocessing.forkserver
 import os
 import signal
 import socket
@@ -76,6 +77,31 @@ def alive(pid: int) -> bool:
         return psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
     except psutil.NoSuchProcess:
         return False
+
+
+def processes_naming(word: str) -> list[psutil.Process]:
+    """The live processes whose command line holds ``word`` (a forkserver preloading a
+    module file names it, and so do the workers forked from it), but this process's own
+    forkserver, which lives as long as this process does, as a launcher's does."""
+    own = multiprocessing.forkserver._forkserver._forkserver_pid
+    found = []
+    for process in psutil.process_iter(["cmdline"]):
+        with contextlib.suppress(psutil.Error):
+            if word in " ".join(process.info["cmdline"] or ()) and process.pid != own \
+                    and process.status() != psutil.STATUS_ZOMBIE:
+                found.append(process)
+    return found
+
+
+def kill_processes_naming(word: str) -> list[psutil.Process]:
+    """SIGKILL every process ``processes_naming(word)`` finds (what a test that failed
+    left behind), waiting for them a moment; those found."""
+    found = processes_naming(word)
+    for process in found:
+        with contextlib.suppress(psutil.Error):
+            process.kill()
+    psutil.wait_procs(found, timeout=2.0)
+    return found
 
 
 @contextlib.contextmanager

@@ -901,6 +901,53 @@ def _kill_every_process_naming(word: str) -> list[psutil.Process]:
     return first or []
 
 
+def test_a_forkserver_that_hangs_preloading_a_module_is_stopped_with_its_node(
+        tmp_path: Path) -> None:
+    """A module file that hangs as PB3A's processes import it (waiting for a device, a
+    ``sleep``), imported at once by the launcher: the forkserver that preloads it hung
+    there, ignoring SIGTERM, every worker start waiting for it; it stayed after the
+    system was closed, and after the launcher exited, re-parented to init. A start left
+    unanswered stops it (its launch fails, naming what it preloads) and so does the
+    node's shutdown: no process of it is left once the system is closed."""
+    module = f"hangs_in_the_forkserver_{os.getpid()}"
+    code, stderr, took = _import_in_a_new_process(tmp_path, module, """
+        import sys
+        import time
+
+        import psutil
+
+        import pb3a.node.workers as workers
+        from pb3a import Module, RuntimeTimeout, System
+        from pb3a.processes import role
+
+        if role() is not None:          # the forkserver preloading this file
+            time.sleep(1000)
+
+        class Sink(Module):
+            period = 0.1
+
+        workers.SPAWN_TIMEOUT_S = 2.0
+        system = System("hangs-preloading").node("a", spares=0)
+        system.add("sink", Sink, node="a")
+        try:
+            system.launch(timeout=10).close()
+        except RuntimeTimeout as exc:
+            print(f"launch failed: {exc}", file=sys.stderr)
+        deadline = time.monotonic() + 5
+        while [p for p in psutil.Process().children(recursive=True)
+               if __name__ in " ".join(p.cmdline()) and p.status() != "zombie"]:
+            if time.monotonic() > deadline:
+                print("the forkserver is left", file=sys.stderr)
+                sys.exit(3)
+            time.sleep(0.05)
+        """)
+    assert code == 0, stderr
+    assert "launch failed: " in stderr and "does not answer" in stderr, stderr
+    assert f"it had not finished importing the modules it preloads ({module}): one of " \
+           "them hangs as it is imported? It was stopped" in stderr, stderr
+    assert took < 30
+
+
 def test_a_file_that_launches_a_system_when_imported_fails_naming_it(tmp_path: Path) -> None:
     """A file that defines module classes and launches a system when imported (no
     ``__main__`` guard), imported rather than run: the forkserver preloads the classes'

@@ -21,6 +21,8 @@ from conftest import (
     assert_same_arrays,
     eventually,
     frozen,
+    kill_processes_naming,
+    processes_naming,
     restart_after_kill,
 )
 from sample_modules import (
@@ -500,6 +502,86 @@ def test_every_class_a_remote_node_cannot_load_is_named_before_anything_starts(
     finally:
         for daemon in daemons.values():
             daemon.stop()
+
+
+# A module file that hangs as PB3A's own processes import it (a node's executor, the
+# forkserver that preloads it), as one waiting for a device of the robot would; the
+# launcher's process imports it at once.
+_HANGS_IN_PB3A = ("import time\n\nfrom pb3a import Module\nfrom pb3a.processes import role\n\n"
+                  "if role() is not None:\n    time.sleep(1000)\n\n\n"
+                  "class Sink(Module):\n    period = 0.1\n")
+
+
+def _launch_of_a_hanging_module(tmp_path, monkeypatch):
+    """A module file that hangs on node b (``_HANGS_IN_PB3A``), a daemon for node b, and
+    the launch of a system running it there, on a thread; returned once the node's
+    forkserver preloads the file: the module's name, the daemon, the thread and what
+    the launch raised (once it did)."""
+    module = f"hangs_on_the_node_{os.getpid()}_{time.monotonic_ns()}"
+    (tmp_path / f"{module}.py").write_text(_HANGS_IN_PB3A)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    daemon = Daemon("b", path=(str(tmp_path),))
+    system = System("hung-preload").node("a").node("b", address=daemon.address)
+    system.add("sink", f"{module}:Sink", node="b")
+    outcome: list[BaseException] = []
+
+    def launch() -> None:
+        try:
+            system.launch(timeout=5).close()
+        except BaseException as exc:         # (what the launch raised, for the test)
+            outcome.append(exc)
+
+    launching = threading.Thread(target=launch, daemon=True)
+    launching.start()
+    try:
+        eventually(lambda: [p for p in processes_naming(module)
+                            if "forkserver" in " ".join(p.cmdline())],
+                   timeout=30, what="node b's forkserver preloading the module's file")
+    except BaseException:
+        launching.join(30)
+        daemon.stop()
+        kill_processes_naming(module)
+        raise
+    return module, daemon, launching, outcome
+
+
+def test_a_node_whose_forkserver_hangs_preloading_a_module_leaves_no_process(
+        tmp_path, monkeypatch) -> None:
+    """A module file that hangs as the node imports it fails the launch, naming the
+    module; the forkserver that preloaded it, stuck in that import, ignoring SIGTERM,
+    was left behind (re-parented to init) when the executor stopped. The executor
+    stops it as it shuts down: no process of it is left, before the node controller
+    stops or after."""
+    module, daemon, launching, outcome = _launch_of_a_hanging_module(tmp_path, monkeypatch)
+    try:
+        launching.join(30)
+        assert len(outcome) == 1 and isinstance(outcome[0], RuntimeFailure), outcome
+        assert f"importing module {module!r} here" in str(outcome[0])
+        eventually(lambda: not processes_naming(module), timeout=10,
+                   what="no process of node b's forkserver left once the launch failed")
+    finally:
+        daemon.stop()
+        left = kill_processes_naming(module)
+    assert not left, left
+
+
+def test_a_forkserver_hanging_in_its_preload_ends_with_its_killed_executor(
+        tmp_path, monkeypatch) -> None:
+    """A node's executor killed (SIGKILL) while its forkserver hangs preloading a module
+    file: nobody can stop it then, and it was left behind for good, ignoring SIGTERM.
+    It ends as its owner does (the pipe that tells it so closes), as it does once
+    preloaded."""
+    module, daemon, launching, outcome = _launch_of_a_hanging_module(tmp_path, monkeypatch)
+    try:
+        os.kill(daemon.executor_pid(), signal.SIGKILL)
+        eventually(lambda: not processes_naming(module), timeout=10,
+                   what="no process of node b's forkserver left once its executor died")
+        launching.join(30)
+        assert len(outcome) == 1 and isinstance(outcome[0], PB3AError), outcome
+    finally:
+        daemon.stop()
+        left = kill_processes_naming(module)
+    assert not left, left
 
 
 def test_a_node_whose_controller_has_another_name_is_the_configuration_s_node() -> None:

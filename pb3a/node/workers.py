@@ -34,6 +34,7 @@ import cloudpickle
 from pb3a.config.description import DEFAULT_SPARES
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
+from pb3a.node import forkserver_owner
 from pb3a.node.watched_process import STATUS_WAIT_S, WatchedProcess
 from pb3a.processes import start_without_main
 from pb3a.transport import pickling
@@ -58,14 +59,17 @@ SPAWN_TIMEOUT_S = 30.0
 # fell inside a migration's pause when a module made a generator in its ``setup``
 PRELOAD = ("pb3a.node.forkserver_signals", "pb3a.worker.process", "numpy", "numpy.random",
            "cloudpickle")
+# Imported last: the preload is done (``pb3a.node.forkserver_signals``).
+PRELOADED = "pb3a.node.forkserver_preloaded"
 
 
-def _start_forkserver_child(process: Any) -> None:
+def _start_forkserver_child(process: Any, stopping: threading.Event | None = None) -> None:
     """Start ``process`` from the forkserver. One that ends as it starts, before it
     answers, most likely died preloading a module of the configuration that raises when
     imported (its traceback is on stderr): the start is tried again from a forkserver
     without those, and the worker's own import of the module then fails the module's
-    start with the module's error."""
+    start with the module's error. Not once ``stopping`` is set: the pool's close
+    stopped a forkserver still preloading (``WorkerPool.close``)."""
     for attempt in range(_FORKSERVER_ATTEMPTS):
         if attempt:
             # multiprocessing starts a new forkserver only once the last has exited
@@ -74,9 +78,15 @@ def _start_forkserver_child(process: Any) -> None:
             time.sleep(_FORKSERVER_BACKOFF_S * 2 ** (attempt - 1))
         try:
             start_without_main(process, timeout=SPAWN_TIMEOUT_S)
+            forkserver_owner.answered()
             return
         except (EOFError, ConnectionError):
-            pass
+            if stopping is not None and stopping.is_set():
+                raise RuntimeFailure("no worker was started: the node is shutting "
+                                     "down") from None
+        except RuntimeTimeout as exc:
+            _stop_a_hung_preload(exc)
+            raise
         # Every start that met a dying forkserver tries again, whichever saw it first: a
         # module's and a spare's start met the same one, and the second found the
         # preload dropped by the first and failed. And more than once: a start made
@@ -93,6 +103,30 @@ def _start_forkserver_child(process: Any) -> None:
                          "is on stderr")
 
 
+def _stop_a_hung_preload(timeout: RuntimeTimeout) -> None:
+    """A start got no answer: if the forkserver has answered none yet, it is stuck in
+    its preload (a module file that hangs as it is imported, most likely), and every
+    later start would wait for it too. It is stopped, and the next one preloads none
+    of the configuration's modules (a worker then imports its module itself, and its
+    start fails as that import does); ``timeout`` says so."""
+    with _preload_lock:
+        pid = forkserver_owner.running()
+        preload = ", ".join(
+            name for name in (forkserver_owner.preload_of(pid) if pid is not None else ())
+            if name not in (*PRELOAD, PRELOADED)
+            and not name.startswith(forkserver_owner.OWNER_MARK)) or "PB3A's own"
+        if forkserver_owner.stop_if_preloading() is None:
+            return
+        _preload(())
+    log.warning("the forkserver (pid %s) had not finished importing its preload (%s) "
+                "%g s after a start asked it for a worker; it was stopped, and workers "
+                "import the configuration's modules themselves from now on",
+                pid, preload, SPAWN_TIMEOUT_S)
+    timeout.args = (f"{timeout}; it had not finished importing the modules it preloads "
+                    f"({preload}): one of them hangs as it is imported? It was stopped, "
+                    "and workers import them themselves from now on",)
+
+
 # How often a worker's start is tried when the forkserver ends as it starts (each
 # forkserver started before the preload was dropped may die of it once), the first
 # retry after a pause of this, each later one after twice the last.
@@ -107,8 +141,11 @@ _preload_lock = threading.Lock()
 
 
 def _preload(configuration: tuple[str, ...]) -> None:
-    """What the next forkserver to start imports: PB3A's worker code, and ``configuration``."""
-    _context.set_forkserver_preload([*PRELOAD, *configuration])
+    """What the next forkserver to start imports: PB3A's worker code, and ``configuration``
+    (between them, the entry that names this process as its owner; last, the one that
+    says it is done: ``pb3a.node.forkserver_signals``)."""
+    _context.set_forkserver_preload([*PRELOAD, forkserver_owner.owner_mark(),
+                                     *configuration, PRELOADED])
     if configuration:
         _preloading_configuration.set()
     else:
@@ -235,7 +272,7 @@ class WorkerPool:
             args=(child, handle.key, settings.checkpoint_s, settings.log_level,
                   settings.cpus, settings.code))
         try:
-            _start_forkserver_child(process)
+            _start_forkserver_child(process, self._stopping)
         except BaseException:
             parent.close()
             child.close()
@@ -562,7 +599,9 @@ class WorkerPool:
 
     def close(self, timeout: float) -> None:
         """Stop every worker (in reverse start order) within about ``timeout`` seconds, then
-        the monitor. Deaths from here on are stops, not crashes."""
+        the monitor, then the forkserver if it is still importing its preload
+        (``forkserver_owner.stop_if_preloading``). Deaths from here on are stops, not
+        crashes."""
         deadline = time.monotonic() + timeout
         self._stopping.set()
         if self._booting is not None:            # (it stops what it booted meanwhile)
@@ -577,3 +616,9 @@ class WorkerPool:
         self._monitor.join(2.0)
         self._wake_r.close()
         self._wake_w.close()
+        # One still preloading (hung in an import?) would stay until this process
+        # exits; one that has started workers, this pool's or another's, stays.
+        stopped = forkserver_owner.stop_if_preloading()
+        if stopped is not None:
+            log.info("the forkserver (pid %s) had not finished its preload: stopped",
+                     stopped)
