@@ -17,6 +17,7 @@ import os
 import select
 import signal
 from multiprocessing import forkserver, util
+from typing import Any
 
 # How long a forkserver asked to stop (its alive pipe closed) has to end before it is
 # killed: one preloading ends at once (``forkserver_signals``' watch), unless a start
@@ -32,10 +33,23 @@ OWNER_MARK = "pb3a.node.forkserver_owner_pid_"
 _answered: int | None = None        # the process id of the forkserver that last started one
 
 
+# multiprocessing's own, not a public API (as of CPython 3.11-3.13): the stop below
+# needs its forkserver's process, pipe and socket. Where they are named otherwise, a
+# forkserver still preloading is left to end with this process, as it was before.
+_INTERNALS = ("_lock", "_forkserver_pid", "_forkserver_alive_fd", "_forkserver_address")
+
+
+def _server() -> object | None:
+    """multiprocessing's forkserver record, if it has the fields this module uses."""
+    server = getattr(forkserver, "_forkserver", None)
+    return server if all(hasattr(server, name) for name in _INTERNALS) else None
+
+
 def running() -> int | None:
     """The process id of this process's forkserver, if one was started (and not seen
     ended)."""
-    return forkserver._forkserver._forkserver_pid   # type: ignore[attr-defined]
+    server = _server()
+    return None if server is None else server._forkserver_pid   # type: ignore[attr-defined]
 
 
 def owner_mark() -> str:
@@ -67,7 +81,9 @@ def stop_if_preloading(grace: float = STOP_GRACE_S) -> int | None:
     kill it (SIGKILL) if it has not within ``grace`` seconds, and reap it; the next
     start starts a new one. Its process id if it was stopped, else None. Every worker
     it started (none, if it answered nothing) is left as it is."""
-    server = forkserver._forkserver                  # type: ignore[attr-defined]
+    server: Any = _server()
+    if server is None:
+        return None
     with server._lock:
         pid = server._forkserver_pid
         if pid is None or pid == _answered:
