@@ -1186,3 +1186,78 @@ def test_a_follower_takes_each_large_value_in_with_no_poll_of_its_socket(link,
     assert [float(array[0]) for array in got] == [float(i) for i in range(len(frames))]
     assert all(np.array_equal(a, b) for a, b in zip(got, frames, strict=True))
     assert polls["pb3a-follower"] == 0, polls
+
+
+class _Camera:
+    """Writes 128 KiB frames, numbered in their first element, 20 a second."""
+
+    def __init__(self, replicator: Replicator) -> None:
+        self.replicator, self.written = replicator, 0
+        self._frame = np.zeros(16 * 1024)
+
+    def write(self, count: int = 1, until: Any = None) -> None:
+        for _ in range(count):
+            self._frame[0] = self.written
+            self.replicator.publish("camera", self._frame, timeout=TIMEOUT)
+            self.written += 1
+            time.sleep(0.05)
+            if until is not None and until():
+                return
+
+
+def _served_on_its_own(follower: Follower) -> bool:
+    follow = follower._follows.get(b"camera\0")
+    return follow is not None and follow.direct
+
+
+@pytest.mark.timeout(90)
+@pytest.mark.parametrize("cut", [False, True], ids=["held", "cut"])
+def test_a_follower_served_on_its_own_that_went_silent_is_served_again_once_back(
+        monkeypatch, cut: bool) -> None:
+    """A slow follower served on its own (beside a fast one, which then leaves) whose
+    link carries nothing for longer than the follower timeout is served again once the
+    link is back: every frame written arrives or is counted dropped, in order, once.
+    The sender forgot it after the timeout while it still took its values over the
+    control connection, its SUB socket closed: nothing reached it any more, nor was
+    counted, for as long as it followed (no fast follower left to find it slow again).
+    ``cut``: silent longer than the peer timeout too, so the sender closes its control
+    connection (the frame on its way is lost) and the follower reconnects."""
+    monkeypatch.setattr(replication, "FOLLOWER_TIMEOUT", 1.0)
+    if cut:
+        monkeypatch.setattr(replication, "PEER_PING_MS", 200)
+        monkeypatch.setattr(replication, "PEER_TIMEOUT_MS", 1000)
+    replicator, fast_inbox, slow_inbox = Replicator(KEY), Inbox(), Inbox()
+    fast, slow = Follower(KEY, fast_inbox), Follower(KEY, slow_inbox)
+    camera = _Camera(replicator)
+    try:
+        with Throttle(2e6) as radio:
+            replicator.add("camera")
+            _follow(fast, replicator, "camera", from_seq=0)
+            slow.follow("camera", radio.route(replicator.data_address),
+                        radio.route(replicator.control_address), from_seq=0)
+            assert fast.wait_ready("camera", TIMEOUT) and slow.wait_ready("camera", TIMEOUT)
+            camera.write(100, until=lambda: _served_on_its_own(slow))
+            assert _served_on_its_own(slow), "the slow follower was not served on its own"
+            fast.unfollow("camera")
+            direct = replicator._topics["camera"].direct
+            camera.write(20, until=lambda: any(one.sent > one.start
+                                               for one in list(direct.values())))
+            radio.pause()                        # (a frame on its way to it, likely)
+            camera.write(40)                     # 2 s: twice the follower timeout
+            radio.go_on()
+            before = camera.written
+            camera.write(40)
+            got = slow_inbox.values.setdefault("camera", [])
+            eventually(lambda: len(got) + slow.dropped["camera"] == camera.written,
+                       timeout=15.0, what="every frame received or counted dropped")
+            time.sleep(2 * replication.HEARTBEAT_S)     # (what a count overshoots by)
+            assert len(got) + slow.dropped["camera"] == camera.written
+            reconnected = max(radio.connections.values())
+        assert reconnected == (2 if cut else 1), radio.connections
+        numbers = [int(frame[0]) for frame in got]
+        assert numbers == sorted(set(numbers)) and numbers[-1] >= before, numbers
+        assert not slow.link_failures and not slow.duplicates
+    finally:
+        fast.close()
+        slow.close()
+        replicator.close()

@@ -60,6 +60,8 @@ class Throttle:
         self.connections: collections.Counter[str] = collections.Counter()  # by address
         self.ended_by: collections.Counter[str] = collections.Counter()     # "reader", "writer"
         self.forwarded = 0                       # bytes, down
+        self._open = self._call(asyncio.Event)   # cleared: the link carries nothing
+        self._call(self._open.set)
 
     def set_rate(self, down_bps: float, up_bps: float | None = None) -> None:
         """Carry each direction at another rate from now on (a radio link that got better
@@ -67,6 +69,15 @@ class Throttle:
         def change() -> None:
             self._down.rate, self._up.rate = down_bps / 8, (up_bps or down_bps) / 8
         self._call(change)
+
+    def pause(self) -> None:
+        """Carry nothing either way, connections kept (a radio link in a tunnel), until
+        ``go_on``."""
+        self._call(self._open.clear)
+
+    def go_on(self) -> None:
+        """Carry again what was held, and the rest, at the link's rate."""
+        self._call(self._open.set)
 
     def _call(self, fn: Any) -> Any:
         async def run() -> Any:
@@ -126,6 +137,7 @@ class Throttle:
         """Forward one direction until its sender ends (EOF, reset)."""
         with contextlib.suppress(OSError):
             while data := await reader.read(CHUNK):
+                await self._open.wait()
                 await bucket.take(len(data))
                 writer.write(data)
                 await writer.drain()

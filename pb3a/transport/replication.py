@@ -61,7 +61,8 @@ values in sequence order, exactly once:
   control and of the flight. Its queue at the ROUTER is bounded so (one message of
   values, small notices), and a ROUTER never blocks: it drops for a peer at its
   high-water mark (ROUTER_MANDATORY is not set). A DIRECT every heartbeat is its SYNC
-  (how far it was sent) and says its mode again. Once a lone message is acknowledged
+  (how far it was sent) and says its mode again, also while it is silent (its link
+  cut): it takes nothing over PUB until told RESUME. Once a lone message is acknowledged
   within ``FRESH_S / 2`` it goes back to PUB (RESUME): it subscribes, and what was
   published before its subscription took is counted dropped, not replayed.
 - Lossless followers. A follower whose receiver must not drop (a ``lossless`` link)
@@ -957,13 +958,15 @@ class Replicator:
         values of a burst learns of them here and asks for a repair."""
         with self._lock:
             self._flush_locked()                 # (what it announces has gone out first)
-            now = time.monotonic()
             for name, stream in self._streams.items():
                 self._send_pub(name, SYNC, [self._sync(stream)])
-                for peer, direct in list(stream.direct.items()):   # (their SYNC, and mode)
-                    if now - stream.acks.get(peer, (0, -math.inf))[1] >= FOLLOWER_TIMEOUT:
-                        del stream.direct[peer]  # (gone, or frozen: found slow again if not)
-                        continue
+                # Their SYNC, and their mode. One silent for a while (its link cut, its
+                # node frozen) is still served on its own: it has closed its SUB
+                # connection and takes nothing over PUB until told RESUME, so forgotten
+                # here it got nothing more, nor was anything counted, unless found slow
+                # again (which takes a faster follower beside it). It leaves by saying
+                # so (an ACK of -1), by a HELLO, or with its lost node (``forget``).
+                for peer, direct in stream.direct.items():
                     self._send_router(peer, DIRECT, [name, _ANSWER.pack(
                         self.incarnation, direct.start, direct.sent)])
 
