@@ -1261,3 +1261,57 @@ def test_a_follower_served_on_its_own_that_went_silent_is_served_again_once_back
         fast.close()
         slow.close()
         replicator.close()
+
+
+@pytest.mark.timeout(90)
+def test_a_repair_by_a_follower_served_on_its_own_is_answered_skipped_not_replayed(
+        monkeypatch) -> None:
+    """A slow follower served on its own (a fast one beside it) that lost the notices of
+    the frames not sent to it asks a repair over them: it is answered that they were
+    not sent (SKIPPED), and nothing is replayed over its slow link though the replay
+    buffer holds them (they went to the fast follower): every frame sent over the
+    control connection is one it received, once; the others are counted dropped."""
+    sent, lost = [], []
+    send_router, handle = Replicator._send_router, Follower._handle
+
+    def counted(self: Replicator, peer: Any, kind: int, parts: list[Any]) -> None:
+        if kind in (replication.VALUE, replication.VALUES):
+            sent.append(kind)
+        send_router(self, peer, kind, parts)
+
+    def losing(self: Follower, message: Any, live: bool) -> Any:
+        if not live and message.kind == replication.SKIPPED and len(lost) < 3 \
+                and _served_on_its_own(self):
+            lost.append(message)                 # (lost on the way: a gap to repair)
+            return None
+        return handle(self, message, live)
+    monkeypatch.setattr(Replicator, "_send_router", counted)
+    monkeypatch.setattr(Follower, "_handle", losing)
+    replicator, slow_inbox = Replicator(KEY), Inbox()
+    fast, slow = Follower(KEY, Inbox()), Follower(KEY, slow_inbox)
+    camera = _Camera(replicator)
+    try:
+        with Throttle(2e6) as radio:
+            replicator.add("camera")
+            _follow(fast, replicator, "camera", from_seq=0)
+            slow.follow("camera", radio.route(replicator.data_address),
+                        radio.route(replicator.control_address), from_seq=0)
+            assert fast.wait_ready("camera", TIMEOUT) and slow.wait_ready("camera", TIMEOUT)
+            camera.write(100, until=lambda: _served_on_its_own(slow))
+            assert _served_on_its_own(slow), "the slow follower was not served on its own"
+            start = next(iter(list(replicator._topics["camera"].direct.values()))).start
+            camera.write(60)
+            got = slow_inbox.values.setdefault("camera", [])
+            eventually(lambda: len(got) + slow.dropped["camera"] == camera.written,
+                       timeout=15.0, what="every frame received or counted dropped")
+            time.sleep(2 * replication.HEARTBEAT_S)     # (a late repair's answer)
+            assert len(got) + slow.dropped["camera"] == camera.written
+        numbers = [int(frame[0]) for frame in got]
+        assert len(lost) == 3, "fewer notices of frames not sent than the test loses"
+        assert len(sent) == len([number for number in numbers if number >= start]), numbers
+        assert numbers == sorted(set(numbers))
+        assert not slow.duplicates and not slow.link_failures
+    finally:
+        fast.close()
+        slow.close()
+        replicator.close()
