@@ -121,15 +121,19 @@ def test_a_lossless_link_further_behind_than_the_freshness_window_takes_each_val
     freshness window (here 1 s; 60 s as shipped: 1 MiB frames at 2 Mbit/s queue 134 s
     behind) takes each as it comes: its sender is known by then, and its counters order
     them. Each was refused as not fresh, asked for again and sent again behind the rest
-    (40 frames of 256 KiB over 1 Mbit/s took 115 s, not 84, and 13.9 MB crossed)."""
+    (40 frames of 256 KiB over 1 Mbit/s took 115 s, not 84, and 13.9 MB crossed).
+    20 frames are enough: written in 1 s, the last crosses about 4 s behind, four times
+    the window (the queue's length, not its count, is the point)."""
+    frames = 20
     monkeypatch.setattr(replication, "Opener", functools.partial(Opener, fresh_s=1.0))
-    with _camera_to_viewer("slow-lossless", policy="lossless:64").launch() as run:
-        eventually(lambda: len(run.state("viewer")["numbers"]) == FRAMES, timeout=60.0,
+    with _camera_to_viewer("slow-lossless", policy="lossless:64",
+                           frames=frames).launch() as run:
+        eventually(lambda: len(run.state("viewer")["numbers"]) == frames, timeout=60.0,
                    what="every frame at the viewer")
         follower = run._launcher.nodes["b"].bridge._follower
         viewer = run.state("viewer")
         link = run.stats().links[LINK]
-    assert viewer["numbers"] == list(range(1, FRAMES + 1))
+    assert viewer["numbers"] == list(range(1, frames + 1))
     assert viewer["duplicates"] == viewer["out_of_order"] == 0
     assert follower._opener.rejected["not fresh"] == 0, follower._opener.rejected
     assert link.drops == 0 and link.link_failures == 0
