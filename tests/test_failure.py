@@ -1266,7 +1266,7 @@ def test_a_request_to_a_worker_that_reads_nothing_keeps_its_deadline() -> None:
         assert isinstance(_bounded(lambda: run.set_state("h", grid=zeros + 1, timeout=1),
                                    10)[0], RuntimeTimeout)
     finally:
-        closed, took = _bounded(lambda: run.close(timeout=5), 30)
+        closed, took = _bounded(lambda: run.close(timeout=2), 30)
     assert closed is None and took < 15, f"close: {closed!r} after {took:.1f} s"
     assert not alive(pid)
 
