@@ -1315,3 +1315,163 @@ def test_a_repair_by_a_follower_served_on_its_own_is_answered_skipped_not_replay
         fast.close()
         slow.close()
         replicator.close()
+
+
+def _sends_per_value(monkeypatch) -> collections.Counter[int]:
+    """How many times the replicator sends each large value over a control connection
+    (hand-shake replays and repairs), by sequence number."""
+    sends: collections.Counter[int] = collections.Counter()
+    send_router = Replicator._send_router
+
+    def counted(self: Replicator, peer: Any, kind: int, parts: list[Any]) -> None:
+        if kind == replication.VALUE:
+            sends[replication._INFO.unpack(parts[1])[1]] += 1
+        send_router(self, peer, kind, parts)
+    monkeypatch.setattr(Replicator, "_send_router", counted)
+    return sends
+
+
+@pytest.mark.timeout(90)
+def test_a_hand_shake_whose_replay_crosses_a_slow_link_sends_each_value_once(
+        monkeypatch) -> None:
+    """A lossless follower that joins through a 2 Mbit/s link with 12 frames of 128 KiB
+    to replay (6.3 s of the link) gets each frame once, in order, and the replicator
+    sends each once: while the replay is on its way, the follower's repeated HELLOs
+    (every 0.05 s until its subscription is live) ask for a SYNC only. Each of them
+    replayed the whole backlog again, behind the first."""
+    sends = _sends_per_value(monkeypatch)
+    frames = [np.full(16 * 1024, float(i)) for i in range(12)]     # 128 KiB each
+    replicator, inbox = Replicator(KEY), Inbox()
+    follower = Follower(KEY, inbox)
+    try:
+        with Throttle(2e6) as radio:
+            replicator.add("camera")
+            for frame in frames:
+                replicator.publish("camera", frame, timeout=TIMEOUT)
+            follower.set_lossless("camera", True)
+            follower.follow("camera", radio.route(replicator.data_address),
+                            radio.route(replicator.control_address), from_seq=0)
+            assert follower.wait_ready("camera", TIMEOUT)
+            got = inbox.wait("camera", len(frames), timeout=40.0)
+            time.sleep(1.0)                      # (copies behind the first, if any)
+        assert [int(frame[0]) for frame in got] == list(range(len(frames)))
+        assert sends == dict.fromkeys(range(len(frames)), 1), sends
+        assert not follower.duplicates and not follower.link_failures
+    finally:
+        follower.close()
+        replicator.close()
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("lost", ["hello", "answer", "answer, not live"])
+def test_a_hand_shake_whose_hello_or_answer_is_lost_is_done_all_the_same(
+        monkeypatch, lost: str) -> None:
+    """The first HELLO that asks for the backlog is lost on the way, or its whole answer
+    (WELCOME, the values, REPLAYED) is: the follower still gets every value of its
+    backlog, in order, once, within the repair's first wait (1 s), not stuck behind its
+    repeated HELLOs, which do not ask for the replay again. A HELLO lost is answered in
+    full at its next repeat (the sender never answered that follower); an answer lost
+    is asked for again as a repair once the follow is live, or by a HELLO in full when
+    its subscription never goes live (here its data address reaches nobody)."""
+    sends = _sends_per_value(monkeypatch)
+    dropped: list[int] = []
+    ask, answer, send_router = Follower._ask, Replicator._answer, Replicator._send_router
+
+    def losing_hello(self: Follower, follow: Any, kind: int, first: int, last: int) -> None:
+        if kind == replication.HELLO and follow.incarnation and not last & replication.WAITING \
+                and not dropped:
+            dropped.append(kind)                 # lost on the way
+            return
+        ask(self, follow, kind, first, last)
+
+    def losing_answer(self: Replicator, peer: Any, message: Any) -> None:
+        _, flags, to = replication._ASK.unpack(message.frames[1])
+        self._losing = (message.kind == replication.HELLO and not dropped
+                        and to == self.incarnation and not flags & replication.WAITING)
+        try:
+            answer(self, peer, message)
+        finally:
+            self._losing = False
+
+    def losing_send(self: Replicator, peer: Any, kind: int, parts: list[Any]) -> None:
+        if getattr(self, "_losing", False):
+            dropped.append(kind)                 # lost on the way
+            return
+        send_router(self, peer, kind, parts)
+    if lost == "hello":
+        monkeypatch.setattr(Follower, "_ask", losing_hello)
+    else:
+        monkeypatch.setattr(Replicator, "_answer", losing_answer)
+        monkeypatch.setattr(Replicator, "_send_router", losing_send)
+    frames = [np.full(16 * 1024, float(i)) for i in range(12)]     # 128 KiB each
+    replicator, inbox = Replicator(KEY), Inbox()
+    follower = Follower(KEY, inbox)
+    nobody = socket.create_server(("127.0.0.1", 0))            # (a port that never answers)
+    data = (f"tcp://127.0.0.1:{nobody.getsockname()[1]}" if lost == "answer, not live"
+            else replicator.data_address)
+    nobody.close()
+    try:
+        replicator.add("camera")
+        for frame in frames:
+            replicator.publish("camera", frame, timeout=TIMEOUT)
+        follower.set_lossless("camera", True)
+        started = time.monotonic()
+        follower.follow("camera", data, replicator.control_address, from_seq=0)
+        got = inbox.wait("camera", len(frames), timeout=TIMEOUT)
+        took = time.monotonic() - started
+        time.sleep(0.5)                          # (copies behind it, if any)
+        assert dropped, "nothing was lost"
+        if lost != "hello":
+            assert replication.WELCOME in dropped and replication.VALUE in dropped, dropped
+        assert [int(frame[0]) for frame in got] == list(range(len(frames)))
+        assert took < replication.REPAIR_RETRY_S + 1.0, f"{took:.2f} s"
+        assert set(sends.values()) == {1}, sends          # (those sent, once each)
+        assert not follower.duplicates and not follower.link_failures
+        assert follower.wait_ready("camera", 0) == (lost != "answer, not live")
+    finally:
+        follower.close()
+        replicator.close()
+
+
+@pytest.mark.timeout(90)
+def test_a_follower_served_on_its_own_that_becomes_lossless_takes_its_replay_once(
+        monkeypatch) -> None:
+    """A slow follower served on its own (a fast one beside it, a 2 Mbit/s link) whose
+    link becomes lossless resumes through the hand-shake, with frames to replay: it gets
+    every frame from where it was, in order, once, and from then on the replicator sends
+    each frame over its control connection twice at most (a repair's first wait, 1 s,
+    can end while the link is shared with the frames going over PUB). Its HELLOs,
+    repeated every 0.05 s until its new subscription was live, each replayed the
+    backlog again (measured: frames sent up to 6 times)."""
+    sends = _sends_per_value(monkeypatch)
+    replicator, slow_inbox = Replicator(KEY), Inbox()
+    fast, slow = Follower(KEY, Inbox()), Follower(KEY, slow_inbox)
+    camera = _Camera(replicator)
+    try:
+        with Throttle(2e6) as radio:
+            replicator.add("camera")
+            _follow(fast, replicator, "camera", from_seq=0)
+            slow.follow("camera", radio.route(replicator.data_address),
+                        radio.route(replicator.control_address), from_seq=0)
+            assert fast.wait_ready("camera", TIMEOUT) and slow.wait_ready("camera", TIMEOUT)
+            camera.write(100, until=lambda: _served_on_its_own(slow))
+            assert _served_on_its_own(slow), "the slow follower was not served on its own"
+            camera.write(10)                     # (frames it did not get: a backlog)
+            sends.clear()
+            slow.set_lossless("camera", True)
+            eventually(lambda: not _served_on_its_own(slow), timeout=10.0,
+                       what="the slow follower back on PUB")
+            start = slow._follows[b"camera\0"].next_seq
+            camera.write(10)
+            got = slow_inbox.values.setdefault("camera", [])
+            assert slow.wait_delivered("camera", camera.written, timeout=40.0)
+            time.sleep(1.0)                      # (copies behind the last, if any)
+        numbers = [int(frame[0]) for frame in got]
+        assert numbers == sorted(set(numbers)), numbers
+        assert [n for n in numbers if n >= start] == list(range(start, camera.written))
+        assert max(sends.values(), default=1) <= 2, sends
+        assert not slow.link_failures
+    finally:
+        fast.close()
+        slow.close()
+        replicator.close()

@@ -151,7 +151,10 @@ _ASK = struct.Struct("<qq16s")          # HELLO: first needed (-1: from now), fl
                                         # replicator it is for (_NOBODY: not known yet)
 _NOBODY = bytes(16)
 LOSSLESS = 1                            # flag of HELLO and ACK: hold the publisher back
-_ANSWER = struct.Struct("<16sqq")       # WELCOME: incarnation, next; REPLAYED: first, gone;
+WAITING = 2                             # flag of HELLO: the replay an earlier one asked for
+                                        # is on its way: answer WELCOME and SYNC only
+_ANSWER = struct.Struct("<16sqq")       # WELCOME: incarnation, next, a replay follows (1)
+                                        # or not (0); REPLAYED: first, gone;
                                         # SKIPPED: first, count; SYNC: next, skipped before it;
                                         # DIRECT: from, next; RESUME: from, 0
 PLAIN = 0                               # a VALUES entry that is the value itself
@@ -1025,14 +1028,22 @@ class Replicator:
             elif message.kind == HELLO:
                 self._flush_locked()             # (all it may need is in the buffer)
                 nxt = stream.next_seq
+                # A HELLO repeated until its subscription is live, the replay an earlier
+                # one asked for on its way: that is not sent again behind itself (on a
+                # slow link each copy took the backlog's time again). One from a peer
+                # never answered here (its first HELLO lost) is answered in full.
+                again = bool(last & WAITING) and peer_id in stream.joined
                 stream.direct.pop(peer_id, None)  # (subscribed: it follows over PUB again)
-                stream.joined[peer_id] = nxt
+                if not again:
+                    stream.joined[peer_id] = nxt
                 stream.acks[peer_id] = (first if first >= 0 else nxt, time.monotonic())
                 stream.hold(peer_id, first if first >= 0 else nxt, last)
                 stream.clear_until = 0           # a new follower: the window moved back
-                self._send_router(peer, WELCOME, [name, _ANSWER.pack(self.incarnation, nxt, 0)])
+                replays = first >= 0 and not again      # (an empty replay still says so)
+                self._send_router(peer, WELCOME,
+                                  [name, _ANSWER.pack(self.incarnation, nxt, int(replays))])
                 self._send_pub(name, SYNC, [self._sync(stream)])
-                if first >= 0:                   # (an empty replay still says so)
+                if replays:
                     self._replay(peer, name, stream, first, nxt - 1)
             else:
                 self._flush_locked()
@@ -1088,9 +1099,12 @@ class _Follow:
     held: dict[int, tuple[list[Any], float, int]] = field(default_factory=dict)
     skips: dict[int, int] = field(default_factory=dict)   # values the sender did not send:
                                                           # first -> end
-    asked: float = 0.0                        # when we last sent HELLO or REPAIR
+    asked: float = 0.0                        # when we last asked for a replay (HELLO or
+                                              # REPAIR), or a message of its answer came
+    hello_at: float = 0.0                     # when we last sent HELLO (any)
     hello_for: bytes | None = None            # the incarnation our last HELLO named
     repairing: bool = False
+    asked_from: int = -1                      # the first value the last replay asked for
     repair_wait: float = REPAIR_RETRY_S       # before asking the repair again
     announced: int = -1                       # the sender's next sequence number, as last heard
     acked: int = -1                           # what we last acknowledged
@@ -1351,11 +1365,20 @@ class Follower:
     def _flags(self, follow: _Follow) -> int:
         return LOSSLESS if follow.topic in self._lossless else 0
 
-    def _hello(self, follow: _Follow) -> None:
-        follow.asked = time.monotonic()
-        follow.repairing = follow.next_seq >= 0   # the answer replays what we miss
-        follow.hello_for = follow.incarnation
-        self._ask(follow, HELLO, follow.next_seq, self._flags(follow))
+    def _hello(self, follow: _Follow, waiting: bool = False) -> None:
+        """Say HELLO: the sender answers WELCOME, publishes a SYNC (the first that comes
+        through the SUB socket makes the follow live) and replays what we miss, unless
+        ``waiting`` (a repeat while that replay is on its way: see ``_retry``)."""
+        follow.hello_at = time.monotonic()
+        flags = self._flags(follow)
+        if waiting:
+            flags |= WAITING
+        else:
+            follow.asked = follow.hello_at
+            follow.repairing = follow.next_seq >= 0   # the answer replays what we miss
+            follow.asked_from = follow.next_seq
+            follow.hello_for = follow.incarnation
+        self._ask(follow, HELLO, follow.next_seq, flags)
 
     def _ask(self, follow: _Follow, kind: int, first: int, last: int) -> None:
         """Send HELLO, REPAIR or ACK to the replicator of ``follow``, naming it (nobody,
@@ -1401,8 +1424,14 @@ class Follower:
             except Exception:
                 log.exception("follower: a message could not be handled")
                 continue
-            if follow is not None:
-                touched[follow.topic] = follow
+            if follow is None:
+                continue
+            touched[follow.topic] = follow
+            if not live and follow.repairing and not follow.direct \
+                    and message.kind in (VALUE, VALUES, SKIPPED):
+                # the answer of a hand-shake or repair, coming in: not asked again while
+                # it comes (on a slow link a large value takes seconds to cross)
+                follow.asked = time.monotonic()
         for follow in touched.values():
             self._advance(follow)
 
@@ -1429,6 +1458,8 @@ class Follower:
                         follow.held[nxt] = (values[nxt - first:], sent_at, nbytes)
             follow.announced = max(follow.announced, nxt)
             follow.live = follow.live or live
+            if message.kind == WELCOME and skipped and follow.repairing:
+                follow.asked = time.monotonic()  # its replay is coming (see ``_drain``)
             if follow.hello_for is None and message.kind == WELCOME:
                 self._hello(follow)              # naming it now: see "Destinations"
             return follow
@@ -1505,7 +1536,8 @@ class Follower:
             incarnation, first, gone = _ANSWER.unpack(message.frames[1])
             if not self._accept(follow, incarnation):
                 return None
-            follow.repairing, follow.repair_wait = False, REPAIR_RETRY_S
+            if first == follow.asked_from:       # (not the end of an earlier copy's)
+                follow.repairing, follow.repair_wait = False, REPAIR_RETRY_S
             if gone and follow.next_seq < first + gone:
                 lost = first + gone - follow.next_seq - self._pass_skips(follow, first + gone)
                 if lost:
@@ -1648,7 +1680,7 @@ class Follower:
         starts = [*follow.held, *follow.skips]
         last = min(starts) - 1 if starts else follow.announced - 1
         if follow.live and not follow.repairing and 0 <= follow.next_seq <= last:
-            follow.repairing = True
+            follow.repairing, follow.asked_from = True, follow.next_seq
             follow.asked = time.monotonic()
             self._ask(follow, REPAIR, follow.next_seq, last)
 
@@ -1673,17 +1705,22 @@ class Follower:
             if follow.live and follow.next_seq >= 0 and (
                     follow.through != follow.acked or now - follow.acked_at > ACK_IDLE_S):
                 self._acknowledge(follow)
-            if now - follow.asked < HELLO_EVERY:
-                continue
-            if not follow.live:
-                self._hello(follow)              # the slow-joiner hand-shake
-            elif follow.repairing and now - follow.asked > follow.repair_wait:
-                # a lost request, or an answer slower to cross than the wait (a large
-                # value on a slow link): each time asked again, the whole answer is
-                # sent again behind the first, so the wait doubles (until answered)
-                follow.repairing = False
+            if follow.repairing and now - follow.asked > follow.repair_wait:
+                # nothing of the answer came for that long: a lost request or answer, or
+                # one value of it slower to cross than the wait (a large value on a slow
+                # link): each time asked again, the whole rest is sent again behind the
+                # first, so the wait doubles (until answered)
                 follow.repair_wait = min(2 * follow.repair_wait, REPAIR_RETRY_MAX_S)
-                self._advance(follow)
+                if follow.live:
+                    follow.repairing = False
+                    self._advance(follow)
+                else:
+                    self._hello(follow)          # the hand-shake's replay, asked again
+            elif not follow.live and now - follow.hello_at >= HELLO_EVERY:
+                # the slow-joiner hand-shake, until a SYNC comes through the SUB socket;
+                # what the last HELLO asked to be replayed is not asked again here (each
+                # repeat replayed the whole backlog again over the link, behind the first)
+                self._hello(follow, waiting=True)
 
     def close(self) -> None:
         self._loop.close()
