@@ -18,7 +18,12 @@ values in sequence order, exactly once:
   reaches the publisher. So the follower says HELLO (topic, first sequence number
   it needs) on the DEALER until the publisher answers by publishing a SYNC on the
   topic; the first SYNC or value that arrives proves the subscription is live, and
-  everything older is fetched from the replay buffer. No sleeping.
+  everything older is fetched from the replay buffer. No sleeping. Its first HELLO
+  asks for that replay; the ones it repeats (every ``HELLO_EVERY``) say WAITING and
+  are answered with a WELCOME and a SYNC only (in full by a publisher that never
+  answered that follower: its first HELLO was lost), so a replay crossing a slow link
+  is not sent again behind itself at each repeat. A replay not coming (nothing of it
+  for as long as a repair waits, below) is asked again, in full.
 - Gaps (the publisher's high-water mark dropped values for a slow follower, or a
   reconnect lost some) are repaired the same way; values beyond a gap wait; a
   heartbeat (SYNC every 0.5 s with the next sequence number) reveals values lost at
@@ -26,7 +31,9 @@ values in sequence order, exactly once:
   already is counted as duplicates and dropped. What the replay buffer no longer
   holds is counted as a link failure, loudly. A repair not answered is asked again
   after ``REPAIR_RETRY_S``, then after twice as long each time (on a slow link the
-  answer itself takes seconds to cross, and each request sends it again).
+  answer itself takes seconds to cross, and each request sends it again); each value
+  of the answer that comes (and a WELCOME saying a replay follows) restarts the wait,
+  and only the REPLAYED of the last request ends it.
 - Flow control. Followers acknowledge (ACK) how far they are; a publisher more than
   ``WINDOW`` values or ``WINDOW_BYTES`` bytes ahead of its slowest live follower waits
   for it, briefly. The replay buffer holds twice the bytes of that window: everything
