@@ -1271,6 +1271,30 @@ def test_a_request_to_a_worker_that_reads_nothing_keeps_its_deadline() -> None:
     assert not alive(pid)
 
 
+def test_a_close_with_a_frozen_worker_keeps_its_timeout() -> None:
+    """``close(timeout=1)`` with a worker frozen (SIGSTOP) took 4.6 s: the module's stop
+    waited 1 s past its grace, the node's shutdown asked it again (at least 0.5 s, and
+    1 s more), and the SIGTERM a stopped process ignores was waited for 1 s before the
+    SIGKILL. Now the close ends within its timeout and a moment (0.1 s per worker that
+    did not exit), the frozen worker killed, no segment or thread of it left."""
+    threads = set(threading.enumerate())
+    system = System("close-frozen").node("a")
+    system.add("c", Counter, node="a", period=0.01)
+    run = system.launch(timeout=30)
+    try:
+        eventually(lambda: run.stats().modules["c"].steps > 0, what="the module steps")
+        pid = run.stats().modules["c"].pid
+        os.kill(pid, signal.SIGSTOP)                     # frozen for good
+        closed, took = _bounded(lambda: run.close(timeout=1), 30)
+    finally:
+        run.close()                                      # (nothing, once closed)
+    assert closed is None and took < 1.5, f"close: {closed!r} after {took:.2f} s"
+    assert not alive(pid)
+    assert not live_segments(os.getpid())
+    assert [thread.name for thread in set(threading.enumerate()) - threads
+            if thread.name.startswith("pb3a")] == []
+
+
 def test_a_worker_whose_executor_reads_nothing_never_waits_to_send(tmp_path, caplog) -> None:
     """A worker's sends to its executor went through a plain pipe: with the executor
     frozen (for an embedded node, the launcher itself) or its reader stuck, the pipe

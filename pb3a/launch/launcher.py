@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Any
 
 import psutil
 
+from pb3a.deadline import bounding
 from pb3a.errors import ModuleNotFound, RuntimeFailure, RuntimeTimeout
 from pb3a.events import EventLog
 from pb3a.latencies import percentile
@@ -67,6 +68,7 @@ ENV_TOLD = 256          # the latest moves (and losses) the env modules are give
 REJOIN_S = 1.0          # how often it asks a lost node's controller whether it is back
 PLACE_TIMEOUT = 0.5     # a controller's answer about its load and admission
 STOP_TIMEOUT = 5.0      # a module's teardown when it is removed
+REMOTE_STOP_AT_LEAST_S = 0.5   # a remote node's shutdown, even once the time is up
 # how to give a launch's check of the nodes' classes more time
 LAUNCH_LONGER = ("give the system a longer timeout (timeout = SECONDS at the top of its "
                  "file, or launch(timeout=...))")
@@ -901,17 +903,20 @@ class Launcher:
             # Without the lock, a change may remove a module or a node meanwhile: each is
             # stopped on its own, and nothing that fails keeps the rest from stopping.
             for name in reversed(list(self.specs)):
-                left = max(0.1, deadline - time.monotonic())
                 node = self.specs[name].node if name in self.specs else None
                 if node in self.remotes and self._silent(node):
                     self.remotes[node].lose()         # it went meanwhile: no waiting
                 try:
-                    self.node_of(name).stop_module(name, min(2.0, left))
+                    # its request waits no longer than the deadline (a frozen worker's
+                    # stop would have waited 1 s past it, as its grace ran out)
+                    with bounding(max(0.0, deadline - time.monotonic())):
+                        self.node_of(name).stop_module(name, 2.0)
                 except Exception as exc:
                     log.warning("stopping module %r: %s", name, exc)
             # side by side: a node that does not answer holds up no other; this machine's
             # own nodes (their processes and segments are here) are waited for
-            remote = [threading.Thread(target=self._shut_node, args=(name, node, deadline),
+            remote = [threading.Thread(target=self._shut_node,
+                                       args=(name, node, deadline, REMOTE_STOP_AT_LEAST_S),
                                        name=f"pb3a-shutdown-{name}", daemon=True)
                       for name, node in reversed(list(self.nodes.items()))
                       if name in self.remotes]
@@ -919,7 +924,7 @@ class Launcher:
                 thread.start()
             for name, node in reversed(list(self.nodes.items())):
                 if name not in self.remotes:
-                    self._shut_node(name, node, deadline)
+                    self._shut_node(name, node, deadline, 0.0)
             for thread in remote:
                 thread.join(max(0.0, deadline - time.monotonic()) + 0.5)
         self.unconfirmed = [name for name, node in self.remotes.items() if not node.stopped]
@@ -928,10 +933,12 @@ class Launcher:
         self.logbook.end()
 
     @staticmethod
-    def _shut_node(name: str, node: Node, deadline: float) -> None:
-        """Shut node ``name`` down in what is left of the time; log what fails."""
+    def _shut_node(name: str, node: Node, deadline: float, at_least: float) -> None:
+        """Shut node ``name`` down in what is left of the time, or ``at_least`` seconds if
+        less is left (none for a node of this machine: its workers that did not stop
+        are then killed at once); log what fails."""
         try:
-            node.shutdown(max(0.5, deadline - time.monotonic()))
+            node.shutdown(max(at_least, deadline - time.monotonic()))
         except Exception:
             log.exception("shutting node %s down", name)
 

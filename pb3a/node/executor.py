@@ -28,7 +28,7 @@ import cloudpickle
 
 from pb3a.config.description import DEFAULT_SPARES
 from pb3a.config.plan import FlatLink, FlatModule
-from pb3a.deadline import before_answer, capped, lifted
+from pb3a.deadline import before_answer, bounding, capped, lifted
 from pb3a.errors import ConfigError, PB3AError, RuntimeFailure, RuntimeTimeout
 from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
@@ -508,10 +508,14 @@ class Executor:
                             "same", what, ", ".join(held()), LOCK_TIMEOUT)
 
     def stop_module(self, name: str, timeout: float = 5.0) -> None:
-        """Stop stepping and dispatching, then run the module's ``teardown``."""
+        """Stop stepping and dispatching, then run the module's ``teardown``: its worker
+        is given ``timeout`` and 1 s more to answer, no longer than the deadline of the
+        call in progress (``pb3a.deadline``: a shutdown's), and then gives up first."""
         record = self.modules[name]
         if record.status == "running" and self._alive(record.worker):
-            self.call(record.worker, "stop", timeout + 1.0, name=name, grace=timeout)
+            answer_s = capped(timeout + 1.0)
+            self.call(record.worker, "stop", answer_s, name=name,
+                      grace=min(timeout, before_answer(answer_s)))
         record.status = "stopped"
         self._hold(record, False)
 
@@ -1147,9 +1151,12 @@ class Executor:
         self.workers.fence()
 
     def shutdown(self, timeout: float = 10.0) -> None:
-        """Stop modules in reverse start order, then workers, then free every ring. The
+        """Stop modules in reverse start order, then workers, then free every ring, within
+        ``timeout`` and a moment to kill what did not stop (``WorkerPool.close``). The
         executor's lock is waited for half of ``timeout`` at most (a request holding it
-        fails once its worker is gone); the rest is done without it if need be."""
+        fails once its worker is gone); the rest is done without it if need be. A module
+        whose worker does not answer by the deadline is not torn down: its worker is
+        killed."""
         self._closing.set()
         deadline = time.monotonic() + timeout
         with contextlib.ExitStack() as held:
@@ -1158,15 +1165,16 @@ class Executor:
             except RuntimeTimeout as exc:
                 log.warning("%s: shutting down without it", exc)
             for name in reversed(list(self.modules)):
-                left = max(0.1, deadline - time.monotonic())
                 try:            # (without the lock, a request may have removed it)
                     if name in self.modules:
-                        self.stop_module(name, timeout=min(2.0, left))
+                        # (its request waits no longer than the deadline: ``stop_module``)
+                        with bounding(max(0.0, deadline - time.monotonic())):
+                            self.stop_module(name, timeout=2.0)
                 except Exception as exc:
                     log.warning("stopping module %r: %s", name, exc)
             self._stopping.set()
             self._life_changed()
-            self.workers.close(max(0.1, deadline - time.monotonic()))
+            self.workers.close(max(0.0, deadline - time.monotonic()))
             if self._bridge is not None:
                 self._bridge.shutdown()
             for ring in list(self.rings.values()):

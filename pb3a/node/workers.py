@@ -48,6 +48,13 @@ if TYPE_CHECKING:
 log = logging.getLogger("pb3a.executor")
 
 REQUEST_TIMEOUT = 10.0
+# A stopping worker told to exit that has not is sent SIGTERM (its modules' teardowns
+# run on it) and waited for this long, then SIGKILLed and waited for this long (a
+# bound only). A pool's close that has run out of time gives it EXIT_AT_LEAST_S to
+# exit when told, no time on SIGTERM (a frozen worker ignores it), then SIGKILL.
+TERMINATE_WAIT_S = 1.0
+KILL_WAIT_S = 1.0
+EXIT_AT_LEAST_S = 0.1
 _UNREADABLE = (None, None)      # the head of a message that could not be read
 
 _context = multiprocessing.get_context("forkserver")
@@ -554,16 +561,18 @@ class WorkerPool:
         handle.alive = False
         self._end(handle, timeout)
 
-    def _stop(self, handle: WorkerHandle, timeout: float) -> None:
+    def _stop(self, handle: WorkerHandle, timeout: float, until: float | None = None) -> None:
         handle.alive = False
         bell, handle.bell = handle.bell, -1    # closed once (the number may be reused)
         if bell >= 0:
             with contextlib.suppress(OSError):
                 os.close(bell)                 # writers hold their own duplicates
-        self._end(handle, timeout)
+        self._end(handle, timeout, until)
 
-    def _end(self, handle: WorkerHandle, timeout: float) -> None:
-        """Tell the process to exit, then terminate it, then kill it; close its pipe."""
+    def _end(self, handle: WorkerHandle, timeout: float, until: float | None = None) -> None:
+        """Tell the process to exit and wait ``timeout``, then terminate it and wait
+        ``TERMINATE_WAIT_S`` (no later than ``until``, monotonic, if given), then kill
+        it; close its pipe."""
         if handle.process is None:
             return
         with contextlib.suppress(OSError):
@@ -571,10 +580,12 @@ class WorkerPool:
         handle.process.join(timeout)
         if handle.process.is_alive():
             handle.process.terminate()
-            handle.process.join(1.0)
+            handle.process.join(TERMINATE_WAIT_S if until is None else
+                                min(TERMINATE_WAIT_S, max(0.0, until - time.monotonic())))
         if handle.process.is_alive():
+            # (SIGKILL ends even a stopped process at once: this wait is a bound only)
             handle.process.kill()
-            handle.process.join(1.0)
+            handle.process.join(KILL_WAIT_S)
         handle.close_pipe()
         self._fail_requests(handle, "was stopped")     # none waits for its deadline
         self._poke()
@@ -598,10 +609,12 @@ class WorkerPool:
                     handle.process.terminate()
 
     def close(self, timeout: float) -> None:
-        """Stop every worker (in reverse start order) within about ``timeout`` seconds, then
-        the monitor, then the forkserver if it is still importing its preload
+        """Stop every worker (in reverse start order) within ``timeout`` seconds, then the
+        monitor, then the forkserver if it is still importing its preload
         (``forkserver_owner.stop_if_preloading``). Deaths from here on are stops, not
-        crashes."""
+        crashes. Once the time is up, a worker that has not exited (frozen, stuck) is
+        given ``EXIT_AT_LEAST_S`` to exit when told, then killed at once: a close
+        overruns its timeout by that much per such worker."""
         deadline = time.monotonic() + timeout
         self._stopping.set()
         if self._booting is not None:            # (it stops what it booted meanwhile)
@@ -609,7 +622,8 @@ class WorkerPool:
         with self._spares_lock:
             spares, self._spares = self._spares, []
         for handle in [*spares, *reversed(list(self.handles.values()))]:
-            self._stop(handle, max(0.1, min(2.0, deadline - time.monotonic())))
+            left = deadline - time.monotonic()
+            self._stop(handle, max(EXIT_AT_LEAST_S, min(2.0, left)), until=deadline)
         for thread in self._retiring:
             thread.join(max(0.1, deadline - time.monotonic()))
         self._poke()
