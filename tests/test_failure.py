@@ -28,6 +28,7 @@ from sample_modules import (
     ArraySource,
     AsksInSetup,
     Chatterbox,
+    Collector,
     Counter,
     Crasher,
     CrashesWhileFlagged,
@@ -1293,6 +1294,37 @@ def test_a_close_with_a_frozen_worker_keeps_its_timeout() -> None:
     assert not live_segments(os.getpid())
     assert [thread.name for thread in set(threading.enumerate()) - threads
             if thread.name.startswith("pb3a")] == []
+
+
+def test_a_remove_of_a_frozen_module_keeps_its_timeout_and_leaves_it_as_it_was() -> None:
+    """``remove(name, timeout=1)`` of a module whose worker is frozen (SIGSTOP) waited a
+    fixed 6 s for its stop whatever its timeout. Now it fails within the timeout, saying
+    which worker did not answer, and nothing was taken away: the module, its link and
+    the other modules are as they were, and it is removed once its worker goes on."""
+    system = System("remove-frozen").node("a")
+    system.add("c", Counter, node="a", period=0.01)
+    system.add("d", Collector, node="a")
+    system.link("c.out", "d.x")
+    run = system.launch(timeout=30)
+    try:
+        eventually(lambda: run.stats().modules["c"].steps > 0, what="the module steps")
+        pid = run.stats().modules["c"].pid
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            began = time.monotonic()
+            with pytest.raises(RuntimeTimeout, match=r"worker 'a/m-c' did not answer "
+                               r"'stop' within (1|0\.9\d*) s"):
+                run.remove("c", timeout=1)
+            took = time.monotonic() - began
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        assert took < 1.5, f"remove took {took:.2f} s"
+        topology = run.topology()
+        assert set(topology.modules) >= {"c", "d"} and "c.out->d.x" in topology.links
+        run.remove("c", timeout=10)
+        assert "c" not in run.topology().modules
+    finally:
+        run.close()
 
 
 def test_a_worker_whose_executor_reads_nothing_never_waits_to_send(tmp_path, caplog) -> None:

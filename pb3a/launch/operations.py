@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 from pb3a.config import checks
 from pb3a.config.folding import fold
 from pb3a.config.plan import FlatLink, FlatModule
+from pb3a.deadline import bounding
 from pb3a.errors import (
     ConfigError,
     ModuleNotFound,
@@ -386,10 +387,14 @@ class Operations:
         self.event_log.record("module_added", name, node=node)
 
     def remove(self, name: str, *, timeout: float | None = None) -> None:
-        with self._held(f"remove {name}", timeout):
+        """Stop a module (its ``teardown``), drop its links and free its process, all
+        within ``timeout``: a module that does not answer its stop by then is left as
+        it was, and ``RuntimeTimeout`` says so (its stop waited a fixed 6 s)."""
+        with self._held(f"remove {name}", timeout) as left:
             links = [key for key, link in self.launcher.links.items()
                      if name in (link.src, link.dst)]
-            self.launcher.remove_module(name)
+            with bounding(left()):
+                self.launcher.remove_module(name)
         for key in links:       # (a reader of the events kept a link to nowhere)
             self.event_log.record("link_removed", key)
         self.event_log.record("module_removed", name)

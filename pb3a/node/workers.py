@@ -457,7 +457,7 @@ class WorkerPool:
         if future.done():                        # (it died meanwhile, say)
             return future.result()
         raise RuntimeTimeout(
-            f"worker {key!r} did not answer {op!r} within {timeout:g} s: a module there "
+            f"worker {key!r} did not answer {op!r} within {timeout:.3g} s: a module there "
             "is stuck in a long call (step, on_input, setup), or its machine is "
             "overloaded; its log and `pb3a status` may say which")
 

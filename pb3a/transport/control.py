@@ -332,7 +332,7 @@ class ControlClient:
             self._loop.submit(lambda: self._send(request_id))
             if not done.answered(timeout):
                 raise RuntimeTimeout(
-                    f"{self.address} did not answer {op!r} within {timeout:g} s: nothing "
+                    f"{self.address} did not answer {op!r} within {timeout:.3g} s: nothing "
                     "listens there, it is cut off, or it is busy; check the address and "
                     "that the process runs and its port is open")
         finally:
