@@ -479,6 +479,14 @@ class _Stream:
         oldest = self.replay[0].first if self.replay else self.next_seq - len(self.pending)
         return not (full and self.kept() and oldest >= held)
 
+    def drop_follower(self, peer: bytes) -> tuple[int, float] | None:
+        """Forget follower ``peer`` (it unfollowed, or went with its lost node): it holds
+        nothing back, nor is it served on its own; its last acknowledgement, if any."""
+        self.holds.pop(peer, None)
+        self.direct.pop(peer, None)
+        self.joined.pop(peer, None)
+        return self.acks.pop(peer, None)
+
     def hold(self, peer: bytes, seq: int, flags: int) -> None:
         """A follower said how far it is and whether it is lossless."""
         if flags & LOSSLESS:
@@ -579,10 +587,7 @@ class Replicator:
             if stream is None:
                 return 0
             if follower not in stream.gone:
-                acked = stream.acks.pop(follower, None)
-                stream.holds.pop(follower, None)
-                stream.direct.pop(follower, None)
-                stream.joined.pop(follower, None)
+                acked = stream.drop_follower(follower)
                 stream.gone[follower] = stream.next_seq if acked is None else acked[0]
                 self._acked.notify_all()         # (a write it held back goes on)
             return max(0, stream.next_seq - stream.gone[follower])
@@ -1011,10 +1016,7 @@ class Replicator:
                 before = stream.lead(now)
                 direct = stream.direct.get(peer_id)
                 if first < 0:                    # unfollowed: it holds nothing back now
-                    stream.acks.pop(peer_id, None)
-                    stream.holds.pop(peer_id, None)
-                    stream.direct.pop(peer_id, None)
-                    stream.joined.pop(peer_id, None)
+                    stream.drop_follower(peer_id)
                 else:
                     # (never back: an ACK sent before a RESUME came says less than it)
                     known = stream.acks.get(peer_id)
