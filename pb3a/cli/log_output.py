@@ -16,8 +16,8 @@ import sys
 from pb3a.log_format import log_to, name_process
 
 
-def show_logs(level: int = logging.WARNING, role: str = "launcher", node: str = "") -> None:
+def show_logs(level: int = logging.WARNING, role: str = "launcher") -> None:
     """Print records of ``level`` and above on stderr, unless logging is set up already;
-    the lines name this process ``role`` (``@node``: the node it is)."""
-    name_process(role, node)
+    the lines name this process ``role``."""
+    name_process(role)
     log_to(sys.stderr, level)
