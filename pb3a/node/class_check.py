@@ -34,18 +34,14 @@ class ImportLane:
         self.module: str | None = None
 
     @contextlib.contextmanager
-    def importing(self, module: str, timeout: float = -1) -> Iterator[bool]:
-        """Hold the lock (within ``timeout`` seconds; -1: however long) while importing
-        ``module``; gives whether it was taken."""
-        if not self.lock.acquire(timeout=timeout):
-            yield False
-            return
-        self.module = module
-        try:
-            yield True
-        finally:
-            self.module = None
-            self.lock.release()
+    def importing(self, module: str) -> Iterator[None]:
+        """Hold the lock while importing ``module``."""
+        with self.lock:
+            self.module = module
+            try:
+                yield
+            finally:
+                self.module = None
 
 
 def unloadable(refs: dict[str, str], lane: ImportLane, timeout: float,
