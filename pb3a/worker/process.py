@@ -594,7 +594,7 @@ class Worker:
             for actor in self.actors.values():
                 for port in actor.inputs.values():
                     port.unfed_by(key)
-        if ring is not None:
+        else:
             ring.close()
         if pull is not None:
             pull.ring()      # the reader drains what is left
