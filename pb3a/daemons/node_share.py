@@ -300,7 +300,7 @@ def executor_main(config: str, node: str, workers: int, cpus: list[int] | None,
                                           # which asks this executor, and a restart
                                           # waited for takes its lock: not in one lane
                                           aside={"start", "await_restart"},
-                                          decode_lock=share.executor.import_lock,
+                                          decode_lock=share.executor.imports.lock,
                                           title=f"node {node}'s executor")
     try:
         serve_as_child(conn, server.address, share.stopped)

@@ -119,7 +119,6 @@ class Executor:
         self.failures = FailureLog(log)               # what went wrong, for stats and logs
         self.meter = ResourceMeter(cpus)              # the machine's CPU and memory
         self.imports = ImportLane()                   # background imports vs requests
-        self.import_lock = self.imports.lock
         self.handler: Any = None                      # applies agents' requests (op, args)
         self.republished: Any = None                  # told (link, endpoint) after a restart
         self.on_event: Any = None                     # told (kind, module, detail): restarts
@@ -168,7 +167,7 @@ class Executor:
         self.workers.warm()
         # This process resolves the classes of modules that come to the node (a move,
         # an add): import them now, in the background, not in a move's critical path;
-        # one at a time under ``import_lock``, which requests are decoded under too.
+        # one at a time in ``imports``, whose lock requests are decoded under too.
         threading.Thread(target=_import_quietly, args=(code.preload, self.imports),
                          name="pb3a-preload", daemon=True).start()
 
