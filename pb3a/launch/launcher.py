@@ -69,7 +69,7 @@ REJOIN_S = 1.0          # how often it asks a lost node's controller whether it 
 PLACE_TIMEOUT = 0.5     # a controller's answer about its load and admission
 STOP_TIMEOUT = 5.0      # a module's teardown when it is removed
 REMOTE_STOP_AT_LEAST_S = 0.5   # a remote node's shutdown, even once the time is up
-# how to give a launch's check of the nodes' classes more time
+# how to give a launch's slow steps more time (the nodes' starts, their classes' check)
 LAUNCH_LONGER = ("give the system a longer timeout (timeout = SECONDS at the top of its "
                  "file, or launch(timeout=...))")
 
@@ -200,17 +200,27 @@ class Launcher:
             thread.start()
         for thread in threads:      # (each call is bounded by ``timeout``: this is slack)
             thread.join(timeout + 1.0)
-        problems = []
+        problems, classes, silent_nodes = [], 0, 0
         for node, refs in asked.items():
             silent = {"": f"it did not answer within {timeout:g} s"} if refs else {}
             for name, why in answers.get(node, silent).items():
                 address = self.plan.nodes[node].address
+                classes += bool(name)
+                silent_nodes += not name
                 problems.append(
                     f"node {node} ({address}): {why}" if not name else
                     f"node {node} ({address}): module {name!r}, class {refs[name]!r}: {why}")
         if problems:
-            which = ("1 class cannot be loaded on the node that runs it" if len(problems) == 1
-                     else f"{len(problems)} classes cannot be loaded on the nodes that run them")
+            parts = []
+            if classes:
+                parts.append("1 class cannot be loaded on the node that runs it" if classes == 1
+                             else f"{classes} classes cannot be loaded on the nodes that run "
+                             "them")
+            if silent_nodes:
+                parts.append("1 node did not say whether it loads its classes"
+                             if silent_nodes == 1 else f"{silent_nodes} nodes did not say "
+                             "whether they load their classes")
+            which = ", and ".join(parts)
             raise RuntimeFailure("\n  ".join([
                 f"system {self.plan.name!r} was not started: {which} (no module was "
                 "started):", *problems]))
