@@ -43,10 +43,11 @@ capture a step out of time undoes the move as any failure there; once captured, 
 landing gets at least ``LANDING_FLOOR_S``; the start at the destination is the point
 of no return, and a ``setup`` still running when the time is up is left to finish
 there (``MovedLate``). Undoing keeps its own deadlines, not the caller's, on a
-thread of its own (``_Undoing``): the call waits for it ``UNDO_GRACE_S`` beyond its
-time at most; an undo still running then (a worker still busy in a ``teardown`` that
-overran) goes on, every later change waiting for it (``ConfigurationLock.carry_on``),
-and the error says so. A landing's undo drops the modules at the destination first,
+thread of its own (``_Undoing``): the call waits for it until its time is up, or
+``UNDO_GRACE_S`` if that is later (a move that failed as its time ran out); an undo
+still running then (a worker still busy in a ``teardown`` that overran) goes on,
+every later change waiting for it (``ConfigurationLock.carry_on``), and the error says
+so. A landing's undo drops the modules at the destination first,
 waiting for its workers ``DROP_S`` at most: they never started there, and a worker
 that does not answer (frozen) is stopped without its answer.
 """
@@ -72,8 +73,9 @@ LANDING_FLOOR_S = 0.5
 # A step's RuntimeTimeout this close to the end of its time is the call's timeout
 # running out (a worker gives up its answer's margin before: ``deadline.before_answer``).
 RAN_OUT_SLACK_S = 0.3
-# How long beyond its time (its timeout, or the landing's floor) a failed move waits for
-# its undo: one that takes longer (a worker still busy) goes on after the call returns.
+# How long a failed move waits for its undo at least, when its time (its timeout, or the
+# landing's floor) is up or nearly: one that takes longer (a worker still busy) goes on
+# after the call returns. Before that, it waits until its time is up.
 UNDO_GRACE_S = 0.25
 # How long undoing a landing waits for the destination to drop the modules that did not
 # land (never started there): a worker that does not answer is stopped without it.

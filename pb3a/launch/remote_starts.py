@@ -84,8 +84,9 @@ class RemoteStarts:
                 {name: failed[name] for name in names if name in failed})
 
 
-def not_started(system: str, remote: int, failed: dict[str, BaseException]) -> BaseException:
-    """The error of a launch in which the nodes ``failed`` (of its ``remote`` remote nodes)
+def not_started(system: str, remote_nodes: int, failed: dict[str, BaseException]
+                ) -> BaseException:
+    """The error of a launch in which the nodes ``failed`` (of its ``remote_nodes`` remote nodes)
     did not start an executor: a single node's own error, else one naming each node
     and why, a ``RuntimeTimeout`` if none of them answered in time. An interrupt in a
     start (a ``KeyboardInterrupt`` as it bound its executor) is the launch's."""
@@ -99,5 +100,5 @@ def not_started(system: str, remote: int, failed: dict[str, BaseException]) -> B
     lines = [str(exc) if str(exc).startswith(f"node {name}") else f"node {name}: {exc}"
              for name, exc in failed.items()]
     return kind("\n  ".join([
-        f"system {system!r} was not started: {len(failed)} of its {remote} remote nodes "
+        f"system {system!r} was not started: {len(failed)} of its {remote_nodes} remote nodes "
         "did not start an executor (no module was started):", *lines]))

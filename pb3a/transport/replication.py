@@ -354,7 +354,7 @@ class _Direct:
     skips: collections.deque[tuple[int, int]] = field(
         default_factory=lambda: collections.deque(maxlen=SKIP_RUNS))   # (first, end) not sent
 
-    def free(self, acked: int) -> bool:
+    def idle(self, acked: int) -> bool:
         """Whether nothing sent to it is on the way, it having acknowledged ``acked``."""
         return acked >= self.sent
 
@@ -908,7 +908,7 @@ class Replicator:
         now = time.monotonic()
         for peer, direct in stream.direct.items():
             sent = direct.latest
-            if sent is None or not direct.free(stream.acks.get(peer, (-1, 0.0))[0]):
+            if sent is None or not direct.idle(stream.acks.get(peer, (-1, 0.0))[0]):
                 continue
             direct.latest = None
             if sent.first > direct.sent:
@@ -1452,12 +1452,15 @@ class Follower:
         if follow is None:
             return None                          # unfollowed meanwhile
         if message.kind in (SYNC, WELCOME):
-            incarnation, nxt, skipped = _ANSWER.unpack(message.frames[1])
+            # (the third field: a SYNC's values skipped before nxt; a WELCOME's 1 if
+            # a replay follows it)
+            incarnation, nxt, third = _ANSWER.unpack(message.frames[1])
             if not self._accept(follow, incarnation):
                 return None
             if live and follow.joining:
                 self._joined(follow, nxt)
-            if message.kind == SYNC and 0 < skipped <= nxt:
+            skipped = third if message.kind == SYNC else 0
+            if 0 < skipped <= nxt:
                 self._skipped(follow, nxt - skipped, nxt)
             if follow.next_seq < 0:             # from now on: what came earlier goes
                 follow.next_seq = nxt
@@ -1467,7 +1470,7 @@ class Follower:
                         follow.held[nxt] = (values[nxt - first:], sent_at, nbytes)
             follow.announced = max(follow.announced, nxt)
             follow.live = follow.live or live
-            if message.kind == WELCOME and skipped and follow.repairing:
+            if message.kind == WELCOME and third and follow.repairing:
                 follow.asked = time.monotonic()  # its replay is coming (see ``_drain``)
             if follow.hello_for is None and message.kind == WELCOME:
                 self._hello(follow)              # naming it now: see "Destinations"
