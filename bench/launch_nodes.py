@@ -144,11 +144,11 @@ def system(name: str, addresses: dict[str, str]) -> System:
     return built
 
 
-def healthy(pool: list[Controller]) -> dict[str, Any]:
-    """Launch and close over 1, 3, 6 nodes, ``REPS`` times each, round robin."""
-    rows: dict[int, list[dict[str, float]]] = {n: [] for n in SIZES}
+def healthy(pool: list[Controller], sizes: tuple[int, ...]) -> dict[str, Any]:
+    """Launch and close over each of ``sizes`` nodes, ``REPS`` times each, round robin."""
+    rows: dict[int, list[dict[str, float]]] = {n: [] for n in sizes}
     for rep in range(REPS):
-        for n in SIZES:
+        for n in sizes:
             with step_times() as spent:
                 began = time.monotonic()
                 run = system(f"launch-{n}-{rep}",
@@ -159,7 +159,7 @@ def healthy(pool: list[Controller]) -> dict[str, Any]:
             rows[n].append({"launch_s": launch_s, **{f"{s}_s": t for s, t in spent.items()},
                             "close_s": time.monotonic() - began})
     return {f"{n}_nodes": {key: summary([row[key] for row in rows[n]]) for key in rows[n][0]}
-            for n in SIZES}
+            for n in sizes}
 
 
 def failing(pool: list[Controller], dead: list[str], how: str) -> dict[str, Any]:
@@ -194,7 +194,7 @@ def body(result: dict[str, Any], sizes: tuple[int, ...]) -> None:
     result["settings"] = {"sizes": list(sizes), "reps": REPS, "timeout_s": LAUNCH_TIMEOUT}
     steal0, began = steal_seconds(), time.monotonic()
     with controllers(max(sizes)) as pool:
-        result["healthy"] = healthy(pool)
+        result["healthy"] = healthy(pool, sizes)
         six = pool[:6]
         result["unreachable"] = [failing(six, dead, how) for how in ("refused", "frozen")
                                  for dead in (["n3"], ["n2", "n5"])]

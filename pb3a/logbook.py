@@ -36,7 +36,8 @@ class LogEntry:
     def line(self) -> str:
         """The entry as one line of text (and its traceback below), as the process that
         logged it printed it (``pb3a.log_format``)."""
-        process = self.process or (f"@{self.node}" if self.node else "launcher")
+        # (an entry of a node of an older version names no process: its node's)
+        process = self.process or (f"node@{self.node}" if self.node else "launcher")
         return line(self.time, self.level, process, self.logger, self.message)
 
 
