@@ -1210,6 +1210,19 @@ def _served_on_its_own(follower: Follower) -> bool:
     return follow is not None and follow.direct
 
 
+def _slow_beside_fast(replicator: Replicator, camera: _Camera, fast: Follower,
+                      slow: Follower, radio: Throttle) -> None:
+    """``fast`` follows the camera directly and ``slow`` through ``radio``, from its first
+    frame, and the camera writes until the slow one is served on its own."""
+    replicator.add("camera")
+    _follow(fast, replicator, "camera", from_seq=0)
+    slow.follow("camera", radio.route(replicator.data_address),
+                radio.route(replicator.control_address), from_seq=0)
+    assert fast.wait_ready("camera", TIMEOUT) and slow.wait_ready("camera", TIMEOUT)
+    camera.write(100, until=lambda: _served_on_its_own(slow))
+    assert _served_on_its_own(slow), "the slow follower was not served on its own"
+
+
 @pytest.mark.timeout(90)
 @pytest.mark.parametrize("cut", [False, True], ids=["held", "cut"])
 def test_a_follower_served_on_its_own_that_went_silent_is_served_again_once_back(
@@ -1231,13 +1244,7 @@ def test_a_follower_served_on_its_own_that_went_silent_is_served_again_once_back
     camera = _Camera(replicator)
     try:
         with Throttle(2e6) as radio:
-            replicator.add("camera")
-            _follow(fast, replicator, "camera", from_seq=0)
-            slow.follow("camera", radio.route(replicator.data_address),
-                        radio.route(replicator.control_address), from_seq=0)
-            assert fast.wait_ready("camera", TIMEOUT) and slow.wait_ready("camera", TIMEOUT)
-            camera.write(100, until=lambda: _served_on_its_own(slow))
-            assert _served_on_its_own(slow), "the slow follower was not served on its own"
+            _slow_beside_fast(replicator, camera, fast, slow, radio)
             fast.unfollow("camera")
             direct = replicator._topics["camera"].direct
             camera.write(20, until=lambda: any(one.sent > one.start
@@ -1292,13 +1299,7 @@ def test_a_repair_by_a_follower_served_on_its_own_is_answered_skipped_not_replay
     camera = _Camera(replicator)
     try:
         with Throttle(2e6) as radio:
-            replicator.add("camera")
-            _follow(fast, replicator, "camera", from_seq=0)
-            slow.follow("camera", radio.route(replicator.data_address),
-                        radio.route(replicator.control_address), from_seq=0)
-            assert fast.wait_ready("camera", TIMEOUT) and slow.wait_ready("camera", TIMEOUT)
-            camera.write(100, until=lambda: _served_on_its_own(slow))
-            assert _served_on_its_own(slow), "the slow follower was not served on its own"
+            _slow_beside_fast(replicator, camera, fast, slow, radio)
             start = next(iter(list(replicator._topics["camera"].direct.values()))).start
             camera.write(60)
             got = slow_inbox.values.setdefault("camera", [])
@@ -1449,13 +1450,7 @@ def test_a_follower_served_on_its_own_that_becomes_lossless_takes_its_replay_onc
     camera = _Camera(replicator)
     try:
         with Throttle(2e6) as radio:
-            replicator.add("camera")
-            _follow(fast, replicator, "camera", from_seq=0)
-            slow.follow("camera", radio.route(replicator.data_address),
-                        radio.route(replicator.control_address), from_seq=0)
-            assert fast.wait_ready("camera", TIMEOUT) and slow.wait_ready("camera", TIMEOUT)
-            camera.write(100, until=lambda: _served_on_its_own(slow))
-            assert _served_on_its_own(slow), "the slow follower was not served on its own"
+            _slow_beside_fast(replicator, camera, fast, slow, radio)
             camera.write(10)                     # (frames it did not get: a backlog)
             sends.clear()
             slow.set_lossless("camera", True)
