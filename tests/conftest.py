@@ -79,6 +79,18 @@ def alive(pid: int) -> bool:
         return False
 
 
+def end_process(process: subprocess.Popen, how: int = signal.SIGTERM,
+                timeout: float = 15.0) -> None:
+    """Ask ``process`` to end (``how``), wait ``timeout`` seconds for it, then kill it."""
+    if process.poll() is None:
+        process.send_signal(how)
+        try:
+            process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(5)
+
+
 def processes_naming(word: str) -> list[psutil.Process]:
     """The live processes whose command line holds ``word`` (a forkserver preloading a
     module file names it, and so do the workers forked from it), but this process's own
@@ -324,11 +336,5 @@ class Daemon:
         self.process.stdout.close()
 
     def stop(self) -> None:
-        if self.process.poll() is None:
-            self.process.terminate()
-            try:
-                self.process.wait(15)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait(5)
+        end_process(self.process)
         self.process.stdout.close()

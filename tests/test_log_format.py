@@ -18,7 +18,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import eventually
+from conftest import end_process, eventually
 from sample_modules import Chatty
 
 from pb3a import System
@@ -81,12 +81,7 @@ def test_the_launcher_prints_a_worker_s_record_dated_to_the_millisecond_with_its
         lines = _read_until(run.stderr, wanted, START_TIMEOUT)
         assert lines and re.fullmatch(wanted, lines[-1]), lines
     finally:
-        run.send_signal(signal.SIGINT)
-        try:
-            run.wait(STOP_TIMEOUT)
-        except subprocess.TimeoutExpired:
-            run.kill()
-            run.wait(5)
+        end_process(run, signal.SIGINT, STOP_TIMEOUT)
         run.stderr.close()
 
 
@@ -113,12 +108,7 @@ def controller(tmp_path: Path, request: pytest.FixtureRequest
         assert said == [f"node b at {address}"], (said, written.read_text())
         yield address, written, request.param
     finally:
-        daemon.terminate()
-        try:
-            daemon.wait(STOP_TIMEOUT)
-        except subprocess.TimeoutExpired:
-            daemon.kill()
-            daemon.wait(5)
+        end_process(daemon, timeout=STOP_TIMEOUT)
         daemon.stdout.close()
 
 
