@@ -919,7 +919,7 @@ class Launcher:
                 try:
                     # its request waits no longer than the deadline (a frozen worker's
                     # stop would have waited 1 s past it, as its grace ran out)
-                    with bounding(max(0.0, deadline - time.monotonic())):
+                    with bounding(deadline - time.monotonic()):
                         self.node_of(name).stop_module(name, 2.0)
                 except Exception as exc:
                     log.warning("stopping module %r: %s", name, exc)

@@ -1167,7 +1167,7 @@ class Executor:
                 try:            # (without the lock, a request may have removed it)
                     if name in self.modules:
                         # (its request waits no longer than the deadline: ``stop_module``)
-                        with bounding(max(0.0, deadline - time.monotonic())):
+                        with bounding(deadline - time.monotonic()):
                             self.stop_module(name, timeout=2.0)
                 except Exception as exc:
                     log.warning("stopping module %r: %s", name, exc)
