@@ -6,7 +6,8 @@ remote links, and the records of the modules that run here. Links with both ends
 here are wired by ``connect``; a remote link is wired in halves (``publish`` at the
 writer's node, ``open_inbound`` and ``follow`` at the reader's) by the
 ``Launcher``, which alone sees every node. A crashed worker is restarted by its
-modules' ``restart`` policies within a ``RestartBudget``. Shutdown stops modules in
+modules' ``restart`` policies within a ``RestartBudget``; what such a restart and the
+requests that meet it wait for is kept by its ``Lives``. Shutdown stops modules in
 reverse start order, then the processes (terminate, then kill), then unlinks every
 segment. It implements ``Node``.
 """
@@ -34,6 +35,8 @@ from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
 from pb3a.node.bridge import READY_TIMEOUT, Bridge
 from pb3a.node.class_check import ImportLane
+from pb3a.node.lives import Lives
+from pb3a.node.module_record import ModuleRecord
 from pb3a.node.protocol import Endpoint, Reached
 from pb3a.node.resources import ResourceMeter
 from pb3a.node.restarts import RestartBudget
@@ -60,22 +63,6 @@ REPORT_TIMEOUT = 5.0
 STOP_FOLLOWS_S = 2.0
 LOCK_TIMEOUT = 60.0      # longest a restart or a shutdown waits for the node's lock
 _WAITS_FOR_THE_MODULE = frozenset({"get_state", "set_state"})
-
-
-@dataclass
-class ModuleRecord:
-    """What the executor knows of one module it runs."""
-
-    spec: FlatModule
-    worker: str
-    blob: bytes                       # the class, cloudpickled once
-    status: str = "starting"          # starting | running | failed | stopped
-    checkpoint: bytes | None = None
-    checkpoints: int = 0              # checkpoints received (restart = "last-state")
-    restarts: int = 0                 # restarts of its worker tried
-    # paused by a change (a move, a relink): a restart of its worker waits until the
-    # change lets go of it (``Executor._await_let_go``)
-    held: bool = False
 
 
 @dataclass(frozen=True)
@@ -139,17 +126,13 @@ class Executor:
         # Held by a restart and by whoever changes the configuration (the launcher's
         # global lock when the executor runs in the launcher's process).
         self.lock = lock or threading.RLock()
-        self._stopping = threading.Event()
-        self._closing = threading.Event()       # a shutdown or a fence has begun
-        # notified as a module's life changes: its worker's death seen, its restart
-        # ended, a change letting go of it, the node stopping (``await_restart``,
-        # ``_await_let_go``)
-        self._lives = threading.Condition()
-        self._reviving: set[str] = set()        # modules whose restart is under way
         reap_orphans()
         self.workers = WorkerPool(
             WorkerSettings(cpus, checkpoint_s, log_level, code or CodeSources(), spares),
             self._notice, self._died)
+        # a module between its worker's death and its restart's end, a change holding
+        # it paused, the node stopping: what restarts and requests wait for
+        self.lives = Lives(self.modules, self.workers)
         if code is not None:                # (a node share learns it later: configure)
             self.workers.warm()
 
@@ -213,34 +196,7 @@ class Executor:
         (or its restart is under way), wait up to ``timeout`` for that to end, without
         the node's lock, which the restart takes; True if it had to wait (a request
         that failed in the window is worth asking again), False at once otherwise."""
-        deadline = time.monotonic() + timeout
-        waited = False
-        with self._lives:
-            while self._between_lives(name):
-                waited = True
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    break
-                # (in slices: a module removed or moved meanwhile is not notified of)
-                self._lives.wait(min(left, 0.1))
-        return waited
-
-    def _between_lives(self, name: str) -> bool:
-        """Whether module ``name`` is between its worker's death (seen or not yet) and
-        the end of what its restart policy does about it."""
-        record = self.modules.get(name)
-        if record is None or record.status in ("failed", "stopped") or self._closing.is_set():
-            return False
-        if name in self._reviving:
-            return True
-        handle = self.workers.handles.get(record.worker)
-        # (a request may fail on the broken pipe of a worker whose death is not yet seen)
-        return handle is not None and not (
-            handle.serving and not handle.outbox.closed and handle.process.is_alive())
-
-    def _life_changed(self) -> None:
-        with self._lives:
-            self._lives.notify_all()
+        return self.lives.await_restart(name, timeout)
 
     def _restarting(self, record: ModuleRecord) -> bool:
         """Whether the module's worker is gone and its restart policy has yet to say what
@@ -454,7 +410,7 @@ class Executor:
         # held before it is asked: a worker that dies from here on is restarted once the
         # change lets go of the module, not meanwhile (in a new worker, unpaused, its
         # outputs published anew: the change went on as if it still held it)
-        self._hold(record, True)
+        self.lives.hold(record, True)
         # the answer's wait, a second more than the pause's own (less, for a caller's
         # deadline: then the pause gives up a margin before it)
         answer_s = capped(timeout + 1.0)
@@ -465,7 +421,7 @@ class Executor:
             self.call(record.worker, "pause", answer_s, name=name, timeout=timeout,
                       until=time.monotonic() + timeout)
         except BaseException:
-            self._hold(record, False)
+            self.lives.hold(record, False)
             raise
         return True
 
@@ -480,31 +436,7 @@ class Executor:
                     self.call(record.worker, "resume", name=name)
         finally:
             if record is not None:
-                self._hold(record, False)
-
-    def _hold(self, record: ModuleRecord, held: bool) -> None:
-        """Note whether a change holds ``record``'s module paused (see ``pause``)."""
-        with self._lives:
-            record.held = held
-            if not held:
-                self._lives.notify_all()
-
-    def _await_let_go(self, handle: WorkerHandle, what: str) -> None:
-        """Wait (without the node's lock) until no change holds a module of dead worker
-        ``handle`` paused, up to ``LOCK_TIMEOUT``: its restart must not revive a module a
-        move has paused (and goes on to capture). Once the worker is dead no change can
-        pause its modules again (``pause`` finds it gone), so this holds once it
-        returns. On an embedded node the restart then waits for the configuration lock,
-        which the change holds throughout; on a remote one each of the change's requests
-        takes the node's lock on its own, and a restart could run between two."""
-        def held() -> list[str]:
-            return [name for name in list(handle.modules)
-                    if (record := self.modules.get(name)) is not None and record.held]
-        with self._lives:
-            if not self._lives.wait_for(lambda: not held() or self._stopping.is_set(),
-                                         LOCK_TIMEOUT):
-                log.warning("%s: %s held paused by a change for %g s; restarted all the "
-                            "same", what, ", ".join(held()), LOCK_TIMEOUT)
+                self.lives.hold(record, False)
 
     def stop_module(self, name: str, timeout: float = 5.0) -> None:
         """Stop stepping and dispatching, then run the module's ``teardown``: its worker
@@ -516,7 +448,7 @@ class Executor:
             self.call(record.worker, "stop", answer_s, name=name,
                       grace=min(timeout, before_answer(answer_s)))
         record.status = "stopped"
-        self._hold(record, False)
+        self.lives.hold(record, False)
 
     def remove_module(self, name: str) -> None:
         """Drop a module (its links are gone) and stop its worker if it hosted nothing else.
@@ -524,7 +456,7 @@ class Executor:
         the same: it takes the request when it can, and, left empty, is stopped on another
         thread (not waited for), and the call raises."""
         record = self.modules.pop(name)
-        self._hold(record, False)
+        self.lives.hold(record, False)
         try:
             if self._alive(record.worker):
                 self.call(record.worker, "remove", name=name)
@@ -573,7 +505,7 @@ class Executor:
             raise RuntimeFailure(_died_moving(name, record)) from exc
         del self.modules[name]
         self.workers[record.worker].modules.remove(name)
-        self._hold(record, False)
+        self.lives.hold(record, False)
         return snapshot.carry() if carry else snapshot
 
     def land(self, name: str, snapshot: Snapshot) -> float:
@@ -929,11 +861,11 @@ class Executor:
         try:
             self._after_death(handle)
         finally:
-            self._life_changed()
+            self.lives.changed()
 
     def _after_death(self, handle: WorkerHandle) -> None:
         code = handle.process.exitcode
-        if code == LEASE_LAPSED and self.leased() and not self._stopping.is_set():
+        if code == LEASE_LAPSED and self.leased() and not self.lives.stopping.is_set():
             # Its lease lapsed, but this executor's runs: the worker alone was frozen
             # (stopped, starved), not its node, and nothing runs its modules elsewhere.
             # They were stopped as no one asked: their restart policy says what comes.
@@ -962,7 +894,7 @@ class Executor:
         SIGTERM to the whole process group (`timeout`, `kill -- -PGID`) reaches the
         launcher and its nodes with their workers, and a warning per worker was noise on
         a clean stop. One that stops alone (someone's SIGTERM, a module's exit) is said."""
-        if self._closing.wait(STOP_FOLLOWS_S):
+        if self.lives.closing.wait(STOP_FOLLOWS_S):
             log.info(*said)
         else:
             log.warning(*said)
@@ -974,35 +906,32 @@ class Executor:
         since an agent may call ``self.runtime`` from ``setup``, which takes the lock
         (``_started``); under it again, what came of it (``_restarted``)."""
         what = f"restart the modules of worker {handle.key}"
-        reviving = set(handle.modules)
-        self._reviving |= reviving
-        try:
-            self._await_let_go(handle, what)
-            with self.held(what):
-                if self._stopping.is_set():     # a shutdown may have come first
-                    return
-                revived = self._revive(handle, code)
-                if not revived:
-                    return
-                # sent now, to the process just set up, whatever happens once the lock is free
-                process = handle.process
-                future = self.workers.submit(handle.key, "start", names=list(revived))
-            outcome = self._started(future, handle.key, process)
-            with self.held(what):
-                if not self._stopping.is_set():
-                    self._restarted(handle, code, revived, outcome)
-        except RuntimeTimeout as exc:           # the lock was not free within its deadline
-            self.failures.add(f"restart of worker {handle.key} failed: {exc}")
-            # its modules are not running, whatever their records said: failed, and said
-            for name in list(handle.modules):
-                record = self.modules.get(name)
-                if record is not None and record.status != "failed":
-                    record.status = "failed"
-                    self._tell("module_failed", name, exit_code=code,
-                               reason=f"its restart could not take the node's lock: {exc}")
-        finally:
-            self._reviving -= reviving
-            self._life_changed()
+        with self.lives.reviving(set(handle.modules)):
+            try:
+                self.lives.await_let_go(handle, what, LOCK_TIMEOUT)
+                with self.held(what):
+                    if self.lives.stopping.is_set():    # a shutdown may have come first
+                        return
+                    revived = self._revive(handle, code)
+                    if not revived:
+                        return
+                    # sent now, to the process just set up, whatever happens once the
+                    # lock is free
+                    process = handle.process
+                    future = self.workers.submit(handle.key, "start", names=list(revived))
+                outcome = self._started(future, handle.key, process)
+                with self.held(what):
+                    if not self.lives.stopping.is_set():
+                        self._restarted(handle, code, revived, outcome)
+            except RuntimeTimeout as exc:       # the lock was not free within its deadline
+                self.failures.add(f"restart of worker {handle.key} failed: {exc}")
+                # its modules are not running, whatever their records said: failed, and said
+                for name in list(handle.modules):
+                    record = self.modules.get(name)
+                    if record is not None and record.status != "failed":
+                        record.status = "failed"
+                        self._tell("module_failed", name, exit_code=code,
+                                   reason=f"its restart could not take the node's lock: {exc}")
 
     def held(self, what: str, timeout: float = LOCK_TIMEOUT) -> AbstractContextManager[Any]:
         """``self.lock``, held for ``what`` (which the launcher's lock names to a waiter);
@@ -1144,9 +1073,8 @@ class Executor:
         """Stop every module's stepping now, without the executor's lock (a request may
         hold it, waiting on a worker): its node's lease ran out, so its modules are about
         to be restarted elsewhere. ``shutdown`` follows."""
-        self._closing.set()
-        self._stopping.set()
-        self._life_changed()     # (a restart waiting for a change to let go waits no more)
+        self.lives.closing.set()
+        self.lives.stop()        # (a restart waiting for a change to let go waits no more)
         self.workers.fence()
 
     def shutdown(self, timeout: float = 10.0) -> None:
@@ -1156,7 +1084,7 @@ class Executor:
         fails once its worker is gone); the rest is done without it if need be. A module
         whose worker does not answer by the deadline is not torn down: its worker is
         killed."""
-        self._closing.set()
+        self.lives.closing.set()
         deadline = time.monotonic() + timeout
         with contextlib.ExitStack() as held:
             try:
@@ -1171,8 +1099,7 @@ class Executor:
                             self.stop_module(name, timeout=2.0)
                 except Exception as exc:
                     log.warning("stopping module %r: %s", name, exc)
-            self._stopping.set()
-            self._life_changed()
+            self.lives.stop()
             self.workers.close(max(0.0, deadline - time.monotonic()))
             if self._bridge is not None:
                 self._bridge.shutdown()
