@@ -39,7 +39,7 @@ from throttle import Throttle
 
 from pb3a import System
 from pb3a.transport import replication
-from pb3a.transport.replication import Follower, follower_id
+from pb3a.transport.replication import Follower, follower_id, wire
 
 SAMPLE_S = 0.5             # how often memory is read
 
@@ -117,7 +117,7 @@ def main() -> None:
 
     def body(result: dict[str, Any]) -> None:
         result["machine"] = machine()
-        result["peer_timeout_ms"] = replication.PEER_TIMEOUT_MS
+        result["peer_timeout_ms"] = wire.PEER_TIMEOUT_MS
         result["runs"] = runs = []
         for size in (int(s) for s in args.sizes.split(",")):
             for mbit in (float(m) for m in args.mbit.split(",")):

@@ -19,6 +19,7 @@ from pb3a import System
 from pb3a.transport import replication
 from pb3a.transport.auth import Opener
 from pb3a.transport.replication import Follower, follower_id
+from pb3a.transport.replication import follower as follower_module
 
 FRAMES = 60                # 64 KiB frames, 20 a second: 3 s of writing
 LINK = "camera.out->viewer.x"
@@ -125,7 +126,9 @@ def test_a_lossless_link_further_behind_than_the_freshness_window_takes_each_val
     20 frames are enough: written in 1 s, the last crosses about 4 s behind, four times
     the window (the queue's length, not its count, is the point)."""
     frames = 20
-    monkeypatch.setattr(replication, "Opener", functools.partial(Opener, fresh_s=1.0))
+    # (the follower's, in node b's bridge here: the writer's replicator runs in its
+    # worker process, which no patch here reaches)
+    monkeypatch.setattr(follower_module, "Opener", functools.partial(Opener, fresh_s=1.0))
     with _camera_to_viewer("slow-lossless", policy="lossless:64",
                            frames=frames).launch() as run:
         eventually(lambda: len(run.state("viewer")["numbers"]) == frames, timeout=60.0,

@@ -26,7 +26,9 @@ from throttle import Throttle
 from pb3a import Module, Output, RuntimeTimeout
 from pb3a.transport import replication
 from pb3a.transport.auth import ClusterKey, Opener, Sealer
-from pb3a.transport.replication import WINDOW, Follower, Replicator, follower_id
+from pb3a.transport.replication import Follower, Replicator, follower_id, wire
+from pb3a.transport.replication import replicator as replicator_module
+from pb3a.transport.replication.wire import WINDOW
 from pb3a.worker.publications import Publications
 
 KEY = ClusterKey.load({"PB3A_KEY": "r" * 40})
@@ -131,7 +133,7 @@ def test_values_the_subscriber_missed_are_repaired_from_the_replay_buffer(link,
 def test_values_gone_from_the_replay_buffer_are_counted_as_link_failures(link,
                                                                          monkeypatch) -> None:
     replicator, follower, inbox = link
-    monkeypatch.setattr(replication, "REPLAY_VALUES", 10)
+    monkeypatch.setattr(replicator_module, "REPLAY_VALUES", 10)
     replicator.add("t")
     for i in range(100):                      # only the last 10 stay replayable
         replicator.publish("t", i)
@@ -146,7 +148,7 @@ def test_values_gone_from_the_replay_buffer_are_counted_as_link_failures(link,
 def test_a_value_larger_than_the_replay_buffer_is_repaired_as_it_was_written(
         link, monkeypatch) -> None:
     replicator, follower, inbox = link
-    monkeypatch.setattr(replication, "REPLAY_BYTES", 1 << 20)
+    monkeypatch.setattr(replicator_module, "REPLAY_BYTES", 1 << 20)
     replicator.add("t")
     _follow(follower, replicator, "t", from_seq=0)
     assert follower.wait_ready("t", TIMEOUT)
@@ -168,11 +170,11 @@ def test_a_value_larger_than_the_replay_buffer_is_repaired_as_it_was_written(
 
 def test_a_publisher_more_than_its_window_of_bytes_ahead_waits_for_the_follower(
         monkeypatch) -> None:
-    monkeypatch.setattr(replication, "WINDOW_BYTES", 1 << 20)
-    monkeypatch.setattr(replication, "WINDOW_WAIT", 0.05)
+    monkeypatch.setattr(replicator_module, "WINDOW_BYTES", 1 << 20)
+    monkeypatch.setattr(replicator_module, "WINDOW_WAIT", 0.05)
     # (a follower silent this long is a slow link, to which what does not fit is not
     # sent: that is test_a_writer_faster_than_its_link_sends_fresh_values...)
-    monkeypatch.setattr(replication, "FRESH_S", 30.0)
+    monkeypatch.setattr(replicator_module, "FRESH_S", 30.0)
     gate, inbox = threading.Event(), Inbox()
 
     def slow(topic: str, values: list[Any], sent_at: float) -> None:
@@ -329,7 +331,7 @@ def test_a_replicator_out_of_reach_never_blocks_the_follower_s_thread(monkeypatc
     """Its hellos queue up for the address nobody answers; once the queue was full
     (10,000, some 8 minutes of them; 5 here), a blocking send stopped the follower's
     one thread, and every remote link into the node with it."""
-    monkeypatch.setattr(replication, "HWM", 5)
+    monkeypatch.setattr(wire, "HWM", 5)
     follower = Follower(KEY, Inbox())
     try:
         with socket.create_server(("127.0.0.1", 0)) as taken:   # a port nobody serves
@@ -514,13 +516,13 @@ def test_values_lost_at_the_end_of_a_burst_are_found_by_the_heartbeat(link,
 def test_a_follower_that_went_silent_holds_the_publisher_back_only_briefly(
         link, monkeypatch) -> None:
     replicator, follower, _ = link
-    monkeypatch.setattr(replication, "FOLLOWER_TIMEOUT", 0.5)
+    monkeypatch.setattr(replicator_module, "FOLLOWER_TIMEOUT", 0.5)
     replicator.add("t")
     _follow(follower, replicator, "t", from_seq=0)
     assert follower.wait_ready("t", TIMEOUT)
     follower.close()                          # gone without a word
     started = time.monotonic()
-    for i in range(3 * replication.WINDOW):
+    for i in range(3 * WINDOW):
         replicator.publish("t", i)
     assert time.monotonic() - started < 5.0
 
@@ -543,12 +545,12 @@ def test_a_follower_that_left_neither_holds_the_publisher_nor_counts_as_unacknow
         _follow(second, replicator, "t", incarnation=replicator.incarnation)
         assert second.wait_ready("t", TIMEOUT)
         started = time.monotonic()
-        for i in range(10, 10 + 3 * replication.WINDOW):
+        for i in range(10, 10 + 3 * WINDOW):
             replicator.publish("t", i)
         assert time.monotonic() - started < 1.0, "held back by the follower that left"
-        inbox.wait("t", 3 * replication.WINDOW)
+        inbox.wait("t", 3 * WINDOW)
         eventually(lambda: _acknowledged(replicator, "t", follower_id("c", 1)) == 10
-                   + 3 * replication.WINDOW, what="all acknowledged")
+                   + 3 * WINDOW, what="all acknowledged")
         second.close()                                      # its node is lost: silent
         for i in range(5):
             replicator.publish("t", i)
@@ -571,7 +573,7 @@ def test_a_lost_node_s_follower_is_counted_by_its_own_acknowledgement_then_forgo
     (the least advanced follower's was counted). A lost node's follower, forgotten, holds
     nothing back even if it still talks (its node cut off, not dead); the node admitted
     again (epoch 2) follows anew."""
-    monkeypatch.setattr(replication, "WINDOW", 16)
+    monkeypatch.setattr(replicator_module, "WINDOW", 16)
     replicator, dam = Replicator(KEY), Dam()
     replicator.add("t")
     followers = {node: Follower(KEY, dam if node == "b" else Inbox(),
@@ -668,7 +670,7 @@ def dammed():
 def test_a_lossless_follower_holds_the_publisher_back_until_its_receiver_takes_values(
         dammed, monkeypatch) -> None:
     replicator, follower, dam = dammed
-    monkeypatch.setattr(replication, "WINDOW", 16)
+    monkeypatch.setattr(replicator_module, "WINDOW", 16)
     for i in range(16):
         replicator.publish("t", i, timeout=5.0)
     started = time.monotonic()
@@ -689,7 +691,7 @@ def test_a_lossless_follower_holds_the_publisher_back_until_its_receiver_takes_v
 def test_the_sink_raises_what_its_stuck_makes_when_a_lossless_follower_leaves_no_room(
         dammed, monkeypatch) -> None:
     replicator, follower, dam = dammed
-    monkeypatch.setattr(replication, "WINDOW", 16)
+    monkeypatch.setattr(replicator_module, "WINDOW", 16)
 
     class Stuck(Exception):
         pass
@@ -707,7 +709,7 @@ def test_the_sink_raises_what_its_stuck_makes_when_a_lossless_follower_leaves_no
 def test_values_a_lossless_follower_has_not_acknowledged_stay_in_the_replay_buffer(
         dammed, monkeypatch) -> None:
     replicator, follower, dam = dammed
-    monkeypatch.setattr(replication, "REPLAY_VALUES", 10)
+    monkeypatch.setattr(replicator_module, "REPLAY_VALUES", 10)
     for i in range(10):
         replicator.publish("t", i, timeout=5.0)
     with pytest.raises(RuntimeTimeout):                       # it would push out value 0
@@ -722,7 +724,7 @@ def test_values_a_lossless_follower_has_not_acknowledged_stay_in_the_replay_buff
 def test_a_lossless_link_carries_values_larger_than_the_replay_buffer(
         dammed, monkeypatch) -> None:
     replicator, follower, dam = dammed
-    monkeypatch.setattr(replication, "REPLAY_BYTES", 1 << 20)
+    monkeypatch.setattr(replicator_module, "REPLAY_BYTES", 1 << 20)
     dam.open(follower, "t")
     image = np.arange(1 << 18, dtype=np.float64)          # 2 MiB
     replicator.publish("t", image, timeout=5.0)           # into the empty buffer
@@ -735,7 +737,7 @@ def test_a_lossless_link_carries_values_larger_than_the_replay_buffer(
 def test_a_lossless_follower_stops_holding_the_publisher_when_it_goes(
         dammed, monkeypatch) -> None:
     replicator, follower, _ = dammed
-    monkeypatch.setattr(replication, "WINDOW", 16)
+    monkeypatch.setattr(replicator_module, "WINDOW", 16)
     for i in range(16):
         replicator.publish("t", i, timeout=5.0)
     follower.unfollow("t")                                    # says so: at once
@@ -749,7 +751,7 @@ def test_a_lossless_follower_stops_holding_the_publisher_when_it_goes(
 def test_a_lossless_follower_that_went_silent_holds_the_publisher_until_released(
         dammed, monkeypatch) -> None:
     replicator, follower, _ = dammed
-    monkeypatch.setattr(replication, "WINDOW", 16)
+    monkeypatch.setattr(replicator_module, "WINDOW", 16)
     for i in range(16):
         replicator.publish("t", i, timeout=5.0)
     follower.close()                                          # gone without a word
@@ -909,10 +911,10 @@ def test_nothing_piles_up_for_a_frozen_follower_and_it_recovers(monkeypatch) -> 
     its publisher's queue, counted in messages, held up to 10,000 large values (GiBs)
     long after the replay buffer had let them go. Let run again, it reconnects and
     gets what comes next, the values no longer kept counted lost."""
-    monkeypatch.setattr(replication, "PEER_PING_MS", 200, raising=False)
-    monkeypatch.setattr(replication, "PEER_TIMEOUT_MS", 1000, raising=False)
-    monkeypatch.setattr(replication, "FOLLOWER_TIMEOUT", 0.5)   # (not paced meanwhile)
-    monkeypatch.setattr(replication, "REPLAY_BYTES", 4 << 20)
+    monkeypatch.setattr(wire, "PEER_PING_MS", 200)
+    monkeypatch.setattr(wire, "PEER_TIMEOUT_MS", 1000)
+    monkeypatch.setattr(replicator_module, "FOLLOWER_TIMEOUT", 0.5)   # (not paced meanwhile)
+    monkeypatch.setattr(replicator_module, "REPLAY_BYTES", 4 << 20)
     replicator = Replicator(KEY)
     replicator.add("t")
     monitor = replicator._pub.get_monitor_socket(zmq.EVENT_DISCONNECTED)
@@ -965,8 +967,8 @@ def test_a_link_slower_per_value_than_the_peer_timeout_is_not_cut(monkeypatch,
     follower: its pings go the other way, where nothing large waits. (On the dropping
     link, the frames written while the first is on the way for longer than ``FRESH_S``
     are not sent, the link being slower than its writer: counted dropped.)"""
-    monkeypatch.setattr(replication, "PEER_PING_MS", 200)
-    monkeypatch.setattr(replication, "PEER_TIMEOUT_MS", 1000)
+    monkeypatch.setattr(wire, "PEER_PING_MS", 200)
+    monkeypatch.setattr(wire, "PEER_TIMEOUT_MS", 1000)
     frames = [np.full(32 * 1024, float(i)) for i in range(3)]        # 256 KiB each
     replicator, inbox = Replicator(KEY), Inbox()
     follower = Follower(KEY, inbox)
@@ -1235,10 +1237,10 @@ def test_a_follower_served_on_its_own_that_went_silent_is_served_again_once_back
     counted, for as long as it followed (no fast follower left to find it slow again).
     ``cut``: silent longer than the peer timeout too, so the sender closes its control
     connection (the frame on its way is lost) and the follower reconnects."""
-    monkeypatch.setattr(replication, "FOLLOWER_TIMEOUT", 1.0)
+    monkeypatch.setattr(replicator_module, "FOLLOWER_TIMEOUT", 1.0)
     if cut:
-        monkeypatch.setattr(replication, "PEER_PING_MS", 200)
-        monkeypatch.setattr(replication, "PEER_TIMEOUT_MS", 1000)
+        monkeypatch.setattr(wire, "PEER_PING_MS", 200)
+        monkeypatch.setattr(wire, "PEER_TIMEOUT_MS", 1000)
     replicator, fast_inbox, slow_inbox = Replicator(KEY), Inbox(), Inbox()
     fast, slow = Follower(KEY, fast_inbox), Follower(KEY, slow_inbox)
     camera = _Camera(replicator)

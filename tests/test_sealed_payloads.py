@@ -15,7 +15,7 @@ import pytest
 from conftest import eventually
 from test_replication import KEY, TIMEOUT, Inbox, _follow
 
-from pb3a.transport import replication
+from pb3a.transport import codec, replication
 from pb3a.transport.auth import PAYLOAD_TAG, Payloads, Rejected
 from pb3a.transport.replication import Follower, Replicator
 from pb3a.transport.ring import Landed, ShmRing
@@ -247,7 +247,7 @@ def pool():
 
 
 def _meta() -> bytes:
-    return replication.codec.encode(np.zeros(N))[1]
+    return codec.encode(np.zeros(N))[1]
 
 
 def test_a_landed_array_is_staged_without_a_copy_and_read_from_its_slot(pool) -> None:

@@ -1,0 +1,180 @@
+"""Remote links: an output's values replicated to other nodes over ZeroMQ PUB/SUB.
+
+A ``Replicator`` sends the outputs of one process: each value is published once on
+its output's topic, however many nodes (and inputs there) read it, and kept in a
+bounded replay buffer. A ``Follower`` receives on one node: per sender, a SUB socket
+for the topics it follows from it and a DEALER for the hand-shake and repairs, both
+closed once no topic comes from that sender.
+
+Every value carries (sender incarnation, topic, sequence number). Values published
+while the previous ones are being sent travel together: small ones as one VALUES
+message (first sequence number and count in its header, the values pickled as one
+list: one seal, one send and one unpickling for up to ``BATCH_VALUES`` of them),
+large ones (``ZERO_COPY_MIN`` bytes and more) each as a VALUE message whose payload
+is a zero-copy frame, sealed on its own (below). The follower delivers each topic's
+values in sequence order, exactly once:
+
+- Slow joiners. A SUB socket misses what is published before its subscription
+  reaches the publisher. So the follower says HELLO (topic, first sequence number
+  it needs) on the DEALER until the publisher answers by publishing a SYNC on the
+  topic; the first SYNC or value that arrives proves the subscription is live, and
+  everything older is fetched from the replay buffer. No sleeping. Its first HELLO
+  asks for that replay; the ones it repeats (every ``HELLO_EVERY``) say WAITING and
+  are answered with a WELCOME and a SYNC only (in full by a publisher that never
+  answered that follower: its first HELLO was lost), so a replay crossing a slow link
+  is not sent again behind itself at each repeat. A replay not coming (nothing of it
+  for as long as a repair waits, below) is asked again, in full.
+- Gaps (the publisher's high-water mark dropped values for a slow follower, or a
+  reconnect lost some) are repaired the same way; values beyond a gap wait; a
+  heartbeat (SYNC every 0.5 s with the next sequence number) reveals values lost at
+  the end of a burst. A repair re-sends whole messages: what of them was delivered
+  already is counted as duplicates and dropped. What the replay buffer no longer
+  holds is counted as a link failure, loudly. A repair not answered is asked again
+  after ``REPAIR_RETRY_S``, then after twice as long each time (on a slow link the
+  answer itself takes seconds to cross, and each request sends it again); each value
+  of the answer that comes (and a WELCOME saying a replay follows) restarts the wait,
+  and only the REPLAYED of the last request ends it.
+- Flow control. Followers acknowledge (ACK) how far they are; a publisher more than
+  ``WINDOW`` values or ``WINDOW_BYTES`` bytes ahead of its slowest live follower waits
+  for it, briefly. The replay buffer holds twice the bytes of that window: everything
+  a live follower may still need, and a bounded number of large values alive (the
+  fewer, the warmer the memory the next one is copied into).
+- Slow links. A dropping link (no lossless follower) slower than its writer must not
+  queue at the writer: ZeroMQ counts its queue in messages, so large values piled up
+  there by the hundred MiB and arrived ever later (tens of seconds). So the publisher
+  keeps at most ``flight`` bytes on the way to its lead follower (the most advanced
+  live one: a slower one beside it is not held to it): ``FLIGHT_START`` at first,
+  doubled at each acknowledgement of a message that went less than ``FRESH_S / 2``
+  ago, up to ``WINDOW_BYTES``. A value that does not fit waits for an acknowledgement
+  while what is on the way is fresh; once the oldest of it went ``FRESH_S`` ago, or
+  an acknowledgement comes that late, the link is *slow*: a message goes only when
+  nothing is on the way, and the others are not sent (nor sealed, nor kept), without
+  waiting. The values not sent are announced (SKIPPED before the next message that
+  goes, a SYNC's count, a repair's answer): the follower counts them ``dropped`` and
+  never asks for them. A link is not slow once a lone message is acknowledged within
+  ``FRESH_S / 2``. So a `latest` reader gets a value about one message's crossing
+  old, and the writer holds one message for the link.
+- Slow followers. The flight follows the lead follower, and a PUB socket sends every
+  message to every subscriber, queued per peer in messages: a slower follower beside
+  a fast one had every value queued for it (hundreds of MiB, tens of seconds late),
+  and flow control held the writer to it. So a live dropping follower behind another
+  whose oldest message on the way went ``FRESH_S`` ago (once it has taken in what its
+  hand-shake replayed: those went long ago) is served on its own (DIRECT):
+  it closes its SUB connection (what PUB still queued for it is freed with it; an
+  unsubscription would leave that queue to cross the slow link first) and counts the
+  values it did not get before the switch dropped; the publisher sends it the newest
+  message over its control connection whenever nothing sent to it there is on the
+  way, the values before it announced not sent (SKIPPED), and leaves it out of flow
+  control and of the flight. Its queue at the ROUTER is bounded so (one message of
+  values, small notices), and a ROUTER never blocks: it drops for a peer at its
+  high-water mark (ROUTER_MANDATORY is not set). A DIRECT every heartbeat is its SYNC
+  (how far it was sent) and says its mode again, also while it is silent (its link
+  cut): it takes nothing over PUB until told RESUME. Once a lone message is acknowledged
+  within ``FRESH_S / 2`` it goes back to PUB (RESUME): it subscribes, and what was
+  published before its subscription took is counted dropped, not replayed.
+- Lossless followers. A follower whose receiver must not drop (a ``lossless`` link)
+  says so in its HELLO and ACKs, and acknowledges only what its receiver has put
+  through. Such a follower holds the publisher back for as long as the writer's
+  timeout allows (then the write fails: ``RuntimeTimeout``), and the replay buffer
+  keeps every value it has not acknowledged; it stops holding when it says so, or
+  when the link to it is cut (``release``).
+- Fencing. A follower accepts one incarnation per topic. Values from any other (a
+  sender that was migrated away, or a stale restart) are counted and dropped.
+- Followers of lost nodes. A node's follower has one id at every replicator
+  (``follower_id``: the node and its admission, its node epoch), by which acknowledgements
+  and lossless holds are kept. When a reader's node is lost, the launcher asks the
+  writer what that node's follower never acknowledged (``forget``): only its own
+  acknowledgement counts (the least advanced follower's, a node lost earlier's left
+  behind, said 1000 values lost of a node that had acknowledged them all). The follower
+  is forgotten then: it holds nothing back, and what it says later (its node cut off,
+  not dead) is refused, counted (``rejected["lost follower"]``). A node that rejoins
+  has another id.
+- Destinations. HELLO, REPAIR and ACK name the replicator they are for, by its
+  incarnation (as control requests name their server's instance), so a copy captured
+  on the wire and sent to another replicator within the freshness window is refused
+  there (counted, ``rejected["other instance"]``), never taken as a follower's. A
+  follower that does not know the incarnation yet (it learns it from the first
+  WELCOME, SYNC or value) names nobody; such a HELLO is answered with a WELCOME and
+  nothing else, and the follower says HELLO again at once, naming it.
+
+Every message is sealed (``auth``) and opened before anything in it is decoded. A
+large payload is sealed on its own at write time (``auth.Payloads``): encrypted with
+AES-GCM straight from the writer's memory into the buffer that goes on the wire, one
+pass that is both the copy value semantics need and the authentication, bound to what
+it is (topic, incarnation, sequence number, kind, meta); its VALUE message carries the
+payload's nonce and tag, which the message's own tag covers, so the message tag is
+computed over a few dozen bytes instead of the whole payload again. The follower
+decrypts it straight into where it lands (the reader's ring slot, when the receiver
+offers one: ``land``), so checking and landing are one pass too; a payload whose tag
+fails is refused and counted (``rejected["bad payload tag"]``) like any message, the
+slot it was decrypted into is freed, and the gap is repaired like any lost message.
+Only the next value in order lands in a slot (see ``_handle``). On this 2-core host
+that took a 1 MiB array's CPU from about 530 us to about 500 (``bench/link_cpu.py``),
+and the link from 0.65x to 0.80x raw pyzmq (``bench/local_link.py --remote``).
+
+The package's modules: ``wire`` (the message kinds, their layouts, the numbers the
+protocol runs by, and how a message is sent, received and sealed and its values
+encoded), ``replicator`` (the sending side: ``Replicator`` and the state of each topic
+it publishes) and ``follower`` (the receiving side: ``Follower``). Each imports the
+numbers it reads by name, so a test that changes one patches the module that reads it
+(``pb3a.transport.replication.replicator.WINDOW``, say); the numbers tests change are
+not re-exported here, so that a patch of this package fails instead of doing nothing.
+"""
+
+from __future__ import annotations
+
+from pb3a.transport.replication.follower import Follower
+from pb3a.transport.replication.replicator import Replicator
+from pb3a.transport.replication.wire import (
+    _ANSWER,
+    _ASK,
+    _BATCH,
+    _INFO,
+    ACK,
+    ACK_EVERY,
+    BATCH_VALUES,
+    DIRECT,
+    HEARTBEAT_S,
+    HELLO,
+    LOSSLESS,
+    REPAIR,
+    REPAIR_RETRY_S,
+    REPLAYED,
+    RESUME,
+    SILENT_S,
+    SKIPPED,
+    SYNC,
+    VALUE,
+    VALUES,
+    WAITING,
+    WELCOME,
+    follower_id,
+)
+
+__all__ = [
+    "ACK",
+    "ACK_EVERY",
+    "BATCH_VALUES",
+    "DIRECT",
+    "HEARTBEAT_S",
+    "HELLO",
+    "LOSSLESS",
+    "REPAIR",
+    "REPAIR_RETRY_S",
+    "REPLAYED",
+    "RESUME",
+    "SILENT_S",
+    "SKIPPED",
+    "SYNC",
+    "VALUE",
+    "VALUES",
+    "WAITING",
+    "WELCOME",
+    "_ANSWER",
+    "_ASK",
+    "_BATCH",
+    "_INFO",
+    "Follower",
+    "Replicator",
+    "follower_id",
+]
