@@ -117,7 +117,7 @@ def test_values_the_subscriber_missed_are_repaired_from_the_replay_buffer(link,
             if len(batches) % 3:
                 send(name, kind, parts)
             return
-        seq = replication._INFO.unpack(parts[0])[1] if kind == replication.VALUE else -1
+        seq = replication.INFO.unpack(parts[0])[1] if kind == replication.VALUE else -1
         if seq % 7 != 3:                      # nor does every seventh single value
             send(name, kind, parts)
     monkeypatch.setattr(replicator, "_send_pub", lossy)
@@ -380,11 +380,11 @@ class FakeSender:
         deadline = time.monotonic() + TIMEOUT
         while not follower.wait_ready("t", 0.05):     # SYNCs until the SUB is live
             assert time.monotonic() < deadline, "the follower never heard the fake sender"
-            self.send(replication.SYNC, [replication._ANSWER.pack(self.incarnation, 0, 0)])
+            self.send(replication.SYNC, [replication.ANSWER.pack(self.incarnation, 0, 0)])
 
     def values(self, first: int, values: list[Any]) -> list[Any]:
         """The sealed frames of a VALUES message of ``values`` from ``first`` on."""
-        header = replication._BATCH.pack(self.incarnation, first, len(values), time.time())
+        header = replication.BATCH.pack(self.incarnation, first, len(values), time.time())
         return [b"t\0", *self.sealer.seal(replication.VALUES,
                                           [b"t\0", header, b"", pickle.dumps(values)])]
 
@@ -1328,7 +1328,7 @@ def _sends_per_value(monkeypatch) -> collections.Counter[int]:
 
     def counted(self: Replicator, peer: Any, kind: int, parts: list[Any]) -> None:
         if kind == replication.VALUE:
-            sends[replication._INFO.unpack(parts[1])[1]] += 1
+            sends[replication.INFO.unpack(parts[1])[1]] += 1
         send_router(self, peer, kind, parts)
     monkeypatch.setattr(Replicator, "_send_router", counted)
     return sends
@@ -1388,7 +1388,7 @@ def test_a_hand_shake_whose_hello_or_answer_is_lost_is_done_all_the_same(
         ask(self, follow, kind, first, last)
 
     def losing_answer(self: Replicator, peer: Any, message: Any) -> None:
-        _, flags, to = replication._ASK.unpack(message.frames[1])
+        _, flags, to = replication.ASK.unpack(message.frames[1])
         self._losing = (message.kind == replication.HELLO and not dropped
                         and to == self.incarnation and not flags & replication.WAITING)
         try:

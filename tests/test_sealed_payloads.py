@@ -74,9 +74,9 @@ class Wire:
 def _info(parts: list[Any], **fields: Any) -> list[Any]:
     """``parts`` with fields of the VALUE info changed."""
     names = ("incarnation", "seq", "sent_at", "kind", "nonce", "tag")
-    info = dict(zip(names, replication._INFO.unpack(parts[0]), strict=True))
+    info = dict(zip(names, replication.INFO.unpack(parts[0]), strict=True))
     info.update(fields)
-    return [replication._INFO.pack(*info.values()), *parts[1:]]
+    return [replication.INFO.pack(*info.values()), *parts[1:]]
 
 
 def _flip_ciphertext(parts: list[Any]) -> list[Any]:
@@ -93,7 +93,7 @@ def _flip_tag(parts: list[Any]) -> list[Any]:
 
 
 def _other_nonce(parts: list[Any]) -> list[Any]:
-    return _info(parts, nonce=replication._INFO.unpack(parts[0])[4] + 1)
+    return _info(parts, nonce=replication.INFO.unpack(parts[0])[4] + 1)
 
 
 class RingReader:
@@ -218,7 +218,7 @@ def test_payload_nonces_never_repeat_across_a_senders_incarnations(monkeypatch) 
                 replicator.publish(topic, np.full(N // 8, float(i)))
             replicator.flush()
             for parts in wire.sent:
-                incarnation, _, _, _, nonce, _ = replication._INFO.unpack(parts[0])
+                incarnation, _, _, _, nonce, _ = replication.INFO.unpack(parts[0])
                 seen.append((incarnation, nonce))
         finally:
             replicator.close()

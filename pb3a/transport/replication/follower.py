@@ -21,23 +21,23 @@ from pb3a.transport.auth import PAYLOAD_TAG, ClusterKey, Opener, Payloads, Rejec
 from pb3a.transport.heap import keep_freed_buffers
 from pb3a.transport.loop import SocketLoop
 from pb3a.transport.replication.wire import (
-    _ANSWER,
-    _ASK,
-    _BATCH,
-    _INFO,
-    _NOBLOCK,
-    _NOBODY,
     ACK,
     ACK_BYTES,
     ACK_EVERY,
     ACK_IDLE_S,
+    ANSWER,
+    ASK,
+    BATCH,
     DIRECT,
     DRAIN_BATCH,
     HELLO,
     HELLO_EVERY,
+    INFO,
     LINGER_MS,
     LOSSLESS,
     MAX_MESSAGE,
+    NOBLOCK,
+    NOBODY,
     REPAIR,
     REPAIR_RETRY_MAX_S,
     REPAIR_RETRY_S,
@@ -49,13 +49,13 @@ from pb3a.transport.replication.wire import (
     VALUES,
     WAITING,
     WELCOME,
-    _bound,
-    _entries,
-    _name,
-    _receive,
-    _secure,
-    _send,
-    _topic,
+    batch_entries,
+    receive_message,
+    sealed_as,
+    secured_socket,
+    send_message,
+    topic_bytes,
+    topic_text,
 )
 
 if TYPE_CHECKING:
@@ -163,31 +163,31 @@ class Follower:
         ``from_seq`` (-1: whatever comes next). With ``incarnation``, only that sender
         is accepted (a hand-over after migration); following again re-points."""
         data, control = numeric(data_address), numeric(control_address)   # (not on the loop)
-        self._loop.call(lambda: self._follow(_name(topic), data, control, from_seq,
+        self._loop.call(lambda: self._follow(topic_bytes(topic), data, control, from_seq,
                                              incarnation))
 
     def wait_ready(self, topic: str, timeout: float) -> bool:
         """Block until the hand-shake for ``topic`` is done: from then on nothing
         written is missed. False if it did not finish within ``timeout``."""
-        follow = self._follows.get(_name(topic))
+        follow = self._follows.get(topic_bytes(topic))
         return follow is not None and follow.ready.wait(timeout)
 
     def wait_delivered(self, topic: str, seq: int, timeout: float) -> bool:
         """Block until every value of ``topic`` before ``seq`` has been delivered (and put
         through by the receiver)."""
-        name = _name(topic)
+        name = topic_bytes(topic)
         with self._progress:
             return self._progress.wait_for(
                 lambda: (f := self._follows.get(name)) is None or f.through >= seq, timeout)
 
     def unfollow(self, topic: str) -> None:
-        self._loop.call(lambda: self._unfollow(_name(topic)))
+        self._loop.call(lambda: self._unfollow(topic_bytes(topic)))
 
     def missing(self, topic: str) -> int:
         """How many values of ``topic`` the sender announced, or sent beyond a gap, that
         were not delivered: what is lost if it is gone for good."""
         def count() -> int:
-            follow = self._follows.get(_name(topic))
+            follow = self._follows.get(topic_bytes(topic))
             if follow is None or follow.next_seq < 0:
                 return 0
             newest = max(follow.announced, max(follow.held, default=-1) + 1)
@@ -199,12 +199,12 @@ class Follower:
     def set_lossless(self, topic: str, lossless: bool) -> None:
         """Whether ``topic``'s receiver must not drop: then the sender is told (HELLO,
         ACK) to wait for it and to keep what it has not acknowledged."""
-        self._loop.call(lambda: self._set_lossless(_name(topic), lossless))
+        self._loop.call(lambda: self._set_lossless(topic_bytes(topic), lossless))
 
     def release(self, topic: str, held_back: int) -> None:
         """The receiver put values through: it now holds back ``held_back`` of ``topic``'s
         newest ones."""
-        self._loop.call(lambda: self._release(_name(topic), held_back))
+        self._loop.call(lambda: self._release(topic_bytes(topic), held_back))
 
     def _release(self, name: bytes, held_back: int) -> None:
         follow = self._follows.get(name)
@@ -225,7 +225,7 @@ class Follower:
         sub = self._sub(data)
         dealer = self._controls.get(control)
         if dealer is None:
-            dealer = _secure(self._context.socket(zmq.DEALER), self._max_bytes, sender=False)
+            dealer = secured_socket(self._context.socket(zmq.DEALER), self._max_bytes, sender=False)
             # One id for good (its node's: see ``follower_id``): the replicator keys
             # acknowledgements and lossless holds by it. Drawn by ZeroMQ at each
             # reconnection, it left the old hold behind, never released, until it
@@ -250,7 +250,7 @@ class Follower:
         """The SUB socket to the replicator publishing at ``data`` (made if none)."""
         sub = self._subs.get(data)
         if sub is None:
-            sub = self._subs[data] = _secure(self._context.socket(zmq.SUB), self._max_bytes,
+            sub = self._subs[data] = secured_socket(self._context.socket(zmq.SUB), self._max_bytes,
                                              sender=False)
             sub.connect(data)
             self._loop.register(sub, self._on_data)
@@ -365,10 +365,10 @@ class Follower:
     def _ask(self, follow: _Follow, kind: int, first: int, last: int) -> None:
         """Send HELLO, REPAIR or ACK to the replicator of ``follow``, naming it (nobody,
         before it said who it is: then only a HELLO is answered, with a WELCOME)."""
-        to = follow.incarnation or _NOBODY
-        frames = self._sealer.seal(kind, [follow.topic, _ASK.pack(first, last, to)])
+        to = follow.incarnation or NOBODY
+        frames = self._sealer.seal(kind, [follow.topic, ASK.pack(first, last, to)])
         try:           # never blocks the follower's one thread (every topic it follows)
-            _send(follow.control, frames, _NOBLOCK)
+            send_message(follow.control, frames, NOBLOCK)
         except zmq.Again:       # a replicator out of reach, its queue full: asked again
             self.unsent += 1
 
@@ -386,7 +386,7 @@ class Follower:
         touched: dict[bytes, _Follow] = {}
         for _ in range(DRAIN_BATCH):
             try:
-                frames = _receive(sock)
+                frames = receive_message(sock)
             except zmq.Again:
                 break
             if live:
@@ -427,7 +427,7 @@ class Follower:
         if message.kind in (SYNC, WELCOME):
             # (the third field: a SYNC's values skipped before nxt; a WELCOME's 1 if
             # a replay follows it)
-            incarnation, nxt, third = _ANSWER.unpack(message.frames[1])
+            incarnation, nxt, third = ANSWER.unpack(message.frames[1])
             if not self._accept(follow, incarnation):
                 return None
             if live and follow.joining:
@@ -450,17 +450,17 @@ class Follower:
             return follow
         if message.kind == VALUE:
             if (len(message.frames) != 3 or message.payload is None
-                    or memoryview(message.frames[1]).nbytes != _INFO.size):
+                    or memoryview(message.frames[1]).nbytes != INFO.size):
                 raise Rejected("malformed")
             info, meta = message.frames[1:]
-            incarnation, seq, sent_at, kind, nonce, tag = _INFO.unpack(info)
+            incarnation, seq, sent_at, kind, nonce, tag = INFO.unpack(info)
             if not self._accept(follow, incarnation):
                 return None
             if live and follow.joining:
                 self._joined(follow, seq)
                 self._advance(follow)            # (so that it lands in order: below)
             if self._delivered(follow, seq):     # (a repair re-sent it: not decrypted again)
-                self.duplicates[_topic(follow.topic)] += 1
+                self.duplicates[topic_text(follow.topic)] += 1
                 return None
             # Only the next value in order lands in a ring slot, and is delivered at once:
             # a slot claimed by a value held beyond a gap (or behind one that waits for
@@ -477,19 +477,19 @@ class Follower:
                 self._advance(follow)
             return follow
         if message.kind == VALUES:
-            if len(message.frames) != 4 or memoryview(message.frames[1]).nbytes != _BATCH.size:
+            if len(message.frames) != 4 or memoryview(message.frames[1]).nbytes != BATCH.size:
                 raise Rejected("malformed")
             header, kinds, body = message.frames[1:]
-            incarnation, first, count, sent_at = _BATCH.unpack(header)
+            incarnation, first, count, sent_at = BATCH.unpack(header)
             if not self._accept(follow, incarnation):
                 return None
             if live and follow.joining:
                 self._joined(follow, first)
-            values = _entries(body, bytes(kinds), count)
+            values = batch_entries(body, bytes(kinds), count)
             nbytes = memoryview(body).nbytes
             return follow if self._take(follow, first, values, sent_at, nbytes, live) else None
         if message.kind == SKIPPED:
-            incarnation, first, count = _ANSWER.unpack(message.frames[1])
+            incarnation, first, count = ANSWER.unpack(message.frames[1])
             if not self._accept(follow, incarnation):
                 return None
             if first < 0 or count <= 0:
@@ -499,7 +499,7 @@ class Follower:
             self._skipped(follow, first, first + count)
             return follow
         if message.kind in (DIRECT, RESUME):
-            incarnation, start, nxt = _ANSWER.unpack(message.frames[1])
+            incarnation, start, nxt = ANSWER.unpack(message.frames[1])
             if not self._accept(follow, incarnation):
                 return None
             if live or start < 0 or follow.next_seq < 0:
@@ -518,7 +518,7 @@ class Follower:
                 follow.announced = max(follow.announced, nxt)
             return follow
         if message.kind == REPLAYED:
-            incarnation, first, gone = _ANSWER.unpack(message.frames[1])
+            incarnation, first, gone = ANSWER.unpack(message.frames[1])
             if not self._accept(follow, incarnation):
                 return None
             if first == follow.asked_from:       # (not the end of an earlier copy's)
@@ -526,9 +526,9 @@ class Follower:
             if gone and follow.next_seq < first + gone:
                 lost = first + gone - follow.next_seq - self._pass_skips(follow, first + gone)
                 if lost:
-                    self.link_failures[_topic(follow.topic)] += lost
+                    self.link_failures[topic_text(follow.topic)] += lost
                     log.error("remote link %s lost %d values (gone from the sender's replay "
-                              "buffer)", _topic(follow.topic), lost)
+                              "buffer)", topic_text(follow.topic), lost)
                 follow.next_seq = first + gone
             return follow
         raise Rejected("unexpected")
@@ -541,7 +541,7 @@ class Follower:
         size = payload.nbytes - PAYLOAD_TAG
         if size < 0 or not secrets.compare_digest(payload[size:], tag):
             raise Rejected("bad payload tag")
-        bound = _bound(follow.topic, incarnation, seq, kind, meta)
+        bound = sealed_as(follow.topic, incarnation, seq, kind, meta)
         if kind != codec.ARRAY:
             out = bytearray(size)
             self._payloads.open_into(incarnation, nonce, bound, payload, out)
@@ -552,7 +552,7 @@ class Follower:
             raise Rejected("malformed") from None
         if count * dtype.itemsize != size:
             raise Rejected("malformed")
-        landed = self._land(_topic(follow.topic), meta, size) if land and self._land else None
+        landed = self._land(topic_text(follow.topic), meta, size) if land and self._land else None
         if landed is None:
             out = np.empty(size, np.uint8)
             self._payloads.open_into(incarnation, nonce, bound, payload, out)
@@ -581,7 +581,7 @@ class Follower:
             passed += max(0, min(end, until) - max(first, follow.next_seq))
             if end > until:
                 follow.skips[until] = end
-        self.dropped[_topic(follow.topic)] += passed
+        self.dropped[topic_text(follow.topic)] += passed
         return passed
 
     @staticmethod
@@ -597,13 +597,13 @@ class Follower:
         # (joined "from now": values wait until the hand-shake says where now is)
         old = max(0, follow.next_seq - first) if follow.next_seq >= 0 else 0
         if old:
-            self.duplicates[_topic(follow.topic)] += min(old, len(values))
+            self.duplicates[topic_text(follow.topic)] += min(old, len(values))
             if old >= len(values):
                 return False
             first, values = first + old, values[old:]
         known = follow.held.get(first)
         if known is not None:                   # (a repair raced the live message)
-            self.duplicates[_topic(follow.topic)] += min(len(known[0]), len(values))
+            self.duplicates[topic_text(follow.topic)] += min(len(known[0]), len(values))
             if len(known[0]) >= len(values):
                 return False
         follow.held[first] = (values, sent_at, nbytes)
@@ -613,7 +613,7 @@ class Follower:
         if follow.incarnation is None:
             follow.incarnation = incarnation
         if incarnation != follow.incarnation:
-            self.fenced[_topic(follow.topic)] += 1
+            self.fenced[topic_text(follow.topic)] += 1
             return False
         return True
 
@@ -629,7 +629,7 @@ class Follower:
                 for first in passed:
                     end = skips.pop(first)
                     if end > seq:
-                        self.dropped[_topic(follow.topic)] += end - seq
+                        self.dropped[topic_text(follow.topic)] += end - seq
                         seq = end
                 continue
             first = seq if seq in held else next((k for k in held if k < seq), None)
@@ -637,7 +637,7 @@ class Follower:
                 break
             run, sent_at, nbytes = held.pop(first)
             if first < seq:                      # runs that overlap: the rest of this one
-                self.duplicates[_topic(follow.topic)] += min(seq - first, len(run))
+                self.duplicates[topic_text(follow.topic)] += min(seq - first, len(run))
                 run = run[seq - first:]
             values = run if not values else values + run
             size += nbytes
@@ -645,10 +645,10 @@ class Follower:
         if values:
             held_back = 0
             try:
-                held_back = self._deliver(_topic(follow.topic), values, sent_at) or 0
+                held_back = self._deliver(topic_text(follow.topic), values, sent_at) or 0
             except Exception:      # (a value too large for a reader's ring: not promised)
                 log.exception("remote link %s: values could not be handed to its readers",
-                              _topic(follow.topic))
+                              topic_text(follow.topic))
             finally:
                 with self._progress:             # (one step: see wait_delivered)
                     follow.next_seq, follow.held_back = seq, held_back

@@ -24,13 +24,10 @@ from pb3a.transport.auth import PAYLOAD_TAG, ClusterKey, Opener, Payloads, Rejec
 from pb3a.transport.heap import keep_freed_buffers
 from pb3a.transport.loop import SocketLoop
 from pb3a.transport.replication.wire import (
-    _ANSWER,
-    _ASK,
-    _BATCH,
-    _INFO,
-    _NOBODY,
-    _SCALARS,
     ACK,
+    ANSWER,
+    ASK,
+    BATCH,
     BATCH_BYTES,
     BATCH_VALUES,
     DIRECT,
@@ -40,8 +37,10 @@ from pb3a.transport.replication.wire import (
     FRESH_S,
     HEARTBEAT_S,
     HELLO,
+    INFO,
     LOSSLESS,
     MAX_MESSAGE,
+    NOBODY,
     PLAIN,
     REPAIR,
     REPLAY_BYTES,
@@ -49,6 +48,7 @@ from pb3a.transport.replication.wire import (
     REPLAYED,
     RESUME,
     SCALAR_BYTES,
+    SCALARS,
     SKIP_RUNS,
     SKIPPED,
     SYNC,
@@ -59,14 +59,14 @@ from pb3a.transport.replication.wire import (
     WINDOW,
     WINDOW_BYTES,
     WINDOW_WAIT,
-    _bound,
-    _entry,
-    _name,
-    _receive,
-    _sealed,
-    _secure,
-    _send,
-    _topic,
+    batch_entry,
+    receive_message,
+    sealed_as,
+    sealed_message,
+    secured_socket,
+    send_message,
+    topic_bytes,
+    topic_text,
 )
 from pb3a.transport.ring import RingSize
 
@@ -93,11 +93,11 @@ class _Sent(NamedTuple):
         if self.kind != VALUES:
             return self.parts
         header, kinds, body = self.parts
-        incarnation, first, count, sent_at = _BATCH.unpack(header)
+        incarnation, first, count, sent_at = BATCH.unpack(header)
         gone = self.first - first
         if not gone:
             return self.parts
-        return [_BATCH.pack(incarnation, self.first, count - gone, sent_at), kinds[gone:],
+        return [BATCH.pack(incarnation, self.first, count - gone, sent_at), kinds[gone:],
                 pickle.dumps(pickle.loads(body)[gone:], protocol=5)]
 
 
@@ -294,8 +294,8 @@ class Replicator:
         self._max_bytes = max_bytes
         self._batch_bytes = min(BATCH_BYTES, max_bytes // 2)
         self._context = zmq.Context.instance()
-        self._pub = _secure(self._context.socket(zmq.PUB), max_bytes, sender=True)
-        self._router = _secure(self._context.socket(zmq.ROUTER), max_bytes, sender=True)
+        self._pub = secured_socket(self._context.socket(zmq.PUB), max_bytes, sender=True)
+        self._router = secured_socket(self._context.socket(zmq.ROUTER), max_bytes, sender=True)
         # a follower keeps its id across reconnections (see Follower): the new
         # connection takes the id over from the old one, which may not be seen gone yet
         self._router.setsockopt(zmq.ROUTER_HANDOVER, 1)
@@ -329,7 +329,7 @@ class Replicator:
         the rings its readers take values into (a value that fits none is refused)."""
         with self._lock:
             if topic not in self._topics:
-                stream = _Stream(_name(topic), next_seq, room=room)
+                stream = _Stream(topic_bytes(topic), next_seq, room=room)
                 self._streams[stream.name] = self._topics[topic] = stream
 
     def sequence(self, topic: str) -> int:
@@ -399,7 +399,7 @@ class Replicator:
         last, full = BATCH_VALUES - 1, self._batch_bytes - SCALAR_BYTES
 
         def one(value: Any, timeout: float) -> None:
-            if type(value) in _SCALARS:
+            if type(value) in SCALARS:
                 lock.acquire()          # (not ``with``: this path is paid per value)
                 pending = stream.pending
                 if (pending and stream.next_seq < stream.clear_until and stream.kinds is None
@@ -427,13 +427,13 @@ class Replicator:
         A lossless follower holds it back up to ``timeout`` (the writer's) in all;
         the values that found no room by then are not sent.
 
-        Values are taken as they are now (see ``_entry``). Small ones go out as soon as
+        Values are taken as they are now (see ``batch_entry``). Small ones go out as soon as
         the replicator's thread gets to them (those published meanwhile go with them);
         a large one goes at once, from this thread: batching gains nothing for it, and
         a hand-over to the other thread costs a thread switch per value."""
         max_bytes, room = self._max_bytes, self._topics[topic].room
-        entries = [(PLAIN, value, SCALAR_BYTES) if type(value) in _SCALARS
-                   else _entry(value, max_bytes, room) for value in values]
+        entries = [(PLAIN, value, SCALAR_BYTES) if type(value) in SCALARS
+                   else batch_entry(value, max_bytes, room) for value in values]
         deadline = None
         went, large = 0, False
         with self._lock:
@@ -476,10 +476,10 @@ class Replicator:
                 stream.skip(seq, seq + 1)
                 return
             meta, payload = entry
-            bound = _bound(stream.name, self.incarnation, seq, -kind, meta)
+            bound = sealed_as(stream.name, self.incarnation, seq, -kind, meta)
             nonce, sealed = self._payloads.seal(payload, bound)
             stream.next_seq = seq + 1
-            info = _INFO.pack(self.incarnation, seq, time.time(), -kind, nonce,
+            info = INFO.pack(self.incarnation, seq, time.time(), -kind, nonce,
                               sealed[-PAYLOAD_TAG:].tobytes())
             # one frame for every send (repairs too): ZeroMQ shares it by reference
             self._send_soon(stream, _Sent(seq, seq + 1, VALUE,
@@ -565,7 +565,7 @@ class Replicator:
             stream.skip(first, stream.next_seq)
         else:
             kinds = bytes(stream.kinds) if stream.kinds is not None else b""
-            parts = [_BATCH.pack(self.incarnation, first, len(pending), stream.pending_at),
+            parts = [BATCH.pack(self.incarnation, first, len(pending), stream.pending_at),
                      kinds, pickle.dumps(pending, protocol=5)]
             sent = _Sent(first, stream.next_seq, VALUES, parts, stream.pending_bytes,
                          time.monotonic())
@@ -582,7 +582,7 @@ class Replicator:
         if stream.skip_from >= 0:
             first, count = stream.skip_from, sent.first - stream.skip_from
             stream.skips.append((first, sent.first))
-            notice = _ANSWER.pack(self.incarnation, first, count)
+            notice = ANSWER.pack(self.incarnation, first, count)
             self._outbox.append((stream.name, _Sent(first, sent.first, SKIPPED, [notice], 0)))
             stream.skip_from = -1
         stream.keep(sent)
@@ -642,12 +642,12 @@ class Replicator:
         self._flush_locked()                     # (what was published went over PUB)
         start = stream.next_seq
         stream.direct[peer] = _Direct(start, start, time.monotonic())
-        self._send_router(peer, DIRECT, [stream.name, _ANSWER.pack(self.incarnation, start,
+        self._send_router(peer, DIRECT, [stream.name, ANSWER.pack(self.incarnation, start,
                                                                    start)])
         stream.clear_until = 0                   # (flow control no longer counts it)
         self._acked.notify_all()
         log.info("remote link %s: a follower too slow beside a faster one is served on its "
-                 "own from value %d", _topic(stream.name), start)
+                 "own from value %d", topic_text(stream.name), start)
 
     def _resume(self, stream: _Stream, peer: bytes, now: float, start: int | None = None) -> None:
         """A follower served on its own keeps up again: back to PUB from ``start`` (None:
@@ -659,7 +659,7 @@ class Replicator:
         if start is None:
             start = stream.next_seq
             stream.acks[peer] = (start, now)     # (so it is not found slow for them)
-        self._send_router(peer, RESUME, [stream.name, _ANSWER.pack(self.incarnation, start, 0)])
+        self._send_router(peer, RESUME, [stream.name, ANSWER.pack(self.incarnation, start, 0)])
         stream.clear_until = 0
 
     def _serve_direct(self, stream: _Stream) -> None:
@@ -674,7 +674,7 @@ class Replicator:
             direct.latest = None
             if sent.first > direct.sent:
                 direct.skips.append((direct.sent, sent.first))
-                self._send_router(peer, SKIPPED, [stream.name, _ANSWER.pack(
+                self._send_router(peer, SKIPPED, [stream.name, ANSWER.pack(
                     self.incarnation, direct.sent, sent.first - direct.sent)])
             self._send_router(peer, sent.kind, [stream.name, *sent.parts])
             direct.sent, direct.went = sent.end, now
@@ -712,12 +712,12 @@ class Replicator:
     def _send_pub(self, name: bytes, kind: int, parts: list[Any]) -> None:
         # topic first (SUB filters on it), then the sealed message, which holds the
         # topic again so that it is authenticated too
-        _send(self._pub, [name, *_sealed(self._pub_sealer, kind, [name, *parts])])
+        send_message(self._pub, [name, *sealed_message(self._pub_sealer, kind, [name, *parts])])
 
     def _on_request(self, router: zmq.Socket) -> None:
         for _ in range(DRAIN_BATCH):
             try:
-                peer, *frames = _receive(router)
+                peer, *frames = receive_message(router)
             except zmq.Again:
                 return
             try:
@@ -743,31 +743,31 @@ class Replicator:
                 # again (which takes a faster follower beside it). It leaves by saying
                 # so (an ACK of -1), by a HELLO, or with its lost node (``forget``).
                 for peer, direct in stream.direct.items():
-                    self._send_router(peer, DIRECT, [name, _ANSWER.pack(
+                    self._send_router(peer, DIRECT, [name, ANSWER.pack(
                         self.incarnation, direct.start, direct.sent)])
 
     def _sync(self, stream: _Stream) -> bytes:
         """A SYNC's body: the next sequence number, and how many values before it were
         not sent (a follower counts them dropped; it does not ask for them)."""
         skipped = stream.next_seq - stream.skip_from if stream.skip_from >= 0 else 0
-        return _ANSWER.pack(self.incarnation, stream.next_seq, skipped)
+        return ANSWER.pack(self.incarnation, stream.next_seq, skipped)
 
     def _answer(self, peer: Any, message: Any) -> None:
         if message.kind not in (HELLO, REPAIR, ACK) or len(message.frames) != 2 \
-                or memoryview(message.frames[1]).nbytes != _ASK.size:
+                or memoryview(message.frames[1]).nbytes != ASK.size:
             raise Rejected("unexpected")
         name = bytes(message.frames[0])
-        first, last, to = _ASK.unpack(message.frames[1])
-        if to != self.incarnation and to != _NOBODY:
+        first, last, to = ASK.unpack(message.frames[1])
+        if to != self.incarnation and to != NOBODY:
             raise Rejected("other instance")    # meant for another replicator: a copy
         with self._lock:
             stream = self._streams.get(name)
             if stream is None:
                 return                           # not (yet) published here: they retry
-            if to == _NOBODY:                    # who we are, and nothing else
+            if to == NOBODY:                    # who we are, and nothing else
                 if message.kind == HELLO:
                     self._send_router(peer, WELCOME,
-                                      [name, _ANSWER.pack(self.incarnation, stream.next_seq, 0)])
+                                      [name, ANSWER.pack(self.incarnation, stream.next_seq, 0)])
                 return
             peer_id = bytes(peer)
             if peer_id in stream.gone:           # its node was lost: see ``forget``
@@ -811,7 +811,7 @@ class Replicator:
                 stream.clear_until = 0           # a new follower: the window moved back
                 replays = first >= 0 and not again      # (an empty replay still says so)
                 self._send_router(peer, WELCOME,
-                                  [name, _ANSWER.pack(self.incarnation, nxt, int(replays))])
+                                  [name, ANSWER.pack(self.incarnation, nxt, int(replays))])
                 self._send_pub(name, SYNC, [self._sync(stream)])
                 if replays:
                     self._replay(peer, name, stream, first, nxt - 1)
@@ -833,16 +833,16 @@ class Replicator:
         for start, end in runs:                  # (not sent: never replayed, nor gone)
             if start <= last and end > first:
                 self._send_router(peer, SKIPPED,
-                                  [name, _ANSWER.pack(self.incarnation, start, end - start)])
+                                  [name, ANSWER.pack(self.incarnation, start, end - start)])
         for sent in stream.replay:
             if sent.first <= last and sent.end > first and not (
                     direct is not None
                     and any(start <= sent.first and sent.end <= end for start, end in runs)):
                 self._send_router(peer, sent.kind, [name, *sent.replayable()])
-        self._send_router(peer, REPLAYED, [name, _ANSWER.pack(self.incarnation, first, gone)])
+        self._send_router(peer, REPLAYED, [name, ANSWER.pack(self.incarnation, first, gone)])
 
     def _send_router(self, peer: Any, kind: int, parts: list[Any]) -> None:
-        _send(self._router, [peer, *_sealed(self._router_sealer, kind, parts)])
+        send_message(self._router, [peer, *sealed_message(self._router_sealer, kind, parts)])
 
     def close(self) -> None:
         """Send what is still queued, then close."""

@@ -20,19 +20,19 @@ from pb3a.transport.ring import RingSize, check_fits
 # message kinds
 VALUE, SYNC, HELLO, REPAIR, WELCOME, REPLAYED, ACK, VALUES, SKIPPED = 1, 2, 3, 4, 5, 6, 7, 8, 9
 DIRECT, RESUME = 10, 11                 # a slow follower beside a fast one: see "Slow followers"
-_INFO = struct.Struct("<16sQdBQ16s")    # VALUE: incarnation, sequence number, sent at (unix),
+INFO = struct.Struct("<16sQdBQ16s")    # VALUE: incarnation, sequence number, sent at (unix),
                                         # codec kind, payload nonce counter, payload tag
-_BATCH = struct.Struct("<16sQId")       # VALUES: incarnation, first sequence number, count,
+BATCH = struct.Struct("<16sQId")       # VALUES: incarnation, first sequence number, count,
                                         # sent at (unix: when the first was written)
-_ASK = struct.Struct("<qq16s")          # HELLO: first needed (-1: from now), flags; REPAIR:
+ASK = struct.Struct("<qq16s")          # HELLO: first needed (-1: from now), flags; REPAIR:
                                         # first, last; ACK: delivered up to (exclusive, -1:
                                         # unfollowed), flags; then the incarnation of the
-                                        # replicator it is for (_NOBODY: not known yet)
-_NOBODY = bytes(16)
+                                        # replicator it is for (NOBODY: not known yet)
+NOBODY = bytes(16)
 LOSSLESS = 1                            # flag of HELLO and ACK: hold the publisher back
 WAITING = 2                             # flag of HELLO: the replay an earlier one asked for
                                         # is on its way: answer WELCOME and SYNC only
-_ANSWER = struct.Struct("<16sqq")       # WELCOME: incarnation, next, a replay follows (1)
+ANSWER = struct.Struct("<16sqq")       # WELCOME: incarnation, next, a replay follows (1)
                                         # or not (0); REPLAYED: first, gone;
                                         # SKIPPED: first, count; SYNC: next, skipped before it;
                                         # DIRECT: from, next; RESUME: from, 0
@@ -61,7 +61,7 @@ HEARTBEAT_S = 0.5                       # how often a replicator announces its t
 LINGER_MS = 500                         # a closed DEALER's last messages may still go
 PEER_PING_MS = 1000                     # each connection pings its peer this often ...
 PEER_TIMEOUT_MS = 5000                  # ... and a sender's is closed when it hears nothing
-                                        # this long (see ``_secure``)
+                                        # this long (see ``secured_socket``)
 DRAIN_BATCH = 1024                      # messages taken in before delivering them
 ZERO_COPY_MIN = 64 * 1024               # frames at least this large are sent without a copy
 FLIGHT_START = 256 * 1024               # bytes on the way to a dropping link at first (it doubles
@@ -69,9 +69,9 @@ FLIGHT_START = 256 * 1024               # bytes on the way to a dropping link at
 FRESH_S = 0.5                           # a value not acknowledged this long after it went: the
                                         # link is slower than its writer (see "Slow links")
 SKIP_RUNS = 256                         # runs of values not sent, kept to answer repairs
-_SCALARS = frozenset({int, float, bool, complex, type(None)})   # immutable: kept as they are
+SCALARS = frozenset({int, float, bool, complex, type(None)})   # immutable: kept as they are
 SCALAR_BYTES = 9                        # what a scalar counts for in a batch's bytes
-_TEXT = frozenset({str, bytes})         # immutable too, when small
+TEXT = frozenset({str, bytes})         # immutable too, when small
 
 
 def follower_id(node: str, node_epoch: int) -> bytes:
@@ -82,36 +82,36 @@ def follower_id(node: str, node_epoch: int) -> bytes:
     return b"f" + digest                 # (a routing id must not begin with a zero byte)
 
 
-def _name(topic: str) -> bytes:
+def topic_bytes(topic: str) -> bytes:
     """A topic on the wire: NUL-terminated, because SUB sockets match prefixes."""
     return topic.encode() + b"\0"
 
 
-def _topic(name: bytes) -> str:
+def topic_text(name: bytes) -> str:
     return name[:-1].decode()
 
 
-_MORE, _NOBLOCK = int(zmq.SNDMORE), int(zmq.NOBLOCK)   # (plain ints: an enum's ``|`` costs
+MORE, NOBLOCK = int(zmq.SNDMORE), int(zmq.NOBLOCK)   # (plain ints: an enum's ``|`` costs
                                                         # about a microsecond per frame)
 
 
-def _send(sock: zmq.Socket, frames: list[Any], flags: int = 0) -> None:
+def send_message(sock: zmq.Socket, frames: list[Any], flags: int = 0) -> None:
     """Send a multipart message: small frames copied (cheaper than a frame object),
     large ones zero-copy. (``send_multipart`` costs microseconds more per frame.) With
-    ``_NOBLOCK``, ``zmq.Again`` at the first frame if the queue is full (a message
+    ``NOBLOCK``, ``zmq.Again`` at the first frame if the queue is full (a message
     goes whole or not at all)."""
     last = len(frames) - 1
     for index, frame in enumerate(frames):
         big = type(frame) is not bytes and memoryview(frame).nbytes >= ZERO_COPY_MIN
-        sock.send(frame, (_MORE | flags) if index < last else flags, copy=not big)
+        sock.send(frame, (MORE | flags) if index < last else flags, copy=not big)
 
 
-def _receive(sock: zmq.Socket) -> list[Any]:
+def receive_message(sock: zmq.Socket) -> list[Any]:
     """The next message's frames (zero-copy), or ``zmq.Again`` if none has come: one
     call where ``poll(0)`` and ``recv_multipart`` cost a poller and an option read
     per frame (about 5 us per message). A message arrives whole, so the frames after
     its first are there."""
-    frame = sock.recv(_NOBLOCK, copy=False)
+    frame = sock.recv(NOBLOCK, copy=False)
     frames = [frame]
     while frame.more:
         frame = sock.recv(copy=False)
@@ -119,7 +119,7 @@ def _receive(sock: zmq.Socket) -> list[Any]:
     return frames
 
 
-def _sealed(sealer: Sealer, kind: int, parts: list[Any]) -> list[Any]:
+def sealed_message(sealer: Sealer, kind: int, parts: list[Any]) -> list[Any]:
     """A message's frames; a VALUE's last part is its sealed payload, which travels
     outside the message's tag (the message covers its nonce and tag)."""
     if kind == VALUE:
@@ -127,7 +127,7 @@ def _sealed(sealer: Sealer, kind: int, parts: list[Any]) -> list[Any]:
     return sealer.seal(kind, parts)
 
 
-def _secure(sock: zmq.Socket, max_bytes: int = MAX_MESSAGE, *, sender: bool) -> zmq.Socket:
+def secured_socket(sock: zmq.Socket, max_bytes: int = MAX_MESSAGE, *, sender: bool) -> zmq.Socket:
     """Limits every replication socket sets, and its heartbeats. Every socket pings its
     peers each ``PEER_PING_MS``. A sender's socket (PUB, ROUTER) closes a connection that
     has brought it nothing for ``PEER_TIMEOUT_MS``: its follower is frozen or cut off,
@@ -152,7 +152,7 @@ def _secure(sock: zmq.Socket, max_bytes: int = MAX_MESSAGE, *, sender: bool) -> 
     return sock
 
 
-def _entry(value: Any, max_bytes: int, room: RingSize | None) -> tuple[int, Any, int]:
+def batch_entry(value: Any, max_bytes: int, room: RingSize | None) -> tuple[int, Any, int]:
     """``(kind, entry, bytes)`` of one value, taken when it is written (the writer may
     change a mutable value right after): an immutable small value is its own entry
     (``PLAIN``), pickled later with the rest of its batch; anything else is encoded
@@ -162,9 +162,9 @@ def _entry(value: Any, max_bytes: int, room: RingSize | None) -> tuple[int, Any,
     the readers' rings (``room``) cannot take is refused here, as a local ring's writer
     refuses it: the reader's node could only drop it."""
     cls = type(value)
-    if cls in _SCALARS:
+    if cls in SCALARS:
         return PLAIN, value, SCALAR_BYTES
-    if cls in _TEXT and len(value) < ZERO_COPY_MIN:
+    if cls in TEXT and len(value) < ZERO_COPY_MIN:
         return PLAIN, value, len(value) + SCALAR_BYTES
     kind, meta, payload = codec.encode(value)
     nbytes = codec.payload_size(kind, payload)
@@ -180,13 +180,13 @@ def _entry(value: Any, max_bytes: int, room: RingSize | None) -> tuple[int, Any,
     return kind, (meta, payload), nbytes + 64
 
 
-def _bound(name: bytes, incarnation: bytes, seq: int, kind: int, meta: bytes) -> bytes:
+def sealed_as(name: bytes, incarnation: bytes, seq: int, kind: int, meta: bytes) -> bytes:
     """What a sealed payload is, as its associated data: a payload moved into another
     message, as another value, fails its tag."""
     return b"".join((name, incarnation, seq.to_bytes(8, "little"), bytes((kind,)), meta))
 
 
-def _entries(body: Any, kinds: bytes, count: int) -> list[Any]:
+def batch_entries(body: Any, kinds: bytes, count: int) -> list[Any]:
     """The values of an authenticated VALUES message (checked all the same)."""
     values = pickle.loads(body)
     if type(values) is not list or len(values) != count or len(kinds) not in (0, count):
