@@ -8,7 +8,9 @@ small buffers of its own, so the writer feels the pace through TCP), for each ra
 each. Node b is embedded: its follower reaches the writer through the proxy because
 ``Follower.follow`` is wrapped to follow the proxy's addresses. With ``--fast-reader``,
 a second viewer on node c reads the same frames straight over loopback, beside the
-slow one (a topic read by two nodes, one behind a slow link).
+slow one (a topic read by two nodes, one behind a slow link); with ``--fast-leaves S``
+too, that viewer is removed ``S`` seconds into the run (its node's follower unfollows),
+leaving the slow one the only follower.
 
 Per run: the connections made through the proxy (2, data and control, for a link never
 cut; each reconnection adds one) and which end closed those that ended; the repairs
@@ -17,7 +19,10 @@ never saw (``skipped``: a dropping queue's overflow, a lossless writer's timeout
 and saw twice; the writer's and the reader's memory growth (the peak RSS over the
 run less the RSS at its start: the writer's worker process, this process); the
 goodput (frames received, in Mbit/s) against what crossed the proxy; and the oldest
-a frame was on arrival (per viewer, with ``--fast-reader``).
+a frame was on arrival (per viewer, with ``--fast-reader``). With ``--fast-leaves``:
+the writer's memory growth from the viewer's removal on (the peak less the RSS then),
+and how long after it node b's follower was served over PUB again (to ``SAMPLE_S``;
+None: still served on its own at the end).
 """
 
 from __future__ import annotations
@@ -45,7 +50,7 @@ SAMPLE_S = 0.5             # how often memory is read
 
 
 def one_run(mbit: float, policy: str, size: int, period: float, seconds: float,
-            fast_reader: bool = False) -> dict:
+            fast_reader: bool = False, fast_leaves: float | None = None) -> dict:
     """One camera stream through the slow link for ``seconds``: its figures."""
     follow, ask = Follower.follow, Follower._ask
     asked: collections.Counter[int] = collections.Counter()
@@ -77,13 +82,26 @@ def one_run(mbit: float, policy: str, size: int, period: float, seconds: float,
                 writer, reader = psutil.Process(pid), psutil.Process()
                 base = (writer.memory_info().rss, reader.memory_info().rss)
                 grown = [0, 0]
+                left, left_rss, grown_after, back_s, fast = None, 0, 0, None, None
                 started = time.monotonic()
                 while time.monotonic() - started < seconds:
                     time.sleep(SAMPLE_S)
                     for i, process in enumerate((writer, reader)):
                         grown[i] = max(grown[i], process.memory_info().rss - base[i])
+                    if left is None and fast_leaves is not None \
+                            and time.monotonic() - started >= fast_leaves:
+                        fast = run.state("fast_viewer")      # (its figures until then)
+                        run.remove("fast_viewer")
+                        left, left_rss = time.monotonic(), writer.memory_info().rss
+                    elif left is not None:
+                        grown_after = max(grown_after, writer.memory_info().rss - left_rss)
+                        follows = run._launcher.nodes["b"].bridge._follower._follows
+                        mode = follows.get(b"camera.out\0")
+                        if back_s is None and mode is not None and not mode.direct:
+                            back_s = round(time.monotonic() - left, 1)
                 camera, viewer = run.state("camera"), run.state("viewer")
-                fast = run.state("fast_viewer") if fast_reader else None
+                if fast_reader and left is None:
+                    fast = run.state("fast_viewer")
                 link = run.stats().links["camera.out->viewer.x"]
                 # (before the nodes stop: they close their connections then)
                 connections, ended = sum(radio.connections.values()), dict(radio.ended_by)
@@ -101,7 +119,9 @@ def one_run(mbit: float, policy: str, size: int, period: float, seconds: float,
             "crossed_mbit": round(forwarded * 8 / seconds / 1e6, 2),
             "oldest_frame_s": round(viewer["max_age_s"], 1),
             **({"fast_received": fast["received"], "fast_skipped": fast["skipped"],
-                "fast_oldest_frame_s": round(fast["max_age_s"], 2)} if fast else {})}
+                "fast_oldest_frame_s": round(fast["max_age_s"], 2)} if fast else {}),
+            **({"writer_grew_after_leave_mib": grown_after >> 20, "back_on_pub_s": back_s}
+               if fast_leaves is not None else {})}
 
 
 def main() -> None:
@@ -113,7 +133,11 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=15.0, help="of each run")
     parser.add_argument("--fast-reader", action="store_true",
                         help="a second viewer, on node c, reads the frames unthrottled")
+    parser.add_argument("--fast-leaves", type=float, default=None, metavar="S",
+                        help="with --fast-reader: remove that viewer S seconds into each run")
     args = parser.parse_args()
+    if args.fast_leaves is not None and not args.fast_reader:
+        parser.error("--fast-leaves removes the viewer --fast-reader adds: give both")
 
     def body(result: dict[str, Any]) -> None:
         result["machine"] = machine()
@@ -123,7 +147,7 @@ def main() -> None:
             for mbit in (float(m) for m in args.mbit.split(",")):
                 for policy in args.policies.split(","):
                     runs.append(one_run(mbit, policy, size, args.period, args.seconds,
-                                        args.fast_reader))
+                                        args.fast_reader, args.fast_leaves))
     main_guard(body)
 
 
