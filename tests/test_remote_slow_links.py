@@ -228,3 +228,36 @@ def test_a_slow_follower_whose_link_gets_fast_goes_back_to_pub_and_gets_every_fr
     assert viewer["duplicates"] == viewer["out_of_order"] == 0
     assert link.link_failures == 0 and not follower.link_failures
     assert not follower.duplicates
+
+
+@pytest.mark.timeout(90)
+def test_a_slow_follower_served_on_its_own_goes_back_to_pub_once_the_fast_viewer_is_removed(
+        radio_to_b: Throttle) -> None:
+    """Node b's follower, served on its own beside node c's, goes back to PUB once the
+    fast viewer is removed (node c's follower unfollows): it takes the RESUME in behind
+    the frame on its way (a frame's crossing: 0.52 s), and from then on is a lone slow
+    link; the accounting stays exact (received + drops = written), in order, once.
+    Before, it stayed served on its own for as long as it followed."""
+    frames = 120                                                 # 6 s of writing
+    with _beside_a_fast_viewer("fast-leaves", 128 * 1024, frames).launch() as run:
+        follower = run._launcher.nodes["b"].bridge._follower
+        def mode() -> Any:
+            return follower._follows[b"camera.out\0"]
+        eventually(lambda: mode().direct, timeout=10.0, what="node b served on its own")
+        run.remove("fast_viewer")
+        removed = time.monotonic()
+        eventually(lambda: not mode().direct and not mode().joining, timeout=10.0,
+                   what="node b back on PUB")
+        took = time.monotonic() - removed
+        back_at = run.state("camera")["sent"]
+        link, viewer, follower = _settled(run, frames=frames)
+    assert back_at < frames - 20, "the camera was done before node b went back to PUB"
+    assert took < 3.0, f"node b back on PUB {took:.2f} s after the fast viewer went"
+    numbers = viewer["numbers"]
+    assert max(viewer["ages"]) < 2.5, viewer["ages"]
+    assert link.values + link.drops == frames, (link.values, link.drops)
+    assert link.values == len(numbers) and link.drops == follower.dropped["camera.out"]
+    assert numbers == sorted(set(numbers))
+    assert viewer["duplicates"] == viewer["out_of_order"] == 0
+    assert link.link_failures == 0 and not follower.link_failures
+    assert not follower.duplicates

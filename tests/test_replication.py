@@ -1229,12 +1229,14 @@ def _slow_beside_fast(replicator: Replicator, camera: _Camera, fast: Follower,
 @pytest.mark.parametrize("cut", [False, True], ids=["held", "cut"])
 def test_a_follower_served_on_its_own_that_went_silent_is_served_again_once_back(
         monkeypatch, cut: bool) -> None:
-    """A slow follower served on its own (beside a fast one, which then leaves) whose
-    link carries nothing for longer than the follower timeout is served again once the
-    link is back: every frame written arrives or is counted dropped, in order, once.
-    The sender forgot it after the timeout while it still took its values over the
-    control connection, its SUB socket closed: nothing reached it any more, nor was
-    counted, for as long as it followed (no fast follower left to find it slow again).
+    """A slow follower served on its own (beside a fast one, which leaves while it is
+    silent) whose link carries nothing for longer than the follower timeout is served
+    again once the link is back, then goes back to PUB (the only follower, live again):
+    every frame written arrives or is counted dropped, in order, once. The sender forgot
+    it after the timeout while it still took its values over the control connection,
+    its SUB socket closed: nothing reached it any more, nor was counted, for as long as
+    it followed (no fast follower left to find it slow again). Silent, it stays served
+    on its own (a RESUME sent to a cut link may be lost, and it would wait for nothing).
     ``cut``: silent longer than the peer timeout too, so the sender closes its control
     connection (the frame on its way is lost) and the follower reconnects."""
     monkeypatch.setattr(replicator_module, "FOLLOWER_TIMEOUT", 1.0)
@@ -1247,12 +1249,15 @@ def test_a_follower_served_on_its_own_that_went_silent_is_served_again_once_back
     try:
         with Throttle(2e6) as radio:
             _slow_beside_fast(replicator, camera, fast, slow, radio)
-            fast.unfollow("camera")
-            direct = replicator._topics["camera"].direct
-            camera.write(20, until=lambda: any(one.sent > one.start
-                                               for one in list(direct.values())))
+            stream = replicator._topics["camera"]
+            peer, direct = next(iter(list(stream.direct.items())))
+            camera.write(20, until=lambda: direct.sent > direct.start)
             radio.pause()                        # (a frame on its way to it, likely)
-            camera.write(40)                     # 2 s: twice the follower timeout
+            camera.write(40, until=lambda: time.monotonic() - stream.acks[peer][1]
+                         >= replicator_module.FOLLOWER_TIMEOUT)
+            fast.unfollow("camera")              # (gone while the slow one is silent)
+            camera.write(20)                     # 2 s in all: twice the follower timeout
+            assert peer in stream.direct, "a silent follower was told RESUME"
             radio.go_on()
             before = camera.written
             camera.write(40)
@@ -1261,8 +1266,9 @@ def test_a_follower_served_on_its_own_that_went_silent_is_served_again_once_back
                        timeout=15.0, what="every frame received or counted dropped")
             time.sleep(2 * replication.HEARTBEAT_S)     # (what a count overshoots by)
             assert len(got) + slow.dropped["camera"] == camera.written
-            reconnected = max(radio.connections.values())
-        assert reconnected == (2 if cut else 1), radio.connections
+            assert not stream.direct and not _served_on_its_own(slow), "not back on PUB"
+            reconnected = radio.connections[replicator.control_address]
+        assert reconnected == (2 if cut else 1), radio.connections    # (its control link)
         numbers = [int(frame[0]) for frame in got]
         assert numbers == sorted(set(numbers)) and numbers[-1] >= before, numbers
         assert not slow.link_failures and not slow.duplicates
@@ -1317,6 +1323,213 @@ def test_a_repair_by_a_follower_served_on_its_own_is_answered_skipped_not_replay
     finally:
         fast.close()
         slow.close()
+        replicator.close()
+
+
+@pytest.mark.timeout(90)
+@pytest.mark.parametrize("goes", ["unfollows", "falls silent", "is forgotten"])
+def test_a_follower_served_on_its_own_goes_back_to_pub_once_no_faster_one_follows(
+        monkeypatch, goes: str) -> None:
+    """A slow follower served on its own beside a fast one goes back to PUB (RESUME)
+    once the fast one goes (unfollows; falls silent, its node lost, and is live no more
+    after the follower timeout; is forgotten, its node lost): within a second of that,
+    the writer keeps then only the frames that cross its slow link (a lone slow link's
+    flight: one on the way at a time), where, left served on its own with nobody on
+    PUB, every frame went to PUB for nobody and was kept (up to the replay buffer's 32
+    MiB). Every frame arrives or is counted dropped, in order, once; and a fast follower
+    that comes back has it served on its own again."""
+    monkeypatch.setattr(replicator_module, "FOLLOWER_TIMEOUT", 1.0)
+    replicator, fast_inbox, slow_inbox = Replicator(KEY), Inbox(), Inbox()
+    fast = Follower(KEY, fast_inbox, identity=follower_id("c", 1))
+    slow = Follower(KEY, slow_inbox)
+    camera = _Camera(replicator)
+    try:
+        with Throttle(2e6) as radio:
+            _slow_beside_fast(replicator, camera, fast, slow, radio)
+            stream = replicator._topics["camera"]
+            if goes == "unfollows":
+                fast.unfollow("camera")
+            else:
+                fast.close()                     # (its node lost: it says nothing more)
+                if goes == "is forgotten":
+                    replicator.forget("camera", follower_id("c", 1))
+            gone_at = time.monotonic() + (replicator_module.FOLLOWER_TIMEOUT
+                                          if goes == "falls silent" else 0.0)
+            camera.write(60, until=lambda: not stream.direct)
+            took = time.monotonic() - gone_at
+            assert not stream.direct, "the slow follower is still served on its own"
+            assert took < 1.5, f"back on PUB {took:.2f} s after the fast follower went"
+            eventually(lambda: not _served_on_its_own(slow)
+                       and not slow._follows[b"camera\0"].joining, timeout=10.0,
+                       what="the slow follower subscribed again")
+            back = stream.next_seq
+            camera.write(40)                     # 2 s: about 4 frames' crossing
+            kept = [sent for sent in list(stream.replay) if sent.first >= back]
+            assert len(kept) <= 10, f"{len(kept)} of 40 frames kept for a slow follower"
+            got = slow_inbox.values.setdefault("camera", [])
+            eventually(lambda: len(got) + slow.dropped["camera"] == camera.written,
+                       timeout=15.0, what="every frame received or counted dropped")
+            time.sleep(2 * replication.HEARTBEAT_S)     # (what a count overshoots by)
+            assert len(got) + slow.dropped["camera"] == camera.written
+            numbers = [int(frame[0]) for frame in got]
+            assert numbers == sorted(set(numbers)) and numbers[-1] >= back, numbers
+            assert not slow.link_failures and not slow.duplicates
+            if goes == "unfollows":             # the fast one comes back
+                _follow(fast, replicator, "camera")
+                assert fast.wait_ready("camera", TIMEOUT)
+                camera.write(60, until=lambda: _served_on_its_own(slow))
+                assert _served_on_its_own(slow), "not served on its own beside it again"
+    finally:
+        fast.close()
+        slow.close()
+        replicator.close()
+
+
+@pytest.mark.timeout(90)
+def test_a_frame_on_its_way_to_a_follower_served_on_its_own_as_the_fast_one_goes_arrives(
+        ) -> None:
+    """A slow follower served on its own that has a frame on its way over its control
+    connection (its link held up) when the fast one unfollows is told RESUME behind that
+    frame: the frame arrives, once; the frames not sent to it are counted dropped, and
+    those written once its subscription took come over PUB, in order, once."""
+    replicator, slow_inbox = Replicator(KEY), Inbox()
+    fast, slow = Follower(KEY, Inbox()), Follower(KEY, slow_inbox)
+    camera = _Camera(replicator)
+    try:
+        with Throttle(2e6) as radio:
+            _slow_beside_fast(replicator, camera, fast, slow, radio)
+            stream = replicator._topics["camera"]
+            follow = slow._follows[b"camera\0"]
+            on_way = None
+            for _ in range(100):
+                camera.write()
+                radio.pause()
+                direct = next(iter(list(stream.direct.values())))
+                if direct.sent > follow.next_seq:    # sent to it, not delivered: held up
+                    on_way = direct.sent - 1
+                    break
+                radio.go_on()
+            assert on_way is not None, "no frame was ever on its way"
+            fast.unfollow("camera")
+            eventually(lambda: not stream.direct, timeout=5.0, what="the RESUME sent")
+            radio.go_on()
+            got = slow_inbox.values.setdefault("camera", [])
+            eventually(lambda: not _served_on_its_own(slow) and not follow.joining,
+                       timeout=10.0, what="the slow follower subscribed again")
+            back = stream.next_seq
+            camera.write(20)
+            eventually(lambda: len(got) + slow.dropped["camera"] == camera.written,
+                       timeout=15.0, what="every frame received or counted dropped")
+            time.sleep(2 * replication.HEARTBEAT_S)     # (what a count overshoots by)
+            assert len(got) + slow.dropped["camera"] == camera.written
+        numbers = [int(frame[0]) for frame in got]
+        assert on_way in numbers, (on_way, numbers)
+        assert numbers == sorted(set(numbers)) and numbers[-1] >= back, numbers
+        assert not slow.link_failures and not slow.duplicates
+    finally:
+        fast.close()
+        slow.close()
+        replicator.close()
+
+
+@pytest.mark.timeout(90)
+def test_a_repair_that_crossed_the_resume_of_a_follower_served_on_its_own_replays_nothing(
+        monkeypatch) -> None:
+    """A slow follower back on PUB (the fast one beside it unfollowed) whose repair of
+    values from before its RESUME crossed the RESUME on the way (asked before it took
+    the RESUME in, which has it count them dropped) is answered that they were not sent
+    (SKIPPED): nothing is replayed over its slow link, and it counts no duplicate. The
+    replay buffer holds those frames (they went to the fast one): each was sent again
+    over the slow link, and counted a duplicate there."""
+    sends = _sends_per_value(monkeypatch)
+    replicator, slow_inbox = Replicator(KEY), Inbox()
+    fast, slow = Follower(KEY, Inbox()), Follower(KEY, slow_inbox)
+    camera = _Camera(replicator)
+    try:
+        with Throttle(2e6) as radio:
+            _slow_beside_fast(replicator, camera, fast, slow, radio)
+            stream = replicator._topics["camera"]
+            start = next(iter(list(stream.direct.values()))).start
+            camera.write(10)
+            fast.unfollow("camera")
+            camera.write(20, until=lambda: not stream.direct)
+            follow = slow._follows[b"camera\0"]
+            eventually(lambda: not _served_on_its_own(slow) and not follow.joining,
+                       timeout=10.0, what="the slow follower subscribed again")
+            back = stream.resumed[slow._identity]
+            assert any(sent.first >= start and sent.end <= back for sent in stream.replay)
+            sends.clear()
+            slow._loop.call(lambda: slow._ask(follow, replication.REPAIR, start, back - 1))
+            camera.write(20)
+            got = slow_inbox.values.setdefault("camera", [])
+            eventually(lambda: len(got) + slow.dropped["camera"] == camera.written,
+                       timeout=15.0, what="every frame received or counted dropped")
+            time.sleep(2 * replication.HEARTBEAT_S)     # (a late answer)
+        assert not sends, f"frames sent again over the slow link: {dict(sends)}"
+        numbers = [int(frame[0]) for frame in got]
+        assert numbers == sorted(set(numbers))
+        assert not slow.duplicates and not slow.link_failures
+    finally:
+        fast.close()
+        slow.close()
+        replicator.close()
+
+
+@pytest.mark.timeout(120)
+def test_of_two_followers_served_on_their_own_one_leads_on_pub_once_the_fast_one_goes(
+        ) -> None:
+    """Two slow followers served on their own (each behind a 2 Mbit/s link of its own)
+    when the fast one unfollows: the more advanced goes back to PUB and leads there (a
+    lone slow link's flight), the other stays served on its own beside it (both back on
+    PUB, the one behind would be found slow again at once); once the lead unfollows
+    too, the other goes back to PUB. The writer keeps only the frames that went, and
+    each follower gets its frames in order, once, the rest counted dropped."""
+    replicator, inboxes = Replicator(KEY), [Inbox(), Inbox()]
+    fast = Follower(KEY, Inbox())
+    slows = [Follower(KEY, inbox) for inbox in inboxes]
+    camera = _Camera(replicator)
+    try:
+        with Throttle(2e6) as radio_1, Throttle(2e6) as radio_2:
+            replicator.add("camera")
+            _follow(fast, replicator, "camera", from_seq=0)
+            for slow, radio in zip(slows, (radio_1, radio_2), strict=True):
+                slow.follow("camera", radio.route(replicator.data_address),
+                            radio.route(replicator.control_address), from_seq=0)
+            assert all(one.wait_ready("camera", TIMEOUT) for one in [fast, *slows])
+            camera.write(200, until=lambda: all(map(_served_on_its_own, slows)))
+            assert all(map(_served_on_its_own, slows)), "not both served on their own"
+            stream = replicator._topics["camera"]
+            fast.unfollow("camera")
+            camera.write(60, until=lambda: len(stream.direct) < 2)
+            assert len(stream.direct) == 1, "not one of them back on PUB"
+            lead = next(slow for slow in slows if slow._identity not in stream.direct)
+            other = slows[1 - slows.index(lead)]
+            eventually(lambda: not _served_on_its_own(lead), timeout=10.0,
+                       what="the lead subscribed again")
+            back = stream.next_seq
+            camera.write(40)                     # 2 s: about 4 frames' crossing
+            assert _served_on_its_own(other) and other._identity in stream.direct
+            kept = [sent for sent in list(stream.replay) if sent.first >= back]
+            assert len(kept) <= 10, f"{len(kept)} of 40 frames kept for slow followers"
+            lead.unfollow("camera")
+            camera.write(60, until=lambda: not stream.direct)
+            assert not stream.direct, "the other one is still served on its own"
+            eventually(lambda: not _served_on_its_own(other), timeout=10.0,
+                       what="the other one subscribed again")
+            camera.write(20)
+            got = inboxes[slows.index(other)].values.setdefault("camera", [])
+            eventually(lambda: len(got) + other.dropped["camera"] == camera.written,
+                       timeout=15.0, what="every frame received or counted dropped")
+            time.sleep(2 * replication.HEARTBEAT_S)     # (what a count overshoots by)
+            assert len(got) + other.dropped["camera"] == camera.written
+        for slow, inbox in zip(slows, inboxes, strict=True):
+            numbers = [int(frame[0]) for frame in inbox.values.get("camera", [])]
+            assert numbers == sorted(set(numbers)), numbers
+            assert not slow.link_failures and not slow.duplicates
+    finally:
+        fast.close()
+        for slow in slows:
+            slow.close()
         replicator.close()
 
 

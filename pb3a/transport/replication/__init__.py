@@ -71,7 +71,17 @@ values in sequence order, exactly once:
   (how far it was sent) and says its mode again, also while it is silent (its link
   cut): it takes nothing over PUB until told RESUME. Once a lone message is acknowledged
   within ``FRESH_S / 2`` it goes back to PUB (RESUME): it subscribes, and what was
-  published before its subscription took is counted dropped, not replayed.
+  published before its subscription took is counted dropped, not replayed. So does a
+  live one once no live follower is served over PUB any more (the fast one unfollowed,
+  was forgotten with its lost node, or has been silent for ``FOLLOWER_TIMEOUT``): at
+  its next acknowledgement or the next heartbeat, whichever comes first, the most
+  advanced of them (the others stay DIRECT beside it) goes back and leads, its link
+  taken as slow (one message on the way at a time) until a lone message crosses in
+  time. Left DIRECT, every value went to PUB for nobody and was kept, up to the replay
+  buffer's bound. A silent one stays DIRECT until it is live again (a RESUME sent to a
+  cut link may be lost). The RESUME goes behind what is on the way to it, which
+  arrives; a repair it asked before it took the RESUME in is answered SKIPPED for the
+  values before it (it counts them dropped), not replayed.
 - Lossless followers. A follower whose receiver must not drop (a ``lossless`` link)
   says so in its HELLO and ACKs, and acknowledges only what its receiver has put
   through. Such a follower holds the publisher back for as long as the writer's

@@ -103,8 +103,8 @@ class _Sent(NamedTuple):
 
 @dataclass
 class _Direct:
-    """A slow follower of a topic that has a fast one too, served over the control
-    connection (see "Slow followers"): one message on the way to it at a time."""
+    """A slow follower of a topic that has (or had) a fast one too, served over the
+    control connection (see "Slow followers"): one message on the way to it at a time."""
 
     start: int                          # the first value it gets here (the older ones went
                                         # over PUB, or it counts them dropped)
@@ -157,6 +157,9 @@ class _Stream:
                                         # flow control and the flight)
     joined: dict[bytes, int] = field(default_factory=dict)  # peer -> the next sequence number
                                         # at its last HELLO (what it had replayed ends there)
+    resumed: dict[bytes, int] = field(default_factory=dict)  # peer -> where it went back to
+                                        # PUB from a DIRECT (it counts the values before
+                                        # dropped: a repair over them replays none)
 
     def _live(self, now: float) -> list[int]:
         """Where the live followers served over PUB are."""
@@ -246,6 +249,7 @@ class _Stream:
         self.holds.pop(peer, None)
         self.direct.pop(peer, None)
         self.joined.pop(peer, None)
+        self.resumed.pop(peer, None)
         return self.acks.pop(peer, None)
 
     def hold(self, peer: bytes, seq: int, flags: int) -> None:
@@ -376,6 +380,7 @@ class Replicator:
                 stream.acks.clear()
                 stream.direct.clear()
                 stream.joined.clear()
+                stream.resumed.clear()
             self._acked.notify_all()
 
     def publish(self, topic: str, value: Any, timeout: float = WINDOW_WAIT) -> int:
@@ -642,6 +647,7 @@ class Replicator:
         self._flush_locked()                     # (what was published went over PUB)
         start = stream.next_seq
         stream.direct[peer] = _Direct(start, start, time.monotonic())
+        stream.resumed.pop(peer, None)           # (its start says it now)
         self._send_router(peer, DIRECT, [stream.name, ANSWER.pack(self.incarnation, start,
                                                                    start)])
         stream.clear_until = 0                   # (flow control no longer counts it)
@@ -659,8 +665,34 @@ class Replicator:
         if start is None:
             start = stream.next_seq
             stream.acks[peer] = (start, now)     # (so it is not found slow for them)
+            stream.resumed[peer] = start         # (a repair crossing the RESUME: see _replay)
         self._send_router(peer, RESUME, [stream.name, ANSWER.pack(self.incarnation, start, 0)])
         stream.clear_until = 0
+
+    def _resume_alone(self, stream: _Stream, now: float) -> None:
+        """No live follower is served over PUB any more (the fast one unfollowed, was
+        forgotten with its lost node, or has been silent for ``FOLLOWER_TIMEOUT``): the
+        most advanced live follower served on its own goes back to PUB, where it leads
+        and the flight serves it as a lone slow link (one message on the way at a time,
+        until a lone one is acknowledged in time). Left on its own, every value went to
+        PUB for nobody and was kept, up to the replay buffer's bound. Another one served
+        on its own stays so, beside it; a silent one stays so until it is live again (a
+        RESUME to a cut link may be lost, and it would then wait for nothing) (lock
+        held, on the loop's thread)."""
+        if not stream.direct or stream.holds or stream.lead(now) is not None:
+            return               # (a lossless follower: no flight, PUB would queue it all)
+        live = [(stream.acks[peer][0], peer) for peer in stream.direct
+                if peer in stream.acks and now - stream.acks[peer][1] < FOLLOWER_TIMEOUT]
+        if not live:
+            return
+        _, peer = max(live)
+        self._resume(stream, peer, now)
+        # its link was slower than the writer when it went on its own, and no lone message
+        # crossed in time since (it would have resumed then): a flight that a fast follower
+        # had doubled would queue seconds of values for it over PUB before it showed slow
+        stream.slow, stream.flight = True, 0
+        log.info("remote link %s: a follower served on its own is the only one now: back "
+                 "on PUB from value %d", topic_text(stream.name), stream.next_seq)
 
     def _serve_direct(self, stream: _Stream) -> None:
         """Send each follower served on its own the newest message it has not had, if
@@ -734,14 +766,18 @@ class Replicator:
         values of a burst learns of them here and asks for a repair."""
         with self._lock:
             self._flush_locked()                 # (what it announces has gone out first)
+            now = time.monotonic()
             for name, stream in self._streams.items():
+                # (before its DIRECT below: one sent after a RESUME would undo it)
+                self._resume_alone(stream, now)  # (the fast one silent, or forgotten)
                 self._send_pub(name, SYNC, [self._sync(stream)])
                 # Their SYNC, and their mode. One silent for a while (its link cut, its
                 # node frozen) is still served on its own: it has closed its SUB
                 # connection and takes nothing over PUB until told RESUME, so forgotten
                 # here it got nothing more, nor was anything counted, unless found slow
                 # again (which takes a faster follower beside it). It leaves by saying
-                # so (an ACK of -1), by a HELLO, or with its lost node (``forget``).
+                # so (an ACK of -1), by a HELLO, or with its lost node (``forget``), and
+                # goes back to PUB when told RESUME (in time again, or live and alone).
                 for peer, direct in stream.direct.items():
                     self._send_router(peer, DIRECT, [name, ANSWER.pack(
                         self.incarnation, direct.start, direct.sent)])
@@ -793,6 +829,7 @@ class Replicator:
                         self._resume(stream, peer_id, now)   # a lone message, in time
                     else:
                         self._serve_direct(stream)
+                self._resume_alone(stream, now)  # (the fast one may have unfollowed)
                 stream.clear_until = 0           # (a lossless follower may have come)
                 self._acked.notify_all()
             elif message.kind == HELLO:
@@ -804,6 +841,7 @@ class Replicator:
                 # never answered here (its first HELLO lost) is answered in full.
                 again = bool(last & WAITING) and peer_id in stream.joined
                 stream.direct.pop(peer_id, None)  # (subscribed: it follows over PUB again)
+                stream.resumed.pop(peer_id, None)  # (it says what it needs)
                 if not again:
                     stream.joined[peer_id] = nxt
                 stream.acks[peer_id] = (first if first >= 0 else nxt, time.monotonic())
@@ -828,16 +866,19 @@ class Replicator:
         if stream.skip_from >= 0:
             runs.append((stream.skip_from, stream.next_seq))
         direct = stream.direct.get(bytes(peer))
+        resumed = stream.resumed.get(bytes(peer))
         if direct is not None:       # a follower served on its own: nor what it was not sent
             runs += [(min(first, direct.start), direct.start), *direct.skips]
+        elif resumed is not None:    # back on PUB from there: the RESUME, ahead of this
+            runs.append((min(first, resumed), resumed))     # answer, had it count those dropped
         for start, end in runs:                  # (not sent: never replayed, nor gone)
             if start <= last and end > first:
                 self._send_router(peer, SKIPPED,
                                   [name, ANSWER.pack(self.incarnation, start, end - start)])
+        own = direct is not None or resumed is not None
         for sent in stream.replay:
             if sent.first <= last and sent.end > first and not (
-                    direct is not None
-                    and any(start <= sent.first and sent.end <= end for start, end in runs)):
+                    own and any(start <= sent.first and sent.end <= end for start, end in runs)):
                 self._send_router(peer, sent.kind, [name, *sent.replayable()])
         self._send_router(peer, REPLAYED, [name, ANSWER.pack(self.incarnation, first, gone)])
 
