@@ -1111,3 +1111,25 @@ class FrameSink(Module):
             elif number < last:
                 self.out_of_order += 1
             self.numbers = [*self.numbers, number]
+
+
+class Freezer(Module):
+    """Passes what it reads on, each step; once ``freeze_in`` is ``"step"`` its next step
+    never returns, once it is ``"teardown"`` its teardown never does (as a module stuck
+    in a call it cannot leave)."""
+
+    x = Input(int)
+    out = Output(int)
+    period = 0.01
+    freeze_in = ""
+    steps = 0
+
+    def step(self) -> None:
+        if self.freeze_in == "step":
+            time.sleep(1000)
+        self.steps += 1
+        self.out.write(self.steps)
+
+    def teardown(self) -> None:
+        if self.freeze_in == "teardown":
+            time.sleep(1000)

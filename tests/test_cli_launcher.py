@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import eventually
-from sample_modules import Counter, FastScale, Last, OnFlag, Relay, Scale
+from conftest import alive, eventually
+from sample_modules import Counter, FastScale, Freezer, Last, OnFlag, Relay, Scale
 
 from pb3a import Module, System
 from pb3a.cli.main import INTERRUPTED, main
@@ -207,6 +207,30 @@ def test_every_command_changes_a_running_system_and_speaks_json(capsys) -> None:
         events = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
         assert [e["seq"] for e in events] == list(range(1, 8))
         assert events[-1]["detail"]["destination"] == "b"
+
+
+def test_remove_force_kills_a_module_that_does_not_answer(capsys) -> None:
+    """``pb3a remove ADDR NAME`` of a module whose worker is frozen (SIGSTOP) fails
+    within ``--timeout``, naming ``--force``; with ``--force`` its worker is killed and
+    the module goes with its link."""
+    system = System("cli-remove-force")
+    system.add("src", Counter, period=0.01)
+    system.add("f", Freezer)
+    system.link("src.out", "f.x")
+    with system.launch(timeout=30) as run:
+        address = run.listen()
+        pid = run.stats().modules["f"].pid
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            assert main(["remove", address, "f", "--timeout", "1"]) == 1
+            assert "(`pb3a remove ADDR f --force`) kills its worker" in capsys.readouterr().err
+            assert main(["remove", address, "f", "--timeout", "1", "--force", "--json"]) == 0
+            assert json.loads(capsys.readouterr().out) == {"module": "f", "removed": True}
+        finally:
+            if alive(pid):
+                os.kill(pid, signal.SIGCONT)
+        assert not alive(pid)
+        assert set(run.topology().modules) == {"src"} and not run.topology().links
 
 
 def test_mistakes_on_the_command_line_get_a_sentence_and_exit_1(capsys) -> None:

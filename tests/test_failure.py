@@ -34,6 +34,7 @@ from sample_modules import (
     CrashesWhileFlagged,
     Faulty,
     FloatSource,
+    Freezer,
     Hoard,
     Journal,
     Last,
@@ -1313,7 +1314,9 @@ def test_a_remove_of_a_frozen_module_keeps_its_timeout_and_leaves_it_as_it_was()
         try:
             began = time.monotonic()
             with pytest.raises(RuntimeTimeout, match=r"worker 'a/m-c' did not answer "
-                               r"'stop' within (1|0\.9\d*) s"):
+                               r"'stop' within (1|0\.9\d*) s.*module c was left as it "
+                               r"was: remove\('c', force=True\) \(`pb3a remove ADDR c "
+                               r"--force`\) kills its worker"):
                 run.remove("c", timeout=1)
             took = time.monotonic() - began
         finally:
@@ -1325,6 +1328,94 @@ def test_a_remove_of_a_frozen_module_keeps_its_timeout_and_leaves_it_as_it_was()
         assert "c" not in run.topology().modules
     finally:
         run.close()
+
+
+def _frozen_in(run, name: str, where: str) -> int:
+    """Module ``name`` (a ``Freezer``) frozen in ``where``: its ``step``, its
+    ``teardown`` (the stop a removal asks runs it), or its whole worker stopped
+    (SIGSTOP); its worker's pid."""
+    pid = run.stats().modules[name].pid
+    if where == "stopped":
+        os.kill(pid, signal.SIGSTOP)
+    else:
+        run.set_state(name, freeze_in=where)
+    if where == "step":
+        eventually(lambda: run.stats().modules[name].calling == "step"
+                   and run.stats().modules[name].calling_s > 0.1, what="a frozen step")
+    return pid
+
+
+@pytest.mark.parametrize("where", ["step", "teardown", "stopped"])
+def test_a_forced_remove_kills_a_module_that_does_not_answer_and_the_rest_runs_on(
+        where: str) -> None:
+    """``remove(name, timeout=1)`` of a module frozen in its ``step`` or its ``teardown``
+    (or its worker stopped) raised ``RuntimeTimeout`` and left it as it was, with no way
+    to get rid of it but closing the system. With ``force=True`` its worker is killed
+    once the stop has had its timeout, and the module goes with its links within the
+    timeout and a moment; an event says it was killed; the rest of the system runs on,
+    its values flowing."""
+    system = System("remove-forced").node("a")
+    system.add("c", Counter, node="a", period=0.01)
+    system.add("d", Collector, node="a")
+    system.add("f", Freezer, node="a")
+    system.add("g", Collector, node="a")
+    system.link("c.out", "d.x")
+    system.link("c.out", "f.x")
+    system.link("f.out", "g.x")
+    run = system.launch(timeout=30)
+    try:
+        eventually(lambda: run.state("g")["received"] > 0, what="values through f")
+        seen = run.events()[-1].seq if run.events() else 0
+        pid = _frozen_in(run, "f", where)
+        began = time.monotonic()
+        run.remove("f", timeout=1, force=True)
+        took = time.monotonic() - began
+        assert took < 2.0, f"the forced remove took {took:.2f} s"
+        assert not alive(pid)
+        topology = run.topology()
+        assert "f" not in topology.modules and set(topology.links) == {"c.out->d.x"}
+        events = run.events(seen)
+        assert [(e.kind, e.subject) for e in events] == [
+            ("link_removed", "c.out->f.x"), ("link_removed", "f.out->g.x"),
+            ("module_removed", "f")]
+        assert events[-1].detail["killed"] is True and events[-1].detail["pid"] == pid
+        received = run.state("d")["received"]
+        eventually(lambda: run.state("d")["received"] > received + 20,
+                   what="values still flowing from c to d")
+        assert run.stats().modules["c"].status == "running"
+    finally:
+        closed, took = _bounded(lambda: run.close(timeout=5), 30)
+    assert closed is None and took < 10, f"close: {closed!r} after {took:.1f} s"
+
+
+def test_a_forced_remove_kills_no_worker_that_runs_other_modules() -> None:
+    """Killing a worker a module shares with others (a group, packed workers) would lose
+    them too: a forced remove of such a module that does not answer is refused, naming
+    them and what to do, and everything is left as it was, the others running."""
+    system = System("remove-forced-group").node("a")
+    system.add("f", Freezer, node="a", group="pair")
+    system.add("c", Counter, node="a", period=0.01, group="pair")
+    system.add("d", Collector, node="a")
+    system.link("c.out", "d.x")
+    run = system.launch(timeout=30)
+    try:
+        eventually(lambda: run.state("d")["received"] > 0, what="values from c")
+        pid = _frozen_in(run, "f", "step")
+        with pytest.raises(RuntimeFailure, match=r"remove f with force: .*its worker "
+                           r"'a/g-pair' was not killed: it also runs c, which would be "
+                           r"lost with it .*remove c first, and force then kills it"):
+            run.remove("f", timeout=1, force=True)
+        assert alive(pid)
+        assert set(run.topology().modules) == {"f", "c", "d"}
+        received = run.state("d")["received"]
+        eventually(lambda: run.state("d")["received"] > received + 20,
+                   what="c still running beside the frozen module")
+        run.remove("c", timeout=5)
+        run.remove("f", timeout=1, force=True)
+        assert not alive(pid) and set(run.topology().modules) == {"d"}
+    finally:
+        closed, took = _bounded(lambda: run.close(timeout=5), 30)
+    assert closed is None and took < 10, f"close: {closed!r} after {took:.1f} s"
 
 
 def test_a_worker_whose_executor_reads_nothing_never_waits_to_send(tmp_path, caplog) -> None:

@@ -29,6 +29,7 @@ from sample_modules import (
     AsksInSetup,
     Collector,
     Counter,
+    Freezer,
     Hoard,
     LossWatcher,
     NodeTable,
@@ -653,6 +654,38 @@ def test_a_module_on_a_remote_node_is_removed_with_its_links(controllers) -> Non
         eventually(lambda: not alive(pid), what="its worker gone")
         sent = run.state("src")["count"]
         eventually(lambda: run.state("src")["count"] > sent + 20, what="the writer going on")
+
+
+def test_a_frozen_module_on_a_remote_node_is_removed_with_force(controllers) -> None:
+    """A module of a remote node frozen in its ``step`` is removed with ``force``: its
+    node's executor kills its worker, and its links to and from the launcher's node go,
+    within the timeout and a moment; the link beside them flows on."""
+    system = System("removing-frozen").node("a").node("b", address=controllers["b"].address)
+    system.add("src", Counter, node="a", period=0.01)
+    system.add("near", Collector, node="a")
+    system.add("far", Freezer, node="b")
+    system.add("back", Collector, node="a")
+    system.link("src.out", "near.x")
+    system.link("src.out", "far.x")
+    system.link("far.out", "back.x")
+    with system.launch(timeout=30) as run:
+        eventually(lambda: run.state("back")["received"] > 0, timeout=30,
+                   what="values through b")
+        pid = run.stats().modules["far"].pid
+        run.set_state("far", freeze_in="step")
+        eventually(lambda: run.stats().modules["far"].calling_s > 0.1, what="a frozen step")
+        began = time.monotonic()
+        run.remove("far", timeout=1, force=True)
+        took = time.monotonic() - began
+        assert took < 2.0, f"the forced remove took {took:.2f} s"
+        assert not alive(pid)
+        assert set(run.topology().links) == {"src.out->near.x"}
+        assert run.events()[-1].detail == {
+            "killed": True, "pid": pid, "reason": "it did not answer its stop: its worker "
+            "was killed (its teardown did not finish)"}
+        received = run.state("near")["received"]
+        eventually(lambda: run.state("near")["received"] > received + 20,
+                   what="values still flowing from src to near")
 
 
 def test_on_a_remote_node_an_agent_may_read_from_setup_inside_a_change(controllers) -> None:

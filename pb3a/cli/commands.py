@@ -102,7 +102,11 @@ def _running_system(commands: argparse._SubParsersAction) -> None:
                      help="its step period (0: as fast as it can)")
     add.add_argument("--state", nargs="*", default=[], metavar="NAME=VALUE",
                      help="its initial state, as for `pb3a set`")
-    command("remove", "stop and remove a module", ("module", "the module's name"))
+    remove = command("remove", "stop and remove a module", ("module", "the module's name"))
+    remove.add_argument("--force", action="store_true",
+                        help="kill its worker if it does not answer its stop within the "
+                             "timeout (frozen in step or teardown); refused for a worker "
+                             "that runs other modules too")
     command("restart", "start a module again (also a failed one) with its configured state",
             ("module", "the module's name"))
     command("nodes", "every node's health")

@@ -165,7 +165,7 @@ def _class_defaults(ref: str, timeout: float | None) -> dict[str, Any]:
 
 
 def _remove(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
-    system.remove(args.module, timeout=args.timeout)
+    system.remove(args.module, timeout=args.timeout, force=args.force)
     return f"{args.module} removed", {"module": args.module, "removed": True}
 
 

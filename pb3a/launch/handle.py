@@ -124,9 +124,13 @@ class SystemHandle(ABC):
                               "restart": restart, "group": group, "node": node,
                               "fallback": fallback, "timeout": timeout})
 
-    def remove(self, name: str, *, timeout: float | None = None) -> None:
-        """Stop a module (``teardown`` runs), drop its links, free its process."""
-        self._request("remove", {"name": name, "timeout": timeout})
+    def remove(self, name: str, *, timeout: float | None = None, force: bool = False) -> None:
+        """Stop a module (``teardown`` runs), drop its links, free its process. One that
+        does not answer its stop within ``timeout`` (frozen in ``step`` or ``teardown``)
+        is left as it was (``RuntimeTimeout``); with ``force`` its worker is killed
+        instead, and it goes with its links all the same (not a worker that runs other
+        modules too: ``RuntimeFailure`` names them)."""
+        self._request("remove", {"name": name, "timeout": timeout, "force": force})
 
     def restart(self, name: str, *, timeout: float | None = None) -> None:
         """Start a module again (also one that failed) with its configured state, its

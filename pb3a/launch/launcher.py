@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any
 
 import psutil
 
-from pb3a.deadline import bounding
+from pb3a.deadline import bounding, lifted
 from pb3a.errors import ModuleNotFound, RuntimeFailure, RuntimeTimeout
 from pb3a.events import EventLog
 from pb3a.latencies import percentile
@@ -68,6 +68,9 @@ ENV_TOLD = 256          # the latest moves (and losses) the env modules are give
 REJOIN_S = 1.0          # how often it asks a lost node's controller whether it is back
 PLACE_TIMEOUT = 0.5     # a controller's answer about its load and admission
 STOP_TIMEOUT = 5.0      # a module's teardown when it is removed
+# A removal with ``force`` of a module that did not answer its stop: what its worker's
+# kill, its links' unwiring and its drop may take past the call's deadline (a few ms)
+KILLED_REMOVAL_S = 2.0
 REMOTE_STOP_AT_LEAST_S = 0.5   # a remote node's shutdown, even once the time is up
 # how to give a launch's slow steps more time (the nodes' starts, their classes' check)
 LAUNCH_LONGER = ("give the system a longer timeout (timeout = SECONDS at the top of its "
@@ -308,10 +311,38 @@ class Launcher:
         """One request about module ``name`` to its worker, wherever it runs."""
         return self.node_of(name).call_module(name, op, timeout, **args)
 
-    def remove_module(self, name: str) -> None:
-        """Stop a module, drop its links, free its process."""
+    def remove_module(self, name: str, *, force: bool = False) -> int | None:
+        """Stop a module, drop its links, free its process. One that does not answer its
+        stop in time (frozen in ``step`` or ``teardown``) is left as it was, and
+        ``RuntimeTimeout`` says so and names ``force``; with ``force`` its worker is
+        killed instead (``Node.kill_module``: refused, the module left as it was, if the
+        worker runs others), and the rest of the removal is given ``KILLED_REMOVAL_S``
+        past the deadline of the call, which the stop used up. The killed worker's
+        process id, None if the module stopped."""
         node = self.node_of(name)
-        node.stop_module(name, STOP_TIMEOUT)
+        killed = None
+        try:
+            node.stop_module(name, STOP_TIMEOUT)
+        except RuntimeTimeout as exc:
+            if not force:
+                raise RuntimeTimeout(
+                    f"{exc}; module {name} was left as it was: remove({name!r}, "
+                    f"force=True) (`pb3a remove ADDR {name} --force`) kills its worker "
+                    "if it does not answer") from None
+            with lifted(), bounding(KILLED_REMOVAL_S):
+                try:
+                    killed = node.kill_module(name)
+                except RuntimeFailure as refused:
+                    raise RuntimeFailure(f"remove {name} with force: {exc}; {refused}") \
+                        from None
+                self._drop_stopped(name, node)
+            return killed
+        self._drop_stopped(name, node)
+        return killed
+
+    def _drop_stopped(self, name: str, node: Node) -> None:
+        """The end of a removal, the module stopped: its links unwired, then the module
+        dropped from its node and from the system."""
         for key in [k for k, link in self.links.items() if name in (link.src, link.dst)]:
             self.disconnect(key)
         node.remove_module(name)

@@ -386,18 +386,28 @@ class Operations:
             self._start(spec, [])           # (one that cannot start is not added)
         self.event_log.record("module_added", name, node=node)
 
-    def remove(self, name: str, *, timeout: float | None = None) -> None:
+    def remove(self, name: str, *, timeout: float | None = None, force: bool = False) -> None:
         """Stop a module (its ``teardown``), drop its links and free its process, all
-        within ``timeout``: a module that does not answer its stop by then is left as
-        it was, and ``RuntimeTimeout`` says so (its stop waited a fixed 6 s)."""
+        within ``timeout``: a module that does not answer its stop by then (frozen in
+        ``step`` or ``teardown``) is left as it was, and ``RuntimeTimeout`` says so (its
+        stop waited a fixed 6 s). With ``force`` its worker is killed (SIGKILL) instead,
+        its teardown unfinished, and it is dropped with its links all the same, a moment
+        past ``timeout`` (its ``module_removed`` event says ``killed``); not a worker
+        that runs other modules too, which would be lost with it: ``RuntimeFailure``
+        names them, the module left as it was."""
         with self._held(f"remove {name}", timeout) as left:
             links = [key for key, link in self.launcher.links.items()
                      if name in (link.src, link.dst)]
             with bounding(left()):
-                self.launcher.remove_module(name)
+                killed = self.launcher.remove_module(name, force=force)
         for key in links:       # (a reader of the events kept a link to nowhere)
             self.event_log.record("link_removed", key)
-        self.event_log.record("module_removed", name)
+        if killed is None:
+            self.event_log.record("module_removed", name)
+        else:
+            self.event_log.record("module_removed", name, killed=True, pid=killed,
+                                  reason="it did not answer its stop: its worker was "
+                                         "killed (its teardown did not finish)")
 
     def restart(self, name: str, *, timeout: float | None = None) -> None:
         """Stop a module (also a failed one) and start it again with its configured state

@@ -85,9 +85,10 @@ class RuntimeClient:
         """Start a new module (options as for ``System.add``)."""
         self._call("add", name, cls=cls, timeout=timeout, **options)
 
-    def remove(self, name: str, *, timeout: float | None = None) -> None:
-        """Stop and remove another module."""
-        self._call("remove", name, timeout=timeout)
+    def remove(self, name: str, *, timeout: float | None = None, force: bool = False) -> None:
+        """Stop and remove another module (``force``: killing its worker if it does not
+        answer, as ``Running.remove``)."""
+        self._call("remove", name, timeout=timeout, force=force)
 
     def stats(self, *, timeout: float | None = None) -> SystemStats:
         """The figures of the whole system, as ``Running.stats()``."""

@@ -450,6 +450,31 @@ class Executor:
         record.status = "stopped"
         self.lives.hold(record, False)
 
+    def kill_module(self, name: str) -> int:
+        """SIGKILL the worker of module ``name``, which did not answer its stop (frozen in
+        ``step`` or ``teardown``): a ``remove`` with ``force``. Not a crash, so no restart
+        follows; the module is stopped (its ``teardown`` unfinished), to be removed
+        (``remove_module``). The worker's process id. Refused (``RuntimeFailure``,
+        nothing done) if the worker runs other modules too (packed workers, a group):
+        they would be lost with it, and they are named."""
+        record = self.modules[name]
+        handle = self.workers[record.worker]
+        others = [other for other in handle.modules if other != name]
+        if others:
+            raise RuntimeFailure(
+                f"its worker {record.worker!r} was not killed: it also runs "
+                f"{', '.join(others)}, which would be lost with it (a worker runs several "
+                "modules when the node packs them, `workers = N`, or they share a group); "
+                f"remove {', '.join(others)} first, and force then kills it")
+        pid = handle.pid
+        if handle.alive:
+            self.workers.kill(record.worker)
+            log.warning("module %s did not answer its stop: its worker %s (pid %s) was "
+                        "killed, its teardown unfinished", name, record.worker, pid)
+        record.status = "stopped"
+        self.lives.hold(record, False)
+        return pid
+
     def remove_module(self, name: str) -> None:
         """Drop a module (its links are gone) and stop its worker if it hosted nothing else.
         A worker that does not answer in time (frozen, stuck) has the module dropped all

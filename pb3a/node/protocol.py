@@ -74,6 +74,11 @@ class Node(Protocol):
     def stop_module(self, name: str, timeout: float) -> None:
         """Stop stepping and dispatching, then run ``teardown``."""
 
+    def kill_module(self, name: str) -> int:
+        """SIGKILL the worker of a module that did not answer its stop (a ``remove`` with
+        ``force``), no restart following; the module is then stopped, to be removed. The
+        worker's process id; ``RuntimeFailure`` naming them if it runs other modules."""
+
     def remove_module(self, name: str) -> None:
         """Drop a stopped module whose links are gone; one whose worker does not answer
         in time is dropped all the same (the worker, left empty, stopped), and it raises."""

@@ -247,6 +247,9 @@ class RemoteNode:
     def stop_module(self, name: str, timeout: float) -> None:
         self._forward("stop_module", name, timeout, within=timeout + MARGIN_S)
 
+    def kill_module(self, name: str) -> int:
+        return self._forward("kill_module", name)
+
     def remove_module(self, name: str) -> None:
         self._forward("remove_module", name)
 

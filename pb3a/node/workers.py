@@ -561,6 +561,20 @@ class WorkerPool:
         handle.alive = False
         self._end(handle, timeout)
 
+    def kill(self, key: str) -> None:
+        """SIGKILL worker ``key`` now (a worker whose module did not answer its stop,
+        removed with ``force``), not as a crash: no restart follows. Its end is waited
+        for ``KILL_WAIT_S`` (a bound only); the handle stays, with its modules, until
+        they are removed (``retire``)."""
+        handle = self.handles[key]
+        handle.alive = False                # (the monitor takes its end for no death)
+        if handle.process is not None:
+            handle.process.kill()
+            handle.process.join(KILL_WAIT_S)
+        handle.close_pipe()
+        self._fail_requests(handle, "was killed")
+        self._poke()
+
     def _stop(self, handle: WorkerHandle, timeout: float, until: float | None = None) -> None:
         handle.alive = False
         bell, handle.bell = handle.bell, -1    # closed once (the number may be reused)
