@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import dataclasses
 import importlib
+import json
 import logging
 import multiprocessing
 import os
@@ -27,6 +28,7 @@ from sample_modules import (
     ArrayHolder,
     ArraySource,
     AsksInSetup,
+    BlocksInInit,
     Chatterbox,
     Collector,
     Counter,
@@ -56,6 +58,11 @@ from pb3a import (
     processes,
 )
 from pb3a.cli.status import format_table
+from pb3a.config.plan import FlatModule
+from pb3a.deadline import bounding
+from pb3a.loading.sources import CodeSources
+from pb3a.node.executor import Executor
+from pb3a.node.forkserver_owner import ORPHAN_GRACE_S
 from pb3a.transport.doorbell import new_bell
 from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import live_segments, segment_name
@@ -299,6 +306,76 @@ def test_no_processes_or_segments_survive_a_killed_launcher(tmp_path: Path) -> N
         if proc.poll() is None:
             proc.kill()
         proc.stdout.close()
+
+
+_STUCK_LAUNCHER = textwrap.dedent("""
+    import json, sys, time
+    sys.path.insert(0, sys.argv[1])
+    from sample_modules import Freezer
+    from pb3a import System
+
+    system = System("stuck-orphans")
+    for name in ("in_teardown", "stopped", "plain"):
+        system.add(name, Freezer)
+    run = system.launch(timeout=30)
+    run.set_state("in_teardown", freeze_in="teardown")
+    print(json.dumps({name: m.pid for name, m in run.stats().modules.items()}), flush=True)
+    time.sleep(120)
+""")
+
+
+def test_workers_that_do_not_read_their_pipe_end_with_their_killed_owner(
+        tmp_path: Path) -> None:
+    """A node's process (here a launcher, as a node's executor) killed with SIGKILL
+    while a worker of it is stopped (SIGSTOP), and another's module never returns from
+    its ``teardown``: neither reads the end of its pipe to the end, and both ran on for
+    good, with the forkserver, which each kept alive (a worker holds a write end of the
+    forkserver's pipe). The forkserver, which watches its owner, now ends them (SIGTERM,
+    then SIGKILL ``ORPHAN_GRACE_S`` later), and then itself."""
+    script = tmp_path / "launcher.py"
+    script.write_text(_STUCK_LAUNCHER)
+    proc = subprocess.Popen([sys.executable, str(script), str(Path(__file__).parent)],
+                            stdout=subprocess.PIPE, text=True)
+    pids: dict[str, int] = {}
+    try:
+        pids = json.loads(proc.stdout.readline())
+        assert set(pids) == {"in_teardown", "stopped", "plain"}
+        (forkserver,) = {psutil.Process(pid).ppid() for pid in pids.values()}
+        os.kill(pids["stopped"], signal.SIGSTOP)
+        proc.kill()
+        proc.wait(10)
+        eventually(lambda: not any(alive(pid) for pid in pids.values()),
+                   timeout=ORPHAN_GRACE_S + 5, what="every worker of the killed owner ended")
+        eventually(lambda: not alive(forkserver), what="its forkserver ended")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+        proc.stdout.close()
+        for pid in pids.values():                       # (left by a failure)
+            with contextlib.suppress(psutil.Error):
+                psutil.Process(pid).kill()
+
+
+def test_a_close_kills_a_worker_it_retired_in_the_background(tmp_path: Path) -> None:
+    """A worker retired without waiting (``retire(wait=False)``: an add that ran out of
+    time, a worker a move left empty) is stopped by a thread of its own: told to exit,
+    2 s; SIGTERM, 1 s; SIGKILL. A close waited for that thread until its deadline only,
+    so the worker outlived it (by seconds) and, if the closing process exited then, the
+    thread that was to kill it went with it. Now the close kills it once its time is up."""
+    cls = type("Blocker", (BlocksInInit,), {"pid_file": str(tmp_path / "pid")})
+    executor = Executor("n1", code=CodeSources())
+    try:
+        with bounding(1.0), pytest.raises(RuntimeTimeout):    # (its __init__ blocks 30 s)
+            executor.add_module(FlatModule("blocker", cls, "n1", 0.1, {}, "never"))
+        pid = int((tmp_path / "pid").read_text())
+        assert alive(pid)
+    finally:
+        began = time.monotonic()
+        executor.shutdown(timeout=0.5)
+        took = time.monotonic() - began
+    assert not alive(pid)
+    assert took < 1.5, f"the close took {took:.2f} s"
 
 
 def test_a_restarted_agent_may_ask_the_runtime_from_setup() -> None:

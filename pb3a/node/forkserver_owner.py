@@ -26,6 +26,12 @@ STOP_GRACE_S = 0.5
 # How long a killed forkserver is waited for, to reap it.
 KILL_WAIT_S = 5.0
 
+# How long the workers of an owner that has ended have, once its forkserver told them
+# to stop (SIGTERM), to tear their modules down and exit before it kills them
+# (``pb3a.node.forkserver_signals``): a node's shutdown gives a module's stop 2 s, and
+# a worker stops its modules one after another.
+ORPHAN_GRACE_S = 5.0
+
 # An entry of the preload list that names this process to the forkserver (it imports
 # nothing): ``pb3a.node.forkserver_signals`` ends the forkserver as its owner does.
 OWNER_MARK = "pb3a.node.forkserver_owner_pid_"

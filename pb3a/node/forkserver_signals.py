@@ -21,24 +21,42 @@ process the preload list names: the pipe alone is not enough, as a start request
 queued on the forkserver's socket, which it reads only once preloaded, carries a write
 end of its own) and the pipe (the owner closes its end to stop it,
 ``pb3a.node.forkserver_owner``), and ends the process as either ends.
+
+Once preloaded, the thread goes on watching the owner alone, and ends the workers when
+it ends. Each worker holds a write end of the pipe too, so the forkserver outlived a
+dead owner as long as one did, and nothing ended a worker that does not read its own
+pipe's end (stopped, frozen, stuck in a ``teardown`` or a module's construction):
+it ran on for good, with the forkserver, after its node's executor was SIGKILLed or
+its launcher exited with its stop still under way. Now the forkserver SIGTERMs every
+process it started (their modules stop and are torn down, as when a node stops),
+SIGKILLs those still there ``ORPHAN_GRACE_S`` later, and exits. (The owner's death,
+not the thread that started the forkserver, is what counts: ``PR_SET_PDEATHSIG`` in
+the forkserver would fire as the owner's thread that happened to start it ended, and
+in a worker only as the forkserver ended, which the workers themselves held off.)
+A worker inherits the thread's pidfd of the owner, which holds nothing open.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import select
 import signal
 import sys
 import threading
+import time
 from multiprocessing import forkserver
 
-from pb3a.node.forkserver_owner import OWNER_MARK
+from pb3a.node.forkserver_owner import ORPHAN_GRACE_S, OWNER_MARK
 from pb3a.processes import mark_as
 
 mark_as("the forkserver that starts a node's workers")
 
 for _signal in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
     signal.signal(_signal, signal.SIG_IGN)
+
+# How long ``preloaded`` waits for the watch to let go of the pipes it closes.
+SWITCH_WAIT_S = 5.0
 
 
 def _preloading() -> tuple[int, list[str]] | None:
@@ -64,22 +82,86 @@ def _named_owner(preload: list[str]) -> int | None:
 
 
 def _end_with_owner(alive_r: int, owner: int, preloaded_r: int) -> None:
-    """End the process once its owner (``owner``, a pidfd) ends or ``alive_r`` reads its
-    end (the owner closed it: no worker has been started yet to hold one), unless
-    ``preloaded_r`` says the preload is done first: multiprocessing's loop watches the
-    pipe from then on."""
+    """While the preload runs, end the process once its owner (``owner``, a pidfd) ends
+    or ``alive_r`` reads its end (the owner closed it: no worker has been started yet
+    to hold one). Once ``preloaded_r`` says the preload is done (multiprocessing's
+    loop watches the pipe from then on), end the workers when the owner ends."""
     poller = select.poll()
     for fd in (alive_r, owner, preloaded_r):
         poller.register(fd, select.POLLIN)
     while True:
         ready = {fd for fd, _ in poller.poll(1000)}
         if preloaded_r in ready:
-            return
+            break
         if ready:
             os._exit(0)        # (the main thread is in an import that may never end)
+    # From here the forkserver forks workers beside this thread: it holds no lock, and
+    # polls nothing a worker would need closed (a fork copies the calling thread alone)
+    poller.unregister(alive_r)
+    poller.unregister(preloaded_r)
+    _switched.set()
+    while not (events := dict(poller.poll())):
+        pass
+    if not events.get(owner, 0) & select.POLLIN:
+        return                 # (its pidfd was closed: nothing is watched any more)
+    _end_workers()
+    os._exit(0)                # (nothing is left to serve: its owner is gone)
+
+
+def _end_workers() -> None:
+    """SIGTERM every process this forkserver started, and SIGKILL those that have not
+    ended ``ORPHAN_GRACE_S`` later."""
+    workers = [fd for fd in map(_child_pidfd, _children()) if fd is not None]
+    for fd in workers:
+        with contextlib.suppress(ProcessLookupError):
+            signal.pidfd_send_signal(fd, signal.SIGTERM)
+    left = set(workers)
+    poller = select.poll()
+    for fd in workers:
+        poller.register(fd, select.POLLIN)     # (readable once it has ended)
+    deadline = time.monotonic() + ORPHAN_GRACE_S
+    while left and (wait := deadline - time.monotonic()) > 0:
+        for fd, _ in poller.poll(wait * 1000):
+            left.discard(fd)
+            poller.unregister(fd)
+    for fd in left:
+        with contextlib.suppress(ProcessLookupError):
+            signal.pidfd_send_signal(fd, signal.SIGKILL)
+    for fd in workers:
+        os.close(fd)
+
+
+def _children() -> list[int]:
+    """The process ids of this process's children (from /proc)."""
+    return [int(entry) for entry in os.listdir("/proc")
+            if entry.isdigit() and _parent_of(entry) == os.getpid()]
+
+
+def _parent_of(pid: str) -> int | None:
+    """The parent of process ``pid``, None if it cannot be read (it ended)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as stat:
+            # "pid (name) state ppid ...": the name may hold spaces and parentheses
+            return int(stat.read().rpartition(b")")[2].split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _child_pidfd(pid: int) -> int | None:
+    """A pidfd of ``pid`` if it is still this process's child (its number may have been
+    given to another process since it was listed), else None."""
+    try:
+        fd = os.pidfd_open(pid)
+    except OSError:
+        return None
+    if _parent_of(str(pid)) != os.getpid():
+        os.close(fd)
+        return None
+    return fd
 
 
 _watch: threading.Thread | None = None
+_switched = threading.Event()          # the watch no longer polls the preload's pipes
 if (_started := _preloading()) is not None \
         and (_owner_pid := _named_owner(_started[1])) is not None:
     try:
@@ -96,11 +178,12 @@ if (_started := _preloading()) is not None \
 
 
 def preloaded() -> None:
-    """The preload is done: the watch ends, before the forkserver forks any worker (a
-    fork copies the calling thread alone, and the watch's pipe would be the worker's)."""
+    """The preload is done: the watch lets go of the preload's pipe, which is closed
+    before the forkserver forks any worker (the worker would hold it), and watches the
+    owner alone from now on."""
     if _watch is None:
         return
     os.write(_preloaded_w, b"\x01")
-    _watch.join(5.0)
-    for fd in (_owner_fd, _preloaded_r, _preloaded_w):
+    _switched.wait(SWITCH_WAIT_S)
+    for fd in (_preloaded_r, _preloaded_w):
         os.close(fd)

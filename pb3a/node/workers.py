@@ -240,7 +240,8 @@ class WorkerPool:
         self._spares: list[WorkerHandle] = []      # booted, hosting nothing, not in handles
         self._spares_lock = threading.Lock()
         self._booting: threading.Thread | None = None      # booting spares
-        self._retiring: list[threading.Thread] = []        # stopping workers (retire, no wait)
+        # stopping workers (retire, no wait), each with the thread that stops it
+        self._retiring: list[tuple[threading.Thread, WorkerHandle]] = []
         # requests a spare is sent as it boots (its replicator opened, say): (op, args)
         self.spare_requests: list[tuple[str, dict[str, Any]]] = []
         self._wake_r, self._wake_w = socket.socketpair()
@@ -384,8 +385,9 @@ class WorkerPool:
             return
         stopping = threading.Thread(target=self._stop, args=(handle, timeout),
                                     name="pb3a-retire", daemon=True)
-        self._retiring = [thread for thread in self._retiring if thread.is_alive()]
-        self._retiring.append(stopping)
+        self._retiring = [(thread, retired) for thread, retired in self._retiring
+                          if thread.is_alive()]
+        self._retiring.append((stopping, handle))
         stopping.start()
 
     # -- requests ------------------------------------------------------------
@@ -628,7 +630,8 @@ class WorkerPool:
         (``forkserver_owner.stop_if_preloading``). Deaths from here on are stops, not
         crashes. Once the time is up, a worker that has not exited (frozen, stuck) is
         given ``EXIT_AT_LEAST_S`` to exit when told, then killed at once: a close
-        overruns its timeout by that much per such worker."""
+        overruns its timeout by that much per such worker. A worker retired in the
+        background (``retire(wait=False)``) that has not ended by then is killed too."""
         deadline = time.monotonic() + timeout
         self._stopping.set()
         if self._booting is not None:            # (it stops what it booted meanwhile)
@@ -638,8 +641,13 @@ class WorkerPool:
         for handle in [*spares, *reversed(list(self.handles.values()))]:
             left = deadline - time.monotonic()
             self._stop(handle, max(EXIT_AT_LEAST_S, min(2.0, left)), until=deadline)
-        for thread in self._retiring:
+        for thread, handle in self._retiring:
             thread.join(max(0.1, deadline - time.monotonic()))
+            if thread.is_alive() and handle.process is not None:
+                # its time is up, as for the workers above: killed, not left to the
+                # thread, which this process's exit may cut short before its own kill
+                handle.process.kill()
+                thread.join(KILL_WAIT_S)
         self._poke()
         self._monitor.join(2.0)
         self._wake_r.close()
