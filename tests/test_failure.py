@@ -378,6 +378,27 @@ def test_a_close_kills_a_worker_it_retired_in_the_background(tmp_path: Path) -> 
     assert took < 1.5, f"the close took {took:.2f} s"
 
 
+def test_an_add_whose_module_blocks_in_its_construction_keeps_its_timeout(
+        tmp_path: Path) -> None:
+    """``add(timeout=1)`` of a module whose construction does not end gives up after 1 s
+    (it waited for the worker's usual 10 s), adds nothing, and the rest runs on; the
+    close kills the worker it left."""
+    cls = type("Blocker", (BlocksInInit,), {"pid_file": str(tmp_path / "pid")})
+    system = System("add-blocks")
+    system.add("tick", Counter, period=0.01)
+    with system.launch() as run:
+        began = time.monotonic()
+        with pytest.raises(RuntimeTimeout, match="did not answer 'add' within 1 s"):
+            run.add("blocker", cls, timeout=1)
+        took = time.monotonic() - began
+        pid = int((tmp_path / "pid").read_text())
+        assert "blocker" not in run.configuration()["system"]["modules"]
+        steps = run.state("tick")["count"]
+        eventually(lambda: run.state("tick")["count"] > steps, what="tick steps on")
+    assert took < 2.0, f"the add took {took:.2f} s"
+    assert not alive(pid)
+
+
 def test_a_restarted_agent_may_ask_the_runtime_from_setup() -> None:
     """A restart runs ``setup`` without the configuration lock, as a launch does: an
     agent whose ``setup`` calls ``self.runtime`` restarts at once (not when its start

@@ -371,7 +371,7 @@ class Operations:
         wait = self._call_timeout(timeout)
         deadline = time.monotonic() + wait
         module_cls, unresolved = _resolved(cls, wait)
-        with self._held(f"add {name}", _left(deadline), lend=[name]):
+        with self._held(f"add {name}", _left(deadline), lend=[name]) as left:
             launcher = self.launcher
             node = node or next(iter(self.plan.nodes))
             problems = [unresolved] if module_cls is None else []
@@ -383,7 +383,8 @@ class Operations:
                               float(period) if period is not None else module_cls.period,
                               dict(state or {}), restart or module_cls.restart, group,
                               list(fallback or []), own_period=period is not None)
-            self._start(spec, [])           # (one that cannot start is not added)
+            with bounding(left()):          # (a construction that blocks, say)
+                self._start(spec, [])       # (one that cannot start is not added)
         self.event_log.record("module_added", name, node=node)
 
     def remove(self, name: str, *, timeout: float | None = None, force: bool = False) -> None:
