@@ -488,6 +488,53 @@ def test_a_move_that_fails_is_listed_among_the_events(lab: ManagerProcess, page:
     assert lab.api("GET", "/api/system")["modules"]["probe"]["node"] == "b"
 
 
+def test_a_module_that_does_not_answer_its_remove_is_killed_from_the_error(
+        tmp_path: Path) -> None:
+    """A remove of a module that does not answer its stop (its worker stopped, as a
+    hung one) was an error and nothing more: the module stayed, and the page had no way
+    to get rid of it but Stop. The error says so and offers **Kill its worker**, which
+    removes it with force: its worker killed, its links gone, the event saying why."""
+    config = tmp_path / "lab.toml"
+    config.write_text(LAB)
+    manager = ManagerProcess(str(config), "--timeout", "2")     # (each remove waits it)
+    try:
+        manager.api("POST", "/api/document/launch", {})
+        with chromium_page() as tab:
+            page = tab.page
+            page.goto(manager.url)
+            page.wait_for_function("document.querySelectorAll('.module').length === 4",
+                                   timeout=WAIT_MS)
+            pid = manager.api("GET", "/api/stats")["modules"]["probe"]["pid"]
+            os.kill(pid, signal.SIGSTOP)
+            try:
+                page.click("[data-module='probe'] .module-title")
+                page.click("#inspector-actions button.danger >> text=Remove")
+                page.click("dialog.confirm button[value=ok]")
+                offer = page.wait_for_selector(".toast.error >> text=Kill its worker",
+                                               timeout=WAIT_MS)
+                error = page.locator(".toast.error").last.text_content()
+                assert "module probe was left as it was" in error, error
+                assert "probe" in manager.api("GET", "/api/system")["modules"] and alive(pid)
+                page.screenshot(path=str(screenshot_path(tmp_path, "manager_remove_kill.png")))
+                offer.click()
+                page.wait_for_selector("[data-module='probe']", state="detached",
+                                       timeout=WAIT_MS)
+            finally:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGCONT)
+            assert not alive(pid)
+            system = manager.api("GET", "/api/system")
+            assert "probe" not in system["modules"]
+            assert "scale.y->probe.x" not in {link["key"] for link in system["links"]}
+            removed = page.wait_for_selector(".event[data-kind='module_removed']",
+                                             timeout=WAIT_MS)
+            assert "did not answer its stop" in removed.text_content()
+            page.wait_for_selector(".toast.ok >> text=Removed probe", timeout=WAIT_MS)
+            assert tab.errors == [], f"the page threw: {tab.errors}"
+    finally:
+        manager.stop()
+
+
 def test_dragging_a_module_onto_another_node_migrates_it(lab: ManagerProcess, page: Any,
                                                          tmp_path: Path) -> None:
     assert module_on_node(page, "probe", "b")

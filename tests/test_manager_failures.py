@@ -1,9 +1,11 @@
 """Real failures as the manager's page sees them, through the API and the websocket: a
 module that raises in its body, a module whose worker is killed (left failed, or
-restarted), and a remote node (``pb3a node start``) that is lost and then comes back."""
+restarted), a module that does not answer its remove, and a remote node (``pb3a node
+start``) that is lost and then comes back."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import time
@@ -14,7 +16,7 @@ import pytest
 
 pytest.importorskip("starlette", reason="the manager needs the 'ui' extra")
 
-from conftest import Daemon
+from conftest import Daemon, alive, eventually
 from sample_modules import Collector, Counter, Faulty, Steady
 from test_manager_api import manager_client
 
@@ -123,6 +125,49 @@ def test_a_restart_appears_on_the_feed_as_it_happens() -> None:
         seen = receive_until(socket, event_of("module_restarted", "victim"),
                              "the asked-for restart")
         assert seen[-1]["event"]["detail"]["reason"] == "asked"
+
+
+def test_a_module_that_does_not_answer_its_remove_is_killed_by_a_forced_one() -> None:
+    """``DELETE /api/modules/NAME`` of a module that does not answer (its worker stopped,
+    SIGSTOP: as a hung one) answered ``504`` and left it as it was, and the page had no
+    way to get rid of it but stopping the system. The ``504`` names force; ``?force=1``
+    kills its worker once the stop has had the manager's timeout and removes the module
+    with its links, the rest running on; a ``force`` that is neither 1 nor 0 is ``400``
+    and changes nothing."""
+    system = System("remove-forced").node("a")
+    system.add("c", Counter, node="a", period=0.01)
+    system.add("f", Collector, node="a")
+    system.add("d", Collector, node="a")
+    system.link("c.out", "f.x")
+    system.link("c.out", "d.x")
+    run = system.launch(timeout=30)
+    pid = run.stats().modules["f"].pid
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        with manager_client(Session(Document.empty(), run, timeout=1)) as client:
+            unclear = client.delete("/api/modules/f?force=yes")
+            assert unclear.status_code == 400 and "'force'" in unclear.json()["error"]
+            refused = client.delete("/api/modules/f")
+            assert refused.status_code == 504, refused.json()
+            assert "module f was left as it was" in refused.json()["error"]
+            assert "force" in refused.json()["error"]
+            assert "f" in run.topology().modules and alive(pid)
+            began = time.monotonic()
+            removed = client.delete("/api/modules/f?force=1")
+            took = time.monotonic() - began
+            assert removed.status_code == 200, removed.json()
+            assert took < 3.0, f"the forced remove took {took:.2f} s"
+            assert "f" not in removed.json()["modules"] and not alive(pid)
+            assert set(run.topology().links) == {"c.out->d.x"}
+            killed = [e for e in run.events() if e.kind == "module_removed"]
+            assert killed and killed[-1].subject == "f" and killed[-1].detail["killed"]
+            received = run.state("d")["received"]
+            eventually(lambda: run.state("d")["received"] > received + 20,
+                       what="values still flowing from c to d")
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGCONT)
+        run.close(timeout=5)
 
 
 def test_a_lost_remote_node_is_seen_lost_then_rejoined() -> None:

@@ -34,6 +34,7 @@ STATUS: list[tuple[type[BaseException], int]] = [
     (Malformed, 400), (ModuleNotFound, 404), (NotFound, 404), (Stale, 412), (Unfit, 422),
     (ConfigError, 409), (ChangedOnDisk, 409), (RuntimeTimeout, 504), (RuntimeFailure, 502),
 ]
+FLAGS = {"1": True, "true": True, "0": False, "false": False}   # a query's yes or no
 MOST_BODY_BYTES = 8_000_000          # a request body larger than this is refused
 _LONGEST_NAME = 255                  # bytes in a file's name (Linux's NAME_MAX)
 
@@ -165,7 +166,10 @@ def routes(session: Session) -> list[Route]:
         return await call(session.add, await body_of(request))
 
     async def remove(request: Request) -> Any:
-        return await call(session.remove, name(request))
+        force = request.query_params.get("force", "0")
+        if force not in FLAGS:
+            raise Malformed(f"'force' must be 1 or 0 (true or false), got {force!r}")
+        return await call(session.remove, name(request), FLAGS[force])
 
     async def restart(request: Request) -> Any:
         return await call(session.restart, name(request))

@@ -395,10 +395,11 @@ class Session:
         self.handle.restart(name, timeout=MOVE_TIMEOUT)
         return self.system()
 
-    def remove(self, name: str) -> dict[str, Any]:
-        """``DELETE /api/modules/{name}``."""
+    def remove(self, name: str, force: bool = False) -> dict[str, Any]:
+        """``DELETE /api/modules/{name}`` (``?force=1``: a module that does not answer its
+        stop in time has its worker killed, as ``pb3a remove --force``)."""
         self.topology_of(name)
-        self.handle.remove(name, timeout=self.timeout)
+        self.handle.remove(name, timeout=self.timeout, force=force)
         return self.system()
 
     def link(self, body: Any) -> dict[str, Any]:

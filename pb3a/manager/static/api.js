@@ -99,7 +99,7 @@ export const api = {
   swaps: (name) => request("GET", `/api/modules/${q(name)}/swaps`),
   swap: (name, cls) => request("POST", `/api/modules/${q(name)}/swap`, {class: cls}),
   addModule: (spec) => request("POST", "/api/modules", spec),
-  removeModule: (name) => request("DELETE", `/api/modules/${q(name)}`),
+  removeModule: (name, force = false) => request("DELETE", `/api/modules/${q(name)}${force ? "?force=1" : ""}`),
   link: (spec) => request("POST", "/api/links", spec),
   reload: (module) => request("POST", "/api/reload", {module}),
   restart: (name) => request("POST", `/api/modules/${q(name)}/restart`, {}),

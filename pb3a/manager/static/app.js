@@ -691,12 +691,23 @@ class Manager {
       await this.editDocument(() => this.document.remove(name));
       return;
     }
+    await this.removeRunning(name);
+  }
+
+  /** Remove a running module. One that does not answer its stop in time (a 504: frozen
+   * in a call, its worker stopped) is left as it was; the error offers to kill its
+   * worker, which sends the remove again with force. */
+  async removeRunning(name, force = false) {
+    const pending = force ? this.toasts.show("info", `Removing ${name}: its worker is killed if it does not answer…`, {seconds: 0}) : null;
     try {
-      await api.removeModule(name);
+      await api.removeModule(name, force);
       this.toasts.show("ok", `Removed ${name}`);
       await this.refreshStructure();
     } catch (error) {
-      this.toasts.error(error);
+      const offer = error.status === 504 && !force ? [["Kill its worker", () => this.removeRunning(name, true), "danger"]] : [];
+      this.toasts.error(error, offer);
+    } finally {
+      pending?.remove();
     }
   }
 

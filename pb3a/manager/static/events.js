@@ -41,6 +41,8 @@ function describe(event) {
       return d.modules?.length ? `with ${d.modules.join(", ")}` : "";
     case "module_added":
       return d.node ? `on ${d.node}` : "";
+    case "module_removed":       // (removed with force: its worker killed, with why)
+      return d.killed ? `${d.reason} (pid ${d.pid})` : "";
     default:
       return Object.entries(d).map(([k, v]) => `${k} ${typeof v === "object" ? JSON.stringify(v) : v}`)
         .join(", ");

@@ -8,14 +8,14 @@ export class Toasts {
     this.root = root;
   }
 
-  /** tone: "ok" | "error" | "info"; actions: [[label, callback], ...] */
+  /** tone: "ok" | "error" | "info"; actions: [[label, callback, "danger"?], ...] */
   show(tone, title, {lines = [], actions = [], seconds = tone === "error" ? 12 : 5} = {}) {
     const close = h("button", {class: "icon ghost", type: "button", title: "dismiss"}, "✕");
     const toast = h("div", {class: `toast ${tone}`, role: tone === "error" ? "alert" : "status"}, [
       h("div", {class: "toast-head"}, [h("strong", {}, title), close]),
       lines.length ? h("ul", {}, lines.map((line) => h("li", {}, line))) : null,
-      actions.length ? h("div", {class: "row-actions"}, actions.map(([label, act]) =>
-        h("button", {type: "button", class: "small", onclick: () => { remove(); act(); }}, label))) : null,
+      actions.length ? h("div", {class: "row-actions"}, actions.map(([label, act, style = ""]) =>
+        h("button", {type: "button", class: `small ${style}`.trim(), onclick: () => { remove(); act(); }}, label))) : null,
     ]);
     const remove = () => toast.remove();
     close.addEventListener("click", remove);
