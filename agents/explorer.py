@@ -25,7 +25,10 @@ arc it drives, in time for a robot that reacts late and brakes gently.
 
 A robot's pose may jump (the explorer handed, with its memory, to another robot):
 it then plans afresh from there at once, and holds nothing of the jump against a
-frontier.
+frontier. The map may hold the new robot's body as the first robot's sonar drew it,
+an arc wider than the body, so near where it was handed over the map's walls give way
+to what the new robot's own sonar hears; and the robot it drove before stands at the
+end of its trail, so the trail there is dropped and that robot's body kept clear of.
 
 Neither class knows PB3A; the ``Explorer`` module puts the explorer behind ports.
 """
@@ -143,6 +146,8 @@ class FrontierPlanner:
             proximity_cost, min_region, min_unknown)
         self.gain_weight, self.keep_bonus, self.keep_radius = gain_weight, keep_bonus, keep_radius
         self.blacklist_radius = blacklist_radius
+        self.body_smear = 0.75         # m round ``plan``'s ``handed_at`` (within the
+                                       # echoes a robot's ring plans round)
         self.min_beyond = 30           # cells of free space out of reach worth a look
         self.closer_cost = 20.0        # shortfall_cost times this with ``plan``'s ``closer``
         self.look_behind_walls = look_behind_walls
@@ -175,7 +180,7 @@ class FrontierPlanner:
     def plan(self, probabilities: np.ndarray, pose: Any,
              blacklist: np.ndarray | None = None, keep: Any = None,
              trail: np.ndarray | None = None, obstacles: np.ndarray | None = None,
-             closer: Any = None) -> Plan:
+             closer: Any = None, handed_at: Any = None) -> Plan:
         """The best frontier for a robot at ``pose`` (x, y, heading) and the path to
         it, trying the true frontiers before hidden ones, each with ``clearance``
         before ``squeeze`` (the robot's reflexes guard a tight passage). Frontier
@@ -186,7 +191,12 @@ class FrontierPlanner:
         lately, close by) are kept clear of as if the map had them occupied, as a
         sonar map loses walls that beams graze. With ``closer`` (x, y: a frontier it
         looked at in vain from where it stood) it plans a path to the cell nearest
-        that point that the robot reaches in sight of it, and nothing else."""
+        that point that the robot reaches in sight of it, and nothing else. With
+        ``handed_at`` (x, y: where the robot stood while another robot mapped, the
+        explorer then handed to it), cells the map has occupied within
+        ``body_smear`` m of that point are free unless ``obstacles`` has them: the
+        other robot's sonar drew this robot's body there as an arc across its 30
+        degree cone, wider than the body, walling it in."""
         if probabilities.shape != self.grid.shape:
             raise ValueError(f"the map is {probabilities.shape} cells, the planner's grid "
                              f"{self.grid.shape}: plan on the map's grid")
@@ -198,6 +208,11 @@ class FrontierPlanner:
         # to it)
         off = np.hypot(self.xs - pose[0], self.ys - pose[1])
         occupied &= off > RADIUS
+        if handed_at is not None and len(handed_at):
+            body = occupied & (np.hypot(self.xs - handed_at[0], self.ys - handed_at[1])
+                               <= self.body_smear)
+            occupied &= ~body
+            free |= body
         underfoot = (off <= RADIUS + grid.resolution) & ~occupied
         underfoot[self._cell(pose)] = True
         if trail is not None:
@@ -355,7 +370,7 @@ class FrontierExplorer:
 
     MEMORY = ("target", "path", "blacklist", "done", "plans", "replans", "stuck", "clock",
               "behind_wall", "planned_at", "anchor", "looking_until", "looked_at", "trail",
-              "last_pose", "echoes")
+              "last_pose", "echoes", "handed_at")
 
     def __init__(self, grid: Grid, *, max_speed: float = 0.4, max_turn: float = 1.0,
                  clearance: float = 0.1, lookahead: float = 0.5, replan_every: float = 2.0,
@@ -381,6 +396,9 @@ class FrontierExplorer:
         self.min_speed = 0.05          # m/s: slower than this on its arc, it turns instead
         self.nearer_by = 0.2           # m nearer a frontier it looked at in vain worth going
         self.look_ahead_travel = 1.0   # m along its arc it checks for echoes
+        self.left_behind = 1.0         # m round a robot it was handed from whose trail
+                                       # is dropped (one whose link was cut runs on a
+                                       # little after its last report)
         self._heard = np.zeros((0, 3))  # echoes (world x, y, clock): not memory, as a move
                                         # to another robot leaves them behind
         self.target: list[float] = []  # (x, y) of the frontier it goes to
@@ -399,6 +417,8 @@ class FrontierExplorer:
         self.trail = np.zeros(grid.shape, dtype=bool)   # cells its centre has been near
         self.last_pose: list[float] = []     # (x, y) at the last step
         self.echoes = np.zeros(grid.shape, dtype=bool)  # cells it heard an echo in, close by
+        self.handed_at: list[float] = []     # (x, y) where it was handed to this robot,
+                                             # until the robot leaves the body's smear
 
     def memory(self) -> dict[str, Any]:
         """What it needs to carry on elsewhere."""
@@ -424,7 +444,10 @@ class FrontierExplorer:
         x, y = float(pose[0]), float(pose[1])
         if self.last_pose and math.hypot(x - self.last_pose[0],
                                          y - self.last_pose[1]) > self.jump_distance:
-            self._jumped(x, y)
+            self._jumped(x, y, *self.last_pose)
+        elif self.handed_at and math.hypot(x - self.handed_at[0], y - self.handed_at[1]) \
+                > self.planner.body_smear:
+            self.handed_at = []
         self.last_pose = [x, y]
         self._leave_trail(x, y)
         if sonar is not None:
@@ -447,16 +470,23 @@ class FrontierExplorer:
         v, w = self._pursue(pose)
         return self._reflexes(v, w, sonar, pose) if sonar is not None else (v, w)
 
-    def _jumped(self, x: float, y: float) -> None:
+    def _jumped(self, x: float, y: float, left_x: float, left_y: float) -> None:
         """The pose jumped further than a robot moves in a step: the explorer was
         handed to another robot (or the localization was reset). What it was doing
         was for where it was; it plans afresh from here at once, setting nothing
-        aside for the jump."""
+        aside for the jump. The robot it drove stands where it left it (``left_x``,
+        ``left_y``), at the end of its trail: the trail there is no way through
+        any more, and its body is an obstacle (else the planner, trusting the
+        trail over the map and the echoes, routes the new robot through it)."""
         self.anchor = [x, y, self.clock]
         self.looking_until, self.looked_at = -math.inf, []
         self.target, self.path, self.behind_wall = [], np.zeros((0, 3)), False
         self.planned_at, self.done = -math.inf, False
         self._heard = np.zeros((0, 3))
+        left = np.hypot(self.planner.xs - left_x, self.planner.ys - left_y)
+        self.trail[left <= self.left_behind] = False
+        self.echoes[left <= RADIUS] = True
+        self.handed_at = [x, y]
 
     # -- deciding when to plan ----------------------------------------------------------
     def _standing(self, x: float, y: float) -> bool:
@@ -494,10 +524,15 @@ class FrontierExplorer:
         return bool(edge[max(0, r - 1):r + 2, max(0, c - 1):c + 2].any())
 
     def _path_blocked(self, probabilities: np.ndarray) -> bool:
-        """Whether a cell of the path ahead, off the trail, has been mapped occupied
+        """Whether a cell of the path ahead, off the trail (and off the robot's body
+        as the robot before it mapped it, see ``handed_at``), has been mapped occupied
         since it was planned, or the robot heard an echo close to it since."""
         rows, cols = self.planner.grid.cell(self.path[:, 0], self.path[:, 1])
-        if ((probabilities[rows, cols] > OCCUPIED_ABOVE) & ~self.trail[rows, cols]).any():
+        mapped = (probabilities[rows, cols] > OCCUPIED_ABOVE) & ~self.trail[rows, cols]
+        if self.handed_at:
+            mapped &= np.hypot(self.path[:, 0] - self.handed_at[0],
+                               self.path[:, 1] - self.handed_at[1]) > self.planner.body_smear
+        if mapped.any():
             return True
         heard = self._heard[(self._heard[:, 2] > self.planned_at)
                             & (self._heard[:, 2] > self.clock - self.echo_memory)]
@@ -532,7 +567,8 @@ class FrontierExplorer:
         self.looked_at = [entry for entry in self.looked_at
                           if entry[4] > self.clock - self.forget_after]
         plan = self.planner.plan(probabilities, pose, np.array(active).reshape(-1, 2),
-                                 keep=self.target, trail=self.trail, obstacles=self.echoes)
+                                 keep=self.target, trail=self.trail, obstacles=self.echoes,
+                                 handed_at=self.handed_at)
         self.plans += 1
         self.replans += pursuing
         self.planned_at = self.clock
@@ -561,7 +597,8 @@ class FrontierExplorer:
             else:
                 if not looked[3]:
                     nearer = self.planner.plan(probabilities, pose, trail=self.trail,
-                                               obstacles=self.echoes, closer=plan.target)
+                                               obstacles=self.echoes, closer=plan.target,
+                                               handed_at=self.handed_at)
                     if nearer.target is not None and math.hypot(
                             nearer.path[-1, 0] - x, nearer.path[-1, 1] - y) \
                             >= self.arrive_within + self.nearer_by:
@@ -767,6 +804,7 @@ class Explorer(Module):
     last_pose: list[float] = []    # (x, y) at the last step: a pose far from it is a jump
     echoes = np.zeros((0, 0), dtype=bool)  # cells it heard an echo in, close by (sized in
                                            # setup)
+    handed_at: list[float] = []    # (x, y) where it was handed to this robot, while near it
 
     def setup(self) -> None:
         self._make()

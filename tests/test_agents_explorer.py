@@ -524,6 +524,48 @@ def test_handed_to_another_robot_it_plans_afresh_there_and_holds_nothing_against
     assert not explorer.done and run["coverage"][-1][1] > run["coverage"][3][1]
 
 
+def test_handed_to_a_robot_the_other_drew_as_a_wall_it_drives_through_that_wall() -> None:
+    # The lab's standby robot, seen by the mapping robot's sonar from down the
+    # corridor, was drawn as an arc across the corridor (a 30 degree cone is wider
+    # than a body) 0.4 m from where it stands: handed the explorer, it looked at the
+    # pocket behind it and looped round the arc for 20 s of its 40.
+    grid, probabilities = _room(8.0, 3.0)
+    probabilities[1:-1, 1:16] = UNKNOWN            # the west end, unseen
+    probabilities[3:24, 61] = OCCUPIED_P           # the arc, 0.4 m west of the standby
+    explorer = FrontierExplorer(grid)
+    explorer.step(probabilities, (3.0, 1.0, 0.0), None, TICK)   # the first robot
+    explorer.step(probabilities, (6.5, 1.5, math.pi), None, TICK)   # handed over
+    assert explorer.target and explorer.target[0] < 2.0 and not explorer.behind_wall
+    x, y, _ = explorer.path.T
+    through = np.abs(x - 6.15) < 0.06
+    assert through.any() and ((y[through] > 0.5) & (y[through] < 2.3)).all()   # not round
+    assert explorer.handed_at == [6.5, 1.5]
+    for step in range(1, 10):                      # once it has left the arc behind,
+        explorer.step(probabilities, (6.5 - 0.1 * step, 1.5, math.pi), None, TICK)
+    assert explorer.handed_at == []                # the map has its word there again
+
+
+def test_handed_to_another_robot_it_does_not_plan_through_the_one_left_on_its_trail(
+        ) -> None:
+    # The failed robot stands where its trail ends, in a doorway: the trail, which
+    # the planner trusts over the map and the echoes, led the standby into it.
+    grid, probabilities = _room(8.0, 4.0)
+    probabilities[20, :] = OCCUPIED_P              # a wall at y = 2 m with two doorways,
+    probabilities[20, 55:65] = FREE_P              # x 5.5-6.5 m
+    probabilities[20, 15:25] = FREE_P              # and x 1.5-2.5 m
+    probabilities[33:-1, 1:-1] = UNKNOWN           # beyond, unseen from y = 3.3 m on
+    explorer = FrontierExplorer(grid)
+    explorer.trail[10, 10:61] = True               # along y = 1 m, then up into the
+    explorer.trail[10:21, 60] = True               # doorway at x = 6 m, where it stops
+    left = (6.05, 2.05, math.pi / 2)
+    explorer.step(probabilities, left, None, TICK)
+    explorer.step(probabilities, (7.0, 1.0, math.pi), None, TICK)   # handed over
+    x, y, _ = explorer.path.T
+    assert np.hypot(x - left[0], y - left[1]).min() > 2 * RADIUS
+    assert (np.hypot(x - 2.05, y - 2.05) < 0.2).any()          # through the other doorway
+    assert explorer.trail[10, 10:40].all() and not explorer.trail[15:21, 60].any()
+
+
 def test_looking_does_not_count_against_its_patience_and_a_stale_pose_stops_its_clock(
         ) -> None:
     grid, probabilities = _room(8.0, 4.0)
