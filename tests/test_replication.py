@@ -1685,3 +1685,80 @@ def test_a_follower_served_on_its_own_that_becomes_lossless_takes_its_replay_onc
         fast.close()
         slow.close()
         replicator.close()
+
+
+@pytest.mark.timeout(90)
+@pytest.mark.parametrize("lost", ["RESUME", "RESUME, lossless", "DIRECT"])
+def test_a_mode_switch_lost_on_the_way_to_a_slow_follower_is_said_again(
+        monkeypatch, lost: str) -> None:
+    """The first RESUME or DIRECT sent to a slow follower (a fast one beside it) is lost
+    on the way, as a ROUTER drops what it sends to a peer whose connection is down: the
+    follower still switches, within about an acknowledgement's idle time and a frame's
+    crossing (2 s), and every frame arrives or is counted dropped, in order, once (a
+    lossless one gets every frame from where it resumed). A RESUME lost left the
+    follower served on its own, its SUB connection closed, waiting on its control
+    connection for frames that all went to PUB: nothing more arrived, nor was counted,
+    for as long as it followed (a lossless one held the writer's replay buffer, too).
+    ``RESUME``: the fast one unfollows (the slow one is the only follower); ``RESUME,
+    lossless``: the slow one's link becomes lossless; ``DIRECT``: the switch to being
+    served on its own is lost (said again at each heartbeat)."""
+    kind = replication.DIRECT if lost == "DIRECT" else replication.RESUME
+    dropped: list[float] = []                   # when
+    send_router = Replicator._send_router
+
+    def losing(self: Replicator, peer: Any, sent: int, parts: list[Any]) -> None:
+        if sent == kind and not dropped:
+            dropped.append(time.monotonic())
+            return                               # lost on the way
+        send_router(self, peer, sent, parts)
+    monkeypatch.setattr(Replicator, "_send_router", losing)
+    replicator, slow_inbox = Replicator(KEY), Inbox()
+    fast, slow = Follower(KEY, Inbox()), Follower(KEY, slow_inbox)
+    camera = _Camera(replicator)
+    try:
+        with Throttle(2e6) as radio:
+            _slow_beside_fast(replicator, camera, fast, slow, radio)
+            switched = time.monotonic()          # (DIRECT: served on its own now)
+            stream = replicator._topics["camera"]
+            follow = slow._follows[b"camera\0"]
+            if lost != "DIRECT":
+                if lost == "RESUME":
+                    fast.unfollow("camera")
+                else:
+                    camera.write(10)             # (frames it did not get: a backlog)
+                    slow.set_lossless("camera", True)
+                camera.write(40, until=lambda: dropped)
+                assert dropped and not stream.direct, "no RESUME was sent"
+                camera.write(60, until=lambda: not _served_on_its_own(slow)
+                             and not follow.joining)
+                switched = time.monotonic()
+                assert not _served_on_its_own(slow), "still served on its own"
+            assert dropped, f"no {lost} was sent"
+            took = switched - dropped[0]
+            assert took < 2.0, f"switched {took:.2f} s after the {lost} was lost"
+            back = stream.next_seq
+            # (where it is as it goes back: the values before, announced not sent before
+            # the sender knew it lossless, are counted dropped as with no RESUME lost)
+            start, dropped_then = slow._loop.call(lambda: (follow.next_seq,
+                                                           slow.dropped["camera"]))
+            camera.write(20)
+            got = slow_inbox.values.setdefault("camera", [])
+            if lost == "RESUME, lossless":
+                assert slow.wait_delivered("camera", camera.written, timeout=40.0)
+            else:
+                eventually(lambda: len(got) + slow.dropped["camera"] == camera.written,
+                           timeout=15.0, what="every frame received or counted dropped")
+            time.sleep(2 * replication.HEARTBEAT_S)     # (what a count overshoots by)
+            assert len(got) + slow.dropped["camera"] == camera.written
+        numbers = [int(frame[0]) for frame in got]
+        assert numbers == sorted(set(numbers)) and numbers[-1] >= back, numbers
+        assert not slow.link_failures
+        if lost == "RESUME, lossless":       # (nothing dropped since it went back)
+            assert [n for n in numbers if n >= start] == list(range(start, camera.written))
+            assert slow.dropped["camera"] == dropped_then
+        else:         # (a lossless one's replay shares the link with PUB: its repair may
+            assert not slow.duplicates          # be asked again, a frame come twice)
+    finally:
+        fast.close()
+        slow.close()
+        replicator.close()

@@ -81,7 +81,17 @@ values in sequence order, exactly once:
   buffer's bound. A silent one stays DIRECT until it is live again (a RESUME sent to a
   cut link may be lost). The RESUME goes behind what is on the way to it, which
   arrives; a repair it asked before it took the RESUME in is answered SKIPPED for the
-  values before it (it counts them dropped), not replayed.
+  values before it (it counts them dropped), not replayed. Either switch may be lost
+  on the way (a ROUTER drops what it sends to a peer whose connection is down), so
+  each is said again until the two sides agree: a lost DIRECT at the next heartbeat;
+  a lost RESUME at the follower's next ACK, which says it is served on its own
+  (``SERVED_DIRECT``, one flag of the ACK: a wire change, both ends must run this
+  version) while the publisher serves it over PUB: the publisher answers RESUME again,
+  from the start the lost one said (one that crossed the ACK and was taken in says
+  nothing new then), or, lossless, from where the ACK says it is. Without it, a
+  follower whose RESUME was lost kept its SUB connection closed and waited on its
+  control connection for values that all went to PUB: nothing more arrived, nor was
+  counted, for as long as it followed.
 - Lossless followers. A follower whose receiver must not drop (a ``lossless`` link)
   says so in its HELLO and ACKs, and acknowledges only what its receiver has put
   through. Such a follower holds the publisher back for as long as the writer's
@@ -151,6 +161,7 @@ from pb3a.transport.replication.wire import (
     REPAIR_RETRY_S,
     REPLAYED,
     RESUME,
+    SERVED_DIRECT,
     SILENT_S,
     SKIPPED,
     SYNC,
@@ -177,6 +188,7 @@ __all__ = [
     "REPAIR_RETRY_S",
     "REPLAYED",
     "RESUME",
+    "SERVED_DIRECT",
     "SILENT_S",
     "SKIPPED",
     "SYNC",

@@ -43,6 +43,7 @@ from pb3a.transport.replication.wire import (
     REPAIR_RETRY_S,
     REPLAYED,
     RESUME,
+    SERVED_DIRECT,
     SKIPPED,
     SYNC,
     VALUE,
@@ -679,10 +680,12 @@ class Follower:
         return through > follow.acked and follow.moved_bytes - follow.acked_bytes >= ACK_BYTES
 
     def _acknowledge(self, follow: _Follow) -> None:
-        """Tell the publisher how far we are: it may run at most its window ahead."""
+        """Tell the publisher how far we are (it may run at most its window ahead), and
+        whether it serves us on our own: a RESUME lost on the way is then said again."""
         follow.acked, follow.acked_at = follow.through, time.monotonic()
         follow.acked_bytes = follow.moved_bytes
-        self._ask(follow, ACK, follow.acked, self._flags(follow))
+        flags = self._flags(follow) | (SERVED_DIRECT if follow.direct else 0)
+        self._ask(follow, ACK, follow.acked, flags)
 
     def _retry(self) -> None:
         now = time.monotonic()

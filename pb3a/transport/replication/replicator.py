@@ -49,6 +49,7 @@ from pb3a.transport.replication.wire import (
     RESUME,
     SCALAR_BYTES,
     SCALARS,
+    SERVED_DIRECT,
     SKIP_RUNS,
     SKIPPED,
     SYNC,
@@ -669,6 +670,16 @@ class Replicator:
         self._send_router(peer, RESUME, [stream.name, ANSWER.pack(self.incarnation, start, 0)])
         stream.clear_until = 0
 
+    def _resume_again(self, stream: _Stream, peer: bytes, acked: int) -> None:
+        """A follower served over PUB says it is served on its own: the RESUME sent to
+        it was lost on the way (a ROUTER drops what it sends to a peer whose connection
+        is down), and it waits on its control connection, its SUB connection closed,
+        for values that all go to PUB. Say it again, from where the last one said (one
+        it took in already, crossing its acknowledgement, then says nothing new), or,
+        a lossless follower's, from where it is (``acked``) (lock held, loop thread)."""
+        start = stream.resumed.get(peer, acked)
+        self._send_router(peer, RESUME, [stream.name, ANSWER.pack(self.incarnation, start, 0)])
+
     def _resume_alone(self, stream: _Stream, now: float) -> None:
         """No live follower is served over PUB any more (the fast one unfollowed, was
         forgotten with its lost node, or has been silent for ``FOLLOWER_TIMEOUT``): the
@@ -677,8 +688,8 @@ class Replicator:
         until a lone one is acknowledged in time). Left on its own, every value went to
         PUB for nobody and was kept, up to the replay buffer's bound. Another one served
         on its own stays so, beside it; a silent one stays so until it is live again (a
-        RESUME to a cut link may be lost, and it would then wait for nothing) (lock
-        held, on the loop's thread)."""
+        RESUME to a cut link may be lost, and is said again only at its next ACK: see
+        ``_resume_again``) (lock held, on the loop's thread)."""
         if not stream.direct or stream.holds or stream.lead(now) is not None:
             return               # (a lossless follower: no flight, PUB would queue it all)
         live = [(stream.acks[peer][0], peer) for peer in stream.direct
@@ -820,6 +831,8 @@ class Replicator:
                     stream.acks[peer_id] = (max(first, known[0]) if known else first, now)
                     stream.hold(peer_id, first, last)
                     if direct is None:
+                        if last & SERVED_DIRECT:     # its RESUME was lost on the way
+                            self._resume_again(stream, peer_id, first)
                         self._pace(stream, before, now)
                         self._find_slow(stream, now)
                     elif last & LOSSLESS:            # (it must not drop now)

@@ -32,6 +32,8 @@ NOBODY = bytes(16)
 LOSSLESS = 1                            # flag of HELLO and ACK: hold the publisher back
 WAITING = 2                             # flag of HELLO: the replay an earlier one asked for
                                         # is on its way: answer WELCOME and SYNC only
+SERVED_DIRECT = 4                       # flag of ACK: it is served on its own (DIRECT); a
+                                        # sender serving it over PUB says RESUME again
 ANSWER = struct.Struct("<16sqq")       # WELCOME: incarnation, next, a replay follows (1)
                                         # or not (0); REPLAYED: first, gone;
                                         # SKIPPED: first, count; SYNC: next, skipped before it;
