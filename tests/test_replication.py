@@ -1212,6 +1212,15 @@ def _served_on_its_own(follower: Follower) -> bool:
     return follow is not None and follow.direct
 
 
+def _every_frame_received_or_dropped(got: list, follower: Follower, camera: _Camera) -> None:
+    """Every frame the camera wrote is received or counted dropped by ``follower``, and
+    still so two heartbeats later (what a count overshoots by, a late repair's answer)."""
+    eventually(lambda: len(got) + follower.dropped["camera"] == camera.written,
+               timeout=15.0, what="every frame received or counted dropped")
+    time.sleep(2 * replication.HEARTBEAT_S)
+    assert len(got) + follower.dropped["camera"] == camera.written
+
+
 def _slow_beside_fast(replicator: Replicator, camera: _Camera, fast: Follower,
                       slow: Follower, radio: Throttle) -> None:
     """``fast`` follows the camera directly and ``slow`` through ``radio``, from its first
@@ -1262,10 +1271,7 @@ def test_a_follower_served_on_its_own_that_went_silent_is_served_again_once_back
             before = camera.written
             camera.write(40)
             got = slow_inbox.values.setdefault("camera", [])
-            eventually(lambda: len(got) + slow.dropped["camera"] == camera.written,
-                       timeout=15.0, what="every frame received or counted dropped")
-            time.sleep(2 * replication.HEARTBEAT_S)     # (what a count overshoots by)
-            assert len(got) + slow.dropped["camera"] == camera.written
+            _every_frame_received_or_dropped(got, slow, camera)
             assert not stream.direct and not _served_on_its_own(slow), "not back on PUB"
             reconnected = radio.connections[replicator.control_address]
         assert reconnected == (2 if cut else 1), radio.connections    # (its control link)
@@ -1311,10 +1317,7 @@ def test_a_repair_by_a_follower_served_on_its_own_is_answered_skipped_not_replay
             start = next(iter(list(replicator._topics["camera"].direct.values()))).start
             camera.write(60)
             got = slow_inbox.values.setdefault("camera", [])
-            eventually(lambda: len(got) + slow.dropped["camera"] == camera.written,
-                       timeout=15.0, what="every frame received or counted dropped")
-            time.sleep(2 * replication.HEARTBEAT_S)     # (a late repair's answer)
-            assert len(got) + slow.dropped["camera"] == camera.written
+            _every_frame_received_or_dropped(got, slow, camera)
         numbers = [int(frame[0]) for frame in got]
         assert len(lost) == 3, "fewer notices of frames not sent than the test loses"
         assert len(sent) == len([number for number in numbers if number >= start]), numbers
@@ -1367,10 +1370,7 @@ def test_a_follower_served_on_its_own_goes_back_to_pub_once_no_faster_one_follow
             kept = [sent for sent in list(stream.replay) if sent.first >= back]
             assert len(kept) <= 10, f"{len(kept)} of 40 frames kept for a slow follower"
             got = slow_inbox.values.setdefault("camera", [])
-            eventually(lambda: len(got) + slow.dropped["camera"] == camera.written,
-                       timeout=15.0, what="every frame received or counted dropped")
-            time.sleep(2 * replication.HEARTBEAT_S)     # (what a count overshoots by)
-            assert len(got) + slow.dropped["camera"] == camera.written
+            _every_frame_received_or_dropped(got, slow, camera)
             numbers = [int(frame[0]) for frame in got]
             assert numbers == sorted(set(numbers)) and numbers[-1] >= back, numbers
             assert not slow.link_failures and not slow.duplicates
@@ -1418,10 +1418,7 @@ def test_a_frame_on_its_way_to_a_follower_served_on_its_own_as_the_fast_one_goes
                        timeout=10.0, what="the slow follower subscribed again")
             back = stream.next_seq
             camera.write(20)
-            eventually(lambda: len(got) + slow.dropped["camera"] == camera.written,
-                       timeout=15.0, what="every frame received or counted dropped")
-            time.sleep(2 * replication.HEARTBEAT_S)     # (what a count overshoots by)
-            assert len(got) + slow.dropped["camera"] == camera.written
+            _every_frame_received_or_dropped(got, slow, camera)
         numbers = [int(frame[0]) for frame in got]
         assert on_way in numbers, (on_way, numbers)
         assert numbers == sorted(set(numbers)) and numbers[-1] >= back, numbers
@@ -1518,10 +1515,7 @@ def test_of_two_followers_served_on_their_own_one_leads_on_pub_once_the_fast_one
                        what="the other one subscribed again")
             camera.write(20)
             got = inboxes[slows.index(other)].values.setdefault("camera", [])
-            eventually(lambda: len(got) + other.dropped["camera"] == camera.written,
-                       timeout=15.0, what="every frame received or counted dropped")
-            time.sleep(2 * replication.HEARTBEAT_S)     # (what a count overshoots by)
-            assert len(got) + other.dropped["camera"] == camera.written
+            _every_frame_received_or_dropped(got, other, camera)
         for slow, inbox in zip(slows, inboxes, strict=True):
             numbers = [int(frame[0]) for frame in inbox.values.get("camera", [])]
             assert numbers == sorted(set(numbers)), numbers
@@ -1746,10 +1740,7 @@ def test_a_mode_switch_lost_on_the_way_to_a_slow_follower_is_said_again(
             if lost == "RESUME, lossless":
                 assert slow.wait_delivered("camera", camera.written, timeout=40.0)
             else:
-                eventually(lambda: len(got) + slow.dropped["camera"] == camera.written,
-                           timeout=15.0, what="every frame received or counted dropped")
-            time.sleep(2 * replication.HEARTBEAT_S)     # (what a count overshoots by)
-            assert len(got) + slow.dropped["camera"] == camera.written
+                _every_frame_received_or_dropped(got, slow, camera)
         numbers = [int(frame[0]) for frame in got]
         assert numbers == sorted(set(numbers)) and numbers[-1] >= back, numbers
         assert not slow.link_failures
