@@ -318,6 +318,25 @@ def test_a_closed_socket_frees_its_port_before_close_bound_returns() -> None:
     ControlServer(KEY, handler, port=int(port)).close()
 
 
+def test_a_close_bound_that_gave_up_waiting_leaves_later_closes_unharmed(caplog) -> None:
+    """A ``close_bound`` that gives up waiting (2 s, under heavy load) keeps its monitor
+    until ZeroMQ has said it stopped: closed at once, ZeroMQ's reaper thread blocked for
+    good sending it that, and every socket the process closed after it kept its port and
+    descriptors (each later ``close_bound`` waited its 2 s: "ports were not free")."""
+    context = zmq.Context.instance()
+    sock = context.socket(zmq.ROUTER)
+    bind_advertised(sock, "127.0.0.1")
+    close_bound(sock, timeout=0.0)                   # (gives up at once)
+    for _ in range(3):
+        sock = context.socket(zmq.ROUTER)
+        bind_advertised(sock, "127.0.0.1")
+        caplog.clear()
+        started = time.monotonic()
+        close_bound(sock, timeout=5.0)
+        assert time.monotonic() - started < 4.0, "a socket closed later is never freed"
+        assert "not free" not in caplog.text
+
+
 def test_a_server_on_a_port_in_use_is_refused_and_leaves_no_socket_behind() -> None:
     server = ControlServer(KEY, handler)
     try:

@@ -30,6 +30,8 @@ T = TypeVar("T")
 
 log = logging.getLogger("pb3a.addresses")
 _CLOSINGS = itertools.count()        # names the monitor of each socket close_bound closes
+_UNSTOPPED: list[zmq.Socket] = []    # monitors of sockets close_bound gave up waiting for
+_UNSTOPPED_LOCK = threading.Lock()
 
 
 def bind_advertised(sock: zmq.Socket, host: str, port: int = 0) -> str:
@@ -186,7 +188,8 @@ def close_bound(sock: zmq.Socket, timeout: float = 2.0, linger_ms: int = 0) -> N
     """Close a bound ``sock`` and wait (at most ``timeout`` seconds) until its ports are
     free: ZeroMQ closes listeners on its own thread, after ``close`` has returned, so a
     server started at once on the same port could otherwise find it still in use.
-    Messages sent and not yet delivered are given ``linger_ms`` to go."""
+    Messages sent and not yet delivered are given ``linger_ms`` to go. Given up on, its
+    monitor stays open until ZeroMQ has said it stopped (a later call closes it)."""
     # (a name of its own: pyzmq's default names the socket's descriptor, which a socket
     # closed a moment ago may still hold as its monitor's address: "in use")
     try:
@@ -195,15 +198,34 @@ def close_bound(sock: zmq.Socket, timeout: float = 2.0, linger_ms: int = 0) -> N
     except zmq.ZMQError:
         sock.close(linger_ms)                  # closed all the same, not waited for
         raise
+    stopped = False
     try:
         sock.close(linger_ms)
         deadline = time.monotonic() + timeout
         while (left := deadline - time.monotonic()) > 0 and monitor.poll(left * 1000):
             if recv_monitor_message(monitor)["event"] == zmq.EVENT_MONITOR_STOPPED:
+                stopped = True
                 return
         log.warning("a socket's ports were not free %.0f s after it was closed", timeout)
     finally:
-        monitor.close(0)
+        with _UNSTOPPED_LOCK:
+            if not stopped:
+                # ZeroMQ still sends it MONITOR_STOPPED, blocking (its reaper thread, for
+                # good: no socket of the process was ever freed again) if it is closed
+                _UNSTOPPED.append(monitor)
+            else:
+                monitor.close(0)
+            _close_stopped_locked()
+
+
+def _close_stopped_locked() -> None:
+    """Close the monitors of ``_UNSTOPPED`` whose MONITOR_STOPPED has come."""
+    for monitor in list(_UNSTOPPED):
+        while monitor.poll(0):
+            if recv_monitor_message(monitor)["event"] == zmq.EVENT_MONITOR_STOPPED:
+                _UNSTOPPED.remove(monitor)
+                monitor.close(0)
+                break
 
 
 def bind_address(address: str) -> tuple[str, int]:
