@@ -116,6 +116,10 @@ def test_a_remote_node_s_env_gives_a_lost_peer_no_round_trip_time(controllers) -
     with system.launch() as run:
         eventually(lambda: run.state("table")["table"].get("c", {}).get("rtt", 0) > 0,
                    timeout=15, what="node b's round-trip time to c in its env")
+        # c's controller refuses a new executor, so c stays lost: the launcher asks it
+        # every second to start one again, and b's table could miss the second or two
+        # that c was down before it did
+        controllers["c"].limits = Limits(max_cpu_percent=101.0, min_memory_bytes=1 << 62)
         os.kill(controllers["c"]._executors["peers"][0].pid, signal.SIGKILL)
         assert run._launcher.wait_health("c", up=False, timeout=10)
         table = eventually(lambda: not (t := run.state("table")["table"])["c"]["up"] and t,
