@@ -25,12 +25,9 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/ruff check pb3a rave agents tests examples bench scenarios setup.py
-	@# Most tests run on two workers, a test file to each (pytest-xdist). Then the
-	@# robot applications' quick runs (paced): side by side, each on a worker of its
-	@# own, since their robots' clock paces them and none uses a whole core. Last,
-	@# alone, those marked serial: they load the CPUs or measure CPU use.
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not serial and not paced"
-	$(BIN)/python -m pytest -q -n 3 --dist load -m paced
+	@# Most tests run on two workers, a test file to each (pytest-xdist); those marked
+	@# serial load the CPUs or time whole applications, and run alone after them.
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not serial"
 	$(BIN)/python -m pytest -q -m serial
 
 bench: $(STAMP)

@@ -16,14 +16,10 @@ from pb3a.cli.main import main
 from pb3a.testing import ModuleHarness
 from scenarios import mapping, self_migration
 
-# Self-migration runs alone (the Makefile's test target): it loads the CPUs and
-# decides by their load. The robot applications' figures are timed against the wall
-# clock, so they run after the other tests, side by side: their robots' clock paces
-# them, and together they use about 1.25 of the two cores (mapping 0.22 each,
-# sim-to-real 0.8). Traffic runs in lock-step, its figures the same however busy the
-# machine is.
+# The robot applications and self-migration run alone (the Makefile's test target):
+# their figures are timed against the wall clock on all the machine's CPUs. Traffic
+# runs in lock-step, its figures the same however busy the machine is.
 serial = pytest.mark.serial
-paced = pytest.mark.paced
 
 
 @serial
@@ -73,13 +69,13 @@ def _check_mapping(figures: dict, fault: str = "motors") -> None:
     assert maps["end"]["coverage"] > maps["before_fault"]["coverage"], maps   # mapped on
 
 
-@paced
+@serial
 @pytest.mark.timeout(300)
 def test_mapping_hands_the_control_system_over_to_the_standby_robot(tmp_path) -> None:
     _check_mapping(mapping.report(mapping.run(tmp_path, "lab", seed=1, quick=True)))
 
 
-@paced
+@serial
 @pytest.mark.timeout(300)
 def test_mapping_from_the_command_line_on_another_world_seed_and_fault(tmp_path,
                                                                      capsys) -> None:
@@ -139,7 +135,7 @@ def test_mapping_names_the_worlds_when_given_one_it_does_not_know(tmp_path, caps
         mapping.run(tmp_path, fault="wheels")
 
 
-@paced
+@serial
 @pytest.mark.timeout(300)
 def test_sim_to_real_learns_in_lock_step_then_moves_the_learner_to_the_robot(tmp_path) -> None:
     assert main(["scenario", "sim-to-real", "--quick", "--seed", "5",
