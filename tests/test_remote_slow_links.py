@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import functools
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
@@ -200,6 +200,29 @@ def test_a_slow_follower_beside_a_fast_one_gets_fresh_frames_and_holds_nobody_ba
     assert camera["longest_write_s"] < 0.5, camera
 
 
+def _b_served_on_its_own(run: Any) -> Callable[[], Any]:
+    """Node b's follow of the camera as it is at each call (``.direct``: served on its
+    own), once it is served on its own."""
+    follower = run._launcher.nodes["b"].bridge._follower
+
+    def mode() -> Any:
+        return follower._follows[b"camera.out\0"]
+    eventually(lambda: mode().direct, timeout=10.0, what="node b served on its own")
+    return mode
+
+
+def _every_frame_once_or_counted(link: Any, viewer: dict, follower: Any, frames: int) -> None:
+    """Every frame written is received or counted dropped, as node b's follower counted
+    them; those received in order, once; no link failure."""
+    numbers = viewer["numbers"]
+    assert link.values + link.drops == frames, (link.values, link.drops)
+    assert link.values == len(numbers) and link.drops == follower.dropped["camera.out"]
+    assert numbers == sorted(set(numbers))
+    assert viewer["duplicates"] == viewer["out_of_order"] == 0
+    assert link.link_failures == 0 and not follower.link_failures
+    assert not follower.duplicates
+
+
 @pytest.mark.timeout(90)
 def test_a_slow_follower_whose_link_gets_fast_goes_back_to_pub_and_gets_every_frame(
         radio_to_b: Throttle) -> None:
@@ -209,10 +232,7 @@ def test_a_slow_follower_whose_link_gets_fast_goes_back_to_pub_and_gets_every_fr
     dropped, not replayed over the link), and the accounting stays exact."""
     frames = 120                                                 # 6 s of writing
     with _beside_a_fast_viewer("slow-then-fast", 128 * 1024, frames).launch() as run:
-        follower = run._launcher.nodes["b"].bridge._follower
-        def mode() -> Any:
-            return follower._follows[b"camera.out\0"]
-        eventually(lambda: mode().direct, timeout=10.0, what="node b served on its own")
+        mode = _b_served_on_its_own(run)
         radio_to_b.set_rate(1e9)
         eventually(lambda: not mode().direct and not mode().joining, timeout=10.0,
                    what="node b back on PUB")
@@ -222,12 +242,7 @@ def test_a_slow_follower_whose_link_gets_fast_goes_back_to_pub_and_gets_every_fr
     assert back_at < frames - 20, "the camera was done before node b went back to PUB"
     tail = [number for number in numbers if number > back_at + 5]
     assert tail == list(range(back_at + 6, frames + 1)), numbers
-    assert link.values + link.drops == frames, (link.values, link.drops)
-    assert link.values == len(numbers) and link.drops == follower.dropped["camera.out"]
-    assert numbers == sorted(set(numbers))
-    assert viewer["duplicates"] == viewer["out_of_order"] == 0
-    assert link.link_failures == 0 and not follower.link_failures
-    assert not follower.duplicates
+    _every_frame_once_or_counted(link, viewer, follower, frames)
 
 
 @pytest.mark.timeout(90)
@@ -240,10 +255,7 @@ def test_a_slow_follower_served_on_its_own_goes_back_to_pub_once_the_fast_viewer
     Before, it stayed served on its own for as long as it followed."""
     frames = 120                                                 # 6 s of writing
     with _beside_a_fast_viewer("fast-leaves", 128 * 1024, frames).launch() as run:
-        follower = run._launcher.nodes["b"].bridge._follower
-        def mode() -> Any:
-            return follower._follows[b"camera.out\0"]
-        eventually(lambda: mode().direct, timeout=10.0, what="node b served on its own")
+        mode = _b_served_on_its_own(run)
         run.remove("fast_viewer")
         removed = time.monotonic()
         eventually(lambda: not mode().direct and not mode().joining, timeout=10.0,
@@ -253,11 +265,5 @@ def test_a_slow_follower_served_on_its_own_goes_back_to_pub_once_the_fast_viewer
         link, viewer, follower = _settled(run, frames=frames)
     assert back_at < frames - 20, "the camera was done before node b went back to PUB"
     assert took < 3.0, f"node b back on PUB {took:.2f} s after the fast viewer went"
-    numbers = viewer["numbers"]
     assert max(viewer["ages"]) < 2.5, viewer["ages"]
-    assert link.values + link.drops == frames, (link.values, link.drops)
-    assert link.values == len(numbers) and link.drops == follower.dropped["camera.out"]
-    assert numbers == sorted(set(numbers))
-    assert viewer["duplicates"] == viewer["out_of_order"] == 0
-    assert link.link_failures == 0 and not follower.link_failures
-    assert not follower.duplicates
+    _every_frame_once_or_counted(link, viewer, follower, frames)
