@@ -13,6 +13,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -1248,6 +1249,23 @@ def _every_frame_received_or_dropped(got: list, follower: Follower, camera: _Cam
     assert len(got) + follower.dropped["camera"] == camera.written
 
 
+@contextlib.contextmanager
+def _fast_and_slow(fast_identity: bytes | None = None) -> Iterator[tuple[
+        Replicator, _Camera, Follower, Follower, Inbox]]:
+    """A replicator with its camera, and two followers (the fast one, the slow one, and
+    the slow one's inbox), closed after the block."""
+    replicator, slow_inbox = Replicator(KEY), Inbox()
+    fast = Follower(KEY, Inbox(), identity=fast_identity)
+    slow = Follower(KEY, slow_inbox)
+    camera = _Camera(replicator)
+    try:
+        yield replicator, camera, fast, slow, slow_inbox
+    finally:
+        fast.close()
+        slow.close()
+        replicator.close()
+
+
 def _slow_beside_fast(replicator: Replicator, camera: _Camera, fast: Follower,
                       slow: Follower, radio: Throttle) -> None:
     """``fast`` follows the camera directly and ``slow`` through ``radio``, from its first
@@ -1279,10 +1297,7 @@ def test_a_follower_served_on_its_own_that_went_silent_is_served_again_once_back
     if cut:
         monkeypatch.setattr(wire, "PEER_PING_MS", 200)
         monkeypatch.setattr(wire, "PEER_TIMEOUT_MS", 1000)
-    replicator, fast_inbox, slow_inbox = Replicator(KEY), Inbox(), Inbox()
-    fast, slow = Follower(KEY, fast_inbox), Follower(KEY, slow_inbox)
-    camera = _Camera(replicator)
-    try:
+    with _fast_and_slow() as (replicator, camera, fast, slow, slow_inbox):
         with Throttle(2e6) as radio:
             _slow_beside_fast(replicator, camera, fast, slow, radio)
             stream = replicator._topics["camera"]
@@ -1305,10 +1320,6 @@ def test_a_follower_served_on_its_own_that_went_silent_is_served_again_once_back
         numbers = [int(frame[0]) for frame in got]
         assert numbers == sorted(set(numbers)) and numbers[-1] >= before, numbers
         assert not slow.link_failures and not slow.duplicates
-    finally:
-        fast.close()
-        slow.close()
-        replicator.close()
 
 
 @pytest.mark.timeout(90)
@@ -1335,10 +1346,7 @@ def test_a_repair_by_a_follower_served_on_its_own_is_answered_skipped_not_replay
         return handle(self, message, live)
     monkeypatch.setattr(Replicator, "_send_router", counted)
     monkeypatch.setattr(Follower, "_handle", losing)
-    replicator, slow_inbox = Replicator(KEY), Inbox()
-    fast, slow = Follower(KEY, Inbox()), Follower(KEY, slow_inbox)
-    camera = _Camera(replicator)
-    try:
+    with _fast_and_slow() as (replicator, camera, fast, slow, slow_inbox):
         with Throttle(2e6) as radio:
             _slow_beside_fast(replicator, camera, fast, slow, radio)
             start = next(iter(list(replicator._topics["camera"].direct.values()))).start
@@ -1350,10 +1358,6 @@ def test_a_repair_by_a_follower_served_on_its_own_is_answered_skipped_not_replay
         assert len(sent) == len([number for number in numbers if number >= start]), numbers
         assert numbers == sorted(set(numbers))
         assert not slow.duplicates and not slow.link_failures
-    finally:
-        fast.close()
-        slow.close()
-        replicator.close()
 
 
 @pytest.mark.timeout(90)
@@ -1369,47 +1373,39 @@ def test_a_follower_served_on_its_own_goes_back_to_pub_once_no_faster_one_follow
     MiB). Every frame arrives or is counted dropped, in order, once; and a fast follower
     that comes back has it served on its own again."""
     monkeypatch.setattr(replicator_module, "FOLLOWER_TIMEOUT", 1.0)
-    replicator, fast_inbox, slow_inbox = Replicator(KEY), Inbox(), Inbox()
-    fast = Follower(KEY, fast_inbox, identity=follower_id("c", 1))
-    slow = Follower(KEY, slow_inbox)
-    camera = _Camera(replicator)
-    try:
-        with Throttle(2e6) as radio:
-            _slow_beside_fast(replicator, camera, fast, slow, radio)
-            stream = replicator._topics["camera"]
-            if goes == "unfollows":
-                fast.unfollow("camera")
-            else:
-                fast.close()                     # (its node lost: it says nothing more)
-                if goes == "is forgotten":
-                    replicator.forget("camera", follower_id("c", 1))
-            gone_at = time.monotonic() + (replicator_module.FOLLOWER_TIMEOUT
-                                          if goes == "falls silent" else 0.0)
-            camera.write(60, until=lambda: not stream.direct)
-            took = time.monotonic() - gone_at
-            assert not stream.direct, "the slow follower is still served on its own"
-            assert took < 1.5, f"back on PUB {took:.2f} s after the fast follower went"
-            eventually(lambda: not _served_on_its_own(slow)
-                       and not slow._follows[b"camera\0"].joining, timeout=10.0,
-                       what="the slow follower subscribed again")
-            back = stream.next_seq
-            camera.write(40)                     # 2 s: about 4 frames' crossing
-            kept = [sent for sent in list(stream.replay) if sent.first >= back]
-            assert len(kept) <= 10, f"{len(kept)} of 40 frames kept for a slow follower"
-            got = slow_inbox.values.setdefault("camera", [])
-            _every_frame_received_or_dropped(got, slow, camera)
-            numbers = [int(frame[0]) for frame in got]
-            assert numbers == sorted(set(numbers)) and numbers[-1] >= back, numbers
-            assert not slow.link_failures and not slow.duplicates
-            if goes == "unfollows":             # the fast one comes back
-                _follow(fast, replicator, "camera")
-                assert fast.wait_ready("camera", TIMEOUT)
-                camera.write(60, until=lambda: _served_on_its_own(slow))
-                assert _served_on_its_own(slow), "not served on its own beside it again"
-    finally:
-        fast.close()
-        slow.close()
-        replicator.close()
+    with _fast_and_slow(fast_identity=follower_id("c", 1)) as (
+            replicator, camera, fast, slow, slow_inbox), Throttle(2e6) as radio:
+        _slow_beside_fast(replicator, camera, fast, slow, radio)
+        stream = replicator._topics["camera"]
+        if goes == "unfollows":
+            fast.unfollow("camera")
+        else:
+            fast.close()                     # (its node lost: it says nothing more)
+            if goes == "is forgotten":
+                replicator.forget("camera", follower_id("c", 1))
+        gone_at = time.monotonic() + (replicator_module.FOLLOWER_TIMEOUT
+                                      if goes == "falls silent" else 0.0)
+        camera.write(60, until=lambda: not stream.direct)
+        took = time.monotonic() - gone_at
+        assert not stream.direct, "the slow follower is still served on its own"
+        assert took < 1.5, f"back on PUB {took:.2f} s after the fast follower went"
+        eventually(lambda: not _served_on_its_own(slow)
+                   and not slow._follows[b"camera\0"].joining, timeout=10.0,
+                   what="the slow follower subscribed again")
+        back = stream.next_seq
+        camera.write(40)                     # 2 s: about 4 frames' crossing
+        kept = [sent for sent in list(stream.replay) if sent.first >= back]
+        assert len(kept) <= 10, f"{len(kept)} of 40 frames kept for a slow follower"
+        got = slow_inbox.values.setdefault("camera", [])
+        _every_frame_received_or_dropped(got, slow, camera)
+        numbers = [int(frame[0]) for frame in got]
+        assert numbers == sorted(set(numbers)) and numbers[-1] >= back, numbers
+        assert not slow.link_failures and not slow.duplicates
+        if goes == "unfollows":             # the fast one comes back
+            _follow(fast, replicator, "camera")
+            assert fast.wait_ready("camera", TIMEOUT)
+            camera.write(60, until=lambda: _served_on_its_own(slow))
+            assert _served_on_its_own(slow), "not served on its own beside it again"
 
 
 @pytest.mark.timeout(90)
@@ -1419,10 +1415,7 @@ def test_a_frame_on_its_way_to_a_follower_served_on_its_own_as_the_fast_one_goes
     connection (its link held up) when the fast one unfollows is told RESUME behind that
     frame: the frame arrives, once; the frames not sent to it are counted dropped, and
     those written once its subscription took come over PUB, in order, once."""
-    replicator, slow_inbox = Replicator(KEY), Inbox()
-    fast, slow = Follower(KEY, Inbox()), Follower(KEY, slow_inbox)
-    camera = _Camera(replicator)
-    try:
+    with _fast_and_slow() as (replicator, camera, fast, slow, slow_inbox):
         with Throttle(2e6) as radio:
             _slow_beside_fast(replicator, camera, fast, slow, radio)
             stream = replicator._topics["camera"]
@@ -1450,10 +1443,6 @@ def test_a_frame_on_its_way_to_a_follower_served_on_its_own_as_the_fast_one_goes
         assert on_way in numbers, (on_way, numbers)
         assert numbers == sorted(set(numbers)) and numbers[-1] >= back, numbers
         assert not slow.link_failures and not slow.duplicates
-    finally:
-        fast.close()
-        slow.close()
-        replicator.close()
 
 
 @pytest.mark.timeout(90)
@@ -1466,10 +1455,7 @@ def test_a_repair_that_crossed_the_resume_of_a_follower_served_on_its_own_replay
     replay buffer holds those frames (they went to the fast one): each was sent again
     over the slow link, and counted a duplicate there."""
     sends = _sends_per_value(monkeypatch)
-    replicator, slow_inbox = Replicator(KEY), Inbox()
-    fast, slow = Follower(KEY, Inbox()), Follower(KEY, slow_inbox)
-    camera = _Camera(replicator)
-    try:
+    with _fast_and_slow() as (replicator, camera, fast, slow, slow_inbox):
         with Throttle(2e6) as radio:
             _slow_beside_fast(replicator, camera, fast, slow, radio)
             stream = replicator._topics["camera"]
@@ -1493,10 +1479,6 @@ def test_a_repair_that_crossed_the_resume_of_a_follower_served_on_its_own_replay
         numbers = [int(frame[0]) for frame in got]
         assert numbers == sorted(set(numbers))
         assert not slow.duplicates and not slow.link_failures
-    finally:
-        fast.close()
-        slow.close()
-        replicator.close()
 
 
 @pytest.mark.timeout(120)
@@ -1681,10 +1663,7 @@ def test_a_follower_served_on_its_own_that_becomes_lossless_takes_its_replay_onc
     repeated every 0.05 s until its new subscription was live, each replayed the
     backlog again (measured: frames sent up to 6 times)."""
     sends = _sends_per_value(monkeypatch)
-    replicator, slow_inbox = Replicator(KEY), Inbox()
-    fast, slow = Follower(KEY, Inbox()), Follower(KEY, slow_inbox)
-    camera = _Camera(replicator)
-    try:
+    with _fast_and_slow() as (replicator, camera, fast, slow, slow_inbox):
         with Throttle(2e6) as radio:
             _slow_beside_fast(replicator, camera, fast, slow, radio)
             camera.write(10)                     # (frames it did not get: a backlog)
@@ -1702,10 +1681,6 @@ def test_a_follower_served_on_its_own_that_becomes_lossless_takes_its_replay_onc
         assert [n for n in numbers if n >= start] == list(range(start, camera.written))
         assert max(sends.values(), default=1) <= 2, sends
         assert not slow.link_failures
-    finally:
-        fast.close()
-        slow.close()
-        replicator.close()
 
 
 @pytest.mark.timeout(90)
@@ -1733,10 +1708,7 @@ def test_a_mode_switch_lost_on_the_way_to_a_slow_follower_is_said_again(
             return                               # lost on the way
         send_router(self, peer, sent, parts)
     monkeypatch.setattr(Replicator, "_send_router", losing)
-    replicator, slow_inbox = Replicator(KEY), Inbox()
-    fast, slow = Follower(KEY, Inbox()), Follower(KEY, slow_inbox)
-    camera = _Camera(replicator)
-    try:
+    with _fast_and_slow() as (replicator, camera, fast, slow, slow_inbox):
         with Throttle(2e6) as radio:
             _slow_beside_fast(replicator, camera, fast, slow, radio)
             switched = time.monotonic()          # (DIRECT: served on its own now)
@@ -1776,7 +1748,3 @@ def test_a_mode_switch_lost_on_the_way_to_a_slow_follower_is_said_again(
             assert slow.dropped["camera"] == dropped_then
         else:         # (a lossless one's replay shares the link with PUB: its repair may
             assert not slow.duplicates          # be asked again, a frame come twice)
-    finally:
-        fast.close()
-        slow.close()
-        replicator.close()
