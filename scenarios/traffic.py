@@ -147,6 +147,7 @@ def configuration(resource: Path, seed: int, duration_s: float,
         links += [{"from": f"sumo.reading_{slot}", "to": f"{junction}.reading"},
                   {"from": f"sumo.reading_{slot}", "to": f"{junction}.control"},
                   {"from": f"{junction}.request", "to": f"sumo.request_{slot}"},
+                  {"from": f"{junction}.done", "to": f"sumo.done_{slot}"},
                   {"from": "sumo.clock", "to": f"{junction}.clock"}]
     for junction, downstream in neighbours(found).items():
         for slot, other in enumerate(downstream[:4]):

@@ -8,6 +8,7 @@ import time
 
 import numpy as np
 
+from agents.traffic.max_pressure import MaxPressure
 from agents.traffic.messages import JunctionReading, PhaseRequest
 from pb3a import Agent, Driver, Input, Macro, Module, Output, RuntimeFailure, RuntimeTimeout
 
@@ -753,6 +754,23 @@ class PhaseAlternator(Module):
             self.request.write(PhaseRequest(reading.junction, reading.step, green,
                                             reading.run))
             self.answered += 1
+
+
+class SlowToSwapIn(MaxPressure):
+    """Max-pressure whose setup takes ``SETUP_S`` (a swap to it takes that long); it
+    keeps the step of the first reading it answers."""
+
+    SETUP_S = 0.3
+    first_step = -1
+
+    def setup(self) -> None:
+        time.sleep(self.SETUP_S)
+        super().setup()
+
+    def choose(self, reading: JunctionReading) -> int:
+        if self.first_step < 0:
+            self.first_step = reading.step
+        return super().choose(reading)
 
 
 class Shift(Module):

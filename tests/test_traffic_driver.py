@@ -255,6 +255,39 @@ def test_a_slow_controller_holds_the_simulation_and_a_missing_one_is_late(driver
     assert harness.module._heads["C"].requested == EW            # its wish still stands
 
 
+def test_a_linked_done_holds_the_step_until_the_junction_has_dealt_with_it(driver) -> None:
+    """With ``done_0`` fed by a link (a junction's performance agent), a step waits for
+    the junction to say it is done with that step's time, as well as for its request;
+    a time of another step does not count, and one not said by the timeout is late."""
+    now = [100.0]
+    harness = driver(lockstep_timeout_s=2.0)
+    harness.module._clock = lambda: now[0]
+    harness.module.done_0.fed_by("C/agent.done -> sumo.done_0")
+    reading = answer(harness, NS)            # (step 0 went out before the link)
+    assert reading.step == 1
+    harness.feed("request_0", PhaseRequest("C", 1, NS))
+    harness.step()
+    assert harness.last("reading_0").step == 1          # answered, not done with yet
+    harness.feed("done_0", 0.0)                          # a step gone by
+    assert harness.last("reading_0").step == 1
+    harness.feed("done_0", reading.time)
+    reading = harness.last("reading_0")
+    assert reading.step == 2 and harness.state["late"] == 0
+    harness.feed("done_0", reading.time)                 # done first, then the request
+    assert harness.last("reading_0").step == 2
+    reading = answer(harness, NS)
+    assert reading.step == 3
+    harness.feed("request_0", PhaseRequest("C", 3, NS))  # never said done: late
+    now[0] += 2.5
+    harness.step()
+    assert harness.last("reading_0").step == 4
+    assert harness.state["late"] == 1 and harness.state["late_by_junction"] == {"C": 1}
+    harness.module.done_0.unfed_by("C/agent.done -> sumo.done_0")
+    harness.feed("request_0", PhaseRequest("C", 4, NS))
+    harness.step()                                       # unlinked: not waited for
+    assert harness.last("reading_0").step == 5
+
+
 def test_requests_it_cannot_apply_are_counted_and_said(driver) -> None:
     harness = driver()
     harness.feed("request_0", PhaseRequest("B1", 0, NS))

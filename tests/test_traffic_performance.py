@@ -137,6 +137,45 @@ def test_silent_detectors_bring_fixed_time_at_once_and_it_comes_back_after() -> 
     assert runtime.swaps()[-1] == "GapOut" and harness.state["detectors_ok"] is True
 
 
+def test_it_says_done_with_each_measure_after_the_swap_it_called_for() -> None:
+    """In lock-step the driver waits for ``done``: a swap decided on a measure is made
+    before that measure's time is said done, so it runs from the next step on."""
+    harness, runtime = agent()
+    said: list[tuple[float, list[str]]] = []
+    harness.module.done.write = lambda time_s: said.append((time_s, runtime.swaps()))
+    feed(harness, 0, 61, queue=9)
+    assert [time_s for time_s, _ in said] == [float(second) for second in range(61)]
+    assert said[59] == (59.0, []) and said[60] == (60.0, ["MaxPressure"])
+
+
+def test_it_does_not_hold_the_lock_step_for_measures_that_do_not_come() -> None:
+    """A clock ahead of the measures is said done once it has waited ``silent_wall_s``
+    for them (they may only lag), and at once while the detectors are failed."""
+    harness, runtime = agent(silent_wall_s=0.5)
+    wall = [50.0]
+    harness.module._wall = lambda: wall[0]
+    feed(harness, 0, 20, queue=1)
+    harness.feed("clock", 20.0)              # its measure lags
+    harness.step()
+    assert harness.last("done") == 19.0
+    harness.feed("measures", measure(20.0, queue=1))
+    assert harness.last("done") == 20.0
+    harness.feed("clock", 21.0)              # the measures stop
+    wall[0] += 0.4
+    harness.step()
+    assert harness.last("done") == 20.0
+    wall[0] += 0.2
+    harness.step()
+    assert harness.last("done") == 21.0 and harness.state["detectors_ok"] is True
+    for second in range(22, 32):
+        harness.feed("clock", float(second))
+        assert harness.last("done") == float(second)
+    assert runtime.swaps() == ["FixedTime"] and harness.state["detectors_ok"] is False
+    harness.feed("measures", measure(32.0, queue=1, plausible=False))
+    harness.feed("clock", 33.0)              # failed: not waited for at all
+    assert harness.last("done") == 33.0
+
+
 def test_a_failure_met_on_fixed_time_its_rules_chose_keeps_the_time_between_swaps() -> None:
     """The rules had chosen fixed time, the fallback too, so a failure needed no swap;
     yet coming back from it dropped the time of the last swap, and the rules swapped
@@ -560,6 +599,35 @@ def test_in_a_system_its_swaps_are_events_and_the_lock_step_goes_on(tmp_path: Pa
     assert events[0].detail["cls"] == "agents.traffic.max_pressure:MaxPressure"
     assert result["rejected"] == 0 and result["late"] == 0 and result["teleports"] == 0
 
+
+
+@pytest.mark.timeout(120)
+def test_in_lock_step_a_swap_runs_from_the_step_after_the_measure_that_called_for_it(
+        tmp_path: Path) -> None:
+    """The agent is in the driver's lock-step (its ``done``), so a swap to a controller
+    whose setup takes 0.3 s is made before the next step: the new controller's first
+    reading is of the step after the measure that called for it. Before, SUMO ran on
+    while the swap was made, as many steps as the machine's load allowed (so the grid's
+    figures moved with the load)."""
+    pytest.importorskip("libsumo", reason="SUMO (the traffic extra) is not installed")
+    from scenarios import traffic
+
+    resource = NETWORKS / "cross.toml"
+    slow = {"class": "sample_modules:SlowToSwapIn", "state": {"hold_s": 10.0}}
+    system = traffic.configuration(
+        resource, seed=2, duration_s=900.0, found=traffic.layouts(resource, tmp_path),
+        cache=tmp_path, agent_state={
+            "controllers": {**traffic.controllers(), "slow": slow},
+            "rules": [{"use": "gap_out"}, {"use": "slow", "queue_at_least": 1.0}],
+            "min_between_swaps_s": 1000.0})
+    with system.launch() as running:
+        result = eventually(lambda: running.state("sumo")["result"], timeout=60,
+                            what="the 900 s run to end")
+        swaps = running.state("C/agent")["swaps"]
+        first_step = running.state("C/controller")["first_step"]
+    assert [s["to"] for s in swaps] == ["slow"] and 60 <= swaps[0]["time"] < 300
+    assert first_step == swaps[0]["time"] + 1            # (a control step is 1 s)
+    assert result["late"] == 0 and result["rejected"] == 0
 
 
 @pytest.mark.timeout(60)

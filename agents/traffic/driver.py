@@ -24,6 +24,13 @@ that had not answered are counted in ``late`` (and ``late_by_junction``) and kee
 phase they last asked for. So a scenario runs as fast as its controllers decide, and
 a stuck controller slows it down but does not stop it.
 
+A slot's ``done_i``, where a link feeds it, brings the rest of the junction into the
+lock-step: the simulated time of the last reading its other modules (its performance
+agent) have dealt with. The step then also waits for that time to be the step's (or
+for the timeout, counted late the same way). So a controller swapped on a step's
+measures runs from the next step on, however loaded the machine: the run's figures
+depend on its seed alone.
+
 The driver, not the controllers, makes the lights legal: each junction's
 ``SignalHead`` holds a green for ``min_green_s`` and puts yellow (and all-red, where
 the program has it) before any new green, so a controller swapped mid-phase cannot
@@ -68,6 +75,7 @@ def _junction_ports() -> dict[str, Input | Output]:
     for slot in range(MAX_JUNCTIONS):
         ports[f"reading_{slot}"] = Output(JunctionReading)
         ports[f"request_{slot}"] = Input(PhaseRequest, policy="queue:8")
+        ports[f"done_{slot}"] = Input(float, policy="queue:8")
     return ports
 
 
@@ -109,7 +117,7 @@ class TrafficDriver(_JunctionSlots, Module):
     junctions: list[str] = []       # the signalized junctions, in slot order
     step_count = 0                  # control steps done in this simulation
     time_s = 0.0
-    late = 0                        # requests that had not come by the timeout
+    late = 0                        # answers (requests, done) not come by the timeout
     late_by_junction: dict[str, int] = {}
     rejected = 0                    # requests that could not be applied
     run = 0                         # simulations begun: this one's number, which its
@@ -121,7 +129,8 @@ class TrafficDriver(_JunctionSlots, Module):
         self._clock = time.monotonic
         self._simulation: Simulation | None = None
         self._heads: dict[str, SignalHead] = {}
-        self._awaiting: set[str] = set()
+        self._awaiting: set[str] = set()        # junctions whose request is to come
+        self._unsettled: set[str] = set()       # junctions whose done is to come
         self._published_at = 0.0
         self._workdir: Path | None = None
         self._periods: list[tuple[str, float, float]] = []   # the demand's, in this run
@@ -172,18 +181,37 @@ class TrafficDriver(_JunctionSlots, Module):
             deadline = self._clock() + 0.02        # free run, a slice at a time
             while self.status == "running" and self._clock() < deadline:
                 self._advance()
+            return
+        self._unsettled &= self._done_linked()      # (one unlinked since: not waited for)
+        if not self._awaiting and not self._unsettled:
+            self._advance()
         elif self._clock() - self._published_at >= self.lockstep_timeout_s:
-            for junction in self._awaiting:
+            for junction in self._awaiting | self._unsettled:
                 self.late_by_junction[junction] = self.late_by_junction.get(junction, 0) + 1
-            self.late += len(self._awaiting)
+            self.late += len(self._awaiting) + len(self._unsettled)
             self._advance()
 
     def on_input(self, port: InputPort) -> None:
-        slot = int(port.name.rpartition("_")[2])
-        for request in port.read_all():
-            self._take(slot, request)
-        if self.status == "running" and not self.own_programs and not self._awaiting:
+        kind, _, slot = port.name.rpartition("_")
+        if kind == "done":
+            # (a time not this step's is of a step gone by, counted late, or of a run
+            # that has ended)
+            if self.time_s in port.read_all():
+                self._unsettled.discard(self._junction(int(slot)))
+        else:
+            for request in port.read_all():
+                self._take(int(slot), request)
+        if (self.status == "running" and not self.own_programs and not self._awaiting
+                and not self._unsettled):
             self._advance()
+
+    def _junction(self, slot: int) -> str | None:
+        return self.junctions[slot] if slot < len(self.junctions) else None
+
+    def _done_linked(self) -> set[str]:
+        """The junctions whose ``done_i`` a link feeds: in the lock-step."""
+        return {junction for slot, junction in enumerate(self.junctions)
+                if getattr(self, f"done_{slot}").linked}
 
     def _take(self, slot: int, request: PhaseRequest) -> None:
         """Apply a junction's request; a wrong one is counted and said in last_error."""
@@ -191,7 +219,7 @@ class TrafficDriver(_JunctionSlots, Module):
             return
         if request.run and request.run != self.run:
             return          # an answer to a simulation that has ended (re-pointed since)
-        junction = self.junctions[slot] if slot < len(self.junctions) else None
+        junction = self._junction(slot)
         problem = None
         if request.junction != junction:
             problem = (f"request_{slot} is junction {junction!r}'s slot, but the request "
@@ -225,7 +253,8 @@ class TrafficDriver(_JunctionSlots, Module):
                                f"{self.duration_s:g} simulated s: {type(exc).__name__}: {exc}")
             with contextlib.suppress(Exception):      # (what is left of it)
                 self._end(keep=False)
-            self._simulation, self._heads, self._awaiting = None, {}, set()
+            self._simulation, self._heads = None, {}
+            self._awaiting, self._unsettled = set(), set()
             self._remove_workdir()
             self.status = "failed"
             raise
@@ -268,6 +297,7 @@ class TrafficDriver(_JunctionSlots, Module):
         self.traffic.write(simulation.network_reading(self.step_count, halting))
         self.clock.write(simulation.time)
         self._awaiting = set() if self.own_programs else set(self.junctions)
+        self._unsettled = self._done_linked() & self._awaiting
         self._published_at = self._clock()
 
     # -- a simulation's life ---------------------------------------------------------
@@ -347,7 +377,7 @@ class TrafficDriver(_JunctionSlots, Module):
         else:
             simulation.close()
             self.status = "idle"
-        self._heads, self._awaiting = {}, set()
+        self._heads, self._awaiting, self._unsettled = {}, set(), set()
         self._remove_workdir()
 
     def _remove_workdir(self) -> None:

@@ -17,10 +17,18 @@ Guard rails:
   also across a re-pointed driver's new run (its clock from 0), whose measures make a
   window of their own;
 - when the detectors fail (an implausible measure, or none for ``silent_after_s``
-  of the driver's clock and ``silent_wall_s`` of wall time: a lock-step run goes
-  faster than the messages between modules, and their lag is no failure), it swaps
-  to ``fallback`` (fixed time, which needs no detector) at once, and leaves it only
-  after a whole window of plausible measures.
+  of the driver's clock once the clock has been ahead of them for ``silent_wall_s``
+  of wall time: measures come through the sensors, the clock straight from the
+  driver, and their lag is no failure), it swaps to ``fallback`` (fixed time, which
+  needs no detector) at once, and leaves it only after a whole window of plausible
+  measures.
+
+In lock-step (``done`` linked to the driver's ``done_i``) it says on ``done`` the
+simulated time of each measure it has dealt with, a swap it called for made: the
+driver waits for it, so the swap runs from the next step on, however loaded the
+machine. It does not hold the simulation for measures that do not come: a clock
+``silent_wall_s`` ahead of them (at once while its detectors are failed) is said
+done too.
 
 A controller's table or weights (state ``table``) is kept (``kept``, the agent's
 state: it moves with the agent) when it is swapped out and given back when it is
@@ -204,6 +212,7 @@ class PerformanceAgent(Agent):
     measures = Input(JunctionMeasures, policy="queue:512")
     clock = Input(float, policy="latest")
     swapped = Output(dict)
+    done = Output(float)            # the simulated time of the step it has dealt with
 
     controller = ""                 # the controller's instance name ("W/controller")
     controllers: dict[str, dict[str, Any]] = {}     # name -> {class, state}
@@ -215,7 +224,7 @@ class PerformanceAgent(Agent):
                                     # (1 - hysteresis) of its thresholds
     min_between_swaps_s = 120.0
     silent_after_s = 10.0           # simulated seconds without a measure ...
-    silent_wall_s = 0.5             # ... for at least this long in wall time
+    silent_wall_s = 0.5             # ... the clock ahead of them this long in wall time
     period = 0.1                    # how often silence is checked, besides on the clock
     # read-outs
     demand_per_min = 0.0
@@ -240,7 +249,9 @@ class PerformanceAgent(Agent):
         self._measured_s: float | None = None       # the time of the last measure taken
         self._plausible_since: float | None = None
         self._clock_s: float | None = None
-        self._behind_since: float | None = None     # wall time the measures fell behind
+        self._behind_since: float | None = None     # wall time the clock went ahead of
+                                                    # the measures
+        self._done_s: float | None = None           # the time last said done
         self._wall = time.monotonic
 
     def set_state(self, state: dict[str, Any]) -> None:
@@ -265,6 +276,7 @@ class PerformanceAgent(Agent):
                 self._take(measure)
             except Exception as exc:  # (a swap the system refused: said once, below)
                 failure = failure or exc
+            self._say_done(measure.time)
         if failure is not None:
             raise failure
 
@@ -332,14 +344,25 @@ class PerformanceAgent(Agent):
             # re-pointed, its clock from 0): silence counts from the new clock
             self._last_measure_s = last = now
             self._behind_since = None
-        if now is None or last is None or now - last <= self.silent_after_s:
+        if now is None or last is None or now <= last:
             return
         if self._behind_since is None:
             self._behind_since = self._wall()
-        if self._wall() - self._behind_since >= self.silent_wall_s and self.detectors_ok:
-            self._plausible_since = None
-            self._window.clear()
-            self._fail(now, f"no detector reading for {now - last:.0f} s")
+        waited = self._wall() - self._behind_since >= self.silent_wall_s
+        try:
+            if waited and now - last > self.silent_after_s and self.detectors_ok:
+                self._plausible_since = None
+                self._window.clear()
+                self._fail(now, f"no detector reading for {now - last:.0f} s")
+        finally:            # (a fallback swap refused is tried again, not waited for)
+            if waited or not self.detectors_ok:
+                self._say_done(now)     # measures this late may never come
+
+    def _say_done(self, time_s: float) -> None:
+        """Say on ``done`` that the step of ``time_s`` is dealt with (once)."""
+        if time_s != self._done_s:
+            self._done_s = time_s
+            self.done.write(time_s)
 
     def _fail(self, now: float, why: str) -> None:
         try:
