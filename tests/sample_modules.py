@@ -870,6 +870,24 @@ class BlocksInInit(Module):
         time.sleep(self.BLOCK_S)
 
 
+class BlocksOnceInInit(Module):
+    """Its construction blocks for ``BLOCK_S`` if ``flag`` (a path, set on a subclass)
+    exists, which it removes first, writing its worker's pid to ``pid_file``: one
+    construction blocks, the next does not."""
+
+    BLOCK_S = 30.0
+    flag = ""
+    pid_file = ""
+
+    def __init__(self) -> None:
+        super().__init__()
+        if os.path.exists(self.flag):
+            os.remove(self.flag)
+            with open(self.pid_file, "w") as pid:
+                pid.write(str(os.getpid()))
+            time.sleep(self.BLOCK_S)
+
+
 class Oversize(Module):
     """Tries to write ``size`` bytes once (keeping the error in ``refused``), then writes
     a small value each step."""

@@ -29,6 +29,7 @@ from sample_modules import (
     ArraySource,
     AsksInSetup,
     BlocksInInit,
+    BlocksOnceInInit,
     Chatterbox,
     Collector,
     Counter,
@@ -396,6 +397,31 @@ def test_an_add_whose_module_blocks_in_its_construction_keeps_its_timeout(
         steps = run.state("tick")["count"]
         eventually(lambda: run.state("tick")["count"] > steps, what="tick steps on")
     assert took < 2.0, f"the add took {took:.2f} s"
+    assert not alive(pid)
+
+
+def test_a_restart_whose_new_construction_blocks_keeps_its_timeout(tmp_path: Path) -> None:
+    """``restart(timeout=1)`` of a module whose new construction does not end gives up
+    on it after 1 s (it waited the worker's usual 10 s) and puts the module back as it
+    ran; the close kills the worker it left."""
+    flag = tmp_path / "block"
+    cls = type("BlocksOnce", (BlocksOnceInInit,), {
+        "flag": str(flag), "pid_file": str(tmp_path / "pid")})
+    system = System("restart-blocks")
+    system.add("tick", Counter, period=0.01)
+    system.add("once", cls)
+    with system.launch() as run:
+        flag.touch()
+        began = time.monotonic()
+        with pytest.raises(RuntimeFailure, match=r"did not answer 'add' within .*; it was "
+                                                 r"put back as it ran"):
+            run.restart("once", timeout=1)
+        took = time.monotonic() - began
+        pid = int((tmp_path / "pid").read_text())
+        assert run.stats().modules["once"].status == "running"
+        steps = run.state("tick")["count"]
+        eventually(lambda: run.state("tick")["count"] > steps, what="tick steps on")
+    assert took < 2.5, f"the restart took {took:.2f} s"
     assert not alive(pid)
 
 

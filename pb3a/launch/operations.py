@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 from pb3a.config import checks
 from pb3a.config.folding import fold
 from pb3a.config.plan import FlatLink, FlatModule
-from pb3a.deadline import bounding
+from pb3a.deadline import bounding, lifted
 from pb3a.errors import (
     ConfigError,
     ModuleNotFound,
@@ -416,8 +416,10 @@ class Operations:
         the old instance. Its configuration is checked before anything stops
         (``ConfigError``); if it cannot start again, it is put back with the state it had
         and its links, and ``RuntimeFailure`` says why (the module is lost only if that
-        fails too, and the error then says so)."""
-        with self._held(f"restart {name}", timeout, lend=[name]):
+        fails too, and the error then says so). Its stop and its new start are bounded
+        by ``timeout`` (a stop not answered by then leaves it as it was, as ``remove``
+        does); putting it back takes what it takes."""
+        with self._held(f"restart {name}", timeout, lend=[name]) as left:
             launcher = self.launcher
             launcher.node_of(name)                # ModuleNotFound for an unknown name
             spec = launcher.specs[name]
@@ -427,11 +429,14 @@ class Operations:
                 raise ConfigError([f"restart {name}: {problem}" for problem in problems])
             links = [link for link in launcher.links.values() if name in (link.src, link.dst)]
             was = self._state_then(name)
-            launcher.remove_module(name)
+            with bounding(left()):
+                launcher.remove_module(name)
             try:
-                self._start(spec, links)
+                with bounding(left()):          # (a construction that blocks, say)
+                    self._start(spec, links)
             except Exception as exc:
-                raise self._put_back(spec, links, was, exc) from exc
+                with lifted():                  # putting it back runs to its end
+                    raise self._put_back(spec, links, was, exc) from exc
         self.event_log.record("module_restarted", name, node=spec.node, reason="asked")
 
     def _state_then(self, name: str) -> dict[str, Any] | None:
