@@ -71,31 +71,6 @@ def link():
     replicator.close()
 
 
-@pytest.fixture(autouse=True)
-def _zmq_still_carries():
-    """Fails the test after which the process-global ZeroMQ context carries nothing any
-    more, rather than every test after it. A monitor socket closed while the socket it
-    watches is still monitored (no ``disable_monitor`` first) does that: ZeroMQ's I/O
-    thread blocks for good sending it the next event (here a follower's disconnection),
-    and every remote link of the process is dead; under heavy load a frozen follower's
-    disconnection came after its test had closed the monitor, and every hand-shake of
-    the tests after it timed out."""
-    yield
-    context = zmq.Context.instance()
-    receiver, sender = context.socket(zmq.PAIR), context.socket(zmq.PAIR)
-    try:
-        for sock in (receiver, sender):
-            sock.setsockopt(zmq.LINGER, 0)
-        port = receiver.bind_to_random_port("tcp://127.0.0.1")
-        sender.connect(f"tcp://127.0.0.1:{port}")
-        sender.send(b"?")
-        assert receiver.poll(10_000), ("ZeroMQ's process-global context carries nothing "
-                                       "any more after this test: its I/O thread is blocked")
-    finally:
-        receiver.close()
-        sender.close()
-
-
 def _follow(follower: Follower, replicator: Replicator, topic: str, **kwargs: Any) -> None:
     follower.follow(topic, replicator.data_address, replicator.control_address, **kwargs)
 
@@ -970,7 +945,7 @@ def test_nothing_piles_up_for_a_frozen_follower_and_it_recovers(monkeypatch) -> 
                                   timeout=15.0, what="the follower let run again")
         assert int(lost) > 0                     # (said: not kept for it)
     finally:
-        with replicator._lock:             # (the monitor off first: see _zmq_still_carries)
+        with replicator._lock:             # (the monitor off first: see conftest.zmq_still_carries)
             replicator._pub.disable_monitor()
         monitor.close()
         os.kill(child.pid, signal.SIGCONT)
