@@ -1261,6 +1261,28 @@ def test_a_script_that_never_closes_its_system_stops_it_as_it_exits(tmp_path: Pa
     assert not live_segments(launcher)
 
 
+def test_a_child_the_program_forks_keeps_none_of_its_parents_workers() -> None:
+    """A worker is on multiprocessing's list of children from its start until
+    ``WatchedProcess`` takes it off; a script that forked in that moment (its system's
+    spare workers booting) had its child join that worker as it exited, which failed
+    ('can only join a child process') with a traceback: the test above, once, in a
+    loaded run. A child the program forks now starts with the list empty."""
+    import pb3a.node.watched_process  # noqa: F401  (what pb3a imports: the fork hook)
+
+    worker = multiprocessing.get_context("forkserver").Process(target=time.sleep,
+                                                               args=(30,))
+    worker.start()                      # on the list, as a worker being started is
+    try:
+        child = os.fork()
+        if child == 0:                  # (nothing else: a fork of a threaded process)
+            os._exit(len(multiprocessing.process._children))
+        _, status = os.waitpid(child, 0)
+        assert os.waitstatus_to_exitcode(status) == 0, "the child had its parent's list"
+    finally:
+        worker.kill()
+        worker.join(5)
+
+
 def test_check_of_a_file_whose_classes_launch_a_system_as_imported_says_so_at_once(
         tmp_path: Path) -> None:
     """`pb3a check` imports the classes a configuration names: one whose file launches a

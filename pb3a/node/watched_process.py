@@ -26,6 +26,19 @@ from typing import Any
 STATUS_WAIT_S = 1.0
 
 
+def _forget_parents_children() -> None:
+    """In a child the program forks itself (``os.fork``), forget the parent's
+    ``multiprocessing`` children, which it cannot join. A worker is on that list from
+    its start until ``WatchedProcess`` takes it off: a script that forked as its
+    system's spare workers booted had its child join one as it exited, which failed
+    ('can only join a child process') with a traceback. (A child that multiprocessing
+    starts is given an empty list itself.)"""
+    multiprocessing.process._children.clear()   # type: ignore[attr-defined]
+
+
+os.register_at_fork(after_in_child=_forget_parents_children)
+
+
 class WatchedProcess:
     """A started ``multiprocessing`` process, with the calls the pool makes on it:
     ``is_alive``, ``join``, ``exitcode``, ``terminate``, ``kill``, and ``sentinel`` (a
