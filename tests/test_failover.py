@@ -275,7 +275,7 @@ def test_a_node_lost_while_a_change_holds_the_lock_long_still_fails_over(daemons
     the watchdog's thread, which died of it: no node was ever lost, failed over or let
     back in again."""
     b = daemons["b"]
-    monkeypatch.setattr("pb3a.launch.launcher.FAIL_OVER_WAIT_S", 0.2)
+    monkeypatch.setattr("pb3a.launch.failover.FAIL_OVER_WAIT_S", 0.2)
     with _relayed("patient", b, relay_on="b", restart="fresh").launch() as run:
         launcher = run._launcher
         eventually(lambda: run.state("sink")["received"] > 20, timeout=30, what="values")
@@ -651,15 +651,15 @@ def test_the_watchdog_goes_on_after_a_look_that_fails(daemons, monkeypatch) -> N
     system = System("watched").node("a").node("b", address=b.address)
     system.add("far", Counter, node="b")
     with system.launch() as run:
-        launcher, looks = run._launcher, []
-        look = launcher._look
+        launcher, failover, looks = run._launcher, run._failover, []
+        look = failover._look
 
         def failing_once(next_rejoin: float) -> float:
             looks.append(next_rejoin)
             if len(looks) == 1:
                 raise RuntimeError("dictionary changed size during iteration")
             return look(next_rejoin)
-        monkeypatch.setattr(launcher, "_look", failing_once)
+        monkeypatch.setattr(failover, "_look", failing_once)
         eventually(lambda: len(looks) > 1, what="a look after the one that failed")
         os.kill(b.executor_pid(), signal.SIGKILL)
         assert launcher.wait_health("b", up=False, timeout=10)
@@ -835,8 +835,8 @@ def test_a_rejoin_that_cannot_take_the_lock_stops_the_executor_it_started(daemon
     system.add("tick", Counter, node="a")
     with system.launch() as run:
         launcher = run._launcher
-        started, start = [], launcher._start_remote_node
-        launcher._start_remote_node = lambda *a, **k: started.append(start(*a, **k)) or started[-1]
+        started, start = [], launcher.start_remote_node
+        launcher.start_remote_node = lambda *a, **k: started.append(start(*a, **k)) or started[-1]
         acquire, refused = launcher.lock._acquire, []
 
         def busy_once(what: str, timeout: float | None) -> None:

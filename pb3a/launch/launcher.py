@@ -7,17 +7,9 @@ inside a node by that node; a remote link in halves: published at the writer's
 node, followed at the reader's) and applies every change under one global
 configuration lock.
 
-Failure: each ``RemoteNode`` heartbeats its executor, which fences itself when the
-heartbeats stop; a node that does not answer for ``LOSS_S`` is declared lost. Its
-modules whose ``restart`` policy is ``fresh`` or ``last-state`` fail over: they start
-again on a surviving node (their ``fallback`` nodes in order, else the least busy
-one, either only if its controller admits them), ``last-state`` ones from their last
-checkpoint, which every node sends here, off the node that runs the module. Their
-links are wired again and what is known lost counted on them. The others are
-dropped with their links, each said by a ``module_lost`` event that holds what it takes
-to add it again (class, configured state, links). A lost node whose controller answers
-again is admitted under a new node epoch; anything the fenced executor of an older
-epoch says is refused.
+The loss of a remote node, its modules' failover and its rejoin are ``Failover``'s
+(``failover.py``), which acts on the launcher from above; its threads run in the
+launcher's background, joined as it shuts down.
 """
 
 from __future__ import annotations
@@ -32,8 +24,6 @@ import threading
 import time
 from typing import TYPE_CHECKING, Any
 
-import psutil
-
 from pb3a.deadline import bounding, lifted
 from pb3a.errors import ModuleNotFound, RuntimeFailure, RuntimeTimeout
 from pb3a.events import EventLog
@@ -46,15 +36,14 @@ from pb3a.model.environment import PREFIX as ENV_PREFIX
 from pb3a.model.environment import env_name
 from pb3a.node.bridge import NoHandshake
 from pb3a.node.executor import REPORT_TIMEOUT, Executor
-from pb3a.node.remote import HEARTBEAT_S, LOSS_S, RemoteNode
+from pb3a.node.remote import HEARTBEAT_S, RemoteNode
 from pb3a.node.ring_sizes import ring_size
 from pb3a.node.workers import REQUEST_TIMEOUT
 from pb3a.stats import FailureLog, LinkStats, ModuleStats, NodeReport, NodeStats, SystemStats
 from pb3a.transport.addresses import host_of
-from pb3a.transport.replication import follower_id
 
 if TYPE_CHECKING:
-    from collections.abc import Iterable, Iterator
+    from collections.abc import Iterator
 
     from pb3a.config.plan import FlatLink, FlatModule, Plan
     from pb3a.node.protocol import Endpoint, Node, Reached
@@ -62,11 +51,8 @@ if TYPE_CHECKING:
 log = logging.getLogger("pb3a.launcher")
 
 WATCH_S = 0.1           # how often the watchdog looks at the nodes' heartbeats
-FAIL_OVER_WAIT_S = 1.0  # a failover's wait for the configuration lock, each look
 ENV_S = 1.0             # how often it updates the env modules, merges logs
 ENV_TOLD = 256          # the latest moves (and losses) the env modules are given each time
-REJOIN_S = 1.0          # how often it asks a lost node's controller whether it is back
-PLACE_TIMEOUT = 0.5     # a controller's answer about its load and admission
 STOP_TIMEOUT = 5.0      # a module's teardown when it is removed
 # A removal with ``force`` of a module that did not answer its stop: what its worker's
 # kill, its links' unwiring and its drop may take past the call's deadline (a few ms)
@@ -95,12 +81,7 @@ class Launcher:
         self.failures = FailureLog(log)
         self.checkpoints: dict[str, bytes] = {}      # module -> its newest (last-state)
         self.lost_values: collections.Counter[str] = collections.Counter()  # per link key
-        self._rejoining: set[str] = set()
-        self._failing_over: dict[str, float] = {}     # lost node -> when, until done
-        self._failovers: list[threading.Thread] = []    # one per lost node, while it works
         self.unconfirmed: list[str] = []    # remote nodes whose stop was not confirmed
-        # a lost node's env module and the links from it, restored when it rejoins
-        self._env_kept: dict[str, tuple[FlatModule, list[FlatLink]]] = {}
         self._callback: str | None = None            # where remote executors reach us
         self.events = EventLog()                      # what happened, for run.events()
         self.logbook = LogBook()                      # the recent log, for run.logs()
@@ -109,9 +90,10 @@ class Launcher:
         self.health: dict[str, dict[str, Any]] = {}   # node -> up, rtt, address
         self._last_reports: dict[str, NodeReport] = {}  # node -> the last it gave in time
         self.changed = threading.Condition()          # notified when a node's health changes
-        self._stopping = threading.Event()
-        self._watchdog: threading.Thread | None = None
-        self._env_keeper: threading.Thread | None = None
+        self.stopping = threading.Event()             # set as the shutdown begins
+        # threads that act on the system on their own (the env keeper; the watchdog and
+        # each failover): joined as it shuts down
+        self._background: list[threading.Thread] = []
 
     # -- nodes ----------------------------------------------------------------------
     def start_nodes(self, callback: str | None, timeout: float) -> None:
@@ -130,7 +112,7 @@ class Launcher:
         here = "127.0.0.1" if callback is None else host_of(callback)
         remote = [name for name, node in self.plan.nodes.items() if node.address is not None]
         assert callback is not None or not remote, "remote nodes call the launcher back"
-        starts = RemoteStarts(self._start_remote_node, remote,
+        starts = RemoteStarts(self.start_remote_node, remote,
                               {name: str(self.plan.nodes[name].address) for name in remote},
                               timeout, LAUNCH_LONGER)
         embedded: dict[str, Executor] = {}
@@ -153,14 +135,10 @@ class Launcher:
                                          "epoch": 1}
         if failures:
             raise not_started(self.plan.name, len(remote), failures)
-        self._introduce()
+        self.introduce()
         # (also without remote nodes: it keeps the env modules' view up to date)
-        self._env_keeper = threading.Thread(target=self._keep_env, name="pb3a-env",
-                                            daemon=True)
-        self._env_keeper.start()
-        self._watchdog = threading.Thread(target=self._watch, name="pb3a-heartbeat",
-                                          daemon=True)
-        self._watchdog.start()
+        self.start_background(threading.Thread(target=self._keep_env, name="pb3a-env",
+                                               daemon=True))
 
     def _embedded_executor(self, name: str, here: str) -> Executor:
         """The executor of node ``name``, which has no address: it runs in this process,
@@ -228,7 +206,7 @@ class Launcher:
                 f"system {self.plan.name!r} was not started: {which} (no module was "
                 "started):", *problems]))
 
-    def _start_remote_node(self, name: str, node_epoch: int) -> RemoteNode:
+    def start_remote_node(self, name: str, node_epoch: int) -> RemoteNode:
         """Have node ``name``'s controller start an executor for this system."""
         node = self.plan.nodes[name]
         assert node.address is not None and self._callback is not None
@@ -238,7 +216,7 @@ class Launcher:
                           code=self.plan.code, epoch=self.epoch, node_epoch=node_epoch,
                           spares=node.spares)
 
-    def _introduce(self) -> None:
+    def introduce(self) -> None:
         """Tell every remote node where its peers are (for their round-trip times); the
         launcher stands for its embedded nodes."""
         for remote in self.remotes.values():
@@ -247,6 +225,12 @@ class Launcher:
                     remote.meet({name: self.remotes[name].address if name in self.remotes
                                  else self._callback for name in self.nodes
                                  if name != remote.name})
+
+    def start_background(self, thread: threading.Thread) -> None:
+        """Start ``thread``, which acts on the system on its own until ``stopping`` is
+        set: the shutdown waits for it (2 s at most) before it stops anything."""
+        self._background = [*(t for t in self._background if t.is_alive()), thread]
+        thread.start()
 
     def check_node_epoch(self, node: str, node_epoch: int) -> None:
         """Refuse what an executor of an earlier admission of ``node`` says: it was
@@ -523,12 +507,6 @@ class Launcher:
         remote = self.remotes.get(name)
         return remote is not None and remote.silent_s() > 2 * HEARTBEAT_S
 
-    def _going(self, name: str) -> bool:
-        """Whether remote node ``name`` has been silent half the time that makes it lost:
-        no place for a module failing over (a slow node that missed two heartbeats is)."""
-        remote = self.remotes.get(name)
-        return remote is not None and remote.silent_s() > LOSS_S / 2
-
     def node_table(self) -> dict[str, NodeStats]:
         """Every node's health as the heartbeats see it: a lost node's silence goes on
         counting (it said 0.0 once the node was lost)."""
@@ -538,40 +516,12 @@ class Launcher:
                                 else 0.0)
                 for name, health in self.health.items()}
 
-    # -- heartbeats -------------------------------------------------------------------
-    def _watch(self) -> None:
-        """Declare lost a remote node silent for ``LOSS_S``; ask lost ones' controllers
-        whether they are back. (Nothing here waits for a node that may be gone.)"""
-        next_rejoin = time.monotonic()
-        while not self._stopping.wait(WATCH_S):
-            try:
-                next_rejoin = self._look(next_rejoin)
-            except Exception:               # (the watchdog alone sees nodes go: it goes on)
-                log.exception("the watchdog's look at the nodes failed")
-
-    def _look(self, next_rejoin: float) -> float:
-        """One look of the watchdog; when to look for lost nodes' return next."""
-        for name, node in list(self.remotes.items()):
-            if self.health[name]["up"]:
-                self.health[name]["rtt"] = node.rtt
-                if node.silent_s() > LOSS_S and not self._stopping.is_set():
-                    self._lose(name, node.silent_s())
-        now = time.monotonic()
-        if now < next_rejoin:
-            return next_rejoin
-        for name in list(self.remotes):
-            if not self.health[name]["up"] and name not in self._rejoining \
-                    and name not in self._failing_over:     # (its modules first)
-                self._rejoining.add(name)
-                threading.Thread(target=self._rejoin, args=(name,), daemon=True,
-                                 name=f"pb3a-rejoin-{name}").start()
-        return now + REJOIN_S
-
+    # -- the env modules' view ---------------------------------------------------------
     def _keep_env(self) -> None:
         """Every ``ENV_S``: each remote node's controller health and log, and the env
         modules' view (on a thread of its own: a node going silent meanwhile must not
         hold up the detection of its loss)."""
-        while not self._stopping.wait(ENV_S):
+        while not self.stopping.wait(ENV_S):
             for name, node in list(self.remotes.items()):
                 if self.health[name]["up"] and not self._silent(name):
                     self.health[name]["controller"] = node.controller_answers(HEARTBEAT_S)
@@ -585,299 +535,6 @@ class Launcher:
                 self._log_seen[name] = entry.seq
                 self.logbook.add(entry.time, entry.level, entry.logger, entry.message,
                                  name, entry.module, entry.process)
-
-    # -- a lost node ------------------------------------------------------------------
-    def _lose(self, node: str, silent_s: float) -> None:
-        """Declare ``node`` lost: every call to it fails at once from now on; its modules
-        fail over or are dropped, with their links (``_try_fail_over``); the env modules
-        say so."""
-        lost_at = time.monotonic()
-        self.remotes[node].lose()
-        with self.changed:
-            # no round trip now: its last one, shown on, was made up
-            self.health[node].update(up=False, rtt=float("nan"))
-            self.changed.notify_all()
-        # (a copy: another node's failover thread may change the specs meanwhile)
-        gone = sorted(name for name, spec in list(self.specs.items()) if spec.node == node)
-        self.failures.add(f"node {node} lost (no heartbeat for {silent_s:.1f} s); its "
-                          f"modules {', '.join(gone) or '(none)'} were there")
-        self.events.record("node_lost", node, modules=gone, silent_s=silent_s)
-        self._failing_over[node] = lost_at
-        # on a thread of its own: placing the modules may wait for a node that went too,
-        # which only the watchdog, free, declares lost (then the wait fails at once)
-        failover = threading.Thread(target=self._fail_over_until_done, args=(node, lost_at),
-                                    name=f"pb3a-failover-{node}", daemon=True)
-        self._failovers = [*(t for t in self._failovers if t.is_alive()), failover]
-        failover.start()
-
-    def _fail_over_until_done(self, node: str, lost_at: float) -> None:
-        """Try to fail ``node``'s modules over every ``WATCH_S`` until it is done."""
-        while node in self._failing_over and not self._stopping.is_set():
-            self._try_fail_over(node, lost_at)
-            if node in self._failing_over:
-                self._stopping.wait(WATCH_S)
-
-    def _try_fail_over(self, node: str, lost_at: float) -> None:
-        """Fail over lost ``node``'s modules once its executor has fenced itself, if the
-        configuration lock comes within ``FAIL_OVER_WAIT_S``; else its failover thread
-        tries again ``WATCH_S`` later (a change holding the lock long, or failing, must
-        not end it)."""
-        remote = self.remotes.get(node)
-        if remote is not None and time.monotonic() < remote.fenced_by():
-            return                          # its modules may still run there
-        # lent to the modules it starts: one that reads the runtime from its setup (an
-        # agent checking the modules its settings name) is answered, as in a move (it
-        # waited for the lock the failover held, the start ran out of time, and the
-        # module was failed, not failed over)
-        moving = [name for name, spec in list(self.specs.items()) if spec.node == node]
-        with contextlib.ExitStack() as held:
-            try:
-                held.enter_context(self.lock.held(f"fail over lost node {node}",
-                                                  FAIL_OVER_WAIT_S, lend=moving))
-            except RuntimeTimeout:
-                return                      # the lock: the next look (nothing done yet)
-            try:
-                self._fail_over_lost(node, lost_at)
-            except Exception:               # once begun, never again: logged
-                log.exception("failing over the modules of lost node %s failed", node)
-            self._failing_over.pop(node, None)
-
-    def _fail_over_lost(self, node: str, lost_at: float) -> None:
-        """``_try_fail_over``'s work, the configuration lock held."""
-        # read under the lock: a move to the node that failed when it was lost put
-        # its modules back where they came from before it let the lock go
-        gone = sorted(name for name, spec in self.specs.items() if spec.node == node)
-        touched = {key: link for key, link in self.links.items()
-                   if link.src in gone or link.dst in gone}
-        env = env_name(node)            # back with the node, if it rejoins
-        if env in self.specs:
-            self._env_kept[node] = (self.specs[env], [
-                link for link in touched.values() if link.src == env])
-        # what a surviving writer writes while its link is unwired is lost: counted
-        written = self._written([link for link in touched.values() if link.src not in gone])
-        reader = follower_id(node, self.remotes[node].node_epoch)   # (the lost admission's)
-        for link in touched.values():
-            with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
-                self._drop_half(link, gone, reader)
-        moved, refused = self._fail_over(node, gone)
-        lost = [self.specs.pop(name) for name in gone if name not in moved]
-        for key, link in touched.items():
-            if link.src not in self.specs or link.dst not in self.specs:
-                del self.links[key]
-                if env not in (link.src, link.dst):     # (an env's come back with it)
-                    self.events.record("link_removed", key)
-        for spec in lost:
-            if spec.name != env:        # (an env module belongs to its node: back with it)
-                self._tell_lost(spec, node, refused.get(spec.name), touched.values())
-        self.reattach([link for key, link in touched.items() if key in self.links],
-                      f"after the loss of node {node}")
-        rewired = [self.links[key] for key in written if key in self.links]
-        for key, count in self._written(rewired).items():
-            self.lost_values[key] += max(0, count - written[key])
-        not_started: set[str] = set()
-        for target in dict.fromkeys(moved.values()):
-            started = [name for name, to in moved.items() if to == target]
-            try:
-                self.nodes[target].start_modules(started, failing=True)
-            except (RuntimeFailure, RuntimeTimeout) as exc:
-                not_started.update(getattr(exc, "failed", started))
-                self.failures.add(f"failover of {', '.join(started)} to node "
-                                  f"{target} failed: {exc}")
-        for name, target in moved.items():
-            if name in not_started:             # failed there (module_failed), not over
-                continue
-            self.events.record("module_failed_over", name, source=node,
-                               destination=target, policy=self.specs[name].restart,
-                               from_checkpoint=self.specs[name].restart == "last-state"
-                               and name in self.checkpoints,
-                               restart_s=time.monotonic() - lost_at)
-        self.update_env()
-
-    def _tell_lost(self, spec: FlatModule, node: str, refused: str | None,
-                   links: Iterable[FlatLink]) -> None:
-        """Say that module ``spec`` went with lost ``node`` (its policy, or ``refused``:
-        why no node took it), with what it takes to add it again: an agent or a user
-        reading the event can (it was gone from the system without a word)."""
-        cls = f"{spec.cls.__module__}:{spec.cls.__qualname__}"
-        reason = refused or "its restart policy is never"
-        self.failures.add(f"module {spec.name} ({cls}) went with node {node}: {reason}")
-        self.events.record("module_lost", spec.name, node=node, reason=reason, cls=cls,
-                           state=dict(spec.state), restart=spec.restart,
-                           links=[{"from": f"{link.src}.{link.src_port}",
-                                   "to": f"{link.dst}.{link.dst_port}",
-                                   "policy": str(link.policy)} for link in links
-                                  if spec.name in (link.src, link.dst)])
-
-    def _fail_over(self, lost: str, gone: list[str]) -> tuple[dict[str, str], dict[str, str]]:
-        """Instantiate each module of ``gone`` whose restart policy allows it on a
-        surviving node, from its last checkpoint for ``last-state``: module -> node, and
-        module -> why no node took it. All are placed first, so that each target boots
-        their workers side by side."""
-        movers = [name for name in gone if self.specs[name].restart != "never"
-                  and name != env_name(lost)]        # an env module belongs to its node
-        loads = self._loads(lost) if movers else {}
-        placed: dict[str, FlatModule] = {}
-        refused: dict[str, str] = {}
-        for name in movers:
-            spec = self.specs[name]
-            target = self._place(spec, loads)
-            if target is None:
-                refused[name] = (f"no surviving node {'of its fallback ' if spec.fallback else ''}"
-                                 "admits it")
-                continue
-            placed[name] = dataclasses.replace(spec, node=target)
-            loads[target] = loads[target][0], loads[target][1] + 1
-        coming: dict[str, list[FlatModule]] = {}
-        for spec in placed.values():
-            coming.setdefault(spec.node, []).append(spec)
-        for target, specs in coming.items():
-            with contextlib.suppress(RuntimeFailure, RuntimeTimeout):   # (add_module boots
-                self.nodes[target].spawn_workers(specs)                 # them, failing this)
-        moved = {}
-        for name, moved_spec in placed.items():
-            # a checkpoint goes as it came, read in the worker: its classes may be
-            # installed on the robots only, not where the launcher runs
-            state: dict[str, Any] | bytes = (
-                self.checkpoints[name] if moved_spec.restart == "last-state"
-                and name in self.checkpoints else moved_spec.state)
-            target: str | None = moved_spec.node
-            last = ""                           # why the last node tried did not take it
-            while target is not None:
-                try:
-                    self.nodes[target].add_module(dataclasses.replace(moved_spec, node=target),
-                                                  state=state)
-                    break
-                except (RuntimeFailure, RuntimeTimeout) as exc:
-                    last = self.failures.add(f"module {name} not restarted on node "
-                                             f"{target}: {exc}")
-                    loads.pop(target, None)     # the next that admits it, if any
-                    target = self._place(self.specs[name], loads)
-            if target is None:
-                refused[name] = f"no surviving node could start it ({last})"
-                continue
-            self.specs[name] = dataclasses.replace(moved_spec, node=target)
-            moved[name] = target
-        return moved, refused
-
-    def _loads(self, lost: str) -> dict[str, tuple[float, int]]:
-        """Each surviving node's CPU use (percent, as its controller or, embedded, this
-        machine measures it) and module count: the least loaded is tried first."""
-        loads = {}
-        here = psutil.cpu_percent(interval=None)
-        for name in self.nodes:
-            if name == lost or not self.health[name]["up"] or self._going(name):
-                continue                    # (a node gone too, not declared lost yet)
-            cpu = here
-            if name in self.remotes:
-                try:
-                    cpu = self.remotes[name].controller.call("status",
-                                                             PLACE_TIMEOUT)["cpu_percent"]
-                except (RuntimeFailure, RuntimeTimeout):
-                    continue
-            loads[name] = (cpu, sum(spec.node == name for spec in self.specs.values()))
-        return loads
-
-    def _place(self, spec: FlatModule, loads: dict[str, tuple[float, int]]) -> str | None:
-        """The first node that admits ``spec``: of its fallback nodes in order if it names
-        any, else of the surviving ones from the least loaded."""
-        candidates = ([node for node in spec.fallback if node in loads] if spec.fallback
-                      else sorted(loads, key=lambda node: loads[node]))
-        for node in candidates:
-            if node not in self.remotes:
-                return node                   # an embedded node: the launcher's machine
-            try:
-                self.remotes[node].controller.call("admit", PLACE_TIMEOUT,
-                                                   what=f"module {spec.name}")
-                return node
-            except (RuntimeFailure, RuntimeTimeout) as exc:
-                log.warning("failover of %s: %s", spec.name, exc)
-        return None
-
-    def _written(self, links: list[FlatLink]) -> dict[str, int]:
-        """How many values the writer of each link has written on its port so far (one
-        report from each writer's node)."""
-        reports: dict[str, NodeReport | None] = {}
-        counts = {}
-        for link in links:
-            node = self.specs[link.src].node
-            if node not in reports:
-                try:
-                    reports[node] = self.nodes[node].report(REPORT_TIMEOUT)
-                except (RuntimeFailure, RuntimeTimeout):
-                    reports[node] = None
-            report = reports[node]
-            entry = None if report is None else report.modules.get(link.src)
-            counts[link.key] = 0 if entry is None else entry.outputs.get(link.src_port, 0)
-        return counts
-
-    def _drop_half(self, link: FlatLink, gone: list[str], reader: bytes) -> None:
-        """Unwire the surviving half of a link whose other end was on a lost node; what
-        its reader knows it never got, or what the lost node's follower (``reader``)
-        never acknowledged to its writer, is counted on the link."""
-        if link.src in gone and link.dst not in gone:
-            self.lost_values[link.key] += self.node_of(link.dst).close_inbound(
-                [(link, (0, None))])[0]
-        elif link.dst in gone and link.src not in gone:
-            writer = self.node_of(link.src)
-            self.lost_values[link.key] += writer.unacknowledged(link, reader)
-            writer.unpublish([link])
-
-    def _rejoin(self, name: str) -> None:
-        """Admit lost node ``name`` again if its controller answers: the fenced executor
-        is stopped, a new one started under the next node epoch; its env module is
-        back. Its modules stay where they failed over to: move them back at will."""
-        try:
-            old = self.remotes[name]
-            if self._stopping.is_set():
-                return
-            # (said while it is lost too: it said the last answer before the loss)
-            self.health[name]["controller"] = old.controller_answers(HEARTBEAT_S * 2)
-            if not self.health[name]["controller"]:
-                return
-            old.stop_executor(timeout=5.0)        # (it fenced itself; killed if it did not)
-            epoch = old.node_epoch + 1
-            try:
-                node = self._start_remote_node(name, node_epoch=epoch)
-            except (RuntimeFailure, RuntimeTimeout) as exc:   # (asked again in a second)
-                log.warning("node %s answers again but could not be admitted: %s", name, exc)
-                return
-            adopted = False
-            try:
-                with self.lock.held(f"admit node {name} again"):
-                    if self._stopping.is_set():
-                        return
-                    old.close()
-                    self.nodes[name] = self.remotes[name] = node
-                    adopted = True
-                    with self.changed:
-                        self.health[name].update(up=True, rtt=node.rtt, controller=True,
-                                                 epoch=epoch)
-                        self.changed.notify_all()
-                    self._introduce()
-                    self._restore_env(name)
-                    self.update_env()
-            except RuntimeTimeout as exc:               # (the lock: asked again in a second)
-                log.warning("node %s answers again but could not be admitted: %s", name, exc)
-                return
-            finally:
-                if not adopted:          # its executor, and the heartbeats that renew it
-                    node.shutdown()
-            log.warning("node %s is back (epoch %d)", name, epoch)
-            self.events.record("node_joined", name, epoch=epoch, address=node.address)
-        finally:
-            self._rejoining.discard(name)
-
-    def _restore_env(self, node: str) -> None:
-        """Bring back a rejoined node's env module and its links that were there when the
-        node was lost (to modules still running)."""
-        spec, links = self._env_kept.pop(node, (None, []))
-        if spec is None or spec.name in self.specs:
-            return
-        self.add_module(spec)
-        for link in links:
-            if link.dst in self.specs and link.key not in self.links:
-                self.connect(link)
-        self.nodes[node].start_modules([spec.name])
 
     def update_env(self) -> None:
         """Tell every node's env module (as its state) the health of every node and its
@@ -921,17 +578,16 @@ class Launcher:
     @property
     def stopped(self) -> bool:
         """True once ``shutdown`` has begun."""
-        return self._stopping.is_set()
+        return self.stopping.is_set()
 
     def shutdown(self, timeout: float = 10.0) -> None:
         """Stop modules in reverse start order (across nodes), then every node, within
         about ``timeout`` seconds: a change in progress is waited for half of it at
         most (then the system stops all the same, the change failing as it can)."""
         deadline = time.monotonic() + timeout
-        self._stopping.set()
-        for thread in (self._watchdog, self._env_keeper, *self._failovers):
-            if thread is not None:
-                thread.join(max(0.0, min(2.0, deadline - time.monotonic())))
+        self.stopping.set()
+        for thread in self._background:
+            thread.join(max(0.0, min(2.0, deadline - time.monotonic())))
         for name, remote in self.remotes.items():
             remote.wind_down(deadline)   # (one that does not answer fences itself anyway)
             if self._silent(name):                    # gone, not yet declared: no waiting

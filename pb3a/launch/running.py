@@ -1,8 +1,9 @@
 """``Running``: the handle ``System.launch()`` returns; the system runs in this process.
 
-It owns the launch: starting every node and module, the launcher's control server
-(``listen``: where ``pb3a.connect`` and the command line reach it), and stopping
-everything. Its live operations are ``SystemHandle``'s, applied here directly.
+It owns the launch: starting every node and module, the watch over the remote nodes
+(``Failover``), the launcher's control server (``listen``: where ``pb3a.connect`` and
+the command line reach it), and stopping everything. Its live operations are
+``SystemHandle``'s, applied here directly.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from typing import Any
 
 from pb3a.config.plan import Plan
 from pb3a.errors import ConfigError, ModuleNotFound, RuntimeFailure, bounded_wait
+from pb3a.launch.failover import Failover
 from pb3a.launch.handle import SystemHandle
 from pb3a.launch.launcher import Launcher
 from pb3a.launch.operations import CHANGE_LONGER, DEFAULT_TIMEOUT, FOR_AGENTS, Operations
@@ -85,6 +87,7 @@ class Running(SystemHandle):
         self.name = plan.name
         default = plan.timeout if timeout is None else bounded_wait(timeout, "launch")
         self._launcher = Launcher(plan, checkpoint_s=checkpoint_s, log_level=log_level)
+        self._failover = Failover(self._launcher)
         self._operations = Operations(self._launcher,
                                       DEFAULT_TIMEOUT if default is None else default)
         self._launcher.handler = self._agent_request
@@ -113,6 +116,7 @@ class Running(SystemHandle):
                 if self._listen_at is not None or remote:
                     self.listen(self._listen_at or f"tcp://{self._here_towards_nodes()}:0")
                 launcher.start_nodes(self.address if remote else None, self._operations.timeout)
+                self._failover.start()
                 launcher.check_classes(self._operations.timeout)
                 launcher.expect(list(self.plan.modules.values()))
                 for spec in self.plan.modules.values():
