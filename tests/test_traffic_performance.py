@@ -575,40 +575,14 @@ NETWORKS = Path(__file__).resolve().parent.parent / "scenarios" / "traffic"
 
 
 @pytest.mark.timeout(120)
-def test_in_a_system_its_swaps_are_events_and_the_lock_step_goes_on(tmp_path: Path) -> None:
-    """The crossing with the scenario's junction macro; the agent's rules say
-    max-pressure once the queue is over one vehicle: it swaps, mid-run, in lock-step
-    with the driver, and the swap is a system event."""
-    pytest.importorskip("libsumo", reason="SUMO (the traffic extra) is not installed")
-    from scenarios import traffic
-
-    resource = NETWORKS / "cross.toml"
-    found = traffic.layouts(resource, tmp_path)
-    system = traffic.configuration(resource, seed=2, duration_s=600.0, found=found,
-                                   cache=tmp_path, agent_state={
-        "rules": [{"use": "gap_out"}, {"use": "max_pressure", "queue_at_least": 1.0}],
-        "min_between_swaps_s": 1000.0})
-    with system.launch() as running:
-        result = eventually(lambda: running.state("sumo")["result"], timeout=60,
-                            what="the 600 s run to end")
-        swaps = running.state("C/agent")["swaps"]
-        events = [e for e in running.events(since=0, timeout=1.0)
-                  if e.kind == "module_swapped"]
-    assert [s["to"] for s in swaps] == ["max_pressure"] and 60 <= swaps[0]["time"] < 600
-    assert [e.subject for e in events] == ["C/controller"]
-    assert events[0].detail["cls"] == "agents.traffic.max_pressure:MaxPressure"
-    assert result["rejected"] == 0 and result["late"] == 0 and result["teleports"] == 0
-
-
-
-@pytest.mark.timeout(120)
-def test_in_lock_step_a_swap_runs_from_the_step_after_the_measure_that_called_for_it(
+def test_in_a_system_its_swap_is_an_event_and_answers_from_the_next_step(
         tmp_path: Path) -> None:
-    """The agent is in the driver's lock-step (its ``done``), so a swap to a controller
-    whose setup takes 0.3 s is made before the next step: the new controller's first
-    reading is of the step after the measure that called for it. Before, SUMO ran on
-    while the swap was made, as many steps as the machine's load allowed (so the grid's
-    figures moved with the load)."""
+    """The crossing with the scenario's junction macro; the agent's rules say a
+    max-pressure whose setup takes 0.3 s once the queue is over one vehicle: it swaps,
+    mid-run, the swap is a system event, and, the agent being in the driver's lock-step
+    (its ``done``), the new controller's first reading is of the step after the measure
+    that called for it. Before, SUMO ran on while the swap was made, as many steps as
+    the machine's load allowed (so the grid's figures moved with the load)."""
     pytest.importorskip("libsumo", reason="SUMO (the traffic extra) is not installed")
     from scenarios import traffic
 
@@ -625,9 +599,13 @@ def test_in_lock_step_a_swap_runs_from_the_step_after_the_measure_that_called_fo
                             what="the 900 s run to end")
         swaps = running.state("C/agent")["swaps"]
         first_step = running.state("C/controller")["first_step"]
+        events = [e for e in running.events(since=0, timeout=1.0)
+                  if e.kind == "module_swapped"]
     assert [s["to"] for s in swaps] == ["slow"] and 60 <= swaps[0]["time"] < 300
+    assert [(e.subject, e.detail["cls"]) for e in events] == [
+        ("C/controller", "sample_modules:SlowToSwapIn")]
     assert first_step == swaps[0]["time"] + 1            # (a control step is 1 s)
-    assert result["late"] == 0 and result["rejected"] == 0
+    assert result["rejected"] == 0 and result["late"] == 0 and result["teleports"] == 0
 
 
 @pytest.mark.timeout(60)
