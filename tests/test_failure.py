@@ -1534,6 +1534,37 @@ def test_a_forced_remove_kills_a_module_that_does_not_answer_and_the_rest_runs_o
     assert closed is None and took < 10, f"close: {closed!r} after {took:.1f} s"
 
 
+def test_a_remove_asked_again_of_a_module_stuck_in_its_step_waits_for_it_again() -> None:
+    """A second plain ``remove`` after one that timed out (the module frozen in its
+    ``step``) answered at once, and the module was dropped with its links, its worker
+    retired, its ``teardown`` never run, and no word of a kill: it was taken for
+    stopped, as the first had asked it to stop. Now it waits for it again and fails the
+    same way, leaving it as it was; ``force`` then kills its worker."""
+    system = System("remove-again").node("a")
+    system.add("c", Counter, node="a", period=0.01)
+    system.add("f", Freezer, node="a")
+    system.link("c.out", "f.x")
+    run = system.launch(timeout=30)
+    try:
+        pid = _frozen_in(run, "f", "step")
+        for _ in range(2):
+            began = time.monotonic()
+            with pytest.raises(RuntimeTimeout, match=r"did not answer 'stop'.*module f "
+                                                     r"was left as it was"):
+                run.remove("f", timeout=1)
+            took = time.monotonic() - began
+            assert took < 1.5, f"remove took {took:.2f} s"
+            topology = run.topology()
+            assert "f" in topology.modules and "c.out->f.x" in topology.links
+            assert alive(pid)
+        run.remove("f", timeout=1, force=True)
+        assert not alive(pid) and "f" not in run.topology().modules
+        assert run.events()[-1].detail["killed"] is True
+    finally:
+        closed, took = _bounded(lambda: run.close(timeout=5), 30)
+    assert closed is None and took < 10, f"close: {closed!r} after {took:.1f} s"
+
+
 def test_a_forced_remove_kills_no_worker_that_runs_other_modules() -> None:
     """Killing a worker a module shares with others (a group, packed workers) would lose
     them too: a forced remove of such a module that does not answer is refused, naming

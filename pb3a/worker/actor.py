@@ -153,7 +153,8 @@ class ModuleActor:
         self._stop = threading.Lock()
         self._step_clock: int | None = None
         self._step_cpu = 0.0
-        self._stopped = False
+        self._torn_down = False                 # its teardown ran, or runs now (once)
+        self._teardown_once = threading.Lock()
         self._halted = False                    # stopping: it does not start any more
         # whether its bodies may run now (its worker's lease holds: Worker.lease_holds)
         self.may_run: Callable[[], bool] = _always
@@ -191,9 +192,8 @@ class ModuleActor:
             elif not halted:
                 self._halted = self._setup_failed = True
         if halted:                              # stopped while it set up: it never runs,
-            if set_up and not self._stopped:    # and what its setup opened is closed
-                self._stopped = True
-                self.call("teardown")
+            if set_up:                          # and what its setup opened is closed
+                self._tear_down()
             return
         if not set_up:
             raise SetupError(f"module {self.name!r} raised in setup: {self.last_error}")
@@ -211,27 +211,39 @@ class ModuleActor:
             self._schedule(self._dispatch)
 
     def stop(self, timeout: float = 5.0) -> bool:
-        """Stop stepping and dispatching, then run ``teardown`` (once). False if a body overran."""
-        if self._stopped:
+        """Stop stepping and dispatching, then run ``teardown`` (once). False if a body
+        overran: the module has not stopped, and a stop asked again waits for it again
+        (a second remove of a module stuck in its step was taken for stopped: it was
+        dropped, its teardown never run)."""
+        if self._torn_down:
             return True
-        self._stopped = True
         self.halt()
         finished = True
-        if self._thread is not None and self._thread is not threading.current_thread():
+        thread = self._thread
+        if thread is not None and thread is not threading.current_thread():
             # (set through the join: a second wait the step starts is cancelled too)
             self._stopping_for = "the module is stopping"
             self._cancel_wait(self._stopping_for)
-            self._thread.join(timeout)
+            thread.join(timeout)
             self._stopping_for = ""
-            finished = not self._thread.is_alive()
-            self._thread = None
+            finished = not thread.is_alive()
+            if finished:
+                self._thread = None
         if self.acquire_stopped(timeout, "the module is stopping"):
             self.lock.release()
             if not self._setup_failed:      # (as a test's tearDown after a failed setUp)
-                self.call("teardown")
+                self._tear_down()
         else:
             finished = False
         return finished
+
+    def _tear_down(self) -> None:
+        """Run ``teardown``, once, whoever asks (a stop, or a start halted during its
+        setup, may ask at the same time)."""
+        with self._teardown_once:
+            torn_down, self._torn_down = self._torn_down, True
+        if not torn_down:
+            self.call("teardown")
 
     @contextlib.contextmanager
     def _setting_up(self) -> Iterator[None]:
@@ -470,7 +482,7 @@ class ModuleActor:
         finds the module no longer running and returns.
         """
         self.running = False
-        self._stopped = True
+        self._torn_down = True
         if self._stop.locked():
             self._stop.release()                # the step thread leaves its loop
         try:
@@ -481,7 +493,7 @@ class ModuleActor:
 
     def reinstate(self) -> None:
         """Undo ``retire`` (a move that failed after it): ``start`` sets it up again."""
-        self._stopped = False
+        self._torn_down = False
 
     def holdings(self) -> dict[str, Any]:
         """What a migration captures: the state, every input's unconsumed values, and the
