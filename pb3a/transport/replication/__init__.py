@@ -23,7 +23,11 @@ values in sequence order, exactly once:
   are answered with a WELCOME and a SYNC only (in full by a publisher that never
   answered that follower: its first HELLO was lost), so a replay crossing a slow link
   is not sent again behind itself at each repeat. A replay not coming (nothing of it
-  for as long as a repair waits, below) is asked again, in full.
+  for as long as a repair waits, below) is asked again, in full. A follower whose
+  subscription went live before it knew whom to name (see "Destinations") says LIVE
+  in the HELLO naming the sender: nothing is replayed (PUB carries the values from
+  then on; those before, it repairs as any gap); asking from where it was, it had the
+  values PUB was carrying to it sent twice.
 - Gaps (the publisher's high-water mark dropped values for a slow follower, or a
   reconnect lost some) are repaired the same way; values beyond a gap wait; a
   heartbeat (SYNC every 0.5 s with the next sequence number) reveals values lost at
@@ -156,6 +160,7 @@ from pb3a.transport.replication.wire import (
     HEARTBEAT_S,
     HELLO,
     INFO,
+    LIVE,
     LOSSLESS,
     REPAIR,
     REPAIR_RETRY_S,
@@ -183,6 +188,7 @@ __all__ = [
     "HEARTBEAT_S",
     "HELLO",
     "INFO",
+    "LIVE",
     "LOSSLESS",
     "REPAIR",
     "REPAIR_RETRY_S",

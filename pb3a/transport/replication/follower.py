@@ -34,6 +34,7 @@ from pb3a.transport.replication.wire import (
     HELLO_EVERY,
     INFO,
     LINGER_MS,
+    LIVE,
     LOSSLESS,
     MAX_MESSAGE,
     NOBLOCK,
@@ -351,14 +352,22 @@ class Follower:
     def _hello(self, follow: _Follow, waiting: bool = False) -> None:
         """Say HELLO: the sender answers WELCOME, publishes a SYNC (the first that comes
         through the SUB socket makes the follow live) and replays what we miss, unless
-        ``waiting`` (a repeat while that replay is on its way: see ``_retry``)."""
+        ``waiting`` (a repeat while that replay is on its way: see ``_retry``), or the
+        follow is live already (it names the sender only now: see "Slow joiners")."""
         follow.hello_at = time.monotonic()
         flags = self._flags(follow)
         if waiting:
             flags |= WAITING
+        elif follow.live and follow.incarnation is not None:
+            # What its subscription carried since it went live is not replayed (behind
+            # itself on a slow link, each value went twice), nor what came before, which
+            # a repair fetches as for any gap (``_advance``): only who it is is said.
+            flags |= LIVE
+            follow.hello_for = follow.incarnation
         else:
             follow.asked = follow.hello_at
-            follow.repairing = follow.next_seq >= 0   # the answer replays what we miss
+            # (the answer replays what we miss; to one naming nobody, nothing)
+            follow.repairing = follow.next_seq >= 0 and follow.incarnation is not None
             follow.asked_from = follow.next_seq
             follow.hello_for = follow.incarnation
         self._ask(follow, HELLO, follow.next_seq, flags)
@@ -442,7 +451,10 @@ class Follower:
                     values, sent_at, nbytes = follow.held.pop(first)
                     if first + len(values) > nxt:
                         follow.held[nxt] = (values[nxt - first:], sent_at, nbytes)
-            follow.announced = max(follow.announced, nxt)
+            if live or not follow.live or follow.direct:
+                # (a WELCOME to a live follow crosses the control connection ahead of
+                # values PUB still carries to it: not a gap; a SYNC behind them says so)
+                follow.announced = max(follow.announced, nxt)
             follow.live = follow.live or live
             if message.kind == WELCOME and third and follow.repairing:
                 follow.asked = time.monotonic()  # its replay is coming (see ``_drain``)

@@ -38,6 +38,7 @@ from pb3a.transport.replication.wire import (
     HEARTBEAT_S,
     HELLO,
     INFO,
+    LIVE,
     LOSSLESS,
     MAX_MESSAGE,
     NOBODY,
@@ -860,7 +861,9 @@ class Replicator:
                 stream.acks[peer_id] = (first if first >= 0 else nxt, time.monotonic())
                 stream.hold(peer_id, first if first >= 0 else nxt, last)
                 stream.clear_until = 0           # a new follower: the window moved back
-                replays = first >= 0 and not again      # (an empty replay still says so)
+                # (an empty replay still says so; one whose subscription is live already
+                # repairs what it missed: PUB carries the rest to it)
+                replays = first >= 0 and not again and not last & LIVE
                 self._send_router(peer, WELCOME,
                                   [name, ANSWER.pack(self.incarnation, nxt, int(replays))])
                 self._send_pub(name, SYNC, [self._sync(stream)])

@@ -34,6 +34,10 @@ WAITING = 2                             # flag of HELLO: the replay an earlier o
                                         # is on its way: answer WELCOME and SYNC only
 SERVED_DIRECT = 4                       # flag of ACK: it is served on its own (DIRECT); a
                                         # sender serving it over PUB says RESUME again
+LIVE = 8                                # flag of HELLO: its subscription is live already (it
+                                        # learned whom to name after a SYNC or value came
+                                        # through it): replay nothing (it repairs what its
+                                        # subscription missed; PUB carries the rest to it)
 ANSWER = struct.Struct("<16sqq")       # WELCOME: incarnation, next, a replay follows (1)
                                         # or not (0); REPLAYED: first, gone;
                                         # SKIPPED: first, count; SYNC: next, skipped before it;
