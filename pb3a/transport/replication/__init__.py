@@ -27,7 +27,8 @@ values in sequence order, exactly once:
   subscription went live before it knew whom to name (see "Destinations") says LIVE
   in the HELLO naming the sender: nothing is replayed (PUB carries the values from
   then on; those before, it repairs as any gap); asking from where it was, it had the
-  values PUB was carrying to it sent twice.
+  values PUB was carrying to it sent twice. (A live follow takes no WELCOME's next
+  sequence number for a gap either: it comes ahead of values PUB still carries.)
 - Gaps (the publisher's high-water mark dropped values for a slow follower, or a
   reconnect lost some) are repaired the same way; values beyond a gap wait; a
   heartbeat (SYNC every 0.5 s with the next sequence number) reveals values lost at
