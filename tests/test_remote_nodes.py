@@ -846,7 +846,12 @@ def test_a_move_whose_module_s_worker_dies_once_paused_fails_at_once_saying_so(
         eventually(lambda: "module_restarted" in [e.kind for e in run.events(since)],
                    timeout=15, what="src restarted")
         said = [(e.kind, e.subject) for e in run.events(since)]
-        assert said[:2] == [("migration_failed", "src"), ("module_restarted", "src")], said
+        first = [("migration_failed", "src"), ("module_restarted", "src")]
+        if home == "b":     # (a remote node restarts it on its own once the move let go of
+            # it, and its word may reach the launcher before the move's failure is said)
+            assert sorted(said[:2]) == first, said
+        else:
+            assert said[:2] == first, said
         received = run.state("sink")["received"]
         eventually(lambda: run.state("sink")["received"] > received + 20, timeout=15,
                    what="values from the restarted src at the sink")
