@@ -182,7 +182,8 @@ class TrafficDriver(_JunctionSlots, Module):
             while self.status == "running" and self._clock() < deadline:
                 self._advance()
             return
-        self._unsettled &= self._done_linked()      # (one unlinked since: not waited for)
+        if self._unsettled:                         # (one unlinked since: not waited for)
+            self._unsettled &= self._done_linked()
         if not self._awaiting and not self._unsettled:
             self._advance()
         elif self._clock() - self._published_at >= self.lockstep_timeout_s:
