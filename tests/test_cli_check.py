@@ -232,14 +232,19 @@ def test_the_stress_example_of_the_readme_is_valid(capsys) -> None:
     assert "pb3a stress examples/stressed.toml " in (REPO / "README.md").read_text()
 
 
+@pytest.mark.parametrize("command", [["check"], ["run", "--for", "30"],
+                                     ["stress", "--for", "30", "--out", "stressed"]],
+                         ids=["check", "run", "stress"])
 def test_check_names_a_module_file_that_hangs_ends_or_crashes_as_imported_and_the_rest_too(
-        tmp_path: Path) -> None:
+        tmp_path: Path, command: list[str]) -> None:
     """`pb3a check` imported the classes in its own process: a module file that looped as
     it was imported hung it for good, one that called os._exit() or sys.exit() ended it
     with that status and not a word (os._exit(0): "valid"), one that crashed killed it
     (SIGSEGV). Each is now a problem of the entry naming it, saying what happened and what
     to do, with the file's other problems, within seconds; the looping import and the
-    process it started are gone when check returns."""
+    process it started are gone when check returns. `pb3a run` and `pb3a stress` planned
+    the file in their own process and hung there for good; they check it first the same
+    way, and start nothing."""
     harmful = ("imported_hangs", "imported_ends", "imported_crashes", "imported_exits")
     _harmful_files(tmp_path, *harmful)
     _system(tmp_path, *harmful)
@@ -247,7 +252,7 @@ def test_check_names_a_module_file_that_hangs_ends_or_crashes_as_imported_and_th
         file.write('[modules.typo]\nclass = "imported_good:Dts"\n')
     try:
         began = time.monotonic()
-        done = pb3a("check", "--import-timeout", "1", "harmed.toml", cwd=tmp_path)
+        done = pb3a(*command, "--import-timeout", "1", "harmed.toml", cwd=tmp_path)
         took = time.monotonic() - began
     finally:
         pid_file = tmp_path / "started.pid"
@@ -275,8 +280,9 @@ def test_check_names_a_module_file_that_hangs_ends_or_crashes_as_imported_and_th
         "under if __name__ == '__main__':)",
         "harmed.toml [modules.typo]: module 'imported_good' has no class 'Dts' (did you mean "
         "'Dst'?)"], done.stdout
-    assert "pb3a check: 5 problems in harmed.toml" in done.stderr
+    assert f"pb3a {command[0]}: 5 problems in harmed.toml" in done.stderr
     assert took < 20, took
+    assert not (tmp_path / "stressed").exists()
     assert started is not None
     eventually(lambda: not alive(started), what="the end of the process the import started")
 

@@ -52,6 +52,7 @@ def _files(commands: argparse._SubParsersAction) -> None:
                      help="where the launcher takes `pb3a status ADDR` etc. and remote nodes "
                           "call it back (default: any port on the interface that reaches "
                           "the remote nodes; loopback without)")
+    _import_timeout(run)
     run.set_defaults(handler="pb3a.cli.files:run_command")
 
 
@@ -149,6 +150,7 @@ def _stress(commands: argparse._SubParsersAction) -> None:
     stress.add_argument("--out", default=".", metavar="DIR",
                         help="where stress.json and stress.png go (default: here)")
     stress.add_argument("--seed", type=int, help="seed of the random choices")
+    _import_timeout(stress)
     stress.set_defaults(handler="pb3a.cli.stress:stress_command")
 
 

@@ -1,8 +1,10 @@
 """Commands on a configuration file: ``pb3a check``, ``pb3a graph``, ``pb3a run``.
 
 ``check`` and ``graph`` import none of the runtime nor the file's classes here: a
-child process plans the file (``pb3a.config.isolated``). ``run`` plans it in this
-process, which launches it.
+child process plans the file (``pb3a.config.isolated``). ``run`` (and ``stress``) have a
+child check it the same way first, so that a module file that hangs, ends or crashes its
+importer is named within ``--import-timeout`` instead of hanging or killing the command;
+then they plan the file in this process, which launches it.
 """
 
 from __future__ import annotations
@@ -86,7 +88,7 @@ def run_command(args: argparse.Namespace) -> int:
     from pb3a.cli.status import run_with_status
     from pb3a.transport.auth import ClusterKey, ClusterKeyError
 
-    plan = load_plan(args.file, "run")
+    plan = load_plan(args.file, "run", args.import_timeout)
     if plan is None:
         return 1
     try:
@@ -101,11 +103,14 @@ def run_command(args: argparse.Namespace) -> int:
         return 1
 
 
-def load_plan(file: str, command: str) -> Plan | None:
-    """The plan of ``file``, planned in this process, or None after printing why there
-    is none."""
+def load_plan(file: str, command: str, import_timeout: float) -> Plan | None:
+    """The plan of ``file``, planned in this process once a child has checked it (a
+    module file that hangs, ends or crashes its importer is named, not run here), or
+    None after printing why there is none."""
     from pb3a.system import System
 
+    if _reported(file, command, lambda: check_file(file, import_timeout=import_timeout)) is None:
+        return None
     return _reported(file, command, lambda: System.load(file).plan())
 
 

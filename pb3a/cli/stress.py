@@ -74,7 +74,7 @@ def stress_command(args: argparse.Namespace) -> int:
     options = StressOptions(args.seconds, args.load, args.kill_every, args.kill_among,
                             args.migrate_every, args.migrate_among, args.cuts, args.sample_s,
                             args.seed)
-    plan = load_plan(args.file, "stress")
+    plan = load_plan(args.file, "stress", args.import_timeout)
     if plan is None:
         return 1
     out = Path(args.out)
