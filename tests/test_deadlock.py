@@ -279,6 +279,8 @@ def test_close_keeps_its_timeout_with_a_change_in_progress_and_later_calls_are_r
     journal = tmp_path / "journal"
     system = System("closing").add("steady", Steady)
     run = system.launch()
+    run.add("early", Steady)            # (an event the history below holds for sure: the
+                                        # slow add's own may come after the close, or not)
 
     def add() -> None:                  # (it fails as the system stops under it)
         with contextlib.suppress(RuntimeFailure, RuntimeTimeout):

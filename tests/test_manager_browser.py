@@ -402,6 +402,9 @@ WATCH_THE_STATE_EDITOR = """() => {
         else if (restarted && init.method === 'GET' && path === '/api/system') {
             for (let waited = 0; !root.querySelector(':scope > [data-field]') && waited < 5000;
                  waited += 20) await new Promise((resolve) => setTimeout(resolve, 20));
+            // and a refresh of the feed's failed meanwhile, as one does while the module
+            // restarts (a loaded machine): its reason stands above the fields
+            window.pb3aManager.onState({module: 'probe', error: 'restarting, say'});
         }
         const answer = await fetch(path, init);
         if (restarted && init.method === 'GET' && /^[/]api[/]modules[/]probe[/]state$/.test(path))
@@ -416,7 +419,10 @@ def test_a_restarted_module_s_fields_drawn_by_the_live_feed_are_not_taken_away_a
     """After Restart the live feed may draw the module's fields before Restart's own
     reselection comes (its structure read answered late): that one put "Reading its
     state…" in their place, then drew them anew, a flicker (and what was typed in them
-    lost). The fields once shown stay; the state is still read again, into them."""
+    lost). The fields once shown stay; the state is still read again, into them. So it
+    is when a refresh of the feed's failed meanwhile (the module restarting, on a loaded
+    machine): its reason stood above the fields, and the reselection read from nothing;
+    now it reads into them, and the reason goes once the read answers."""
     page.click("[data-module='probe'] .module-title")
     page.wait_for_selector("[data-field='last'] input", timeout=WAIT_MS)
     os.kill(lab.api("GET", "/api/stats")["modules"]["probe"]["pid"], signal.SIGKILL)
@@ -433,6 +439,7 @@ def test_a_restarted_module_s_fields_drawn_by_the_live_feed_are_not_taken_away_a
     assert "fields" in shown, shown
     assert "Reading its state…" not in shown[shown.index("fields"):], shown
     assert shown[-1] == "fields", shown
+    page.wait_for_selector("#state-fields .state-problem", state="detached", timeout=WAIT_MS)
 
 
 def test_a_float_that_is_not_finite_is_shown_as_such_and_plotted_as_a_gap(

@@ -308,10 +308,14 @@ class Manager {
     if (this.editor.shows(subject)) {
       // selected again (after Restart, say) with the fields of this same state drawn,
       // the live feed's: read into them, not from nothing ("Reading its state…" in their
-      // place a moment, then drawn anew, was a flicker that lost what was typed)
+      // place a moment, then drawn anew, was a flicker that lost what was typed), and
+      // the reason a refresh of the feed's failed meanwhile, if any, goes
       try {
         const view = await api.state(name);
-        if (this.selected === name && this.editor.shows(subject)) this.editor.update(view);
+        if (this.selected === name && this.editor.shows(subject)) {
+          this.editor.update(view);
+          this.editor.problem(null);
+        }
       } catch (error) {
         if (this.selected === name && this.editor.shows(subject)) this.editor.pending(error.message, displays, true, subject);
       }

@@ -60,13 +60,14 @@ export class StateEditor {
     return token !== null && this.awaited === token;
   }
 
-  /** Whether the fields of `subject`'s state are drawn (by a read or the live feed) with
-   * no problem above them: read again, the state is drawn into them; put back to "Reading
-   * its state…" they flickered (after a Restart the live feed drew them first). */
+  /** Whether the fields of `subject`'s state are drawn (by a read or the live feed),
+   * with or without a problem line above them (a refresh that failed meanwhile, as one
+   * does while the module restarts): read again, the state is drawn into them; put back
+   * to "Reading its state…" they flickered (after a Restart the live feed drew them
+   * first). */
   shows(subject) {
     return subject !== null && this.subject === subject && this.awaited === null
-      && !!this.root.querySelector(":scope > [data-field]")
-      && !this.root.querySelector(":scope > .state-problem");
+      && !!this.root.querySelector(":scope > [data-field]");
   }
 
   /** No fields and no line: nothing of one module's state is shown (several selected). */
