@@ -28,6 +28,7 @@ from pb3a import Module, Output, RuntimeTimeout
 from pb3a.transport import replication
 from pb3a.transport.auth import ClusterKey, Opener, Sealer
 from pb3a.transport.replication import Follower, Replicator, follower_id, wire
+from pb3a.transport.replication import follower as follower_module
 from pb3a.transport.replication import replicator as replicator_module
 from pb3a.transport.replication.wire import WINDOW
 from pb3a.worker.publications import Publications
@@ -1716,6 +1717,164 @@ def test_a_follower_live_before_it_learns_whom_to_name_is_replayed_only_what_pub
         assert not any(sends[seq] for seq in (3, 4, 5)), sends   # (its HELLO's replay)
         assert [int(frame[0]) for frame in got] == list(range(len(frames)))
         assert not follower.duplicates and not follower.link_failures
+    finally:
+        follower.close()
+        replicator.close()
+
+
+class _Gate:
+    """Holds back what comes in on a follower's sockets of one type (SUB: a slow link,
+    the values PUB carries still on their way; DEALER: its control connection's): while
+    ``allowed`` is 0 nothing is taken in, then that many messages (-1: all), at most one
+    every ``every`` seconds. ``waiting`` is set once a message waits behind it."""
+
+    def __init__(self, monkeypatch, socket_type: int) -> None:
+        self.allowed, self.every, self.waiting = 0, 0.0, threading.Event()
+        self._last = 0.0
+        receive = follower_module.receive_message
+
+        def gated(sock: zmq.Socket) -> list[Any]:
+            if sock.socket_type != socket_type:
+                return receive(sock)
+            if self.allowed == 0 or time.monotonic() - self._last < self.every:
+                if sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+                    self.waiting.set()
+                time.sleep(0.005)                # (on its way)
+                raise zmq.Again
+            frames = receive(sock)
+            self._last = time.monotonic()
+            if self.allowed > 0:
+                self.allowed -= 1
+            return frames
+        monkeypatch.setattr(follower_module, "receive_message", gated)
+
+
+@pytest.mark.timeout(60)
+def test_a_hand_shake_whose_subscription_goes_live_behind_announced_values_repairs_none(
+        monkeypatch) -> None:
+    """A follower replayed its backlog by its hand-shake, whose subscription has taken at
+    the sender but whose first message through it has not come in yet (on a slow link,
+    behind nothing), learns from the WELCOMEs answering its repeated HELLOs of frames
+    published since: PUB carries those to it. Once the first message through its
+    subscription (a SYNC from before them) makes it live, it asks no repair of them, and
+    none is sent over its control connection: each arrives once, in order. They were
+    taken for a gap and repaired, and over a slow link PUB beat each answer, which came
+    in a duplicate and so did not restart the repair's wait: it was asked again after
+    1, 2 and 4 s (``test_a_follower_served_on_its_own_that_becomes_lossless_takes_its_
+    replay_once`` saw a frame sent 4 times in 9 of 30 runs beside five busy loops)."""
+    sends = _sends_per_value(monkeypatch)
+    gate = _Gate(monkeypatch, zmq.SUB)
+    frames = [np.full(16 * 1024, float(i)) for i in range(6)]      # 128 KiB each
+    announced = threading.Event()
+    repairs: list[tuple[int, int]] = []
+    handle, ask = Follower._handle, Follower._ask
+
+    def handled(self: Follower, message: Any, live: bool) -> Any:
+        follow = self._follows.get(b"camera\0")
+        if message.kind == replication.WELCOME and follow is not None and not follow.live \
+                and replication.ANSWER.unpack(message.frames[1])[1] == len(frames):
+            announced.set()                      # (values PUB carries, not taken in yet)
+        return handle(self, message, live)
+
+    def asked(self: Follower, follow: Any, kind: int, first: int, last: int) -> None:
+        if kind == replication.REPAIR:
+            repairs.append((first, last))
+        ask(self, follow, kind, first, last)
+    monkeypatch.setattr(Follower, "_handle", handled)
+    monkeypatch.setattr(Follower, "_ask", asked)
+    replicator, inbox = Replicator(KEY), Inbox()
+    follower = Follower(KEY, inbox)
+    try:
+        replicator.add("camera")
+        for frame in frames[:3]:                 # (its backlog: replayed)
+            replicator.publish("camera", frame, timeout=TIMEOUT)
+        follower.set_lossless("camera", True)    # (every frame goes: no flight)
+        _follow(follower, replicator, "camera", from_seq=0)
+        inbox.wait("camera", 3)
+        follow = follower._follows[b"camera\0"]
+        eventually(lambda: follower._loop.call(lambda: not follow.repairing), timeout=5.0,
+                   what="the hand-shake's replay done")
+        assert gate.waiting.wait(TIMEOUT), "its subscription never took"
+        for frame in frames[3:]:                 # (PUB carries them to it)
+            replicator.publish("camera", frame, timeout=TIMEOUT)
+        assert announced.wait(TIMEOUT), "no WELCOME announced them"
+        assert not follower._loop.call(lambda: follow.live)
+        gate.allowed = 1                         # (the first message through: a SYNC)
+        eventually(lambda: follower._loop.call(lambda: follow.live), timeout=5.0,
+                   what="the subscription live")
+        assert repairs == [], repairs
+        gate.allowed = -1                        # (the rest comes in)
+        got = inbox.wait("camera", len(frames))
+        eventually(lambda: follower._loop.call(lambda: follow.announced) == len(frames),
+                   timeout=5.0, what="a heartbeat through the subscription")
+        assert [int(frame[0]) for frame in got] == list(range(len(frames)))
+        assert not any(sends[seq] for seq in (3, 4, 5)), sends
+        assert repairs == [], repairs
+        assert not follower.duplicates and not follower.link_failures
+    finally:
+        follower.close()
+        replicator.close()
+
+
+@pytest.mark.timeout(60)
+def test_a_repair_is_not_asked_again_while_an_earlier_answer_still_comes_in(
+        monkeypatch) -> None:
+    """A repair asked while the answer of an earlier one still comes in over the control
+    connection (its link slow: a message every 0.1 s), values the follower has already
+    taken in, is not asked again as long as they come: its value is sent once. Those
+    duplicates did not restart its wait: asked again after 1 s, and again, its value was
+    sent behind them each time (as the end of a hand-shake's replay asked twice, a frame
+    was sent 4 times in a loaded run of ``test_a_follower_served_on_its_own_that_
+    becomes_lossless_takes_its_replay_once``). Here PUB loses frames 3-22 and 24: their
+    repair is asked twice, its first answer held back past the first wait; the end of
+    that first answer ends it (the second asked from the same value), and 24 is asked
+    then, behind the second answer, 21 duplicates taking 2 s to come in."""
+    sends = _sends_per_value(monkeypatch)
+    gate = _Gate(monkeypatch, zmq.DEALER)
+    gate.allowed = -1
+    frames = [np.full(16 * 1024, float(i)) for i in range(26)]     # 128 KiB each
+    lost = {*range(3, 23), 24}
+    repairs: list[tuple[int, int]] = []
+    handle, ask = Follower._handle, Follower._ask
+
+    def losing(self: Follower, message: Any, live: bool) -> Any:
+        if live and message.kind == replication.VALUE \
+                and replication.INFO.unpack(message.frames[1])[1] in lost:
+            return None                          # (lost on the way: repaired)
+        return handle(self, message, live)
+
+    def asked(self: Follower, follow: Any, kind: int, first: int, last: int) -> None:
+        if kind == replication.REPAIR:
+            repairs.append((first, last))
+        ask(self, follow, kind, first, last)
+    monkeypatch.setattr(Follower, "_handle", losing)
+    monkeypatch.setattr(Follower, "_ask", asked)
+    replicator, inbox = Replicator(KEY), Inbox()
+    follower = Follower(KEY, inbox)
+    try:
+        replicator.add("camera")
+        follower.set_lossless("camera", True)    # (every frame goes: no flight)
+        _follow(follower, replicator, "camera", from_seq=0)
+        assert follower.wait_ready("camera", TIMEOUT)
+        for frame in frames[:3]:
+            replicator.publish("camera", frame, timeout=TIMEOUT)
+        inbox.wait("camera", 3)
+        follow = follower._follows[b"camera\0"]
+        eventually(lambda: follower._loop.call(lambda: not follow.repairing), timeout=5.0,
+                   what="the hand-shake's replay done")
+        gate.allowed = 0                         # (the control link held up)
+        for frame in frames[3:]:
+            replicator.publish("camera", frame, timeout=TIMEOUT)
+        eventually(lambda: len(repairs) >= 2, timeout=5.0, what="the repair asked again")
+        assert repairs == [(3, 22), (3, 22)], repairs
+        gate.allowed, gate.every = -1, 0.1       # (its answers come in, slowly)
+        got = inbox.wait("camera", len(frames))
+        eventually(lambda: follower._loop.call(lambda: not follow.repairing), timeout=10.0,
+                   what="the last repair answered")
+        assert [int(frame[0]) for frame in got] == list(range(len(frames)))
+        assert repairs == [(3, 22), (3, 22), (24, 24)], repairs
+        assert sends[24] == 1, sends
+        assert not follower.link_failures
     finally:
         follower.close()
         replicator.close()

@@ -28,7 +28,9 @@ values in sequence order, exactly once:
   in the HELLO naming the sender: nothing is replayed (PUB carries the values from
   then on; those before, it repairs as any gap); asking from where it was, it had the
   values PUB was carrying to it sent twice. (A live follow takes no WELCOME's next
-  sequence number for a gap either: it comes ahead of values PUB still carries.)
+  sequence number for a gap either: it comes ahead of values PUB still carries. Nor,
+  once live, what the WELCOMEs answering its repeated HELLOs announced beyond the
+  first message through its subscription: PUB carries those to it.)
 - Gaps (the publisher's high-water mark dropped values for a slow follower, or a
   reconnect lost some) are repaired the same way; values beyond a gap wait; a
   heartbeat (SYNC every 0.5 s with the next sequence number) reveals values lost at
@@ -37,8 +39,9 @@ values in sequence order, exactly once:
   holds is counted as a link failure, loudly. A repair not answered is asked again
   after ``REPAIR_RETRY_S``, then after twice as long each time (on a slow link the
   answer itself takes seconds to cross, and each request sends it again); each value
-  of the answer that comes (and a WELCOME saying a replay follows) restarts the wait,
-  and only the REPLAYED of the last request ends it.
+  or notice of an answer that comes over the control connection, duplicates of an
+  earlier copy's too (and a WELCOME saying a replay follows), restarts the wait, and
+  only the REPLAYED of the last request ends it.
 - Flow control. Followers acknowledge (ACK) how far they are; a publisher more than
   ``WINDOW`` values or ``WINDOW_BYTES`` bytes ahead of its slowest live follower waits
   for it, briefly. The replay buffer holds twice the bytes of that window: everything

@@ -419,11 +419,6 @@ class Follower:
             if follow is None:
                 continue
             touched[follow.topic] = follow
-            if not live and follow.repairing and not follow.direct \
-                    and message.kind in (VALUE, VALUES, SKIPPED):
-                # the answer of a hand-shake or repair, coming in: not asked again while
-                # it comes (on a slow link a large value takes seconds to cross)
-                follow.asked = time.monotonic()
         for follow in touched.values():
             self._advance(follow)
 
@@ -451,11 +446,12 @@ class Follower:
                     values, sent_at, nbytes = follow.held.pop(first)
                     if first + len(values) > nxt:
                         follow.held[nxt] = (values[nxt - first:], sent_at, nbytes)
+            if live:
+                self._goes_live(follow, nxt)
             if live or not follow.live or follow.direct:
                 # (a WELCOME to a live follow crosses the control connection ahead of
                 # values PUB still carries to it: not a gap; a SYNC behind them says so)
                 follow.announced = max(follow.announced, nxt)
-            follow.live = follow.live or live
             if message.kind == WELCOME and third and follow.repairing:
                 follow.asked = time.monotonic()  # its replay is coming (see ``_drain``)
             if follow.hello_for is None and message.kind == WELCOME:
@@ -469,6 +465,8 @@ class Follower:
             incarnation, seq, sent_at, kind, nonce, tag = INFO.unpack(info)
             if not self._accept(follow, incarnation):
                 return None
+            if not live:
+                self._answer_coming(follow)
             if live and follow.joining:
                 self._joined(follow, seq)
                 self._advance(follow)            # (so that it lands in order: below)
@@ -496,6 +494,8 @@ class Follower:
             incarnation, first, count, sent_at = BATCH.unpack(header)
             if not self._accept(follow, incarnation):
                 return None
+            if not live:
+                self._answer_coming(follow)
             if live and follow.joining:
                 self._joined(follow, first)
             values = batch_entries(body, bytes(kinds), count)
@@ -507,6 +507,8 @@ class Follower:
                 return None
             if first < 0 or count <= 0:
                 raise Rejected("malformed")
+            if not live:
+                self._answer_coming(follow)
             if live and follow.joining:
                 self._joined(follow, first)
             self._skipped(follow, first, first + count)
@@ -545,6 +547,32 @@ class Follower:
                 follow.next_seq = first + gone
             return follow
         raise Rejected("unexpected")
+
+    @staticmethod
+    def _goes_live(follow: _Follow, first: int) -> None:
+        """A message came through the subscription, about values from ``first`` on (a
+        SYNC's next sequence number, or its first value). The first one makes the follow
+        live, and PUB carries to it every value from ``first`` on: what the WELCOMEs
+        answering its repeated HELLOs announced beyond that (sent after the subscription
+        took, they crossed the control connection ahead of values PUB was still carrying)
+        is no gap. Taken for one, it was repaired: over a slow link each of those values
+        crossed twice, and each answer, beaten by PUB, came in a duplicate, which did not
+        restart the repair's wait, so it was asked again at 1, 2, 4 s (a frame sent four
+        times over the control connection)."""
+        if not follow.live:
+            follow.live = True
+            follow.announced = min(follow.announced, first)
+
+    @staticmethod
+    def _answer_coming(follow: _Follow) -> None:
+        """A value or notice of the accepted sender came over the control connection: the
+        answer of a hand-shake or repair coming in (or of an earlier copy of it, ahead of
+        it), duplicates too. While answers come, the repair is not asked again: on a slow
+        link a large value takes seconds to cross, and a request asked again sends the
+        whole rest again, behind what is still coming. (Not while served on its own:
+        its values come there anyway.)"""
+        if follow.repairing and not follow.direct:
+            follow.asked = time.monotonic()
 
     def _unseal(self, follow: _Follow, incarnation: bytes, seq: int, kind: int, meta: bytes,
                 nonce: int, tag: bytes, payload: memoryview, land: bool) -> Any:
@@ -606,7 +634,8 @@ class Follower:
               nbytes: int, live: bool) -> bool:
         """Hold a run of values (sequence numbers from ``first`` on) for in-order
         delivery; False if all of them are duplicates."""
-        follow.live = follow.live or live
+        if live:
+            self._goes_live(follow, first)
         # (joined "from now": values wait until the hand-shake says where now is)
         old = max(0, follow.next_seq - first) if follow.next_seq >= 0 else 0
         if old:
