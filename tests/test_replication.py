@@ -1526,6 +1526,19 @@ def _sends_per_value(monkeypatch) -> collections.Counter[int]:
     return sends
 
 
+def _repairs_asked(monkeypatch) -> list[tuple[int, int]]:
+    """Every repair the followers ask, (first, last), in order."""
+    repairs: list[tuple[int, int]] = []
+    ask = Follower._ask
+
+    def asked(self: Follower, follow: Any, kind: int, first: int, last: int) -> None:
+        if kind == replication.REPAIR:
+            repairs.append((first, last))
+        ask(self, follow, kind, first, last)
+    monkeypatch.setattr(Follower, "_ask", asked)
+    return repairs
+
+
 @pytest.mark.timeout(90)
 def test_a_hand_shake_whose_replay_crosses_a_slow_link_sends_each_value_once(
         monkeypatch) -> None:
@@ -1661,9 +1674,9 @@ def test_a_follower_live_before_it_learns_whom_to_name_is_replayed_only_what_pub
             parked.setdefault((first, last), (peer, message))   # (one per span: asked
             return                                               # again, the same)
         answer(self, peer, message)
-    on_data, handle, ask = Follower._on_data, Follower._handle, Follower._ask
+    on_data, handle = Follower._on_data, Follower._handle
     pub_late, welcomed = threading.Event(), threading.Event()
-    repairs: list[tuple[int, int]] = []          # what the follower asked to be repaired
+    repairs = _repairs_asked(monkeypatch)        # what the follower asked to be repaired
 
     def late_pub(self: Follower, sock: Any) -> None:
         if pub_late.is_set():
@@ -1679,15 +1692,10 @@ def test_a_follower_live_before_it_learns_whom_to_name_is_replayed_only_what_pub
             welcomed.set()       # (the answer to the HELLO naming it: the others say 3)
         return follow
 
-    def asked(self: Follower, follow: Any, kind: int, first: int, last: int) -> None:
-        if kind == replication.REPAIR:
-            repairs.append((first, last))
-        ask(self, follow, kind, first, last)
     monkeypatch.setattr(Replicator, "_send_router", late_welcome)
     monkeypatch.setattr(Replicator, "_answer", late_repair)
     monkeypatch.setattr(Follower, "_on_data", late_pub)
     monkeypatch.setattr(Follower, "_handle", handle_welcome)
-    monkeypatch.setattr(Follower, "_ask", asked)
     frames = [np.full(16 * 1024, float(i)) for i in range(6)]      # 128 KiB each
     replicator, inbox = Replicator(KEY), Inbox()
     follower = Follower(KEY, inbox)
@@ -1766,8 +1774,8 @@ def test_a_hand_shake_whose_subscription_goes_live_behind_announced_values_repai
     gate = _Gate(monkeypatch, zmq.SUB)
     frames = [np.full(16 * 1024, float(i)) for i in range(6)]      # 128 KiB each
     announced = threading.Event()
-    repairs: list[tuple[int, int]] = []
-    handle, ask = Follower._handle, Follower._ask
+    repairs = _repairs_asked(monkeypatch)
+    handle = Follower._handle
 
     def handled(self: Follower, message: Any, live: bool) -> Any:
         follow = self._follows.get(b"camera\0")
@@ -1776,12 +1784,7 @@ def test_a_hand_shake_whose_subscription_goes_live_behind_announced_values_repai
             announced.set()                      # (values PUB carries, not taken in yet)
         return handle(self, message, live)
 
-    def asked(self: Follower, follow: Any, kind: int, first: int, last: int) -> None:
-        if kind == replication.REPAIR:
-            repairs.append((first, last))
-        ask(self, follow, kind, first, last)
     monkeypatch.setattr(Follower, "_handle", handled)
-    monkeypatch.setattr(Follower, "_ask", asked)
     replicator, inbox = Replicator(KEY), Inbox()
     follower = Follower(KEY, inbox)
     try:
@@ -1834,8 +1837,8 @@ def test_a_repair_is_not_asked_again_while_an_earlier_answer_still_comes_in(
     gate.allowed = -1
     frames = [np.full(16 * 1024, float(i)) for i in range(26)]     # 128 KiB each
     lost = {*range(3, 23), 24}
-    repairs: list[tuple[int, int]] = []
-    handle, ask = Follower._handle, Follower._ask
+    repairs = _repairs_asked(monkeypatch)
+    handle = Follower._handle
 
     def losing(self: Follower, message: Any, live: bool) -> Any:
         if live and message.kind == replication.VALUE \
@@ -1843,12 +1846,7 @@ def test_a_repair_is_not_asked_again_while_an_earlier_answer_still_comes_in(
             return None                          # (lost on the way: repaired)
         return handle(self, message, live)
 
-    def asked(self: Follower, follow: Any, kind: int, first: int, last: int) -> None:
-        if kind == replication.REPAIR:
-            repairs.append((first, last))
-        ask(self, follow, kind, first, last)
     monkeypatch.setattr(Follower, "_handle", losing)
-    monkeypatch.setattr(Follower, "_ask", asked)
     replicator, inbox = Replicator(KEY), Inbox()
     follower = Follower(KEY, inbox)
     try:
