@@ -1974,3 +1974,55 @@ def test_a_mode_switch_lost_on_the_way_to_a_slow_follower_is_said_again(
             assert slow.dropped["camera"] == dropped_then
         else:         # (a lossless one's replay shares the link with PUB: its repair may
             assert not slow.duplicates          # be asked again, a frame come twice)
+
+
+@pytest.mark.timeout(90)
+def test_a_follower_whose_direct_is_lost_is_sent_nothing_on_its_own_until_it_knows(
+        monkeypatch) -> None:
+    """A slow follower (a fast one beside it) found slow, whose DIRECT is lost on the way
+    (said again at each heartbeat, lost too for a while), takes every frame over PUB
+    meanwhile, its link getting fast: nothing is sent to it over its control connection
+    until its ACK says it knows it is served on its own, then each frame arrives or is
+    counted dropped, in order, once. Before, the sender served it on its own as soon as
+    its ordinary ACK passed the start of the switch, its SUB connection still open: each
+    frame sent so crossed its slow link twice, over PUB and directly (duplicates)."""
+    told = threading.Event()                     # DIRECT goes from now on
+    lost: list[float] = []                       # DIRECTs lost, when
+    both_ways: list[int] = []                    # frames sent to it directly meanwhile
+    send_router = Replicator._send_router
+
+    def losing(self: Replicator, peer: Any, sent: int, parts: list[Any]) -> None:
+        if sent == replication.DIRECT and not told.is_set():
+            lost.append(time.monotonic())
+            return                               # lost on the way
+        if sent == replication.VALUE and lost and not told.is_set():
+            both_ways.append(wire.INFO.unpack(parts[1])[1])
+        send_router(self, peer, sent, parts)
+    monkeypatch.setattr(Replicator, "_send_router", losing)
+    with _fast_and_slow() as (replicator, camera, fast, slow, slow_inbox):
+        with Throttle(2e6) as radio:
+            replicator.add("camera")
+            _follow(fast, replicator, "camera", from_seq=0)
+            slow.follow("camera", radio.route(replicator.data_address),
+                        radio.route(replicator.control_address), from_seq=0)
+            assert fast.wait_ready("camera", TIMEOUT) and slow.wait_ready("camera", TIMEOUT)
+            stream = replicator._topics["camera"]
+            camera.write(100, until=lambda: stream.direct)
+            assert stream.direct and lost, "the slow follower was not found slow"
+            ((peer, direct),) = list(stream.direct.items())
+            radio.set_rate(1e9)                  # (PUB carries its backlog to it at once)
+            camera.write(200, until=lambda: stream.acks[peer][0] > direct.start)
+            assert stream.acks[peer][0] > direct.start, "it did not get past the switch"
+            camera.write(10)                     # (each flush could serve it on its own)
+            camera.write(20, until=lambda: len(lost) >= 2)     # (said again: lost too)
+            assert not both_ways, f"frames {both_ways} sent directly and over PUB"
+            assert not _served_on_its_own(slow) and len(lost) >= 2
+            told.set()                           # (the next heartbeat's DIRECT goes)
+            camera.write(40, until=lambda: direct.sent > direct.start)
+            assert direct.sent > direct.start, "not served on its own once it knew"
+            camera.write(20)
+            got = slow_inbox.values.setdefault("camera", [])
+            _every_frame_received_or_dropped(got, slow, camera)
+        numbers = [int(frame[0]) for frame in got]
+        assert numbers == sorted(set(numbers)), numbers
+        assert not slow.link_failures and not slow.duplicates

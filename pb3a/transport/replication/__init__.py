@@ -70,12 +70,13 @@ values in sequence order, exactly once:
   hand-shake replayed: those went long ago) is served on its own (DIRECT):
   it closes its SUB connection (what PUB still queued for it is freed with it; an
   unsubscription would leave that queue to cross the slow link first) and counts the
-  values it did not get before the switch dropped; the publisher sends it the newest
-  message over its control connection whenever nothing sent to it there is on the
-  way, the values before it announced not sent (SKIPPED), and leaves it out of flow
-  control and of the flight. Its queue at the ROUTER is bounded so (one message of
-  values, small notices), and a ROUTER never blocks: it drops for a peer at its
-  high-water mark (ROUTER_MANDATORY is not set). A DIRECT every heartbeat is its SYNC
+  values it did not get before the switch dropped; once its ACK says it is served on
+  its own (``SERVED_DIRECT``, below) the publisher sends it the newest message it does
+  not have over its control connection whenever nothing sent to it there is on the
+  way, the values before it announced not sent (SKIPPED); it leaves it out of flow
+  control and of the flight from the switch on. Its queue at the ROUTER is bounded so
+  (one message of values, small notices), and a ROUTER never blocks: it drops for a
+  peer at its high-water mark (ROUTER_MANDATORY is not set). A DIRECT every heartbeat is its SYNC
   (how far it was sent) and says its mode again, also while it is silent (its link
   cut): it takes nothing over PUB until told RESUME. Once a lone message is acknowledged
   within ``FRESH_S / 2`` it goes back to PUB (RESUME): it subscribes, and what was
@@ -91,8 +92,11 @@ values in sequence order, exactly once:
   arrives; a repair it asked before it took the RESUME in is answered SKIPPED for the
   values before it (it counts them dropped), not replayed. Either switch may be lost
   on the way (a ROUTER drops what it sends to a peer whose connection is down), so
-  each is said again until the two sides agree: a lost DIRECT at the next heartbeat;
-  a lost RESUME at the follower's next ACK, which says it is served on its own
+  each is said again until the two sides agree: a lost DIRECT at the next heartbeat
+  (meanwhile the follower takes every value over PUB, and nothing is sent to it over
+  its control connection: served there at an ordinary ACK past the switch, each such
+  value crossed its slow link twice, a duplicate); a lost RESUME at the follower's
+  next ACK, which says it is served on its own
   (``SERVED_DIRECT``, one flag of the ACK: a wire change, both ends must run this
   version) while the publisher serves it over PUB: the publisher answers RESUME again,
   from the start the lost one said (one that crossed the ACK and was taken in says

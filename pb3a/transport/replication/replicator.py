@@ -113,6 +113,9 @@ class _Direct:
     sent: int                           # values before this one were sent to it or announced
                                         # not sent (SKIPPED)
     went: float = 0.0                   # when the last message to it went (monotonic)
+    told: bool = False                  # an ACK of it says it is served so (SERVED_DIRECT,
+                                        # from start on): nothing is sent to it here before
+                                        # (its DIRECT lost, it still takes values over PUB)
     latest: _Sent | None = None         # the newest message not sent to it yet
     skips: collections.deque[tuple[int, int]] = field(
         default_factory=lambda: collections.deque(maxlen=SKIP_RUNS))   # (first, end) not sent
@@ -709,13 +712,20 @@ class Replicator:
     def _serve_direct(self, stream: _Stream) -> None:
         """Send each follower served on its own the newest message it has not had, if
         nothing sent to it is on the way; the values before it that it did not get are
-        announced (SKIPPED) (lock held, on the loop's thread)."""
+        announced (SKIPPED) (lock held, on the loop's thread). Only once an ACK says it
+        knows it is served so (``told``): one whose DIRECT was lost on the way still
+        takes every value over PUB, and each sent here too crossed its slow link twice
+        (the DIRECT is said again at the next heartbeat). Nor a message its ACK shows it
+        has (PUB carried it before it took the DIRECT in)."""
         now = time.monotonic()
         for peer, direct in stream.direct.items():
             sent = direct.latest
-            if sent is None or not direct.idle(stream.acks.get(peer, (-1, 0.0))[0]):
+            acked = stream.acks.get(peer, (-1, 0.0))[0]
+            if sent is None or not direct.told or not direct.idle(acked):
                 continue
             direct.latest = None
+            if sent.end <= acked:
+                continue
             if sent.first > direct.sent:
                 direct.skips.append((direct.sent, sent.first))
                 self._send_router(peer, SKIPPED, [stream.name, ANSWER.pack(
@@ -838,11 +848,14 @@ class Replicator:
                         self._find_slow(stream, now)
                     elif last & LOSSLESS:            # (it must not drop now)
                         self._resume(stream, peer_id, now, first)
-                    elif direct.sent > direct.start and first >= direct.sent \
-                            and now - direct.went < FRESH_S / 2:
-                        self._resume(stream, peer_id, now)   # a lone message, in time
                     else:
-                        self._serve_direct(stream)
+                        if last & SERVED_DIRECT and first >= direct.start:
+                            direct.told = True       # it took the DIRECT in: see _Direct
+                        if direct.sent > direct.start and first >= direct.sent \
+                                and now - direct.went < FRESH_S / 2:
+                            self._resume(stream, peer_id, now)   # a lone message, in time
+                        else:
+                            self._serve_direct(stream)
                 self._resume_alone(stream, now)  # (the fast one may have unfollowed)
                 stream.clear_until = 0           # (a lossless follower may have come)
                 self._acked.notify_all()

@@ -33,7 +33,8 @@ LOSSLESS = 1                            # flag of HELLO and ACK: hold the publis
 WAITING = 2                             # flag of HELLO: the replay an earlier one asked for
                                         # is on its way: answer WELCOME and SYNC only
 SERVED_DIRECT = 4                       # flag of ACK: it is served on its own (DIRECT); a
-                                        # sender serving it over PUB says RESUME again
+                                        # sender serving it over PUB says RESUME again, and
+                                        # one serves it on its own only once told so
 LIVE = 8                                # flag of HELLO: its subscription is live already (it
                                         # learned whom to name after a SYNC or value came
                                         # through it): replay nothing (it repairs what its
