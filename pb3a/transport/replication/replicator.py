@@ -724,7 +724,8 @@ class Replicator:
             if sent is None or not direct.told or not direct.idle(acked):
                 continue
             direct.latest = None
-            if sent.end <= acked:
+            direct.sent = max(direct.sent, acked)    # (what PUB carried: not announced)
+            if sent.end <= direct.sent:
                 continue
             if sent.first > direct.sent:
                 direct.skips.append((direct.sent, sent.first))
