@@ -2026,3 +2026,56 @@ def test_a_follower_whose_direct_is_lost_is_sent_nothing_on_its_own_until_it_kno
         numbers = [int(frame[0]) for frame in got]
         assert numbers == sorted(set(numbers)), numbers
         assert not slow.link_failures and not slow.duplicates
+
+
+@pytest.mark.timeout(90)
+def test_a_follower_whose_direct_is_lost_takes_no_resume_in_as_the_fast_one_goes(
+        monkeypatch) -> None:
+    """A slow follower (a fast one beside it) found slow, whose DIRECTs are all lost on
+    the way, takes every frame over PUB, a backlog of them on the way; the fast one
+    unfollows, and the sender says RESUME to it (a DIRECT may still be on its way
+    before it): never served on its own, it takes no RESUME in, and every frame arrives
+    or is counted dropped, in order, once. Before, it took the RESUME in as if served on
+    its own: the frames before the RESUME's start still on their way over PUB were
+    counted dropped, then arrived as duplicates."""
+    lost: list[float] = []                       # DIRECTs lost, when
+    resumes: list[tuple[int, int]] = []          # RESUMEs come while on PUB: (where it
+    send_router, handle = Replicator._send_router, Follower._handle    # was, their start)
+
+    def losing(self: Replicator, peer: Any, sent: int, parts: list[Any]) -> None:
+        if sent == replication.DIRECT:
+            lost.append(time.monotonic())
+            return                               # lost on the way
+        send_router(self, peer, sent, parts)
+
+    def seen(self: Follower, message: Any, live: bool) -> Any:
+        if not live and message.kind == replication.RESUME and message.frames:
+            follow = self._follows.get(bytes(message.frames[0]))
+            if follow is not None and not follow.direct:
+                resumes.append((follow.next_seq, wire.ANSWER.unpack(message.frames[1])[1]))
+        return handle(self, message, live)
+    monkeypatch.setattr(Replicator, "_send_router", losing)
+    monkeypatch.setattr(Follower, "_handle", seen)
+    with _fast_and_slow() as (replicator, camera, fast, slow, slow_inbox):
+        with Throttle(2e6) as radio:
+            replicator.add("camera")
+            _follow(fast, replicator, "camera", from_seq=0)
+            slow.follow("camera", radio.route(replicator.data_address),
+                        radio.route(replicator.control_address), from_seq=0)
+            assert fast.wait_ready("camera", TIMEOUT) and slow.wait_ready("camera", TIMEOUT)
+            stream = replicator._topics["camera"]
+            camera.write(100, until=lambda: stream.direct)
+            assert stream.direct and lost, "the slow follower was not found slow"
+            fast.unfollow("camera")
+            camera.write(40, until=lambda: resumes)
+            assert resumes, "no RESUME reached the slow follower"
+            radio.set_rate(1e9)                  # (PUB carries its backlog to it at once)
+            camera.write(20)
+            got = slow_inbox.values.setdefault("camera", [])
+            _every_frame_received_or_dropped(got, slow, camera)
+            assert not stream.direct and not _served_on_its_own(slow)
+        where, start = resumes[0]
+        assert where < start, f"nothing on its way over PUB at the RESUME ({where}, {start})"
+        numbers = [int(frame[0]) for frame in got]
+        assert numbers == sorted(set(numbers)), numbers
+        assert not slow.link_failures and not slow.duplicates, slow.duplicates

@@ -95,7 +95,11 @@ values in sequence order, exactly once:
   each is said again until the two sides agree: a lost DIRECT at the next heartbeat
   (meanwhile the follower takes every value over PUB, and nothing is sent to it over
   its control connection: served there at an ordinary ACK past the switch, each such
-  value crossed its slow link twice, a duplicate); a lost RESUME at the follower's
+  value crossed its slow link twice, a duplicate; told RESUME meanwhile, the fast one
+  gone, it takes it in only if served on its own, and the publisher, no ACK having
+  said it knew, takes it to be where its ACKs say, not at the RESUME's start: taken in,
+  the values before that start still on their way over PUB were counted dropped, then
+  arrived as duplicates); a lost RESUME at the follower's
   next ACK, which says it is served on its own
   (``SERVED_DIRECT``, one flag of the ACK: a wire change, both ends must run this
   version) while the publisher serves it over PUB: the publisher answers RESUME again,

@@ -519,15 +519,19 @@ class Follower:
                 return None
             if live or start < 0 or follow.next_seq < 0:
                 raise Rejected("malformed")
-            self._not_sent_before(follow, start)
             if message.kind == RESUME:
+                # (only while served on its own: one whose DIRECT was lost took every
+                # value over PUB, and those still on the way were counted dropped, then
+                # arrived as duplicates; a RESUME said again is taken in already)
                 if follow.direct:
+                    self._not_sent_before(follow, start)
                     self._resume(follow)
                     if follow.topic in self._lossless:   # (nothing may be dropped: the
                         follow.joining = False           # hand-shake replays the rest)
                         follow.live = False
                         self._hello(follow)
             else:
+                self._not_sent_before(follow, start)
                 if not follow.direct:
                     self._go_direct(follow)
                 follow.announced = max(follow.announced, nxt)

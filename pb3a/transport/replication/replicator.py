@@ -664,13 +664,18 @@ class Replicator:
         """A follower served on its own keeps up again: back to PUB from ``start`` (None:
         the next value; the values before it are not sent to it, and it counts them
         dropped), with RESUME (lock held, on the loop's thread). A follower that became
-        lossless resumes from where it is, and says HELLO to have the rest replayed."""
+        lossless resumes from where it is, and says HELLO to have the rest replayed.
+        One no ACK said knew it was served on its own (``told``) may never have taken
+        the DIRECT in (lost on the way): it is where its ACKs say, on PUB, and ignores
+        the RESUME (which goes all the same, behind a DIRECT still on its way); taken
+        to be at ``start``, it had a repair of a gap before it answered SKIPPED."""
         self._flush_locked()
-        del stream.direct[peer]
+        direct = stream.direct.pop(peer)
         if start is None:
             start = stream.next_seq
-            stream.acks[peer] = (start, now)     # (so it is not found slow for them)
-            stream.resumed[peer] = start         # (a repair crossing the RESUME: see _replay)
+            if direct.told:
+                stream.acks[peer] = (start, now)     # (so it is not found slow for them)
+                stream.resumed[peer] = start     # (a repair crossing the RESUME: see _replay)
         self._send_router(peer, RESUME, [stream.name, ANSWER.pack(self.incarnation, start, 0)])
         stream.clear_until = 0
 
