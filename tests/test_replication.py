@@ -13,7 +13,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -1243,16 +1243,19 @@ def _fast_and_slow(fast_identity: bytes | None = None) -> Iterator[tuple[
 
 
 def _slow_beside_fast(replicator: Replicator, camera: _Camera, fast: Follower,
-                      slow: Follower, radio: Throttle) -> None:
+                      slow: Follower, radio: Throttle,
+                      found: Callable[[], Any] | None = None) -> None:
     """``fast`` follows the camera directly and ``slow`` through ``radio``, from its first
-    frame, and the camera writes until the slow one is served on its own."""
+    frame, and the camera writes until the slow one is served on its own (or, with its
+    DIRECT lost, until ``found()``: the sender took it for slow)."""
     replicator.add("camera")
     _follow(fast, replicator, "camera", from_seq=0)
     slow.follow("camera", radio.route(replicator.data_address),
                 radio.route(replicator.control_address), from_seq=0)
     assert fast.wait_ready("camera", TIMEOUT) and slow.wait_ready("camera", TIMEOUT)
-    camera.write(100, until=lambda: _served_on_its_own(slow))
-    assert _served_on_its_own(slow), "the slow follower was not served on its own"
+    found = found or (lambda: _served_on_its_own(slow))
+    camera.write(100, until=found)
+    assert found(), "the slow follower was not found slow"
 
 
 @pytest.mark.timeout(90)
@@ -2001,14 +2004,10 @@ def test_a_follower_whose_direct_is_lost_is_sent_nothing_on_its_own_until_it_kno
     monkeypatch.setattr(Replicator, "_send_router", losing)
     with _fast_and_slow() as (replicator, camera, fast, slow, slow_inbox):
         with Throttle(2e6) as radio:
-            replicator.add("camera")
-            _follow(fast, replicator, "camera", from_seq=0)
-            slow.follow("camera", radio.route(replicator.data_address),
-                        radio.route(replicator.control_address), from_seq=0)
-            assert fast.wait_ready("camera", TIMEOUT) and slow.wait_ready("camera", TIMEOUT)
+            _slow_beside_fast(replicator, camera, fast, slow, radio,
+                              found=lambda: replicator._topics["camera"].direct)
             stream = replicator._topics["camera"]
-            camera.write(100, until=lambda: stream.direct)
-            assert stream.direct and lost, "the slow follower was not found slow"
+            assert lost, "no DIRECT was sent"
             ((peer, direct),) = list(stream.direct.items())
             radio.set_rate(1e9)                  # (PUB carries its backlog to it at once)
             camera.write(200, until=lambda: stream.acks[peer][0] > direct.start)
@@ -2058,14 +2057,10 @@ def test_a_follower_whose_direct_is_lost_takes_no_resume_in_as_the_fast_one_goes
     monkeypatch.setattr(Follower, "_handle", seen)
     with _fast_and_slow() as (replicator, camera, fast, slow, slow_inbox):
         with Throttle(2e6) as radio:
-            replicator.add("camera")
-            _follow(fast, replicator, "camera", from_seq=0)
-            slow.follow("camera", radio.route(replicator.data_address),
-                        radio.route(replicator.control_address), from_seq=0)
-            assert fast.wait_ready("camera", TIMEOUT) and slow.wait_ready("camera", TIMEOUT)
+            _slow_beside_fast(replicator, camera, fast, slow, radio,
+                              found=lambda: replicator._topics["camera"].direct)
             stream = replicator._topics["camera"]
-            camera.write(100, until=lambda: stream.direct)
-            assert stream.direct and lost, "the slow follower was not found slow"
+            assert lost, "no DIRECT was sent"
             fast.unfollow("camera")
             camera.write(40, until=lambda: resumes)
             assert resumes, "no RESUME reached the slow follower"
