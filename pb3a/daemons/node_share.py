@@ -36,9 +36,10 @@ from pb3a.loading.sources import CodeSources
 from pb3a.log_format import log_to, name_process
 from pb3a.logbook import LogBook
 from pb3a.node.class_check import unloadable
-from pb3a.node.executor import LOCK_TIMEOUT, Executor
+from pb3a.node.executor import Executor
 from pb3a.node.protocol import REMOTE_OPERATIONS
 from pb3a.node.remote import LEASE_S
+from pb3a.node.restarts import LOCK_TIMEOUT
 from pb3a.processes import mark_as, serve_as_child, stop_on_sigterm
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient, ControlServer

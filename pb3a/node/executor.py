@@ -6,7 +6,7 @@ remote links, and the records of the modules that run here. Links with both ends
 here are wired by ``connect``; a remote link is wired in halves (``publish`` at the
 writer's node, ``open_inbound`` and ``follow`` at the reader's) by the
 ``Launcher``, which alone sees every node. A crashed worker is restarted by its
-modules' ``restart`` policies within a ``RestartBudget``; what such a restart and the
+modules' ``restart`` policies (``Restarts``); what such a restart and the
 requests that meet it wait for is kept by its ``Lives``. Shutdown stops modules in
 reverse start order, then the processes (terminate, then kill), then unlinks every
 segment. It implements ``Node``.
@@ -39,7 +39,7 @@ from pb3a.node.lives import Lives
 from pb3a.node.module_record import ModuleRecord
 from pb3a.node.protocol import Endpoint, Reached
 from pb3a.node.resources import ResourceMeter
-from pb3a.node.restarts import RestartBudget
+from pb3a.node.restarts import LOCK_TIMEOUT, Restarts
 from pb3a.node.ring_sizes import RingSize, ring_size
 from pb3a.node.workers import REQUEST_TIMEOUT, WorkerHandle, WorkerPool, WorkerSettings
 from pb3a.stats import FailureLog, InputStats, ModuleStats, NodeReport, WaitStats
@@ -49,7 +49,6 @@ from pb3a.transport.replication import follower_id
 from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import RING, memory_domain, reap_orphans, segment_name, unlink_name
 from pb3a.transport.snapshot import Snapshot, make_room
-from pb3a.worker.process import LEASE_LAPSED
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterator
@@ -58,19 +57,7 @@ log = logging.getLogger("pb3a.executor")
 _module_log = logging.getLogger("pb3a.module")
 
 REPORT_TIMEOUT = 5.0
-# A worker stopped by a SIGTERM is warned of unless its node begins to stop within this:
-# the same signal reached the launcher (sent to the whole process group)
-STOP_FOLLOWS_S = 2.0
-LOCK_TIMEOUT = 60.0      # longest a restart or a shutdown waits for the node's lock
 _WAITS_FOR_THE_MODULE = frozenset({"get_state", "set_state"})
-
-
-@dataclass(frozen=True)
-class _Revival:
-    """A module a restart revived, and which of its restarts that was."""
-
-    record: ModuleRecord
-    restart: int                      # ``record.restarts`` then: a later restart changes it
 
 
 @dataclass(frozen=True)
@@ -118,7 +105,6 @@ class Executor:
         self.lease_end: Callable[[], float | None] = lambda: None
         self._key: ClusterKey | None = None           # the cluster key (loaded on first use)
         self._bridge: Bridge | None = None            # remote links in (made on first use)
-        self._budgets: dict[str, RestartBudget] = {}  # worker key -> its restarts
         self._last_errors: dict[str, str] = {}        # module -> its last exception, logged
         # worker key -> a report's stats request it has not answered yet (frozen, stuck):
         # not asked again, nor waited for, until it does
@@ -127,9 +113,10 @@ class Executor:
         # global lock when the executor runs in the launcher's process).
         self.lock = lock or threading.RLock()
         reap_orphans()
+        self.restarts = Restarts(self)                # what a worker's death brings
         self.workers = WorkerPool(
             WorkerSettings(cpus, checkpoint_s, log_level, code or CodeSources(), spares),
-            self._notice, self._died)
+            self._notice, self.restarts.died)
         # a module between its worker's death and its restart's end, a change holding
         # it paused, the node stopping: what restarts and requests wait for
         self.lives = Lives(self.modules, self.workers)
@@ -200,7 +187,7 @@ class Executor:
 
     def _restarting(self, record: ModuleRecord) -> bool:
         """Whether the module's worker is gone and its restart policy has yet to say what
-        comes: a link wired meanwhile is wired at its end by that restart (``_rewire``),
+        comes: a link wired meanwhile is wired at its end by that restart (``rewire``),
         from the executor's tables and rings; a request to the dead worker would fail,
         and leave the other end unwired (a move failed as its module's worker died)."""
         return not self._alive(record.worker) and record.status not in ("failed", "stopped")
@@ -249,7 +236,7 @@ class Executor:
                 handle = self.workers.handles.get(key)
                 if handle is not None and not handle.modules:
                     self.workers.retire(key)
-                    self._budgets.pop(key, None)
+                    self.restarts.forget(key)
 
     # -- modules -------------------------------------------------------------
     def add_module(self, spec: FlatModule, *,
@@ -262,7 +249,7 @@ class Executor:
         self.modules[spec.name] = record
         handle.modules.append(spec.name)
         try:
-            self._instantiate(record, spec.state if state is None else state)
+            self.instantiate(record, spec.state if state is None else state)
         except BaseException:
             del self.modules[spec.name]
             # (stopped on another thread: a worker that did not answer, frozen say,
@@ -270,7 +257,8 @@ class Executor:
             self._vacate(key, spec.name, wait=False)
             raise
 
-    def _instantiate(self, record: ModuleRecord, state: dict[str, Any] | bytes) -> None:
+    def instantiate(self, record: ModuleRecord, state: dict[str, Any] | bytes) -> None:
+        """Make module ``record`` in its worker with ``state`` (not started)."""
         spec = record.spec
         self.call(record.worker, "add", name=spec.name, cls=record.blob, period=spec.period,
                   restart=spec.restart, state=state, lease=self.lease_end())
@@ -311,7 +299,7 @@ class Executor:
                 else:
                     failed.update(self.call(worker, "start", names=starting))
             except (RuntimeFailure, RuntimeTimeout) as exc:
-                if not isinstance(exc, RuntimeTimeout) and _died(self.workers[worker].process):
+                if not isinstance(exc, RuntimeTimeout) and self.workers[worker].process.ended():
                     continue
                 if future is not None and isinstance(exc, RuntimeTimeout) \
                         and not future.done():
@@ -337,7 +325,7 @@ class Executor:
         self.workers.replenish()          # for the spares they took
         if failing or late:
             for name, error in failed.items():
-                self._fail(name, None, error)
+                self.fail(name, None, error)
         if late:
             error = RuntimeTimeout(
                 f"the setup of {', '.join(late)} at node {self.node} had not returned when "
@@ -369,7 +357,7 @@ class Executor:
             failed = future.result(0)
         except (RuntimeFailure, RuntimeTimeout) as exc:
             handle = self.workers.handles.get(batch[0].worker)
-            if handle is None or _died(handle.process):     # its restart policies'
+            if handle is None or handle.process.ended():     # its restart policies'
                 return
             failed = {record.spec.name: str(exc) for record in batch}
         except Exception as exc:                # (whatever it was, the modules say it)
@@ -387,7 +375,7 @@ class Executor:
                     if self.modules.get(name) is not record or record.status != "starting":
                         continue
                     if name in failed:
-                        self._fail(name, None, failed[name])
+                        self.fail(name, None, failed[name])
                     else:
                         record.status = "running"
         except RuntimeTimeout as exc:
@@ -552,7 +540,7 @@ class Executor:
         for key, handle in list(self.workers.handles.items()):
             if not handle.modules:
                 self.workers.retire(key, wait=False)
-                self._budgets.pop(key, None)
+                self.restarts.forget(key)
 
     def _vacate(self, key: str, name: str, wait: bool = True) -> None:
         """``name`` no longer runs in worker ``key``; stop the worker if it is empty now
@@ -561,7 +549,7 @@ class Executor:
         handle.modules.remove(name)
         if not handle.modules:
             self.workers.retire(key, wait=wait)
-            self._budgets.pop(key, None)
+            self.restarts.forget(key)
 
     def forget(self, module: str) -> None:
         """Drop cached copies of Python module ``module`` here and in every worker."""
@@ -881,183 +869,14 @@ class Executor:
                 handle.send(None, "answer", {"id": request["id"], "ok": False, "result": (
                     f"the answer could not be pickled: {type(exc).__name__}: {exc}")})
 
-    # -- restarts ----------------------------------------------------------------
-    def _died(self, handle: WorkerHandle) -> None:
-        try:
-            self._after_death(handle)
-        finally:
-            self.lives.changed()
-
-    def _after_death(self, handle: WorkerHandle) -> None:
-        code = handle.process.exitcode
-        if code == LEASE_LAPSED and self.leased() and not self.lives.stopping.is_set():
-            # Its lease lapsed, but this executor's runs: the worker alone was frozen
-            # (stopped, starved), not its node, and nothing runs its modules elsewhere.
-            # They were stopped as no one asked: their restart policy says what comes.
-            log.warning("worker %s (pid %s, modules %s) stopped them: it was frozen past "
-                        "its lease while its executor ran", handle.key, handle.pid,
-                        ", ".join(handle.modules))
-        elif code in (0, LEASE_LAPSED):   # stopped on purpose (SIGTERM), or fenced: not a crash
-            said = ("worker %s (pid %s) stopped; its modules %s are stopped", handle.key,
-                    handle.pid, ", ".join(handle.modules))
-            if code == 0:
-                threading.Thread(target=self._say_stopped, args=said, daemon=True,
-                                 name="pb3a-stopped").start()
-            else:
-                log.warning(*said)
-            for name in handle.modules:
-                self.modules[name].status = "stopped"
-            return
-        else:
-            log.warning("worker %s (pid %s, modules %s) died with exit code %s",
-                        handle.key, handle.pid, ", ".join(handle.modules), code)
-        threading.Thread(target=self._recover, args=(handle, code), daemon=True,
-                         name=f"pb3a-restart-{handle.key}").start()
-
-    def _say_stopped(self, *said: object) -> None:
-        """Warn of a worker stopped by a SIGTERM, unless this node stops meanwhile: a
-        SIGTERM to the whole process group (`timeout`, `kill -- -PGID`) reaches the
-        launcher and its nodes with their workers, and a warning per worker was noise on
-        a clean stop. One that stops alone (someone's SIGTERM, a module's exit) is said."""
-        if self.lives.closing.wait(STOP_FOLLOWS_S):
-            log.info(*said)
-        else:
-            log.warning(*said)
-
-    def _recover(self, handle: WorkerHandle, code: int | None) -> None:
-        """Restart what ran in a dead worker as a launch starts it (``Running.start``):
-        under the lock, the policies applied, the modules instantiated and rewired in a
-        new process (``_revive``) and their start sent; without it, their ``setup`` runs,
-        since an agent may call ``self.runtime`` from ``setup``, which takes the lock
-        (``_started``); under it again, what came of it (``_restarted``)."""
-        what = f"restart the modules of worker {handle.key}"
-        with self.lives.reviving(set(handle.modules)):
-            try:
-                self.lives.await_let_go(handle, what, LOCK_TIMEOUT)
-                with self.held(what):
-                    if self.lives.stopping.is_set():    # a shutdown may have come first
-                        return
-                    revived = self._revive(handle, code)
-                    if not revived:
-                        return
-                    # sent now, to the process just set up, whatever happens once the
-                    # lock is free
-                    process = handle.process
-                    future = self.workers.submit(handle.key, "start", names=list(revived))
-                outcome = self._started(future, handle.key, process)
-                with self.held(what):
-                    if not self.lives.stopping.is_set():
-                        self._restarted(handle, code, revived, outcome)
-            except RuntimeTimeout as exc:       # the lock was not free within its deadline
-                self.failures.add(f"restart of worker {handle.key} failed: {exc}")
-                # its modules are not running, whatever their records said: failed, and said
-                for name in list(handle.modules):
-                    record = self.modules.get(name)
-                    if record is not None and record.status != "failed":
-                        record.status = "failed"
-                        self._tell("module_failed", name, exit_code=code,
-                                   reason=f"its restart could not take the node's lock: {exc}")
-
+    # -- the lock, and what a restart (``Restarts``) does here -----------------------
     def held(self, what: str, timeout: float = LOCK_TIMEOUT) -> AbstractContextManager[Any]:
         """``self.lock``, held for ``what`` (which the launcher's lock names to a waiter);
         ``RuntimeTimeout`` if it is not free within ``timeout``."""
         held = getattr(self.lock, "held", None)
         return _within(self.lock, what, timeout) if held is None else held(what, timeout)
 
-    def _revive(self, handle: WorkerHandle, code: int | None) -> dict[str, _Revival]:
-        """Apply the ``restart`` policy of every module that ran in the dead worker, up to
-        its start (lock held): ``never`` leaves it failed; ``fresh`` instantiates it with
-        its configured state, ``last-state`` with its last checkpoint, in a new process.
-        Rings are kept, so a restarted reader resumes where the dead one stopped and a
-        restarted writer continues the sequence; a restarted writer of a remote link
-        publishes under a new incarnation, which ``republished`` has the reader's node
-        follow. The modules revived, to start; none if it failed (they are failed)."""
-        budget = self._budgets.setdefault(handle.key, RestartBudget())
-        names = list(handle.modules)
-        revive = [n for n in names if self.modules[n].spec.restart != "never"]
-        reason = "restart = 'never'"
-        if not budget.spend() and revive:
-            reason = (f"restart = '{self.modules[revive[0]].spec.restart}', but its worker "
-                      f"died {budget.deaths} times in {budget.window:.0f} s: gave up")
-            revive = []
-        for name in names:
-            if name not in revive and self.modules[name].status != "failed":
-                self._fail(name, code, reason)
-        if not revive:      # (a restart or an add later gets a new process: ensure)
-            return {}
-        records = {name: self.modules[name] for name in revive}
-        for record in records.values():
-            record.status = "starting"
-            record.restarts += 1            # (also tells this restart from a later one)
-        try:
-            if not handle.alive:            # (an add may have started one meanwhile)
-                self.workers.spawn(handle)
-            for record in records.values():
-                state = record.spec.state
-                if record.spec.restart == "last-state" and record.checkpoint is not None:
-                    state = cloudpickle.loads(record.checkpoint)
-                self._instantiate(record, state)
-            self._rewire(set(records))
-        except Exception as exc:            # whatever it was, the modules say it
-            self._give_up(handle, code, records, f"its restart failed: {exc}")
-            return {}
-        return {name: _Revival(record, record.restarts) for name, record in records.items()}
-
-    def _started(self, future: Future[Any], key: str,
-                 process: Any) -> tuple[bool, Exception | None, dict[str, str]]:
-        """Wait, without the lock, for the revived modules' ``setup`` and start:
-        (started, the error if the start failed, the modules whose ``setup`` raised
-        with their errors); neither if the new worker died too (its restart policy
-        applies again)."""
-        try:
-            failed = self.workers.result(future, "start", key, REQUEST_TIMEOUT)
-        except (RuntimeFailure, RuntimeTimeout) as exc:
-            return False, None if _died(process) else exc, {}
-        return True, None, failed
-
-    def _restarted(self, handle: WorkerHandle, code: int | None, revived: dict[str, _Revival],
-                   outcome: tuple[bool, Exception | None, dict[str, str]]) -> None:
-        """Record what came of a restart's start (lock held), for the revived modules
-        still this restart's and still starting: another operation may have moved,
-        removed or stopped one while the lock was free, or a later restart taken over."""
-        started, error, failed = outcome
-        records = {name: revival.record for name, revival in revived.items()
-                   if self._current(name, revival) and revival.record.status == "starting"}
-        if not records:
-            return
-        if error is not None or (failed and set(records) <= set(failed)):
-            self._give_up(handle, code, records, f"its restart failed: "
-                          f"{error or '; '.join(failed.values())}")
-            return
-        if not started:                      # the new worker died as well
-            return
-        for name in [name for name in records if name in failed]:   # the others run
-            self._fail(name, code, f"its restart failed: {failed[name]}")
-            del records[name]
-        for record in records.values():
-            record.status = "running"
-        log.warning("restarted %s (exit code %s)", ", ".join(records), code)
-        for name, record in records.items():
-            self._tell("module_restarted", name, reason="its worker died", exit_code=code,
-                       policy=record.spec.restart)
-
-    def _current(self, name: str, revival: _Revival) -> bool:
-        """Whether module ``name`` is still the one ``revival`` revived."""
-        record = revival.record
-        return self.modules.get(name) is record and record.restarts == revival.restart
-
-    def _give_up(self, handle: WorkerHandle, code: int | None,
-                 records: dict[str, ModuleRecord], reason: str) -> None:
-        """A restart failed: stop its new worker, unless it hosts others by now (none of
-        these modules may run while reported failed), and fail each module, saying why."""
-        others = [name for name in handle.modules if name not in records
-                  and name in self.modules and self.modules[name].status != "failed"]
-        if handle.alive and not others:
-            self.workers.halt(handle)
-        for name in records:
-            self._fail(name, code, reason)
-
-    def _rewire(self, revived: set[str]) -> None:
+    def rewire(self, revived: set[str]) -> None:
         """Attach every link of restarted modules again, in the worker that replaced theirs."""
         links = list(self.links.values())
         self._side_by_side([self._reader_request(link) for link in links
@@ -1072,11 +891,13 @@ class Executor:
             if self.republished is not None and endpoint is not None:
                 self.republished(link, endpoint)
 
-    def _fail(self, name: str, code: int | None, reason: str) -> None:
+    def fail(self, name: str, code: int | None, reason: str) -> None:
+        """Module ``name`` will not run again by itself: record and say why, and unhook
+        what feeds it."""
         record = self.modules[name]
         record.status = "failed"
         self.failures.add(f"module {name} failed (worker exit code {code}); {reason}")
-        self._tell("module_failed", name, exit_code=code, reason=reason)
+        self.tell("module_failed", name, exit_code=code, reason=reason)
         # Writers into a dead reader would only fill its ring: unhook them.
         for link in list(self.links.values()):
             src = self.modules.get(link.src)
@@ -1089,7 +910,8 @@ class Executor:
             if link.dst == name:
                 self.bridge.close(link.key)
 
-    def _tell(self, kind: str, name: str, **detail: Any) -> None:
+    def tell(self, kind: str, name: str, **detail: Any) -> None:
+        """Report an event about module ``name`` to ``on_event`` (the system's log)."""
         if self.on_event is not None:
             self.on_event(kind, name, **detail)
 
@@ -1159,13 +981,6 @@ def _class_blob(spec: FlatModule) -> bytes:
                 f" (class attributes {', '.join(map(repr, names))}: make what holds a "
                 "lock, a file or a socket in setup(), under a name beginning with '_')"
                 if names else "")]) from None
-
-
-def _died(process: Any) -> bool:
-    """Whether the worker process behind a failed request has died (a pipe error may
-    come before its death is seen)."""
-    process.join(1.0)
-    return not process.is_alive()
 
 
 def _topic(link: FlatLink) -> str:

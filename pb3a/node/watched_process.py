@@ -24,6 +24,9 @@ from typing import Any
 # How long an ended worker's exit status is waited for from its forkserver: it writes
 # it as soon as it reaps the child, unless it is frozen or gone (then it is unknown).
 STATUS_WAIT_S = 1.0
+# How long a worker is given to be seen ended once a request to it failed: the pipe's
+# error may come before its death is seen.
+DEATH_SEEN_S = 1.0
 
 
 def _forget_parents_children() -> None:
@@ -65,6 +68,10 @@ class WatchedProcess:
     def join(self, timeout: float | None = None) -> None:
         """Wait up to ``timeout`` seconds for the process to end (None: for good)."""
         self._wait(timeout)
+
+    def ended(self, within: float = DEATH_SEEN_S) -> bool:
+        """Whether the process has ended, or ends within ``within`` seconds."""
+        return self._wait(within)
 
     @property
     def exitcode(self) -> int | None:

@@ -57,7 +57,7 @@ MEASURE_TIMEOUT = 5.0    # how long measuring a snapshot waits for a busy module
 LEASE_CHECK_S = 0.1      # how often a worker with a lease (see op_lease) looks at it
 # The exit status of a worker that stopped its modules because its lease lapsed: its
 # executor tells it from a stop it asked for (0) and, if its own lease runs, restarts
-# the modules (the worker alone was frozen; see Executor._died).
+# the modules (the worker alone was frozen; see Restarts.died).
 LEASE_LAPSED = 3
 UNANSWERED = -1            # the id of a request whose answer nobody waits for
 TIMED_OUT = "timed out"   # a reply's status for a request that ran out of time (not False)
