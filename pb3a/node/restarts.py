@@ -15,7 +15,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import cloudpickle
 
@@ -24,11 +24,14 @@ from pb3a.node.workers import REQUEST_TIMEOUT
 from pb3a.worker.process import LEASE_LAPSED
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
     from concurrent.futures import Future
+    from contextlib import AbstractContextManager
 
-    from pb3a.node.executor import Executor
+    from pb3a.node.lives import Lives
     from pb3a.node.module_record import ModuleRecord
-    from pb3a.node.workers import WorkerHandle
+    from pb3a.node.workers import WorkerHandle, WorkerPool
+    from pb3a.stats import FailureLog
 
 log = logging.getLogger("pb3a.executor")
 
@@ -69,11 +72,27 @@ class _Revival:
     restart: int                      # ``record.restarts`` then: a later restart changes it
 
 
+class RestartHost(Protocol):
+    """What a restart does its work through: the node's ``Executor``."""
+
+    modules: dict[str, ModuleRecord]
+    workers: WorkerPool
+    lives: Lives
+    failures: FailureLog
+    leased: Callable[[], bool]
+
+    def held(self, what: str, timeout: float = ...) -> AbstractContextManager[Any]: ...
+    def instantiate(self, record: ModuleRecord, state: dict[str, Any] | bytes) -> None: ...
+    def rewire(self, revived: set[str]) -> None: ...
+    def fail(self, name: str, code: int | None, reason: str) -> None: ...
+    def tell(self, kind: str, name: str, **detail: Any) -> None: ...
+
+
 class Restarts:
     """Applies the restart policies of a node's modules when their worker dies (the
     ``WorkerPool`` tells ``died``), each worker within its ``RestartBudget``."""
 
-    def __init__(self, node: Executor) -> None:
+    def __init__(self, node: RestartHost) -> None:
         self._node = node
         self._budgets: dict[str, RestartBudget] = {}  # worker key -> its restarts
 
