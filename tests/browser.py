@@ -2,9 +2,12 @@
 Playwright for Python (its own browser download is not reachable from every machine,
 so the tests use the system's, as ``executable_path``).
 
-``chromium_page()`` gives a page in a fresh profile, with every wait bounded, and
-closes the browser (all its processes) when the test ends. ``skip_reason()`` says why
-the tests cannot run here (no chromium, no playwright) so they skip with that reason.
+``chromium()`` starts the browser, once for a test file (its start, with Playwright's
+own, is most of what opening a page costs), and closes it (all its processes) at the
+end; ``chromium_page(browser)`` gives a page in a fresh context of that browser (a
+profile of its own: no cookie, storage or cache of another test's), with every wait
+bounded, and closes it when the test ends. ``skip_reason()`` says why the tests cannot
+run here (no chromium, no playwright) so they skip with that reason.
 """
 
 from __future__ import annotations
@@ -13,7 +16,6 @@ import contextlib
 import importlib.util
 import os
 import shutil
-import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -63,20 +65,31 @@ class Tab:
 
 
 @contextlib.contextmanager
-def chromium_page() -> Iterator[Tab]:
-    """A Playwright page in a fresh headless Chromium profile; everything is closed on
-    the way out, also when the test fails."""
+def chromium() -> Iterator[Any]:
+    """A headless Chromium (Playwright's ``Browser``) to open pages in; closed, with all
+    its processes, on the way out, also when a test failed."""
     from playwright.sync_api import sync_playwright
 
-    with tempfile.TemporaryDirectory(prefix="pb3a-chromium-") as profile, \
-            sync_playwright() as playwright:
-        context = playwright.chromium.launch_persistent_context(
-            profile, executable_path=chromium_path(), headless=True, args=CHROMIUM_ARGS,
-            timeout=LAUNCH_TIMEOUT_MS, viewport=VIEWPORT, device_scale_factor=1)
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(
+            executable_path=chromium_path(), headless=True, args=CHROMIUM_ARGS,
+            timeout=LAUNCH_TIMEOUT_MS)
         try:
-            context.set_default_timeout(ACTION_TIMEOUT_MS)
-            tab = Tab(context.pages[0] if context.pages else context.new_page())
-            tab.page.on("pageerror", lambda error: tab.errors.append(str(error)))
-            yield tab
+            yield browser
         finally:
-            context.close()
+            browser.close()
+
+
+@contextlib.contextmanager
+def chromium_page(browser: Any) -> Iterator[Tab]:
+    """A Playwright page in a fresh context of ``browser`` (``chromium()``): nothing of
+    another page's (cookies, storage, cache) is there; the context is closed on the way
+    out, also when the test fails."""
+    context = browser.new_context(viewport=VIEWPORT, device_scale_factor=1)
+    try:
+        context.set_default_timeout(ACTION_TIMEOUT_MS)
+        tab = Tab(context.new_page())
+        tab.page.on("pageerror", lambda error: tab.errors.append(str(error)))
+        yield tab
+    finally:
+        context.close()

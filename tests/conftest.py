@@ -129,10 +129,37 @@ def frozen(*pids: int) -> Iterator[None]:
             os.kill(pid, signal.SIGCONT)
 
 
+# Processes a fixture of a wider scope than a test keeps for many tests (the browser
+# tests' Chromium, with Playwright's driver): they and their children are no test's
+# leak; the fixture ends them itself. See ``shared_processes``.
+_SHARED: set[int] = set()
+
+
+@contextlib.contextmanager
+def shared_processes(start: Callable[[], Any]) -> Iterator[Any]:
+    """``start()`` (a context manager, entered here), with the child processes of this
+    process that it starts kept out of the per-test check for leaks while inside: what
+    it yields, for the tests that share it."""
+    before = {child.pid for child in psutil.Process().children()}
+    with start() as started:
+        shared = {child.pid for child in psutil.Process().children()} - before
+        _SHARED.update(shared)
+        try:
+            yield started
+        finally:
+            _SHARED.difference_update(shared)
+
+
 def _workers() -> set[int]:
     me = psutil.Process()
+    shared = set(_SHARED)
+    for pid in _SHARED:
+        with contextlib.suppress(psutil.Error):
+            shared.update(child.pid for child in psutil.Process(pid).children(recursive=True))
     found = set()
     for child in me.children(recursive=True):
+        if child.pid in shared:
+            continue
         try:
             cmdline = " ".join(child.cmdline())
             helper = "forkserver" in cmdline or "resource_tracker" in cmdline

@@ -29,8 +29,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from browser import chromium_page, skip_reason
-from conftest import alive, eventually, frozen
+from browser import chromium, chromium_page, skip_reason
+from conftest import alive, eventually, frozen, shared_processes
 
 REPO = Path(__file__).resolve().parent.parent
 START_TIMEOUT = 30.0        # seconds for `pb3a manager` to print its URL
@@ -141,10 +141,19 @@ def lab(tmp_path: Path) -> Iterator[ManagerProcess]:
         f"pb3a manager exited {manager.process.returncode} on Ctrl-C"
 
 
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    """One headless Chromium for the file's tests: starting it (and Playwright) took
+    more than a second of each test. Each test's page has a context of its own
+    (``chromium_page``), so nothing of one test's page is in another's."""
+    with shared_processes(chromium) as started:      # (its processes are no test's leak)
+        yield started
+
+
 @pytest.fixture
-def page(lab: ManagerProcess) -> Iterator[Any]:
+def page(browser: Any, lab: ManagerProcess) -> Iterator[Any]:
     """The lab's page, open, with every module drawn; it must throw no script error."""
-    with chromium_page() as tab:
+    with chromium_page(browser) as tab:
         tab.page.goto(lab.url)
         tab.page.wait_for_function("document.querySelectorAll('.module').length === 4",
                                    timeout=WAIT_MS)
@@ -320,13 +329,13 @@ def test_a_value_being_typed_survives_a_change_of_structure_elsewhere(
 
 
 def test_a_module_selected_while_editing_shows_its_live_state_after_launch(
-        tmp_path: Path) -> None:
+        browser: Any, tmp_path: Path) -> None:
     """The module shown while the document was edited kept the document's values after
     Launch (the page never watched it) until another module was clicked: the State
     Editor follows the running module as soon as it runs."""
     config = tmp_path / "lab.toml"
     config.write_text(LAB)
-    with editor(config, 4) as (manager, page):
+    with editor(browser, config, 4) as (manager, page):
         page.click("[data-module='sensor'] .module-title")
         assert field_value(page, "sensor", "steps") == "0"         # the document's
         page.click("#launch")
@@ -446,12 +455,17 @@ def test_a_float_that_is_not_finite_is_shown_as_such_and_plotted_as_a_gap(
         lab: ManagerProcess, page: Any, tmp_path: Path) -> None:
     """inf and nan came as ``{"value": null, "text": "inf"}``: the field showed nothing
     and a gauge 0. The field shows the text, marked; a plot and a gauge show no value."""
+    from playwright.sync_api import TimeoutError as PageTimeout
+
     page.click("[data-module='probe'] .module-title")
     page.wait_for_function("document.querySelector(\"[data-field='last'] input\")?.value === '2.0'",
                            timeout=WAIT_MS)
     page.wait_for_function("document.querySelector(\"[data-field='load'] .gauge-number\")"
                            "?.textContent === '2'", timeout=WAIT_MS)
-    page.wait_for_timeout(1500)      # a few refreshes: the plot has a line before the gap
+    # a few refreshes: the plot has a line (three points at least) before the gap
+    page.wait_for_function("(document.querySelector(\"[data-field='last'] polyline\")"
+                           "?.getAttribute('points') ?? '').split(' ').length >= 3",
+                           timeout=WAIT_MS)
     lab.api("POST", "/api/modules/sensor/state", {"level": float("nan")})   # nan downstream
     page.wait_for_function("document.querySelector(\"[data-field='last'] input\").value === 'nan'",
                            timeout=WAIT_MS)
@@ -465,8 +479,12 @@ def test_a_float_that_is_not_finite_is_shown_as_such_and_plotted_as_a_gap(
     page.locator("[data-field='load'] .gauge-svg").scroll_into_view_if_needed()
     page.screenshot(path=str(screenshot_path(tmp_path, "manager_not_finite_gauge.png")))
     page.locator("[data-field='last']").scroll_into_view_if_needed()
-    # the plot's scale is still the finite values' (1.8 to 2.2): a nan drawn as 0 pulled it to 0
-    page.wait_for_timeout(1500)
+    # the plot's scale is still the finite values' (1.8 to 2.2) once it shows the nan
+    # ("now" followed by no value): a nan drawn as 0 pulled it to 0
+    ticks = "[...document.querySelectorAll(\"[data-field='last'] .tick\")].map(t => t.textContent)"
+    with contextlib.suppress(PageTimeout):
+        page.wait_for_function(f"(ticks => ticks[0] === '2.2' && ticks[1] === '1.8' && "
+                               f"ticks[2]?.endsWith('now \u2013'))({ticks})", timeout=WAIT_MS)
     ticks = page.locator("[data-field='last'] .tick").all_text_contents()
     assert ticks[:2] == ["2.2", "1.8"] and ticks[2].endswith("now \u2013"), ticks
     assert "nan" in page.locator("[data-field='recent'] .tree-level").text_content()
@@ -496,7 +514,7 @@ def test_a_move_that_fails_is_listed_among_the_events(lab: ManagerProcess, page:
 
 
 def test_a_module_that_does_not_answer_its_remove_is_killed_from_the_error(
-        tmp_path: Path) -> None:
+        browser: Any, tmp_path: Path) -> None:
     """A remove of a module that does not answer its stop (its worker stopped, as a
     hung one) was an error and nothing more: the module stayed, and the page had no way
     to get rid of it but Stop. The error says so and offers **Kill its worker**, which
@@ -506,7 +524,7 @@ def test_a_module_that_does_not_answer_its_remove_is_killed_from_the_error(
     manager = ManagerProcess(str(config), "--timeout", "2")     # (each remove waits it)
     try:
         manager.api("POST", "/api/document/launch", {})
-        with chromium_page() as tab:
+        with chromium_page(browser) as tab:
             page = tab.page
             page.goto(manager.url)
             page.wait_for_function("document.querySelectorAll('.module').length === 4",
@@ -578,10 +596,11 @@ def test_the_swap_picker_swaps_a_module_for_a_class_whose_ports_fit(
     assert field_value(page, "scale", "gain") == "2.0"          # kept through the swap
 
 
-def test_a_system_built_in_the_editor_is_checked_as_drawn_and_launches(tmp_path: Path) -> None:
+def test_a_system_built_in_the_editor_is_checked_as_drawn_and_launches(
+        browser: Any, tmp_path: Path) -> None:
     manager = ManagerProcess()
     try:
-        with chromium_page() as tab:
+        with chromium_page(browser) as tab:
             page = tab.page
             page.goto(manager.url)
             page.wait_for_function("document.querySelector('#mode').textContent === 'editing'",
@@ -709,13 +728,13 @@ def summary(samples: list[float]) -> dict[str, float]:
 
 
 @pytest.mark.serial      # it times the page, so it runs alone, not beside another worker
-def test_the_page_keeps_up_with_200_modules(tmp_path: Path) -> None:
+def test_the_page_keeps_up_with_200_modules(browser: Any, tmp_path: Path) -> None:
     config = tmp_path / "big.toml"
     config.write_text(big_system(200))
     manager = ManagerProcess(str(config))
     try:
         manager.api("POST", "/api/document/launch", {})
-        with chromium_page() as tab:
+        with chromium_page(browser) as tab:
             page = tab.page
             page.goto(manager.url)
             page.wait_for_function("document.querySelectorAll('.module').length === 200",
@@ -791,12 +810,12 @@ CHAIN_COMMENTED = (
 
 
 @contextlib.contextmanager
-def editor(path: Path, modules: int) -> Iterator[tuple[ManagerProcess, Any]]:
+def editor(browser: Any, path: Path, modules: int) -> Iterator[tuple[ManagerProcess, Any]]:
     """`pb3a manager FILE` with its page open on the document, ``modules`` drawn; the page
     must throw no script error."""
     manager = ManagerProcess(str(path))
     try:
-        with chromium_page() as tab:
+        with chromium_page(browser) as tab:
             tab.page.goto(manager.url)
             tab.page.wait_for_function(
                 f"document.querySelector('#mode').textContent === 'editing' && "
@@ -858,10 +877,11 @@ def open_file(page: Any, path: Path) -> None:
     chooser.value.set_files(str(path))
 
 
-def test_a_file_opened_in_the_page_is_checked_and_becomes_the_document(tmp_path: Path) -> None:
+def test_a_file_opened_in_the_page_is_checked_and_becomes_the_document(
+        browser: Any, tmp_path: Path) -> None:
     config = tmp_path / "chain.toml"
     config.write_text(CHAIN)
-    with editor(config, 3) as (manager, page):
+    with editor(browser, config, 3) as (manager, page):
         # a file pb3a check refuses: its words in the page, and nothing changes
         bad = tmp_path / "bad.toml"
         bad.write_text(OPENED.replace('node = "a"\nstate', 'perod = 1.0\nnode = "a"\nstate'))
@@ -915,7 +935,7 @@ def save_box_says(page: Any, value: str) -> dict[str, Any]:
 
 
 def test_the_save_box_shows_the_document_s_path_in_every_mode_it_is_opened_in(
-        tmp_path: Path) -> None:
+        browser: Any, tmp_path: Path) -> None:
     """A page opened on a system launched from its document (through the API, or before a
     reload) showed the placeholder ``system.toml`` in the save box, not the document's
     path, which Save writes: the path was set only on entering editing. It is the
@@ -927,7 +947,7 @@ def test_the_save_box_shows_the_document_s_path_in_every_mode_it_is_opened_in(
     attached = None
     try:
         manager.api("POST", "/api/document/launch", {})
-        with chromium_page() as tab:
+        with chromium_page(browser) as tab:
             page = tab.page
             for opened in ("launched", "reloaded"):
                 page.goto(manager.url if opened == "launched" else manager.base)
@@ -951,6 +971,9 @@ def test_the_save_box_shows_the_document_s_path_in_every_mode_it_is_opened_in(
             page.goto(manager.base)
             page.wait_for_function("document.querySelector('#mode').textContent === "
                                    "'running'", timeout=WAIT_MS)
+            # (the attached manager goes first: stopped after the system it watches, its
+            # stop waited 5 s for its feed's call to that system)
+            attached.stop()
             manager.api("POST", "/api/system/stop", {})
             page.wait_for_function("document.querySelector('#mode').textContent === "
                                    "'editing'", timeout=WAIT_MS)
@@ -964,7 +987,7 @@ def test_the_save_box_shows_the_document_s_path_in_every_mode_it_is_opened_in(
     # and Save asks for one
     empty = ManagerProcess()
     try:
-        with chromium_page() as tab:
+        with chromium_page(browser) as tab:
             page = tab.page
             page.goto(empty.url)
             page.wait_for_function("document.querySelector('#mode').textContent === 'editing'",
@@ -981,13 +1004,13 @@ def test_the_save_box_shows_the_document_s_path_in_every_mode_it_is_opened_in(
         empty.stop()
 
 
-def test_two_quick_edits_in_the_editor_are_both_saved(tmp_path: Path) -> None:
+def test_two_quick_edits_in_the_editor_are_both_saved(browser: Any, tmp_path: Path) -> None:
     """An edit made while the one before it was being saved was made on the page's copy,
     which that save's answer then replaced: the second edit was lost, and both said
     they were saved."""
     config = tmp_path / "chain.toml"
     config.write_text(CHAIN)
-    with editor(config, 3) as (manager, page):
+    with editor(browser, config, 3) as (manager, page):
         outcome = page.evaluate("""async () => {
             const document = window.pb3aManager.document;
             const first = document.setPeriod("ticker", 0.5);
@@ -1022,13 +1045,13 @@ def another_page_sets(manager: ManagerProcess, module: str, state: dict[str, Any
 
 
 def test_an_edit_after_another_page_s_is_made_unless_it_touches_the_same_entry(
-        tmp_path: Path) -> None:
+        browser: Any, tmp_path: Path) -> None:
     """Two pages on one document: an edit in one made the next edit in the other a 412,
     whatever it touched. Now the page reads the document again and makes its edit there
     when the other page changed other entries; one of the same entry is refused, named."""
     config = tmp_path / "chain.toml"
     config.write_text(CHAIN)
-    with editor(config, 3) as (manager, page):
+    with editor(browser, config, 3) as (manager, page):
         puts: list[int] = []
         page.on("response", lambda response: puts.append(response.status)
                 if response.request.method == "PUT" else None)
@@ -1053,12 +1076,13 @@ def test_an_edit_after_another_page_s_is_made_unless_it_touches_the_same_entry(
         assert document_of(manager)["system"]["modules"]["scale"]["state"] == {"gain": 6.0}
 
 
-def test_a_refused_edit_gives_the_field_the_document_s_value_back(tmp_path: Path) -> None:
+def test_a_refused_edit_gives_the_field_the_document_s_value_back(
+        browser: Any, tmp_path: Path) -> None:
     """A refused edit left its value in the field, so the page showed a value the
     document did not hold. The field shows the document's again; the message says why."""
     config = tmp_path / "chain.toml"
     config.write_text(CHAIN)
-    with editor(config, 3) as (manager, page):
+    with editor(browser, config, 3) as (manager, page):
         page.click("[data-module='scale'] .module-title")
         assert field_value(page, "scale", "gain") == "2.0"
         another_page_sets(manager, "scale", {"gain": 3.0})      # the same entry, meanwhile
@@ -1075,14 +1099,14 @@ def test_a_refused_edit_gives_the_field_the_document_s_value_back(tmp_path: Path
 
 
 def test_inf_typed_into_a_float_field_is_set_and_an_int_field_refuses_it_by_name(
-        tmp_path: Path) -> None:
+        browser: Any, tmp_path: Path) -> None:
     """The page shows inf and nan, but typed into a float field they were refused as no
     number (and JSON, had they been sent, writes them null). A float field takes them,
     in the document (TOML's ``inf``) and on the running module; an int field says why
     it does not, naming the field."""
     config = tmp_path / "chain.toml"
     config.write_text(CHAIN)
-    with editor(config, 3) as (manager, page):
+    with editor(browser, config, 3) as (manager, page):
         page.click("[data-module='scale'] .module-title")
         assert field_value(page, "scale", "gain") == "2.0"        # the class's, not set yet
         page.fill("[data-field='gain'] input", "inf")
@@ -1115,14 +1139,14 @@ def test_inf_typed_into_a_float_field_is_set_and_an_int_field_refuses_it_by_name
         assert manager.api("GET", "/api/modules/scale/state")["fields"]["gain"]["text"] == "-inf"
 
 
-def test_a_list_edited_as_json_keeps_its_infinities(tmp_path: Path) -> None:
+def test_a_list_edited_as_json_keeps_its_infinities(browser: Any, tmp_path: Path) -> None:
     """Edit as JSON showed inf and nan as null (JSON has no word for them) and Apply
     wrote the nulls into the document. The text shows them as TOML writes them, bare
     words that Apply reads back, and a word inside a string stays a string."""
     config = tmp_path / "held.toml"
     config.write_text('name = "held"\n\n[modules.held]\nclass = "manager_modules:Holder"\n'
                       'state = { waypoints = [[0.0, inf], [1.0, 2.0]] }\n')
-    with editor(config, 1) as (manager, page):
+    with editor(browser, config, 1) as (manager, page):
         page.click("[data-module='held'] .module-title")
         page.click("[data-field='waypoints'] button:has-text('Edit as JSON')")
         area = page.locator("[data-field='waypoints'] textarea")
@@ -1135,12 +1159,12 @@ def test_a_list_edited_as_json_keeps_its_infinities(tmp_path: Path) -> None:
         assert held == [[0.0, {"$float": "-inf"}], [1.0, {"$float": "nan"}], [2.0, "inf"]]
 
 
-def test_save_asks_before_it_overwrites_a_file_edited_on_disk(tmp_path: Path) -> None:
+def test_save_asks_before_it_overwrites_a_file_edited_on_disk(browser: Any, tmp_path: Path) -> None:
     """Save overwrote a file edited in another editor since the page opened it, without
     a word. It asks first: Cancel leaves the file as it is, Overwrite writes it."""
     config = tmp_path / "chain.toml"
     config.write_text(CHAIN)
-    with editor(config, 3) as (_manager, page):
+    with editor(browser, config, 3) as (_manager, page):
         edited_there = CHAIN + "\n# added in another editor\n"
         config.write_text(edited_there)
         page.click("#save")
@@ -1158,10 +1182,10 @@ def test_save_asks_before_it_overwrites_a_file_edited_on_disk(tmp_path: Path) ->
 
 
 def test_modules_grouped_into_a_macro_open_close_place_again_and_take_overrides(
-        tmp_path: Path) -> None:
+        browser: Any, tmp_path: Path) -> None:
     config = tmp_path / "chain.toml"
     config.write_text(CHAIN_COMMENTED)
-    with editor(config, 3) as (manager, page):
+    with editor(browser, config, 3) as (manager, page):
         # Shift-click adds to the selection; the two scales become macro "stage"
         page.click("[data-module='scale'] .module-title")
         page.click("[data-module='scale2'] .module-title", modifiers=["Shift"])
@@ -1234,10 +1258,10 @@ def test_modules_grouped_into_a_macro_open_close_place_again_and_take_overrides(
         assert gains == [4.0, 2.0]            # the override, and the class's own
 
 
-def test_a_module_renamed_in_the_editor_keeps_its_links(tmp_path: Path) -> None:
+def test_a_module_renamed_in_the_editor_keeps_its_links(browser: Any, tmp_path: Path) -> None:
     config = tmp_path / "chain.toml"
     config.write_text(CHAIN)
-    with editor(config, 3) as (manager, page):
+    with editor(browser, config, 3) as (manager, page):
         page.click("[data-module='scale'] .module-title")
         page.click("#rename")
         page.fill("#rename-input", "amplifier")
@@ -1371,7 +1395,7 @@ class Gain(Module):
 '''
 
 
-def test_reload_code_runs_the_changed_file(tmp_path: Path) -> None:
+def test_reload_code_runs_the_changed_file(browser: Any, tmp_path: Path) -> None:
     source = tmp_path / "reloadable_gain.py"
     source.write_text(RELOADABLE.replace("FACTOR", "2"))
     config = tmp_path / "reload.toml"
@@ -1380,7 +1404,7 @@ def test_reload_code_runs_the_changed_file(tmp_path: Path) -> None:
     manager = ManagerProcess(str(config))
     try:
         manager.api("POST", "/api/document/launch", {})
-        with chromium_page() as tab:
+        with chromium_page(browser) as tab:
             page = tab.page
             page.goto(manager.url)
             page.click("[data-module='probe'] .module-title")
@@ -1443,7 +1467,7 @@ def migrates_macros(manager: ManagerProcess) -> bool:
 
 
 def test_a_folded_macro_dragged_to_another_node_moves_with_all_its_modules(
-        tmp_path: Path) -> None:
+        browser: Any, tmp_path: Path) -> None:
     config = tmp_path / "pair.toml"
     config.write_text(PAIR)
     manager = ManagerProcess(str(config))
@@ -1452,7 +1476,7 @@ def test_a_folded_macro_dragged_to_another_node_moves_with_all_its_modules(
         if not migrates_macros(manager):
             pytest.skip("this server cannot migrate a macro as a whole yet (POST "
                         "/api/modules/MACRO/migrate answers 404)")
-        with chromium_page() as tab:
+        with chromium_page(browser) as tab:
             page = tab.page
             page.goto(manager.url)
             page.wait_for_function("document.querySelectorAll('.module').length === 3",
@@ -1506,14 +1530,14 @@ def _launch_and_tune_kp(page) -> None:
 
 
 def test_a_gain_tuned_live_is_kept_in_the_document_and_shown_after_stop(
-        tmp_path: Path) -> None:
+        browser: Any, tmp_path: Path) -> None:
     """A gain tuned in the State Editor was lost at Stop: the document kept what it was
     launched with. **Keep in document** offers the settings that differ (those tuned here
     ticked; the controller's own read-outs not offered), writes them, and after Stop the
     document shows the tuned value; saved, the file has it."""
     config = tmp_path / "tuning.toml"
     config.write_text(TUNING)
-    with editor(config, 1) as (manager, page):
+    with editor(browser, config, 1) as (manager, page):
         _launch_and_tune_kp(page)
         page.click("#keep")
         page.wait_for_selector("#keep-picker [data-keep='kp']", timeout=WAIT_MS)
@@ -1578,14 +1602,14 @@ HOLD_ANSWERS = """(pattern) => {
 @pytest.mark.parametrize("late", ["^/api/modules/ctl/state$", "^/api/classes$"],
                          ids=["first-state-read", "classes-read-at-launch"])
 def test_a_field_applied_keeps_its_mark_when_an_earlier_read_answers_late(
-        tmp_path: Path, late: str) -> None:
+        browser: Any, tmp_path: Path, late: str) -> None:
     """A read the page made before a field was applied, answered after it (a machine under
     load): the module's first state read, the live feed having drawn the fields meanwhile,
     or the classes read as the launch is entered, the module clicked meanwhile. Its answer
     drew the State Editor anew: the field lost its "applied" mark (or the edit itself)."""
     config = tmp_path / "tuning.toml"
     config.write_text(TUNING)
-    with editor(config, 1) as (_manager, page):
+    with editor(browser, config, 1) as (_manager, page):
         page.evaluate(HOLD_ANSWERS, late)
         _launch_and_tune_kp(page)
         assert page.evaluate("window.pb3aHeld") >= 1       # the late answer was made
