@@ -44,14 +44,27 @@ from pb3a.transport.replication import ACK_EVERY
 pytestmark = pytest.mark.timeout(120)
 
 
-@pytest.fixture
-def daemons() -> Iterator[dict[str, Daemon]]:
-    made = Daemon.several("b", "c")
+def _started(*names: str) -> Iterator[dict[str, Daemon]]:
+    made = Daemon.several(*names)
     try:
         yield made
     finally:
         for daemon in made.values():
             daemon.stop()
+
+
+@pytest.fixture
+def daemons() -> Iterator[dict[str, Daemon]]:
+    """Node controllers b and c, each in a process of its own."""
+    yield from _started("b", "c")
+
+
+@pytest.fixture
+def node_b() -> Iterator[Daemon]:
+    """Node controller b alone, for a test that needs no other (c's, started and stopped
+    for nothing, cost each of them half a second of CPU)."""
+    for made in _started("b"):
+        yield made["b"]
 
 
 def _events(run, kind: str) -> list:
@@ -269,12 +282,12 @@ def _relayed(name: str, b: Daemon, relay_on: str, restart: str) -> System:
     return system
 
 
-def test_a_node_lost_while_a_change_holds_the_lock_long_still_fails_over(daemons,
+def test_a_node_lost_while_a_change_holds_the_lock_long_still_fails_over(node_b,
                                                                         monkeypatch) -> None:
     """The failover's wait for the configuration lock ran out (60 s by default) inside
     the watchdog's thread, which died of it: no node was ever lost, failed over or let
     back in again."""
-    b = daemons["b"]
+    b = node_b
     monkeypatch.setattr("pb3a.launch.failover.FAIL_OVER_WAIT_S", 0.2)
     with _relayed("patient", b, relay_on="b", restart="fresh").launch() as run:
         launcher = run._launcher
@@ -295,11 +308,11 @@ def test_a_node_lost_while_a_change_holds_the_lock_long_still_fails_over(daemons
 
 
 def test_a_module_put_back_by_a_move_that_its_destination_s_loss_failed_is_left_alone(
-        daemons) -> None:
+        node_b) -> None:
     """The failover read which modules were on the lost node before it took the lock,
     while the move still had the module there: once the move had put it back where it
     ran, the failover dropped it (restart never; its worker ran on) or restarted it."""
-    b = daemons["b"]
+    b = node_b
     with _relayed("put-back", b, relay_on="a", restart="never").launch() as run:
         launcher = run._launcher
         eventually(lambda: run.state("relay")["relayed"] > 20, timeout=30, what="values")
@@ -320,11 +333,11 @@ def test_a_module_put_back_by_a_move_that_its_destination_s_loss_failed_is_left_
         assert run.state("sink")["received"] > relayed
 
 
-def test_a_move_that_a_writer_s_node_loss_failed_leaves_the_rest_running(daemons) -> None:
+def test_a_move_that_a_writer_s_node_loss_failed_leaves_the_rest_running(node_b) -> None:
     """The move's undoing wired the module's links again in one go: the link from the
     lost node failed it, and the module, put back, was never started; the writer on a
     surviving node resumed after the pause only if it came first."""
-    b = daemons["b"]
+    b = node_b
     system = System("undone").node("a").node("b", address=b.address).node("c")
     system.add("alpha", Counter, node="a", period=0.01)
     system.add("beta", Counter, node="b", period=0.01)
@@ -350,12 +363,12 @@ def test_a_move_that_a_writer_s_node_loss_failed_leaves_the_rest_running(daemons
 
 
 def test_a_module_whose_node_is_lost_as_it_lands_elsewhere_lands_with_its_state(
-        daemons) -> None:
+        node_b) -> None:
     """The move from b had captured the relay when b was lost (its executor killed as the
     relay landed on a): wiring its link to its reader on b failed, and the move put it
     back on b, where it went with the node, the state it had captured with it (restart
     never: said lost; otherwise started afresh elsewhere). It lands, and runs on, on a."""
-    b = daemons["b"]
+    b = node_b
     system = System("source-lost").node("a").node("b", address=b.address)
     system.add("src", Counter, node="a", period=0.005)
     system.add("relay", Relay, node="b", restart="never")
@@ -382,12 +395,12 @@ def test_a_module_whose_node_is_lost_as_it_lands_elsewhere_lands_with_its_state(
         assert [e.subject for e in _events(run, "module_lost")] == ["sink"]
 
 
-def test_a_lost_node_shows_no_round_trip_and_its_real_silence(daemons) -> None:
+def test_a_lost_node_shows_no_round_trip_and_its_real_silence(node_b) -> None:
     """A lost node showed the last round-trip time measured, unchanged (``pb3a nodes``),
     ``silent_s`` 0.0 however long it had been silent, and its controller answering after
     it was gone: it shows no round trip ("-"; NaN, null in JSON), the seconds since its
     executor last answered, and whether its controller answers now."""
-    b = daemons["b"]
+    b = node_b
     system = System("silent").node("a").node("b", address=b.address)
     system.add("far", Collector, node="b")
     with system.launch() as run:
@@ -429,12 +442,12 @@ def test_two_nodes_lost_at_once_fail_over_to_the_node_that_lives(daemons) -> Non
 
 
 def test_a_node_that_hears_the_heartbeats_but_whose_answers_are_lost_stops_before_its_module_runs_elsewhere(  # noqa: E501
-        daemons, tmp_path: Path) -> None:
+        node_b, tmp_path: Path) -> None:
     """Its executor renewed its lease on every heartbeat it heard; the launcher, hearing
     no answer for 2 s (a saturated uplink: its answers dropped here for 4 s), failed
     its module over while the old copy stepped on for 1.2 s more. Heartbeats renew the
     lease now only while the node's answers are fresh."""
-    b, stamps = daemons["b"], tmp_path / "steps"
+    b, stamps = node_b, tmp_path / "steps"
     with _stamping_on_b("uplink", b, stamps).launch() as run:
         eventually(lambda: stamps.exists() and stamps.read_text().count("\n") > 20,
                    what="steps on b")
@@ -473,12 +486,12 @@ def _assert_one_copy_at_a_time(stamps: Path) -> None:
 
 
 @pytest.mark.parametrize("lost", ["request", "answer"])
-def test_a_slow_node_that_loses_one_heartbeat_keeps_its_lease(daemons, lost: str) -> None:
+def test_a_slow_node_that_loses_one_heartbeat_keeps_its_lease(node_b, lost: str) -> None:
     """With heartbeats renewing the lease only while the answers were fresh, a 0.3 s
     round trip and one heartbeat (or its answer) lost made the next one a mere ping, and
     the node fenced itself: declared lost, its module failed over. Two heartbeats, each
     with its own wait, keep the pace whatever befalls one."""
-    b = daemons["b"]
+    b = node_b
     system = System("slow-link").node("a").node("b", address=b.address)
     system.add("far", Counter, node="b", restart="fresh", fallback=["a"])
     with system.launch() as run:
@@ -603,12 +616,12 @@ def test_close_keeps_its_timeout_with_machines_that_do_not_answer(daemons) -> No
     assert sorted(run.unconfirmed) == ["b", "c"]   # (said "stopped cleanly" all the same)
 
 
-def test_a_stop_with_a_node_lost_does_not_wait_for_it(daemons) -> None:
+def test_a_stop_with_a_node_lost_does_not_wait_for_it(node_b) -> None:
     """A node lost for good (its machine cut off: controller and executor silent) held
     the stop of the rest for the whole of close's time, 10 s, waiting for its controller
     to kill an executor that had fenced itself. A lost node's controller is asked
     briefly; the stop is said unconfirmed for it."""
-    b = daemons["b"]
+    b = node_b
     system = System("lost-then-stopped").node("a").node("b", address=b.address)
     system.add("near", Collector, node="a")
     system.add("far", Collector, node="b")
@@ -623,12 +636,12 @@ def test_a_stop_with_a_node_lost_does_not_wait_for_it(daemons) -> None:
     assert run.unconfirmed == ["b"]
 
 
-def test_a_close_out_of_time_still_stops_a_remote_node_s_executor(daemons,
+def test_a_close_out_of_time_still_stops_a_remote_node_s_executor(node_b,
                                                                     tmp_path: Path) -> None:
     """A slow teardown spent close's time; the executor's stop then went with no time
     to wait, and a request with none was never sent: the executor ran on, and the same
     system launched again at once found node b working for the old launch."""
-    b = daemons["b"]
+    b = node_b
 
     def system() -> System:
         made = System("again").node("a").node("b", address=b.address)
@@ -644,10 +657,10 @@ def test_a_close_out_of_time_still_stops_a_remote_node_s_executor(daemons,
         assert again.where("slow") == "b"
 
 
-def test_the_watchdog_goes_on_after_a_look_that_fails(daemons, monkeypatch) -> None:
+def test_the_watchdog_goes_on_after_a_look_that_fails(node_b, monkeypatch) -> None:
     """A look that raised (another node's failover thread changed the specs while the
     loss of a node read them) ended the watchdog: no node was declared lost any more."""
-    b = daemons["b"]
+    b = node_b
     system = System("watched").node("a").node("b", address=b.address)
     system.add("far", Counter, node="b")
     with system.launch() as run:
@@ -666,11 +679,11 @@ def test_the_watchdog_goes_on_after_a_look_that_fails(daemons, monkeypatch) -> N
 
 
 def test_a_second_launch_of_a_running_configuration_is_refused_and_leaves_the_first(
-        daemons) -> None:
+        node_b) -> None:
     """The second launch, refused by node b ("already works for" the first launcher),
     stopped b's executor on its way out, the first system's: b was lost to it, its
     module gone for good."""
-    b = daemons["b"]
+    b = node_b
     system = System("twice").node("a").node("b", address=b.address)
     system.add("far", Counter, node="b")
     with system.launch() as first:
@@ -684,10 +697,10 @@ def test_a_second_launch_of_a_running_configuration_is_refused_and_leaves_the_fi
 
 
 def test_a_launch_interrupted_as_a_node_starts_its_executor_leaves_none(
-        daemons, monkeypatch) -> None:
+        node_b, monkeypatch) -> None:
     """A Ctrl-C while the launcher bound the executor it had a node start left that
     executor running, with no lease, until its controller stopped."""
-    b = daemons["b"]
+    b = node_b
     call = ControlClient.call
 
     def interrupted(self, op: str, timeout: float = 10.0, **args):
@@ -707,11 +720,11 @@ def test_a_launch_interrupted_as_a_node_starts_its_executor_leaves_none(
 
 
 def test_a_frozen_executor_s_workers_stop_before_their_modules_run_elsewhere(
-        daemons, tmp_path: Path) -> None:
+        node_b, tmp_path: Path) -> None:
     """A frozen executor (SIGSTOP) cannot fence itself: its workers stepped on beside
     their modules' failed-over copies until it ran again. Workers hold a lease of their
     own from a remote node's executor now, which lapses first."""
-    b, stamps = daemons["b"], tmp_path / "steps"
+    b, stamps = node_b, tmp_path / "steps"
     with _stamping_on_b("frozen", b, stamps).launch() as run:
         eventually(lambda: stamps.exists() and stamps.read_text().count("\n") > 20,
                    what="steps on b")
@@ -725,7 +738,7 @@ def test_a_frozen_executor_s_workers_stop_before_their_modules_run_elsewhere(
 
 
 def test_a_frozen_node_let_run_again_steps_nothing_beside_its_failed_over_copies(
-        daemons, tmp_path: Path) -> None:
+        node_b, tmp_path: Path) -> None:
     """A whole node frozen (its controller, executor and workers SIGSTOPped, as
     ``pb3a stress`` cuts a node) and let run again after its module failed over: its
     worker, let run first, stepped its module at once, beside the copy, before it
@@ -733,7 +746,7 @@ def test_a_frozen_node_let_run_again_steps_nothing_beside_its_failed_over_copies
     node was stopped, counted as a fresh one). No body runs once the lease is out; a
     grant ends when the executor's lease does; an executor frozen past its lease fences
     itself whatever heartbeats it reads then."""
-    b, stamps = daemons["b"], tmp_path / "steps"
+    b, stamps = node_b, tmp_path / "steps"
     with _stamping_on_b("thawed", b, stamps).launch() as run:
         eventually(lambda: stamps.exists() and stamps.read_text().count("\n") > 20,
                    what="steps on b")
@@ -742,12 +755,12 @@ def test_a_frozen_node_let_run_again_steps_nothing_beside_its_failed_over_copies
 
 
 def test_a_node_frozen_as_its_module_begins_to_step_steps_nothing_beside_its_copy(
-        daemons, tmp_path: Path) -> None:
+        node_b, tmp_path: Path) -> None:
     """... frozen as soon as its module stepped: its worker took the module before its
     first lease grant (up to 0.25 s later; a spare has none), so it held no lease and,
     let run again, stepped beside the copy until its executor fenced it (a step begun
     after the thaw). A worker takes a module with its executor's lease now."""
-    b, stamps = daemons["b"], tmp_path / "steps"
+    b, stamps = node_b, tmp_path / "steps"
     with _stamping_on_b("begun", b, stamps).launch() as run:
         deadline = time.monotonic() + 30
         while not (stamps.exists() and "\n" in stamps.read_text()):   # (before a grant)
@@ -774,13 +787,13 @@ def _frozen_until_the_copy_runs_on_a(b: Daemon, run, stamps: Path) -> None:
 
 
 def test_a_module_whose_setup_raises_where_it_fails_over_is_failed_not_failed_over(
-        daemons, tmp_path: Path) -> None:
+        node_b, tmp_path: Path) -> None:
     """Node b is lost; its three modules fail over to a, where one's setup raises (its
     device is not there either): that one is failed (``module_failed``, not
     ``module_failed_over``, and the env modules are not told it moved), the other two
     run there (they were left "starting", never started)."""
     unplugged = tmp_path / "unplugged"
-    b = daemons["b"]
+    b = node_b
     system = System("failover-setup").node("a").node("b", address=b.address)
     system.add("cam", OpensDevice, node="b", restart="fresh", fallback=["a"],
                state={"unplugged": str(unplugged)})
@@ -805,12 +818,12 @@ def test_a_module_whose_setup_raises_where_it_fails_over_is_failed_not_failed_ov
         assert "cam" not in [move["module"] for move in run.state("moves")["moves"]]
 
 
-def test_an_agent_that_reads_the_runtime_from_its_setup_fails_over(daemons) -> None:
+def test_an_agent_that_reads_the_runtime_from_its_setup_fails_over(node_b) -> None:
     """The failover held the configuration lock without lending it to the modules it
     starts: an agent asking the runtime from its setup (the shipped agents check the
     modules their settings name) waited for it, its start ran out of time after 10 s,
     and it was failed, not failed over."""
-    b = daemons["b"]
+    b = node_b
     system = System("asking").node("a").node("b", address=b.address)
     system.add("other", Counter, node="a", period=0.01)
     system.add("agent", AsksInSetup, node="b", restart="fresh", fallback=["a"])
@@ -825,12 +838,12 @@ def test_an_agent_that_reads_the_runtime_from_its_setup_fails_over(daemons) -> N
         assert run.where("agent") == "a" and state["asked"] >= 0
 
 
-def test_a_rejoin_that_cannot_take_the_lock_stops_the_executor_it_started(daemons) -> None:
+def test_a_rejoin_that_cannot_take_the_lock_stops_the_executor_it_started(node_b) -> None:
     """A lost node's controller answering again gets a new executor, then the launcher
     takes its lock to admit it. When the lock was not free in time, the new executor
     and the heartbeats that renewed its lease were left running for good, one pair per
     attempt. It is stopped, and the node is admitted at the next attempt."""
-    b = daemons["b"]
+    b = node_b
     system = System("rejoin-lock").node("a").node("b", address=b.address)
     system.add("tick", Counter, node="a")
     with system.launch() as run:
