@@ -559,8 +559,13 @@ def test_a_node_whose_forkserver_hangs_preloading_a_module_leaves_no_process(
     stops or after."""
     module, daemon, launching, outcome = _launch_of_a_hanging_module(tmp_path, monkeypatch)
     try:
+        preloading = time.monotonic()
         launching.join(30)
+        took = time.monotonic() - preloading
         assert len(outcome) == 1 and isinstance(outcome[0], RuntimeFailure), outcome
+        # the launch's 5 s, then the executor's stop: its spare's boot, waiting for the
+        # hung forkserver, held that stop 10 s more before the forkserver was stopped
+        assert took < 11, f"the failed launch took {took:.1f} s to end"
         assert f"importing module {module!r} here" in str(outcome[0])
         eventually(lambda: not processes_naming(module), timeout=10,
                    what="no process of node b's forkserver left once the launch failed")

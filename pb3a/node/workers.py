@@ -635,6 +635,11 @@ class WorkerPool:
         deadline = time.monotonic() + timeout
         self._stopping.set()
         if self._booting is not None:            # (it stops what it booted meanwhile)
+            if self._booting.is_alive():
+                # a boot waiting for a forkserver that has answered nothing (hung in its
+                # preload?) waits for the stop of that forkserver below: stopped first,
+                # not after this join has waited out the close's whole time for it
+                self._stop_if_preloading()
             self._booting.join(max(0.1, deadline - time.monotonic()))
         with self._spares_lock:
             spares, self._spares = self._spares, []
@@ -654,6 +659,12 @@ class WorkerPool:
         self._wake_w.close()
         # One still preloading (hung in an import?) would stay until this process
         # exits; one that has started workers, this pool's or another's, stays.
+        self._stop_if_preloading()
+
+    @staticmethod
+    def _stop_if_preloading() -> None:
+        """Stop this process's forkserver if it has answered no start yet
+        (``forkserver_owner.stop_if_preloading``), saying so."""
         stopped = forkserver_owner.stop_if_preloading()
         if stopped is not None:
             log.info("the forkserver (pid %s) had not finished its preload: stopped",
