@@ -1656,9 +1656,14 @@ def test_a_follower_live_before_it_learns_whom_to_name_is_replayed_only_what_pub
     asked for all of them again, from where it was; then that answer's next sequence
     number, ahead of them, was taken for a gap and repaired: over a slow link each went
     twice (a slow follower beside a fast one, live by the fast one's SYNC before its
-    WELCOME came, counted a duplicate in 6 of 40 loaded runs, then 2 of 40)."""
+    WELCOME came, counted a duplicate in 6 of 40 loaded runs, then 2 of 40). Its first
+    ACK reaches the sender before the frames PUB carries are written, and those are sent
+    all the same: the frames its repair fetches went over PUB before it subscribed, long
+    ago, and are not on the way to it there. Taken for on the way, they made the link
+    slow (they went more than 0.5 s before), and the frames written next were not sent
+    (counted dropped: 9 of 30 runs, in those its ACK came first)."""
     sends = _sends_per_value(monkeypatch)
-    late, answered = threading.Event(), threading.Event()
+    late, answered, heard = threading.Event(), threading.Event(), threading.Event()
     held: list[tuple[Any, list[Any]]] = []       # WELCOMEs not sent yet
     parked: dict[tuple[int, int], tuple[Any, Any]] = {}   # repairs not answered yet
     send_router, answer = Replicator._send_router, Replicator._answer
@@ -1677,6 +1682,8 @@ def test_a_follower_live_before_it_learns_whom_to_name_is_replayed_only_what_pub
             parked.setdefault((first, last), (peer, message))   # (one per span: asked
             return                                               # again, the same)
         answer(self, peer, message)
+        if message.kind == replication.ACK:
+            heard.set()                          # (the sender knows where it is)
     on_data, handle = Follower._on_data, Follower._handle
     pub_late, welcomed = threading.Event(), threading.Event()
     repairs = _repairs_asked(monkeypatch)        # what the follower asked to be repaired
@@ -1699,7 +1706,9 @@ def test_a_follower_live_before_it_learns_whom_to_name_is_replayed_only_what_pub
     monkeypatch.setattr(Replicator, "_answer", late_repair)
     monkeypatch.setattr(Follower, "_on_data", late_pub)
     monkeypatch.setattr(Follower, "_handle", handle_welcome)
-    frames = [np.full(16 * 1024, float(i)) for i in range(6)]      # 128 KiB each
+    # 80 KiB each: three fit in the flight a dropping link starts with (256 KiB), so
+    # none of those PUB carries waits for an ACK, which it sends only once they are in
+    frames = [np.full(10 * 1024, float(i)) for i in range(6)]
     replicator, inbox = Replicator(KEY), Inbox()
     follower = Follower(KEY, inbox)
     try:
@@ -1709,6 +1718,7 @@ def test_a_follower_live_before_it_learns_whom_to_name_is_replayed_only_what_pub
         _follow(follower, replicator, "camera", from_seq=0)
         assert follower.wait_ready("camera", TIMEOUT)
         follower._loop.call(pub_late.set)
+        assert heard.wait(TIMEOUT), "its first ACK did not come"
         for frame in frames[3:]:                 # (over PUB, to its live subscription)
             replicator.publish("camera", frame, timeout=TIMEOUT)
         assert held, "no WELCOME was held back"

@@ -161,7 +161,9 @@ class _Stream:
                                         # the control connection, not PUB (nor counted by
                                         # flow control and the flight)
     joined: dict[bytes, int] = field(default_factory=dict)  # peer -> the next sequence number
-                                        # at its last HELLO (what it had replayed ends there)
+                                        # at its last HELLO, or at its first ACK if heard of
+                                        # so first (what it has replayed, or repairs from
+                                        # before it was live, ends there; PUB carries on)
     resumed: dict[bytes, int] = field(default_factory=dict)  # peer -> where it went back to
                                         # PUB from a DIRECT (it counts the values before
                                         # dropped: a repair over them replays none)
@@ -182,12 +184,25 @@ class _Stream:
         live = self._live(now)
         return max(live) if live else None
 
+    def flight_lead(self, now: float) -> int | None:
+        """Where the lead follower is, for its flight (None: nobody follows): one still
+        taking in what its hand-shake replayed (or repairing what its subscription
+        missed before it knew whom to name) is where PUB began to carry values to it
+        (``joined``). The values before went over PUB long ago, before it subscribed,
+        and come to it over its control connection: their age is not its link's. Taken
+        for it, a follower that joined with more than a flight of values to take in made
+        its link slow, and the next values were not sent (see "Slow links")."""
+        direct, joined = self.direct, self.joined
+        live = [max(seq, joined.get(peer, seq)) for peer, (seq, when) in self.acks.items()
+                if now - when < FOLLOWER_TIMEOUT and peer not in direct]
+        return max(live) if live else None
+
     def over_flight(self, size: int) -> float | None:
         """When the oldest of the bytes on the way to the lead follower went, if ``size``
         more would not fit in ``flight`` beside them; None if they fit, or none follows."""
         if self.replay_bytes + size <= self.flight:
             return None                          # (no scan: all kept fits, small values)
-        lead = self.lead(time.monotonic())
+        lead = self.flight_lead(time.monotonic())
         if lead is None:
             return None
         on_way, oldest, _ = self.on_the_way(lead)
@@ -557,7 +572,7 @@ class Replicator:
             stream.clear_until = stream.credit = math.inf
         else:            # (only a new follower brings the window's end closer: see ACK)
             stream.clear_until = acked + WINDOW
-            lead = stream.lead(time.monotonic())
+            lead = stream.flight_lead(time.monotonic())
             on_way = (stream.on_the_way(lead)[0] if lead is not None
                       and stream.replay_bytes > stream.flight else stream.replay_bytes)
             stream.credit = min(WINDOW_BYTES - stream.ahead(acked),
@@ -615,7 +630,7 @@ class Replicator:
         the link keeps up: FRESH_S or more, it is slow (one message on the way at a
         time); under half of it, a slow link is not any more, and the bytes that may be
         on the way double."""
-        lead = stream.lead(now)
+        lead = stream.flight_lead(now)
         if stream.holds or lead is None or (before is not None and lead <= before):
             return
         on_way, _, went = stream.on_the_way(lead)
@@ -838,19 +853,26 @@ class Replicator:
                 raise Rejected("lost follower")
             if message.kind == ACK:
                 now = time.monotonic()
-                before = stream.lead(now)
+                before = stream.flight_lead(now)
                 direct = stream.direct.get(peer_id)
                 if first < 0:                    # unfollowed: it holds nothing back now
                     stream.drop_follower(peer_id)
                 else:
                     # (never back: an ACK sent before a RESUME came says less than it)
                     known = stream.acks.get(peer_id)
+                    if known is None and peer_id not in stream.joined:
+                        # Heard of first by an ACK: live before it knew whom to name (its
+                        # HELLO named nobody), it repairs what its subscription missed;
+                        # PUB carries to it what goes from here on (see ``flight_lead``).
+                        self._flush_locked()
+                        stream.joined[peer_id] = stream.next_seq
                     stream.acks[peer_id] = (max(first, known[0]) if known else first, now)
                     stream.hold(peer_id, first, last)
                     if direct is None:
                         if last & SERVED_DIRECT:     # its RESUME was lost on the way
                             self._resume_again(stream, peer_id, first)
-                        self._pace(stream, before, now)
+                        if known is not None:        # (one heard of first here has had
+                            self._pace(stream, before, now)   # nothing over PUB yet)
                         self._find_slow(stream, now)
                     elif last & LOSSLESS:            # (it must not drop now)
                         self._resume(stream, peer_id, now, first)
