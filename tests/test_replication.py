@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import itertools
 import os
 import pickle
 import signal
@@ -1043,9 +1044,13 @@ def test_a_repair_slower_to_cross_than_the_follower_waits_is_asked_again_ever_le
     first, so here the link carries the value three times at most. The follower asked
     every second: the value was sent five times, 17 s of the link spent on copies the
     follower then dropped (a repair of a 32 MiB replay buffer at 2 Mbit/s, 134 s to
-    cross, was sent again every second; now 8 times). The reader gets each value once."""
-    replayed, lost = [], []
-    send_router, handle = Replicator._send_router, Follower._handle
+    cross, was sent again every second; now 8 times). The reader gets each value once.
+    What is checked is the follower's schedule, each wait twice the last (the count
+    follows from it and from how long the answer took: 4.2 s of the link at its rate,
+    three sends; a proxy slowed past 7 s by the load has it asked a fourth time, on the
+    same schedule)."""
+    replayed, lost, asked = [], [], []
+    send_router, handle, ask = Replicator._send_router, Follower._handle, Follower._ask
 
     def counted(self: Replicator, peer: Any, kind: int, parts: list[Any]) -> None:
         if kind == replication.VALUE:
@@ -1057,8 +1062,14 @@ def test_a_repair_slower_to_cross_than_the_follower_waits_is_asked_again_ever_le
             lost.append(message)                 # (lost on the way: it is repaired)
             return None
         return handle(self, message, live)
+
+    def timed(self: Follower, follow: Any, kind: int, first: int, last: int) -> None:
+        if kind == replication.REPAIR:
+            asked.append(time.monotonic())
+        ask(self, follow, kind, first, last)
     monkeypatch.setattr(Replicator, "_send_router", counted)
     monkeypatch.setattr(Follower, "_handle", losing)
+    monkeypatch.setattr(Follower, "_ask", timed)
     replicator, inbox = Replicator(KEY), Inbox()
     follower = Follower(KEY, inbox)
     try:
@@ -1071,9 +1082,18 @@ def test_a_repair_slower_to_cross_than_the_follower_waits_is_asked_again_ever_le
             replicator.publish("camera", np.full(64 * 1024, 7.0), timeout=TIMEOUT)
             replicator.publish("camera", 8, timeout=TIMEOUT)     # (the gap shows)
             got = inbox.wait("camera", 2, timeout=40.0)
-            sent_again = len(replayed)
+            answered, sent_again, asks = time.monotonic(), len(replayed), list(asked)
         assert lost and got[1] == 8 and np.array_equal(got[0], np.full(64 * 1024, 7.0))
-        assert sent_again <= 3, f"the repair's value was sent {sent_again} times"
+        took = answered - asks[0]
+        what = (f"the repair's value was sent {sent_again} times, asked "
+                f"{[round(at - asks[0], 2) for at in asks]} s after the first, answered "
+                f"{took:.2f} s after it")
+        waits = [min(2 ** i * replication.REPAIR_RETRY_S, follower_module.REPAIR_RETRY_MAX_S)
+                 for i in range(len(asks) - 1)]
+        assert all(later - at > wait for (at, later), wait
+                   in zip(itertools.pairwise(asks), waits, strict=True)), what   # 1, 2, 4 ... s
+        assert sent_again <= len(asks), what     # (once per request)
+        assert sent_again <= 3 or took > sum(waits[:3]), what   # (7 s: the link was slowed)
         assert not follower.link_failures
     finally:
         follower.close()
