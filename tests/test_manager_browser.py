@@ -177,9 +177,19 @@ def for_the_picture(page: Any, ms: int) -> None:
 
 
 def box_of(page: Any, selector: str) -> dict[str, float]:
-    box = page.locator(selector).bounding_box()
-    assert box is not None, f"{selector} is not drawn"
-    return box
+    """Where the element ``selector`` is drawn (page pixels), once it is: found and
+    measured in one step in the page, as a redraw may replace it between the two (a
+    locator's ``bounding_box`` then answered None under load)."""
+    from playwright.sync_api import TimeoutError as PageTimeout
+
+    try:
+        return page.wait_for_function("""(selector) => {
+            const box = document.querySelector(selector)?.getBoundingClientRect();
+            return box && box.width > 0 && box.height > 0
+                ? {x: box.x, y: box.y, width: box.width, height: box.height} : null; }""",
+            arg=selector, timeout=WAIT_MS).json_value()
+    except PageTimeout:
+        raise AssertionError(f"{selector} is not drawn") from None
 
 
 def inside(inner: dict[str, float], outer: dict[str, float]) -> bool:
