@@ -354,7 +354,8 @@ class WorkerPool:
         try:
             first()
         except (OSError, RuntimeError, EOFError) as exc:   # (EOF: it was interrupted as
-            log.warning("the worker forkserver did not start: %s", exc)   # it started)
+            if not self._stopping.is_set():                   # it started; or the close
+                log.warning("the worker forkserver did not start: %s", exc)   # stopped it)
             return
         while not self._stopping.is_set():
             with self._spares_lock:
@@ -364,7 +365,8 @@ class WorkerPool:
             try:
                 self.spawn(handle)
             except (OSError, RuntimeError, EOFError) as exc:   # (one that arrives starts its own)
-                log.warning("no spare worker booted: %s", exc)
+                if not self._stopping.is_set():    # (the close stopped its forkserver: said)
+                    log.warning("no spare worker booted: %s", exc)
                 return
             for op, args in self.spare_requests:
                 self._submit(handle, op, None, args)     # (answered before any other)
