@@ -168,21 +168,19 @@ class _Stream:
                                         # PUB from a DIRECT (it counts the values before
                                         # dropped: a repair over them replays none)
 
-    def _live(self, now: float) -> list[int]:
-        """Where the live followers served over PUB are."""
+    def _live(self, now: float) -> dict[bytes, int]:
+        """Where each live follower served over PUB is, by its id."""
         direct = self.direct
-        return [seq for peer, (seq, when) in self.acks.items()
-                if now - when < FOLLOWER_TIMEOUT and peer not in direct]
+        return {peer: seq for peer, (seq, when) in self.acks.items()
+                if now - when < FOLLOWER_TIMEOUT and peer not in direct}
 
     def acknowledged(self, now: float) -> int | None:
         """Where the slowest live follower is (None: nobody follows)."""
-        live = self._live(now)
-        return min(live) if live else None
+        return min(self._live(now).values(), default=None)
 
     def lead(self, now: float) -> int | None:
         """Where the most advanced live follower is (None: nobody follows)."""
-        live = self._live(now)
-        return max(live) if live else None
+        return max(self._live(now).values(), default=None)
 
     def flight_lead(self, now: float) -> int | None:
         """Where the lead follower is, for its flight (None: nobody follows): one still
@@ -192,10 +190,9 @@ class _Stream:
         and come to it over its control connection: their age is not its link's. Taken
         for it, a follower that joined with more than a flight of values to take in made
         its link slow, and the next values were not sent (see "Slow links")."""
-        direct, joined = self.direct, self.joined
-        live = [max(seq, joined.get(peer, seq)) for peer, (seq, when) in self.acks.items()
-                if now - when < FOLLOWER_TIMEOUT and peer not in direct]
-        return max(live) if live else None
+        joined = self.joined
+        return max((max(seq, joined.get(peer, seq)) for peer, seq in self._live(now).items()),
+                   default=None)
 
     def over_flight(self, size: int) -> float | None:
         """When the oldest of the bytes on the way to the lead follower went, if ``size``
