@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -215,6 +216,7 @@ def test_a_robot_scenario_killed_with_its_group_leaves_no_node_controller(
                             start_new_session=True)  # (not piped: the orphans held them)
     launcher = psutil.Process(proc.pid)
     controllers: list[psutil.Process] = []
+    sockets: set[Path] = set()
 
     def node_controllers() -> list[psutil.Process]:
         found = []
@@ -229,6 +231,9 @@ def test_a_robot_scenario_killed_with_its_group_leaves_no_node_controller(
                                  what="the robots' node controllers")
         eventually(lambda: live_segments(proc.pid), timeout=60, what="the system running")
         theirs = [*controllers, *(p for c in controllers for p in c.children(recursive=True))]
+        sockets = {Path(connection.laddr).parent for child in launcher.children()
+                   if "forkserver" in " ".join(child.cmdline())
+                   for connection in child.net_connections(kind="unix") if connection.laddr}
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait(10)
         eventually(lambda: not [p.pid for p in theirs if alive(p.pid)], timeout=20,
@@ -244,6 +249,8 @@ def test_a_robot_scenario_killed_with_its_group_leaves_no_node_controller(
         for name in live_segments(proc.pid):    # (the launcher's, SIGKILLed: nobody's)
             with contextlib.suppress(OSError):
                 os.unlink(f"/dev/shm/{name}")
+        for directory in sockets:   # (its forkserver's, SIGKILLed with it: nobody's)
+            shutil.rmtree(directory, ignore_errors=True)
 
 
 _LAB_NODE_ON_A_THREAD = """

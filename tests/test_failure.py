@@ -286,23 +286,31 @@ _CRASHING_LAUNCHER = textwrap.dedent("""
     run = system.launch()
     pids = [m.pid for m in run.stats().modules.values()]
     print(" ".join(map(str, pids)), flush=True)
+    from multiprocessing import util
+    print(util.get_temp_dir(), flush=True)      # (where its forkserver's socket is)
     time.sleep(120)
 """)
 
 
-def test_no_processes_or_segments_survive_a_killed_launcher(tmp_path: Path) -> None:
+def test_no_processes_segments_or_sockets_survive_a_killed_launcher(tmp_path: Path) -> None:
+    """A launcher killed with SIGKILL cannot clean up: its workers end with it, its
+    segments are unlinked, and its forkserver removes the socket it listened on, with
+    the directory multiprocessing made for it (left in /tmp by every such kill before)."""
     script = tmp_path / "launcher.py"
     script.write_text(_CRASHING_LAUNCHER)
     proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
     try:
-        line = proc.stdout.readline()
-        pids = [int(p) for p in line.split()]
+        pids = [int(p) for p in proc.stdout.readline().split()]
         assert len(pids) == 2
+        sockets = Path(proc.stdout.readline().strip())
+        assert [entry.name for entry in sockets.iterdir() if entry.is_socket()]
         assert live_segments(proc.pid)
         proc.kill()
         proc.wait(10)
         eventually(lambda: not any(alive(p) for p in pids), timeout=15, what="workers to exit")
         eventually(lambda: not live_segments(proc.pid), timeout=15, what="segments unlinked")
+        eventually(lambda: not sockets.exists(), timeout=15,
+                   what=f"the forkserver's socket and {sockets} removed")
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -34,14 +34,21 @@ not the thread that started the forkserver, is what counts: ``PR_SET_PDEATHSIG``
 the forkserver would fire as the owner's thread that happened to start it ended, and
 in a worker only as the forkserver ended, which the workers themselves held off.)
 A worker inherits the thread's pidfd of the owner, which holds nothing open.
+
+An owner that ends normally removes the directory that holds the forkserver's socket
+(multiprocessing's ``pymp-*`` under the temporary directory) as it exits; one killed
+left both behind, a socket in /tmp for every launcher killed with SIGKILL. A
+forkserver that ends with its owner removes its socket, and the directory once empty.
 """
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import os
 import select
 import signal
+import socket
 import sys
 import threading
 import time
@@ -59,16 +66,48 @@ for _signal in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
 SWITCH_WAIT_S = 5.0
 
 
-def _preloading() -> tuple[int, list[str]] | None:
-    """The read end of the forkserver's "alive" pipe and its preload list, from the frame
-    of ``multiprocessing.forkserver.main`` importing this module; None if this process
-    is not a forkserver preloading it."""
+def _preloading() -> tuple[int, list[str], int] | None:
+    """The read end of the forkserver's "alive" pipe, its preload list and its listening
+    socket, from the frame of ``multiprocessing.forkserver.main`` importing this module;
+    None if this process is not a forkserver preloading it."""
     frame = sys._getframe(1)
     while frame is not None:
         if frame.f_code is forkserver.main.__code__:
-            return frame.f_locals["alive_r"], frame.f_locals["preload"]
+            found = frame.f_locals
+            return found["alive_r"], found["preload"], found["listener_fd"]
         frame = frame.f_back
     return None
+
+
+def _socket_path(listener_fd: int) -> str | None:
+    """The file the forkserver's socket is bound to; None for an abstract address or
+    one that cannot be read."""
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM,
+                           fileno=os.dup(listener_fd)) as listener:
+            address = listener.getsockname()
+    except OSError:
+        return None
+    return address if isinstance(address, str) and address.startswith("/") else None
+
+
+def _remove_socket(path: str | None) -> None:
+    """Remove the socket at ``path``, and its directory if that is now empty (its owner,
+    gone, cannot): what the owner's exit would have removed, and nothing else."""
+    if path is None:
+        return
+    with contextlib.suppress(OSError):
+        os.unlink(path)
+    directory = os.path.dirname(path)
+    if os.path.basename(directory).startswith("pymp-"):      # (multiprocessing's own)
+        with contextlib.suppress(OSError):
+            os.rmdir(directory)     # (fails, as it should, if anything is left in it)
+
+
+def _remove_socket_of_gone_owner(owner: int, path: str | None) -> None:
+    """``_remove_socket`` if the owner (a pidfd) has ended."""
+    if select.select([owner], [], [], 0)[0]:
+        _remove_socket(path)
 
 
 def _named_owner(preload: list[str]) -> int | None:
@@ -81,11 +120,12 @@ def _named_owner(preload: list[str]) -> int | None:
     return None
 
 
-def _end_with_owner(alive_r: int, owner: int, preloaded_r: int) -> None:
+def _end_with_owner(alive_r: int, owner: int, preloaded_r: int, path: str | None) -> None:
     """While the preload runs, end the process once its owner (``owner``, a pidfd) ends
     or ``alive_r`` reads its end (the owner closed it: no worker has been started yet
     to hold one). Once ``preloaded_r`` says the preload is done (multiprocessing's
-    loop watches the pipe from then on), end the workers when the owner ends."""
+    loop watches the pipe from then on), end the workers when the owner ends. An owner
+    that ended leaves its socket (``path``) to this process to remove."""
     poller = select.poll()
     for fd in (alive_r, owner, preloaded_r):
         poller.register(fd, select.POLLIN)
@@ -93,6 +133,8 @@ def _end_with_owner(alive_r: int, owner: int, preloaded_r: int) -> None:
         ready = {fd for fd, _ in poller.poll(1000)}
         if preloaded_r in ready:
             break
+        if owner in ready:
+            _remove_socket(path)
         if ready:
             os._exit(0)        # (the main thread is in an import that may never end)
     # From here the forkserver forks workers beside this thread: it holds no lock, and
@@ -104,6 +146,7 @@ def _end_with_owner(alive_r: int, owner: int, preloaded_r: int) -> None:
         pass
     if not events.get(owner, 0) & select.POLLIN:
         return                 # (its pidfd was closed: nothing is watched any more)
+    _remove_socket(path)       # (first: the last worker's end lets the main thread exit)
     _end_workers()
     os._exit(0)                # (nothing is left to serve: its owner is gone)
 
@@ -164,15 +207,21 @@ _watch: threading.Thread | None = None
 _switched = threading.Event()          # the watch no longer polls the preload's pipes
 if (_started := _preloading()) is not None \
         and (_owner_pid := _named_owner(_started[1])) is not None:
+    _path = _socket_path(_started[2])
     try:
         _owner_fd = os.pidfd_open(_owner_pid)
     except ProcessLookupError:
+        _remove_socket(_path)
         os._exit(0)            # (its owner is gone: nobody will ask it for a worker)
     if os.getppid() != _owner_pid:
+        _remove_socket(_path)
         os._exit(0)            # (the same: this process was handed to a reaper)
+    # multiprocessing's loop exits (SystemExit) as its pipe closes, which an owner that
+    # ended with no worker left does as the watch hears of it.
+    atexit.register(_remove_socket_of_gone_owner, _owner_fd, _path)
     _preloaded_r, _preloaded_w = os.pipe()
     _watch = threading.Thread(target=_end_with_owner,
-                              args=(_started[0], _owner_fd, _preloaded_r),
+                              args=(_started[0], _owner_fd, _preloaded_r, _path),
                               name="pb3a-forkserver-owner", daemon=True)
     _watch.start()
 
