@@ -125,6 +125,32 @@ def test_without_the_ui_extra_it_says_what_to_install(monkeypatch, capsys) -> No
     assert "pip install 'pb3a[ui]'" in capsys.readouterr().err
 
 
+def test_the_manager_reads_the_module_browser_s_catalog_as_it_starts(tmp_path: Path) -> None:
+    """An editing page waits for the catalog (``/api/classes``) to draw, and its first
+    reading takes a second or more (each file's import is tried in a child process
+    first). The manager reads it as it starts, before any page asks for it: a module file
+    beside the document is imported in the manager's own process with no request made."""
+    pytest.importorskip("uvicorn", reason="the manager needs the 'ui' extra")
+    from test_manager_browser import ManagerProcess
+
+    marks = tmp_path / "imported_by"
+    (tmp_path / "browsed_early.py").write_text(
+        "import os\nfrom pb3a import Input, Module\n\n"
+        "class Early(Module):\n    x = Input(float)\n"
+        f"    _mark = open({str(marks)!r}, 'a').write(f'{{os.getpid()}}\\n')\n")
+    (tmp_path / "lab.toml").write_text(
+        'name = "lab"\n[modules.src]\nclass = "sample_modules:FloatSource"\n')
+    manager = ManagerProcess(str(tmp_path / "lab.toml"))
+    try:
+        eventually(lambda: marks.exists() and str(manager.process.pid) in
+                   marks.read_text().split(), timeout=20,
+                   what="the manager importing the browser's files, unasked")
+        classes = [entry["class"] for entry in manager.api("GET", "/api/classes")["classes"]]
+        assert "browsed_early:Early" in classes
+    finally:
+        manager.stop()
+
+
 def test_a_module_file_that_ends_or_crashes_as_imported_does_not_end_the_manager(
         tmp_path: Path) -> None:
     """The manager imported the module browser's files and a swap's class in its own

@@ -89,6 +89,7 @@ def _serve(args: argparse.Namespace, host: str, port: int) -> int:
     shown = "127.0.0.1" if host in ("0.0.0.0", "::") else host
     shown = f"[{shown}]" if ":" in shown else shown
     print(f"PB3A manager: http://{shown}:{bound_port}/?token={access.token}", flush=True)
+    session.read_classes_ahead()    # (ready, or nearly, as the page first asks for it)
     with sigterm_interrupts():     # uvicorn stops, then raises SIGTERM again: as Ctrl-C
         serve(create_app(session, access, args.refresh), sock)
     return 0

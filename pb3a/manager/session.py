@@ -18,6 +18,7 @@ Each checks before it changes anything, so a refused request changes nothing.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import threading
 from typing import TYPE_CHECKING, Any
 
@@ -36,6 +37,8 @@ from pb3a.topology import Topology, plan_topology
 if TYPE_CHECKING:
     from pb3a.launch.handle import SystemHandle
     from pb3a.launch.running import Running
+
+log = logging.getLogger("pb3a.manager")
 
 CALL_TIMEOUT = 10.0         # seconds a call to the system may take (a migration: MOVE_TIMEOUT)
 MOVE_TIMEOUT = 30.0
@@ -201,6 +204,21 @@ class Session:
         asked too (attached to a system, they are where its code comes from)."""
         servers = self.topology().module_servers if self._handle is not None else ()
         return self.catalog.classes(servers)
+
+    def read_classes_ahead(self) -> threading.Thread:
+        """Read the catalog in the background (``pb3a manager`` does as it starts): an
+        editing page asks for it first thing, and waits for it to draw, and the imports
+        tried first in a child process take a second or more. A page that asks sooner
+        waits for this read instead of starting its own."""
+        def read() -> None:
+            try:
+                self.classes()
+            except Exception:           # (the page's own request says it, in its words)
+                log.debug("reading the module browser's catalog ahead failed", exc_info=True)
+
+        reader = threading.Thread(target=read, name="pb3a-catalog-ahead", daemon=True)
+        reader.start()
+        return reader
 
     def stats(self, timeout: float | None = None) -> dict[str, Any]:
         """``GET /api/stats``; within ``timeout`` (default: the session's), a module whose
