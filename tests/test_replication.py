@@ -31,6 +31,7 @@ from pb3a.transport.auth import ClusterKey, Opener, Sealer
 from pb3a.transport.replication import Follower, Replicator, follower_id, wire
 from pb3a.transport.replication import follower as follower_module
 from pb3a.transport.replication import replicator as replicator_module
+from pb3a.transport.replication import stream as stream_module
 from pb3a.transport.replication.wire import WINDOW
 from pb3a.worker.publications import Publications
 
@@ -71,6 +72,17 @@ def link():
     yield replicator, follower, inbox
     follower.close()
     replicator.close()
+
+
+def _tune(monkeypatch: pytest.MonkeyPatch, **numbers: Any) -> None:
+    """Set the sending side's protocol ``numbers`` (``WINDOW=16``) for the test, in each
+    of its modules that reads them (the replicator, its streams)."""
+    for name, value in numbers.items():
+        readers = [module for module in (replicator_module, stream_module)
+                   if hasattr(module, name)]
+        assert readers, f"no module of the sending side reads {name}"
+        for module in readers:
+            monkeypatch.setattr(module, name, value)
 
 
 def _follow(follower: Follower, replicator: Replicator, topic: str, **kwargs: Any) -> None:
@@ -136,7 +148,7 @@ def test_values_the_subscriber_missed_are_repaired_from_the_replay_buffer(link,
 def test_values_gone_from_the_replay_buffer_are_counted_as_link_failures(link,
                                                                          monkeypatch) -> None:
     replicator, follower, inbox = link
-    monkeypatch.setattr(replicator_module, "REPLAY_VALUES", 10)
+    _tune(monkeypatch, REPLAY_VALUES=10)
     replicator.add("t")
     for i in range(100):                      # only the last 10 stay replayable
         replicator.publish("t", i)
@@ -151,7 +163,7 @@ def test_values_gone_from_the_replay_buffer_are_counted_as_link_failures(link,
 def test_a_value_larger_than_the_replay_buffer_is_repaired_as_it_was_written(
         link, monkeypatch) -> None:
     replicator, follower, inbox = link
-    monkeypatch.setattr(replicator_module, "REPLAY_BYTES", 1 << 20)
+    _tune(monkeypatch, REPLAY_BYTES=1 << 20)
     replicator.add("t")
     _follow(follower, replicator, "t", from_seq=0)
     assert follower.wait_ready("t", TIMEOUT)
@@ -173,11 +185,11 @@ def test_a_value_larger_than_the_replay_buffer_is_repaired_as_it_was_written(
 
 def test_a_publisher_more_than_its_window_of_bytes_ahead_waits_for_the_follower(
         monkeypatch) -> None:
-    monkeypatch.setattr(replicator_module, "WINDOW_BYTES", 1 << 20)
-    monkeypatch.setattr(replicator_module, "WINDOW_WAIT", 0.05)
+    _tune(monkeypatch, WINDOW_BYTES=1 << 20)
+    _tune(monkeypatch, WINDOW_WAIT=0.05)
     # (a follower silent this long is a slow link, to which what does not fit is not
     # sent: that is test_a_writer_faster_than_its_link_sends_fresh_values...)
-    monkeypatch.setattr(replicator_module, "FRESH_S", 30.0)
+    _tune(monkeypatch, FRESH_S=30.0)
     gate, inbox = threading.Event(), Inbox()
 
     def slow(topic: str, values: list[Any], sent_at: float) -> None:
@@ -519,7 +531,7 @@ def test_values_lost_at_the_end_of_a_burst_are_found_by_the_heartbeat(link,
 def test_a_follower_that_went_silent_holds_the_publisher_back_only_briefly(
         link, monkeypatch) -> None:
     replicator, follower, _ = link
-    monkeypatch.setattr(replicator_module, "FOLLOWER_TIMEOUT", 0.5)
+    _tune(monkeypatch, FOLLOWER_TIMEOUT=0.5)
     replicator.add("t")
     _follow(follower, replicator, "t", from_seq=0)
     assert follower.wait_ready("t", TIMEOUT)
@@ -576,7 +588,7 @@ def test_a_lost_node_s_follower_is_counted_by_its_own_acknowledgement_then_forgo
     (the least advanced follower's was counted). A lost node's follower, forgotten, holds
     nothing back even if it still talks (its node cut off, not dead); the node admitted
     again (epoch 2) follows anew."""
-    monkeypatch.setattr(replicator_module, "WINDOW", 16)
+    _tune(monkeypatch, WINDOW=16)
     replicator, dam = Replicator(KEY), Dam()
     replicator.add("t")
     followers = {node: Follower(KEY, dam if node == "b" else Inbox(),
@@ -673,7 +685,7 @@ def dammed():
 def test_a_lossless_follower_holds_the_publisher_back_until_its_receiver_takes_values(
         dammed, monkeypatch) -> None:
     replicator, follower, dam = dammed
-    monkeypatch.setattr(replicator_module, "WINDOW", 16)
+    _tune(monkeypatch, WINDOW=16)
     for i in range(16):
         replicator.publish("t", i, timeout=5.0)
     started = time.monotonic()
@@ -694,7 +706,7 @@ def test_a_lossless_follower_holds_the_publisher_back_until_its_receiver_takes_v
 def test_the_sink_raises_what_its_stuck_makes_when_a_lossless_follower_leaves_no_room(
         dammed, monkeypatch) -> None:
     replicator, follower, dam = dammed
-    monkeypatch.setattr(replicator_module, "WINDOW", 16)
+    _tune(monkeypatch, WINDOW=16)
 
     class Stuck(Exception):
         pass
@@ -712,7 +724,7 @@ def test_the_sink_raises_what_its_stuck_makes_when_a_lossless_follower_leaves_no
 def test_values_a_lossless_follower_has_not_acknowledged_stay_in_the_replay_buffer(
         dammed, monkeypatch) -> None:
     replicator, follower, dam = dammed
-    monkeypatch.setattr(replicator_module, "REPLAY_VALUES", 10)
+    _tune(monkeypatch, REPLAY_VALUES=10)
     for i in range(10):
         replicator.publish("t", i, timeout=5.0)
     with pytest.raises(RuntimeTimeout):                       # it would push out value 0
@@ -727,7 +739,7 @@ def test_values_a_lossless_follower_has_not_acknowledged_stay_in_the_replay_buff
 def test_a_lossless_link_carries_values_larger_than_the_replay_buffer(
         dammed, monkeypatch) -> None:
     replicator, follower, dam = dammed
-    monkeypatch.setattr(replicator_module, "REPLAY_BYTES", 1 << 20)
+    _tune(monkeypatch, REPLAY_BYTES=1 << 20)
     dam.open(follower, "t")
     image = np.arange(1 << 18, dtype=np.float64)          # 2 MiB
     replicator.publish("t", image, timeout=5.0)           # into the empty buffer
@@ -740,7 +752,7 @@ def test_a_lossless_link_carries_values_larger_than_the_replay_buffer(
 def test_a_lossless_follower_stops_holding_the_publisher_when_it_goes(
         dammed, monkeypatch) -> None:
     replicator, follower, _ = dammed
-    monkeypatch.setattr(replicator_module, "WINDOW", 16)
+    _tune(monkeypatch, WINDOW=16)
     for i in range(16):
         replicator.publish("t", i, timeout=5.0)
     follower.unfollow("t")                                    # says so: at once
@@ -754,7 +766,7 @@ def test_a_lossless_follower_stops_holding_the_publisher_when_it_goes(
 def test_a_lossless_follower_that_went_silent_holds_the_publisher_until_released(
         dammed, monkeypatch) -> None:
     replicator, follower, _ = dammed
-    monkeypatch.setattr(replicator_module, "WINDOW", 16)
+    _tune(monkeypatch, WINDOW=16)
     for i in range(16):
         replicator.publish("t", i, timeout=5.0)
     follower.close()                                          # gone without a word
@@ -916,8 +928,8 @@ def test_nothing_piles_up_for_a_frozen_follower_and_it_recovers(monkeypatch) -> 
     gets what comes next, the values no longer kept counted lost."""
     monkeypatch.setattr(wire, "PEER_PING_MS", 200)
     monkeypatch.setattr(wire, "PEER_TIMEOUT_MS", 1000)
-    monkeypatch.setattr(replicator_module, "FOLLOWER_TIMEOUT", 0.5)   # (not paced meanwhile)
-    monkeypatch.setattr(replicator_module, "REPLAY_BYTES", 4 << 20)
+    _tune(monkeypatch, FOLLOWER_TIMEOUT=0.5)   # (not paced meanwhile)
+    _tune(monkeypatch, REPLAY_BYTES=4 << 20)
     replicator = Replicator(KEY)
     replicator.add("t")
     monitor = replicator._pub.get_monitor_socket(zmq.EVENT_DISCONNECTED)
@@ -1308,7 +1320,7 @@ def test_a_follower_served_on_its_own_that_went_silent_is_served_again_once_back
     on its own (a RESUME sent to a cut link may be lost, and it would wait for nothing).
     ``cut``: silent longer than the peer timeout too, so the sender closes its control
     connection (the frame on its way is lost) and the follower reconnects."""
-    monkeypatch.setattr(replicator_module, "FOLLOWER_TIMEOUT", 1.0)
+    _tune(monkeypatch, FOLLOWER_TIMEOUT=1.0)
     if cut:
         monkeypatch.setattr(wire, "PEER_PING_MS", 200)
         monkeypatch.setattr(wire, "PEER_TIMEOUT_MS", 1000)
@@ -1387,7 +1399,7 @@ def test_a_follower_served_on_its_own_goes_back_to_pub_once_no_faster_one_follow
     PUB, every frame went to PUB for nobody and was kept (up to the replay buffer's 32
     MiB). Every frame arrives or is counted dropped, in order, once; and a fast follower
     that comes back has it served on its own again."""
-    monkeypatch.setattr(replicator_module, "FOLLOWER_TIMEOUT", 1.0)
+    _tune(monkeypatch, FOLLOWER_TIMEOUT=1.0)
     with _fast_and_slow(fast_identity=follower_id("c", 1)) as (
             replicator, camera, fast, slow, slow_inbox), Throttle(2e6) as radio:
         _slow_beside_fast(replicator, camera, fast, slow, radio)

@@ -1,8 +1,8 @@
 """The sending side of remote links (see the package's docstring): ``Replicator``
 publishes the outputs of one process and answers hand-shakes and repairs; each output
-it publishes is a ``_Stream`` (its batch being filled, its replay buffer of ``_Sent``
-messages, its followers' acknowledgements, flow control, the flight, and the followers
-served on their own, ``_Direct``)."""
+it publishes is a ``Stream`` (``pb3a.transport.replication.stream``: its batch being
+filled, its replay buffer, its followers' acknowledgements, flow control, the flight,
+and the followers served on their own)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,7 @@ import pickle
 import secrets
 import threading
 import time
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, Any
 
 import zmq
 
@@ -23,6 +22,7 @@ from pb3a.transport.addresses import bind_advertised
 from pb3a.transport.auth import PAYLOAD_TAG, ClusterKey, Opener, Payloads, Rejected, Sealer
 from pb3a.transport.heap import keep_freed_buffers
 from pb3a.transport.loop import SocketLoop
+from pb3a.transport.replication.stream import Direct, Sent, Stream
 from pb3a.transport.replication.wire import (
     ACK,
     ANSWER,
@@ -44,14 +44,11 @@ from pb3a.transport.replication.wire import (
     NOBODY,
     PLAIN,
     REPAIR,
-    REPLAY_BYTES,
-    REPLAY_VALUES,
     REPLAYED,
     RESUME,
     SCALAR_BYTES,
     SCALARS,
     SERVED_DIRECT,
-    SKIP_RUNS,
     SKIPPED,
     SYNC,
     VALUE,
@@ -78,232 +75,6 @@ if TYPE_CHECKING:
 log = logging.getLogger("pb3a.replication")
 
 
-class _Sent(NamedTuple):
-    """A message of one topic's values, as sent, kept for repairs: those from ``first``
-    (the older ones were pushed out of the replay buffer) to ``end - 1``."""
-
-    first: int
-    end: int
-    kind: int                           # VALUE or VALUES (SKIPPED: a notice, never kept)
-    parts: list[Any]
-    nbytes: int
-    at: float = 0.0                     # when it went (monotonic): see "Slow links"
-
-    def replayable(self) -> list[Any]:
-        """The message of the values it still holds: the one sent, or one without the
-        values pushed out (re-encoded: only repairs of a full buffer pay for it)."""
-        if self.kind != VALUES:
-            return self.parts
-        header, kinds, body = self.parts
-        incarnation, first, count, sent_at = BATCH.unpack(header)
-        gone = self.first - first
-        if not gone:
-            return self.parts
-        return [BATCH.pack(incarnation, self.first, count - gone, sent_at), kinds[gone:],
-                pickle.dumps(pickle.loads(body)[gone:], protocol=5)]
-
-
-@dataclass
-class _Direct:
-    """A slow follower of a topic that has (or had) a fast one too, served over the
-    control connection (see "Slow followers"): one message on the way to it at a time."""
-
-    start: int                          # the first value it gets here (the older ones went
-                                        # over PUB, or it counts them dropped)
-    sent: int                           # values before this one were sent to it or announced
-                                        # not sent (SKIPPED)
-    went: float = 0.0                   # when the last message to it went (monotonic)
-    told: bool = False                  # an ACK of it says it is served so (SERVED_DIRECT,
-                                        # from start on): nothing is sent to it here before
-                                        # (its DIRECT lost, it still takes values over PUB)
-    latest: _Sent | None = None         # the newest message not sent to it yet
-    skips: collections.deque[tuple[int, int]] = field(
-        default_factory=lambda: collections.deque(maxlen=SKIP_RUNS))   # (first, end) not sent
-
-    def idle(self, acked: int) -> bool:
-        """Whether nothing sent to it is on the way, it having acknowledged ``acked``."""
-        return acked >= self.sent
-
-
-@dataclass
-class _Stream:
-    """One published output: its next sequence number, the values published but not
-    sent yet (one batch), and its replay buffer."""
-
-    name: bytes                         # the topic on the wire
-    next_seq: int = 0
-    pending: list[Any] = field(default_factory=list)    # entries of the batch being filled
-    kinds: bytearray | None = None      # ... their codec kinds, once one is not PLAIN
-    pending_at: float = 0.0             # ... when the first of them was written (unix)
-    pending_bytes: int = 0
-    replay: collections.deque[_Sent] = field(default_factory=collections.deque)
-    replay_bytes: int = 0
-    clear_until: float = 0              # values before this one need no flow-control check ...
-    credit: float = 0                   # ... while they take fewer bytes than this
-    acks: dict[bytes, tuple[int, float]] = field(default_factory=dict)  # peer -> (seq, when)
-    holds: dict[bytes, int] = field(default_factory=dict)   # lossless followers: peer -> seq
-    gone: dict[bytes, int] = field(default_factory=dict)    # lost nodes' followers: peer -> the
-                                                            # seq they had acknowledged (kept:
-                                                            # a rejoined node has another id)
-    room: RingSize | None = None        # the readers' rings: what a value must fit
-    waits: int = 0                      # values whose publish waited (or waits) for followers
-    wait_s: float = 0.0                 # ... and the seconds those that ended waited
-    # a dropping link slower than its writer (see "Slow links" in the package's docstring)
-    flight: int = FLIGHT_START          # bytes that may be on the way to the lead follower
-    slow: bool = False                  # it is slower than the writer: what does not fit
-                                        # is not sent, without waiting
-    skip_from: int = -1                 # the first of the values not sent since the last
-                                        # message that went (-1: none)
-    skips: collections.deque[tuple[int, int]] = field(
-        default_factory=lambda: collections.deque(maxlen=SKIP_RUNS))   # (first, end) not sent
-    dropped: int = 0                    # values not sent, in all
-    direct: dict[bytes, _Direct] = field(default_factory=dict)   # slow followers served over
-                                        # the control connection, not PUB (nor counted by
-                                        # flow control and the flight)
-    joined: dict[bytes, int] = field(default_factory=dict)  # peer -> the next sequence number
-                                        # at its last HELLO, or at its first ACK if heard of
-                                        # so first (what it has replayed, or repairs from
-                                        # before it was live, ends there; PUB carries on)
-    resumed: dict[bytes, int] = field(default_factory=dict)  # peer -> where it went back to
-                                        # PUB from a DIRECT (it counts the values before
-                                        # dropped: a repair over them replays none)
-
-    def _live(self, now: float) -> dict[bytes, int]:
-        """Where each live follower served over PUB is, by its id."""
-        direct = self.direct
-        return {peer: seq for peer, (seq, when) in self.acks.items()
-                if now - when < FOLLOWER_TIMEOUT and peer not in direct}
-
-    def acknowledged(self, now: float) -> int | None:
-        """Where the slowest live follower is (None: nobody follows)."""
-        return min(self._live(now).values(), default=None)
-
-    def lead(self, now: float) -> int | None:
-        """Where the most advanced live follower is (None: nobody follows)."""
-        return max(self._live(now).values(), default=None)
-
-    def flight_lead(self, now: float) -> int | None:
-        """Where the lead follower is, for its flight (None: nobody follows): one still
-        taking in what its hand-shake replayed (or repairing what its subscription
-        missed before it knew whom to name) is where PUB began to carry values to it
-        (``joined``). The values before went over PUB long ago, before it subscribed,
-        and come to it over its control connection: their age is not its link's. Taken
-        for it, a follower that joined with more than a flight of values to take in made
-        its link slow, and the next values were not sent (see "Slow links")."""
-        joined = self.joined
-        return max((max(seq, joined.get(peer, seq)) for peer, seq in self._live(now).items()),
-                   default=None)
-
-    def over_flight(self, size: int) -> float | None:
-        """When the oldest of the bytes on the way to the lead follower went, if ``size``
-        more would not fit in ``flight`` beside them; None if they fit, or none follows."""
-        if self.replay_bytes + size <= self.flight:
-            return None                          # (no scan: all kept fits, small values)
-        lead = self.flight_lead(time.monotonic())
-        if lead is None:
-            return None
-        on_way, oldest, _ = self.on_the_way(lead)
-        return oldest if on_way and on_way + size > self.flight else None
-
-    def on_the_way(self, acked: int) -> tuple[int, float, float]:
-        """Bytes of the messages sent from sequence number ``acked`` on, when the oldest
-        of them went (inf: none), and when the newest message before them went."""
-        total, oldest = 0, math.inf
-        for sent in reversed(self.replay):
-            if sent.end <= acked:
-                return total, oldest, sent.at
-            total += sent.nbytes
-            oldest = sent.at
-        return total, oldest, -math.inf
-
-    def skip(self, first: int, end: int) -> None:
-        """Values ``first..end - 1`` are not sent (lock held)."""
-        if self.skip_from < 0:
-            self.skip_from = first
-        self.dropped += end - first
-
-    def ahead(self, acked: int) -> int:
-        """Bytes of the values from sequence number ``acked`` on (whole messages)."""
-        total = self.pending_bytes
-        for sent in reversed(self.replay):
-            if sent.end <= acked:
-                break
-            total += sent.nbytes
-        return total
-
-    def fits(self, acked: int, size: int) -> bool:
-        """Whether one more value of ``size`` bytes stays within ``WINDOW_BYTES`` of a
-        follower at ``acked`` (a larger one goes when nothing is ahead of it)."""
-        ahead = self.ahead(acked)
-        return not ahead or ahead + size <= WINDOW_BYTES
-
-    def kept(self) -> int:
-        """Values in the replay buffer and the batch being filled (all consecutive)."""
-        oldest = self.replay[0].first if self.replay else self.next_seq - len(self.pending)
-        return self.next_seq - oldest
-
-    def held(self) -> int | None:
-        """Where the slowest lossless follower is, live or not (None: there is none)."""
-        return min(self.holds.values()) if self.holds else None
-
-    def room_for(self, size: int) -> bool:
-        """Whether one more value of ``size`` bytes may go without running ``WINDOW``
-        values ahead of a lossless follower, or pushing out of the replay buffer a value
-        one has not acknowledged (into an empty buffer, a value of any size may go)."""
-        held = self.held()
-        if held is None:
-            return True
-        if self.next_seq - held >= WINDOW:
-            return False
-        full = (self.kept() >= REPLAY_VALUES
-                or self.replay_bytes + self.pending_bytes + size > REPLAY_BYTES)
-        oldest = self.replay[0].first if self.replay else self.next_seq - len(self.pending)
-        return not (full and self.kept() and oldest >= held)
-
-    def drop_follower(self, peer: bytes) -> tuple[int, float] | None:
-        """Forget follower ``peer`` (it unfollowed, or went with its lost node): it holds
-        nothing back, nor is it served on its own; its last acknowledgement, if any."""
-        self.holds.pop(peer, None)
-        self.direct.pop(peer, None)
-        self.joined.pop(peer, None)
-        self.resumed.pop(peer, None)
-        return self.acks.pop(peer, None)
-
-    def hold(self, peer: bytes, seq: int, flags: int) -> None:
-        """A follower said how far it is and whether it is lossless."""
-        if flags & LOSSLESS:
-            self.holds[peer] = seq
-        else:
-            self.holds.pop(peer, None)
-
-    def keep(self, sent: _Sent) -> None:
-        """Put a message in the replay buffer; push out the oldest values while it holds
-        too many values, or too many bytes (whole messages, but not the newest: a value
-        larger than the bound stays replayable until the next one goes), and never what
-        a lossless follower has not acknowledged."""
-        replay = self.replay
-        replay.append(sent)
-        self.replay_bytes += sent.nbytes
-        held = self.held()
-        while replay:
-            oldest = replay[0]
-            if self.replay_bytes > REPLAY_BYTES and len(replay) > 1:
-                cut = oldest.end                 # too many bytes: whole messages
-            elif (kept := self.kept()) > REPLAY_VALUES:
-                cut = min(oldest.end, oldest.first + kept - REPLAY_VALUES)
-            else:
-                break
-            if held is not None:
-                cut = min(cut, held)
-            if cut <= oldest.first:
-                break                            # a lossless follower still needs it
-            if cut < oldest.end:
-                replay[0] = oldest._replace(first=cut)
-            else:
-                replay.popleft()
-                self.replay_bytes -= oldest.nbytes
-
-
 class Replicator:
     """Publishes the outputs of one process (PUB) and answers hand-shakes and repairs
     (ROUTER) on its own thread. ``publish`` and ``offer`` may be called from any thread."""
@@ -327,13 +98,13 @@ class Replicator:
         self._router_sealer = Sealer(key, epoch)
         self._payloads = Payloads(key, self.incarnation)
         self._opener = Opener(key, epoch=epoch, max_bytes=max_bytes)
-        self._streams: dict[bytes, _Stream] = {}      # by name (bytes) ...
-        self._topics: dict[str, _Stream] = {}         # ... and by topic
+        self._streams: dict[bytes, Stream] = {}      # by name (bytes) ...
+        self._topics: dict[str, Stream] = {}         # ... and by topic
         # the PUB socket (used by the loop's thread and, for large values, by the
         # publishing thread: never both at once), the streams, the outbox
         self._lock = threading.Lock()
         self._acked = threading.Condition(self._lock)
-        self._outbox: list[tuple[bytes, _Sent]] = []     # ready, not sent yet
+        self._outbox: list[tuple[bytes, Sent]] = []     # ready, not sent yet
         self._filling: set[bytes] = set()                # topics with a batch being filled
         self._flush_due = False                          # a flush is queued on the loop
         self._loop = SocketLoop("pb3a-replicator", self._context)
@@ -350,7 +121,7 @@ class Replicator:
         the rings its readers take values into (a value that fits none is refused)."""
         with self._lock:
             if topic not in self._topics:
-                stream = _Stream(topic_bytes(topic), next_seq, room=room)
+                stream = Stream(topic_bytes(topic), next_seq, room=room)
                 self._streams[stream.name] = self._topics[topic] = stream
 
     def sequence(self, topic: str) -> int:
@@ -485,7 +256,7 @@ class Replicator:
                 self._loop.submit(self._flush)
         return went
 
-    def _add(self, stream: _Stream, kind: int, entry: Any, size: int) -> None:
+    def _add(self, stream: Stream, kind: int, entry: Any, size: int) -> None:
         """Publish one value (lock held): into the batch being filled, or, if large, as
         a message of its own. A large one's number is taken once the batch before it
         is closed (which numbers its values back from ``next_seq``) and once it is
@@ -504,7 +275,7 @@ class Replicator:
             info = INFO.pack(self.incarnation, seq, time.time(), -kind, nonce,
                               sealed[-PAYLOAD_TAG:].tobytes())
             # one frame for every send (repairs too): ZeroMQ shares it by reference
-            self._send_soon(stream, _Sent(seq, seq + 1, VALUE,
+            self._send_soon(stream, Sent(seq, seq + 1, VALUE,
                                           [info, meta, zmq.Frame(sealed, copy=False)], size,
                                           time.monotonic()))
             return
@@ -520,7 +291,7 @@ class Replicator:
             stream.kinds.append(kind)
         stream.pending_bytes += size
 
-    def _admit(self, stream: _Stream, size: int, deadline: float) -> bool:
+    def _admit(self, stream: Stream, size: int, deadline: float) -> bool:
         """Flow control for the next value (lock held, released while waiting): False if
         a lossless follower left no room by ``deadline``. Sets how far values may go
         from here on without asking again."""
@@ -576,7 +347,7 @@ class Replicator:
                                 stream.flight - on_way - stream.pending_bytes)
         return True
 
-    def _close_batch(self, stream: _Stream) -> None:
+    def _close_batch(self, stream: Stream) -> None:
         """The values being gathered become one message, ready to send (lock held)."""
         pending = stream.pending
         if not pending:
@@ -589,7 +360,7 @@ class Replicator:
             kinds = bytes(stream.kinds) if stream.kinds is not None else b""
             parts = [BATCH.pack(self.incarnation, first, len(pending), stream.pending_at),
                      kinds, pickle.dumps(pending, protocol=5)]
-            sent = _Sent(first, stream.next_seq, VALUES, parts, stream.pending_bytes,
+            sent = Sent(first, stream.next_seq, VALUES, parts, stream.pending_bytes,
                          time.monotonic())
         pending.clear()                          # (the same list: offer holds it)
         stream.kinds, stream.pending_bytes = None, 0
@@ -597,7 +368,7 @@ class Replicator:
         if sent is not None:
             self._send_soon(stream, sent)
 
-    def _send_soon(self, stream: _Stream, sent: _Sent) -> None:
+    def _send_soon(self, stream: Stream, sent: Sent) -> None:
         """Keep a message for repairs and put it in the outbox (lock held), after the
         notice of the values not sent before it, if any: its followers count them
         dropped, and do not ask for them."""
@@ -605,12 +376,12 @@ class Replicator:
             first, count = stream.skip_from, sent.first - stream.skip_from
             stream.skips.append((first, sent.first))
             notice = ANSWER.pack(self.incarnation, first, count)
-            self._outbox.append((stream.name, _Sent(first, sent.first, SKIPPED, [notice], 0)))
+            self._outbox.append((stream.name, Sent(first, sent.first, SKIPPED, [notice], 0)))
             stream.skip_from = -1
         stream.keep(sent)
         self._outbox.append((stream.name, sent))
 
-    def _too_slow(self, stream: _Stream, size: int) -> bool:
+    def _too_slow(self, stream: Stream, size: int) -> bool:
         """Whether a message of ``size`` bytes must not go (lock held): no lossless
         follower, the lead follower has more than ``flight`` bytes on the way, and it is
         slow (it became so if the oldest of them went ``FRESH_S`` ago)."""
@@ -621,7 +392,7 @@ class Replicator:
             stream.slow, stream.flight = True, 0
         return stream.slow
 
-    def _pace(self, stream: _Stream, before: int | None, now: float) -> None:
+    def _pace(self, stream: Stream, before: int | None, now: float) -> None:
         """An acknowledgement came (lock held): if it moves the lead follower on, the
         age of the newest message it acknowledges (from when it went) says whether
         the link keeps up: FRESH_S or more, it is slow (one message on the way at a
@@ -641,7 +412,7 @@ class Replicator:
             stream.flight = min(WINDOW_BYTES, max(FLIGHT_START, 2 * stream.flight))
 
     # -- slow followers beside fast ones (see "Slow followers") ---------------------
-    def _find_slow(self, stream: _Stream, now: float) -> None:
+    def _find_slow(self, stream: Stream, now: float) -> None:
         """Serve over the control connection each live dropping follower served over PUB
         that is behind another one and whose oldest message on the way went ``FRESH_S``
         ago, once it has taken in what its hand-shake replayed (a reader that moved
@@ -656,14 +427,14 @@ class Replicator:
             if now - stream.on_the_way(acked)[1] >= FRESH_S:
                 self._go_direct(stream, peer)
 
-    def _go_direct(self, stream: _Stream, peer: bytes) -> None:
+    def _go_direct(self, stream: Stream, peer: bytes) -> None:
         """From the next value on, send ``peer`` the values of ``stream`` over the control
         connection, one message on the way at a time; it stops taking them over PUB
         (DIRECT: it closes its SUB connection, which frees what PUB still queues for
         it) and counts those it misses before then dropped (lock held, loop thread)."""
         self._flush_locked()                     # (what was published went over PUB)
         start = stream.next_seq
-        stream.direct[peer] = _Direct(start, start, time.monotonic())
+        stream.direct[peer] = Direct(start, start, time.monotonic())
         stream.resumed.pop(peer, None)           # (its start says it now)
         self._send_router(peer, DIRECT, [stream.name, ANSWER.pack(self.incarnation, start,
                                                                    start)])
@@ -672,7 +443,7 @@ class Replicator:
         log.info("remote link %s: a follower too slow beside a faster one is served on its "
                  "own from value %d", topic_text(stream.name), start)
 
-    def _resume(self, stream: _Stream, peer: bytes, now: float, start: int | None = None) -> None:
+    def _resume(self, stream: Stream, peer: bytes, now: float, start: int | None = None) -> None:
         """A follower served on its own keeps up again: back to PUB from ``start`` (None:
         the next value; the values before it are not sent to it, and it counts them
         dropped), with RESUME (lock held, on the loop's thread). A follower that became
@@ -691,7 +462,7 @@ class Replicator:
         self._send_router(peer, RESUME, [stream.name, ANSWER.pack(self.incarnation, start, 0)])
         stream.clear_until = 0
 
-    def _resume_again(self, stream: _Stream, peer: bytes, acked: int) -> None:
+    def _resume_again(self, stream: Stream, peer: bytes, acked: int) -> None:
         """A follower served over PUB says it is served on its own: the RESUME sent to
         it was lost on the way (a ROUTER drops what it sends to a peer whose connection
         is down), and it waits on its control connection, its SUB connection closed,
@@ -701,7 +472,7 @@ class Replicator:
         start = stream.resumed.get(peer, acked)
         self._send_router(peer, RESUME, [stream.name, ANSWER.pack(self.incarnation, start, 0)])
 
-    def _resume_alone(self, stream: _Stream, now: float) -> None:
+    def _resume_alone(self, stream: Stream, now: float) -> None:
         """No live follower is served over PUB any more (the fast one unfollowed, was
         forgotten with its lost node, or has been silent for ``FOLLOWER_TIMEOUT``): the
         most advanced live follower served on its own goes back to PUB, where it leads
@@ -726,7 +497,7 @@ class Replicator:
         log.info("remote link %s: a follower served on its own is the only one now: back "
                  "on PUB from value %d", topic_text(stream.name), stream.next_seq)
 
-    def _serve_direct(self, stream: _Stream) -> None:
+    def _serve_direct(self, stream: Stream) -> None:
         """Send each follower served on its own the newest message it has not had, if
         nothing sent to it is on the way; the values before it that it did not get are
         announced (SKIPPED) (lock held, on the loop's thread). Only once an ACK says it
@@ -822,7 +593,7 @@ class Replicator:
                     self._send_router(peer, DIRECT, [name, ANSWER.pack(
                         self.incarnation, direct.start, direct.sent)])
 
-    def _sync(self, stream: _Stream) -> bytes:
+    def _sync(self, stream: Stream) -> bytes:
         """A SYNC's body: the next sequence number, and how many values before it were
         not sent (a follower counts them dropped; it does not ask for them)."""
         skipped = stream.next_seq - stream.skip_from if stream.skip_from >= 0 else 0
@@ -875,7 +646,7 @@ class Replicator:
                         self._resume(stream, peer_id, now, first)
                     else:
                         if last & SERVED_DIRECT and first >= direct.start:
-                            direct.told = True       # it took the DIRECT in: see _Direct
+                            direct.told = True       # it took the DIRECT in: see Direct
                         if direct.sent > direct.start and first >= direct.sent \
                                 and now - direct.went < FRESH_S / 2:
                             self._resume(stream, peer_id, now)   # a lone message, in time
@@ -911,7 +682,7 @@ class Replicator:
                 self._flush_locked()
                 self._replay(peer, name, stream, first, last)
 
-    def _replay(self, peer: Any, name: bytes, stream: _Stream, first: int, last: int) -> None:
+    def _replay(self, peer: Any, name: bytes, stream: Stream, first: int, last: int) -> None:
         """The messages holding values ``first..last`` from the buffer, then how many of
         those values are gone."""
         oldest = stream.replay[0].first if stream.replay else stream.next_seq
