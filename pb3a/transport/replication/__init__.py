@@ -64,8 +64,9 @@ values in sequence order, exactly once:
   old, and the writer holds one message for the link. What a follower takes in over
   its control connection (its hand-shake's replay, or its repair of what its
   subscription missed before it knew whom to name) is not on the way over PUB: the
-  flight counts from where PUB began to carry values to it (``Stream.flight_lead``, ``stream.py``);
-  counted from its ACKs, those values' age (they went long before) made the link slow.
+  flight counts from where PUB began to carry values to it
+  (``stream.Stream.flight_lead``); counted from its ACKs, those values' age (they went
+  long before) made the link slow.
 - Slow followers. The flight follows the lead follower, and a PUB socket sends every
   message to every subscriber, queued per peer in messages: a slower follower beside
   a fast one had every value queued for it (hundreds of MiB, tens of seconds late),
