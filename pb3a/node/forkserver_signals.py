@@ -64,6 +64,8 @@ for _signal in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
 
 # How long ``preloaded`` waits for the watch to let go of the pipes it closes.
 SWITCH_WAIT_S = 5.0
+# How long a forkserver whose pipe has closed waits, as it exits, to see its owner end.
+OWNER_END_WAIT_S = 1.0
 
 
 def _preloading() -> tuple[int, list[str], int] | None:
@@ -105,8 +107,10 @@ def _remove_socket(path: str | None) -> None:
 
 
 def _remove_socket_of_gone_owner(owner: int, path: str | None) -> None:
-    """``_remove_socket`` if the owner (a pidfd) has ended."""
-    if select.select([owner], [], [], 0)[0]:
+    """``_remove_socket`` if the owner (a pidfd) has ended. An owner that is ending
+    closes its files (the alive pipe's end: multiprocessing's loop exits) a moment before
+    its pidfd says it has ended, so that moment is waited for (``OWNER_END_WAIT_S``)."""
+    if select.select([owner], [], [], OWNER_END_WAIT_S)[0]:
         _remove_socket(path)
 
 
