@@ -185,8 +185,7 @@ def test_a_value_larger_than_the_replay_buffer_is_repaired_as_it_was_written(
 
 def test_a_publisher_more_than_its_window_of_bytes_ahead_waits_for_the_follower(
         monkeypatch) -> None:
-    _tune(monkeypatch, WINDOW_BYTES=1 << 20)
-    _tune(monkeypatch, WINDOW_WAIT=0.05)
+    _tune(monkeypatch, WINDOW_BYTES=1 << 20, WINDOW_WAIT=0.05)
     # (a follower silent this long is a slow link, to which what does not fit is not
     # sent: that is test_a_writer_faster_than_its_link_sends_fresh_values...)
     _tune(monkeypatch, FRESH_S=30.0)
@@ -928,8 +927,7 @@ def test_nothing_piles_up_for_a_frozen_follower_and_it_recovers(monkeypatch) -> 
     gets what comes next, the values no longer kept counted lost."""
     monkeypatch.setattr(wire, "PEER_PING_MS", 200)
     monkeypatch.setattr(wire, "PEER_TIMEOUT_MS", 1000)
-    _tune(monkeypatch, FOLLOWER_TIMEOUT=0.5)   # (not paced meanwhile)
-    _tune(monkeypatch, REPLAY_BYTES=4 << 20)
+    _tune(monkeypatch, FOLLOWER_TIMEOUT=0.5, REPLAY_BYTES=4 << 20)   # (not paced meanwhile)
     replicator = Replicator(KEY)
     replicator.add("t")
     monitor = replicator._pub.get_monitor_socket(zmq.EVENT_DISCONNECTED)

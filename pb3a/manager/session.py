@@ -205,7 +205,7 @@ class Session:
         servers = self.topology().module_servers if self._handle is not None else ()
         return self.catalog.classes(servers)
 
-    def read_classes_ahead(self) -> threading.Thread:
+    def read_classes_ahead(self) -> None:
         """Read the catalog in the background (``pb3a manager`` does as it starts): an
         editing page asks for it first thing, and waits for it to draw, and the imports
         tried first in a child process take a second or more. A page that asks sooner
@@ -216,9 +216,7 @@ class Session:
             except Exception:           # (the page's own request says it, in its words)
                 log.debug("reading the module browser's catalog ahead failed", exc_info=True)
 
-        reader = threading.Thread(target=read, name="pb3a-catalog-ahead", daemon=True)
-        reader.start()
-        return reader
+        threading.Thread(target=read, name="pb3a-catalog-ahead", daemon=True).start()
 
     def stats(self, timeout: float | None = None) -> dict[str, Any]:
         """``GET /api/stats``; within ``timeout`` (default: the session's), a module whose
