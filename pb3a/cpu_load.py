@@ -11,7 +11,6 @@ exceeds the level. Use it as a context manager: leaving the block stops every bu
 
 from __future__ import annotations
 
-import multiprocessing
 import os
 import signal
 import threading
@@ -21,15 +20,13 @@ from typing import Any
 
 import psutil
 
+from pb3a.node.workers import forkserver_context
 from pb3a.processes import start_without_main
 
 PERIOD_S = 0.01           # one busy-then-idle cycle of a burner
 ADJUST_S = 0.5            # how often the controller corrects the burners' share
 GAIN = 0.8                # share of the error corrected at each adjustment
 BURNER_START_S = 30.0     # a burner's start from the forkserver, at the most
-
-# (the forkserver PB3A starts its workers from: quick, and safe from a threaded process)
-_context = multiprocessing.get_context("forkserver")
 
 
 def parse_levels(text: str) -> dict[int, float]:
@@ -65,9 +62,12 @@ class CPULoad:
         self.levels = dict(levels)
         self.readings: dict[int, float] = {}   # each CPU's busy percent, last adjustment
         self._burners_per_cpu = burners_per_cpu
-        self._shares = {cpu: _context.RawValue("d", level / 100.0)
+        # (the forkserver PB3A starts its workers from: quick, and safe from a threaded
+        # process)
+        self._context = forkserver_context()
+        self._shares = {cpu: self._context.RawValue("d", level / 100.0)
                         for cpu, level in self.levels.items()}
-        self._stop = _context.Event()
+        self._stop = self._context.Event()
         self._stopped = threading.Event()
         self._burners: list[Any] = []
         self._controller = threading.Thread(target=self._control, daemon=True,
@@ -87,7 +87,7 @@ class CPULoad:
         """Start the burners and the controller."""
         for cpu, share in self._shares.items():
             for _ in range(self._burners_per_cpu):
-                burner = _context.Process(target=_burn, args=(cpu, share, self._stop,
+                burner = self._context.Process(target=_burn, args=(cpu, share, self._stop,
                                                               os.getpid()),
                                           daemon=True, name=f"pb3a-burn-cpu{cpu}")
                 self._burners.append(burner)
@@ -145,6 +145,7 @@ def _burn(cpu: int, share: Any, stop: Any, owner: int) -> None:
     until its owner is gone."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)     # a terminal's Ctrl-C: the owner decides
     signal.signal(signal.SIGHUP, signal.SIG_IGN)     # (its closing: the same)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)    # (the forkserver ignores it)
     os.sched_setaffinity(0, [cpu])
     start = time.monotonic()
     while True:

@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
+import textwrap
 import time
+from pathlib import Path
 
 import psutil
 import pytest
-from conftest import alive
+from conftest import alive, eventually
 
 from pb3a.cpu_load import CPULoad, parse_levels
 
@@ -42,3 +46,43 @@ def test_levels_parse_from_the_command_line_form() -> None:
     for wrong in ("80", "a:80", "0:lots"):
         with pytest.raises(ValueError, match="is not CPUS:PERCENT"):
             parse_levels(wrong)
+
+
+_KILLED_OWNER = textwrap.dedent("""
+    import os, sys, time
+    from multiprocessing import util
+    from pb3a.cpu_load import CPULoad
+    from pb3a.node import forkserver_owner
+
+    with CPULoad({int(sys.argv[1]): 20.0}) as load:
+        print(forkserver_owner.running(), *load.pids, flush=True)
+        print(util.get_temp_dir(), flush=True)      # (where its forkserver's socket is)
+        time.sleep(120)
+""")
+
+
+def test_burners_started_first_leave_nothing_behind_an_owner_killed_with_sigkill(
+        tmp_path: Path) -> None:
+    """The burners come from the forkserver the workers use. Started first, by a
+    ``CPULoad``, it was multiprocessing's plain one: it ended with a killed owner, but
+    left its socket in /tmp (and every worker started after it in that process came
+    from a forkserver that did not watch its owner). It is PB3A's now, whoever starts
+    it, and removes its socket as its owner dies."""
+    script = tmp_path / "load.py"
+    script.write_text(_KILLED_OWNER)
+    cpu = max(os.sched_getaffinity(0))
+    proc = subprocess.Popen([sys.executable, str(script), str(cpu)],
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        forkserver, *burners = map(int, proc.stdout.readline().split())
+        sockets = Path(proc.stdout.readline().strip())
+        assert burners and [entry for entry in sockets.iterdir() if entry.is_socket()]
+        proc.kill()
+        proc.wait(10)
+        eventually(lambda: not any(alive(pid) for pid in (forkserver, *burners)),
+                   what="the forkserver and the burners to end")
+        eventually(lambda: not sockets.exists(), what=f"{sockets} removed")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.stdout.close()

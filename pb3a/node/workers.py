@@ -145,18 +145,34 @@ _FORKSERVER_BACKOFF_S = 0.05
 # modules: one process has one forkserver, whichever pool set it.
 _preloading_configuration = threading.Event()
 _preload_lock = threading.Lock()
+_preload_chosen_by: int | None = None      # the process that last chose it
 
 
 def _preload(configuration: tuple[str, ...]) -> None:
     """What the next forkserver to start imports: PB3A's worker code, and ``configuration``
     (between them, the entry that names this process as its owner; last, the one that
     says it is done: ``pb3a.node.forkserver_signals``)."""
+    global _preload_chosen_by
     _context.set_forkserver_preload([*PRELOAD, forkserver_owner.owner_mark(),
                                      *configuration, PRELOADED])
+    _preload_chosen_by = os.getpid()
     if configuration:
         _preloading_configuration.set()
     else:
         _preloading_configuration.clear()
+
+
+def forkserver_context() -> multiprocessing.context.ForkServerContext:
+    """The context that starts processes from this process's one forkserver, for any
+    process of PB3A's besides the workers: the forkserver is then PB3A's whoever starts
+    it first, with the workers' preload and ending with this process. (A ``CPULoad``
+    whose burners started it first gave every later worker a forkserver that neither
+    ignored a SIGTERM to the group nor watched its owner, and left its socket in /tmp
+    when this process was killed.)"""
+    with _preload_lock:
+        if _preload_chosen_by != os.getpid():
+            _preload(())
+    return _context
 
 
 @dataclass(eq=False)
