@@ -28,15 +28,20 @@ from pb3a.transport.shm import live_segments
 os.environ.setdefault("PB3A_KEY", os.urandom(32).hex())
 
 
-def eventually(check: Callable[[], Any], timeout: float = 10.0, what: str = "condition") -> Any:
-    """Poll ``check`` until it returns a truthy value; fail after ``timeout`` seconds."""
+def eventually(check: Callable[[], Any], timeout: float = 10.0, what: str = "condition",
+               context: Callable[[], Any] | None = None) -> Any:
+    """Poll ``check`` until it returns a truthy value; fail after ``timeout`` seconds,
+    saying what ``context`` returns then (what to look at when it happens once in a
+    hundred runs)."""
     deadline = time.monotonic() + timeout
     while True:
         value = check()
         if value:
             return value
         if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout} s waiting for {what}; last value {value!r}")
+            seen = "" if context is None else f"; then {context()!r}"
+            pytest.fail(f"timed out after {timeout} s waiting for {what}; last value "
+                        f"{value!r}{seen}")
         time.sleep(0.02)
 
 

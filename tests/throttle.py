@@ -128,7 +128,11 @@ class Throttle:
             await asyncio.gather(*pumps, return_exceptions=True)
             for stream in (writer, far_writer):
                 if stream is not None:
+                    # (waited for: a transport still closing as the loop closed was
+                    # collected later, unclosed, "loop is closed")
                     stream.close()
+                    with contextlib.suppress(OSError):
+                        await stream.wait_closed()
             if far_writer is None:
                 upstream.close()
 
