@@ -87,9 +87,9 @@ class CPULoad:
         """Start the burners and the controller."""
         for cpu, share in self._shares.items():
             for _ in range(self._burners_per_cpu):
-                burner = self._context.Process(target=_burn, args=(cpu, share, self._stop,
-                                                              os.getpid()),
-                                          daemon=True, name=f"pb3a-burn-cpu{cpu}")
+                burner = self._context.Process(
+                    target=_burn, args=(cpu, share, self._stop, os.getpid()), daemon=True,
+                    name=f"pb3a-burn-cpu{cpu}")
                 self._burners.append(burner)
                 # (the forkserver the workers use may be frozen: a start waits so long)
                 start_without_main(burner, timeout=BURNER_START_S)

@@ -49,7 +49,7 @@ def test_levels_parse_from_the_command_line_form() -> None:
 
 
 _KILLED_OWNER = textwrap.dedent("""
-    import os, sys, time
+    import sys, time
     from multiprocessing import util
     from pb3a.cpu_load import CPULoad
     from pb3a.node import forkserver_owner

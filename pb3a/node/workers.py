@@ -163,12 +163,10 @@ def _preload(configuration: tuple[str, ...]) -> None:
 
 
 def forkserver_context() -> multiprocessing.context.ForkServerContext:
-    """The context that starts processes from this process's one forkserver, for any
-    process of PB3A's besides the workers: the forkserver is then PB3A's whoever starts
-    it first, with the workers' preload and ending with this process. (A ``CPULoad``
-    whose burners started it first gave every later worker a forkserver that neither
-    ignored a SIGTERM to the group nor watched its owner, and left its socket in /tmp
-    when this process was killed.)"""
+    """The context that starts PB3A's other processes (``CPULoad``'s burners) from this
+    process's one forkserver, which is then the workers' kind whoever starts it first:
+    started by a burner as multiprocessing's plain one, it watched no owner, neither for
+    the workers started from it later nor for its socket in /tmp."""
     with _preload_lock:
         if _preload_chosen_by != os.getpid():
             _preload(())
