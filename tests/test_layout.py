@@ -21,13 +21,14 @@ LAYERS: list[set[str]] = [
                                                         # line's format, under all
     {"pb3a.deadline", "pb3a.events", "pb3a.latencies", "pb3a.logbook", "pb3a.pending",
      "pb3a.processes", "pb3a.stats"},
-    {"pb3a.cpu_load"},                                  # load for experiments, in processes
     {"pb3a.transport"},                                 # how bytes move
     {"pb3a.model", "pb3a.loading"},                     # what users write; code by reference
     {"pb3a.config"},                                    # description -> checked plan
     {"pb3a.topology"},                                  # a system's structure, as records
     {"pb3a.worker"},                                    # the worker process
     {"pb3a.node"},                                      # one node's supervisor
+    {"pb3a.cpu_load"},                                  # load for experiments, from the
+                                                        # workers' forkserver
     {"pb3a.launch", "pb3a.daemons"},                    # the whole system; the daemons
     {"pb3a.system", "pb3a.testing"},                    # the builder users start from; a
                                                         # module tested on its own
