@@ -29,17 +29,6 @@ GAIN = 0.8                # share of the error corrected at each adjustment
 BURNER_START_S = 30.0     # a burner's start from the forkserver, at the most
 
 
-def parse_levels(text: str) -> dict[int, float]:
-    """``"0,1:80"`` (CPUs, a colon, a percent) as ``{0: 80.0, 1: 80.0}``; ValueError
-    saying what is wrong."""
-    cpus, _, level = text.partition(":")
-    try:
-        return dict.fromkeys((int(cpu) for cpu in cpus.split(",")), float(level))
-    except ValueError:
-        raise ValueError(f"{text!r} is not CPUS:PERCENT (e.g. 0,1:80 loads CPUs 0 and 1 "
-                         "to 80 %)") from None
-
-
 class CPULoad:
     """Hold each CPU of ``levels`` (CPU number -> percent busy) at its level.
 

@@ -64,6 +64,7 @@ def test_help_and_mistaken_arguments_import_nothing_of_the_runtime() -> None:
     helps = [["--help"], *([*command.split(), "--help"] for command in COMMANDS)]
     mistakes = [[], ["nosuchcommand"], ["run"], ["node", "start"], ["modules"],
                 ["run", "x.toml", "--for", "nan"], ["stress", "x.toml", "--cut-node", "b"],
+                ["stress", "x.toml", "--load", "0:lots"],
                 ["status", "tcp://h:1", "--timeout", "inf"], ["set", "tcp://h:1", "m"]]
     found = _probe(helps + mistakes, HEAVY + IMPLEMENTATIONS)
     assert len(found) == len(helps) + len(mistakes)

@@ -13,7 +13,8 @@ import psutil
 import pytest
 from conftest import alive, eventually
 
-from pb3a.cpu_load import CPULoad, parse_levels
+from pb3a.cli.stress_options import parse_levels
+from pb3a.cpu_load import CPULoad
 
 # alone: it loads the CPUs or measures against them (see the Makefile's test target)
 pytestmark = [pytest.mark.timeout(60), pytest.mark.serial]

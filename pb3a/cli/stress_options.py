@@ -37,11 +37,19 @@ class StressOptions:
     seed: int | None = None
 
 
-def load(text: str) -> tuple[dict[int, float], Window]:
-    """``--load CPUS:PERCENT[@T[+D]]``: the levels per CPU, and when (``pb3a.cpu_load``,
-    and psutil with it, imported only once a ``--load`` is given)."""
-    from pb3a.cpu_load import parse_levels
+def parse_levels(text: str) -> dict[int, float]:
+    """``"0,1:80"`` (CPUs, a colon, a percent) as ``{0: 80.0, 1: 80.0}``; ValueError
+    saying what is wrong (whether this machine has those CPUs, ``CPULoad`` says)."""
+    cpus, _, level = text.partition(":")
+    try:
+        return dict.fromkeys((int(cpu) for cpu in cpus.split(",")), float(level))
+    except ValueError:
+        raise ValueError(f"{text!r} is not CPUS:PERCENT (e.g. 0,1:80 loads CPUs 0 and 1 "
+                         "to 80 %)") from None
 
+
+def load(text: str) -> tuple[dict[int, float], Window]:
+    """``--load CPUS:PERCENT[@T[+D]]``: the levels per CPU, and when."""
     levels, at, when = text.partition("@")
     try:
         parsed = parse_levels(levels)
