@@ -25,9 +25,10 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/ruff check pb3a rave agents tests examples bench scenarios setup.py
-	@# Most tests run on two workers, a test file to each (pytest-xdist); those marked
-	@# serial load the CPUs or time whole applications, and run alone after them.
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not serial"
+	@# Most tests run on three workers, a test file to each (pytest-xdist): they mostly
+	@# wait for processes, links and deadlines, so a third keeps two cores busy. Those
+	@# marked serial load the CPUs or time whole applications, and run alone after them.
+	$(BIN)/python -m pytest -q -n 3 --dist loadfile -m "not serial"
 	$(BIN)/python -m pytest -q -m serial
 
 bench: $(STAMP)
