@@ -36,11 +36,6 @@ def _nodes(system: System, *names: str) -> System:
     return system
 
 
-def _clean(state: dict, at_least: int) -> bool:
-    return (state["received"] >= at_least and state["out_of_order"] == 0
-            and state["duplicates"] == 0)
-
-
 def _through(name: str, middle: str, cls: type) -> System:
     """src -> ``middle`` (a ``cls``: a relay, or a macro of two) -> sink, all on node a
     of nodes a and b."""
