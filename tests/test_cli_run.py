@@ -210,11 +210,17 @@ def test_a_robot_scenario_killed_with_its_group_leaves_no_node_controller(
     """The robots' node controllers, in sessions of their own (out of the terminal's
     Ctrl-C), outlived a launcher killed with its group (kill -9 -- -PGID; a Ctrl-C
     repeated through the lab's close too): they served on, nobody to stop them."""
-    proc = subprocess.Popen([sys.executable, "-m", "pb3a", "scenario", "mapping", "--quick",
-                             "--out", str(tmp_path)], cwd=tmp_path, env=_env(),
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            start_new_session=True)  # (not piped: the orphans held them)
+    log = tmp_path / "stderr.txt"           # (a file, not a pipe: the orphans held those)
+    with log.open("w") as stderr:
+        proc = subprocess.Popen([sys.executable, "-m", "pb3a", "scenario", "mapping",
+                                 "--quick", "--out", str(tmp_path)], cwd=tmp_path,
+                                env=_env(), stdout=subprocess.DEVNULL, stderr=stderr,
+                                start_new_session=True)
     launcher = psutil.Process(proc.pid)
+
+    def launcher_seen() -> str:
+        return f"launcher exit status {proc.poll()}, its stderr: {log.read_text()[-2000:]!r}"
+
     controllers: list[psutil.Process] = []
     sockets: set[Path] = set()
 
@@ -228,8 +234,9 @@ def test_a_robot_scenario_killed_with_its_group_leaves_no_node_controller(
 
     try:
         controllers = eventually(node_controllers, timeout=60,
-                                 what="the robots' node controllers")
-        eventually(lambda: live_segments(proc.pid), timeout=60, what="the system running")
+                                 what="the robots' node controllers", context=launcher_seen)
+        eventually(lambda: live_segments(proc.pid), timeout=60, what="the system running",
+                   context=launcher_seen)
         theirs = [*controllers, *(p for c in controllers for p in c.children(recursive=True))]
         sockets = {Path(connection.laddr).parent for child in launcher.children()
                    if "forkserver" in " ".join(child.cmdline())
