@@ -67,7 +67,8 @@ from pb3a.node.forkserver_owner import ORPHAN_GRACE_S
 from pb3a.transport.doorbell import new_bell
 from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import live_segments, segment_name
-from pb3a.worker.process import GUARD_TIMEOUT, Worker, _Inbound
+from pb3a.worker.inbound import GUARD_TIMEOUT, InboundLink
+from pb3a.worker.process import Worker
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -773,7 +774,7 @@ def test_a_link_the_receiver_cannot_read_is_set_aside_while_the_others_flow(capl
     try:
         writers[0].write(1)
         owners[0]._data[0:4] = bytes(4)            # its length 0: a broken writer
-        bad, good = (_Inbound(ShmRing.attach(owner.name), InputPort(TwoInputs.b, "sink"))
+        bad, good = (InboundLink(ShmRing.attach(owner.name), InputPort(TwoInputs.b, "sink"))
                      for owner in owners)
         bad.ring.label = "w.out->sink.bad"
         real_drain = bad.drain

@@ -21,7 +21,7 @@ import cloudpickle
 
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.node.workers import REQUEST_TIMEOUT
-from pb3a.worker.process import LEASE_LAPSED
+from pb3a.worker.lease import LEASE_LAPSED
 
 if TYPE_CHECKING:
     from collections.abc import Callable

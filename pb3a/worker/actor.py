@@ -156,7 +156,7 @@ class ModuleActor:
         self._torn_down = False                 # its teardown ran, or runs now (once)
         self._teardown_once = threading.Lock()
         self._halted = False                    # stopping: it does not start any more
-        # whether its bodies may run now (its worker's lease holds: Worker.lease_holds)
+        # whether its bodies may run now (its worker's lease holds: Lease.holds)
         self.may_run: Callable[[], bool] = _always
         self._thread: threading.Thread | None = None
         self._holder = 0                        # the thread running a body now (0: none)

@@ -20,7 +20,6 @@ import signal
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
 from multiprocessing import reduction
 from typing import TYPE_CHECKING, Any
 
@@ -40,6 +39,9 @@ from pb3a.transport.pipe import Outbox, Outgoing
 from pb3a.transport.ring import RingSize, ShmRing, sleep
 from pb3a.transport.snapshot import Snapshot
 from pb3a.worker.actor import EventPool, ModuleActor, SetupError
+from pb3a.worker.inbound import GUARD_TIMEOUT, InboundLink, LosslessInboundLink
+from pb3a.worker.lease import LEASE_LAPSED, Lease
+from pb3a.worker.log_forwarding import LogForwarder
 from pb3a.worker.publications import Publications
 from pb3a.worker.waits import RuntimeWait
 
@@ -48,17 +50,11 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("pb3a.worker")
 
-GUARD_TIMEOUT = 0.5      # longest sleep of the receiver (a guard; wake-ups are not lost)
 SPIN_S = 100e-6          # values closer than this count as dense; poll this long for the next
 ERROR_REPORT_S = 1.0     # a module's exceptions are reported at most this often (all counted)
 AGENT_REQUEST_TIMEOUT = 30.0   # an agent's request to the runtime (a migration, say)
 RUNTIME_WAY_BACK_S = 1.0       # ... given a timeout: its answer's way back beyond it
 MEASURE_TIMEOUT = 5.0    # how long measuring a snapshot waits for a busy module's lock
-LEASE_CHECK_S = 0.1      # how often a worker with a lease (see op_lease) looks at it
-# The exit status of a worker that stopped its modules because its lease lapsed: its
-# executor tells it from a stop it asked for (0) and, if its own lease runs, restarts
-# the modules (the worker alone was frozen; see Restarts.died).
-LEASE_LAPSED = 3
 UNANSWERED = -1            # the id of a request whose answer nobody waits for
 TIMED_OUT = "timed out"   # a reply's status for a request that ran out of time (not False)
 REFUSED = "refused"       # for one whose arguments the module refused: the message is whole
@@ -78,78 +74,6 @@ _TAKES_A_MODULE_LOCK = frozenset({"get_state", "set_state", "pause", "start", "s
                                   "remove", "snapshot_size", "halt"})
 
 
-@dataclass
-class _Inbound:
-    """One inbound ring and the input it feeds; closed under its lock."""
-
-    ring: ShmRing
-    port: InputPort
-    lock: threading.Lock = field(default_factory=threading.Lock)
-    closed: bool = False
-    resume_at: float = 0.0       # its drain failed: the receiver leaves it alone until then
-    report_at: float = 0.0       # when its next failure may be logged
-
-    def drain(self, limit: int = 1024) -> int:
-        self.lock.acquire()
-        try:
-            if self.closed:
-                return 0
-            values, sent_at, gaps = self.ring.drain(limit)
-        finally:
-            self.lock.release()
-        if gaps:
-            self.port.drops += gaps
-        if values:
-            self.port.deliver_many(values, sent_at)
-        return len(values)
-
-    def wanted(self) -> bool:
-        """Whether the receiver should drain this ring now (look at it before sleeping)."""
-        return True
-
-    def set_aside(self) -> None:
-        """Its drain raised (a record its writer broke, say): the receiver logs it (at most
-        once a second) and leaves the link alone for a while, so that it neither keeps
-        the other links waiting nor makes the receiver spin; then it tries again."""
-        now = time.monotonic()
-        self.resume_at = now + GUARD_TIMEOUT
-        if now >= self.report_at:
-            self.report_at = now + ERROR_REPORT_S
-            log.exception("receiver: cannot read link %s; tried again every %.1f s",
-                          self.ring.label, GUARD_TIMEOUT)
-
-    def close(self) -> int:
-        """Deliver everything left in the ring (room in the input or not), then detach
-        (also when that fails)."""
-        drained = 0
-        try:
-            drained += _Inbound.drain(self)
-            while self.ring.has_data():          # (a batch may hold no decodable value)
-                drained += _Inbound.drain(self)
-        finally:
-            with self.lock:
-                self.closed = True
-                self.ring.close()
-        return drained
-
-
-class _LosslessInbound(_Inbound):
-    """A lossless link: the receiver takes from the ring only what the input has room
-    for and leaves the rest, so a full input fills the ring and its writer waits. A
-    read that makes room rings the worker's doorbell (the port's ``_on_room``); a
-    writer that closes the link asks for everything at once (``request_flush``)."""
-
-    def drain(self, limit: int = 1024) -> int:
-        if not self.ring.flush_requested:
-            limit = min(limit, self.port.claim_room())
-            if limit <= 0:
-                return 0
-        return super().drain(limit)
-
-    def wanted(self) -> bool:
-        return self.ring.flush_requested or self.port.claim_room() > 0
-
-
 class Worker:
     """Everything one worker process runs; ``serve`` is its control loop."""
 
@@ -161,10 +85,10 @@ class Worker:
         self.pool = EventPool()
         self._bell_fd = bell                     # ours to close; the receiver sleeps on it
         self._wake = BellPull(os.dup(bell))
-        self.inbound: dict[str, _Inbound] = {}
+        self.inbound: dict[str, InboundLink] = {}
         # what the receiver loops over, replaced (never mutated) when links change
         # (and whether some are lossless: those whose input is full are left alone)
-        self._receiving: tuple[list[_Inbound], list[Any], bool] = ([], [], False)
+        self._receiving: tuple[list[InboundLink], list[Any], bool] = ([], [], False)
         self.outbound: dict[str, tuple[str, str, ShmRing | None, BellPull | None]] = {}
         self.publications = Publications()       # outputs replicated to other nodes
         # What goes to the executor never waits for it (a frozen executor reads
@@ -180,9 +104,8 @@ class Worker:
         self._ready: list[Callable[[], None]] = []
         self._request_ids = itertools.count()
         self._closing = threading.Event()
-        self._lease_until: float | None = None     # see op_lease
-        self.lapsed = False                        # its lease ran out: exit LEASE_LAPSED
-        self._lapsing = threading.Lock()
+        # (its modules named: a spare that took them still has the key "spare")
+        self.lease = Lease(self._closing, lambda: ", ".join(self.actors) or "no module")
         self._shut_down = False
         self._checkpoint_s = checkpoint_s
         self._threads = [threading.Thread(target=self._receive, name="pb3a-receiver", daemon=True),
@@ -366,7 +289,7 @@ class Worker:
         if state:
             module.set_state(state)
         actor = ModuleActor(name, module, self._schedule, period, on_error=self._report_error)
-        actor.may_run = self.lease_holds
+        actor.may_run = self.lease.holds
         self.actors[name] = actor
         self.restart_policy[name] = restart
         self._retime()
@@ -505,9 +428,9 @@ class Worker:
         shm_ring.label = key       # a value it cannot decode is logged naming its link
         if shm_ring.lossless:
             port._on_room = self._room_made
-            self.inbound[key] = _LosslessInbound(shm_ring, port)
+            self.inbound[key] = LosslessInboundLink(shm_ring, port)
         else:
-            self.inbound[key] = _Inbound(shm_ring, port)
+            self.inbound[key] = InboundLink(shm_ring, port)
         self._inbound_changed()
 
     def op_unlink_in(self, key: str) -> int:
@@ -520,7 +443,7 @@ class Worker:
 
     def _inbound_changed(self) -> None:
         links = list(self.inbound.values())
-        lossless = any(isinstance(link, _LosslessInbound) for link in links)
+        lossless = any(isinstance(link, LosslessInboundLink) for link in links)
         self._receiving = (links, [link.ring.core for link in links], lossless)
         self.bell_self()
 
@@ -639,48 +562,8 @@ class Worker:
         return self.actors[name].swap(module, period)
 
     def op_lease(self, until: float) -> None:
-        """The executor is alive: run on until ``until``, its own lease's end (its
-        ``time.monotonic()``, the same clock on one machine: a grant read late, after
-        this worker was frozen, extends nothing). A worker whose lease runs
-        out stops its modules (as on SIGTERM): its executor is frozen (stopped, hung)
-        and cannot fence it, and the launcher starts its modules elsewhere. Until it
-        does, no body runs (``lease_holds``): a frozen node let run again stepped its
-        modules once beside their failed-over copies before its lease was looked at.
-        Only a remote node's executor grants leases; a worker that never got one never
-        lapses. A grant that finds the lease run out already (this worker was frozen
-        past it, the grants queued meanwhile) revives nothing: it lapses all the same,
-        whichever of its threads runs first."""
-        first = self._lease_until is None
-        if not self.lease_holds():
-            self._lapse()
-            return
-        self._lease_until = until
-        if first:
-            threading.Thread(target=self._keep_lease, daemon=True, name="pb3a-lease").start()
-
-    def lease_holds(self) -> bool:
-        """Whether this worker's modules may run now: it has no lease, or one that runs."""
-        until = self._lease_until
-        return until is None or time.monotonic() <= until
-
-    def _keep_lease(self) -> None:
-        while not self._closing.wait(LEASE_CHECK_S):
-            if not self.lease_holds():
-                self._lapse()
-                return
-
-    def _lapse(self) -> None:
-        """The lease ran out: stop every module, as a SIGTERM does (once)."""
-        with self._lapsing:             # (its two threads may find it at once: one stop)
-            if self.lapsed:
-                return
-            self.lapsed = True
-        # The stop first: the log goes to the executor, which is frozen, and its pipe may
-        # be full: a log that waited for room there kept the modules running for good.
-        os.kill(os.getpid(), signal.SIGTERM)     # (the stop a SIGTERM makes)
-        # (its modules named: a spare that took them still has the key "spare")
-        log.error("the worker of %s: its executor granted no lease for too long "
-                  "(frozen or hung): its modules stop", ", ".join(self.actors) or "no module")
+        """The executor is alive: run on until ``until`` (``Lease.grant``)."""
+        self.lease.grant(until)
 
     def op_stats(self) -> dict[str, Any]:
         modules = {name: actor.statistics() for name, actor in self.actors.items()}
@@ -807,7 +690,7 @@ class Worker:
                 log.exception("receiver: unexpected error; going on")
 
     @staticmethod
-    def _spin(links: list[_Inbound]) -> bool:
+    def _spin(links: list[InboundLink]) -> bool:
         """While values flow densely, poll briefly before sleeping: the next value is
         likely microseconds away, and sleeping would make its writer ring (a system
         call) and its reader wake (tens of microseconds). Sparse traffic never spins."""
@@ -839,28 +722,6 @@ def agent_wait(timeout: float | None) -> float:
     """How long an agent's request is waited for, given its own ``timeout`` (None: the
     system's default, within ``AGENT_REQUEST_TIMEOUT``)."""
     return AGENT_REQUEST_TIMEOUT if timeout is None else timeout + RUNTIME_WAY_BACK_S
-
-
-class _LogForwarder(logging.Handler):
-    """Sends the worker's log records (PB3A's and its modules' own) to its executor,
-    which logs them in its process: where the user's handlers and the launch's log
-    book are. Records from before the worker is set up are not sent."""
-
-    def __init__(self, level: int) -> None:
-        super().__init__(level)
-        self.send: Callable[[Any], None] | None = None
-
-    def emit(self, record: logging.LogRecord) -> None:
-        if self.send is None:
-            return
-        try:
-            message = record.getMessage()
-            if record.exc_info:
-                message += "\n" + logging.Formatter().formatException(record.exc_info)
-            self.send((None, "log", {"level": record.levelno, "logger": record.name,
-                                     "message": message}))
-        except Exception:
-            self.handleError(record)
 
 
 def _load_class(cls: bytes) -> type:
@@ -903,7 +764,7 @@ def worker_main(conn: Any, key: str, checkpoint_s: float, level: int,
     signal.signal(signal.SIGHUP, signal.SIG_IGN)          # (the terminal closed: the same)
     signal.signal(signal.SIGTERM, _on_sigterm)
     try:        # signalled as it starts (a SIGTERM to the whole group): nothing to stop
-        forward = _LogForwarder(level)
+        forward = LogForwarder(level)
         logging.getLogger().addHandler(forward)
         logging.getLogger().setLevel(level)
         bell = reduction.recv_handle(conn)      # the executor sends our doorbell first
@@ -916,5 +777,5 @@ def worker_main(conn: Any, key: str, checkpoint_s: float, level: int,
         worker.serve()
     except _Terminated:
         worker.shutdown()
-        if worker.lapsed:
+        if worker.lease.lapsed:
             sys.exit(LEASE_LAPSED)
