@@ -587,7 +587,7 @@ def test_a_ring_interrupted_as_it_is_made_leaves_no_segment(monkeypatch) -> None
     # segment behind, for the resource tracker to unlink after the process was gone)
     from types import SimpleNamespace
 
-    from pb3a.node.executor import Executor
+    from pb3a.node.wiring import Wiring
 
     before = live_segments(os.getpid())
     monkeypatch.setattr(ring_module, "RingCore", _interrupted)       # inside create
@@ -602,28 +602,28 @@ def test_a_ring_interrupted_as_it_is_made_leaves_no_segment(monkeypatch) -> None
         raise KeyboardInterrupt
 
     monkeypatch.setattr(ShmRing, "create", made_then_interrupted)
-    executor = SimpleNamespace(rings={})
+    wiring = SimpleNamespace(rings={})
     with pytest.raises(KeyboardInterrupt):
-        Executor._ring(executor, "a.out->b.x", ring_module.RingSize(4096, 0, 0))
-    assert live_segments(os.getpid()) == before and executor.rings == {}
+        Wiring._ring(wiring, "a.out->b.x", ring_module.RingSize(4096, 0, 0))
+    assert live_segments(os.getpid()) == before and wiring.rings == {}
     made[0].close()                       # (this process's mapping, the name gone already)
 
 
 def test_a_ring_whose_name_is_taken_leaves_that_segment_alone() -> None:
-    # (the executor unlinked whatever held the name, a segment it had not made)
+    # (the node unlinked whatever held the name, a segment it had not made)
     from types import SimpleNamespace
 
-    from pb3a.node.executor import Executor
+    from pb3a.node.wiring import Wiring
     from pb3a.transport import shm
 
     taken = segment_name("ring")
     other = shm.create_segment(taken, 4096)
     try:
-        executor = SimpleNamespace(rings={})
+        wiring = SimpleNamespace(rings={})
         with pytest.MonkeyPatch.context() as patch:
-            patch.setattr("pb3a.node.executor.segment_name", lambda kind: taken)
+            patch.setattr("pb3a.node.wiring.segment_name", lambda kind: taken)
             with pytest.raises(FileExistsError):
-                Executor._ring(executor, "a.out->b.x", ring_module.RingSize(4096, 0, 0))
+                Wiring._ring(wiring, "a.out->b.x", ring_module.RingSize(4096, 0, 0))
         assert taken in live_segments(os.getpid())
     finally:
         shm.unlink_segment(other)

@@ -1,15 +1,12 @@
 """``Executor``: the supervisor of one node (the paper's NetExecutor).
 
 It owns everything on its node: the worker processes (one per module, or a few
-packed ones; ``WorkerPool``), every shared-memory ring, the bridge that receives
-remote links, and the records of the modules that run here. Links with both ends
-here are wired by ``connect``; a remote link is wired in halves (``publish`` at the
-writer's node, ``open_inbound`` and ``follow`` at the reader's) by the
-``Launcher``, which alone sees every node. A crashed worker is restarted by its
-modules' ``restart`` policies (``Restarts``); what such a restart and the
-requests that meet it wait for is kept by its ``Lives``. Shutdown stops modules in
-reverse start order, then the processes (terminate, then kill), then unlinks every
-segment. It implements ``Node``.
+packed ones; ``WorkerPool``), its links and every shared-memory ring (``Wiring``), the
+bridge that receives remote links, and the records of the modules that run here. A
+crashed worker is restarted by its modules' ``restart`` policies (``Restarts``); what
+such a restart and the requests that meet it wait for is kept by its ``Lives``.
+Shutdown stops modules in reverse start order, then the processes (terminate, then
+kill), then unlinks every segment. It implements ``Node``.
 """
 
 from __future__ import annotations
@@ -22,7 +19,6 @@ import threading
 import time
 from concurrent.futures import Future
 from contextlib import AbstractContextManager
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import cloudpickle
@@ -33,21 +29,21 @@ from pb3a.deadline import before_answer, bounding, capped, lifted
 from pb3a.errors import ConfigError, PB3AError, RuntimeFailure, RuntimeTimeout
 from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
-from pb3a.node.bridge import READY_TIMEOUT, Bridge
+from pb3a.node.bridge import Bridge
 from pb3a.node.class_check import ImportLane
 from pb3a.node.lives import Lives
 from pb3a.node.module_record import ModuleRecord
 from pb3a.node.protocol import Endpoint, Reached
 from pb3a.node.resources import ResourceMeter
 from pb3a.node.restarts import LOCK_TIMEOUT, Restarts
-from pb3a.node.ring_sizes import RingSize, ring_size
+from pb3a.node.ring_sizes import RingSize
+from pb3a.node.wiring import Wiring
 from pb3a.node.workers import REQUEST_TIMEOUT, WorkerHandle, WorkerPool, WorkerSettings
 from pb3a.stats import FailureLog, InputStats, ModuleStats, NodeReport, WaitStats
 from pb3a.transport import pickling
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.replication import follower_id
-from pb3a.transport.ring import ShmRing
-from pb3a.transport.shm import RING, memory_domain, reap_orphans, segment_name, unlink_name
+from pb3a.transport.shm import memory_domain, reap_orphans, segment_name, unlink_name
 from pb3a.transport.snapshot import Snapshot, make_room
 
 if TYPE_CHECKING:
@@ -58,16 +54,6 @@ _module_log = logging.getLogger("pb3a.module")
 
 REPORT_TIMEOUT = 5.0
 _WAITS_FOR_THE_MODULE = frozenset({"get_state", "set_state"})
-
-
-@dataclass(frozen=True)
-class _Request:
-    """One request to a worker, to be sent beside others (``Executor._side_by_side``)."""
-
-    worker: str
-    op: str
-    args: dict[str, Any]
-    fd: int | None = None             # a descriptor sent right behind it
 
 
 class Executor:
@@ -86,10 +72,7 @@ class Executor:
         self.quota = 0                      # modules per packed worker at start
         self.host = host                    # where remote readers reach this node's outputs
         self.modules: dict[str, ModuleRecord] = {}
-        self.links: dict[str, FlatLink] = {}          # links with both ends here
-        self.inbound: dict[str, FlatLink] = {}        # remote links read here
-        self.outbound: dict[str, FlatLink] = {}       # remote links written here
-        self.rings: dict[str, ShmRing] = {}
+        self.wiring = Wiring(self)                    # its links and their rings
         self.failures = FailureLog(log)               # what went wrong, for stats and logs
         self.meter = ResourceMeter(cpus)              # the machine's CPU and memory
         self.imports = ImportLane()                   # background imports vs requests
@@ -133,7 +116,7 @@ class Executor:
         self.epoch, self.node_epoch = epoch, node_epoch
         # a node of its own has remote links: its spare workers open their replicators
         # as they boot, not in the preparation of a move to here
-        self.workers.spare_requests = [("ready_to_publish", self._publishing())]
+        self.workers.spare_requests = [("ready_to_publish", self.publishing())]
         self.workers.warm()
         # This process resolves the classes of modules that come to the node (a move,
         # an add): import them now, in the background, not in a move's critical path;
@@ -168,14 +151,15 @@ class Executor:
         One that waits for the module's lock gives up before its caller does: if its
         caller's time runs out, it was not done, rather than done later."""
         record = self.modules[name]
-        if not self._alive(record.worker):
+        if not self.alive(record.worker):
             raise RuntimeFailure(_not_running(name, record))
         timeout = capped(timeout)
         if op in _WAITS_FOR_THE_MODULE:      # (a short timeout keeps most of its time)
             args["within"] = before_answer(timeout)
         return self.call(record.worker, op, timeout, name=name, **args)
 
-    def _alive(self, key: str) -> bool:
+    def alive(self, key: str) -> bool:
+        """Whether worker ``key`` runs and takes requests."""
         return self.workers[key].serving
 
     def await_restart(self, name: str, timeout: float) -> bool:
@@ -185,12 +169,12 @@ class Executor:
         that failed in the window is worth asking again), False at once otherwise."""
         return self.lives.await_restart(name, timeout)
 
-    def _restarting(self, record: ModuleRecord) -> bool:
+    def restarting(self, record: ModuleRecord) -> bool:
         """Whether the module's worker is gone and its restart policy has yet to say what
         comes: a link wired meanwhile is wired at its end by that restart (``rewire``),
         from the executor's tables and rings; a request to the dead worker would fail,
         and leave the other end unwired (a move failed as its module's worker died)."""
-        return not self._alive(record.worker) and record.status not in ("failed", "stopped")
+        return not self.alive(record.worker) and record.status not in ("failed", "stopped")
 
     # -- placement -------------------------------------------------------------
     def place(self, spec: FlatModule) -> str:
@@ -393,7 +377,7 @@ class Executor:
         """Hold a module's lock (no step, no event) until ``resume``; False if it does not
         run here (any more)."""
         record = self.modules.get(name)
-        if record is None or not self._alive(record.worker):
+        if record is None or not self.alive(record.worker):
             return False
         # held before it is asked: a worker that dies from here on is restarted once the
         # change lets go of the module, not meanwhile (in a new worker, unpaused, its
@@ -419,7 +403,7 @@ class Executor:
         paused would stay so."""
         record = self.modules.get(name)
         try:
-            if record is not None and self._alive(record.worker):
+            if record is not None and self.alive(record.worker):
                 with lifted():
                     self.call(record.worker, "resume", name=name)
         finally:
@@ -431,7 +415,7 @@ class Executor:
         is given ``timeout`` and 1 s more to answer, no longer than the deadline of the
         call in progress (``pb3a.deadline``: a shutdown's), and then gives up first."""
         record = self.modules[name]
-        if record.status == "running" and self._alive(record.worker):
+        if record.status == "running" and self.alive(record.worker):
             answer_s = capped(timeout + 1.0)
             self.call(record.worker, "stop", answer_s, name=name,
                       grace=min(timeout, before_answer(answer_s)))
@@ -471,7 +455,7 @@ class Executor:
         record = self.modules.pop(name)
         self.lives.hold(record, False)
         try:
-            if self._alive(record.worker):
+            if self.alive(record.worker):
                 self.call(record.worker, "remove", name=name)
         except (RuntimeFailure, RuntimeTimeout):
             self._vacate(record.worker, name, wait=False)
@@ -501,7 +485,7 @@ class Executor:
         memory domain) the parts travel in the snapshot instead. The worker the module
         leaves is stopped by ``release``, after the pause, if nothing else runs there."""
         record = self.modules[name]
-        if not self._alive(record.worker):
+        if not self.alive(record.worker):
             raise RuntimeFailure(_died_moving(name, record))
         try:
             # ``until``: a worker that is late (frozen, or a teardown that overran) keeps
@@ -513,7 +497,7 @@ class Executor:
                                            until=time.monotonic()
                                            + before_answer(answer_s))
         except RuntimeFailure as exc:
-            if self._alive(record.worker):
+            if self.alive(record.worker):
                 raise
             raise RuntimeFailure(_died_moving(name, record)) from exc
         del self.modules[name]
@@ -558,190 +542,46 @@ class Executor:
             if handle.alive:
                 self.call(key, "forget", module=module)
 
-    # -- links with both ends here ---------------------------------------------
+    # -- links (``Wiring``) -----------------------------------------------------------
     def connect(self, links: list[FlatLink]) -> None:
-        """Wire links: in memory inside a worker, else through a new ring. Every
-        reader is attached before any writer, and the workers are asked side by side:
-        a macro's links are wired at once, not one worker request after another."""
-        for link in links:
-            self.links[link.key] = link
-        self._side_by_side([self._reader_request(link) for link in links])
-        self._side_by_side([self._writer_request(link) for link in links])
-
-    def _reader_request(self, link: FlatLink) -> _Request | None:
-        """The reading side: attach the link's ring (created here) in the reader's worker
-        (none for a link inside one worker)."""
-        src, dst = self.modules[link.src], self.modules[link.dst]
-        if src.worker == dst.worker:
-            return None
-        ring = self._ring(link.key, ring_size(src.spec.cls, link.src_port, link.policy))
-        if self._restarting(dst):
-            return None
-        return _Request(dst.worker, "link_in", {
-            "key": link.key, "dst": link.dst, "dst_port": link.dst_port, "ring": ring.name,
-            "policy": str(link.policy)})
-
-    def _writer_request(self, link: FlatLink) -> _Request | None:
-        """The writing side: connect the output to the ring, or straight to the input."""
-        src, dst = self.modules[link.src], self.modules[link.dst]
-        if self._restarting(src):
-            return None
-        if src.worker == dst.worker:
-            return _Request(src.worker, "link_out", {
-                "key": link.key, "src": link.src, "src_port": link.src_port, "dst": link.dst,
-                "dst_port": link.dst_port, "policy": str(link.policy)})
-        return _Request(src.worker, "link_out", {
-            "key": link.key, "src": link.src, "src_port": link.src_port,
-            "ring": self.rings[link.key].name}, fd=self.workers[dst.worker].bell)
+        """Wire links with both ends here (``Wiring.connect``)."""
+        self.wiring.connect(links)
 
     def detach(self, links: list[FlatLink]) -> None:
-        """Unwire links: every writer stops first, then every reader takes in everything
-        still on the way, so a new wiring cannot overtake it (the workers asked side by
-        side, as in ``connect``)."""
-        for link in links:
-            self.links.pop(link.key, None)
-        self._side_by_side([self._unlink_request(link, link.src, "unlink_out")
-                            for link in links])
-        self._side_by_side([self._unlink_request(link, link.dst, "unlink_in")
-                            for link in links])
-        for link in links:
-            self._close_ring(link)
+        """Unwire links with both ends here (``Wiring.detach``)."""
+        self.wiring.detach(links)
 
-    def _unlink_request(self, link: FlatLink, module: str, op: str) -> _Request | None:
-        """``op`` for ``link`` to the worker of one of its ends (none if it is gone)."""
-        record = self.modules.get(module)
-        if record is None or not self._alive(record.worker):
-            return None
-        return _Request(record.worker, op, {"key": link.key})
-
-    def _close_ring(self, link: FlatLink) -> None:
-        ring = self.rings.pop(link.key, None)
-        if ring is not None:
-            ring.close()
-
-    def _side_by_side(self, requests: list[_Request | None]) -> list[Any]:
-        """Send every request (None: nothing to do), then wait for every answer, all
-        within one ``REQUEST_TIMEOUT``; the answers in order (None for None), or the
-        first error once all have answered or the time is up. A worker takes its
-        requests in order."""
-        sent = [None if request is None else
-                (request, self.workers.submit(request.worker, request.op, _fd=request.fd,
-                                              **request.args))
-                for request in requests]
-        deadline = time.monotonic() + capped(REQUEST_TIMEOUT)
-        answers: list[Any] = []
-        failure: BaseException | None = None
-        for pending in sent:
-            answers.append(None)
-            if pending is None:
-                continue
-            request, future = pending
-            try:
-                answers[-1] = self.workers.result(future, request.op, request.worker,
-                                                  max(0.0, deadline - time.monotonic()))
-            except (RuntimeFailure, RuntimeTimeout) as exc:
-                failure = failure or exc
-        if failure is not None:
-            raise failure
-        return answers
-
-    def _ring(self, key: str, size: RingSize | None) -> ShmRing:
-        ring = self.rings.get(key)
-        if ring is None:
-            if size is None:
-                raise RuntimeError(f"link {key} has no ring to reopen")
-            name = segment_name(RING)
-            try:
-                ring = ShmRing.create(name, *size)
-            except FileExistsError:
-                raise                   # (not ours to unlink)
-            except BaseException:       # a Ctrl-C even as it returns: nobody knows of it
-                unlink_name(name)
-                raise
-            self.rings[key] = ring      # (from here shutdown frees it)
-        return ring
-
-    # -- remote links, one half each ---------------------------------------------------
     def ready_to_publish(self, name: str) -> None:
-        """Have module ``name``'s worker ready to publish to other nodes (its sockets
-        bound), before a migration that will need it pauses anything."""
-        self.call(self.modules[name].worker, "ready_to_publish", **self._publishing())
+        """Bind module ``name``'s publishing sockets now (``Wiring.ready_to_publish``)."""
+        self.wiring.ready_to_publish(name)
 
     def publish(self, links: list[FlatLink]) -> list[Endpoint]:
-        """The writing half: publish each link's output (once per output, whoever reads
-        it), the workers asked side by side; the endpoints (data address, control
-        address, sender incarnation); None for a writer whose worker restarts (it
-        publishes anew then: ``republished``)."""
-        for link in links:
-            self.outbound[link.key] = link
-        answers = self._side_by_side([
-            None if self._restarting(self.modules[link.src]) else _Request(
-                self.modules[link.src].worker, "publish_out",
-                {"key": link.key, "src": link.src, "src_port": link.src_port,
-                 # the reader's ring, which the writer checks each value against
-                 "room": ring_size(self.modules[link.src].spec.cls, link.src_port,
-                                   link.policy),
-                 **self._publishing()}) for link in links])
-        return [None if answer is None else tuple(answer) for answer in answers]
+        """The writing halves of remote links (``Wiring.publish``)."""
+        return self.wiring.publish(links)
 
-    def _publishing(self) -> dict[str, Any]:
+    def publishing(self) -> dict[str, Any]:
         """What a worker publishes with: the cluster key, this node's address, the epoch."""
         return {"secret": self.key.secret, "host": self.host, "epoch": self.epoch}
 
     def unpublish(self, links: list[FlatLink]) -> list[Reached]:
-        """Stop publishing for each link; the sequence number its sender reached and the
-        sender's incarnation ((0, None) if its worker is gone)."""
-        for link in links:
-            self.outbound.pop(link.key, None)
-        answers = self._side_by_side([self._unlink_request(link, link.src, "unpublish_out")
-                                      for link in links])
-        return [answer or (0, None) for answer in answers]
+        """Stop publishing for each link (``Wiring.unpublish``)."""
+        return self.wiring.unpublish(links)
 
     def unacknowledged(self, link: FlatLink, reader: bytes) -> int:
-        """How many values of ``link``'s output the follower ``reader`` of a lost node has
-        not acknowledged; the writer forgets it (``Replicator.forget``)."""
-        src = self.modules.get(link.src)
-        if link.key not in self.outbound or src is None or not self._alive(src.worker):
-            return 0
-        return self.call(src.worker, "unacknowledged_out", key=link.key, reader=reader)
+        """What a lost follower never acknowledged (``Wiring.unacknowledged``)."""
+        return self.wiring.unacknowledged(link, reader)
 
     def open_inbound(self, links: list[tuple[FlatLink, RingSize | None]]) -> None:
-        """The reading halves: each link's ring (of ``size``; None: the link's ring
-        exists already) attached in its reader's worker, the workers asked side by side,
-        then fed by the bridge."""
-        rings = {}
-        for link, size in links:
-            self.inbound[link.key] = link
-            rings[link.key] = self._ring(link.key, size)
-        self._side_by_side([None if self._restarting(self.modules[link.dst]) else _Request(
-            self.modules[link.dst].worker, "link_in", {
-                "key": link.key, "dst": link.dst, "dst_port": link.dst_port,
-                "ring": rings[link.key].name, "policy": str(link.policy)})
-            for link, _ in links])
-        for link, _ in links:
-            self.bridge.open(link.key, _topic(link), rings[link.key].name,
-                             self.workers[self.modules[link.dst].worker].bell)
+        """The reading halves of remote links (``Wiring.open_inbound``)."""
+        self.wiring.open_inbound(links)
 
     def follow(self, links: list[tuple[FlatLink, Endpoint]]) -> None:
-        """Receive each link's output from the sender at its endpoint (see ``publish``)."""
-        self.bridge.follow([(_topic(link), *endpoint) for link, endpoint in links])
+        """Receive each link's output from its sender (``Wiring.follow``)."""
+        self.wiring.follow(links)
 
     def close_inbound(self, links: list[tuple[FlatLink, Reached]]) -> list[int]:
-        """Stop receiving each link once the values before the sequence number given
-        are in (all within one ``READY_TIMEOUT``), if they come from the sender the
-        bridge follows (see ``Bridge.close``), then detach their rings from the readers
-        side by side; per link, how many values its sender announced that never came."""
-        deadline = time.monotonic() + capped(READY_TIMEOUT)
-        missing = []
-        for link, (reached, sender) in links:
-            self.inbound.pop(link.key, None)
-            missing.append(self.bridge.close(link.key, reached,
-                                             max(0.0, deadline - time.monotonic()), sender))
-        self._side_by_side([self._unlink_request(link, link.dst, "unlink_in")
-                            for link, _ in links])
-        for link, _ in links:
-            self._close_ring(link)
-        return missing
+        """Stop receiving remote links (``Wiring.close_inbound``)."""
+        return self.wiring.close_inbound(links)
 
     # -- figures ---------------------------------------------------------------
     def report(self, timeout: float = REPORT_TIMEOUT) -> NodeReport:
@@ -776,9 +616,7 @@ class Executor:
                    for name, record in self.modules.items()}
         rings = {key: ring.get("used", 0) for report in reports.values()
                  for key, ring in report.get("rings", {}).items()}
-        lost = {key: self.bridge.link_failures(_topic(link))
-                for key, link in self.inbound.items()}
-        drops = {key: self.bridge.drops(_topic(link)) for key, link in self.inbound.items()}
+        lost, drops = self.wiring.inbound_losses()
         return NodeReport(modules, rings, lost, self.failures.lines(), self.meter.sample(),
                           len(self.workers.spare_pids()), drops)
 
@@ -877,19 +715,8 @@ class Executor:
         return _within(self.lock, what, timeout) if held is None else held(what, timeout)
 
     def rewire(self, revived: set[str]) -> None:
-        """Attach every link of restarted modules again, in the worker that replaced theirs."""
-        links = list(self.links.values())
-        self._side_by_side([self._reader_request(link) for link in links
-                            if link.dst in revived and self.modules[link.src].status != "failed"])
-        self._side_by_side([self._writer_request(link) for link in links
-                            if link.src in revived and self.modules[link.dst].status != "failed"])
-        # (a remote link's ring is kept: no size needed)
-        self.open_inbound([(link, None) for link in self.inbound.values()
-                           if link.dst in revived])
-        republishing = [link for link in self.outbound.values() if link.src in revived]
-        for link, endpoint in zip(republishing, self.publish(republishing), strict=True):
-            if self.republished is not None and endpoint is not None:
-                self.republished(link, endpoint)
+        """Attach every link of restarted modules again (``Wiring.rewire``)."""
+        self.wiring.rewire(revived)
 
     def fail(self, name: str, code: int | None, reason: str) -> None:
         """Module ``name`` will not run again by itself: record and say why, and unhook
@@ -898,17 +725,7 @@ class Executor:
         record.status = "failed"
         self.failures.add(f"module {name} failed (worker exit code {code}); {reason}")
         self.tell("module_failed", name, exit_code=code, reason=reason)
-        # Writers into a dead reader would only fill its ring: unhook them.
-        for link in list(self.links.values()):
-            src = self.modules.get(link.src)
-            if link.dst == name and src is not None and self._alive(src.worker):
-                try:
-                    self.call(src.worker, "unlink_out", key=link.key)
-                except (RuntimeFailure, RuntimeTimeout) as exc:     # (its writer goes on)
-                    log.warning("link %s: its writer was not unhooked: %s", link.key, exc)
-        for link in list(self.inbound.values()):
-            if link.dst == name:
-                self.bridge.close(link.key)
+        self.wiring.unhook(name)
 
     def tell(self, kind: str, name: str, **detail: Any) -> None:
         """Report an event about module ``name`` to ``on_event`` (the system's log)."""
@@ -950,9 +767,7 @@ class Executor:
             self.workers.close(max(0.0, deadline - time.monotonic()))
             if self._bridge is not None:
                 self._bridge.shutdown()
-            for ring in list(self.rings.values()):
-                ring.close()
-            self.rings.clear()
+            self.wiring.close()
 
 
 @contextlib.contextmanager
@@ -981,11 +796,6 @@ def _class_blob(spec: FlatModule) -> bytes:
                 f" (class attributes {', '.join(map(repr, names))}: make what holds a "
                 "lock, a file or a socket in setup(), under a name beginning with '_')"
                 if names else "")]) from None
-
-
-def _topic(link: FlatLink) -> str:
-    """The topic a remote link's output is published under."""
-    return f"{link.src}.{link.src_port}"
 
 
 def _import_quietly(modules: tuple[str, ...], lane: ImportLane) -> None:

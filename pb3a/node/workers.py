@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 import cloudpickle
 
 from pb3a.config.description import DEFAULT_SPARES
+from pb3a.deadline import capped
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
 from pb3a.node import forkserver_owner
@@ -226,6 +227,16 @@ class WorkerHandle:
                 if end is not None:
                     with contextlib.suppress(OSError):
                         end.close()
+
+
+@dataclass(frozen=True)
+class WorkerRequest:
+    """One request to a worker, to be sent beside others (``WorkerPool.side_by_side``)."""
+
+    worker: str
+    op: str
+    args: dict[str, Any]
+    fd: int | None = None             # a descriptor sent right behind it
 
 
 @dataclass
@@ -452,6 +463,32 @@ class WorkerPool:
                     f"{op!r} for worker {handle.key!r}: its arguments cannot be pickled: "
                     f"{type(exc).__name__}: {exc}"))
         return future
+
+    def side_by_side(self, requests: list[WorkerRequest | None]) -> list[Any]:
+        """Send every request (None: nothing to do), then wait for every answer, all
+        within one ``REQUEST_TIMEOUT`` (or the deadline of the call in progress); the
+        answers in order (None for None), or the first error once all have answered or
+        the time is up. A worker takes its requests in order."""
+        sent = [None if request is None else
+                (request, self.submit(request.worker, request.op, _fd=request.fd,
+                                      **request.args))
+                for request in requests]
+        deadline = time.monotonic() + capped(REQUEST_TIMEOUT)
+        answers: list[Any] = []
+        failure: BaseException | None = None
+        for pending in sent:
+            answers.append(None)
+            if pending is None:
+                continue
+            request, future = pending
+            try:
+                answers[-1] = self.result(future, request.op, request.worker,
+                                          max(0.0, deadline - time.monotonic()))
+            except (RuntimeFailure, RuntimeTimeout) as exc:
+                failure = failure or exc
+        if failure is not None:
+            raise failure
+        return answers
 
     def result(self, future: Future[Any], op: str, key: str, timeout: float) -> Any:
         """The answer ``future`` holds within ``timeout``, else ``RuntimeTimeout``."""
