@@ -83,17 +83,82 @@ def test_a_connection_offers_what_launch_offers_with_the_same_errors() -> None:
 
 
 def test_connect_tells_no_answer_a_wrong_key_and_a_bad_address_apart() -> None:
-    with pytest.raises(ValueError, match="looks like tcp://HOST:PORT"):
-        pb3a.connect("127.0.0.1:7300")
+    with pytest.raises(ValueError, match="give tcp://HOST:PORT \\(or HOST:PORT\\)"):
+        pb3a.connect("127.0.0.1")
     started = time.monotonic()
     with pytest.raises(RuntimeTimeout, match=r"no PB3A launcher answered at tcp://127\.0\.0\.1:1 "
                                              r"within 1 s"):
-        pb3a.connect("tcp://127.0.0.1:1", timeout=1.0)
+        pb3a.connect("127.0.0.1:1", timeout=1.0)       # (as the command line takes it too)
     assert time.monotonic() - started < 3
     with _system().launch() as run:
         with pytest.raises(RuntimeFailure, match="runs with another cluster key"):
             pb3a.connect(run.listen(), key=os.urandom(32).hex())
         eventually(lambda: run.state("relay")["relayed"] > 0, what="the system unharmed")
+
+
+def test_a_connection_to_a_system_that_stopped_says_so_at_once() -> None:
+    """Each call waited out its deadline (35 s by default) and then said nothing listens
+    there: a monitoring script hung 35 s per call once the system had stopped. It is told
+    ``SystemStopped`` about a second after the launcher closed its end."""
+    run = System("stopping").add("scale", Scale).launch()
+    try:
+        connection = pb3a.connect(run.listen())
+        assert "gain" in connection.state("scale")
+    finally:
+        run.close()
+    with connection:
+        for _ in range(2):                  # (the second knows at once)
+            started = time.monotonic()
+            with pytest.raises(pb3a.SystemStopped, match=r"'stopping' at tcp://.* has stopped"):
+                connection.state("scale")
+            assert time.monotonic() - started < 5
+
+
+KILLED_LAUNCHER = """
+import sys, time
+from sample_modules import Scale
+from pb3a import System
+with System("killed").add("scale", Scale).launch() as run:
+    print(run.listen(), flush=True)
+    time.sleep(120)
+"""
+
+
+def test_a_call_waiting_when_the_launcher_dies_fails_soon_with_system_stopped() -> None:
+    """The launcher killed with SIGKILL answers nothing: a follower waiting for events
+    (up to 30 s) is told ``SystemStopped`` within seconds, not at its deadline."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "tests"), str(REPO)])}
+    launcher = subprocess.Popen([sys.executable, "-c", KILLED_LAUNCHER], env=env,
+                                stdout=subprocess.PIPE, text=True)
+    try:
+        address = launcher.stdout.readline().strip()
+        assert address.startswith("tcp://"), address
+        with pb3a.connect(address) as connection:
+            workers = [m.pid for m in connection.stats().modules.values()]
+            outcome: list[object] = []
+
+            def follow() -> None:
+                began = time.monotonic()
+                try:
+                    connection.events(10**6, timeout=30.0)
+                except Exception as exc:
+                    outcome[:] = [exc, time.monotonic() - began]
+            follower = threading.Thread(target=follow)
+            follower.start()
+            time.sleep(0.3)                 # (its request waiting at the launcher)
+            launcher.kill()
+            follower.join(15)
+            assert not follower.is_alive(), "the follower waited on"
+            error, took = outcome
+            assert isinstance(error, pb3a.SystemStopped), error
+            assert took < 8, took
+        eventually(lambda: not any(psutil.pid_exists(pid) for pid in workers), timeout=15,
+                   what="the killed launcher's workers ended")
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+        launcher.wait(10)
+        launcher.stdout.close()
 
 
 def test_topology_describes_the_structure_alike_through_launch_and_connect() -> None:

@@ -43,7 +43,7 @@ def _act(name: str, run: Callable[[Connection, argparse.Namespace], Any],
     try:
         # a --timeout below the connection's own wait bounds it too (it waited 5 s)
         wait = CONNECT_TIMEOUT if args.timeout is None else min(CONNECT_TIMEOUT, args.timeout)
-        with connect(_address(args.address), timeout=wait) as system:
+        with connect(args.address, timeout=wait) as system:
             shown = run(system, args)
     except (PB3AError, ClusterKeyError, ValueError) as exc:
         print(f"pb3a {name}: {exc}", file=sys.stderr)
@@ -215,16 +215,6 @@ def _follow(fetch: Callable[[int, float], list[Any]], line: Callable[[Any], str]
                   flush=True)
         if not args.follow:
             return
-
-
-def _address(text: str) -> str:
-    """``tcp://HOST:PORT``, also from ``HOST:PORT``; ValueError saying what is wrong."""
-    address = text if "://" in text else f"tcp://{text}"
-    host, colon, port = address.removeprefix("tcp://").rpartition(":")
-    if not address.startswith("tcp://") or not colon or not host or not port.isdigit():
-        raise ValueError(f"{text!r} is not a launcher's address: give tcp://HOST:PORT (or "
-                         "HOST:PORT), as pb3a run prints it")
-    return address
 
 
 def _values(pairs: list[str]) -> tuple[dict[str, Any], list[str]]:

@@ -10,12 +10,12 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from pb3a.errors import RuntimeFailure, RuntimeTimeout
+from pb3a.errors import RuntimeFailure, RuntimeTimeout, SystemStopped
 from pb3a.launch.handle import SystemHandle
 from pb3a.launch.operations import DEFAULT_TIMEOUT
-from pb3a.transport.addresses import unknown_host
+from pb3a.transport.addresses import launcher_address, unknown_host
 from pb3a.transport.auth import ClusterKey
-from pb3a.transport.control import ControlClient
+from pb3a.transport.control import GONE_S, ControlClient
 
 CONNECT_TIMEOUT = 5.0       # a launcher answers a ping at once, or is not there
 _MARGIN = 5.0               # the wire's deadline beyond the operation's own
@@ -23,12 +23,15 @@ _MARGIN = 5.0               # the wire's deadline beyond the operation's own
 
 def connect(address: str, *, key: ClusterKey | bytes | str | None = None,
             timeout: float = CONNECT_TIMEOUT) -> Connection:
-    """The running system whose launcher listens at ``address`` ("tcp://host:port").
+    """The running system whose launcher listens at ``address`` ("tcp://HOST:PORT", as
+    ``pb3a run`` prints it, or "HOST:PORT").
 
     ``key`` is the cluster key material (as ``PB3A_KEY`` holds it) or a ``ClusterKey``;
     by default the one ``PB3A_KEY``, ``PB3A_KEY_FILE`` or ``~/.pb3a/cluster.key`` gives. Raises
     ``RuntimeTimeout`` when nothing answers within ``timeout`` and ``RuntimeFailure``
-    when the launcher refuses the key, each saying what to check.
+    when the launcher refuses the key, each saying what to check. Once connected, a
+    launcher whose process ends fails the calls waiting for it and every later one
+    with ``SystemStopped``, about a second after it closed the connection.
     """
     return Connection(address, key=key, timeout=timeout)
 
@@ -38,15 +41,13 @@ class Connection(SystemHandle):
 
     def __init__(self, address: str, *, key: ClusterKey | bytes | str | None = None,
                  timeout: float = CONNECT_TIMEOUT) -> None:
-        if not address.startswith("tcp://"):
-            raise ValueError(f"a launcher's address looks like tcp://HOST:PORT (pb3a run "
-                             f"prints it), got {address!r}")
+        address = launcher_address(address)
         deadline = time.monotonic() + timeout
         unknown = unknown_host(address, timeout)
         if unknown is not None:
             raise RuntimeFailure(f"{unknown}: check the address (pb3a run prints it)")
         self.address = address
-        self._client = ControlClient(_key(key), address)
+        self._client = ControlClient(_key(key), address, when_gone=self._stopped)
         try:
             described = self._client.call("describe", max(0.0, deadline - time.monotonic()))
         except RuntimeTimeout:
@@ -61,6 +62,13 @@ class Connection(SystemHandle):
         # what a call without ``timeout=`` waits there: the system's default, which its
         # file or launch() may set longer than the library's
         self.timeout: float = described.get("timeout", DEFAULT_TIMEOUT)
+
+    def _stopped(self) -> SystemStopped:
+        """What a call says once the launcher has closed the connection for good."""
+        return SystemStopped(
+            f"system {getattr(self, 'name', '?')!r} at {self.address} has stopped: its "
+            f"launcher closed the connection and nothing has listened there for "
+            f"{GONE_S:g} s (the launcher's process ended)")
 
     def _carry(self, op: str, args: dict[str, Any]) -> Any:
         wait = args.get("timeout")

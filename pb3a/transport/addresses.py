@@ -61,6 +61,17 @@ def default_route_host() -> str:
         return "127.0.0.1"
 
 
+def launcher_address(text: str) -> str:
+    """``tcp://HOST:PORT``, also from ``HOST:PORT`` (a launcher's control server, as
+    ``pb3a run`` prints it); ValueError saying what is wrong."""
+    address = text if "://" in text else f"tcp://{text}"
+    host, colon, port = address.removeprefix("tcp://").rpartition(":")
+    if not address.startswith("tcp://") or not colon or not host or not port.isdigit():
+        raise ValueError(f"{text!r} is not a launcher's address: give tcp://HOST:PORT (or "
+                         "HOST:PORT), as pb3a run prints it")
+    return address
+
+
 def host_of(address: str) -> str:
     """The host of ``[tcp://]HOST:PORT`` as written (an IPv6 host in its brackets, as
     an address is composed again from it); ``.strip("[]")`` for the bare host."""

@@ -43,6 +43,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 import zmq
+from zmq.utils.monitor import recv_monitor_message
 
 from pb3a.errors import PB3AError, RuntimeFailure, RuntimeTimeout
 from pb3a.transport import pickling
@@ -71,6 +72,10 @@ _REFUSAL_HINTS = {
 }
 MAX_MESSAGE = 64 * 1024 * 1024          # control messages carry states and code, not streams
 DEFAULT_TIMEOUT = 10.0
+# A server that closed the client's connection, with nothing taking a connection there
+# since for this long, is gone (see ``ControlClient``'s ``when_gone``); a server that
+# runs takes ZeroMQ's reconnection within milliseconds
+GONE_S = 1.0
 ANSWER_LINGER_MS = 500                   # how long a closing server gives its last answers
 ASIDE_ANSWER_S = 1.0                     # ... and its requests running aside to give theirs
 
@@ -291,9 +296,16 @@ def _undecodable(exc: Exception, what: str, reader: str) -> str:
 
 
 class ControlClient:
-    """Calls one ``ControlServer``; ``call`` may be used from any number of threads."""
+    """Calls one ``ControlServer``; ``call`` may be used from any number of threads.
 
-    def __init__(self, key: ClusterKey, address: str, *, epoch: int = 0) -> None:
+    With ``when_gone``, a server that closes the connection (its process ended, or it
+    closed its socket) with nothing taking a connection there again within ``GONE_S``
+    fails every call waiting and every later one, with the error ``when_gone`` makes,
+    rather than at each call's deadline. A server cut off by the network closes
+    nothing: its calls still end at their deadlines."""
+
+    def __init__(self, key: ClusterKey, address: str, *, epoch: int = 0,
+                 when_gone: Callable[[], PB3AError] | None = None) -> None:
         self.address = address
         self._dealer, _ = _attached(zmq.DEALER, lambda sock: sock.connect(numeric(address)))
         self._loop = SocketLoop("pb3a-control-client", self._dealer.context)
@@ -308,6 +320,14 @@ class ControlClient:
         self.refused = ""                    # why the server refused our requests, if it did
         self._closed = False
         self._loop.register(self._dealer, self._on_reply)
+        self._when_gone = when_gone
+        self._lost_at: float | None = None   # when the server closed our connection
+        self._gone = False                   # ... and nothing took one there in GONE_S
+        self._monitor: zmq.Socket | None = None
+        if when_gone is not None:
+            self._monitor = self._dealer.get_monitor_socket(
+                zmq.EVENT_CONNECTED | zmq.EVENT_DISCONNECTED)
+            self._loop.register(self._monitor, self._on_connection)
 
     def call(self, op: str, timeout: float = DEFAULT_TIMEOUT, **args: Any) -> Any:
         """Run ``op`` at the server; its result, or ``RuntimeFailure`` with its error,
@@ -321,6 +341,8 @@ class ControlClient:
         the module's runtime can cancel it (``RuntimeCancelled``)."""
         if self.refused == "bad tag":           # it will not change its mind
             raise RuntimeFailure(self._refusal(op))
+        if self._gone and self._when_gone is not None:
+            raise self._when_gone()
         request_id = _ID.pack(next(self._ids))
         blob = pickling.dumps((op, args))
         done, box = _Done(wait), [False, None]
@@ -392,6 +414,25 @@ class ControlClient:
             except Exception:
                 self._opener.rejected["undecodable"] += 1
 
+    def _on_connection(self, monitor: zmq.Socket) -> None:
+        """The connection to the server was made, or closed by it (socket thread)."""
+        while monitor.poll(0):
+            event = recv_monitor_message(monitor)["event"]
+            if event == zmq.EVENT_CONNECTED:
+                self._lost_at, self._gone = None, False
+            elif event == zmq.EVENT_DISCONNECTED and self._lost_at is None:
+                self._lost_at = time.monotonic()
+                self._loop.later(GONE_S, self._look_for_server)
+
+    def _look_for_server(self) -> None:
+        """``GONE_S`` after the server closed the connection: if nothing has taken one
+        since, it is gone, and the calls waiting for it fail (socket thread)."""
+        if self._lost_at is None or time.monotonic() - self._lost_at < GONE_S \
+                or self._when_gone is None:
+            return
+        self._gone = True
+        self.fail_pending(self._when_gone())
+
     def _refused(self, reason: str) -> None:
         """The server could not open our requests: every one waiting fails now."""
         if reason not in _REFUSAL_HINTS:
@@ -412,9 +453,10 @@ class ControlClient:
             return None
         return time.monotonic() - started
 
-    def fail_pending(self, reason: str) -> None:
+    def fail_pending(self, reason: str | PB3AError) -> None:
         """Make every call waiting for an answer fail now with ``reason`` (the server is
-        known to be gone: nobody should wait out a deadline for it)."""
+        known to be gone: nobody should wait out a deadline for it); an error is raised
+        as it is."""
         for done, box in list(self._waiting.values()):
             box[:] = [False, reason]
             done.set()
@@ -424,6 +466,9 @@ class ControlClient:
         self._closed = True
         self.fail_pending("this client was closed while it waited")
         self._loop.close()
+        if self._monitor is not None:
+            self._dealer.disable_monitor()
+            self._monitor.close(0)
         self._dealer.close(0)
 
 
