@@ -1647,12 +1647,15 @@ def test_a_worker_whose_executor_reads_nothing_never_waits_to_send(tmp_path, cap
 def test_a_node_whose_report_is_late_shows_its_modules_silent() -> None:
     """``stats(timeout=...)`` waits for each node's report within the caller's timeout;
     a node whose report is late (its executor busy, its link slow) has its modules as
-    its last report had them, silent, not dropped from the figures."""
+    its last report had them, silent, not dropped from the figures; one that came to it
+    since that report (added, moved or failed over there) is shown too (it was left
+    out: a failover test beside two busy loops found its module missing)."""
     system = System("late-node").node("a").node("b")
     system.add("here", Steady, node="a")
     system.add("late", Steady, node="b")
     with system.launch() as run:
         pid = eventually(lambda: run.stats().modules["late"].pid, what="b's report")
+        run.add("newcomer", Steady, node="b")
         node = run._launcher.nodes["b"]
         answered, report = threading.Event(), node.report
         node.report = lambda timeout: answered.wait(10) and report(timeout)
@@ -1666,4 +1669,7 @@ def test_a_node_whose_report_is_late_shows_its_modules_silent() -> None:
     late = stats.modules["late"]
     assert (late.silent, late.pid, late.node, late.status, late.steps) == (
         True, pid, "b", "running", 0)
+    newcomer = stats.modules["newcomer"]
+    assert (newcomer.silent, newcomer.pid, newcomer.node, newcomer.cls) == (
+        True, None, "b", "sample_modules:Steady")
     assert stats.modules["here"].steps > 0 and not stats.modules["here"].silent

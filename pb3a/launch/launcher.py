@@ -499,7 +499,8 @@ class Launcher:
         for name in asked.keys() - given.keys():
             if not self._silent(name) and name in self._last_reports:
                 log.warning("node %s did not report within %g s", name, timeout)
-                given[name] = _silenced(self._last_reports[name])
+                placed = [spec for spec in self.specs.values() if spec.node == name]
+                given[name] = _silenced(self._last_reports[name], name, placed)
         return given
 
     def _silent(self, name: str) -> bool:
@@ -673,11 +674,17 @@ def _link_table(links: dict[str, FlatLink], modules: dict[str, ModuleStats],
     return table
 
 
-def _silenced(report: NodeReport) -> NodeReport:
-    """``report``'s modules as a node that did not answer in time shows them: where they
-    run, silent, no figures of their own."""
-    modules = {name: ModuleStats(entry.cls, entry.node, entry.worker, entry.status,
-                                 entry.pid, silent=True, restarts=entry.restarts,
-                                 checkpoints=entry.checkpoints)
-               for name, entry in report.modules.items()}
+def _silenced(report: NodeReport, node: str, placed: list[FlatModule]) -> NodeReport:
+    """The modules ``placed`` on ``node`` as it shows them when it did not answer in
+    time: silent, no figures of their own, as its last ``report`` had them; one that
+    came since (a failover, a move) as the launcher has it, running with no process
+    known (it was left out of the figures)."""
+    modules = {}
+    for spec in placed:
+        entry = report.modules.get(spec.name)
+        modules[spec.name] = ModuleStats(
+            class_ref(spec.cls), node, "", "running", silent=True) if entry is None \
+            else ModuleStats(entry.cls, entry.node, entry.worker, entry.status, entry.pid,
+                             silent=True, restarts=entry.restarts,
+                             checkpoints=entry.checkpoints)
     return NodeReport(modules, {}, {}, [], None, report.spare_workers)
