@@ -752,7 +752,10 @@ def test_a_move_whose_pause_outlasts_its_timeout_returns_in_time_where_it_was(
         monkeypatch.setattr(Executor, "pause", real_pause)
         assert took < 1.0 + MOVE_SLACK_S, took
         assert "ran out while pausing relay at node a" in str(error), str(error)
-        assert "nothing moved: relay runs on node a as before" in str(error)
+        # (undoing the move, which drops the instance prepared at b and its worker, is
+        # done by the call's end, or goes on a moment after it on a loaded machine)
+        assert ("nothing moved: relay runs on node a as before" in str(error)
+                or "nothing moved: relay stays on node a" in str(error)), str(error)
         assert run.where("relay") == "a"
         relayed = eventually(lambda: run.state("relay", timeout=2)["relayed"],
                              what="a read of relay")
