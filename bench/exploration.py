@@ -39,7 +39,7 @@ from agents.occupancy import OccupancyGrid
 from rave import World
 from rave.layers import WALL_RADIUS
 from rave.pioneer import RADIUS
-from scenarios.lab import world_file
+from rave.worldfile import world_file
 
 TICK = 0.1
 CONTACT = RADIUS + WALL_RADIUS

@@ -47,7 +47,7 @@ from agents.learner import SUCCESS, Parameters, ReactiveLearner  # noqa: E402
 from agents.transfer import success_rate  # noqa: E402
 from rave import worldfile  # noqa: E402
 from rave.world import World  # noqa: E402
-from scenarios.lab import world_file  # noqa: E402
+from rave.worldfile import world_file  # noqa: E402
 from scenarios.sim_to_real import (  # noqa: E402
     CONFIG,
     GOALS,

@@ -1,4 +1,4 @@
-"""The ``rave`` command: serve a world and its robots, inject faults, render.
+"""The rave command: serve a world and its robots, inject faults, render.
 
     rave start WORLD [--seed N] [--listen HOST] [--rate R | --lockstep]
                                       step WORLD in real time (or R times it, or
@@ -30,7 +30,7 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rave", description=__doc__.split("\n")[0])
     commands = parser.add_subparsers(required=True, metavar="COMMAND")
     start = commands.add_parser("start", help="serve a world and one server per robot")
-    start.add_argument("world", help="a world file (TOML)")
+    start.add_argument("world", help="a world file (TOML), or a bundled world's name (lab ...)")
     start.add_argument("--seed", type=seed, default=0, help="0 or more (default 0)")
     start.add_argument("--listen", default="127.0.0.1", metavar="HOST",
                        help="the interface to serve on (default 127.0.0.1)")
@@ -50,7 +50,7 @@ def _parser() -> argparse.ArgumentParser:
                        help="how long to wait for the robot server (default 5)")
     fault.set_defaults(handler=fault_command)
     render = commands.add_parser("render", help="draw a world to an image")
-    render.add_argument("world", help="a world file (TOML)")
+    render.add_argument("world", help="a world file (TOML), or a bundled world's name")
     render.add_argument("-o", "--output", default=None, help="image file (default WORLD.png)")
     render.set_defaults(handler=render_command)
     return parser
@@ -60,10 +60,10 @@ def start_command(args: argparse.Namespace) -> int:
     from pb3a.cli.daemons import serve_until_signalled
     from rave.server import RobotServers, WorldServer
     from rave.world import World
-    from rave.worldfile import WorldError
+    from rave.worldfile import WorldError, world_file
 
     try:
-        world = World.load(args.world, seed=args.seed)
+        world = World.load(world_file(args.world), seed=args.seed)
     except WorldError as exc:
         print(f"rave start: {exc}", file=sys.stderr)
         return 1
@@ -132,7 +132,7 @@ def render_command(args: argparse.Namespace) -> int:
 
     from rave.render import render
     from rave.world import World
-    from rave.worldfile import WorldError
+    from rave.worldfile import WorldError, world_file
 
     output = Path(args.output or Path(args.world).with_suffix(".png").name)
     formats = FigureCanvasBase.get_supported_filetypes()
@@ -144,7 +144,7 @@ def render_command(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 1
     try:
-        world = World.load(args.world)
+        world = World.load(world_file(args.world))
     except WorldError as exc:
         print(f"rave render: {exc}", file=sys.stderr)
         return 1

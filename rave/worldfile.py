@@ -41,6 +41,7 @@ from typing import Any
 from rave.camera import rgb
 from rave.robot import BACKENDS
 
+WORLDS = Path(__file__).resolve().parent / "worlds"     # the bundled worlds
 TOP = ("name", "size", "walls", "boxes", "polygons", "robots")
 KEYS = {"walls": ("from", "to", "virtual"),
         "boxes": ("center", "size", "angle", "virtual", "color"),
@@ -54,6 +55,20 @@ class WorldError(ValueError):
     def __init__(self, problems: list[str]) -> None:
         self.problems = problems
         super().__init__("\n".join(problems))
+
+
+def world_file(name: str) -> Path:
+    """A bundled world by name (``lab``, ``arena``, ...) or a path to a world file;
+    ``WorldError`` naming the bundled worlds for a name that is neither."""
+    path = Path(name)
+    if path.suffix == ".toml" or path.exists():
+        return path
+    bundled = WORLDS / f"{name}.toml"
+    if not bundled.exists():
+        known = ", ".join(sorted(p.stem for p in WORLDS.glob("*.toml")))
+        raise WorldError([f"no world {name!r}: the bundled worlds are {known}, or give the "
+                          "path of a world file"])
+    return bundled
 
 
 @dataclass(frozen=True)

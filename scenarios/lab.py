@@ -22,23 +22,10 @@ from typing import Any
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 from rave.server import RobotServers, WorldProcess
+from rave.worldfile import world_file
 
-WORLDS = Path(__file__).resolve().parent.parent / "rave" / "worlds"
 START_TIMEOUT = 30.0          # seconds for a node controller to say where it listens
 CALL_TIMEOUT = 5.0
-
-
-def world_file(name: str) -> Path:
-    """A bundled world by name (``lab``, ``arena``, ...) or a path to a world file."""
-    path = Path(name)
-    if path.suffix == ".toml" or path.exists():
-        return path
-    bundled = WORLDS / f"{name}.toml"
-    if not bundled.exists():
-        known = ", ".join(sorted(p.stem for p in WORLDS.glob("*.toml")))
-        raise ValueError(f"no world {name!r}: the bundled worlds are {known}, or give the "
-                         "path of a world file")
-    return bundled
 
 
 class NodeControllerProcess:

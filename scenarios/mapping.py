@@ -51,8 +51,9 @@ from pb3a import Input, InputPort, Module, System
 from pb3a.cli.arguments import seed
 from pb3a.cli.log_output import show_logs
 from rave import World
+from rave.worldfile import world_file
 from scenarios import output_directory, summary
-from scenarios.lab import Lab, wait_until, world_file
+from scenarios.lab import Lab, wait_until
 
 CONFIG = Path(__file__).with_name("mapping.toml")
 PHASES = {"full": (150.0, 150.0), "quick": (45.0, 40.0)}   # s: mapping before the fault

@@ -104,6 +104,7 @@ class Mover(Agent):
     strikes = 0
     moved_at: list[float] = []
     moved_to: list[str] = []
+    seen: dict[str, float] = {}       # the outside loads it saw last, per node (percent)
     warmup_s = 1.0
 
     def setup(self) -> None:
@@ -121,6 +122,7 @@ class Mover(Agent):
 
     def on_input(self, port: InputPort) -> None:
         load = {"a": self.outside_a.read(0.0), "b": self.outside_b.read(0.0)}
+        self.seen = load
         if time.monotonic() - self._started < self.warmup_s or not self.enabled:
             return
         if self._moving is not None:
@@ -168,6 +170,7 @@ def run_once(adaptive: bool, phases: tuple[float, float, float]) -> dict[str, An
         load_on = time.monotonic()
         with CPULoad({0: 100.0}, burners_per_cpu=STRESS_PROCESSES):
             wait_until(load_on + loaded)
+            seen = run.state("mover")["seen"]          # (as the load ends)
         load_off = time.monotonic()
         wait_until(load_off + after)
         sink, mover = run.state("sink"), run.state("mover")
@@ -175,8 +178,21 @@ def run_once(adaptive: bool, phases: tuple[float, float, float]) -> dict[str, An
     return {"start": start, "load_on": load_on, "load_off": load_off,
             "end": load_off + after, "arrivals": sink["arrivals"],
             "latencies": sink["latencies"], "moved_at": mover["moved_at"],
-            "moved_to": mover["moved_to"],
+            "moved_to": mover["moved_to"], "seen_loaded": seen,
             "compute_node_at_end": node}
+
+
+def no_move_reason(seen: dict[str, float]) -> str:
+    """Why the agent made no move, from the outside loads it saw as the load ended."""
+    a, b = seen.get("a", 0.0), seen.get("b", 0.0)
+    rule = (f"it moves compute off node a (CPU 0) once a is over {Mover.busy_pct:g} % busy "
+            f"from outside the system and node b (CPU 1) at least {Mover.margin_pct:g} "
+            f"points less; as the load ended it saw a at {a:.0f} % and b at {b:.0f} %")
+    if a <= Mover.busy_pct:
+        return f"{rule}: the load on CPU 0 did not show (is CPU 0 this process's to load?)"
+    if b >= a - Mover.margin_pct:
+        return f"{rule}: something else on this machine keeps CPU 1 busy too"
+    return f"{rule}: it saw that too briefly ({Mover.patience} samples in a row are needed)"
 
 
 def windows(record: dict[str, Any]) -> list[dict[str, float]]:
@@ -271,12 +287,17 @@ def main(argv: list[str] | None = None) -> int:
                         "moves": len(r["moved_at"]),
                         "migrated_after_load_s": [round(m - r["load_on"], 2)
                                                   for m in r["moved_at"]],
+                        "outside_load_seen_pct": {node: round(load, 1) for node, load
+                                                  in r["seen_loaded"].items()},
                         "compute_node_at_end": r["compute_node_at_end"]}
                  for name, r in records.items()}}
     if plot(records, out / "self_migration.png"):
         report["plot"] = str(out / "self_migration.png")
     (out / "self_migration.json").write_text(json.dumps(report, indent=2))
     print(json.dumps(report, indent=2))
+    if not records["adaptive"]["moved_at"]:
+        print(f"self_migration: the agent made no move: "
+              f"{no_move_reason(records['adaptive']['seen_loaded'])}", file=sys.stderr)
     return 0
 
 

@@ -20,6 +20,14 @@ pytestmark = pytest.mark.timeout(60)
 REPO = Path(__file__).resolve().parent.parent
 
 
+def test_key_new_says_to_set_the_whole_path_of_a_key_made_here(tmp_path, capsys,
+                                                                  monkeypatch) -> None:
+    """It said to set PB3A_KEY_FILE=k.key, which names no file from another directory."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["key", "new", "k.key"]) == 0
+    assert f"set PB3A_KEY_FILE={tmp_path / 'k.key'}" in capsys.readouterr().out
+
+
 def test_key_new_writes_a_private_key_once(tmp_path, capsys) -> None:
     path = tmp_path / "cluster.key"
     assert main(["key", "new", str(path)]) == 0

@@ -127,6 +127,17 @@ def test_arguments_that_do_not_parse_get_the_usage(argv, capsys) -> None:
     assert err.startswith("usage: pb3a") and "error:" in err
 
 
+def test_state_given_before_the_positionals_says_where_it_goes(capsys) -> None:
+    """`--state` took ADDR, NAME and the class as its pairs, and argparse then said they
+    were missing, though they were given."""
+    with pytest.raises(SystemExit) as stopped:
+        main(["add", "--state", "gain=7", "tcp://h:1", "m", "m:C"])
+    assert stopped.value.code == 2
+    assert ("argument --state: 'tcp://h:1' is not NAME=VALUE: --state takes the words after "
+            "it up to the next option, so give it after the command's ADDR, NAME and class"
+            ) in capsys.readouterr().err
+
+
 def test_a_key_of_the_wrong_length_is_a_sentence(tmp_path, capsys, monkeypatch) -> None:
     """... said before anything starts: `pb3a run` started its nodes' workers (and the
     process's forkserver, which every later worker inherits the bad key from) first."""

@@ -628,9 +628,26 @@ def test_unknown_node(tmp_path: Path) -> None:
         node = "c"
     """)
     assert problems == ["sys.toml [modules.src]: unknown node 'c'; declared nodes: a, b "
-                        "(add [nodes.c] or use one of them)"]
+                        "(add a [nodes.c] table or use one of them)"]
     problems = problems_of(tmp_path, TWO.replace('Src"', 'Src"\nnode = "a"'))
     only(problems, "[modules.src]: unknown node 'a'", "declares no nodes", "add a [nodes.a]")
+
+
+def test_an_unknown_node_is_named_in_the_words_the_system_was_described_in() -> None:
+    """A system described in Python was told to add a TOML table."""
+    problems = System("py").add("src", Scale, node="zzz").check()
+    only(problems, "unknown node 'zzz'", "declares no nodes", "add system.node('zzz') or leave "
+         "'node' out")
+    problems = System("py").node("a").add("src", Scale, node="zzz").check()
+    only(problems, "unknown node 'zzz'", "declared nodes: a (add system.node('zzz') or use one "
+         "of them)")
+
+
+def test_a_dotted_class_reference_suggests_both_readings() -> None:
+    with pytest.raises(ValueError, match=re.escape(
+            "here probably 'examples:pipeline', or 'examples.pipeline:Class' if "
+            "examples.pipeline is the module")):
+        resolve_class("examples.pipeline")
 
 
 def test_fallback_names_declared_nodes_in_order(tmp_path: Path) -> None:

@@ -370,6 +370,12 @@ def test_the_rave_command_serves_a_world_injects_faults_and_renders(tmp_path, ca
         process.stdout.close()
     assert cli.main(["render", "rave/worlds/lab.toml", "-o", str(tmp_path / "lab.png")]) == 0
     assert (tmp_path / "lab.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # a bundled world by its name, as the scenarios take it (it was "[Errno 2]")
+    assert cli.main(["render", "room", "-o", str(tmp_path / "room.png")]) == 0
+    assert (tmp_path / "room.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert cli.main(["render", "rooom", "-o", str(tmp_path / "x.png")]) == 1
+    assert ("no world 'rooom': the bundled worlds are arena, lab, room, or give the path of a "
+            "world file") in capsys.readouterr().err
 
 
 def test_the_rave_command_names_a_mistake_instead_of_a_traceback(tmp_path, capsys) -> None:

@@ -36,6 +36,17 @@ def test_the_agent_moves_compute_off_the_loaded_node_while_it_is_loaded() -> Non
     assert adaptive["arrivals"][-1] > adaptive["load_off"]           # values still flow
 
 
+@pytest.mark.parametrize(("seen", "why"), [
+    ({"a": 97.0, "b": 91.0}, "something else on this machine keeps CPU 1 busy too"),
+    ({"a": 12.0, "b": 3.0}, "the load on CPU 0 did not show"),
+    ({"a": 97.0, "b": 4.0}, "it saw that too briefly")])
+def test_self_migration_says_why_its_agent_made_no_move(seen, why) -> None:
+    """A run with no move said nothing of why: the agent, rightly, saw both CPUs busy."""
+    reason = self_migration.no_move_reason(seen)
+    assert f"saw a at {seen['a']:.0f} % and b at {seen['b']:.0f} %" in reason
+    assert why in reason
+
+
 def test_the_scenario_command_names_the_scenarios(capsys) -> None:
     assert main(["scenario", "no-such-thing"]) == 2
     assert "the scenarios: mapping, self-migration, sim-to-real, traffic" in capsys.readouterr().err
@@ -95,7 +106,7 @@ def test_mapping_times_the_hand_off_by_the_standby_robots_readings_not_the_faile
     # the control system has moved (1.5 s after the failure was detected), are no hand-off
     from agents.grid import Grid
     from rave import World
-    from scenarios.lab import world_file
+    from rave.worldfile import world_file
 
     with World.load(world_file("lab")) as world:
         described, size = world.describe(), world.size

@@ -1,4 +1,4 @@
-"""Types of the commands' numeric options (seconds, seeds), for ``argparse``: a value
+"""Types of the commands' options (seconds, seeds, NAME=VALUE pairs), for ``argparse``: a value
 out of range is refused as the command line is read, with the usage and a sentence,
 never accepted to fail later (a NaN run length ran for no time; an infinite timeout
 overflowed a clock, with a traceback; a seed of -1 ended in numpy's)."""
@@ -34,6 +34,16 @@ def seed(text: str, most: int | None = None) -> int:
             f"{text!r} is not a seed: give a whole number, 0 or more"
             + ("" if most is None else f" and at most {most}"))
     return value
+
+
+def state_pair(text: str) -> str:
+    """A ``NAME=VALUE`` pair of ``--state``, which takes every word up to the next option:
+    one without "=" is the command's ADDR or another positional, given after it."""
+    if "=" not in text:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not NAME=VALUE: --state takes the words after it up to the next "
+            "option, so give it after the command's ADDR, NAME and class")
+    return text
 
 
 def _seconds(text: str, words: str, ok: Callable[[float], bool]) -> float:

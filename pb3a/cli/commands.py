@@ -102,7 +102,8 @@ def _running_system(commands: argparse._SubParsersAction) -> None:
     add.add_argument("--period", type=arguments.wait_seconds, metavar="SECONDS",
                      help="its step period (0: as fast as it can)")
     add.add_argument("--state", nargs="*", default=[], metavar="NAME=VALUE",
-                     help="its initial state, as for `pb3a set`")
+                     type=arguments.state_pair,
+                     help="its initial state, as for `pb3a set` (after the class)")
     remove = command("remove", "stop and remove a module", ("module", "the module's name"))
     remove.add_argument("--force", action="store_true",
                         help="kill its worker if it does not answer its stop within the "

@@ -29,5 +29,5 @@ def key_new_command(args: argparse.Namespace) -> int:
         print(f"pb3a key new: cannot create {path}: {exc.strerror}", file=sys.stderr)
         return 1
     print(f"wrote a new cluster key to {path} (mode 0600); copy it to each host, readable "
-          f"only by the user who runs pb3a there, and set {KEY_FILE_ENV}={path}")
+          f"only by the user who runs pb3a there, and set {KEY_FILE_ENV}={path.resolve()}")
     return 0

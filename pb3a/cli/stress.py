@@ -97,7 +97,8 @@ def stress_command(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 1
     print(f"pb3a stress: wrote {out / 'stress.json'}"
-          + (f" and {out / 'stress.png'}" if drawn else " (no PNG: matplotlib is missing)"))
+          + (f" and {out / 'stress.png'}" if drawn
+             else " (no PNG: matplotlib is missing; pip install 'pb3a[plot]')"))
     if any(mark["kind"] == "interrupted" for mark in report["marks"]):
         print("pb3a stress: the report covers the run until it was interrupted",
               file=sys.stderr)

@@ -313,12 +313,14 @@ class _Planner:
         return []
 
     def unknown_node(self, node: object) -> str:
+        # (said in the words of where the system was described: a file, or Python)
+        declare = (f"a [nodes.{node}] table" if self.spec.source is not None
+                   else f"system.node({node!r})")
         if not self.spec.nodes:
             return (f"unknown node {node!r}: the system declares no nodes, so everything runs on "
-                    f"{DEFAULT_NODE!r}; add a [nodes.{node}] table or leave 'node' out")
+                    f"{DEFAULT_NODE!r}; add {declare} or leave 'node' out")
         return (f"unknown node {node!r}{checks.did_you_mean(node, self.node_names)}; declared "
-                f"nodes: {checks.listing(self.node_names)} (add [nodes.{node}] or use one of "
-                "them)")
+                f"nodes: {checks.listing(self.node_names)} (add {declare} or use one of them)")
 
     # -- phase 3: recursion ------------------------------------------------
     def break_recursion(self, definition: Definition, stack: list[Definition]) -> None:

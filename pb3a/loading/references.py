@@ -56,7 +56,7 @@ def resolve_class(ref: str | type, *, watch: ImportWatch | None = None) -> type:
         hint = "e.g. 'examples.pipeline:Ticker'"
         if ":" not in ref and "." in ref:
             module, _, name = ref.rpartition(".")
-            hint = f"here probably '{module}:{name}'"
+            hint = f"here probably '{module}:{name}', or '{ref}:Class' if {ref} is the module"
         raise ValueError(f"bad class reference {ref!r}: use 'module:Class', {hint}")
     module_name, _, attr_path = ref.partition(":")
     before, _importing.ref = importing_for(), ref
