@@ -99,14 +99,17 @@ def test_connect_tells_no_answer_a_wrong_key_and_a_bad_address_apart() -> None:
 def test_a_connection_to_a_system_that_stopped_says_so_at_once() -> None:
     """Each call waited out its deadline (35 s by default) and then said nothing listens
     there: a monitoring script hung 35 s per call once the system had stopped. It is told
-    ``SystemStopped`` about a second after the launcher closed its end."""
+    ``SystemStopped`` about a second after the launcher closed its end, and ``wait()``
+    returns then (a connection had no ``wait``)."""
     run = System("stopping").add("scale", Scale).launch()
     try:
         connection = pb3a.connect(run.listen())
         assert "gain" in connection.state("scale")
+        assert not connection.wait(0.2) and connection.running
     finally:
         run.close()
     with connection:
+        assert connection.wait(5) and not connection.running      # as Running.wait does
         for _ in range(2):                  # (the second knows at once)
             started = time.monotonic()
             with pytest.raises(pb3a.SystemStopped, match=r"'stopping' at tcp://.* has stopped"):

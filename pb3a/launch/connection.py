@@ -75,6 +75,17 @@ class Connection(SystemHandle):
         deadline = (self.timeout if wait is None else wait) + _MARGIN
         return self._client.request(op, args, deadline)
 
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until ``timeout`` seconds pass or the system stops (its launcher closed
+        the connection for good: calls raise ``SystemStopped`` from then on); True if it
+        stopped."""
+        return self._client.gone.wait(timeout)
+
+    @property
+    def running(self) -> bool:
+        """False once the system has stopped, as ``wait`` sees it."""
+        return not self._client.gone.is_set()
+
     def close(self) -> None:
         """Close the connection (the system goes on)."""
         self._client.close()

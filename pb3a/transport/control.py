@@ -322,7 +322,7 @@ class ControlClient:
         self._loop.register(self._dealer, self._on_reply)
         self._when_gone = when_gone
         self._lost_at: float | None = None   # when the server closed our connection
-        self._gone = False                   # ... and nothing took one there in GONE_S
+        self.gone = threading.Event()        # ... and nothing took one there in GONE_S
         self._monitor: zmq.Socket | None = None
         if when_gone is not None:
             self._monitor = self._dealer.get_monitor_socket(
@@ -341,7 +341,7 @@ class ControlClient:
         the module's runtime can cancel it (``RuntimeCancelled``)."""
         if self.refused == "bad tag":           # it will not change its mind
             raise RuntimeFailure(self._refusal(op))
-        if self._gone and self._when_gone is not None:
+        if self.gone.is_set() and self._when_gone is not None:
             raise self._when_gone()
         request_id = _ID.pack(next(self._ids))
         blob = pickling.dumps((op, args))
@@ -419,7 +419,8 @@ class ControlClient:
         while monitor.poll(0):
             event = recv_monitor_message(monitor)["event"]
             if event == zmq.EVENT_CONNECTED:
-                self._lost_at, self._gone = None, False
+                self._lost_at = None
+                self.gone.clear()
             elif event == zmq.EVENT_DISCONNECTED and self._lost_at is None:
                 self._lost_at = time.monotonic()
                 self._loop.later(GONE_S, self._look_for_server)
@@ -430,7 +431,7 @@ class ControlClient:
         if self._lost_at is None or time.monotonic() - self._lost_at < GONE_S \
                 or self._when_gone is None:
             return
-        self._gone = True
+        self.gone.set()
         self.fail_pending(self._when_gone())
 
     def _refused(self, reason: str) -> None:
