@@ -61,7 +61,7 @@ def world_file(name: str) -> Path:
     """A bundled world by name (``lab``, ``arena``, ...) or a path to a world file;
     ``WorldError`` naming the bundled worlds for a name that is neither."""
     path = Path(name)
-    if path.suffix == ".toml" or path.exists():
+    if path.suffix == ".toml" or path.is_file():     # (a directory named lab is not one)
         return path
     bundled = WORLDS / f"{name}.toml"
     if not bundled.exists():

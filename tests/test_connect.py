@@ -115,6 +115,8 @@ def test_a_connection_to_a_system_that_stopped_says_so_at_once() -> None:
             with pytest.raises(pb3a.SystemStopped, match=r"'stopping' at tcp://.* has stopped"):
                 connection.state("scale")
             assert time.monotonic() - started < 5
+    connection.close()                      # (again: nothing more, as Running.close)
+    assert connection.wait(None)            # (closed: at once)
 
 
 KILLED_LAUNCHER = """

@@ -239,11 +239,13 @@ def _swap_into(run: Any, cls: str, outcome: list[Any]) -> None:
         outcome[:] = [exc, time.monotonic() - began]
 
 
-def test_the_process_that_tries_an_import_may_take_the_import_s_whole_timeout_to_begin(
+def test_the_process_that_tries_an_import_may_take_half_the_import_s_timeout_to_begin(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Its start is the machine's doing, not the module's: a swap given 30 s was refused
     once its child had not begun within ``START_TIMEOUT_S`` (10 s), beside a full test
-    run on two busy cores. It may take the import's whole timeout, if that is longer."""
+    run on two busy cores. It may take half the import's timeout, if that is longer
+    (the other half is the import's own: a start that took it all had the module
+    blamed for the time its import did not get)."""
     import pb3a.loading.trial as trial
 
     (tmp_path / "begins_late.py").write_text("VALUE = 1\n")

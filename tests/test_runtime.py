@@ -788,3 +788,12 @@ def test_an_agent_s_runtime_call_carries_its_timeout_and_refuses_a_bad_one() -> 
         with pytest.raises((TypeError, ValueError), match=r"runtime\.state: timeout must be"):
             client.state("other", timeout=bad)
     assert len(asked) == 3
+
+
+def test_the_figures_of_a_node_without_remote_links_make_no_bridge() -> None:
+    """A report read every remote link's losses from the node's bridge, which it made on
+    first use even with none: a thread, sockets, and the cluster key loaded (one that
+    another user could read failed the report, and stats() showed no module)."""
+    with System("no-bridge").add("scale", Scale).launch() as run:
+        assert "scale" in run.stats().modules
+        assert run._launcher.nodes["local"]._bridge is None

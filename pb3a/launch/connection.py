@@ -78,7 +78,9 @@ class Connection(SystemHandle):
     def wait(self, timeout: float | None = None) -> bool:
         """Block until ``timeout`` seconds pass or the system stops (its launcher closed
         the connection for good: calls raise ``SystemStopped`` from then on); True if it
-        stopped."""
+        stopped. A closed connection sees nothing more: it answers at once."""
+        if self._client.closed:
+            return self._client.gone.is_set()
         return self._client.gone.wait(timeout)
 
     @property

@@ -28,7 +28,7 @@ from pb3a.loading.import_child import IMPORT_EACH, Child, exit_status, hung
 from pb3a.loading.references import ImportRefused, ImportWatch
 from pb3a.loading.served import module_servers
 
-START_TIMEOUT_S = 10.0      # a child may take this long to begin, or an import's timeout if longer
+START_TIMEOUT_S = 10.0      # a child may take this long to begin, or half an import's timeout
 EXIT_WAIT_S = 1.0           # how long a child that ended its answers may take to exit
 WROTE_CHARS = 300           # of what a child wrote last, in the sentence saying how it ended
 
@@ -65,8 +65,8 @@ def import_problems(modules: Iterable[str], timeout: float, *, longer: str,
     do ("did not finish within 10 s: ..."; ``longer``: how to give it more time). A
     module that imported, or raised, is not among them. ``deadline`` (of
     ``time.monotonic()``) bounds the whole; a child that cannot begin by then (or within
-    ``timeout``, or ``START_TIMEOUT_S`` if that is longer) leaves the modules it did not
-    try with that problem.
+    ``START_TIMEOUT_S``, or half of ``timeout`` if that is longer) leaves the modules it
+    did not try with that problem.
 
     A module refused is refused again at once, saying the same, while its file is
     unchanged and until ``forget``: one that ended the child always, one that hung for
@@ -155,9 +155,10 @@ def _tried(modules: list[str], timeout: float, longer: str,
     try:
         while True:
             # a slow start is the machine's, not the module's: a short timeout gets
-            # ``START_TIMEOUT_S`` for it, a long one all of itself (a swap given 30 s
-            # was refused after 10 beside a full test run on two busy cores)
-            wait = timeout if importing is not None else max(timeout, START_TIMEOUT_S)
+            # ``START_TIMEOUT_S`` for it, a long one half of itself, the other half
+            # left to the import (a swap given 30 s was refused after 10 beside a full
+            # test run on two busy cores)
+            wait = timeout if importing is not None else max(timeout / 2, START_TIMEOUT_S)
             if deadline is not None:
                 wait = max(0.0, min(wait, deadline - time.monotonic()))
             try:

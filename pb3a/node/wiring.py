@@ -258,6 +258,8 @@ class Wiring:
 
     def inbound_losses(self) -> tuple[dict[str, int], dict[str, int]]:
         """Per remote link read here: the link failures and the drops its bridge counted."""
+        if not self.inbound:
+            return {}, {}           # (the bridge is made on first use: not for a report)
         bridge = self._node.bridge
         lost = {key: bridge.link_failures(topic(link)) for key, link in self.inbound.items()}
         drops = {key: bridge.drops(topic(link)) for key, link in self.inbound.items()}

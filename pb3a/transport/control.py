@@ -319,15 +319,15 @@ class ControlClient:
         self._instance = _NOBODY                    # the server's, once it has said it
         self.refused = ""                    # why the server refused our requests, if it did
         self._closed = False
-        self._loop.register(self._dealer, self._on_reply)
         self._when_gone = when_gone
         self._lost_at: float | None = None   # when the server closed our connection
         self.gone = threading.Event()        # ... and nothing took one there in GONE_S
         self._monitor: zmq.Socket | None = None
-        if when_gone is not None:
+        if when_gone is not None:            # (before the loop thread uses the dealer)
             self._monitor = self._dealer.get_monitor_socket(
                 zmq.EVENT_CONNECTED | zmq.EVENT_DISCONNECTED)
             self._loop.register(self._monitor, self._on_connection)
+        self._loop.register(self._dealer, self._on_reply)
 
     def call(self, op: str, timeout: float = DEFAULT_TIMEOUT, **args: Any) -> Any:
         """Run ``op`` at the server; its result, or ``RuntimeFailure`` with its error,
@@ -341,8 +341,6 @@ class ControlClient:
         the module's runtime can cancel it (``RuntimeCancelled``)."""
         if self.refused == "bad tag":           # it will not change its mind
             raise RuntimeFailure(self._refusal(op))
-        if self.gone.is_set() and self._when_gone is not None:
-            raise self._when_gone()
         request_id = _ID.pack(next(self._ids))
         blob = pickling.dumps((op, args))
         done, box = _Done(wait), [False, None]
@@ -351,6 +349,8 @@ class ControlClient:
         try:
             if self._closed:      # (checked once registered: close fails what it finds)
                 raise RuntimeFailure(f"{op!r} to {self.address}: this client is closed")
+            if self.gone.is_set() and self._when_gone is not None:     # (the same)
+                raise self._when_gone()
             self._loop.submit(lambda: self._send(request_id))
             if not done.answered(timeout):
                 raise RuntimeTimeout(
@@ -428,6 +428,10 @@ class ControlClient:
     def _look_for_server(self) -> None:
         """``GONE_S`` after the server closed the connection: if nothing has taken one
         since, it is gone, and the calls waiting for it fail (socket thread)."""
+        # the loop runs its timers before it reads its sockets: a reconnection not read
+        # yet would have a live server taken for gone
+        if self._monitor is not None:
+            self._on_connection(self._monitor)
         if self._lost_at is None or time.monotonic() - self._lost_at < GONE_S \
                 or self._when_gone is None:
             return
@@ -462,8 +466,16 @@ class ControlClient:
             box[:] = [False, reason]
             done.set()
 
+    @property
+    def closed(self) -> bool:
+        """Whether ``close`` was called."""
+        return self._closed
+
     def close(self) -> None:
-        """Stop; a call still waiting for its answer fails now, and so does any later."""
+        """Stop; a call still waiting for its answer fails now, and so does any later.
+        Closing again does nothing."""
+        if self._closed:
+            return
         self._closed = True
         self.fail_pending("this client was closed while it waited")
         self._loop.close()
