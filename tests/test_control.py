@@ -427,3 +427,37 @@ def test_sockets_connect_to_a_name_by_its_address_resolved_once() -> None:
     finally:
         client.close()
         server.close()
+
+
+class _Gone(RuntimeFailure):
+    """What ``when_gone`` makes in these tests."""
+
+
+def test_a_client_told_of_a_gone_server_fails_its_calls_once_nothing_listens_there() -> None:
+    """``when_gone``: a server that closed the connection, with nothing taking one there
+    within ``GONE_S``, fails the call waiting and the next; one that comes back on the
+    same port within that second, while the client's loop was too busy to read the
+    reconnection before its timer (the loop runs timers first), is not taken for gone."""
+    server = ControlServer(KEY, handler)
+    client = ControlClient(KEY, server.address, when_gone=lambda: _Gone("gone"))
+    try:
+        assert client.call("add", a=1, b=1) == 2
+        port = int(server.address.rpartition(":")[2])
+        server.close()
+        server = ControlServer(KEY, handler, port=port)         # back at once
+        client._loop.submit(lambda: time.sleep(1.3))            # the loop held busy
+        assert client.call("add", timeout=5, a=2, b=2) == 4     # not gone
+        assert not client.gone.is_set()
+        server.close()
+        started = time.monotonic()
+        with pytest.raises(_Gone):
+            client.call("block", timeout=10)
+        assert time.monotonic() - started < 5
+        with pytest.raises(_Gone):
+            client.call("add", a=1, b=1)                         # at once
+    finally:
+        release.set()
+        client.close()
+        client.close()                                           # (again: nothing more)
+        server.close()
+        release.clear()
