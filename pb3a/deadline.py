@@ -67,3 +67,9 @@ def before_answer(seconds: float) -> float:
     gives up ``ANSWER_MARGIN_S`` (a quarter of a short wait) before, so that its answer
     arrives while it is still waited for."""
     return seconds - min(ANSWER_MARGIN_S, seconds / 4)
+
+
+def spoken(seconds: float) -> str:
+    """Seconds to two figures, as a person says them, for a message about a wait: what
+    is left of a caller's deadline, 0.999 s of 1 s, is "1"; 120 s is not "1.2e+02"."""
+    return f"{float(f'{seconds:.2g}'):g}"

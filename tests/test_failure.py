@@ -412,9 +412,9 @@ def test_an_add_whose_module_blocks_in_its_construction_keeps_its_timeout(
 def test_a_worker_timeout_says_its_seconds_as_a_person_would() -> None:
     """What is left of a caller's deadline, 0.999 s of 1 s, was said "0.999 s", and,
     written to two figures, 120 s was "1.2e+02 s"."""
-    from pb3a.node.workers import _said
+    from pb3a.deadline import spoken
 
-    assert [_said(s) for s in (0.999, 0.3, 2.5, 10.0, 99.6, 120.0, 0.05)] == [
+    assert [spoken(s) for s in (0.999, 0.3, 2.5, 10.0, 99.6, 120.0, 0.05)] == [
         "1", "0.3", "2.5", "10", "100", "120", "0.05"]
 
 

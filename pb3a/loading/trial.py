@@ -24,6 +24,7 @@ import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
+from pb3a.deadline import spoken
 from pb3a.loading.import_child import IMPORT_EACH, Child, exit_status, hung
 from pb3a.loading.references import ImportRefused, ImportWatch
 from pb3a.loading.served import module_servers
@@ -166,7 +167,8 @@ def _tried(modules: list[str], timeout: float, longer: str,
             except TimeoutError:
                 how = hung(timeout, longer) if importing is not None else (
                     f"could not be tried: the process that tries imports did not begin "
-                    f"within {wait:.3g} s (is this machine overloaded?); try again, or {longer}")
+                    f"within {spoken(wait)} s (is this machine overloaded?); try again, or "
+                    f"{longer}")
                 break
             if said is not None and "done" in said:
                 return None, "", False

@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any
 import cloudpickle
 
 from pb3a.config.description import DEFAULT_SPARES
-from pb3a.deadline import capped
+from pb3a.deadline import capped, spoken
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
 from pb3a.node import forkserver_owner
@@ -505,14 +505,14 @@ class WorkerPool:
             self._futures.pop(future.pb3a_request, None)   # type: ignore[attr-defined]
             future.cancel()                     # (done: no answer will ever come)
             raise RuntimeTimeout(
-                f"worker {key!r} read nothing of {op!r} within {_said(timeout)} s, so it was "
+                f"worker {key!r} read nothing of {op!r} within {spoken(timeout)} s, so it was "
                 "withdrawn and will not run: the worker reads nothing from its pipe "
                 "(stopped, starved, or stuck in a call), or not fast enough for what "
                 "was sent before; its log and `pb3a status` may say which")
         if future.done():                        # (it died meanwhile, say)
             return future.result()
         raise RuntimeTimeout(
-            f"worker {key!r} did not answer {op!r} within {_said(timeout)} s: a module there "
+            f"worker {key!r} did not answer {op!r} within {spoken(timeout)} s: a module there "
             "is stuck in a long call (step, on_input, setup), or its machine is "
             "overloaded; its log and `pb3a status` may say which")
 
@@ -723,8 +723,3 @@ class WorkerPool:
             log.info("the forkserver (pid %s) had not finished its preload: stopped",
                      stopped)
 
-
-def _said(seconds: float) -> str:
-    """Seconds to two figures, as a person says them: what is left of a caller's
-    deadline, 0.999 s of 1 s, is 1 s; 120 s is not 1.2e+02."""
-    return f"{float(f'{seconds:.2g}'):g}"

@@ -45,6 +45,7 @@ from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 import zmq
 from zmq.utils.monitor import recv_monitor_message
 
+from pb3a.deadline import spoken
 from pb3a.errors import PB3AError, RuntimeFailure, RuntimeTimeout
 from pb3a.transport import pickling
 from pb3a.transport.addresses import bind_advertised, close_bound, numeric
@@ -354,7 +355,7 @@ class ControlClient:
             self._loop.submit(lambda: self._send(request_id))
             if not done.answered(timeout):
                 raise RuntimeTimeout(
-                    f"{self.address} did not answer {op!r} within {timeout:.3g} s: nothing "
+                    f"{self.address} did not answer {op!r} within {spoken(timeout)} s: nothing "
                     "listens there, it is cut off, or it is busy; check the address and "
                     "that the process runs and its port is open")
         finally:
