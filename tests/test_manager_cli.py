@@ -107,6 +107,9 @@ def test_the_command_attaches_to_a_running_system_shows_it_and_changes_it() -> N
     (["no-such.toml"], "no file 'no-such.toml'"),
     (["--listen", "nowhere"], "--listen 'nowhere': give HOST:PORT"),
     (["tcp://127.0.0.1:1"], "no PB3A launcher answered at tcp://127.0.0.1:1"),
+    # HOST:PORT, as pb3a run prints it, is an address too (it was looked for as a file)
+    (["127.0.0.1:1"], "no PB3A launcher answered at tcp://127.0.0.1:1"),
+    (["system.tom"], "no file 'system.tom'"),
 ])
 def test_a_mistake_gets_one_sentence_and_exit_status_1(args, words, capsys) -> None:
     pytest.importorskip("uvicorn", reason="the manager needs the 'ui' extra")

@@ -230,7 +230,7 @@ def _manager(commands: argparse._SubParsersAction) -> None:
                         "change a system live")
     manager.add_argument("target", nargs="?", metavar="FILE | ADDR",
                          help="a configuration (.toml) to edit and launch, or the address "
-                              "tcp://HOST:PORT of a running system's launcher (default: a "
+                              "[tcp://]HOST:PORT of a running system's launcher (default: a "
                               "new, empty document)")
     manager.add_argument("--listen", default=MANAGER_LISTEN, metavar="HOST:PORT",
                          help=f"where the app listens (default {MANAGER_LISTEN}: loopback, "

@@ -1,7 +1,7 @@
 """``pb3a manager [FILE | ADDR]``: serve the ModuleManager and State Editor.
 
 No argument: an empty document to build a system in. ``FILE``: a configuration to
-edit and launch from the page. ``ADDR`` (``tcp://HOST:PORT``, what ``pb3a run``
+edit and launch from the page. ``ADDR`` (``[tcp://]HOST:PORT``, what ``pb3a run``
 prints): attach to a running system through its launcher. The app listens on
 loopback by default and prints its URL with a new token; Ctrl-C or SIGTERM stop it,
 and the system it launched, cleanly.
@@ -63,14 +63,15 @@ def _serve(args: argparse.Namespace, host: str, port: int) -> int:
     try:
         if target is None:
             session = Session(Document.empty(), **options)
-        elif target.startswith("tcp://"):   # (a --timeout under 5 s bounds the connecting too)
-            system = connect(target, timeout=min(CONNECT_TIMEOUT, args.timeout))
+        elif Path(target).is_file():
+            session = Session(Document.open(target), **options)
+        elif (address := _launcher(target)) is not None:
+            # (a --timeout under 5 s bounds the connecting too)
+            system = connect(address, timeout=min(CONNECT_TIMEOUT, args.timeout))
             session = Session(Document.empty(), system, owns_handle=True, **options)
         else:
-            if not Path(target).is_file():
-                return _fail(f"no file {target!r}: give a configuration file (.toml) or the "
-                             "address tcp://HOST:PORT of a running system")
-            session = Session(Document.open(target), **options)
+            return _fail(f"no file {target!r}: give a configuration file (.toml) or the "
+                         "address [tcp://]HOST:PORT of a running system")
     except ConfigError as exc:
         return _fail("; ".join(exc.problems) or str(exc))
     except (PB3AError, OSError, ValueError) as exc:
@@ -93,6 +94,19 @@ def _serve(args: argparse.Namespace, host: str, port: int) -> int:
     with sigterm_interrupts():     # uvicorn stops, then raises SIGTERM again: as Ctrl-C
         serve(create_app(session, access, args.refresh), sock)
     return 0
+
+
+def _launcher(target: str) -> str | None:
+    """``target`` as a launcher's address (``tcp://HOST:PORT`` or ``HOST:PORT``, as
+    ``pb3a run`` prints it), or None when it is not one (then it names a file)."""
+    from pb3a.transport.addresses import launcher_address
+
+    if target.endswith(".toml"):
+        return None
+    try:
+        return launcher_address(target)
+    except ValueError:
+        return None
 
 
 def listen_address(text: str) -> tuple[str, int]:
