@@ -35,6 +35,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import numbers
 import os
 import re
 import string
@@ -132,10 +133,24 @@ class CaseBase:
                               "settings": self.settings})
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> CaseBase:
-        """The base ``to_dict`` gave, sharing nothing with ``data``."""
+    def from_dict(cls, data: dict[str, Any], where: str = "case_base") -> CaseBase:
+        """The base ``to_dict`` gave, sharing nothing with ``data``. ``CaseFileError``
+        names (as ``where``) what does not fit, checked as a file's cases are: a case
+        base set in a module's state went unchecked, and failed at its first failure
+        with a bare ``KeyError``."""
         data = copy.deepcopy(data)
-        return cls([Case(**case) for case in data["cases"]], data["settings"])
+        if not (isinstance(data, dict) and isinstance(data.get("cases"), list)
+                and isinstance(data.get("settings"), dict)):
+            raise CaseFileError(f"{where}: give what CaseBase.to_dict() gives: "
+                                "{'cases': [...], 'settings': {file: {...}}}")
+        for source, settings in data["settings"].items():
+            _check_settings(f"{where} (the settings of {source})", settings)
+        sources = [case.pop("source", "") if isinstance(case, dict) else ""
+                   for case in data["cases"]]
+        cases = _cases(where, data["cases"])
+        for case, source in zip(cases, sources, strict=True):
+            case.source = source
+        return cls(cases, data["settings"])
 
     # -- settings ------------------------------------------------------------------------
     def setting(self, name: str) -> float:
@@ -273,13 +288,17 @@ def _read(path: str) -> tuple[list[Case], dict[str, Any]]:
     _check_settings(path, settings)
     if not isinstance(raw_cases, list):
         raise CaseFileError(f"{path}: 'case' must be an array of tables: write [[case]]")
+    return _cases(path, raw_cases), settings
+
+
+def _cases(path: str, raw_cases: list[Any]) -> list[Case]:
     cases: list[Case] = []
     for number, raw in enumerate(raw_cases, 1):
         case = _case(path, number, raw)
         if any(case.id == other.id for other in cases):
             raise CaseFileError(f"{path}: case {case.id!r} is defined twice")
         cases.append(case)
-    return cases, settings
+    return cases
 
 
 def _check_settings(path: str, settings: dict[str, Any]) -> None:
@@ -298,7 +317,9 @@ def _check_settings(path: str, settings: dict[str, Any]) -> None:
                                     f"got {value!r}")
 
 
-def _case(path: str, number: int, raw: dict[str, Any]) -> Case:
+def _case(path: str, number: int, raw: Any) -> Case:
+    if not isinstance(raw, dict):
+        raise CaseFileError(f"{path}: case number {number} is not a table: {raw!r}")
     case_id = raw.get("id")
     if not isinstance(case_id, str) or not case_id:
         raise CaseFileError(f"{path}: case number {number} has no id (id = \"...\")")
@@ -367,10 +388,12 @@ def _toml_key(name: str) -> str:
 def _toml(value: Any) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
-    if isinstance(value, (int, float)):
+    if isinstance(value, numbers.Integral):
+        return repr(int(value))                 # (numpy's repr is no TOML)
+    if isinstance(value, numbers.Real):
         if not math.isfinite(value):
             raise ValueError(f"a case base holds finite numbers only, got {value!r}")
-        return repr(value)
+        return repr(float(value))
     if isinstance(value, str):
         # JSON's escapes are TOML's, except that TOML also forbids a raw DEL
         return json.dumps(value, ensure_ascii=False).replace("\x7f", "\\u007f")

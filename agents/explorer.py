@@ -199,7 +199,8 @@ class FrontierPlanner:
         degree cone, wider than the body, walling it in."""
         if probabilities.shape != self.grid.shape:
             raise ValueError(f"the map is {probabilities.shape} cells, the planner's grid "
-                             f"{self.grid.shape}: plan on the map's grid")
+                             f"{self.grid.shape}: give the explorer the size and "
+                             "resolution of the map it is fed (the Mapper's)")
         grid = self.grid
         classes = classify(probabilities)
         occupied, free = classes == OCCUPIED, classes == FREE
@@ -503,7 +504,7 @@ class FrontierExplorer:
         due = self.clock - self.planned_at >= self.replan_every
         if not self.target:       # at once, unless it is done: then on schedule
             return due or not self.done
-        if due:
+        if due or not len(self.path):   # (a target set without its path: plan one)
             return True
         end_x, end_y, _ = self.path[-1]
         if math.hypot(end_x - x, end_y - y) < self.arrive_within:
@@ -780,7 +781,7 @@ class Explorer(Module):
     period = 0.1
 
     resolution = 0.1               # m per cell, the mapper's
-    size = [10.0, 8.0]             # m, the world's width and height
+    size = [12.0, 9.0]             # m, the world's width and height (the Mapper's too)
     max_speed = 0.4                # m/s
     clearance = 0.1                # m kept between the robot's body and mapped walls
     replan_every = 2.0             # s

@@ -1,15 +1,17 @@
 """A world's true map, and how good a learnt map is against it.
 
 ``truth`` rasterizes a RAVE world's obstacles onto a ``Grid``: a cell is occupied if
-an obstacle's edge passes through it or it lies inside a closed obstacle, free
+an obstacle's edge passes within half a cell's diagonal of its centre (through it, or
+a wall along a cell border: on both sides) or it lies inside a closed obstacle, free
 otherwise. Virtual obstacles count by default: a hardware robot's hybrid sonar
 senses them like real ones, so a map learnt from it shows them. ``score`` compares a
 map with it:
 
 - *accuracy*: of the cells the map classifies (free or occupied), the share
   classified right. A cell the map calls occupied is right if the truth has an
-  occupied cell within ``tolerance`` cells of it: a wall's true cells are a
-  rasterization, and a sonar arc placed half a cell off is not a wrong map.
+  occupied cell within ``tolerance`` steps to a side cell of it (4-neighbours: with
+  1, the cell or one of the four beside it, not a diagonal one): a wall's true cells
+  are a rasterization, and a sonar arc placed half a cell off is not a wrong map.
 - *coverage*: of the free cells a robot could sense (free cells connected to where
   it starts), the share the map calls free.
 - *walls*: of the occupied cells that face that free space (the walls a robot could

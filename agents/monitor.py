@@ -59,6 +59,8 @@ if TYPE_CHECKING:
 log = logging.getLogger("agents.monitor")
 
 GROUPS = ("motors", "odometry", "sonar")
+# informative windows of normal running after which a group is watched, by default
+READY_WINDOWS = {"motors": 150, "odometry": 300, "sonar": 300}
 MOTORS, ODOMETRY, SONAR = range(len(GROUPS))
 FEATURES = ("v_residual", "w_residual", "drift_per_m",
             *(f"silent_sweep_{i}" for i in range(SONARS)))
@@ -338,8 +340,8 @@ class NormalModel:
 
 
 def check_vote(votes_needed: int, votes_of: int) -> None:
-    """ValueError unless an alarm's vote is k of n windows with 1 <= k <= n."""
-    if not 1 <= votes_needed <= votes_of:
+    """ValueError unless an alarm's vote is k of n windows, whole numbers, 1 <= k <= n."""
+    if not (whole(votes_needed, 1) and whole(votes_of, 1) and votes_needed <= votes_of):
         raise ValueError(f"an alarm needs votes_needed k of votes_of n windows, with "
                          f"1 <= k <= n, not {votes_needed} of {votes_of}")
 
@@ -455,7 +457,9 @@ class HardwareMonitor(Module):
     the history and alarms go: they were the old robot's), rather than read the jump
     as a fault (``robot_changes`` counts them)."""
 
-    command = Input(np.ndarray, shape=(2,), dtype="float64")     # v (m/s), w (rad/s)
+    # v (m/s), w (rad/s) as the robot was given them: link the driver's ``applied``
+    # (RobotDriver), not the controller's command, which the driver may have changed
+    command = Input(np.ndarray, shape=(2,), dtype="float64")
     odometry = Input(np.ndarray, shape=(3,), dtype="float64")
     sonar = Input(np.ndarray, shape=(SONARS,), dtype="float64")
     pose = Input(np.ndarray, shape=(3,), dtype="float64")         # localization (gps)
@@ -469,7 +473,8 @@ class HardwareMonitor(Module):
     # informative windows of normal running after which a group is watched: odometry
     # needs many, as its windows overlap and straight drives are few (with about 160,
     # 4 quick mapping runs in 15 raised a false odometry alarm)
-    ready_windows = {"motors": 150, "odometry": 300, "sonar": 300}
+    # (a group the state leaves out keeps this number)
+    ready_windows = READY_WINDOWS
     quantile = 0.999             # of normal running's evidence, for the thresholds ...
     margin = 10.0                # ... with this margin (nats)
     fault_prior = 0.01
@@ -591,7 +596,7 @@ class HardwareMonitor(Module):
         counts = self.training_informative[:self.collected].sum(axis=0)
         done = self.collected == len(self.training)
         ready = tuple(group for g, group in enumerate(GROUPS)
-                      if counts[g] >= max(10, self.ready_windows.get(group, 0))
+                      if counts[g] >= max(10, {**READY_WINDOWS, **self.ready_windows}[group])
                       or (done and counts[g] >= 10))
         if ready == tuple(self.watched) and not done:
             return
@@ -646,6 +651,26 @@ def _check_settings(state: dict[str, Any]) -> None:
     if windows or wrong:
         raise ValueError("HardwareMonitor: " + "; ".join(windows + wrong))
     check_vote(state["votes_needed"], state["votes_of"])
+    _check_model(state)
+
+
+def _check_model(state: dict[str, Any]) -> None:
+    """ValueError, naming it, for a model given in state (``NormalModel.state()``) that
+    does not fit: a misspelt group was never watched, and means of another length
+    failed at the first sample, in numpy's words."""
+    unknown = [group for group in state["watched"] if group not in GROUPS]
+    if unknown:
+        raise ValueError(f"HardwareMonitor: watched names no fault group "
+                         f"{', '.join(map(repr, unknown))}: the groups are {', '.join(GROUPS)}")
+    if not (state["trained"] or state["watched"]):
+        return                                     # (no model yet: it learns one)
+    sizes = {"means": (len(FEATURES), "feature"), "variances": (len(FEATURES), "feature"),
+             "thresholds": (len(GROUPS), "fault group")}
+    wrong = [f"{name} must hold {size} numbers, one per {per}, not {np.shape(state[name])}"
+             for name, (size, per) in sizes.items() if np.shape(state[name]) != (size,)]
+    if wrong:
+        raise ValueError("HardwareMonitor: the model given in state does not fit: "
+                         + "; ".join(wrong))
 
 
 class Wanderer:

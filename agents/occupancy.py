@@ -127,9 +127,12 @@ class OccupancyGrid:
 
     def update(self, pose: Any, ranges: Any) -> None:
         """Fold in one ring reading: ``ranges`` (16, m, Pioneer order; non-finite
-        readings are skipped) taken at ``pose`` (x, y, heading) in the world."""
+        readings are skipped) taken at ``pose`` (x, y, heading) in the world. A pose
+        that is not three finite numbers is refused (ValueError), nothing changed."""
         model, res = self.model, self.grid.resolution
         x, y, theta = (float(v) for v in pose)
+        if not all(map(math.isfinite, (x, y, theta))):
+            raise ValueError(f"a reading's pose must be finite (x, y, heading), not {pose!r}")
         ranges = np.array(ranges, dtype=np.float64)
         usable = np.isfinite(ranges)
         self.unfolded += 1
@@ -243,6 +246,7 @@ class Mapper(Module):
     unfolded = np.zeros(16)                     # see OccupancyGrid
     updates = 0
     last_update = 0.0                           # time.time() of the last update
+    unplaced = 0                                # readings skipped: their pose not finite
 
     def setup(self) -> None:
         self._build()
@@ -252,6 +256,10 @@ class Mapper(Module):
             return
         mapper = self._current()
         pose = self.pose.read()
+        if not np.isfinite(pose).all():          # (a localization that lost the robot)
+            self.sonar.read()
+            self.unplaced += 1
+            return
         mapper.update(pose, self.sonar.read())
         self.updates += 1
         self.last_update = time.time()

@@ -15,6 +15,8 @@ nothing of PB3A's runtime; ``RemedyAgent`` carries the plan out and watches it.
 from __future__ import annotations
 
 import dataclasses
+import math
+import numbers
 import re
 import time
 from dataclasses import dataclass
@@ -40,18 +42,29 @@ _CLASS_REF = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_][\w.]*$")
 def situation_of(failure: dict[str, Any], *, standby: bool,
                  consumed: bool = True) -> dict[str, Feature]:
     """The features of ``failure`` (a monitor's ``{"fault", "probability", "at",
-    "detail"}``): its fault, probability, how many sensors its detail names, whether a
-    standby robot is at hand, whether a module of the system reads the failed sensor
-    (``consumed``), and the detail's own numbers, strings and booleans."""
+    "detail"}``): its fault, probability, how many sensors failed, whether a standby
+    robot is at hand, whether a module of the system reads the failed sensor
+    (``consumed``), and the detail's own numbers (finite ones, as plain Python numbers,
+    numpy's too), strings and booleans.
+
+    How many sensors failed is the detail's ``failed_sensors`` if it says, else the
+    length of its longest list: a detail's lists run side by side, an entry per failed
+    sensor (the sonar monitor's ``sonars`` and ``silent_sweep``), so they are not added
+    up (3 dead transducers were counted as 6, and a case for many taken)."""
     detail = failure.get("detail") or {}
-    features: dict[str, Feature] = {
-        name: value for name, value in detail.items()
-        if isinstance(value, (str, bool, int, float))}
+    features: dict[str, Feature] = {}
+    for name, value in detail.items():
+        if isinstance(value, (str, bool)):
+            features[name] = value
+        elif isinstance(value, numbers.Integral):
+            features[name] = int(value)
+        elif isinstance(value, numbers.Real) and math.isfinite(value):
+            features[name] = float(value)
+    lists = [len(value) for value in detail.values() if isinstance(value, (list, tuple))]
     features.update(
         fault=str(failure.get("fault", "unknown")),
         probability=float(failure.get("probability", 1.0)),
-        failed_sensors=sum(len(value) for value in detail.values()
-                           if isinstance(value, (list, tuple))),
+        failed_sensors=features.get("failed_sensors", max(lists, default=0)),
         standby=standby, consumed=consumed)
     return features
 
@@ -425,8 +438,6 @@ class RemedyAgent(Agent):
         self.history = [*self.history, {key: action[key] for key in _HISTORY_KEYS}]
         self.history = self.history[-HISTORY_KEPT:]
         self._report("worked" if worked else "failed", now, action)
-        if action["case"]:
-            self._retain(action, worked, now)
         if action["remedy"]["action"] == "move_macro" and action["ended"] is not None:
             # failures reported before the move ended were about the robot left behind
             self.deferred = [f for f in self.deferred if f.get("at", now) >= action["ended"]]
@@ -434,6 +445,8 @@ class RemedyAgent(Agent):
             self._start(action["failure"], action["situation"],
                         Plan({"action": "stop", "driver": self.driver}, "", 0.0,
                              f"case {action['case']!r} failed: {outcome}"), now)
+        if action["case"]:          # (after the stop: nothing learnt may hold it up)
+            self._retain(action, worked, now)
 
     def _retain(self, action: dict[str, Any], worked: bool, now: float) -> None:
         match = Match(self._base.case(action["case"]), action["similarity"])

@@ -85,7 +85,8 @@ class TransferAgent(Agent):
     move: dict[str, Any] = {}       # the migration's pause_s, prepare_s and phases
     failed_moves = 0
     refused = ""                    # why the move can never be made, once the runtime said
-    lockstep_s = 0.0                # the driver's before the move, given back if it fails
+    lockstep_s: float | None = None  # the driver's, as the move stopped it (None: not
+                                     # stopped), given back if the move fails
     period = 0.02                   # the longest a look at a move in progress waits
 
     def setup(self) -> None:
@@ -121,6 +122,7 @@ class TransferAgent(Agent):
             try:
                 # the simulation stops first (its lock-step loop would compete with the
                 # move for the CPU), then the learner and its driver move
+                self.lockstep_s = None      # (stays so if the driver's cannot be read)
                 self.lockstep_s = float(self.runtime.state(self.driver).get("lockstep_s",
                                                                             0.0))
                 self.runtime.set_state(self.driver, {"lockstep_s": 0.0})
@@ -179,8 +181,12 @@ class TransferAgent(Agent):
         self.failed_moves += 1
         if isinstance(error, ConfigError):
             self.refused = str(error)
-        with contextlib.suppress(PB3AError):        # (tried again at the next decision)
-            self.runtime.set_state(self.driver, {"lockstep_s": self.lockstep_s})
+        # (a driver whose state could not be read was not stopped: what it runs with is
+        # not known here, and is left as it is)
+        if self.lockstep_s is not None:
+            with contextlib.suppress(PB3AError):    # (tried again at the next decision)
+                self.runtime.set_state(self.driver, {"lockstep_s": self.lockstep_s})
+            self.lockstep_s = None
         self.transfer.write({"decided_at": self.decided_at, "moved_at": 0.0,
                              "error": f"{type(error).__name__}: {error}",
                              "episodes": self.episodes,

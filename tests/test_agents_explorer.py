@@ -241,7 +241,7 @@ def test_with_nothing_left_to_see_it_is_done_and_stands() -> None:
     explorer = FrontierExplorer(grid)
     assert explorer.step(probabilities, (3.0, 2.0, 0.0), None, TICK) == (0.0, 0.0)
     assert explorer.done and explorer.plans == 1 and explorer.target == []
-    with pytest.raises(ValueError, match="plan on the map's grid"):
+    with pytest.raises(ValueError, match="give the explorer the size and resolution"):
         FrontierExplorer(Grid(5.0, 4.0)).step(probabilities, (3.0, 2.0, 0.0), None, TICK)
 
 
@@ -589,3 +589,42 @@ def test_looking_does_not_count_against_its_patience_and_a_stale_pose_stops_its_
     module.feed("pose", np.array(pose))
     module.step()
     assert module.state["clock"] == pytest.approx(clock + TICK)
+
+
+def test_an_explorer_and_a_mapper_with_their_defaults_fit_and_a_misfit_names_the_fix() -> None:
+    """Their default sizes differed (10 x 8 m and 12 x 9 m): wired with both, the
+    explorer refused every map, in words that named no setting."""
+    from agents.occupancy import Mapper
+
+    mapper = ModuleHarness(Mapper)
+    grid = Grid.of(mapper.state["size"], mapper.state["resolution"])
+    explorer = ModuleHarness(Explorer)
+    explorer.feed("map", np.full(grid.shape, UNKNOWN, dtype=np.float32))
+    explorer.feed("pose", np.array([2.0, 2.0, 0.0]))
+    explorer.step()                                  # planned on the mapper's grid
+    small = ModuleHarness(Explorer, state={"size": [10.0, 8.0]})
+    small.feed("map", np.full(grid.shape, UNKNOWN, dtype=np.float32))
+    small.feed("pose", np.array([2.0, 2.0, 0.0]))
+    with pytest.raises(ValueError, match=r"the map is \(90, 120\) cells, the planner's grid "
+                                         r"\(80, 100\): give the explorer the size and "
+                                         r"resolution of the map it is fed"):
+        small.step()
+
+
+def test_a_target_set_without_its_path_is_planned_to_afresh() -> None:
+    """``set_state({"target": ..., "path": []})`` failed the next step with an
+    IndexError: the explorer looked for the end of a path it did not have."""
+    from agents.occupancy import Mapper
+
+    mapper = ModuleHarness(Mapper, state={"size": [10.0, 8.0]})
+    mapper.feed("pose", np.array([2.0, 2.0, 0.0]))
+    mapper.feed("sonar", np.full(16, 2.0))
+    explorer = ModuleHarness(Explorer, state={"size": [10.0, 8.0]})
+    explorer.feed("map", mapper.last("map"))
+    explorer.feed("pose", np.array([2.0, 2.0, 0.0]))
+    explorer.step()
+    plans = explorer.state["plans"]
+    explorer.module.set_state({"target": [5.0, 4.0], "path": np.zeros((0, 3))})
+    explorer.feed("pose", np.array([2.01, 2.0, 0.0]))
+    explorer.step()
+    assert explorer.state["plans"] == plans + 1 and len(explorer.state["path"])

@@ -228,6 +228,24 @@ def test_the_mapper_writes_maps_once_it_has_a_pose() -> None:
     assert updates[0][0] <= updates[-1][0] == state["last_update"]
 
 
+def test_a_reading_whose_pose_is_not_finite_is_skipped_and_counted() -> None:
+    """A NaN pose (a localization that lost the robot) failed the mapper in int()'s
+    words, after the reading was counted as folded in."""
+    harness = ModuleHarness(Mapper)
+    (reading, pose), = _readings(1, seed=1)
+    harness.feed("pose", np.array([math.nan, pose[1], pose[2]]))
+    harness.feed("sonar", reading)
+    assert (harness.state["unplaced"], harness.state["updates"]) == (1, 0)
+    assert np.isnan(harness.state["last_ranges"]).all()      # nothing folded in
+    harness.feed("pose", pose)
+    harness.feed("sonar", reading)
+    assert (harness.state["unplaced"], harness.state["updates"]) == (1, 1)
+    core = OccupancyGrid(Grid.of([12.0, 9.0], 0.1))
+    with pytest.raises(ValueError, match="a reading's pose must be finite"):
+        core.update((1.0, math.inf, 0.0), reading)
+    assert np.isnan(core.last_ranges).all() and not core.unfolded.any()
+
+
 def test_the_mapper_fits_its_grid_to_the_size_and_resolution_it_is_given() -> None:
     harness = ModuleHarness(Mapper, state={"size": [10.0, 8.0], "resolution": 0.05,
                                            "model": {"cone_deg": 20.0}})

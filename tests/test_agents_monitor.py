@@ -32,6 +32,7 @@ from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 from rave import World
 from rave.server import RobotServers, WorldServer
+from rave.sonar import COUNT as SONARS
 
 LAB = "rave/worlds/lab.toml"
 ROBOT = "r1"                     # the lab's hardware robot
@@ -397,6 +398,20 @@ def test_state_set_while_it_runs_is_what_it_goes_by(model: NormalModel) -> None:
     assert harness.state["running"]["counted"].sum() > 0     # (it watched on)
 
 
+def test_ready_windows_given_for_one_group_leave_the_others_theirs() -> None:
+    """``ready_windows = {motors = 100}`` in a file replaced the whole table: the other
+    groups were watched after 10 windows, where about 160 already gave false alarms."""
+    harness = ModuleHarness(HardwareMonitor, state={"ready_windows": {"motors": 100}})
+    heading = 0.0
+    for _ in range(25):          # turning on the spot: the sonar's windows are informative
+        heading += 0.05
+        harness.feed("command", np.array([0.0, 0.5]))
+        harness.feed("sonar", np.full(SONARS, 1.0))
+        harness.feed("pose", np.array([1.0, 1.0, heading]))
+        harness.feed("odometry", np.array([1.0, 1.0, heading]))
+    assert harness.state["collected"] == 25 and harness.state["watched"] == []
+
+
 @pytest.mark.parametrize(("wrong", "named"), [
     ({"jump_m": -1.0}, "jump_m must be a distance above 0"),
     ({"training_s": math.nan}, "training_s must be a number of seconds above 0"),
@@ -406,6 +421,13 @@ def test_state_set_while_it_runs_is_what_it_goes_by(model: NormalModel) -> None:
     ({"rearm": math.nan}, "rearm must be a whole number of windows"),
     ({"ready_windows": {"motors": -3}}, r"ready_windows\['motors'\] must be a whole number"),
     ({"ready_windows": ["motors"]}, r"ready_windows must map a fault group to the windows"),
+    # (5.0 failed at setup in Python's words; True was taken for 1)
+    ({"votes_of": 5.0}, "an alarm needs votes_needed k of votes_of n windows"),
+    ({"votes_needed": True}, "an alarm needs votes_needed k of votes_of n windows"),
+    # a model given in state: a misspelt group was never watched, silently, and means
+    # of another length failed at the first sample in numpy's words
+    ({"watched": ["motor"]}, "watched names no fault group 'motor': the groups are motors"),
+    ({"watched": ["motors"]}, r"does not fit: means must hold 19 numbers, one per feature"),
 ])
 def test_a_monitor_setting_that_would_blind_or_break_it_is_refused(wrong, named) -> None:
     """Taken, a negative jump_m took every sample for another robot's (nothing ever

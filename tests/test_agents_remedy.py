@@ -3,6 +3,7 @@ its ports against a recording runtime, and the robot driver's ``enabled`` flag."
 
 from __future__ import annotations
 
+import math
 import pickle
 import re
 from dataclasses import dataclass, field
@@ -10,11 +11,19 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
+import numpy as np
 import pytest
 
 import agents.remedy as remedy_module
 from agents.case_base import AdaptationError, Case, CaseBase, CaseFileError, Match, adapt
-from agents.remedy import SHIPPED_CASES, RemedyAgent, SystemView, check_remedy, plan
+from agents.remedy import (
+    SHIPPED_CASES,
+    RemedyAgent,
+    SystemView,
+    check_remedy,
+    plan,
+    situation_of,
+)
 from pb3a import MigrationReport, ModuleNotFound, RuntimeFailure
 from pb3a.launch.migration import MigrationPhases
 from pb3a.testing import ModuleHarness
@@ -560,6 +569,54 @@ def test_dead_sonars_swap_their_consumer_for_one_that_does_without(tmp_path, clo
     assert chosen["case"] == "sonar-many-standby" and "already is a" in chosen["reason"]
 
 
+def test_a_monitor_s_sonar_detail_counts_each_dead_transducer_once(tmp_path, clock) -> None:
+    """The monitor's detail names the dead transducers in two lists side by side; both
+    were counted, so 3 dead sonars made 6 and the case for many was taken (the robot
+    moved away, or stopped), not the swap."""
+    detail = {"sonars": [3, 9, 12], "silent_sweep": [4.0, 4.0, 4.0]}
+    assert situation_of(failure("sonar", 0.0, **detail), standby=True)["failed_sensors"] == 3
+    said = situation_of(failure("sonar", 0.0, failed_sensors=2, **detail), standby=True)
+    assert said["failed_sensors"] == 2                   # a detail that says, is believed
+    runtime = FakeRuntime()
+    harness = agent(tmp_path, runtime)
+    harness.feed("failure", failure("sonar", clock.now, **detail))
+    harness.step()
+    assert runtime.calls == [("swap", "control/explorer", SONAR_FREE)]
+
+
+def test_a_detail_s_numpy_and_non_finite_numbers_learn_a_case_that_reads_back(tmp_path,
+                                                                            clock) -> None:
+    """A numpy number in a failure's detail was written into the learned case as
+    ``np.float64(-0.31)``, a file no agent could read again; a NaN made learning raise
+    before the robot was stopped for a remedy that had failed."""
+    detail = {"v_residual": np.float64(-0.31), "w_residual": math.nan, "count": np.int64(4)}
+    for worked in (True, False):
+        runtime = FakeRuntime()
+        (tmp_path / str(worked)).mkdir()
+        harness = agent(tmp_path / str(worked), runtime)
+        # (a probability below the case's: a remedy that works is learned as a new case)
+        harness.feed("failure", {**failure("motors", clock.now, **detail), "probability": 0.0})
+        harness.step()
+        assert runtime.calls == [MOVE]
+        if worked:
+            runtime.end_move()
+            harness.step()
+            runtime.modules["control/driver"].written += 10
+            clock.now += harness.state["verify_s"]
+        else:
+            runtime.moves[-1].outcome = ("failed", "node r2 is not up")
+        harness.step()
+        base = CaseBase.load([tmp_path / str(worked) / "learned.toml"])
+        if worked:      # a new case, the situation as its symptoms
+            (learned,) = [case for case in base.cases if "/learned-" in case.id]
+            assert learned.symptoms["v_residual"] == -0.31 and learned.symptoms["count"] == 4
+            assert "w_residual" not in learned.symptoms
+        else:           # the robot stopped, and the case counts the attempt
+            assert runtime.calls[-1] == ("set_state", "control/driver", {"enabled": False})
+            assert events(harness)[-2:] == [("chosen", "stop", ""), ("worked", "stop", "")]
+            assert base.case("motors-standby").tried == 1
+
+
 def test_a_failure_no_case_fits_stops_the_robot(tmp_path, clock) -> None:
     runtime = FakeRuntime()
     harness = agent(tmp_path, runtime)
@@ -646,6 +703,15 @@ def test_a_case_base_set_while_it_runs_is_what_it_goes_by(tmp_path, clock) -> No
     odd = {**base["cases"][0], "id": "odd", "remedy": {"action": "reboot"}}
     with pytest.raises(CaseFileError, match="case 'odd': unknown action 'reboot'"):
         harness.module.set_state({"case_base": {**base, "cases": [*base["cases"], odd]}})
+    # checked as a file's cases are (a bare KeyError came at the first failure)
+    for wrong, named in [
+            ({"cases": base["cases"]}, r"case_base: give what CaseBase.to_dict\(\) gives"),
+            ({**base, "cases": [{**odd, "remedy": {}}]}, "case 'odd': no remedy action"),
+            ({**base, "cases": [{**odd, "tried": -1}]}, "tried = -1 and worked = 0 must be"),
+            ({**base, "settings": {"mine.toml": {"min_similarity": 2}}},
+             r"the settings of mine.toml\): min_similarity must be a number from 0 to 1")]:
+        with pytest.raises(CaseFileError, match=named):
+            harness.module.set_state({"case_base": wrong})
     assert harness.state["case_base"] == base
     without_motors = [case for case in base["cases"]
                       if case["symptoms"].get("fault") != "motors"]

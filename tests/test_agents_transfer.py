@@ -231,5 +231,8 @@ def test_a_runtime_error_as_it_decides_is_a_failed_move_decided_again_later() ->
     for _ in range(10):
         agent.feed("episode", {"success": True})
     assert agent.state["failed_moves"] == 1 and "node busy" in agent.written["transfer"][0]["error"]
+    # the driver, never stopped, is left running as it was (it was given a lock-step of
+    # 0 "back": a world stepped by its driver alone stood still, and the learner with it)
+    assert runtime.calls == [] and runtime.driver["lockstep_s"] == 0.2
     agent.feed("episode", {"success": True})
     assert [call[0] for call in runtime.calls].count("migrate") == 1     # decided again
