@@ -82,11 +82,14 @@ class Target:
 
 
 def look(pose: tuple[float, float, float], targets: list[Target], occluders: np.ndarray,
-         hue: float | None = None, tolerance: float = 15.0) -> list[Blob]:
+         hue: float | None = None, tolerance: float = 15.0,
+         discs: np.ndarray | None = None) -> list[Blob]:
     """The blobs seen from ``pose``: saturated targets in view and in range whose
-    centre is not hidden behind ``occluders`` (segments), matching ``hue`` within
+    centre is not hidden behind ``occluders`` (segments) or ``discs`` (x, y, radius:
+    the other robots, a target's own disc aside), matching ``hue`` within
     ``tolerance`` degrees when given; nearest first."""
     x, y, theta = pose
+    discs = np.zeros((0, 3)) if discs is None else np.asarray(discs, dtype=np.float64)
     blobs = []
     for target in targets:
         h, s, i = hsi(target.color)
@@ -103,7 +106,8 @@ def look(pose: tuple[float, float, float], targets: list[Target], occluders: np.
             continue
         ray = np.array([[(nx - x) / near, (ny - y) / near]])
         # (a hair short of the nearest point: the target's own edges must not hide it)
-        hidden = raycast.cast(np.array([[x, y]]), ray, near * (1 - 1e-9), occluders)
+        others = discs[(discs[:, 0] != target.x) | (discs[:, 1] != target.y)]
+        hidden = raycast.cast(np.array([[x, y]]), ray, near * (1 - 1e-9), occluders, others)
         if np.isfinite(hidden.ranges[0]):
             continue
         blobs.append(Blob(bearing, size, h, near))

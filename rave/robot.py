@@ -87,7 +87,8 @@ class Robot:
         """Colour blobs in view (60 degrees, 8 m), nearest first; only those within
         ``tolerance`` degrees of ``hue`` when given."""
         return camera.look(self.gps(), self.world.targets(exclude=self.name),
-                           self.world.segments(), hue, tolerance)
+                           self.world.segments(), hue, tolerance,
+                           self.world.discs(exclude=self.name))
 
     def gps(self) -> tuple[float, float, float]:
         """(Virtual) the robot's pose in the world: exact for a simulated robot, as
@@ -107,11 +108,17 @@ class Robot:
     def swap(self, backend: str) -> None:
         """Serve this robot by the other back end from now on, at its current pose and
         speed; commands, odometry and the controller's handle carry over (a hardware
-        robot's faults do not)."""
+        robot's faults do not). Refused, as nothing changes, where the other back end's
+        robot would overlap an obstacle: a hardware robot that drove into a virtual one
+        was swapped to "sim" inside it, and stood boxed in."""
         _check_backend(self.name, backend)
         if backend == self.backend:
             return
         pose, (vx, vy, w) = self._body.pose(), self._body.velocity()
+        hits = self.world.blocking(backend, pose[0], pose[1])
+        if hits:
+            raise ValueError(f"robot {self.name}: at ({pose[0]:.2f}, {pose[1]:.2f}) a {backend} "
+                             f"robot would overlap {', '.join(hits)}; drive it clear first")
         command = self._body.commanded()
         speed = vx * math.cos(pose[2]) + vy * math.sin(pose[2])   # (negative: reversing)
         old = self._body

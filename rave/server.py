@@ -150,6 +150,9 @@ class WorldServer:
             if op not in ROBOT_OPS:
                 raise ValueError(f"the world server has no operation {op!r}; its operations: "
                                  f"describe, pace, and the robots' {', '.join(ROBOT_OPS)}")
+            if "robot" not in args:
+                raise ValueError(f"{op}: name the robot (robot = NAME): the world's robots "
+                                 f"are {', '.join(self.world.robots) or 'none'}")
             name = args.pop("robot")
             robot = self.world.robot(name)
             self._heard[name] = self.world.time          # (the watchdog's food)
@@ -192,7 +195,15 @@ class WorldServer:
         self.world.close()
 
 
+# what an operation must be given, and how to say it (a KeyError said no more)
+NEEDED = {"drive": (("v", "w"), "v and w (m/s, rad/s)"), "inject": (("fault",), "a fault"),
+          "swap": (("backend",), "a backend ('sim' or 'hardware')")}
+
+
 def _apply(robot: Any, op: str, args: dict[str, Any], now: float) -> Any:
+    keys, said = NEEDED.get(op, ((), ""))
+    if any(key not in args for key in keys):
+        raise ValueError(f"{op} needs {said}")
     if op == "sensors":
         return {"time": now, "sonar": robot.sonar().tolist(), "odometry": robot.odometry(),
                 "gps": robot.gps(), "velocity": robot.velocity(), "backend": robot.backend}

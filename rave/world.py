@@ -75,6 +75,7 @@ class World:
         self._segments: dict[tuple[bool, bool], tuple[np.ndarray, np.ndarray]] = {}
         self.fleet = Fleet(self)                     # the simulated robots, as arrays
         self.hardware: list[HardwareBody] = []       # the hardware robots' bodies
+        self._closed = False
 
     @classmethod
     def load(cls, path: str | Path, seed: int = 0, *, robots: bool = True) -> World:
@@ -178,14 +179,16 @@ class World:
                   color: str = "red") -> Robot:
         """A robot at ``pose`` (x, y, heading in radians) served by ``backend`` ("sim" or
         "hardware")."""
+        self._check_open()
         if name in self.robots:
             raise ValueError(f"world {self.name} has a robot {name!r} already")
         place = (float(pose[0]), float(pose[1]), float(pose[2]))
         if not all(map(math.isfinite, place)):
             raise ValueError(f"robot {name}: pose must be finite (x, y, heading), not {place}")
-        x, y, _ = place
-        hits = [f"obstacle {i} ({obstacle.points[0]}, ...)"
-                for i, obstacle in enumerate(self.obstacles) if _blocks(obstacle, backend, x, y)]
+        x, y, heading = place
+        # (into [-pi, pi), as every later reading: odometry gave 4 pi until it moved)
+        place = (x, y, (heading + math.pi) % math.tau - math.pi)
+        hits = self.blocking(backend, x, y)
         hits += [f"robot {other!r}" for other, robot in self.robots.items()
                  if math.dist((x, y), robot.gps()[:2]) < 2 * RADIUS]
         if hits:                        # (as a world file's robot is refused)
@@ -196,10 +199,23 @@ class World:
         self.robots[name] = robot
         return robot
 
+    def blocking(self, backend: str, x: float, y: float) -> list[str]:
+        """The obstacles a robot on ``backend`` at (x, y) would overlap (a hardware robot
+        passes through virtual ones), named for a message."""
+        return [f"obstacle {i} ({obstacle.points[0]}, ...)"
+                for i, obstacle in enumerate(self.obstacles) if _blocks(obstacle, backend, x, y)]
+
     def close(self) -> None:
-        """Stop the hardware robots' emulator processes (also on leaving a ``with``)."""
+        """Stop the hardware robots' emulator processes (also on leaving a ``with``);
+        the world steps and takes robots no more."""
+        self._closed = True
         for hardware in list(self.hardware):
             hardware.emulator.close()
+
+    def _check_open(self) -> None:
+        # (a closed world's step said its emulators were gone, and to swap their robots)
+        if self._closed:
+            raise RuntimeError(f"world {self.name!r} is closed")
 
     def __enter__(self) -> World:
         return self
@@ -225,6 +241,7 @@ class World:
         if not 0 <= dt < math.inf:
             raise ValueError(f"step({dt}): dt must be a finite number of seconds, 0 or more "
                              "(time only goes forward)")
+        self._check_open()
         due = int((self._debt + dt + 1e-12) / PHYSICS_DT)
         if due:
             self._advance_hardware(due)

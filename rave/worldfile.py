@@ -120,6 +120,8 @@ def check(data: dict[str, Any], source: str) -> list[str]:
                 for key in data if key not in TOP]
     if "size" in data and not _numbers(data["size"], 2, positive=True):
         problems.append(f"{source}: size must be [width, height] in metres, both > 0")
+    if "name" in data and not (isinstance(data["name"], str) and data["name"]):
+        problems.append(f"{source}: name must be a non-empty string")
     names: set[str] = set()
     for table, keys in KEYS.items():
         entries = data.get(table, [])
@@ -157,6 +159,8 @@ def _entry(table: str, entry: dict[str, Any], where: str, names: set[str]) -> li
         problems.append(f"{where}: virtual must be true or false")
     if "color" in entry:
         try:
+            if not isinstance(entry["color"], str):     # (an int failed in str's words)
+                raise TypeError(f"color must be a name or \"#rrggbb\", not {entry['color']!r}")
             rgb(entry["color"])
         except (ValueError, TypeError) as exc:
             problems.append(f"{where}: {exc}")

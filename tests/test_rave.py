@@ -280,6 +280,21 @@ def test_a_back_end_swap_mid_run_leaves_the_controller_untouched(world_of: World
         robot.swap("quantum")
 
 
+def test_a_hardware_robot_inside_a_virtual_obstacle_is_not_swapped_to_sim(
+        world_of: WorldMaker) -> None:
+    """It passes through a virtual box; swapped to "sim" there, it stood boxed in."""
+    world = world_of(size=(10, 10), seed=1)
+    world.add_box(center=(5.0, 5.0), size=(2.0, 2.0), virtual=True)
+    robot = world.add_robot("h", (4.5, 5.0, 0.0), backend="hardware")
+    with pytest.raises(ValueError, match=r"robot h: at \(4.50, 5.00\) a sim robot would "
+                                         r"overlap obstacle 0 .*; drive it clear first"):
+        robot.swap("sim")
+    assert robot.backend == "hardware"
+    robot.drive(0.0, 0.0)
+    world.step(0.1)                                      # its emulator serves it still
+    assert world.pose("h")[:2] == pytest.approx((4.5, 5.0), abs=0.01)
+
+
 def test_the_camera_finds_a_coloured_robot_at_its_bearing_unless_hidden() -> None:
     world = World(size=(10, 8), seed=6)
     watcher = world.add_robot("watcher", POSE, color="red")
@@ -292,6 +307,18 @@ def test_the_camera_finds_a_coloured_robot_at_its_bearing_unless_hidden() -> Non
     world.add_wall((3.0, 2.0), (3.0, 4.0))
     assert watcher.camera() == []                               # behind a wall
     assert watcher.others()["target"][:2] == pytest.approx((4.0, 3.0))
+
+
+def test_a_robot_behind_another_robot_is_hidden_from_the_camera() -> None:
+    """Only walls hid a robot: one wholly behind another was seen through it."""
+    world = World(size=(10, 8), seed=6)
+    watcher = world.add_robot("a", (1.0, 4.0, 0.0), color="red")
+    world.add_robot("b", (2.0, 4.0, 0.0), color="green")
+    world.add_robot("c", (3.5, 4.0, 0.0), color="blue")
+    (blob,) = watcher.camera()
+    assert blob.hue == pytest.approx(120.0) and blob.distance == pytest.approx(0.75)
+    world.add_robot("d", (3.5, 5.0, 0.0), color="yellow")      # beside b: in sight
+    assert [round(b.hue) for b in watcher.camera()] == [120, 60]
 
 
 def test_the_same_seed_gives_the_same_run_and_another_seed_other_noise() -> None:
@@ -317,6 +344,7 @@ def test_bundled_worlds_load_and_a_bad_world_file_reports_every_problem(tmp_path
             assert any(o.virtual for o in world.obstacles)
     bad = tmp_path / "bad.toml"
     bad.write_text("""
+name = 5
 size = [10, -1]
 colour = "red"
 [[walls]]
@@ -335,6 +363,7 @@ backend = "holographic"
 [[robots]]
 name = "r1"
 pose = [2, 2, 0]
+color = 3
 """)
     with pytest.raises(WorldError) as error:
         World.load(bad)
@@ -344,8 +373,24 @@ pose = [2, 2, 0]
                      "robots[0]: pose must be [x, y, heading in degrees]",
                      "robots[0]: backend must be one of sim, hardware",
                      "robots[1]: a robot named 'r1' comes earlier",
-                     "walls[1]: from and to are the same point: a wall needs a length"):
+                     "walls[1]: from and to are the same point: a wall needs a length",
+                     # (an int colour failed with AttributeError, a traceback)
+                     "name must be a non-empty string",
+                     "robots[1]: color must be a name or \"#rrggbb\", not 3"):
         assert any(expected in p for p in problems), (expected, problems)
+
+
+def test_a_closed_world_says_so_and_a_heading_starts_wrapped() -> None:
+    """Stepped after ``close``, a world with a hardware robot said its emulator was
+    gone and to swap the robot to 'sim'; a robot placed at 4 pi read 4 pi on its
+    odometer (0 by GPS) until it moved."""
+    world = World(seed=1)
+    robot = world.add_robot("a", (1.0, 1.0, 4 * math.pi))
+    assert robot.gps()[2] == robot.odometry()[2] == 0.0
+    world.close()
+    for call in (lambda: world.step(0.1), lambda: world.add_robot("b", (3.0, 3.0, 0.0))):
+        with pytest.raises(RuntimeError, match="world 'world' is closed"):
+            call()
 
 
 def test_a_world_file_placing_a_robot_in_an_obstacle_or_another_robot_names_each(

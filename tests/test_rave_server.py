@@ -59,6 +59,11 @@ def test_a_robot_server_relays_commands_sensors_and_faults(served) -> None:
         clients["r1"].call("inject", fault="motors_off", params={})
     with pytest.raises(RuntimeFailure, match="robot r1 has no operation 'describe'"):
         clients["r1"].call("describe")
+    # what a request lacks is named (a bare KeyError: 'w' was all it said)
+    with pytest.raises(RuntimeFailure, match=r"drive needs v and w \(m/s, rad/s\)"):
+        clients["r1"].call("drive", v=0.5)
+    with pytest.raises(RuntimeFailure, match="swap needs a backend"):
+        clients["r1"].call("swap")
     pids = [process.pid for process in robots._processes.values()]
     robots.close()
     assert not any(alive(pid) for pid in pids)
@@ -376,6 +381,13 @@ def test_the_rave_command_serves_a_world_injects_faults_and_renders(tmp_path, ca
     assert cli.main(["render", "rooom", "-o", str(tmp_path / "x.png")]) == 1
     assert ("no world 'rooom': the bundled worlds are arena, lab, room, or give the path of a "
             "world file") in capsys.readouterr().err
+
+
+def test_python_m_rave_is_the_rave_command() -> None:
+    """It said "'rave' is a package and cannot be directly executed"."""
+    done = subprocess.run([sys.executable, "-m", "rave", "--help"], capture_output=True,
+                          text=True, timeout=60, check=False)
+    assert done.returncode == 0 and "serve a world and its robots" in done.stdout, done.stderr
 
 
 def test_the_rave_command_names_a_mistake_instead_of_a_traceback(tmp_path, capsys) -> None:
