@@ -35,12 +35,14 @@ def dead_reckon(state: np.ndarray, scale: np.ndarray, distance: np.ndarray,
                 rotation: np.ndarray) -> None:
     """Advance poses ``state`` (x, y, heading in the last axis: one robot's or a
     fleet's) in place by a run of steps, each a wheel ``distance`` and an (already
-    scaled) ``rotation``: shape (steps, *state.shape[:-1]). The position increments
-    are scaled by ``scale``'s x and y errors."""
+    scaled) ``rotation``: shape (steps, *state.shape[:-1]). The distance is scaled by
+    ``scale``'s x error, along the robot's own heading, as Stage's ``odom_error`` is
+    (its y error, sideways, is none of a two-wheeled robot's): scaled along the
+    world's x and y, the error depended on which way the robot faced."""
     turned = np.cumsum(rotation, axis=0)
     middle = state[..., 2] + turned - rotation / 2.0         # heading midway through each
     state[..., 0] += (distance * np.cos(middle)).sum(axis=0) * scale[..., 0]
-    state[..., 1] += (distance * np.sin(middle)).sum(axis=0) * scale[..., 1]
+    state[..., 1] += (distance * np.sin(middle)).sum(axis=0) * scale[..., 0]
     state[..., 2] = _wrapped(state[..., 2] + turned[-1])
 
 
@@ -53,7 +55,7 @@ def dead_reckon_arcs(state: np.ndarray, scale: np.ndarray, distance: np.ndarray,
     heading = state[..., 2] + steps * half                   # midway through the run
     length = distance * chord_sum(steps, half)
     state[..., 0] += length * np.cos(heading) * scale[..., 0]
-    state[..., 1] += length * np.sin(heading) * scale[..., 1]
+    state[..., 1] += length * np.sin(heading) * scale[..., 0]
     state[..., 2] = _wrapped(state[..., 2] + steps * rotation)
 
 

@@ -219,6 +219,25 @@ def test_an_emulator_outlives_no_world_process_even_killed() -> None:
         parent.stdout.close()
 
 
+@pytest.mark.parametrize("backend", ["sim", "hardware"])
+def test_the_odometer_errs_by_the_same_share_whichever_way_the_robot_faces(
+        world_of: WorldMaker, backend: str) -> None:
+    """Its error was applied along the world's x and y axes: the same robot driving
+    east or north read 2.05 m or 1.96 m for 2.0 m, and its track turned from its own
+    heading on a diagonal."""
+    read = {}
+    for heading in (0.0, math.pi / 4, math.pi / 2):
+        world = world_of(size=(20, 20), seed=10)
+        robot = world.add_robot("r", (10.0, 10.0, heading), backend=backend)
+        robot.drive(0.5, 0.0)
+        world.step(4.0)
+        start, (x, y, _) = (10.0, 10.0), robot.odometry()
+        true = math.dist(start, world.pose("r")[:2])
+        read[heading] = math.dist(start, (x, y)) / true
+        assert math.atan2(y - 10.0, x - 10.0) == pytest.approx(heading, abs=0.02)
+    assert max(read.values()) - min(read.values()) < 0.002, read
+
+
 def test_dead_sonars_and_odometry_bias_are_injected_and_cleared(world_of: WorldMaker) -> None:
     world = world_of(size=(10, 8), seed=3)
     world.add_wall((4, 0), (4, 8))
