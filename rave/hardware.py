@@ -87,6 +87,12 @@ class HardwareBody:
         self.body.velocity, self.body.angular_velocity = (vx, vy), w
         self.world.space.reindex_shapes_for_body(self.body)
 
+    def hold(self) -> None:
+        """Keep the stand-in still where the robot last reported (its emulator failed
+        to step: where it went is not known)."""
+        self.place(-1)
+        self.body.velocity, self.body.angular_velocity = (0.0, 0.0), 0.0
+
     def odometry(self) -> tuple[float, float, float]:
         return self.odometer.pose()
 

@@ -243,41 +243,49 @@ class World:
                              "(time only goes forward)")
         self._check_open()
         due = int((self._debt + dt + 1e-12) / PHYSICS_DT)
-        if due:
-            self._advance_hardware(due)
+        failed, failure = self._advance_hardware(due) if due else ([], None)
         self._debt += dt - due * PHYSICS_DT
         for step in range(due):
             self.fleet.before_step()
             for hardware in self.hardware:
-                hardware.place(step)
+                if hardware in failed:
+                    hardware.hold()
+                else:
+                    hardware.place(step)
             self.space.step(PHYSICS_DT)
             self.fleet.after_step()
         self._steps += due
         self.time = self._steps * PHYSICS_DT
+        if failure is not None:
+            raise failure
 
-    def _advance_hardware(self, steps: int) -> None:
+    def _advance_hardware(self, steps: int) -> tuple[list[HardwareBody], Exception | None]:
         """Step the hardware robots first, all at once in their emulators' processes:
         nothing in the world model pushes a physical robot. Their stand-ins then follow
         the reported poses step by step, pushing simulated robots. Every answer asked
         for is taken, even when one robot fails, so that none is read out of turn.
         None is asked while one is known to be gone: the world cannot step then, and
-        the others would run ahead of it at every try."""
+        the others would run ahead of it at every try. One found failing as it steps
+        (silent, or gone meanwhile) is returned with its error: the others have
+        taken the step, so the world takes it too, that robot standing where it last
+        reported (the others stayed a step ahead of the world for good)."""
         for hardware in self.hardware:
             hardware.emulator.check()
-        asked, failure = [], None
+        asked, failed, failure = [], [], None
         for hardware in self.hardware:
             try:
                 hardware.emulator.begin_advance(steps, PHYSICS_DT)
                 asked.append(hardware)
             except (RuntimeError, TimeoutError) as exc:
+                failed.append(hardware)
                 failure = failure or exc
         for hardware in asked:
             try:
                 hardware.end_advance()
             except (RuntimeError, TimeoutError) as exc:
+                failed.append(hardware)
                 failure = failure or exc
-        if failure is not None:
-            raise failure
+        return failed, failure
 
     # -- what sensors see -----------------------------------------------------------------
     def pose(self, name: str) -> tuple[float, float, float]:

@@ -708,12 +708,27 @@ def test_a_reversing_robot_swapped_to_hardware_goes_on_reversing(world_of: World
 
 def test_a_silent_emulator_is_said_to_be_so_and_a_long_step_waits_for_its_steps(
         world_of: WorldMaker) -> None:
-    world = world_of(size=(10, 8), seed=1)
-    robot = world.add_robot("hw", POSE, backend="hardware")
-    world.step(120.0)                   # 12,000 physics steps: more than 5 s on a slow day
+    """The step that finds an emulator silent is taken by the world and the other
+    hardware robots, which have stepped (they stayed that step ahead for good)."""
+    def world_with_two() -> tuple[World, Any]:
+        world = world_of(size=(20, 10), seed=1)
+        robot = world.add_robot("hw", POSE, backend="hardware")
+        world.add_robot("live", (1.0, 6.0, 0.0), backend="hardware").drive(0.3, 0.0)
+        world.step(120.0)               # 12,000 physics steps: more than 5 s on a slow day
+        return world, robot
+
+    world, robot = world_with_two()
     os.kill(robot._body.emulator.pid, signal.SIGSTOP)
     with pytest.raises(TimeoutError, match="emulator of robot hw did not answer within"):
-        world.step(0.1)                 # (before: "is gone ... exited with -9")
+        world.step(1.0)                 # (before: "is gone ... exited with -9")
+    assert world.time == pytest.approx(121.0)
+    robot.swap("sim")
+    world.step(1.0)
+    control, _ = world_with_two()       # the same run, nothing silent
+    control.step(2.0)
+    assert world.pose("live") == pytest.approx(control.pose("live"), abs=1e-9)
+    assert world.robot("live").odometry() == pytest.approx(
+        control.robot("live").odometry(), abs=1e-9)
 
 
 def test_a_real_obstacle_is_not_added_while_a_hardware_robot_is_gone(
