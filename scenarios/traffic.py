@@ -62,8 +62,10 @@ RUN_TIMEOUT_S = {"quick": 120.0, "full": 600.0}    # wall seconds for the agents
 POLL_S = 0.2
 SETTLE_S = 10.0                 # wall seconds for the swaps in flight at the end to be
                                 # recorded by their agents
+# (late and rejected: answers in the lock-step that came after its timeout, and requests
+# the driver could not apply; a run with either no longer depends on its seed alone)
 FIGURES = ("mean_delay_s", "mean_halting", "throughput", "teleports", "vehicles",
-           "mean_time_loss_s", "mean_depart_delay_s")
+           "mean_time_loss_s", "mean_depart_delay_s", "late", "rejected")
 
 
 def network_path(network: str) -> Path:
@@ -134,6 +136,9 @@ def configuration(resource: Path, seed: int, duration_s: float,
     the junction's name; its agent's state over ``agent_state``), and the links
     between neighbours."""
     data = tomllib.loads(CONFIG.read_text())
+    macro = data["macros"]["junction"]["modules"]
+    agent = macro["agent"].get("state", {})
+    _check_running(macro["controller"], agent)
     data["modules"]["sumo"].setdefault("state", {}).update(
         resource=str(resource), seed=seed, duration_s=duration_s,
         cache_dir=str(cache) if cache else "", demand_scale=dict(demand_scale or {}))
@@ -144,6 +149,14 @@ def configuration(resource: Path, seed: int, duration_s: float,
         state = instance.setdefault("state", {})
         state["agent"] = {**(agent_state or {}), **state.get("agent", {}),
                           "controller": f"{junction}/controller"}
+        if state.get("controller"):
+            # the junction's own settings of its controller are given again when its
+            # agent swaps back to it (they held only until the first swap)
+            chosen = {**agent.get("controllers", {}), **state["agent"].get("controllers", {})}
+            running = state["agent"].get("running", agent.get("running"))
+            spec = chosen[running]
+            state["agent"]["controllers"] = {**chosen, running: {
+                **spec, "state": {**spec.get("state", {}), **state["controller"]}}}
         links += [{"from": f"sumo.reading_{slot}", "to": f"{junction}.reading"},
                   {"from": f"sumo.reading_{slot}", "to": f"{junction}.control"},
                   {"from": f"{junction}.request", "to": f"sumo.request_{slot}"},
@@ -153,6 +166,22 @@ def configuration(resource: Path, seed: int, duration_s: float,
         for slot, other in enumerate(downstream[:4]):
             links.append({"from": f"{other}.queues", "to": f"{junction}.neighbour_{slot}"})
     return System.from_dict(data, source=str(CONFIG))
+
+
+def _check_running(controller: dict[str, Any], agent: dict[str, Any]) -> None:
+    """ValueError unless the junction's controller is the agent's ``running`` one, class
+    and state (the agents' run is then gap-out's alone until a swap)."""
+    running = agent.get("running")
+    spec = agent.get("controllers", {}).get(running)
+    if spec is None:
+        raise ValueError(f"{CONFIG}: the agent's running = {running!r} is none of its "
+                         f"controllers ({', '.join(agent.get('controllers', {}))})")
+    if (spec["class"], spec.get("state", {})) != (controller["class"],
+                                                   controller.get("state", {})):
+        raise ValueError(f"{CONFIG}: the junction's controller ({controller['class']}, "
+                         f"{controller.get('state', {})}) is not the agent's running one, "
+                         f"{running} ({spec['class']}, {spec.get('state', {})}): make them "
+                         "the same")
 
 
 def controllers() -> dict[str, dict[str, Any]]:
@@ -362,10 +391,14 @@ def parse_scale(texts: list[str]) -> dict[str, float]:
         try:
             if equals and not period:
                 raise ValueError(text)
-            scale[period or "*"] = float(factor)
+            value = float(factor)
         except ValueError:
             raise ValueError(f"--scale {text!r}: give PERIOD=FACTOR (surge=2) or a "
                              "FACTOR for every period (1.5)") from None
+        if (period or "*") in scale:          # (the last was taken, silently)
+            raise ValueError(f"--scale {text!r}: {period or 'every period'} is scaled "
+                             "twice: give it once")
+        scale[period or "*"] = value
     return scale
 
 

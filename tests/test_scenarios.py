@@ -391,6 +391,16 @@ def test_traffic_names_what_is_wrong_with_a_demand_scale(tmp_path, capsys, scale
     assert time.monotonic() - started < 5.0 and not any(tmp_path.iterdir())
 
 
+def test_traffic_refuses_a_period_scaled_twice() -> None:
+    """``--scale surge=2 --scale surge=3`` ran with 3, silently."""
+    from scenarios.traffic import parse_scale
+
+    assert parse_scale(["surge=2", "1.5"]) == {"surge": 2.0, "*": 1.5}
+    for twice in (["surge=2", "surge=3"], ["2", "3"]):
+        with pytest.raises(ValueError, match=r"is scaled twice: give it once"):
+            parse_scale(twice)
+
+
 def test_traffic_names_the_networks_when_given_one_it_does_not_know(tmp_path, capsys) -> None:
     assert main(["scenario", "traffic", "--network", "moon", "--out", str(tmp_path)]) == 2
     assert "no network 'moon': the bundled networks are cross, grid, ring" in (

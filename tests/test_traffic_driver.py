@@ -56,6 +56,24 @@ def driver(cache: Path) -> Iterator[Callable[..., ModuleHarness]]:
         harness.close()
 
 
+def test_a_simulation_that_fails_as_it_starts_leaves_the_process_free(driver,
+                                                                      monkeypatch) -> None:
+    """libsumo runs one simulation per process: one that failed as it read its signal
+    programs kept the slot, and every later one was refused ("give each traffic driver
+    its own worker")."""
+    from agents.traffic import simulation
+
+    def no_green(phases: list) -> None:
+        raise ValueError("the program has no green phase")
+
+    with monkeypatch.context() as patched:
+        patched.setattr(simulation.SignalPlan, "from_program", staticmethod(no_green))
+        with pytest.raises(ValueError, match="the program has no green phase"):
+            driver()
+    assert simulation.Simulation._running is None
+    assert driver().state["status"] == "running"
+
+
 def answer(harness: ModuleHarness, green: int) -> JunctionReading:
     """Answer the newest reading of the crossing with ``green``; the next reading."""
     reading = harness.last("reading_0")
@@ -201,7 +219,8 @@ def test_a_control_step_of_any_length_keeps_the_minimum_green(driver,
 
 @pytest.mark.parametrize("bad", [{"control_step_s": 0.0}, {"control_step_s": -1.0},
                                  {"control_step_s": float("nan")},
-                                 {"min_green_s": -5.0}, {"duration_s": float("inf")}])
+                                 {"min_green_s": -5.0}, {"duration_s": float("inf")},
+                                 {"own_programs": "false"}])
 def test_a_step_green_or_duration_out_of_range_is_refused_by_name(driver, bad) -> None:
     (name, _), = bad.items()
     with pytest.raises(ValueError, match=f"{name} must be"):

@@ -131,6 +131,13 @@ def test_a_period_s_demand_scales_and_a_bad_scale_is_named(tmp_path: Path) -> No
     ('[build]\nnetgenerate = ["--grid"]\n[demand.streams]\na = { from = 3, to = "y", '
      'group = "g" }\n', r"\[demand.streams\] a: from must be text"),
     ('name = "west/ring"\n', "name must be text that can name a file"),
+    # (a scale by name took both, and the report's periods could not be told apart)
+    *[('[build]\nnetgenerate = ["--grid"]\n[demand.streams]\na = { from = "x", to = "y", '
+       f'group = "g" }}\n[[demand.periods]]\nname = "{first}"\nshare = 0.5\nrates = {{ g = 1 }}'
+       f'\n[[demand.periods]]\nname = "{second}"\nshare = 0.5\nrates = {{ g = 2 }}\n',
+       complaint) for first, second, complaint in [
+           ("rush", "rush", "each period needs a name of its own, not 'rush'"),
+           ("*", "rush", r"not '\*' \('\*' means every period to --scale\)")]],
 ])
 def test_a_bad_description_is_refused_saying_what_to_fix(tmp_path: Path, text: str,
                                                          complaint: str) -> None:

@@ -6,6 +6,7 @@ running system, where its swaps are the system's events."""
 
 from __future__ import annotations
 
+import contextlib
 import pickle
 from pathlib import Path
 from typing import Any
@@ -16,7 +17,7 @@ from conftest import eventually
 from agents.traffic.messages import JunctionMeasures
 from agents.traffic.performance import PerformanceAgent
 from pb3a import System
-from pb3a.errors import ModuleNotFound, RuntimeCancelled, RuntimeFailure
+from pb3a.errors import ModuleNotFound, RuntimeCancelled, RuntimeFailure, RuntimeTimeout
 from pb3a.loading.references import resolve_class
 from pb3a.testing import ModuleHarness
 
@@ -150,7 +151,8 @@ def test_it_says_done_with_each_measure_after_the_swap_it_called_for() -> None:
 
 def test_it_does_not_hold_the_lock_step_for_measures_that_do_not_come() -> None:
     """A clock ahead of the measures is said done once it has waited ``silent_wall_s``
-    for them (they may only lag), and at once while the detectors are failed."""
+    for them (they may only lag), each clock anew, and at once while the detectors are
+    failed."""
     harness, runtime = agent(silent_wall_s=0.5)
     wall = [50.0]
     harness.module._wall = lambda: wall[0]
@@ -169,11 +171,35 @@ def test_it_does_not_hold_the_lock_step_for_measures_that_do_not_come() -> None:
     assert harness.last("done") == 21.0 and harness.state["detectors_ok"] is True
     for second in range(22, 32):
         harness.feed("clock", float(second))
+        assert harness.last("done") == float(second) - 1     # it waits for its measure
+        wall[0] += 0.5
+        harness.step()
         assert harness.last("done") == float(second)
     assert runtime.swaps() == ["FixedTime"] and harness.state["detectors_ok"] is False
     harness.feed("measures", measure(32.0, queue=1, plausible=False))
     harness.feed("clock", 33.0)              # failed: not waited for at all
     assert harness.last("done") == 33.0
+
+
+def test_measures_half_a_second_late_once_are_no_failure_and_keep_the_lock_step() -> None:
+    """Once a clock had waited ``silent_wall_s``, every later one was said done at once:
+    the driver ran on without the measures, and 10 s of its clock later, no wall time
+    having passed, the detectors were taken as failed and fixed time swapped in."""
+    harness, runtime = agent(silent_wall_s=0.5)
+    wall = [50.0]
+    harness.module._wall = lambda: wall[0]
+    feed(harness, 0, 5, queue=1)
+    harness.feed("clock", 5.0)               # its measure is 0.6 s late
+    wall[0] += 0.6
+    harness.step()
+    assert harness.last("done") == 5.0
+    for second in range(6, 16):              # the clocks after it wait for theirs
+        harness.feed("clock", float(second))
+        assert harness.last("done") == 5.0
+    harness.feed("measures", measure(5.0, queue=1))
+    feed(harness, 6, 16, queue=1)            # the measures catch up
+    assert harness.last("done") == 15.0
+    assert runtime.swaps() == [] and harness.state["detectors_ok"] is True
 
 
 def test_a_failure_met_on_fixed_time_its_rules_chose_keeps_the_time_between_swaps() -> None:
@@ -287,6 +313,26 @@ def test_a_swap_by_the_rules_the_system_refuses_is_tried_again_after_the_minimum
     assert [second for second, _ in refused] == [60, 180, 300]
     assert runtime.swaps() == ["MaxPressure"] * 3 and harness.state["running"] == "gap_out"
     assert "not swapped, GapOut runs on" in str(refused[0][1])
+
+
+def test_a_controller_whose_state_cannot_be_read_is_asked_again_after_the_minimum_time(
+        ) -> None:
+    """The state read before the swap was outside the swap's refusal: a controller that
+    did not answer was asked at every measure, each call waiting out its timeout."""
+    harness, runtime = agent()
+    asked = []
+
+    def silent(name: str) -> dict[str, Any]:
+        asked.append(name)
+        raise RuntimeTimeout(f"{name} did not answer 'state' within 5 s")
+
+    runtime.state = silent
+    port = harness.inputs["measures"]
+    for second in range(200):
+        port.deliver(measure(float(second), queue=9))
+        with contextlib.suppress(RuntimeTimeout):
+            harness.module.on_input(port)
+    assert len(asked) == 2 and runtime.swaps() == [] and harness.state["running"] == "gap_out"
 
 
 def test_implausible_readings_bring_fixed_time() -> None:
@@ -626,3 +672,13 @@ def test_a_junction_the_file_names_keeps_its_own_settings(tmp_path: Path,
         controller, agent = running.state("C/controller"), running.state("C/agent")
     assert controller["max_green_s"] == 60.0
     assert agent["min_between_swaps_s"] == 300.0 and agent["controller"] == "C/controller"
+    # and given again when its agent swaps back to it (40 s came back: the file's)
+    assert agent["controllers"]["gap_out"]["state"]["max_green_s"] == 60.0
+    assert agent["controllers"]["time_loss"] == traffic.controllers()["time_loss"]
+    # the junction's controller and the agent's running one are the same, or named
+    own.write_text(traffic.CONFIG.read_text().replace(
+        'passage_s = 4.0, switch_ratio = 0.0 }\n\n[macros.junction.modules.agent]',
+        'passage_s = 3.0, switch_ratio = 0.0 }\n\n[macros.junction.modules.agent]'))
+    with pytest.raises(ValueError, match=r"the junction's controller .* is not the agent's "
+                                         r"running one, gap_out"):
+        traffic.configuration(resource, 1, 60.0, traffic.layouts(resource, tmp_path), tmp_path)

@@ -67,7 +67,9 @@ _SIMULATION_KEYS = ("resource", "seed", "signals", "duration_s", "own_programs",
                     "demand_scale")
 _PREPARED_BY = (*_SIMULATION_KEYS, "cache_dir")    # what a simulation's network needs
 _LIMITS = {"control_step_s": SPAN, "duration_s": SPAN, "min_green_s": SECONDS,
-           "lockstep_timeout_s": SECONDS}
+           "lockstep_timeout_s": SECONDS,
+           # ("false", a string, was true: SUMO's programs ran the lights)
+           "own_programs": ("true or false", lambda value: isinstance(value, bool))}
 
 
 def _junction_ports() -> dict[str, Input | Output]:

@@ -181,6 +181,12 @@ class Network:
         if not (isinstance(listed, list) and all(isinstance(p, dict) for p in listed)):
             raise fail("[[demand.periods]] must be tables, each with a name, a share and "
                        f"rates, got {listed!r}")
+        names = [str(period.get("name", number + 1)) for number, period in enumerate(listed)]
+        twice = sorted({name for name in names if names.count(name) > 1})
+        if twice or "*" in names:       # (a scale by name took both, or every period)
+            raise fail(f"[[demand.periods]]: each period needs a name of its own, not "
+                       f"{', '.join(map(repr, twice or ['*']))}"
+                       + (" ('*' means every period to --scale)" if "*" in names else ""))
         for number, period in enumerate(listed):
             label = f"[[demand.periods]] {period.get('name', number + 1)}"
             rates = period.get("rates", {})

@@ -17,9 +17,9 @@ Guard rails:
   also across a re-pointed driver's new run (its clock from 0), whose measures make a
   window of their own;
 - when the detectors fail (an implausible measure, or none for ``silent_after_s``
-  of the driver's clock once the clock has been ahead of them for ``silent_wall_s``
-  of wall time: measures come through the sensors, the clock straight from the
-  driver, and their lag is no failure), it swaps to ``fallback`` (fixed time, which
+  of the driver's clock, each of its clocks having waited ``silent_wall_s`` of wall
+  time for its measure: measures come through the sensors, the clock straight from
+  the driver, and their lag is no failure), it swaps to ``fallback`` (fixed time, which
   needs no detector) at once, and leaves it only after a whole window of plausible
   measures.
 
@@ -27,8 +27,11 @@ In lock-step (``done`` linked to the driver's ``done_i``) it says on ``done`` th
 simulated time of each measure it has dealt with, a swap it called for made: the
 driver waits for it, so the swap runs from the next step on, however loaded the
 machine. It does not hold the simulation for measures that do not come: a clock
-``silent_wall_s`` ahead of them (at once while its detectors are failed) is said
-done too.
+that has waited ``silent_wall_s`` for its measure (at once while its detectors are
+failed) is said done too. Each clock waits anew: once one had waited, every later
+clock was said done at once, so a stall of half a second on the measures' way let
+the driver run ``silent_after_s`` ahead of them, out of lock-step, and brought the
+fallback in for a lag.
 
 A controller's table or weights (state ``table``) is kept (``kept``, the agent's
 state: it moves with the agent) when it is swapped out and given back when it is
@@ -224,7 +227,7 @@ class PerformanceAgent(Agent):
                                     # (1 - hysteresis) of its thresholds
     min_between_swaps_s = 120.0
     silent_after_s = 10.0           # simulated seconds without a measure ...
-    silent_wall_s = 0.5             # ... the clock ahead of them this long in wall time
+    silent_wall_s = 0.5             # ... each clock ahead of them this long in wall time
     period = 0.1                    # how often silence is checked, besides on the clock
     # read-outs
     demand_per_min = 0.0
@@ -250,7 +253,8 @@ class PerformanceAgent(Agent):
         self._plausible_since: float | None = None
         self._clock_s: float | None = None
         self._behind_since: float | None = None     # wall time the clock went ahead of
-                                                    # the measures
+                                                    # the measures, and which clock
+        self._behind_clock: float | None = None
         self._done_s: float | None = None           # the time last said done
         self._wall = time.monotonic
 
@@ -346,8 +350,8 @@ class PerformanceAgent(Agent):
             self._behind_since = None
         if now is None or last is None or now <= last:
             return
-        if self._behind_since is None:
-            self._behind_since = self._wall()
+        if self._behind_since is None or now != self._behind_clock:
+            self._behind_since, self._behind_clock = self._wall(), now
         waited = self._wall() - self._behind_since >= self.silent_wall_s
         try:
             if waited and now - last > self.silent_after_s and self.detectors_ok:
@@ -380,10 +384,11 @@ class PerformanceAgent(Agent):
         fallback) and give it its state; recorded as soon as the class is swapped. A
         state that cannot be set is in the record (``state_error``) and raised once."""
         leaving = self.running
-        live = self.runtime.state(self.controller)
-        kept = {k: live[k] for k in KEPT_STATE if k in live}
         spec = self.controllers[name]
         try:
+            # (its state read first, in the same try: a controller whose state could
+            # not be read was asked again at every measure, past min_between_swaps_s)
+            live = self.runtime.state(self.controller)
             self.runtime.swap(self.controller, spec["class"])
         except RuntimeCancelled:
             raise           # the agent is stopping: not a swap refused
@@ -392,7 +397,7 @@ class PerformanceAgent(Agent):
                 self.last_swap_s = now      # setup fails failed each second), the
             raise                           # fallback's at the next look
         # From here the junction runs the new class: so says the record, whatever comes.
-        self.kept = {**self.kept, leaving: kept}
+        self.kept = {**self.kept, leaving: {k: live[k] for k in KEPT_STATE if k in live}}
         self.running, self.last_swap_s = name, now
         if chosen:
             self.chosen = name

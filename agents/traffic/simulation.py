@@ -62,6 +62,16 @@ class Simulation:
             "--no-step-log", "true", "--no-warnings", "true",
             "--duration-log.disable", "true"])
         Simulation._running = self
+        try:
+            self._read_signals()
+        except BaseException:
+            # (the one simulation a process may run stayed taken: every later one was
+            # refused, told to use a worker of its own)
+            self.close()
+            raise
+
+    def _read_signals(self) -> None:
+        """Each signalized junction's program and layout, and what the readings need."""
         self.layouts: dict[str, JunctionLayout] = {}
         self.plans: dict[str, SignalPlan] = {}
         tls = self._sumo.trafficlight
