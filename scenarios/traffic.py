@@ -171,7 +171,7 @@ def configuration(resource: Path, seed: int, duration_s: float,
 def _check_running(controller: dict[str, Any], agent: dict[str, Any]) -> None:
     """ValueError unless the junction's controller is the agent's ``running`` one, class
     and state (the agents' run is then gap-out's alone until a swap)."""
-    running = agent.get("running")
+    running = agent.get("running", "")
     spec = agent.get("controllers", {}).get(running)
     if spec is None:
         raise ValueError(f"{CONFIG}: the agent's running = {running!r} is none of its "
