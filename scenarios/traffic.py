@@ -64,6 +64,9 @@ SETTLE_S = 10.0                 # wall seconds for the swaps in flight at the en
                                 # recorded by their agents
 # (late and rejected: answers in the lock-step that came after its timeout, and requests
 # the driver could not apply; a run with either no longer depends on its seed alone)
+# what the scenario fills in of the driver's state, whatever the file says
+FILLED_IN = ("resource", "seed", "duration_s", "cache_dir", "demand_scale", "signals",
+             "own_programs")
 FIGURES = ("mean_delay_s", "mean_halting", "throughput", "teleports", "vehicles",
            "mean_time_loss_s", "mean_depart_delay_s", "late", "rejected")
 
@@ -256,6 +259,15 @@ def with_unrecorded(swaps: list[dict[str, Any]], events: list[Any],
     return sorted([*swaps, *added], key=lambda swap: swap["time"])
 
 
+def driver_settings() -> dict[str, Any]:
+    """The driver's settings in the file (``[modules.sumo]``: its minimum green, control
+    step, lock-step timeout), which every run takes, the agents' and those without;
+    the scenario's own (network, seed, length, cache, demand scale) left out. The runs
+    without agents took the driver's defaults, whatever the file said."""
+    state = tomllib.loads(CONFIG.read_text())["modules"]["sumo"].get("state", {})
+    return {key: value for key, value in state.items() if key not in FILLED_IN}
+
+
 def run_alone(resource: Path, seed: int, duration_s: float, spec: dict[str, Any],
               cache: Path | None = None, demand_scale: Mapping[str, float] | None = None,
               ) -> dict[str, Any]:
@@ -263,7 +275,7 @@ def run_alone(resource: Path, seed: int, duration_s: float, spec: dict[str, Any]
     cls = resolve_class(spec["class"])
     result, _ = run_in_process(resource, lambda _junction: (cls, dict(spec.get("state", {}))),
                                seed=seed, duration_s=duration_s, cache=cache,
-                               demand_scale=demand_scale)
+                               demand_scale=demand_scale, settings=driver_settings())
     return result
 
 
@@ -271,9 +283,9 @@ def run_sumo(resource: Path, seed: int, duration_s: float, signals: str,
              cache: Path | None = None, demand_scale: Mapping[str, float] | None = None,
              ) -> dict[str, Any]:
     """SUMO's own programs of type ``signals`` drive the lights."""
-    simulation = lockstep.driver(resource, cache, seed=seed, duration_s=duration_s,
-                                 signals=signals, own_programs=True,
-                                 demand_scale=dict(demand_scale or {}))
+    simulation = lockstep.driver(resource, cache, **{
+        **driver_settings(), "seed": seed, "duration_s": duration_s, "signals": signals,
+        "own_programs": True, "demand_scale": dict(demand_scale or {})})
     try:
         while simulation.module.status == "running":
             simulation.step()

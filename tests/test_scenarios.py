@@ -391,6 +391,44 @@ def test_traffic_names_what_is_wrong_with_a_demand_scale(tmp_path, capsys, scale
     assert time.monotonic() - started < 5.0 and not any(tmp_path.iterdir())
 
 
+def test_traffic_runs_without_agents_take_the_driver_settings_of_the_file(tmp_path,
+                                                                          monkeypatch) -> None:
+    """Each controller alone and SUMO's programs ran with the driver's defaults, whatever
+    ``[modules.sumo]`` said: a minimum green set there changed the agents' run alone."""
+    from scenarios import traffic
+
+    own = tmp_path / "traffic.toml"
+    own.write_text(traffic.CONFIG.read_text().replace(
+        "state = { min_green_s = 5.0, lockstep_timeout_s = 2.0 }",
+        "state = { min_green_s = 8.0, control_step_s = 2.0, seed = 99 }"))
+    monkeypatch.setattr(traffic, "CONFIG", own)
+    assert traffic.driver_settings() == {"min_green_s": 8.0, "control_step_s": 2.0}
+    taken: list[dict] = []
+
+    class Stopped(Exception):
+        pass
+
+    def run_in_process(*_args, settings=None, seed=None, **_kwargs):
+        taken.append({**settings, "seed": seed})
+        raise Stopped
+
+    def driver(_resource, _cache, **state):
+        taken.append(state)
+        raise Stopped
+
+    monkeypatch.setattr(traffic, "run_in_process", run_in_process)
+    monkeypatch.setattr(traffic.lockstep, "driver", driver)
+    gap_out = traffic.controllers()["gap_out"]
+    for run in (lambda: traffic.run_alone(Path("ring.toml"), 3, 60.0, gap_out),
+                lambda: traffic.run_sumo(Path("ring.toml"), 3, 60.0, "actuated")):
+        with pytest.raises(Stopped):
+            run()
+    alone, sumo = taken
+    assert alone == {"min_green_s": 8.0, "control_step_s": 2.0, "seed": 3}
+    assert (sumo["min_green_s"], sumo["control_step_s"], sumo["seed"]) == (8.0, 2.0, 3)
+    assert sumo["own_programs"] is True and sumo["signals"] == "actuated"
+
+
 def test_traffic_refuses_a_period_scaled_twice() -> None:
     """``--scale surge=2 --scale surge=3`` ran with 3, silently."""
     from scenarios.traffic import parse_scale

@@ -32,15 +32,18 @@ def run_in_process(resource: str | Path, make: ControllerChoice, *, seed: int,
                    duration_s: float, cache: Path | None = None, min_green_s: float = 5.0,
                    demand_scale: Mapping[str, float] | None = None,
                    adopt: Callable[[str, JunctionController], None] | None = None,
+                   settings: Mapping[str, Any] | None = None,
                    ) -> tuple[dict[str, Any], dict[str, ModuleHarness]]:
     """Simulate ``resource`` for ``duration_s`` with, per junction, the controller
     ``make(junction)`` gives (class, state); the run's figures and the controllers.
     ``demand_scale`` is the driver's (period name, or ``*``, to a factor of its rates).
     ``adopt(junction, controller)`` is called once each controller is set up: a harness
     gives a module a copy of its state, so what junctions are to share (the training's
-    one table) is handed to them there."""
-    simulation = driver(resource, cache, seed=seed, duration_s=duration_s,
-                        min_green_s=min_green_s, demand_scale=dict(demand_scale or {}))
+    one table) is handed to them there. ``settings`` are more of the driver's (its
+    control step, say), over ``min_green_s``."""
+    simulation = driver(resource, cache, **{
+        "seed": seed, "duration_s": duration_s, "min_green_s": min_green_s,
+        "demand_scale": dict(demand_scale or {}), **(settings or {})})
     try:
         junctions = simulation.state["junctions"]
         controllers = {}
