@@ -238,6 +238,25 @@ def test_q_learning_goes_by_a_table_file_given_once_it_is_set_up(tmp_path: Path)
     assert learner.state["table"] == {"j": [0.0, 1.0]}      # nothing set
 
 
+@pytest.mark.parametrize("failed", [
+    {"vehicles": {"ns": -1}}, {"vehicles": {"ns": 300}}, {"approaching": {"ew": -2}},
+    {"delayed": {"ns": 500}}, {"outgoing": {"ew": -1}},
+    {"approaching": {"ns": 1}, "arriving_in": {"ns": -3.0}},
+    {"approaching": {"ns": 1}, "arriving_in": {"ns": float("nan")}}])
+def test_the_detectors_gap_out_and_time_loss_decide_by_are_judged_too(failed) -> None:
+    """Only the queues, arrivals and waiting times were judged: a failed detector of the
+    vehicles due or delayed, what gap-out and time loss decide by, went unseen, and no
+    fallback came."""
+    from agents.traffic.sensors import JunctionSensors
+
+    sensors = ModuleHarness(JunctionSensors)
+    sensors.feed("reading", reading(queues={"ns": 3}, approaching={"ew": 2},
+                                    delayed={"ns": 3}, outgoing={"ew": 4}))
+    sensors.feed("reading", reading(queues={"ns": 3}, **failed))
+    assert [m.plausible for m in sensors.written["measures"]] == [True, False]
+    assert sensors.state["implausible"] == 1
+
+
 def test_the_sensors_judge_plausibility_by_a_lane_capacity_they_check() -> None:
     """A lane_capacity below 1 (or not a number) was taken: every reading was judged a
     failed detector (or raised), and each junction's agent ran fixed time for good,

@@ -2,12 +2,17 @@
 modules use: totals (queue, waiting time, arrivals) for its performance agent and
 the queue per incoming lane for the neighbours upstream.
 
-It also judges whether a reading is plausible: a negative count or more vehicles
-halting on a lane than ``lane_capacity`` is a failed detector, not traffic.
+It also judges whether a reading is plausible: a count that is negative or above
+``lane_capacity`` (vehicles halting, arriving, moving, due, delayed on a lane), a
+negative waiting time or a negative or non-finite time to the stop line is a failed
+detector, not traffic. (Only the queues, arrivals and waiting times were judged:
+what gap-out and time loss decide by, the vehicles due and the delayed ones, could
+fail unseen, and the fallback never came.)
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from agents.limits import whole
@@ -17,9 +22,12 @@ from pb3a import Input, InputPort, Module, Output
 
 def plausible(reading: JunctionReading, lane_capacity: int) -> bool:
     """False when a detector of ``reading`` gives a value no lane can have."""
-    counts = (*reading.queues.values(), *reading.arrivals.values())
+    counts = (*reading.queues.values(), *reading.arrivals.values(),
+              *reading.vehicles.values(), *reading.approaching.values(),
+              *reading.delayed.values(), *reading.outgoing.values())
     return (all(0 <= c <= lane_capacity for c in counts)
-            and all(w >= 0 for w in reading.waiting.values()))
+            and all(0 <= w < math.inf for w in reading.waiting.values())
+            and all(0 <= t < math.inf for t in reading.arriving_in.values()))
 
 
 class JunctionSensors(Module):
