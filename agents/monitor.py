@@ -595,9 +595,9 @@ class HardwareMonitor(Module):
         self.collected += 1
         counts = self.training_informative[:self.collected].sum(axis=0)
         done = self.collected == len(self.training)
+        windows = {**READY_WINDOWS, **self.ready_windows}   # (the groups it leaves out)
         ready = tuple(group for g, group in enumerate(GROUPS)
-                      if counts[g] >= max(10, {**READY_WINDOWS, **self.ready_windows}[group])
-                      or (done and counts[g] >= 10))
+                      if counts[g] >= max(10, windows[group]) or (done and counts[g] >= 10))
         if ready == tuple(self.watched) and not done:
             return
         if ready:

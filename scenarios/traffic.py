@@ -62,11 +62,11 @@ RUN_TIMEOUT_S = {"quick": 120.0, "full": 600.0}    # wall seconds for the agents
 POLL_S = 0.2
 SETTLE_S = 10.0                 # wall seconds for the swaps in flight at the end to be
                                 # recorded by their agents
-# (late and rejected: answers in the lock-step that came after its timeout, and requests
-# the driver could not apply; a run with either no longer depends on its seed alone)
 # what the scenario fills in of the driver's state, whatever the file says
 FILLED_IN = ("resource", "seed", "duration_s", "cache_dir", "demand_scale", "signals",
              "own_programs")
+# (late and rejected: answers in the lock-step that came after its timeout, and requests
+# the driver could not apply; a run with either no longer depends on its seed alone)
 FIGURES = ("mean_delay_s", "mean_halting", "throughput", "teleports", "vehicles",
            "mean_time_loss_s", "mean_depart_delay_s", "late", "rejected")
 

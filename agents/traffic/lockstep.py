@@ -29,7 +29,7 @@ def driver(resource: str | Path, cache: Path | None = None, **state: Any) -> Mod
 
 
 def run_in_process(resource: str | Path, make: ControllerChoice, *, seed: int,
-                   duration_s: float, cache: Path | None = None, min_green_s: float = 5.0,
+                   duration_s: float, cache: Path | None = None,
                    demand_scale: Mapping[str, float] | None = None,
                    adopt: Callable[[str, JunctionController], None] | None = None,
                    settings: Mapping[str, Any] | None = None,
@@ -39,11 +39,11 @@ def run_in_process(resource: str | Path, make: ControllerChoice, *, seed: int,
     ``demand_scale`` is the driver's (period name, or ``*``, to a factor of its rates).
     ``adopt(junction, controller)`` is called once each controller is set up: a harness
     gives a module a copy of its state, so what junctions are to share (the training's
-    one table) is handed to them there. ``settings`` are more of the driver's (its
-    control step, say), over ``min_green_s``."""
+    one table) is handed to them there. ``settings`` are more of the driver's state (its
+    minimum green, its control step); what they leave out is the driver's default."""
     simulation = driver(resource, cache, **{
-        "seed": seed, "duration_s": duration_s, "min_green_s": min_green_s,
-        "demand_scale": dict(demand_scale or {}), **(settings or {})})
+        "seed": seed, "duration_s": duration_s, "demand_scale": dict(demand_scale or {}),
+        **(settings or {})})
     try:
         junctions = simulation.state["junctions"]
         controllers = {}

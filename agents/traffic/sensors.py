@@ -3,9 +3,9 @@ modules use: totals (queue, waiting time, arrivals) for its performance agent an
 the queue per incoming lane for the neighbours upstream.
 
 It also judges whether a reading is plausible: a count that is negative or above
-``lane_capacity`` (vehicles halting, arriving, moving, due, delayed on a lane), a
-negative waiting time or a negative or non-finite time to the stop line is a failed
-detector, not traffic. (Only the queues, arrivals and waiting times were judged:
+``lane_capacity`` (vehicles halting, arriving, moving, due, delayed or leaving on a
+lane), a negative waiting time or a negative or non-finite time to the stop line is
+a failed detector, not traffic. (Only the queues, arrivals and waiting times were judged:
 what gap-out and time loss decide by, the vehicles due and the delayed ones, could
 fail unseen, and the fallback never came.)
 """
