@@ -66,8 +66,10 @@ class Grid:
     def cell(self, x: Any, y: Any) -> tuple[Any, Any]:
         """(row, column) of the cell holding world point (x, y); works on arrays. Points
         outside give indices outside the grid: check them with ``inside``."""
-        return (np.floor(np.asarray(y) / self.resolution).astype(np.int64),
-                np.floor(np.asarray(x) / self.resolution).astype(np.int64))
+        # (1e-9 of a cell: 0.3 / 0.1 is 2.9999999999999996, and a point on a border
+        # belongs to the cell above it, as the module's docstring has it)
+        return (np.floor(np.asarray(y) / self.resolution + 1e-9).astype(np.int64),
+                np.floor(np.asarray(x) / self.resolution + 1e-9).astype(np.int64))
 
     def center(self, row: Any, col: Any) -> tuple[Any, Any]:
         """World (x, y) of a cell's centre; works on arrays."""

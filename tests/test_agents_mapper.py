@@ -246,6 +246,16 @@ def test_a_reading_whose_pose_is_not_finite_is_skipped_and_counted() -> None:
     assert np.isnan(core.last_ranges).all() and not core.unfolded.any()
 
 
+def test_a_point_on_a_cell_border_is_in_the_cell_above_it_and_its_centre_in_its_own() -> None:
+    grid = Grid(12.0, 9.0, 0.1)
+    assert grid.cell(0.3, 0.7) == (7, 3)                     # 0.3 / 0.1 = 2.9999999999999996
+    rows, cols = grid.cell(np.arange(90) * 0.1, np.arange(90) * 0.1)
+    assert (rows == np.arange(90)).all() and (cols == np.arange(90)).all()
+    xs, ys = grid.centers()
+    rows, cols = grid.cell(xs, ys)
+    assert (rows == np.arange(90)[:, None]).all() and (cols == np.arange(120)[None, :]).all()
+
+
 def test_the_mapper_fits_its_grid_to_the_size_and_resolution_it_is_given() -> None:
     harness = ModuleHarness(Mapper, state={"size": [10.0, 8.0], "resolution": 0.05,
                                            "model": {"cone_deg": 20.0}})
