@@ -376,7 +376,8 @@ def _signed_area(points: list[tuple[float, float]]) -> float:
 def _blocks(obstacle: Obstacle, backend: str, x: float, y: float) -> bool:
     """Whether a robot on ``backend`` at (x, y) overlaps ``obstacle`` (a hardware robot
     passes through virtual ones): it would run stuck, or be shoved through it."""
-    return not (obstacle.virtual and backend == "hardware") and _clearance(obstacle, x, y) < RADIUS
+    return not (obstacle.virtual and backend == "hardware") and \
+        _clearance(obstacle, x, y) < RADIUS + WALL_RADIUS
 
 
 def _point(value: Any, what: str) -> tuple[float, float]:

@@ -469,7 +469,7 @@ def test_the_batched_scan_of_a_crowd_equals_casting_every_ray_against_everything
                       virtual=i % 2 == 0)
     world.add_polygon([(1, 1), (4, 1), (4, 3), (3, 2), (1, 3)])          # concave
     world.add_wall((0, 0), (12, 0))
-    world.add_robot("hugger", (2.0, 5.0, 0.0))                # 0.25 m off a box's side
+    world.add_robot("hugger", (2.0, 4.975, 0.0))     # 5 mm off a box
     world.add_robot("h", (6.0, 9.0, 1.0), backend="hardware")
     rng = np.random.default_rng(8)
     while len(world.robots) < 26:               # (a pose that overlaps is refused)
@@ -789,7 +789,12 @@ def test_a_robot_added_over_an_obstacle_or_a_robot_is_refused(world_of: WorldMak
     world.add_robot("hw", (2.0, 2.0, 0.0), backend="hardware")      # it passes virtual ones
     with pytest.raises(ValueError, match="it overlaps robot 'hw'"):
         world.add_robot("s", (2.0, 2.4, 0.0), backend="hardware")
+    # a wall is 0.04 m thick: its centre line 0.26 m off is 0.24 m from its face
+    world.add_wall((6.0, 1.0), (6.0, 7.0))
+    with pytest.raises(ValueError, match=r"robot w: at \(6.26, 4\) it overlaps obstacle 1"):
+        world.add_robot("w", (6.26, 4.0, 0.0))
     assert list(world.robots) == ["hw"]
+    world.add_robot("w", (6.28, 4.0, 0.0))
 
 
 def test_the_camera_sees_a_coloured_obstacle_at_its_nearest_point(world_of: WorldMaker) -> None:
