@@ -15,6 +15,7 @@ import os
 import selectors
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -43,11 +44,19 @@ class NodeControllerProcess:
             # lost. Out of the terminal's session, it ends with this process
             # (``lab_node``), however this one ends.
             start_new_session=True)
+        self._relay: threading.Thread | None = None
         try:
             self.address = self._banner(timeout).rpartition(" at ")[2]
         except BaseException:
             self.close()
             raise
+        # What its executors and workers print after the banner (a module's print, a
+        # warning) goes on to our stderr: left unread, the pipe filled after 64 KiB
+        # and the next print blocked its module for good. (Not to our stdout: the
+        # scenarios print their report there.)
+        self._relay = threading.Thread(target=self._relay_output, daemon=True,
+                                       name=f"pb3a-lab-{name}-output")
+        self._relay.start()
 
     def _banner(self, timeout: float) -> str:
         """The first line it prints ("node NAME at ADDRESS"), within ``timeout``."""
@@ -63,6 +72,13 @@ class NodeControllerProcess:
                                f"{line or 'it exited'}")
         return line
 
+    def _relay_output(self) -> None:
+        """Copy its output to our stderr until the pipe's end (every writer gone)."""
+        assert self.process.stdout is not None
+        with contextlib.suppress(OSError, ValueError), self.process.stdout:
+            for line in self.process.stdout:
+                sys.stderr.write(line)
+
     def close(self, timeout: float = 15.0) -> None:
         """Stop it (and so the executors it runs): SIGTERM, then SIGKILL."""
         if self.process.poll() is None:
@@ -72,7 +88,11 @@ class NodeControllerProcess:
             except subprocess.TimeoutExpired:
                 self.process.kill()
                 self.process.wait(5.0)
-        if self.process.stdout is not None:
+        if self._relay is not None:
+            # (it closes the pipe at its end; a worker that outlived the controller
+            # for a moment may still hold it open)
+            self._relay.join(5.0)
+        elif self.process.stdout is not None:
             self.process.stdout.close()
 
 
