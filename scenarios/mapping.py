@@ -51,6 +51,7 @@ from pb3a import Input, InputPort, Module, System
 from pb3a.cli.arguments import seed
 from pb3a.cli.log_output import show_logs
 from rave import World
+from rave.pioneer import RADIUS
 from rave.worldfile import world_file
 from scenarios import output_directory, summary
 from scenarios.lab import Lab, wait_until
@@ -172,7 +173,8 @@ def place_robots(path: Path) -> tuple[tuple[str, str], dict[str, tuple[float, fl
     """The robot that maps and the standby: the world's first two robots. A world with
     only one gets a standby ("standby", or "standby-2" when the first has that name)
     placed where it is furthest from the first
-    while keeping ``CLEARANCE_M`` from every obstacle; a world with none is refused."""
+    while keeping ``CLEARANCE_M`` from every obstacle and from the first robot's body;
+    a world with none is refused."""
     with World.load(path) as world:
         described = world.describe()
         grid = Grid.of(world.size, 0.1)
@@ -184,9 +186,12 @@ def place_robots(path: Path) -> tuple[tuple[str, str], dict[str, tuple[float, fl
         return (declared[0], declared[1]), {}
     first = described["robots"][declared[0]]["pose"]
     occupied = truth(described, grid)
-    roomy = (ndimage.distance_transform_edt(~occupied) * grid.resolution >= CLEARANCE_M) \
-        & reachable(occupied, grid, first[:2])
     xs, ys = grid.centers()
+    # as clear of the first robot's body as of an obstacle: in a small world the
+    # furthest roomy place was on top of it, and the world server refused it
+    roomy = (ndimage.distance_transform_edt(~occupied) * grid.resolution >= CLEARANCE_M) \
+        & (np.hypot(xs - first[0], ys - first[1]) >= CLEARANCE_M + RADIUS) \
+        & reachable(occupied, grid, first[:2])
     far = np.where(roomy, np.hypot(xs - first[0], ys - first[1]), -1.0)
     row, col = np.unravel_index(np.argmax(far), far.shape)
     if far[row, col] < 0:

@@ -4,7 +4,9 @@ networks, with their figures checked against the goals."""
 
 from __future__ import annotations
 
+import itertools
 import json
+import math
 import os
 import time
 from pathlib import Path
@@ -586,6 +588,26 @@ def test_a_one_robot_world_gets_a_standby_of_another_name(tmp_path, name, standb
                      'pose = [1.0, 1.0, 0.0]\n')
     robots, placed = mapping.place_robots(world)
     assert robots == (name, standby) and list(placed) == [standby]
+
+
+def test_a_world_too_small_for_a_standby_is_refused_by_name_not_crowded_onto_its_robot(
+        tmp_path) -> None:
+    """In a walled 1.6 m square the standby was placed 0.21 m from the robot, and the
+    world server refused it with two tracebacks; in a roomier one it keeps clear."""
+    for side, fits in ((1.6, False), (3.0, True)):
+        world = tmp_path / f"box{side}.toml"
+        corners = [[0.0, 0.0], [side, 0.0], [side, side], [0.0, side], [0.0, 0.0]]
+        walls = "".join(f"[[walls]]\nfrom = {a}\nto = {b}\n"
+                        for a, b in itertools.pairwise(corners))
+        world.write_text(f'name = "box"\nsize = [{side}, {side}]\n{walls}'
+                         f'[[robots]]\nname = "r1"\npose = [{side / 2}, {side / 2}, 0.0]\n')
+        if not fits:
+            with pytest.raises(ValueError, match=r"no room for a standby robot in .*box1\.6"):
+                mapping.place_robots(world)
+            continue
+        _, placed = mapping.place_robots(world)
+        x, y, _ = placed["standby"]
+        assert math.hypot(x - side / 2, y - side / 2) >= mapping.CLEARANCE_M + 0.25
 
 
 @pytest.mark.parametrize("scenario", ["mapping", "sim-to-real", "traffic"])
