@@ -49,6 +49,7 @@ from agents.learner import Parameters
 from pb3a import Input, InputPort, Module, System
 from pb3a.cli.arguments import seed
 from pb3a.cli.log_output import show_logs
+from rave import worldfile
 from scenarios import output_directory, summary
 from scenarios.lab import Lab, wait_until
 
@@ -94,17 +95,26 @@ def baselines(count: int) -> list[tuple[str, str]]:
     return [("alone", "other")] + [(f"alone_{i}", f"other_{i}") for i in range(2, count + 1)]
 
 
+def learning_robot(world: str | Path) -> str:
+    """The robot a learner learns on in each lab of ``world``: its file's first."""
+    robots = worldfile.read(worldfile.world_file(str(world))).robots
+    if not robots:
+        raise ValueError(f"the sim-to-real scenario needs a world with a robot; {world} "
+                         "declares none (add a [[robots]] entry)")
+    return robots[0]["name"]
+
+
 def configuration(simulated: Lab, hardware: Lab, baseline_labs: list[Lab], rate: float,
-                  seed: int, quick: bool = False) -> System:
-    """``sim_to_real.toml`` with this run's addresses, the driver's period for the
-    hardware worlds' rate, the seeds, a copy of the baseline (its node, module,
-    recorder and link) for each of ``baseline_labs``, and for a quick run its
-    learner's coarser view."""
+                  seed: int, quick: bool = False, robot: str = "r1") -> System:
+    """``sim_to_real.toml`` with this run's addresses (``robot``'s in each lab), the
+    driver's period for the hardware worlds' rate, the seeds, a copy of the baseline
+    (its node, module, recorder and link) for each of ``baseline_labs``, and for a
+    quick run its learner's coarser view."""
     data = tomllib.loads(CONFIG.read_text())
     data["nodes"]["robot"]["address"] = hardware.nodes["robot"].address
     brain = data["macros"]["brain"]["modules"]
     brain["driver"]["period"] = brain["driver"].get("period", 0.1) / rate
-    brain["driver"]["state"]["resource"] = simulated.robots["r1"]
+    brain["driver"]["state"]["resource"] = simulated.robots[robot]
     brain["learner"]["state"]["seed"] = seed
     node, alone, recorder = (data["nodes"]["other"], data["modules"]["alone"],
                              data["modules"]["alone_recorder"])
@@ -113,12 +123,12 @@ def configuration(simulated: Lab, hardware: Lab, baseline_labs: list[Lab], rate:
             zip(baselines(len(baseline_labs)), baseline_labs, strict=True), 1):
         data["nodes"][on] = {**node, "address": lab.nodes[on].address}
         copied = data["modules"][name] = copy.deepcopy({**alone, "node": on})
-        copied["state"]["driver"]["resource"] = lab.robots["r1"]
+        copied["state"]["driver"]["resource"] = lab.robots[robot]
         copied["state"]["learner"]["seed"] = seed + offset
         data["modules"][f"{name}_recorder"] = dict(recorder)
         data["links"].append({"from": f"{name}.episode", "to": f"{name}_recorder.episode"})
     transfer = data["modules"]["transfer"]["state"]
-    transfer["to_resource"] = hardware.robots["r1"]
+    transfer["to_resource"] = hardware.robots[robot]
     if quick:
         brain["learner"]["state"]["parameters"].update(QUICK_VIEW)
         transfer["learner_state"]["parameters"].update(QUICK_VIEW)
@@ -133,17 +143,18 @@ def run(seed: int = 1, quick: bool = False, baseline_count: int | None = None,
     budget = BUDGETS["quick" if quick else "full"]
     rate = budget["rate"]
     names = baselines(baseline_count or budget["baselines"])
+    robot = learning_robot(WORLD)
     with contextlib.ExitStack() as labs:
-        simulated = labs.enter_context(Lab(WORLD, seed=seed, lockstep=True))
+        simulated = labs.enter_context(simulation(WORLD, seed, robot))
         # the robot the learner moves to is held until then: no hardware time passes
         # for it, and learning in simulation has the CPU its world would take
         hardware = labs.enter_context(Lab(WORLD, seed=seed, onboard=("robot",),
-                                          hardware=("r1",), rate=0.0))
+                                          hardware=(robot,), rate=0.0))
         alone = [labs.enter_context(Lab(WORLD, seed=seed + offset, onboard=(node,),
-                                        hardware=("r1",), rate=rate))
+                                        hardware=(robot,), rate=rate))
                  for offset, (_, node) in enumerate(names, 1)]
         running = labs.enter_context(
-            configuration(simulated, hardware, alone, rate, seed, quick).launch())
+            configuration(simulated, hardware, alone, rate, seed, quick, robot).launch())
         started, alone_from = time.time(), [lab.time() for lab in alone]
         deadline = time.monotonic() + budget["simulation"]
         _until_moved(running, deadline)
@@ -156,7 +167,7 @@ def run(seed: int = 1, quick: bool = False, baseline_count: int | None = None,
             running.set_state("transfer", {"threshold": 0.0, "min_episodes": 0})
         _until_moved(running, time.monotonic() + LAST_EPISODE_S)
         transfer = running.state("transfer")
-        ended_by = "budget" if transfer["decided_at"] >= forced_at else "threshold"
+        ended_by = simulation_ended_by(transfer, forced_at)
         simulated_s = simulated.time()
         simulation_wall_s = time.time() - started
         transferred_from, resumed = None, 0.0
@@ -179,6 +190,29 @@ def run(seed: int = 1, quick: bool = False, baseline_count: int | None = None,
             "simulation_wall_s": simulation_wall_s, "episodes": episodes,
             "baselines": [name for name, _ in names],
             "learner_node_at_end": where, "situations": situations}
+
+
+def simulation(world: str | Path, seed: int, robot: str) -> Lab:
+    """The lab the learner starts in: ``world`` in lock-step, ``robot`` served in
+    simulation whatever the world file says (the lab world's first robot is a hardware
+    one, and the learner learnt on the emulator in both phases)."""
+    lab = Lab(world, seed=seed, lockstep=True)
+    try:
+        lab.robot(robot, "swap", backend="sim")
+    except BaseException:
+        lab.close()
+        raise
+    return lab
+
+
+def simulation_ended_by(transfer: dict[str, Any], forced_at: float) -> str:
+    """What ended learning in simulation, from the transfer agent's state: its
+    ``threshold``, the ``budget`` (the move ``forced_at`` that time), or ``no
+    transfer``. (Without a move, its ``decided_at`` is the 0 of an agent that never
+    decided or whose move failed, and the report said the threshold was reached.)"""
+    if not transfer["moved_at"]:
+        return "no transfer"
+    return "budget" if transfer["decided_at"] >= forced_at else "threshold"
 
 
 def _until_moved(running: Any, deadline: float) -> None:
@@ -257,7 +291,8 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
                        "success_rate_last_20": _rate(in_simulation, 20),
                        "transfer_threshold": record["threshold"],
                        # "threshold": the agent's success rate was reached; "budget":
-                       # the wall time for learning in simulation ran out first
+                       # the wall time for learning in simulation ran out first; "no
+                       # transfer": the learner never moved
                        "ended_by": record["ended_by"],
                        "simulated_s": round(record["simulated_s"], 1),
                        "wall_s": round(record["simulation_wall_s"], 1),

@@ -243,6 +243,36 @@ def test_sim_to_real_gives_each_baseline_robot_its_node_brain_seed_and_recorder(
         (f"{name}/learner", f"{name}_recorder") for name, _ in names}
 
 
+def test_sim_to_real_learns_in_simulation_on_the_world_s_first_robot_whatever_its_file_says(
+        tmp_path) -> None:
+    """With ``WORLD = "lab"`` (whose first robot is a hardware one) the learner learnt
+    on the emulator in both phases, with no word of it; a world whose robot had
+    another name than r1 failed with ``KeyError: 'r1'``."""
+    from scenarios.sim_to_real import learning_robot, simulation
+
+    assert learning_robot("lab") == "r1" and learning_robot("room") == "r1"
+    named = tmp_path / "named.toml"
+    named.write_text('name = "named"\n[[robots]]\nname = "rover"\npose = [2.0, 2.0, 0.0]\n'
+                     '[[robots]]\nname = "spare"\npose = [5.0, 5.0, 0.0]\n')
+    assert learning_robot(named) == "rover"
+    empty = tmp_path / "empty.toml"
+    empty.write_text('name = "empty"\n')
+    with pytest.raises(ValueError, match=r"needs a world with a robot; .*empty\.toml declares"):
+        learning_robot(empty)
+    with simulation("lab", 1, "r1") as lab:
+        backends = {name: robot["backend"] for name, robot in lab.describe()["robots"].items()}
+    assert backends == {"r1": "sim", "r2": "sim"}
+
+
+def test_sim_to_real_says_no_transfer_when_the_learner_never_moved() -> None:
+    from scenarios.sim_to_real import simulation_ended_by
+
+    assert simulation_ended_by({"moved_at": 0.0, "decided_at": 0.0}, 100.0) == "no transfer"
+    assert simulation_ended_by({"moved_at": 0.0, "decided_at": 0.0}, math.inf) == "no transfer"
+    assert simulation_ended_by({"moved_at": 51.0, "decided_at": 50.0}, math.inf) == "threshold"
+    assert simulation_ended_by({"moved_at": 151.0, "decided_at": 150.0}, 100.0) == "budget"
+
+
 OWN_CONTROLLERS = ("fixed_time", "max_pressure", "longest_queue", "gap_out", "time_loss",
                    "q_learning")
 
