@@ -303,6 +303,8 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
             for k in ("before_fault", "end")),
         "coverage grows after the hand-off": maps["at_handoff"] is not None
         and maps["end"]["coverage"] > maps["at_handoff"]["coverage"] + 0.01,
+        # (the README gave it as a goal; the report counted them and judged nothing)
+        "no false alarm before the fault": figures["false_alarms"] == 0,
     }
     return figures
 

@@ -138,6 +138,11 @@ def test_mapping_times_the_hand_off_by_the_standby_robots_readings_not_the_faile
     unseen = mapping.report({**record, "motors_watched_at_fault": False,
                              "recorder": {**record["recorder"], "failures": []}})
     assert unseen["detection_s"] is None
+    assert figures["goals"]["no false alarm before the fault"]
+    alarmed = mapping.report({**record, "recorder": {**record["recorder"], "failures": [
+        {"fault": "motors", "at": fault_at - 20.0}, *record["recorder"]["failures"]]}})
+    assert alarmed["false_alarms"] == 1
+    assert not alarmed["goals"]["no false alarm before the fault"]
     assert unseen["why_undetected"].startswith("the monitor was not yet watching the motors")
 
 
