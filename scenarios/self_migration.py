@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from pb3a import Agent, Environment, Input, InputPort, Module, Output, System
+from pb3a.cli.arguments import seed
 from pb3a.cli.log_output import show_logs
 from pb3a.cpu_load import CPULoad
 from pb3a.pending import Pending
@@ -268,6 +269,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default=".",
                         help="directory for the PNG and JSON (default: this one)")
     parser.add_argument("--quick", action="store_true", help="shorter phases (2/5/2 s)")
+    # (every scenario takes the same arguments: a script looping over them with a seed
+    # stopped here on "unrecognized arguments")
+    parser.add_argument("--seed", type=seed, default=1,
+                        help="taken as every scenario takes it, and reported; nothing in "
+                             "this one is drawn at random")
     args = parser.parse_args(argv)
     show_logs()
     if (os.cpu_count() or 1) < 2:
@@ -280,7 +286,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     phases = PHASES["quick" if args.quick else "full"]
     records = {"adaptive": run_once(True, phases), "static": run_once(False, phases)}
-    report = {"scenario": "self-migration", "phases_s": dict(zip(
+    report = {"scenario": "self-migration", "seed": args.seed, "phases_s": dict(zip(
         ("quiet", "loaded", "after"), phases, strict=True)),
         "rate_hz": RATE_HZ, "work_ms_per_value": WORK_S * 1e3,
         "runs": {name: {"phases": phase_figures(r),

@@ -645,7 +645,7 @@ def test_a_world_too_small_for_a_standby_is_refused_by_name_not_crowded_onto_its
         assert math.hypot(x - side / 2, y - side / 2) >= mapping.CLEARANCE_M + 0.25
 
 
-@pytest.mark.parametrize("scenario", ["mapping", "sim-to-real", "traffic"])
+@pytest.mark.parametrize("scenario", ["mapping", "sim-to-real", "traffic", "self-migration"])
 def test_a_seed_numpy_cannot_take_is_refused_as_the_arguments_are_read(capsys,
                                                                        scenario) -> None:
     """--seed -1 started the worlds, whose process died in numpy: two tracebacks, exit 1."""
