@@ -5,15 +5,16 @@ The world's first robot (an emulated hardware robot) runs the control system
 (``scenarios/mapping.toml``: driver, occupancy mapper, frontier explorer, hardware
 monitor) on its on-board computer, a node behind its own node controller; the second
 robot, also emulated hardware, stands by with a node of its own (a world with one
-robot gets a standby placed as far from it as its free space allows). Once the
-monitor has learnt the motors' normal running (in the mission's first seconds) and
-the map covers ``FAULT_COVERAGE`` of the free space (or at the end of the first
-phase), the scenario makes the first robot fail (``FAULTS``): by default it cuts its
-motor power (``motors_off``, through its robot server, as ``rave fault`` would), or
-with ``--fault robot_link`` it kills its robot server, as a crash or a cut cable
-would (the robot's controller then stops it ``WATCHDOG_S`` later, as a Pioneer's
-stops a robot whose client fell silent). Half the free space is left to map, however
-small the world. The monitor (dead motors) or the driver (a robot that stopped
+robot gets a standby placed as far from it as its free space allows). Once the map
+covers ``FAULT_COVERAGE`` of the free space (or at the end of the first phase), and
+for a motor cut once the monitor has learnt the motors' normal running (in the
+mission's first seconds), the scenario makes the first robot fail (``FAULTS``): by
+default it cuts its motor power (``motors_off``, through its robot server, as ``rave
+fault`` would), or with ``--fault robot_link`` it kills its robot server, as a crash
+or a cut cable would (the robot's controller then stops it ``WATCHDOG_S`` later, as a
+Pioneer's stops a robot whose client fell silent). About half the free space is then
+left to map (less in a small world, which the robot maps faster than the monitor
+learns its motors). The monitor (dead motors) or the driver (a robot that stopped
 answering) reports the failure; the remedy agent (case-based reasoning) moves the
 control macro to the standby robot's node and re-points its driver at that robot;
 mapping goes on from the map the mapper carried.
@@ -137,14 +138,16 @@ def run(out: Path, world: str = "lab", seed: int = 1, quick: bool = False,
             started = time.time()
             paths: dict[str, list[tuple[float, ...]]] = {name: [] for name in robots}
 
-            def time_for_the_fault() -> bool:
-                if "motors" not in running.state("control/monitor")["watched"]:
-                    return False
+            def coverage() -> float:
                 mapper = running.state("control/mapper")
                 grid = Grid.of(size, mapper["resolution"])
                 occupied = truth(described, grid)
                 return score(_probabilities(mapper["log_odds"]), occupied,
-                             _free_space(occupied, grid, starts)).coverage >= FAULT_COVERAGE
+                             _free_space(occupied, grid, starts)).coverage
+
+            def time_for_the_fault() -> bool:
+                return fault_due(fault, running.state("control/monitor")["watched"],
+                                 coverage)
 
             _follow(lab, paths, time.monotonic() + before, time_for_the_fault)
             watched = "motors" in running.state("control/monitor")["watched"]
@@ -200,6 +203,16 @@ def place_robots(path: Path) -> tuple[tuple[str, str], dict[str, tuple[float, fl
     # (a robot of the world's own may have that name: the placed one takes another)
     standby = "standby" if declared[0] != "standby" else "standby-2"
     return (declared[0], standby), {standby: (float(xs[row, col]), float(ys[row, col]), 0.0)}
+
+
+def fault_due(fault: str, watched: Any, coverage: Callable[[], float]) -> bool:
+    """Whether to make the robot fail now: its map's ``coverage()`` has reached
+    ``FAULT_COVERAGE``, and for a motor cut the monitor watches the motors (the cut is
+    its to see). A dead robot server is the driver's to see, which learns nothing
+    first: that fault waited for the motors too, and came late in a small world."""
+    if fault == "motors" and "motors" not in watched:
+        return False
+    return coverage() >= FAULT_COVERAGE
 
 
 def _follow(lab: Lab, paths: dict[str, list[tuple[float, ...]]], until: float,

@@ -146,6 +146,15 @@ def test_mapping_times_the_hand_off_by_the_standby_robots_readings_not_the_faile
     assert unseen["why_undetected"].startswith("the monitor was not yet watching the motors")
 
 
+def test_a_motor_cut_waits_for_the_monitor_to_watch_the_motors_a_dead_server_does_not() -> None:
+    half = mapping.FAULT_COVERAGE
+    assert not mapping.fault_due("motors", ["sonars"], lambda: half)
+    assert mapping.fault_due("motors", ["sonars", "motors"], lambda: half)
+    assert not mapping.fault_due("motors", ["motors"], lambda: half - 0.01)
+    assert mapping.fault_due("robot_link", [], lambda: half)
+    assert not mapping.fault_due("robot_link", [], lambda: half - 0.01)
+
+
 def test_mapping_names_the_worlds_when_given_one_it_does_not_know(tmp_path, capsys) -> None:
     assert main(["scenario", "mapping", "--world", "moon", "--out", str(tmp_path)]) == 2
     assert "no world 'moon': the bundled worlds are arena, lab, room" in capsys.readouterr().err
