@@ -489,7 +489,9 @@ def test_a_float_that_is_not_finite_is_shown_as_such_and_plotted_as_a_gap(
     page.wait_for_function("document.querySelector(\"[data-field='load'] .gauge-number\")"
                            ".textContent === '\u2013'", timeout=WAIT_MS)
     assert page.locator("[data-field='load'] .gauge-value").count() == 0     # no arc, not 0
-    page.locator("[data-field='load'] .gauge-svg").scroll_into_view_if_needed()
+    # (the field, not its gauge: each refresh draws the gauge anew, and one drawn while
+    # the scroll waited for it to be still failed it: "not attached to the DOM")
+    page.locator("[data-field='load']").scroll_into_view_if_needed()
     page.screenshot(path=str(screenshot_path(tmp_path, "manager_not_finite_gauge.png")))
     page.locator("[data-field='last']").scroll_into_view_if_needed()
     # the plot's scale is still the finite values' (1.8 to 2.2) once it shows the nan
