@@ -172,14 +172,20 @@ class SystemStats:
         return plain(dataclasses.asdict(self))
 
 
-def plain(value: Any, finite: bool = True) -> Any:
+def plain(value: Any, finite: bool = True, arrays: bool = True) -> Any:
     """``value`` in JSON's terms: NaN and the infinities as None (as JavaScript writes
     them: JSON has no such numbers; kept with ``finite=False``, for people to read),
-    tuples as lists, keys as strings."""
+    tuples as lists, keys as strings, numpy's numbers as Python's and its arrays as
+    lists (kept with ``arrays=False``, for people to read as numpy abbreviates them).
+    A module's state is mostly numpy: its arrays came out as their abbreviated repr,
+    a string, and ``np.int64(7)`` as that text."""
+    numpy = hasattr(value, "dtype") and hasattr(value, "tolist")    # (not imported)
+    if numpy and (arrays or getattr(value, "ndim", 0) == 0):
+        value = value.tolist()
     if finite and isinstance(value, float) and not math.isfinite(value):
         return None
     if isinstance(value, dict):
-        return {str(key): plain(item, finite) for key, item in value.items()}
+        return {str(key): plain(item, finite, arrays) for key, item in value.items()}
     if isinstance(value, (list, tuple)):
-        return [plain(item, finite) for item in value]
+        return [plain(item, finite, arrays) for item in value]
     return value

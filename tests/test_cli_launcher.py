@@ -141,6 +141,32 @@ def test_set_gives_floats_in_numpy_fields_and_lists_and_names_a_number_too_large
         assert run.state("w")["gain"] == 4.0 and len(run.state("w")["weights"]) == 3
 
 
+class Arrays(Module):
+    """State as a robot's mostly is: numpy arrays and numbers."""
+
+    big = np.zeros(2000)
+    small = np.arange(3)
+    count = np.int64(7)
+    level = np.float32("nan")
+
+
+def test_state_json_gives_numpy_state_whole_and_as_json_numbers(capsys) -> None:
+    """``--json`` gave a 2000-value array as its 51-character abbreviated repr, ``"np.int64(7)"``
+    as text, and a float32 NaN not as null; for people, an array stays abbreviated."""
+    with System("numpy-state").add("m", Arrays).launch() as run:
+        address = run.listen()
+        assert main(["state", address, "m", "--json"]) == 0
+        state = json.loads(capsys.readouterr().out, parse_constant=_no_constant)
+        assert state["big"] == [0.0] * 2000 and state["small"] == [0, 1, 2]
+        assert state["count"] == 7 and state["level"] is None
+        assert main(["state", address, "m"]) == 0
+        shown = capsys.readouterr().out
+        assert "shape=(2000,)" in shown and '"count": 7' in shown and '"level": NaN' in shown
+        assert main(["set", address, "m", "count=5"]) == 0
+        assert capsys.readouterr().out.strip() == "m: count = 5"
+        assert run.state("m")["count"] == 5
+
+
 def _no_constant(name: str) -> None:
     raise AssertionError(f"--json printed {name}, which JSON has not")
 

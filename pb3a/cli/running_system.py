@@ -65,8 +65,9 @@ def _status(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
 
 def _state(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
     state = system.state(args.module, timeout=args.timeout)
-    # Shown as Python writes a NaN or an infinity (--json: null, JSON has neither).
-    return json.dumps(plain(state, finite=False), indent=2, default=repr), state
+    # Shown as Python writes a NaN or an infinity (--json: null, JSON has neither), an
+    # array as numpy abbreviates it (--json: whole)
+    return json.dumps(plain(state, finite=False, arrays=False), indent=2, default=repr), state
 
 
 def _set(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
@@ -88,7 +89,8 @@ def _set(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
         raise ValueError("; ".join(wrong) + "; nothing was set")
     system.set_state(args.module, values,            # (one timeout for both calls)
                      timeout=None if deadline is None else max(0.1, deadline - time.monotonic()))
-    told = ", ".join(f"{key} = {value!r}" for key, value in values.items())
+    told = ", ".join(f"{key} = {plain(value, finite=False, arrays=False)!r}"
+                     for key, value in values.items())
     return f"{args.module}: {told}", {"module": args.module, "set": values}
 
 
