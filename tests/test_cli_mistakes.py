@@ -109,6 +109,12 @@ def test_every_command_answers_a_mistake_with_a_sentence(tmp_path, capsys, monke
                                   ["status", "tcp://h:1", "--timeout", "inf"],
                                   ["state", "tcp://h:1", "m", "--timeout", "1e300"],
                                   ["state", "tcp://h:1", "m", "--timeout", "-5"],
+                                  # (no launcher answers within 0 s: it blamed the address)
+                                  ["status", "tcp://h:1", "--timeout", "0"],
+                                  # (a NaN or negative limit switched the node's check off)
+                                  ["node", "start", "--name", "n", "--max-cpu", "nan"],
+                                  ["node", "start", "--name", "n", "--max-cpu", "-1"],
+                                  ["node", "start", "--name", "n", "--min-memory", "-5"],
                                   ["stress", "x.toml", "--for", "nan"],
                                   ["stress", "x.toml", "--load", "0:50@nan"],
                                   ["node", "start"], ["migrate", "tcp://h:1", "m"],

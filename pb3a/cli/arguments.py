@@ -36,6 +36,29 @@ def seed(text: str, most: int | None = None) -> int:
     return value
 
 
+def percent(text: str) -> float:
+    """A finite percentage, 0 or more (a limit: above 100 never reached). A NaN limit
+    was taken, and no load is above NaN: it switched the node's CPU check off."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a percentage, 0 or more")
+    return value
+
+
+def mebibytes(text: str) -> int:
+    """A whole number of MiB, 0 or more (a negative one switched a check off too)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number of MiB, 0 or more")
+    return value
+
+
 def state_pair(text: str) -> str:
     """A ``NAME=VALUE`` pair of ``--state``, which takes every word up to the next option:
     one without "=" is the command's ADDR or another positional, given after it."""

@@ -74,7 +74,9 @@ def _running_system(commands: argparse._SubParsersAction) -> None:
         for arg, text in positionals:
             sub.add_argument(arg, metavar=arg.upper(), help=text)
         sub.add_argument("--json", action="store_true", help="print JSON, for scripts")
-        sub.add_argument("--timeout", type=arguments.wait_seconds, default=None,
+        # (above 0: at 0 no launcher could answer in time, and the message blamed the
+        # address)
+        sub.add_argument("--timeout", type=arguments.seconds, default=None,
                          metavar="SECONDS",
                          help="how long the operation may wait (default: the system's)")
         sub.set_defaults(handler="pb3a.cli.running_system:operation_command", operation=name,
@@ -206,9 +208,9 @@ def _daemons(commands: argparse._SubParsersAction) -> None:
     start.add_argument("--name", required=True, help="the node's name in configurations")
     start.add_argument("--listen", default="tcp://127.0.0.1:7100", metavar="ADDR",
                        help="address to listen on (default tcp://127.0.0.1:7100; port 0: any)")
-    start.add_argument("--max-cpu", type=float, default=90.0, metavar="PERCENT",
+    start.add_argument("--max-cpu", type=arguments.percent, default=90.0, metavar="PERCENT",
                        help="refuse work while the CPU is busier than this (default 90)")
-    start.add_argument("--min-memory", type=int, default=256, metavar="MIB",
+    start.add_argument("--min-memory", type=arguments.mebibytes, default=256, metavar="MIB",
                        help="refuse work that would leave less memory available (default 256)")
     start.set_defaults(handler="pb3a.cli.daemons:node_start_command", log_role="controller")
 
