@@ -87,6 +87,9 @@ def _mistakes(tmp: Path) -> list[tuple[list[str], int, str]]:
         (["stress", pipeline, "--load", "9999:50"], 1, "--load: cannot load CPU 9999"),
         (["stress", pipeline, "--migrate-every", "1"], 1,
          "--migrate-every: the system has one node"),
+        # (it never ran, and the report said nothing of it)
+        (["stress", pipeline, "--for", "3", "--load", "0:80@10"], 1,
+         "--load: it starts at 10 s, not before the run's end at 3 s (--for)"),
     ]
 
 

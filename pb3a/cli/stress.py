@@ -119,6 +119,13 @@ class Stress:
                     for name in sorted(names) if name not in plan.modules]
         if options.migrate_every and len(plan.nodes) < 2:
             problems.append("--migrate-every: the system has one node, so nowhere to move to")
+        # (one that starts when the run has ended never ran, and the report looked as if
+        # the system had taken it well)
+        problems += [f"{option}: it starts at {window.start:g} s, not before the run's end "
+                     f"at {options.seconds:g} s (--for)"
+                     for option, windows in (("--load", [w for _, w in options.loads]),
+                                             ("--cut-node", [w for _, w in options.cuts]))
+                     for window in windows if window.start >= options.seconds]
         self.loads: list[tuple[CPULoad, Window]] = []
         for levels, window in options.loads:
             with _problem(problems, "--load"):
