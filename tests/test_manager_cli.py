@@ -122,6 +122,14 @@ def test_a_mistake_gets_one_sentence_and_exit_status_1(args, words, capsys) -> N
     assert words in error and error.count("\n") == 1, error
 
 
+def test_it_listens_at_host_port_written_as_every_other_listen_of_the_command_line() -> None:
+    from pb3a.cli.manager import listen_address
+
+    for text in ("127.0.0.1:8080", "http://127.0.0.1:8080", "tcp://127.0.0.1:8080"):
+        assert listen_address(text) == ("127.0.0.1", 8080), text
+    assert listen_address("tcp://[::1]:0") == ("::1", 0)
+
+
 def test_without_the_ui_extra_it_says_what_to_install(monkeypatch, capsys) -> None:
     monkeypatch.setitem(sys.modules, "starlette", None)      # as if not installed
     assert main(["manager"]) == 1

@@ -110,8 +110,10 @@ def _launcher(target: str) -> str | None:
 
 
 def listen_address(text: str) -> tuple[str, int]:
-    """``HOST:PORT`` (``[::1]:PORT`` for IPv6; PORT 0: any free one) as a host and port."""
-    host, _, port = text.removeprefix("http://").rpartition(":")
+    """``HOST:PORT`` (``[::1]:PORT`` for IPv6; PORT 0: any free one) as a host and port;
+    also written ``http://HOST:PORT``, or ``tcp://HOST:PORT`` as every other ``--listen``
+    of the command line is (that one said "Name or service not known")."""
+    host, _, port = text.removeprefix("http://").removeprefix("tcp://").rpartition(":")
     host = host.strip("[]")
     if not host or not port.isdigit() or int(port) > 65535:
         raise ValueError(f"--listen {text!r}: give HOST:PORT, e.g. 127.0.0.1:8080 "
