@@ -66,7 +66,8 @@ def _import_timeout(command: argparse.ArgumentParser) -> None:
 def _running_system(commands: argparse._SubParsersAction) -> None:
     """One command per operation on a running system, through its launcher's address
     (``pb3a.cli.running_system.OPERATIONS`` has what each does)."""
-    def command(name: str, helptext: str, *positionals: tuple[str, str]
+    def command(name: str, helptext: str, *positionals: tuple[str, str],
+                timeout: str = "how long the operation may wait (default: the system's)"
                 ) -> argparse.ArgumentParser:
         sub = commands.add_parser(name, help=f"{helptext}, through its launcher")
         sub.add_argument("address", metavar="ADDR",
@@ -77,8 +78,7 @@ def _running_system(commands: argparse._SubParsersAction) -> None:
         # (above 0: at 0 no launcher could answer in time, and the message blamed the
         # address)
         sub.add_argument("--timeout", type=arguments.seconds, default=None,
-                         metavar="SECONDS",
-                         help="how long the operation may wait (default: the system's)")
+                         metavar="SECONDS", help=timeout)
         sub.set_defaults(handler="pb3a.cli.running_system:operation_command", operation=name,
                          log_role=f"pb3a {name}")
         return sub
@@ -114,11 +114,15 @@ def _running_system(commands: argparse._SubParsersAction) -> None:
     command("restart", "start a module again (also a failed one) with its configured state",
             ("module", "the module's name"))
     command("nodes", "every node's health")
-    logs = command("logs", "the system's log, from every node")
+    # (they print what there is at once, or with --follow what comes until Ctrl-C:
+    # their --timeout bounds the connection only)
+    answer = "how long the launcher may take to answer (default 5)"
+    logs = command("logs", "the system's log, from every node", timeout=answer)
     logs.add_argument("--module", help="only what is about this module")
     logs.add_argument("--follow", action="store_true", help="keep printing new entries "
                                                             "until Ctrl-C")
-    events = command("events", "what happened: moves, swaps, restarts, failures, lost nodes")
+    events = command("events", "what happened: moves, swaps, restarts, failures, lost nodes",
+                     timeout=answer)
     events.add_argument("--follow", action="store_true", help="keep printing new events "
                                                               "until Ctrl-C")
 
