@@ -39,7 +39,7 @@ import math
 import sys
 import time
 import tomllib
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import Any
 
@@ -205,7 +205,7 @@ def place_robots(path: Path) -> tuple[tuple[str, str], dict[str, tuple[float, fl
     return (declared[0], standby), {standby: (float(xs[row, col]), float(ys[row, col]), 0.0)}
 
 
-def fault_due(fault: str, watched: Any, coverage: Callable[[], float]) -> bool:
+def fault_due(fault: str, watched: Collection[str], coverage: Callable[[], float]) -> bool:
     """Whether to make the robot fail now: its map's ``coverage()`` has reached
     ``FAULT_COVERAGE``, and for a motor cut the monitor watches the motors (the cut is
     its to see). A dead robot server is the driver's to see, which learns nothing
