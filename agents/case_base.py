@@ -39,13 +39,13 @@ import numbers
 import os
 import re
 import string
-import tempfile
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from agents.limits import finite, whole
+from pb3a.atomic_write import write_text_atomically
 
 Feature = str | bool | int | float
 SETTINGS = {"min_similarity": 0.75, "new_case_below": 0.95}
@@ -116,16 +116,7 @@ class CaseBase:
         text = _to_toml(self.settings.get(key, {}),
                         [case for case in self.cases if case.source == key])
         target.parent.mkdir(parents=True, exist_ok=True)
-        handle, temporary = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.")
-        try:
-            with os.fdopen(handle, "w", encoding="utf-8") as out:
-                out.write(text)
-                out.flush()
-                os.fsync(out.fileno())
-            os.replace(temporary, target)
-        except BaseException:
-            os.unlink(temporary)
-            raise
+        write_text_atomically(target, text)
 
     def to_dict(self) -> dict[str, Any]:
         """The base as plain data (for a module's state), sharing nothing with it."""

@@ -5,7 +5,11 @@ launch from the page."""
 from __future__ import annotations
 
 import copy
+import errno
+import os
 import shutil
+import subprocess
+import sys
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -55,6 +59,32 @@ def test_an_unchanged_document_saves_byte_for_byte_and_an_edit_keeps_the_comment
     check = tmp_path / "edited.toml"
     check.write_text(text)
     assert System.load(check).check() == []                  # pb3a check accepts it
+
+
+_SAVE_ON_A_FULL_DISK = """
+import resource, signal, sys
+from pb3a.manager.document import Document
+document = Document.open(sys.argv[1])
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)       # (a file too large: an OSError)
+resource.setrlimit(resource.RLIMIT_FSIZE, (100, 100))    # the disk full after 100 bytes
+try:
+    document.save()
+except OSError as exc:
+    print(exc.errno)
+"""
+
+
+def test_a_save_that_fails_half_way_leaves_the_file_as_it_was(pipeline: Path) -> None:
+    """Written in place, a save on a full disk left the file cut off after what fitted,
+    no longer TOML, and the next save said it had changed on disk."""
+    original = pipeline.read_text()
+    assert len(original) > 100
+    done = subprocess.run([sys.executable, "-c", _SAVE_ON_A_FULL_DISK, str(pipeline)],
+                          capture_output=True, text=True, timeout=30,
+                          env={**os.environ, "PYTHONPATH": str(PIPELINE.parent.parent)})
+    assert done.stdout.strip() == str(errno.EFBIG), done.stderr
+    assert pipeline.read_text() == original
+    assert sorted(p.name for p in pipeline.parent.iterdir()) == ["pipeline.toml"]
 
 
 def test_a_save_over_edits_made_on_disk_is_refused_unless_asked_to_overwrite(

@@ -32,6 +32,7 @@ from tomlkit.exceptions import TOMLKitError
 from tomlkit.items import AoT, Array, InlineTable, Table
 from tomlkit.parser import Parser
 
+from pb3a.atomic_write import write_text_atomically
 from pb3a.config.compiler import sketch_plan
 from pb3a.config.definitions import toml_key
 from pb3a.config.description import read_description
@@ -237,7 +238,9 @@ class Document:
                 raise ChangedOnDisk(
                     f"{target} changed on disk since it was opened here" if known is not None
                     else f"{target} is another file, which a save would overwrite")
-        target.write_text(text, encoding="utf-8")
+        # (whole or not at all: written in place, a full disk left the file cut off,
+        # no longer TOML, and the next save said it had changed on disk)
+        write_text_atomically(target, text)
         self.path, self._on_disk = target, text
         return target
 
