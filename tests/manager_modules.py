@@ -117,3 +117,11 @@ class Controller(Module):
         self.integral += self.error * self.period
         low, high = self.limits
         self.command.write(min(max(self.kp * self.error + self.ki * self.integral, low), high))
+
+
+class FileNamed(Module):
+    """Holds a file name that is not UTF-8 (Latin-1 on Linux), as ``os.fsdecode`` gives
+    it: a string with a lone surrogate, which UTF-8 cannot encode."""
+
+    last_file = os.fsdecode(b"caf\xe9.txt")
+    level = 0.5

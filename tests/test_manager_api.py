@@ -18,7 +18,7 @@ import pytest
 
 pytest.importorskip("starlette", reason="the manager needs the 'ui' extra")
 
-from manager_modules import Holder
+from manager_modules import FileNamed, Holder
 from sample_modules import FloatSource, Mapper, Scale
 from starlette.testclient import TestClient
 
@@ -330,6 +330,20 @@ def test_values_keep_their_types_and_a_value_that_does_not_fit_is_refused() -> N
         state = run.state("h")
         assert state["small"].tolist() == [0, 0, 0] and state["narrow"].tolist() == [0, 0]
         assert state["level"] == 1.0
+
+
+def test_a_state_string_that_is_not_text_is_answered_escaped_and_its_change_made_once() -> None:
+    """A file name that is not UTF-8 in a module's state made every read of it a bare
+    500, and so the answer to a change of another field, made all the same: the page
+    said it failed, and a retry made it again."""
+    system = System("named").add("f", FileNamed)
+    with system.launch() as run, manager_client(Session(Document.empty(), run)) as client:
+        view = client.get("/api/modules/f/state")
+        assert view.status_code == 200, view.text
+        assert view.json()["fields"]["last_file"]["value"] == "caf\udce9.txt"
+        changed = client.post("/api/modules/f/state", json={"level": 0.75})
+        assert changed.status_code == 200, changed.text
+        assert run.state("f")["level"] == 0.75
 
 
 # -- changing the system -------------------------------------------------------------------

@@ -39,16 +39,26 @@ MOST_BODY_BYTES = 8_000_000          # a request body larger than this is refuse
 _LONGEST_NAME = 255                  # bytes in a file's name (Linux's NAME_MAX)
 
 
+class JSONAnswer(JSONResponse):
+    """A JSON answer in ASCII: a string that is not text (a lone surrogate, as a file
+    name that is not UTF-8 decodes to) is escaped, where Starlette's UTF-8 failed to
+    encode it, a bare 500 after a state change was made (the live feed escapes so too)."""
+
+    def render(self, content: Any) -> bytes:
+        return json.dumps(content, ensure_ascii=True, allow_nan=False,
+                          separators=(",", ":")).encode("ascii")
+
+
 def error_response(exc: BaseException) -> JSONResponse:
     """The JSON error for ``exc``, with its status; an unexpected error is a 500 and logged."""
     for kind, status in STATUS:
         if isinstance(exc, kind):
             problems = list(getattr(exc, "problems", []) or [])
             message = "; ".join(problems) if problems else str(exc)
-            return JSONResponse({"error": message, "problems": problems}, status_code=status)
+            return JSONAnswer({"error": message, "problems": problems}, status_code=status)
     log.exception("the manager failed on a request", exc_info=exc)
-    return JSONResponse({"error": f"the manager failed: {type(exc).__name__}: {exc}",
-                         "problems": []}, status_code=500)
+    return JSONAnswer({"error": f"the manager failed: {type(exc).__name__}: {exc}",
+                       "problems": []}, status_code=500)
 
 
 async def body_of(request: Request, *, optional: bool = False) -> Any:
@@ -97,7 +107,7 @@ def routes(session: Session) -> list[Route]:
                     return result
                 # (encoded here: an answer JSON cannot say is an error of its own, not a
                 # bare 500 after the change was made)
-                return JSONResponse(result, status_code=status)
+                return JSONAnswer(result, status_code=status)
             except ClientDisconnect:
                 # gone before its body was in (a page closed or reloaded as it sent):
                 # nothing was done, and there is no one to answer; no bug, no traceback
