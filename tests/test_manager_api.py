@@ -432,6 +432,22 @@ def test_an_add_or_link_with_a_field_of_the_wrong_kind_is_a_400_and_changes_noth
     assert kept.status_code == 409 and "is fed by scale.y already" in kept.json()["error"]
     assert set(run.topology().links) == {"src.out->scale.x", "scale.y->map.x"}
 
+def test_a_new_module_s_state_takes_the_types_of_its_class_s_defaults(client, run) -> None:
+    """``{"gain": 5}`` gave Scale's float gain an int (``pb3a add --state`` converts),
+    and the State Editor then refused any fraction for it; a value that does not fit is
+    refused, naming it, and nothing is added."""
+    added = client.post("/api/modules", json={"name": "s2", "class": "sample_modules:Scale",
+                                              "state": {"gain": 5, "setups": 0}})
+    assert added.status_code == 201, added.text
+    assert type(run.state("s2")["gain"]) is float and run.state("s2")["gain"] == 5.0
+    assert client.post("/api/modules/s2/state", json={"gain": 2.5}).status_code == 200
+    refused = client.post("/api/modules", json={"name": "s3", "class": "sample_modules:Scale",
+                                                "state": {"gain": "much"}})
+    assert refused.status_code == 422, refused.text
+    assert refused.json()["error"] == "module s3: state 'gain' takes a number, got 'much'"
+    assert "s3" not in run.topology().modules
+
+
 def test_reload_drops_a_module_s_code_everywhere(client) -> None:
     assert client.post("/api/reload", json={"module": "sample_modules"}).json() == {
         "reloaded": "sample_modules"}

@@ -22,8 +22,7 @@ from pb3a.events import Event
 from pb3a.launch.connection import CONNECT_TIMEOUT, Connection, connect
 from pb3a.loading.references import resolve_class
 from pb3a.loading.trial import tried_first
-from pb3a.model.module import Module
-from pb3a.model.state_edits import coerce
+from pb3a.model.state_edits import class_state, coerce
 from pb3a.stats import plain
 from pb3a.transport.auth import ClusterKeyError
 
@@ -160,10 +159,7 @@ def _class_defaults(ref: str, timeout: float | None) -> dict[str, Any]:
         cls = resolve_class(ref, watch=tried_first(wait, "give a longer --timeout"))
     except Exception:               # (its own problems are the launcher's to name)
         return {}
-    if not issubclass(cls, Module) or cls.get_state is not Module.get_state \
-            or cls.set_state is not Module.set_state:
-        return {}
-    return {name: getattr(cls, name) for name in cls.state_names()}
+    return class_state(cls)
 
 
 def _remove(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:

@@ -30,7 +30,7 @@ from pb3a.manager.catalog import IMPORT_TIMEOUT, Catalog
 from pb3a.manager.document import Document, as_json, check_data, toml_text
 from pb3a.manager.layout import layout
 from pb3a.model.ports import Policy
-from pb3a.model.state_edits import coerce
+from pb3a.model.state_edits import class_state, coerce
 from pb3a.system import System
 from pb3a.topology import Topology, plan_topology
 
@@ -400,9 +400,27 @@ class Session:
         if node is not None and node not in topology.nodes:
             raise NotFound(f"no node {node!r}; nodes: {', '.join(topology.nodes)}")
         ref = self._class(cls)
+        if state:
+            state = self._fitted(name, resolve_class(ref), state)
         self.handle.add(name, ref, state=state, period=period, node=node,
                         timeout=self.timeout)
         return self.system()
+
+    @staticmethod
+    def _fitted(name: str, cls: Any, state: dict[str, Any]) -> dict[str, Any]:
+        """A new module's ``state`` (JSON) made the type of its class's defaults, as
+        ``pb3a add --state`` makes it (``{"gain": 5}`` gave a float field an int, and
+        the State Editor then refused any fraction for it); ``Unfit`` naming each value
+        that does not fit."""
+        like, fitted, problems = class_state(cls), dict(state), []
+        for field in [field for field in state if field in like]:
+            try:
+                fitted[field] = coerce(field, like[field], state[field])
+            except ValueError as exc:
+                problems.append(f"module {name}: {exc}")
+        if problems:
+            raise Unfit(problems)
+        return fitted
 
     def restart(self, name: str) -> dict[str, Any]:
         """``POST /api/modules/{name}/restart``: start the module afresh, a failed one too

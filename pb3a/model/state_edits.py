@@ -17,6 +17,19 @@ from typing import Any
 
 import numpy as np
 
+from pb3a.model.module import Module
+
+
+def class_state(cls: Any) -> dict[str, Any]:
+    """The class-level state of module class ``cls`` (its fields and their defaults),
+    which a new module's state given as JSON is made the type of; nothing for a class
+    that is no ``Module`` or defines its own ``get_state`` or ``set_state`` (it alone
+    knows its fields)."""
+    if not (isinstance(cls, type) and issubclass(cls, Module)) \
+            or cls.get_state is not Module.get_state or cls.set_state is not Module.set_state:
+        return {}
+    return {name: getattr(cls, name) for name in cls.state_names()}
+
 
 def is_plain(value: Any) -> bool:
     """Whether ``value`` is made of JSON types only (so it can be edited as JSON)."""
