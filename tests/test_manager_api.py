@@ -533,6 +533,17 @@ def test_the_catalog_lists_the_classes_beside_the_document(tmp_path, monkeypatch
     assert not [p for p in listed["problems"] if p.startswith("controllers_beside")]
 
 
+def test_a_module_server_named_without_tcp_is_a_problem_and_the_rest_is_listed(
+        tmp_path) -> None:
+    """``127.0.0.1:7100`` (as pb3a manager takes a launcher's address) made ZeroMQ raise
+    in the catalog: every class request was a 500, and the browser empty."""
+    (tmp_path / "served.toml").write_text('name = "served"\nmodule_servers = ["127.0.0.1:7100"]\n')
+    listed = Catalog(Document.open(tmp_path / "served.toml"), roots=[TESTS]).classes()
+    assert "sample_modules:Mapper" in [entry["class"] for entry in listed["classes"]]
+    assert ("a module server's address must be a string tcp://HOST:PORT such as "
+            "'tcp://10.0.0.7:7100', got '127.0.0.1:7100'") in listed["problems"]
+
+
 def test_the_catalog_sees_a_class_file_written_changed_or_removed_while_it_runs(
         tmp_path, monkeypatch) -> None:
     """The catalog was read once: a class written while the manager ran was not in the

@@ -40,6 +40,7 @@ from pb3a.model.macro import Macro
 from pb3a.model.module import Module
 from pb3a.model.state_edits import is_plain
 from pb3a.topology import class_kind, displays_of, ports
+from pb3a.transport.addresses import tcp_address_problems
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 
@@ -211,6 +212,12 @@ class Catalog:
         found: dict[str, str] = {}
         key = ClusterKey.load()
         for address in servers:
+            # (ZeroMQ's "Invalid argument" for one without tcp://, as pb3a manager takes a
+            # launcher's: every class request was a 500, the browser empty)
+            wrong = tcp_address_problems(address, "a module server's address")
+            if wrong:
+                problems.extend(wrong)
+                continue
             client = ControlClient(key, address)
             try:
                 for name in client.call("list", LIST_TIMEOUT):
