@@ -125,3 +125,9 @@ class FileNamed(Module):
 
     last_file = os.fsdecode(b"caf\xe9.txt")
     level = 0.5
+
+
+class Weights(Module):
+    """A small float array of more digits than a cell shows, and a NaN."""
+
+    weights = np.array([20.123456789, 0.000123456789, 123456.789, np.nan])

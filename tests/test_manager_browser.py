@@ -528,6 +528,32 @@ def test_a_move_that_fails_is_listed_among_the_events(lab: ManagerProcess, page:
     assert lab.api("GET", "/api/system")["modules"]["probe"]["node"] == "b"
 
 
+def test_an_array_s_grid_sends_the_cell_typed_in_and_the_others_as_held(
+        lab: ManagerProcess, page: Any) -> None:
+    """Apply array sent every cell as shown, six digits (123456.789 became 123460), and
+    a NaN, shown empty, as 0. A NaN is shown as such now, and kept."""
+    lab.api("POST", "/api/modules", {"name": "w", "class": "manager_modules:Weights",
+                                     "node": "a"})
+    page.wait_for_selector("[data-module='w']", timeout=WAIT_MS)
+    page.click("[data-module='w'] .module-title")
+    cells = page.locator("[data-field='weights'] .array-grid input")
+    page.wait_for_function("document.querySelectorAll(\"[data-field='weights'] .array-grid "
+                           "input\")[3]?.value === 'nan'", timeout=WAIT_MS)
+    assert cells.nth(2).input_value() == "1.2346e+5"                  # (shown short)
+    cells.nth(0).fill("7.5")
+    page.click("[data-field='weights'] button >> text=Apply array")
+    page.wait_for_function("document.querySelector(\"[data-field='weights']\")"
+                           ".classList.contains('applied')", timeout=WAIT_MS)
+    view = lab.api("GET", "/api/modules/w/state")["fields"]["weights"]
+    assert view["value"] == [7.5, 0.000123456789, 123456.789, None], view
+    assert view["nonfinite"] == {"3": "nan"}
+    cells.nth(1).fill("")                                              # no number: refused
+    page.click("[data-field='weights'] button >> text=Apply array")
+    assert "invalid" in page.locator("[data-field='weights'] .array-grid").get_attribute("class")
+    assert lab.api("GET", "/api/modules/w/state")["fields"]["weights"]["value"][1] == \
+        0.000123456789
+
+
 def test_a_module_that_does_not_answer_its_remove_is_killed_from_the_error(
         browser: Any, tmp_path: Path) -> None:
     """A remove of a module that does not answer its stop (its worker stopped, as a

@@ -113,6 +113,12 @@ def _array_view(array: np.ndarray, module: str, path: str) -> dict[str, Any]:
         shown["value"] = _plain_values(array.tolist()) if numeric else None
         if not numeric:
             shown["repr"] = _short_repr(array)
+        elif array.dtype.kind == "f" and not np.isfinite(array).all():
+            # (null in the values: the words say which, so the page shows them and
+            # sends an untouched one back as it is, not as 0)
+            flat = array.ravel()
+            shown["nonfinite"] = {str(i): repr(float(flat[i]))
+                                  for i in np.flatnonzero(~np.isfinite(flat))}
     if numeric and array.ndim == 2 and array.size:
         shown["image"] = f"/api/modules/{module}/image?path={quote(path)}"
     return shown

@@ -352,19 +352,24 @@ function arrayEditor(field, commit, display) {
   return {inline: null, below, refresh};
 }
 
-/** A small array's values as a grid of number fields, applied together. */
+/** A small array's values as a grid of number fields, applied together: the cells
+ * typed in as typed (a float cell takes inf, -inf and nan too), the others as held.
+ * (Every cell was sent as shown, six digits, and a NaN, shown empty, as 0.) */
 function arrayGrid(field, commit) {
   const rows = field.shape.length === 2 ? field.shape[0] : 1;
   const integer = field.dtype.startsWith("int") || field.dtype.startsWith("uint");
   const boolean = field.dtype === "bool";
   const inputs = [];
+  const edited = new Set();
+  let held = [];
   const table = h("table", {class: "array-grid"});
   for (let r = 0; r < rows; r += 1) {
     const tr = h("tr");
     const width = field.shape.length === 2 ? field.shape[1] : field.shape[0] ?? 1;
     for (let c = 0; c < width; c += 1) {
+      const index = inputs.length;
       const input = h("input", {type: "text", class: "mono", spellcheck: "false"});
-      input.addEventListener("input", () => { dirty = true; apply.disabled = false; });
+      input.addEventListener("input", () => { edited.add(index); dirty = true; apply.disabled = false; });
       input.addEventListener("keydown", (ev) => { if (ev.key === "Enter") send(); });
       inputs.push(input);
       tr.append(h("td", {}, input));
@@ -373,9 +378,10 @@ function arrayGrid(field, commit) {
   }
   let dirty = false;
   const apply = h("button", {class: "small primary", type: "button", disabled: true}, "Apply array");
+  const typed = (input) => boolean ? input.value.trim() === "true" : fmt.parseNumber(input.value);
   const send = async () => {
-    const values = inputs.map((i) => boolean ? i.value.trim() === "true" : Number(i.value));
-    if (values.some((v) => typeof v === "number" && (!Number.isFinite(v) || (integer && !Number.isInteger(v))))) {
+    const values = inputs.map((input, i) => edited.has(i) ? typed(input) : held[i]);
+    if (values.some((v) => v === undefined || (integer && !Number.isInteger(v)))) {
       table.classList.add("invalid");
       return;
     }
@@ -385,6 +391,7 @@ function arrayGrid(field, commit) {
       : field.shape.length === 0 ? values[0] : values;
     const taken = await commit(nested);
     dirty = false;
+    edited.clear();
     apply.disabled = true;
     if (!taken && latest) refresh(latest, true);     // refused: what is held again
   };
@@ -393,8 +400,14 @@ function arrayGrid(field, commit) {
   const refresh = (view, force = false) => {
     latest = view;
     if (!force && (dirty || inputs.includes(document.activeElement))) return;
+    // JSON has no inf or nan: such a cell comes as null, its word in `nonfinite`
+    const words = view.nonfinite ?? {};
     const flat = [view.value].flat(Infinity);
-    inputs.forEach((input, i) => { input.value = boolean ? String(flat[i]) : fmt.number(flat[i]); });
+    held = flat.map((v, i) => i in words ? fmt.parseNumber(words[i]) : v);
+    inputs.forEach((input, i) => {
+      input.value = boolean ? String(flat[i]) : words[i] ?? fmt.number(flat[i]);
+      input.classList.toggle("nonfinite", i in words);
+    });
   };
   return {element: h("div", {}, [table, h("div", {class: "row-actions"}, apply)]), refresh};
 }
