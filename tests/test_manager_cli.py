@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -55,6 +56,48 @@ def test_the_command_serves_launches_and_stops_everything_on_ctrl_c() -> None:
             process.wait(5)
         process.stdout.close()
         process.stderr.close()
+
+
+def test_on_every_interface_it_answers_to_this_machine_s_addresses() -> None:
+    """Listening on 0.0.0.0, it refused a request to http://ADDRESS:PORT of this machine
+    ("does not serve the host"): only its names were allowed, so another machine could
+    not use it, the reason to listen there. (The request goes to loopback, the address
+    in its Host header, as a browser elsewhere would send it.)"""
+    pytest.importorskip("uvicorn", reason="the manager needs the 'ui' extra")
+    import psutil
+
+    own = [a.address for found in psutil.net_if_addrs().values() for a in found
+           if a.family == socket.AF_INET and not a.address.startswith("127.")]
+    if not own:
+        pytest.skip("this machine has no IPv4 address but loopback")
+    process = subprocess.Popen([sys.executable, "-m", "pb3a", "manager",
+                                str(REPO / "examples" / "pipeline.toml"),
+                                "--listen", "0.0.0.0:0"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        base, _, token = process.stdout.readline().split()[-1].partition("/?token=")
+        port = base.rpartition(":")[2]
+        for host in (f"{own[0]}:{port}", f"127.0.0.1:{port}"):
+            request = urllib.request.Request(f"{base}/api/system", headers={
+                "Authorization": f"Bearer {token}", "Host": host})
+            with urllib.request.urlopen(request, timeout=10) as answer:
+                assert json.load(answer)["mode"] == "editing", host
+        refused = urllib.request.Request(f"{base}/api/system", headers={
+            "Authorization": f"Bearer {token}", "Host": f"elsewhere.example:{port}"})
+        with pytest.raises(urllib.error.HTTPError) as error:
+            urllib.request.urlopen(refused, timeout=10)
+        error.value.close()
+        assert error.value.code == 403
+    finally:
+        process.send_signal(signal.SIGINT)
+        try:
+            process.wait(20)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.wait(5)
+            process.stdout.close()
+            process.stderr.close()
 
 
 def test_the_command_attaches_to_a_running_system_shows_it_and_changes_it() -> None:

@@ -15,6 +15,8 @@ import socket
 import sys
 from pathlib import Path
 
+import psutil
+
 UI_PACKAGES = ("starlette", "uvicorn", "websockets", "tomlkit")
 
 
@@ -84,9 +86,8 @@ def _serve(args: argparse.Namespace, host: str, port: int) -> int:
     bound_port = sock.getsockname()[1]
     access = Access(new_token())
     access.serve_at(host, bound_port)
-    if host in ("0.0.0.0", "::"):
-        access.serve_at(socket.gethostname(), bound_port)
-        access.serve_at(socket.getfqdn(), bound_port)
+    for name in every_interface_names(host):
+        access.serve_at(name, bound_port)
     shown = "127.0.0.1" if host in ("0.0.0.0", "::") else host
     shown = f"[{shown}]" if ":" in shown else shown
     print(f"PB3A manager: http://{shown}:{bound_port}/?token={access.token}", flush=True)
@@ -94,6 +95,21 @@ def _serve(args: argparse.Namespace, host: str, port: int) -> int:
     with sigterm_interrupts():     # uvicorn stops, then raises SIGTERM again: as Ctrl-C
         serve(create_app(session, access, args.refresh), sock)
     return 0
+
+
+def every_interface_names(host: str) -> list[str]:
+    """What a manager listening at ``host`` is also reached by when that is every
+    interface (0.0.0.0, ::): this machine's names and its interfaces' addresses (of the
+    family listened on; not a link-local one, whose zone a Host header cannot carry).
+    Without the addresses, a manager on every interface refused the very requests it
+    was opened to, another machine's at http://ADDRESS:PORT ("does not serve the host")."""
+    if host not in ("0.0.0.0", "::"):
+        return []
+    families = (socket.AF_INET,) if host == "0.0.0.0" else (socket.AF_INET, socket.AF_INET6)
+    addresses = [address.address for found in psutil.net_if_addrs().values()
+                 for address in found if address.family in families
+                 and "%" not in address.address and not address.address.startswith("fe80:")]
+    return list(dict.fromkeys([socket.gethostname(), socket.getfqdn(), *addresses]))
 
 
 def _launcher(target: str) -> str | None:
