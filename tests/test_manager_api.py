@@ -74,6 +74,7 @@ def test_without_the_right_token_nothing_is_served_and_nothing_changes(client, r
     for path in ("/api/system", "/api/stats", "/api/modules/scale/state"):
         refused = bare.get(path)
         assert refused.status_code == 401 and "token" in refused.json()["error"], path
+        assert refused.json()["problems"] == []            # (as every error, the docs say)
     assert bare.get("/api/stats", headers={"Authorization": "Bearer wrong"}).status_code == 401
     assert bare.get(f"/api/stats?token={client.token}").status_code == 401   # not in URLs
     page = bare.get("/")

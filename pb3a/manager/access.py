@@ -152,7 +152,7 @@ async def _refuse(scope: Scope, send: Send, status: int, message: str) -> None:
         await send({"type": "websocket.close", "code": 4000 + status, "reason": message[:120]})
         return
     if scope["path"].startswith("/api/"):
-        body, kind = json.dumps({"error": message}).encode(), b"application/json"
+        body, kind = json.dumps({"error": message, "problems": []}).encode(), b"application/json"
     elif status == 401:
         body, kind = _SIGN_IN_PAGE, b"text/html; charset=utf-8"
     else:
