@@ -32,6 +32,16 @@ def _call(url: str, token: str, method: str = "GET") -> dict:
         return json.load(answer)
 
 
+def _kill_if_left(process: subprocess.Popen[str]) -> None:
+    """Kill the manager's process if it still runs (a test that failed midway); close
+    its pipes."""
+    if process.poll() is None:
+        process.kill()
+        process.wait(5)
+    process.stdout.close()
+    process.stderr.close()
+
+
 def test_the_command_serves_launches_and_stops_everything_on_ctrl_c() -> None:
     pytest.importorskip("uvicorn", reason="the manager needs the 'ui' extra")
     process = subprocess.Popen([sys.executable, "-m", "pb3a", "manager",
@@ -51,11 +61,7 @@ def test_the_command_serves_launches_and_stops_everything_on_ctrl_c() -> None:
         assert process.wait(timeout=20) == 130
         assert not any(alive(pid) for pid in pids)
     finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait(5)
-        process.stdout.close()
-        process.stderr.close()
+        _kill_if_left(process)
 
 
 def test_on_every_interface_it_answers_to_this_machine_s_addresses() -> None:
@@ -93,11 +99,7 @@ def test_on_every_interface_it_answers_to_this_machine_s_addresses() -> None:
         try:
             process.wait(20)
         finally:
-            if process.poll() is None:
-                process.kill()
-                process.wait(5)
-            process.stdout.close()
-            process.stderr.close()
+            _kill_if_left(process)
 
 
 def test_the_command_attaches_to_a_running_system_shows_it_and_changes_it() -> None:

@@ -40,9 +40,9 @@ _LONGEST_NAME = 255                  # bytes in a file's name (Linux's NAME_MAX)
 
 
 class JSONAnswer(JSONResponse):
-    """A JSON answer in ASCII: a string that is not text (a lone surrogate, as a file
-    name that is not UTF-8 decodes to) is escaped, where Starlette's UTF-8 failed to
-    encode it, a bare 500 after a state change was made (the live feed escapes so too)."""
+    """A JSON answer in ASCII, as the live feed's: a string that is not text (a lone
+    surrogate, as a file name that is not UTF-8 decodes to) is escaped. Starlette's
+    UTF-8 could not encode it, and answered a bare 500 after the change was made."""
 
     def render(self, content: Any) -> bytes:
         return json.dumps(content, ensure_ascii=True, allow_nan=False,
