@@ -39,14 +39,19 @@ MOST_BODY_BYTES = 8_000_000          # a request body larger than this is refuse
 _LONGEST_NAME = 255                  # bytes in a file's name (Linux's NAME_MAX)
 
 
+def encode(content: Any) -> str:
+    """JSON text in ASCII, as the API answers and the live feed sends: a string that is
+    not text (a lone surrogate, as a file name that is not UTF-8 decodes to) is
+    escaped, and a float JSON has no word for is an error."""
+    return json.dumps(content, allow_nan=False, separators=(",", ":"))
+
+
 class JSONAnswer(JSONResponse):
-    """A JSON answer in ASCII, as the live feed's: a string that is not text (a lone
-    surrogate, as a file name that is not UTF-8 decodes to) is escaped. Starlette's
-    UTF-8 could not encode it, and answered a bare 500 after the change was made."""
+    """An answer in ``encode``'s JSON. Starlette's UTF-8 could not encode a string that
+    is not text, and answered a bare 500 after the change was made."""
 
     def render(self, content: Any) -> bytes:
-        return json.dumps(content, ensure_ascii=True, allow_nan=False,
-                          separators=(",", ":")).encode("ascii")
+        return encode(content).encode("ascii")
 
 
 def error_response(exc: BaseException) -> JSONResponse:

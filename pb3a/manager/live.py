@@ -28,7 +28,7 @@ from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from pb3a.errors import PB3AError, RuntimeTimeout
-from pb3a.manager.api import error_response
+from pb3a.manager.api import encode, error_response
 from pb3a.manager.session import Session
 from pb3a.stats import plain
 
@@ -283,10 +283,6 @@ class Message(NamedTuple):
     type: str
     text: str
     seq: tuple[int, int] = (0, 0)            # (the feed's epoch, the event)
-
-
-def encode(message: dict[str, Any]) -> str:
-    return json.dumps(message, allow_nan=False, separators=(",", ":"))
 
 
 def stats_message(session: Session, timeout: float | None = None) -> Message:
