@@ -1322,6 +1322,11 @@ def test_a_module_renamed_in_the_editor_keeps_its_links(browser: Any, tmp_path: 
         page.press("#rename-input", "Enter")
         page.wait_for_selector(".toast.error >> text=letters, digits", timeout=WAIT_MS)
         assert "amplifier" in document_of(manager)["system"]["modules"]
+        # the field keeps the refused name to mend (the inspector is not drawn anew, which
+        # had also closed a menu opened just after the refusal); Escape leaves it
+        assert page.input_value("#rename-input") == "two words"
+        page.press("#rename-input", "Escape")
+        assert focused(page) == "#rename"
         # its node from the menu, as a drag would; then scale2 removed with Delete
         page.click("[data-menu='move to node']")
         page.click("[role=menuitem][data-value='a']")

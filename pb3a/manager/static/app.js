@@ -788,11 +788,15 @@ class Manager {
 
   /** Change the document, then draw what the server now makes of it. */
   async editDocument(change, rethrow = false) {
+    const edits = this.document.edits;
     try {
       await change();
     } catch (error) {
       this.toasts.error(error);
       if (rethrow) throw error;
+      // refused here, so nothing changed: drawn anew, the page lost what was typed in a
+      // field to mend, and a menu opened meanwhile closed under the pointer
+      if (this.document.edits === edits) return;
     }
     await this.refreshStructure();
     if (this.selected) {

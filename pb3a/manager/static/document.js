@@ -59,6 +59,7 @@ export class EditedDocument {
     this.base = null;                // the system as last read, before the changes made here
     this.putting = null;             // the put under way, which the next one waits for
     this.unsent = [];                // changes made here that no put has sent yet
+    this.edits = 0;                  // changes made here (a refused one is not counted)
   }
 
   async load() {
@@ -102,6 +103,7 @@ export class EditedDocument {
    */
   edit(change) {
     const result = change(this.system);
+    this.edits += 1;
     const sent = new Promise((resolve, reject) => {
       this.unsent.push({change, resolve: () => resolve(result), reject});
     });
