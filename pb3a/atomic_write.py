@@ -15,14 +15,16 @@ import shutil
 from pathlib import Path
 
 
-def write_text_atomically(path: str | Path, text: str) -> None:
-    """Write ``text`` (UTF-8) to ``path`` whole or not at all, keeping an existing
-    file's permissions (a new one gets the process's usual ones). ``OSError`` if it
-    cannot be written: the file as it was, and nothing left beside it."""
+def write_text_atomically(path: str | Path, text: str, *, newline: str | None = None) -> None:
+    """Write ``text`` (UTF-8, each "\\n" written as ``newline`` if given) to ``path``
+    whole or not at all, keeping an existing file's permissions (a new one gets the
+    process's usual ones). ``OSError`` if it cannot be written: the file as it was, and
+    nothing left beside it."""
     target = Path(path)
     partial = target.with_name(f".{target.name}.{secrets.token_hex(4)}.partial")
     try:
-        with partial.open("x", encoding="utf-8") as out:      # (the umask's permissions)
+        # (the umask's permissions)
+        with partial.open("x", encoding="utf-8", newline=newline) as out:
             out.write(text)
             out.flush()
             os.fsync(out.fileno())

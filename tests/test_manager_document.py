@@ -61,6 +61,32 @@ def test_an_unchanged_document_saves_byte_for_byte_and_an_edit_keeps_the_comment
     assert System.load(check).check() == []                  # pb3a check accepts it
 
 
+def test_a_file_with_windows_line_ends_keeps_them_when_saved(pipeline: Path,
+                                                             tmp_path: Path) -> None:
+    """Read with Python's universal newlines and written with "\\n", a file from
+    Windows came back with every line changed (its version control showed the whole
+    file as edited) though nothing was."""
+    crlf = pipeline.read_bytes().replace(b"\n", b"\r\n")
+    pipeline.write_bytes(crlf)
+    document = Document.open(pipeline)
+    document.save()
+    assert pipeline.read_bytes() == crlf                        # unchanged: byte for byte
+    with manager_client(Session(document)) as client:
+        system = client.get("/api/document").json()["system"]
+        system["modules"]["scale"]["state"]["gain"] = 4.0
+        assert client.put("/api/document", json={"system": system}).status_code == 200
+        assert client.post("/api/document/save", json={}).status_code == 200
+        # one opened in the page (its text as the browser read it) keeps them too
+        opened = client.post("/api/document/open", json={"name": "pipeline.toml",
+                                                         "toml": crlf.decode()})
+        assert opened.status_code == 200, opened.json()
+        saved = client.post("/api/document/save", json={"path": str(tmp_path / "a.toml")})
+        assert saved.status_code == 200, saved.json()
+    edited = pipeline.read_bytes()
+    assert b"gain = 4.0 }\r\n" in edited and b"\n" not in edited.replace(b"\r\n", b"")
+    assert (tmp_path / "a.toml").read_bytes() == crlf
+
+
 _SAVE_ON_A_FULL_DISK = """
 import resource, signal, sys
 from pb3a.manager.document import Document

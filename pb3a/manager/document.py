@@ -67,6 +67,10 @@ class Document:
     def __init__(self, text: str = "", path: Path | None = None) -> None:
         self.path = path
         self.name: str | None = None     # the file's name when opened in the page (no path)
+        # the file's line ends, kept on save (a file written on Windows came back all LF,
+        # every line changed for its version control); the text is edited with "\n"
+        self.newline = "\r\n" if "\r\n" in text else "\n"
+        text = text.replace("\r\n", "\n")
         try:
             self._doc = tomlkit.parse(text)
             # the text it says: tomlkit writes some files otherwise than it reads them
@@ -84,7 +88,8 @@ class Document:
         """The document in file ``path``; OSError if it cannot be read, ConfigError if it
         is not TOML."""
         path = Path(path)
-        return cls(path.read_text(encoding="utf-8"), path)
+        with path.open(encoding="utf-8", newline="") as file:     # (its line ends as written)
+            return cls(file.read(), path)
 
     @classmethod
     def empty(cls, name: str = "system") -> Document:
@@ -202,7 +207,7 @@ class Document:
         if problems:
             raise ConfigError(problems)
         with self._lock:
-            self._doc, self._text = opened._doc, opened._text
+            self._doc, self._text, self.newline = opened._doc, opened._text, opened.newline
             self.path, self.name = None, name
             self.revision += 1
 
@@ -240,7 +245,7 @@ class Document:
                     else f"{target} is another file, which a save would overwrite")
         # (whole or not at all: written in place, a full disk left the file cut off,
         # no longer TOML, and the next save said it had changed on disk)
-        write_text_atomically(target, text)
+        write_text_atomically(target, text, newline=self.newline)
         self.path, self._on_disk = target, text
         return target
 
