@@ -1099,3 +1099,66 @@ def test_a_description_from_tables_adds_no_directory_to_the_import_path() -> Non
     plan = System.from_dict({"name": "d", "modules": {
         "t": {"class": "examples.pipeline:Ticker"}}}).plan()
     assert plan.code.paths == ()
+
+
+KINDS = '''
+import numpy as np
+from pb3a.model.module import Module
+
+
+class Kinds(Module):
+    gain = 2.0
+    count = 0
+    on = True
+    label = "a"
+    weights = np.zeros(4)
+    limits = (-1.0, 1.0)
+
+    def __init__(self):
+        super().__init__()
+        self.kp = 1.0                   # state only an instance holds
+'''
+
+
+@pytest.fixture
+def kinds(tmp_path: Path) -> Iterator[None]:
+    (tmp_path / "parts_kinds.py").write_text(KINDS)
+    sys.path.insert(0, str(tmp_path))
+    yield
+    sys.path.remove(str(tmp_path))
+    sys.modules.pop("parts_kinds", None)
+
+
+def test_a_state_value_of_another_kind_than_the_class_declares_is_refused_by_name(
+        tmp_path: Path, kinds: None) -> None:
+    """``gain = "3.0"`` passed every check; the module then failed at every step, and
+    refused the number that would mend it, judged by the text it held."""
+    problems = problems_of(tmp_path, """
+        [modules.m]
+        class = "parts_kinds:Kinds"
+        state = { gain = "3.0", count = "zero", on = 1, label = 5, weights = [1, "x"] }
+    """)
+    assert len(problems) == 5, problems
+    only(problems, "[modules.m]: state 'gain' takes a number (parts_kinds:Kinds declares it "
+                   "2.0), got '3.0'")
+    only(problems, "state 'count' takes a number", "got 'zero'")
+    only(problems, "state 'on' takes true or false", "got 1")
+    only(problems, "state 'label' takes text", "got 5")
+    only(problems, "state 'weights' takes a nested list of float64 values")
+    # what fits is taken: a whole number for a float, any shape of numbers for an array,
+    # a list for a tuple, and what the class's __init__ sets; a typo there is still named
+    assert problems_of(tmp_path, """
+        [modules.m]
+        class = "parts_kinds:Kinds"
+        state = { gain = 3, weights = [[1, 2], [3, 4.5]], limits = [0, 2], kp = 2.5 }
+    """) == []
+    only(problems_of(tmp_path, """
+        [modules.m]
+        class = "parts_kinds:Kinds"
+        state = { kpp = 2.5 }
+    """), "has no state 'kpp' (did you mean 'kp'?)", "its state is: gain, count, on, label, "
+          "weights, limits, kp")
+    # the same from a program, before anything runs
+    system = System("s")
+    system.add("m", "parts_kinds:Kinds", state={"gain": "3.0"})
+    assert any("state 'gain' takes a number" in problem for problem in system.check())

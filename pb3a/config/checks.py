@@ -9,6 +9,7 @@ wording here keeps every message of one kind the same wherever it is found.
 from __future__ import annotations
 
 import difflib
+import dis
 import os
 import re
 from collections.abc import Iterable
@@ -18,6 +19,7 @@ from pb3a.errors import MOST_SECONDS
 from pb3a.loading.references import class_ref
 from pb3a.model.displays import declared_displays, finite
 from pb3a.model.module import RESTART_POLICIES, Module
+from pb3a.model.state_edits import configured
 from pb3a.transport.addresses import tcp_address_problems
 
 NAME = re.compile(r"\A[A-Za-z0-9_-]+\Z")     # (\Z: "$" also matches before a final newline)
@@ -111,15 +113,40 @@ def timeout(value: Any) -> list[str]:
 
 
 def state(cls: type[Module], value: Any) -> list[str]:
-    """A table of initial state; its keys must be the class's state when it uses reflection."""
+    """A table of initial state. When the class uses reflection, its keys must be the
+    class's state (or set in its ``__init__``), and each value of the kind of the
+    class's default for it (``configured``)."""
     if not isinstance(value, dict):
         return [f"state must be a table of attribute = value, got {value!r}"]
     if cls.get_state is not Module.get_state or cls.set_state is not Module.set_state:
         return []          # the class defines its own state: it alone knows the keys
-    names = cls.state_names()
-    return [f"{class_ref(cls)} has no state {key!r}{did_you_mean(key, names)}; its state is: "
-            f"{listing(names)} (fix the key, or declare the attribute on the class)"
-            for key in value if key not in names]
+    names, made = cls.state_names(), _set_in_init(cls)
+    known = [*names, *sorted(made.difference(names))]
+    problems = []
+    for key, item in value.items():
+        if key in names:
+            try:
+                configured(key, getattr(cls, key), item, owner=class_ref(cls))
+            except (TypeError, ValueError) as exc:
+                problems.append(str(exc))
+        elif key not in made:
+            problems.append(f"{class_ref(cls)} has no state {key!r}{did_you_mean(key, known)}; "
+                            f"its state is: {listing(known)} (fix the key, or declare the "
+                            "attribute on the class)")
+    return problems
+
+
+def _set_in_init(cls: type[Module]) -> set[str]:
+    """The public attributes the class's ``__init__`` (or a base's) sets (``self.kp =
+    1.0``): state too, which only an instance holds (a file setting it was refused)."""
+    names = set()
+    for klass in cls.__mro__:
+        init = vars(klass).get("__init__")
+        if klass is Module or not hasattr(init, "__code__"):
+            continue
+        names.update(op.argval for op in dis.get_instructions(init)
+                     if op.opname == "STORE_ATTR" and not op.argval.startswith("_"))
+    return names
 
 
 def macro_state(value: Any) -> list[str]:

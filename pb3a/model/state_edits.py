@@ -7,7 +7,8 @@ JSON is not yet the value to set: ``coerce`` makes an int a float for a float fi
 numpy one of the same dtype), a nested list an array of the field's shape and dtype,
 a list of int pairs the list of float pairs it replaces, and refuses what does not fit
 (text for a number, 300 for an int8, 1e300 for a float32). ``floats_as_declared``
-does the one part of this a configuration file needs: 3 for a float field is 3.0.
+does the part of this that keeps a value TOML can write (3 for a float field is 3.0);
+``configured`` the rest a configuration needs.
 """
 
 from __future__ import annotations
@@ -91,14 +92,14 @@ def coerce(field: str, current: Any, new: Any) -> Any:
                      "from JSON: set it from a program (run.set_state)")
 
 
-def checked(field: str, current: Any, new: Any) -> Any:
+def checked(field: str, current: Any, new: Any, *, held: str = "it is") -> Any:
     """``new``, set from a program (``run.set_state``), checked against the kind of the
     field's ``current`` value: a number for a number (an int made a float for a float
     field, as an output's write does), true or false for a flag, text for text; a field
     of another kind, or None, takes anything. ``TypeError`` naming the field: ``kp="2.5"``
     was set, and the module then failed at every step."""
     def refuse(takes: str) -> TypeError:
-        return TypeError(f"state {field!r} takes {takes} (it is {current!r}), got {new!r}")
+        return TypeError(f"state {field!r} takes {takes} ({held} {current!r}), got {new!r}")
 
     number = (int, float, np.integer, np.floating)
     if isinstance(current, (bool, np.bool_)):
@@ -112,6 +113,26 @@ def checked(field: str, current: Any, new: Any) -> Any:
     elif isinstance(current, str) and not isinstance(new, str):
         raise refuse("text")
     return new
+
+
+def configured(field: str, declared: Any, value: Any, *, owner: str = "its class") -> Any:
+    """``value``, given to a module by its configuration (a system file, ``run.add``'s
+    state), as the kind of the field's ``declared`` value (its class's default), as
+    ``checked`` judges it; and made its type where the file's TOML cannot say it: a
+    whole number a float for a float field, a list of numbers an array of the field's
+    dtype (of any shape: the class's may be a placeholder), a list a tuple. ``owner``
+    names the class in the message. TypeError or
+    ValueError naming the field: ``kp = "2.5"`` passed every check, and the module then
+    failed at every step (and refused the number that would mend it, judged by the text
+    it then held)."""
+    if isinstance(declared, np.ndarray) and isinstance(value, list):
+        if declared.dtype.kind not in "biuf":      # (an array of objects: as it is given)
+            return value
+        return _coerce_array(field, declared, value, any_shape=True)
+    if isinstance(declared, tuple) and isinstance(value, list):
+        return _like(declared, value)
+    return checked(field, declared, floats_as_declared(declared, value),
+                   held=f"{owner} declares it")
 
 
 def floats_as_declared(declared: Any, value: Any) -> Any:
@@ -141,8 +162,10 @@ def _all_floats(value: Any) -> Any:
     return float(value) if type(value) is int else value
 
 
-def _coerce_array(field: str, current: np.ndarray, new: Any) -> np.ndarray:
-    what = f"a nested list of shape {list(current.shape)} of {current.dtype} values"
+def _coerce_array(field: str, current: np.ndarray, new: Any,
+                  any_shape: bool = False) -> np.ndarray:
+    shape = "" if any_shape else f" of shape {list(current.shape)}"
+    what = f"a nested list{shape} of {current.dtype} values"
     if current.dtype.kind not in "biuf":
         raise ValueError(f"state {field!r} is an array of {current.dtype}, which cannot be "
                          "set from JSON: set it from a program (run.set_state)")
@@ -153,7 +176,7 @@ def _coerce_array(field: str, current: np.ndarray, new: Any) -> np.ndarray:
     except (ValueError, TypeError):
         raise ValueError(f"state {field!r} takes {what}; the lists given are ragged or "
                          "hold something else than numbers") from None
-    if array.shape != current.shape:
+    if array.shape != current.shape and not any_shape:
         raise ValueError(f"state {field!r} takes {what}, got shape {list(array.shape)}")
     if array.dtype.kind not in "biuf":
         raise ValueError(f"state {field!r} takes {what}, got {array.dtype} values")
