@@ -239,6 +239,35 @@ def test_migration_to_an_unknown_node_or_of_an_unknown_module_is_refused() -> No
         assert run.stats().modules["relay"].node == "a"
 
 
+class HoldsALock(Relay):
+    """A module that keeps a lock in a public field: state that cannot be pickled."""
+
+    def setup(self) -> None:
+        self.guard = threading.Lock()
+
+
+def test_state_that_cannot_be_pickled_is_named_by_a_move_and_by_a_checkpoint_once() -> None:
+    """pickle's own error names only the type ("cannot pickle '_thread.lock' object"):
+    a move said no more, and a checkpoint logged a traceback every time, not naming the
+    field either."""
+    system = _nodes(System("move-lock"), "a", "b")
+    system.add("held", HoldsALock, node="a", restart="last-state")
+    with system.launch(checkpoint_s=0.05) as run:
+        def said() -> list[str]:
+            return [e.message for e in run.logs() if "cannot checkpoint" in e.message]
+
+        eventually(said, what="a checkpoint refused")
+        with pytest.raises(RuntimeFailure, match=r"module 'held' cannot move: its state cannot "
+                           r"be pickled: .*lock.* \(in 'guard': state that holds a lock"):
+            run.migrate("held", to="b")
+        assert run.stats().modules["held"].node == "a"
+        assert run.stats().modules["held"].status == "running"
+        mark = run.logs()[-1].seq
+        run.wait(0.5)                         # ten checkpoints more
+        assert len(said()) == 1 and "in 'guard'" in said()[0], said()
+        assert not [e for e in run.logs(mark) if "Traceback" in e.message]
+
+
 def test_a_failed_landing_puts_the_module_back_where_it_was(monkeypatch) -> None:
     with _through("move-fail", "relay", Relay).launch() as run:
         eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")

@@ -54,6 +54,17 @@ def dumps(obj: Any, *,
         return file.getvalue()
 
 
+def unpicklable_reason(exc: Exception, items: Any) -> str:
+    """``exc``, raised pickling ``items`` (a module's state, an answer), in words that
+    name the fields that cannot be pickled and what to do (pickle's own error names
+    only the type: "cannot pickle '_thread.lock' object")."""
+    fields = unpicklable(items) if isinstance(items, Mapping) else []
+    return f"{type(exc).__name__}: {exc}" + (
+        f" (in {', '.join(map(repr, fields))}: state that holds a lock, a file or a socket "
+        "cannot leave its module; a name beginning with '_' keeps it out of the state)"
+        if fields else "")
+
+
 def unpicklable(items: Mapping[str, Any]) -> list[str]:
     """The names of ``items`` whose values cannot be pickled: what to name when a whole
     state or class could not be (pickle's own error names only the type, such as

@@ -95,6 +95,7 @@ class Worker:
         # nothing): a module's log record or error report, an agent's request.
         self.outbox = Outbox(conn.fileno())
         self._checkpoints: dict[str, Outgoing] = {}    # the last one each, if unsent
+        self._uncheckpointed: set[str] = set()   # modules whose checkpoint failed, said once
         self._dropped = 0                   # notices dropped while the executor read nothing
         self._dropping = threading.Lock()   # (counted by any module's thread)
         self._requests: dict[int, RuntimeWait] = {}    # agents' requests awaiting answers
@@ -193,12 +194,8 @@ class Worker:
                 log.error("a %s notice could not be pickled: %s: %s", kind,
                           type(exc).__name__, exc)
                 return None
-            fields = pickling.unpicklable(payload) if isinstance(payload, dict) else []
-            kind, body = False, pickling.dumps(
-                f"its answer could not be pickled: {type(exc).__name__}: {exc}" + (
-                    f" (in {', '.join(map(repr, fields))}: state that holds a lock, a "
-                    "file or a socket cannot leave its module; a name beginning with '_' "
-                    "keeps it out of the state)" if fields else ""))
+            kind, body = False, pickling.dumps("its answer could not be pickled: "
+                                               + pickling.unpicklable_reason(exc, payload))
         if kind == "checkpoint":
             earlier = self._checkpoints.pop(payload["name"], None)
             if earlier is not None:
@@ -366,7 +363,15 @@ class Worker:
         """The bytes a migration's snapshot of the module would take now (measured under
         its lock: a body must not change the state while it is pickled)."""
         actor = self.actors[name]
-        return actor.with_lock(lambda: Snapshot.measure(actor.holdings()), MEASURE_TIMEOUT)
+
+        def measure() -> int:
+            holdings = actor.holdings()
+            try:
+                return Snapshot.measure(holdings)
+            except (TypeError, AttributeError, pickle.PicklingError) as exc:  # (what pickle raises)
+                raise Refused(f"module {name!r} cannot move: its state cannot be pickled: "
+                              + pickling.unpicklable_reason(exc, holdings["state"])) from None
+        return actor.with_lock(measure, MEASURE_TIMEOUT)
 
     def op_migrate_out(self, name: str, segment: str, until: float | None = None) -> Snapshot:
         """Retire a paused module for its move: its state and unconsumed inputs, laid out
@@ -385,7 +390,11 @@ class Worker:
         actor = self.actors[name]
         captured = actor.retire()
         try:
-            snapshot = Snapshot.capture(captured, segment, since=started)
+            try:
+                snapshot = Snapshot.capture(captured, segment, since=started)
+            except (TypeError, AttributeError, pickle.PicklingError) as exc:
+                raise Refused(f"module {name!r} cannot move: its state cannot be pickled: "
+                              + pickling.unpicklable_reason(exc, captured["state"])) from None
             if until is not None and time.monotonic() > until:
                 raise TimeoutError(f"module {name!r} was retired too late for its move "
                                    "(its teardown, or this worker, was slow): it stays here")
@@ -712,9 +721,15 @@ class Worker:
                 if policy == "last-state" and actor is not None and actor.running:
                     try:
                         blob = actor.checkpoint()
-                    except Exception:
-                        log.exception("cannot checkpoint module %r", name)
+                    except Exception as exc:
+                        # (said once, not with a traceback at every checkpoint)
+                        if name not in self._uncheckpointed:
+                            self._uncheckpointed.add(name)
+                            log.error("cannot checkpoint module %r; a restart starts it from "
+                                      "its last checkpoint, or fresh: %s", name,
+                                      pickling.unpicklable_reason(exc, actor.module.get_state()))
                         continue
+                    self._uncheckpointed.discard(name)
                     self.send((None, "checkpoint", {"name": name, "state": blob}))
 
 
