@@ -9,13 +9,16 @@
         └── RuntimeCancelled          a body's wait (a runtime call, a driver's request
                                       to its device) ended by the runtime stopping it
 
-Each subclasses the nearest built-in, so callers may catch either.
+Each subclasses the nearest built-in, so callers may catch either. The checks of a
+runtime call's arguments that the API and an agent's ``self.runtime`` share live here
+too (``bounded_wait``, ``values_to_set``), so both refuse alike.
 """
 
 from __future__ import annotations
 
 import threading
 from numbers import Real
+from typing import Any
 
 
 class PB3AError(Exception):
@@ -79,6 +82,20 @@ def bounded_wait(timeout: float | None, what: str) -> float:
         raise ValueError(f"{what}: timeout must be a finite number of seconds, 0 or more, "
                          f"not {timeout!r}: every wait has a deadline")
     return float(timeout)
+
+
+def values_to_set(name: str, values: dict[str, Any] | None,
+                  fields: dict[str, Any]) -> dict[str, Any]:
+    """The state a ``set_state(name, values, **fields)`` call sets; nothing to set is a
+    ``ValueError`` (``set_state("m", timeout=3.0)`` meant to set the module's ``timeout``,
+    and set nothing: ``timeout=`` is the call's own deadline)."""
+    merged = {**(values or {}), **fields}
+    if not merged:
+        raise ValueError(f"set_state({name!r}): nothing to set; give fields "
+                         f"(set_state({name!r}, gain=2.0)) or a dict; timeout= is the "
+                         f"call's own deadline, so a field named timeout goes in the "
+                         f"dict: set_state({name!r}, {{'timeout': 3.0}})")
+    return merged
 
 
 def link_stuck(link: str, waited: float, unsent: int = 1) -> RuntimeTimeout:

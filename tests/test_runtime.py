@@ -790,6 +790,19 @@ def test_an_agent_s_runtime_call_carries_its_timeout_and_refuses_a_bad_one() -> 
     assert len(asked) == 3
 
 
+def test_an_agent_s_set_state_with_nothing_to_set_is_refused_as_the_api_s() -> None:
+    """``self.runtime.set_state("drv", timeout=0.25)``, meant to set the driver's
+    ``timeout``, set nothing and raised nothing, where the API's same call is refused."""
+    asked = []
+    client = RuntimeClient("me", lambda op, args, timeout: asked.append((op, args, timeout)))
+    with pytest.raises(ValueError, match=r"set_state\('drv'\): nothing to set.*"
+                       r"\{'timeout': 3.0\}"):
+        client.set_state("drv", timeout=0.25)
+    with pytest.raises(ValueError, match="nothing to set"):
+        client.set_state("drv", {})
+    assert asked == []
+
+
 def test_the_figures_of_a_node_without_remote_links_make_no_bridge() -> None:
     """A report read every remote link's losses from the node's bridge, which it made on
     first use even with none: a thread, sockets, and the cluster key loaded (one that

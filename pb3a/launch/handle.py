@@ -15,7 +15,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from typing import TYPE_CHECKING, Any
 
-from pb3a.errors import bounded_wait
+from pb3a.errors import bounded_wait, values_to_set
 from pb3a.pending import Pending
 
 if TYPE_CHECKING:
@@ -53,12 +53,7 @@ class SystemHandle(ABC):
         ``set_state("scale", gain=5.0)``, or with a dict for names such as ``timeout``.
         Nothing to set is a ``ValueError`` (``set_state("m", timeout=3.0)`` meant to set
         the module's ``timeout`` and set nothing)."""
-        values = {**(values or {}), **fields}
-        if not values:
-            raise ValueError(f"set_state({name!r}): nothing to set; give fields "
-                             f"(set_state({name!r}, gain=2.0)) or a dict; timeout= is the "
-                             f"call's own deadline, so a field named timeout goes in the "
-                             f"dict: set_state({name!r}, {{'timeout': 3.0}})")
+        values = values_to_set(name, values, fields)
         self._request("set_state", {"name": name, "values": values, "timeout": timeout})
 
     # -- moving, swapping, reloading ---------------------------------------------------

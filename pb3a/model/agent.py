@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-from pb3a.errors import bounded_wait
+from pb3a.errors import bounded_wait, values_to_set
 from pb3a.model.module import Module
 from pb3a.pending import Pending
 
@@ -63,8 +63,9 @@ class RuntimeClient:
     def set_state(self, name: str, values: dict[str, Any] | None = None, /, *,
                   timeout: float | None = None, **fields: Any) -> None:
         """Set state attributes of another module (as ``Running.set_state``; a dict for
-        names such as ``timeout``)."""
-        self._call("set_state", name, values={**(values or {}), **fields}, timeout=timeout)
+        names such as ``timeout``). Nothing to set is a ``ValueError``, as there."""
+        self._call("set_state", name, values=values_to_set(name, values, fields),
+                   timeout=timeout)
 
     def swap(self, name: str, cls: type | str, *, timeout: float | None = None) -> list[str]:
         """Swap another module for ``cls``, keeping ports and matching state."""
