@@ -229,6 +229,24 @@ def test_deliver_many_applies_the_policy_once_per_batch() -> None:
     assert reader.latest.read() == 3.0 and reader.latest.take_events(10) == 1
 
 
+def test_the_rate_a_module_reads_decays_once_values_stop_as_stats_says(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """``self.x.rate``, read inside the module, stayed at 49/s long after its writer was
+    removed (set only on delivery), while ``stats()`` said 0.33."""
+    clock = [100.0]
+    monkeypatch.setattr("pb3a.model.ports.time.monotonic", lambda: clock[0])
+    port = Reader().latest
+    assert port.rate == 0.0
+    for _ in range(101):                         # 50 values/s for two seconds
+        port.deliver(1.0)
+        clock[0] += 0.02
+    assert port.rate == pytest.approx(50.0, rel=0.05)
+    clock[0] += 3.0                              # the writer is gone
+    assert port.rate == port.current_rate() == pytest.approx(1 / 3.02, rel=0.01)
+    clock[0] += 7.0
+    assert port.rate < 0.1
+
+
 def test_lossless_policies_parse_and_bad_text_lists_them() -> None:
     assert Policy.parse("lossless:8") == Policy("lossless", 8)
     assert str(Policy.parse("lossless")) == "lossless:64"

@@ -198,7 +198,7 @@ class InputPort:
         self.link_failures = 0       # values lost because a link or its peer failed
         self.latency = math.nan      # smoothed seconds from write to delivery
         self.latency_counts = [0] * latencies.BUCKETS   # values per latency bucket
-        self.rate = 0.0              # smoothed values per second
+        self._rate = 0.0             # values per second over the last closed window
         self.source = ""             # the link its counters are of (kept once unlinked)
         self.linked: set[str] = set()  # the links that feed it now (an unlink drops one)
         self._values: collections.deque[Any] = collections.deque()
@@ -300,7 +300,7 @@ class InputPort:
             self._window_count += count
             self._last_arrival = now
             if now - self._window_start >= _RATE_WINDOW:
-                self.rate = self._window_count / (now - self._window_start)
+                self._rate = self._window_count / (now - self._window_start)
                 self._window_start, self._window_count = now, 0
             if self._fifo:
                 held = self._values
@@ -410,15 +410,24 @@ class InputPort:
         """Claim one ``on_input`` call for this port; False if nothing is left to dispatch."""
         return self.take_events(1) == 1
 
+    @property
+    def rate(self) -> float:
+        """Values per second over the last window; decays once values stop arriving (at
+        most 1 / the seconds since the last one), as ``stats()`` reports it: a module or
+        agent acting on it sees a writer that stopped."""
+        return self.current_rate()
+
     def current_rate(self) -> float:
-        """Values per second over the last window; decays once values stop arriving."""
+        """Values per second over the last window; decays once values stop arriving
+        (computed when read: delivery only counts)."""
         if math.isnan(self._last_arrival):
             return 0.0
         now = time.monotonic()
-        if self.rate == 0.0 and now - self._window_start > 0:
+        rate = self._rate
+        if rate == 0.0 and now - self._window_start > 0:
             return self._window_count / (now - self._window_start) if self._window_count else 0.0
         idle = now - self._last_arrival
-        return min(self.rate, 1.0 / idle) if idle > _RATE_WINDOW else self.rate
+        return min(rate, 1.0 / idle) if idle > _RATE_WINDOW else rate
 
     def set_policy(self, policy: Policy) -> None:
         """Change the policy (a link may override the declared one); held values carry over.
@@ -453,7 +462,7 @@ class InputPort:
                 self.received = self.drops = self.link_failures = self._window_count = 0
                 self.latency_counts = [0] * latencies.BUCKETS
                 self.latency = self._last_arrival = math.nan
-                self.rate, self._window_start = 0.0, -math.inf
+                self._rate, self._window_start = 0.0, -math.inf
             self.source = link
             self.linked.add(link)
 
