@@ -1169,3 +1169,50 @@ class Freezer(Module):
     def teardown(self) -> None:
         if self.freeze_in == "teardown":
             time.sleep(1000)
+
+
+class DeviceKit(Macro):
+    """A counter feeding a device opener, whose ``setup`` raises with ``state={"cam":
+    {"missing": True}}``: a macro added to a running system, one of whose modules may
+    not start."""
+
+    modules = {"tick": {"class": Counter, "period": 0.01}, "cam": OpensDevice}
+    links = [("tick.out", "cam.x")]
+    exports = {"count": "tick.out"}
+
+
+class FreezerPair(Macro):
+    """A freezer, then a steady module: removed last first, the steady one goes before
+    a frozen freezer is reached."""
+
+    modules = {"freezer": Freezer, "steady": Steady}
+
+
+class MacroSpawner(Agent):
+    """On its first value spawns the macro ``Chain`` as ``c2`` (its second gain 5) fed by
+    ``scale.y``, and tries to remove the macro it is in itself (``refused``: why not); on
+    its second, removes ``c2``."""
+
+    go = Input(int, policy="queue:8")
+    seen = 0
+    refused = ""
+
+    def on_input(self, port) -> None:
+        port.read()
+        self.seen += 1
+        if self.seen == 1:
+            self.runtime.spawn("c2", Chain, state={"b": {"gain": 5.0}})
+            self.runtime.link("scale.y", "c2/a.x")
+            try:
+                self.runtime.remove(self.runtime.name.partition("/")[0])
+            except RuntimeFailure as exc:
+                self.refused = str(exc)
+        elif self.seen == 2:
+            self.runtime.remove("c2")
+
+
+class SpawnerKit(Macro):
+    """``MacroSpawner`` inside a macro of its own."""
+
+    modules = {"agent": MacroSpawner}
+    exports = {"go": "agent.go"}

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import alive, eventually
-from sample_modules import Counter, FastScale, Freezer, Last, OnFlag, Relay, Scale
+from sample_modules import Chain, Counter, FastScale, Freezer, Last, OnFlag, Relay, Scale
 
 from pb3a import Module, System
 from pb3a.cli.main import INTERRUPTED, main
@@ -109,6 +109,24 @@ def test_add_gives_a_float_field_a_float_and_names_a_value_that_does_not_fit(cap
         assert main(["add", address, "scale", ref, "--state", "gain=4", "setups=2"]) == 0
         state = run.state("scale")
         assert type(state["gain"]) is float and type(state["setups"]) is int
+
+
+def test_add_and_remove_take_a_macro_whole(capsys) -> None:
+    """``pb3a add ADDR NAME module:Macro`` was refused ("is not a pb3a.Module subclass"),
+    and ``pb3a remove`` of a macro instance named no module."""
+    system = System("cli-macro").node("a").node("b")
+    system.add("src", Counter, node="a", period=0.002)
+    with system.launch() as run:
+        address, ref = run.listen(), f"{Chain.__module__}:Chain"
+        assert main(["add", address, "c2", ref, "--node", "b", "--state", 'b={"gain": 4}',
+                     "--json"]) == 0
+        assert json.loads(capsys.readouterr().out) == {
+            "module": "c2", "class": ref, "modules": {"c2/a": "b", "c2/b": "b"}}
+        state = run.state("c2/b")
+        assert state["gain"] == 4.0 and type(state["gain"]) is float
+        assert main(["remove", address, "c2"]) == 0
+        assert "c2 removed" in capsys.readouterr().out
+        assert set(run.topology().modules) == {"src"}
 
 
 class Weighted(Module):

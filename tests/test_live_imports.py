@@ -177,6 +177,25 @@ def test_swap_and_add_to_a_module_file_that_hangs_ends_or_crashes_as_imported_ar
     eventually(lambda: not alive(started), what="the end of the process the import started")
 
 
+def test_a_macro_whose_module_names_a_file_that_hangs_as_imported_is_refused(
+        launcher: str, tmp_path: Path) -> None:
+    """A macro added while the system runs names its modules' classes as ``module:Class``
+    too: the launcher tries each file it has not imported in a child process first, as
+    for the class of a module added, and refuses the macro saying which hangs."""
+    (tmp_path / "harm_kit.py").write_text(textwrap.dedent("""
+        from pb3a import Macro
+
+        class Kit(Macro):
+            modules = {"fine": "imported_fine:Bad", "bad": "imported_hangs:Bad"}
+        """))
+    done, took = pb3a("add", launcher, "kit", "harm_kit:Kit", "--timeout", "2", cwd=tmp_path)
+    assert done.returncode == 1 and took < 9, (done.stdout, done.stderr, took)
+    assert ("macro kit: importing module 'imported_hangs' for 'imported_hangs:Bad' did not "
+            "finish within") in done.stderr, done.stderr
+    with connect(launcher) as system:
+        assert set(system.topology(timeout=5).modules) == {"src", "scale"}
+
+
 def test_a_class_sent_by_reference_whose_module_hangs_in_the_launcher_is_refused(
         launcher: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A program's connection that passes a class object sends it by reference, and the

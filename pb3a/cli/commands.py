@@ -98,15 +98,18 @@ def _running_system(commands: argparse._SubParsersAction) -> None:
                      ("src", "the output, module.port"), ("dst", "the input, module.port"))
     relink.add_argument("--policy", help="the input's policy on the new link (latest, "
                                          "queue:N ...)")
-    add = command("add", "start a new module",
-                  ("module", "the new module's name"), ("cls", "its class, module:Class"))
+    add = command("add", "start a new module, or a macro",
+                  ("module", "the new module's (or macro instance's) name"),
+                  ("cls", "its class, module:Class (a Module or a Macro)"))
     add.add_argument("--node", help="where it runs (default: the first node)")
     add.add_argument("--period", type=arguments.wait_seconds, metavar="SECONDS",
                      help="its step period (0: as fast as it can)")
     add.add_argument("--state", nargs="*", default=[], metavar="NAME=VALUE",
                      type=arguments.state_pair,
-                     help="its initial state, as for `pb3a set` (after the class)")
-    remove = command("remove", "stop and remove a module", ("module", "the module's name"))
+                     help="its initial state, as for `pb3a set` (after the class); a "
+                          "macro's, MODULE={...} per module of it")
+    remove = command("remove", "stop and remove a module, or every module of a macro",
+                     ("module", "the module's (or macro instance's) name"))
     remove.add_argument("--force", action="store_true",
                         help="kill its worker if it does not answer its stop within the "
                              "timeout (frozen in step or teardown); refused for a worker "

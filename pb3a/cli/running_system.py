@@ -142,6 +142,12 @@ def _add(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
         raise ValueError("; ".join(wrong) + "; nothing was added")
     system.add(args.module, args.cls, node=args.node, period=args.period, state=state,
                timeout=args.timeout)
+    inside = {name: module.node for name, module in system.topology(
+        timeout=args.timeout).modules.items() if name.startswith(f"{args.module}/")}
+    if inside:                          # a macro: its modules, each where it runs
+        return (f"{args.module} ({args.cls}) runs: " + ", ".join(
+            f"{name} on node {node}" for name, node in inside.items()),
+            {"module": args.module, "class": args.cls, "modules": inside})
     where = system.where(args.module, timeout=args.timeout)
     return (f"{args.module} ({args.cls}) runs on node {where}",
             {"module": args.module, "class": args.cls, "node": where})

@@ -55,6 +55,16 @@ def sketch_plan(spec: SystemSpec) -> tuple[Plan, list[str]]:
     return _Planner(spec).run(partial=True)
 
 
+def plan_addition(spec: SystemSpec, within: str = "",
+                  group: str | None = None) -> tuple[Plan | None, list[str]]:
+    """The plan of what ``spec``'s modules (and macros) add to a running system, and its
+    problems (the plan None unless there are none): expanded under the macro instance
+    path ``within`` (``""``, ``"robot/"``), each in ``group`` unless its entry names one
+    (that one under its macro instance's path, as in a file). ``spec`` holds the
+    running system's nodes and no links of its own."""
+    return _Planner(spec).run(within=within, group=group)
+
+
 def validate(spec: SystemSpec) -> list[str]:
     """Every problem in ``spec``, each naming its place and what to change; empty if valid."""
     return plan_system(spec)[1]
@@ -91,9 +101,10 @@ class _Planner:
     def report(self, label: str, problems: list[str]) -> None:
         self.problems.extend(f"{label}: {problem}" for problem in problems)
 
-    def run(self, partial: bool = False) -> tuple[Any, list[str]]:
+    def run(self, partial: bool = False, within: str = "",
+            group: str | None = None) -> tuple[Any, list[str]]:
         """The plan and the problems; the plan is None when there are problems, unless
-        ``partial`` asks for what resolved."""
+        ``partial`` asks for what resolved (``within``, ``group``: see ``plan_addition``)."""
         spec = self.spec
         nodes = self.check_system()
         self.code = self.install_code()
@@ -114,7 +125,7 @@ class _Planner:
         labels: dict[str, str] = {}
         links: list[tuple[str, FlatLink]] = []
         macros: dict[str, str] = {}
-        self.instantiate(top, "", None, None, modules, labels, links, macros)
+        self.instantiate(top, within, None, group, modules, labels, links, macros)
         self.check_inputs(links)
         self.check_groups(modules, labels)
         problems = list(dict.fromkeys(self.problems))

@@ -114,7 +114,14 @@ class SystemHandle(ABC):
             node: str | None = None, fallback: list[str] | None = None,
             timeout: float | None = None) -> None:
         """Start a new module while the system runs (link it with ``link``);
-        ``fallback``: the nodes to restart it on, in order, if its node is lost."""
+        ``fallback``: the nodes to restart it on, in order, if its node is lost.
+
+        ``cls`` may be a ``Macro`` (as for ``System.add``): its modules start as
+        ``name/child`` on ``node`` (unless a child names its own), with the links inside
+        it, and ``state`` is per module of it (``{"smooth": {"alpha": 0.5}}``); if one of
+        them cannot start, none is left. It is then a macro instance as one of the
+        configuration is: ``migrate`` and ``remove`` take it whole, links at run time
+        join its modules' own ports, ``configuration()`` writes it as a macro."""
         self._request("add", {"name": name, "cls": cls, "state": state, "period": period,
                               "restart": restart, "group": group, "node": node,
                               "fallback": fallback, "timeout": timeout})
@@ -124,7 +131,8 @@ class SystemHandle(ABC):
         does not answer its stop within ``timeout`` (frozen in ``step`` or ``teardown``)
         is left as it was (``RuntimeTimeout``); with ``force`` its worker is killed
         instead, and it goes with its links all the same (not a worker that runs other
-        modules too: ``RuntimeFailure`` names them)."""
+        modules too: ``RuntimeFailure`` names them). A macro instance's name removes
+        every module of it, last first, with their links."""
         self._request("remove", {"name": name, "timeout": timeout, "force": force})
 
     def restart(self, name: str, *, timeout: float | None = None) -> None:

@@ -26,6 +26,8 @@ from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 from pb3a.config import checks
+from pb3a.config.compiler import plan_addition
+from pb3a.config.description import ModuleSpec, SystemSpec
 from pb3a.config.folding import fold
 from pb3a.config.plan import FlatLink, FlatModule
 from pb3a.deadline import bounding, lifted
@@ -40,17 +42,18 @@ from pb3a.errors import (
 )
 from pb3a.launch.migration import MigrationReport, MovedLate, migrate
 from pb3a.loading import trial
-from pb3a.loading.references import resolve_class
+from pb3a.loading.references import ImportRefused, resolve_class
 from pb3a.loading.served import forget, reload_problem
 from pb3a.model.environment import PREFIX as ENV_PREFIX
 from pb3a.model.environment import Environment
+from pb3a.model.macro import Macro
 from pb3a.model.module import Module
 from pb3a.model.ports import Policy
 from pb3a.pending import DONE, FAILED, RUNNING
 from pb3a.topology import Topology, topology_of
 
 if TYPE_CHECKING:
-    from collections.abc import Callable, Collection, Iterator
+    from collections.abc import Callable, Collection, Iterable, Iterator
 
     from pb3a.events import Event
     from pb3a.launch.launcher import Launcher
@@ -363,14 +366,19 @@ class Operations:
             period: float | None = None, restart: str | None = None, group: str | None = None,
             node: str | None = None, fallback: list[str] | None = None,
             timeout: float | None = None) -> None:
-        """Start a new module. It is checked as the compiler checks a configuration's
-        entry first (name, period, restart, state, group, node, fallback): one
-        ``ConfigError`` naming every problem, and nothing started. A module file not
-        imported yet is tried in a child process first (``_resolved``), within the
-        timeout."""
+        """Start a new module, or a macro instance (``cls`` a ``Macro``: see
+        ``_add_macro``). It is checked as the compiler checks a configuration's entry
+        first (name, period, restart, state, group, node, fallback): one ``ConfigError``
+        naming every problem, and nothing started. A module file not imported yet is
+        tried in a child process first (``_resolved``), within the timeout."""
         wait = self._call_timeout(timeout)
         deadline = time.monotonic() + wait
         module_cls, unresolved = _resolved(cls, wait)
+        if isinstance(module_cls, type) and issubclass(module_cls, Macro) \
+                and module_cls is not Macro:
+            self._add_macro(name, module_cls, state=state, period=period, restart=restart,
+                            group=group, node=node, fallback=fallback, deadline=deadline)
+            return
         with self._held(f"add {name}", _left(deadline), lend=[name]) as left:
             launcher = self.launcher
             node = node or next(iter(self.plan.nodes))
@@ -387,6 +395,54 @@ class Operations:
                 self._start(spec, [])       # (one that cannot start is not added)
         self.event_log.record("module_added", name, node=node)
 
+    def _add_macro(self, name: str, macro: type[Macro], *, state: Any, period: Any,
+                   restart: Any, group: Any, node: str | None, fallback: Any,
+                   deadline: float) -> None:
+        """Start a macro instance: its modules as ``name/child`` paths, on ``node`` (the
+        first node by default) unless a child names its own, and the links inside it,
+        expanded and checked by the compiler as a configuration's entry is, then against
+        the running modules (a name taken, a group on another node): one ``ConfigError``,
+        nothing started. If a module of it cannot start, those added are removed again.
+        As for a launched macro, its exports are the configuration's (links at run time
+        join its modules' own ports) and only its paths say it is one: ``migrate``,
+        ``remove`` and ``configuration()`` find it by them."""
+        refused = _refused_imports(macro, deadline)
+        with self._held(f"add {name}", _left(deadline), lend=[name]) as left:
+            launcher = self.launcher
+            node = node or next(iter(self.plan.nodes))
+            known = isinstance(node, str) and node in launcher.nodes
+            problems = _name_problems(name, launcher.specs) + refused
+            expanded = None
+            # (a name that is no path has no expansion to check; a module file refused
+            # must not be imported here by the compiler: it hung, or ended the launcher)
+            if not problems:
+                parent, _, leaf = name.rpartition("/")
+                entry = ModuleSpec(leaf, cls=macro, state={} if state is None else state,
+                                   period=period, restart=restart, fallback=fallback,
+                                   node=node if known else None)
+                spec = SystemSpec(self.plan.name, nodes=dict(self.plan.nodes),
+                                  modules={leaf: entry})
+                expanded, found = plan_addition(spec, f"{parent}/" if parent else "",
+                                                group if isinstance(group, str) else None)
+                top = f"{spec.origin} [modules.{leaf}]: "       # (said as "macro NAME: ")
+                problems += [problem.removeprefix(top) for problem in found]
+            if not known:
+                problems.append(f"no node {node!r}{checks.did_you_mean(node, launcher.nodes)}"
+                                f"; nodes: {checks.listing(launcher.nodes)}")
+            if group is not None:
+                problems += checks.path(group, "group")
+            if expanded is not None:
+                problems += _group_problems(expanded.modules.values(), launcher.specs)
+            if problems or expanded is None:
+                raise ConfigError([f"macro {name}: {problem}" for problem in problems])
+            specs, links = list(expanded.modules.values()), expanded.links
+            with bounding(left()):
+                self._start_all(specs, links)
+        for spec in specs:
+            self.event_log.record("module_added", spec.name, node=spec.node, macro=name)
+        for link in links:
+            self.event_log.record("link_added", link.key, policy=str(link.policy))
+
     def remove(self, name: str, *, timeout: float | None = None, force: bool = False) -> None:
         """Stop a module (its ``teardown``), drop its links and free its process, all
         within ``timeout``: a module that does not answer its stop by then (frozen in
@@ -395,12 +451,41 @@ class Operations:
         its teardown unfinished, and it is dropped with its links all the same, a moment
         past ``timeout`` (its ``module_removed`` event says ``killed``); not a worker
         that runs other modules too, which would be lost with it: ``RuntimeFailure``
-        names them, the module left as it was."""
+        names them, the module left as it was.
+
+        A macro instance's name removes every module of it, in reverse order, with
+        their links; one that is left as it was (its stop not answered) ends the removal
+        there, and the error names the modules removed and those left (remove it
+        again, with ``force`` if need be)."""
         with self._held(f"remove {name}", timeout) as left:
-            links = [key for key, link in self.launcher.links.items()
-                     if name in (link.src, link.dst)]
-            with bounding(left()):
-                killed = self.launcher.remove_module(name, force=force)
+            launcher = self.launcher
+            names = [name] if name in launcher.specs else [
+                child for child in launcher.specs if child.startswith(f"{name}/")]
+            if not names:
+                launcher.node_of(name)                # raises ModuleNotFound
+            asker = _ASKER.get()
+            if asker is not None and asker[0] in names:
+                raise RuntimeFailure(f"remove {name}: agent {asker[0]!r} would remove "
+                                     "itself; an agent cannot remove its own macro")
+            removed: list[str] = []
+            try:
+                with bounding(left()):
+                    for child in reversed(names):
+                        links = [key for key, link in launcher.links.items()
+                                 if child in (link.src, link.dst)]
+                        killed = launcher.remove_module(child, force=force)
+                        removed.append(child)
+                        self._removed(child, links, killed)
+            except (RuntimeTimeout, RuntimeFailure) as exc:
+                if not removed:
+                    raise
+                left_there = [child for child in names if child not in removed]
+                raise type(exc)(f"remove {name}: {exc}; removed: {', '.join(removed)}; "
+                                f"left running: {', '.join(left_there)}") from exc
+
+    def _removed(self, name: str, links: list[str], killed: int | None) -> None:
+        """Record the removal of module ``name`` and of its ``links`` (``killed``: the
+        process id of its worker, if it was killed)."""
         for key in links:       # (a reader of the events kept a link to nowhere)
             self.event_log.record("link_removed", key)
         if killed is None:
@@ -459,6 +544,24 @@ class Operations:
             launcher.node_of(spec.name).start_modules([spec.name])
         except BaseException:
             self._drop(spec.name)
+            raise
+
+    def _start_all(self, specs: list[FlatModule], links: list[FlatLink]) -> None:
+        """Add, wire and start modules (a macro instance's), each node's in one request
+        in their order; if a step fails, every one of them added is removed again."""
+        launcher = self.launcher
+        added: list[str] = []
+        try:
+            for spec in specs:
+                launcher.add_module(spec)
+                added.append(spec.name)
+            launcher.connect(*links)
+            for node in dict.fromkeys(spec.node for spec in specs):
+                launcher.nodes[node].start_modules([spec.name for spec in specs
+                                                    if spec.node == node])
+        except BaseException:
+            for name in reversed(added):
+                self._drop(name)
             raise
 
     def _drop(self, name: str) -> None:
@@ -627,6 +730,72 @@ def _add_problems(name: Any, cls: Any, state: Any, period: Any, restart: Any, gr
                             f"and {node!r} ({name}); a group shares one worker process on one "
                             "node: give them the same node or different groups")
     return problems
+
+
+def _name_problems(name: Any, modules: dict[str, FlatModule]) -> list[str]:
+    """What keeps ``name`` from being a new macro instance's: not a path, or taken (by a
+    module, or by another macro instance's modules), or inside a module."""
+    problems = checks.path(name, "macro instance")
+    if problems:
+        return problems
+    if name in modules:
+        return ["a module of that name runs already"]
+    inner = [module for module in modules if module.startswith(f"{name}/")]
+    if inner:
+        return [f"a macro instance of that name runs already: {', '.join(inner)}"]
+    parts = name.split("/")
+    above = next((path for path in ("/".join(parts[:depth]) for depth in range(1, len(parts)))
+                  if path in modules), None)
+    if above is not None:
+        return [f"{above} is a module, not a macro instance: it cannot hold others"]
+    return []
+
+
+def _group_problems(new: Iterable[FlatModule], modules: dict[str, FlatModule]) -> list[str]:
+    """A group of the new modules that a running module has on another node (a group
+    shares one worker process on one node)."""
+    problems = []
+    for module in new:
+        other = next((m for m in modules.values()
+                      if module.group is not None and m.group == module.group
+                      and m.node != module.node), None)
+        if other is not None:
+            problems.append(f"group {module.group!r} would span nodes {other.node!r} "
+                            f"({other.name}) and {module.node!r} ({module.name}); a group "
+                            "shares one worker process on one node: give them the same node "
+                            "or different groups")
+    return problems
+
+
+def _refused_imports(macro: type[Macro], deadline: float) -> list[str]:
+    """Why module files that the children of ``macro`` (and of the macros in it) name as
+    ``"module:Class"`` may not be imported here: each not imported yet is tried in a
+    child process first, until ``deadline``, and one that hung, exited or crashed there
+    is refused, saying so. Those that import, or raise, are left to the compiler, which
+    imports them and names their problems."""
+    refused: list[str] = []
+    seen: set[type] = set()
+    todo = [macro]
+    while todo:
+        current = todo.pop()
+        if current in seen:
+            continue
+        seen.add(current)
+        entries = current.modules.values() if isinstance(current.modules, dict) else []
+        for entry in entries:
+            ref = entry.get("class", entry.get("macro")) if isinstance(entry, dict) else entry
+            if isinstance(ref, str) and ":" in ref:
+                try:
+                    ref = resolve_class(ref, watch=trial.tried_first(_left(deadline),
+                                                                     CHANGE_LONGER))
+                except ImportRefused as exc:
+                    refused.append(str(exc))
+                    continue
+                except Exception:           # (the compiler says it in its own words)
+                    continue
+            if isinstance(ref, type) and issubclass(ref, Macro):
+                todo.append(ref)
+    return refused
 
 
 def _swap_problems(name: str, old: type, new: type, links: dict[str, FlatLink],

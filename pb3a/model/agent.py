@@ -83,12 +83,14 @@ class RuntimeClient:
 
     def spawn(self, name: str, cls: type | str, *, timeout: float | None = None,
               **options: Any) -> None:
-        """Start a new module (options as for ``System.add``)."""
+        """Start a new module, or a macro instance (options as for ``System.add``; see
+        ``Running.add``)."""
         self._call("add", name, cls=cls, timeout=timeout, **options)
 
     def remove(self, name: str, *, timeout: float | None = None, force: bool = False) -> None:
-        """Stop and remove another module (``force``: killing its worker if it does not
-        answer, as ``Running.remove``)."""
+        """Stop and remove another module, or every module of a macro instance but the
+        agent's own (``force``: killing its worker if it does not answer, as
+        ``Running.remove``)."""
         self._call("remove", name, timeout=timeout, force=force)
 
     def stats(self, *, timeout: float | None = None) -> SystemStats:
