@@ -9,6 +9,7 @@ import logging
 import re
 import threading
 import time
+import types
 
 import pytest
 from conftest import eventually
@@ -159,6 +160,30 @@ def test_the_failures_kept_are_the_newest_each_dated(caplog: pytest.LogCaptureFi
     assert [line.split(" ", 2)[2] for line in lines[:2]] == ["failure 5", "failure 6"]
     assert re.fullmatch(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d failure 104", lines[-1])
     assert caplog.messages[-1] == "failure 104"          # the log has its own time
+
+
+def test_stats_failures_merge_the_launchers_and_every_nodes_lines_in_the_order_they_happened(
+        monkeypatch) -> None:
+    """The launcher's lines and each node's are one history, oldest first (a merge
+    that only joined the lists put the launcher's first, whenever they happened). The
+    clock the lines are dated by is set per line, so no second need pass."""
+    stamp = ["2030-01-01 10:00:00"]
+    monkeypatch.setattr("pb3a.stats.time", types.SimpleNamespace(strftime=lambda _: stamp[0]))
+    system = System("dated").node("a").node("b")
+    system.add("sink", Last, node="a")
+    with system.launch() as run:
+        launcher, nodes = run._launcher, run._launcher.nodes
+        for second, log, text in [(1, nodes["a"].failures, "on a, first"),
+                                  (2, launcher.failures, "at the launcher, second"),
+                                  (3, nodes["b"].failures, "on b, third"),
+                                  (4, launcher.failures, "at the launcher, fourth"),
+                                  (5, nodes["a"].failures, "on a, fifth")]:
+            stamp[0] = f"2030-01-01 10:00:0{second}"
+            log.add(text)
+        lines = run.stats().failures
+    assert [line.split(" ", 2)[2] for line in lines] == [
+        "on a, first", "at the launcher, second", "on b, third", "at the launcher, fourth",
+        "on a, fifth"], lines
 
 
 @pytest.mark.parametrize("workers", [0, 1])
