@@ -17,6 +17,7 @@ import sys
 import textwrap
 import threading
 import time
+import types
 from collections.abc import Callable
 from pathlib import Path
 
@@ -64,6 +65,7 @@ from pb3a.deadline import bounding
 from pb3a.loading.sources import CodeSources
 from pb3a.node.executor import Executor
 from pb3a.node.forkserver_owner import ORPHAN_GRACE_S
+from pb3a.node.restarts import RESTART_INTENSITY, RestartBudget
 from pb3a.transport.doorbell import new_bell
 from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import live_segments, segment_name
@@ -585,6 +587,28 @@ def test_a_crash_loop_gives_up_after_the_restart_intensity() -> None:
         eventually(lambda: run.state("other")["count"] > before, what="the other goes on")
     assert figures.restarts == 5
     assert any("gave up" in failure and "crasher" in failure for failure in failures)
+
+
+def test_the_restart_budget_forgets_deaths_older_than_its_window(monkeypatch) -> None:
+    """Only deaths within the window count (a module that crashed once an hour was
+    failed for good on its sixth crash, had they all been kept). The budget's clock is
+    set per death, so no time need pass."""
+    now = [0.0]
+    monkeypatch.setattr("pb3a.node.restarts.time", types.SimpleNamespace(monotonic=lambda: now[0]))
+    limit, window = RESTART_INTENSITY
+    hourly = RestartBudget()
+    for hour in range(3 * limit):
+        now[0] = 3600.0 * hour
+        assert hourly.spend(), f"death {hour + 1}, an hour after the one before"
+        assert hourly.deaths == 1
+    spree = RestartBudget()
+    for second in range(limit):                 # as many as it allows, a second apart ...
+        now[0] = float(second)
+        assert spree.spend()
+    now[0] = window + 0.5                       # ... the first now older than the window
+    assert spree.spend() and spree.deaths == limit
+    now[0] = window + 0.6                       # one more within it is over the budget
+    assert not spree.spend()
 
 
 class CancelledOnce(Steady):
