@@ -1364,13 +1364,26 @@ def _unread(pid: int) -> int:
                 if f"pid={pid}," in line] or [0])
 
 
+def _pipe_full(pid: int, settled_s: float = 0.25) -> Callable[[], bool]:
+    """A check that process ``pid`` has a Unix socket with over 150 kB unread, the same
+    for ``settled_s`` seconds (what the writer sends meanwhile waits for room)."""
+    seen = {"unread": -1, "since": 0.0}
+
+    def full() -> bool:
+        unread, now = _unread(pid), time.monotonic()
+        if unread != seen["unread"]:
+            seen.update(unread=unread, since=now)
+        return unread > 150_000 and now - seen["since"] >= settled_s
+    return full
+
+
 def test_a_worker_stopped_while_its_executor_is_frozen_still_tears_down_and_exits(
         tmp_path: Path) -> None:
     """A stopping worker tells its executor its last figures. With the executor frozen
     and the worker's socket to it full (checkpoints of a large state), that send waited
     for good: the worker stopped by SIGTERM never ran its teardowns nor exited. No send
     of a worker waits for room now, and it gives up on the figures after half a
-    second."""
+    second, and on what still waits to go after another half."""
     mark = tmp_path / "torn_down"
     (tmp_path / "frozen_executor.py").write_text(textwrap.dedent(f"""
         import time
@@ -1400,11 +1413,16 @@ def test_a_worker_stopped_while_its_executor_is_frozen_still_tears_down_and_exit
     try:
         worker = int(proc.stdout.readline())
         os.kill(proc.pid, signal.SIGSTOP)                      # the executor freezes
-        eventually(lambda: _unread(proc.pid) > 150_000, timeout=10,
+        # (full: its last figures will not fit, the stopping worker waits for room)
+        eventually(_pipe_full(proc.pid), timeout=10,
                    what="the worker's socket to its frozen executor full")
+        stopped = time.monotonic()
         os.kill(worker, signal.SIGTERM)
         eventually(lambda: not alive(worker), timeout=5, what="the worker's exit")
+        took = time.monotonic() - stopped
         assert mark.read_text() == "torn down"
+        # half a second for the figures, half for what waits as its pipe closes
+        assert took < 2.0, f"the worker exited {took:.2f} s after its SIGTERM"
     finally:
         with contextlib.suppress(ProcessLookupError):
             os.kill(proc.pid, signal.SIGCONT)
@@ -1675,6 +1693,49 @@ def test_a_worker_whose_executor_reads_nothing_never_waits_to_send(tmp_path, cap
     dropped = int(re.search(r"(\d+) log records and error reports", caplog.text)[1])
     chattered = len(re.findall(r"chatter \d+ x", caplog.text))
     assert dropped > 0 and dropped + chattered == 300, (dropped, chattered)
+
+
+class BigState(Module):
+    """A state of 150 kB: two checkpoints fill the pipe to the executor."""
+
+    period = 0.01
+    restart = "last-state"
+    blob = "x" * 150_000
+
+    def step(self) -> None:
+        pass
+
+
+def test_checkpoints_taken_while_the_executor_reads_nothing_replace_each_other() -> None:
+    """While the executor reads nothing, a module's checkpoint replaces its last one
+    that waits to go: once it reads again, what reaches it is what was in the pipe and
+    the newest (and one or two fresh ones), not every checkpoint taken meanwhile (each
+    then went, stale, one after another: a frozen second of a 150 kB state every 50 ms
+    was 3 MB to read; half a second, ten more checkpoints)."""
+    system = System("checkpoints-replaced").node("a")
+    system.add("big", BigState, node="a")
+    with system.launch(checkpoint_s=0.05, timeout=30) as run:
+        record = run._launcher.nodes["a"].modules["big"]
+        eventually(lambda: record.checkpoints > 2, what="checkpoints")
+        pool, reading = run._launcher.nodes["a"].workers, threading.Event()
+        read = pool._read
+
+        def stuck(handle):                # the node's monitor reads no worker's pipe
+            reading.wait(30)
+            read(handle)
+
+        pool._read = stuck
+        try:
+            eventually(_pipe_full(os.getpid()), what="the worker's pipe full")
+            # (ten checkpoints more are taken while nothing is read)
+            before = record.checkpoints
+            time.sleep(0.5)
+        finally:
+            pool._read = read
+            reading.set()
+        run.state("big", timeout=10)       # (everything sent before it is read)
+        arrived = record.checkpoints - before
+    assert arrived <= 6, f"{arrived} checkpoints arrived once the executor read again"
 
 
 def test_a_node_whose_report_is_late_shows_its_modules_silent() -> None:
