@@ -468,12 +468,13 @@ def test_a_restarted_agent_may_ask_the_runtime_from_setup() -> None:
 def test_a_restart_that_fails_leaves_the_module_failed_saying_why(tmp_path: Path) -> None:
     """A restart that fails halfway (here the new instance cannot be made) fails the
     module, with the reason, as a status and a ``module_failed`` event, and stops the
-    worker it had started."""
-    refuse = tmp_path / "refuse"
+    worker it had started (its pid gone once the event is told)."""
+    refuse, refused_in = tmp_path / "refuse", tmp_path / "refused_in"
 
     class Fragile(Steady):
         def __init__(self) -> None:
             if refuse.exists():
+                refused_in.write_text(str(os.getpid()))    # the restart's new worker
                 raise RuntimeError("no second instance")
             super().__init__()
 
@@ -486,6 +487,8 @@ def test_a_restart_that_fails_leaves_the_module_failed_saying_why(tmp_path: Path
         refuse.touch()
         _kill_worker(run, "fragile")
         events = run.events(since, timeout=5.0)        # waits for the first one
+        new_worker = int(refused_in.read_text())
+        assert not alive(new_worker), "the worker of the failed restart runs on"
         figures = run.stats().modules["fragile"]
         before = run.state("other")["count"]
         eventually(lambda: run.state("other")["count"] > before, what="the other goes on")
