@@ -42,6 +42,39 @@ def test_an_added_module_that_raises_in_setup_is_not_added() -> None:
         eventually(lambda: run.state("cam")["steps"] > 3, what="it steps")
 
 
+class NotesTeardown(OpensDevice):
+    """Notes its ``label`` in the file ``noted`` as it is torn down (its own count goes
+    with it once the module is out of the system)."""
+
+    noted = ""
+    label = ""
+
+    def teardown(self) -> None:
+        super().teardown()
+        with open(self.noted, "a") as noted:
+            noted.write(f"{self.label}\n")
+
+
+@pytest.mark.parametrize("how", ["launch", "add"])
+def test_a_module_whose_setup_raised_is_not_torn_down(tmp_path: Path, how: str) -> None:
+    """As a test's tearDown after a failed setUp: what ``setup`` did not open, its
+    ``teardown`` must not close. The module started beside it is torn down as the
+    system stops (the note is seen to work)."""
+    noted = tmp_path / "torn_down"
+    system = System(f"setup-{how}-teardown")
+    system.add("ok", NotesTeardown, state={"noted": str(noted), "label": "ok"})
+    failing = {"missing": True, "noted": str(noted), "label": "cam"}
+    if how == "launch":
+        system.add("cam", NotesTeardown, state=failing)
+        with pytest.raises(RuntimeFailure, match=SAID.format("cam")):
+            system.launch()
+    else:
+        with system.launch() as run, pytest.raises(RuntimeFailure,
+                                                   match=SAID.format("cam")):
+            run.add("cam", NotesTeardown, state=failing)
+    assert noted.read_text() == "ok\n"
+
+
 class Missing(OpensDevice):
     def setup(self) -> None:
         raise RuntimeError("device /dev/video7 not found")
