@@ -286,7 +286,8 @@ def test_a_node_lost_while_a_change_holds_the_lock_long_still_fails_over(node_b,
                                                                         monkeypatch) -> None:
     """The failover's wait for the configuration lock ran out (60 s by default) inside
     the watchdog's thread, which died of it: no node was ever lost, failed over or let
-    back in again."""
+    back in again. It looks for the lock again every ``WATCH_S``: once the lock is free,
+    the failover follows within a second."""
     b = node_b
     monkeypatch.setattr("pb3a.launch.failover.FAIL_OVER_WAIT_S", 0.2)
     with _relayed("patient", b, relay_on="b", restart="fresh").launch() as run:
@@ -297,7 +298,12 @@ def test_a_node_lost_while_a_change_holds_the_lock_long_still_fails_over(node_b,
             assert launcher.wait_health("b", up=False, timeout=10)
             eventually(lambda: any(e.kind == "node_lost" for e in run.events()),
                        what="the loss")
+            # held past b's fencing and a look at the lock that failed: from then on
+            # only the lock holds the failover back
+            looked = launcher.remotes["b"].fenced_by() + 0.5
+            eventually(lambda: time.monotonic() > looked, what="b fenced, a look failed")
             assert not _events(run, "module_failed_over")       # (the lock is held)
+            freed = time.time()
         moved = eventually(lambda: _events(run, "module_failed_over"), timeout=10,
                            what="the failover once the lock is free")
         received = run.state("sink")["received"]
@@ -305,6 +311,7 @@ def test_a_node_lost_while_a_change_holds_the_lock_long_still_fails_over(node_b,
                    what="values through the relay failed over")
         eventually(lambda: _events(run, "node_joined"), timeout=20, what="b back")
     assert moved[0].subject == "relay" and moved[0].detail["destination"] == "a"
+    assert moved[0].time - freed < 1.0, f"failed over {moved[0].time - freed:.2f} s after"
 
 
 def test_a_module_put_back_by_a_move_that_its_destination_s_loss_failed_is_left_alone(
