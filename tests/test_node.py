@@ -204,6 +204,23 @@ def test_admission_judges_the_cpu_over_seconds_not_one_busy_sample(monkeypatch) 
         controller.close()
 
 
+@pytest.mark.parametrize("busy_samples", [2, 3, 4])
+def test_admission_admits_a_peak_of_one_or_two_seconds(monkeypatch, busy_samples) -> None:
+    """A busy second or two after quiet ones is still a peak: the mean of the last 5 s,
+    not of the last one (a window of two samples refused it)."""
+    readings = iter([20.0] * 10 + [97.0] * busy_samples)
+    monkeypatch.setattr(node_controller.psutil, "cpu_percent",
+                        lambda interval=None: next(readings))
+    monkeypatch.setattr(node_controller, "SAMPLE_S", 3600.0)     # samples taken here only
+    controller = NodeController("busy", KEY, limits=Limits(max_cpu_percent=90.0))
+    try:
+        for _ in range(9 + busy_samples):          # (its first sample was taken as it began)
+            controller._cpu = controller._sample_cpu()
+        controller.admit(f"a peak of {busy_samples} samples")
+    finally:
+        controller.close()
+
+
 def test_garbage_and_forged_frames_do_not_disturb_the_controller(node) -> None:
     controller, client = node
     attacker = zmq.Context.instance().socket(zmq.DEALER)
