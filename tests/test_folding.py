@@ -4,6 +4,7 @@ they make the same plan (modules, their settings, links, nodes), macros included
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from sample_modules import Chain, FloatSource, Last, Outer, Scale
 
 from pb3a import System
@@ -96,6 +97,19 @@ def test_a_declared_local_node_keeps_what_a_top_level_key_cannot_say() -> None:
     plan = build_plan(only_workers._spec)
     tables, problems, again = folded_again(plan)
     assert "nodes" not in tables and tables["workers"] == 2 and shape(again) == shape(plan)
+
+
+@pytest.mark.parametrize("setting", [{"cpus": [0]}, {"spares": 0}, {"advertise": "127.0.0.1"},
+                                     {"address": "tcp://127.0.0.1:7700"}])
+def test_a_declared_local_node_keeps_each_such_setting_alone(setting: dict) -> None:
+    """... each of them on its own (with all set together, a check that forgot one
+    still kept the table for the others)."""
+    declared = System("one-node").node("local", **setting)
+    declared.add("src", FloatSource)
+    plan = build_plan(declared._spec)
+    tables, problems, again = folded_again(plan)
+    assert problems == [] and shape(again) == shape(plan)
+    assert tables["nodes"] == {"local": setting}
 
 
 def test_a_declared_env_module_keeps_its_settings_and_only_the_compiler_s_own_is_left_out(
