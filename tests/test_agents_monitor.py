@@ -425,6 +425,7 @@ def test_ready_windows_given_for_one_group_leave_the_others_theirs() -> None:
     # (5.0 failed at setup in Python's words; True was taken for 1)
     ({"votes_of": 5.0}, "an alarm needs votes_needed k of votes_of n windows"),
     ({"votes_needed": True}, "an alarm needs votes_needed k of votes_of n windows"),
+    ({"votes_needed": 0}, "an alarm needs votes_needed k of votes_of n windows"),   # (k >= 1)
     # a model given in state: a misspelt group was never watched, silently, and means
     # of another length failed at the first sample in numpy's words
     ({"watched": ["motor"]}, "watched names no fault group 'motor': the groups are motors"),
