@@ -16,7 +16,7 @@ import pytest
 
 from pb3a.cli.main import main
 from pb3a.testing import ModuleHarness
-from scenarios import mapping, self_migration
+from scenarios import SUMO_SEED_MAX, mapping, self_migration, sumo_seed
 
 # The robot applications and self-migration run alone (the Makefile's test target):
 # their figures are timed against the wall clock on all the machine's CPUs. Traffic
@@ -674,6 +674,11 @@ def test_a_seed_sumo_cannot_take_is_refused_as_the_arguments_are_read(capsys) ->
     assert ended.value.code == 2
     assert ("'2147483648' is not a seed: give a whole number, 0 or more and at most "
             "2147483647") in capsys.readouterr().err
+
+
+def test_the_largest_seed_sumo_takes_is_taken() -> None:
+    """The bound is SUMO's own: 2147483647 is a C int, and is read as it was given."""
+    assert sumo_seed("2147483647") == SUMO_SEED_MAX == 2**31 - 1
 
 
 @pytest.mark.parametrize(("scenario", "ends"), [
