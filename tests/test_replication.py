@@ -213,6 +213,33 @@ def test_a_publisher_more_than_its_window_of_bytes_ahead_waits_for_the_follower(
         replicator.close()
 
 
+def test_a_publisher_more_than_its_window_of_values_ahead_waits_for_the_follower(
+        monkeypatch) -> None:
+    """... and so of values, however small (the bytes alone let a follower that
+    acknowledged nothing fall any number of small values behind)."""
+    _tune(monkeypatch, WINDOW=16, WINDOW_WAIT=0.05, FRESH_S=30.0)
+    gate, inbox = threading.Event(), Inbox()
+
+    def slow(topic: str, values: list[Any], sent_at: float) -> None:
+        gate.wait(TIMEOUT)                    # the follower's thread: no ACK meanwhile
+        inbox(topic, values, sent_at)
+    replicator, follower = Replicator(KEY), Follower(KEY, slow)
+    try:
+        replicator.add("t")
+        _follow(follower, replicator, "t", from_seq=0)
+        assert follower.wait_ready("t", TIMEOUT)
+        for i in range(16 + 8):
+            replicator.publish("t", i)
+        assert replicator.counter("t").waits >= 8          # 16 fit, then each waits
+        gate.set()
+        assert inbox.wait("t", 16 + 8) == list(range(16 + 8))
+        assert not follower.link_failures
+    finally:
+        gate.set()
+        follower.close()
+        replicator.close()
+
+
 def test_arrays_travel_as_frames_and_keep_the_value_they_had_when_written(link) -> None:
     replicator, follower, inbox = link
     replicator.add("img")
