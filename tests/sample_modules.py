@@ -237,6 +237,34 @@ class Steady(Module):
         self.count += 1
 
 
+class MapMaker(Module):
+    """Makes its state as it runs, as a mapper makes its map: ``grid`` in ``setup``
+    (only when absent: a move, a swap or a restart brings it back first), ``updates``
+    at its first step. Neither is declared on the class."""
+
+    period = 0.005
+    setups = 0
+    pid = 0
+
+    def setup(self) -> None:
+        self.setups += 1
+        if not hasattr(self, "grid"):
+            self.grid = np.zeros((20, 20))
+
+    def step(self) -> None:
+        self.pid = os.getpid()
+        self.updates = getattr(self, "updates", 0) + 1
+        self.grid[0, 0] += 1
+
+
+class MapMakerV2(MapMaker):
+    """A new version of ``MapMaker`` (another body), for swaps."""
+
+    def step(self) -> None:
+        super().step()
+        self.grid[1, 1] += 1
+
+
 class SlowTeardown(Module):
     """A module whose teardown never finishes in time."""
 

@@ -42,6 +42,7 @@ from sample_modules import (
     Hoard,
     Journal,
     Last,
+    MapMaker,
     Scale,
     SlowTeardown,
     Steady,
@@ -225,6 +226,25 @@ def test_sigkill_with_restart_last_state_resumes_from_a_checkpoint() -> None:
         state = eventually(lambda: (s := run.state("victim"))["pid"] not in (0, old) and s,
                            what="steps in the new process")
     assert state["count"] > 40            # resumed from the checkpoint, not from 0
+
+
+def test_a_last_state_restart_brings_back_the_state_the_module_made_as_it_ran() -> None:
+    """State made in ``setup`` and ``step`` (``grid``, ``updates``) is in the checkpoint:
+    the restart refused it (a name the new instance lacks) and failed the module."""
+    system = System("last-made")
+    system.add("mapper", MapMaker, restart="last-state")
+    with system.launch(checkpoint_s=0.1) as run:
+        eventually(lambda: run.state("mapper").get("updates", 0) > 40, what="steps")
+        taken = run.stats().modules["mapper"].checkpoints
+        eventually(lambda: run.stats().modules["mapper"].checkpoints > taken,
+                   what="a checkpoint taken after 40 steps")
+        old = _kill_worker(run, "mapper")
+        eventually(lambda: run.stats().modules["mapper"].restarts == 1, what="restart")
+        state = eventually(lambda: (s := run.state("mapper"))["pid"] not in (0, old) and s,
+                           what="steps in the new process")
+        kinds = [event.kind for event in run.events()]
+    assert state["updates"] > 40 and state["grid"][0, 0] > 40     # its checkpoint's
+    assert state["setups"] == 2 and kinds == ["module_restarted"]
 
 
 def test_links_survive_a_restart_of_the_reading_worker() -> None:

@@ -18,6 +18,7 @@ from sample_modules import (
     Counter,
     FailingRelay,
     Hoard,
+    MapMaker,
     Relay,
     RelayPair,
     Shepherd,
@@ -82,6 +83,28 @@ def test_a_moved_module_keeps_its_counters() -> None:
     assert after.node == "b" and after.events >= before.events > 500
     assert after.errors >= before.errors and after.last_error == before.last_error
     assert after.outputs["out"] >= before.outputs["out"] > 0
+
+
+def test_state_a_module_made_as_it_ran_moves_with_it() -> None:
+    """State made in ``setup`` and ``step`` (``grid``, ``updates``, which ``state()``
+    reports) was refused at the destination (a name the new instance lacks), and again
+    at the source by the move's undo: the module was left "starting", running
+    nowhere, with only ``migration_failed`` said."""
+    system = _nodes(System("move-made"), "a", "b")
+    system.add("mapper", MapMaker, node="a")
+    with system.launch() as run:
+        eventually(lambda: run.state("mapper").get("updates", 0) > 20, what="steps")
+        for there in ("b", "a"):
+            before = run.state("mapper")
+            run.migrate("mapper", to=there)
+            after = run.state("mapper")
+            assert run.where("mapper") == there
+            assert after["updates"] >= before["updates"] > 20
+            assert after["grid"][0, 0] >= before["grid"][0, 0] > 20
+        eventually(lambda: run.state("mapper")["updates"] > after["updates"],
+                   what="steps at a again")
+        assert run.state("mapper")["setups"] == 3           # its own, and after each move
+        assert [event.kind for event in run.events()] == ["module_moved"] * 2
 
 
 @pytest.mark.parametrize("policy", ["queue:1000000", "lossless:64"])

@@ -31,6 +31,8 @@ from sample_modules import (
     Last,
     ListScribbler,
     ListSink,
+    MapMaker,
+    MapMakerV2,
     Offset,
     Outer,
     Overlap,
@@ -414,6 +416,57 @@ def test_a_swap_keeps_the_configured_state_the_new_class_has_and_a_restart_uses_
         run.restart("scale")                            # fresh: the class's offset again
         eventually(lambda: run.state("sink")["value"] == 2.5, what="1.5 + 1 after restart")
         assert {"src.out->scale.x", "scale.y->sink.x"} <= set(run.stats().links)
+
+
+class Tallies(Module):
+    """Not ``MapMaker``: ``updates`` is a method here, no state to set on it."""
+
+    period = 0.005
+
+    def updates(self) -> int:
+        return 0
+
+
+def test_a_swap_keeps_the_state_the_module_made_as_it_ran() -> None:
+    """State made in ``setup`` and ``step`` (``grid``, ``updates``, which ``state()``
+    reports) was dropped by a swap to a new version, silently (kept: the class's
+    fields only). It is kept, but where the new class declares the name as something
+    else (a method)."""
+    with System("swap-made").add("mapper", MapMaker).launch() as run:
+        eventually(lambda: run.state("mapper").get("updates", 0) > 20, what="steps")
+        before = run.state("mapper")
+        kept = run.swap("mapper", MapMakerV2)
+        after = run.state("mapper")
+        eventually(lambda: run.state("mapper")["grid"][1, 1] > 0, what="the new body")
+        assert kept == ["grid", "pid", "setups", "updates"]
+        assert after["updates"] >= before["updates"] > 20 and after["setups"] == 2
+        assert after["grid"][0, 0] >= before["grid"][0, 0] > 20
+        assert sorted(run.swap("mapper", Tallies)) == ["grid"]      # not its method
+        assert sorted(run.state("mapper")) == ["grid"]
+
+
+def test_a_restart_put_back_keeps_the_state_the_module_made_as_it_ran(monkeypatch) -> None:
+    """A restart that cannot start the module again puts it back as it ran: its state
+    made at run time was refused there (a name the new instance lacks), and it was
+    lost, links and all."""
+    with System("restart-made").add("mapper", MapMaker).launch() as run:
+        eventually(lambda: run.state("mapper").get("updates", 0) > 20, what="steps")
+        executor = run._launcher.nodes["local"]
+        real_call = type(executor).call
+        failures: list[str] = []
+
+        def flaky(self, worker, op, *args, **kwargs):   # the new instance cannot start
+            if op == "start" and "mapper" in worker and not failures:
+                failures.append(worker)
+                raise RuntimeFailure(f"worker {worker!r} died")
+            return real_call(self, worker, op, *args, **kwargs)
+        monkeypatch.setattr(type(executor), "call", flaky)
+        with pytest.raises(RuntimeFailure, match="put back as it ran, with its state"):
+            run.restart("mapper")
+        state = run.state("mapper")
+        assert failures and state["updates"] > 20 and state["grid"][0, 0] > 20
+        eventually(lambda: run.state("mapper")["updates"] > state["updates"],
+                   what="steps again")
 
 
 def test_a_restart_that_cannot_start_the_module_again_puts_it_back_as_it_ran(

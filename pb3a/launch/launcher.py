@@ -285,8 +285,10 @@ class Launcher:
         for name, node in self.nodes.items():
             node.expect([spec for spec in specs if spec.node == name])
 
-    def add_module(self, spec: FlatModule, *, state: dict[str, Any] | None = None) -> None:
-        """Instantiate a module on its node (not started)."""
+    def add_module(self, spec: FlatModule, *,
+                   state: dict[str, Any] | bytes | None = None) -> None:
+        """Instantiate a module on its node (not started); ``state`` as for
+        ``Node.add_module``."""
         self.nodes[spec.node].add_module(spec, state=state)
         self.specs[spec.name] = spec
 

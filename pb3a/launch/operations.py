@@ -51,6 +51,7 @@ from pb3a.model.module import Module
 from pb3a.model.ports import Policy
 from pb3a.pending import DONE, FAILED, RUNNING
 from pb3a.topology import Topology, topology_of
+from pb3a.transport import pickling
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Collection, Iterable, Iterator
@@ -524,17 +525,18 @@ class Operations:
                     raise self._put_back(spec, links, was, exc) from exc
         self.event_log.record("module_restarted", name, node=spec.node, reason="asked")
 
-    def _state_then(self, name: str) -> dict[str, Any] | None:
-        """The module's state now, to put it back with should its restart fail; None if
-        it cannot say (its worker is gone, it is stuck in a call, its state does not
-        pickle): then its configured state."""
+    def _state_then(self, name: str) -> bytes | None:
+        """The module's state now, to put it back with should its restart fail, pickled:
+        its own, restored in full (its fields made at run time too; as a dict they were
+        refused); None if it cannot say (its worker is gone, it is stuck in a call, its
+        state does not pickle): then its configured state."""
         try:
-            return self.launcher.call(name, "get_state", STATE_THEN_S)
+            return pickling.dumps(self.launcher.call(name, "get_state", STATE_THEN_S))
         except Exception:           # (whatever it is, the restart goes on without it)
             return None
 
     def _start(self, spec: FlatModule, links: list[FlatLink],
-               state: dict[str, Any] | None = None) -> None:
+               state: dict[str, Any] | bytes | None = None) -> None:
         """Add, wire and start a module (with ``state``, else its configured one); what
         of it was done is undone if a step fails."""
         launcher = self.launcher
@@ -580,7 +582,7 @@ class Operations:
         del launcher.specs[name]
         launcher.checkpoints.pop(name, None)
 
-    def _put_back(self, spec: FlatModule, links: list[FlatLink], was: dict[str, Any] | None,
+    def _put_back(self, spec: FlatModule, links: list[FlatLink], was: bytes | None,
                   failure: Exception) -> RuntimeFailure:
         """After a failed restart: the module as it ran (``was``) and its links; the
         error to raise, saying whether it is back."""

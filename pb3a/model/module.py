@@ -9,6 +9,7 @@ The runtime calls every hook under the module's lock.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import copy
 import difflib
 import types
@@ -24,6 +25,9 @@ _FRAMEWORK_NAMES = frozenset({"period", "restart", "runtime", "displays"})
 _ATOMS = frozenset({int, float, complex, bool, str, bytes, type(None), frozenset, range})
 _NOT_STATE = (_Port, types.FunctionType, classmethod, staticmethod, property, type,
               types.ModuleType, types.MethodType, types.BuiltinFunctionType)
+# Set while a module is given its own state back (``restore_state``).
+_RESTORING: contextvars.ContextVar[bool] = contextvars.ContextVar("pb3a_restoring",
+                                                                   default=False)
 
 
 class Module:
@@ -104,11 +108,12 @@ class Module:
         return state
 
     def set_state(self, state: dict[str, Any]) -> None:
-        """Set state attributes by name; KeyError names any attribute the module lacks."""
+        """Set state attributes by name; KeyError names any attribute the module lacks
+        (unless it is given its own state back: ``restore_state``)."""
         known = set(type(self).state_names()) | {
             name for name, value in self.__dict__.items() if _is_state(name, value)}
         unknown = sorted(set(state) - known)
-        if unknown:
+        if unknown and not _RESTORING.get():
             close = difflib.get_close_matches(unknown[0], known, n=1)
             raise KeyError(
                 f"{type(self).__name__} has no state {', '.join(map(repr, unknown))}"
@@ -135,6 +140,31 @@ class Module:
 
     def _pb3a_adopt_ports(self, ports: dict[str, InputPort | OutputPort]) -> None:
         self.__dict__["_pb3a_ports"] = ports
+
+
+def restore_state(module: Module, state: dict[str, Any]) -> None:
+    """Give ``module`` its own state back (after a move, or its undo, a ``last-state``
+    restart, a swap): every field, those its instance made at run time too (in
+    ``setup``, in ``on_input``), which a new instance lacks. Its ``set_state`` is called
+    all the same, a class's own too; ``Module.set_state`` then skips its check for
+    names the module lacks, which is for a user's or a configuration's call (a typo:
+    here it refused the map a module had made, and the move, its undo and the restart
+    all failed)."""
+    token = _RESTORING.set(True)
+    try:
+        module.set_state(state)
+    finally:
+        _RESTORING.reset(token)
+
+
+def can_hold(cls: type[Module], name: str) -> bool:
+    """Whether an instance of ``cls`` may take state field ``name`` from an instance of
+    another class (a swap): yes unless ``cls`` declares the name as no state (a port, a
+    method: set on the instance, it would hide it)."""
+    for klass in cls.__mro__:
+        if name in vars(klass):
+            return _is_state(name, vars(klass)[name])
+    return _is_state(name, None)
 
 
 def _is_state(name: str, value: Any) -> bool:

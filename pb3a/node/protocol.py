@@ -43,7 +43,8 @@ class Node(Protocol):
     def add_module(self, spec: FlatModule, *,
                    state: dict[str, Any] | bytes | None = None) -> None:
         """Instantiate a module in its worker (not started); ``state`` overrides the spec's
-        (as bytes: a checkpoint, unpickled in the worker, where the module's code is)."""
+        (as bytes: the module's own, a checkpoint say, unpickled in the worker, where the
+        module's code is, and restored in full: ``restore_state``)."""
 
     def start_modules(self, names: list[str], failing: bool = False,
                       leave_late: bool = False) -> None:

@@ -17,8 +17,6 @@ from collections import deque
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
-import cloudpickle
-
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.node.workers import REQUEST_TIMEOUT
 from pb3a.worker.lease import LEASE_LAPSED
@@ -206,9 +204,11 @@ class Restarts:
             if not handle.alive:            # (an add may have started one meanwhile)
                 self._node.workers.spawn(handle)
             for record in records.values():
-                state = record.spec.state
+                state: dict[str, Any] | bytes = record.spec.state
                 if record.spec.restart == "last-state" and record.checkpoint is not None:
-                    state = cloudpickle.loads(record.checkpoint)
+                    # as it came, read in the worker and restored in full: its fields
+                    # made at run time were refused there, and the restart failed
+                    state = record.checkpoint
                 self._node.instantiate(record, state)
             self._node.rewire(set(records))
         except Exception as exc:            # whatever it was, the modules say it

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 from pb3a import latencies
 from pb3a.errors import RuntimeCancelled
-from pb3a.model.module import Module
+from pb3a.model.module import Module, can_hold, restore_state
 from pb3a.model.ports import InputPort, OutputPort
 from pb3a.model.state_edits import checked
 from pb3a.transport import pickling
@@ -516,9 +516,10 @@ class ModuleActor:
         return True
 
     def restore(self, captured: dict[str, Any]) -> None:
-        """Take over what ``retire`` captured elsewhere (before ``start``)."""
+        """Take over what ``retire`` captured elsewhere (before ``start``): all of its
+        state, made at run time or not (``restore_state``)."""
         with self.lock:
-            self.module.set_state(captured["state"])
+            restore_state(self.module, captured["state"])
         for name, held in captured["inputs"].items():
             port = self.inputs.get(name)
             if port is not None:
@@ -605,7 +606,7 @@ class ModuleActor:
 
     def _take(self, new: Module, state: dict[str, Any]) -> dict[str, Any]:
         """Make ``new`` the module, on these ports (those it adds made), with the part of
-        ``state`` it has; that part."""
+        ``state`` it takes (``_kept``); that part."""
         for name, spec in (*type(new).inputs.items(), *type(new).outputs.items()):
             port = self.ports.get(name)
             if port is None:
@@ -616,12 +617,25 @@ class ModuleActor:
             port.spec = spec
         new._pb3a_adopt_ports(self.ports)
         new.__dict__["_pb3a_giving_way"] = self.waiting
-        accepted = set(type(new).state_names()) | set(new.get_state())
-        kept = {k: v for k, v in state.items() if k in accepted}
-        new.set_state(kept)
+        kept = self._kept(new, state)
+        restore_state(new, kept)
         self.module = new
         self._event_driven = type(new).is_event_driven()
         return kept
+
+    def _kept(self, new: Module, state: dict[str, Any]) -> dict[str, Any]:
+        """The part of the old instance's ``state`` a swap gives ``new``: the fields its
+        class has, and those the old instance made at run time (a new version of the
+        same module keeps its map; they were dropped, silently), but a name ``new``'s
+        class declares as no state (a port, a method). A class with its own
+        ``get_state`` alone knows its fields: those a new instance of it reports."""
+        cls = type(new)
+        has = set(cls.state_names()) | set(new.get_state())
+        if cls.get_state is not Module.get_state:
+            return {name: value for name, value in state.items() if name in has}
+        declared = set(type(self.module).state_names())     # (the rest it made)
+        return {name: value for name, value in state.items()
+                if name in has or (name not in declared and can_hold(cls, name))}
 
     def _step_thread_cpu(self) -> float:
         clock = self._step_clock

@@ -30,6 +30,7 @@ from pb3a.loading import served
 from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
 from pb3a.model.agent import Agent, RuntimeClient
+from pb3a.model.module import restore_state
 from pb3a.model.ports import InputPort, Policy, WaitCounter
 from pb3a.processes import mark_as
 from pb3a.transport import pickling
@@ -276,14 +277,16 @@ class Worker:
         """A module, with its executor's lease (``op_lease``) on a remote node: a worker
         that took one before its first grant (which comes up to ``LEASE_GRANT_S`` later,
         a spare having none) held no lease, and a node frozen meanwhile and let run
-        again stepped it beside its failed-over copy until its executor fenced it."""
+        again stepped it beside its failed-over copy until its executor fenced it.
+        ``state`` as bytes is the module's own (a checkpoint, the state it had before a
+        restart), restored in full (``restore_state``); as a dict, the configuration's."""
         if lease is not None:
             self.op_lease(lease)
         module = _load_class(cls)()
         self._give_runtime(name, module)
-        if isinstance(state, bytes):        # a checkpoint, read where the module's code is
-            state = cloudpickle.loads(state)
-        if state:
+        if isinstance(state, bytes):        # (read here, where the module's code is)
+            restore_state(module, cloudpickle.loads(state))
+        elif state:
             module.set_state(state)
         actor = ModuleActor(name, module, self._schedule, period, on_error=self._report_error)
         actor.may_run = self.lease.holds
