@@ -8,6 +8,7 @@ import os
 import signal
 import threading
 from pathlib import Path
+from typing import Any
 
 import pytest
 from conftest import eventually
@@ -94,6 +95,34 @@ def test_a_swap_to_a_class_that_raises_in_setup_leaves_the_old_one_running() -> 
         steps = run.state("cam")["steps"]
         eventually(lambda: run.state("cam")["steps"] > steps, what="the old one steps on")
         assert run.state("cam")["setups"] == 2      # its own, and again after the swap
+        assert "module_swapped" not in [event.kind for event in run.events()]
+
+
+class Refuses(OpensDevice):
+    """Its own ``set_state`` wants a field ``OpensDevice`` has not."""
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        self.config = dict(state["config"])
+
+
+def test_a_swap_to_a_class_that_refuses_the_state_leaves_the_old_one_set_up_again() -> None:
+    """The new class's ``set_state`` raised: the swap failed, but the old instance ran on
+    after its ``teardown``, its ``setup`` not run again (what its teardown closed stayed
+    closed, and every call raised)."""
+    system = System("setup-swap-state")
+    system.add("cam", OpensDevice)
+    with system.launch() as run:
+        eventually(lambda: run.state("cam")["steps"] > 3, what="steps")
+        with pytest.raises(RuntimeFailure, match=r"module 'cam': Refuses did not take "
+                                                 r"OpensDevice's state: KeyError: 'config'; "
+                                                 r"not swapped, OpensDevice runs on"):
+            run.swap("cam", Refuses)
+        figures = run.stats().modules["cam"]
+        assert figures.cls.endswith(":OpensDevice") and figures.status == "running"
+        state = run.state("cam")
+        assert (state["teardowns"], state["setups"]) == (1, 2)     # set up again after it
+        eventually(lambda: run.state("cam")["steps"] > state["steps"],
+                   what="the old one steps on")
         assert "module_swapped" not in [event.kind for event in run.events()]
 
 

@@ -41,7 +41,8 @@ _WAIT_SLICE = 0.02   # a request waiting for a module lock looks this often for 
 
 
 class SetupError(Exception):
-    """A module's ``setup`` raised: it does not run (its start, its swap, fails)."""
+    """A module's ``setup`` raised, or a swapped-in class refused the state: it does not
+    run (its start, its swap, fails)."""
 
 
 class HandOverLock:
@@ -559,21 +560,27 @@ class ModuleActor:
                 old.teardown()
             except Exception:
                 log.exception("module %r raised in teardown during swap", self.name)
-            state = old.get_state()
             specs = {name: port.spec for name, port in self.ports.items()}
-            kept = self._take(new, state)
-            # under the same hold: a step thread waiting for the lock would otherwise
-            # step the new instance before its setup, and an agent's step asking the
-            # runtime there would wait for the configuration lock this swap's
-            # operation holds while the swap waited for the lock: no answer until the
-            # operation's timeout
-            with self._setting_up():
-                if self._call_held("setup", 1) == 1:
-                    self._dispatch_owed()
-                    self._step_every(period)
-                    return sorted(kept)
+            try:
+                kept = self._take(new, old.get_state())
+            except Exception as exc:
+                # its set_state refused the state (the old instance ran on, torn down,
+                # its setup not run again)
+                why = (f"{type(new).__name__} did not take {type(old).__name__}'s state: "
+                       f"{type(exc).__name__}: {exc}")
+            else:
+                # under the same hold: a step thread waiting for the lock would otherwise
+                # step the new instance before its setup, and an agent's step asking the
+                # runtime there would wait for the configuration lock this swap's
+                # operation holds while the swap waited for the lock: no answer until
+                # the operation's timeout
+                with self._setting_up():
+                    if self._call_held("setup", 1) == 1:
+                        self._dispatch_owed()
+                        self._step_every(period)
+                        return sorted(kept)
+                why = f"{type(new).__name__} raised in setup: {self.last_error}"
             # the new class cannot start: the old instance back, set up again
-            error = self.last_error
             for name in [name for name in self.ports if name not in specs]:
                 del self.ports[name]                    # (the one dict both instances hold)
             for name, spec in specs.items():
@@ -582,8 +589,8 @@ class ModuleActor:
             with self._setting_up():
                 self._call_held("setup", 1)
             self._dispatch_owed()
-            raise SetupError(f"module {self.name!r}: {type(new).__name__} raised in setup: "
-                             f"{error}; not swapped, {type(old).__name__} runs on")
+            raise SetupError(f"module {self.name!r}: {why}; not swapped, "
+                             f"{type(old).__name__} runs on")
         finally:
             self.lock.release()
 
