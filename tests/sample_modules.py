@@ -1069,6 +1069,24 @@ class OpensDevice(Module):
         self.teardowns += 1
 
 
+class Fussy(Module):
+    """Its own ``set_state`` refuses every state while the file ``refuse`` exists (a
+    state it cannot take back); counts its steps."""
+
+    period = 0.01
+    refuse = ""
+    steps = 0
+
+    def set_state(self, state: dict) -> None:
+        refuse = state.get("refuse", self.refuse)
+        if refuse and os.path.exists(refuse):
+            raise ValueError(f"state refused while {refuse} exists")
+        super().set_state(state)
+
+    def step(self) -> None:
+        self.steps += 1
+
+
 class OnFlag(Module):
     """Writes one value each time the file ``flag`` appears (and removes it)."""
 

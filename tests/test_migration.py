@@ -9,6 +9,7 @@ import os
 import signal
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -17,6 +18,7 @@ from sample_modules import (
     Collector,
     Counter,
     FailingRelay,
+    Fussy,
     Hoard,
     MapMaker,
     Relay,
@@ -105,6 +107,33 @@ def test_state_a_module_made_as_it_ran_moves_with_it() -> None:
                    what="steps at a again")
         assert run.state("mapper")["setups"] == 3           # its own, and after each move
         assert [event.kind for event in run.events()] == ["module_moved"] * 2
+
+
+def test_a_module_whose_state_cannot_be_put_back_after_a_failed_move_is_failed(
+        tmp_path: Path) -> None:
+    """Its state refused at the destination and again at the source, where the failed
+    move put it back: it was left "starting" for good, running nowhere, with only
+    ``migration_failed`` said, and only a restart ran it again."""
+    refuse = tmp_path / "refuse"
+    system = _nodes(System("move-unrestored"), "a", "b")
+    system.add("fussy", Fussy, node="a", state={"refuse": str(refuse)})
+    system.add("other", Counter, node="a", period=0.01)
+    with system.launch() as run:
+        eventually(lambda: run.state("fussy")["steps"] > 3, what="steps")
+        refuse.touch()
+        with pytest.raises(RuntimeFailure, match=r"migration of fussy to node b failed .*"
+                                                 r"putting it back on node a failed too "
+                                                 r"\(.*state refused while"):
+            run.migrate("fussy", to="b")
+        figures = run.stats().modules["fussy"]
+        assert run.where("fussy") == "a" and figures.status == "failed"
+        failed = [event for event in run.events() if event.kind == "module_failed"]
+        assert [event.subject for event in failed] == ["fussy"]
+        assert "its state could not be put back where it ran" in failed[0].detail["reason"]
+        assert run.stats().modules["other"].status == "running"
+        refuse.unlink()
+        run.restart("fussy")
+        eventually(lambda: run.state("fussy")["steps"] > 3, what="it steps again at a")
 
 
 @pytest.mark.parametrize("policy", ["queue:1000000", "lossless:64"])

@@ -30,6 +30,7 @@ from sample_modules import (
     Collector,
     Counter,
     Freezer,
+    Fussy,
     Hoard,
     LossWatcher,
     NodeTable,
@@ -806,6 +807,25 @@ def test_stats_with_a_remote_worker_frozen_keeps_the_callers_timeout(controllers
 
 def _last_seq(run) -> int:
     return max((event.seq for event in run.events()), default=0)
+
+
+def test_a_module_whose_state_cannot_be_put_back_on_a_remote_node_is_failed_there(
+        controllers, tmp_path) -> None:
+    """As on an embedded node (``test_migration.py``): its state refused at the
+    destination and again on the remote node it was put back on, the module is failed
+    there (``Node.fail_module``), not left "starting" for good."""
+    refuse = tmp_path / "refuse"
+    system = System("remote-unrestored").node("a")
+    system.node("b", address=controllers["b"].address)
+    system.add("fussy", Fussy, node="b", state={"refuse": str(refuse)})
+    with system.launch() as run:
+        eventually(lambda: run.state("fussy")["steps"] > 3, what="steps")
+        refuse.touch()
+        with pytest.raises(RuntimeFailure, match=r"putting it back on node b failed too"):
+            run.migrate("fussy", to="a")
+        assert run.where("fussy") == "b"
+        eventually(lambda: run.stats().modules["fussy"].status == "failed", what="failed")
+        assert [e.subject for e in run.events() if e.kind == "module_failed"] == ["fussy"]
 
 
 @pytest.mark.parametrize("home", ["a", "c", "b"])    # its reader's node, another, a remote one

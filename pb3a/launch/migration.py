@@ -364,19 +364,35 @@ def _put_back(launcher: Launcher, homes: dict[str, FlatModule],
     modules ``paused`` and never captured let go (after their links are back, so what
     they write goes somewhere). A link that cannot be wired again (its other end on a
     node lost meanwhile) is a failure of the system, logged; it keeps none of the rest
-    from being wired, started and let go."""
+    from being wired, started and let go. A module that cannot be restored or started
+    there is failed (``module_failed``), the others started all the same, and it
+    raises, naming why."""
     for name in homes:
         launcher.specs[name] = homes[name]
     for name in snapshots:
         launcher.nodes[homes[name].node].add_module(homes[name], state={})
     try:
         if rewire:
+            unrestored: dict[str, str] = {}
             for name, snapshot in snapshots.items():
-                launcher.node_of(name).land(name, snapshot)
+                try:
+                    launcher.node_of(name).land(name, snapshot)
+                except (RuntimeFailure, RuntimeTimeout) as exc:
+                    unrestored[name] = str(exc)
             launcher.reattach(links, "after a failed move")
-            # (one that cannot start is failed, and said so)
-            _start_where(launcher, {name: homes[name].node for name in snapshots},
-                         failing=True)
+            try:
+                # (one that cannot start is failed, and said so)
+                _start_where(launcher, {name: homes[name].node for name in snapshots
+                                        if name not in unrestored}, failing=True)
+            finally:
+                # failed once its links are back, so that what feeds it is unhooked (it
+                # was left "starting" for good, unsaid, and the modules after it too)
+                for name, error in unrestored.items():
+                    _quietly(launcher.node_of(name).fail_module, name,
+                             f"its move failed, and its state could not be put back "
+                             f"where it ran: {error}")
+            if unrestored:
+                raise RuntimeFailure("; ".join(dict.fromkeys(unrestored.values())))
     finally:
         for name in paused:
             if name not in snapshots:

@@ -462,6 +462,14 @@ class Executor:
             raise
         self._vacate(record.worker, name)
 
+    def fail_module(self, name: str, reason: str) -> None:
+        """Module ``name``, not started, will not run (its state could not be put back
+        after a failed move): failed for ``reason``, said, what feeds it unhooked. One
+        whose worker died is left to its restart policy, which acts on it."""
+        record = self.modules.get(name)
+        if record is not None and record.status != "failed" and not self.restarting(record):
+            self.fail(name, None, reason)
+
     def memory_domain(self) -> str:
         """Where this node's shared-memory segments can be seen (see ``retire``)."""
         return memory_domain()

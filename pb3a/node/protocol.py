@@ -84,6 +84,11 @@ class Node(Protocol):
         """Drop a stopped module whose links are gone; one whose worker does not answer
         in time is dropped all the same (the worker, left empty, stopped), and it raises."""
 
+    def fail_module(self, name: str, reason: str) -> None:
+        """Module ``name``, not started, will not run: failed for ``reason`` (a
+        ``module_failed`` event), what feeds it unhooked; one whose worker died is left
+        to its restart policy."""
+
     def memory_domain(self) -> str:
         """Where the node's shared-memory segments can be seen: nodes of one domain hand
         each other a migrating module's snapshot by name."""

@@ -253,6 +253,9 @@ class RemoteNode:
     def remove_module(self, name: str) -> None:
         self._forward("remove_module", name)
 
+    def fail_module(self, name: str, reason: str) -> None:
+        self._forward("fail_module", name, reason)
+
     def memory_domain(self) -> str:
         if self._domain is None:                # (it does not change: asked once)
             self._domain = self._forward("memory_domain")
