@@ -71,7 +71,7 @@ def _mistakes(tmp: Path) -> list[tuple[list[str], int, str]]:
         (["node", "start", "--name", "n", "--listen", "tcp://127.0.0.1:http"], 1,
          "is not an address to listen on"),
         (["node", "start", "--name", "", "--listen", "tcp://127.0.0.1:0"], 1,
-         "bad node name '': use only letters"),       # (no configuration could name it)
+         "bad node name '': use only ASCII letters"),       # (no configuration could name it)
         (["node", "start", "--name", "a b", "--listen", "tcp://127.0.0.1:0"], 1,
          "bad node name 'a b'"),
         (["modules", "serve", str(tmp / "nowhere")], 1, "nowhere"),

@@ -821,6 +821,14 @@ def test_bad_instance_names_and_class_macro_choice(tmp_path: Path) -> None:
          "got {'x': 1}")
 
 
+def test_a_name_with_an_accent_is_refused_for_asking_ascii() -> None:
+    """'ó' is a letter: "use only letters" refused 'módulo' without saying why."""
+    problems = System("accents").add("módulo", Ticker).check()
+    assert problems == [("system 'accents' [modules.\"módulo\"]: bad module instance name "
+                         "'módulo': use only ASCII letters, digits, '_' and '-' (no accents, "
+                         "'.', '/' or spaces)")]
+
+
 def test_bad_workers_and_node_values(tmp_path: Path) -> None:
     problems = problems_of(tmp_path, """
         workers = 2

@@ -38,11 +38,12 @@ def listing(names: Iterable[str]) -> str:
 
 
 def name(value: Any, what: str) -> list[str]:
-    """A module, node, group or export name: letters, digits, ``_`` and ``-``."""
+    """A module, node, group or export name: ASCII letters, digits, ``_`` and ``-``."""
     if isinstance(value, str) and NAME.match(value):
         return []
-    return [(f"bad {what} name {value!r}: use only letters, digits, '_' and '-' "
-            "(no '.', '/' or spaces)")]
+    # (ASCII said: 'módulo' was refused for "letters", and ó is one)
+    return [(f"bad {what} name {value!r}: use only ASCII letters, digits, '_' and '-' "
+            "(no accents, '.', '/' or spaces)")]
 
 
 def path(value: Any, what: str) -> list[str]:
