@@ -1091,6 +1091,18 @@ def test_a_file_that_is_not_utf8_is_a_config_error(tmp_path: Path) -> None:
         System.load(path)
 
 
+def test_a_file_beginning_with_a_byte_order_mark_is_read(tmp_path: Path) -> None:
+    """Windows editors write one: it was "not valid TOML: Invalid statement (at line 1,
+    column 1)"; a byte past it that is not UTF-8 is still named where it is in the file."""
+    path = tmp_path / "marked.toml"
+    path.write_bytes(b'\xef\xbb\xbfname = "marked"\n' + TWO.encode())
+    system = System.load(path)
+    assert system.name == "marked" and system.check() == []
+    path.write_bytes(b'\xef\xbb\xbfname = "caf\xe9"\n')
+    with pytest.raises(ConfigError, match=r"marked.toml: not UTF-8 text \(byte 14\)"):
+        System.load(path)
+
+
 def test_an_export_name_must_be_a_port_s_name(tmp_path: Path) -> None:
     """'in-put' passed, and a link to it was then refused as not "module.port"."""
     problems = problems_of(tmp_path, """

@@ -87,6 +87,22 @@ def test_a_file_with_windows_line_ends_keeps_them_when_saved(pipeline: Path,
     assert (tmp_path / "a.toml").read_bytes() == crlf
 
 
+def test_a_file_with_a_byte_order_mark_opens_and_keeps_it_when_saved(pipeline: Path) -> None:
+    """Windows editors begin a UTF-8 file with a byte order mark, which tomlkit refuses:
+    such a file did not open ("Empty key at line 1 col 0")."""
+    marked = b"\xef\xbb\xbf" + pipeline.read_bytes()
+    pipeline.write_bytes(marked)
+    document = Document.open(pipeline)
+    assert document.problems() == [] and document.data()["name"] == "pipeline"
+    document.save()
+    assert pipeline.read_bytes() == marked                      # unchanged: byte for byte
+    document.edit(lambda system: system["modules"]["scale"]["state"].update(gain=4.0) or True)
+    document.save()                  # (what it read there, its mark aside: no ChangedOnDisk)
+    edited = pipeline.read_bytes()
+    assert edited.startswith(b"\xef\xbb\xbf") and b"gain = 4.0" in edited
+    assert edited.count(b"\xef\xbb\xbf") == 1 and System.load(pipeline).check() == []
+
+
 _SAVE_ON_A_FULL_DISK = """
 import resource, signal, sys
 from pb3a.manager.document import Document

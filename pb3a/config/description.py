@@ -7,6 +7,7 @@ with the place it is in; ``pb3a.config.compiler`` turns it into the checked
 
 from __future__ import annotations
 
+import codecs
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -139,20 +140,23 @@ def load_toml(path: str | Path) -> SystemSpec:
     """Read a system description from a TOML file.
 
     Raises OSError when the file cannot be read and ConfigError when it is not
-    TOML; every other mistake is kept for ``validate``/``build_plan`` to report.
+    TOML (UTF-8, with or without a byte order mark); every other mistake is kept for
+    ``validate``/``build_plan`` to report.
     """
     path = Path(path)
     if path.suffix == ".py":             # a script where a configuration was asked for
         raise ConfigError([f"{path}: a Python script, not a configuration (a TOML file): "
                            f"run it with python {path}"])
-    with path.open("rb") as file:
-        try:
-            data = tomllib.load(file)
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError([f"{path}: not valid TOML: {exc}"]) from exc
-        except UnicodeDecodeError as exc:
-            raise ConfigError([f"{path}: not UTF-8 text (byte {exc.start}): save it as "
-                               "UTF-8"]) from None
+    raw = path.read_bytes()
+    # (a byte order mark, which Windows editors write, was "not valid TOML" at line 1)
+    body = raw.removeprefix(codecs.BOM_UTF8)
+    try:
+        data = tomllib.loads(body.decode("utf-8"))
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError([f"{path}: not valid TOML: {exc}"]) from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError([f"{path}: not UTF-8 text (byte {exc.start + len(raw) - len(body)}):"
+                           " save it as UTF-8"]) from None
     return _read_system(data, str(path), default_name=path.stem)
 
 

@@ -47,6 +47,7 @@ _TABLE_ARRAYS = (("links",), ("macros", "*", "links"))   # lists of dicts as [[t
 # levels of tables and arrays a document may nest: the TOML reader (tomlkit's) refuses a
 # value nested deeper, so such a file would not open again
 MOST_NESTING = Parser.MAX_NESTING_DEPTH
+BOM = "\ufeff"           # a byte order mark, as text: what a UTF-8 file may begin with
 
 
 class Stale(Exception):
@@ -70,7 +71,10 @@ class Document:
         # the file's line ends, kept on save (a file written on Windows came back all LF,
         # every line changed for its version control); the text is edited with "\n"
         self.newline = "\r\n" if "\r\n" in text else "\n"
-        text = text.replace("\r\n", "\n")
+        # ... and its byte order mark, which Windows editors write (tomlkit refuses it:
+        # the file did not open, "Empty key at line 1 col 0")
+        self.bom = text.startswith(BOM)
+        text = text.removeprefix(BOM).replace("\r\n", "\n")
         try:
             self._doc = tomlkit.parse(text)
             # the text it says: tomlkit writes some files otherwise than it reads them
@@ -207,7 +211,8 @@ class Document:
         if problems:
             raise ConfigError(problems)
         with self._lock:
-            self._doc, self._text, self.newline = opened._doc, opened._text, opened.newline
+            self._doc, self._text = opened._doc, opened._text
+            self.newline, self.bom = opened.newline, opened.bom
             self.path, self.name = None, name
             self.revision += 1
 
@@ -234,7 +239,7 @@ class Document:
         known = self._on_disk if self.path is not None and target == self.path else None
         if not overwrite:
             try:
-                there = target.read_text(encoding="utf-8")
+                there = target.read_text(encoding="utf-8-sig")     # (its mark aside)
             except FileNotFoundError:
                 there = known
             except (OSError, UnicodeDecodeError):
@@ -245,7 +250,7 @@ class Document:
                     else f"{target} is another file, which a save would overwrite")
         # (whole or not at all: written in place, a full disk left the file cut off,
         # no longer TOML, and the next save said it had changed on disk)
-        write_text_atomically(target, text, newline=self.newline)
+        write_text_atomically(target, BOM * self.bom + text, newline=self.newline)
         self.path, self._on_disk = target, text
         return target
 
