@@ -1113,6 +1113,44 @@ def test_an_export_name_must_be_a_port_s_name(tmp_path: Path) -> None:
     only(problems, "export name 'in-put' names a port: use letters, digits and '_' only")
 
 
+def test_a_link_to_a_path_inside_a_macro_says_to_link_through_its_exports(
+        tmp_path: Path) -> None:
+    """``f/child.y``, as a running system names the module, was refused as not
+    "module.port", which did not say how to reach it: through the macro's exports."""
+    problems = problems_of(tmp_path, """
+        [macros.filter]
+        modules = { child = { class = "parts_cfg:Sink" }, other = { class = "parts_cfg:Sink" } }
+        exports = { in = "child.x", out = "other.y" }
+        [modules.src]
+        class = "parts_cfg:Src"
+        [modules.f]
+        macro = "filter"
+        [modules.sink]
+        class = "parts_cfg:Sink"
+        [modules.sink2]
+        class = "parts_cfg:Sink"
+        [[links]]
+        from = "f/child.y"
+        to = "sink.x"
+        [[links]]
+        from = "f/other.y"
+        to = "sink2.x"
+        [[links]]
+        from = "src.out"
+        to = "f/child.x"
+    """)
+    assert problems == [
+        "sys.toml [[links]] #1 (f/child.y -> sink.x): 'from' = 'f/child.y' is a port inside "
+        "macro instance 'f', which a link reaches only through the macro's exports: add "
+        "y = \"child.y\" to the exports of macro 'filter' and link \"f.y\"",
+        "sys.toml [[links]] #2 (f/other.y -> sink2.x): 'from' = 'f/other.y' is a port inside "
+        "macro instance 'f', which a link reaches only through the macro's exports: macro "
+        "'filter' exports it as 'out', so link \"f.out\"",
+        "sys.toml [[links]] #3 (src.out -> f/child.x): 'to' = 'f/child.x' is a port inside "
+        "macro instance 'f', which a link reaches only through the macro's exports: macro "
+        "'filter' exports it as 'in', so link \"f.in\""]
+
+
 def test_a_description_from_tables_adds_no_directory_to_the_import_path() -> None:
     """Its default source, "a description", was taken for a file in the current
     directory, which every process then imported from first."""

@@ -68,6 +68,8 @@ class LinkResolver:
         if text is None:
             return None, [f"{what} is missing: give it as \"module.port\", e.g. \"tick.out\""]
         child_name, dot, port = text.partition(".") if isinstance(text, str) else ("", "", "")
+        if dot and "/" in child_name and port.isidentifier():
+            return None, [self.inside_macro(definition, text, what)]
         if not (dot and checks.NAME.match(child_name) and port.isidentifier()):
             return None, [f"{what} must be \"module.port\" (e.g. \"tick.out\"), got {text!r}"]
         child = definition.children.get(child_name)
@@ -97,6 +99,35 @@ class LinkResolver:
                 return None, []
             return PortRef(f"{child_name}/{inner.path}", inner.cls, inner.port, inner.spec), []
         return None, []           # the child itself is broken and already reported
+
+    def inside_macro(self, definition: Definition, text: str, what: str) -> str:
+        """A port inside a macro instance (``"f/child.y"``, as a running system names its
+        modules), which a link reaches only through the macro's exports: the export that
+        leads there if there is one, else the export to add (it said only that the
+        endpoint must be "module.port")."""
+        path, _, port = text.partition(".")
+        outer, _, inner = path.partition("/")
+        child = definition.children.get(outer)
+        if child is None or child.macro is None:
+            kind = ("is a module, not a macro instance" if child is not None and child.cls
+                    else f"is not a macro instance of {definition.title}")
+            return (f"{what} = {text!r} names a port inside a macro instance, which a link "
+                    f"reaches only through the macro's exports, and {outer!r} {kind}; its "
+                    f"modules: {checks.listing(definition.children)}")
+        macro = child.macro
+        for name in macro.exports:
+            ref = self.export(macro, name)
+            if ref is not None and (ref.path, ref.port) == (inner, port):
+                return (f"{what} = {text!r} is a port inside macro instance {outer!r}, which "
+                        f"a link reaches only through the macro's exports: {macro.title} "
+                        f"exports it as {name!r}, so link \"{outer}.{name}\"")
+        name = port if port not in macro.exports else f"{inner.replace('/', '_')}_{port}"
+        how = (f"add {name} = \"{inner}.{port}\" to the exports of {macro.title}"
+               if "/" not in inner else
+               f"export it from each macro on the way in, then from {macro.title}")
+        return (f"{what} = {text!r} is a port inside macro instance {outer!r}, which a link "
+                f"reaches only through the macro's exports: {how} and link "
+                f"\"{outer}.{name}\"")
 
     def no_env_module(self, definition: Definition, name: str) -> str:
         """``env-X`` read where the system has no node X: the env modules it does have
