@@ -1151,6 +1151,28 @@ def test_a_link_to_a_path_inside_a_macro_says_to_link_through_its_exports(
         "'filter' exports it as 'in', so link \"f.in\""]
 
 
+class NeedsGain(Ticker):
+    def __init__(self, gain: float, *, limit: int) -> None:
+        super().__init__()
+        self.gain, self.limit = gain, limit
+
+
+class TakesDefaults(Ticker):
+    def __init__(self, gain: float = 1.0, *rest: object, **options: object) -> None:
+        super().__init__()
+        self.gain = gain
+
+
+def test_a_class_that_cannot_be_made_with_no_arguments_is_refused_by_the_check() -> None:
+    """Every module is made with none: its launch failed in the worker, naming only the
+    worker ("worker 'local-p0': TypeError: ... missing 1 required positional argument")."""
+    system = System("made").add("needs", NeedsGain).add("takes", TakesDefaults)
+    assert system.check() == [
+        f"system 'made' [modules.needs]: {__name__}:NeedsGain cannot be made with no "
+        "arguments, as every module is: its __init__ needs gain, limit; give them a default, "
+        "or make them state (a class attribute, which the entry's state sets)"]
+
+
 def test_a_description_from_tables_adds_no_directory_to_the_import_path() -> None:
     """Its default source, "a description", was taken for a file in the current
     directory, which every process then imported from first."""

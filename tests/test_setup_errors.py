@@ -260,3 +260,34 @@ class SlowToOpen(OpensDevice):
     @staticmethod
     def done(path: Path) -> bool:
         return path.exists() and "set up" in path.read_text()
+
+
+class NoCamera(Steady):
+    def __init__(self) -> None:
+        raise RuntimeError("no camera on this machine")
+
+
+class OwnState(Steady):
+    """Its own state, taken by a key of its own (``kp``)."""
+
+    def get_state(self) -> dict[str, int]:
+        return {"kp": self.count}
+
+    def set_state(self, state: dict[str, int]) -> None:
+        self.count = int(state["kp"])
+
+
+def test_a_module_that_cannot_be_made_or_given_its_state_is_named_with_the_step() -> None:
+    """Its error named only the worker ("worker 'local-p0': KeyError: 'kp'"): not the
+    module, its class, nor what was being done."""
+    made = System("unmade").add("ok", Steady).add("cam", NoCamera)
+    with pytest.raises(RuntimeFailure) as failure:
+        made.launch()
+    assert str(failure.value) == (
+        f"module 'cam': making its class {__name__}:NoCamera with no arguments failed: "
+        "RuntimeError: no camera on this machine")
+    given = System("unset").add("ctl", OwnState, state={"kpp": 2})
+    with pytest.raises(RuntimeFailure) as failure:
+        given.launch()
+    assert str(failure.value) == (f"module 'ctl' ({__name__}:OwnState): setting its state "
+                                  "(kpp) failed: KeyError: 'kp'")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import difflib
 import dis
+import inspect
 import os
 import re
 from collections.abc import Iterable
@@ -162,9 +163,9 @@ def macro_state(value: Any) -> list[str]:
 
 def module_class(cls: type[Module]) -> list[str]:
     """What a module class declares itself: its ``period`` and ``restart`` (a module the
-    configuration gives none of runs with them) and its ``displays`` table. A bad
-    period on the class passed every check, and its step thread died after one step,
-    the module shown running."""
+    configuration gives none of runs with them), that it is made with no arguments, and
+    its ``displays`` table. A bad period on the class passed every check, and its step
+    thread died after one step, the module shown running."""
     ref = class_ref(cls)
     problems = []
     if cls.period is not None and not (finite(cls.period) and 0 <= cls.period <= MOST_SECONDS):
@@ -174,7 +175,24 @@ def module_class(cls: type[Module]) -> list[str]:
     if cls.restart not in RESTART_POLICIES:
         problems.append(f"{ref} has restart = {cls.restart!r}: a class's restart is one of "
                         f"{listing(map(repr, RESTART_POLICIES))}")
-    return problems + displays(cls)
+    return problems + made_bare(cls) + displays(cls)
+
+
+def made_bare(cls: type[Module]) -> list[str]:
+    """The class can be made with no arguments, as the runtime makes every module (one
+    whose ``__init__`` needs one passed the check, and its launch failed in the worker)."""
+    try:
+        parameters = inspect.signature(cls).parameters.values()
+    except (TypeError, ValueError):         # (no signature to read: left to the worker)
+        return []
+    needed = [p.name for p in parameters if p.default is p.empty
+              and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
+    if not needed:
+        return []
+    them = "them" if len(needed) > 1 else "it"
+    return [(f"{class_ref(cls)} cannot be made with no arguments, as every module is: its "
+             f"__init__ needs {listing(needed)}; give {them} a default, or make {them} state "
+             "(a class attribute, which the entry's state sets)")]
 
 
 def displays(cls: type[Module]) -> list[str]:

@@ -27,11 +27,13 @@ import cloudpickle
 
 from pb3a.errors import RuntimeCancelled, RuntimeTimeout
 from pb3a.loading import served
+from pb3a.loading.references import class_ref
 from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
 from pb3a.model.agent import Agent, RuntimeClient
 from pb3a.model.module import restore_state
 from pb3a.model.ports import InputPort, Policy, WaitCounter
+from pb3a.model.state_edits import configured
 from pb3a.processes import mark_as
 from pb3a.transport import pickling
 from pb3a.transport.codec import local_copy
@@ -282,12 +284,18 @@ class Worker:
         restart), restored in full (``restore_state``); as a dict, the configuration's."""
         if lease is not None:
             self.op_lease(lease)
-        module = _load_class(cls)()
+        klass = _load_class(cls)
+        module = _made(name, klass)
         self._give_runtime(name, module)
         if isinstance(state, bytes):        # (read here, where the module's code is)
             restore_state(module, cloudpickle.loads(state))
         elif state:
-            module.set_state(state)
+            try:
+                module.set_state(_as_held(module, state))
+            except Exception as exc:        # (its own set_state: a key it does not take)
+                raise Refused(f"module {name!r} ({class_ref(klass)}): setting its state "
+                              f"({', '.join(map(str, state))}) failed: "
+                              f"{type(exc).__name__}: {exc}") from None
         actor = ModuleActor(name, module, self._schedule, period, on_error=self._report_error)
         actor.may_run = self.lease.holds
         self.actors[name] = actor
@@ -569,7 +577,7 @@ class Worker:
             raise Refused(f"module {name!r}: {why}; nothing was set") from None
 
     def op_swap(self, name: str, cls: bytes, period: float | None) -> list[str]:
-        module = _load_class(cls)()
+        module = _made(name, _load_class(cls))
         self._give_runtime(name, module)
         return self.actors[name].swap(module, period)
 
@@ -754,6 +762,32 @@ def _load_class(cls: bytes) -> type:
         if not trouble:
             raise
         raise type(exc)(f"{exc}{trouble}", name=exc.name) from exc
+
+
+def _made(name: str, cls: type) -> Any:
+    """An instance of module ``name``'s class, made with no arguments as every module is;
+    ``Refused`` naming the module, its class and that step if that raises (the error
+    named only the worker: "worker 'local-p0': TypeError: ... missing 1 required
+    positional argument")."""
+    try:
+        return cls()
+    except Exception as exc:
+        raise Refused(f"module {name!r}: making its class {class_ref(cls)} with no arguments "
+                      f"failed: {type(exc).__name__}: {exc}") from None
+
+
+def _as_held(module: Any, state: dict[str, Any]) -> dict[str, Any]:
+    """A configuration's ``state`` made the types of what the new ``module`` holds
+    (``configured``): a file's list for an array field an array of its dtype, a list for
+    a tuple one, a whole number for a float one a float (``self.weights += 1`` failed
+    on the list). What does not fit is set as it is: the check has named it."""
+    made = {}
+    for key, value in state.items():
+        try:
+            made[key] = configured(key, getattr(module, key, None), value)
+        except (TypeError, ValueError):
+            made[key] = value
+    return made
 
 
 class _Terminated(BaseException):
