@@ -39,6 +39,9 @@ class Src(Module):
     period = 0.1
     value = 1.0
 
+    def step(self):
+        self.out.write(self.value)
+
 
 class Words(Module):
     out = Output(str)
@@ -48,6 +51,9 @@ class Sink(Module):
     x = Input(float)
     y = Output(float)
     seen = 0
+
+    def step(self):             # (steps when given a period: a macro's "gain" is)
+        self.y.write(float(self.seen))
 
 
 class Queued(Module):
@@ -416,7 +422,7 @@ def test_the_system_builder_chains_and_refuses_duplicate_names() -> None:
         system.add("t", Scale)
     with pytest.raises(ValueError, match="already has a node 'a'"):
         system.node("a")
-    system.add("s", "examples.pipeline:Scale", node="a", state={"gain": 4.0}, period=0.5,
+    system.add("s", "examples.pipeline:Scale", node="a", state={"gain": 4.0},
                restart="fresh", group="g").link("t.out", "s.x", policy="queue:2")
     plan = system.plan()
     assert plan.modules["s"].state == {"gain": 4.0}

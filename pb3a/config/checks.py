@@ -69,6 +69,18 @@ def period(value: Any) -> list[str]:
             f"possible; leave it out to keep the class's), got {value!r}")]
 
 
+def stepped(cls: type[Module], value: Any) -> list[str]:
+    """A period given to a module is for a class with a ``step()`` of its own (one that
+    has none stepped an empty body as fast as it could, with ``period = 0``: a core
+    taken for nothing, and its inputs handled late)."""
+    if value is None or period(value) or cls.step is not Module.step:
+        return []                               # (a bad period is said once, by period())
+    how = (", and it runs on_input as values come" if cls.is_event_driven()
+           else ", or give the class a step()")
+    return [f"period = {value!r} is given, but {class_ref(cls)} has no step() for it to "
+            f"call: leave period out{how}"]
+
+
 def fallback(value: Any, nodes: list[str]) -> list[str]:
     """``None`` or a list of declared nodes: where the module restarts, in order, when
     its node is lost."""

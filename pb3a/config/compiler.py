@@ -300,6 +300,7 @@ class _Planner:
             problems += checks.macro_state(entry.state)
         elif child.cls is not None:
             problems += checks.period(entry.period) + checks.restart(entry.restart)
+            problems += checks.stepped(child.cls, entry.period)
             problems += checks.state(child.cls, entry.state)
             problems += checks.module_class(child.cls)
         elif entry.cls is not None:      # a class that did not resolve: what needs none

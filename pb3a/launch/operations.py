@@ -717,7 +717,7 @@ def _add_problems(name: Any, cls: Any, state: Any, period: Any, restart: Any, gr
             problems.append(f"{cls!r} is not a pb3a.Module subclass")
         else:
             problems += checks.state(cls, {} if state is None else state) \
-                + checks.module_class(cls)
+                + checks.module_class(cls) + checks.stepped(cls, period)
     problems += checks.period(period) + checks.restart(restart)
     if node not in nodes:
         problems.append(f"no node {node!r}{checks.did_you_mean(node, nodes)}; nodes: "

@@ -198,9 +198,10 @@ class ModuleActor:
             return
         if not set_up:
             raise SetupError(f"module {self.name!r} raised in setup: {self.last_error}")
-        if self.period is not None:
+        steps = type(self.module).step is not Module.step
+        if self.period is not None and steps:   # (no step(): no thread to call it)
             self._start_stepping()
-        elif type(self.module).step is not Module.step:
+        elif steps:
             # (not an error: a base class may step for subclasses that set a period)
             log.warning("module %r: %s defines step() but has no period, so step() is "
                         "never called: give the class or the module a period (0 = as fast "
