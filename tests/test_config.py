@@ -546,6 +546,31 @@ def test_an_env_module_of_a_node_the_system_lacks_is_named_with_the_nodes_it_has
     only(problems, "[[links]] #1 (env-a.cpu -> sink.x):", "no node 'a'", "env-local")
 
 
+def test_a_declared_env_module_runs_on_its_own_node(tmp_path: Path) -> None:
+    """``env-b`` declared to set its period, with no node, ran on the first node and
+    gave that node's readings under node b's name."""
+    text = """
+        [nodes.a]
+        [nodes.b]
+        [modules.env-b]
+        class = "pb3a:Environment"
+        period = 0.2
+        {node}
+        [modules.sink]
+        class = "parts_cfg:Sink"
+        node = "a"
+        [[links]]
+        from = "env-b.cpu"
+        to = "sink.x"
+    """
+    plan = build_plan(load_toml(write(tmp_path, text.format(node=""))))
+    assert (plan.modules["env-b"].node, plan.modules["env-b"].period) == ("b", 0.2)
+    assert problems_of(tmp_path, text.format(node='node = "a"')) == [
+        "sys.toml [modules.env-b]: env-b is node b's env module, and an env module measures "
+        "the node it runs on, but it is placed on node 'a': leave 'node' out (it runs on b), "
+        "or read env-a for node a's readings"]
+
+
 def test_unknown_ports_modules_and_malformed_endpoints(tmp_path: Path) -> None:
     problems = problems_of(tmp_path, TWO + """
         [[links]]

@@ -44,6 +44,7 @@ from sample_modules import (
 
 from pb3a import (
     ConfigError,
+    Environment,
     Input,
     Module,
     ModuleNotFound,
@@ -618,6 +619,12 @@ def test_add_refuses_what_a_configuration_may_not_say_and_starts_nothing() -> No
         assert set(run.stats().modules) == before
         assert run.configuration()["problems"] == []
         run.add("kit/probe", Last, node="a", group="g")       # a macro path is fine
+        # node b's env module runs on b, given no node (it ran on the first node, a)
+        with pytest.raises(ConfigError, match=r"module env-b: env-b is node b's env module"
+                                              r".*placed on node 'a'"):
+            run.add("env-b", Environment, node="a")
+        run.add("env-b", Environment)
+        assert run.where("env-b") == "b"
         run.link("src.out", "kit/probe.x")
         eventually(lambda: run.state("kit/probe")["seen"] > 0, what="values at kit/probe")
 

@@ -19,6 +19,7 @@ from typing import Any
 from pb3a.errors import MOST_SECONDS
 from pb3a.loading.references import class_ref
 from pb3a.model.displays import declared_displays, finite
+from pb3a.model.environment import PREFIX as ENV_PREFIX
 from pb3a.model.module import RESTART_POLICIES, Module
 from pb3a.model.state_edits import configured
 from pb3a.transport.addresses import tcp_address_problems
@@ -79,6 +80,26 @@ def stepped(cls: type[Module], value: Any) -> list[str]:
            else ", or give the class a step()")
     return [f"period = {value!r} is given, but {class_ref(cls)} has no step() for it to "
             f"call: leave period out{how}"]
+
+
+def env_home(name: Any, nodes: Iterable[str]) -> str | None:
+    """The node whose env module ``name`` is (``env-b``: node b's, when b is one of
+    ``nodes``), or None."""
+    if isinstance(name, str) and name.startswith(ENV_PREFIX):
+        node = name.removeprefix(ENV_PREFIX)
+        return node if node in nodes else None
+    return None
+
+
+def env_placed(name: Any, node: Any, nodes: Iterable[str]) -> list[str]:
+    """An ``env-NODE`` module runs on NODE: it measures the node it runs on (one
+    declared with no node measured the first node's CPUs under node b's name)."""
+    home = env_home(name, nodes)
+    if home is None or node is None or node == home:
+        return []
+    return [(f"{name} is node {home}'s env module, and an env module measures the node it "
+             f"runs on, but it is placed on node {node!r}: leave 'node' out (it runs on "
+             f"{home}), or read {ENV_PREFIX}{node} for node {node}'s readings")]
 
 
 def fallback(value: Any, nodes: list[str]) -> list[str]:

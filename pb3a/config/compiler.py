@@ -17,9 +17,9 @@ The work goes in phases, each collecting problems instead of stopping at one:
    nodes are reported.
 
 A module that names no node runs on the first declared node ("local" when the
-system declares none). Problems name the file (or ``system 'name'``) and the entry, e.g.
-``pipeline.toml [[links]] #2 (tick.out -> scale.x): ...``. Identical problems
-(one macro used twice) are reported once.
+system declares none), the system's ``env-NODE`` on NODE. Problems name the file
+(or ``system 'name'``) and the entry, e.g. ``pipeline.toml [[links]] #2 (tick.out ->
+scale.x): ...``. Identical problems (one macro used twice) are reported once.
 """
 
 from __future__ import annotations
@@ -369,6 +369,9 @@ class _Planner:
         for name, child in definition.children.items():
             entry, path = child.spec, prefix + name
             here = entry.node if entry.node in self.node_names else node
+            if not prefix:                  # (the system's own: env-NODE runs on NODE)
+                self.report(child.label, checks.env_placed(name, here, self.node_names))
+                here = here or checks.env_home(name, self.node_names)
             team = prefix + entry.group if isinstance(entry.group, str) else group
             if child.cls is not None:
                 cls = child.cls

@@ -382,7 +382,7 @@ class Operations:
             return
         with self._held(f"add {name}", _left(deadline), lend=[name]) as left:
             launcher = self.launcher
-            node = node or next(iter(self.plan.nodes))
+            node = node or checks.env_home(name, launcher.nodes) or next(iter(self.plan.nodes))
             problems = [unresolved] if module_cls is None else []
             problems += _add_problems(name, module_cls, state, period, restart, group, node,
                                       fallback, launcher.specs, list(launcher.nodes))
@@ -722,7 +722,7 @@ def _add_problems(name: Any, cls: Any, state: Any, period: Any, restart: Any, gr
     if node not in nodes:
         problems.append(f"no node {node!r}{checks.did_you_mean(node, nodes)}; nodes: "
                         f"{checks.listing(nodes)}")
-    problems += checks.fallback(fallback, nodes)
+    problems += checks.fallback(fallback, nodes) + checks.env_placed(name, node, nodes)
     if group is not None:
         problems += checks.path(group, "group")
         other = next((m for m in modules.values() if m.group == group and m.node != node),
