@@ -66,6 +66,48 @@ def test_run_for_seconds_shows_the_table_and_stops_cleanly(tmp_path: Path) -> No
     assert "stopped cleanly" in out
 
 
+# The script pip writes for the ``pb3a`` console entry point (setup.cfg).
+CONSOLE_SCRIPT = """\
+import sys
+from pb3a.cli.main import main
+if __name__ == '__main__':
+    sys.argv[0] = sys.argv[0].removesuffix('.exe')
+    sys.exit(main())
+"""
+
+
+def test_the_pb3a_script_imports_from_the_current_directory_as_python_m_does(
+        tmp_path: Path) -> None:
+    """``python -m pb3a`` has the current directory on its import path, the ``pb3a``
+    script had its own directory there instead: a class beside the user ("mods:Sink",
+    named by a file in a subdirectory) was found by one and not by the other, and a
+    run's workers must find it too."""
+    script = tmp_path / "bin" / "pb3a"
+    script.parent.mkdir()
+    script.write_text(CONSOLE_SCRIPT)
+    work = tmp_path / "work"
+    (work / "sub").mkdir(parents=True)
+    stepped = tmp_path / "stepped"
+    (work / "here_mods.py").write_text(textwrap.dedent(f"""
+        from pb3a import Module, Output
+
+        class Src(Module):
+            out = Output(int)
+            period = 0.05
+
+            def step(self):
+                open({str(stepped)!r}, "w").close()
+                self.out.write(1)
+        """))
+    (work / "sub" / "rel.toml").write_text('name = "rel"\n[modules.src]\n'
+                                           'class = "here_mods:Src"\n')
+    for command in (["check", "sub/rel.toml"], ["run", "sub/rel.toml", "--for", "1"]):
+        done = subprocess.run([sys.executable, str(script), *command], cwd=work, env=_env(),
+                              capture_output=True, text=True, timeout=60, check=False)
+        assert done.returncode == 0, done.stdout + done.stderr
+    assert stepped.exists()                 # (a worker imported it, and it stepped)
+
+
 @pytest.mark.parametrize("how", ["SIGTERM", "Ctrl-C", "SIGTERM to the group",
                                  "the terminal closed"])
 def test_a_signal_stops_everything_and_leaves_nothing_behind(tmp_path: Path, how: str) -> None:

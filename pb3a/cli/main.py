@@ -24,7 +24,9 @@ command with exit status 130 and one line, not a traceback.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import os
 import sys
 from collections.abc import Callable, Sequence
 
@@ -34,7 +36,10 @@ INTERRUPTED = 130      # the shell's convention for a command ended by SIGINT
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the command line with ``argv`` (default: ``sys.argv[1:]``); returns the exit code."""
+    """Run the command line with ``argv`` (default: ``sys.argv[1:]``, the command run as
+    a program, which imports from the current directory); returns the exit code."""
+    if argv is None:
+        import_from_here()
     try:
         from pb3a.cli.commands import parser as command_line
         from pb3a.cli.log_output import show_logs
@@ -54,6 +59,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:            # its reader went: quietly, as a Unix tool
         output_gone()
         return BROKEN_PIPE
+
+
+def import_from_here() -> None:
+    """Put the current directory first on the import path, as ``python -m pb3a`` has it
+    (the ``pb3a`` script had its own directory there instead, so a class beside the
+    user imported with one and not the other); the processes the command starts (the
+    check's import child, the nodes' workers) take the path from it."""
+    with contextlib.suppress(OSError):          # (a directory removed under the shell)
+        here = os.getcwd()
+        if here not in sys.path and "" not in sys.path:
+            sys.path.insert(0, here)
 
 
 def handler_of(name: str) -> Callable[[argparse.Namespace], int]:
