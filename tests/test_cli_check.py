@@ -262,11 +262,13 @@ def test_check_names_a_module_file_that_hangs_ends_or_crashes_as_imported_and_th
                 os.kill(started, signal.SIGKILL)      # (the old check left it running)
     assert done.returncode == 1, done.stdout + done.stderr
     lines = done.stdout.splitlines()
-    assert lines == [
-        "harmed.toml [modules.imported_hangs]: importing module 'imported_hangs' for "
-        "'imported_hangs:Bad' did not finish within 1 s: it loops or waits (for input, a "
-        "lock, the network) as it is imported; make it return, or give a longer "
-        "--import-timeout",
+    hangs = (f"harmed.toml [modules.imported_hangs]: importing module 'imported_hangs' for "
+             f"'imported_hangs:Bad' did not finish within 1 s, stuck at "
+             f"{tmp_path / 'imported_hangs.py'}, line ")   # (its loop's, 4 or 5)
+    assert lines[0].startswith(hangs) and lines[0].endswith(
+        ": it loops or waits (for input, a lock, the network) as it is imported; make it "
+        "return, or give a longer --import-timeout"), done.stdout
+    assert lines[1:] == [
         "harmed.toml [modules.imported_ends]: importing module 'imported_ends' for "
         "'imported_ends:Bad' exited with status 3: it ends the process as it is imported "
         "(os._exit()?); a module must not exit when imported (put that code under if "
@@ -285,6 +287,33 @@ def test_check_names_a_module_file_that_hangs_ends_or_crashes_as_imported_and_th
     assert not (tmp_path / "stressed").exists()
     assert started is not None
     eventually(lambda: not alive(started), what="the end of the process the import started")
+
+
+def test_check_names_where_a_shared_import_hangs_and_waits_for_it_once(
+        tmp_path: Path) -> None:
+    """Four class files each importing a driver file that waits for good as it is
+    imported: the check blamed each class file in turn, never the driver's, and waited
+    the timeout four times (41 s at the default). It names the driver's file and line,
+    and refuses its import at once after the first wait."""
+    (tmp_path / "hw.py").write_text("import time\n\ntime.sleep(3600)\n")
+    lines = ['name = "shared"']
+    for number in range(1, 5):
+        (tmp_path / f"c{number}.py").write_text(
+            "import hw\nfrom pb3a import Module\n\nclass A(Module):\n    pass\n")
+        lines += [f"[modules.m{number}]", f'class = "c{number}:A"']
+    (tmp_path / "shared.toml").write_text("\n".join(lines) + "\n")
+    began = time.monotonic()
+    done = pb3a("check", "--import-timeout", "3", "shared.toml", cwd=tmp_path)
+    took = time.monotonic() - began
+    hw = tmp_path / "hw.py"
+    how = (f"did not finish within 3 s{{}}, stuck at {hw}, line 3: it loops or waits (for "
+           "input, a lock, the network) as it is imported; make it return, or give a longer "
+           "--import-timeout")
+    assert done.stdout.splitlines() == [
+        "shared.toml [modules.m1]: importing module 'c1' for 'c1:A' " + how.format(""),
+        *(f"shared.toml [modules.m{n}]: importing module 'c{n}' for 'c{n}:A' imports {hw}, "
+          "which " + how.format(" as 'c1:A' imported it") for n in range(2, 5))]
+    assert took < 4 * 3, took               # (one wait of 3 s, not four)
 
 
 def test_check_and_graph_keep_what_an_import_prints_off_their_output(tmp_path: Path) -> None:

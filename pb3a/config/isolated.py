@@ -12,13 +12,17 @@ importing before each import (the hook ``watch_imports``). When it stops answeri
 during one (``import_timeout``), exits, or is killed by a signal, the parent blames
 that import and plans the file again in a new child that refuses to import that
 module, with a sentence saying what happened; so the file's other problems are still
-reported, all at once. What the user's code prints goes to the check's stderr, not
-among the answers on stdout.
+reported, all at once. A hang names where the import was stuck (its stack), and the
+module file whose top level waited there, a file several classes' modules import (a
+driver's), is refused too: each import of it fails at once, naming it, instead of
+waiting the timeout again, once for each class. What the user's code prints goes to
+the check's stderr, not among the answers on stdout.
 """
 
 from __future__ import annotations
 
 import contextlib
+import importlib.abc
 import os
 import sys
 from collections.abc import Iterator
@@ -26,11 +30,12 @@ from dataclasses import dataclass, field
 from typing import Any, NoReturn
 
 from pb3a.errors import ConfigError
-from pb3a.loading.import_child import Child, answering, exit_status, hung
+from pb3a.loading.import_child import Child, Stuck, answering, exit_status, hung
 
 PLANNING_TIMEOUT_S = 30.0   # longest the child may say nothing outside imports (its start)
 EXIT_WAIT_S = 5.0           # how long a child that answered may take to exit
 MOST_CHILDREN = 16          # modules that may hang or end a child before the check gives up
+LONGER = "give a longer --import-timeout"    # how to give an import more time
 
 _ENTRY = "pb3a.config.isolated:answer"       # what the child runs
 
@@ -51,16 +56,20 @@ def check_file(file: str, *, import_timeout: float, dot: bool = False) -> Checke
     of the entry that names it. This process imports neither the runtime nor the file's
     classes."""
     refused: dict[str, str] = {}
+    stuck: dict[str, str] = {}          # a module file whose import hung -> how
     for _ in range(MOST_CHILDREN):
-        ended = _planned(file, refused, import_timeout, dot)
+        ended = _planned(file, refused, stuck, import_timeout, dot)
         if ended.answer is not None:
             return _result(ended.answer)
         if not ended.importing:
             raise ConfigError([f"{file}: the process that checks it {ended.how}"
                                f"{' before it began' if not ended.ready else ''} (its error, "
                                "if it wrote one, is above)"])
-        module, _ = ended.importing[-1]
+        module, ref = ended.importing[-1]
         refused[module] = ended.how
+        if ended.stuck is not None and ended.stuck.module_file is not None:
+            stuck[ended.stuck.module_file] = hung(
+                import_timeout, LONGER, f" as {ref!r} imported it{ended.stuck}")
     raise ConfigError([*(f"{file}: importing module {module!r} {how}"
                          for module, how in refused.items()),
                        f"{file}: checking stopped after {MOST_CHILDREN} module files hung or "
@@ -88,12 +97,14 @@ class _Ended:
     how: str = ""
     ready: bool = False
     importing: list[tuple[str, str]] = field(default_factory=list)
+    stuck: Stuck | None = None          # where an import that hung was
 
 
-def _planned(file: str, refused: dict[str, str], import_timeout: float, dot: bool) -> _Ended:
+def _planned(file: str, refused: dict[str, str], stuck: dict[str, str], import_timeout: float,
+             dot: bool) -> _Ended:
     """Plan ``file`` in one child, reading its messages until it answers or ends; then
     end its process group."""
-    child = Child(_ENTRY, {"file": file, "refused": refused, "dot": dot})
+    child = Child(_ENTRY, {"file": file, "refused": refused, "stuck": stuck, "dot": dot})
     ended, finished = _Ended(), False
     try:
         _read(child, ended, import_timeout)
@@ -111,8 +122,11 @@ def _read(child: Child, ended: _Ended, import_timeout: float) -> None:
         try:
             said = child.next(wait)
         except TimeoutError:
-            ended.how = (hung(wait, "give a longer --import-timeout") if ended.importing
-                         else f"said nothing for {wait:g} s")
+            if ended.importing:
+                ended.stuck = child.stuck_at()
+                ended.how = hung(wait, LONGER, ended.stuck)
+            else:
+                ended.how = f"said nothing for {wait:g} s"
             return
         if said is None:
             return
@@ -138,10 +152,32 @@ def answer(request: dict[str, Any]) -> NoReturn:
     from pb3a.config.compiler import build_plan  # (the parent needs none of it)
     from pb3a.config.description import load_toml
     from pb3a.config.dot import plan_to_dot
-    from pb3a.loading.references import ImportRefused, watch_imports
+    from pb3a.loading.references import ImportRefused, importing_for, watch_imports
     from pb3a.transport.auth import ClusterKeyError
 
     refused: dict[str, str] = request["refused"]
+    stuck: dict[str, str] = request["stuck"]
+
+    class RefuseStuck(importlib.abc.MetaPathFinder):
+        """Refuses a module file whose import hung before (in another child)."""
+
+        def find_spec(self, name: str, path: Any, target: Any = None) -> Any:
+            for finder in sys.meta_path:
+                find = getattr(finder, "find_spec", None)
+                spec = None if finder is self or find is None else find(name, path, target)
+                if spec is not None:
+                    break
+            else:
+                return None
+            if spec.origin not in stuck:
+                return spec
+            ref = importing_for()
+            module = "" if ref is None else f" {ref.partition(':')[0]!r} for {ref!r}"
+            raise ImportRefused(f"importing module{module} imports {spec.origin}, which "
+                                f"{stuck[spec.origin]}")
+
+    if stuck:
+        sys.meta_path.insert(0, RefuseStuck())
 
     @contextlib.contextmanager
     def watched(module: str, ref: str) -> Iterator[None]:

@@ -8,7 +8,10 @@ system's launcher, the manager) has a fresh Python process import them first: a
 path, and reads what it says, one JSON object a line, each with a deadline. Before
 each import the child says which module it imports (``importing``); so an import that
 takes too long (``hung``), or a child that ends during one (``exit_status``), is blamed
-on that module, in words that say what to do.
+on that module, in words that say what to do; one that takes too long is asked where it
+is (``stuck_at``: its stack, which Python's ``faulthandler`` writes on a signal), since a
+module file that waits in a file it imports (a driver's, shared by several) hung in
+that file, which the module's name did not say.
 
 The child reads nothing (its stdin is ``/dev/null``: ``input()`` ends at once), what the
 user's code prints goes to its stderr (this process's, or a pipe whose last lines are
@@ -21,9 +24,11 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import faulthandler
 import importlib
 import json
 import os
+import re
 import selectors
 import signal
 import subprocess
@@ -31,6 +36,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, NoReturn
 
 OUTPUT_KEPT = 2000          # bytes of a child's output kept, when it is kept: the last ones
@@ -39,6 +45,12 @@ OUTPUT_KEPT = 2000          # bytes of a child's output kept, when it is kept: t
 _BOOT = ("import json, sys; sys.path[:] = json.loads(sys.argv[1]); "
          "from {module} import {function}; {function}(json.loads(sys.argv[2]))")
 _CRASHES = {"SIGSEGV", "SIGBUS", "SIGILL", "SIGFPE", "SIGABRT"}
+# A child writes its threads' stacks on this signal to the pipe this variable names.
+_STACK_SIGNAL = signal.SIGUSR1
+_STACK_FD = "PB3A_STACK_FD"
+STACK_WAIT_S = 1.0        # how long a stuck child's stacks are waited for
+STACK_QUIET_S = 0.1       # ... and, once they come, a pause that ends them
+_FRAME = re.compile(r'^\s*File "(.*)", line (\d+) in (.*)$', re.MULTILINE)
 
 
 class Child:
@@ -49,11 +61,19 @@ class Child:
     def __init__(self, entry: str, request: Any, *, keep_output: bool = False) -> None:
         module, _, function = entry.partition(":")
         path = [str(entry) for entry in sys.path if isinstance(entry, (str, os.PathLike))]
-        self.process = subprocess.Popen(
-            [sys.executable, "-c", _BOOT.format(module=module, function=function),
-             json.dumps(path), json.dumps(request)],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE if keep_output else None, start_new_session=True)
+        self._stacks, stacks = os.pipe()
+        try:
+            self.process = subprocess.Popen(
+                [sys.executable, "-c", _BOOT.format(module=module, function=function),
+                 json.dumps(path), json.dumps(request)],
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE if keep_output else None, start_new_session=True,
+                pass_fds=(stacks,), env={**os.environ, _STACK_FD: str(stacks)})
+        except BaseException:
+            os.close(self._stacks)
+            raise
+        finally:
+            os.close(stacks)
         self._pidfd = os.pidfd_open(self.process.pid)   # (readable once it has exited)
         self._selector = selectors.DefaultSelector()
         for pipe in (self.process.stdout, self.process.stderr):
@@ -89,6 +109,23 @@ class Child:
                     self._lines.extend(lines)
         return json.loads(self._lines.popleft())
 
+    def stuck_at(self, wait: float = STACK_WAIT_S) -> Stuck | None:
+        """Where the child's import is now, for one that said it is importing and then
+        nothing; None if its stacks did not come within ``wait`` seconds or show no
+        import."""
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(self.process.pid, _STACK_SIGNAL)
+        dump, deadline = b"", time.monotonic() + wait
+        with selectors.DefaultSelector() as selector:
+            selector.register(self._stacks, selectors.EVENT_READ)
+            while (left := deadline - time.monotonic()) > 0 and selector.select(
+                    min(left, STACK_QUIET_S) if dump else left):
+                chunk = os.read(self._stacks, 65536)
+                if not chunk:
+                    break
+                dump += chunk
+        return _stuck_at(dump.decode(errors="replace"))
+
     @property
     def output(self) -> str:
         """The last lines it wrote on its stderr (``keep_output``), stripped."""
@@ -112,17 +149,55 @@ class Child:
             os.killpg(self.process.pid, signal.SIGKILL)
         self.process.wait()
         os.close(self._pidfd)
+        os.close(self._stacks)
         self._selector.close()
         for pipe in (self.process.stdin, self.process.stdout, self.process.stderr):
             if pipe is not None:
                 pipe.close()
 
 
-def hung(wait: float, longer: str) -> str:
+def hung(wait: float, longer: str, where: Stuck | str | None = None) -> str:
     """How an import that gave no sign of life for ``wait`` seconds went, in words;
-    ``longer``: how to give it more time ("give a longer --import-timeout")."""
-    return (f"did not finish within {wait:.3g} s: it loops or waits (for input, a lock, the "
-            f"network) as it is imported; make it return, or {longer}")
+    ``longer``: how to give it more time ("give a longer --import-timeout"); ``where``:
+    where it was then (``Child.stuck_at``)."""
+    return (f"did not finish within {wait:.3g} s{where or ''}: it loops or waits (for "
+            f"input, a lock, the network) as it is imported; make it return, or {longer}")
+
+
+@dataclass(frozen=True)
+class Stuck:
+    """Where an import that does not finish is: the innermost frame of the thread that
+    imports, and the module file whose top level led there (the file that loops or
+    waits as it is imported: a class's module, or a file it imports)."""
+
+    file: str
+    line: int
+    function: str
+    module_file: str | None = None
+    module_line: int = 0
+
+    def __str__(self) -> str:
+        """``", stuck at FILE, line N"``, and the module file's line that called it."""
+        where = f", stuck at {self.file}, line {self.line}"
+        if self.module_file is not None and (self.module_file, self.module_line) != (
+                self.file, self.line):
+            where += (f" (in {self.function}), called from {self.module_file}, line "
+                      f"{self.module_line}")
+        return where
+
+
+def _stuck_at(dump: str) -> Stuck | None:
+    """Where the thread that imports is, in ``faulthandler``'s stacks (each thread's
+    frames innermost first, threads apart by a blank line); None if no thread imports."""
+    for stack in dump.split("\n\n"):
+        frames = _FRAME.findall(stack)
+        if not any(file.startswith("<frozen importlib") for file, _, _ in frames):
+            continue
+        file, line, function = frames[0]
+        top = next(((f, int(n)) for f, n, name in frames
+                    if name == "<module>" and not f.startswith("<frozen ")), (None, 0))
+        return Stuck(file, int(line), function, *top)
+    return None
 
 
 def exit_status(code: int, importing: bool) -> str:
@@ -143,6 +218,9 @@ def exit_status(code: int, importing: bool) -> str:
 def answering() -> Callable[..., None]:
     """In the child, first: set its files up (see the module's docstring) and give the
     function that sends its parent one message (keyword arguments, as JSON)."""
+    stacks = os.environ.pop(_STACK_FD, None)
+    if stacks is not None:               # (where an import is stuck: see ``stuck_at``)
+        faulthandler.register(_STACK_SIGNAL, file=int(stacks), all_threads=True)
     answers = os.dup(1)                  # ours alone: what the user's code prints
     os.dup2(2, 1)                        # goes to stderr, never among the answers
     parent = os.dup(0)                   # EOF when the parent is gone

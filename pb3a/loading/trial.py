@@ -165,7 +165,7 @@ def _tried(modules: list[str], timeout: float, longer: str,
             try:
                 said = child.next(wait)
             except TimeoutError:
-                how = hung(timeout, longer) if importing is not None else (
+                how = hung(timeout, longer, child.stuck_at()) if importing is not None else (
                     f"could not be tried: the process that tries imports did not begin "
                     f"within {spoken(wait)} s (is this machine overloaded?); try again, or "
                     f"{longer}")
