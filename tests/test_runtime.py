@@ -11,6 +11,7 @@ import threading
 import time
 import types
 
+import numpy as np
 import pytest
 from conftest import eventually
 from sample_modules import (
@@ -367,6 +368,34 @@ def test_a_period_for_a_class_with_no_step_is_refused_and_none_is_stepped() -> N
         eventually(lambda: run.state("ear")["heard"] > 100, what="values at ear")
         figures = run.stats().modules["ear"]
     assert figures.steps == 0, figures          # (no step thread: nothing to call)
+
+
+class Weights(Module):
+    """State of the kinds a file cannot write: an array, a tuple, a float32."""
+
+    weights = np.zeros(4)
+    limits = (-1.0, 1.0)
+    gain = np.float32(1.0)
+
+    def setup(self) -> None:
+        self.weights += 1                     # (a list: TypeError at every setup)
+        self.kinds = [type(self.weights).__name__, str(self.weights.dtype),
+                      type(self.limits).__name__, type(self.gain).__name__]
+
+
+def test_a_configured_state_is_given_to_the_module_as_the_types_its_class_holds(
+        tmp_path) -> None:
+    """A file's list for an array field reached the module a list (``self.weights +=
+    1`` failed at once), a list for a tuple a list, a number for a float32 a Python
+    float: TOML has no arrays, tuples or float32s."""
+    (tmp_path / "weighed.toml").write_text(
+        'name = "weighed"\n[modules.w]\nclass = "test_runtime:Weights"\n'
+        "state = { weights = [[1, 2], [3, 4]], limits = [0, 2], gain = 3 }\n")
+    with System.load(tmp_path / "weighed.toml").launch() as run:
+        state = run.state("w")
+    assert state["kinds"] == ["ndarray", "float64", "tuple", "float32"]
+    assert state["weights"].tolist() == [[2.0, 3.0], [4.0, 5.0]]
+    assert state["limits"] == (0.0, 2.0) and state["gain"] == 3.0
 
 
 def test_a_module_that_defines_step_but_has_no_period_is_told_it_never_steps(
