@@ -49,6 +49,7 @@ from pb3a import (
     Input,
     Module,
     ModuleNotFound,
+    Output,
     RuntimeFailure,
     System,
     serve_device,
@@ -368,6 +369,24 @@ def test_a_period_for_a_class_with_no_step_is_refused_and_none_is_stepped() -> N
         eventually(lambda: run.state("ear")["heard"] > 100, what="values at ear")
         figures = run.stats().modules["ear"]
     assert figures.steps == 0, figures          # (no step thread: nothing to call)
+
+
+class Silent(Module):
+    """Counter's output, and no step()."""
+
+    out = Output(int)
+    count = 0
+
+
+def test_a_swap_to_a_class_with_no_step_stops_stepping_at_the_same_period() -> None:
+    """The step thread went on at the module's own period after a swap to a class with
+    no step(), calling its empty step() (at period 0, most of a core)."""
+    with System("swapped-still").add("c", Counter, period=0.001).launch() as run:
+        eventually(lambda: run.stats().modules["c"].steps > 10, what="steps")
+        run.swap("c", Silent)
+        before = run.stats().modules["c"].steps
+        run.wait(0.3)                           # (300 steps, had it gone on)
+        assert run.stats().modules["c"].steps <= before + 1
 
 
 class Weights(Module):

@@ -198,10 +198,9 @@ class ModuleActor:
             return
         if not set_up:
             raise SetupError(f"module {self.name!r} raised in setup: {self.last_error}")
-        steps = type(self.module).step is not Module.step
-        if self.period is not None and steps:   # (no step(): no thread to call it)
+        if self._steps(self.period):
             self._start_stepping()
-        elif steps:
+        elif type(self.module).step is not Module.step:
             # (not an error: a base class may step for subclasses that set a period)
             log.warning("module %r: %s defines step() but has no period, so step() is "
                         "never called: give the class or the module a period (0 = as fast "
@@ -595,14 +594,21 @@ class ModuleActor:
         finally:
             self.lock.release()
 
+    def _steps(self, period: float | None) -> bool:
+        """Whether the module is stepped at ``period``: a period, and a class with a
+        ``step()`` (an empty one, stepped at period 0, took most of a core)."""
+        return period is not None and type(self.module).step is not Module.step
+
     def _step_every(self, period: float | None) -> None:
-        """Step at ``period`` from now on (None: no more): a new step thread, if it
-        steps; the one at the old period ends when it wakes (its step waits for the
-        module's lock, held here: it may take one more, on the new instance)."""
-        if period == self.period:
+        """Step at ``period`` from now on (None: no more), if the module (the new
+        instance of a swap) has a ``step()``: a new step thread; the one at the old
+        period ends when it wakes (its step waits for the module's lock, held here: it
+        may take one more, on the new instance)."""
+        steps = self._steps(period)
+        if period == self.period and (self._thread is not None) == steps:
             return
         self.period, self._thread = period, None
-        if period is not None and self.running:
+        if steps and self.running:
             self._start_stepping()
 
     def _dispatch_owed(self) -> None:
