@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -125,6 +126,19 @@ def test_a_killed_executors_segments_are_reaped_and_not_called_leaked(tmp_path) 
     assert len(segments["made"]) == 2 and segments["reaped"] == segments["made"], segments
     assert segments["left"] == []
     assert "leaked" not in done.stderr and "Traceback" not in done.stderr, done.stderr
+
+
+def test_a_launcher_on_another_python_is_refused_naming_both_versions(node) -> None:
+    """A class sent by value is pickled bytecode: one pickled on 3.12 crashed a 3.13
+    worker (a segfault), one from 3.13 failed with an IndexError about its attributes."""
+    controller, client = node
+    here = f"{sys.version_info.major}.{sys.version_info.minor}"
+    with pytest.raises(RuntimeFailure, match=rf"node n1 runs Python {re.escape(here)} and "
+                                             r"the launcher Python 2\.7: run one Python "
+                                             r"version \(major\.minor\) on every machine"):
+        client.call("start_executor", timeout=60, config="old", python="2.7")
+    assert controller.executors() == {}
+    assert client.call("status", timeout=10)["python"] == here
 
 
 def test_an_executor_that_dies_as_it_starts_is_reported_at_once(node, monkeypatch) -> None:

@@ -43,6 +43,7 @@ import pb3a
 from pb3a import Agent, ModuleNotFound, PB3AError, RuntimeFailure, RuntimeTimeout, System
 from pb3a.cli.status import format_table
 from pb3a.daemons.node_controller import Limits, NodeController
+from pb3a.node import remote
 from pb3a.node.remote import RemoteNode
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
@@ -648,6 +649,20 @@ def test_a_wrong_key_is_told_apart_from_no_answer_within_5_s(caplog) -> None:
                    for record in caplog.records), [r.getMessage() for r in caplog.records]
     finally:
         stranger.close()
+
+
+def test_a_node_on_another_python_is_refused_before_anything_starts(controllers,
+                                                                    monkeypatch) -> None:
+    """Nothing compared the launcher's Python with a node's: a class sent by value,
+    pickled for one version, crashed the other's worker (3.12 to 3.13: a segfault)."""
+    monkeypatch.setattr(remote, "PYTHON", "3.99")            # the launcher's, as it says
+    system = System("versions").node("a").node("b", address=controllers["b"].address)
+    system.add("far", Collector, node="b")
+    with pytest.raises(RuntimeFailure, match=r"did not start an executor for 'versions': node "
+                                             r"b runs Python \d+\.\d+ and the launcher "
+                                             r"Python 3\.99: run one Python version"):
+        system.launch()
+    assert controllers["b"].executors() == {}
 
 
 def test_a_module_on_a_remote_node_is_removed_with_its_links(controllers) -> None:

@@ -1830,7 +1830,7 @@ class _Gate:
         receive = follower_module.receive_message
 
         def gated(sock: zmq.Socket) -> list[Any]:
-            if sock.socket_type != socket_type:
+            if sock.type != socket_type:
                 return receive(sock)
             if self.allowed == 0 or time.monotonic() - self._last < self.every:
                 if sock.getsockopt(zmq.EVENTS) & zmq.POLLIN:

@@ -25,6 +25,7 @@ from pb3a.errors import RuntimeFailure, bounded_wait
 from pb3a.processes import start_without_main
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlServer
+from pb3a.transport.pickling import PYTHON
 from pb3a.transport.shm import reap_child, reap_orphans
 
 log = logging.getLogger("pb3a.node")
@@ -96,13 +97,19 @@ class NodeController:
 
     # -- executors ----------------------------------------------------------------
     def start_executor(self, config: str, workers: int = 0, cpus: list[int] | None = None,
-                       host: str = "127.0.0.1", node: str | None = None) -> tuple[str, bool]:
+                       host: str = "127.0.0.1", node: str | None = None,
+                       python: str | None = None) -> tuple[str, bool]:
         """The address of ``config``'s executor here, and whether it was started now
         (False: it ran already, perhaps for another launch, which its caller must not
         stop). The executor is node ``node``, as the configuration names it (by default
         this controller's ``--name``): one named otherwise signed what it told the
         launcher with a name the launcher did not know as that node's, and was refused
-        (a restarted module's events, its link's new sender, checkpoints, agents)."""
+        (a restarted module's events, its link's new sender, checkpoints, agents).
+        ``Refused`` if the launcher runs another ``python`` (major.minor) than this one."""
+        if python is not None and python != PYTHON:
+            raise Refused(f"node {self.name} runs Python {PYTHON} and the launcher Python "
+                          f"{python}: run one Python version (major.minor) on every machine "
+                          "of a system, since module classes and state travel pickled for one")
         with self._lock:
             running = self._executors.get(config)
             if running is not None and running[0].is_alive():
@@ -174,7 +181,7 @@ class NodeController:
         if op == "start_executor":
             return self.start_executor(args["config"], args.get("workers", 0),
                                        args.get("cpus"), args.get("host", "127.0.0.1"),
-                                       args.get("node"))
+                                       args.get("node"), args.get("python"))
         if op == "stop_executor":
             return self.stop_executor(args["config"], bool(args.get("force", False)),
                                       bounded_wait(args.get("timeout", 15.0), "stop_executor"),
@@ -183,7 +190,7 @@ class NodeController:
             self.admit(str(args.get("what", "work")))
             return True
         if op == "status":
-            return {"node": self.name, "cpu_percent": self._cpu,
+            return {"node": self.name, "python": PYTHON, "cpu_percent": self._cpu,
                     "memory_available": psutil.virtual_memory().available,
                     "executors": self.executors()}
         raise ValueError(f"a node controller has no operation {op!r}")

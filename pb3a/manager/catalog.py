@@ -58,9 +58,9 @@ MOST_DEPTH = 4               # package levels looked into below a directory
 _SKIPPED_DIRS = {"build", "dist", "node_modules", "site-packages", "venv", "tests", "test",
                  "docs", "pb3a"}       # pb3a: its own classes are bases, not parts
 _SAFE_STATEMENTS = (ast.Import, ast.ImportFrom, ast.ClassDef, ast.FunctionDef,
-                    ast.AsyncFunctionDef, ast.Assign, ast.AnnAssign, ast.AugAssign, ast.Pass)
+                    ast.AsyncFunctionDef, ast.Assign, ast.AnnAssign, ast.AugAssign, ast.Pass,
+                    *((ast.TypeAlias,) if hasattr(ast, "TypeAlias") else ()))  # (3.12's `type`)
 REPR_CHARS = 200
-# calls that act on the world: an assignment of their result is a script's work
 # calls that act on the world (by their qualified name; or, for methods, by their own
 # name, whatever they are called on): an assignment of what one returns, directly or
 # through a function of the file, is a script's work

@@ -52,6 +52,7 @@ import socket
 import sys
 import threading
 import time
+import warnings
 from multiprocessing import forkserver
 
 from pb3a.node.forkserver_owner import ORPHAN_GRACE_S, OWNER_MARK
@@ -61,6 +62,13 @@ mark_as("the forkserver that starts a node's workers")
 
 for _signal in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
     signal.signal(_signal, signal.SIG_IGN)
+
+# Python 3.12 warns of each fork in a process with threads: a thread holding a lock as
+# the process forks leaves it held for good in the child. The one thread here, the
+# owner's watch below, holds none (it waits in poll() on file descriptors), so the
+# warning, printed once a forkserver with -X dev or PYTHONWARNINGS, says nothing true.
+warnings.filterwarnings("ignore", r"This process \(pid=\d+\) is multi-threaded",
+                        DeprecationWarning, r"multiprocessing\.forkserver\Z")
 
 # How long ``preloaded`` waits for the watch to let go of the pipes it closes.
 SWITCH_WAIT_S = 5.0

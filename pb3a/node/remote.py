@@ -28,6 +28,7 @@ from pb3a.loading.sources import CodeSources
 from pb3a.transport.addresses import connection_failure, host_of, unresolved
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
+from pb3a.transport.pickling import PYTHON
 
 if TYPE_CHECKING:
     from pb3a.config.plan import FlatLink, FlatModule
@@ -127,7 +128,8 @@ class RemoteNode:
         try:
             executor, started = self.controller.call("start_executor", START_TIMEOUT,
                                                      config=config, workers=workers,
-                                                     cpus=cpus, host=host, node=name)
+                                                     cpus=cpus, host=host, node=name,
+                                                     python=PYTHON)
             self.executor = executor
             self.client = ControlClient(key, executor, epoch=epoch)
             reached = self.client.ping(CONNECT_TIMEOUT) is not None

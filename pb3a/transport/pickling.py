@@ -14,6 +14,7 @@ from __future__ import annotations
 import collections
 import io
 import pickle
+import sys
 import types
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -35,6 +36,12 @@ def _code_with_its_file(code: types.CodeType) -> Any:
 
 def _located(code: types.CodeType, filename: str) -> types.CodeType:
     return code.replace(co_filename=filename)
+
+
+# The Python every process of a system runs (major.minor): a class sent by value is
+# pickled bytecode, which another version reads wrongly or crashes on (3.12's in 3.13:
+# a segfault).
+PYTHON = f"{sys.version_info.major}.{sys.version_info.minor}"
 
 
 class _Pickler(cloudpickle.Pickler):
