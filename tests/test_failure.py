@@ -64,6 +64,7 @@ from pb3a.cli.status import format_table
 from pb3a.config.plan import FlatModule
 from pb3a.deadline import bounding
 from pb3a.loading.sources import CodeSources
+from pb3a.model.module import restore_state
 from pb3a.node.executor import Executor
 from pb3a.node.forkserver_owner import ORPHAN_GRACE_S
 from pb3a.node.restarts import RESTART_INTENSITY, RestartBudget
@@ -245,6 +246,58 @@ def test_a_last_state_restart_brings_back_the_state_the_module_made_as_it_ran() 
         kinds = [event.kind for event in run.events()]
     assert state["updates"] > 40 and state["grid"][0, 0] > 40     # its checkpoint's
     assert state["setups"] == 2 and kinds == ["module_restarted"]
+
+
+class Smoother(Module):
+    """A later version of a module whose field ``smooth`` it made a method."""
+
+    made = 0
+
+    def smooth(self, value: float) -> float:
+        return value
+
+
+def test_a_state_given_back_to_a_class_that_made_a_field_a_method_keeps_the_method() -> None:
+    """A checkpoint taken before a swap, restored by a restart into the new class, set
+    the old class's ``smooth = 0.5`` over the new class's method: the module ran on,
+    failing at every step ("'float' object is not callable")."""
+    module = Smoother()
+    restore_state(module, {"smooth": 0.5, "made": 3, "grid": [1, 2]})
+    assert module.smooth(2.0) == 2.0
+    assert module.made == 3 and module.grid == [1, 2]     # the rest, made as it ran too
+
+
+class NotReady(Module):
+    """A module whose own ``get_state`` raises while ``failing`` is set."""
+
+    period = 0.01
+    failing = False
+    steps = 0
+
+    def step(self) -> None:
+        self.steps += 1
+
+    def get_state(self) -> dict:
+        if self.failing:
+            raise RuntimeError("state not ready")
+        return super().get_state()
+
+
+def test_a_checkpoint_that_fails_once_stops_no_checkpoint_of_its_worker() -> None:
+    """Its error was named by asking for the state again, which raised in turn and ended
+    the worker's checkpoint thread: no module of that worker was checkpointed again."""
+    system = System("checkpoints-go-on")
+    system.add("flaky", NotReady, restart="last-state", group="g")
+    system.add("good", Steady, restart="last-state", group="g")
+    with system.launch(checkpoint_s=0.05) as run:
+        run.set_state("flaky", failing=True)
+        eventually(lambda: [e for e in run.logs() if "cannot checkpoint module 'flaky'" in
+                            e.message and "RuntimeError: state not ready" in e.message],
+                   what="the failed checkpoint said")
+        run.set_state("flaky", failing=False)
+        taken = {name: run.stats().modules[name].checkpoints for name in ("flaky", "good")}
+        eventually(lambda: all(run.stats().modules[name].checkpoints > taken[name] + 3
+                               for name in taken), what="checkpoints of both going on")
 
 
 def test_links_survive_a_restart_of_the_reading_worker() -> None:

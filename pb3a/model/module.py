@@ -113,7 +113,12 @@ class Module:
         known = set(type(self).state_names()) | {
             name for name, value in self.__dict__.items() if _is_state(name, value)}
         unknown = sorted(set(state) - known)
-        if unknown and not _RESTORING.get():
+        if unknown and _RESTORING.get():
+            # (a state from an earlier class of the module, a checkpoint taken before a
+            # swap: a name this class has as a method or a port stays that, not its value)
+            state = {name: value for name, value in state.items()
+                     if name in known or can_hold(type(self), name)}
+        elif unknown:
             close = difflib.get_close_matches(unknown[0], known, n=1)
             raise KeyError(
                 f"{type(self).__name__} has no state {', '.join(map(repr, unknown))}"

@@ -61,6 +61,10 @@ def dumps(obj: Any, *,
         return file.getvalue()
 
 
+class Unpicklable(TypeError):
+    """A module's state that cannot be pickled; the message is ``unpicklable_reason``'s."""
+
+
 def unpicklable_reason(exc: Exception, items: Any) -> str:
     """``exc``, raised pickling ``items`` (a module's state, an answer), in words that
     name the fields that cannot be pickled and what to do (pickle's own error names

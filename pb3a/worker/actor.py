@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
+import pickle
 import queue
 import threading
 import time
@@ -472,8 +473,15 @@ class ModuleActor:
 
     def checkpoint(self, timeout: float = 10.0) -> bytes:
         """The module's state, pickled under its lock: a body cannot change a list or an
-        array halfway through (the state names the module's objects, not copies)."""
-        return self.with_lock(lambda: pickling.dumps(self.module.get_state()), timeout)
+        array halfway through (the state names the module's objects, not copies). A
+        state that cannot be pickled is ``Unpicklable``, naming its fields."""
+        def pickled() -> bytes:
+            state = self.module.get_state()
+            try:
+                return pickling.dumps(state)
+            except (TypeError, AttributeError, pickle.PicklingError) as exc:
+                raise pickling.Unpicklable(pickling.unpicklable_reason(exc, state)) from None
+        return self.with_lock(pickled, timeout)
 
     def retire(self) -> dict[str, Any]:
         """Leave this process (migration); the caller holds the module lock (paused).

@@ -733,12 +733,14 @@ class Worker:
                     try:
                         blob = actor.checkpoint()
                     except Exception as exc:
-                        # (said once, not with a traceback at every checkpoint)
+                        # (said once, not with a traceback at every checkpoint; and never
+                        # the end of this thread, which checkpoints the others too)
                         if name not in self._uncheckpointed:
                             self._uncheckpointed.add(name)
                             log.error("cannot checkpoint module %r; a restart starts it from "
                                       "its last checkpoint, or fresh: %s", name,
-                                      pickling.unpicklable_reason(exc, actor.module.get_state()))
+                                      exc if isinstance(exc, pickling.Unpicklable)
+                                      else f"{type(exc).__name__}: {exc}")
                         continue
                     self._uncheckpointed.discard(name)
                     self.send((None, "checkpoint", {"name": name, "state": blob}))
