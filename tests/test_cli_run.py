@@ -78,8 +78,8 @@ if __name__ == '__main__':
 
 def test_the_pb3a_script_imports_from_the_current_directory_as_python_m_does(
         tmp_path: Path) -> None:
-    """``python -m pb3a`` has the current directory on its import path, the ``pb3a``
-    script had its own directory there instead: a class beside the user ("mods:Sink",
+    """``python -m pb3a`` had the current directory on its import path, the ``pb3a``
+    script its own directory there instead: a class beside the user ("mods:Sink",
     named by a file in a subdirectory) was found by one and not by the other, and a
     run's workers must find it too."""
     script = tmp_path / "bin" / "pb3a"
@@ -101,11 +101,22 @@ def test_the_pb3a_script_imports_from_the_current_directory_as_python_m_does(
         """))
     (work / "sub" / "rel.toml").write_text('name = "rel"\n[modules.src]\n'
                                            'class = "here_mods:Src"\n')
-    for command in (["check", "sub/rel.toml"], ["run", "sub/rel.toml", "--for", "1"]):
-        done = subprocess.run([sys.executable, str(script), *command], cwd=work, env=_env(),
+    def pb3a(program: list[str], *command: str) -> None:
+        done = subprocess.run([sys.executable, *program, *command], cwd=work, env=_env(),
                               capture_output=True, text=True, timeout=60, check=False)
-        assert done.returncode == 0, done.stdout + done.stderr
-    assert stepped.exists()                 # (a worker imported it, and it stepped)
+        assert done.returncode == 0, (program, done.stdout + done.stderr)
+
+    for program in ([str(script)], ["-m", "pb3a"]):
+        stepped.unlink(missing_ok=True)
+        pb3a(program, "check", "sub/rel.toml")
+        pb3a(program, "run", "sub/rel.toml", "--for", "1")
+        assert stepped.exists(), program     # (a worker imported it, and it stepped)
+    # the directory comes after the standard library: a file of the user's named as a
+    # standard module shadows nothing (put first, it broke every command of the script:
+    # "module 'random' has no attribute 'Random'")
+    (work / "random.py").write_text("raise SystemExit(\"the user's random.py\")\n")
+    for program in ([str(script)], ["-m", "pb3a"]):
+        pb3a(program, "check", "sub/rel.toml")
 
 
 @pytest.mark.parametrize("how", ["SIGTERM", "Ctrl-C", "SIGTERM to the group",

@@ -62,14 +62,15 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def import_from_here() -> None:
-    """Put the current directory first on the import path, as ``python -m pb3a`` has it
-    (the ``pb3a`` script had its own directory there instead, so a class beside the
-    user imported with one and not the other); the processes the command starts (the
-    check's import child, the nodes' workers) take the path from it."""
+    """Put the current directory on the import path, after the standard library and the
+    installed packages, for the ``pb3a`` script and ``python -m pb3a`` alike: the script
+    had its own directory there instead (a class beside the user imported with one
+    command and not the other), and put first, a ``logging.py`` or ``random.py`` of the
+    user's broke every command. The processes the command starts (the check's import
+    child, the nodes' workers) take the path from it."""
     with contextlib.suppress(OSError):          # (a directory removed under the shell)
         here = os.getcwd()
-        if here not in sys.path and "" not in sys.path:
-            sys.path.insert(0, here)
+        sys.path[:] = [*(entry for entry in sys.path if entry not in ("", here)), here]
 
 
 def handler_of(name: str) -> Callable[[argparse.Namespace], int]:
