@@ -1228,6 +1228,17 @@ class Kinds(Module):
     def __init__(self):
         super().__init__()
         self.kp = 1.0                   # state only an instance holds
+        self._pid = Kinds.__new__(Kinds)
+        self._pid.ki = 2.0              # (another object's)
+        self.speed = 1.0                # (through a property: no field)
+
+    @property
+    def speed(self):
+        return self._speed
+
+    @speed.setter
+    def speed(self, value):
+        self._speed = value
 '''
 
 
@@ -1269,6 +1280,12 @@ def test_a_state_value_of_another_kind_than_the_class_declares_is_refused_by_nam
         state = { kpp = 2.5 }
     """), "has no state 'kpp' (did you mean 'kp'?)", "its state is: gain, count, on, label, "
           "weights, limits, kp")
+    # what __init__ sets on another object, or through a property, is no field of it
+    assert len(problems_of(tmp_path, """
+        [modules.m]
+        class = "parts_kinds:Kinds"
+        state = { ki = 1.0, speed = 2.0 }
+    """)) == 2
     # the same from a program, before anything runs
     system = System("s")
     system.add("m", "parts_kinds:Kinds", state={"gain": "3.0"})

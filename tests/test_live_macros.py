@@ -51,6 +51,13 @@ def test_a_macro_is_added_whole_runs_moves_and_is_removed_whole() -> None:
         assert set(macro["modules"]) == {"a", "b"} and macro["modules"]["b"]["state"] == {
             "gain": 5.0}
         assert macro["links"] == [{"from": "a.y", "to": "b.x"}]
+        # a module may not take its name, nor one inside one of its modules (one named
+        # "c2" hid the macro instance: configuration() dropped it)
+        with pytest.raises(ConfigError, match="a macro instance of that name runs already: "
+                                              "c2/a, c2/b"):
+            run.add("c2", Counter)
+        with pytest.raises(ConfigError, match="c2/a is a module, not a macro instance"):
+            run.add("c2/a/x", Counter)
         report = run.migrate("c2", to="a")                          # it moves as one
         assert report.destination == "a" and run.where("c2/a") == run.where("c2/b") == "a"
         since = run.events()[-1].seq

@@ -85,6 +85,11 @@ def test_a_file_with_windows_line_ends_keeps_them_when_saved(pipeline: Path,
     edited = pipeline.read_bytes()
     assert b"gain = 4.0 }\r\n" in edited and b"\n" not in edited.replace(b"\r\n", b"")
     assert (tmp_path / "a.toml").read_bytes() == crlf
+    # a file of LF lines with one CRLF pasted in keeps its LF (all were made CRLF)
+    mixed = PIPELINE.read_bytes().replace(b"\n", b"\r\n", 1)
+    pipeline.write_bytes(mixed)
+    Document.open(pipeline).save()
+    assert pipeline.read_bytes().count(b"\r\n") <= 1
 
 
 def test_a_file_with_a_byte_order_mark_opens_and_keeps_it_when_saved(pipeline: Path) -> None:

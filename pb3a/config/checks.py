@@ -20,7 +20,7 @@ from pb3a.errors import MOST_SECONDS
 from pb3a.loading.references import class_ref
 from pb3a.model.displays import declared_displays, finite
 from pb3a.model.environment import PREFIX as ENV_PREFIX
-from pb3a.model.module import RESTART_POLICIES, Module
+from pb3a.model.module import RESTART_POLICIES, Module, can_hold
 from pb3a.model.state_edits import configured
 from pb3a.transport.addresses import tcp_address_problems
 
@@ -172,16 +172,26 @@ def state(cls: type[Module], value: Any) -> list[str]:
 
 
 def _set_in_init(cls: type[Module]) -> set[str]:
-    """The public attributes the class's ``__init__`` (or a base's) sets (``self.kp =
-    1.0``): state too, which only an instance holds (a file setting it was refused)."""
+    """The public attributes the class's ``__init__`` (or a base's) sets on the instance
+    (``self.kp = 1.0``): state too, which only an instance holds (a file setting it was
+    refused). Not a store through a property (it sets no field), nor one on another
+    object (``self.pid.gain = 2.0``)."""
     names = set()
     for klass in cls.__mro__:
         init = vars(klass).get("__init__")
-        if klass is Module or not hasattr(init, "__code__"):
+        if klass is Module or not hasattr(init, "__code__") or not init.__code__.co_varnames:
             continue
-        names.update(op.argval for op in dis.get_instructions(init)
-                     if op.opname == "STORE_ATTR" and not op.argval.startswith("_"))
-    return names
+        me, previous = init.__code__.co_varnames[0], None
+        for op in dis.get_instructions(init):
+            # (the instance is the last thing loaded: LOAD_FAST self, or 3.13's pair)
+            if op.opname == "STORE_ATTR" and previous is not None \
+                    and previous.opname.startswith("LOAD_FAST") \
+                    and me in (previous.argval, *(previous.argval
+                                                  if isinstance(previous.argval, tuple)
+                                                  else ())[-1:]):
+                names.add(op.argval)
+            previous = op
+    return {name for name in names if not name.startswith("_") and can_hold(cls, name)}
 
 
 def macro_state(value: Any) -> list[str]:

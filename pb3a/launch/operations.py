@@ -709,9 +709,8 @@ def _add_problems(name: Any, cls: Any, state: Any, period: Any, restart: Any, gr
                   nodes: list[str]) -> list[str]:
     """What keeps a new module from being added, in the compiler's words (a module
     instance's name, or a group's, may be a macro path: each of its parts is checked)."""
-    problems = checks.path(name, "module instance")
-    if isinstance(name, str) and name in modules:
-        problems.append("a module of that name runs already")
+    # (a module named as a running macro instance hid it: configuration() dropped it)
+    problems = _name_problems(name, modules, "module instance")
     if cls is not None:                         # (None names no class: the caller says why)
         if not (isinstance(cls, type) and issubclass(cls, Module) and cls is not Module):
             problems.append(f"{cls!r} is not a pb3a.Module subclass")
@@ -734,10 +733,11 @@ def _add_problems(name: Any, cls: Any, state: Any, period: Any, restart: Any, gr
     return problems
 
 
-def _name_problems(name: Any, modules: dict[str, FlatModule]) -> list[str]:
-    """What keeps ``name`` from being a new macro instance's: not a path, or taken (by a
-    module, or by another macro instance's modules), or inside a module."""
-    problems = checks.path(name, "macro instance")
+def _name_problems(name: Any, modules: dict[str, FlatModule],
+                   what: str = "macro instance") -> list[str]:
+    """What keeps ``name`` from being a new module's or macro instance's: not a path, or
+    taken (by a module, or by a macro instance's modules), or inside a module."""
+    problems = checks.path(name, what)
     if problems:
         return problems
     if name in modules:

@@ -70,7 +70,8 @@ class Document:
         self.name: str | None = None     # the file's name when opened in the page (no path)
         # the file's line ends, kept on save (a file written on Windows came back all LF,
         # every line changed for its version control); the text is edited with "\n"
-        self.newline = "\r\n" if "\r\n" in text else "\n"
+        # (its most lines': one CRLF pasted into a file of LF lines made them all CRLF)
+        self.newline = "\r\n" if 2 * text.count("\r\n") > text.count("\n") else "\n"
         # ... and its byte order mark, which Windows editors write (tomlkit refuses it:
         # the file did not open, "Empty key at line 1 col 0")
         self.bom = text.startswith(BOM)
