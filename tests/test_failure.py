@@ -18,8 +18,9 @@ import textwrap
 import threading
 import time
 import types
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import psutil
@@ -1731,6 +1732,25 @@ def test_a_forced_remove_kills_no_worker_that_runs_other_modules() -> None:
     assert closed is None and took < 10, f"close: {closed!r} after {took:.1f} s"
 
 
+@contextlib.contextmanager
+def _reading_nothing(run: Any, node: str) -> Iterator[None]:
+    """Node ``node``'s monitor reads no worker's pipe while inside (as a frozen executor
+    would not), then reads on."""
+    pool, reading = run._launcher.nodes[node].workers, threading.Event()
+    read = pool._read
+
+    def stuck(handle: Any) -> None:
+        reading.wait(30)
+        read(handle)
+
+    pool._read = stuck
+    try:
+        yield
+    finally:
+        pool._read = read
+        reading.set()
+
+
 def test_a_worker_whose_executor_reads_nothing_never_waits_to_send(tmp_path, caplog) -> None:
     """A worker's sends to its executor went through a plain pipe: with the executor
     frozen (for an embedded node, the launcher itself) or its reader stuck, the pipe
@@ -1745,21 +1765,10 @@ def test_a_worker_whose_executor_reads_nothing_never_waits_to_send(tmp_path, cap
     system.add("chatter", Chatterbox, node="a", state={"go": str(go), "told": str(told)})
     with system.launch(timeout=30) as run:
         eventually(lambda: run.stats().modules["chatter"].steps > 0, what="the agent runs")
-        pool, read, reading = run._launcher.nodes["a"].workers, None, threading.Event()
-        read = pool._read
-
-        def stuck(handle):                # the node's monitor reads no worker's pipe
-            reading.wait(30)
-            read(handle)
-
-        pool._read = stuck
-        try:
+        with _reading_nothing(run, "a"):
             go.touch()
             eventually(told.exists, timeout=15, what="the agent's request ended")
             took, outcome = told.read_text().split("\n", 1)
-        finally:
-            pool._read = read
-            reading.set()
         assert "withdrawn and will not run" in outcome, outcome
         assert float(took) < 2.5, f"the request took {float(took):.1f} s"
         eventually(lambda: "log records and error reports of this worker were dropped"
@@ -1793,22 +1802,11 @@ def test_checkpoints_taken_while_the_executor_reads_nothing_replace_each_other()
     with system.launch(checkpoint_s=0.05, timeout=30) as run:
         record = run._launcher.nodes["a"].modules["big"]
         eventually(lambda: record.checkpoints > 2, what="checkpoints")
-        pool, reading = run._launcher.nodes["a"].workers, threading.Event()
-        read = pool._read
-
-        def stuck(handle):                # the node's monitor reads no worker's pipe
-            reading.wait(30)
-            read(handle)
-
-        pool._read = stuck
-        try:
+        with _reading_nothing(run, "a"):
             eventually(_pipe_full(os.getpid()), what="the worker's pipe full")
             # (ten checkpoints more are taken while nothing is read)
             before = record.checkpoints
             time.sleep(0.5)
-        finally:
-            pool._read = read
-            reading.set()
         run.state("big", timeout=10)       # (everything sent before it is read)
         arrived = record.checkpoints - before
     assert arrived <= 6, f"{arrived} checkpoints arrived once the executor read again"

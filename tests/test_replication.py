@@ -183,56 +183,36 @@ def test_a_value_larger_than_the_replay_buffer_is_repaired_as_it_was_written(
     assert not follower.link_failures
 
 
-def test_a_publisher_more_than_its_window_of_bytes_ahead_waits_for_the_follower(
-        monkeypatch) -> None:
-    _tune(monkeypatch, WINDOW_BYTES=1 << 20, WINDOW_WAIT=0.05)
+@pytest.mark.parametrize("window", ["bytes", "values"])
+def test_a_publisher_more_than_its_window_ahead_waits_for_the_follower(monkeypatch,
+                                                                       window) -> None:
+    """Of bytes, and of values however small (the bytes alone let a follower that
+    acknowledged nothing fall any number of small values behind)."""
+    if window == "bytes":           # 256 KiB each: 4 fit in 1 MiB, then each waits
+        _tune(monkeypatch, WINDOW_BYTES=1 << 20, WINDOW_WAIT=0.05)
+        values, waits = [np.full(1 << 15, float(i)) for i in range(10)], 5
+    else:                           # 16 fit, then each waits
+        _tune(monkeypatch, WINDOW=16, WINDOW_WAIT=0.05)
+        values, waits = list(range(16 + 8)), 8
     # (a follower silent this long is a slow link, to which what does not fit is not
     # sent: that is test_a_writer_faster_than_its_link_sends_fresh_values...)
     _tune(monkeypatch, FRESH_S=30.0)
     gate, inbox = threading.Event(), Inbox()
 
-    def slow(topic: str, values: list[Any], sent_at: float) -> None:
+    def slow(topic: str, got: list[Any], sent_at: float) -> None:
         gate.wait(TIMEOUT)                    # the follower's thread: no ACK meanwhile
-        inbox(topic, values, sent_at)
+        inbox(topic, got, sent_at)
     replicator, follower = Replicator(KEY), Follower(KEY, slow)
     try:
         replicator.add("t")
         _follow(follower, replicator, "t", from_seq=0)
         assert follower.wait_ready("t", TIMEOUT)
-        arrays = [np.full(1 << 15, float(i)) for i in range(10)]     # 256 KiB each
-        for array in arrays:
-            replicator.publish("t", array)
-        assert replicator.counter("t").waits >= 5          # 4 fit in 1 MiB, then each waits
+        for value in values:
+            replicator.publish("t", value)
+        assert replicator.counter("t").waits >= waits
         gate.set()
-        got = inbox.wait("t", len(arrays))
-        assert all(np.array_equal(a, b) for a, b in zip(got, arrays, strict=True))
-        assert not follower.link_failures
-    finally:
-        gate.set()
-        follower.close()
-        replicator.close()
-
-
-def test_a_publisher_more_than_its_window_of_values_ahead_waits_for_the_follower(
-        monkeypatch) -> None:
-    """... and so of values, however small (the bytes alone let a follower that
-    acknowledged nothing fall any number of small values behind)."""
-    _tune(monkeypatch, WINDOW=16, WINDOW_WAIT=0.05, FRESH_S=30.0)
-    gate, inbox = threading.Event(), Inbox()
-
-    def slow(topic: str, values: list[Any], sent_at: float) -> None:
-        gate.wait(TIMEOUT)                    # the follower's thread: no ACK meanwhile
-        inbox(topic, values, sent_at)
-    replicator, follower = Replicator(KEY), Follower(KEY, slow)
-    try:
-        replicator.add("t")
-        _follow(follower, replicator, "t", from_seq=0)
-        assert follower.wait_ready("t", TIMEOUT)
-        for i in range(16 + 8):
-            replicator.publish("t", i)
-        assert replicator.counter("t").waits >= 8          # 16 fit, then each waits
-        gate.set()
-        assert inbox.wait("t", 16 + 8) == list(range(16 + 8))
+        got = inbox.wait("t", len(values))
+        assert all(np.array_equal(a, b) for a, b in zip(got, values, strict=True))
         assert not follower.link_failures
     finally:
         gate.set()
