@@ -295,7 +295,10 @@ def test_check_names_where_a_shared_import_hangs_and_waits_for_it_once(
     imported: the check blamed each class file in turn, never the driver's, and waited
     the timeout four times (41 s at the default). It names the driver's file and line,
     and refuses its import at once after the first wait."""
-    (tmp_path / "hw.py").write_text("import time\n\ntime.sleep(3600)\n")
+    # (a driver that handles SIGUSR1 for its own ends: the signal the stacks were asked
+    # with, which it then took over)
+    (tmp_path / "hw.py").write_text("import signal, time\nsignal.signal(signal.SIGUSR1, "
+                                    "lambda *_: None)\ntime.sleep(3600)\n")
     lines = ['name = "shared"']
     for number in range(1, 5):
         (tmp_path / f"c{number}.py").write_text(

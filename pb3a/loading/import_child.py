@@ -46,7 +46,9 @@ _BOOT = ("import json, sys; sys.path[:] = json.loads(sys.argv[1]); "
          "from {module} import {function}; {function}(json.loads(sys.argv[2]))")
 _CRASHES = {"SIGSEGV", "SIGBUS", "SIGILL", "SIGFPE", "SIGABRT"}
 # A child writes its threads' stacks on this signal to the pipe this variable names.
-_STACK_SIGNAL = signal.SIGUSR1
+# (a real-time one: a module file that handles SIGUSR1 for its own ends took it over,
+# and the stacks never came)
+_STACK_SIGNAL = signal.SIGRTMIN + 7
 _STACK_FD = "PB3A_STACK_FD"
 STACK_WAIT_S = 1.0        # how long a stuck child's stacks are waited for
 STACK_QUIET_S = 0.1       # ... and, once they come, a pause that ends them
