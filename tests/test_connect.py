@@ -17,6 +17,7 @@ from sample_modules import Chain, Counter, Doubler, FastScale, Last, Mapper, Rel
 
 import pb3a
 from pb3a import ConfigError, ModuleNotFound, RuntimeFailure, RuntimeTimeout, System
+from pb3a.launch import running
 from pb3a.model.displays import Display
 from pb3a.stats import SystemStats
 from pb3a.topology import NodeInfo, PortInfo
@@ -80,6 +81,21 @@ def test_a_connection_offers_what_launch_offers_with_the_same_errors() -> None:
         started = time.monotonic()
         assert far.events(far.events()[-1].seq, timeout=0.3) == []     # waited, then none
         assert time.monotonic() - started >= 0.3
+
+
+def test_a_class_object_is_not_sent_to_a_system_on_another_python(monkeypatch) -> None:
+    """A class sent by value is bytecode for one Python (pickled by 3.12, it crashed a
+    3.13 worker): through a connection to a system on another version, a class object
+    is refused naming both versions and the way round it, a "module:Class" it imports."""
+    monkeypatch.setattr(running, "PYTHON", "3.99")             # the launcher's, as it says
+    with _system().launch() as run, pb3a.connect(run.listen()) as far:
+        with pytest.raises(RuntimeFailure, match=r"add probe: the system runs Python 3\.99 "
+                                                 r"and this process Python \d+\.\d+, so a "
+                                                 r"class object cannot be sent to it: name the "
+                                                 r"class as 'module:Class'"):
+            far.add("probe", Last)
+        far.add("probe", "sample_modules:Last", state={"value": 2.5})
+        assert far.state("probe")["value"] == 2.5
 
 
 def test_connect_tells_no_answer_a_wrong_key_and_a_bad_address_apart() -> None:

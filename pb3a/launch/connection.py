@@ -16,6 +16,7 @@ from pb3a.launch.operations import DEFAULT_TIMEOUT
 from pb3a.transport.addresses import launcher_address, unknown_host
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import GONE_S, ControlClient
+from pb3a.transport.pickling import PYTHON
 
 CONNECT_TIMEOUT = 5.0       # a launcher answers a ping at once, or is not there
 _MARGIN = 5.0               # the wire's deadline beyond the operation's own
@@ -62,6 +63,7 @@ class Connection(SystemHandle):
         # what a call without ``timeout=`` waits there: the system's default, which its
         # file or launch() may set longer than the library's
         self.timeout: float = described.get("timeout", DEFAULT_TIMEOUT)
+        self._python: str | None = described.get("python")      # (None: an older launcher)
 
     def _stopped(self) -> SystemStopped:
         """What a call says once the launcher has closed the connection for good."""
@@ -71,6 +73,14 @@ class Connection(SystemHandle):
             f"{GONE_S:g} s (the launcher's process ended)")
 
     def _carry(self, op: str, args: dict[str, Any]) -> Any:
+        if isinstance(args.get("cls"), type) and self._python not in (None, PYTHON):
+            # (a class defined here travels as bytecode, which another Python reads
+            # wrongly or crashes on)
+            raise RuntimeFailure(
+                f"{op} {args.get('name')}: the system runs Python {self._python} and this "
+                f"process Python {PYTHON}, so a class object cannot be sent to it: name "
+                "the class as 'module:Class' (in a file the system can import), or run this "
+                f"on Python {self._python}")
         wait = args.get("timeout")
         deadline = (self.timeout if wait is None else wait) + _MARGIN
         return self._client.request(op, args, deadline)

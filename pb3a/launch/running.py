@@ -36,6 +36,7 @@ from pb3a.transport.addresses import (
 )
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlServer
+from pb3a.transport.pickling import PYTHON
 
 log = logging.getLogger("pb3a")
 _ASIDE = frozenset({"agent", "event", "checkpoint", "republished", "events", "logs", "migration"})
@@ -242,7 +243,7 @@ class Running(SystemHandle):
         agent on a remote node, a node telling what happened there (refused if its
         executor belongs to an earlier admission of the node: it was fenced)."""
         if op == "describe":
-            return {"name": self.name, "nodes": list(self.plan.nodes),
+            return {"name": self.name, "nodes": list(self.plan.nodes), "python": PYTHON,
                     "timeout": self._operations.timeout}     # a connection's default wait
         if op in ("agent", "republished", "event", "checkpoint"):
             self._launcher.check_node_epoch(args["node"], args["node_epoch"])
