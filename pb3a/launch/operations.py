@@ -466,8 +466,10 @@ class Operations:
                 launcher.node_of(name)                # raises ModuleNotFound
             asker = _ASKER.get()
             if asker is not None and asker[0] in names:
-                raise RuntimeFailure(f"remove {name}: agent {asker[0]!r} would remove "
-                                     "itself; an agent cannot remove its own macro")
+                raise RuntimeFailure(
+                    f"remove {name}: agent {asker[0]!r} is {'it' if name == asker[0] else 'in it'}"
+                    ": an agent cannot remove itself or the macro it is in (the stop would "
+                    "wait for the very call that asks it)")
             removed: list[str] = []
             try:
                 with bounding(left()):
