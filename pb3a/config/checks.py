@@ -181,16 +181,15 @@ def _set_in_init(cls: type[Module]) -> set[str]:
         init = vars(klass).get("__init__")
         if klass is Module or not hasattr(init, "__code__") or not init.__code__.co_varnames:
             continue
-        me, previous = init.__code__.co_varnames[0], None
+        me, loaded = init.__code__.co_varnames[0], None
         for op in dis.get_instructions(init):
-            # (the instance is the last thing loaded: LOAD_FAST self, or 3.13's pair)
-            if op.opname == "STORE_ATTR" and previous is not None \
-                    and previous.opname.startswith("LOAD_FAST") \
-                    and me in (previous.argval, *(previous.argval
-                                                  if isinstance(previous.argval, tuple)
-                                                  else ())[-1:]):
+            if op.opname == "STORE_ATTR" and loaded == me:     # (self.NAME = ...)
                 names.add(op.argval)
-            previous = op
+            # the local loaded last, the object a STORE_ATTR stores on (3.13 loads two at
+            # once: then the second)
+            loaded = op.argval if op.opname.startswith("LOAD_FAST") else None
+            if isinstance(loaded, tuple):
+                loaded = loaded[-1]
     return {name for name in names if not name.startswith("_") and can_hold(cls, name)}
 
 

@@ -414,12 +414,8 @@ class InputPort:
     def rate(self) -> float:
         """Values per second over the last window; decays once values stop arriving (at
         most 1 / the seconds since the last one), as ``stats()`` reports it: a module or
-        agent acting on it sees a writer that stopped."""
-        return self.current_rate()
-
-    def current_rate(self) -> float:
-        """Values per second over the last window; decays once values stop arriving
-        (computed when read: delivery only counts)."""
+        agent acting on it sees a writer that stopped (computed when read: delivery only
+        counts)."""
         if math.isnan(self._last_arrival):
             return 0.0
         now = time.monotonic()

@@ -61,6 +61,11 @@ def dumps(obj: Any, *,
         return file.getvalue()
 
 
+# what pickling a value that cannot be pickled raises (a lock: TypeError; a local
+# function under plain pickle: AttributeError)
+PICKLING_ERRORS = (TypeError, AttributeError, pickle.PicklingError)
+
+
 class Unpicklable(TypeError):
     """A module's state that cannot be pickled; the message is ``unpicklable_reason``'s."""
 

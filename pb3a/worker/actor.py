@@ -11,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
-import pickle
 import queue
 import threading
 import time
@@ -479,7 +478,7 @@ class ModuleActor:
             state = self.module.get_state()
             try:
                 return pickling.dumps(state)
-            except (TypeError, AttributeError, pickle.PicklingError) as exc:
+            except pickling.PICKLING_ERRORS as exc:
                 raise pickling.Unpicklable(pickling.unpicklable_reason(exc, state)) from None
         return self.with_lock(pickled, timeout)
 
@@ -676,7 +675,7 @@ class ModuleActor:
             inputs[name] = {"received": port.received, "drops": port.drops,
                             "pending": port.pending, "latency": port.latency,
                             "latency_counts": latencies.used(port.latency_counts),
-                            "rate": port.current_rate(), "link_failures": port.link_failures,
+                            "rate": port.rate, "link_failures": port.link_failures,
                             "policy": str(port.policy)}
         outputs = {name: port.written for name, port in self.outputs.items()}
         waits = {name: port.wait_figures() for name, port in self.outputs.items()}

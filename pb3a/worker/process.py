@@ -49,7 +49,7 @@ from pb3a.worker.publications import Publications
 from pb3a.worker.waits import RuntimeWait
 
 if TYPE_CHECKING:
-    from collections.abc import Callable, Sequence
+    from collections.abc import Callable, Iterator, Sequence
 
 log = logging.getLogger("pb3a.worker")
 
@@ -377,11 +377,8 @@ class Worker:
 
         def measure() -> int:
             holdings = actor.holdings()
-            try:
+            with _movable(name, holdings["state"]):     # (before anything of the move)
                 return Snapshot.measure(holdings)
-            except (TypeError, AttributeError, pickle.PicklingError) as exc:  # (what pickle raises)
-                raise Refused(f"module {name!r} cannot move: its state cannot be pickled: "
-                              + pickling.unpicklable_reason(exc, holdings["state"])) from None
         return actor.with_lock(measure, MEASURE_TIMEOUT)
 
     def op_migrate_out(self, name: str, segment: str, until: float | None = None) -> Snapshot:
@@ -401,11 +398,8 @@ class Worker:
         actor = self.actors[name]
         captured = actor.retire()
         try:
-            try:
+            with _movable(name, captured["state"]):
                 snapshot = Snapshot.capture(captured, segment, since=started)
-            except (TypeError, AttributeError, pickle.PicklingError) as exc:
-                raise Refused(f"module {name!r} cannot move: its state cannot be pickled: "
-                              + pickling.unpicklable_reason(exc, captured["state"])) from None
             if until is not None and time.monotonic() > until:
                 raise TimeoutError(f"module {name!r} was retired too late for its move "
                                    "(its teardown, or this worker, was slow): it stays here")
@@ -776,6 +770,18 @@ def _made(name: str, cls: type) -> Any:
     except Exception as exc:
         raise Refused(f"module {name!r}: making its class {class_ref(cls)} with no arguments "
                       f"failed: {type(exc).__name__}: {exc}") from None
+
+
+@contextlib.contextmanager
+def _movable(name: str, state: dict[str, Any]) -> Iterator[None]:
+    """Pickling module ``name``'s ``state`` for a move: one that cannot be is ``Refused``
+    naming its fields (pickle's error named only the type: "cannot pickle
+    '_thread.lock' object")."""
+    try:
+        yield
+    except pickling.PICKLING_ERRORS as exc:
+        raise Refused(f"module {name!r} cannot move: its state cannot be pickled: "
+                      + pickling.unpicklable_reason(exc, state)) from None
 
 
 def _as_held(module: Any, state: dict[str, Any]) -> dict[str, Any]:
