@@ -4,7 +4,9 @@ serving in one as the child of its owner."""
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
+import sys
 import threading
 from multiprocessing import spawn as mp_spawn
 from typing import Any
@@ -27,6 +29,27 @@ def mark_as(role: str) -> None:
 def role() -> str | None:
     """What PB3A started this process as; None in a process of the user's own."""
     return _role
+
+
+# Set, with PYTHONSAFEPATH, by a ``pb3a`` command for the Python processes it starts: the
+# workers' forkserver starts with ``python -c``, which puts the current directory first
+# on its path, and a user's ``random.py`` there broke its start (multiprocessing imports
+# ``tempfile``, which imports ``random``). The forkserver drops both as it preloads, so
+# a worker's own children (a driver's legacy program) get the environment the user had.
+_SAFE_PATH_SET = "PB3A_SET_PYTHONSAFEPATH"
+
+
+def children_skip_the_current_directory() -> None:
+    """Have the Python processes this one starts from now on leave the current
+    directory off the front of their import path (``-P``), unless the user chose."""
+    if not sys.flags.safe_path and not os.environ.get("PYTHONSAFEPATH"):
+        os.environ.update({"PYTHONSAFEPATH": "1", _SAFE_PATH_SET: "1"})
+
+
+def restore_the_user_s_path_setting() -> None:
+    """Undo ``children_skip_the_current_directory`` for this process's children."""
+    if os.environ.pop(_SAFE_PATH_SET, None):
+        os.environ.pop("PYTHONSAFEPATH", None)
 
 
 def start_without_main(process: Any, timeout: float | None = None) -> None:

@@ -167,7 +167,7 @@ class EmulatorProcess:
         ours, theirs = socket.socketpair()
         with theirs:
             self._process = subprocess.Popen(
-                [sys.executable, "-c", _CHILD, str(theirs.fileno())],
+                [sys.executable, "-P", "-c", _CHILD, str(theirs.fileno())],
                 pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL,
                 stdout=subprocess.DEVNULL, env=_child_environment())
         self._conn = Connection(ours.detach())
@@ -318,7 +318,9 @@ def serve_child(fd: int) -> None:
     _serve(Connection(fd))
 
 
-# Run by import (not ``-m``), so that what the child pickles is ``rave.emulator.Report``.
+# Run by import (not ``-m``), so that what the child pickles is ``rave.emulator.Report``;
+# with -P, so that a file in the current directory named as a standard module (a
+# user's ``random.py``) is not imported for it.
 _CHILD = "import sys; from rave.emulator import serve_child; serve_child(int(sys.argv[1]))"
 
 

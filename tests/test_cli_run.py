@@ -89,6 +89,8 @@ def test_the_pb3a_script_imports_from_the_current_directory_as_python_m_does(
     (work / "sub").mkdir(parents=True)
     stepped = tmp_path / "stepped"
     (work / "here_mods.py").write_text(textwrap.dedent(f"""
+        import os
+
         from pb3a import Module, Output
 
         class Src(Module):
@@ -96,7 +98,8 @@ def test_the_pb3a_script_imports_from_the_current_directory_as_python_m_does(
             period = 0.05
 
             def step(self):
-                open({str(stepped)!r}, "w").close()
+                with open({str(stepped)!r}, "w") as seen:
+                    seen.write(os.environ.get("PYTHONSAFEPATH", "unset"))
                 self.out.write(1)
         """))
     (work / "sub" / "rel.toml").write_text('name = "rel"\n[modules.src]\n'
@@ -113,10 +116,17 @@ def test_the_pb3a_script_imports_from_the_current_directory_as_python_m_does(
         assert stepped.exists(), program     # (a worker imported it, and it stepped)
     # the directory comes after the standard library: a file of the user's named as a
     # standard module shadows nothing (put first, it broke every command of the script:
-    # "module 'random' has no attribute 'Random'")
-    (work / "random.py").write_text("raise SystemExit(\"the user's random.py\")\n")
+    # "module 'random' has no attribute 'Random'"; then the check's import child and the
+    # workers' forkserver, which start with ``python -c``, imported a json.py or
+    # random.py there)
+    for name in ("random", "json", "tempfile"):
+        (work / f"{name}.py").write_text(f"raise SystemExit(\"the user's {name}.py\")\n")
     for program in ([str(script)], ["-m", "pb3a"]):
+        stepped.unlink(missing_ok=True)
         pb3a(program, "check", "sub/rel.toml")
+        pb3a(program, "run", "sub/rel.toml", "--for", "1")
+        # (and the worker's own children get the environment the user had)
+        assert stepped.read_text() == "unset", program
 
 
 @pytest.mark.parametrize("how", ["SIGTERM", "Ctrl-C", "SIGTERM to the group",

@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -199,6 +200,21 @@ def test_other_hardware_robots_do_not_run_ahead_of_a_world_that_cannot_step(
     lost.swap("sim")
     world.step(0.1)
     assert 0 < world.pose("mover")[0] - x <= 0.05        # 0.1 s at 0.5 m/s at most, not 1.1 s
+
+
+def test_an_emulator_starts_beside_a_file_named_as_a_standard_module(
+        world_of: WorldMaker, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The emulator's child starts with ``python -c``, which put the current directory
+    first on its path: a user's ``random.py`` or ``json.py`` there was imported for
+    Python's, and no hardware robot could start in that directory."""
+    for name in ("random", "json", "tempfile"):
+        (tmp_path / f"{name}.py").write_text(f"raise SystemExit('the user\'s {name}.py')\n")
+    monkeypatch.chdir(tmp_path)
+    world = world_of(size=(10, 8), seed=1)
+    robot = world.add_robot("hw", POSE, backend="hardware")
+    robot.drive(0.5, 0.0)
+    world.step(2.0)
+    assert world.pose("hw")[0] > POSE[0] + 0.4                 # it answers the world
 
 
 def test_an_emulator_outlives_no_world_process_even_killed() -> None:

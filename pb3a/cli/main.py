@@ -31,6 +31,7 @@ import sys
 from collections.abc import Callable, Sequence
 
 from pb3a.cli.standard_output import BROKEN_PIPE, output_gone
+from pb3a.processes import children_skip_the_current_directory
 
 INTERRUPTED = 130      # the shell's convention for a command ended by SIGINT
 
@@ -67,10 +68,12 @@ def import_from_here() -> None:
     had its own directory there instead (a class beside the user imported with one
     command and not the other), and put first, a ``logging.py`` or ``random.py`` of the
     user's broke every command. The processes the command starts (the check's import
-    child, the nodes' workers) take the path from it."""
+    child, the nodes' workers) take the path from it, and start without the directory
+    first (``-P``: the workers' forkserver starts with ``python -c``)."""
     with contextlib.suppress(OSError):          # (a directory removed under the shell)
         here = os.getcwd()
         sys.path[:] = [*(entry for entry in sys.path if entry not in ("", here)), here]
+    children_skip_the_current_directory()
 
 
 def handler_of(name: str) -> Callable[[argparse.Namespace], int]:

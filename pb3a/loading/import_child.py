@@ -41,7 +41,9 @@ from typing import Any, NoReturn
 
 OUTPUT_KEPT = 2000          # bytes of a child's output kept, when it is kept: the last ones
 
-# (what the child runs: the parent's import path first, as pb3a itself may be on it only)
+# (what the child runs: the parent's import path first, as pb3a itself may be on it only;
+# run with -P, as -c put the current directory first, and a user's json.py there
+# was imported for the standard library's)
 _BOOT = ("import json, sys; sys.path[:] = json.loads(sys.argv[1]); "
          "from {module} import {function}; {function}(json.loads(sys.argv[2]))")
 _CRASHES = {"SIGSEGV", "SIGBUS", "SIGILL", "SIGFPE", "SIGABRT"}
@@ -66,7 +68,7 @@ class Child:
         self._stacks, stacks = os.pipe()
         try:
             self.process = subprocess.Popen(
-                [sys.executable, "-c", _BOOT.format(module=module, function=function),
+                [sys.executable, "-P", "-c", _BOOT.format(module=module, function=function),
                  json.dumps(path), json.dumps(request)],
                 stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                 stderr=subprocess.PIPE if keep_output else None, start_new_session=True,

@@ -56,9 +56,10 @@ import warnings
 from multiprocessing import forkserver
 
 from pb3a.node.forkserver_owner import ORPHAN_GRACE_S, OWNER_MARK
-from pb3a.processes import mark_as
+from pb3a.processes import mark_as, restore_the_user_s_path_setting
 
 mark_as("the forkserver that starts a node's workers")
+restore_the_user_s_path_setting()      # (the workers' own children get the user's)
 
 for _signal in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
     signal.signal(_signal, signal.SIG_IGN)
