@@ -21,6 +21,7 @@ from pb3a.launch import running
 from pb3a.model.displays import Display
 from pb3a.stats import SystemStats
 from pb3a.topology import NodeInfo, PortInfo
+from pb3a.transport import control
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -133,6 +134,35 @@ def test_a_connection_to_a_system_that_stopped_says_so_at_once() -> None:
             assert time.monotonic() - started < 5
     connection.close()                      # (again: nothing more, as Running.close)
     assert connection.wait(None)            # (closed: at once)
+
+
+def test_a_connection_does_not_go_on_with_another_system_at_the_same_address(
+        monkeypatch) -> None:
+    """A system launched again on the fixed port of one that stopped, within the second
+    that counts a launcher gone, was taken for it: the connection went on reading and
+    changing the new system as if it were the one it had connected to. It says
+    ``SystemStopped`` instead (the second widened here, so the new system is surely
+    there before the first is counted gone)."""
+    monkeypatch.setattr(control, "GONE_S", 30.0)
+    first = System("first").add("scale", Scale).launch()
+    second = System("second").add("scale", Scale).launch()
+    try:
+        address = first.listen()
+        connection = pb3a.connect(address)
+        assert "gain" in connection.state("scale")
+        first.close()
+        assert second.listen(address) == address
+        started = time.monotonic()
+        with pytest.raises(pb3a.SystemStopped,
+                           match=r"'first' at tcp://.* has stopped: another process"):
+            connection.set_state("scale", gain=5.0)
+        assert time.monotonic() - started < 5
+        assert connection.wait(0) and not connection.running
+        assert second.state("scale")["gain"] != 5.0             # (it did not reach it)
+        connection.close()
+    finally:
+        first.close()
+        second.close()
 
 
 KILLED_LAUNCHER = """

@@ -439,12 +439,13 @@ def test_a_client_told_of_a_gone_server_fails_its_calls_once_nothing_listens_the
     same port within that second, while the client's loop was too busy to read the
     reconnection before its timer (the loop runs timers first), is not taken for gone."""
     server = ControlServer(KEY, handler)
-    client = ControlClient(KEY, server.address, when_gone=lambda: _Gone("gone"))
+    client = ControlClient(KEY, server.address, when_gone=_Gone)
     try:
         assert client.call("add", a=1, b=1) == 2
-        port = int(server.address.rpartition(":")[2])
+        port, instance = int(server.address.rpartition(":")[2]), server.instance
         server.close()
-        server = ControlServer(KEY, handler, port=port)         # back at once
+        server = ControlServer(KEY, handler, port=port)         # back at once ...
+        server.instance = instance          # ... the same server (a connection cut, say)
         client._loop.submit(lambda: time.sleep(1.3))            # the loop held busy
         assert client.call("add", timeout=5, a=2, b=2) == 4     # not gone
         assert not client.gone.is_set()
@@ -461,3 +462,26 @@ def test_a_client_told_of_a_gone_server_fails_its_calls_once_nothing_listens_the
         client.close()                                           # (again: nothing more)
         server.close()
         release.clear()
+
+
+def test_a_client_told_of_a_gone_server_takes_no_other_server_for_it() -> None:
+    """``when_gone``: another server started at the address of one that closed (another
+    system's launcher on the same fixed port, within the second that counts it gone)
+    fails the client's calls, then and for good; it was taken for the one the client had
+    talked to, and a connection went on with another system as if nothing had happened."""
+    server = ControlServer(KEY, handler)
+    client = ControlClient(KEY, server.address, when_gone=_Gone)
+    try:
+        assert client.call("add", a=1, b=1) == 2
+        port = int(server.address.rpartition(":")[2])
+        server.close()
+        server = ControlServer(KEY, handler, port=port)         # another, at once
+        for _ in range(2):                                      # (the second at once)
+            started = time.monotonic()
+            with pytest.raises(_Gone, match="another process has listened there since"):
+                client.call("add", timeout=5, a=2, b=2)
+            assert time.monotonic() - started < 2
+        assert client.gone.is_set()         # (and stays so, connected to the other one)
+    finally:
+        client.close()
+        server.close()

@@ -15,7 +15,7 @@ from pb3a.launch.handle import SystemHandle
 from pb3a.launch.operations import DEFAULT_TIMEOUT
 from pb3a.transport.addresses import launcher_address, unknown_host
 from pb3a.transport.auth import ClusterKey
-from pb3a.transport.control import GONE_S, ControlClient
+from pb3a.transport.control import ControlClient
 from pb3a.transport.pickling import PYTHON
 
 CONNECT_TIMEOUT = 5.0       # a launcher answers a ping at once, or is not there
@@ -32,7 +32,9 @@ def connect(address: str, *, key: ClusterKey | bytes | str | None = None,
     ``RuntimeTimeout`` when nothing answers within ``timeout`` and ``RuntimeFailure``
     when the launcher refuses the key, each saying what to check. Once connected, a
     launcher whose process ends fails the calls waiting for it and every later one
-    with ``SystemStopped``, about a second after it closed the connection.
+    with ``SystemStopped``, about a second after it closed the connection, or at once
+    when another launcher listens at the address by then (another system, or the same
+    one launched again: a connection is to one run of a system).
     """
     return Connection(address, key=key, timeout=timeout)
 
@@ -65,12 +67,10 @@ class Connection(SystemHandle):
         self.timeout: float = described.get("timeout", DEFAULT_TIMEOUT)
         self._python: str | None = described.get("python")      # (None: an older launcher)
 
-    def _stopped(self) -> SystemStopped:
-        """What a call says once the launcher has closed the connection for good."""
-        return SystemStopped(
-            f"system {getattr(self, 'name', '?')!r} at {self.address} has stopped: its "
-            f"launcher closed the connection and nothing has listened there for "
-            f"{GONE_S:g} s (the launcher's process ended)")
+    def _stopped(self, why: str) -> SystemStopped:
+        """What a call says once the launcher has gone for good (``why``: how it is known)."""
+        return SystemStopped(f"system {getattr(self, 'name', '?')!r} at {self.address} has "
+                             f"stopped: {why}")
 
     def _carry(self, op: str, args: dict[str, Any]) -> Any:
         if isinstance(args.get("cls"), type) and self._python not in (None, PYTHON):

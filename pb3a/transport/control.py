@@ -301,12 +301,14 @@ class ControlClient:
 
     With ``when_gone``, a server that closes the connection (its process ended, or it
     closed its socket) with nothing taking a connection there again within ``GONE_S``
-    fails every call waiting and every later one, with the error ``when_gone`` makes,
-    rather than at each call's deadline. A server cut off by the network closes
-    nothing: its calls still end at their deadlines."""
+    fails every call waiting and every later one, with the error ``when_gone`` makes
+    of the reason it is given, rather than at each call's deadline; and so does another
+    server, started anew at the address (another instance), which the client would
+    otherwise have taken for the one it was talking to. A server cut off by the network
+    closes nothing: its calls still end at their deadlines."""
 
     def __init__(self, key: ClusterKey, address: str, *, epoch: int = 0,
-                 when_gone: Callable[[], PB3AError] | None = None) -> None:
+                 when_gone: Callable[[str], PB3AError] | None = None) -> None:
         self.address = address
         self._dealer, _ = _attached(zmq.DEALER, lambda sock: sock.connect(numeric(address)))
         self._loop = SocketLoop("pb3a-control-client", self._dealer.context)
@@ -323,6 +325,8 @@ class ControlClient:
         self._when_gone = when_gone
         self._lost_at: float | None = None   # when the server closed our connection
         self.gone = threading.Event()        # ... and nothing took one there in GONE_S
+        self._replaced = False               # ... or another server took its place
+        self._gone_why = ""                  # (which of the two, in words)
         self._monitor: zmq.Socket | None = None
         if when_gone is not None:            # (before the loop thread uses the dealer)
             self._monitor = self._dealer.get_monitor_socket(
@@ -351,7 +355,7 @@ class ControlClient:
             if self._closed:      # (checked once registered: close fails what it finds)
                 raise RuntimeFailure(f"{op!r} to {self.address}: this client is closed")
             if self.gone.is_set() and self._when_gone is not None:     # (the same)
-                raise self._when_gone()
+                raise self._when_gone(self._gone_why)
             self._loop.submit(lambda: self._send(request_id))
             if not done.answered(timeout):
                 raise RuntimeTimeout(
@@ -395,8 +399,7 @@ class ControlClient:
             try:
                 message = self._opener.open(frames)
                 if message.kind == INSTANCE and len(message.frames) == 2:
-                    self._instance = bytes(message.frames[1])    # (signed: it is the
-                    self._send(bytes(message.frames[0]))        # server, started anew)
+                    self._on_instance(bytes(message.frames[0]), bytes(message.frames[1]))
                     continue
                 if message.kind != REPLY or len(message.frames) != 2:
                     raise Rejected("unexpected")
@@ -415,13 +418,34 @@ class ControlClient:
             except Exception:
                 self._opener.rejected["undecodable"] += 1
 
+    def _on_instance(self, request_id: bytes, instance: bytes) -> None:
+        """The server says who it is (signed: it is a server holding the key), for a
+        request that named another: the first answer, or a server started anew at the
+        address. Without ``when_gone`` the request goes again to it (a node controller
+        that restarted is the same node's); with it, the client was talking to a server
+        that has ended, and another one is not it (socket thread)."""
+        if self._when_gone is not None and self._instance not in (_NOBODY, instance):
+            self._replaced = True
+            self._lost("another process has listened there since (connect again to "
+                       "reach it)")
+            return
+        self._instance = instance
+        self._send(request_id)
+
+    def _lost(self, reason: str) -> None:
+        """The server is gone: every call waiting and every later one fails."""
+        self._gone_why = reason
+        self.gone.set()
+        self.fail_pending(self._when_gone(reason))
+
     def _on_connection(self, monitor: zmq.Socket) -> None:
         """The connection to the server was made, or closed by it (socket thread)."""
         while monitor.poll(0):
             event = recv_monitor_message(monitor)["event"]
             if event == zmq.EVENT_CONNECTED:
                 self._lost_at = None
-                self.gone.clear()
+                if not self._replaced:       # (the same server, reached again)
+                    self.gone.clear()
             elif event == zmq.EVENT_DISCONNECTED and self._lost_at is None:
                 self._lost_at = time.monotonic()
                 self._loop.later(GONE_S, self._look_for_server)
@@ -436,8 +460,8 @@ class ControlClient:
         if self._lost_at is None or time.monotonic() - self._lost_at < GONE_S \
                 or self._when_gone is None:
             return
-        self.gone.set()
-        self.fail_pending(self._when_gone())
+        self._lost(f"it closed the connection and nothing has listened there for "
+                   f"{GONE_S:g} s (its process ended)")
 
     def _refused(self, reason: str) -> None:
         """The server could not open our requests: every one waiting fails now."""
