@@ -28,7 +28,7 @@ from sample_modules import (
     Wanderer,
 )
 
-from pb3a import ConfigError, ModuleNotFound, RuntimeFailure, RuntimeTimeout, System
+from pb3a import ConfigError, Input, Module, ModuleNotFound, RuntimeFailure, RuntimeTimeout, System
 from pb3a.cli.main import main
 from pb3a.node.executor import Executor
 
@@ -320,6 +320,40 @@ def test_state_that_cannot_be_pickled_is_named_by_a_move_and_by_a_checkpoint_onc
         assert not [e for e in run.logs(mark) if "Traceback" in e.message]
 
 
+class KeepsALog(Module):
+    """A module that writes what it reads to a log file it keeps open in its state."""
+
+    x = Input(int, policy="queue:100000")
+    path = ""
+
+    def setup(self) -> None:
+        self.log = open(self.path, "a+")        # noqa: SIM115 (open while it runs)
+
+    def on_input(self, port) -> None:
+        self.log.write(f"{port.read()}\n")
+        self.log.flush()
+
+
+def test_a_module_keeping_an_open_file_in_its_state_is_not_moved_with_a_copy_of_it(
+        tmp_path) -> None:
+    """cloudpickle sent a file open for reading as an in-memory copy of what it held: the
+    module moved, and wrote its log to memory from then on, nothing said. An open file is
+    refused as a lock is, by name, and the module runs on writing to it."""
+    log = tmp_path / "relayed.log"
+    system = _nodes(System("move-file"), "a", "b")
+    system.add("src", Counter, node="a", period=0.002)
+    system.add("logger", KeepsALog, node="a", state={"path": str(log)})
+    system.link("src.out", "logger.x")
+    with system.launch() as run:
+        eventually(lambda: log.stat().st_size > 0, what="lines in the log")
+        with pytest.raises(RuntimeFailure, match=r"module 'logger' cannot move: its state "
+                           r"cannot be pickled: .*open file .*relayed.log.* \(in 'log'"):
+            run.migrate("logger", to="b")
+        assert run.where("logger") == "a"
+        size = log.stat().st_size
+        eventually(lambda: log.stat().st_size > size, what="the log written on")
+
+
 def test_a_failed_landing_puts_the_module_back_where_it_was(monkeypatch) -> None:
     with _through("move-fail", "relay", Relay).launch() as run:
         eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")
@@ -520,14 +554,11 @@ def test_an_agent_moves_a_module_without_waiting_and_sees_where_it_went() -> Non
     assert state["seen_moves"][0]["destination"] == "b"
 
 
-def test_a_move_whose_writer_will_not_pause_leaves_nothing_at_the_destination(
-        monkeypatch) -> None:
+def test_a_move_whose_writer_will_not_pause_leaves_nothing_at_the_destination() -> None:
     """The writers are paused after the destination is prepared, outside what undoes
-    a failed move: a writer busy past its pause's deadline left the prepared instance
-    and its worker at the destination (moving there and back later left it running)."""
-    from pb3a.launch.launcher import Launcher
-
-    monkeypatch.setattr(Launcher.paused.__wrapped__, "__defaults__", (1.0,))
+    a failed move: a writer busy past its pause's deadline (the move's) left the
+    prepared instance and its worker at the destination (moving there and back later
+    left it running)."""
     system = System("stalled").node("a").node("b")
     system.add("src", Staller, node="a")
     system.add("relay", Relay, node="a")
@@ -546,8 +577,8 @@ def test_a_move_whose_writer_will_not_pause_leaves_nothing_at_the_destination(
                 return True
             return False
         eventually(stalled, what="the writer in its long step")
-        with pytest.raises(RuntimeTimeout, match="src"):
-            run.migrate("relay", to="b")
+        with pytest.raises(RuntimeTimeout, match="ran out while pausing the writers src"):
+            run.migrate("relay", to="b", timeout=1.0)
         assert run.where("relay") == "a"
         assert list(b.modules) == []
         assert not [h for h in b.workers.handles.values() if "relay" in h.modules]
@@ -843,6 +874,44 @@ def test_a_move_whose_pause_outlasts_its_timeout_returns_in_time_where_it_was(
         eventually(lambda: run.state("relay")["relayed"] > relayed + 20,
                    what="relay relaying where it was")
         _every_value_once_in_order(run)
+
+
+class Plodder(Module):
+    """Steps quickly, but once ``slow`` exists takes one step of ``step_s`` seconds
+    (a planner's), saying it began by the file ``began``."""
+
+    period = 0.01
+    slow = ""
+    began = ""
+    step_s = 6.0
+    steps = 0
+
+    def step(self) -> None:
+        self.steps += 1
+        if os.path.exists(self.slow):
+            os.unlink(self.slow)
+            open(self.began, "w").close()
+            time.sleep(self.step_s)
+
+
+def test_a_module_in_a_step_longer_than_five_seconds_moves_within_the_move_s_timeout(
+        tmp_path) -> None:
+    """The move waited at most 5 s for the module's step to end, whatever its timeout:
+    a module whose step runs longer (a planner's) could never be moved ("busy in a call
+    for 5 s"). The pause waits as long as the move may take."""
+    slow, began = tmp_path / "slow", tmp_path / "began"
+    system = _nodes(System("move-plodder"), "a", "b")
+    system.add("plodder", Plodder, node="a", state={"slow": str(slow), "began": str(began)})
+    with system.launch() as run:
+        eventually(lambda: run.state("plodder")["steps"] > 3, what="steps")
+        slow.touch()
+        eventually(began.exists, what="the long step begun")
+        started = time.monotonic()
+        report = run.migrate("plodder", to="b", timeout=20.0)
+        assert time.monotonic() - started > 4.0          # (it waited for the step)
+        assert report.destination == "b" and run.where("plodder") == "b"
+        steps = run.state("plodder")["steps"]
+        eventually(lambda: run.state("plodder")["steps"] > steps, what="steps at b")
 
 
 def test_a_move_whose_undo_waits_for_a_busy_worker_returns_in_time_and_finishes_after(

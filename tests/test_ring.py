@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from conftest import eventually
 
-from pb3a import RuntimeTimeout
+from pb3a import Output, RuntimeTimeout
 from pb3a.transport import codec
 from pb3a.transport import ring as ring_module
 from pb3a.transport.doorbell import new_bell
@@ -102,9 +102,15 @@ def test_large_arrays_are_zero_copy_views_held_until_released() -> None:
 
 
 def test_oversized_value_names_the_fix(ring) -> None:
+    """The advice names a port that takes it: an Output(object) carrying a large array
+    was told to declare shape= and dtype= on it, which only an np.ndarray output takes."""
     _, writer, _ = ring
-    with pytest.raises(ValueError, match="shape= and dtype="):
+    with pytest.raises(ValueError, match=r"declare the output as Output\(np.ndarray, "
+                       r"shape=\.\.\., dtype=\.\.\.\)"):
         writer.write(np.zeros(1 << 20))
+    with pytest.raises(TypeError, match="shape and dtype may only be given"):
+        Output(object, shape=(1 << 20,), dtype="float64")   # (what it was told to do)
+    Output(np.ndarray, shape=(1 << 20,), dtype="float64")     # (what it is told now)
 
 
 def test_attach_refuses_a_segment_that_is_not_a_ring() -> None:

@@ -17,7 +17,10 @@ from pb3a.transport.snapshot import Snapshot, make_room
 def _value() -> dict:
     return {"c": np.arange(300_000, dtype=np.float64).reshape(600, 500),
             "fortran": np.asfortranarray(np.ones((64, 32), dtype=np.int16)),
-            "strided": np.arange(1000, dtype=np.int32)[::3],     # not contiguous: in band
+            "strided": np.arange(1000, dtype=np.int32)[::3],     # not contiguous
+            # (a strided view of a device's big-endian buffer: numpy's own pickle gave it
+            # back little-endian, copied in band)
+            "big_endian": np.arange(24, dtype=">f4").reshape(6, 4)[:, ::2],
             "empty": np.zeros(0, dtype=np.uint8),
             "raw": bytearray(b"x" * 5000), "small": {"count": 3, "name": "hoard"}}
 
@@ -39,10 +42,14 @@ def snapshot():
 
 def test_a_value_comes_back_equal_with_its_arrays_mapped_from_the_segment(snapshot) -> None:
     value, want = snapshot.restore(), _value()
-    want["strided"] = want["strided"].copy()         # (it comes back contiguous)
-    assert_same_arrays(value, {k: want[k] for k in ("c", "fortran", "strided", "empty")})
+    for strided in ("strided", "big_endian"):
+        want[strided] = want[strided].copy()         # (it comes back contiguous)
+    assert_same_arrays(value, {k: want[k] for k in ("c", "fortran", "strided", "big_endian",
+                                                    "empty")})
+    assert value["big_endian"].dtype == np.dtype(">f4")
     assert value["raw"] == want["raw"] and value["small"] == want["small"]
-    assert isinstance(_memory_under(value["c"]), mmap.mmap)      # mapped, not copied
+    for mapped in ("c", "strided", "big_endian"):    # mapped, not copied
+        assert isinstance(_memory_under(value[mapped]), mmap.mmap), mapped
     assert snapshot.nbytes > want["c"].nbytes and snapshot.capture_s > 0
     assert Snapshot.measure(_value()) >= snapshot.nbytes            # the room it takes
 

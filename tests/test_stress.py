@@ -12,6 +12,7 @@ import pytest
 from conftest import Daemon
 
 from pb3a.cli.main import main
+from pb3a.cli.stress import summary_text
 
 # alone: it loads the CPUs or measures against them (see the Makefile's test target)
 pytestmark = [pytest.mark.timeout(90), pytest.mark.serial]
@@ -108,3 +109,15 @@ policy = "queue:64"
     assert at["node_lost"] <= at["module_failed_over"] < at["node_joined"], report["marks"]
     late = [s for s in report["samples"] if s["t"] > report["samples"][-1]["t"] - 2]
     assert any(s["links"]["tick.out->scale.x"]["values_per_s"] > 0 for s in late)
+
+
+def test_the_summary_line_counts_the_failed_moves_too() -> None:
+    """A move that met a kill failed, and the line said "moves 4" while the report said
+    one had failed."""
+    summary = {"duration_s": 12.0, "values_per_s": 480.0, "kills": 2, "restarts": 2,
+               "migrations": 4, "migrations_failed": 1, "cuts": 0, "nodes_lost": 0,
+               "failovers": 0, "nodes_joined": 0, "links": {}, "nodes": {}}
+    line = summary_text({"system": "two", "summary": summary}).splitlines()[0]
+    assert "moves 4 (1 failed), cuts 0" in line, line
+    summary["migrations_failed"] = 0
+    assert "moves 4, cuts 0" in summary_text({"system": "two", "summary": summary})

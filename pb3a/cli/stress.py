@@ -407,7 +407,9 @@ def summary_text(report: dict[str, Any]) -> str:
     summary = report["summary"]
     lines = [f"{report['system']}: {summary['duration_s']:.0f} s, "
              f"{summary['values_per_s']:.0f} values/s, kills {summary['kills']}, "
-             f"restarts {summary['restarts']}, moves {summary['migrations']}, "
+             f"restarts {summary['restarts']}, moves {summary['migrations']}"
+             + (f" ({failed} failed)" if (failed := summary["migrations_failed"]) else "")
+             + ", "
              f"cuts {summary['cuts']}, nodes lost {summary['nodes_lost']}, failovers "
              f"{summary['failovers']}, nodes rejoined {summary['nodes_joined']}"]
     for key, link in summary["links"].items():

@@ -178,14 +178,14 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
         preparing = time.perf_counter()
         try:
             with clock.step(f"preparing node {node} (a worker, the code loaded)"):
-                segments = _prepare(launcher, homes, links, node, afterwards)
+                segments = _prepare(launcher, homes, links, node, afterwards, clock.timeout)
         except RuntimeTimeout as exc:           # (what was prepared is gone again)
             _unmoved(exc, homes)
             raise
         prepare_s = time.perf_counter() - preparing
         try:            # (let go with the segments, afterwards, as the block ends)
             with clock.step(f"pausing the writers {', '.join(writers)}"):
-                afterwards.enter_context(launcher.paused(writers))
+                afterwards.enter_context(launcher.paused(writers, clock.timeout))
         except BaseException as exc:    # a writer that would not pause: nothing moved,
             for name in moving:         # and the prepared instances and their workers go
                 _quietly(arriving.remove_module, name)
@@ -200,7 +200,9 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
         try:
             for name in moving:
                 with clock.step(f"pausing {name} at node {homes[name].node}"):
-                    if not launcher.nodes[homes[name].node].pause(name, 5.0):
+                    # (waits out a step in progress, as long as the move may take:
+                    # a fixed 5 s refused to move a planner whose step runs longer)
+                    if not launcher.nodes[homes[name].node].pause(name, clock.timeout):
                         raise RuntimeFailure(    # (before anything is unwired)
                             f"migration of {name} to node {node}: its worker is not "
                             "running (it died, and comes back by its restart policy); "
@@ -331,8 +333,9 @@ def _stay(launcher: Launcher, snapshots: dict[str, Snapshot], links: list[FlatLi
 
 
 def _prepare(launcher: Launcher, homes: dict[str, FlatModule], links: list[FlatLink],
-             node: str, afterwards: contextlib.ExitStack) -> dict[str, str]:
-    """Step 1 for each module: a segment at its source, released ``afterwards``, and
+             node: str, afterwards: contextlib.ExitStack, timeout: float) -> dict[str, str]:
+    """Step 1 for each module: a segment at its source, released ``afterwards`` (its
+    size measured once a call in progress ends, up to ``timeout``: the move's), and
     the module instantiated at ``node``, publishing already if its outputs will cross
     nodes from there; the segments. What was added is removed again if one fails."""
     arriving, segments, added = launcher.nodes[node], {}, []
@@ -341,7 +344,7 @@ def _prepare(launcher: Launcher, homes: dict[str, FlatModule], links: list[FlatL
     try:
         for name, home in homes.items():
             leaving = launcher.nodes[home.node]
-            segments[name] = leaving.reserve(name)
+            segments[name] = leaving.reserve(name, timeout)
             afterwards.callback(_quietly, leaving.release, segments[name])
             arriving.add_module(replace(home, node=node), state={})
             added.append(name)

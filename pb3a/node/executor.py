@@ -53,7 +53,7 @@ log = logging.getLogger("pb3a.executor")
 _module_log = logging.getLogger("pb3a.module")
 
 REPORT_TIMEOUT = 5.0
-_WAITS_FOR_THE_MODULE = frozenset({"get_state", "set_state"})
+_WAITS_FOR_THE_MODULE = frozenset({"get_state", "set_state", "snapshot_size"})
 
 
 class Executor:
@@ -474,10 +474,12 @@ class Executor:
         """Where this node's shared-memory segments can be seen (see ``retire``)."""
         return memory_domain()
 
-    def reserve(self, name: str) -> str:
+    def reserve(self, name: str, timeout: float = REQUEST_TIMEOUT) -> str:
         """Room for module ``name``'s snapshot, made before a migration pauses it: a
-        segment of this executor the size of the module's state now (``release`` it)."""
-        segment, size = segment_name("state"), self.call_module(name, "snapshot_size")
+        segment of this executor the size of the module's state now, measured once a
+        call in progress ends (up to ``timeout``; ``release`` it)."""
+        segment = segment_name("state")
+        size = self.call_module(name, "snapshot_size", timeout)
         try:
             make_room(segment, size)
         except OSError as exc:

@@ -93,8 +93,9 @@ class Node(Protocol):
         """Where the node's shared-memory segments can be seen: nodes of one domain hand
         each other a migrating module's snapshot by name."""
 
-    def reserve(self, name: str) -> str:
-        """Before a migration pauses module ``name``: a segment the size of its snapshot."""
+    def reserve(self, name: str, timeout: float) -> str:
+        """Before a migration pauses module ``name``: a segment the size of its snapshot
+        (measured once a call in progress ends, waited for up to ``timeout``)."""
 
     def retire(self, name: str, segment: str, carry: bool) -> Snapshot:
         """The migration fence: capture a paused module's state and inputs into the

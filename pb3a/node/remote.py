@@ -263,8 +263,8 @@ class RemoteNode:
             self._domain = self._forward("memory_domain")
         return self._domain
 
-    def reserve(self, name: str) -> str:
-        return self._forward("reserve", name)
+    def reserve(self, name: str, timeout: float) -> str:
+        return self._forward("reserve", name, timeout, within=timeout + MARGIN_S)
 
     def retire(self, name: str, segment: str, carry: bool) -> Snapshot:
         return self._forward("retire", name, segment, carry)

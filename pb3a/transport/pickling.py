@@ -20,6 +20,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 import cloudpickle
+import numpy as np
 
 _DYNAMIC = "<dynamic-code>"         # (what cloudpickle names code it sends by value)
 _reduce_code = cloudpickle.Pickler.dispatch_table[types.CodeType]
@@ -44,12 +45,35 @@ def _located(code: types.CodeType, filename: str) -> types.CodeType:
 PYTHON = f"{sys.version_info.major}.{sys.version_info.minor}"
 
 
+def _refuse_open_file(file: io.TextIOWrapper) -> Any:
+    """An open text file is refused, as a binary one is. cloudpickle sends one open for
+    reading as an in-memory copy of what it holds (read whole at every checkpoint): a
+    module's log file, moved or restored, was then written to memory, never to disk,
+    and nothing said so. (The standard streams stay cloudpickle's: the far side's own.)"""
+    if file is sys.stdout or file is sys.stderr:
+        return _CLOUDPICKLE_OWN[io.TextIOWrapper](file)
+    raise pickle.PicklingError(f"cannot pickle the open file {getattr(file, 'name', '?')!r}"
+                               " (a file stays on its machine)")
+
+
+def _array_in_order(array: np.ndarray) -> Any:
+    """numpy's own reduction of ``array``, made contiguous first if it is not: numpy
+    pickles a non-contiguous array by its values in native order, so a big-endian one
+    (``>f4``, a strided view of a device's buffer) came back little-endian, and copied
+    in the pickle instead of sent as an out-of-band buffer."""
+    if not (array.flags.c_contiguous or array.flags.f_contiguous):
+        array = np.ascontiguousarray(array)
+    return array.__reduce_ex__(5)
+
+
 class _Pickler(cloudpickle.Pickler):
-    """cloudpickle's pickler; code by value is sent with its file's name beside it. (A
-    dispatch table entry, not a ``reducer_override``: that runs for every object.)"""
+    """cloudpickle's pickler; code by value is sent with its file's name beside it, an
+    open file is refused, and an array keeps its dtype. (Dispatch table entries, not a
+    ``reducer_override``: that runs for every object.)"""
 
     dispatch_table = collections.ChainMap(    # (as deep as cloudpickle's; copyreg's live)
-        {**_CLOUDPICKLE_OWN, types.CodeType: _code_with_its_file}, *_COPYREG)
+        {**_CLOUDPICKLE_OWN, types.CodeType: _code_with_its_file,
+         io.TextIOWrapper: _refuse_open_file, np.ndarray: _array_in_order}, *_COPYREG)
 
 
 def dumps(obj: Any, *,

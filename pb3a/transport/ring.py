@@ -106,9 +106,12 @@ def check_fits(kind: int, meta_len: int, size: int, room: RingSize) -> None:
 
 
 def _too_large(kind: int, size: int, capacity: int) -> ValueError:
-    fix = ("declare shape= and dtype= on the output, which sizes its links for them"
-           if kind == codec.ARRAY else "values this large need an output of type object "
-           "(its links have 16 MiB rings), or send smaller ones")
+    # (the ring knows the value, not the port: an Output(object) was told to declare a
+    # shape and dtype, which only an np.ndarray output takes)
+    fix = ("declare the output as Output(np.ndarray, shape=..., dtype=...), which sizes "
+           "its links for such arrays" if kind == codec.ARRAY else
+           "values this large need an output of type object (its links have 16 MiB "
+           "rings), or send smaller ones")
     return ValueError(f"a value of {size} bytes does not fit this link's {capacity}-byte "
                       f"ring: {fix}")
 

@@ -57,7 +57,6 @@ SPIN_S = 100e-6          # values closer than this count as dense; poll this lon
 ERROR_REPORT_S = 1.0     # a module's exceptions are reported at most this often (all counted)
 AGENT_REQUEST_TIMEOUT = 30.0   # an agent's request to the runtime (a migration, say)
 RUNTIME_WAY_BACK_S = 1.0       # ... given a timeout: its answer's way back beyond it
-MEASURE_TIMEOUT = 5.0    # how long measuring a snapshot waits for a busy module's lock
 UNANSWERED = -1            # the id of a request whose answer nobody waits for
 TIMED_OUT = "timed out"   # a reply's status for a request that ran out of time (not False)
 REFUSED = "refused"       # for one whose arguments the module refused: the message is whole
@@ -370,16 +369,17 @@ class Worker:
             log.error("module %r did not start again after its move failed: %s", name,
                       failed[name])
 
-    def op_snapshot_size(self, name: str) -> int:
+    def op_snapshot_size(self, name: str, within: float = 10.0) -> int:
         """The bytes a migration's snapshot of the module would take now (measured under
-        its lock: a body must not change the state while it is pickled)."""
+        its lock, waited for up to ``within``: a body must not change the state while it
+        is pickled)."""
         actor = self.actors[name]
 
         def measure() -> int:
             holdings = actor.holdings()
             with _movable(name, holdings["state"]):     # (before anything of the move)
                 return Snapshot.measure(holdings)
-        return actor.with_lock(measure, MEASURE_TIMEOUT)
+        return actor.with_lock(measure, within)
 
     def op_migrate_out(self, name: str, segment: str, until: float | None = None) -> Snapshot:
         """Retire a paused module for its move: its state and unconsumed inputs, laid out
