@@ -8,6 +8,7 @@ child that died) ends up as an ``"error"`` entry in the JSON it prints.
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import multiprocessing
@@ -132,11 +133,21 @@ def parse_seeds(text: str) -> list[int]:
     return [int(seed) for seed in text.split(",")]
 
 
-def main_guard(body: Callable[[dict[str, Any]], None]) -> None:
+def main_guard(body: Callable[[dict[str, Any]], None],
+               flags: dict[str, str] | None = None) -> None:
     """Run ``body(result)``, then print ``result`` as JSON even if the body failed.
 
-    A failure is reported as ``result["error"]`` and exit status 1.
+    A failure is reported as ``result["error"]`` and exit status 1. ``flags`` (option ->
+    help), for a bench that reads no other arguments: the command line is read first,
+    so ``--help`` says what the bench measures and a mistaken option is refused (both
+    ran the whole bench before).
     """
+    if flags is not None:
+        doc = sys.modules["__main__"].__doc__ or ""
+        parser = argparse.ArgumentParser(description=" ".join(doc.strip().split("\n\n")[0].split()))
+        for flag, what in flags.items():
+            parser.add_argument(flag, action="store_true", help=what)
+        parser.parse_args()
     result: dict[str, Any] = {}
     failed = False
     try:

@@ -201,4 +201,4 @@ def body(result: dict[str, Any]) -> None:
 
 
 if __name__ == "__main__":
-    main_guard(body)
+    main_guard(body, {})

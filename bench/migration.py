@@ -107,4 +107,4 @@ def measure(case: str, cls: type, period: float, reps: int,
 
 
 if __name__ == "__main__":
-    main_guard(body)
+    main_guard(body, {"--controller": "node b behind a node controller, not embedded"})

@@ -79,10 +79,13 @@ class World:
 
     @classmethod
     def load(cls, path: str | Path, seed: int = 0, *, robots: bool = True) -> World:
-        """A world from a TOML world file (see ``rave/worldfile.py``); with ``robots``
-        False, its walls and obstacles only (no emulator process is started for the
-        hardware robots the file places)."""
-        plan = worldfile.read(Path(path))
+        """A world from a TOML world file (see ``rave/worldfile.py``), or a bundled one
+        by name (``"arena"``, as ``rave start`` takes it: a path relative to the
+        repository worked from its root only); with ``robots`` False, its walls and
+        obstacles only (no emulator process is started for the hardware robots the file
+        places)."""
+        path = worldfile.world_file(str(path))
+        plan = worldfile.read(path)
         world = cls(plan.size, seed, plan.name)
         for wall in plan.walls:
             world.add_wall(**wall)

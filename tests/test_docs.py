@@ -5,7 +5,11 @@ from __future__ import annotations
 import ast
 import functools
 import re
+import subprocess
+import sys
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -29,3 +33,17 @@ def test_every_test_named_in_the_guarantees_exists() -> None:
             missing.append(f"{current}::{name}")
     assert named >= 30
     assert not missing, f"guarantees.md names tests that do not exist: {missing}"
+
+
+BENCHES = sorted(path.name for path in (ROOT / "bench").glob("*.py")
+                 if not path.name.startswith("_"))
+
+
+@pytest.mark.parametrize("bench", BENCHES)
+def test_every_bench_says_what_it_measures_on_help_and_runs_nothing(bench: str) -> None:
+    """``bench/README.md`` and ``docs/performance.md`` give the benches' commands; five of
+    them ran the whole bench on ``--help`` (and on a mistaken option) instead."""
+    done = subprocess.run([sys.executable, str(ROOT / "bench" / bench), "--help"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith("usage:"), done.stdout       # (not the JSON of a run)

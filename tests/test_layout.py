@@ -143,6 +143,16 @@ def test_pb3a_knows_nothing_of_its_users() -> None:
     assert found == []
 
 
+@pytest.mark.parametrize(("top", "users"), [("rave", ("agents", "scenarios")),
+                                             ("agents", ("scenarios",))])
+def test_the_libraries_know_nothing_of_their_users(top: str, users: tuple[str, ...]) -> None:
+    """RAVE knows nothing of the agents library or the applications, and the library
+    nothing of the applications built from it (docs/architecture.md)."""
+    found = [f"{name} imports {target}" for name, path in _modules(top).items()
+             for target in _imports(name, path) if target.split(".")[0] in users]
+    assert found == []
+
+
 def test_rave_uses_only_what_pb3a_offers_its_users() -> None:
     found = {_unit(target) for name, path in _modules("rave").items()
              for target in _imports(name, path) if target.split(".")[0] == "pb3a"}

@@ -24,6 +24,7 @@ from rave import fleet as fleet_module
 from rave.emulator import EmulatorProcess
 from rave.sonar import SonarNoise
 
+REPO = Path(__file__).resolve().parent.parent
 EXACT = SonarNoise(sigma0=0.0, sigma_per_m=0.0)
 WorldMaker = Callable[..., World]
 
@@ -372,11 +373,18 @@ def test_the_same_seed_gives_the_same_run_and_another_seed_other_noise() -> None
     assert not np.array_equal(run(5), run(6))
 
 
-def test_bundled_worlds_load_and_a_bad_world_file_reports_every_problem(tmp_path) -> None:
+def test_bundled_worlds_load_and_a_bad_world_file_reports_every_problem(
+        tmp_path, monkeypatch) -> None:
+    """A bundled world loads by its name as ``rave start`` takes it, from any directory
+    (its path relative to the repository worked from the repository's root only)."""
+    monkeypatch.chdir(tmp_path)
     for name in ("arena", "lab"):
-        with World.load(f"rave/worlds/{name}.toml") as world:
+        with World.load(name, robots=False) as world:
+            assert world.obstacles and any(o.virtual for o in world.obstacles)
+        with World.load(REPO / "rave" / "worlds" / f"{name}.toml") as world:
             assert world.obstacles and world.robots
-            assert any(o.virtual for o in world.obstacles)
+    with pytest.raises(WorldError, match="no world 'arean': the bundled worlds are arena,"):
+        World.load("arean")
     bad = tmp_path / "bad.toml"
     bad.write_text("""
 name = 5
