@@ -36,12 +36,16 @@ def test_a_macro_is_added_whole_runs_moves_and_is_removed_whole() -> None:
         assert run.where("c2/a") == run.where("c2/b") == "b"
         assert run.state("c2/b")["gain"] == 5.0 and type(run.state("c2/b")["gain"]) is float
         assert "c2/a.y->c2/b.x" in run.topology().links            # its inner link
-        # at run time links join its modules' own ports, as a launched macro's do
-        with pytest.raises(ConfigError, match="no module 'c2'; it is a macro instance: name "
-                           "one of its modules, c2/a, c2/b"):
-            run.link("src.out", "c2.x")
-        run.link("src.out", "c2/a.x")
+        # links reach it through its exports, as a launched macro's do (they were refused:
+        # only its modules' own ports were linked at run time), or join those ports
+        with pytest.raises(ConfigError, match="macro instance 'c2' exports no port 'q'; it "
+                           "exports: x, y"):
+            run.link("src.out", "c2.q")
+        with pytest.raises(ConfigError, match=r"c2/b \(where c2.y leads\) has no input 'y'"):
+            run.link("src.out", "c2.y")
+        run.link("src.out", "c2.x")
         run.link("c2/b.y", "sink.x")
+        assert "src.out->c2/a.x" in run.topology().links
         eventually(lambda: run.state("sink")["value"] == 15.0, what="1.5 * 2 * 5 at the sink")
         folded = run.configuration()
         assert folded["problems"] == []
@@ -71,9 +75,15 @@ def test_a_macro_is_added_whole_runs_moves_and_is_removed_whole() -> None:
             "c2/a.y->c2/b.x", "c2/b.y->sink.x", "src.out->c2/a.x"}
         with pytest.raises(ModuleNotFound, match="no module 'c2'"):
             run.remove("c2")
+        with pytest.raises(ConfigError, match="no module 'c2'"):    # nor its exports
+            run.link("src.out", "c2.x")
         run.add("kit/o2", Outer)                # nested, and inside a path: as a file's
         assert {"kit/o2/chain/a", "kit/o2/chain/b", "kit/o2/tail"} <= set(
             run.topology().modules)
+        run.link("src.out", "kit/o2.x")         # (through the exports of both macros)
+        run.link("kit/o2/chain.y", "sink.x")
+        assert {"src.out->kit/o2/chain/a.x", "kit/o2/chain/b.y->sink.x"} <= set(
+            run.topology().links)
         added = [(event.kind, event.subject) for event in run.events()
                  if event.subject.startswith("kit/")]
         assert ("link_added", "kit/o2/chain/a.y->kit/o2/chain/b.x") in added

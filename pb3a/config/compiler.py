@@ -116,7 +116,8 @@ class _Planner:
         resolver = LinkResolver(self.problems, top, list(nodes))
         for definition in list(self.order):
             for export in definition.exports:
-                resolver.export(definition, export)
+                if (ref := resolver.export(definition, export)) is not None:
+                    definition.exported[export] = ref
         for definition in self.order:          # the system first, then unused macros too
             self.break_recursion(definition, [])
         for definition in self.order:
@@ -124,8 +125,8 @@ class _Planner:
         modules: dict[str, FlatModule] = {}
         labels: dict[str, str] = {}
         links: list[tuple[str, FlatLink]] = []
-        macros: dict[str, str] = {}
-        self.instantiate(top, within, None, group, modules, labels, links, macros)
+        instances: dict[str, Definition] = {}
+        self.instantiate(top, within, None, group, modules, labels, links, instances)
         self.check_inputs(links)
         self.check_groups(modules, labels)
         problems = list(dict.fromkeys(self.problems))
@@ -135,7 +136,11 @@ class _Planner:
                    else float(spec.timeout))
         preload = tuple(sorted({m.cls.__module__ for m in modules.values()} - {"__main__"}))
         return Plan(spec.name, nodes, modules, [link for _, link in links],
-                    dataclasses.replace(self.code, preload=preload), timeout, macros), problems
+                    dataclasses.replace(self.code, preload=preload), timeout,
+                    {path: macro.name for path, macro in instances.items()},
+                    {path: {export: (f"{path}/{ref.path}", ref.port)
+                            for export, ref in macro.exported.items()}
+                     for path, macro in instances.items()}), problems
 
     # -- the system's own tables ------------------------------------------
     def install_code(self) -> CodeSources:
@@ -357,14 +362,14 @@ class _Planner:
     def instantiate(self, definition: Definition, prefix: str, node: str | None,
                     group: str | None, modules: dict[str, FlatModule],
                     labels: dict[str, str], links: list[tuple[str, FlatLink]],
-                    macros: dict[str, str],
+                    instances: dict[str, Definition],
                     overrides: dict[str, list[Override]] | None = None) -> None:
-        """Expand ``definition`` under ``prefix``, naming each macro instance's macro in
-        ``macros``; ``overrides`` are the state its instance's ``state`` table (and those
-        of the instances around it) sets on its modules, keyed by their paths inside it:
-        per module, the innermost instance's first, each checked under its own entry and
-        applied in turn (an outer instance's value wins for the keys it sets, the inner
-        one's others stay)."""
+        """Expand ``definition`` under ``prefix``, each macro instance's macro kept in
+        ``instances`` by its path; ``overrides`` are the state its instance's ``state``
+        table (and those of the instances around it) sets on its modules, keyed by their
+        paths inside it: per module, the innermost instance's first, each checked under
+        its own entry and applied in turn (an outer instance's value wins for the keys it
+        sets, the inner one's others stay)."""
         overrides = dict(overrides or {})
         for name, child in definition.children.items():
             entry, path = child.spec, prefix + name
@@ -397,9 +402,9 @@ class _Planner:
                 for key in [key for key in overrides if key.startswith(f"{name}/")]:
                     inner.setdefault(key.removeprefix(f"{name}/"), []).extend(
                         overrides.pop(key))             # after the inner one's: it wins
-                macros[path] = child.macro.name
+                instances[path] = child.macro
                 self.instantiate(child.macro, path + "/", here, team, modules, labels, links,
-                                 macros, inner)
+                                 instances, inner)
         modules_here = [name for name, child in definition.children.items() if child.cls]
         for extra in [extra for layers in overrides.values() for extra in layers]:
             self.report(extra.label, [

@@ -55,6 +55,7 @@ class Definition:
     exports: dict[str, object]
     children: dict[str, Child] = field(default_factory=dict)
     resolved: list[tuple[str, PortRef, PortRef, Policy]] = field(default_factory=list)
+    exported: dict[str, PortRef] = field(default_factory=dict)    # its exports, resolved
     name: str = ""                   # what a plan's ``macros`` calls it: "Filter" (a Macro
                                      # class), "[macros.filter]"; "" for the system
 

@@ -2,7 +2,8 @@
 
 Macros are expanded into instance paths, classes resolved, links rewired through
 macro exports onto leaf module ports, and every value checked. Each macro instance's
-path is kept with the macro it is (``macros``), for drawings.
+path is kept with the macro it is (``macros``), for drawings, and with where its
+exports lead (``exports``), for links made at run time.
 """
 
 from __future__ import annotations
@@ -61,6 +62,9 @@ class Plan:
     timeout: float | None = None          # the file's default for operations, if it sets one
     macros: dict[str, str] = field(default_factory=dict)   # macro instance path -> its macro:
                                           # the Macro class's name, or "[macros.NAME]"
+    # macro instance path -> its exports, each the leaf port it leads to (module path, port):
+    # what a link made at run time to "f.x" joins
+    exports: dict[str, dict[str, tuple[str, str]]] = field(default_factory=dict)
 
 
 def split_by_macro(names: Iterable[str],

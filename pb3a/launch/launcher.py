@@ -256,14 +256,12 @@ class Launcher:
 
     def which_modules(self, name: str) -> str:
         """What to name instead of ``name``, which no module has: a macro instance's
-        modules (its name and exports are the configuration's, not the running system's:
-        only a move takes a macro whole); for an ``env-NODE`` module, how to start it
+        modules (a link may name its exports, but reading or changing one module names
+        it by its path); for an ``env-NODE`` module, how to start it
         (a link reading it does) or that there is no such node; else every module."""
         inner = [module for module in self.specs if module.startswith(f"{name}/")]
         if inner:
-            return (f"it is a macro instance: name one of its modules, {', '.join(inner)} "
-                    "(a macro's exported ports are wired when the system is built; at run "
-                    "time links join its modules' own ports)")
+            return f"it is a macro instance: name one of its modules, {', '.join(inner)}"
         modules = f"modules: {', '.join(self.specs) or '(none)'}"
         if name.startswith(ENV_PREFIX):
             node = name[len(ENV_PREFIX):]

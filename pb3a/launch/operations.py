@@ -339,6 +339,16 @@ class Operations:
         ends = []
         for text, side in ((src, "outputs"), (dst, "inputs")):
             module, _, port = text.rpartition(".")
+            shown = module
+            exports = self.plan.exports.get(module)
+            if exports is not None and module not in self.launcher.specs:
+                if port not in exports:        # (a macro instance's: its exports lead in)
+                    problems.append(f"link {src} -> {dst}: macro instance {module!r} exports "
+                                    f"no port {port!r}{checks.did_you_mean(port, exports)}; "
+                                    f"it exports: {checks.listing(exports)}")
+                    continue
+                module, port = exports[port]
+                shown = f"{module} (where {text} leads)"
             spec = env if env is not None and module == env.name else \
                 self.launcher.specs.get(module)
             if spec is None:
@@ -346,7 +356,7 @@ class Operations:
                                 + self.launcher.which_modules(module))
             elif port not in getattr(spec.cls, side):
                 names = ", ".join(getattr(spec.cls, side)) or "(none)"
-                problems.append(f"link {src} -> {dst}: {module} has no {side[:-1]} {port!r}; "
+                problems.append(f"link {src} -> {dst}: {shown} has no {side[:-1]} {port!r}; "
                                 f"its {side}: {names}")
             ends.append((module, port, spec))
         if problems:
@@ -404,9 +414,9 @@ class Operations:
         expanded and checked by the compiler as a configuration's entry is, then against
         the running modules (a name taken, a group on another node): one ``ConfigError``,
         nothing started. If a module of it cannot start, those added are removed again.
-        As for a launched macro, its exports are the configuration's (links at run time
-        join its modules' own ports) and only its paths say it is one: ``migrate``,
-        ``remove`` and ``configuration()`` find it by them."""
+        Links made at run time reach it through its exports (``"f2.x"``), as in a
+        configuration, or join its modules' own ports (``"f2/gain.x"``); ``migrate``,
+        ``remove`` and ``configuration()`` find it by its paths."""
         refused = _refused_imports(macro, deadline)
         with self._held(f"add {name}", _left(deadline), lend=[name]) as left:
             launcher = self.launcher
@@ -439,6 +449,7 @@ class Operations:
             specs, links = list(expanded.modules.values()), expanded.links
             with bounding(left()):
                 self._start_all(specs, links)
+            self.plan.exports.update(expanded.exports)
         for spec in specs:
             self.event_log.record("module_added", spec.name, node=spec.node, macro=name)
         for link in links:
@@ -482,9 +493,18 @@ class Operations:
             except (RuntimeTimeout, RuntimeFailure) as exc:
                 if not removed:
                     raise
+                self._forget_exports(name)
                 left_there = [child for child in names if child not in removed]
                 raise type(exc)(f"remove {name}: {exc}; removed: {', '.join(removed)}; "
                                 f"left running: {', '.join(left_there)}") from exc
+            self._forget_exports(name)
+
+    def _forget_exports(self, name: str) -> None:
+        """A removed macro instance's exports (and its inner instances'), which no link
+        made later may name (a module of it left running is still named by its path)."""
+        for instance in [path for path in self.plan.exports
+                         if path == name or path.startswith(f"{name}/")]:
+            del self.plan.exports[instance]
 
     def _removed(self, name: str, links: list[str], killed: int | None) -> None:
         """Record the removal of module ``name`` and of its ``links`` (``killed``: the
