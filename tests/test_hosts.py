@@ -27,6 +27,7 @@ from pb3a.transport.control import ControlClient
 REPO = Path(__file__).resolve().parent.parent
 
 pytestmark = pytest.mark.timeout(120)
+OUTAGE_S = 8.0          # how long a cut cable stays cut, at least
 
 
 def _can_make_namespaces() -> str:
@@ -330,8 +331,14 @@ def test_a_cut_off_node_fences_itself_its_modules_fail_over_and_it_rejoins(
         stats = run.stats()
         before = run.state("at_a")["received"]
         eventually(lambda: run.state("at_a")["received"] > before + 50, what="a goes on")
+        # an outage of 8 s (the launcher's connection to the controller, made before the
+        # cut, was then in TCP's retransmission backoff: b rejoined 4-10 s after the cable
+        # was back, where a new connection is answered at once)
+        run.wait(max(0.0, OUTAGE_S - (time.monotonic() - cut)))
         far.cut(up=True)
+        back = time.monotonic()
         eventually(lambda: run.stats().nodes["b"].up, timeout=20, what="b admitted again")
+        rejoin_s = time.monotonic() - back
         assert run.migrate("stamp", to="b").destination == "b"
         moved_back = run.state("copies")["received"]
         eventually(lambda: run.state("copies")["received"] > moved_back + 50,
@@ -345,6 +352,7 @@ def test_a_cut_off_node_fences_itself_its_modules_fail_over_and_it_rejoins(
     old, _ = copies["copies"]                   # moving back kept the copy it was
     assert float(stopped[old]) < copies["first_at"][1], "two copies delivered at once"
     assert copies["stale"] == 0 and rejoined.epoch == 2
+    assert rejoin_s < 3.0, f"b rejoined {rejoin_s:.2f} s after the cable was back"
 
 
 def test_a_node_controller_not_reached_is_told_refused_or_unanswered(lan: Lan) -> None:

@@ -12,6 +12,7 @@ import socket
 import threading
 import time
 
+import numpy as np
 import psutil
 import pytest
 from conftest import (
@@ -32,6 +33,7 @@ from sample_modules import (
     Freezer,
     Fussy,
     Hoard,
+    Last,
     LossWatcher,
     NodeTable,
     Relay,
@@ -40,7 +42,16 @@ from sample_modules import (
 )
 
 import pb3a
-from pb3a import Agent, ModuleNotFound, PB3AError, RuntimeFailure, RuntimeTimeout, System
+from pb3a import (
+    Agent,
+    Module,
+    ModuleNotFound,
+    Output,
+    PB3AError,
+    RuntimeFailure,
+    RuntimeTimeout,
+    System,
+)
 from pb3a.cli.status import format_table
 from pb3a.daemons.node_controller import Limits, NodeController
 from pb3a.node import remote
@@ -152,6 +163,69 @@ def test_megabytes_of_numpy_state_move_intact_between_node_controllers(controlle
     assert snapshots == []                   # each freed by the executor that made it
 
 
+class Ballast(Module):
+    """A module whose state is larger than one control message carries; its checksum,
+    on its output, says whether a move kept it."""
+
+    checksum = Output(float)
+    period = 0.1
+    mib = 80
+    steps = 0
+
+    def setup(self) -> None:
+        if not hasattr(self, "ballast"):           # (made once: a move brings it back)
+            self.ballast = np.arange(self.mib * 2**20 // 8, dtype=np.float64)
+
+    def step(self) -> None:
+        self.steps += 1
+        self.checksum.write(float(self.ballast[::4096].sum()) + self.ballast.size)
+
+
+def test_a_state_larger_than_a_control_message_moves_between_machines_and_is_not_read(
+        controllers, monkeypatch) -> None:
+    """Between memory domains the snapshot went whole in the executor's answer and in the
+    landing's request: over the 64 MiB a control message carries, ZeroMQ dropped the
+    connection the heartbeats use, the node was taken for lost and the module with it.
+    It goes in pieces now, from the embedded node to one controller, between the two, and
+    back. And reading such a state, which cannot come back in one answer, is refused
+    saying so, the node and the module going on (the read had the node lost too)."""
+    monkeypatch.setattr(RemoteNode, "memory_domain", lambda self: self.name)  # 3 machines
+    system = System("ballast").node("a")
+    for name, controller in controllers.items():
+        system.node(name, address=controller.address)
+    system.add("ballast", Ballast, node="a", restart="last-state")
+    system.add("sums", Last, node="a")
+    system.link("ballast.checksum", "sums.x")
+    expected = float(np.arange(Ballast.mib * 2**20 // 8, dtype=np.float64)[::4096].sum()) \
+        + Ballast.mib * 2**20 // 8
+    with system.launch(checkpoint_s=0.2) as run:
+        eventually(lambda: run.state("sums")["value"] == expected, timeout=30, what="a sum")
+        for to in ("b", "c", "a"):
+            report = run.migrate("ballast", to=to, timeout=60)
+            assert report.state_bytes > 80 * 2**20 and run.where("ballast") == to
+            run.set_state("sums", value=0.0)
+            eventually(lambda: run.state("sums")["value"] == expected, timeout=30,
+                       what=f"the same sum from node {to}")
+            if to == "c":
+                with pytest.raises(RuntimeFailure, match=r"its answer is 80\.\d MiB, more "
+                                   r"than one control message carries \(64 MiB\)"):
+                    run.state("ballast")
+                assert run.nodes()["c"].up and run.where("ballast") == "c"
+                # its checkpoints cannot reach the launcher either: said, once (they were
+                # dropped unsaid, and a failover started it afresh)
+                def unsent() -> list[str]:
+                    return [e.message for e in run.logs()
+                            if "ballast's checkpoints are not kept" in e.message
+                            and "if node c is lost" in e.message]
+                eventually(unsent, what="the checkpoints said to be too large")
+                run.wait(0.6)                                 # (three checkpoints more)
+                assert len(unsent()) == 1, unsent()
+        lost = [e for e in run.events() if e.kind in ("node_lost", "module_lost")]
+        ours = [os.getpid(), *(child.pid for child in psutil.Process().children(recursive=True))]
+        snapshots = [name for pid in ours for name in live_segments(pid) if "_state" in name]
+    assert lost == [] and snapshots == []
+
+
 @pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGSTOP], ids=["dies", "is-cut-off"])
 def test_a_lost_node_is_detected_within_3_s_and_reported_while_the_rest_goes_on(
         controllers, how) -> None:
@@ -183,6 +257,14 @@ def test_a_lost_node_is_detected_within_3_s_and_reported_while_the_rest_goes_on(
         # its controller never went: the node is admitted again, without its module
         back = eventually(lambda: run.stats().nodes["b"].epoch == 2 and run.stats(),
                           what="node b admitted again")
+        # added again and linked as before (docs/deploy.md, step 7): a new link, with
+        # figures of its own (it showed the old one's values lost with the node)
+        lost_with_b = run._launcher.lost_values["src.out->far.x"]
+        run.add("far", Collector, node="a")
+        run.link("src.out", "far.x")
+        eventually(lambda: run.state("far")["received"] > 10, what="values at far again")
+        relinked = run.stats().links["src.out->far.x"]
+    assert lost_with_b > 0 and relinked.link_failures == 0, (lost_with_b, relinked)
     assert detected < 3.0, f"node loss detected after {detected:.2f} s"
     assert [event.subject for event in run.events() if event.kind == "node_lost"] == ["b"]
     assert back.nodes["b"].up and back.nodes["a"].up

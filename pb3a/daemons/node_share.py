@@ -42,7 +42,7 @@ from pb3a.node.remote import LEASE_S
 from pb3a.node.restarts import LOCK_TIMEOUT
 from pb3a.processes import mark_as, serve_as_child, stop_on_sigterm
 from pb3a.transport.auth import ClusterKey
-from pb3a.transport.control import ControlClient, ControlServer
+from pb3a.transport.control import ControlClient, ControlServer, TooLarge
 from pb3a.worker.process import agent_wait
 
 log = logging.getLogger("pb3a.node")
@@ -75,6 +75,7 @@ class NodeShare:
         self.executor.lease_end = self._lease_end
         self._checkpoints: dict[str, bytes] = {}       # the newest, not yet sent
         self._checkpointed = threading.Condition()
+        self._unsent: set[str] = set()        # modules whose checkpoints are too large
         self.server: ControlServer | None = None
         self.peers: dict[str, ControlClient] = {}     # other nodes, pinged for their RTT
         self.rtts: dict[str, float] = {}
@@ -194,7 +195,16 @@ class NodeShare:
                                             1.0)
                 pending, self._checkpoints = self._checkpoints, {}
             for module, state in pending.items():
-                self._call_launcher("checkpoint", module=module, state=state)
+                try:
+                    self._call_launcher("checkpoint", module=module, state=state)
+                except TooLarge as exc:   # (said once: it is refused the same each time)
+                    if module not in self._unsent:
+                        self._unsent.add(module)
+                        log.warning("module %s's checkpoints are not kept by the launcher "
+                                    "(%s): if node %s is lost, the module starts afresh "
+                                    "where it fails over", module, exc, self.node)
+                else:
+                    self._unsent.discard(module)
 
     def _republished(self, link: Any, endpoint: tuple[str, str, bytes]) -> None:
         self._tell_launcher("republished", link=link, endpoint=endpoint)
@@ -210,9 +220,15 @@ class NodeShare:
                          name=f"pb3a-{op}", daemon=True).start()
 
     def _call_launcher(self, op: str, **args: Any) -> None:
+        """Call the launcher, which may be gone or cut off (what it misses, it asks for
+        again or does without); a request too large to send raises ``TooLarge``."""
         if self.launcher is not None:
-            with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+            try:
                 self.launcher.call(op, **args, **self._signed())
+            except TooLarge:
+                raise
+            except (RuntimeFailure, RuntimeTimeout):
+                pass
 
     def _leased(self) -> bool:
         """Whether this executor's lease runs now: renewed within the lease, and its watch

@@ -362,8 +362,11 @@ class Launcher:
                 self.failures.add(f"link {link.key} not wired again {when}: {exc}")
 
     def connect(self, *links: FlatLink) -> None:
-        """Add and wire links (those inside one node in one request to it)."""
+        """Add and wire links (those inside one node in one request to it). A new link's
+        figures are its own: what a link of the same name lost before is forgotten."""
         for link in links:
+            if link.key not in self.links:
+                self.lost_values.pop(link.key, None)
             self.links[link.key] = link
         self.attach(*links)
 

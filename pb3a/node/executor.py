@@ -44,7 +44,7 @@ from pb3a.transport import pickling
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.replication import follower_id
 from pb3a.transport.shm import memory_domain, reap_orphans, segment_name, unlink_name
-from pb3a.transport.snapshot import Snapshot, make_room
+from pb3a.transport.snapshot import Snapshot, make_room, read_piece, write_piece
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterator
@@ -517,14 +517,24 @@ class Executor:
 
     def land(self, name: str, snapshot: Snapshot) -> float:
         """Restore what ``retire`` captured into the (instantiated, not started) module;
-        the seconds its worker took."""
-        if not snapshot.carried:
-            return self.call_module(name, "migrate_in", snapshot=snapshot)
-        here = snapshot.lay_out(segment_name("state"))
+        the seconds its worker took. A snapshot carried, or staged here in pieces, is
+        unlinked once restored (or not)."""
+        here = snapshot.lay_out(segment_name("state")) if snapshot.carried else snapshot
         try:
             return self.call_module(name, "migrate_in", snapshot=here)
         finally:
-            unlink_name(here.segment)
+            if here is not snapshot or snapshot.staged:
+                unlink_name(here.segment)
+
+    def read_snapshot(self, segment: str, offset: int, size: int) -> bytes:
+        return read_piece(segment, offset, size)
+
+    def write_snapshot(self, segment: str, size: int, offset: int, data: bytes) -> str:
+        if not segment:
+            segment = segment_name("state")
+            make_room(segment, size)
+        write_piece(segment, offset, data)
+        return segment
 
     def release(self, segment: str) -> None:
         """A migration from here is over (or did not happen): unlink the segment reserved

@@ -106,6 +106,16 @@ class Node(Protocol):
         """Restore what ``retire`` captured into an instantiated, unstarted module; the
         seconds its worker took."""
 
+    def read_snapshot(self, segment: str, offset: int, size: int) -> bytes:
+        """``size`` bytes from ``offset`` of a snapshot ``retire`` captured here: a piece
+        of what a remote node carries to another domain, each within one control
+        message (a 66 MiB state in one answer broke the connection)."""
+
+    def write_snapshot(self, segment: str, size: int, offset: int, data: bytes) -> str:
+        """Write a piece of a snapshot coming from another domain at ``offset`` of
+        ``segment``, a new segment of ``size`` bytes made here if ``segment`` is "";
+        the segment's name (``land`` a ``staged`` snapshot of it, which unlinks it)."""
+
     def release(self, segment: str) -> None:
         """After a migration from this node: unlink its segment, stop any worker left empty."""
 

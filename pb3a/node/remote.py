@@ -19,6 +19,7 @@ import contextlib
 import math
 import threading
 import time
+from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 from pb3a.config.description import DEFAULT_SPARES
@@ -43,6 +44,7 @@ PROBE_S = 1.0              # ... and then a plain connection there tells why it 
 START_TIMEOUT = 60.0       # an executor process imports numpy and friends first
 CALL_TIMEOUT = 60.0        # the executor's own requests to its workers have deadlines
 MARGIN_S = 5.0             # beyond an operation's own deadline: the way there and back
+PIECE = 16 * 2**20         # a snapshot carried to or from another machine goes in pieces
 HEARTBEAT_S = 0.25         # how often the launcher's side pings the executor
 LEASE_S = 1.25             # an executor that hears no renewal this long fences itself
 LOSS_S = 2.0               # no answer for this long: the node is lost (reported within 3 s)
@@ -94,7 +96,7 @@ class RemoteNode:
                  epoch: int = 0, node_epoch: int = 1, spares: int = DEFAULT_SPARES) -> None:
         self.name, self.config = name, config
         self.node_epoch = node_epoch        # 1, then one more each time the node rejoins
-        key = ClusterKey.load()
+        key = self._key = ClusterKey.load()
         self.controller = ControlClient(key, address)
         self.client: ControlClient | None = None
         self.lost = False
@@ -267,10 +269,43 @@ class RemoteNode:
         return self._forward("reserve", name, timeout, within=timeout + MARGIN_S)
 
     def retire(self, name: str, segment: str, carry: bool) -> Snapshot:
-        return self._forward("retire", name, segment, carry)
+        """The executor captures into ``segment`` on its machine; carried, the parts come
+        back in pieces of at most ``PIECE`` bytes: a control message is bounded, and a
+        66 MiB state in one answer broke the connection the heartbeats use, the node
+        was taken for lost and the module with it."""
+        snapshot: Snapshot = self._forward("retire", name, segment, False)
+        if not carry:
+            return snapshot
+        carried = tuple(b"".join(self._forward("read_snapshot", segment, at + offset,
+                                               min(PIECE, size - offset))
+                                 for offset in range(0, size, PIECE))
+                        for at, size in snapshot.parts)
+        return replace(snapshot, segment="", carried=carried)
 
     def land(self, name: str, snapshot: Snapshot) -> float:
-        return self._forward("land", name, snapshot)
+        """A carried snapshot goes in pieces (see ``retire``) into a segment staged on the
+        executor's machine, which its landing unlinks (or this, if a piece fails)."""
+        if not snapshot.carried:
+            return self._forward("land", name, snapshot)
+        segment = ""
+        try:
+            for (at, size), part in zip(snapshot.parts, snapshot.carried, strict=True):
+                for offset in range(0, size, PIECE):
+                    segment = self._forward("write_snapshot", segment, snapshot.end,
+                                            at + offset, part[offset:offset + PIECE])
+        except BaseException:
+            if segment:
+                with contextlib.suppress(RuntimeFailure, RuntimeTimeout), lifted():
+                    self._forward("release", segment)
+            raise
+        return self._forward("land", name, replace(snapshot, segment=segment, carried=(),
+                                                   staged=True))
+
+    def read_snapshot(self, segment: str, offset: int, size: int) -> bytes:
+        return self._forward("read_snapshot", segment, offset, size)
+
+    def write_snapshot(self, segment: str, size: int, offset: int, data: bytes) -> str:
+        return self._forward("write_snapshot", segment, size, offset, data)
 
     def release(self, segment: str) -> None:
         self._forward("release", segment)
@@ -339,7 +374,14 @@ class RemoteNode:
         return time.monotonic() - self._answered
 
     def controller_answers(self, timeout: float) -> bool:
-        """True if the node's controller answered within ``timeout`` seconds."""
+        """True if the node's controller answered within ``timeout`` seconds. A lost
+        node's is asked on a new connection each time (which its ``stop_executor`` then
+        uses): the one made before a cut cable stays in TCP's retransmission backoff
+        long after the cable is back, and a node rejoined 8-10 s after it answered."""
+        if self.lost:
+            stale, self.controller = self.controller, ControlClient(self._key,
+                                                                    self.controller.address)
+            stale.close()
         return self.controller.ping(timeout) is not None
 
     def unloadable(self, refs: dict[str, str], timeout: float, longer: str) -> dict[str, str]:

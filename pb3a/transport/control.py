@@ -72,6 +72,11 @@ _REFUSAL_HINTS = {
     "stale epoch": "it works for a newer run of this system",
 }
 MAX_MESSAGE = 64 * 1024 * 1024          # control messages carry states and code, not streams
+# The largest request or answer sent: the frame's header and tag fit beside it. A frame
+# over MAX_MESSAGE makes ZeroMQ drop the connection it came on, which a node's heartbeats
+# share: reading a module's 66 MiB state had its node declared lost, and the module with
+# it. One that large is refused where it is made, saying so, and nothing is dropped.
+MAX_PAYLOAD = MAX_MESSAGE - 64 * 1024
 DEFAULT_TIMEOUT = 10.0
 # A server that closed the client's connection, with nothing taking a connection there
 # since for this long, is gone (see ``ControlClient``'s ``when_gone``); a server that
@@ -240,13 +245,17 @@ class ControlServer:
         except Exception as exc:
             log.debug("request %s failed", op, exc_info=True)
             result, ok = f"{type(exc).__name__}: {exc}", False
-        self._loop.submit(lambda: self._reply(peer, request_id, ok, result))
+        self._loop.submit(lambda: self._reply(peer, request_id, ok, result, op))
 
-    def _reply(self, peer: Any, request_id: bytes, ok: bool, result: Any) -> None:
+    def _reply(self, peer: Any, request_id: bytes, ok: bool, result: Any,
+               op: str = "the request") -> None:
         try:
             blob = pickling.dumps((ok, result))
         except Exception as exc:
             blob = pickling.dumps((False, f"the result could not be pickled: {exc}"))
+        if len(blob) > MAX_PAYLOAD:
+            blob = pickling.dumps((False, RuntimeFailure(
+                f"{op}: its answer is {too_large(len(blob))}, so it was not sent")))
         self._router.send_multipart([peer, *self._sealer.seal(REPLY, [request_id, blob])])
 
     def __enter__(self) -> ControlServer:
@@ -274,6 +283,16 @@ class ControlServer:
 
 
 _import_hints: list[Callable[[str], str]] = []
+
+
+def too_large(size: int) -> str:
+    """``size`` bytes, said against what one control message carries."""
+    return (f"{size / 2**20:.1f} MiB, more than one control message carries "
+            f"({MAX_PAYLOAD / 2**20:.0f} MiB)")
+
+
+class TooLarge(RuntimeFailure):
+    """A request not sent: it is larger than one control message carries."""
 
 
 def add_import_hint(hint: Callable[[str], str]) -> None:
@@ -348,6 +367,9 @@ class ControlClient:
             raise RuntimeFailure(self._refusal(op))
         request_id = _ID.pack(next(self._ids))
         blob = pickling.dumps((op, args))
+        if len(blob) > MAX_PAYLOAD:
+            raise TooLarge(f"{op!r} to {self.address}: the request is "
+                           f"{too_large(len(blob))}, so it was not sent")
         done, box = _Done(wait), [False, None]
         self._waiting[request_id] = (done, box)
         self._sent[request_id] = [blob, 0]

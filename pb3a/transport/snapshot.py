@@ -11,7 +11,9 @@ segment copy-on-write and unpickles with the buffers as views of the mapping: th
 arrays at the destination use the segment's pages, nothing is copied, and what the
 module writes stays its own (the segment stays as captured, for a migration that has
 to land at its source again). Between machines, ``carry`` takes the parts out of the
-segment as bytes, and ``lay_out`` writes them into a segment on the other machine.
+segment as bytes, and ``lay_out`` writes them into a segment on the other machine;
+through a node's control channel, whose messages are bounded, they go in pieces
+(``read_piece``, ``write_piece``: see ``pb3a.node.remote``).
 
 Whoever named the segment (its executor, whose pid the name carries) makes room for
 it and unlinks it (``unlink_name``); mappings outlive the name.
@@ -42,6 +44,8 @@ class Snapshot:
     parts: tuple[tuple[int, int], ...]      # (offset, size): the pickle, then each buffer
     carried: tuple[bytes, ...] = ()         # the parts, on their way to another machine
     capture_s: float = 0.0                  # how long the source worker took to capture
+    staged: bool = False                    # its segment was written here in pieces: the
+                                            # one who lands it unlinks it
 
     @property
     def nbytes(self) -> int:
@@ -88,6 +92,29 @@ class Snapshot:
         make_room(segment, _layout(views)[1])
         return Snapshot(segment, _write(segment, views), capture_s=self.capture_s)
 
+    @property
+    def end(self) -> int:
+        """The size of a segment that holds its parts where they are."""
+        return _end(self.parts)
+
+
+def read_piece(segment: str, offset: int, size: int) -> bytes:
+    """``size`` bytes of segment ``segment`` from ``offset``."""
+    fd = os.open(segment_path(segment), os.O_RDONLY)
+    try:
+        return _read(fd, offset, size)
+    finally:
+        os.close(fd)
+
+
+def write_piece(segment: str, offset: int, data: bytes) -> None:
+    """Write ``data`` into segment ``segment`` (made by ``make_room``) at ``offset``."""
+    fd = os.open(segment_path(segment), os.O_RDWR)
+    try:
+        _pwrite(fd, memoryview(data), offset)
+    finally:
+        os.close(fd)
+
 
 def make_room(segment: str, size: int) -> None:
     """Create segment ``segment`` with ``size`` bytes allocated (the owner's side, before
@@ -131,12 +158,16 @@ def _write(segment: str, views: list[memoryview]) -> tuple[tuple[int, int], ...]
     try:
         os.ftruncate(fd, end)
         for (offset, _), view in zip(parts, views, strict=True):
-            while view.nbytes:                 # (a write may stop short of the whole)
-                written = os.pwrite(fd, view, offset)
-                view, offset = view[written:], offset + written
+            _pwrite(fd, view, offset)
     finally:
         os.close(fd)
     return parts
+
+
+def _pwrite(fd: int, view: memoryview, offset: int) -> None:
+    while view.nbytes:                         # (a write may stop short of the whole)
+        written = os.pwrite(fd, view, offset)
+        view, offset = view[written:], offset + written
 
 
 def _read(fd: int, at: int, size: int) -> bytes:
