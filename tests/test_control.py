@@ -374,6 +374,34 @@ def test_a_call_submitted_to_a_socket_loop_before_it_closes_still_runs() -> None
         writer.close(0)
 
 
+def test_a_server_closed_right_after_answering_still_delivers_the_answer() -> None:
+    """As a node executor does on "shutdown": the handler answers and another thread
+    closes the server at once. An answer still on its way when the socket closes (here
+    16 MB, more than the loopback's socket buffers take in one go) must still arrive: a
+    socket closed without lingering dropped it, and the caller waited out its deadline
+    (on a busy executor, one small answer in eight)."""
+    size = 16 * 1024 * 1024
+
+    def answer_and_close() -> None:
+        told = threading.Event()
+
+        def shutdown(op: str, args: dict[str, Any]) -> Any:
+            told.set()                             # (the executor's ``stopped``)
+            return b"x" * size
+        server = ControlServer(KEY, shutdown)
+        closer = threading.Thread(target=lambda: (told.wait(5.0), server.close()))
+        closer.start()
+        client = ControlClient(KEY, server.address)
+        try:
+            assert len(client.call("shutdown", timeout=3.0)) == size, "answer cut short"
+        finally:
+            closer.join(5.0)
+            client.close()
+            server.close()
+    for _ in range(10):
+        answer_and_close()
+
+
 def test_closing_a_server_twice_does_nothing_the_second_time() -> None:
     """A second ``close`` (an owner's, then a fixture's) raised ZeroMQ's error."""
     server = ControlServer(KEY, lambda op, args: op)
