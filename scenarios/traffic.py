@@ -48,6 +48,7 @@ from agents.traffic.driver import MAX_JUNCTIONS
 from agents.traffic.lockstep import run_in_process
 from agents.traffic.messages import JunctionLayout
 from agents.traffic.networks import BuildFailed, Network, SumoMissing
+from agents.traffic.simulation import check_installed
 from pb3a import System
 from pb3a.cli.log_output import show_logs
 from pb3a.config.checks import NAME
@@ -433,7 +434,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         resource = network_path(args.network)
         demand_scale = parse_scale(args.scale)
-        check_network(Network.load(resource).scaled(demand_scale))
+        network = Network.load(resource).scaled(demand_scale)
+        check_installed()            # (libsumo missing was a traceback as the runs began)
+        check_network(network)
     except (ValueError, BuildFailed, SumoMissing) as exc:
         print(f"traffic: {exc}", file=sys.stderr)
         return 2

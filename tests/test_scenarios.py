@@ -4,10 +4,13 @@ networks, with their figures checked against the goals."""
 
 from __future__ import annotations
 
+import importlib.util
 import itertools
 import json
 import math
 import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -527,6 +530,53 @@ def test_traffic_names_what_keeps_a_network_from_it_before_it_runs(
     said = capsys.readouterr().err
     assert complaint in said and f"{network}" in said and "Traceback" not in said
     assert time.monotonic() - started < 10 and not (tmp_path / "out").exists()
+
+
+# ``pb3a scenario traffic`` in a process that cannot import the modules named in argv[1]
+# (as if they were not installed); prints how long its main took
+_WITHOUT = """
+import importlib.abc, json, sys, time
+
+class Hidden(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.partition(".")[0] in hidden:
+            raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+        return None
+
+hidden = set(json.loads(sys.argv[1]))
+sys.meta_path.insert(0, Hidden())
+from pb3a.cli.main import main
+started = time.monotonic()
+code = main(json.loads(sys.argv[2]))
+print(time.monotonic() - started)
+sys.exit(code)
+"""
+
+
+@pytest.mark.parametrize(("hidden", "missing"), [
+    (["sumo", "libsumo", "traci", "sumolib"], "SUMO is not installed"),
+    (["libsumo"], "libsumo is not installed")], ids=["no-sumo", "no-libsumo"])
+@pytest.mark.parametrize("network", ["ring", "mine.toml"])
+def test_traffic_names_sumo_missing_before_it_builds_or_runs(tmp_path, hidden, missing,
+                                                             network) -> None:
+    """With eclipse-sumo installed but not libsumo, the network was built, then the first
+    run ended in a ``SumoMissing`` traceback, exit 1 (with neither, it was said, as here)."""
+    if "sumo" not in hidden and importlib.util.find_spec("sumo") is None:
+        pytest.skip("eclipse-sumo (the traffic extra) is not installed: SUMO is missing whole")
+    (tmp_path / "mine.toml").write_text(_GRID.format(
+        name="mine", arguments='"--grid", "--grid.number", "2", "--grid.attach-length", '
+        '"100", "--default-junction-type", "traffic_light"'))
+    argv = ["scenario", "traffic", "--quick", "--network", network, "--out", "out"]
+    repo = Path(__file__).resolve().parent.parent
+    env = {**os.environ, "PYTHONPATH": str(repo), "PB3A_TRAFFIC_CACHE": str(tmp_path / "cache")}
+    done = subprocess.run([sys.executable, "-c", _WITHOUT, json.dumps(hidden), json.dumps(argv)],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr == (f"traffic: {missing}: install the project's traffic extra "
+                           "(pip install -e '.[traffic]', or make)\n")
+    assert float(done.stdout) < 3.0                        # (about 0.1 s)
+    assert not list(tmp_path.glob("cache/*.net.xml"))     # nothing built
+    assert not (tmp_path / "out").exists()
 
 
 @pytest.mark.parametrize("junction", ["sumo", "C#1"])

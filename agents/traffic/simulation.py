@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from agents.traffic.messages import JunctionLayout, NetworkReading
-from agents.traffic.networks import SumoMissing
+from agents.traffic.networks import SumoMissing, sumo_home
 from agents.traffic.signals import SignalPlan, is_green_phase
 
 STEP_S = 1.0                   # SUMO's step: one simulated second
@@ -40,6 +40,14 @@ def _libsumo() -> Any:
         raise SumoMissing("libsumo is not installed: install the project's traffic extra "
                           "(pip install -e '.[traffic]', or make)") from None
     return libsumo
+
+
+def check_installed() -> None:
+    """``SumoMissing`` naming what to install unless this process can build networks
+    and run simulations: SUMO (the eclipse-sumo package, its programs) and libsumo,
+    which the first ``Simulation`` would only find missing once it started."""
+    sumo_home()
+    _libsumo()
 
 
 class Simulation:
