@@ -372,6 +372,29 @@ class Spawner(Agent):
             self.runtime.remove("probe")
 
 
+class ChangesToAClass(Agent):
+    """On its first value swaps ``scale`` for the class ``cls`` names, then spawns one as
+    ``extra``, each given 2 s: ``said``, what each call raised ("" if nothing), and
+    ``took``, how long each took."""
+
+    go = Input(int)
+    cls = "sample_modules:FastScale"
+    said: list[str] = []
+    took: list[float] = []
+
+    def on_input(self, port) -> None:
+        port.read()
+        for change in (lambda: self.runtime.swap("scale", self.cls, timeout=2.0),
+                       lambda: self.runtime.spawn("extra", self.cls, timeout=2.0)):
+            began = time.monotonic()
+            try:
+                change()
+                self.said.append("")
+            except Exception as exc:
+                self.said.append(f"{type(exc).__name__}: {exc}")
+            self.took.append(time.monotonic() - began)
+
+
 class Crasher(Module):
     """Kills its own worker process on its first step: a crash loop."""
 

@@ -5,6 +5,7 @@ what happened, and runs on; a class it has imported already costs no process."""
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
 import subprocess
@@ -12,13 +13,14 @@ import sys
 import textwrap
 import threading
 import time
+import urllib.error
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 from conftest import alive, eventually
-from sample_modules import FloatSource, Scale
+from sample_modules import ChangesToAClass, Counter, FloatSource, Scale
 
 from pb3a import ConfigError, RuntimeFailure, System, connect
 
@@ -247,6 +249,80 @@ def test_in_the_program_a_change_to_a_module_that_hangs_returns_within_its_timeo
         assert run.topology().modules["scale"].cls == "sample_modules:Scale"
         run.swap("scale", "imported_fine:Bad", timeout=10)
         assert "imported_hangs" not in sys.modules
+
+
+def test_an_agent_s_swap_and_spawn_of_a_class_whose_module_hangs_are_refused(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An agent's ``self.runtime.swap`` and ``spawn`` are changes as the program's are:
+    a class whose module file loops as it is imported is refused within the change's
+    timeout, then at once (its file unchanged), nothing changed, the process the import
+    started gone, and the system takes the agent's next request."""
+    _harmful_files(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.chdir(tmp_path)
+    system = System("agent-harmed").add("src", FloatSource).add("scale", Scale)
+    system.link("src.out", "scale.x")
+    system.add("agent", ChangesToAClass, state={"cls": "imported_hangs:Bad"})
+    system.add("trigger", Counter, state={"limit": 1}, period=0.05)
+    system.link("trigger.out", "agent.go")
+    with system.launch() as run:
+        state = eventually(lambda: len((s := run.state("agent"))["said"]) == 2 and s,
+                           timeout=30, what="the agent's swap and spawn answered")
+        hangs = ("ConfigError: 1 problem in the configuration:\n  {} importing module "
+                 "'imported_hangs' for 'imported_hangs:Bad' did not finish within")
+        swapped, spawned = state["said"]
+        assert swapped.startswith(hangs.format("swap scale:")), swapped
+        assert spawned.startswith(hangs.format("module extra:")), spawned
+        assert state["took"][0] < 5.0 and state["took"][1] < 0.5, state["took"]
+        modules = run.topology().modules
+        assert {name: m.cls for name, m in modules.items() if name != "agent"} == {
+            "src": "sample_modules:FloatSource", "scale": "sample_modules:Scale",
+            "trigger": "sample_modules:Counter"}
+        started = int((tmp_path / "started.pid").read_text())
+        eventually(lambda: not alive(started), what="the end of the process the import started")
+        run.set_state("agent", cls="imported_fine:Bad", said=[], took=[])
+        run.set_state("trigger", limit=2)
+        state = eventually(lambda: len((s := run.state("agent"))["said"]) == 2 and s,
+                           timeout=30, what="the agent's next swap and spawn answered")
+        assert state["said"] == ["", ""], state["said"]
+        assert run.topology().modules["extra"].cls == "imported_fine:Bad"
+    assert "imported_hangs" not in sys.modules
+
+
+def test_the_manager_refuses_a_swap_or_add_of_a_class_whose_module_hangs(
+        launcher: str, tmp_path: Path) -> None:
+    """``pb3a manager`` attached to a running system imports the class a swap or an add
+    names in its own process, to check it, before the system is asked: a module file
+    that loops as it is imported is tried in a child process first and refused (404)
+    within ``--import-timeout``, then at once (its file unchanged); the manager answers
+    on, the system is as it was, and the process the import started is gone."""
+    pytest.importorskip("uvicorn", reason="the manager needs the 'ui' extra")
+    from test_manager_browser import ManagerProcess
+
+    manager = ManagerProcess(launcher, "--import-timeout", "2", beside=tmp_path)
+    try:
+        for path, body, took_at_most in (
+                ("/api/modules/scale/swap", {"class": "imported_hangs:Bad"}, 6.0),
+                ("/api/modules", {"name": "extra", "class": "imported_hangs:Bad"}, 0.5)):
+            began = time.monotonic()
+            with pytest.raises(urllib.error.HTTPError) as refused:
+                manager.api("POST", path, body)
+            took = time.monotonic() - began
+            error = json.loads(refused.value.read())["error"]
+            assert refused.value.code == 404, error
+            assert error.startswith("importing module 'imported_hangs' for "
+                                    "'imported_hangs:Bad' did not finish within 2 s"), error
+            assert error.endswith("give pb3a manager a longer --import-timeout"), error
+            assert took < took_at_most, (path, took)
+        shown = manager.api("GET", "/api/system")["modules"]
+        assert {name: m["class"] for name, m in shown.items()} == {
+            "src": "sample_modules:FloatSource", "scale": "sample_modules:Scale"}
+        swapped = manager.api("POST", "/api/modules/scale/swap", {"class": "imported_fine:Bad"})
+        assert swapped == {"kept": ["gain"]}
+    finally:
+        manager.stop()
+    started = int((tmp_path / "started.pid").read_text())
+    eventually(lambda: not alive(started), what="the end of the process the import started")
 
 
 def _swap_into(run: Any, cls: str, outcome: list[Any]) -> None:

@@ -82,11 +82,15 @@ class ManagerProcess:
     """``pb3a manager ARGS`` in a process of its own: its URL and token, its API, and a
     clean stop (SIGINT, as Ctrl-C: the system it launched stops with it)."""
 
-    def __init__(self, *args: str) -> None:
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "tests"), str(REPO)])}
+    def __init__(self, *args: str, beside: Path | None = None) -> None:
+        """``beside``: a directory of module files it runs in, and imports from first."""
+        path = [str(REPO / "tests"), str(REPO)]
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+            path if beside is None else [str(beside), *path])}
         self.process = subprocess.Popen(
             [sys.executable, "-m", "pb3a", "manager", *args, "--listen", "127.0.0.1:0"],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO)
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+            cwd=beside or REPO)
         self.url = self._read_url()
         match = re.match(r"(http://[^/]+)/\?token=(\S+)", self.url)
         assert match, f"`pb3a manager` printed {self.url!r}, not its URL with a token"
