@@ -6,6 +6,7 @@ new epoch and modules can be moved back; a fenced executor's word is refused."""
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import os
 import re
@@ -14,6 +15,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import NoReturn
 
 import cloudpickle
 import psutil
@@ -35,7 +37,8 @@ from sample_modules import (
 )
 
 from pb3a import RuntimeFailure, RuntimeTimeout, System
-from pb3a.cli.status import format_nodes, format_table
+from pb3a.cli.main import main
+from pb3a.cli.status import format_table
 from pb3a.daemons.node_controller import Limits, NodeController
 from pb3a.transport.auth import ClusterKey, Rejected
 from pb3a.transport.control import ControlClient
@@ -402,7 +405,7 @@ def test_a_module_whose_node_is_lost_as_it_lands_elsewhere_lands_with_its_state(
         assert [e.subject for e in _events(run, "module_lost")] == ["sink"]
 
 
-def test_a_lost_node_shows_no_round_trip_and_its_real_silence(node_b) -> None:
+def test_a_lost_node_shows_no_round_trip_and_its_real_silence(node_b, capsys) -> None:
     """A lost node showed the last round-trip time measured, unchanged (``pb3a nodes``),
     ``silent_s`` 0.0 however long it had been silent, and its controller answering after
     it was gone: it shows no round trip ("-"; NaN, null in JSON), the seconds since its
@@ -411,6 +414,7 @@ def test_a_lost_node_shows_no_round_trip_and_its_real_silence(node_b) -> None:
     system = System("silent").node("a").node("b", address=b.address)
     system.add("far", Collector, node="b")
     with system.launch() as run:
+        address = run.listen()
         eventually(lambda: run.stats().nodes["b"].rtt > 0, what="a round trip to b")
         executor = b.executor_pid()
         b.kill()                        # (its controller first: b is not admitted again)
@@ -419,10 +423,20 @@ def test_a_lost_node_shows_no_round_trip_and_its_real_silence(node_b) -> None:
         time.sleep(1.0)
         node = eventually(lambda: (n := run.stats().nodes["b"]).controller is False and n,
                           what="b's controller said gone")
-        shown = format_nodes(run.nodes())
+        capsys.readouterr()
+        assert main(["nodes", address]) == 0
+        shown = capsys.readouterr().out
+        assert main(["nodes", address, "--json"]) == 0
+        as_json = json.loads(capsys.readouterr().out, parse_constant=_no_constant)["b"]
     assert not node.up and math.isnan(node.rtt)
     assert node.silent_s > 2.9            # lost after 2 s of silence, looked at 1 s later
     assert re.search(r"^b +tcp://\S+ +LOST +-$", shown, re.M), shown
+    assert as_json["rtt"] is None and as_json["up"] is False and as_json["silent_s"] > 2.9
+    assert as_json["controller"] is False
+
+
+def _no_constant(name: str) -> NoReturn:
+    raise AssertionError(f"{name} in JSON, which has no such number")
 
 
 def test_two_nodes_lost_at_once_fail_over_to_the_node_that_lives(daemons) -> None:
