@@ -291,6 +291,27 @@ def test_migration_to_an_unknown_node_or_of_an_unknown_module_is_refused() -> No
         assert run.stats().modules["relay"].node == "a"
 
 
+def test_a_move_failed_as_its_destination_is_prepared_says_where_the_module_runs(
+        monkeypatch) -> None:
+    """A destination lost as it was prepared failed the move saying only that (its
+    executor "failed: node b is lost"), not where the module was; as a move that runs
+    out of time there does, it says nothing moved and where the module runs."""
+    with _through("move-prepare-fails", "relay", Relay).launch() as run:
+        eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")
+        b = run._launcher.nodes["b"]
+
+        def lost(*args, **kwargs):
+            raise RuntimeFailure("node b is lost")
+        monkeypatch.setattr(b, "add_module", lost)
+        with pytest.raises(RuntimeFailure, match=r"^node b is lost; nothing moved: relay "
+                           r"runs on node a as before$"):
+            run.migrate("relay", to="b")
+        monkeypatch.undo()
+        assert run.where("relay") == "a"
+        relayed = run.state("relay")["relayed"]
+        eventually(lambda: run.state("relay")["relayed"] > relayed + 20, what="values on")
+
+
 class HoldsALock(Relay):
     """A module that keeps a lock in a public field: state that cannot be pickled."""
 

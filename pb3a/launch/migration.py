@@ -179,7 +179,7 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
         try:
             with clock.step(f"preparing node {node} (a worker, the code loaded)"):
                 segments = _prepare(launcher, homes, links, node, afterwards, clock.timeout)
-        except RuntimeTimeout as exc:           # (what was prepared is gone again)
+        except (RuntimeTimeout, RuntimeFailure) as exc:   # (what was prepared is gone again)
             _unmoved(exc, homes)
             raise
         prepare_s = time.perf_counter() - preparing
@@ -457,15 +457,21 @@ def _start_where(launcher: Launcher, nodes: dict[str, str], failing: bool = Fals
 
 
 def _unmoved(exc: BaseException | None, homes: dict[str, FlatModule]) -> None:
-    """If the call's time ran out (``exc``) before the capture: the error saying so,
-    and that the modules run where they did, once that is true (undone)."""
-    if isinstance(exc, RuntimeTimeout) and getattr(exc, "ran_out", False):
-        where = ", ".join(sorted({home.node for home in homes.values()}))
-        error = RuntimeTimeout(f"{exc}; nothing moved: {', '.join(homes)} "
-                               f"{'runs' if len(homes) == 1 else 'run'} on node {where} "
-                               "as before")
-        error.ran_out = True                    # type: ignore[attr-defined]
-        raise error from exc
+    """If the call's time ran out (``exc``) before the capture, or a node failed it
+    then: the error saying so, and that the modules run where they did, once that is
+    true (undone). (A destination lost as it was prepared said only "node b is lost",
+    not where the module was.)"""
+    ran_out = isinstance(exc, RuntimeTimeout) and getattr(exc, "ran_out", False)
+    if not ran_out and (type(exc) is not RuntimeFailure or "nothing moved" in str(exc)):
+        return
+    where = ", ".join(sorted({home.node for home in homes.values()}))
+    said = (f"{exc}; nothing moved: {', '.join(homes)} "
+            f"{'runs' if len(homes) == 1 else 'run'} on node {where} as before")
+    if not ran_out:
+        raise RuntimeFailure(said) from exc
+    error = RuntimeTimeout(said)
+    error.ran_out = True                        # type: ignore[attr-defined]
+    raise error from exc
 
 
 def _unmoved_yet(exc: BaseException, homes: dict[str, FlatModule]) -> None:

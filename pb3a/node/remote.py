@@ -276,10 +276,13 @@ class RemoteNode:
         snapshot: Snapshot = self._forward("retire", name, segment, False)
         if not carry:
             return snapshot
-        carried = tuple(b"".join(self._forward("read_snapshot", segment, at + offset,
-                                               min(PIECE, size - offset))
-                                 for offset in range(0, size, PIECE))
-                        for at, size in snapshot.parts)
+        # Past the fence: the module runs nowhere, and the launcher must hold its state
+        # whatever the caller's time left (a node lost meanwhile fails these at once).
+        with lifted():
+            carried = tuple(b"".join(self._forward("read_snapshot", segment, at + offset,
+                                                   min(PIECE, size - offset))
+                                     for offset in range(0, size, PIECE))
+                            for at, size in snapshot.parts)
         return replace(snapshot, segment="", carried=carried)
 
     def land(self, name: str, snapshot: Snapshot) -> float:
