@@ -21,6 +21,7 @@ import statistics
 import subprocess
 import sys
 import threading
+import time
 import tomllib
 import urllib.error
 import urllib.request
@@ -130,11 +131,12 @@ class ManagerProcess:
 
 
 @pytest.fixture
-def lab(tmp_path: Path) -> Iterator[ManagerProcess]:
-    """The four-module lab on nodes a and b, launched by the manager that edits its file."""
+def lab(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[ManagerProcess]:
+    """The four-module lab on nodes a and b, launched by the manager that edits its file
+    (given the options a test parametrizes it with, indirectly)."""
     config = tmp_path / "lab.toml"
     config.write_text(LAB)
-    manager = ManagerProcess(str(config))
+    manager = ManagerProcess(str(config), *getattr(request, "param", ()))
     try:
         manager.api("POST", "/api/document/launch", {})
         yield manager
@@ -517,12 +519,16 @@ def test_a_float_that_is_not_finite_is_shown_as_such_and_plotted_as_a_gap(
     assert "nonfinite" not in last.get_attribute("class") and not last.get_attribute("title")
 
 
+@pytest.mark.parametrize("lab", [("--timeout", "2")], indirect=True)   # (a move: 6 s)
 def test_a_move_that_fails_is_listed_among_the_events(lab: ManagerProcess, page: Any) -> None:
     """A move that failed showed nothing in the events panel (the system recorded no
-    event for it): it is listed as "move failed", with its nodes and the error."""
+    event for it): it is listed as "move failed", with its nodes and the error. It fails
+    within three times the manager's --timeout (it waited 30 s whatever that was)."""
     pid = lab.api("GET", "/api/stats")["modules"]["probe"]["pid"]
+    started = time.monotonic()
     with frozen(pid), pytest.raises(urllib.error.HTTPError):   # (it answers nothing)
         lab.api("POST", "/api/modules/probe/migrate", {"to": "a"})
+    assert time.monotonic() - started < 6.0 + 3.0
     page.wait_for_selector(".event[data-kind='migration_failed']", timeout=WAIT_MS)
     shown = page.locator(".event[data-kind='migration_failed']").first
     assert "tone-failure" in shown.get_attribute("class")

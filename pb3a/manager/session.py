@@ -40,8 +40,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("pb3a.manager")
 
-CALL_TIMEOUT = 10.0         # seconds a call to the system may take (a migration: MOVE_TIMEOUT)
-MOVE_TIMEOUT = 30.0
+CALL_TIMEOUT = 10.0         # seconds a call to the system may take (--timeout) ...
+MOVE_TIMES = 3              # ... and a move or restart, which stops and starts a module
 NOTHING_RUNS = ("nothing runs: launch the document first (POST /api/document/launch), or "
                 "start the manager with the address of a running system")
 
@@ -364,7 +364,7 @@ class Session:
             raise Malformed("send the node to move to: {\"to\": \"NODE\"}")
         if to not in topology.nodes:
             raise NotFound(f"no node {to!r}; nodes: {', '.join(topology.nodes)}")
-        report = self.handle.migrate(name, to=to, timeout=MOVE_TIMEOUT)
+        report = self.handle.migrate(name, to=to, timeout=self.timeout * MOVE_TIMES)
         return dataclasses.asdict(report)
 
     def swap(self, name: str, cls: Any) -> dict[str, Any]:
@@ -426,7 +426,7 @@ class Session:
         """``POST /api/modules/{name}/restart``: start the module afresh, a failed one too
         (its configured state, its links wired again), as ``pb3a restart`` does."""
         self.topology_of(name)
-        self.handle.restart(name, timeout=MOVE_TIMEOUT)
+        self.handle.restart(name, timeout=self.timeout * MOVE_TIMES)
         return self.system()
 
     def remove(self, name: str, force: bool = False) -> dict[str, Any]:
