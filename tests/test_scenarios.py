@@ -532,10 +532,11 @@ def test_traffic_names_what_keeps_a_network_from_it_before_it_runs(
     assert time.monotonic() - started < 10 and not (tmp_path / "out").exists()
 
 
-# ``pb3a scenario traffic`` in a process that cannot import the modules named in argv[1]
-# (as if they were not installed); prints how long its main took
+# A command's main (argv[3], "module:function"; ``pb3a`` by default) given the arguments
+# argv[2], in a process that cannot import the modules named in argv[1] (as if they were
+# not installed); prints how long its main took
 _WITHOUT = """
-import importlib.abc, json, sys, time
+import importlib, importlib.abc, json, sys, time
 
 class Hidden(importlib.abc.MetaPathFinder):
     def find_spec(self, name, path=None, target=None):
@@ -545,7 +546,8 @@ class Hidden(importlib.abc.MetaPathFinder):
 
 hidden = set(json.loads(sys.argv[1]))
 sys.meta_path.insert(0, Hidden())
-from pb3a.cli.main import main
+module, _, function = (sys.argv[3] if len(sys.argv) > 3 else "pb3a.cli.main:main").partition(":")
+main = getattr(importlib.import_module(module), function)
 started = time.monotonic()
 code = main(json.loads(sys.argv[2]))
 print(time.monotonic() - started)
@@ -577,6 +579,23 @@ def test_traffic_names_sumo_missing_before_it_builds_or_runs(tmp_path, hidden, m
     assert float(done.stdout) < 3.0                        # (about 0.1 s)
     assert not list(tmp_path.glob("cache/*.net.xml"))     # nothing built
     assert not (tmp_path / "out").exists()
+
+
+def test_training_names_libsumo_missing_before_an_episode(tmp_path) -> None:
+    """``python -m agents.traffic.training`` ended in a ``SumoMissing`` traceback at its
+    first episode with libsumo missing; it says so in one line, exit 2."""
+    if importlib.util.find_spec("sumo") is None:
+        pytest.skip("eclipse-sumo (the traffic extra) is not installed: SUMO is missing whole")
+    repo = Path(__file__).resolve().parent.parent
+    env = {**os.environ, "PYTHONPATH": str(repo), "PB3A_TRAFFIC_CACHE": str(tmp_path / "cache")}
+    done = subprocess.run([sys.executable, "-c", _WITHOUT, json.dumps(["libsumo"]),
+                           json.dumps(["--episodes", "1", "--out", "table.json"]),
+                           "agents.traffic.training:main"],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr == ("training: libsumo is not installed: install the project's "
+                           "traffic extra (pip install -e '.[traffic]', or make)\n")
+    assert not (tmp_path / "table.json").exists()
 
 
 @pytest.mark.parametrize("junction", ["sumo", "C#1"])

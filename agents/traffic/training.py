@@ -12,12 +12,15 @@ junctions are visited in order, and the file is written sorted.
 from __future__ import annotations
 
 import argparse
+import sys
 import zlib
 from pathlib import Path
 from typing import Any
 
 from agents.traffic.learning import TRAINED, QLearning, save_table
 from agents.traffic.lockstep import run_in_process
+from agents.traffic.networks import SumoMissing
+from agents.traffic.simulation import check_installed
 
 NETWORKS = Path(__file__).resolve().parents[2] / "scenarios" / "traffic"
 TRAINING_SEEDS = range(1000, 1100)      # far from the seeds runs use (1..100)
@@ -75,6 +78,11 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"1 to {len(TRAINING_SEEDS)} (default 24)")
     parser.add_argument("--out", type=Path, default=TRAINED)
     args = parser.parse_args(argv)
+    try:
+        check_installed()           # (before an episode: one line, not a traceback)
+    except SumoMissing as exc:
+        print(f"training: {exc}", file=sys.stderr)
+        return 2
     table, history = train(episodes=args.episodes)
     how = {"command": "python -m agents.traffic.training"
            + (f" --episodes {args.episodes}" if args.episodes != 24 else ""),
