@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from conftest import alive, assert_same_arrays, eventually
 from sample_modules import (
@@ -310,6 +311,34 @@ def test_a_move_failed_as_its_destination_is_prepared_says_where_the_module_runs
         assert run.where("relay") == "a"
         relayed = run.state("relay")["relayed"]
         eventually(lambda: run.state("relay")["relayed"] > relayed + 20, what="values on")
+
+
+class Heavy(Module):
+    """40 MiB of state, made in ``setup``."""
+
+    period = 0.1
+
+    def setup(self) -> None:
+        if not hasattr(self, "weights"):
+            self.weights = np.ones(5 * 2**20)
+
+    def step(self) -> None:
+        self.weights[0] += 1
+
+
+def test_a_move_given_too_little_time_does_not_blame_a_stuck_module() -> None:
+    """A move given 30 ms for 40 MiB ran out preparing the destination, and the error
+    went on to say the worker "did not answer 'add' within 0 s: a module there is stuck
+    in a long call ... or its machine is overloaded", which nothing was."""
+    system = _nodes(System("move-hurried"), "a", "b")
+    system.add("heavy", Heavy, node="a")
+    with system.launch() as run:
+        eventually(lambda: run.stats().modules["heavy"].status == "running", what="running")
+        with pytest.raises(RuntimeTimeout) as raised:
+            run.migrate("heavy", to="b", timeout=0.03)
+        assert "ran out while" in str(raised.value) and "nothing moved" in str(raised.value)
+        assert "stuck" not in str(raised.value) and "within 0 s" not in str(raised.value)
+        assert run.where("heavy") == "a"
 
 
 class HoldsALock(Relay):

@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any
 import cloudpickle
 
 from pb3a.config.description import DEFAULT_SPARES
-from pb3a.deadline import capped, spoken
+from pb3a.deadline import ANSWER_MARGIN_S, capped, left, spoken
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
 from pb3a.node import forkserver_owner
@@ -511,6 +511,10 @@ class WorkerPool:
                 "was sent before; its log and `pb3a status` may say which")
         if future.done():                        # (it died meanwhile, say)
             return future.result()
+        if (bound := left()) is not None and bound <= ANSWER_MARGIN_S:
+            # (the caller's time ran out: a worker that took milliseconds is not stuck)
+            raise RuntimeTimeout(f"worker {key!r} had not answered {op!r} when the call's "
+                                 "time ran out")
         raise RuntimeTimeout(
             f"worker {key!r} did not answer {op!r} within {spoken(timeout)} s: a module there "
             "is stuck in a long call (step, on_input, setup), or its machine is "
