@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any
 import cloudpickle
 
 from pb3a.config.description import DEFAULT_SPARES
-from pb3a.deadline import ANSWER_MARGIN_S, capped, left, spoken
+from pb3a.deadline import capped, left, spoken
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
 from pb3a.node import forkserver_owner
@@ -56,6 +56,9 @@ REQUEST_TIMEOUT = 10.0
 TERMINATE_WAIT_S = 1.0
 KILL_WAIT_S = 1.0
 EXIT_AT_LEAST_S = 0.1
+# A wait shorter than this, what was left of a caller's time, says only that: a worker
+# that had not answered within it is not taken for stuck.
+HURRIED_S = 0.1
 _UNREADABLE = (None, None)      # the head of a message that could not be read
 
 _context = multiprocessing.get_context("forkserver")
@@ -511,10 +514,10 @@ class WorkerPool:
                 "was sent before; its log and `pb3a status` may say which")
         if future.done():                        # (it died meanwhile, say)
             return future.result()
-        if (bound := left()) is not None and bound <= ANSWER_MARGIN_S:
-            # (the caller's time ran out: a worker that took milliseconds is not stuck)
-            raise RuntimeTimeout(f"worker {key!r} had not answered {op!r} when the call's "
-                                 "time ran out")
+        if timeout < HURRIED_S and left() is not None:
+            # (all the caller's time left: a worker not done in milliseconds is not stuck)
+            raise RuntimeTimeout(f"worker {key!r} had not answered {op!r} in the "
+                                 f"{spoken(timeout)} s left of the call's time")
         raise RuntimeTimeout(
             f"worker {key!r} did not answer {op!r} within {spoken(timeout)} s: a module there "
             "is stuck in a long call (step, on_input, setup), or its machine is "
