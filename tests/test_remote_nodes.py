@@ -71,14 +71,20 @@ def controllers():
         controller.close()
 
 
+def _spanning(name: str, controllers: dict[str, NodeController]) -> System:
+    """A system on node a (embedded) and a node behind each controller, by its name."""
+    system = System(name).node("a")
+    for node, controller in controllers.items():
+        system.node(node, address=controller.address)
+    return system
+
+
 def _clean(state: dict) -> bool:
     return state["out_of_order"] == 0 and state["duplicates"] == 0
 
 
 def test_a_system_spans_node_controllers_and_migrates_across_them(controllers) -> None:
-    system = System("spanning").node("a")
-    for name, controller in controllers.items():
-        system.node(name, address=controller.address)
+    system = _spanning("spanning", controllers)
     system.add("src", Counter, node="a", period=0.001)
     system.add("relay", Relay, node="b")
     system.add("far", Collector, node="c")
@@ -120,9 +126,7 @@ def test_a_system_spans_node_controllers_and_migrates_across_them(controllers) -
 def test_a_remote_node_s_env_gives_a_lost_peer_no_round_trip_time(controllers) -> None:
     """Before, node b's env table went on giving lost node c the last round-trip time b
     had measured to it, as though it were still there (from the hosts review)."""
-    system = System("peers").node("a")
-    for name, controller in controllers.items():
-        system.node(name, address=controller.address)
+    system = _spanning("peers", controllers)
     system.add("far", Collector, node="c", restart="never")
     system.add("table", NodeTable, node="a")
     system.link("env-b.nodes", "table.nodes")
@@ -142,9 +146,7 @@ def test_a_remote_node_s_env_gives_a_lost_peer_no_round_trip_time(controllers) -
 
 def test_megabytes_of_numpy_state_move_intact_between_node_controllers(controllers) -> None:
     n = 300
-    system = System("spanning-arrays").node("a")
-    for name, controller in controllers.items():
-        system.node(name, address=controller.address)
+    system = _spanning("spanning-arrays", controllers)
     system.add("src", Counter, node="a", period=0.002, state={"limit": n})
     system.add("hoard", Hoard, node="a")
     system.link("src.out", "hoard.x")
@@ -190,9 +192,7 @@ def test_a_state_larger_than_a_control_message_moves_between_machines_and_is_not
     back. And reading such a state, which cannot come back in one answer, is refused
     saying so, the node and the module going on (the read had the node lost too)."""
     monkeypatch.setattr(RemoteNode, "memory_domain", lambda self: self.name)  # 3 machines
-    system = System("ballast").node("a")
-    for name, controller in controllers.items():
-        system.node(name, address=controller.address)
+    system = _spanning("ballast", controllers)
     system.add("ballast", Ballast, node="a", restart="last-state")
     system.add("sums", Last, node="a")
     system.link("ballast.checksum", "sums.x")
