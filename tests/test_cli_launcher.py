@@ -3,6 +3,8 @@ its launcher's authenticated address."""
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
 import json
 import logging
 import os
@@ -16,7 +18,9 @@ import pytest
 from conftest import alive, eventually
 from sample_modules import Chain, Counter, FastScale, Freezer, Last, OnFlag, Relay, Scale
 
+import pb3a
 from pb3a import Module, System
+from pb3a.cli import running_system
 from pb3a.cli.main import INTERRUPTED, main
 from pb3a.cli.standard_output import BROKEN_PIPE
 
@@ -376,3 +380,33 @@ def test_a_command_whose_reader_has_gone_ends_quietly() -> None:
                 command.kill()
                 command.wait(5)
             command.stderr.close()
+
+
+def test_a_follower_that_fell_behind_is_told_how_many_entries_it_missed(capsys) -> None:
+    """A follower held up while a module logged thousands of lines a second went on from
+    the oldest entry still kept, 20,340 skipped unsaid; a filtered one skips numbers
+    anyway (the others' entries), and is told nothing."""
+    @dataclasses.dataclass
+    class Entry:
+        seq: int
+
+    batches = [[Entry(1), Entry(2)], [Entry(6)], []]
+    fetched: list[int] = []
+
+    def fetch(seen: int, wait: float) -> list[Entry]:
+        fetched.append(seen)
+        return batches[len(fetched) - 1]
+
+    def stop_after_three(seen: int, wait: float) -> list[Entry]:
+        if len(fetched) == 3:
+            raise pb3a.SystemStopped("system 'x' has stopped")
+        return fetch(seen, wait)
+
+    args = argparse.Namespace(follow=True, json=False)
+    running_system._follow(stop_after_three, lambda entry: str(entry.seq), args)
+    out, err = capsys.readouterr()
+    assert out.split() == ["1", "2", "6"] and fetched == [0, 2, 6]
+    assert "pb3a: 3 entries before 6 are no longer kept by the system" in err
+    fetched.clear()
+    running_system._follow(stop_after_three, lambda entry: str(entry.seq), args, every=False)
+    assert "no longer kept" not in capsys.readouterr().err

@@ -300,6 +300,13 @@ def test_a_timeout_that_is_not_seconds_is_refused_at_once_the_same_through_conne
                 assert time.monotonic() - started < 1.0
             assert errors[:2] == errors[2:], errors            # the same, both ways
             assert all("timeout must be a" in message for _, message in errors)
+            # connecting and closing too (NaN and inf failed in time arithmetic's words, -1
+            # was waited as 0, True as 1; a close given NaN or -5 ran no teardown)
+            with pytest.raises((ValueError, TypeError), match="connect: timeout must be a"):
+                pb3a.connect(run.listen(), timeout=bad)
+            with pytest.raises((ValueError, TypeError), match="close: timeout must be a"):
+                run.close(timeout=bad)
+            assert run.running
 
 
 def test_a_class_that_does_not_resolve_is_one_config_error_with_the_rest_both_ways() -> None:

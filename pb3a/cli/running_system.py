@@ -192,7 +192,7 @@ def _events(system: Connection, args: argparse.Namespace) -> None:
 
 def _logs(system: Connection, args: argparse.Namespace) -> None:
     _follow(lambda seen, wait: system.logs(seen, module=args.module, timeout=wait),
-            lambda entry: entry.line(), args)
+            lambda entry: entry.line(), args, every=args.module is None)
 
 
 # what each command on a running system does, by its name on the command line
@@ -203,9 +203,11 @@ OPERATIONS: dict[str, Callable[[Connection, argparse.Namespace], Any]] = {
 
 
 def _follow(fetch: Callable[[int, float], list[Any]], line: Callable[[Any], str],
-            args: argparse.Namespace) -> None:
+            args: argparse.Namespace, every: bool = True) -> None:
     """Print what ``fetch`` returns after the last one printed (numbered by ``seq``), as
-    a line or as JSON; with ``--follow``, until Ctrl-C."""
+    a line or as JSON; with ``--follow``, until Ctrl-C. With ``every`` (it returns every
+    entry, none filtered out), a number skipped is entries the system no longer keeps,
+    which a follower that fell behind is told on stderr (they were skipped unsaid)."""
     seen = 0
     while True:
         try:
@@ -214,6 +216,10 @@ def _follow(fetch: Callable[[int, float], list[Any]], line: Callable[[Any], str]
             print(f"pb3a {exc}", file=sys.stderr)
             return
         for item in items:
+            if every and seen and item.seq > seen + 1:
+                print(f"pb3a: {item.seq - seen - 1} entries before {item.seq} are no longer "
+                      "kept by the system, so they were not printed (this reader fell "
+                      "behind)", file=sys.stderr, flush=True)
             seen = item.seq
             print(json.dumps(plain(dataclasses.asdict(item))) if args.json else line(item),
                   flush=True)

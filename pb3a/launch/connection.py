@@ -10,7 +10,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from pb3a.errors import RuntimeFailure, RuntimeTimeout, SystemStopped
+from pb3a.errors import RuntimeFailure, RuntimeTimeout, SystemStopped, bounded_wait
 from pb3a.launch.handle import SystemHandle
 from pb3a.launch.operations import DEFAULT_TIMEOUT
 from pb3a.transport.addresses import launcher_address, unknown_host
@@ -44,6 +44,8 @@ class Connection(SystemHandle):
 
     def __init__(self, address: str, *, key: ClusterKey | bytes | str | None = None,
                  timeout: float = CONNECT_TIMEOUT) -> None:
+        # (NaN and inf failed in time arithmetic's words, -1 was waited as 0, True as 1)
+        timeout = bounded_wait(timeout, "connect")
         address = launcher_address(address)
         deadline = time.monotonic() + timeout
         unknown = unknown_host(address, timeout)

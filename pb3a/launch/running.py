@@ -133,7 +133,10 @@ class Running(SystemHandle):
             raise
 
     def close(self, timeout: float = 10.0) -> None:
-        """Stop every module (reverse start order) and worker; free every segment."""
+        """Stop every module (reverse start order) and worker; free every segment. A
+        timeout that is not seconds is refused, the system left running (NaN or -5 was
+        taken for 0: no module's teardown ran)."""
+        timeout = bounded_wait(timeout, "close")
         if not self._stopped.is_set():
             self._stopped.set()
             atexit.unregister(self.close_at_exit)
