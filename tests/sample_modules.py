@@ -551,6 +551,8 @@ class Busybody(Agent):
     nodes: list = []
     asked = 0
     refused = 0          # requests cancelled because the runtime had to pause this agent
+    # ... what they said of running later: "withdrawn", "may run" (each kind once)
+    cancels_said: list = []
     poked = 0            # set by the others
     unexpected = ""
 
@@ -572,6 +574,10 @@ class Busybody(Agent):
         except Exception as exc:
             if "cancelled" in str(exc):
                 self.refused += 1
+                said = ("withdrawn" if str(exc).endswith("it was withdrawn and will not run")
+                        else "may run" if "may still be carried out" in str(exc) else str(exc))
+                if said not in self.cancels_said:
+                    self.cancels_said = [*self.cancels_said, said]
             elif not self.unexpected:
                 self.unexpected = f"{type(exc).__name__}: {exc}"
         self.asked += 1

@@ -80,6 +80,10 @@ def test_agents_and_the_program_act_on_each_other_without_deadlock(workers: int)
     # never a time-out, never another error
     assert [s["unexpected"] for s in states] == ["", "", ""]
     assert program >= 500 and answered >= 1000, (program, answered)
+    # and each cancelled request said whether it may still be carried out (one that had
+    # reached the runtime ran once the change ended: asked again, it was made twice)
+    said = {kind for s in states for kind in s["cancels_said"]}
+    assert said and said <= {"withdrawn", "may run"}, said
 
 
 def test_an_agent_may_ask_the_runtime_from_setup_as_the_system_starts() -> None:

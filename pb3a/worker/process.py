@@ -621,10 +621,16 @@ class Worker:
                                                     "args": pickling.dumps({**args, **asker})}))
                 try:
                     return wait.result(timeout)
-                except RuntimeCancelled:            # (the agent is being paused: moved,
-                    if sent is not None:            # swapped, stopped) nor will it run
-                        self.outbox.withdraw(sent)
-                    raise
+                except RuntimeCancelled as cancelled:    # (the agent is being paused:
+                    if sent is not None and self.outbox.withdraw(sent):  # moved, swapped)
+                        raise RuntimeCancelled(f"{cancelled}; it was withdrawn and will "
+                                               "not run") from None
+                    # Read already, it waits for the configuration lock, which the change
+                    # pausing this agent holds: once that ends it may run. (An agent that
+                    # asked again at once made the change twice.)
+                    raise RuntimeCancelled(f"{cancelled}; it had reached the runtime and may "
+                                           "still be carried out once that change ends: "
+                                           "see where things are before asking again") from None
                 except RuntimeTimeout:
                     if sent is None or not self.outbox.withdraw(sent):
                         raise
