@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import dataclasses
 import importlib
+import inspect
 import json
 import logging
 import multiprocessing
@@ -25,6 +26,7 @@ from typing import Any
 import numpy as np
 import psutil
 import pytest
+import sample_modules
 from conftest import alive, asked_as_it_restarts, eventually, frozen, restart_after_kill
 from sample_modules import (
     ArrayHolder,
@@ -93,7 +95,11 @@ def test_exception_in_step_is_logged_counted_and_contained(caplog) -> None:
         figures = eventually(lambda: (f := run.stats().modules["faulty"]).errors >= 5 and f,
                              what="errors counted")
         eventually(lambda: "odd step" in caplog.text, what="the error in the log")
-    assert figures.last_error == "ValueError: odd step"
+    # where it was raised, too: the traceback is logged once, and a chatty module beside
+    # it soon pushed it out of the log, leaving "ValueError: odd step" and no place
+    raised = next(number for number, text in enumerate(
+        inspect.getsource(sample_modules).splitlines(), 1) if '"odd step"' in text)
+    assert figures.last_error == f"ValueError: odd step (at sample_modules.py:{raised} in step)"
     assert figures.status == "running"
     assert state["calls"] >= state["good"] * 2 - 1
     assert "'faulty'" in caplog.text and "step" in caplog.text

@@ -58,7 +58,8 @@ def test_pb3a_run_shows_a_module_s_exception_once_then_counts_it(tmp_path: Path)
     row = next(line for line in table.splitlines()[::-1] if line.startswith("faulty"))
     # every error counted, not only the few reported (about 250 in 2.5 s; the launch
     # takes a good part of that on a loaded machine: one run under load counted 91)
-    assert int(row.split()[7]) >= 20 and row.endswith("ValueError: odd step"), row
+    assert int(row.split()[7]) >= 20, row
+    assert row.endswith("ValueError: odd step (at broken.py:12 in step)"), row    # (where)
 
 
 def test_a_plain_script_sees_a_module_s_exception_without_setting_up_logging() -> None:

@@ -11,7 +11,9 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
+import os
 import queue
+import sysconfig
 import threading
 import time
 import traceback
@@ -32,6 +34,27 @@ if TYPE_CHECKING:
     from pb3a.model.module import Module
 
 log = logging.getLogger("pb3a.module")
+# Frames in these are not the user's: where an error of theirs was raised is the
+# innermost frame outside them (Python's own library, the installed packages, PB3A).
+_NOT_THE_USERS = tuple({sysconfig.get_path(name) for name in ("stdlib", "platstdlib",
+                                                               "purelib", "platlib")}
+                       | {os.path.dirname(os.path.dirname(__file__))})
+
+
+def raised_at(exc: BaseException) -> str:
+    """Where the user's code raised ``exc``, as " (at file.py:12 in step)": its last
+    line alone ("ZeroDivisionError: division by zero") named no place, and the
+    traceback, logged once, was soon pushed out of the log by what came after."""
+    found = None
+    tb = exc.__traceback__
+    while tb is not None:
+        if not tb.tb_frame.f_code.co_filename.startswith(_NOT_THE_USERS):
+            found = tb
+        tb = tb.tb_next
+    if found is None:
+        return ""
+    code = found.tb_frame.f_code
+    return f" (at {os.path.basename(code.co_filename)}:{found.tb_lineno} in {code.co_name})"
 
 _BODIES = ("step", "on_input")   # hooks that run only while the module runs
 _EVENT_BUDGET = 256  # events handled per dispatch task before yielding to other modules
@@ -348,7 +371,7 @@ class ModuleActor:
                     log.debug("module %r: %s ended: %s", self.name, hook, exc)   # (by design)
                 except BaseException as exc:    # SystemExit, CancelledError too: counted,
                     self.errors += 1            # never the end of a shared thread
-                    self.last_error = f"{type(exc).__name__}: {exc}"
+                    self.last_error = f"{type(exc).__name__}: {exc}{raised_at(exc)}"
                     if self.on_error is not None:
                         self.on_error(self, hook, traceback.format_exc())
                     else:
