@@ -29,7 +29,7 @@ from sample_modules import (
 )
 
 import pb3a
-from pb3a import Driver, Module, RuntimeFailure, RuntimeTimeout, System, SystemStopped
+from pb3a import Agent, Driver, Module, RuntimeFailure, RuntimeTimeout, System, SystemStopped
 from pb3a.node.executor import Executor
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlServer
@@ -84,6 +84,37 @@ def test_agents_and_the_program_act_on_each_other_without_deadlock(workers: int)
     # reached the runtime ran once the change ended: asked again, it was made twice)
     said = {kind for s in states for kind in s["cancels_said"]}
     assert said and said <= {"withdrawn", "may run"}, said
+
+
+class WaitsForItsOwnMove(Agent):
+    """Moves itself from its setup and waits there for the move; says how it went."""
+
+    result = ""
+
+    def setup(self) -> None:
+        if self.result:                     # (moved: set up again at b)
+            return
+        began = time.monotonic()
+        try:
+            self.runtime.migrate(self.runtime.name, "b").result()
+            self.result = "moved"
+        except RuntimeFailure as exc:
+            self.result = f"{time.monotonic() - began:.1f} s: {exc}"
+
+
+def test_an_agent_added_that_waits_in_its_setup_for_its_own_move_is_told_at_once() -> None:
+    """The move waited for the configuration lock that the add holds, and the add for
+    the agent's setup, which waited for the move: the add failed when its timeout ran
+    out ('did not answer start within 2.7 s: a module there is stuck'). The wait is
+    refused at once, saying why, and the move goes on once the add is done."""
+    system = System("own-move").node("a").node("b")
+    with system.launch() as run:
+        started = time.monotonic()
+        run.add("m", WaitsForItsOwnMove, node="a", timeout=3.0)
+        assert time.monotonic() - started < 2.0
+        result = run.state("m")["result"]
+        assert "from its setup" in result and "it would wait for itself" in result, result
+        eventually(lambda: run.where("m") == "b", what="the move, done after the add")
 
 
 def test_an_agent_may_ask_the_runtime_from_setup_as_the_system_starts() -> None:

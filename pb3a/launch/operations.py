@@ -229,7 +229,18 @@ class Operations:
         if entry is None:
             raise ValueError(f"no migration {id} (only the last {KEEP_JOBS} are kept)")
         done, outcome = entry
-        done.wait(self._call_timeout(timeout))
+        wait = self._call_timeout(timeout)
+        asker = _ASKER.get()
+        if wait and not done.is_set() and asker is not None and asker[1] \
+                and self.lock.lends_to(asker[0]):
+            # (the move waits for the lock that the change starting this agent holds,
+            # which waits for this very setup: both sat out their timeouts)
+            raise RuntimeFailure(
+                f"migration {id}: waited for by agent {asker[0]!r} from its setup, which "
+                f"{self.lock.doing()} waits for while it holds the system's configuration "
+                "lock, and the move needs that lock: it would wait for itself; leave the "
+                "move to run (its event module_moved says when), or wait for it in step()")
+        done.wait(wait)
         status, value = outcome             # (set before ``done``: never half written)
         return status, value
 
