@@ -285,3 +285,16 @@ def server_address(value: Any) -> list[str]:
     """A module server's address, ``tcp://HOST:PORT``."""
     return tcp_address_problems(value, "each of module_servers")
 
+
+
+def group_apart(name: Any, group: Any, node: Any, modules: Iterable[Any]) -> list[str]:
+    """A group shares one worker process on one node: the problem of module ``name``, in
+    ``group`` on ``node``, if one of ``modules`` (``FlatModule``s) has that group on
+    another node."""
+    other = next((module for module in modules if group is not None
+                  and module.group == group and module.node != node), None)
+    if other is None:
+        return []
+    return [f"group {group!r} would span nodes {other.node!r} ({other.name}) and {node!r} "
+            f"({name}); a group shares one worker process on one node: give them the same "
+            "node or different groups"]

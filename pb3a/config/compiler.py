@@ -431,11 +431,8 @@ class _Planner:
             if module.group is None:
                 continue
             other = first.setdefault(module.group, module)
-            if other.node != module.node:
-                self.report(labels[module.name], [
-                    (f"group {module.group!r} would span nodes {other.node!r} ({other.name}) and "
-                    f"{module.node!r} ({module.name}); a group shares one worker process on one "
-                    "node: give them the same node or different groups")])
+            self.report(labels[module.name], checks.group_apart(
+                module.name, module.group, module.node, [other]))
 
 
 def _widened(cls: type[Module], state: dict[str, Any]) -> dict[str, Any]:

@@ -54,7 +54,7 @@ from pb3a.topology import Topology, topology_of
 from pb3a.transport import pickling
 
 if TYPE_CHECKING:
-    from collections.abc import Callable, Collection, Iterable, Iterator
+    from collections.abc import Callable, Collection, Iterator
 
     from pb3a.events import Event
     from pb3a.launch.launcher import Launcher
@@ -454,7 +454,10 @@ class Operations:
             if group is not None:
                 problems += checks.path(group, "group")
             if expanded is not None:
-                problems += _group_problems(expanded.modules.values(), launcher.specs)
+                problems += [problem for module in expanded.modules.values()
+                             for problem in checks.group_apart(module.name, module.group,
+                                                               module.node,
+                                                               launcher.specs.values())]
             if problems or expanded is None:
                 raise ConfigError([f"macro {name}: {problem}" for problem in problems])
             specs, links = list(expanded.modules.values()), expanded.links
@@ -756,13 +759,8 @@ def _add_problems(name: Any, cls: Any, state: Any, period: Any, restart: Any, gr
                         f"{checks.listing(nodes)}")
     problems += checks.fallback(fallback, nodes) + checks.env_placed(name, node, nodes)
     if group is not None:
-        problems += checks.path(group, "group")
-        other = next((m for m in modules.values() if m.group == group and m.node != node),
-                     None)
-        if other is not None:
-            problems.append(f"group {group!r} would span nodes {other.node!r} ({other.name}) "
-                            f"and {node!r} ({name}); a group shares one worker process on one "
-                            "node: give them the same node or different groups")
+        problems += checks.path(group, "group") \
+            + checks.group_apart(name, group, node, modules.values())
     return problems
 
 
@@ -784,22 +782,6 @@ def _name_problems(name: Any, modules: dict[str, FlatModule],
     if above is not None:
         return [f"{above} is a module, not a macro instance: it cannot hold others"]
     return []
-
-
-def _group_problems(new: Iterable[FlatModule], modules: dict[str, FlatModule]) -> list[str]:
-    """A group of the new modules that a running module has on another node (a group
-    shares one worker process on one node)."""
-    problems = []
-    for module in new:
-        other = next((m for m in modules.values()
-                      if module.group is not None and m.group == module.group
-                      and m.node != module.node), None)
-        if other is not None:
-            problems.append(f"group {module.group!r} would span nodes {other.node!r} "
-                            f"({other.name}) and {module.node!r} ({module.name}); a group "
-                            "shares one worker process on one node: give them the same node "
-                            "or different groups")
-    return problems
 
 
 def _refused_imports(macro: type[Macro], deadline: float) -> list[str]:
