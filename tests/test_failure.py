@@ -111,6 +111,19 @@ def _kill_worker(run, name: str) -> int:
     return pid
 
 
+def _restarted_after_a_checkpoint(run, name: str, counter: str) -> dict:
+    """Once module ``name``'s ``counter`` passed 40 and a checkpoint was taken after,
+    SIGKILL its worker; its state once restarted, read in the new process."""
+    eventually(lambda: run.state(name).get(counter, 0) > 40, what="steps")
+    taken = run.stats().modules[name].checkpoints
+    eventually(lambda: run.stats().modules[name].checkpoints > taken,
+               what="a checkpoint taken after 40 steps")
+    old = _kill_worker(run, name)
+    eventually(lambda: run.stats().modules[name].restarts == 1, what="restart")
+    return eventually(lambda: (s := run.state(name))["pid"] not in (0, old) and s,
+                      what="steps in the new process")
+
+
 def test_a_request_in_the_restart_window_waits_for_the_restart() -> None:
     """Asked just as its worker died, a module's state is set and read in the restarted
     process (both failed at once, on the dead worker's broken pipe); with ``never``,
@@ -225,14 +238,7 @@ def test_sigkill_with_restart_last_state_resumes_from_a_checkpoint() -> None:
     system = System("last")
     system.add("victim", Steady, restart="last-state")
     with system.launch(checkpoint_s=0.1) as run:
-        eventually(lambda: run.state("victim")["count"] > 40, what="steps")
-        taken = run.stats().modules["victim"].checkpoints
-        eventually(lambda: run.stats().modules["victim"].checkpoints > taken,
-                   what="a checkpoint taken after 40 steps")
-        old = _kill_worker(run, "victim")
-        eventually(lambda: run.stats().modules["victim"].restarts == 1, what="restart")
-        state = eventually(lambda: (s := run.state("victim"))["pid"] not in (0, old) and s,
-                           what="steps in the new process")
+        state = _restarted_after_a_checkpoint(run, "victim", "count")
     assert state["count"] > 40            # resumed from the checkpoint, not from 0
 
 
@@ -242,14 +248,7 @@ def test_a_last_state_restart_brings_back_the_state_the_module_made_as_it_ran() 
     system = System("last-made")
     system.add("mapper", MapMaker, restart="last-state")
     with system.launch(checkpoint_s=0.1) as run:
-        eventually(lambda: run.state("mapper").get("updates", 0) > 40, what="steps")
-        taken = run.stats().modules["mapper"].checkpoints
-        eventually(lambda: run.stats().modules["mapper"].checkpoints > taken,
-                   what="a checkpoint taken after 40 steps")
-        old = _kill_worker(run, "mapper")
-        eventually(lambda: run.stats().modules["mapper"].restarts == 1, what="restart")
-        state = eventually(lambda: (s := run.state("mapper"))["pid"] not in (0, old) and s,
-                           what="steps in the new process")
+        state = _restarted_after_a_checkpoint(run, "mapper", "updates")
         kinds = [event.kind for event in run.events()]
     assert state["updates"] > 40 and state["grid"][0, 0] > 40     # its checkpoint's
     assert state["setups"] == 2 and kinds == ["module_restarted"]
