@@ -6,6 +6,7 @@ import contextlib
 import errno
 import multiprocessing.forkserver
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -43,6 +44,25 @@ def eventually(check: Callable[[], Any], timeout: float = 10.0, what: str = "con
             pytest.fail(f"timed out after {timeout} s waiting for {what}; last value "
                         f"{value!r}{seen}")
         time.sleep(0.02)
+
+
+def unused_port() -> int:
+    """A loopback port free now, for a process the test starts to listen at. It comes
+    from below the kernel's ephemeral range, in a block of this pytest worker's own: a
+    port the kernel handed out and took back (``bind(0)``, then close) could be given
+    again, meanwhile, to any other worker's listener or connection, and was (a node
+    controller answered a module server's test)."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+    block = int(worker[2:]) + 1 if worker.startswith("gw") else 0
+    first = 16000 + 1500 * block                      # (gw0..gw9 end below 32000)
+    for port in random.sample(range(first, first + 1500), 1500):
+        with socket.socket() as probe:
+            try:
+                probe.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError(f"no free port in {first}..{first + 1499}")
 
 
 def assert_same_arrays(got: dict[str, Any], want: dict[str, Any]) -> None:
@@ -341,10 +361,7 @@ class Daemon:
     again at the same address."""
 
     def __init__(self, name: str, path: tuple[str, ...] = (), *, ready: bool = True) -> None:
-        with socket.socket() as probe:
-            probe.bind(("127.0.0.1", 0))
-            port = probe.getsockname()[1]
-        self.name, self.address = name, f"tcp://127.0.0.1:{port}"
+        self.name, self.address = name, f"tcp://127.0.0.1:{unused_port()}"
         self.path = path            # more directories on its import path (a robot's own)
         self.process: subprocess.Popen[str] | None = None
         self.start(ready)

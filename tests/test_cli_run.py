@@ -6,7 +6,6 @@ import contextlib
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import textwrap
@@ -16,7 +15,7 @@ from pathlib import Path
 
 import psutil
 import pytest
-from conftest import alive, eventually
+from conftest import alive, eventually, unused_port
 
 from pb3a.transport.shm import live_segments
 
@@ -436,9 +435,7 @@ to = "tally.x"
 ''')
         # neither the launcher's nor the node's working directory or PYTHONPATH has it;
         # --listen holds although a remote node also calls the launcher back there
-        with socket.socket() as probe:
-            probe.bind(("127.0.0.1", 0))
-            port = probe.getsockname()[1]
+        port = unused_port()
         done = subprocess.run([sys.executable, "-m", "pb3a", "run", "../project/system.toml",
                                "--for", "2", "--listen", f"tcp://127.0.0.1:{port}"],
                               cwd=elsewhere, env=_env(), capture_output=True, text=True,

@@ -7,13 +7,12 @@ import contextlib
 import itertools
 import os
 import signal
-import socket
 import threading
 import time
 from collections.abc import Iterator
 
 import pytest
-from conftest import alive, eventually
+from conftest import alive, eventually, unused_port
 from sample_modules import (
     Busybody,
     DeviceReader,
@@ -478,9 +477,7 @@ def test_a_driver_waiting_for_its_device_holds_up_no_read_swap_or_stop() -> None
     stop waited for it, or failed ("busy in a call"); a robot driver whose server died
     could not be moved to the standby robot. Now a read runs while it waits, and a swap
     or a stop cancels the request."""
-    with socket.socket() as probe:              # an address nothing listens at
-        probe.bind(("127.0.0.1", 0))
-        resource = f"tcp://127.0.0.1:{probe.getsockname()[1]}"
+    resource = f"tcp://127.0.0.1:{unused_port()}"            # nothing listens there
     system = System("device").add("reader", DeviceReader, state={"resource": resource})
     with system.launch() as run:
         eventually(lambda: run.state("reader", timeout=2.0)["asked"] == 1,

@@ -10,7 +10,6 @@ from __future__ import annotations
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -19,7 +18,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import end_process, eventually
+from conftest import end_process, eventually, unused_port
 from sample_modules import Chatty
 
 from pb3a import System
@@ -93,9 +92,7 @@ def controller(tmp_path: Path, request: pytest.FixtureRequest
     """``pb3a node start --name b``, its stderr (and its executors') in a file; with
     ``journal``, that file is the journal's stream as systemd names it. Its address, the
     file and whether it is the journal's."""
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        address = f"tcp://127.0.0.1:{probe.getsockname()[1]}"
+    address = f"tcp://127.0.0.1:{unused_port()}"
     written = tmp_path / "node-b.log"
     with written.open("w") as stderr:
         status = os.fstat(stderr.fileno())

@@ -6,7 +6,6 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
-import socket
 import subprocess
 import sys
 import textwrap
@@ -16,7 +15,12 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import daemon_banner_then_clean_exit, daemon_signalled_as_it_starts, eventually
+from conftest import (
+    daemon_banner_then_clean_exit,
+    daemon_signalled_as_it_starts,
+    eventually,
+    unused_port,
+)
 
 from pb3a import RuntimeFailure, System
 from pb3a.daemons.module_server import ModuleServer
@@ -123,9 +127,7 @@ def test_a_daemon_whose_reader_is_gone_serves_on_and_stops_cleanly(tmp_path) -> 
     """A script that starts a daemon and closes its end of the daemon's output (or a
     ``| head`` that has its line) once ended the daemon in a traceback as it printed
     where it listens."""
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
+    port = unused_port()
     process = subprocess.Popen(
         [sys.executable, "-m", "pb3a", "modules", "serve", str(tmp_path),
          "--listen", f"tcp://127.0.0.1:{port}"],

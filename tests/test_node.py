@@ -23,6 +23,7 @@ from conftest import (
     daemon_banner_then_clean_exit,
     daemon_signalled_as_it_starts,
     eventually,
+    unused_port,
 )
 from sample_modules import BlocksInInit, Counter, StepStamps
 
@@ -255,9 +256,7 @@ def test_the_command_line_runs_a_node_until_signalled() -> None:
 
 def test_a_node_signalled_as_it_starts_stops_cleanly(tmp_path) -> None:
     # (its handlers were set once it listened: killed by the signal, it never closed)
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
+    port = unused_port()
     assert daemon_signalled_as_it_starts(tmp_path, "node", "start", "--name", "early",
                                          "--listen", f"tcp://127.0.0.1:{port}") == 0
     with socket.socket() as probe:                     # closed: the port is free again

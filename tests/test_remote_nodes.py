@@ -25,6 +25,7 @@ from conftest import (
     kill_processes_naming,
     processes_naming,
     restart_after_kill,
+    unused_port,
 )
 from sample_modules import (
     AsksInSetup,
@@ -1050,9 +1051,7 @@ def test_every_unreachable_node_is_named_at_once_and_the_started_executors_stop(
     executors of the two nodes that did start are stopped again, their processes and
     segments gone."""
     started = _recording_starts(controllers)
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        refused = f"tcp://127.0.0.1:{probe.getsockname()[1]}"
+    refused = f"tcp://127.0.0.1:{unused_port()}"
     with socket.socket() as silent:                  # (the kernel accepts; nobody answers)
         silent.bind(("127.0.0.1", 0))
         silent.listen(8)
