@@ -182,7 +182,8 @@ def test_a_reader_node_lost_after_another_counts_only_what_it_did_not_acknowledg
         eventually(lambda: _events(run, "module_lost"), timeout=20, what="b's reader lost")
         run.set_state("src", limit=1100)
         eventually(lambda: run.state("on_c")["received"] == 1100, timeout=20,
-                   what="1000 more values on c")
+                   what="1000 more values on c", context=lambda: (
+                       run.state("on_c"), run.stats().links["src.out->on_c.x"]))
         os.kill(c.executor_pid(), signal.SIGKILL)
         eventually(lambda: _events(run, "module_failed_over"), timeout=20,
                    what="c's reader failed over")
