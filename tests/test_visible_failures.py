@@ -145,6 +145,29 @@ def test_what_a_worker_logs_reaches_the_launcher_s_log() -> None:
     assert entry.message == "[worker local/m-chatty] hello from a module's own logger"
 
 
+def test_what_a_module_logs_on_its_own_logger_is_read_by_its_name(capsys) -> None:
+    """``pb3a logs --module M`` showed nothing M logged on a logger of its own: a
+    worker's records named no module. Each names the module whose hook logged it, also
+    in a worker shared with others, on a remote node too."""
+    far = NodeController("far", ClusterKey.load(), limits=Limits(max_cpu_percent=101.0))
+    try:
+        system = System("chat").node("a").node("far", address=far.address)
+        system.add("chatty", Chatty, node="a", group="pair").add("quiet", Chatty, node="a",
+                                                                group="pair")
+        system.add("remote", Chatty, node="far")
+        with system.launch(log_level=logging.WARNING) as run:
+            mine = eventually(lambda: run.logs(module="chatty"), timeout=20,
+                              what="chatty's own warning, read by its name")
+            assert [(e.logger, e.module) for e in mine] == [("chatty", "chatty")]
+            eventually(lambda: run.logs(module="remote"), timeout=20,
+                       what="the remote module's own warning, read by its name")
+            assert main(["logs", run.listen(), "--module", "quiet"]) == 0
+            shown = capsys.readouterr().out
+            assert shown.count("hello from a module's own logger") == 1     # not chatty's
+    finally:
+        far.close()
+
+
 class Stuck(Module):
     """Its step blocks until a file appears (a blocking call gone wrong)."""
 

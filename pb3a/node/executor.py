@@ -687,7 +687,7 @@ class Executor:
         elif kind == "log":                 # a record the worker logged, logged here
             logging.getLogger(args["logger"]).log(
                 args["level"], "[worker %s] %s", handle.key, args["message"],
-                extra={"pb3a_node": self.node})
+                extra={"pb3a_node": self.node, "pb3a_module": args.get("module", "")})
         elif kind == "request":
             threading.Thread(target=self._serve_request, args=(handle, args), daemon=True,
                              name="pb3a-agent-request").start()

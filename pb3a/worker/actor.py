@@ -56,6 +56,17 @@ def raised_at(exc: BaseException) -> str:
     code = found.tb_frame.f_code
     return f" (at {os.path.basename(code.co_filename)}:{found.tb_lineno} in {code.co_name})"
 
+_running = threading.local()      # .name: the module whose hook this thread runs now
+
+
+def running_module() -> str:
+    """The name of the module whose hook (``setup``, ``step``, ``on_input``,
+    ``teardown``) runs on this thread now, "" outside one: what a worker's log record is
+    about, so that ``pb3a logs --module`` finds what a module logs on a logger of its
+    own. (A thread the module started itself runs none.)"""
+    return getattr(_running, "name", "")
+
+
 _BODIES = ("step", "on_input")   # hooks that run only while the module runs
 _EVENT_BUDGET = 256  # events handled per dispatch task before yielding to other modules
 _HAND_OVER_S = 0.01  # longest a step loop waits for a waiter to take the lock it left
@@ -350,6 +361,7 @@ class ModuleActor:
         timed = self.timed if timed is None else timed
         self._holder = threading.get_ident()
         self._calling = (hook, time.monotonic())
+        outer, _running.name = running_module(), self.name
         try:
             if hook in _BODIES and not (self.running and self.may_run()):
                 return 0                        # stopped or migrated while waiting, or
@@ -380,7 +392,7 @@ class ModuleActor:
             if timed:
                 self.cpu += time.thread_time() - start
         finally:
-            self._holder, self._calling = 0, None
+            self._holder, self._calling, _running.name = 0, None, outer
         return done
 
     # On the per-value path (a port's event, its dispatch, the call) locks are taken

@@ -11,12 +11,15 @@ if TYPE_CHECKING:
 
 
 class LogForwarder(logging.Handler):
-    """Sends the worker's log records (PB3A's and its modules' own) to its executor.
-    Records from before the worker is set up (``send`` is None) are not sent."""
+    """Sends the worker's log records (PB3A's and its modules' own) to its executor,
+    each with the module it came from (``module_of``: whose hook the logging thread
+    runs, "" for none). Records from before the worker is set up (``send`` is None) are
+    not sent."""
 
-    def __init__(self, level: int) -> None:
+    def __init__(self, level: int, module_of: Callable[[], str]) -> None:
         super().__init__(level)
         self.send: Callable[[Any], None] | None = None
+        self._module_of = module_of
 
     def emit(self, record: logging.LogRecord) -> None:
         if self.send is None:
@@ -26,6 +29,6 @@ class LogForwarder(logging.Handler):
             if record.exc_info:
                 message += "\n" + logging.Formatter().formatException(record.exc_info)
             self.send((None, "log", {"level": record.levelno, "logger": record.name,
-                                     "message": message}))
+                                     "message": message, "module": self._module_of()}))
         except Exception:
             self.handleError(record)

@@ -41,7 +41,7 @@ from pb3a.transport.doorbell import BellPull
 from pb3a.transport.pipe import Outbox, Outgoing
 from pb3a.transport.ring import RingSize, ShmRing, sleep
 from pb3a.transport.snapshot import Snapshot
-from pb3a.worker.actor import EventPool, ModuleActor, SetupError
+from pb3a.worker.actor import EventPool, ModuleActor, SetupError, running_module
 from pb3a.worker.inbound import GUARD_TIMEOUT, InboundLink, LosslessInboundLink
 from pb3a.worker.lease import LEASE_LAPSED, Lease
 from pb3a.worker.log_forwarding import LogForwarder
@@ -830,7 +830,7 @@ def worker_main(conn: Any, key: str, checkpoint_s: float, level: int,
     signal.signal(signal.SIGHUP, signal.SIG_IGN)          # (the terminal closed: the same)
     signal.signal(signal.SIGTERM, _on_sigterm)
     try:        # signalled as it starts (a SIGTERM to the whole group): nothing to stop
-        forward = LogForwarder(level)
+        forward = LogForwarder(level, running_module)
         logging.getLogger().addHandler(forward)
         logging.getLogger().setLevel(level)
         bell = reduction.recv_handle(conn)      # the executor sends our doorbell first
