@@ -322,7 +322,8 @@ def test_a_module_put_back_by_a_move_that_its_destination_s_loss_failed_is_left_
         node_b) -> None:
     """The failover read which modules were on the lost node before it took the lock,
     while the move still had the module there: once the move had put it back where it
-    ran, the failover dropped it (restart never; its worker ran on) or restarted it."""
+    ran, the failover dropped it (restart never; its worker ran on) or restarted it. The
+    loss names it as arriving, not as one of the node's."""
     b = node_b
     with _relayed("put-back", b, relay_on="a", restart="never").launch() as run:
         launcher = run._launcher
@@ -335,8 +336,9 @@ def test_a_module_put_back_by_a_move_that_its_destination_s_loss_failed_is_left_
         node_b.land = land_as_b_dies
         with pytest.raises(RuntimeFailure, match="it runs on node a again"):
             run.migrate("relay", to="b")
-        eventually(lambda: any(e.kind == "node_lost" for e in run.events()), timeout=10,
-                   what="b lost")
+        (lost,) = eventually(lambda: _events(run, "node_lost"), timeout=10, what="b lost")
+        # (it was said to be on b, lost with it, while the move put it back)
+        assert lost.detail["modules"] == [] and lost.detail["arriving"] == ["relay"]
         relayed = run.state("relay")["relayed"]
         eventually(lambda: run.state("relay")["relayed"] > relayed + 20, timeout=10,
                    what="the relay running on a")

@@ -110,11 +110,17 @@ class Failover:
             # no round trip now: its last one, shown on, was made up
             launcher.health[node].update(up=False, rtt=float("nan"))
             launcher.changed.notify_all()
-        # (a copy: another node's failover thread may change the specs meanwhile)
-        gone = sorted(name for name, spec in list(launcher.specs.items()) if spec.node == node)
+        # (a copy: another node's failover thread may change the specs meanwhile); a
+        # module a move was landing there is not said to be there: the move puts it back
+        # where it ran (it was said lost with the node, and then ran on)
+        there = sorted(name for name, spec in list(launcher.specs.items()) if spec.node == node)
+        arriving = [name for name in there if launcher.arriving.get(name) == node]
+        gone = [name for name in there if name not in arriving]
+        landing = f"; a move was landing {', '.join(arriving)} there" if arriving else ""
         launcher.failures.add(f"node {node} lost (no heartbeat for {silent_s:.1f} s); its "
-                              f"modules {', '.join(gone) or '(none)'} were there")
-        launcher.events.record("node_lost", node, modules=gone, silent_s=silent_s)
+                              f"modules {', '.join(gone) or '(none)'} were there{landing}")
+        launcher.events.record("node_lost", node, modules=gone, arriving=arriving,
+                               silent_s=silent_s)
         self._failing_over[node] = lost_at
         # on a thread of its own: placing the modules may wait for a node that went too,
         # which only the watchdog, free, declares lost (then the wait fails at once)

@@ -81,6 +81,7 @@ class Launcher:
         self.failures = FailureLog(log)
         self.checkpoints: dict[str, bytes] = {}      # module -> its newest (last-state)
         self.lost_values: collections.Counter[str] = collections.Counter()  # per link key
+        self.arriving: dict[str, str] = {}            # module -> the node a move lands it on
         self.unconfirmed: list[str] = []    # remote nodes whose stop was not confirmed
         self._callback: str | None = None            # where remote executors reach us
         self.events = EventLog()                      # what happened, for run.events()

@@ -233,6 +233,7 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
             raise
         for name in moving:
             launcher.specs[name] = replace(homes[name], node=node)
+            launcher.arriving[name] = node      # (until it runs there, or is put back)
         # 5. restored, re-wired, started (or, failing that, the same back home)
         landed: list[str] = []
         late: str | None = None
@@ -250,6 +251,8 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
                 # all): they land here all the same, with the links that can be wired
                 restore_s = _stay(launcher, snapshots, links, laps, state, landed, lost,
                                   exc)
+    for name in moving:
+        launcher.arriving.pop(name, None)
     lap = laps.seconds
     capture_s = sum(snapshot.capture_s for snapshot in snapshots.values())
     phases = MigrationPhases(
@@ -372,6 +375,7 @@ def _put_back(launcher: Launcher, homes: dict[str, FlatModule],
     raises, naming why."""
     for name in homes:
         launcher.specs[name] = homes[name]
+        launcher.arriving.pop(name, None)
     for name in snapshots:
         launcher.nodes[homes[name].node].add_module(homes[name], state={})
     try:

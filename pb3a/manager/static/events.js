@@ -38,7 +38,9 @@ function describe(event) {
     case "module_restarted":
       return [d.node && `on ${d.node}`, d.reason].filter(Boolean).join(", ");
     case "node_lost":
-      return d.modules?.length ? `with ${d.modules.join(", ")}` : "";
+      return [d.modules?.length && `with ${d.modules.join(", ")}`,
+              d.arriving?.length && `${d.arriving.join(", ")} on the way there`]
+        .filter(Boolean).join("; ");
     case "module_added":
       return d.node ? `on ${d.node}` : "";
     case "module_removed":       // (removed with force: its worker killed, with why)
