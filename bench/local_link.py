@@ -81,6 +81,7 @@ GOALS = {"small": ("pb3a >= 5x mp.Queue (msgs/s)", 5.0),
          "array": ("pb3a >= 10 GB/s with zero-copy views", 10.0)}
 LOSSLESS = "lossless:8"    # the lossless row's link policy (the dropping row: queue:8)
 LOSSLESS_GOAL = 0.9        # lossless at >= 0.9x the dropping policy's rate, nothing lost
+LINK = "writer.out->reader.x"
 REMOTE_GOAL = 0.7          # a remote link at >= 0.7x raw pyzmq over tcp, same run (issue 16)
 
 
@@ -97,7 +98,7 @@ class Pb3aLink:
         # the reader is added (so started) first: ready before values flow
         system.add("reader", reader, node="b" if remote else None)
         system.add("writer", writer, state={"batch": batch}, node="a" if remote else None)
-        system.link("writer.out", "reader.x", policy=policy)
+        system.link("writer.out", "reader.x", policy=policy)      # (LINK)
         self.run = system.launch()
         self.bursts = 0
         self.drops = 0
@@ -110,19 +111,30 @@ class Pb3aLink:
         run.set_state("writer", count=n, go=self.bursts)
         drops_before = self.drops
 
-        def finished() -> dict[str, Any] | None:
+        arrived = [-1]
+
+        def finished() -> tuple[dict[str, Any], int] | None:
             state = run.state("reader")
-            return state if state["count"] + state["drops"] - drops_before >= n else None
+            if arrived[0] < state["count"] < n:     # (still arriving: no stats asked)
+                arrived[0] = state["count"]
+                return None
+            arrived[0] = state["count"]
+            # (the link's drops, not the reader's: values a remote link's sender did not
+            # send, slower than its writer, are counted by the follower, and its reader
+            # only learns of drops as a value arrives: none came after the last ones)
+            drops = run.stats().links[LINK].drops
+            return (state, drops) if state["count"] + drops - drops_before >= n else None
 
         try:
-            reader = wait_for(finished, TIMEOUT, f"{n} values at the reader", poll=0.05)
+            reader, self.drops = wait_for(finished, TIMEOUT, f"{n} values at the reader",
+                                          poll=0.05)
         except TimeoutError as exc:
             state = {k: v for k, v in run.state("reader").items() if k != "touched"}
-            raise TimeoutError(f"{exc}; reader state: {state}") from None
-        self.drops = reader["drops"]
+            raise TimeoutError(f"{exc}; reader state: {state}, link: "
+                               f"{run.stats().links[LINK]}") from None
         writer = run.state("writer")
         return {"count": reader["count"], "seconds": reader["last"] - writer["started"],
-                "drops": reader["drops"] - drops_before, "views": reader["views"],
+                "drops": self.drops - drops_before, "views": reader["views"],
                 "writer_seconds": writer["finished"] - writer["started"]}
 
     def close(self) -> None:
