@@ -41,6 +41,7 @@ if TYPE_CHECKING:
     from collections.abc import Iterable
 
     from pb3a.config.plan import FlatLink, FlatModule
+    from pb3a.launch.env_keeper import EnvKeeper
     from pb3a.launch.launcher import Launcher
     from pb3a.stats import NodeReport
 
@@ -55,8 +56,8 @@ class Failover:
     """The watchdog over a launcher's remote nodes: each one lost, its modules failed
     over; each one back, admitted again."""
 
-    def __init__(self, launcher: Launcher) -> None:
-        self.launcher = launcher
+    def __init__(self, launcher: Launcher, env: EnvKeeper) -> None:
+        self.launcher, self.env = launcher, env
         self._rejoining: set[str] = set()
         self._failing_over: dict[str, float] = {}     # lost node -> when, until done
         # a lost node's env module and the links from it, restored when it rejoins
@@ -211,7 +212,7 @@ class Failover:
                                    from_checkpoint=launcher.specs[name].restart == "last-state"
                                    and name in launcher.checkpoints,
                                    restart_s=time.monotonic() - lost_at)
-        launcher.update_env()
+        self.env.update()
 
     def _tell_lost(self, spec: FlatModule, node: str, refused: str | None,
                    links: Iterable[FlatLink]) -> None:
@@ -379,7 +380,7 @@ class Failover:
                         launcher.changed.notify_all()
                     launcher.introduce()
                     self._restore_env(name)
-                    launcher.update_env()
+                    self.env.update()
             except RuntimeTimeout as exc:               # (the lock: asked again in a second)
                 log.warning("node %s answers again but could not be admitted: %s", name, exc)
                 return

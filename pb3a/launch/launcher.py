@@ -8,7 +8,8 @@ node, followed at the reader's) and applies every change under one global
 configuration lock.
 
 The loss of a remote node, its modules' failover and its rejoin are ``Failover``'s
-(``failover.py``), which acts on the launcher from above; its threads run in the
+(``failover.py``), and what the env modules are told is ``EnvKeeper``'s
+(``env_keeper.py``): both act on the launcher from above; their threads run in the
 launcher's background, joined as it shuts down.
 """
 
@@ -33,7 +34,6 @@ from pb3a.launch.remote_starts import RemoteStarts, not_started
 from pb3a.loading.references import by_reference, class_ref
 from pb3a.logbook import LogBook
 from pb3a.model.environment import PREFIX as ENV_PREFIX
-from pb3a.model.environment import env_name
 from pb3a.node.bridge import NoHandshake
 from pb3a.node.executor import REPORT_TIMEOUT, Executor
 from pb3a.node.remote import HEARTBEAT_S, RemoteNode
@@ -51,8 +51,6 @@ if TYPE_CHECKING:
 log = logging.getLogger("pb3a.launcher")
 
 WATCH_S = 0.1           # how often the watchdog looks at the nodes' heartbeats
-ENV_S = 1.0             # how often it updates the env modules, merges logs
-ENV_TOLD = 256          # the latest moves (and losses) the env modules are given each time
 STOP_TIMEOUT = 5.0      # a module's teardown when it is removed
 # A removal with ``force`` of a module that did not answer its stop: what its worker's
 # kill, its links' unwiring and its drop may take past the call's deadline (a few ms)
@@ -86,7 +84,6 @@ class Launcher:
         self._callback: str | None = None            # where remote executors reach us
         self.events = EventLog()                      # what happened, for run.events()
         self.logbook = LogBook()                      # the recent log, for run.logs()
-        self._log_seen: dict[str, int] = {}           # remote node -> its last entry merged
         self.handler: Any = None                      # applies agents' requests (op, args)
         self.health: dict[str, dict[str, Any]] = {}   # node -> up, rtt, address
         self._last_reports: dict[str, NodeReport] = {}  # node -> the last it gave in time
@@ -137,9 +134,6 @@ class Launcher:
         if failures:
             raise not_started(self.plan.name, len(remote), failures)
         self.introduce()
-        # (also without remote nodes: it keeps the env modules' view up to date)
-        self.start_background(threading.Thread(target=self._keep_env, name="pb3a-env",
-                                               daemon=True))
 
     def _embedded_executor(self, name: str, here: str) -> Executor:
         """The executor of node ``name``, which has no address: it runs in this process,
@@ -492,22 +486,22 @@ class Launcher:
         asked = {name: threading.Thread(target=ask, args=(name, node), daemon=True,
                                         name=f"pb3a-report-{name}")
                  for name, node in list(self.nodes.items())
-                 if self.health[name]["up"] and not self._silent(name)}
+                 if self.health[name]["up"] and not self.silent(name)}
         for thread in asked.values():
             thread.start()
         for name, thread in asked.items():
-            while thread.is_alive() and not self._silent(name) and time.monotonic() < deadline:
+            while thread.is_alive() and not self.silent(name) and time.monotonic() < deadline:
                 thread.join(max(0.0, min(WATCH_S, deadline - time.monotonic())))
         given = {name: reports[name] for name in asked if name in reports}
         self._last_reports.update(given)
         for name in asked.keys() - given.keys():
-            if not self._silent(name) and name in self._last_reports:
+            if not self.silent(name) and name in self._last_reports:
                 log.warning("node %s did not report within %g s", name, timeout)
                 placed = [spec for spec in self.specs.values() if spec.node == name]
                 given[name] = _silenced(self._last_reports[name], name, placed)
         return given
 
-    def _silent(self, name: str) -> bool:
+    def silent(self, name: str) -> bool:
         """Whether remote node ``name`` missed its last two heartbeats."""
         remote = self.remotes.get(name)
         return remote is not None and remote.silent_s() > 2 * HEARTBEAT_S
@@ -520,59 +514,6 @@ class Launcher:
                                 self.remotes[name].silent_s() if name in self.remotes
                                 else 0.0)
                 for name, health in self.health.items()}
-
-    # -- the env modules' view ---------------------------------------------------------
-    def _keep_env(self) -> None:
-        """Every ``ENV_S``: each remote node's controller health and log, and the env
-        modules' view (on a thread of its own: a node going silent meanwhile must not
-        hold up the detection of its loss)."""
-        while not self.stopping.wait(ENV_S):
-            for name, node in list(self.remotes.items()):
-                if self.health[name]["up"] and not self._silent(name):
-                    self.health[name]["controller"] = node.controller_answers(HEARTBEAT_S)
-                    self._merge_log(name, node)
-            self.update_env()
-
-    def _merge_log(self, name: str, node: RemoteNode) -> None:
-        """Take in what node ``name`` logged since the last look."""
-        with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
-            for entry in node.logs(self._log_seen.get(name, 0)):
-                self._log_seen[name] = entry.seq
-                self.logbook.add(entry.time, entry.level, entry.logger, entry.message,
-                                 name, entry.module, entry.process)
-
-    def update_env(self) -> None:
-        """Tell every node's env module (as its state) the health of every node and its
-        round-trip time to each, the node's worker processes (its own load) and the
-        latest moves and losses, each with its event's number (it tells each once)."""
-        events = self.events.since(0)
-        moves = [{"seq": event.seq, "module": event.subject, **event.detail}
-                 for event in events
-                 if event.kind in ("module_moved", "module_failed_over")][-ENV_TOLD:]
-        losses = [{"seq": event.seq, "node": event.subject} for event in events
-                  if event.kind == "node_lost"][-ENV_TOLD:]
-        for name, node in list(self.nodes.items()):
-            env = env_name(name)
-            if env not in self.specs or not self.health[name]["up"] or self._silent(name):
-                continue
-            with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
-                rtts = self._rtts_from(name)
-                # (a lost peer has no round-trip time: the node's last one to it is past)
-                table = {peer: {"up": health["up"], "rtt": rtts.get(peer, float("nan"))
-                                if health["up"] else float("nan")}
-                         for peer, health in self.health.items()}
-                self.call(env, "set_state", ENV_S, state={
-                    "health": table, "moves": moves, "losses": losses,
-                    "own_pids": node.worker_pids()})
-
-    def _rtts_from(self, name: str) -> dict[str, float]:
-        """Round-trip times from node ``name`` to every node: measured by the node itself
-        if it is remote; for an embedded node, this process's (it runs here): 0 to the
-        other embedded nodes, the heartbeat's to the remote ones."""
-        if name in self.remotes:
-            return {**self.remotes[name].rtts(), name: 0.0}
-        return {peer: self.health[peer]["rtt"] if peer in self.remotes else 0.0
-                for peer in self.nodes}
 
     def wait_health(self, node: str, up: bool, timeout: float) -> bool:
         """Block until ``node`` is (not) up; False on timeout."""
@@ -595,7 +536,7 @@ class Launcher:
             thread.join(max(0.0, min(2.0, deadline - time.monotonic())))
         for name, remote in self.remotes.items():
             remote.wind_down(deadline)   # (one that does not answer fences itself anyway)
-            if self._silent(name):                    # gone, not yet declared: no waiting
+            if self.silent(name):                    # gone, not yet declared: no waiting
                 remote.lose()
         with contextlib.ExitStack() as held:
             try:
@@ -606,7 +547,7 @@ class Launcher:
             # stopped on its own, and nothing that fails keeps the rest from stopping.
             for name in reversed(list(self.specs)):
                 node = self.specs[name].node if name in self.specs else None
-                if node in self.remotes and self._silent(node):
+                if node in self.remotes and self.silent(node):
                     self.remotes[node].lose()         # it went meanwhile: no waiting
                 try:
                     # its request waits no longer than the deadline (a frozen worker's

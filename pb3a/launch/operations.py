@@ -57,6 +57,7 @@ if TYPE_CHECKING:
     from collections.abc import Callable, Collection, Iterator
 
     from pb3a.events import Event
+    from pb3a.launch.env_keeper import EnvKeeper
     from pb3a.launch.launcher import Launcher
     from pb3a.logbook import LogEntry
     from pb3a.stats import NodeStats, SystemStats
@@ -84,8 +85,9 @@ _ASKER: contextvars.ContextVar[tuple[str, bool] | None] = contextvars.ContextVar
 class Operations:
     """The live operations of one launched system."""
 
-    def __init__(self, launcher: Launcher, timeout: float = DEFAULT_TIMEOUT) -> None:
-        self.launcher = launcher
+    def __init__(self, launcher: Launcher, env: EnvKeeper,
+                 timeout: float = DEFAULT_TIMEOUT) -> None:
+        self.launcher, self.env = launcher, env
         self.plan = launcher.plan
         self.lock = launcher.lock
         self.event_log = launcher.events
@@ -188,7 +190,7 @@ class Operations:
                                        destination=report.destination, pause_s=report.pause_s)
             rewired = sum(1 for link in self.launcher.links.values()
                           if moved & {link.src, link.dst})
-            self.launcher.update_env()          # the moves and the workers, for agents
+            self.env.update()          # the moves and the workers, for agents
         if late is not None:        # (a plain RuntimeTimeout: the same through connect)
             raise RuntimeTimeout(str(late)) from None
         if len(reports) == 1:

@@ -18,6 +18,7 @@ from typing import Any
 
 from pb3a.config.plan import Plan
 from pb3a.errors import ConfigError, ModuleNotFound, RuntimeFailure, bounded_wait
+from pb3a.launch.env_keeper import EnvKeeper
 from pb3a.launch.failover import Failover
 from pb3a.launch.handle import SystemHandle
 from pb3a.launch.launcher import Launcher
@@ -88,8 +89,9 @@ class Running(SystemHandle):
         self.name = plan.name
         default = plan.timeout if timeout is None else bounded_wait(timeout, "launch")
         self._launcher = Launcher(plan, checkpoint_s=checkpoint_s, log_level=log_level)
-        self._failover = Failover(self._launcher)
-        self._operations = Operations(self._launcher,
+        self._env = EnvKeeper(self._launcher)
+        self._failover = Failover(self._launcher, self._env)
+        self._operations = Operations(self._launcher, self._env,
                                       DEFAULT_TIMEOUT if default is None else default)
         self._launcher.handler = self._agent_request
         self._stopped = threading.Event()
@@ -117,6 +119,7 @@ class Running(SystemHandle):
                 if self._listen_at is not None or remote:
                     self.listen(self._listen_at or f"tcp://{self._here_towards_nodes()}:0")
                 launcher.start_nodes(self.address if remote else None, self._operations.timeout)
+                self._env.start()
                 self._failover.start()
                 launcher.check_classes(self._operations.timeout)
                 launcher.expect(list(self.plan.modules.values()))
@@ -127,7 +130,7 @@ class Running(SystemHandle):
                 with contextlib.suppress(ModuleNotFound):     # an agent removed it meanwhile
                     launcher.node_of(name).start_modules([name])
             with launcher.lock.held(f"start system {self.name!r}"):
-                launcher.update_env()
+                self._env.update()
         except BaseException:
             self.close()
             raise
