@@ -162,11 +162,21 @@ def _relayed_over_c(name: str, b: str, c: str) -> System:
     return system
 
 
+def _accounted(run, link: str) -> int:
+    """Values of ``link`` its reader received or was told were not sent (counted as
+    drops): on a dropping remote link, every value written is one or the other."""
+    figures = run.stats().links[link]
+    return figures.values + figures.drops
+
+
 def test_a_reader_node_lost_after_another_counts_only_what_it_did_not_acknowledge(
         daemons) -> None:
     """Readers of one output on nodes b and c; b lost; 1000 more values, which c
     acknowledges; c lost: its link said 1000 values lost (b's acknowledgement, left at the
-    writer while c still read, was the least advanced, and counted for c)."""
+    writer while c still read, was the least advanced, and counted for c). The links drop
+    (queue): a follower that fell behind the other one for half a second (its node
+    loaded) is served on its own, and goes back to PUB once b is forgotten; either
+    switch counts some values dropped, not received, and c acknowledges past them."""
     b, c = daemons["b"], daemons["c"]
     system = System("stale-ack").node("a").node("b", address=b.address)
     system.node("c", address=c.address)
@@ -176,13 +186,13 @@ def test_a_reader_node_lost_after_another_counts_only_what_it_did_not_acknowledg
     system.link("src.out", "on_b.x")
     system.link("src.out", "on_c.x")
     with system.launch() as run:
-        eventually(lambda: run.state("on_b")["received"] == run.state("on_c")["received"]
-                   == 100, timeout=30, what="the first 100 values on b and c")
+        eventually(lambda: _accounted(run, "src.out->on_b.x") == _accounted(
+            run, "src.out->on_c.x") == 100, timeout=30, what="the first 100 values on b and c")
         os.kill(b.executor_pid(), signal.SIGKILL)
         eventually(lambda: _events(run, "module_lost"), timeout=20, what="b's reader lost")
         run.set_state("src", limit=1100)
-        eventually(lambda: run.state("on_c")["received"] == 1100, timeout=20,
-                   what="1000 more values on c", context=lambda: (
+        eventually(lambda: _accounted(run, "src.out->on_c.x") == 1100, timeout=20,
+                   what="1000 more values on c, received or counted dropped", context=lambda: (
                        run.state("on_c"), run.stats().links["src.out->on_c.x"]))
         os.kill(c.executor_pid(), signal.SIGKILL)
         eventually(lambda: _events(run, "module_failed_over"), timeout=20,
