@@ -4,6 +4,7 @@ reordered, also across migrations and swaps; dropping links behave as before."""
 
 from __future__ import annotations
 
+import logging
 import time
 
 import pytest
@@ -122,6 +123,29 @@ def test_removing_a_stuck_reader_inside_one_process_ends_its_writer_s_wait_at_on
     assert took < 3.0
     assert writer.last_error.startswith("RuntimeTimeout: write on lossless link src.out -> "
                                         "dst.x gave up: the link was cut")
+
+@pytest.mark.parametrize("where", ["shm", "memory"])
+def test_closing_stops_a_writer_waiting_for_its_reader_at_once(
+        where: str, caplog: pytest.LogCaptureFixture) -> None:
+    # The writer is added first, so the shutdown stops its slow reader first; the
+    # writer's write, waiting for room in an input nobody reads any more, held the
+    # writer's stop: on a ring 6 s (two stops of 3 s, each logged as if the writer were
+    # stuck), inside one process 2 s (its grace). Now the write goes in, room or not.
+    system = System(f"lossless-close-{where}", workers=1 if where == "memory" else 0)
+    system.add("src", Pusher, state={"timeout": 60.0})
+    system.add("dst", Sipper, period=0.01, state={"sip": 1})
+    system.link("src.out", "dst.x", policy="lossless:8")
+    with caplog.at_level(logging.WARNING):
+        with system.launch() as run:
+            eventually(lambda: run.stats().links[KEY].waits > 0, timeout=30,
+                       what="the writer waiting for room")
+            assert run.stats().links[KEY].transport == where
+            start = time.monotonic()
+        took = time.monotonic() - start
+    assert took < 1.5
+    assert not [record.getMessage() for record in caplog.records
+                if "src" in record.getMessage()]
+
 
 @pytest.mark.parametrize("where", ["shm", "memory", "zmq"])
 def test_a_writer_stuck_on_a_lossless_link_shows_in_stats_while_it_waits(where: str) -> None:

@@ -537,6 +537,36 @@ def test_a_lossless_writer_waits_until_the_reader_takes_values(lossless) -> None
     assert writer.waits >= 1
 
 
+def test_a_lossless_writer_let_through_asks_for_a_flush_until_the_last_pause_ends(
+        lossless) -> None:
+    # A pause of the writer waits for its call: a write waiting for room asks the reader
+    # to take the whole ring (its receiver then does, room in the input or not). The
+    # flag must not outlive the pauses: left set, the ring would never hold back again.
+    _, writer, reader = lossless
+    sent = 0
+    while writer.offer([sent]):
+        sent += 1
+    writer.let_through(True)
+    writer.let_through(True)                     # (two pauses at once)
+    taken: list = []
+
+    def receiver() -> None:                      # (as a worker's receiver does)
+        eventually(lambda: reader.flush_requested, what="the flush asked for")
+        taken.extend(reader.drain(sent)[0])
+    flushed = threading.Thread(target=receiver)
+    flushed.start()
+    try:
+        assert writer.write(sent, timeout=5.0)     # the reader took it all: room
+    finally:
+        flushed.join()
+    writer.let_through(False)
+    assert reader.flush_requested                # one pause is still under way
+    writer.let_through(False)
+    assert not reader.flush_requested
+    rest, gaps = _drain(reader)
+    assert taken + rest == list(range(sent + 1)) and gaps == 0
+
+
 @pytest.fixture
 def lossless_pool():
     yield from _ends(slots=4, slot_bytes=1 << 20, lossless=True)

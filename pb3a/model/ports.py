@@ -632,12 +632,14 @@ class OutputPort:
         return list(self._sinks)
 
     def let_through(self, on: bool) -> None:
-        """While ``on``, writes on this output's lossless links inside its process take no
-        heed of room: they go into the input, which holds more than its size for a
-        while (see ``WaitCounter.let_through``)."""
+        """While ``on``, writes on this output's lossless links take no heed of room in
+        the input: inside its process they go into it, on a ring the reader takes the
+        ring's all, and the input holds more than its size for a while (see
+        ``WaitCounter.let_through``, ``ShmRing.let_through``). A remote link's are not."""
         for counter in self._counters.values():
-            if isinstance(counter, WaitCounter):
-                counter.let_through(on)
+            let_through = getattr(counter, "let_through", None)
+            if let_through is not None:
+                let_through(on)
 
 
 def _send_waiting(sinks: tuple[tuple[str, Callable[[Any, float], Any]], ...], payload: Any,

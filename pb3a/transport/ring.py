@@ -171,6 +171,8 @@ class ShmRing:
         self.waits = 0                # writer: writes that waited (or wait) for room ...
         self.wait_s = 0.0             # ... and the seconds they waited
         self._cancelled = False       # writer: the link is being cut; do not wait
+        self._through = 0             # writer: pauses under way that let its writes through
+        self._through_lock = threading.Lock()
         # reader-side bookkeeping (only the reading process uses these)
         self._leases: deque[list[Any]] = deque()   # [start, end, released, ref] per lease
         self._lease_lock = threading.Lock()
@@ -410,6 +412,8 @@ class ShmRing:
         pause = 20e-6
         try:
             while not self._cancelled and (now := time.monotonic()) < deadline:
+                if self._through:
+                    self._flush_for_pause()
                 if now < spin:
                     time.sleep(0)             # (lets the process's other threads run)
                 else:
@@ -424,6 +428,29 @@ class ShmRing:
     def cancel(self) -> None:
         """The link is being cut: a write waiting for room gives up now."""
         self._cancelled = True
+
+    def let_through(self, on: bool) -> None:
+        """Writer: a pause (or stop) of the writer begins (``on``) or ends. It waits for
+        the writer's call, which may be a write waiting for room here while the reader is
+        slow, stopped or paused: while a pause is under way, such a write asks the reader
+        to take everything in the ring, room in its input or not, so it goes in and the
+        call ends; nothing is lost. Once the last pause ends, the reader takes only what
+        its input has room for again. (A write waiting for a slot still waits: the
+        reader's views hold the slots.)"""
+        if not self.lossless:
+            return
+        with self._through_lock:       # (pauses may overlap: the last one clears it)
+            self._through += 1 if on else -1
+            if not self._through:
+                self.core.flush = False
+
+    def _flush_for_pause(self) -> None:
+        """A write waiting for room while a pause is under way (``let_through``): ask for
+        the flush, from the writing thread (whose bell is open while it writes), under the
+        lock (a flag set after the last pause ended would unbound the ring for good)."""
+        with self._through_lock:
+            if self._through and not self.core.flush:
+                self.request_flush()
 
     def request_flush(self) -> None:
         """Writer: ask the reader to take everything in the ring now, room in its input

@@ -256,11 +256,10 @@ class ModuleActor:
         finished = True
         thread = self._thread
         if thread is not None and thread is not threading.current_thread():
-            # (set through the join: a second wait the step starts is cancelled too)
-            self._stopping_for = "the module is stopping"
-            self._cancel_wait(self._stopping_for)
-            thread.join(timeout)
-            self._stopping_for = ""
+            # (through the join: a second wait the step starts is cancelled too, and a
+            # write waiting for a reader stopped before it goes in)
+            with self._giving_way("the module is stopping"):
+                thread.join(timeout)
             finished = not thread.is_alive()
             if finished:
                 self._thread = None
@@ -484,21 +483,38 @@ class ModuleActor:
                                    "s: nothing was done")
 
     def acquire_stopped(self, timeout: float, why: str) -> bool:
-        """Take the module lock with no body running, cancelling a runtime call a body
-        waits in (it raises there, see ``waits``) and letting the writes of a body that
-        waits for room in a lossless input in this process through (see
-        ``WaitCounter.let_through``); False after ``timeout``."""
+        """Take the module lock with no body running (see ``_giving_way``); False after
+        ``timeout``."""
+        with self._giving_way(why):
+            return self.lock.acquire(timeout=timeout, request=True)
+
+    @contextlib.contextmanager
+    def _giving_way(self, why: str) -> Iterator[None]:
+        """While a pause or a stop waits for the body running (``why``): a runtime call
+        it waits in is cancelled (it raises there, see ``waits``), and its writes waiting
+        for room on a lossless link go through (``letting_through``)."""
         self._stopping_for = why
+        try:
+            with self.letting_through():
+                self._cancel_wait(why)
+                yield
+        finally:
+            self._stopping_for = ""
+
+    @contextlib.contextmanager
+    def letting_through(self) -> Iterator[None]:
+        """While a pause or a stop waits for the module's call: its writes on lossless
+        links take no heed of room in their inputs, in this process or through a ring
+        (not to another node: see ``OutputPort.let_through``), so a call waiting for a
+        slow, stopped or paused reader ends, nothing lost."""
         outputs = self.outputs.values()
         for port in outputs:
             port.let_through(True)
         try:
-            self._cancel_wait(why)
-            return self.lock.acquire(timeout=timeout, request=True)
+            yield
         finally:
             for port in outputs:
                 port.let_through(False)
-            self._stopping_for = ""
 
     # -- state and swap ----------------------------------------------------
     def capture(self, timeout: float = 10.0) -> dict[str, Any]:
