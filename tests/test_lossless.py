@@ -231,6 +231,35 @@ def test_a_reader_moves_away_from_a_writer_in_its_process_that_waits_for_it() ->
     assert stats.modules["src"].errors == 0
 
 
+def test_a_writer_waiting_for_room_on_a_lossless_ring_moves_at_once() -> None:
+    # The reader takes nothing while the writer moves. The move first measured the
+    # writer's state under its lock, which waited for its write: 10 s, the write's
+    # timeout, after which the value was not sent and an error was counted. Now the
+    # write goes into the reader's input, room or not, before the writer is captured.
+    n = 40_000                         # more than the ring (16,384) and the input hold
+    system = System("lossless-writer-moves")
+    system.node("a")
+    system.node("b")
+    system.add("dst", Sipper, period=SIP, state={"sip": 0}, node="a")
+    system.add("src", Pusher, state={"limit": n}, node="a")
+    system.link("src.out", "dst.x", policy="lossless:8")
+    with system.launch() as run:
+        eventually(lambda: run.stats().links[KEY].waits > 0, timeout=30,
+                   what="the writer waiting for room")
+        start = time.monotonic()
+        run.migrate("src", to="b")
+        took = time.monotonic() - start
+        assert run.where("src") == "b" and run.stats().links[KEY].transport == "zmq"
+        run.set_state("dst", sip=50)
+        state = _every_value(run, n)
+        stats = run.stats()
+    assert took < 3.0
+    assert _in_order(state, n)
+    link = stats.links[KEY]
+    assert link.policy == "lossless:8" and link.drops == 0 and link.link_failures == 0
+    assert stats.modules["src"].errors == 0
+
+
 def test_relink_may_make_a_dropping_link_lossless() -> None:
     n = 20_000
     system = System("lossless-relink")

@@ -372,14 +372,17 @@ class Worker:
     def op_snapshot_size(self, name: str, within: float = 10.0) -> int:
         """The bytes a migration's snapshot of the module would take now (measured under
         its lock, waited for up to ``within``: a body must not change the state while it
-        is pickled)."""
+        is pickled). The move's first wait for the module's call: a write of the call
+        waiting for room on a lossless link goes through meanwhile, as in the pause that
+        follows (``letting_through``), not waited out (its 10 s)."""
         actor = self.actors[name]
 
         def measure() -> int:
             holdings = actor.holdings()
             with _movable(name, holdings["state"]):     # (before anything of the move)
                 return Snapshot.measure(holdings)
-        return actor.with_lock(measure, within)
+        with actor.letting_through():
+            return actor.with_lock(measure, within)
 
     def op_migrate_out(self, name: str, segment: str, until: float | None = None) -> Snapshot:
         """Retire a paused module for its move: its state and unconsumed inputs, laid out
