@@ -9,7 +9,9 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
+import types
 from pathlib import Path
 
 import pytest
@@ -317,6 +319,42 @@ def test_check_names_where_a_shared_import_hangs_and_waits_for_it_once(
         *(f"shared.toml [modules.m{n}]: importing module 'c{n}' for 'c{n}:A' imports {hw}, "
           "which " + how.format(" as 'c1:A' imported it") for n in range(2, 5))]
     assert took < 4 * 3, took               # (one wait of 3 s, not four)
+
+
+def test_where_an_import_is_stuck_is_read_from_stacks_that_come_slowly(monkeypatch) -> None:
+    """A hung import was named without its place now and then in CI: its child's stacks
+    come in many small writes, the importing thread's last, and were read until a tenth
+    of a second went by without one; a child starved of CPU halfway gave the others'
+    alone. They are read until the importing thread's stack is whole."""
+    from pb3a.loading import import_child
+
+    others = ('Thread 0x00007f95367ad6c0 (most recent call first):\n'
+              '  File "/usr/lib/python3.11/threading.py", line 982 in run\n\n')
+    importing = ('Current thread 0x00007f9537444b80 (most recent call first):\n'
+                 '  File "/project/hangs.py", line 4 in <module>\n'
+                 '  File "<frozen importlib._bootstrap>", line 241 in _call_with_frames_removed\n'
+                 '  File "<string>", line 1 in <module>\n')
+    child = object.__new__(import_child.Child)
+    child.process = types.SimpleNamespace(pid=os.getpid())
+    child._stacks, stacks = os.pipe()
+    monkeypatch.setattr(os, "kill", lambda pid, signum: None)     # (it writes them here)
+
+    def write_slowly() -> None:
+        os.write(stacks, others.encode())
+        time.sleep(0.3)                             # (starved of CPU)
+        for line in importing.splitlines(keepends=True):
+            os.write(stacks, line.encode())
+
+    writer = threading.Thread(target=write_slowly)
+    writer.start()
+    try:
+        stuck = child.stuck_at(wait=5.0)
+    finally:
+        writer.join()
+        os.close(stacks)
+        os.close(child._stacks)
+    assert (stuck.file, stuck.line, stuck.module_file) == ("/project/hangs.py", 4,
+                                                           "/project/hangs.py")
 
 
 def test_check_and_graph_keep_what_an_import_prints_off_their_output(tmp_path: Path) -> None:

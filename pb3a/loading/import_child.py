@@ -52,8 +52,7 @@ _CRASHES = {"SIGSEGV", "SIGBUS", "SIGILL", "SIGFPE", "SIGABRT"}
 # and the stacks never came)
 _STACK_SIGNAL = signal.SIGRTMIN + 7
 _STACK_FD = "PB3A_STACK_FD"
-STACK_WAIT_S = 1.0        # how long a stuck child's stacks are waited for
-STACK_QUIET_S = 0.1       # ... and, once they come, a pause that ends them
+STACK_WAIT_S = 1.0        # how long a stuck child's stacks are waited for, at most
 _FRAME = re.compile(r'^\s*File "(.*)", line (\d+) in (.*)$', re.MULTILINE)
 
 
@@ -116,18 +115,22 @@ class Child:
     def stuck_at(self, wait: float = STACK_WAIT_S) -> Stuck | None:
         """Where the child's import is now, for one that said it is importing and then
         nothing; None if its stacks did not come within ``wait`` seconds or show no
-        import."""
+        import. They are read until the importing thread's stack is whole: it comes
+        last, after the other threads', in many small writes (read until a tenth of a
+        second went by without one, a child starved of CPU halfway through gave the
+        others' alone, and no place was named)."""
         with contextlib.suppress(ProcessLookupError):
             os.kill(self.process.pid, _STACK_SIGNAL)
         dump, deadline = b"", time.monotonic() + wait
         with selectors.DefaultSelector() as selector:
             selector.register(self._stacks, selectors.EVENT_READ)
-            while (left := deadline - time.monotonic()) > 0 and selector.select(
-                    min(left, STACK_QUIET_S) if dump else left):
+            while (left := deadline - time.monotonic()) > 0 and selector.select(left):
                 chunk = os.read(self._stacks, 65536)
                 if not chunk:
                     break
                 dump += chunk
+                if _stuck_at(dump.decode(errors="replace"), whole=True) is not None:
+                    break
         return _stuck_at(dump.decode(errors="replace"))
 
     @property
@@ -190,13 +193,16 @@ class Stuck:
         return where
 
 
-def _stuck_at(dump: str) -> Stuck | None:
+def _stuck_at(dump: str, whole: bool = False) -> Stuck | None:
     """Where the thread that imports is, in ``faulthandler``'s stacks (each thread's
-    frames innermost first, threads apart by a blank line); None if no thread imports."""
+    frames innermost first, threads apart by a blank line); None if no thread imports,
+    or, ``whole``, if its stack has not come down to the child's own code yet."""
     for stack in dump.split("\n\n"):
         frames = _FRAME.findall(stack)
         if not any(file.startswith("<frozen importlib") for file, _, _ in frames):
             continue
+        if whole and frames[-1][0::2] != ("<string>", "<module>"):    # (``_BOOT``)
+            return None
         file, line, function = frames[0]
         top = next(((f, int(n)) for f, n, name in frames
                     if name == "<module>" and not f.startswith("<frozen ")), (None, 0))

@@ -56,6 +56,7 @@ def raised_at(exc: BaseException) -> str:
     code = found.tb_frame.f_code
     return f" (at {os.path.basename(code.co_filename)}:{found.tb_lineno} in {code.co_name})"
 
+
 _running = threading.local()      # .name: the module whose hook this thread runs now
 
 
