@@ -102,8 +102,6 @@ def start_without_main(process: Any, timeout: float | None = None) -> None:
 
 
 def _start(process: Any) -> None:
-    original = mp_spawn.get_preparation_data
-
     def preparation(name: str) -> dict[str, Any]:
         data = original(name)
         data.pop("init_main_from_path", None)
@@ -111,6 +109,11 @@ def _start(process: Any) -> None:
         return data
 
     with _start_lock:
+        # (read under the lock: read before it, as another start had its own put in, it
+        # was that one, put back for good once this start ended: each overlap of two
+        # starts chained one more, and a process that launched some 300 systems could
+        # start none, RecursionError)
+        original = mp_spawn.get_preparation_data
         mp_spawn.get_preparation_data = preparation
         try:
             process.start()

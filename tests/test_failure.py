@@ -955,6 +955,45 @@ def test_a_start_interrupted_as_it_waits_kills_the_process_that_comes_later(
     assert killed.wait(5)
 
 
+def test_overlapping_starts_leave_multiprocessing_s_preparation_as_it_was(monkeypatch) -> None:
+    """A start read what it would put back before it took the start lock: a start that
+    overlapped another put that one's stand-in back for good, and each overlap (a node's
+    spares and its modules' workers start side by side) chained one more; some 300
+    launches in one process, and no process could be started (RecursionError)."""
+    from multiprocessing import spawn
+
+    real = spawn.get_preparation_data
+    monkeypatch.setattr(spawn, "get_preparation_data", real)    # (put back if it fails)
+    waiting = threading.Event()               # the second start waits for the lock
+
+    class Lock:
+        def __init__(self) -> None:
+            self._lock = threading.Lock()
+
+        def __enter__(self) -> None:
+            if self._lock.locked():
+                waiting.set()
+            self._lock.acquire()
+
+        def __exit__(self, *exc: object) -> None:
+            self._lock.release()
+
+    class Held:                               # (a start the forkserver answers late)
+        def start(self) -> None:
+            second.start()
+            assert waiting.wait(10)
+
+    class Quick:
+        def start(self) -> None:
+            pass
+
+    monkeypatch.setattr(processes, "_start_lock", Lock())
+    second = threading.Thread(target=processes._start, args=(Quick(),))
+    processes._start(Held())
+    second.join(10)
+    assert spawn.get_preparation_data is real
+
+
 def test_an_add_whose_worker_the_frozen_forkserver_cannot_start_fails_within_its_deadline(
         monkeypatch) -> None:
     """A forkserver that is frozen (SIGSTOP, hung) answers no request for a worker: the
