@@ -15,6 +15,7 @@ import threading
 import time
 from pathlib import Path
 
+import psutil
 import pytest
 import zmq
 from conftest import (
@@ -178,6 +179,26 @@ def test_an_executor_no_launcher_takes_stops() -> None:
         process = controller._executors["unbound"][0]
         process.join(10.0)
         assert process.exitcode == 0, "it ran on with no launcher"
+    finally:
+        controller.close()
+
+
+def test_executors_that_ended_on_their_own_are_forgotten_while_the_controller_runs() -> None:
+    """Each executor that ended on its own (its launcher killed, or none took it) kept an
+    entry, its pipe and its process's descriptors for as long as the controller ran: a
+    node controller up for months ran out of descriptors."""
+    controller = NodeController("n1", KEY, limits=Limits(max_cpu_percent=101.0))
+    controller.unbound_s = 1.0                       # (none takes them: they end)
+    descriptors = psutil.Process().num_fds
+    try:
+        controller.start_executor("first")           # (what the first start sets up stays)
+        eventually(lambda: not controller._executors, timeout=20, what="the first forgotten")
+        before = descriptors()
+        for name in ("second", "third", "fourth"):
+            controller.start_executor(name)
+        assert len(controller._executors) == 3
+        eventually(lambda: not controller._executors, timeout=20, what="all three forgotten")
+        assert descriptors() == before
     finally:
         controller.close()
 

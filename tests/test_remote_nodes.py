@@ -240,9 +240,9 @@ def test_a_lost_node_is_detected_within_3_s_and_reported_while_the_rest_goes_on(
     system.link("env-a.node_lost", "watcher.lost")
     with system.launch() as run:
         eventually(lambda: run.state("far")["received"] > 10, timeout=30, what="values at b")
-        process = controllers["b"]._executors["lossy"][0]
+        pid = controllers["b"]._executors["lossy"][0].pid
         killed = time.monotonic()
-        os.kill(process.pid, how)
+        os.kill(pid, how)
         assert run._launcher.wait_health("b", up=False, timeout=10)
         detected = time.monotonic() - killed
         eventually(lambda: run.state("watcher")["seen"] == ["b"], what="the event at an agent")
@@ -272,7 +272,7 @@ def test_a_lost_node_is_detected_within_3_s_and_reported_while_the_rest_goes_on(
     assert "far" not in stats.modules and "src.out->far.x" not in stats.links
     assert "far" not in back.modules
     assert any("node b lost" in failure for failure in stats.failures)
-    assert live_segments(process.pid) == []     # the dead executor's rings, reaped
+    assert live_segments(pid) == []             # the dead executor's rings, reaped
 
 
 def test_a_node_executor_refuses_requests_of_an_earlier_epoch(controllers) -> None:

@@ -77,6 +77,24 @@ class NodeController:
     def _sample(self) -> None:
         while not self._sampling.wait(SAMPLE_S):
             self._cpu = self._sample_cpu()
+            self._forget_ended()
+
+    def _forget_ended(self) -> None:
+        """Forget the executors that ended on their own (their launcher killed, or none
+        took them), and free what each held here: a controller that ran for months
+        kept three descriptors for each, and ran out of them."""
+        with self._lock:
+            ended = {config: entry for config, entry in self._executors.items()
+                     if not entry[0].is_alive()}
+            for config in ended:
+                del self._executors[config]
+        for process, pipe, _ in ended.values():
+            pipe.close()
+            process.join(1.0)              # (ended: at once)
+            reap_child(process.pid)       # (the segments of one that could not free them)
+            process.close()
+        if ended:
+            reap_orphans()                # (and of its workers)
 
     def _sample_cpu(self) -> float:
         """One more CPU sample; the mean of the window's."""
