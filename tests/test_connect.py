@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import json
 import os
 import subprocess
@@ -175,6 +176,16 @@ with System("killed").add("scale", Scale).launch() as run:
 """
 
 
+LISTENING_LAUNCHER = """
+import sys
+from sample_modules import Scale
+from pb3a import System
+with System("listening").add("scale", Scale).launch(listen="tcp://127.0.0.1:0") as run:
+    print(run.address, flush=True)
+    sys.stdin.readline()                     # (until the test is done: closed cleanly)
+"""
+
+
 def test_a_call_waiting_when_the_launcher_dies_fails_soon_with_system_stopped() -> None:
     """The launcher killed with SIGKILL answers nothing: a follower waiting for events
     (up to 30 s) is told ``SystemStopped`` within seconds, not at its deadline."""
@@ -210,6 +221,68 @@ def test_a_call_waiting_when_the_launcher_dies_fails_soon_with_system_stopped() 
             launcher.kill()
         launcher.wait(10)
         launcher.stdout.close()
+
+
+def test_a_connection_dropped_unclosed_gives_back_its_thread_and_descriptors() -> None:
+    """A connection dropped without ``close`` (a notebook cell ``run = pb3a.connect(...)``
+    run again) kept its thread and six file descriptors for good, its system running or
+    not: after some 170 re-runs the process could open no more files. It is closed as
+    it is collected, at once as its last reference goes."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "tests"), str(REPO)])}
+    launcher = subprocess.Popen([sys.executable, "-c", LISTENING_LAUNCHER], env=env,
+                                stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        address = launcher.stdout.readline().strip()
+        assert address.startswith("tcp://"), address
+        pb3a.connect(address).close()        # (ZeroMQ's own threads and files, made once)
+        me = psutil.Process()
+        files, threads = me.num_fds(), set(threading.enumerate())
+        gc.disable()                # (no collection needed: nothing holds it in a cycle)
+        try:
+            for _ in range(5):
+                connection = pb3a.connect(address)           # the cell, run again
+                assert "gain" in connection.state("scale")
+            del connection
+            eventually(lambda: me.num_fds() <= files and set(threading.enumerate()) <= threads,
+                       what="the dropped connections' threads and files given back",
+                       context=lambda: (me.num_fds(), files,
+                                        [t.name for t in set(threading.enumerate()) - threads]))
+        finally:
+            gc.enable()
+    finally:
+        launcher.stdin.close()
+        try:
+            launcher.wait(30)
+        finally:
+            if launcher.poll() is None:
+                launcher.kill()
+                launcher.wait(10)
+            launcher.stdout.close()
+
+
+def test_a_connection_kept_after_its_system_stopped_gives_back_its_thread() -> None:
+    """A connection kept once its system stopped held its thread and sockets until it was
+    closed (a monitoring script's connections to systems long gone). They go when the
+    launcher is known gone; its calls still say ``SystemStopped`` at once, and closing
+    it still does nothing more."""
+    run = System("stopping").add("scale", Scale).launch(listen="tcp://127.0.0.1:0")
+    try:
+        connection = pb3a.connect(run.address)
+        assert "gain" in connection.state("scale")
+        thread = connection._client._loop._thread
+    finally:
+        run.close()
+    assert connection.wait(5) and not connection.running
+    eventually(lambda: not thread.is_alive(), what="the connection's thread ended")
+    assert connection._client._dealer.closed
+    for _ in range(2):
+        started = time.monotonic()
+        with pytest.raises(pb3a.SystemStopped, match=r"'stopping' at tcp://.* has stopped"):
+            connection.state("scale")
+        assert time.monotonic() - started < 1
+    connection.close()
+    connection.close()
+    assert connection.wait(None)
 
 
 def test_topology_describes_the_structure_alike_through_launch_and_connect() -> None:

@@ -513,3 +513,29 @@ def test_a_client_told_of_a_gone_server_takes_no_other_server_for_it() -> None:
     finally:
         client.close()
         server.close()
+
+
+def test_a_client_dropped_unclosed_is_closed_whichever_thread_collects_it() -> None:
+    """A client nobody closed (a node's, a module server's, a connection's) was kept by
+    its loop's thread for good, with its sockets. Once collected it is closed, also when
+    the last reference goes on the loop's own thread, or on a thread that holds the
+    loop's wake-up lock (as ``submit`` does): neither may wait for the other."""
+    server = ControlServer(KEY, handler)
+    try:
+        for drop in ("on its loop", "with the lock held"):
+            client = ControlClient(KEY, server.address, when_gone=_Gone)
+            assert client.call("add", a=1, b=1) == 2
+            loop, dealer, monitor = client._loop, client._dealer, client._monitor
+            if drop == "on its loop":
+                held = [client]
+                del client
+                loop.submit(held.clear)             # (the last reference, there)
+            else:
+                with loop._wake_lock:
+                    del client                      # (collected here, at once)
+                    assert loop._closing
+            loop._thread.join(5.0)
+            assert not loop._thread.is_alive(), f"the loop of a client dropped {drop} goes on"
+            assert dealer.closed and monitor.closed, drop
+    finally:
+        server.close()

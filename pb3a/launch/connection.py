@@ -7,6 +7,7 @@ Closing it closes the connection only: the system goes on.
 
 from __future__ import annotations
 
+import functools
 import time
 from typing import Any
 
@@ -52,7 +53,11 @@ class Connection(SystemHandle):
         if unknown is not None:
             raise RuntimeFailure(f"{unknown}: check the address (pb3a run prints it)")
         self.address = address
-        self._client = ControlClient(_key(key), address, when_gone=self._stopped)
+        named = ["?"]                       # the system's name, once it has said it
+        # (not a method of the connection: the two held each other, so one dropped
+        # unclosed waited for the cycle collector, not its last reference, to be closed)
+        self._client = ControlClient(_key(key), address,
+                                     when_gone=functools.partial(_stopped, named, address))
         try:
             described = self._client.call("describe", max(0.0, deadline - time.monotonic()))
         except RuntimeTimeout:
@@ -64,15 +69,11 @@ class Connection(SystemHandle):
             self.close()
             raise RuntimeFailure(f"cannot connect: {exc}") from None
         self.name: str = described["name"]
+        named[0] = self.name
         # what a call without ``timeout=`` waits there: the system's default, which its
         # file or launch() may set longer than the library's
         self.timeout: float = described.get("timeout", DEFAULT_TIMEOUT)
         self._python: str | None = described.get("python")      # (None: an older launcher)
-
-    def _stopped(self, why: str) -> SystemStopped:
-        """What a call says once the launcher has gone for good (``why``: how it is known)."""
-        return SystemStopped(f"system {getattr(self, 'name', '?')!r} at {self.address} has "
-                             f"stopped: {why}")
 
     def _carry(self, op: str, args: dict[str, Any]) -> Any:
         if isinstance(args.get("cls"), type) and self._python not in (None, PYTHON):
@@ -112,6 +113,11 @@ class Connection(SystemHandle):
 
     def __repr__(self) -> str:
         return f"Connection({self.name!r} at {self.address})"
+
+
+def _stopped(named: list[str], address: str, why: str) -> SystemStopped:
+    """What a call says once the launcher has gone for good (``why``: how it is known)."""
+    return SystemStopped(f"system {named[0]!r} at {address} has stopped: {why}")
 
 
 def _key(key: ClusterKey | bytes | str | None) -> ClusterKey:

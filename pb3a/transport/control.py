@@ -39,6 +39,7 @@ import struct
 import sys
 import threading
 import time
+import weakref
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
@@ -324,7 +325,11 @@ class ControlClient:
     of the reason it is given, rather than at each call's deadline; and so does another
     server, started anew at the address (another instance), which the client would
     otherwise have taken for the one it was talking to. A server cut off by the network
-    closes nothing: its calls still end at their deadlines."""
+    closes nothing: its calls still end at their deadlines. A gone server's client
+    gives back its thread and sockets then; the calls still fail as said.
+
+    A client its owner drops without ``close`` is closed once it is collected (its
+    thread holds it only weakly)."""
 
     def __init__(self, key: ClusterKey, address: str, *, epoch: int = 0,
                  when_gone: Callable[[str], PB3AError] | None = None) -> None:
@@ -344,14 +349,23 @@ class ControlClient:
         self._when_gone = when_gone
         self._lost_at: float | None = None   # when the server closed our connection
         self.gone = threading.Event()        # ... and nothing took one there in GONE_S
-        self._replaced = False               # ... or another server took its place
+                                             # (or another server took its place)
         self._gone_why = ""                  # (which of the two, in words)
         self._monitor: zmq.Socket | None = None
+        # The loop holds the client only weakly, and a client dropped unclosed is closed
+        # when collected (the loop's thread held its handlers, and through them the
+        # client and its sockets, for good: each connection dropped unclosed kept a
+        # thread and six descriptors, a notebook's `pb3a.connect` run again until "Too
+        # many open files"). Not at exit: the process's exit handlers may still call.
         if when_gone is not None:            # (before the loop thread uses the dealer)
             self._monitor = self._dealer.get_monitor_socket(
                 zmq.EVENT_CONNECTED | zmq.EVENT_DISCONNECTED)
-            self._loop.register(self._monitor, self._on_connection)
-        self._loop.register(self._dealer, self._on_reply)
+            self._loop.register(self._monitor, _weakly(self._on_connection))
+        self._loop.register(self._dealer, _weakly(self._on_reply))
+        self._close_sockets = _closer(self._dealer, self._monitor)
+        self._dropped = weakref.finalize(self, self._loop.close, wait=False,
+                                         then=self._close_sockets)
+        self._dropped.atexit = False
 
     def call(self, op: str, timeout: float = DEFAULT_TIMEOUT, **args: Any) -> Any:
         """Run ``op`` at the server; its result, or ``RuntimeFailure`` with its error,
@@ -447,7 +461,6 @@ class ControlClient:
         that restarted is the same node's); with it, the client was talking to a server
         that has ended, and another one is not it (socket thread)."""
         if self._when_gone is not None and self._instance not in (_NOBODY, instance):
-            self._replaced = True
             self._lost("another process has listened there since (connect again to "
                        "reach it)")
             return
@@ -455,10 +468,16 @@ class ControlClient:
         self._send(request_id)
 
     def _lost(self, reason: str) -> None:
-        """The server is gone: every call waiting and every later one fails."""
+        """The server is gone: every call waiting and every later one fails, and the
+        client's thread and sockets are closed as its loop ends (socket thread)."""
+        if self.gone.is_set():
+            return
         self._gone_why = reason
         self.gone.set()
         self.fail_pending(self._when_gone(reason))
+        # (a connection kept after its system stopped held them until closed; a call
+        # still fails as above, seeing ``gone`` before it would hand its request over)
+        self._loop.close(then=self._close_sockets)
 
     def _on_connection(self, monitor: zmq.Socket) -> None:
         """The connection to the server was made, or closed by it (socket thread)."""
@@ -466,11 +485,9 @@ class ControlClient:
             event = recv_monitor_message(monitor)["event"]
             if event == zmq.EVENT_CONNECTED:
                 self._lost_at = None
-                if not self._replaced:       # (the same server, reached again)
-                    self.gone.clear()
             elif event == zmq.EVENT_DISCONNECTED and self._lost_at is None:
                 self._lost_at = time.monotonic()
-                self._loop.later(GONE_S, self._look_for_server)
+                self._loop.later(GONE_S, _weakly(self._look_for_server))
 
     def _look_for_server(self) -> None:
         """``GONE_S`` after the server closed the connection: if nothing has taken one
@@ -524,12 +541,31 @@ class ControlClient:
         if self._closed:
             return
         self._closed = True
+        self._dropped.detach()
         self.fail_pending("this client was closed while it waited")
-        self._loop.close()
-        if self._monitor is not None:
-            self._dealer.disable_monitor()
-            self._monitor.close(0)
-        self._dealer.close(0)
+        self._loop.close(then=self._close_sockets)
+
+
+def _weakly(method: Callable[..., None]) -> Callable[..., None]:
+    """``method``, called only while its object lives: what a client's loop holds, so
+    that its thread keeps alive no client that its owner dropped."""
+    ref = weakref.WeakMethod(method)
+
+    def call(*args: Any) -> None:
+        bound = ref()
+        if bound is not None:
+            bound(*args)
+    return call
+
+
+def _closer(dealer: zmq.Socket, monitor: zmq.Socket | None) -> Callable[[], None]:
+    """What closes a client's sockets, holding nothing of the client (its finalizer's)."""
+    def close() -> None:
+        if monitor is not None:
+            dealer.disable_monitor()
+            monitor.close(0)
+        dealer.close(0)
+    return close
 
 
 class Waiting(Protocol):

@@ -45,6 +45,9 @@ class SocketLoop:
         self._wake_lock = threading.Lock()            # the one socket other threads touch
         self._poller.register(self._wake_r, zmq.POLLIN)
         self._closing = False
+        self._then: Callable[[], None] | None = None     # the owner's part of the close
+        self._finished = False
+        self._finish_lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
@@ -105,21 +108,53 @@ class SocketLoop:
             raise outcome[1]
         return outcome[0]
 
-    def close(self, timeout: float = 2.0) -> None:
-        """Stop the thread, then close the wake-up sockets (owners close their own)."""
-        if self._closing:
+    def close(self, timeout: float = 2.0, *, wait: bool = True,
+              then: Callable[[], None] | None = None) -> None:
+        """Stop the thread, then run ``then`` (the owner closing its sockets, if it
+        gives one) and close the wake-up sockets, once. Called on the loop's thread, or
+        with ``wait`` False, it returns at once and the thread does that as it ends: a
+        socket closed under the running loop failed its next poll. So a finalizer may
+        call it on any thread, the loop's own too: it then waits for no lock, nor for
+        the thread."""
+        if not self._closing:
+            self._then = then
+            self._closing = True
+            # (not waiting for the lock: a finalizer may run on a thread that holds it,
+            # in ``submit``; its holder wakes the loop anyway, or the loop sees the
+            # close within POLL_MS)
+            if self._wake_lock.acquire(blocking=False):
+                try:
+                    with contextlib.suppress(zmq.Again):
+                        if not self._wake_w.closed:         # (the thread has ended)
+                            self._wake_w.send(b"", zmq.NOBLOCK)
+                finally:
+                    self._wake_lock.release()
+        if self.on_loop or not wait:
             return
-        self._closing = True
-        with self._wake_lock, contextlib.suppress(zmq.Again):
-            self._wake_w.send(b"", zmq.NOBLOCK)
-        if not self.on_loop:
-            self._thread.join(timeout)
+        self._thread.join(timeout)
+        self._finish()              # (the thread's end did it, or it is stuck: done here)
+
+    def _finish(self) -> None:
+        """The end of a close: the owner's ``then``, and the wake-up sockets (once)."""
+        with self._finish_lock:
+            if self._finished:
+                return
+            self._finished = True
+        if self._then is not None:
+            self._guarded(self._then)
         with self._wake_lock:
             self._wake_w.close(0)
         self._wake_r.close(0)
 
     # -- the thread --------------------------------------------------------------
     def _run(self) -> None:
+        try:
+            self._turns()
+        finally:
+            if self._closing:
+                self._finish()
+
+    def _turns(self) -> None:
         while not self._closing:
             now = time.monotonic()
             for timer in list(self._timers):
