@@ -89,6 +89,37 @@ def _follow(follower: Follower, replicator: Replicator, topic: str, **kwargs: An
     follower.follow(topic, replicator.data_address, replicator.control_address, **kwargs)
 
 
+@pytest.mark.parametrize("kind", [zmq.SUB, zmq.DEALER], ids=["subscription", "request"])
+def test_a_sender_drops_a_peer_that_sends_it_a_large_message_with_no_key(link, kind) -> None:
+    """Anyone who reaches a publishing worker's ports may send, key or not: its PUB took
+    a subscription up to 256 MiB, which ZeroMQ keeps at some 75 bytes per byte (two of
+    16 MB took it to 2.5 GB, for good, and its writes stalled for seconds), and its
+    ROUTER as much. What a follower sends is a topic and a few numbers: a larger message
+    ends the connection, and the link goes on."""
+    replicator, follower, inbox = link
+    replicator.add("t")
+    _follow(follower, replicator, "t", from_seq=0)
+    assert follower.wait_ready("t", TIMEOUT)
+    peer = zmq.Context.instance().socket(kind)
+    monitor = peer.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+    try:
+        peer.connect(replicator.data_address if kind == zmq.SUB else
+                     replicator.control_address)
+        big = b"x" * (wire.ASKED_MAX + 1)
+        if kind == zmq.SUB:
+            peer.setsockopt(zmq.SUBSCRIBE, big)
+        else:
+            peer.send(big)
+        assert monitor.poll(5000), "the peer's connection was not ended"
+        for value in range(100):
+            replicator.publish("t", value)
+        assert inbox.wait("t", 100) == list(range(100))
+    finally:
+        peer.disable_monitor()
+        monitor.close(0)
+        peer.close(0)
+
+
 def test_100000_values_arrive_in_order_once_even_for_a_late_joiner(link) -> None:
     replicator, follower, inbox = link
     replicator.add("a.out")

@@ -27,6 +27,7 @@ from pb3a.transport.replication.wire import (
     ACK,
     ANSWER,
     ASK,
+    ASKED_MAX,
     BATCH,
     BATCH_BYTES,
     BATCH_VALUES,
@@ -86,8 +87,10 @@ class Replicator:
         self._max_bytes = max_bytes
         self._batch_bytes = min(BATCH_BYTES, max_bytes // 2)
         self._context = zmq.Context.instance()
-        self._pub = secured_socket(self._context.socket(zmq.PUB), max_bytes, sender=True)
-        self._router = secured_socket(self._context.socket(zmq.ROUTER), max_bytes, sender=True)
+        # (their limit is on what they take in: what they send is the values' own)
+        self._pub = secured_socket(self._context.socket(zmq.PUB), ASKED_MAX, sender=True)
+        self._router = secured_socket(self._context.socket(zmq.ROUTER), ASKED_MAX,
+                                      sender=True)
         # a follower keeps its id across reconnections (see Follower): the new
         # connection takes the id over from the old one, which may not be seen gone yet
         self._router.setsockopt(zmq.ROUTER_HANDOVER, 1)

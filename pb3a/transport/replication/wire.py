@@ -48,6 +48,11 @@ BATCH_VALUES = 1024                     # small values of one topic sent as one 
 BATCH_BYTES = 1 << 20                   # ... and at most this many bytes of them
 HWM = 10_000                            # messages queued per peer before ZeroMQ drops
 MAX_MESSAGE = 256 * 1024 * 1024         # bytes; larger frames are refused by ZeroMQ itself
+ASKED_MAX = 16 * 1024                   # what a sender takes in (a subscription, HELLO, REPAIR,
+                                        # ACK: a topic and a few numbers), at most: anyone who
+                                        # reaches its ports may send, key or not, and ZeroMQ
+                                        # keeps a subscription at some 75 bytes per byte (two
+                                        # of 16 MB took a publisher to 2.5 GB for good)
 WINDOW = 2048                           # values a publisher may be ahead of its slowest follower
 WINDOW_BYTES = 16 * 1024 * 1024         # ... and bytes of values (see ``Replicator.sink``)
 WINDOW_WAIT = 0.1                       # seconds it waits for acknowledgements, then goes on
