@@ -532,8 +532,10 @@ def test_a_client_dropped_unclosed_is_closed_whichever_thread_collects_it() -> N
                 loop.submit(held.clear)             # (the last reference, there)
             else:
                 with loop._wake_lock:
-                    del client                      # (collected here, at once)
-                    assert loop._closing
+                    # (collected here, at once, or on the loop's thread once a handler
+                    # it was running lets go of it: either way, while the lock is held)
+                    del client
+                    eventually(lambda: loop._closing, what=f"the client dropped {drop}")
             loop._thread.join(5.0)
             assert not loop._thread.is_alive(), f"the loop of a client dropped {drop} goes on"
             assert dealer.closed and monitor.closed, drop
