@@ -470,3 +470,58 @@ def test_a_lease_grant_never_waits_for_a_worker_that_reads_nothing() -> None:
     finally:
         handle.close_pipe()
         frozen.close()
+
+
+def test_the_sampler_survives_a_turn_that_fails(monkeypatch, caplog) -> None:
+    """One burst of idle connections made ``psutil`` fail (EMFILE) in the sampler, and the
+    thread died for good: admission judged a frozen CPU figure, and ended executors were
+    never forgotten again. The failure is logged once and the sampler goes on."""
+    calls: list[float] = []
+    real = psutil.cpu_percent
+
+    def cpu_percent(interval=None):
+        calls.append(time.monotonic())
+        if len(calls) == 2:                          # (the first is the constructor's)
+            raise OSError(24, "Too many open files")
+        return real(interval=interval)
+    monkeypatch.setattr(node_controller.psutil, "cpu_percent", cpu_percent)
+    controller = NodeController("n1", KEY, limits=Limits(max_cpu_percent=101.0))
+    controller.unbound_s = 1.0                       # (none takes it: it ends)
+    try:
+        eventually(lambda: len(calls) >= 2, what="the failing sample")
+        controller.start_executor("ends")
+        eventually(lambda: len(calls) >= 5, what="samples after the failure")
+        eventually(lambda: not controller._executors, timeout=20, what="the ended forgotten")
+    finally:
+        controller.close()
+    failures = [r.getMessage() for r in caplog.records if "failed" in r.getMessage()]
+    assert failures == ["node n1: sampling its CPU failed (OSError: [Errno 24] Too many "
+                        "open files); it tries again every 0.5 s"]
+
+
+def test_the_command_line_raises_its_open_files_limit_to_the_hard_one() -> None:
+    """A daemon under the common soft limit of 1024 descriptors failed every open (EMFILE)
+    after one burst of some thousand idle connections."""
+    import resource
+    _, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard != resource.RLIM_INFINITY and hard <= 256:
+        pytest.skip(f"a hard limit of {hard} descriptors leaves nothing to raise")
+
+    def lowered() -> None:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (256, hard))
+    process = subprocess.Popen([sys.executable, "-m", "pb3a", "node", "start", "--name", "fd",
+                                "--listen", "tcp://127.0.0.1:0"], stdout=subprocess.PIPE,
+                               text=True, preexec_fn=lowered)
+    try:
+        assert process.stdout.readline().startswith("node fd at tcp://")
+        raised = psutil.Process(process.pid).rlimit(psutil.RLIMIT_NOFILE)
+        assert raised[0] > 256 and raised[1] == hard
+        if hard != resource.RLIM_INFINITY:
+            assert raised == (hard, hard)
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=10) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(5)
+        process.stdout.close()

@@ -5,6 +5,7 @@ listens, serve until SIGINT or SIGTERM, then close it."""
 from __future__ import annotations
 
 import argparse
+import resource
 import signal
 import sys
 import threading
@@ -29,6 +30,7 @@ def serve_until_signalled(command: str, listen: str,
     unclosed). Without a cluster key it exits 2 at once, saying where it looked, unless
     ``create_key`` (it made one in ``~/.pb3a`` that no other machine had, and only their
     refusals said so, later)."""
+    raise_open_files_limit()
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(signum, lambda *_: stop.set())
@@ -51,6 +53,20 @@ def serve_until_signalled(command: str, listen: str,
     finally:
         daemon.close()
     return 0
+
+
+def raise_open_files_limit() -> None:
+    """Raise this process's soft limit of open descriptors to its hard limit, as
+    long-running network daemons do (under the common soft limit of 1024, one burst of
+    some thousand idle connections made every other open fail, EMFILE)."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    for limit in (hard, 65536):     # (an unlimited hard limit is above what Linux allows)
+        if limit == resource.RLIM_INFINITY or limit > soft:
+            try:
+                resource.setrlimit(resource.RLIMIT_NOFILE, (limit, hard))
+                return
+            except (ValueError, OSError):
+                pass
 
 
 def _announce(banner: str) -> None:

@@ -85,9 +85,11 @@ def run_command(args: argparse.Namespace) -> int:
     """``pb3a run FILE [--for SECONDS]``: launch with a live status display."""
     import zmq
 
+    from pb3a.cli.daemons import raise_open_files_limit
     from pb3a.cli.status import run_with_status
     from pb3a.transport.auth import ClusterKey, ClusterKeyError
 
+    raise_open_files_limit()        # (the launcher serves its system's clients too)
     plan = load_plan(args.file, "run", args.import_timeout)
     if plan is None:
         return 1

@@ -14,6 +14,7 @@ import collections
 import logging
 import multiprocessing
 import threading
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -36,6 +37,7 @@ SAMPLE_S = 0.5
 # Admission judges the CPU over this many samples (5 s): one busy half-second on a
 # small machine refused launches and failovers at random.
 CPU_WINDOW = 10
+SAMPLE_FAILURE_LOG_S = 60.0    # a sampler turn that fails is logged at most this often
 
 
 class Refused(RuntimeFailure):
@@ -75,9 +77,24 @@ class NodeController:
 
     # -- admission ----------------------------------------------------------------
     def _sample(self) -> None:
+        """Sample the CPU and forget ended executors every ``SAMPLE_S`` until closed. A turn
+        that fails is logged and the next one taken (one burst of idle connections, EMFILE
+        in ``psutil``, ended the thread for good: admission judged a frozen CPU figure,
+        and ended executors were never forgotten again)."""
+        logged_at = -SAMPLE_FAILURE_LOG_S
         while not self._sampling.wait(SAMPLE_S):
-            self._cpu = self._sample_cpu()
-            self._forget_ended()
+            for what, step in (("sampling its CPU", self._take_cpu_sample),
+                               ("forgetting the executors that ended", self._forget_ended)):
+                try:
+                    step()
+                except Exception as exc:
+                    if time.monotonic() - logged_at >= SAMPLE_FAILURE_LOG_S:
+                        logged_at = time.monotonic()
+                        log.warning("node %s: %s failed (%s: %s); it tries again every "
+                                    "%g s", self.name, what, type(exc).__name__, exc, SAMPLE_S)
+
+    def _take_cpu_sample(self) -> None:
+        self._cpu = self._sample_cpu()
 
     def _forget_ended(self) -> None:
         """Forget the executors that ended on their own (their launcher killed, or none
