@@ -6,7 +6,10 @@ from __future__ import annotations
 import collections
 import gc
 import importlib
+import logging
+import os
 import pickle
+import re
 import sys
 import threading
 import time
@@ -19,6 +22,7 @@ import zmq
 from conftest import eventually
 
 from pb3a import RuntimeFailure, RuntimeTimeout
+from pb3a.transport import control
 from pb3a.transport.addresses import bind_advertised, close_bound, numeric
 from pb3a.transport.auth import ClusterKey, Sealer
 from pb3a.transport.control import REQUEST, ControlClient, ControlServer
@@ -541,3 +545,33 @@ def test_a_client_dropped_unclosed_is_closed_whichever_thread_collects_it() -> N
             assert dealer.closed and monitor.closed, drop
     finally:
         server.close()
+
+
+def test_wrong_key_requests_on_new_connections_are_logged_a_bounded_number_of_times(
+        caplog, monkeypatch) -> None:
+    """Refusals were logged at most once a second per connection: a client that connected
+    anew for each request had each logged (2000 warnings in 0.9 s). One is logged, and
+    the rest counted in a summary line; each client is still told why at once."""
+    monkeypatch.setattr(control, "_REFUSALS_COUNTED_S", 0.5, raising=False)
+    caplog.set_level(logging.WARNING, logger="pb3a.control")
+    wrong = ClusterKey(os.urandom(32))
+    started = time.monotonic()
+    with ControlServer(KEY, handler) as server:
+        for _ in range(40):
+            client = ControlClient(wrong, server.address)
+            try:
+                with pytest.raises(RuntimeFailure, match="runs with another cluster key"):
+                    client.call("add", timeout=5.0, a=1, b=2)
+            finally:
+                client.close()
+        took = time.monotonic() - started
+        logged = [r.getMessage() for r in caplog.records
+                  if "refused a request from 127.0.0.1" in r.getMessage()]
+        assert len(logged) == 1, f"{len(logged)} lines logged"
+        counted = re.compile(r"refused (\d+) more requests? \(another cluster key\)")
+        def summed() -> int:
+            return sum(int(m.group(1)) for r in caplog.records
+                       if (m := counted.search(r.getMessage())))
+        eventually(lambda: summed() == 39, what="the refusals not logged counted")
+    lines = [r.getMessage() for r in caplog.records if r.name == "pb3a.control"]
+    assert len(lines) <= 2 + took / 0.5, lines

@@ -21,12 +21,15 @@ started anew at the same address, besides the replay check of the one it was for
 
 A request the server cannot open is answered with a plain refusal that names the
 check it failed (another cluster key, clocks apart, an older run), at most once a
-second per peer; it carries nothing else and is only ever used to word the client's
-error, so that a wrong key is told apart from a server that does not answer at all.
+second per connection; it carries nothing else and is only ever used to word the
+client's error, so that a wrong key is told apart from a server that does not answer at
+all. The server logs such a refusal at most once a minute per peer address and once a
+second in all, and counts the rest in a summary line every 10 s.
 """
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import io
 import itertools
@@ -64,7 +67,11 @@ _NOBODY = bytes(16)                   # the instance a client asks before it kno
 _SENDS = 4                            # times a request is sent, to instances it learns
 _ID = struct.Struct("<Q")
 _REFUSAL = b"PB3A-REFUSED:"            # + the failed check, in plain ASCII
-_REFUSAL_EVERY_S = 1.0                # per peer
+_REFUSAL_EVERY_S = 1.0                # per connection
+# A refusal is logged at most this often per peer address, and in all; the refusals not
+# logged are counted in a line every _REFUSALS_COUNTED_S (a client that connected anew for
+# each request had each logged: 2000 warnings in 0.9 s)
+_REFUSAL_LOGGED_PEER_S, _REFUSAL_LOGGED_S, _REFUSALS_COUNTED_S = 60.0, 1.0, 10.0
 # What each refusal means to the person who reads the client's error.
 _REFUSAL_HINTS = {
     "bad tag": ("it runs with another cluster key: make PB3A_KEY, PB3A_KEY_FILE or "
@@ -72,6 +79,7 @@ _REFUSAL_HINTS = {
     "not fresh": "the two machines' clocks differ by more than a minute: synchronise them",
     "stale epoch": "it works for a newer run of this system",
 }
+_REFUSAL_NAMES = {"bad tag": "another cluster key", "not fresh": "clocks apart"}
 MAX_MESSAGE = 64 * 1024 * 1024          # control messages carry states and code, not streams
 # The largest request or answer sent: the frame's header and tag fit beside it. A frame
 # over MAX_MESSAGE makes ZeroMQ drop the connection it came on, which a node's heartbeats
@@ -142,6 +150,9 @@ class ControlServer:
         self._work: queue.SimpleQueue[tuple[Any, bytes, str | None, Any] | None] = (
             queue.SimpleQueue())
         self._refused_at: dict[bytes, float] = {}      # peer -> when we last told it
+        self._logged_at: dict[str, float] = {}         # peer's address -> when logged
+        self._last_logged = -math.inf                  # when a refusal was logged last
+        self._unlogged: collections.Counter[str] = collections.Counter()   # by reason
         self._closed = False
         self._worker = threading.Thread(target=self._serve, name=name, daemon=True)
         self._worker.start()
@@ -213,11 +224,32 @@ class ControlServer:
         self._refused_at[who] = now
         self._router.send_multipart([peer, _REFUSAL + reason.encode()])
         if reason != "stale epoch":         # (a mistake in the set-up, not a fenced peer)
-            sender = "a peer"
-            with contextlib.suppress(zmq.ZMQError, AttributeError, TypeError):
-                sender = peer.get("Peer-Address") or sender     # (its IP, on TCP)
-            log.warning("%s refused a request from %s: %s", self.address, sender,
-                        _REFUSAL_HINTS[reason])
+            self._log_refusal(peer, reason, now)
+
+    def _log_refusal(self, peer: Any, reason: str, now: float) -> None:
+        """Log a refusal, or count it for the next summary if one was logged within the
+        second, or for this peer's address within the minute."""
+        sender = "a peer"
+        with contextlib.suppress(zmq.ZMQError, AttributeError, TypeError):
+            sender = peer.get("Peer-Address") or sender     # (its IP, on TCP)
+        if (now - self._last_logged < _REFUSAL_LOGGED_S
+                or now - self._logged_at.get(sender, -math.inf) < _REFUSAL_LOGGED_PEER_S):
+            if not self._unlogged:
+                self._loop.later(_REFUSALS_COUNTED_S, self._log_unlogged)
+            self._unlogged[reason] += 1
+            return
+        if len(self._logged_at) > 1024:
+            self._logged_at.clear()
+        self._logged_at[sender], self._last_logged = now, now
+        log.warning("%s refused a request from %s: %s", self.address, sender,
+                    _REFUSAL_HINTS[reason])
+
+    def _log_unlogged(self) -> None:
+        for reason, count in self._unlogged.items():
+            log.warning("%s refused %d more request%s (%s) in the last %g s", self.address,
+                        count, "s" if count != 1 else "", _REFUSAL_NAMES[reason],
+                        _REFUSALS_COUNTED_S)
+        self._unlogged.clear()
 
     def _serve(self) -> None:
         while (item := self._work.get()) is not None:
