@@ -525,3 +525,15 @@ def test_the_command_line_raises_its_open_files_limit_to_the_hard_one() -> None:
             process.kill()
             process.wait(5)
         process.stdout.close()
+
+
+def test_a_node_controller_asked_as_a_module_server_says_what_it_is(node) -> None:
+    """It said only that a node controller has no operation 'find'."""
+    controller, client = node
+    with pytest.raises(RuntimeFailure, match=(
+            f"^{re.escape(controller.address)} is node n1's controller, not a module server: "
+            r"give the address its `pb3a modules serve` printed$")):
+        client.call("find", name="robot")
+    with pytest.raises(RuntimeFailure, match=r"^node n1's controller at .* has no operation "
+                                             r"'nothing'; its operations: admit, start_"):
+        client.call("nothing")

@@ -293,6 +293,27 @@ def test_a_node_executor_refuses_requests_of_an_earlier_epoch(controllers) -> No
     assert described["modules"] == ["far"] and received == 0
 
 
+def test_an_address_of_another_kind_of_server_is_named_with_what_it_is(controllers) -> None:
+    """An executor's address given to ``pb3a status`` was said to work "for a newer run of
+    this system", and a launcher's given as a node's answered start_executor with its own
+    list of operations, neither saying what the address was nor which one to give."""
+    system = System("confused").node("a").node("b", address=controllers["b"].address)
+    system.add("far", Collector, node="b")
+    with system.launch() as run:
+        launcher = run.listen()
+        executor = controllers["b"].executors()["confused"]
+        with pytest.raises(RuntimeFailure, match=(
+                f"^cannot connect: {re.escape(executor)} is node b's executor for "
+                r"'confused', not a launcher: give the address `pb3a run` printed$")):
+            pb3a.connect(executor, timeout=5.0)
+        other = System("other").node("a").node("c", address=launcher)
+        other.add("far", Collector, node="c")
+        with pytest.raises(RuntimeFailure, match=(
+                f"{re.escape(launcher)} is the launcher of system 'confused', not a node "
+                r"controller: give the address its `pb3a node start` printed")):
+            other.launch()
+
+
 def test_on_a_remote_node_a_restarted_writer_feeds_its_readers_and_agents_can_move(
         controllers) -> None:
     system = System("remote-life").node("a").node("b", address=controllers["b"].address)

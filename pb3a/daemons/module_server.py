@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from pb3a.transport.auth import ClusterKey
-from pb3a.transport.control import ControlServer
+from pb3a.transport.control import ControlServer, UnknownOperation
 
 log = logging.getLogger("pb3a.modules")
 
@@ -36,7 +36,8 @@ class ModuleServer:
             raise ValueError(f"no directory {root} to serve modules from"
                              + (": it is a file" if self.root.exists() else "")
                              + "; give the directory that holds the modules' packages")
-        self._server = ControlServer(key, self._handle, host, port, name="pb3a-modules")
+        self._server = ControlServer(key, self._handle, host, port, name="pb3a-modules",
+                                     title="a module server")
         self.address = self._server.address
 
     def find(self, name: str) -> dict[str, Any] | None:
@@ -81,7 +82,7 @@ class ModuleServer:
             return self.find(str(args.get("name", "")))
         if op == "list":
             return self.names()
-        raise ValueError(f"the module server has no operation {op!r}")
+        raise UnknownOperation(op, ("find", "list"))
 
     @property
     def rejected(self) -> Any:

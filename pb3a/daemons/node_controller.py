@@ -25,7 +25,7 @@ from pb3a.daemons.node_share import UNBOUND_S, executor_main
 from pb3a.errors import RuntimeFailure, bounded_wait
 from pb3a.processes import start_without_main
 from pb3a.transport.auth import ClusterKey
-from pb3a.transport.control import ControlServer
+from pb3a.transport.control import ControlServer, UnknownOperation
 from pb3a.transport.pickling import PYTHON
 from pb3a.transport.shm import reap_child, reap_orphans
 
@@ -72,7 +72,8 @@ class NodeController:
         self._sampler = threading.Thread(target=self._sample, name="pb3a-node-sampler",
                                          daemon=True)
         self._sampler.start()
-        self._server = ControlServer(key, self._handle, host, port, name="pb3a-node")
+        self._server = ControlServer(key, self._handle, host, port, name="pb3a-node",
+                                     title=f"node {name}'s controller")
         self.address = self._server.address
 
     # -- admission ----------------------------------------------------------------
@@ -228,7 +229,7 @@ class NodeController:
             return {"node": self.name, "python": PYTHON, "cpu_percent": self._cpu,
                     "memory_available": psutil.virtual_memory().available,
                     "executors": self.executors()}
-        raise ValueError(f"a node controller has no operation {op!r}")
+        raise UnknownOperation(op, ("start_executor", "stop_executor", "admit", "status"))
 
     @property
     def rejected(self) -> Any:

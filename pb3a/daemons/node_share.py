@@ -42,7 +42,7 @@ from pb3a.node.remote import LEASE_S
 from pb3a.node.restarts import LOCK_TIMEOUT
 from pb3a.processes import mark_as, serve_as_child, stop_on_sigterm
 from pb3a.transport.auth import ClusterKey
-from pb3a.transport.control import ControlClient, ControlServer, TooLarge
+from pb3a.transport.control import ControlClient, ControlServer, TooLarge, UnknownOperation
 from pb3a.worker.process import agent_wait
 
 log = logging.getLogger("pb3a.node")
@@ -129,7 +129,7 @@ class NodeShare:
         if op == "shutdown":
             self.stopped.set()
             return None
-        raise ValueError(f"a node executor has no operation {op!r}")
+        raise UnknownOperation(op)
 
     def bind(self, launcher: str, checkpoint_s: float, log_level: int, code: CodeSources,
              lease_s: float = LEASE_S, epoch: int = 0, node_epoch: int = 1,
@@ -318,7 +318,7 @@ def executor_main(config: str, node: str, workers: int, cpus: list[int] | None,
                                           # waited for takes its lock: not in one lane
                                           aside={"start", "await_restart"},
                                           decode_lock=share.executor.imports.lock,
-                                          title=f"node {node}'s executor")
+                                          title=f"node {node}'s executor for {config!r}")
     try:
         serve_as_child(conn, server.address, share.stopped)
     finally:

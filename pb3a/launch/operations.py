@@ -52,6 +52,7 @@ from pb3a.model.ports import Policy
 from pb3a.pending import DONE, FAILED, RUNNING
 from pb3a.topology import Topology, topology_of
 from pb3a.transport import pickling
+from pb3a.transport.control import UnknownOperation
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Collection, Iterator
@@ -713,8 +714,7 @@ class Operations:
         """Run operation ``op`` with ``args`` (from a connection, the CLI or an agent:
         ``asker``, its name and whether it asks from its setup)."""
         if op not in allowed:
-            raise ValueError(f"unknown operation {op!r}; the operations: "
-                             f"{', '.join(sorted(allowed))}")
+            raise UnknownOperation(op, allowed)
         if self.launcher.stopped and op not in _HISTORY:   # (an add waited for dead workers)
             raise SystemStopped(f"{op}: system {self.launcher.plan.name!r} is stopped "
                                 "(its events and log can still be read)")

@@ -202,7 +202,8 @@ class Running(SystemHandle):
             # process first, as a change naming it does (Operations._resolved).
             self._server = ControlServer(ClusterKey.load(), self._remote_request,
                                          host, port, name="pb3a-launcher", aside=_ASIDE,
-                                         import_first=self._import_first)
+                                         import_first=self._import_first,
+                                         title=f"the launcher of system {self.name!r}")
             self.address = self._server.address
             if host in EVERY_INTERFACE:
                 remote = self._remote_nodes()

@@ -80,6 +80,15 @@ _REFUSAL_HINTS = {
     "stale epoch": "it works for a newer run of this system",
 }
 _REFUSAL_NAMES = {"bad tag": "another cluster key", "not fresh": "clocks apart"}
+# The operations that show which kind of server their sender took an address for, and
+# where that one's address is found: a request for one at another kind of server (a
+# launcher's address given as a node's) is told so, and where to look
+_SENT_TO = {
+    **dict.fromkeys(("start_executor", "stop_executor", "admit"),
+                    ("a node controller", "give the address its `pb3a node start` printed")),
+    "find": ("a module server", "give the address its `pb3a modules serve` printed"),
+    "describe": ("a launcher", "give the address `pb3a run` printed"),
+}
 MAX_MESSAGE = 64 * 1024 * 1024          # control messages carry states and code, not streams
 # The largest request or answer sent: the frame's header and tag fit beside it. A frame
 # over MAX_MESSAGE makes ZeroMQ drop the connection it came on, which a node's heartbeats
@@ -93,6 +102,24 @@ DEFAULT_TIMEOUT = 10.0
 GONE_S = 1.0
 ANSWER_LINGER_MS = 500                   # how long a closing server gives its last answers
 ASIDE_ANSWER_S = 1.0                     # ... and its requests running aside to give theirs
+
+
+class UnknownOperation(ValueError):
+    """A request for an operation the server does not have (raised by its handler): the
+    server answers saying what it is, and where such a request goes instead."""
+
+    def __init__(self, op: str, known: Collection[str] = ()) -> None:
+        super().__init__(f"unknown operation {op!r}; the operations: {', '.join(sorted(known))}")
+        self.op, self.known = op, sorted(known)
+
+
+def wrong_server(address: str, role: str, op: str) -> str | None:
+    """What to say of a request for ``op`` that server ``role`` at ``address`` cannot
+    take, if ``op`` shows which kind of server its sender meant; else None."""
+    meant = _SENT_TO.get(op)
+    if meant is None:
+        return None
+    return f"{address} is {role}, not {meant[0]}: {meant[1]}"
 
 
 def _socket(context: zmq.Context, kind: int) -> zmq.Socket:
@@ -125,8 +152,10 @@ class ControlServer:
         """``decode_lock``: held while a request imports the modules of the classes it
         names (see ``_decode``), by a process that also imports in the background:
         CPython may hand one thread a module another is still importing when the two
-        imports go through a circular one. ``title`` is how a request it cannot read
-        names it ("node b's executor"), before its address. ``import_first(module,
+        imports go through a circular one. ``title`` is what it is ("node b's
+        controller", "the launcher of system 'lab'"): a request it cannot read, for an
+        operation it does not have, or of an earlier epoch (from a key holder) is told
+        so, to find the mistaken address. ``import_first(module,
         name)``: called before a request imports a module for its class ``name``, to
         refuse it (an ``ImportError``: the request cannot be read) rather than import a
         module that would harm this process (a launcher's, see
@@ -145,6 +174,8 @@ class ControlServer:
         # (epoch 0 until ``advance_epoch``: a node share's server moves on with its runs)
         self._sealer = Sealer(key, 0)
         self._opener = Opener(key, epoch=0, max_bytes=MAX_MESSAGE)
+        # (whether a request refused for its epoch is a key holder's, told what this is)
+        self._any_epoch = Opener(key, epoch=0, max_bytes=MAX_MESSAGE)
         self.instance = secrets.token_bytes(16)      # requests must name it (see above)
         # (peer, request id, op, args), or with op None the request's pickle, to read
         self._work: queue.SimpleQueue[tuple[Any, bytes, str | None, Any] | None] = (
@@ -176,7 +207,7 @@ class ControlServer:
                 if message.kind != REQUEST or len(message.frames) != 3:
                     raise Rejected("unexpected")
             except Rejected as exc:
-                self._refuse(peer, exc.reason)
+                self._refuse(peer, exc.reason, frames)
                 continue
             request_id, blob = bytes(message.frames[0]), message.frames[2]
             if bytes(message.frames[1]) != self.instance:     # for another server, or a
@@ -212,8 +243,9 @@ class ControlServer:
             peer, request_id, False,
             RuntimeFailure(_undecodable(exc, "a request", f"{self._title} at {self.address}"))))
 
-    def _refuse(self, peer: Any, reason: str) -> None:
-        """Tell an unauthenticated peer which check failed (rate-limited per peer)."""
+    def _refuse(self, peer: Any, reason: str, frames: list[Any]) -> None:
+        """Tell an unauthenticated peer which check failed (rate-limited per peer); a key
+        holder refused for its epoch is told what this server is too."""
         if reason not in _REFUSAL_HINTS:
             return                             # garbage gets no answer at all
         who, now = bytes(peer), time.monotonic()
@@ -222,9 +254,19 @@ class ControlServer:
         if len(self._refused_at) > 1024:
             self._refused_at.clear()
         self._refused_at[who] = now
-        self._router.send_multipart([peer, _REFUSAL + reason.encode()])
+        said = reason.encode()
+        if reason == "stale epoch" and self._is_authentic(frames):
+            said += b":" + self._title.encode()
+        self._router.send_multipart([peer, _REFUSAL + said])
         if reason != "stale epoch":         # (a mistake in the set-up, not a fenced peer)
             self._log_refusal(peer, reason, now)
+
+    def _is_authentic(self, frames: list[Any]) -> bool:
+        try:
+            self._any_epoch.open(frames)
+        except Rejected:
+            return False
+        return True
 
     def _log_refusal(self, peer: Any, reason: str, now: float) -> None:
         """Log a refusal, or count it for the next summary if one was logged within the
@@ -273,6 +315,11 @@ class ControlServer:
         """Run one request and send its answer (from the socket thread)."""
         try:
             result, ok = self._handler(op, args), True
+        except UnknownOperation as exc:
+            result, ok = RuntimeFailure(
+                wrong_server(self.address, self._title, op)
+                or f"{self._title} at {self.address} has no operation {op!r}"
+                + (f"; its operations: {', '.join(exc.known)}" if exc.known else "")), False
         except PB3AError as exc:               # the caller gets the same error
             result, ok = exc, False
         except Exception as exc:
@@ -377,6 +424,7 @@ class ControlClient:
         self._sent: dict[bytes, list[Any]] = {}     # request id -> [its pickle, times sent]
         self._instance = _NOBODY                    # the server's, once it has said it
         self.refused = ""                    # why the server refused our requests, if it did
+        self._refused_by = ""                # what it said it is, with the reason
         self._closed = False
         self._when_gone = when_gone
         self._lost_at: float | None = None   # when the server closed our connection
@@ -443,7 +491,12 @@ class ControlClient:
         return result
 
     def _refusal(self, op: str) -> str:
-        return (f"{self.address} refused {op!r}: {_REFUSAL_HINTS.get(self.refused, self.refused)}")
+        if self.refused == "stale epoch" and self._refused_by and not self._sealer.epoch:
+            # (a client of no run, such as the command line, at a node's executor)
+            return (wrong_server(self.address, self._refused_by, op)
+                    or f"{self.address} refused {op!r}: it is {self._refused_by}, which "
+                    "answers only the launcher that started it")
+        return f"{self.address} refused {op!r}: {_REFUSAL_HINTS.get(self.refused, self.refused)}"
 
     def _send(self, request_id: bytes) -> None:
         """Send a request (again), to the server instance last heard of (socket thread)."""
@@ -462,7 +515,7 @@ class ControlClient:
         while dealer.poll(0):
             frames = dealer.recv_multipart(copy=False)
             if len(frames) == 1 and bytes(frames[0].buffer[:len(_REFUSAL)]) == _REFUSAL:
-                self._refused(bytes(frames[0].buffer[len(_REFUSAL):]).decode("ascii", "replace"))
+                self._refused(bytes(frames[0].buffer[len(_REFUSAL):]).decode("utf-8", "replace"))
                 continue
             try:
                 message = self._opener.open(frames)
@@ -536,9 +589,10 @@ class ControlClient:
 
     def _refused(self, reason: str) -> None:
         """The server could not open our requests: every one waiting fails now."""
+        reason, _, role = reason.partition(":")
         if reason not in _REFUSAL_HINTS:
             return
-        self.refused = reason
+        self.refused, self._refused_by = reason, role
         for done, box in list(self._waiting.values()):
             box[:] = [None, reason]
             done.set()
