@@ -539,7 +539,8 @@ def test_a_client_dropped_unclosed_is_closed_whichever_thread_collects_it() -> N
                     # (collected here, at once, or on the loop's thread once a handler
                     # it was running lets go of it: either way, while the lock is held)
                     del client
-                    eventually(lambda: loop._closing, what=f"the client dropped {drop}")
+                    eventually(lambda closing=loop: closing._closing,
+                               what=f"the client dropped {drop}")
             loop._thread.join(5.0)
             assert not loop._thread.is_alive(), f"the loop of a client dropped {drop} goes on"
             assert dealer.closed and monitor.closed, drop
