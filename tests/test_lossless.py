@@ -124,6 +124,7 @@ def test_removing_a_stuck_reader_inside_one_process_ends_its_writer_s_wait_at_on
     assert writer.last_error.startswith("RuntimeTimeout: write on lossless link src.out -> "
                                         "dst.x gave up: the link was cut")
 
+
 @pytest.mark.parametrize("where", ["shm", "memory"])
 def test_closing_stops_a_writer_waiting_for_its_reader_at_once(
         where: str, caplog: pytest.LogCaptureFixture) -> None:
