@@ -670,6 +670,41 @@ def test_a_move_whose_module_s_worker_dies_on_the_way_stops_before_anything_is_u
                    what="values through the restarted relay")
 
 
+def test_a_landing_that_fails_as_remote_links_are_wired_again_is_undone(monkeypatch) -> None:
+    """The failed landing dropped the module at its destination, closing that worker's
+    doorbell, then closed its remote link there: the bridge rang the closed descriptor,
+    the undo ended in a bare OSError (EBADF) and the module was gone from the system
+    (found by a chaos run: a reader killed as its writer moved)."""
+    system = System("wired-again").node("a").node("b").node("c")
+    system.add("src", Counter, node="a", period=0.002)
+    system.add("relay", Relay, node="a")
+    system.add("sink", Collector, node="b")
+    system.link("src.out", "relay.x", policy="lossless:64")
+    system.link("relay.out", "sink.x", policy="lossless:64")
+    with system.launch(timeout=10) as run:
+        eventually(lambda: run.state("sink")["received"] > 5, what="values at the sink")
+        reader = run._launcher.nodes["b"]
+        real_open = type(reader).open_inbound
+        failures = []
+
+        def flaky(self, links):       # (node c's link into relay is opened first)
+            if self is reader and not failures:
+                failures.append(links)
+                raise RuntimeFailure("worker 'b/m-sink' is not running")
+            return real_open(self, links)
+        monkeypatch.setattr(type(reader), "open_inbound", flaky)
+        with pytest.raises(RuntimeFailure, match="runs on node a again"):
+            run.migrate("relay", to="c")
+        monkeypatch.setattr(type(reader), "open_inbound", real_open)
+        assert failures and run.where("relay") == "a"
+        assert run.stats().modules["relay"].status == "running"
+        received = run.state("sink")["received"]
+        eventually(lambda: run.state("sink")["received"] > received + 20,
+                   what="values through the relay put back")
+        sink = run.state("sink")
+    assert sink["out_of_order"] == 0 and sink["duplicates"] == 0
+
+
 def test_a_move_whose_pause_a_frozen_worker_reads_late_leaves_the_module_running(
         monkeypatch) -> None:
     """The module's worker is frozen (SIGSTOP) as the move asks to pause it, and runs again

@@ -15,6 +15,8 @@ remote writer back through the sender's flow control, and nothing is dropped.
 
 from __future__ import annotations
 
+import contextlib
+import os
 import threading
 import time
 from collections import deque
@@ -43,11 +45,21 @@ class _Feed:
     values that did not fit yet, oldest first: ``(values, sent at)``."""
 
     ring: ShmRing
+    bell: int = -1                    # the bridge's own duplicate of the reader's doorbell
     backlog: deque[tuple[list[Any], float]] = field(default_factory=deque)
     waiting: int = 0                  # values in the backlog
     # a dropping ring that was full after its wait: its reader is stalled (frozen,
     # gone), and the next writes do not wait, for every link's values wait behind them
     stalled: bool = False
+
+    def close(self) -> None:
+        """Close the ring and the bridge's duplicate of its reader's doorbell."""
+        self.ring.set_bell(-1)
+        self.ring.close()
+        if self.bell >= 0:
+            with contextlib.suppress(OSError):
+                os.close(self.bell)
+            self.bell = -1
 
     def offer(self) -> None:
         """Put as much of the backlog into the ring as fits now."""
@@ -78,14 +90,19 @@ class Bridge:
 
     def open(self, link: str, topic: str, ring: str, bell: int) -> None:
         """Write ``topic``'s values into ``ring`` (the link's, read by a local worker
-        whose doorbell is ``bell``). Opening an open link does nothing."""
+        whose doorbell is ``bell``). Opening an open link does nothing. The bridge rings
+        a duplicate of ``bell`` of its own: the reader's worker may be stopped before the
+        link is closed (a failed move drops the module at its destination first), and
+        its doorbell closed then (ringing that number failed with EBADF, or woke another
+        file that took the number)."""
         with self._lock:
             if link in self._topics:
                 return
             writer = ShmRing.attach(ring)
-            writer.set_bell(bell)
+            own = os.dup(bell) if bell >= 0 else -1
+            writer.set_bell(own)
             writer.label = link
-            self._rings.setdefault(topic, {})[link] = _Feed(writer)
+            self._rings.setdefault(topic, {})[link] = _Feed(writer, own)
             self._topics[link] = topic
             lossless = self._lossless(topic)
         self._follower.set_lossless(topic, lossless)
@@ -150,7 +167,7 @@ class Bridge:
         else:
             self._follower.set_lossless(topic, lossless)
             self._follower.release(topic, held_back)   # (its backlog held the rest back)
-        feed.ring.close()
+        feed.close()
         return missing
 
     def followed(self) -> dict[str, list[str]]:
@@ -231,6 +248,6 @@ class Bridge:
         with self._lock:
             for feeds in self._rings.values():
                 for feed in feeds.values():
-                    feed.ring.close()
+                    feed.close()
             self._rings.clear()
             self._topics.clear()
