@@ -705,6 +705,33 @@ def test_a_landing_that_fails_as_remote_links_are_wired_again_is_undone(monkeypa
     assert sink["out_of_order"] == 0 and sink["duplicates"] == 0
 
 
+@pytest.mark.parametrize("policy", ["queue:64", "lossless:64"])
+def test_a_module_whose_reader_has_failed_moves_and_the_reader_restarts_wired(policy) -> None:
+    """A link into a failed module (restart = "never", its worker killed) is not wired
+    where its writer lands, as it is unhooked when the module fails; a restart wires it
+    (the move asked the dead worker to attach the link, and was undone, wherever the
+    writer went: 'worker 'b/m-sink' is not running')."""
+    system = System("dead-reader").node("a").node("b").node("c")
+    system.add("src", Counter, node="a", period=0.002)
+    system.add("relay", Relay, node="a")
+    system.add("sink", Collector, node="b")             # restart = never: it stays failed
+    system.link("src.out", "relay.x", policy=policy)
+    system.link("relay.out", "sink.x", policy=policy)
+    with system.launch(timeout=10) as run:
+        eventually(lambda: run.state("sink")["received"] > 5, what="values at the sink")
+        os.kill(run.stats().modules["sink"].pid, signal.SIGKILL)
+        eventually(lambda: run.stats().modules["sink"].status == "failed", what="sink failed")
+        for node in ("c", "b", "a"):            # another node, the reader's, the first
+            run.migrate("relay", to=node)
+            assert run.where("relay") == node
+        relayed = run.state("relay")["relayed"]
+        eventually(lambda: run.state("relay")["relayed"] > relayed + 20,
+                   what="values through the moved relay")
+        run.restart("sink")
+        eventually(lambda: run.state("sink")["received"] > 20, what="values at the restarted sink")
+        assert {"relay.out->sink.x", "src.out->relay.x"} <= set(run.stats().links)
+
+
 def test_a_move_whose_pause_a_frozen_worker_reads_late_leaves_the_module_running(
         monkeypatch) -> None:
     """The module's worker is frozen (SIGSTOP) as the move asks to pause it, and runs again

@@ -93,7 +93,7 @@ class Wiring:
         if src.worker == dst.worker:
             return None
         ring = self._ring(link.key, ring_size(src.spec.cls, link.src_port, link.policy))
-        if self._node.restarting(dst):
+        if self._node.restarting(dst) or self._failed(dst):
             return None
         return WorkerRequest(dst.worker, "link_in", {
             "key": link.key, "dst": link.dst, "dst_port": link.dst_port, "ring": ring.name,
@@ -103,8 +103,8 @@ class Wiring:
         """The writing side: connect the output to the ring, or straight to the input."""
         modules = self._node.modules
         src, dst = modules[link.src], modules[link.dst]
-        if self._node.restarting(src):
-            return None
+        if self._node.restarting(src) or self._failed(dst):
+            return None                 # (into a failed reader: unhooked, see ``unhook``)
         if src.worker == dst.worker:
             return WorkerRequest(src.worker, "link_out", {
                 "key": link.key, "src": link.src, "src_port": link.src_port, "dst": link.dst,
@@ -112,6 +112,13 @@ class Wiring:
         return WorkerRequest(src.worker, "link_out", {
             "key": link.key, "src": link.src, "src_port": link.src_port,
             "ring": self.rings[link.key].name}, fd=self._node.workers[dst.worker].bell)
+
+    def _failed(self, record: ModuleRecord) -> bool:
+        """Whether the module has failed for good, its worker gone (until it is restarted
+        or removed): a link into it is not wired, as ``unhook`` leaves it; its restart
+        wires it anew. (Wiring it asked the dead worker: a move of a writer whose reader
+        had failed was refused, wherever it went.)"""
+        return record.status == "failed" and not self._node.alive(record.worker)
 
     def _unlink_request(self, link: FlatLink, module: str, op: str) -> WorkerRequest | None:
         """``op`` for ``link`` to the worker of one of its ends (none if it is gone)."""
@@ -191,19 +198,22 @@ class Wiring:
         for link, size in links:
             self.inbound[link.key] = link
             rings[link.key] = self._ring(link.key, size)
+        fed = [link for link, _ in links if not self._failed(modules[link.dst])]
         self._node.workers.side_by_side([
             None if self._node.restarting(modules[link.dst]) else WorkerRequest(
                 modules[link.dst].worker, "link_in", {
                     "key": link.key, "dst": link.dst, "dst_port": link.dst_port,
                     "ring": rings[link.key].name, "policy": str(link.policy)})
-            for link, _ in links])
-        for link, _ in links:
+            for link in fed])
+        for link in fed:
             self._node.bridge.open(link.key, topic(link), rings[link.key].name,
                                    self._node.workers[modules[link.dst].worker].bell)
 
     def follow(self, links: list[tuple[FlatLink, Endpoint]]) -> None:
         """Receive each link's output from the sender at its endpoint (see ``publish``)."""
-        self._node.bridge.follow([(topic(link), *endpoint) for link, endpoint in links])
+        modules = self._node.modules
+        self._node.bridge.follow([(topic(link), *endpoint) for link, endpoint in links
+                                  if not self._failed(modules[link.dst])])
 
     def close_inbound(self, links: list[tuple[FlatLink, Reached]]) -> list[int]:
         """Stop receiving each link once the values before the sequence number given
