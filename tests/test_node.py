@@ -34,10 +34,12 @@ from pb3a.daemons import node_controller
 from pb3a.daemons.node_controller import Limits, NodeController, Refused, _context
 from pb3a.daemons.node_share import executor_main
 from pb3a.loading.sources import CodeSources
+from pb3a.node.remote import LEASE_S
 from pb3a.processes import start_without_main
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 from pb3a.transport.shm import live_segments
+from pb3a.worker.lease import LEASE_CHECK_S
 
 KEY = ClusterKey.load()
 
@@ -59,6 +61,7 @@ def _counter() -> FlatModule:
 def test_one_executor_per_configuration_runs_modules_and_stops_cleanly(node) -> None:
     _, client = node
     address, started = client.call("start_executor", timeout=60, config="demo")
+    answered = time.monotonic()          # (its executor started before)
     assert started
     # again: the same, not started now (it may be another launch's: not to be stopped)
     assert tuple(client.call("start_executor", timeout=60, config="demo")) == (address, False)
@@ -73,6 +76,13 @@ def test_one_executor_per_configuration_runs_modules_and_stops_cleanly(node) -> 
         executor.call("start", names=["tick"])       # (beside the requests of "executor")
         eventually(lambda: apply("call_module", "tick", "get_state")["count"] > 10,
                    what="the module counting in the node's executor")
+        # No launcher bound it, so no lease runs: its worker was given one that nobody
+        # renewed, and stopped the module 1.25 s after the executor started. (A wait:
+        # what is checked is that nothing happens in it.)
+        time.sleep(max(0.0, answered + LEASE_S + 2 * LEASE_CHECK_S - time.monotonic()))
+        counted = apply("call_module", "tick", "get_state")["count"]
+        eventually(lambda: apply("call_module", "tick", "get_state")["count"] > counted + 10,
+                   what="the module counting on past the lease it would have had")
         assert executor.call("describe") == {"config": "demo", "node": "n1",
                                              "modules": ["tick"]}
         assert client.call("status")["executors"] == {"demo": address}

@@ -234,13 +234,19 @@ class NodeShare:
         """Whether this executor's lease runs now: renewed within the lease, and its watch
         not held up as long (this process frozen: the heartbeats it then reads late,
         queued while it was stopped, renew nothing the launcher still counts on)."""
+        if not self._bound.is_set():
+            return not self.stopped.is_set()    # no lease before a launcher binds it
         now = time.monotonic()
         return (not self.stopped.is_set() and now - self._leased_at <= self._lease_s
                 and now - self._ticked_at <= self._lease_s)
 
-    def _lease_end(self) -> float:
+    def _lease_end(self) -> float | None:
         """Where this executor's lease ends (``time.monotonic``), what its workers may run
-        until: in the past if it does not run now (a worker told so lapses at once)."""
+        until: in the past if it does not run now (a worker told so lapses at once); none
+        before a launcher binds it, as nobody renews one then (its workers were given a
+        lease that ran out 1.25 s after the executor started, and stopped their modules)."""
+        if not self._bound.is_set():
+            return None
         return self._leased_at + self._lease_s if self._leased() else -math.inf
 
     def _keep_lease(self) -> None:
