@@ -576,3 +576,21 @@ def test_wrong_key_requests_on_new_connections_are_logged_a_bounded_number_of_ti
         eventually(lambda: summed() == 39, what="the refusals not logged counted")
     lines = [r.getMessage() for r in caplog.records if r.name == "pb3a.control"]
     assert len(lines) <= 2 + took / 0.5, lines
+
+
+def test_refusals_counted_for_a_summary_are_told_when_the_server_closes(caplog) -> None:
+    """A server closed before its summary was due lost the count of what it refused."""
+    caplog.set_level(logging.WARNING, logger="pb3a.control")
+    wrong = ClusterKey(os.urandom(32))
+    with ControlServer(KEY, handler) as server:
+        for _ in range(3):
+            client = ControlClient(wrong, server.address)
+            try:
+                with pytest.raises(RuntimeFailure, match="runs with another cluster key"):
+                    client.call("add", timeout=5.0, a=1, b=2)
+            finally:
+                client.close()
+    said = [r.getMessage() for r in caplog.records if r.name == "pb3a.control"]
+    assert len(said) == 2, said
+    assert re.search(r"refused 2 more requests \(another cluster key\) in the last \d+ s",
+                     said[1]), said

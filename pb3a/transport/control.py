@@ -184,6 +184,7 @@ class ControlServer:
         self._logged_at: dict[str, float] = {}         # peer's address -> when logged
         self._last_logged = -math.inf                  # when a refusal was logged last
         self._unlogged: collections.Counter[str] = collections.Counter()   # by reason
+        self._unlogged_since = 0.0             # when the first of them was counted
         self._closed = False
         self._worker = threading.Thread(target=self._serve, name=name, daemon=True)
         self._worker.start()
@@ -277,6 +278,7 @@ class ControlServer:
         if (now - self._last_logged < _REFUSAL_LOGGED_S
                 or now - self._logged_at.get(sender, -math.inf) < _REFUSAL_LOGGED_PEER_S):
             if not self._unlogged:
+                self._unlogged_since = now
                 self._loop.later(_REFUSALS_COUNTED_S, self._log_unlogged)
             self._unlogged[reason] += 1
             return
@@ -287,10 +289,10 @@ class ControlServer:
                     _REFUSAL_HINTS[reason])
 
     def _log_unlogged(self) -> None:
+        span = math.ceil(time.monotonic() - self._unlogged_since)
         for reason, count in self._unlogged.items():
-            log.warning("%s refused %d more request%s (%s) in the last %g s", self.address,
-                        count, "s" if count != 1 else "", _REFUSAL_NAMES[reason],
-                        _REFUSALS_COUNTED_S)
+            log.warning("%s refused %d more request%s (%s) in the last %d s", self.address,
+                        count, "s" if count != 1 else "", _REFUSAL_NAMES[reason], span)
         self._unlogged.clear()
 
     def _serve(self) -> None:
@@ -358,6 +360,8 @@ class ControlServer:
         for aside in list(self._asides):
             aside.join(max(0.0, deadline - time.monotonic()))
         self._loop.close()                  # (after it sends the answers it was given)
+        if self._unlogged:              # (its summary was due later: said now, not lost)
+            self._log_unlogged()
         # an answer just sent, such as the one to "shutdown", still reaches its caller
         close_bound(self._router, linger_ms=ANSWER_LINGER_MS)
 
