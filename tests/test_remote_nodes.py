@@ -4,6 +4,7 @@ detected within 3 s and reported (env value and event) while the rest goes on.""
 
 from __future__ import annotations
 
+import gc
 import math
 import os
 import re
@@ -1166,3 +1167,37 @@ def test_a_node_whose_executor_outlasts_the_launch_timeout_is_named_and_stopped_
         release.set()
     eventually(lambda: slow.executors() == {} and not slow._executors, timeout=20,
                what="the late executor stopped by its start's thread")
+
+
+def test_a_closed_system_with_a_remote_node_leaves_nothing_open_where_it_was_launched(
+        controllers) -> None:
+    """Each launch and close of a system with a remote node, one whose module moved
+    between nodes, kept the descriptors of its local workers (their pidfd, the
+    forkserver's pipe) in the launching process until its garbage collector ran. Its
+    descriptors and threads there are given back as it closes (ZeroMQ frees a closed
+    socket's own a moment later, on its thread)."""
+    def launched_and_closed(move: bool) -> None:
+        system = System("closed-clean").node("a")
+        system.node("b", address=controllers["b"].address)
+        system.add("src", Counter, node="a", period=0.01)
+        system.add("sink", Collector, node="b")
+        system.link("src.out", "sink.x")
+        with system.launch() as run:
+            eventually(lambda: run.state("sink")["received"] > 0, what="values at b")
+            if move:
+                for to in ("a", "b"):
+                    assert run.migrate("sink", to=to).destination == to
+
+    me = psutil.Process()
+    launched_and_closed(move=False)            # (what the first launch sets up stays)
+    files, threads = me.num_fds(), set(threading.enumerate())
+    gc.disable()
+    try:
+        for move in (False, True, False):
+            launched_and_closed(move)
+            eventually(lambda: me.num_fds() <= files and set(threading.enumerate()) <= threads,
+                       what="the system's descriptors and threads given back",
+                       context=lambda: (me.num_fds(), files, [
+                           t.name for t in set(threading.enumerate()) - threads]))
+    finally:
+        gc.enable()

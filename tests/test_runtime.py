@@ -3,15 +3,19 @@
 from __future__ import annotations
 
 import dataclasses
+import gc
 import itertools
 import json
 import logging
+import os
 import re
+import signal
 import threading
 import time
 import types
 
 import numpy as np
+import psutil
 import pytest
 from conftest import eventually
 from sample_modules import (
@@ -41,6 +45,7 @@ from sample_modules import (
     Scale,
     Shift,
     Spawner,
+    Steady,
 )
 
 from pb3a import (
@@ -976,3 +981,37 @@ def test_the_figures_of_a_node_without_remote_links_make_no_bridge() -> None:
     with System("no-bridge").add("scale", Scale).launch() as run:
         assert "scale" in run.stats().modules
         assert run._launcher.nodes["local"]._bridge is None
+
+
+def test_a_closed_system_leaves_nothing_open_in_the_process_that_launched_it() -> None:
+    """A process that launches and closes one system after another (a notebook, a test
+    harness, a controller) kept two descriptors of the forkserver's and a pidfd for each
+    worker, a restarted one's and a spare's too, until its garbage collector happened to
+    run: with it off, or little garbage made meanwhile, they piled up. Each close gives
+    back every descriptor and thread its system had in this process."""
+    def launched_and_closed(restart: bool) -> None:
+        system = System("closed-clean")
+        system.add("steady", Steady, restart="fresh")
+        system.add("other", Steady)
+        with system.launch() as run:
+            eventually(lambda: run.stats().nodes["local"].spare_workers == 2,
+                       what="the spare workers booted")
+            if restart:
+                pid = eventually(lambda: run.stats().modules["steady"].pid, what="a pid")
+                os.kill(pid, signal.SIGKILL)
+                eventually(lambda: run.state("steady")["pid"] not in (0, pid),
+                           what="steady restarted in a new worker")
+
+    me = psutil.Process()
+    launched_and_closed(restart=False)         # (what the first launch sets up stays)
+    files, threads = me.num_fds(), set(threading.enumerate())
+    gc.disable()
+    try:
+        for restart in (False, True, False):
+            launched_and_closed(restart)
+            assert me.num_fds() <= files, f"{me.num_fds()} open descriptors, {files} before"
+            eventually(lambda: set(threading.enumerate()) <= threads,
+                       what="the system's threads ended",
+                       context=lambda: [t.name for t in set(threading.enumerate()) - threads])
+    finally:
+        gc.enable()

@@ -272,6 +272,11 @@ class WorkerPool:
         self._retiring: list[tuple[threading.Thread, WorkerHandle]] = []
         # requests a spare is sent as it boots (its replicator opened, say): (op, args)
         self.spare_requests: list[tuple[str, dict[str, Any]]] = []
+        # processes stopped by other threads, whose descriptors the monitor closes between
+        # two of its waits (one it may be polling is not closed under it); those not
+        # ended yet, or whose exit status has not come yet, are kept for its next round
+        self._to_close: list[WatchedProcess] = []
+        self._to_close_lock = threading.Lock()
         self._wake_r, self._wake_w = socket.socketpair()
         self._monitor = threading.Thread(target=self._watch, name="pb3a-monitor", daemon=True)
         self._monitor.start()
@@ -319,8 +324,11 @@ class WorkerPool:
         except ProcessLookupError:
             parent.close()
             process.join(STATUS_WAIT_S)
+            code = process.exitcode
+            if code is not None:                 # (its status pipe, else the collector's)
+                process.close()
             raise RuntimeFailure(f"worker {handle.key!r} ended as it started (exit code "
-                                 f"{process.exitcode})") from None
+                                 f"{code})") from None
         # The doorbell is the worker's first read: send it before anyone can send a request.
         try:
             reduction.send_handle(parent, handle.bell, process.pid)
@@ -330,6 +338,7 @@ class WorkerPool:
             parent.close()
             watched.kill()
             watched.join(STATUS_WAIT_S)
+            watched.close()                      # (the monitor never saw it)
             raise
         # its ends before ``alive``: the monitor reads every live handle's inbox
         handle.process, handle.conn, handle.pid = watched, parent, process.pid
@@ -536,7 +545,9 @@ class WorkerPool:
                 log.exception("worker monitor: unexpected error; going on")
 
     def _watch_once(self) -> None:
-        """Read every worker's pipe that has something, and see every death."""
+        """Close the processes stopped meanwhile, read every worker's pipe that has
+        something, and see every death."""
+        self._close_stopped()
         handles = [h for h in [*self.handles.values(), *self._spares] if h.alive]
         by_conn = {h.conn: h for h in handles}
         by_sentinel = {h.process.sentinel: h for h in handles}
@@ -603,9 +614,27 @@ class WorkerPool:
         else:
             future.set_exception(RuntimeFailure(f"worker {handle.key!r}: {result}"))
 
+    def _close_stopped(self, until: float | None = None) -> None:
+        """Close the descriptors of the processes stopped by other threads (``_end``),
+        those that have ended (``WatchedProcess.close``); on the monitor's thread,
+        between its waits, or once it has ended. Their exit status is not waited for
+        (the next round looks again), or, with ``until`` (monotonic), until then but
+        ``EXIT_AT_LEAST_S`` at least, each (a frozen forkserver sends none)."""
+        with self._to_close_lock:
+            stopped, self._to_close = self._to_close, []
+        left = [process for process in stopped if not process.close(
+            0.0 if until is None else
+            min(STATUS_WAIT_S, max(EXIT_AT_LEAST_S, until - time.monotonic())))]
+        if left:
+            with self._to_close_lock:
+                self._to_close.extend(left)
+
     def _died(self, handle: WorkerHandle) -> None:
         handle.alive = False
-        handle.process.close()              # (seen ended: what it says is kept)
+        # (seen ended: what it says is kept; its status, if it has not come yet, is read
+        # by whoever needs it, not waited for here, and its pipe closed in a later round)
+        if not handle.process.close(0.0):
+            self._hand_to_monitor(handle.process)
         handle.close_pipe()
         self._fail_requests(handle, "died")
         if self.handles.get(handle.key) is not handle:     # a spare: it hosted nothing
@@ -633,6 +662,7 @@ class WorkerPool:
         if handle.process is not None:
             handle.process.kill()
             handle.process.join(KILL_WAIT_S)
+            self._hand_to_monitor(handle.process)
         handle.close_pipe()
         self._fail_requests(handle, "was killed")
         self._poke()
@@ -662,9 +692,16 @@ class WorkerPool:
             # (SIGKILL ends even a stopped process at once: this wait is a bound only)
             handle.process.kill()
             handle.process.join(KILL_WAIT_S)
+        self._hand_to_monitor(handle.process)
         handle.close_pipe()
         self._fail_requests(handle, "was stopped")     # none waits for its deadline
         self._poke()
+
+    def _hand_to_monitor(self, process: WatchedProcess) -> None:
+        """Have the monitor close ``process``'s descriptors once it has ended: it may be
+        polling its pidfd now (``_close_stopped``); ``_poke`` wakes it."""
+        with self._to_close_lock:
+            self._to_close.append(process)
 
     def _fail_requests(self, handle: WorkerHandle, what: str) -> None:
         """Fail every request still waiting for ``handle``'s answer: its worker ``what``."""
@@ -691,7 +728,9 @@ class WorkerPool:
         crashes. Once the time is up, a worker that has not exited (frozen, stuck) is
         given ``EXIT_AT_LEAST_S`` to exit when told, then killed at once: a close
         overruns its timeout by that much per such worker. A worker retired in the
-        background (``retire(wait=False)``) that has not ended by then is killed too."""
+        background (``retire(wait=False)``) that has not ended by then is killed too.
+        Every stopped worker's descriptors (its pidfd, its exit status's pipe) are
+        closed by the end, not left to the garbage collector."""
         deadline = time.monotonic() + timeout
         self._stopping.set()
         if self._booting is not None:            # (it stops what it booted meanwhile)
@@ -715,6 +754,8 @@ class WorkerPool:
                 thread.join(KILL_WAIT_S)
         self._poke()
         self._monitor.join(2.0)
+        if not self._monitor.is_alive():     # (else it may poll them: the collector's)
+            self._close_stopped(until=deadline)
         self._wake_r.close()
         self._wake_w.close()
         # One still preloading (hung in an import?) would stay until this process
