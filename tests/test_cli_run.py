@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -381,6 +382,22 @@ def test_the_readme_quickstart_runs_as_a_plain_script(tmp_path: Path) -> None:
                           check=False)
     assert done.returncode == 0, done.stderr
     assert "'gain': 10.0" in done.stdout and "tick.out" in done.stdout
+
+
+def test_the_adaptive_loop_example_retunes_then_swaps_its_filter(tmp_path: Path) -> None:
+    done = subprocess.run([sys.executable, str(REPO / "examples" / "adaptive_loop.py")],
+                          cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=90,
+                          check=False)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    settled = re.fullmatch(r"settled at ([\d.]+), jitter ([\d.]+), 0 actions", lines[0])
+    assert settled, lines                                # nothing done while quiet
+    assert 0.8 < float(settled[1]) < 1.2, lines         # the PI holds the setpoint, 1.0
+    assert float(settled[2]) < 0.02, lines
+    assert lines[1:4] == ["retuned alpha to 0.25", "retuned alpha to 0.125",
+                          "swapped LowPass for Average"], lines
+    after = re.fullmatch(r"filter now __main__:Average, jitter ([\d.]+)", lines[4])
+    assert after and float(after[1]) < 0.02, lines       # the swap brought it under
 
 
 MODULES_BESIDE_THE_FILE = '''
