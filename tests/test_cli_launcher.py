@@ -16,7 +16,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import alive, eventually
-from sample_modules import Chain, Counter, FastScale, Freezer, Last, OnFlag, Relay, Scale
+from sample_modules import (
+    Chain,
+    Counter,
+    FastScale,
+    FloatSource,
+    Freezer,
+    Last,
+    OnFlag,
+    Relay,
+    Scale,
+)
 
 import pb3a
 from pb3a import Module, System
@@ -51,6 +61,58 @@ def test_the_command_line_reads_and_changes_a_running_system(capsys) -> None:
         assert "state kept: gain, setups" in capsys.readouterr().out
         assert main(["state", address, "ghost"]) == 1
         assert "no module 'ghost'" in capsys.readouterr().err
+
+
+# A module file edited while its class runs: ``version`` says which edit ran last.
+EDITED = """
+from pb3a import Input, Module
+
+class Gain(Module):
+    x = Input(float)
+    version = 0
+
+    def on_input(self, port):
+        port.read()
+        self.version = {version}
+"""
+
+
+def test_a_swap_after_the_module_file_changed_runs_the_file_as_it_is_now(
+        capsys, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`pb3a swap` (and `run.swap`) naming "module:Class" after its file was edited said
+    the new class was in but ran the code the launcher had imported before: the module
+    is reloaded first now, saying so. `pb3a reload` does it by hand (there was no such
+    command: only `run.reload` from Python)."""
+    module = "pb3a_edited_gain"
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, module, raising=False)
+    source = tmp_path / f"{module}.py"
+    source.write_text(EDITED.format(version=1))
+    system = System("cli-edited").add("src", FloatSource).add("g", f"{module}:Gain")
+    system.link("src.out", "g.x")
+    try:
+        with system.launch() as run:
+            address = run.listen()
+            eventually(lambda: run.state("g")["version"] == 1, what="the first file running")
+            source.write_text(EDITED.format(version=22))
+            assert main(["swap", address, "g", f"{module}:Gain"]) == 0
+            assert (f"module {module} changed since it was imported: reloaded; g is now "
+                    f"{module}:Gain") in capsys.readouterr().out
+            eventually(lambda: run.state("g")["version"] == 22, what="the edited file running")
+            source.write_text(EDITED.format(version=333))
+            run.swap("g", f"{module}:Gain")                     # the same from Python
+            eventually(lambda: run.state("g")["version"] == 333, what="the second edit")
+            assert run.events()[-1].detail["reloaded"] == module
+            source.write_text(EDITED.format(version=4444))
+            assert main(["reload", address, module]) == 0
+            assert f"{module} reloaded" in capsys.readouterr().out
+            assert main(["swap", address, "g", f"{module}:Gain", "--json"]) == 0
+            assert json.loads(capsys.readouterr().out)["reloaded"] is None     # done already
+            eventually(lambda: run.state("g")["version"] == 4444, what="the reloaded file")
+            run.swap("g", f"{module}:Gain")             # unchanged since: not reloaded
+            assert "reloaded" not in run.events()[-1].detail
+    finally:
+        sys.modules.pop(module, None)
 
 
 def test_status_shows_every_node_as_nodes_does(capsys) -> None:

@@ -94,6 +94,14 @@ def _running_system(commands: argparse._SubParsersAction) -> None:
             ("module", "the module's (or macro's) name"), ("node", "the node to move it to"))
     command("swap", "swap a module's class",
             ("module", "the module's name"), ("cls", "the new class, module:Class"))
+    reload = command("reload", "drop a Python module's cached code everywhere",
+                     ("module", "the Python module, as in module:Class (filt, pkg.mod)"))
+    reload.description = (
+        "Drop the cached copies of a Python module and its submodules in the launcher and "
+        "every worker, so that the next swap or add naming one of its classes gets its "
+        "file as it is now; running modules keep their code until swapped. A swap given "
+        "'module:Class' reloads that module by itself when its file changed; reload by "
+        "hand a file that module imports, or a module server's module.")
     relink = command("relink", "feed an input from another output",
                      ("src", "the output, module.port"), ("dst", "the input, module.port"))
     relink.add_argument("--policy", help="the input's policy on the new link (latest, "

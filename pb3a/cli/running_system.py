@@ -1,7 +1,8 @@
 """Commands that act on a running system through its launcher's address (``pb3a run``
-prints it): ``pb3a status / state / set / migrate / swap / relink / add / remove /
-restart / nodes / events / logs ADDR ...``. Each goes through ``pb3a.connect``, authenticated
-with the cluster key, and prints a sentence, or JSON with ``--json``.
+prints it): ``pb3a status / state / set / migrate / swap / reload / relink / add /
+remove / restart / nodes / events / logs ADDR ...``. Each goes through
+``pb3a.connect``, authenticated with the cluster key, and prints a sentence, or JSON
+with ``--json``.
 """
 
 from __future__ import annotations
@@ -120,9 +121,24 @@ def _migrate(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
 
 
 def _swap(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
+    """The swap's event says whether the class's module was reloaded first (its file had
+    changed since the launcher imported it), which the line says too."""
     kept = system.swap(args.module, args.cls, timeout=args.timeout)
-    return (f"{args.module} is now {args.cls}; state kept: {', '.join(kept) or '(none)'}",
-            {"module": args.module, "class": args.cls, "kept": kept})
+    swapped = [event for event in system.events(timeout=args.timeout)
+               if event.kind == "module_swapped" and event.subject == args.module]
+    reloaded = swapped[-1].detail.get("reloaded") if swapped else None
+    said = (f"module {reloaded} changed since it was imported: reloaded; "
+            if reloaded else "")
+    return (f"{said}{args.module} is now {args.cls}; state kept: "
+            f"{', '.join(kept) or '(none)'}",
+            {"module": args.module, "class": args.cls, "kept": kept, "reloaded": reloaded})
+
+
+def _reload(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
+    system.reload(args.module, timeout=args.timeout)
+    return (f"{args.module} reloaded: a swap or add from now on gets its file as "
+            "it is now; running modules keep their code until swapped",
+            {"module": args.module, "reloaded": True})
 
 
 def _relink(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
@@ -198,7 +214,7 @@ def _logs(system: Connection, args: argparse.Namespace) -> None:
 # what each command on a running system does, by its name on the command line
 OPERATIONS: dict[str, Callable[[Connection, argparse.Namespace], Any]] = {
     "status": _status, "state": _state, "set": _set, "migrate": _migrate, "swap": _swap,
-    "relink": _relink, "add": _add, "remove": _remove, "restart": _restart,
+    "reload": _reload, "relink": _relink, "add": _add, "remove": _remove, "restart": _restart,
     "nodes": _nodes, "logs": _logs, "events": _events}
 
 

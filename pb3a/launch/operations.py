@@ -42,7 +42,7 @@ from pb3a.errors import (
 )
 from pb3a.launch.migration import MigrationReport, MovedLate, migrate
 from pb3a.loading import trial
-from pb3a.loading.references import ImportRefused, resolve_class
+from pb3a.loading.references import ImportRefused, changed_since_import, resolve_class
 from pb3a.loading.served import forget, reload_problem
 from pb3a.model.environment import PREFIX as ENV_PREFIX
 from pb3a.model.environment import Environment
@@ -260,10 +260,19 @@ class Operations:
     def swap(self, name: str, cls: type | str, *, timeout: float | None = None) -> list[str]:
         """Run module ``name`` as class ``cls`` from now on, keeping its ports and the
         state names the new class has (the names kept). A module file not imported yet
-        is tried in a child process first (``_resolved``), within the timeout."""
+        is tried in a child process first (``_resolved``), within the timeout.
+
+        ``cls`` a reference ("module:Class") whose module's file changed since it was
+        imported here: that module is reloaded first (``reload``), saying so in the log
+        and in the event (a swap after an edit ran the code imported before it, while it
+        said the new class was in). A class object is swapped in as it is, and an agent's
+        swap takes the code imported here (agents reload nothing)."""
         wait = self._call_timeout(timeout)
         deadline = time.monotonic() + wait
-        new_cls, unresolved = _resolved(cls, wait)
+        reloaded = self._reload_if_changed(name, cls, wait)
+        # (the whole timeout, unless a reload took some: an import refused for hanging
+        # is refused again at once only for a timeout no longer than it had)
+        new_cls, unresolved = _resolved(cls, _left(deadline) if reloaded else wait)
         if new_cls is None:
             raise ConfigError([f"swap {name}: {unresolved}"])
         with self._held(f"swap {name}", _left(deadline), lend=[name]):
@@ -283,8 +292,24 @@ class Operations:
             kept = node.swap(name, spec)
             launcher.specs[name] = spec
         self.event_log.record("module_swapped", name, cls=f"{new_cls.__module__}:"
-                           f"{new_cls.__qualname__}", kept=kept)
+                           f"{new_cls.__qualname__}", kept=kept,
+                           **({"reloaded": reloaded} if reloaded else {}))
         return kept
+
+    def _reload_if_changed(self, name: str, cls: type | str, timeout: float) -> str | None:
+        """Reload the module of class reference ``cls`` if its file changed since it was
+        imported here (``changed_since_import``); the module reloaded, else None. One
+        that may not be reloaded (``reload_problem``: an installed package) is left, and
+        so is an agent's swap: agents reload nothing (``FOR_AGENTS``)."""
+        if not isinstance(cls, str) or ":" not in cls or _ASKER.get() is not None:
+            return None
+        module = cls.partition(":")[0]
+        if not changed_since_import(module) or reload_problem(module) is not None:
+            return None
+        self.reload(module, timeout=timeout)
+        log.warning("swap %s: module %s changed since it was imported: reloaded",
+                    name, module)
+        return module
 
     # -- links -------------------------------------------------------------------------
     def relink(self, src: str, dst: str, *, policy: str | None = None,

@@ -13,12 +13,15 @@ import difflib
 import importlib
 import os
 import re
+import sys
 import sysconfig
 import threading
 import traceback
+import weakref
 from collections.abc import Callable
 from contextlib import AbstractContextManager
 from pathlib import Path
+from types import ModuleType
 
 from pb3a.errors import ConfigError
 from pb3a.loading import served
@@ -63,6 +66,7 @@ def resolve_class(ref: str | type, *, watch: ImportWatch | None = None) -> type:
     try:
         with (watch or _watch)(module_name, ref):
             module = importlib.import_module(module_name)
+        _note_file(module_name, module)
     except ImportRefused:                       # said in full by whoever refused it
         raise
     except ImportError as exc:
@@ -101,6 +105,48 @@ def resolve_class(ref: str | type, *, watch: ImportWatch | None = None) -> type:
     if not isinstance(target, type):
         raise TypeError(f"{ref!r} is a {type(target).__name__}, not a class")
     return target
+
+
+def changed_since_import(module: str) -> bool:
+    """Whether the file of ``module`` (imported in this process) has changed since
+    ``resolve_class`` first saw it imported here: its mtime or size differs, or it is
+    gone. False for a module not imported, one that has no file here (a module server's),
+    or one no class was resolved from."""
+    with _files_lock:
+        then = _files.get(module)
+    loaded = sys.modules.get(module)
+    if then is None or loaded is None:
+        return False
+    return _file_now(loaded) != then
+
+
+def _note_file(name: str, module: ModuleType) -> None:
+    """Remember the file ``module`` was imported from as it is now, unless it is noted
+    already for this very module object (a module imported again after ``forget`` is a
+    new object: its file is noted anew)."""
+    with _files_lock:
+        if _noted.get(name) is not module:
+            _noted[name], _files[name] = module, _file_now(module)
+
+
+def _file_now(module: ModuleType) -> tuple[str, int, int] | None:
+    """The file ``module`` was imported from, its mtime and size now; None if it has no
+    file on this machine (a module server's, a built-in) or it is gone."""
+    path = getattr(module, "__file__", None)
+    if not isinstance(path, str):
+        return None
+    try:
+        found = os.stat(path)
+    except OSError:
+        return None
+    return path, found.st_mtime_ns, found.st_size
+
+
+# Each module resolve_class imported from, and its file then (``changed_since_import``);
+# the module object noted, held weakly (a module dropped from the cache is not kept).
+_files: dict[str, tuple[str, int, int] | None] = {}
+_noted: weakref.WeakValueDictionary[str, ModuleType] = weakref.WeakValueDictionary()
+_files_lock = threading.Lock()
 
 
 class ImportRefused(ImportError):
