@@ -664,6 +664,92 @@ def test_unknown_node(tmp_path: Path) -> None:
     only(problems, "[modules.src]: unknown node 'a'", "declares no nodes", "add a [nodes.a]")
 
 
+def test_a_node_named_in_another_case_is_suggested(tmp_path: Path) -> None:
+    """``node = "B"`` for a declared ``b`` got no suggestion (``bb`` did)."""
+    problems = problems_of(tmp_path, """
+        [nodes.b]
+        [modules.src]
+        class = "parts_cfg:Src"
+        node = "B"
+    """)
+    only(problems, "[modules.src]: unknown node 'B' (did you mean 'b'?)")
+
+
+# Module classes with a misspelled hook, and some whose names are no hook's near miss.
+HOOK_TYPOS = """
+from pb3a import Input, Module, Output
+
+class Sensor(Module):
+    z = Output(float)
+    period = 0.02
+
+    def stpe(self):
+        self.z.write(1.0)
+
+class Filt(Module):
+    z = Input(float)
+
+    def on_inputs(self, port):
+        pass
+
+class Careful(Module):
+    def setpu(self):
+        pass
+
+    def teardwon(self):
+        pass
+
+class Subclassed(Filt):             # its base's near miss, said of it too
+    pass
+
+class Fine(Module):
+    z = Input(float)
+    period = 0.1                    # (a period of its own without step() is allowed)
+
+    def on_input(self, port):
+        self._step()
+
+    def on_inputs(self):            # on_input is defined: a helper, left alone
+        pass
+
+    def _step(self):                # private: left alone
+        pass
+
+    def stop(self):
+        pass
+
+    def reset(self):
+        pass
+"""
+
+
+def test_a_misspelled_hook_is_named_with_the_hook_it_misses(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A class defining ``on_inputs`` (meant ``on_input``), ``stpe``, ``setpu`` or
+    ``teardwon`` passed the check and ran doing nothing (0 steps, 0 events), no word
+    said. Each is named now, with the hook it misses; a method whose class defines that
+    hook, a private one and a name not close to a hook's are not."""
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "hook_typos", raising=False)
+    (tmp_path / "hook_typos.py").write_text(HOOK_TYPOS)
+    entries = "".join(f'[modules.{name.lower()}]\nclass = "hook_typos:{name}"\n'
+                      for name in ("Sensor", "Filt", "Careful", "Subclassed", "Fine"))
+    problems = problems_of(tmp_path, entries)
+    try:
+        only(problems, "[modules.sensor]: hook_typos:Sensor defines stpe(): did you mean "
+             "step()? a module's hooks are setup(), step(), on_input(), teardown()")
+        only(problems, "[modules.filt]: hook_typos:Filt defines on_inputs(): did you mean "
+             "on_input()?")
+        only(problems, "[modules.careful]:", "setpu(): did you mean setup()?")
+        only(problems, "[modules.careful]:", "teardwon(): did you mean teardown()?")
+        only(problems, "[modules.subclassed]: hook_typos:Subclassed defines on_inputs(): "
+             "did you mean on_input()?")
+        assert not [p for p in problems if "[modules.fine]" in p], problems
+        assert len(problems) == 5, problems
+    finally:
+        sys.modules.pop("hook_typos", None)
+
+
 def test_an_unknown_node_is_named_in_the_words_the_system_was_described_in() -> None:
     """A system described in Python was told to add a TOML table."""
     problems = System("py").add("src", Scale, node="zzz").check()

@@ -20,7 +20,7 @@ from pb3a.errors import MOST_SECONDS
 from pb3a.loading.references import class_ref
 from pb3a.model.displays import declared_displays, finite
 from pb3a.model.environment import PREFIX as ENV_PREFIX
-from pb3a.model.module import RESTART_POLICIES, Module, can_hold
+from pb3a.model.module import HOOKS, RESTART_POLICIES, Module, can_hold
 from pb3a.model.state_edits import configured
 from pb3a.transport.addresses import tcp_address_problems
 
@@ -29,9 +29,11 @@ MAX_SPARES = 16                 # idle workers a node may keep (each an idle pro
 
 
 def did_you_mean(word: str, choices: Iterable[str]) -> str:
-    """`` (did you mean 'x'?)`` when a choice is close to ``word``, else empty."""
-    close = difflib.get_close_matches(str(word), list(choices), n=1)
-    return f" (did you mean {close[0]!r}?)" if close else ""
+    """`` (did you mean 'x'?)`` when a choice is close to ``word``, case aside, else
+    empty (a name that differed only in case, ``B`` for ``b``, got no suggestion)."""
+    by_case = {str(choice).lower(): str(choice) for choice in reversed(list(choices))}
+    close = difflib.get_close_matches(str(word).lower(), list(by_case), n=1)
+    return f" (did you mean {by_case[close[0]]!r}?)" if close else ""
 
 
 def listing(names: Iterable[str]) -> str:
@@ -217,7 +219,33 @@ def module_class(cls: type[Module]) -> list[str]:
     if cls.restart not in RESTART_POLICIES:
         problems.append(f"{ref} has restart = {cls.restart!r}: a class's restart is one of "
                         f"{listing(map(repr, RESTART_POLICIES))}")
-    return problems + made_bare(cls) + displays(cls)
+    return problems + made_bare(cls) + displays(cls) + misspelled_hooks(cls)
+
+
+def misspelled_hooks(cls: type[Module]) -> list[str]:
+    """Each method of the user's classes (``cls`` and its bases, not PB3A's) whose name is
+    a near miss of a hook the class does not define (``on_inputs``, ``stpe``,
+    ``teardwon``): it is never called, and the module ran doing nothing, with no word
+    said. A near miss: difflib's close match (cutoff 0.8, the names' case aside), or
+    the hook's letters in another order; a private name (``_step``) is left alone."""
+    missing = [hook for hook in HOOKS if getattr(cls, hook) is getattr(Module, hook)]
+    problems = []
+    for klass in cls.__mro__:
+        if not issubclass(klass, Module) or klass.__module__.partition(".")[0] == "pb3a":
+            continue
+        for name, value in vars(klass).items():
+            if name.startswith("_") or not (inspect.isfunction(value) or isinstance(
+                    value, (staticmethod, classmethod))):
+                continue
+            close = difflib.get_close_matches(name.lower(), missing, n=1, cutoff=0.8) or [
+                hook for hook in missing if sorted(hook) == sorted(name.lower())]
+            if close:
+                problems.append(
+                    f"{class_ref(cls)} defines {name}(): did you mean {close[0]}()? a "
+                    f"module's hooks are {', '.join(f'{hook}()' for hook in HOOKS)}, and "
+                    f"only they are called: {name}() never is (a helper of your own: give "
+                    "it a name less like a hook's)")
+    return problems
 
 
 def made_bare(cls: type[Module]) -> list[str]:

@@ -30,6 +30,11 @@ _RESTORING: contextvars.ContextVar[bool] = contextvars.ContextVar("pb3a_restorin
                                                                    default=False)
 
 
+# The methods a module class defines for the runtime to call (``Module``'s lifecycle
+# hooks); a near miss of one (``on_inputs``) is never called, which ``pb3a check`` says.
+HOOKS = ("setup", "step", "on_input", "teardown")
+
+
 class Module:
     """Base class of every port-based module.
 
