@@ -115,6 +115,51 @@ def test_a_swap_after_the_module_file_changed_runs_the_file_as_it_is_now(
         sys.modules.pop(module, None)
 
 
+# A program that launches an edited module (written to its working directory), prints
+# the launcher's address, and runs until its stdin closes.
+LAUNCHES_EDITED = """
+import sys
+from sample_modules import FloatSource
+from pb3a import System
+system = System("edited-restart").add("src", FloatSource).add("g", "pb3a_edited_again:Gain")
+system.link("src.out", "g.x")
+with system.launch() as run:
+    print(run.listen(), flush=True)
+    sys.stdin.read()
+"""
+
+
+def test_a_module_restarted_after_a_swap_to_its_edited_file_runs_the_edited_file(
+        tmp_path: Path) -> None:
+    """A worker started after a reload (for a restart, a move) comes from the forkserver,
+    which imported the system's module files at launch: a restart after a swap to the
+    edited file ran the code from before the edit again, the system saying the module
+    ran the new class. The worker drops what was reloaded before it loads a class."""
+    source = tmp_path / "pb3a_edited_again.py"
+    source.write_text(EDITED.format(version=1))
+    path = os.pathsep.join([str(tmp_path), str(REPO / "tests"), str(REPO)])
+    launcher = subprocess.Popen([sys.executable, "-c", LAUNCHES_EDITED], cwd=tmp_path,
+                                env={**os.environ, "PYTHONPATH": path}, text=True,
+                                stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    try:
+        assert launcher.stdout is not None and launcher.stdin is not None
+        with pb3a.connect(launcher.stdout.readline().strip(), timeout=10) as system:
+            eventually(lambda: system.state("g")["version"] == 1, what="the first file")
+            source.write_text(EDITED.format(version=22))
+            system.swap("g", "pb3a_edited_again:Gain")
+            eventually(lambda: system.state("g")["version"] == 22, what="the edited file")
+            system.restart("g")                      # (its state the configured one: 0)
+            version = eventually(lambda: system.state("g")["version"],
+                                 what="a value handled after the restart")
+            assert version == 22, "the restart ran the file as it was before the edit"
+        launcher.communicate(timeout=30)            # (its stdin closed: it stops)
+        assert launcher.returncode == 0
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+            launcher.communicate()
+
+
 def test_status_shows_every_node_as_nodes_does(capsys) -> None:
     """`pb3a status` (and `pb3a run`'s table) left the launcher's own, embedded nodes out
     of its node rows, which `pb3a nodes` showed (from the deploy walkthrough)."""

@@ -95,6 +95,9 @@ class Executor:
         # Held by a restart and by whoever changes the configuration (the launcher's
         # global lock when the executor runs in the launcher's process).
         self.lock = lock or threading.RLock()
+        # Python modules reloaded here (``forget``), which a worker started later drops
+        # too before it loads a class (``instantiate``)
+        self.reloaded: list[str] = []
         reap_orphans()
         self.restarts = Restarts(self)                # what a worker's death brings
         self.workers = WorkerPool(
@@ -245,7 +248,8 @@ class Executor:
         """Make module ``record`` in its worker with ``state`` (not started)."""
         spec = record.spec
         self.call(record.worker, "add", name=spec.name, cls=record.blob, period=spec.period,
-                  restart=spec.restart, state=state, lease=self.lease_end())
+                  restart=spec.restart, state=state, lease=self.lease_end(),
+                  reloaded=tuple(self.reloaded))
 
     def start_modules(self, names: list[str], failing: bool = False,
                       leave_late: bool = False) -> None:
@@ -556,8 +560,13 @@ class Executor:
             self.restarts.forget(key)
 
     def forget(self, module: str) -> None:
-        """Drop cached copies of Python module ``module`` here and in every worker."""
+        """Drop cached copies of Python module ``module`` here and in every worker, and
+        in every worker started later (``reloaded``: forked from a forkserver that
+        imported it before, a restart or a move ran the code from before the reload,
+        also after a swap to the new one)."""
         forget(module)
+        if module not in self.reloaded:
+            self.reloaded.append(module)
         for key, handle in list(self.workers.handles.items()):
             if handle.alive:
                 self.call(key, "forget", module=module)

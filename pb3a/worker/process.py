@@ -83,6 +83,8 @@ class Worker:
         self.conn = conn
         self.key = key
         self.actors: dict[str, ModuleActor] = {}
+        # the Python modules reloaded that this process has dropped (``op_forget``)
+        self.reloaded: set[str] = set()
         self.restart_policy: dict[str, str] = {}
         self.pool = EventPool()
         self._bell_fd = bell                     # ours to close; the receiver sleeps on it
@@ -274,15 +276,21 @@ class Worker:
 
     # -- requests from the executor ----------------------------------------
     def op_add(self, name: str, cls: bytes, period: float | None, restart: str,
-               state: dict[str, Any] | bytes, lease: float | None = None) -> None:
+               state: dict[str, Any] | bytes, lease: float | None = None,
+               reloaded: tuple[str, ...] = ()) -> None:
         """A module, with its executor's lease (``op_lease``) on a remote node: a worker
         that took one before its first grant (which comes up to ``LEASE_GRANT_S`` later,
         a spare having none) held no lease, and a node frozen meanwhile and let run
         again stepped it beside its failed-over copy until its executor fenced it.
         ``state`` as bytes is the module's own (a checkpoint, the state it had before a
-        restart), restored in full (``restore_state``); as a dict, the configuration's."""
+        restart), restored in full (``restore_state``); as a dict, the configuration's.
+        ``reloaded``: the Python modules reloaded on the node, dropped here first if this
+        process has not (its forkserver imported them before the reload)."""
         if lease is not None:
             self.op_lease(lease)
+        for module in reloaded:
+            if module not in self.reloaded:
+                self.op_forget(module)
         klass = _load_class(cls)
         module = _made(name, klass)
         self._give_runtime(name, module)
@@ -561,6 +569,7 @@ class Worker:
 
     def op_forget(self, module: str) -> list[str]:
         """Drop cached copies of ``module``: the next load or swap gets the new code."""
+        self.reloaded.add(module)
         return forget(module)
 
     def op_get_state(self, name: str, within: float = 10.0) -> dict[str, Any]:
