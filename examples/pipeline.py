@@ -32,7 +32,8 @@ class FastScale(Scale):
 
 
 class Ticker(Module):
-    """Counts up every ``period`` seconds and writes the count on ``out``."""
+    """Counts up at each step (one every ``period`` seconds, plus the step's own time)
+    and writes the count on ``out``."""
 
     out = Output(int)
     period = 0.01

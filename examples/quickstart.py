@@ -5,7 +5,7 @@ from pb3a import Input, Module, Output, System
 
 class Ticker(Module):
     out = Output(int)
-    period = 0.01                      # threaded: step() every 10 ms
+    period = 0.01                      # threaded: step(), then 10 ms asleep
     count = 0                          # public attribute = state
 
     def step(self):

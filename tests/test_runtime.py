@@ -821,6 +821,42 @@ def test_a_module_stepping_back_to_back_handles_its_events_in_batches() -> None:
         pool.close()
 
 
+class _Timed(Module):
+    """Notes the period it sees as it steps; a step takes ``work_s`` (a device read)."""
+
+    period = 0.02
+    work_s = 0.005
+    seen = 0.0
+
+    def step(self) -> None:
+        self.seen = self.period
+        time.sleep(self.work_s)
+
+
+def test_a_module_sees_the_period_it_runs_at_as_its_period_and_keeps_it_out_of_its_state(
+        ) -> None:
+    """``self.period`` was its class's: a module given 0.1 s integrated with 0.02."""
+    class Faster(_Timed):
+        period = 0.01
+
+    system = System("dt")
+    system.add("given", _Timed, period=0.05, state={"work_s": 0.0})
+    system.add("own", _Timed, state={"work_s": 0.0})
+    with system.launch() as run:
+        eventually(lambda: run.state("given")["seen"] == 0.05, what="the period given")
+        eventually(lambda: run.state("own")["seen"] == 0.02, what="its class's period")
+        run.swap("given", Faster)                      # keeps the period it was given
+        run.set_state("given", seen=0.0)
+        run.swap("own", Faster)                        # steps at the new class's
+        eventually(lambda: run.state("given")["seen"] == 0.05, what="the period given")
+        eventually(lambda: run.state("own")["seen"] == 0.01, what="the new class's period")
+        assert "period" not in run.state("given")
+    actor = ModuleActor("m", _Timed(), lambda task: task(), 0.05)
+    assert actor.module.period == 0.05 and _Timed.period == 0.02
+    assert "period" not in actor.module.get_state()
+    assert "period" not in actor.holdings()["state"]
+
+
 def test_relink_may_change_the_input_policy() -> None:
     system = System("policy")
     system.add("src", Counter, state={"limit": 0}, period=0.001)

@@ -41,8 +41,10 @@ class Module:
     Class attributes ``period`` (seconds between steps; ``None`` = not threaded,
     ``0`` = as fast as possible) and ``restart`` (``"never"``, ``"fresh"`` or
     ``"last-state"``) configure how the runtime runs it; a configuration may
-    override both. ``displays`` tells tools how to show some state fields
-    (``pb3a.model.displays``). Modules are constructed with no arguments.
+    override both (a running instance's ``self.period`` is the period it runs at, the
+    configuration's, ``add``'s or ``swap``'s if given). ``displays`` tells tools how to
+    show some state fields (``pb3a.model.displays``). Modules are constructed with no
+    arguments.
     """
 
     period: ClassVar[float | None] = None
@@ -83,7 +85,8 @@ class Module:
         """Called after state and ports are in place, again after every swap or move."""
 
     def step(self) -> None:
-        """The threaded body: called every ``period`` seconds when ``period`` is set."""
+        """The threaded body, when ``period`` is set: called again and again, with a sleep
+        of ``period`` seconds after each call (so a step that takes time slows the rate)."""
 
     def on_input(self, port: InputPort) -> None:
         """The event body: called when ``port`` receives a value (override to use)."""

@@ -172,6 +172,10 @@ class ModuleActor:
         self.module = module
         module.__dict__["_pb3a_giving_way"] = self.waiting   # (see Driver.request)
         self.period = period
+        # the period it runs at, on the instance (``dt = self.period`` read its class's
+        # while the configuration, ``add`` or ``swap`` gave it another; a framework
+        # name, it is no state: ``Module.get_state`` leaves it out)
+        module.__dict__["period"] = period
         self.lock = HandOverLock()
         self.steps = self.events = self.errors = 0
         self.cut = False         # a batch of events ended early for a request (see call_many)
@@ -620,6 +624,7 @@ class ModuleActor:
             except Exception:
                 log.exception("module %r raised in teardown during swap", self.name)
             specs = {name: port.spec for name, port in self.ports.items()}
+            new.__dict__["period"] = period         # (as in ``__init__``)
             try:
                 kept = self._take(new, old.get_state())
             except Exception as exc:
