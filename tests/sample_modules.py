@@ -1246,6 +1246,23 @@ class Freezer(Module):
             time.sleep(1000)
 
 
+class InputFreezer(Module):
+    """``Freezer`` driven by its input: once ``freeze_in`` is ``"on_input"`` the next
+    value it handles never lets it return."""
+
+    x = Input(int, policy="queue:8")
+    out = Output(int)
+    freeze_in = ""
+    handled = 0
+
+    def on_input(self, port) -> None:
+        port.read()
+        if self.freeze_in == "on_input":
+            time.sleep(1000)
+        self.handled += 1
+        self.out.write(self.handled)
+
+
 class DeviceKit(Macro):
     """A counter feeding a device opener, whose ``setup`` raises with ``state={"cam":
     {"missing": True}}``: a macro added to a running system, one of whose modules may

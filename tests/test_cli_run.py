@@ -66,6 +66,51 @@ def test_run_for_seconds_shows_the_table_and_stops_cleanly(tmp_path: Path) -> No
     assert "stopped cleanly" in out
 
 
+def test_a_run_whose_module_does_not_stop_does_not_say_it_stopped_cleanly(
+        tmp_path: Path) -> None:
+    """A module stuck in ``on_input`` as the run ended had its worker killed, its
+    ``teardown`` not run, and ``pb3a run`` said "stopped cleanly". Now a warning names
+    it and what it is busy in, and the last line says its teardown did not run."""
+    (tmp_path / "stuck.py").write_text(textwrap.dedent("""\
+        import time
+        from pb3a import Input, Module, Output
+
+        class Src(Module):
+            out = Output(float)
+            period = 0.02
+
+            def step(self):
+                self.out.write(1.0)
+
+        class Slow(Module):
+            z = Input(float, policy="queue:8")
+
+            def on_input(self, port):
+                port.read()
+                time.sleep(1000)       # (a serial read without a timeout)
+        """))
+    (tmp_path / "stuck.toml").write_text(textwrap.dedent("""\
+        name = "stuck"
+        [modules.src]
+        class = "stuck:Src"
+        [modules.slow]
+        class = "stuck:Slow"
+        [[links]]
+        from = "src.out"
+        to = "slow.z"
+        """))
+    done = subprocess.run([sys.executable, "-m", "pb3a", "run", "stuck.toml", "--for", "2"],
+                          cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=60,
+                          check=False)
+    assert done.returncode == 0, done.stderr
+    assert "stopped cleanly" not in done.stdout
+    assert done.stdout.splitlines()[-1] == (
+        "pb3a: stopped; module slow did not stop in time: its worker was killed, teardown "
+        "not run (see the warnings above)")
+    assert "module 'slow' was not stopped (its worker is killed)" in done.stderr
+    assert "busy in on_input for" in done.stderr
+
+
 # The script pip writes for the ``pb3a`` console entry point (setup.cfg).
 CONSOLE_SCRIPT = """\
 import sys

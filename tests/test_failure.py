@@ -43,6 +43,7 @@ from sample_modules import (
     FloatSource,
     Freezer,
     Hoard,
+    InputFreezer,
     Journal,
     Last,
     MapMaker,
@@ -1666,9 +1667,9 @@ def _frozen_in(run, name: str, where: str) -> int:
         os.kill(pid, signal.SIGSTOP)
     else:
         run.set_state(name, freeze_in=where)
-    if where == "step":
-        eventually(lambda: run.stats().modules[name].calling == "step"
-                   and run.stats().modules[name].calling_s > 0.1, what="a frozen step")
+    if where in ("step", "on_input"):
+        eventually(lambda: run.stats().modules[name].calling == where
+                   and run.stats().modules[name].calling_s > 0.1, what=f"a frozen {where}")
     return pid
 
 
@@ -1715,22 +1716,27 @@ def test_a_forced_remove_kills_a_module_that_does_not_answer_and_the_rest_runs_o
     assert closed is None and took < 10, f"close: {closed!r} after {took:.1f} s"
 
 
-def test_a_remove_asked_again_of_a_module_stuck_in_its_step_waits_for_it_again() -> None:
+@pytest.mark.parametrize("where", ["step", "on_input"])
+def test_a_remove_asked_again_of_a_module_stuck_in_its_step_waits_for_it_again(
+        where: str) -> None:
     """A second plain ``remove`` after one that timed out (the module frozen in its
     ``step``) answered at once, and the module was dropped with its links, its worker
     retired, its ``teardown`` never run, and no word of a kill: it was taken for
     stopped, as the first had asked it to stop. Now it waits for it again and fails the
-    same way, leaving it as it was; ``force`` then kills its worker."""
+    same way, leaving it as it was; ``force`` then kills its worker. A module stuck in
+    ``on_input`` is told apart the same way (even its first remove killed its worker,
+    unsaid), and the error says what it is busy in."""
     system = System("remove-again").node("a")
     system.add("c", Counter, node="a", period=0.01)
-    system.add("f", Freezer, node="a")
+    system.add("f", Freezer if where == "step" else InputFreezer, node="a")
     system.link("c.out", "f.x")
     run = system.launch(timeout=30)
     try:
-        pid = _frozen_in(run, "f", "step")
+        pid = _frozen_in(run, "f", where)
         for _ in range(2):
             began = time.monotonic()
-            with pytest.raises(RuntimeTimeout, match=r"did not answer 'stop'.*module f "
+            with pytest.raises(RuntimeTimeout, match=rf"module 'f' did not stop within .* "
+                                                     rf"busy in {where} for .*module f "
                                                      r"was left as it was"):
                 run.remove("f", timeout=1)
             took = time.monotonic() - began
@@ -1744,6 +1750,32 @@ def test_a_remove_asked_again_of_a_module_stuck_in_its_step_waits_for_it_again()
     finally:
         closed, took = _bounded(lambda: run.close(timeout=5), 30)
     assert closed is None and took < 10, f"close: {closed!r} after {took:.1f} s"
+
+
+def test_a_close_names_a_module_stuck_in_on_input_whose_teardown_did_not_run(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """A module stuck in ``on_input`` was stopped at close by killing its worker, its
+    ``teardown`` never run, nothing said (its stop answered False, taken for stopped).
+    Now the close names it in one warning, saying what it is busy in, and
+    ``not_torn_down`` lists it (``pb3a run`` then does not say "stopped cleanly")."""
+    caplog.set_level(logging.WARNING)
+    system = System("close-stuck").node("a")
+    system.add("c", Counter, node="a", period=0.01)
+    system.add("f", InputFreezer, node="a")
+    system.link("c.out", "f.x")
+    run = system.launch(timeout=30)
+    try:
+        pid = _frozen_in(run, "f", "on_input")
+    finally:
+        closed, took = _bounded(lambda: run.close(timeout=5), 30)
+    assert closed is None and took < 10, f"close: {closed!r} after {took:.1f} s"
+    assert not alive(pid)
+    assert run.not_torn_down == ["f"]
+    said = [record.getMessage() for record in caplog.records
+            if record.levelno >= logging.WARNING and "'f'" in record.getMessage()]
+    assert len(said) == 1, said
+    assert re.search(r"module 'f' was not stopped \(its worker is killed\).*busy in "
+                     r"on_input for .*its teardown has not run", said[0]), said[0]
 
 
 def test_a_forced_remove_kills_no_worker_that_runs_other_modules() -> None:

@@ -125,11 +125,17 @@ def run_with_status(plan: Plan, seconds: float | None, out: TextIO | None = None
                 stopping()
             final = run.stats()
         show("\n" + format_table(final) + "\n")
+        stuck = run.not_torn_down
+        if stuck:       # (it said "stopped cleanly" with a module's teardown not run)
+            many = len(stuck) > 1
+            show(f"pb3a: stopped; module{'s' if many else ''} {', '.join(stuck)} did not "
+                 f"stop in time: {'their workers were' if many else 'its worker was'} "
+                 "killed, teardown not run (see the warnings above)\n")
         if run.unconfirmed:     # (it said "stopped cleanly" with a node's executor running)
             show(f"pb3a: stopped; node{'s' if len(run.unconfirmed) > 1 else ''} "
                  f"{', '.join(run.unconfirmed)} did not confirm: its executor stops "
                  "itself when its lease runs out (about a second)\n")
-        else:
+        elif not stuck:
             show("pb3a: stopped cleanly\n")
         return 0
 

@@ -81,6 +81,7 @@ class Launcher:
         self.lost_values: collections.Counter[str] = collections.Counter()  # per link key
         self.arriving: dict[str, str] = {}            # module -> the node a move lands it on
         self.unconfirmed: list[str] = []    # remote nodes whose stop was not confirmed
+        self.not_torn_down: list[str] = []  # modules that did not stop at shutdown
         self._callback: str | None = None            # where remote executors reach us
         self.events = EventLog()                      # what happened, for run.events()
         self.logbook = LogBook()                      # the recent log, for run.logs()
@@ -555,7 +556,9 @@ class Launcher:
                     with bounding(deadline - time.monotonic()):
                         self.node_of(name).stop_module(name, 2.0)
                 except Exception as exc:
-                    log.warning("stopping module %r: %s", name, exc)
+                    # (a module stuck in on_input was killed at close, unsaid)
+                    self.not_torn_down.append(name)
+                    log.warning("module %r was not stopped (its worker is killed): %s", name, exc)
             # side by side: a node that does not answer holds up no other; this machine's
             # own nodes (their processes and segments are here) are waited for
             remote = [threading.Thread(target=self._shut_node,

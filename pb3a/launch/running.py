@@ -233,6 +233,12 @@ class Running(SystemHandle):
         (gone, frozen, or out of time); each stops itself when its lease runs out."""
         return list(self._launcher.unconfirmed)
 
+    @property
+    def not_torn_down(self) -> list[str]:
+        """After ``close``: the modules that did not stop in time (stuck in a body), each
+        named in a warning; their workers were killed, their ``teardown`` not run."""
+        return list(self._launcher.not_torn_down)
+
     # -- requests from elsewhere ----------------------------------------------------
     def _import_first(self, module: str, name: str) -> None:
         """Before a request's class ``name`` is imported from ``module`` to read the

@@ -417,13 +417,19 @@ class Executor:
     def stop_module(self, name: str, timeout: float = 5.0) -> None:
         """Stop stepping and dispatching, then run the module's ``teardown``: its worker
         is given ``timeout`` and 1 s more to answer, no longer than the deadline of the
-        call in progress (``pb3a.deadline``: a shutdown's), and then gives up first."""
+        call in progress (``pb3a.deadline``: a shutdown's), and then gives up first.
+        ``RuntimeTimeout`` if it has not stopped by then (busy in a body, which the
+        worker names): it is left as it was, not torn down."""
         record = self.modules[name]
         if record.status == "running" and self.alive(record.worker):
             answer_s = capped(timeout + 1.0)
-            self.call(record.worker, "stop", answer_s, name=name,
-                      grace=min(timeout, before_answer(answer_s)))
-        record.status = "stopped"
+            try:
+                self.call(record.worker, "stop", answer_s, name=name,
+                          grace=min(timeout, before_answer(answer_s)))
+            except RuntimeTimeout:
+                record.unstopped = True
+                raise
+        record.status, record.unstopped = "stopped", False
         self.lives.hold(record, False)
 
     def kill_module(self, name: str) -> int:
@@ -785,13 +791,18 @@ class Executor:
             except RuntimeTimeout as exc:
                 log.warning("%s: shutting down without it", exc)
             for name in reversed(list(self.modules)):
+                record = self.modules.get(name)
+                said = record is not None and record.unstopped
                 try:            # (without the lock, a request may have removed it)
-                    if name in self.modules:
+                    if record is not None:
                         # (its request waits no longer than the deadline: ``stop_module``)
                         with bounding(deadline - time.monotonic()):
                             self.stop_module(name, timeout=2.0)
                 except Exception as exc:
-                    log.warning("stopping module %r: %s", name, exc)
+                    # (once: the launcher's stop just before, or a remove's, said it
+                    # and named the module; it was logged twice)
+                    log.log(logging.INFO if said else logging.WARNING,
+                            "module %r was not stopped (its worker is killed): %s", name, exc)
             self.lives.stop()
             self.workers.close(max(0.0, deadline - time.monotonic()))
             if self._bridge is not None:

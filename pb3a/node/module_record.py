@@ -21,3 +21,6 @@ class ModuleRecord:
     # paused by a change (a move, a relink): a restart of its worker waits until the
     # change lets go of it (``Lives.await_let_go``)
     held: bool = False
+    # its last stop was not answered (busy in a body): it is not torn down, and the
+    # executor's shutdown, asking again, has this said already
+    unstopped: bool = False

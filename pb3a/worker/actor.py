@@ -254,10 +254,13 @@ class ModuleActor:
         """Stop stepping and dispatching, then run ``teardown`` (once). False if a body
         overran: the module has not stopped, and a stop asked again waits for it again
         (a second remove of a module stuck in its step was taken for stopped: it was
-        dropped, its teardown never run)."""
+        dropped, its teardown never run). ``timeout`` bounds the whole stop (the step
+        thread's join and the lock's wait each took it: a stuck step answered after
+        twice the time, past its caller's wait)."""
         if self._torn_down:
             return True
         self.halt()
+        deadline = time.monotonic() + timeout
         finished = True
         thread = self._thread
         if thread is not None and thread is not threading.current_thread():
@@ -268,13 +271,22 @@ class ModuleActor:
             finished = not thread.is_alive()
             if finished:
                 self._thread = None
-        if self.acquire_stopped(timeout, "the module is stopping"):
+        if self.acquire_stopped(max(0.0, deadline - time.monotonic()),
+                                "the module is stopping"):
             self.lock.release()
             if not self._setup_failed:      # (as a test's tearDown after a failed setUp)
                 self._tear_down()
         else:
             finished = False
         return finished
+
+    def busy_in(self) -> str:
+        """What the module is busy in now, for an error ("in on_input for 4.2 s"), or
+        "in a call" if nothing is running (any more)."""
+        calling = self._calling
+        if calling is None:
+            return "in a call"
+        return f"in {calling[0]} for {time.monotonic() - calling[1]:.1f} s"
 
     def _tear_down(self) -> None:
         """Run ``teardown``, once, whoever asks (a stop, or a start halted during its

@@ -338,7 +338,15 @@ class Worker:
                 actor.halt()
 
     def op_stop(self, name: str, grace: float) -> bool:
-        return self.actors[name].stop(grace)
+        """Stop module ``name`` and run its ``teardown``; TimeoutError, saying what it is
+        busy in, if it has not stopped within ``grace`` (a module stuck in ``on_input``
+        answered False, which was taken for stopped: its worker was killed, its
+        teardown never run, nothing said)."""
+        actor = self.actors[name]
+        if not actor.stop(grace):
+            raise TimeoutError(f"module {name!r} did not stop within {grace:.1f} s: it is busy "
+                               f"{actor.busy_in()}, and its teardown has not run")
+        return True
 
     def op_pause(self, name: str, timeout: float, until: float | None = None) -> None:
         """Hold the module's lock so it neither steps nor handles events (for rewiring),
