@@ -8,9 +8,11 @@ import dataclasses
 import json
 import logging
 import os
+import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +24,7 @@ from sample_modules import (
     FastScale,
     FloatSource,
     Freezer,
+    InputFreezer,
     Last,
     OnFlag,
     Relay,
@@ -191,6 +194,32 @@ def test_set_sets_text_as_given_when_the_module_s_state_cannot_be_read(capsys) -
         assert main(["set", run.listen(), "m", "label=hello"]) == 0
         assert "m: label = 'hello'" in capsys.readouterr().out
         assert run.state("m")["label"] == "hello"
+
+
+def test_set_on_a_module_busy_in_a_call_keeps_one_timeout_and_says_what_it_is_in(
+        capsys) -> None:
+    """``pb3a set`` of a module stuck in ``on_input`` took twice the system's timeout
+    (the state read's timeout was taken for a state that cannot be read, and the edit
+    waited a whole one again), and with ``--timeout 5`` said it was "busy in a call for
+    0.18 s" (what was left for the edit). Now a read that runs out ends the command at
+    once, saying what the module is busy in and for how long."""
+    system = System("cli-set-busy")
+    system.add("src", Counter, period=0.01)
+    system.add("f", InputFreezer, state={"freeze_in": "on_input"})
+    system.link("src.out", "f.x")
+    with system.launch(timeout=3) as run:
+        address = run.listen()
+        eventually(lambda: run.stats().modules["f"].calling == "on_input", what="f stuck")
+        began = time.monotonic()
+        assert main(["set", address, "f", "handled=0"]) == 1
+        took = time.monotonic() - began
+        err = capsys.readouterr().err
+        assert took < 4.5, f"pb3a set took {took:.1f} s for a timeout of 3 s: {err}"
+        assert re.search(r"module 'f' was busy in a call for 2\.\d+ s \(in on_input for "
+                         r"\d+\.\d s\): nothing was done", err), err
+        assert main(["set", address, "f", "handled=0", "--timeout", "1"]) == 1
+        err = capsys.readouterr().err
+        assert re.search(r"busy in a call for 0\.[5-9]\d* s \(in on_input for", err), err
 
 
 def test_set_gives_a_float_field_a_float_for_a_whole_number(capsys) -> None:

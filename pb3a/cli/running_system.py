@@ -18,7 +18,7 @@ from typing import Any
 import zmq
 
 from pb3a.cli.status import format_nodes, format_table
-from pb3a.errors import PB3AError, SystemStopped
+from pb3a.errors import PB3AError, RuntimeTimeout, SystemStopped
 from pb3a.events import Event
 from pb3a.launch.connection import CONNECT_TIMEOUT, Connection, connect
 from pb3a.loading.references import resolve_class
@@ -73,11 +73,16 @@ def _state(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
 def _set(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
     """Each value made the type of the field's current value (``_fit``); nothing is set
     unless every field fits and the module has it. A state this process cannot read is
-    set as given."""
+    set as given. The read and the edit share one timeout (the system's by default); a
+    read that runs out of it (the module busy in a call) ends the command at once."""
     values, texts = _values(args.values)
-    deadline = None if args.timeout is None else time.monotonic() + args.timeout
+    deadline = time.monotonic() + (system.timeout if args.timeout is None else args.timeout)
     try:
         now = system.state(args.module, timeout=args.timeout)
+    except RuntimeTimeout:
+        # (it was taken for a state that cannot be read: the edit waited the whole
+        # timeout again, and said it had waited what was left of it)
+        raise
     except PB3AError:
         now = {}
     wrong = _fit(args.module, values, texts, now)
@@ -88,7 +93,7 @@ def _set(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
     if wrong:
         raise ValueError("; ".join(wrong) + "; nothing was set")
     system.set_state(args.module, values,            # (one timeout for both calls)
-                     timeout=None if deadline is None else max(0.1, deadline - time.monotonic()))
+                     timeout=max(0.1, deadline - time.monotonic()))
     told = ", ".join(f"{key} = {plain(value, finite=False, arrays=False)!r}"
                      for key, value in values.items())
     return f"{args.module}: {told}", {"module": args.module, "set": values}

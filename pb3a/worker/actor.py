@@ -281,11 +281,11 @@ class ModuleActor:
         return finished
 
     def busy_in(self) -> str:
-        """What the module is busy in now, for an error ("in on_input for 4.2 s"), or
-        "in a call" if nothing is running (any more)."""
+        """What the module is busy in now, for an error ("in on_input for 4.2 s"); ""
+        if nothing runs (any more)."""
         calling = self._calling
         if calling is None:
-            return "in a call"
+            return ""
         return f"in {calling[0]} for {time.monotonic() - calling[1]:.1f} s"
 
     def _tear_down(self) -> None:
@@ -496,8 +496,12 @@ class ModuleActor:
                 finally:
                     self.lock.release()
             if time.monotonic() >= deadline:
-                raise TimeoutError(f"module {self.name!r} was busy in a call for {timeout:g} "
-                                   "s: nothing was done")
+                # (what it is in, as `pb3a status` says it: the wait alone, a caller's
+                # time left, read "busy in a call for 0.18 s" after 5 s)
+                busy = self.busy_in()
+                raise TimeoutError(f"module {self.name!r} was busy in a call for "
+                                   f"{timeout:.3g} s{f' ({busy})' if busy else ''}: nothing "
+                                   "was done")
 
     def acquire_stopped(self, timeout: float, why: str) -> bool:
         """Take the module lock with no body running (see ``_giving_way``); False after

@@ -345,7 +345,7 @@ class Worker:
         actor = self.actors[name]
         if not actor.stop(grace):
             raise TimeoutError(f"module {name!r} did not stop within {grace:.1f} s: it is busy "
-                               f"{actor.busy_in()}, and its teardown has not run")
+                               f"{actor.busy_in() or 'in a call'}, and its teardown has not run")
         return True
 
     def op_pause(self, name: str, timeout: float, until: float | None = None) -> None:
