@@ -36,6 +36,9 @@ from pb3a import Module, System
 from pb3a.cli import running_system
 from pb3a.cli.main import INTERRUPTED, main
 from pb3a.cli.standard_output import BROKEN_PIPE
+from pb3a.cli.status import format_table
+from pb3a.errors import ConfigError
+from pb3a.stats import ModuleStats, SystemStats
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -161,6 +164,24 @@ def test_a_module_restarted_after_a_swap_to_its_edited_file_runs_the_edited_file
         if launcher.poll() is None:
             launcher.kill()
             launcher.communicate()
+
+
+def test_status_shows_the_cause_of_a_multi_line_error_on_its_row() -> None:
+    """An agent whose swap failed showed "ConfigError: 1 problem in the configuration:"
+    as its last error, the cause on a line of its own that broke the table. Now the
+    lines are joined, the header dropped: the cause shows on the module's row."""
+    problem = "swap loop/filter: module 'control' has no class 'LowPas'"
+    last = f"ConfigError: {ConfigError([problem])} (at tuner.py:12 in on_input)"
+    stats = SystemStats(system="s", links={}, nodes={}, failures=[], modules={
+        "t2": ModuleStats(cls="tuner:Tuner", node="local", worker="local/m-t2",
+                          status="running", errors=1, last_error=last),
+        "m": ModuleStats(cls="m:M", node="local", worker="local/m-m", status="running",
+                         errors=1, last_error="ValueError: first\n  second")})
+    rows = format_table(stats).splitlines()
+    assert len(rows) == 3, rows
+    assert rows[1].endswith("ConfigError: swap loop/filter: module 'control' has no cl..."), \
+        rows[1]
+    assert rows[2].endswith("ValueError: first; second"), rows[2]
 
 
 def test_status_shows_every_node_as_nodes_does(capsys) -> None:

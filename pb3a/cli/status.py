@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import re
 import signal
 import sys
 import time
@@ -26,6 +27,8 @@ if TYPE_CHECKING:
 REFRESH_S = 1.0
 LAST_ERROR_WIDTH = 60        # characters of a module's last error in the table
 STUCK_S = 1.0                # a call this long is shown beside the module's status
+# a ConfigError's first line (``pb3a.errors``), the problems on the lines after it
+_PROBLEMS_HEAD = re.compile(r"\b\d+ problems? in the configuration:\s*")
 
 
 def format_table(stats: SystemStats) -> str:
@@ -71,6 +74,12 @@ def format_nodes(nodes: dict[str, NodeStats]) -> str:
 
 
 def _shortened(text: str, most: int = LAST_ERROR_WIDTH) -> str:
+    """``text`` on one line of ``most`` characters at most: its lines joined by "; ",
+    a ``ConfigError``'s "N problems in the configuration:" dropped, so that the cause
+    shows (its first line alone was shown, the cause on a row of its own, breaking the
+    table)."""
+    text = "; ".join(line.strip() for line in _PROBLEMS_HEAD.sub("", text).splitlines()
+                     if line.strip())
     return text if len(text) <= most else text[:most - 3] + "..."
 
 
