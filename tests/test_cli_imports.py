@@ -28,8 +28,8 @@ HEAVY = ("zmq", "numpy", "cloudpickle", "psutil", "pb3a.system", "pb3a.launch", 
          "pb3a.model", "pb3a.manager")
 IMPLEMENTATIONS = ("pb3a.cli.files", "pb3a.cli.running_system", "pb3a.cli.status",
                    "pb3a.cli.stress", "pb3a.cli.daemons", "pb3a.cli.keys", "pb3a.cli.manager")
-COMMANDS = ["check", "graph", "run", "status", "state", "set", "migrate", "swap", "relink",
-            "add", "remove", "restart", "nodes", "logs", "events", "stress", "scenario",
+COMMANDS = ["check", "graph", "run", "status", "state", "set", "migrate", "swap", "reload",
+            "relink", "add", "remove", "restart", "nodes", "logs", "events", "stress", "scenario",
             "modules serve", "node start", "key new", "manager"]
 
 # In a fresh interpreter: run main with each argv of argv[1] (JSON); print, per argv,
