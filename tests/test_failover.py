@@ -15,7 +15,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 import cloudpickle
 import psutil
@@ -497,6 +497,36 @@ def test_a_node_that_hears_the_heartbeats_but_whose_answers_are_lost_stops_befor
     _assert_one_copy_at_a_time(stamps)
 
 
+def test_a_node_whose_renewals_are_read_late_stops_before_its_module_runs_elsewhere(
+        node_b, tmp_path: Path) -> None:
+    """The executor dated its lease from when it read a renewal, the launcher from when
+    it sent it: a renewal read 0.6 s late (a slow downlink, the executor starved) ran
+    the lease past the end the launcher counted on, and the old copy stepped on for
+    0.2-0.3 s beside its failed-over copy. The executor dates it from the newest of its
+    answers the launcher had heard as it renewed."""
+    b, stamps = node_b, tmp_path / "steps"
+    with _stamping_on_b("late-renewals", b, stamps).launch() as run:
+        eventually(lambda: stamps.exists() and stamps.read_text().count("\n") > 20,
+                   what="steps on b")
+        remote = run._launcher.remotes["b"]
+        until = time.monotonic() + 6.0
+        for client in (remote.client, remote.controller):       # everything b answers
+            def dropped(frames, opened=client._opener.open):
+                if time.monotonic() < until:
+                    raise Rejected("the uplink lost it")
+                return opened(frames)
+            client._opener.open = dropped
+        call = remote.client.call
+
+        def late(op: str, timeout: float = 10.0, **args: Any) -> Any:
+            if op == "lease" and time.monotonic() < until:
+                time.sleep(0.6)                    # ... and each renewal reaches it late
+            return call(op, timeout, **args)
+        remote.client.call = late
+        _wait_for_the_copy_on_a(run, stamps)
+    _assert_one_copy_at_a_time(stamps)
+
+
 def _stamping_on_b(name: str, b: Daemon, stamps: Path) -> System:
     """A module on b stamping each step, with its pid, in ``stamps``; failing over to a."""
     system = System(name).node("a").node("b", address=b.address)
@@ -532,20 +562,22 @@ def test_a_slow_node_that_loses_one_heartbeat_keeps_its_lease(node_b, lost: str)
         eventually(lambda: run.state("far")["count"] > 5, timeout=30, what="steps on b")
         launcher, once = run._launcher, threading.Event()
         remote = launcher.remotes["b"]
-        ping = remote.client.ping
+        call = remote.client.call
 
-        def over_a_slow_link(timeout: float, op: str = "ping") -> float | None:
+        def over_a_slow_link(op: str, timeout: float = 10.0, **args: Any) -> Any:
+            if op not in ("lease", "ping"):         # (a heartbeat's)
+                return call(op, timeout, **args)
             if once.is_set():                       # this one is lost
                 once.clear()
                 if lost == "answer":
-                    ping(timeout, op)               # (it arrives; its answer does not)
+                    call(op, timeout, **args)       # (it arrives; its answer does not)
                 time.sleep(timeout)
-                return None
+                raise RuntimeTimeout("lost")
             time.sleep(0.15)                        # 0.3 s there and back
-            rtt = ping(timeout, op)
+            answer = call(op, timeout, **args)
             time.sleep(0.15)
-            return None if rtt is None else rtt + 0.3
-        remote.client.ping = over_a_slow_link
+            return answer
+        remote.client.call = over_a_slow_link
         assert not launcher.wait_health("b", up=False, timeout=2.0)     # slow, not lost
         once.set()
         assert not launcher.wait_health("b", up=False, timeout=4.0)

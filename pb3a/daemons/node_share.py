@@ -38,7 +38,7 @@ from pb3a.logbook import LogBook
 from pb3a.node.class_check import unloadable
 from pb3a.node.executor import Executor
 from pb3a.node.protocol import REMOTE_OPERATIONS
-from pb3a.node.remote import LEASE_S
+from pb3a.node.remote import HEARTBEAT_S, LEASE_S
 from pb3a.node.restarts import LOCK_TIMEOUT
 from pb3a.processes import mark_as, serve_as_child, stop_on_sigterm
 from pb3a.transport.auth import ClusterKey
@@ -111,10 +111,9 @@ class NodeShare:
         if op == "await_restart":   # without the lock too: the restart takes it
             return ex.await_restart(args["name"], args["timeout"])
         if op == "bind":
-            self.bind(args["launcher"], args["checkpoint_s"], args["log_level"],
+            return self.bind(args["launcher"], args["checkpoint_s"], args["log_level"],
                       args["code"], args.get("lease_s", LEASE_S), args.get("epoch", 0),
                       args.get("node_epoch", 1), args.get("spares", DEFAULT_SPARES))
-            return None
         if op == "unloadable":      # before any module: see pb3a.node.class_check
             return unloadable(args["refs"], ex.imports, args["timeout"], args["longer"])
         if op == "peers":
@@ -133,11 +132,11 @@ class NodeShare:
 
     def bind(self, launcher: str, checkpoint_s: float, log_level: int, code: CodeSources,
              lease_s: float = LEASE_S, epoch: int = 0, node_epoch: int = 1,
-             spares: int = DEFAULT_SPARES) -> None:
+             spares: int = DEFAULT_SPARES) -> float:
         """Work for the launcher at ``launcher`` (before any module is added), in its
         system's ``epoch`` (older requests and replication are refused from now on), as
         the node's admission ``node_epoch``, on a lease of ``lease_s`` seconds, keeping
-        ``spares`` idle workers booted."""
+        ``spares`` idle workers booted; the answer is the first renewal's (``renew``)."""
         if self.launcher is not None:
             raise RuntimeFailure(f"node {self.node} already works for {self.launcher.address}: "
                                  "stop that system first, or launch this one under another "
@@ -150,17 +149,26 @@ class NodeShare:
         code.install(self.key)
         self.node_epoch, self._lease_s = node_epoch, lease_s
         self.launcher = ControlClient(self.key, launcher)
-        self.renew()
+        renewed = self.renew()
         self._ticked_at = time.monotonic()
         for target, name in ((self._keep_lease, "lease"), (self._grant_leases, "leases"),
                              (self._measure_peers, "peers"),
                              (self._send_checkpoints, "checkpoints")):
             threading.Thread(target=target, name=f"pb3a-{name}", daemon=True).start()
+        return renewed
 
-    def renew(self, args: dict[str, Any] | None = None) -> bool:
-        """The launcher's heartbeat (an instant operation): the lease runs on."""
-        self._leased_at = time.monotonic()
-        return True
+    def renew(self, args: dict[str, Any] | None = None) -> float:
+        """The launcher's heartbeat (an instant operation): the lease runs on, dated from
+        ``since`` (the newest of these answers the launcher had heard as it renewed: this
+        process's clock) plus a heartbeat's way, not from now. A renewal read late (a slow
+        downlink, this process starved) ran the lease past the end the launcher counts
+        on (``RemoteNode.fenced_by``), and a module stepped on beside its failed-over
+        copy. The answer is now, the next renewal's ``since``."""
+        now = time.monotonic()
+        since = (args or {}).get("since")
+        start = now if since is None else min(now, since + HEARTBEAT_S)
+        self._leased_at = max(self._leased_at, start)
+        return now
 
     def meet(self, peers: dict[str, str]) -> None:
         """Measure the round-trip time to each other node (name -> control address) from

@@ -102,6 +102,9 @@ class RemoteNode:
         self.lost = False
         self.rtt = float("nan")             # of the last answered heartbeat
         self._answered = time.monotonic()
+        # the newest renewal's answer heard (the executor's clock): what it dates the
+        # lease from (``_beat``)
+        self._heard = -math.inf
         self._closed = threading.Event()
         self._hearts: list[threading.Thread] = []
         self._domain: str | None = None
@@ -136,7 +139,7 @@ class RemoteNode:
             self.client = ControlClient(key, executor, epoch=epoch)
             reached = self.client.ping(CONNECT_TIMEOUT) is not None
             if reached:
-                self.client.call("bind", launcher=launcher, checkpoint_s=checkpoint_s,
+                self._heard = self.client.call("bind", launcher=launcher, checkpoint_s=checkpoint_s,
                                  log_level=log_level, code=code or CodeSources(),
                                  epoch=epoch, node_epoch=node_epoch, lease_s=LEASE_S,
                                  spares=spares)
@@ -360,11 +363,20 @@ class RemoteNode:
         while not self._closed.wait(max(0.0, due - time.monotonic())) and not self.lost:
             due += 2 * HEARTBEAT_S
             renew = self.silent_s() < RENEW_WITHIN_S
-            if renew:
-                self.renewed_at = time.monotonic()
-            rtt = self.client.ping(2 * HEARTBEAT_S, op="lease" if renew else "ping")
-            if rtt is not None:
-                self.rtt, self._answered = rtt, time.monotonic()
+            sent = time.monotonic()
+            try:
+                if renew:
+                    # (the newest answer heard before ``renewed_at``: the executor dates
+                    # its lease from it, however late it reads this; see NodeShare.renew)
+                    self.renewed_at, since = sent, self._heard
+                    heard = self.client.call("lease", 2 * HEARTBEAT_S, since=since)
+                    self._heard = max(self._heard, heard)
+                else:
+                    self.client.call("ping", 2 * HEARTBEAT_S)
+            except (RuntimeFailure, RuntimeTimeout):
+                continue
+            self._answered = time.monotonic()
+            self.rtt = self._answered - sent
 
     def fenced_by(self) -> float:
         """When (monotonic) the executor has fenced itself at the latest, its last
