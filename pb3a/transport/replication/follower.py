@@ -89,7 +89,8 @@ class _Follow:
     hello_for: bytes | None = None            # the incarnation our last HELLO named
     repairing: bool = False
     asked_from: int = -1                      # the first value the last replay asked for
-    repair_wait: float = REPAIR_RETRY_S       # before asking the repair again
+    # before asking the repair again (read as it is made: a test may set it longer)
+    repair_wait: float = field(default_factory=lambda: REPAIR_RETRY_S)
     announced: int = -1                       # the sender's next sequence number, as last heard
     acked: int = -1                           # what we last acknowledged
     acked_at: float = 0.0
