@@ -548,6 +548,18 @@ def test_a_client_dropped_unclosed_is_closed_whichever_thread_collects_it() -> N
         server.close()
 
 
+def _refused_on_new_connections(address: str, wrong: ClusterKey, count: int) -> None:
+    """``count`` requests with the ``wrong`` key, each on a connection of its own, each
+    told why it was refused."""
+    for _ in range(count):
+        client = ControlClient(wrong, address)
+        try:
+            with pytest.raises(RuntimeFailure, match="runs with another cluster key"):
+                client.call("add", timeout=5.0, a=1, b=2)
+        finally:
+            client.close()
+
+
 def test_wrong_key_requests_on_new_connections_are_logged_a_bounded_number_of_times(
         caplog, monkeypatch) -> None:
     """Refusals were logged at most once a second per connection: a client that connected
@@ -558,13 +570,7 @@ def test_wrong_key_requests_on_new_connections_are_logged_a_bounded_number_of_ti
     wrong = ClusterKey(os.urandom(32))
     started = time.monotonic()
     with ControlServer(KEY, handler) as server:
-        for _ in range(40):
-            client = ControlClient(wrong, server.address)
-            try:
-                with pytest.raises(RuntimeFailure, match="runs with another cluster key"):
-                    client.call("add", timeout=5.0, a=1, b=2)
-            finally:
-                client.close()
+        _refused_on_new_connections(server.address, wrong, 40)
         took = time.monotonic() - started
         logged = [r.getMessage() for r in caplog.records
                   if "refused a request from 127.0.0.1" in r.getMessage()]
@@ -583,13 +589,7 @@ def test_refusals_counted_for_a_summary_are_told_when_the_server_closes(caplog) 
     caplog.set_level(logging.WARNING, logger="pb3a.control")
     wrong = ClusterKey(os.urandom(32))
     with ControlServer(KEY, handler) as server:
-        for _ in range(3):
-            client = ControlClient(wrong, server.address)
-            try:
-                with pytest.raises(RuntimeFailure, match="runs with another cluster key"):
-                    client.call("add", timeout=5.0, a=1, b=2)
-            finally:
-                client.close()
+        _refused_on_new_connections(server.address, wrong, 3)
     said = [r.getMessage() for r in caplog.records if r.name == "pb3a.control"]
     assert len(said) == 2, said
     assert re.search(r"refused 2 more requests \(another cluster key\) in the last \d+ s",

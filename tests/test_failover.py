@@ -486,13 +486,7 @@ def test_a_node_that_hears_the_heartbeats_but_whose_answers_are_lost_stops_befor
         eventually(lambda: stamps.exists() and stamps.read_text().count("\n") > 20,
                    what="steps on b")
         remote = run._launcher.remotes["b"]
-        until = time.monotonic() + 4.0
-        for client in (remote.client, remote.controller):       # everything b answers
-            def dropped(frames, opened=client._opener.open):
-                if time.monotonic() < until:
-                    raise Rejected("the uplink lost it")
-                return opened(frames)
-            client._opener.open = dropped
+        _lose_answers_of(remote, 4.0)
         _wait_for_the_copy_on_a(run, stamps)
     _assert_one_copy_at_a_time(stamps)
 
@@ -509,13 +503,7 @@ def test_a_node_whose_renewals_are_read_late_stops_before_its_module_runs_elsewh
         eventually(lambda: stamps.exists() and stamps.read_text().count("\n") > 20,
                    what="steps on b")
         remote = run._launcher.remotes["b"]
-        until = time.monotonic() + 6.0
-        for client in (remote.client, remote.controller):       # everything b answers
-            def dropped(frames, opened=client._opener.open):
-                if time.monotonic() < until:
-                    raise Rejected("the uplink lost it")
-                return opened(frames)
-            client._opener.open = dropped
+        until = _lose_answers_of(remote, 6.0)
         call = remote.client.call
 
         def late(op: str, timeout: float = 10.0, **args: Any) -> Any:
@@ -525,6 +513,19 @@ def test_a_node_whose_renewals_are_read_late_stops_before_its_module_runs_elsewh
         remote.client.call = late
         _wait_for_the_copy_on_a(run, stamps)
     _assert_one_copy_at_a_time(stamps)
+
+
+def _lose_answers_of(remote: Any, seconds: float) -> float:
+    """Drop everything the node of ``remote`` (its executor, its controller) answers
+    for ``seconds`` (a saturated uplink); when that ends (monotonic)."""
+    until = time.monotonic() + seconds
+    for client in (remote.client, remote.controller):
+        def dropped(frames, opened=client._opener.open):
+            if time.monotonic() < until:
+                raise Rejected("the uplink lost it")
+            return opened(frames)
+        client._opener.open = dropped
+    return until
 
 
 def _stamping_on_b(name: str, b: Daemon, stamps: Path) -> System:
