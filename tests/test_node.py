@@ -476,7 +476,7 @@ def test_a_lease_grant_never_waits_for_a_worker_that_reads_nothing() -> None:
         assert not handle.send_now("lease", {"until": 2.0})
         handle.send(3, "stats", {})                              # queued behind, not sent
         assert not handle.send_now("lease", {"until": 4.0})   # (nor jumps the queue)
-        assert time.monotonic() - started < 0.5
+        assert time.monotonic() - started < 2.0            # (a wait is for good)
     finally:
         handle.close_pipe()
         frozen.close()

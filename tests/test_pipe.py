@@ -62,7 +62,7 @@ def test_a_full_pipe_never_holds_a_put_and_the_rest_follows_in_order(pipe) -> No
     started = time.monotonic()
     outbox.put([big])
     outbox.put([b"after"])
-    assert time.monotonic() - started < 0.5
+    assert time.monotonic() - started < 2.0            # (a held put waits for good)
     assert outbox.waiting() == 2
     assert theirs.recv_bytes() == big               # read: the drain writes the rest
     assert theirs.recv_bytes() == b"after"
@@ -127,7 +127,7 @@ def test_wait_sent_and_a_closing_wait_end_when_the_reader_has_it_or_the_time_is_
     big = outbox.put([os.urandom(BIG)])
     started = time.monotonic()
     assert not outbox.wait_sent(big, 0.2)             # nobody reads
-    assert 0.2 <= time.monotonic() - started < 1
+    assert 0.2 <= time.monotonic() - started < 2.0
     got: queue.Queue[bytes] = queue.Queue()
     reader = threading.Thread(target=lambda: [got.put(theirs.recv_bytes()) for _ in "ab"])
     reader.start()
