@@ -467,7 +467,7 @@ def test_a_close_kills_a_worker_it_retired_in_the_background(tmp_path: Path) -> 
         executor.shutdown(timeout=0.5)
         took = time.monotonic() - began
     assert not alive(pid)
-    assert took < 1.5, f"the close took {took:.2f} s"
+    assert took < 3.0, f"the close took {took:.2f} s"      # (not the module's 30 s)
 
 
 def test_an_add_whose_module_blocks_in_its_construction_keeps_its_timeout(
@@ -487,7 +487,7 @@ def test_an_add_whose_module_blocks_in_its_construction_keeps_its_timeout(
         assert "blocker" not in run.configuration()["system"]["modules"]
         steps = run.state("tick")["count"]
         eventually(lambda: run.state("tick")["count"] > steps, what="tick steps on")
-    assert took < 2.0, f"the add took {took:.2f} s"
+    assert took < 4.0, f"the add took {took:.2f} s"        # (not the module's 30 s)
     assert not alive(pid)
 
 
@@ -521,7 +521,7 @@ def test_a_restart_whose_new_construction_blocks_keeps_its_timeout(tmp_path: Pat
         assert run.stats().modules["once"].status == "running"
         steps = run.state("tick")["count"]
         eventually(lambda: run.state("tick")["count"] > steps, what="tick steps on")
-    assert took < 2.5, f"the restart took {took:.2f} s"
+    assert took < 4.5, f"the restart took {took:.2f} s"    # (not the module's 30 s)
     assert not alive(pid)
 
 

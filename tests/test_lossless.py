@@ -143,7 +143,7 @@ def test_closing_stops_a_writer_waiting_for_its_reader_at_once(
             assert run.stats().links[KEY].transport == where
             start = time.monotonic()
         took = time.monotonic() - start
-    assert took < 1.5
+    assert took < 1.8                     # (it waited out 6 s on a ring, 2 s in a worker)
     assert not [record.getMessage() for record in caplog.records
                 if "src" in record.getMessage()]
 
