@@ -29,16 +29,22 @@ class ModuleHarness:
     """A module of class ``cls`` with ``state``, ready to be fed and stepped."""
 
     def __init__(self, cls: type[Module], state: dict[str, Any] | None = None, *,
-                 runtime: Any = None, name: str = "", keep: int | None = None) -> None:
+                 runtime: Any = None, name: str = "", keep: int | None = None,
+                 period: float | None = None) -> None:
         """``keep``: how many of the newest values to keep per output (all by default;
-        a long run that only looks at ``last`` keeps 1, and its memory stays flat)."""
+        a long run that only looks at ``last`` keeps 1, and its memory stays flat).
+        ``period``: the one a configuration would give it, which the module sees as
+        ``self.period`` (``dt = self.period``), as when launched; its class's if None."""
         if keep is not None and keep < 1:
             raise ValueError(f"keep must be at least 1 (or None, for all), not {keep!r}")
+        if period is not None and not (isinstance(period, (int, float)) and period >= 0):
+            raise ValueError(f"period must be a number of seconds, 0 or more, not {period!r}")
         if not (isinstance(cls, type) and issubclass(cls, Module)):
             raise TypeError(f"ModuleHarness takes a pb3a.Module subclass, got {cls!r}: a "
                             "macro is tested launched (System(...).add(name, TheMacro)), or "
                             "each of its modules in a harness of its own")
         self.module = cls()
+        self.module.__dict__["period"] = cls.period if period is None else period
         if state:       # its own copy, as a launched module's comes through a pipe
             self.module.set_state(copy.deepcopy(state))
         ports = self.module._pb3a_bind_ports(name or cls.__name__)

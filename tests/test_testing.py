@@ -25,6 +25,17 @@ def test_steps_run_the_threaded_body() -> None:
     assert harness.state["count"] == 3
 
 
+def test_the_module_sees_the_period_it_is_given_as_a_launched_one_does() -> None:
+    """A module tested in a harness saw its class's period, which a configuration may
+    change: ``dt = self.period`` was tested with another dt than it ran with."""
+    assert ModuleHarness(Ticker).module.period == Ticker.period
+    harness = ModuleHarness(Ticker, period=0.5)
+    assert harness.module.period == 0.5 and Ticker.period != 0.5
+    assert "period" not in harness.state
+    with pytest.raises(ValueError, match="period must be a number of seconds"):
+        ModuleHarness(Ticker, period=-1)
+
+
 def test_keep_holds_only_the_newest_values_of_each_output() -> None:
     harness = ModuleHarness(Ticker, keep=2)
     harness.step(5)
