@@ -774,16 +774,25 @@ def test_a_state_that_cannot_cross_to_the_launcher_fails_at_once_and_harms_nothi
                    what="the killed worker restarted")
 
 
-def test_a_class_whose_attribute_cannot_travel_to_its_worker_is_named() -> None:
+def test_a_class_whose_attribute_cannot_travel_to_its_worker_is_named_by_check() -> None:
     """A class defined in a script goes to its worker by value, with its attributes: one
     holding a lock failed the launch with pickle's bare ``TypeError``, which named
-    neither the module nor the attribute."""
+    neither the module nor the attribute, and then ``check()`` passed it, the launch
+    alone refusing it. ``check()``, the launch and an ``add`` to a running system now
+    name both."""
     class Guarded(Steady):
         guard = threading.Lock()
 
-    with pytest.raises(ConfigError, match=r"module g: its class .*Guarded cannot be sent to "
-                       r"its worker: .* \(class attributes 'guard': make what holds a lock"):
-        System("guarded").add("g", Guarded).launch(timeout=10)
+    why = (r"its class .*Guarded cannot be sent to its worker: .* \(class attributes "
+           r"'guard': make what holds a lock")
+    system = System("guarded").add("g", Guarded)
+    assert [problem for problem in system.check() if re.search(why, problem)], \
+        system.check()
+    with pytest.raises(ConfigError, match=r"\[modules\.g\]: " + why):
+        system.launch(timeout=10)
+    with System("steady").add("s", Steady).launch(timeout=10) as run, \
+            pytest.raises(ConfigError, match=why):
+        run.add("g", Guarded)
 
 
 class Tuned(Steady):

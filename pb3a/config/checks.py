@@ -17,11 +17,12 @@ from collections.abc import Iterable
 from typing import Any
 
 from pb3a.errors import MOST_SECONDS
-from pb3a.loading.references import class_ref
+from pb3a.loading.references import by_reference, class_ref
 from pb3a.model.displays import declared_displays, finite
 from pb3a.model.environment import PREFIX as ENV_PREFIX
 from pb3a.model.module import HOOKS, RESTART_POLICIES, Module, can_hold
 from pb3a.model.state_edits import configured
+from pb3a.transport import pickling
 from pb3a.transport.addresses import tcp_address_problems
 
 NAME = re.compile(r"\A[A-Za-z0-9_-]+\Z")     # (\Z: "$" also matches before a final newline)
@@ -219,7 +220,21 @@ def module_class(cls: type[Module]) -> list[str]:
     if cls.restart not in RESTART_POLICIES:
         problems.append(f"{ref} has restart = {cls.restart!r}: a class's restart is one of "
                         f"{listing(map(repr, RESTART_POLICIES))}")
-    return problems + made_bare(cls) + displays(cls) + misspelled_hooks(cls)
+    return (problems + made_bare(cls) + displays(cls) + misspelled_hooks(cls)
+            + sendable(cls))
+
+
+def sendable(cls: type[Module]) -> list[str]:
+    """A class defined in a script or a function goes to its worker by value, its class
+    attributes with it, so one holding a lock, a file or a socket cannot be sent (the
+    checks passed it, and the launch then refused it)."""
+    if by_reference(cls):
+        return []
+    try:
+        pickling.dumps(cls)
+    except Exception as exc:
+        return [pickling.unsendable_class_reason(cls, exc)]
+    return []
 
 
 def misspelled_hooks(cls: type[Module]) -> list[str]:

@@ -828,14 +828,8 @@ def _class_blob(spec: FlatModule) -> bytes:
     try:
         return pickling.dumps(spec.cls)
     except Exception as exc:
-        names = pickling.unpicklable({name: value for name, value in vars(spec.cls).items()
-                                      if not name.startswith("__")})
-        raise ConfigError([
-            f"module {spec.name}: its class {spec.cls.__qualname__} cannot be sent to its "
-            f"worker: {type(exc).__name__}: {exc}" + (
-                f" (class attributes {', '.join(map(repr, names))}: make what holds a "
-                "lock, a file or a socket in setup(), under a name beginning with '_')"
-                if names else "")]) from None
+        raise ConfigError([f"module {spec.name}: "
+                           f"{pickling.unsendable_class_reason(spec.cls, exc)}"]) from None
 
 
 def _import_quietly(modules: tuple[str, ...], lane: ImportLane) -> None:

@@ -105,6 +105,19 @@ def unpicklable_reason(exc: Exception, items: Any) -> str:
         if fields else "")
 
 
+def unsendable_class_reason(cls: type, exc: Exception) -> str:
+    """Why ``cls``, a class that goes by value (defined in a script or a function),
+    could not be pickled (``exc``): pickle's error, and the class attributes that hold
+    what cannot travel with it."""
+    names = unpicklable({name: value for name, value in vars(cls).items()
+                         if not name.startswith("__")})
+    return (f"its class {cls.__qualname__} cannot be sent to its worker: "
+            f"{type(exc).__name__}: {exc}" + (
+                f" (class attributes {', '.join(map(repr, names))}: make what holds a "
+                "lock, a file or a socket in setup(), under a name beginning with '_')"
+                if names else ""))
+
+
 def unpicklable(items: Mapping[str, Any]) -> list[str]:
     """The names of ``items`` whose values cannot be pickled: what to name when a whole
     state or class could not be (pickle's own error names only the type, such as
