@@ -13,12 +13,12 @@ from pathlib import Path
 
 import psutil
 import pytest
-from conftest import eventually
+from conftest import eventually, unused_port
 from sample_modules import Chain, Counter, Doubler, FastScale, Last, Mapper, Relay, Scale
 
 import pb3a
 from pb3a import ConfigError, ModuleNotFound, RuntimeFailure, RuntimeTimeout, System
-from pb3a.launch import running
+from pb3a.launch import connection, running
 from pb3a.model.displays import Display
 from pb3a.stats import SystemStats
 from pb3a.topology import NodeInfo, PortInfo
@@ -105,13 +105,40 @@ def test_connect_tells_no_answer_a_wrong_key_and_a_bad_address_apart() -> None:
         pb3a.connect("127.0.0.1")
     started = time.monotonic()
     with pytest.raises(RuntimeTimeout, match=r"no PB3A launcher answered at tcp://127\.0\.0\.1:1 "
-                                             r"within 1 s"):
-        pb3a.connect("127.0.0.1:1", timeout=1.0)       # (as the command line takes it too)
-    assert time.monotonic() - started < 3
+                                             r"within 0\.3 s"):
+        pb3a.connect("127.0.0.1:1", timeout=0.3)       # (as the command line takes it too)
+    assert time.monotonic() - started < 2
     with _system().launch() as run:
         with pytest.raises(RuntimeFailure, match="runs with another cluster key"):
             pb3a.connect(run.listen(), key=os.urandom(32).hex())
         eventually(lambda: run.state("relay")["relayed"] > 0, what="the system unharmed")
+
+
+def test_a_port_nothing_listens_on_is_told_within_2_s_and_a_late_launcher_still_reached(
+        monkeypatch) -> None:
+    """A connection to a system that has ended (its port refuses connections) waited
+    the whole 5 s, then said only that nothing answered. It says the port refuses
+    connections within about 1.5 s; a launcher that begins to listen within that
+    second is reached as before."""
+    port = unused_port()
+    started = time.monotonic()
+    with pytest.raises(RuntimeTimeout, match=rf"no PB3A launcher answered at tcp://127\.0\.0\.1:"
+                                             rf"{port}: nothing listens on port {port} at "
+                                             r"127\.0\.0\.1 \(the connection was refused\): "
+                                             r"the system has stopped"):
+        pb3a.connect(f"127.0.0.1:{port}", timeout=10.0)
+    assert time.monotonic() - started < 2.5
+    # (refused a while longer than 1 s, so that a loaded machine cannot make the
+    # listener come only after the connection gave up)
+    monkeypatch.setattr(connection, "REFUSED_S", 8.0)
+    with _system().launch() as run:
+        listening = threading.Timer(1.0, run.listen, [f"tcp://127.0.0.1:{port}"])
+        listening.start()
+        try:
+            with pb3a.connect(f"127.0.0.1:{port}", timeout=10.0) as far:
+                assert "gain" in far.state("scale")
+        finally:
+            listening.join(10)
 
 
 def test_a_connection_to_a_system_that_stopped_says_so_at_once() -> None:

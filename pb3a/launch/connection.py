@@ -14,12 +14,15 @@ from typing import Any
 from pb3a.errors import RuntimeFailure, RuntimeTimeout, SystemStopped, bounded_wait
 from pb3a.launch.handle import SystemHandle
 from pb3a.launch.operations import DEFAULT_TIMEOUT
-from pb3a.transport.addresses import launcher_address, unknown_host
+from pb3a.transport.addresses import connection_failure, launcher_address, unknown_host
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 from pb3a.transport.pickling import PYTHON
 
 CONNECT_TIMEOUT = 5.0       # a launcher answers a ping at once, or is not there
+QUICK_S = 0.5               # ... within this, unless it is far or busy
+REFUSED_S = 1.0             # connections refused this long: nothing listens there
+_REPROBE_S = 0.1
 _MARGIN = 5.0               # the wire's deadline beyond the operation's own
 
 
@@ -30,7 +33,8 @@ def connect(address: str, *, key: ClusterKey | bytes | str | None = None,
 
     ``key`` is the cluster key material (as ``PB3A_KEY`` holds it) or a ``ClusterKey``;
     by default the one ``PB3A_KEY``, ``PB3A_KEY_FILE`` or ``~/.pb3a/cluster.key`` gives. Raises
-    ``RuntimeTimeout`` when nothing answers within ``timeout`` and ``RuntimeFailure``
+    ``RuntimeTimeout`` when nothing answers within ``timeout`` (sooner, about 1.5 s,
+    when nothing listens there: connections refused), and ``RuntimeFailure``
     when the launcher refuses the key, each saying what to check. Once connected, a
     launcher whose process ends fails the calls waiting for it and every later one
     with ``SystemStopped``, about a second after it closed the connection, or at once
@@ -59,12 +63,13 @@ class Connection(SystemHandle):
         self._client = ControlClient(_key(key), address,
                                      when_gone=functools.partial(_stopped, named, address))
         try:
-            described = self._client.call("describe", max(0.0, deadline - time.monotonic()))
-        except RuntimeTimeout:
+            described = _describe(self._client, address, deadline)
+        except RuntimeTimeout as exc:
             self.close()
-            raise RuntimeTimeout(f"no PB3A launcher answered at {address} within {timeout:g} s: "
-                                 "check the address (pb3a run prints it), that the system "
-                                 "still runs, and that the port is open") from None
+            raise RuntimeTimeout(f"no PB3A launcher answered at {address} within "
+                                 f"{timeout:g} s: check the address (pb3a run prints it), "
+                                 "that the system still runs, and that the port is open"
+                                 if not exc.args else exc.args[0]) from None
         except RuntimeFailure as exc:
             self.close()
             raise RuntimeFailure(f"cannot connect: {exc}") from None
@@ -113,6 +118,32 @@ class Connection(SystemHandle):
 
     def __repr__(self) -> str:
         return f"Connection({self.name!r} at {self.address})"
+
+
+def _describe(client: ControlClient, address: str, deadline: float) -> dict[str, Any]:
+    """The launcher's description of its system. A launcher answers at once; when none
+    has within a moment, a plain connection tells whether anything listens there, and
+    one refused for ``REFUSED_S`` on end (a system that has ended, a wrong port) ends
+    the wait then, saying so: the whole timeout was waited, to say less. ``RuntimeTimeout``
+    without words when the deadline passes."""
+    try:
+        return client.call("describe", max(0.0, min(QUICK_S, deadline - time.monotonic())))
+    except RuntimeTimeout:
+        pass
+    given_up = min(deadline, time.monotonic() + REFUSED_S)
+    while isinstance(connection_failure(address, max(0.0, deadline - time.monotonic())),
+                     ConnectionRefusedError):
+        if time.monotonic() >= given_up:
+            host, _, port = address.removeprefix("tcp://").rpartition(":")
+            raise RuntimeTimeout(
+                f"no PB3A launcher answered at {address}: nothing listens on port {port} at "
+                f"{host} (the connection was refused): the system has stopped, or the "
+                "address is wrong (pb3a run prints it)")
+        time.sleep(_REPROBE_S)         # (nothing tells when a listener comes: ask again)
+    try:
+        return client.call("describe", max(0.0, deadline - time.monotonic()))
+    except RuntimeTimeout:
+        raise RuntimeTimeout() from None
 
 
 def _stopped(named: list[str], address: str, why: str) -> SystemStopped:
