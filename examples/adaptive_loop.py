@@ -7,6 +7,7 @@ and, when retuning is not enough, swaps it for another algorithm, live.
 
 import random
 import statistics
+import time
 from collections import deque
 from itertools import pairwise
 
@@ -125,9 +126,12 @@ if __name__ == "__main__":
         print(f"settled at {run.state('plant')['level']:.2f}, jitter {tuner['jitter']:.3f}, "
               f"{len(tuner['actions'])} actions")
         run.set_state("plant", noise=0.3)     # the sensor gets noisy
-        for event in run.events(since=0, timeout=20.0):
-            if event.kind == "swap":
+        seen, deadline = 0, time.monotonic() + 20.0
+        while time.monotonic() < deadline:   # follow the events until the agent's swap
+            events = run.events(since=seen, timeout=deadline - time.monotonic())
+            if any(event.kind == "module_swapped" for event in events):
                 break
+            seen = events[-1].seq if events else seen
         run.wait(1.5)
         tuner = run.state("tuner")
         print(*tuner["actions"], sep="\n")

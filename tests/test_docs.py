@@ -47,3 +47,14 @@ def test_every_bench_says_what_it_measures_on_help_and_runs_nothing(bench: str) 
                           cwd=ROOT, capture_output=True, text=True, timeout=60, check=False)
     assert done.returncode == 0, done.stderr
     assert done.stdout.startswith("usage:"), done.stdout       # (not the JSON of a run)
+
+
+def test_the_readme_tells_every_event_kind() -> None:
+    """Event kinds were listed nowhere but in the code, and the adaptive loop example
+    waited for a kind that does not exist ("swap")."""
+    from pb3a.events import KINDS
+    table = (ROOT / "README.md").read_text().split("**Events.**", 1)[1].split("**", 1)[0]
+    told = set(re.findall(r"`([a-z_]+)`", table))
+    assert set(KINDS) <= told, sorted(set(KINDS) - told)
+    example = (ROOT / "examples" / "adaptive_loop.py").read_text()
+    assert set(re.findall(r'kind == "([a-z_]+)"', example)) <= set(KINDS)
