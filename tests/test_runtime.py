@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import gc
+import inspect
 import itertools
 import json
 import logging
@@ -942,6 +943,21 @@ def test_an_agent_spawns_links_and_removes_modules() -> None:
         assert "cannot set_state itself" in run.state("agent")["error"]
         run.set_state("trigger", limit=2)
         eventually(lambda: "probe" not in run.stats().modules, what="the probe removed")
+
+
+def test_an_agent_s_spawn_takes_the_options_of_add_and_no_other() -> None:
+    """``self.runtime.spawn`` took ``**options``: a misspelt one (``nod="b"``) went to
+    the launcher and came back as ``Operations.add()``'s ``TypeError``. It names them,
+    as ``run.add`` does, so a misspelling fails at the agent's own call."""
+    from pb3a.launch.operations import Operations
+    from pb3a.model.agent import RuntimeClient
+
+    def options(function: object) -> dict[str, inspect.Parameter]:
+        return {name: parameter for name, parameter in
+                inspect.signature(function).parameters.items() if name != "self"}
+    assert options(RuntimeClient.spawn) == options(Operations.add)
+    with pytest.raises(TypeError, match="nod"):
+        RuntimeClient.spawn(None, "helper", "sample_modules:Last", nod="b")
 
 
 def test_an_input_may_hold_its_whole_queue_of_zero_copy_arrays() -> None:

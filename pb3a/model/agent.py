@@ -81,11 +81,15 @@ class RuntimeClient:
         """Add a link to an input that has no source yet."""
         self._call("link", src=src, dst=dst, policy=policy, timeout=timeout)
 
-    def spawn(self, name: str, cls: type | str, *, timeout: float | None = None,
-              **options: Any) -> None:
-        """Start a new module, or a macro instance (options as for ``System.add``; see
-        ``Running.add``)."""
-        self._call("add", name, cls=cls, timeout=timeout, **options)
+    def spawn(self, name: str, cls: type | str, *, state: dict[str, Any] | None = None,
+              period: float | None = None, restart: str | None = None,
+              group: str | None = None, node: str | None = None,
+              fallback: list[str] | None = None, timeout: float | None = None) -> None:
+        """Start a new module, or a macro instance (the options of ``System.add``; see
+        ``Running.add``). A misspelt option is a ``TypeError`` here, as there (it went
+        to the launcher and came back as its ``Operations.add()``'s)."""
+        self._call("add", name, cls=cls, state=state, period=period, restart=restart,
+                   group=group, node=node, fallback=fallback, timeout=timeout)
 
     def remove(self, name: str, *, timeout: float | None = None, force: bool = False) -> None:
         """Stop and remove another module, or every module of a macro instance but the
