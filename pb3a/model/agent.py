@@ -132,6 +132,12 @@ class Agent(Module):
 
     @property
     def runtime(self) -> RuntimeClient:
+        """The running system, seen from inside (a ``RuntimeClient``): read and set other
+        modules' state, ``swap``, ``relink``, ``link``, ``spawn``, ``remove``,
+        ``migrate`` (this agent too), ``stats``, ``where`` and ``events``, each under the
+        launcher's configuration lock with every other change. Called from a body
+        (``step``, ``on_input``); the agent gives way while it waits (see the module's
+        docstring). Only inside a launched system."""
         client = self.__dict__.get("_pb3a_runtime")
         if client is None:
             raise RuntimeError(f"{type(self).__name__} is not running in a PB3A system; "

@@ -22,8 +22,10 @@ log = logging.getLogger("pb3a.worker")
 LEASE_CHECK_S = 0.1      # how often a worker with a lease looks at it
 # The exit status of a worker that stopped its modules because its lease lapsed: its
 # executor tells it from a stop it asked for (0) and, if its own lease runs, restarts
-# the modules (the worker alone was frozen; see Restarts.died).
-LEASE_LAPSED = 3
+# the modules (the worker alone was frozen; see Restarts.died). A code neither Python
+# nor a shell gives, and few programs choose (it was 3: a module's code that exited
+# with 3 was said to have been frozen past its lease).
+LEASE_LAPSED = 117
 
 
 class Lease:
