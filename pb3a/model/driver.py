@@ -66,7 +66,7 @@ class Driver(Module):
                     raise RuntimeCancelled(f"request {op!r} cancelled: {wait.cancelled}")
                 return client.request(op, args, self.timeout, wait=wait)
         except (RuntimeFailure, RuntimeTimeout) as exc:
-            raise type(exc)(f"{type(self).__name__} at {self.resource}: {exc}") from None
+            raise type(exc)(self._blamed(str(exc), self.resource)) from None
 
     def set_state(self, state: dict[str, Any]) -> None:
         """Set state; a ``resource`` that is not an address (``tcp://HOST:PORT``) is
@@ -81,6 +81,12 @@ class Driver(Module):
     def release(self, client: ControlClient) -> None:
         """Called with the old device's connection before the driver is re-pointed or
         stopped: override to leave the device safe (stop a robot, say)."""
+
+    def _blamed(self, said: str, address: str) -> str:
+        """``said`` of a request to the device at ``address``, after the driver's name,
+        and the address where ``said`` does not name it already ("MotorDriver at
+        tcp://...: tcp://... did not answer" named it twice)."""
+        return f"{type(self).__name__}{'' if address in said else f' at {address}'}: {said}"
 
     def teardown(self) -> None:
         self._disconnect()

@@ -1,0 +1,65 @@
+"""``Driver`` on its own, against devices served in this process (``serve_device``):
+what its errors say, what its state takes, and how it lets a device go."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import pytest
+
+from pb3a import Driver, RuntimeFailure, RuntimeTimeout, serve_device
+from pb3a.testing import ModuleHarness
+from pb3a.transport.control import ControlServer
+
+pytestmark = pytest.mark.timeout(60)
+
+
+class Reader(Driver):
+    """Asks its device for a reading at each step; says why a request failed."""
+
+    period = 0.05
+    timeout = 0.3
+    last_error = ""
+
+    def step(self) -> None:
+        try:
+            self.request("read")
+        except (RuntimeFailure, RuntimeTimeout) as exc:
+            self.last_error = str(exc)
+
+
+@pytest.fixture
+def devices() -> Iterator[tuple[list[tuple[str, str]], ControlServer, ControlServer]]:
+    """Two devices, "a" and "b": what each was asked, in order ((device, op)); op
+    "fail" raises."""
+    asked: list[tuple[str, str]] = []
+
+    def served(name: str) -> ControlServer:
+        def handler(op: str, args: dict) -> str:
+            asked.append((name, op))
+            if op == "fail":
+                raise ValueError("sensor unplugged")
+            return name
+        return serve_device(handler)
+    with served("a") as a, served("b") as b:
+        yield asked, a, b
+
+
+def test_an_error_names_the_driver_and_the_device_s_address_once(devices) -> None:
+    """"MotorDriver at tcp://...:7899: tcp://...:7899 did not answer ...": the address
+    came twice, the driver's prefix adding what the request's error said already."""
+    _, a, _ = devices
+    harness = ModuleHarness(Reader, state={"resource": a.address})
+    with pytest.raises(RuntimeFailure) as failed:
+        harness.module.request("fail")
+    said = str(failed.value)
+    assert said.startswith("Reader: ") and said.count(a.address) == 1, said
+    assert "sensor unplugged" in said
+    silent = serve_device(lambda op, args: None)
+    silent.close()                          # nothing listens there now
+    harness.module.set_state({"resource": silent.address})
+    harness.step()
+    said = harness.module.last_error
+    assert said.startswith(f"Reader: {silent.address} did not answer 'read' within 0.3 s")
+    assert said.count(silent.address) == 1, said
+    harness.close()
