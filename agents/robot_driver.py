@@ -45,6 +45,7 @@ import numpy as np
 
 from agents.limits import whole
 from pb3a import Driver, Input, InputPort, Output, RuntimeCancelled
+from pb3a.model.module import reflective
 
 SILENT_STOP_S = 0.1          # how long a silent robot's stop is waited for, when let go
 
@@ -82,6 +83,7 @@ class RobotDriver(Driver):
         # the first the one in force at the last reading
         self._drove: list[tuple[float, np.ndarray]] = []
 
+    @reflective                 # (it takes the fields Module's does: they are checked)
     def set_state(self, state: dict[str, Any]) -> None:
         """Set state; a running driver re-pointed at another robot reads it at once,
         rather than at its next period (a control system handed to a standby robot

@@ -12,8 +12,10 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from sample_modules import DeviceReader
 
 import examples.pipeline
+from agents.robot_driver import RobotDriver
 from examples.pipeline import FastScale, Scale, Ticker
 from pb3a.config.compiler import build_plan, validate
 from pb3a.config.description import NodeSpec, SystemSpec, load_toml
@@ -22,6 +24,7 @@ from pb3a.errors import ConfigError
 from pb3a.loading.references import resolve_class
 from pb3a.model.macro import Macro
 from pb3a.model.ports import Policy
+from pb3a.model.state_edits import class_state
 from pb3a.system import System
 
 PIPELINE = Path(examples.pipeline.__file__).with_name("pipeline.toml")
@@ -1376,3 +1379,30 @@ def test_a_state_value_of_another_kind_than_the_class_declares_is_refused_by_nam
     system = System("s")
     system.add("m", "parts_kinds:Kinds", state={"gain": "3.0"})
     assert any("state 'gain' takes a number" in problem for problem in system.check())
+
+
+def test_a_driver_s_state_is_checked_as_any_module_s(tmp_path: Path) -> None:
+    """``Driver`` overrides ``set_state`` (to refuse a resource that is not an address),
+    and the check took every class with its own to know its fields alone: a driver's
+    ``timout = 2.0``, or a ``RobotDriver``'s ``silent_after = "5"``, passed ``pb3a check``
+    and failed only at launch, with a KeyError. Both mark theirs ``reflective``."""
+    problems = problems_of(tmp_path, """
+        [modules.robot]
+        class = "agents.robot_driver:RobotDriver"
+        state = { resorce = "tcp://127.0.0.1:7400", timout = 2.0, silent_after = "5" }
+        [modules.reader]
+        class = "sample_modules:DeviceReader"
+        state = { asked = "x" }
+    """)
+    assert len(problems) == 4, problems
+    only(problems, "[modules.robot]: agents.robot_driver:RobotDriver has no state 'resorce' "
+                   "(did you mean 'resource'?)")
+    only(problems, "[modules.robot]", "has no state 'timout' (did you mean 'timeout'?)")
+    only(problems, "[modules.robot]: state 'silent_after' takes a number")
+    only(problems, "[modules.reader]: state 'asked' takes a number")
+    system = System("s")                    # the same from a program, before anything runs
+    system.add("m", "sample_modules:DeviceReader", state={"timout": 2.0})
+    assert any("has no state 'timout'" in problem for problem in system.check())
+    # a new driver's state given as JSON is made its fields' types, as a module's
+    assert class_state(RobotDriver)["silent_after"] == 5 and class_state(DeviceReader)
+    assert class_state(resolve_class("parts_cfg:Custom")) == {}     # (its own set_state)

@@ -20,7 +20,7 @@ from pb3a.errors import MOST_SECONDS
 from pb3a.loading.references import by_reference, class_ref
 from pb3a.model.displays import declared_displays, finite
 from pb3a.model.environment import PREFIX as ENV_PREFIX
-from pb3a.model.module import HOOKS, RESTART_POLICIES, Module, can_hold
+from pb3a.model.module import HOOKS, RESTART_POLICIES, Module, can_hold, reflective_state
 from pb3a.model.state_edits import configured
 from pb3a.transport import pickling
 from pb3a.transport.addresses import tcp_address_problems
@@ -151,12 +151,13 @@ def timeout(value: Any) -> list[str]:
 
 
 def state(cls: type[Module], value: Any) -> list[str]:
-    """A table of initial state. When the class uses reflection, its keys must be the
+    """A table of initial state. When the class uses reflection (its ``set_state`` is
+    ``Module``'s or marked ``reflective``, as a ``Driver``'s), its keys must be the
     class's state (or set in its ``__init__``), and each value of the kind of the
     class's default for it (``configured``)."""
     if not isinstance(value, dict):
         return [f"state must be a table of attribute = value, got {value!r}"]
-    if cls.get_state is not Module.get_state or cls.set_state is not Module.set_state:
+    if not reflective_state(cls):
         return []          # the class defines its own state: it alone knows the keys
     names, made = cls.state_names(), _set_in_init(cls)
     known = [*names, *sorted(made.difference(names))]

@@ -21,7 +21,7 @@ from typing import Any
 import zmq
 
 from pb3a.errors import RuntimeCancelled, RuntimeFailure, RuntimeTimeout
-from pb3a.model.module import Module
+from pb3a.model.module import Module, reflective
 from pb3a.transport.addresses import tcp_address_problems
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient, ControlServer
@@ -68,6 +68,7 @@ class Driver(Module):
         except (RuntimeFailure, RuntimeTimeout) as exc:
             raise type(exc)(self._blamed(str(exc), self.resource)) from None
 
+    @reflective                 # (it takes the fields Module's does: they are checked)
     def set_state(self, state: dict[str, Any]) -> None:
         """Set state; a ``resource`` that is not an address (``tcp://HOST:PORT``) is
         refused, naming it, and nothing is set (it was kept, and every request failed

@@ -13,7 +13,8 @@ import contextvars
 import copy
 import difflib
 import types
-from typing import Any, ClassVar
+from collections.abc import Callable
+from typing import Any, ClassVar, TypeVar
 
 from pb3a.model.ports import Input, InputPort, Output, OutputPort, _Port
 
@@ -33,6 +34,8 @@ _RESTORING: contextvars.ContextVar[bool] = contextvars.ContextVar("pb3a_restorin
 # The methods a module class defines for the runtime to call (``Module``'s lifecycle
 # hooks); a near miss of one (``on_inputs``) is never called, which ``pb3a check`` says.
 HOOKS = ("setup", "step", "on_input", "teardown")
+
+F = TypeVar("F", bound=Callable[..., Any])
 
 
 class Module:
@@ -168,6 +171,26 @@ def restore_state(module: Module, state: dict[str, Any]) -> None:
         module.set_state(state)
     finally:
         _RESTORING.reset(token)
+
+
+def reflective(set_state: F) -> F:
+    """Mark a ``set_state`` override that takes the fields reflection finds, as
+    ``Module.set_state`` does (it checks or acts on some values, then hands the state
+    on to it, as ``Driver``'s does): the configuration's check and the State Editor
+    then judge its keys and kinds as a class's without one (they took such a class to
+    know its own fields: a typo in a driver's state passed ``pb3a check`` and failed the
+    launch with a KeyError)."""
+    set_state._pb3a_reflective = True       # type: ignore[attr-defined]
+    return set_state
+
+
+def reflective_state(cls: type[Module]) -> bool:
+    """Whether the state of module class ``cls`` is the fields reflection finds:
+    ``Module``'s ``get_state``, and ``Module``'s ``set_state`` or one marked
+    ``reflective``."""
+    return cls.get_state is Module.get_state and (
+        cls.set_state is Module.set_state
+        or getattr(cls.set_state, "_pb3a_reflective", False) is True)
 
 
 def can_hold(cls: type[Module], name: str) -> bool:

@@ -18,16 +18,15 @@ from typing import Any
 
 import numpy as np
 
-from pb3a.model.module import Module
+from pb3a.model.module import Module, reflective_state
 
 
 def class_state(cls: Any) -> dict[str, Any]:
     """The class-level state of module class ``cls`` (its fields and their defaults),
     which a new module's state given as JSON is made the type of; nothing for a class
-    that is no ``Module`` or defines its own ``get_state`` or ``set_state`` (it alone
-    knows its fields)."""
-    if not (isinstance(cls, type) and issubclass(cls, Module)) \
-            or cls.get_state is not Module.get_state or cls.set_state is not Module.set_state:
+    that is no ``Module`` or defines its own ``get_state``, or a ``set_state`` not
+    marked ``reflective`` (it alone knows its fields)."""
+    if not (isinstance(cls, type) and issubclass(cls, Module)) or not reflective_state(cls):
         return {}
     return {name: getattr(cls, name) for name in cls.state_names()}
 
