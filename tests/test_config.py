@@ -1406,3 +1406,40 @@ def test_a_driver_s_state_is_checked_as_any_module_s(tmp_path: Path) -> None:
     # a new driver's state given as JSON is made its fields' types, as a module's
     assert class_state(RobotDriver)["silent_after"] == 5 and class_state(DeviceReader)
     assert class_state(resolve_class("parts_cfg:Custom")) == {}     # (its own set_state)
+
+
+def test_a_driver_s_timeout_it_cannot_go_by_is_a_problem(tmp_path: Path) -> None:
+    """A driver's ``timeout`` of 0, -1, NaN or inf passed the check; every request then
+    failed, blaming the device (inf: OverflowError at each). Given or its class's."""
+    problems = problems_of(tmp_path, """
+        [modules.robot]
+        class = "agents.robot_driver:RobotDriver"
+        state = { timeout = 0, resource = "10.0.0.7:7400" }
+        [modules.reader]
+        class = "sample_modules:DeviceReader"
+        state = { timeout = "2" }
+        [modules.fine]
+        class = "agents.robot_driver:RobotDriver"
+        state = { timeout = 2 }
+    """)
+    assert len(problems) == 3, problems
+    only(problems, "[modules.robot]: RobotDriver's timeout must be a positive number of "
+                   "seconds, at most 1e+07 (each request's deadline), got 0")
+    only(problems, "[modules.robot]: RobotDriver's resource must be a string tcp://HOST:PORT")
+    only(problems, "[modules.reader]: state 'timeout' takes a number")   # (said once)
+    system = System("s")
+    system.add("m", "sample_modules:DeviceReader", state={"timeout": float("inf")})
+    assert any("timeout must be a positive number" in problem for problem in system.check())
+    (tmp_path / "parts_driver.py").write_text(textwrap.dedent("""
+        from pb3a import Driver
+
+        class Impatient(Driver):
+            timeout = -1.0
+    """))
+    sys.path.insert(0, str(tmp_path))
+    try:
+        assert any("Impatient's timeout must be a positive number" in problem
+                   for problem in System("s").add("m", "parts_driver:Impatient").check())
+    finally:
+        sys.path.remove(str(tmp_path))
+        sys.modules.pop("parts_driver", None)

@@ -63,3 +63,22 @@ def test_an_error_names_the_driver_and_the_device_s_address_once(devices) -> Non
     assert said.startswith(f"Reader: {silent.address} did not answer 'read' within 0.3 s")
     assert said.count(silent.address) == 1, said
     harness.close()
+
+
+@pytest.mark.parametrize("timeout", [0, -1.0, float("nan"), float("inf"), 1e8, True, "2"])
+def test_a_timeout_that_is_not_a_positive_finite_number_is_refused_by_name(
+        devices, timeout) -> None:
+    """0, -1 and NaN were taken, and every request then failed, blaming the device ("did
+    not answer 'read' within nan s"); inf raised OverflowError at every request."""
+    _, a, _ = devices
+    harness = ModuleHarness(Reader, state={"resource": a.address})
+    with pytest.raises(ValueError, match=r"Reader's timeout must be a positive number of "
+                                         r"seconds, at most 1e\+07 .*got "):
+        harness.module.set_state({"timeout": timeout, "resource": ""})
+    assert (harness.state["timeout"], harness.state["resource"]) == (0.3, a.address)
+    harness.module.set_state({"timeout": 2})                 # a whole number is one
+    assert harness.module.request("read") == "a"
+    impatient = type("Impatient", (Reader,), {"timeout": timeout})    # (no set_state saw it)
+    harness = ModuleHarness(impatient, state={"resource": a.address})
+    harness.step()
+    assert "Impatient's timeout must be a positive number" in harness.module.last_error

@@ -19,6 +19,8 @@ from typing import Any
 from pb3a.errors import MOST_SECONDS
 from pb3a.loading.references import by_reference, class_ref
 from pb3a.model.displays import declared_displays, finite
+from pb3a.model.driver import Driver
+from pb3a.model.driver import state_problems as driver_state_problems
 from pb3a.model.environment import PREFIX as ENV_PREFIX
 from pb3a.model.module import HOOKS, RESTART_POLICIES, Module, can_hold, reflective_state
 from pb3a.model.state_edits import configured
@@ -161,17 +163,19 @@ def state(cls: type[Module], value: Any) -> list[str]:
         return []          # the class defines its own state: it alone knows the keys
     names, made = cls.state_names(), _set_in_init(cls)
     known = [*names, *sorted(made.difference(names))]
-    problems = []
+    problems, judged = [], {}
     for key, item in value.items():
         if key in names:
             try:
-                configured(key, getattr(cls, key), item, owner=class_ref(cls))
+                judged[key] = configured(key, getattr(cls, key), item, owner=class_ref(cls))
             except (TypeError, ValueError) as exc:
                 problems.append(str(exc))
         elif key not in made:
             problems.append(f"{class_ref(cls)} has no state {key!r}{did_you_mean(key, known)}; "
                             f"its state is: {listing(known)} (fix the key, or declare the "
                             "attribute on the class)")
+    if issubclass(cls, Driver):         # (what its set_state refuses, of the right kind)
+        problems += driver_state_problems(cls, judged)
     return problems
 
 
@@ -209,9 +213,9 @@ def macro_state(value: Any) -> list[str]:
 
 def module_class(cls: type[Module]) -> list[str]:
     """What a module class declares itself: its ``period`` and ``restart`` (a module the
-    configuration gives none of runs with them), that it is made with no arguments, and
-    its ``displays`` table. A bad period on the class passed every check, and its step
-    thread died after one step, the module shown running."""
+    configuration gives none of runs with them), a driver's ``timeout``, that it is made
+    with no arguments, and its ``displays`` table. A bad period on the class passed every
+    check, and its step thread died after one step, the module shown running."""
     ref = class_ref(cls)
     problems = []
     if cls.period is not None and not (finite(cls.period) and 0 <= cls.period <= MOST_SECONDS):
@@ -221,6 +225,8 @@ def module_class(cls: type[Module]) -> list[str]:
     if cls.restart not in RESTART_POLICIES:
         problems.append(f"{ref} has restart = {cls.restart!r}: a class's restart is one of "
                         f"{listing(map(repr, RESTART_POLICIES))}")
+    if issubclass(cls, Driver):         # (every request then fails, refusing it)
+        problems += driver_state_problems(cls, {"timeout": cls.timeout})
     return (problems + made_bare(cls) + displays(cls) + misspelled_hooks(cls)
             + sendable(cls))
 

@@ -20,7 +20,8 @@ from typing import Any
 
 import zmq
 
-from pb3a.errors import RuntimeCancelled, RuntimeFailure, RuntimeTimeout
+from pb3a.errors import MOST_SECONDS, RuntimeCancelled, RuntimeFailure, RuntimeTimeout
+from pb3a.model.displays import finite
 from pb3a.model.module import Module, reflective
 from pb3a.transport.addresses import tcp_address_problems
 from pb3a.transport.auth import ClusterKey
@@ -46,8 +47,8 @@ class Driver(Module):
     The device serves the requests with ``pb3a.serve_device(handler, host, port)``,
     which calls ``handler(op, args)`` and sends back what it returns (what it raises
     fails the request, naming the device); its ``address`` is the driver's
-    ``resource``. ``timeout`` is each request's deadline (``RuntimeTimeout`` names the
-    device).
+    ``resource``. ``timeout`` is each request's deadline, a positive number of seconds
+    (``RuntimeTimeout`` names the device).
     """
 
     resource = ""            # the device's resource port, e.g. "tcp://10.0.0.7:7400"
@@ -56,6 +57,9 @@ class Driver(Module):
     def request(self, op: str, **args: Any) -> Any:
         """Ask the device to do ``op``; its answer, or ``RuntimeFailure``/``RuntimeTimeout``
         naming the device."""
+        wrong = state_problems(type(self), {"timeout": self.timeout})
+        if wrong:                   # (a class default, not set through set_state)
+            raise RuntimeFailure(wrong[0])
         client = self._client()
         giving_way = self.__dict__.get("_pb3a_giving_way")     # (set by its worker)
         try:
@@ -70,13 +74,11 @@ class Driver(Module):
 
     @reflective                 # (it takes the fields Module's does: they are checked)
     def set_state(self, state: dict[str, Any]) -> None:
-        """Set state; a ``resource`` that is not an address (``tcp://HOST:PORT``) is
-        refused, naming it, and nothing is set (it was kept, and every request failed
-        with ZeroMQ's "Invalid argument")."""
-        wrong = "resource" in state and state["resource"] != "" and tcp_address_problems(
-            state["resource"], f"{type(self).__name__}'s resource")
+        """Set state; a ``resource`` or a ``timeout`` the driver cannot go by is refused
+        (``state_problems``), naming it, and nothing is set."""
+        wrong = state_problems(type(self), state)
         if wrong:
-            raise ValueError(wrong[0])
+            raise ValueError("; ".join(wrong))
         super().set_state(state)
 
     def release(self, client: ControlClient) -> None:
@@ -117,6 +119,23 @@ class Driver(Module):
             with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
                 self.release(current[1])
             current[1].close()
+
+
+def state_problems(cls: type[Driver], state: dict[str, Any]) -> list[str]:
+    """What of ``state``, given to a driver of class ``cls``, it refuses, each naming the
+    field and what it takes: a ``resource`` that is not an address to connect to
+    (``tcp://HOST:PORT``, or "" for none: it was kept, and every request failed with
+    ZeroMQ's "Invalid argument"), a ``timeout`` that is not a positive, finite number of
+    seconds up to ``MOST_SECONDS`` (0, -1 or NaN failed every request, blaming the
+    device; inf overflowed the clock at each)."""
+    problems = []
+    if state.get("resource", "") != "":
+        problems += tcp_address_problems(state["resource"], f"{cls.__name__}'s resource")
+    timeout = state.get("timeout", 1.0)
+    if not (finite(timeout) and 0 < timeout <= MOST_SECONDS):
+        problems.append(f"{cls.__name__}'s timeout must be a positive number of seconds, at "
+                        f"most {MOST_SECONDS:g} (each request's deadline), got {timeout!r}")
+    return problems
 
 
 def serve_device(handler: Callable[[str, dict[str, Any]], Any], host: str = "127.0.0.1",
