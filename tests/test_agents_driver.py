@@ -267,7 +267,7 @@ def test_a_re_pointed_driver_judges_its_new_robot_anew(robot, monkeypatch) -> No
     its own requests, or never, if the old one had been said already."""
     harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400",
                                                 "silent_after": 3})
-    failing(monkeypatch, RuntimeError)
+    failing(monkeypatch, RuntimeTimeout)        # (the old one's stop too, as it is let go)
     harness.step(3)                                 # the old robot said, once
     harness.module.set_state({"resource": "tcp://standby:7400"})   # dead too
     assert harness.state["silent"] == 1             # the new robot's first request

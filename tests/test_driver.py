@@ -3,11 +3,12 @@ what its errors say, what its state takes, and how it lets a device go."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 
 import pytest
 
-from pb3a import Driver, RuntimeFailure, RuntimeTimeout, serve_device
+from pb3a import Driver, Input, RuntimeFailure, RuntimeTimeout, serve_device
 from pb3a.testing import ModuleHarness
 from pb3a.transport.control import ControlServer
 
@@ -82,3 +83,60 @@ def test_a_timeout_that_is_not_a_positive_finite_number_is_refused_by_name(
     harness = ModuleHarness(impatient, state={"resource": a.address})
     harness.step()
     assert "Impatient's timeout must be a positive number" in harness.module.last_error
+
+
+class Motor(Driver):
+    """Event-driven: sets its motor's speed as each command comes; stops it when let go,
+    through ``self.request`` (or, with ``by_client``, the connection it is given)."""
+
+    speed = Input(float)
+    timeout = 0.3
+    by_client = False
+
+    def on_input(self, port) -> None:
+        self.request("set", v=port.read())
+
+    def release(self, client) -> None:
+        if self.by_client:
+            client.call("stop", 10.0)           # (longer than the driver's timeout)
+        else:
+            self.request("stop")
+
+
+def test_a_re_pointed_driver_lets_go_of_its_old_device_at_once(devices) -> None:
+    """``release`` ran only at the driver's next request: an event-driven driver
+    re-pointed left its old motor running until the next command came. And a
+    ``self.request`` in ``release`` went to the new device (the old connection was
+    dropped before it ran), so the new motor was stopped and the old one ran on."""
+    asked, a, b = devices
+    harness = ModuleHarness(Motor, state={"resource": a.address})
+    harness.feed("speed", 1.0)
+    harness.module.set_state({"resource": b.address})
+    assert asked == [("a", "set"), ("a", "stop")]       # then and there, no command since
+    harness.module.set_state({"timeout": 0.5})          # (not a re-point: nothing let go)
+    harness.feed("speed", 2.0)
+    assert asked[2:] == [("b", "set")]
+    harness.close()                                     # a stop, a move: let go too
+    assert asked[3:] == [("b", "stop")]
+    assert "_pb3a_device" not in vars(harness.module)
+
+
+def test_a_release_waits_at_most_the_driver_s_timeout(devices) -> None:
+    """A release's call asking for longer than the driver's ``timeout`` (10 s here, of
+    a device that does not answer) held the driver's stop, move or re-point as long."""
+    _, a, _ = devices
+    silent = serve_device(lambda op, args: None)
+    silent.close()                          # nothing listens there now
+    harness = ModuleHarness(Motor, state={"resource": silent.address, "by_client": True})
+    with pytest.raises(RuntimeTimeout):
+        harness.feed("speed", 1.0)          # (connected: the device is one to let go)
+    started = time.monotonic()
+    harness.close()
+    assert time.monotonic() - started < 5.0
+    harness = ModuleHarness(Motor, state={"resource": silent.address})
+    with pytest.raises(RuntimeTimeout):
+        harness.feed("speed", 1.0)
+    started = time.monotonic()
+    harness.module.set_state({"resource": a.address})      # (self.request: its timeout)
+    assert time.monotonic() - started < 5.0
+    harness.close()

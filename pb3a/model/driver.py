@@ -3,8 +3,8 @@ legacy program) through that program's resource port.
 
 The port's address is the state attribute ``resource``, so a running driver is
 re-pointed at another device with ``run.set_state(name, resource=ADDR)`` (or by an
-agent): its next request goes to the new device, after ``release`` let go of the
-old one. Requests are authenticated with the cluster key (the program serves them
+agent): ``release`` lets go of the old one then and there, and the next request goes
+to the new device. Requests are authenticated with the cluster key (the program serves them
 with a ``ControlServer``), have a deadline, and fail with an error naming the
 device; a driver whose device does not answer keeps running and says so. A request
 in progress does not hold up a move, swap or stop of the driver: they cancel it
@@ -25,7 +25,7 @@ from pb3a.model.displays import finite
 from pb3a.model.module import Module, reflective
 from pb3a.transport.addresses import tcp_address_problems
 from pb3a.transport.auth import ClusterKey
-from pb3a.transport.control import ControlClient, ControlServer
+from pb3a.transport.control import DEFAULT_TIMEOUT, ControlClient, ControlServer
 
 
 class Driver(Module):
@@ -49,6 +49,14 @@ class Driver(Module):
     fails the request, naming the device); its ``address`` is the driver's
     ``resource``. ``timeout`` is each request's deadline, a positive number of seconds
     (``RuntimeTimeout`` names the device).
+
+    ``release`` runs as the driver lets go of a device: as ``set_state`` sets a new
+    ``resource``, and at its stop, move or swap. Override it to leave the device safe:
+
+        def release(self, client) -> None:
+            self.request("set_vel", v=0.0)      # to the device let go of
+
+    Its requests go to that device, each waiting at most ``timeout``.
     """
 
     resource = ""            # the device's resource port, e.g. "tcp://10.0.0.7:7400"
@@ -60,7 +68,7 @@ class Driver(Module):
         wrong = state_problems(type(self), {"timeout": self.timeout})
         if wrong:                   # (a class default, not set through set_state)
             raise RuntimeFailure(wrong[0])
-        client = self._client()
+        address, client = self._device()
         giving_way = self.__dict__.get("_pb3a_giving_way")     # (set by its worker)
         try:
             if giving_way is None:
@@ -70,20 +78,29 @@ class Driver(Module):
                     raise RuntimeCancelled(f"request {op!r} cancelled: {wait.cancelled}")
                 return client.request(op, args, self.timeout, wait=wait)
         except (RuntimeFailure, RuntimeTimeout) as exc:
-            raise type(exc)(self._blamed(str(exc), self.resource)) from None
+            raise type(exc)(self._blamed(str(exc), address)) from None
 
     @reflective                 # (it takes the fields Module's does: they are checked)
     def set_state(self, state: dict[str, Any]) -> None:
         """Set state; a ``resource`` or a ``timeout`` the driver cannot go by is refused
-        (``state_problems``), naming it, and nothing is set."""
+        (``state_problems``), naming it, and nothing is set. A new ``resource`` lets go of
+        the old device now (``release``): it waited for the driver's next request, and an
+        event-driven driver re-pointed left its motor running until the next input."""
         wrong = state_problems(type(self), state)
         if wrong:
             raise ValueError("; ".join(wrong))
+        current = self.__dict__.get("_pb3a_device")
         super().set_state(state)
+        if current is not None and current[0] != self.resource:
+            self._disconnect()
 
-    def release(self, client: ControlClient) -> None:
-        """Called with the old device's connection before the driver is re-pointed or
-        stopped: override to leave the device safe (stop a robot, say)."""
+    def release(self, client: Any) -> None:
+        """Called as the driver lets go of a device: re-pointed (as ``set_state`` sets a
+        new ``resource``), stopped, moved or swapped (``teardown``). Override to leave the
+        device safe (stop a robot, say): ``self.request(op, **args)`` here, and
+        ``client.call(op, timeout, **args)``, go to that device, and each waits at most
+        the driver's ``timeout``; a request that fails or times out is let be (the driver
+        lets go all the same)."""
 
     def _blamed(self, said: str, address: str) -> str:
         """``said`` of a request to the device at ``address``, after the driver's name,
@@ -94,14 +111,20 @@ class Driver(Module):
     def teardown(self) -> None:
         self._disconnect()
 
-    def _client(self) -> ControlClient:
+    def _device(self) -> tuple[str, ControlClient]:
+        """The address and connection a request goes to: the device being let go of,
+        inside ``release`` (its requests went to the new device, the old one running
+        on), else the ``resource`` (connected to first, the old one let go of)."""
+        releasing = self.__dict__.get("_pb3a_releasing")
+        if releasing is not None:
+            return releasing
         if not self.resource:
             raise RuntimeFailure(f"{type(self).__name__} has no resource port: set its "
                                  "'resource' state to the device's address")
         current = self.__dict__.get("_pb3a_device")
         if current is not None and current[0] == self.resource:
-            return current[1]
-        self._disconnect()
+            return current
+        self._disconnect()          # (a resource set otherwise than through set_state)
         wrong = tcp_address_problems(self.resource, f"{type(self).__name__}'s resource")
         if wrong:                   # (a class default, not set through set_state)
             raise RuntimeFailure(wrong[0])
@@ -110,15 +133,35 @@ class Driver(Module):
         except zmq.ZMQError as exc:     # (a request's failure, as any: a driver counts it)
             raise RuntimeFailure(f"{type(self).__name__} cannot connect to "
                                  f"{self.resource}: {exc}") from None
-        self.__dict__["_pb3a_device"] = (self.resource, client)
-        return client
+        self.__dict__["_pb3a_device"] = current = (self.resource, client)
+        return current
 
     def _disconnect(self) -> None:
+        """Let go of the device connected to, if any: ``release`` it, then close."""
         current = self.__dict__.pop("_pb3a_device", None)
-        if current is not None:
+        if current is None:
+            return
+        self.__dict__["_pb3a_releasing"] = current
+        try:
             with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
-                self.release(current[1])
+                self.release(_Bounded(current[1], self.timeout))
+        finally:
+            del self.__dict__["_pb3a_releasing"]
             current[1].close()
+
+
+class _Bounded:
+    """A device's connection as ``release`` is given it: each call waits at most the
+    driver's ``timeout`` (a release asking for longer held a re-point, a move or a stop
+    for as long)."""
+
+    def __init__(self, client: ControlClient, most: float) -> None:
+        self.address = client.address
+        self._client, self._most = client, most
+
+    def call(self, op: str, timeout: float = DEFAULT_TIMEOUT, **args: Any) -> Any:
+        """``ControlClient.call``, waiting at most the driver's timeout."""
+        return self._client.call(op, min(timeout, self._most), **args)
 
 
 def state_problems(cls: type[Driver], state: dict[str, Any]) -> list[str]:
