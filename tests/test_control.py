@@ -10,6 +10,7 @@ import logging
 import os
 import pickle
 import re
+import struct
 import sys
 import threading
 import time
@@ -24,11 +25,12 @@ from conftest import eventually
 from pb3a import RuntimeFailure, RuntimeTimeout
 from pb3a.transport import control
 from pb3a.transport.addresses import bind_advertised, close_bound, numeric
-from pb3a.transport.auth import ClusterKey, Sealer
+from pb3a.transport.auth import ClusterKey, Opener, Sealer
 from pb3a.transport.control import REQUEST, ControlClient, ControlServer
 from pb3a.transport.loop import SocketLoop
 
 KEY = ClusterKey.load({"PB3A_KEY": "c" * 40})
+WAITS_10_S = struct.pack("<d", 10.0)       # how long a hand-made request's caller waits
 release = threading.Event()
 
 
@@ -73,6 +75,51 @@ def test_a_slow_operation_times_out_and_pings_still_get_through(rpc) -> None:
     release.set()
     blocked.join(10.0)
     assert client.call("add", a=1, b=1) == 2
+
+
+@pytest.mark.parametrize("expires", [True, False])
+def test_a_request_not_begun_within_its_caller_s_wait_is_dropped_by_a_server_that_expires(
+        expires: bool) -> None:
+    """A server made with ``expires`` (a device's) drops a request it has not begun
+    within the time its caller waits, counted from when it came, answering that it was
+    not done; the system's own servers run it late (their operations carry deadlines of
+    their own, and some must be done however late)."""
+    began, go, ran = threading.Event(), threading.Event(), []
+
+    def busy(op: str, args: dict[str, Any]) -> None:
+        if op == "block":
+            began.set()
+            go.wait(10.0)
+        ran.append(op)
+
+    server = ControlServer(KEY, busy, expires=expires, title="the device")
+    client = ControlClient(KEY, server.address)
+    sender = zmq.Context.instance().socket(zmq.DEALER)
+    sender.setsockopt(zmq.LINGER, 0)
+    sender.connect(server.address)
+    blocked = threading.Thread(target=client.call, args=("block",), daemon=True)
+    blocked.start()
+    try:
+        assert began.wait(5.0)
+        # its caller waits 0 s: gone by the time the server is free
+        sender.send_multipart(Sealer(KEY).seal(REQUEST, [
+            b"\1" * 8, server.instance, struct.pack("<d", 0.0), pickle.dumps(("move", {}))]))
+        go.set()
+        assert sender.poll(5000)
+        ok, answer = pickle.loads(Opener(KEY).open(sender.recv_multipart()).frames[1])
+    finally:
+        go.set()
+        blocked.join(5.0)
+        sender.close(0)
+        client.close()
+        server.close()
+    if expires:
+        assert not ok and isinstance(answer, control.Expired) and ran == ["block"]
+        assert str(answer) == (f"the device at {server.address} dropped 'move', not begun "
+                               "within the time its caller waits (busy with earlier "
+                               "requests): it was not done")
+    else:
+        assert ok and ran == ["block", "move"]
 
 
 def test_closing_the_client_fails_a_waiting_call_at_once_and_any_later_one(rpc) -> None:
@@ -132,7 +179,7 @@ def test_forged_and_garbage_requests_are_never_unpickled(rpc) -> None:
     attacker.send_multipart([b"\0" * 8, bomb])
     attacker.send_multipart(wrong.seal(REQUEST, [b"\0" * 8, bomb]))
     attacker.send_multipart([bomb] * 200)
-    genuine = Sealer(KEY).seal(REQUEST, [b"\1" * 8, server.instance,
+    genuine = Sealer(KEY).seal(REQUEST, [b"\1" * 8, server.instance, WAITS_10_S,
                                          pickle.dumps(("add", {"a": 1, "b": 2}))])
     attacker.send_multipart(genuine)
     attacker.send_multipart(genuine)                         # a replay
@@ -239,7 +286,8 @@ def test_a_request_naming_a_module_not_imported_yet_is_imported_off_the_socket_t
     sender.setsockopt(zmq.LINGER, 0)
     sender.connect(server.address)
     try:
-        sender.send_multipart(Sealer(KEY).seal(REQUEST, [b"\2" * 8, server.instance, blob]))
+        sender.send_multipart(Sealer(KEY).seal(REQUEST, [b"\2" * 8, server.instance,
+                                                         WAITS_10_S, blob]))
         eventually(importing.exists, what="the module's import under way")
         assert client.ping(0.5) is not None                # answered meanwhile
         assert sender.poll(5000)                           # the request's answer, later
@@ -271,7 +319,7 @@ def test_a_captured_request_runs_only_at_the_server_instance_it_was_for() -> Non
     again = None
     try:
         assert client.call("stop") is None and ran["a"] == ["stop"]
-        captured = Sealer(KEY).seal(REQUEST, [b"\1" * 8, a.instance,
+        captured = Sealer(KEY).seal(REQUEST, [b"\1" * 8, a.instance, WAITS_10_S,
                                               pickle.dumps(("stop", {}))])
         send(a, captured)                                  # as it went on the wire
         eventually(lambda: ran["a"] == ["stop", "stop"], what="the request run")

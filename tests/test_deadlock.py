@@ -566,6 +566,39 @@ def test_stop_cancels_every_request_a_step_makes_after_the_first(device) -> None
     assert time.monotonic() - started < 1.0
 
 
+class _TwoReadsSaying(_TwoReads):
+    """The same, keeping what each request's failure said."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.said: list[str] = []
+
+    def step(self) -> None:
+        for _ in range(2):
+            try:
+                self.request("slow", sleep=10.0)
+            except RuntimeFailure as exc:
+                self.said.append(str(exc))
+
+
+def test_a_driver_s_cancelled_request_says_whether_the_device_may_still_carry_it_out(
+        device) -> None:
+    """A request cancelled once sent may still be carried out by its device (it said
+    only "cancelled", and a driver asked again what was done); one cancelled before it
+    went was not sent."""
+    actor = ModuleActor("reads", _TwoReadsSaying(), lambda task: task(), 0.05)
+    actor.module.resource = device.address
+    actor.start()
+    eventually(lambda: actor._wait is not None, what="the step's first request waiting")
+    assert actor.stop(3.0)
+    where = f"_TwoReadsSaying at {device.address}: request 'slow' cancelled: "
+    sent, unsent = actor.module.said
+    assert sent.startswith(where) and sent.endswith(
+        "; it was sent, so the device may have begun it and carry it out still (one not "
+        "begun within the timeout it drops): look before asking again")
+    assert unsent.startswith(where) and unsent.endswith("; it was not sent")
+
+
 def test_a_body_whose_runtime_call_the_runtime_cancels_is_not_counted_as_failing() -> None:
     """An agent waiting on the runtime as it was swapped, moved or stopped raised
     ``RuntimeCancelled`` out of its step, by design: it was logged with its traceback

@@ -51,12 +51,14 @@ from sample_modules import (
 
 from pb3a import (
     ConfigError,
+    Driver,
     Environment,
     Input,
     Module,
     ModuleNotFound,
     Output,
     RuntimeFailure,
+    RuntimeTimeout,
     System,
     serve_device,
 )
@@ -994,6 +996,53 @@ def test_a_driver_talks_to_a_device_served_with_serve_device() -> None:
             error = eventually(lambda: run.state("reader")["last_error"], what="a failure")
     assert error.startswith("DeviceReader: ") and "sensor unplugged" in error
     assert error.count(device.address) == 1, error
+
+
+def test_a_request_its_driver_gave_up_on_while_the_device_was_busy_is_not_carried_out(
+        ) -> None:
+    """A relative move that timed out while its device was busy with an earlier request,
+    asked again, was made twice: the device ran every request it had taken in, however
+    long after its driver gave up on it. It drops one it has not begun within the
+    driver's timeout of its coming; the driver's error says one sent may still be carried
+    out."""
+    moves: list[int] = []
+    homing, home = threading.Event(), threading.Event()
+
+    def handler(op: str, args: dict) -> int:
+        if op == "home":
+            homing.set()
+            home.wait(10.0)
+        else:
+            moves.append(args["by"])
+        return sum(moves)
+
+    with serve_device(handler) as device:
+        homer, stepper = Driver(), Driver()
+        homer.resource = stepper.resource = device.address
+        homer.timeout, stepper.timeout = 10.0, 0.3
+        asked = threading.Thread(target=homer.request, args=("home",), daemon=True)
+        asked.start()
+        try:
+            assert homing.wait(5.0)
+            with pytest.raises(RuntimeTimeout) as timed_out:
+                stepper.request("move", by=1)
+            # (the device counts the 0.3 s from when the request came, a moment after
+            # it was sent)
+            time.sleep(0.2)
+            home.set()
+            asked.join(10.0)
+            stepper.timeout = 5.0
+            assert stepper.request("move", by=1) == 1          # asked again: moved once
+        finally:
+            home.set()
+            homer.teardown()
+            stepper.teardown()
+    assert moves == [1]
+    said = str(timed_out.value)
+    assert said.startswith(f"Driver at {device.address}: ") and "within 0.3 s" in said
+    assert said.endswith("; it was sent, so the device may have begun it and carry it out "
+                         "still (one not begun within the timeout it drops): look before "
+                         "asking again")
 
 
 def test_an_agent_s_runtime_call_carries_its_timeout_and_refuses_a_bad_one() -> None:

@@ -10,6 +10,13 @@ device; a driver whose device does not answer keeps running and says so. A reque
 in progress does not hold up a move, swap or stop of the driver: they cancel it
 (``RuntimeCancelled``, "cancelled: ...") rather than wait out its deadline; a read of
 its state runs meanwhile (an edit waits for the request's end).
+
+A request is carried out at most once, and one whose call failed may not have been:
+the device drops a request it has not begun within the driver's ``timeout`` of its
+coming (its driver gave up on it, and may ask again), but one it had begun runs on.
+So a request that timed out or was cancelled once sent may still be carried out, and
+its error says so: look at the device before asking again what must not be done twice
+(a relative move).
 """
 
 from __future__ import annotations
@@ -25,7 +32,11 @@ from pb3a.model.displays import finite
 from pb3a.model.module import Module, reflective
 from pb3a.transport.addresses import tcp_address_problems
 from pb3a.transport.auth import ClusterKey
-from pb3a.transport.control import DEFAULT_TIMEOUT, ControlClient, ControlServer
+from pb3a.transport.control import DEFAULT_TIMEOUT, ControlClient, ControlServer, Expired
+
+# What becomes of a request sent, when its call failed without the device's answer
+_MAY_STILL_RUN = ("it was sent, so the device may have begun it and carry it out still (one "
+                  "not begun within the timeout it drops): look before asking again")
 
 
 class Driver(Module):
@@ -48,7 +59,8 @@ class Driver(Module):
     which calls ``handler(op, args)`` and sends back what it returns (what it raises
     fails the request, naming the device); its ``address`` is the driver's
     ``resource``. ``timeout`` is each request's deadline, a positive number of seconds
-    (``RuntimeTimeout`` names the device).
+    (``RuntimeTimeout`` names the device); the device drops a request it has not begun
+    that long after it came.
 
     ``release`` runs as the driver lets go of a device: as ``set_state`` sets a new
     ``resource``, and at its stop, move or swap. Override it to leave the device safe:
@@ -64,7 +76,7 @@ class Driver(Module):
 
     def request(self, op: str, **args: Any) -> Any:
         """Ask the device to do ``op``; its answer, or ``RuntimeFailure``/``RuntimeTimeout``
-        naming the device."""
+        naming the device, and saying whether it may still carry ``op`` out."""
         wrong = state_problems(type(self), {"timeout": self.timeout})
         if wrong:                   # (a class default, not set through set_state)
             raise RuntimeFailure(wrong[0])
@@ -75,9 +87,17 @@ class Driver(Module):
                 return client.call(op, self.timeout, **args)
             with giving_way(f"request {op!r}", takes_edits=False) as wait:
                 if wait.cancelled:      # (the runtime stops the driver: nothing is sent)
-                    raise RuntimeCancelled(f"request {op!r} cancelled: {wait.cancelled}")
-                return client.request(op, args, self.timeout, wait=wait)
-        except (RuntimeFailure, RuntimeTimeout) as exc:
+                    raise RuntimeCancelled(f"request {op!r} cancelled: {wait.cancelled}; "
+                                           "it was not sent")
+                try:
+                    return client.request(op, args, self.timeout, wait=wait)
+                except RuntimeCancelled as exc:
+                    raise RuntimeCancelled(f"{exc}; {_MAY_STILL_RUN}") from None
+        except Expired as exc:
+            raise Expired(self._blamed(str(exc), address)) from None
+        except RuntimeTimeout as exc:
+            raise RuntimeTimeout(self._blamed(f"{exc}; {_MAY_STILL_RUN}", address)) from None
+        except RuntimeFailure as exc:
             raise type(exc)(self._blamed(str(exc), address)) from None
 
     @reflective                 # (it takes the fields Module's does: they are checked)
@@ -185,6 +205,7 @@ def serve_device(handler: Callable[[str, dict[str, Any]], Any], host: str = "127
                  port: int = 0) -> ControlServer:
     """Serve a device's side of its ``Driver``: ``handler(op, args)`` answers each request,
     one at a time, in order; what it raises fails the driver's request with its message.
+    A request not begun within its driver's ``timeout`` of coming is dropped, not done.
     Requests are authenticated with this machine's cluster key (``pb3a key``), as the
     system's own. ``address`` (``tcp://HOST:PORT``; port 0: a free one) is what the
     driver's ``resource`` is set to; ``close()``, or leaving a ``with`` block, stops it.
@@ -192,4 +213,7 @@ def serve_device(handler: Callable[[str, dict[str, Any]], Any], host: str = "127
         with pb3a.serve_device(lambda op, args: plant.call(op, **args), port=7400):
             ...                                 # the device runs; drivers reach it
     """
-    return ControlServer(ClusterKey.load(), handler, host, port, name="pb3a-device")
+    # (a request its driver no longer waits for is dropped: a relative move retried
+    # after a timeout was made twice)
+    return ControlServer(ClusterKey.load(), handler, host, port, name="pb3a-device",
+                         title="the device", expires=True)

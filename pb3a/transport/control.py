@@ -12,6 +12,15 @@ so heartbeats are not held up by a long operation. Nor by a request that names a
 module not imported yet: the socket thread never imports, it hands such a request to
 the handler thread to be read there.
 
+A request carries how long its caller waits for the answer (seconds, relative: the
+two machines share no clock). A server made with ``expires`` (a device's:
+``pb3a.serve_device``) drops a request it has not begun that long after it came,
+answering that it was not done (``Expired``): its caller has given up on it, and may
+be asking again (a motor's relative move, retried after a timeout, was made twice).
+The others run every request they take in: their operations carry deadlines of their
+own (``within``, ``bound``), and some are worth doing however late (a node's events,
+a stop).
+
 A request names the server it is for: a random id each server draws when it starts
 (its instance), sealed in with the request. A client learns it from the server's
 signed answer to its first request (``INSTANCE``: this is who I am, send it again),
@@ -66,6 +75,7 @@ REQUEST, REPLY, INSTANCE = 10, 11, 12
 _NOBODY = bytes(16)                   # the instance a client asks before it knows
 _SENDS = 4                            # times a request is sent, to instances it learns
 _ID = struct.Struct("<Q")
+_WAIT = struct.Struct("<d")            # how long the caller waits for the answer, in s
 _REFUSAL = b"PB3A-REFUSED:"            # + the failed check, in plain ASCII
 _REFUSAL_EVERY_S = 1.0                # per connection
 # A refusal is logged at most this often per peer address, and in all; the refusals not
@@ -148,7 +158,8 @@ class ControlServer:
                  instant: Mapping[str, Callable[[dict[str, Any]], Any]] | None = None,
                  aside: Collection[str] = (),
                  decode_lock: threading.Lock | None = None, title: str = "the process",
-                 import_first: Callable[[str, str], None] | None = None) -> None:
+                 import_first: Callable[[str, str], None] | None = None,
+                 expires: bool = False) -> None:
         """``decode_lock``: held while a request imports the modules of the classes it
         names (see ``_decode``), by a process that also imports in the background:
         CPython may hand one thread a module another is still importing when the two
@@ -159,8 +170,10 @@ class ControlServer:
         name)``: called before a request imports a module for its class ``name``, to
         refuse it (an ``ImportError``: the request cannot be read) rather than import a
         module that would harm this process (a launcher's, see
-        ``pb3a.loading.trial``)."""
+        ``pb3a.loading.trial``). ``expires``: a request not begun within the time its
+        caller waits, from when it came, is dropped, not done (see above)."""
         self._title = title
+        self._expires = expires
         self._handler = handler
         self._aside = frozenset(aside)
         self._asides: set[threading.Thread] = set()     # requests running aside now
@@ -177,8 +190,9 @@ class ControlServer:
         # (whether a request refused for its epoch is a key holder's, told what this is)
         self._any_epoch = Opener(key, epoch=0, max_bytes=MAX_MESSAGE)
         self.instance = secrets.token_bytes(16)      # requests must name it (see above)
-        # (peer, request id, op, args), or with op None the request's pickle, to read
-        self._work: queue.SimpleQueue[tuple[Any, bytes, str | None, Any] | None] = (
+        # (peer, request id, op, args, when it expires), or with op None the request's
+        # pickle, to read
+        self._work: queue.SimpleQueue[tuple[Any, bytes, str | None, Any, float] | None] = (
             queue.SimpleQueue())
         self._refused_at: dict[bytes, float] = {}      # peer -> when we last told it
         self._logged_at: dict[str, float] = {}         # peer's address -> when logged
@@ -205,12 +219,15 @@ class ControlServer:
             peer, *frames = router.recv_multipart(copy=False)
             try:
                 message = self._opener.open(frames)
-                if message.kind != REQUEST or len(message.frames) != 3:
+                if message.kind != REQUEST or len(message.frames) != 4 \
+                        or len(wait := bytes(message.frames[2])) != _WAIT.size:
                     raise Rejected("unexpected")
             except Rejected as exc:
                 self._refuse(peer, exc.reason, frames)
                 continue
-            request_id, blob = bytes(message.frames[0]), message.frames[2]
+            request_id, blob = bytes(message.frames[0]), message.frames[3]
+            expires = (time.monotonic() + _WAIT.unpack(wait)[0] if self._expires
+                       else math.inf)
             if bytes(message.frames[1]) != self.instance:     # for another server, or a
                 if bytes(message.frames[1]) != _NOBODY:       # run of this one before:
                     self._opener.rejected["other instance"] += 1      # not run, and
@@ -220,7 +237,7 @@ class ControlServer:
             try:
                 op, args = _decode(blob, self._decode_lock, may_import=False)
             except _MustImport:
-                self._work.put((peer, request_id, None, blob))
+                self._work.put((peer, request_id, None, blob, expires))
                 continue
             except Exception as exc:
                 self._reply_undecodable(peer, request_id, exc)
@@ -235,7 +252,7 @@ class ControlServer:
                 self._asides.add(aside)
                 aside.start()
             else:
-                self._work.put((peer, request_id, op, args))
+                self._work.put((peer, request_id, op, args, expires))
 
     def _reply_undecodable(self, peer: Any, request_id: bytes, exc: Exception) -> None:
         """A key holder's request that cannot be read still gets an answer, saying why."""
@@ -297,7 +314,10 @@ class ControlServer:
 
     def _serve(self) -> None:
         while (item := self._work.get()) is not None:
-            peer, request_id, op, args = item
+            peer, request_id, op, args, expires = item
+            if time.monotonic() >= expires:
+                self._drop(peer, request_id, op)
+                continue
             if op is None:                 # one the socket thread could not read at once
                 try:
                     op, args = _decode(args, self._decode_lock, may_import=True,
@@ -306,6 +326,15 @@ class ControlServer:
                     self._reply_undecodable(peer, request_id, exc)
                     continue
             self._run(peer, request_id, op, args)
+
+    def _drop(self, peer: Any, request_id: bytes, op: str | None) -> None:
+        """Answer a request its caller no longer waits for that it was not done."""
+        what = "a request" if op is None else repr(op)
+        log.debug("%s dropped %s: not begun within the time its caller waits", self.address,
+                  what)
+        self._loop.submit(lambda: self._reply(peer, request_id, False, Expired(
+            f"{self._title} at {self.address} dropped {what}, not begun within the time its "
+            "caller waits (busy with earlier requests): it was not done")))
 
     def _run_aside(self, peer: Any, request_id: bytes, op: str, args: Any) -> None:
         try:
@@ -379,6 +408,11 @@ class TooLarge(RuntimeFailure):
     """A request not sent: it is larger than one control message carries."""
 
 
+class Expired(RuntimeTimeout):
+    """A request its server dropped, not begun within the time its caller waits (a
+    server made with ``expires``): it was not done."""
+
+
 def add_import_hint(hint: Callable[[str], str]) -> None:
     """Have ``hint(module)`` add to what this process says of a request or answer naming
     a module it cannot import (``pb3a.loading.served`` adds why its module servers did
@@ -425,7 +459,8 @@ class ControlClient:
         self._opener = Opener(key, max_bytes=MAX_MESSAGE)
         self._ids = itertools.count(1)
         self._waiting: dict[bytes, tuple[threading.Event, list[Any]]] = {}
-        self._sent: dict[bytes, list[Any]] = {}     # request id -> [its pickle, times sent]
+        # request id -> [its pickle, times sent, when its caller stops waiting]
+        self._sent: dict[bytes, list[Any]] = {}
         self._instance = _NOBODY                    # the server's, once it has said it
         self.refused = ""                    # why the server refused our requests, if it did
         self._refused_by = ""                # what it said it is, with the reason
@@ -470,7 +505,7 @@ class ControlClient:
                            f"{too_large(len(blob))}, so it was not sent")
         done, box = _Done(wait), [False, None]
         self._waiting[request_id] = (done, box)
-        self._sent[request_id] = [blob, 0]
+        self._sent[request_id] = [blob, 0, time.monotonic() + timeout]
         try:
             if self._closed:      # (checked once registered: close fails what it finds)
                 raise RuntimeFailure(f"{op!r} to {self.address}: this client is closed")
@@ -508,12 +543,15 @@ class ControlClient:
         if sent is None or sent[1] >= _SENDS:
             return                         # answered, given up, or sent often enough
         sent[1] += 1
+        # (what is left of the caller's wait: the first request to a server is sent again
+        # once it says who it is, and the server counts from when it came)
+        wait = _WAIT.pack(max(0.0, sent[2] - time.monotonic()))
         # Never waits: a server that reads nothing (frozen) fills the queue, and a
         # blocking send held this socket's thread, every call's answer, and its close.
         # A request that cannot go now is sent again, or times out.
         with contextlib.suppress(zmq.Again):
             self._dealer.send_multipart(self._sealer.seal(
-                REQUEST, [request_id, self._instance, sent[0]]), zmq.NOBLOCK)
+                REQUEST, [request_id, self._instance, wait, sent[0]]), zmq.NOBLOCK)
 
     def _on_reply(self, dealer: zmq.Socket) -> None:
         while dealer.poll(0):
