@@ -364,7 +364,8 @@ class RobotServers:
 
 
 def robot_server_main(name: str, world_address: str, host: str, conn: Any) -> None:
-    """A robot server process: relay requests for robot ``name`` to the world server."""
+    """A robot server process: relay requests for robot ``name`` to the world server,
+    dropping one not begun within the time its caller waits (see ``serve_device``)."""
     stopped = threading.Event()
     stop_on_sigterm(stopped)
     key = ClusterKey.load()
@@ -382,7 +383,10 @@ def robot_server_main(name: str, world_address: str, host: str, conn: Any) -> No
             said = str(exc).removeprefix(f"{op} at {world_address} failed: ")
             raise RuntimeFailure(said.removeprefix("ValueError: ")) from None
 
-    server = ControlServer(key, relay, host, name=f"rave-robot-{name}")
+    # (a request its driver no longer waits for is dropped, as a device's: a turn asked
+    # again after a timeout, the world busy, would advance it twice)
+    server = ControlServer(key, relay, host, name=f"rave-robot-{name}",
+                           title=f"the robot server of {name}", expires=True)
     try:
         serve_as_child(conn, server.address, stopped)
     finally:

@@ -235,6 +235,49 @@ def test_a_lockstep_world_advances_only_when_its_controller_asks() -> None:
         server.close()
 
 
+class _HeldWorld(WorldServer):
+    """A world server whose ``sensors`` waits for ``go`` while ``hold`` is set."""
+
+    def __init__(self, world: World, **kwargs) -> None:
+        self.hold, self.asked, self.go = threading.Event(), threading.Event(), threading.Event()
+        super().__init__(world, **kwargs)
+
+    def _handle(self, op: str, args: dict):
+        if op == "sensors" and self.hold.is_set():
+            self.asked.set()
+            self.go.wait(5.0)
+        return super()._handle(op, args)
+
+
+def test_a_turn_its_driver_gave_up_on_while_the_world_was_busy_does_not_advance_it() -> None:
+    """A robot server drops a request it has not begun within the time its caller
+    waits, as a device served with ``serve_device`` does: a lock-step turn that timed
+    out behind a slow one ran once the world was free, and a controller that asked
+    again advanced the world twice."""
+    server = _HeldWorld(World.load("rave/worlds/arena.toml", seed=2), lockstep=True)
+    robots = RobotServers(server.address, ["r1"])
+    slow, r1 = (ControlClient(ClusterKey.load(), robots.addresses["r1"]) for _ in range(2))
+    sensing = threading.Thread(target=slow.call, args=("sensors",), daemon=True)
+    try:
+        server.hold.set()
+        sensing.start()
+        assert server.asked.wait(10.0)                # relayed: the robot server is busy
+        with pytest.raises(RuntimeTimeout):
+            r1.call("advance", timeout=0.3, dt=1.0)
+        time.sleep(0.2)      # (counted from when the request came there, a moment later)
+        server.hold.clear()
+        server.go.set()
+        sensing.join(5.0)
+        assert r1.call("sensors")["time"] == 0.0         # the turn given up: not taken
+        assert r1.call("advance", dt=1.0) == pytest.approx(1.0)
+    finally:
+        server.go.set()
+        slow.close()
+        r1.close()
+        robots.close()
+        server.close()
+
+
 def test_a_world_in_a_process_of_its_own_is_held_then_paced_and_stops_with_its_owner() -> None:
     served = WorldProcess("rave/worlds/arena.toml", seed=2, rate=0.0, hardware=("r1",),
                           add={"r9": (2.0, 6.5, 0.0)})
