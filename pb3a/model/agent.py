@@ -88,8 +88,10 @@ class RuntimeClient:
         """Start a new module, or a macro instance (the options of ``System.add``; see
         ``Running.add``). A misspelt option is a ``TypeError`` here, as there (it went
         to the launcher and came back as its ``Operations.add()``'s)."""
-        self._call("add", name, cls=cls, state=state, period=period, restart=restart,
-                   group=group, node=node, fallback=fallback, timeout=timeout)
+        given = {"state": state, "period": period, "restart": restart, "group": group,
+                 "node": node, "fallback": fallback}
+        self._call("add", name, cls=cls, timeout=timeout,
+                   **{option: value for option, value in given.items() if value is not None})
 
     def remove(self, name: str, *, timeout: float | None = None, force: bool = False) -> None:
         """Stop and remove another module, or every module of a macro instance but the
