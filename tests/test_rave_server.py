@@ -13,11 +13,13 @@ import threading
 import time
 
 import numpy as np
+import psutil
 import pytest
 from conftest import HeldKey, alive, eventually
 from sample_modules import Cruise
 
 from pb3a import RuntimeFailure, RuntimeTimeout, System
+from pb3a.transport.addresses import host_of
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 from rave import World, cli, render
@@ -424,6 +426,30 @@ def test_the_rave_command_serves_a_world_injects_faults_and_renders(tmp_path, ca
     assert cli.main(["render", "rooom", "-o", str(tmp_path / "x.png")]) == 1
     assert ("no world 'rooom': the bundled worlds are arena, lab, room, or give the path of a "
             "world file") in capsys.readouterr().err
+
+
+def test_the_rave_command_on_every_interface_prints_addresses_rave_fault_takes(
+        capsys) -> None:
+    """``rave start --listen 0.0.0.0`` (to serve robots to other machines) prints this
+    machine's address on its default route: it printed ``tcp://0.0.0.0:PORT``, which
+    ``rave fault`` and a ``RobotDriver`` refuse as naming every interface."""
+    process = subprocess.Popen([sys.executable, "-m", "rave.cli", "start", "arena",
+                                "--listen", "0.0.0.0"], stdout=subprocess.PIPE, text=True)
+    try:
+        lines = [process.stdout.readline().strip() for _ in range(3)]
+        ours = {entry.address for entries in psutil.net_if_addrs().values()
+                for entry in entries}
+        addresses = dict(line.split()[1::2] for line in lines)     # name -> address
+        assert all(host_of(address) in ours for address in addresses.values()), lines
+        assert cli.main(["fault", addresses["r2"], "sonar_dead"]) == 0, \
+            capsys.readouterr().err
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=15) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(5)
+        process.stdout.close()
 
 
 def test_python_m_rave_is_the_rave_command() -> None:

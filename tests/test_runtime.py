@@ -1045,6 +1045,26 @@ def test_a_request_its_driver_gave_up_on_while_the_device_was_busy_is_not_carrie
                          "asking again")
 
 
+def test_a_device_served_on_every_interface_gives_an_address_its_driver_takes() -> None:
+    """Served on every interface (as a robot's computer reached from the LAN is), a
+    device's ``address`` is one of this machine's, its default route's: it was
+    ``tcp://0.0.0.0:PORT``, which the driver refused as naming every interface, and
+    the launch failed."""
+    ours = {entry.address for entries in psutil.net_if_addrs().values()
+            for entry in entries}
+    for every in ("*", "[::]"):
+        with serve_device(lambda op, args: 0.5, host=every) as device:
+            assert device.address.removeprefix("tcp://").rpartition(":")[0] in ours, \
+                device.address
+    with serve_device(lambda op, args: 0.5, host="0.0.0.0") as device:
+        assert device.address.removeprefix("tcp://").rpartition(":")[0] in ours, \
+            device.address
+        system = System("everywhere").add("reader", DeviceReader,
+                                          state={"resource": device.address})
+        with system.launch() as run:
+            eventually(lambda: run.state("reader")["answered"] >= 3, what="answers")
+
+
 def test_an_agent_s_runtime_call_carries_its_timeout_and_refuses_a_bad_one() -> None:
     """As the launcher's calls, each of ``self.runtime``'s takes a ``timeout``: the
     operation's deadline, which the request carries, and the agent's wait for it."""

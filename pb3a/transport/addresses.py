@@ -36,7 +36,10 @@ _UNSTOPPED_LOCK = threading.Lock()
 
 def bind_advertised(sock: zmq.Socket, host: str, port: int = 0) -> str:
     """Bind ``sock`` for peers that reach this machine at ``host`` (port 0: any free
-    port); the address to hand them."""
+    port); the address to hand them. Bound to every interface (``0.0.0.0``, ``*``,
+    ``::``), that is this machine's address on its default route, as a launcher's
+    (``tcp://0.0.0.0:PORT``, handed out before, is refused by every client as naming
+    no host to reach)."""
     try:
         sock.bind(f"tcp://{host}:{port or '*'}")
     except zmq.ZMQError as exc:
@@ -44,7 +47,8 @@ def bind_advertised(sock: zmq.Socket, host: str, port: int = 0) -> str:
             raise
         sock.bind(f"tcp://*:{port or '*'}")       # not an address of ours: all interfaces
     bound = sock.getsockopt_string(zmq.LAST_ENDPOINT)
-    return f"tcp://{host}:{bound.rpartition(':')[2]}"
+    reached = default_route_host() if host in EVERY_INTERFACE else host
+    return f"tcp://{reached}:{bound.rpartition(':')[2]}"
 
 
 EVERY_INTERFACE = ("*", "0.0.0.0", "[::]", "::")   # hosts that mean: every interface
