@@ -1,7 +1,7 @@
 """The rave command: serve a world and its robots, inject faults, render.
 
     rave start WORLD [--seed N] [--listen HOST] [--rate R | --lockstep]
-                                      step WORLD in real time (or R times it, or
+               [--watchdog SECONDS]   step WORLD in real time (or R times it, or
                                       when its controller asks) and start one robot
                                       server per robot; prints every address
     rave fault ROBOT_ADDR FAULT [--sonars I ...] [--bias B] [--clear]
@@ -18,6 +18,12 @@ from typing import Any
 
 from pb3a.cli.arguments import seed, wait_seconds
 from pb3a.cli.log_output import show_logs
+
+# A robot none of whose requests came for this long (the world's time) is stopped, as
+# a Pioneer's controller stops when its client falls silent (its communication
+# watchdog, nominally 2 s): one whose server or controller died drove on with its last
+# command for good.
+WATCHDOG_S = 2.0
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -39,6 +45,10 @@ def _parser() -> argparse.ArgumentParser:
     start.add_argument("--lockstep", action="store_true",
                        help="step only when the controller asks (a driver's `advance`): "
                             "as fast as it decides, never ahead of it")
+    start.add_argument("--watchdog", type=wait_seconds, default=None, metavar="SECONDS",
+                       help="stop a robot none of whose requests came for SECONDS of "
+                            f"the world's time (default {WATCHDOG_S:g}, times R with "
+                            f"--rate R: {WATCHDOG_S:g} s by the wall clock; 0: never)")
     start.set_defaults(handler=start_command)
     fault = commands.add_parser("fault", help="inject or clear a fault in a hardware robot")
     fault.add_argument("robot", metavar="ROBOT_ADDR", help="the robot server's address")
@@ -68,9 +78,14 @@ def start_command(args: argparse.Namespace) -> int:
         print(f"rave start: {exc}", file=sys.stderr)
         return 1
 
+    watchdog_s = args.watchdog
+    if watchdog_s is None:      # (in world time: at --rate 32, 2 s of it bit between
+        # two requests of a driver asking every 0.1 s of the wall clock)
+        watchdog_s = WATCHDOG_S * (1.0 if args.lockstep else max(1.0, args.rate))
+
     def start(key: Any, host: str, port: int) -> tuple[Any, str]:
         served = _Served(WorldServer(world, host, port, rate=args.rate,
-                                      lockstep=args.lockstep))
+                                      lockstep=args.lockstep, watchdog_s=watchdog_s))
         served.robots = RobotServers(served.world.address, list(world.robots), host)
         lines = [f"world {world.name} at {served.world.address}"]
         lines += [f"robot {name} at {address}"

@@ -452,6 +452,53 @@ def test_the_rave_command_on_every_interface_prints_addresses_rave_fault_takes(
         process.stdout.close()
 
 
+def test_the_rave_command_stops_a_silent_robot_after_its_watchdog_unless_told_never(
+        capsys) -> None:
+    """``rave start`` stops a robot none of whose requests came for 2 s of the world's
+    time, as a Pioneer's controller does (``--watchdog 0``: never): a robot whose
+    server lost its driver (killed, re-pointed away) drove on with its last command
+    for good, 0.32 m in 4 s, and the command had no option to stop it."""
+    starts = {watchdog: subprocess.Popen(
+        [sys.executable, "-m", "rave.cli", "start", "arena", *watchdog],
+        stdout=subprocess.PIPE, text=True) for watchdog in ((), ("--watchdog", "0"))}
+    clients = []
+    try:
+        for process in starts.values():
+            lines = [process.stdout.readline().strip() for _ in range(3)]
+            r1, r2 = (ControlClient(ClusterKey.load(), line.split()[-1]) for line in lines[1:])
+            clients += [r1, r2]
+            driven = r1.call("drive", v=0.2, w=0.0)["time"]  # (the world's time then)
+            # r1 silent for 2.5 s of the world's time, which r2 tells (a request for r1
+            # would feed its watchdog)
+            eventually(lambda r2=r2, driven=driven: r2.call("sensors")["time"] > driven + 2.5,
+                       what="2.5 s of the world's time")
+        moved = []
+        for client in clients[::2]:
+            before = client.call("sensors")
+            def later(client=client, after=before["time"] + 0.3) -> dict | None:
+                sensed = client.call("sensors")
+                return sensed if sensed["time"] > after else None
+            now = eventually(later, what="0.3 s of the world's time")
+            moved.append(math.dist(before["gps"][:2], now["gps"][:2]))
+        assert moved[0] < 1e-9 and moved[1] > 0.03, moved
+        for process in starts.values():
+            process.send_signal(signal.SIGTERM)
+            assert process.wait(timeout=15) == 0
+    finally:
+        for client in clients:
+            client.close()
+        for process in starts.values():
+            if process.poll() is None:
+                process.kill()
+                process.wait(5)
+            process.stdout.close()
+    for wrong in ("-1", "nan", "inf", "soon"):
+        with pytest.raises(SystemExit):
+            cli.main(["start", "arena", "--watchdog", wrong])
+        assert f"--watchdog: {wrong!r} is not a number of seconds, 0 or more" in \
+            capsys.readouterr().err
+
+
 def test_python_m_rave_is_the_rave_command() -> None:
     """It said "'rave' is a package and cannot be directly executed"."""
     done = subprocess.run([sys.executable, "-m", "rave", "--help"], capture_output=True,
