@@ -44,6 +44,8 @@ class FakeRobotServer:
 @pytest.fixture
 def robot(monkeypatch) -> type[FakeRobotServer]:
     monkeypatch.setattr(pb3a.model.driver, "ControlClient", FakeRobotServer)
+    # (its robots' hosts are names no resolver knows: the fake is reached all the same)
+    monkeypatch.setattr(pb3a.model.driver, "unknown_host", lambda address, timeout: None)
     monkeypatch.setattr(FakeRobotServer, "requests", [])
     monkeypatch.setattr(FakeRobotServer, "time", 0.0)
     return FakeRobotServer

@@ -3,12 +3,16 @@ what its errors say, what its state takes, and how it lets a device go."""
 
 from __future__ import annotations
 
+import contextlib
+import socketserver
+import threading
 import time
 from collections.abc import Iterator
 
 import pytest
+from conftest import eventually
 
-from pb3a import Driver, Input, RuntimeFailure, RuntimeTimeout, serve_device
+from pb3a import Driver, Input, Output, RuntimeFailure, RuntimeTimeout, System, serve_device
 from pb3a.testing import ModuleHarness
 from pb3a.transport.control import ControlServer
 
@@ -140,3 +144,177 @@ def test_a_release_waits_at_most_the_driver_s_timeout(devices) -> None:
     harness.module.set_state({"resource": a.address})      # (self.request: its timeout)
     assert time.monotonic() - started < 5.0
     harness.close()
+
+
+class LineDevice:
+    """A program that knows nothing of PB3A: text lines over plain TCP, as a legacy motor
+    controller speaks. "GET pos" answers "pos X"; "SET vel V" answers "ok"; "STEP D"
+    moves by D and answers "ok". While ``free`` is clear it holds its answers."""
+
+    def __init__(self) -> None:
+        self.heard: list[str] = []
+        self.position = 0.0
+        self.connections = 0
+        self.received = 0
+        self.free = threading.Event()
+        self.free.set()
+        self._server = socketserver.ThreadingTCPServer(("127.0.0.1", 0), self._handler())
+        self._server.daemon_threads = True
+        self.address = f"tcp://127.0.0.1:{self._server.server_address[1]}"
+        self._thread = threading.Thread(target=self._server.serve_forever, daemon=True)
+        self._thread.start()
+
+    def _handler(self) -> type[socketserver.StreamRequestHandler]:
+        device = self
+
+        class Handler(socketserver.StreamRequestHandler):
+            def handle(self) -> None:
+                device.connections += 1
+                for raw in self.rfile:
+                    line = raw.decode().strip()
+                    device.received += 1
+                    device.free.wait(10.0)
+                    device.heard.append(line)
+                    if line == "GET pos":
+                        answer = f"pos {device.position}"
+                    elif line.startswith("STEP "):
+                        device.position += float(line.split()[1])
+                        answer = "ok"
+                    else:
+                        answer = "ok"
+                    with contextlib.suppress(OSError):
+                        self.wfile.write(f"{answer}\r\n".encode())
+        return Handler
+
+    def close(self) -> None:
+        self.free.set()
+        self._server.shutdown()
+        self._server.server_close()
+
+
+class LineMotor(Driver):
+    """A driver of a line-speaking motor: reads its position at each step, sets its speed
+    as each command comes, stops it when let go."""
+
+    protocol = "lines"
+    period = 0.02
+    timeout = 0.5
+    speed = Input(float)
+    position = Output(float)
+    last_error = ""
+
+    def step(self) -> None:
+        try:
+            self.position.write(float(self.ask("GET pos").split()[1]))
+        except (RuntimeFailure, RuntimeTimeout) as exc:
+            self.last_error = str(exc)
+
+    def on_input(self, port) -> None:
+        self.tell(f"SET vel {port.read()}")
+
+    def release(self, client) -> None:
+        self.tell("SET vel 0")
+
+
+@pytest.fixture
+def line_devices() -> Iterator[tuple[LineDevice, LineDevice]]:
+    a, b = LineDevice(), LineDevice()
+    yield a, b
+    a.close()
+    b.close()
+
+
+def test_a_driver_speaks_lines_to_a_program_that_knows_nothing_of_pb3a(line_devices) -> None:
+    """A driver reached only programs served with ``serve_device`` (PB3A's own, sealed
+    requests): a legacy program on a plain TCP socket, which is what the spec calls a
+    driver's resource port, needed an adapter process written for it. A line-speaking
+    device is asked and told in lines, re-pointed (the old one told to stop), and a
+    request of the other kind is refused, naming what to call."""
+    a, b = line_devices
+    a.position = 2.5
+    harness = ModuleHarness(LineMotor, state={"resource": a.address})
+    harness.step()
+    assert harness.module.last_error == ""
+    assert harness.last("position") == 2.5
+    harness.feed("speed", 0.75)
+    eventually(lambda: a.heard[-1:] == ["SET vel 0.75"], what="the speed told")
+    harness.module.set_state({"resource": b.address})
+    eventually(lambda: a.heard[-1:] == ["SET vel 0"], what="the old motor told to stop")
+    b.position = -1.0
+    harness.step()
+    assert harness.last("position") == -1.0
+    with pytest.raises(RuntimeFailure, match="LineMotor's device speaks 'lines', so "
+                                             r"request\(\) cannot reach it: use ask\(\)"):
+        harness.module.request("read")
+    harness.close()
+    eventually(lambda: b.heard[-1:] == ["SET vel 0"], what="the motor let go at the stop")
+
+
+def test_a_line_request_that_times_out_is_not_taken_for_the_next_s_answer(
+        line_devices) -> None:
+    """The answer to a request given up comes late: read as the answer to the next
+    request, every reading after it would be one behind. The connection is made anew
+    after a request that failed, and the error says the device may still carry it out."""
+    a, _ = line_devices
+    harness = ModuleHarness(LineMotor, state={"resource": a.address})
+    harness.step()
+    a.free.clear()                          # the device holds its answers
+    started = time.monotonic()
+    harness.step()
+    assert time.monotonic() - started < 2.0
+    assert harness.module.last_error.startswith(f"LineMotor at {a.address}: no answer to "
+                                                "'GET pos' within 0.5 s; it was sent, so "
+                                                "the device may carry it out still")
+    a.position = 7.0
+    a.free.set()                            # the late answer, "pos 0.0", comes now
+    harness.module.last_error = ""
+    harness.step()
+    assert harness.module.last_error == ""
+    assert harness.last("position") == 7.0
+    assert a.connections == 2
+    harness.close()
+
+
+def test_a_line_device_nothing_listens_for_is_named_at_once() -> None:
+    device = LineDevice()
+    device.close()                          # nothing listens there now
+    harness = ModuleHarness(LineMotor, state={"resource": device.address})
+    started = time.monotonic()
+    harness.step()
+    assert time.monotonic() - started < 1.0
+    port = device.address.rpartition(":")[2]
+    assert harness.module.last_error == (
+        f"LineMotor at {device.address}: nothing listens on port {port} at 127.0.0.1 (the "
+        "connection was refused): start the device's program, or fix the port")
+    harness.close()
+
+
+def test_a_driver_waiting_for_a_line_device_holds_up_no_read_or_remove(line_devices) -> None:
+    """A line device that does not answer (8 s of the driver's timeout) must not hold up
+    a read of the driver's state, nor its removal: the wait gives way as a PB3A
+    request's does, and the stop tells the device to stop on a connection of its own
+    (the one the request waited on is given up)."""
+    a, _ = line_devices
+    system = System("line-driver").add("motor", LineMotor, state={"resource": a.address,
+                                                                  "timeout": 8.0})
+    with system.launch(timeout=20) as run:
+        eventually(lambda: run.stats().modules["motor"].steps > 2, what="steps")
+        a.free.clear()
+        held = a.received
+        eventually(lambda: a.received > held, what="a request held at the device")
+        started = time.monotonic()
+        assert run.state("motor")["timeout"] == 8.0
+        run.remove("motor", timeout=5.0)
+        assert time.monotonic() - started < 3.0
+    a.free.set()
+    eventually(lambda: "SET vel 0" in a.heard, what="the motor told to stop as let go")
+
+
+def test_a_protocol_the_driver_does_not_speak_is_refused_by_name() -> None:
+    harness = ModuleHarness(LineMotor)
+    with pytest.raises(ValueError, match=r"LineMotor's protocol is what its device speaks, "
+                                         r"one of 'pb3a', 'lines', got 'line'"):
+        harness.module.set_state({"protocol": "line"})
+    assert harness.state["protocol"] == "lines"
+    problems = System("typo").add("m", LineMotor, state={"protocol": "text"}).check()
+    assert any("protocol is what its device speaks" in problem for problem in problems)

@@ -74,6 +74,7 @@ from pb3a.stats import (
     NodeStats,
     SystemStats,
 )
+from pb3a.testing import ModuleHarness
 from pb3a.worker.actor import EventPool, ModuleActor
 
 pytestmark = pytest.mark.timeout(90)
@@ -1043,6 +1044,22 @@ def test_a_request_its_driver_gave_up_on_while_the_device_was_busy_is_not_carrie
     assert said.endswith("; it was sent, so the device may have begun it and carry it out "
                          "still (one not begun within the timeout it drops): look before "
                          "asking again")
+
+
+def test_a_driver_whose_device_host_does_not_resolve_says_so_at_once() -> None:
+    """A ``resource`` whose host no resolver knows fails the request at once, saying so:
+    each request waited its whole deadline and said the device "did not answer"."""
+    harness = ModuleHarness(DeviceReader, state={
+        "resource": "tcp://no-such-host.invalid:7400", "timeout": 5.0})
+    try:
+        started = time.monotonic()
+        harness.step()
+        assert time.monotonic() - started < 4.0
+        error = harness.module.last_error
+    finally:
+        harness.close()
+    assert error.startswith("DeviceReader cannot connect to tcp://no-such-host.invalid:7400: "
+                            "no address is known for host 'no-such-host.invalid'"), error
 
 
 def test_a_device_served_on_every_interface_gives_an_address_its_driver_takes() -> None:

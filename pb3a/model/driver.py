@@ -30,13 +30,17 @@ import zmq
 from pb3a.errors import MOST_SECONDS, RuntimeCancelled, RuntimeFailure, RuntimeTimeout
 from pb3a.model.displays import finite
 from pb3a.model.module import Module, reflective
-from pb3a.transport.addresses import tcp_address_problems
+from pb3a.transport.addresses import RESOLVE_S, tcp_address_problems, unknown_host
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import DEFAULT_TIMEOUT, ControlClient, ControlServer, Expired
+from pb3a.transport.lines import LineClient
 
 # What becomes of a request sent, when its call failed without the device's answer
 _MAY_STILL_RUN = ("it was sent, so the device may have begun it and carry it out still (one "
                   "not begun within the timeout it drops): look before asking again")
+_LINE_MAY_STILL_RUN = ("it was sent, so the device may carry it out still; the connection "
+                       "is made anew at the next request: look before asking again")
+PROTOCOLS = ("pb3a", "lines")
 
 
 class Driver(Module):
@@ -69,17 +73,28 @@ class Driver(Module):
             self.request("set_vel", v=0.0)      # to the device let go of
 
     Its requests go to that device, each waiting at most ``timeout``.
+
+    A program that knows nothing of PB3A (a legacy controller, an instrument) is reached
+    with ``protocol = "lines"``: ``ask(line)`` sends a line of text over a plain TCP
+    connection and returns the line the program answers; ``tell(line)`` sends one and
+    waits for none. They give way, time out and name the device as ``request`` does.
+
+        class MotorDriver(Driver):
+            protocol = "lines"
+            resource = "tcp://10.0.0.9:7611"
+
+            def step(self) -> None:
+                self.position.write(float(self.ask("GET pos").split()[1]))
     """
 
     resource = ""            # the device's resource port, e.g. "tcp://10.0.0.7:7400"
     timeout = 1.0            # seconds a request may take
+    protocol = "pb3a"        # what the device speaks: "pb3a" (serve_device) or "lines"
 
     def request(self, op: str, **args: Any) -> Any:
         """Ask the device to do ``op``; its answer, or ``RuntimeFailure``/``RuntimeTimeout``
         naming the device, and saying whether it may still carry ``op`` out."""
-        wrong = state_problems(type(self), {"timeout": self.timeout})
-        if wrong:                   # (a class default, not set through set_state)
-            raise RuntimeFailure(wrong[0])
+        self._check_own("pb3a", "request()")
         address, client = self._device()
         giving_way = self.__dict__.get("_pb3a_giving_way")     # (set by its worker)
         try:
@@ -100,6 +115,54 @@ class Driver(Module):
         except RuntimeFailure as exc:
             raise type(exc)(self._blamed(str(exc), address)) from None
 
+    def ask(self, line: str) -> str:
+        """Send ``line`` to a device that speaks text lines (``protocol = "lines"``): the
+        line it answers, without its line end. Errors as ``request``'s; the connection is
+        made anew after one (a late answer would be read as the next request's)."""
+        return self._exchange(line, answer=True)
+
+    def tell(self, line: str) -> None:
+        """Send ``line`` to a device that speaks text lines, waiting for no answer."""
+        self._exchange(line, answer=False)
+
+    def _exchange(self, line: str, answer: bool) -> Any:
+        self._check_own("lines", "ask() and tell()")
+        releasing = self.__dict__.get("_pb3a_releasing")
+        address = releasing[0] if releasing is not None else self.resource
+        giving_way = self.__dict__.get("_pb3a_giving_way")     # (set by its worker)
+        what = f"{'ask' if answer else 'tell'} {line!r}"
+        try:
+            if giving_way is None:
+                return self._lines(None).ask(line, self.timeout, None, answer)
+            with giving_way(what, takes_edits=False) as wait:
+                if wait.cancelled:      # (the runtime stops the driver: nothing is sent)
+                    raise RuntimeCancelled(f"{what} cancelled: {wait.cancelled}; it was "
+                                           "not sent")
+                client = self._lines(wait)
+                try:
+                    return client.ask(line, self.timeout, wait, answer)
+                except RuntimeCancelled as exc:
+                    raise RuntimeCancelled(f"{exc}; {_LINE_MAY_STILL_RUN}") from None
+        except RuntimeTimeout as exc:
+            raise RuntimeTimeout(self._blamed(f"{exc}; {_LINE_MAY_STILL_RUN}", address)) \
+                from None
+        except RuntimeFailure as exc:
+            raise type(exc)(self._blamed(str(exc), address)) from None
+
+    def _check_own(self, protocol: str, calls: str) -> None:
+        """Refuse a call of the other protocol's, and a class's own timeout or protocol
+        the driver cannot go by (one not set through ``set_state``)."""
+        wrong = state_problems(type(self), {"timeout": self.timeout,
+                                            "protocol": self.protocol})
+        if wrong:
+            raise RuntimeFailure(wrong[0])
+        if self.protocol != protocol:
+            raise RuntimeFailure(f"{type(self).__name__}'s device speaks {self.protocol!r}, "
+                                 f"so {calls} cannot reach it: "
+                                 + ("use ask() and tell(), or set protocol = 'pb3a'"
+                                    if self.protocol == "lines" else
+                                    "use request(), or set protocol = 'lines'"))
+
     @reflective                 # (it takes the fields Module's does: they are checked)
     def set_state(self, state: dict[str, Any]) -> None:
         """Set state; a ``resource`` or a ``timeout`` the driver cannot go by is refused
@@ -111,14 +174,15 @@ class Driver(Module):
             raise ValueError("; ".join(wrong))
         current = self.__dict__.get("_pb3a_device")
         super().set_state(state)
-        if current is not None and current[0] != self.resource:
+        if current is not None and not self._speaking(current):
             self._disconnect()
 
     def release(self, client: Any) -> None:
         """Called as the driver lets go of a device: re-pointed (as ``set_state`` sets a
         new ``resource``), stopped, moved or swapped (``teardown``). Override to leave the
         device safe (stop a robot, say): ``self.request(op, **args)`` here, and
-        ``client.call(op, timeout, **args)``, go to that device, and each waits at most
+        ``client.call(op, timeout, **args)`` (a line device's: ``self.tell(line)``,
+        ``client.ask(line)``), go to that device, and each waits at most
         the driver's ``timeout``; a request that fails or times out is let be (the driver
         lets go all the same)."""
 
@@ -142,12 +206,14 @@ class Driver(Module):
             raise RuntimeFailure(f"{type(self).__name__} has no resource port: set its "
                                  "'resource' state to the device's address")
         current = self.__dict__.get("_pb3a_device")
-        if current is not None and current[0] == self.resource:
+        if current is not None and self._speaking(current):
             return current
         self._disconnect()          # (a resource set otherwise than through set_state)
-        wrong = tcp_address_problems(self.resource, f"{type(self).__name__}'s resource")
-        if wrong:                   # (a class default, not set through set_state)
-            raise RuntimeFailure(wrong[0])
+        self._check_resource()
+        unknown = unknown_host(self.resource, RESOLVE_S)
+        if unknown:                 # (each request said only "did not answer", at its end)
+            raise RuntimeFailure(f"{type(self).__name__} cannot connect to "
+                                 f"{self.resource}: {unknown}")
         try:
             client = ControlClient(ClusterKey.load(), self.resource)
         except zmq.ZMQError as exc:     # (a request's failure, as any: a driver counts it)
@@ -155,6 +221,41 @@ class Driver(Module):
                                  f"{self.resource}: {exc}") from None
         self.__dict__["_pb3a_device"] = current = (self.resource, client)
         return current
+
+    def _lines(self, wait: Any) -> LineClient:
+        """The connection to a line-speaking device: the one being let go of inside
+        ``release``, else one to ``resource``, connected to now if there is none open
+        (a connect that ``wait``'s cancellation cuts short)."""
+        releasing = self.__dict__.get("_pb3a_releasing")
+        if releasing is not None:
+            if releasing[1].closed:     # (its last request failed: the release must go)
+                releasing = (releasing[0], LineClient(releasing[0], self.timeout, wait))
+                self.__dict__["_pb3a_releasing"] = releasing
+            return releasing[1]
+        current = self.__dict__.get("_pb3a_device")
+        if current is not None and self._speaking(current):
+            if not current[1].closed:
+                return current[1]
+            del self.__dict__["_pb3a_device"]   # (the same device, its last request failed)
+        else:
+            self._disconnect()
+        self._check_resource()
+        client = LineClient(self.resource, self.timeout, wait)
+        self.__dict__["_pb3a_device"] = (self.resource, client)
+        return client
+
+    def _speaking(self, current: tuple[str, Any]) -> bool:
+        """Whether connection ``current`` is to ``resource`` in the driver's protocol."""
+        kind = LineClient if self.protocol == "lines" else ControlClient
+        return current[0] == self.resource and isinstance(current[1], kind)
+
+    def _check_resource(self) -> None:
+        if not self.resource:
+            raise RuntimeFailure(f"{type(self).__name__} has no resource port: set its "
+                                 "'resource' state to the device's address")
+        wrong = tcp_address_problems(self.resource, f"{type(self).__name__}'s resource")
+        if wrong:                   # (a class default, not set through set_state)
+            raise RuntimeFailure(wrong[0])
 
     def _disconnect(self) -> None:
         """Let go of the device connected to, if any: ``release`` it, then close."""
@@ -166,8 +267,8 @@ class Driver(Module):
             with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
                 self.release(_Bounded(current[1], self.timeout))
         finally:
-            del self.__dict__["_pb3a_releasing"]
             current[1].close()
+            self.__dict__.pop("_pb3a_releasing")[1].close()     # (one made for release)
 
 
 class _Bounded:
@@ -175,13 +276,21 @@ class _Bounded:
     driver's ``timeout`` (a release asking for longer held a re-point, a move or a stop
     for as long)."""
 
-    def __init__(self, client: ControlClient, most: float) -> None:
+    def __init__(self, client: ControlClient | LineClient, most: float) -> None:
         self.address = client.address
         self._client, self._most = client, most
 
     def call(self, op: str, timeout: float = DEFAULT_TIMEOUT, **args: Any) -> Any:
         """``ControlClient.call``, waiting at most the driver's timeout."""
         return self._client.call(op, min(timeout, self._most), **args)
+
+    def ask(self, line: str) -> str | None:
+        """``LineClient.ask``, waiting at most the driver's timeout."""
+        return self._client.ask(line, self._most)
+
+    def tell(self, line: str) -> None:
+        """``LineClient.ask`` without an answer, waiting at most the driver's timeout."""
+        self._client.ask(line, self._most, answer=False)
 
 
 def state_problems(cls: type[Driver], state: dict[str, Any]) -> list[str]:
@@ -194,6 +303,10 @@ def state_problems(cls: type[Driver], state: dict[str, Any]) -> list[str]:
     problems = []
     if state.get("resource", "") != "":
         problems += tcp_address_problems(state["resource"], f"{cls.__name__}'s resource")
+    protocol = state.get("protocol", "pb3a")
+    if protocol not in PROTOCOLS:
+        problems.append(f"{cls.__name__}'s protocol is what its device speaks, one of "
+                        f"{', '.join(map(repr, PROTOCOLS))}, got {protocol!r}")
     timeout = state.get("timeout", 1.0)
     if not (finite(timeout) and 0 < timeout <= MOST_SECONDS):
         problems.append(f"{cls.__name__}'s timeout must be a positive number of seconds, at "
