@@ -678,6 +678,33 @@ class Shepherd(Agent):
         self.seen_moves.append(port.read())
 
 
+class Commander(Agent):
+    """Writes a setpoint to ``target`` at every step, and once, from that step, moves it
+    to ``to`` (waiting for the move), then relinks its command to ``then`` and back:
+    what each request answered, or raised."""
+
+    command = Output(int)
+    target = "relay"
+    to = "b"
+    then = "other.x"
+    period = 0.05
+    asked = False
+    answers: list = []
+
+    def step(self) -> None:
+        self.command.write(1)
+        if self.asked:
+            return
+        self.asked = True
+        for request in (lambda: self.runtime.migrate(self.target, self.to),
+                        lambda: self.runtime.relink("commander.command", self.then),
+                        lambda: self.runtime.relink("commander.command", f"{self.target}.x")):
+            try:
+                self.answers.append(type(request()).__name__)
+            except Exception as exc:
+                self.answers.append(f"{type(exc).__name__}: {exc}")
+
+
 class Locator(Agent):
     """Asks the runtime where ``other`` runs from its ``setup``, as the system starts."""
 

@@ -15,12 +15,14 @@ import pytest
 from conftest import alive, eventually, unused_port
 from sample_modules import (
     Busybody,
+    Commander,
     DeviceReader,
     DeviceReaderV2,
     Journal,
     Locator,
     LocatorToo,
     LongStep,
+    Relay,
     RemovesInSetup,
     Scale,
     SlowState,
@@ -633,3 +635,25 @@ def test_a_body_whose_runtime_call_the_runtime_cancels_is_not_counted_as_failing
         run.swap("asker", Quiet, timeout=5.0)   # cancels that wait
         assert run.stats().modules["asker"].errors == 0
         assert not [e for e in run.logs() if e.module == "asker" and e.level == "ERROR"]
+
+
+def test_an_agent_moves_and_relinks_a_module_it_writes_to_and_is_answered() -> None:
+    """A move or relink of a module pauses the modules that write to it, and the agent
+    that asked was one: its own request was cancelled ("module 'commander' is being
+    paused ... may still be carried out"), though the change went on, and the rest of
+    its step was skipped without a word. A writer waiting in a runtime call is now held
+    where it waits while its links change, and is answered after."""
+    system = System("commanding")
+    system.node("a")
+    system.node("b")
+    system.add("relay", Relay, node="a")
+    system.add("other", Relay, node="a")
+    system.add("commander", Commander, node="a")
+    system.link("commander.command", "relay.x")
+    with system.launch() as run:
+        answers = eventually(lambda: len(a := run.state("commander")["answers"]) == 3 and a,
+                             timeout=30, what="the commander's three answers")
+        assert answers == ["MigrationReport", "NoneType", "NoneType"], answers
+        assert run.where("relay") == "b"
+        assert run.stats().modules["commander"].errors == 0
+        eventually(lambda: run.state("relay")["relayed"] > 0, what="the setpoint relayed")

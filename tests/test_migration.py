@@ -743,13 +743,13 @@ def test_a_move_whose_pause_a_frozen_worker_reads_late_leaves_the_module_running
         real_pause = Executor.pause
         thaw = threading.Timer(3.5, os.kill, (pid, signal.SIGCONT))
 
-        def freezing(self, name, timeout=10.0):
+        def freezing(self, name, timeout=10.0, rewire=False):
             if name == "relay" and not thaw.is_alive():
                 os.kill(pid, signal.SIGSTOP)
                 thaw.start()                    # (after the pause's 1 s + 1 s)
                 # (the move gives its pause 5 s; 1 s here: the same give-up, sooner)
                 timeout = min(timeout, 1.0)
-            return real_pause(self, name, timeout)
+            return real_pause(self, name, timeout, rewire)
         monkeypatch.setattr(Executor, "pause", freezing)
         try:
             with pytest.raises(RuntimeTimeout, match="pause"):
@@ -963,11 +963,11 @@ def test_a_move_whose_pause_outlasts_its_timeout_returns_in_time_where_it_was(
         thaw = threading.Timer(1.5, os.kill, (pid, signal.SIGCONT))
         real_pause = Executor.pause
 
-        def freezing(self, name, timeout=10.0):
+        def freezing(self, name, timeout=10.0, rewire=False):
             if name == "relay" and not thaw.is_alive():
                 os.kill(pid, signal.SIGSTOP)
                 thaw.start()
-            return real_pause(self, name, timeout)
+            return real_pause(self, name, timeout, rewire)
         monkeypatch.setattr(Executor, "pause", freezing)
         try:
             error, took = _move_timed(run, "relay", "b", 1.0)

@@ -975,8 +975,8 @@ def test_a_move_whose_module_s_worker_dies_once_paused_fails_at_once_saying_so(
         old = run.stats().modules["src"].pid
         killed = []
 
-        def pause(self, name, timeout):
-            paused = real_pause(self, name, timeout)
+        def pause(self, name, timeout, rewire=False):
+            paused = real_pause(self, name, timeout, rewire)
             if self is node and name == "src" and not killed:
                 os.kill(old, signal.SIGKILL)
                 killed.append(time.monotonic())
@@ -1026,7 +1026,7 @@ def test_a_move_just_after_a_remote_restart_goes_ahead_and_the_values_follow(
         real_pause = RemoteNode.pause
         killed = []
 
-        def pause(self, name, timeout):
+        def pause(self, name, timeout, rewire=False):
             if name == "src" and not killed:
                 killed.append(_last_seq(run))
                 before = self.report(2.0).modules["src"].outputs.get("out", 0)
@@ -1035,7 +1035,7 @@ def test_a_move_just_after_a_remote_restart_goes_ahead_and_the_values_follow(
                     killed[0])], what="src restarted on node b")
                 eventually(lambda: self.report(2.0).modules["src"].outputs.get("out", 0)
                            > before + 20, what="the new src past what the old one wrote")
-            return real_pause(self, name, timeout)
+            return real_pause(self, name, timeout, rewire)
         monkeypatch.setattr(RemoteNode, "pause", pause)
         told = threading.Event()
         real_republished = run._launcher.republished

@@ -331,11 +331,14 @@ class Launcher:
 
     @contextlib.contextmanager
     def paused(self, names: list[str], timeout: float = REQUEST_TIMEOUT) -> Iterator[None]:
-        """Hold the modules' locks (no step, no event) while the block rewires them."""
+        """Hold the modules' locks (no step, no event) while the block rewires them. A
+        body waiting in a runtime call is held there, not cancelled: an agent's request
+        to move or relink a module it writes to paused the agent, its writer, which
+        cancelled that very request (the change went on)."""
         held = []
         try:
             for name in dict.fromkeys(names):
-                if name in self.specs and self.node_of(name).pause(name, timeout):
+                if name in self.specs and self.node_of(name).pause(name, timeout, rewire=True):
                     held.append(name)
             yield
         finally:        # each on its own: one on a node lost meanwhile stops none

@@ -377,9 +377,9 @@ class Executor:
         record.spec, record.blob = spec, blob
         return kept
 
-    def pause(self, name: str, timeout: float = REQUEST_TIMEOUT) -> bool:
+    def pause(self, name: str, timeout: float = REQUEST_TIMEOUT, rewire: bool = False) -> bool:
         """Hold a module's lock (no step, no event) until ``resume``; False if it does not
-        run here (any more)."""
+        run here (any more). ``rewire``: see ``NodeShare.pause``."""
         record = self.modules.get(name)
         if record is None or not self.alive(record.worker):
             return False
@@ -395,7 +395,7 @@ class Executor:
             # ``until``: a worker that reads this late (it was frozen) must not pause the
             # module once this call has given up: nobody would resume it
             self.call(record.worker, "pause", answer_s, name=name, timeout=timeout,
-                      until=time.monotonic() + timeout)
+                      until=time.monotonic() + timeout, rewire=rewire)
         except BaseException:
             self.lives.hold(record, False)
             raise

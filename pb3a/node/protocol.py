@@ -64,10 +64,12 @@ class Node(Protocol):
     def swap(self, name: str, spec: FlatModule) -> list[str]:
         """Replace a module's class in place; the state names kept."""
 
-    def pause(self, name: str, timeout: float) -> bool:
+    def pause(self, name: str, timeout: float, rewire: bool = False) -> bool:
         """Hold the module's lock until ``resume``; False if it does not run here. A
         worker of it that dies meanwhile is restarted once it is let go of (resumed,
-        retired, stopped or removed), not before."""
+        retired, stopped or removed), not before. With ``rewire`` (only its links
+        change, not the module), a body waiting in a runtime call is held where it
+        waits rather than cancelled."""
 
     def resume(self, name: str) -> None:
         """Release a paused module."""

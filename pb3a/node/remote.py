@@ -244,8 +244,8 @@ class RemoteNode:
     def swap(self, name: str, spec: FlatModule) -> list[str]:
         return self._forward("swap", name, spec)
 
-    def pause(self, name: str, timeout: float) -> bool:
-        return self._forward("pause", name, timeout, within=timeout + MARGIN_S)
+    def pause(self, name: str, timeout: float, rewire: bool = False) -> bool:
+        return self._forward("pause", name, timeout, rewire, within=timeout + MARGIN_S)
 
     def resume(self, name: str) -> None:
         with lifted():                  # (whatever the call's time: see Executor.resume)

@@ -503,6 +503,32 @@ class ModuleActor:
                                    f"{timeout:.3g} s{f' ({busy})' if busy else ''}: nothing "
                                    "was done")
 
+    def hold_waiting(self, timeout: float) -> threading.Event | None:
+        """If a body waits in a runtime call (holding the module's lock), pause it where it
+        waits, for a change that only rewires the module's links: work run on its thread
+        that holds until the event returned is set (the runtime's answer is taken after
+        it). None when no body waits: then pause as usual. ``TimeoutError`` if the hold
+        has not begun within ``timeout`` (the thread busy with other posted work)."""
+        wait = self._wait
+        if wait is None:
+            return None
+        holding, release = threading.Event(), threading.Event()
+
+        def hold() -> None:
+            holding.set()
+            release.wait()
+
+        future = wait.post(hold)
+        if future is None:                      # (the call ended meanwhile)
+            return None
+        future.add_done_callback(lambda _: holding.set())     # (ended unrun: see below)
+        if not holding.wait(timeout) and future.cancel():
+            raise TimeoutError(f"module {self.name!r} was not paused within {timeout:g} s: "
+                               "the call it waits in was busy")
+        holding.wait()              # (begun, or ended unrun, as it was given up on)
+        # done before it was let go: never run, its call having ended first (pause as usual)
+        return None if future.done() else release
+
     def acquire_stopped(self, timeout: float, why: str) -> bool:
         """Take the module lock with no body running (see ``_giving_way``); False after
         ``timeout``."""

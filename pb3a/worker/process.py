@@ -104,6 +104,7 @@ class Worker:
         self._dropping = threading.Lock()   # (counted by any module's thread)
         self._requests: dict[int, RuntimeWait] = {}    # agents' requests awaiting answers
         self._paused: set[str] = set()
+        self._held: dict[str, threading.Event] = {}   # paused where they wait: see op_pause
         self._set_up_on_resume: set[str] = set()     # see op_migrate_out
         self._error_times: dict[str, tuple[float, int]] = {}
         self._ready: list[Callable[[], None]] = []
@@ -348,16 +349,26 @@ class Worker:
                                f"{actor.busy_in() or 'in a call'}, and its teardown has not run")
         return True
 
-    def op_pause(self, name: str, timeout: float, until: float | None = None) -> None:
+    def op_pause(self, name: str, timeout: float, until: float | None = None,
+                 rewire: bool = False) -> None:
         """Hold the module's lock so it neither steps nor handles events (for rewiring),
         not past ``until`` (``time.monotonic()``), when its executor stops waiting: a
-        pause read late (this worker was frozen) or taken late would never be resumed."""
+        pause read late (this worker was frozen) or taken late would never be resumed.
+        With ``rewire`` (only its links change), a body waiting in a runtime call is held
+        where it waits (``ModuleActor.hold_waiting``) rather than cancelled."""
         actor = self.actors[name]
         wait = timeout if until is None else min(timeout, until - time.monotonic())
         late = TimeoutError(f"module {name!r} was not paused in time: its executor "
                             "stopped waiting (this worker was frozen)")
         if wait <= 0:
             raise late
+        release = actor.hold_waiting(wait) if rewire else None
+        if release is not None:
+            if until is not None and time.monotonic() > until:    # (frozen as it took it)
+                release.set()
+                raise late
+            self._held[name] = release
+            return
         if not actor.acquire_stopped(wait, f"module {name!r} is being paused (to move "
                                      "it, or to rewire its links)"):
             raise TimeoutError(f"module {name!r} did not finish its call within {timeout} s")
@@ -367,6 +378,9 @@ class Worker:
         self._paused.add(name)
 
     def op_resume(self, name: str) -> None:
+        held = self._held.pop(name, None)
+        if held is not None:
+            held.set()
         if name in self._paused:
             self._paused.discard(name)
             actor = self.actors[name]
