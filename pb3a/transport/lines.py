@@ -92,12 +92,7 @@ class LineClient:
 
     def close(self, why: str = "closed") -> None:
         """End the connection; a request waiting fails with ``why``."""
-        with self._cond:
-            if not self.why:
-                self.why = why
-            waiting, self._waiting = self._waiting, None
-        if waiting is not None:
-            waiting.answer(False, self.why)
+        self._ended(why)
         with contextlib.suppress(OSError):
             self._sock.shutdown(socket.SHUT_RDWR)     # (wakes the reader)
         self._reader.join(timeout=1.0)
@@ -142,6 +137,11 @@ class LineClient:
                     break
         except OSError as exc:
             why = f"the connection broke: {exc.strerror or exc}"
+        self._ended(why)
+
+    def _ended(self, why: str) -> None:
+        """The connection is over (the first ``why`` given is kept): a request waiting
+        fails with it."""
         with self._cond:
             if not self.why:
                 self.why = why
