@@ -678,6 +678,32 @@ class Shepherd(Agent):
         self.seen_moves.append(port.read())
 
 
+class Paced(Module):
+    """Counts its steps and notes the period it sees (``self.period``) at each."""
+
+    period = 0.01
+    count = 0
+    seen_period = 0.0
+
+    def step(self) -> None:
+        self.count += 1
+        self.seen_period = self.period
+
+
+class Retimer(Agent):
+    """Once, from its step, slows ``target`` to a period of ``to`` seconds."""
+
+    target = "paced"
+    to = 0.25
+    period = 0.05
+    done = ""
+
+    def step(self) -> None:
+        if not self.done:
+            self.runtime.set_state(self.target, period=self.to)
+            self.done = "yes"
+
+
 class Commander(Agent):
     """Writes a setpoint to ``target`` at every step, and once, from that step, moves it
     to ``to`` (waiting for the move), then relinks its command to ``then`` and back:

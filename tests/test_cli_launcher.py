@@ -255,6 +255,11 @@ def test_set_gives_a_float_field_a_float_for_a_whole_number(capsys) -> None:
         assert type(state["gain"]) is float and type(state["setups"]) is int
         run.wait(0.3)
         assert run.stats().modules["scale"].errors == 0
+        # the period is the runtime's, not a state field, and is set all the same (it
+        # was "scale has no state 'period'")
+        assert main(["set", run.listen(), "src", "period=0.5"]) == 0
+        assert "src: period = 0.5" in capsys.readouterr().out
+        assert run.topology().modules["src"].period == 0.5
 
 
 def test_add_gives_a_float_field_a_float_and_names_a_value_that_does_not_fit(capsys) -> None:

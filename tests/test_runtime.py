@@ -42,7 +42,9 @@ from sample_modules import (
     Offset,
     Outer,
     Overlap,
+    Paced,
     Pid,
+    Retimer,
     Scale,
     Shift,
     Spawner,
@@ -1154,3 +1156,42 @@ def test_a_closed_system_leaves_nothing_open_in_the_process_that_launched_it() -
                        context=lambda: [t.name for t in set(threading.enumerate()) - threads])
     finally:
         gc.enable()
+
+
+def test_a_module_s_period_is_set_live_and_kept_across_a_move_and_a_restart() -> None:
+    """A running module's rate could not be changed (``set_state(period=...)`` was "no
+    state 'period'"): an agent that slows a sensor under load had to remove it and add
+    it again, links and all. It steps at the new period from then on, sees it as
+    ``self.period``, and keeps it when moved and when its worker is restarted."""
+    system = System("retimed")
+    system.node("a")
+    system.node("b")
+    system.add("paced", Paced, node="a", restart="fresh")
+    system.add("retimer", Retimer, node="a", state={"to": 10.0})
+
+    def steps_in(run, seconds: float) -> int:
+        before = run.stats().modules["paced"].steps
+        run.wait(seconds)
+        return run.stats().modules["paced"].steps - before
+
+    with system.launch() as run:
+        eventually(lambda: run.state("retimer")["done"] == "yes", what="the agent's change")
+        assert run.topology().modules["paced"].period == 10.0
+        eventually(lambda: run.state("paced")["seen_period"] == 10.0, timeout=15,
+                   what="self.period")
+        assert steps_in(run, 0.5) <= 1                      # (at 0.01 s: about 50)
+        with pytest.raises(ConfigError, match="period must be a number of seconds"):
+            run.set_state("paced", period=-1.0)
+        with pytest.raises(ConfigError, match="period must be a number of seconds"):
+            run.set_state("paced", period="fast")
+        run.set_state("paced", period=0.2, count=0)         # with a field: both set
+        assert run.state("paced")["count"] <= 1
+        run.migrate("paced", to="b")
+        assert run.topology().modules["paced"].period == 0.2
+        assert steps_in(run, 1.0) <= 7                      # (at 0.01 s: about 100)
+        pid = run.stats().modules["paced"].pid
+        os.kill(pid, signal.SIGKILL)
+        eventually(lambda: (m := run.stats().modules["paced"]).pid not in (None, pid)
+                   and m.steps > 0, timeout=20, what="the restarted module stepping")
+        assert steps_in(run, 1.0) <= 7
+        assert run.state("paced")["seen_period"] == 0.2

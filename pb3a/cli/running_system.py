@@ -86,10 +86,11 @@ def _set(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
     except PB3AError:
         now = {}
     wrong = _fit(args.module, values, texts, now)
-    unknown = sorted(set(values) - set(now)) if now else []
+    # (period is the runtime's, not in the state: set_state takes it, see Operations.retime)
+    unknown = sorted(set(values) - set(now) - {"period"}) if now else []
     if unknown:             # (the worker's KeyError said it, behind "worker 'node/m-x'")
         wrong.append(f"{args.module} has no state {', '.join(map(repr, unknown))}; its "
-                     f"state: {', '.join(now)}")
+                     f"state: {', '.join(now)} (and its period)")
     if wrong:
         raise ValueError("; ".join(wrong) + "; nothing was set")
     system.set_state(args.module, values,            # (one timeout for both calls)

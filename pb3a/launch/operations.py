@@ -144,7 +144,13 @@ class Operations:
                   timeout: float | None = None) -> None:
         """Set fields of the module's state, under the configuration lock (a move must
         not capture the state before it and land it after). Its worker dead, the state
-        is set once its restart is done, in the new process, within the same timeout."""
+        is set once its restart is done, in the new process, within the same timeout.
+        ``period``, the runtime's, may be set among them (``retime``)."""
+        if "period" in values:
+            values = dict(values)
+            self.retime(name, values.pop("period"), timeout=timeout)
+            if not values:
+                return
         with self._held(f"set_state {name}", timeout, changes=False) as left:
             node = self.launcher.node_of(name)
             try:
@@ -156,6 +162,24 @@ class Operations:
             raise failure
         with self._held(f"set_state {name}", left(), changes=False) as still:
             self.launcher.call(name, "set_state", still(), state=values)
+
+    def retime(self, name: str, period: Any, *, timeout: float | None = None) -> None:
+        """Step module ``name`` every ``period`` seconds from its next step on (it sleeps
+        that long after each), kept across its restarts, moves and swaps, as if the
+        configuration had given it: a module's rate could only be changed by removing
+        it and adding it again, links and all."""
+        with self._held(f"set_state {name} period", timeout) as left:
+            spec = self.launcher.specs.get(name)
+            if spec is None:
+                self.launcher.node_of(name)           # raises ModuleNotFound
+            problems = ([] if isinstance(period, (int, float)) and not isinstance(period, bool)
+                        else ["period must be a number of seconds"])
+            problems = problems or checks.period(period) or checks.stepped(spec.cls, period)
+            if problems:
+                raise ConfigError([f"set_state {name}: {problem}" for problem in problems])
+            retimed = replace(spec, period=float(period), own_period=True)
+            self.launcher.node_of(name).retime(name, retimed.period, left())
+            self.launcher.specs[name] = retimed
 
     # -- moving, swapping, reloading ----------------------------------------------------
     def migrate(self, name: str, to: str, *, state: dict[str, dict[str, Any]] | None = None,

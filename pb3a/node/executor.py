@@ -19,6 +19,7 @@ import threading
 import time
 from concurrent.futures import Future
 from contextlib import AbstractContextManager
+from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 import cloudpickle
@@ -376,6 +377,14 @@ class Executor:
         kept = self.call(record.worker, "swap", name=name, cls=blob, period=spec.period)
         record.spec, record.blob = spec, blob
         return kept
+
+    def retime(self, name: str, period: float, timeout: float = REQUEST_TIMEOUT) -> None:
+        """Step the module every ``period`` seconds from now on; its restarts too."""
+        record = self.modules[name]
+        if not self.alive(record.worker):
+            raise RuntimeFailure(_not_running(name, record))
+        self.call(record.worker, "retime", capped(timeout), name=name, period=period)
+        record.spec = replace(record.spec, period=period, own_period=True)
 
     def pause(self, name: str, timeout: float = REQUEST_TIMEOUT, rewire: bool = False) -> bool:
         """Hold a module's lock (no step, no event) until ``resume``; False if it does not

@@ -64,6 +64,9 @@ class Node(Protocol):
     def swap(self, name: str, spec: FlatModule) -> list[str]:
         """Replace a module's class in place; the state names kept."""
 
+    def retime(self, name: str, period: float, timeout: float) -> None:
+        """Step the module every ``period`` seconds from now on, and after its restarts."""
+
     def pause(self, name: str, timeout: float, rewire: bool = False) -> bool:
         """Hold the module's lock until ``resume``; False if it does not run here. A
         worker of it that dies meanwhile is restarted once it is let go of (resumed,

@@ -244,6 +244,9 @@ class RemoteNode:
     def swap(self, name: str, spec: FlatModule) -> list[str]:
         return self._forward("swap", name, spec)
 
+    def retime(self, name: str, period: float, timeout: float) -> None:
+        self._forward("retime", name, period, timeout, within=timeout + MARGIN_S)
+
     def pause(self, name: str, timeout: float, rewire: bool = False) -> bool:
         return self._forward("pause", name, timeout, rewire, within=timeout + MARGIN_S)
 

@@ -717,6 +717,14 @@ class ModuleActor:
         if steps and self.running:
             self._start_stepping()
 
+    def retime(self, period: float) -> None:
+        """Step every ``period`` seconds from now on: a step thread at the new period
+        begins now, and the one at the old period ends when it wakes (``_loop``). The
+        module's ``self.period`` says it at once."""
+        with self._sched_lock:
+            self.module.__dict__["period"] = period
+            self._step_every(period)
+
     def _dispatch_owed(self) -> None:
         """Schedule the calls its inputs owe: values that came while an instance that
         handles no events held the ports (the swap's) were not dispatched."""

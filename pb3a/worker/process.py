@@ -349,6 +349,10 @@ class Worker:
                                f"{actor.busy_in() or 'in a call'}, and its teardown has not run")
         return True
 
+    def op_retime(self, name: str, period: float) -> None:
+        """Step module ``name`` every ``period`` seconds from its next step on."""
+        self.actors[name].retime(period)
+
     def op_pause(self, name: str, timeout: float, until: float | None = None,
                  rewire: bool = False) -> None:
         """Hold the module's lock so it neither steps nor handles events (for rewiring),
