@@ -10,6 +10,7 @@ import logging
 import os
 import pickle
 import re
+import socket
 import struct
 import sys
 import threading
@@ -485,6 +486,29 @@ def test_a_client_of_a_server_that_reads_nothing_never_blocks_its_thread() -> No
         client.close()
         deaf.close()
     assert time.monotonic() - started < 3.0
+
+
+def test_a_name_whose_resolver_goes_silent_keeps_the_address_it_resolved_to(
+        monkeypatch) -> None:
+    """A robot's name server that stopped answering left ``numeric`` 2 s and then the
+    name itself, which ZeroMQ resolved again in its one I/O thread at every reconnection
+    of a rejoin: every socket of the launcher stalled, a healthy node was declared lost
+    and no command was answered for as long as the name hung. The address it last
+    resolved to is used instead; a name never resolved is given back as it was."""
+    assert numeric("tcp://localhost:7100") == "tcp://127.0.0.1:7100"
+    silent = threading.Event()
+
+    def hangs(*args, **kwargs):
+        silent.wait(5.0)                # (a resolver that does not answer)
+        raise socket.gaierror(socket.EAI_AGAIN, "Temporary failure in name resolution")
+    monkeypatch.setattr(socket, "getaddrinfo", hangs)
+    try:
+        started = time.monotonic()
+        assert numeric("tcp://localhost:7200", timeout=0.3) == "tcp://127.0.0.1:7200"
+        assert numeric("tcp://robot9.lab:7200", timeout=0.3) == "tcp://robot9.lab:7200"
+        assert time.monotonic() - started < 2.0
+    finally:
+        silent.set()
 
 
 def test_sockets_connect_to_a_name_by_its_address_resolved_once() -> None:

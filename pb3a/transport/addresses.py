@@ -54,6 +54,7 @@ def bind_advertised(sock: zmq.Socket, host: str, port: int = 0) -> str:
 EVERY_INTERFACE = ("*", "0.0.0.0", "[::]", "::")   # hosts that mean: every interface
 _ROUTED = "198.51.100.1"        # (TEST-NET-2: an address only the default route leads to)
 RESOLVE_S = 2.0                 # how long ``numeric`` waits for the resolver
+_RESOLVED: dict[str, str] = {}  # each host name's address when ``numeric`` last resolved it
 
 
 def default_route_host() -> str:
@@ -134,8 +135,12 @@ def numeric(address: str, timeout: float = RESOLVE_S) -> str:
     resolved here within ``timeout``: connect ZeroMQ sockets to that. ZeroMQ resolves a
     name again at every reconnection, in the one I/O thread all the process's sockets
     share, so a peer's name that stopped resolving promptly stalled every socket (the
-    heartbeats to healthy nodes too, which were then lost: libzmq #2961). An address
-    already numeric, or a name not resolved in time, is given back as it is."""
+    heartbeats to healthy nodes too, which were then lost: libzmq #2961). A name the
+    resolver does not answer for in time has the address it last resolved to here, if
+    any: a peer whose name server went silent is reconnected to (a rejoin asks again
+    and again) without handing ZeroMQ the name, which stalled every socket of the
+    launcher for as long, and had a healthy node declared lost. An address already
+    numeric, or a name never resolved, is given back as it is."""
     host = host_of(address).strip("[]")
     with contextlib.suppress(ValueError):
         ipaddress.ip_address(host)
@@ -148,10 +153,11 @@ def numeric(address: str, timeout: float = RESOLVE_S) -> str:
 
     answer = _within(resolve, timeout)
     found = answer[0] if answer else []
-    if not found:
+    if found:
+        _RESOLVED[host] = found[0][4][0]         # (family, type, proto, name, (ip, port))
+    elif answer or host not in _RESOLVED:        # (no such name now, or never known)
         return address
-    ip = found[0][4][0]                          # (family, type, proto, name, (ip, port))
-    return f"tcp://{ip}:{address.rpartition(':')[2]}"
+    return f"tcp://{_RESOLVED[host]}:{address.rpartition(':')[2]}"
 
 
 def tcp_address_problems(value: object, what: str, otherwise: str = "") -> list[str]:
