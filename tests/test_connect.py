@@ -454,3 +454,24 @@ def test_a_launcher_listening_on_every_interface_hands_out_an_address_of_this_ma
         assert host in ours and host not in ("*", "0.0.0.0", "[::]"), address
         with pb3a.connect(f"tcp://127.0.0.1:{port}") as far:      # every interface: here too
             assert far.name == "everywhere"
+
+
+def test_a_launcher_on_loopback_is_refused_when_a_node_is_on_another_machine(
+        monkeypatch) -> None:
+    """``pb3a run --listen tcp://127.0.0.1:PORT`` with a node on a robot started, and
+    the robot called the launcher back at its own loopback: a ``last-state`` module
+    failed over from nothing, nothing said (an operator's review, on network
+    namespaces). It is refused before anything starts, naming the node; nodes of this
+    machine (loopback controllers, as in the tests) are not "far"."""
+    from pb3a.transport.addresses import elsewhere
+    assert not elsewhere("tcp://127.0.0.1:7100") and not elsewhere("tcp://localhost:7100")
+    robot = "tcp://127.0.0.2:7100"           # (taken for a robot: loopback, should it be tried)
+    monkeypatch.setattr(running, "elsewhere", lambda towards: towards == robot)
+    system = System("far").add("scale", Scale)
+    system.node("robot1", address=robot)
+    started = time.monotonic()
+    with pytest.raises(ValueError, match=r"cannot listen on tcp://127\.0\.0\.1:0: node "
+                                         r"robot1 runs on another machine, which calls the "
+                                         r"launcher back at this address"):
+        system.launch(listen="tcp://127.0.0.1:0", timeout=5)
+    assert time.monotonic() - started < 3.0

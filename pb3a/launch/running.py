@@ -31,7 +31,9 @@ from pb3a.transport.addresses import (
     bind_address,
     check_bindable,
     default_route_host,
+    elsewhere,
     host_of,
+    loopback,
     reachable_from,
     unresolved,
 )
@@ -180,6 +182,23 @@ class Running(SystemHandle):
                                  f"node's {field} (a name the launcher's machine resolves, "
                                  "or an IP address)") from None
 
+    def _refuse_loopback_with_far_nodes(self, address: str, host: str) -> None:
+        """ValueError if ``host`` is a loopback address while a node runs on another
+        machine: nodes call the launcher back at the address it listens at (checkpoints,
+        events, agents' requests), and there it is that machine's own loopback, so a
+        ``last-state`` module failed over from nothing, and nothing said so."""
+        nodes = [node.name for node in self.plan.nodes.values() if node.address]
+        far = [name for name, towards in zip(nodes, self._remote_nodes(), strict=True)
+               if elsewhere(towards)]
+        if far and loopback(host):
+            where = ("runs on another machine, which calls" if len(far) == 1 else
+                     "run on other machines, which call")
+            raise ValueError(f"cannot listen on {address}: node{'s' * (len(far) > 1)} "
+                             f"{', '.join(far)} {where} the launcher back at this address, "
+                             f"and {host} there is that machine itself: listen on an address "
+                             "of this machine the nodes reach (or 0.0.0.0 for every "
+                             "interface)")
+
     def listen(self, address: str = "tcp://127.0.0.1:0") -> str:
         """Take authenticated requests (``pb3a.connect``, ``pb3a status ADDR`` ...) at
         ``address``; returns the address to reach it at. Bound to every interface
@@ -193,6 +212,7 @@ class Running(SystemHandle):
             host, port = bind_address(address)
             if host not in EVERY_INTERFACE:
                 check_bindable(address, host, port)
+                self._refuse_loopback_with_far_nodes(address, host)
             # Not in the lane of operations, one at a time: an agent's request from a
             # remote node (the operation in progress may wait for it: the setup of the
             # module it starts), what nodes report, and the reads that wait for news

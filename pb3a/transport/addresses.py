@@ -259,6 +259,25 @@ def bind_address(address: str) -> tuple[str, int]:
     return host or "127.0.0.1", int(port or 0)
 
 
+def loopback(host: str) -> bool:
+    """Whether ``host`` (a name or an address) is this machine's loopback; False if it
+    does not resolve."""
+    try:
+        return ipaddress.ip_address(socket.gethostbyname(host.strip("[]"))).is_loopback
+    except (OSError, UnicodeError, ValueError):
+        return False
+
+
+def elsewhere(peer: str) -> bool:
+    """Whether ``peer`` ("tcp://HOST:PORT") is on another machine: this machine reaches
+    it through an interface of another address (one of its own addresses it reaches
+    through itself). False if its host does not resolve."""
+    try:
+        return reachable_from(peer) != socket.gethostbyname(host_of(peer).strip("[]"))
+    except (OSError, UnicodeError):
+        return False
+
+
 def reachable_from(peer: str) -> str:
     """The host of this machine that ``peer`` ("tcp://HOST:PORT") can reach it at: the
     address of the interface this machine reaches the peer through (no packet is sent)."""
