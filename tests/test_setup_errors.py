@@ -7,14 +7,15 @@ from __future__ import annotations
 import os
 import signal
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import eventually
+from conftest import alive, eventually
 from sample_modules import NoDevice, OnFlag, OpensDevice, Steady
 
-from pb3a import RuntimeFailure, System
+from pb3a import Agent, Module, RuntimeFailure, RuntimeTimeout, System
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -217,7 +218,7 @@ def test_a_module_whose_setup_outlasts_its_add_never_runs(tmp_path: Path,
     system = System("setup-outlasts")
     system.add("other", Steady, group="g")
     with system.launch() as run:
-        with pytest.raises(RuntimeFailure, match="did not answer 'start'"):
+        with pytest.raises(RuntimeTimeout, match=r"slow's setup did not finish .* not added"):
             run.add("slow", SlowToOpen, group="g", state={"steps_to": str(steps)})
         assert "slow" not in run.stats().modules
         # its setup ends 2 s after it began: a step would follow within 10 ms
@@ -227,6 +228,72 @@ def test_a_module_whose_setup_outlasts_its_add_never_runs(tmp_path: Path,
         eventually(lambda: run.state("other")["count"] > count + 10, what="time passing")
         assert "step" not in steps.read_text()
     assert steps.read_text().endswith("set up\nclosed\n")     # what it opened, closed
+
+
+def test_an_add_whose_setup_outlasts_its_timeout_is_a_timeout_and_adds_nothing(
+        tmp_path: Path) -> None:
+    """An ``add`` (an agent's ``spawn`` too) whose module's ``setup`` outlasts its
+    timeout raises ``RuntimeTimeout`` saying that the module was not added: no event,
+    its worker stopped, and the same add with time enough adds it once (it raised a
+    ``RuntimeFailure`` blaming a module stuck in "worker 'local/m-helper'", which did
+    not say whether it was added)."""
+    system = System("setup-times-out")
+    system.add("agent", SpawnsSlowly, state={"pid_to": str(tmp_path / "spawned")})
+    with system.launch() as run:
+        began = time.monotonic()
+        with pytest.raises(RuntimeTimeout) as raised:
+            run.add("helper", SetsUpSlowly, state={"pid_to": str(tmp_path / "helper")},
+                    timeout=1.0)
+        assert time.monotonic() - began < 2.0
+        assert str(raised.value) == ("helper's setup did not finish within 1 s; it was not "
+                                     "added: give the call a longer timeout")
+        said = eventually(lambda: run.state("agent")["said"], what="the agent's spawn")
+        assert said == ("RuntimeTimeout: spawned's setup did not finish within 1 s; it was "
+                        "not added: give the call a longer timeout")
+        assert not {"helper", "spawned"} & set(run.topology().modules)
+        assert not {"helper", "spawned"} & set(run.stats().modules)
+        assert [event.kind for event in run.events()] == []
+        for worker in ("helper", "spawned"):       # (the process its setup ran in)
+            pid = int((tmp_path / worker).read_text())
+            eventually(lambda pid=pid: not alive(pid), what=f"{worker}'s worker stopped")
+        run.add("helper", SetsUpSlowly, timeout=10.0)
+        assert [(event.kind, event.subject) for event in run.events()] == [
+            ("module_added", "helper")]
+        assert run.state("helper")["set_up"]
+
+
+class SetsUpSlowly(Module):
+    """Its ``setup`` notes its process id (in the file ``pid_to``, if given), then takes
+    2 s."""
+
+    period = 0.05
+    pid_to = ""
+    set_up = False
+
+    def setup(self) -> None:
+        if self.pid_to:
+            Path(self.pid_to).write_text(str(os.getpid()))
+        time.sleep(2.0)
+        self.set_up = True
+
+
+class SpawnsSlowly(Agent):
+    """At its first step spawns a ``SetsUpSlowly`` as ``spawned``, giving it 1 s:
+    ``said``, what that raised ("added" if nothing)."""
+
+    period = 0.05
+    pid_to = ""
+    said = ""
+
+    def step(self) -> None:
+        if self.said:
+            return
+        try:
+            self.runtime.spawn("spawned", SetsUpSlowly, state={"pid_to": self.pid_to},
+                               timeout=1.0)
+            self.said = "added"
+        except Exception as exc:
+            self.said = f"{type(exc).__name__}: {exc}"
 
 
 class SlowToOpen(OpensDevice):

@@ -30,7 +30,7 @@ from pb3a.config.compiler import plan_addition
 from pb3a.config.description import ModuleSpec, SystemSpec
 from pb3a.config.folding import fold
 from pb3a.config.plan import FlatLink, FlatModule
-from pb3a.deadline import bounding, lifted
+from pb3a.deadline import bounding, lifted, spoken
 from pb3a.errors import (
     ConfigError,
     ModuleNotFound,
@@ -49,6 +49,7 @@ from pb3a.model.environment import Environment
 from pb3a.model.macro import Macro
 from pb3a.model.module import Module
 from pb3a.model.ports import Policy
+from pb3a.node.workers import REQUEST_TIMEOUT
 from pb3a.pending import DONE, FAILED, RUNNING
 from pb3a.topology import Topology, topology_of
 from pb3a.transport import pickling
@@ -451,7 +452,8 @@ class Operations:
         if isinstance(module_cls, type) and issubclass(module_cls, Macro) \
                 and module_cls is not Macro:
             self._add_macro(name, module_cls, state=state, period=period, restart=restart,
-                            group=group, node=node, fallback=fallback, deadline=deadline)
+                            group=group, node=node, fallback=fallback, deadline=deadline,
+                            wait=wait)
             return
         with self._held(f"add {name}", _left(deadline), lend=[name]) as left:
             launcher = self.launcher
@@ -465,13 +467,21 @@ class Operations:
                               float(period) if period is not None else module_cls.period,
                               dict(state or {}), restart or module_cls.restart, group,
                               list(fallback or []), own_period=period is not None)
-            with bounding(left()):          # (a construction that blocks, say)
-                self._start(spec, [])       # (one that cannot start is not added)
+            budget = left()
+            try:
+                with bounding(budget):          # (a construction that blocks, say)
+                    self._start(spec, [])       # (one that cannot start is not added)
+            except RuntimeFailure as exc:
+                late = _set_up_late(exc, wait, budget)
+                if late is None:
+                    raise
+                raise RuntimeTimeout(f"{name}'s setup did not finish within {late[1]} s; it "
+                                     f"was not added: {late[2]}") from None
         self.event_log.record("module_added", name, node=node)
 
     def _add_macro(self, name: str, macro: type[Macro], *, state: Any, period: Any,
                    restart: Any, group: Any, node: str | None, fallback: Any,
-                   deadline: float) -> None:
+                   deadline: float, wait: float) -> None:
         """Start a macro instance: its modules as ``name/child`` paths, on ``node`` (the
         first node by default) unless a child names its own, and the links inside it,
         expanded and checked by the compiler as a configuration's entry is, then against
@@ -479,7 +489,8 @@ class Operations:
         nothing started. If a module of it cannot start, those added are removed again.
         Links made at run time reach it through its exports (``"f2.x"``), as in a
         configuration, or join its modules' own ports (``"f2/gain.x"``); ``migrate``,
-        ``remove`` and ``configuration()`` find it by its paths."""
+        ``remove`` and ``configuration()`` find it by its paths. ``wait``: the add's
+        timeout, which ends at ``deadline``."""
         refused = _refused_imports(macro, deadline)
         with self._held(f"add {name}", _left(deadline), lend=[name]) as left:
             launcher = self.launcher
@@ -513,8 +524,17 @@ class Operations:
             if problems or expanded is None:
                 raise ConfigError([f"macro {name}: {problem}" for problem in problems])
             specs, links = list(expanded.modules.values()), expanded.links
-            with bounding(left()):
-                self._start_all(specs, links)
+            budget = left()
+            try:
+                with bounding(budget):
+                    self._start_all(specs, links)
+            except RuntimeFailure as exc:
+                late = _set_up_late(exc, wait, budget)
+                if late is None:
+                    raise
+                raise RuntimeTimeout(
+                    f"macro {name}: the setup of {', '.join(late[0])} did not finish within "
+                    f"{late[1]} s; no module of {name} was added: {late[2]}") from None
             self.plan.exports.update(expanded.exports)
         for spec in specs:
             self.event_log.record("module_added", spec.name, node=spec.node, macro=name)
@@ -777,6 +797,24 @@ class Operations:
 def _left(deadline: float) -> float:
     """The seconds left until ``deadline`` (of ``time.monotonic()``), none if past."""
     return max(0.0, deadline - time.monotonic())
+
+
+def _set_up_late(failure: RuntimeFailure, wait: float,
+                 budget: float) -> tuple[list[str], str, str] | None:
+    """If an add's start ``failure`` is only that the ``setup`` of its modules outlasted
+    the start's time (``Executor.start_modules``: halted, then dropped by the add, their
+    worker stopped if it hosts nothing else): those modules, that time in seconds (the
+    add's ``wait`` if what it had left, ``budget``, bounded the start, else the start's
+    own ``REQUEST_TIMEOUT``) and what to do about it. None if a module failed for
+    another reason, which is said as it is. (It was a ``RuntimeFailure`` blaming a
+    module stuck in "its worker", which did not say that the module was not added.)"""
+    late = getattr(failure, "timed_out", [])
+    if not late or set(late) != set(getattr(failure, "failed", ())):
+        return None
+    if budget < REQUEST_TIMEOUT:
+        return late, spoken(wait), "give the call a longer timeout"
+    return late, f"{REQUEST_TIMEOUT:g}", (f"a module's setup may take {REQUEST_TIMEOUT:g} s at "
+                                          "most (open what takes longer in its first step)")
 
 
 def _resolved(cls: type | str, timeout: float) -> tuple[type | None, str]:

@@ -260,7 +260,8 @@ class Executor:
         A worker that dies meanwhile is left to its modules' restart policies. A module
         whose ``setup`` raises, or whose worker's start runs out of time (it is halted
         there), does not run; the others start all the same, and ``RuntimeFailure``
-        names each that did not, with why (its ``failed``: their names). With
+        names each that did not, with why (its ``failed``: their names; its
+        ``timed_out``: those of them whose start ran out of time). With
         ``failing`` they are failed here too (``module_failed``), for a caller that
         keeps them (failover); others drop them or put them back.
 
@@ -275,6 +276,7 @@ class Executor:
         runs = itertools.groupby((r for r in waiting if r.status != "running"),
                                  key=lambda record: record.worker)
         failed: dict[str, str] = {}
+        timed_out: list[str] = []
         late: list[str] = []
         for worker, records in runs:
             batch = list(records)
@@ -307,6 +309,8 @@ class Executor:
                 with lifted(), contextlib.suppress(RuntimeFailure, RuntimeTimeout):
                     self.call(worker, "halt", names=starting)
                 failed.update(dict.fromkeys(starting, str(exc)))
+                if isinstance(exc, RuntimeTimeout):
+                    timed_out += starting
                 continue
             for record in batch:
                 if record.spec.name not in failed:
@@ -325,6 +329,7 @@ class Executor:
         if failed:
             error = RuntimeFailure("; ".join(dict.fromkeys(failed.values())))
             error.failed = sorted(failed)           # type: ignore[attr-defined]
+            error.timed_out = sorted(timed_out)     # type: ignore[attr-defined]
             raise error
 
     def _give_up_late(self, future: Future[Any], worker: str,
