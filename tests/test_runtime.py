@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import gc
 import inspect
@@ -67,6 +68,7 @@ from pb3a import (
 from pb3a.config.compiler import validate
 from pb3a.config.description import read_description
 from pb3a.model.agent import RuntimeClient
+from pb3a.node import resources
 from pb3a.stats import (
     FAILURES_KEPT,
     FailureLog,
@@ -161,6 +163,35 @@ def test_stats_are_typed_records_with_a_json_form() -> None:
     text = json.dumps(plain, allow_nan=False)          # NaN (no latency yet) is null
     assert json.loads(text)["links"]["scale.y->sink.x"]["values"] >= 2
     assert plain["modules"]["src"]["inputs"] == {} and plain["failures"] == []
+
+
+def test_a_nodes_cpu_is_its_busy_share_over_the_last_second_whoever_asks(
+        monkeypatch) -> None:
+    """A node's CPU reading (``stats().nodes[n].cpu``) is its busy share over the last
+    whole second, sampled by the node whoever asks: two callers asking in turn, 10 ms
+    apart, both read a load busy 50 ms of every 100 ms as half. Before, each reading
+    covered the time since the previous one, by anyone: they read 0 or 100 (an agent
+    polling it read a steady half load as 86, 0, 0, 100, 0 ... when another client
+    asked too)."""
+    began = time.monotonic()
+    times = collections.namedtuple("times", "user idle")
+
+    def cpu_times(percpu: bool = False) -> list[tuple[float, float]]:
+        """CPU 0 busy the first half of every 0.1 s since ``began``."""
+        elapsed = time.monotonic() - began
+        periods, into = divmod(elapsed, 0.1)
+        busy = periods * 0.05 + min(into, 0.05)
+        return [times(busy, elapsed - busy)]
+    monkeypatch.setattr(resources.psutil, "cpu_times", cpu_times)
+    meter = resources.ResourceMeter([0])
+    readings: dict[str, list[float]] = {"agent": [], "command line": []}
+    while time.monotonic() - began < 1.6:
+        for asker in readings:
+            if time.monotonic() - began > 1.1:      # (a whole second measured by then)
+                readings[asker].append(meter.sample().cpu)
+            time.sleep(0.01)
+    assert all(45.0 <= cpu <= 55.0 for said in readings.values() for cpu in said), readings
+    meter.close()
 
 
 def test_the_failures_kept_are_the_newest_each_dated(caplog: pytest.LogCaptureFixture) -> None:

@@ -822,6 +822,7 @@ class Executor:
             if self._bridge is not None:
                 self._bridge.shutdown()
             self.wiring.close()
+            self.meter.close()
 
 
 @contextlib.contextmanager
