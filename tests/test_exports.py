@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pydoc
+
 import pb3a
 
 
@@ -26,3 +28,13 @@ def test_errors_subclass_the_nearest_builtin() -> None:
     assert issubclass(pb3a.SystemStopped, pb3a.RuntimeFailure)       # caught as before
     assert all(issubclass(e, pb3a.PB3AError) for e in (
         pb3a.ConfigError, pb3a.ModuleNotFound, pb3a.RuntimeTimeout, pb3a.RuntimeFailure))
+
+
+def test_help_on_the_env_module_gives_each_port_its_meaning() -> None:
+    """An agent's author reads in ``help(pb3a.Environment)`` what each port carries and
+    in what unit (it listed the ports' names only; the meaning was in the module's
+    docstring, which help() on the class does not show)."""
+    shown = pydoc.render_doc(pb3a.Environment, renderer=pydoc.plaintext)
+    for name, port in pb3a.Environment.outputs.items():
+        assert port.__doc__ and port.__doc__ != type(port).__doc__, name
+        assert port.__doc__.splitlines()[0] in shown, name

@@ -118,10 +118,14 @@ class RuntimeClient:
         """Move a module (or macro) to node ``to``; its ``MigrationReport``. ``state``
         (module name -> fields) is set on arrival, before the module runs there. With
         ``wait=False``, or when an agent moves itself (or its own macro: the move can
-        only pause it once its body returns), a ``Pending`` instead: the agent goes on,
-        and ``pending.done()`` / ``pending.result()`` or the ``module_moved`` event of
-        its ``env`` port tell it when the move ended (``timeout`` is then the move's
-        own, from its start). The timeout bounds the whole move, as the API's does."""
+        only pause it once its body returns), a ``Pending`` instead
+        (``pb3a.pending.Pending``): the agent goes on, and ``pending.done()`` (not
+        waiting) or ``pending.result(timeout)`` (the report, or the error the move
+        raised) tells it when the move ended, as soon as it has (``timeout`` is then the
+        move's own, from its start). The ``module_moved`` output of an ``env-NODE``
+        module says so too, but only at that module's next sample, up to its period
+        (1 s by default) after the move ended. The timeout bounds the whole move, as
+        the API's does."""
         if wait and not (name == self._agent or self._agent.startswith(f"{name}/")):
             return self._call("migrate", name, to=to, state=state, timeout=timeout)
         job = self._call("begin_migration", timeout=timeout, name=name, to=to, state=state)
@@ -134,7 +138,8 @@ class Agent(Module):
 
     @property
     def runtime(self) -> RuntimeClient:
-        """The running system, seen from inside (a ``RuntimeClient``): read and set other
+        """The running system, seen from inside (a ``RuntimeClient``, whose calls
+        ``help(pb3a.model.agent.RuntimeClient)`` describes): read and set other
         modules' state, ``swap``, ``relink``, ``link``, ``spawn``, ``remove``,
         ``migrate`` (this agent too), ``stats``, ``where`` and ``events``, each under the
         launcher's configuration lock with every other change. Called from a body

@@ -17,15 +17,18 @@ lost, and the round-trip time of the last heartbeat); ``node_lost`` is the event
 a node's name, written once per loss, at the first sample after the launcher lost
 it (also when it was back by then).
 ``module_moved`` is the event of a migration anywhere in the system (``module``,
-``source``, ``destination``, ``pause_s``), once per move, at the next sample; a
-module restarted on another node because its node was lost is one too (``policy``,
-``from_checkpoint`` and ``restart_s`` instead of ``pause_s``).
+``source``, ``destination``, ``pause_s``), once per move, at the next sample (up to
+a period after the move: the agent that asked for it learns of its end at once from
+its ``Pending``); a module restarted on another node because its node was lost is one
+too (``policy``, ``from_checkpoint`` and ``restart_s`` instead of ``pause_s``). Each
+port's meaning and unit is its docstring, which ``help(pb3a.Environment)`` shows.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import textwrap
 import time
 
 import numpy as np
@@ -37,18 +40,51 @@ from pb3a.model.ports import Output
 PREFIX = "env-"
 
 
-class Environment(Module):
-    """A node's resources as output ports."""
+def _port(port: Output, doc: str) -> Output:
+    """``port``, with ``doc`` as its docstring, which ``help()`` shows under its name
+    (wrapped: it does not wrap a long line)."""
+    port.__doc__ = textwrap.fill(doc, 80)
+    return port
 
-    cpu = Output(float)                  # mean busy percent of the node's CPUs
-    cpu_per_core = Output(np.ndarray)    # busy percent of each of them
-    cpu_own = Output(float)              # percent of the node's CPUs this system uses
-    cpu_outside = Output(float)          # cpu - cpu_own: the load from outside it
-    memory_available = Output(float)     # bytes
-    load = Output(np.ndarray)            # 1, 5 and 15-minute load averages
-    nodes = Output(dict)                 # node -> {"up": bool, "rtt": seconds}
-    node_lost = Output(str)              # a lost node's name (once)
-    module_moved = Output(dict)          # module, source, destination, pause_s (once)
+
+class Environment(Module):
+    """A node's resources as output ports, sampled every ``period`` seconds (1 by
+    default; declare ``env-NODE`` yourself, class ``pb3a:Environment``, for another):
+    module ``env-NODE``, started when a link reads one of its outputs
+    (``system.link("env-a.cpu", "agent.cpu")``). What each output carries, and in
+    what unit, is its docstring (listed by ``help()``); a CPU figure is that of the
+    last period, over the node's CPUs (its pinned ones, if pinned). The events
+    (``node_lost``, ``module_moved``) come at its next sample, up to a period after
+    what they tell."""
+
+    cpu = _port(Output(float), "Percent (0-100): how busy the node's CPUs were over the "
+                "last period, on average.")
+    cpu_per_core = _port(Output(np.ndarray), "Percent (0-100) per CPU of the node, over "
+                         "the last period, in CPU-number order (a float64 array).")
+    cpu_own = _port(Output(float), "Percent (0-100) of the node's CPUs that this "
+                    "system's worker processes on the node used over the last period (at "
+                    "most ``cpu``): the load it brought.")
+    cpu_outside = _port(Output(float), "Percent (0-100): ``cpu - cpu_own``, the load "
+                        "from outside this system, which moving its modules away leaves.")
+    memory_available = _port(Output(float), "Bytes of memory the machine has available "
+                             "(psutil's ``available``).")
+    load = _port(Output(np.ndarray), "The machine's 1, 5 and 15-minute load averages "
+                 "(processes runnable or running, not a percent; a float64 array of 3).")
+    nodes = _port(Output(dict), "Every node's health as the launcher's heartbeats see "
+                  "it: node -> {\"up\": bool, \"rtt\": seconds of this node's last "
+                  "round trip to it, NaN while it is lost}, each sample.")
+    node_lost = _port(Output(str), "A lost node's name: an event, once per loss, at the "
+                      "first sample after the launcher lost it (also when it was back by "
+                      "then).")
+    module_moved = _port(Output(dict), "A module moved anywhere in the system: an event, "
+                         "{\"module\", \"source\", \"destination\", \"pause_s\": the "
+                         "seconds it was paused}, once per move, at this module's next "
+                         "sample, up to a period (1 s by default) after the move ended; "
+                         "for a module restarted elsewhere because its node was lost, "
+                         "\"policy\", \"from_checkpoint\" and \"restart_s\" instead of "
+                         "\"pause_s\". An agent that asked for the move learns of its end "
+                         "at once from the ``Pending`` that ``runtime.migrate(..., "
+                         "wait=False)`` returns (``done()``, ``result()``).")
     period = 1.0
     # set by the launcher: every node's health; this node's worker processes; the latest
     # moves and nodes lost, each with the sequence number of its event, so each is told
