@@ -1350,8 +1350,8 @@ class MacroSpawner(Agent):
             self.runtime.link("scale.y", "c2/a.x")
             try:
                 self.runtime.remove(self.runtime.name.partition("/")[0])
-            except RuntimeFailure as exc:
-                self.refused = str(exc)
+            except ValueError as exc:
+                self.refused = f"{type(exc).__name__}: {exc}"
         elif self.seen == 2:
             self.runtime.remove("c2")
 

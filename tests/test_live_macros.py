@@ -4,6 +4,8 @@ agent and the command line (``Operations.add`` refused it as no Module subclass,
 
 from __future__ import annotations
 
+import re
+
 import pytest
 from conftest import eventually
 from sample_modules import (
@@ -160,8 +162,12 @@ def test_an_agent_spawns_and_removes_a_macro_but_not_its_own() -> None:
         eventually(lambda: run.stats().modules["c2/b"].events > 0, what="values through c2")
         # (its try at removing its own macro comes after the link: wait for its answer)
         refused = eventually(lambda: run.state("kit/agent")["refused"], what="the refusal")
-        assert "agent 'kit/agent' is in it: an agent cannot remove itself or the macro it " \
-            "is in" in refused
+        assert refused == ("ValueError: remove kit: agent 'kit/agent' is in it: an agent "
+                           "cannot remove itself or the macro it is in (the stop would wait "
+                           "for the very call that asks it; it may migrate itself)")
+        # (the launcher refuses it too, in the same words, should a request get past it)
+        with pytest.raises(ConfigError, match=re.escape(refused.removeprefix("ValueError: "))):
+            run._operations.apply("remove", {"name": "kit"}, asker=("kit/agent", False))
         assert "kit/agent" in run.topology().modules
         run.set_state("trigger", limit=2)
         eventually(lambda: not [name for name in run.topology().modules

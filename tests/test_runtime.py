@@ -1146,6 +1146,40 @@ def test_an_agent_s_set_state_with_nothing_to_set_is_refused_as_the_api_s() -> N
     assert asked == []
 
 
+def test_an_agent_naming_itself_or_the_macro_it_is_in_is_refused_in_one_way() -> None:
+    """An agent cannot read, set, swap or remove itself, nor remove the macro it is in:
+    each is a ``ValueError`` at its own call, nothing sent, in the same words; it may
+    migrate both, and ask where it runs. Before, removing itself was a ``ValueError``
+    ("change its own attributes directly") and removing its macro a ``RuntimeFailure``
+    from the launcher."""
+    asked = []
+    client = RuntimeClient("kit/agent", lambda op, args, timeout: asked.append(op))
+    for call, said in (
+            (lambda: client.remove("kit"), "remove kit: agent 'kit/agent' is in it: an agent "
+             "cannot remove itself or the macro it is in (the stop would wait for the very "
+             "call that asks it; it may migrate itself)"),
+            (lambda: client.remove("kit/agent"), "remove kit/agent: agent 'kit/agent' is it: "
+             "an agent cannot remove itself or the macro it is in (the stop would wait for "
+             "the very call that asks it; it may migrate itself)"),
+            (lambda: client.swap("kit/agent", Scale), "swap kit/agent: agent 'kit/agent' is "
+             "it: an agent cannot swap itself (the swap would wait for the very call that "
+             "asks it; it may migrate itself)"),
+            (lambda: client.set_state("kit/agent", seen=0), "set_state kit/agent: agent "
+             "'kit/agent' is it: an agent cannot set_state itself (it sets its own "
+             "attributes directly)"),
+            (lambda: client.state("kit/agent"), "state kit/agent: agent 'kit/agent' is it: "
+             "an agent cannot state itself (it reads its own attributes directly)")):
+        with pytest.raises(ValueError, match=f"^{re.escape(said)}$") as refused:
+            call()
+        assert type(refused.value) is ValueError
+    assert asked == []
+    client.migrate("kit", "b")
+    client.where("kit/agent")
+    client.remove("kit2")                   # (another macro whose name begins as its own)
+    client.swap("kit/other", Scale)
+    assert asked == ["begin_migration", "where", "remove", "swap"]
+
+
 def test_the_figures_of_a_node_without_remote_links_make_no_bridge() -> None:
     """A report read every remote link's losses from the node's bridge, which it made on
     first use even with none: a thread, sockets, and the cluster key loaded (one that

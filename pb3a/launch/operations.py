@@ -44,6 +44,7 @@ from pb3a.launch.migration import MigrationReport, MovedLate, migrate
 from pb3a.loading import trial
 from pb3a.loading.references import ImportRefused, changed_since_import, resolve_class
 from pb3a.loading.served import forget, reload_problem
+from pb3a.model.agent import own_target
 from pb3a.model.environment import PREFIX as ENV_PREFIX
 from pb3a.model.environment import Environment
 from pb3a.model.macro import Macro
@@ -562,11 +563,10 @@ class Operations:
             if not names:
                 launcher.node_of(name)                # raises ModuleNotFound
             asker = _ASKER.get()
-            if asker is not None and asker[0] in names:
-                raise RuntimeFailure(
-                    f"remove {name}: agent {asker[0]!r} is {'it' if name == asker[0] else 'in it'}"
-                    ": an agent cannot remove itself or the macro it is in (the stop would "
-                    "wait for the very call that asks it)")
+            # (its RuntimeClient refuses it first, a ValueError in the same words)
+            refused = None if asker is None else own_target(asker[0], "remove", name)
+            if refused is not None:
+                raise ConfigError([refused])
             removed: list[str] = []
             try:
                 with bounding(left()):

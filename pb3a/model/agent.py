@@ -8,7 +8,9 @@ within its ``timeout`` (30 s at most without one). Meanwhile the agent gives way
 (``pb3a.worker.waits``): its state may be read or set on its own thread, and if the
 runtime must pause it (to move or swap it) the call raises ``RuntimeFailure``
 ("... cancelled: ...").
-An agent must not target itself (except to migrate): it owns its own state.
+An agent must not target itself (except to migrate and ask where it runs): it reads
+and sets its own state directly, and cannot swap or remove itself, nor remove the
+macro it is in (``ValueError``, nothing sent: ``own_target``).
 """
 
 from __future__ import annotations
@@ -24,6 +26,27 @@ if TYPE_CHECKING:
 
     from pb3a.events import Event
     from pb3a.stats import SystemStats
+
+
+# Why an agent may not name itself in a request, by the request.
+_ITSELF = {"state": "it reads its own attributes directly",
+           "set_state": "it sets its own attributes directly",
+           "swap": "the swap would wait for the very call that asks it; it may migrate "
+                   "itself",
+           "remove": "the stop would wait for the very call that asks it; it may migrate "
+                     "itself"}
+
+
+def own_target(agent: str, op: str, target: str) -> str | None:
+    """Why ``agent`` may not ask ``op`` of ``target``, if it is the agent itself, or,
+    for a removal, the macro instance the agent is in (it may migrate both); None if it
+    may. One wording for the agent's own check (``ValueError``) and the launcher's."""
+    if op not in _ITSELF or not (target == agent or (op == "remove" and
+                                                     agent.startswith(f"{target}/"))):
+        return None
+    what = "itself or the macro it is in" if op == "remove" else "itself"
+    return (f"{op} {target}: agent {agent!r} is {'it' if target == agent else 'in it'}: an "
+            f"agent cannot {op} {what} ({_ITSELF[op]})")
 
 
 class RuntimeClient:
@@ -48,9 +71,9 @@ class RuntimeClient:
     def _call(self, op: str, target: str | None = None, *, timeout: float | None = None,
               **args: Any) -> Any:
         if target is not None:
-            if target == self._agent:
-                raise ValueError(f"agent {self._agent!r} cannot {op} itself; "
-                                 "change its own attributes directly")
+            refused = own_target(self._agent, op, target)
+            if refused is not None:
+                raise ValueError(refused)
             args["name"] = target
         if timeout is not None:
             args["timeout"] = bounded_wait(timeout, f"runtime.{op}")
@@ -68,7 +91,8 @@ class RuntimeClient:
                    timeout=timeout)
 
     def swap(self, name: str, cls: type | str, *, timeout: float | None = None) -> list[str]:
-        """Swap another module for ``cls``, keeping ports and matching state."""
+        """Swap another module for ``cls``, keeping ports and matching state (not this
+        agent: ``ValueError``, as for ``remove``)."""
         return self._call("swap", name, cls=cls, timeout=timeout)
 
     def relink(self, src: str, dst: str, *, policy: str | None = None,
@@ -95,8 +119,9 @@ class RuntimeClient:
 
     def remove(self, name: str, *, timeout: float | None = None, force: bool = False) -> None:
         """Stop and remove another module, or every module of a macro instance but the
-        agent's own (``force``: killing its worker if it does not answer, as
-        ``Running.remove``)."""
+        one it is in (``force``: killing its worker if it does not answer, as
+        ``Running.remove``). Naming itself or the macro it is in is a ``ValueError``,
+        nothing sent: the stop would wait for this very call."""
         self._call("remove", name, timeout=timeout, force=force)
 
     def stats(self, *, timeout: float | None = None) -> SystemStats:
