@@ -244,7 +244,7 @@ def test_an_add_whose_setup_outlasts_its_timeout_is_a_timeout_and_adds_nothing(
         with pytest.raises(RuntimeTimeout) as raised:
             run.add("helper", SetsUpSlowly, state={"pid_to": str(tmp_path / "helper")},
                     timeout=1.0)
-        assert time.monotonic() - began < 2.0
+        assert time.monotonic() - began < 4.0          # (not the start's 10 s)
         assert str(raised.value) == ("helper's setup did not finish within 1 s; it was not "
                                      "added: give the call a longer timeout")
         said = eventually(lambda: run.state("agent")["said"], what="the agent's spawn")
