@@ -131,6 +131,9 @@ class NodeStats:
     memory_available: int | None = None     # bytes
     memory_total: int | None = None         # bytes
     spare_workers: int | None = None        # booted idle workers (its ``spares`` setting)
+    # why its controller refuses the launcher (another cluster key, clocks apart), which
+    # keeps a lost node from rejoining; "" if it does not
+    refused: str = ""
 
 
 @dataclass(frozen=True)

@@ -382,11 +382,14 @@ class Daemon:
             raise
         return made
 
-    def start(self, ready: bool = True) -> None:
-        """Start it; with ``ready``, return once it says where it listens (else ``ready``)."""
+    def start(self, ready: bool = True, key: str | None = None) -> None:
+        """Start it; with ``ready``, return once it says where it listens (else ``ready``);
+        ``key``: a cluster key of its own (the tests' otherwise)."""
         repo = Path(__file__).resolve().parent.parent
         env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(repo / "tests"), str(repo),
                                                             *self.path])}
+        if key is not None:
+            env["PB3A_KEY"] = key
         self.process = subprocess.Popen(
             [sys.executable, "-m", "pb3a", "node", "start", "--name", self.name,
              "--listen", self.address, "--max-cpu", "101"],

@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import itertools
 import json
+import logging
 import math
 import os
 import re
@@ -39,7 +40,7 @@ from sample_modules import (
 
 from pb3a import RuntimeFailure, RuntimeTimeout, System
 from pb3a.cli.main import main
-from pb3a.cli.status import format_table
+from pb3a.cli.status import format_nodes, format_table
 from pb3a.daemons.node_controller import Limits, NodeController
 from pb3a.transport.auth import ClusterKey, Rejected
 from pb3a.transport.control import ControlClient
@@ -939,3 +940,27 @@ def test_a_rejoin_that_cannot_take_the_lock_stops_the_executor_it_started(node_b
         assert refused and len(started) == 2
         assert started[0]._closed.is_set() and not started[1]._closed.is_set()
         assert launcher.remotes["b"] is started[1]
+
+
+def test_a_lost_node_whose_controller_comes_back_with_another_key_says_why_it_stays_lost(
+        node_b, caplog) -> None:
+    """A robot whose controller came back with another key copy stayed LOST, and
+    nothing on the workstation said why: `pb3a nodes` showed it lost, the launcher's
+    log and the events said nothing (an operator's review). The launcher logs it once,
+    and `pb3a nodes` shows the refusal and what to do."""
+    system = System("rekeyed").node("a").node("b", address=node_b.address)
+    system.add("far", Steady, node="b", restart="fresh", fallback=["a"])
+    with caplog.at_level(logging.WARNING, logger="pb3a.launcher"), \
+            system.launch() as run:
+        node_b.kill()
+        assert run._launcher.wait_health("b", up=False, timeout=10)
+        node_b.start(key=os.urandom(32).hex())
+        refused = eventually(lambda: run.nodes()["b"].refused, timeout=15,
+                             what="the refusal seen by the rejoin")
+        assert "runs with another cluster key" in refused, refused
+        table = format_nodes(run.nodes())
+        assert "LOST (refuses us: see below)" in table and f"b: {refused}" in table, table
+        run.wait(2.5)                           # (two more attempts to rejoin)
+        said = [record.getMessage() for record in caplog.records
+                if "cannot rejoin" in record.getMessage()]
+        assert len(said) == 1 and "another cluster key" in said[0], said

@@ -66,11 +66,15 @@ def format_nodes(nodes: dict[str, NodeStats]) -> str:
     """One row per node: its address, health (and epoch once it rejoined) and
     round-trip time."""
     rows = [("node", "address", "health", "rtt")]
+    refusals = []
     for name, node in nodes.items():
         health = "LOST" if not node.up else "up" if node.epoch == 1 else f"up (epoch {node.epoch})"
+        if node.refused and not node.up:        # (what keeps it from rejoining)
+            health += " (refuses us: see below)"
+            refusals.append(f"{name}: {node.refused}")
         rows.append((name, node.address or "(embedded)", health,
                      "-" if math.isnan(node.rtt) else f"{node.rtt * 1e3:.1f} ms"))
-    return "\n".join(_columns(rows))
+    return "\n".join(_columns(rows) + refusals)
 
 
 def _shortened(text: str, most: int = LAST_ERROR_WIDTH) -> str:

@@ -357,6 +357,11 @@ class Failover:
                 return
             # (said while it is lost too: it said the last answer before the loss)
             launcher.health[name]["controller"] = old.controller_answers(HEARTBEAT_S * 2)
+            if old.refusal != launcher.health[name].get("refused", ""):
+                if old.refusal:     # (once per reason: the rejoin asks every second)
+                    log.warning("node %s cannot rejoin: its controller answers but refuses "
+                                "the launcher: %s", name, old.refusal)
+                launcher.health[name]["refused"] = old.refusal
             if not launcher.health[name]["controller"]:
                 return
             old.stop_executor(timeout=5.0)        # (it fenced itself; killed if it did not)

@@ -516,7 +516,7 @@ class Launcher:
         return {name: NodeStats(health["up"], health["rtt"], health["address"],
                                 health.get("controller"), health["epoch"],
                                 self.remotes[name].silent_s() if name in self.remotes
-                                else 0.0)
+                                else 0.0, refused=health.get("refused", ""))
                 for name, health in self.health.items()}
 
     def wait_health(self, node: str, up: bool, timeout: float) -> bool:

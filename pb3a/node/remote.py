@@ -100,6 +100,7 @@ class RemoteNode:
         self.controller = ControlClient(key, address)
         self.client: ControlClient | None = None
         self.lost = False
+        self.refusal = ""                   # why its controller refused us last, if it did
         self.rtt = float("nan")             # of the last answered heartbeat
         self._answered = time.monotonic()
         # the newest renewal's answer heard (the executor's clock): what it dates the
@@ -400,7 +401,9 @@ class RemoteNode:
             stale, self.controller = self.controller, ControlClient(self._key,
                                                                     self.controller.address)
             stale.close()
-        return self.controller.ping(timeout) is not None
+        answered = self.controller.ping(timeout) is not None
+        self.refusal = "" if answered else self.controller.why_refused("ping")
+        return answered
 
     def unloadable(self, refs: dict[str, str], timeout: float, longer: str) -> dict[str, str]:
         """Which of ``refs`` (module name -> ``"module:Class"``) the node's executor cannot

@@ -529,6 +529,11 @@ class ControlClient:
             raise RuntimeFailure(f"{op} at {self.address} failed: {result}")
         return result
 
+    def why_refused(self, op: str) -> str:
+        """Why the server refused this client's requests (another cluster key, clocks
+        apart ...), as a sentence naming ``op`` and what to do; "" if it did not."""
+        return self._refusal(op) if self.refused else ""
+
     def _refusal(self, op: str) -> str:
         if self.refused == "stale epoch" and self._refused_by and not self._sealer.epoch:
             # (a client of no run, such as the command line, at a node's executor)
