@@ -18,7 +18,7 @@ from sample_modules import Chain, Counter, Doubler, FastScale, Last, Mapper, Rel
 
 import pb3a
 from pb3a import ConfigError, ModuleNotFound, RuntimeFailure, RuntimeTimeout, System
-from pb3a.launch import connection, running
+from pb3a.launch import running
 from pb3a.model.displays import Display
 from pb3a.stats import SystemStats
 from pb3a.topology import NodeInfo, PortInfo
@@ -130,7 +130,7 @@ def test_a_port_nothing_listens_on_is_told_within_2_s_and_a_late_launcher_still_
     assert time.monotonic() - started < 2.5
     # (refused a while longer than 1 s, so that a loaded machine cannot make the
     # listener come only after the connection gave up)
-    monkeypatch.setattr(connection, "REFUSED_S", 8.0)
+    monkeypatch.setattr(control, "REFUSED_S", 8.0)
     with _system().launch() as run:
         listening = threading.Timer(1.0, run.listen, [f"tcp://127.0.0.1:{port}"])
         listening.start()

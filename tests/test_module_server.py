@@ -204,6 +204,19 @@ def test_a_class_that_cannot_be_imported_names_the_module_server_that_did_not_an
         resolve_class("pb3a_nowhere_served:Thing")
 
 
+def test_a_module_server_whose_port_refuses_connections_is_given_up_on_within_2_s(
+        monkeypatch) -> None:
+    """With the module server stopped, an add waited the finder's whole 5 s (and the
+    check before it in a child process, 5 more: 12.6 s in an operator's review) to say
+    that it did not answer, though the connection was refused at once."""
+    with _importing_from(f"tcp://127.0.0.1:{unused_port()}", ClusterKey.load(),
+                         monkeypatch):
+        started = time.monotonic()
+        with pytest.raises(ImportError, match=r"did not answer: start it"):
+            resolve_class("pb3a_nowhere_served:Thing")
+        assert time.monotonic() - started < 2.5
+
+
 def test_a_class_the_module_server_does_not_have_names_the_server_and_the_file_to_put(
         served, monkeypatch) -> None:
     """A module file missing from the server's directory (copied elsewhere, misspelt)

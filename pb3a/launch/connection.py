@@ -14,15 +14,12 @@ from typing import Any
 from pb3a.errors import RuntimeFailure, RuntimeTimeout, SystemStopped, bounded_wait
 from pb3a.launch.handle import SystemHandle
 from pb3a.launch.operations import DEFAULT_TIMEOUT
-from pb3a.transport.addresses import connection_failure, launcher_address, unknown_host
+from pb3a.transport.addresses import launcher_address, unknown_host
 from pb3a.transport.auth import ClusterKey
-from pb3a.transport.control import ControlClient
+from pb3a.transport.control import ControlClient, NotListening
 from pb3a.transport.pickling import PYTHON
 
 CONNECT_TIMEOUT = 5.0       # a launcher answers a ping at once, or is not there
-QUICK_S = 0.5               # ... within this, unless it is far or busy
-REFUSED_S = 1.0             # connections refused this long: nothing listens there
-_REPROBE_S = 0.1
 _MARGIN = 5.0               # the wire's deadline beyond the operation's own
 
 
@@ -121,27 +118,15 @@ class Connection(SystemHandle):
 
 
 def _describe(client: ControlClient, address: str, deadline: float) -> dict[str, Any]:
-    """The launcher's description of its system. A launcher answers at once; when none
-    has within a moment, a plain connection tells whether anything listens there, and
-    one refused for ``REFUSED_S`` on end (a system that has ended, a wrong port) ends
-    the wait then, saying so: the whole timeout was waited, to say less. ``RuntimeTimeout``
-    without words when the deadline passes."""
+    """The launcher's description of its system; a port nothing listens on is said
+    within about 1.5 s (a system that has ended, a wrong port): the whole timeout was
+    waited, to say less. ``RuntimeTimeout`` without words when the deadline passes."""
     try:
-        return client.call("describe", max(0.0, min(QUICK_S, deadline - time.monotonic())))
-    except RuntimeTimeout:
-        pass
-    given_up = min(deadline, time.monotonic() + REFUSED_S)
-    while isinstance(connection_failure(address, max(0.0, deadline - time.monotonic())),
-                     ConnectionRefusedError):
-        if time.monotonic() >= given_up:
-            host, _, port = address.removeprefix("tcp://").rpartition(":")
-            raise RuntimeTimeout(
-                f"no PB3A launcher answered at {address}: nothing listens on port {port} at "
-                f"{host} (the connection was refused): the system has stopped, or the "
-                "address is wrong (pb3a run prints it)")
-        time.sleep(_REPROBE_S)         # (nothing tells when a listener comes: ask again)
-    try:
-        return client.call("describe", max(0.0, deadline - time.monotonic()))
+        return client.call_if_listened("describe", max(0.0, deadline - time.monotonic()))
+    except NotListening as exc:
+        raise RuntimeTimeout(f"no PB3A launcher answered at {address}: {exc}: the system "
+                             "has stopped, or the address is wrong (pb3a run prints it)"
+                             ) from None
     except RuntimeTimeout:
         raise RuntimeTimeout() from None
 

@@ -67,7 +67,9 @@ class ServedModuleFinder(importlib.abc.MetaPathFinder):
             if time.monotonic() < self._silent_until.get(address, 0.0):
                 continue              # it did not answer lately: no import waits for it
             try:
-                found = client.call("find", timeout=FIND_TIMEOUT, name=fullname)
+                # (a server whose port refuses connections is said silent in about
+                # 1.5 s: an add or swap waited its whole 5 s, and the check before it 5 more)
+                found = client.call_if_listened("find", FIND_TIMEOUT, name=fullname)
             except RuntimeTimeout:
                 self._silent_until[address] = time.monotonic() + SILENT_FOR_S
                 continue

@@ -61,7 +61,7 @@ from zmq.utils.monitor import recv_monitor_message
 from pb3a.deadline import spoken
 from pb3a.errors import PB3AError, RuntimeFailure, RuntimeTimeout
 from pb3a.transport import pickling
-from pb3a.transport.addresses import bind_advertised, close_bound, numeric
+from pb3a.transport.addresses import bind_advertised, close_bound, connection_failure, numeric
 from pb3a.transport.auth import ClusterKey, Opener, Rejected, Sealer
 from pb3a.transport.loop import SocketLoop
 
@@ -106,6 +106,9 @@ MAX_MESSAGE = 64 * 1024 * 1024          # control messages carry states and code
 # it. One that large is refused where it is made, saying so, and nothing is dropped.
 MAX_PAYLOAD = MAX_MESSAGE - 64 * 1024
 DEFAULT_TIMEOUT = 10.0
+QUICK_S = 0.5               # a server that is there answers within this, unless far or busy
+REFUSED_S = 1.0             # connections refused this long: nothing listens there
+_REPROBE_S = 0.1
 # A server that closed the client's connection, with nothing taking a connection there
 # since for this long, is gone (see ``ControlClient``'s ``when_gone``); a server that
 # runs takes ZeroMQ's reconnection within milliseconds
@@ -433,6 +436,10 @@ def _undecodable(exc: Exception, what: str, reader: str) -> str:
     return f"{what} could not be read by {reader}: {type(exc).__name__}: {exc}"
 
 
+class NotListening(RuntimeTimeout):
+    """Nothing listens where a server was to be: its port refuses connections."""
+
+
 class ControlClient:
     """Calls one ``ControlServer``; ``call`` may be used from any number of threads.
 
@@ -528,6 +535,26 @@ class ControlClient:
                 raise result
             raise RuntimeFailure(f"{op} at {self.address} failed: {result}")
         return result
+
+    def call_if_listened(self, op: str, timeout: float = DEFAULT_TIMEOUT, **args: Any) -> Any:
+        """``call``, to a server that may not be there. One that has not answered within
+        ``QUICK_S`` is asked of the OS, and a port that refuses connections for
+        ``REFUSED_S`` on end (nothing listens: a process that ended, a wrong port) fails
+        then with ``NotListening``, rather than at ``timeout`` ("did not answer", having
+        waited it whole); a server that begins to listen meanwhile is asked on."""
+        deadline = time.monotonic() + timeout
+        with contextlib.suppress(RuntimeTimeout):
+            return self.call(op, min(QUICK_S, timeout), **args)
+        given_up = min(deadline, time.monotonic() + REFUSED_S)
+        while isinstance(connection_failure(self.address,
+                                            max(0.0, deadline - time.monotonic())),
+                         ConnectionRefusedError):
+            if time.monotonic() >= given_up:
+                host, _, port = self.address.removeprefix("tcp://").rpartition(":")
+                raise NotListening(f"nothing listens on port {port} at {host} (the "
+                                   "connection was refused)")
+            time.sleep(_REPROBE_S)       # (nothing tells when a listener comes: ask again)
+        return self.call(op, max(0.0, deadline - time.monotonic()), **args)
 
     def why_refused(self, op: str) -> str:
         """Why the server refused this client's requests (another cluster key, clocks
