@@ -5,7 +5,12 @@ from __future__ import annotations
 import os
 import pwd
 import random
+import shutil
 import stat
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -95,6 +100,32 @@ def test_a_key_file_of_another_user_is_refused_naming_both_users(tmp_path) -> No
     assert str(refused.value) == (
         f"the cluster key file {path} (mode 0600) belongs to {owner}, not to {me} who runs "
         f"this; give it to that user with `chown {me} {path}`")
+
+
+@pytest.mark.skipif(os.geteuid() != 0 or not shutil.which("setpriv"),
+                    reason="running as another user needs root and setpriv")
+def test_a_key_file_its_user_may_not_read_says_whose_it_is_and_the_chown() -> None:
+    """A key root made (the deployment's ``chown`` forgotten) said only "Permission
+    denied" to the daemon's user, and the operator copied the key again where it was."""
+    where = Path(tempfile.mkdtemp(prefix="pb3a-key-"))     # (not under a private tmp_path)
+    try:
+        where.chmod(0o755)
+        path = _key_file(where, 0o600)                        # root's, as `sudo pb3a key new`
+        nobody = pwd.getpwuid(65534).pw_name
+        run = subprocess.run(
+            ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups", sys.executable,
+             "-c", "from pb3a.transport.auth import ClusterKey; ClusterKey.load()"],
+            env={**{k: v for k, v in os.environ.items() if k != "PB3A_KEY"},
+                 "PB3A_KEY_FILE": str(path), "HOME": str(where)},
+            capture_output=True, text=True, timeout=60)
+        assert run.returncode != 0
+        assert run.stderr.strip().splitlines()[-1] == (
+            f"pb3a.transport.auth.ClusterKeyError: cannot read the cluster key file {path} "
+            f"named by $PB3A_KEY_FILE: Permission denied: it belongs to root (mode 0600), "
+            f"not to {nobody} who runs this; give it to that user with "
+            f"`chown {nobody} {path}`")
+    finally:
+        shutil.rmtree(where)
 
 
 # -- sealing and opening ------------------------------------------------------------

@@ -144,6 +144,9 @@ class ClusterKey:
             with path.open("rb") as file:
                 _check_private(path, os.fstat(file.fileno()))
                 material = file.read().strip()
+        except PermissionError:
+            raise ClusterKeyError(f"cannot read the cluster key file {path}{named}: "
+                                  f"{_why_not_readable(path)}") from None
         except OSError as exc:
             raise ClusterKeyError(f"cannot read the cluster key file {path}{named}: "
                                   f"{exc.strerror}") from None
@@ -181,6 +184,25 @@ def _check_private(path: Path, status: os.stat_result) -> None:
         raise ClusterKeyError(f"the cluster key file {path} (mode {mode:04o}) belongs to "
                               f"{_user(status.st_uid)}, not to {_user(me)} who runs this; "
                               f"give it to that user with `chown {_user(me)} {path}`")
+
+
+def _why_not_readable(path: Path) -> str:
+    """Why the user running this may not read the key file at ``path``, and the fix: its
+    owner and the ``chown`` to run (a key root made, the ``chown`` of the deployment
+    forgotten, said only "Permission denied", and the file was copied again in vain)."""
+    me = _user(os.geteuid())
+    try:
+        status = path.stat()
+    except OSError:              # (a directory on its way is closed to this user)
+        return (f"Permission denied: {me}, who runs this, may not open a directory on "
+                f"its way; let {me} into that directory, or put the key elsewhere")
+    mode = stat.S_IMODE(status.st_mode)
+    if status.st_uid != os.geteuid():
+        return (f"Permission denied: it belongs to {_user(status.st_uid)} (mode "
+                f"{mode:04o}), not to {me} who runs this; give it to that user with "
+                f"`chown {me} {path}`")
+    return (f"Permission denied: its mode {mode:04o} lets not even its owner read it; "
+            f"make it readable by its owner only with `chmod 600 {path}`")
 
 
 def _user(uid: int) -> str:
