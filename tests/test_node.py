@@ -213,6 +213,30 @@ def test_executors_that_ended_on_their_own_are_forgotten_while_the_controller_ru
         controller.close()
 
 
+def test_an_executor_that_ended_on_its_own_is_logged_with_its_signal_or_status(
+        caplog) -> None:
+    """An executor the OOM killer killed was forgotten without a word: the node's log,
+    where its operator looks first, said nothing, and the launcher only that the node
+    went silent, as for a cut cable."""
+    controller = NodeController("n1", KEY, limits=Limits(max_cpu_percent=101.0))
+    try:
+        address, _ = controller.start_executor("lab")
+        controller._executors["lab"][0].kill()
+        eventually(lambda: not controller._executors, timeout=20, what="the ended forgotten")
+    finally:
+        controller.close()
+    def warnings() -> list[str]:
+        return [r.getMessage() for r in caplog.records
+                if r.name == "pb3a.node" and r.levelname == "WARNING"]
+    assert warnings() == [
+        f"node n1: the executor for 'lab' at {address} was killed by SIGKILL (by the "
+        "kernel's OOM killer if `journalctl -k` says so); its modules stopped with it"]
+    node_controller._log_end("n1", "other", "tcp://127.0.0.1:1", 3)
+    node_controller._log_end("n1", "fenced", "tcp://127.0.0.1:2", 0)    # (it said why)
+    assert warnings()[1:] == ["node n1: the executor for 'other' at tcp://127.0.0.1:1 "
+                              "exited with status 3; its modules stopped with it"]
+
+
 def test_work_is_refused_with_the_reason_when_resources_are_short() -> None:
     for limits, reason in ((Limits(max_cpu_percent=101.0, min_memory_bytes=1 << 60),
                             r"of memory available, below .*--min-memory: lower it"),
@@ -227,6 +251,30 @@ def test_work_is_refused_with_the_reason_when_resources_are_short() -> None:
         finally:
             client.close()
             controller.close()
+
+
+def test_a_refusal_is_logged_by_the_node_at_most_once_a_minute(monkeypatch, caplog) -> None:
+    """A refusal was said only to the launcher: the node's log, where its operator looks
+    first, said nothing. It is logged, once a minute, with the refusals not logged since."""
+    clock = [1000.0]
+    monkeypatch.setattr(node_controller.time, "monotonic", lambda: clock[0])
+    controller = NodeController("tight", KEY, limits=Limits(max_cpu_percent=-1.0))
+    try:
+        for _ in range(3):
+            with pytest.raises(Refused):
+                controller.admit("an executor for 'demo'")
+        clock[0] += 60.0
+        with pytest.raises(Refused):
+            controller.admit("an executor for 'demo'")
+    finally:
+        controller.close()
+    lines = [r.getMessage() for r in caplog.records
+             if r.name == "pb3a.node" and r.levelname == "WARNING" and "refuses" in r.message]
+    assert len(lines) == 2, lines
+    assert re.fullmatch(r"node tight refuses an executor for 'demo': CPU \d+% busy, above "
+                        r"its limit of -1% \(its controller's --max-cpu: raise it, or free "
+                        r"the CPU\)", lines[0])
+    assert lines[1].endswith("(2 more refused in the last 60 s, not logged)")
 
 
 def test_admission_judges_the_cpu_over_seconds_not_one_busy_sample(monkeypatch) -> None:

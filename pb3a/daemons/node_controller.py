@@ -13,10 +13,11 @@ from __future__ import annotations
 import collections
 import logging
 import multiprocessing
+import signal
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NoReturn
 
 import psutil
 
@@ -38,6 +39,31 @@ SAMPLE_S = 0.5
 # small machine refused launches and failovers at random.
 CPU_WINDOW = 10
 SAMPLE_FAILURE_LOG_S = 60.0    # a sampler turn that fails is logged at most this often
+# A refusal is logged at most this often; the refusals not logged meanwhile are counted
+# in the next line logged (launchers that try again and again must not fill the journal)
+REFUSAL_LOG_S = 60.0
+
+
+def _log_end(node: str, config: str, address: str, status: int | None) -> None:
+    """Say that the executor for ``config`` ended on its own, and how: killed (the OOM
+    killer's SIGKILL) or failed at WARNING, with its signal or exit status (the node's
+    log said nothing, and the launcher only that the node was silent, as for a cut
+    cable); one that stopped itself (its lease run out, or taken by no launcher), which
+    it logged, at INFO."""
+    if status == 0:
+        log.info("node %s: the executor for %r at %s stopped itself", node, config, address)
+        return
+    if status is None or status > 0:
+        how = f"exited with status {status}"
+    else:
+        try:
+            how = f"was killed by {signal.Signals(-status).name}"
+        except ValueError:
+            how = f"was killed by signal {-status}"
+        if -status == signal.SIGKILL:
+            how += " (by the kernel's OOM killer if `journalctl -k` says so)"
+    log.warning("node %s: the executor for %r at %s %s; its modules stopped with it",
+                node, config, address, how)
 
 
 class Refused(RuntimeFailure):
@@ -67,6 +93,8 @@ class NodeController:
         self._executors: dict[str, tuple[Any, Any, str]] = {}   # config -> process, pipe, addr
         self._lock = threading.Lock()
         self._cpu_samples: collections.deque[float] = collections.deque(maxlen=CPU_WINDOW)
+        self._refusal_logged_at = -REFUSAL_LOG_S       # when a refusal was logged last
+        self._refusals_unlogged = 0                    # the refusals since, not logged
         self._cpu = self._sample_cpu()
         self._sampling = threading.Event()
         self._sampler = threading.Thread(target=self._sample, name="pb3a-node-sampler",
@@ -106,9 +134,10 @@ class NodeController:
                      if not entry[0].is_alive()}
             for config in ended:
                 del self._executors[config]
-        for process, pipe, _ in ended.values():
+        for config, (process, pipe, address) in ended.items():
             pipe.close()
             process.join(1.0)              # (ended: at once)
+            _log_end(self.name, config, address, process.exitcode)
             reap_child(process.pid)       # (the segments of one that could not free them)
             process.close()
         if ended:
@@ -120,16 +149,29 @@ class NodeController:
         return sum(self._cpu_samples) / len(self._cpu_samples)
 
     def admit(self, what: str) -> None:
-        """Raise ``Refused`` with the reason if the node cannot take ``what`` now."""
+        """Raise ``Refused`` with the reason if the node cannot take ``what`` now, and log
+        it (at most once a minute, counting the others: the node's log, where an operator
+        looks first, said nothing, and only the launcher's showed it)."""
         cpu, memory = self._cpu, psutil.virtual_memory().available
         if cpu > self.limits.max_cpu_percent:
-            raise Refused(f"node {self.name} refuses {what}: CPU {cpu:.0f}% busy, above its "
-                          f"limit of {self.limits.max_cpu_percent:.0f}% (its controller's "
-                          "--max-cpu: raise it, or free the CPU)")
+            self._refuse(f"node {self.name} refuses {what}: CPU {cpu:.0f}% busy, above its "
+                         f"limit of {self.limits.max_cpu_percent:.0f}% (its controller's "
+                         "--max-cpu: raise it, or free the CPU)")
         if memory < self.limits.min_memory_bytes:
-            raise Refused(f"node {self.name} refuses {what}: {memory >> 20} MiB of memory "
-                          f"available, below its limit of {self.limits.min_memory_bytes >> 20}"
-                          " MiB (its controller's --min-memory: lower it, or free memory)")
+            self._refuse(f"node {self.name} refuses {what}: {memory >> 20} MiB of memory "
+                         f"available, below its limit of {self.limits.min_memory_bytes >> 20}"
+                         " MiB (its controller's --min-memory: lower it, or free memory)")
+
+    def _refuse(self, why: str) -> NoReturn:
+        now = time.monotonic()
+        if now - self._refusal_logged_at < REFUSAL_LOG_S:
+            self._refusals_unlogged += 1
+        else:
+            more = self._refusals_unlogged
+            self._refusal_logged_at, self._refusals_unlogged = now, 0
+            log.warning("%s%s", why, f" ({more} more refused in the last "
+                        f"{REFUSAL_LOG_S:g} s, not logged)" if more else "")
+        raise Refused(why)
 
     # -- executors ----------------------------------------------------------------
     def start_executor(self, config: str, workers: int = 0, cpus: list[int] | None = None,
