@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import re
 import signal
@@ -14,6 +15,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import psutil
 import pytest
@@ -32,7 +34,7 @@ from pb3a import RuntimeFailure, RuntimeTimeout
 from pb3a.config.plan import FlatModule
 from pb3a.daemons import node_controller
 from pb3a.daemons.node_controller import Limits, NodeController, Refused, _context
-from pb3a.daemons.node_share import executor_main
+from pb3a.daemons.node_share import NodeShare, executor_main
 from pb3a.loading.sources import CodeSources
 from pb3a.node.remote import LEASE_S
 from pb3a.processes import start_without_main
@@ -466,6 +468,28 @@ def test_a_fenced_executor_stops_its_modules_at_once_whatever_holds_its_lock(
         executor.close()
     last_step = max(float(line.split()[1]) for line in stamps.read_text().splitlines())
     assert last_step - fenced_by < 0.6, "a module stepped on long after its node was fenced"
+
+
+def test_a_second_launcher_is_told_when_the_first_is_silent_and_to_try_again() -> None:
+    """A launcher run again within a second of the first's SIGKILL was told to stop that
+    system first, which no longer existed: its executor was only waiting out its lease.
+    One heard from within two heartbeats still runs it: that is said as before."""
+    share = NodeShare.__new__(NodeShare)      # (only what a second bind reads)
+    share.node, share._lease_s, share.stopped = "b", LEASE_S, threading.Event()
+    share.launcher = SimpleNamespace(address="tcp://10.0.0.1:7200")
+
+    def refusal(silent: float) -> str:
+        share._leased_at = time.monotonic() - silent
+        with pytest.raises(RuntimeFailure) as refused:
+            share.bind("tcp://10.0.0.2:7200", 1.0, logging.WARNING, CodeSources())
+        return str(refused.value)
+    assert refusal(0.9) == (
+        "node b already works for tcp://10.0.0.1:7200, last heard from 0.9 s ago: if that "
+        "launcher is gone (killed, or cut off), its executor here stops itself once its "
+        "lease runs out (1.25 s without it): try again in a moment")
+    assert refusal(0.2) == (
+        "node b already works for tcp://10.0.0.1:7200: stop that system first, or launch "
+        "this one under another name")
 
 
 def test_a_lease_grant_gets_no_answer_that_would_pile_up_unread() -> None:

@@ -49,6 +49,9 @@ log = logging.getLogger("pb3a.node")
 
 PEER_PING_S = 1.0         # how often the round-trip time to each peer is measured
 LEASE_GRANT_S = 0.25      # how often a remote node's executor renews its workers' leases
+# A launcher not heard from for longer than this (two heartbeats, and one's way) may be
+# gone: a second launcher is told how long, and that this executor stops on its own
+SILENT_BOUND_S = 2 * HEARTBEAT_S + 0.1
 UNBOUND_S = 30.0          # an executor no launcher binds within this stops (the launcher
                           # that had it started went meanwhile: a Ctrl-C, a crash)
 
@@ -138,9 +141,7 @@ class NodeShare:
         the node's admission ``node_epoch``, on a lease of ``lease_s`` seconds, keeping
         ``spares`` idle workers booted; the answer is the first renewal's (``renew``)."""
         if self.launcher is not None:
-            raise RuntimeFailure(f"node {self.node} already works for {self.launcher.address}: "
-                                 "stop that system first, or launch this one under another "
-                                 "name")
+            raise RuntimeFailure(self._already_bound(self.launcher.address))
         self._bound.set()                   # (a slow bind, a large code install: not stopped)
         self.executor.configure(checkpoint_s=checkpoint_s, log_level=log_level, code=code,
                                 epoch=epoch, spares=spares, node_epoch=node_epoch)
@@ -156,6 +157,20 @@ class NodeShare:
                              (self._send_checkpoints, "checkpoints")):
             threading.Thread(target=target, name=f"pb3a-{name}", daemon=True).start()
         return renewed
+
+    def _already_bound(self, launcher: str) -> str:
+        """Why a second launcher may not bind this executor: the first runs it; or, if
+        that one has not been heard from for more than two heartbeats (killed, say), how
+        long, and that this executor stops itself once its lease runs out (the launcher
+        run again at once was told to stop a system that no longer existed)."""
+        silent = time.monotonic() - self._leased_at
+        if silent <= SILENT_BOUND_S and not self.stopped.is_set():
+            return (f"node {self.node} already works for {launcher}: stop that "
+                    "system first, or launch this one under another name")
+        return (f"node {self.node} already works for {launcher}, last heard "
+                f"from {silent:.1f} s ago: if that launcher is gone (killed, or cut off), "
+                f"its executor here stops itself once its lease runs out ({self._lease_s:g} s "
+                "without it): try again in a moment")
 
     def renew(self, args: dict[str, Any] | None = None) -> float:
         """The launcher's heartbeat (an instant operation): the lease runs on, dated from
