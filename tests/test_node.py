@@ -41,6 +41,7 @@ from pb3a.processes import start_without_main
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 from pb3a.transport.shm import live_segments
+from pb3a.worker import lease
 from pb3a.worker.lease import LEASE_CHECK_S
 
 KEY = ClusterKey.load()
@@ -490,6 +491,23 @@ def test_a_second_launcher_is_told_when_the_first_is_silent_and_to_try_again() -
     assert refusal(0.2) == (
         "node b already works for tcp://10.0.0.1:7200: stop that system first, or launch "
         "this one under another name")
+
+
+def test_a_lapsed_worker_lease_names_both_causes_not_only_a_frozen_executor(
+        monkeypatch, caplog) -> None:
+    """On a cut cable the executor fences itself and grants no more; the worker's line
+    blamed its executor alone ("frozen or hung"), at times before the executor's said
+    why. It names both causes."""
+    signals: list[int] = []
+    monkeypatch.setattr(lease.os, "kill", lambda pid, number: signals.append(number))
+    held = lease.Lease(threading.Event(), lambda: "scale")
+    held.grant(time.monotonic() - 1.0)              # (ran out at once: the watch finds it)
+    eventually(lambda: held.lapsed, what="the lease lapsed")
+    assert signals == [signal.SIGTERM]
+    assert [r.getMessage() for r in caplog.records if r.name == "pb3a.worker"] == [
+        "the worker of scale: its lease ran out, its executor granting it no more (the "
+        "executor fenced itself after losing the launcher, or it is frozen or hung): its "
+        "modules stop"]
 
 
 def test_a_lease_grant_gets_no_answer_that_would_pile_up_unread() -> None:

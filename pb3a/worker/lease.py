@@ -76,5 +76,8 @@ class Lease:
         # The stop first: the log goes to the executor, which is frozen, and its pipe may
         # be full: a log that waited for room there kept the modules running for good.
         os.kill(os.getpid(), signal.SIGTERM)     # (the stop a SIGTERM makes)
-        log.error("the worker of %s: its executor granted no lease for too long "
-                  "(frozen or hung): its modules stop", self._holding())
+        # (both causes named: on a cut cable the executor fenced itself, saying so, and
+        # this line blamed it alone, at times before the executor's)
+        log.error("the worker of %s: its lease ran out, its executor granting it no more "
+                  "(the executor fenced itself after losing the launcher, or it is frozen "
+                  "or hung): its modules stop", self._holding())
