@@ -257,6 +257,7 @@ def test_a_module_no_node_takes_is_said_lost_with_what_it_takes_to_add_it_again(
     system.add("relay", Relay, node="b", restart="fresh", fallback=["c"],
                state={"relayed": 0})
     system.add("sink", Collector, node="a")
+    system.add("tick", Counter, node="b", period=0.02)       # (restart never: it goes)
     system.link("src.out", "relay.x")
     system.link("relay.out", "sink.x", policy="queue:32")
     try:
@@ -265,8 +266,10 @@ def test_a_module_no_node_takes_is_said_lost_with_what_it_takes_to_add_it_again(
                        what="values through b")
             c.limits.max_cpu_percent = -1.0           # its only fallback refuses it
             os.kill(b._executors["unplaced"][0].pid, signal.SIGKILL)
-            (lost,) = eventually(lambda: _events(run, "module_lost"), timeout=15,
-                                 what="the relay said lost")
+            eventually(lambda: len(_events(run, "module_lost")) == 2, timeout=15,
+                       what="the relay and tick said lost")
+            lost, ticker = sorted(_events(run, "module_lost"),
+                                  key=lambda event: event.subject != "relay")
             assert "relay" not in run.stats().modules
             assert {event.subject for event in _events(run, "link_removed")} == {
                 "src.out->relay.x", "relay.out->sink.x"}      # its links went with it
@@ -285,6 +288,12 @@ def test_a_module_no_node_takes_is_said_lost_with_what_it_takes_to_add_it_again(
     assert lost.detail["links"] == [
         {"from": "src.out", "to": "relay.x", "policy": "queue:100000"},    # (Relay's own)
         {"from": "relay.out", "to": "sink.x", "policy": "queue:32"}]
+    # its configured fallback, and a configured period (None: the class's own), which
+    # were left out: one added again from the event ran at its class's rate, and went
+    # for good with its next node
+    assert (lost.detail["fallback"], lost.detail["period"]) == (["c"], None)
+    assert ticker.subject == "tick"
+    assert (ticker.detail["fallback"], ticker.detail["period"]) == ([], 0.02)
 
 
 def _relayed(name: str, b: Daemon, relay_on: str, restart: str) -> System:

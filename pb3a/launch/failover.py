@@ -222,8 +222,13 @@ class Failover:
         cls = f"{spec.cls.__module__}:{spec.cls.__qualname__}"
         reason = refused or "its restart policy is never"
         self.launcher.failures.add(f"module {spec.name} ({cls}) went with node {node}: {reason}")
+        # (its period only if configured or set: None is the class's own; it and the
+        # fallback were left out, and a module added again from the event ran at its
+        # class's rate and went for good with its next node)
         self.launcher.events.record("module_lost", spec.name, node=node, reason=reason, cls=cls,
                                     state=dict(spec.state), restart=spec.restart,
+                                    period=spec.period if spec.own_period else None,
+                                    fallback=list(spec.fallback),
                                     links=[{"from": f"{link.src}.{link.src_port}",
                                             "to": f"{link.dst}.{link.dst_port}",
                                             "policy": str(link.policy)} for link in links
