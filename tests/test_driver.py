@@ -318,3 +318,32 @@ def test_a_protocol_the_driver_does_not_speak_is_refused_by_name() -> None:
     assert harness.state["protocol"] == "lines"
     problems = System("typo").add("m", LineMotor, state={"protocol": "text"}).check()
     assert any("protocol is what its device speaks" in problem for problem in problems)
+
+
+def test_a_driver_re_pointed_away_from_a_device_that_hangs_is_re_pointed_at_once() -> None:
+    """Re-pointing is what one does to a driver whose device hangs, and the edit waited
+    for the request in progress to end (its timeout, 8 s here: a set_state with less
+    failed, nothing done). Setting ``resource`` ends that request; the driver asks the
+    new device from its next step."""
+    hung = threading.Event()
+    stuck = serve_device(lambda op, args: hung.wait(20.0))
+    fine = serve_device(lambda op, args: "fine")
+    try:
+        system = System("re-pointed").add("reader", Reader, state={
+            "resource": stuck.address, "timeout": 8.0})
+        with system.launch(timeout=20) as run:
+            eventually(lambda: run.stats().modules["reader"].calling_s > 0.3,
+                       what="a request waiting for the device that hangs")
+            started = time.monotonic()
+            run.set_state("reader", resource=fine.address, timeout=3.0)
+            assert time.monotonic() - started < 2.0
+            said = eventually(lambda: run.state("reader")["last_error"], what="why")
+            assert "cancelled: its resource is set anew" in said, said
+            run.set_state("reader", last_error="")
+            eventually(lambda: run.stats().modules["reader"].steps > 3, what="steps")
+            run.wait(0.3)
+            assert run.state("reader")["last_error"] == ""
+    finally:
+        hung.set()
+        stuck.close()
+        fine.close()

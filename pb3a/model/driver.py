@@ -90,6 +90,8 @@ class Driver(Module):
     resource = ""            # the device's resource port, e.g. "tcp://10.0.0.7:7400"
     timeout = 1.0            # seconds a request may take
     protocol = "pb3a"        # what the device speaks: "pb3a" (serve_device) or "lines"
+    # an edit of these ends a request in progress rather than wait for it (the runtime's)
+    _pb3a_edits_end_waits = ("resource", "protocol")
 
     def request(self, op: str, **args: Any) -> Any:
         """Ask the device to do ``op``; its answer, or ``RuntimeFailure``/``RuntimeTimeout``

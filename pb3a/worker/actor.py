@@ -650,6 +650,13 @@ class ModuleActor:
                 now = {}
             self.module.set_state({name: checked(name, now[name], value) if name in now
                                    else value for name, value in state.items()})
+        # An edit that takes no turn in a body's wait (a driver's request) waits for it
+        # to end, but one of the fields a class says end such a wait (a driver's device)
+        # ends it: a driver re-pointed away from a device that hangs waited its request.
+        ending = [name for name in getattr(type(self.module), "_pb3a_edits_end_waits", ())
+                  if name in state and state[name] != getattr(self.module, name, None)]
+        if ending:
+            self._cancel_wait(f"its {ending[0]} is set anew")
         self.with_lock(edit, timeout, edit=True)
 
     def swap(self, new: Module, period: float | None, timeout: float = 10.0) -> list[str]:
