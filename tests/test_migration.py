@@ -1026,6 +1026,57 @@ def test_a_module_in_a_step_longer_than_five_seconds_moves_within_the_move_s_tim
         eventually(lambda: run.state("plodder")["steps"] > steps, what="steps at b")
 
 
+class Planner(Module):
+    """Every step takes ``step_s`` (a planner's), each noted as it begins and as it ends
+    in the file ``notes``: the worker's process, the time, which."""
+
+    period = 0.0
+    notes = ""
+    step_s = 2.0
+
+    def step(self) -> None:
+        self._note("began")
+        time.sleep(self.step_s)
+        self._note("ended")
+
+    def _note(self, what: str) -> None:
+        with open(self.notes, "a") as notes:
+            notes.write(f"{os.getpid()} {time.time()} {what}\n")
+
+
+def test_a_module_whose_every_step_is_long_moves_once_the_step_in_progress_ends(
+        tmp_path) -> None:
+    """Moved as a 2 s step begins, with T = 3.5 s: the move's measure of its state waited
+    for that step to end, the module began another, and the pause waited for that one
+    too, so the move ran out (a 3 s step, T = 4.5 s: every attempt). Now one step's end
+    suffices, and ``pause_s`` is what the module's own steps saw, from its last step at
+    the source to its first at the destination (the wait for the step is ``wait_s``:
+    ``pause_s`` said 3 s, the steps' gap 4 ms)."""
+    notes = tmp_path / "notes"
+    system = _nodes(System("move-planner"), "a", "b")
+    system.add("planner", Planner, node="a", state={"notes": str(notes)})
+
+    def seen() -> list[tuple[int, float, str]]:
+        lines = notes.read_text().splitlines() if notes.exists() else []
+        return [(int(pid), float(when), what) for pid, when, what in map(str.split, lines)]
+    with system.launch() as run:
+        eventually(lambda: sum(what == "began" for _, _, what in seen()) >= 2,
+                   what="a second step begun")
+        started = time.monotonic()
+        report = run.migrate("planner", to="b", timeout=3.5)
+        took = time.monotonic() - started
+        source = seen()[0][0]
+        eventually(lambda: any(pid != source for pid, _, _ in seen()), what="a step at b")
+    assert report.destination == "b" and took < 3.5, took
+    assert report.wait_s > 1.0, report          # (the step's rest: about 2 s)
+    noted = seen()
+    last_there = max(when for pid, when, what in noted if pid == source and what == "ended")
+    first_here = min(when for pid, when, _ in noted if pid != source)
+    gap = first_here - last_there
+    assert report.pause_s < 1.0 and report.pause_s <= gap + 0.05, (report.pause_s, gap)
+    assert gap - report.pause_s < 0.5, (report.pause_s, gap)
+
+
 def test_a_move_whose_undo_waits_for_a_busy_worker_returns_in_time_and_finishes_after(
         ) -> None:
     """The module's ``teardown`` takes 4 s, the move's timeout is 2 s: the capture runs

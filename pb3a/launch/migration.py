@@ -27,12 +27,14 @@ The hand-over, under the global configuration lock:
    incarnation and refuses the old one), start the module (``setup``), then let the
    writers go on. Only then are the segment and the worker the module left freed.
 
-``pause_s`` is the time from step 2 (the module's pause) to its start at the
-destination; ``phases`` says where it went. If step 5 fails (the destination worker
-died, say), the module is put back on its source node the same way, with what was
-captured, and the migration raises ``RuntimeFailure``: the module is never lost. If
-step 2, 3 or 4 fails (a module's call outlasts the pause's wait, say), the links
-unwired are wired again and the modules paused go on where they ran.
+``pause_s`` is the time from step 2 (the module held: its call in progress, if any,
+has ended) to its start at the destination; ``phases`` says where it went, and
+``wait_s`` how long step 2 waited for the calls in progress before. If step 5 fails
+(the destination worker died, say), the module is put back on its source node the
+same way, with what was captured, and the migration raises ``RuntimeFailure``: the
+module is never lost. If step 2, 3 or 4 fails (a module's call outlasts the pause's
+wait, say), the links unwired are wired again and the modules paused go on where they
+ran.
 
 A macro's modules move together: each step is taken for all of them before the
 next, so they pause once, and a link between two of them is unwired where both ran
@@ -113,6 +115,8 @@ class MigrationReport:
     links: int                # links re-wired
     phases: MigrationPhases = MigrationPhases()
     prepare_s: float = 0.0    # before the pause: segments, destination workers, instances
+    wait_s: float = 0.0       # then the writers' and the module's calls in progress waited
+                              # out (a long step's rest), before the pause
 
 
 class MovedLate(RuntimeTimeout):
@@ -183,6 +187,7 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
             _unmoved(exc, homes)
             raise
         prepare_s = time.perf_counter() - preparing
+        waiting = time.perf_counter()       # (until the first module is held)
         try:            # (let go with the segments, afterwards, as the block ends)
             with clock.step(f"pausing the writers {', '.join(writers)}"):
                 afterwards.enter_context(launcher.paused(writers, clock.timeout))
@@ -207,6 +212,8 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
                             f"migration of {name} to node {node}: its worker is not "
                             "running (it died, and comes back by its restart policy); "
                             "nothing moved")
+                if not paused:          # its pause begins (``pause_s``) as its call ends
+                    laps.begin()
                 paused.append(name)
             unwiring = True
             with clock.step("unwiring the links (taking in what is on the way)"):
@@ -258,10 +265,11 @@ def _move(launcher: Launcher, moving: list[str], node: str, state: dict[str, dic
     phases = MigrationPhases(
         lap["unwire"], capture_s, lap["retire"] - capture_s + lap["land"] - restore_s,
         restore_s, lap["rewire"], lap["start"])
+    wait_s = laps.began - waiting
     for name in moving:
         reports[name] = MigrationReport(
             name, homes[name].node, node, sum(lap.values()), snapshots[name].nbytes,
-            sum(name in (link.src, link.dst) for link in links), phases, prepare_s)
+            sum(name in (link.src, link.dst) for link in links), phases, prepare_s, wait_s)
     return late
 
 
@@ -338,7 +346,7 @@ def _stay(launcher: Launcher, snapshots: dict[str, Snapshot], links: list[FlatLi
 def _prepare(launcher: Launcher, homes: dict[str, FlatModule], links: list[FlatLink],
              node: str, afterwards: contextlib.ExitStack, timeout: float) -> dict[str, str]:
     """Step 1 for each module: a segment at its source, released ``afterwards`` (its
-    size measured once a call in progress ends, up to ``timeout``: the move's), and
+    size measured beside a call in progress, not waiting for it: the pause does), and
     the module instantiated at ``node``, publishing already if its outputs will cross
     nodes from there; the segments. What was added is removed again if one fails."""
     arriving, segments, added = launcher.nodes[node], {}, []
@@ -589,7 +597,11 @@ class _Laps:
 
     def __init__(self) -> None:
         self.seconds: dict[str, float] = {}
-        self._last = time.perf_counter()
+        self.began = self._last = time.perf_counter()
+
+    def begin(self) -> None:
+        """Count from now (``time.perf_counter()``, kept in ``began``)."""
+        self.began = self._last = time.perf_counter()
 
     def mark(self, step: str) -> None:
         now = time.perf_counter()

@@ -54,7 +54,7 @@ log = logging.getLogger("pb3a.executor")
 _module_log = logging.getLogger("pb3a.module")
 
 REPORT_TIMEOUT = 5.0
-_WAITS_FOR_THE_MODULE = frozenset({"get_state", "set_state", "snapshot_size"})
+_WAITS_FOR_THE_MODULE = frozenset({"get_state", "set_state"})
 
 
 class Executor:
@@ -500,8 +500,9 @@ class Executor:
 
     def reserve(self, name: str, timeout: float = REQUEST_TIMEOUT) -> str:
         """Room for module ``name``'s snapshot, made before a migration pauses it: a
-        segment of this executor the size of the module's state now, measured once a
-        call in progress ends (up to ``timeout``; ``release`` it)."""
+        segment of this executor the size of the module's state now, measured without
+        waiting for a call in progress (the answer waited for up to ``timeout``;
+        ``release`` it)."""
         segment = segment_name("state")
         size = self.call_module(name, "snapshot_size", timeout)
         try:

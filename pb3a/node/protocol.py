@@ -100,7 +100,8 @@ class Node(Protocol):
 
     def reserve(self, name: str, timeout: float) -> str:
         """Before a migration pauses module ``name``: a segment the size of its snapshot
-        (measured once a call in progress ends, waited for up to ``timeout``)."""
+        (measured without waiting for a call in progress; the answer waited for up to
+        ``timeout``)."""
 
     def retire(self, name: str, segment: str, carry: bool) -> Snapshot:
         """The migration fence: capture a paused module's state and inputs into the

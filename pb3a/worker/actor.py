@@ -550,10 +550,10 @@ class ModuleActor:
 
     @contextlib.contextmanager
     def letting_through(self) -> Iterator[None]:
-        """While a pause, a stop or a move's measure waits for the module's call: its
-        writes on lossless links take no heed of room in their inputs, in this process or
-        through a ring (not to another node: see ``OutputPort.let_through``), so a call
-        waiting for a slow, stopped or paused reader ends, nothing lost."""
+        """While a pause or a stop waits for the module's call: its writes on lossless
+        links take no heed of room in their inputs, in this process or through a ring
+        (not to another node: see ``OutputPort.let_through``), so a call waiting for a
+        slow, stopped or paused reader ends, nothing lost."""
         outputs = self.outputs.values()
         for port in outputs:
             port.let_through(True)
