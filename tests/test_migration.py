@@ -988,6 +988,34 @@ def test_a_move_whose_pause_outlasts_its_timeout_returns_in_time_where_it_was(
         _every_value_once_in_order(run)
 
 
+def test_a_move_whose_own_wait_runs_out_before_its_time_says_nothing_moved_and_where(
+        monkeypatch) -> None:
+    """A wait of the move's own that ran out before the move's time was up (a worker's
+    answer waited its 10 s of a move given 25; values of a remote link still in flight
+    after the drain's 10 s) came out as it was, saying neither that nothing moved nor
+    where the module runs, as every other failure before the capture does. (Here the
+    pause's answer is made to run out so, once.)"""
+    with _through("move-own-wait", "relay", Relay).launch() as run:
+        eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")
+        real, failed = Executor.pause, []
+
+        def unanswered(self, name, timeout=10.0):
+            if name == "relay" and not failed:
+                failed.append(timeout)
+                raise RuntimeTimeout("worker 'a/m-relay' did not answer 'pause' within 10 s")
+            return real(self, name, timeout)
+        monkeypatch.setattr(Executor, "pause", unanswered)
+        with pytest.raises(RuntimeTimeout) as error:
+            run.migrate("relay", to="b", timeout=25)
+        assert str(error.value) == ("worker 'a/m-relay' did not answer 'pause' within 10 s; "
+                                    "nothing moved: relay runs on node a as before")
+        assert failed and run.where("relay") == "a"
+        relayed = run.state("relay")["relayed"]
+        eventually(lambda: run.state("relay")["relayed"] > relayed + 20,
+                   what="relay relaying where it was")
+        _every_value_once_in_order(run)
+
+
 class Plodder(Module):
     """Steps quickly, but once ``slow`` exists takes one step of ``step_s`` seconds
     (a planner's), saying it began by the file ``began``."""

@@ -16,6 +16,7 @@ from sample_modules import Frames, FrameSink
 from throttle import Throttle
 
 from pb3a import System
+from pb3a.node import wiring
 from pb3a.transport import replication
 from pb3a.transport.auth import Opener
 from pb3a.transport.replication import Follower, follower_id
@@ -139,6 +140,30 @@ def test_a_lossless_link_further_behind_than_the_freshness_window_takes_each_val
     assert viewer["numbers"] == list(range(1, frames + 1))
     assert viewer["duplicates"] == viewer["out_of_order"] == 0
     assert follower._opener.rejected["not fresh"] == 0, follower._opener.rejected
+    assert link.drops == 0 and link.link_failures == 0
+
+
+@pytest.mark.timeout(60)
+def test_a_reader_whose_slow_link_outlasts_the_drain_s_own_wait_moves_in_the_move_s_time(
+        radio: Throttle, monkeypatch: pytest.MonkeyPatch) -> None:
+    """What is on the way to a remote reader was awaited the drain's own 10 s at most,
+    whatever the move's timeout: a lossless link further behind than that (a slow
+    reader's backlog, a slow radio link) failed the move after 10 s of its 25 ("values
+    of fast.out still in flight after 10 s"). The drain has what is left of the move's
+    time now. (Its own wait is made 0.3 s here: 12 frames of 64 KiB take 3 s over the
+    link, and the camera writes them in 0.6.)"""
+    frames = 12
+    monkeypatch.setattr(wiring, "READY_TIMEOUT", 0.3)
+    with _camera_to_viewer("slow-lossless-move", policy="lossless:64",
+                           frames=frames).launch() as run:
+        eventually(lambda: run.state("camera")["sent"] == frames, what="the frames written")
+        assert len(run.state("viewer")["numbers"]) < frames - 3     # (most on the way)
+        run.migrate("viewer", to="a", timeout=30)
+        assert run.where("viewer") == "a" and run.stats().links[LINK].transport == "shm"
+        viewer = eventually(lambda: len((v := run.state("viewer"))["numbers"]) == frames and v,
+                            what="every frame at the viewer")
+        link = run.stats().links[LINK]
+    assert viewer["numbers"] == list(range(1, frames + 1))
     assert link.drops == 0 and link.link_failures == 0
 
 

@@ -470,19 +470,22 @@ def _start_where(launcher: Launcher, nodes: dict[str, str], failing: bool = Fals
 
 def _unmoved(exc: BaseException | None, homes: dict[str, FlatModule]) -> None:
     """If the call's time ran out (``exc``) before the capture, or a node failed it
-    then: the error saying so, and that the modules run where they did, once that is
+    then, or a wait of its own ran out (a ``RuntimeTimeout`` before the call's time was
+    up): the error saying so, and that the modules run where they did, once that is
     true (undone). (A destination lost as it was prepared said only "node b is lost",
-    not where the module was.)"""
+    not where the module was; a lossless link's values still in flight after 10 s of a
+    move's 25, only that.)"""
     ran_out = isinstance(exc, RuntimeTimeout) and getattr(exc, "ran_out", False)
-    if not ran_out and (type(exc) is not RuntimeFailure or "nothing moved" in str(exc)):
+    if not ran_out and (type(exc) not in (RuntimeFailure, RuntimeTimeout)
+                        or "nothing moved" in str(exc)):
         return
     where = ", ".join(sorted({home.node for home in homes.values()}))
     said = (f"{exc}; nothing moved: {', '.join(homes)} "
             f"{'runs' if len(homes) == 1 else 'run'} on node {where} as before")
-    if not ran_out:
-        raise RuntimeFailure(said) from exc
-    error = RuntimeTimeout(said)
-    error.ran_out = True                        # type: ignore[attr-defined]
+    timed_out = ran_out or type(exc) is RuntimeTimeout
+    error = (RuntimeTimeout if timed_out else RuntimeFailure)(said)
+    if ran_out:
+        error.ran_out = True                    # type: ignore[attr-defined]
     raise error from exc
 
 

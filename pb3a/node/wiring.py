@@ -14,7 +14,7 @@ import logging
 import time
 from typing import TYPE_CHECKING, Any, Protocol
 
-from pb3a.deadline import capped
+from pb3a.deadline import left
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.node.bridge import READY_TIMEOUT
 from pb3a.node.ring_sizes import RingSize, ring_size
@@ -217,10 +217,14 @@ class Wiring:
 
     def close_inbound(self, links: list[tuple[FlatLink, Reached]]) -> list[int]:
         """Stop receiving each link once the values before the sequence number given
-        are in (all within one ``READY_TIMEOUT``), if they come from the sender the
-        bridge follows (see ``Bridge.close``), then detach their rings from the readers
-        side by side; per link, how many values its sender announced that never came."""
-        deadline = time.monotonic() + capped(READY_TIMEOUT)
+        are in (all within one ``READY_TIMEOUT``, or what is left of the call in
+        progress, however long: a move's), if they come from the sender the bridge
+        follows (see ``Bridge.close``), then detach their rings from the readers side by
+        side; per link, how many values its sender announced that never came."""
+        # (a lossless link's backlog may take longer than 10 s to come in: a move given
+        # 25 s failed after 10, saying its values were still in flight)
+        remaining = left()
+        deadline = time.monotonic() + (READY_TIMEOUT if remaining is None else remaining)
         missing = []
         for link, (reached, sender) in links:
             self.inbound.pop(link.key, None)
