@@ -11,7 +11,7 @@ import pytest
 from conftest import eventually
 from sample_modules import Burst, Collector, Oversize, Pusher, Sipper, SipperV2, Sizes
 
-from pb3a import System
+from pb3a import Input, Module, System
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -203,6 +203,61 @@ def test_a_stuck_lossless_reader_migrates_with_everything_on_the_way() -> None:
         link = run.stats().links[KEY]
     assert _in_order(state, n)
     assert link.policy == "lossless:8" and link.drops == 0 and link.link_failures == 0
+
+
+class Handler(Module):
+    """A slow reader that handles each value as it comes (``on_input``: run by its
+    worker's receiver when it is the worker's only module), ``sip_s`` each, checking
+    they are 1, 2, 3, ... in order."""
+
+    x = Input(int, policy="lossless:8")
+    sip_s = 0.001
+    received = 0
+    last = 0
+    out_of_order = 0
+    duplicates = 0
+
+    def on_input(self, port) -> None:
+        value = port.read()
+        if value == self.last:
+            self.duplicates += 1
+        elif value != self.last + 1:
+            self.out_of_order += 1
+        self.last = value
+        self.received += 1
+        time.sleep(self.sip_s)
+
+
+def test_a_reader_handling_each_value_moves_from_behind_a_lossless_link_at_once() -> None:
+    # A reader whose on_input its worker's receiver runs, behind a remote lossless link
+    # that holds its writer back, moved to the writer's node: the receiver, between
+    # two batches of calls, waited for the module's lock, which the move's pause held,
+    # so it took in nothing of the link, and the move waited for the link's values on
+    # the way until its time ran out (every time in some runs: "values of src.out
+    # still in flight"). Three moves there and back, each well within its 10 s.
+    system = System("lossless-handler-moves")
+    system.node("a")
+    system.node("b")
+    system.add("dst", Handler, node="b")
+    system.add("src", Pusher, node="a", state={"timeout": 1.0})
+    system.link("src.out", "dst.x", policy="lossless:8")
+    with system.launch() as run:
+        for node in ("a", "b", "a"):
+            before = run.stats().links[KEY].waits
+            eventually(lambda before=before: run.stats().links[KEY].waits > before,
+                       what="the writer held back")
+            started = time.monotonic()
+            run.migrate("dst", to=node, timeout=10)
+            assert time.monotonic() - started < 5, node
+        run.set_state("src", limit=run.state("src")["sent"])
+        run.set_state("dst", sip_s=0.0)
+        sent = run.state("src")["sent"]
+        state = eventually(lambda: (s := run.state("dst"))["received"] >= sent and s,
+                           timeout=60, what="every value at the reader")
+        link = run.stats().links[KEY]
+    assert state["received"] == state["last"] == sent
+    assert state["out_of_order"] == state["duplicates"] == 0
+    assert link.drops == 0 and link.link_failures == 0
 
 
 def test_a_reader_moves_away_from_a_writer_in_its_process_that_waits_for_it() -> None:

@@ -438,15 +438,21 @@ class ModuleActor:
             port = pending.popleft()
             lock.release()
             done = self.call_many("on_input", budget, port, claim=port)
-            if self.cut:                        # (a request waits: let it in first)
-                self.cut = False
-                self.lock.hand_over()
             self.events += done
             budget -= max(done, 1)
             if port.owes_calls and self.running:
                 with self._sched_lock:
                     if port not in self._pending:
                         self._pending.append(port)
+            if self.cut:                        # (a request waits: let it in first)
+                self.cut = False
+                self.lock.hand_over()
+            if self.lock.locked():
+                # held by another (a pause, say): go on once scheduled again, not by
+                # waiting for it here: inline on the receiver, that wait held up every
+                # ring of the worker, so a move's drain of a remote lossless link into
+                # the paused module never ended
+                break
         self._schedule(self._dispatch)   # more to do: let other modules have a turn
 
     # -- a body waiting for the runtime, or a device (see ``waits``) ----------
