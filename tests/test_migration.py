@@ -999,11 +999,11 @@ def test_a_move_whose_own_wait_runs_out_before_its_time_says_nothing_moved_and_w
         eventually(lambda: run.state("relay")["relayed"] > 20, what="values through relay")
         real, failed = Executor.pause, []
 
-        def unanswered(self, name, timeout=10.0):
+        def unanswered(self, name, timeout=10.0, rewire=False):
             if name == "relay" and not failed:
                 failed.append(timeout)
                 raise RuntimeTimeout("worker 'a/m-relay' did not answer 'pause' within 10 s")
-            return real(self, name, timeout)
+            return real(self, name, timeout, rewire)
         monkeypatch.setattr(Executor, "pause", unanswered)
         with pytest.raises(RuntimeTimeout) as error:
             run.migrate("relay", to="b", timeout=25)

@@ -346,7 +346,7 @@ def _stay(launcher: Launcher, snapshots: dict[str, Snapshot], links: list[FlatLi
 def _prepare(launcher: Launcher, homes: dict[str, FlatModule], links: list[FlatLink],
              node: str, afterwards: contextlib.ExitStack, timeout: float) -> dict[str, str]:
     """Step 1 for each module: a segment at its source, released ``afterwards`` (its
-    size measured beside a call in progress, not waiting for it: the pause does), and
+    size measured if no call is in progress, not waiting for one: the pause does), and
     the module instantiated at ``node``, publishing already if its outputs will cross
     nodes from there; the segments. What was added is removed again if one fails."""
     arriving, segments, added = launcher.nodes[node], {}, []

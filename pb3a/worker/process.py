@@ -57,7 +57,6 @@ SPIN_S = 100e-6          # values closer than this count as dense; poll this lon
 ERROR_REPORT_S = 1.0     # a module's exceptions are reported at most this often (all counted)
 AGENT_REQUEST_TIMEOUT = 30.0   # an agent's request to the runtime (a migration, say)
 RUNTIME_WAY_BACK_S = 1.0       # ... given a timeout: its answer's way back beyond it
-MEASURE_TRIES = 3          # a move's measure of a state its body changes meanwhile, at most
 UNANSWERED = -1            # the id of a request whose answer nobody waits for
 TIMED_OUT = "timed out"   # a reply's status for a request that ran out of time (not False)
 REFUSED = "refused"       # for one whose arguments the module refused: the message is whole
@@ -406,28 +405,20 @@ class Worker:
 
     def op_snapshot_size(self, name: str) -> int:
         """The bytes a migration's snapshot of the module would take now: room made for
-        it before the move pauses anything (the capture resizes it to fit). Measured
-        under the module's lock if it is free, else beside the call in progress, not
-        waiting for it: the pause that follows waits for that call, and a measure that
-        waited too made a module in a long step wait for two steps before it moved (a
-        3 s step ran out a move's 4.5 s). A body that changes the state as it is pickled
-        beside it may break the measure ("dictionary changed size during iteration"):
-        it is taken again, up to ``MEASURE_TRIES`` times, then left to the capture (0)."""
+        it before the move pauses anything. Measured under the module's lock if it is
+        free, else not at all (0: the capture, in the pause, makes the room): a measure
+        that waited for a call in progress made a module in a long step wait for two
+        steps before it moved (a 3 s step ran out a move's 4.5 s), and one beside the
+        call would run the module's ``get_state`` beside its body."""
         actor = self.actors[name]
-
-        def measure() -> int:
+        if not actor.lock.acquire(timeout=0):
+            return 0
+        try:
             holdings = actor.holdings()
             with _movable(name, holdings["state"]):     # (before anything of the move)
                 return Snapshot.measure(holdings)
-        for _ in range(MEASURE_TRIES):
-            if actor.lock.acquire(timeout=0):
-                try:
-                    return measure()
-                finally:
-                    actor.lock.release()
-            with contextlib.suppress(RuntimeError):     # (changed as it was pickled)
-                return measure()
-        return 0
+        finally:
+            actor.lock.release()
 
     def op_migrate_out(self, name: str, segment: str, until: float | None = None) -> Snapshot:
         """Retire a paused module for its move: its state and unconsumed inputs, laid out
