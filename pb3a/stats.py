@@ -78,6 +78,10 @@ class ModuleStats:
                                 # (frozen, starved, stuck): no figures are its own
     calling: str = ""           # the body or hook it is in now ("step", "on_input", ...)
     calling_s: float = 0.0      # for how long: a stuck call shows here
+    # the change in progress that acts on it ("migrate slow to b": its node is where
+    # the launcher has it now), and for how long ("" and 0: none)
+    change: str = ""
+    change_s: float = 0.0
     restarts: int = 0           # times its worker was restarted under it
     checkpoints: int = 0        # checkpoints taken (restart = "last-state")
     steps: int = 0

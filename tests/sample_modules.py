@@ -741,6 +741,29 @@ class Locator(Agent):
         self.found = self.runtime.where(self.other)
 
 
+class Watcher(Agent):
+    """Each step, looks at module ``other`` through the runtime: where it runs, the
+    change in progress its figures name, and the longest the two answers took."""
+
+    period = 0.05
+    other = "src"
+    seen_node = ""
+    seen_change = ""
+    took_s = 0.0
+    failed = ""
+
+    def step(self) -> None:
+        started = time.monotonic()
+        try:
+            change = self.runtime.stats(timeout=5.0).modules[self.other].change
+            node = self.runtime.where(self.other, timeout=5.0)
+        except RuntimeFailure as exc:
+            self.failed = str(exc)
+            return
+        self.took_s = max(self.took_s, time.monotonic() - started)
+        self.seen_node, self.seen_change = node, change
+
+
 class LocatorToo(Locator):
     """A ``Locator`` to swap in; it also reads ``other``'s state from its ``setup``."""
 

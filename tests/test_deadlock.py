@@ -27,6 +27,7 @@ from sample_modules import (
     Scale,
     SlowState,
     Steady,
+    Watcher,
 )
 
 import pb3a
@@ -168,7 +169,7 @@ def test_a_call_that_waits_too_long_names_what_it_waited_for() -> None:
         held, release = threading.Event(), threading.Event()
 
         def hold() -> None:
-            with run._launcher.lock.held("migrate src to b"):
+            with run._launcher.lock.held("migrate src to b", acts_on=["src"]):
                 held.set()
                 release.wait(10)
         holder = threading.Thread(target=hold)
@@ -396,6 +397,45 @@ def test_a_read_of_a_module_stuck_in_a_step_holds_up_no_other_request(monkeypatc
     assert answered < 0.5, answered
     assert len(outcome) == 1 and isinstance(outcome[0], RuntimeTimeout), outcome
     assert isinstance(outcome[0], TimeoutError) and "busy in a call" in str(outcome[0])
+
+
+def test_an_agent_looks_at_the_system_while_a_move_is_stuck(monkeypatch) -> None:
+    """An agent's ``self.runtime.stats()`` and ``where()`` answer at once while another
+    module's move holds the configuration lock (held here as it pauses that module), the
+    figures naming the move, and a read of the agent's state is not held up either (they
+    waited for the lock: each look failed after its 5 s, and the move's end)."""
+    system = System("look-from-an-agent")
+    system.node("a")
+    system.node("b")
+    system.add("mover", Steady, node="a")
+    system.add("watcher", Watcher, node="a", state={"other": "mover"})
+    go, pausing = threading.Event(), threading.Event()
+    real = Executor.pause
+
+    def pause(self, name, *args, **kwargs):
+        if name == "mover":
+            pausing.set()
+            assert go.wait(30.0)
+        return real(self, name, *args, **kwargs)
+    with system.launch() as run:
+        eventually(lambda: run.state("watcher")["seen_node"] == "a", what="a first look")
+        monkeypatch.setattr(Executor, "pause", pause)
+        moving = threading.Thread(target=lambda: run.migrate("mover", to="b", timeout=60))
+        moving.start()
+        try:
+            assert pausing.wait(10.0)
+            seen = eventually(
+                lambda: (s := run.state("watcher", timeout=2.0))["seen_change"] and s,
+                what="the agent seeing the move")
+        finally:
+            go.set()
+            moving.join(30.0)
+        after = eventually(lambda: (s := run.state("watcher"))["seen_node"] == "b"
+                           and not s["seen_change"] and s,
+                           what="the agent seeing the module moved, the move done")
+    assert seen["seen_change"] == "migrate mover to b" and seen["seen_node"] == "a", seen
+    assert seen["took_s"] < 1.5 and seen["failed"] == "", seen
+    assert after["failed"] == "", after
 
 
 def test_close_without_the_lock_stops_everything_though_a_change_removes_a_module(

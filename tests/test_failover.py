@@ -938,11 +938,11 @@ def test_a_rejoin_that_cannot_take_the_lock_stops_the_executor_it_started(node_b
         launcher.start_remote_node = lambda *a, **k: started.append(start(*a, **k)) or started[-1]
         acquire, refused = launcher.lock._acquire, []
 
-        def busy_once(what: str, timeout: float | None) -> None:
+        def busy_once(what: str, timeout: float | None, *rest) -> None:
             if what.startswith("admit node b") and not refused:
                 refused.append(what)
                 raise RuntimeTimeout(f"{what}: the lock is busy")
-            acquire(what, timeout)
+            acquire(what, timeout, *rest)
         launcher.lock._acquire = busy_once
         os.kill(b.executor_pid(), signal.SIGKILL)
         eventually(lambda: _events(run, "node_joined"), timeout=30, what="node b admitted again")

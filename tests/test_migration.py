@@ -1175,3 +1175,62 @@ def test_a_move_whose_destination_freezes_after_the_capture_returns_in_time_wher
             for pid in frozen:
                 with contextlib.suppress(ProcessLookupError):
                     os.kill(pid, signal.SIGCONT)
+
+
+@pytest.mark.parametrize("held_at", ["pause", "retire", "land"])
+def test_a_look_at_the_system_waits_for_no_move_and_shows_it_in_progress(
+        monkeypatch, capsys, held_at: str) -> None:
+    """While a move holds the configuration lock (held here at one of its steps: the
+    module's pause, its capture done, its landing), ``stats()``, ``where()``,
+    ``nodes()``, ``topology()``, another module's state and ``pb3a status`` answer at
+    once, every module shown once (the one moving too, between its nodes' reports),
+    and the moving one's figures and the table name the move; once it is done, no
+    more. (They waited for the lock: a stuck move left ``pb3a status`` failing after
+    its timeout, "waited 3 s for the system's configuration lock, which 'migrate slow
+    to b' has held for 4.8 s", just when one wanted to look.)"""
+    system = _through("look-during-move", "relay", Relay)
+    go, there = threading.Event(), threading.Event()
+    real = getattr(Executor, held_at)
+
+    def held(self, name, *args, **kwargs):
+        if name != "relay":
+            return real(self, name, *args, **kwargs)
+        if held_at == "retire":               # (captured: the node has it no more)
+            result = real(self, name, *args, **kwargs)
+            there.set()
+            assert go.wait(30.0)
+            return result
+        there.set()
+        assert go.wait(30.0)
+        return real(self, name, *args, **kwargs)
+    with system.launch() as run:
+        eventually(lambda: run.state("relay")["relayed"] > 5, what="values through relay")
+        monkeypatch.setattr(Executor, held_at, held)
+        moving = threading.Thread(target=lambda: run.migrate("relay", to="b", timeout=60))
+        moving.start()
+        try:
+            assert there.wait(10.0)
+            started = time.monotonic()
+            stats = run.stats(timeout=1.0)
+            where = run.where("relay", timeout=1.0), run.where("src", timeout=1.0)
+            nodes, topology = run.nodes(timeout=1.0), run.topology(timeout=1.0)
+            sink = run.state("sink", timeout=1.0)
+            assert main(["status", run.listen(), "--timeout", "1"]) == 0
+            answered = time.monotonic() - started
+        finally:
+            go.set()
+            moving.join(30.0)
+        table = capsys.readouterr().out
+        after = run.stats()
+    assert answered < 1.5, answered
+    assert set(stats.modules) == {"src", "relay", "sink"}
+    moved = stats.modules["relay"]
+    assert moved.change == "migrate relay to b" and moved.change_s > 0, moved
+    assert moved.node == ("b" if held_at == "land" else "a"), moved
+    assert stats.modules["src"].change == "" and stats.modules["sink"].change == ""
+    assert where == ("b" if held_at == "land" else "a", "a")
+    assert set(nodes) == {"a", "b"} and set(topology.modules) == {"src", "relay", "sink"}
+    assert sink["received"] >= 0
+    row = next(line for line in table.splitlines() if line.startswith("relay "))
+    assert "(migrate relay to b for " in row, table
+    assert after.modules["relay"].node == "b" and after.modules["relay"].change == ""

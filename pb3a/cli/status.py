@@ -33,12 +33,15 @@ _PROBLEMS_HEAD = re.compile(r"\b\d+ problems? in the configuration:\s*")
 
 def format_table(stats: SystemStats) -> str:
     """The status table: one row per module, one per link, one per node (the rows
-    ``pb3a nodes`` prints: it left out the embedded nodes, which ``pb3a nodes`` showed)."""
+    ``pb3a nodes`` prints: it left out the embedded nodes, which ``pb3a nodes`` showed).
+    A module's status says the call it is stuck in, and the change in progress that
+    acts on it ("running (migrate slow to b for 5 s)")."""
     rows = [("module", "node", "pid", "status", "steps", "events", "cpu s", "errors",
              "last error")]
     for name, m in stats.modules.items():
         status = m.status + (" (silent)" if m.silent else "") \
             + (f" (in {m.calling} for {m.calling_s:.0f} s)" if m.calling_s >= STUCK_S else "") \
+            + (f" ({m.change} for {m.change_s:.0f} s)" if m.change else "") \
             + (f" (restarts {m.restarts})" if m.restarts else "")
         rows.append((name, m.node, str(m.pid or "-"), status, str(m.steps), str(m.events),
                      f"{m.cpu:.2f}", str(m.errors), _shortened(m.last_error)))

@@ -14,6 +14,10 @@ at a time.
 A change may leave part of its work running past its hold (undoing a move whose
 module's worker is still busy: ``carry_on``): until that part ends, every other wait
 for the lock waits for it too, so no later change races it.
+
+What changes the system now, and which modules it acts on, is read without waiting
+for the lock (``changing``): a read of the figures or of where a module runs must
+answer while a long change holds it, which is when one wants to look.
 """
 
 from __future__ import annotations
@@ -37,21 +41,25 @@ class ConfigurationLock:
     def __init__(self, timeout: float = DEFAULT_TIMEOUT) -> None:
         self.timeout = timeout
         self._lock = threading.RLock()
-        self._doing: list[tuple[str, float]] = []     # (what, since), outermost first
+        # (what, since, the modules it acts on), outermost first
+        self._doing: list[tuple[str, float, frozenset[str]]] = []
         self._lent: frozenset[str] = frozenset()      # modules the holder lends it to
         self._guests = threading.Lock()               # one guest at a time
         self._owner: int | None = None                # the holder's thread ident
-        # work a change left running past its hold (``carry_on``): thread -> (what, since)
-        self._tails: dict[threading.Thread, tuple[str, float]] = {}
+        # work a change left running past its hold (``carry_on``): thread -> (what,
+        # since, the modules it acts on)
+        self._tails: dict[threading.Thread, tuple[str, float, frozenset[str]]] = {}
         self._tails_changed = threading.Condition()
 
     @contextlib.contextmanager
     def held(self, what: str, timeout: float | None = None, *,
-             lend: Collection[str] = ()) -> Iterator[None]:
+             lend: Collection[str] = (), acts_on: Collection[str] | None = None,
+             ) -> Iterator[None]:
         """Hold the lock for ``what`` (e.g. "migrate relay to b"); ``RuntimeTimeout``
         naming the holder if it is not free within ``timeout`` (default: ``self.timeout``).
-        The modules in ``lend`` may be its ``guest`` meanwhile."""
-        self._acquire(what, timeout)
+        The modules in ``lend`` may be its ``guest`` meanwhile; ``acts_on``: the modules
+        (or macro instances) it changes, for ``changing`` (default: those in ``lend``)."""
+        self._acquire(what, timeout, frozenset(lend if acts_on is None else acts_on))
         outer, self._lent = self._lent, self._lent | frozenset(lend)
         try:
             yield
@@ -94,9 +102,23 @@ class ConfigurationLock:
                     self._tails_changed.notify_all()
         thread = threading.Thread(target=run, name="pb3a-carry-on", daemon=True)
         with self._tails_changed:
-            self._tails[thread] = (what, time.monotonic())
+            self._tails[thread] = (what, time.monotonic(), self._acted_on())
         thread.start()
         return thread
+
+    def changing(self) -> dict[str, tuple[str, float]]:
+        """The modules (or macro instances) that a change in progress acts on, each with
+        what that change is and the ``time.monotonic()`` it began: the holder's (its
+        outermost hold's name, the modules of every hold) and work changes left running.
+        Read without waiting for the lock (one copy of each list: never half written)."""
+        found: dict[str, tuple[str, float]] = {}
+        doing = list(self._doing)
+        if doing:
+            what, since, _ = doing[0]
+            found |= {name: (what, since) for _, _, names in doing for name in names}
+        for what, since, names in list(self._tails.values()):
+            found |= {name: (what, since) for name in names if name not in found}
+        return found
 
     def doing(self) -> str:
         """What the holder does, quoted ("'add spy'"), or "nothing"."""
@@ -108,17 +130,17 @@ class ConfigurationLock:
         doing = self._doing[:1] or list(self._tails.values())[:1]
         if not doing:
             return "nothing holds now"
-        what, since = doing[0]
+        what, since, _ = doing[0]
         return f"{what!r} has held for {time.monotonic() - since:.1f} s"
 
     def __enter__(self) -> ConfigurationLock:
-        self._acquire("a change to the system", None)
+        self._acquire("a change to the system", None, frozenset())
         return self
 
     def __exit__(self, *exc: object) -> None:
         self._release()
 
-    def _acquire(self, what: str, timeout: float | None) -> None:
+    def _acquire(self, what: str, timeout: float | None, acts_on: frozenset[str]) -> None:
         wait = self.timeout if timeout is None else timeout
         deadline = time.monotonic() + wait
         while True:
@@ -133,7 +155,11 @@ class ConfigurationLock:
             self._lock.release()
         if not self._doing:
             self._owner = threading.get_ident()
-        self._doing.append((what, time.monotonic()))
+        self._doing.append((what, time.monotonic(), acts_on))
+
+    def _acted_on(self) -> frozenset[str]:
+        """The modules the holder's holds act on (asked by the holder)."""
+        return frozenset().union(*(names for _, _, names in self._doing))
 
     def _after_tails(self, deadline: float) -> bool:
         """Wait until no work a change left running (``carry_on``) runs, but this
@@ -154,3 +180,14 @@ class ConfigurationLock:
         if not self._doing:
             self._owner = None
         self._lock.release()
+
+
+def change_to(module: str, changing: dict[str, tuple[str, float]]) -> tuple[str, float] | None:
+    """The change in ``changing`` (``ConfigurationLock.changing``) that acts on
+    ``module``, or on a macro instance it is in (a macro moves whole), if any."""
+    parts = module.split("/")
+    for depth in range(len(parts), 0, -1):
+        found = changing.get("/".join(parts[:depth]))
+        if found is not None:
+            return found
+    return None

@@ -29,7 +29,7 @@ from pb3a.deadline import bounding, lifted
 from pb3a.errors import ModuleNotFound, RuntimeFailure, RuntimeTimeout
 from pb3a.events import EventLog
 from pb3a.latencies import percentile
-from pb3a.launch.configuration_lock import ConfigurationLock
+from pb3a.launch.configuration_lock import ConfigurationLock, change_to
 from pb3a.launch.remote_starts import RemoteStarts, not_started
 from pb3a.loading.references import by_reference, class_ref
 from pb3a.logbook import LogBook
@@ -255,10 +255,11 @@ class Launcher:
         modules (a link may name its exports, but reading or changing one module names
         it by its path); for an ``env-NODE`` module, how to start it
         (a link reading it does) or that there is no such node; else every module."""
-        inner = [module for module in self.specs if module.startswith(f"{name}/")]
+        names = list(self.specs)            # (one copy: a read may ask during a change)
+        inner = [module for module in names if module.startswith(f"{name}/")]
         if inner:
             return f"it is a macro instance: name one of its modules, {', '.join(inner)}"
-        modules = f"modules: {', '.join(self.specs) or '(none)'}"
+        modules = f"modules: {', '.join(names) or '(none)'}"
         if name.startswith(ENV_PREFIX):
             node = name[len(ENV_PREFIX):]
             if node not in self.plan.nodes:
@@ -447,12 +448,41 @@ class Launcher:
     def stats(self, timeout: float = REPORT_TIMEOUT) -> SystemStats:
         """Every node's report, joined: modules where the launcher says they run, the
         per-link table (from the reader's side), failures, node health; within
-        ``timeout``, a node whose report has not come by then left out."""
-        reports = self._reports(timeout)
-        # a module being migrated is on two nodes for a moment: the launcher says where
-        modules = {name: entry for report in reports.values()
-                   for name, entry in report.modules.items()
-                   if name in self.specs and entry.node == self.specs[name].node}
+        ``timeout``, a node whose report has not come by then left out.
+
+        Read without the configuration lock (a long change held every look at a stuck
+        system until it ended): from a copy of the launcher's tables taken first, each
+        module in it shown once, with the change in progress that acts on it, if any
+        (``ModuleStats.change``). A module is shown where that copy has it: one mid-move
+        with the figures of whichever node has it, or none (between two nodes'
+        reports)."""
+        changing = self.lock.changing()
+        specs, links = dict(self.specs), dict(self.links)    # (one copy each, atomic)
+        reports = self._reports(timeout, specs)
+        changing |= self.lock.changing()      # (and a change begun since: it may be mid-way)
+        found: dict[str, list[ModuleStats]] = {}
+        for report in reports.values():
+            for name, entry in report.modules.items():
+                found.setdefault(name, []).append(entry)
+        now = time.monotonic()
+        modules: dict[str, ModuleStats] = {}
+        for name, spec in specs.items():
+            change = change_to(name, changing)
+            # a module being migrated is on two nodes for a moment: the launcher says
+            # where; moving, it may be on the other one only (captured, or moved since
+            # the copy), or (captured, the other's report taken before it came) on none
+            entries = found.get(name, [])
+            entry = next((e for e in entries if e.node == spec.node), None) \
+                or next(iter(entries), None)
+            if entry is None and change is not None:
+                entry = ModuleStats(class_ref(spec.cls), spec.node, "", "running")
+            if entry is None:               # (its node lost, or not asked)
+                continue
+            entry = dataclasses.replace(entry, node=spec.node)
+            if change is not None:
+                entry = dataclasses.replace(entry, change=change[0],
+                                            change_s=max(0.0, now - change[1]))
+            modules[name] = entry
         # (dated alike: sorted, they are in the order they happened, wherever)
         failures = sorted([*self.failures.lines(),
                            *(f for report in reports.values() for f in report.failures)])
@@ -460,20 +490,22 @@ class Launcher:
         for name, report in reports.items():
             if name not in nodes:
                 continue
-            found: dict[str, Any] = {"spare_workers": report.spare_workers}
+            figures: dict[str, Any] = {"spare_workers": report.spare_workers}
             if report.resources is not None:        # (its fields are NodeStats' names)
-                found |= dataclasses.asdict(report.resources)
-            nodes[name] = dataclasses.replace(nodes[name], **found)
+                figures |= dataclasses.asdict(report.resources)
+            nodes[name] = dataclasses.replace(nodes[name], **figures)
         return SystemStats(self.plan.name, modules,
-                           _link_table(self.links, modules, list(reports.values()),
-                                       self.lost_values),
+                           _link_table(links, modules, list(reports.values()),
+                                       dict(self.lost_values)),
                            nodes, failures)
 
-    def _reports(self, timeout: float) -> dict[str, NodeReport]:
+    def _reports(self, timeout: float,
+                 specs: dict[str, FlatModule]) -> dict[str, NodeReport]:
         """Every node's report, by node, asked of all at once, within ``timeout``. A node
         that stops answering its heartbeats meanwhile is not waited for (until it is
         declared lost): its modules are absent. One whose report is late has its modules
-        as its last report had them, silent (no figures of their own)."""
+        as its last report had them, silent (no figures of their own), placed as
+        ``specs`` (a copy of the launcher's) has them."""
         reports: dict[str, NodeReport] = {}
         deadline = time.monotonic() + timeout
 
@@ -501,7 +533,7 @@ class Launcher:
         for name in asked.keys() - given.keys():
             if not self.silent(name) and name in self._last_reports:
                 log.warning("node %s did not report within %g s", name, timeout)
-                placed = [spec for spec in self.specs.values() if spec.node == name]
+                placed = [spec for spec in specs.values() if spec.node == name]
                 given[name] = _silenced(self._last_reports[name], name, placed)
         return given
 
@@ -517,7 +549,7 @@ class Launcher:
                                 health.get("controller"), health["epoch"],
                                 self.remotes[name].silent_s() if name in self.remotes
                                 else 0.0, refused=health.get("refused", ""))
-                for name, health in self.health.items()}
+                for name, health in list(self.health.items())}
 
     def wait_health(self, node: str, up: bool, timeout: float) -> bool:
         """Block until ``node`` is (not) up; False on timeout."""

@@ -7,6 +7,9 @@ halfway through, holds the configuration lock, whose wait is bounded by the
 operation's ``timeout`` (the system's default when None) and names what holds it
 when it runs out; a module's answer (``state``, ``set_state``) is awaited for what
 is left of that timeout, one deadline for both. Each change is recorded as an event.
+The looks at the system (``stats``, ``where``, ``nodes``, ``topology``) wait for no
+change: they read a copy of the launcher's tables, and ``stats`` names the change in
+progress that acts on each module (a stuck system is when one wants to look).
 
 A change that starts modules (``add``, ``migrate``, ``swap``, ``restart``) lends the
 lock to them while it waits for their ``setup`` (``ConfigurationLock``): an agent
@@ -40,6 +43,7 @@ from pb3a.errors import (
     SystemStopped,
     bounded_wait,
 )
+from pb3a.launch.configuration_lock import change_to
 from pb3a.launch.migration import MigrationReport, MovedLate, migrate
 from pb3a.loading import trial
 from pb3a.loading.references import ImportRefused, changed_since_import, resolve_class
@@ -100,11 +104,13 @@ class Operations:
 
     @contextlib.contextmanager
     def _held(self, what: str, timeout: float | None, *, lend: Collection[str] = (),
-              changes: bool = True) -> Iterator[Callable[[], float]]:
+              changes: bool = True, acts_on: Collection[str] | None = None,
+              ) -> Iterator[Callable[[], float]]:
         """Hold the configuration lock for ``what``, waiting at most ``timeout``; gives
         what is left of it then, for the operation's own waits (one deadline for all).
         ``lend``: the modules it starts (see the module's docstring); ``changes``: False
-        for what changes no configuration, which such a module may ask as a guest."""
+        for what changes no configuration, which such a module may ask as a guest;
+        ``acts_on``: the modules it changes (default: ``lend``), which ``stats`` marks."""
         wait = self._call_timeout(timeout)
         deadline = time.monotonic() + wait
         asker = _ASKER.get()
@@ -119,7 +125,7 @@ class Operations:
             with self.lock.guest(what, wait):
                 yield lambda: max(0.0, deadline - time.monotonic())
             return
-        with self.lock.held(what, wait, lend=lend):
+        with self.lock.held(what, wait, lend=lend, acts_on=acts_on):
             yield lambda: max(0.0, deadline - time.monotonic())
 
     def _call_timeout(self, timeout: float | None) -> float:
@@ -128,18 +134,26 @@ class Operations:
 
     # -- state -------------------------------------------------------------------
     def state(self, name: str, *, timeout: float | None = None) -> dict[str, Any]:
-        """The module's state. Its node is looked up under the configuration lock, but
-        asked without it: a module stuck in a long call holds up this read only, not
-        every request to the system for the read's timeout. Moved or removed meanwhile,
-        it is asked once more under the lock; its worker dead, once its restart is done
-        (which takes that lock, so it is waited for without)."""
-        with self._held(f"state {name}", timeout, changes=False) as left:
-            node = self.launcher.node_of(name)
+        """The module's state. Its node is looked up under the configuration lock if a
+        change in progress acts on it, else at once (another module's long move held
+        this read up until it ended), and asked without it: a module stuck in a long
+        call holds up this read only, not every request to the system for the read's
+        timeout. Moved or removed meanwhile, it is asked once more under the lock; its
+        worker dead, once its restart is done (which takes that lock, so it is waited
+        for without)."""
+        spec = self.launcher.specs.get(name)
+        if spec is not None and change_to(name, self.lock.changing()) is None:
+            node = self.launcher.nodes[spec.node]
+            deadline = time.monotonic() + self._call_timeout(timeout)
+        else:
+            with self._held(f"state {name}", timeout, changes=False) as left:
+                node = self.launcher.node_of(name)
+                deadline = time.monotonic() + left()        # (one deadline for all)
         try:
-            return node.call_module(name, "get_state", left())
+            return node.call_module(name, "get_state", _left(deadline))
         except (RuntimeFailure, KeyError):
-            node.await_restart(name, left())
-            with self._held(f"state {name}", left(), changes=False) as still:
+            node.await_restart(name, _left(deadline))
+            with self._held(f"state {name}", _left(deadline), changes=False) as still:
                 return self.launcher.call(name, "get_state", still())
 
     def set_state(self, name: str, values: dict[str, Any], *,
@@ -153,7 +167,8 @@ class Operations:
             self.retime(name, values.pop("period"), timeout=timeout)
             if not values:
                 return
-        with self._held(f"set_state {name}", timeout, changes=False) as left:
+        with self._held(f"set_state {name}", timeout, changes=False,
+                        acts_on=[name]) as left:
             node = self.launcher.node_of(name)
             try:
                 node.call_module(name, "set_state", left(), state=values)
@@ -170,7 +185,7 @@ class Operations:
         that long after each), kept across its restarts, moves and swaps, as if the
         configuration had given it: a module's rate could only be changed by removing
         it and adding it again, links and all."""
-        with self._held(f"set_state {name} period", timeout) as left:
+        with self._held(f"set_state {name} period", timeout, acts_on=[name]) as left:
             spec = self.launcher.specs.get(name)
             if spec is None:
                 self.launcher.node_of(name)           # raises ModuleNotFound
@@ -340,7 +355,7 @@ class Operations:
     # -- links -------------------------------------------------------------------------
     def relink(self, src: str, dst: str, *, policy: str | None = None,
                timeout: float | None = None) -> None:
-        with self._held(f"relink {src} -> {dst}", timeout):
+        with self._held(f"relink {src} -> {dst}", timeout, acts_on=_ends(src, dst)):
             env = self._unstarted_env(src)
             link = self._new_link(src, dst, policy, env)
             launcher = self.launcher
@@ -369,7 +384,7 @@ class Operations:
 
     def link(self, src: str, dst: str, *, policy: str | None = None,
              timeout: float | None = None) -> None:
-        with self._held(f"link {src} -> {dst}", timeout):
+        with self._held(f"link {src} -> {dst}", timeout, acts_on=_ends(src, dst)):
             env = self._unstarted_env(src)
             link = self._new_link(src, dst, policy, env)
             for old in self.launcher.links.values():
@@ -556,7 +571,7 @@ class Operations:
         their links; one that is left as it was (its stop not answered) ends the removal
         there, and the error names the modules removed and those left (remove it
         again, with ``force`` if need be)."""
-        with self._held(f"remove {name}", timeout) as left:
+        with self._held(f"remove {name}", timeout, acts_on=[name]) as left:
             launcher = self.launcher
             names = [name] if name in launcher.specs else [
                 child for child in launcher.specs if child.startswith(f"{name}/")]
@@ -714,20 +729,35 @@ class Operations:
 
     # -- where things are, figures, events ---------------------------------------------------
     def where(self, name: str, *, timeout: float | None = None) -> str:
-        with self._held(f"where {name}", timeout, changes=False):
+        """The node module ``name`` runs on, as the launcher has it now, waiting for no
+        change (a move says the new node once the module is captured). One found in
+        none that a change in progress acts on (being restarted, or added) is looked
+        up once that change is done, under the configuration lock."""
+        spec = self.launcher.specs.get(name)
+        if spec is not None:
+            return spec.node
+        if change_to(name, self.lock.changing()) is None:
             self.launcher.node_of(name)           # ModuleNotFound for an unknown name
+        with self._held(f"where {name}", timeout, changes=False):
+            self.launcher.node_of(name)
             return self.launcher.specs[name].node
 
     def nodes(self, *, timeout: float | None = None) -> dict[str, NodeStats]:
-        with self._held("nodes", timeout, changes=False):
-            return self.launcher.node_table()
+        """Every node's health, waiting for no change (the heartbeats' own figures)."""
+        self._call_timeout(timeout)                     # (checked all the same)
+        return self.launcher.node_table()
 
     def topology(self, *, timeout: float | None = None) -> Topology:
-        with self._held("topology", timeout, changes=False):
-            launcher = self.launcher
-            return topology_of(self.plan.name, self.plan.nodes, launcher.specs.values(),
-                               launcher.links.values(), launcher.node_table(),
-                               self.plan.code.module_servers)
+        """The structure, waiting for no change: the modules of a copy of the launcher's
+        table, and the links between them (one made meanwhile, to a module not in that
+        copy, is left out: nothing shows a link to nowhere)."""
+        self._call_timeout(timeout)
+        launcher = self.launcher
+        specs = dict(launcher.specs)            # (modules first: a new link's come first)
+        links = [link for link in dict(launcher.links).values()
+                 if link.src in specs and link.dst in specs]
+        return topology_of(self.plan.name, self.plan.nodes, specs.values(), links,
+                           launcher.node_table(), self.plan.code.module_servers)
 
     def configuration(self, *, timeout: float | None = None) -> dict[str, Any]:
         """The system as it is now, as the tables of a configuration file:
@@ -739,8 +769,9 @@ class Operations:
         return {"system": folded.tables, "problems": folded.problems}
 
     def stats(self, *, timeout: float | None = None) -> SystemStats:
-        with self._held("stats", timeout, changes=False) as left:
-            return self.launcher.stats(left())
+        """The figures, within ``timeout``, waiting for no change (``Launcher.stats``):
+        a change in progress shows on the modules it acts on (``ModuleStats.change``)."""
+        return self.launcher.stats(self._call_timeout(timeout))
 
     def events(self, since: int = 0, *, timeout: float | None = 0.0) -> list[Event]:
         return self._history("events", lambda wait: self.event_log.since(since, wait), timeout)
@@ -792,6 +823,11 @@ class Operations:
             return getattr(self, op)(**args)
         finally:
             _ASKER.reset(token)
+
+
+def _ends(src: str, dst: str) -> list[str]:
+    """The modules of a link's ends ("module.port"), which a change of it acts on."""
+    return [src.rpartition(".")[0], dst.rpartition(".")[0]]
 
 
 def _left(deadline: float) -> float:

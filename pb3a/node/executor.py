@@ -663,7 +663,7 @@ class Executor:
                 reports[key] = {**handle.last_figures, "pid": None}
         modules = {name: self._module_stats(record, reports.get(record.worker),
                                             silent.get(record.worker))
-                   for name, record in self.modules.items()}
+                   for name, record in list(self.modules.items())}  # (a change adds some)
         rings = {key: ring.get("used", 0) for report in reports.values()
                  for key, ring in report.get("rings", {}).items()}
         lost, drops = self.wiring.inbound_losses()
