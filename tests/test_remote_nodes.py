@@ -36,6 +36,7 @@ from sample_modules import (
     Fussy,
     Hoard,
     Last,
+    LongStep,
     LossWatcher,
     NodeTable,
     Relay,
@@ -923,6 +924,41 @@ def test_stats_with_a_remote_worker_frozen_keeps_the_callers_timeout(controllers
     assert took < 1.5, f"stats took {took:.1f} s"
     assert stats.modules["frozen"].silent and stats.modules["frozen"].pid == pid
     assert stats.modules["other"].steps > 0 and not stats.modules["other"].silent
+
+
+def test_stats_during_a_move_held_up_on_a_remote_node_come_with_its_figures(
+        controllers, monkeypatch) -> None:
+    """A move that waits at a remote node (to pause a module in a long step there) holds
+    up no look at that node: ``stats()`` answers within its timeout with the figures of
+    its other module, the moving one naming the move (the node's report waited behind
+    the pause, in its executor's one lane and for its lock: its modules came silent,
+    as if it did not answer)."""
+    system = System("look-remote").node("a").node("b", address=controllers["b"].address)
+    system.add("mover", LongStep, node="b", state={"step_s": 4.0})
+    system.add("other", Steady, node="b")
+    with system.launch() as run:
+        eventually(lambda: run.stats().modules["other"].steps > 0, what="the other's steps")
+        pausing, real = threading.Event(), RemoteNode.pause
+
+        def pause(self, name, *args, **kwargs):
+            if name == "mover":
+                pausing.set()
+            return real(self, name, *args, **kwargs)
+        monkeypatch.setattr(RemoteNode, "pause", pause)
+        moving = threading.Thread(target=lambda: run.migrate("mover", to="a", timeout=30))
+        moving.start()
+        try:
+            assert pausing.wait(10.0)
+            started = time.monotonic()
+            stats = run.stats(timeout=1.0)
+            took = time.monotonic() - started
+            still = moving.is_alive()
+        finally:
+            moving.join(30.0)
+    assert took < 1.5, f"stats took {took:.1f} s"
+    assert still, "the move was over before the look: nothing was tried"
+    assert stats.modules["mover"].change == "migrate mover to a", stats.modules["mover"]
+    assert not stats.modules["other"].silent and stats.modules["other"].steps > 0, stats
 
 
 def _last_seq(run) -> int:

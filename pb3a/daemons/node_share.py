@@ -113,6 +113,9 @@ class NodeShare:
             return None
         if op == "await_restart":   # without the lock too: the restart takes it
             return ex.await_restart(args["name"], args["timeout"])
+        if op == "report":          # without the lock too: a look waits for no change
+            with _bounded(args):
+                return ex.report(args["timeout"])
         if op == "bind":
             return self.bind(args["launcher"], args["checkpoint_s"], args["log_level"],
                       args["code"], args.get("lease_s", LEASE_S), args.get("epoch", 0),
@@ -344,8 +347,9 @@ def executor_main(config: str, node: str, workers: int, cpus: list[int] | None,
                                           instant={"lease": share.renew},
                                           # setup may ask the launcher about this node,
                                           # which asks this executor, and a restart
-                                          # waited for takes its lock: not in one lane
-                                          aside={"start", "await_restart"},
+                                          # waited for takes its lock, and a report
+                                          # waits for no change: not in one lane
+                                          aside={"start", "await_restart", "report"},
                                           decode_lock=share.executor.imports.lock,
                                           title=f"node {node}'s executor for {config!r}")
     try:

@@ -184,4 +184,4 @@ class Node(Protocol):
 REMOTE_OPERATIONS = frozenset(
     name for name, member in vars(Node).items()
     if callable(member) and not name.startswith("_")) - {"shutdown", "start_modules",
-                                                         "await_restart"}
+                                                         "await_restart", "report"}

@@ -351,7 +351,13 @@ class RemoteNode:
         return self._forward("close_inbound", links)
 
     def report(self, timeout: float) -> NodeReport:
-        return self._forward("report", timeout, within=timeout + MARGIN_S)
+        # beside the executor's requests, not one of them (as ``start``): a look waits for
+        # no change (a move pausing a module here held the node's report up until the
+        # pause was done: its modules came silent)
+        if self.lost or self.client is None:
+            raise RuntimeFailure(f"node {self.name} is lost")
+        within = self._within(capped(timeout + MARGIN_S))
+        return self.client.request("report", {"timeout": timeout, **_bound(within)}, within)
 
     def worker_pids(self) -> list[int]:
         return self._forward("worker_pids")

@@ -275,8 +275,9 @@ class Wiring:
         if not self.inbound:
             return {}, {}           # (the bridge is made on first use: not for a report)
         bridge = self._node.bridge
-        lost = {key: bridge.link_failures(topic(link)) for key, link in self.inbound.items()}
-        drops = {key: bridge.drops(topic(link)) for key, link in self.inbound.items()}
+        inbound = list(self.inbound.items())    # (a report runs beside the changes)
+        lost = {key: bridge.link_failures(topic(link)) for key, link in inbound}
+        drops = {key: bridge.drops(topic(link)) for key, link in inbound}
         return lost, drops
 
     def close(self) -> None:
