@@ -1177,19 +1177,30 @@ def test_a_move_whose_destination_freezes_after_the_capture_returns_in_time_wher
                     os.kill(pid, signal.SIGCONT)
 
 
-@pytest.mark.parametrize("held_at", ["pause", "retire", "land"])
+@pytest.mark.parametrize("held_at", ["pause", "retire", "between", "land"])
 def test_a_look_at_the_system_waits_for_no_move_and_shows_it_in_progress(
         monkeypatch, capsys, held_at: str) -> None:
     """While a move holds the configuration lock (held here at one of its steps: the
     module's pause, its capture done, its landing), ``stats()``, ``where()``,
     ``nodes()``, ``topology()``, another module's state and ``pb3a status`` answer at
-    once, every module shown once (the one moving too, between its nodes' reports),
+    once, every module shown once (the one moving too, between its nodes' reports:
+    ``between``, its destination's report taken before it came, shows it silent),
     and the moving one's figures and the table name the move; once it is done, no
     more. (They waited for the lock: a stuck move left ``pb3a status`` failing after
     its timeout, "waited 3 s for the system's configuration lock, which 'migrate slow
     to b' has held for 4.8 s", just when one wanted to look.)"""
     system = _through("look-during-move", "relay", Relay)
     go, there = threading.Event(), threading.Event()
+    report = None
+    if held_at == "between":                # captured at a, and b reports it not
+        held_at, report = "retire", Executor.report
+
+        def before_it_came(self, *args, **kwargs):
+            figures = report(self, *args, **kwargs)
+            if self.node == "b" and there.is_set() and not go.is_set():
+                figures.modules.pop("relay", None)
+            return figures
+        monkeypatch.setattr(Executor, "report", before_it_came)
     real = getattr(Executor, held_at)
 
     def held(self, name, *args, **kwargs):
@@ -1227,6 +1238,7 @@ def test_a_look_at_the_system_waits_for_no_move_and_shows_it_in_progress(
     moved = stats.modules["relay"]
     assert moved.change == "migrate relay to b" and moved.change_s > 0, moved
     assert moved.node == ("b" if held_at == "land" else "a"), moved
+    assert moved.silent == (report is not None), moved
     assert stats.modules["src"].change == "" and stats.modules["sink"].change == ""
     assert where == ("b" if held_at == "land" else "a", "a")
     assert set(nodes) == {"a", "b"} and set(topology.modules) == {"src", "relay", "sink"}

@@ -454,8 +454,8 @@ class Launcher:
         system until it ended): from a copy of the launcher's tables taken first, each
         module in it shown once, with the change in progress that acts on it, if any
         (``ModuleStats.change``). A module is shown where that copy has it: one mid-move
-        with the figures of whichever node has it, or none (between two nodes'
-        reports)."""
+        with the figures of whichever node has it, or silent (between two nodes'
+        reports; as a module whose lost node a failover is leaving)."""
         changing = self.lock.changing()
         specs, links = dict(self.specs), dict(self.links)    # (one copy each, atomic)
         reports = self._reports(timeout, specs)
@@ -474,8 +474,9 @@ class Launcher:
             entries = found.get(name, [])
             entry = next((e for e in entries if e.node == spec.node), None) \
                 or next(iter(entries), None)
-            if entry is None and change is not None:
-                entry = ModuleStats(class_ref(spec.cls), spec.node, "", "running")
+            if entry is None and change is not None:     # (no figures: none its own)
+                entry = ModuleStats(class_ref(spec.cls), spec.node, "", "running",
+                                    silent=True)
             if entry is None:               # (its node lost, or not asked)
                 continue
             entry = dataclasses.replace(entry, node=spec.node)
