@@ -892,9 +892,10 @@ def test_a_module_whose_setup_raises_where_it_fails_over_is_failed_not_failed_ov
         unplugged.touch()
         os.kill(b.executor_pid(), signal.SIGKILL)
         def failed_over() -> dict | None:
-            modules = run.stats().modules                # (gone a moment in the failover)
+            modules = run.stats().modules      # (read during the failover too: it says so)
             return modules if all(name in modules and modules[name].status == "running"
-                                  for name in ("one", "two")) else None
+                                  for name in ("one", "two")) \
+                and not any(module.change for module in modules.values()) else None
         modules = eventually(failed_over, timeout=30, what="the failover")
         assert (modules["cam"].node, modules["cam"].status) == ("a", "failed")
         eventually(lambda: run.state("two")["count"] > 3, what="two steps on a")
