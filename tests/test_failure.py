@@ -250,7 +250,9 @@ def test_a_last_state_restart_brings_back_the_state_the_module_made_as_it_ran() 
     system.add("mapper", MapMaker, restart="last-state")
     with system.launch(checkpoint_s=0.1) as run:
         state = _restarted_after_a_checkpoint(run, "mapper", "updates")
-        kinds = [event.kind for event in run.events()]
+        # (said as the restart ends, which a read of the module's state does not wait for)
+        kinds = eventually(lambda: [event.kind for event in run.events()],
+                           what="the restart said")
     assert state["updates"] > 40 and state["grid"][0, 0] > 40     # its checkpoint's
     assert state["setups"] == 2 and kinds == ["module_restarted"]
 
