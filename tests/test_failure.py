@@ -71,7 +71,7 @@ from pb3a.loading.sources import CodeSources
 from pb3a.model.module import restore_state
 from pb3a.node.executor import Executor
 from pb3a.node.forkserver_owner import ORPHAN_GRACE_S
-from pb3a.node.restarts import RESTART_INTENSITY, RestartBudget
+from pb3a.node.restarts import RESTART_INTENSITY, RestartBudget, Restarts
 from pb3a.transport.doorbell import new_bell
 from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import live_segments, segment_name
@@ -110,6 +110,40 @@ def _kill_worker(run, name: str) -> int:
     pid = eventually(lambda: run.stats().modules[name].pid, what="a worker pid")
     os.kill(pid, signal.SIGKILL)
     return pid
+
+
+def test_a_worker_s_restart_shows_on_its_modules_and_a_read_of_one_waits_for_it(
+        monkeypatch) -> None:
+    """On an embedded node a worker's restart holds the configuration lock while it
+    revives its modules (held here): ``stats()`` answers meanwhile, naming it on the
+    modules it restarts, not on the others, and a read of such a module's state waits
+    for it (the figures named no change; a read came back before the restart was done
+    and said)."""
+    system = System("restart-shown")
+    system.add("victim", Steady, restart="fresh")
+    system.add("other", Steady)
+    with system.launch() as run:
+        eventually(lambda: run.state("victim")["count"] > 3, what="steps")
+        reviving, go, real = threading.Event(), threading.Event(), Restarts._revive
+
+        def revive(self, handle, code):
+            reviving.set()
+            assert go.wait(30.0)
+            return real(self, handle, code)
+        monkeypatch.setattr(Restarts, "_revive", revive)
+        _kill_worker(run, "victim")
+        try:
+            assert reviving.wait(10.0)
+            stats = run.stats(timeout=1.0)
+            with pytest.raises(RuntimeTimeout, match="restart the modules of worker"):
+                run.state("victim", timeout=0.2)
+            assert run.state("other", timeout=1.0)["count"] > 0
+        finally:
+            go.set()
+        eventually(lambda: (m := run.stats().modules["victim"]).restarts == 1
+                   and not m.change, what="the restart done")
+    assert stats.modules["victim"].change.startswith("restart the modules of worker ")
+    assert stats.modules["other"].change == ""
 
 
 def _restarted_after_a_checkpoint(run, name: str, counter: str) -> dict:

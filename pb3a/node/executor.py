@@ -48,7 +48,7 @@ from pb3a.transport.shm import memory_domain, reap_orphans, segment_name, unlink
 from pb3a.transport.snapshot import Snapshot, make_room, read_piece, write_piece
 
 if TYPE_CHECKING:
-    from collections.abc import Callable, Iterator
+    from collections.abc import Callable, Collection, Iterator
 
 log = logging.getLogger("pb3a.executor")
 _module_log = logging.getLogger("pb3a.module")
@@ -758,11 +758,14 @@ class Executor:
                     f"the answer could not be pickled: {type(exc).__name__}: {exc}")})
 
     # -- the lock, and what a restart (``Restarts``) does here -----------------------
-    def held(self, what: str, timeout: float = LOCK_TIMEOUT) -> AbstractContextManager[Any]:
-        """``self.lock``, held for ``what`` (which the launcher's lock names to a waiter);
-        ``RuntimeTimeout`` if it is not free within ``timeout``."""
+    def held(self, what: str, timeout: float = LOCK_TIMEOUT, *,
+             acts_on: Collection[str] = ()) -> AbstractContextManager[Any]:
+        """``self.lock``, held for ``what`` (which the launcher's lock names to a waiter,
+        and its figures on the modules it ``acts_on``); ``RuntimeTimeout`` if it is not
+        free within ``timeout``."""
         held = getattr(self.lock, "held", None)
-        return _within(self.lock, what, timeout) if held is None else held(what, timeout)
+        return _within(self.lock, what, timeout) if held is None else \
+            held(what, timeout, acts_on=acts_on)
 
     def rewire(self, revived: set[str]) -> None:
         """Attach every link of restarted modules again (``Wiring.rewire``)."""

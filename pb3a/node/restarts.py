@@ -22,7 +22,7 @@ from pb3a.node.workers import REQUEST_TIMEOUT
 from pb3a.worker.lease import LEASE_LAPSED
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
+    from collections.abc import Callable, Collection
     from concurrent.futures import Future
     from contextlib import AbstractContextManager
 
@@ -79,7 +79,8 @@ class RestartHost(Protocol):
     failures: FailureLog
     leased: Callable[[], bool]
 
-    def held(self, what: str, timeout: float = ...) -> AbstractContextManager[Any]: ...
+    def held(self, what: str, timeout: float = ..., *,
+             acts_on: Collection[str] = ...) -> AbstractContextManager[Any]: ...
     def instantiate(self, record: ModuleRecord, state: dict[str, Any] | bytes) -> None: ...
     def rewire(self, revived: set[str]) -> None: ...
     def fail(self, name: str, code: int | None, reason: str) -> None: ...
@@ -151,7 +152,7 @@ class Restarts:
         with self._node.lives.reviving(set(handle.modules)):
             try:
                 self._node.lives.await_let_go(handle, what, LOCK_TIMEOUT)
-                with self._node.held(what):
+                with self._node.held(what, acts_on=list(handle.modules)):
                     if self._node.lives.stopping.is_set():    # a shutdown may have come first
                         return
                     revived = self._revive(handle, code)
@@ -162,7 +163,7 @@ class Restarts:
                     process = handle.process
                     future = self._node.workers.submit(handle.key, "start", names=list(revived))
                 outcome = self._started(future, handle.key, process)
-                with self._node.held(what):
+                with self._node.held(what, acts_on=list(handle.modules)):
                     if not self._node.lives.stopping.is_set():
                         self._restarted(handle, code, revived, outcome)
             except RuntimeTimeout as exc:       # the lock was not free within its deadline
