@@ -646,8 +646,10 @@ class Executor:
         unanswered = {key: future for key, future in self._unanswered.items()
                       if not future.done() and asked.get(key) is getattr(
                           future, "pb3a_worker", None)}
-        futures = {key: self.workers.submit(key, "stats") for key in asked
-                   if key not in unanswered}
+        # (each to the handle taken above: a report runs beside the changes, and a move
+        # may have dropped the worker since; that one's request fails, and it is silent)
+        futures = {key: self.workers.submit_to(handle, "stats")
+                   for key, handle in asked.items() if key not in unanswered}
         reports: dict[str, Any] = {}
         deadline = time.monotonic() + timeout           # one for all: they answer at once
         for key, future in futures.items():             # (each frozen worker took 5 s more)

@@ -452,6 +452,11 @@ class WorkerPool:
         """Send one request to a worker; the future holds its answer."""
         return self._submit(self.handles[key], op, _fd, args)
 
+    def submit_to(self, handle: WorkerHandle, op: str, /, **args: Any) -> Future[Any]:
+        """``submit`` to a worker by the handle the caller took, which the pool may have
+        dropped since (then the future fails: it is not running)."""
+        return self._submit(handle, op, None, args)
+
     def _submit(self, handle: WorkerHandle, op: str, fd: int | None,
                 args: dict[str, Any]) -> Future[Any]:
         future: Future[Any] = Future()
