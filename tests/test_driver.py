@@ -171,7 +171,7 @@ class LineDevice:
             def handle(self) -> None:
                 device.connections += 1
                 for raw in self.rfile:
-                    line = raw.decode().strip()
+                    line = raw.decode(errors="replace").strip()
                     device.received += 1
                     device.free.wait(10.0)
                     device.heard.append(line)
@@ -287,6 +287,31 @@ def test_a_line_device_nothing_listens_for_is_named_at_once() -> None:
         f"LineMotor at {device.address}: nothing listens on port {port} at 127.0.0.1 (the "
         "connection was refused): start the device's program, or fix the port")
     harness.close()
+
+
+def test_a_pb3a_driver_pointed_at_a_line_program_is_told_to_speak_lines(line_devices) -> None:
+    """A driver left at ``protocol = "pb3a"`` and pointed at a legacy program's port
+    said "nothing listens there ... check that the process runs", though it ran and
+    listened. What took the connection never greeted in ZeroMQ's protocol, and the
+    error now says so, and what to set; a PB3A device that is slow is still told
+    apart (it greets: the request "may have begun")."""
+    a, _ = line_devices
+    harness = ModuleHarness(Reader, state={"resource": a.address})
+    harness.step()
+    assert harness.module.last_error == (
+        f"Reader: {a.address} did not answer 'read' within 0.3 s: something accepts "
+        "connections there but does not speak PB3A's protocol (it sent no ZeroMQ greeting): "
+        "another program's port, or a PB3A process that is stopped; a device that reads "
+        "lines of text takes protocol = 'lines' in its driver, and ask() and tell() in "
+        "place of request()")
+    harness.close()
+    slow = serve_device(lambda op, args: time.sleep(1.0))
+    harness = ModuleHarness(Reader, state={"resource": slow.address})
+    harness.step()
+    assert "may have begun it" in harness.module.last_error
+    assert "protocol = 'lines'" not in harness.module.last_error
+    harness.close()
+    slow.close()
 
 
 def test_a_driver_waiting_for_a_line_device_holds_up_no_read_or_remove(line_devices) -> None:

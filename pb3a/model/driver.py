@@ -40,6 +40,8 @@ _MAY_STILL_RUN = ("it was sent, so the device may have begun it and carry it out
                   "not begun within the timeout it drops): look before asking again")
 _LINE_MAY_STILL_RUN = ("it was sent, so the device may carry it out still; the connection "
                        "is made anew at the next request: look before asking again")
+_NOT_PB3A = ("a device that reads lines of text takes protocol = 'lines' in its driver, "
+             "and ask() and tell() in place of request()")
 PROTOCOLS = ("pb3a", "lines")
 
 
@@ -113,7 +115,9 @@ class Driver(Module):
         except Expired as exc:
             raise Expired(self._blamed(str(exc), address)) from None
         except RuntimeTimeout as exc:
-            raise RuntimeTimeout(self._blamed(f"{exc}; {_MAY_STILL_RUN}", address)) from None
+            # (a legacy program's port was "nothing listens there", though it did)
+            then = _NOT_PB3A if client.ungreeted else _MAY_STILL_RUN
+            raise RuntimeTimeout(self._blamed(f"{exc}; {then}", address)) from None
         except RuntimeFailure as exc:
             raise type(exc)(self._blamed(str(exc), address)) from None
 
@@ -217,7 +221,7 @@ class Driver(Module):
             raise RuntimeFailure(f"{type(self).__name__} cannot connect to "
                                  f"{self.resource}: {unknown}")
         try:
-            client = ControlClient(ClusterKey.load(), self.resource)
+            client = ControlClient(ClusterKey.load(), self.resource, watch_greeting=True)
         except zmq.ZMQError as exc:     # (a request's failure, as any: a driver counts it)
             raise RuntimeFailure(f"{type(self).__name__} cannot connect to "
                                  f"{self.resource}: {exc}") from None

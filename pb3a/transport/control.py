@@ -109,6 +109,7 @@ DEFAULT_TIMEOUT = 10.0
 QUICK_S = 0.5               # a server that is there answers within this, unless far or busy
 REFUSED_S = 1.0             # connections refused this long: nothing listens there
 _REPROBE_S = 0.1
+_WATCHED = zmq.EVENT_CONNECTED | zmq.EVENT_DISCONNECTED | zmq.EVENT_HANDSHAKE_SUCCEEDED
 # A server that closed the client's connection, with nothing taking a connection there
 # since for this long, is gone (see ``ControlClient``'s ``when_gone``); a server that
 # runs takes ZeroMQ's reconnection within milliseconds
@@ -452,13 +453,32 @@ class ControlClient:
     closes nothing: its calls still end at their deadlines. A gone server's client
     gives back its thread and sockets then; the calls still fail as said.
 
+    With ``watch_greeting``, a call that times out at an address where something took
+    the connection but never greeted in ZeroMQ's protocol says so (``ungreeted``), not
+    "nothing listens there": a driver pointed at a legacy program's port.
+
     A client its owner drops without ``close`` is closed once it is collected (its
     thread holds it only weakly)."""
 
     def __init__(self, key: ClusterKey, address: str, *, epoch: int = 0,
-                 when_gone: Callable[[str], PB3AError] | None = None) -> None:
+                 when_gone: Callable[[str], PB3AError] | None = None,
+                 watch_greeting: bool = False) -> None:
         self.address = address
-        self._dealer, _ = _attached(zmq.DEALER, lambda sock: sock.connect(numeric(address)))
+        watched = when_gone is not None or watch_greeting
+
+        def connect(dealer: zmq.Socket) -> zmq.Socket | None:
+            # (watched before it connects: on loopback the connection was made, and its
+            # event gone, before a monitor made after it listened)
+            monitor = dealer.get_monitor_socket(_WATCHED) if watched else None
+            try:
+                dealer.connect(numeric(address))
+            except BaseException:
+                if monitor is not None:
+                    dealer.disable_monitor()
+                    monitor.close(0)
+                raise
+            return monitor
+        self._dealer, self._monitor = _attached(zmq.DEALER, connect)
         self._loop = SocketLoop("pb3a-control-client", self._dealer.context)
         self._sealer = Sealer(key, epoch)
         # Replies count only if they answer a request this client is waiting for; the
@@ -477,15 +497,13 @@ class ControlClient:
         self.gone = threading.Event()        # ... and nothing took one there in GONE_S
                                              # (or another server took its place)
         self._gone_why = ""                  # (which of the two, in words)
-        self._monitor: zmq.Socket | None = None
+        self._connected = self._greeted = False     # (told by the monitor, if any)
         # The loop holds the client only weakly, and a client dropped unclosed is closed
         # when collected (the loop's thread held its handlers, and through them the
         # client and its sockets, for good: each connection dropped unclosed kept a
         # thread and six descriptors, a notebook's `pb3a.connect` run again until "Too
         # many open files"). Not at exit: the process's exit handlers may still call.
-        if when_gone is not None:            # (before the loop thread uses the dealer)
-            self._monitor = self._dealer.get_monitor_socket(
-                zmq.EVENT_CONNECTED | zmq.EVENT_DISCONNECTED)
+        if self._monitor is not None:       # (before the loop thread uses the dealer)
             self._loop.register(self._monitor, _weakly(self._on_connection))
         self._loop.register(self._dealer, _weakly(self._on_reply))
         self._close_sockets = _closer(self._dealer, self._monitor)
@@ -520,6 +538,12 @@ class ControlClient:
                 raise self._when_gone(self._gone_why)
             self._loop.submit(lambda: self._send(request_id))
             if not done.answered(timeout):
+                if self.ungreeted:
+                    raise RuntimeTimeout(
+                        f"{self.address} did not answer {op!r} within {spoken(timeout)} s: "
+                        "something accepts connections there but does not speak PB3A's "
+                        "protocol (it sent no ZeroMQ greeting): another program's port, or "
+                        "a PB3A process that is stopped")
                 raise RuntimeTimeout(
                     f"{self.address} did not answer {op!r} within {spoken(timeout)} s: nothing "
                     "listens there, it is cut off, or it is busy; check the address and "
@@ -642,9 +666,12 @@ class ControlClient:
         """The connection to the server was made, or closed by it (socket thread)."""
         while monitor.poll(0):
             event = recv_monitor_message(monitor)["event"]
-            if event == zmq.EVENT_CONNECTED:
-                self._lost_at = None
-            elif event == zmq.EVENT_DISCONNECTED and self._lost_at is None:
+            if event == zmq.EVENT_HANDSHAKE_SUCCEEDED:
+                self._greeted = True
+            elif event == zmq.EVENT_CONNECTED:
+                self._connected, self._lost_at = True, None
+            elif event == zmq.EVENT_DISCONNECTED and self._lost_at is None \
+                    and self._when_gone is not None:
                 self._lost_at = time.monotonic()
                 self._loop.later(GONE_S, _weakly(self._look_for_server))
 
@@ -689,6 +716,14 @@ class ControlClient:
         for done, box in list(self._waiting.values()):
             box[:] = [False, reason]
             done.set()
+
+    @property
+    def ungreeted(self) -> bool:
+        """Whether, watching its greeting (``watch_greeting``), the client was let connect
+        but has never been greeted in ZeroMQ's protocol: what listens at the address is
+        another program (a legacy device that reads lines of text, say), or a stopped
+        process. A server that runs greets at once, however busy its own threads."""
+        return self._connected and not self._greeted
 
     @property
     def closed(self) -> bool:
