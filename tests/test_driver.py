@@ -14,7 +14,8 @@ from conftest import eventually
 
 from pb3a import Driver, Input, Output, RuntimeFailure, RuntimeTimeout, System, serve_device
 from pb3a.testing import ModuleHarness
-from pb3a.transport.control import ControlServer
+from pb3a.transport.auth import ClusterKey
+from pb3a.transport.control import ControlClient, ControlServer
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -312,6 +313,53 @@ def test_a_pb3a_driver_pointed_at_a_line_program_is_told_to_speak_lines(line_dev
     assert "protocol = 'lines'" not in harness.module.last_error
     harness.close()
     slow.close()
+
+
+class Stepper(Driver):
+    """Asks its device to move by one step at each of its steps."""
+
+    period = 0.05
+    timeout = 10.0
+
+    def step(self) -> None:
+        self.request("move", by=1)
+
+
+@pytest.mark.parametrize("change", ["migrate", "remove"])
+def test_a_request_its_driver_stops_waiting_for_is_not_carried_out(change: str) -> None:
+    """A driver's move (or stop) cancels the request it waits for; the device, busy with
+    another's request, began it once free all the same, so a relative move asked again
+    from the destination was made twice. The client withdraws what it gives up on, and
+    a device drops a withdrawn request it has not begun."""
+    began, go, ran = threading.Event(), threading.Event(), []
+
+    def device(op: str, args: dict) -> None:
+        if op == "home":
+            began.set()
+            go.wait(20.0)
+        ran.append(op)
+
+    server = serve_device(device)
+    other = ControlClient(ClusterKey.load(), server.address)
+    homing = threading.Thread(target=other.call, args=("home", 20.0), daemon=True)
+    homing.start()
+    try:
+        assert began.wait(5.0)
+        system = System("withdrawn").node("a").node("b").add(
+            "stepper", Stepper, node="a", state={"resource": server.address})
+        with system.launch(timeout=20) as run:
+            eventually(lambda: server._work.qsize() == 1, what="the move queued at the device")
+            if change == "migrate":
+                run.migrate("stepper", to="b", timeout=10.0)
+            run.remove("stepper", timeout=10.0)        # (its next move withdrawn too)
+            go.set()
+            assert other.call("after", 10.0) is None    # (queued behind the move, if kept)
+    finally:
+        go.set()
+        homing.join(10.0)
+        other.close()
+        server.close()
+    assert ran[:2] == ["home", "after"], ran
 
 
 def test_a_driver_waiting_for_a_line_device_holds_up_no_read_or_remove(line_devices) -> None:

@@ -1075,7 +1075,7 @@ def test_a_request_its_driver_gave_up_on_while_the_device_was_busy_is_not_carrie
     said = str(timed_out.value)
     assert said.startswith(f"Driver: {device.address} did not answer ") and "within 0.3 s" in said
     assert said.endswith("; it was sent, so the device may have begun it and carry it out "
-                         "still (one not begun within the timeout it drops): look before "
+                         "still (one it has not begun it drops): look before "
                          "asking again")
 
 

@@ -37,7 +37,7 @@ from pb3a.transport.lines import LineClient
 
 # What becomes of a request sent, when its call failed without the device's answer
 _MAY_STILL_RUN = ("it was sent, so the device may have begun it and carry it out still (one "
-                  "not begun within the timeout it drops): look before asking again")
+                  "it has not begun it drops): look before asking again")
 _LINE_MAY_STILL_RUN = ("it was sent, so the device may carry it out still; the connection "
                        "is made anew at the next request: look before asking again")
 _NOT_PB3A = ("a device that reads lines of text takes protocol = 'lines' in its driver, "

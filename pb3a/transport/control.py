@@ -17,6 +17,10 @@ two machines share no clock). A server made with ``expires`` (a device's:
 ``pb3a.serve_device``) drops a request it has not begun that long after it came,
 answering that it was not done (``Expired``): its caller has given up on it, and may
 be asking again (a motor's relative move, retried after a timeout, was made twice).
+So does it a request whose caller withdrew it (``WITHDRAW``): a client sends that for
+each request it stops waiting for unanswered, and a move, swap or stop of the module
+that waited for it ends that wait early (a driver's move, cancelled by its migration,
+was carried out once the device was free, and asked again at the destination).
 The others run every request they take in: their operations carry deadlines of their
 own (``within``, ``bound``), and some are worth doing however late (a node's events,
 a stop).
@@ -71,7 +75,7 @@ if TYPE_CHECKING:
 log = logging.getLogger("pb3a.control")
 
 T = TypeVar("T")
-REQUEST, REPLY, INSTANCE = 10, 11, 12
+REQUEST, REPLY, INSTANCE, WITHDRAW = 10, 11, 12, 13
 _NOBODY = bytes(16)                   # the instance a client asks before it knows
 _SENDS = 4                            # times a request is sent, to instances it learns
 _ID = struct.Struct("<Q")
@@ -115,6 +119,7 @@ _WATCHED = zmq.EVENT_CONNECTED | zmq.EVENT_DISCONNECTED | zmq.EVENT_HANDSHAKE_SU
 # runs takes ZeroMQ's reconnection within milliseconds
 GONE_S = 1.0
 ANSWER_LINGER_MS = 500                   # how long a closing server gives its last answers
+WITHDRAW_LINGER_MS = 200                 # ... and a closing client its last withdrawals
 ASIDE_ANSWER_S = 1.0                     # ... and its requests running aside to give theirs
 
 
@@ -194,6 +199,11 @@ class ControlServer:
         # (whether a request refused for its epoch is a key holder's, told what this is)
         self._any_epoch = Opener(key, epoch=0, max_bytes=MAX_MESSAGE)
         self.instance = secrets.token_bytes(16)      # requests must name it (see above)
+        # (peer, request id) of the requests waiting in ``_work``, and those of them their
+        # callers withdrew: kept by a server that ``expires`` only
+        self._queued: set[tuple[bytes, bytes]] = set()
+        self._withdrawn: set[tuple[bytes, bytes]] = set()
+        self._queued_lock = threading.Lock()
         # (peer, request id, op, args, when it expires), or with op None the request's
         # pickle, to read
         self._work: queue.SimpleQueue[tuple[Any, bytes, str | None, Any, float] | None] = (
@@ -223,6 +233,9 @@ class ControlServer:
             peer, *frames = router.recv_multipart(copy=False)
             try:
                 message = self._opener.open(frames)
+                if message.kind == WITHDRAW and len(message.frames) == 1:
+                    self._withdraw((bytes(peer), bytes(message.frames[0])))
+                    continue
                 if message.kind != REQUEST or len(message.frames) != 4 \
                         or len(wait := bytes(message.frames[2])) != _WAIT.size:
                     raise Rejected("unexpected")
@@ -241,7 +254,7 @@ class ControlServer:
             try:
                 op, args = _decode(blob, self._decode_lock, may_import=False)
             except _MustImport:
-                self._work.put((peer, request_id, None, blob, expires))
+                self._queue(peer, request_id, None, blob, expires)
                 continue
             except Exception as exc:
                 self._reply_undecodable(peer, request_id, exc)
@@ -256,7 +269,34 @@ class ControlServer:
                 self._asides.add(aside)
                 aside.start()
             else:
-                self._work.put((peer, request_id, op, args, expires))
+                self._queue(peer, request_id, op, args, expires)
+
+    def _queue(self, peer: Any, request_id: bytes, op: str | None, args: Any,
+               expires: float) -> None:
+        """Hand a request to the handler thread, noting it if it may be withdrawn."""
+        if self._expires:
+            with self._queued_lock:
+                self._queued.add((bytes(peer), request_id))
+        self._work.put((peer, request_id, op, args, expires))
+
+    def _withdraw(self, key: tuple[bytes, bytes]) -> None:
+        """Its caller gave up on request ``key``: a server that ``expires`` drops it if
+        it is still waiting its turn (one begun or answered is not stopped)."""
+        with self._queued_lock:
+            if key in self._queued:
+                self._withdrawn.add(key)
+
+    def _withdrawn_now(self, peer: Any, request_id: bytes) -> bool:
+        """Whether the request about to begin was withdrawn (it is no longer queued)."""
+        if not self._expires:
+            return False
+        key = (bytes(peer), request_id)
+        with self._queued_lock:
+            self._queued.discard(key)
+            if key in self._withdrawn:
+                self._withdrawn.discard(key)
+                return True
+        return False
 
     def _reply_undecodable(self, peer: Any, request_id: bytes, exc: Exception) -> None:
         """A key holder's request that cannot be read still gets an answer, saying why."""
@@ -319,6 +359,9 @@ class ControlServer:
     def _serve(self) -> None:
         while (item := self._work.get()) is not None:
             peer, request_id, op, args, expires = item
+            if self._withdrawn_now(peer, request_id):
+                log.debug("%s dropped a request its caller withdrew", self.address)
+                continue                    # (nobody waits for its answer)
             if time.monotonic() >= expires:
                 self._drop(peer, request_id, op)
                 continue
@@ -550,7 +593,9 @@ class ControlClient:
                     "that the process runs and its port is open")
         finally:
             self._waiting.pop(request_id, None)
-            self._sent.pop(request_id, None)
+            sent = self._sent.pop(request_id, None)
+            if sent is not None and sent[1] and not done.is_set():
+                self._loop.submit(lambda: self._withdraw(request_id))   # (given up on)
         ok, result = box
         if ok is None:
             raise RuntimeFailure(self._refusal(op))
@@ -608,6 +653,16 @@ class ControlClient:
         with contextlib.suppress(zmq.Again):
             self._dealer.send_multipart(self._sealer.seal(
                 REQUEST, [request_id, self._instance, wait, sent[0]]), zmq.NOBLOCK)
+
+    def _withdraw(self, request_id: bytes) -> None:
+        """Tell the server that nobody waits for request ``request_id`` any more: a
+        device's drops it if it has not begun it (socket thread)."""
+        with contextlib.suppress(zmq.Again):
+            self._dealer.send_multipart(self._sealer.seal(WITHDRAW, [request_id]),
+                                        zmq.NOBLOCK)
+            # (a module stopped or moved closes its driver's client right after: with no
+            # linger the withdrawal was thrown away unsent, and the request carried out)
+            self._dealer.setsockopt(zmq.LINGER, WITHDRAW_LINGER_MS)
 
     def _on_reply(self, dealer: zmq.Socket) -> None:
         while dealer.poll(0):
@@ -759,7 +814,7 @@ def _closer(dealer: zmq.Socket, monitor: zmq.Socket | None) -> Callable[[], None
         if monitor is not None:
             dealer.disable_monitor()
             monitor.close(0)
-        dealer.close(0)
+        dealer.close()              # (its LINGER: 0, unless it has withdrawn requests)
     return close
 
 
