@@ -592,6 +592,36 @@ def test_a_restart_put_back_keeps_the_state_the_module_made_as_it_ran(monkeypatc
                    what="steps again")
 
 
+def test_a_module_being_restarted_is_still_listed_by_a_look_at_the_system(
+        monkeypatch) -> None:
+    """Looks wait for no change, and a restart dropped the module from the launcher's
+    tables between its stop and its new start: ``stats()`` then left it out, and
+    ``topology()`` with it, as if it had been removed."""
+    with pipeline().launch() as run:
+        eventually(lambda: run.state("sink")["value"] is not None, what="values")
+        executor = run._launcher.nodes["local"]
+        real_add = type(executor).add_module
+        held, go = threading.Event(), threading.Event()
+
+        def slow(self, spec, **kwargs):     # the new instance, held as it is made
+            if spec.name == "scale":
+                held.set()
+                assert go.wait(30.0)
+            return real_add(self, spec, **kwargs)
+        monkeypatch.setattr(type(executor), "add_module", slow)
+        restarting = threading.Thread(target=run.restart, args=("scale",), daemon=True)
+        restarting.start()
+        try:
+            assert held.wait(10.0)
+            stats, topology = run.stats(timeout=2.0), run.topology(timeout=2.0)
+        finally:
+            go.set()
+            restarting.join(30.0)
+        assert stats.modules["scale"].change == "restart scale", stats.modules
+        assert "scale" in topology.modules
+        assert run.stats().modules["scale"].change == ""
+
+
 def test_a_restart_that_cannot_start_the_module_again_puts_it_back_as_it_ran(
         monkeypatch) -> None:
     with pipeline().launch() as run:

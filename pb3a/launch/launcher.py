@@ -292,14 +292,17 @@ class Launcher:
         """One request about module ``name`` to its worker, wherever it runs."""
         return self.node_of(name).call_module(name, op, timeout, **args)
 
-    def remove_module(self, name: str, *, force: bool = False) -> int | None:
+    def remove_module(self, name: str, *, force: bool = False,
+                      restarting: bool = False) -> int | None:
         """Stop a module, drop its links, free its process. One that does not answer its
         stop in time (frozen in ``step`` or ``teardown``) is left as it was, and
         ``RuntimeTimeout`` says so and names ``force``; with ``force`` its worker is
         killed instead (``Node.kill_module``: refused, the module left as it was, if the
         worker runs others), and the rest of the removal is given ``KILLED_REMOVAL_S``
         past the deadline of the call, which the stop used up. The killed worker's
-        process id, None if the module stopped."""
+        process id, None if the module stopped. ``restarting``: the module is started
+        again next, so it stays in ``specs`` meanwhile (a look at the system between the
+        two left it out: ``stats`` did not list it)."""
         node = self.node_of(name)
         killed = None
         try:
@@ -316,18 +319,19 @@ class Launcher:
                 except RuntimeFailure as refused:
                     raise RuntimeFailure(f"remove {name} with force: {exc}; {refused}") \
                         from None
-                self._drop_stopped(name, node)
+                self._drop_stopped(name, node, restarting)
             return killed
-        self._drop_stopped(name, node)
+        self._drop_stopped(name, node, restarting)
         return killed
 
-    def _drop_stopped(self, name: str, node: Node) -> None:
+    def _drop_stopped(self, name: str, node: Node, restarting: bool = False) -> None:
         """The end of a removal, the module stopped: its links unwired, then the module
-        dropped from its node and from the system."""
+        dropped from its node and from the system (but for its spec, if ``restarting``)."""
         for key in [k for k, link in self.links.items() if name in (link.src, link.dst)]:
             self.disconnect(key)
         node.remove_module(name)
-        del self.specs[name]
+        if not restarting:
+            del self.specs[name]
         self.checkpoints.pop(name, None)
 
     @contextlib.contextmanager

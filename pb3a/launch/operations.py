@@ -639,7 +639,7 @@ class Operations:
             links = [link for link in launcher.links.values() if name in (link.src, link.dst)]
             was = self._state_then(name)
             with bounding(left()):
-                launcher.remove_module(name)
+                launcher.remove_module(name, restarting=True)
             try:
                 with bounding(left()):          # (a construction that blocks, say)
                     self._start(spec, links)
