@@ -79,7 +79,8 @@ class ModuleStats:
     calling: str = ""           # the body or hook it is in now ("step", "on_input", ...)
     calling_s: float = 0.0      # for how long: a stuck call shows here
     # the change in progress that acts on it ("migrate slow to b": its node is where
-    # the launcher has it now), and for how long ("" and 0: none)
+    # the launcher has it now; "restart the modules of worker b/w-3": its node's own
+    # restart of a worker that died), and for how long ("" and 0: none)
     change: str = ""
     change_s: float = 0.0
     restarts: int = 0           # times its worker was restarted under it

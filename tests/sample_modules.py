@@ -1021,6 +1021,22 @@ class BlocksOnceInInit(Module):
             time.sleep(self.BLOCK_S)
 
 
+class HoldsInSetup(Module):
+    """Its ``setup`` waits (up to 30 s) while the file ``hold`` exists; it steps."""
+
+    period = 0.01
+    hold = ""
+    steps = 0
+
+    def setup(self) -> None:
+        waited_until = time.monotonic() + 30.0
+        while self.hold and os.path.exists(self.hold) and time.monotonic() < waited_until:
+            time.sleep(0.01)
+
+    def step(self) -> None:
+        self.steps += 1
+
+
 class Oversize(Module):
     """Tries to write ``size`` bytes once (keeping the error in ``refused``), then writes
     a small value each step."""

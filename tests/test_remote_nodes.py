@@ -35,6 +35,7 @@ from sample_modules import (
     Freezer,
     Fussy,
     Hoard,
+    HoldsInSetup,
     Last,
     LongStep,
     LossWatcher,
@@ -403,6 +404,31 @@ def test_on_a_remote_node_a_request_in_the_restart_window_waits_for_the_restart(
         eventually(lambda: run.state("victim")["count"] > 3, timeout=30, what="steps")
         old, state = asked_as_it_restarts(run, "victim")
         assert state["count"] >= 10**6 and state["pid"] not in (0, old), state
+
+
+def test_a_worker_s_restart_on_a_remote_node_shows_on_its_modules(controllers,
+                                                                 tmp_path) -> None:
+    """A node controller's executor restarts a dead worker's modules on its own, and
+    the launcher, on another machine, held no lock for it: ``stats()`` named no change
+    on them meanwhile (on an embedded node it did). The node's figures name it now."""
+    hold = tmp_path / "hold"
+    system = System("remote-restart-shown").node("a")
+    system.node("b", address=controllers["b"].address)
+    system.add("victim", HoldsInSetup, node="b", restart="fresh", state={"hold": str(hold)})
+    with system.launch() as run:
+        eventually(lambda: run.state("victim")["steps"] > 3, timeout=30, what="steps")
+        hold.touch()                                # its next setup waits
+        pid = run.stats().modules["victim"].pid
+        os.kill(pid, signal.SIGKILL)
+        try:
+            held = eventually(lambda: (m := run.stats(timeout=2.0).modules["victim"]).change
+                              and m, timeout=20, what="the restart named")
+        finally:
+            hold.unlink()
+        eventually(lambda: (m := run.stats().modules["victim"]).restarts == 1
+                   and not m.change and m.steps > 0, timeout=20, what="the restart done")
+    assert held.change.startswith("restart the modules of worker "), held
+    assert held.change_s >= 0.0
 
 
 def test_each_node_keeps_the_spare_workers_its_configuration_gives(controllers) -> None:

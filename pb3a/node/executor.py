@@ -664,7 +664,8 @@ class Executor:
             if key not in reports and handle.last_figures:
                 reports[key] = {**handle.last_figures, "pid": None}
         modules = {name: self._module_stats(record, reports.get(record.worker),
-                                            silent.get(record.worker))
+                                            silent.get(record.worker),
+                                            self.lives.revival(name))
                    for name, record in list(self.modules.items())}  # (a change adds some)
         rings = {key: ring.get("used", 0) for report in reports.values()
                  for key, ring in report.get("rings", {}).items()}
@@ -678,14 +679,18 @@ class Executor:
 
     @staticmethod
     def _module_stats(record: ModuleRecord, report: dict[str, Any] | None,
-                      silent_pid: int | None) -> ModuleStats:
+                      silent_pid: int | None,
+                      revival: tuple[str, float] | None = None) -> ModuleStats:
         """A module's figures from its worker's ``report``; ``silent_pid``: its worker's
         process id if it runs but did not answer in time (``silent``: it was shown
-        with no process, as if it had none)."""
+        with no process, as if it had none); ``revival``: its restart under way, if any
+        (``Lives.revival``), named as the change in progress."""
         spec = record.spec
         base = {"cls": f"{spec.cls.__module__}:{spec.cls.__qualname__}", "node": spec.node,
                 "worker": record.worker, "status": record.status,
                 "restarts": record.restarts, "checkpoints": record.checkpoints}
+        if revival is not None:
+            base |= {"change": revival[0], "change_s": max(0.0, time.monotonic() - revival[1])}
         figures = None if report is None else report["modules"].get(spec.name)
         if figures is None:
             return ModuleStats(**base, pid=silent_pid, silent=silent_pid is not None)

@@ -40,7 +40,8 @@ class Lives:
         # ended, a change letting go of it, the node stopping (``await_restart``,
         # ``await_let_go``)
         self._condition = threading.Condition()
-        self._reviving: set[str] = set()        # modules whose restart is under way
+        # modules whose restart is under way: what it is, and since when
+        self._reviving: dict[str, tuple[str, float]] = {}
 
     def await_restart(self, name: str, timeout: float) -> bool:
         """Wait up to ``timeout`` while module ``name`` is between two lives (see
@@ -81,15 +82,21 @@ class Lives:
         self.changed()
 
     @contextlib.contextmanager
-    def reviving(self, names: set[str]) -> Iterator[None]:
-        """Modules ``names`` are being restarted while in this block (``await_restart``
-        waits for its end)."""
-        self._reviving |= names
+    def reviving(self, names: set[str], what: str) -> Iterator[None]:
+        """Modules ``names`` are being restarted (``what``) while in this block
+        (``await_restart`` waits for its end, and ``revival`` says it)."""
+        self._reviving.update(dict.fromkeys(names, (what, time.monotonic())))
         try:
             yield
         finally:
-            self._reviving -= names
+            for name in names:
+                self._reviving.pop(name, None)
             self.changed()
+
+    def revival(self, name: str) -> tuple[str, float] | None:
+        """The restart under way of module ``name`` and when it began, if there is one
+        (the node's figures name it: a launcher on another machine knows nothing of it)."""
+        return self._reviving.get(name)
 
     def hold(self, record: ModuleRecord, held: bool) -> None:
         """Note whether a change holds ``record``'s module paused (see

@@ -149,7 +149,7 @@ class Restarts:
         since an agent may call ``self.runtime`` from ``setup``, which takes the lock
         (``_started``); under it again, what came of it (``_restarted``)."""
         what = f"restart the modules of worker {handle.key}"
-        with self._node.lives.reviving(set(handle.modules)):
+        with self._node.lives.reviving(set(handle.modules), what):
             try:
                 self._node.lives.await_let_go(handle, what, LOCK_TIMEOUT)
                 with self._node.held(what, acts_on=list(handle.modules)):
