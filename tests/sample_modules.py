@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
 import time
@@ -1034,6 +1035,20 @@ class HoldsInSetup(Module):
             time.sleep(0.01)
 
     def step(self) -> None:
+        self.steps += 1
+
+
+class HoldsTheGil(Module):
+    """Each step is one C call that holds the GIL for ``hold_s`` (as a pickle of a large
+    list does, or a solver that does not let go of it): no other thread of its worker
+    runs meanwhile."""
+
+    period = 0.01
+    hold_s = 1.5
+    steps = 0
+
+    def step(self) -> None:
+        ctypes.PyDLL(None).usleep(int(self.hold_s * 1e6))
         self.steps += 1
 
 

@@ -27,6 +27,7 @@ from sample_modules import (
     AsksInSetup,
     Collector,
     Counter,
+    HoldsTheGil,
     Join,
     Journal,
     Last,
@@ -821,6 +822,23 @@ def test_a_frozen_executor_s_workers_stop_before_their_modules_run_elsewhere(
         finally:
             os.kill(executor, signal.SIGCONT)
     _assert_one_copy_at_a_time(stamps)
+
+
+def test_a_module_that_holds_the_gil_past_the_lease_is_not_stopped_for_it(node_b) -> None:
+    """A step of one C call that holds the GIL for 1.5 s (past a worker's 1.25 s lease)
+    starved the worker's threads, its grants unread: it stopped itself as the call let
+    go ("frozen past its lease while its executor ran"), its module restarted at every
+    step and failed for good after six. Its grants, read in the lease's grace, bring
+    the lease back: its executor's runs, so nothing runs the module elsewhere."""
+    system = System("gil").node("a").node("b", address=node_b.address)
+    system.add("hog", HoldsTheGil, node="b", restart="fresh", state={"hold_s": 1.5})
+    with system.launch() as run:
+        eventually(lambda: run.state("hog", timeout=5.0)["steps"] >= 4, timeout=30,
+                   what="four steps of 1.5 s")
+        figures = run.stats().modules["hog"]
+        kinds = {event.kind for event in run.events()}
+    assert figures.restarts == 0 and figures.status == "running", figures
+    assert not kinds & {"module_restarted", "module_failed", "node_lost"}, kinds
 
 
 def test_a_frozen_node_let_run_again_steps_nothing_beside_its_failed_over_copies(

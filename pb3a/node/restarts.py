@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.node.workers import REQUEST_TIMEOUT
-from pb3a.worker.lease import LEASE_LAPSED
+from pb3a.worker.lease import LEASE_LAPSED, LEASE_STARVED_S
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Collection
@@ -109,12 +109,13 @@ class Restarts:
     def _after_death(self, handle: WorkerHandle) -> None:
         code = handle.process.exitcode
         if code == LEASE_LAPSED and self._node.leased() and not self._node.lives.stopping.is_set():
-            # Its lease lapsed, but this executor's runs: the worker alone was frozen
-            # (stopped, starved), not its node, and nothing runs its modules elsewhere.
+            # Its lease lapsed, but this executor's runs: the worker alone was starved
+            # past LEASE_STARVED_S, not its node, and nothing runs its modules elsewhere.
             # They were stopped as no one asked: their restart policy says what comes.
-            log.warning("worker %s (pid %s, modules %s) stopped them: it was frozen past "
-                        "its lease while its executor ran", handle.key, handle.pid,
-                        ", ".join(handle.modules))
+            log.warning("worker %s (pid %s, modules %s) stopped them: it read no lease "
+                        "grant for %g s while its executor ran (its threads starved: the "
+                        "machine overloaded, or a module's C call holding the GIL)",
+                        handle.key, handle.pid, ", ".join(handle.modules), LEASE_STARVED_S)
         elif code in (0, LEASE_LAPSED):   # stopped on purpose (SIGTERM), or fenced: not a crash
             said = ("worker %s (pid %s) stopped; its modules %s are stopped", handle.key,
                     handle.pid, ", ".join(handle.modules))

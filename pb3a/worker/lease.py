@@ -3,6 +3,15 @@
 Its executor grants it again and again; a frozen or hung executor cannot fence its
 workers, so a worker whose lease runs out stops its own modules (as on SIGTERM) and
 exits ``LEASE_LAPSED``, while the launcher starts them elsewhere.
+
+No body runs while the lease is out (``holds``): that is what keeps a module from
+running beside its failed-over copy. The worker's own stop comes once the lease has
+been out for ``LEASE_GRACE_S`` of time its threads could run in, for a worker whose
+threads were starved rather than its executor gone: a module's one long C call that
+holds the GIL (a pickle of a large list, a solver) kept the grants unread in the
+pipe, and the worker stopped itself as the call let go, its executor alive and its
+grants waiting (a module stepping for 1.5 s that way was restarted at every step,
+then failed for good). Starved or not, it stops after ``LEASE_STARVED_S``.
 """
 
 from __future__ import annotations
@@ -20,6 +29,11 @@ if TYPE_CHECKING:
 log = logging.getLogger("pb3a.worker")
 
 LEASE_CHECK_S = 0.1      # how often a worker with a lease looks at it
+# How long a lease stays out, in time the worker's threads could run in, before the
+# worker stops itself: grants queued behind a starved thread are read meanwhile
+LEASE_GRACE_S = 0.5
+LEASE_STARVED_S = 10.0   # ... and at most, out however starved it is
+_LATE_S = 0.2            # a look at the lease this late: its thread (and the rest) starved
 # The exit status of a worker that stopped its modules because its lease lapsed: its
 # executor tells it from a stop it asked for (0) and, if its own lease runs, restarts
 # the modules (the worker alone was frozen; see Restarts.died). A code neither Python
@@ -42,19 +56,19 @@ class Lease:
     def grant(self, until: float) -> None:
         """The executor is alive: run on until ``until``, its own lease's end (its
         ``time.monotonic()``, the same clock on one machine: a grant read late, after
-        this worker was frozen, extends nothing). Until the launcher has started the
-        modules elsewhere, no body runs once it is out (``holds``): a frozen node let
-        run again stepped its modules once beside their failed-over copies before its
-        lease was looked at. A grant that finds the lease run out already (the worker
-        was frozen past it, the grants queued meanwhile) revives nothing: it lapses all
-        the same, whichever of its threads runs first."""
-        first = self._until is None
-        if not self.holds():
-            self._lapse()
+        this worker or its node was frozen, is over already and extends nothing). No
+        body runs once the lease is out (``holds``): a frozen node let run again stepped
+        its modules once beside their failed-over copies before its lease was looked at.
+        A grant whose ``until`` is still ahead brings a lease that ran out back: its
+        executor's lease holds now, so its node was not declared lost and nothing runs
+        the modules elsewhere (the worker alone was starved or stopped)."""
+        if self.lapsed:
             return
-        self._until = until
-        if first:
+        if self._until is None:
+            self._until = until
             threading.Thread(target=self._watch, daemon=True, name="pb3a-lease").start()
+        else:
+            self._until = max(self._until, until)
 
     def holds(self) -> bool:
         """Whether the worker's modules may run now: no lease, or one that runs."""
@@ -62,8 +76,25 @@ class Lease:
         return until is None or time.monotonic() <= until
 
     def _watch(self) -> None:
+        """Stop the worker once its lease has been out for ``LEASE_GRACE_S`` of time in
+        which its threads ran: a wait of this thread that ended late was starved, and so
+        was the thread that reads the grants, so it does not count (the grants queued
+        meanwhile bring the lease back once read); or for ``LEASE_STARVED_S`` in all."""
+        out_since: float | None = None      # when this thread first saw it out
+        calm = 0.0                          # how long out since, not counting starved waits
+        last = time.monotonic()
         while not self._closing.wait(LEASE_CHECK_S):
-            if not self.holds():
+            now = time.monotonic()
+            waited, last = now - last, now
+            if self.holds():
+                out_since = None
+                continue
+            if out_since is None:
+                out_since, calm = now, 0.0
+                continue
+            if waited <= LEASE_CHECK_S + _LATE_S:
+                calm += waited
+            if calm >= LEASE_GRACE_S or now - out_since >= LEASE_STARVED_S:
                 self._lapse()
                 return
 
