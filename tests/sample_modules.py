@@ -1415,3 +1415,25 @@ class SpawnerKit(Macro):
 
     modules = {"agent": MacroSpawner}
     exports = {"go": "agent.go"}
+
+
+PUMP_MOST_L_S = 5.0
+
+
+class Pump(Module):
+    """A user's module that refuses some values of its state (``state_problems``): a
+    rate its pump cannot run at, a valve position it has not got."""
+
+    rate = 1.0                  # l/s, from 0 to PUMP_MOST_L_S
+    valve = "closed"            # "open" or "closed"
+
+    @classmethod
+    def state_problems(cls, state: dict) -> list[str]:
+        problems = super().state_problems(state)
+        if "rate" in state and not 0 <= state["rate"] <= PUMP_MOST_L_S:
+            problems.append(f"{cls.__name__}'s rate must be from 0 to {PUMP_MOST_L_S:g} l/s, "
+                            f"got {state['rate']!r}")
+        if "valve" in state and state["valve"] not in ("open", "closed"):
+            problems.append(f"{cls.__name__}'s valve is 'open' or 'closed', "
+                            f"got {state['valve']!r}")
+        return problems

@@ -120,6 +120,49 @@ def test_check_prints_every_problem_on_its_own_line_and_exits_1(tmp_path: Path) 
     assert "3 problems in broken.toml" in done.stderr
 
 
+def test_check_reports_what_a_user_s_module_refuses_of_its_state_by_file_and_entry(
+        tmp_path: Path) -> None:
+    """A class says what it refuses of its state (``state_problems``, which its
+    ``set_state`` asks); ``pb3a check`` asks it for each entry's state and for the
+    class's own defaults. Only a ``set_state`` of the class's own could refuse such a
+    value, and the check passed it: the launch failed, or the module ran on it."""
+    (tmp_path / "pumps.py").write_text(textwrap.dedent("""
+        from pb3a import Module
+
+        class Pump(Module):
+            rate = 1.0
+
+            @classmethod
+            def state_problems(cls, state):
+                problems = super().state_problems(state)
+                if "rate" in state and not 0 <= state["rate"] <= 5:
+                    problems.append(f"{cls.__name__}'s rate must be from 0 to 5 l/s, "
+                                    f"got {state['rate']!r}")
+                return problems
+
+        class Leaky(Pump):
+            rate = -1.0
+        """))
+    (tmp_path / "plant.toml").write_text(textwrap.dedent("""
+        name = "plant"
+        [modules.main]
+        class = "pumps:Pump"
+        state = { rate = 9 }
+        [modules.spare]
+        class = "pumps:Pump"
+        state = { rate = 4.5 }
+        [modules.leak]
+        class = "pumps:Leaky"
+        """))
+    done = pb3a("check", "plant.toml", cwd=tmp_path)
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert done.stdout.splitlines() == [
+        "plant.toml [modules.main]: Pump's rate must be from 0 to 5 l/s, got 9.0",
+        "plant.toml [modules.leak]: Leaky's rate must be from 0 to 5 l/s, got -1.0 (its "
+        "class's own default)"]
+    assert "2 problems in plant.toml" in done.stderr
+
+
 def test_check_accepts_a_lossless_link_and_lists_lossless_when_a_policy_is_bad(
         tmp_path: Path) -> None:
     text = BROKEN.replace("perod", "period").replace("Scael", "Scale")

@@ -23,6 +23,7 @@ from pb3a.config.plan import FlatLink, Plan
 from pb3a.errors import ConfigError
 from pb3a.loading.references import resolve_class
 from pb3a.model.macro import Macro
+from pb3a.model.module import Module
 from pb3a.model.ports import Policy
 from pb3a.model.state_edits import class_state
 from pb3a.system import System
@@ -1406,6 +1407,31 @@ def test_a_driver_s_state_is_checked_as_any_module_s(tmp_path: Path) -> None:
     # a new driver's state given as JSON is made its fields' types, as a module's
     assert class_state(RobotDriver)["silent_after"] == 5 and class_state(DeviceReader)
     assert class_state(resolve_class("parts_cfg:Custom")) == {}     # (its own set_state)
+
+
+def test_a_state_problems_that_fails_is_a_problem_naming_its_class() -> None:
+    """A class's ``state_problems`` is the user's code: one that raises, or answers with
+    a text rather than a list, is said as a problem of the class, not a failed check."""
+
+    class Raising(Module):
+        rate = 1.0
+
+        @classmethod
+        def state_problems(cls, state):
+            return [f"rate {state['rate'] / 0}"]
+
+    class Texting(Module):
+        rate = 1.0
+
+        @classmethod
+        def state_problems(cls, state):
+            return "no"
+
+    problems = System("s").add("r", Raising).add("t", Texting, state={"rate": 2.0}).check()
+    assert any("Raising.state_problems raised ZeroDivisionError: float division by zero "
+               "(given {'rate': 1.0})" in p for p in problems), problems
+    assert any("Texting.state_problems must return a list of texts, one per value it "
+               "refuses ([] for none), got 'no'" in p for p in problems), problems
 
 
 def test_a_driver_s_timeout_it_cannot_go_by_is_a_problem(tmp_path: Path) -> None:

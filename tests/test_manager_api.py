@@ -19,7 +19,7 @@ import pytest
 pytest.importorskip("starlette", reason="the manager needs the 'ui' extra")
 
 from manager_modules import FileNamed, Holder
-from sample_modules import FloatSource, Mapper, Scale
+from sample_modules import FloatSource, Mapper, Pump, Scale
 from starlette.testclient import TestClient
 
 from pb3a import Running, System
@@ -288,6 +288,24 @@ def test_an_edit_is_coerced_applied_and_used_and_a_bad_one_changes_nothing(clien
                            headers={"content-type": "application/json"})
     assert not_json.status_code == 400 and "not JSON" in not_json.json()["error"]
     assert run.state("scale")["gain"] == 5.0 and run.state("map")["grid"][7][7] == 63.0
+
+
+def test_an_edit_the_module_s_class_refuses_is_refused_naming_it_and_nothing_set() -> None:
+    """The State Editor asks the module's class what it refuses of an edit
+    (``state_problems``), as ``pb3a check`` does, before sending it: a value only the
+    class's own ``set_state`` refused reached the module (a rate its pump cannot run
+    at was set), or came back as a worker's failure."""
+    system = System("plant").add("p", Pump)
+    with system.launch() as run, manager_client(Session(Document.empty(), run)) as client:
+        refused = client.post("/api/modules/p/state", json={"rate": 9, "valve": "ajar"})
+        assert refused.status_code == 422, refused.text
+        assert refused.json()["error"] == ("module p: Pump's rate must be from 0 to 5 l/s, "
+                                           "got 9.0; module p: Pump's valve is 'open' or "
+                                           "'closed', got 'ajar'")
+        assert run.state("p") == {"rate": 1.0, "valve": "closed"}
+        changed = client.post("/api/modules/p/state", json={"rate": 4, "valve": "open"})
+        assert changed.status_code == 200, changed.text
+        assert run.state("p") == {"rate": 4.0, "valve": "open"}
 
 
 def test_a_float_field_takes_inf_and_nan_and_an_int_field_refuses_them(client, run) -> None:

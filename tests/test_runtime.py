@@ -45,6 +45,7 @@ from sample_modules import (
     Overlap,
     Paced,
     Pid,
+    Pump,
     Retimer,
     Scale,
     Shift,
@@ -68,6 +69,7 @@ from pb3a import (
 from pb3a.config.compiler import validate
 from pb3a.config.description import read_description
 from pb3a.model.agent import RuntimeClient
+from pb3a.model.module import StateRefused
 from pb3a.node import resources
 from pb3a.stats import (
     FAILURES_KEPT,
@@ -324,6 +326,29 @@ def test_a_live_edit_of_the_wrong_kind_is_refused_and_an_int_for_a_float_is_made
         assert gain == 4.0 and type(gain) is float
         eventually(lambda: run.state("sink")["value"] == 6.0, what="1.5 * 4 at the sink")
         assert run.stats().modules["scale"].errors == 0
+
+
+def test_a_value_its_class_refuses_is_refused_live_naming_the_module_and_nothing_set() -> None:
+    """A class says what it refuses of its state (``state_problems``), and ``set_state``
+    asks it before setting anything: only a ``set_state`` of the class's own could refuse
+    a value, and ``pb3a check`` and the State Editor knew nothing of it. From a program
+    the refusal names the module, as the module says it; on the instance it is a
+    ``StateRefused`` (a ValueError) listing each value."""
+    pump = Pump()
+    with pytest.raises(StateRefused) as refused:
+        pump.set_state({"rate": 9.0, "valve": "ajar"})
+    assert refused.value.problems == ["Pump's rate must be from 0 to 5 l/s, got 9.0",
+                                      "Pump's valve is 'open' or 'closed', got 'ajar'"]
+    assert isinstance(refused.value, ValueError)
+    assert (pump.rate, pump.valve) == (1.0, "closed")             # nothing was set
+    with System("plant").add("p", Pump).launch() as run:
+        with pytest.raises(RuntimeFailure) as refused:
+            run.set_state("p", rate=2.0, valve="ajar")
+        assert str(refused.value) == ("module 'p': Pump's valve is 'open' or 'closed', got "
+                                      "'ajar'; nothing was set")
+        assert run.state("p") == {"rate": 1.0, "valve": "closed"}
+        run.set_state("p", rate=2, valve="open")                   # what it takes is set
+        assert run.state("p") == {"rate": 2.0, "valve": "open"}
 
 
 def test_swap_keeps_ports_and_state_and_runs_setup_again() -> None:

@@ -19,8 +19,6 @@ from typing import Any
 from pb3a.errors import MOST_SECONDS
 from pb3a.loading.references import by_reference, class_ref
 from pb3a.model.displays import declared_displays, finite
-from pb3a.model.driver import Driver
-from pb3a.model.driver import state_problems as driver_state_problems
 from pb3a.model.environment import PREFIX as ENV_PREFIX
 from pb3a.model.module import HOOKS, RESTART_POLICIES, Module, can_hold, reflective_state
 from pb3a.model.state_edits import configured
@@ -153,14 +151,15 @@ def timeout(value: Any) -> list[str]:
 
 
 def state(cls: type[Module], value: Any) -> list[str]:
-    """A table of initial state. When the class uses reflection (its ``set_state`` is
-    ``Module``'s or marked ``reflective``, as a ``Driver``'s), its keys must be the
-    class's state (or set in its ``__init__``), and each value of the kind of the
-    class's default for it (``configured``)."""
+    """A table of initial state: what the class refuses of it (``refused``). When the
+    class uses reflection (its ``set_state`` is ``Module``'s or marked ``reflective``, as
+    a ``Driver``'s), its keys must be the class's state (or set in its ``__init__``), and
+    each value of the kind of the class's default for it (``configured``); only such
+    values are put to the class then."""
     if not isinstance(value, dict):
         return [f"state must be a table of attribute = value, got {value!r}"]
     if not reflective_state(cls):
-        return []          # the class defines its own state: it alone knows the keys
+        return refused(cls, value)    # the class defines its own state: it knows the keys
     names, made = cls.state_names(), _set_in_init(cls)
     known = [*names, *sorted(made.difference(names))]
     problems, judged = [], {}
@@ -170,12 +169,31 @@ def state(cls: type[Module], value: Any) -> list[str]:
                 judged[key] = configured(key, getattr(cls, key), item, owner=class_ref(cls))
             except (TypeError, ValueError) as exc:
                 problems.append(str(exc))
-        elif key not in made:
+        elif key in made:
+            judged[key] = item          # (of no kind the class declares)
+        else:
             problems.append(f"{class_ref(cls)} has no state {key!r}{did_you_mean(key, known)}; "
                             f"its state is: {listing(known)} (fix the key, or declare the "
                             "attribute on the class)")
-    if issubclass(cls, Driver):         # (what its set_state refuses, of the right kind)
-        problems += driver_state_problems(cls, judged)
+    return problems + refused(cls, judged)
+
+
+def refused(cls: type[Module], state: dict[str, Any]) -> list[str]:
+    """What module class ``cls`` refuses of ``state`` (fields to be set): its
+    ``state_problems``, which its ``set_state`` asks (a value only a class's own
+    ``set_state`` refused passed the check, and the launch or the running module refused
+    it). A ``state_problems`` that raises or answers other than a list of texts is a
+    problem itself, naming the class (the check failed with it)."""
+    if not state:
+        return []
+    try:
+        problems = cls.state_problems(state)
+    except Exception as exc:
+        return [f"{class_ref(cls)}.state_problems raised {type(exc).__name__}: {exc} "
+                f"(given {state!r}): fix it to return what it refuses, as a list of texts"]
+    if not (isinstance(problems, list) and all(isinstance(p, str) for p in problems)):
+        return [f"{class_ref(cls)}.state_problems must return a list of texts, one per "
+                f"value it refuses ([] for none), got {problems!r}"]
     return problems
 
 
@@ -213,9 +231,11 @@ def macro_state(value: Any) -> list[str]:
 
 def module_class(cls: type[Module]) -> list[str]:
     """What a module class declares itself: its ``period`` and ``restart`` (a module the
-    configuration gives none of runs with them), a driver's ``timeout``, that it is made
-    with no arguments, and its ``displays`` table. A bad period on the class passed every
-    check, and its step thread died after one step, the module shown running."""
+    configuration gives none of runs with them), state defaults it refuses itself
+    (``state_problems``: a driver's ``timeout = 0``, which every request then failed
+    by), that it is made with no arguments, and its ``displays`` table. A bad period on
+    the class passed every check, and its step thread died after one step, the module
+    shown running."""
     ref = class_ref(cls)
     problems = []
     if cls.period is not None and not (finite(cls.period) and 0 <= cls.period <= MOST_SECONDS):
@@ -225,8 +245,8 @@ def module_class(cls: type[Module]) -> list[str]:
     if cls.restart not in RESTART_POLICIES:
         problems.append(f"{ref} has restart = {cls.restart!r}: a class's restart is one of "
                         f"{listing(map(repr, RESTART_POLICIES))}")
-    if issubclass(cls, Driver):         # (every request then fails, refusing it)
-        problems += driver_state_problems(cls, {"timeout": cls.timeout})
+    defaults = {name: getattr(cls, name) for name in cls.state_names()}
+    problems += [f"{problem} (its class's own default)" for problem in refused(cls, defaults)]
     return (problems + made_bare(cls) + displays(cls) + misspelled_hooks(cls)
             + sendable(cls))
 

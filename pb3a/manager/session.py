@@ -22,6 +22,7 @@ import logging
 import threading
 from typing import TYPE_CHECKING, Any
 
+from pb3a.config import checks
 from pb3a.config.checks import NAME
 from pb3a.errors import ConfigError, ModuleNotFound
 from pb3a.loading.references import resolve_class
@@ -60,6 +61,17 @@ class Unfit(ValueError):
     def __init__(self, problems: list[str]) -> None:
         super().__init__("; ".join(problems))
         self.problems = problems
+
+
+def _refused(ref: str, state: dict[str, Any]) -> list[str]:
+    """What class ``ref`` refuses of ``state`` (``checks.refused``); nothing when the
+    manager cannot import the class (a module running elsewhere, by a file it has not
+    got): the module's own ``set_state`` then judges the edit."""
+    try:
+        cls = resolve_class(ref)
+    except Exception:
+        return []
+    return checks.refused(cls, state)
 
 
 class Session:
@@ -249,10 +261,12 @@ class Session:
 
     def set_state(self, name: str, values: Any) -> dict[str, Any]:
         """``POST /api/modules/{name}/state``: set top-level fields, each coerced to the
-        type of its current value; nothing is set unless every field fits."""
+        type of its current value; nothing is set unless every field fits, and its class
+        takes them all (``Module.state_problems``: a driver's timeout of 0 reached the
+        module, which refused it as a worker's failure)."""
         if not isinstance(values, dict) or not values:
             raise Malformed("send an object of state fields to set, e.g. {\"gain\": 5.0}")
-        self.topology_of(name)
+        topology = self.topology_of(name)
         current = self.handle.state(name, timeout=self.timeout)
         unknown = sorted(set(values) - set(current))
         if unknown:
@@ -264,6 +278,9 @@ class Session:
                 fitted[field] = coerce(field, current[field], value)
             except ValueError as exc:
                 problems.append(f"module {name}: {exc}")
+        if not problems:
+            problems = [f"module {name}: {problem}"
+                        for problem in _refused(topology.modules[name].cls, fitted)]
         if problems:
             raise Unfit(problems)
         self.handle.set_state(name, fitted, timeout=self.timeout)

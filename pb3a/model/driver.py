@@ -158,8 +158,8 @@ class Driver(Module):
     def _check_own(self, protocol: str, calls: str) -> None:
         """Refuse a call of the other protocol's, and a class's own timeout or protocol
         the driver cannot go by (one not set through ``set_state``)."""
-        wrong = state_problems(type(self), {"timeout": self.timeout,
-                                            "protocol": self.protocol})
+        wrong = type(self).state_problems({"timeout": self.timeout,
+                                           "protocol": self.protocol})
         if wrong:
             raise RuntimeFailure(wrong[0])
         if self.protocol != protocol:
@@ -169,15 +169,35 @@ class Driver(Module):
                                     if self.protocol == "lines" else
                                     "use request(), or set protocol = 'lines'"))
 
+    @classmethod
+    def state_problems(cls, state: dict[str, Any]) -> list[str]:
+        """What of ``state`` the driver refuses, each naming the field and what it takes:
+        a ``resource`` that is not an address to connect to (``tcp://HOST:PORT``, or ""
+        for none: it was kept, and every request failed with ZeroMQ's "Invalid
+        argument"), a ``protocol`` it does not speak, a ``timeout`` that is not a positive,
+        finite number of seconds up to ``MOST_SECONDS`` (0, -1 or NaN failed every
+        request, blaming the device; inf overflowed the clock at each)."""
+        problems = super().state_problems(state)
+        if state.get("resource", "") != "":
+            problems += tcp_address_problems(state["resource"], f"{cls.__name__}'s resource")
+        protocol = state.get("protocol", "pb3a")
+        if protocol not in PROTOCOLS:
+            problems.append(f"{cls.__name__}'s protocol is what its device speaks, one of "
+                            f"{', '.join(map(repr, PROTOCOLS))}, got {protocol!r}")
+        timeout = state.get("timeout", 1.0)
+        if not (finite(timeout) and 0 < timeout <= MOST_SECONDS):
+            problems.append(f"{cls.__name__}'s timeout must be a positive number of seconds, "
+                            f"at most {MOST_SECONDS:g} (each request's deadline), got "
+                            f"{timeout!r}")
+        return problems
+
     @reflective                 # (it takes the fields Module's does: they are checked)
     def set_state(self, state: dict[str, Any]) -> None:
-        """Set state; a ``resource`` or a ``timeout`` the driver cannot go by is refused
-        (``state_problems``), naming it, and nothing is set. A new ``resource`` lets go of
-        the old device now (``release``): it waited for the driver's next request, and an
-        event-driven driver re-pointed left its motor running until the next input."""
-        wrong = state_problems(type(self), state)
-        if wrong:
-            raise ValueError("; ".join(wrong))
+        """Set state; a ``resource``, ``protocol`` or ``timeout`` the driver cannot go by is
+        refused (``state_problems``, asked by ``Module.set_state``), naming it, and nothing
+        is set. A new ``resource`` lets go of the old device now (``release``): it waited
+        for the driver's next request, and an event-driven driver re-pointed left its motor
+        running until the next input."""
         current = self.__dict__.get("_pb3a_device")
         super().set_state(state)
         if current is not None and not self._speaking(current):
@@ -297,27 +317,6 @@ class _Bounded:
     def tell(self, line: str) -> None:
         """``LineClient.ask`` without an answer, waiting at most the driver's timeout."""
         self._client.ask(line, self._most, answer=False)
-
-
-def state_problems(cls: type[Driver], state: dict[str, Any]) -> list[str]:
-    """What of ``state``, given to a driver of class ``cls``, it refuses, each naming the
-    field and what it takes: a ``resource`` that is not an address to connect to
-    (``tcp://HOST:PORT``, or "" for none: it was kept, and every request failed with
-    ZeroMQ's "Invalid argument"), a ``timeout`` that is not a positive, finite number of
-    seconds up to ``MOST_SECONDS`` (0, -1 or NaN failed every request, blaming the
-    device; inf overflowed the clock at each)."""
-    problems = []
-    if state.get("resource", "") != "":
-        problems += tcp_address_problems(state["resource"], f"{cls.__name__}'s resource")
-    protocol = state.get("protocol", "pb3a")
-    if protocol not in PROTOCOLS:
-        problems.append(f"{cls.__name__}'s protocol is what its device speaks, one of "
-                        f"{', '.join(map(repr, PROTOCOLS))}, got {protocol!r}")
-    timeout = state.get("timeout", 1.0)
-    if not (finite(timeout) and 0 < timeout <= MOST_SECONDS):
-        problems.append(f"{cls.__name__}'s timeout must be a positive number of seconds, at "
-                        f"most {MOST_SECONDS:g} (each request's deadline), got {timeout!r}")
-    return problems
 
 
 def serve_device(handler: Callable[[str, dict[str, Any]], Any], host: str = "127.0.0.1",

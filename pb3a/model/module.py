@@ -38,6 +38,16 @@ HOOKS = ("setup", "step", "on_input", "teardown")
 F = TypeVar("F", bound=Callable[..., Any])
 
 
+class StateRefused(ValueError):
+    """A ``set_state`` given values its module's class refuses (``Module.state_problems``):
+    nothing was set. ``problems``: one per value, each naming the field and what it takes.
+    Through the runtime it is a ``RuntimeFailure`` naming the module, in the same words."""
+
+    def __init__(self, problems: list[str]) -> None:
+        super().__init__("; ".join(problems))
+        self.problems = list(problems)
+
+
 class Module:
     """Base class of every port-based module.
 
@@ -48,6 +58,11 @@ class Module:
     configuration's, ``add``'s or ``swap``'s if given). ``displays`` tells tools how to
     show some state fields (``pb3a.model.displays``). Modules are constructed with no
     arguments.
+
+    A class says which values of its state it refuses with the classmethod
+    ``state_problems(state)`` (none by default): ``set_state`` asks it before setting
+    anything, and so do ``pb3a check``, the configuration compiler, ``add``, ``swap`` and
+    the State Editor, so a value the module would refuse live is refused before it runs.
     """
 
     period: ClassVar[float | None] = None
@@ -99,6 +114,29 @@ class Module:
 
     # -- state -------------------------------------------------------------
     @classmethod
+    def state_problems(cls, state: dict[str, Any]) -> list[str]:
+        """What the class refuses of ``state`` (fields about to be set, by name: a live
+        edit's, a configuration entry's, the class's own defaults), each problem a sentence
+        naming the field and what it takes; none by default. Override it for a value the
+        module cannot run with, judging only the fields given (one left out keeps its
+        value), and call the base's:
+
+            @classmethod
+            def state_problems(cls, state):
+                problems = super().state_problems(state)
+                if "rate" in state and not 0 <= state["rate"] <= 5:
+                    problems.append(f"Pump's rate must be from 0 to 5 l/s, got {state['rate']!r}")
+                return problems
+
+        ``set_state`` asks it before setting anything (``StateRefused``); ``pb3a check``
+        and the configuration compiler ask it for each entry's state and the class's
+        defaults, ``add`` and ``swap`` for the state they give, the State Editor for an
+        edit (a refusal only a ``set_state`` of its own made was found at the launch, or
+        by the running module). A value of a field of a reflective class (see
+        ``reflective``) is of the kind of its default by then."""
+        return []
+
+    @classmethod
     def state_names(cls) -> list[str]:
         """Names of the class-level state attributes found by reflection."""
         names: dict[str, None] = {}
@@ -120,7 +158,8 @@ class Module:
 
     def set_state(self, state: dict[str, Any]) -> None:
         """Set state attributes by name; KeyError names any attribute the module lacks
-        (unless it is given its own state back: ``restore_state``)."""
+        (unless it is given its own state back: ``restore_state``), ``StateRefused`` each
+        value the class refuses (``state_problems``). Either way nothing is set."""
         known = set(type(self).state_names()) | {
             name for name, value in self.__dict__.items() if _is_state(name, value)}
         unknown = sorted(set(state) - known)
@@ -136,6 +175,9 @@ class Module:
                 f"{f' (did you mean {close[0]!r}?)' if close else ''}; "
                 f"its state is: {', '.join(sorted(known)) or '(none)'}"
             )
+        problems = type(self).state_problems(state)
+        if problems:
+            raise StateRefused(problems)
         for name, value in state.items():
             setattr(self, name, value)
 

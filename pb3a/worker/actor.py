@@ -648,7 +648,8 @@ class ModuleActor:
     def apply(self, state: dict[str, Any], timeout: float = 10.0) -> None:
         """Set state under the module lock: a live edit, each value checked against the
         kind of the field's value now (``checked``: TypeError, nothing set); the module's
-        ``set_state`` raises KeyError for names it lacks."""
+        ``set_state`` raises KeyError for names it lacks, ``StateRefused`` for values its
+        class refuses (``Module.state_problems``)."""
         def edit() -> None:
             try:
                 now = self.module.get_state()

@@ -31,7 +31,7 @@ from pb3a.loading.references import class_ref
 from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
 from pb3a.model.agent import Agent, RuntimeClient
-from pb3a.model.module import restore_state
+from pb3a.model.module import StateRefused, restore_state
 from pb3a.model.ports import InputPort, Policy, WaitCounter
 from pb3a.model.state_edits import configured
 from pb3a.processes import mark_as
@@ -69,7 +69,8 @@ _DROPPABLE = frozenset({"log", "error"})
 
 class Refused(Exception):
     """A request the module refused for what it asked (a state name it lacks, a value
-    of the wrong kind): its message is for the caller as it is, with no worker named."""
+    of the wrong kind, one its class refuses): its message is for the caller as it is,
+    with no worker named."""
 # Requests that wait for a module's lock (and may run its hooks, which may call the
 # runtime, whose answer this thread reads): never on the control thread.
 _TAKES_A_MODULE_LOCK = frozenset({"get_state", "set_state", "pause", "start", "swap", "stop",
@@ -606,7 +607,8 @@ class Worker:
     def op_set_state(self, name: str, state: dict[str, Any], within: float = 10.0) -> None:
         try:
             self.actors[name].apply(state, within)
-        except (KeyError, TypeError) as exc:    # a name it lacks, a value of another kind
+        # a name it lacks, a value of another kind, one its class refuses (state_problems)
+        except (KeyError, TypeError, StateRefused) as exc:
             why = exc.args[0] if len(exc.args) == 1 else exc
             raise Refused(f"module {name!r}: {why}; nothing was set") from None
 
