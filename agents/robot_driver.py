@@ -74,7 +74,9 @@ class RobotDriver(Driver):
     silent = 0                   # requests in a row the robot has not answered
 
     def setup(self) -> None:
-        _check_silent_after(self.silent_after)
+        wrong = type(self).state_problems({"silent_after": self.silent_after})
+        if wrong:                   # (a class's own, which no set_state saw)
+            raise ValueError("; ".join(wrong))
         self._read_at = 0.0      # (monotonic) when readings were last written
         self._in_force = np.zeros(2)     # the command the robot runs on now
         self._unsent: np.ndarray | None = None   # a command the robot has not taken yet
@@ -83,12 +85,23 @@ class RobotDriver(Driver):
         # the first the one in force at the last reading
         self._drove: list[tuple[float, np.ndarray]] = []
 
+    @classmethod
+    def state_problems(cls, state: dict[str, Any]) -> list[str]:
+        """What ``Driver`` refuses, and a ``silent_after`` that is not a whole number of
+        requests, 1 or more (with 0 a silent robot was never said: its count starts at 1)."""
+        problems = super().state_problems(state)
+        requests = state.get("silent_after", 1)
+        if not whole(requests, 1):
+            problems.append(f"{cls.__name__}'s silent_after must be a whole number of "
+                            f"requests, 1 or more, got {requests!r}")
+        return problems
+
     @reflective                 # (it takes the fields Module's does: they are checked)
     def set_state(self, state: dict[str, Any]) -> None:
-        """Set state; a running driver re-pointed at another robot reads it at once,
-        rather than at its next period (a control system handed to a standby robot
-        sees that robot a period sooner)."""
-        _check_silent_after(state.get("silent_after", self.silent_after))
+        """Set state (what ``state_problems`` refuses is refused, nothing set); a running
+        driver re-pointed at another robot reads it at once, rather than at its next
+        period (a control system handed to a standby robot sees that robot a period
+        sooner)."""
         repointed = state.get("resource", self.resource) != self.resource
         super().set_state(state)
         if repointed and "silent" not in state:
@@ -236,9 +249,3 @@ class RobotDriver(Driver):
         # too, but not waited for long: a move away from a robot whose server died
         # (its teardown runs this) would wait the whole timeout.
         client.call("stop", min(self.timeout, SILENT_STOP_S) if self.silent else self.timeout)
-
-
-def _check_silent_after(requests: Any) -> None:
-    if not whole(requests, 1):
-        raise ValueError(f"silent_after must be a whole number of requests, 1 or more, "
-                         f"got {requests!r}")

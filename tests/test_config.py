@@ -1409,6 +1409,25 @@ def test_a_driver_s_state_is_checked_as_any_module_s(tmp_path: Path) -> None:
     assert class_state(resolve_class("parts_cfg:Custom")) == {}     # (its own set_state)
 
 
+def test_what_a_robot_driver_refuses_of_its_state_is_a_problem(tmp_path: Path) -> None:
+    """``RobotDriver``'s ``set_state`` refused a ``silent_after`` of 0 (a silent robot was
+    never said), and ``pb3a check`` passed it: the launch failed on it. The driver says
+    so in ``state_problems``, which the check, ``add`` and its ``set_state`` ask."""
+    problems = problems_of(tmp_path, """
+        [modules.robot]
+        class = "agents.robot_driver:RobotDriver"
+        state = { silent_after = 0, timeout = 2 }
+        [modules.fine]
+        class = "agents.robot_driver:RobotDriver"
+        state = { silent_after = 3 }
+    """)
+    assert len(problems) == 1, problems
+    only(problems, "[modules.robot]: RobotDriver's silent_after must be a whole number of "
+                   "requests, 1 or more, got 0")
+    added = System("s").add("m", RobotDriver, state={"silent_after": -2})
+    assert any("silent_after must be a whole number" in p for p in added.check())
+
+
 def test_a_state_problems_that_fails_is_a_problem_naming_its_class() -> None:
     """A class's ``state_problems`` is the user's code: one that raises, or answers with
     a text rather than a list, is said as a problem of the class, not a failed check."""
