@@ -20,8 +20,9 @@ class FakeRobotServer:
 
     requests: list[tuple[str, dict[str, Any]]] = []
     time = 0.0
+    ungreeted = False
 
-    def __init__(self, key: Any, address: str) -> None:
+    def __init__(self, key: Any, address: str, **options: Any) -> None:
         self.address = address
 
     def call(self, op: str, timeout: float, **args: Any) -> Any:
