@@ -16,12 +16,12 @@ from conftest import alive, eventually
 from pb3a.cli.stress_options import parse_levels
 from pb3a.cpu_load import CPULoad
 
-# alone: it loads the CPUs or measures against them (see the Makefile's test target)
-pytestmark = [pytest.mark.timeout(60), pytest.mark.serial]
+pytestmark = pytest.mark.timeout(60)
 
 TOLERANCE = 10.0       # percent: the machine is shared, and its other load comes and goes
 
 
+@pytest.mark.serial     # alone: it loads a CPU and reads its load (the Makefile's test target)
 def test_psutil_reads_the_level_asked_and_the_burners_end_with_the_block() -> None:
     cpu = max(os.sched_getaffinity(0))
     with CPULoad({cpu: 60.0}) as load:

@@ -22,9 +22,6 @@ from pb3a import (
 )
 from pb3a.testing import ModuleHarness
 
-# alone: it loads the CPUs or measures against them (see the Makefile's test target)
-pytestmark = pytest.mark.serial
-
 
 class Watcher(Module):
     """Keeps the newest environment figures it was sent."""
@@ -141,6 +138,7 @@ def _burn(stop) -> None:
         pass
 
 
+@pytest.mark.serial     # alone: it measures CPU 0's load (see the Makefile's test target)
 @pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="a node pinned to one CPU of two")
 def test_the_env_module_tells_the_system_s_own_load_from_outside_load() -> None:
     system = System("own-load")

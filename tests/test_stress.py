@@ -14,8 +14,7 @@ from conftest import Daemon
 from pb3a.cli.main import main
 from pb3a.cli.stress import summary_text
 
-# alone: it loads the CPUs or measures against them (see the Makefile's test target)
-pytestmark = [pytest.mark.timeout(90), pytest.mark.serial]
+pytestmark = pytest.mark.timeout(90)
 
 REPO = Path(__file__).resolve().parent.parent
 LEVEL = 70.0
@@ -42,6 +41,7 @@ policy = "queue:64"
     return path
 
 
+@pytest.mark.serial     # alone: it loads a CPU and reads its load (the Makefile's test target)
 def test_stress_reports_values_kills_and_the_load_the_env_port_reads(tmp_path, capsys,
                                                                       monkeypatch) -> None:
     monkeypatch.chdir(REPO)                      # (the file names examples.pipeline)
