@@ -837,6 +837,30 @@ def test_a_class_whose_attribute_cannot_travel_to_its_worker_is_named_by_check()
         run.add("g", Guarded)
 
 
+class _CountsPickles:
+    """A class attribute that counts how often it is pickled."""
+
+    count = 0
+
+    def __reduce__(self):
+        type(self).count += 1
+        return (_CountsPickles, ())
+
+
+def test_a_script_class_used_by_many_entries_is_judged_once_per_check() -> None:
+    """``check()`` pickled a script's class for each entry that used it, to see it could
+    be sent (a class whose code pulls in large globals was pickled as often)."""
+    class Many(Steady):
+        counted = _CountsPickles()
+
+    system = System("many")
+    for index in range(5):
+        system.add(f"m{index}", Many)
+    _CountsPickles.count = 0
+    assert system.check() == []
+    assert _CountsPickles.count == 1
+
+
 class Tuned(Steady):
     gains: object = None
 

@@ -94,6 +94,9 @@ class _Planner:
         self.node_names: list[str] = list(spec.nodes) or [DEFAULT_NODE]
         self.file_defs: dict[str, Definition] = {}
         self.class_defs: dict[type, Definition] = {}
+        # what each module class declares wrong of itself, judged once per plan (a class
+        # of a script was pickled again for each of its entries, to see it can be sent)
+        self.class_problems: dict[type, list[str]] = {}
         self.order: list[Definition] = []
         self.explored: set[Definition] = set()
         self.code = CodeSources()
@@ -307,7 +310,9 @@ class _Planner:
             problems += checks.period(entry.period) + checks.restart(entry.restart)
             problems += checks.stepped(child.cls, entry.period)
             problems += checks.state(child.cls, entry.state)
-            problems += checks.module_class(child.cls)
+            if child.cls not in self.class_problems:
+                self.class_problems[child.cls] = checks.module_class(child.cls)
+            problems += self.class_problems[child.cls]
         elif entry.cls is not None:      # a class that did not resolve: what needs none
             problems += checks.period(entry.period) + checks.restart(entry.restart)
             if not isinstance(entry.state, dict):
