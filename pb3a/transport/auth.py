@@ -182,8 +182,7 @@ def _check_private(path: Path, status: os.stat_result) -> None:
                               f"`chmod 600 {path}`")
     if status.st_uid != me:
         raise ClusterKeyError(f"the cluster key file {path} (mode {mode:04o}) belongs to "
-                              f"{_user(status.st_uid)}, not to {_user(me)} who runs this; "
-                              f"give it to that user with `chown {_user(me)} {path}`")
+                              f"{_user(status.st_uid)}, {_not_mine(path)}")
 
 
 def _why_not_readable(path: Path) -> str:
@@ -199,10 +198,15 @@ def _why_not_readable(path: Path) -> str:
     mode = stat.S_IMODE(status.st_mode)
     if status.st_uid != os.geteuid():
         return (f"Permission denied: it belongs to {_user(status.st_uid)} (mode "
-                f"{mode:04o}), not to {me} who runs this; give it to that user with "
-                f"`chown {me} {path}`")
+                f"{mode:04o}), {_not_mine(path)}")
     return (f"Permission denied: its mode {mode:04o} lets not even its owner read it; "
             f"make it readable by its owner only with `chmod 600 {path}`")
+
+
+def _not_mine(path: Path) -> str:
+    """The end of a sentence about a key file another user owns: who should, and how."""
+    me = _user(os.geteuid())
+    return f"not to {me} who runs this; give it to that user with `chown {me} {path}`"
 
 
 def _user(uid: int) -> str:
