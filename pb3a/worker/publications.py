@@ -27,6 +27,8 @@ class Publications:
         self.replicator: Replicator | None = None
         self._readers: dict[str, set[str]] = {}      # topic -> keys of the links reading it
         self._ports: dict[str, OutputPort] = {}
+        # link key -> where its topic was when the link stopped being published here
+        self._removed: dict[str, tuple[int, bytes]] = {}
 
     def open(self, secret: bytes, host: str, epoch: int = 0) -> Replicator:
         """The worker's replicator, made (its sockets bound) if it is not yet: ahead of
@@ -56,6 +58,7 @@ class Publications:
             port.connect(_sink(topic), one, many, lossless=True)
             self._ports[topic] = port
         readers.add(key)
+        self._removed.pop(key, None)
         self._ports[topic].track(key, replicator.counter(topic))
         return replicator.data_address, replicator.control_address, replicator.incarnation
 
@@ -63,7 +66,13 @@ class Publications:
         """The link ``key`` no longer reads; unhook its output if nothing else does.
         Returns the sequence number its topic had reached (what the reader must
         have received before the link may close) and the incarnation of the sender
-        that reached it (None if the link was not published here)."""
+        that reached it (None if the link was never published here). A link removed
+        already answers as it did then: a move whose unwiring failed after this half
+        unwires the link again to undo, and its reader must still wait for those
+        values (told 0, its bridge closed the link at once, the values it still held
+        back lost with it)."""
+        if key in self._removed:
+            return self._removed[key]
         reached, incarnation = 0, None
         for topic, readers in list(self._readers.items()):
             if key not in readers:
@@ -79,6 +88,7 @@ class Publications:
                 self._ports.pop(topic).disconnect(_sink(topic))
             reached = self.replicator.sequence(topic)
             incarnation = self.replicator.incarnation
+            self._removed[key] = (reached, incarnation)
         return reached, incarnation
 
     def unacknowledged(self, key: str, reader: bytes) -> int:
