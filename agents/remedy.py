@@ -15,6 +15,7 @@ nothing of PB3A's runtime; ``RemedyAgent`` carries the plan out and watches it.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import numbers
 import re
@@ -26,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 from agents.case_base import AdaptationError, CaseBase, CaseFileError, Feature, Match, adapt
 from agents.limits import Limit, finite, missing_modules, out_of_limits
 from pb3a import Agent, Input, InputPort, Output
-from pb3a.errors import PB3AError
+from pb3a.errors import ModuleNotFound, PB3AError
 
 if TYPE_CHECKING:
     from pb3a.stats import SystemStats
@@ -37,6 +38,7 @@ HISTORY_KEPT = 200                    # remedies remembered in ``history``
 _HISTORY_KEYS = ("failure", "remedy", "case", "similarity", "reason", "started", "ended",
                  "judged", "worked", "outcome")
 _CLASS_REF = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_][\w.]*$")
+log = logging.getLogger("agents.remedy")
 
 
 def situation_of(failure: dict[str, Any], *, standby: bool,
@@ -165,6 +167,9 @@ _LIMITS: dict[str, Limit] = {
 }
 
 
+# what a remedy sets on a driver, and why (a driver of one's own must have them)
+_SETS = {"enabled": "False, to stop the robot",
+         "resource": "the standby robot's address, as the driver arrives there"}
 _NAMES = ("macro", "driver", "standby_node", "standby_resource", "watch", "cases_path")
 
 
@@ -256,6 +261,7 @@ class RemedyAgent(Agent):
     def setup(self) -> None:
         self._use(_case_base(self.get_state()))
         self._check_modules()
+        self._check_drivers()
         # A move's Pending cannot be pickled: a moved or restored agent has none, and
         # looks at where the driver runs instead.
         self._pending: Any = None
@@ -269,6 +275,48 @@ class RemedyAgent(Agent):
             *((f"consumers[{sensor!r}]", module) for sensor, module in self.consumers.items())])
         if problems:
             raise ValueError("RemedyAgent: " + "; ".join(problems))
+
+    def _check_drivers(self) -> None:
+        """ValueError naming each driver a remedy of this agent would act on that lacks
+        the state the remedy sets: ``enabled`` for a stop (the fallback stop's driver
+        always), ``resource`` for a move to the standby (when there is one). A user's
+        own driver without ``enabled`` was taken: a failure calling for a stop left the
+        robot driving, the stop only recorded as not having worked. Not checked when
+        the runtime cannot be asked now: the remedy then tells."""
+        needs: dict[str, dict[str, str]] = {self.driver: {"enabled": "the fallback stop"}}
+        for case in self._base.cases:
+            try:
+                remedy = adapt(case.remedy, self._placeholders(
+                    str(case.symptoms.get("fault", ""))))
+            except AdaptationError:
+                continue                  # (it can never be chosen here: nothing to check)
+            field, what = {"stop": ("enabled", "the stop"),
+                           "move_macro": ("resource", "the move to the standby")}.get(
+                               remedy["action"], ("", ""))
+            if field and isinstance(remedy.get("driver"), str):
+                needs.setdefault(remedy["driver"], {}).setdefault(
+                    field, f"{what} of case {case.id!r}")
+        problems = []
+        for driver, fields in needs.items():
+            try:
+                state = self.runtime.state(driver)
+            except ModuleNotFound:
+                continue                  # (_check_modules names the driver, or the case fails)
+            except (PB3AError, RuntimeError, AttributeError):
+                return
+            problems += [f"driver {driver!r} has no state {field!r}, which {what} sets "
+                         f"({_SETS[field]}); its state is: {', '.join(sorted(state))}"
+                         for field, what in fields.items() if field not in state]
+        if problems:
+            raise ValueError("RemedyAgent: " + "; ".join(problems))
+
+    def _placeholders(self, fault: str) -> dict[str, Any]:
+        """What a case's remedy is adapted with for a failure of ``fault``."""
+        return {"macro": self.macro, "driver": self.driver, "fault": fault,
+                "standby_node": self.standby_node,
+                "standby_resource": self.standby_resource,
+                "consumer": self.consumers.get(fault, ""),
+                "fallback": self.fallbacks.get(fault, "")}
 
     def set_state(self, state: dict[str, Any]) -> None:
         """Set state; a running agent plans by a ``case_base`` set (or, set to {}, by the
@@ -332,12 +380,7 @@ class RemedyAgent(Agent):
         situation = situation_of(failure, standby=standby,
                                  consumed=fault in self.consumers
                                  or fault in _ALWAYS_CONSUMED)
-        placeholders = {"macro": self.macro, "driver": self.driver, "fault": fault,
-                        "standby_node": self.standby_node,
-                        "standby_resource": self.standby_resource,
-                        "consumer": self.consumers.get(fault, ""),
-                        "fallback": self.fallbacks.get(fault, "")}
-        chosen = plan(self._base, situation, placeholders, view)
+        chosen = plan(self._base, situation, self._placeholders(fault), view)
         if self.standby_node and view.known and self.standby_node not in view.known:
             # (a misspelt standby node made it stop the robot, saying nothing of why)
             missing = (f"standby_node {self.standby_node!r} is no node of the system "
@@ -438,6 +481,9 @@ class RemedyAgent(Agent):
         self.history = [*self.history, {key: action[key] for key in _HISTORY_KEYS}]
         self.history = self.history[-HISTORY_KEPT:]
         self._report("worked" if worked else "failed", now, action)
+        if not worked:      # (a stop that failed was only recorded: the robot drove on)
+            log.error("RemedyAgent: %s for the %s failure did not work: %s",
+                      action["remedy"]["action"], action["failure"].get("fault"), outcome)
         if action["remedy"]["action"] == "move_macro" and action["ended"] is not None:
             # failures reported before the move ended were about the robot left behind
             self.deferred = [f for f in self.deferred if f.get("at", now) >= action["ended"]]

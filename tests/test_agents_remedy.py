@@ -307,6 +307,29 @@ def test_an_agent_refuses_at_setup_a_module_the_system_does_not_have(wrong, prob
         ModuleHarness(RemedyAgent, state=wrong, runtime=FakeRuntime())
 
 
+@pytest.mark.parametrize(("driver", "standby", "problem"), [
+    ({"resource": "toy://r1"}, "", "driver 'control/driver' has no state 'enabled', which "
+     "the fallback stop sets (False, to stop the robot); its state is: resource"),
+    ({"enabled": True, "robot": "toy://r1"}, "r2", "driver 'control/driver' has no state "
+     "'resource', which the move to the standby of case 'motors-standby' sets"),
+])
+def test_an_agent_refuses_at_setup_a_driver_without_the_state_its_remedies_set(
+        tmp_path, driver, standby, problem) -> None:
+    """A user's own driver without ``enabled`` was taken: a failure calling for a stop
+    left the robot driving, the stop only recorded as not having worked."""
+    runtime = FakeRuntime(driver=driver)
+    with pytest.raises(ValueError, match=re.escape(problem)):
+        ModuleHarness(RemedyAgent, runtime=runtime, state={
+            "standby_node": standby, "standby_resource": "toy://r2" * bool(standby),
+            "cases_path": str(tmp_path / "learned.toml")})
+
+
+def test_a_driver_without_resource_is_taken_when_there_is_no_standby_to_move_to(
+        tmp_path) -> None:
+    ModuleHarness(RemedyAgent, runtime=FakeRuntime(driver={"enabled": True}),
+                  state={"cases_path": str(tmp_path / "learned.toml")})
+
+
 # -- the agent, through its ports, against a recording runtime --------------------------
 
 @dataclass
@@ -342,7 +365,8 @@ class FakeRuntime:
         "control/driver": FakeModule("agents.robot_driver:RobotDriver", "r1"),
         "control/explorer": FakeModule("agents.explorer:Explorer", "r1"),
         "control/mapper": FakeModule("agents.occupancy:Mapper", "r1")})
-    driver: dict[str, Any] = field(default_factory=lambda: {"enabled": True})
+    driver: dict[str, Any] = field(default_factory=lambda: {"enabled": True,
+                                                            "resource": "tcp://r1:7400"})
     moves: list[FakePending] = field(default_factory=list)
 
     def stats(self) -> Any:
@@ -379,7 +403,7 @@ class FakeRuntime:
         if name == "control/driver":
             self.driver.update(values)
 
-    def state(self, name: str) -> dict[str, Any]:
+    def state(self, name: str, **_: Any) -> dict[str, Any]:
         return dict(self.driver)
 
     def swap(self, name: str, cls: str) -> list[str]:
@@ -519,7 +543,23 @@ def test_a_move_that_fails_leaves_the_standby_alone_and_stops(tmp_path, clock) -
     harness.step()
     assert runtime.calls[1:] == [("set_state", "control/driver", {"enabled": False})]
     assert "node r2 refused the modules" in harness.state["history"][0]["outcome"]
-    assert "resource" not in runtime.driver          # never re-pointed: it did not arrive
+    assert runtime.driver["resource"] == "tcp://r1:7400"    # never re-pointed: not arrived
+
+
+def test_a_remedy_that_fails_is_logged_as_an_error(tmp_path, clock, caplog) -> None:
+    """A stop that failed was only recorded in the history: nothing said the robot drove
+    on."""
+    runtime = FakeRuntime()
+    harness = agent(tmp_path, runtime)
+    runtime.set_state = lambda name, values: (_ for _ in ()).throw(
+        RuntimeFailure("module 'control/driver': no state 'enabled'"))
+    with caplog.at_level("ERROR", logger="agents.remedy"):
+        harness.feed("failure", failure("battery", clock.now))
+        harness.step()
+    assert harness.state["history"][0]["worked"] is False
+    (record,) = [r for r in caplog.records if r.name == "agents.remedy"]
+    assert record.levelname == "ERROR"
+    assert "stop for the battery failure did not work: stop failed: module " in record.message
 
 
 def test_a_restored_agent_finishes_its_move_by_looking_where_the_driver_runs(
