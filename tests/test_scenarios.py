@@ -297,6 +297,27 @@ def test_sim_to_real_learns_in_simulation_on_the_world_s_first_robot_whatever_it
     assert backends == {"r1": "sim", "r2": "sim"}
 
 
+def test_sim_to_real_refuses_a_world_its_goals_do_not_fit_before_anything_runs(
+        tmp_path, capsys) -> None:
+    """On a 4 x 3 m world (set as ``WORLD``: there was no ``--world``) three of the
+    room's four goals lay outside it: the run learnt to 0.25 and said nothing of why."""
+    from scenarios.sim_to_real import goal_problems, goals
+
+    small = tmp_path / "small.toml"
+    small.write_text('name = "small"\nsize = [4.0, 3.0]\n[[boxes]]\ncenter = [2.0, 2.0]\n'
+                     'size = [1.0, 1.0]\n[[robots]]\nname = "r1"\npose = [1.0, 1.0, 0.0]\n')
+    assert goal_problems(goals(), "room") == []
+    assert goal_problems([[1.0, 2.0], [2.0, 2.0], [5.0, 1.0]], small) == [
+        f"goal [2, 2] lies inside an obstacle of world 'small' ({small})",
+        f"goal [5, 1] lies outside world 'small' ({small}: 4 x 3 m)"]
+    assert main(["scenario", "sim-to-real", "--quick", "--world", str(small),
+                 "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert f"goal [6, 4] lies outside world 'small' ({small}: 4 x 3 m)" in err
+    assert "goal [1, 1]" not in err and "set the learner's goals in" in err
+    assert not (tmp_path / "sim_to_real.json").exists()
+
+
 def test_sim_to_real_says_no_transfer_when_the_learner_never_moved() -> None:
     from scenarios.sim_to_real import simulation_ended_by
 
