@@ -77,6 +77,7 @@ BUDGETS = {"quick": {"simulation": 30.0, "hardware": 55.0, "rate": 8.0, "baselin
 QUICK_VIEW = {"thresholds": list(Parameters.thresholds), "bearings": Parameters.bearings}
 QUICK_MIN_EPISODES = 30
 TARGET = (0.7, 10)            # learnt: this success rate over the last this many episodes
+SIMULATION_WINDOW = 20        # episodes of the simulation's success rate (the agent's window)
 GOALS = {"transfer_s": 0.25, "speedup": 3.0}
 POLL_S = 0.1                  # how often the scenario looks for the transfer
 LAST_EPISODE_S = 15.0         # wall s for the episode under way once the budget is spent
@@ -324,7 +325,7 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
         "quick": record["quick"], "hardware_rate": record["rate"],
         "learner_situations": record["situations"],      # the rows of its table
         "simulation": {"episodes": len(in_simulation),
-                       "success_rate_last_20": _rate(in_simulation, 20),
+                       "success_rate_last_20": _rate(in_simulation, SIMULATION_WINDOW),
                        "transfer_threshold": record["threshold"],
                        # "threshold": the agent's success rate was reached; "budget":
                        # the wall time for learning in simulation ran out first; "no
@@ -373,7 +374,7 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
         "median": speedup is not None
         and speedup >= GOALS["speedup"],
     }
-    figures["curves"] = {"simulation": rolling(in_simulation, 20)}
+    figures["curves"] = {"simulation": rolling(in_simulation, SIMULATION_WINDOW)}
     for name, episodes in by_learner.items():
         start = clocks[name][0] or 0.0
         figures["curves"][name] = [[round(e["clock"] - start, 2), r]
@@ -422,20 +423,43 @@ def _rate(episodes: list[dict[str, Any]], window: int) -> float | None:
     return round(sum(bool(e["success"]) for e in recent) / len(recent), 3) if recent else None
 
 
+def partial_and_full(points: list[Any], window: int) -> tuple[list[Any], list[Any]]:
+    """A rolling rate's points over fewer than ``window`` episodes (with the first full
+    one, so the two lines meet) and those over a full window. (Plotted as one, a
+    learner's first lucky episodes stood at 1.00 long before it was at the target.)"""
+    return points[:window], points[window - 1:]
+
+
+def _plot_rates(axes: Any, xs: list[float], rates: list[float], window: int, colour: Any,
+                label: str | None = None, **style: Any) -> None:
+    """``rates`` against ``xs``: over a full ``window`` as ``style`` says, and before it
+    thin and dotted (labelled only if no window is full)."""
+    partial, full = partial_and_full(list(zip(xs, rates, strict=True)), window)
+    if len(partial) > 1:
+        axes.plot([x for x, _ in partial], [r for _, r in partial], color=colour,
+                  linewidth=0.8, linestyle=":", label=None if full else label)
+    if full:
+        axes.plot([x for x, _ in full], [r for _, r in full], color=colour, label=label,
+                  **style)
+
+
 def plot(figures: dict[str, Any], path: Path) -> None:
-    """Learning in simulation by episode; on the hardware robots against their time."""
+    """Learning in simulation by episode; on the hardware robots against their time. A
+    rate over fewer episodes than its window is drawn dotted."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.5))
     curves = figures["curves"]
-    left.plot(range(1, len(curves["simulation"]) + 1), curves["simulation"], color="tab:purple")
+    _plot_rates(left, list(range(1, len(curves["simulation"]) + 1)), curves["simulation"],
+                SIMULATION_WINDOW, "tab:purple")
     left.axhline(figures["simulation"]["transfer_threshold"], color="0.7", linewidth=0.8)
     left.set_title(f"in simulation (lock-step): {figures['simulation']['simulated_s']:.0f} "
                    f"simulated s in {figures['simulation']['wall_s']:.0f} s", fontsize=10)
     left.set_xlabel("episode")
-    left.set_ylabel("success rate, last 20 episodes")
+    left.set_ylabel(f"success rate, last {SIMULATION_WINDOW} episodes "
+                    "(dotted: fewer yet)")
     left.set_ylim(0, 1.02)
     alone = [name for name in figures["hardware"] if name != "with_transfer"]
     reds = plt.get_cmap("Reds")
@@ -444,8 +468,8 @@ def plot(figures: dict[str, Any], path: Path) -> None:
          f"learning on the robot alone ({name})", 1.0) for i, name in enumerate(alone)]
     for name, colour, label, width in lines:
         points = curves[name]
-        right.plot([p[0] for p in points], [p[1] for p in points], color=colour, label=label,
-                   marker=".", markersize=3, linewidth=width)
+        _plot_rates(right, [p[0] for p in points], [p[1] for p in points], TARGET[1],
+                    colour, label=label, marker=".", markersize=3, linewidth=width)
         kept_from = figures["hardware"][name]["hardware_s_to_target"]
         if kept_from is not None:        # where the target was reached for good
             right.axvline(kept_from, color=colour, linewidth=0.8, linestyle=":")
@@ -464,7 +488,7 @@ def plot(figures: dict[str, Any], path: Path) -> None:
                     fontsize=10)
     served = figures["hardware_rate"]
     right.set_xlabel("hardware time (s)" + (f", served at {served:g}x" if served != 1 else ""))
-    right.set_ylabel(f"success rate, last {TARGET[1]} episodes")
+    right.set_ylabel(f"success rate, last {TARGET[1]} episodes (dotted: fewer yet)")
     right.set_ylim(0, 1.02)
     right.legend(loc="lower right", fontsize=8)
     fig.tight_layout()

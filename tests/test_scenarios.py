@@ -318,6 +318,47 @@ def test_sim_to_real_refuses_a_world_its_goals_do_not_fit_before_anything_runs(
     assert not (tmp_path / "sim_to_real.json").exists()
 
 
+def test_sim_to_real_plots_a_rate_over_fewer_episodes_than_its_window_apart(
+        tmp_path, monkeypatch) -> None:
+    """The curve of the last 10 episodes' success rate was drawn from the first episode:
+    a learner's first lucky episodes stood at 1.00 long before the title's "at target
+    from 241 s"."""
+    import matplotlib.pyplot as plt
+
+    from scenarios.sim_to_real import plot
+
+    drawn = []
+    monkeypatch.setattr(plt, "close", drawn.append)
+    learnt = [[10.0 * i, 1.0] for i in range(1, 16)]          # 15 episodes, all successes
+    figures = {
+        "curves": {"simulation": [0.0, 0.5, 0.67] + [0.75] * 27, "with_transfer": learnt,
+                   "alone": [[20.0 * i, 0.0] for i in range(1, 6)]},
+        "simulation": {"transfer_threshold": 0.9, "simulated_s": 600.0, "wall_s": 9.0},
+        "hardware": {"with_transfer": {"hardware_s_to_target": None,
+                                       "hardware_s_at_target_since": 100.0},
+                     "alone": {"hardware_s_to_target": None}},
+        "speedup": {"value": None, "kind": None, "baselines": 1},
+        "transfer_s": 0.1, "hardware_rate": 8.0}
+    plot(figures, tmp_path / "sim_to_real.png")
+    left, right = drawn[0].axes
+
+    def lines(axes):
+        return [(list(line.get_xdata()), line.get_linestyle()) for line in axes.get_lines()
+                if line.get_color() != "0.7"]                 # not the threshold's
+
+    # the transferred learner: dotted over its first 10 episodes, solid from the 10th on
+    (partial, dotted), (full, solid) = lines(right)[:2]
+    assert (dotted, solid) == (":", "-")
+    assert partial == [10.0 * i for i in range(1, 11)] and full == [10.0 * i for i in
+                                                                     range(10, 16)]
+    # the baseline never had 10 episodes: dotted only, and still in the legend
+    assert lines(right)[2] == ([20.0 * i for i in range(1, 6)], ":")
+    assert "learning on the robot alone (alone)" in [
+        text.get_text() for text in right.get_legend().get_texts()]
+    # in simulation, the agent's window of 20
+    assert [len(x) for x, _ in lines(left)] == [20, 11]
+
+
 def test_sim_to_real_says_no_transfer_when_the_learner_never_moved() -> None:
     from scenarios.sim_to_real import simulation_ended_by
 
