@@ -358,6 +358,14 @@ def _round(value: Any) -> Any:
     return round(value, 2) if isinstance(value, float) else value
 
 
+def same_as_agents(delay_over_time: dict[str, list[Any]]) -> list[str]:
+    """The runs whose delay over time is the agents' own, minute for minute (the agents
+    kept that controller all along)."""
+    agents = delay_over_time.get("agents")
+    return [name for name, windows in delay_over_time.items()
+            if name != "agents" and windows == agents]
+
+
 def plot(figures: dict[str, Any], path: Path) -> None:
     """Mean delay of the vehicles that left in each minute, per run; swaps and
     the demand's periods marked."""
@@ -366,12 +374,17 @@ def plot(figures: dict[str, Any], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(figsize=(11, 5))
+    same = same_as_agents(figures["delay_over_time"])
     for name, windows in figures["delay_over_time"].items():
-        style = {"linewidth": 2.4, "color": "black"} if name == "agents" else \
-            {"linewidth": 1.0, "linestyle": "--" if name.startswith("sumo_") else "-"}
+        # the agents' thick line under the others: a controller it ran all along (on
+        # the ring, gap-out) vanished under it, drawn on top
+        style = {"linewidth": 2.4, "color": "black", "zorder": 1.5} if name == "agents" \
+            else {"linewidth": 1.0, "linestyle": "--" if name.startswith("sumo_") else "-"}
         delay = figures["runs"][name]["mean_delay_s"]
-        axes.plot([w[0] for w in windows], [w[1] for w in windows],
-                  label=f"{name}: {delay:.1f} s", **style)
+        label = f"{name}: {delay:.1f} s"
+        if name == "agents" and same:
+            label += f" (= {', '.join(same)}, drawn inside it)"
+        axes.plot([w[0] for w in windows], [w[1] for w in windows], label=label, **style)
     for index, swap in enumerate(figures["swaps"]):
         axes.axvline(swap["time"], color="tab:red", alpha=0.25, linewidth=0.8,
                      label="a swap by an agent" if index == 0 else None)

@@ -603,6 +603,31 @@ def test_traffic_refuses_a_period_scaled_twice() -> None:
             parse_scale(twice)
 
 
+def test_traffic_plot_shows_a_controller_the_agents_ran_all_along(tmp_path,
+                                                                  monkeypatch) -> None:
+    """On the ring the agents kept gap-out all along: its line vanished under theirs,
+    thick and black on top of it."""
+    import matplotlib.pyplot as plt
+
+    from scenarios.traffic import plot
+
+    drawn = []
+    monkeypatch.setattr(plt, "close", drawn.append)
+    same, other = [[60.0, 20.0], [120.0, 25.0]], [[60.0, 30.0], [120.0, 35.0]]
+    figures = {"delay_over_time": {"fixed_time": other, "gap_out": same, "agents": same},
+               "runs": {"fixed_time": {"mean_delay_s": 32.5}, "gap_out": {"mean_delay_s": 22.5},
+                        "agents": {"mean_delay_s": 22.5}},
+               "swaps": [], "periods": [], "duration_s": 180.0, "network": "ring",
+               "seed": 77}
+    plot(figures, tmp_path / "traffic_ring.png")
+    (axes,) = drawn[0].axes
+    lines = {line.get_label().split(":")[0]: line for line in axes.get_lines()}
+    assert lines["agents"].get_zorder() < lines["gap_out"].get_zorder()   # gap-out on top
+    labels = [text.get_text() for text in axes.get_legend().get_texts()]
+    assert "agents: 22.5 s (= gap_out, drawn inside it)" in labels
+    assert "fixed_time: 32.5 s" in labels
+
+
 def test_traffic_names_the_networks_when_given_one_it_does_not_know(tmp_path, capsys) -> None:
     assert main(["scenario", "traffic", "--network", "moon", "--out", str(tmp_path)]) == 2
     assert "no network 'moon': the bundled networks are cross, grid, ring" in (
