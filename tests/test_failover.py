@@ -491,8 +491,8 @@ def test_a_node_that_hears_the_heartbeats_but_whose_answers_are_lost_stops_befor
         node_b, tmp_path: Path) -> None:
     """Its executor renewed its lease on every heartbeat it heard; the launcher, hearing
     no answer for 2 s (a saturated uplink: its answers dropped here for 4 s), failed
-    its module over while the old copy stepped on for 1.2 s more. Heartbeats renew the
-    lease now only while the node's answers are fresh."""
+    its module over while the old copy stepped on for 1.2 s more. A renewal runs the
+    lease on now only from the newest answer the launcher heard."""
     b, stamps = node_b, tmp_path / "steps"
     with _stamping_on_b("uplink", b, stamps).launch() as run:
         eventually(lambda: stamps.exists() and stamps.read_text().count("\n") > 20,
@@ -603,6 +603,50 @@ def test_a_slow_node_that_loses_one_heartbeat_keeps_its_lease(node_b, lost: str)
         once.set()
         assert not launcher.wait_health("b", up=False, timeout=4.0)
         assert not _events(run, "node_lost") and run.where("far") == "b"
+
+
+def test_a_cut_shorter_than_the_lease_restarts_nothing(node_b) -> None:
+    """A cut of 0.6 s, half the lease (everything the launcher and the node's executor
+    send each other lost), restarted the node's modules or got it fenced and declared
+    lost: once its answers were 0.75 s old the launcher only pinged it, the first
+    renewal through carried the answer heard before the cut and extended the lease
+    little, and its workers were granted the new end up to 0.25 s later. Every
+    heartbeat renews now, one that carried an old answer is followed at once by one
+    from its own, and a renewal is granted to the workers at once."""
+    b = node_b
+    system = System("short-cuts").node("a").node("b", address=b.address)
+    system.add("far", Counter, node="b", restart="fresh", fallback=["a"])
+    with system.launch() as run:
+        eventually(lambda: run.state("far")["count"] > 5, timeout=30, what="steps on b")
+        launcher = run._launcher
+        remote, pid = launcher.remotes["b"], run.stats().modules["far"].pid
+        call, cut = remote.client.call, {"start": threading.Event(), "end": -math.inf}
+
+        def through_a_cut_cable(op: str, timeout: float = 10.0, **args: Any) -> Any:
+            if op not in ("lease", "ping"):         # (a heartbeat's)
+                return call(op, timeout, **args)
+            if cut["start"].is_set():               # (it begins as a heartbeat goes)
+                cut["start"].clear()
+                cut["end"] = time.monotonic() + 0.6
+            if time.monotonic() < cut["end"]:
+                time.sleep(timeout)                 # (lost: its wait runs out)
+                raise RuntimeTimeout("the cable is cut")
+            answer = call(op, timeout, **args)
+            if time.monotonic() < cut["end"]:       # (its answer lost)
+                time.sleep(timeout)
+                raise RuntimeTimeout("the cable is cut")
+            return answer
+        remote.client.call = through_a_cut_cable
+        for _ in range(3):
+            count = run.state("far")["count"]
+            cut["start"].set()
+            # (the lease, the loss timeout and a look of the watchdog, from the cut)
+            assert not launcher.wait_health("b", up=False, timeout=3.0), "b declared lost"
+            assert run.state("far")["count"] > count
+        changed = [event for event in run.events()
+                   if event.kind in ("module_restarted", "node_lost", "module_failed_over")]
+        assert not changed, changed
+        assert run.where("far") == "b" and run.stats().modules["far"].pid == pid
 
 
 def test_a_slow_node_that_missed_two_heartbeats_still_takes_a_failing_over_module(

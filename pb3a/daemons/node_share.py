@@ -74,6 +74,7 @@ class NodeShare:
         self._lease_s = LEASE_S
         self._leased_at = time.monotonic()             # the launcher's last heartbeat
         self._ticked_at = time.monotonic()             # the lease's watch last looked
+        self._extended = threading.Event()             # a renewal moved the lease on
         self.executor.leased = self._leased
         self.executor.lease_end = self._lease_end
         self._checkpoints: dict[str, bytes] = {}       # the newest, not yet sent
@@ -181,11 +182,14 @@ class NodeShare:
         process's clock) plus a heartbeat's way, not from now. A renewal read late (a slow
         downlink, this process starved) ran the lease past the end the launcher counts
         on (``RemoteNode.fenced_by``), and a module stepped on beside its failed-over
-        copy. The answer is now, the next renewal's ``since``."""
+        copy. The answer is now, the next renewal's ``since``. The workers are granted
+        the new end at once (``_grant_leases``)."""
         now = time.monotonic()
         since = (args or {}).get("since")
         start = now if since is None else min(now, since + HEARTBEAT_S)
-        self._leased_at = max(self._leased_at, start)
+        if start > self._leased_at:
+            self._leased_at = start
+            self._extended.set()
         return now
 
     def meet(self, peers: dict[str, str]) -> None:
@@ -297,13 +301,18 @@ class NodeShare:
                 self._ticked_at = now
 
     def _grant_leases(self) -> None:
-        """While its own lease runs, give every worker one (``Worker.op_lease``), every
-        ``LEASE_GRANT_S``: a frozen executor (SIGSTOP, hung) fences nothing itself, and
-        its workers would step on beside their modules' failed-over copies; theirs
-        lapses first (the lease, and a grant's way, before the launcher's failover)."""
+        """While its own lease runs, give every worker one (``Worker.op_lease``) as soon
+        as a renewal extends it, and every ``LEASE_GRANT_S`` anyway: a frozen executor
+        (SIGSTOP, hung) fences nothing itself, and its workers would step on beside
+        their modules' failed-over copies; theirs lapses first (the lease, and a grant's
+        way, before the launcher's failover). (Granted every 0.25 s alone, a worker got
+        the end a renewal after a cut had given its executor up to 0.25 s late, and
+        lapsed meanwhile: its modules were restarted, their state lost.)"""
         workers = self.executor.workers
-        while not self.stopped.wait(LEASE_GRANT_S):
-            if not self._leased():
+        while not self.stopped.is_set():
+            self._extended.wait(LEASE_GRANT_S)
+            self._extended.clear()
+            if self.stopped.is_set() or not self._leased():
                 continue                    # (fencing: no more grants)
             for key in list(workers.handles):
                 # never waits: a frozen worker that reads nothing is skipped (its lease

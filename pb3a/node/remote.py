@@ -48,11 +48,13 @@ PIECE = 16 * 2**20         # a snapshot carried to or from another machine goes 
 HEARTBEAT_S = 0.25         # how often the launcher's side pings the executor
 LEASE_S = 1.25             # an executor that hears no renewal this long fences itself
 LOSS_S = 2.0               # no answer for this long: the node is lost (reported within 3 s)
-# A heartbeat renews the lease only while the node's answers are this fresh (one or two
-# heartbeats lost: they still are), so renewals stop once its answers do, and the lease
-# runs out by the time the node is declared lost, even when heartbeats still reach it
-# but its answers do not (a saturated uplink): LOSS_S >= RENEW_WITHIN_S + LEASE_S
-RENEW_WITHIN_S = 0.75
+# Every heartbeat renews the lease, but only from the newest answer the launcher heard
+# (``NodeShare.renew``): once the node's answers stop, renewals extend nothing, and the
+# lease runs out a heartbeat and a lease after its last answer, before the node is
+# declared lost, even when heartbeats still reach it but its answers do not (a saturated
+# uplink): LOSS_S > HEARTBEAT_S + LEASE_S. (Renewals used to stop once its answers were
+# 0.75 s old: after a cut of 0.3 s only pings went, and the lease ran out, or its
+# workers', before a renewal from a fresh answer reached it.)
 STOP_AT_LEAST_S = 0.5      # a shutdown out of time still asks the controller this long
 # ... and a lost node's controller at most this long: one that answers does so at once,
 # and the executor of one that does not has fenced itself (a stop with a robot lost
@@ -104,8 +106,11 @@ class RemoteNode:
         self.rtt = float("nan")             # of the last answered heartbeat
         self._answered = time.monotonic()
         # the newest renewal's answer heard (the executor's clock): what it dates the
-        # lease from (``_beat``)
+        # lease from (``_beat``); when it was heard, and when the one the newest
+        # renewal sent carried was (this clock): see fenced_by
         self._heard = -math.inf
+        self._heard_at = self._renewed_from = time.monotonic()
+        self._renewing = threading.Lock()
         self._closed = threading.Event()
         self._hearts: list[threading.Thread] = []
         self._domain: str | None = None
@@ -158,7 +163,8 @@ class RemoteNode:
                 f"[nodes.{name}] advertise an address of that machine which this one and the "
                 "other nodes reach, and open its ports to them")
         self.address = executor
-        self._answered = self.renewed_at = time.monotonic()     # (bind renewed the lease)
+        # (bind renewed the lease; its answer, ``_heard``, came before this)
+        self._answered = self._heard_at = self._renewed_from = time.monotonic()
         self._hearts = [threading.Thread(target=self._beat, args=(offset,), daemon=True,
                                          name=f"pb3a-heartbeat-{name}")
                         for offset in (HEARTBEAT_S, 2 * HEARTBEAT_S)]
@@ -366,33 +372,47 @@ class RemoteNode:
     def _beat(self, offset: float) -> None:
         """One of two heartbeats, each every ``2 * HEARTBEAT_S`` (that long for its
         answer), the second ``HEARTBEAT_S`` after the first: a heartbeat lost, or its
-        answer, holds up no other. Each renews the executor's lease while its answers
-        are fresh (``RENEW_WITHIN_S``), else only pings it; an answer is noted."""
+        answer, holds up no other. Each renews the executor's lease; an answer is
+        noted. A renewal that carried an answer older than two heartbeats (the first
+        through after a cut) extends the lease little: it is renewed again at once,
+        from its own answer (a cut of 0.3-0.6 s fenced the node, or restarted its
+        modules, before the next heartbeat came)."""
         assert self.client is not None
         due = time.monotonic() + offset
         while not self._closed.wait(max(0.0, due - time.monotonic())) and not self.lost:
             due += 2 * HEARTBEAT_S
-            renew = self.silent_s() < RENEW_WITHIN_S
-            sent = time.monotonic()
-            try:
-                if renew:
-                    # (the newest answer heard before ``renewed_at``: the executor dates
-                    # its lease from it, however late it reads this; see NodeShare.renew)
-                    self.renewed_at, since = sent, self._heard
-                    heard = self.client.call("lease", 2 * HEARTBEAT_S, since=since)
-                    self._heard = max(self._heard, heard)
-                else:
-                    self.client.call("ping", 2 * HEARTBEAT_S)
-            except (RuntimeFailure, RuntimeTimeout):
-                continue
-            self._answered = time.monotonic()
-            self.rtt = self._answered - sent
+            stale = self._renew()
+            if stale and not self._closed.is_set() and not self.lost:
+                self._renew()
+
+    def _renew(self) -> bool:
+        """Renew the lease from the newest answer heard; whether it was answered, and
+        the answer it carried was more than two heartbeats older than this one's."""
+        assert self.client is not None
+        with self._renewing:       # (the two heartbeats: the newest carries the newest)
+            since, self._renewed_from = self._heard, self._heard_at
+        sent = time.monotonic()
+        try:
+            # (the executor dates its lease from ``since``, however late it reads this;
+            # see NodeShare.renew)
+            heard = self.client.call("lease", 2 * HEARTBEAT_S, since=since)
+        except (RuntimeFailure, RuntimeTimeout):
+            return False
+        self._answered = time.monotonic()
+        self.rtt = self._answered - sent
+        with self._renewing:
+            if heard > self._heard:
+                self._heard, self._heard_at = heard, self._answered
+        return heard - since > 2 * HEARTBEAT_S
 
     def fenced_by(self) -> float:
-        """When (monotonic) the executor has fenced itself at the latest, its last
-        renewal taken as it was sent (a heartbeat's way there: ``HEARTBEAT_S``), if the
-        launcher has stopped renewing: its modules may run elsewhere from then on."""
-        return self.renewed_at + LEASE_S + HEARTBEAT_S
+        """When (monotonic) the executor has fenced itself at the latest, if the launcher
+        renews its lease from no newer answer: the lease runs at most a heartbeat and a
+        lease from the answer the newest renewal carried, which left the executor
+        before the launcher heard it (``NodeShare.renew``). Its modules may run
+        elsewhere from then on. (Counted from the newest renewal sent, it moved on with
+        every heartbeat sent to a node that no longer answered.)"""
+        return self._renewed_from + HEARTBEAT_S + LEASE_S
 
     def silent_s(self) -> float:
         """Seconds since the executor last answered a heartbeat."""
