@@ -1669,3 +1669,50 @@ def test_a_field_applied_keeps_its_mark_when_an_earlier_read_answers_late(
         page.evaluate(HOLD_ANSWERS, late)
         _launch_and_tune_kp(page)
         assert page.evaluate("window.pb3aHeld") >= 1       # the late answer was made
+
+
+def test_an_attached_system_that_stops_is_shown_stopped_and_again_running_when_run_again(
+        browser: Any, tmp_path: Path) -> None:
+    """Stopped where it ran, the page kept saying RUNNING with green modules and a toast
+    every few seconds, and a system run again at the address was never reached."""
+    import socket
+
+    from pb3a import System
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        address = f"tcp://127.0.0.1:{probe.getsockname()[1]}"
+    system = System("again")
+    system.add("count", "sample_modules:Counter", period=0.05)
+    run = system.launch(listen=address)
+    manager = ManagerProcess(address)
+    box = "document.querySelector(\"[data-module='count']\")"
+    try:
+        with chromium_page(browser) as tab:
+            page = tab.page
+            page.goto(manager.url)
+            page.wait_for_function(f"{box}?.classList.contains('status-running')",
+                                   timeout=WAIT_MS)
+            page.locator("[data-module='count']").click()
+            run.close()
+            page.wait_for_function("document.querySelector('#mode').textContent === 'stopped'",
+                                   timeout=WAIT_MS)
+            note = page.locator("#stopped-note")
+            assert note.is_visible() and "'again'" in note.text_content()
+            assert "has stopped" in note.text_content()
+            assert not page.locator("[data-module='count']").get_attribute(
+                "class").count("status-running")            # no last run's green
+            assert "running" not in page.locator("#inspector-meta").text_content()
+            page.screenshot(path=str(tmp_path / "stopped.png"))
+            page.wait_for_timeout(3000)     # (a few of the feed's refreshes)
+            assert page.locator(".toast.error").count() == 0
+            run = system.launch(listen=address)
+            page.wait_for_function("document.querySelector('#mode').textContent === 'running'",
+                                   timeout=WAIT_MS)
+            page.wait_for_function(f"{box}?.classList.contains('status-running')",
+                                   timeout=WAIT_MS)
+            assert note.is_hidden()
+            assert tab.errors == [], f"the page threw: {tab.errors}"
+    finally:
+        manager.stop()
+        run.close()

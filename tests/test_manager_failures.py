@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
+import socket
 import time
 from collections.abc import Callable
 from typing import Any
@@ -20,7 +21,7 @@ from conftest import Daemon, alive, eventually
 from sample_modules import Collector, Counter, Faulty, Steady
 from test_manager_api import manager_client
 
-from pb3a import System
+from pb3a import System, connect
 from pb3a.manager.document import Document
 from pb3a.manager.session import Session
 
@@ -207,3 +208,43 @@ def test_a_lost_remote_node_is_seen_lost_then_rejoined() -> None:
             assert client.get("/api/stats").json()["nodes"]["b"]["up"] is True
     finally:
         node.stop()
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def test_an_attached_system_that_stops_shows_stopped_and_one_run_again_there_is_reached(
+        ) -> None:
+    address = f"tcp://127.0.0.1:{_free_port()}"
+    system = System("again")
+    system.add("count", Counter, period=0.05)
+    run = system.launch(listen=address)
+    try:
+        session = Session(Document.empty(), connect(address), owns_handle=True)
+        with manager_client(session) as client, \
+                client.websocket_connect("/api/live") as socket_:
+            assert socket_.receive_json()["system"]["mode"] == "running"
+            run.close()
+            # the page is told it stopped, and why; no error for the stats or events
+            seen = receive_until(socket_, lambda m: m["type"] == "system"
+                                 and m["system"]["mode"] == "stopped", "mode stopped")
+            assert [m for m in seen if m["type"] == "error"] == []
+            shown = client.get("/api/system").json()
+            assert shown["mode"] == "stopped" and shown["address"] == address
+            assert "'again'" in shown["stopped"] and "has stopped" in shown["stopped"]
+            assert "count" in shown["modules"]          # what it was
+            refused = client.get("/api/stats")
+            assert refused.status_code == 409 and "has stopped" in refused.json()["error"]
+            # run again at the address: reached (it said 502 "nothing has listened
+            # there" for good, the connection closed and the mode running)
+            run = system.launch(listen=address)
+            receive_until(socket_, lambda m: m["type"] == "system"
+                          and m["system"]["mode"] == "running", "mode running again")
+            assert client.get("/api/system").json()["stopped"] is None
+            eventually(lambda: client.get("/api/stats").json()["modules"]["count"]["steps"] > 0,
+                       timeout=10)
+    finally:
+        run.close()

@@ -55,6 +55,7 @@ class Connection(SystemHandle):
             raise RuntimeFailure(f"{unknown}: check the address (pb3a run prints it)")
         self.address = address
         named = ["?"]                       # the system's name, once it has said it
+        self._named = named
         # (not a method of the connection: the two held each other, so one dropped
         # unclosed waited for the cycle collector, not its last reference, to be closed)
         self._client = ControlClient(_key(key), address,
@@ -102,6 +103,14 @@ class Connection(SystemHandle):
     def running(self) -> bool:
         """False once the system has stopped, as ``wait`` sees it."""
         return not self._client.gone.is_set()
+
+    @property
+    def stopped_why(self) -> str | None:
+        """Once the system has stopped (``running`` is False): what a call says then,
+        how it is known included; None while it runs."""
+        if not self._client.gone.is_set():
+            return None
+        return str(_stopped(self._named, self.address, self._client.gone_why))
 
     def close(self) -> None:
         """Close the connection (the system goes on)."""

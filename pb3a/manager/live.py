@@ -5,9 +5,10 @@ One ``Feed`` serves every client: it gathers the stats every ``refresh`` seconds
 (``events(since, timeout=...)`` in a worker thread), and hands each message to every
 client's queue. After an event that changes the structure it sends the structure
 and its layout again, and so it does when the session's mode changes (a launch from
-another page, or from the API). Each client also gets, every ``refresh``, the state of the one
-module it watches (``{"watch": name}``). A client that cannot keep up loses the
-oldest stats and states, never an event; one that falls ``CLIENT_MOST`` messages
+another page, or from the API; an attached system that stopped, or is reached again).
+Each client also gets, every ``refresh``, the state of the one module it watches
+(``{"watch": name}``). A client that cannot keep up loses the oldest stats and
+states, never an event; one that falls ``CLIENT_MOST`` messages
 behind is disconnected (its page reconnects, and reads the system anew), so that it
 holds no more memory. Blocking calls run in worker threads, never on the event loop.
 """
@@ -27,7 +28,7 @@ from typing import Any, NamedTuple, TypeVar
 from starlette.concurrency import run_in_threadpool
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
-from pb3a.errors import PB3AError, RuntimeTimeout
+from pb3a.errors import PB3AError, RuntimeTimeout, SystemStopped
 from pb3a.manager.api import encode, error_response
 from pb3a.manager.session import Session
 from pb3a.stats import plain
@@ -121,8 +122,8 @@ class Feed:
                     # (as when each call waited that long), before that is an error
                     busy = isinstance(exc, RuntimeTimeout)
                     busy_since = (busy_since or started) if busy else None
-                    if self.session.running is not handle:  # stopped from here meanwhile
-                        pass
+                    if self.session.running is not handle or isinstance(exc, SystemStopped):
+                        pass                # stopped meanwhile (the mode will say it)
                     elif busy_since is not None and started - busy_since < self.session.timeout:
                         log.debug("manager: the stats wait for a change: %s", exc)
                     else:
@@ -143,6 +144,9 @@ class Feed:
                 self._epoch += 1
                 await self._send_structure(sys.maxsize)
             if handle is None:
+                if mode == "stopped":       # attached, and it stopped: is it back there?
+                    with contextlib.suppress(Exception):
+                        await self._blocking(self.session.reattach)
                 await asyncio.sleep(self.refresh)
                 continue
             try:
@@ -150,6 +154,11 @@ class Feed:
                 failures = 0
             except Exception as exc:
                 if self.session.running is not handle:   # stopped from here: no failure
+                    continue
+                if isinstance(exc, SystemStopped):
+                    # its launcher says so as it stops, before its connection ends: the
+                    # session's mode says it then (shown as an error, it stayed on the page)
+                    await asyncio.sleep(self.refresh)
                     continue
                 failures += 1
                 await asyncio.sleep(self._failed("events", exc, failures))

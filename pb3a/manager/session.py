@@ -20,11 +20,13 @@ from __future__ import annotations
 import dataclasses
 import logging
 import threading
+import time
 from typing import TYPE_CHECKING, Any
 
 from pb3a.config import checks
 from pb3a.config.checks import NAME
-from pb3a.errors import ConfigError, ModuleNotFound
+from pb3a.errors import ConfigError, ModuleNotFound, PB3AError
+from pb3a.launch.connection import CONNECT_TIMEOUT, connect
 from pb3a.loading.references import resolve_class
 from pb3a.manager import keeping, reflection
 from pb3a.manager.catalog import IMPORT_TIMEOUT, Catalog
@@ -43,6 +45,7 @@ log = logging.getLogger("pb3a.manager")
 
 CALL_TIMEOUT = 10.0         # seconds a call to the system may take (--timeout) ...
 MOVE_TIMES = 3              # ... and a move or restart, which stops and starts a module
+REATTACH_S = 2.0            # an attached system that stopped: how often to try its address
 NOTHING_RUNS = ("nothing runs: launch the document first (POST /api/document/launch), or "
                 "start the manager with the address of a running system")
 
@@ -100,28 +103,84 @@ class Session:
         self._lock = threading.Lock()       # launching and closing
         self._layouts: dict[Any, dict[str, Any]] = {}     # structure -> its layout
         self._tuned: dict[str, set[str]] = {}     # module -> fields set here since the launch
+        # an attached system that has stopped: its address (connected to again on a later
+        # request: a system run there again is reached) and what its connection said
+        self._address: str | None = getattr(handle, "address", None)
+        self._stopped_why: str | None = None
+        self._last_topology: Topology | None = None     # what it was, shown when stopped
+        self._tried_at = 0.0                # the last attempt to reach it again
+        self._trying = threading.Lock()     # (one attempt at a time)
 
     # -- what runs ----------------------------------------------------------------
     @property
     def mode(self) -> str:
         """``running``, ``stopping`` (Stop has begun; its modules and workers may still
-        run), or ``editing`` (nothing of a system this session launched is left)."""
-        if self._handle is not None:
+        run), ``stopped`` (the system the session attached to has stopped where it ran:
+        ``system()`` says why), or ``editing`` (nothing of a system this session launched
+        is left)."""
+        if self._look() is not None:
             return "running"
+        if self._stopped_why is not None:
+            return "stopped"
         return "stopping" if self._stopping is not None else "editing"
 
     @property
     def running(self) -> SystemHandle | None:
         """The running system's handle, None when nothing runs (each launch: a new one)."""
-        return self._handle
+        return self._look()
 
     @property
     def handle(self) -> SystemHandle:
-        """The running system's handle; ConfigError when nothing runs."""
-        handle = self._handle
+        """The running system's handle; ConfigError when nothing runs. An attached
+        system that has stopped is connected to again first (see ``reattach``)."""
+        handle = self._look() or self.reattach()
         if handle is None:
-            raise ConfigError([NOTHING_RUNS])
+            raise ConfigError([self._stopped_why or NOTHING_RUNS])
         return handle
+
+    def _look(self) -> SystemHandle | None:
+        """The handle, or None once the attached system behind it has stopped (its
+        connection says so): it is dropped, and the mode is ``stopped``. (Held, it kept
+        the mode ``running`` with a connection that had closed itself for good: every
+        request failed, and a system run again at the address was never reached.)"""
+        handle = self._handle
+        why = getattr(handle, "stopped_why", None)
+        if handle is None or why is None or self._launched:
+            return handle
+        with self._lock:
+            if self._handle is handle:
+                self._handle, self._stopped_why = None, why
+                self._mode_changes += 1
+                log.warning("manager: %s", why)
+        handle.close()
+        return self._handle
+
+    def reattach(self, every: float = REATTACH_S) -> SystemHandle | None:
+        """Connect again to the address of an attached system that has stopped, at most
+        once in ``every`` seconds: the handle of the system that runs there now, None
+        if none answers (or the session is not one whose system stopped)."""
+        if self._stopped_why is None or self._address is None \
+                or time.monotonic() - self._tried_at < every \
+                or not self._trying.acquire(blocking=False):
+            return self._handle
+        try:
+            self._tried_at = time.monotonic()
+            try:
+                handle = connect(self._address, timeout=min(CONNECT_TIMEOUT, self.timeout))
+            except PB3AError as exc:
+                log.debug("manager: %s is not there yet: %s", self._address, exc)
+                return None
+            with self._lock:
+                if self._handle is not None or self._stopped_why is None:  # (closed)
+                    handle.close()
+                    return self._handle
+                self._handle, self._stopped_why, self._tuned = handle, None, {}
+                self._launches += 1         # (it numbers its events from 1)
+                self._mode_changes += 1
+            log.warning("manager: connected again to the system at %s", self._address)
+            return handle
+        finally:
+            self._trying.release()
 
     def launch(self) -> dict[str, Any]:
         """Launch the document (checked first: ConfigError with its problems); the session
@@ -136,6 +195,7 @@ class Session:
                 raise ConfigError(problems)
             running: Running = system.launch(listen="tcp://127.0.0.1:0")
             self._handle, self._owns_handle, self._launched = running, True, True
+            self._stopped_why = self._address = None    # (this one is its own)
             self._launches += 1
             self._mode_changes += 1
             self._tuned = {}
@@ -167,26 +227,37 @@ class Session:
         with self._lock:
             handle, self._handle = self._handle, None
             self._mode_changes += handle is not None
+            self._stopped_why = self._address = None      # (nothing to connect to again)
             if handle is not None and self._owns_handle:
                 handle.close()
 
     # -- structure ----------------------------------------------------------------
     def topology(self) -> Topology:
-        """The running system's structure, or the document's so far."""
-        if self._handle is None:
+        """The running system's structure, or the document's so far; an attached system
+        that has stopped: the structure it last had (and the session tries to reach the
+        address again, see ``reattach``)."""
+        handle = self._look() or self.reattach()
+        if handle is None:
+            if self._stopped_why is not None and self._last_topology is not None:
+                return self._last_topology
             return plan_topology(self.document.sketch()[0])
-        return self._handle.topology(timeout=self.timeout)
+        topology = handle.topology(timeout=self.timeout)
+        if not self._launched:
+            self._last_topology = topology
+        return topology
 
     def system(self, topology: Topology | None = None) -> dict[str, Any]:
-        """``GET /api/system``."""
+        """``GET /api/system``; ``stopped``: why, when the mode is ``stopped``."""
         topology = topology or self.topology()
         changes = self._mode_changes         # (read before the mode: never newer than it)
-        handle = self._handle
-        return {**topology.to_json(), "mode": self.mode, "mode_change": changes,
-                "address": getattr(handle, "address", None) if handle is not None else None,
+        mode, handle = self.mode, self._handle
+        return {**topology.to_json(), "mode": mode, "mode_change": changes,
+                "address": getattr(handle, "address", None) if handle is not None
+                else self._address if mode == "stopped" else None,
                 "stoppable": handle is not None and self._launched,
                 # which launch (a page that saw no Stop between two tells them apart by it)
-                "launch": self._launches if handle is not None else None}
+                "launch": self._launches if handle is not None else None,
+                "stopped": self._stopped_why if mode == "stopped" else None}
 
     def system_toml(self) -> str:
         """``GET /api/system/toml``: the running system as it is now, as a configuration

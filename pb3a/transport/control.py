@@ -539,7 +539,7 @@ class ControlClient:
         self._lost_at: float | None = None   # when the server closed our connection
         self.gone = threading.Event()        # ... and nothing took one there in GONE_S
                                              # (or another server took its place)
-        self._gone_why = ""                  # (which of the two, in words)
+        self.gone_why = ""                   # (which of the two, in words)
         self._connected = self._greeted = False     # (told by the monitor, if any)
         # The loop holds the client only weakly, and a client dropped unclosed is closed
         # when collected (the loop's thread held its handlers, and through them the
@@ -578,7 +578,7 @@ class ControlClient:
             if self._closed:      # (checked once registered: close fails what it finds)
                 raise RuntimeFailure(f"{op!r} to {self.address}: this client is closed")
             if self.gone.is_set() and self._when_gone is not None:     # (the same)
-                raise self._when_gone(self._gone_why)
+                raise self._when_gone(self.gone_why)
             self._loop.submit(lambda: self._send(request_id))
             if not done.answered(timeout):
                 if self.ungreeted:
@@ -710,7 +710,7 @@ class ControlClient:
         client's thread and sockets are closed as its loop ends (socket thread)."""
         if self.gone.is_set():
             return
-        self._gone_why = reason
+        self.gone_why = reason
         self.gone.set()
         self.fail_pending(self._when_gone(reason))
         # (a connection kept after its system stopped held them until closed; a call

@@ -31,7 +31,7 @@ class Manager {
     this.lastMove = new Map();     // module -> its last MigrationReport, shown in the inspector
     this.updates = 0;              // live updates drawn, and what the last one cost (ms)
     this.drawMs = null;
-    this.feedError = null;         // the live feed's last error shown, until an update comes
+    this.feedErrors = {};          // the live feed's last error shown per source, until it comes
     this.toasts = new Toasts($("toasts"));
     this.schematic = new Schematic($("schematic"), {
       select: (name, how) => this.select(name, how),
@@ -54,10 +54,11 @@ class Manager {
     });
     this.live = new LiveFeed({
       hello: (m) => {
+        this.feedErrors = {};
         this.setStructure(m.system, m.layout);
         for (const event of m.events || []) this.events.add(event, false);   // before this page
       },
-      system: (m) => this.setStructure(m.system, m.layout),
+      system: (m) => { delete this.feedErrors.structure; this.setStructure(m.system, m.layout); },
       stats: (m) => this.onStats(m),
       event: (m) => this.onEvent(m.event),
       state: (m) => this.onState(m),
@@ -130,6 +131,12 @@ class Manager {
     // a system launched anew numbers its events from 1 (a Stop and a Launch may both
     // come between two of the feed's looks: then only the launch's number changes)
     if (modeChanged || this.system?.launch !== system.launch) this.events.last = 0;
+    if (modeChanged && system.mode !== "running") {
+      // the last run's figures are no one's now (kept, a stopped system's modules stayed
+      // green with their last rates, and its inspector said "running")
+      this.stats = null;
+      this.schematic.lastStats = this.schematic.previous = null;
+    }
     this.system = system;
     this.layout = layout;
     document.body.dataset.mode = system.mode;
@@ -137,6 +144,11 @@ class Manager {
     $("mode").textContent = system.mode;
     $("mode").className = `mode-badge ${system.mode}`;
     $("address").textContent = system.address || "";
+    // an attached system that stopped where it ran: why, and that it is looked for again
+    $("stopped-note").hidden = system.mode !== "stopped";
+    $("stopped-note").textContent = system.mode === "stopped"
+      ? `${(system.stopped || "The system has stopped").replace(/\.?$/, ".")} The manager connects to ` +
+        `${system.address || "its address"} again when a system runs there.` : "";
     const launched = system.mode === "running" && system.stoppable;   // from the document
     $("document-actions").hidden = system.mode !== "editing";
     $("launch-actions").hidden = system.mode !== "editing";
@@ -218,15 +230,18 @@ class Manager {
     $("cost").title = "the last update: when, what gathering it took on the server, " +
       "and what drawing it took in this page";
     this.stats = message.stats;
-    this.feedError = null;
+    delete this.feedErrors.stats;
     if (this.selected) this.describeSelected();
   }
 
   /** The server could not read the stats, events or structure this time; it tries
-   * again, more slowly while it fails. Shown once until an update comes through. */
+   * again, more slowly while it fails. Shown once per source until that source comes
+   * through (one remembered for all: the stats' and the events' errors took turns, and
+   * each was shown anew). */
   onFeedError(message) {
-    if (message.error === this.feedError) return;
-    this.feedError = message.error;
+    const source = message.source ?? "";
+    if (message.error === this.feedErrors[source]) return;
+    this.feedErrors[source] = message.error;
     this.toasts.error(new Error(message.error));
   }
 
@@ -239,6 +254,7 @@ class Manager {
   }
 
   onEvent(event) {
+    delete this.feedErrors.events;
     this.events.add(event);
     if (event.kind.startsWith("module_") || event.kind === "migration_failed") this.schematic.flash(event.subject);
     if (event.kind === "module_swapped" && event.subject === this.selected) this.select(this.selected);
@@ -298,9 +314,10 @@ class Manager {
       this.editor.show(this.documentState(name), displays);
       return;
     }
-    if (this.mode() === "stopping") {       // (its state can no longer be read)
+    if (this.mode() === "stopping" || this.mode() === "stopped") {   // (no state to read)
       this.live.watch(null);
-      this.editor.pending("The system is stopping…", displays);
+      this.editor.pending(this.mode() === "stopping" ? "The system is stopping…"
+                          : "The system has stopped.", displays);
       return;
     }
     this.live.watch(name);

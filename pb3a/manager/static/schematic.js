@@ -88,8 +88,9 @@ export class Schematic {
     const rect = s("rect", {x: box.x, y: box.y, width: box.w, height: box.h, rx: 16});
     const title = s("text", {x: box.x + 14, y: box.y + 20, class: "cluster-title"}, node);
     const editing = this.system.mode === "editing";      // nothing runs yet: no health
+    const idle = this.system.mode !== "running";        // (nor once it has stopped)
     const badge = s("text", {x: box.x + box.w - 12, y: box.y + 20, class: "cluster-badge",
-                             "text-anchor": "end"}, editing ? "" : info.up === false ? "lost" : "up");
+                             "text-anchor": "end"}, idle ? "" : info.up === false ? "lost" : "up");
     const figures = s("text", {x: box.x + 14, y: box.y + 36, class: "cluster-figures"}, "");
     const reach = s("text", {x: box.x + 14, y: box.y + 50, class: "cluster-figures"},
                     info.address ? `${info.address}` : editing ? "will run in the launcher"
