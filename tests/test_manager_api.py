@@ -19,7 +19,7 @@ import pytest
 pytest.importorskip("starlette", reason="the manager needs the 'ui' extra")
 
 from manager_modules import FileNamed, Holder
-from sample_modules import FloatSource, Mapper, Pump, Scale
+from sample_modules import FloatSource, Mapper, Pump, Scale, SlowState
 from starlette.testclient import TestClient
 
 from pb3a import Running, System
@@ -897,3 +897,21 @@ def test_a_client_gone_in_the_middle_of_its_body_is_one_line_and_changes_nothing
             logger.removeHandler(records)
     assert document.revision == 0 and document.data()["name"] == "s"
     assert own.read_text() == 'name = "s"\n' and not (tmp_path / "elsewhere.toml").exists()
+
+
+def test_an_edit_made_whose_read_back_times_out_answers_what_was_set() -> None:
+    """The module took the edit, then did not answer the read of its state in time: the
+    answer was a 504 saying nothing was done, though it was."""
+    system = System("slow-read")
+    system.add("slow", SlowState)
+    with system.launch() as run, \
+            manager_client(Session(Document.empty(), run, timeout=1.0)) as client:
+        answer = client.post("/api/modules/slow/state", json={"slow_s": 3.0})
+        assert answer.status_code == 200, answer.json()
+        view = answer.json()
+        assert view["read_back"] is False and "slow" in view["read_back_error"]
+        assert view["fields"]["slow_s"]["value"] == 3.0
+        assert run.state("slow", timeout=10)["slow_s"] == 3.0         # it was set
+        run.set_state("slow", slow_s=0.0, timeout=10)
+        read = client.post("/api/modules/slow/state", json={"slow_s": 0.0})
+        assert read.status_code == 200 and "read_back" not in read.json()

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 from pb3a.config import checks
 from pb3a.config.checks import NAME
-from pb3a.errors import ConfigError, ModuleNotFound, PB3AError
+from pb3a.errors import ConfigError, ModuleNotFound, PB3AError, RuntimeFailure, RuntimeTimeout
 from pb3a.launch.connection import CONNECT_TIMEOUT, connect
 from pb3a.loading.references import resolve_class
 from pb3a.manager import keeping, reflection
@@ -334,7 +334,10 @@ class Session:
         """``POST /api/modules/{name}/state``: set top-level fields, each coerced to the
         type of its current value; nothing is set unless every field fits, and its class
         takes them all (``Module.state_problems``: a driver's timeout of 0 reached the
-        module, which refused it as a worker's failure)."""
+        module, which refused it as a worker's failure). Answers the state read back;
+        when that read fails once the fields are set (a module in a long call answers no
+        read in time), the state read before with what was set in it, ``"read_back":
+        false`` and why (``read_back_error``)."""
         if not isinstance(values, dict) or not values:
             raise Malformed("send an object of state fields to set, e.g. {\"gain\": 5.0}")
         topology = self.topology_of(name)
@@ -356,7 +359,13 @@ class Session:
             raise Unfit(problems)
         self.handle.set_state(name, fitted, timeout=self.timeout)
         self._tuned.setdefault(name, set()).update(fitted)
-        return self.state(name)
+        try:
+            return self.state(name)
+        except (RuntimeTimeout, RuntimeFailure) as exc:
+            # (the edit is made: a 504 from this read said "nothing was done")
+            cls = self.topology_of(name).modules[name].cls
+            return {**reflection.state_view(name, cls, {**current, **fitted}),
+                    "read_back": False, "read_back_error": str(exc)}
 
     # -- keeping live state in the document -------------------------------------------
     def keep_offer(self, name: str) -> dict[str, Any]:

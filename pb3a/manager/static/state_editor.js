@@ -151,6 +151,8 @@ export class StateEditor {
       element.classList.add("applied");
       setTimeout(() => element.classList.remove("applied"), 1200);
       this.update(view);
+      // set, but the module did not answer a read of its state in time (a long step)
+      if (view?.read_back === false) message.textContent = `set; not read back yet: ${view.read_back_error}`;
       return true;
     } catch (error) {
       element.classList.remove("applying");
