@@ -23,6 +23,7 @@ from sample_modules import FloatSource, Mapper, Pump, Scale, SlowState
 from starlette.testclient import TestClient
 
 from pb3a import Running, System
+from pb3a.errors import RuntimeFailure
 from pb3a.manager.access import Access, new_token
 from pb3a.manager.app import create_app
 from pb3a.manager.catalog import Catalog
@@ -349,6 +350,30 @@ def test_values_keep_their_types_and_a_value_that_does_not_fit_is_refused() -> N
         state = run.state("h")
         assert state["small"].tolist() == [0, 0, 0] and state["narrow"].tolist() == [0, 0]
         assert state["level"] == 1.0
+
+
+def test_an_item_of_the_wrong_kind_inside_a_dict_or_list_is_refused_naming_its_path() -> None:
+    """A dict item of another kind (``{"cal": {"offset": "z"}}`` for a float) was set as
+    sent, where a top-level field of that kind is refused, and the module then failed at
+    its next step. Each item is made its type, or refused by its path; nothing is set.
+    A program's ``set_state`` judges a dict's items the same way."""
+    system = System("held").add("h", Holder)
+    with system.launch() as run, manager_client(Session(Document.empty(), run)) as client:
+        for body, words in (
+                ({"settings": {"decay": "z", "brush": 2.0}},
+                 "state 'settings.decay' takes a number, got 'z'"),
+                ({"settings": {"decay": 1.0, "brush": True}}, "state 'settings.brush'"),
+                ({"waypoints": [[0.0, 0.0], [1.0, "x"]]}, "state 'waypoints.1.1'")):
+            refused = client.post("/api/modules/h/state", json={**body, "level": 5.0})
+            assert refused.status_code == 422, refused.text
+            assert words in refused.json()["error"], body
+        state = run.state("h")
+        assert state["settings"] == {"decay": 1.0, "brush": 2.5} and state["level"] == 1.0
+        with pytest.raises(RuntimeFailure, match=r"state 'settings.decay' takes a number"):
+            run.set_state("h", settings={"decay": "z", "brush": 2.0})
+        run.set_state("h", settings={"decay": 3, "brush": 2.0})
+        assert run.state("h")["settings"] == {"decay": 3.0, "brush": 2.0}
+        assert isinstance(run.state("h")["settings"]["decay"], float)
 
 
 def test_a_state_string_that_is_not_text_is_answered_escaped_and_its_change_made_once() -> None:

@@ -86,17 +86,34 @@ def coerce(field: str, current: Any, new: Any) -> Any:
         want = dict if isinstance(current, dict) else list
         if not isinstance(new, want):
             raise refuse("an object ({...})" if want is dict else "a list ([...])")
-        return _like(current, new)
+        return _coerce_items(field, current, new)
     raise ValueError(f"state {field!r} is a {type(current).__name__}, which cannot be set "
                      "from JSON: set it from a program (run.set_state)")
+
+
+def _coerce_items(field: str, current: dict[str, Any] | list[Any] | tuple[Any, ...],
+                  new: dict[str, Any] | list[Any]) -> Any:
+    """``new`` (from JSON) item by item as ``coerce`` makes a field, each against the
+    item it replaces (a list's item beyond ``current``'s: against its last; a key it
+    does not have, or any item of an empty list, as sent); ValueError naming the item's
+    path (``cal.offset``): an item of the wrong kind was set as sent, and the module
+    then failed at its next step."""
+    if isinstance(current, dict):
+        return {key: coerce(f"{field}.{key}", current[key], item) if key in current else item
+                for key, item in new.items()}
+    last = len(current) - 1
+    items = [coerce(f"{field}.{index}", current[min(index, last)], item) if current else item
+             for index, item in enumerate(new)]
+    return tuple(items) if isinstance(current, tuple) else items
 
 
 def checked(field: str, current: Any, new: Any, *, held: str = "it is") -> Any:
     """``new``, set from a program (``run.set_state``), checked against the kind of the
     field's ``current`` value: a number for a number (an int made a float for a float
-    field, as an output's write does), true or false for a flag, text for text; a field
-    of another kind, or None, takes anything. ``TypeError`` naming the field: ``kp="2.5"``
-    was set, and the module then failed at every step."""
+    field, as an output's write does), true or false for a flag, text for text, a dict's
+    items each so against the item it replaces; a field of another kind, or None, takes
+    anything. ``TypeError`` naming the field (or the item's path: ``cal.offset``):
+    ``kp="2.5"`` was set, and the module then failed at every step."""
     def refuse(takes: str) -> TypeError:
         return TypeError(f"state {field!r} takes {takes} ({held} {current!r}), got {new!r}")
 
@@ -111,6 +128,9 @@ def checked(field: str, current: Any, new: Any, *, held: str = "it is") -> Any:
             return type(current)(new)
     elif isinstance(current, str) and not isinstance(new, str):
         raise refuse("text")
+    elif isinstance(current, dict) and isinstance(new, dict):
+        return {key: checked(f"{field}.{key}", current[key], item, held=held)
+                if key in current else item for key, item in new.items()}
     return new
 
 
