@@ -534,6 +534,25 @@ def test_a_body_that_is_not_plain_json_text_is_a_400_and_changes_nothing(client,
     assert too_big.status_code == 400 and "more than" in too_big.json()["error"]
 
 
+def test_a_number_no_float_holds_and_the_constants_json_lacks_are_refused_by_field(
+        client, run) -> None:
+    """``1e400`` was read as inf and set, and ``NaN``, ``-Infinity`` (not JSON) were set
+    as floats, though a float that is not finite travels only as ``{"$float": "inf"}``."""
+    for body, status, words in (
+            (b'{"gain": 1e400}', 422, "'gain': 1e400 is a number no float holds"),
+            (b'{"gain": -2.5e999}', 422, "'gain': -2.5e999 is a number no float holds"),
+            (b'{"gain": NaN}', 400, "'gain': NaN is no JSON number"),
+            (b'{"gain": -Infinity}', 400, '{"$float": "-inf"}'),
+            (b'{"gain": 3.0, "grid": [[1.0, Infinity]]}', 400, "'grid.0.1': Infinity")):
+        refused = client.post("/api/modules/scale/state", content=body,
+                              headers={"Content-Type": "application/json"})
+        assert refused.status_code == status, refused.text
+        assert words in refused.json()["error"], body
+    assert run.state("scale")["gain"] == 2.0
+    kept = client.post("/api/modules/scale/state", json={"gain": {"$float": "-inf"}})
+    assert kept.status_code == 200 and run.state("scale")["gain"] == float("-inf")
+
+
 def test_an_edit_made_on_an_old_copy_of_the_document_is_refused(client) -> None:
     """Two pages editing: before, the last put won, and the other page's work was gone."""
     first = client.get("/api/document").json()

@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
+import sys
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -89,15 +91,63 @@ async def body_of(request: Request, *, optional: bool = False) -> Any:
             return None
         raise Malformed("the request needs a JSON body")
     try:
-        body = json.loads(raw, object_pairs_hook=float_of_json)
-        json.dumps(body, ensure_ascii=False).encode()
+        body = json.loads(raw, object_pairs_hook=float_of_json, parse_float=_float,
+                          parse_constant=_NotJSON)
+        json.dumps(body, ensure_ascii=False, default=repr).encode()
+        found = _refused_in(body)
     except RecursionError:
         raise Malformed("the request body nests too deeply") from None
     except UnicodeEncodeError as exc:
         raise Malformed(f"the request body has a string that is not text: {exc}") from None
     except (ValueError, UnicodeDecodeError) as exc:
         raise Malformed(f"the request body is not JSON: {exc}") from None
+    if found is not None:
+        where, refused = found
+        where = f"{where!r}: " if where else ""
+        if isinstance(refused, _NotJSON):
+            raise Malformed(f"the request body is not JSON: {where}{refused.text} is no JSON "
+                            f"number; a float that is not finite is written "
+                            f"{{\"$float\": \"{refused.word}\"}}")
+        raise Unfit([f"{where}{refused.text} is a number no float holds (at most "
+                     f"{sys.float_info.max:.4g}); an infinity is written "
+                     f"{{\"$float\": \"inf\"}}"])
     return body
+
+
+class _NotJSON:
+    """NaN, Infinity or -Infinity in a body: Python's JSON reads them, JSON has none (they
+    were set as floats, where the API says a float that is not finite travels as
+    ``{"$float": "inf"}``)."""
+
+    def __init__(self, text: str) -> None:
+        self.text = text
+        self.word = {"NaN": "nan", "Infinity": "inf", "-Infinity": "-inf"}.get(text, text)
+
+
+class _Beyond:
+    """A JSON number no float holds (1e400, read as inf: it was set as an infinity)."""
+
+    def __init__(self, text: str) -> None:
+        self.text = text if len(text) <= 40 else f"{text[:20]}...{text[-8:]}"
+
+
+def _float(text: str) -> float | _Beyond:
+    number = float(text)
+    return number if math.isfinite(number) else _Beyond(text)
+
+
+def _refused_in(value: Any, path: str = "") -> tuple[str, _NotJSON | _Beyond] | None:
+    """The first number of a body that is refused (``_NotJSON``, ``_Beyond``), with
+    where it is (``kp``, ``cal.offset``, ``grid.0.1``); None if there is none."""
+    if isinstance(value, (_NotJSON, _Beyond)):
+        return path, value
+    items = value.items() if isinstance(value, dict) else enumerate(value) \
+        if isinstance(value, list) else ()
+    for key, item in items:
+        found = _refused_in(item, f"{path}.{key}" if path else str(key))
+        if found is not None:
+            return found
+    return None
 
 
 def routes(session: Session) -> list[Route]:
