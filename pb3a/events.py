@@ -20,7 +20,8 @@ from pb3a.errors import bounded_wait
 
 KINDS = ("module_added", "module_removed", "module_moved", "migration_failed",
          "module_swapped", "module_restarted", "module_failed", "module_failed_over",
-         "module_lost", "link_added", "link_removed", "node_lost", "node_joined")
+         "module_lost", "link_added", "link_removed", "node_lost", "node_joined",
+         "module_retimed")
 
 
 @dataclass(frozen=True)

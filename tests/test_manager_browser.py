@@ -520,6 +520,28 @@ def test_a_float_that_is_not_finite_is_shown_as_such_and_plotted_as_a_gap(
 
 
 @pytest.mark.parametrize("lab", [("--timeout", "2")], indirect=True)   # (a move: 6 s)
+def test_a_period_set_in_the_inspector_or_elsewhere_shows_on_the_page(
+        lab: ManagerProcess, page: Any, tmp_path: Path) -> None:
+    """The running inspector had no period (the API refused one: "no state 'period'"),
+    and a period set elsewhere (`pb3a set`, a script) never showed on an open page."""
+    page.locator("[data-module='sensor']").click()
+    meta = "document.querySelector('#inspector-meta').textContent"
+    page.wait_for_function("document.querySelector('#inspector-name').textContent === 'sensor'")
+    box = page.locator("#period")
+    assert box.get_attribute("placeholder") == "0.02 (its class's)" or \
+        box.get_attribute("placeholder") == "its class's"
+    box.fill("0.25")
+    box.press("Enter")
+    page.wait_for_function(f"{meta}.includes('period 250.0 ms')", timeout=WAIT_MS)
+    assert lab.api("GET", "/api/system")["modules"]["sensor"]["period"] == 0.25
+    page.wait_for_selector("#events [data-kind='module_retimed']", timeout=WAIT_MS)
+    page.locator("#inspector-name").click()                     # (the box left)
+    lab.api("POST", "/api/modules/sensor/state", {"period": 0.5})   # as a script would
+    page.wait_for_function(f"{meta}.includes('period 500.0 ms')", timeout=WAIT_MS)
+    assert box.input_value() == "0.5"
+    page.screenshot(path=str(screenshot_path(tmp_path, "period.png")))
+
+
 def test_a_move_that_fails_is_listed_among_the_events(lab: ManagerProcess, page: Any) -> None:
     """A move that failed showed nothing in the events panel (the system recorded no
     event for it): it is listed as "move failed", with its nodes and the error. It fails

@@ -111,6 +111,37 @@ def test_a_migration_arrives_as_an_event_then_as_the_new_structure(run) -> None:
         assert "event" in kinds and kinds.index("event") < kinds.index("system")
 
 
+def test_a_period_set_live_is_an_event_then_the_new_structure(run) -> None:
+    """The manager refused a period ("module src has no state 'period'"), which
+    ``set_state`` and ``pb3a set`` take; and a page did not show one set elsewhere: no
+    event said it, so the structure was not sent again."""
+    with manager_client(Session(Document.empty(), run)) as client, \
+            client.websocket_connect("/api/live") as socket:
+        assert socket.receive_json()["type"] == "hello"
+        for body, status, words in (({"period": "fast"}, 422, "period takes a number"),
+                                    ({"period": -1.0}, 409, "period"),
+                                    ({"period": 0.2, "perod": 1}, 404, "(and its period)")):
+            refused = client.post("/api/modules/src/state", json=body)
+            assert refused.status_code == status and words in refused.json()["error"], body
+        assert run.topology().modules["src"].period != 0.2
+        changed = client.post("/api/modules/src/state", json={"period": 0.2})
+        assert changed.status_code == 200, changed.text
+        assert "period" not in changed.json()["fields"]
+        assert run.topology().modules["src"].period == 0.2
+        kinds = []
+        deadline = time.monotonic() + 10
+        while "system" not in kinds and time.monotonic() < deadline:
+            message = socket.receive_json()
+            if message["type"] == "event":
+                assert (message["event"]["kind"], message["event"]["subject"]) == (
+                    "module_retimed", "src")
+                assert message["event"]["detail"] == {"period": 0.2}
+            if message["type"] == "system":
+                assert message["system"]["modules"]["src"]["period"] == 0.2
+            kinds.append(message["type"])
+        assert "event" in kinds and kinds.index("event") < kinds.index("system")
+
+
 class _HeldEvents:
     """The running system, but the feed's first look at its events (the one that waits)
     is held until the page has its hello: events older than the hello come after it."""

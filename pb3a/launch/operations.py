@@ -197,6 +197,8 @@ class Operations:
             retimed = replace(spec, period=float(period), own_period=True)
             self.launcher.node_of(name).retime(name, retimed.period, left())
             self.launcher.specs[name] = retimed
+            # (nothing said it: a page showed the period it had until it was read anew)
+            self.event_log.record("module_retimed", name, period=retimed.period)
 
     # -- moving, swapping, reloading ----------------------------------------------------
     def migrate(self, name: str, to: str, *, state: dict[str, dict[str, Any]] | None = None,

@@ -50,7 +50,7 @@ RECENT_EVENTS = 100         # the events a page is sent as it connects (a reload
 # events after which the structure (modules, links, nodes) is sent again
 STRUCTURAL = frozenset({"module_added", "module_removed", "module_moved", "module_swapped",
                         "module_failed_over", "module_failed", "module_lost", "link_added",
-                        "link_removed", "node_lost", "node_joined"})
+                        "link_removed", "node_lost", "node_joined", "module_retimed"})
 
 
 class Feed:

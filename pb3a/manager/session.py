@@ -332,39 +332,48 @@ class Session:
 
     def set_state(self, name: str, values: Any) -> dict[str, Any]:
         """``POST /api/modules/{name}/state``: set top-level fields, each coerced to the
-        type of its current value; nothing is set unless every field fits, and its class
-        takes them all (``Module.state_problems``: a driver's timeout of 0 reached the
-        module, which refused it as a worker's failure). Answers the state read back;
-        when that read fails once the fields are set (a module in a long call answers no
-        read in time), the state read before with what was set in it, ``"read_back":
-        false`` and why (``read_back_error``)."""
+        type of its current value, and ``period`` (the runtime's, not in the state: the
+        module steps so from its next step on, as ``pb3a set`` sets it); nothing is set
+        unless every field fits, and its class takes them all (``Module.state_problems``:
+        a driver's timeout of 0 reached the module, which refused it as a worker's
+        failure). Answers the state read back; when that read fails once the fields are
+        set (a module in a long call answers no read in time), the state read before with
+        what was set in it, ``"read_back": false`` and why (``read_back_error``)."""
         if not isinstance(values, dict) or not values:
             raise Malformed("send an object of state fields to set, e.g. {\"gain\": 5.0}")
         topology = self.topology_of(name)
         current = self.handle.state(name, timeout=self.timeout)
-        unknown = sorted(set(values) - set(current))
+        # (the period is the runtime's, not in the state: set_state takes it, as pb3a set)
+        unknown = sorted(set(values) - set(current) - {"period"})
         if unknown:
             raise NotFound(f"module {name} has no state {', '.join(map(repr, unknown))}; its "
-                           f"state: {', '.join(current) or '(none)'}")
+                           f"state: {', '.join(current) or '(none)'} (and its period)")
         problems, fitted = [], {}
         for field, value in values.items():
+            if field not in current:            # its period
+                if not isinstance(value, (int, float)) or isinstance(value, bool):
+                    problems.append(f"module {name}: its period takes a number of seconds "
+                                    f">= 0, got {value!r}")
+                fitted[field] = value
+                continue
             try:
                 fitted[field] = coerce(field, current[field], value)
             except ValueError as exc:
                 problems.append(f"module {name}: {exc}")
+        fields = {field: value for field, value in fitted.items() if field in current}
         if not problems:
             problems = [f"module {name}: {problem}"
-                        for problem in _refused(topology.modules[name].cls, fitted)]
+                        for problem in _refused(topology.modules[name].cls, fields)]
         if problems:
             raise Unfit(problems)
         self.handle.set_state(name, fitted, timeout=self.timeout)
-        self._tuned.setdefault(name, set()).update(fitted)
+        self._tuned.setdefault(name, set()).update(fields)
         try:
             return self.state(name)
         except (RuntimeTimeout, RuntimeFailure) as exc:
             # (the edit is made: a 504 from this read said "nothing was done")
             cls = self.topology_of(name).modules[name].cls
-            return {**reflection.state_view(name, cls, {**current, **fitted}),
+            return {**reflection.state_view(name, cls, {**current, **fields}),
                     "read_back": False, "read_back_error": str(exc)}
 
     # -- keeping live state in the document -------------------------------------------

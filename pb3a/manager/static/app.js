@@ -385,6 +385,8 @@ class Manager {
         ? h("span", {}, `its state here is what instance ${entryOf(name)} sets`) : null,
     ];
     $("inspector-meta").replaceChildren(...meta.filter(Boolean));
+    const box = $("period");
+    if (box && this.mode() === "running" && document.activeElement !== box) box.value = info.period ?? "";
     const extra = [];
     if (live?.last_error) extra.push(h("div", {class: "problem"}, `${live.errors} errors · last: ${live.last_error}`));
     const move = this.lastMove.get(name);
@@ -412,6 +414,10 @@ class Manager {
                           this.stats?.modules?.[name]?.status === "failed" ? "primary" : ""));
       actions.push(button("Swap class…", () => this.openSwaps(name)));
       actions.push(button("Reload code", () => this.reload(name)));
+      actions.push(h("label", {class: "inline"}, ["Period ", this.periodInput(name, (value) => {
+        if (value === null) return this.toasts.error(new Error("period: a number of seconds ≥ 0 (a running module's cannot be emptied)"));
+        this.setPeriod(name, value);
+      })]));
       if (this.system.stoppable) {          // launched from the document: it can keep state
         const keep = button("Keep in document", () => this.openKeep(name));
         keep.id = "keep";
@@ -421,15 +427,7 @@ class Manager {
       actions.push(button("Remove", () => this.requestRemove(name), "danger"));
       ports = this.ports(name, (m) => m !== name);
     } else if (this.isEntry(name)) {
-      const period = h("input", {type: "text", class: "small mono", placeholder: "event-driven",
-                                 value: this.document.system.modules[name].period ?? "",
-                                 "aria-label": "period in seconds", size: 8});
-      period.addEventListener("change", () => {
-        const text = period.value.trim();
-        const value = text === "" ? null : Number(text);
-        if (value !== null && !(value >= 0)) return this.toasts.error(new Error("period: a number of seconds ≥ 0, or empty for event-driven"));
-        this.editDocument(() => this.document.setPeriod(name, value));
-      });
+      const period = this.periodInput(name, (value) => this.editDocument(() => this.document.setPeriod(name, value)));
       actions.push(this.moveMenu(name), this.renameControl(name),
                    h("label", {class: "inline"}, ["Period ", period]),
                    button("Remove", () => this.requestRemove(name), "danger"));
@@ -440,6 +438,37 @@ class Manager {
     }
     $("inspector-actions").replaceChildren(...actions);
     $("inspector-ports").replaceChildren(...[ports].filter(Boolean));
+  }
+
+  /** The Period box of module `name`: its period as configured or set, empty for its
+   * class's own, which the placeholder says (it said "event-driven" whatever the class's
+   * was); `apply(seconds or null)` once a number ≥ 0, or nothing, is entered. */
+  periodInput(name, apply) {
+    const own = this.browser.byName(this.system.modules[name]?.class)?.period;
+    const set = this.mode() === "editing" ? this.document.system.modules[name]?.period
+                                          : this.system.modules[name]?.period;
+    const period = h("input", {type: "text", class: "small mono", id: "period",
+                               placeholder: own === undefined ? "its class's"
+                                 : own === null ? "event-driven" : `${own} (its class's)`,
+                               value: set ?? "", "aria-label": "period in seconds", size: 8});
+    period.addEventListener("change", () => {
+      const text = period.value.trim();
+      const value = text === "" ? null : Number(text);
+      if (value !== null && !(value >= 0)) return this.toasts.error(new Error("period: a number of seconds ≥ 0, or empty for its class's"));
+      apply(value);
+    });
+    return period;
+  }
+
+  /** Set running module `name`'s period live; the structure the feed sends after its
+   * `module_retimed` event shows it. */
+  async setPeriod(name, seconds) {
+    try {
+      await api.setState(name, {period: seconds});
+      this.toasts.show("ok", `${name} steps every ${fmt.seconds(seconds)}`);
+    } catch (error) {
+      this.toasts.error(error);
+    }
   }
 
   /** "Move to node ▸": the keyboard's way to drag a module (or a macro) to a node. */

@@ -1,5 +1,5 @@
-// The event list: moves (and moves that failed), swaps, restarts, failures, lost nodes,
-// adds and removes, as they happen (also those an agent makes), newest first.
+// The event list: moves (and moves that failed), swaps, restarts, periods set, failures,
+// lost nodes, adds and removes, as they happen (also those an agent makes), newest first.
 
 import {h} from "./dom.js";
 import * as fmt from "./format.js";
@@ -11,6 +11,7 @@ const LOOK = {
   migration_failed: ["failure", "move failed"],
   module_swapped: ["swap", "swapped"],
   module_restarted: ["restart", "restarted"],
+  module_retimed: ["other", "retimed"],
   module_failed: ["failure", "failed"],
   module_failed_over: ["failure", "failed over"],
   module_lost: ["failure", "lost"],
@@ -35,6 +36,8 @@ function describe(event) {
       return `from ${d.source ?? "?"} to ${d.destination ?? "?"}`;
     case "module_lost":
       return `with node ${d.node}: ${d.reason}`;
+    case "module_retimed":
+      return `every ${fmt.seconds(d.period)}`;
     case "module_restarted":
       return [d.node && `on ${d.node}`, d.reason].filter(Boolean).join(", ");
     case "node_lost":
