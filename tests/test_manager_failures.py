@@ -76,6 +76,14 @@ def test_a_module_that_raises_and_one_whose_worker_dies_are_seen_failing() -> No
         assert stats["modules"]["steady"]["status"] == "failed"
         assert any("module steady failed" in failure for failure in stats["failures"])
         assert stats["modules"]["boom"]["status"] == "running"
+        # a swap of it is refused as any other change is: of the module, with the fix
+        # (it said "worker 'local/m-steady' is not running")
+        for method, path, body in (("POST", "swap", {"class": "sample_modules:Steady"}),
+                                   ("POST", "state", {"count": 3})):
+            refused = client.request(method, f"/api/modules/steady/{path}", json=body)
+            assert refused.status_code == 502, (path, refused.text)
+            assert "module 'steady' is not running: it failed" in refused.json()["error"]
+            assert "a restart runs it again" in refused.json()["error"], path
         # restarted from the page (it had no way to: `pb3a restart` alone)
         assert client.post("/api/modules/steady/restart").status_code == 200
         receive_until(socket, stats_where(

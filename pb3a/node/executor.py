@@ -378,6 +378,8 @@ class Executor:
     def swap(self, name: str, spec: FlatModule) -> list[str]:
         """Replace a module's class by ``spec.cls`` in place; the state names kept."""
         record = self.modules[name]
+        if not self.alive(record.worker):   # (it said "worker 'a/m-calib' is not running")
+            raise RuntimeFailure(_not_running(name, record))
         blob = _class_blob(spec)
         kept = self.call(record.worker, "swap", name=name, cls=blob, period=spec.period)
         record.spec, record.blob = spec, blob
