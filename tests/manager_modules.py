@@ -131,3 +131,9 @@ class Weights(Module):
     """A small float array of more digits than a cell shows, and a NaN."""
 
     weights = np.array([20.123456789, 0.000123456789, 123456.789, np.nan])
+
+
+class Flags(Module):
+    """A small array of flags."""
+
+    flags = np.array([True, False, True, False, False])

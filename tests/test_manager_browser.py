@@ -586,6 +586,31 @@ def test_an_array_s_grid_sends_the_cell_typed_in_and_the_others_as_held(
         0.000123456789
 
 
+def test_a_flag_array_s_grid_takes_true_false_in_any_case_and_1_0_and_refuses_the_rest(
+        lab: ManagerProcess, page: Any) -> None:
+    """A bool array's cell set False for anything but "true": "True", "1" and "yes"
+    were each sent as False, unsaid."""
+    lab.api("POST", "/api/modules", {"name": "f", "class": "manager_modules:Flags",
+                                     "node": "a"})
+    page.wait_for_selector("[data-module='f']", timeout=WAIT_MS)
+    page.click("[data-module='f'] .module-title")
+    grid = "[data-field='flags'] .array-grid"
+    cells = page.locator(f"{grid} input")
+    page.wait_for_function(f"document.querySelectorAll(\"{grid} input\")[4]?.value === "
+                           "'false'", timeout=WAIT_MS)
+    for index, text in enumerate(["False", "1", "TRUE", "0", " true "]):
+        cells.nth(index).fill(text)
+    page.click("[data-field='flags'] button >> text=Apply array")
+    page.wait_for_function("document.querySelector(\"[data-field='flags']\")"
+                           ".classList.contains('applied')", timeout=WAIT_MS)
+    assert lab.api("GET", "/api/modules/f/state")["fields"]["flags"]["value"] == [
+        False, True, True, False, True]
+    cells.nth(0).fill("yes")                                          # no flag: refused
+    page.click("[data-field='flags'] button >> text=Apply array")
+    assert "invalid" in page.locator(grid).get_attribute("class")
+    assert lab.api("GET", "/api/modules/f/state")["fields"]["flags"]["value"][0] is False
+
+
 def test_a_module_that_does_not_answer_its_remove_is_killed_from_the_error(
         browser: Any, tmp_path: Path) -> None:
     """A remove of a module that does not answer its stop (its worker stopped, as a

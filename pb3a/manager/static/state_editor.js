@@ -380,7 +380,10 @@ function arrayGrid(field, commit) {
   }
   let dirty = false;
   const apply = h("button", {class: "small primary", type: "button", disabled: true}, "Apply array");
-  const typed = (input) => boolean ? input.value.trim() === "true" : fmt.parseNumber(input.value);
+  // a flag: true or false in any case, or 1 or 0 (anything else, "yes" say, is refused:
+  // all but "true" was sent as false, unsaid)
+  const flag = (text) => ({true: true, 1: true, false: false, 0: false})[text.trim().toLowerCase()];
+  const typed = (input) => boolean ? flag(input.value) : fmt.parseNumber(input.value);
   const send = async () => {
     const values = inputs.map((input, i) => edited.has(i) ? typed(input) : held[i]);
     if (values.some((v) => v === undefined || (integer && !Number.isInteger(v)))) {
