@@ -328,6 +328,26 @@ def test_an_edited_state_field_is_used_by_the_module(lab: ManagerProcess, page: 
     page.screenshot(path=str(screenshot_path(tmp_path, "manager_state.png")))
 
 
+def test_a_field_applied_with_enter_shows_a_later_change_while_it_keeps_the_focus(
+        lab: ManagerProcess, page: Any) -> None:
+    """After Enter applied a value the field kept the focus, and showed that value for
+    good, whatever changed the field since (`pb3a set`, an agent, another page)."""
+    page.click("[data-module='scale'] .module-title")
+    assert field_value(page, "scale", "gain") == "2.0"
+    field = "[data-field='gain'] input"
+    page.fill(field, "5")
+    page.press(field, "Enter")
+    page.wait_for_selector("[data-field='gain'].applied", timeout=WAIT_MS)
+    lab.api("POST", "/api/modules/scale/state", {"gain": 4.25})     # as elsewhere
+    page.wait_for_function(f"document.querySelector(\"{field}\").value === '4.25'",
+                           timeout=WAIT_MS)
+    assert page.evaluate(f"document.activeElement === document.querySelector(\"{field}\")")
+    # typed into again: what is typed stays, the refreshes do not take it
+    page.locator(field).press_sequentially("1")
+    page.wait_for_timeout(1200)                          # (two of the feed's refreshes)
+    assert page.locator(field).input_value() == "4.251"
+
+
 def test_a_value_being_typed_survives_a_change_of_structure_elsewhere(
         lab: ManagerProcess, page: Any) -> None:
     page.click("[data-module='scale'] .module-title")

@@ -285,9 +285,10 @@ function scalarEditor(name, field, commit, refuse) {
                             inputmode: numeric ? "decimal" : "text", spellcheck: "false",
                             disabled: !field.editable, autocomplete: "off"});
   let dirty = false;
+  let applied = false;       // applied, nothing typed since: refreshed though it has focus
   let shown = null;
   let sending = null;        // the text being sent: Enter fires "change" too, one POST
-  input.addEventListener("input", () => { dirty = true; input.classList.add("dirty"); });
+  input.addEventListener("input", () => { dirty = true; applied = false; input.classList.add("dirty"); });
   const send = async () => {
     if (!dirty || sending === input.value) return;
     let value = input.value;
@@ -307,6 +308,7 @@ function scalarEditor(name, field, commit, refuse) {
     try {
       const taken = await commit(value);
       dirty = false;
+      applied = taken;
       input.classList.remove("dirty");
       if (!taken) input.value = shown;     // refused: what is held, not what was refused
     } finally {
@@ -326,7 +328,8 @@ function scalarEditor(name, field, commit, refuse) {
     input.classList.toggle("nonfinite", nonFinite);
     if (nonFinite) input.title = "not a finite number";
     else if (input.title === "not a finite number") input.title = "";
-    if (!dirty && document.activeElement !== input) input.value = shown;
+    // (focused after Enter applied it, it showed that value for good, whatever changed)
+    if (!dirty && (applied || document.activeElement !== input)) input.value = shown;
   };
   return {inline: input, below: null, refresh};
 }
