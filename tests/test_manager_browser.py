@@ -1652,6 +1652,31 @@ def _launch_and_tune_kp(page) -> None:
     page.wait_for_selector("[data-field='kp'].applied", timeout=WAIT_MS)
 
 
+def test_after_stop_the_selected_module_is_not_launched_and_its_period_box_says_its_class_s(
+        browser: Any, tmp_path: Path) -> None:
+    """After Stop the module still selected said `running` (the last run's figures), and
+    its Period box said `event-driven` for a class that steps every 20 ms."""
+    config = tmp_path / "tuning.toml"
+    config.write_text(TUNING)
+    meta = "document.querySelector('#inspector-meta').textContent"
+    with editor(browser, config, 1) as (_manager, page):
+        page.click("#launch")
+        page.wait_for_function("document.querySelector('#mode').textContent === 'running'",
+                               timeout=WAIT_MS)
+        page.click("[data-module='ctl'] .module-title")
+        page.wait_for_function(f"{meta}.includes('running')", timeout=WAIT_MS)
+        page.click("#stop")
+        page.click("dialog.confirm button[value='ok']")
+        page.wait_for_function("document.querySelector('#mode').textContent === 'editing'",
+                               timeout=WAIT_MS)
+        page.wait_for_function(f"{meta}.includes('not launched')", timeout=WAIT_MS)
+        assert "running" not in page.evaluate(meta)
+        assert "status-running" not in page.locator("[data-module='ctl']").get_attribute("class")
+        box = page.locator("#inspector input[aria-label='period in seconds']")
+        assert box.get_attribute("placeholder") == "0.02 (its class's)"
+        assert box.input_value() == ""
+
+
 def test_a_gain_tuned_live_is_kept_in_the_document_and_shown_after_stop(
         browser: Any, tmp_path: Path) -> None:
     """A gain tuned in the State Editor was lost at Stop: the document kept what it was
