@@ -1038,6 +1038,26 @@ class HoldsInSetup(Module):
         self.steps += 1
 
 
+class FailsToMake(Steady):
+    """Its construction raises while the file ``flag`` (a path, set on a subclass) is
+    there."""
+
+    flag = ""
+
+    def __init__(self) -> None:
+        super().__init__()
+        if self.flag and os.path.exists(self.flag):
+            raise RuntimeError("the device this module opens is gone")
+
+
+class SlowToMake(Steady):
+    """Its construction takes 2.5 s (past a worker's 1.25 s lease), the GIL let go."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        time.sleep(2.5)
+
+
 class HoldsTheGil(Module):
     """Each step is one C call that holds the GIL for ``hold_s`` (as a pickle of a large
     list does, or a solver that does not let go of it): no other thread of its worker

@@ -35,6 +35,7 @@ from sample_modules import (
     OpensDevice,
     Relay,
     RobotPose,
+    SlowToMake,
     Steady,
     StepStamps,
 )
@@ -883,6 +884,22 @@ def test_a_module_that_holds_the_gil_past_the_lease_is_not_stopped_for_it(node_b
         kinds = {event.kind for event in run.events()}
     assert figures.restarts == 0 and figures.status == "running", figures
     assert not kinds & {"module_restarted", "module_failed", "node_lost"}, kinds
+
+
+def test_a_module_whose_construction_outlasts_the_lease_starts_on_a_remote_node(
+        node_b) -> None:
+    """A worker's thread that reads its lease grants also makes its modules: one whose
+    construction took 2.5 s held the grants unread past the lease, and the worker
+    stopped itself ("worker 'b/m-slow' died"); the launch failed, as it did whenever it
+    was tried. The lease is taken once the module is made, and time that thread spends
+    in a request does not count against it."""
+    system = System("slow-made").node("a").node("b", address=node_b.address)
+    system.add("slow", SlowToMake, node="b", restart="fresh")
+    with system.launch(timeout=30) as run:
+        eventually(lambda: run.state("slow", timeout=5.0)["count"] > 20, timeout=30,
+                   what="steps")
+        figures = run.stats().modules["slow"]
+    assert figures.restarts == 0 and figures.status == "running", figures
 
 
 def test_a_frozen_node_let_run_again_steps_nothing_beside_its_failed_over_copies(

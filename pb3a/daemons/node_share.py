@@ -272,7 +272,7 @@ class NodeShare:
 
     def _lease_end(self) -> float | None:
         """Where this executor's lease ends (``time.monotonic``), what its workers may run
-        until: in the past if it does not run now (a worker told so lapses at once); none
+        until: in the past if it does not run now (a worker told so runs no body, and stops); none
         before a launcher binds it, as nobody renews one then (its workers were given a
         lease that ran out 1.25 s after the executor started, and stopped their modules)."""
         if not self._bound.is_set():

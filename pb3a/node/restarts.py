@@ -113,8 +113,9 @@ class Restarts:
             # past LEASE_STARVED_S, not its node, and nothing runs its modules elsewhere.
             # They were stopped as no one asked: their restart policy says what comes.
             log.warning("worker %s (pid %s, modules %s) stopped them: it read no lease "
-                        "grant for %g s while its executor ran (its threads starved: the "
-                        "machine overloaded, or a module's C call holding the GIL)",
+                        "grant while its executor ran, for up to %g s (stopped or starved: "
+                        "the machine overloaded, a module's C call holding the GIL, or a "
+                        "request such as a module's construction holding its reader)",
                         handle.key, handle.pid, ", ".join(handle.modules), LEASE_STARVED_S)
         elif code in (0, LEASE_LAPSED):   # stopped on purpose (SIGTERM), or fenced: not a crash
             said = ("worker %s (pid %s) stopped; its modules %s are stopped", handle.key,

@@ -5,13 +5,17 @@ workers, so a worker whose lease runs out stops its own modules (as on SIGTERM) 
 exits ``LEASE_LAPSED``, while the launcher starts them elsewhere.
 
 No body runs while the lease is out (``holds``): that is what keeps a module from
-running beside its failed-over copy. The worker's own stop comes once the lease has
-been out for ``LEASE_GRACE_S`` of time its threads could run in, for a worker whose
-threads were starved rather than its executor gone: a module's one long C call that
-holds the GIL (a pickle of a large list, a solver) kept the grants unread in the
-pipe, and the worker stopped itself as the call let go, its executor alive and its
-grants waiting (a module stepping for 1.5 s that way was restarted at every step,
-then failed for good). Starved or not, it stops after ``LEASE_STARVED_S``.
+running beside its failed-over copy. The worker's own stop (its modules' ``teardown``)
+comes once the lease has been out for ``LEASE_GRACE_S`` of time in which the thread
+that reads the grants was free to read them, for a worker whose threads were starved
+rather than its executor gone: a module's one long C call that holds the GIL (a
+pickle of a large list, a solver) kept the grants unread in the pipe, and the worker
+stopped itself as the call let go, its executor alive and its grants waiting (a
+module stepping for 1.5 s that way was restarted at every step, then failed for
+good); so did a module's construction longer than the lease, which holds that thread.
+Starved or held, it stops after ``LEASE_STARVED_S``: the grace is kept short, since
+the launcher starts the modules elsewhere about half a second after the lease ends,
+and a teardown run later would run beside the copy.
 """
 
 from __future__ import annotations
@@ -29,10 +33,10 @@ if TYPE_CHECKING:
 log = logging.getLogger("pb3a.worker")
 
 LEASE_CHECK_S = 0.1      # how often a worker with a lease looks at it
-# How long a lease stays out, in time the worker's threads could run in, before the
-# worker stops itself: grants queued behind a starved thread are read meanwhile
-LEASE_GRACE_S = 0.5
-LEASE_STARVED_S = 10.0   # ... and at most, out however starved it is
+# How long a lease stays out, in time the grants could be read in, before the worker
+# stops itself: grants queued behind a starved or held thread are read meanwhile
+LEASE_GRACE_S = 0.2
+LEASE_STARVED_S = 2.0    # ... and at most, out however starved it is
 _LATE_S = 0.2            # a look at the lease this late: its thread (and the rest) starved
 # The exit status of a worker that stopped its modules because its lease lapsed: its
 # executor tells it from a stop it asked for (0) and, if its own lease runs, restarts
@@ -51,6 +55,7 @@ class Lease:
         self._holding = holding        # what the worker runs, named when the lease lapses
         self._until: float | None = None
         self.lapsed = False            # it ran out: the worker exits LEASE_LAPSED
+        self.answering = False         # the thread that reads the grants is in a request
         self._lapsing = threading.Lock()
 
     def grant(self, until: float) -> None:
@@ -77,24 +82,25 @@ class Lease:
 
     def _watch(self) -> None:
         """Stop the worker once its lease has been out for ``LEASE_GRACE_S`` of time in
-        which its threads ran: a wait of this thread that ended late was starved, and so
-        was the thread that reads the grants, so it does not count (the grants queued
-        meanwhile bring the lease back once read); or for ``LEASE_STARVED_S`` in all."""
-        out_since: float | None = None      # when this thread first saw it out
-        calm = 0.0                          # how long out since, not counting starved waits
+        which the grants could be read: a wait of this thread that ended late was
+        starved, and so was the thread that reads the grants, and a time that thread
+        spent in a request (``answering``) it read none; neither counts (the grants
+        queued meanwhile bring the lease back once read). At most ``LEASE_STARVED_S``."""
+        seen: float | None = None   # the lease's end when this thread saw it out
+        calm = 0.0                  # how long out since, in time the grants could be read
         last = time.monotonic()
         while not self._closing.wait(LEASE_CHECK_S):
             now = time.monotonic()
             waited, last = now - last, now
-            if self.holds():
-                out_since = None
+            until = self._until
+            if until is None or now <= until:
                 continue
-            if out_since is None:
-                out_since, calm = now, 0.0
+            if until != seen:       # (out anew: a grant read since moved its end on)
+                seen, calm = until, 0.0
                 continue
-            if waited <= LEASE_CHECK_S + _LATE_S:
+            if waited <= LEASE_CHECK_S + _LATE_S and not self.answering:
                 calm += waited
-            if calm >= LEASE_GRACE_S or now - out_since >= LEASE_STARVED_S:
+            if calm >= LEASE_GRACE_S or now - until >= LEASE_STARVED_S:
                 self._lapse()
                 return
 

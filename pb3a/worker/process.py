@@ -153,7 +153,11 @@ class Worker:
                 threading.Thread(target=self._handle, args=(req_id, op, args), daemon=True,
                                  name=f"pb3a-{op}").start()
             else:
-                self._handle(req_id, op, args)
+                self.lease.answering = True     # (the grants wait behind it: see Lease)
+                try:
+                    self._handle(req_id, op, args)
+                finally:
+                    self.lease.answering = False
         self.shutdown()
 
     def _handle(self, req_id: int, op: str, args: dict[str, Any]) -> None:
@@ -288,13 +292,15 @@ class Worker:
         restart), restored in full (``restore_state``); as a dict, the configuration's.
         ``reloaded``: the Python modules reloaded on the node, dropped here first if this
         process has not (its forkserver imported them before the reload)."""
-        if lease is not None:
-            self.op_lease(lease)
         for module in reloaded:
             if module not in self.reloaded:
                 self.op_forget(module)
         klass = _load_class(cls)
         module = _made(name, klass)
+        # (taken once the module is made: this thread, which reads the grants, is held
+        # by its construction, and one of 2.5 s let the lease lapse, the worker stopped)
+        if lease is not None:
+            self.op_lease(lease)
         self._give_runtime(name, module)
         if isinstance(state, bytes):        # (read here, where the module's code is)
             restore_state(module, cloudpickle.loads(state))
