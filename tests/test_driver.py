@@ -297,10 +297,11 @@ def test_a_pb3a_driver_pointed_at_a_line_program_is_told_to_speak_lines(line_dev
     error now says so, and what to set; a PB3A device that is slow is still told
     apart (it greets: the request "may have begun")."""
     a, _ = line_devices
-    harness = ModuleHarness(Reader, state={"resource": a.address})
+    # (connected a second or more and never greeted: a slow link greets within it)
+    harness = ModuleHarness(Reader, state={"resource": a.address, "timeout": 1.5})
     harness.step()
     assert harness.module.last_error == (
-        f"Reader: {a.address} did not answer 'read' within 0.3 s: something accepts "
+        f"Reader: {a.address} did not answer 'read' within 1.5 s: something accepts "
         "connections there but does not speak PB3A's protocol (it sent no ZeroMQ greeting): "
         "another program's port, or a PB3A process that is stopped; a device that reads "
         "lines of text takes protocol = 'lines' in its driver, and ask() and tell() in "

@@ -120,6 +120,7 @@ _WATCHED = zmq.EVENT_CONNECTED | zmq.EVENT_DISCONNECTED | zmq.EVENT_HANDSHAKE_SU
 GONE_S = 1.0
 ANSWER_LINGER_MS = 500                   # how long a closing server gives its last answers
 WITHDRAW_LINGER_MS = 200                 # ... and a closing client its last withdrawals
+GREET_S = 1.0         # connected this long and never greeted: not a PB3A server
 ASIDE_ANSWER_S = 1.0                     # ... and its requests running aside to give theirs
 
 
@@ -540,7 +541,8 @@ class ControlClient:
         self.gone = threading.Event()        # ... and nothing took one there in GONE_S
                                              # (or another server took its place)
         self.gone_why = ""                   # (which of the two, in words)
-        self._connected = self._greeted = False     # (told by the monitor, if any)
+        self._greeted = False                       # (told by the monitor, if any)
+        self._connected_at: float | None = None     # ... and when it connected
         # The loop holds the client only weakly, and a client dropped unclosed is closed
         # when collected (the loop's thread held its handlers, and through them the
         # client and its sockets, for good: each connection dropped unclosed kept a
@@ -594,8 +596,10 @@ class ControlClient:
         finally:
             self._waiting.pop(request_id, None)
             sent = self._sent.pop(request_id, None)
-            if sent is not None and sent[1] and not done.is_set():
-                self._loop.submit(lambda: self._withdraw(request_id))   # (given up on)
+            if sent is not None and not done.is_set():      # (given up on)
+                # (decided on the socket thread, after any send of it in progress there:
+                # read here, a send under way was not counted yet, and went unwithdrawn)
+                self._loop.submit(lambda: sent[1] and self._withdraw(request_id))
         ok, result = box
         if ok is None:
             raise RuntimeFailure(self._refusal(op))
@@ -724,7 +728,9 @@ class ControlClient:
             if event == zmq.EVENT_HANDSHAKE_SUCCEEDED:
                 self._greeted = True
             elif event == zmq.EVENT_CONNECTED:
-                self._connected, self._lost_at = True, None
+                self._lost_at = None
+                if self._connected_at is None:
+                    self._connected_at = time.monotonic()
             elif event == zmq.EVENT_DISCONNECTED and self._lost_at is None \
                     and self._when_gone is not None:
                 self._lost_at = time.monotonic()
@@ -775,10 +781,13 @@ class ControlClient:
     @property
     def ungreeted(self) -> bool:
         """Whether, watching its greeting (``watch_greeting``), the client was let connect
-        but has never been greeted in ZeroMQ's protocol: what listens at the address is
-        another program (a legacy device that reads lines of text, say), or a stopped
-        process. A server that runs greets at once, however busy its own threads."""
-        return self._connected and not self._greeted
+        ``GREET_S`` ago or more but has never been greeted in ZeroMQ's protocol: what
+        listens at the address is another program (a legacy device that reads lines of
+        text, say), or a stopped process. A server that runs greets at once, however busy
+        its own threads, and a slow link within the second (a device whose greeting was
+        0.4 s away was taken for another program by a request of 0.3 s)."""
+        return (self._connected_at is not None and not self._greeted
+                and time.monotonic() - self._connected_at >= GREET_S)
 
     @property
     def closed(self) -> bool:
