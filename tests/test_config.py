@@ -1428,6 +1428,35 @@ def test_what_a_robot_driver_refuses_of_its_state_is_a_problem(tmp_path: Path) -
     assert any("silent_after must be a whole number" in p for p in added.check())
 
 
+class NeedsAPort(Module):
+    """A placeholder default its hook refuses: each entry must give its own."""
+
+    port = 0
+
+    @classmethod
+    def state_problems(cls, state):
+        if "port" in state and not 1 <= state["port"] <= 65535:
+            return [f"NeedsAPort's port must be 1-65535, got {state['port']}"]
+        return []
+
+
+def test_a_default_every_entry_overrides_is_not_refused_and_one_left_is() -> None:
+    """The class's defaults were judged alone: a placeholder its hook refuses (a port
+    that each entry must give) was refused however the entry set it, and the class
+    could never be launched. They are judged against each module's whole state, its
+    macro instance's overrides included."""
+
+    class Pair(Macro):
+        modules = {"m": NeedsAPort}
+
+    assert System("given").add("m", NeedsAPort, state={"port": 7400}).check() == []
+    system = System("overridden").add("p", Pair, state={"m": {"port": 7400}})
+    assert system.check() == []
+    problems = System("left").add("m", NeedsAPort).check()
+    assert any("NeedsAPort's port must be 1-65535, got 0 (its class's own default)" in p
+               for p in problems), problems
+
+
 def test_a_state_problems_that_fails_is_a_problem_naming_its_class() -> None:
     """A class's ``state_problems`` is the user's code: one that raises, or answers with
     a text rather than a list, is said as a problem of the class, not a failed check."""

@@ -33,6 +33,7 @@ from sample_modules import (
     Counter,
     DeviceReader,
     Doubler,
+    FailsToMake,
     FastScale,
     FloatSource,
     Last,
@@ -645,6 +646,26 @@ def test_a_module_being_restarted_is_still_listed_by_a_look_at_the_system(
         assert stats.modules["scale"].change == "restart scale", stats.modules
         assert "scale" in topology.modules
         assert run.stats().modules["scale"].change == ""
+
+
+def test_a_restart_whose_put_back_fails_too_leaves_no_trace_of_the_module(tmp_path) -> None:
+    """A restart keeps the module's spec from its stop to its new start; when neither
+    the new instance nor the one put back could be made, the spec stayed: the module,
+    said to be no longer in the system, could be neither added again ("runs already")
+    nor removed (KeyError)."""
+    flag = tmp_path / "gone"
+    cls = type("Gone", (FailsToMake,), {"flag": str(flag), "__module__": __name__})
+    with System("ghost").add("frag", cls).launch() as run:
+        eventually(lambda: run.state("frag")["count"] > 3, what="steps")
+        flag.touch()
+        with pytest.raises(RuntimeFailure, match="putting it back failed too"):
+            run.restart("frag")
+        with pytest.raises(ModuleNotFound):
+            run.where("frag")
+        assert "frag" not in run.stats().modules
+        flag.unlink()
+        run.add("frag", cls)
+        eventually(lambda: run.state("frag")["count"] > 3, what="steps again")
 
 
 def test_a_restart_that_cannot_start_the_module_again_puts_it_back_as_it_ran(

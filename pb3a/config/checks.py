@@ -178,6 +178,18 @@ def state(cls: type[Module], value: Any) -> list[str]:
     return problems + refused(cls, judged)
 
 
+def defaults_refused(cls: type[Module], state: dict[str, Any]) -> list[str]:
+    """What the class refuses of its own state defaults that a module's whole state
+    (its entry's, with its macro instances' overrides) leaves as they are: a driver's
+    ``timeout = 0``, which every request then failed by. Judged against the state given,
+    so a placeholder default that every entry overrides is no problem (judged alone, it
+    made such a class impossible to launch)."""
+    if not reflective_state(cls):
+        return []
+    defaults = {name: getattr(cls, name) for name in cls.state_names() if name not in state}
+    return [f"{problem} (its class's own default)" for problem in refused(cls, defaults)]
+
+
 def refused(cls: type[Module], state: dict[str, Any]) -> list[str]:
     """What module class ``cls`` refuses of ``state`` (fields to be set): its
     ``state_problems``, which its ``set_state`` asks (a value only a class's own
@@ -231,11 +243,10 @@ def macro_state(value: Any) -> list[str]:
 
 def module_class(cls: type[Module]) -> list[str]:
     """What a module class declares itself: its ``period`` and ``restart`` (a module the
-    configuration gives none of runs with them), state defaults it refuses itself
-    (``state_problems``: a driver's ``timeout = 0``, which every request then failed
-    by), that it is made with no arguments, and its ``displays`` table. A bad period on
-    the class passed every check, and its step thread died after one step, the module
-    shown running."""
+    configuration gives none of runs with them), that it is made with no arguments, and
+    its ``displays`` table. A bad period on the class passed every check, and its step
+    thread died after one step, the module shown running. (State defaults it refuses
+    itself are judged with each entry's state: ``state``.)"""
     ref = class_ref(cls)
     problems = []
     if cls.period is not None and not (finite(cls.period) and 0 <= cls.period <= MOST_SECONDS):
@@ -245,8 +256,6 @@ def module_class(cls: type[Module]) -> list[str]:
     if cls.restart not in RESTART_POLICIES:
         problems.append(f"{ref} has restart = {cls.restart!r}: a class's restart is one of "
                         f"{listing(map(repr, RESTART_POLICIES))}")
-    defaults = {name: getattr(cls, name) for name in cls.state_names()}
-    problems += [f"{problem} (its class's own default)" for problem in refused(cls, defaults)]
     return (problems + made_bare(cls) + displays(cls) + misspelled_hooks(cls)
             + sendable(cls))
 

@@ -393,6 +393,7 @@ class _Planner:
                                               for problem in checks.state(cls, extra.state)])
                     state.update(extra.state)
                 state = _widened(cls, state)
+                self.report(child.label, checks.defaults_refused(cls, state))
                 modules[path] = FlatModule(
                     path, cls, here or self.node_names[0],
                     float(period) if period is not None else cls.period, state,

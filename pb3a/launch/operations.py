@@ -717,6 +717,10 @@ class Operations:
         except Exception as exc:
             log.warning("restart %s failed (%s), and putting it back failed too: %s",
                         name, failure, exc)
+            # (the restart kept its spec: left there, the module could be neither added
+            # again, "runs already", nor removed, KeyError)
+            self.launcher.specs.pop(name, None)
+            self.launcher.checkpoints.pop(name, None)
             for link in links:
                 self.event_log.record("link_removed", link.key)
             self.event_log.record("module_removed", name, reason="restart failed")
@@ -878,8 +882,11 @@ def _add_problems(name: Any, cls: Any, state: Any, period: Any, restart: Any, gr
         if not (isinstance(cls, type) and issubclass(cls, Module) and cls is not Module):
             problems.append(f"{cls!r} is not a pb3a.Module subclass")
         else:
-            problems += checks.state(cls, {} if state is None else state) \
-                + checks.module_class(cls) + checks.stepped(cls, period)
+            given = {} if state is None else state
+            problems += checks.state(cls, given) + checks.module_class(cls) \
+                + checks.stepped(cls, period)
+            if isinstance(given, dict):
+                problems += checks.defaults_refused(cls, given)
     problems += checks.period(period) + checks.restart(restart)
     if node not in nodes:
         problems.append(f"no node {node!r}{checks.did_you_mean(node, nodes)}; nodes: "
