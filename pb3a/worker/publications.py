@@ -20,6 +20,10 @@ if TYPE_CHECKING:
     from pb3a.transport.ring import RingSize
 
 
+# removed links whose last position a worker remembers (an undo asks within its move)
+REMEMBERED = 1024
+
+
 class Publications:
     """Remote links out of one worker process."""
 
@@ -27,7 +31,8 @@ class Publications:
         self.replicator: Replicator | None = None
         self._readers: dict[str, set[str]] = {}      # topic -> keys of the links reading it
         self._ports: dict[str, OutputPort] = {}
-        # link key -> where its topic was when the link stopped being published here
+        # link key -> where its topic was when the link stopped being published here (the
+        # newest REMEMBERED: an agent that links and unlinks ever new modules grew it)
         self._removed: dict[str, tuple[int, bytes]] = {}
 
     def open(self, secret: bytes, host: str, epoch: int = 0) -> Replicator:
@@ -89,6 +94,8 @@ class Publications:
             reached = self.replicator.sequence(topic)
             incarnation = self.replicator.incarnation
             self._removed[key] = (reached, incarnation)
+            while len(self._removed) > REMEMBERED:      # (the oldest first: dicts keep order)
+                del self._removed[next(iter(self._removed))]
         return reached, incarnation
 
     def unacknowledged(self, key: str, reader: bytes) -> int:
