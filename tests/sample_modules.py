@@ -1296,8 +1296,9 @@ class Chatterbox(Agent):
             outcome = "spawned"
         except RuntimeTimeout as exc:
             outcome = str(exc)
-        with open(self.told, "w") as told:
+        with open(self.told + ".part", "w") as told:     # (whole when it appears)
             told.write(f"{time.monotonic() - started}\n{outcome}")
+        os.replace(self.told + ".part", self.told)
 
 
 class Frames(Module):

@@ -636,8 +636,8 @@ def test_a_driver_s_cancelled_request_says_whether_the_device_may_still_carry_it
     where = f"_TwoReadsSaying at {device.address}: request 'slow' cancelled: "
     sent, unsent = actor.module.said
     assert sent.startswith(where) and sent.endswith(
-        "; it was sent, so the device may have begun it and carry it out still (one not "
-        "begun within the timeout it drops): look before asking again")
+        "; it was sent, so the device may have begun it and carry it out still (one it "
+        "has not begun it drops): look before asking again")
     assert unsent.startswith(where) and unsent.endswith("; it was not sent")
 
 

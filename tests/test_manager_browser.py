@@ -505,7 +505,8 @@ def test_a_float_that_is_not_finite_is_shown_as_such_and_plotted_as_a_gap(
     page.wait_for_function("(document.querySelector(\"[data-field='last'] polyline\")"
                            "?.getAttribute('points') ?? '').split(' ').length >= 3",
                            timeout=WAIT_MS)
-    lab.api("POST", "/api/modules/sensor/state", {"level": float("nan")})   # nan downstream
+    # (nan downstream; JSON has no NaN: the API takes it as {"$float": "nan"})
+    lab.api("POST", "/api/modules/sensor/state", {"level": {"$float": "nan"}})
     page.wait_for_function("document.querySelector(\"[data-field='last'] input\").value === 'nan'",
                            timeout=WAIT_MS)
     last = page.locator("[data-field='last'] input")
@@ -529,7 +530,7 @@ def test_a_float_that_is_not_finite_is_shown_as_such_and_plotted_as_a_gap(
     ticks = page.locator("[data-field='last'] .tick").all_text_contents()
     assert ticks[:2] == ["2.2", "1.8"] and ticks[2].endswith("now \u2013"), ticks
     assert "nan" in page.locator("[data-field='recent'] .tree-level").text_content()
-    lab.api("POST", "/api/modules/sensor/state", {"level": float("-inf")})
+    lab.api("POST", "/api/modules/sensor/state", {"level": {"$float": "-inf"}})
     page.wait_for_function("document.querySelector(\"[data-field='last'] input\").value === '-inf'",
                            timeout=WAIT_MS)
     page.screenshot(path=str(screenshot_path(tmp_path, "manager_not_finite.png")))
@@ -539,7 +540,6 @@ def test_a_float_that_is_not_finite_is_shown_as_such_and_plotted_as_a_gap(
     assert "nonfinite" not in last.get_attribute("class") and not last.get_attribute("title")
 
 
-@pytest.mark.parametrize("lab", [("--timeout", "2")], indirect=True)   # (a move: 6 s)
 def test_a_period_set_in_the_inspector_or_elsewhere_shows_on_the_page(
         lab: ManagerProcess, page: Any, tmp_path: Path) -> None:
     """The running inspector had no period (the API refused one: "no state 'period'"),
@@ -562,6 +562,7 @@ def test_a_period_set_in_the_inspector_or_elsewhere_shows_on_the_page(
     page.screenshot(path=str(screenshot_path(tmp_path, "period.png")))
 
 
+@pytest.mark.parametrize("lab", [("--timeout", "2")], indirect=True)   # (a move: 6 s)
 def test_a_move_that_fails_is_listed_among_the_events(lab: ManagerProcess, page: Any) -> None:
     """A move that failed showed nothing in the events panel (the system recorded no
     event for it): it is listed as "move failed", with its nodes and the error. It fails
