@@ -4,6 +4,7 @@ before anything is unpickled."""
 from __future__ import annotations
 
 import collections
+import contextlib
 import gc
 import importlib
 import logging
@@ -24,6 +25,7 @@ import zmq
 from conftest import eventually
 
 from pb3a import RuntimeFailure, RuntimeTimeout
+from pb3a.errors import RuntimeCancelled
 from pb3a.transport import control
 from pb3a.transport.addresses import bind_advertised, close_bound, numeric
 from pb3a.transport.auth import ClusterKey, Opener, Sealer
@@ -121,6 +123,129 @@ def test_a_request_not_begun_within_its_caller_s_wait_is_dropped_by_a_server_tha
                                "requests): it was not done")
     else:
         assert ok and ran == ["block", "move"]
+
+
+class _HeldAfterTaking(dict):
+    """A client's table of requests to send whose ``get`` on the socket thread (``_send``
+    taking a request's entry) waits, once it is taken, until ``go`` is set: as a switch
+    of threads there does, between taking the entry and counting it sent."""
+
+    def __init__(self, taken: threading.Event, go: threading.Event) -> None:
+        super().__init__()
+        self.taken, self.go = taken, go
+
+    def get(self, key, default=None):
+        value = super().get(key, default)
+        if threading.current_thread().name == "pb3a-control-client" and value is not None:
+            self.taken.set()
+            assert self.go.wait(10.0)
+        return value
+
+
+class _CancelledOnceTaken:
+    """A body's wait (``pb3a.worker.waits``) cancelled once its request was taken to be
+    sent: the driver's move, while the socket thread sends it."""
+
+    def __init__(self, taken: threading.Event) -> None:
+        self.taken = taken
+
+    def answer(self, ok: bool, result: Any) -> None:
+        pass
+
+    def result(self, timeout: float) -> None:
+        assert self.taken.wait(10.0)
+        raise RuntimeCancelled("request 'move' cancelled: module 'd' is being moved")
+
+
+def test_a_request_cancelled_while_it_is_being_sent_is_withdrawn() -> None:
+    """The caller read whether its request had been sent on its own thread: one the
+    socket thread was sending then was not counted yet, so nothing was withdrawn, and
+    the device carried it out once free."""
+    release, moves = threading.Event(), []
+
+    def device(op: str, args: dict[str, Any]) -> None:
+        if op == "block":
+            release.wait(10.0)
+        else:
+            moves.append(op)
+
+    server = ControlServer(KEY, device, expires=True)
+    busy, driver = ControlClient(KEY, server.address), ControlClient(KEY, server.address)
+    blocked = threading.Thread(target=busy.call, args=("block", 10.0), daemon=True)
+    try:
+        blocked.start()
+        assert driver.call("ping", 5.0) == "pong"
+        taken, go = threading.Event(), threading.Event()
+        driver._sent = _HeldAfterTaking(taken, go)
+        with pytest.raises(RuntimeCancelled):
+            driver.request("move", {}, 5.0, wait=_CancelledOnceTaken(taken))
+        go.set()                                # (the send goes on, then the withdrawal)
+        # (a ping on the same connection, answered once the server has read what went
+        # before it: the device is freed with the withdrawal read, as a busy one is)
+        assert driver.call("ping", 5.0) == "pong"
+        release.set()
+        assert busy.call("after", 5.0) is None   # (queued behind the move, if kept)
+    finally:
+        release.set()
+        blocked.join(10.0)
+        busy.close()
+        driver.close()
+        server.close()
+    assert moves == ["after"], moves
+
+
+class _SlowDownlink:
+    """A TCP proxy to ``address`` whose bytes back to the client take ``delay`` s (a
+    satellite or a congested radio link); ``address``: the proxy's."""
+
+    def __init__(self, address: str, delay: float) -> None:
+        self._to = address.removeprefix("tcp://").rsplit(":", 1)
+        self._delay, self._sockets = delay, []
+        self._listener = socket.create_server(("127.0.0.1", 0))
+        self.address = f"tcp://127.0.0.1:{self._listener.getsockname()[1]}"
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        with contextlib.suppress(OSError):
+            while True:
+                near, _ = self._listener.accept()
+                far = socket.create_connection((self._to[0], int(self._to[1])), timeout=5)
+                self._sockets += [near, far]
+                for src, dst, delay in ((near, far, 0.0), (far, near, self._delay)):
+                    threading.Thread(target=self._pump, args=(src, dst, delay),
+                                     daemon=True).start()
+
+    @staticmethod
+    def _pump(src: socket.socket, dst: socket.socket, delay: float) -> None:
+        with contextlib.suppress(OSError):
+            while data := src.recv(65536):
+                time.sleep(delay)           # (the link's own slowness, not a wait)
+                dst.sendall(data)
+
+    def close(self) -> None:
+        self._listener.close()
+        for sock in self._sockets:
+            sock.close()
+
+
+def test_a_pb3a_server_behind_a_slow_link_is_not_taken_for_another_program() -> None:
+    """A device whose greeting was 0.4 s away was said to speak another protocol by a
+    request of 0.3 s ("does not speak PB3A's protocol"), and its driver told to speak
+    lines; a connection is taken for another program only once it has gone a second
+    ungreeted."""
+    server = ControlServer(KEY, lambda op, args: "ok", expires=True)
+    link = _SlowDownlink(server.address, 0.4)
+    client = ControlClient(KEY, link.address, watch_greeting=True)
+    try:
+        with pytest.raises(RuntimeTimeout) as timed_out:
+            client.call("read", 0.3)
+        assert "nothing listens there, it is cut off, or it is busy" in str(timed_out.value)
+        assert not client.ungreeted
+        assert client.call("read", 5.0) == "ok"
+    finally:
+        client.close()
+        link.close()
+        server.close()
 
 
 def test_closing_the_client_fails_a_waiting_call_at_once_and_any_later_one(rpc) -> None:
