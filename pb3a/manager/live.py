@@ -122,13 +122,14 @@ class Feed:
                     # (as when each call waited that long), before that is an error
                     busy = isinstance(exc, RuntimeTimeout)
                     busy_since = (busy_since or started) if busy else None
-                    if self.session.running is not handle or isinstance(exc, SystemStopped):
-                        pass                # stopped meanwhile (the mode will say it)
-                    elif busy_since is not None and started - busy_since < self.session.timeout:
-                        log.debug("manager: the stats wait for a change: %s", exc)
-                    else:
-                        failures += 1
-                        wait = self._failed("stats", exc, failures)
+                    # (a system stopped meanwhile is no error: the mode says it)
+                    if self.session.running is handle and not isinstance(exc, SystemStopped):
+                        if busy_since is not None and \
+                                started - busy_since < self.session.timeout:
+                            log.debug("manager: the stats wait for a change: %s", exc)
+                        else:
+                            failures += 1
+                            wait = self._failed("stats", exc, failures)
             await asyncio.sleep(max(0.0, wait - (time.monotonic() - started)))
 
     async def _events(self) -> None:
