@@ -14,6 +14,7 @@ does the part of this that keeps a value TOML can write (3 for a float field is 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -86,23 +87,26 @@ def coerce(field: str, current: Any, new: Any) -> Any:
         want = dict if isinstance(current, dict) else list
         if not isinstance(new, want):
             raise refuse("an object ({...})" if want is dict else "a list ([...])")
-        return _coerce_items(field, current, new)
+        # (an item of the wrong kind was set as sent, and the module then failed at its
+        # next step: each is made as a field is, and refused by its path, cal.offset)
+        return _item_by_item(current, new,
+                             lambda key, was, item: coerce(f"{field}.{key}", was, item))
     raise ValueError(f"state {field!r} is a {type(current).__name__}, which cannot be set "
                      "from JSON: set it from a program (run.set_state)")
 
 
-def _coerce_items(field: str, current: dict[str, Any] | list[Any] | tuple[Any, ...],
-                  new: dict[str, Any] | list[Any]) -> Any:
-    """``new`` (from JSON) item by item as ``coerce`` makes a field, each against the
-    item it replaces (a list's item beyond ``current``'s: against its last; a key it
-    does not have, or any item of an empty list, as sent); ValueError naming the item's
-    path (``cal.offset``): an item of the wrong kind was set as sent, and the module
-    then failed at its next step."""
+def _item_by_item(current: dict[str, Any] | list[Any] | tuple[Any, ...],
+                  new: dict[str, Any] | list[Any],
+                  each: Callable[[Any, Any, Any], Any]) -> Any:
+    """``new`` made item by item against ``current``: ``each(key, its item, the new
+    item)`` for a key ``current`` has, or a list's index (an item beyond ``current``'s
+    against its last); a key it does not have, and any item of an empty list, as sent;
+    a tuple for a tuple."""
     if isinstance(current, dict):
-        return {key: coerce(f"{field}.{key}", current[key], item) if key in current else item
+        return {key: each(key, current[key], item) if key in current else item
                 for key, item in new.items()}
     last = len(current) - 1
-    items = [coerce(f"{field}.{index}", current[min(index, last)], item) if current else item
+    items = [each(index, current[min(index, last)], item) if current else item
              for index, item in enumerate(new)]
     return tuple(items) if isinstance(current, tuple) else items
 
@@ -226,12 +230,7 @@ def _like(current: Any, new: Any) -> Any:
         return float(new)
     if isinstance(current, int) and isinstance(new, float) and new.is_integer():
         return int(new)
-    if isinstance(current, dict) and isinstance(new, dict):
-        return {key: _like(current[key], item) if key in current else item
-                for key, item in new.items()}
-    if isinstance(current, (list, tuple)) and isinstance(new, list):
-        last = len(current) - 1
-        items = [_like(current[min(index, last)], item) if current else item
-                 for index, item in enumerate(new)]
-        return tuple(items) if isinstance(current, tuple) else items
+    if ((isinstance(current, dict) and isinstance(new, dict))
+            or (isinstance(current, (list, tuple)) and isinstance(new, list))):
+        return _item_by_item(current, new, lambda _, was, item: _like(was, item))
     return new
