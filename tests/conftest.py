@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import errno
 import multiprocessing.forkserver
@@ -46,21 +47,30 @@ def eventually(check: Callable[[], Any], timeout: float = 10.0, what: str = "con
         time.sleep(0.02)
 
 
+# The ports this worker gave out last (most recent at the end): not given again soon
+_GIVEN_PORTS: collections.deque[int] = collections.deque(maxlen=500)
+
+
 def unused_port() -> int:
     """A loopback port free now, for a process the test starts to listen at. It comes
     from below the kernel's ephemeral range, in a block of this pytest worker's own: a
     port the kernel handed out and took back (``bind(0)``, then close) could be given
     again, meanwhile, to any other worker's listener or connection, and was (a node
-    controller answered a module server's test)."""
+    controller answered a module server's test). Nor is a port given twice by one
+    worker: two processes started side by side, neither listening yet, could both be
+    given the same free port (``Daemon.several``: the second said "port in use")."""
     worker = os.environ.get("PYTEST_XDIST_WORKER", "")
     block = int(worker[2:]) + 1 if worker.startswith("gw") else 0
     first = 16000 + 1500 * block                      # (gw0..gw9 end below 32000)
     for port in random.sample(range(first, first + 1500), 1500):
+        if port in _GIVEN_PORTS:
+            continue
         with socket.socket() as probe:
             try:
                 probe.bind(("127.0.0.1", port))
             except OSError:
                 continue
+            _GIVEN_PORTS.append(port)
             return port
     raise RuntimeError(f"no free port in {first}..{first + 1499}")
 
