@@ -691,6 +691,20 @@ class Paced(Module):
         self.seen_period = self.period
 
 
+class SlowsItself(Agent):
+    """Notes when each of its last steps began (``time.monotonic()``); at its third step,
+    sets its own period to ``to`` seconds."""
+
+    period = 0.2
+    to = 1.0
+    stamps: list = []
+
+    def step(self) -> None:
+        self.stamps = [*self.stamps[-9:], time.monotonic()]
+        if len(self.stamps) == 3:
+            self.runtime.set_state(self.runtime.name, period=self.to)
+
+
 class Retimer(Agent):
     """Once, from its step, slows ``target`` to a period of ``to`` seconds."""
 

@@ -50,6 +50,7 @@ from sample_modules import (
     Retimer,
     Scale,
     Shift,
+    SlowsItself,
     Spawner,
     Steady,
 )
@@ -1225,7 +1226,7 @@ def test_an_agent_s_set_state_with_nothing_to_set_is_refused_as_the_api_s() -> N
 def test_an_agent_naming_itself_or_the_macro_it_is_in_is_refused_in_one_way() -> None:
     """An agent cannot read, set, swap or remove itself, nor remove the macro it is in:
     each is a ``ValueError`` at its own call, nothing sent, in the same words; it may
-    migrate both, and ask where it runs. Before, removing itself was a ``ValueError``
+    migrate both, ask where it runs and set its own period. Before, removing itself was a ``ValueError``
     ("change its own attributes directly") and removing its macro a ``RuntimeFailure``
     from the launcher."""
     asked = []
@@ -1240,9 +1241,9 @@ def test_an_agent_naming_itself_or_the_macro_it_is_in_is_refused_in_one_way() ->
             (lambda: client.swap("kit/agent", Scale), "swap kit/agent: agent 'kit/agent' is "
              "it: an agent cannot swap itself (the swap would wait for the very call that "
              "asks it; it may migrate itself)"),
-            (lambda: client.set_state("kit/agent", seen=0), "set_state kit/agent: agent "
-             "'kit/agent' is it: an agent cannot set_state itself (it sets its own "
-             "attributes directly)"),
+            (lambda: client.set_state("kit/agent", seen=0, period=1.0), "set_state "
+             "kit/agent: agent 'kit/agent' is it: an agent cannot set_state itself (it "
+             "sets its own attributes directly; of the runtime's, only its period, alone)"),
             (lambda: client.state("kit/agent"), "state kit/agent: agent 'kit/agent' is it: "
              "an agent cannot state itself (it reads its own attributes directly)")):
         with pytest.raises(ValueError, match=f"^{re.escape(said)}$") as refused:
@@ -1251,9 +1252,10 @@ def test_an_agent_naming_itself_or_the_macro_it_is_in_is_refused_in_one_way() ->
     assert asked == []
     client.migrate("kit", "b")
     client.where("kit/agent")
+    client.set_state("kit/agent", period=1.0)   # (the step asking is not held by it)
     client.remove("kit2")                   # (another macro whose name begins as its own)
     client.swap("kit/other", Scale)
-    assert asked == ["begin_migration", "where", "remove", "swap"]
+    assert asked == ["begin_migration", "where", "set_state", "remove", "swap"]
 
 
 def test_the_figures_of_a_node_without_remote_links_make_no_bridge() -> None:
@@ -1297,6 +1299,25 @@ def test_a_closed_system_leaves_nothing_open_in_the_process_that_launched_it() -
                        context=lambda: [t.name for t in set(threading.enumerate()) - threads])
     finally:
         gc.enable()
+
+
+def test_a_period_set_live_is_slept_after_the_last_step_not_stepped_at_once() -> None:
+    """A period set anew is slept after the last step, as every period is: the step
+    thread at the new period stepped at once, here right after the step that set it (a
+    controller's ``dt = self.period`` integrated a whole second over a few ms). A
+    shorter one, already due, steps at once."""
+    system = System("repaced").add("slow", SlowsItself)
+    with system.launch() as run:
+        eventually(lambda: len(run.state("slow")["stamps"]) >= 4, timeout=10,
+                   what="a step at the period the agent set")
+        third, fourth = run.state("slow")["stamps"][2:4]
+        assert fourth - third >= 0.95, f"{fourth - third:.3f} s after the step that set it"
+        run.set_state("slow", period=0.05)
+        changed = time.monotonic()
+        last = run.state("slow")["stamps"][-1]
+        eventually(lambda: run.state("slow")["stamps"][-1] > last, timeout=5,
+                   what="a step at the shorter period")
+        assert time.monotonic() - changed < 0.9     # (not at the 1 s period's turn)
 
 
 def test_a_module_s_period_is_set_live_and_kept_across_a_move_and_a_restart() -> None:

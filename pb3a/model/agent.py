@@ -8,9 +8,9 @@ within its ``timeout`` (30 s at most without one). Meanwhile the agent gives way
 (``pb3a.worker.waits``): its state may be read or set on its own thread, and if the
 runtime must pause it (to move or swap it) the call raises ``RuntimeFailure``
 ("... cancelled: ...").
-An agent must not target itself (except to migrate and ask where it runs): it reads
-and sets its own state directly, and cannot swap or remove itself, nor remove the
-macro it is in (``ValueError``, nothing sent: ``own_target``).
+An agent must not target itself (except to migrate, ask where it runs and set its own
+``period``): it reads and sets its own state directly, and cannot swap or remove
+itself, nor remove the macro it is in (``ValueError``, nothing sent: ``own_target``).
 """
 
 from __future__ import annotations
@@ -30,7 +30,8 @@ if TYPE_CHECKING:
 
 # Why an agent may not name itself in a request, by the request.
 _ITSELF = {"state": "it reads its own attributes directly",
-           "set_state": "it sets its own attributes directly",
+           "set_state": "it sets its own attributes directly; of the runtime's, only its "
+                        "period, alone",
            "swap": "the swap would wait for the very call that asks it; it may migrate "
                    "itself",
            "remove": "the stop would wait for the very call that asks it; it may migrate "
@@ -69,9 +70,10 @@ class RuntimeClient:
         return self._agent
 
     def _call(self, op: str, target: str | None = None, *, timeout: float | None = None,
-              **args: Any) -> Any:
+              itself: bool = False, **args: Any) -> Any:
+        """Request ``op`` (of ``target``); ``itself``: one it may ask of itself."""
         if target is not None:
-            refused = own_target(self._agent, op, target)
+            refused = None if itself else own_target(self._agent, op, target)
             if refused is not None:
                 raise ValueError(refused)
             args["name"] = target
@@ -86,9 +88,12 @@ class RuntimeClient:
     def set_state(self, name: str, values: dict[str, Any] | None = None, /, *,
                   timeout: float | None = None, **fields: Any) -> None:
         """Set state attributes of another module (as ``Running.set_state``; a dict for
-        names such as ``timeout``). Nothing to set is a ``ValueError``, as there."""
-        self._call("set_state", name, values=values_to_set(name, values, fields),
-                   timeout=timeout)
+        names such as ``timeout``). Nothing to set is a ``ValueError``, as there. Its own
+        ``period`` alone an agent may set too (an agent that slows itself under load):
+        its step thread at the new period sleeps it after the step that asked."""
+        values = values_to_set(name, values, fields)
+        self._call("set_state", name, values=values, timeout=timeout,
+                   itself=set(values) == {"period"})
 
     def swap(self, name: str, cls: type | str, *, timeout: float | None = None) -> list[str]:
         """Swap another module for ``cls``, keeping ports and matching state (not this

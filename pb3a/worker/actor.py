@@ -193,6 +193,8 @@ class ModuleActor:
         self._stop = threading.Lock()
         self._step_clock: int | None = None
         self._step_cpu = 0.0
+        self._stepped_at: float | None = None  # when its last step ended (monotonic)
+        self._stepping = False                  # a step is under way
         self._torn_down = False                 # its teardown ran, or runs now (once)
         self._teardown_once = threading.Lock()
         self._halted = False                    # stopping: it does not start any more
@@ -328,9 +330,22 @@ class ModuleActor:
         self._step_clock = clock
         mine = threading.current_thread()
         try:
+            # a period set anew (retime, swap) is slept after the last step, as every
+            # period is: its first step came at once, a controller's ``dt = self.period``
+            # then integrating a whole period over what was a few milliseconds
+            last = self._last_step_end()
+            if period and last is not None:
+                wait = last + period - time.monotonic()
+                if wait > 0 and self._stop.acquire(timeout=wait):
+                    self._stop.release()        # stopped while waiting
+                    return
             while self.running and self._thread is mine:
-                if self.call_many("step", 1, timed=False):
-                    self.steps += 1
+                self._stepping = True
+                try:
+                    if self.call_many("step", 1, timed=False):
+                        self.steps += 1
+                finally:
+                    self._stepped_at, self._stepping = time.monotonic(), False
                 self.lock.hand_over()
                 if period and self._stop.acquire(timeout=period):
                     self._stop.release()        # stopped while sleeping
@@ -339,6 +354,18 @@ class ModuleActor:
             self._step_cpu += time.clock_gettime(clock)
             if self._step_clock == clock:
                 self._step_clock = None
+
+    def _last_step_end(self) -> float | None:
+        """When the last step ended (None: none yet); one under way, on the step thread
+        a new period replaces, is waited for (it holds the module lock): a module that
+        set its own period from its step (an agent slowing itself) is stepped again a
+        period after that step."""
+        if not self._stepping:
+            return self._stepped_at
+        with self.lock:
+            pass
+        # (its thread let go of the lock but has not noted the time yet: that is now)
+        return time.monotonic() if self._stepping else self._stepped_at
 
     # -- calls under the lock ---------------------------------------------
     def call(self, hook: str, *args: Any) -> bool:
