@@ -1065,11 +1065,20 @@ class FailsToMake(Steady):
 
 
 class SlowToMake(Steady):
-    """Its construction takes 2.5 s (past a worker's 1.25 s lease), the GIL let go."""
+    """Its construction takes ``make_s`` (past a worker's 1.25 s lease), the GIL let go."""
+
+    make_s = 2.5
 
     def __init__(self) -> None:
         super().__init__()
-        time.sleep(2.5)
+        time.sleep(self.make_s)
+
+
+class SlowerToMake(SlowToMake):
+    """... 5 s: past the lease and the 2 s more a worker's lease was once let be out while
+    the thread that reads its requests was held."""
+
+    make_s = 5.0
 
 
 class HoldsTheGil(Module):

@@ -35,6 +35,7 @@ from sample_modules import (
     OpensDevice,
     Relay,
     RobotPose,
+    SlowerToMake,
     SlowToMake,
     Steady,
     StepStamps,
@@ -613,7 +614,7 @@ def test_a_cut_shorter_than_the_lease_restarts_nothing(node_b) -> None:
     renewal through carried the answer heard before the cut and extended the lease
     little, and its workers were granted the new end up to 0.25 s later. Every
     heartbeat renews now, one that carried an old answer is followed at once by one
-    from its own, and a renewal is granted to the workers at once."""
+    from its own, and the workers read a renewal's end as soon as it is written."""
     b = node_b
     system = System("short-cuts").node("a").node("b", address=b.address)
     system.add("far", Counter, node="b", restart="fresh", fallback=["a"])
@@ -873,8 +874,8 @@ def test_a_module_that_holds_the_gil_past_the_lease_is_not_stopped_for_it(node_b
     """A step of one C call that holds the GIL for 1.5 s (past a worker's 1.25 s lease)
     starved the worker's threads, its grants unread: it stopped itself as the call let
     go ("frozen past its lease while its executor ran"), its module restarted at every
-    step and failed for good after six. Its grants, read in the lease's grace, bring
-    the lease back: its executor's runs, so nothing runs the module elsewhere."""
+    step and failed for good after six. The worker reads its lease's end where its
+    executor writes it: as the call lets go, the end read is ahead."""
     system = System("gil").node("a").node("b", address=node_b.address)
     system.add("hog", HoldsTheGil, node="b", restart="fresh", state={"hold_s": 1.5})
     with system.launch() as run:
@@ -888,11 +889,10 @@ def test_a_module_that_holds_the_gil_past_the_lease_is_not_stopped_for_it(node_b
 
 def test_a_module_whose_construction_outlasts_the_lease_starts_on_a_remote_node(
         node_b) -> None:
-    """A worker's thread that reads its lease grants also makes its modules: one whose
+    """A worker's thread that read its lease grants also made its modules: one whose
     construction took 2.5 s held the grants unread past the lease, and the worker
     stopped itself ("worker 'b/m-slow' died"); the launch failed, as it did whenever it
-    was tried. The lease is taken once the module is made, and time that thread spends
-    in a request does not count against it."""
+    was tried. No thread of the worker carries its lease now."""
     system = System("slow-made").node("a").node("b", address=node_b.address)
     system.add("slow", SlowToMake, node="b", restart="fresh")
     with system.launch(timeout=30) as run:
@@ -902,15 +902,39 @@ def test_a_module_whose_construction_outlasts_the_lease_starts_on_a_remote_node(
     assert figures.restarts == 0 and figures.status == "running", figures
 
 
+def test_a_worker_held_in_a_long_request_runs_its_modules_on(node_b) -> None:
+    """A worker's thread that reads its requests, held in one (a module of its group
+    being made, 5 s), read none of the lease grants its executor sent meanwhile: once
+    the lease had been out 2 s the worker stopped itself, its executor running, and its
+    other module, stepping all along, was restarted without its state; the add failed
+    with the worker. Its lease's end is read where its executor writes it now: the
+    module steps on through the add, nothing restarted."""
+    system = System("held").node("a").node("b", address=node_b.address)
+    system.add("steady", Steady, node="b", group="pair", restart="fresh")
+    with system.launch() as run:
+        before = eventually(lambda: (count := run.state("steady", timeout=5.0)["count"]) > 20
+                            and count, timeout=30, what="steps on b")
+        pid = run.stats().modules["steady"].pid
+        run.add("slow", SlowerToMake, node="b", group="pair", restart="fresh", timeout=30)
+        after = run.state("steady", timeout=5.0)["count"]
+        figures = run.stats().modules
+        kinds = {event.kind for event in run.events()}
+    assert after > before + 100, (before, after)      # (5 s at 100 steps a second)
+    steady = figures["steady"]
+    assert (steady.status, steady.pid, steady.restarts) == ("running", pid, 0), steady
+    assert figures["slow"].pid == pid
+    assert not kinds & {"module_restarted", "module_failed", "node_lost"}, kinds
+
+
 def test_a_frozen_node_let_run_again_steps_nothing_beside_its_failed_over_copies(
         node_b, tmp_path: Path) -> None:
     """A whole node frozen (its controller, executor and workers SIGSTOPped, as
     ``pb3a stress`` cuts a node) and let run again after its module failed over: its
     worker, let run first, stepped its module at once, beside the copy, before it
     looked at its lease (and a lease grant or a heartbeat read late, queued while the
-    node was stopped, counted as a fresh one). No body runs once the lease is out; a
-    grant ends when the executor's lease does; an executor frozen past its lease fences
-    itself whatever heartbeats it reads then."""
+    node was stopped, counted as a fresh one). No body runs once the lease is out; the
+    workers' lease is the executor's; an executor frozen past its lease fences itself
+    whatever heartbeats it reads then."""
     b, stamps = node_b, tmp_path / "steps"
     with _stamping_on_b("thawed", b, stamps).launch() as run:
         eventually(lambda: stamps.exists() and stamps.read_text().count("\n") > 20,
@@ -924,11 +948,11 @@ def test_a_node_frozen_as_its_module_begins_to_step_steps_nothing_beside_its_cop
     """... frozen as soon as its module stepped: its worker took the module before its
     first lease grant (up to 0.25 s later; a spare has none), so it held no lease and,
     let run again, stepped beside the copy until its executor fenced it (a step begun
-    after the thaw). A worker takes a module with its executor's lease now."""
+    after the thaw). A worker takes its node's lease with its first module."""
     b, stamps = node_b, tmp_path / "steps"
     with _stamping_on_b("begun", b, stamps).launch() as run:
         deadline = time.monotonic() + 30
-        while not (stamps.exists() and "\n" in stamps.read_text()):   # (before a grant)
+        while not (stamps.exists() and "\n" in stamps.read_text()):   # (at its first step)
             assert time.monotonic() < deadline, "no step on b"
             time.sleep(0.001)
         _frozen_until_the_copy_runs_on_a(b, run, stamps)

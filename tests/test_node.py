@@ -6,10 +6,12 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import os
 import re
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -495,50 +497,84 @@ def test_a_second_launcher_is_told_when_the_first_is_silent_and_to_try_again() -
 
 def test_a_lapsed_worker_lease_names_both_causes_not_only_a_frozen_executor(
         monkeypatch, caplog) -> None:
-    """On a cut cable the executor fences itself and grants no more; the worker's line
-    blamed its executor alone ("frozen or hung"), at times before the executor's said
-    why. It names both causes."""
+    """On a cut cable the executor fences itself and extends its lease no more; the
+    worker's line blamed its executor alone ("frozen or hung"), at times before the
+    executor's said why. It names both causes."""
     signals: list[int] = []
     monkeypatch.setattr(lease.os, "kill", lambda pid, number: signals.append(number))
-    held = lease.Lease(threading.Event(), lambda: "scale")
-    held.grant(time.monotonic() - 1.0)              # (ran out at once: the watch finds it)
-    eventually(lambda: held.lapsed, what="the lease lapsed")
+    board = lease.LeaseBoard.create()
+    try:
+        board.write(time.monotonic() - 1.0)         # (ran out: the watch finds it at once)
+        held = lease.Lease(threading.Event(), lambda: "scale", board)
+        held.take()
+        eventually(lambda: held.lapsed, what="the lease lapsed")
+    finally:
+        board.close()
     assert signals == [signal.SIGTERM]
     assert [r.getMessage() for r in caplog.records if r.name == "pb3a.worker"] == [
-        "the worker of scale: its lease ran out, its executor granting it no more (the "
+        "the worker of scale: its lease ran out, its executor extending it no more (the "
         "executor fenced itself after losing the launcher, or it is frozen or hung): its "
         "modules stop"]
 
 
-def test_a_lease_grant_gets_no_answer_that_would_pile_up_unread() -> None:
-    """Nobody waits for a grant's answer; each was sent all the same, 4 a second, and
-    while the executor's monitor read nothing they piled up in the worker's outbox
-    (20,000 grants held 32 MB)."""
+def test_a_lease_board_read_while_its_executor_writes_never_shows_a_torn_end(
+        monkeypatch) -> None:
+    """The workers read their lease's end where the executor writes it, with no lock
+    between the processes: a read that met a write half done would show an end made of
+    two (a far future, say: a lease that never ends). A reader in another process,
+    reading while the writer writes as fast as it can two ends that differ in every
+    byte, only ever sees one of them. A lease holds while its end is ahead and not
+    after; one without a board (an embedded node's workers) or not taken (a spare's)
+    always holds."""
     import multiprocessing
-    import pickle
+    from multiprocessing import reduction
 
-    from pb3a.transport.doorbell import new_bell
-    from pb3a.worker.process import UNANSWERED, Worker
-
-    ours, theirs = multiprocessing.Pipe()
-    worker = Worker(ours, "key", new_bell(), 3600.0)
-    server = threading.Thread(target=worker.serve, daemon=True)
-    server.start()
+    board = lease.LeaseBoard.create()
+    assert board.end() == math.inf                 # no lease before a launcher binds
+    context = multiprocessing.get_context("fork")
+    ours, theirs = context.Pipe()
+    reader = context.Process(target=_read_a_board, args=(theirs,), daemon=True)
+    reader.start()
     try:
-        for until in range(1000):
-            theirs.send((UNANSWERED, "lease", False))
-            theirs.send_bytes(pickle.dumps({"until": time.monotonic() + 3600 + until}))
-        theirs.send((7, "stats", False))           # answered: the grants were all read
-        theirs.send_bytes(pickle.dumps({}))
-        assert theirs.poll(10)
-        assert pickle.loads(theirs.recv_bytes()) == (7, True)     # the first answer
-        assert "modules" in pickle.loads(theirs.recv_bytes())
-        assert not theirs.poll(0.2) and worker.outbox.waiting() == 0
+        reduction.send_handle(ours, board.fd, reader.pid)
+        writes = 0
+        while not ours.poll():
+            board.write(_ENDS[writes % 2])
+            writes += 1
+        reads, seen = ours.recv()
+        assert reads > 1000 and writes > 1000, (reads, writes)
+        assert seen <= {math.inf, *_ENDS}, seen
+        monkeypatch.setattr(lease.os, "kill", lambda pid, number: None)   # (its lapse)
+        closing = threading.Event()
+        held = lease.Lease(closing, lambda: "m", board)
+        assert held.holds()                         # a spare's: not taken
+        board.write(time.monotonic() + 60)
+        held.take()
+        assert held.holds()
+        board.write(time.monotonic() - 0.01)
+        assert not held.holds()
+        closing.set()
+        assert lease.Lease(threading.Event(), lambda: "m").holds()
     finally:
-        theirs.send(None)
-        server.join(10)
-        theirs.close()
+        reader.join(5)
         ours.close()
+        theirs.close()
+        board.close()
+
+
+_ENDS = (struct.unpack("d", b"\x11" * 8)[0], struct.unpack("d", b"\x22" * 8)[0])
+
+
+def _read_a_board(conn) -> None:
+    """Read the board sent on ``conn`` for a second; send back how often, and what."""
+    from multiprocessing import reduction
+
+    board = lease.LeaseBoard.opened(reduction.recv_handle(conn))
+    reads, seen, until = 0, set(), time.monotonic() + 1.0
+    while time.monotonic() < until:
+        seen.add(board.end())
+        reads += 1
+    conn.send((reads, seen))
 
 
 def test_a_lease_grant_never_waits_for_a_worker_that_reads_nothing() -> None:

@@ -907,7 +907,7 @@ def test_a_worker_frozen_past_its_lease_while_its_executor_runs_runs_on_when_let
         controllers) -> None:
     """A worker stopped (SIGSTOP) past its lease while its node's executor runs on steps
     nothing while its lease is out, as it must if its executor were frozen; let run
-    again, it reads the grants its executor went on sending, whose lease runs (so
+    again, it reads the end its executor went on extending, whose lease runs (so
     nothing runs its modules elsewhere), and runs on with its module's state. It
     stopped its modules, and lost their state to a restart (before that, they were
     reported ``stopped`` for good)."""
@@ -915,7 +915,7 @@ def test_a_worker_frozen_past_its_lease_while_its_executor_runs_runs_on_when_let
     system.add("steady", Steady, node="b", restart="fresh")
     with system.launch() as run:
         old = eventually(lambda: run.stats().modules["steady"].pid, what="a worker pid")
-        time.sleep(1.0)                       # its first lease granted (every 0.25 s)
+        time.sleep(1.0)                       # its lease taken, and extended
         os.kill(old, signal.SIGSTOP)
         time.sleep(2.0)                       # past its lease (1.25 s)
         os.kill(old, signal.SIGCONT)

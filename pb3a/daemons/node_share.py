@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
 import sys
 import threading
 import time
@@ -43,12 +42,12 @@ from pb3a.node.restarts import LOCK_TIMEOUT
 from pb3a.processes import mark_as, serve_as_child, stop_on_sigterm
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient, ControlServer, TooLarge, UnknownOperation
+from pb3a.worker.lease import LeaseBoard
 from pb3a.worker.process import agent_wait
 
 log = logging.getLogger("pb3a.node")
 
 PEER_PING_S = 1.0         # how often the round-trip time to each peer is measured
-LEASE_GRANT_S = 0.25      # how often a remote node's executor renews its workers' leases
 # A launcher not heard from for longer than this (two heartbeats, and one's way) may be
 # gone: a second launcher is told how long, and that this executor stops on its own
 SILENT_BOUND_S = 2 * HEARTBEAT_S + 0.1
@@ -74,9 +73,9 @@ class NodeShare:
         self._lease_s = LEASE_S
         self._leased_at = time.monotonic()             # the launcher's last heartbeat
         self._ticked_at = time.monotonic()             # the lease's watch last looked
-        self._extended = threading.Event()             # a renewal moved the lease on
+        # where the workers read the lease's end themselves (``renew`` writes it)
+        self.board = self.executor.workers.settings.lease = LeaseBoard.create()
         self.executor.leased = self._leased
-        self.executor.lease_end = self._lease_end
         self._checkpoints: dict[str, bytes] = {}       # the newest, not yet sent
         self._checkpointed = threading.Condition()
         self._unsent: set[str] = set()        # modules whose checkpoints are too large
@@ -154,10 +153,9 @@ class NodeShare:
         code.install(self.key)
         self.node_epoch, self._lease_s = node_epoch, lease_s
         self.launcher = ControlClient(self.key, launcher)
+        self._ticked_at = time.monotonic()      # (before: the renewal writes a running lease)
         renewed = self.renew()
-        self._ticked_at = time.monotonic()
-        for target, name in ((self._keep_lease, "lease"), (self._grant_leases, "leases"),
-                             (self._measure_peers, "peers"),
+        for target, name in ((self._keep_lease, "lease"), (self._measure_peers, "peers"),
                              (self._send_checkpoints, "checkpoints")):
             threading.Thread(target=target, name=f"pb3a-{name}", daemon=True).start()
         return renewed
@@ -182,14 +180,16 @@ class NodeShare:
         process's clock) plus a heartbeat's way, not from now. A renewal read late (a slow
         downlink, this process starved) ran the lease past the end the launcher counts
         on (``RemoteNode.fenced_by``), and a module stepped on beside its failed-over
-        copy. The answer is now, the next renewal's ``since``. The workers are granted
-        the new end at once (``_grant_leases``)."""
+        copy. The answer is now, the next renewal's ``since``. The workers read the new
+        end at once (``board``), while the lease runs: the end of one that ran out, or
+        of an executor that was frozen past it, is not moved on for them."""
         now = time.monotonic()
         since = (args or {}).get("since")
         start = now if since is None else min(now, since + HEARTBEAT_S)
         if start > self._leased_at:
             self._leased_at = start
-            self._extended.set()
+            if self._bound.is_set() and self._leased():    # (none before a bind)
+                self.board.write(start + self._lease_s)
         return now
 
     def meet(self, peers: dict[str, str]) -> None:
@@ -270,15 +270,6 @@ class NodeShare:
         return (not self.stopped.is_set() and now - self._leased_at <= self._lease_s
                 and now - self._ticked_at <= self._lease_s)
 
-    def _lease_end(self) -> float | None:
-        """Where this executor's lease ends (``time.monotonic``), what its workers may run
-        until: in the past if it does not run now (a worker told so runs no body, and stops); none
-        before a launcher binds it, as nobody renews one then (its workers were given a
-        lease that ran out 1.25 s after the executor started, and stopped their modules)."""
-        if not self._bound.is_set():
-            return None
-        return self._leased_at + self._lease_s if self._leased() else -math.inf
-
     def _keep_lease(self) -> None:
         """Fence: stop everything once the launcher's heartbeats stop for the lease, or
         once this process was frozen (stopped, starved) that long: the launcher may have
@@ -300,26 +291,6 @@ class NodeShare:
             else:
                 self._ticked_at = now
 
-    def _grant_leases(self) -> None:
-        """While its own lease runs, give every worker one (``Worker.op_lease``) as soon
-        as a renewal extends it, and every ``LEASE_GRANT_S`` anyway: a frozen executor
-        (SIGSTOP, hung) fences nothing itself, and its workers would step on beside
-        their modules' failed-over copies; theirs lapses first (the lease, and a grant's
-        way, before the launcher's failover). (Granted every 0.25 s alone, a worker got
-        the end a renewal after a cut had given its executor up to 0.25 s late, and
-        lapsed meanwhile: its modules were restarted, their state lost.)"""
-        workers = self.executor.workers
-        while not self.stopped.is_set():
-            self._extended.wait(LEASE_GRANT_S)
-            self._extended.clear()
-            if self.stopped.is_set() or not self._leased():
-                continue                    # (fencing: no more grants)
-            for key in list(workers.handles):
-                # never waits: a frozen worker that reads nothing is skipped (its lease
-                # then lapses, as it should); a grant that waited for room in its pipe
-                # stopped the grants of every other worker, whose leases lapsed too
-                workers.tell_now(key, "lease", until=self._leased_at + self._lease_s)
-
     def _measure_peers(self) -> None:
         """Ping every peer now and then: the round-trip times the env module shows."""
         while not self.stopped.wait(PEER_PING_S):
@@ -332,6 +303,7 @@ class NodeShare:
         self.executor.shutdown()
         for client in [*self.peers.values(), *filter(None, [self.launcher])]:
             client.close()
+        self.board.close()
 
 
 def _bounded(args: dict[str, Any]) -> contextlib.AbstractContextManager[Any]:

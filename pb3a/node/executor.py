@@ -81,12 +81,9 @@ class Executor:
         self.republished: Any = None                  # told (link, endpoint) after a restart
         self.on_event: Any = None                     # told (kind, module, detail): restarts
         self.on_checkpoint: Any = None                # told (module, state) for last-state
-        # whether this node's lease runs now (a remote node's share sets it: an embedded
-        # node has none, and never lapses)
+        # whether this node's lease runs now (a remote node's share sets it, and its
+        # workers' ``WorkerSettings.lease``: an embedded node has none, and never lapses)
         self.leased: Callable[[], bool] = lambda: True
-        # the end (monotonic) of the lease a worker takes a module with: its executor's,
-        # or None (an embedded node's workers get none)
-        self.lease_end: Callable[[], float | None] = lambda: None
         self._key: ClusterKey | None = None           # the cluster key (loaded on first use)
         self._bridge: Bridge | None = None            # remote links in (made on first use)
         self._last_errors: dict[str, str] = {}        # module -> its last exception, logged
@@ -249,8 +246,7 @@ class Executor:
         """Make module ``record`` in its worker with ``state`` (not started)."""
         spec = record.spec
         self.call(record.worker, "add", name=spec.name, cls=record.blob, period=spec.period,
-                  restart=spec.restart, state=state, lease=self.lease_end(),
-                  reloaded=tuple(self.reloaded))
+                  restart=spec.restart, state=state, reloaded=tuple(self.reloaded))
 
     def start_modules(self, names: list[str], failing: bool = False,
                       leave_late: bool = False) -> None:

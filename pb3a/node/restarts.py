@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.node.workers import REQUEST_TIMEOUT
-from pb3a.worker.lease import LEASE_LAPSED, LEASE_STARVED_S
+from pb3a.worker.lease import LEASE_GRACE_S, LEASE_LAPSED
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Collection
@@ -109,14 +109,15 @@ class Restarts:
     def _after_death(self, handle: WorkerHandle) -> None:
         code = handle.process.exitcode
         if code == LEASE_LAPSED and self._node.leased() and not self._node.lives.stopping.is_set():
-            # Its lease lapsed, but this executor's runs: the worker alone was starved
-            # past LEASE_STARVED_S, not its node, and nothing runs its modules elsewhere.
-            # They were stopped as no one asked: their restart policy says what comes.
-            log.warning("worker %s (pid %s, modules %s) stopped them: it read no lease "
-                        "grant while its executor ran, for up to %g s (stopped or starved: "
-                        "the machine overloaded, a module's C call holding the GIL, or a "
-                        "request such as a module's construction holding its reader)",
-                        handle.key, handle.pid, ", ".join(handle.modules), LEASE_STARVED_S)
+            # Its lease lapsed, but this executor's runs again: the executor, starved,
+            # read a renewal after its lease had been out for LEASE_GRACE_S, before its own
+            # watch saw it out and fenced it (the renewal, dated from the launcher's newest
+            # answer, extends it all the same: nothing runs its modules elsewhere). They
+            # were stopped as no one asked: their restart policy says what comes.
+            log.warning("worker %s (pid %s, modules %s) stopped them: its lease had been "
+                        "out for %g s when its executor, starved, renewed it (the machine "
+                        "overloaded?)", handle.key, handle.pid, ", ".join(handle.modules),
+                        LEASE_GRACE_S)
         elif code in (0, LEASE_LAPSED):   # stopped on purpose (SIGTERM), or fenced: not a crash
             said = ("worker %s (pid %s) stopped; its modules %s are stopped", handle.key,
                     handle.pid, ", ".join(handle.modules))

@@ -46,6 +46,8 @@ from pb3a.worker.process import REFUSED, TIMED_OUT, UNANSWERED, worker_main
 if TYPE_CHECKING:
     from collections.abc import Callable
 
+    from pb3a.worker.lease import LeaseBoard
+
 log = logging.getLogger("pb3a.executor")
 
 REQUEST_TIMEOUT = 10.0
@@ -251,6 +253,9 @@ class WorkerSettings:
     log_level: int = logging.WARNING
     code: CodeSources = field(default_factory=CodeSources)    # where workers import from
     spares: int = DEFAULT_SPARES           # booted idle workers kept for modules that arrive
+    # where a remote node's executor writes its lease's end for its workers (an embedded
+    # node's have none: they never lapse)
+    lease: LeaseBoard | None = None
 
 
 class WorkerPool:
@@ -311,7 +316,7 @@ class WorkerPool:
         process = _context.Process(
             target=worker_main, name=f"pb3a-worker-{handle.key}", daemon=True,
             args=(child, handle.key, settings.checkpoint_s, settings.log_level,
-                  settings.cpus, settings.code))
+                  settings.cpus, settings.code, settings.lease is not None))
         try:
             _start_forkserver_child(process, self._stopping)
         except BaseException:
@@ -329,9 +334,12 @@ class WorkerPool:
                 process.close()
             raise RuntimeFailure(f"worker {handle.key!r} ended as it started (exit code "
                                  f"{code})") from None
-        # The doorbell is the worker's first read: send it before anyone can send a request.
+        # The doorbell is the worker's first read (then its lease's board, if it has one):
+        # sent before anyone can send a request.
         try:
             reduction.send_handle(parent, handle.bell, process.pid)
+            if settings.lease is not None:
+                reduction.send_handle(parent, settings.lease.fd, process.pid)
             outbox = Outbox(parent.fileno(), ends_on_break=True)
             inbox = Inbox(parent.fileno())
         except OSError:

@@ -1,120 +1,197 @@
 """``Lease``: how long a worker on a remote node may run its modules unattended.
 
-Its executor grants it again and again; a frozen or hung executor cannot fence its
-workers, so a worker whose lease runs out stops its own modules (as on SIGTERM) and
-exits ``LEASE_LAPSED``, while the launcher starts them elsewhere.
+A remote node's executor holds its own lease from the launcher (``NodeShare``) and
+writes where it ends (``time.monotonic``, one clock on one machine) on its node's
+``LeaseBoard``, a few bytes of memory every worker of the node maps and reads itself.
+A frozen or hung executor cannot fence its workers, so a worker whose lease runs out
+stops its own modules (as on SIGTERM) and exits ``LEASE_LAPSED``, while the launcher
+starts them elsewhere; no body runs meanwhile (``holds``): that is what keeps a module
+from running beside its failed-over copy.
 
-No body runs while the lease is out (``holds``): that is what keeps a module from
-running beside its failed-over copy. The worker's own stop (its modules' ``teardown``)
-comes once the lease has been out for ``LEASE_GRACE_S`` of time in which the thread
-that reads the grants was free to read them, for a worker whose threads were starved
-rather than its executor gone: a module's one long C call that holds the GIL (a
-pickle of a large list, a solver) kept the grants unread in the pipe, and the worker
-stopped itself as the call let go, its executor alive and its grants waiting (a
-module stepping for 1.5 s that way was restarted at every step, then failed for
-good); so did a module's construction longer than the lease, which holds that thread.
-Starved or held, it stops after ``LEASE_STARVED_S``: the grace is kept short, since
-the launcher starts the modules elsewhere about half a second after the lease ends,
-and a teardown run later would run beside the copy.
+The lease is out only when the executor did not extend it: what the worker's threads
+are doing cannot delay its news. (The end used to come as a request on the worker's
+pipe, read by a Python thread: a module's C call holding the GIL, a long construction
+or any request held that thread, the grants waited unread, and heuristics of time in
+which they could have been read, capped at 2 s, told starvation from a dead executor;
+past the cap the worker stopped itself while its executor ran, and its modules were
+restarted without their state.)
 """
 
 from __future__ import annotations
 
 import logging
+import math
+import mmap
 import os
 import signal
+import struct
 import threading
 import time
 from typing import TYPE_CHECKING
 
+from pb3a.transport._ringcore import fence
+
 if TYPE_CHECKING:
-    from collections.abc import Callable
+    from collections.abc import Callable, Iterable
 
 log = logging.getLogger("pb3a.worker")
 
 LEASE_CHECK_S = 0.1      # how often a worker with a lease looks at it
-# How long a lease stays out, in time the grants could be read in, before the worker
-# stops itself: grants queued behind a starved or held thread are read meanwhile
+# How long a lease is out before the worker stops itself: an executor whose lease runs
+# out fences itself within its own look's 0.1 s and stops its workers (exit 0), and a
+# renewal it reads meanwhile still extends its lease (``NodeShare.renew``); the worker's
+# own stop is for an executor that cannot (frozen, hung), and comes before the launcher
+# starts the modules elsewhere, about 0.5 s after the lease ends (a teardown run later
+# would run beside the copy).
 LEASE_GRACE_S = 0.2
-LEASE_STARVED_S = 2.0    # ... and at most, out however starved it is
-_LATE_S = 0.2            # a look at the lease this late: its thread (and the rest) starved
 # The exit status of a worker that stopped its modules because its lease lapsed: its
 # executor tells it from a stop it asked for (0) and, if its own lease runs, restarts
-# the modules (the worker alone was frozen; see Restarts.died). A code neither Python
-# nor a shell gives, and few programs choose (it was 3: a module's code that exited
-# with 3 was said to have been frozen past its lease).
+# the modules (see Restarts.died). A code neither Python nor a shell gives, and few
+# programs choose (it was 3: a module's code that exited with 3 was said to have been
+# frozen past its lease).
 LEASE_LAPSED = 117
+
+# A LeaseBoard's bytes: the number of the write begun last, of the write done last
+# (little-endian, 8 bytes: they never wrap), then the end (a native double).
+_BEGUN, _DONE, _END = 0, 8, 16
+_WIDTH = 8
+_SIZE = 24
+_TRIES = 50     # reads that find a write under way before the last end read stands
+
+
+class LeaseBoard:
+    """Where a remote node's executor writes its lease's end and its workers read it:
+    an anonymous memory file (``memfd_create``), sent to each worker as it starts
+    beside its doorbell. Nothing is named in /dev/shm, so nothing is left behind: the
+    memory goes with the last process that holds it, a SIGKILLed executor's too.
+
+    No read sees a torn end, whatever the machine splits Python's stores and loads
+    into: each byte of the two counts is stored and loaded on its own (a byte cannot
+    tear), fenced, in Lamport's orders (1977, "Concurrent reading and writing"): the
+    writer counts a write begun (most significant byte first), writes the end, counts
+    it done (least significant first); a reader loads the count done (most significant
+    first: at most its value as that load ends), the end, the count begun (least
+    significant first: at least its value as that load began), and keeps the end only
+    if the two are equal: no write ran in between."""
+
+    def __init__(self, fd: int, *, writer: bool = False) -> None:
+        self.fd = fd                    # kept by the executor to send; a worker closes it
+        self._map = mmap.mmap(fd, _SIZE)
+        self._bytes = memoryview(self._map)
+        self._writing = threading.Lock() if writer else None
+        self._count = 0                 # the writer's writes
+        self._last = -math.inf          # the last end read whole (see ``end``)
+
+    @classmethod
+    def create(cls) -> LeaseBoard:
+        """A new board, the executor's, whose end is ``math.inf`` (no lease: none runs
+        before a launcher binds the executor) until it ``write``s one."""
+        fd = os.memfd_create("pb3a-lease", os.MFD_CLOEXEC)
+        os.ftruncate(fd, _SIZE)
+        board = cls(fd, writer=True)
+        board.write(math.inf)
+        return board
+
+    @classmethod
+    def opened(cls, fd: int) -> LeaseBoard:
+        """A worker's view of the board sent as ``fd`` (the descriptor is closed: the
+        mapping holds the memory)."""
+        try:
+            return cls(fd)
+        finally:
+            os.close(fd)
+
+    def write(self, end: float) -> None:
+        """The lease now ends at ``end`` (``time.monotonic``)."""
+        assert self._writing is not None, "a worker's board is read only"
+        with self._writing:
+            self._count += 1
+            self._store(_BEGUN, reversed(range(_WIDTH)))
+            struct.pack_into("d", self._map, _END, end)
+            fence()
+            self._store(_DONE, range(_WIDTH))
+
+    def end(self) -> float:
+        """Where the lease ends now. A read that keeps finding a write under way (the
+        executor stopped or starved in the middle of one) gets the last end read whole,
+        which that write only extends."""
+        for _ in range(_TRIES):
+            done = self._load(_DONE, reversed(range(_WIDTH)))
+            end = struct.unpack_from("d", self._map, _END)[0]
+            fence()
+            if self._load(_BEGUN, range(_WIDTH)) == done:
+                self._last = end
+                return end
+        return self._last
+
+    def _store(self, at: int, order: Iterable[int]) -> None:
+        for index in order:
+            self._bytes[at + index] = (self._count >> 8 * index) & 0xFF
+            fence()
+
+    def _load(self, at: int, order: Iterable[int]) -> int:
+        count = 0
+        for index in order:
+            count |= self._bytes[at + index] << 8 * index
+            fence()
+        return count
+
+    def close(self) -> None:
+        self._bytes.release()
+        self._map.close()
+        if self._writing is not None:
+            os.close(self.fd)
 
 
 class Lease:
-    """A worker's lease; one that was never granted always holds (an embedded node's
-    workers, a spare not yet given a module)."""
+    """A worker's lease, read from its node's ``board``; none (an embedded node's
+    workers) always holds, and so does one not taken yet (a spare given no module)."""
 
-    def __init__(self, closing: threading.Event, holding: Callable[[], str]) -> None:
+    def __init__(self, closing: threading.Event, holding: Callable[[], str],
+                 board: LeaseBoard | None = None) -> None:
         self._closing = closing        # the worker stops: the watch ends
         self._holding = holding        # what the worker runs, named when the lease lapses
-        self._until: float | None = None
+        self._board = board
+        self._taken = False
+        self._taking = threading.Lock()
         self.lapsed = False            # it ran out: the worker exits LEASE_LAPSED
-        self.answering = False         # the thread that reads the grants is in a request
-        self._lapsing = threading.Lock()
 
-    def grant(self, until: float) -> None:
-        """The executor is alive: run on until ``until``, its own lease's end (its
-        ``time.monotonic()``, the same clock on one machine: a grant read late, after
-        this worker or its node was frozen, is over already and extends nothing). No
-        body runs once the lease is out (``holds``): a frozen node let run again stepped
-        its modules once beside their failed-over copies before its lease was looked at.
-        A grant whose ``until`` is still ahead brings a lease that ran out back: its
-        executor's lease holds now, so its node was not declared lost and nothing runs
-        the modules elsewhere (the worker alone was starved or stopped)."""
-        if self.lapsed:
-            return
-        if self._until is None:
-            self._until = until
-            threading.Thread(target=self._watch, daemon=True, name="pb3a-lease").start()
-        else:
-            self._until = max(self._until, until)
+    def take(self) -> None:
+        """The worker runs modules from now on: watch the lease, and stop the worker
+        once it has been out for ``LEASE_GRACE_S`` (once; nothing without a board)."""
+        with self._taking:
+            if self._board is None or self._taken:
+                return
+            self._taken = True
+        threading.Thread(target=self._watch, daemon=True, name="pb3a-lease").start()
 
     def holds(self) -> bool:
-        """Whether the worker's modules may run now: no lease, or one that runs."""
-        until = self._until
-        return until is None or time.monotonic() <= until
+        """Whether the worker's modules may run now: no lease, or one that runs (read
+        now: a worker let run again after its node was frozen past its lease steps
+        nothing, and one frozen alone runs on, its executor's lease running)."""
+        if self._board is None or not self._taken:
+            return True
+        now = time.monotonic()          # (before the read: an end read later is no older)
+        return not self.lapsed and now <= self._board.end()
 
     def _watch(self) -> None:
-        """Stop the worker once its lease has been out for ``LEASE_GRACE_S`` of time in
-        which the grants could be read: a wait of this thread that ended late was
-        starved, and so was the thread that reads the grants, and a time that thread
-        spent in a request (``answering``) it read none; neither counts (the grants
-        queued meanwhile bring the lease back once read). At most ``LEASE_STARVED_S``."""
-        seen: float | None = None   # the lease's end when this thread saw it out
-        calm = 0.0                  # how long out since, in time the grants could be read
-        last = time.monotonic()
+        """Stop the worker once its lease has been out for ``LEASE_GRACE_S``: however
+        late this thread looks (starved), it reads the end its executor wrote last."""
+        assert self._board is not None
         while not self._closing.wait(LEASE_CHECK_S):
             now = time.monotonic()
-            waited, last = now - last, now
-            until = self._until
-            if until is None or now <= until:
-                continue
-            if until != seen:       # (out anew: a grant read since moved its end on)
-                seen, calm = until, 0.0
-                continue
-            if waited <= LEASE_CHECK_S + _LATE_S and not self.answering:
-                calm += waited
-            if calm >= LEASE_GRACE_S or now - until >= LEASE_STARVED_S:
+            if now > self._board.end() + LEASE_GRACE_S:
                 self._lapse()
                 return
 
     def _lapse(self) -> None:
         """The lease ran out: stop every module, as a SIGTERM does (once)."""
-        with self._lapsing:             # (its two threads may find it at once: one stop)
-            if self.lapsed:
-                return
-            self.lapsed = True
+        self.lapsed = True
         # The stop first: the log goes to the executor, which is frozen, and its pipe may
         # be full: a log that waited for room there kept the modules running for good.
         os.kill(os.getpid(), signal.SIGTERM)     # (the stop a SIGTERM makes)
         # (both causes named: on a cut cable the executor fenced itself, saying so, and
         # this line blamed it alone, at times before the executor's)
-        log.error("the worker of %s: its lease ran out, its executor granting it no more "
+        log.error("the worker of %s: its lease ran out, its executor extending it no more "
                   "(the executor fenced itself after losing the launcher, or it is frozen "
                   "or hung): its modules stop", self._holding())

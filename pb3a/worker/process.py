@@ -43,7 +43,7 @@ from pb3a.transport.ring import RingSize, ShmRing, sleep
 from pb3a.transport.snapshot import Snapshot
 from pb3a.worker.actor import EventPool, ModuleActor, SetupError, running_module
 from pb3a.worker.inbound import GUARD_TIMEOUT, InboundLink, LosslessInboundLink
-from pb3a.worker.lease import LEASE_LAPSED, Lease
+from pb3a.worker.lease import LEASE_LAPSED, Lease, LeaseBoard
 from pb3a.worker.log_forwarding import LogForwarder
 from pb3a.worker.publications import Publications
 from pb3a.worker.waits import RuntimeWait
@@ -80,7 +80,8 @@ _TAKES_A_MODULE_LOCK = frozenset({"get_state", "set_state", "pause", "start", "s
 class Worker:
     """Everything one worker process runs; ``serve`` is its control loop."""
 
-    def __init__(self, conn: Any, key: str, bell: int, checkpoint_s: float) -> None:
+    def __init__(self, conn: Any, key: str, bell: int, checkpoint_s: float,
+                 board: LeaseBoard | None = None) -> None:
         self.conn = conn
         self.key = key
         self.actors: dict[str, ModuleActor] = {}
@@ -112,7 +113,8 @@ class Worker:
         self._request_ids = itertools.count()
         self._closing = threading.Event()
         # (its modules named: a spare that took them still has the key "spare")
-        self.lease = Lease(self._closing, lambda: ", ".join(self.actors) or "no module")
+        self.lease = Lease(self._closing, lambda: ", ".join(self.actors) or "no module",
+                           board)
         self._shut_down = False
         self._checkpoint_s = checkpoint_s
         self._threads = [threading.Thread(target=self._receive, name="pb3a-receiver", daemon=True),
@@ -153,11 +155,7 @@ class Worker:
                 threading.Thread(target=self._handle, args=(req_id, op, args), daemon=True,
                                  name=f"pb3a-{op}").start()
             else:
-                self.lease.answering = True     # (the grants wait behind it: see Lease)
-                try:
-                    self._handle(req_id, op, args)
-                finally:
-                    self.lease.answering = False
+                self._handle(req_id, op, args)
         self.shutdown()
 
     def _handle(self, req_id: int, op: str, args: dict[str, Any]) -> None:
@@ -282,25 +280,19 @@ class Worker:
 
     # -- requests from the executor ----------------------------------------
     def op_add(self, name: str, cls: bytes, period: float | None, restart: str,
-               state: dict[str, Any] | bytes, lease: float | None = None,
-               reloaded: tuple[str, ...] = ()) -> None:
-        """A module, with its executor's lease (``op_lease``) on a remote node: a worker
-        that took one before its first grant (which comes up to ``LEASE_GRANT_S`` later,
-        a spare having none) held no lease, and a node frozen meanwhile and let run
-        again stepped it beside its failed-over copy until its executor fenced it.
+               state: dict[str, Any] | bytes, reloaded: tuple[str, ...] = ()) -> None:
+        """A module, run under its node's lease from now on (``Lease.take``: a spare
+        holds none while it runs nothing).
         ``state`` as bytes is the module's own (a checkpoint, the state it had before a
         restart), restored in full (``restore_state``); as a dict, the configuration's.
         ``reloaded``: the Python modules reloaded on the node, dropped here first if this
         process has not (its forkserver imported them before the reload)."""
+        self.lease.take()
         for module in reloaded:
             if module not in self.reloaded:
                 self.op_forget(module)
         klass = _load_class(cls)
         module = _made(name, klass)
-        # (taken once the module is made: this thread, which reads the grants, is held
-        # by its construction, and one of 2.5 s let the lease lapse, the worker stopped)
-        if lease is not None:
-            self.op_lease(lease)
         self._give_runtime(name, module)
         if isinstance(state, bytes):        # (read here, where the module's code is)
             restore_state(module, cloudpickle.loads(state))
@@ -623,10 +615,6 @@ class Worker:
         self._give_runtime(name, module)
         return self.actors[name].swap(module, period)
 
-    def op_lease(self, until: float) -> None:
-        """The executor is alive: run on until ``until`` (``Lease.grant``)."""
-        self.lease.grant(until)
-
     def op_stats(self) -> dict[str, Any]:
         modules = {name: actor.statistics() for name, actor in self.actors.items()}
         if len(modules) == 1:             # everything this process does is for its module
@@ -863,13 +851,15 @@ def _on_sigterm(signum: int, frame: object) -> None:
 
 
 def worker_main(conn: Any, key: str, checkpoint_s: float, level: int,
-                cpus: list[int] | None = None, code: CodeSources | None = None) -> None:
+                cpus: list[int] | None = None, code: CodeSources | None = None,
+                leased: bool = False) -> None:
     """Entry point of a worker process.
 
     Ctrl-C in a terminal reaches every process of the group, and so does a SIGHUP when
     the terminal closes: workers ignore both and let their launcher stop them in order.
     SIGTERM stops the worker's modules and exits with status 0, which the executor takes
-    as a stop, not a crash.
+    as a stop, not a crash. A ``leased`` worker (a remote node's) is sent its node's
+    ``LeaseBoard`` right after its doorbell.
     """
     mark_as("a worker")
     if cpus:
@@ -882,8 +872,9 @@ def worker_main(conn: Any, key: str, checkpoint_s: float, level: int,
         logging.getLogger().addHandler(forward)
         logging.getLogger().setLevel(level)
         bell = reduction.recv_handle(conn)      # the executor sends our doorbell first
+        board = LeaseBoard.opened(reduction.recv_handle(conn)) if leased else None
         (code or CodeSources()).install()
-        worker = Worker(conn, key, bell, checkpoint_s)
+        worker = Worker(conn, key, bell, checkpoint_s, board)
     except (_Terminated, EOFError):             # (EOF: the executor went as it started us,
         return                                  # a Ctrl-C then) exit 0: a stop, not a crash
     try:
