@@ -577,37 +577,6 @@ def _read_a_board(conn) -> None:
     conn.send((reads, seen))
 
 
-def test_a_lease_grant_never_waits_for_a_worker_that_reads_nothing() -> None:
-    """A node's executor grants its workers' leases from one thread. A worker frozen
-    (SIGSTOP) reads nothing; once its pipe was full, the grant to it waited for room for
-    good, and no other worker got a lease again: every healthy worker lapsed and
-    stopped its modules (36 s after the freeze, measured). A grant goes only if it can
-    go at once; the frozen worker's is skipped, and only its lease lapses."""
-    import multiprocessing
-
-    from pb3a.node.workers import WorkerHandle
-    from pb3a.transport.pipe import Outbox
-
-    ours, frozen = multiprocessing.Pipe()
-    handle = WorkerHandle("a/m-frozen", "a", conn=ours, outbox=Outbox(ours.fileno()),
-                          alive=True, pid=os.getpid())
-    try:
-        assert handle.send_now("lease", {"until": 1.0})        # room: it goes
-        os.set_blocking(ours.fileno(), False)
-        with contextlib.suppress(BlockingIOError):               # nobody reads: full
-            while True:
-                os.write(ours.fileno(), b"\0" * 65536)
-        os.set_blocking(ours.fileno(), True)
-        started = time.monotonic()
-        assert not handle.send_now("lease", {"until": 2.0})
-        handle.send(3, "stats", {})                              # queued behind, not sent
-        assert not handle.send_now("lease", {"until": 4.0})   # (nor jumps the queue)
-        assert time.monotonic() - started < 2.0            # (a wait is for good)
-    finally:
-        handle.close_pipe()
-        frozen.close()
-
-
 def test_the_sampler_survives_a_turn_that_fails(monkeypatch, caplog) -> None:
     """One burst of idle connections made ``psutil`` fail (EMFILE) in the sampler, and the
     thread died for good: admission judged a frozen CPU figure, and ended executors were

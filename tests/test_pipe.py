@@ -83,18 +83,6 @@ def test_a_message_none_of_which_went_is_withdrawn_and_never_read(pipe) -> None:
     assert not outbox.withdraw(last)                # gone whole
 
 
-def test_put_now_sends_only_what_can_go_at_once(pipe) -> None:
-    outbox, theirs = pipe
-    assert outbox.put_now([b"lease 1"])
-    outbox.put([os.urandom(BIG)])                   # fills the pipe, the rest queued
-    assert not outbox.put_now([b"lease 2"])         # behind it: it would come too late
-    assert theirs.recv_bytes() == b"lease 1"
-    assert len(theirs.recv_bytes()) == BIG
-    eventually(lambda: outbox.waiting() == 0, what="the outbox drained")
-    assert outbox.put_now([b"lease 3"])
-    assert theirs.recv_bytes() == b"lease 3"
-
-
 def test_closing_drops_what_waits_and_the_reader_sees_the_end(pipe, tmp_path) -> None:
     outbox, theirs = pipe
     fds = _open_fds()
@@ -106,7 +94,6 @@ def test_closing_drops_what_waits_and_the_reader_sees_the_end(pipe, tmp_path) ->
     assert _open_fds() == fds - 1                   # and the pipe's
     with pytest.raises(OSError, match="closed"):
         outbox.put([b"late"])
-    assert not outbox.put_now([b"late"])
     with pytest.raises(OSError, match="end of file during message"):   # (cut short)
         theirs.recv_bytes()
 

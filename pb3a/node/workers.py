@@ -41,7 +41,7 @@ from pb3a.processes import start_without_main
 from pb3a.transport import pickling
 from pb3a.transport.doorbell import new_bell
 from pb3a.transport.pipe import Inbox, Outbox, Outgoing
-from pb3a.worker.process import REFUSED, TIMED_OUT, UNANSWERED, worker_main
+from pb3a.worker.process import REFUSED, TIMED_OUT, worker_main
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -216,14 +216,6 @@ class WorkerHandle:
         pickled, an ``OSError`` that the pipe is closed: nothing went."""
         body = pickling.dumps(args)
         return self.outbox.put([pickle.dumps((req_id, op, fd is not None)), body], fd)
-
-    def send_now(self, op: str, args: Any) -> bool:
-        """``send`` a request whose answer nobody waits for, only if it goes at once
-        (``Outbox.put_now``); False if it did not go. (A worker that reads nothing,
-        frozen, fills its pipe: a lease's renewal queued behind the others would only
-        come too late.)"""
-        return self.outbox.put_now([pickle.dumps((UNANSWERED, op, False)),
-                                    pickling.dumps(args)])
 
     def close_pipe(self) -> None:
         """Close both ends of ours (the worker then reads the end of its pipe)."""
@@ -443,18 +435,6 @@ class WorkerPool:
         """Send one request to a worker (a descriptor right behind it if given) and wait
         for its answer."""
         return self.result(self.submit(key, op, _fd=_fd, **args), op, key, timeout)
-
-    def tell_now(self, key: str, op: str, /, **args: Any) -> bool:
-        """Send worker ``key`` a request whose answer nobody waits for, if it can go at
-        once (``WorkerHandle.send_now``); False if it could not (the worker is gone,
-        stopping, or does not read its pipe)."""
-        handle = self.handles.get(key)
-        if handle is None or not handle.serving:
-            return False
-        try:
-            return handle.send_now(op, args)
-        except (OSError, ValueError):
-            return False
 
     def submit(self, key: str, op: str, /, _fd: int | None = None, **args: Any) -> Future[Any]:
         """Send one request to a worker; the future holds its answer."""

@@ -118,21 +118,6 @@ class Outbox:
             self._drain_rest()
         return item
 
-    def put_now(self, payloads: list[bytes]) -> bool:
-        """``put`` only if nothing of ours waits and the pipe takes some of it at once
-        (the rest follows, in order); False, nothing sent, if not. For what is worth
-        sending only now, such as a lease's renewal."""
-        with self._lock:
-            if self._closed or self._queue:
-                return False
-            item = Outgoing.framed(payloads)
-            self._enqueue(item)
-            if not item.started:
-                self._queue.clear()
-                return False
-            self._drain_rest()
-            return True
-
     def withdraw(self, item: Outgoing) -> bool:
         """Take ``item`` back if none of it went; True if so (the worker never sees it)."""
         with self._lock:

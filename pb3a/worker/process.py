@@ -57,7 +57,6 @@ SPIN_S = 100e-6          # values closer than this count as dense; poll this lon
 ERROR_REPORT_S = 1.0     # a module's exceptions are reported at most this often (all counted)
 AGENT_REQUEST_TIMEOUT = 30.0   # an agent's request to the runtime (a migration, say)
 RUNTIME_WAY_BACK_S = 1.0       # ... given a timeout: its answer's way back beyond it
-UNANSWERED = -1            # the id of a request whose answer nobody waits for
 TIMED_OUT = "timed out"   # a reply's status for a request that ran out of time (not False)
 REFUSED = "refused"       # for one whose arguments the module refused: the message is whole
 LAST_WORDS_S = 0.5        # a stopping worker's wait to tell its figures (the executor frozen?)
@@ -159,14 +158,6 @@ class Worker:
         self.shutdown()
 
     def _handle(self, req_id: int, op: str, args: dict[str, Any]) -> None:
-        if req_id == UNANSWERED:
-            # (a lease grant: its answers piled up in the outbox, 4 a second, while the
-            # executor's monitor read nothing)
-            try:
-                getattr(self, f"op_{op}")(**args)
-            except Exception:
-                log.exception("the request %r, which wants no answer, failed", op)
-            return
         try:
             result = getattr(self, f"op_{op}")(**args)
             reply = (req_id, True, result)
