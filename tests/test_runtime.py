@@ -1226,9 +1226,9 @@ def test_an_agent_s_set_state_with_nothing_to_set_is_refused_as_the_api_s() -> N
 def test_an_agent_naming_itself_or_the_macro_it_is_in_is_refused_in_one_way() -> None:
     """An agent cannot read, set, swap or remove itself, nor remove the macro it is in:
     each is a ``ValueError`` at its own call, nothing sent, in the same words; it may
-    migrate both, ask where it runs and set its own period. Before, removing itself was a ``ValueError``
-    ("change its own attributes directly") and removing its macro a ``RuntimeFailure``
-    from the launcher."""
+    migrate both, ask where it runs and set its own period. Before, removing itself
+    was a ``ValueError`` ("change its own attributes directly") and removing its macro
+    a ``RuntimeFailure`` from the launcher."""
     asked = []
     client = RuntimeClient("kit/agent", lambda op, args, timeout: asked.append(op))
     for call, said in (

@@ -145,13 +145,15 @@ class NodeShare:
         ``spares`` idle workers booted; the answer is the first renewal's (``renew``)."""
         if self.launcher is not None:
             raise RuntimeFailure(self._already_bound(self.launcher.address))
+        # (the lease first: a renewal as soon as bound writes with it, and the ends the
+        # board gives only move on, which its workers count on, see Lease.holds)
+        self.node_epoch, self._lease_s = node_epoch, lease_s
         self._bound.set()                   # (a slow bind, a large code install: not stopped)
         self.executor.configure(checkpoint_s=checkpoint_s, log_level=log_level, code=code,
                                 epoch=epoch, spares=spares, node_epoch=node_epoch)
         if self.server is not None:
             self.server.advance_epoch(epoch)
         code.install(self.key)
-        self.node_epoch, self._lease_s = node_epoch, lease_s
         self.launcher = ControlClient(self.key, launcher)
         self._ticked_at = time.monotonic()      # (before: the renewal writes a running lease)
         renewed = self.renew()

@@ -154,6 +154,7 @@ class Lease:
         self._board = board
         self._taken = False
         self._taking = threading.Lock()
+        self._known = -math.inf        # the furthest end read (ends only move on, once set)
         self.lapsed = False            # it ran out: the worker exits LEASE_LAPSED
 
     def take(self) -> None:
@@ -172,7 +173,12 @@ class Lease:
         if self._board is None or not self._taken:
             return True
         now = time.monotonic()          # (before the read: an end read later is no older)
-        return not self.lapsed and now <= self._board.end()
+        if now <= self._known:          # (read again only once past it: a read costs
+            return not self.lapsed      # about 2 us, and every body asks)
+        end = self._board.end()
+        if end < math.inf:              # (inf: no lease yet, before its executor's bind)
+            self._known = max(self._known, end)
+        return not self.lapsed and now <= end
 
     def _watch(self) -> None:
         """Stop the worker once its lease has been out for ``LEASE_GRACE_S``: however
