@@ -52,8 +52,9 @@ from agents.grid import (
     Grid,
     classify,
 )
-from agents.limits import SPAN, Limit, finite, out_of_limits
+from agents.limits import SPAN, Limit, finite, out_of_limits, refuse_own_state
 from pb3a import Input, Module, Output
+from pb3a.model.module import reflective
 from rave.pioneer import RADIUS
 from rave.sonar import RING
 
@@ -808,6 +809,7 @@ class Explorer(Module):
     handed_at: list[float] = []    # (x, y) where it was handed to this robot, while near it
 
     def setup(self) -> None:
+        refuse_own_state(self)
         self._make()
         # Set up with a pose already in (moved with its ports, maybe to another robot:
         # the remedy's hand-over), it stands until the robot reports again: that pose
@@ -819,7 +821,7 @@ class Explorer(Module):
 
     def _make(self) -> None:
         """The planner, made from the state (its memory restored)."""
-        grid = _checked(self.get_state())
+        grid = Grid.of(self.size, self.resolution)
         if self.trail.shape != grid.shape:       # a fresh explorer
             self.trail = np.zeros(grid.shape, dtype=bool)
         if self.echoes.shape != grid.shape:
@@ -830,12 +832,22 @@ class Explorer(Module):
         self._explorer.restore({name: getattr(self, name) for name in FrontierExplorer.MEMORY})
         self._last: np.ndarray | None = None   # the command last written
 
+    @classmethod
+    def state_problems(cls, state: dict[str, Any]) -> list[str]:
+        """A setting it could not go by, each naming it: a size or resolution no grid is
+        made of, a speed, clearance or time out of its limits (a negative max_speed drove
+        it backwards, where its reflexes do not look)."""
+        wrong = out_of_limits(_LIMITS, state)
+        if "size" in state and "resolution" in state:
+            wrong += Grid.problems(state["size"], state["resolution"])
+        return super().state_problems(state) + [f"{cls.__name__}'s {problem}"
+                                                for problem in wrong]
+
+    @reflective                 # (it takes the fields Module's does: they are checked)
     def set_state(self, state: dict[str, Any]) -> None:
-        """Set state; a running explorer goes by it from its next step (its settings,
-        and what it remembers: a target, a frontier set aside), rather than writing its
-        own memory back over it. A setting setup would refuse is refused, naming it, and
-        nothing is set."""
-        _checked({**self.get_state(), **state})
+        """Set state (what ``state_problems`` refuses is refused, nothing set); a running
+        explorer goes by it from its next step (its settings, and what it remembers: a
+        target, a frontier set aside), rather than writing its own memory back over it."""
         super().set_state(state)
         if "_explorer" in vars(self):            # running: made again from the state
             self._make()
@@ -870,13 +882,3 @@ _LIMITS: dict[str, Limit] = {
     "replan_every": SPAN,
     "forget_after": SPAN,
 }
-
-
-def _checked(state: dict[str, Any]) -> Grid:
-    """The grid of an ``Explorer`` of ``state``; ValueError naming each setting it could
-    not go by (a negative max_speed drove it backwards, where its reflexes do not look)."""
-    grid = Grid.of(state["size"], state["resolution"])
-    wrong = out_of_limits(_LIMITS, state)
-    if wrong:
-        raise ValueError("Explorer: " + "; ".join(wrong))
-    return grid

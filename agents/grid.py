@@ -53,6 +53,16 @@ class Grid:
                              f"{size!r}") from None
         return cls(width, height, float(resolution))
 
+    @classmethod
+    def problems(cls, size: Any, resolution: Any) -> list[str]:
+        """Why no grid is made of ``size`` and ``resolution`` (a module's ``size`` and
+        ``resolution``, in its ``state_problems``): none if one is."""
+        try:
+            cls.of(size, resolution)
+        except (TypeError, ValueError) as exc:
+            return [f"size and resolution make no grid: {exc}"]
+        return []
+
     @property
     def shape(self) -> tuple[int, int]:
         """(rows, columns)."""

@@ -472,18 +472,28 @@ class PolicyLearner(Module):
             if key in learner.recovery:
                 learner.recovery[key] += gap
 
-    def set_state(self, state: dict[str, Any]) -> None:
-        """Set state; goals, parameters or a table the learner could not decide by (what
-        setup refuses) are refused, naming the problem, and nothing is set: taken, they
-        failed every decision from then on."""
-        _learner_of({**self.get_state(), **state})
-        super().set_state(state)
+    @classmethod
+    def state_problems(cls, state: dict[str, Any]) -> list[str]:
+        """Goals, parameters or a table (or other memory) the learner could not decide by
+        (taken, they failed every decision from then on): the learner is made of the
+        state, when it gives all it is made of, and what it refuses is said."""
+        problems = super().state_problems(state)
+        if set(_LEARNER_FIELDS) <= set(state):
+            try:
+                _learner_of(state)
+            except (TypeError, ValueError) as exc:
+                problems.append(f"{cls.__name__}'s learner cannot be made of its state: {exc}")
+        return problems
 
     def teardown(self) -> None:
         self.command.write(np.zeros(2))      # the robot stands while the learner is away
 
     def _learner(self) -> ReactiveLearner:
         return _learner_of(self.get_state())
+
+
+_LEARNER_FIELDS = ("goals", "parameters", "seed", "q", "trace", "epsilon", "goal_index",
+                   "episodes", "episode_count", "underway", "recovery", "rng_state")
 
 
 def _learner_of(state: dict[str, Any]) -> ReactiveLearner:

@@ -47,8 +47,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from scipy.special import expit, logsumexp
 
-from agents.limits import SPAN, Limit, finite, out_of_limits, whole
+from agents.limits import SPAN, Limit, finite, out_of_limits, refuse_own_state, whole
 from pb3a import Input, InputPort, Module, Output
+from pb3a.model.module import reflective
 from rave.pioneer import ACCEL, ANGULAR_ACCEL, MOTOR_LAG_S
 from rave.sonar import COUNT as SONARS
 from rave.sonar import MAX_RANGE
@@ -498,7 +499,7 @@ class HardwareMonitor(Module):
     robot_changes = 0
 
     def setup(self) -> None:
-        _check_settings(self.get_state())
+        refuse_own_state(self)
         self._tracker = FeatureTracker(self.sample_s)
         self._monitor: FaultMonitor | None = None
         if self.running:
@@ -523,12 +524,19 @@ class HardwareMonitor(Module):
             self.training, self.training_informative = training, informative
             self.collected = kept
 
+    @classmethod
+    def state_problems(cls, state: dict[str, Any]) -> list[str]:
+        """A setting that would blind or break it, each naming it: a limit's (see
+        ``_LIMITS``), ``ready_windows``, a vote that is not k of n windows, a model given
+        in state that does not fit (each when the state gives all its fields)."""
+        return super().state_problems(state) + [
+            f"{cls.__name__}'s {problem}" for problem in _settings_problems(state)]
+
+    @reflective                 # (it takes the fields Module's does: they are checked)
     def set_state(self, state: dict[str, Any]) -> None:
-        """Set state; a running monitor goes by it from its next sample (a threshold, a
-        vote, what it remembers), rather than by what it made of its state at setup and
-        writes back over it. A setting setup would refuse is refused, naming it, and
-        nothing is set."""
-        _check_settings({**self.get_state(), **state})
+        """Set state (what ``state_problems`` refuses is refused, nothing set); a running
+        monitor goes by it from its next sample (a threshold, a vote, what it remembers),
+        rather than by what it made of its state at setup and writes back over it."""
         super().set_state(state)
         if "_tracker" in vars(self):             # running: made again from the state
             self.setup()
@@ -634,43 +642,52 @@ _LIMITS: dict[str, Limit] = {
 }
 
 
-def _check_settings(state: dict[str, Any]) -> None:
-    """ValueError, naming it, for a ``HardwareMonitor`` setting its setup would refuse."""
-    if not isinstance(state["ready_windows"], dict):    # (a list failed with AttributeError)
-        raise ValueError(f"HardwareMonitor: ready_windows must map a fault group to the "
-                         f"windows it needs, as {{\"motors\": 150}}, got "
-                         f"{state['ready_windows']!r}")
-    unknown = sorted(set(state["ready_windows"]) - set(GROUPS))
-    if unknown:
-        raise ValueError(f"ready_windows names no fault group {', '.join(unknown)}: "
-                         f"the groups are {', '.join(GROUPS)}")
-    windows = [f"ready_windows[{group!r}] must be a whole number, 0 or more, got {n!r}"
-               for group, n in state["ready_windows"].items()
-               if not whole(n)]
-    wrong = out_of_limits(_LIMITS, state)
-    if windows or wrong:
-        raise ValueError("HardwareMonitor: " + "; ".join(windows + wrong))
-    check_vote(state["votes_needed"], state["votes_of"])
-    _check_model(state)
+_VOTE = ("votes_needed", "votes_of")                  # judged together
+_MODEL = ("watched", "trained", "means", "variances", "thresholds")     # and these
 
 
-def _check_model(state: dict[str, Any]) -> None:
-    """ValueError, naming it, for a model given in state (``NormalModel.state()``) that
-    does not fit: a misspelt group was never watched, and means of another length
-    failed at the first sample, in numpy's words."""
-    unknown = [group for group in state["watched"] if group not in GROUPS]
+def _settings_problems(state: dict[str, Any]) -> list[str]:
+    """What a ``HardwareMonitor`` could not go by of ``state``, each naming the setting."""
+    problems = out_of_limits(_LIMITS, state)
+    windows = state.get("ready_windows", {})
+    if not isinstance(windows, dict):    # (a list failed with AttributeError)
+        problems.append(f"ready_windows must map a fault group to the windows it needs, "
+                        f"as {{\"motors\": 150}}, got {windows!r}")
+        windows = {}
+    unknown = sorted(map(str, set(windows) - set(GROUPS)))
     if unknown:
-        raise ValueError(f"HardwareMonitor: watched names no fault group "
-                         f"{', '.join(map(repr, unknown))}: the groups are {', '.join(GROUPS)}")
-    if not (state["trained"] or state["watched"]):
-        return                                     # (no model yet: it learns one)
+        problems.append(f"ready_windows names no fault group {', '.join(unknown)}: "
+                        f"the groups are {', '.join(GROUPS)}")
+    problems += [f"ready_windows[{group!r}] must be a whole number, 0 or more, got {n!r}"
+                 for group, n in windows.items() if not whole(n)]
+    if set(_VOTE) <= set(state):
+        try:
+            check_vote(state["votes_needed"], state["votes_of"])
+        except ValueError as exc:
+            problems.append(f"votes_needed and votes_of: {exc}")
+    if set(_MODEL) <= set(state):
+        problems += _model_problems(state)
+    return problems
+
+
+def _model_problems(model: dict[str, Any]) -> list[str]:
+    """What does not fit of a model given in state (``NormalModel.state()``): a misspelt
+    group was never watched, and means of another length failed at the first sample, in
+    numpy's words."""
+    watched = model["watched"]
+    if not isinstance(watched, list | tuple):
+        return [f"watched must be a list of fault groups, got {watched!r}"]
+    unknown = [group for group in watched if group not in GROUPS]
+    if unknown:
+        return [f"watched names no fault group {', '.join(map(repr, unknown))}: the groups "
+                f"are {', '.join(GROUPS)}"]
+    if not (model["trained"] or watched):
+        return []                                  # (no model yet: it learns one)
     sizes = {"means": (len(FEATURES), "feature"), "variances": (len(FEATURES), "feature"),
              "thresholds": (len(GROUPS), "fault group")}
-    wrong = [f"{name} must hold {size} numbers, one per {per}, not {np.shape(state[name])}"
-             for name, (size, per) in sizes.items() if np.shape(state[name]) != (size,)]
-    if wrong:
-        raise ValueError("HardwareMonitor: the model given in state does not fit: "
-                         + "; ".join(wrong))
+    return [f"model given in state does not fit: {name} must hold {size} numbers, one per "
+            f"{per}, not {np.shape(model[name])}"
+            for name, (size, per) in sizes.items() if np.shape(model[name]) != (size,)]
 
 
 class Wanderer:

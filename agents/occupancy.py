@@ -19,7 +19,7 @@ import numpy as np
 from scipy import ndimage
 
 from agents.grid import Grid
-from agents.limits import whole
+from agents.limits import refuse_own_state, whole
 from pb3a import Input, InputPort, Module, Output
 from rave.sonar import MAX_RANGE, RING
 
@@ -249,7 +249,24 @@ class Mapper(Module):
     unplaced = 0                                # readings skipped: their pose not finite
 
     def setup(self) -> None:
+        refuse_own_state(self)
         self._build()
+
+    @classmethod
+    def state_problems(cls, state: dict[str, Any]) -> list[str]:
+        """A size, resolution, ``publish_every`` or sonar model it could not map with,
+        each naming it (taken, every reading failed from then on)."""
+        wrong = []
+        if "size" in state and "resolution" in state:
+            wrong += Grid.problems(state["size"], state["resolution"])
+        every = state.get("publish_every", 1)       # (a NaN failed every reading)
+        if not whole(every, 1):
+            wrong.append(f"publish_every must be a whole number of readings, 1 or more, "
+                         f"got {every!r}")
+        if "model" in state:
+            wrong += _model_problems(state["model"])
+        return super().state_problems(state) + [f"{cls.__name__}'s {problem}"
+                                                for problem in wrong]
 
     def on_input(self, port: InputPort) -> None:
         if port.name != "sonar" or not self.pose.has_value:
@@ -267,12 +284,6 @@ class Mapper(Module):
         if self.updates % self.publish_every == 0:
             self.map.write(mapper.probabilities())
 
-    def set_state(self, state: dict[str, Any]) -> None:
-        """Set state; a size, resolution or sonar model setup would refuse is refused,
-        naming it, and nothing is set (taken, every reading failed from then on)."""
-        _grid_and_model({**self.get_state(), **state})
-        super().set_state(state)
-
     def _current(self) -> OccupancyGrid:
         """The core on the current state, rebuilt if a ``set_state`` changed it."""
         core: OccupancyGrid | None = self.__dict__.get("_core")
@@ -289,7 +300,7 @@ class Mapper(Module):
         """A core on the state, which is made to fit: the model completed with
         defaults, a fresh map if the old one is not of the grid's shape, a copy of a
         read-only one (arrays that came through a port are)."""
-        grid, model = _grid_and_model(self.get_state())
+        grid, model = Grid.of(self.size, self.resolution), SonarModel(**self.model)
         self.model = asdict(model)
         self.log_odds = _writable(self.log_odds, np.float32)
         if self.log_odds.shape != grid.shape:
@@ -306,20 +317,21 @@ class Mapper(Module):
         return core
 
 
-def _grid_and_model(state: dict[str, Any]) -> tuple[Grid, SonarModel]:
-    """The grid and sonar model of a ``Mapper`` of ``state`` (the model completed with
-    defaults); ValueError naming what they cannot be made of."""
-    grid = Grid.of(state["size"], state["resolution"])
-    every = state["publish_every"]       # (a NaN failed every reading)
-    if not whole(every, 1):
-        raise ValueError(f"publish_every must be a whole number of readings, 1 or more, "
-                         f"got {every!r}")
+def _model_problems(model: Any) -> list[str]:
+    """Why ``model`` is not a ``Mapper``'s sonar model: a table of some of
+    ``SonarModel``'s parameters (the rest its defaults), in their ranges."""
+    if not isinstance(model, dict):
+        return [f"model must be a table of the sonar model's parameters, got {model!r}"]
     parameters = [field.name for field in fields(SonarModel)]
-    unknown = sorted(set(state["model"]) - set(parameters))
+    unknown = sorted(set(model) - set(parameters))
     if unknown:
-        raise ValueError(f"the sonar model has no parameter {', '.join(unknown)}; "
-                         f"its parameters: {', '.join(parameters)}")
-    return grid, SonarModel(**state["model"])
+        return [f"model: the sonar model has no parameter {', '.join(map(str, unknown))}; "
+                f"its parameters: {', '.join(parameters)}"]
+    try:
+        SonarModel(**model)
+    except (TypeError, ValueError) as exc:
+        return [f"model: {exc}"]
+    return []
 
 
 def _writable(array: Any, dtype: type) -> np.ndarray:

@@ -25,9 +25,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from agents.case_base import AdaptationError, CaseBase, CaseFileError, Feature, Match, adapt
-from agents.limits import Limit, finite, missing_modules, out_of_limits
+from agents.limits import Limit, finite, missing_modules, out_of_limits, refuse_own_state
 from pb3a import Agent, Input, InputPort, Output
 from pb3a.errors import ModuleNotFound, PB3AError
+from pb3a.model.module import StateRefused, reflective
 
 if TYPE_CHECKING:
     from pb3a.stats import SystemStats
@@ -179,9 +180,11 @@ def _shape_problems(state: dict[str, Any]) -> list[str]:
     of consumers was taken, and the first failure raised inside the agent: no remedy,
     not even the stop)."""
     problems = [f"{key} must be text, got {state[key]!r}" for key in _NAMES
-                if not isinstance(state[key], str)]
+                if key in state and not isinstance(state[key], str)]
     for key, what in (("consumers", "the module that reads it"),
                       ("fallbacks", "a class doing without it, 'package.module:Class'")):
+        if key not in state:
+            continue
         value = state[key]
         if not isinstance(value, dict) or not all(
                 isinstance(k, str) and isinstance(v, str) for k, v in value.items()):
@@ -193,24 +196,32 @@ def _shape_problems(state: dict[str, Any]) -> list[str]:
     return problems
 
 
+def _settings_problems(state: dict[str, Any]) -> list[str]:
+    """What of ``state`` a ``RemedyAgent`` could not carry out, each naming the setting:
+    no ``driver``, settings of the wrong kind or out of range (a NaN verify_s never
+    judged a remedy, and every later failure waited for good), a ``case_base`` given
+    that does not fit or has a case's unknown action."""
+    problems = _shape_problems(state) + out_of_limits(_LIMITS, state)
+    if state.get("driver", "control/driver") == "":
+        problems.append("driver must name the RobotDriver to stop or re-point (e.g. "
+                        "'control/driver'), got ''")
+    if not problems and state.get("case_base"):
+        try:
+            check_actions(CaseBase.from_dict(state["case_base"]))
+        except CaseFileError as exc:     # (it names the case, and where it came from)
+            problems.append(f"case_base: {exc}".replace("case_base: case_base", "case_base"))
+    return problems
+
+
 def _case_base(state: dict[str, Any]) -> CaseBase:
-    """The case base a ``RemedyAgent`` of ``state`` goes by: its ``case_base``, or ({})
-    the shipped cases and the user's file. ValueError for what it could not carry out: no
-    ``driver``, settings of the wrong kind or out of range, a case's unknown action
-    (``CaseFileError``, naming its file and case)."""
-    if not state["driver"]:
-        raise ValueError("RemedyAgent needs its 'driver': the RobotDriver to stop or "
-                         "re-point (e.g. 'control/driver')")
-    # (a NaN verify_s never judged a remedy, and every later failure waited for good)
-    wrong = _shape_problems(state) + out_of_limits(_LIMITS, state)
-    if wrong:
-        raise ValueError("RemedyAgent: " + "; ".join(wrong))
+    """The case base a ``RemedyAgent`` of ``state`` (refused of nothing) goes by: its
+    ``case_base``, or ({}) the shipped cases and the user's file. ``CaseFileError``,
+    naming its file and case, for a case file it cannot read or carry out."""
     if state["case_base"]:
-        base = CaseBase.from_dict(state["case_base"])
-    else:
-        path = state["cases_path"]
-        base = CaseBase.load([SHIPPED_CASES, *([path] if Path(path).expanduser().exists()
-                                               else [])])
+        return CaseBase.from_dict(state["case_base"])
+    path = state["cases_path"]
+    base = CaseBase.load([SHIPPED_CASES, *([path] if Path(path).expanduser().exists()
+                                           else [])])
     check_actions(base)
     return base
 
@@ -259,6 +270,7 @@ class RemedyAgent(Agent):
     stopped = False
 
     def setup(self) -> None:
+        refuse_own_state(self)
         self._use(_case_base(self.get_state()))
         self._check_modules()
         self._check_drivers()
@@ -318,11 +330,23 @@ class RemedyAgent(Agent):
                 "consumer": self.consumers.get(fault, ""),
                 "fallback": self.fallbacks.get(fault, "")}
 
+    @classmethod
+    def state_problems(cls, state: dict[str, Any]) -> list[str]:
+        """What it could not carry out (``_settings_problems``), each naming the setting.
+        (Case files are read at setup and by ``set_state``, on the machine it runs on.)"""
+        return super().state_problems(state) + [
+            f"{cls.__name__}'s {problem}" for problem in _settings_problems(state)]
+
+    @reflective                 # (it takes the fields Module's does: they are checked)
     def set_state(self, state: dict[str, Any]) -> None:
-        """Set state; a running agent plans by a ``case_base`` set (or, set to {}, by the
-        case files again) from its next failure, rather than by the base it made at setup,
-        which it wrote back over the state as it learnt. What setup would refuse is
-        refused, and nothing is set."""
+        """Set state (what ``state_problems`` refuses is refused, nothing set); a running
+        agent plans by a ``case_base`` set (or, set to {}, by the case files again) from
+        its next failure, rather than by the base it made at setup, which it wrote back
+        over the state as it learnt. A case file it cannot read or carry out is refused
+        too (``CaseFileError``), and nothing is set."""
+        problems = type(self).state_problems({**self.get_state(), **state})
+        if problems:            # (judged before the case files are read by them)
+            raise StateRefused(problems)
         base = _case_base({**self.get_state(), **state})
         super().set_state(state)
         if "_base" in vars(self):

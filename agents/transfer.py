@@ -26,7 +26,7 @@ import dataclasses
 import time
 from typing import Any
 
-from agents.limits import missing_modules, whole
+from agents.limits import missing_modules, refuse_own_state, whole
 from pb3a import Agent, Input, InputPort, Output
 from pb3a.errors import ConfigError, PB3AError
 from pb3a.transport.addresses import tcp_address_problems
@@ -41,26 +41,25 @@ def success_rate(outcomes: list[bool], window: int) -> float:
 KEEP_OUTCOMES = 1000      # outcomes kept beyond the window (the state would grow without end)
 
 
-def _check_settings(state: dict[str, Any]) -> None:
-    """ValueError naming each setting of a ``TransferAgent`` that could never or would
-    always transfer (a window of 0 read every episode; a threshold above 1 never
+def _settings_problems(state: dict[str, Any]) -> list[str]:
+    """What of ``state`` a ``TransferAgent`` could never or would always transfer by,
+    each naming the setting (a window of 0 read every episode; a threshold above 1 never
     transferred, silently; without a destination it raised at every episode once
     learning was done)."""
-    window, threshold, least = state["window"], state["threshold"], state["min_episodes"]
-    node, resource = state["to_node"], state["to_resource"]
-    problems = [what for what, wrong in (
-        (f"window ({window!r}) must be a whole number of episodes, 1 or more",
-         not whole(window, 1)),
-        (f"threshold ({threshold!r}) must be a success rate from 0 (at once) to 1",
-         isinstance(threshold, bool) or not isinstance(threshold, int | float)
-         or not 0 <= threshold <= 1),
-        (f"min_episodes ({least!r}) must be a whole number, 0 or more",
-         not whole(least)),
-        (f"to_node ({node!r}) must name the hardware robot's node",
-         not isinstance(node, str) or not node)) if wrong]
-    problems += tcp_address_problems(resource, "to_resource, the hardware robot's server,")
-    if problems:
-        raise ValueError("TransferAgent: " + "; ".join(problems))
+    rules = {
+        "window": (lambda v: whole(v, 1), "a whole number of episodes, 1 or more"),
+        "threshold": (lambda v: not isinstance(v, bool) and isinstance(v, int | float)
+                      and 0 <= v <= 1, "a success rate from 0 (at once) to 1"),
+        "min_episodes": (whole, "a whole number, 0 or more"),
+        "to_node": (lambda v: isinstance(v, str) and v != "",
+                    "the name of the hardware robot's node"),
+    }
+    problems = [f"{key} must be {what}, got {state[key]!r}"
+                for key, (ok, what) in rules.items() if key in state and not ok(state[key])]
+    if "to_resource" in state:
+        problems += tcp_address_problems(state["to_resource"],
+                                         "to_resource, the hardware robot's server,")
+    return problems
 
 
 class TransferAgent(Agent):
@@ -90,7 +89,7 @@ class TransferAgent(Agent):
     period = 0.02                   # the longest a look at a move in progress waits
 
     def setup(self) -> None:
-        _check_settings(self.get_state())
+        refuse_own_state(self)
         self._check_modules()
         self._moving: Any = None    # the Pending of the move (not state: not picklable)
 
@@ -101,11 +100,13 @@ class TransferAgent(Agent):
         if problems:
             raise ValueError("TransferAgent: " + "; ".join(problems))
 
-    def set_state(self, state: dict[str, Any]) -> None:
-        """Set state; a setting setup would refuse is refused, naming it, and nothing is
-        set (a window of 0 set live would have read every episode from then on)."""
-        _check_settings({**self.get_state(), **state})
-        super().set_state(state)
+    @classmethod
+    def state_problems(cls, state: dict[str, Any]) -> list[str]:
+        """A setting it could never or would always transfer by (see
+        ``_settings_problems``), each naming it."""
+        problems = super().state_problems(state)
+        return problems + [f"{cls.__name__}'s {problem}"
+                           for problem in _settings_problems(state)]
 
     def on_input(self, port: InputPort) -> None:
         for episode in port.read_all():

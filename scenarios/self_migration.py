@@ -33,6 +33,7 @@ from pb3a import Agent, Environment, Input, InputPort, Module, Output, System
 from pb3a.cli.arguments import seed
 from pb3a.cli.log_output import show_logs
 from pb3a.cpu_load import CPULoad
+from pb3a.model.module import reflective
 from pb3a.pending import Pending
 from scenarios import output_directory, summary
 from scenarios.lab import wait_until
@@ -113,6 +114,7 @@ class Mover(Agent):
         self._moving: Pending | None = None
         self._here: str | None = self.runtime.where(self.target)
 
+    @reflective                 # (it takes the fields Module's does: they are checked)
     def set_state(self, state: dict[str, Any]) -> None:
         """Set state; the node of a ``target`` set while it runs (where load is judged)
         is looked up at the next sample, not in here: set_state comes under the

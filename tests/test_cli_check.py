@@ -163,6 +163,58 @@ def test_check_reports_what_a_user_s_module_refuses_of_its_state_by_file_and_ent
     assert "2 problems in plant.toml" in done.stderr
 
 
+def test_check_reports_what_the_library_s_modules_refuse_of_their_state(
+        tmp_path: Path) -> None:
+    """The library's modules refused values in a ``set_state`` or a ``setup`` of their
+    own, which ``pb3a check`` never asked: a file with a junction's lane capacity of 0,
+    a maximum green below the minimum, a window of 0 episodes passed it, and the launch
+    failed on it (or the module ran on it). They say so in ``state_problems`` now: each
+    is a problem of its entry, a rule relating fields judged with the class's default
+    for the field the entry leaves (and with an instance's override, for a macro's)."""
+    (tmp_path / "lab.toml").write_text(textwrap.dedent("""
+        name = "lab"
+        [modules.sensors]
+        class = "agents.traffic.sensors:JunctionSensors"
+        state = { lane_capacity = 0 }
+        [modules.control]
+        class = "agents.traffic.gap_out:GapOut"
+        state = { min_green_s = 50.0 }
+        [modules.learner]
+        class = "agents.traffic.learning:QLearning"
+        state = { seed = -1 }
+        [modules.transfer]
+        class = "agents.transfer:TransferAgent"
+        state = { window = 0, to_node = "robot", to_resource = "tcp://10.0.0.7:7400" }
+        [modules.monitor]
+        class = "agents.monitor:HardwareMonitor"
+        state = { votes_needed = 6 }
+        [modules.mapper]
+        class = "agents.occupancy:Mapper"
+        state = { publish_every = 0 }
+        [modules.fine]
+        class = "agents.traffic.gap_out:GapOut"
+        state = { min_green_s = 2.0, max_green_s = 30.0 }
+        """))
+    done = pb3a("check", "lab.toml", cwd=tmp_path)
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert done.stdout.splitlines() == [
+        "lab.toml [modules.sensors]: JunctionSensors's lane_capacity must be a whole number "
+        "of vehicles, 1 or more, got 0",
+        "lab.toml [modules.learner]: QLearning's seed must be a whole number, 0 or more, "
+        "got -1",
+        "lab.toml [modules.transfer]: TransferAgent's window must be a whole number of "
+        "episodes, 1 or more, got 0",
+        "lab.toml [modules.mapper]: Mapper's publish_every must be a whole number of "
+        "readings, 1 or more, got 0",
+        # (a rule relating fields, judged with the class's defaults: after the rest)
+        "lab.toml [modules.control]: GapOut's max_green_s (40.0) must be at least "
+        "min_green_s (50.0)",
+        "lab.toml [modules.monitor]: HardwareMonitor's votes_needed and votes_of: an alarm "
+        "needs votes_needed k of votes_of n windows, with 1 <= k <= n, not 6 of 5"
+    ], done.stdout
+    assert "6 problems in lab.toml" in done.stderr
+
+
 def test_check_accepts_a_lossless_link_and_lists_lossless_when_a_policy_is_bad(
         tmp_path: Path) -> None:
     text = BROKEN.replace("perod", "period").replace("Scael", "Scale")

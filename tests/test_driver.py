@@ -84,8 +84,9 @@ def test_a_timeout_that_is_not_a_positive_finite_number_is_refused_by_name(
     assert (harness.state["timeout"], harness.state["resource"]) == (0.3, a.address)
     harness.module.set_state({"timeout": 2})                 # a whole number is one
     assert harness.module.request("read") == "a"
-    impatient = type("Impatient", (Reader,), {"timeout": timeout})    # (no set_state saw it)
-    harness = ModuleHarness(impatient, state={"resource": a.address})
+    # (no set_state saw it: one would refuse it now, judging the driver's whole state)
+    impatient = type("Impatient", (Reader,), {"timeout": timeout, "resource": a.address})
+    harness = ModuleHarness(impatient)
     harness.step()
     assert "Impatient's timeout must be a positive number" in harness.module.last_error
 

@@ -16,6 +16,8 @@ from typing import Any
 
 import pytest
 
+from agents.traffic.gap_out import GapOut
+
 pytest.importorskip("starlette", reason="the manager needs the 'ui' extra")
 
 from manager_modules import FileNamed, Holder
@@ -307,6 +309,24 @@ def test_an_edit_the_module_s_class_refuses_is_refused_naming_it_and_nothing_set
         changed = client.post("/api/modules/p/state", json={"rate": 4, "valve": "open"})
         assert changed.status_code == 200, changed.text
         assert run.state("p") == {"rate": 4.0, "valve": "open"}
+
+
+def test_an_edit_is_judged_with_the_module_s_other_fields_as_they_are() -> None:
+    """The State Editor judges an edit as the module's ``set_state`` does, with its other
+    fields as they are: a junction controller's maximum green below its minimum was
+    sent (the class refused it only in its own ``set_state``: a worker's failure, 502),
+    and, judged alone, an edit was held against the class's default for the other."""
+    system = System("junction").add("control", GapOut)
+    with system.launch() as run, manager_client(Session(Document.empty(), run)) as client:
+        run.set_state("control", min_green_s=2.0)
+        changed = client.post("/api/modules/control/state", json={"max_green_s": 3})
+        assert changed.status_code == 200, changed.text      # (the class's minimum is 5 s)
+        refused = client.post("/api/modules/control/state", json={"min_green_s": 4})
+        assert refused.status_code == 422, refused.text
+        assert refused.json()["error"] == ("module control: GapOut's max_green_s (3.0) must be "
+                                           "at least min_green_s (4.0)")
+        state = run.state("control")
+        assert (state["min_green_s"], state["max_green_s"]) == (2.0, 3.0)
 
 
 def test_a_float_field_takes_inf_and_nan_and_an_int_field_refuses_them(client, run) -> None:

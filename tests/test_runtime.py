@@ -55,6 +55,8 @@ from sample_modules import (
     Steady,
 )
 
+from agents.traffic.gap_out import GapOut
+from agents.traffic.sensors import JunctionSensors
 from pb3a import (
     ConfigError,
     Driver,
@@ -351,6 +353,36 @@ def test_a_value_its_class_refuses_is_refused_live_naming_the_module_and_nothing
         assert run.state("p") == {"rate": 1.0, "valve": "closed"}
         run.set_state("p", rate=2, valve="open")                   # what it takes is set
         assert run.state("p") == {"rate": 2.0, "valve": "open"}
+
+
+def test_what_a_library_module_refuses_is_refused_live_and_on_add_and_nothing_set() -> None:
+    """The library's modules refused values in a ``set_state`` of their own: live, the
+    refusal came back as the worker's failure ("worker ...: ValueError: ..."), and an
+    ``add`` with such a value started the module, whose setup failed. Their classes say
+    it in ``state_problems`` now: a refusal naming the module and the value, nothing set,
+    the module running on; an ``add`` refused before anything starts. A rule relating
+    two fields judges an edit against the value the module has of the other."""
+    system = System("junction").add("sensors", JunctionSensors).add("control", GapOut)
+    with system.launch() as run:
+        with pytest.raises(RuntimeFailure) as refused:
+            run.set_state("sensors", lane_capacity=0)
+        assert str(refused.value) == ("module 'sensors': JunctionSensors's lane_capacity must "
+                                      "be a whole number of vehicles, 1 or more, got 0; "
+                                      "nothing was set")
+        run.set_state("control", min_green_s=2.0)
+        run.set_state("control", max_green_s=3.0)    # (against its 2 s, not the class's 5)
+        with pytest.raises(RuntimeFailure) as refused:
+            run.set_state("control", min_green_s=4.0, passage_s=1.0)
+        assert str(refused.value) == ("module 'control': GapOut's max_green_s (3.0) must be "
+                                      "at least min_green_s (4.0); nothing was set")
+        state = run.state("control")
+        assert (state["min_green_s"], state["max_green_s"], state["passage_s"]) == (2.0, 3.0, 4.0)
+        with pytest.raises(ConfigError, match="JunctionSensors's lane_capacity must be a whole "
+                                              "number of vehicles, 1 or more, got -1"):
+            run.add("more", JunctionSensors, state={"lane_capacity": -1})
+        assert set(run.stats().modules) == {"sensors", "control"}
+        assert run.state("sensors")["lane_capacity"] == 200
+        assert run.stats().modules["sensors"].errors == 0
 
 
 def test_swap_keeps_ports_and_state_and_runs_setup_again() -> None:

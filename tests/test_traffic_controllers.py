@@ -187,7 +187,7 @@ def test_q_learning_starts_from_the_trained_table(tmp_path: Path) -> None:
     (LongestQueueFirst, {"max_green_s": 4.0}, "max_green_s (4.0) must be at least "
                                               "min_green_s (8.0)"),
     (GapOut, {"passage_s": -1.0, "switch_ratio": "2"}, "passage_s must be a number of "
-                                                       "seconds, 0 or more, got -1.0; "
+                                                       "seconds, 0 or more, got -1.0; GapOut's "
                                                        "switch_ratio must be a number"),
     (TimeLoss, {"max_green_s": 0.5}, "max_green_s must be a number of seconds, 1 or more"),
     (QLearning, {"alpha": 1.5}, "alpha must be a number from 0 to 1, got 1.5"),
@@ -269,7 +269,7 @@ def test_the_sensors_judge_plausibility_by_a_lane_capacity_they_check() -> None:
     assert [m.plausible for m in sensors.written["measures"]] == [True, False]
     assert sensors.written["measures"][0].queue == 16
     for bad in (0, -1, 2.5, float("nan"), "200", True):
-        with pytest.raises(ValueError, match="JunctionSensors: lane_capacity must be a "
+        with pytest.raises(ValueError, match="JunctionSensors's lane_capacity must be a "
                                              "whole number of vehicles, 1 or more"):
             ModuleHarness(JunctionSensors, state={"lane_capacity": bad})
         with pytest.raises(ValueError, match="lane_capacity must be"):

@@ -10,8 +10,9 @@ from the reading's ``green``, ``target``, ``stage`` and ``elapsed`` (what the dr
 mid-phase carries on from the phase in progress.
 
 Each subclass lists its numeric settings and what they must be (``_limits``): a
-value out of range is refused by name at ``setup`` and by ``set_state``, nothing
-set, instead of a green of -5 s that the signal head would quietly stretch.
+value out of range is refused by name (``state_problems``: by ``pb3a check``, ``add``,
+the State Editor, a live ``set_state``, which sets nothing, and at ``setup``), instead
+of a green of -5 s that the signal head would quietly stretch.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from __future__ import annotations
 import abc
 from typing import Any, ClassVar
 
-from agents.limits import Limit, out_of_limits, settings_with
+from agents.limits import Limit, out_of_limits, refuse_own_state
 from agents.traffic.messages import JunctionReading, NeighbourQueues, PhaseRequest
 from pb3a import Input, InputPort, Module, Output
 
@@ -43,31 +44,21 @@ class JunctionController(_NeighbourSlots, Module, abc.ABC):
     _limits: ClassVar[dict[str, Limit]] = {}     # each numeric setting: what it must be
 
     def setup(self) -> None:
+        refuse_own_state(self)
         self._downstream: dict[str, int] = {}
-        self._check({})
 
-    def set_state(self, state: dict[str, Any]) -> None:
-        """Set state; a setting out of its ``_limits`` is refused, naming it, and
-        nothing is set."""
-        self._check(state)
-        super().set_state(state)
-
-    def _check(self, state: dict[str, Any]) -> None:
-        """ValueError naming each setting that would be out of its limits with
-        ``state`` set (a maximum green below the minimum one too)."""
-        merged = settings_with(self, self._limits, state)
-        problems = out_of_limits(self._limits, merged)
-        if not problems and merged.get("max_green_s", 1) < merged.get("min_green_s", 0):
-            problems.append(f"max_green_s ({merged['max_green_s']!r}) must be at least "
-                            f"min_green_s ({merged['min_green_s']!r})")
-        problems += self._other_problems(state)
-        if problems:
-            raise ValueError(f"{type(self).__name__}: " + "; ".join(problems))
-
-    def _other_problems(self, state: dict[str, Any]) -> list[str]:
-        """What else would be wrong with ``state`` set (a subclass's settings that are
-        not numbers in limits)."""
-        return []
+    @classmethod
+    def state_problems(cls, state: dict[str, Any]) -> list[str]:
+        """Each setting of ``state`` out of its ``_limits``, and a maximum green below
+        the minimum one (when the state gives both), each naming the setting."""
+        problems = super().state_problems(state)
+        wrong = out_of_limits(cls._limits, state)
+        if not wrong and "min_green_s" in state and "max_green_s" in state:
+            least, most = state["min_green_s"], state["max_green_s"]
+            if most < least:
+                wrong.append(f"max_green_s ({most!r}) must be at least min_green_s "
+                             f"({least!r})")
+        return problems + [f"{cls.__name__}'s {problem}" for problem in wrong]
 
     def on_input(self, port: InputPort) -> None:
         if port.name.startswith("neighbour_"):

@@ -55,12 +55,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-from agents.limits import SECONDS, SPAN, out_of_limits, settings_with, whole
+from agents.limits import SECONDS, SPAN, out_of_limits, whole
 from agents.traffic.messages import JunctionReading, NetworkReading, PhaseRequest
 from agents.traffic.networks import BuildFailed, Network, SumoMissing
 from agents.traffic.signals import SignalHead
 from agents.traffic.simulation import SEED_MAX, STEP_S, Simulation
 from pb3a import Input, InputPort, Module, Output
+from pb3a.model.module import reflective
 
 MAX_JUNCTIONS = 16          # junction slots: ports are declared with the class
 _SIMULATION_KEYS = ("resource", "seed", "signals", "duration_s", "own_programs",
@@ -139,21 +140,27 @@ class TrafficDriver(_JunctionSlots, Module):
         if self.resource:
             self._begin()
 
-    def set_state(self, state: dict[str, Any]) -> None:
-        """Set state; a change of ``resource``, ``seed``, ``signals``, ``duration_s``,
-        ``own_programs`` or ``demand_scale`` in a driver set up ends its simulation and
-        starts the new one at once; a ``min_green_s`` holds from the green shown now.
-        ``ValueError`` (nothing set, the simulation running on) for a control step,
-        minimum green, duration, lock-step timeout or seed out of range, and for a new
-        simulation that could not start: its network, demand scale or signals wrong, or
-        a signalized junction of it without a controller (see ``_prepare``)."""
-        problems = out_of_limits(_LIMITS, settings_with(self, _LIMITS, state))
-        seed = state.get("seed", self.seed)
+    @classmethod
+    def state_problems(cls, state: dict[str, Any]) -> list[str]:
+        """A control step, minimum green, duration, lock-step timeout or seed out of
+        range, ``own_programs`` not true or false, each naming the setting."""
+        problems = super().state_problems(state)
+        wrong = out_of_limits(_LIMITS, state)
+        seed = state.get("seed", 0)
         if not (whole(seed) and seed <= SEED_MAX):
-            problems.append(f"seed must be a whole number from 0 to {SEED_MAX} (SUMO's "
-                            f"--seed), got {seed!r}")
-        if problems:
-            raise ValueError("; ".join(problems))
+            wrong.append(f"seed must be a whole number from 0 to {SEED_MAX} (SUMO's "
+                         f"--seed), got {seed!r}")
+        return problems + [f"{cls.__name__}'s {problem}" for problem in wrong]
+
+    @reflective                 # (it takes the fields Module's does: they are checked)
+    def set_state(self, state: dict[str, Any]) -> None:
+        """Set state (what ``state_problems`` refuses is refused, nothing set); a change
+        of ``resource``, ``seed``, ``signals``, ``duration_s``, ``own_programs`` or
+        ``demand_scale`` in a driver set up ends its simulation and starts the new one at
+        once; a ``min_green_s`` holds from the green shown now. ``ValueError`` (nothing
+        set, the simulation running on) for a new simulation that could not start: its
+        network, demand scale or signals wrong, or a signalized junction of it without a
+        controller (see ``_prepare``)."""
         changed = any(k in state and state[k] != getattr(self, k) for k in _SIMULATION_KEYS)
         prepared = None
         if changed and "_heads" in vars(self):

@@ -23,6 +23,7 @@ from typing import Any
 from agents.limits import GREEN, SECONDS, SHARE, finite, whole
 from agents.traffic.controller import JunctionController, busiest_red, in_transition, served
 from agents.traffic.messages import JunctionReading
+from pb3a.model.module import StateRefused, reflective
 
 TRAINED = Path(__file__).with_name("q_table.json")
 HOLD, GIVE_WAY = 0, 1
@@ -70,17 +71,19 @@ class QLearning(JunctionController):
         self._pending: tuple[str, int] | None = None   # the decision not yet learnt from
         self._accrued, self._seconds = 0.0, 0           # its cost so far, and how long
 
+    @reflective                 # (it takes the fields Module's does: they are checked)
     def set_state(self, state: dict[str, Any]) -> None:
-        """Set state; a ``seed`` set while it runs draws its explorations from then on. A
-        ``table_file`` given without a table (or with an empty one) is read now, so the
-        learner set up already (running, or swapped in by a performance agent, which
-        gives the state after the swap's setup) goes by it; a file that holds no table,
-        a table that is not one of state key -> [value of holding, value of giving way]
-        (two finite numbers), a ``learning`` that is not true or false or a ``seed`` that
-        is not a whole number is refused by name, nothing set."""
+        """Set state (what ``state_problems`` refuses is refused, nothing set); a ``seed``
+        set while it runs draws its explorations from then on. A ``table_file`` given
+        without a table (or with an empty one) is read now, so the learner set up already
+        (running, or swapped in by a performance agent, which gives the state after the
+        swap's setup) goes by it; a file that holds no table is refused, nothing set."""
         loaded = None
         if state.get("table_file") and not state.get("table"):
-            loaded = read_table(state["table_file"], type(self).__name__)
+            try:
+                loaded = read_table(state["table_file"], type(self).__name__)
+            except ValueError as exc:   # (a refusal, not the worker's failure)
+                raise StateRefused([str(exc)]) from None
         super().set_state(state)
         if loaded is not None:
             self.table = loaded
@@ -89,18 +92,23 @@ class QLearning(JunctionController):
         if "seed" in state and "_random" in vars(self):
             self._random = random.Random(self.seed)
 
-    def _other_problems(self, state: dict[str, Any]) -> list[str]:
-        problems = table_problems(state["table"]) if "table" in state else []
-        learning, seed, table_file = (state.get(key, getattr(self, key))
-                                      for key in ("learning", "seed", "table_file"))
-        if not isinstance(learning, bool):
-            problems.append(f"learning must be true or false, got {learning!r}")
-        if not whole(seed):
-            problems.append(f"seed must be a whole number, 0 or more, got {seed!r}")
-        if not isinstance(table_file, str):
-            problems.append(f"table_file must be the path of a table's file, or '' for "
-                            f"none, got {table_file!r}")
-        return problems
+    @classmethod
+    def state_problems(cls, state: dict[str, Any]) -> list[str]:
+        """What ``JunctionController`` refuses, and a table that is not one of state key
+        -> [value of holding, value of giving way] (two finite numbers), a ``learning``
+        that is not true or false, a ``seed`` that is not a whole number, a
+        ``table_file`` that is not a path (a file that holds no table is refused as it is
+        read: at setup, or by ``set_state``)."""
+        problems = super().state_problems(state)
+        wrong = table_problems(state["table"]) if "table" in state else []
+        if "learning" in state and not isinstance(state["learning"], bool):
+            wrong.append(f"learning must be true or false, got {state['learning']!r}")
+        if "seed" in state and not whole(state["seed"]):
+            wrong.append(f"seed must be a whole number, 0 or more, got {state['seed']!r}")
+        if "table_file" in state and not isinstance(state["table_file"], str):
+            wrong.append(f"table_file must be the path of a table's file, or '' for none, "
+                         f"got {state['table_file']!r}")
+        return problems + [f"{cls.__name__}'s {problem}" for problem in wrong]
 
     def choose(self, reading: JunctionReading) -> int:
         if len(reading.layout.greens) == 1:

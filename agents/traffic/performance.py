@@ -46,7 +46,17 @@ import time
 from collections import deque
 from typing import Any
 
-from agents.limits import RATIO, SECONDS, SHARE, SPAN, Limit, finite, missing_modules, out_of_limits
+from agents.limits import (
+    RATIO,
+    SECONDS,
+    SHARE,
+    SPAN,
+    Limit,
+    finite,
+    missing_modules,
+    out_of_limits,
+    refuse_own_state,
+)
 from agents.traffic.messages import JunctionMeasures
 from pb3a import Agent, Input, InputPort, Module, Output
 from pb3a.config import checks
@@ -62,35 +72,40 @@ _LIMITS: dict[str, Limit] = {
     "silent_wall_s": SECONDS, "hysteresis": SHARE}
 
 
-def _check_settings(state: dict[str, Any]) -> None:
-    """ValueError naming each setting of a ``PerformanceAgent`` of ``state`` that it
-    could not go by (see the module's docstring); every problem in one message."""
+# the settings that name controllers: each one of ``controllers`` (judged when the state
+# gives them all)
+_NAMING = ("controllers", "rules", "running", "chosen", "fallback")
+
+
+def _settings_problems(state: dict[str, Any]) -> list[str]:
+    """What a ``PerformanceAgent`` could not go by of ``state``, each problem naming the
+    setting (see the class's docstring)."""
     problems = out_of_limits(_LIMITS, state)
-    if not isinstance(state["controller"], str) or checks.path(state["controller"], "module"):
+    if "controller" in state and (not isinstance(state["controller"], str)
+                                  or checks.path(state["controller"], "module")):
         problems.append(f"controller must be the controller's module name (e.g. "
                         f"'W/controller'), got {state['controller']!r}")
-    controllers, rules = state["controllers"], state["rules"]
-    if not isinstance(controllers, dict):
+    controllers, rules = state.get("controllers", {}), state.get("rules", [])
+    if "controllers" in state and not isinstance(controllers, dict):
         problems.append(f"controllers must be a table of name = {{ class, state }}, "
                         f"got {controllers!r}")
-        controllers = {}
-    for name, spec in controllers.items():
-        problems += _controller_problems(name, spec)
-    if not isinstance(rules, list):
+    elif "controllers" in state:
+        for name, spec in controllers.items():
+            problems += _controller_problems(name, spec)
+    if "rules" in state and not isinstance(rules, list):
         problems.append(f"rules must be a list of {{ use, demand_at_least, queue_at_least }}"
                         f", got {rules!r}")
-        rules = []
-    for index, rule in enumerate(rules):
-        problems += _rule_problems(index, rule)
+    elif "rules" in state:
+        for index, rule in enumerate(rules):
+            problems += _rule_problems(index, rule)
     problems += _kept_problems(state)
-    if not problems:
+    if not problems and set(_NAMING) <= set(state):
         unknown = {state["running"], state["chosen"] or state["running"], state["fallback"],
                    *(r["use"] for r in rules)} - set(controllers)
         if unknown:
             problems.append(f"no controller {', '.join(sorted(map(str, unknown)))} in "
                             f"controllers ({', '.join(sorted(controllers)) or 'none'})")
-    if problems:
-        raise ValueError(f"{_who(state['controller'])}: " + "; ".join(problems))
+    return problems
 
 
 def _kept_problems(state: dict[str, Any]) -> list[str]:
@@ -98,14 +113,14 @@ def _kept_problems(state: dict[str, Any]) -> list[str]:
     set in the State Editor): the time of its last swap, its record, its judgement of
     the detectors, the learnt state it keeps."""
     problems = []
-    if not finite(state["last_swap_s"]):
+    if "last_swap_s" in state and not finite(state["last_swap_s"]):
         problems.append(f"last_swap_s must be a number (simulated seconds), got "
                         f"{state['last_swap_s']!r}")
-    if not isinstance(state["swaps"], list):
+    if "swaps" in state and not isinstance(state["swaps"], list):
         problems.append(f"swaps must be a list of the swaps' records, got {state['swaps']!r}")
-    if not isinstance(state["detectors_ok"], bool):
+    if "detectors_ok" in state and not isinstance(state["detectors_ok"], bool):
         problems.append(f"detectors_ok must be true or false, got {state['detectors_ok']!r}")
-    kept = state["kept"]
+    kept = state.get("kept", {})
     if not (isinstance(kept, dict) and all(isinstance(v, dict) for v in kept.values())):
         problems.append(f"kept must be a table of controller name = {{ its learnt state }}, "
                         f"got {kept!r:.80}")
@@ -196,8 +211,9 @@ class PerformanceAgent(Agent):
     class whose setup fails) changes nothing and raises; a swap to the fallback is
     tried again at the next look, one by the rules after ``min_between_swaps_s``.
 
-    Its settings are checked at setup and by ``set_state`` (which then sets nothing),
-    each problem named: the times finite (``window_s`` and ``silent_after_s`` above 0,
+    Its settings are checked by ``state_problems`` (so by ``pb3a check``, ``add``, the
+    State Editor, a live ``set_state``, which then sets nothing, and at setup), each
+    problem named: the times finite (``window_s`` and ``silent_after_s`` above 0,
     ``min_between_swaps_s`` and ``silent_wall_s`` 0 or more), ``hysteresis`` from 0 to
     1, ``controller`` a module name, each of ``controllers`` a class that resolves to a
     module with a ``state`` the class takes (tried on a fresh instance, as the system
@@ -243,7 +259,7 @@ class PerformanceAgent(Agent):
 
     def setup(self) -> None:
         self.chosen = self.chosen or self.running
-        _check_settings(self.get_state())
+        refuse_own_state(self)
         missing = missing_modules(self, [("controller", self.controller)])
         if missing:
             raise ValueError(f"{self.controller}'s performance agent: {missing[0]}")
@@ -258,14 +274,15 @@ class PerformanceAgent(Agent):
         self._done_s: float | None = None           # the time last said done
         self._wall = time.monotonic
 
-    def set_state(self, state: dict[str, Any]) -> None:
-        """Set state; what setup would refuse (a time out of range, a rule key it does
-        not know, a controller class that does not resolve or refuses its state, rules,
-        a fallback or a running controller it has not got) is refused by name, and
-        nothing is set. (Whether ``controller`` is a module of the system is not asked
-        here: see the module's docstring.)"""
-        _check_settings({**self.get_state(), **state})
-        super().set_state(state)
+    @classmethod
+    def state_problems(cls, state: dict[str, Any]) -> list[str]:
+        """What the agent could not go by (a time out of range, a rule key it does not
+        know, a controller class that does not resolve or refuses its state, rules, a
+        fallback or a running controller it has not got), each naming the setting.
+        (Whether ``controller`` is a module of the system is asked at setup: see the
+        class's docstring.)"""
+        return super().state_problems(state) + [
+            f"{cls.__name__}'s {problem}" for problem in _settings_problems(state)]
 
     def on_input(self, port: InputPort) -> None:
         if port.name == "clock":

@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from agents.limits import whole
+from agents.limits import refuse_own_state, whole
 from agents.traffic.messages import JunctionMeasures, JunctionReading, NeighbourQueues
 from pb3a import Input, InputPort, Module, Output
 
@@ -40,17 +40,19 @@ class JunctionSensors(Module):
     implausible = 0                     # readings judged implausible
 
     def setup(self) -> None:
-        self.set_state({})
+        refuse_own_state(self)
 
-    def set_state(self, state: dict[str, Any]) -> None:
-        """Set state; a ``lane_capacity`` that is not a whole number, 1 or more, is
-        refused by name, nothing set (below 1, every reading was a failed detector, and
-        the junction ran fixed time for good, blamed on its detectors)."""
-        capacity = state.get("lane_capacity", self.lane_capacity)
+    @classmethod
+    def state_problems(cls, state: dict[str, Any]) -> list[str]:
+        """A ``lane_capacity`` that is not a whole number, 1 or more (below 1, every
+        reading was a failed detector, and the junction ran fixed time for good, blamed
+        on its detectors)."""
+        problems = super().state_problems(state)
+        capacity = state.get("lane_capacity", 1)
         if not whole(capacity, 1):
-            raise ValueError(f"JunctionSensors: lane_capacity must be a whole number of "
-                             f"vehicles, 1 or more, got {capacity!r}")
-        super().set_state(state)
+            problems.append(f"{cls.__name__}'s lane_capacity must be a whole number of "
+                            f"vehicles, 1 or more, got {capacity!r}")
+        return problems
 
     def on_input(self, port: InputPort) -> None:
         for reading in port.read_all():

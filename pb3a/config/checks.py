@@ -160,6 +160,13 @@ def state(cls: type[Module], value: Any) -> list[str]:
         return [f"state must be a table of attribute = value, got {value!r}"]
     if not reflective_state(cls):
         return refused(cls, value)    # the class defines its own state: it knows the keys
+    problems, judged = _judged(cls, value)
+    return problems + refused(cls, judged)
+
+
+def _judged(cls: type[Module], value: dict[str, Any]) -> tuple[list[str], dict[str, Any]]:
+    """The problems of the keys and kinds of ``value``, a reflective class's state, and
+    the values that have none (each of the kind of the class's default)."""
     names, made = cls.state_names(), _set_in_init(cls)
     known = [*names, *sorted(made.difference(names))]
     problems, judged = [], {}
@@ -175,19 +182,31 @@ def state(cls: type[Module], value: Any) -> list[str]:
             problems.append(f"{class_ref(cls)} has no state {key!r}{did_you_mean(key, known)}; "
                             f"its state is: {listing(known)} (fix the key, or declare the "
                             "attribute on the class)")
-    return problems + refused(cls, judged)
+    return problems, judged
 
 
-def defaults_refused(cls: type[Module], state: dict[str, Any]) -> list[str]:
-    """What the class refuses of its own state defaults that a module's whole state
-    (its entry's, with its macro instances' overrides) leaves as they are: a driver's
-    ``timeout = 0``, which every request then failed by. Judged against the state given,
-    so a placeholder default that every entry overrides is no problem (judged alone, it
-    made such a class impossible to launch)."""
+def defaults_refused(cls: type[Module], whole: dict[str, Any],
+                     parts: Iterable[dict[str, Any]] | None = None) -> list[str]:
+    """What the class refuses of a module's whole state (``whole``, its entry's with its
+    macro instances' overrides, and the class's own defaults for the rest) beyond what
+    it refuses of each of ``parts`` alone (the tables ``whole`` was made of, each judged
+    where it is written, by ``state``: ``whole`` itself if None): a default of its own
+    it refuses, a driver's ``timeout = 0``, which every request then failed by ("...
+    (its class's own default)"), and a rule relating fields that an entry and a
+    default, or a macro's entry and an instance's override, break together (a
+    controller's minimum green above its class's maximum). Judged whole, a placeholder
+    default that every entry overrides is no problem (judged alone, it made such a class
+    impossible to launch)."""
     if not reflective_state(cls):
         return []
-    defaults = {name: getattr(cls, name) for name in cls.state_names() if name not in state}
-    return [f"{problem} (its class's own default)" for problem in refused(cls, defaults)]
+    defaults = {name: getattr(cls, name) for name in cls.state_names()}
+    said = {problem for part in ([whole] if parts is None else parts)
+            for problem in state(cls, part)}
+    own = refused(cls, defaults)
+    # (a value not of its field's kind is said as such, not judged again here)
+    return [f"{problem} (its class's own default)" if problem in own else problem
+            for problem in refused(cls, {**defaults, **_judged(cls, whole)[1]})
+            if problem not in said]
 
 
 def refused(cls: type[Module], state: dict[str, Any]) -> list[str]:

@@ -388,12 +388,14 @@ class _Planner:
                 period = entry.period if not checks.period(entry.period) else None
                 restart = entry.restart if not checks.restart(entry.restart) else None
                 state = dict(entry.state) if isinstance(entry.state, dict) else {}
+                parts = [dict(state)]           # (each judged alone where it is written)
                 for extra in overrides.pop(name, []):
                     self.report(extra.label, [f"state of {extra.key!r}: {problem}"
                                               for problem in checks.state(cls, extra.state)])
                     state.update(extra.state)
+                    parts.append(extra.state)
                 state = _widened(cls, state)
-                self.report(child.label, checks.defaults_refused(cls, state))
+                self.report(child.label, checks.defaults_refused(cls, state, parts))
                 modules[path] = FlatModule(
                     path, cls, here or self.node_names[0],
                     float(period) if period is not None else cls.period, state,

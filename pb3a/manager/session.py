@@ -362,8 +362,10 @@ class Session:
                 problems.append(f"module {name}: {exc}")
         fields = {field: value for field, value in fitted.items() if field in current}
         if not problems:
-            problems = [f"module {name}: {problem}"
-                        for problem in _refused(topology.modules[name].cls, fields)]
+            # (with its other fields as they are, as the module's set_state judges it: a
+            # rule relating an edited field to another read the class's default)
+            problems = [f"module {name}: {problem}" for problem in
+                        _refused(topology.modules[name].cls, {**current, **fields})]
         if problems:
             raise Unfit(problems)
         self.handle.set_state(name, fitted, timeout=self.timeout)

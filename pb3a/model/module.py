@@ -115,11 +115,11 @@ class Module:
     # -- state -------------------------------------------------------------
     @classmethod
     def state_problems(cls, state: dict[str, Any]) -> list[str]:
-        """What the class refuses of ``state`` (fields about to be set, by name: a live
-        edit's, a configuration entry's, the class's own defaults), each problem a sentence
-        naming the field and what it takes; none by default. Override it for a value the
-        module cannot run with, judging only the fields given (one left out keeps its
-        value), and call the base's:
+        """What the class refuses of ``state`` (fields by name: a live edit's, with the
+        module's other fields as they are; a configuration entry's; the class's own
+        defaults that an entry leaves), each problem a sentence naming the field, its
+        value and what it takes; none by default. Override it for a value the module
+        cannot run with, judging the fields given, and call the base's:
 
             @classmethod
             def state_problems(cls, state):
@@ -127,6 +127,12 @@ class Module:
                 if "rate" in state and not 0 <= state["rate"] <= 5:
                     problems.append(f"Pump's rate must be from 0 to 5 l/s, got {state['rate']!r}")
                 return problems
+
+        A rule that relates fields (a maximum at least the minimum) judges them when the
+        state gives them all: the module's whole state is judged too, live (an edit
+        comes with the module's other fields as they are) and by the checks and ``add``
+        (the entry's with the class's defaults). Read from the class, a field the state
+        lacks was the class's default, not the value the module has or the entry gives.
 
         ``set_state`` asks it before setting anything (``StateRefused``); ``pb3a check``
         and the configuration compiler ask it for each entry's state and the class's
@@ -159,7 +165,8 @@ class Module:
     def set_state(self, state: dict[str, Any]) -> None:
         """Set state attributes by name; KeyError names any attribute the module lacks
         (unless it is given its own state back: ``restore_state``), ``StateRefused`` each
-        value the class refuses (``state_problems``). Either way nothing is set."""
+        value the class refuses (``state_problems``, given the module's whole state with
+        ``state`` in it). Either way nothing is set."""
         known = set(type(self).state_names()) | {
             name for name, value in self.__dict__.items() if _is_state(name, value)}
         unknown = sorted(set(state) - known)
@@ -175,7 +182,9 @@ class Module:
                 f"{f' (did you mean {close[0]!r}?)' if close else ''}; "
                 f"its state is: {', '.join(sorted(known)) or '(none)'}"
             )
-        problems = type(self).state_problems(state)
+        # (the fields given alone: a rule relating one of them to another field judged
+        # it against the class's default, not the value this module has)
+        problems = type(self).state_problems({**Module.get_state(self), **state})
         if problems:
             raise StateRefused(problems)
         for name, value in state.items():
