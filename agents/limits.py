@@ -14,7 +14,7 @@ from typing import Any
 from pb3a import Agent, Module
 from pb3a.config.checks import finite
 from pb3a.errors import ModuleNotFound, PB3AError
-from pb3a.model.module import StateRefused
+from pb3a.model.module import StateRefused, refusals
 
 Limit = tuple[str, Callable[[Any], bool]]
 SECONDS: Limit = ("a number of seconds, 0 or more", lambda x: finite(x) and x >= 0)
@@ -41,7 +41,7 @@ def refuse_own_state(module: Module) -> None:
     """``StateRefused`` (a ValueError) for what the module's class refuses of its whole
     state, asked at setup: a state no ``set_state`` judged (a class's own defaults, a
     module made without a configuration)."""
-    problems = type(module).state_problems(module.get_state())
+    problems = refusals(type(module), module.get_state())
     if problems:
         raise StateRefused(problems)
 

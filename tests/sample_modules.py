@@ -1481,3 +1481,16 @@ class Pump(Module):
             problems.append(f"{cls.__name__}'s valve is 'open' or 'closed', "
                             f"got {state['valve']!r}")
         return problems
+
+
+class Fragile(Module):
+    """A user's module whose ``state_problems`` has a bug: a rate of 0 divides by zero."""
+
+    rate = 1.0
+
+    @classmethod
+    def state_problems(cls, state: dict) -> list[str]:
+        problems = super().state_problems(state)
+        if "rate" in state and 1 / state["rate"] > 10:
+            problems.append(f"{cls.__name__}'s rate must be above 0.1, got {state['rate']!r}")
+        return problems

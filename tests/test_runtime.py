@@ -36,6 +36,7 @@ from sample_modules import (
     FailsToMake,
     FastScale,
     FloatSource,
+    Fragile,
     Last,
     ListScribbler,
     ListSink,
@@ -353,6 +354,27 @@ def test_a_value_its_class_refuses_is_refused_live_naming_the_module_and_nothing
         assert run.state("p") == {"rate": 1.0, "valve": "closed"}
         run.set_state("p", rate=2, valve="open")                   # what it takes is set
         assert run.state("p") == {"rate": 2.0, "valve": "open"}
+
+
+def test_a_state_problems_that_fails_live_is_a_refusal_naming_it_and_nothing_set() -> None:
+    """A class's ``state_problems`` is the user's code: one that raised as a live
+    ``set_state`` asked it came back as the worker's failure ("worker ...:
+    ZeroDivisionError: ..."), where ``pb3a check`` says it as a problem of the class. It is
+    a refusal now, in the check's words: naming the class, the hook and what it raised,
+    nothing set, and the module runs on and takes what its hook passes."""
+    with pytest.raises(StateRefused, match=r"Fragile.state_problems raised ZeroDivisionError"):
+        Fragile().set_state({"rate": 0.0})
+    with System("plant").add("f", Fragile).launch() as run:
+        with pytest.raises(RuntimeFailure) as refused:
+            run.set_state("f", rate=0.0)
+        assert str(refused.value) == (
+            "module 'f': sample_modules:Fragile.state_problems raised ZeroDivisionError: float "
+            "division by zero (given {'rate': 0.0}): fix it to return what it refuses, as a "
+            "list of texts; nothing was set")
+        assert run.state("f") == {"rate": 1.0}
+        run.set_state("f", rate=2.0)
+        assert run.state("f") == {"rate": 2.0}
+        assert run.stats().modules["f"].errors == 0
 
 
 def test_what_a_library_module_refuses_is_refused_live_and_on_add_and_nothing_set() -> None:

@@ -20,7 +20,14 @@ from pb3a.errors import MOST_SECONDS
 from pb3a.loading.references import by_reference, class_ref
 from pb3a.model.displays import declared_displays, finite
 from pb3a.model.environment import PREFIX as ENV_PREFIX
-from pb3a.model.module import HOOKS, RESTART_POLICIES, Module, can_hold, reflective_state
+from pb3a.model.module import (
+    HOOKS,
+    RESTART_POLICIES,
+    Module,
+    can_hold,
+    reflective_state,
+    refusals,
+)
 from pb3a.model.state_edits import configured
 from pb3a.transport import pickling
 from pb3a.transport.addresses import tcp_address_problems
@@ -214,18 +221,10 @@ def refused(cls: type[Module], state: dict[str, Any]) -> list[str]:
     ``state_problems``, which its ``set_state`` asks (a value only a class's own
     ``set_state`` refused passed the check, and the launch or the running module refused
     it). A ``state_problems`` that raises or answers other than a list of texts is a
-    problem itself, naming the class (the check failed with it)."""
+    problem itself, naming the class (the check failed with it): ``refusals``."""
     if not state:
         return []
-    try:
-        problems = cls.state_problems(state)
-    except Exception as exc:
-        return [f"{class_ref(cls)}.state_problems raised {type(exc).__name__}: {exc} "
-                f"(given {state!r}): fix it to return what it refuses, as a list of texts"]
-    if not (isinstance(problems, list) and all(isinstance(p, str) for p in problems)):
-        return [f"{class_ref(cls)}.state_problems must return a list of texts, one per "
-                f"value it refuses ([] for none), got {problems!r}"]
-    return problems
+    return refusals(cls, state)
 
 
 def _set_in_init(cls: type[Module]) -> set[str]:

@@ -184,7 +184,7 @@ class Module:
             )
         # (the fields given alone: a rule relating one of them to another field judged
         # it against the class's default, not the value this module has)
-        problems = type(self).state_problems({**Module.get_state(self), **state})
+        problems = refusals(type(self), {**Module.get_state(self), **state})
         if problems:
             raise StateRefused(problems)
         for name, value in state.items():
@@ -207,6 +207,25 @@ class Module:
 
     def _pb3a_adopt_ports(self, ports: dict[str, InputPort | OutputPort]) -> None:
         self.__dict__["_pb3a_ports"] = ports
+
+
+def refusals(cls: type[Module], state: dict[str, Any]) -> list[str]:
+    """What module class ``cls`` refuses of ``state``: its ``state_problems``. That is the
+    user's code: one that raises, or answers other than a list of texts, is a refusal
+    itself, naming the class, the hook and what it raised (live, a hook with a bug came
+    back as the worker's failure; ``pb3a check`` said it as this)."""
+    ref = f"{cls.__module__}:{cls.__qualname__}"         # (``class_ref``'s words)
+    try:
+        problems = cls.state_problems(state)
+    except Exception as exc:
+        given = repr(state)
+        given = given if len(given) <= 200 else f"{given[:200]}..."   # (a map, say)
+        return [f"{ref}.state_problems raised {type(exc).__name__}: {exc} (given {given}): "
+                "fix it to return what it refuses, as a list of texts"]
+    if not (isinstance(problems, list) and all(isinstance(p, str) for p in problems)):
+        return [f"{ref}.state_problems must return a list of texts, one per value it "
+                f"refuses ([] for none), got {problems!r:.200}"]
+    return problems
 
 
 def restore_state(module: Module, state: dict[str, Any]) -> None:
