@@ -12,7 +12,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from sample_modules import DeviceReader
+from sample_modules import DeviceReader, Pump
 
 import examples.pipeline
 from agents.robot_driver import RobotDriver
@@ -1480,6 +1480,41 @@ def test_a_state_problems_that_fails_is_a_problem_naming_its_class() -> None:
                "(given {'rate': 1.0})" in p for p in problems), problems
     assert any("Texting.state_problems must return a list of texts, one per value it "
                "refuses ([] for none), got 'no'" in p for p in problems), problems
+
+
+def test_a_state_problems_that_is_no_classmethod_or_misspelt_is_named() -> None:
+    """``state_problems`` is asked of the class: a plain method failed at each asking,
+    said only as "raised TypeError: ... missing 1 required positional argument", and one
+    misspelt (``state_problem``) was never asked, no word said. Each is named now, with
+    the fix; a classmethod, or a helper whose class defines the hook, is not."""
+
+    class Plain(Module):
+        rate = 1.0
+
+        def state_problems(self, state):
+            return []
+
+    class Misspelt(Module):
+        rate = 1.0
+
+        @classmethod
+        def state_problem(cls, state):
+            return [f"Misspelt's rate must be above 0, got {state['rate']}"]
+
+    class Helped(Pump):
+        @classmethod
+        def state_problem(cls, state):      # (Pump's state_problems is the hook: a helper)
+            return []
+
+    problems = System("s").add("p", Plain).add("m", Misspelt).add("h", Helped).check()
+    only(problems, "test_config:test_a_state_problems_that_is_no_classmethod_or_misspelt_is_"
+                   "named.<locals>.Plain defines state_problems as a plain method: it is asked "
+                   "of the class, before any instance is made, so make it a classmethod "
+                   "(@classmethod, def state_problems(cls, state), returning a list of texts)")
+    only(problems, "Misspelt defines state_problem(): did you mean state_problems()? a "
+                   "module's hooks are setup(), step(), on_input(), teardown() and the "
+                   "classmethod state_problems(), and only they are called")
+    assert not [p for p in problems if "Helped" in p], problems
 
 
 def test_a_driver_s_timeout_it_cannot_go_by_is_a_problem(tmp_path: Path) -> None:

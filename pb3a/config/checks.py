@@ -275,7 +275,23 @@ def module_class(cls: type[Module]) -> list[str]:
         problems.append(f"{ref} has restart = {cls.restart!r}: a class's restart is one of "
                         f"{listing(map(repr, RESTART_POLICIES))}")
     return (problems + made_bare(cls) + displays(cls) + misspelled_hooks(cls)
-            + sendable(cls))
+            + state_hook(cls) + sendable(cls))
+
+
+def state_hook(cls: type[Module]) -> list[str]:
+    """A ``state_problems`` of the user's classes that is a plain method, not a
+    classmethod: it is asked of the class, with no instance (``cls.state_problems(state)``,
+    by the checks, ``add`` and the State Editor as by ``set_state``), and a plain method
+    failed each time, said only as "raised TypeError: ... missing 1 required positional
+    argument"."""
+    for klass in cls.__mro__:
+        if not issubclass(klass, Module) or klass.__module__.partition(".")[0] == "pb3a":
+            continue
+        if inspect.isfunction(vars(klass).get("state_problems")):
+            return [f"{class_ref(klass)} defines state_problems as a plain method: it is asked "
+                    "of the class, before any instance is made, so make it a classmethod "
+                    "(@classmethod, def state_problems(cls, state), returning a list of texts)"]
+    return []
 
 
 def sendable(cls: type[Module]) -> list[str]:
@@ -295,9 +311,11 @@ def misspelled_hooks(cls: type[Module]) -> list[str]:
     """Each method of the user's classes (``cls`` and its bases, not PB3A's) whose name is
     a near miss of a hook the class does not define (``on_inputs``, ``stpe``,
     ``teardwon``): it is never called, and the module ran doing nothing, with no word
-    said. A near miss: difflib's close match (cutoff 0.8, the names' case aside), or
+    said; so is a near miss of ``state_problems`` (``state_problem``), which no check asked.
+    A near miss: difflib's close match (cutoff 0.8, the names' case aside), or
     the hook's letters in another order; a private name (``_step``) is left alone."""
-    missing = [hook for hook in HOOKS if getattr(cls, hook) is getattr(Module, hook)]
+    missing = [hook for hook in (*HOOKS, "state_problems")
+               if inspect.getattr_static(cls, hook) is inspect.getattr_static(Module, hook)]
     problems = []
     for klass in cls.__mro__:
         if not issubclass(klass, Module) or klass.__module__.partition(".")[0] == "pb3a":
@@ -311,7 +329,8 @@ def misspelled_hooks(cls: type[Module]) -> list[str]:
             if close:
                 problems.append(
                     f"{class_ref(cls)} defines {name}(): did you mean {close[0]}()? a "
-                    f"module's hooks are {', '.join(f'{hook}()' for hook in HOOKS)}, and "
+                    f"module's hooks are {', '.join(f'{hook}()' for hook in HOOKS)} and "
+                    "the classmethod state_problems(), and "
                     f"only they are called: {name}() never is (a helper of your own: give "
                     "it a name less like a hook's)")
     return problems
