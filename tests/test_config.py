@@ -1457,6 +1457,28 @@ def test_a_default_every_entry_overrides_is_not_refused_and_one_left_is() -> Non
                for p in problems), problems
 
 
+def test_a_rule_relating_fields_is_judged_across_a_macro_s_entry_and_an_override(
+        tmp_path: Path) -> None:
+    """A junction controller's maximum green below its minimum, the minimum given by the
+    macro's entry and the maximum by an instance's override, is a problem of that
+    instance; the same maximum above it is not. (Judged apart, each table passed, the
+    rule having only one of its fields; judged against the class's default for the
+    other, an override was refused for a value the entry had changed.)"""
+    problems = problems_of(tmp_path, """
+        [macros.junction.modules.control]
+        class = "agents.traffic.gap_out:GapOut"
+        state = { min_green_s = 20.0 }
+        [modules.north]
+        macro = "junction"
+        state = { control = { max_green_s = 15.0 } }
+        [modules.south]
+        macro = "junction"
+        state = { control = { max_green_s = 30.0 } }
+    """)
+    assert problems == ["sys.toml [modules.north]: state of 'control': GapOut's max_green_s "
+                        "(15.0) must be at least min_green_s (20.0)"], problems
+
+
 def test_a_state_problems_that_fails_is_a_problem_naming_its_class() -> None:
     """A class's ``state_problems`` is the user's code: one that raises, or answers with
     a text rather than a list, is said as a problem of the class, not a failed check."""

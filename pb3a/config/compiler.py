@@ -389,13 +389,20 @@ class _Planner:
                 restart = entry.restart if not checks.restart(entry.restart) else None
                 state = dict(entry.state) if isinstance(entry.state, dict) else {}
                 parts = [dict(state)]           # (each judged alone where it is written)
-                for extra in overrides.pop(name, []):
+                extras = overrides.pop(name, [])
+                for extra in extras:
                     self.report(extra.label, [f"state of {extra.key!r}: {problem}"
                                               for problem in checks.state(cls, extra.state)])
                     state.update(extra.state)
                     parts.append(extra.state)
                 state = _widened(cls, state)
-                self.report(child.label, checks.defaults_refused(cls, state, parts))
+                whole = checks.defaults_refused(cls, state, parts)
+                if extras:      # (an instance's module: said of the instance's entry, which
+                    # the macro's is to each of its instances)
+                    self.report(extras[-1].label, [f"state of {extras[-1].key!r}: {problem}"
+                                                   for problem in whole])
+                else:
+                    self.report(child.label, whole)
                 modules[path] = FlatModule(
                     path, cls, here or self.node_names[0],
                     float(period) if period is not None else cls.period, state,
