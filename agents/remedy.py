@@ -208,8 +208,9 @@ def _settings_problems(state: dict[str, Any]) -> list[str]:
     if not problems and state.get("case_base"):
         try:
             check_actions(CaseBase.from_dict(state["case_base"]))
-        except CaseFileError as exc:     # (it names the case, and where it came from)
-            problems.append(f"case_base: {exc}".replace("case_base: case_base", "case_base"))
+        except CaseFileError as exc:     # (it names the case, and the file it came from)
+            said = str(exc)
+            problems.append(said if said.startswith("case_base") else f"case_base: {said}")
     return problems
 
 

@@ -26,7 +26,7 @@ import dataclasses
 import time
 from typing import Any
 
-from agents.limits import missing_modules, refuse_own_state, whole
+from agents.limits import Limit, missing_modules, out_of_limits, refuse_own_state, whole
 from pb3a import Agent, Input, InputPort, Output
 from pb3a.errors import ConfigError, PB3AError
 from pb3a.transport.addresses import tcp_address_problems
@@ -41,21 +41,21 @@ def success_rate(outcomes: list[bool], window: int) -> float:
 KEEP_OUTCOMES = 1000      # outcomes kept beyond the window (the state would grow without end)
 
 
+_LIMITS: dict[str, Limit] = {
+    "window": ("a whole number of episodes, 1 or more", lambda v: whole(v, 1)),
+    "threshold": ("a success rate from 0 (at once) to 1", lambda v: not isinstance(v, bool)
+                  and isinstance(v, int | float) and 0 <= v <= 1),
+    "min_episodes": ("a whole number, 0 or more", whole),
+    "to_node": ("the name of the hardware robot's node", lambda v: isinstance(v, str) and v != ""),
+}
+
+
 def _settings_problems(state: dict[str, Any]) -> list[str]:
     """What of ``state`` a ``TransferAgent`` could never or would always transfer by,
     each naming the setting (a window of 0 read every episode; a threshold above 1 never
     transferred, silently; without a destination it raised at every episode once
     learning was done)."""
-    rules = {
-        "window": (lambda v: whole(v, 1), "a whole number of episodes, 1 or more"),
-        "threshold": (lambda v: not isinstance(v, bool) and isinstance(v, int | float)
-                      and 0 <= v <= 1, "a success rate from 0 (at once) to 1"),
-        "min_episodes": (whole, "a whole number, 0 or more"),
-        "to_node": (lambda v: isinstance(v, str) and v != "",
-                    "the name of the hardware robot's node"),
-    }
-    problems = [f"{key} must be {what}, got {state[key]!r}"
-                for key, (ok, what) in rules.items() if key in state and not ok(state[key])]
+    problems = out_of_limits(_LIMITS, state)
     if "to_resource" in state:
         problems += tcp_address_problems(state["to_resource"],
                                          "to_resource, the hardware robot's server,")

@@ -116,9 +116,9 @@ class Module:
     @classmethod
     def state_problems(cls, state: dict[str, Any]) -> list[str]:
         """What the class refuses of ``state`` (fields by name: a live edit's, with the
-        module's other fields as they are; a configuration entry's; the class's own
-        defaults that an entry leaves), each problem a sentence naming the field, its
-        value and what it takes; none by default. Override it for a value the module
+        module's other fields as they are; a configuration entry's alone, and with the
+        class's own defaults for the fields it leaves), each problem a sentence naming
+        the field, its value and what it takes; none by default. Override it for a value the module
         cannot run with, judging the fields given, and call the base's:
 
             @classmethod
@@ -135,8 +135,8 @@ class Module:
         lacks was the class's default, not the value the module has or the entry gives.
 
         ``set_state`` asks it before setting anything (``StateRefused``); ``pb3a check``
-        and the configuration compiler ask it for each entry's state and the class's
-        defaults, ``add`` and ``swap`` for the state they give, the State Editor for an
+        and the configuration compiler ask it for each entry's state and the module's
+        whole state, ``add`` and ``swap`` for the state they give, the State Editor for an
         edit (a refusal only a ``set_state`` of its own made was found at the launch, or
         by the running module). A value of a field of a reflective class (see
         ``reflective``) is of the kind of its default by then."""
