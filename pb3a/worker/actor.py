@@ -414,10 +414,17 @@ class ModuleActor:
             start = time.thread_time() if timed else 0.0
             fn = getattr(self.module, hook)
             requests = self.lock.requests if claim is not None else ()
+            # its worker's lease may run out within a batch (a remote node's): asked
+            # before each call (a batch of 256 values at 5 ms each ran on 1.75 s past the
+            # lease's end, beside the module's failed-over copy)
+            leased = claim is not None and self.may_run is not _always
             for made in range(times):
                 if requests:                    # (one list's truth: the per-value path)
                     claim.give_back(times - made)
                     self.cut = True
+                    break
+                if leased and not (self.running and self.may_run()):
+                    claim.give_back(times - made)   # (owed still: they travel with it)
                     break
                 try:
                     fn(*args)

@@ -157,12 +157,23 @@ class Lease:
         self._known = -math.inf        # the furthest end read (ends only move on, once set)
         self.lapsed = False            # it ran out: the worker exits LEASE_LAPSED
 
+    @property
+    def applies(self) -> bool:
+        """Whether the worker runs under a lease at all (a remote node's)."""
+        return self._board is not None
+
     def take(self) -> None:
         """The worker runs modules from now on: watch the lease, and stop the worker
         once it has been out for ``LEASE_GRACE_S`` (once; nothing without a board)."""
         with self._taking:
             if self._board is None or self._taken:
                 return
+            # One end read whole first, the one a read meeting writes falls back on: the
+            # watch's first read met a write under way, its executor preempted in it, got
+            # none (-inf), and stopped the worker with its lease a second ahead.
+            deadline = time.monotonic() + LEASE_GRACE_S
+            while self._board.end() == -math.inf and time.monotonic() < deadline:
+                time.sleep(0.001)
             self._taken = True
         threading.Thread(target=self._watch, daemon=True, name="pb3a-lease").start()
 

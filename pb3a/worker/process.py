@@ -295,7 +295,8 @@ class Worker:
                               f"({', '.join(map(str, state))}) failed: "
                               f"{type(exc).__name__}: {exc}") from None
         actor = ModuleActor(name, module, self._schedule, period, on_error=self._report_error)
-        actor.may_run = self.lease.holds
+        if self.lease.applies:
+            actor.may_run = self.lease.holds
         self.actors[name] = actor
         self.restart_policy[name] = restart
         self._retime()
