@@ -122,9 +122,12 @@ def configuration(lab: Lab, robots: tuple[str, str], cases: Path) -> System:
 
 
 def run(out: Path, world: str = "lab", seed: int = 1, quick: bool = False,
-        fault: str = "motors") -> dict[str, Any]:
+        fault: str = "motors", *, until_judged: bool = False) -> dict[str, Any]:
     """One run with ``fault`` (one of ``FAULTS``); what happened, for ``report``. The
-    remedy agent's learned cases go to ``out``/remedy-cases.toml."""
+    remedy agent's learned cases go to ``out``/remedy-cases.toml. With ``until_judged``,
+    mapping after the fault ends once the remedy agent has judged its remedy (worked or
+    failed; at the phase's end at the latest): all a check of the hand-off needs (the
+    tests), short of the mapping on that the report's coverage goal looks at."""
     if fault not in FAULTS:
         raise ValueError(f"no fault {fault!r}: the faults are {', '.join(FAULTS)}")
     before, after = PHASES["quick" if quick else "full"]
@@ -158,7 +161,15 @@ def run(out: Path, world: str = "lab", seed: int = 1, quick: bool = False,
             fault_at = time.time()
             poses = lab.poses()
             failed_at, standby_at = poses[robots[0]], poses[robots[1]]
-            _follow(lab, paths, time.monotonic() + after)
+
+            def judged() -> bool:
+                # (the recorder's, which the report reads: the agent's own history may
+                # hold the verdict a moment before the recorder has it)
+                return until_judged and any(
+                    r["event"] in ("worked", "failed") and r["at"] >= fault_at
+                    for r in running.state("recorder")["remedies"])
+
+            _follow(lab, paths, time.monotonic() + after, judged)
             recorder = running.state("recorder")
             remedy = running.state("remedy")
             final = running.state("control/mapper")
