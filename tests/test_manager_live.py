@@ -19,6 +19,7 @@ from starlette.websockets import WebSocketDisconnect
 from test_manager_api import managed, manager_client
 
 from pb3a import Running
+from pb3a.manager import live
 from pb3a.manager.document import Document
 from pb3a.manager.live import CLIENT_BACKLOG, CLIENT_MOST, Feed, Message, _enqueue
 from pb3a.manager.session import Session
@@ -281,6 +282,37 @@ class _Failing:
         if timeout and self._failures["events"]:
             raise self._failures["events"].pop(0)
         return self._run.events(since, timeout=timeout)
+
+
+class _EventsWaited:
+    """The running system; ``waiting`` is set once an events call waits (the feed's)."""
+
+    def __init__(self, run: Running) -> None:
+        self._run, self.waiting = run, threading.Event()
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._run, name)
+
+    def events(self, since: int = 0, timeout: float = 0.0) -> list:
+        if timeout:
+            self.waiting.set()
+        return self._run.events(since, timeout=timeout)
+
+
+def test_a_manager_s_end_is_not_held_up_by_the_feed_s_events_call(monkeypatch) -> None:
+    """The feed's events call, under way whenever a system runs, ends as the session
+    closes (its system stops): the app's end waited for the call before closing the
+    session, EVENT_WAIT_S at every stop (0.5 s; made 30 here, the wait's bound, 5 s)."""
+    monkeypatch.setattr(live, "EVENT_WAIT_S", 30.0)
+    with managed().launch() as run:
+        handle = _EventsWaited(run)
+        client = manager_client(Session(Document.empty(), handle, owns_handle=True))
+        with client:
+            assert handle.waiting.wait(10), "the feed made no events call"
+            ended = time.monotonic()
+        took = time.monotonic() - ended
+        assert took < 2.0, f"the app took {took:.2f} s to end"
+        assert not run.running                          # (the session stopped it)
 
 
 def test_the_feed_reports_an_unexpected_failure_and_goes_on(run) -> None:

@@ -47,6 +47,7 @@ def create_app(session: Session, access: Access, refresh: float = REFRESH_S) -> 
         finally:
             await feed.stop()
             session.close()
+            await feed.settle()             # (calls the close has ended)
 
     async def index(request: Request) -> Response:
         page = STATIC / "index.html"

@@ -74,15 +74,22 @@ class Feed:
                        asyncio.create_task(self._events(), name="pb3a-manager-events")]
 
     async def stop(self) -> None:
-        """Stop producing, and let a call to the system that is under way end (an events
-        call waits EVENT_WAIT_S at most) before the session closes its connection:
-        closed under it, the call would wait out its whole deadline."""
+        """Stop producing. A call to the system under way goes on: ``settle`` waits for
+        it once the session has closed."""
         for task in self._tasks:
             task.cancel()
         for task in self._tasks:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
         self._tasks = []
+
+    async def settle(self) -> None:
+        """Wait for the calls to the system still under way (STOP_WAIT_S at most), once
+        the session has closed: its close ends them (a system it launched ends its events
+        as it stops; a closed connection fails the calls waiting on it). Waited for
+        before the close, the events call, always under way while a system runs, held
+        every stop up to EVENT_WAIT_S; it still may with a handle the session does not
+        own, which its close leaves running."""
         if self._calls:
             await asyncio.wait(list(self._calls), timeout=STOP_WAIT_S)
 
