@@ -65,8 +65,11 @@ def manager_client(session: Session, refresh: float = 0.5) -> TestClient:
 
 @pytest.fixture
 def client(run: Running) -> Iterator[TestClient]:
+    # (the session owns the system, which stops with the app as a system the manager
+    # launched does: the app's end then waits out no events call of its feed, 0.4 s)
     document = Document.empty()
-    session = Session(document, run, catalog=Catalog(document, roots=[TESTS]))
+    session = Session(document, run, owns_handle=True,
+                      catalog=Catalog(document, roots=[TESTS]))
     with manager_client(session) as client:
         yield client
 
