@@ -87,6 +87,27 @@ def _clean(state: dict) -> bool:
     return state["out_of_order"] == 0 and state["duplicates"] == 0
 
 
+def test_a_remote_node_s_close_waits_out_no_heartbeat_its_stopped_executor_leaves_unanswered(
+        controllers, monkeypatch) -> None:
+    """Once its executor has stopped, a heartbeat's lease renewal goes unanswered: the
+    node's close waited for it (the renewal's 0.5 s), in most closes of a system with a
+    remote node. The shutdown here closes the node once such a renewal waits."""
+    closes: list[float] = []
+
+    def shutdown(self: RemoteNode, timeout: float = 10.0) -> None:
+        self.stop_executor(timeout)
+        eventually(lambda: self.client._waiting, what="a renewal the stopped executor leaves")
+        started = time.monotonic()
+        self.close()
+        closes.append(time.monotonic() - started)
+    monkeypatch.setattr(RemoteNode, "shutdown", shutdown)
+    system = System("beating").node("a").node("b", address=controllers["b"].address)
+    system.add("counter", Counter, node="b")
+    with system.launch() as run:
+        eventually(lambda: run.state("counter")["count"] > 0, what="the module on b running")
+    assert len(closes) == 1 and closes[0] < 0.25, closes
+
+
 def test_a_system_spans_node_controllers_and_migrates_across_them(controllers) -> None:
     system = _spanning("spanning", controllers)
     system.add("src", Counter, node="a", period=0.001)

@@ -488,11 +488,13 @@ class RemoteNode:
 
     def close(self) -> None:
         self._closed.set()
+        # the client first: it fails a heartbeat's renewal under way, which an executor
+        # stopped a moment ago never answers (the join waited out its 0.5 s at most closes)
+        if self.client is not None:
+            self.client.close()
         for heart in self._hearts:
             heart.join(1.0)
         self.controller.close()
-        if self.client is not None:
-            self.client.close()
 
 
 def _bound(within: float) -> dict[str, float]:
