@@ -28,7 +28,7 @@ from agents.case_base import AdaptationError, CaseBase, CaseFileError, Feature, 
 from agents.limits import Limit, finite, missing_modules, out_of_limits, refuse_own_state
 from pb3a import Agent, Input, InputPort, Output
 from pb3a.errors import ModuleNotFound, PB3AError
-from pb3a.model.module import StateRefused, reflective
+from pb3a.model.module import StateRefused, reflective, refusals
 
 if TYPE_CHECKING:
     from pb3a.stats import SystemStats
@@ -345,7 +345,7 @@ class RemedyAgent(Agent):
         its next failure, rather than by the base it made at setup, which it wrote back
         over the state as it learnt. A case file it cannot read or carry out is refused
         too (``CaseFileError``), and nothing is set."""
-        problems = type(self).state_problems({**self.get_state(), **state})
+        problems = refusals(type(self), {**self.get_state(), **state}, shown=state)
         if problems:            # (judged before the case files are read by them)
             raise StateRefused(problems)
         base = _case_base({**self.get_state(), **state})

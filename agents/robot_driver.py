@@ -45,7 +45,7 @@ import numpy as np
 
 from agents.limits import whole
 from pb3a import Driver, Input, InputPort, Output, RuntimeCancelled
-from pb3a.model.module import reflective
+from pb3a.model.module import StateRefused, reflective
 
 SILENT_STOP_S = 0.1          # how long a silent robot's stop is waited for, when let go
 
@@ -74,9 +74,11 @@ class RobotDriver(Driver):
     silent = 0                   # requests in a row the robot has not answered
 
     def setup(self) -> None:
-        wrong = type(self).state_problems({"silent_after": self.silent_after})
-        if wrong:                   # (a class's own, which no set_state saw)
-            raise ValueError("; ".join(wrong))
+        # (a class's own, which no set_state saw; RobotDriver's rule alone: a resource of
+        # the class's that no address is, is a silent robot, a fault the remedy acts on)
+        wrong = _silent_after_problems(type(self).__name__, self.silent_after)
+        if wrong:
+            raise StateRefused(wrong)
         self._read_at = 0.0      # (monotonic) when readings were last written
         self._in_force = np.zeros(2)     # the command the robot runs on now
         self._unsent: np.ndarray | None = None   # a command the robot has not taken yet
@@ -89,12 +91,8 @@ class RobotDriver(Driver):
     def state_problems(cls, state: dict[str, Any]) -> list[str]:
         """What ``Driver`` refuses, and a ``silent_after`` that is not a whole number of
         requests, 1 or more (with 0 a silent robot was never said: its count starts at 1)."""
-        problems = super().state_problems(state)
-        requests = state.get("silent_after", 1)
-        if not whole(requests, 1):
-            problems.append(f"{cls.__name__}'s silent_after must be a whole number of "
-                            f"requests, 1 or more, got {requests!r}")
-        return problems
+        return super().state_problems(state) + _silent_after_problems(
+            cls.__name__, state.get("silent_after", 1))
 
     @reflective                 # (it takes the fields Module's does: they are checked)
     def set_state(self, state: dict[str, Any]) -> None:
@@ -249,3 +247,11 @@ class RobotDriver(Driver):
         # too, but not waited for long: a move away from a robot whose server died
         # (its teardown runs this) would wait the whole timeout.
         client.call("stop", min(self.timeout, SILENT_STOP_S) if self.silent else self.timeout)
+
+
+def _silent_after_problems(name: str, requests: Any) -> list[str]:
+    """``RobotDriver.state_problems``'s own rule, for class ``name``."""
+    if whole(requests, 1):
+        return []
+    return [f"{name}'s silent_after must be a whole number of requests, 1 or more, got "
+            f"{requests!r}"]

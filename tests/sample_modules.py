@@ -691,6 +691,24 @@ class Paced(Module):
         self.seen_period = self.period
 
 
+class Drifter(Module):
+    """Counts its steps; its class refuses a ``count`` above 3, which its steps pass."""
+
+    period = 0.01
+    count = 0
+    gain = 1.0
+
+    @classmethod
+    def state_problems(cls, state: dict) -> list[str]:
+        problems = super().state_problems(state)
+        if state.get("count", 0) > 3:
+            problems.append(f"Drifter's count must be at most 3, got {state['count']!r}")
+        return problems
+
+    def step(self) -> None:
+        self.count += 1
+
+
 class SlowsItself(Agent):
     """Notes when each of its last steps began (``time.monotonic()``); at its third step,
     sets its own period to ``to`` seconds."""

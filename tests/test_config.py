@@ -1479,6 +1479,25 @@ def test_a_rule_relating_fields_is_judged_across_a_macro_s_entry_and_an_override
                         "(15.0) must be at least min_green_s (20.0)"], problems
 
 
+def test_a_rule_relating_fields_is_judged_for_a_class_with_a_set_state_of_its_own() -> None:
+    """A user's subclass of a library controller whose ``set_state`` logs each edit and
+    calls the base's (not marked ``reflective``) passed the check with a minimum green
+    above its class's maximum, and its launch failed: such a class keeps ``Module``'s
+    ``get_state``, so its defaults are its state, judged with the entry's."""
+    from agents.traffic.gap_out import GapOut
+
+    class LoggedGapOut(GapOut):
+        edits = 0
+
+        def set_state(self, state: dict) -> None:
+            super().set_state(state)
+            self.edits += 1
+
+    problems = System("sub").add("ctl", LoggedGapOut, state={"min_green_s": 50.0}).check()
+    assert any("LoggedGapOut's max_green_s (40.0) must be at least min_green_s (50.0)" in p
+               for p in problems), problems
+
+
 def test_a_state_problems_that_fails_is_a_problem_naming_its_class() -> None:
     """A class's ``state_problems`` is the user's code: one that raises, or answers with
     a text rather than a list, is said as a problem of the class, not a failed check."""

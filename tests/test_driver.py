@@ -91,6 +91,34 @@ def test_a_timeout_that_is_not_a_positive_finite_number_is_refused_by_name(
     assert "Impatient's timeout must be a positive number" in harness.module.last_error
 
 
+class Limited(Reader):
+    """A user's hook that relates two of its fields, read by key: it is given the
+    module's whole state."""
+
+    most = 5.0
+    speed = 1.0
+
+    @classmethod
+    def state_problems(cls, state: dict) -> list[str]:
+        problems = super().state_problems(state)
+        if state["speed"] > state["most"]:
+            problems.append(f"Limited's speed must be at most most ({state['most']!r})")
+        return problems
+
+
+def test_a_driver_s_own_check_before_a_request_asks_its_base_s_rules_only(devices) -> None:
+    """Before each request a driver checks its timeout and protocol (a class's own,
+    which no ``set_state`` saw): it asked the subclass's whole hook with those two
+    fields alone, and a user's hook that read another field by key (as it may: it is
+    given the whole state) failed every request with KeyError."""
+    _, a, _ = devices
+    harness = ModuleHarness(Limited, state={"resource": a.address})
+    assert harness.module.request("read") == "a"
+    with pytest.raises(ValueError, match=r"Limited's speed must be at most most \(5\.0\)"):
+        harness.module.set_state({"speed": 9.0})
+    harness.close()
+
+
 class Motor(Driver):
     """Event-driven: sets its motor's speed as each command comes; stops it when let go,
     through ``self.request`` (or, with ``by_client``, the connection it is given)."""

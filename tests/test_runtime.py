@@ -33,6 +33,7 @@ from sample_modules import (
     Counter,
     DeviceReader,
     Doubler,
+    Drifter,
     FailsToMake,
     FastScale,
     FloatSource,
@@ -375,6 +376,34 @@ def test_a_state_problems_that_fails_live_is_a_refusal_naming_it_and_nothing_set
         run.set_state("f", rate=2.0)
         assert run.state("f") == {"rate": 2.0}
         assert run.stats().modules["f"].errors == 0
+
+
+def test_a_module_past_its_class_s_rule_is_still_edited_moved_and_restarted() -> None:
+    """A module's own state, given back (a move, a ``last-state`` restart), is no edit
+    for its class to judge, and an edit is refused only what it brings: a module whose
+    steps had taken a field past its class's rule could not be moved (put back where it
+    ran, started fresh, its state lost), nor restarted (failed), and every edit of
+    another field was refused naming that field."""
+    system = System("drifting")
+    system.node("a")
+    system.node("b")
+    system.add("d", Drifter, node="a", restart="last-state")
+    with system.launch(checkpoint_s=0.2) as run:
+        eventually(lambda: run.state("d")["count"] > 3, what="the count past 3")
+        run.set_state("d", gain=2.0)
+        with pytest.raises(RuntimeFailure, match=r"count must be at most 3, got 1000; "):
+            run.set_state("d", count=1000)
+        before = run.state("d")["count"]
+        run.migrate("d", to="b")
+        assert run.state("d")["count"] >= before and run.state("d")["gain"] == 2.0
+        eventually(lambda: run.state("d")["count"] > before + 200, timeout=10,
+                   what="two seconds of steps, checkpointed")
+        pid, at_kill = run.stats().modules["d"].pid, run.state("d")["count"]
+        os.kill(pid, signal.SIGKILL)
+        eventually(lambda: run.stats().modules["d"].pid not in (None, pid), timeout=20,
+                   what="d restarted")
+        assert run.state("d")["count"] > at_kill - 100      # (a checkpoint, not 0)
+        assert run.stats().modules["d"].status == "running"
 
 
 def test_what_a_library_module_refuses_is_refused_live_and_on_add_and_nothing_set() -> None:

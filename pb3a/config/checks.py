@@ -203,17 +203,21 @@ def defaults_refused(cls: type[Module], whole: dict[str, Any],
     default, or a macro's entry and an instance's override, break together (a
     controller's minimum green above its class's maximum). Judged whole, a placeholder
     default that every entry overrides is no problem (judged alone, it made such a class
-    impossible to launch)."""
-    if not reflective_state(cls):
-        return []
+    impossible to launch). A class with a ``set_state`` of its own not marked
+    ``reflective`` is judged so too if it keeps ``Module``'s ``get_state`` (its
+    defaults are its state then: a user's subclass of a library controller whose
+    ``set_state`` logged and called the base's passed the check, and failed at the
+    launch), its values as given."""
+    if cls.get_state is not Module.get_state:
+        return []               # (the class defines its own state: no defaults known)
     defaults = {name: getattr(cls, name) for name in cls.state_names()}
     said = {problem for part in ([whole] if parts is None else parts)
             for problem in state(cls, part)}
     own = refused(cls, defaults)
     # (a value not of its field's kind is said as such, not judged again here)
+    given = _judged(cls, whole)[1] if reflective_state(cls) else whole
     return [f"{problem} (its class's own default)" if problem in own else problem
-            for problem in refused(cls, {**defaults, **_judged(cls, whole)[1]})
-            if problem not in said]
+            for problem in refused(cls, {**defaults, **given}) if problem not in said]
 
 
 def refused(cls: type[Module], state: dict[str, Any]) -> list[str]:

@@ -158,8 +158,9 @@ class Driver(Module):
     def _check_own(self, protocol: str, calls: str) -> None:
         """Refuse a call of the other protocol's, and a class's own timeout or protocol
         the driver cannot go by (one not set through ``set_state``)."""
-        wrong = type(self).state_problems({"timeout": self.timeout,
-                                           "protocol": self.protocol})
+        # (Driver's own rules: a subclass's hook judges a whole state, not these two)
+        wrong = _device_problems(type(self).__name__, {"timeout": self.timeout,
+                                                       "protocol": self.protocol})
         if wrong:
             raise RuntimeFailure(wrong[0])
         if self.protocol != protocol:
@@ -177,19 +178,7 @@ class Driver(Module):
         argument"), a ``protocol`` it does not speak, a ``timeout`` that is not a positive,
         finite number of seconds up to ``MOST_SECONDS`` (0, -1 or NaN failed every
         request, blaming the device; inf overflowed the clock at each)."""
-        problems = super().state_problems(state)
-        if state.get("resource", "") != "":
-            problems += tcp_address_problems(state["resource"], f"{cls.__name__}'s resource")
-        protocol = state.get("protocol", "pb3a")
-        if protocol not in PROTOCOLS:
-            problems.append(f"{cls.__name__}'s protocol is what its device speaks, one of "
-                            f"{', '.join(map(repr, PROTOCOLS))}, got {protocol!r}")
-        timeout = state.get("timeout", 1.0)
-        if not (finite(timeout) and 0 < timeout <= MOST_SECONDS):
-            problems.append(f"{cls.__name__}'s timeout must be a positive number of seconds, "
-                            f"at most {MOST_SECONDS:g} (each request's deadline), got "
-                            f"{timeout!r}")
-        return problems
+        return super().state_problems(state) + _device_problems(cls.__name__, state)
 
     @reflective                 # (it takes the fields Module's does: they are checked)
     def set_state(self, state: dict[str, Any]) -> None:
@@ -335,3 +324,19 @@ def serve_device(handler: Callable[[str, dict[str, Any]], Any], host: str = "127
     # after a timeout was made twice)
     return ControlServer(ClusterKey.load(), handler, host, port, name="pb3a-device",
                          title="the device", expires=True)
+
+
+def _device_problems(name: str, state: dict[str, Any]) -> list[str]:
+    """``Driver.state_problems``'s own rules, for class ``name``."""
+    problems = []
+    if state.get("resource", "") != "":
+        problems += tcp_address_problems(state["resource"], f"{name}'s resource")
+    protocol = state.get("protocol", "pb3a")
+    if protocol not in PROTOCOLS:
+        problems.append(f"{name}'s protocol is what its device speaks, one of "
+                        f"{', '.join(map(repr, PROTOCOLS))}, got {protocol!r}")
+    timeout = state.get("timeout", 1.0)
+    if not (finite(timeout) and 0 < timeout <= MOST_SECONDS):
+        problems.append(f"{name}'s timeout must be a positive number of seconds, at most "
+                        f"{MOST_SECONDS:g} (each request's deadline), got {timeout!r}")
+    return problems

@@ -182,13 +182,24 @@ class Module:
                 f"{f' (did you mean {close[0]!r}?)' if close else ''}; "
                 f"its state is: {', '.join(sorted(known)) or '(none)'}"
             )
-        # (the fields given alone: a rule relating one of them to another field judged
-        # it against the class's default, not the value this module has)
-        problems = refusals(type(self), {**Module.get_state(self), **state})
-        if problems:
-            raise StateRefused(problems)
+        if not _RESTORING.get():        # (its own state back is no edit: a move, a restart
+            self._judge_edit(state)     # of a module past its class's rule lost its state)
         for name, value in state.items():
             setattr(self, name, value)
+
+    def _judge_edit(self, state: dict[str, Any]) -> None:
+        """``StateRefused`` for what the class refuses of the module's whole state with
+        the edit ``state`` in it (judged alone, a rule relating an edited field to
+        another judged it against the class's default, not the module's value), less
+        what it refused of the state as it was: a field the module moved past a rule
+        itself (a count) made every edit of another field refused."""
+        current = Module.get_state(self)
+        problems = refusals(type(self), {**current, **state}, shown=state)
+        if problems:
+            before = refusals(type(self), current, shown=state)
+            problems = [problem for problem in problems if problem not in before]
+        if problems:
+            raise StateRefused(problems)
 
     # -- ports -------------------------------------------------------------
     @classmethod
@@ -209,16 +220,18 @@ class Module:
         self.__dict__["_pb3a_ports"] = ports
 
 
-def refusals(cls: type[Module], state: dict[str, Any]) -> list[str]:
+def refusals(cls: type[Module], state: dict[str, Any],
+             shown: dict[str, Any] | None = None) -> list[str]:
     """What module class ``cls`` refuses of ``state``: its ``state_problems``. That is the
     user's code: one that raises, or answers other than a list of texts, is a refusal
     itself, naming the class, the hook and what it raised (live, a hook with a bug came
-    back as the worker's failure; ``pb3a check`` said it as this)."""
+    back as the worker's failure; ``pb3a check`` said it as this), given ``shown`` (an
+    edit, of the whole state judged: it was the module's other fields, cut short)."""
     ref = f"{cls.__module__}:{cls.__qualname__}"         # (``class_ref``'s words)
     try:
         problems = cls.state_problems(state)
     except Exception as exc:
-        given = repr(state)
+        given = repr(state if shown is None else shown)
         given = given if len(given) <= 200 else f"{given[:200]}..."   # (a map, say)
         return [f"{ref}.state_problems raised {type(exc).__name__}: {exc} (given {given}): "
                 "fix it to return what it refuses, as a list of texts"]
