@@ -1479,6 +1479,41 @@ def test_a_rule_relating_fields_is_judged_across_a_macro_s_entry_and_an_override
                         "(15.0) must be at least min_green_s (20.0)"], problems
 
 
+def test_a_rule_a_macro_s_entry_breaks_is_said_of_it_not_of_each_instance(
+        tmp_path: Path) -> None:
+    """A rule the macro's entry breaks by itself was pinned on every instance that
+    overrode another field of the module (and said of the entry too: three problems for
+    one), and an outer macro's override that broke it on each instance of the outer."""
+    problems = problems_of(tmp_path, """
+        [macros.junction.modules.control]
+        class = "agents.traffic.gap_out:GapOut"
+        state = { min_green_s = 50.0 }
+        [modules.north]
+        macro = "junction"
+        state = { control = { passage_s = 3.0 } }
+        [modules.south]
+        macro = "junction"
+        state = { control = { passage_s = 2.0 } }
+    """)
+    assert problems == ["sys.toml [macros.junction.modules.control]: GapOut's max_green_s "
+                        "(40.0) must be at least min_green_s (50.0)"], problems
+    problems = problems_of(tmp_path, """
+        [macros.junction.modules.control]
+        class = "agents.traffic.gap_out:GapOut"
+        state = { min_green_s = 20.0 }
+        [macros.corridor.modules.a]
+        macro = "junction"
+        state = { control = { max_green_s = 15.0 } }
+        [modules.c1]
+        macro = "corridor"
+        state = { "a/control" = { passage_s = 1.0 } }
+        [modules.c2]
+        macro = "corridor"
+    """)
+    assert problems == ["sys.toml [macros.corridor.modules.a]: state of 'control': GapOut's "
+                        "max_green_s (15.0) must be at least min_green_s (20.0)"], problems
+
+
 def test_a_rule_relating_fields_is_judged_for_a_class_with_a_set_state_of_its_own() -> None:
     """A user's subclass of a library controller whose ``set_state`` logs each edit and
     calls the base's (not marked ``reflective``) passed the check with a minimum green

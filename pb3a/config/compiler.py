@@ -397,12 +397,24 @@ class _Planner:
                     parts.append(extra.state)
                 state = _widened(cls, state)
                 whole = checks.defaults_refused(cls, state, parts)
-                if extras:      # (an instance's module: said of the instance's entry, which
-                    # the macro's is to each of its instances)
-                    self.report(extras[-1].label, [f"state of {extras[-1].key!r}: {problem}"
-                                                   for problem in whole])
-                else:
-                    self.report(child.label, whole)
+                # Each problem of the whole state is said of the entry whose table brought
+                # it: the macro's, or an instance's override (the innermost first). Said of
+                # the last override, the macro entry's own was pinned on every instance that
+                # overrode another field of the module, an outer macro's on its instances.
+                blamed: list[tuple[str, str]] = []
+                for level in range(len(extras) + 1):
+                    if not whole:
+                        break
+                    so_far = _widened(cls, {key: value for part in parts[:level + 1]
+                                            for key, value in part.items()})
+                    found = set(checks.defaults_refused(cls, so_far, parts[:level + 1]))
+                    for problem in [problem for problem in whole if problem in found]:
+                        blamed.append((child.label, problem) if level == 0 else (
+                            extras[level - 1].label,
+                            f"state of {extras[level - 1].key!r}: {problem}"))
+                        whole.remove(problem)
+                for label, problem in blamed:
+                    self.report(label, [problem])
                 modules[path] = FlatModule(
                     path, cls, here or self.node_names[0],
                     float(period) if period is not None else cls.period, state,
