@@ -362,8 +362,8 @@ class ModuleActor:
         period after that step."""
         if not self._stepping:
             return self._stepped_at
-        with self.lock:
-            pass
+        self.lock.acquire()             # (taken once the step under way lets go of it)
+        self.lock.release()
         # (its thread let go of the lock but has not noted the time yet: that is now)
         return time.monotonic() if self._stepping else self._stepped_at
 
