@@ -1562,7 +1562,8 @@ def test_a_state_problems_that_is_no_classmethod_or_misspelt_is_named() -> None:
     """``state_problems`` is asked of the class: a plain method failed at each asking,
     said only as "raised TypeError: ... missing 1 required positional argument", and one
     misspelt (``state_problem``) was never asked, no word said. Each is named now, with
-    the fix; a classmethod, or a helper whose class defines the hook, is not."""
+    the fix, a plain one of a mixin too (passed over: no Module); a classmethod, or a
+    helper whose class defines the hook, is not."""
 
     class Plain(Module):
         rate = 1.0
@@ -1582,7 +1583,16 @@ def test_a_state_problems_that_is_no_classmethod_or_misspelt_is_named() -> None:
         def state_problem(cls, state):      # (Pump's state_problems is the hook: a helper)
             return []
 
-    problems = System("s").add("p", Plain).add("m", Misspelt).add("h", Helped).check()
+    class Limits:                           # a mixin, no Module
+        def state_problems(self, state):
+            return []
+
+    class Mixed(Limits, Module):
+        rate = 1.0
+
+    problems = System("s").add("p", Plain).add("m", Misspelt).add("h", Helped).add(
+        "x", Mixed).check()
+    only(problems, "Limits defines state_problems as a plain method")
     only(problems, "test_config:test_a_state_problems_that_is_no_classmethod_or_misspelt_is_"
                    "named.<locals>.Plain defines state_problems as a plain method: it is asked "
                    "of the class, before any instance is made, so make it a classmethod "

@@ -287,14 +287,13 @@ def state_hook(cls: type[Module]) -> list[str]:
     classmethod: it is asked of the class, with no instance (``cls.state_problems(state)``,
     by the checks, ``add`` and the State Editor as by ``set_state``), and a plain method
     failed each time, said only as "raised TypeError: ... missing 1 required positional
-    argument"."""
-    for klass in cls.__mro__:
-        if not issubclass(klass, Module) or klass.__module__.partition(".")[0] == "pb3a":
-            continue
-        if inspect.isfunction(vars(klass).get("state_problems")):
-            return [f"{class_ref(klass)} defines state_problems as a plain method: it is asked "
-                    "of the class, before any instance is made, so make it a classmethod "
-                    "(@classmethod, def state_problems(cls, state), returning a list of texts)"]
+    argument". The definition asked is judged, a mixin's too (one in a class that is no
+    ``Module`` was passed over)."""
+    klass = next(klass for klass in cls.__mro__ if "state_problems" in vars(klass))
+    if inspect.isfunction(vars(klass)["state_problems"]):
+        return [f"{class_ref(klass)} defines state_problems as a plain method: it is asked "
+                "of the class, before any instance is made, so make it a classmethod "
+                "(@classmethod, def state_problems(cls, state), returning a list of texts)"]
     return []
 
 
