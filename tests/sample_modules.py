@@ -1022,6 +1022,17 @@ class StepStamps(Module):
             stamps.write(f"{os.getpid()} {began}\n")
 
 
+class SlowToStop(StepStamps):
+    """``StepStamps`` whose teardown takes ``teardown_s`` and then stamps as a step does:
+    a copy's teardown that ran beside its next copy shows as a step out of turn."""
+
+    teardown_s = 1.5
+
+    def teardown(self) -> None:
+        time.sleep(self.teardown_s)
+        self.step()
+
+
 class BlocksInInit(Module):
     """Its construction, which runs on its worker's control thread, writes the worker's
     pid to ``pid_file`` (set on a subclass) and then blocks for ``BLOCK_S``."""

@@ -37,6 +37,7 @@ from sample_modules import (
     RobotPose,
     SlowerToMake,
     SlowToMake,
+    SlowToStop,
     Steady,
     StepStamps,
 )
@@ -957,6 +958,39 @@ def test_a_node_frozen_as_its_module_begins_to_step_steps_nothing_beside_its_cop
             time.sleep(0.001)
         _frozen_until_the_copy_runs_on_a(b, run, stamps)
     _assert_one_copy_at_a_time(stamps)
+
+
+def test_a_fenced_worker_s_slow_teardown_does_not_run_beside_its_copy(
+        node_b, tmp_path: Path) -> None:
+    """A worker whose lease ran out (its executor frozen) tore its modules down however
+    long that took: a teardown of 1.5 s ran on beside the copy the launcher started
+    elsewhere 0.5 s after the lease's end. A fenced worker is gone by ``GONE_BY_S``
+    after that end, its teardowns cut short."""
+    b, stamps = node_b, tmp_path / "steps"
+    system = System("slow-stop").node("a").node("b", address=b.address)
+    system.add("stepper", SlowToStop, node="b", restart="fresh", fallback=["a"],
+               state={"path": str(stamps), "teardown_s": 1.5})
+    with system.launch() as run:
+        eventually(lambda: stamps.exists() and stamps.read_text().count("\n") > 20,
+                   what="steps on b")
+        old = psutil.Process(run.stats().modules["stepper"].pid)
+        executor = psutil.Process(b.executor_pid())
+        executor.suspend()
+        try:
+            _wait_for_the_copy_on_a(run, stamps)
+            eventually(lambda: _gone(old), timeout=10, what="b's worker gone")
+        finally:
+            with contextlib.suppress(psutil.NoSuchProcess):    # (its controller killed it)
+                executor.resume()
+    _assert_one_copy_at_a_time(stamps)
+
+
+def _gone(process: psutil.Process) -> bool:
+    """Whether ``process`` has ended (a zombie no one reaps yet counts)."""
+    try:
+        return process.status() == psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return True
 
 
 def _frozen_until_the_copy_runs_on_a(b: Daemon, run, stamps: Path) -> None:

@@ -500,18 +500,23 @@ def test_a_lapsed_worker_lease_names_both_causes_not_only_a_frozen_executor(
         monkeypatch, caplog) -> None:
     """On a cut cable the executor fences itself and extends its lease no more; the
     worker's line blamed its executor alone ("frozen or hung"), at times before the
-    executor's said why. It names both causes."""
+    executor's said why. It names both causes, and ends the worker ``GONE_BY_S`` after
+    the lease's end whatever its teardowns still do."""
     signals: list[int] = []
     monkeypatch.setattr(lease.os, "kill", lambda pid, number: signals.append(number))
+    gone_by: list[float] = []           # (the worker's end, which would end pytest's here)
+    monkeypatch.setattr(lease, "_gone_by", gone_by.append)
     board = lease.LeaseBoard.create()
     try:
-        board.write(time.monotonic() - 1.0)         # (ran out: the watch finds it at once)
+        end = time.monotonic() - 1.0
+        board.write(end)                            # (ran out: the watch finds it at once)
         held = lease.Lease(threading.Event(), lambda: "scale", board)
         held.take()
-        eventually(lambda: held.lapsed, what="the lease lapsed")
+        eventually(lambda: held.lapsed and gone_by, what="the lease lapsed")
     finally:
         board.close()
     assert signals == [signal.SIGTERM]
+    assert gone_by == [end + lease.GONE_BY_S]       # gone by then, whatever tears down
     assert [r.getMessage() for r in caplog.records if r.name == "pb3a.worker"] == [
         "the worker of scale: its lease ran out, its executor extending it no more (the "
         "executor fenced itself after losing the launcher, or it is frozen or hung): its "
@@ -545,6 +550,7 @@ def test_a_lease_taken_while_its_executor_is_held_in_a_write_waits_for_the_end(
     its first look, its lease a second ahead. Taking the lease waits for an end read
     whole, up to the grace."""
     monkeypatch.setattr(lease.os, "kill", lambda pid, number: None)   # (a lapse)
+    monkeypatch.setattr(lease, "_gone_by", lambda deadline: None)
     board = lease.LeaseBoard.create()
     board.write(time.monotonic() + 1.0)
     view = lease.LeaseBoard.opened(os.dup(board.fd))
@@ -602,6 +608,7 @@ def test_a_lease_board_read_while_its_executor_writes_never_shows_a_torn_end(
         assert reads > 1000 and writes > 1000, (reads, writes)
         assert seen <= {math.inf, -math.inf, *_ENDS}, seen
         monkeypatch.setattr(lease.os, "kill", lambda pid, number: None)   # (its lapse)
+        monkeypatch.setattr(lease, "_gone_by", lambda deadline: None)
         closing = threading.Event()
         held = lease.Lease(closing, lambda: "m", board)
         assert held.holds()                         # a spare's: not taken

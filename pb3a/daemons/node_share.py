@@ -42,7 +42,7 @@ from pb3a.node.restarts import LOCK_TIMEOUT
 from pb3a.processes import mark_as, serve_as_child, stop_on_sigterm
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient, ControlServer, TooLarge, UnknownOperation
-from pb3a.worker.lease import LeaseBoard
+from pb3a.worker.lease import GONE_BY_S, LeaseBoard
 from pb3a.worker.process import agent_wait
 
 log = logging.getLogger("pb3a.node")
@@ -288,7 +288,9 @@ class NodeShare:
                        else f"it was frozen for {held_up:.1f} s")
                 log.error("node %s: %s (its lease is %.1f s): fenced, its modules stop",
                           self.node, why, lease_s)
-                self.executor.fence()      # at once: shutting down may wait for a request
+                # at once (shutting down may wait for a request), its workers gone by the
+                # time the launcher may start their modules elsewhere
+                self.executor.fence(gone_by=self._leased_at + lease_s + GONE_BY_S)
                 self.stopped.set()
             else:
                 self._ticked_at = now

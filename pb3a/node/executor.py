@@ -791,13 +791,14 @@ class Executor:
             self.on_event(kind, name, **detail)
 
     # -- shutdown ------------------------------------------------------------
-    def fence(self) -> None:
+    def fence(self, gone_by: float | None = None) -> None:
         """Stop every module's stepping now, without the executor's lock (a request may
         hold it, waiting on a worker): its node's lease ran out, so its modules are about
-        to be restarted elsewhere. ``shutdown`` follows."""
+        to be restarted elsewhere; a worker still tearing down at ``gone_by`` is killed
+        (``WorkerPool.fence``). ``shutdown`` follows."""
         self.lives.closing.set()
         self.lives.stop()        # (a restart waiting for a change to let go waits no more)
-        self.workers.fence()
+        self.workers.fence(gone_by)
 
     def shutdown(self, timeout: float = 10.0) -> None:
         """Stop modules in reverse start order, then workers, then free every ring, within

@@ -30,6 +30,7 @@ from pb3a.transport.addresses import connection_failure, host_of, unresolved
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 from pb3a.transport.pickling import PYTHON
+from pb3a.worker.lease import GONE_BY_S
 
 if TYPE_CHECKING:
     from pb3a.config.plan import FlatLink, FlatModule
@@ -55,6 +56,9 @@ LOSS_S = 2.0               # no answer for this long: the node is lost (reported
 # uplink): LOSS_S > HEARTBEAT_S + LEASE_S. (Renewals used to stop once its answers were
 # 0.75 s old: after a cut of 0.3 s only pings went, and the lease ran out, or its
 # workers', before a renewal from a fresh answer reached it.)
+# (a fenced node's workers are gone by GONE_BY_S after the lease's end: before the
+# launcher, which declares the node lost LOSS_S after its last answer, starts them)
+assert LOSS_S - HEARTBEAT_S - LEASE_S > GONE_BY_S
 STOP_AT_LEAST_S = 0.5      # a shutdown out of time still asks the controller this long
 # ... and a lost node's controller at most this long: one that answers does so at once,
 # and the executor of one that does not has fenced itself (a stop with a robot lost

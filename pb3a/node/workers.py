@@ -703,16 +703,30 @@ class WorkerPool:
                     and self._futures.pop(req_id, None) is not None:
                 future.set_exception(RuntimeFailure(f"worker {handle.key!r} {what}"))
 
-    def fence(self) -> None:
+    def fence(self, gone_by: float | None = None) -> None:
         """SIGTERM every worker at once, taking no lock and waiting for nothing: each
         stops its modules' stepping as the signal arrives, then tears them down and
-        exits, which fails the requests waiting on it (``close`` stops what is left)."""
+        exits, which fails the requests waiting on it (``close`` stops what is left).
+        One still there at ``gone_by`` (``time.monotonic``) is killed, its teardowns cut
+        short: its modules may be starting elsewhere then (``GONE_BY_S``)."""
         with self._spares_lock:
             handles = [*self._spares, *self.handles.values()]
         for handle in handles:
             if handle.alive and handle.process is not None:
                 with contextlib.suppress(OSError, ValueError):   # (gone meanwhile)
                     handle.process.terminate()
+        if gone_by is not None:
+            threading.Thread(target=self._kill_at, args=(handles, gone_by), daemon=True,
+                             name="pb3a-fence-kill").start()
+
+    def _kill_at(self, handles: list[WorkerHandle], deadline: float) -> None:
+        time.sleep(max(0.0, deadline - time.monotonic()))
+        for handle in handles:
+            if handle.alive and handle.process is not None:
+                log.warning("worker %s (modules %s) still tearing down as its modules may "
+                            "start elsewhere: killed", handle.key, ", ".join(handle.modules))
+                with contextlib.suppress(OSError, ValueError):   # (gone meanwhile)
+                    handle.process.kill()
 
     def close(self, timeout: float) -> None:
         """Stop every worker (in reverse start order) within ``timeout`` seconds, then the

@@ -44,6 +44,12 @@ LEASE_CHECK_S = 0.1      # how often a worker with a lease looks at it
 # starts the modules elsewhere, about 0.5 s after the lease ends (a teardown run later
 # would run beside the copy).
 LEASE_GRACE_S = 0.2
+# How long after its lease's end a fenced worker is gone at the latest, its teardowns
+# cut short if need be: the launcher starts its modules elsewhere from LOSS_S -
+# HEARTBEAT_S - LEASE_S (0.5 s) after that end (pb3a.node.remote checks it), and a
+# teardown run later ran beside the copy (a 1 s one delayed its neighbour's 0.5 s into
+# the copy's run: a driver's could switch off a device the copy had just opened).
+GONE_BY_S = 0.45
 # The exit status of a worker that stopped its modules because its lease lapsed: its
 # executor tells it from a stop it asked for (0) and, if its own lease runs, restarts
 # the modules (see Restarts.died). A code neither Python nor a shell gives, and few
@@ -202,13 +208,24 @@ class Lease:
                 return
 
     def _lapse(self) -> None:
-        """The lease ran out: stop every module, as a SIGTERM does (once)."""
+        """The lease ran out: stop every module, as a SIGTERM does (once), and be gone
+        ``GONE_BY_S`` after the lease's end whatever the teardowns still do."""
         self.lapsed = True
         # The stop first: the log goes to the executor, which is frozen, and its pipe may
         # be full: a log that waited for room there kept the modules running for good.
         os.kill(os.getpid(), signal.SIGTERM)     # (the stop a SIGTERM makes)
+        assert self._board is not None
+        threading.Thread(target=_gone_by, args=(self._board.end() + GONE_BY_S,),
+                         daemon=True, name="pb3a-lease-gone").start()
         # (both causes named: on a cut cable the executor fenced itself, saying so, and
         # this line blamed it alone, at times before the executor's)
         log.error("the worker of %s: its lease ran out, its executor extending it no more "
                   "(the executor fenced itself after losing the launcher, or it is frozen "
                   "or hung): its modules stop", self._holding())
+
+
+def _gone_by(deadline: float) -> None:
+    """End this worker at ``deadline`` (``time.monotonic``), its exit ``LEASE_LAPSED``,
+    if its stop has not ended it by then."""
+    time.sleep(max(0.0, deadline - time.monotonic()))
+    os._exit(LEASE_LAPSED)      # (no teardown, no flush: they would run beside the copy)
