@@ -668,20 +668,25 @@ def test_a_ring_whose_name_is_taken_leaves_that_segment_alone() -> None:
 def test_a_segment_whose_views_outlive_its_close_goes_quietly() -> None:
     """A segment closed while a view of it lives is left to the garbage collector, whose
     ``__del__`` closed it again and printed "Exception ignored ... BufferError" (at an
-    interrupted launcher's exit: `pb3a scenario` stopped by a SIGHUP said so)."""
+    interrupted launcher's exit: `pb3a scenario` stopped by a SIGHUP said so); and so
+    is one never closed, a view of it alive (a ring made or attached as the interrupt
+    came, before anyone could close it: the full suite saw the SIGHUP test say so)."""
     from pb3a.transport.shm import close_segment, create_segment
 
     segment = create_segment(segment_name("ring"), 4096)
     part = segment.buf[:16]
     close_segment(segment)                     # (the view: it cannot close yet)
     segment.unlink()
+    unclosed = create_segment(segment_name("ring"), 4096)
+    other = unclosed.buf[:16]
+    unclosed.unlink()
     unraisable = []
     hook, sys.unraisablehook = sys.unraisablehook, unraisable.append
     try:
-        del segment
+        del segment, unclosed
         gc.collect()
         assert bytes(part[:2]) == b"\0\0"      # the view still reads its mapping
-        del part
+        del part, other
         gc.collect()
     finally:
         sys.unraisablehook = hook

@@ -11,7 +11,6 @@ another process still uses (cpython#82300). Names carry the owner's pid, so
 from __future__ import annotations
 
 import contextlib
-import functools
 import itertools
 import os
 import signal
@@ -64,10 +63,21 @@ def keep_tracker_through_hangups() -> None:
         signal.signal(signal.SIGHUP, previous)
 
 
-def create_segment(name: str, size: int) -> shared_memory.SharedMemory:
+class Segment(shared_memory.SharedMemory):
+    """A shared-memory segment whose collection says nothing of views that outlived it:
+    an interrupted launcher, a ring made or attached but never closed (the interrupt
+    came in between), printed "Exception ignored in SharedMemory.__del__ ... BufferError:
+    memoryview has 1 exported buffer" as it exited."""
+
+    def __del__(self) -> None:
+        with contextlib.suppress(BufferError):
+            super().__del__()
+
+
+def create_segment(name: str, size: int) -> Segment:
     """Create a segment (owner side). The resource tracker unlinks it if we die."""
     try:
-        return shared_memory.SharedMemory(name=name, create=True, size=size)
+        return Segment(name=name, create=True, size=size)
     except FileExistsError:
         raise                           # (not ours to unlink)
     except BaseException:               # an error or a Ctrl-C once it was made: the
@@ -75,31 +85,23 @@ def create_segment(name: str, size: int) -> shared_memory.SharedMemory:
         raise
 
 
-def attach_segment(name: str) -> shared_memory.SharedMemory:
+def attach_segment(name: str) -> Segment:
     """Attach to an existing segment without registering it with the resource tracker."""
     if sys.version_info >= (3, 13):
-        return shared_memory.SharedMemory(name=name, track=False)  # type: ignore[call-arg]
+        return Segment(name=name, track=False)  # type: ignore[call-arg]
     register = resource_tracker.register
     resource_tracker.register = lambda *args, **kwargs: None  # type: ignore[assignment]
     try:
-        return shared_memory.SharedMemory(name=name)
+        return Segment(name=name)
     finally:
         resource_tracker.register = register  # type: ignore[assignment]
 
 
 def close_segment(segment: shared_memory.SharedMemory) -> None:
     """Close our mapping; if array views still use it, leave it to the garbage collector
-    (whose ``__del__`` of the segment tries again, quietly: at an interrupted launcher's
-    exit it printed "Exception ignored ... BufferError" when the views outlived it)."""
-    try:
-        segment.close()
-    except BufferError:
-        segment.close = functools.partial(_close_quietly, segment)   # type: ignore[method-assign]
-
-
-def _close_quietly(segment: shared_memory.SharedMemory) -> None:
+    (whose ``Segment.__del__`` tries again, quietly)."""
     with contextlib.suppress(BufferError):
-        shared_memory.SharedMemory.close(segment)
+        segment.close()
 
 
 def unlink_segment(segment: shared_memory.SharedMemory) -> None:
