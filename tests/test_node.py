@@ -512,7 +512,9 @@ def test_a_lapsed_worker_lease_names_both_causes_not_only_a_frozen_executor(
         board.write(end)                            # (ran out: the watch finds it at once)
         held = lease.Lease(threading.Event(), lambda: "scale", board)
         held.take()
-        eventually(lambda: held.lapsed and gone_by, what="the lease lapsed")
+        # (its line comes last: the stop and the end first, a frozen executor's pipe full)
+        eventually(lambda: held.lapsed and gone_by and _said(caplog, "pb3a.worker"),
+                   what="the lease lapsed")
     finally:
         board.close()
     assert signals == [signal.SIGTERM]
@@ -521,6 +523,11 @@ def test_a_lapsed_worker_lease_names_both_causes_not_only_a_frozen_executor(
         "the worker of scale: its lease ran out, its executor extending it no more (the "
         "executor fenced itself after losing the launcher, or it is frozen or hung): its "
         "modules stop"]
+
+
+def _said(caplog, logger: str) -> bool:
+    """Whether ``logger`` has said anything yet."""
+    return any(record.name == logger for record in caplog.records)
 
 
 def test_a_batch_of_on_input_calls_ends_once_its_worker_s_lease_is_out() -> None:
