@@ -20,8 +20,9 @@ from agents.traffic.gap_out import GapOut
 
 pytest.importorskip("starlette", reason="the manager needs the 'ui' extra")
 
+from conftest import eventually
 from manager_modules import FileNamed, Holder
-from sample_modules import FloatSource, Mapper, Pump, Scale, SlowState
+from sample_modules import Drifter, FloatSource, Mapper, Pump, Scale, SlowState
 from starlette.testclient import TestClient
 
 from pb3a import Running, System
@@ -330,6 +331,21 @@ def test_an_edit_is_judged_with_the_module_s_other_fields_as_they_are() -> None:
                                            "at least min_green_s (4.0)")
         state = run.state("control")
         assert (state["min_green_s"], state["max_green_s"]) == (2.0, 3.0)
+
+
+def test_an_edit_of_a_module_past_its_class_s_rule_is_refused_only_what_it_brings() -> None:
+    """A module whose steps took a field past its class's rule (a count): the State
+    Editor refused every edit of another field, naming that count, where the module's
+    own ``set_state`` takes it; an edit that breaks the rule itself is refused."""
+    system = System("drifting").add("d", Drifter)
+    with system.launch() as run, manager_client(Session(Document.empty(), run)) as client:
+        eventually(lambda: run.state("d")["count"] > 3, what="the count past 3")
+        changed = client.post("/api/modules/d/state", json={"gain": 2.0})
+        assert changed.status_code == 200, changed.text
+        refused = client.post("/api/modules/d/state", json={"count": 1000})
+        assert refused.status_code == 422, refused.text
+        assert refused.json()["error"] == ("module d: Drifter's count must be at most 3, got "
+                                           "1000")
 
 
 def test_a_float_field_takes_inf_and_nan_and_an_int_field_refuses_them(client, run) -> None:

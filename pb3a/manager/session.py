@@ -23,7 +23,6 @@ import threading
 import time
 from typing import TYPE_CHECKING, Any
 
-from pb3a.config import checks
 from pb3a.config.checks import NAME
 from pb3a.errors import ConfigError, ModuleNotFound, PB3AError, RuntimeFailure, RuntimeTimeout
 from pb3a.launch.connection import CONNECT_TIMEOUT, connect
@@ -32,6 +31,7 @@ from pb3a.manager import keeping, reflection
 from pb3a.manager.catalog import IMPORT_TIMEOUT, Catalog
 from pb3a.manager.document import Document, as_json, check_data, toml_text
 from pb3a.manager.layout import layout
+from pb3a.model.module import edit_refusals
 from pb3a.model.ports import Policy
 from pb3a.model.state_edits import class_state, coerce
 from pb3a.system import System
@@ -66,15 +66,18 @@ class Unfit(ValueError):
         self.problems = problems
 
 
-def _refused(ref: str, state: dict[str, Any]) -> list[str]:
-    """What class ``ref`` refuses of ``state`` (``checks.refused``); nothing when the
-    manager cannot import the class (a module running elsewhere, by a file it has not
-    got): the module's own ``set_state`` then judges the edit."""
+def _refused(ref: str, current: dict[str, Any], edit: dict[str, Any]) -> list[str]:
+    """What class ``ref`` refuses of ``edit`` to a module whose state is ``current``, as
+    its ``set_state`` judges it (``edit_refusals``); nothing when the manager cannot
+    import the class (a module running elsewhere, by a file it has not got): the
+    module's own ``set_state`` then judges the edit."""
+    if not edit:
+        return []
     try:
         cls = resolve_class(ref)
     except Exception:
         return []
-    return checks.refused(cls, state)
+    return edit_refusals(cls, current, edit)
 
 
 class Session:
@@ -363,9 +366,10 @@ class Session:
         fields = {field: value for field, value in fitted.items() if field in current}
         if not problems:
             # (with its other fields as they are, as the module's set_state judges it: a
-            # rule relating an edited field to another read the class's default)
+            # rule relating an edited field to another read the class's default, and a
+            # field the module had moved past a rule refused every edit of another)
             problems = [f"module {name}: {problem}" for problem in
-                        _refused(topology.modules[name].cls, {**current, **fields})]
+                        _refused(topology.modules[name].cls, current, fields)]
         if problems:
             raise Unfit(problems)
         self.handle.set_state(name, fitted, timeout=self.timeout)

@@ -188,16 +188,9 @@ class Module:
             setattr(self, name, value)
 
     def _judge_edit(self, state: dict[str, Any]) -> None:
-        """``StateRefused`` for what the class refuses of the module's whole state with
-        the edit ``state`` in it (judged alone, a rule relating an edited field to
-        another judged it against the class's default, not the module's value), less
-        what it refused of the state as it was: a field the module moved past a rule
-        itself (a count) made every edit of another field refused."""
-        current = Module.get_state(self)
-        problems = refusals(type(self), {**current, **state}, shown=state)
-        if problems:
-            before = refusals(type(self), current, shown=state)
-            problems = [problem for problem in problems if problem not in before]
+        """``StateRefused`` for what the class refuses of the edit ``state``
+        (``edit_refusals``)."""
+        problems = edit_refusals(type(self), Module.get_state(self), state)
         if problems:
             raise StateRefused(problems)
 
@@ -238,6 +231,21 @@ def refusals(cls: type[Module], state: dict[str, Any],
     if not (isinstance(problems, list) and all(isinstance(p, str) for p in problems)):
         return [f"{ref}.state_problems must return a list of texts, one per value it "
                 f"refuses ([] for none), got {problems!r:.200}"]
+    return problems
+
+
+def edit_refusals(cls: type[Module], current: dict[str, Any],
+                  edit: dict[str, Any]) -> list[str]:
+    """What module class ``cls`` refuses of the whole state ``current`` with ``edit`` in
+    it (judged alone, a rule relating an edited field to another judged it against the
+    class's default, not the module's value), less what it refused of ``current`` as it
+    was: a field the module moved past a rule itself (a count) made every edit of
+    another field refused. One judgement for a live ``set_state`` and the State
+    Editor's."""
+    problems = refusals(cls, {**current, **edit}, shown=edit)
+    if problems:
+        before = refusals(cls, current, shown=edit)
+        problems = [problem for problem in problems if problem not in before]
     return problems
 
 
