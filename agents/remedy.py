@@ -28,7 +28,7 @@ from agents.case_base import AdaptationError, CaseBase, CaseFileError, Feature, 
 from agents.limits import Limit, finite, missing_modules, out_of_limits, refuse_own_state
 from pb3a import Agent, Input, InputPort, Output
 from pb3a.errors import ModuleNotFound, PB3AError
-from pb3a.model.module import StateRefused, reflective, refusals
+from pb3a.model.module import reflective
 
 if TYPE_CHECKING:
     from pb3a.stats import SystemStats
@@ -345,11 +345,13 @@ class RemedyAgent(Agent):
         its next failure, rather than by the base it made at setup, which it wrote back
         over the state as it learnt. A case file it cannot read or carry out is refused
         too (``CaseFileError``), and nothing is set."""
-        problems = refusals(type(self), {**self.get_state(), **state}, shown=state)
-        if problems:            # (judged before the case files are read by them)
-            raise StateRefused(problems)
+        # Checked as Module's set_state checks, before the case files are read by it, and
+        # set here, not by that (judged twice, the first time refusing an edit what the
+        # agent's own state was refused before it: a field its steps took past a rule)
+        state = self._admitted(state)
         base = _case_base({**self.get_state(), **state})
-        super().set_state(state)
+        for name, value in state.items():
+            setattr(self, name, value)
         if "_base" in vars(self):
             self._use(base)
 

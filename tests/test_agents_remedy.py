@@ -26,6 +26,7 @@ from agents.remedy import (
 )
 from pb3a import MigrationReport, ModuleNotFound, RuntimeFailure
 from pb3a.launch.migration import MigrationPhases
+from pb3a.model.module import restore_state
 from pb3a.testing import ModuleHarness
 
 SONAR_FREE = "agents.explorer:SonarFreeExplorer"
@@ -292,6 +293,40 @@ def test_an_agent_refuses_settings_of_a_kind_it_cannot_read(wrong, problem) -> N
     with pytest.raises(ValueError, match=re.escape(problem)):
         harness.module.set_state(wrong)
     assert harness.state["consumers"] == {} and harness.state["fallbacks"] == {}
+
+
+class CountedRemedyAgent(RemedyAgent):
+    """A remedy agent that counts the times its class is asked what it refuses."""
+
+    asked: list[dict[str, Any]] = []
+
+    @classmethod
+    def state_problems(cls, state: dict[str, Any]) -> list[str]:
+        CountedRemedyAgent.asked.append(state)
+        return super().state_problems(state)
+
+
+def test_an_edit_is_judged_once_and_not_refused_what_the_agent_s_state_broke_before(
+        tmp_path) -> None:
+    """Its own set_state judged an edit against the whole state, then Module's judged it
+    again: an agent whose state already broke a rule (as its own steps may take a field)
+    had every edit of another field refused naming that field, and could not be given
+    its own state back (a move, a restart); each edit asked the hook twice."""
+    harness = ModuleHarness(CountedRemedyAgent, runtime=FakeRuntime(), state={
+        "cases_path": str(tmp_path / "learned.toml")})
+    CountedRemedyAgent.asked.clear()
+    harness.module.set_state({"settle_s": 1.0})
+    assert len(CountedRemedyAgent.asked) == 1 and harness.state["settle_s"] == 1.0
+    harness.module.verify_s = -1.0                  # (set as its own steps might)
+    harness.module.set_state({"stopped": True})
+    assert harness.state["stopped"] is True and harness.state["verify_s"] == -1.0
+    with pytest.raises(ValueError, match=re.escape("settle_s must be a finite number")):
+        harness.module.set_state({"settle_s": -2.0, "stopped": False})
+    assert harness.state["settle_s"] == 1.0 and harness.state["stopped"] is True
+    fresh = ModuleHarness(CountedRemedyAgent, runtime=FakeRuntime(), state={
+        "cases_path": str(tmp_path / "learned.toml")})
+    restore_state(fresh.module, harness.state)      # its own state back: no edit
+    assert fresh.state["verify_s"] == -1.0 and fresh.state["stopped"] is True
 
 
 @pytest.mark.parametrize(("wrong", "problem"), [

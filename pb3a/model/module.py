@@ -167,6 +167,14 @@ class Module:
         (unless it is given its own state back: ``restore_state``), ``StateRefused`` each
         value the class refuses (``state_problems``, given the module's whole state with
         ``state`` in it). Either way nothing is set."""
+        for name, value in self._admitted(state).items():
+            setattr(self, name, value)
+
+    def _admitted(self, state: dict[str, Any]) -> dict[str, Any]:
+        """What of ``state`` ``set_state`` sets, after its checks (``KeyError``,
+        ``StateRefused``): for a class's own ``set_state`` that acts on an edit before it
+        is set (``RemedyAgent``'s reads its case files), so that the edit is judged once,
+        as ``Module``'s judges it."""
         known = set(type(self).state_names()) | {
             name for name, value in self.__dict__.items() if _is_state(name, value)}
         unknown = sorted(set(state) - known)
@@ -184,8 +192,7 @@ class Module:
             )
         if not _RESTORING.get():        # (its own state back is no edit: a move, a restart
             self._judge_edit(state)     # of a module past its class's rule lost its state)
-        for name, value in state.items():
-            setattr(self, name, value)
+        return state
 
     def _judge_edit(self, state: dict[str, Any]) -> None:
         """``StateRefused`` for what the class refuses of the edit ``state``
