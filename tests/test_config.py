@@ -1514,6 +1514,39 @@ def test_a_rule_a_macro_s_entry_breaks_is_said_of_it_not_of_each_instance(
                         "max_green_s (15.0) must be at least min_green_s (20.0)"], problems
 
 
+ASKED: list[dict] = []       # each state Asked's hook was given
+
+
+class Asked(Module):
+    """A class whose hook notes each state it is asked about, refusing none."""
+
+    rate = 1.0
+    ceiling = 5.0
+
+    @classmethod
+    def state_problems(cls, state):
+        ASKED.append(dict(state))
+        return []
+
+
+def test_the_checks_ask_a_class_once_per_table_and_once_of_the_whole_state() -> None:
+    """The checks asked a class's ``state_problems`` four times for a module's entry (its
+    state twice, its defaults alone, the whole state) and as often for a macro's module
+    an instance overrides: a hook that reads files or judges a large table did it all
+    again for each. Each table is judged once, the whole state once, and the defaults
+    alone only when the whole state is refused something (to say which are its own)."""
+
+    class Pair(Macro):
+        modules = {"m": Asked}
+
+    ASKED.clear()
+    assert System("entry").add("m", Asked, state={"rate": 2.0}).check() == []
+    assert ASKED == [{"rate": 2.0}, {"rate": 2.0, "ceiling": 5.0}]
+    ASKED.clear()
+    assert System("override").add("p", Pair, state={"m": {"rate": 3.0}}).check() == []
+    assert ASKED == [{"rate": 3.0}, {"rate": 3.0, "ceiling": 5.0}]
+
+
 def test_a_rule_relating_fields_is_judged_for_a_class_with_a_set_state_of_its_own() -> None:
     """A user's subclass of a library controller whose ``set_state`` logs each edit and
     calls the base's (not marked ``reflective``) passed the check with a minimum green

@@ -193,11 +193,11 @@ def _judged(cls: type[Module], value: dict[str, Any]) -> tuple[list[str], dict[s
 
 
 def defaults_refused(cls: type[Module], whole: dict[str, Any],
-                     parts: Iterable[dict[str, Any]] | None = None) -> list[str]:
+                     said: Iterable[str] | None = None) -> list[str]:
     """What the class refuses of a module's whole state (``whole``, its entry's with its
     macro instances' overrides, and the class's own defaults for the rest) beyond what
-    it refuses of each of ``parts`` alone (the tables ``whole`` was made of, each judged
-    where it is written, by ``state``: ``whole`` itself if None): a default of its own
+    ``state`` said of the tables ``whole`` was made of, each judged where it is written
+    (``said``; judged here, of ``whole`` as one table, if None): a default of its own
     it refuses, a driver's ``timeout = 0``, which every request then failed by ("...
     (its class's own default)"), and a rule relating fields that an entry and a
     default, or a macro's entry and an instance's override, break together (a
@@ -207,17 +207,20 @@ def defaults_refused(cls: type[Module], whole: dict[str, Any],
     ``reflective`` is judged so too if it keeps ``Module``'s ``get_state`` (its
     defaults are its state then: a user's subclass of a library controller whose
     ``set_state`` logged and called the base's passed the check, and failed at the
-    launch), its values as given."""
+    launch), its values as given. The class's hook is asked once here, and once more
+    (its defaults alone) only when it refuses something."""
     if cls.get_state is not Module.get_state:
         return []               # (the class defines its own state: no defaults known)
     defaults = {name: getattr(cls, name) for name in cls.state_names()}
-    said = {problem for part in ([whole] if parts is None else parts)
-            for problem in state(cls, part)}
-    own = refused(cls, defaults)
     # (a value not of its field's kind is said as such, not judged again here)
     given = _judged(cls, whole)[1] if reflective_state(cls) else whole
+    problems = refused(cls, {**defaults, **given})
+    if not problems:
+        return []
+    said = set(state(cls, whole) if said is None else said)
+    own = refused(cls, defaults)
     return [f"{problem} (its class's own default)" if problem in own else problem
-            for problem in refused(cls, {**defaults, **given}) if problem not in said]
+            for problem in problems if problem not in said]
 
 
 def refused(cls: type[Module], state: dict[str, Any]) -> list[str]:

@@ -309,7 +309,8 @@ class _Planner:
         elif child.cls is not None:
             problems += checks.period(entry.period) + checks.restart(entry.restart)
             problems += checks.stepped(child.cls, entry.period)
-            problems += checks.state(child.cls, entry.state)
+            child.said = checks.state(child.cls, entry.state)
+            problems += child.said
             if child.cls not in self.class_problems:
                 self.class_problems[child.cls] = checks.module_class(child.cls)
             problems += self.class_problems[child.cls]
@@ -388,15 +389,17 @@ class _Planner:
                 period = entry.period if not checks.period(entry.period) else None
                 restart = entry.restart if not checks.restart(entry.restart) else None
                 state = dict(entry.state) if isinstance(entry.state, dict) else {}
-                parts = [dict(state)]           # (each judged alone where it is written)
+                parts = [dict(state)]           # (each judged alone where it is written,
+                said = [child.said]             # once: what that said, by table)
                 extras = overrides.pop(name, [])
                 for extra in extras:
+                    said.append(checks.state(cls, extra.state))
                     self.report(extra.label, [f"state of {extra.key!r}: {problem}"
-                                              for problem in checks.state(cls, extra.state)])
+                                              for problem in said[-1]])
                     state.update(extra.state)
                     parts.append(extra.state)
                 state = _widened(cls, state)
-                whole = checks.defaults_refused(cls, state, parts)
+                whole = checks.defaults_refused(cls, state, _flat(said))
                 # Each problem of the whole state is said of the entry whose table brought
                 # it: the macro's, or an instance's override (the innermost first). Said of
                 # the last override, the macro entry's own was pinned on every instance that
@@ -405,9 +408,13 @@ class _Planner:
                 for level in range(len(extras) + 1):
                     if not whole:
                         break
-                    so_far = _widened(cls, {key: value for part in parts[:level + 1]
-                                            for key, value in part.items()})
-                    found = set(checks.defaults_refused(cls, so_far, parts[:level + 1]))
+                    if level == len(extras):    # (the whole state: what is left is its)
+                        found = set(whole)
+                    else:
+                        so_far = _widened(cls, {key: value for part in parts[:level + 1]
+                                                for key, value in part.items()})
+                        found = set(checks.defaults_refused(cls, so_far,
+                                                            _flat(said[:level + 1])))
                     for problem in [problem for problem in whole if problem in found]:
                         blamed.append((child.label, problem) if level == 0 else (
                             extras[level - 1].label,
@@ -460,6 +467,11 @@ class _Planner:
             other = first.setdefault(module.group, module)
             self.report(labels[module.name], checks.group_apart(
                 module.name, module.group, module.node, [other]))
+
+
+def _flat(said: list[list[str]]) -> list[str]:
+    """The problems said of each of several tables, as one list."""
+    return [problem for problems in said for problem in problems]
 
 
 def _widened(cls: type[Module], state: dict[str, Any]) -> dict[str, Any]:

@@ -41,6 +41,7 @@ class Child:
     label: str
     cls: type[Module] | None = None
     macro: Definition | None = None
+    said: list[str] = field(default_factory=list)   # what its class refuses of its state
 
 
 @dataclass(eq=False)

@@ -883,10 +883,10 @@ def _add_problems(name: Any, cls: Any, state: Any, period: Any, restart: Any, gr
             problems.append(f"{cls!r} is not a pb3a.Module subclass")
         else:
             given = {} if state is None else state
-            problems += checks.state(cls, given) + checks.module_class(cls) \
-                + checks.stepped(cls, period)
+            said = checks.state(cls, given)
+            problems += said + checks.module_class(cls) + checks.stepped(cls, period)
             if isinstance(given, dict):
-                problems += checks.defaults_refused(cls, given)
+                problems += checks.defaults_refused(cls, given, said)
     problems += checks.period(period) + checks.restart(restart)
     if node not in nodes:
         problems.append(f"no node {node!r}{checks.did_you_mean(node, nodes)}; nodes: "
