@@ -723,46 +723,6 @@ class SlowsItself(Agent):
             self.runtime.set_state(self.runtime.name, period=self.to)
 
 
-class AssignsItsPeriod(Module):
-    """Notes when each of its last steps began (``time.monotonic()``); at its third step,
-    assigns ``self.period`` a wrong period, noting the error, then ``to`` seconds. Its
-    ``setup`` assigns it too (before it runs: set on the instance, as always)."""
-
-    period = 0.2
-    to = 1.0
-    stamps: list = []
-    refused = ""
-    in_setup = 0.0
-
-    def setup(self) -> None:
-        self.period = 0.5
-        self.in_setup = self.period
-
-    def step(self) -> None:
-        self.stamps = [*self.stamps[-9:], time.monotonic()]
-        if len(self.stamps) == 3:
-            try:
-                self.period = -1.0
-            except ValueError as exc:
-                self.refused = str(exc)
-            self.period = self.to
-
-
-class AssignsAPeriodOnInput(Module):
-    """Event-driven, with no step: assigns ``self.period`` at each value, noting the
-    error."""
-
-    x = Input(float)
-    refused = ""
-
-    def on_input(self, port) -> None:
-        port.read()
-        try:
-            self.period = 0.5
-        except ValueError as exc:
-            self.refused = str(exc)
-
-
 class Retimer(Agent):
     """Once, from its step, slows ``target`` to a period of ``to`` seconds."""
 

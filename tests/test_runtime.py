@@ -25,8 +25,6 @@ from sample_modules import (
     ArrayReuser,
     ArraySink,
     ArraySource,
-    AssignsAPeriodOnInput,
-    AssignsItsPeriod,
     Burst,
     Busy,
     Chain,
@@ -1403,33 +1401,6 @@ def test_a_period_set_live_is_slept_after_the_last_step_not_stepped_at_once() ->
         eventually(lambda: run.state("slow")["stamps"][-1] > last, timeout=5,
                    what="a step at the shorter period")
         assert time.monotonic() - changed < 0.9     # (not at the 1 s period's turn)
-
-
-def test_a_period_a_running_module_assigns_itself_is_set_live_or_refused() -> None:
-    """``self.period = 1.0`` in a step set the instance's attribute, which the runtime
-    never reads (it steps by its own copy): the module stepped on at its old period,
-    nothing said. It is set as ``set_state(name, period=...)`` sets it: slept after the
-    step that set it, known to the runtime; a wrong one, or one given to a module with
-    no step(), is refused naming the module and what a period is. Set in ``setup``,
-    before it runs, it is the instance's attribute, as it was."""
-    system = System("assigned").add("paced", AssignsItsPeriod)
-    system.add("source", FloatSource).add("event", AssignsAPeriodOnInput)
-    system.link("source.out", "event.x")
-    with system.launch() as run:
-        eventually(lambda: len(run.state("paced")["stamps"]) >= 4, timeout=10,
-                   what="a step at the period it assigned")
-        state = run.state("paced")
-        third, fourth = state["stamps"][2:4]
-        assert fourth - third >= 0.95, f"{fourth - third:.3f} s after the step that set it"
-        assert run.topology().modules["paced"].period == 1.0
-        assert state["in_setup"] == 0.5
-        assert ("set_state paced: period must be a number of seconds from 0 to "
-                "1e+07 (0 = as fast as possible), got -1.0") in state["refused"]
-        eventually(lambda: run.state("event")["refused"], what="the event module's")
-        assert "set_state event: period = 0.5 is given, but sample_modules:" \
-               "AssignsAPeriodOnInput has no step() for it to call" in \
-               run.state("event")["refused"]
-        assert run.topology().modules["event"].period is None
 
 
 def test_a_module_s_period_is_set_live_and_kept_across_a_move_and_a_restart() -> None:

@@ -48,29 +48,6 @@ class StateRefused(ValueError):
         self.problems = list(problems)
 
 
-class _Period:
-    """The ``period`` of a module class: read from the class, its value; from a module,
-    the period it runs at (its own, which the runtime gives it). Assigned in a running
-    module's body, it is set live by the way the module's worker gave it, as
-    ``set_state(name, period=...)`` sets it: the runtime steps by its own copy, and an
-    assignment that set the instance's attribute was ignored, saying nothing. (A
-    descriptor, not ``Module.__setattr__``, which added some 0.4 µs to every other
-    assignment of a module's.)"""
-
-    def __init__(self, value: float | None) -> None:
-        self.value = value
-
-    def __get__(self, module: Module | None, owner: type | None = None) -> Any:
-        return self.value if module is None else module.__dict__.get("period", self.value)
-
-    def __set__(self, module: Module, value: Any) -> None:
-        # (its worker's way, which answers False until the module runs: in its
-        # __init__, its setup, the assignment sets the instance's attribute, as it did)
-        retime = module.__dict__.get("_pb3a_retime")
-        if retime is None or not retime(module, value):
-            module.__dict__["period"] = value
-
-
 class Module:
     """Base class of every port-based module.
 
@@ -78,8 +55,7 @@ class Module:
     ``0`` = as fast as possible) and ``restart`` (``"never"``, ``"fresh"`` or
     ``"last-state"``) configure how the runtime runs it; a configuration may
     override both (a running instance's ``self.period`` is the period it runs at, the
-    configuration's, ``add``'s or ``swap``'s if given; assigned in a body, it is set live
-    as ``set_state(name, period=...)`` sets it). ``displays`` tells tools how to
+    configuration's, ``add``'s or ``swap``'s if given). ``displays`` tells tools how to
     show some state fields (``pb3a.model.displays``). Modules are constructed with no
     arguments.
 
@@ -109,10 +85,6 @@ class Module:
                     inputs.pop(name, None)
         cls.inputs = inputs
         cls.outputs = outputs
-        # (its period held by a ``_Period``: read as the value it is, set live)
-        held = next(vars(klass)["period"] for klass in cls.__mro__ if "period" in vars(klass))
-        if not isinstance(held, _Period):
-            cls.period = _Period(held)      # type: ignore[assignment]
 
     def __init__(self) -> None:
         # Mutable class defaults (lists, dicts, arrays, deques, objects of the module's

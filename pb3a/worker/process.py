@@ -630,23 +630,6 @@ class Worker:
         if isinstance(module, Agent):
             module.__dict__["_pb3a_runtime"] = RuntimeClient(
                 name, functools.partial(self.request, name))
-        module.__dict__["_pb3a_retime"] = functools.partial(self._retime_own, name)
-
-    def _retime_own(self, name: str, module: Any, period: Any) -> bool:
-        """``self.period = period`` in a body of module ``name``: its period set as
-        ``set_state(name, period=...)`` sets it (refused as that refuses it, a
-        ``ConfigError`` naming the module and what a period is; slept after the step
-        under way; kept across moves and restarts), and True. False before the module
-        runs, in its ``__init__`` or ``setup`` (a swap's too: its period is the one it
-        is given), where it is set on the instance, as it was."""
-        actor = self.actors.get(name)
-        if actor is None or actor.module is not module or not actor.running \
-                or actor.in_setup:
-            return False
-        if type(period) in (int, float) and period == actor.period:
-            return True                 # (its own period again: a request for nothing)
-        self.request(name, "set_state", {"name": name, "values": {"period": period}})
-        return True
 
     def request(self, agent: str, op: str, args: dict[str, Any],
                 timeout: float | None = None) -> Any:
