@@ -345,13 +345,9 @@ class RemedyAgent(Agent):
         its next failure, rather than by the base it made at setup, which it wrote back
         over the state as it learnt. A case file it cannot read or carry out is refused
         too (``CaseFileError``), and nothing is set."""
-        # Checked as Module's set_state checks, before the case files are read by it, and
-        # set here, not by that (judged twice, the first time refusing an edit what the
-        # agent's own state was refused before it: a field its steps took past a rule)
-        state = self._admitted(state)
-        base = _case_base({**self.get_state(), **state})
-        for name, value in state.items():
-            setattr(self, name, value)
+        with self._admitting(state) as state:  # (judged before the case files are read)
+            base = _case_base({**self.get_state(), **state})
+            super().set_state(state)
         if "_base" in vars(self):
             self._use(base)
 

@@ -9,7 +9,7 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import pytest
@@ -24,7 +24,7 @@ from agents.remedy import (
     plan,
     situation_of,
 )
-from pb3a import MigrationReport, ModuleNotFound, RuntimeFailure
+from pb3a import MigrationReport, Module, ModuleNotFound, RuntimeFailure
 from pb3a.launch.migration import MigrationPhases
 from pb3a.model.module import restore_state
 from pb3a.testing import ModuleHarness
@@ -327,6 +327,37 @@ def test_an_edit_is_judged_once_and_not_refused_what_the_agent_s_state_broke_bef
         "cases_path": str(tmp_path / "learned.toml")})
     restore_state(fresh.module, harness.state)      # its own state back: no edit
     assert fresh.state["verify_s"] == -1.0 and fresh.state["stopped"] is True
+
+
+class Audited(Module):
+    """A user's cooperative mixin, after the agent's class: it sees each state set, then
+    hands it on."""
+
+    def set_state(self, state: dict[str, Any]) -> None:
+        AuditedRemedyAgent.seen.append(sorted(state))
+        super().set_state(state)
+
+
+class AuditedRemedyAgent(CountedRemedyAgent, Audited):
+    seen: ClassVar[list[list[str]]] = []
+
+
+def test_a_mixin_s_set_state_still_sees_what_the_agent_is_given(tmp_path) -> None:
+    """Judged once, the edit was set by the agent's own set_state rather than handed on to
+    the base's: a user's mixin between them (auditing every change) saw nothing, of an
+    edit or of the agent's own state given back."""
+    harness = ModuleHarness(AuditedRemedyAgent, runtime=FakeRuntime(), state={
+        "cases_path": str(tmp_path / "learned.toml")})
+    AuditedRemedyAgent.seen.clear()
+    CountedRemedyAgent.asked.clear()
+    harness.module.set_state({"settle_s": 1.0})
+    assert AuditedRemedyAgent.seen == [["settle_s"]] and len(CountedRemedyAgent.asked) == 1
+    fresh = ModuleHarness(AuditedRemedyAgent, runtime=FakeRuntime(), state={
+        "cases_path": str(tmp_path / "learned.toml")})
+    AuditedRemedyAgent.seen.clear()
+    restore_state(fresh.module, harness.state)
+    assert AuditedRemedyAgent.seen == [sorted(harness.state)]
+    assert fresh.state["settle_s"] == 1.0
 
 
 @pytest.mark.parametrize(("wrong", "problem"), [

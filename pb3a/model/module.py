@@ -13,7 +13,7 @@ import contextvars
 import copy
 import difflib
 import types
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any, ClassVar, TypeVar
 
 from pb3a.model.ports import Input, InputPort, Output, OutputPort, _Port
@@ -29,6 +29,9 @@ _NOT_STATE = (_Port, types.FunctionType, classmethod, staticmethod, property, ty
 # Set while a module is given its own state back (``restore_state``).
 _RESTORING: contextvars.ContextVar[bool] = contextvars.ContextVar("pb3a_restoring",
                                                                    default=False)
+# The edit a class's own ``set_state`` has admitted already (``Module._admitting``).
+_ADMITTED: contextvars.ContextVar[dict[str, Any] | None] = contextvars.ContextVar(
+    "pb3a_admitted", default=None)
 
 
 # The methods a module class defines for the runtime to call (``Module``'s lifecycle
@@ -172,9 +175,9 @@ class Module:
 
     def _admitted(self, state: dict[str, Any]) -> dict[str, Any]:
         """What of ``state`` ``set_state`` sets, after its checks (``KeyError``,
-        ``StateRefused``): for a class's own ``set_state`` that acts on an edit before it
-        is set (``RemedyAgent``'s reads its case files), so that the edit is judged once,
-        as ``Module``'s judges it."""
+        ``StateRefused``); ``state`` itself if ``_admitting`` admitted it already."""
+        if _ADMITTED.get() is state:
+            return state
         known = set(type(self).state_names()) | {
             name for name, value in self.__dict__.items() if _is_state(name, value)}
         unknown = sorted(set(state) - known)
@@ -193,6 +196,20 @@ class Module:
         if not _RESTORING.get():        # (its own state back is no edit: a move, a restart
             self._judge_edit(state)     # of a module past its class's rule lost its state)
         return state
+
+    @contextlib.contextmanager
+    def _admitting(self, state: dict[str, Any]) -> Iterator[dict[str, Any]]:
+        """``state`` checked and judged as ``set_state`` does it (``_admitted``), for a
+        class's own ``set_state`` that acts on an edit before it hands it on to the
+        base's (``RemedyAgent``'s reads its case files first): the base's, called within,
+        sets it without judging it again (judged twice, each edit asked the hook twice,
+        and one judged by hand refused what the module's state broke before it)."""
+        admitted = self._admitted(state)
+        token = _ADMITTED.set(admitted)
+        try:
+            yield admitted
+        finally:
+            _ADMITTED.reset(token)
 
     def _judge_edit(self, state: dict[str, Any]) -> None:
         """``StateRefused`` for what the class refuses of the edit ``state``
