@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import collections
+import copy
 import dataclasses
 import gc
 import inspect
@@ -10,6 +11,7 @@ import itertools
 import json
 import logging
 import os
+import pickle
 import re
 import signal
 import threading
@@ -1440,3 +1442,32 @@ def test_a_module_s_period_is_set_live_and_kept_across_a_move_and_a_restart() ->
                    and m.steps > 0, timeout=20, what="the restarted module stepping")
         assert steps_in(run, 1.0) <= 7
         assert run.state("paced")["seen_period"] == 0.2
+
+
+class CopiesItself(Module):
+    """Takes a deep copy and a pickle of itself at each step, as a snapshot."""
+
+    period = 0.02
+    out = Output(int)
+    count = 0
+    copied = ""
+
+    def step(self) -> None:
+        self.count += 1
+        self.out.write(self.count)
+        twin, thawed = copy.deepcopy(self), pickle.loads(pickle.dumps(self))
+        self.copied = f"{twin.count} {thawed.count}"
+
+
+def test_a_running_module_may_copy_and_pickle_itself_and_runs_on() -> None:
+    """A copy is the module and its state, bound to nothing: a ``copy.deepcopy`` of a
+    running module copied its worker's connections and rings, whose copies closed their
+    ends as they were collected, and the worker died ("module 'c' is not running")."""
+    system = System("copies")
+    system.add("c", CopiesItself)
+    with system.launch() as run:
+        eventually(lambda: run.state("c")["count"] > 20, what="20 steps, each copying")
+        count, copied = run.state("c")["count"], run.state("c")["copied"]
+        assert copied and copied.split()[0] == copied.split()[1]
+        eventually(lambda: run.state("c")["count"] > count + 10, what="steps go on")
+        assert run.stats().modules["c"].restarts == 0

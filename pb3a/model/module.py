@@ -101,6 +101,15 @@ class Module:
                     with contextlib.suppress(TypeError, copy.Error):
                         self.__dict__[name] = copy.deepcopy(value)
 
+    def __getstate__(self) -> dict[str, Any]:
+        """What a copy or a pickle of the module takes: its attributes, less what its
+        worker bound it to (ports, runtime, device: ``_pb3a_...``), so that the copy is
+        the module with its state, bound to nothing. (A ``copy.deepcopy`` of a running
+        module copied its worker's connections and rings, whose copies closed their
+        ends as they went: the worker died.)"""
+        return {name: value for name, value in self.__dict__.items()
+                if not name.startswith("_pb3a_")}
+
     # -- lifecycle hooks (override as needed) ------------------------------
     def setup(self) -> None:
         """Called after state and ports are in place, again after every swap or move."""
