@@ -257,6 +257,23 @@ def _free_space(occupied: np.ndarray, grid: Grid,
     return free_space
 
 
+def _remedy_after(remedies: list[dict[str, Any]], fault_at: float
+                  ) -> tuple[dict[str, Any] | None, dict[str, Any] | None]:
+    """Of the remedy agent's ``remedies`` (its ``remedy`` port's), the verdict ("worked"
+    or "failed") on the first move it chose after the fault, and the first stop it chose
+    after the fault (a move judged failed is followed by one; so is a later failure on
+    the standby, which has no standby of its own): None for either not there. A move
+    chosen before the fault (a false alarm's) is not the fault's."""
+    after = [r for r in remedies if r["at"] >= fault_at
+             and r.get("event") in ("chosen", "worked", "failed")]
+    chosen = next((i for i, r in enumerate(after)
+                   if r["event"] == "chosen" and r["action"] == "move_macro"), None)
+    move = None if chosen is None else next(
+        (r for r in after[chosen + 1:] if r["event"] != "chosen"), None)
+    stop = next((r for r in after if r["action"] == "stop"), None)
+    return move, stop
+
+
 def _probabilities(log_odds: np.ndarray) -> np.ndarray:
     return (1.0 - 1.0 / (1.0 + np.exp(np.asarray(log_odds, dtype=np.float64)))).astype(np.float32)
 
@@ -288,6 +305,7 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
         handoff_at = next((u[0] for u in recorder["updates"] if u[0] > detected["at"]
                            and math.hypot(u[1] - sx, u[2] - sy)
                            < min(HANDOFF_NEAR_M, math.hypot(u[1] - fx, u[2] - fy))), None)
+    move, stop = _remedy_after(recorder["remedies"], fault_at)
     before = [s for at, s in recorder["snapshots"] if at <= fault_at]
     # the first snapshot after the hand-off (the last before it was, snapshots coming
     # every 2 s and hand-offs in 0.1-0.4 s, the one before the fault)
@@ -301,7 +319,15 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
         "failures": [{**f, "after_fault_s": round(f["at"] - fault_at, 3)}
                      for f in recorder["failures"]],
         "handoff_s": round(handoff_at - detected["at"], 3) if handoff_at else None,
-        "remedies": recorder["remedies"],
+        "remedies": [{**r, "after_fault_s": round(r["at"] - fault_at, 3)}
+                     for r in recorder["remedies"]],
+        # the remedy agent's verdict on the move it chose after the fault (null: none
+        # chosen, or not judged by the end), and when after the fault it chose to stop
+        # the robot the control system drove (null: never), mapping ending there
+        "move_verdict": None if move is None else {
+            "worked": move["event"] == "worked", "outcome": move["outcome"],
+            "after_fault_s": round(move["at"] - fault_at, 3)},
+        "stopped_after_fault_s": None if stop is None else round(stop["at"] - fault_at, 3),
         "mapper_node_at_end": record["mapper_node_at_end"],
         "failed_robot_travel_m": round(_travel(
             [p for p in record["paths"][record["robots"][0]] if p[0] >= fault_at]), 3),
@@ -319,16 +345,22 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
             "small world is mapped first, the robot then standing; a busy machine is slow "
             "to learn); use a larger world, or --fault robot_link")
     maps = figures["map"]
+    moved = figures["move_verdict"] is not None and figures["move_verdict"]["worked"]
     figures["goals"] = {
         "handoff_s <= 0.5": figures["handoff_s"] is not None
         and figures["handoff_s"] <= GOALS["handoff_s"],
         "accuracy >= 0.9 (before the fault and at the end)": all(
             maps[k] is not None and maps[k]["accuracy"] >= GOALS["accuracy"]
             for k in ("before_fault", "end")),
+        # (a hand-off undone, the move judged failed and the standby stopped, is no
+        # mapping on: one undone 3 s after it grew the map by 0.002 in that time, and
+        # one undone later could have grown it more and met the goal)
         "coverage grows after the hand-off": maps["at_handoff"] is not None
-        and maps["end"]["coverage"] > maps["at_handoff"]["coverage"] + 0.01,
+        and maps["end"]["coverage"] > maps["at_handoff"]["coverage"] + 0.01 and moved,
         # (the README gave it as a goal; the report counted them and judged nothing)
         "no false alarm before the fault": figures["false_alarms"] == 0,
+        # (a move judged failed, its robot stopped, read as a success by every goal)
+        "the move judged to work, the control system not stopped": moved and stop is None,
     }
     return figures
 
@@ -395,6 +427,9 @@ def plot(record: dict[str, Any], figures: dict[str, Any], path: Path) -> None:
     if figures["handoff_s"] is not None:
         quality.axvline(fault_at - started + figures["detection_s"] + figures["handoff_s"],
                         color="tab:green", linestyle="-.", label="mapping from the standby")
+    if figures["stopped_after_fault_s"] is not None:
+        quality.axvline(fault_at - started + figures["stopped_after_fault_s"], color="black",
+                        linestyle="--", label="robot stopped (remedy agent)")
     quality.axhline(GOALS["accuracy"], color="0.7", linewidth=0.8)
     quality.set_ylim(0, 1.02)
     quality.set_xlabel("time (s)")

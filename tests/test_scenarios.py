@@ -58,6 +58,9 @@ def test_the_scenario_command_names_the_scenarios(capsys) -> None:
     assert "the scenarios: mapping, self-migration, sim-to-real, traffic" in capsys.readouterr().err
 
 
+MOVED = "the move judged to work, the control system not stopped"
+
+
 def _check_mapping(figures: dict, fault: str = "motors") -> None:
     # The control system moved, map and all, to the standby robot's node over a failure
     # and mapped on there. The goals (no false alarm, a hand-off within 0.5 s) are the
@@ -120,9 +123,11 @@ def test_mapping_from_the_command_line_on_another_world_seed_and_fault(tmp_path,
     assert '"handoff_s"' in capsys.readouterr().out
 
 
-def test_mapping_times_the_hand_off_by_the_standby_robots_readings_not_the_failed_ones() -> None:
-    # the failed robot stopped 0.8 m from the standby: its own readings, folded in until
-    # the control system has moved (1.5 s after the failure was detected), are no hand-off
+def _mapping_record(**changes: object) -> dict:
+    """A lab run's record, made up: the motors cut at 1000 s, detected 1 s later; the
+    failed robot stopped 0.8 m from the standby, whose readings come 1.5 s after the
+    detection; a blank snapshot before the fault, one calling every cell free after the
+    hand-off, and a blank final map (``changes`` replace the record's entries)."""
     from agents.grid import Grid
     from rave import World
     from rave.worldfile import world_file
@@ -145,6 +150,14 @@ def test_mapping_times_the_hand_off_by_the_standby_robots_readings_not_the_faile
                            "failures": [{"fault": "motors", "at": detected_at}]},
               "remedy": {}, "final_map": blank, "resolution": 0.1,
               "mapper_node_at_end": "r2"}
+    return {**record, **changes}
+
+
+def test_mapping_times_the_hand_off_by_the_standby_robots_readings_not_the_failed_ones() -> None:
+    # the failed robot stopped 0.8 m from the standby: its own readings, folded in until
+    # the control system has moved (1.5 s after the failure was detected), are no hand-off
+    record = _mapping_record()
+    fault_at = record["fault_at"]
     figures = mapping.report(record)
     assert figures["handoff_s"] == pytest.approx(1.5)
     assert not figures["goals"]["handoff_s <= 0.5"] and "why_undetected" not in figures
@@ -161,6 +174,62 @@ def test_mapping_times_the_hand_off_by_the_standby_robots_readings_not_the_faile
     assert alarmed["false_alarms"] == 1
     assert not alarmed["goals"]["no false alarm before the fault"]
     assert unseen["why_undetected"].startswith("the monitor was not yet watching the motors")
+
+
+def test_mapping_s_goals_count_no_move_judged_failed_nor_a_robot_stopped_as_a_success() -> None:
+    """A standby stopped 3 s after the hand-off (a false motors alarm on it: the remedy
+    agent judged its move failed and stopped the robot) read as a success in every goal."""
+    from agents.grid import Grid
+    from agents.map_truth import truth
+
+    record = _mapping_record()
+    fault_at, detected_at = record["fault_at"], record["recorder"]["failures"][0]["at"]
+    grid = Grid.of(record["size"], 0.1)
+    perfect = np.where(truth(record["described"], grid), 0.95, 0.05).astype(np.float32)
+    xs, _ = grid.centers()
+
+    def known_west_of(x: float) -> np.ndarray:
+        return np.where(xs < x, perfect, grid.blank())
+
+    def remedy(event: str, after: float, action: str, outcome: str = "") -> dict:
+        return {"event": event, "at": detected_at + after, "fault": "motors",
+                "action": action, "outcome": outcome}
+
+    moved = [remedy("chosen", 0.01, "move_macro")]
+    failed = [*moved, remedy("failed", 9.0, "move_macro", "the motors fault came back"),
+              remedy("chosen", 9.0, "stop"), remedy("worked", 9.01, "stop")]
+    run = {**record["recorder"], "updates": [[detected_at + 0.3, 11.0, 1.5, 3.14]],
+           "snapshots": [(fault_at - 1.0, known_west_of(6.0)),
+                         (detected_at + 1.0, known_west_of(6.5))], "remedies": failed}
+    stopped = mapping.report({**record, "recorder": run, "final_map": known_west_of(9.0)})
+    assert stopped["move_verdict"] == {"worked": False, "outcome": "the motors fault came back",
+                                       "after_fault_s": 10.0}
+    assert stopped["stopped_after_fault_s"] == 10.0
+    goals = stopped["goals"]
+    assert not goals[MOVED], goals
+    assert not goals["coverage grows after the hand-off"], goals   # grown, then undone
+    assert goals["handoff_s <= 0.5"] and goals["no false alarm before the fault"], goals
+    assert goals["accuracy >= 0.9 (before the fault and at the end)"], goals
+    # the move judged to work, nothing stopped: every goal met
+    worked = [*moved, remedy("worked", 7.0, "move_macro", "control/driver is at work")]
+    mapped_on = mapping.report({**record, "recorder": {**run, "remedies": worked},
+                                "final_map": known_west_of(9.0)})
+    assert mapped_on["move_verdict"]["worked"] and mapped_on["stopped_after_fault_s"] is None
+    assert all(mapped_on["goals"].values()), mapped_on["goals"]
+    # worked, then a later failure on the standby (which has none of its own) stopped it
+    # (a false motors alarm 37 s after the fault in a loaded quick run of lab, seed 1)
+    later = [*worked, remedy("chosen", 20.0, "stop"), remedy("worked", 20.01, "stop")]
+    stopped_later = mapping.report({**record, "recorder": {**run, "remedies": later},
+                                    "final_map": known_west_of(9.0)})
+    assert stopped_later["stopped_after_fault_s"] == 21.0
+    assert not stopped_later["goals"][MOVED]
+    assert stopped_later["goals"]["coverage grows after the hand-off"]   # mapped on till then
+    # a false alarm's move before the fault, judged after it, is not the fault's
+    early = [{**moved[0], "at": fault_at - 3.0}, remedy("worked", 3.0, "move_macro")]
+    alarmed = mapping.report({**record, "recorder": {**run, "remedies": early},
+                              "final_map": known_west_of(9.0)})
+    assert alarmed["move_verdict"] is None
+    assert not alarmed["goals"][MOVED]
 
 
 def test_a_motor_cut_waits_for_the_monitor_to_watch_the_motors_a_dead_server_does_not() -> None:
