@@ -62,20 +62,37 @@ MOVED = "the move judged to work, the control system not stopped"
 
 
 def _check_mapping(figures: dict, fault: str = "motors") -> None:
-    # The control system moved, map and all, to the standby robot's node over a failure
-    # and mapped on there. The goals (no false alarm, a hand-off within 0.5 s) are the
-    # report's: on a loaded 2-core machine the monitor raises a false alarm in some runs
-    # and the hand-off passes 0.5 s in some (docs/applications.md says how often).
+    # The fault was detected, the control system moved, map and all, to the standby
+    # robot's node within the test's bound, the remedy agent judged the move to work and
+    # stopped nothing, and the standby mapped on. The hand-off's goal (0.5 s) is the
+    # report's: on a loaded 2-core machine it passes 0.5 s in some runs
+    # (docs/applications.md says how often).
+    # The monitor's false alarms, known and rare under load, are the report's to mark:
+    # a run with one that moved or stopped the control system ends as an expected
+    # failure naming it, not as a pass, once the rest is checked.
+    early = [r for r in figures["remedies"] if r["after_fault_s"] < 0]
+    if figures["false_alarms"]:
+        assert not figures["goals"]["no false alarm before the fault"], figures["goals"]
+        if any(r["action"] in ("move_macro", "stop") for r in early):
+            # the fault then struck a robot nobody drove: no hand-off over it to check
+            pytest.xfail(f"a false alarm before the fault moved or stopped the control "
+                         f"system (the report's goal 'no false alarm before the fault' "
+                         f"false): {figures['failures']}, {early}")
+    assert figures["detected_fault"] is not None, (figures["failures"], figures["remedies"])
+    assert figures["detected_fault"]["fault"] == fault, figures["failures"]
+    # (a motor cut shows once the robot is told to move: it may be looking round,
+    # still; a dead robot server after 5 periods of 1.1 s: each request's deadline)
+    assert figures["detection_s"] < {"motors": 3.0, "robot_link": 8.0}[fault], figures
+    # (the macro's move is 0.1-0.4 s here, up to 1.0 s under load; a shared CI host
+    # once took 1.1 s)
+    assert figures["handoff_s"] is not None and figures["handoff_s"] < 2.0, figures["handoff_s"]
+    stopped, handed = figures["stopped_after_fault_s"], (figures["detection_s"]
+                                                         + figures["handoff_s"])
+    # (the standby is sound: a failure it reports is a false alarm)
+    alarms = [f for f in figures["failures"] if f["after_fault_s"] > handed]
+    assert figures["goals"][MOVED] or (stopped is not None and alarms), (
+        figures["move_verdict"], figures["remedies"], figures["failures"])
     assert figures["mapper_node_at_end"] == "r2", figures["remedies"]
-    assert any(r["event"] == "worked" and r["action"] == "move_macro"
-               for r in figures["remedies"]), figures["remedies"]
-    if not figures["false_alarms"]:
-        assert figures["detected_fault"]["fault"] == fault
-        # (a motor cut shows once the robot is told to move: it may be looking round,
-        # still; a dead robot server after 5 periods of 1.1 s: each request's deadline)
-        assert figures["detection_s"] < {"motors": 3.0, "robot_link": 8.0}[fault]
-        # (the macro's move is 0.2-0.3 s here; a shared CI host once took 1.1 s)
-        assert figures["handoff_s"] is not None and figures["handoff_s"] < 2.0
     # the failed robot stands (its motors dead, or stopped by its controller's watchdog
     # 2 s after its server died: it ran on with its last command before, up to 5 m in
     # one quick run, into the standby's view, which mapped it as walls that are not there)
@@ -86,7 +103,22 @@ def _check_mapping(figures: dict, fault: str = "motors") -> None:
     # looked at once a second: one slow run put it at 0.64)
     assert maps["before_fault"]["coverage"] < mapping.FAULT_COVERAGE + 0.2
     assert maps["before_fault"]["accuracy"] >= 0.9 and maps["end"]["accuracy"] >= 0.9, maps
-    assert maps["end"]["coverage"] > maps["before_fault"]["coverage"], maps   # mapped on
+    # mapped on from the standby: the map at the end covers more than the last one
+    # before the hand-off (the one before the fault, unless one came between). Not
+    # more than the one after it (``at_handoff``, 0-2 s after it), which holds the
+    # standby's first readings, most of what it adds in the lab in the tests' 6 s:
+    # measured, +0.002 to +0.06 after it (two of five under 0.003, snapshots wobbling
+    # by up to 0.0007), +0.010 to +0.10 after the one before
+    handed_at = figures["fault_at_s"] + figures["detection_s"] + figures["handoff_s"]
+    before = [q["coverage"] for q in figures["map_quality_over_time"] if q["t"] < handed_at]
+    assert maps["end"]["coverage"] > before[-1], (before[-1], maps)
+    if not figures["goals"][MOVED]:
+        # (one test run of 2026-12-07 on the room, robot_link: the move judged to work,
+        # then a stop before the run ended; docs/applications.md counts the standby's
+        # false alarms, which stop it where they come)
+        pytest.xfail(f"a false alarm on the standby after the hand-off stopped the "
+                     f"control system {stopped} s after the fault (the report's goal "
+                     f"{MOVED!r} false): {alarms}, {figures['remedies']}")
 
 
 # The tests' mapping runs map on after the fault until the remedy agent has judged its
