@@ -46,6 +46,8 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from agents.grid import Grid
 from agents.learner import Parameters
 from agents.map_truth import truth
@@ -213,6 +215,9 @@ def run(seed: int = 1, quick: bool = False, baseline_count: int | None = None,
         simulated_s = simulated.time()
         simulation_wall_s = time.time() - started
         transferred_from, resumed = None, 0.0
+        # the table each learner began with on its robot: the moved one's as it arrived
+        # (its robot held until now, it has learnt nothing there yet), a baseline's blank
+        brought = running.state("brain/learner")["q"]
         if transfer["moved_at"]:         # the hardware world's clock from here on
             transferred_from, resumed = hardware.pace(rate), time.time()
             _until_learnt(running, names, transfer["moved_at"], hardware_episodes,
@@ -226,14 +231,27 @@ def run(seed: int = 1, quick: bool = False, baseline_count: int | None = None,
         walls = {"with_transfer": ended - resumed if resumed else 0.0,
                  **{name: ended - started for name, _ in names}}
         where = running.where("brain/learner")
-        situations = len(running.state("brain/learner")["q"])
+        table = running.state("brain/learner")["q"]
+        situations = len(table)
+        learnt = {"with_transfer": _changed(brought, table) if transfer["moved_at"] else 0,
+                  **{name: _changed(None, running.state(f"{name}/learner")["q"])
+                     for name, _ in names}}
     return {"world": worldfile.world_file(str(world)).stem, "seed": seed, "quick": quick,
             "rate": rate, "clocks": clocks, "walls": walls,
             "transfer": transfer, "threshold": threshold, "ended_by": ended_by,
             "simulated_s": simulated_s,
             "simulation_wall_s": simulation_wall_s, "episodes": episodes,
             "baselines": [name for name, _ in names],
-            "learner_node_at_end": where, "situations": situations}
+            "learner_node_at_end": where, "situations": situations, "learnt": learnt}
+
+
+def _changed(before: Any, after: Any) -> int:
+    """How many of a learner's table values differ in ``after`` from ``before`` (None:
+    a blank table, all zeros; a table of another shape, remade, is new throughout)."""
+    after = np.asarray(after)
+    before = np.zeros_like(after) if before is None else np.asarray(before)
+    return int(np.count_nonzero(after != before)) if before.shape == after.shape \
+        else after.size
 
 
 def simulation(world: str | Path, seed: int, robot: str) -> Lab:
@@ -372,6 +390,9 @@ def report(record: dict[str, Any]) -> dict[str, Any]:
                    "kept_to_the_end": True},
         "hardware": {name: {"episodes": len(episodes),
                             "success_rate_at_end": _rate(episodes, window),
+                            # its table's values it changed on its robot (learning there
+                            # from what the robot did; a baseline's from a blank table)
+                            "table_values_learnt": record.get("learnt", {}).get(name),
                             "hardware_s": round(hardware_s[name], 1),
                             # the world's own pace: whether it kept the rate it was served at
                             "times_real_time": round(hardware_s[name]
