@@ -33,6 +33,7 @@ _HOME = {
     "RuntimeCancelled": "pb3a.errors",
     "RuntimeFailure": "pb3a.errors",
     "RuntimeTimeout": "pb3a.errors",
+    "StateRefused": "pb3a.model.module",
     "System": "pb3a.system",
     "SystemStopped": "pb3a.errors",
     "connect": "pb3a.launch.connection",
@@ -73,6 +74,7 @@ if TYPE_CHECKING:                 # what type checkers see: the same names, eage
     from pb3a.model.environment import Environment as Environment
     from pb3a.model.macro import Macro as Macro
     from pb3a.model.module import Module as Module
+    from pb3a.model.module import StateRefused as StateRefused
     from pb3a.model.ports import Input as Input
     from pb3a.model.ports import InputPort as InputPort
     from pb3a.model.ports import Output as Output

@@ -13,7 +13,8 @@ def test_public_names_are_exactly_the_documented_ones() -> None:
         "Agent", "ConfigError", "Connection", "connect", "Driver", "Environment", "Input",
         "InputPort", "Macro", "MigrationReport",
         "Module", "ModuleNotFound", "Output", "OutputPort", "PB3AError", "Running",
-        "RuntimeCancelled", "RuntimeFailure", "RuntimeTimeout", "System", "SystemStopped",
+        "RuntimeCancelled", "RuntimeFailure", "RuntimeTimeout", "StateRefused", "System",
+        "SystemStopped",
         "serve_device"}
     for name in pb3a.__all__:
         assert getattr(pb3a, name).__doc__, f"{name} has no docstring"
