@@ -77,6 +77,9 @@ def test_a_number_of_another_numeric_type_is_written_as_the_port_s() -> None:
     for port, value in ((numbers.level, True), (numbers.level, "1"), (numbers.count, 1.0)):
         with pytest.raises(TypeError, match="carries"):
             port.write(value)
+    # (numpy's bool was said to be a "bool", as if the port had refused True)
+    with pytest.raises(TypeError, match=r"carries int, got numpy\.bool"):
+        numbers.count.write(np.True_)
     assert numbers.level.written == 6 and numbers.count.written == 3
 
 

@@ -128,9 +128,10 @@ class _Port:
     def check(self, value: Any) -> None:
         """Raise TypeError unless ``value`` is an instance of the port's type (and shape/dtype)."""
         if not isinstance(value, self.type):
-            raise TypeError(
-                f"port {self.name!r} carries {self.describe()}, got {type(value).__name__}"
-            )
+            kind = type(value)          # (numpy's bool said "bool", as if True were refused)
+            got = kind.__name__ if kind.__module__ == "builtins" else \
+                f"{kind.__module__}.{kind.__qualname__}"
+            raise TypeError(f"port {self.name!r} carries {self.describe()}, got {got}")
         if self.shape is not None and value.shape != self.shape:
             raise TypeError(f"port {self.name!r} needs shape {self.shape}, got {value.shape}")
         if self.dtype is not None and value.dtype != self.dtype:
