@@ -185,6 +185,22 @@ def test_closing_reaps_an_executor_that_died_on_its_own() -> None:
     assert controller._executors == {}, "its entry and pipe kept"
 
 
+def test_a_start_served_as_the_controller_closes_starts_nothing() -> None:
+    """A start the controller's lane served as it closed (its request came before; close
+    waits for the lane) came after close had taken its list of executors to stop: the
+    executor it started ran on, stopped by nothing, unbound for 30 s (a test's leak
+    check saw it outlive the test)."""
+    controller = NodeController("n1", KEY, limits=Limits(max_cpu_percent=101.0))
+    controller.close()
+    try:
+        with pytest.raises(Refused, match=r"node n1's controller is closing: it starts no "
+                                          r"executor for 'late'"):
+            controller.start_executor("late")
+    finally:
+        for config in list(controller._executors):     # (what the old code left)
+            controller.stop_executor(config)
+
+
 def test_an_executor_no_launcher_takes_stops() -> None:
     """Its lease begins when a launcher binds it: one whose launcher went as it was being
     started (a Ctrl-C there) ran with no lease, for good."""

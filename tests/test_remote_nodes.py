@@ -57,7 +57,7 @@ from pb3a import (
     System,
 )
 from pb3a.cli.status import format_table
-from pb3a.daemons.node_controller import Limits, NodeController
+from pb3a.daemons.node_controller import START_TIMEOUT, Limits, NodeController
 from pb3a.node import remote
 from pb3a.node.remote import RemoteNode
 from pb3a.transport.auth import ClusterKey
@@ -1228,11 +1228,15 @@ def test_a_node_whose_executor_outlasts_the_launch_timeout_is_named_and_stopped_
     more time, not after the slow start (which the launch waited for, up to a minute);
     the executor it then starts is stopped by the start's own thread."""
     slow, start = controllers["c"], controllers["c"].start_executor
-    release = threading.Event()
+    release, started, late = threading.Event(), threading.Event(), []
 
     def delayed(*args, **kwargs):
         release.wait(15)
-        return start(*args, **kwargs)
+        try:
+            late.append(start(*args, **kwargs))
+            return late[0]
+        finally:
+            started.set()
     slow.start_executor = delayed
     system = System("slow", timeout=6).node("a")
     system.node("b", address=controllers["b"].address).node("c", address=slow.address)
@@ -1248,6 +1252,9 @@ def test_a_node_whose_executor_outlasts_the_launch_timeout_is_named_and_stopped_
         assert controllers["b"].executors() == {}
     finally:
         release.set()
+    # (the start first: until it has its executor, none is listed, and the controller
+    # was closed with the start still under way)
+    assert started.wait(START_TIMEOUT) and late and late[0][1], "no late executor started"
     eventually(lambda: slow.executors() == {} and not slow._executors, timeout=20,
                what="the late executor stopped by its start's thread")
 

@@ -92,6 +92,7 @@ class NodeController:
         self.unbound_s = UNBOUND_S          # an executor not taken by a launcher this long stops
         self._executors: dict[str, tuple[Any, Any, str]] = {}   # config -> process, pipe, addr
         self._lock = threading.Lock()
+        self._closing = False               # set by close: no executor starts from then on
         self._cpu_samples: collections.deque[float] = collections.deque(maxlen=CPU_WINDOW)
         self._refusal_logged_at = -REFUSAL_LOG_S       # when a refusal was logged last
         self._refusals_unlogged = 0                    # the refusals since, not logged
@@ -189,6 +190,12 @@ class NodeController:
                           f"{python}: run one Python version (major.minor) on every machine "
                           "of a system, since module classes and state travel pickled for one")
         with self._lock:
+            # (a start whose request came as the controller closed, after close took
+            # its list, left an executor that nothing stopped: it ran on unbound for
+            # 30 s, or as long as its launcher renewed its lease)
+            if self._closing:
+                raise Refused(f"node {self.name}'s controller is closing: it starts no "
+                              f"executor for {config!r}; start it again, then launch")
             running = self._executors.get(config)
             if running is not None and running[0].is_alive():
                 return running[2], False
@@ -280,7 +287,8 @@ class NodeController:
     def close(self) -> None:
         """Stop every executor (gracefully), then the controller; one that died on its
         own is reaped too, and the segments it left removed."""
-        with self._lock:
+        with self._lock:        # (a start under way holds it: its executor is listed)
+            self._closing = True
             configs = list(self._executors)
         for config in configs:
             self.stop_executor(config)
