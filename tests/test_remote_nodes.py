@@ -36,6 +36,7 @@ from sample_modules import (
     Fussy,
     Hoard,
     HoldsInSetup,
+    Journal,
     Last,
     LongStep,
     LossWatcher,
@@ -1257,6 +1258,38 @@ def test_a_node_whose_executor_outlasts_the_launch_timeout_is_named_and_stopped_
     assert started.wait(START_TIMEOUT) and late and late[0][1], "no late executor started"
     eventually(lambda: slow.executors() == {} and not slow._executors, timeout=20,
                what="the late executor stopped by its start's thread")
+
+
+def test_a_close_out_of_time_waits_for_a_controller_that_answers_late_on_a_loaded_machine(
+        controllers, tmp_path) -> None:
+    """A slow teardown spent close's time; node b's stop then gave its controller 0.5 s,
+    half of it the executor's grace: a controller whose kill, reaping and answer took
+    longer (a loaded machine: the full suite's) confirmed too late, and the close named
+    an executor that had stopped as unconfirmed. Here the controller answers 0.4 s after
+    the grace it was given, at the earliest."""
+    b, stop = controllers["b"], controllers["b"].stop_executor
+    graces: list[float] = []
+
+    def answering_late(config, force=False, timeout=15.0, executor=None):
+        began = time.monotonic()
+        graces.append(timeout)
+        try:
+            return stop(config, force, timeout, executor)
+        finally:
+            time.sleep(max(0.0, began + timeout + 0.4 - time.monotonic()))
+    b.stop_executor = answering_late
+    system = System("late-answer").node("a").node("b", address=b.address)
+    system.add("slow", Journal, node="b", state={"path": str(tmp_path / "journal"),
+                                               "teardown_s": 2.5})
+    run = system.launch()
+    executor = psutil.Process(b._executors["late-answer"][0].pid)
+    started = time.monotonic()
+    run.close(timeout=2.0)
+    took = time.monotonic() - started
+    assert graces and graces[0] < 0.5, graces           # (out of time: a short grace)
+    assert run.unconfirmed == [], f"not confirmed; the close took {took:.2f} s"
+    assert took < 2.0 + remote.STOP_AT_LEAST_S + 0.5, took
+    executor.wait(5.0)
 
 
 def test_a_closed_system_with_a_remote_node_leaves_nothing_open_where_it_was_launched(

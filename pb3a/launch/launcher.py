@@ -36,7 +36,7 @@ from pb3a.logbook import LogBook
 from pb3a.model.environment import PREFIX as ENV_PREFIX
 from pb3a.node.bridge import NoHandshake
 from pb3a.node.executor import REPORT_TIMEOUT, Executor
-from pb3a.node.remote import HEARTBEAT_S, RemoteNode
+from pb3a.node.remote import HEARTBEAT_S, LOSS_S, STOP_AT_LEAST_S, RemoteNode
 from pb3a.node.ring_sizes import ring_size
 from pb3a.node.workers import REQUEST_TIMEOUT
 from pb3a.stats import FailureLog, LinkStats, ModuleStats, NodeReport, NodeStats, SystemStats
@@ -55,7 +55,6 @@ STOP_TIMEOUT = 5.0      # a module's teardown when it is removed
 # A removal with ``force`` of a module that did not answer its stop: what its worker's
 # kill, its links' unwiring and its drop may take past the call's deadline (a few ms)
 KILLED_REMOVAL_S = 2.0
-REMOTE_STOP_AT_LEAST_S = 0.5   # a remote node's shutdown, even once the time is up
 # how to give a launch's slow steps more time (the nodes' starts, their classes' check)
 LAUNCH_LONGER = ("give the system a longer timeout (timeout = SECONDS at the top of its "
                  "file, or launch(timeout=...))")
@@ -599,10 +598,14 @@ class Launcher:
                     # (a module stuck in on_input was killed at close, unsaid)
                     self.not_torn_down.append(name)
                     log.warning("module %r was not stopped (its worker is killed): %s", name, exc)
+            # (the watchdog has stopped: a node silent meanwhile as long as it takes to
+            # declare one lost is not waited for as one that answers)
+            for gone in [node for node in self.remotes.values() if node.silent_s() > LOSS_S]:
+                gone.lose()
             # side by side: a node that does not answer holds up no other; this machine's
             # own nodes (their processes and segments are here) are waited for
             remote = [threading.Thread(target=self._shut_node,
-                                       args=(name, node, deadline, REMOTE_STOP_AT_LEAST_S),
+                                       args=(name, node, deadline, STOP_AT_LEAST_S),
                                        name=f"pb3a-shutdown-{name}", daemon=True)
                       for name, node in reversed(list(self.nodes.items()))
                       if name in self.remotes]
@@ -611,8 +614,9 @@ class Launcher:
             for name, node in reversed(list(self.nodes.items())):
                 if name not in self.remotes:
                     self._shut_node(name, node, deadline, 0.0)
-            for thread in remote:
-                thread.join(max(0.0, deadline - time.monotonic()) + 0.5)
+            for thread in remote:       # (what each is given past the deadline, and a
+                                        # moment for its thread to begin)
+                thread.join(max(0.0, deadline - time.monotonic()) + STOP_AT_LEAST_S + 0.25)
         self.unconfirmed = [name for name, node in self.remotes.items() if not node.stopped]
         logging.getLogger().removeHandler(self.logbook)
         self.events.end()            # (a follower waiting for more is told there is none)

@@ -59,10 +59,21 @@ LOSS_S = 2.0               # no answer for this long: the node is lost (reported
 # (a fenced node's workers are gone by GONE_BY_S after the lease's end: before the
 # launcher, which declares the node lost LOSS_S after its last answer, starts them)
 assert LOSS_S - HEARTBEAT_S - LEASE_S > GONE_BY_S
-STOP_AT_LEAST_S = 0.5      # a shutdown out of time still asks the controller this long
-# ... and a lost node's controller at most this long: one that answers does so at once,
-# and the executor of one that does not has fenced itself (a stop with a robot lost
-# waited for its controller the whole shutdown, 10 s)
+# A shutdown out of time still gives the executor this long to stop on its own (SIGTERM:
+# it stops its workers, which a kill would leave stepping until their lease ran out) ...
+STOP_GRACE_S = 0.25
+# ... and its controller this long beyond it to answer that it did: the kill of one that
+# did not, the reaping of what it left, and the answer's way back. (It had 0.25 s: on a
+# loaded machine the answer came later, up to 0.4 s after the request with two busy CPUs,
+# and the close named an executor that had stopped as unconfirmed.) A controller that
+# answers takes what it needs, no more: this is paid only for one that does not.
+STOP_ANSWER_S = 0.75
+STOP_AT_LEAST_S = STOP_GRACE_S + STOP_ANSWER_S
+# A lost node's controller is asked (to kill its executor) at least a moment (sent with
+# no time at all, the request was never sent) and at most this long: one that answers
+# does so at once, and the executor of one that does not has fenced itself (a stop with
+# a robot lost waited for its controller the whole shutdown, 10 s)
+STOP_LOST_AT_LEAST_S = 0.5
 STOP_LOST_S = 1.5
 
 
@@ -472,17 +483,20 @@ class RemoteNode:
         it if the node was lost; the controller stays reachable. ``stopped`` says
         whether it confirmed (an executor it could not be told of stops by itself when
         its lease runs out)."""
-        # (at least a moment: sent with no time at all, the request was never sent, and
-        # the executor ran on, its node taken for the next launch)
-        wait = max(STOP_AT_LEAST_S, self._within(timeout + 5.0))
-        if self.lost:
-            wait = min(wait, STOP_LOST_S)
+        # (at least a moment even out of time: sent with no time at all, the request was
+        # never sent, and the executor ran on, its node taken for the next launch)
+        within = self._within(timeout + 5.0)
+        if self.lost:                           # (killed at once: no grace)
+            wait = min(max(STOP_LOST_AT_LEAST_S, within), STOP_LOST_S)
+            answer = STOP_LOST_AT_LEAST_S / 2
+        else:
+            wait, answer = max(STOP_AT_LEAST_S, within), STOP_ANSWER_S
         with contextlib.suppress(RuntimeFailure, RuntimeTimeout):   # (killed in time to say so)
             # (naming its executor: a stop delivered late, the machine cut off as it was
             # sent, stops no executor of a later launch)
             self.controller.request("stop_executor", {
                 "config": self.config, "force": self.lost, "executor": self.executor,
-                "timeout": min(timeout, max(0.0, wait - STOP_AT_LEAST_S / 2))}, wait)
+                "timeout": min(timeout, max(0.0, wait - answer))}, wait)
             self.stopped = True
 
     def shutdown(self, timeout: float = 10.0) -> None:
