@@ -53,6 +53,8 @@ from sample_modules import (
     Pump,
     Retimer,
     Scale,
+    SetsAPeriodOnInput,
+    SetsItsPeriod,
     Shift,
     SlowsItself,
     Spawner,
@@ -1442,6 +1444,154 @@ def test_a_module_s_period_is_set_live_and_kept_across_a_move_and_a_restart() ->
                    and m.steps > 0, timeout=20, what="the restarted module stepping")
         assert steps_in(run, 1.0) <= 7
         assert run.state("paced")["seen_period"] == 0.2
+
+
+def _gaps(stamps: list[float]) -> list[float]:
+    return [later - earlier for earlier, later in itertools.pairwise(stamps)]
+
+
+def test_a_period_a_module_assigns_itself_in_step_is_slept_at_once_and_kept() -> None:
+    """``self.period = 1.0`` in a step set the instance's attribute, which the runtime
+    never read (it steps by its own copy): the module stepped on at its old period,
+    nothing said. It is its period from that step on, slept after it, and the runtime
+    keeps it as ``set_state(name, period=...)`` does: the topology shows it."""
+    with System("assigned").add("paced", SetsItsPeriod).launch() as run:
+        eventually(lambda: len(run.state("paced")["stamps"]) >= 4, timeout=10,
+                   what="a step at the period it set")
+        state = run.state("paced")
+        third, fourth = state["stamps"][2:4]
+        assert fourth - third >= 0.95, f"{fourth - third:.3f} s after the step that set it"
+        assert state["seen"] == 1.0
+        eventually(lambda: run.topology().modules["paced"].period == 1.0,
+                   what="the runtime keeping the period it set")
+        assert [event.detail["period"] for event in run.events()
+                if event.kind == "module_retimed" and event.subject == "paced"] == [1.0]
+
+
+def test_a_period_a_module_may_not_have_is_logged_naming_it_and_changes_nothing(
+        caplog) -> None:
+    """A period a module assigns itself that is no number of seconds from 0 up, or one
+    given to a class with no step(), is an error of the body that assigned it, logged
+    naming the module and what a period may be: the module runs on at its period, which
+    ``self.period`` says again. A numpy number is a number."""
+    class SetsAWord(SetsItsPeriod):
+        to = "fast"
+
+    class SetsANumpyPeriod(SetsItsPeriod):
+        to = np.float32(0.5)
+
+    system = System("misassigned").add("negative", SetsItsPeriod, state={"to": -1.0})
+    system.add("word", SetsAWord).add("numpy", SetsANumpyPeriod)
+    system.add("source", FloatSource).add("event", SetsAPeriodOnInput)
+    system.link("source.out", "event.x")
+    with system.launch() as run:
+        eventually(lambda: "module 'word' set self.period" in caplog.text
+                   and "module 'negative' set self.period" in caplog.text
+                   and "module 'event' set self.period" in caplog.text, timeout=10,
+                   what="the wrong periods logged")
+        eventually(lambda: all(len(run.state(name)["stamps"]) >= 6
+                               for name in ("negative", "word")), timeout=10,
+                   what="steps after the wrong period")
+        for name in ("negative", "word"):
+            state = run.state(name)
+            assert max(_gaps(state["stamps"])) < 0.5 and state["seen"] == 0.2
+            assert run.topology().modules[name].period == 0.2
+            assert run.stats().modules[name].errors == 1
+        eventually(lambda: run.state("event")["got"] >= 2, what="values after the first")
+        assert run.state("event")["seen"] is None
+        assert run.topology().modules["event"].period is None
+        eventually(lambda: run.topology().modules["numpy"].period == 0.5, what="numpy's")
+        assert run.state("numpy")["seen"] == 0.5
+    assert ("module 'negative' set self.period = -1.0 in step: period must be a number of "
+            "seconds from 0 to 1e+07 (0 = as fast as possible), got -1.0; its period stays "
+            "0.2") in caplog.text
+    assert "module 'word' set self.period = 'fast' in step" in caplog.text
+    assert ("module 'event' set self.period = 0.5 in on_input: period = 0.5 is given, but "
+            "sample_modules:SetsAPeriodOnInput has no step() for it to call") in caplog.text
+
+
+def test_a_period_assigned_in_setup_or_on_a_class_reassigned_later_is_the_period() -> None:
+    """``self.period = 0.5`` in ``setup`` was ignored while ``self.period`` read it back;
+    and a class whose ``period`` is set after its definition (a test's, a factory's)
+    lost the first attempt's way of taking an assignment: each is the period."""
+    class Reassigned(SetsItsPeriod):
+        pass
+
+    Reassigned.period = 0.1
+    system = System("set_up").add("slow_start", SetsItsPeriod,
+                                  state={"in_setup": 0.5, "at": 0})
+    system.add("reassigned", Reassigned, state={"to": 0.6, "at": 2})
+    with system.launch() as run:
+        eventually(lambda: len(run.state("slow_start")["stamps"]) >= 3
+                   and len(run.state("reassigned")["stamps"]) >= 4, timeout=10,
+                   what="steps at the periods they set")
+        slow_start, reassigned = run.state("slow_start"), run.state("reassigned")
+        assert min(_gaps(slow_start["stamps"])) >= 0.45 and slow_start["seen"] == 0.5
+        first, second, third = _gaps(reassigned["stamps"])[:3]
+        assert first < 0.5 and second >= 0.55 and third >= 0.55
+        assert reassigned["seen"] == 0.6
+        eventually(lambda: run.topology().modules["slow_start"].period == 0.5
+                   and run.topology().modules["reassigned"].period == 0.6,
+                   what="the runtime keeping them")
+
+
+def test_a_period_a_module_assigns_itself_is_kept_across_a_move_and_a_restart() -> None:
+    """The period a module set itself was lost where the runtime starts it anew from its
+    spec: moved to another node, or restarted in a new worker (last-state)."""
+    system = System("assigned_moves")
+    system.node("a")
+    system.node("b")
+    system.add("paced", SetsItsPeriod, node="a", period=0.01, restart="last-state",
+               state={"to": 0.5, "at": 3})
+
+    def steps_in(run, seconds: float) -> int:
+        before = run.stats().modules["paced"].steps
+        run.wait(seconds)
+        return run.stats().modules["paced"].steps - before
+
+    with system.launch() as run:
+        eventually(lambda: run.topology().modules["paced"].period == 0.5, timeout=10,
+                   what="the runtime keeping the period it set")
+        run.migrate("paced", to="b")
+        assert run.topology().modules["paced"].period == 0.5
+        assert steps_in(run, 1.0) <= 4                     # (at 0.01 s: about 100)
+        pid = run.stats().modules["paced"].pid
+        os.kill(pid, signal.SIGKILL)
+        eventually(lambda: (m := run.stats().modules["paced"]).pid not in (None, pid)
+                   and m.steps > 0, timeout=20, what="the restarted module stepping")
+        assert steps_in(run, 1.0) <= 4
+        assert run.topology().modules["paced"].period == 0.5
+
+
+class SlowSetUp(Module):
+    """Takes 3 s to set up."""
+
+    period = 1.0
+
+    def setup(self) -> None:
+        time.sleep(3)
+
+    def step(self) -> None:
+        pass
+
+
+def test_a_period_assigned_while_a_change_holds_the_configuration_lock_is_not_delayed(
+        ) -> None:
+    """A module setting its own period at each step is stepped at it while an unrelated
+    change holds the configuration lock (an add whose setup takes 3 s): the first
+    attempt's assignment asked the launcher, and waited for the lock that long."""
+    system = System("unblocked").add("adaptive", SetsItsPeriod, period=0.5,
+                                     state={"to": 0.05, "at": 1, "every": True})
+    with system.launch() as run:
+        eventually(lambda: len(run.state("adaptive")["stamps"]) >= 3, what="steps")
+        began = time.monotonic()
+        run.add("slow", SlowSetUp)
+        ended = time.monotonic()
+        assert ended - began >= 2.9
+        stamps = [stamp for stamp in run.state("adaptive")["stamps"] if began <= stamp <= ended]
+        assert len(stamps) >= 20 and max(_gaps(stamps)) < 0.3, _gaps(stamps)
+        eventually(lambda: run.topology().modules["adaptive"].period in (0.05, 0.051),
+                   what="the runtime keeping the period it set")
 
 
 class CopiesItself(Module):
