@@ -8,6 +8,8 @@ import os
 import signal
 import sys
 import threading
+from collections.abc import Iterator
+from multiprocessing import resource_tracker
 from multiprocessing import spawn as mp_spawn
 from typing import Any
 
@@ -50,6 +52,44 @@ def restore_the_user_s_path_setting() -> None:
     """Undo ``children_skip_the_current_directory`` for this process's children."""
     if os.environ.pop(_SAFE_PATH_SET, None):
         os.environ.pop("PYTHONSAFEPATH", None)
+
+
+# What a terminal (Ctrl-C, closing) or a supervisor sends the whole process group: a
+# Python child that takes one as its interpreter starts, before its own handlers are set,
+# dies of it with a crash dump or a traceback on the terminal.
+TERMINAL_SIGNALS = frozenset({signal.SIGINT, signal.SIGTERM, signal.SIGHUP})
+
+
+@contextlib.contextmanager
+def terminal_signals_held() -> Iterator[None]:
+    """Hold off ``TERMINAL_SIGNALS`` in the calling thread while it starts a Python child:
+    the child inherits the block across exec and takes them once its handlers are set
+    (``take_terminal_signals``). Only this thread's mask changes, for the block alone:
+    this process's handlers stay as they are, and a signal sent to it meanwhile goes to
+    another thread or waits for the block's end, never lost."""
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, TERMINAL_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
+
+
+def take_terminal_signals() -> None:
+    """In a child started in ``terminal_signals_held``, its handlers set: take
+    ``TERMINAL_SIGNALS`` again (one that came as it started is handled now, by them; an
+    ignored one is dropped)."""
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, TERMINAL_SIGNALS)
+
+
+def start_resource_tracker() -> None:
+    """Start multiprocessing's resource tracker, if none runs, with ``TERMINAL_SIGNALS``
+    held off: it ignores SIGINT and SIGTERM and takes them back, but keeps SIGHUP held
+    (a terminal closing killed it, and the one that replaced it printed a traceback for
+    each segment freed that it had not heard of). Call it before a start held off
+    (``terminal_signals_held``) that would start the tracker: multiprocessing's own
+    start of it gives SIGINT and SIGTERM back to the thread that started it."""
+    with terminal_signals_held():
+        resource_tracker.ensure_running()
 
 
 def start_without_main(process: Any, timeout: float | None = None) -> None:
@@ -124,10 +164,11 @@ def _start(process: Any) -> None:
 def stop_on_sigterm(stopped: threading.Event) -> None:
     """From now on SIGTERM sets ``stopped``; SIGINT and SIGHUP are ignored (a terminal's:
     the parent decides). A child calls it first, before it makes anything it must
-    close."""
+    close; started held off (``terminal_signals_held``), it takes them from here."""
     signal.signal(signal.SIGTERM, lambda *_: stopped.set())
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    take_terminal_signals()
 
 
 def serve_as_child(conn: Any, address: str, stopped: threading.Event) -> None:

@@ -212,6 +212,84 @@ def test_a_signal_stops_everything_and_leaves_nothing_behind(tmp_path: Path, how
     assert not [p for p in workers if alive(p)]
 
 
+def _child_taking_ctrl_c(parent: psutil.Process, named: str, timeout: float = 30.0) -> int:
+    """The pid of the first child of ``parent`` whose command line holds ``named``, the
+    moment its interpreter has set Python's own SIGINT handler (KeyboardInterrupt), as it
+    does first: polled without pause, as a tenth of a second later, once it has imported
+    PB3A's code, it has its own."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        for child in parent.children():
+            with contextlib.suppress(psutil.Error, OSError):  # (one that ended meanwhile)
+                if named in " ".join(child.cmdline()) \
+                        and _signal_mask(child.pid, "SigCgt") & _bit(signal.SIGINT):
+                    return child.pid
+    pytest.fail(f"no child naming {named} took SIGINT within {timeout:g} s")
+
+
+def _signal_mask(pid: int, which: str) -> int:
+    """Process ``pid``'s signal mask ``which`` ("SigIgn", "SigCgt", "SigBlk"), from /proc."""
+    with open(f"/proc/{pid}/status") as status:
+        (mask,) = [line.split()[1] for line in status if line.startswith(f"{which}:")]
+    return int(mask, 16)
+
+
+def _bit(signum: int) -> int:
+    return 1 << (signum - 1)
+
+
+def test_a_ctrl_c_as_the_workers_forkserver_starts_ends_the_run_with_one_line(
+        tmp_path: Path) -> None:
+    """A Ctrl-C in the first second of `pb3a run` came, once in ten, as the workers'
+    forkserver started its interpreter, before it ignored SIGINT: it died of it, and
+    "Fatal Python error: init_import_site" or a KeyboardInterrupt traceback came out
+    above "pb3a: interrupted". It starts with the terminal's signals held off until it
+    ignores them. The Ctrl-C is sent the moment its interpreter would raise
+    KeyboardInterrupt for it."""
+    for _ in range(5):          # (a test starved of CPU may send it too late: again)
+        proc = _in_its_own_group("run", str(PIPELINE), cwd=tmp_path)
+        with _killed_if_left(proc):
+            server = _child_taking_ctrl_c(psutil.Process(proc.pid),
+                                          "multiprocessing.forkserver")
+            early = not _signal_mask(server, "SigIgn") & _bit(signal.SIGINT)
+            os.killpg(proc.pid, signal.SIGINT)       # a terminal's Ctrl-C, to the group
+            out, err = proc.communicate(timeout=30)
+        if early:
+            break
+    assert early, "the forkserver ignored SIGINT already: each Ctrl-C came too late"
+    assert proc.returncode == 130 and err.strip() == "pb3a: interrupted", err
+    assert "running" not in out
+    assert not live_segments(proc.pid)
+    eventually(lambda: not alive(server), what="the forkserver to end")
+
+
+def test_a_ctrl_c_as_a_node_starts_an_executor_stops_it_with_no_traceback(
+        tmp_path: Path) -> None:
+    """`pb3a node start` at its terminal: a Ctrl-C as a launcher's system arrived came
+    as the executor's interpreter started, before it ignored SIGINT, and it died of it,
+    a crash dump or a KeyboardInterrupt traceback on the node's terminal. It starts
+    with the terminal's signals held off until its handlers are set."""
+    node = _in_its_own_group("node", "start", "--name", "far", "--listen",
+                             "tcp://127.0.0.1:0", "--max-cpu", "100", cwd=tmp_path)
+    with _killed_if_left(node):
+        address = node.stdout.readline().split(" at ")[-1].strip()
+        (tmp_path / "far.toml").write_text(
+            f'name = "far"\n[nodes.far]\naddress = "{address}"\n[modules.scale]\n'
+            'class = "examples.pipeline:Scale"\nnode = "far"\n')
+        launcher = _in_its_own_group("run", str(tmp_path / "far.toml"), cwd=tmp_path)
+        with _killed_if_left(launcher):
+            executor = _child_taking_ctrl_c(psutil.Process(node.pid), "multiprocessing.spawn")
+            early = not _signal_mask(executor, "SigIgn") & _bit(signal.SIGINT)
+            os.killpg(node.pid, signal.SIGINT)       # a Ctrl-C at the node's terminal
+            _, err = node.communicate(timeout=30)
+            launcher.send_signal(signal.SIGTERM)
+            launcher.communicate(timeout=30)
+    assert early, "the executor ignored SIGINT already: the Ctrl-C came too late"
+    assert node.returncode == 0, err
+    assert "Traceback" not in err and "Fatal Python error" not in err, err
+    eventually(lambda: not alive(executor), what="the executor to end")
+
+
 def test_a_second_ctrl_c_while_it_stops_lets_the_stop_finish(tmp_path: Path) -> None:
     """An impatient second Ctrl-C cut the clean stop short: exit 130 after "stopping",
     and BufferError and "leaked shared_memory objects" on the terminal. It is answered

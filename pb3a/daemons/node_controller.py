@@ -24,7 +24,7 @@ import psutil
 from pb3a.config import checks
 from pb3a.daemons.node_share import UNBOUND_S, executor_main
 from pb3a.errors import RuntimeFailure, bounded_wait
-from pb3a.processes import start_without_main
+from pb3a.processes import start_resource_tracker, start_without_main, terminal_signals_held
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlServer, UnknownOperation
 from pb3a.transport.pickling import PYTHON
@@ -205,7 +205,11 @@ class NodeController:
                 target=executor_main, name=f"pb3a-executor-{config}",
                 args=(config, node or self.name, workers, cpus, host, child, logging.WARNING,
                       self.unbound_s))
-            start_without_main(process)
+            # (held off until its handlers are set: a Ctrl-C at the node's terminal as
+            # its interpreter started killed it, a crash dump or a traceback there)
+            start_resource_tracker()                  # (first: its start takes them back)
+            with terminal_signals_held():
+                start_without_main(process)
             child.close()
             try:            # (the pipe is readable at once, empty, if the executor died)
                 address = parent.recv() if parent.poll(START_TIMEOUT) else None

@@ -8,8 +8,10 @@ default ``KillMode``) reached the forkserver too, which died of it; the exit cod
 the workers it had started were lost with it (255), and the executor took each for a
 crash, marking every module failed. A Ctrl-C, or the terminal closing (SIGHUP), as it
 loaded its preload printed tracebacks or killed it the same way (Python ignores
-SIGINT there only once the preload is done). Each worker sets its own handlers (it
-stops, exit 0); the forkserver ends with the process that started it.
+SIGINT there only once the preload is done). And one as its interpreter started,
+before this module: it starts with them held off (``pb3a.processes.
+terminal_signals_held``), and takes them here, ignored. Each worker sets its own
+handlers (it stops, exit 0); the forkserver ends with the process that started it.
 
 multiprocessing ends it when the write ends of its "alive" pipe close (its owner's
 exit, and each worker's it started), but looks at that pipe only once every module of
@@ -56,13 +58,14 @@ import warnings
 from multiprocessing import forkserver
 
 from pb3a.node.forkserver_owner import ORPHAN_GRACE_S, OWNER_MARK
-from pb3a.processes import mark_as, restore_the_user_s_path_setting
+from pb3a.processes import mark_as, restore_the_user_s_path_setting, take_terminal_signals
 
 mark_as("the forkserver that starts a node's workers")
 restore_the_user_s_path_setting()      # (the workers' own children get the user's)
 
 for _signal in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
     signal.signal(_signal, signal.SIG_IGN)
+take_terminal_signals()     # (held off since it started: ``workers._start_forkserver``)
 
 # Python 3.12 warns of each fork in a process with threads: a thread holding a lock as
 # the process forks leaves it held for good in the child. The one thread here, the

@@ -37,7 +37,7 @@ from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
 from pb3a.node import forkserver_owner
 from pb3a.node.watched_process import STATUS_WAIT_S, WatchedProcess
-from pb3a.processes import start_without_main
+from pb3a.processes import start_resource_tracker, start_without_main, terminal_signals_held
 from pb3a.transport import pickling
 from pb3a.transport.doorbell import new_bell
 from pb3a.transport.pipe import Inbox, Outbox, Outgoing
@@ -90,6 +90,7 @@ def _start_forkserver_child(process: Any, stopping: threading.Event | None = Non
             # once, every retry met the dying one again
             time.sleep(_FORKSERVER_BACKOFF_S * 2 ** (attempt - 1))
         try:
+            _start_forkserver()
             start_without_main(process, timeout=SPAWN_TIMEOUT_S)
             forkserver_owner.answered()
             return
@@ -114,6 +115,16 @@ def _start_forkserver_child(process: Any, stopping: threading.Event | None = Non
     raise RuntimeFailure("the forkserver that starts this node's workers ended as it "
                          f"started, {_FORKSERVER_ATTEMPTS} times; its error, if it had one, "
                          "is on stderr")
+
+
+def _start_forkserver() -> None:
+    """Start the forkserver, if none runs, with the terminal's signals held off until
+    ``pb3a.node.forkserver_signals`` ignores them: a Ctrl-C to the process group as its
+    interpreter started (``pb3a run``'s first second) killed it, a crash dump ("Fatal
+    Python error: init_import_site") or a traceback on the terminal."""
+    start_resource_tracker()                  # (first: its start takes them back here)
+    with terminal_signals_held():
+        forkserver.ensure_running()
 
 
 def _stop_a_hung_preload(timeout: RuntimeTimeout) -> None:
@@ -176,6 +187,7 @@ def forkserver_context() -> multiprocessing.context.ForkServerContext:
     with _preload_lock:
         if _preload_chosen_by != os.getpid():
             _preload(())
+    _start_forkserver()          # (started by a process's start, it took no care of signals)
     return _context
 
 
@@ -290,7 +302,7 @@ class WorkerPool:
             stale, self._spares = self._spares, []
         for handle in stale:
             self._stop(handle, 1.0)
-        self._replenish_with(forkserver.ensure_running)
+        self._replenish_with(_start_forkserver)
 
     def spare_pids(self) -> list[int]:
         """The process ids of the spare workers booted now."""
