@@ -323,6 +323,30 @@ def test_a_second_ctrl_c_while_it_stops_lets_the_stop_finish(tmp_path: Path) -> 
     assert err == "" and not live_segments(proc.pid)
 
 
+def test_ctrl_c_once_the_stop_is_over_changes_nothing(tmp_path: Path) -> None:
+    """Two quick Ctrl-Cs stopped the system cleanly, and then `pb3a run` exited 130 or
+    was killed by SIGINT (3 runs in 5): the first reaches the workers too, so the stop
+    is over within a tenth of a second, and the second came as the run exited, Python's
+    own handler given back. Once the stop is over, signals change nothing: it exits 0.
+    They are sent as soon as it says it stopped cleanly."""
+    proc = _in_its_own_group("run", str(PIPELINE), cwd=tmp_path)
+    with _killed_if_left(proc):
+        assert "running" in proc.stdout.readline()
+        launcher = psutil.Process(proc.pid)
+        workers = eventually(lambda: _workers_of(launcher), what="worker processes")
+        os.killpg(proc.pid, signal.SIGINT)
+        while "stopped cleanly" not in (line := proc.stdout.readline()):
+            assert line, "pb3a run ended without saying it stopped cleanly"
+        for signum in (signal.SIGINT, signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            with contextlib.suppress(ProcessLookupError):        # (it has exited)
+                os.killpg(proc.pid, signum)
+        out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    assert err == "" and "still stopping" not in out
+    assert not live_segments(proc.pid)
+    assert not [p for p in workers if alive(p)]
+
+
 def test_a_run_whose_output_has_no_reader_runs_its_time(tmp_path: Path) -> None:
     """`pb3a run F | head -1` stopped the system at its next table, saying it could not
     reach or listen where F says (a BrokenPipeError); with stdout closed (`>&-`, some

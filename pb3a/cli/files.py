@@ -95,7 +95,8 @@ def run_command(args: argparse.Namespace) -> int:
         return 1
     try:
         ClusterKey.load()       # before anything starts (its workers would inherit it)
-        return run_with_status(plan, args.seconds, listen=args.listen)
+        return run_with_status(plan, args.seconds, listen=args.listen,
+                               final=getattr(args, "whole_process", False))
     except (PB3AError, ClusterKeyError, ValueError) as exc:
         print(f"pb3a run: {exc}", file=sys.stderr)
         return 1

@@ -47,6 +47,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         parser = command_line()
         args = parser.parse_args(argv)
+        # (the pb3a program: its process ends once the command returns)
+        args.whole_process = argv is None
         # the process its log lines name: a command that launches is the launcher
         show_logs(role=getattr(args, "log_role", "launcher"))
         handler: str | None = getattr(args, "handler", None)

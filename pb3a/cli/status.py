@@ -97,12 +97,12 @@ def _columns(rows: list[tuple[str, ...]]) -> list[str]:
 
 
 def run_with_status(plan: Plan, seconds: float | None, out: TextIO | None = None,
-                    listen: str | None = None) -> int:
+                    listen: str | None = None, final: bool = False) -> int:
     """Run ``plan`` until ``seconds`` pass (None: until Ctrl-C, SIGTERM or SIGHUP), the
     table on ``out`` (default: stdout); 0 once stopped (the nodes that did not confirm
     their stop, if any, named). The launcher takes ``pb3a.connect``
     and ``pb3a status ADDR`` ... at ``listen`` (default: where the remote nodes reach
-    it, else loopback)."""
+    it, else loopback). ``final``: the process ends once it returns (``patient_stop``)."""
     # (no stdout at all when started with it closed: `pb3a run F >&-`)
     out = out or sys.stdout or open(os.devnull, "w")  # noqa: SIM115
     live = out.isatty()
@@ -118,9 +118,10 @@ def run_with_status(plan: Plan, seconds: float | None, out: TextIO | None = None
             if out is sys.stdout:
                 output_gone()
 
-    with sigterm_interrupts(), patient_stop(show) as stopping:
+    with patient_stop(show, final=final) as stop:
         with launch(plan, listen=listen) as run:
-            try:     # (from the first line on, a signal means a clean stop)
+            stop.running()       # (from the first line on, a signal means a clean stop)
+            try:
                 address = run.address or run.listen()
                 show(f"pb3a: system {run.name!r} running"
                      f"{f' for {seconds:g} s' if seconds else ''}; Ctrl-C stops it; "
@@ -132,15 +133,12 @@ def run_with_status(plan: Plan, seconds: float | None, out: TextIO | None = None
                         break
                     table = format_table(run.stats())
                     show(("\x1b[H\x1b[2J" if live else "\n") + table + "\n")
-            except KeyboardInterrupt:
-                # the second Ctrl-C answered before the line that may prompt it (one
-                # that came between the two was taken for a third: exit 130)
-                stopping()
+                stop.begin()     # (a signal just before it is caught below, as the first)
+            except KeyboardInterrupt:      # (the stop began with it: ``patient_stop``)
                 show("\npb3a: stopping\n")
-            else:
-                stopping()
-            final = run.stats()
-        show("\n" + format_table(final) + "\n")
+            final_stats = run.stats()
+        stop.end()
+        show("\n" + format_table(final_stats) + "\n")
         stuck = run.not_torn_down
         if stuck:       # (it said "stopped cleanly" with a module's teardown not run)
             many = len(stuck) > 1
@@ -175,31 +173,71 @@ def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
+_STOPPING = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+class _Stop:
+    """What ``patient_stop`` makes of a signal: where the run is (starting, running,
+    stopping, stopped), and how many signals its stop has had."""
+
+    def __init__(self, show: Callable[[str], None]) -> None:
+        self._show = show
+        self._running = False
+        self._stopping = False
+        self._stopped = False
+        self._unheeded = 0       # the signals that came while it stopped
+
+    def running(self) -> None:
+        """The system runs: the next signal begins its stop."""
+        self._running = True
+
+    def begin(self) -> None:
+        """The stop begins (the run's time is up)."""
+        self._stopping = True
+
+    def end(self) -> None:
+        """The stop is over: a signal changes nothing any more (what is left is to say
+        how it went)."""
+        self._stopped = True
+
+    def interrupted(self, signum: int, frame: object) -> None:
+        """The handler of ``_STOPPING``."""
+        if self._stopped:
+            return
+        if self._stopping:
+            self._unheeded += 1
+            if self._unheeded == 1:
+                self._show("pb3a: still stopping (seconds at most); interrupt once more "
+                           "to leave it unfinished\n")
+                return
+        self._stopping = self._running
+        raise KeyboardInterrupt
+
+
 @contextlib.contextmanager
-def patient_stop(show: Callable[[str], None]) -> Iterator[Callable[[], None]]:
-    """Inside the block, once the callable it gives is called (the stop has begun), a
-    second Ctrl-C (SIGTERM, SIGHUP) is answered with a line and the stop goes on, which
-    takes seconds at most; a third leaves it unfinished. An impatient second Ctrl-C cut
-    the stop short: exit 130 after "stopping", and teardown noise (BufferError, "leaked
-    shared_memory objects") on the terminal."""
-    signals = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-    previous = {signum: signal.getsignal(signum) for signum in signals}
-    asked = 0
+def patient_stop(show: Callable[[str], None], final: bool = False) -> Iterator[_Stop]:
+    """Inside the block, Ctrl-C, SIGTERM and SIGHUP (the terminal closed, an ssh session
+    cut) raise KeyboardInterrupt (a SIGHUP killed a run, its segments left behind), until
+    it gives the system as running (``_Stop.running``). From then on the first begins
+    the stop (raising KeyboardInterrupt there), as does the run's end (``_Stop.begin``);
+    one while it stops is answered with a line and the stop goes on, which takes
+    seconds at most; the next leaves it unfinished (KeyboardInterrupt); once it is over
+    (``_Stop.end``), they change nothing. An impatient second Ctrl-C cut the stop short:
+    exit 130 after "stopping", and teardown noise (BufferError, "leaked shared_memory
+    objects") on the terminal.
 
-    def again(signum: int, frame: object) -> None:
-        nonlocal asked
-        asked += 1
-        if asked > 1:
-            raise KeyboardInterrupt
-        show("pb3a: still stopping (seconds at most); interrupt once more to leave it "
-             "unfinished\n")
-
-    def begin() -> None:
-        for signum in signals:
-            signal.signal(signum, again)
-
+    Each signal is counted by its handler, as it comes: one that came as the first was
+    being answered, before the stop was said to have begun, was taken for a third.
+    ``final`` (the ``pb3a`` program, which ends once the block is left): the three are
+    ignored from then on, not given back. Two quick Ctrl-Cs (the first stops the
+    workers too, so the stop takes a tenth of a second) ended a clean stop with exit
+    130: the second, once the stop was over, raised KeyboardInterrupt after "stopped
+    cleanly", or killed the interpreter as it exited (SIGINT's default by then)."""
+    keep_tracker_through_hangups()
+    stop = _Stop(show)
+    previous = {signum: signal.signal(signum, stop.interrupted) for signum in _STOPPING}
     try:
-        yield begin
+        yield stop
     finally:
         for signum, handler in previous.items():
-            signal.signal(signum, handler)
+            signal.signal(signum, signal.SIG_IGN if final else handler)
