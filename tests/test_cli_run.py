@@ -347,6 +347,46 @@ def test_ctrl_c_once_the_stop_is_over_changes_nothing(tmp_path: Path) -> None:
     assert not [p for p in workers if alive(p)]
 
 
+def test_ctrl_c_as_an_interrupted_start_exits_changes_nothing(tmp_path: Path) -> None:
+    """Two quick Ctrl-Cs as `pb3a run` started: it said "pb3a: interrupted", and the
+    second, coming as it exited, killed it by SIGINT instead of exit status 130. The
+    first is sent as it checks the file (its child imports a module file that takes
+    seconds to), the others once it has said it was interrupted."""
+    (tmp_path / "slow.py").write_text(textwrap.dedent("""
+        import time
+        from pb3a import Module
+
+        time.sleep(5.0)
+
+        class Slow(Module):
+            period = 0.05
+
+            def step(self):
+                pass
+        """))
+    (tmp_path / "slow.toml").write_text('name = "slow"\n[modules.slow]\nclass = "slow:Slow"\n')
+    proc = _in_its_own_group("run", str(tmp_path / "slow.toml"), cwd=tmp_path)
+    launcher = psutil.Process(proc.pid)
+
+    def checking() -> bool:
+        with contextlib.suppress(psutil.Error):       # (one that ended meanwhile)
+            return any("sys.path[:] = json.loads" in " ".join(child.cmdline())
+                       for child in launcher.children())      # (``import_child._BOOT``)
+        return False
+
+    with _killed_if_left(proc):
+        eventually(checking, what="the import child")
+        os.killpg(proc.pid, signal.SIGINT)
+        while "pb3a: interrupted" not in (line := proc.stderr.readline()):
+            assert line, "pb3a run ended without saying it was interrupted"
+        for signum in (signal.SIGINT, signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            with contextlib.suppress(ProcessLookupError):        # (it has exited)
+                os.killpg(proc.pid, signum)
+        out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130 and err == "", err
+    assert out == "" and not live_segments(proc.pid)
+
+
 def test_a_run_whose_output_has_no_reader_runs_its_time(tmp_path: Path) -> None:
     """`pb3a run F | head -1` stopped the system at its next table, saying it could not
     reach or listen where F says (a BrokenPipeError); with stdout closed (`>&-`, some

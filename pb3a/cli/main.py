@@ -27,6 +27,7 @@ import argparse
 import contextlib
 import importlib
 import os
+import signal
 import sys
 from collections.abc import Callable, Sequence
 
@@ -57,11 +58,21 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 2
         return handler_of(handler)(args)
     except KeyboardInterrupt:
+        if argv is None:   # (the pb3a program: its status is decided as it exits)
+            ignore_interrupts()
         print("pb3a: interrupted", file=sys.stderr)
         return INTERRUPTED
     except BrokenPipeError:            # its reader went: quietly, as a Unix tool
         output_gone()
         return BROKEN_PIPE
+
+
+def ignore_interrupts() -> None:
+    """Ignore Ctrl-C, SIGTERM and SIGHUP from now on: a second Ctrl-C as an interrupted
+    command exited, after "pb3a: interrupted", killed it by SIGINT (Python gives SIGINT
+    its default back as it ends) instead of exit status 130."""
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(signum, signal.SIG_IGN)
 
 
 def import_from_here() -> None:
