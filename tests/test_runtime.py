@@ -1621,3 +1621,23 @@ def test_a_running_module_may_copy_and_pickle_itself_and_runs_on() -> None:
         assert copied and copied.split()[0] == copied.split()[1]
         eventually(lambda: run.state("c")["count"] > count + 10, what="steps go on")
         assert run.stats().modules["c"].restarts == 0
+
+
+class _InterruptedAsItStarts(threading.Thread):
+    def start(self) -> None:
+        raise KeyboardInterrupt
+
+
+def test_a_ctrl_c_as_a_background_thread_starts_leaves_the_close_clean() -> None:
+    """A background thread (the watchdog, the env keeper) a Ctrl-C left unstarted was
+    listed all the same, and the close's join of it raised "cannot join thread before it
+    is started": ``pb3a run`` exited 1 with a traceback."""
+    system = System("interrupted-start")
+    system.add("c", Counter, period=0.05)
+    run = system.launch()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            run._launcher.start_background(_InterruptedAsItStarts(target=lambda: None))
+    finally:
+        run.close()
+    assert not run.running

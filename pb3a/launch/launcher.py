@@ -227,8 +227,10 @@ class Launcher:
     def start_background(self, thread: threading.Thread) -> None:
         """Start ``thread``, which acts on the system on its own until ``stopping`` is
         set: the shutdown waits for it (2 s at most) before it stops anything."""
-        self._background = [*(t for t in self._background if t.is_alive()), thread]
+        # (listed once started: one a Ctrl-C left unstarted failed the shutdown's join,
+        # "cannot join thread before it is started", exit 1 and a traceback)
         thread.start()
+        self._background = [*(t for t in self._background if t.is_alive()), thread]
 
     def check_node_epoch(self, node: str, node_epoch: int) -> None:
         """Refuse what an executor of an earlier admission of ``node`` says: it was
