@@ -161,6 +161,13 @@ def test_resolve_class_errors_say_what_to_change() -> None:
         resolve_class("examples.pipeline.Ticker")
     with pytest.raises(ImportError, match=r"cannot import module 'no_such_pkg\.mod'"):
         resolve_class("no_such_pkg.mod:Thing")
+    # a misspelt module of a package is named as a misspelt class is; a module's list of
+    # classes is its own (it named pb3a's Input, InputPort, Module and Output too)
+    with pytest.raises(ImportError, match=r"'examples\.pipline' \(did you mean "
+                                          r"'examples\.pipeline'\?\); check the module path"):
+        resolve_class("examples.pipline:Ticker")
+    with pytest.raises(LookupError, match=r"no class 'Nope'; it has: FastScale, Scale, Ticker$"):
+        resolve_class("examples.pipeline:Nope")
     with pytest.raises(TypeError, match="not a class"):
         resolve_class("parts_cfg:helper")
     with pytest.raises(ImportError, match=r"importing module 'parts_boom' for 'parts_boom:"

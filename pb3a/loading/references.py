@@ -12,6 +12,7 @@ import contextlib
 import difflib
 import importlib
 import os
+import pkgutil
 import re
 import sys
 import sysconfig
@@ -72,7 +73,8 @@ def resolve_class(ref: str | type, *, watch: ImportWatch | None = None) -> type:
     except ImportError as exc:
         missing = exc.name if isinstance(exc, ModuleNotFoundError) else None
         if missing and (module_name == missing or module_name.startswith(f"{missing}.")):
-            raise ImportError(f"cannot import module {module_name!r} for {ref!r}: {exc}; "
+            raise ImportError(f"cannot import module {module_name!r} for {ref!r}: {exc}"
+                              f"{_nearest_module(missing)}; "
                               "check the module path and that it is installed or on "
                               f"sys.path{served.not_served(missing)}"
                               f"{served.server_trouble()}") from exc
@@ -206,9 +208,27 @@ def _top(module: str) -> str:
     return module.partition(".")[0]
 
 
+def _nearest_module(missing: str) -> str:
+    """" (did you mean 'examples.pipeline'?)" for a module path whose last part is
+    misspelt, if its package (or, for a top-level one, a directory of the import path:
+    not an editable install's) has one near."""
+    package, _, leaf = missing.rpartition(".")
+    try:
+        where = importlib.import_module(package).__path__ if package else None
+    except (ImportError, AttributeError):      # (imported already: the path went that far)
+        return ""
+    close = difflib.get_close_matches(leaf, [m.name for m in pkgutil.iter_modules(where)],
+                                      n=1)
+    return f" (did you mean {'.'.join(filter(None, (package, close[0])))!r}?)" if close else ""
+
+
 def _suggest(namespace: object, name: str) -> str:
+    # (a module's own classes, not those it imports: "it has: ..., Input, InputPort,
+    # Module, Output, ..." named pb3a's own among them)
+    home = getattr(namespace, "__name__", None) if isinstance(namespace, ModuleType) else None
     classes = sorted(k for k, v in vars(namespace).items()
-                     if isinstance(v, type) and not k.startswith("_"))
+                     if isinstance(v, type) and not k.startswith("_")
+                     and (home is None or v.__module__ == home))
     close = difflib.get_close_matches(name, classes, n=1)
     if close:
         return f" (did you mean {close[0]!r}?)"
