@@ -723,50 +723,6 @@ class SlowsItself(Agent):
             self.runtime.set_state(self.runtime.name, period=self.to)
 
 
-class SetsItsPeriod(Module):
-    """At its ``at``-th step, assigns itself ``self.period = to`` (``every``: at each step
-    from then on, ``to`` and ``to`` + 1 ms by turns); ``setup`` assigns ``in_setup`` if
-    given. Notes when its last steps began (``time.monotonic()``) and the period it sees
-    (``self.period``) after each step's assignment."""
-
-    period = 0.2
-    to = 1.0
-    at = 3
-    every = False
-    in_setup = 0.0          # (0: none)
-    n = 0
-    stamps: list = []
-    seen = 0.0
-
-    def setup(self) -> None:
-        if self.in_setup:
-            self.period = self.in_setup
-
-    def step(self) -> None:
-        self.n += 1
-        self.stamps = [*self.stamps[-99:], time.monotonic()]
-        if self.n == self.at:
-            self.period = self.to
-        elif self.every and self.n > self.at:
-            self.period = self.to + 0.001 * (self.n % 2)
-        self.seen = self.period
-
-
-class SetsAPeriodOnInput(Module):
-    """Event-driven, with no step: assigns ``self.period = 0.5`` at each value, noting
-    the period it sees then (``self.period``) at the next."""
-
-    x = Input(float)
-    got = 0
-    seen = "unread"
-
-    def on_input(self, port) -> None:
-        port.read()
-        self.got += 1
-        self.seen = self.period
-        self.period = 0.5
-
-
 class Retimer(Agent):
     """Once, from its step, slows ``target`` to a period of ``to`` seconds."""
 

@@ -42,7 +42,6 @@ from sample_modules import (
     LossWatcher,
     NodeTable,
     Relay,
-    SetsItsPeriod,
     Steady,
     Wanderer,
 )
@@ -361,34 +360,6 @@ def test_on_a_remote_node_a_restarted_writer_feeds_its_readers_and_agents_can_mo
         eventually(lambda: run.state("dst")["received"] > before["dst"] + 10
                    and run.state("wanderer")["seen"] > before["wanderer"] + 10,
                    timeout=30, what="values from the restarted writer on node b")
-
-
-def test_a_period_a_module_sets_itself_on_a_remote_node_reaches_the_launcher_and_is_kept(
-        controllers) -> None:
-    """A module on a remote node that assigns ``self.period`` in its step runs at it, the
-    launcher is told (the node's ``retimed``), and a move between remote nodes and a
-    restart there keep it."""
-    system = _spanning("remote-own-period", controllers)
-    system.add("paced", SetsItsPeriod, node="b", period=0.01, restart="last-state",
-               state={"to": 0.5, "at": 3})
-
-    def steps_in(run, seconds: float) -> int:
-        before = run.stats().modules["paced"].steps
-        run.wait(seconds)
-        return run.stats().modules["paced"].steps - before
-
-    with system.launch() as run:
-        eventually(lambda: run.topology().modules["paced"].period == 0.5, timeout=15,
-                   what="the launcher told of the period set on node b")
-        run.migrate("paced", to="c")
-        assert run.topology().modules["paced"].period == 0.5
-        assert steps_in(run, 1.0) <= 4                     # (at 0.01 s: about 100)
-        pid = run.stats().modules["paced"].pid
-        os.kill(pid, signal.SIGKILL)
-        eventually(lambda: (m := run.stats().modules["paced"]).pid not in (None, pid)
-                   and m.steps > 0, timeout=20, what="the restarted module stepping")
-        assert steps_in(run, 1.0) <= 4
-        assert run.topology().modules["paced"].period == 0.5
 
 
 def test_a_launcher_listening_on_every_interface_is_called_back_where_its_nodes_reach_it(

@@ -11,7 +11,6 @@ from __future__ import annotations
 import difflib
 import dis
 import inspect
-import numbers
 import os
 import re
 from collections.abc import Iterable
@@ -91,17 +90,6 @@ def stepped(cls: type[Module], value: Any) -> list[str]:
            else ", or give the class a step()")
     return [f"period = {value!r} is given, but {class_ref(cls)} has no step() for it to "
             f"call: leave period out{how}"]
-
-
-def live_period(cls: type[Module], value: Any) -> list[str]:
-    """A period set on a running module (``set_state(name, period=...)``, or
-    ``self.period = ...`` in its body): a real number of seconds from 0 to
-    ``MOST_SECONDS`` (a numpy one too, not a bool), for a class with a ``step()``."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) \
-            or period(float(value)):
-        return [f"period must be a number of seconds from 0 to {MOST_SECONDS:g} (0 = as "
-                f"fast as possible), got {value!r}"]
-    return stepped(cls, float(value))
 
 
 def env_home(name: Any, nodes: Iterable[str]) -> str | None:

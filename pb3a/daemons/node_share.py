@@ -68,7 +68,6 @@ class NodeShare:
         self.executor.republished = self._republished
         self.executor.on_event = self._tell_event
         self.executor.on_checkpoint = self._keep_checkpoint
-        self.executor.on_retimed = self._keep_period
         self.launcher: ControlClient | None = None
         self.node_epoch = 0                            # this admission of the node
         self._lease_s = LEASE_S
@@ -78,7 +77,6 @@ class NodeShare:
         self.board = self.executor.workers.settings.lease = LeaseBoard.create()
         self.executor.leased = self._leased
         self._checkpoints: dict[str, bytes] = {}       # the newest, not yet sent
-        self._periods: dict[str, float] = {}           # ... periods modules set themselves
         self._checkpointed = threading.Condition()
         self._unsent: set[str] = set()        # modules whose checkpoints are too large
         self.server: ControlServer | None = None
@@ -222,22 +220,12 @@ class NodeShare:
             self._checkpoints[module] = state
             self._checkpointed.notify()
 
-    def _keep_period(self, module: str, period: float) -> None:
-        """The period a module here set itself, for the launcher (only the newest is
-        sent, with the checkpoints: never on the executor's lock, held now)."""
-        with self._checkpointed:
-            self._periods[module] = period
-            self._checkpointed.notify()
-
     def _send_checkpoints(self) -> None:
         while not self.stopped.is_set():
             with self._checkpointed:
-                self._checkpointed.wait_for(
-                    lambda: self._checkpoints or self._periods or self.stopped.is_set(), 1.0)
+                self._checkpointed.wait_for(lambda: self._checkpoints or self.stopped.is_set(),
+                                            1.0)
                 pending, self._checkpoints = self._checkpoints, {}
-                periods, self._periods = self._periods, {}
-            for module, period in periods.items():
-                self._call_launcher("retimed", module=module, period=period)
             for module, state in pending.items():
                 try:
                     self._call_launcher("checkpoint", module=module, state=state)

@@ -56,7 +56,6 @@ STOP_TIMEOUT = 5.0      # a module's teardown when it is removed
 # kill, its links' unwiring and its drop may take past the call's deadline (a few ms)
 KILLED_REMOVAL_S = 2.0
 # how to give a launch's slow steps more time (the nodes' starts, their classes' check)
-RETIMED_EVENT_S = 1.0  # a module that sets its own period: one module_retimed this often at most
 LAUNCH_LONGER = ("give the system a longer timeout (timeout = SECONDS at the top of its "
                  "file, or launch(timeout=...))")
 
@@ -84,7 +83,6 @@ class Launcher:
         self.not_torn_down: list[str] = []  # modules that did not stop at shutdown
         self._callback: str | None = None            # where remote executors reach us
         self.events = EventLog()                      # what happened, for run.events()
-        self._retimed_at: dict[str, float] = {}       # module -> its last module_retimed
         self.logbook = LogBook()                      # the recent log, for run.logs()
         self.handler: Any = None                      # applies agents' requests (op, args)
         self.health: dict[str, dict[str, Any]] = {}   # node -> up, rtt, address
@@ -150,7 +148,6 @@ class Launcher:
         executor.republished = functools.partial(self.republished, node=name)
         executor.on_event = self.events.record
         executor.on_checkpoint = self.checkpoints.__setitem__
-        executor.on_retimed = functools.partial(self.keep_period, node=name)  # (lock held)
         return executor
 
     def check_classes(self, timeout: float) -> None:
@@ -439,22 +436,6 @@ class Launcher:
         """Unwire a link and forget it."""
         self.detach(self.links[key])
         del self.links[key]
-
-    def keep_period(self, name: str, period: float, node: str) -> None:
-        """Under the lock: module ``name`` on ``node`` set its own period (``self.period =
-        x`` in a body), which its spec keeps as ``set_state(name, period=...)`` does, so
-        moves, swaps and restarts keep it and the topology shows it. One removed or
-        moved away meanwhile is left out (where it runs now says its own). Recorded as
-        ``module_retimed`` at most once a second each (a module adapting its rate every
-        step filled the event log)."""
-        spec = self.specs.get(name)
-        if spec is None or spec.node != node or (spec.period == period and spec.own_period):
-            return
-        self.specs[name] = dataclasses.replace(spec, period=period, own_period=True)
-        now = time.monotonic()
-        if spec.period != period and now - self._retimed_at.get(name, -math.inf) >= RETIMED_EVENT_S:
-            self._retimed_at[name] = now
-            self.events.record("module_retimed", name, period=period, by="itself")
 
     def republished(self, link: FlatLink, endpoint: Endpoint, node: str) -> None:
         """A writer restarted on ``node`` publishes ``link`` anew: its reader follows the

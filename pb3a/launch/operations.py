@@ -189,7 +189,9 @@ class Operations:
             spec = self.launcher.specs.get(name)
             if spec is None:
                 self.launcher.node_of(name)           # raises ModuleNotFound
-            problems = checks.live_period(spec.cls, period)
+            problems = ([] if isinstance(period, (int, float)) and not isinstance(period, bool)
+                        else ["period must be a number of seconds"])
+            problems = problems or checks.period(period) or checks.stepped(spec.cls, period)
             if problems:
                 raise ConfigError([f"set_state {name}: {problem}" for problem in problems])
             retimed = replace(spec, period=float(period), own_period=True)

@@ -42,8 +42,7 @@ from pb3a.transport.control import ControlServer
 from pb3a.transport.pickling import PYTHON
 
 log = logging.getLogger("pb3a")
-_ASIDE = frozenset({"agent", "event", "checkpoint", "retimed", "republished", "events", "logs",
-                    "migration"})
+_ASIDE = frozenset({"agent", "event", "checkpoint", "republished", "events", "logs", "migration"})
 
 
 def launch(plan: Plan, **options: Any) -> Running:
@@ -279,7 +278,7 @@ class Running(SystemHandle):
         if op == "describe":
             return {"name": self.name, "nodes": list(self.plan.nodes), "python": PYTHON,
                     "timeout": self._operations.timeout}     # a connection's default wait
-        if op in ("agent", "republished", "event", "checkpoint", "retimed"):
+        if op in ("agent", "republished", "event", "checkpoint"):
             self._launcher.check_node_epoch(args["node"], args["node_epoch"])
         if op == "agent":                      # an agent on a remote node
             return self._agent_request(args["request"], args["args"])
@@ -289,10 +288,6 @@ class Running(SystemHandle):
             return None
         if op == "event":                      # a restart or failure on a remote node
             self._launcher.events.record(args["kind"], args["subject"], **args["detail"])
-            return None
-        if op == "retimed":                    # a module there set its own period
-            with self._launcher.lock.held(f"keep the period {args['module']} set itself"):
-                self._launcher.keep_period(args["module"], args["period"], args["node"])
             return None
         if op == "checkpoint":                 # kept here, off the module's node
             self._launcher.checkpoints[args["module"]] = args["state"]

@@ -58,9 +58,7 @@ class Module:
     ``0`` = as fast as possible) and ``restart`` (``"never"``, ``"fresh"`` or
     ``"last-state"``) configure how the runtime runs it; a configuration may
     override both (a running instance's ``self.period`` is the period it runs at, the
-    configuration's, ``add``'s or ``swap``'s if given; one it assigns itself in
-    ``setup``, ``step`` or ``on_input`` is its period from then on, or, if it may not
-    have it, an error of that body, its period unchanged). ``displays`` tells tools how to
+    configuration's, ``add``'s or ``swap``'s if given). ``displays`` tells tools how to
     show some state fields (``pb3a.model.displays``). Modules are constructed with no
     arguments.
 

@@ -54,7 +54,6 @@ log = logging.getLogger("pb3a.executor")
 _module_log = logging.getLogger("pb3a.module")
 
 REPORT_TIMEOUT = 5.0
-RETIMER_IDLE_S = 5.0     # the thread keeping the periods modules set themselves ends this idle
 _WAITS_FOR_THE_MODULE = frozenset({"get_state", "set_state"})
 
 
@@ -82,11 +81,6 @@ class Executor:
         self.republished: Any = None                  # told (link, endpoint) after a restart
         self.on_event: Any = None                     # told (kind, module, detail): restarts
         self.on_checkpoint: Any = None                # told (module, state) for last-state
-        # told (module, period) a module set itself, under ``lock`` (see ``_keep_periods``)
-        self.on_retimed: Any = None
-        self._retimed: dict[str, float] = {}          # ... not kept yet, the newest each
-        self._retiming = threading.Condition()
-        self._retimer: threading.Thread | None = None  # keeps them (none while idle)
         # whether this node's lease runs now (a remote node's share sets it, and its
         # workers' ``WorkerSettings.lease``: an embedded node has none, and never lapses)
         self.leased: Callable[[], bool] = lambda: True
@@ -723,8 +717,6 @@ class Executor:
                 record.checkpoints += 1
                 if record.spec.restart == "last-state" and self.on_checkpoint is not None:
                     self.on_checkpoint(args["name"], args["state"])   # kept off this node
-        elif kind == "retimed":
-            self._keep_period(args["name"], args["period"])
         elif kind == "error":
             self._log_error(args["name"], args["where"], args["trace"], args["suppressed"])
         elif kind == "log":                 # a record the worker logged, logged here
@@ -734,43 +726,6 @@ class Executor:
         elif kind == "request":
             threading.Thread(target=self._serve_request, args=(handle, args), daemon=True,
                              name="pb3a-agent-request").start()
-
-    def _keep_period(self, name: str, period: float) -> None:
-        """Module ``name`` set its own period (``self.period = x`` in a body): kept in its
-        spec, for its restarts, and told on (``on_retimed``), by a thread of its own that
-        waits for ``lock`` (this one reads every notice of its worker)."""
-        with self._retiming:
-            self._retimed[name] = period
-            if self._retimer is None:
-                self._retimer = threading.Thread(target=self._keep_periods, daemon=True,
-                                                 name="pb3a-retimed")
-                self._retimer.start()
-            self._retiming.notify()
-
-    def _keep_periods(self) -> None:
-        """Keep the periods modules set themselves, under ``lock``: after a change that
-        holds it (a swap sets the spec it gave, a move takes the spec away), never
-        halfway through one. A module removed or moved away meanwhile is left out."""
-        while True:
-            with self._retiming:
-                if not self._retiming.wait_for(lambda: self._retimed, RETIMER_IDLE_S):
-                    self._retimer = None
-                    return
-                pending, self._retimed = self._retimed, {}
-            try:
-                with self.held(f"keep the period {', '.join(pending)} set itself"):
-                    for name, period in pending.items():
-                        record = self.modules.get(name)
-                        if record is None:
-                            continue
-                        if record.spec.period != period or not record.spec.own_period:
-                            record.spec = replace(record.spec, period=period, own_period=True)
-                        if self.on_retimed is not None:
-                            self.on_retimed(name, period)
-            except RuntimeTimeout as exc:         # (tried again, unless newer ones came)
-                log.warning("%s; tried again", exc)
-                with self._retiming:
-                    self._retimed = {**pending, **self._retimed}
 
     def _log_error(self, name: str, where: str, trace: str, suppressed: int) -> None:
         """A module's exception: with its traceback the first time (or when it is another

@@ -21,7 +21,6 @@ from collections import deque
 from typing import TYPE_CHECKING, Any
 
 from pb3a import latencies
-from pb3a.config.checks import live_period
 from pb3a.errors import RuntimeCancelled
 from pb3a.model.module import Module, can_hold, restore_state
 from pb3a.model.ports import InputPort, OutputPort
@@ -70,7 +69,6 @@ def running_module() -> str:
 
 
 _BODIES = ("step", "on_input")   # hooks that run only while the module runs
-_SET_PERIOD_IN = ("step", "on_input", "setup")   # hooks whose ``self.period = x`` is kept
 _EVENT_BUDGET = 256  # events handled per dispatch task before yielding to other modules
 _HAND_OVER_S = 0.01  # longest a step loop waits for a waiter to take the lock it left
 _WAIT_SLICE = 0.02   # a request waiting for a module lock looks this often for a body that
@@ -168,11 +166,9 @@ class ModuleActor:
 
     def __init__(self, name: str, module: Module, schedule: Callable[[Callable[[], None]], None],
                  period: float | None,
-                 on_error: Callable[[ModuleActor, str, str], None] | None = None,
-                 on_retimed: Callable[[ModuleActor, float], None] | None = None) -> None:
+                 on_error: Callable[[ModuleActor, str, str], None] | None = None) -> None:
         self.name = name
         self.on_error = on_error
-        self.on_retimed = on_retimed    # told the period the module set itself, once it runs
         self.module = module
         module.__dict__["_pb3a_giving_way"] = self.waiting   # (see Driver.request)
         self.period = period
@@ -180,9 +176,6 @@ class ModuleActor:
         # while the configuration, ``add`` or ``swap`` gave it another; a framework
         # name, it is no state: ``Module.get_state`` leaves it out)
         module.__dict__["period"] = period
-        # what was written there last: another object after a body is the module's own
-        # period, set as ``self.period = x`` (see ``_own_period``)
-        self._written = period
         self.lock = HandOverLock()
         self.steps = self.events = self.errors = 0
         self.cut = False         # a batch of events ended early for a request (see call_many)
@@ -233,9 +226,6 @@ class ModuleActor:
         did not open would otherwise step against it, the error only in the log)."""
         with self._setting_up():
             set_up = self.call("setup")
-        if set_up and self._written is not self.period:     # (its setup set its period)
-            self.period = self._written
-            self._tell_retimed()
         with self._sched_lock:
             halted = self._halted
             if not halted and set_up:
@@ -356,8 +346,6 @@ class ModuleActor:
                         self.steps += 1
                 finally:
                     self._stepped_at, self._stepping = time.monotonic(), False
-                if self._thread is mine:        # (a step that set its own period sleeps it)
-                    period = self.period
                 self.lock.hand_over()
                 if period and self._stop.acquire(timeout=period):
                     self._stop.release()        # stopped while sleeping
@@ -451,9 +439,6 @@ class ModuleActor:
                     else:
                         log.error("module %r raised in %s:\n%s", self.name, hook,
                                   traceback.format_exc())
-            # (one dict lookup: a body that assigned self.period left another object)
-            if self.module.__dict__.get("period") is not self._written and hook in _SET_PERIOD_IN:
-                self._own_period(hook)
             if timed:
                 self.cpu += time.thread_time() - start
         finally:
@@ -661,7 +646,7 @@ class ModuleActor:
         module's counters (the caller holds the module lock, and pickles them before
         letting it go). The counters go too: an agent reading a rate or an error trend
         from ``stats()`` saw steps fall from 148 to 6 at every move."""
-        return {"state": self.module.get_state(), "period": self.period,
+        return {"state": self.module.get_state(),
                 "inputs": {name: port.export() for name, port in self.inputs.items()},
                 "counters": {"steps": self.steps, "events": self.events,
                              "errors": self.errors, "last_error": self.last_error,
@@ -685,12 +670,6 @@ class ModuleActor:
             port = self.inputs.get(name)
             if port is not None:
                 port.restore(held)
-        # the period it ran at: one it set itself may not have reached the runtime before
-        # the move took its spec (the notice is on its way, and kept once the move ends)
-        period = captured.get("period", self.period)
-        if period != self.period and period is not None and self._steps(period):
-            self.period = self.module.__dict__["period"] = self._written = period
-            self._tell_retimed()
         counters = captured["counters"]
         self.steps += counters["steps"]
         self.events += counters["events"]
@@ -735,7 +714,7 @@ class ModuleActor:
             except Exception:
                 log.exception("module %r raised in teardown during swap", self.name)
             specs = {name: port.spec for name, port in self.ports.items()}
-            new.__dict__["period"] = self._written = period     # (as in ``__init__``)
+            new.__dict__["period"] = period         # (as in ``__init__``)
             try:
                 kept = self._take(new, old.get_state())
             except Exception as exc:
@@ -752,10 +731,7 @@ class ModuleActor:
                 with self._setting_up():
                     if self._call_held("setup", 1) == 1:
                         self._dispatch_owed()
-                        own = self._written is not period       # (its setup set its period)
-                        self._step_every(self._written)
-                        if own:
-                            self._tell_retimed()
+                        self._step_every(period)
                         return sorted(kept)
                 why = f"{type(new).__name__} raised in setup: {self.last_error}"
             # the new class cannot start: the old instance back, set up again
@@ -764,12 +740,8 @@ class ModuleActor:
             for name, spec in specs.items():
                 self.ports[name].spec = spec
             self.module, self._event_driven = old, type(old).is_event_driven()
-            old.__dict__["period"] = self._written = self.period
             with self._setting_up():
                 self._call_held("setup", 1)
-            if self._written is not self.period:        # (its setup set its period)
-                self._step_every(self._written)
-                self._tell_retimed()
             self._dispatch_owed()
             raise SetupError(f"module {self.name!r}: {why}; not swapped, "
                              f"{type(old).__name__} runs on")
@@ -798,45 +770,8 @@ class ModuleActor:
         begins now, and the one at the old period ends when it wakes (``_loop``). The
         module's ``self.period`` says it at once."""
         with self._sched_lock:
-            self.module.__dict__["period"] = self._written = period
+            self.module.__dict__["period"] = period
             self._step_every(period)
-
-    def _own_period(self, hook: str) -> None:
-        """The module assigned ``self.period`` in ``hook`` (under its lock): a period it may
-        have (``live_period``) is its period from now on, slept after the step that set it,
-        and its worker told (``on_retimed``: the runtime keeps it for restarts and moves);
-        one it may not is reported as an error of ``hook``, and ``self.period`` says the
-        period it runs at again. (The runtime steps by its own copy, ``self.period``: the
-        assignment was ignored, nothing said.) In ``setup``, it is kept for the caller
-        (``start``, ``swap``) to start the module at."""
-        module = self.module
-        value = module.__dict__.get("period")
-        problems = live_period(type(module), value)
-        if problems:
-            module.__dict__["period"] = self._written
-            why = (f"module {self.name!r} set self.period = {value!r} in {hook}: "
-                   f"{problems[0]}; its period stays {self._written!r}")
-            self.errors += 1
-            self.last_error = f"ConfigError: {why}"
-            if self.on_error is not None:
-                self.on_error(self, hook, f"pb3a.errors.ConfigError: {why}\n")
-            else:
-                log.error("%s", why)
-            return
-        period = float(value)
-        module.__dict__["period"] = self._written = period
-        if hook == "setup" or period == self.period:
-            return
-        with self._sched_lock:
-            if threading.current_thread() is self._thread and self._steps(period):
-                self.period = period            # (its step loop sleeps it after this step)
-            else:
-                self._step_every(period)
-        self._tell_retimed()
-
-    def _tell_retimed(self) -> None:
-        if self.on_retimed is not None and self.period is not None:
-            self.on_retimed(self, self.period)
 
     def _dispatch_owed(self) -> None:
         """Schedule the calls its inputs owe: values that came while an instance that

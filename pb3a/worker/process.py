@@ -64,8 +64,6 @@ LAST_WORDS_S = 0.5        # a stopping worker's wait to tell its figures (the ex
 # for the executor to read: a module logging in a loop must not fill the memory.
 NOTICE_BACKLOG = 100
 _DROPPABLE = frozenset({"log", "error"})
-# Notices of which only a module's newest matters: one not gone yet is replaced.
-_COALESCED = frozenset({"checkpoint", "retimed"})
 
 
 class Refused(Exception):
@@ -101,8 +99,7 @@ class Worker:
         # What goes to the executor never waits for it (a frozen executor reads
         # nothing): a module's log record or error report, an agent's request.
         self.outbox = Outbox(conn.fileno())
-        # each module's last checkpoint and period it set itself (_COALESCED), if unsent
-        self._coalesced: dict[tuple[str, str], Outgoing] = {}
+        self._checkpoints: dict[str, Outgoing] = {}    # the last one each, if unsent
         self._uncheckpointed: set[str] = set()   # modules whose checkpoint failed, said once
         self._dropped = 0                   # notices dropped while the executor read nothing
         self._dropping = threading.Lock()   # (counted by any module's thread)
@@ -181,10 +178,9 @@ class Worker:
         process can import) fails only its own request, saying why, and never the pipe.
 
         While the executor reads nothing, a module's checkpoint replaces its last one
-        not yet gone (and the period it set itself, ``retimed``, its last), and log
-        records and error reports past ``NOTICE_BACKLOG`` waiting messages are dropped,
-        and counted in a warning sent once there is room. The message, or None if it
-        was not sent."""
+        not yet gone, and log records and error reports past ``NOTICE_BACKLOG`` waiting
+        messages are dropped, and counted in a warning sent once there is room. The
+        message, or None if it was not sent."""
         req_id, kind, payload = message
         if req_id is None and kind in _DROPPABLE and self.outbox.waiting() >= NOTICE_BACKLOG:
             with self._dropping:
@@ -199,8 +195,8 @@ class Worker:
                 return None
             kind, body = False, pickling.dumps("its answer could not be pickled: "
                                                + pickling.unpicklable_reason(exc, payload))
-        if kind in _COALESCED:
-            earlier = self._coalesced.pop((kind, payload["name"]), None)
+        if kind == "checkpoint":
+            earlier = self._checkpoints.pop(payload["name"], None)
             if earlier is not None:
                 self.outbox.withdraw(earlier)        # (unless it began to go)
         try:
@@ -209,8 +205,8 @@ class Worker:
         except OSError:                              # the executor is gone
             self._closing.set()
             return None
-        if kind in _COALESCED:
-            self._coalesced[(kind, payload["name"])] = sent
+        if kind == "checkpoint":
+            self._checkpoints[payload["name"]] = sent
         return sent
 
     def _tell_dropped(self) -> None:
@@ -298,8 +294,7 @@ class Worker:
                 raise Refused(f"module {name!r} ({class_ref(klass)}): setting its state "
                               f"({', '.join(map(str, state))}) failed: "
                               f"{type(exc).__name__}: {exc}") from None
-        actor = ModuleActor(name, module, self._schedule, period, on_error=self._report_error,
-                            on_retimed=self._report_retimed)
+        actor = ModuleActor(name, module, self._schedule, period, on_error=self._report_error)
         if self.lease.applies:
             actor.may_run = self.lease.holds
         self.actors[name] = actor
@@ -629,12 +624,6 @@ class Worker:
         self._error_times[actor.name] = (now, 0)
         self.send((None, "error", {"name": actor.name, "where": where, "trace": trace,
                                    "suppressed": suppressed}))
-
-    def _report_retimed(self, actor: ModuleActor, period: float) -> None:
-        """Tell the executor the period a module set itself (``self.period = x``), which
-        it keeps for restarts and tells the launcher; never waiting for either (an
-        assignment that asked the launcher waited for the configuration lock)."""
-        self.send((None, "retimed", {"name": actor.name, "period": period}))
 
     # -- agents' requests to the executor ----------------------------------
     def _give_runtime(self, name: str, module: Any) -> None:
