@@ -888,6 +888,17 @@ def test_bad_period_restart_and_state(tmp_path: Path) -> None:
     only(problems, "[modules.b]: state must be a table")
 
 
+def test_an_int_no_float_can_hold_is_refused_as_a_period_not_an_overflow() -> None:
+    """``set_state(name, period=10**400)`` (or ``add``'s) raised OverflowError from the
+    check meant to refuse it, naming nothing."""
+    from pb3a.config import checks
+
+    assert checks.period(10**400) and checks.period(-(10**400))
+    with pytest.raises(ConfigError, match=r"\[modules\.t\]: period must be a number of "
+                                          r"seconds .*, got 1\d{59}$"):
+        System("huge").add("t", Ticker, period=10**400).plan()
+
+
 def test_unknown_keys_everywhere(tmp_path: Path) -> None:
     problems = problems_of(tmp_path, """
         modulez = 1

@@ -77,7 +77,7 @@ def period(value: Any) -> list[str]:
     if value is None or (finite(value) and 0 <= value <= MOST_SECONDS):
         return []
     return [(f"period must be a number of seconds from 0 to {MOST_SECONDS:g} (0 = as fast as "
-            f"possible; leave it out to keep the class's), got {value!r}")]
+            f"possible; leave it out to keep the class's), got {value!r:.60}")]
 
 
 def stepped(cls: type[Module], value: Any) -> list[str]:

@@ -61,6 +61,11 @@ def declared_displays(cls: type) -> dict[str, Display]:
 
 
 def finite(value: Any) -> bool:
-    """True for a finite int or float (a TOML ``true`` is neither, nor is NaN)."""
-    return (isinstance(value, (int, float)) and not isinstance(value, bool)
-            and math.isfinite(value))
+    """True for a finite int or float (a TOML ``true`` is neither, nor is NaN, nor an int
+    no float can hold: ``10**400`` raised OverflowError where a refusal was due)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
