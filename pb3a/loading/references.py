@@ -215,7 +215,7 @@ def _nearest_module(missing: str) -> str:
     package, _, leaf = missing.rpartition(".")
     try:
         where = importlib.import_module(package).__path__ if package else None
-    except (ImportError, AttributeError):      # (imported already: the path went that far)
+    except (ImportError, AttributeError):      # (no package there: nothing beside it)
         return ""
     close = difflib.get_close_matches(leaf, [m.name for m in pkgutil.iter_modules(where)],
                                       n=1)
