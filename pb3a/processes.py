@@ -3,6 +3,7 @@ serving in one as the child of its owner."""
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import os
 import signal
@@ -58,6 +59,7 @@ def restore_the_user_s_path_setting() -> None:
 # Python child that takes one as its interpreter starts, before its own handlers are set,
 # dies of it with a crash dump or a traceback on the terminal.
 TERMINAL_SIGNALS = frozenset({signal.SIGINT, signal.SIGTERM, signal.SIGHUP})
+INTERRUPTED = 130       # the shell's status of a program a Ctrl-C ended (128 + SIGINT)
 
 
 @contextlib.contextmanager
@@ -79,6 +81,30 @@ def take_terminal_signals() -> None:
     ``TERMINAL_SIGNALS`` again (one that came as it started is handled now, by them; an
     ignored one is dropped)."""
     signal.pthread_sigmask(signal.SIG_UNBLOCK, TERMINAL_SIGNALS)
+
+
+def end_on_signals(status: int) -> None:
+    """From now on Ctrl-C, SIGTERM or SIGHUP ends this program at once with ``status``,
+    decided already (what it wrote flushed first): for a program whose work is done and
+    that is only exiting. Ignored, a stuck exit (a thread a module file started, which
+    Python's exit waits for) could only be killed; at Python's default, a second Ctrl-C
+    killed a clean stop by SIGINT as it exited. Once those threads are joined, the
+    signals are ignored for the rest of the exit (Python puts a handler of its own back
+    to the default as it ends, and a SIGHUP then killed it)."""
+    def end(signum: int, frame: object) -> None:
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        os._exit(status)
+
+    for signum in TERMINAL_SIGNALS:
+        signal.signal(signum, end)
+    atexit.register(_ignore_terminal_signals)     # (run after the threads are joined)
+
+
+def _ignore_terminal_signals() -> None:
+    for signum in TERMINAL_SIGNALS:
+        signal.signal(signum, signal.SIG_IGN)
 
 
 def start_resource_tracker() -> None:

@@ -347,6 +347,43 @@ def test_ctrl_c_once_the_stop_is_over_changes_nothing(tmp_path: Path) -> None:
     assert not [p for p in workers if alive(p)]
 
 
+def test_a_signal_once_the_stop_is_over_still_ends_an_exit_that_hangs(tmp_path: Path) -> None:
+    """Once its stop was over, `pb3a run` ignored Ctrl-C, SIGTERM and SIGHUP for good: an
+    exit held up by a thread a module file started as it was imported (a vendor SDK's
+    poller, which Python's exit waits for) could only be killed. A signal now ends it
+    at once, with the status it had decided."""
+    (tmp_path / "sdk.py").write_text(textwrap.dedent("""
+        import threading, time
+        from pb3a import Module
+
+        def _poll():
+            while True:
+                time.sleep(0.5)
+
+        if threading.current_thread() is threading.main_thread():
+            threading.Thread(target=_poll, name="sdk-poller").start()   # (not a daemon)
+
+        class Tick(Module):
+            period = 0.05
+
+            def step(self):
+                pass
+        """))
+    (tmp_path / "sdk.toml").write_text('name = "sdk"\n[modules.tick]\nclass = "sdk:Tick"\n')
+    proc = _in_its_own_group("run", str(tmp_path / "sdk.toml"), cwd=tmp_path)
+    with _killed_if_left(proc):
+        assert "running" in proc.stdout.readline()
+        os.killpg(proc.pid, signal.SIGINT)
+        while "stopped cleanly" not in (line := proc.stdout.readline()):
+            assert line, "pb3a run ended without saying it stopped cleanly"
+        with pytest.raises(subprocess.TimeoutExpired):     # (held up by the poller)
+            proc.wait(timeout=1.0)
+        os.kill(proc.pid, signal.SIGTERM)
+        _, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
+    assert not live_segments(proc.pid)
+
+
 def test_ctrl_c_as_an_interrupted_start_exits_changes_nothing(tmp_path: Path) -> None:
     """Two quick Ctrl-Cs as `pb3a run` started: it said "pb3a: interrupted", and the
     second, coming as it exited, killed it by SIGINT instead of exit status 130. The

@@ -27,14 +27,11 @@ import argparse
 import contextlib
 import importlib
 import os
-import signal
 import sys
 from collections.abc import Callable, Sequence
 
 from pb3a.cli.standard_output import BROKEN_PIPE, output_gone
-from pb3a.processes import children_skip_the_current_directory
-
-INTERRUPTED = 130      # the shell's convention for a command ended by SIGINT
+from pb3a.processes import INTERRUPTED, children_skip_the_current_directory, end_on_signals
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -59,20 +56,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return handler_of(handler)(args)
     except KeyboardInterrupt:
         if argv is None:   # (the pb3a program: its status is decided as it exits)
-            ignore_interrupts()
+            end_on_signals(INTERRUPTED)
         print("pb3a: interrupted", file=sys.stderr)
         return INTERRUPTED
     except BrokenPipeError:            # its reader went: quietly, as a Unix tool
         output_gone()
         return BROKEN_PIPE
-
-
-def ignore_interrupts() -> None:
-    """Ignore Ctrl-C, SIGTERM and SIGHUP from now on: a second Ctrl-C as an interrupted
-    command exited, after "pb3a: interrupted", killed it by SIGINT (Python gives SIGINT
-    its default back as it ends) instead of exit status 130."""
-    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(signum, signal.SIG_IGN)
 
 
 def import_from_here() -> None:

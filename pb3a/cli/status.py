@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, TextIO
 
 from pb3a.cli.standard_output import output_gone
 from pb3a.launch.running import launch
+from pb3a.processes import INTERRUPTED, end_on_signals
 from pb3a.transport.shm import keep_tracker_through_hangups
 
 if TYPE_CHECKING:
@@ -200,6 +201,11 @@ class _Stop:
         how it went)."""
         self._stopped = True
 
+    @property
+    def over(self) -> bool:
+        """Whether the stop is over (``end``)."""
+        return self._stopped
+
     def interrupted(self, signum: int, frame: object) -> None:
         """The handler of ``_STOPPING``."""
         if self._stopped:
@@ -228,9 +234,10 @@ def patient_stop(show: Callable[[str], None], final: bool = False) -> Iterator[_
 
     Each signal is counted by its handler, as it comes: one that came as the first was
     being answered, before the stop was said to have begun, was taken for a third.
-    ``final`` (the ``pb3a`` program, which ends once the block is left): the three are
-    ignored from then on, not given back. Two quick Ctrl-Cs (the first stops the
-    workers too, so the stop takes a tenth of a second) ended a clean stop with exit
+    ``final`` (the ``pb3a`` program, which ends once the block is left): from then on
+    the three end it at once with the status decided (``end_on_signals``), not given
+    back. Two quick Ctrl-Cs (the first stops the workers too, so the stop takes a
+    tenth of a second) ended a clean stop with exit
     130: the second, once the stop was over, raised KeyboardInterrupt after "stopped
     cleanly", or killed the interpreter as it exited (SIGINT's default by then)."""
     keep_tracker_through_hangups()
@@ -239,5 +246,8 @@ def patient_stop(show: Callable[[str], None], final: bool = False) -> Iterator[_
     try:
         yield stop
     finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, signal.SIG_IGN if final else handler)
+        if final:           # (its status decided: 0 once the stop is over, else 130)
+            end_on_signals(0 if stop.over else INTERRUPTED)
+        else:
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
