@@ -11,6 +11,7 @@ import tomllib
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 from sample_modules import DeviceReader, Pump
 
@@ -888,12 +889,16 @@ def test_bad_period_restart_and_state(tmp_path: Path) -> None:
     only(problems, "[modules.b]: state must be a table")
 
 
-def test_an_int_no_float_can_hold_is_refused_as_a_period_not_an_overflow() -> None:
+def test_a_period_may_be_numpy_s_and_an_int_no_float_can_hold_is_refused() -> None:
     """``set_state(name, period=10**400)`` (or ``add``'s) raised OverflowError from the
-    check meant to refuse it, naming nothing."""
+    check meant to refuse it, naming nothing; a period computed with numpy was refused
+    as no number."""
     from pb3a.config import checks
 
     assert checks.period(10**400) and checks.period(-(10**400))
+    # a numpy number is a number (``add(period=np.float32(0.5))`` was refused); its bool not
+    assert checks.period(np.True_) and not checks.period(np.float32(0.5))
+    assert System("np").add("t", Ticker, period=np.int64(2)).plan().modules["t"].period == 2.0
     with pytest.raises(ConfigError, match=r"\[modules\.t\]: period must be a number of "
                                           r"seconds .*, got 1\d{59}$"):
         System("huge").add("t", Ticker, period=10**400).plan()

@@ -1431,6 +1431,10 @@ def test_a_module_s_period_is_set_live_and_kept_across_a_move_and_a_restart() ->
             run.set_state("paced", period=-1.0)
         with pytest.raises(ConfigError, match="period must be a number of seconds"):
             run.set_state("paced", period="fast")
+        with pytest.raises(ConfigError, match="period must be a number of seconds"):
+            run.set_state("paced", period=np.True_)
+        run.set_state("paced", period=np.float32(0.5))     # (computed with numpy: refused)
+        assert type(run.topology().modules["paced"].period) is float
         run.set_state("paced", period=0.2, count=0)         # with a field: both set
         assert run.state("paced")["count"] <= 1
         run.migrate("paced", to="b")

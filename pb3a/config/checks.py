@@ -11,6 +11,7 @@ from __future__ import annotations
 import difflib
 import dis
 import inspect
+import numbers
 import os
 import re
 from collections.abc import Iterable
@@ -73,11 +74,24 @@ def unknown_keys(extra: dict[str, Any], allowed: Iterable[str]) -> list[str]:
 
 
 def period(value: Any) -> list[str]:
-    """``None`` (keep the class's) or a number of seconds from 0 to ``MOST_SECONDS``."""
-    if value is None or (finite(value) and 0 <= value <= MOST_SECONDS):
+    """``None`` (keep the class's) or a number of seconds from 0 to ``MOST_SECONDS``: an
+    int or a float, or numpy's (a period computed with numpy, ``np.float32(0.5)``, was
+    refused by ``add`` as not a number)."""
+    if value is None or (_real(value) and 0 <= value <= MOST_SECONDS):
         return []
     return [(f"period must be a number of seconds from 0 to {MOST_SECONDS:g} (0 = as fast as "
             f"possible; leave it out to keep the class's), got {value!r:.60}")]
+
+
+def _real(value: Any) -> bool:
+    """A finite real number: an int or a float, or another real type's (numpy's) whose
+    float is finite; not a bool."""
+    if isinstance(value, numbers.Real) and not isinstance(value, (bool, int, float)):
+        try:
+            value = float(value)
+        except (OverflowError, ValueError):
+            return False
+    return finite(value)
 
 
 def stepped(cls: type[Module], value: Any) -> list[str]:

@@ -189,9 +189,8 @@ class Operations:
             spec = self.launcher.specs.get(name)
             if spec is None:
                 self.launcher.node_of(name)           # raises ModuleNotFound
-            problems = ([] if isinstance(period, (int, float)) and not isinstance(period, bool)
-                        else ["period must be a number of seconds"])
-            problems = problems or checks.period(period) or checks.stepped(spec.cls, period)
+            problems = (checks.period(period) or checks.stepped(spec.cls, period)
+                        if period is not None else ["period must be a number of seconds"])
             if problems:
                 raise ConfigError([f"set_state {name}: {problem}" for problem in problems])
             retimed = replace(spec, period=float(period), own_period=True)
