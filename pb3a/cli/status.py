@@ -18,8 +18,7 @@ from typing import TYPE_CHECKING, TextIO
 
 from pb3a.cli.standard_output import output_gone
 from pb3a.launch.running import launch
-from pb3a.processes import INTERRUPTED, end_on_signals
-from pb3a.transport.shm import keep_tracker_through_hangups
+from pb3a.processes import INTERRUPTED, end_on_signals, start_resource_tracker
 
 if TYPE_CHECKING:
     from pb3a.config.plan import Plan
@@ -160,7 +159,7 @@ def sigterm_interrupts() -> Iterator[None]:
     """Inside the block, SIGTERM and SIGHUP (the terminal closed, an ssh session cut)
     raise KeyboardInterrupt as Ctrl-C does: each ends a run the same clean way (a
     SIGHUP killed it, its segments left behind)."""
-    keep_tracker_through_hangups()
+    start_resource_tracker()
     previous = {signum: signal.signal(signum, _interrupt)
                 for signum in (signal.SIGTERM, signal.SIGHUP)}
     try:
@@ -237,10 +236,10 @@ def patient_stop(show: Callable[[str], None], final: bool = False) -> Iterator[_
     ``final`` (the ``pb3a`` program, which ends once the block is left): from then on
     the three end it at once with the status decided (``end_on_signals``), not given
     back. Two quick Ctrl-Cs (the first stops the workers too, so the stop takes a
-    tenth of a second) ended a clean stop with exit
-    130: the second, once the stop was over, raised KeyboardInterrupt after "stopped
-    cleanly", or killed the interpreter as it exited (SIGINT's default by then)."""
-    keep_tracker_through_hangups()
+    tenth of a second) ended a clean stop with exit 130: the second, once the stop was
+    over, raised KeyboardInterrupt after "stopped cleanly", or killed the interpreter
+    as it exited (SIGINT's default by then)."""
+    start_resource_tracker()
     stop = _Stop(show)
     previous = {signum: signal.signal(signum, stop.interrupted) for signum in _STOPPING}
     try:

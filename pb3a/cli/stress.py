@@ -69,7 +69,7 @@ def stress_command(args: argparse.Namespace) -> int:
     """Launch FILE, stress it, write ``stress.json`` and ``stress.png`` to ``--out``."""
     from pb3a.cli.files import load_plan
     from pb3a.cli.status import sigterm_interrupts
-    from pb3a.transport.shm import keep_tracker_through_hangups
+    from pb3a.processes import start_resource_tracker
 
     options = StressOptions(args.seconds, args.load, args.kill_every, args.kill_among,
                             args.migrate_every, args.migrate_among, args.cuts, args.sample_s,
@@ -78,7 +78,7 @@ def stress_command(args: argparse.Namespace) -> int:
     if plan is None:
         return 1
     out = Path(args.out)
-    keep_tracker_through_hangups()      # (before the CPU load's Event starts the tracker)
+    start_resource_tracker()            # (before the CPU load's Event starts the tracker)
     try:
         stress = Stress(plan, options, sys.stdout)
         out.mkdir(parents=True, exist_ok=True)

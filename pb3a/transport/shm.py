@@ -13,7 +13,6 @@ from __future__ import annotations
 import contextlib
 import itertools
 import os
-import signal
 import sys
 from multiprocessing import resource_tracker, shared_memory
 
@@ -49,18 +48,6 @@ def memory_domain() -> str:
     with open("/proc/sys/kernel/random/boot_id") as boot:
         booted = boot.read().strip()
     return f"{booted}/{os.stat(_SHM_DIR).st_dev}"
-
-
-def keep_tracker_through_hangups() -> None:
-    """Start the resource tracker (which unlinks this process's segments if it dies) now,
-    with SIGHUP ignored, which it keeps: it ignores SIGINT and SIGTERM but not SIGHUP,
-    so a terminal closing under ``pb3a run`` killed it, and the one that replaced it
-    printed a traceback for each segment freed that it had not heard of."""
-    previous = signal.signal(signal.SIGHUP, signal.SIG_IGN)
-    try:
-        resource_tracker.ensure_running()
-    finally:
-        signal.signal(signal.SIGHUP, previous)
 
 
 class Segment(shared_memory.SharedMemory):
