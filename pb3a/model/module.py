@@ -203,7 +203,10 @@ class Module:
                 f"its state is: {', '.join(sorted(known)) or '(none)'}"
             )
         if not _RESTORING.get():        # (its own state back is no edit: a move, a restart
-            self._judge_edit(state)     # of a module past its class's rule lost its state)
+            # of a module past its class's rule lost its state)
+            problems = edit_refusals(type(self), Module.get_state(self), state)
+            if problems:
+                raise StateRefused(problems)
         return state
 
     @contextlib.contextmanager
@@ -219,13 +222,6 @@ class Module:
             yield admitted
         finally:
             _ADMITTED.reset(token)
-
-    def _judge_edit(self, state: dict[str, Any]) -> None:
-        """``StateRefused`` for what the class refuses of the edit ``state``
-        (``edit_refusals``)."""
-        problems = edit_refusals(type(self), Module.get_state(self), state)
-        if problems:
-            raise StateRefused(problems)
 
     # -- ports -------------------------------------------------------------
     @classmethod
