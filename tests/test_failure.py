@@ -1318,8 +1318,11 @@ def test_a_file_that_launches_a_system_when_imported_fails_naming_it(tmp_path: P
     ``__main__`` guard), imported rather than run: the forkserver preloads the classes'
     file and so launched the system again, whose forkserver imported it again, without
     end (a chain of processes that ignored SIGTERM and outlived the script). A launch
-    inside PB3A's own processes is refused: the import fails within seconds, naming the
-    file, its line and the guard, and leaves no process behind."""
+    inside PB3A's own processes is refused. And the launch is refused before anything
+    starts: the error came from the forkserver and then from the worker, two tracebacks
+    through the launcher's frames; it is said once now, naming the file, its line, the
+    class the workers would import it for and the guard, within seconds, and leaves no
+    process behind."""
     module = f"launches_at_import_{os.getpid()}"
     code, stderr, took = _import_in_a_new_process(tmp_path, module, """
         from pb3a import Module, System
@@ -1338,8 +1341,11 @@ def test_a_file_that_launches_a_system_when_imported_fails_naming_it(tmp_path: P
         """)
     assert code == 1, stderr
     assert f"{module}.py launches system 'launched-at-import' when it is imported " \
-           "(line 13)" in stderr
+           "(line 13), and defines its module class Counter, which the workers import " \
+           "it to load" in stderr
     assert 'under `if __name__ == "__main__":`' in stderr
+    assert stderr.count("Traceback") == 1 and "forkserver" not in stderr \
+        and "worker '" not in stderr, stderr
     assert took < 30
 
 

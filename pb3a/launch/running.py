@@ -48,6 +48,7 @@ _ASIDE = frozenset({"agent", "event", "checkpoint", "republished", "events", "lo
 def launch(plan: Plan, **options: Any) -> Running:
     """Start every module of ``plan`` on this machine and return the running handle."""
     _refuse_inside_own_process(plan.name)
+    _refuse_in_an_imported_class_file(plan)
     running = Running(plan, **options)
     running.start()
     atexit.register(running.close_at_exit)
@@ -66,9 +67,7 @@ def _refuse_inside_own_process(name: str) -> None:
         return
     how = (f"inside {inside} to load a module class it defines" if inside is not None
            else f"to load its class {importing_for()!r}")
-    frame = sys._getframe(1)
-    while frame is not None and frame.f_code.co_name != "<module>":
-        frame = frame.f_back
+    frame = _importing_frame(sys._getframe(1))
     if frame is None:
         where = f"inside {inside}" if inside is not None else f"as {importing_for()!r} loads"
         raise ConfigError([f"system {name!r} is launched {where}: a module's "
@@ -79,6 +78,35 @@ def _refuse_inside_own_process(name: str) -> None:
         f"{frame.f_lineno}), and it was imported {how}: each such import would "
         "launch the system again. Launch it under "
         '`if __name__ == "__main__":`, or from a file other than the classes\''])
+
+
+def _refuse_in_an_imported_class_file(plan: Plan) -> None:
+    """Refuse, before any process starts, a launch made as a file is imported (not run)
+    whose module classes the plan holds: workers import that file to load them, which
+    would launch the system again, and each was refused there at length (the forkserver's
+    traceback, then the worker's, through the launcher's frames)."""
+    frame = _importing_frame(sys._getframe(1))
+    if frame is None:
+        return
+    imported = frame.f_globals.get("__name__")
+    classes = sorted({module.cls.__qualname__ for module in plan.modules.values()
+                      if module.cls.__module__ == imported})
+    if imported == "__main__" or not classes:
+        return
+    raise ConfigError([
+        f"{frame.f_code.co_filename} launches system {plan.name!r} when it is imported "
+        f"(line {frame.f_lineno}), and defines its module class{'es' * (len(classes) > 1)} "
+        f"{', '.join(classes)}, which the workers import it to load: each such import "
+        "would launch the system again. Launch it under "
+        '`if __name__ == "__main__":`, or from a file other than the classes\''])
+
+
+def _importing_frame(frame: Any) -> Any:
+    """The frame of the file whose top level made this call, if the call comes from a
+    file's top level at all (not from a function)."""
+    while frame is not None and frame.f_code.co_name != "<module>":
+        frame = frame.f_back
+    return frame
 
 
 class Running(SystemHandle):
