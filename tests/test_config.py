@@ -155,6 +155,18 @@ def test_resolve_class_accepts_a_class_or_a_colon_reference() -> None:
     assert resolve_class("examples.pipeline:FastScale") is FastScale
 
 
+def test_a_misspelt_installed_package_gets_a_did_you_mean_from_anywhere(
+        tmp_path: Path) -> None:
+    """A misspelt top-level package was matched against the import path's directories
+    alone: run from another directory, an editable install's packages (this project's
+    `agents`, `rave`) are on none of them, and no "did you mean" came."""
+    done = subprocess.run(
+        [sys.executable, "-c", "from pb3a.loading.references import resolve_class\n"
+         "resolve_class('agentz.monitor:Monitor')"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=60)
+    assert "No module named 'agentz' (did you mean 'agents'?)" in done.stderr, done.stderr
+
+
 def test_resolve_class_errors_say_what_to_change() -> None:
     with pytest.raises(LookupError, match=r"module 'examples\.pipeline' has no class 'Tickr'"):
         resolve_class("examples.pipeline:Tickr")

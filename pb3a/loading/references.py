@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import difflib
 import importlib
+import importlib.metadata
 import os
 import pkgutil
 import re
@@ -210,15 +211,17 @@ def _top(module: str) -> str:
 
 def _nearest_module(missing: str) -> str:
     """" (did you mean 'examples.pipeline'?)" for a module path whose last part is
-    misspelt, if its package (or, for a top-level one, a directory of the import path:
-    not an editable install's) has one near."""
+    misspelt, if its package (or, for a top-level one, the import path or an installed
+    distribution) has one near."""
     package, _, leaf = missing.rpartition(".")
     try:
         where = importlib.import_module(package).__path__ if package else None
     except (ImportError, AttributeError):      # (no package there: nothing beside it)
         return ""
-    close = difflib.get_close_matches(leaf, [m.name for m in pkgutil.iter_modules(where)],
-                                      n=1)
+    names = {m.name for m in pkgutil.iter_modules(where)}
+    if where is None:       # an editable install's packages are on no directory of the path
+        names.update(importlib.metadata.packages_distributions())
+    close = difflib.get_close_matches(leaf, sorted(names), n=1)
     return f" (did you mean {'.'.join(filter(None, (package, close[0])))!r}?)" if close else ""
 
 
