@@ -8,7 +8,9 @@ the plan to the runtime.
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -72,7 +74,7 @@ class System:
         if name in self._spec.nodes:
             raise ValueError(f"system {self.name!r} already has a node {name!r}")
         self._spec.nodes[name] = NodeSpec(name, address, workers, cpus=cpus, advertise=advertise,
-                                          spares=spares)
+                                          spares=spares, written_at=_written_here())
         return self
 
     def add(self, name: str, cls: type | str, *, node: str | None = None,
@@ -86,12 +88,13 @@ class System:
                              "choose another instance name")
         self._spec.modules[name] = ModuleSpec(name, cls=cls, node=node, period=period,
                                              state=dict(state or {}), restart=restart,
-                                             group=group, fallback=fallback)
+                                             group=group, fallback=fallback,
+                                             written_at=_written_here())
         return self
 
     def link(self, src: str, dst: str, *, policy: str | None = None) -> System:
         """Link output ``src`` (``"module.port"``) to input ``dst``; ``policy`` overrides."""
-        self._spec.links.append(LinkSpec(src, dst, policy))
+        self._spec.links.append(LinkSpec(src, dst, policy, written_at=_written_here()))
         return self
 
     def check(self) -> list[str]:
@@ -123,3 +126,14 @@ class System:
     def __repr__(self) -> str:
         return (f"System({self.name!r}, {len(self._spec.modules)} modules, "
                 f"{len(self._spec.links)} links)")
+
+
+def _written_here() -> str:
+    """Where the program called the builder (``wiring.py:14``, from the current directory
+    if the file is below it): the problems ``check()`` and ``launch()`` find in an entry
+    name it, as they name a file's entry."""
+    caller = sys._getframe(2)
+    path = Path(caller.f_code.co_filename)
+    with contextlib.suppress(ValueError):           # (not below it: the path as it is)
+        path = path.relative_to(Path.cwd())
+    return f"{path}:{caller.f_lineno}"

@@ -977,12 +977,40 @@ def test_bad_instance_names_and_class_macro_choice(tmp_path: Path) -> None:
          "got {'x': 1}")
 
 
+def _line() -> int:
+    """The line of the caller's statement (what a problem of an entry it wrote names)."""
+    return sys._getframe(1).f_lineno
+
+
+def test_a_problem_of_an_entry_a_program_wrote_names_its_file_and_line() -> None:
+    """A system built in Python named its wrong entries as a file's (``system 'x'
+    [[links]] #7 (...)``): with dozens of links, which call was it? The program's file
+    and line lead each problem, as a compiler's do; the ``timeout`` of the system, which
+    no entry holds, is named as before."""
+    system = System("placed", timeout=-1)
+    node_at = _line() + 1
+    system.node("a", workers=-1)
+    system.add("tick", Ticker, node="a")
+    system.add("scale", Scale, period=0)
+    system.link("tick.outt", "scale.x")
+    tick_at, scale_at, link_at = node_at + 1, node_at + 2, node_at + 3
+    problems = system.check()
+    for at, label in ((node_at, "[nodes.a]: "), (tick_at, None),
+                      (scale_at, "[modules.scale]: "), (link_at, "[[links]] #1 (tick.outt")):
+        if label is not None:
+            assert any(p.startswith(f"tests/test_config.py:{at}: system 'placed' {label}")
+                       for p in problems), (at, label, problems)
+    assert not any(f":{tick_at}: " in p for p in problems), problems   # (nothing wrong)
+    assert any(p.startswith("system 'placed': ") and "timeout" in p for p in problems), \
+        problems
+
+
 def test_a_name_with_an_accent_is_refused_for_asking_ascii() -> None:
     """'ó' is a letter: "use only letters" refused 'módulo' without saying why."""
-    problems = System("accents").add("módulo", Ticker).check()
-    assert problems == [("system 'accents' [modules.\"módulo\"]: bad module instance name "
-                         "'módulo': use only ASCII letters, digits, '_' and '-' (no accents, "
-                         "'.', '/' or spaces)")]
+    problems, line = System("accents").add("módulo", Ticker).check(), _line()
+    assert problems == [(f"tests/test_config.py:{line}: system 'accents' [modules.\"módulo\"]: bad "
+                         "module instance name 'módulo': use only ASCII letters, digits, '_' "
+                         "and '-' (no accents, '.', '/' or spaces)")]
 
 
 def test_bad_workers_and_node_values(tmp_path: Path) -> None:
@@ -1322,11 +1350,12 @@ class TakesDefaults(Ticker):
 def test_a_class_that_cannot_be_made_with_no_arguments_is_refused_by_the_check() -> None:
     """Every module is made with none: its launch failed in the worker, naming only the
     worker ("worker 'local-p0': TypeError: ... missing 1 required positional argument")."""
-    system = System("made").add("needs", NeedsGain).add("takes", TakesDefaults)
+    system, line = System("made").add("needs", NeedsGain).add("takes", TakesDefaults), _line()
     assert system.check() == [
-        f"system 'made' [modules.needs]: {__name__}:NeedsGain cannot be made with no "
-        "arguments, as every module is: its __init__ needs gain, limit; give them a default, "
-        "or make them state (a class attribute, which the entry's state sets)"]
+        f"tests/test_config.py:{line}: system 'made' [modules.needs]: {__name__}:NeedsGain "
+        "cannot be made with no arguments, as every module is: its __init__ needs gain, "
+        "limit; give them a default, or make them state (a class attribute, which the "
+        "entry's state sets)"]
 
 
 def test_a_description_from_tables_adds_no_directory_to_the_import_path() -> None:

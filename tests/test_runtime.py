@@ -14,6 +14,7 @@ import os
 import pickle
 import re
 import signal
+import sys
 import threading
 import time
 import types
@@ -475,15 +476,16 @@ def test_a_class_s_own_period_and_restart_are_checked_too() -> None:
     or ``-1`` passed, and its step thread died after one step (or waited for good),
     the module shown running with no error; ``restart = "always"`` passed too."""
     system = System("class-values").add("text", TextPeriod).add("negative", NegativePeriod)
-    problems = system.check()
+    problems, at = system.check(), f"tests/test_runtime.py:{sys._getframe().f_lineno - 1}"
     text, negative = f"{__name__}:TextPeriod", f"{__name__}:NegativePeriod"
     assert problems == [
-        f"system 'class-values' [modules.text]: {text} has period = '0.01': a class's "
+        f"{at}: system 'class-values' [modules.text]: {text} has period = '0.01': a class's "
         "period is None (no steps, only on_input) or a number of seconds from 0 to 1e+07",
-        f"system 'class-values' [modules.negative]: {negative} has period = -1: a class's "
-        "period is None (no steps, only on_input) or a number of seconds from 0 to 1e+07",
-        f"system 'class-values' [modules.negative]: {negative} has restart = 'always': a "
-        "class's restart is one of 'never', 'fresh', 'last-state'"], problems
+        f"{at}: system 'class-values' [modules.negative]: {negative} has period = -1: a "
+        "class's period is None (no steps, only on_input) or a number of seconds from 0 to "
+        "1e+07",
+        f"{at}: system 'class-values' [modules.negative]: {negative} has restart = 'always': "
+        "a class's restart is one of 'never', 'fresh', 'last-state'"], problems
     ticking = System("swap-to-bad").add("tick", Counter, period=0.01)
     with ticking.launch() as run:
         with pytest.raises(ConfigError, match=r"swap tick: .*TextPeriod has period = '0\.01'"):
@@ -512,8 +514,9 @@ def test_a_period_for_a_class_with_no_step_is_refused_and_none_is_stepped() -> N
     refused = System("needless").add("src", Counter, period=0.01).add(
         "scale", "examples.pipeline:Scale", period=0).link("src.out", "scale.x")
     assert refused.check() == [
-        "system 'needless' [modules.scale]: period = 0 is given, but examples.pipeline:Scale "
-        "has no step() for it to call: leave period out, and it runs on_input as values come"]
+        f"tests/test_runtime.py:{sys._getframe().f_lineno - 3}: system 'needless' "
+        "[modules.scale]: period = 0 is given, but examples.pipeline:Scale has no step() for "
+        "it to call: leave period out, and it runs on_input as values come"]
     system = System("no-steps").add("src", Counter, period=0.002).add("ear", EventsOnly)
     system.link("src.out", "ear.x")
     with system.launch() as run:

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from pb3a.config import checks
-from pb3a.config.definitions import Child, Definition, toml_key
+from pb3a.config.definitions import Child, Definition, toml_key, written
 from pb3a.config.description import LinkSpec, ModuleSpec, NodeSpec, SystemSpec
 from pb3a.config.exports import LinkResolver
 from pb3a.config.plan import DEFAULT_NODE, FlatLink, FlatModule, Plan
@@ -179,7 +179,7 @@ class _Planner:
         self.report(origin, [f"top-level {p}" for p in checks.workers(spec.workers)])
         self.report(origin, checks.timeout(spec.timeout))
         for name, node in spec.nodes.items():
-            label = f"{origin} [nodes.{toml_key(name)}]"
+            label = written(f"{origin} [nodes.{toml_key(name)}]", node.written_at)
             self.report(label, checks.name(name, "node"))
             self.report(label, checks.unknown_keys(node.extra, NodeSpec.KEYS))
             self.report(label, checks.node_address(node.address))
@@ -276,7 +276,7 @@ class _Planner:
         return self.define(definition)
 
     def child(self, definition: Definition, name: str, entry: ModuleSpec) -> Child:
-        child = Child(entry, definition.label("modules", name))
+        child = Child(entry, written(definition.label("modules", name), entry.written_at))
         problems = checks.name(name, "module instance")
         problems += checks.unknown_keys(entry.extra, ModuleSpec.KEYS)
         if entry.node is not None and entry.node not in self.node_names:

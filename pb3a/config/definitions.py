@@ -65,6 +65,13 @@ class Definition:
         return f"{self.origin} [{self.prefix}{table}.{toml_key(key)}]"
 
 
+def written(label: str, at: str | None) -> str:
+    """``label`` led by the file and line of the program that wrote the entry, if a
+    program built it (``wiring.py:14: system 'demo' [[links]] #1 ...``), the way a
+    compiler names a place an editor can open."""
+    return label if at is None else f"{at}: {label}"
+
+
 def toml_key(key: object) -> str:
     """``key`` as written in a TOML table header: bare when it can be, else quoted."""
     text = str(key)

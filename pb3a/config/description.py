@@ -34,6 +34,8 @@ class NodeSpec:
     cpus: list[int] | None = None     # CPUs the node's workers may run on (None: any)
     advertise: str | None = None      # the host other nodes reach this one at (None: found)
     spares: int = DEFAULT_SPARES      # booted idle workers kept for modules that arrive
+    written_at: str | None = field(default=None, compare=False)   # "file.py:14": the
+                                      # System call that made it, for messages
 
     KEYS: ClassVar[tuple[str, ...]] = ("address", "workers", "cpus", "advertise", "spares")
 
@@ -52,6 +54,8 @@ class ModuleSpec:
     group: str | None = None
     fallback: Any = None            # nodes to restart it on, in order, if its node is lost
     extra: dict[str, Any] = field(default_factory=dict)
+    written_at: str | None = field(default=None, compare=False)   # "file.py:14": the
+                                      # System call that made it, for messages
 
     KEYS: ClassVar[tuple[str, ...]] = ("class", "macro", "node", "period", "state",
                                        "restart", "group", "fallback")
@@ -77,6 +81,8 @@ class LinkSpec:
     dst: Any
     policy: Any = None              # None: the input's declared policy
     extra: dict[str, Any] = field(default_factory=dict)
+    written_at: str | None = field(default=None, compare=False)   # "file.py:14": the
+                                      # System call that made it, for messages
 
     KEYS: ClassVar[tuple[str, ...]] = ("from", "to", "policy")
 

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 from pb3a.config import checks
-from pb3a.config.definitions import PortRef
+from pb3a.config.definitions import PortRef, written
 from pb3a.config.description import LinkSpec
 from pb3a.loading.references import class_ref
 from pb3a.model.environment import PREFIX as ENV_PREFIX
@@ -141,8 +141,8 @@ class LinkResolver:
     def links(self, definition: Definition) -> None:
         """Check every link of ``definition``; the valid ones go to ``definition.resolved``."""
         for number, link in enumerate(definition.links, 1):
-            label = (f"{definition.origin} [[{definition.prefix}links]] #{number} "
-                     f"({link.title})")
+            label = written(f"{definition.origin} [[{definition.prefix}links]] #{number} "
+                            f"({link.title})", link.written_at)
             problems = checks.unknown_keys(link.extra, LinkSpec.KEYS)
             src, found = self.endpoint(definition, link.src, "'from'")
             problems += found
