@@ -370,6 +370,8 @@ class Daemon:
     """``pb3a node start`` in a process of its own, so that it can be killed and started
     again at the same address."""
 
+    program: tuple[str, ...] = ("-m", "pb3a")     # (what a subclass runs in its place)
+
     def __init__(self, name: str, path: tuple[str, ...] = (), *, ready: bool = True) -> None:
         self.name, self.address = name, f"tcp://127.0.0.1:{unused_port()}"
         self.path = path            # more directories on its import path (a robot's own)
@@ -401,7 +403,7 @@ class Daemon:
         if key is not None:
             env["PB3A_KEY"] = key
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "pb3a", "node", "start", "--name", self.name,
+            [sys.executable, *self.program, "node", "start", "--name", self.name,
              "--listen", self.address, "--max-cpu", "101"],
             stdout=subprocess.PIPE, text=True, env=env)
         if ready:

@@ -1362,3 +1362,128 @@ def test_modules_frozen_on_remote_nodes_leave_the_others_their_share_of_the_clos
     assert run.unconfirmed == []
     assert controllers["b"].executors() == {} and controllers["c"].executors() == {}
 
+
+_HOLDS_ITS_STARTS = """
+import sys
+import threading
+
+from pb3a.cli.main import main
+from pb3a.daemons.node_controller import NodeController
+
+
+def held(self, *args, **kwargs):
+    print("starting an executor", flush=True)
+    threading.Event().wait(30)
+    raise RuntimeError("held")
+
+
+NodeController.start_executor = held
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+class HoldsItsStarts(Daemon):
+    """A node controller that, asked to start an executor, says so on its output
+    ("starting an executor") and holds the start there, as one whose executor is slow to
+    come up."""
+
+    program = ("-c", _HOLDS_ITS_STARTS)
+
+
+def test_a_controller_killed_as_it_starts_the_executor_is_named_as_gone() -> None:
+    """A node controller killed while it started a launch's executor left the start
+    waiting out the launch's timeout, which then said the executor was slow and to give
+    the system a longer timeout. The launch fails about a second after the controller
+    went, saying it went during the start and how to start it again."""
+    daemon = HoldsItsStarts("b")
+    killed = threading.Event()
+
+    def kill_as_it_starts() -> None:
+        if daemon.process.stdout.readline().strip() == "starting an executor":
+            daemon.process.kill()
+            killed.set()
+    killer = threading.Thread(target=kill_as_it_starts, daemon=True)
+    killer.start()
+    system = System("controller-gone", timeout=10).node("a").node("b", address=daemon.address)
+    system.add("at_b", Collector, node="b")
+    try:
+        began = time.monotonic()
+        with pytest.raises(PB3AError) as raised:
+            system.launch()
+        took = time.monotonic() - began
+    finally:
+        daemon.stop()
+        killer.join(10)
+    assert killed.is_set()
+    said = str(raised.value)
+    start = f"pb3a node start --name b --listen {daemon.address}"
+    assert isinstance(raised.value, RuntimeFailure), said
+    assert said.startswith(f"node b at {daemon.address} did not start an executor for "
+                           f"'controller-gone': its node controller went away during the "
+                           "start"), said
+    assert f"once it runs again ({start}), launch again" in said, said
+    assert "advertise" not in said and "longer timeout" not in said, said
+    assert took < 5.0, took                     # (the connection closed, 1 s unanswered)
+
+
+def test_a_controller_killed_once_it_started_the_executor_is_named_as_gone(
+        monkeypatch) -> None:
+    """A node controller killed once it had answered with its executor's address (which
+    ended with it, before the launch reached it) was taken for a controller whose
+    executor answers where the launcher cannot reach it: "make [nodes.b] advertise an
+    address of that machine ...". The launch says the controller went away during the
+    start, and how to start it again."""
+    daemon = Daemon("b")
+
+    class KillingTheController(ControlClient):
+        """As the launch reaches for the executor it was told of, the controller is
+        killed, and its executor has ended with it."""
+
+        def __init__(self, key: ClusterKey, address: str, **kwargs) -> None:
+            if address != daemon.address and daemon.process.poll() is None:
+                executor = psutil.Process(daemon.executor_pid())
+                daemon.process.kill()
+                executor.wait(10)
+            super().__init__(key, address, **kwargs)
+    monkeypatch.setattr(remote, "ControlClient", KillingTheController)
+    system = System("controller-gone-after").node("a").node("b", address=daemon.address)
+    system.add("at_b", Collector, node="b")
+    try:
+        with pytest.raises(PB3AError) as raised:
+            system.launch()
+    finally:
+        daemon.stop()
+    said = str(raised.value)
+    start = f"pb3a node start --name b --listen {daemon.address}"
+    assert daemon.process.returncode == -signal.SIGKILL
+    assert isinstance(raised.value, RuntimeFailure), said
+    assert said.startswith(f"node b: its node controller at {daemon.address} went away "
+                           "during the start"), said
+    assert f"once it runs again ({start}), launch again" in said, said
+    assert "advertise" not in said, said
+
+
+def test_an_executor_not_reached_while_its_controller_answers_is_said_to_need_advertise(
+        monkeypatch) -> None:
+    """The advertise hint stays for what it is about: a controller that answers and
+    started an executor the launch does not reach (here every ping of the executor goes
+    unanswered). Its executor is stopped again."""
+    daemon = Daemon("b")
+
+    class NotReachingTheExecutor(ControlClient):
+        def ping(self, timeout: float, op: str = "ping") -> float | None:
+            return super().ping(timeout, op) if self.address == daemon.address else None
+    monkeypatch.setattr(remote, "ControlClient", NotReachingTheExecutor)
+    system = System("unreached").node("a").node("b", address=daemon.address)
+    system.add("at_b", Collector, node="b")
+    try:
+        with pytest.raises(RuntimeFailure) as raised:
+            system.launch()
+        eventually(lambda: not [child for child in psutil.Process(daemon.process.pid).children()
+                                if "resource_tracker" not in " ".join(child.cmdline())],
+                   timeout=10, what="the executor stopped")
+    finally:
+        daemon.stop()
+    said = str(raised.value)
+    assert said.startswith("node b: its executor did not answer within 5 s at "), said
+    assert "make [nodes.b] advertise an address of that machine" in said, said

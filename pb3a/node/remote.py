@@ -16,6 +16,7 @@ before its modules are started anywhere else.
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import threading
 import time
@@ -77,6 +78,18 @@ STOP_LOST_AT_LEAST_S = 0.5
 STOP_LOST_S = 1.5
 
 
+def _start_command(node: str, address: str) -> str:
+    """The command that starts node ``node``'s controller at ``address``."""
+    return f"pb3a node start --name {node} --listen {address}"
+
+
+def _gone_during_start(node: str, address: str, reason: str) -> RuntimeFailure:
+    """The error of a start whose node controller went away as it was asked (``reason``:
+    how its connection ended)."""
+    return RuntimeFailure(f"its node controller went away during the start: {reason}; once "
+                          f"it runs again ({_start_command(node, address)}), launch again")
+
+
 def _unanswered(node: str, address: str) -> str:
     """What to do about a node controller that did not answer at ``address``, told by a
     plain TCP connection there: refused (nothing listens on that port there: not
@@ -85,7 +98,7 @@ def _unanswered(node: str, address: str) -> str:
     controller, or one that is frozen). It said "start one there" in all three cases,
     also to someone whose controller ran, on 127.0.0.1 only."""
     host, _, port = address.removeprefix("tcp://").rpartition(":")
-    start = f"pb3a node start --name {node} --listen {address}"
+    start = _start_command(node, address)
     failure = connection_failure(address, PROBE_S)
     if isinstance(failure, ConnectionRefusedError):
         return (f"nothing listens on port {port} at {host} (the connection was refused): "
@@ -140,8 +153,38 @@ class RemoteNode:
             raise RuntimeFailure(f"node {name}: its address {address} names a host that "
                                  f"does not resolve ({unknown}): fix the node's address (a "
                                  "name the launcher's machine resolves, or an IP address)")
+        # The start goes through a connection of its own, watched: a controller that
+        # goes away meanwhile (stopped, killed, its machine shut down) fails the start a
+        # second after, saying so, where it was waited for until the launch's timeout
+        # and said to be slow, or taken for one whose executor cannot be reached
+        starting = ControlClient(key, address, when_gone=functools.partial(
+            _gone_during_start, name, address))
         try:
-            self.controller.call("ping", CONNECT_TIMEOUT)
+            executor = self._start(starting, address, config=config, launcher=launcher,
+                                   workers=workers, cpus=cpus, checkpoint_s=checkpoint_s,
+                                   log_level=log_level, code=code, host=host, epoch=epoch,
+                                   node_epoch=node_epoch, spares=spares)
+        finally:
+            starting.close()
+        self.address = executor
+        # (bind renewed the lease; its answer, ``_heard``, came before this)
+        self._answered = self._heard_at = self._renewed_from = time.monotonic()
+        self._hearts = [threading.Thread(target=self._beat, args=(offset,), daemon=True,
+                                         name=f"pb3a-heartbeat-{name}")
+                        for offset in (HEARTBEAT_S, 2 * HEARTBEAT_S)]
+        for heart in self._hearts:
+            heart.start()
+
+    def _start(self, starting: ControlClient, address: str, *, config: str, launcher: str,
+               workers: int, cpus: list[int] | None, checkpoint_s: float, log_level: int,
+               code: CodeSources | None, host: str, epoch: int, node_epoch: int,
+               spares: int) -> str:
+        """Have the controller at ``address`` (asked through ``starting``) start the
+        executor, reach it and bind it to ``launcher``: its address; ``RuntimeFailure``
+        or ``RuntimeTimeout`` saying why not, with nothing of it left running."""
+        name = self.name
+        try:
+            starting.call("ping", CONNECT_TIMEOUT)
         except RuntimeTimeout:
             self.close()
             raise RuntimeTimeout(f"node {name}: no node controller answered at {address} "
@@ -152,12 +195,11 @@ class RemoteNode:
             raise RuntimeFailure(f"node {name}: {exc}") from None
         started = False
         try:
-            executor, started = self.controller.call("start_executor", START_TIMEOUT,
-                                                     config=config, workers=workers,
-                                                     cpus=cpus, host=host, node=name,
-                                                     python=PYTHON)
+            executor, started = starting.call("start_executor", START_TIMEOUT, config=config,
+                                              workers=workers, cpus=cpus, host=host,
+                                              node=name, python=PYTHON)
             self.executor = executor
-            self.client = ControlClient(key, executor, epoch=epoch)
+            self.client = ControlClient(self._key, executor, epoch=epoch)
             reached = self.client.ping(CONNECT_TIMEOUT) is not None
             if reached:
                 self._heard = self.client.call("bind", launcher=launcher, checkpoint_s=checkpoint_s,
@@ -170,21 +212,24 @@ class RemoteNode:
                 raise
             raise RuntimeFailure(f"node {name} at {address} did not start an executor for "
                                  f"{config!r}: {exc}") from None
-        if not reached:                # its controller answers, but not where it is reached
-            self._let_go(started)
+        if reached:
+            return executor
+        # (an executor ends with its controller: one that went once it had answered
+        # took its executor with it, which is then reached nowhere)
+        gone = starting.ping(PROBE_S) is None
+        self._let_go(started)
+        if gone:
             raise RuntimeFailure(
-                f"node {name}: its executor did not answer within {CONNECT_TIMEOUT:g} s at "
-                f"{executor}, on the host other nodes reach node {name} at ({host}); make "
-                f"[nodes.{name}] advertise an address of that machine which this one and the "
-                "other nodes reach, and open its ports to them")
-        self.address = executor
-        # (bind renewed the lease; its answer, ``_heard``, came before this)
-        self._answered = self._heard_at = self._renewed_from = time.monotonic()
-        self._hearts = [threading.Thread(target=self._beat, args=(offset,), daemon=True,
-                                         name=f"pb3a-heartbeat-{name}")
-                        for offset in (HEARTBEAT_S, 2 * HEARTBEAT_S)]
-        for heart in self._hearts:
-            heart.start()
+                f"node {name}: its node controller at {address} went away during the start "
+                f"(it no longer answers, and the executor it started for {config!r} ended "
+                f"with it); once it runs again ({_start_command(name, address)}), launch "
+                "again")
+        # its controller answers, but the executor is not where it is reached
+        raise RuntimeFailure(
+            f"node {name}: its executor did not answer within {CONNECT_TIMEOUT:g} s at "
+            f"{executor}, on the host other nodes reach node {name} at ({host}); make "
+            f"[nodes.{name}] advertise an address of that machine which this one and the "
+            "other nodes reach, and open its ports to them")
 
     def _let_go(self, started: bool) -> None:
         """A start that failed: kill the executor if this launch started it (not bound, it
