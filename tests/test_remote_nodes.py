@@ -5,7 +5,6 @@ detected within 3 s and reported (env value and event) while the rest goes on.""
 from __future__ import annotations
 
 import gc
-import logging
 import math
 import os
 import re
@@ -1325,42 +1324,6 @@ def test_a_closed_system_with_a_remote_node_leaves_nothing_open_where_it_was_lau
                            t.name for t in set(threading.enumerate()) - threads]))
     finally:
         gc.enable()
-
-
-def test_modules_frozen_on_remote_nodes_leave_the_others_their_share_of_the_close(
-        controllers, tmp_path, caplog) -> None:
-    """Two modules frozen in their ``step`` on nodes b and c stopped first, each held the
-    close until its stop gave up (2 s, the grace its stop is given, then what was left):
-    the module of this machine stopped after them had a moment, and was killed, its
-    teardown unrun. Each stop is waited for its fair share of the close now, the
-    frozen ones going on beside the next: that module's teardown runs, the frozen
-    ones are named, and the close keeps its bound."""
-    caplog.set_level(logging.WARNING)
-    journal = tmp_path / "journal"
-    system = _spanning("frozen-far", controllers)
-    system.add("near", Journal, node="a", state={"path": str(journal), "label": "near",
-                                                 "teardown_s": 0.6})
-    system.add("far_b", Freezer, node="b")
-    system.add("far_c", Freezer, node="c")
-    run = system.launch(timeout=30)
-    try:
-        for name in ("far_b", "far_c"):
-            run.set_state(name, freeze_in="step")
-        eventually(lambda: all(run.stats().modules[name].calling_s > 0.1
-                               for name in ("far_b", "far_c")), what="two frozen steps")
-    finally:
-        began = time.monotonic()
-        run.close(timeout=4)
-        took = time.monotonic() - began
-    assert journal.read_text().splitlines() == ["start near", "stop near"]
-    assert run.not_torn_down == ["far_c", "far_b"]
-    said = [record.getMessage() for record in caplog.records
-            if record.levelno >= logging.WARNING and record.name == "pb3a.launcher"]
-    for name in ("far_b", "far_c"):
-        assert any(f"module {name!r} was not stopped" in line for line in said), said
-    assert took < 4 + remote.STOP_AT_LEAST_S + 0.5, took
-    assert run.unconfirmed == []
-    assert controllers["b"].executors() == {} and controllers["c"].executors() == {}
 
 
 _HOLDS_ITS_STARTS = """

@@ -30,7 +30,6 @@ from pb3a.errors import ModuleNotFound, RuntimeFailure, RuntimeTimeout
 from pb3a.events import EventLog
 from pb3a.latencies import percentile
 from pb3a.launch.configuration_lock import ConfigurationLock, change_to
-from pb3a.launch.module_stops import stop_in_turn
 from pb3a.launch.remote_starts import RemoteStarts, not_started
 from pb3a.loading.references import by_reference, class_ref
 from pb3a.logbook import LogBook
@@ -570,10 +569,9 @@ class Launcher:
         return self.stopping.is_set()
 
     def shutdown(self, timeout: float = 10.0) -> None:
-        """Stop modules in reverse start order (across nodes), each waited for its fair
-        share of the time (``stop_in_turn``), then every node, within about ``timeout``
-        seconds: a change in progress is waited for half of it at most (then the system
-        stops all the same, the change failing as it can)."""
+        """Stop modules in reverse start order (across nodes), then every node, within
+        about ``timeout`` seconds: a change in progress is waited for half of it at
+        most (then the system stops all the same, the change failing as it can)."""
         deadline = time.monotonic() + timeout
         self.stopping.set()
         for thread in self._background:
@@ -588,10 +586,20 @@ class Launcher:
             except RuntimeTimeout as exc:
                 log.warning("%s: stopping it all the same", exc)
             # Without the lock, a change may remove a module or a node meanwhile: each is
-            # stopped on its own, and nothing that fails keeps the rest from stopping;
-            # one that does not stop takes no more than its share of the time
-            self.not_torn_down += stop_in_turn(list(self.specs)[::-1], self._stop_module,
-                                               deadline)
+            # stopped on its own, and nothing that fails keeps the rest from stopping.
+            for name in reversed(list(self.specs)):
+                node = self.specs[name].node if name in self.specs else None
+                if node in self.remotes and self.silent(node):
+                    self.remotes[node].lose()         # it went meanwhile: no waiting
+                try:
+                    # its request waits no longer than the deadline (a frozen worker's
+                    # stop would have waited 1 s past it, as its grace ran out)
+                    with bounding(deadline - time.monotonic()):
+                        self.node_of(name).stop_module(name, 2.0)
+                except Exception as exc:
+                    # (a module stuck in on_input was killed at close, unsaid)
+                    self.not_torn_down.append(name)
+                    log.warning("module %r was not stopped (its worker is killed): %s", name, exc)
             # (the watchdog has stopped: a node silent meanwhile as long as it takes to
             # declare one lost is not waited for as one that answers)
             for gone in [node for node in self.remotes.values() if node.silent_s() > LOSS_S]:
@@ -615,13 +623,6 @@ class Launcher:
         logging.getLogger().removeHandler(self.logbook)
         self.events.end()            # (a follower waiting for more is told there is none)
         self.logbook.end()
-
-    def _stop_module(self, name: str) -> None:
-        """Stop module ``name`` as the system shuts down (its teardown given 2 s)."""
-        node = self.specs[name].node if name in self.specs else None
-        if node in self.remotes and self.silent(node):
-            self.remotes[node].lose()         # it went meanwhile: no waiting
-        self.node_of(name).stop_module(name, 2.0)
 
     @staticmethod
     def _shut_node(name: str, node: Node, deadline: float, at_least: float) -> None:
