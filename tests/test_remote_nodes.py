@@ -1426,16 +1426,20 @@ def test_a_controller_killed_once_it_started_the_executor_is_named_as_gone(
     assert "advertise" not in said, said
 
 
+@pytest.mark.parametrize("controller", ["answering", "slow"])
 def test_an_executor_not_reached_while_its_controller_answers_is_said_to_need_advertise(
-        monkeypatch) -> None:
+        monkeypatch, controller) -> None:
     """The advertise hint stays for what it is about: a controller that answers and
     started an executor the launch does not reach (here every ping of the executor goes
-    unanswered). Its executor is stopped again."""
+    unanswered). Its executor is stopped again. A controller slow to answer (a starved
+    CPU; here its pings go unanswered too) is not taken for gone: a ping of it told
+    that, and a slow one was said to have gone away with its executor."""
     daemon = Daemon("b")
 
     class NotReachingTheExecutor(ControlClient):
         def ping(self, timeout: float, op: str = "ping") -> float | None:
-            return super().ping(timeout, op) if self.address == daemon.address else None
+            answers = self.address == daemon.address and controller == "answering"
+            return super().ping(timeout, op) if answers else None
     monkeypatch.setattr(remote, "ControlClient", NotReachingTheExecutor)
     system = System("unreached").node("a").node("b", address=daemon.address)
     system.add("at_b", Collector, node="b")

@@ -29,7 +29,7 @@ from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
 from pb3a.transport.addresses import connection_failure, host_of, unresolved
 from pb3a.transport.auth import ClusterKey
-from pb3a.transport.control import ControlClient
+from pb3a.transport.control import GONE_S, ControlClient
 from pb3a.transport.pickling import PYTHON
 from pb3a.worker.lease import GONE_BY_S
 
@@ -215,8 +215,10 @@ class RemoteNode:
         if reached:
             return executor
         # (an executor ends with its controller: one that went once it had answered
-        # took its executor with it, which is then reached nowhere)
-        gone = starting.ping(PROBE_S) is None
+        # took its executor with it, which is then reached nowhere). Told by its watched
+        # connection, not by a ping that a controller slow to answer (a starved CPU)
+        # also leaves unanswered, and which then called it gone with its executor
+        gone = starting.gone.wait(GONE_S + PROBE_S)
         self._let_go(started)
         if gone:
             raise RuntimeFailure(
