@@ -134,6 +134,7 @@ def _written_here() -> str:
     name it, as they name a file's entry."""
     caller = sys._getframe(2)
     path = Path(caller.f_code.co_filename)
-    with contextlib.suppress(ValueError):           # (not below it: the path as it is)
+    # (not below it, or the current directory removed: the path as it is)
+    with contextlib.suppress(ValueError, OSError):
         path = path.relative_to(Path.cwd())
     return f"{path}:{caller.f_lineno}"

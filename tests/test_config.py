@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import subprocess
@@ -165,6 +166,32 @@ def test_a_misspelt_installed_package_gets_a_did_you_mean_from_anywhere(
          "resolve_class('agentz.monitor:Monitor')"],
         cwd=tmp_path, capture_output=True, text=True, timeout=60)
     assert "No module named 'agentz' (did you mean 'agents'?)" in done.stderr, done.stderr
+    # a distribution whose metadata is not UTF-8 (an old sdist's) takes the suggestion
+    # away, not the error it is for (its UnicodeDecodeError was said instead)
+    latin = tmp_path / "site" / "latin-1.0.dist-info"
+    latin.mkdir(parents=True)
+    (latin / "METADATA").write_bytes(b"Metadata-Version: 2.1\nName: latin\nVersion: 1.0\n"
+                                     b"Author: Jos\xe9\n")
+    (latin / "RECORD").write_bytes(b"latin/__init__.py,,\nJos\xe9.py,,\n")
+    done = subprocess.run(
+        [sys.executable, "-c", "from pb3a.loading.references import resolve_class\n"
+         "resolve_class('agentz.monitor:Monitor')"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=60,
+        env={**os.environ, "PYTHONPATH": str(tmp_path / "site")})
+    assert "ImportError: cannot import module 'agentz.monitor' for 'agentz.monitor:Monitor'" \
+        in done.stderr, done.stderr
+
+
+def test_a_system_is_built_where_the_current_directory_was_removed(
+        tmp_path: Path, monkeypatch) -> None:
+    """The place an entry was written at is named from the current directory; with that
+    directory removed, every ``add`` raised FileNotFoundError."""
+    gone = tmp_path / "gone"
+    gone.mkdir()
+    monkeypatch.chdir(gone)
+    gone.rmdir()
+    problems = System("homeless").add("tick", Ticker, period=-1).check()
+    assert len(problems) == 1 and problems[0].startswith(f"{__file__}:"), problems
 
 
 def test_resolve_class_errors_say_what_to_change() -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import difflib
+import functools
 import importlib
 import importlib.metadata
 import os
@@ -220,9 +221,20 @@ def _nearest_module(missing: str) -> str:
         return ""
     names = {m.name for m in pkgutil.iter_modules(where)}
     if where is None:       # an editable install's packages are on no directory of the path
-        names.update(importlib.metadata.packages_distributions())
+        names.update(_installed_packages())
     close = difflib.get_close_matches(leaf, sorted(names), n=1)
     return f" (did you mean {'.'.join(filter(None, (package, close[0])))!r}?)" if close else ""
+
+
+@functools.cache
+def _installed_packages() -> frozenset[str]:
+    """The top-level packages of the installed distributions, read once (a large
+    environment takes a second); none if one of them cannot be read (a distribution's
+    metadata not in UTF-8 failed the suggestion and hid the error it was for)."""
+    try:
+        return frozenset(importlib.metadata.packages_distributions())
+    except Exception:
+        return frozenset()
 
 
 def _suggest(namespace: object, name: str) -> str:
