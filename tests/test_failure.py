@@ -53,6 +53,7 @@ from sample_modules import (
     StepStamps,
 )
 
+import examples.pipeline
 from pb3a import (
     ConfigError,
     Input,
@@ -1231,12 +1232,14 @@ def test_a_worker_killed_while_its_forkserver_is_frozen_is_seen_dead(monkeypatch
         eventually(lambda: run.state("victim")["pid"] not in (0, pid), what="victim again")
 
 
-def _import_in_a_new_process(tmp_path: Path, module: str, source: str,
+def _import_in_a_new_process(tmp_path: Path, module: str, source: str | None,
                              env: dict[str, str] | None = None) -> tuple[int, str, float]:
-    """Write ``module``, import it in a new interpreter (a forkserver of its own) and
-    return its exit code, stderr and time taken; every process whose command line names
-    the module (a forkserver preloading it) is killed after, whatever happened."""
-    (tmp_path / f"{module}.py").write_text(textwrap.dedent(source))
+    """Write ``module`` (unless ``source`` is None: it is written already), import it in a
+    new interpreter (a forkserver of its own) and return its exit code, stderr and time
+    taken; every process whose command line names the module (a forkserver preloading
+    it) is killed after, whatever happened."""
+    if source is not None:
+        (tmp_path / f"{module}.py").write_text(textwrap.dedent(source))
     environment = {**os.environ, **(env or {}),
                    "PYTHONPATH": os.pathsep.join([str(tmp_path), *sys.path])}
     began = time.monotonic()
@@ -1341,12 +1344,45 @@ def test_a_file_that_launches_a_system_when_imported_fails_naming_it(tmp_path: P
         """)
     assert code == 1, stderr
     assert f"{module}.py launches system 'launched-at-import' when it is imported " \
-           "(line 13), and defines its module class Counter, which the workers import " \
-           "it to load" in stderr
+           "(line 13), and the workers import it to load module class Counter" in stderr
     assert 'under `if __name__ == "__main__":`' in stderr
     assert stderr.count("Traceback") == 1 and "forkserver" not in stderr \
         and "worker '" not in stderr, stderr
     assert took < 30
+
+
+def test_a_package_that_launches_as_imported_and_a_console_in_a_class_module_are_told_apart(
+        tmp_path: Path) -> None:
+    """A launch is refused when the file that makes it is being imported and the workers
+    would import it again: the package above the classes' module too (its
+    ``__init__`` ran again in every worker, the forkserver's and the worker's tracebacks
+    said it at length). Code run in a class module's namespace once it is imported (a
+    doctest, a console, pdb), whose frame looks the same, launches as before."""
+    package = tmp_path / f"plugin_{os.getpid()}"
+    package.mkdir()
+    (package / "modules.py").write_text(textwrap.dedent("""
+        from pb3a import Module
+
+        class Beat(Module):
+            period = 0.05
+        """))
+    (package / "__init__.py").write_text(textwrap.dedent(f"""
+        from pb3a import System
+        from {package.name}.modules import Beat
+
+        with System("plugin").add("beat", Beat).launch(timeout=10) as run:
+            run.wait(0.1)
+        """))
+    code, stderr, took = _import_in_a_new_process(tmp_path, package.name, None)
+    assert code == 1 and f"{package.name}/__init__.py launches system 'plugin' when it is " \
+        "imported (line 5), and the workers import it to load module class Beat" in stderr, \
+        stderr
+    assert stderr.count("Traceback") == 1 and took < 30, stderr
+    console = compile("with System('console').add('tick', Ticker, period=0.05).launch("
+                      "timeout=10) as run:\n    ran = run.state('tick')\n", "<console>", "exec")
+    namespace = {**vars(examples.pipeline), "System": System}
+    exec(console, namespace)
+    assert "count" in namespace["ran"], namespace["ran"]
 
 
 def test_a_class_file_that_raises_only_in_the_forkserver_fails_its_module_naming_it(

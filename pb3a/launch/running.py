@@ -82,23 +82,40 @@ def _refuse_inside_own_process(name: str) -> None:
 
 def _refuse_in_an_imported_class_file(plan: Plan) -> None:
     """Refuse, before any process starts, a launch made as a file is imported (not run)
-    whose module classes the plan holds: workers import that file to load them, which
-    would launch the system again, and each was refused there at length (the forkserver's
-    traceback, then the worker's, through the launcher's frames)."""
-    frame = _importing_frame(sys._getframe(1))
-    if frame is None:
-        return
-    imported = frame.f_globals.get("__name__")
-    classes = sorted({module.cls.__qualname__ for module in plan.modules.values()
-                      if module.cls.__module__ == imported})
-    if imported == "__main__" or not classes:
-        return
-    raise ConfigError([
-        f"{frame.f_code.co_filename} launches system {plan.name!r} when it is imported "
-        f"(line {frame.f_lineno}), and defines its module class{'es' * (len(classes) > 1)} "
-        f"{', '.join(classes)}, which the workers import it to load: each such import "
-        "would launch the system again. Launch it under "
-        '`if __name__ == "__main__":`, or from a file other than the classes\''])
+    that holds the plan's module classes or is the package of their module: workers
+    import that file to load them, which would launch the system again, and each was
+    refused there at length (the forkserver's traceback, then the worker's, through the
+    launcher's frames)."""
+    importing: dict[str, set[str]] = {}         # file being imported -> classes it holds
+    for module in plan.modules.values():
+        home = _mid_import(module.cls.__module__)
+        if home is not None:
+            importing.setdefault(home, set()).add(module.cls.__qualname__)
+    frame = sys._getframe(1)
+    while frame is not None:                    # (its import is in this thread's stack)
+        if frame.f_code.co_name == "<module>" and frame.f_globals.get("__name__") in importing:
+            classes = sorted(importing[frame.f_globals["__name__"]])
+            raise ConfigError([
+                f"{frame.f_code.co_filename} launches system {plan.name!r} when it is "
+                f"imported (line {frame.f_lineno}), and the workers import it to load "
+                f"module class{'es' * (len(classes) > 1)} {', '.join(classes)}: each such "
+                "import would launch the system again. Launch it under "
+                '`if __name__ == "__main__":`, or from a file other than the classes\''])
+        frame = frame.f_back
+
+
+def _mid_import(name: str) -> str | None:
+    """The module ``name`` or the package above it that is being imported now, if one
+    is (``__main__``, a script run, is not: its classes travel by value). (``_initializing``
+    is importlib's own mark, set while a module's code runs: the frame alone does not
+    tell an import from code run in a module's namespace, a doctest or a console.)"""
+    parts = name.split(".")
+    for end in range(1, len(parts) + 1):
+        prefix = ".".join(parts[:end])
+        spec = getattr(sys.modules.get(prefix), "__spec__", None)
+        if prefix != "__main__" and getattr(spec, "_initializing", False):
+            return prefix
+    return None
 
 
 def _importing_frame(frame: Any) -> Any:
