@@ -98,7 +98,8 @@ class FeatureTracker:
     acceleration limits ARIA sets, as RAVE's emulator has them. Speeds are measured
     over the time between two samples by the robot's ``clock`` when given (a driver on
     a loaded machine reads late now and then, and a sample 0.2 s after the last read as
-    0.1 s doubles the speed), else over the nominal ``sample_s``."""
+    0.1 s doubles the speed), else over the nominal ``sample_s``. A reading at the last
+    one's instant is no sample (``repeats``): no time passed to measure motion over."""
 
     def __init__(self, sample_s: float = 0.1, lag_s: float = MOTOR_LAG_S, accel: float = ACCEL,
                  angular_accel: float = ANGULAR_ACCEL, motor_window: int = 5,
@@ -147,6 +148,8 @@ class FeatureTracker:
         last sample; the other three are read now, at the robot's time ``clock``."""
         features = np.full(len(FEATURES), np.nan)
         informative = np.zeros(len(GROUPS), dtype=bool)
+        if self.repeats(clock):
+            return features, informative
         dt = self.sample_s
         if clock is not None:
             if clock - self.last_clock > 0.0:        # (NaN before the first sample)
@@ -193,6 +196,16 @@ class FeatureTracker:
         features[_SWEEPS] = self.quiet[1] - self.quiet[0]
         informative[SONAR] = True
         return features, informative
+
+    def repeats(self, clock: float | None) -> bool:
+        """Whether a reading at the robot's time ``clock`` is at the last sample's instant:
+        the same readings again, which ``update`` leaves out, changing nothing (a world
+        server on a loaded machine that did not step between two of a driver's readings
+        answers both at one instant; taken over the nominal ``sample_s``, the second made
+        a robot driving at 0.4 m/s seem to stand for 0.1 s, and its residual stayed in
+        the motors' 5-sample mean for five windows: a false motors alarm, v residual
+        -0.08 m/s)."""
+        return clock is not None and clock == self.last_clock
 
     def _settle(self, command: np.ndarray, elapsed: float, measured: np.ndarray) -> None:
         """Take up the speed the robot has now, from the mean speed it was ``measured``
@@ -386,7 +399,10 @@ class FaultMonitor:
     def update(self, command: np.ndarray, odometry: np.ndarray, sonar: np.ndarray,
                pose: np.ndarray, clock: float | None = None) -> list[dict[str, Any]]:
         """Take one sample (as ``FeatureTracker.update``); the failures that start now,
-        each ``{"fault", "probability", "detail"}``."""
+        each ``{"fault", "probability", "detail"}``. A reading at the last one's instant
+        (``FeatureTracker.repeats``) is no sample: it changes nothing."""
+        if self.tracker.repeats(clock):
+            return []
         return self.observe(*self.tracker.update(command, odometry, sonar, pose, clock))
 
     def observe(self, features: np.ndarray, informative: np.ndarray) -> list[dict[str, Any]]:
@@ -448,7 +464,9 @@ class HardwareMonitor(Module):
     ``watched``, ``trained``). A sample is taken when both a new odometry and a new
     pose have arrived (the driver sends them together, every ``sample_s``), and a new
     ``clock`` too once one has come: link the driver's, so that motion is measured
-    over the robot's time between samples, not the nominal period.
+    over the robot's time between samples, not the nominal period. A reading at the
+    same instant of the robot's time as the last (its world did not step between the
+    two) is no sample: nothing is judged, learnt or written for it.
 
     A pose that jumps between two samples by more than ``jump_m`` or ``jump_rad`` (no
     robot moves or turns that far in a sample, and no two robots' centres are that
@@ -566,6 +584,8 @@ class HardwareMonitor(Module):
                 self._monitor = None
                 self._watch(self._model())
             self.robot_changes += 1
+        if self._tracker.repeats(clock):
+            return               # no time passed: nothing to measure (see the docstring)
         features, informative = self._tracker.update(*sample, clock=clock)
         failures = [] if self._monitor is None else self._monitor.observe(features, informative)
         # what the groups watched already find abnormal is not learnt as normal running
