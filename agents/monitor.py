@@ -464,7 +464,9 @@ class HardwareMonitor(Module):
     ``watched``, ``trained``). A sample is taken when both a new odometry and a new
     pose have arrived (the driver sends them together, every ``sample_s``), and a new
     ``clock`` too once one has come: link the driver's, so that motion is measured
-    over the robot's time between samples, not the nominal period. A reading at the
+    over the robot's time between samples, not the nominal period (written after the
+    reading's odometry, as the driver does: a clock that comes after its reading was
+    sampled is that sample's time, not the next one's). A reading at the
     same instant of the robot's time as the last (its world did not step between the
     two) is no sample: nothing is judged, learnt or written for it.
 
@@ -571,6 +573,14 @@ class HardwareMonitor(Module):
     def on_input(self, port: InputPort) -> None:
         # one sample per odometry-and-pose pair (and clock, once one has come),
         # whichever came last
+        if self.clock.pending and not self.odometry.pending:
+            # the clock of the reading sampled last, come after the sample (the driver
+            # writes it last, and a first reading is sampled as its odometry comes: no
+            # clock is known to come): that sample's time. Left pending, it was taken for
+            # the next reading's, and every later sample was measured over the interval
+            # before its own (a late reading after a timely one: twice the speed)
+            self._tracker.last_clock = self.clock.read()
+            return
         timed = self.clock.has_value
         if not (self.odometry.pending and self.pose.pending and self.sonar.has_value
                 and (self.clock.pending or not timed)):

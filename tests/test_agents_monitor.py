@@ -196,6 +196,30 @@ def test_a_reading_at_the_last_ones_instant_is_no_sample_and_no_fault(
     assert 30.0 < cut[0][0] <= 31.0, cut  # (measured: 0.30 s after the reading it came at)
 
 
+@pytest.mark.parametrize("seed", [2, 3])
+def test_the_module_fed_as_the_driver_writes_measures_each_reading_by_its_own_clock(
+        model: NormalModel, seed: int) -> None:
+    """The driver writes a reading's outputs one by one, its clock last, and the module
+    may take a sample between two of them. Its first reading, sampled as its odometry
+    came (no clock had come, and none might), left that reading's clock pending, taken
+    for the next reading's: every later sample was measured over the interval before
+    its own, and a late reading after a timely one read as the robot speeding up (a
+    false motors alarm, v residual 0.17 m/s, in the rhythm of a loaded machine)."""
+    def fed(readings: Iterator[dict[str, Any]]) -> tuple[ModuleHarness, set[float]]:
+        harness, instants = ModuleHarness(HardwareMonitor, state=model.state()), set()
+        for reading in readings:
+            instants.add(reading["clock"])
+            for port, value in reading.items():
+                harness.feed(port, value)
+        return harness, instants
+
+    harness, instants = fed(loaded(seed, 60.0))
+    assert harness.written["failure"] == []
+    assert len(harness.written["health"]) == len(instants)     # a sample per instant
+    harness, _ = fed(loaded(seed, 40.0, fault_at_s=30.0))
+    assert [failure["fault"] for failure in harness.written["failure"]] == ["motors"]
+
+
 def test_a_command_that_came_late_in_a_long_step_is_not_read_as_a_motor_fault(
         model: NormalModel) -> None:
     """The mapping scenario's hand-off on a loaded machine: the standby robot turns left
