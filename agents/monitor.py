@@ -147,21 +147,28 @@ class FeatureTracker:
                     if isinstance(value, np.ndarray) else value)
 
     def update(self, command: np.ndarray, odometry: np.ndarray, sonar: np.ndarray,
-               pose: np.ndarray, clock: float | None = None,
+               pose: np.ndarray, clock: float | None = None, drove: np.ndarray | None = None,
                ) -> tuple[np.ndarray, np.ndarray]:
         """The features now and, per group, whether they carry information (a feature
         of a group that does not is NaN). ``command`` is what drove the robot since the
-        last sample; the other three are read now, at the robot's time ``clock``."""
+        last sample (their mean, if several); the other three are read now, at the
+        robot's time ``clock``. ``drove``, if given with ``clock``, is the same command
+        by command (a ``RobotDriver``'s ``drove``: rows of the robot's time it took
+        each, v and w), and the response is followed through them one by one."""
         features = np.full(len(FEATURES), np.nan)
         informative = np.zeros(len(GROUPS), dtype=bool)
         if self.repeats(clock):
             return features, informative
-        dt = self.sample_s
+        dt, since = self.sample_s, self.last_clock
         if clock is not None:
-            if clock - self.last_clock > 0.0:        # (NaN before the first sample)
-                dt = clock - self.last_clock
+            if clock - since > 0.0:                  # (NaN before the first sample)
+                dt = clock - since
             self.last_clock = clock
-        expected = self._respond(np.asarray(command, dtype=np.float64), dt)
+        command = np.asarray(command, dtype=np.float64)
+        if drove is not None and clock is not None and clock - since > 0.0:
+            expected = self._respond_through(np.asarray(drove, dtype=np.float64), since, clock)
+        else:
+            expected = self._respond(command, dt)
         if self.samples == 0:
             self.last_odometry[:], self.last_pose[:] = odometry, pose
             self.heading = float(pose[2])
@@ -175,7 +182,7 @@ class FeatureTracker:
             # a tracker started on a robot already moving (another robot handed over)
             # must not read its speed as a response to nothing
             expected = np.array([odometry_distance, odometry_turn]) / dt
-            self._settle(np.asarray(command, dtype=np.float64), dt, expected)
+            self._settle(command, dt, expected)
         self.motions[self.samples % len(self.motions)] = (
             odometry_distance / dt - expected[0],
             odometry_turn / dt - expected[1], *np.abs(expected))
@@ -229,6 +236,23 @@ class FeatureTracker:
             low, high = np.where(fast, low, middle), np.where(fast, middle, high)
         self.expected = (low + high) / 2.0
         self._respond(command, elapsed)
+
+    def _respond_through(self, drove: np.ndarray, since: float, clock: float) -> np.ndarray:
+        """``_respond`` to each of ``drove``'s commands in turn, from the robot's time
+        ``since`` to ``clock``, each for as long as it drove the robot (the first from
+        ``since`` on: a reading missed in between brought no command of its own); the
+        mean expected speed over the whole. Under the acceleration limits the response
+        to the commands' mean is not the mean of their responses: a robot turning at
+        1 rad/s, told late in a long step to turn the other way, was still turning that
+        way at its next reading, and a response to the mean had it slow from the start:
+        0.2 rad/s of residual for as long as the limits took to reverse the turn."""
+        starts = np.maximum.accumulate(np.clip(drove[:, 0], since, clock))
+        starts[0] = since
+        total = np.zeros(2)
+        for command, lasted in zip(drove[:, 1:], np.diff([*starts, clock]), strict=True):
+            if lasted > 0.0:
+                total += self._respond(command, lasted) * lasted
+        return total / (clock - since)
 
     def _respond(self, command: np.ndarray, elapsed: float) -> np.ndarray:
         """Advance the expected speed under ``command`` by ``elapsed`` seconds (in ten
@@ -404,13 +428,14 @@ class FaultMonitor:
             setattr(self, name, np.array(state[name]) if name != "health" else state[name])
 
     def update(self, command: np.ndarray, odometry: np.ndarray, sonar: np.ndarray,
-               pose: np.ndarray, clock: float | None = None) -> list[dict[str, Any]]:
+               pose: np.ndarray, clock: float | None = None, drove: np.ndarray | None = None,
+               ) -> list[dict[str, Any]]:
         """Take one sample (as ``FeatureTracker.update``); the failures that start now,
         each ``{"fault", "probability", "detail"}``. A reading at the last one's instant
         (``FeatureTracker.repeats``) is no sample: it changes nothing."""
         if self.tracker.repeats(clock):
             return []
-        return self.observe(*self.tracker.update(command, odometry, sonar, pose, clock))
+        return self.observe(*self.tracker.update(command, odometry, sonar, pose, clock, drove))
 
     def observe(self, features: np.ndarray, informative: np.ndarray) -> list[dict[str, Any]]:
         """``update`` from a sample's features, taken by the tracker elsewhere."""
@@ -473,9 +498,11 @@ class HardwareMonitor(Module):
     ``clock`` too once one has come: link the driver's, so that motion is measured
     over the robot's time between samples, not the nominal period (written after the
     reading's odometry, as the driver does: a clock that comes after its reading was
-    sampled is that sample's time, not the next one's). A reading at the
-    same instant of the robot's time as the last (its world did not step between the
-    two) is no sample: nothing is judged, learnt or written for it.
+    sampled is that sample's time, not the next one's). Link its ``drove`` too, so that
+    the robot's response is followed through the commands as it took them rather than
+    taken for the response to their mean. A reading at the same instant of the robot's
+    time as the last (its world did not step between the two) is no sample: nothing is
+    judged, learnt or written for it.
 
     A pose that jumps between two samples by more than ``jump_m`` or ``jump_rad`` (no
     robot moves or turns that far in a sample, and no two robots' centres are that
@@ -493,6 +520,9 @@ class HardwareMonitor(Module):
     pose = Input(np.ndarray, shape=(3,), dtype="float64")         # localization (gps)
     clock = Input(float)         # the robot's time of the readings (optional, but see
                                  # FeatureTracker: a loaded machine's late samples)
+    # the command command by command, with the clock (optional: link the driver's
+    # ``drove``, else the response to ``command``, their mean, is taken for theirs)
+    drove = Input(np.ndarray, dtype="float64")
     failure = Output(dict)
     health = Output(float)
 
@@ -595,6 +625,7 @@ class HardwareMonitor(Module):
         sample = (self.command.read(default=np.zeros(2)), self.odometry.read(),
                   self.sonar.read(), self.pose.read())
         clock = self.clock.read() if timed else None
+        drove = self.drove.read() if self.drove.pending else None
         if self._another_robot(sample[3]):
             self._tracker = FeatureTracker(self.sample_s)      # afresh on it
             if self._monitor is not None:
@@ -603,7 +634,7 @@ class HardwareMonitor(Module):
             self.robot_changes += 1
         if self._tracker.repeats(clock):
             return               # no time passed: nothing to measure (see the docstring)
-        features, informative = self._tracker.update(*sample, clock=clock)
+        features, informative = self._tracker.update(*sample, clock=clock, drove=drove)
         failures = [] if self._monitor is None else self._monitor.observe(features, informative)
         # what the groups watched already find abnormal is not learnt as normal running
         if not self.trained and (self._monitor is None or not (

@@ -30,8 +30,13 @@ clock says). A command that came late in the interval drove only the end of it: 
 as the interval's command, it is the step response of a robot told to turn that
 turned the other way most of the interval (a monitor read 0.5 rad/s of a standby
 robot's turn, the one its control system gave it on arrival, as its motors failing).
-A step's outputs are written
-``applied``, ``gps``, ``sonar``, ``odometry``, ``clock``: the pose before the
+``drove`` gives the same commands one by one, each with the world's time the robot
+took it, for a monitor that follows the robot's response through them: under
+acceleration limits the response to a mean of commands is not the mean of their
+responses (a robot turning one way, told late in a long step to turn the other, had
+0.2 rad/s left of the first turn that the mean did not give it, for as long as the
+limits took to reverse it: a false motors alarm). A step's outputs are written
+``applied``, ``drove``, ``gps``, ``sonar``, ``odometry``, ``clock``: the pose before the
 reading taken there, and the clock last. A command is sent to the robot
 as it comes, not at the driver's next period.
 """
@@ -60,6 +65,9 @@ class RobotDriver(Driver):
     clock = Output(float)        # the world's time of the readings (s)
     applied = Output(np.ndarray, shape=(2,), dtype="float64")   # what drove the robot up to
                                                                 # these readings (v, w)
+    # the same command by command: a row (the world's time it took it, v, w) each, the
+    # first the one in force at the last reading (from then on)
+    drove = Output(np.ndarray, dtype="float64")
     camera = Output(list)
     # once per onset, when the robot has not answered ``silent_after`` requests in a
     # row: {"fault": "robot_link", "probability": 1.0, "detail", "at"}, as a monitor's
@@ -171,18 +179,21 @@ class RobotDriver(Driver):
             at = self._since + (time.monotonic() - self._read_at)
         self._drove.append((float(at), self._in_force))
 
-    def _applied(self, now: float, before: np.ndarray) -> np.ndarray:
+    def _applied(self, now: float, before: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """What drove the robot from the last reading to one at the world's time ``now``:
-        the commands it ran on, each weighted by how long; ``before`` (the command in
-        force when this reading was asked for) when no time has passed, or at the first
-        reading."""
+        the commands it ran on, each weighted by how long, and each with the time it
+        took it (``drove``'s rows, the first from the last reading on); ``before`` (the
+        command in force when this reading was asked for) when no time has passed, or
+        at the first reading."""
         since, drove = self._since, self._drove
         self._since, self._drove = now, [(now, self._in_force)]
         if since is None or not now > since or not drove:
-            return before
-        starts = np.clip([at for at, _ in drove], since, now)
-        lasted = np.diff(np.maximum.accumulate([*starts, now]))   # (times in order)
-        return np.array(lasted @ np.array([command for _, command in drove])) / (now - since)
+            return before, np.array([[now, *before]])
+        starts = np.maximum.accumulate(np.clip([at for at, _ in drove], since, now))
+        commands = np.array([command for _, command in drove])
+        lasted = np.diff([*starts, now])
+        return (np.array(lasted @ commands) / (now - since),
+                np.column_stack([starts, commands]))
 
     def _cycle(self, command: np.ndarray | None, advance: float) -> dict[str, Any]:
         """Drive by ``command``, advance a lock-step world and read the robot, in one
@@ -216,11 +227,12 @@ class RobotDriver(Driver):
         sensed = {key: np.asarray(answer[key], dtype=np.float64)
                   for key in ("sonar", "odometry", "gps")}
         self._read_at = time.monotonic()
-        applied = self._applied(float(answer["time"]), before)
+        applied, drove = self._applied(float(answer["time"]), before)
         # In this order: a consumer that takes the pose at each reading (a mapper) has
         # the reading's own pose by then, and one that waits for a whole step's readings
         # (a monitor, a learner) waits for ``clock``, written last.
         self.applied.write(applied)
+        self.drove.write(drove)
         self.gps.write(sensed["gps"])
         self.sonar.write(sensed["sonar"])
         self.odometry.write(sensed["odometry"])
