@@ -182,13 +182,9 @@ class RemoteNode:
         self.address = executor
         # (bind renewed the lease; its answer, ``_heard``, came before this)
         self._answered = self._heard_at = self._renewed_from = time.monotonic()
-        # the first heartbeat at once: the lease the bind began runs on only from that
-        # renewal's answer, carried by the next (sent a heartbeat after the bind, over a
-        # link 0.3 s each way the renewal carrying its answer was due 0.05 s before the
-        # lease ran out, and on a loaded machine came after it)
         self._hearts = [threading.Thread(target=self._beat, args=(beat * HEARTBEAT_S,),
                                          daemon=True, name=f"pb3a-heartbeat-{name}")
-                        for beat in range(BEATS)]
+                        for beat in range(1, BEATS + 1)]
         for heart in self._hearts:
             heart.start()
 
