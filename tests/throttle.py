@@ -5,10 +5,9 @@ each connection to it, each direction through one token bucket shared by all its
 connections (as one radio link carries them all): ``down`` is from the address routed
 to (a writer's node) to whoever connects (a reader's node), ``up`` the other way. Its
 own socket buffers are small, so a sender feels the link's pace through TCP's
-backpressure rather than the proxy taking in megabytes at loopback speed. With
-``delay_s``, each chunk arrives that long after its turn on the link, either way (a far
-link's latency: a satellite's). It counts the connections made to each address (a
-reconnection is one more) and, for each that ended, which side ended it.
+backpressure rather than the proxy taking in megabytes at loopback speed. It counts
+the connections made to each address (a reconnection is one more) and, for each that
+ended, which side ended it.
 """
 
 from __future__ import annotations
@@ -49,9 +48,7 @@ class _Bucket:
 class Throttle:
     """A rate-limited TCP proxy on 127.0.0.1, run on a thread of its own."""
 
-    def __init__(self, down_bps: float, up_bps: float | None = None, *,
-                 delay_s: float = 0.0) -> None:
-        self.delay_s = delay_s
+    def __init__(self, down_bps: float, up_bps: float | None = None) -> None:
         self._loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self._loop.run_forever, name="throttle",
                                         daemon=True)
@@ -142,45 +139,14 @@ class Throttle:
     async def _pump(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
                     bucket: _Bucket, down: bool) -> None:
         """Forward one direction until its sender ends (EOF, reset)."""
-        if self.delay_s:
-            await self._pump_far(reader, writer, bucket, down)
-            return
         with contextlib.suppress(OSError):
             while data := await reader.read(CHUNK):
                 await self._open.wait()
                 await bucket.take(len(data))
-                await self._deliver(writer, data, down)
-
-    async def _pump_far(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
-                        bucket: _Bucket, down: bool) -> None:
-        """``_pump`` over a link with a delay: each chunk arrives ``delay_s`` after its
-        turn on the link, the chunks behind it carried meanwhile (held here on their way,
-        so that the link carries its rate whatever its delay)."""
-        on_way: asyncio.Queue[tuple[float, bytes] | None] = asyncio.Queue()
-
-        async def arrive() -> None:
-            while (item := await on_way.get()) is not None:
-                due, data = item
-                await asyncio.sleep(due - self._loop.time())
-                await self._deliver(writer, data, down)
-        arriving = self._loop.create_task(arrive())
-        try:
-            with contextlib.suppress(OSError):
-                while data := await reader.read(CHUNK):
-                    await self._open.wait()
-                    await bucket.take(len(data))
-                    on_way.put_nowait((self._loop.time() + self.delay_s, data))
-            on_way.put_nowait(None)                  # (what is on its way still arrives)
-            with contextlib.suppress(OSError):
-                await arriving
-        finally:
-            arriving.cancel()
-
-    async def _deliver(self, writer: asyncio.StreamWriter, data: bytes, down: bool) -> None:
-        writer.write(data)
-        await writer.drain()
-        if down:
-            self.forwarded += len(data)
+                writer.write(data)
+                await writer.drain()
+                if down:
+                    self.forwarded += len(data)
 
     def close(self) -> None:
         """Cut every connection, stop listening and stop the thread."""

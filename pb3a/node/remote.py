@@ -52,12 +52,6 @@ PIECE = 16 * 2**20         # a snapshot carried to or from another machine goes 
 HEARTBEAT_S = 0.25         # how often the launcher's side pings the executor
 LEASE_S = 1.25             # an executor that hears no renewal this long fences itself
 LOSS_S = 2.0               # no answer for this long: the node is lost (reported within 3 s)
-# A heartbeat waits for its answer as long as the node may be silent, on a thread of its
-# own: one answered late (a far link, either side starved of CPU) still counts, renews
-# the lease from its own time, and holds up no other heartbeat. (Each waited 0.5 s, two
-# threads taking turns: a node whose answers all took 0.6 s was lost while it answered
-# every one, and fenced itself, its lease renewed from none of them.)
-BEATS = round(LOSS_S / HEARTBEAT_S)
 # Every heartbeat renews the lease, but only from the newest answer the launcher heard
 # (``NodeShare.renew``): once the node's answers stop, renewals extend nothing, and the
 # lease runs out a heartbeat and a lease after its last answer, before the node is
@@ -182,9 +176,9 @@ class RemoteNode:
         self.address = executor
         # (bind renewed the lease; its answer, ``_heard``, came before this)
         self._answered = self._heard_at = self._renewed_from = time.monotonic()
-        self._hearts = [threading.Thread(target=self._beat, args=(beat * HEARTBEAT_S,),
-                                         daemon=True, name=f"pb3a-heartbeat-{name}")
-                        for beat in range(1, BEATS + 1)]
+        self._hearts = [threading.Thread(target=self._beat, args=(offset,), daemon=True,
+                                         name=f"pb3a-heartbeat-{name}")
+                        for offset in (HEARTBEAT_S, 2 * HEARTBEAT_S)]
         for heart in self._hearts:
             heart.start()
 
@@ -450,17 +444,16 @@ class RemoteNode:
 
     # -- what only a remote node has ------------------------------------------------
     def _beat(self, offset: float) -> None:
-        """One of ``BEATS`` heartbeats, each every ``BEATS * HEARTBEAT_S`` (the loss
-        timeout; that long for its answer), each ``HEARTBEAT_S`` after the one before:
-        a heartbeat lost, or its answer, or one answered late, holds up no other. Each
-        renews the executor's lease; an answer is noted. A renewal that carried an
-        answer older than two heartbeats (the first through after a cut) extends the
-        lease little: it is renewed again at once, from its own answer (a cut of
-        0.3-0.6 s fenced the node, or restarted its modules, before the next heartbeat
-        came)."""
+        """One of two heartbeats, each every ``2 * HEARTBEAT_S`` (that long for its
+        answer), the second ``HEARTBEAT_S`` after the first: a heartbeat lost, or its
+        answer, holds up no other. Each renews the executor's lease; an answer is
+        noted. A renewal that carried an answer older than two heartbeats (the first
+        through after a cut) extends the lease little: it is renewed again at once,
+        from its own answer (a cut of 0.3-0.6 s fenced the node, or restarted its
+        modules, before the next heartbeat came)."""
         due = time.monotonic() + offset
         while not self._closed.wait(max(0.0, due - time.monotonic())) and not self.lost:
-            due += BEATS * HEARTBEAT_S
+            due += 2 * HEARTBEAT_S
             stale = self._renew()
             if stale and not self._closed.is_set() and not self.lost:
                 self._renew()
@@ -469,13 +462,13 @@ class RemoteNode:
         """Renew the lease from the newest answer heard; whether it was answered, and
         the answer it carried was more than two heartbeats older than this one's."""
         assert self.heart is not None
-        with self._renewing:       # (the heartbeats: the newest carries the newest)
+        with self._renewing:       # (the two heartbeats: the newest carries the newest)
             since, self._renewed_from = self._heard, self._heard_at
         sent = time.monotonic()
         try:
             # (the executor dates its lease from ``since``, however late it reads this;
             # see NodeShare.renew)
-            heard = self.heart.call("lease", BEATS * HEARTBEAT_S, since=since)
+            heard = self.heart.call("lease", 2 * HEARTBEAT_S, since=since)
         except (RuntimeFailure, RuntimeTimeout):
             return False
         self._answered = time.monotonic()
