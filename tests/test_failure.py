@@ -1233,18 +1233,19 @@ def test_a_worker_killed_while_its_forkserver_is_frozen_is_seen_dead(monkeypatch
 
 
 def _import_in_a_new_process(tmp_path: Path, module: str, source: str | None,
-                             env: dict[str, str] | None = None) -> tuple[int, str, float]:
+                             env: dict[str, str] | None = None,
+                             then: str = "") -> tuple[int, str, float]:
     """Write ``module`` (unless ``source`` is None: it is written already), import it in a
-    new interpreter (a forkserver of its own) and return its exit code, stderr and time
-    taken; every process whose command line names the module (a forkserver preloading
-    it) is killed after, whatever happened."""
+    new interpreter (a forkserver of its own), run ``then`` there, and return its exit
+    code, stderr and time taken; every process whose command line names the module (a
+    forkserver preloading it) is killed after, whatever happened."""
     if source is not None:
         (tmp_path / f"{module}.py").write_text(textwrap.dedent(source))
     environment = {**os.environ, **(env or {}),
                    "PYTHONPATH": os.pathsep.join([str(tmp_path), *sys.path])}
     began = time.monotonic()
     try:
-        done = subprocess.run([sys.executable, "-c", f"import {module}"], env=environment,
+        done = subprocess.run([sys.executable, "-c", f"import {module}\n{then}"], env=environment,
                               capture_output=True, text=True, timeout=60)
         return done.returncode, done.stderr, time.monotonic() - began
     finally:
@@ -1294,21 +1295,22 @@ def test_a_forkserver_that_hangs_preloading_a_module_is_stopped_with_its_node(
         class Sink(Module):
             period = 0.1
 
-        workers.SPAWN_TIMEOUT_S = 2.0
-        system = System("hangs-preloading").node("a", spares=0)
-        system.add("sink", Sink, node="a")
-        try:
-            system.launch(timeout=10).close()
-        except RuntimeTimeout as exc:
-            print(f"launch failed: {exc}", file=sys.stderr)
-        deadline = time.monotonic() + 5
-        while [p for p in psutil.Process().children(recursive=True)
-               if __name__ in " ".join(p.cmdline()) and p.status() != "zombie"]:
-            if time.monotonic() > deadline:
-                print("the forkserver is left", file=sys.stderr)
-                sys.exit(3)
-            time.sleep(0.05)
-        """)
+        def main():                     # (once imported: a launch as it is, refused)
+            workers.SPAWN_TIMEOUT_S = 2.0
+            system = System("hangs-preloading").node("a", spares=0)
+            system.add("sink", Sink, node="a")
+            try:
+                system.launch(timeout=10).close()
+            except RuntimeTimeout as exc:
+                print(f"launch failed: {exc}", file=sys.stderr)
+            deadline = time.monotonic() + 5
+            while [p for p in psutil.Process().children(recursive=True)
+                   if __name__ in " ".join(p.cmdline()) and p.status() != "zombie"]:
+                if time.monotonic() > deadline:
+                    print("the forkserver is left", file=sys.stderr)
+                    sys.exit(3)
+                time.sleep(0.05)
+        """, then=f"{module}.main()")
     assert code == 0, stderr
     assert "launch failed: " in stderr and "does not answer" in stderr, stderr
     assert f"it had not finished importing the modules it preloads ({module}): one of " \
@@ -1406,10 +1408,11 @@ def test_a_class_file_that_raises_only_in_the_forkserver_fails_its_module_naming
             def step(self):
                 pass
 
-        system = System("raises-in-forkserver")
-        system.add("counter", Counter)
-        system.launch(timeout=10).stop()
-        """, env={"CLASSES_IMPORTABLE": "1"})
+        def main():                     # (once imported: a launch as it is, refused)
+            system = System("raises-in-forkserver")
+            system.add("counter", Counter)
+            system.launch(timeout=10).stop()
+        """, env={"CLASSES_IMPORTABLE": "1"}, then=f"{module}.main()")
     assert code == 1, stderr
     assert "RuntimeError: this file needs CLASSES_IMPORTABLE" in stderr.splitlines()[-1]
     assert took < 30
