@@ -67,7 +67,9 @@ def _refuse_inside_own_process(name: str) -> None:
         return
     how = (f"inside {inside} to load a module class it defines" if inside is not None
            else f"to load its class {importing_for()!r}")
-    frame = _importing_frame(sys._getframe(1))
+    frame = sys._getframe(1)                   # the file whose top level launched, if any
+    while frame is not None and frame.f_code.co_name != "<module>":
+        frame = frame.f_back
     if frame is None:
         where = f"inside {inside}" if inside is not None else f"as {importing_for()!r} loads"
         raise ConfigError([f"system {name!r} is launched {where}: a module's "
@@ -116,14 +118,6 @@ def _mid_import(name: str) -> str | None:
         if prefix != "__main__" and getattr(spec, "_initializing", False):
             return prefix
     return None
-
-
-def _importing_frame(frame: Any) -> Any:
-    """The frame of the file whose top level made this call, if the call comes from a
-    file's top level at all (not from a function)."""
-    while frame is not None and frame.f_code.co_name != "<module>":
-        frame = frame.f_back
-    return frame
 
 
 class Running(SystemHandle):
