@@ -28,8 +28,9 @@ test: $(STAMP)
 	@# Most tests run on three workers, a test file to each (pytest-xdist): they mostly
 	@# wait for processes, links and deadlines, so a third keeps two cores busy. Those
 	@# marked serial load the CPUs or time whole applications, and run alone after them.
-	$(BIN)/python -m pytest -q -n 3 --dist loadfile -m "not serial"
-	$(BIN)/python -m pytest -q -m serial
+	@# The slowest are listed at the end of each, to keep the suite near its 10 minutes.
+	$(BIN)/python -m pytest -q -n 3 --dist loadfile -m "not serial" --durations=15
+	$(BIN)/python -m pytest -q -m serial --durations=5
 
 bench: $(STAMP)
 	mkdir -p bench/results
