@@ -716,6 +716,43 @@ def test_a_client_told_of_a_gone_server_takes_no_other_server_for_it() -> None:
         server.close()
 
 
+def test_a_call_waiting_as_its_server_is_replaced_fails_then_not_at_its_deadline() -> None:
+    """``when_gone``: a server that closes with a call's request in hand, and another
+    started at its address within the second that counts it gone (a node controller
+    killed as it started an executor, restarted at once), was told apart only by the
+    client's next request: the call waiting waited out its deadline (10 s here). It
+    fails as the client connects to the other one, saying so (``replaced``)."""
+    server = ControlServer(KEY, handler, aside={"block"})   # (closed unanswered: see close)
+    client = ControlClient(KEY, server.address, when_gone=_Gone)
+    failed: list[BaseException] = []
+
+    def waiting() -> None:
+        try:
+            client.call("block", timeout=10)
+        except BaseException as exc:                     # (the test's to judge)
+            failed.append(exc)
+    call = threading.Thread(target=waiting, daemon=True)
+    try:
+        assert client.call("add", a=1, b=1) == 2
+        port = int(server.address.rpartition(":")[2])
+        call.start()
+        eventually(lambda: server._asides, what="the request in the server's hands")
+        server.close()
+        server = ControlServer(KEY, handler, port=port)         # another, at once
+        replaced = time.monotonic()
+        call.join(10)
+        assert time.monotonic() - replaced < 2, "the call waited out its deadline"
+        assert len(failed) == 1 and isinstance(failed[0], _Gone), failed
+        assert "another process has listened there since" in str(failed[0])
+        assert client.replaced and client.gone.is_set()
+    finally:
+        release.set()
+        call.join(10)
+        client.close()
+        server.close()
+        release.clear()
+
+
 def test_a_client_dropped_unclosed_is_closed_whichever_thread_collects_it() -> None:
     """A client nobody closed (a node's, a module server's, a connection's) was kept by
     its loop's thread for good, with its sockets. Once collected it is closed, also when

@@ -493,9 +493,11 @@ class ControlClient:
     fails every call waiting and every later one, with the error ``when_gone`` makes
     of the reason it is given, rather than at each call's deadline; and so does another
     server, started anew at the address (another instance), which the client would
-    otherwise have taken for the one it was talking to. A server cut off by the network
-    closes nothing: its calls still end at their deadlines. A gone server's client
-    gives back its thread and sockets then; the calls still fail as said.
+    otherwise have taken for the one it was talking to: asked on each reconnection
+    whether it is the same, so that a call whose request went to the one before fails
+    then, not at its deadline (``replaced`` says it was another). A server cut off by
+    the network closes nothing: its calls still end at their deadlines. A gone server's
+    client gives back its thread and sockets then; the calls still fail as said.
 
     With ``watch_greeting``, a call that times out at an address where something took
     the connection but never greeted in ZeroMQ's protocol says so (``ungreeted``), not
@@ -541,6 +543,7 @@ class ControlClient:
         self.gone = threading.Event()        # ... and nothing took one there in GONE_S
                                              # (or another server took its place)
         self.gone_why = ""                   # (which of the two, in words)
+        self.replaced = False                # (the second: a server started anew there)
         self._greeted = False                       # (told by the monitor, if any)
         self._connected_at: float | None = None     # ... and when it connected
         # The loop holds the client only weakly, and a client dropped unclosed is closed
@@ -703,6 +706,7 @@ class ControlClient:
         that restarted is the same node's); with it, the client was talking to a server
         that has ended, and another one is not it (socket thread)."""
         if self._when_gone is not None and self._instance not in (_NOBODY, instance):
+            self.replaced = True
             self._lost("another process has listened there since (connect again to "
                        "reach it)")
             return
@@ -728,6 +732,8 @@ class ControlClient:
             if event == zmq.EVENT_HANDSHAKE_SUCCEEDED:
                 self._greeted = True
             elif event == zmq.EVENT_CONNECTED:
+                if self._lost_at is not None:           # (watched, and connected again)
+                    self._ask_who()
                 self._lost_at = None
                 if self._connected_at is None:
                     self._connected_at = time.monotonic()
@@ -735,6 +741,21 @@ class ControlClient:
                     and self._when_gone is not None:
                 self._lost_at = time.monotonic()
                 self._loop.later(GONE_S, _weakly(self._look_for_server))
+
+    def _ask_who(self) -> None:
+        """Ask the server the client connected to again whether it is the one it talked
+        to: a ping naming that one, which another answers by saying who it is
+        (``_on_instance``: gone). A request the one before took is not sent again (it
+        may have been done, a node's executor started): a call waiting for its answer
+        waited out its deadline at another server, which heard nothing of it (a node
+        controller restarted as it started a launch's executor: the launch said the
+        executor was slow), until a later request told (socket thread)."""
+        if self._instance == _NOBODY:       # (none talked to yet: none to tell apart)
+            return
+        with contextlib.suppress(zmq.Again):
+            self._dealer.send_multipart(self._sealer.seal(REQUEST, [
+                _ID.pack(next(self._ids)), self._instance, _WAIT.pack(QUICK_S),
+                pickling.dumps(("ping", {}))]), zmq.NOBLOCK)
 
     def _look_for_server(self) -> None:
         """``GONE_S`` after the server closed the connection: if nothing has taken one
