@@ -1353,20 +1353,57 @@ class HoldsItsStarts(Daemon):
     program = ("-c", _HOLDS_ITS_STARTS)
 
 
+_RUNS = """
+import sys
+
+from pb3a.cli.main import main
+
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+class Successor(Daemon):
+    """The node controller that listens at ``other``'s address as soon as that one ends,
+    as one a supervisor starts again at once: its interpreter is up and its imports made
+    beforehand, so that it listens within a moment (well within the second that counts
+    the other gone). With ``holds``, it holds its starts as ``HoldsItsStarts`` does."""
+
+    def __init__(self, other: Daemon, *, holds: bool = False) -> None:
+        waits = ("import os, select\n"
+                 "import pb3a.cli.daemons, pb3a.daemons.node_controller\n"
+                 f"ended = os.pidfd_open({other.process.pid})\n"
+                 "print('waiting', flush=True)\n"
+                 "select.select([ended], [], [], 60)\n")
+        program = _HOLDS_ITS_STARTS if holds else _RUNS
+        self.program = ("-c", program.replace("sys.exit(", waits + "sys.exit(", 1))
+        self.name, self.address, self.path = other.name, other.address, other.path
+        self.start(ready=False)
+        assert self.process.stdout.readline().strip() == "waiting"
+
+
+def _killing_as_it_starts(daemon: Daemon) -> tuple[threading.Thread, threading.Event]:
+    """A thread that kills ``daemon`` (a ``HoldsItsStarts``) once it says it starts an
+    executor, and the event it sets then."""
+    killed = threading.Event()
+
+    def kill_as_it_starts() -> None:
+        for line in daemon.process.stdout:         # (a successor says it listens first)
+            if line.strip() == "starting an executor":
+                daemon.process.kill()
+                killed.set()
+                return
+    killer = threading.Thread(target=kill_as_it_starts, daemon=True)
+    killer.start()
+    return killer, killed
+
+
 def test_a_controller_killed_as_it_starts_the_executor_is_named_as_gone() -> None:
     """A node controller killed while it started a launch's executor left the start
     waiting out the launch's timeout, which then said the executor was slow and to give
     the system a longer timeout. The launch fails about a second after the controller
     went, saying it went during the start and how to start it again."""
     daemon = HoldsItsStarts("b")
-    killed = threading.Event()
-
-    def kill_as_it_starts() -> None:
-        if daemon.process.stdout.readline().strip() == "starting an executor":
-            daemon.process.kill()
-            killed.set()
-    killer = threading.Thread(target=kill_as_it_starts, daemon=True)
-    killer.start()
+    killer, killed = _killing_as_it_starts(daemon)
     system = System("controller-gone", timeout=10).node("a").node("b", address=daemon.address)
     system.add("at_b", Collector, node="b")
     try:
@@ -1424,6 +1461,111 @@ def test_a_controller_killed_once_it_started_the_executor_is_named_as_gone(
                            "during the start"), said
     assert f"once it runs again ({start}), launch again" in said, said
     assert "advertise" not in said, said
+
+
+def _restarted_said(run: pb3a.Running) -> list[str]:
+    """What the launch of ``run`` logged of a node controller restarted during its start."""
+    return [entry.message for entry in run.logs()
+            if "restarted during the start" in entry.message]
+
+
+def test_a_controller_restarted_as_it_starts_the_executor_is_asked_again() -> None:
+    """A node controller killed while it started a launch's executor and started again
+    at once at its address (by a supervisor that waits for nothing), within the second
+    that counts it gone: the start was lost with it, and the launch waited out its
+    timeout, then said the executor was slow and to give the system a longer timeout.
+    The new controller is asked again, and the launch goes on, its log saying why."""
+    daemon = HoldsItsStarts("b")
+    successor = Successor(daemon)
+    killer, killed = _killing_as_it_starts(daemon)
+    system = System("controller-restarted", timeout=20).node("a").node(
+        "b", address=daemon.address)
+    system.add("src", Counter, node="a", period=0.01)
+    system.add("at_b", Collector, node="b")
+    system.link("src.out", "at_b.x")
+    try:
+        with system.launch() as run:
+            eventually(lambda: run.state("at_b")["received"] > 0, what="values at b")
+            said = _restarted_said(run)
+    finally:
+        successor.stop()
+        daemon.stop()
+        killer.join(10)
+    assert killed.is_set()
+    assert said == [f"node b: its node controller at {daemon.address} restarted during the "
+                    "start of the executor for 'controller-restarted' (another process "
+                    "listens there now): asked again"], said
+
+
+def test_a_controller_restarted_once_it_started_the_executor_is_asked_again(
+        monkeypatch) -> None:
+    """A node controller killed once it had answered with its executor's address (which
+    ended with it), and started again at once at its address: the launch said to make
+    [nodes.b] advertise an address the launcher reaches (or, once the restart was told,
+    that the controller went away). The new controller is asked again, and the launch
+    goes on."""
+    daemon = Daemon("b")
+    successor = Successor(daemon)
+
+    class KillingTheController(ControlClient):
+        """As the launch reaches for the executor it was told of, the controller is
+        killed, and its executor has ended with it (its successor takes over)."""
+
+        def __init__(self, key: ClusterKey, address: str, **kwargs) -> None:
+            if address != daemon.address and daemon.process.poll() is None:
+                executor = psutil.Process(daemon.executor_pid())
+                daemon.process.kill()
+                executor.wait(10)
+            super().__init__(key, address, **kwargs)
+    monkeypatch.setattr(remote, "ControlClient", KillingTheController)
+    system = System("controller-restarted-after", timeout=20).node("a").node(
+        "b", address=daemon.address)
+    system.add("src", Counter, node="a", period=0.01)
+    system.add("at_b", Collector, node="b")
+    system.link("src.out", "at_b.x")
+    try:
+        with system.launch() as run:
+            eventually(lambda: run.state("at_b")["received"] > 0, what="values at b")
+            said = _restarted_said(run)
+    finally:
+        successor.stop()
+        daemon.stop()
+    assert daemon.process.returncode == -signal.SIGKILL
+    assert len(said) == 1, said
+
+
+def test_a_controller_restarted_again_as_it_is_asked_again_fails_the_launch_saying_so(
+        ) -> None:
+    """A node controller that restarts once more as it is asked again (one that ends as
+    it starts an executor, and that a supervisor starts again at once) is not asked a
+    third time: the launch fails about a second later, saying so and where to look."""
+    first = HoldsItsStarts("b")
+    second = Successor(first, holds=True)
+    third = Successor(second)
+    killers = [_killing_as_it_starts(first), _killing_as_it_starts(second)]
+    system = System("controller-restarting", timeout=20).node("a").node(
+        "b", address=first.address)
+    system.add("at_b", Collector, node="b")
+    try:
+        began = time.monotonic()
+        with pytest.raises(PB3AError) as raised:
+            system.launch()
+        took = time.monotonic() - began
+    finally:
+        for daemon in (third, second, first):
+            daemon.stop()
+        for killer, _ in killers:
+            killer.join(10)
+    assert all(killed.is_set() for _, killed in killers), (raised.value, took)
+    said = str(raised.value)
+    assert isinstance(raised.value, RuntimeFailure), said
+    assert said == (
+        f"node b: its node controller at {first.address} restarted during the start of the "
+        "executor for 'controller-restarting', and again as it was asked once more "
+        "(another process listened there each time): one that ends as it starts an "
+        "executor and is started again (by systemd, say) does so; its log (journalctl -u "
+        "pb3a-node) says why it ended: once it stays up, launch again"), said
+    assert took < 15.0, took                    # (not its timeout, 20 s)
 
 
 @pytest.mark.parametrize("controller", ["answering", "slow"])

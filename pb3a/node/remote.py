@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import logging
 import math
 import threading
 import time
@@ -40,6 +41,8 @@ if TYPE_CHECKING:
     from pb3a.node.ring_sizes import RingSize
     from pb3a.stats import NodeReport
     from pb3a.transport.snapshot import Snapshot
+
+log = logging.getLogger("pb3a.launcher")
 
 CONNECT_TIMEOUT = 5.0      # a node controller answers a ping at once, or is not there
 PROBE_S = 1.0              # ... and then a plain connection there tells why it did not
@@ -88,6 +91,17 @@ def _gone_during_start(node: str, address: str, reason: str) -> RuntimeFailure:
     how its connection ended)."""
     return RuntimeFailure(f"its node controller went away during the start: {reason}; once "
                           f"it runs again ({_start_command(node, address)}), launch again")
+
+
+def _restarted_again(node: str, address: str, config: str) -> RuntimeFailure:
+    """The error of a start whose node controller restarted during it a second time,
+    asked again once it had restarted the first time."""
+    return RuntimeFailure(
+        f"node {node}: its node controller at {address} restarted during the start of "
+        f"the executor for {config!r}, and again as it was asked once more (another "
+        "process listened there each time): one that ends as it starts an executor and is "
+        "started again (by systemd, say) does so; its log (journalctl -u pb3a-node) says "
+        "why it ended: once it stays up, launch again")
 
 
 def _unanswered(node: str, address: str) -> str:
@@ -156,16 +170,31 @@ class RemoteNode:
         # The start goes through a connection of its own, watched: a controller that
         # goes away meanwhile (stopped, killed, its machine shut down) fails the start a
         # second after, saying so, where it was waited for until the launch's timeout
-        # and said to be slow, or taken for one whose executor cannot be reached
-        starting = ControlClient(key, address, when_gone=functools.partial(
-            _gone_during_start, name, address))
-        try:
-            executor = self._start(starting, address, config=config, launcher=launcher,
-                                   workers=workers, cpus=cpus, checkpoint_s=checkpoint_s,
-                                   log_level=log_level, code=code, host=host, epoch=epoch,
-                                   node_epoch=node_epoch, spares=spares)
-        finally:
-            starting.close()
+        # and said to be slow, or taken for one whose executor cannot be reached. One
+        # started again at once at its address (within that second: a supervisor that
+        # restarts it with no delay, `systemctl restart` as the launch began) is asked
+        # again, once: the executor the one before started ended with it (its parent's
+        # pipe closed), or, not bound by any launcher, runs no module and stops on its
+        # own (UNBOUND_S), so none of the system's modules runs twice. Its start was lost
+        # with it: the launch waited out its timeout and said the executor was slow
+        restarted = False
+        while True:
+            starting = ControlClient(key, address, when_gone=functools.partial(
+                _gone_during_start, name, address))
+            try:
+                executor = self._start(starting, address, restarted=restarted,
+                                       config=config, launcher=launcher, workers=workers,
+                                       cpus=cpus, checkpoint_s=checkpoint_s,
+                                       log_level=log_level, code=code, host=host,
+                                       epoch=epoch, node_epoch=node_epoch, spares=spares)
+            finally:
+                starting.close()
+            if executor is not None:
+                break
+            restarted = True
+            log.warning("node %s: its node controller at %s restarted during the start of "
+                        "the executor for %r (another process listens there now): asked "
+                        "again", name, address, config)
         self.address = executor
         # (bind renewed the lease; its answer, ``_heard``, came before this)
         self._answered = self._heard_at = self._renewed_from = time.monotonic()
@@ -175,13 +204,16 @@ class RemoteNode:
         for heart in self._hearts:
             heart.start()
 
-    def _start(self, starting: ControlClient, address: str, *, config: str, launcher: str,
-               workers: int, cpus: list[int] | None, checkpoint_s: float, log_level: int,
-               code: CodeSources | None, host: str, epoch: int, node_epoch: int,
-               spares: int) -> str:
+    def _start(self, starting: ControlClient, address: str, *, restarted: bool,
+               config: str, launcher: str, workers: int, cpus: list[int] | None,
+               checkpoint_s: float, log_level: int, code: CodeSources | None, host: str,
+               epoch: int, node_epoch: int, spares: int) -> str | None:
         """Have the controller at ``address`` (asked through ``starting``) start the
         executor, reach it and bind it to ``launcher``: its address; ``RuntimeFailure``
-        or ``RuntimeTimeout`` saying why not, with nothing of it left running."""
+        or ``RuntimeTimeout`` saying why not, with nothing of it left running. None if
+        the controller restarted meanwhile (``starting.replaced``), unless it had
+        restarted during this launch's start before (``restarted``): the start is to
+        be asked of it again."""
         name = self.name
         try:
             starting.call("ping", CONNECT_TIMEOUT)
@@ -207,9 +239,15 @@ class RemoteNode:
                                  epoch=epoch, node_epoch=node_epoch, lease_s=LEASE_S,
                                  spares=spares)
         except BaseException as exc:       # (Ctrl-C too: nothing started is left running)
+            failed = isinstance(exc, (RuntimeFailure, RuntimeTimeout))
+            if failed and starting.replaced and not restarted:
+                self._drop_executor()       # (it ended with the controller before)
+                return None
             self._let_go(started)
-            if not isinstance(exc, (RuntimeFailure, RuntimeTimeout)):
+            if not failed:
                 raise
+            if starting.replaced:
+                raise _restarted_again(name, address, config) from None
             raise RuntimeFailure(f"node {name} at {address} did not start an executor for "
                                  f"{config!r}: {exc}") from None
         if reached:
@@ -219,7 +257,12 @@ class RemoteNode:
         # connection, not by a ping that a controller slow to answer (a starved CPU)
         # also leaves unanswered, and which then called it gone with its executor
         gone = starting.gone.wait(GONE_S + PROBE_S)
+        if gone and starting.replaced and not restarted:
+            self._drop_executor()
+            return None
         self._let_go(started)
+        if gone and starting.replaced:
+            raise _restarted_again(name, address, config)
         if gone:
             raise RuntimeFailure(
                 f"node {name}: its node controller at {address} went away during the start "
@@ -232,6 +275,13 @@ class RemoteNode:
             f"{executor}, on the host other nodes reach node {name} at ({host}); make "
             f"[nodes.{name}] advertise an address of that machine which this one and the "
             "other nodes reach, and open its ports to them")
+
+    def _drop_executor(self) -> None:
+        """Forget the executor of a start whose controller restarted: it ended with the
+        controller that started it, and is asked of the new one."""
+        if self.client is not None:
+            self.client.close()
+        self.client = self.executor = None
 
     def _let_go(self, started: bool) -> None:
         """A start that failed: kill the executor if this launch started it (not bound, it
