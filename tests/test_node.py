@@ -3,11 +3,13 @@ graceful and forced stops, the command line, and frames it must refuse."""
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import json
 import logging
 import math
 import os
+import queue
 import re
 import signal
 import socket
@@ -18,6 +20,7 @@ import threading
 import time
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import psutil
 import pytest
@@ -40,8 +43,9 @@ from pb3a.daemons.node_share import NodeShare, executor_main
 from pb3a.loading.sources import CodeSources
 from pb3a.node.remote import LEASE_S
 from pb3a.processes import start_without_main
+from pb3a.transport import control, pickling
 from pb3a.transport.auth import ClusterKey
-from pb3a.transport.control import ControlClient
+from pb3a.transport.control import ControlClient, ControlServer
 from pb3a.transport.shm import live_segments
 from pb3a.worker import lease
 from pb3a.worker.actor import ModuleActor
@@ -510,6 +514,66 @@ def test_a_second_launcher_is_told_when_the_first_is_silent_and_to_try_again() -
     assert refusal(0.2) == (
         "node b already works for tcp://10.0.0.1:7200: stop that system first, or launch "
         "this one under another name")
+
+
+def test_a_checkpoint_too_large_to_send_is_not_pickled_again_to_be_refused(
+        monkeypatch, caplog) -> None:
+    """A module's checkpoint too large for a control message was pickled into a request
+    at every checkpoint, only to be refused (a state of 80 MiB: that much copied each
+    time on its executor, beside its heartbeats' answers). One no smaller than a refused
+    one is refused without that; a smaller one is tried, and sent once it fits. The
+    refusal is said once, and again once one was sent since."""
+    monkeypatch.setattr(control, "MAX_PAYLOAD", 64 * 1024)        # (small states will do)
+    pickled: collections.Counter[str] = collections.Counter()    # requests, by module
+    dumps = pickling.dumps
+
+    def counting(obj: Any, **kwargs: Any) -> bytes:
+        if isinstance(obj, tuple) and obj[0] == "checkpoint":
+            pickled[obj[1]["module"]] += 1
+        return dumps(obj, **kwargs)
+    monkeypatch.setattr(pickling, "dumps", counting)
+    kept: queue.SimpleQueue[tuple[str, int]] = queue.SimpleQueue()
+    launcher = ControlServer(KEY, lambda op, args: kept.put((args["module"],
+                                                             len(args["state"]))))
+    share = NodeShare.__new__(NodeShare)        # (only what sending checkpoints reads)
+    share.node, share.node_epoch, share.stopped = "b", 1, threading.Event()
+    share._checkpoints, share._checkpointed, share._unsent = {}, threading.Condition(), {}
+    share.launcher = ControlClient(KEY, launcher.address)
+    sending = threading.Thread(target=share._send_checkpoints, daemon=True)
+
+    def kept_of(size: int) -> int | None:
+        """A checkpoint of module big, ``size`` bytes, then one of module small: the size
+        of big's the launcher kept (None: it kept none), once small's came."""
+        with share._checkpointed:                   # (sent together, in this order)
+            share._keep_checkpoint("big", bytes(size))
+            share._keep_checkpoint("small", b"s")
+        module, kept_size = kept.get(timeout=10)
+        if module == "small":
+            return None
+        assert kept.get(timeout=10) == ("small", 1)
+        return kept_size
+    sending.start()
+    try:
+        sizes = [128 << 10] * 3 + [256 << 10, 96 << 10, 1 << 10, 128 << 10]
+        kept_sizes = [kept_of(size) for size in sizes]
+    finally:
+        share.stopped.set()
+        with share._checkpointed:
+            share._checkpointed.notify()
+        sending.join(5)
+        share.launcher.close()
+        launcher.close()
+    assert kept_sizes == [None] * 5 + [1 << 10, None]
+    # pickled: the first, the smaller one still too large, the one that fits, and the
+    # first too large after it (each was, seven in all)
+    assert pickled["big"] == 4, pickled
+    said = [record.getMessage() for record in caplog.records
+            if "big's checkpoints are not kept" in record.getMessage()]
+    assert len(said) == 2, said
+    assert said[0].startswith(f"module big's checkpoints are not kept by the launcher "
+                              f"('checkpoint' to {launcher.address}: the request is "), said
+    assert said[0].endswith("so it was not sent): if node b is lost, the module starts "
+                            "afresh where it fails over"), said
 
 
 def test_a_lapsed_worker_lease_names_both_causes_not_only_a_frozen_executor(

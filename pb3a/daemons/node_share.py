@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import sys
 import threading
 import time
@@ -78,7 +79,8 @@ class NodeShare:
         self.executor.leased = self._leased
         self._checkpoints: dict[str, bytes] = {}       # the newest, not yet sent
         self._checkpointed = threading.Condition()
-        self._unsent: set[str] = set()        # modules whose checkpoints are too large
+        # module -> the smallest of its checkpoints refused as too large to send (bytes)
+        self._unsent: dict[str, int] = {}
         self.server: ControlServer | None = None
         self.peers: dict[str, ControlClient] = {}     # other nodes, pinged for their RTT
         self.rtts: dict[str, float] = {}
@@ -221,22 +223,33 @@ class NodeShare:
             self._checkpointed.notify()
 
     def _send_checkpoints(self) -> None:
+        """Send each module's newest checkpoint to the launcher. One too large for a
+        control message is not kept there, which is said once (again only if one was
+        sent since); and one no smaller than a checkpoint of that module refused is
+        refused without being made into a request: its request carries its bytes whole
+        beside what every one of the module's carries (its name, the node's, the node's
+        epoch), so it is at least as large. A module whose state outgrew a message
+        (80 MiB) was pickled whole into a request at every checkpoint, only to be
+        refused, on this executor's CPU, which its heartbeats' answers need. A smaller
+        one is tried, and sent once it fits."""
         while not self.stopped.is_set():
             with self._checkpointed:
                 self._checkpointed.wait_for(lambda: self._checkpoints or self.stopped.is_set(),
                                             1.0)
                 pending, self._checkpoints = self._checkpoints, {}
             for module, state in pending.items():
+                if len(state) >= self._unsent.get(module, math.inf):
+                    continue                            # (it would be refused again)
                 try:
                     self._call_launcher("checkpoint", module=module, state=state)
                 except TooLarge as exc:   # (said once: it is refused the same each time)
                     if module not in self._unsent:
-                        self._unsent.add(module)
                         log.warning("module %s's checkpoints are not kept by the launcher "
                                     "(%s): if node %s is lost, the module starts afresh "
                                     "where it fails over", module, exc, self.node)
+                    self._unsent[module] = len(state)   # (smaller than any refused before)
                 else:
-                    self._unsent.discard(module)
+                    self._unsent.pop(module, None)
 
     def _republished(self, link: Any, endpoint: tuple[str, str, bytes]) -> None:
         self._tell_launcher("republished", link=link, endpoint=endpoint)
