@@ -327,7 +327,8 @@ class Busy(Module):
 class Journal(Module):
     """Appends its name to ``path`` in ``setup`` and ``teardown`` (start and stop order);
     its setup takes ``setup_s`` seconds after its note, its teardown ``teardown_s``
-    before, and waits while the file ``hold`` exists (up to 30 s)."""
+    before, and waits while the file ``hold`` exists (up to 30 s); its teardown makes
+    the file ``began`` (if named) as it begins."""
 
     period = 0.05
     path = ""
@@ -335,12 +336,15 @@ class Journal(Module):
     setup_s = 0.0
     teardown_s = 0.0
     hold = ""
+    began = ""
 
     def setup(self) -> None:
         self._note("start")
         time.sleep(self.setup_s)
 
     def teardown(self) -> None:
+        if self.began:
+            open(self.began, "w").close()
         time.sleep(self.teardown_s)
         until = time.monotonic() + 30.0
         while self.hold and os.path.exists(self.hold) and time.monotonic() < until:

@@ -770,6 +770,67 @@ def test_a_stop_with_a_node_lost_does_not_wait_for_it(node_b) -> None:
     assert run.unconfirmed == ["b"]
 
 
+def test_a_module_whose_node_freezes_as_it_stops_leaves_the_others_their_teardowns(
+        node_b, tmp_path: Path) -> None:
+    """Node b hangs (its controller and executor stopped) while the close waits for the
+    ``teardown`` of its module, stopped first: that stop waited until the close's time
+    ran out, and the two modules of this machine stopped after it were killed, their
+    teardowns unrun. A module whose node has not answered its heartbeats for as long as
+    a lost node (2 s: its workers have stopped on their own by then) is not waited for
+    any longer: the two tear down, in order, within the close's time, and the one on b
+    is named as not torn down."""
+    b = node_b
+    journal, hold, began = tmp_path / "journal", tmp_path / "hold", tmp_path / "began"
+    system = System("frozen-as-it-stops").node("a").node("b", address=b.address)
+    for label in ("first", "second"):
+        system.add(label, Journal, node="a", state={"path": str(journal), "label": label,
+                                                    "teardown_s": 0.2})
+    system.add("far", Journal, node="b", state={"path": str(journal), "label": "far",
+                                                "hold": str(hold), "began": str(began)})
+    hold.touch()                                  # (its teardown waits while it is there)
+    run = system.launch(timeout=30)
+    try:
+        closing = threading.Thread(target=run.close, kwargs={"timeout": 6.0}, daemon=True)
+        started = time.monotonic()
+        closing.start()
+        eventually(began.exists, what="the teardown of the module on b under way")
+        with _frozen(b):
+            closing.join(30)
+            took = time.monotonic() - started
+            lines = journal.read_text().splitlines()
+    finally:
+        hold.unlink()
+        run.close()                               # (nothing, once closed)
+    assert not closing.is_alive()
+    assert [line for line in lines if line.startswith("stop")] == [
+        "stop second", "stop first"], lines
+    assert run.not_torn_down == ["far"]
+    assert took < 7.0, took
+
+
+def test_a_slow_teardown_on_a_remote_node_is_waited_for_in_turn(node_b,
+                                                                 tmp_path: Path) -> None:
+    """A module of node b whose ``teardown`` takes 2.2 s, longer than the silence that
+    makes a node's module not waited for (2 s) and than a fair share of the close
+    (1.5 s of 6 s for four modules), is torn down before the modules started before it
+    begin theirs: its node answers its heartbeats as it stops it. (With the fair
+    shares, e93ca55, reverted, the module of this machine stopped next was torn down
+    beside it.)"""
+    b = node_b
+    journal = tmp_path / "journal"
+    system = System("slow-far").node("a").node("b", address=b.address)
+    for label in ("first", "second", "third"):
+        system.add(label, Journal, node="a", state={"path": str(journal), "label": label})
+    system.add("far", Journal, node="b", state={"path": str(journal), "label": "far",
+                                                "teardown_s": 2.2})
+    run = system.launch(timeout=30)
+    run.close(timeout=6.0)
+    lines = journal.read_text().splitlines()
+    assert [line for line in lines if line.startswith("stop")] == [
+        "stop far", "stop third", "stop second", "stop first"], lines
+    assert run.not_torn_down == []
+
+
 def test_a_close_out_of_time_still_stops_a_remote_node_s_executor(node_b,
                                                                     tmp_path: Path) -> None:
     """A slow teardown spent close's time; the executor's stop then went with no time

@@ -587,23 +587,21 @@ class Launcher:
                 log.warning("%s: stopping it all the same", exc)
             # Without the lock, a change may remove a module or a node meanwhile: each is
             # stopped on its own, and nothing that fails keeps the rest from stopping.
-            for name in reversed(list(self.specs)):
-                node = self.specs[name].node if name in self.specs else None
-                if node in self.remotes and self.silent(node):
-                    self.remotes[node].lose()         # it went meanwhile: no waiting
-                try:
-                    # its request waits no longer than the deadline (a frozen worker's
-                    # stop would have waited 1 s past it, as its grace ran out)
-                    with bounding(deadline - time.monotonic()):
-                        self.node_of(name).stop_module(name, 2.0)
-                except Exception as exc:
-                    # (a module stuck in on_input was killed at close, unsaid)
-                    self.not_torn_down.append(name)
-                    log.warning("module %r was not stopped (its worker is killed): %s", name, exc)
-            # (the watchdog has stopped: a node silent meanwhile as long as it takes to
-            # declare one lost is not waited for as one that answers)
-            for gone in [node for node in self.remotes.values() if node.silent_s() > LOSS_S]:
-                gone.lose()
+            with self._losing_silent_nodes():
+                for name in reversed(list(self.specs)):
+                    node = self.specs[name].node if name in self.specs else None
+                    if node in self.remotes and self.silent(node):
+                        self.remotes[node].lose()         # it went meanwhile: no waiting
+                    try:
+                        # its request waits no longer than the deadline (a frozen worker's
+                        # stop would have waited 1 s past it, as its grace ran out)
+                        with bounding(deadline - time.monotonic()):
+                            self.node_of(name).stop_module(name, 2.0)
+                    except Exception as exc:
+                        # (a module stuck in on_input was killed at close, unsaid)
+                        self.not_torn_down.append(name)
+                        log.warning("module %r was not stopped (its worker is killed): %s",
+                                    name, exc)
             # side by side: a node that does not answer holds up no other; this machine's
             # own nodes (their processes and segments are here) are waited for
             remote = [threading.Thread(target=self._shut_node,
@@ -623,6 +621,39 @@ class Launcher:
         logging.getLogger().removeHandler(self.logbook)
         self.events.end()            # (a follower waiting for more is told there is none)
         self.logbook.end()
+
+    @contextlib.contextmanager
+    def _losing_silent_nodes(self) -> Iterator[None]:
+        """While the modules stop, and once they have, declare lost a remote node that
+        has answered no heartbeat for ``LOSS_S``: the watchdog has stopped with the
+        close. Such a node froze or was cut off, and its lease has run out, so its
+        workers have stopped their modules on their own (or will as soon as they run
+        again): the stop waited for fails at once, and the next ones go on in order (a
+        module whose node froze as the close waited for its teardown held the close to
+        its end, and the modules of this machine after it were killed, their teardowns
+        unrun). Nothing else is not waited for: a node answers its heartbeats apart from
+        its requests, however long a teardown takes, and one silent for less may be
+        only slow (on a loaded machine, 0.6 s as it tore a module down)."""
+        done = threading.Event()
+
+        def watch() -> None:
+            while not done.wait(HEARTBEAT_S / 2):
+                self._lose_silent_nodes()
+        watcher = threading.Thread(target=watch, name="pb3a-close-watch", daemon=True)
+        watcher.start()
+        try:
+            yield
+        finally:
+            done.set()
+            watcher.join(1.0)
+            self._lose_silent_nodes()
+
+    def _lose_silent_nodes(self) -> None:
+        for node in list(self.remotes.values()):
+            if not node.lost and node.silent_s() > LOSS_S:
+                log.warning("node %s has answered no heartbeat for %.1f s: it is not waited "
+                            "for as the system stops", node.name, node.silent_s())
+                node.lose()
 
     @staticmethod
     def _shut_node(name: str, node: Node, deadline: float, at_least: float) -> None:
