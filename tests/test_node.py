@@ -700,14 +700,16 @@ def test_a_lease_board_read_while_its_executor_writes_never_shows_a_torn_end(
         held = lease.Lease(closing, lambda: "m", board)
         assert held.holds()                         # a spare's: not taken
         start = time.monotonic()
-        board.write(start + 0.3)
+        # (ends a second apart: on a loaded machine this thread may wait 0.3 s for the
+        # CPU between two lines, and a first end 0.3 s ahead had passed by its check)
+        board.write(start + 1.0)
         held.take()
         assert held.holds()                         # (the end read, and kept)
-        board.write(start + 0.6)                    # extended: read once the kept end passed
-        eventually(lambda: time.monotonic() > start + 0.35, what="the first end passed")
+        board.write(start + 2.0)                    # extended: read once the kept end passed
+        eventually(lambda: time.monotonic() > start + 1.05, what="the first end passed")
         assert held.holds()
         eventually(lambda: not held.holds(), timeout=5, what="the extended end passed")
-        assert time.monotonic() > start + 0.6
+        assert time.monotonic() > start + 2.0
         closing.set()
         assert lease.Lease(threading.Event(), lambda: "m").holds()
     finally:
