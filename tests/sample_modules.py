@@ -356,6 +356,22 @@ class Journal(Module):
             journal.write(f"{what} {self.label}\n")
 
 
+class HeldInTeardown(Journal):
+    """A ``Journal`` whose teardown notes "stopping LABEL" as it begins, then waits while
+    ``hold`` exists and ``after_s`` more before its "stop": a test acts while the
+    teardown is under way, and sees whether it ran to its end."""
+
+    after_s = 0.0
+
+    def teardown(self) -> None:
+        self._note("stopping")
+        until = time.monotonic() + 30.0
+        while self.hold and os.path.exists(self.hold) and time.monotonic() < until:
+            time.sleep(0.01)
+        time.sleep(self.after_s)
+        self._note("stop")
+
+
 class Spawner(Agent):
     """On its first value spawns a probe, links it, then removes it on the next one."""
 

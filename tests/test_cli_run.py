@@ -323,6 +323,48 @@ def test_a_second_ctrl_c_while_it_stops_lets_the_stop_finish(tmp_path: Path) -> 
     assert err == "" and not live_segments(proc.pid)
 
 
+def test_a_third_ctrl_c_while_it_stops_leaves_the_stop_unfinished(tmp_path: Path) -> None:
+    """A third Ctrl-C as the stop waits for a long teardown leaves the stop unfinished,
+    as the second's line says: `pb3a run` ends at once (130, one line), its workers
+    ending with it. The close it interrupts is not finished as the program exits
+    (seconds more, a warning for each module it gave up on), as a program's close is."""
+    (tmp_path / "stuck.py").write_text(textwrap.dedent("""
+        import time
+        from pb3a import Module
+
+        class StuckInTeardown(Module):
+            period = 0.05
+
+            def step(self):
+                pass
+
+            def teardown(self):
+                print("tearing down", flush=True)
+                time.sleep(3.0)
+        """))
+    (tmp_path / "stuck.toml").write_text(
+        'name = "stuck"\n[modules.a]\nclass = "stuck:StuckInTeardown"\n'
+        '[modules.b]\nclass = "stuck:StuckInTeardown"\n')
+    proc = _in_its_own_group("run", str(tmp_path / "stuck.toml"), cwd=tmp_path)
+    with _killed_if_left(proc):
+        assert "running" in proc.stdout.readline()
+        workers = eventually(lambda: _workers_of(psutil.Process(proc.pid)),
+                             what="the workers")
+        for said in ("tearing down", "still stopping"):
+            os.killpg(proc.pid, signal.SIGINT)
+            while said not in (line := proc.stdout.readline()):
+                assert line, f"pb3a run ended without saying {said!r}"
+        os.killpg(proc.pid, signal.SIGINT)
+        began = time.monotonic()
+        proc.wait(timeout=30)
+        took = time.monotonic() - began
+        _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130 and err == "pb3a: interrupted\n", err
+    assert took < 2.0, f"it ended {took:.1f} s after the third Ctrl-C"
+    eventually(lambda: not [pid for pid in workers if alive(pid)], what="the workers' end")
+    assert not live_segments(proc.pid)
+
+
 def test_ctrl_c_once_the_stop_is_over_changes_nothing(tmp_path: Path) -> None:
     """Two quick Ctrl-Cs stopped the system cleanly, and then `pb3a run` exited 130 or
     was killed by SIGINT (3 runs in 5): the first reaches the workers too, so the stop

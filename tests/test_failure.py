@@ -42,6 +42,7 @@ from sample_modules import (
     Faulty,
     FloatSource,
     Freezer,
+    HeldInTeardown,
     Hoard,
     InputFreezer,
     Journal,
@@ -1896,6 +1897,164 @@ def test_a_close_names_a_module_stuck_in_on_input_whose_teardown_did_not_run(
     assert len(said) == 1, said
     assert re.search(r"module 'f' was not stopped \(its worker is killed\).*busy in "
                      r"on_input for .*its teardown has not run", said[0]), said[0]
+
+
+def _interrupting_close(run, journal: Path) -> None:
+    """A close of ``run`` that a Ctrl-C (SIGINT to the main thread) interrupts as module
+    b's teardown has begun, and that teardown still waits (``HeldInTeardown.hold``)."""
+    main = threading.main_thread().ident
+
+    def ctrl_c_once_b_tears_down() -> None:
+        eventually(lambda: "stopping b" in _journal(journal), timeout=30,
+                   what="b's teardown")
+        signal.pthread_kill(main, signal.SIGINT)
+
+    interrupter = threading.Thread(target=ctrl_c_once_b_tears_down, daemon=True)
+    interrupter.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            run.close(timeout=30)
+    finally:
+        interrupter.join(35)
+
+
+def _journal(path: Path) -> list[str]:
+    return path.read_text().splitlines() if path.exists() else []
+
+
+def test_a_close_a_ctrl_c_interrupts_is_finished_by_the_next(tmp_path: Path) -> None:
+    """A Ctrl-C as a close waited for a module's teardown left the system half stopped:
+    the close had taken the system for stopped as it began, so the next close (the
+    ``with`` block's end, the exit's) did nothing. The modules it had not reached ran
+    on, their teardowns never run, their workers and segments kept until the process
+    ended, and ``not_torn_down`` named none of them. Now they are named until the stop
+    is finished, and the next close finishes it: the modules left are stopped in order,
+    the one whose teardown the Ctrl-C came in finishes it, those stopped already are not
+    stopped again, and every worker and segment is freed."""
+    journal, hold = tmp_path / "journal", tmp_path / "hold"
+    hold.touch()
+    system = System("interrupted-close")
+    system.add("tick", Counter, period=0.01)
+    for name in ("a", "b", "c"):
+        system.add(name, HeldInTeardown, state={
+            "path": str(journal), "label": name, "hold": str(hold) if name == "b" else "",
+            "after_s": 0.5 if name == "b" else 0.0})
+    system.add("sink", Collector)
+    system.link("tick.out", "sink.x")
+    run = system.launch(timeout=30)
+    try:
+        pids = [module.pid for module in run.stats().modules.values()]
+        eventually(lambda: run.stats().modules["sink"].inputs["x"].received > 0,
+                   what="values over the link")
+        _interrupting_close(run, journal)
+        assert not run.running
+        assert run.not_torn_down == ["b", "a", "tick"]
+        assert all(alive(pid) for pid in pids) and live_segments(os.getpid())
+        hold.unlink()
+        run.close(timeout=30)
+    finally:
+        hold.unlink(missing_ok=True)
+        run.close()                                      # (nothing, once closed)
+    assert _journal(journal) == ["start a", "start b", "start c", "stopping c", "stop c",
+                                 "stopping b", "stop b", "stopping a", "stop a"]
+    assert run.not_torn_down == []
+    assert not [pid for pid in pids if alive(pid)]
+    assert not live_segments(os.getpid())
+
+
+def test_a_close_a_ctrl_c_interrupts_as_it_ends_the_workers_is_finished_by_the_next() -> None:
+    """... also when the Ctrl-C comes once every module is stopped, as the node's
+    workers are told to exit, the first just ended: the next close ends the others, the
+    spare workers among them, and frees the rings, asking no module to stop again. (The
+    spares were taken off the pool's list before they were stopped: one the Ctrl-C left
+    ended only once its handle was collected, and a console, which keeps the last
+    traceback and the close's frames with it, kept it running.)"""
+    system = System("interrupted-workers")
+    system.add("tick", Counter, period=0.01)
+    system.add("sink", Collector)
+    system.link("tick.out", "sink.x")
+    run = system.launch(timeout=30)
+    try:
+        eventually(lambda: run.stats().modules["sink"].inputs["x"].received > 0,
+                   what="values over the link")
+        (node,) = run._launcher.nodes.values()
+        pids = eventually(lambda: len(p := [*node.worker_pids(), *node.workers.spare_pids()])
+                          == 4 and p, what="its two modules' workers and two spares")
+        stop, stops = node.workers._stop, []
+
+        def interrupted_after_the_first(handle, timeout, until=None):
+            stop(handle, timeout, until)
+            stops.append(handle.pid)
+            raise KeyboardInterrupt
+
+        node.workers._stop = interrupted_after_the_first
+        with pytest.raises(KeyboardInterrupt) as interrupted:   # (kept, as by a console)
+            run.close(timeout=30)
+        node.workers._stop = stop
+        assert len(stops) == 1 and run.not_torn_down == []
+        assert live_segments(os.getpid())
+        run.close(timeout=30)
+    finally:
+        run.close()                                      # (nothing, once closed)
+    assert not [pid for pid in pids if alive(pid)], interrupted
+    assert not live_segments(os.getpid())
+
+
+def test_a_close_a_ctrl_c_interrupts_is_finished_as_the_script_exits(tmp_path: Path) -> None:
+    """A script whose close a Ctrl-C interrupted, and that went on to its end: the close
+    had let go of the exit's hook as it began, so the modules it had not reached were
+    never torn down, and the resource tracker warned of leaked shared memory. The exit
+    finishes the stop. The Ctrl-C comes as the close is to stop module b."""
+    (tmp_path / "interrupted.py").write_text(textwrap.dedent("""
+        import os
+        from pb3a import Input, Module, Output, System
+
+        class Noted(Module):
+            out = Output(int)
+            x = Input(int)
+            period = 0.01
+            label = ""
+
+            def step(self):
+                self.out.write(1)
+
+            def on_input(self, port):
+                port.read()
+
+            def teardown(self):
+                print("torn down", self.label, flush=True)
+
+        if __name__ == "__main__":
+            system = System("interrupted-at-exit")
+            for name in ("a", "b", "c"):
+                system.add(name, Noted, state={"label": name})
+            run = system.link("a.out", "b.x").link("b.out", "c.x").launch(timeout=30)
+            print("pids", os.getpid(), *(m.pid for m in run.stats().modules.values()),
+                  flush=True)
+            (node,) = run._launcher.nodes.values()
+            stop_module = node.stop_module
+
+            def interrupted(name, timeout):
+                if name == "b":
+                    raise KeyboardInterrupt
+                stop_module(name, timeout)
+
+            node.stop_module = interrupted
+            try:
+                run.close()
+            except KeyboardInterrupt:
+                print("interrupted", *run.not_torn_down, flush=True)
+            node.stop_module = stop_module
+        """))
+    done = subprocess.run([sys.executable, str(tmp_path / "interrupted.py")], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 0, done.stderr
+    assert "leaked" not in done.stderr and "Traceback" not in done.stderr, done.stderr
+    pids, *said = done.stdout.splitlines()
+    assert said == ["torn down c", "interrupted b a", "torn down b", "torn down a"], done.stderr
+    launcher, *workers = (int(pid) for pid in pids.split()[1:])
+    eventually(lambda: not [pid for pid in workers if alive(pid)], what="the workers' end")
+    assert not live_segments(launcher)
 
 
 def test_a_forced_remove_kills_no_worker_that_runs_other_modules() -> None:

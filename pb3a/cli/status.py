@@ -6,7 +6,9 @@ every module in reverse start order and frees every process and segment.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
+import functools
 import math
 import os
 import re
@@ -121,6 +123,10 @@ def run_with_status(plan: Plan, seconds: float | None, out: TextIO | None = None
     with patient_stop(show, final=final) as stop:
         with launch(plan, listen=listen) as run:
             stop.running()       # (from the first line on, a signal means a clean stop)
+            # a stop left unfinished, as the signal that does so asks, is not finished
+            # as the program exits (the close's own hook would, for seconds, and name
+            # the modules it gave up on)
+            stop.on_leaving(functools.partial(atexit.unregister, run.close_at_exit))
             try:
                 address = run.address or run.listen()
                 show(f"pb3a: system {run.name!r} running"
@@ -186,6 +192,7 @@ class _Stop:
         self._stopping = False
         self._stopped = False
         self._unheeded = 0       # the signals that came while it stopped
+        self._leave: Callable[[], None] = lambda: None
 
     def running(self) -> None:
         """The system runs: the next signal begins its stop."""
@@ -205,6 +212,10 @@ class _Stop:
         """Whether the stop is over (``end``)."""
         return self._stopped
 
+    def on_leaving(self, leave: Callable[[], None]) -> None:
+        """Call ``leave`` as a signal leaves the stop unfinished."""
+        self._leave = leave
+
     def interrupted(self, signum: int, frame: object) -> None:
         """The handler of ``_STOPPING``."""
         if self._stopped:
@@ -215,6 +226,7 @@ class _Stop:
                 self._show("pb3a: still stopping (seconds at most); interrupt once more "
                            "to leave it unfinished\n")
                 return
+            self._leave()
         self._stopping = self._running
         raise KeyboardInterrupt
 

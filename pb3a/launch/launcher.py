@@ -80,7 +80,14 @@ class Launcher:
         self.lost_values: collections.Counter[str] = collections.Counter()  # per link key
         self.arriving: dict[str, str] = {}            # module -> the node a move lands it on
         self.unconfirmed: list[str] = []    # remote nodes whose stop was not confirmed
-        self.not_torn_down: list[str] = []  # modules that did not stop at shutdown
+        # What a shutdown has done, so that one interrupted (a Ctrl-C) is finished by the
+        # next: the modules it has stopped or given up on, the nodes it has shut down,
+        # and the threads shutting the remote ones down
+        self._given_up: list[str] = []      # modules that did not stop at shutdown
+        self._settled: set[str] = set()
+        self._shut: set[str] = set()
+        self._shutting: dict[str, threading.Thread] = {}
+        self._shut_down = False             # a shutdown has run to its end
         self._callback: str | None = None            # where remote executors reach us
         self.events = EventLog()                      # what happened, for run.events()
         self.logbook = LogBook()                      # the recent log, for run.logs()
@@ -568,10 +575,28 @@ class Launcher:
         """True once ``shutdown`` has begun."""
         return self.stopping.is_set()
 
+    @property
+    def not_torn_down(self) -> list[str]:
+        """The modules a shutdown did not stop, in the order it stops them: those that
+        did not stop in time (their workers are killed) and, until a shutdown has run
+        to its end (one was interrupted), those it has not stopped yet."""
+        if not self.stopped or self._shut_down:
+            return list(self._given_up)
+        return [*self._given_up, *self._left_to_stop()]
+
+    def _left_to_stop(self) -> list[str]:
+        """The modules the shutdown has still to stop, in reverse start order."""
+        return [name for name in reversed(list(self.specs)) if name not in self._settled]
+
     def shutdown(self, timeout: float = 10.0) -> None:
         """Stop modules in reverse start order (across nodes), then every node, within
         about ``timeout`` seconds: a change in progress is waited for half of it at
-        most (then the system stops all the same, the change failing as it can)."""
+        most (then the system stops all the same, the change failing as it can).
+
+        One interrupted (a Ctrl-C's KeyboardInterrupt, wherever it comes) is finished by
+        the next call, within that call's ``timeout``: the modules it stopped, or gave
+        up on, are not stopped again, nor are the nodes it shut down; a remote node's
+        shutdown still under way is waited for, not begun again."""
         deadline = time.monotonic() + timeout
         self.stopping.set()
         for thread in self._background:
@@ -588,7 +613,7 @@ class Launcher:
             # Without the lock, a change may remove a module or a node meanwhile: each is
             # stopped on its own, and nothing that fails keeps the rest from stopping.
             with self._losing_silent_nodes():
-                for name in reversed(list(self.specs)):
+                for name in self._left_to_stop():
                     node = self.specs[name].node if name in self.specs else None
                     if node in self.remotes and self.silent(node):
                         self.remotes[node].lose()         # it went meanwhile: no waiting
@@ -599,28 +624,31 @@ class Launcher:
                             self.node_of(name).stop_module(name, 2.0)
                     except Exception as exc:
                         # (a module stuck in on_input was killed at close, unsaid)
-                        self.not_torn_down.append(name)
+                        if name not in self._given_up:     # (a Ctrl-C came as it was said)
+                            self._given_up.append(name)
                         log.warning("module %r was not stopped (its worker is killed): %s",
                                     name, exc)
+                    self._settled.add(name)
             # side by side: a node that does not answer holds up no other; this machine's
             # own nodes (their processes and segments are here) are waited for
-            remote = [threading.Thread(target=self._shut_node,
-                                       args=(name, node, deadline, STOP_AT_LEAST_S),
-                                       name=f"pb3a-shutdown-{name}", daemon=True)
-                      for name, node in reversed(list(self.nodes.items()))
-                      if name in self.remotes]
-            for thread in remote:
-                thread.start()
             for name, node in reversed(list(self.nodes.items())):
-                if name not in self.remotes:
+                if name in self.remotes and name not in self._shutting:
+                    thread = threading.Thread(target=self._shut_node,
+                                              args=(name, node, deadline, STOP_AT_LEAST_S),
+                                              name=f"pb3a-shutdown-{name}", daemon=True)
+                    thread.start()
+                    self._shutting[name] = thread
+            for name, node in reversed(list(self.nodes.items())):
+                if name not in self.remotes and name not in self._shut:
                     self._shut_node(name, node, deadline, 0.0)
-            for thread in remote:       # (what each is given past the deadline, and a
-                                        # moment for its thread to begin)
+            for thread in self._shutting.values():   # (what each is given past the
+                                                     # deadline, and a moment to begin)
                 thread.join(max(0.0, deadline - time.monotonic()) + STOP_AT_LEAST_S + 0.25)
         self.unconfirmed = [name for name, node in self.remotes.items() if not node.stopped]
         logging.getLogger().removeHandler(self.logbook)
         self.events.end()            # (a follower waiting for more is told there is none)
         self.logbook.end()
+        self._shut_down = True
 
     @contextlib.contextmanager
     def _losing_silent_nodes(self) -> Iterator[None]:
@@ -655,15 +683,16 @@ class Launcher:
                             "for as the system stops", node.name, node.silent_s())
                 node.lose()
 
-    @staticmethod
-    def _shut_node(name: str, node: Node, deadline: float, at_least: float) -> None:
+    def _shut_node(self, name: str, node: Node, deadline: float, at_least: float) -> None:
         """Shut node ``name`` down in what is left of the time, or ``at_least`` seconds if
         less is left (none for a node of this machine: its workers that did not stop
-        are then killed at once); log what fails."""
+        are then killed at once); log what fails. Once it has returned, the node is
+        shut down (``_shut``): a shutdown interrupted before does it again."""
         try:
             node.shutdown(max(at_least, deadline - time.monotonic()))
         except Exception:
             log.exception("shutting node %s down", name)
+        self._shut.add(name)
 
 
 def _link_table(links: dict[str, FlatLink], modules: dict[str, ModuleStats],

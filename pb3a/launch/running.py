@@ -135,7 +135,9 @@ class Running(SystemHandle):
         self._operations = Operations(self._launcher, self._env,
                                       DEFAULT_TIMEOUT if default is None else default)
         self._launcher.handler = self._agent_request
-        self._stopped = threading.Event()
+        self._stopped = threading.Event()     # set as the close begins
+        self._closed = False                  # a close has run to its end
+        self._closing = threading.Lock()      # held by the close under way
         self._owner = os.getpid()             # (a forked child inherits this handle)
         self._server: ControlServer | None = None
         self.address: str | None = None       # where `pb3a status ADDR` etc. reach it
@@ -179,16 +181,31 @@ class Running(SystemHandle):
     def close(self, timeout: float = 10.0) -> None:
         """Stop every module (reverse start order) and worker; free every segment. A
         timeout that is not seconds is refused, the system left running (NaN or -5 was
-        taken for 0: no module's teardown ran)."""
+        taken for 0: no module's teardown ran).
+
+        A close interrupted (a Ctrl-C: KeyboardInterrupt) is finished by the next one,
+        within its own ``timeout``: another ``close()``, the ``with`` block's end, or the
+        exit's (``close_at_exit``); the modules it stopped are not stopped again. Until
+        then ``not_torn_down`` names the modules it has not stopped. (It did nothing:
+        the system was taken for stopped, its modules left running, never torn down,
+        and their workers and segments kept until the process ended.) A close called
+        while another thread's is under way returns at once, as before."""
         timeout = bounded_wait(timeout, "close")
-        if not self._stopped.is_set():
+        if not self._closing.acquire(blocking=False):
+            return
+        try:
+            if self._closed:
+                return
             self._stopped.set()
-            atexit.unregister(self.close_at_exit)
             try:
                 self._launcher.shutdown(timeout)
             finally:
                 if self._server is not None:
                     self._server.close()
+            self._closed = True
+            atexit.unregister(self.close_at_exit)
+        finally:
+            self._closing.release()
 
     def close_at_exit(self) -> None:
         """``close``, as the script that launched the system exits without having
@@ -295,8 +312,10 @@ class Running(SystemHandle):
     @property
     def not_torn_down(self) -> list[str]:
         """After ``close``: the modules that did not stop in time (stuck in a body), each
-        named in a warning; their workers were killed, their ``teardown`` not run."""
-        return list(self._launcher.not_torn_down)
+        named in a warning; their workers were killed, their ``teardown`` not run. After
+        a close that was interrupted, the modules it had not stopped too, until a close
+        finishes the stop."""
+        return self._launcher.not_torn_down
 
     # -- requests from elsewhere ----------------------------------------------------
     def _import_first(self, module: str, name: str) -> None:

@@ -759,11 +759,13 @@ class WorkerPool:
                 # not after this join has waited out the close's whole time for it
                 self._stop_if_preloading()
             self._booting.join(max(0.1, deadline - time.monotonic()))
-        with self._spares_lock:
-            spares, self._spares = self._spares, []
+        with self._spares_lock:     # (listed until stopped: a close a Ctrl-C interrupts
+            spares = list(self._spares)     # is done again, and stops them then)
         for handle in [*spares, *reversed(list(self.handles.values()))]:
             left = deadline - time.monotonic()
             self._stop(handle, max(EXIT_AT_LEAST_S, min(2.0, left)), until=deadline)
+        with self._spares_lock:
+            self._spares = []
         for thread, handle in self._retiring:
             thread.join(max(0.1, deadline - time.monotonic()))
             if thread.is_alive() and handle.process is not None:

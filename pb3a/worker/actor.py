@@ -196,7 +196,7 @@ class ModuleActor:
         self._stepped_at: float | None = None  # when its last step ended (monotonic)
         self._stepping = False                  # a step is under way
         self._torn_down = False                 # its teardown ran, or runs now (once)
-        self._teardown_once = threading.Lock()
+        self._teardown_once = threading.Lock()  # held while its teardown runs
         self._halted = False                    # stopping: it does not start any more
         # whether its bodies may run now (its worker's lease holds: Lease.holds)
         self.may_run: Callable[[], bool] = _always
@@ -258,8 +258,14 @@ class ModuleActor:
         (a second remove of a module stuck in its step was taken for stopped: it was
         dropped, its teardown never run). ``timeout`` bounds the whole stop (the step
         thread's join and the lock's wait each took it: a stuck step answered after
-        twice the time, past its caller's wait)."""
+        twice the time, past its caller's wait). A stop asked while the teardown runs
+        (a close a Ctrl-C interrupted, finished by the next) waits for it, within
+        ``timeout``: answered at once, its worker was told to exit meanwhile, which cut
+        the teardown short."""
         if self._torn_down:
+            if not self._teardown_once.acquire(timeout=timeout):
+                return False
+            self._teardown_once.release()
             return True
         self.halt()
         deadline = time.monotonic() + timeout
@@ -282,6 +288,11 @@ class ModuleActor:
             finished = False
         return finished
 
+    @property
+    def tearing_down(self) -> bool:
+        """Whether its ``teardown`` runs now."""
+        return self._teardown_once.locked()
+
     def busy_in(self) -> str:
         """What the module is busy in now, for an error ("in on_input for 4.2 s"); ""
         if nothing runs (any more)."""
@@ -292,11 +303,11 @@ class ModuleActor:
 
     def _tear_down(self) -> None:
         """Run ``teardown``, once, whoever asks (a stop, or a start halted during its
-        setup, may ask at the same time)."""
+        setup, may ask at the same time): one that asks while it runs waits for it."""
         with self._teardown_once:
             torn_down, self._torn_down = self._torn_down, True
-        if not torn_down:
-            self.call("teardown")
+            if not torn_down:
+                self.call("teardown")
 
     @contextlib.contextmanager
     def _setting_up(self) -> Iterator[None]:

@@ -337,7 +337,8 @@ class Worker:
         actor = self.actors[name]
         if not actor.stop(grace):
             raise TimeoutError(f"module {name!r} did not stop within {grace:.1f} s: it is busy "
-                               f"{actor.busy_in() or 'in a call'}, and its teardown has not run")
+                               f"{actor.busy_in() or 'in a call'}, and its teardown has not "
+                               f"{'finished' if actor.tearing_down else 'run'}")
         return True
 
     def op_retime(self, name: str, period: float) -> None:
