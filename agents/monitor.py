@@ -86,13 +86,19 @@ _GROUP_OF_FEATURE = np.array([MOTORS, MOTORS, ODOMETRY, *[SONAR] * SONARS])
 _LEAST_SPREAD = np.array([0.01, 0.02, 0.005, *[0.5] * SONARS])
 # Odometry's heading error per sample is fitted as scale * turn + drift * distance +
 # latency * (change of turn rate): a scale error on turns, a drift per metre, and the
-# pose lagging odometry, whose error is the change of the turn rate over the sample
-# times the lag, however long the sample. (Taken as the change of the turn from the
-# sample before, a reading late by 0.2-0.4 s, whose turn is twice or thrice a timely
-# one's, made a change of turn that no lag gave, and the fit put it on the drift: one
-# in ten readings late gave false odometry alarms, 0.026 rad/m.) The ridge keeps the
-# fit solvable when a regressor is idle (rad^2, m^2, (rad/s)^2: the last is the old
-# 1e-4 rad^2 on the change of turn over 0.1 s samples, the same fit at 10 Hz).
+# pose lagging odometry (RAVE's by one physics step, 0.01 s), whose error is the lag
+# times the change of the turn rate from the last reading to this one, however long
+# the sample. The rate at a reading is not measured: it is the pose's mean rate over
+# the sample, moved by how far the motors' known response (``FeatureTracker.expected``,
+# through the commands as they came) ends from its own mean over the sample. (Taken
+# as the change of the turn from the sample before, a reading late by 0.2-0.4 s,
+# whose turn is twice or thrice a timely one's, made a change of turn that no lag
+# gave, and the fit put it on the drift: one in ten readings late gave false
+# odometry alarms, 0.026 rad/m. Taken as the change of the mean rates, the same
+# readings, late, during the explorer's hard turn reversals, put the lag's error on
+# the drift still: where the rate turns round within a long sample, its mean says
+# little of where it ends, and false odometry alarms came at 0.031-0.038 rad/m.)
+# The ridge keeps the fit solvable when a regressor is idle (rad^2, m^2, (rad/s)^2).
 _RIDGE = np.diag([1e-4, 1e-6, 1e-2])
 
 
@@ -126,9 +132,9 @@ class FeatureTracker:
         # per sample: v and w residuals, expected |v| and |w|
         self.motions = np.zeros((motor_window, 4))
         # per sample: odometry's heading error; the pose's turn, distance (unsigned) and
-        # change of turn rate (rad/s) from the sample before
+        # change of turn rate (rad/s) from the last reading (see _RIDGE)
         self.travel = np.zeros((odometry_window, 4))
-        self.last_rate = 0.0                 # the pose's turn rate over the last sample
+        self.last_rate = 0.0                 # the pose's turn rate at the last reading
         self.last_clock = math.nan           # the robot's time of the last sample
         self.samples = 0
 
@@ -186,7 +192,9 @@ class FeatureTracker:
         self.motions[self.samples % len(self.motions)] = (
             odometry_distance / dt - expected[0],
             odometry_turn / dt - expected[1], *np.abs(expected))
-        rate = pose_turn / dt
+        # the turn rate at this reading: the mean measured, moved to the sample's end as
+        # the response moved from its mean (see _RIDGE)
+        rate = pose_turn / dt + self.expected[1] - expected[1]
         self.travel[self.samples % len(self.travel)] = (
             odometry_turn - pose_turn, pose_turn, abs(pose_distance), rate - self.last_rate)
         self.last_rate = rate
