@@ -8,8 +8,8 @@ gives features in three groups, each the evidence of one kind of fault:
   first-order lag with acceleration limits), against the motion odometry measured,
   averaged over 0.5 s. A motor power cut leaves the wheels still under a command.
 - ``odometry``: how far odometry's heading drifts from the pose's per metre
-  travelled, over 4 s, beside its error in scale on turns and the pose's latency.
-  A biased odometer drifts; a sound one does not.
+  travelled, over 4 s, beside its error in scale on turns (which wanders, as the
+  wheels slip) and the pose's latency. A biased odometer drifts; a sound one does not.
 - ``sonar``: per transducer, the span of headings the robot has turned through
   since the transducer last heard an echo. A dead one never hears one, however the
   robot turns; a live one among walls seldom turns through half a circle without
@@ -85,8 +85,10 @@ _GROUP_OF_FEATURE = np.array([MOTORS, MOTORS, ODOMETRY, *[SONAR] * SONARS])
 # in 7-15 s of wandering (against 5-13 s).
 _LEAST_SPREAD = np.array([0.01, 0.02, 0.005, *[0.5] * SONARS])
 # Odometry's heading error per sample is fitted as scale * turn + drift * distance +
-# latency * (change of turn rate): a scale error on turns, a drift per metre, and the
-# pose lagging odometry (RAVE's by one physics step, 0.01 s), whose error is the lag
+# latency * (change of turn rate) + wander * turn * time: a scale error on turns, a
+# drift per metre, the pose lagging odometry, and the scale's wander over the window.
+#
+# The pose lags odometry (RAVE's by one physics step, 0.01 s), whose error is the lag
 # times the change of the turn rate from the last reading to this one, however long
 # the sample. The rate at a reading is not measured: it is the pose's mean rate over
 # the sample, moved by how far the motors' known response (``FeatureTracker.expected``,
@@ -98,8 +100,20 @@ _LEAST_SPREAD = np.array([0.01, 0.02, 0.005, *[0.5] * SONARS])
 # readings, late, during the explorer's hard turn reversals, put the lag's error on
 # the drift still: where the rate turns round within a long sample, its mean says
 # little of where it ends, and false odometry alarms came at 0.031-0.038 rad/m.)
-# The ridge keeps the fit solvable when a regressor is idle (rad^2, m^2, (rad/s)^2).
-_RIDGE = np.diag([1e-4, 1e-6, 1e-2])
+#
+# The scale error on turns wanders as the wheels' slip does (RAVE's emulator: a
+# random walk of 0.2% in a second): the wander is its change per second, the time
+# the sample's middle less the window's. (Fitted as one scale over the window, a
+# scale that wandered by 1% between a robot turning on the spot and its driving off
+# in an arc, where the turn goes with the distance, was put on the drift: a sound
+# odometer read 0.023 rad/m, the alarm's level, among the explorer's turn reversals.)
+#
+# The ridge keeps the fit solvable when a regressor is idle (rad^2, m^2, (rad/s)^2,
+# (rad s)^2). The wander's, against the heading's noise per sample (0.0005 rad),
+# holds its slope to about 0.1% a second, what a random walk of 0.2% in a second
+# slopes by over a window of 4 s: a slope left free took the drift's information
+# with it, and a biased odometer was told up to 1.3 s later.
+_RIDGE = np.diag([1e-4, 1e-6, 1e-2, 0.25])
 
 
 class FeatureTracker:
@@ -135,11 +149,14 @@ class FeatureTracker:
         # change of turn rate (rad/s) from the last reading (see _RIDGE)
         self.travel = np.zeros((odometry_window, 4))
         self.last_rate = 0.0                 # the pose's turn rate at the last reading
+        # per sample (as travel's rows): its middle in the robot's time since the first
+        self.times = np.zeros(odometry_window)
+        self.elapsed = 0.0                   # the robot's time since the first sample
         self.last_clock = math.nan           # the robot's time of the last sample
         self.samples = 0
 
     _STATE = ("expected", "last_odometry", "last_pose", "heading", "quiet", "motions",
-              "travel", "last_rate", "last_clock", "samples")
+              "travel", "last_rate", "times", "elapsed", "last_clock", "samples")
 
     def state(self) -> dict[str, Any]:
         """The running history (numpy arrays and numbers), for ``restore``."""
@@ -198,6 +215,8 @@ class FeatureTracker:
         self.travel[self.samples % len(self.travel)] = (
             odometry_turn - pose_turn, pose_turn, abs(pose_distance), rate - self.last_rate)
         self.last_rate = rate
+        self.elapsed += dt
+        self.times[self.samples % len(self.times)] = self.elapsed - dt / 2.0
         self.samples += 1
 
         if self.samples > len(self.motions):
@@ -205,7 +224,7 @@ class FeatureTracker:
             features[0:2] = v_residual, w_residual
             informative[MOTORS] = speed >= self.min_speed or turn >= self.min_turn
         if self.samples > len(self.travel):
-            drift, spread = _drift_per_metre(self.travel)
+            drift, spread = _drift_per_metre(self.travel, self.times)
             if spread * self.heading_noise <= self.drift_resolution:
                 features[2] = drift
                 informative[ODOMETRY] = True
@@ -284,12 +303,13 @@ def _forward_and_turn(before: np.ndarray, after: np.ndarray) -> tuple[float, flo
     return float(forward), turn
 
 
-def _drift_per_metre(travel: np.ndarray) -> tuple[float, float]:
+def _drift_per_metre(travel: np.ndarray, times: np.ndarray) -> tuple[float, float]:
     """The drift per metre of the least-squares fit of odometry's heading errors (see
-    ``_RIDGE``) over ``travel``'s samples, and its standard error per unit of noise:
-    large when the robot barely moved, or drove one steady arc, where a drift and a
-    scale error on turns explain the same errors."""
-    error, regressors = travel[:, 0], travel[:, 1:]
+    ``_RIDGE``) over ``travel``'s samples, taken at ``times``, and its standard error
+    per unit of noise: large when the robot barely moved, or drove one steady arc,
+    where a drift and a scale error on turns explain the same errors."""
+    wander = travel[:, 1] * (times - times.mean())
+    error, regressors = travel[:, 0], np.column_stack([travel[:, 1:], wander])
     covariance = np.linalg.inv(regressors.T @ regressors + _RIDGE)
     return float((covariance @ (regressors.T @ error))[1]), math.sqrt(covariance[1, 1])
 

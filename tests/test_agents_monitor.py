@@ -293,8 +293,8 @@ def test_late_readings_are_no_odometry_drift_and_a_biased_odometer_is_still_told
     before, which such a reading made large with no lag to show for it, and the fit put
     the error on the drift (false odometry alarms, 0.026 rad/m, in two minutes of the
     lab: at 48 s on seed 2, at 61 and 78 s on seed 7). A biased odometer in the same
-    rhythm is still told, however biased, either way (measured: 4.3 s after the bias on
-    both, 4.5 s at 10 Hz)."""
+    rhythm is still told, however biased, either way (measured: 4.4 s after the bias on
+    both, whatever the bias, 4.5 s at 10 Hz)."""
     assert raised(model, loaded(seed, 120.0, late=0.1)) == []
     for bias in (-0.1, -0.05, -0.03, 0.03, 0.05, 0.1):
         biased = raised(model, loaded(seed, 40.0, 30.0, "odometry_bias", late=0.1, bias=bias))
@@ -313,9 +313,21 @@ def test_hard_turn_reversals_among_late_readings_are_no_odometry_drift(
     rate ends when it turns round within a long one, the error went on the drift: false
     odometry alarms on three of these eight seeds' three minutes (5, 6 and 8: 0.031-0.038
     rad/m). The rate at each reading, moved from the mean as the motors' known response
-    moved from its own, leaves none."""
-    assert raised(model, loaded(seed, 180.0, late=0.1, commands_late=True,
-                                controller=Looking(seed))) == []
+    moved from its own, leaves none. And the scale error on turns wanders with the
+    wheels' slip: taken as one scale over the window, its wander between a robot turning
+    on the spot and its driving off in an arc went on the drift too, up to 0.023 rad/m
+    (seed 1), the alarm's level; fitted with its wander, the drift read stays within
+    half of that (measured: 0.010 rad/m at most)."""
+    monitor, failures, drifts = FaultMonitor(model), [], []
+    for reading in loaded(seed, 180.0, late=0.1, commands_late=True, controller=Looking(seed)):
+        if monitor.tracker.repeats(reading["clock"]):
+            continue
+        features, informative = monitor.tracker.update(**reading)
+        failures += monitor.observe(features, informative)
+        if informative[GROUPS.index("odometry")]:
+            drifts.append(features[FEATURES.index("drift_per_m")])
+    assert failures == []
+    assert max(np.abs(drifts)) < 0.012, max(np.abs(drifts))     # rad/m
 
 
 @pytest.mark.parametrize("seed", [3, 4])
