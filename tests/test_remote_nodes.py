@@ -1463,10 +1463,18 @@ def test_a_controller_killed_once_it_started_the_executor_is_named_as_gone(
     assert "advertise" not in said, said
 
 
-def _restarted_said(run: pb3a.Running) -> list[str]:
-    """What the launch of ``run`` logged of a node controller restarted during its start."""
-    return [entry.message for entry in run.logs()
-            if "restarted during the start" in entry.message]
+def _launched_past_a_restart(name: str, daemon: Daemon) -> list[str]:
+    """Launch system ``name``, values flowing from node a to a module on ``daemon``'s
+    node b, until they arrive; what its launch logged of a node controller restarted
+    during its start."""
+    system = System(name, timeout=20).node("a").node("b", address=daemon.address)
+    system.add("src", Counter, node="a", period=0.01)
+    system.add("at_b", Collector, node="b")
+    system.link("src.out", "at_b.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("at_b")["received"] > 0, what="values at b")
+        return [entry.message for entry in run.logs()
+                if "restarted during the start" in entry.message]
 
 
 def test_a_controller_restarted_as_it_starts_the_executor_is_asked_again() -> None:
@@ -1478,15 +1486,8 @@ def test_a_controller_restarted_as_it_starts_the_executor_is_asked_again() -> No
     daemon = HoldsItsStarts("b")
     successor = Successor(daemon)
     killer, killed = _killing_as_it_starts(daemon)
-    system = System("controller-restarted", timeout=20).node("a").node(
-        "b", address=daemon.address)
-    system.add("src", Counter, node="a", period=0.01)
-    system.add("at_b", Collector, node="b")
-    system.link("src.out", "at_b.x")
     try:
-        with system.launch() as run:
-            eventually(lambda: run.state("at_b")["received"] > 0, what="values at b")
-            said = _restarted_said(run)
+        said = _launched_past_a_restart("controller-restarted", daemon)
     finally:
         successor.stop()
         daemon.stop()
@@ -1518,15 +1519,8 @@ def test_a_controller_restarted_once_it_started_the_executor_is_asked_again(
                 executor.wait(10)
             super().__init__(key, address, **kwargs)
     monkeypatch.setattr(remote, "ControlClient", KillingTheController)
-    system = System("controller-restarted-after", timeout=20).node("a").node(
-        "b", address=daemon.address)
-    system.add("src", Counter, node="a", period=0.01)
-    system.add("at_b", Collector, node="b")
-    system.link("src.out", "at_b.x")
     try:
-        with system.launch() as run:
-            eventually(lambda: run.state("at_b")["received"] > 0, what="values at b")
-            said = _restarted_said(run)
+        said = _launched_past_a_restart("controller-restarted-after", daemon)
     finally:
         successor.stop()
         daemon.stop()
