@@ -1426,18 +1426,11 @@ def test_a_controller_killed_as_it_starts_the_executor_is_named_as_gone() -> Non
     assert took < 5.0, took                     # (the connection closed, 1 s unanswered)
 
 
-def test_a_controller_killed_once_it_started_the_executor_is_named_as_gone(
-        monkeypatch) -> None:
-    """A node controller killed once it had answered with its executor's address (which
-    ended with it, before the launch reached it) was taken for a controller whose
-    executor answers where the launcher cannot reach it: "make [nodes.b] advertise an
-    address of that machine ...". The launch says the controller went away during the
-    start, and how to start it again."""
-    daemon = Daemon("b")
+def _kill_the_controller_once_it_answered(monkeypatch, daemon: Daemon) -> None:
+    """As the launch reaches for the executor ``daemon``'s controller told it of, the
+    controller is killed, and its executor has ended with it."""
 
     class KillingTheController(ControlClient):
-        """As the launch reaches for the executor it was told of, the controller is
-        killed, and its executor has ended with it."""
 
         def __init__(self, key: ClusterKey, address: str, **kwargs) -> None:
             if address != daemon.address and daemon.process.poll() is None:
@@ -1446,6 +1439,17 @@ def test_a_controller_killed_once_it_started_the_executor_is_named_as_gone(
                 executor.wait(10)
             super().__init__(key, address, **kwargs)
     monkeypatch.setattr(remote, "ControlClient", KillingTheController)
+
+
+def test_a_controller_killed_once_it_started_the_executor_is_named_as_gone(
+        monkeypatch) -> None:
+    """A node controller killed once it had answered with its executor's address (which
+    ended with it, before the launch reached it) was taken for a controller whose
+    executor answers where the launcher cannot reach it: "make [nodes.b] advertise an
+    address of that machine ...". The launch says the controller went away during the
+    start, and how to start it again."""
+    daemon = Daemon("b")
+    _kill_the_controller_once_it_answered(monkeypatch, daemon)
     system = System("controller-gone-after").node("a").node("b", address=daemon.address)
     system.add("at_b", Collector, node="b")
     try:
@@ -1507,18 +1511,7 @@ def test_a_controller_restarted_once_it_started_the_executor_is_asked_again(
     goes on."""
     daemon = Daemon("b")
     successor = Successor(daemon)
-
-    class KillingTheController(ControlClient):
-        """As the launch reaches for the executor it was told of, the controller is
-        killed, and its executor has ended with it (its successor takes over)."""
-
-        def __init__(self, key: ClusterKey, address: str, **kwargs) -> None:
-            if address != daemon.address and daemon.process.poll() is None:
-                executor = psutil.Process(daemon.executor_pid())
-                daemon.process.kill()
-                executor.wait(10)
-            super().__init__(key, address, **kwargs)
-    monkeypatch.setattr(remote, "ControlClient", KillingTheController)
+    _kill_the_controller_once_it_answered(monkeypatch, daemon)
     try:
         said = _launched_past_a_restart("controller-restarted-after", daemon)
     finally:
