@@ -808,6 +808,40 @@ def test_a_module_whose_node_freezes_as_it_stops_leaves_the_others_their_teardow
     assert took < 7.0, took
 
 
+def test_a_node_slow_to_answer_as_the_close_reaches_its_module_is_waited_for(
+        node_b, tmp_path: Path) -> None:
+    """Node b answers nothing for about 0.6 s (a loaded machine), less than its lease
+    (1.25 s) and than a lost node's silence (2 s), as the close goes on to its module:
+    it was taken for lost after 0.5 s, its executor killed, its module's teardown run
+    by its worker on its own and said not to have run. It is waited for: its module is
+    torn down in turn, and the node's stop is confirmed."""
+    b = node_b
+    journal, hold, began = tmp_path / "journal", tmp_path / "hold", tmp_path / "began"
+    system = System("slow-as-it-stops").node("a").node("b", address=b.address)
+    system.add("far", Journal, node="b", state={"path": str(journal), "label": "far"})
+    system.add("near", Journal, node="a", state={"path": str(journal), "label": "near",
+                                                 "hold": str(hold), "began": str(began)})
+    hold.touch()                                  # (near's teardown waits while it is there)
+    run = system.launch(timeout=30)
+    try:
+        closing = threading.Thread(target=run.close, kwargs={"timeout": 10.0}, daemon=True)
+        closing.start()
+        eventually(began.exists, what="the teardown of the module on a under way")
+        with frozen(b.executor_pid()):
+            eventually(lambda: run._launcher.remotes["b"].silent_s() > 0.6,
+                       what="b silent for 0.6 s")
+            hold.unlink()                         # (the close goes on to far's stop)
+            eventually(lambda: "stop near" in journal.read_text(), what="near torn down")
+        closing.join(30)
+    finally:
+        hold.unlink(missing_ok=True)
+        run.close()                               # (nothing, once closed)
+    assert not closing.is_alive()
+    assert journal.read_text().splitlines()[-2:] == ["stop near", "stop far"]
+    assert run.not_torn_down == []
+    assert run.unconfirmed == []
+
+
 def test_a_slow_teardown_on_a_remote_node_is_waited_for_in_turn(node_b,
                                                                  tmp_path: Path) -> None:
     """A module of node b whose ``teardown`` takes 2.2 s, longer than the silence that
