@@ -75,6 +75,7 @@ from pb3a import (
     System,
     serve_device,
 )
+from pb3a.cli.status import format_table
 from pb3a.config.compiler import validate
 from pb3a.config.description import read_description
 from pb3a.model.agent import RuntimeClient
@@ -1427,6 +1428,9 @@ def test_a_module_s_period_is_set_live_and_kept_across_a_move_and_a_restart() ->
     with system.launch() as run:
         eventually(lambda: run.state("retimer")["done"] == "yes", what="the agent's change")
         assert run.topology().modules["paced"].period == 10.0
+        assert run.stats().modules["paced"].period == 10.0
+        table = format_table(run.stats())                       # (pb3a status, pb3a run)
+        assert re.search(r"^paced +a +\d+ +running +10 ", table, re.M), table
         eventually(lambda: run.state("paced")["seen_period"] == 10.0, timeout=15,
                    what="self.period")
         assert steps_in(run, 0.5) <= 1                      # (at 0.01 s: about 50)

@@ -37,16 +37,18 @@ def format_table(stats: SystemStats) -> str:
     """The status table: one row per module, one per link, one per node (the rows
     ``pb3a nodes`` prints: it left out the embedded nodes, which ``pb3a nodes`` showed).
     A module's status says the call it is stuck in, and the change in progress that
-    acts on it ("running (migrate slow to b for 5 s)")."""
-    rows = [("module", "node", "pid", "status", "steps", "events", "cpu s", "errors",
-             "last error")]
+    acts on it ("running (migrate slow to b for 5 s)"); its period, the one it steps at
+    now (set live too), "-" for one run only on events."""
+    rows = [("module", "node", "pid", "status", "period s", "steps", "events", "cpu s",
+             "errors", "last error")]
     for name, m in stats.modules.items():
         status = m.status + (" (silent)" if m.silent else "") \
             + (f" (in {m.calling} for {m.calling_s:.0f} s)" if m.calling_s >= STUCK_S else "") \
             + (f" ({m.change} for {m.change_s:.0f} s)" if m.change else "") \
             + (f" (restarts {m.restarts})" if m.restarts else "")
-        rows.append((name, m.node, str(m.pid or "-"), status, str(m.steps), str(m.events),
-                     f"{m.cpu:.2f}", str(m.errors), _shortened(m.last_error)))
+        rows.append((name, m.node, str(m.pid or "-"), status,
+                     "-" if m.period is None else f"{m.period:g}", str(m.steps),
+                     str(m.events), f"{m.cpu:.2f}", str(m.errors), _shortened(m.last_error)))
     lines = _columns(rows)
     if stats.links:
         lines.append("")

@@ -488,7 +488,7 @@ class Launcher:
                 or next(iter(entries), None)
             if entry is None and change is not None:     # (no figures: none its own)
                 entry = ModuleStats(class_ref(spec.cls), spec.node, "", "running",
-                                    silent=True)
+                                    silent=True, period=spec.period)
             if entry is None:               # (its node lost, or not asked)
                 continue
             entry = dataclasses.replace(entry, node=spec.node)
@@ -739,8 +739,8 @@ def _silenced(report: NodeReport, node: str, placed: list[FlatModule]) -> NodeRe
     for spec in placed:
         entry = report.modules.get(spec.name)
         modules[spec.name] = ModuleStats(
-            class_ref(spec.cls), node, "", "running", silent=True) if entry is None \
-            else ModuleStats(entry.cls, entry.node, entry.worker, entry.status, entry.pid,
-                             silent=True, restarts=entry.restarts,
-                             checkpoints=entry.checkpoints)
+            class_ref(spec.cls), node, "", "running", silent=True, period=spec.period,
+        ) if entry is None else ModuleStats(
+            entry.cls, entry.node, entry.worker, entry.status, entry.pid, silent=True,
+            restarts=entry.restarts, checkpoints=entry.checkpoints, period=entry.period)
     return NodeReport(modules, {}, {}, [], None, report.spare_workers)

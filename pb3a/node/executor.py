@@ -685,7 +685,7 @@ class Executor:
         (``Lives.revival``), named as the change in progress."""
         spec = record.spec
         base = {"cls": f"{spec.cls.__module__}:{spec.cls.__qualname__}", "node": spec.node,
-                "worker": record.worker, "status": record.status,
+                "worker": record.worker, "status": record.status, "period": spec.period,
                 "restarts": record.restarts, "checkpoints": record.checkpoints}
         if revival is not None:
             base |= {"change": revival[0], "change_s": max(0.0, time.monotonic() - revival[1])}
@@ -694,7 +694,8 @@ class Executor:
             return ModuleStats(**base, pid=silent_pid, silent=silent_pid is not None)
         calling, calling_s = figures["calling"] or ("", 0.0)
         return ModuleStats(
-            **{**base, "cls": figures["class"]}, pid=report["pid"],
+            **{**base, "cls": figures["class"], "period": figures["period"]},
+            pid=report["pid"],
             running=figures["running"] and record.status == "running",
             calling=calling, calling_s=calling_s,
             steps=figures["steps"], events=figures["events"], errors=figures["errors"],

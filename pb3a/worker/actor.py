@@ -850,5 +850,5 @@ class ModuleActor:
                 "class": f"{type(self.module).__module__}:{type(self.module).__qualname__}",
                 "steps": self.steps, "events": self.events, "errors": self.errors,
                 "cpu": self.cpu + self._step_thread_cpu(), "last_error": self.last_error,
-                "running": self.running,
+                "running": self.running, "period": self.period,
                 "inputs": inputs, "outputs": outputs, "waits": waits}
