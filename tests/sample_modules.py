@@ -711,6 +711,79 @@ class Paced(Module):
         self.seen_period = self.period
 
 
+class SetsItsPeriod(Module):
+    """Notes when each of its last steps began (``time.monotonic()``); at the step after
+    ``to`` is set, assigns itself that period (``self.period = to``), once, noting when
+    (``assigned_at``), and ``to`` goes back to 0."""
+
+    period = 0.01
+    to = 0.0
+    assigned_at = 0.0
+    stamps: list = []
+    seen_period = 0.0
+
+    def step(self) -> None:
+        self.stamps = [*self.stamps[-9:], time.monotonic()]
+        self.seen_period = self.period
+        if self.to:
+            self.period, self.to = self.to, 0.0
+            self.assigned_at = time.monotonic()
+
+
+class AssignsNoPeriods(Module):
+    """At each step, assigns itself each of ``tried`` as its period, noting what each
+    assignment raised (or "" if none) and the period it then sees."""
+
+    period = 0.02
+    tried: list = []
+    raised: list = []
+    seen: list = []
+
+    def step(self) -> None:
+        for value in self.tried:
+            try:
+                self.period = value
+                self.raised.append("")
+            except Exception as exc:
+                self.raised.append(f"{type(exc).__name__}: {exc}")
+            self.seen.append(self.period)
+        self.tried = []
+
+
+class ListensOnly(Module):
+    """Handles its input's values only (no ``step()``); its setup assigns itself
+    ``period``, noting what that raised."""
+
+    x = Input(int)
+    raised = ""
+
+    def setup(self) -> None:
+        try:
+            self.period = 0.05
+        except Exception as exc:
+            self.raised = f"{type(exc).__name__}: {exc}"
+
+    def on_input(self, port) -> None:
+        port.read()
+
+
+class StepsOnceSetUp(Module):
+    """Handles its input's values and has a ``step()`` but no period: its setup gives it
+    one (``self.period = 0.05``), and it steps from then on, counting its steps."""
+
+    x = Input(int)
+    count = 0
+
+    def setup(self) -> None:
+        self.period = 0.05
+
+    def step(self) -> None:
+        self.count += 1
+
+    def on_input(self, port) -> None:
+        port.read()
+
+
 class Drifter(Module):
     """Counts its steps; its class refuses a ``count`` above 3, which its steps pass."""
 

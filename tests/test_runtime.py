@@ -28,6 +28,7 @@ from sample_modules import (
     ArrayReuser,
     ArraySink,
     ArraySource,
+    AssignsNoPeriods,
     Burst,
     Busy,
     Chain,
@@ -42,6 +43,7 @@ from sample_modules import (
     FloatSource,
     Fragile,
     Last,
+    ListensOnly,
     ListScribbler,
     ListSink,
     MapMaker,
@@ -54,10 +56,12 @@ from sample_modules import (
     Pump,
     Retimer,
     Scale,
+    SetsItsPeriod,
     Shift,
     SlowsItself,
     Spawner,
     Steady,
+    StepsOnceSetUp,
 )
 
 from agents.traffic.gap_out import GapOut
@@ -92,6 +96,7 @@ from pb3a.stats import (
 )
 from pb3a.testing import ModuleHarness
 from pb3a.worker.actor import EventPool, ModuleActor
+from pb3a.worker.periods import PeriodTeller
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -1453,6 +1458,153 @@ def test_a_module_s_period_is_set_live_and_kept_across_a_move_and_a_restart() ->
                    and m.steps > 0, timeout=20, what="the restarted module stepping")
         assert steps_in(run, 1.0) <= 7
         assert run.state("paced")["seen_period"] == 0.2
+
+
+def _gaps_after(stamps: list[float], since: float) -> list[float]:
+    """The time between the steps that began after ``since``, one to the next."""
+    after = [stamp for stamp in stamps if stamp > since]
+    return [b - a for a, b in itertools.pairwise(after)]
+
+
+def test_a_module_that_assigns_its_own_period_steps_at_it_and_keeps_it_moved_and_restarted(
+        ) -> None:
+    """``self.period = 0.3`` in a running module's step changed nothing the runtime
+    stepped by: it slept its old period (0.01 s) on, nothing said. It steps at the new
+    one from its next sleep on, as at a period set live with ``set_state``; the
+    launcher's record of it learns it, so that a move and a restart of its worker keep
+    it; ``stats`` and `pb3a status` show it."""
+    system = System("self-retimed")
+    system.node("a")
+    system.node("b")
+    system.add("paced", SetsItsPeriod, node="a", restart="fresh")
+
+    def gaps_after(run, since: float) -> list[float]:
+        return eventually(lambda: len(gaps := _gaps_after(run.state("paced")["stamps"],
+                                                          since)) >= 2 and gaps,
+                          timeout=15, what="three steps")
+
+    with system.launch() as run:
+        run.set_state("paced", to=0.3)
+        assigned = eventually(lambda: run.state("paced")["assigned_at"], what="the assignment")
+        gaps = gaps_after(run, assigned)
+        assert min(gaps) >= 0.25, f"steps {gaps} s apart after self.period = 0.3 (0.01 before)"
+        eventually(lambda: run.topology().modules["paced"].period == 0.3,
+                   what="the launcher's record of the period")
+        assert run.stats().modules["paced"].period == 0.3
+        table = format_table(run.stats())
+        assert re.search(r"^paced +a +\d+ +running +0\.3 ", table, re.M), table
+        run.migrate("paced", to="b")
+        moved = time.monotonic()
+        assert run.topology().modules["paced"].period == 0.3
+        gaps = gaps_after(run, moved)
+        assert min(gaps) >= 0.25, f"steps {gaps} s apart on node b (0.01 s: its old period)"
+        assert run.stats().modules["paced"].node == "b"
+        pid = run.stats().modules["paced"].pid
+        os.kill(pid, signal.SIGKILL)
+        eventually(lambda: (m := run.stats().modules["paced"]).pid not in (None, pid)
+                   and m.steps > 0, timeout=20, what="the restarted module stepping")
+        restarted = time.monotonic()
+        gaps = gaps_after(run, restarted)
+        assert min(gaps) >= 0.25, f"steps {gaps} s apart once restarted (fresh)"
+        assert run.state("paced")["seen_period"] == 0.3
+        assert run.stats().modules["paced"].period == 0.3
+
+
+def test_a_period_a_module_assigns_itself_that_is_no_period_raises_value_error() -> None:
+    """An assignment of ``self.period`` is checked as ``set_state(period=...)`` checks
+    it, but raises ``ValueError`` at the assignment, naming the module and the value
+    (it was taken as it was: a period of "fast" was no step rate, nothing said); a
+    period for a module whose class has no ``step()`` is refused as set_state refuses it.
+    Nothing changes: the module steps at its period before."""
+    system = System("no-periods")
+    system.add("m", AssignsNoPeriods, state={
+        "tried": ["fast", -1.0, None, True, float("nan"), 1e300, 0.2]})
+    system.add("listens", ListensOnly)
+    with system.launch() as run:
+        raised = eventually(lambda: len(r := run.state("m")["raised"]) == 7 and r,
+                            what="the assignments")
+        for said, value in zip(raised[:6], ("'fast'", "-1.0", "None", "True", "nan", "1e+300"),
+                               strict=True):
+            assert said.startswith(f"ValueError: module 'm': self.period = {value} is no "
+                                   "period: a period is a number of seconds from 0 to 1e+07 "
+                                   "(0: as fast as it can)"), said
+        assert raised[6] == "", raised[6]
+        assert run.state("m")["seen"] == [0.02] * 6 + [0.2]
+        assert run.state("listens")["raised"] == (
+            "ValueError: module 'listens': self.period = 0.05, but sample_modules:ListensOnly "
+            "has no step() for a period to call (it runs on_input as values come)")
+        assert run.stats().modules["listens"].period is None
+        eventually(lambda: run.topology().modules["m"].period == 0.2, what="its period kept")
+
+
+def test_an_event_driven_module_that_assigns_itself_a_period_is_stepped_at_it() -> None:
+    """A module run on its input's values, whose class has a ``step()`` but no period,
+    that gives itself one in its ``setup`` is stepped from then on, as ``set_state(name,
+    period=...)`` makes it (it was never stepped: "defines step() but has no period")."""
+    system = System("stepped-after-all")
+    system.add("m", StepsOnceSetUp)
+    with system.launch() as run:
+        eventually(lambda: run.state("m")["count"] >= 3, timeout=5, what="steps")
+        assert run.stats().modules["m"].period == 0.05
+        eventually(lambda: run.topology().modules["m"].period == 0.05,
+                   what="the launcher's record of the period")
+
+
+def test_the_periods_a_module_assigns_itself_are_told_one_at_a_time_the_last_last() -> None:
+    """Each period a module assigns itself is told to the runtime as a request that
+    waits for its configuration lock, without waiting for its answer; sent side by side,
+    such requests were carried out in any order, and a module that set 0.5, then 2, was
+    kept at 0.5. One is under way at a time, per module, and what was assigned meanwhile
+    goes once it is answered, the last one only."""
+    asked: list[tuple[str, float]] = []
+    answers: dict[str, list] = {}
+
+    def ask(name: str, period: float, answered) -> bool:
+        asked.append((name, period))
+        answers.setdefault(name, []).append(answered)
+        return True
+
+    teller = PeriodTeller(ask)
+    teller.tell("a", 0.5)
+    teller.tell("a", 2.0)
+    teller.tell("b", 1.0)                    # (another module's goes at once)
+    teller.tell("a", 3.0)
+    assert asked == [("a", 0.5), ("b", 1.0)]
+    answers["a"].pop(0)(True, None)
+    assert asked[-1] == ("a", 3.0)
+    answers["a"].pop(0)(False, "refused")    # (said in a warning; nothing more to tell)
+    teller.tell("a", 4.0)
+    assert asked[-1] == ("a", 4.0) and len(asked) == 4
+
+
+class _InitSetsPeriod(Module):
+    """Assigns itself a period in its ``__init__``, before anything runs it."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.period = 0.5
+
+    def step(self) -> None:
+        pass
+
+
+def test_a_period_assigned_in_init_is_said_to_set_nothing(caplog) -> None:
+    """A period a module's ``__init__`` assigns is replaced by the one the runtime runs
+    it at, the configuration's or its class's (a period given to the module): it was,
+    silently. A warning says so, and what to do instead."""
+    with caplog.at_level(logging.WARNING, logger="pb3a.module"):
+        actor = ModuleActor("early", _InitSetsPeriod(), lambda task: task(), 0.1)
+    assert actor.module.period == 0.1
+    (record,) = [r for r in caplog.records if "sets nothing" in r.getMessage()]
+    assert record.getMessage() == (
+        "module 'early': _InitSetsPeriod.__init__ assigns self.period = 0.5, which sets "
+        "nothing: the module runs at the period given to it (0.1 s: the configuration's, "
+        "add's or swap's, else its class's); give its class that period, or assign "
+        "self.period in setup()")
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="pb3a.module"):
+        ModuleActor("same", _InitSetsPeriod(), lambda task: task(), 0.5)
+    assert not caplog.records
 
 
 class CopiesItself(Module):

@@ -51,6 +51,31 @@ class StateRefused(ValueError):
         self.problems = list(problems)
 
 
+class _Period:
+    """A module class's ``period`` (``Module.__init_subclass__`` makes the value a class
+    gives it one of these). Read from the class, it is the class's period; from an
+    instance, the period it runs at (its worker puts it on the instance). Assigned on
+    an instance its worker runs, it is set live, as ``set_state(name, period=...)``
+    sets it (the worker's ``_pb3a_period_set``): a module that slowed itself with
+    ``self.period = 0.5`` slept its old period on, nothing said. On an instance no
+    worker runs (in its ``__init__``, in a test) it is a plain attribute."""
+
+    def __init__(self, default: Any) -> None:
+        self.default = default
+
+    def __get__(self, instance: Module | None, owner: type | None = None) -> Any:
+        if instance is None:
+            return self.default
+        return instance.__dict__.get("period", self.default)
+
+    def __set__(self, instance: Module, value: Any) -> None:
+        setter = instance.__dict__.get("_pb3a_period_set")
+        if setter is None:
+            instance.__dict__["period"] = value
+        else:
+            setter(value)
+
+
 class Module:
     """Base class of every port-based module.
 
@@ -58,7 +83,8 @@ class Module:
     ``0`` = as fast as possible) and ``restart`` (``"never"``, ``"fresh"`` or
     ``"last-state"``) configure how the runtime runs it; a configuration may
     override both (a running instance's ``self.period`` is the period it runs at, the
-    configuration's, ``add``'s or ``swap``'s if given). ``displays`` tells tools how to
+    configuration's, ``add``'s or ``swap``'s if given, and assigning it sets it live,
+    as ``set_state(name, period=...)`` does). ``displays`` tells tools how to
     show some state fields (``pb3a.model.displays``). Modules are constructed with no
     arguments.
 
@@ -68,7 +94,7 @@ class Module:
     the State Editor, so a value the module would refuse live is refused before it runs.
     """
 
-    period: ClassVar[float | None] = None
+    period: ClassVar[float | None] = _Period(None)    # type: ignore[assignment]
     restart: ClassVar[str] = "never"
     displays: ClassVar[dict[str, Any]] = {}
     inputs: ClassVar[dict[str, Input]] = {}
@@ -88,6 +114,9 @@ class Module:
                     inputs.pop(name, None)
         cls.inputs = inputs
         cls.outputs = outputs
+        own = vars(cls).get("period")
+        if "period" in vars(cls) and not hasattr(type(own), "__get__"):   # (a property stays)
+            cls.period = _Period(own)
 
     def __init__(self) -> None:
         # Mutable class defaults (lists, dicts, arrays, deques, objects of the module's

@@ -21,7 +21,9 @@ from collections import deque
 from typing import TYPE_CHECKING, Any
 
 from pb3a import latencies
-from pb3a.errors import RuntimeCancelled
+from pb3a.config import checks
+from pb3a.errors import MOST_SECONDS, RuntimeCancelled
+from pb3a.loading.references import class_ref
 from pb3a.model.module import Module, can_hold, restore_state
 from pb3a.model.ports import InputPort, OutputPort
 from pb3a.model.state_edits import checked
@@ -166,16 +168,18 @@ class ModuleActor:
 
     def __init__(self, name: str, module: Module, schedule: Callable[[Callable[[], None]], None],
                  period: float | None,
-                 on_error: Callable[[ModuleActor, str, str], None] | None = None) -> None:
+                 on_error: Callable[[ModuleActor, str, str], None] | None = None,
+                 on_period: Callable[[str, float], None] | None = None) -> None:
+        """``on_period``: told (name, period) when the module assigns ``self.period``
+        (``assign_period``), for the runtime to keep it (its worker asks for it as a
+        ``set_state``)."""
         self.name = name
         self.on_error = on_error
+        self.on_period = on_period
         self.module = module
         module.__dict__["_pb3a_giving_way"] = self.waiting   # (see Driver.request)
         self.period = period
-        # the period it runs at, on the instance (``dt = self.period`` read its class's
-        # while the configuration, ``add`` or ``swap`` gave it another; a framework
-        # name, it is no state: ``Module.get_state`` leaves it out)
-        module.__dict__["period"] = period
+        self._give_period(module, period)
         self.lock = HandOverLock()
         self.steps = self.events = self.errors = 0
         self.cut = False         # a batch of events ended early for a request (see call_many)
@@ -231,6 +235,10 @@ class ModuleActor:
             if not halted and set_up:
                 self.running = True
                 self._stop.acquire(blocking=False)  # held while running; stop() releases it
+                # (under the lock, as a retime starts one: a period set meanwhile, its
+                # setup's own told to the runtime, started a second step thread)
+                if self._steps(self.period):
+                    self._start_stepping()
             elif not halted:
                 self._halted = self._setup_failed = True
         if halted:                              # stopped while it set up: it never runs,
@@ -239,9 +247,7 @@ class ModuleActor:
             return
         if not set_up:
             raise SetupError(f"module {self.name!r} raised in setup: {self.last_error}")
-        if self._steps(self.period):
-            self._start_stepping()
-        elif type(self.module).step is not Module.step:
+        if not self._steps(self.period) and type(self.module).step is not Module.step:
             # (not an error: a base class may step for subclasses that set a period)
             log.warning("module %r: %s defines step() but has no period, so step() is "
                         "never called: give the class or the module a period (0 = as fast "
@@ -725,7 +731,7 @@ class ModuleActor:
             except Exception:
                 log.exception("module %r raised in teardown during swap", self.name)
             specs = {name: port.spec for name, port in self.ports.items()}
-            new.__dict__["period"] = period         # (as in ``__init__``)
+            self._give_period(new, period)
             try:
                 kept = self._take(new, old.get_state())
             except Exception as exc:
@@ -742,7 +748,8 @@ class ModuleActor:
                 with self._setting_up():
                     if self._call_held("setup", 1) == 1:
                         self._dispatch_owed()
-                        self._step_every(period)
+                        # (the swap's period, or one its setup assigned: the later)
+                        self._step_every(new.__dict__["period"])
                         return sorted(kept)
                 why = f"{type(new).__name__} raised in setup: {self.last_error}"
             # the new class cannot start: the old instance back, set up again
@@ -751,6 +758,7 @@ class ModuleActor:
             for name, spec in specs.items():
                 self.ports[name].spec = spec
             self.module, self._event_driven = old, type(old).is_event_driven()
+            self._step_every(old.__dict__["period"])   # (if the new one's setup set one)
             with self._setting_up():
                 self._call_held("setup", 1)
             self._dispatch_owed()
@@ -783,6 +791,47 @@ class ModuleActor:
         with self._sched_lock:
             self.module.__dict__["period"] = period
             self._step_every(period)
+
+    def assign_period(self, value: Any) -> None:
+        """``self.period = value`` in the module as it runs (in a body, its ``setup``, a
+        thread of its own): checked as ``set_state(name, period=...)`` checks it, but a
+        ``ValueError`` naming the module and the value, raised at the assignment;
+        stepped at from the next sleep on (``retime``; an event-driven module with a
+        ``step()`` is stepped from then on, as by ``set_state``); and told to the runtime
+        (``on_period``) without waiting for it, so that a move or a restart keeps it.
+        The period it steps at already is nothing to tell."""
+        said = f"module {self.name!r}: self.period = {value!r:.60}"
+        if value is None or checks.period(value):
+            raise ValueError(f"{said} is no period: a period is a number of seconds from 0 "
+                             f"to {MOST_SECONDS:g} (0: as fast as it can)")
+        if checks.stepped(type(self.module), value):
+            raise ValueError(f"{said}, but {class_ref(type(self.module))} has no step() for "
+                             "a period to call (it runs on_input as values come)")
+        period = float(value)
+        if period == self.period:
+            return
+        self.retime(period)
+        if self.on_period is not None:
+            self.on_period(self.name, period)
+
+    def _give_period(self, module: Module, period: float | None) -> None:
+        """Give ``module`` (this actor's, or a swap's new instance) the period it runs
+        at, on the instance (``dt = self.period`` read its class's while the
+        configuration, ``add`` or ``swap`` gave it another; a framework name, it is no
+        state: ``Module.get_state`` leaves it out), and make its assignment set it live
+        (``assign_period``). One its ``__init__`` assigned, before it ran, is replaced:
+        a warning says so (it is no period given to the module, which the configuration,
+        ``add`` or the class gives)."""
+        assigned = module.__dict__.get("period", period)
+        if assigned is not period and not (isinstance(assigned, (int, float))
+                                           and assigned == period):
+            log.warning("module %r: %s.__init__ assigns self.period = %.60r, which sets "
+                        "nothing: the module runs at the period given to it (%s s: the "
+                        "configuration's, add's or swap's, else its class's); give its "
+                        "class that period, or assign self.period in setup()",
+                        self.name, type(module).__qualname__, assigned, period)
+        module.__dict__["period"] = period
+        module.__dict__["_pb3a_period_set"] = self.assign_period
 
     def _dispatch_owed(self) -> None:
         """Schedule the calls its inputs owe: values that came while an instance that

@@ -45,6 +45,7 @@ from pb3a.worker.actor import EventPool, ModuleActor, SetupError, running_module
 from pb3a.worker.inbound import GUARD_TIMEOUT, InboundLink, LosslessInboundLink
 from pb3a.worker.lease import LEASE_LAPSED, Lease, LeaseBoard
 from pb3a.worker.log_forwarding import LogForwarder
+from pb3a.worker.periods import PeriodTeller
 from pb3a.worker.publications import Publications
 from pb3a.worker.waits import RuntimeWait
 
@@ -103,7 +104,9 @@ class Worker:
         self._uncheckpointed: set[str] = set()   # modules whose checkpoint failed, said once
         self._dropped = 0                   # notices dropped while the executor read nothing
         self._dropping = threading.Lock()   # (counted by any module's thread)
-        self._requests: dict[int, RuntimeWait] = {}    # agents' requests awaiting answers
+        # agents' requests awaiting answers, and those telling a period (``PeriodTeller``)
+        self._requests: dict[int, RuntimeWait | _Answered] = {}
+        self.periods = PeriodTeller(self._ask_period)  # the periods modules set themselves
         self._paused: set[str] = set()
         self._held: dict[str, threading.Event] = {}   # paused where they wait: see op_pause
         self._set_up_on_resume: set[str] = set()     # see op_migrate_out
@@ -294,7 +297,8 @@ class Worker:
                 raise Refused(f"module {name!r} ({class_ref(klass)}): setting its state "
                               f"({', '.join(map(str, state))}) failed: "
                               f"{type(exc).__name__}: {exc}") from None
-        actor = ModuleActor(name, module, self._schedule, period, on_error=self._report_error)
+        actor = ModuleActor(name, module, self._schedule, period, on_error=self._report_error,
+                            on_period=self.periods.tell)
         if self.lease.applies:
             actor.may_run = self.lease.holds
         self.actors[name] = actor
@@ -670,6 +674,26 @@ class Worker:
             finally:
                 self._requests.pop(req_id, None)
 
+    def _ask_period(self, name: str, period: float,
+                    answered: Callable[[bool, Any], None]) -> bool:
+        """Ask the runtime to keep ``period`` for module ``name``, which set it itself
+        (``PeriodTeller``), as its agent would (``set_state``), not waiting: ``answered``
+        is called with the answer. False if it could not be sent."""
+        req_id = next(self._request_ids)
+
+        def answer(ok: bool, result: Any) -> None:
+            self._requests.pop(req_id, None)
+            answered(ok, result)
+
+        self._requests[req_id] = _Answered(answer)
+        # (not from its setup: it waits for the change starting the module, if any)
+        args = {"name": name, "values": {"period": period}, "_asker": (name, False)}
+        if self.send((None, "request", {"id": req_id, "op": "set_state",
+                                        "args": pickling.dumps(args)})) is None:
+            self._requests.pop(req_id, None)
+            return False
+        return True
+
     def _answer(self, id: int, ok: bool, result: Any) -> None:
         wait = self._requests.get(id)
         if wait is not None:
@@ -773,6 +797,13 @@ class Worker:
                         continue
                     self._uncheckpointed.discard(name)
                     self.send((None, "checkpoint", {"name": name, "state": blob}))
+
+
+class _Answered:
+    """A request whose answer no one waits for: ``answer`` calls back."""
+
+    def __init__(self, answer: Callable[[bool, Any], None]) -> None:
+        self.answer = answer
 
 
 def agent_wait(timeout: float | None) -> float:
