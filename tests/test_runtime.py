@@ -1577,6 +1577,32 @@ def test_the_periods_a_module_assigns_itself_are_told_one_at_a_time_the_last_las
     assert asked[-1] == ("a", 4.0) and len(asked) == 4
 
 
+class _AdaptsEveryStep(Module):
+    """Assigns itself another period at each step, noting the thread each step ran on."""
+
+    period = 0.002
+    count = 0
+    threads: set = set()
+
+    def step(self) -> None:
+        self.count += 1
+        self.threads.add(threading.current_thread())
+        self.period = 0.002 if self.count % 2 else 0.003
+
+
+def test_a_module_that_sets_its_period_at_every_step_is_stepped_on_one_thread() -> None:
+    """A period set anew, here by the module itself at every step, is taken by its step
+    thread at its next turn: a new step thread was started for each (an OS thread per
+    assignment, 128 for 128), the one before ending when it woke."""
+    actor = ModuleActor("adapts", _AdaptsEveryStep(), lambda task: task(), 0.002)
+    actor.start()
+    try:
+        eventually(lambda: actor.module.count >= 50, what="50 steps")
+    finally:
+        assert actor.stop()
+    assert len(actor.module.threads) == 1, f"{len(actor.module.threads)} step threads"
+
+
 class _InitSetsPeriod(Module):
     """Assigns itself a period in its ``__init__``, before anything runs it."""
 

@@ -194,11 +194,11 @@ class ModuleActor:
         self._pending: deque[InputPort] = deque()
         self._scheduled = False
         self._sched_lock = threading.Lock()
-        self._stop = threading.Lock()
+        # the step thread sleeps on it; a stop and a period set anew wake it
+        self._wake = threading.Condition(self._sched_lock)
         self._step_clock: int | None = None
         self._step_cpu = 0.0
         self._stepped_at: float | None = None  # when its last step ended (monotonic)
-        self._stepping = False                  # a step is under way
         self._torn_down = False                 # its teardown ran, or runs now (once)
         self._teardown_once = threading.Lock()  # held while its teardown runs
         self._halted = False                    # stopping: it does not start any more
@@ -234,9 +234,8 @@ class ModuleActor:
             halted = self._halted
             if not halted and set_up:
                 self.running = True
-                self._stop.acquire(blocking=False)  # held while running; stop() releases it
-                # (under the lock, as a retime starts one: a period set meanwhile, its
-                # setup's own told to the runtime, started a second step thread)
+                # (under the lock, as a period set anew starts one: one its setup
+                # assigned started a second step thread)
                 if self._steps(self.period):
                     self._start_stepping()
             elif not halted:
@@ -330,59 +329,62 @@ class ModuleActor:
         ``setup`` does not start after it."""
         with self._sched_lock:
             self._halted = True
-            was_running, self.running = self.running, False
-            if was_running and self._stop.locked():
-                self._stop.release()            # wakes a step thread between two steps
+            self.running = False
+            self._wake.notify_all()             # (a step thread between two steps)
 
     def _start_stepping(self) -> None:
-        """A step thread at ``period``; one stepping already ends at its next turn."""
-        self._thread = threading.Thread(target=self._loop, args=(self.period,),
-                                        name=f"pb3a-step-{self.name}", daemon=True)
+        """The step thread (the caller holds ``_sched_lock``); one stepping already, if
+        any (a start after a failed move), ends at its next turn."""
+        self._thread = threading.Thread(target=self._loop, name=f"pb3a-step-{self.name}",
+                                        daemon=True)
         self._thread.start()
 
-    def _loop(self, period: float) -> None:
+    def _loop(self) -> None:
         # The step thread is the module's own: its CPU clock is the module's step
         # CPU time, read without a system call per step (see ``statistics``).
         clock = time.pthread_getcpuclockid(threading.get_ident())
         self._step_clock = clock
         mine = threading.current_thread()
         try:
-            # a period set anew (retime, swap) is slept after the last step, as every
-            # period is: its first step came at once, a controller's ``dt = self.period``
-            # then integrating a whole period over what was a few milliseconds
-            last = self._last_step_end()
-            if period and last is not None:
-                wait = last + period - time.monotonic()
-                if wait > 0 and self._stop.acquire(timeout=wait):
-                    self._stop.release()        # stopped while waiting
-                    return
-            while self.running and self._thread is mine:
-                self._stepping = True
+            while self._due(mine):
                 try:
                     if self.call_many("step", 1, timed=False):
                         self.steps += 1
                 finally:
-                    self._stepped_at, self._stepping = time.monotonic(), False
+                    self._stepped_at = time.monotonic()
                 self.lock.hand_over()
-                if period and self._stop.acquire(timeout=period):
-                    self._stop.release()        # stopped while sleeping
-                    break
         finally:
             self._step_cpu += time.clock_gettime(clock)
             if self._step_clock == clock:
                 self._step_clock = None
 
-    def _last_step_end(self) -> float | None:
-        """When the last step ended (None: none yet); one under way, on the step thread
-        a new period replaces, is waited for (it holds the module lock): a module that
-        set its own period from its step (an agent slowing itself) is stepped again a
-        period after that step."""
-        if not self._stepping:
-            return self._stepped_at
-        self.lock.acquire()             # (taken once the step under way lets go of it)
-        self.lock.release()
-        # (its thread let go of the lock but has not noted the time yet: that is now)
-        return time.monotonic() if self._stepping else self._stepped_at
+    def _due(self, mine: threading.Thread) -> bool:
+        """Wait until the next step is due, ``self.period`` after the last one ended;
+        False once the module is to step no more on this thread (stopped, retired, or
+        another thread stepping it). The period is read anew whenever it is set (by
+        ``set_state``, a swap, the module itself), on this same thread: one set anew is
+        slept after the last step, as every period is (its first step came at once, a
+        controller's ``dt = self.period`` then integrating a whole period over a few
+        milliseconds), and a module that sets its own at every step started a thread
+        each time. No period any more (a swap to a class with no ``step()``), the thread
+        ends, and a period given later starts another."""
+        last, period = self._stepped_at, self.period
+        if (last is None or period == 0) and self.running and self._thread is mine \
+                and self._steps(period):
+            # (due now: its first step does not wait for the lock, which its start holds
+            # as it starts this thread: a request sent once the start returned came first)
+            return True
+        with self._sched_lock:
+            while self.running and self._thread is mine:
+                if not self._steps(self.period):
+                    self._thread = None
+                    return False
+                last = self._stepped_at
+                wait = 0.0 if last is None else last + self.period - time.monotonic()
+                if wait <= 0:
+                    return True
+                self._wake.wait(wait)
+            return False
 
     # -- calls under the lock ---------------------------------------------
     def call(self, hook: str, *args: Any) -> bool:
@@ -644,10 +646,10 @@ class ModuleActor:
         No body of this instance runs after it: a step or event waiting for the lock
         finds the module no longer running and returns.
         """
-        self.running = False
+        with self._sched_lock:
+            self.running = False
+            self._wake.notify_all()             # the step thread leaves its loop
         self._torn_down = True
-        if self._stop.locked():
-            self._stop.release()                # the step thread leaves its loop
         try:
             self.module.teardown()
         except Exception:
@@ -749,7 +751,8 @@ class ModuleActor:
                     if self._call_held("setup", 1) == 1:
                         self._dispatch_owed()
                         # (the swap's period, or one its setup assigned: the later)
-                        self._step_every(new.__dict__["period"])
+                        with self._sched_lock:
+                            self._step_every(new.__dict__["period"])
                         return sorted(kept)
                 why = f"{type(new).__name__} raised in setup: {self.last_error}"
             # the new class cannot start: the old instance back, set up again
@@ -758,7 +761,8 @@ class ModuleActor:
             for name, spec in specs.items():
                 self.ports[name].spec = spec
             self.module, self._event_driven = old, type(old).is_event_driven()
-            self._step_every(old.__dict__["period"])   # (if the new one's setup set one)
+            with self._sched_lock:      # (if the new one's setup set one)
+                self._step_every(old.__dict__["period"])
             with self._setting_up():
                 self._call_held("setup", 1)
             self._dispatch_owed()
@@ -774,20 +778,18 @@ class ModuleActor:
 
     def _step_every(self, period: float | None) -> None:
         """Step at ``period`` from now on (None: no more), if the module (the new
-        instance of a swap) has a ``step()``: a new step thread; the one at the old
-        period ends when it wakes (its step waits for the module's lock, held here: it
-        may take one more, on the new instance)."""
-        steps = self._steps(period)
-        if period == self.period and (self._thread is not None) == steps:
-            return
-        self.period, self._thread = period, None
-        if steps and self.running:
+        instance of a swap) has a ``step()``; the caller holds ``_sched_lock``. The step
+        thread takes it at its next turn (``_due``: a step under way, or one waiting for
+        the module's lock, comes first, on the new instance of a swap); a module that
+        stepped at no period is given a step thread."""
+        self.period = period
+        if self._steps(period) and self.running and self._thread is None:
             self._start_stepping()
+        self._wake.notify_all()
 
     def retime(self, period: float) -> None:
-        """Step every ``period`` seconds from now on: a step thread at the new period
-        begins now, and the one at the old period ends when it wakes (``_loop``). The
-        module's ``self.period`` says it at once."""
+        """Step every ``period`` seconds from now on, from the step thread's next turn
+        (``_due``). The module's ``self.period`` says it at once."""
         with self._sched_lock:
             self.module.__dict__["period"] = period
             self._step_every(period)
