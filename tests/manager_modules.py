@@ -15,7 +15,8 @@ from pb3a.model.ports import Input, InputPort, Output
 
 
 class Sensor(Module):
-    """Writes ``level`` plus a small ripple every ``period`` seconds on ``out``."""
+    """Writes ``level`` plus a small ripple every ``period`` seconds on ``out``; gives
+    itself ``pace`` as its period once it is set (``self.period = pace``)."""
 
     out = Output(float)
     period = 0.02
@@ -23,10 +24,13 @@ class Sensor(Module):
     ripple = 0.0
     label = "sensor"
     steps = 0
+    pace = 0.0
 
     def step(self) -> None:
         self.steps += 1
         self.out.write(self.level + self.ripple * math.sin(self.steps / 8))
+        if self.pace:
+            self.period, self.pace = self.pace, 0.0
 
 
 class Probe(Module):

@@ -730,6 +730,75 @@ class SetsItsPeriod(Module):
             self.assigned_at = time.monotonic()
 
 
+class AssignsThenFails(Module):
+    """Its setup assigns itself a period of 1.5 s, then raises: a swap to it fails."""
+
+    period = 0.01
+
+    def setup(self) -> None:
+        self.period = 1.5
+        raise RuntimeError("cannot start")
+
+    def step(self) -> None:
+        pass
+
+
+class Reassigns(Module):
+    """At the step after ``go`` is set: assigns itself 0.03, then 0.04, watches its
+    period for up to 1 s, until it changes by itself, then assigns itself 0.03, its last
+    word; notes the period it sees at each of its steps from then on (``after``)."""
+
+    period = 0.02
+    go = False
+    done = False
+    after: list = []
+
+    def step(self) -> None:
+        if self.done:
+            self.after = [*self.after[-50:], self.period]
+        if self.go:
+            self.go = False
+            self.period = 0.03
+            self.period = 0.04
+            deadline = time.monotonic() + 1.0
+            while self.period == 0.04 and time.monotonic() < deadline:
+                time.sleep(0.0002)
+            self.period = 0.03
+            self.done = True
+
+
+class AdaptsItsRate(Module):
+    """Assigns itself another period at every step (an adaptive rate)."""
+
+    period = 0.01
+    count = 0
+
+    def step(self) -> None:
+        self.count += 1
+        self.period = 0.01 if self.count % 2 else 0.011
+
+
+class SlowsTwiceResets(Module):
+    """Steps every 0.02 s; at its 3rd step assigns itself 0.1, at its 4th 0.25; its
+    teardown puts its class's period back (``self.period = type(self).period``). Notes
+    when its last steps began (``stamps``) and the period it saw (``seen_period``)."""
+
+    period = 0.02
+    count = 0
+    stamps: list = []
+    seen_period = 0.0
+
+    def step(self) -> None:
+        self.count += 1
+        self.stamps = [*self.stamps[-9:], time.monotonic()]
+        self.seen_period = self.period
+        if self.count in (3, 4):
+            self.period = 0.1 if self.count == 3 else 0.25
+
+    def teardown(self) -> None:
+        self.period = type(self).period
+
+
 class AssignsNoPeriods(Module):
     """At each step, assigns itself each of ``tried`` as its period, noting what each
     assignment raised (or "" if none) and the period it then sees."""

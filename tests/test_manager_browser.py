@@ -543,7 +543,8 @@ def test_a_float_that_is_not_finite_is_shown_as_such_and_plotted_as_a_gap(
 def test_a_period_set_in_the_inspector_or_elsewhere_shows_on_the_page(
         lab: ManagerProcess, page: Any, tmp_path: Path) -> None:
     """The running inspector had no period (the API refused one: "no state 'period'"),
-    and a period set elsewhere (`pb3a set`, a script) never showed on an open page."""
+    and a period set elsewhere (`pb3a set`, a script) never showed on an open page; nor
+    does one the module sets itself, which is no event, but shows from the stats."""
     page.locator("[data-module='sensor']").click()
     meta = "document.querySelector('#inspector-meta').textContent"
     page.wait_for_function("document.querySelector('#inspector-name').textContent === 'sensor'")
@@ -559,6 +560,9 @@ def test_a_period_set_in_the_inspector_or_elsewhere_shows_on_the_page(
     lab.api("POST", "/api/modules/sensor/state", {"period": 0.5})   # as a script would
     page.wait_for_function(f"{meta}.includes('period 500.0 ms')", timeout=WAIT_MS)
     assert box.input_value() == "0.5"
+    lab.api("POST", "/api/modules/sensor/state", {"pace": 0.75})   # (self.period = 0.75)
+    page.wait_for_function(f"{meta}.includes('period 750.0 ms')", timeout=WAIT_MS)
+    assert box.input_value() == "0.75"
     page.screenshot(path=str(screenshot_path(tmp_path, "period.png")))
 
 

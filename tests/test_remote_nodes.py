@@ -42,6 +42,7 @@ from sample_modules import (
     LossWatcher,
     NodeTable,
     Relay,
+    SlowsTwiceResets,
     Steady,
     Wanderer,
 )
@@ -360,6 +361,23 @@ def test_on_a_remote_node_a_restarted_writer_feeds_its_readers_and_agents_can_mo
         eventually(lambda: run.state("dst")["received"] > before["dst"] + 10
                    and run.state("wanderer")["seen"] > before["wanderer"] + 10,
                    timeout=30, what="values from the restarted writer on node b")
+
+
+def test_on_a_remote_node_a_module_s_own_period_is_learned_and_kept_by_a_move(
+        controllers) -> None:
+    """A module on a remote node that sets its own period has the launcher's record
+    learn it (read at node b, where it runs), and a move to node c keeps it, not the one
+    its teardown assigns (its class's, which the record took as the module's)."""
+    system = _spanning("remote-self-timed", controllers)
+    system.add("m", SlowsTwiceResets, node="b")
+    with system.launch() as run:
+        eventually(lambda: run.topology().modules["m"].period == 0.25, timeout=15,
+                   what="the record learning its own 0.25")
+        run.migrate("m", to="c")
+        assert run.state("m")["seen_period"] == 0.25
+        run.wait(1.5)                       # (what a teardown's telling would undo)
+        assert run.topology().modules["m"].period == 0.25
+        assert run.stats().modules["m"].period == 0.25
 
 
 def test_a_launcher_listening_on_every_interface_is_called_back_where_its_nodes_reach_it(

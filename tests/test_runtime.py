@@ -24,11 +24,13 @@ import psutil
 import pytest
 from conftest import eventually
 from sample_modules import (
+    AdaptsItsRate,
     ArrayHolder,
     ArrayReuser,
     ArraySink,
     ArraySource,
     AssignsNoPeriods,
+    AssignsThenFails,
     Burst,
     Busy,
     Chain,
@@ -54,11 +56,13 @@ from sample_modules import (
     Paced,
     Pid,
     Pump,
+    Reassigns,
     Retimer,
     Scale,
     SetsItsPeriod,
     Shift,
     SlowsItself,
+    SlowsTwiceResets,
     Spawner,
     Steady,
     StepsOnceSetUp,
@@ -1550,31 +1554,112 @@ def test_an_event_driven_module_that_assigns_itself_a_period_is_stepped_at_it() 
                    what="the launcher's record of the period")
 
 
-def test_the_periods_a_module_assigns_itself_are_told_one_at_a_time_the_last_last() -> None:
-    """Each period a module assigns itself is told to the runtime as a request that
-    waits for its configuration lock, without waiting for its answer; sent side by side,
-    such requests were carried out in any order, and a module that set 0.5, then 2, was
-    kept at 0.5. One is under way at a time, per module, and what was assigned meanwhile
-    goes once it is answered, the last one only."""
+def test_the_runtime_learns_a_module_s_periods_one_request_at_a_time_once_a_second_at_most(
+        ) -> None:
+    """A module's worker tells the runtime that the module assigned itself a period with
+    one request under way at a time per module, one per ``every`` (a second) at most,
+    however often the module assigns (an adaptive rate: each assignment was a request,
+    an event and a round trip to the worker, 56 a second); an assignment made meanwhile
+    is told once both allow, and none is told for nothing."""
     asked: list[tuple[str, float]] = []
-    answers: dict[str, list] = {}
+    answers: list = []
 
-    def ask(name: str, period: float, answered) -> bool:
-        asked.append((name, period))
-        answers.setdefault(name, []).append(answered)
+    def ask(name: str, answered) -> bool:
+        asked.append((name, time.monotonic()))
+        answers.append(answered)
         return True
 
-    teller = PeriodTeller(ask)
-    teller.tell("a", 0.5)
-    teller.tell("a", 2.0)
-    teller.tell("b", 1.0)                    # (another module's goes at once)
-    teller.tell("a", 3.0)
-    assert asked == [("a", 0.5), ("b", 1.0)]
-    answers["a"].pop(0)(True, None)
-    assert asked[-1] == ("a", 3.0)
-    answers["a"].pop(0)(False, "refused")    # (said in a warning; nothing more to tell)
-    teller.tell("a", 4.0)
-    assert asked[-1] == ("a", 4.0) and len(asked) == 4
+    teller = PeriodTeller(ask, every=0.3)
+    for _ in range(100):
+        teller.tell("a")
+    teller.tell("b")                        # (another module's goes at once)
+    assert [name for name, _ in asked] == ["a", "b"]
+    eventually(lambda: time.monotonic() - asked[0][1] > 0.4, what="a's time again")
+    assert len(asked) == 2                  # (a's first is still under way)
+    answers.pop(0)(True, None)
+    assert asked[-1][0] == "a" and len(asked) == 3      # (its time passed: at once)
+    teller.tell("a")
+    answers.pop(0)(True, None)              # (b's)
+    answers.pop(0)(False, "refused")        # (said in a warning)
+    assert len(asked) == 3                  # (a's next waits for its time)
+    eventually(lambda: len(asked) == 4, timeout=5, what="a's last assignment told")
+    assert asked[3][0] == "a" and asked[3][1] - asked[2][1] >= 0.3
+    answers.pop(0)(True, None)
+    time.sleep(0.5)                         # (nothing owed: nothing more)
+    assert len(asked) == 4
+
+
+def test_a_failed_swap_leaves_the_module_at_its_period_whatever_the_new_one_assigned(
+        ) -> None:
+    """A swap to a class whose ``setup`` assigns itself a period, then raises, fails, and
+    the old instance runs on at its own period: it was left at the new one's (1.5 s for
+    0.01 s), and the launcher's record learned it too."""
+    with System("swap-fails").add("m", SetsItsPeriod).launch() as run:
+        with pytest.raises(RuntimeFailure, match="cannot start"):
+            run.swap("m", AssignsThenFails)
+        steps = run.stats().modules["m"].steps
+        eventually(lambda: run.stats().modules["m"].steps >= steps + 20, timeout=5,
+                   what="steps at 0.01 s again")
+        assert run.topology().modules["m"].period == 0.01
+        assert run.stats().modules["m"].period == 0.01
+        assert run.state("m")["seen_period"] == 0.01
+
+
+def test_a_module_s_last_assignment_of_its_period_is_what_it_and_its_record_keep() -> None:
+    """A module that assigns itself 0.03, then 0.04, then 0.03 again steps at 0.03 and
+    its record says 0.03: the request telling 0.03 was carried out after the module had
+    assigned 0.04, and set it back to 0.03, which its assignment of 0.03 then took for
+    nothing new, and the request telling 0.04 came last (kept at 0.04)."""
+    with System("reassigned").add("m", Reassigns).launch() as run:
+        run.set_state("m", go=True)
+        eventually(lambda: len(run.state("m")["after"]) >= 20, timeout=10,
+                   what="steps after its last assignment")
+        assert set(run.state("m")["after"]) == {0.03}, run.state("m")["after"]
+        eventually(lambda: run.topology().modules["m"].period == 0.03,
+                   what="the record of its period")
+        assert run.stats().modules["m"].period == 0.03
+
+
+def test_a_module_that_sets_its_period_at_every_step_is_no_event_and_no_flood() -> None:
+    """An adaptive rate, a new period at every step, is learned by the launcher's record
+    once a second at most and is no event (each assignment was a ``module_retimed``
+    event, 56 a second, and the manager's pages got the whole structure at each; the
+    event log kept three minutes); ``stats`` shows the period."""
+    with System("adaptive").add("m", AdaptsItsRate).launch() as run:
+        eventually(lambda: run.state("m")["count"] >= 100, what="100 steps")
+        assert not [event for event in run.events(0) if event.kind == "module_retimed"]
+        assert run.stats().modules["m"].period in (0.01, 0.011)
+        eventually(lambda: run.topology().modules["m"].period == 0.011,
+                   what="the record learning the period")
+
+
+def test_a_moved_module_keeps_the_period_it_set_itself_not_its_teardown_s(caplog) -> None:
+    """A module that set its own period (0.25) a moment before it was moved steps at it
+    on its new node, and its record learns it; what its teardown assigns (its class's
+    period, in a move and in a removal) is its instance's alone: the runtime was told,
+    and the move kept the teardown's period, and a removal logged that the module was
+    not found."""
+    system = System("moved-self-timed")
+    system.node("a")
+    system.node("b")
+    system.add("m", SlowsTwiceResets, node="a")
+    with system.launch() as run:
+        eventually(lambda: run.state("m")["seen_period"] == 0.25, what="its own 0.25")
+        run.migrate("m", to="b")
+        moved = time.monotonic()
+        gaps = eventually(lambda: len(gaps := _gaps_after(run.state("m")["stamps"],
+                                                          moved)) >= 2 and gaps,
+                          timeout=15, what="three steps on node b")
+        assert min(gaps) >= 0.2, f"steps {gaps} s apart on node b (0.25 s, its own)"
+        eventually(lambda: run.topology().modules["m"].period == 0.25,
+                   what="the record of its period")
+        assert run.stats().modules["m"].period == 0.25
+        with caplog.at_level(logging.DEBUG, logger="pb3a.module"):
+            run.remove("m")
+            run.wait(1.5)
+        assert not [r for r in caplog.records if r.levelno >= logging.WARNING
+                    and "period" in r.getMessage()], caplog.text
+        assert not [event for event in run.events(0) if event.kind == "module_retimed"]
 
 
 class _AdaptsEveryStep(Module):

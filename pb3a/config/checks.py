@@ -106,6 +106,20 @@ def stepped(cls: type[Module], value: Any) -> list[str]:
             f"call: leave period out{how}"]
 
 
+def assigned_period(name: str, cls: type[Module], value: Any) -> float:
+    """The period ``self.period = value`` sets in module ``name`` of class ``cls`` as it
+    runs (checked as ``set_state(name, period=...)`` checks it); ``ValueError`` naming
+    the module and the value, raised at the assignment, if it is none."""
+    said = f"module {name!r}: self.period = {value!r:.60}"
+    if value is None or period(value):
+        raise ValueError(f"{said} is no period: a period is a number of seconds from 0 "
+                         f"to {MOST_SECONDS:g} (0: as fast as it can)")
+    if stepped(cls, value):
+        raise ValueError(f"{said}, but {class_ref(cls)} has no step() for a period to call "
+                         "(it runs on_input as values come)")
+    return float(value)
+
+
 def env_home(name: Any, nodes: Iterable[str]) -> str | None:
     """The node whose env module ``name`` is (``env-b``: node b's, when b is one of
     ``nodes``), or None."""

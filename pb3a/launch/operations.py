@@ -79,8 +79,10 @@ PUBLIC = frozenset({"state", "set_state", "swap", "relink", "link", "add", "remo
                     "restart", "migrate", "begin_migration", "migration", "reload", "stats",
                     "where", "nodes", "topology", "configuration", "events", "logs"})
 _HISTORY = frozenset({"events", "logs"})      # what a stopped system still answers
-# What an agent may ask through ``self.runtime`` (it spawns with "add").
+# What an agent may ask through ``self.runtime`` (it spawns with "add"); and what a
+# worker asks besides, for its modules (``pb3a.worker.periods``).
 FOR_AGENTS = PUBLIC - {"reload"}
+FROM_WORKERS = FOR_AGENTS | {"learn_period"}
 KEEP_JOBS = 1000            # background operations whose outcome is kept for asking
 STATE_THEN_S = 1.0          # how long a restart waits for the state to put back on failure
 CHANGE_LONGER = "give the change a longer timeout"     # (an import that took too long)
@@ -198,6 +200,21 @@ class Operations:
             self.launcher.specs[name] = retimed
             # (nothing said it: a page showed the period it had until it was read anew)
             self.event_log.record("module_retimed", name, period=retimed.period)
+
+    def learn_period(self, name: str, *, timeout: float | None = None) -> None:
+        """Module ``name`` assigned itself a period (``self.period = ...``), at which it
+        steps already: the launcher's record of it and its executor's learn the one it
+        steps at now, read where it runs (``Node.learn_period``), so that a move, a
+        restart and a swap keep it. Its worker asks (``pb3a.worker.periods``), not
+        waiting for it. No event: as its state's fields, a module's own period is its
+        own doing, which ``stats`` shows (one that adapts its rate at every step was an
+        event at each, and the manager's pages got the whole structure again at each)."""
+        with self._held(f"learn the period of {name}", timeout, changes=False) as left:
+            node = self.launcher.node_of(name)          # (raises ModuleNotFound)
+            period = node.learn_period(name, left())
+            spec = self.launcher.specs[name]
+            if period is not None and period != spec.period:
+                self.launcher.specs[name] = replace(spec, period=period, own_period=True)
 
     # -- moving, swapping, reloading ----------------------------------------------------
     def migrate(self, name: str, to: str, *, state: dict[str, dict[str, Any]] | None = None,

@@ -22,7 +22,7 @@ from pb3a.launch.env_keeper import EnvKeeper
 from pb3a.launch.failover import Failover
 from pb3a.launch.handle import SystemHandle
 from pb3a.launch.launcher import Launcher
-from pb3a.launch.operations import CHANGE_LONGER, DEFAULT_TIMEOUT, FOR_AGENTS, Operations
+from pb3a.launch.operations import CHANGE_LONGER, DEFAULT_TIMEOUT, FROM_WORKERS, Operations
 from pb3a.loading.references import importing_for
 from pb3a.loading.trial import try_import
 from pb3a.processes import role
@@ -325,9 +325,10 @@ class Running(SystemHandle):
 
     def _agent_request(self, op: str, args: dict[str, Any]) -> Any:
         """Apply a request an agent made through ``self.runtime``: its worker adds who
-        asks and whether from its setup (``_asker``)."""
+        asks and whether from its setup (``_asker``); or one a worker makes for its
+        modules (``FROM_WORKERS``)."""
         asker = args.pop("_asker", None)
-        return self._operations.apply(op, args, FOR_AGENTS, asker=asker)
+        return self._operations.apply(op, args, FROM_WORKERS, asker=asker)
 
     def _remote_request(self, op: str, args: dict[str, Any]) -> Any:
         """A request to the launcher's address: a connection or the command line, an

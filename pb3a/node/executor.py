@@ -389,6 +389,16 @@ class Executor:
         self.call(record.worker, "retime", capped(timeout), name=name, period=period)
         record.spec = replace(record.spec, period=period, own_period=True)
 
+    def learn_period(self, name: str, timeout: float = REQUEST_TIMEOUT) -> float | None:
+        """The period module ``name`` steps at now, read from its worker; one it set
+        itself (``self.period = ...``) its record takes as given, so that its restarts
+        keep it. Nothing is set in the worker."""
+        record = self.modules[name]
+        period = self.call_module(name, "period", timeout)
+        if period is not None and period != record.spec.period:
+            record.spec = replace(record.spec, period=period, own_period=True)
+        return period
+
     def pause(self, name: str, timeout: float = REQUEST_TIMEOUT, rewire: bool = False) -> bool:
         """Hold a module's lock (no step, no event) until ``resume``; False if it does not
         run here (any more). ``rewire``: see ``NodeShare.pause``."""

@@ -67,6 +67,11 @@ class Node(Protocol):
     def retime(self, name: str, period: float, timeout: float) -> None:
         """Step the module every ``period`` seconds from now on, and after its restarts."""
 
+    def learn_period(self, name: str, timeout: float) -> float | None:
+        """The period the module steps at now, read where it runs, which its record
+        takes as given (a restart keeps it) if the module set it itself; nothing is set
+        where it runs."""
+
     def pause(self, name: str, timeout: float, rewire: bool = False) -> bool:
         """Hold the module's lock until ``resume``; False if it does not run here. A
         worker of it that dies meanwhile is restarted once it is let go of (resumed,

@@ -366,6 +366,9 @@ class RemoteNode:
     def retime(self, name: str, period: float, timeout: float) -> None:
         self._forward("retime", name, period, timeout, within=timeout + MARGIN_S)
 
+    def learn_period(self, name: str, timeout: float) -> float | None:
+        return self._forward("learn_period", name, timeout, within=timeout + MARGIN_S)
+
     def pause(self, name: str, timeout: float, rewire: bool = False) -> bool:
         return self._forward("pause", name, timeout, rewire, within=timeout + MARGIN_S)
 

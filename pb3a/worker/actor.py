@@ -22,8 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 from pb3a import latencies
 from pb3a.config import checks
-from pb3a.errors import MOST_SECONDS, RuntimeCancelled
-from pb3a.loading.references import class_ref
+from pb3a.errors import RuntimeCancelled
 from pb3a.model.module import Module, can_hold, restore_state
 from pb3a.model.ports import InputPort, OutputPort
 from pb3a.model.state_edits import checked
@@ -169,10 +168,10 @@ class ModuleActor:
     def __init__(self, name: str, module: Module, schedule: Callable[[Callable[[], None]], None],
                  period: float | None,
                  on_error: Callable[[ModuleActor, str, str], None] | None = None,
-                 on_period: Callable[[str, float], None] | None = None) -> None:
-        """``on_period``: told (name, period) when the module assigns ``self.period``
-        (``assign_period``), for the runtime to keep it (its worker asks for it as a
-        ``set_state``)."""
+                 on_period: Callable[[str], None] | None = None) -> None:
+        """``on_period``: told the module's name when it assigns itself a period
+        (``assign_period``), for the runtime's record to learn it (its worker tells the
+        launcher: ``pb3a.worker.periods``)."""
         self.name = name
         self.on_error = on_error
         self.on_period = on_period
@@ -200,6 +199,11 @@ class ModuleActor:
         self._step_cpu = 0.0
         self._stepped_at: float | None = None  # when its last step ended (monotonic)
         self._torn_down = False                 # its teardown ran, or runs now (once)
+        # from its teardown on (stopped, retired, swapped out), a period the module
+        # assigns is its instance's alone; and while a swap's new instance sets up,
+        # whether it assigned one (told once the swap succeeds; None: no swap)
+        self._quiet = False
+        self._owed: bool | None = None
         self._teardown_once = threading.Lock()  # held while its teardown runs
         self._halted = False                    # stopping: it does not start any more
         # whether its bodies may run now (its worker's lease holds: Lease.holds)
@@ -312,6 +316,7 @@ class ModuleActor:
         with self._teardown_once:
             torn_down, self._torn_down = self._torn_down, True
             if not torn_down:
+                self._quiet = True
                 self.call("teardown")
 
     @contextlib.contextmanager
@@ -649,7 +654,7 @@ class ModuleActor:
         with self._sched_lock:
             self.running = False
             self._wake.notify_all()             # the step thread leaves its loop
-        self._torn_down = True
+        self._quiet = self._torn_down = True
         try:
             self.module.teardown()
         except Exception:
@@ -657,15 +662,19 @@ class ModuleActor:
         return self.holdings()
 
     def reinstate(self) -> None:
-        """Undo ``retire`` (a move that failed after it): ``start`` sets it up again."""
-        self._torn_down = False
+        """Undo ``retire`` (a move that failed after it): ``start`` sets it up again, at
+        the period it ran at (not one its teardown assigned)."""
+        self._torn_down = self._quiet = False
+        self.module.__dict__["period"] = self.period
 
     def holdings(self) -> dict[str, Any]:
-        """What a migration captures: the state, every input's unconsumed values, and the
-        module's counters (the caller holds the module lock, and pickles them before
-        letting it go). The counters go too: an agent reading a rate or an error trend
-        from ``stats()`` saw steps fall from 148 to 6 at every move."""
-        return {"state": self.module.get_state(),
+        """What a migration captures: the state, the period it runs at, every input's
+        unconsumed values, and the module's counters (the caller holds the module lock,
+        and pickles them before letting it go). The counters go too: an agent reading a
+        rate or an error trend from ``stats()`` saw steps fall from 148 to 6 at every
+        move; and the period, which the module may have set itself a moment before,
+        before the runtime's record learned it (``restore``)."""
+        return {"state": self.module.get_state(), "period": self.period,
                 "inputs": {name: port.export() for name, port in self.inputs.items()},
                 "counters": {"steps": self.steps, "events": self.events,
                              "errors": self.errors, "last_error": self.last_error,
@@ -682,9 +691,19 @@ class ModuleActor:
 
     def restore(self, captured: dict[str, Any]) -> None:
         """Take over what ``retire`` captured elsewhere (before ``start``): all of its
-        state, made at run time or not (``restore_state``)."""
+        state, made at run time or not (``restore_state``), and the period it ran at,
+        which is told (``on_period``) if it is not the one the record gave it here: one
+        the module set itself a moment before its move, which the record had yet to
+        learn (``pb3a.worker.periods``: up to a second), was lost."""
         with self.lock:
             restore_state(self.module, captured["state"])
+        period = captured["period"]
+        if period is not None and period != self.period:
+            with self._sched_lock:
+                self.module.__dict__["period"] = period
+                self._step_every(period)
+            if self.on_period is not None:
+                self.on_period(self.name)
         for name, held in captured["inputs"].items():
             port = self.inputs.get(name)
             if port is not None:
@@ -727,13 +746,16 @@ class ModuleActor:
         if not self.acquire_stopped(timeout, "the module is being swapped"):
             raise TimeoutError(f"module {self.name!r} was busy in a call for {timeout} s")
         try:
-            old = self.module
+            old, before = self.module, self.period
+            self._quiet = True                  # (a period its teardown assigns: its own)
             try:
                 old.teardown()
             except Exception:
                 log.exception("module %r raised in teardown during swap", self.name)
             specs = {name: port.spec for name, port in self.ports.items()}
             self._give_period(new, period)
+            with self._sched_lock:
+                self._quiet, self._owed = False, False
             try:
                 kept = self._take(new, old.get_state())
             except Exception as exc:
@@ -750,19 +772,26 @@ class ModuleActor:
                 with self._setting_up():
                     if self._call_held("setup", 1) == 1:
                         self._dispatch_owed()
-                        # (the swap's period, or one its setup assigned: the later)
                         with self._sched_lock:
+                            # (the swap's period, or one its setup assigned: the later)
                             self._step_every(new.__dict__["period"])
+                            owed, self._owed = self._owed, None
+                        if owed and self.on_period is not None:
+                            self.on_period(self.name)
                         return sorted(kept)
                 why = f"{type(new).__name__} raised in setup: {self.last_error}"
-            # the new class cannot start: the old instance back, set up again
+            # the new class cannot start: the old instance back, set up again, at its
+            # period before (a period the new one's setup assigned is told to no one: the
+            # old instance ran on at it, and the record learned it)
             for name in [name for name in self.ports if name not in specs]:
                 del self.ports[name]                    # (the one dict both instances hold)
             for name, spec in specs.items():
                 self.ports[name].spec = spec
             self.module, self._event_driven = old, type(old).is_event_driven()
-            with self._sched_lock:      # (if the new one's setup set one)
-                self._step_every(old.__dict__["period"])
+            old.__dict__["period"] = before
+            with self._sched_lock:
+                self._owed = None
+                self._step_every(before)
             with self._setting_up():
                 self._call_held("setup", 1)
             self._dispatch_owed()
@@ -794,27 +823,32 @@ class ModuleActor:
             self.module.__dict__["period"] = period
             self._step_every(period)
 
-    def assign_period(self, value: Any) -> None:
-        """``self.period = value`` in the module as it runs (in a body, its ``setup``, a
-        thread of its own): checked as ``set_state(name, period=...)`` checks it, but a
-        ``ValueError`` naming the module and the value, raised at the assignment;
-        stepped at from the next sleep on (``retime``; an event-driven module with a
-        ``step()`` is stepped from then on, as by ``set_state``); and told to the runtime
-        (``on_period``) without waiting for it, so that a move or a restart keeps it.
-        The period it steps at already is nothing to tell."""
-        said = f"module {self.name!r}: self.period = {value!r:.60}"
-        if value is None or checks.period(value):
-            raise ValueError(f"{said} is no period: a period is a number of seconds from 0 "
-                             f"to {MOST_SECONDS:g} (0: as fast as it can)")
-        if checks.stepped(type(self.module), value):
-            raise ValueError(f"{said}, but {class_ref(type(self.module))} has no step() for "
-                             "a period to call (it runs on_input as values come)")
-        period = float(value)
-        if period == self.period:
-            return
-        self.retime(period)
+    def assign_period(self, module: Module, value: Any) -> None:
+        """``self.period = value`` in ``module`` as it runs (in a body, its ``setup``, a
+        thread of its own): checked (``checks.assigned_period``: ``ValueError`` there,
+        nothing changed), stepped at from the step thread's next turn (an event-driven
+        module with a ``step()`` is stepped from then on, as by ``set_state``), and told
+        to the runtime (``on_period``), which does not wait for it, for its record to
+        learn it, so that a move, a restart and a swap keep it. Under ``_sched_lock``:
+        of two threads assigning at once, the one stepped at is the last.
+
+        From its teardown on, the instance's ``self.period`` alone is set (a removal or
+        a move was told of its teardown's, and a move took the period its teardown reset
+        for the module's own); from a swap's new instance it is told once the swap has
+        succeeded (one that failed left the old instance at the period the new one's
+        setup assigned); an instance that is no longer this actor's (a swap's old one,
+        or its new one before the swap makes it the module) sets its own alone."""
+        period = checks.assigned_period(self.name, type(module), value)
+        with self._sched_lock:
+            module.__dict__["period"] = period
+            if self._quiet or module is not self.module or period == self.period:
+                return
+            self._step_every(period)
+            if self._owed is not None:
+                self._owed = True
+                return
         if self.on_period is not None:
-            self.on_period(self.name, period)
+            self.on_period(self.name)
 
     def _give_period(self, module: Module, period: float | None) -> None:
         """Give ``module`` (this actor's, or a swap's new instance) the period it runs
@@ -833,7 +867,7 @@ class ModuleActor:
                         "class that period, or assign self.period in setup()",
                         self.name, type(module).__qualname__, assigned, period)
         module.__dict__["period"] = period
-        module.__dict__["_pb3a_period_set"] = self.assign_period
+        module.__dict__["_pb3a_period_set"] = functools.partial(self.assign_period, module)
 
     def _dispatch_owed(self) -> None:
         """Schedule the calls its inputs owe: values that came while an instance that

@@ -349,6 +349,10 @@ class Worker:
         """Step module ``name`` every ``period`` seconds from its next step on."""
         self.actors[name].retime(period)
 
+    def op_period(self, name: str) -> float | None:
+        """The period module ``name`` steps at now (None: only on events)."""
+        return self.actors[name].period
+
     def op_pause(self, name: str, timeout: float, until: float | None = None,
                  rewire: bool = False) -> None:
         """Hold the module's lock so it neither steps nor handles events (for rewiring),
@@ -674,11 +678,10 @@ class Worker:
             finally:
                 self._requests.pop(req_id, None)
 
-    def _ask_period(self, name: str, period: float,
-                    answered: Callable[[bool, Any], None]) -> bool:
-        """Ask the runtime to keep ``period`` for module ``name``, which set it itself
-        (``PeriodTeller``), as its agent would (``set_state``), not waiting: ``answered``
-        is called with the answer. False if it could not be sent."""
+    def _ask_period(self, name: str, answered: Callable[[bool, Any], None]) -> bool:
+        """Ask the runtime's record to learn the period module ``name`` set itself
+        (``PeriodTeller``), not waiting: ``answered`` is called with the answer. False if
+        it could not be sent."""
         req_id = next(self._request_ids)
 
         def answer(ok: bool, result: Any) -> None:
@@ -686,10 +689,9 @@ class Worker:
             answered(ok, result)
 
         self._requests[req_id] = _Answered(answer)
-        # (not from its setup: it waits for the change starting the module, if any)
-        args = {"name": name, "values": {"period": period}, "_asker": (name, False)}
-        if self.send((None, "request", {"id": req_id, "op": "set_state",
-                                        "args": pickling.dumps(args)})) is None:
+        # (no asker: it asks for no change, and waits for one starting the module)
+        if self.send((None, "request", {"id": req_id, "op": "learn_period",
+                                        "args": pickling.dumps({"name": name})})) is None:
             self._requests.pop(req_id, None)
             return False
         return True

@@ -372,6 +372,9 @@ class Manager {
     const info = this.system.modules[name];
     if (!info) return;
     const live = this.stats?.modules?.[name];
+    // (the stats' while it runs: a period the module sets itself is no event, so the
+    // structure is not sent again for it)
+    const period = live && "period" in live ? live.period : info.period;
     const status = live ? live.status : this.mode() === "editing" ? "not launched" : "";
     const meta = [
       h("span", {class: "mono"}, info.class),
@@ -379,14 +382,14 @@ class Manager {
       status ? h("span", {class: `status status-${live?.silent ? "silent" : status}`},
                  live?.silent ? `${status} (silent: its worker does not answer)` : status) : null,
       fmt.longCall(live) ? h("span", {class: "status status-in-long-call"}, fmt.longCall(live)) : null,
-      info.period !== null && info.period !== undefined ? h("span", {}, `period ${fmt.seconds(info.period)}`) : null,
+      period !== null && period !== undefined ? h("span", {}, `period ${fmt.seconds(period)}`) : null,
       info.macro ? h("span", {}, `in macro ${info.macro}`) : null,
       this.mode() === "editing" && name.includes("/")
         ? h("span", {}, `its state here is what instance ${entryOf(name)} sets`) : null,
     ];
     $("inspector-meta").replaceChildren(...meta.filter(Boolean));
     const box = $("period");
-    if (box && this.mode() === "running" && document.activeElement !== box) box.value = info.period ?? "";
+    if (box && this.mode() === "running" && document.activeElement !== box) box.value = period ?? "";
     const extra = [];
     if (live?.last_error) extra.push(h("div", {class: "problem"}, `${live.errors} errors · last: ${live.last_error}`));
     const move = this.lastMove.get(name);
