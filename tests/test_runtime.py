@@ -87,7 +87,7 @@ from pb3a.cli.status import format_table
 from pb3a.config.compiler import validate
 from pb3a.config.description import read_description
 from pb3a.model.agent import RuntimeClient
-from pb3a.model.module import StateRefused
+from pb3a.model.module import StateRefused, reflective
 from pb3a.node import resources
 from pb3a.stats import (
     FAILURES_KEPT,
@@ -1699,23 +1699,92 @@ class _InitSetsPeriod(Module):
         pass
 
 
-def test_a_period_assigned_in_init_is_said_to_set_nothing(caplog) -> None:
-    """A period a module's ``__init__`` assigns is replaced by the one the runtime runs
-    it at, the configuration's or its class's (a period given to the module): it was,
-    silently. A warning says so, and what to do instead."""
+class _InitCopiesClassPeriod(Module):
+    """Its ``__init__`` assigns itself its class's period (a dataclass's field does)."""
+
+    period = 0.1
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.period = type(self).period
+
+    def step(self) -> None:
+        pass
+
+
+class _Rated(Module):
+    """Its ``set_state`` derives its period from its state's ``rate``."""
+
+    period = 0.1
+    rate = 10.0
+
+    @reflective
+    def set_state(self, state: dict) -> None:
+        super().set_state(state)
+        if "rate" in state:
+            self.period = 1.0 / state["rate"]
+
+    def step(self) -> None:
+        pass
+
+
+def test_a_period_assigned_before_the_module_runs_is_said_to_set_nothing(caplog) -> None:
+    """A period a module assigns itself before it runs (its ``__init__``, its
+    ``set_state`` given its configured state) is replaced by the one the runtime runs it
+    at, the configuration's or its class's (a period given to the module): it was,
+    silently. A warning says so, and what to do instead; not for the period given, nor
+    for its class's (``self.period = type(self).period``, a dataclass's field: it warned
+    at every add)."""
+    rated = _Rated()
+    rated.set_state({"rate": 50.0})                 # (as its worker gives its state)
     with caplog.at_level(logging.WARNING, logger="pb3a.module"):
         actor = ModuleActor("early", _InitSetsPeriod(), lambda task: task(), 0.1)
-    assert actor.module.period == 0.1
-    (record,) = [r for r in caplog.records if "sets nothing" in r.getMessage()]
-    assert record.getMessage() == (
-        "module 'early': _InitSetsPeriod.__init__ assigns self.period = 0.5, which sets "
-        "nothing: the module runs at the period given to it (0.1 s: the configuration's, "
-        "add's or swap's, else its class's); give its class that period, or assign "
-        "self.period in setup()")
+        ModuleActor("rated", rated, lambda task: task(), 0.1)
+    assert actor.module.period == 0.1 and rated.period == 0.1
+    assert [r.getMessage() for r in caplog.records] == [
+        "module 'early': self.period = 0.5 was assigned before it ran (in __init__ or its "
+        "state), which sets nothing: the module runs at the period given to it (0.1 s: the "
+        "configuration's, add's or swap's, else its class's); give its class that period, "
+        "or assign self.period in setup()",
+        "module 'rated': self.period = 0.02 was assigned before it ran (in __init__ or its "
+        "state), which sets nothing: the module runs at the period given to it (0.1 s: the "
+        "configuration's, add's or swap's, else its class's); give its class that period, "
+        "or assign self.period in setup()"]
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="pb3a.module"):
         ModuleActor("same", _InitSetsPeriod(), lambda task: task(), 0.5)
+        ModuleActor("copies", _InitCopiesClassPeriod(), lambda task: task(), 0.5)
     assert not caplog.records
+
+
+class _PeriodMixin:
+    """A period from a class that is no ``Module``."""
+
+    period = 0.05
+
+
+class _MixedIn(_PeriodMixin, Module):
+    def step(self) -> None:
+        pass
+
+
+def test_a_period_from_a_mixin_or_set_on_the_class_later_is_set_live_when_assigned() -> None:
+    """A class whose period comes from a class that is no ``Module`` (a mixin), or is set
+    on the class once it is made, has its assignment of ``self.period`` set it live and
+    checked as any: it set a plain attribute, and the module stepped at its old one."""
+    class Later(Module):
+        def step(self) -> None:
+            pass
+
+    Later.period = 0.02
+    for cls, given in ((_MixedIn, 0.05), (Later, 0.02)):
+        told: list[str] = []
+        actor = ModuleActor("m", cls(), lambda task: task(), given, on_period=told.append)
+        actor.module.period = 0.5
+        assert (actor.period, actor.module.period, told) == (0.5, 0.5, ["m"]), cls
+        with pytest.raises(ValueError, match="'fast' is no period"):
+            actor.module.period = "fast"
+        assert cls.period == given
 
 
 class CopiesItself(Module):

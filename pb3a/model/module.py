@@ -12,6 +12,7 @@ import contextlib
 import contextvars
 import copy
 import difflib
+import inspect
 import types
 from collections.abc import Callable, Iterator
 from typing import Any, ClassVar, TypeVar
@@ -53,12 +54,13 @@ class StateRefused(ValueError):
 
 class _Period:
     """A module class's ``period`` (``Module.__init_subclass__`` makes the value a class
-    gives it one of these). Read from the class, it is the class's period; from an
-    instance, the period it runs at (its worker puts it on the instance). Assigned on
-    an instance its worker runs, it is set live, as ``set_state(name, period=...)``
-    sets it (the worker's ``_pb3a_period_set``): a module that slowed itself with
-    ``self.period = 0.5`` slept its old period on, nothing said. On an instance no
-    worker runs (in its ``__init__``, in a test) it is a plain attribute."""
+    gives it one of these, and ``give_period`` one it has another way). Read from the
+    class, it is the class's period; from an instance, the period it runs at (its
+    worker puts it on the instance). Assigned on an instance its worker runs, it is set
+    live, as ``set_state(name, period=...)`` sets it (the worker's
+    ``_pb3a_period_set``): a module that slowed itself with ``self.period = 0.5`` slept
+    its old period on, nothing said. On an instance no worker runs (in its
+    ``__init__``) it is a plain attribute."""
 
     def __init__(self, default: Any) -> None:
         self.default = default
@@ -74,6 +76,21 @@ class _Period:
             instance.__dict__["period"] = value
         else:
             setter(value)
+
+
+def give_period(module: Module, period: float | None,
+                assign: Callable[[Any], None]) -> None:
+    """Give ``module`` the period it runs at, on the instance (``self.period``), and have
+    ``assign`` take what it assigns to ``self.period`` from then on (``_Period``). A
+    class's period that is no ``_Period`` is made one first: one a class that is no
+    ``Module`` gives (a mixin's), or one set on the class once made (``Sensor.period =
+    0.02``), was assigned as a plain attribute, and the module stepped at its old one."""
+    cls = type(module)
+    own = inspect.getattr_static(cls, "period", None)
+    if not hasattr(type(own), "__get__"):                   # (a property stays)
+        cls.period = _Period(own)
+    module.__dict__["period"] = period
+    module.__dict__["_pb3a_period_set"] = assign
 
 
 class Module:

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 from pb3a import latencies
 from pb3a.config import checks
 from pb3a.errors import RuntimeCancelled
-from pb3a.model.module import Module, can_hold, restore_state
+from pb3a.model.module import Module, can_hold, give_period, restore_state
 from pb3a.model.ports import InputPort, OutputPort
 from pb3a.model.state_edits import checked
 from pb3a.transport import pickling
@@ -160,6 +160,11 @@ class EventPool:
 
 def _always() -> bool:
     return True
+
+
+def _same(assigned: Any, period: float | None) -> bool:
+    """Whether a period ``assigned`` is ``period`` (None, or a number equal to it)."""
+    return assigned is period or (isinstance(assigned, (int, float)) and assigned == period)
 
 
 class ModuleActor:
@@ -855,19 +860,18 @@ class ModuleActor:
         at, on the instance (``dt = self.period`` read its class's while the
         configuration, ``add`` or ``swap`` gave it another; a framework name, it is no
         state: ``Module.get_state`` leaves it out), and make its assignment set it live
-        (``assign_period``). One its ``__init__`` assigned, before it ran, is replaced:
-        a warning says so (it is no period given to the module, which the configuration,
-        ``add`` or the class gives)."""
+        (``assign_period``). One it assigned before it ran (in ``__init__``, or its
+        ``set_state`` given its configured state) is replaced: a warning says so, unless
+        it is the one given or its class's (it is no period given to the module, which
+        the configuration, ``add`` or the class gives)."""
         assigned = module.__dict__.get("period", period)
-        if assigned is not period and not (isinstance(assigned, (int, float))
-                                           and assigned == period):
-            log.warning("module %r: %s.__init__ assigns self.period = %.60r, which sets "
-                        "nothing: the module runs at the period given to it (%s s: the "
-                        "configuration's, add's or swap's, else its class's); give its "
-                        "class that period, or assign self.period in setup()",
-                        self.name, type(module).__qualname__, assigned, period)
-        module.__dict__["period"] = period
-        module.__dict__["_pb3a_period_set"] = functools.partial(self.assign_period, module)
+        if not _same(assigned, period) and not _same(assigned, type(module).period):
+            log.warning("module %r: self.period = %.60r was assigned before it ran (in "
+                        "__init__ or its state), which sets nothing: the module runs at the "
+                        "period given to it (%s s: the configuration's, add's or swap's, "
+                        "else its class's); give its class that period, or assign "
+                        "self.period in setup()", self.name, assigned, period)
+        give_period(module, period, functools.partial(self.assign_period, module))
 
     def _dispatch_owed(self) -> None:
         """Schedule the calls its inputs owe: values that came while an instance that
