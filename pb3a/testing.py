@@ -20,7 +20,8 @@ import copy
 from collections import deque
 from typing import Any
 
-from pb3a.model.module import Module
+from pb3a.config import checks
+from pb3a.model.module import Module, give_period
 from pb3a.model.ports import InputPort, OutputPort
 from pb3a.transport.codec import local_copy
 
@@ -34,7 +35,10 @@ class ModuleHarness:
         """``keep``: how many of the newest values to keep per output (all by default;
         a long run that only looks at ``last`` keeps 1, and its memory stays flat).
         ``period``: the one a configuration would give it, which the module sees as
-        ``self.period`` (``dt = self.period``), as when launched; its class's if None."""
+        ``self.period`` (``dt = self.period``), as when launched; its class's if None.
+        The module's own assignment of ``self.period`` is checked as a launched one's
+        (``ValueError``, nothing changed), and sets what it sees (``"fast"`` passed here,
+        and raised once launched)."""
         if keep is not None and keep < 1:
             raise ValueError(f"keep must be at least 1 (or None, for all), not {keep!r}")
         if period is not None and not (isinstance(period, (int, float)) and period >= 0):
@@ -44,10 +48,14 @@ class ModuleHarness:
                             "macro is tested launched (System(...).add(name, TheMacro)), or "
                             "each of its modules in a harness of its own")
         self.module = cls()
-        self.module.__dict__["period"] = cls.period if period is None else period
+        given = cls.period if period is None else period
+        self.module.__dict__["period"] = given
         if state:       # its own copy, as a launched module's comes through a pipe
             self.module.set_state(copy.deepcopy(state))
-        ports = self.module._pb3a_bind_ports(name or cls.__name__)
+        self.name = name or cls.__name__
+        # (as a worker gives it: a period assigned before it ran is replaced)
+        give_period(self.module, given, self._assign_period)
+        ports = self.module._pb3a_bind_ports(self.name)
         self.inputs = {n: p for n, p in ports.items() if isinstance(p, InputPort)}
         self.written: dict[str, list[Any] | deque[Any]] = {}
         for port_name, port in ports.items():
@@ -57,6 +65,12 @@ class ModuleHarness:
         if runtime is not None:
             self.module.__dict__["_pb3a_runtime"] = runtime
         self.module.setup()
+
+    def _assign_period(self, value: Any) -> None:
+        """``self.period = value`` in the module: checked as in a launched module, and
+        then what it sees (a test steps it: there is no period to sleep)."""
+        period = checks.assigned_period(self.name, type(self.module), value)
+        self.module.__dict__["period"] = period
 
     def feed(self, port: str, value: Any) -> None:
         """Deliver ``value`` to input ``port``; an event-driven module handles it now."""

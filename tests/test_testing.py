@@ -36,6 +36,21 @@ def test_the_module_sees_the_period_it_is_given_as_a_launched_one_does() -> None
         ModuleHarness(Ticker, period=-1)
 
 
+def test_the_module_s_assignment_of_its_period_is_checked_as_a_launched_one_s() -> None:
+    """``self.period = "fast"`` raised ``ValueError`` in a launched module and passed in
+    a harness; it raises there too, naming the module, nothing changed, and a period
+    the module may set is what it then sees."""
+    harness = ModuleHarness(Ticker, period=0.5)
+    harness.module.period = 0.25
+    assert harness.module.period == 0.25
+    with pytest.raises(ValueError, match=r"module 'Ticker': self\.period = 'fast' is no period"):
+        harness.module.period = "fast"
+    assert harness.module.period == 0.25
+    with pytest.raises(ValueError, match=r"module 'scale': self\.period = 0\.1, but .*Scale "
+                                         r"has no step"):
+        ModuleHarness(Scale, name="scale").module.period = 0.1
+
+
 def test_keep_holds_only_the_newest_values_of_each_output() -> None:
     harness = ModuleHarness(Ticker, keep=2)
     harness.step(5)
