@@ -94,8 +94,9 @@ class ModuleStats:
     outputs: dict[str, int] = field(default_factory=dict)    # values written, per output
     output_waits: dict[str, WaitStats] = field(default_factory=dict)   # per output
     link_waits: dict[str, WaitStats] = field(default_factory=dict)     # per link it writes
-    # the period it steps at, seconds (None: only on events), as set live too (by
-    # set_state, or the module assigning self.period)
+    # the period it steps at, seconds (None: only on events, its class's period too if
+    # it has no step()), as set live too (by set_state, or the module assigning
+    # self.period)
     period: float | None = None
 
 

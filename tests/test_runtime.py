@@ -1757,6 +1757,26 @@ def test_a_period_assigned_before_the_module_runs_is_said_to_set_nothing(caplog)
     assert not caplog.records
 
 
+class _ListensWithAPeriod(Module):
+    """Handles its input's values only (no ``step()``), though its class sets a period."""
+
+    period = 0.5
+    x = Input(int)
+
+    def on_input(self, port) -> None:
+        port.read()
+
+
+def test_a_class_with_a_period_but_no_step_shows_no_period_in_the_stats() -> None:
+    """A period its class sets steps nothing in a module with no ``step()``: ``stats()``
+    says None and the status table "-", as for any module run on events only (they
+    showed 0.5, and no step thread stepped it)."""
+    with System("listens").add("m", _ListensWithAPeriod).launch() as run:
+        assert run.stats().modules["m"].period is None
+        table = format_table(run.stats())
+        assert re.search(r"^m +local +\d+ +running +- ", table, re.M), table
+
+
 class _PeriodMixin:
     """A period from a class that is no ``Module``."""
 

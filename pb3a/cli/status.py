@@ -38,7 +38,8 @@ def format_table(stats: SystemStats) -> str:
     ``pb3a nodes`` prints: it left out the embedded nodes, which ``pb3a nodes`` showed).
     A module's status says the call it is stuck in, and the change in progress that
     acts on it ("running (migrate slow to b for 5 s)"); its period, the one it steps at
-    now (set live too), "-" for one run only on events."""
+    now (set live too), "-" for one run only on events (a period its class sets
+    without a step() included)."""
     rows = [("module", "node", "pid", "status", "period s", "steps", "events", "cpu s",
              "errors", "last error")]
     for name, m in stats.modules.items():

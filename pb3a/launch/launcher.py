@@ -34,6 +34,7 @@ from pb3a.launch.remote_starts import RemoteStarts, not_started
 from pb3a.loading.references import by_reference, class_ref
 from pb3a.logbook import LogBook
 from pb3a.model.environment import PREFIX as ENV_PREFIX
+from pb3a.model.module import stepped_period
 from pb3a.node.bridge import NoHandshake
 from pb3a.node.executor import REPORT_TIMEOUT, Executor
 from pb3a.node.remote import HEARTBEAT_S, LOSS_S, STOP_AT_LEAST_S, RemoteNode
@@ -488,7 +489,7 @@ class Launcher:
                 or next(iter(entries), None)
             if entry is None and change is not None:     # (no figures: none its own)
                 entry = ModuleStats(class_ref(spec.cls), spec.node, "", "running",
-                                    silent=True, period=spec.period)
+                                    silent=True, period=stepped_period(spec.cls, spec.period))
             if entry is None:               # (its node lost, or not asked)
                 continue
             entry = dataclasses.replace(entry, node=spec.node)
@@ -739,7 +740,8 @@ def _silenced(report: NodeReport, node: str, placed: list[FlatModule]) -> NodeRe
     for spec in placed:
         entry = report.modules.get(spec.name)
         modules[spec.name] = ModuleStats(
-            class_ref(spec.cls), node, "", "running", silent=True, period=spec.period,
+            class_ref(spec.cls), node, "", "running", silent=True,
+            period=stepped_period(spec.cls, spec.period),
         ) if entry is None else ModuleStats(
             entry.cls, entry.node, entry.worker, entry.status, entry.pid, silent=True,
             restarts=entry.restarts, checkpoints=entry.checkpoints, period=entry.period)

@@ -78,6 +78,12 @@ class _Period:
             setter(value)
 
 
+def stepped_period(cls: type[Module], period: float | None) -> float | None:
+    """The period a module of class ``cls`` given ``period`` steps at: None if the class
+    has no ``step()`` (a period its class sets steps nothing)."""
+    return period if cls.step is not Module.step else None
+
+
 def give_period(module: Module, period: float | None,
                 assign: Callable[[Any], None]) -> None:
     """Give ``module`` the period it runs at, on the instance (``self.period``), and have

@@ -30,6 +30,7 @@ from pb3a.deadline import before_answer, bounding, capped, lifted
 from pb3a.errors import ConfigError, PB3AError, RuntimeFailure, RuntimeTimeout
 from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
+from pb3a.model.module import stepped_period
 from pb3a.node.bridge import Bridge
 from pb3a.node.class_check import ImportLane
 from pb3a.node.lives import Lives
@@ -695,7 +696,8 @@ class Executor:
         (``Lives.revival``), named as the change in progress."""
         spec = record.spec
         base = {"cls": f"{spec.cls.__module__}:{spec.cls.__qualname__}", "node": spec.node,
-                "worker": record.worker, "status": record.status, "period": spec.period,
+                "worker": record.worker, "status": record.status,
+                "period": stepped_period(spec.cls, spec.period),
                 "restarts": record.restarts, "checkpoints": record.checkpoints}
         if revival is not None:
             base |= {"change": revival[0], "change_s": max(0.0, time.monotonic() - revival[1])}

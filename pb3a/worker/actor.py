@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 from pb3a import latencies
 from pb3a.config import checks
 from pb3a.errors import RuntimeCancelled
-from pb3a.model.module import Module, can_hold, give_period, restore_state
+from pb3a.model.module import Module, can_hold, give_period, restore_state, stepped_period
 from pb3a.model.ports import InputPort, OutputPort
 from pb3a.model.state_edits import checked
 from pb3a.transport import pickling
@@ -808,7 +808,7 @@ class ModuleActor:
     def _steps(self, period: float | None) -> bool:
         """Whether the module is stepped at ``period``: a period, and a class with a
         ``step()`` (an empty one, stepped at period 0, took most of a core)."""
-        return period is not None and type(self.module).step is not Module.step
+        return stepped_period(type(self.module), period) is not None
 
     def _step_every(self, period: float | None) -> None:
         """Step at ``period`` from now on (None: no more), if the module (the new
@@ -939,5 +939,6 @@ class ModuleActor:
                 "class": f"{type(self.module).__module__}:{type(self.module).__qualname__}",
                 "steps": self.steps, "events": self.events, "errors": self.errors,
                 "cpu": self.cpu + self._step_thread_cpu(), "last_error": self.last_error,
-                "running": self.running, "period": self.period,
+                "running": self.running,
+                "period": stepped_period(type(self.module), self.period),
                 "inputs": inputs, "outputs": outputs, "waits": waits}
