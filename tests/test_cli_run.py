@@ -207,7 +207,7 @@ def test_a_signal_stops_everything_and_leaves_nothing_behind(tmp_path: Path, how
     last_table = out.rpartition("module  ")[2].splitlines()
     (tick,) = [line.split() for line in last_table if line.startswith("tick ")]
     (link,) = [line.split() for line in last_table if line.startswith("tick.out -> scale.x")]
-    assert int(tick[4]) > 0 and int(link[6]) > 0, out        # its steps, the values sent
+    assert int(tick[5]) > 0 and int(link[6]) > 0, out        # its steps, the values sent
     assert not live_segments(proc.pid)
     assert not [p for p in workers if alive(p)]
 

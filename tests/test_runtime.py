@@ -99,7 +99,7 @@ from pb3a.stats import (
     SystemStats,
 )
 from pb3a.testing import ModuleHarness
-from pb3a.worker.actor import EventPool, ModuleActor
+from pb3a.worker.actor import EventPool, ModuleActor, SetupError
 from pb3a.worker.periods import PeriodTeller
 
 pytestmark = pytest.mark.timeout(90)
@@ -1604,6 +1604,27 @@ def test_a_failed_swap_leaves_the_module_at_its_period_whatever_the_new_one_assi
         assert run.topology().modules["m"].period == 0.01
         assert run.stats().modules["m"].period == 0.01
         assert run.state("m")["seen_period"] == 0.01
+
+
+def test_a_failed_swap_whose_new_setup_assigned_a_period_steps_the_old_instance_not() -> None:
+    """A swap whose new class's ``setup`` assigns a period and then raises leaves the
+    old instance as it was: the assignment woke (or started) a step thread, which then
+    stepped the event-driven module put back once, where it never steps."""
+    class OnEvents(Module):
+        x = Input(float)
+
+        def on_input(self, port: str) -> None:
+            pass
+    actor = ModuleActor("m", OnEvents(), lambda task: task(), None)
+    actor.start()
+    try:
+        with pytest.raises(SetupError):
+            actor.swap(AssignsThenFails(), None)
+        for thread in [t for t in threading.enumerate() if t.name == "pb3a-step-m"]:
+            thread.join(5)                    # (a step thread woken: done with its step)
+        assert (type(actor.module), actor.period, actor.steps) == (OnEvents, None, 0)
+    finally:
+        assert actor.stop(1.0)
 
 
 def test_a_module_s_last_assignment_of_its_period_is_what_it_and_its_record_keep() -> None:

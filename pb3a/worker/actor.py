@@ -840,18 +840,20 @@ class ModuleActor:
         From its teardown on, the instance's ``self.period`` alone is set (a removal or
         a move was told of its teardown's, and a move took the period its teardown reset
         for the module's own); from a swap's new instance it is told once the swap has
-        succeeded (one that failed left the old instance at the period the new one's
-        setup assigned); an instance that is no longer this actor's (a swap's old one,
-        or its new one before the swap makes it the module) sets its own alone."""
+        succeeded, and stepped at from then on (one that failed left the old instance at
+        the period the new one's setup assigned, and a step thread it woke or started
+        stepped the old instance early, or an event-driven one once); an instance that
+        is no longer this actor's (a swap's old one, or its new one before the swap
+        makes it the module) sets its own alone."""
         period = checks.assigned_period(self.name, type(module), value)
         with self._sched_lock:
             module.__dict__["period"] = period
             if self._quiet or module is not self.module or period == self.period:
                 return
-            self._step_every(period)
-            if self._owed is not None:
+            if self._owed is not None:          # (stepped at once the swap succeeds)
                 self._owed = True
                 return
+            self._step_every(period)
         if self.on_period is not None:
             self.on_period(self.name)
 
