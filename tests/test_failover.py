@@ -519,13 +519,13 @@ def test_a_node_whose_renewals_are_read_late_stops_before_its_module_runs_elsewh
                    what="steps on b")
         remote = run._launcher.remotes["b"]
         until = _lose_answers_of(remote, 6.0)
-        call = remote.client.call
+        call = remote.heart.call
 
         def late(op: str, timeout: float = 10.0, **args: Any) -> Any:
-            if op == "lease" and time.monotonic() < until:
+            if time.monotonic() < until:
                 time.sleep(0.6)                    # ... and each renewal reaches it late
             return call(op, timeout, **args)
-        remote.client.call = late
+        remote.heart.call = late
         _wait_for_the_copy_on_a(run, stamps)
     _assert_one_copy_at_a_time(stamps)
 
@@ -534,7 +534,7 @@ def _lose_answers_of(remote: Any, seconds: float) -> float:
     """Drop everything the node of ``remote`` (its executor, its controller) answers
     for ``seconds`` (a saturated uplink); when that ends (monotonic)."""
     until = time.monotonic() + seconds
-    for client in (remote.client, remote.controller):
+    for client in (remote.client, remote.heart, remote.controller):
         def dropped(frames, opened=client._opener.open):
             if time.monotonic() < until:
                 raise Rejected("the uplink lost it")
@@ -586,11 +586,9 @@ def test_a_slow_node_that_loses_one_heartbeat_keeps_its_lease(node_b, lost: str)
         eventually(lambda: run.state("far")["count"] > 5, timeout=30, what="steps on b")
         launcher, once = run._launcher, threading.Event()
         remote = launcher.remotes["b"]
-        call = remote.client.call
+        call = remote.heart.call
 
         def over_a_slow_link(op: str, timeout: float = 10.0, **args: Any) -> Any:
-            if op not in ("lease", "ping"):         # (a heartbeat's)
-                return call(op, timeout, **args)
             if once.is_set():                       # this one is lost
                 once.clear()
                 if lost == "answer":
@@ -601,7 +599,7 @@ def test_a_slow_node_that_loses_one_heartbeat_keeps_its_lease(node_b, lost: str)
             answer = call(op, timeout, **args)
             time.sleep(0.15)
             return answer
-        remote.client.call = over_a_slow_link
+        remote.heart.call = over_a_slow_link
         assert not launcher.wait_health("b", up=False, timeout=2.0)     # slow, not lost
         once.set()
         assert not launcher.wait_health("b", up=False, timeout=4.0)
@@ -623,11 +621,9 @@ def test_a_cut_shorter_than_the_lease_restarts_nothing(node_b) -> None:
         eventually(lambda: run.state("far")["count"] > 5, timeout=30, what="steps on b")
         launcher = run._launcher
         remote, pid = launcher.remotes["b"], run.stats().modules["far"].pid
-        call, cut = remote.client.call, {"start": threading.Event(), "end": -math.inf}
+        call, cut = remote.heart.call, {"start": threading.Event(), "end": -math.inf}
 
         def through_a_cut_cable(op: str, timeout: float = 10.0, **args: Any) -> Any:
-            if op not in ("lease", "ping"):         # (a heartbeat's)
-                return call(op, timeout, **args)
             if cut["start"].is_set():               # (it begins as a heartbeat goes)
                 cut["start"].clear()
                 cut["end"] = time.monotonic() + 0.6
@@ -639,7 +635,7 @@ def test_a_cut_shorter_than_the_lease_restarts_nothing(node_b) -> None:
                 time.sleep(timeout)
                 raise RuntimeTimeout("the cable is cut")
             return answer
-        remote.client.call = through_a_cut_cable
+        remote.heart.call = through_a_cut_cable
         for _ in range(3):
             count = run.state("far")["count"]
             cut["start"].set()

@@ -10,7 +10,9 @@ Its heartbeats also renew the executor's lease: an executor that hears none for
 ``LEASE_S`` fences itself (stops its modules and exits). The launcher declares a node
 lost only after ``LOSS_S`` without an answer, and ``LEASE_S`` plus a heartbeat and the
 executor's own check interval stay below it, so a cut-off executor has stopped
-before its modules are started anywhere else.
+before its modules are started anywhere else. The heartbeats have a connection of their
+own, so that a large state crossing to or from the node (in pieces of ``PIECE``) holds
+none of them up.
 """
 
 from __future__ import annotations
@@ -143,6 +145,11 @@ class RemoteNode:
         key = self._key = ClusterKey.load()
         self.controller = ControlClient(key, address)
         self.client: ControlClient | None = None
+        # the heartbeats' own connection to the executor: over the one the operations
+        # use, a heartbeat queued behind each 16 MiB piece of a snapshot, on the way and
+        # as the launcher read the answers (over a 100 Mbit/s link, 1.3 s a piece: a 40
+        # MiB state moved there had the node lost, and fenced)
+        self.heart: ControlClient | None = None
         self.lost = False
         self.refusal = ""                   # why its controller refused us last, if it did
         self.rtt = float("nan")             # of the last answered heartbeat
@@ -232,7 +239,12 @@ class RemoteNode:
                                               node=name, python=PYTHON)
             self.executor = executor
             self.client = ControlClient(self._key, executor, epoch=epoch)
-            reached = self.client.ping(CONNECT_TIMEOUT) is not None
+            # (both connected, and the heartbeats' told whom it talks to, before the bind
+            # starts the lease: made after it, over a far link, the connection and that
+            # first exchange took longer than the lease)
+            self.heart = ControlClient(self._key, executor, epoch=epoch)
+            reached = (self.client.ping(CONNECT_TIMEOUT) is not None
+                       and self.heart.ping(CONNECT_TIMEOUT) is not None)
             if reached:
                 self._heard = self.client.call("bind", launcher=launcher, checkpoint_s=checkpoint_s,
                                  log_level=log_level, code=code or CodeSources(),
@@ -399,8 +411,8 @@ class RemoteNode:
     def retire(self, name: str, segment: str, carry: bool) -> Snapshot:
         """The executor captures into ``segment`` on its machine; carried, the parts come
         back in pieces of at most ``PIECE`` bytes: a control message is bounded, and a
-        66 MiB state in one answer broke the connection the heartbeats use, the node
-        was taken for lost and the module with it."""
+        66 MiB state in one answer broke the connection the heartbeats then shared, the
+        node was taken for lost and the module with it."""
         snapshot: Snapshot = self._forward("retire", name, segment, False)
         if not carry:
             return snapshot
@@ -492,7 +504,6 @@ class RemoteNode:
         through after a cut) extends the lease little: it is renewed again at once,
         from its own answer (a cut of 0.3-0.6 s fenced the node, or restarted its
         modules, before the next heartbeat came)."""
-        assert self.client is not None
         due = time.monotonic() + offset
         while not self._closed.wait(max(0.0, due - time.monotonic())) and not self.lost:
             due += 2 * HEARTBEAT_S
@@ -503,14 +514,14 @@ class RemoteNode:
     def _renew(self) -> bool:
         """Renew the lease from the newest answer heard; whether it was answered, and
         the answer it carried was more than two heartbeats older than this one's."""
-        assert self.client is not None
+        assert self.heart is not None
         with self._renewing:       # (the two heartbeats: the newest carries the newest)
             since, self._renewed_from = self._heard, self._heard_at
         sent = time.monotonic()
         try:
             # (the executor dates its lease from ``since``, however late it reads this;
             # see NodeShare.renew)
-            heard = self.client.call("lease", 2 * HEARTBEAT_S, since=since)
+            heard = self.heart.call("lease", 2 * HEARTBEAT_S, since=since)
         except (RuntimeFailure, RuntimeTimeout):
             return False
         self._answered = time.monotonic()
@@ -575,8 +586,8 @@ class RemoteNode:
     def lose(self) -> None:
         """The node is gone: every waiting call fails now, and every later one at once."""
         self.lost = True
-        if self.client is not None:
-            self.client.fail_pending(f"node {self.name} is lost")
+        for client in filter(None, (self.client, self.heart)):
+            client.fail_pending(f"node {self.name} is lost")
 
     def stop_executor(self, timeout: float = 10.0) -> None:
         """Have the controller stop the executor (modules stop in reverse order), or kill
@@ -606,10 +617,10 @@ class RemoteNode:
 
     def close(self) -> None:
         self._closed.set()
-        # the client first: it fails a heartbeat's renewal under way, which an executor
+        # the clients first: they fail a heartbeat's renewal under way, which an executor
         # stopped a moment ago never answers (the join waited out its 0.5 s at most closes)
-        if self.client is not None:
-            self.client.close()
+        for client in filter(None, (self.heart, self.client)):
+            client.close()
         for heart in self._hearts:
             heart.join(1.0)
         self.controller.close()

@@ -106,8 +106,8 @@ _SENT_TO = {
 MAX_MESSAGE = 64 * 1024 * 1024          # control messages carry states and code, not streams
 # The largest request or answer sent: the frame's header and tag fit beside it. A frame
 # over MAX_MESSAGE makes ZeroMQ drop the connection it came on, which a node's heartbeats
-# share: reading a module's 66 MiB state had its node declared lost, and the module with
-# it. One that large is refused where it is made, saying so, and nothing is dropped.
+# then shared: reading a module's 66 MiB state had its node declared lost, and the module
+# with it. One that large is refused where it is made, saying so, and nothing is dropped.
 MAX_PAYLOAD = MAX_MESSAGE - 64 * 1024
 DEFAULT_TIMEOUT = 10.0
 QUICK_S = 0.5               # a server that is there answers within this, unless far or busy
