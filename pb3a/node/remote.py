@@ -291,9 +291,9 @@ class RemoteNode:
     def _drop_executor(self) -> None:
         """Forget the executor of a start whose controller restarted: it ended with the
         controller that started it, and is asked of the new one."""
-        if self.client is not None:
-            self.client.close()
-        self.client = self.executor = None
+        for client in filter(None, (self.heart, self.client)):
+            client.close()
+        self.client = self.heart = self.executor = None
 
     def _let_go(self, started: bool) -> None:
         """A start that failed: kill the executor if this launch started it (not bound, it
