@@ -187,7 +187,7 @@ class RemoteNode:
         restarted = False
         while True:
             starting = ControlClient(key, address, when_gone=functools.partial(
-                _gone_during_start, name, address))
+                self._controller_gone, address))
             try:
                 executor = self._start(starting, address, restarted=restarted,
                                        config=config, launcher=launcher, workers=workers,
@@ -243,7 +243,8 @@ class RemoteNode:
             # starts the lease: made after it, over a far link, the connection and that
             # first exchange took longer than the lease)
             self.heart = ControlClient(self._key, executor, epoch=epoch)
-            reached = (self.client.ping(CONNECT_TIMEOUT) is not None
+            reached = (not starting.gone.is_set()
+                       and self.client.ping(CONNECT_TIMEOUT) is not None
                        and self.heart.ping(CONNECT_TIMEOUT) is not None)
             if reached:
                 self._heard = self.client.call("bind", launcher=launcher, checkpoint_s=checkpoint_s,
@@ -287,6 +288,16 @@ class RemoteNode:
             f"{executor}, on the host other nodes reach node {name} at ({host}); make "
             f"[nodes.{name}] advertise an address of that machine which this one and the "
             "other nodes reach, and open its ports to them")
+
+    def _controller_gone(self, address: str, reason: str) -> RuntimeFailure:
+        """The error of the start's calls, its node controller gone (``reason``); the
+        calls waiting on the executor it started fail with it, the executor having ended
+        with its controller: they waited out their deadline (the ping of one that was
+        never reached, 5 s) before the launch looked at the controller (socket thread)."""
+        error = _gone_during_start(self.name, address, reason)
+        for client in filter(None, (self.client, self.heart)):
+            client.fail_pending(error)
+        return error
 
     def _drop_executor(self) -> None:
         """Forget the executor of a start whose controller restarted: it ended with the
