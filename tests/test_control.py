@@ -496,6 +496,26 @@ def test_a_closed_socket_frees_its_port_before_close_bound_returns() -> None:
     ControlServer(KEY, handler, port=int(port)).close()
 
 
+def test_a_close_a_ctrl_c_cut_short_is_finished_by_the_next() -> None:
+    """A Ctrl-C as a server's close waited for its thread (a request under way) left its
+    port bound, its thread and its sockets open, until the process ended: closing again
+    did nothing, and a server started again there found the port in use."""
+    server = ControlServer(KEY, handler)
+    port = int(server.address.rpartition(":")[2])
+    serving = server._worker
+
+    class CutShort:
+        def join(self, timeout: float | None = None) -> None:
+            server._worker = serving
+            raise KeyboardInterrupt
+    server._worker = CutShort()
+    with pytest.raises(KeyboardInterrupt):
+        server.close()
+    server.close()
+    assert not serving.is_alive()
+    ControlServer(KEY, handler, port=port).close()
+
+
 def test_a_close_bound_that_gave_up_waiting_leaves_later_closes_unharmed(caplog) -> None:
     """A ``close_bound`` that gives up waiting (2 s, under heavy load) keeps its monitor
     until ZeroMQ has said it stopped: closed at once, ZeroMQ's reaper thread blocked for

@@ -425,11 +425,13 @@ class ControlServer:
 
     def close(self) -> None:
         """Stop serving; on return the port is free, so a server may bind it again.
-        Closing again does nothing."""
-        if self._closed:
+        Closing again does nothing, but finishes a close a Ctrl-C cut short: it kept
+        the port, its thread and sockets until the process ended."""
+        if not self._closed:
+            self._closed = True
+            self._work.put(None)
+        if self._router.closed:             # (closed last: the close is over)
             return
-        self._closed = True
-        self._work.put(None)
         self._worker.join(5.0)
         # a request running aside and about to answer (a follower told the system
         # stopped) gets its answer out; one that goes on longer is left unanswered
