@@ -2057,6 +2057,65 @@ def test_a_close_a_ctrl_c_interrupts_is_finished_as_the_script_exits(tmp_path: P
     assert not live_segments(launcher)
 
 
+def test_the_close_of_a_failed_launch_a_ctrl_c_interrupts_is_finished_as_the_script_exits(
+        tmp_path: Path) -> None:
+    """A launch that failed (module c's setup raised) closes what it started; a Ctrl-C
+    in that close left the modules it had not reached running until the script's end,
+    with no handle to close them by (the exit's hook was set once the launch had
+    returned), and then their workers' own ends tore them down in no order (a, whose
+    teardown is quicker, before b). The exit finishes that close, in order."""
+    (tmp_path / "failed.py").write_text(textwrap.dedent("""
+        import os
+        import time
+        from pb3a import Module, System
+        from pb3a.node.executor import Executor
+
+        class Noted(Module):
+            label = ""
+
+            def setup(self):
+                if self.label == "c":
+                    raise ValueError("c cannot start")
+                print("set up", self.label, os.getpid(), flush=True)
+
+            def teardown(self):
+                if self.label == "b":       # (slower: torn down in no order, a is first)
+                    time.sleep(0.3)
+                print("torn down", self.label, flush=True)
+
+        if __name__ == "__main__":
+            system = System("failed-then-interrupted")
+            for name in ("a", "b", "c"):
+                system.add(name, Noted, state={"label": name})
+            stop_module = Executor.stop_module
+
+            def interrupted(node, name, timeout=5.0):
+                if name == "b":
+                    raise KeyboardInterrupt
+                stop_module(node, name, timeout)
+
+            Executor.stop_module = interrupted
+            try:
+                system.launch(timeout=30)
+            except KeyboardInterrupt:
+                print("interrupted", flush=True)
+            Executor.stop_module = stop_module
+            print("launcher", os.getpid(), flush=True)
+        """))
+    done = subprocess.run([sys.executable, str(tmp_path / "failed.py")], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 0, done.stderr
+    assert "leaked" not in done.stderr, done.stderr
+    lines = done.stdout.splitlines()
+    workers = [int(line.split()[3]) for line in lines if line.startswith("set up")]
+    launcher = int(next(line for line in lines if line.startswith("launcher")).split()[1])
+    said = [line for line in lines if not line.startswith(("set up", "launcher"))]
+    assert len(workers) == 2, done.stdout
+    assert said == ["interrupted", "torn down b", "torn down a"], (done.stdout, done.stderr)
+    eventually(lambda: not [pid for pid in workers if alive(pid)], what="the workers' end")
+    assert not live_segments(launcher)
+
+
 def test_a_forced_remove_kills_no_worker_that_runs_other_modules() -> None:
     """Killing a worker a module shares with others (a group, packed workers) would lose
     them too: a forced remove of such a module that does not answer is refused, naming

@@ -50,8 +50,14 @@ def launch(plan: Plan, **options: Any) -> Running:
     _refuse_inside_own_process(plan.name)
     _refuse_in_an_imported_class_file(plan)
     running = Running(plan, **options)
-    running.start()
-    atexit.register(running.close_at_exit)
+    try:
+        running.start()
+    finally:
+        # (a start that failed too, whose close a Ctrl-C cut short: nothing else could
+        # finish it. Set after the start's own exit hooks, it runs before them, while
+        # the workers and their forkserver still serve)
+        if not running._closed:
+            atexit.register(running.close_at_exit)
     return running
 
 
