@@ -448,6 +448,8 @@ def test_mistakes_on_the_command_line_get_a_sentence_and_exit_1(capsys) -> None:
         address = run.listen()
         for argv, said in (
                 (["status", "7300"], "is not a launcher's address: give tcp://HOST:PORT"),
+                # (it waited 2 s, then said nothing listened on port 99999)
+                (["status", "tcp://127.0.0.1:99999"], "its port 99999 is out of range"),
                 (["set", address, "src", "limit"], "'limit' is not NAME=VALUE"),
                 (["set", address, "src", "nosuch=1", "limit=2"],      # (not the worker's
                  "pb3a set: src has no state 'nosuch'; its state: "),   # KeyError: nothing set)

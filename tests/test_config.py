@@ -1288,7 +1288,8 @@ def test_addresses_must_be_tcp_host_port_and_a_remote_node_s_cpus_are_its_own(
     assert len(problems) == 4, problems
     only(problems, "each of module_servers must be a string tcp://HOST:PORT", "'localhost:7300'")
     only(problems, "[nodes.a]: address must be a string tcp://HOST:PORT", "'127.0.0.1:7199'")
-    only(problems, "[nodes.c]: address must be", "99999")
+    only(problems, "[nodes.c]: address 'tcp://machine-c:99999': its port 99999 is out of "
+                   "range (1-65535)")
     only(problems, "[nodes.d]: cpus must be a non-empty list of CPU numbers among this "
                    "machine's")
     wrong = System("s", module_servers="tcp://127.0.0.1:7300").check()  # not 't', 'c' ...

@@ -9,6 +9,7 @@ import os
 import re
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -190,6 +191,39 @@ def test_links_cross_to_a_node_on_another_host_both_ways(lan: Lan) -> None:
         "tick_a.out->at_b.x": "zmq", "tick_b.out->relay.x": "zmq",
         "relay.out->at_a.x": "shm"}                   # relay is back beside at_a
     assert all(link.link_failures == 0 for link in links.values())
+
+
+def test_a_launcher_with_nodes_on_its_loopback_and_on_another_host_listens_where_both_reach_it(
+        lan: Lan) -> None:
+    """Given no address to listen at, the launcher listened towards its first remote
+    node: one on this machine's 127.0.0.1 gave 127.0.0.1, where node b, on another host,
+    cannot call it back, and the launch was refused ("cannot listen on
+    tcp://127.0.0.1:0"), naming an address nobody gave. It listens towards b."""
+    with socket.socket() as probe:                  # (a free port of this machine)
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    address = f"tcp://127.0.0.1:{port}"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "tests"), str(REPO)])}
+    here = subprocess.Popen([sys.executable, "-m", "pb3a", "node", "start", "--name", "a",
+                             "--listen", address, "--max-cpu", "101"],
+                            stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        assert here.stdout.readline().strip() == f"node a at {address}"
+        system = System("loopback-and-far").node("a", address=address)
+        system.node("b", address=lan.host("b").node("b"))
+        system.add("tick_b", Counter, node="b", period=0.01)
+        system.add("at_a", Collector, node="a")
+        # (from b: a, on 127.0.0.1, publishes where only this machine reaches it)
+        system.link("tick_b.out", "at_a.x")
+        with system.launch() as run:
+            eventually(lambda: run.state("at_a")["received"] > 0, timeout=30,
+                       what="values from node b at this machine's node a")
+            listens_at = run.address
+    finally:
+        here.terminate()
+        here.wait(15)
+        here.stdout.close()
+    assert listens_at.startswith(f"tcp://{lan.address}:"), listens_at
 
 
 def test_a_host_on_two_networks_binds_on_one_address_and_advertises_another(

@@ -227,13 +227,19 @@ class Running(SystemHandle):
                 for node in self.plan.nodes.values() if node.address]
 
     def _here_towards_nodes(self) -> str:
-        """The host of this machine that the first remote node reaches it at (the
-        interface this machine reaches that node through). A node whose address (or
-        ``advertise``) names a host that does not resolve is named, as ``RemoteNode``
-        names it: found here first, it failed the launch with "cannot reach or listen
-        where FILE or --listen says", naming no node."""
-        node = next(node for node in self.plan.nodes.values() if node.address)
-        towards = self._remote_nodes()[0]
+        """The host of this machine that the first remote node on another machine (else
+        the first) reaches it at (the interface this machine reaches that node
+        through). A node whose address (or ``advertise``) names a host that does not
+        resolve is named, as ``RemoteNode`` names it: found here first, it failed the
+        launch with "cannot reach or listen where FILE or --listen says", naming no
+        node."""
+        nodes = [node for node in self.plan.nodes.values() if node.address]
+        addresses = self._remote_nodes()
+        # (one on another machine first, if any: towards a node on this machine's
+        # loopback it was 127.0.0.1, which the other machines' nodes cannot call back
+        # at, and the launch was refused, naming an address nobody gave)
+        first = next((i for i, towards in enumerate(addresses) if elsewhere(towards)), 0)
+        node, towards = nodes[first], addresses[first]
         try:
             return reachable_from(towards)
         except OSError as exc:

@@ -30,7 +30,7 @@ from pb3a.config.description import DEFAULT_SPARES
 from pb3a.deadline import before_answer, capped, left, lifted
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
-from pb3a.transport.addresses import connection_failure, host_of, unresolved
+from pb3a.transport.addresses import connection_failure, host_of, loopback, unresolved
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import GONE_S, ControlClient
 from pb3a.transport.pickling import PYTHON
@@ -117,10 +117,13 @@ def _unanswered(node: str, address: str) -> str:
     start = _start_command(node, address)
     failure = connection_failure(address, PROBE_S)
     if isinstance(failure, ConnectionRefusedError):
+        # (a loopback host is the one address such a controller listens on: "one that
+        # listens on 127.0.0.1 is not reached there" was said of 127.0.0.1 itself)
+        elsewhere = "" if loopback(host) else (
+            "; one that listens on 127.0.0.1, or on another of that machine's addresses, "
+            "is not reached there (`ss -ltn` on that machine shows where it listens)")
         return (f"nothing listens on port {port} at {host} (the connection was refused): "
-                f"start a node controller there ({start}), or fix the port; one that "
-                f"listens on 127.0.0.1, or on another of that machine's addresses, is not "
-                f"reached there (`ss -ltn` on that machine shows where it listens)")
+                f"start a node controller there ({start}), or fix the port{elsewhere}")
     if failure is not None:
         why = ("no answer" if isinstance(failure, TimeoutError)
                else failure.strerror or str(failure))

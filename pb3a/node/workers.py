@@ -62,6 +62,10 @@ EXIT_AT_LEAST_S = 0.1
 # that had not answered within it is not taken for stuck.
 HURRIED_S = 0.1
 _UNREADABLE = (None, None)      # the head of a message that could not be read
+# What a request that goes unanswered waits for, where that is not any body: a stop
+# stuck in a teardown was said to be stuck in "step, on_input, setup"
+_STUCK_IN = {"stop": "its teardown, or the step or on_input the stop waits for",
+             "start": "its setup", "swap": "the new class's setup, or the old one's teardown"}
 
 _context = multiprocessing.get_context("forkserver")
 # A worker's start waits this long for the forkserver (its first start includes the
@@ -534,8 +538,8 @@ class WorkerPool:
                                  f"{spoken(timeout)} s left of the call's time")
         raise RuntimeTimeout(
             f"worker {key!r} did not answer {op!r} within {spoken(timeout)} s: a module there "
-            "is stuck in a long call (step, on_input, setup), or its machine is "
-            "overloaded; its log and `pb3a status` may say which")
+            f"is stuck in a long call ({_STUCK_IN.get(op, 'step, on_input, setup')}), or its "
+            "machine is overloaded; its log and `pb3a status` may say which")
 
     # -- the monitor -----------------------------------------------------------
     def _poke(self) -> None:

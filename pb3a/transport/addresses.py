@@ -74,7 +74,15 @@ def launcher_address(text: str) -> str:
     if not address.startswith("tcp://") or not colon or not host or not port.isdigit():
         raise ValueError(f"{text!r} is not a launcher's address: give tcp://HOST:PORT (or "
                          "HOST:PORT), as pb3a run prints it")
+    if not _a_port(port):       # (it waited, then said nothing listened there)
+        raise ValueError(f"{text!r} is not a launcher's address: its port {port} is out "
+                         "of range (1-65535); give the port pb3a run prints")
     return address
+
+
+def _a_port(port: str) -> bool:
+    """Whether ``port`` (digits) names a TCP port one may connect to."""
+    return 0 < int(port) <= 65535
 
 
 def host_of(address: str) -> str:
@@ -168,9 +176,10 @@ def tcp_address_problems(value: object, what: str, otherwise: str = "") -> list[
         if host in EVERY_INTERFACE:     # (what a listener binds, not where it is reached)
             return [f"{what} must be an address to connect to: {value!r} names every "
                     "interface; give the host's name or one of its addresses"]
-        if host and not any(c in host for c in " /") and port.isdigit() \
-                and 0 < int(port) <= 65535:
-            return []
+        if host and not any(c in host for c in " /") and port.isdigit():
+            if _a_port(port):
+                return []
+            return [f"{what} {value!r}: its port {port} is out of range (1-65535)"]
     return [f"{what} must be a string tcp://HOST:PORT such as 'tcp://10.0.0.7:7100'"
             f"{otherwise}, got {value!r}"]
 
