@@ -456,7 +456,9 @@ def test_mistakes_on_the_command_line_get_a_sentence_and_exit_1(capsys) -> None:
                 (["swap", address, "src", "nowhere:Nothing"], "cannot import module 'nowhere'"),
                 (["migrate", address, "src", "mars"], "no node 'mars'"),
                 (["relink", address, "src.out", "src.nope"], "src has no input 'nope'"),
-                (["remove", address, "ghost"], "no module 'ghost'")):
+                (["remove", address, "ghost"], "no module 'ghost'"),
+                (["migrate", address, "scr", "local"], "no module 'scr' in system "
+                 "'cli-mistakes'; modules: src (did you mean 'src'?)")):
             assert main(argv) == 1, argv
             err = capsys.readouterr().err
             assert said in err and "Traceback" not in err and "KeyError" not in err, (argv, err)

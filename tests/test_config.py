@@ -910,11 +910,16 @@ def test_bad_period_restart_and_state(tmp_path: Path) -> None:
         [modules.c]
         class = "parts_cfg:Custom"
         state = { anything = 1, whatever = 2 }
+        [modules.d]
+        class = "examples.pipeline:Ticker"
+        restart = "last_state"
     """)
-    assert len(problems) == 5
+    assert len(problems) == 6
     only(problems, "[modules.a]: period must be a number of seconds from 0 to 1e+07", "'fast'")
     only(problems, "[modules.a]: restart must be one of 'never', 'fresh', 'last-state'",
          "'always'")
+    only(problems, "[modules.d]: restart must be one of", "got 'last_state' (did you mean "
+         "'last-state'?)")
     only(problems, "[modules.a]: examples.pipeline:Scale has no state 'gian'",
          "did you mean 'gain'", "its state is: gain")
     only(problems, "[modules.b]: period must be a number of seconds from 0", "got -1")

@@ -158,7 +158,8 @@ def restart(value: Any) -> list[str]:
     """``None`` (keep the class's) or one of the restart policies."""
     if value is None or value in RESTART_POLICIES:
         return []
-    return [f"restart must be one of {listing(map(repr, RESTART_POLICIES))}, got {value!r}"]
+    return [f"restart must be one of {listing(map(repr, RESTART_POLICIES))}, got {value!r}"
+            f"{did_you_mean(value, RESTART_POLICIES)}"]
 
 
 def workers(value: Any) -> list[str]:

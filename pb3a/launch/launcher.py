@@ -25,6 +25,7 @@ import threading
 import time
 from typing import TYPE_CHECKING, Any
 
+from pb3a.config.checks import did_you_mean
 from pb3a.deadline import bounding, lifted
 from pb3a.errors import ModuleNotFound, RuntimeFailure, RuntimeTimeout
 from pb3a.events import EventLog
@@ -268,7 +269,7 @@ class Launcher:
         inner = [module for module in names if module.startswith(f"{name}/")]
         if inner:
             return f"it is a macro instance: name one of its modules, {', '.join(inner)}"
-        modules = f"modules: {', '.join(names) or '(none)'}"
+        modules = f"modules: {', '.join(names) or '(none)'}{did_you_mean(name, names)}"
         if name.startswith(ENV_PREFIX):
             node = name[len(ENV_PREFIX):]
             if node not in self.plan.nodes:
