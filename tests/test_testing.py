@@ -93,6 +93,10 @@ def test_an_agent_calls_the_runtime_it_is_given() -> None:
 
     ModuleHarness(Asker, runtime=Runtime()).feed("x", 1.0)
     assert calls == [("worker", "b", False)]
+    # given none, it is told how to give one (it was told only that none ran)
+    with pytest.raises(RuntimeError, match=r"in a test, give ModuleHarness a stand-in: "
+                       r"runtime=\.\.\."):
+        ModuleHarness(Asker).feed("x", 1.0)
 
 
 class Doubler(Module):

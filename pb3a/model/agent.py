@@ -178,5 +178,6 @@ class Agent(Module):
         client = self.__dict__.get("_pb3a_runtime")
         if client is None:
             raise RuntimeError(f"{type(self).__name__} is not running in a PB3A system; "
-                               "self.runtime exists only inside a launched system")
+                               "self.runtime exists only inside a launched system (in a "
+                               "test, give ModuleHarness a stand-in: runtime=...)")
         return client
