@@ -146,6 +146,21 @@ def _file_now(module: ModuleType) -> tuple[str, int, int] | None:
     return path, found.st_mtime_ns, found.st_size
 
 
+def file_of(module: str) -> tuple[str, int, int] | None:
+    """The file ``module`` imports from on ``sys.path``, its mtime and size, found without
+    importing anything (its packages neither); None if there is none."""
+    parts = module.split(".")
+    for entry in sys.path:
+        if not isinstance(entry, str):
+            continue
+        base = os.path.join(entry or ".", *parts)
+        for path in (f"{base}.py", os.path.join(base, "__init__.py")):
+            with contextlib.suppress(OSError):
+                found = os.stat(path)
+                return path, found.st_mtime_ns, found.st_size
+    return None
+
+
 # Each module resolve_class imported from, and its file then (``changed_since_import``);
 # the module object noted, held weakly (a module dropped from the cache is not kept).
 _files: dict[str, tuple[str, int, int] | None] = {}

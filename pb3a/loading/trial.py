@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
 import sys
 import threading
 import time
@@ -26,7 +25,7 @@ from dataclasses import dataclass
 
 from pb3a.deadline import spoken
 from pb3a.loading.import_child import IMPORT_EACH, Child, exit_status, hung
-from pb3a.loading.references import ImportRefused, ImportWatch
+from pb3a.loading.references import ImportRefused, ImportWatch, file_of
 from pb3a.loading.served import module_servers
 
 START_TIMEOUT_S = 10.0      # a child may take this long to begin, or half an import's timeout
@@ -82,7 +81,7 @@ def import_problems(modules: Iterable[str], timeout: float, *, longer: str,
                 problems[module] = known
             else:
                 waiting.append(module)
-    files = {module: _file_of(module) for module in waiting}    # (as they are tried)
+    files = {module: file_of(module) for module in waiting}    # (as they are tried)
     while waiting:
         culprit, how, hanging = _tried(waiting, timeout, longer, deadline)
         if culprit is None:                  # all tried, or none could be: how, if so
@@ -123,24 +122,9 @@ _lock = threading.Lock()
 def _refused_before(module: str, timeout: float) -> str | None:
     with _lock:
         refusal = _refusals.get(module)
-    if refusal is None or timeout > refusal.within or _file_of(module) != refusal.file:
+    if refusal is None or timeout > refusal.within or file_of(module) != refusal.file:
         return None
     return refusal.how
-
-
-def _file_of(module: str) -> tuple[str, int, int] | None:
-    """The file ``module`` imports from on ``sys.path``, its mtime and size, found without
-    importing anything (its packages neither); None if there is none."""
-    parts = module.split(".")
-    for entry in sys.path:
-        if not isinstance(entry, str):
-            continue
-        base = os.path.join(entry or ".", *parts)
-        for path in (f"{base}.py", os.path.join(base, "__init__.py")):
-            with contextlib.suppress(OSError):
-                found = os.stat(path)
-                return path, found.st_mtime_ns, found.st_size
-    return None
 
 
 def _tried(modules: list[str], timeout: float, longer: str,
