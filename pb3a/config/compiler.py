@@ -25,6 +25,7 @@ scale.x): ...``. Identical problems (one macro used twice) are reported once.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,17 +36,22 @@ from pb3a.config.description import LinkSpec, ModuleSpec, NodeSpec, SystemSpec
 from pb3a.config.exports import LinkResolver
 from pb3a.config.plan import DEFAULT_NODE, FlatLink, FlatModule, Plan
 from pb3a.errors import ConfigError
-from pb3a.loading.references import class_ref, resolve_class
+from pb3a.loading import served, trial
+from pb3a.loading.references import changed_since_import, class_ref, resolve_class
 from pb3a.loading.sources import CodeSources
 from pb3a.model.environment import Environment, env_name
 from pb3a.model.macro import Macro
 from pb3a.model.module import Module
 from pb3a.model.state_edits import floats_as_declared
 
+log = logging.getLogger("pb3a")
+
 
 def plan_system(spec: SystemSpec) -> tuple[Plan | None, list[str]]:
-    """The plan of ``spec`` and its problems; the plan is None unless there are none."""
-    return _Planner(spec).run()
+    """The plan of ``spec`` and its problems; the plan is None unless there are none. It
+    is for a launch (or its check): a class's module whose file changed since this
+    process imported it is imported anew (``_imported_anew``)."""
+    return _Planner(spec, anew=True).run()
 
 
 def sketch_plan(spec: SystemSpec) -> tuple[Plan, list[str]]:
@@ -88,8 +94,9 @@ class Override:
 
 
 class _Planner:
-    def __init__(self, spec: SystemSpec) -> None:
+    def __init__(self, spec: SystemSpec, anew: bool = False) -> None:
         self.spec = spec
+        self.anew = anew            # import anew a class's module edited since imported
         self.problems: list[str] = list(spec.problems)
         self.node_names: list[str] = list(spec.nodes) or [DEFAULT_NODE]
         self.file_defs: dict[str, Definition] = {}
@@ -322,6 +329,8 @@ class _Planner:
         return child
 
     def resolve(self, child: Child) -> list[str]:
+        if self.anew and isinstance(child.spec.cls, str):
+            _imported_anew(child.spec.cls)
         try:
             cls = resolve_class(child.spec.cls)
         except (ImportError, LookupError, TypeError, ValueError) as exc:
@@ -480,3 +489,16 @@ def _widened(cls: type[Module], state: dict[str, Any]) -> dict[str, Any]:
     write 4.0 as 4 as often as not, and the module should not get an int it never had."""
     return {name: floats_as_declared(getattr(cls, name, None), value)
             for name, value in state.items()}
+
+
+def _imported_anew(ref: str) -> None:
+    """Drop the module of class reference ``ref`` from this process's cache if its file
+    changed since it was imported here (``changed_since_import``) and it may be reloaded
+    (``served.reload_problem``), as ``reload`` does in a launcher, so that the class is
+    imported from the file as it is now: a second launch in one process (a notebook, a
+    sweep) checked, and its launcher ran, the class from before the edit."""
+    module = ref.partition(":")[0]
+    if ":" in ref and changed_since_import(module) and served.reload_problem(module) is None:
+        served.forget(module)
+        trial.forget(module)
+        log.info("module %s changed since it was imported: imported again", module)

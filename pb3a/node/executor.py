@@ -40,7 +40,13 @@ from pb3a.node.resources import ResourceMeter
 from pb3a.node.restarts import LOCK_TIMEOUT, Restarts
 from pb3a.node.ring_sizes import RingSize
 from pb3a.node.wiring import Wiring
-from pb3a.node.workers import REQUEST_TIMEOUT, WorkerHandle, WorkerPool, WorkerSettings
+from pb3a.node.workers import (
+    REQUEST_TIMEOUT,
+    WorkerHandle,
+    WorkerPool,
+    WorkerSettings,
+    stale_preload,
+)
 from pb3a.stats import FailureLog, InputStats, ModuleStats, NodeReport, WaitStats
 from pb3a.transport import pickling
 from pb3a.transport.auth import ClusterKey
@@ -95,8 +101,12 @@ class Executor:
         # global lock when the executor runs in the launcher's process).
         self.lock = lock or threading.RLock()
         # Python modules reloaded here (``forget``), which a worker started later drops
-        # too before it loads a class (``instantiate``)
-        self.reloaded: list[str] = []
+        # too before it loads a class (``instantiate``); first, those this process's
+        # forkserver preloaded for an earlier launch whose files have changed since
+        self.reloaded: list[str] = list(stale_preload())
+        if self.reloaded:
+            log.info("node %s: module %s changed since this process's forkserver imported "
+                     "it: its workers import it again", node, ", ".join(self.reloaded))
         reap_orphans()
         self.restarts = Restarts(self)                # what a worker's death brings
         self.workers = WorkerPool(

@@ -34,6 +34,8 @@ import cloudpickle
 from pb3a.config.description import DEFAULT_SPARES
 from pb3a.deadline import capped, left, spoken
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
+from pb3a.loading.references import file_of
+from pb3a.loading.served import reload_problem
 from pb3a.loading.sources import CodeSources
 from pb3a.node import forkserver_owner
 from pb3a.node.watched_process import STATUS_WAIT_S, WatchedProcess
@@ -126,9 +128,32 @@ def _start_forkserver() -> None:
     ``pb3a.node.forkserver_signals`` ignores them: a Ctrl-C to the process group as its
     interpreter started (``pb3a run``'s first second) killed it, a crash dump ("Fatal
     Python error: init_import_site") or a traceback on the terminal."""
+    global _preloaded_files
     start_resource_tracker()                  # (first: its start takes them back here)
+    with _preload_lock:
+        configuration = _configuration_preload
+    # (read before it may start: one edited as it starts is imported anew by workers)
+    files = {module: file_of(module) for module in configuration}
     with terminal_signals_held():
         forkserver.ensure_running()
+    pid = forkserver_owner.running()
+    with _preload_lock:
+        if pid is not None and _preloaded_files[0] != pid:
+            _preloaded_files = (pid, files)
+
+
+def stale_preload() -> tuple[str, ...]:
+    """The configuration's modules that this process's forkserver preloaded and whose
+    files have changed since (their path, mtime or size; ``references.file_of``), those
+    that may be reloaded (``served.reload_problem``): a worker it forks holds them as
+    they were, and a later launch in this process (a notebook, a sweep) ran the code
+    from before the edit. Empty if the forkserver running was not started here."""
+    with _preload_lock:
+        pid, files = _preloaded_files
+    if pid is None or pid != forkserver_owner.running():
+        return ()
+    return tuple(module for module, file in files.items()
+                 if file_of(module) != file and reload_problem(module) is None)
 
 
 def _stop_a_hung_preload(timeout: RuntimeTimeout) -> None:
@@ -167,15 +192,20 @@ _FORKSERVER_BACKOFF_S = 0.05
 _preloading_configuration = threading.Event()
 _preload_lock = threading.Lock()
 _preload_chosen_by: int | None = None      # the process that last chose it
+_configuration_preload: tuple[str, ...] = ()     # the configuration's modules in it
+# The forkserver started here last (its pid) and the files of the configuration's modules
+# it preloads as they were when it started (``stale_preload``).
+_preloaded_files: tuple[int | None, dict[str, tuple[str, int, int] | None]] = (None, {})
 
 
 def _preload(configuration: tuple[str, ...]) -> None:
     """What the next forkserver to start imports: PB3A's worker code, and ``configuration``
     (between them, the entry that names this process as its owner; last, the one that
     says it is done: ``pb3a.node.forkserver_signals``)."""
-    global _preload_chosen_by
+    global _preload_chosen_by, _configuration_preload
     _context.set_forkserver_preload([*PRELOAD, forkserver_owner.owner_mark(),
                                      *configuration, PRELOADED])
+    _configuration_preload = configuration
     _preload_chosen_by = os.getpid()
     if configuration:
         _preloading_configuration.set()
