@@ -61,6 +61,7 @@ from pb3a import (
 )
 from pb3a.cli.status import format_table
 from pb3a.daemons.node_controller import START_TIMEOUT, Limits, NodeController
+from pb3a.launch.remote_starts import RemoteStarts
 from pb3a.node import remote
 from pb3a.node.remote import RemoteNode
 from pb3a.transport.auth import ClusterKey
@@ -1208,6 +1209,42 @@ def _recording_starts(controllers: dict[str, NodeController]) -> list[tuple[str,
             return answer
         controller.start_executor = recorded
     return started
+
+
+def test_executors_started_as_a_ctrl_c_cuts_the_launch_short_are_stopped() -> None:
+    """A Ctrl-C as the launch waited for its remote nodes' starts: those started by then
+    were the launch's no more (nothing registered them for its close), and ran on until
+    their leases ran out, each controller logging an error that its executor had fenced
+    itself. They are stopped at once; a start that ends later stops its own."""
+    stopped: list[str] = []
+    release = threading.Event()
+
+    class Started:
+        def __init__(self, name: str) -> None:
+            self.name = name
+
+        def shutdown(self, timeout: float = 10.0) -> None:
+            stopped.append(self.name)
+
+    def start(name: str, node_epoch: int) -> Started:
+        if name == "b":
+            release.wait(10)
+        return Started(name)
+
+    starts = RemoteStarts(start, ["a", "b"], {"a": "tcp://a:1", "b": "tcp://b:1"},
+                          timeout=10, longer="")
+
+    class Interrupted:
+        def join(self, timeout: float | None = None) -> None:
+            raise KeyboardInterrupt
+
+    eventually(lambda: "a" in starts._started, what="a started")
+    starts._threads[1] = Interrupted()          # (the Ctrl-C as the launch waits for b)
+    with pytest.raises(KeyboardInterrupt):
+        starts.settle()
+    assert stopped == ["a"]
+    release.set()
+    eventually(lambda: stopped == ["a", "b"], what="b's late start stopped")
 
 
 def test_every_unreachable_node_is_named_at_once_and_the_started_executors_stop(

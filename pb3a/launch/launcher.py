@@ -128,18 +128,24 @@ class Launcher:
                 if node.address is None:
                     embedded[name] = self._embedded_executor(name, here)
         finally:
-            started, failures = starts.settle()
-            # in the plan's order, as they were started before: a shutdown stops them
-            # in reverse
-            for name, node in self.plan.nodes.items():
-                if name in embedded:
-                    self.nodes[name] = embedded[name]
-                    self.health[name] = {"up": True, "rtt": 0.0, "address": None, "epoch": 1}
-                elif name in started:
-                    self.nodes[name] = self.remotes[name] = started[name]
-                    self.health[name] = {"up": True, "rtt": float("nan"),
-                                         "address": node.address, "controller": True,
-                                         "epoch": 1}
+            started: dict[str, RemoteNode] = {}
+            try:
+                started, failures = starts.settle()
+            finally:
+                # in the plan's order, as they were started before: a shutdown stops
+                # them in reverse. (A settle a Ctrl-C cut short stopped the remote
+                # executors it had: the embedded ones are the close's, their spare
+                # workers left to the process's exit before)
+                for name, node in self.plan.nodes.items():
+                    if name in embedded:
+                        self.nodes[name] = embedded[name]
+                        self.health[name] = {"up": True, "rtt": 0.0, "address": None,
+                                             "epoch": 1}
+                    elif name in started:
+                        self.nodes[name] = self.remotes[name] = started[name]
+                        self.health[name] = {"up": True, "rtt": float("nan"),
+                                             "address": node.address, "controller": True,
+                                             "epoch": 1}
         if failures:
             raise not_started(self.plan.name, len(remote), failures)
         self.introduce()

@@ -24,6 +24,8 @@ if TYPE_CHECKING:
 
 # beyond the launch's timeout: a thread's last step and its answer's way here
 SLACK_S = 1.0
+# how long each executor started is given to stop when the launch is interrupted
+STOP_S = 3.0
 
 
 class RemoteStarts:
@@ -69,10 +71,19 @@ class RemoteStarts:
         try:
             for thread in self._threads:
                 thread.join(max(0.0, self._deadline - time.monotonic()))
-        finally:                           # (Ctrl-C too: late starts stop themselves)
+        except BaseException:
+            # a Ctrl-C: the launch has none of them to stop, so those started are stopped
+            # here (they fenced themselves once their leases ran out, saying so as an
+            # error in their controllers' logs), and later ones stop themselves
             with self._lock:
                 self._given_up = True
-                started, failed = dict(self._started), dict(self._failed)
+                started = list(self._started.values())
+            for node in started:
+                node.shutdown(STOP_S)
+            raise
+        with self._lock:
+            self._given_up = True                  # (late starts stop themselves)
+            started, failed = dict(self._started), dict(self._failed)
         names = self._names
         for name in names:
             if name not in started and name not in failed:
