@@ -989,12 +989,13 @@ def test_an_edit_made_whose_read_back_times_out_answers_what_was_set() -> None:
     system.add("slow", SlowState)
     with system.launch() as run, \
             manager_client(Session(Document.empty(), run, timeout=1.0)) as client:
-        answer = client.post("/api/modules/slow/state", json={"slow_s": 3.0})
+        # (each read then takes 2 s, twice the manager's wait: 3 s made the test 3 s longer)
+        answer = client.post("/api/modules/slow/state", json={"slow_s": 2.0})
         assert answer.status_code == 200, answer.json()
         view = answer.json()
         assert view["read_back"] is False and "slow" in view["read_back_error"]
-        assert view["fields"]["slow_s"]["value"] == 3.0
-        assert run.state("slow", timeout=10)["slow_s"] == 3.0         # it was set
+        assert view["fields"]["slow_s"]["value"] == 2.0
+        assert run.state("slow", timeout=10)["slow_s"] == 2.0         # it was set
         run.set_state("slow", slow_s=0.0, timeout=10)
         read = client.post("/api/modules/slow/state", json={"slow_s": 0.0})
         assert read.status_code == 200 and "read_back" not in read.json()
