@@ -2001,7 +2001,7 @@ def test_a_follower_served_on_its_own_that_becomes_lossless_takes_its_replay_onc
             eventually(lambda: not _served_on_its_own(slow), timeout=10.0,
                        what="the slow follower back on PUB")
             start = slow._follows[b"camera\0"].next_seq
-            camera.write(10)
+            camera.write(3)                      # (each 0.5 s over the link, after the backlog)
             got = slow_inbox.values.setdefault("camera", [])
             assert slow.wait_delivered("camera", camera.written, timeout=40.0)
             time.sleep(1.0)                      # (copies behind the last, if any)
@@ -2063,7 +2063,9 @@ def test_a_mode_switch_lost_on_the_way_to_a_slow_follower_is_said_again(
             # the sender knew it lossless, are counted dropped as with no RESUME lost)
             start, dropped_then = slow._loop.call(lambda: (follow.next_seq,
                                                            slow.dropped["camera"]))
-            camera.write(20)
+            # (a lossless follower takes each frame over its 2 Mbit/s link, 0.5 s a frame,
+            # after its backlog: 5 then, not 20, which made the test 8 s longer)
+            camera.write(5 if lost == "RESUME, lossless" else 20)
             got = slow_inbox.values.setdefault("camera", [])
             if lost == "RESUME, lossless":
                 assert slow.wait_delivered("camera", camera.written, timeout=40.0)
