@@ -461,16 +461,17 @@ def test_the_rave_command_stops_a_silent_robot_after_its_watchdog_unless_told_ne
     starts = {watchdog: subprocess.Popen(
         [sys.executable, "-m", "rave.cli", "start", "arena", *watchdog],
         stdout=subprocess.PIPE, text=True) for watchdog in ((), ("--watchdog", "0"))}
-    clients = []
+    clients, driven = [], []
     try:
         for process in starts.values():
             lines = [process.stdout.readline().strip() for _ in range(3)]
             r1, r2 = (ControlClient(ClusterKey.load(), line.split()[-1]) for line in lines[1:])
             clients += [r1, r2]
-            driven = r1.call("drive", v=0.2, w=0.0)["time"]  # (the world's time then)
-            # r1 silent for 2.5 s of the world's time, which r2 tells (a request for r1
-            # would feed its watchdog)
-            eventually(lambda r2=r2, driven=driven: r2.call("sensors")["time"] > driven + 2.5,
+            driven.append(r1.call("drive", v=0.2, w=0.0)["time"])  # (the world's time then)
+        # each r1 silent for 2.5 s of its world's time, which its r2 tells (a request for
+        # r1 would feed its watchdog): the two worlds' at once
+        for r2, since in zip(clients[1::2], driven, strict=True):
+            eventually(lambda r2=r2, since=since: r2.call("sensors")["time"] > since + 2.5,
                        what="2.5 s of the world's time")
         moved = []
         for client in clients[::2]:
