@@ -238,6 +238,22 @@ def test_check_reports_unreadable_and_non_toml_files(tmp_path: Path) -> None:
     assert bad.stdout.startswith("bad.toml: not valid TOML")
 
 
+def test_a_file_that_cannot_be_read_is_said_at_once_with_no_child_process(
+        tmp_path: Path, capsys, monkeypatch) -> None:
+    """A mistyped file name (or a directory) was said in the same words after a child
+    Python process had started to plan the file and found it missing (0.3-0.7 s); each
+    command that checks a file says it at once now."""
+    def no_child(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a child process was started to read it")
+    monkeypatch.setattr("pb3a.config.isolated.Child", no_child)
+    for command in ("check", "graph", "run", "stress"):
+        for name, why in (("nowhere.toml", "No such file or directory"),
+                          ("", "Is a directory")):
+            assert main([command, str(tmp_path / name)]) == 1, (command, name)
+            said = capsys.readouterr().err
+            assert f"pb3a {command}: cannot read {tmp_path / name}: {why}" in said, said
+
+
 def test_graph_writes_dot_and_svg(tmp_path: Path) -> None:
     done = pb3a("graph", str(PIPELINE), "-o", "out.svg", cwd=tmp_path)
     assert done.returncode == 0, done.stderr
