@@ -868,17 +868,18 @@ def test_a_close_out_of_time_still_stops_a_remote_node_s_executor(node_b,
     system launched again at once found node b working for the old launch."""
     b = node_b
 
-    def system() -> System:
+    def system(teardown_s: float) -> System:
         made = System("again").node("a").node("b", address=b.address)
         made.add("slow", Journal, node="b", state={"path": str(tmp_path / "journal"),
-                                                   "teardown_s": 2.5})
+                                                   "teardown_s": teardown_s})
         return made
-    run = system().launch()
+    run = system(2.5).launch()
     executor = psutil.Process(b.executor_pid())
     run.close(timeout=2.0)
     executor.wait(5.0)                  # psutil.TimeoutExpired if it ran on
     assert run.unconfirmed == []
-    with system().launch() as again:
+    # (the same system again, but for a teardown its close then waited 2.5 s for)
+    with system(0.0).launch() as again:
         assert again.where("slow") == "b"
 
 
