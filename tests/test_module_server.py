@@ -255,6 +255,18 @@ def test_a_module_server_whose_host_does_not_resolve_here_is_named_so(monkeypatc
         resolve_class("pb3a_nowhere_served:Thing")
 
 
+def test_a_module_server_whose_host_does_not_resolve_here_is_given_up_on_within_2_s(
+        monkeypatch) -> None:
+    """An import waited the finder's whole 5 s for a server whose host has no address
+    here, though no answer could come (a launch whose node could not import a class
+    said so 5 s late)."""
+    with _importing_from("tcp://no-such-host.invalid:7300", ClusterKey.load(), monkeypatch):
+        started = time.monotonic()
+        with pytest.raises(ImportError, match=r"no address is known for host"):
+            resolve_class("pb3a_nowhere_served:Thing")
+        assert time.monotonic() - started < 2.5
+
+
 def test_a_class_that_cannot_be_imported_names_the_module_server_that_refused_the_key(
         tmp_path, monkeypatch) -> None:
     """A server with another cluster key has the module, but refuses to say: it said

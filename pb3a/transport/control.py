@@ -51,6 +51,7 @@ import math
 import pickle
 import queue
 import secrets
+import socket
 import struct
 import sys
 import threading
@@ -484,7 +485,8 @@ def _undecodable(exc: Exception, what: str, reader: str) -> str:
 
 
 class NotListening(RuntimeTimeout):
-    """Nothing listens where a server was to be: its port refuses connections."""
+    """Nothing listens where a server was to be: its port refuses connections, or its
+    host has no address here."""
 
 
 class ControlClient:
@@ -619,19 +621,23 @@ class ControlClient:
         ``QUICK_S`` is asked of the OS, and a port that refuses connections for
         ``REFUSED_S`` on end (nothing listens: a process that ended, a wrong port) fails
         then with ``NotListening``, rather than at ``timeout`` ("did not answer", having
-        waited it whole); a server that begins to listen meanwhile is asked on."""
+        waited it whole); a server that begins to listen meanwhile is asked on. So does
+        a host that has no address (a name only other machines resolve), at once: no
+        answer could come (a module server's import waited its whole 5 s for it)."""
         deadline = time.monotonic() + timeout
         with contextlib.suppress(RuntimeTimeout):
             return self.call(op, min(QUICK_S, timeout), **args)
         given_up = min(deadline, time.monotonic() + REFUSED_S)
-        while isinstance(connection_failure(self.address,
-                                            max(0.0, deadline - time.monotonic())),
-                         ConnectionRefusedError):
+        host, _, port = self.address.removeprefix("tcp://").rpartition(":")
+        while isinstance(failure := connection_failure(
+                self.address, max(0.0, deadline - time.monotonic())), ConnectionRefusedError):
             if time.monotonic() >= given_up:
-                host, _, port = self.address.removeprefix("tcp://").rpartition(":")
                 raise NotListening(f"nothing listens on port {port} at {host} (the "
                                    "connection was refused)")
             time.sleep(_REPROBE_S)       # (nothing tells when a listener comes: ask again)
+        if isinstance(failure, socket.gaierror):
+            raise NotListening(f"no address is known for host {host.strip('[]')!r}: "
+                               f"{failure.strerror or failure}")
         return self.call(op, max(0.0, deadline - time.monotonic()), **args)
 
     def why_refused(self, op: str) -> str:
