@@ -259,7 +259,9 @@ class RemoteNode:
             if failed and starting.replaced and not restarted:
                 self._drop_executor()       # (it ended with the controller before)
                 return None
-            self._let_go(started)
+            # (the controller gone, its executor ended with it: a stop asked through it
+            # was waited for by nothing)
+            self._let_go(started and not starting.gone.is_set())
             if not failed:
                 raise
             if starting.replaced:
@@ -276,7 +278,7 @@ class RemoteNode:
         if gone and starting.replaced and not restarted:
             self._drop_executor()
             return None
-        self._let_go(started)
+        self._let_go(started and not gone)
         if gone and starting.replaced:
             raise _restarted_again(name, address, config)
         if gone:
