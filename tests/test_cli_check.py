@@ -252,6 +252,10 @@ def test_a_file_that_cannot_be_read_is_said_at_once_with_no_child_process(
             assert main([command, str(tmp_path / name)]) == 1, (command, name)
             said = capsys.readouterr().err
             assert f"pb3a {command}: cannot read {tmp_path / name}: {why}" in said, said
+        # and a script, whether it exists or not (a child was started to say so too)
+        assert main([command, str(tmp_path / "robot.py")]) == 1, command
+        said = "".join(capsys.readouterr())
+        assert f"{tmp_path / 'robot.py'}: a Python script, not a configuration" in said, said
 
 
 def test_graph_writes_dot_and_svg(tmp_path: Path) -> None:

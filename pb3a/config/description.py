@@ -142,6 +142,13 @@ class SystemSpec:
 
 
 # -- reading --------------------------------------------------
+def refuse_a_script(path: str | Path) -> None:
+    """ConfigError if ``path`` is a Python script where a configuration was asked for."""
+    if Path(path).suffix == ".py":
+        raise ConfigError([f"{path}: a Python script, not a configuration (a TOML file): "
+                           f"run it with python {path}"])
+
+
 def load_toml(path: str | Path) -> SystemSpec:
     """Read a system description from a TOML file.
 
@@ -150,9 +157,7 @@ def load_toml(path: str | Path) -> SystemSpec:
     ``validate``/``build_plan`` to report.
     """
     path = Path(path)
-    if path.suffix == ".py":             # a script where a configuration was asked for
-        raise ConfigError([f"{path}: a Python script, not a configuration (a TOML file): "
-                           f"run it with python {path}"])
+    refuse_a_script(path)
     raw = path.read_bytes()
     # (a byte order mark, which Windows editors write, was "not valid TOML" at line 1)
     body = raw.removeprefix(codecs.BOM_UTF8)

@@ -29,6 +29,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any, NoReturn
 
+from pb3a.config.description import refuse_a_script
 from pb3a.errors import ConfigError
 from pb3a.loading.import_child import Child, Stuck, answering, exit_status, hung
 
@@ -55,11 +56,11 @@ def check_file(file: str, *, import_timeout: float, dot: bool = False) -> Checke
     that hung (past ``import_timeout`` seconds) or ended the child being one more problem
     of the entry that names it. This process imports neither the runtime nor the file's
     classes."""
-    if not file.endswith(".py"):        # (a script is refused by name, read or not)
-        # a file that cannot be read is said at once, as the child would say it: a
-        # child started for it took 0.7 s to (a mistyped name, at every command)
-        with open(file, "rb"):
-            pass
+    # a script, or a file that cannot be read, is said at once, as the child would say
+    # it: a child started for it took 0.3-0.7 s to (a mistyped name, at every command)
+    refuse_a_script(file)
+    with open(file, "rb"):
+        pass
     refused: dict[str, str] = {}
     stuck: dict[str, str] = {}          # a module file whose import hung -> how
     for _ in range(MOST_CHILDREN):
