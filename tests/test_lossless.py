@@ -5,8 +5,10 @@ reordered, also across migrations and swaps; dropping links behave as before."""
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import threading
 import time
+from collections.abc import Callable
 
 import pytest
 from conftest import eventually
@@ -18,7 +20,10 @@ from pb3a.node import bridge
 from pb3a.node.executor import Executor
 from pb3a.node.wiring import Wiring
 from pb3a.node.workers import WorkerRequest
+from pb3a.transport.doorbell import new_bell
 from pb3a.transport.replication import Follower
+from pb3a.worker.actor import ModuleActor
+from pb3a.worker.process import Worker
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -369,6 +374,42 @@ def test_a_reader_handling_each_value_moves_from_behind_a_lossless_link_at_once(
     assert state["received"] == state["last"] == sent
     assert state["out_of_order"] == state["duplicates"] == 0
     assert link.drops == 0 and link.link_failures == 0
+
+
+def test_the_receiver_never_waits_for_a_module_lock_taken_just_after_its_look() -> None:
+    # The receiver looked whether the module's lock was held, then ran the dispatch
+    # inline, which waited for the lock: a pause that took it in between held up every
+    # ring of the worker for the whole pause (the move above, once in a loaded run: its
+    # 10 s ran out "while unwiring the links ... values of src.out still in flight").
+    # Here the pause takes the lock just after the receiver's look.
+    scheduled: list[Callable[..., None]] = []
+    actor = ModuleActor("dst", Handler(), scheduled.append, None)
+    actor.start()
+    ours, theirs = multiprocessing.Pipe()
+    worker = Worker(ours, "key", new_bell(), 3600.0)
+    lock = actor.lock
+    try:
+        actor.inputs["x"].deliver(1)
+        assert scheduled == [actor._dispatch]
+        worker._ready = [scheduled.pop()]
+        assert lock.acquire(timeout=1.0)            # the pause, after the receiver's look:
+        looks = iter([False])
+        lock.locked = lambda: next(looks, True)     # (the look saw it free)
+        ran = threading.Thread(target=worker._run_ready, daemon=True)
+        ran.start()
+        ran.join(timeout=2.0)
+        receiver_waited = ran.is_alive()
+        lock.release()                              # the pause ends
+        ran.join(timeout=5.0)
+        assert not receiver_waited, "the receiver waited for the pause"
+        assert scheduled == [actor._dispatch]       # scheduled again (the pool, there)
+        scheduled.pop()()
+        assert actor.module.received == 1 and actor.events == 1
+    finally:
+        worker.shutdown()
+        ours.close()
+        theirs.close()
+        assert actor.stop(5.0)
 
 
 def test_a_reader_moves_away_from_a_writer_in_its_process_that_waits_for_it() -> None:

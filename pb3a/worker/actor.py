@@ -489,7 +489,14 @@ class ModuleActor:
         if start:
             self._schedule(self._dispatch)
 
-    def _dispatch(self) -> None:
+    def _dispatch(self, inline: bool = False) -> None:
+        """Run the ``on_input`` calls the inputs owe, a batch at a time. ``inline`` (on
+        its worker's receiver, which feeds every ring of the worker): the module's lock
+        is taken only if free at once, else the dispatch ends, scheduled again (to the
+        pool while the lock is held). The receiver's look at the lock before it called
+        this left a moment in which a pause could take it: the receiver then waited
+        for the whole pause, taking in nothing, and a move's drain of a remote lossless
+        link into the module never ended."""
         budget = _EVENT_BUDGET
         lock, pending = self._sched_lock, self._pending
         while budget > 0:
@@ -500,7 +507,17 @@ class ModuleActor:
                 return
             port = pending.popleft()
             lock.release()
-            done = self.call_many("on_input", budget, port, claim=port)
+            if not self.lock.try_acquire():
+                if inline:                      # (held: a pause, a step; never waited for)
+                    with self._sched_lock:
+                        if port not in pending:
+                            pending.appendleft(port)
+                    break
+                self.lock.acquire()
+            try:
+                done = self._call_held("on_input", budget, (port,), claim=port)
+            finally:
+                self.lock.release()
             self.events += done
             budget -= max(done, 1)
             if port.owes_calls and self.running:
@@ -510,12 +527,8 @@ class ModuleActor:
             if self.cut:                        # (a request waits: let it in first)
                 self.cut = False
                 self.lock.hand_over()
-            if self.lock.locked():
-                # held by another (a pause, say): go on once scheduled again, not by
-                # waiting for it here: inline on the receiver, that wait held up every
-                # ring of the worker, so a move's drain of a remote lossless link into
-                # the paused module never ended
-                break
+            if self.lock.locked():      # held by another (a pause, say): go on once
+                break                       # scheduled again (not waiting here: see above)
         self._schedule(self._dispatch)   # more to do: let other modules have a turn
 
     # -- a body waiting for the runtime, or a device (see ``waits``) ----------

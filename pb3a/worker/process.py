@@ -111,7 +111,7 @@ class Worker:
         self._held: dict[str, threading.Event] = {}   # paused where they wait: see op_pause
         self._set_up_on_resume: set[str] = set()     # see op_migrate_out
         self._error_times: dict[str, tuple[float, int]] = {}
-        self._ready: list[Callable[[], None]] = []
+        self._ready: list[Callable[..., None]] = []      # actors' dispatches, inline
         self._request_ids = itertools.count()
         self._closing = threading.Event()
         # (its modules named: a spare that took them still has the key "spare")
@@ -722,8 +722,8 @@ class Worker:
         for task in tasks:
             if task.__self__.lock.locked():      # type: ignore[attr-defined]
                 self.pool.submit(task)           # busy stepping: do not block the receiver
-            else:
-                task()
+            else:                                # (and if taken since, it ends: see there)
+                task(inline=True)
 
     def _receive(self) -> None:
         # Drain every ring, run what became ready, then announce sleep and look once
