@@ -302,6 +302,20 @@ class ModuleActor:
             finished = False
         return finished
 
+    def let_go(self) -> None:
+        """Drop the stopped module's attributes, as Python's own exit would, for its
+        worker ends: its open files are closed, their buffers written. The worker ends
+        with ``os._exit``, which finalizes nothing, and a garbage collection of the
+        instance's reference cycles closes a file's layers in no set order, losing what
+        they buffered (CPython's bpo-17852): a recorder that opened its file in
+        ``setup()`` and had no ``teardown()`` lost every line it had not flushed."""
+        vars(self.module).clear()
+
+    @property
+    def torn_down(self) -> bool:
+        """Whether its ``teardown`` ran (or runs now)."""
+        return self._torn_down
+
     @property
     def tearing_down(self) -> bool:
         """Whether its ``teardown`` runs now."""

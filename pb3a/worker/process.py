@@ -251,8 +251,8 @@ class Worker:
         else:             # (if the executor is frozen, the teardowns and the exit go on)
             if figures is not None:
                 self.outbox.wait_sent(figures, LAST_WORDS_S)
-        for name in reversed(list(self.actors)):
-            self.actors[name].stop(timeout=1.0)
+        stopped = [actor for actor in reversed(list(self.actors.values()))
+                   if actor.stop(timeout=1.0)]
         self.pool.close(timeout=1.0)
         for link in list(self.inbound.values()):
             try:
@@ -266,6 +266,8 @@ class Worker:
                 pull.close()
         self.publications.close()
         self._threads[0].join(1.0)            # (before its doorbell's descriptor goes)
+        for actor in stopped:                 # (a module's files written out and closed)
+            actor.let_go()
         os.close(self._bell_fd)
         self._wake.close()
         # what is still going (an answer, the teardowns' log records) goes before the
@@ -465,8 +467,9 @@ class Worker:
         actor = self.actors.pop(name, None)
         if actor is None:       # failed in the process this one replaced: never made here
             return
-        if actor.running:
-            actor.stop(timeout=1.0)
+        if actor.running or actor.torn_down:    # (stopped first, or moved away)
+            if actor.stop(timeout=1.0):
+                actor.let_go()      # (for good: its files closed now, not at some collection)
         else:
             actor.halt()        # (a start whose setup still runs does not run it after)
         self.restart_policy.pop(name, None)
