@@ -43,6 +43,21 @@ from pb3a.stats import ModuleStats, SystemStats
 REPO = Path(__file__).resolve().parent.parent
 
 
+def test_a_launcher_listening_already_refuses_another_address() -> None:
+    """``listen(ADDR)`` on a launcher that listens already (always, once it has remote
+    nodes; or a second call) returned where it listened, ADDR ignored: a connection to
+    ADDR was then told that nothing listens there, the system stopped."""
+    with System("listens-once").add("scale", Scale).launch() as run:
+        address = run.listen()
+        port = int(address.rpartition(":")[2])
+        assert run.listen() == run.listen(address) == run.listen("tcp://127.0.0.1:0") == address
+        other = f"tcp://127.0.0.1:{port + 1 if port < 65535 else port - 1}"
+        with pytest.raises(ValueError, match=rf"listens at {address} already, not at {other}"):
+            run.listen(other)
+        with pb3a.connect(address) as far:
+            assert far.state("scale")["gain"] == 2.0
+
+
 def test_the_command_line_reads_and_changes_a_running_system(capsys) -> None:
     system = System("cli-launcher")
     system.node("a")

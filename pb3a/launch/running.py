@@ -267,37 +267,58 @@ class Running(SystemHandle):
                              "of this machine the nodes reach (or 0.0.0.0 for every "
                              "interface)")
 
-    def listen(self, address: str = "tcp://127.0.0.1:0") -> str:
+    def listen(self, address: str | None = None) -> str:
         """Take authenticated requests (``pb3a.connect``, ``pb3a status ADDR`` ...) at
-        ``address``; returns the address to reach it at. Bound to every interface
-        (``tcp://*:0``, ``tcp://0.0.0.0:0``), that is the host the remote nodes reach
-        this machine at, else the one of its default route: ``tcp://*:PORT`` reaches
-        nobody, and it was handed to the nodes to call the launcher back at. A host
-        that is not one of this machine's addresses is refused (ValueError), as
-        ``pb3a node start`` refuses it: it bound every interface and handed out an
-        address nobody reaches."""
-        if self._server is None:
-            host, port = bind_address(address)
-            if host not in EVERY_INTERFACE:
-                check_bindable(address, host, port)
-                self._refuse_loopback_with_far_nodes(address, host)
-            # Not in the lane of operations, one at a time: an agent's request from a
-            # remote node (the operation in progress may wait for it: the setup of the
-            # module it starts), what nodes report, and the reads that wait for news
-            # (a follower's events held the lane 1 s in 1.2, and other callers' waits).
-            # A class a request names by reference (a program's connection passing a
-            # class object) is imported here to read the request: tried in a child
-            # process first, as a change naming it does (Operations._resolved).
-            self._server = ControlServer(ClusterKey.load(), self._remote_request,
-                                         host, port, name="pb3a-launcher", aside=_ASIDE,
-                                         import_first=self._import_first,
-                                         title=f"the launcher of system {self.name!r}")
-            self.address = self._server.address
-            if host in EVERY_INTERFACE:
-                remote = self._remote_nodes()
-                here = self._here_towards_nodes() if remote else default_route_host()
-                self.address = f"tcp://{here}:{self.address.rpartition(':')[2]}"
+        ``address`` (by default ``tcp://127.0.0.1:0``: the loopback, any free port);
+        returns the address to reach it at. Bound to every interface (``tcp://*:0``,
+        ``tcp://0.0.0.0:0``), that is the host the remote nodes reach this machine at,
+        else the one of its default route: ``tcp://*:PORT`` reaches nobody, and it was
+        handed to the nodes to call the launcher back at. A host that is not one of this
+        machine's addresses is refused (ValueError), as ``pb3a node start`` refuses it:
+        it bound every interface and handed out an address nobody reaches. Once it
+        listens (always, with remote nodes), it listens there: ``listen()`` says where,
+        and another address is refused (ValueError; it was ignored, and a connection to
+        it was told nothing listens there: ``launch(listen=...)`` chooses)."""
+        if self._server is not None:
+            if address is not None:
+                self._listens_at(address)
+            return self.address
+        address = address or "tcp://127.0.0.1:0"
+        host, port = bind_address(address)
+        if host not in EVERY_INTERFACE:
+            check_bindable(address, host, port)
+            self._refuse_loopback_with_far_nodes(address, host)
+        # Not in the lane of operations, one at a time: an agent's request from a remote
+        # node (the operation in progress may wait for it: the setup of the module it
+        # starts), what nodes report, and the reads that wait for news (a follower's
+        # events held the lane 1 s in 1.2, and other callers' waits). A class a request
+        # names by reference (a program's connection passing a class object) is
+        # imported here to read the request: tried in a child process first, as a
+        # change naming it does (Operations._resolved).
+        self._server = ControlServer(ClusterKey.load(), self._remote_request,
+                                     host, port, name="pb3a-launcher", aside=_ASIDE,
+                                     import_first=self._import_first,
+                                     title=f"the launcher of system {self.name!r}")
+        self.address = self._server.address
+        if host in EVERY_INTERFACE:
+            remote = self._remote_nodes()
+            here = self._here_towards_nodes() if remote else default_route_host()
+            self.address = f"tcp://{here}:{self.address.rpartition(':')[2]}"
         return self.address
+
+    def _listens_at(self, address: str) -> None:
+        """ValueError unless ``address`` is where this launcher listens (port 0: any;
+        every interface: where it is bound so, or the host it gives out)."""
+        assert self._server is not None
+        host, port = bind_address(address)
+        bound, bound_port = bind_address(self._server.address)
+        hosts = {bound, host_of(self.address)}
+        if bound in EVERY_INTERFACE:
+            hosts |= set(EVERY_INTERFACE)
+        if host not in hosts or port not in (0, bound_port):
+            raise ValueError(f"system {self.name!r} listens at {self.address} already, "
+                             f"not at {address}: it listens at one address, chosen as it "
+                             "starts (launch(listen=...), pb3a run --listen)")
 
     stop = close
 
