@@ -276,7 +276,41 @@ def test_sigkill_with_restart_last_state_resumes_from_a_checkpoint() -> None:
     system.add("victim", Steady, restart="last-state")
     with system.launch(checkpoint_s=0.1) as run:
         state = _restarted_after_a_checkpoint(run, "victim", "count")
+        restarted = eventually(lambda: [e.detail for e in run.events()], what="the restart said")
     assert state["count"] > 40            # resumed from the checkpoint, not from 0
+    assert [(e["policy"], e["from_checkpoint"]) for e in restarted] == [("last-state", True)]
+
+
+class Guarded(Module):
+    """Steps with a lock in its state: no checkpoint of it can be taken."""
+
+    period = 0.01
+    count = 0
+    guard = None
+
+    def setup(self) -> None:
+        self.guard = threading.Lock()
+
+    def step(self) -> None:
+        self.count += 1
+
+
+def test_a_last_state_module_restarted_with_no_checkpoint_says_it_lost_its_state(
+        caplog) -> None:
+    """Its state could not be pickled: it came back with its configured state, and the
+    restart said nothing of it (only its first checkpoint's error, at its start)."""
+    caplog.set_level(logging.WARNING)
+    system = System("no-checkpoint")
+    system.add("guarded", Guarded, restart="last-state")
+    with system.launch(checkpoint_s=0.05) as run:
+        eventually(lambda: any("cannot checkpoint module 'guarded'" in e.message
+                               for e in run.logs()), what="the failed checkpoint said")
+        eventually(lambda: run.stats().modules["guarded"].steps > 20, what="steps")
+        _kill_worker(run, "guarded")
+        restarted = eventually(lambda: [e.detail for e in run.events()], what="the restart said")
+    assert [(e["policy"], e["from_checkpoint"]) for e in restarted] == [("last-state", False)]
+    assert "module 'guarded' restarted with its configured state, not its last one" \
+        in caplog.text
 
 
 def test_a_last_state_restart_brings_back_the_state_the_module_made_as_it_ran() -> None:

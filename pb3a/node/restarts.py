@@ -68,6 +68,7 @@ class _Revival:
 
     record: ModuleRecord
     restart: int                      # ``record.restarts`` then: a later restart changes it
+    from_checkpoint: bool = False     # restored from its last checkpoint (``last-state``)
 
 
 class RestartHost(Protocol):
@@ -204,21 +205,24 @@ class Restarts:
         for record in records.values():
             record.status = "starting"
             record.restarts += 1            # (also tells this restart from a later one)
+        checkpointed = set()
         try:
             if not handle.alive:            # (an add may have started one meanwhile)
                 self._node.workers.spawn(handle)
-            for record in records.values():
+            for name, record in records.items():
                 state: dict[str, Any] | bytes = record.spec.state
                 if record.spec.restart == "last-state" and record.checkpoint is not None:
                     # as it came, read in the worker and restored in full: its fields
                     # made at run time were refused there, and the restart failed
                     state = record.checkpoint
+                    checkpointed.add(name)
                 self._node.instantiate(record, state)
             self._node.rewire(set(records))
         except Exception as exc:            # whatever it was, the modules say it
             self._give_up(handle, code, records, f"its restart failed: {exc}")
             return {}
-        return {name: _Revival(record, record.restarts) for name, record in records.items()}
+        return {name: _Revival(record, record.restarts, name in checkpointed)
+                for name, record in records.items()}
 
     def _started(self, future: Future[Any], key: str,
                  process: Any) -> tuple[bool, Exception | None, dict[str, str]]:
@@ -255,8 +259,16 @@ class Restarts:
             record.status = "running"
         log.warning("restarted %s (exit code %s)", ", ".join(records), code)
         for name, record in records.items():
+            checkpointed = revived[name].from_checkpoint
+            if record.spec.restart == "last-state" and not checkpointed:
+                # (a checkpoint that failed was said once, as the first did; its state
+                # is found lost here)
+                log.warning("module %r restarted with its configured state, not its last "
+                            "one: no checkpoint of it had been taken (its worker died "
+                            "before the first, or its state cannot be pickled: see the error "
+                            "'cannot checkpoint module %r', if any)", name, name)
             self._node.tell("module_restarted", name, reason="its worker died", exit_code=code,
-                       policy=record.spec.restart)
+                            policy=record.spec.restart, from_checkpoint=checkpointed)
 
     def _current(self, name: str, revival: _Revival) -> bool:
         """Whether module ``name`` is still the one ``revival`` revived."""

@@ -39,7 +39,9 @@ function describe(event) {
     case "module_retimed":
       return `every ${fmt.seconds(d.period)}`;
     case "module_restarted":
-      return [d.node && `on ${d.node}`, d.reason].filter(Boolean).join(", ");
+      return [d.node && `on ${d.node}`, d.reason,
+              d.from_checkpoint === false && "with its configured state: no checkpoint"]
+        .filter(Boolean).join(", ");
     case "node_lost":
       return [d.modules?.length && `with ${d.modules.join(", ")}`,
               d.arriving?.length && `${d.arriving.join(", ")} on the way there`]
