@@ -95,6 +95,17 @@ class FastScale(Scale):
         self.y.write(port.read() * self.gain + 1.0)
 
 
+class PlainScale(Module):
+    """Scale's ports and gain, without its count of setups."""
+
+    x = Input(float)
+    y = Output(float)
+    gain = 2.0
+
+    def on_input(self, port) -> None:
+        self.y.write(port.read() * self.gain)
+
+
 class Offset(Module):
     """Incompatible with Scale: its input carries str."""
 

@@ -27,6 +27,7 @@ from sample_modules import (
     InputFreezer,
     Last,
     OnFlag,
+    PlainScale,
     Relay,
     Scale,
 )
@@ -290,6 +291,20 @@ def test_add_gives_a_float_field_a_float_and_names_a_value_that_does_not_fit(cap
         assert main(["add", address, "scale", ref, "--state", "gain=4", "setups=2"]) == 0
         state = run.state("scale")
         assert type(state["gain"]) is float and type(state["setups"]) is int
+
+
+def test_a_swap_names_the_state_it_dropped(capsys, caplog) -> None:
+    """``pb3a swap`` listed the state kept, not the fields the new class lacks, whose
+    values (gains tuned live, say) were let go of without a word."""
+    with System("swap-drops").add("scale", Scale, state={"gain": 3.0}).launch() as run:
+        address = run.listen()
+        assert main(["swap", address, "scale", f"{PlainScale.__module__}:PlainScale"]) == 0
+        assert capsys.readouterr().out.strip().endswith(
+            "state kept: gain; dropped (the class has no such fields): setups")
+        assert run.state("scale") == {"gain": 3.0}
+        swapped = [e.detail for e in run.events() if e.kind == "module_swapped"]
+    assert swapped[0]["kept"] == ["gain"] and swapped[0]["dropped"] == ["setups"]
+    assert "swap scale: state dropped, PlainScale has no such fields: setups" in caplog.text
 
 
 def test_add_and_remove_take_a_macro_whole(capsys) -> None:

@@ -133,11 +133,15 @@ def _swap(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
     swapped = [event for event in system.events(timeout=args.timeout)
                if event.kind == "module_swapped" and event.subject == args.module]
     reloaded = swapped[-1].detail.get("reloaded") if swapped else None
+    dropped = swapped[-1].detail.get("dropped", []) if swapped else []
     said = (f"module {reloaded} changed since it was imported: reloaded; "
             if reloaded else "")
     return (f"{said}{args.module} is now {args.cls}; state kept: "
-            f"{', '.join(kept) or '(none)'}",
-            {"module": args.module, "class": args.cls, "kept": kept, "reloaded": reloaded})
+            f"{', '.join(kept) or '(none)'}"
+            + (f"; dropped (the class has no such fields): {', '.join(dropped)}"
+               if dropped else ""),
+            {"module": args.module, "class": args.cls, "kept": kept, "dropped": dropped,
+             "reloaded": reloaded})
 
 
 def _reload(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:

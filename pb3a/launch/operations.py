@@ -348,10 +348,13 @@ class Operations:
                 key: value for key, value in spec.state.items()
                 if not checks.state(new_cls, {key: value})},
                 period=spec.period if spec.own_period else new_cls.period)
-            kept = node.swap(name, spec)
+            kept, dropped = node.swap(name, spec)
             launcher.specs[name] = spec
+        if dropped:         # (values set live, tuned gains say, that the swap let go)
+            log.warning("swap %s: state dropped, %s has no such fields: %s", name,
+                        new_cls.__qualname__, ", ".join(dropped))
         self.event_log.record("module_swapped", name, cls=f"{new_cls.__module__}:"
-                           f"{new_cls.__qualname__}", kept=kept,
+                           f"{new_cls.__qualname__}", kept=kept, dropped=dropped,
                            **({"reloaded": reloaded} if reloaded else {}))
         return kept
 

@@ -382,15 +382,16 @@ class Executor:
         except RuntimeTimeout as exc:
             log.warning("a start left to finish was not recorded: %s", exc)
 
-    def swap(self, name: str, spec: FlatModule) -> list[str]:
-        """Replace a module's class by ``spec.cls`` in place; the state names kept."""
+    def swap(self, name: str, spec: FlatModule) -> tuple[list[str], list[str]]:
+        """Replace a module's class by ``spec.cls`` in place; the state names kept, and
+        those dropped."""
         record = self.modules[name]
         if not self.alive(record.worker):   # (it said "worker 'a/m-calib' is not running")
             raise RuntimeFailure(_not_running(name, record))
         blob = _class_blob(spec)
-        kept = self.call(record.worker, "swap", name=name, cls=blob, period=spec.period)
+        kept, dropped = self.call(record.worker, "swap", name=name, cls=blob, period=spec.period)
         record.spec, record.blob = spec, blob
-        return kept
+        return kept, dropped
 
     def retime(self, name: str, period: float, timeout: float = REQUEST_TIMEOUT) -> None:
         """Step the module every ``period`` seconds from now on; its restarts too."""

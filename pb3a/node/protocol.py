@@ -61,8 +61,8 @@ class Node(Protocol):
         """Wait up to ``timeout``, without the node's lock, while module ``name``'s
         worker is dead and its restart is to come or under way; whether it waited."""
 
-    def swap(self, name: str, spec: FlatModule) -> list[str]:
-        """Replace a module's class in place; the state names kept."""
+    def swap(self, name: str, spec: FlatModule) -> tuple[list[str], list[str]]:
+        """Replace a module's class in place; the state names kept, and those dropped."""
 
     def retime(self, name: str, period: float, timeout: float) -> None:
         """Step the module every ``period`` seconds from now on, and after its restarts."""

@@ -388,8 +388,9 @@ class RemoteNode:
         except (RuntimeFailure, RuntimeTimeout):    # (the request it follows said why)
             return False
 
-    def swap(self, name: str, spec: FlatModule) -> list[str]:
-        return self._forward("swap", name, spec)
+    def swap(self, name: str, spec: FlatModule) -> tuple[list[str], list[str]]:
+        kept, dropped = self._forward("swap", name, spec)
+        return kept, dropped
 
     def retime(self, name: str, period: float, timeout: float) -> None:
         self._forward("retime", name, period, timeout, within=timeout + MARGIN_S)

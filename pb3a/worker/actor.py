@@ -770,10 +770,12 @@ class ModuleActor:
             self._cancel_wait(f"its {ending[0]} is set anew")
         self.with_lock(edit, timeout, edit=True)
 
-    def swap(self, new: Module, period: float | None, timeout: float = 10.0) -> list[str]:
+    def swap(self, new: Module, period: float | None,
+             timeout: float = 10.0) -> tuple[list[str], list[str]]:
         """Replace the module by ``new`` keeping ports, queued values and matching state,
         stepping it every ``period`` seconds (None: only on events) from then on.
-        Returns the names of the state attributes carried over.
+        Returns the names of the state attributes carried over, and of those dropped
+        (the new class has no such field: tuned gains a user took for kept).
         """
         if not self.acquire_stopped(timeout, "the module is being swapped"):
             raise TimeoutError(f"module {self.name!r} was busy in a call for {timeout} s")
@@ -789,7 +791,8 @@ class ModuleActor:
             with self._sched_lock:
                 self._quiet, self._owed = False, False
             try:
-                kept = self._take(new, old.get_state())
+                state = old.get_state()
+                kept = self._take(new, state)
             except Exception as exc:
                 # its set_state refused the state (the old instance ran on, torn down,
                 # its setup not run again)
@@ -810,7 +813,7 @@ class ModuleActor:
                             owed, self._owed = self._owed, None
                         if owed and self.on_period is not None:
                             self.on_period(self.name)
-                        return sorted(kept)
+                        return sorted(kept), sorted(set(state) - set(kept))
                 why = f"{type(new).__name__} raised in setup: {self.last_error}"
             # the new class cannot start: the old instance back, set up again, at its
             # period before (a period the new one's setup assigned is told to no one: the

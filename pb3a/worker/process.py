@@ -614,7 +614,8 @@ class Worker:
             why = exc.args[0] if len(exc.args) == 1 else exc
             raise Refused(f"module {name!r}: {why}; nothing was set") from None
 
-    def op_swap(self, name: str, cls: bytes, period: float | None) -> list[str]:
+    def op_swap(self, name: str, cls: bytes, period: float | None
+                ) -> tuple[list[str], list[str]]:
         module = _made(name, _load_class(cls))
         self._give_runtime(name, module)
         return self.actors[name].swap(module, period)
