@@ -473,6 +473,32 @@ def test_remove_force_kills_a_module_that_does_not_answer(capsys) -> None:
         assert set(run.topology().modules) == {"src"} and not run.topology().links
 
 
+def test_restart_force_kills_a_stuck_module_and_starts_it_again_with_its_links(capsys) -> None:
+    """A module stuck in ``on_input`` could not be restarted, only removed (with
+    ``--force``), which lost its links: ``pb3a restart --force`` kills its worker and
+    starts it again, wired as it was."""
+    system = System("cli-restart-force")
+    system.add("src", Counter, period=0.01)
+    system.add("f", InputFreezer)
+    system.link("src.out", "f.x")
+    with system.launch(timeout=30) as run:
+        address = run.listen()
+        eventually(lambda: run.state("f")["handled"] > 3, what="values handled")
+        pid = run.stats().modules["f"].pid
+        run.set_state("f", freeze_in="on_input")
+        eventually(lambda: run.stats().modules["f"].calling == "on_input"
+                   and run.stats().modules["f"].calling_s > 0.2, what="stuck in on_input")
+        assert main(["restart", address, "f", "--timeout", "1"]) == 1
+        assert "(`pb3a restart ADDR f --force`) kills its worker" in capsys.readouterr().err
+        assert main(["restart", address, "f", "--timeout", "1", "--force"]) == 0
+        assert capsys.readouterr().out.strip() == "f restarted"
+        assert not alive(pid)
+        eventually(lambda: run.state("f")["handled"] > 3, what="values handled again")
+        restarted = [e.detail for e in run.events() if e.kind == "module_restarted"]
+        assert set(run.topology().links) == {"src.out->f.x"}
+    assert restarted == [{"node": "local", "reason": "asked", "killed": True, "pid": pid}]
+
+
 def test_mistakes_on_the_command_line_get_a_sentence_and_exit_1(capsys) -> None:
     with System("cli-mistakes").add("src", Counter).launch() as run:
         address = run.listen()

@@ -122,8 +122,12 @@ def _running_system(commands: argparse._SubParsersAction) -> None:
                         help="kill its worker if it does not answer its stop within the "
                              "timeout (frozen in step or teardown); refused for a worker "
                              "that runs other modules too")
-    command("restart", "start a module again (also a failed one) with its configured state",
-            ("module", "the module's name"))
+    restart = command("restart", "start a module again (also a failed one) with its "
+                      "configured state", ("module", "the module's name"))
+    restart.add_argument("--force", action="store_true",
+                         help="kill its worker if it does not answer its stop within the "
+                              "timeout (stuck in step, on_input or teardown); refused for a "
+                              "worker that runs other modules too")
     command("nodes", "every node's health")
     # (they print what there is at once, or with --follow what comes until Ctrl-C:
     # their --timeout bounds the connection only)

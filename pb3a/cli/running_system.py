@@ -200,7 +200,7 @@ def _remove(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
 
 
 def _restart(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
-    system.restart(args.module, timeout=args.timeout)
+    system.restart(args.module, timeout=args.timeout, force=args.force)
     return f"{args.module} restarted", {"module": args.module, "restarted": True}
 
 

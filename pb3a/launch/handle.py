@@ -135,10 +135,13 @@ class SystemHandle(ABC):
         every module of it, last first, with their links."""
         self._request("remove", {"name": name, "timeout": timeout, "force": force})
 
-    def restart(self, name: str, *, timeout: float | None = None) -> None:
+    def restart(self, name: str, *, timeout: float | None = None, force: bool = False) -> None:
         """Start a module again (also one that failed) with its configured state, its
-        links wired again; values queued in its inputs go with the old instance."""
-        self._request("restart", {"name": name, "timeout": timeout})
+        links wired again; values queued in its inputs go with the old instance. One
+        that does not answer its stop within ``timeout`` (stuck in a call) is left as it
+        was (``RuntimeTimeout``); with ``force`` its worker is killed instead, as
+        ``remove`` does, and it starts again all the same."""
+        self._request("restart", {"name": name, "timeout": timeout, "force": force})
 
     # -- where things are, figures, events -----------------------------------------------
     def where(self, name: str, *, timeout: float | None = None) -> str:

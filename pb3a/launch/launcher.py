@@ -325,16 +325,17 @@ class Launcher:
             node.stop_module(name, STOP_TIMEOUT)
         except RuntimeTimeout as exc:
             if not force:
+                asked = "restart" if restarting else "remove"
                 raise RuntimeTimeout(
-                    f"{exc}; module {name} was left as it was: remove({name!r}, "
-                    f"force=True) (`pb3a remove ADDR {name} --force`) kills its worker "
+                    f"{exc}; module {name} was left as it was: {asked}({name!r}, "
+                    f"force=True) (`pb3a {asked} ADDR {name} --force`) kills its worker "
                     "if it does not answer") from None
             with lifted(), bounding(KILLED_REMOVAL_S):
                 try:
                     killed = node.kill_module(name)
                 except RuntimeFailure as refused:
-                    raise RuntimeFailure(f"remove {name} with force: {exc}; {refused}") \
-                        from None
+                    raise RuntimeFailure(f"{'restart' if restarting else 'remove'} {name} "
+                                         f"with force: {exc}; {refused}") from None
                 self._drop_stopped(name, node, restarting)
             return killed
         self._drop_stopped(name, node, restarting)

@@ -640,7 +640,7 @@ class Operations:
                                   reason="it did not answer its stop: its worker was "
                                          "killed (its teardown did not finish)")
 
-    def restart(self, name: str, *, timeout: float | None = None) -> None:
+    def restart(self, name: str, *, timeout: float | None = None, force: bool = False) -> None:
         """Stop a module (also a failed one) and start it again with its configured state
         in a new worker; its links are wired again. Values queued in its inputs go with
         the old instance. Its configuration is checked before anything stops
@@ -648,7 +648,8 @@ class Operations:
         and its links, and ``RuntimeFailure`` says why (the module is lost only if that
         fails too, and the error then says so). Its stop and its new start are bounded
         by ``timeout`` (a stop not answered by then leaves it as it was, as ``remove``
-        does); putting it back takes what it takes."""
+        does, or with ``force`` kills its worker: its event says ``killed``); putting it
+        back takes what it takes."""
         with self._held(f"restart {name}", timeout, lend=[name]) as left:
             launcher = self.launcher
             launcher.node_of(name)                # ModuleNotFound for an unknown name
@@ -660,14 +661,15 @@ class Operations:
             links = [link for link in launcher.links.values() if name in (link.src, link.dst)]
             was = self._state_then(name)
             with bounding(left()):
-                launcher.remove_module(name, restarting=True)
+                killed = launcher.remove_module(name, restarting=True, force=force)
             try:
                 with bounding(left()):          # (a construction that blocks, say)
                     self._start(spec, links)
             except Exception as exc:
                 with lifted():                  # putting it back runs to its end
                     raise self._put_back(spec, links, was, exc) from exc
-        self.event_log.record("module_restarted", name, node=spec.node, reason="asked")
+        self.event_log.record("module_restarted", name, node=spec.node, reason="asked",
+                              **({} if killed is None else {"killed": True, "pid": killed}))
 
     def _state_then(self, name: str) -> bytes | None:
         """The module's state now, to put it back with should its restart fail, pickled:
