@@ -371,10 +371,13 @@ class Daemon:
     again at the same address."""
 
     program: tuple[str, ...] = ("-m", "pb3a")     # (what a subclass runs in its place)
+    cwd: str | None = None                          # where it is started (None: here)
 
-    def __init__(self, name: str, path: tuple[str, ...] = (), *, ready: bool = True) -> None:
+    def __init__(self, name: str, path: tuple[str, ...] = (), *, ready: bool = True,
+                 cwd: str | None = None) -> None:
         self.name, self.address = name, f"tcp://127.0.0.1:{unused_port()}"
         self.path = path            # more directories on its import path (a robot's own)
+        self.cwd = cwd
         self.process: subprocess.Popen[str] | None = None
         self.start(ready)
 
@@ -405,7 +408,7 @@ class Daemon:
         self.process = subprocess.Popen(
             [sys.executable, *self.program, "node", "start", "--name", self.name,
              "--listen", self.address, "--max-cpu", "101"],
-            stdout=subprocess.PIPE, text=True, env=env)
+            stdout=subprocess.PIPE, text=True, env=env, cwd=self.cwd)
         if ready:
             self.ready()
 

@@ -398,7 +398,7 @@ def test_check_names_a_module_file_that_hangs_ends_or_crashes_as_imported_and_th
         "sys.exit(2) as it is imported; a module must not exit when imported (put that code "
         "under if __name__ == '__main__':)",
         "harmed.toml [modules.typo]: module 'imported_good' has no class 'Dts' (did you mean "
-        "'Dst'?)"], done.stdout
+        f"'Dst'?); it was imported from {tmp_path / 'imported_good.py'}"], done.stdout
     assert f"pb3a {command[0]}: 5 problems in harmed.toml" in done.stderr
     assert took < 20, took
     assert not (tmp_path / "stressed").exists()

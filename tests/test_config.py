@@ -194,6 +194,26 @@ def test_a_system_is_built_where_the_current_directory_was_removed(
     assert len(problems) == 1 and problems[0].startswith(f"{__file__}:"), problems
 
 
+def test_a_class_a_module_lacks_is_said_with_where_the_module_was_imported_from(
+        tmp_path, monkeypatch) -> None:
+    """"module 'probe' has no class 'Probe'" named no file: a copy other than the one
+    meant (a directory of that name, imported as a namespace package, an older file
+    elsewhere on the path) was not to be told from a typo."""
+    (tmp_path / "as_a_directory").mkdir()
+    (tmp_path / "as_a_file.py").write_text("class Other:\n    pass\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.raises(LookupError) as raised:
+        resolve_class("as_a_directory:Probe")
+    assert str(raised.value) == (
+        f"module 'as_a_directory' has no class 'Probe'; it was imported from "
+        f"{tmp_path / 'as_a_directory'}, a directory with no __init__.py (a namespace "
+        "package): rename it, or move it off the import path")
+    with pytest.raises(LookupError) as raised:
+        resolve_class("as_a_file:Probe")
+    assert str(raised.value) == (f"module 'as_a_file' has no class 'Probe'; it has: Other; "
+                                 f"it was imported from {tmp_path / 'as_a_file.py'}")
+
+
 def test_resolve_class_errors_say_what_to_change() -> None:
     with pytest.raises(LookupError, match=r"module 'examples\.pipeline' has no class 'Tickr'"):
         resolve_class("examples.pipeline:Tickr")
@@ -206,7 +226,8 @@ def test_resolve_class_errors_say_what_to_change() -> None:
     with pytest.raises(ImportError, match=r"'examples\.pipline' \(did you mean "
                                           r"'examples\.pipeline'\?\); check the module path"):
         resolve_class("examples.pipline:Ticker")
-    with pytest.raises(LookupError, match=r"no class 'Nope'; it has: FastScale, Scale, Ticker$"):
+    with pytest.raises(LookupError, match=r"no class .Nope.; it has: FastScale, Scale, Ticker; "
+                                          r"it was imported from \S+pipeline\.py$"):
         resolve_class("examples.pipeline:Nope")
     with pytest.raises(TypeError, match="not a class"):
         resolve_class("parts_cfg:helper")

@@ -635,6 +635,32 @@ def test_a_class_the_remote_node_cannot_import_is_named_with_the_node(tmp_path,
         daemon.stop()
 
 
+def test_a_directory_beside_a_node_controller_does_not_shadow_the_configuration_s_module(
+        tmp_path) -> None:
+    """A directory named as a configuration's module file (``where_am_i/``, no
+    ``__init__.py``) in the node controller's current directory refused the launch:
+    "module 'where_am_i' has no class 'Where'". The node's preload imported the module
+    before its executor had the configuration's directory on its path, and found that
+    directory (a namespace package), where the workers, which have it first, ran the
+    file. The check and the workers import from one path: the file's directory first."""
+    controller, conf = tmp_path / "controller", tmp_path / "conf"
+    (controller / "where_am_i").mkdir(parents=True)
+    conf.mkdir()
+    (conf / "where_am_i.py").write_text(
+        "from pb3a import Module\n\n\nclass Where(Module):\n    period = 0.1\n"
+        "    seen = ''\n\n    def setup(self):\n        self.seen = __file__\n")
+    daemon = Daemon("b", cwd=str(controller))
+    try:
+        (conf / "where.toml").write_text(
+            f'name = "where"\n[nodes.b]\naddress = "{daemon.address}"\n'
+            '[modules.w]\nclass = "where_am_i:Where"\nnode = "b"\n')
+        with System.load(conf / "where.toml").launch(timeout=10) as run:
+            seen = eventually(lambda: run.state("w")["seen"], what="the module set up")
+    finally:
+        daemon.stop()
+    assert seen == str(conf / "where_am_i.py")
+
+
 def test_a_class_the_remote_node_cannot_get_from_its_module_server_says_why(
         tmp_path, monkeypatch) -> None:
     """A node that cannot import a class, its module server named by a host its machine
@@ -1479,6 +1505,7 @@ class Successor(Daemon):
         program = _HOLDS_ITS_STARTS if holds else _RUNS
         self.program = ("-c", program.replace("sys.exit(", waits + "sys.exit(", 1))
         self.name, self.address, self.path = other.name, other.address, other.path
+        self.cwd = other.cwd
         self.start(ready=False)
         assert self.process.stdout.readline().strip() == "waiting"
 

@@ -151,11 +151,15 @@ class NodeShare:
         # board gives only move on, which its workers count on, see Lease.holds)
         self.node_epoch, self._lease_s = node_epoch, lease_s
         self._bound.set()                   # (a slow bind, a large code install: not stopped)
+        # the import path before anything imports: the configuration's modules, imported
+        # by the preload that configure starts, were found on the path from before
+        # (a directory of that name in the controller's, and the check of the launch's
+        # classes found that copy, which the workers did not)
+        code.install(self.key)
         self.executor.configure(checkpoint_s=checkpoint_s, log_level=log_level, code=code,
                                 epoch=epoch, spares=spares, node_epoch=node_epoch)
         if self.server is not None:
             self.server.advance_epoch(epoch)
-        code.install(self.key)
         self.launcher = ControlClient(self.key, launcher)
         self._ticked_at = time.monotonic()      # (before: the renewal writes a running lease)
         renewed = self.renew()

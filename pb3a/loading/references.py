@@ -103,7 +103,8 @@ def resolve_class(ref: str | type, *, watch: ImportWatch | None = None) -> type:
     where = f"module {module_name!r}"
     for part in attr_path.split("."):
         if not hasattr(target, part):
-            raise LookupError(f"{where} has no class {part!r}{_suggest(target, part)}")
+            raise LookupError(f"{where} has no class {part!r}{_suggest(target, part)}"
+                              f"{_imported_from(module)}")
         target = getattr(target, part)
         where = f"class {part!r}"
     if not isinstance(target, type):
@@ -250,6 +251,21 @@ def _installed_packages() -> frozenset[str]:
         return frozenset(importlib.metadata.packages_distributions())
     except Exception:
         return frozenset()
+
+
+def _imported_from(module: ModuleType) -> str:
+    """Where ``module`` was imported from, for a class it lacks: "; it was imported from
+    FILE", or from a directory with no ``__init__.py`` (a namespace package, which any
+    directory of that name on the path makes: one beside a node controller shadowed the
+    configuration's file). A copy other than the one meant is the likely cause."""
+    path = getattr(module, "__file__", None)
+    if isinstance(path, str):
+        return f"; it was imported from {path}"
+    where = [str(entry) for entry in getattr(module, "__path__", ())]
+    if not where:
+        return ""
+    return (f"; it was imported from {', '.join(where)}, a directory with no __init__.py "
+            "(a namespace package): rename it, or move it off the import path")
 
 
 def _suggest(namespace: object, name: str) -> str:

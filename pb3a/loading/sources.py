@@ -4,7 +4,8 @@ A configuration file's own directory comes first on the import path, so a module
 written next to the file imports without ``PYTHONPATH`` (as a script's directory
 does for the script); module servers are asked last, after every local finder. The
 launcher installs the sources before it resolves the configuration's classes, and
-every worker and node share process it starts installs them too.
+every worker and node share process it starts installs them too, before it imports
+any of them (``import_path``: one order for all).
 """
 
 from __future__ import annotations
@@ -33,7 +34,15 @@ class CodeSources:
 
     def install(self, key: ClusterKey | None = None) -> None:
         """Make this process import from these sources (idempotent)."""
-        for path in reversed(self.paths):
-            if path not in sys.path:
-                sys.path.insert(0, path)
+        sys.path[:] = import_path(self.paths, sys.path)
         use_module_servers(self.module_servers, key)
+
+
+def import_path(paths: tuple[str, ...], current: list[str]) -> list[str]:
+    """The import path of a process that imports a system's classes: ``paths`` (the
+    configuration's directory, or a script's) first, then the process's ``current``
+    path without them. Moved, not only added: a node controller started in that
+    directory had it last, behind the installed packages. The node's executor, its
+    check of a launch's classes and its workers all take their path from this."""
+    return [*paths, *(entry for entry in current if entry not in paths)]
+
