@@ -49,6 +49,23 @@ def children_skip_the_current_directory() -> None:
         os.environ.update({"PYTHONSAFEPATH": "1", _SAFE_PATH_SET: "1"})
 
 
+# Set in the process of a ``pb3a`` command: it runs no script of the user's, and its
+# ``sys.path[0]`` is the command's own directory, none that a system's nodes import from.
+_a_command = False
+
+
+def runs_a_command() -> None:
+    """Mark this process as a ``pb3a`` command's (``pb3a.loading.sources.launcher_paths``)."""
+    global _a_command
+    _a_command = True
+
+
+def runs_a_script() -> bool:
+    """Whether ``sys.path[0]`` is the directory of a script of the user's (or their
+    current one: ``python -m``, ``-c``, the REPL), as in any process not a command's."""
+    return not _a_command
+
+
 def restore_the_user_s_path_setting() -> None:
     """Undo ``children_skip_the_current_directory`` for this process's children."""
     if os.environ.pop(_SAFE_PATH_SET, None):

@@ -24,6 +24,7 @@ from pb3a.config.description import NodeSpec, SystemSpec, load_toml
 from pb3a.config.plan import FlatLink, Plan
 from pb3a.errors import ConfigError
 from pb3a.loading.references import resolve_class
+from pb3a.loading.sources import launcher_paths
 from pb3a.model.macro import Macro
 from pb3a.model.module import Module
 from pb3a.model.ports import Policy
@@ -212,6 +213,25 @@ def test_a_class_a_module_lacks_is_said_with_where_the_module_was_imported_from(
         resolve_class("as_a_file:Probe")
     assert str(raised.value) == (f"module 'as_a_file' has no class 'Probe'; it has: Other; "
                                  f"it was imported from {tmp_path / 'as_a_file.py'}")
+
+
+def test_a_system_built_in_python_is_imported_from_its_script_s_directories(
+        tmp_path, monkeypatch) -> None:
+    """A system built in Python hands its nodes the directories its script imports from,
+    as Python has them: ``sys.path[0]`` (``''``: the current directory, for ``python
+    -c``, the REPL, a notebook), unless Python leaves it off, and ``PYTHONPATH``; those
+    that exist, once each. It was handed none, and its nodes could not import a class of
+    a file beside the script (a TOML's directory is handed)."""
+    here, lib = tmp_path / "here", tmp_path / "lib"
+    here.mkdir()
+    lib.mkdir()
+    monkeypatch.chdir(here)
+    monkeypatch.setattr(sys, "path", ["", *sys.path])
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(lib), str(tmp_path / "gone"), "",
+                                                      str(here)]))
+    plan = System("scripted").add("t", Ticker).plan()
+    assert plan.code.paths == (str(here), str(lib))
+    assert sys.path[:2] == [str(here), str(lib)]          # (installed here too, first)
 
 
 def test_resolve_class_errors_say_what_to_change() -> None:
@@ -1412,12 +1432,13 @@ def test_a_class_that_cannot_be_made_with_no_arguments_is_refused_by_the_check()
         "entry's state sets)"]
 
 
-def test_a_description_from_tables_adds_no_directory_to_the_import_path() -> None:
+def test_a_description_from_tables_is_imported_from_its_script_s_directories() -> None:
     """Its default source, "a description", was taken for a file in the current
-    directory, which every process then imported from first."""
+    directory, which every process then imported from first: the directories it is
+    imported from are its script's, as a system's built in Python."""
     plan = System.from_dict({"name": "d", "modules": {
         "t": {"class": "examples.pipeline:Ticker"}}}).plan()
-    assert plan.code.paths == ()
+    assert plan.code.paths == launcher_paths()
 
 
 KINDS = '''

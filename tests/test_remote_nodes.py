@@ -10,8 +10,11 @@ import os
 import re
 import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import psutil
@@ -60,6 +63,7 @@ from pb3a import (
     System,
 )
 from pb3a.cli.status import format_table
+from pb3a.config import compiler
 from pb3a.daemons.node_controller import START_TIMEOUT, Limits, NodeController
 from pb3a.launch.remote_starts import RemoteStarts
 from pb3a.node import remote
@@ -618,10 +622,13 @@ def test_a_class_the_remote_node_cannot_import_is_named_with_the_node(tmp_path,
                                                                        monkeypatch) -> None:
     """A module class the launcher's machine has and the node's does not failed the launch
     naming "the process at tcp://127.0.0.1:40733": the node, its address and the module
-    are named, and what to do on that machine."""
+    are named, and what to do on that machine. (The node's machine is another here: the
+    directory the launcher's script is in is not on it.)"""
+    laptop = tmp_path / "on-the-laptop"               # (the launcher's, not the node's)
     (tmp_path / "only_on_the_launcher.py").write_text(
         "from pb3a import Module\n\nclass Local(Module):\n    period = 0.1\n")
-    monkeypatch.syspath_prepend(str(tmp_path))
+    _on_the_launcher_only(monkeypatch, tmp_path)
+    monkeypatch.setattr(compiler, "launcher_paths", lambda: (str(laptop),))
     from only_on_the_launcher import Local
     daemon = Daemon("b")                  # (its import path: the repository's only)
     try:
@@ -629,10 +636,107 @@ def test_a_class_the_remote_node_cannot_import_is_named_with_the_node(tmp_path,
         system.add("local", Local, node="b")
         with pytest.raises(RuntimeFailure, match=r"node b \(tcp://\S+\): module 'local', class "
                                                  r"'only_on_the_launcher:Local': cannot import "
-                                                 r".*: install it there"):
+                                                 r".*; searched here: "
+                                                 f"{re.escape(str(laptop))} \\(the launcher's\\)"
+                                                 r".*; this node's machine lacks it "
+                                                 f"\\({re.escape(str(laptop))}, the launcher's, "
+                                                 r"is not on it\): install it there"):
             system.launch()
     finally:
         daemon.stop()
+
+
+def _on_the_launcher_only(monkeypatch, directory) -> None:
+    """Have this process import from ``directory``, as a launcher whose classes are in a
+    directory it put on its path itself: not its script's (``sys.path[0]``), which the
+    nodes are handed."""
+    monkeypatch.setattr(sys, "path", [*sys.path, str(directory)])
+
+
+_SIBLING = ("from pb3a import Input, Module, Output\n\n\nclass Src(Module):\n"
+            "    out = Output(float)\n    period = 0.02\n    n = 0\n\n"
+            "    def step(self):\n        self.n += 1\n        self.out.write(float(self.n))\n\n\n"
+            "class Sink(Module):\n    x = Input(float)\n    last = None\n\n"
+            "    def on_input(self, port):\n        self.last = port.read()\n")
+
+# the script: a system whose classes come from a file beside it (or on its PYTHONPATH),
+# on two remote nodes; it prints what the sink got
+_USES_SIBLING = ("import sys\nfrom pb3a import System\nfrom {module} import Src, Sink\n"
+                 "s = System('sibling')\n"
+                 "s.node('a', address=sys.argv[1]).node('b', address=sys.argv[2])\n"
+                 "s.add('src', Src, node='a').add('sink', Sink, node='b')\n"
+                 "s.link('src.out', 'sink.x')\n"
+                 "with s.launch(timeout=20) as run:\n"
+                 "    while not run.state('sink')['last']:\n"
+                 "        run.wait(0.05)\n"
+                 "    print('got', run.state('sink')['last'])\n")
+
+
+def test_a_system_built_in_a_script_runs_classes_of_files_beside_it_on_remote_nodes(
+        tmp_path) -> None:
+    """A script's system whose classes are in a file beside it (``from helper import
+    Src``) ran on a remote node only with a TOML beside the file, whose directory its
+    nodes are handed: built in Python, every node said "cannot import module 'helper'
+    ... this node's machine lacks it", on the launcher's own machine. Its nodes are
+    handed the script's directory (as Python has it: the current one for ``python -m``
+    and ``-c``) and its PYTHONPATH, first on their path as a file's directory is."""
+    project, elsewhere, lib = tmp_path / "project", tmp_path / "elsewhere", tmp_path / "lib"
+    for directory in (project, elsewhere, lib):
+        directory.mkdir()
+    (project / "helper.py").write_text(_SIBLING)
+    (project / "uses_helper.py").write_text(_USES_SIBLING.format(module="helper"))
+    (lib / "libhelper.py").write_text(_SIBLING)
+    (project / "uses_lib.py").write_text(_USES_SIBLING.format(module="libhelper"))
+    daemons = Daemon.several("a", "b")       # (started elsewhere: the repository)
+    repo = str(Path(__file__).resolve().parent.parent)
+    ways = {   # how it is run: (arguments, current directory, PYTHONPATH)
+        "a script run from another directory": (
+            [str(project / "uses_helper.py")], elsewhere, [repo]),
+        "python -m": (["-m", "uses_helper"], project, [repo]),
+        "python -c": (["-c", (project / "uses_helper.py").read_text()], project, [repo]),
+        "a file on its PYTHONPATH": ([str(project / "uses_lib.py")], elsewhere,
+                                     [repo, str(lib)]),
+    }
+    try:
+        for way, (arguments, cwd, path) in ways.items():
+            env = {**{name: value for name, value in os.environ.items()
+                      if name not in ("PYTHONSAFEPATH", "PB3A_SET_PYTHONSAFEPATH")},
+                   "PYTHONPATH": os.pathsep.join(path)}
+            ran = subprocess.run([sys.executable, *arguments, daemons["a"].address,
+                                  daemons["b"].address], cwd=cwd, env=env, text=True,
+                                 capture_output=True, timeout=60)
+            assert ran.returncode == 0 and ran.stdout.startswith("got "), (way, ran.stderr)
+    finally:
+        for daemon in daemons.values():
+            daemon.stop()
+
+
+def test_a_class_a_node_on_the_launcher_s_machine_cannot_import_says_where_it_looked(
+        tmp_path, monkeypatch) -> None:
+    """A node that has the directories the launcher handed it (on the launcher's own
+    machine) and still cannot import a class's module was said to be on a machine that
+    "lacks it: install it there": it says which directories it searched, the launcher's
+    marked, and to put the file in one of them."""
+    (tmp_path / "found_by_hand.py").write_text(_SIBLING)
+    _on_the_launcher_only(monkeypatch, tmp_path)
+    daemon = Daemon("b")
+    try:
+        system = System("by-hand").node("a").node("b", address=daemon.address)
+        system.add("src", "found_by_hand:Src", node="b")
+        with pytest.raises(RuntimeFailure) as raised:
+            system.launch(timeout=10)
+    finally:
+        daemon.stop()
+    said = str(raised.value)
+    handed = compiler.launcher_paths()
+    assert handed, "this test's process has a script's directory or a PYTHONPATH"
+    assert "cannot import module 'found_by_hand'" in said, said
+    assert f"; searched here: {handed[0]} (the launcher's)" in said, said
+    assert "Python's standard library and installed packages" in said, said
+    assert ("; put it in the launcher's directory on this machine, or serve it" in said
+            or "; put it in one of the launcher's directories on this machine" in said), said
+    assert "lacks it" not in said and "install it there" not in said, said
+    assert str(tmp_path) not in said, said
 
 
 def test_a_directory_beside_a_node_controller_does_not_shadow_the_configuration_s_module(
@@ -670,7 +774,7 @@ def test_a_class_the_remote_node_cannot_get_from_its_module_server_says_why(
     /etc/hosts only)."""
     (tmp_path / "only_here_not_served.py").write_text(
         "from pb3a import Module\n\nclass Local(Module):\n    period = 0.1\n")
-    monkeypatch.syspath_prepend(str(tmp_path))
+    _on_the_launcher_only(monkeypatch, tmp_path)
     from only_here_not_served import Local
     daemon = Daemon("b")
     try:
@@ -711,7 +815,7 @@ def test_every_class_a_remote_node_cannot_load_is_named_before_anything_starts(
         "from pb3a import Module, Output\n\n\nclass Marks(Module):\n    out = Output(int)\n"
         "    period = 0.1\n    path = ''\n\n    def setup(self):\n"
         "        open(self.path, 'w').close()\n")
-    monkeypatch.syspath_prepend(str(here))
+    _on_the_launcher_only(monkeypatch, here)
     daemons = Daemon.several("b", "c", path=(str(robot),))
     marker = tmp_path / "started"               # (the embedded node's module, set up)
     try:
@@ -746,7 +850,10 @@ def test_every_class_a_remote_node_cannot_load_is_named_before_anything_starts(
                 f"node c ({c}): module 'camera', class 'only_on_launcher:Sink': cannot "
                 "import module 'only_on_launcher' for 'only_on_launcher:Sink'"):
             assert f"\n  {line}" in said, (line, said)
-        assert "this node's machine lacks it: install it there" in said
+        # (its file is on neither node's machine: on the launcher's, which both are on,
+        # in a directory the launcher put on its path by hand, where neither looked)
+        assert "; searched here: " in said and "; put it in " in said, said
+        assert "lacks it" not in said, said
         assert "'fine'" not in said and "'here'" not in said
         assert took < 10, took         # (two executors start, then one check each)
         assert not marker.exists()

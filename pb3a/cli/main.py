@@ -31,7 +31,12 @@ import sys
 from collections.abc import Callable, Sequence
 
 from pb3a.cli.standard_output import BROKEN_PIPE, output_gone
-from pb3a.processes import INTERRUPTED, children_skip_the_current_directory, end_on_signals
+from pb3a.processes import (
+    INTERRUPTED,
+    children_skip_the_current_directory,
+    end_on_signals,
+    runs_a_command,
+)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -76,6 +81,7 @@ def import_from_here() -> None:
         here = os.getcwd()
         sys.path[:] = [*(entry for entry in sys.path if entry not in ("", here)), here]
     children_skip_the_current_directory()
+    runs_a_command()            # (its own directory is no script's of the user's)
 
 
 def handler_of(name: str) -> Callable[[argparse.Namespace], int]:

@@ -123,7 +123,8 @@ class NodeShare:
                       args["code"], args.get("lease_s", LEASE_S), args.get("epoch", 0),
                       args.get("node_epoch", 1), args.get("spares", DEFAULT_SPARES))
         if op == "unloadable":      # before any module: see pb3a.node.class_check
-            return unloadable(args["refs"], ex.imports, args["timeout"], args["longer"])
+            return unloadable(args["refs"], ex.imports, args["timeout"], args["longer"],
+                              ex.workers.settings.code)
         if op == "peers":
             self.meet(args["peers"])
             return None

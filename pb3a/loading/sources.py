@@ -2,7 +2,9 @@
 
 A configuration file's own directory comes first on the import path, so a module
 written next to the file imports without ``PYTHONPATH`` (as a script's directory
-does for the script); module servers are asked last, after every local finder. The
+does for the script); a system built in Python has its launching script's directory
+and ``PYTHONPATH`` there instead (``launcher_paths``), those its launcher imported
+its classes from. Module servers are asked last, after every local finder. The
 launcher installs the sources before it resolves the configuration's classes, and
 every worker and node share process it starts installs them too, before it imports
 any of them (``import_path``: one order for all).
@@ -10,11 +12,13 @@ any of them (``import_path``: one order for all).
 
 from __future__ import annotations
 
+import os
 import sys
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from pb3a.loading.served import use_module_servers
+from pb3a.processes import runs_a_script
 
 if TYPE_CHECKING:
     from pb3a.transport.auth import ClusterKey
@@ -46,3 +50,26 @@ def import_path(paths: tuple[str, ...], current: list[str]) -> list[str]:
     check of a launch's classes and its workers all take their path from this."""
     return [*paths, *(entry for entry in current if entry not in paths)]
 
+
+def launcher_paths() -> tuple[str, ...]:
+    """The directories a system built in Python in this process is imported from, as
+    Python has them, to be handed to its nodes: the script's directory (``sys.path[0]``;
+    the current one for ``python -m``, ``-c``, a notebook or the REPL, whose ``''``
+    means it), unless Python was told to leave it off (``-P``, ``PYTHONSAFEPATH``), and
+    the directories of ``PYTHONPATH`` (unless ignored, ``-E``); those that exist, each
+    once, absolute."""
+    found: list[str] = []
+    if runs_a_script() and not sys.flags.safe_path and sys.path:
+        found.append(sys.path[0])
+    if not sys.flags.ignore_environment:
+        found.extend(entry for entry in os.environ.get("PYTHONPATH", "").split(os.pathsep)
+                     if entry)
+    paths: list[str] = []
+    for entry in found:
+        try:
+            path = os.path.abspath(entry or os.getcwd())
+        except OSError:                     # (the current directory removed under it)
+            continue
+        if os.path.isdir(path) and path not in paths:
+            paths.append(path)
+    return tuple(paths)

@@ -15,6 +15,8 @@ node's preload of the system's classes imports (``ImportLane``).
 from __future__ import annotations
 
 import contextlib
+import os
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -22,6 +24,7 @@ from collections.abc import Iterator
 from pb3a.loading.import_child import hung
 from pb3a.loading.references import resolve_class
 from pb3a.loading.served import module_servers
+from pb3a.loading.sources import CodeSources
 
 
 class ImportLane:
@@ -44,12 +47,14 @@ class ImportLane:
                 self.module = None
 
 
-def unloadable(refs: dict[str, str], lane: ImportLane, timeout: float,
-               longer: str) -> dict[str, str]:
+def unloadable(refs: dict[str, str], lane: ImportLane, timeout: float, longer: str,
+               code: CodeSources) -> dict[str, str]:
     """Which of ``refs`` (module name -> ``"module:Class"``) this process cannot load,
     each with why and what to do; within ``timeout`` seconds: one not loaded by then is
     said to be waiting for the import under way (``longer``: how to give it more time).
-    The imports run in a thread of their own, left to finish if they ever do."""
+    The imports run in a thread of their own, left to finish if they ever do. This
+    process imports from the workers' path (``code``, installed as its executor was
+    bound, before any import: ``pb3a.loading.sources.import_path``)."""
     problems: dict[str, str] = {}
     checked: list[str] = []
     done = threading.Event()
@@ -61,7 +66,7 @@ def unloadable(refs: dict[str, str], lane: ImportLane, timeout: float,
                 try:
                     resolve_class(ref)
                 except (ImportError, LookupError, TypeError, ValueError) as exc:
-                    problems[name] = str(exc) + _where_to_put(exc)
+                    problems[name] = str(exc) + _where_to_put(exc, code)
             checked.append(name)
         done.set()
 
@@ -78,11 +83,53 @@ def unloadable(refs: dict[str, str], lane: ImportLane, timeout: float,
     return said
 
 
-def _where_to_put(exc: Exception) -> str:
+def _where_to_put(exc: Exception, code: CodeSources) -> str:
     """What to add to a module file not found on this machine, when no module server
-    is asked: it is found elsewhere (the launcher's machine), not here."""
+    is asked: where it was looked for here (``searched``), and whether the directories
+    the launcher handed (``code.paths``: its configuration's, its script's) are on this
+    machine. A node on the launcher's own machine, which has them, was said to lack
+    the file, and to be the wrong machine."""
     if not str(exc).startswith("cannot import module") or module_servers():
         return ""
-    return ("; this node's machine lacks it: install it there (or put it on its "
-            "PYTHONPATH), or serve it (pb3a modules serve DIR, and module_servers in the "
-            "configuration)")
+    serve = "serve it (pb3a modules serve DIR, and module_servers in the configuration)"
+    absent = [path for path in code.paths if not os.path.isdir(path)]
+    said = f"; searched here: {searched(code.paths)}"
+    if absent or not code.paths:
+        gone = (f" ({', '.join(absent)}, the launcher's, {'is' if len(absent) == 1 else 'are'}"
+                " not on it)" if absent else "")
+        return (f"{said}; this node's machine lacks it{gone}: install it there (or put it "
+                f"on its PYTHONPATH), or {serve}")
+    where = ("the launcher's directory" if len(code.paths) == 1
+             else "one of the launcher's directories")
+    return f"{said}; put it in {where} on this machine, or {serve}"
+
+
+def searched(handed: tuple[str, ...]) -> str:
+    """This process's import path, said in short: each directory, those ``handed`` by the
+    launcher marked so, and the current one (its node controller's, where that was
+    started) too; Python's own (the standard library, the installed packages) as one
+    entry."""
+    own = {os.path.realpath(prefix) for prefix in
+           (sys.prefix, sys.base_prefix, sys.exec_prefix, sys.base_exec_prefix)}
+    here = ""
+    with contextlib.suppress(OSError):      # (the current directory removed under it)
+        here = os.getcwd()
+    said: list[str] = []
+    for entry in sys.path:
+        if not isinstance(entry, str):
+            continue
+        path = entry or here
+        real = os.path.realpath(path)
+        if any(real == prefix or real.startswith(prefix + os.sep) for prefix in own):
+            if not said or said[-1] != _PYTHON_S:
+                said.append(_PYTHON_S)
+        elif path in handed:
+            said.append(f"{path} (the launcher's)")
+        elif path == here:
+            said.append(f"{path} (the current directory, its controller's)")
+        else:
+            said.append(path)
+    return ", ".join(said)
+
+
+_PYTHON_S = "Python's standard library and installed packages"
