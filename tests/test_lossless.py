@@ -4,12 +4,15 @@ reordered, also across migrations and swaps; dropping links behave as before."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing
+import signal
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Iterator
 
+import cloudpickle
 import pytest
 from conftest import eventually
 from sample_modules import Burst, Collector, Oversize, Pusher, Sipper, SipperV2, Sizes
@@ -22,6 +25,8 @@ from pb3a.node.wiring import Wiring
 from pb3a.node.workers import WorkerRequest
 from pb3a.transport.doorbell import new_bell
 from pb3a.transport.replication import Follower
+from pb3a.transport.ring import ShmRing
+from pb3a.transport.shm import segment_name
 from pb3a.worker.actor import ModuleActor
 from pb3a.worker.process import Worker
 
@@ -376,40 +381,118 @@ def test_a_reader_handling_each_value_moves_from_behind_a_lossless_link_at_once(
     assert link.drops == 0 and link.link_failures == 0
 
 
-def test_the_receiver_never_waits_for_a_module_lock_taken_just_after_its_look() -> None:
-    # The receiver looked whether the module's lock was held, then ran the dispatch
-    # inline, which waited for the lock: a pause that took it in between held up every
-    # ring of the worker for the whole pause (the move above, once in a loaded run: its
-    # 10 s ran out "while unwiring the links ... values of src.out still in flight").
-    # Here the pause takes the lock just after the receiver's look.
-    scheduled: list[Callable[..., None]] = []
-    actor = ModuleActor("dst", Handler(), scheduled.append, None)
-    actor.start()
+class _Gated(Handler):
+    """``Handler`` whose first call, while ``_gate`` holds ``(inside, go)``, says so
+    (``inside``) and waits for ``go``."""
+
+    def on_input(self, port) -> None:
+        gate = self.__dict__.pop("_gate", None)
+        if gate is not None:
+            inside, go = gate
+            inside.set()
+            go.wait(5)
+        super().on_input(port)
+
+
+@contextlib.contextmanager
+def _solo_reader(cls: type[Handler]) -> Iterator[tuple[Worker, ShmRing, ModuleActor]]:
+    """A worker in this process whose only module, ``dst`` (``cls``), reads a local
+    lossless ring (``KEY``, lossless:8): the worker, the ring's writer, the actor."""
+    owner = ShmRing.create(segment_name("ring"), 64 * 1024, lossless=True)
+    writer = ShmRing.attach(owner.name)
     ours, theirs = multiprocessing.Pipe()
+    sigterm = signal.getsignal(signal.SIGTERM)   # (a worker's shutdown ignores it after)
     worker = Worker(ours, "key", new_bell(), 3600.0)
-    lock = actor.lock
     try:
-        actor.inputs["x"].deliver(1)
-        assert scheduled == [actor._dispatch]
-        worker._ready = [scheduled.pop()]
-        assert lock.acquire(timeout=1.0)            # the pause, after the receiver's look:
-        looks = iter([False])
-        lock.locked = lambda: next(looks, True)     # (the look saw it free)
-        ran = threading.Thread(target=worker._run_ready, daemon=True)
-        ran.start()
-        ran.join(timeout=2.0)
-        receiver_waited = ran.is_alive()
-        lock.release()                              # the pause ends
-        ran.join(timeout=5.0)
-        assert not receiver_waited, "the receiver waited for the pause"
-        assert scheduled == [actor._dispatch]       # scheduled again (the pool, there)
-        scheduled.pop()()
-        assert actor.module.received == 1 and actor.events == 1
+        worker.op_add("dst", cloudpickle.dumps(cls), None, "never", {})
+        worker.op_start(["dst"])
+        worker.op_link_in(KEY, "dst", "x", owner.name, "lossless:8")
+        writer.set_bell(worker._bell_fd)
+        yield worker, writer, worker.actors["dst"]
     finally:
+        if "dst" in worker._paused:
+            worker.op_resume("dst")          # (a receiver waiting for it is let go)
         worker.shutdown()
+        signal.signal(signal.SIGTERM, sigterm)
         ours.close()
         theirs.close()
-        assert actor.stop(5.0)
+        writer.close()
+        owner.close()
+
+
+def _pause_after_look(worker: Worker, actor: ModuleActor, look: int,
+                      after: threading.Event | None = None) -> threading.Event:
+    """Make the move's pause take ``actor``'s lock right after the receiver's ``look``-th
+    look at it (once ``after`` is set, if given), which found it free: the interleaving
+    that held the receiver. The event returned is set once the pause holds the lock."""
+    lock_free, looks, paused = actor.lock.locked, [], threading.Event()
+
+    def looked() -> bool:
+        if threading.current_thread().name != "pb3a-receiver":
+            return lock_free()
+        looks.append(None)
+        if len(looks) != look:
+            return lock_free()
+        assert after is None or after.wait(5)
+        free = lock_free()
+        threading.Thread(target=lambda: (worker.op_pause("dst", 10.0), paused.set()),
+                         daemon=True).start()
+        assert paused.wait(5), "the pause did not take the lock"
+        return free
+    actor.lock.locked = looked
+    return paused
+
+
+def _takes_in_the_flushed_ring(worker: Worker, writer: ShmRing, actor: ModuleActor,
+                               paused: threading.Event, n: int) -> None:
+    """Once paused, the move's drain asks for the ring's values (``request_flush``, as
+    the bridge closing the link does): the receiver takes them all into the input;
+    once resumed, the module handles each once, in order."""
+    assert paused.wait(10), "the receiver never looked at the lock"
+    writer.request_flush()
+    port = actor.inputs["x"]
+    eventually(lambda: port.received == n, timeout=5,
+               what="the flushed ring taken in while the reader is paused")
+    assert actor.module.received < n         # (paused: taken in, not handled)
+    worker.op_resume("dst")
+    eventually(lambda: actor.module.received == n, what="every value handled")
+    assert actor.module.last == n
+    assert actor.module.out_of_order == actor.module.duplicates == 0
+
+
+def test_a_receiver_whose_reader_is_paused_as_it_dispatches_takes_in_a_flushed_ring() -> None:
+    # The receiver runs its only module's on_input itself when it finds the module's
+    # lock free; a move's pause that took the lock right after that look (forced here)
+    # held the receiver in the dispatch's wait for it, so it took in nothing of any
+    # ring, flushed or not, for as long as the move held the module: the move waited
+    # for the link's values on the way until its time ran out (rarely, in the test
+    # above on a loaded machine: "values of src.out still in flight after 9.57 s").
+    n = 200                                  # more than the input holds (8)
+    with _solo_reader(Handler) as (worker, writer, actor):
+        paused = _pause_after_look(worker, actor, 1)
+        assert writer.offer(list(range(1, n + 1))) == n
+        _takes_in_the_flushed_ring(worker, writer, actor, paused, n)
+
+
+def test_a_receiver_whose_reader_is_paused_between_two_batches_takes_in_a_flushed_ring(
+        ) -> None:
+    # The same between two batches of calls the receiver runs: a batch cut short for a
+    # request (a state read), the pause taking the lock once the read has let it go,
+    # right after the receiver looked at it before its next batch.
+    n = 200
+    with _solo_reader(_Gated) as (worker, writer, actor):
+        inside, go, read = threading.Event(), threading.Event(), threading.Event()
+        actor.module._gate = (inside, go)
+        paused = _pause_after_look(worker, actor, 2, after=read)
+        assert writer.offer(list(range(1, n + 1))) == n
+        assert inside.wait(5), "no batch of calls began"
+        reading = threading.Thread(target=lambda: (worker.op_get_state("dst"), read.set()),
+                                   daemon=True)
+        reading.start()
+        eventually(lambda: actor.lock.requests, what="the read waiting for the lock")
+        go.set()                             # the batch ends for the read
+        _takes_in_the_flushed_ring(worker, writer, actor, paused, n)
+        reading.join(5)
 
 
 def test_a_reader_moves_away_from_a_writer_in_its_process_that_waits_for_it() -> None:
