@@ -57,6 +57,14 @@ def test_a_launcher_listening_already_refuses_another_address() -> None:
             run.listen(other)
         with pb3a.connect(address) as far:
             assert far.state("scale")["gain"] == 2.0
+    with System("listens-everywhere").add("scale", Scale).launch(
+            listen="tcp://0.0.0.0:0") as run:
+        address = run.listen()
+        port = int(address.rpartition(":")[2])
+        for same in ("tcp://0.0.0.0:0", f"tcp://*:{port}", f"tcp://127.0.0.1:{port}", address):
+            assert run.listen(same) == address, same
+        with pytest.raises(ValueError, match=r"listens at \S+ already, not at tcp://0\.0\.0\.0:1"):
+            run.listen("tcp://0.0.0.0:1")
 
 
 def test_the_command_line_reads_and_changes_a_running_system(capsys) -> None:

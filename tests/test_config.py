@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.machinery
 import os
 import re
 import shutil
@@ -9,6 +10,7 @@ import subprocess
 import sys
 import textwrap
 import tomllib
+import types
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -29,6 +31,7 @@ from pb3a.model.macro import Macro
 from pb3a.model.module import Module
 from pb3a.model.ports import Policy
 from pb3a.model.state_edits import class_state
+from pb3a.node.class_check import searched
 from pb3a.system import System
 
 PIPELINE = Path(examples.pipeline.__file__).with_name("pipeline.toml")
@@ -232,6 +235,39 @@ def test_a_system_built_in_python_is_imported_from_its_script_s_directories(
     plan = System("scripted").add("t", Ticker).plan()
     assert plan.code.paths == (str(here), str(lib))
     assert sys.path[:2] == [str(here), str(lib)]          # (installed here too, first)
+
+
+def test_a_script_that_put_a_directory_first_hands_its_own_directory_too(
+        tmp_path, monkeypatch) -> None:
+    """``sys.path.insert(0, lib)`` in a script handed its nodes ``lib`` alone: a class of
+    a file beside the script was found nowhere on them. Its own directory (its file's)
+    comes next; a module run with ``python -m`` has none of its own."""
+    scripts, lib = tmp_path / "scripts", tmp_path / "lib"
+    scripts.mkdir()
+    lib.mkdir()
+    monkeypatch.delenv("PYTHONPATH", raising=False)
+    monkeypatch.setattr(sys, "path", [str(lib), *sys.path])
+    main = types.ModuleType("__main__")
+    main.__file__ = str(scripts / "run.py")
+    monkeypatch.setitem(sys.modules, "__main__", main)
+    assert launcher_paths() == (str(lib), str(scripts))
+    main.__spec__ = importlib.machinery.ModuleSpec("run", None)       # (python -m run)
+    assert launcher_paths() == (str(lib),)
+
+
+def test_the_path_a_node_searched_marks_the_launcher_s_directory_under_python_s_prefix(
+        tmp_path, monkeypatch) -> None:
+    """A launcher's directory under Python's prefix (/usr/local/lab with a system
+    Python) was said as Python's own, unmarked, and Python's own was said twice."""
+    prefix, other = tmp_path / "usr", tmp_path / "other"
+    lab = prefix / "local" / "lab"
+    for name in ("prefix", "base_prefix", "exec_prefix", "base_exec_prefix"):
+        monkeypatch.setattr(sys, name, str(prefix))
+    monkeypatch.setattr(sys, "path", [str(prefix / "lib" / "python3.11"), str(lab), str(other),
+                                      str(prefix / "lib" / "site-packages")])
+    monkeypatch.chdir(tmp_path)
+    assert searched((str(lab),)) == (f"Python's standard library and installed packages, "
+                                     f"{lab} (the launcher's), {other}")
 
 
 def test_resolve_class_errors_say_what_to_change() -> None:

@@ -265,10 +265,11 @@ def test_sigkill_with_restart_fresh_starts_from_the_configured_state() -> None:
                              and m.status == "running" and m, what="restart")
         state = eventually(lambda: (s := run.state("victim"))["pid"] not in (0, old) and s,
                            what="steps in the new process")
-        restarted = [(e.kind, e.subject, e.detail["policy"]) for e in run.events()]
+        restarted = [(e.kind, e.subject, e.detail["policy"], "from_checkpoint" in e.detail)
+                     for e in run.events()]
     assert figures.pid != old
     assert 1000 < state["count"] < 1100       # from the configured state, not from 1100
-    assert restarted == [("module_restarted", "victim", "fresh")]
+    assert restarted == [("module_restarted", "victim", "fresh", False)]
 
 
 def test_sigkill_with_restart_last_state_resumes_from_a_checkpoint() -> None:

@@ -85,6 +85,7 @@ FOR_AGENTS = PUBLIC - {"reload"}
 FROM_WORKERS = FOR_AGENTS | {"learn_period"}
 KEEP_JOBS = 1000            # background operations whose outcome is kept for asking
 STATE_THEN_S = 1.0          # how long a restart waits for the state to put back on failure
+KILLED_START_S = 2.0        # the start of a module restarted by killing its worker, at least
 CHANGE_LONGER = "give the change a longer timeout"     # (an import that took too long)
 # The agent whose request runs on this thread, and whether it asks from its setup.
 _ASKER: contextvars.ContextVar[tuple[str, bool] | None] = contextvars.ContextVar(
@@ -662,14 +663,17 @@ class Operations:
             was = self._state_then(name)
             with bounding(left()):
                 killed = launcher.remove_module(name, restarting=True, force=force)
+            said = {} if killed is None else {"killed": True, "pid": killed}
+            # (a stop that waited out the time, then killed the worker, left the start
+            # none: it has some of its own then, as the kill's removal has)
+            start_s = left() if killed is None else max(left(), KILLED_START_S)
             try:
-                with bounding(left()):          # (a construction that blocks, say)
+                with lifted(), bounding(start_s):   # (a construction that blocks, say)
                     self._start(spec, links)
             except Exception as exc:
                 with lifted():                  # putting it back runs to its end
-                    raise self._put_back(spec, links, was, exc) from exc
-        self.event_log.record("module_restarted", name, node=spec.node, reason="asked",
-                              **({} if killed is None else {"killed": True, "pid": killed}))
+                    raise self._put_back(spec, links, was, exc, said) from exc
+        self.event_log.record("module_restarted", name, node=spec.node, reason="asked", **said)
 
     def _state_then(self, name: str) -> bytes | None:
         """The module's state now, to put it back with should its restart fail, pickled:
@@ -729,9 +733,10 @@ class Operations:
         launcher.checkpoints.pop(name, None)
 
     def _put_back(self, spec: FlatModule, links: list[FlatLink], was: bytes | None,
-                  failure: Exception) -> RuntimeFailure:
+                  failure: Exception, said: dict[str, Any]) -> RuntimeFailure:
         """After a failed restart: the module as it ran (``was``) and its links; the
-        error to raise, saying whether it is back."""
+        error to raise, saying whether it is back. ``said``: what its events say of the
+        restart's stop (its worker killed, and its pid)."""
         name = spec.name
         try:
             self._start(spec, links, state=was)
@@ -744,12 +749,12 @@ class Operations:
             self.launcher.checkpoints.pop(name, None)
             for link in links:
                 self.event_log.record("link_removed", link.key)
-            self.event_log.record("module_removed", name, reason="restart failed")
+            self.event_log.record("module_removed", name, reason="restart failed", **said)
             return RuntimeFailure(f"restart {name} failed ({failure}), and putting it back "
                                   f"failed too ({exc}): it and its links are no longer in the "
                                   "system; add it again")
         self.event_log.record("module_restarted", name, node=spec.node,
-                           reason="put back as it ran: the restart failed")
+                              reason="put back as it ran: the restart failed", **said)
         return RuntimeFailure(f"restart {name} failed ({failure}); it was put back as it ran, "
                               f"with {'its state' if was is not None else 'its configured state'}"
                               " and its links")

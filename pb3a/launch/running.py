@@ -146,6 +146,7 @@ class Running(SystemHandle):
         self._closing = threading.Lock()      # held by the close under way
         self._owner = os.getpid()             # (a forked child inherits this handle)
         self._server: ControlServer | None = None
+        self._bound_host = ""               # the host it listens on, as asked to bind
         self.address: str | None = None       # where `pb3a status ADDR` etc. reach it
         self._listen_at = listen
 
@@ -299,7 +300,7 @@ class Running(SystemHandle):
                                      host, port, name="pb3a-launcher", aside=_ASIDE,
                                      import_first=self._import_first,
                                      title=f"the launcher of system {self.name!r}")
-        self.address = self._server.address
+        self.address, self._bound_host = self._server.address, host
         if host in EVERY_INTERFACE:
             remote = self._remote_nodes()
             here = self._here_towards_nodes() if remote else default_route_host()
@@ -308,13 +309,16 @@ class Running(SystemHandle):
 
     def _listens_at(self, address: str) -> None:
         """ValueError unless ``address`` is where this launcher listens (port 0: any;
-        every interface: where it is bound so, or the host it gives out)."""
-        assert self._server is not None
+        bound to every interface: any host meaning so, the one it gives out, and any of
+        this machine's that the bind takes in)."""
         host, port = bind_address(address)
-        bound, bound_port = bind_address(self._server.address)
-        hosts = {bound, host_of(self.address)}
-        if bound in EVERY_INTERFACE:
+        bound_port = int(self.address.rpartition(":")[2])
+        hosts = {self._bound_host, host_of(self.address)}
+        if self._bound_host in EVERY_INTERFACE:
             hosts |= set(EVERY_INTERFACE)
+            with contextlib.suppress(ValueError):   # (one of this machine's own hosts:
+                check_bindable(address, host, 0)    # reached there too)
+                hosts.add(host)
         if host not in hosts or port not in (0, bound_port):
             raise ValueError(f"system {self.name!r} listens at {self.address} already, "
                              f"not at {address}: it listens at one address, chosen as it "

@@ -53,14 +53,20 @@ def import_path(paths: tuple[str, ...], current: list[str]) -> list[str]:
 
 def launcher_paths() -> tuple[str, ...]:
     """The directories a system built in Python in this process is imported from, as
-    Python has them, to be handed to its nodes: the script's directory (``sys.path[0]``;
-    the current one for ``python -m``, ``-c``, a notebook or the REPL, whose ``''``
-    means it), unless Python was told to leave it off (``-P``, ``PYTHONSAFEPATH``), and
-    the directories of ``PYTHONPATH`` (unless ignored, ``-E``); those that exist, each
-    once, absolute."""
+    Python has them, to be handed to its nodes: the first on its path (``sys.path[0]``:
+    the script's directory, the current one for ``python -m``, ``-c``, a notebook or
+    the REPL, whose ``''`` means it; or one the script put first), then the script's own
+    directory (``__main__``'s file: a script that put a directory first still imports
+    the files beside it), unless Python was told to leave it off (``-P``,
+    ``PYTHONSAFEPATH``); then the directories of ``PYTHONPATH`` (unless ignored, ``-E``);
+    those that exist, each once, absolute, in that order."""
     found: list[str] = []
     if runs_a_script() and not sys.flags.safe_path and sys.path:
         found.append(sys.path[0])
+        main = sys.modules.get("__main__")
+        script = getattr(main, "__file__", None)
+        if isinstance(script, str) and getattr(main, "__spec__", None) is None:
+            found.append(os.path.dirname(os.path.abspath(script)))      # (not python -m)
     if not sys.flags.ignore_environment:
         found.extend(entry for entry in os.environ.get("PYTHONPATH", "").split(os.pathsep)
                      if entry)

@@ -106,9 +106,9 @@ def _where_to_put(exc: Exception, code: CodeSources) -> str:
 
 def searched(handed: tuple[str, ...]) -> str:
     """This process's import path, said in short: each directory, those ``handed`` by the
-    launcher marked so, and the current one (its node controller's, where that was
-    started) too; Python's own (the standard library, the installed packages) as one
-    entry."""
+    launcher marked so (also one under Python's prefix: a launcher's /usr/local/lab),
+    and the current one (its node controller's, where that was started) too; Python's
+    own (the standard library, the installed packages) as one entry, said once."""
     own = {os.path.realpath(prefix) for prefix in
            (sys.prefix, sys.base_prefix, sys.exec_prefix, sys.base_exec_prefix)}
     here = ""
@@ -120,11 +120,11 @@ def searched(handed: tuple[str, ...]) -> str:
             continue
         path = entry or here
         real = os.path.realpath(path)
-        if any(real == prefix or real.startswith(prefix + os.sep) for prefix in own):
-            if not said or said[-1] != _PYTHON_S:
-                said.append(_PYTHON_S)
-        elif path in handed:
+        if path in handed:
             said.append(f"{path} (the launcher's)")
+        elif any(real == prefix or real.startswith(prefix + os.sep) for prefix in own):
+            if _PYTHON_S not in said:
+                said.append(_PYTHON_S)
         elif path == here:
             said.append(f"{path} (the current directory, its controller's)")
         else:

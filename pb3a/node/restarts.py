@@ -259,16 +259,18 @@ class Restarts:
             record.status = "running"
         log.warning("restarted %s (exit code %s)", ", ".join(records), code)
         for name, record in records.items():
-            checkpointed = revived[name].from_checkpoint
-            if record.spec.restart == "last-state" and not checkpointed:
-                # (a checkpoint that failed was said once, as the first did; its state
-                # is found lost here)
-                log.warning("module %r restarted with its configured state, not its last "
-                            "one: no checkpoint of it had been taken (its worker died "
-                            "before the first, or its state cannot be pickled: see the error "
-                            "'cannot checkpoint module %r', if any)", name, name)
+            said = {}
+            if record.spec.restart == "last-state":
+                said["from_checkpoint"] = checkpointed = revived[name].from_checkpoint
+                if not checkpointed:
+                    # (a checkpoint that failed was said once, as the first did; its
+                    # state is found lost here)
+                    log.warning("module %r restarted with its configured state, not its "
+                                "last one: no checkpoint of it had been taken (its worker "
+                                "died before the first, or its state cannot be pickled: see "
+                                "the error 'cannot checkpoint module %r', if any)", name, name)
             self._node.tell("module_restarted", name, reason="its worker died", exit_code=code,
-                            policy=record.spec.restart, from_checkpoint=checkpointed)
+                            policy=record.spec.restart, **said)
 
     def _current(self, name: str, revival: _Revival) -> bool:
         """Whether module ``name`` is still the one ``revival`` revived."""

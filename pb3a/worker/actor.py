@@ -167,6 +167,17 @@ def _same(assigned: Any, period: float | None) -> bool:
     return assigned is period or (isinstance(assigned, (int, float)) and assigned == period)
 
 
+def let_go(module: Module) -> None:
+    """Drop the attributes of an instance no longer run, as Python's own exit would: its
+    open files are closed, their buffers written. Every instance is in a reference cycle
+    (it holds its actor's callbacks), which only a garbage collection frees: one that
+    closes a file's layers in no set order, losing what they buffered (CPython's
+    bpo-17852), or none at all, as the worker ends with ``os._exit``: a recorder that
+    opened its file in ``setup()`` and had no ``teardown()`` lost every line it had not
+    flushed. Values a new instance took (a swap's state) live on in it."""
+    vars(module).clear()
+
+
 class ModuleActor:
     """Runs one module: its lock, its step thread, its event dispatch and counters."""
 
@@ -303,13 +314,9 @@ class ModuleActor:
         return finished
 
     def let_go(self) -> None:
-        """Drop the stopped module's attributes, as Python's own exit would, for its
-        worker ends: its open files are closed, their buffers written. The worker ends
-        with ``os._exit``, which finalizes nothing, and a garbage collection of the
-        instance's reference cycles closes a file's layers in no set order, losing what
-        they buffered (CPython's bpo-17852): a recorder that opened its file in
-        ``setup()`` and had no ``teardown()`` lost every line it had not flushed."""
-        vars(self.module).clear()
+        """Drop the module's attributes once it is gone from here (stopped, removed,
+        moved away): see ``let_go``."""
+        let_go(self.module)
 
     @property
     def torn_down(self) -> bool:
@@ -813,6 +820,7 @@ class ModuleActor:
                             owed, self._owed = self._owed, None
                         if owed and self.on_period is not None:
                             self.on_period(self.name)
+                        let_go(old)
                         return sorted(kept), sorted(set(state) - set(kept))
                 why = f"{type(new).__name__} raised in setup: {self.last_error}"
             # the new class cannot start: the old instance back, set up again, at its

@@ -451,7 +451,8 @@ class Worker:
         del self.actors[name]
         self._paused.discard(name)
         actor.lock.release()
-        actor.join(timeout=1.0)
+        if actor.join(timeout=1.0):
+            self.pool.submit(actor.let_go)      # (after the answer: not in the move's pause)
         self.restart_policy.pop(name, None)
         self._retime()
         return snapshot
@@ -467,7 +468,7 @@ class Worker:
         actor = self.actors.pop(name, None)
         if actor is None:       # failed in the process this one replaced: never made here
             return
-        if actor.running or actor.torn_down:    # (stopped first, or moved away)
+        if actor.running or actor.torn_down:    # (stopped first: a close, a restart)
             if actor.stop(timeout=1.0):
                 actor.let_go()      # (for good: its files closed now, not at some collection)
         else:
