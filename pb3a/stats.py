@@ -98,6 +98,11 @@ class ModuleStats:
     # it has no step()), as set live too (by set_state, or the module assigning
     # self.period)
     period: float | None = None
+    fixed_rate: bool = False    # its steps due a period after the last one began
+    # (with fixed_rate) the periods it skipped: each step that began a whole period or
+    # more after it was due adds the whole periods it was late by (``pb3a.worker.rate``);
+    # a pause of the runtime's (a move, a swap) counts none
+    overruns: int = 0
 
 
 @dataclass(frozen=True)

@@ -79,14 +79,17 @@ class System:
 
     def add(self, name: str, cls: type | str, *, node: str | None = None,
             state: dict[str, Any] | None = None, period: float | None = None,
-            restart: str | None = None, group: str | None = None,
-            fallback: list[str] | None = None) -> System:
+            fixed_rate: bool | None = None, restart: str | None = None,
+            group: str | None = None, fallback: list[str] | None = None) -> System:
         """Add a module (a class or ``"module:Class"``) or a Python ``Macro`` subclass;
-        ``fallback``: the nodes to restart it on, in order, if its node is lost."""
+        ``fixed_rate``: its steps due a period after the last one began, not after it
+        ended (None: its class's ``fixed_rate``); ``fallback``: the nodes to restart it
+        on, in order, if its node is lost."""
         if name in self._spec.modules:
             raise ValueError(f"system {self.name!r} already has a module {name!r}; "
                              "choose another instance name")
         self._spec.modules[name] = ModuleSpec(name, cls=cls, node=node, period=period,
+                                             fixed_rate=fixed_rate,
                                              state=dict(state or {}), restart=restart,
                                              group=group, fallback=fallback,
                                              written_at=_written_here())

@@ -1049,7 +1049,7 @@ def test_unknown_keys_everywhere(tmp_path: Path) -> None:
     only(problems, "[nodes.a]: unknown key 'adress' (did you mean 'address'?)")
     only(problems, "[macros.m]: unknown key 'export' (did you mean 'exports'?)")
     only(problems, "[modules.src]: unknown key 'perod' (did you mean 'period'?); allowed keys: "
-         "class, macro, node, period, state, restart, group")
+         "class, macro, node, period, fixed_rate, state, restart, group")
     only(problems, "[[links]] #1 (src.out -> m.x): unknown key 'polcy' (did you mean 'policy'?)")
     only(problems, "[[links]] #1 (src.out -> m.x): macro 'm' (macro 'm') exports no port 'x'")
     assert len(problems) == 6

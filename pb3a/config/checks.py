@@ -106,6 +106,26 @@ def stepped(cls: type[Module], value: Any) -> list[str]:
             f"call: leave period out{how}"]
 
 
+def fixed_rate(cls: type[Module] | None, value: Any, given: Any) -> list[str]:
+    """``None`` (keep the class's) or a bool; true only for a module that steps, of a
+    class with a ``step()`` of its own and a period, ``given`` to the module (a bad one
+    is said by ``period``) or its class's: there is no rate to keep otherwise."""
+    if value is None:
+        return []
+    if not isinstance(value, bool):
+        return [f"fixed_rate must be true or false (leave it out to keep the class's), "
+                f"got {value!r:.60}"]
+    if not value or cls is None:
+        return []
+    if cls.step is Module.step:
+        return [f"fixed_rate = true is given, but {class_ref(cls)} has no step() for it to "
+                "time: leave fixed_rate out"]
+    if given is None and cls.period is None:
+        return [f"fixed_rate = true is given, but neither the module nor {class_ref(cls)} "
+                "has a period: give it one (the period its steps keep)"]
+    return []
+
+
 def assigned_period(name: str, cls: type[Module], value: Any) -> float:
     """The period ``self.period = value`` sets in module ``name`` of class ``cls`` as it
     runs (checked as ``set_state(name, period=...)`` checks it); ``ValueError`` naming
@@ -307,6 +327,9 @@ def module_class(cls: type[Module]) -> list[str]:
         problems.append(f"{ref} has period = {cls.period!r}: a class's period is None (no "
                         f"steps, only on_input) or a number of seconds from 0 to "
                         f"{MOST_SECONDS:g}")
+    if not isinstance(cls.fixed_rate, bool):
+        problems.append(f"{ref} has fixed_rate = {cls.fixed_rate!r:.60}: a class's "
+                        "fixed_rate is True or False")
     if cls.restart not in RESTART_POLICIES:
         problems.append(f"{ref} has restart = {cls.restart!r}: a class's restart is one of "
                         f"{listing(map(repr, RESTART_POLICIES))}")

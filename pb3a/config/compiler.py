@@ -311,6 +311,7 @@ class _Planner:
         if child.macro is not None:
             problems += [f"{key!r} applies to modules, not to a macro: set it on the macro's "
                          "children" for key, value in (("period", entry.period),
+                                                       ("fixed_rate", entry.fixed_rate),
                                                        ("restart", entry.restart),
                                                        ("fallback", entry.fallback))
                          if value is not None]
@@ -318,6 +319,7 @@ class _Planner:
         elif child.cls is not None:
             problems += checks.period(entry.period) + checks.restart(entry.restart)
             problems += checks.stepped(child.cls, entry.period)
+            problems += checks.fixed_rate(child.cls, entry.fixed_rate, entry.period)
             child.said = checks.state(child.cls, entry.state)
             problems += child.said
             if child.cls not in self.class_problems:
@@ -325,6 +327,7 @@ class _Planner:
             problems += self.class_problems[child.cls]
         elif entry.cls is not None:      # a class that did not resolve: what needs none
             problems += checks.period(entry.period) + checks.restart(entry.restart)
+            problems += checks.fixed_rate(None, entry.fixed_rate, entry.period)
             if not isinstance(entry.state, dict):
                 problems += checks.state(Module, entry.state)
         self.report(child.label, problems)
@@ -439,7 +442,8 @@ class _Planner:
                     restart or cls.restart, team,
                     list(entry.fallback or []) if not checks.fallback(
                         entry.fallback, self.node_names) else [],
-                    own_period=period is not None)
+                    own_period=period is not None,
+                    fixed_rate=entry.fixed_rate if isinstance(entry.fixed_rate, bool) else None)
                 labels[path] = child.label
             elif child.macro is not None:
                 own = entry.state if not checks.macro_state(entry.state) else {}

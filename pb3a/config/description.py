@@ -49,6 +49,8 @@ class ModuleSpec:
     macro: str | None = None        # the name of a [macros.X] definition
     node: str | None = None
     period: Any = None              # None: the class's period
+    fixed_rate: Any = None          # None: the class's (steps due a period after the
+                                    # last began, not after it ended)
     state: Any = field(default_factory=dict)
     restart: str | None = None      # None: the class's restart policy
     group: str | None = None
@@ -57,8 +59,8 @@ class ModuleSpec:
     written_at: str | None = field(default=None, compare=False)   # "file.py:14": the
                                       # System call that made it, for messages
 
-    KEYS: ClassVar[tuple[str, ...]] = ("class", "macro", "node", "period", "state",
-                                       "restart", "group", "fallback")
+    KEYS: ClassVar[tuple[str, ...]] = ("class", "macro", "node", "period", "fixed_rate",
+                                       "state", "restart", "group", "fallback")
 
     @classmethod
     def from_entry(cls, name: str, entry: Any) -> ModuleSpec:
@@ -68,6 +70,7 @@ class ModuleSpec:
         known = {key: entry[key] for key in cls.KEYS if key in entry}
         return cls(name, cls=known.get("class"), macro=known.get("macro"),
                    node=known.get("node"), period=known.get("period"),
+                   fixed_rate=known.get("fixed_rate"),
                    state=known.get("state", {}), restart=known.get("restart"),
                    group=known.get("group"), fallback=known.get("fallback"),
                    extra={k: v for k, v in entry.items() if k not in cls.KEYS})

@@ -163,6 +163,8 @@ class _Folder:
             entry["node"] = module.node
         if module.own_period or (module.period != cls.period and module.period is not None):
             entry["period"] = module.period
+        if module.fixed_rate is not None:
+            entry["fixed_rate"] = module.fixed_rate
         if module.restart != cls.restart:
             entry["restart"] = module.restart
         state = {}

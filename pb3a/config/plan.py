@@ -32,6 +32,7 @@ class FlatModule:
     group: str | None = None  # modules with the same group share one worker process
     fallback: list[str] = field(default_factory=list)   # failover nodes, in order
     own_period: bool = False  # the configuration gave the period (a swap keeps it)
+    fixed_rate: bool | None = None   # the configuration's (None: the class's own)
 
 
 @dataclass

@@ -110,11 +110,12 @@ class SystemHandle(ABC):
         self._request("link", {"src": src, "dst": dst, "policy": policy, "timeout": timeout})
 
     def add(self, name: str, cls: type | str, *, state: dict[str, Any] | None = None,
-            period: float | None = None, restart: str | None = None, group: str | None = None,
-            node: str | None = None, fallback: list[str] | None = None,
-            timeout: float | None = None) -> None:
+            period: float | None = None, fixed_rate: bool | None = None,
+            restart: str | None = None, group: str | None = None, node: str | None = None,
+            fallback: list[str] | None = None, timeout: float | None = None) -> None:
         """Start a new module while the system runs (link it with ``link``);
-        ``fallback``: the nodes to restart it on, in order, if its node is lost.
+        ``fixed_rate``: as ``System.add``'s; ``fallback``: the nodes to restart it on, in
+        order, if its node is lost.
 
         ``cls`` may be a ``Macro`` (as for ``System.add``): its modules start as
         ``name/child`` on ``node`` (unless a child names its own), with the links inside
@@ -123,6 +124,7 @@ class SystemHandle(ABC):
         configuration is: ``migrate`` and ``remove`` take it whole, links at run time
         join its modules' own ports, ``configuration()`` writes it as a macro."""
         self._request("add", {"name": name, "cls": cls, "state": state, "period": period,
+                              "fixed_rate": fixed_rate,
                               "restart": restart, "group": group, "node": node,
                               "fallback": fallback, "timeout": timeout})
 

@@ -35,7 +35,7 @@ from pb3a.launch.remote_starts import RemoteStarts, not_started
 from pb3a.loading.references import by_reference, class_ref
 from pb3a.logbook import LogBook
 from pb3a.model.environment import PREFIX as ENV_PREFIX
-from pb3a.model.module import stepped_period
+from pb3a.model.module import fixed_rate_of, stepped_period
 from pb3a.node.bridge import NoHandshake
 from pb3a.node.executor import REPORT_TIMEOUT, Executor
 from pb3a.node.remote import HEARTBEAT_S, LOSS_S, STOP_AT_LEAST_S, RemoteNode
@@ -497,7 +497,8 @@ class Launcher:
                 or next(iter(entries), None)
             if entry is None and change is not None:     # (no figures: none its own)
                 entry = ModuleStats(class_ref(spec.cls), spec.node, "", "running",
-                                    silent=True, period=stepped_period(spec.cls, spec.period))
+                                    silent=True, period=stepped_period(spec.cls, spec.period),
+                                    fixed_rate=fixed_rate_of(spec.cls, spec.fixed_rate))
             if entry is None:               # (its node lost, or not asked)
                 continue
             entry = dataclasses.replace(entry, node=spec.node)
@@ -750,7 +751,9 @@ def _silenced(report: NodeReport, node: str, placed: list[FlatModule]) -> NodeRe
         modules[spec.name] = ModuleStats(
             class_ref(spec.cls), node, "", "running", silent=True,
             period=stepped_period(spec.cls, spec.period),
+            fixed_rate=fixed_rate_of(spec.cls, spec.fixed_rate),
         ) if entry is None else ModuleStats(
             entry.cls, entry.node, entry.worker, entry.status, entry.pid, silent=True,
-            restarts=entry.restarts, checkpoints=entry.checkpoints, period=entry.period)
+            restarts=entry.restarts, checkpoints=entry.checkpoints, period=entry.period,
+            fixed_rate=entry.fixed_rate, overruns=entry.overruns)
     return NodeReport(modules, {}, {}, [], None, report.spare_workers)

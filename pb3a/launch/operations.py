@@ -476,35 +476,38 @@ class Operations:
 
     # -- modules -----------------------------------------------------------------------
     def add(self, name: str, cls: type | str, *, state: dict[str, Any] | None = None,
-            period: float | None = None, restart: str | None = None, group: str | None = None,
-            node: str | None = None, fallback: list[str] | None = None,
-            timeout: float | None = None) -> None:
+            period: float | None = None, fixed_rate: bool | None = None,
+            restart: str | None = None, group: str | None = None, node: str | None = None,
+            fallback: list[str] | None = None, timeout: float | None = None) -> None:
         """Start a new module, or a macro instance (``cls`` a ``Macro``: see
         ``_add_macro``). It is checked as the compiler checks a configuration's entry
-        first (name, period, restart, state, group, node, fallback): one ``ConfigError``
-        naming every problem, and nothing started. A module file not imported yet is
-        tried in a child process first (``_resolved``), within the timeout."""
+        first (name, period, fixed rate, restart, state, group, node, fallback): one
+        ``ConfigError`` naming every problem, and nothing started. A module file not
+        imported yet is tried in a child process first (``_resolved``), within the
+        timeout."""
         wait = self._call_timeout(timeout)
         deadline = time.monotonic() + wait
         module_cls, unresolved = _resolved(cls, wait)
         if isinstance(module_cls, type) and issubclass(module_cls, Macro) \
                 and module_cls is not Macro:
-            self._add_macro(name, module_cls, state=state, period=period, restart=restart,
-                            group=group, node=node, fallback=fallback, deadline=deadline,
-                            wait=wait)
+            self._add_macro(name, module_cls, state=state, period=period,
+                            fixed_rate=fixed_rate, restart=restart, group=group, node=node,
+                            fallback=fallback, deadline=deadline, wait=wait)
             return
         with self._held(f"add {name}", _left(deadline), lend=[name]) as left:
             launcher = self.launcher
             node = node or checks.env_home(name, launcher.nodes) or next(iter(self.plan.nodes))
             problems = [unresolved] if module_cls is None else []
             problems += _add_problems(name, module_cls, state, period, restart, group, node,
-                                      fallback, launcher.specs, list(launcher.nodes))
+                                      fallback, launcher.specs, list(launcher.nodes),
+                                      fixed_rate)
             if problems:
                 raise ConfigError([f"module {name}: {problem}" for problem in problems])
             spec = FlatModule(name, module_cls, node,
                               float(period) if period is not None else module_cls.period,
                               dict(state or {}), restart or module_cls.restart, group,
-                              list(fallback or []), own_period=period is not None)
+                              list(fallback or []), own_period=period is not None,
+                              fixed_rate=fixed_rate)
             budget = left()
             try:
                 with bounding(budget):          # (a construction that blocks, say)
@@ -518,7 +521,7 @@ class Operations:
         self.event_log.record("module_added", name, node=node)
 
     def _add_macro(self, name: str, macro: type[Macro], *, state: Any, period: Any,
-                   restart: Any, group: Any, node: str | None, fallback: Any,
+                   fixed_rate: Any, restart: Any, group: Any, node: str | None, fallback: Any,
                    deadline: float, wait: float) -> None:
         """Start a macro instance: its modules as ``name/child`` paths, on ``node`` (the
         first node by default) unless a child names its own, and the links inside it,
@@ -541,7 +544,8 @@ class Operations:
             if not problems:
                 parent, _, leaf = name.rpartition("/")
                 entry = ModuleSpec(leaf, cls=macro, state={} if state is None else state,
-                                   period=period, restart=restart, fallback=fallback,
+                                   period=period, fixed_rate=fixed_rate, restart=restart,
+                                   fallback=fallback,
                                    node=node if known else None)
                 spec = SystemSpec(self.plan.name, nodes=dict(self.plan.nodes),
                                   modules={leaf: entry})
@@ -899,7 +903,7 @@ def _resolved(cls: type | str, timeout: float) -> tuple[type | None, str]:
 
 def _add_problems(name: Any, cls: Any, state: Any, period: Any, restart: Any, group: Any,
                   node: str, fallback: Any, modules: dict[str, FlatModule],
-                  nodes: list[str]) -> list[str]:
+                  nodes: list[str], fixed_rate: Any = None) -> list[str]:
     """What keeps a new module from being added, in the compiler's words (a module
     instance's name, or a group's, may be a macro path: each of its parts is checked)."""
     # (a module named as a running macro instance hid it: configuration() dropped it)
@@ -913,6 +917,8 @@ def _add_problems(name: Any, cls: Any, state: Any, period: Any, restart: Any, gr
             problems += said + checks.module_class(cls) + checks.stepped(cls, period)
             if isinstance(given, dict):
                 problems += checks.defaults_refused(cls, given, said)
+    problems += checks.fixed_rate(cls if isinstance(cls, type) and issubclass(cls, Module)
+                                  else None, fixed_rate, period)
     problems += checks.period(period) + checks.restart(restart)
     if node not in nodes:
         problems.append(f"no node {node!r}{checks.did_you_mean(node, nodes)}; nodes: "

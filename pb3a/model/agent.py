@@ -111,14 +111,14 @@ class RuntimeClient:
         self._call("link", src=src, dst=dst, policy=policy, timeout=timeout)
 
     def spawn(self, name: str, cls: type | str, *, state: dict[str, Any] | None = None,
-              period: float | None = None, restart: str | None = None,
-              group: str | None = None, node: str | None = None,
+              period: float | None = None, fixed_rate: bool | None = None,
+              restart: str | None = None, group: str | None = None, node: str | None = None,
               fallback: list[str] | None = None, timeout: float | None = None) -> None:
         """Start a new module, or a macro instance (the options of ``System.add``; see
         ``Running.add``). A misspelt option is a ``TypeError`` here, as there (it went
         to the launcher and came back as its ``Operations.add()``'s)."""
-        given = {"state": state, "period": period, "restart": restart, "group": group,
-                 "node": node, "fallback": fallback}
+        given = {"state": state, "period": period, "fixed_rate": fixed_rate,
+                 "restart": restart, "group": group, "node": node, "fallback": fallback}
         self._call("add", name, cls=cls, timeout=timeout,
                    **{option: value for option, value in given.items() if value is not None})
 

@@ -22,7 +22,7 @@ from pb3a.model.ports import Input, InputPort, Output, OutputPort, _Port
 RESTART_POLICIES = ("never", "fresh", "last-state")
 
 # Attributes the runtime reads as configuration, never as state.
-_FRAMEWORK_NAMES = frozenset({"period", "restart", "runtime", "displays"})
+_FRAMEWORK_NAMES = frozenset({"period", "fixed_rate", "restart", "runtime", "displays"})
 # State defaults that cannot change, shared as they are (everything else is copied).
 _ATOMS = frozenset({int, float, complex, bool, str, bytes, type(None), frozenset, range})
 _NOT_STATE = (_Port, types.FunctionType, classmethod, staticmethod, property, type,
@@ -84,6 +84,13 @@ def stepped_period(cls: type[Module], period: float | None) -> float | None:
     return period if cls.step is not Module.step else None
 
 
+def fixed_rate_of(cls: type[Module], fixed_rate: bool | None) -> bool:
+    """Whether a module of class ``cls`` given ``fixed_rate`` (None: its class's own)
+    steps at a fixed rate (its steps due a period after the last one began) rather than
+    a period after the last one ended."""
+    return bool(cls.fixed_rate) if fixed_rate is None else fixed_rate
+
+
 def give_period(module: Module, period: float | None,
                 assign: Callable[[Any], None]) -> None:
     """Give ``module`` the period it runs at, on the instance (``self.period``), and have
@@ -103,9 +110,11 @@ class Module:
     """Base class of every port-based module.
 
     Class attributes ``period`` (seconds between steps; ``None`` = not threaded,
-    ``0`` = as fast as possible) and ``restart`` (``"never"``, ``"fresh"`` or
-    ``"last-state"``) configure how the runtime runs it; a configuration may
-    override both (a running instance's ``self.period`` is the period it runs at, the
+    ``0`` = as fast as possible), ``fixed_rate`` (False: the period is slept after each
+    step; True: a step is due a period after the last one began, drift-free, late
+    periods skipped and counted as ``overruns``) and ``restart`` (``"never"``,
+    ``"fresh"`` or ``"last-state"``) configure how the runtime runs it; a configuration
+    may override each (a running instance's ``self.period`` is the period it runs at, the
     configuration's, ``add``'s or ``swap``'s if given, and assigning it sets it live,
     as ``set_state(name, period=...)`` does). ``displays`` tells tools how to
     show some state fields (``pb3a.model.displays``). Modules are constructed with no
@@ -118,6 +127,7 @@ class Module:
     """
 
     period: ClassVar[float | None] = _Period(None)    # type: ignore[assignment]
+    fixed_rate: ClassVar[bool] = False
     restart: ClassVar[str] = "never"
     displays: ClassVar[dict[str, Any]] = {}
     inputs: ClassVar[dict[str, Input]] = {}
@@ -168,7 +178,8 @@ class Module:
 
     def step(self) -> None:
         """The threaded body, when ``period`` is set: called again and again, with a sleep
-        of ``period`` seconds after each call (so a step that takes time slows the rate)."""
+        of ``period`` seconds after each call (so a step that takes time slows the rate),
+        or, with ``fixed_rate``, every ``period`` seconds from the first call's start."""
 
     def on_input(self, port: InputPort) -> None:
         """The event body: called when ``port`` receives a value (override to use)."""

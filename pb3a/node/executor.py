@@ -30,7 +30,7 @@ from pb3a.deadline import before_answer, bounding, capped, lifted
 from pb3a.errors import ConfigError, PB3AError, RuntimeFailure, RuntimeTimeout
 from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
-from pb3a.model.module import stepped_period
+from pb3a.model.module import fixed_rate_of, stepped_period
 from pb3a.node.bridge import Bridge
 from pb3a.node.class_check import ImportLane
 from pb3a.node.lives import Lives
@@ -257,7 +257,8 @@ class Executor:
         """Make module ``record`` in its worker with ``state`` (not started)."""
         spec = record.spec
         self.call(record.worker, "add", name=spec.name, cls=record.blob, period=spec.period,
-                  restart=spec.restart, state=state, reloaded=tuple(self.reloaded))
+                  restart=spec.restart, state=state, reloaded=tuple(self.reloaded),
+                  fixed_rate=spec.fixed_rate)
 
     def start_modules(self, names: list[str], failing: bool = False,
                       leave_late: bool = False) -> None:
@@ -709,6 +710,7 @@ class Executor:
         base = {"cls": f"{spec.cls.__module__}:{spec.cls.__qualname__}", "node": spec.node,
                 "worker": record.worker, "status": record.status,
                 "period": stepped_period(spec.cls, spec.period),
+                "fixed_rate": fixed_rate_of(spec.cls, spec.fixed_rate),
                 "restarts": record.restarts, "checkpoints": record.checkpoints}
         if revival is not None:
             base |= {"change": revival[0], "change_s": max(0.0, time.monotonic() - revival[1])}
@@ -717,7 +719,9 @@ class Executor:
             return ModuleStats(**base, pid=silent_pid, silent=silent_pid is not None)
         calling, calling_s = figures["calling"] or ("", 0.0)
         return ModuleStats(
-            **{**base, "cls": figures["class"], "period": figures["period"]},
+            **{**base, "cls": figures["class"], "period": figures["period"],
+               "fixed_rate": figures["fixed_rate"]},
+            overruns=figures["overruns"],
             pid=report["pid"],
             running=figures["running"] and record.status == "running",
             calling=calling, calling_s=calling_s,

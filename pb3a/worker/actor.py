@@ -23,10 +23,18 @@ from typing import TYPE_CHECKING, Any
 from pb3a import latencies
 from pb3a.config import checks
 from pb3a.errors import RuntimeCancelled
-from pb3a.model.module import Module, can_hold, give_period, restore_state, stepped_period
+from pb3a.model.module import (
+    Module,
+    can_hold,
+    fixed_rate_of,
+    give_period,
+    restore_state,
+    stepped_period,
+)
 from pb3a.model.ports import InputPort, OutputPort
 from pb3a.model.state_edits import checked
 from pb3a.transport import pickling
+from pb3a.worker.rate import FixedRate
 from pb3a.worker.waits import RuntimeWait, run_posted
 
 if TYPE_CHECKING:
@@ -184,10 +192,13 @@ class ModuleActor:
     def __init__(self, name: str, module: Module, schedule: Callable[[Callable[[], None]], None],
                  period: float | None,
                  on_error: Callable[[ModuleActor, str, str], None] | None = None,
-                 on_period: Callable[[str], None] | None = None) -> None:
+                 on_period: Callable[[str], None] | None = None,
+                 fixed_rate: bool | None = None) -> None:
         """``on_period``: told the module's name when it assigns itself a period
         (``assign_period``), for the runtime's record to learn it (its worker tells the
-        launcher: ``pb3a.worker.periods``)."""
+        launcher: ``pb3a.worker.periods``). ``fixed_rate``: the configuration's (None:
+        the class's own), whether its steps are due a period after the last began
+        (``pb3a.worker.rate``) rather than a period after it ended."""
         self.name = name
         self.on_error = on_error
         self.on_period = on_period
@@ -195,6 +206,8 @@ class ModuleActor:
         module.__dict__["_pb3a_giving_way"] = self.waiting   # (see Driver.request)
         self.period = period
         self._give_period(module, period)
+        self.fixed_rate_given = fixed_rate
+        self._rate = FixedRate()      # (with fixed_rate) when its next step is due
         self.lock = HandOverLock()
         self.steps = self.events = self.errors = 0
         self.cut = False         # a batch of events ended early for a request (see call_many)
@@ -234,6 +247,12 @@ class ModuleActor:
         self._event_driven = type(module).is_event_driven()
         for port in self.inputs.values():
             port._notify = self._on_port_event
+
+    @property
+    def fixed_rate(self) -> bool:
+        """Whether its steps keep a fixed rate: the configuration's option, else its
+        class's (a swap's new class's, unless the configuration gave one)."""
+        return fixed_rate_of(type(self.module), self.fixed_rate_given)
 
     @property
     def inputs(self) -> dict[str, InputPort]:
@@ -379,8 +398,7 @@ class ModuleActor:
         try:
             while self._due(mine):
                 try:
-                    if self.call_many("step", 1, timed=False):
-                        self.steps += 1
+                    self._step()
                 finally:
                     self._stepped_at = time.monotonic()
                 self.lock.hand_over()
@@ -389,16 +407,43 @@ class ModuleActor:
             if self._step_clock == clock:
                 self._step_clock = None
 
+    def _step(self) -> None:
+        """One step, under the module lock; with a fixed rate, noted as it begins, once
+        it has the lock (``FixedRate.begun``: a step that waited for a pause to end is
+        no overrun)."""
+        lock = self.lock
+        if not lock.try_acquire():
+            lock.acquire()
+        try:
+            if self.fixed_rate:
+                with self._sched_lock:
+                    self._rate.begun(time.monotonic(), self.period or 0.0)
+            if self._call_held("step", 1, timed=False):
+                self.steps += 1
+        finally:
+            lock.release()
+
+    def _next_due(self) -> float | None:
+        """When the next step is due (None: at once): ``self.period`` after the last one
+        ended, or with a fixed rate its slot (``FixedRate.due``). The caller holds
+        ``_sched_lock``."""
+        if self.fixed_rate:
+            return self._rate.due(self.period or 0.0)
+        last = self._stepped_at
+        return None if last is None else last + (self.period or 0.0)
+
     def _due(self, mine: threading.Thread) -> bool:
-        """Wait until the next step is due, ``self.period`` after the last one ended;
-        False once the module is to step no more on this thread (stopped, retired, or
-        another thread stepping it). The period is read anew whenever it is set (by
-        ``set_state``, a swap, the module itself), on this same thread: one set anew is
-        slept after the last step, as every period is (its first step came at once, a
-        controller's ``dt = self.period`` then integrating a whole period over a few
-        milliseconds), and a module that sets its own at every step started a thread
-        each time. No period any more (a swap to a class with no ``step()``), the thread
-        ends, and a period given later starts another."""
+        """Wait until the next step is due (``_next_due``): ``self.period`` after the
+        last one ended, or with a fixed rate its slot; False once the module is to step
+        no more on this thread (stopped, retired, or another thread stepping it). The
+        period is read anew whenever it is set (by ``set_state``, a swap, the module
+        itself), on this same thread: one set anew is slept after the last step, as
+        every period is (with a fixed rate, it is due a new period after the last step
+        began), not at once (its first step came at once, a controller's ``dt =
+        self.period`` then integrating a whole period over a few milliseconds), and a
+        module that sets its own at every step started a thread each time. No period
+        any more (a swap to a class with no ``step()``), the thread ends, and a period
+        given later starts another."""
         last, period = self._stepped_at, self.period
         if (last is None or period == 0) and self.running and self._thread is mine \
                 and self._steps(period):
@@ -410,8 +455,8 @@ class ModuleActor:
                 if not self._steps(self.period):
                     self._thread = None
                     return False
-                last = self._stepped_at
-                wait = 0.0 if last is None else last + self.period - time.monotonic()
+                due = self._next_due()
+                wait = 0.0 if due is None else due - time.monotonic()
                 if wait <= 0:
                     return True
                 self._wake.wait(wait)
@@ -700,6 +745,13 @@ class ModuleActor:
             log.exception("module %r raised in teardown before migrating", self.name)
         return self.holdings()
 
+    def paused_over(self) -> None:
+        """A pause (to move it, to rewire its links) is over, its lock about to be let
+        go: a fixed rate starts again from its next step, which the pause held back
+        (``FixedRate.restart``): no burst of steps, no overrun of the module's."""
+        with self._sched_lock:
+            self._rate.restart()
+
     def reinstate(self) -> None:
         """Undo ``retire`` (a move that failed after it): ``start`` sets it up again, at
         the period it ran at (not one its teardown assigned)."""
@@ -716,6 +768,7 @@ class ModuleActor:
         return {"state": self.module.get_state(), "period": self.period,
                 "inputs": {name: port.export() for name, port in self.inputs.items()},
                 "counters": {"steps": self.steps, "events": self.events,
+                             "overruns": self._rate.overruns,
                              "errors": self.errors, "last_error": self.last_error,
                              "written": {name: port.written
                                          for name, port in self.outputs.items()}}}
@@ -751,6 +804,7 @@ class ModuleActor:
         self.steps += counters["steps"]
         self.events += counters["events"]
         self.errors += counters["errors"]
+        self._rate.overruns += counters["overruns"]
         self.last_error = self.last_error or counters["last_error"]
         for name, written in counters["written"].items():
             if name in self.outputs:
@@ -855,6 +909,7 @@ class ModuleActor:
         the module's lock, comes first, on the new instance of a swap); a module that
         stepped at no period is given a step thread."""
         self.period = period
+        self._rate.restart()        # (a fixed rate: from the step after the last one)
         if self._steps(period) and self.running and self._thread is None:
             self._start_stepping()
         self._wake.notify_all()
@@ -981,4 +1036,5 @@ class ModuleActor:
                 "cpu": self.cpu + self._step_thread_cpu(), "last_error": self.last_error,
                 "running": self.running,
                 "period": stepped_period(type(self.module), self.period),
+                "fixed_rate": self.fixed_rate, "overruns": self._rate.overruns,
                 "inputs": inputs, "outputs": outputs, "waits": waits}

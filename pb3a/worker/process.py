@@ -276,9 +276,11 @@ class Worker:
 
     # -- requests from the executor ----------------------------------------
     def op_add(self, name: str, cls: bytes, period: float | None, restart: str,
-               state: dict[str, Any] | bytes, reloaded: tuple[str, ...] = ()) -> None:
+               state: dict[str, Any] | bytes, reloaded: tuple[str, ...] = (),
+               fixed_rate: bool | None = None) -> None:
         """A module, run under its node's lease from now on (``Lease.take``: a spare
-        holds none while it runs nothing).
+        holds none while it runs nothing); ``fixed_rate``: the configuration's (None:
+        its class's).
         ``state`` as bytes is the module's own (a checkpoint, the state it had before a
         restart), restored in full (``restore_state``); as a dict, the configuration's.
         ``reloaded``: the Python modules reloaded on the node, dropped here first if this
@@ -300,7 +302,7 @@ class Worker:
                               f"({', '.join(map(str, state))}) failed: "
                               f"{type(exc).__name__}: {exc}") from None
         actor = ModuleActor(name, module, self._schedule, period, on_error=self._report_error,
-                            on_period=self.periods.tell)
+                            on_period=self.periods.tell, fixed_rate=fixed_rate)
         if self.lease.applies:
             actor.may_run = self.lease.holds
         self.actors[name] = actor
@@ -386,10 +388,13 @@ class Worker:
     def op_resume(self, name: str) -> None:
         held = self._held.pop(name, None)
         if held is not None:
+            if name in self.actors:
+                self.actors[name].paused_over()
             held.set()
         if name in self._paused:
             self._paused.discard(name)
             actor = self.actors[name]
+            actor.paused_over()
             actor.lock.release()
             if name in self._set_up_on_resume:      # (its move failed after its teardown)
                 self._set_up_on_resume.discard(name)
