@@ -16,6 +16,7 @@ from conftest import eventually
 from sample_modules import Chain
 
 from pb3a import ConfigError, Module, System
+from pb3a.cli.main import main
 from pb3a.cli.status import format_table
 from pb3a.worker.rate import FixedRate
 
@@ -61,7 +62,8 @@ class SaysYes(Controller):
     fixed_rate = "yes"          # (no bool: refused)
 
 
-def _intervals(began: list[float], skip: int = 5) -> tuple[float, int]:
+def _intervals(began: list[float], skip: int = 5,
+               period: float = PERIOD) -> tuple[float, int]:
     """The mean time from one step's start to the next, over the intervals that held no
     skipped period, and how many did (those of two periods or more: the next step is due
     a period after the last began at the latest, so it began a whole period late), the
@@ -71,7 +73,7 @@ def _intervals(began: list[float], skip: int = 5) -> tuple[float, int]:
     the steps between them keep the period (and a period slept after each step, the
     default, gives no gap of two periods here: a step takes 5 ms)."""
     gaps = [b - a for a, b in itertools.pairwise(began[skip:])]
-    kept = [gap for gap in gaps if gap < 2 * PERIOD]
+    kept = [gap for gap in gaps if gap < 2 * period]
     return sum(kept) / len(kept), len(gaps) - len(kept)
 
 
@@ -106,7 +108,7 @@ def test_a_fixed_rate_keeps_its_period_where_a_period_slept_after_each_step_is_s
     steps begin every 0.02 s; ``fixed_rate=False`` given to a class that asks for it
     wins, as a period given wins over the class's. ``stats()`` and ``pb3a status`` say
     which modules keep a fixed rate; ``add`` refuses a fixed_rate that is no bool,
-    naming the module."""
+    naming the module, and ``pb3a add --fixed-rate`` gives one."""
     system = System("rates").add("fixed", Controller, fixed_rate=True)
     system.add("slept", FixedController, fixed_rate=False)
     with system.launch() as run:
@@ -117,6 +119,9 @@ def test_a_fixed_rate_keeps_its_period_where_a_period_slept_after_each_step_is_s
         stats = run.stats()
         with pytest.raises(ConfigError, match="module late: fixed_rate must be true or false"):
             run.add("late", Controller, fixed_rate="yes")
+        assert main(["add", run.listen(), "late", f"{__name__}:Controller",
+                     "--fixed-rate"]) == 0
+        assert run.stats().modules["late"].fixed_rate
     assert abs(fixed - PERIOD) <= 0.1 * PERIOD, \
         f"fixed rate: {fixed * 1e3:.2f} ms a step, {skipped} skipped"
     assert slept >= 0.024, f"a period slept after each step: {slept * 1e3:.2f} ms a step"
@@ -130,12 +135,21 @@ def test_an_overrunning_step_skips_the_periods_it_missed_with_no_burst_and_count
         ) -> None:
     """A fixed-rate step that takes three periods (its class's ``fixed_rate``) is not made
     up by a burst of steps: the next begins at once, the one after it a period later,
-    and the two periods missed are counted as ``overruns``."""
+    and the two periods missed are counted as ``overruns``. A period set live then is
+    kept from the next step on (due the new period after the last step began), at a
+    fixed rate still."""
     with System("overrun").add("ctl", Overruns).launch() as run:
         eventually(lambda: len(run.state("ctl")["began"]) >= 25, timeout=20,
                    what="25 steps")
         began = run.state("ctl")["began"]
         stats = run.stats().modules["ctl"]
+        run.set_state("ctl", period=0.05)
+        changed = time.monotonic()
+
+        def since() -> list[float]:
+            return [stamp for stamp in run.state("ctl")["began"] if stamp > changed]
+        eventually(lambda: len(since()) >= 15, timeout=20, what="15 steps at 0.05 s")
+        retimed = since()
     after = began[Overruns.long_step:]              # the steps after the long one
     assert after[0] - began[Overruns.long_step - 1] >= 3 * PERIOD
     assert after[1] - after[0] >= PERIOD / 2, after[:3]
@@ -143,6 +157,8 @@ def test_an_overrunning_step_skips_the_periods_it_missed_with_no_burst_and_count
     # made up the missed two: six)
     assert sum(after[0] <= stamp <= after[0] + 3.5 * PERIOD for stamp in after) <= 4, after
     assert stats.fixed_rate and stats.overruns >= 2, stats
+    interval, skipped = _intervals(retimed, skip=1, period=0.05)
+    assert abs(interval - 0.05) <= 0.005, f"{interval * 1e3:.2f} ms a step, {skipped} skipped"
 
 
 def test_a_fixed_rate_is_read_from_a_file_and_refused_where_it_cannot_apply(
@@ -206,3 +222,4 @@ def test_a_moved_fixed_rate_module_keeps_its_rate() -> None:
     interval, skipped = _intervals(stamps)
     assert abs(interval - PERIOD) <= 0.1 * PERIOD, \
         f"{interval * 1e3:.2f} ms a step after the move, {skipped} skipped"
+

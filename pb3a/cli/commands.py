@@ -112,6 +112,9 @@ def _running_system(commands: argparse._SubParsersAction) -> None:
     add.add_argument("--node", help="where it runs (default: the first node)")
     add.add_argument("--period", type=arguments.wait_seconds, metavar="SECONDS",
                      help="its step period (0: as fast as it can)")
+    add.add_argument("--fixed-rate", action="store_true", default=None,
+                     help="its steps due a period after the last one began, not after it "
+                          "ended (default: its class's fixed_rate)")
     add.add_argument("--state", nargs="*", default=[], metavar="NAME=VALUE",
                      type=arguments.state_pair,
                      help="its initial state, as for `pb3a set` (after the class); a "

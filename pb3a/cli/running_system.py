@@ -166,8 +166,8 @@ def _add(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
     wrong = _fit(args.module, state, texts, defaults)
     if wrong:
         raise ValueError("; ".join(wrong) + "; nothing was added")
-    system.add(args.module, args.cls, node=args.node, period=args.period, state=state,
-               timeout=args.timeout)
+    system.add(args.module, args.cls, node=args.node, period=args.period,
+               fixed_rate=args.fixed_rate, state=state, timeout=args.timeout)
     inside = {name: module.node for name, module in system.topology(
         timeout=args.timeout).modules.items() if name.startswith(f"{args.module}/")}
     if inside:                          # a macro: its modules, each where it runs
