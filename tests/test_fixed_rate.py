@@ -18,6 +18,7 @@ from sample_modules import Chain
 from pb3a import ConfigError, Module, System
 from pb3a.cli.main import main
 from pb3a.cli.status import format_table
+from pb3a.config.folding import fold
 from pb3a.worker.rate import FixedRate
 
 PERIOD = 0.02
@@ -163,9 +164,10 @@ def test_an_overrunning_step_skips_the_periods_it_missed_with_no_burst_and_count
 
 def test_a_fixed_rate_is_read_from_a_file_and_refused_where_it_cannot_apply(
         tmp_path: Path) -> None:
-    """``fixed_rate`` sits beside ``period`` in a file's module entry; one that is no
-    bool, one given to a class with no ``step()``, to a module with no period, or to a
-    macro, and a class's own that is no bool are refused naming the module."""
+    """``fixed_rate`` sits beside ``period`` in a file's module entry (and a running
+    system's ``configuration()`` writes it there); one that is no bool, one given to a
+    class with no ``step()``, to a module with no period, or to a macro, and a class's
+    own that is no bool are refused naming the module."""
     path = tmp_path / "rates.toml"
     path.write_text(f"""
 name = "rates"
@@ -184,6 +186,9 @@ class = "{__name__}:FixedController"
     plan = System.load(path).plan()
     assert [plan.modules[name].fixed_rate for name in ("ctl", "free", "own")] == [
         True, False, None]                          # (None: the class's own, True here)
+    folded = fold(plan.name, plan.nodes, plan.modules.values(), plan.links)
+    assert [folded.tables["modules"][name].get("fixed_rate") for name in (
+        "ctl", "free", "own")] == [True, False, None]   # (configuration() writes it)
     system = System("refused")
     system.add("yes", Controller, fixed_rate="yes")
     system.add("scale", "examples.pipeline:Scale", fixed_rate=True)
