@@ -261,7 +261,8 @@ def test_a_module_no_node_takes_is_said_lost_with_what_it_takes_to_add_it_again(
     system.add("relay", Relay, node="b", restart="fresh", fallback=["c"],
                state={"relayed": 0})
     system.add("sink", Collector, node="a")
-    system.add("tick", Counter, node="b", period=0.02)       # (restart never: it goes)
+    system.add("tick", Counter, node="b", period=0.02,        # (restart never: it goes)
+               fixed_rate=True)
     system.link("src.out", "relay.x")
     system.link("relay.out", "sink.x", policy="queue:32")
     try:
@@ -298,6 +299,8 @@ def test_a_module_no_node_takes_is_said_lost_with_what_it_takes_to_add_it_again(
     assert (lost.detail["fallback"], lost.detail["period"]) == (["c"], None)
     assert ticker.subject == "tick"
     assert (ticker.detail["fallback"], ticker.detail["period"]) == ([], 0.02)
+    # and its configured fixed rate (None: the class's own)
+    assert (lost.detail["fixed_rate"], ticker.detail["fixed_rate"]) == (None, True)
 
 
 def _relayed(name: str, b: Daemon, relay_on: str, restart: str) -> System:

@@ -228,6 +228,7 @@ class Failover:
         self.launcher.events.record("module_lost", spec.name, node=node, reason=reason, cls=cls,
                                     state=dict(spec.state), restart=spec.restart,
                                     period=spec.period if spec.own_period else None,
+                                    fixed_rate=spec.fixed_rate,
                                     fallback=list(spec.fallback),
                                     links=[{"from": f"{link.src}.{link.src_port}",
                                             "to": f"{link.dst}.{link.dst_port}",
