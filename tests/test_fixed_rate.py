@@ -52,6 +52,10 @@ class Overruns(FixedController):
     long_step = 10
 
 
+class Retuned(Controller):
+    """A new version of ``Controller``, for a swap (its class asks for no fixed rate)."""
+
+
 class Unpaced(Module):
     """A ``step()`` and no period."""
 
@@ -209,7 +213,8 @@ class = "{__name__}:FixedController"
 
 def test_a_moved_fixed_rate_module_keeps_its_rate() -> None:
     """A fixed rate goes with its module when it moves, as its period does: it steps
-    every period on its new node (a new schedule there, from its first step)."""
+    every period on its new node (a new schedule there, from its first step); a swap
+    keeps the one given to the module, whatever the new class says."""
     system = System("moved").node("a").node("b")
     system.add("ctl", Controller, node="a", fixed_rate=True)
     with system.launch() as run:
@@ -223,7 +228,10 @@ def test_a_moved_fixed_rate_module_keeps_its_rate() -> None:
         eventually(lambda: len(since()) >= 55, timeout=20, what="55 steps on b")
         stamps = since()
         stats = run.stats().modules["ctl"]
+        run.swap("ctl", Retuned)
+        swapped = run.stats().modules["ctl"]
     assert stats.node == "b" and stats.fixed_rate, stats
+    assert swapped.cls.endswith(":Retuned") and swapped.fixed_rate, swapped
     interval, skipped = _intervals(stamps)
     assert abs(interval - PERIOD) <= 0.1 * PERIOD, \
         f"{interval * 1e3:.2f} ms a step after the move, {skipped} skipped"
