@@ -39,20 +39,21 @@ def format_table(stats: SystemStats) -> str:
     A module's status says the call it is stuck in, and the change in progress that
     acts on it ("running (migrate slow to b for 5 s)"); its period, the one it steps at
     now (set live too), "-" for one run only on events (a period its class sets
-    without a step() included), "0.02 fixed" for a fixed rate, with its overruns (the
-    periods it skipped; "-" for no fixed rate)."""
-    rows = [("module", "node", "pid", "status", "period s", "overruns", "steps", "events",
-             "cpu s", "errors", "last error")]
+    without a step() included), "0.02 fixed" for a fixed rate, whose status says the
+    periods it skipped ("(overruns 3)"), if any."""
+    rows = [("module", "node", "pid", "status", "period s", "steps", "events", "cpu s",
+             "errors", "last error")]
     for name, m in stats.modules.items():
+        fixed = m.fixed_rate and m.period is not None
         status = m.status + (" (silent)" if m.silent else "") \
             + (f" (in {m.calling} for {m.calling_s:.0f} s)" if m.calling_s >= STUCK_S else "") \
             + (f" ({m.change} for {m.change_s:.0f} s)" if m.change else "") \
-            + (f" (restarts {m.restarts})" if m.restarts else "")
-        fixed = m.fixed_rate and m.period is not None
+            + (f" (restarts {m.restarts})" if m.restarts else "") \
+            + (f" (overruns {m.overruns})" if fixed and m.overruns else "")
         rows.append((name, m.node, str(m.pid or "-"), status,
                      "-" if m.period is None else f"{m.period:g}" + " fixed" * fixed,
-                     str(m.overruns) if fixed else "-", str(m.steps),
-                     str(m.events), f"{m.cpu:.2f}", str(m.errors), _shortened(m.last_error)))
+                     str(m.steps), str(m.events), f"{m.cpu:.2f}", str(m.errors),
+                     _shortened(m.last_error)))
     lines = _columns(rows)
     if stats.links:
         lines.append("")
