@@ -19,6 +19,7 @@ from sample_modules import Burst, Collector, Oversize, Pusher, Sipper, SipperV2,
 
 from pb3a import Input, Module, RuntimeTimeout, System
 from pb3a.config.plan import FlatLink
+from pb3a.model.ports import InputPort
 from pb3a.node import bridge
 from pb3a.node.executor import Executor
 from pb3a.node.wiring import Wiring
@@ -28,6 +29,7 @@ from pb3a.transport.replication import Follower
 from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import segment_name
 from pb3a.worker.actor import ModuleActor
+from pb3a.worker.inbound import InboundLink
 from pb3a.worker.process import Worker
 
 pytestmark = pytest.mark.timeout(120)
@@ -493,6 +495,42 @@ def test_a_receiver_whose_reader_is_paused_between_two_batches_takes_in_a_flushe
         go.set()                             # the batch ends for the read
         _takes_in_the_flushed_ring(worker, writer, actor, paused, n)
         reading.join(5)
+
+
+def test_a_link_closed_as_the_receiver_drains_it_delivers_every_value_in_order() -> None:
+    # A move unwires a link (its close takes in the rest of the ring) while the
+    # receiver drains it too: each took its batch in turn, but delivered it after
+    # letting the link go, and a batch the receiver took, delivered after the close
+    # delivered the next, reached the module out of order (a full run: 3 values out of
+    # order, an adjacent pair swapped, in the move test above).
+    owner = ShmRing.create(segment_name("ring"), 64 * 1024, lossless=True)
+    writer = ShmRing.attach(owner.name)
+    link = InboundLink(ShmRing.attach(owner.name), InputPort(Handler.x, "dst"))
+    deliver, inside, go = link.port.deliver_many, threading.Event(), threading.Event()
+
+    def held_first(values, sent_at=None) -> None:     # the receiver, stopped as it delivers
+        if not inside.is_set():
+            inside.set()
+            go.wait(5)
+        deliver(values, sent_at)
+    link.port.deliver_many = held_first
+    try:
+        assert writer.offer(list(range(1, 11))) == 10
+        receiver = threading.Thread(target=link.drain, args=(3,), daemon=True)
+        receiver.start()
+        assert inside.wait(5)
+        closing = threading.Thread(target=link.close, daemon=True)   # (the move's unwiring)
+        closing.start()
+        closing.join(0.5)                           # (delivered meanwhile, before the fix)
+        go.set()
+        receiver.join(5)
+        closing.join(5)
+        assert not receiver.is_alive() and not closing.is_alive()
+        assert [link.port.read() for _ in range(10)] == list(range(1, 11))
+    finally:
+        go.set()
+        writer.close()
+        owner.close()
 
 
 def test_a_reader_moves_away_from_a_writer_in_its_process_that_waits_for_it() -> None:

@@ -32,17 +32,21 @@ class InboundLink:
     report_at: float = 0.0       # when its next failure may be logged
 
     def drain(self, limit: int = 1024) -> int:
+        """Take up to ``limit`` values from the ring into the input. Taken and delivered
+        under the link's lock: the receiver and the link's ``close`` (a move unwiring
+        it) drain side by side, and a batch one of them took, delivered after the other
+        took and delivered the next, reached the module out of order."""
         self.lock.acquire()
         try:
             if self.closed:
                 return 0
             values, sent_at, gaps = self.ring.drain(limit)
+            if gaps:
+                self.port.drops += gaps
+            if values:
+                self.port.deliver_many(values, sent_at)
         finally:
             self.lock.release()
-        if gaps:
-            self.port.drops += gaps
-        if values:
-            self.port.deliver_many(values, sent_at)
         return len(values)
 
     def wanted(self) -> bool:
