@@ -206,7 +206,7 @@ class ModuleActor:
         module.__dict__["_pb3a_giving_way"] = self.waiting   # (see Driver.request)
         self.period = period
         self._give_period(module, period)
-        self.fixed_rate_given = fixed_rate
+        self._fixed_rate_given = fixed_rate
         self._rate = FixedRate()      # (with fixed_rate) when its next step is due
         self.lock = HandOverLock()
         self.steps = self.events = self.errors = 0
@@ -244,15 +244,18 @@ class ModuleActor:
         self._stopping_for = ""                 # why someone waits to stop it, if anyone
         self._setup_failed = False              # its setup raised: it never ran
         self.ports = module._pb3a_bind_ports(name)
-        self._event_driven = type(module).is_event_driven()
+        self._read_class()
         for port in self.inputs.values():
             port._notify = self._on_port_event
 
-    @property
-    def fixed_rate(self) -> bool:
-        """Whether its steps keep a fixed rate: the configuration's option, else its
-        class's (a swap's new class's, unless the configuration gave one)."""
-        return fixed_rate_of(type(self.module), self.fixed_rate_given)
+    def _read_class(self) -> None:
+        """What the runtime reads of the module's class, once per instance (the step and
+        event paths ask it at every call): whether it handles events, and whether its
+        steps keep a fixed rate (the configuration's option, else its class's: a swap's
+        new class's, unless the configuration gave one)."""
+        cls = type(self.module)
+        self._event_driven = cls.is_event_driven()
+        self.fixed_rate = fixed_rate_of(cls, self._fixed_rate_given)
 
     @property
     def inputs(self) -> dict[str, InputPort]:
@@ -884,7 +887,8 @@ class ModuleActor:
                 del self.ports[name]                    # (the one dict both instances hold)
             for name, spec in specs.items():
                 self.ports[name].spec = spec
-            self.module, self._event_driven = old, type(old).is_event_driven()
+            self.module = old
+            self._read_class()
             old.__dict__["period"] = before
             with self._sched_lock:
                 self._owed = None
@@ -991,7 +995,7 @@ class ModuleActor:
         kept = self._kept(new, state)
         restore_state(new, kept)
         self.module = new
-        self._event_driven = type(new).is_event_driven()
+        self._read_class()
         return kept
 
     def _kept(self, new: Module, state: dict[str, Any]) -> dict[str, Any]:
