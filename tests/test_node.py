@@ -37,7 +37,7 @@ from sample_modules import BlocksInInit, Counter, Scale, StepStamps
 
 from pb3a import RuntimeFailure, RuntimeTimeout
 from pb3a.config.plan import FlatModule
-from pb3a.daemons import node_controller
+from pb3a.daemons import executor_family, node_controller
 from pb3a.daemons.node_controller import Limits, NodeController, Refused, _context
 from pb3a.daemons.node_share import NodeShare, executor_main
 from pb3a.loading.sources import CodeSources
@@ -241,6 +241,36 @@ def test_executors_that_ended_on_their_own_are_forgotten_while_the_controller_ru
         controller.close()
 
 
+def test_a_controller_says_its_executor_ended_once_every_process_it_started_has() -> None:
+    """A launcher asks a silent node's controller whether its executor ended, to run its
+    modules elsewhere at once rather than wait for their lease to run out. The answer is
+    how, once the executor and every process it started (its forkserver and workers,
+    re-parented as it died: here a process that carries its family's mark) have
+    ended, those still alive killed then; nothing while it runs, or for another
+    executor's address."""
+    controller = NodeController("n1", KEY, limits=Limits(max_cpu_percent=101.0))
+    member = None
+    try:
+        address, _ = controller.start_executor("lab")
+        mark = controller._executors["lab"].mark
+        member = subprocess.Popen(["sleep", "60"],
+                                  env={**os.environ, executor_family.MARK: mark})
+        assert [process.pid for process in executor_family.members(mark)] == [member.pid]
+        assert controller.executor_ended("lab", address, 1.0) is None      # (it runs)
+        assert member.poll() is None
+        controller._executors["lab"].process.kill()
+        how = eventually(lambda: controller.executor_ended("lab", address, 1.0),
+                         timeout=10, what="the executor said ended")
+        assert how.startswith("was killed by SIGKILL"), how
+        assert member.wait(5) == -signal.SIGKILL and executor_family.members(mark) == []
+        assert controller.executor_ended("lab", "tcp://127.0.0.1:1", 1.0) is None
+    finally:
+        if member is not None and member.poll() is None:
+            member.kill()
+            member.wait(5)
+        controller.close()
+
+
 def test_an_executor_that_ended_on_its_own_is_logged_with_its_signal_or_status(
         caplog) -> None:
     """An executor the OOM killer killed was forgotten without a word: the node's log,
@@ -257,8 +287,8 @@ def test_an_executor_that_ended_on_its_own_is_logged_with_its_signal_or_status(
         return [r.getMessage() for r in caplog.records
                 if r.name == "pb3a.node" and r.levelname == "WARNING"]
     assert warnings() == [
-        f"node n1: the executor for 'lab' at {address} was killed by SIGKILL (by the "
-        "kernel's OOM killer if `journalctl -k` says so); its modules stopped with it"]
+        f"node n1: the executor for 'lab' at {address} was killed by SIGKILL, by the "
+        "kernel's OOM killer if `journalctl -k` says so; its modules stopped with it"]
     node_controller._log_end("n1", "other", "tcp://127.0.0.1:1", 3)
     node_controller._log_end("n1", "fenced", "tcp://127.0.0.1:2", 0)    # (it said why)
     assert warnings()[1:] == ["node n1: the executor for 'other' at tcp://127.0.0.1:1 "
@@ -799,5 +829,6 @@ def test_a_node_controller_asked_as_a_module_server_says_what_it_is(node) -> Non
             r"give the address its `pb3a modules serve` printed$")):
         client.call("find", name="robot")
     with pytest.raises(RuntimeFailure, match=r"^node n1's controller at .* has no operation "
-                                             r"'nothing'; its operations: admit, start_"):
+                                             r"'nothing'; its operations: admit, "
+                                             r"executor_ended, start_"):
         client.call("nothing")

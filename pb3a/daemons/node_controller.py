@@ -17,11 +17,12 @@ import signal
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, NoReturn
+from typing import Any, NamedTuple, NoReturn
 
 import psutil
 
 from pb3a.config import checks
+from pb3a.daemons import executor_family
 from pb3a.daemons.node_share import UNBOUND_S, executor_main
 from pb3a.errors import RuntimeFailure, bounded_wait
 from pb3a.processes import start_resource_tracker, start_without_main, terminal_signals_held
@@ -44,26 +45,42 @@ SAMPLE_FAILURE_LOG_S = 60.0    # a sampler turn that fails is logged at most thi
 REFUSAL_LOG_S = 60.0
 
 
+def how_it_ended(status: int | None) -> str:
+    """How an executor that ended on its own did (its exit status or signal), as said
+    after "the executor": killed (the OOM killer's SIGKILL) or failed."""
+    if status == 0:
+        return "stopped itself"
+    if status is None or status > 0:
+        return f"exited with status {status}"
+    try:
+        how = f"was killed by {signal.Signals(-status).name}"
+    except ValueError:
+        how = f"was killed by signal {-status}"
+    if -status == signal.SIGKILL:
+        how += ", by the kernel's OOM killer if `journalctl -k` says so"
+    return how
+
+
 def _log_end(node: str, config: str, address: str, status: int | None) -> None:
-    """Say that the executor for ``config`` ended on its own, and how: killed (the OOM
-    killer's SIGKILL) or failed at WARNING, with its signal or exit status (the node's
-    log said nothing, and the launcher only that the node was silent, as for a cut
-    cable); one that stopped itself (its lease run out, or taken by no launcher), which
-    it logged, at INFO."""
+    """Say that the executor for ``config`` ended on its own, and how: killed or failed
+    at WARNING (the node's log said nothing, and the launcher only that the node was
+    silent, as for a cut cable); one that stopped itself (its lease run out, or taken by
+    no launcher), which it logged, at INFO."""
     if status == 0:
         log.info("node %s: the executor for %r at %s stopped itself", node, config, address)
         return
-    if status is None or status > 0:
-        how = f"exited with status {status}"
-    else:
-        try:
-            how = f"was killed by {signal.Signals(-status).name}"
-        except ValueError:
-            how = f"was killed by signal {-status}"
-        if -status == signal.SIGKILL:
-            how += " (by the kernel's OOM killer if `journalctl -k` says so)"
     log.warning("node %s: the executor for %r at %s %s; its modules stopped with it",
-                node, config, address, how)
+                node, config, address, how_it_ended(status))
+
+
+class _Executor(NamedTuple):
+    """An executor this controller started: its process, the pipe it answered its start
+    on, its address, and the mark its family carries (``executor_family``)."""
+
+    process: Any
+    pipe: Any
+    address: str
+    mark: str
 
 
 class Refused(RuntimeFailure):
@@ -90,7 +107,10 @@ class NodeController:
         self.name = name
         self.limits = limits or Limits()
         self.unbound_s = UNBOUND_S          # an executor not taken by a launcher this long stops
-        self._executors: dict[str, tuple[Any, Any, str]] = {}   # config -> process, pipe, addr
+        self._executors: dict[str, _Executor] = {}      # by configuration
+        # by configuration, the last executor that ended on its own (not stopped), with
+        # its exit status: a launcher asks how (``executor_ended``)
+        self._ended: dict[str, tuple[_Executor, int | None]] = {}
         self._lock = threading.Lock()
         self._closing = False               # set by close: no executor starts from then on
         self._cpu_samples: collections.deque[float] = collections.deque(maxlen=CPU_WINDOW)
@@ -132,15 +152,19 @@ class NodeController:
         kept three descriptors for each, and ran out of them."""
         with self._lock:
             ended = {config: entry for config, entry in self._executors.items()
-                     if not entry[0].is_alive()}
+                     if not entry.process.is_alive()}
             for config in ended:
                 del self._executors[config]
-        for config, (process, pipe, address) in ended.items():
-            pipe.close()
-            process.join(1.0)              # (ended: at once)
-            _log_end(self.name, config, address, process.exitcode)
-            reap_child(process.pid)       # (the segments of one that could not free them)
-            process.close()
+        for config, entry in ended.items():
+            entry.pipe.close()
+            entry.process.join(1.0)              # (ended: at once)
+            status = entry.process.exitcode
+            _log_end(self.name, config, entry.address, status)
+            reap_child(entry.process.pid)  # (the segments of one that could not free them)
+            entry.process.close()
+            with self._lock:
+                if config not in self._executors:       # (none started since)
+                    self._ended[config] = (entry, status)
         if ended:
             reap_orphans()                # (and of its workers)
 
@@ -197,14 +221,15 @@ class NodeController:
                 raise Refused(f"node {self.name}'s controller is closing: it starts no "
                               f"executor for {config!r}; start it again, then launch")
             running = self._executors.get(config)
-            if running is not None and running[0].is_alive():
-                return running[2], False
+            if running is not None and running.process.is_alive():
+                return running.address, False
             self.admit(f"an executor for {config!r}")
             parent, child = _context.Pipe()
+            mark = executor_family.new_mark()
             process = _context.Process(
                 target=executor_main, name=f"pb3a-executor-{config}",
                 args=(config, node or self.name, workers, cpus, host, child, logging.WARNING,
-                      self.unbound_s))
+                      self.unbound_s, mark))
             # (held off until its handlers are set: a Ctrl-C at the node's terminal as
             # its interpreter started killed it, a crash dump or a traceback there)
             start_resource_tracker()                  # (first: its start takes them back)
@@ -224,7 +249,8 @@ class NodeController:
                        (None, -9) else f"exited with status {process.exitcode} as it started")
                 raise RuntimeError(f"the executor for {config!r} {why}: node {self.name}'s "
                                    "log says why")
-            self._executors[config] = (process, parent, address)
+            self._executors[config] = _Executor(process, parent, address, mark)
+            self._ended.pop(config, None)
             return address, True
 
     def stop_executor(self, config: str, force: bool = False, timeout: float = 15.0,
@@ -237,7 +263,7 @@ class NodeController:
         system, which it killed."""
         with self._lock:
             entry = self._executors.get(config)
-            if entry is not None and executor is not None and entry[2] != executor:
+            if entry is not None and executor is not None and entry.address != executor:
                 log.warning("node %s: a stop of the executor for %r at %s, which runs no "
                             "more, left the one at %s running (a request sent before, "
                             "delivered late)", self.name, config, executor, entry[2])
@@ -245,7 +271,7 @@ class NodeController:
             entry = self._executors.pop(config, None)
         if entry is None:
             return False
-        process, pipe, _ = entry
+        process, pipe = entry.process, entry.pipe
         if force:
             process.kill()
         else:
@@ -263,8 +289,27 @@ class NodeController:
     def executors(self) -> dict[str, str]:
         """Running configurations and their executors' addresses."""
         with self._lock:
-            return {config: entry[2] for config, entry in self._executors.items()
-                    if entry[0].is_alive()}
+            return {config: entry.address for config, entry in self._executors.items()
+                    if entry.process.is_alive()}
+
+    def executor_ended(self, config: str, executor: str, timeout: float) -> str | None:
+        """How ``config``'s executor at address ``executor`` ended, once it has ended on
+        its own and every process of its family has too (those still alive are killed
+        now); None while it runs, if this controller did not start it, or if one of its
+        family outlived ``timeout``. Its launcher asks this of a node gone silent: its
+        modules may then start elsewhere at once, nothing of the executor left to run
+        them, where it would wait for their lease to run out."""
+        self._forget_ended()        # (one that ended since the sampler's last look)
+        with self._lock:
+            entry, status = self._ended.get(config, (None, None))
+        if entry is None or entry.address != executor:
+            return None
+        if not executor_family.end(entry.mark, timeout):
+            log.warning("node %s: a process the executor for %r at %s started outlived a "
+                        "SIGKILL for %g s", self.name, config, executor, timeout)
+            return None
+        reap_orphans()              # (the segments of the processes ended now)
+        return how_it_ended(status)
 
     def _handle(self, op: str, args: dict[str, Any]) -> Any:
         if op == "start_executor":
@@ -275,6 +320,9 @@ class NodeController:
             return self.stop_executor(args["config"], bool(args.get("force", False)),
                                       bounded_wait(args.get("timeout", 15.0), "stop_executor"),
                                       args.get("executor"))
+        if op == "executor_ended":
+            return self.executor_ended(args["config"], args["executor"],
+                                       bounded_wait(args.get("timeout", 1.0), "executor_ended"))
         if op == "admit":
             self.admit(str(args.get("what", "work")))
             return True
@@ -282,7 +330,8 @@ class NodeController:
             return {"node": self.name, "python": PYTHON, "cpu_percent": self._cpu,
                     "memory_available": psutil.virtual_memory().available,
                     "executors": self.executors()}
-        raise UnknownOperation(op, ("start_executor", "stop_executor", "admit", "status"))
+        raise UnknownOperation(op, ("start_executor", "stop_executor", "executor_ended",
+                                    "admit", "status"))
 
     @property
     def rejected(self) -> Any:

@@ -30,6 +30,7 @@ import time
 from typing import Any
 
 from pb3a.config.description import DEFAULT_SPARES
+from pb3a.daemons.executor_family import take_mark
 from pb3a.deadline import bounding
 from pb3a.errors import RuntimeFailure, RuntimeTimeout
 from pb3a.loading.sources import CodeSources
@@ -337,8 +338,11 @@ def _bounded(args: dict[str, Any]) -> contextlib.AbstractContextManager[Any]:
 
 def executor_main(config: str, node: str, workers: int, cpus: list[int] | None,
                   host: str, conn: Any, level: int = logging.WARNING,
-                  unbound_s: float = UNBOUND_S) -> None:
-    """Entry point of an executor process: serve until shut down, signalled or orphaned."""
+                  unbound_s: float = UNBOUND_S, mark: str | None = None) -> None:
+    """Entry point of an executor process: serve until shut down, signalled or orphaned.
+    ``mark``: its family's (``executor_family``), handed to every process it starts."""
+    if mark is not None:
+        take_mark(mark)
     name_process(f"executor {config}", node)        # its log lines: [executor CONFIG@NODE]
     log_to(sys.stderr, level)
     mark_as("a node's executor")

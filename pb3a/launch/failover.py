@@ -48,6 +48,10 @@ if TYPE_CHECKING:
 log = logging.getLogger("pb3a.launcher")
 
 FAIL_OVER_WAIT_S = 1.0  # a failover's wait for the configuration lock, each look
+# A node silent this long (two heartbeats unanswered) has its controller asked whether
+# its executor died, at most once a heartbeat and for that long: a controller that says
+# it did, its every process ended, has the node lost then, not at LOSS_S.
+SUSPECT_S = 2 * HEARTBEAT_S
 REJOIN_S = 1.0          # how often it asks a lost node's controller whether it is back
 PLACE_TIMEOUT = 0.5     # a controller's answer about its load and admission
 
@@ -60,6 +64,7 @@ class Failover:
         self.launcher, self.env = launcher, env
         self._rejoining: set[str] = set()
         self._failing_over: dict[str, float] = {}     # lost node -> when, until done
+        self._asked: dict[str, float] = {}    # silent node -> when its controller was asked
         # a lost node's env module and the links from it, restored when it rejoins
         self._env_kept: dict[str, tuple[FlatModule, list[FlatLink]]] = {}
 
@@ -83,12 +88,17 @@ class Failover:
     def _look(self, next_rejoin: float) -> float:
         """One look of the watchdog; when to look for lost nodes' return next."""
         launcher = self.launcher
+        now = time.monotonic()
         for name, node in list(launcher.remotes.items()):
             if launcher.health[name]["up"]:
                 launcher.health[name]["rtt"] = node.rtt
-                if node.silent_s() > LOSS_S and not launcher.stopping.is_set():
-                    self._lose(name, node.silent_s())
-        now = time.monotonic()
+                silent = node.silent_s()
+                if (silent > LOSS_S or node.ended) and not launcher.stopping.is_set():
+                    self._lose(name, silent)
+                elif silent > SUSPECT_S and now - self._asked.get(name, -LOSS_S) > HEARTBEAT_S:
+                    self._asked[name] = now
+                    threading.Thread(target=node.executor_ended, args=(HEARTBEAT_S,),
+                                     daemon=True, name=f"pb3a-ended-{name}").start()
         if now < next_rejoin:
             return next_rejoin
         for name in list(launcher.remotes):
@@ -118,10 +128,13 @@ class Failover:
         arriving = [name for name in there if launcher.arriving.get(name) == node]
         gone = [name for name in there if name not in arriving]
         landing = f"; a move was landing {', '.join(arriving)} there" if arriving else ""
-        launcher.failures.add(f"node {node} lost (no heartbeat for {silent_s:.1f} s); its "
-                              f"modules {', '.join(gone) or '(none)'} were there{landing}")
+        ended = launcher.remotes[node].ended
+        why = f"no heartbeat for {silent_s:.1f} s" + (
+            f"; its controller says its executor {ended}" if ended else "")
+        launcher.failures.add(f"node {node} lost ({why}); its modules "
+                              f"{', '.join(gone) or '(none)'} were there{landing}")
         launcher.events.record("node_lost", node, modules=gone, arriving=arriving,
-                               silent_s=silent_s)
+                               silent_s=silent_s, executor=ended)
         self._failing_over[node] = lost_at
         # on a thread of its own: placing the modules may wait for a node that went too,
         # which only the watchdog, free, declares lost (then the wait fails at once)

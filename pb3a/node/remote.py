@@ -154,6 +154,9 @@ class RemoteNode:
         # MiB state moved there had the node lost, and fenced)
         self.heart: ControlClient | None = None
         self.lost = False
+        # how its executor ended, once its controller has said that it and every process
+        # it started have (``executor_ended``): nothing of it runs a module any more
+        self.ended: str | None = None
         self.refusal = ""                   # why its controller refused us last, if it did
         self.rtt = float("nan")             # of the last answered heartbeat
         self._answered = time.monotonic()
@@ -554,12 +557,32 @@ class RemoteNode:
         lease from the answer the newest renewal carried, which left the executor
         before the launcher heard it (``NodeShare.renew``). Its modules may run
         elsewhere from then on. (Counted from the newest renewal sent, it moved on with
-        every heartbeat sent to a node that no longer answered.)"""
+        every heartbeat sent to a node that no longer answered.) Now, once its
+        controller has said that the executor ended and its every process with it."""
+        if self.ended is not None:
+            return -math.inf
         return self._renewed_from + HEARTBEAT_S + LEASE_S
 
     def silent_s(self) -> float:
         """Seconds since the executor last answered a heartbeat."""
         return time.monotonic() - self._answered
+
+    def executor_ended(self, timeout: float) -> str | None:
+        """Ask the node's controller whether the executor has ended (killed, or failed),
+        and if it has, to end every process it started: how it ended once they all have
+        (also kept in ``ended``); None while it runs, or if the controller does not say
+        within ``timeout`` seconds (a node whose machine is gone, or cut off)."""
+        if self.executor is None:
+            return None
+        try:
+            how = self.controller.request("executor_ended", {
+                "config": self.config, "executor": self.executor,
+                "timeout": before_answer(timeout)}, timeout)
+        except (RuntimeFailure, RuntimeTimeout):
+            return None
+        if how is not None:
+            self.ended = how
+        return how
 
     def controller_answers(self, timeout: float) -> bool:
         """True if the node's controller answered within ``timeout`` seconds. A lost
