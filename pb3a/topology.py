@@ -49,6 +49,9 @@ class ModuleInfo:
     period: float | None
     restart: str
     kind: str                        # "module" | "agent" | "driver"
+    # its steps due a period after the last one began (the configuration's, else its
+    # class's), not a period after the last one ended
+    fixed_rate: bool = False
     inputs: dict[str, PortInfo] = field(default_factory=dict)
     outputs: dict[str, PortInfo] = field(default_factory=dict)
     state: tuple[str, ...] = ()      # the class's state names (found by reflection)
@@ -56,7 +59,8 @@ class ModuleInfo:
 
     def to_json(self) -> dict[str, Any]:
         return {"class": self.cls, "node": self.node, "macro": self.macro,
-                "period": self.period, "restart": self.restart, "kind": self.kind,
+                "period": self.period, "fixed_rate": self.fixed_rate,
+                "restart": self.restart, "kind": self.kind,
                 "inputs": {name: port.to_json() for name, port in self.inputs.items()},
                 "outputs": {name: port.to_json() for name, port in self.outputs.items()},
                 "state": list(self.state),
@@ -149,9 +153,12 @@ def module_info(module: FlatModule) -> ModuleInfo:
     """One placed module's record."""
     cls = module.cls
     parent = module.name.rpartition("/")[0] or None
+    # (a class's own that is no bool is no fixed rate: `pb3a check` refuses it)
+    fixed_rate = module.fixed_rate if module.fixed_rate is not None \
+        else getattr(cls, "fixed_rate", False) is True
     return ModuleInfo(module.name, class_ref(cls), module.node, parent, module.period,
-                      module.restart, class_kind(cls), ports(cls.inputs), ports(cls.outputs),
-                      tuple(cls.state_names()), displays_of(cls))
+                      module.restart, class_kind(cls), fixed_rate, ports(cls.inputs),
+                      ports(cls.outputs), tuple(cls.state_names()), displays_of(cls))
 
 
 def class_kind(cls: type) -> str:

@@ -141,3 +141,16 @@ class Flags(Module):
     """A small array of flags."""
 
     flags = np.array([True, False, True, False, False])
+
+
+class Paced(Module):
+    """Steps every 20 ms at a fixed rate, its class's own, each step taking ``work``
+    seconds: with more than a period of work the periods it is late by are skipped and
+    counted as its overruns."""
+
+    period = 0.02
+    fixed_rate = True
+    work = 0.0
+
+    def step(self) -> None:
+        time.sleep(self.work)

@@ -1682,6 +1682,58 @@ def test_after_stop_the_selected_module_is_not_launched_and_its_period_box_says_
         assert box.input_value() == ""
 
 
+PACED = """\
+name = "paced"
+
+[modules.tick]
+class = "examples.pipeline:Ticker"
+period = 0.05
+
+[modules.pace]
+class = "manager_modules:Paced"
+state = { work = 0.05 }
+"""
+
+
+def test_a_fixed_rate_is_set_in_the_editor_and_shown_with_its_overruns_while_it_runs(
+        browser: Any, tmp_path: Path) -> None:
+    """The page knew no fixed rate: the editor could not give one, and the inspector of a
+    running module said its period as if slept after each step, its skipped periods
+    nowhere. The editor's Fixed rate choice (its class's own, which it names, yes or no)
+    writes ``fixed_rate``; the inspector shows the period "fixed" and the status its
+    overruns, as ``pb3a status`` does."""
+    config = tmp_path / "paced.toml"
+    config.write_text(PACED)
+    meta = "document.querySelector('#inspector-meta').textContent"
+    with editor(browser, config, 2) as (manager, page):
+        page.click("[data-module='pace'] .module-title")
+        choice = page.locator("#inspector select[aria-label='fixed rate']")
+        choice.wait_for(timeout=WAIT_MS)
+        assert choice.input_value() == ""
+        assert choice.locator("option").first.text_content() == "its class's (yes)"
+        page.wait_for_function(f"{meta}.includes('period 20.0 ms fixed')", timeout=WAIT_MS)
+        page.click("[data-module='tick'] .module-title")
+        page.wait_for_function(f"{meta}.includes('period 50.0 ms')", timeout=WAIT_MS)
+        assert "fixed" not in page.evaluate(meta)
+        assert choice.locator("option").first.text_content() == "its class's (no)"
+        choice.select_option("yes")
+        page.wait_for_function(f"{meta}.includes('period 50.0 ms fixed')", timeout=WAIT_MS)
+        assert document_of(manager)["system"]["modules"]["tick"]["fixed_rate"] is True
+        page.fill("#save-path", str(config))
+        page.click("#save")
+        page.wait_for_selector(f".toast.ok >> text=Saved {config}", timeout=WAIT_MS)
+        assert 'period = 0.05\nfixed_rate = true\n' in config.read_text()
+        page.click("#launch")
+        page.wait_for_function("document.querySelector('#mode').textContent === 'running'",
+                               timeout=WAIT_MS)
+        page.click("[data-module='pace'] .module-title")
+        page.wait_for_function(f"{meta}.includes('period 20.0 ms fixed') && "
+                               f"/running \\(overruns [1-9]/.test({meta})", timeout=WAIT_MS)
+        page.click("[data-module='tick'] .module-title")
+        page.wait_for_function(f"{meta}.includes('running') && "
+                               f"{meta}.includes('period 50.0 ms fixed')", timeout=WAIT_MS)
+
+
 def test_a_gain_tuned_live_is_kept_in_the_document_and_shown_after_stop(
         browser: Any, tmp_path: Path) -> None:
     """A gain tuned in the State Editor was lost at Stop: the document kept what it was

@@ -22,12 +22,14 @@ from conftest import alive
 from test_manager_api import manager_client
 
 from pb3a import System
+from pb3a.manager.catalog import Catalog
 from pb3a.manager.document import Document
 from pb3a.manager.session import Session
 
 pytestmark = pytest.mark.timeout(60)
 
-PIPELINE = Path(__file__).resolve().parent.parent / "examples" / "pipeline.toml"
+TESTS = Path(__file__).resolve().parent
+PIPELINE = TESTS.parent / "examples" / "pipeline.toml"
 
 
 @pytest.fixture
@@ -518,6 +520,68 @@ def test_a_system_launched_from_the_page_stops_from_it_and_its_document_is_edite
         refused = client.post("/api/system/stop")
         assert refused.status_code == 409 and "stop it where it runs" in refused.json()["error"]
         assert run.stats().modules["tick"].status == "running"
+
+
+FIXED = """\
+name = "paced"
+
+[modules.tick]
+class = "examples.pipeline:Ticker"
+period = 0.05
+fixed_rate = true   # a control loop's dt
+
+[modules.pace]
+class = "manager_modules:Paced"
+state = { work = 0.05 }
+
+[modules.scale]
+class = "examples.pipeline:Scale"
+
+[[links]]
+from = "tick.out"
+to = "scale.x"
+"""
+
+
+def test_a_fixed_rate_is_kept_through_edits_and_shown_as_the_module_s_period_is(
+        tmp_path: Path) -> None:
+    """The manager knew no fixed rate: its structure said each module's period but not
+    whether its steps are due at a fixed rate, nor did the module browser say a class's,
+    and an add from the page could not give one. A file's ``fixed_rate`` goes through an
+    edit, a save, a launch and a stop as written; the structure says each module's
+    (the document's, else its class's), running or not; an add takes one."""
+    path = tmp_path / "paced.toml"
+    path.write_text(FIXED)
+    document = Document.open(path)
+    with manager_client(Session(document, catalog=Catalog(document, roots=[TESTS]))) as client:
+        system = client.get("/api/document").json()["system"]
+        assert system["modules"]["tick"]["fixed_rate"] is True
+        system["modules"]["scale"]["state"] = {"gain": 4.0}
+        assert client.put("/api/document", json={"system": system}).json()["problems"] == []
+        assert client.post("/api/document/save", json={}).status_code == 200
+        assert "fixed_rate = true   # a control loop's dt" in path.read_text()
+        fixed = {name: m["fixed_rate"] for name, m in client.get("/api/system").json()[
+            "modules"].items()}
+        assert fixed == {"tick": True, "pace": True, "scale": False}
+        classes = {c["class"]: c for c in client.get("/api/classes").json()["classes"]}
+        assert classes["manager_modules:Paced"]["fixed_rate"] is True
+        assert classes["manager_modules:Controller"]["fixed_rate"] is False
+        running = client.post("/api/document/launch").json()
+        assert {name: m["fixed_rate"] for name, m in running["modules"].items()} == fixed
+        stats = client.get("/api/stats").json()["modules"]
+        assert stats["tick"]["fixed_rate"] is True and stats["scale"]["fixed_rate"] is False
+        added = client.post("/api/modules", json={"name": "tick2", "period": 0.05,
+                                                  "class": "examples.pipeline:Ticker",
+                                                  "fixed_rate": True})
+        assert added.status_code == 201, added.text
+        assert added.json()["modules"]["tick2"]["fixed_rate"] is True
+        refused = client.post("/api/modules", json={"name": "tick3", "fixed_rate": "yes",
+                                                    "class": "examples.pipeline:Ticker"})
+        assert refused.status_code == 400 and "'fixed_rate'" in refused.json()["error"]
+        assert client.post("/api/system/stop").status_code == 200
+        assert client.get("/api/document").json()["system"]["modules"]["tick"][
+            "fixed_rate"] is True
+    assert System.load(path).check() == []
 
 
 def test_nothing_runs_in_an_empty_document_and_saving_needs_a_path() -> None:

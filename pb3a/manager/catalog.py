@@ -246,7 +246,7 @@ def describe_class(cls: type[Module], origin: str) -> dict[str, Any]:
             "doc": doc.split("\n\n")[0].replace("\n", " "),
             "inputs": {n: p.to_json() for n, p in ports(cls.inputs).items()},
             "outputs": {n: p.to_json() for n, p in ports(cls.outputs).items()},
-            "state": state, "period": cls.period,
+            "state": state, "period": cls.period, "fixed_rate": cls.fixed_rate is True,
             "displays": {n: d.to_json() for n, d in displays_of(cls).items()},
             "origin": origin}
 

@@ -493,7 +493,8 @@ class Session:
     def add(self, body: Any) -> dict[str, Any]:
         """``POST /api/modules``: start a module (then link it)."""
         if not isinstance(body, dict):
-            raise Malformed("send {\"name\", \"class\", \"node\"?, \"state\"?, \"period\"?}")
+            raise Malformed("send {\"name\", \"class\", \"node\"?, \"state\"?, \"period\"?, "
+                            "\"fixed_rate\"?}")
         name, cls = body.get("name"), body.get("class")
         if not isinstance(name, str) or not all(NAME.match(part) for part in name.split("/")):
             raise Malformed(f"a new module needs a 'name' of letters, digits, '_' and '-', "
@@ -504,6 +505,9 @@ class Session:
         if period is not None and (not isinstance(period, (int, float))
                                    or isinstance(period, bool) or period < 0):
             raise Malformed(f"'period' must be a number of seconds >= 0, got {period!r}")
+        fixed_rate = body.get("fixed_rate")
+        if fixed_rate is not None and not isinstance(fixed_rate, bool):
+            raise Malformed(f"'fixed_rate' must be true or false, got {fixed_rate!r}")
         if node is not None and not isinstance(node, str):
             raise Malformed(f"a new module's 'node' must be the name of a node, got {node!r}")
         topology = self.topology()
@@ -514,8 +518,8 @@ class Session:
         ref = self._class(cls)
         if state:
             state = self._fitted(name, resolve_class(ref), state)
-        self.handle.add(name, ref, state=state, period=period, node=node,
-                        timeout=self.timeout)
+        self.handle.add(name, ref, state=state, period=period, fixed_rate=fixed_rate,
+                        node=node, timeout=self.timeout)
         return self.system()
 
     @staticmethod

@@ -375,14 +375,18 @@ class Manager {
     // (the stats' while it runs: a period the module sets itself is no event, so the
     // structure is not sent again for it)
     const period = live && "period" in live ? live.period : info.period;
+    // "0.02 fixed" and the periods it skipped, as `pb3a status` shows a fixed rate
+    const fixed = (live ? live.fixed_rate : info.fixed_rate) && period !== null && period !== undefined;
+    const overruns = fixed && live?.overruns ? ` (overruns ${live.overruns})` : "";
     const status = live ? live.status : this.mode() === "editing" ? "not launched" : "";
     const meta = [
       h("span", {class: "mono"}, info.class),
       h("span", {}, ["on ", h("strong", {}, live?.node ?? info.node ?? "the default node")]),
       status ? h("span", {class: `status status-${live?.silent ? "silent" : status}`},
-                 live?.silent ? `${status} (silent: its worker does not answer)` : status) : null,
+                 (live?.silent ? `${status} (silent: its worker does not answer)` : status) + overruns) : null,
       fmt.longCall(live) ? h("span", {class: "status status-in-long-call"}, fmt.longCall(live)) : null,
-      period !== null && period !== undefined ? h("span", {}, `period ${fmt.seconds(period)}`) : null,
+      period !== null && period !== undefined
+        ? h("span", {}, `period ${fmt.seconds(period)}${fixed ? " fixed" : ""}`) : null,
       info.macro ? h("span", {}, `in macro ${info.macro}`) : null,
       this.mode() === "editing" && name.includes("/")
         ? h("span", {}, `its state here is what instance ${entryOf(name)} sets`) : null,
@@ -433,6 +437,7 @@ class Manager {
       const period = this.periodInput(name, (value) => this.editDocument(() => this.document.setPeriod(name, value)));
       actions.push(this.moveMenu(name), this.renameControl(name),
                    h("label", {class: "inline"}, ["Period ", period]),
+                   h("label", {class: "inline"}, ["Fixed rate ", this.fixedRateInput(name)]),
                    button("Remove", () => this.requestRemove(name), "danger"));
       // a document links its own entries: a macro's modules through the macro's exports
       ports = this.ports(name, (m) => m !== name && !m.includes("/"));
@@ -461,6 +466,28 @@ class Manager {
       apply(value);
     });
     return period;
+  }
+
+  /** The Fixed rate choice of document entry `name`: its class's own (which the choice
+   * says, as the Period box's placeholder says its period), yes (`fixed_rate = true`:
+   * each step due a period after the last one began) or no (the period slept after each
+   * step); its class's own leaves the key out of the document. */
+  fixedRateInput(name) {
+    const own = this.browser.byName(this.system.modules[name]?.class)?.fixed_rate;
+    const set = this.document.system.modules[name]?.fixed_rate;
+    const choice = h("select", {class: "small", id: "fixed-rate", "aria-label": "fixed rate",
+                                title: "yes: each step is due a period after the last one began, "
+                                  + "late periods skipped and counted as overruns; no: the period is slept after each step"}, [
+      h("option", {value: ""}, own === undefined ? "its class's" : `its class's (${own ? "yes" : "no"})`),
+      h("option", {value: "yes"}, "yes"),
+      h("option", {value: "no"}, "no"),
+    ]);
+    choice.value = set === true ? "yes" : set === false ? "no" : "";
+    choice.addEventListener("change", () => {
+      const fixed = choice.value === "" ? null : choice.value === "yes";
+      this.editDocument(() => this.document.setFixedRate(name, fixed));
+    });
+    return choice;
   }
 
   /** Set running module `name`'s period live; the structure the feed sends after its

@@ -227,6 +227,16 @@ export class EditedDocument {
     });
   }
 
+  /** Give entry `name` a fixed rate (true), the period slept after each step (false),
+   * or its class's own (null: the key left out). */
+  setFixedRate(name, fixed) {
+    return this.edit((system) => {
+      const module = entryIn(system, name);
+      if (fixed === null) delete module.fixed_rate;
+      else module.fixed_rate = fixed;
+    });
+  }
+
   remove(name) {
     return this.edit((system) => {
       entryIn(system, name);
