@@ -690,11 +690,12 @@ class Tally(Module):
 '''
 
 
-def test_a_module_next_to_its_configuration_file_imports_on_every_node(tmp_path: Path) -> None:
-    project, elsewhere = tmp_path / "project", tmp_path / "elsewhere"
-    project.mkdir()
-    elsewhere.mkdir()
-    (project / "beside.py").write_text(MODULES_BESIDE_THE_FILE)
+def _run_tick_far_tally_here(module: str, project: Path, elsewhere: Path,
+                             env: dict[str, str]) -> None:
+    """``pb3a run project/system.toml --for 2`` from ``elsewhere`` with ``env``, the
+    classes of ``module`` on two nodes: its Tick on a node controller started in
+    ``elsewhere`` with the tests' environment alone, its Tally in the launcher; it must
+    run, and values cross from far to here."""
     node = subprocess.Popen([sys.executable, "-m", "pb3a", "node", "start", "--name", "far",
                              "--listen", "tcp://127.0.0.1:0", "--max-cpu", "100"],
                             cwd=elsewhere, env=_env(),
@@ -707,21 +708,20 @@ name = "beside"
 [nodes.far]
 address = "{address}"
 [modules.tick]
-class = "beside:Tick"
+class = "{module}:Tick"
 node = "far"
 [modules.tally]
-class = "beside:Tally"
+class = "{module}:Tally"
 node = "here"
 [[links]]
 from = "tick.out"
 to = "tally.x"
 ''')
-        # neither the launcher's nor the node's working directory or PYTHONPATH has it;
         # --listen holds although a remote node also calls the launcher back there
         port = unused_port()
         done = subprocess.run([sys.executable, "-m", "pb3a", "run", "../project/system.toml",
                                "--for", "2", "--listen", f"tcp://127.0.0.1:{port}"],
-                              cwd=elsewhere, env=_env(), capture_output=True, text=True,
+                              cwd=elsewhere, env=env, capture_output=True, text=True,
                               timeout=60, check=False)
     finally:
         node.send_signal(signal.SIGTERM)
@@ -731,3 +731,27 @@ to = "tally.x"
     assert f"launcher at tcp://127.0.0.1:{port}" in done.stdout
     link = next(line for line in done.stdout.splitlines()[::-1] if "tick.out -> tally.x" in line)
     assert int(link.split()[5]) > 0, done.stdout          # values crossed from far to here
+
+
+def test_a_module_next_to_its_configuration_file_imports_on_every_node(tmp_path: Path) -> None:
+    project, elsewhere = tmp_path / "project", tmp_path / "elsewhere"
+    project.mkdir()
+    elsewhere.mkdir()
+    (project / "beside.py").write_text(MODULES_BESIDE_THE_FILE)
+    # neither the launcher's nor the node's working directory or PYTHONPATH has it
+    _run_tick_far_tally_here("beside", project, elsewhere, _env())
+
+
+def test_a_module_on_the_launcher_s_pythonpath_imports_on_a_node_started_without_it(
+        tmp_path: Path) -> None:
+    """``pb3a run FILE`` handed its nodes the file's directory alone, where a system built
+    in a script hands them its ``PYTHONPATH``'s directories too: a class the launcher
+    imported from its ``PYTHONPATH`` was not found on a node started without it ("cannot
+    import module 'onpath' ... put it in the launcher's directory on this machine")."""
+    project, lib, elsewhere = tmp_path / "project", tmp_path / "lib", tmp_path / "elsewhere"
+    for directory in (project, lib, elsewhere):
+        directory.mkdir()
+    (lib / "onpath.py").write_text(MODULES_BESIDE_THE_FILE)
+    env = _env()
+    env["PYTHONPATH"] = os.pathsep.join([str(lib), env["PYTHONPATH"]])
+    _run_tick_far_tally_here("onpath", project, elsewhere, env)

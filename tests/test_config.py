@@ -237,6 +237,26 @@ def test_a_system_built_in_python_is_imported_from_its_script_s_directories(
     assert sys.path[:2] == [str(here), str(lib)]          # (installed here too, first)
 
 
+def test_a_configuration_file_hands_its_nodes_its_directory_then_the_pythonpath_s(
+        tmp_path, monkeypatch) -> None:
+    """A configuration file's system (``pb3a run FILE``, ``System.load``) hands its nodes
+    the file's directory, then its launcher's ``PYTHONPATH``'s, as a script's system
+    hands its own: those that exist, once each. It handed the file's directory alone,
+    and a node started without that ``PYTHONPATH`` could not import a class of it."""
+    conf, lib = tmp_path / "conf", tmp_path / "lib"
+    conf.mkdir()
+    lib.mkdir()
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "path", list(sys.path))          # (the plan installs its own)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(lib), str(tmp_path / "gone"), "",
+                                                      str(conf)]))
+    (conf / "system.toml").write_text('name = "filed"\n[modules.t]\n'
+                                      'class = "examples.pipeline:Ticker"\n')
+    plan = System.load(conf / "system.toml").plan()
+    assert plan.code.paths == (str(conf), str(lib))
+    assert sys.path[:2] == [str(conf), str(lib)]
+
+
 def test_a_script_that_put_a_directory_first_hands_its_own_directory_too(
         tmp_path, monkeypatch) -> None:
     """``sys.path.insert(0, lib)`` in a script handed its nodes ``lib`` alone: a class of

@@ -38,7 +38,7 @@ from pb3a.config.plan import DEFAULT_NODE, FlatLink, FlatModule, Plan
 from pb3a.errors import ConfigError
 from pb3a.loading import served, trial
 from pb3a.loading.references import changed_since_import, class_ref, resolve_class
-from pb3a.loading.sources import CodeSources, launcher_paths
+from pb3a.loading.sources import CodeSources, file_paths, launcher_paths
 from pb3a.model.environment import Environment, env_name
 from pb3a.model.macro import Macro
 from pb3a.model.module import Module
@@ -167,12 +167,14 @@ class _Planner:
         wrong = {server: checks.server_address(server) for server in servers}
         self.report(origin, [problem for problems in wrong.values() for problem in problems])
         servers = [server for server in servers if not wrong[server]]
-        # a file's own directory, where its modules may be: not that of a source that
-        # only names a description (``System.from_dict``'s), which was the current one;
-        # that, and a system built in Python, has the directories its script imported
-        # from, which its nodes lacked (a class of a file beside the script)
-        here = (str(Path(spec.source).resolve().parent),) if spec.source is not None \
-            and Path(spec.source).is_file() else launcher_paths()
+        # a file's own directory, where its modules may be, then the launcher's
+        # PYTHONPATH (a node started without it lacked a class imported from it): not
+        # that of a source that only names a description (``System.from_dict``'s), which
+        # was the current one; that, and a system built in Python, has the directories
+        # its script imported from, which its nodes lacked (a class of a file beside the
+        # script)
+        here = file_paths(str(Path(spec.source).resolve().parent)) \
+            if spec.source is not None and Path(spec.source).is_file() else launcher_paths()
         code = CodeSources(here, tuple(servers))
         code.install()
         return code

@@ -2,12 +2,13 @@
 
 A configuration file's own directory comes first on the import path, so a module
 written next to the file imports without ``PYTHONPATH`` (as a script's directory
-does for the script); a system built in Python has its launching script's directory
-and ``PYTHONPATH`` there instead (``launcher_paths``), those its launcher imported
-its classes from. Module servers are asked last, after every local finder. The
-launcher installs the sources before it resolves the configuration's classes, and
-every worker and node share process it starts installs them too, before it imports
-any of them (``import_path``: one order for all).
+does for the script), then the launcher's ``PYTHONPATH`` (``file_paths``); a system
+built in Python has its launching script's directory and ``PYTHONPATH`` there instead
+(``launcher_paths``): those its launcher imported its classes from. Module servers
+are asked last, after every local finder. The launcher installs the sources before
+it resolves the configuration's classes, and every worker and node share process it
+starts installs them too, before it imports any of them (``import_path``: one order
+for all).
 """
 
 from __future__ import annotations
@@ -67,9 +68,30 @@ def launcher_paths() -> tuple[str, ...]:
         script = getattr(main, "__file__", None)
         if isinstance(script, str) and getattr(main, "__spec__", None) is None:
             found.append(os.path.dirname(os.path.abspath(script)))      # (not python -m)
-    if not sys.flags.ignore_environment:
-        found.extend(entry for entry in os.environ.get("PYTHONPATH", "").split(os.pathsep)
-                     if entry)
+    return _existing([*found, *_python_path()])
+
+
+def file_paths(directory: str) -> tuple[str, ...]:
+    """The directories a system described in a configuration file is imported from, to
+    be handed to its nodes: the file's ``directory``, then those of this process's
+    ``PYTHONPATH`` (unless ignored, ``-E``), as ``launcher_paths`` hands a script's; those
+    that exist, each once, absolute. A class ``pb3a run`` imported from its
+    ``PYTHONPATH`` was looked for on a node started without it in the file's directory
+    alone, and not found there."""
+    return _existing([directory, *_python_path()])
+
+
+def _python_path() -> list[str]:
+    """The entries of ``PYTHONPATH`` as this process's Python took them (none with
+    ``-E``), empty ones left out."""
+    if sys.flags.ignore_environment:
+        return []
+    return [entry for entry in os.environ.get("PYTHONPATH", "").split(os.pathsep) if entry]
+
+
+def _existing(found: list[str]) -> tuple[str, ...]:
+    """The directories of ``found`` that exist, each once, absolute (``''``: the current
+    one), in that order."""
     paths: list[str] = []
     for entry in found:
         try:
