@@ -978,13 +978,14 @@ def test_a_wrong_key_is_told_apart_from_no_answer_within_5_s(caplog) -> None:
     system = System("keys").node("a").node("b", address="tcp://127.0.0.1:1")
     system.add("far", Collector, node="b")
     started = time.monotonic()
-    with pytest.raises(RuntimeTimeout, match=r"node b: no node controller answered at "
-                                             r"tcp://127\.0\.0\.1:1 within 5 s; nothing "
+    # (refused: said once refused for REFUSED_S, not after the 5 s of a ping)
+    with pytest.raises(RuntimeFailure, match=r"node b: no node controller at "
+                                             r"tcp://127\.0\.0\.1:1; nothing "
                                              r"listens on port 1 at 127\.0\.0\.1 \(the "
                                              r"connection was refused\): start a node "
                                              r"controller"):
         system.launch()
-    assert time.monotonic() - started < 8
+    assert time.monotonic() - started < 4
     stranger = NodeController("b", ClusterKey(os.urandom(32)), limits=Limits(101.0))
     try:
         system = System("keys").node("a").node("b", address=stranger.address)
@@ -1401,14 +1402,14 @@ def test_every_unreachable_node_is_named_at_once_and_the_started_executors_stop(
         for node in ("a", "b", "x", "c", "y"):
             system.add(f"at_{node}", Collector, node=node)
         began = time.monotonic()
-        with pytest.raises(RuntimeTimeout) as raised:
+        with pytest.raises(RuntimeFailure) as raised:    # (not all timed out: x refused)
             system.launch()
         took = time.monotonic() - began
     said = str(raised.value)
     assert said.startswith("system 'unreachable' was not started: 2 of its 4 remote nodes "
                            "did not start an executor (no module was started):"), said
-    assert re.search(rf"\n  node x: no node controller answered at {refused} within 5 s; "
-                     r"nothing listens on port", said), said
+    assert re.search(rf"\n  node x: no node controller at {refused}; nothing listens on "
+                     r"port", said), said
     # (at 127.0.0.1, it is not where a controller on 127.0.0.1 is not reached)
     assert "listens on 127.0.0.1" not in said.partition("\n  node x: ")[2].partition("\n")[0]
     assert re.search(r"\n  node y: no node controller answered at \S+ within 5 s; something "

@@ -48,6 +48,10 @@ log = logging.getLogger("pb3a.launcher")
 
 CONNECT_TIMEOUT = 5.0      # a node controller answers a ping at once, or is not there
 PROBE_S = 1.0              # ... and then a plain connection there tells why it did not
+# A controller's port refused this long is one nothing listens on (not started, or
+# listening elsewhere), said then, not once the ping's CONNECT_TIMEOUT has run out; one
+# restarted (by systemd, say) as the launch begins listens again sooner.
+REFUSED_S = 2.0
 START_TIMEOUT = 60.0       # an executor process imports numpy and friends first
 CALL_TIMEOUT = 60.0        # the executor's own requests to its workers have deadlines
 MARGIN_S = 5.0             # beyond an operation's own deadline: the way there and back
@@ -228,6 +232,10 @@ class RemoteNode:
         restarted during this launch's start before (``restarted``): the start is to
         be asked of it again."""
         name = self.name
+        pinged = threading.Event()
+        watch = threading.Thread(target=self._fail_if_refused, args=(starting, address, pinged),
+                                 name=f"pb3a-refused-{name}", daemon=True)
+        watch.start()
         try:
             starting.call("ping", CONNECT_TIMEOUT)
         except RuntimeTimeout:
@@ -238,6 +246,9 @@ class RemoteNode:
         except RuntimeFailure as exc:
             self.close()
             raise RuntimeFailure(f"node {name}: {exc}") from None
+        finally:
+            pinged.set()
+            watch.join(PROBE_S)
         started = False
         try:
             executor, started = starting.call("start_executor", START_TIMEOUT, config=config,
@@ -296,6 +307,22 @@ class RemoteNode:
             f"{executor}, on the host other nodes reach node {name} at ({host}); make "
             f"[nodes.{name}] advertise an address of that machine which this one and the "
             "other nodes reach, and open its ports to them")
+
+    def _fail_if_refused(self, starting: ControlClient, address: str,
+                         pinged: threading.Event) -> None:
+        """Fail the ping that ``starting`` waits for at ``address`` if the port stays
+        refused for ``REFUSED_S``, saying so (ZeroMQ tries again and again, and tells
+        nobody: a mistaken port was said after the ping's 5 s, and its probe's);
+        nothing once the ping is answered, or if the port is not refused (a host that does
+        not answer is waited for)."""
+        deadline = time.monotonic() + REFUSED_S
+        while isinstance(connection_failure(address, PROBE_S), ConnectionRefusedError):
+            if time.monotonic() >= deadline:
+                starting.fail_pending(RuntimeFailure(
+                    f"no node controller at {address}; {_unanswered(self.name, address)}"))
+                return
+            if pinged.wait(REFUSED_S / 10):
+                return
 
     def _controller_gone(self, address: str, reason: str) -> RuntimeFailure:
         """The error of the start's calls, its node controller gone (``reason``); the
