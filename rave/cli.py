@@ -1,9 +1,11 @@
 """The rave command: serve a world and its robots, inject faults, render.
 
-    rave start WORLD [--seed N] [--listen HOST] [--rate R | --lockstep]
+    rave start WORLD [--seed N] [--listen HOST] [--port PORT] [--rate R | --lockstep]
                [--watchdog SECONDS]   step WORLD in real time (or R times it, or
                                       when its controller asks) and start one robot
-                                      server per robot; prints every address
+                                      server per robot; prints every address (with
+                                      --port, the world's at PORT and robot i's at
+                                      PORT + i, the same at every start)
     rave fault ROBOT_ADDR FAULT [--sonars I ...] [--bias B] [--clear]
                                       inject (or clear) a fault in a hardware robot
     rave render WORLD [-o FILE]       draw the world (PNG, SVG or PDF by suffix)
@@ -16,7 +18,7 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
-from pb3a.cli.arguments import seed, wait_seconds
+from pb3a.cli.arguments import port, seed, wait_seconds
 from pb3a.cli.log_output import show_logs
 
 # A robot none of whose requests came for this long (the world's time) is stopped, as
@@ -40,6 +42,10 @@ def _parser() -> argparse.ArgumentParser:
     start.add_argument("--seed", type=seed, default=0, help="0 or more (default 0)")
     start.add_argument("--listen", default="127.0.0.1", metavar="HOST",
                        help="the interface to serve on (default 127.0.0.1)")
+    start.add_argument("--port", type=port, default=0, metavar="PORT",
+                       help="the world server's port, and robot i's (in the world file's "
+                            "order, from 1) PORT + i: addresses a configuration can keep "
+                            "(default: free ports, others at every start)")
     start.add_argument("--rate", type=float, default=1.0,
                        help="simulated seconds per wall-clock second (default 1)")
     start.add_argument("--lockstep", action="store_true",
@@ -68,6 +74,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def start_command(args: argparse.Namespace) -> int:
     from pb3a.cli.daemons import serve_until_signalled
+    from pb3a.transport.addresses import check_bindable
     from rave.server import RobotServers, WorldServer
     from rave.world import World
     from rave.worldfile import WorldError, world_file
@@ -84,17 +91,27 @@ def start_command(args: argparse.Namespace) -> int:
         watchdog_s = WATCHDOG_S * (1.0 if args.lockstep else max(1.0, args.rate))
 
     def start(key: Any, host: str, port: int) -> tuple[Any, str]:
+        ports = [port + i for i in range(1, len(world.robots) + 1)] if port else None
+        for robot_port in ports or ():      # (said at once, before anything starts)
+            check_bindable(f"tcp://{host}:{robot_port}", host, robot_port)
         served = _Served(WorldServer(world, host, port, rate=args.rate,
                                       lockstep=args.lockstep, watchdog_s=watchdog_s))
-        served.robots = RobotServers(served.world.address, list(world.robots), host)
+        served.robots = RobotServers(served.world.address, list(world.robots), host, ports)
         lines = [f"world {world.name} at {served.world.address}"]
         lines += [f"robot {name} at {address}"
                   for name, address in served.robots.addresses.items()]
         return served, "\n".join(lines)
     # (the simulator serves the launchers of its own machine, which share its
     # ~/.pb3a/cluster.key: it may make that key on first use, as they do)
-    return serve_until_signalled("rave start", f"tcp://{args.listen}:0", start,
-                                 create_key=True)
+    # (closed however it ends: a port in use left the hardware robots' emulators running)
+    with world:
+        if args.port and args.port + len(world.robots) > 65535:
+            print(f"rave start: --port {args.port} leaves no port for robot "
+                  f"{len(world.robots)} of {len(world.robots)} (each robot i is served at "
+                  "PORT + i, up to 65535): choose a lower port", file=sys.stderr)
+            return 1
+        return serve_until_signalled("rave start", f"tcp://{args.listen}:{args.port}", start,
+                                     create_key=True)
 
 
 class _Served:

@@ -322,16 +322,18 @@ def _served_at(pipe: Any, what: str) -> str:
 class RobotServers:
     """One robot server process per robot of a served world; stops them all, or one."""
 
-    def __init__(self, world_address: str, robots: list[str], host: str = "127.0.0.1") -> None:
+    def __init__(self, world_address: str, robots: list[str], host: str = "127.0.0.1",
+                 ports: list[int] | None = None) -> None:
+        """``ports``: each robot's, in order (None: free ones)."""
         self.addresses: dict[str, str] = {}
         self._processes: dict[str, Any] = {}
         self._pipes: dict[str, Any] = {}   # held open: a server stops when its closes
         try:
-            for name in robots:
+            for name, port in zip(robots, ports or [0] * len(robots), strict=True):
                 parent, child = _context.Pipe()
                 process = _context.Process(target=robot_server_main, daemon=True,
                                            name=f"rave-robot-{name}",
-                                           args=(name, world_address, host, child))
+                                           args=(name, world_address, host, child, port))
                 start_without_main(process)
                 child.close()
                 self._processes[name] = process
@@ -363,7 +365,8 @@ class RobotServers:
         self._pipes.clear()
 
 
-def robot_server_main(name: str, world_address: str, host: str, conn: Any) -> None:
+def robot_server_main(name: str, world_address: str, host: str, conn: Any,
+                      port: int = 0) -> None:
     """A robot server process: relay requests for robot ``name`` to the world server,
     dropping one not begun within the time its caller waits (see ``serve_device``)."""
     stopped = threading.Event()
@@ -385,7 +388,7 @@ def robot_server_main(name: str, world_address: str, host: str, conn: Any) -> No
 
     # (a request its driver no longer waits for is dropped, as a device's: a turn asked
     # again after a timeout, the world busy, would advance it twice)
-    server = ControlServer(key, relay, host, name=f"rave-robot-{name}",
+    server = ControlServer(key, relay, host, port, name=f"rave-robot-{name}",
                            title=f"the robot server of {name}", expires=True)
     try:
         serve_as_child(conn, server.address, stopped)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -15,7 +16,7 @@ import time
 import numpy as np
 import psutil
 import pytest
-from conftest import HeldKey, alive, eventually
+from conftest import HeldKey, alive, eventually, unused_port
 from sample_modules import Cruise
 
 from pb3a import RuntimeFailure, RuntimeTimeout, System
@@ -24,6 +25,7 @@ from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlClient
 from rave import World, cli, render
 from rave.server import RobotServers, WorldProcess, WorldServer
+from rave.sonar import COUNT as SONARS
 
 
 @pytest.fixture
@@ -426,6 +428,54 @@ def test_the_rave_command_serves_a_world_injects_faults_and_renders(tmp_path, ca
     assert cli.main(["render", "rooom", "-o", str(tmp_path / "x.png")]) == 1
     assert ("no world 'rooom': the bundled worlds are arena, lab, room, or give the path of a "
             "world file") in capsys.readouterr().err
+
+
+def test_the_rave_command_serves_on_the_ports_it_is_given_and_names_one_in_use(capsys) -> None:
+    """Its servers took free ports, other ones at every start, so a configuration's
+    robot addresses were wrong once the simulator was started again: ``--port`` puts
+    the world at PORT and robot i at PORT + i; a port in use is named at once, and so is
+    a port that leaves none for the last robot."""
+    base = unused_port()
+    while not all(_free(base + i) for i in (-1, 1, 2)):    # (the second's world: base - 1)
+        base = unused_port()
+    process = subprocess.Popen([sys.executable, "-m", "rave.cli", "start", "arena",
+                                "--port", str(base)], stdout=subprocess.PIPE, text=True)
+    try:
+        lines = [process.stdout.readline().strip() for _ in range(3)]
+        assert lines == [f"world arena at tcp://127.0.0.1:{base}",
+                         f"robot r1 at tcp://127.0.0.1:{base + 1}",
+                         f"robot r2 at tcp://127.0.0.1:{base + 2}"], lines
+        client = ControlClient(ClusterKey.load(), f"tcp://127.0.0.1:{base + 2}")
+        try:
+            assert len(client.call("sensors")["sonar"]) == SONARS     # (r2 answers)
+        finally:
+            client.close()
+        # a second simulator, its r1 on the first's world port: that is named, none starts
+        assert cli.main(["start", "arena", "--port", str(base - 1)]) == 1
+        said = capsys.readouterr().err
+        assert said.startswith(f"rave start: cannot listen on tcp://127.0.0.1:{base}: port "
+                               f"{base} is in use"), said
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=15) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(5)
+        process.stdout.close()
+    assert cli.main(["start", "arena", "--port", "65534"]) == 1
+    assert "--port 65534 leaves no port for robot 2 of 2" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli.main(["start", "arena", "--port", "70000"])
+    assert "'70000' is not a port" in capsys.readouterr().err
+
+
+def _free(port: int) -> bool:
+    with socket.socket() as probe:
+        try:
+            probe.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
 
 
 def test_the_rave_command_on_every_interface_prints_addresses_rave_fault_takes(

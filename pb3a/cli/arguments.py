@@ -36,6 +36,18 @@ def seed(text: str, most: int | None = None) -> int:
     return value
 
 
+def port(text: str) -> int:
+    """A TCP port to listen on: 1 to 65535, or 0 for a free one."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a port: give a whole number from 1 to 65535 (0: a free one)")
+    return value
+
+
 def percent(text: str) -> float:
     """A finite percentage, 0 or more (a limit: above 100 never reached). A NaN limit
     was taken, and no load is above NaN: it switched the node's CPU check off."""

@@ -266,7 +266,7 @@ class NodeController:
             if entry is not None and executor is not None and entry.address != executor:
                 log.warning("node %s: a stop of the executor for %r at %s, which runs no "
                             "more, left the one at %s running (a request sent before, "
-                            "delivered late)", self.name, config, executor, entry[2])
+                            "delivered late)", self.name, config, executor, entry.address)
                 return False
             entry = self._executors.pop(config, None)
         if entry is None:
