@@ -89,6 +89,9 @@ class ModuleStats:
     events: int = 0             # on_input calls
     errors: int = 0             # exceptions raised by its bodies
     last_error: str = ""
+    # when it was raised (wall clock, seconds since the epoch: a module's node may be
+    # another machine), so that an error long past is told from one raised just now
+    last_error_at: float | None = None
     cpu: float = 0.0            # CPU seconds (its whole worker's when it runs alone)
     inputs: dict[str, InputStats] = field(default_factory=dict)
     outputs: dict[str, int] = field(default_factory=dict)    # values written, per output

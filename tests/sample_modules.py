@@ -29,6 +29,17 @@ class Counter(Module):
         self.out.write(self.count)
 
 
+class FailsOnce(Module):
+    """Raises ``RuntimeError("once")`` in its third step, and never again."""
+
+    steps = 0
+
+    def step(self) -> None:
+        self.steps += 1
+        if self.steps == 3:
+            raise RuntimeError("once")
+
+
 class Burst(Module):
     """Writes ``limit`` values as fast as it can in one step, then idles."""
 

@@ -21,6 +21,7 @@ from conftest import alive, eventually
 from sample_modules import (
     Chain,
     Counter,
+    FailsOnce,
     FastScale,
     FloatSource,
     Freezer,
@@ -206,6 +207,27 @@ def test_status_shows_the_cause_of_a_multi_line_error_on_its_row() -> None:
     assert rows[1].endswith("ConfigError: swap loop/filter: module 'control' has no cl..."), \
         rows[1]
     assert rows[2].endswith("ValueError: first; second"), rows[2]
+
+
+def test_status_says_how_long_ago_a_module_s_last_error_was_raised() -> None:
+    """A module's last error stayed on its row, with nothing to tell it from a fresh one,
+    long after its cause was mended (a first-time user fixed an explorer's setting live,
+    and still saw its error): the row says how long ago it was raised. ``stats()`` has
+    when (the wall clock), and a move keeps it with the error."""
+    system = System("dated").node("a").node("b")
+    system.add("flaky", FailsOnce, node="a", period=0.01)
+    before = time.time()
+    with system.launch() as run:
+        eventually(lambda: run.stats().modules["flaky"].errors == 1, what="its one error")
+        at = run.stats().modules["flaky"].last_error_at
+        run.migrate("flaky", to="b")
+        moved = run.stats().modules["flaky"]
+    assert before <= at <= time.time(), (before, at)
+    assert moved.last_error_at == at and moved.last_error.startswith("RuntimeError: once")
+    stats = SystemStats(system="s", links={}, nodes={}, failures=[], modules={
+        "m": ModuleStats(cls="m:M", node="local", worker="local/m-m", status="running",
+                         errors=1, last_error="ValueError: late", last_error_at=at - 300)})
+    assert format_table(stats).splitlines()[1].endswith("5 min ago: ValueError: late")
 
 
 def test_status_shows_every_node_as_nodes_does(capsys) -> None:

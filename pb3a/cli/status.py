@@ -40,9 +40,11 @@ def format_table(stats: SystemStats) -> str:
     acts on it ("running (migrate slow to b for 5 s)"); its period, the one it steps at
     now (set live too), "-" for one run only on events (a period its class sets
     without a step() included), "0.02 fixed" for a fixed rate, whose status says the
-    periods it skipped ("(overruns 3)"), if any."""
+    periods it skipped ("(overruns 3)"), if any; its last error, how long ago it was
+    raised."""
     rows = [("module", "node", "pid", "status", "period s", "steps", "events", "cpu s",
              "errors", "last error")]
+    now = time.time()
     for name, m in stats.modules.items():
         fixed = m.fixed_rate and m.period is not None
         status = m.status + (" (silent)" if m.silent else "") \
@@ -53,7 +55,7 @@ def format_table(stats: SystemStats) -> str:
         rows.append((name, m.node, str(m.pid or "-"), status,
                      "-" if m.period is None else f"{m.period:g}" + " fixed" * fixed,
                      str(m.steps), str(m.events), f"{m.cpu:.2f}", str(m.errors),
-                     _shortened(m.last_error)))
+                     _shortened(_dated(m.last_error, m.last_error_at, now))))
     lines = _columns(rows)
     if stats.links:
         lines.append("")
@@ -87,6 +89,17 @@ def format_nodes(nodes: dict[str, NodeStats]) -> str:
         rows.append((name, node.address or "(embedded)", health,
                      "-" if math.isnan(node.rtt) else f"{node.rtt * 1e3:.1f} ms"))
     return "\n".join(_columns(rows) + refusals)
+
+
+def _dated(error: str, at: float | None, now: float) -> str:
+    """A module's last ``error``, how long ago it was raised first ("3 s ago: ..."), so
+    that one long past, its cause since mended, is not taken for a fresh one."""
+    if not error or at is None:
+        return error
+    ago = max(0.0, now - at)
+    age = (f"{ago:.0f} s" if ago < 120 else f"{ago / 60:.0f} min" if ago < 7200
+           else f"{ago / 3600:.0f} h")
+    return f"{age} ago: {error}"
 
 
 def _shortened(text: str, most: int = LAST_ERROR_WIDTH) -> str:

@@ -726,7 +726,8 @@ class Executor:
             running=figures["running"] and record.status == "running",
             calling=calling, calling_s=calling_s,
             steps=figures["steps"], events=figures["events"], errors=figures["errors"],
-            last_error=figures["last_error"], cpu=figures["cpu"],
+            last_error=figures["last_error"], last_error_at=figures["last_error_at"],
+            cpu=figures["cpu"],
             inputs={name: InputStats(**port) for name, port in figures["inputs"].items()},
             outputs=dict(figures["outputs"]),
             output_waits={name: WaitStats(waits["waits"], waits["wait_s"])

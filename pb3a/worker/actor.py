@@ -216,6 +216,7 @@ class ModuleActor:
         # turns it off and reports its whole process's CPU time instead.
         self.timed = True
         self.last_error = ""
+        self.last_error_at: float | None = None     # (wall clock: ModuleStats')
         self.running = False
         self.in_setup = False         # its setup runs (its agent's requests say so)
         self._schedule = schedule     # runs a dispatch task: the event pool, or inline
@@ -532,6 +533,7 @@ class ModuleActor:
                 except BaseException as exc:    # SystemExit, CancelledError too: counted,
                     self.errors += 1            # never the end of a shared thread
                     self.last_error = f"{type(exc).__name__}: {exc}{raised_at(exc)}"
+                    self.last_error_at = time.time()
                     if self.on_error is not None:
                         self.on_error(self, hook, traceback.format_exc())
                     else:
@@ -773,6 +775,7 @@ class ModuleActor:
                 "counters": {"steps": self.steps, "events": self.events,
                              "overruns": self._rate.overruns,
                              "errors": self.errors, "last_error": self.last_error,
+                             "last_error_at": self.last_error_at,
                              "written": {name: port.written
                                          for name, port in self.outputs.items()}}}
 
@@ -808,7 +811,9 @@ class ModuleActor:
         self.events += counters["events"]
         self.errors += counters["errors"]
         self._rate.overruns += counters["overruns"]
-        self.last_error = self.last_error or counters["last_error"]
+        if not self.last_error:
+            self.last_error = counters["last_error"]
+            self.last_error_at = counters["last_error_at"]
         for name, written in counters["written"].items():
             if name in self.outputs:
                 self.outputs[name].written += written
@@ -1038,6 +1043,7 @@ class ModuleActor:
                 "class": f"{type(self.module).__module__}:{type(self.module).__qualname__}",
                 "steps": self.steps, "events": self.events, "errors": self.errors,
                 "cpu": self.cpu + self._step_thread_cpu(), "last_error": self.last_error,
+                "last_error_at": self.last_error_at,
                 "running": self.running,
                 "period": stepped_period(type(self.module), self.period),
                 "fixed_rate": self.fixed_rate, "overruns": self._rate.overruns,
