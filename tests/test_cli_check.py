@@ -505,3 +505,135 @@ def test_check_of_a_module_file_that_reads_input_as_imported_does_not_wait_for_i
     assert done.stdout.startswith(
         "harmed.toml [modules.imported_reads]: importing module 'imported_reads' for "
         f"'imported_reads:Bad' failed at {tmp_path / 'imported_reads.py'}, line 1: EOFError")
+
+
+FORGETFUL = """
+    from pb3a import Agent, Input, Module, Output
+
+    class Ctl(Module):                  # a step() and no period: never stepped
+        pose = Input(float)
+        command = Output(float)
+
+        def step(self):
+            self.command.write(1.0)
+
+    class Drv(Module):
+        period = 0.05
+        command = Input(float)
+        pose = Output(float)
+        spare = Output(float)           # read by nothing, as a spare reading is
+
+        def step(self):
+            self.pose.write(0.0)
+
+    class SelfTimed(Module):            # gives itself its period as it sets up
+        def setup(self):
+            self.period = 0.1
+
+        def step(self):
+            pass
+
+    class Alone(Module):                # no link touches it (wired as the system runs)
+        x = Input(int)
+
+        def on_input(self, port):
+            pass
+
+    class Watcher(Agent):               # an agent's ports are its own business
+        seen = Input(str)
+        said = Output(str)
+    """
+FORGOTTEN = """
+    name = "robot"
+    [modules.ctl]
+    class = "forgetful:Ctl"
+    [modules.driver]
+    class = "forgetful:Drv"
+    [modules.timed]
+    class = "forgetful:SelfTimed"
+    [modules.alone]
+    class = "forgetful:Alone"
+    [modules.watcher]
+    class = "forgetful:Watcher"
+    [[links]]
+    from = "driver.pose"
+    to = "ctl.pose"
+"""
+
+
+def test_check_notes_a_step_with_no_period_and_a_forgotten_link_and_exits_0(
+        tmp_path: Path) -> None:
+    """A configuration that does nothing passed with a bare "ok": a class with a step()
+    and no period is never stepped, an input no link feeds never gets a value (a
+    reviewer's robot never moved). Each is a note, the exit status 0; a module that
+    gives itself a period, one no link touches, an agent's ports and an output read by
+    nothing alone (a spare reading) are no note, and the shipped configurations have
+    none."""
+    (tmp_path / "forgetful.py").write_text(textwrap.dedent(FORGETFUL))
+    (tmp_path / "robot.toml").write_text(textwrap.dedent(FORGOTTEN))
+    done = pb3a("check", "robot.toml", cwd=tmp_path)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert done.stdout.splitlines() == [
+        "robot.toml [modules.ctl]: note: ctl (forgetful:Ctl) defines step() but has no "
+        "period: its step() never runs (give it period = SECONDS in its entry or on its "
+        "class), unless its period is set as it runs (pb3a set ADDR ctl period=..., an "
+        "agent's set_state)",
+        "robot.toml [modules.driver]: note: driver.command is fed by nothing, and "
+        "ctl.command is read by nothing: a link forgotten? ([[links]] from = "
+        '"ctl.command", to = "driver.command")',
+        "ok: 5 modules, 1 link"], done.stdout
+    fixed = textwrap.dedent(FORGOTTEN).replace(       # a period, the link made: no note
+        'class = "forgetful:Ctl"', 'class = "forgetful:Ctl"\nperiod = 0.05')
+    (tmp_path / "robot.toml").write_text(
+        f'{fixed}[[links]]\nfrom = "ctl.command"\nto = "driver.command"\n')
+    done = pb3a("check", "robot.toml", cwd=tmp_path)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert done.stdout == "ok: 5 modules, 2 links\n"
+    for shipped in ("examples/pipeline.toml", "examples/stressed.toml",     # (few notes:
+                    "examples/two_nodes.toml", "scenarios/mapping.toml",   # here none)
+                    "scenarios/sim_to_real.toml", "scenarios/traffic.toml"):
+        done = pb3a("check", str(REPO / shipped), cwd=tmp_path)
+        assert done.returncode == 0, done.stdout + done.stderr
+        assert done.stdout.startswith("ok: ") and len(done.stdout.splitlines()) == 1, \
+            done.stdout
+
+
+def test_an_input_fed_by_nothing_is_noted_with_the_output_that_alone_could_feed_it(
+        tmp_path: Path) -> None:
+    """An input fed by nothing, of a module a link touches, is noted though no output
+    read by nothing could alone feed it (two could, neither of its name: none is named);
+    of two, one of its name is named."""
+    (tmp_path / "forgetful.py").write_text(textwrap.dedent(FORGETFUL) + textwrap.dedent("""
+        class Turn(Module):
+            heading = Input(float)
+            x = Input(float)
+
+            def on_input(self, port):
+                pass
+        """))
+    (tmp_path / "robot.toml").write_text(textwrap.dedent("""
+        name = "robot"
+        [modules.driver]
+        class = "forgetful:Drv"
+        [modules.ctl]
+        class = "forgetful:Ctl"
+        period = 0.05
+        [modules.turn]
+        class = "forgetful:Turn"
+        [[links]]
+        from = "ctl.command"
+        to = "driver.command"
+        [[links]]
+        from = "ctl.command"
+        to = "turn.x"
+        """))
+    done = pb3a("check", "robot.toml", cwd=tmp_path)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert done.stdout.splitlines() == [
+        "robot.toml [modules.ctl]: note: ctl.pose is fed by nothing, and driver.pose is "
+        'read by nothing: a link forgotten? ([[links]] from = "driver.pose", to = '
+        '"ctl.pose")',
+        "robot.toml [modules.turn]: note: turn.heading is fed by nothing: no link feeds it, "
+        "so it never gets a value (link an output to it, unless a link made as the system "
+        "runs will)",
+        "ok: 3 modules, 2 links"], done.stdout

@@ -66,6 +66,47 @@ def test_run_for_seconds_shows_the_table_and_stops_cleanly(tmp_path: Path) -> No
     assert "stopped cleanly" in out
 
 
+def test_run_says_the_file_s_notes_before_it_launches(tmp_path: Path) -> None:
+    """A run is often started unchecked: the notes ``pb3a check`` prints (a step with no
+    period, a link forgotten) come on its stderr too, once, and the run goes on."""
+    (tmp_path / "idle.py").write_text(textwrap.dedent("""
+        from pb3a import Input, Module, Output
+
+        class Ctl(Module):
+            command = Output(float)
+
+            def step(self):
+                self.command.write(1.0)
+
+        class Drv(Module):
+            command = Input(float)
+
+            def on_input(self, port):
+                pass
+        """))
+    (tmp_path / "idle.toml").write_text(textwrap.dedent("""
+        name = "idle"
+        [modules.ctl]
+        class = "idle:Ctl"
+        [modules.driver]
+        class = "idle:Drv"
+        """))
+    done = subprocess.run([sys.executable, "-m", "pb3a", "run", "idle.toml", "--for", "0.5"],
+                          cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=60,
+                          check=False)
+    assert done.returncode == 0, done.stderr
+    notes = [line for line in done.stderr.splitlines() if ": note: " in line]
+    assert notes == [
+        "idle.toml [modules.ctl]: note: ctl (idle:Ctl) defines step() but has no period: "
+        "its step() never runs (give it period = SECONDS in its entry or on its class), "
+        "unless its period is set as it runs (pb3a set ADDR ctl period=..., an agent's "
+        "set_state)",
+        "idle.toml [modules.driver]: note: driver.command is fed by nothing, and "
+        'ctl.command is read by nothing: a link forgotten? ([[links]] from = '
+        '"ctl.command", to = "driver.command")'], done.stderr
+    assert "stopped cleanly" in done.stdout
+
+
 def test_a_run_whose_module_does_not_stop_does_not_say_it_stopped_cleanly(
         tmp_path: Path) -> None:
     """A module stuck in ``on_input`` as the run ended had its worker killed, its

@@ -27,11 +27,15 @@ T = TypeVar("T")
 
 
 def check_command(args: argparse.Namespace) -> int:
-    """``pb3a check FILE``: every problem on its own line (exit 1), or a one-line summary."""
+    """``pb3a check FILE``: every problem on its own line (exit 1), or the notes on what
+    the file likely leaves undone (``Plan.notes``), each on its own line, then a one-line
+    summary (exit 0: a note is no problem)."""
     checked = _reported(args.file, "check", lambda: check_file(
         args.file, import_timeout=args.import_timeout))
     if checked is None:
         return 1
+    for note in checked.notes:
+        print(note)
     modules, links = checked.modules, checked.links
     print(f"ok: {modules} module{'s' * (modules != 1)}, {links} link{'s' * (links != 1)}")
     return 0
@@ -82,7 +86,8 @@ def graph_command(args: argparse.Namespace) -> int:
 
 
 def run_command(args: argparse.Namespace) -> int:
-    """``pb3a run FILE [--for SECONDS]``: launch with a live status display."""
+    """``pb3a run FILE [--for SECONDS]``: launch with a live status display, after the
+    file's notes (``pb3a check``'s, on stderr: a run is often started unchecked)."""
     import zmq
 
     from pb3a.cli.daemons import raise_open_files_limit
@@ -93,6 +98,8 @@ def run_command(args: argparse.Namespace) -> int:
     plan = load_plan(args.file, "run", args.import_timeout)
     if plan is None:
         return 1
+    for note in plan.notes:     # (on stderr: the live table clears the terminal's screen)
+        print(note, file=sys.stderr)
     try:
         ClusterKey.load()       # before anything starts (its workers would inherit it)
         return run_with_status(plan, args.seconds, listen=args.listen,

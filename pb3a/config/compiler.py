@@ -15,6 +15,8 @@ The work goes in phases, each collecting problems instead of stopping at one:
    (``robot/mapper/grid``), nodes and groups inherited, each macro instance's
    macro recorded by its path; then inputs fed twice and groups spread over
    nodes are reported.
+6. *notes*: a valid plan notes what it likely leaves undone, valid as it is (a step
+   with no period, an input fed by nothing: ``pb3a.config.notes``).
 
 A module that names no node runs on the first declared node ("local" when the
 system declares none), the system's ``env-NODE`` on NODE. Problems name the file
@@ -34,6 +36,7 @@ from pb3a.config import checks
 from pb3a.config.definitions import Child, Definition, toml_key, written
 from pb3a.config.description import LinkSpec, ModuleSpec, NodeSpec, SystemSpec
 from pb3a.config.exports import LinkResolver
+from pb3a.config.notes import plan_notes
 from pb3a.config.plan import DEFAULT_NODE, FlatLink, FlatModule, Plan
 from pb3a.errors import ConfigError
 from pb3a.loading import served, trial
@@ -150,7 +153,9 @@ class _Planner:
                     {path: macro.name for path, macro in instances.items()},
                     {path: {export: (f"{path}/{ref.path}", ref.port)
                             for export, ref in macro.exported.items()}
-                     for path, macro in instances.items()}), problems
+                     for path, macro in instances.items()},
+                    [] if problems else plan_notes(modules, [link for _, link in links],
+                                                   labels)), problems
 
     # -- the system's own tables ------------------------------------------
     def install_code(self) -> CodeSources:

@@ -43,11 +43,13 @@ _ENTRY = "pb3a.config.isolated:answer"       # what the child runs
 
 @dataclass(frozen=True)
 class Checked:
-    """What a valid file plans: its number of modules and links, and its DOT if asked for."""
+    """What a valid file plans: its number of modules and links, its notes (what it
+    likely leaves undone: ``Plan.notes``), and its DOT if asked for."""
 
     modules: int
     links: int
     dot: str | None = None
+    notes: tuple[str, ...] = ()
 
 
 def check_file(file: str, *, import_timeout: float, dot: bool = False) -> Checked:
@@ -91,7 +93,8 @@ def _result(answer: dict[str, Any]) -> Checked:
         from pb3a.transport.auth import ClusterKeyError  # (numpy, cryptography: rare)
 
         raise ClusterKeyError(answer["key_error"])
-    return Checked(answer["modules"], answer["links"], answer.get("dot"))
+    return Checked(answer["modules"], answer["links"], answer.get("dot"),
+                   tuple(answer.get("notes", ())))
 
 
 @dataclass
@@ -200,7 +203,8 @@ def answer(request: dict[str, Any]) -> NoReturn:
     try:
         plan = build_plan(load_toml(request["file"]))
         said: dict[str, Any] = {"modules": len(plan.modules), "links": len(plan.links),
-                                "dot": plan_to_dot(plan) if request["dot"] else None}
+                                "dot": plan_to_dot(plan) if request["dot"] else None,
+                                "notes": plan.notes}
     except ConfigError as exc:
         said = {"problems": exc.problems}
     except ClusterKeyError as exc:

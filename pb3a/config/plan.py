@@ -66,6 +66,9 @@ class Plan:
     # macro instance path -> its exports, each the leaf port it leads to (module path, port):
     # what a link made at run time to "f.x" joins
     exports: dict[str, dict[str, tuple[str, str]]] = field(default_factory=dict)
+    # what the plan likely leaves undone, valid as it is (a step with no period, an input
+    # fed by nothing): ``pb3a.config.notes``, printed by ``pb3a check`` and ``pb3a run``
+    notes: list[str] = field(default_factory=list)
 
 
 def split_by_macro(names: Iterable[str],
