@@ -1030,6 +1030,27 @@ def test_bad_period_restart_and_state(tmp_path: Path) -> None:
     only(problems, "[modules.b]: state must be a table")
 
 
+def test_a_module_option_given_in_its_state_says_to_give_it_as_the_entry_s_key(
+        tmp_path: Path) -> None:
+    """``state = { period = 0.05 }`` got "has no state 'period'", though ``pb3a set
+    ... period=`` and ``set_state(name, period=...)`` take it among a running module's
+    fields: the refusal says to give it as the entry's own key, as for fixed_rate and
+    restart."""
+    problems = problems_of(tmp_path, """
+        [modules.t]
+        class = "examples.pipeline:Ticker"
+        state = { period = 0.05, fixed_rate = true, restart = "fresh" }
+    """)
+    assert problems == [
+        "sys.toml [modules.t]: period is not state: use the entry's own `period = 0.05`, "
+        "beside its class (add(..., period=...) in Python); a running module's is set by "
+        "pb3a set ADDR NAME period=... or set_state(NAME, period=...)",
+        "sys.toml [modules.t]: fixed_rate is not state: use the entry's own `fixed_rate = "
+        "true`, beside its class (add(..., fixed_rate=...) in Python)",
+        "sys.toml [modules.t]: restart is not state: use the entry's own `restart = "
+        "\"fresh\"`, beside its class (add(..., restart=...) in Python)"], problems
+
+
 def test_a_period_may_be_numpy_s_and_an_int_no_float_can_hold_is_refused() -> None:
     """``set_state(name, period=10**400)`` (or ``add``'s) raised OverflowError from the
     check meant to refuse it, naming nothing; a period computed with numpy was refused

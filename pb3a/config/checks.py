@@ -11,6 +11,7 @@ from __future__ import annotations
 import difflib
 import dis
 import inspect
+import json
 import numbers
 import os
 import re
@@ -220,6 +221,24 @@ def state(cls: type[Module], value: Any) -> list[str]:
     return problems + refused(cls, judged)
 
 
+# An entry's own keys that configure how the runtime runs its module, never its state.
+OPTIONS = ("period", "fixed_rate", "restart")
+
+
+def not_state(key: str, value: Any) -> str:
+    """What to do with option ``key`` (``OPTIONS``) given in a module's state: give it as
+    the entry's own key (``period`` among a live edit's fields is taken, and sets the
+    running module's period, as ``pb3a set`` does; so it was mistaken for state here)."""
+    try:
+        written = json.dumps(value)                 # (TOML's words: true, "fresh")
+    except (TypeError, ValueError):
+        written = repr(value)
+    live = ("; a running module's is set by pb3a set ADDR NAME period=... or "
+            "set_state(NAME, period=...)" if key == "period" else "")
+    return (f"{key} is not state: use the entry's own `{key} = {written:.60}`, beside its "
+            f"class (add(..., {key}=...) in Python){live}")
+
+
 def _judged(cls: type[Module], value: dict[str, Any]) -> tuple[list[str], dict[str, Any]]:
     """The problems of the keys and kinds of ``value``, a reflective class's state, and
     the values that have none (each of the kind of the class's default)."""
@@ -234,6 +253,8 @@ def _judged(cls: type[Module], value: dict[str, Any]) -> tuple[list[str], dict[s
                 problems.append(str(exc))
         elif key in made:
             judged[key] = item          # (of no kind the class declares)
+        elif key in OPTIONS:
+            problems.append(not_state(key, item))
         else:
             problems.append(f"{class_ref(cls)} has no state {key!r}{did_you_mean(key, known)}; "
                             f"its state is: {listing(known)} (fix the key, or declare the "
