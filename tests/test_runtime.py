@@ -477,6 +477,35 @@ class TextPeriod(Module):
         pass
 
 
+class TextCounter(Counter):
+    period = "0.01"
+
+
+def test_a_swap_to_a_class_with_other_ports_says_the_way_that_works() -> None:
+    """A swap to a class without the module's ports was refused with no way out ("Counter
+    lacks the inputs x that Scale has"); the refusal says the way that works, which
+    does: a module of the new class added beside it, linked, the old one removed."""
+    with pipeline().launch() as run:
+        with pytest.raises(ConfigError) as refused:
+            run.swap("scale", Counter)
+        assert refused.value.problems[0] == (
+            "swap scale: Counter lacks the inputs x that Scale has")
+        assert refused.value.problems[-1] == (
+            "swap scale: a swap keeps the module's ports and links; to run "
+            "sample_modules:Counter in its place, add it beside scale (pb3a add ADDR "
+            "NEWNAME sample_modules:Counter, or add()), feed its inputs and read its outputs "
+            "(pb3a relink ADDR FROM TO for each, or link() and relink()), then remove scale "
+            "(pb3a remove ADDR scale, or remove())")
+        assert run.stats().modules["scale"].cls.endswith(":Scale")
+        run.add("counter", Counter, state={"limit": 3})
+        run.relink("counter.out", "sink.x")
+        run.remove("scale")
+        eventually(lambda: run.state("sink")["value"] == 3.0, what="the counter's 3")
+        with pytest.raises(ConfigError) as refused:     # (a class refused of itself, its
+            run.swap("counter", TextCounter)            # ports fitting: no way about them)
+        assert len(refused.value.problems) == 1 and "period = '0.01'" in str(refused.value)
+
+
 class NegativePeriod(TextPeriod):
     period = -1
     restart = "always"

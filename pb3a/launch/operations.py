@@ -46,7 +46,12 @@ from pb3a.errors import (
 from pb3a.launch.configuration_lock import change_to
 from pb3a.launch.migration import MigrationReport, MovedLate, migrate
 from pb3a.loading import trial
-from pb3a.loading.references import ImportRefused, changed_since_import, resolve_class
+from pb3a.loading.references import (
+    ImportRefused,
+    changed_since_import,
+    class_ref,
+    resolve_class,
+)
 from pb3a.loading.served import forget, reload_problem
 from pb3a.model.agent import own_target
 from pb3a.model.environment import PREFIX as ENV_PREFIX
@@ -983,9 +988,14 @@ def _refused_imports(macro: type[Macro], deadline: float) -> list[str]:
 
 def _swap_problems(name: str, old: type, new: type, links: dict[str, FlatLink],
                    modules: dict[str, FlatModule]) -> list[str]:
+    """Why module ``name`` of class ``old`` cannot become one of class ``new``: what
+    ``new`` declares wrong of itself, the ports of ``old`` it lacks, the links whose
+    types it breaks; and, when its ports do not fit, the way that works (it was refused
+    with no way out): a module of ``new`` added beside it, linked, ``name`` removed."""
     if not (isinstance(new, type) and issubclass(new, Module)):
         return [f"swap {name}: {new!r} is not a pb3a.Module subclass"]
-    problems = [f"swap {name}: {problem}" for problem in checks.module_class(new)]
+    class_problems = [f"swap {name}: {problem}" for problem in checks.module_class(new)]
+    problems = list(class_problems)
     for side in ("inputs", "outputs"):
         missing = sorted(set(getattr(old, side)) - set(getattr(new, side)))
         if missing:
@@ -1002,4 +1012,10 @@ def _swap_problems(name: str, old: type, new: type, links: dict[str, FlatLink],
             why = reader.accepts(new.outputs[link.src_port])
             if why:
                 problems.append(f"swap {name}: output {link.src_port} feeds {link.dst}: {why}")
+    if len(problems) > len(class_problems):     # (its ports do not fit: say what does)
+        problems.append(f"swap {name}: a swap keeps the module's ports and links; to run "
+                        f"{class_ref(new)} in its place, add it beside {name} (pb3a add ADDR "
+                        f"NEWNAME {class_ref(new)}, or add()), feed its inputs and read its "
+                        "outputs (pb3a relink ADDR FROM TO for each, or link() and relink()), "
+                        f"then remove {name} (pb3a remove ADDR {name}, or remove())")
     return problems
