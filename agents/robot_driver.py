@@ -39,20 +39,34 @@ limits took to reverse it: a false motors alarm). A step's outputs are written
 ``applied``, ``drove``, ``gps``, ``sonar``, ``odometry``, ``clock``: the pose before the
 reading taken there, and the clock last. A command is sent to the robot
 as it comes, not at the driver's next period.
+
+A command holds only ``command_timeout`` seconds (1 s; 0: for good), as ROS's
+diff_drive_controller's ``cmd_vel_timeout``: when no new command has come for that
+long (its controller hung, failed, was removed or cut off), the driver stops the robot
+at its next period, once, sets ``stale`` and says so in the log, and the next command
+drives it again. The robot server's watchdog does not cover this: the driver's reading
+every period feeds it, whatever the controller does. A controller must therefore write
+its command at least that often (every shipped one writes it every step or decision:
+0.1 to 0.2 s); one that writes only on change (an arbiter, teleoperation, "drive until
+told") needs ``command_timeout = 0``.
 """
 
 from __future__ import annotations
 
+import logging
 import time
 from typing import Any
 
 import numpy as np
 
-from agents.limits import whole
+from agents.limits import SECONDS, out_of_limits, whole
 from pb3a import Driver, Input, InputPort, Output, RuntimeCancelled
 from pb3a.model.module import StateRefused, reflective
 
 SILENT_STOP_S = 0.1          # how long a silent robot's stop is waited for, when let go
+SAY_EVERY_S = 10.0           # a line of one kind is logged at most this often (the rest counted)
+
+log = logging.getLogger("agents.robot_driver")
 
 class RobotDriver(Driver):
     """Velocity command in; sonar, odometry, gps, clock and camera out, every
@@ -80,11 +94,15 @@ class RobotDriver(Driver):
     last_error = ""
     silent_after = 5             # requests in a row without an answer that make a failure
     silent = 0                   # requests in a row the robot has not answered
+    command_timeout = 1.0        # s a command holds without a new one (0: for good)
+    stale = False                # the robot was stopped: no command came for command_timeout
+    stale_stops = 0              # times it was
 
     def setup(self) -> None:
         # (a class's own, which no set_state saw; RobotDriver's rule alone: a resource of
         # the class's that no address is, is a silent robot, a fault the remedy acts on)
-        wrong = _silent_after_problems(type(self).__name__, self.silent_after)
+        wrong = _own_problems(type(self).__name__, {"silent_after": self.silent_after,
+                                                    "command_timeout": self.command_timeout})
         if wrong:
             raise StateRefused(wrong)
         self._read_at = 0.0      # (monotonic) when readings were last written
@@ -94,13 +112,15 @@ class RobotDriver(Driver):
         # the commands the robot ran on since then: (world time it took each, command),
         # the first the one in force at the last reading
         self._drove: list[tuple[float, np.ndarray]] = []
+        self._commanded_at: float | None = None   # (monotonic) when the last command came
+        self._stops_said = _Hushed(SAY_EVERY_S)
 
     @classmethod
     def state_problems(cls, state: dict[str, Any]) -> list[str]:
-        """What ``Driver`` refuses, and a ``silent_after`` that is not a whole number of
-        requests, 1 or more (with 0 a silent robot was never said: its count starts at 1)."""
-        return super().state_problems(state) + _silent_after_problems(
-            cls.__name__, state.get("silent_after", 1))
+        """What ``Driver`` refuses, a ``silent_after`` that is not a whole number of
+        requests, 1 or more (with 0 a silent robot was never said: its count starts at 1),
+        and a ``command_timeout`` that is not a number of seconds, 0 or more."""
+        return super().state_problems(state) + _own_problems(cls.__name__, state)
 
     @reflective                 # (it takes the fields Module's does: they are checked)
     def set_state(self, state: dict[str, Any]) -> None:
@@ -120,12 +140,14 @@ class RobotDriver(Driver):
             self._serve(self._unsent, advance=0.0)
 
     def step(self) -> None:
+        self._stop_if_stale()
         if self.lockstep_s > 0 and time.monotonic() - self._read_at < self.period:
             return               # lock-step: commands drive it (see on_input)
         self._serve(self._unsent, advance=0.0)
 
     def on_input(self, port: InputPort) -> None:
         command = self._checked(port.read())
+        self._commanded_at, self.stale = time.monotonic(), False
         if self.lockstep_s > 0:
             self._serve(command, advance=self.lockstep_s)
             return
@@ -147,6 +169,19 @@ class RobotDriver(Driver):
             return               # the runtime stops the driver: sent again by the next one
         except (RuntimeError, OSError) as exc:
             self._unanswered(exc)
+
+    def _stop_if_stale(self) -> None:
+        """Stop the robot (at this period: ``_unsent``) if no command has come for
+        ``command_timeout`` s, once until the next comes, and say so (``_Hushed``)."""
+        if (not self.command_timeout or self.stale or not self.enabled
+                or self._commanded_at is None
+                or time.monotonic() - self._commanded_at <= self.command_timeout):
+            return
+        self.stale, self.stale_stops = True, self.stale_stops + 1
+        self._unsent = np.zeros(2)      # (sent again at the next period if not taken)
+        self._stops_said.say(f"{type(self).__name__}: no command for {self.command_timeout:g} s "
+                             f"(its controller hung, failed or gone?): the robot at "
+                             f"{self.resource} is stopped until the next one comes")
 
     def _checked(self, command: np.ndarray) -> np.ndarray:
         """``command``, or a stop where it is not finite: the robot refuses it, so sent on
@@ -261,9 +296,34 @@ class RobotDriver(Driver):
         client.call("stop", min(self.timeout, SILENT_STOP_S) if self.silent else self.timeout)
 
 
-def _silent_after_problems(name: str, requests: Any) -> list[str]:
-    """``RobotDriver.state_problems``'s own rule, for class ``name``."""
-    if whole(requests, 1):
-        return []
-    return [f"{name}'s silent_after must be a whole number of requests, 1 or more, got "
-            f"{requests!r}"]
+class _Hushed:
+    """Warnings of one kind, logged at most once every ``every`` seconds: those held back
+    in between are counted, and the next one logged says how many (a controller that
+    writes every 1.5 s against a 1 s timeout would log a stop every 1.5 s)."""
+
+    def __init__(self, every: float) -> None:
+        self.every, self.said_at, self.held = every, -float("inf"), 0
+
+    def say(self, message: str) -> bool:
+        """Log ``message`` unless one was logged less than ``every`` s ago; whether it was."""
+        now = time.monotonic()
+        if now - self.said_at < self.every:
+            self.held += 1
+            return False
+        more = f" ({self.held} more like it since the last said)" if self.held else ""
+        log.warning("%s%s", message, more)
+        self.said_at, self.held = now, 0
+        return True
+
+
+def _own_problems(name: str, state: dict[str, Any]) -> list[str]:
+    """``RobotDriver.state_problems``'s own rules, for class ``name``: those of the fields
+    ``state`` gives."""
+    problems = []
+    requests = state.get("silent_after", 1)
+    if not whole(requests, 1):
+        problems.append(f"{name}'s silent_after must be a whole number of requests, 1 or "
+                        f"more, got {requests!r}")
+    problems += [f"{name}'s {problem} (0: a command holds for good)" for problem in
+                 out_of_limits({"command_timeout": SECONDS}, state)]
+    return problems

@@ -583,6 +583,22 @@ class Cruise(Module):
         self.command.write(np.array([self.speed, 0.0]))
 
 
+class Spin(Module):
+    """Turns a robot in place at ``turn`` rad/s: writes its command every step, or with
+    ``once`` only at its first (a controller that writes only on change)."""
+
+    command = Output(np.ndarray, shape=(2,), dtype="float64")
+    period = 0.05
+    turn = 0.5
+    once = False
+    written = 0
+
+    def step(self) -> None:
+        if not (self.once and self.written):
+            self.command.write(np.array([0.0, self.turn]))
+            self.written += 1
+
+
 class Busybody(Agent):
     """An agent that, every step, asks the runtime about its peers in turn: their state,
     the system's figures, an edit of their state, a swap (to its own class, keeping

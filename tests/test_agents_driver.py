@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+import agents.robot_driver
 import pb3a.model.driver
 from agents.robot_driver import RobotDriver
 from pb3a import RuntimeCancelled, RuntimeFailure, RuntimeTimeout
@@ -50,6 +51,27 @@ def robot(monkeypatch) -> type[FakeRobotServer]:
     monkeypatch.setattr(FakeRobotServer, "requests", [])
     monkeypatch.setattr(FakeRobotServer, "time", 0.0)
     return FakeRobotServer
+
+
+class Clock:
+    """The driver's clocks, moved on by the test: ``monotonic`` and ``time`` (a wall
+    clock, for what the driver keeps in its state)."""
+
+    def __init__(self) -> None:
+        self.now = 1_000.0
+
+    def monotonic(self) -> float:
+        return self.now
+
+    def time(self) -> float:
+        return self.now + 1.7e9
+
+
+@pytest.fixture
+def clock(monkeypatch) -> Clock:
+    clock = Clock()
+    monkeypatch.setattr(agents.robot_driver, "time", clock)
+    return clock
 
 
 def ops(robot: type[FakeRobotServer]) -> list[str]:
@@ -301,3 +323,48 @@ def test_a_resource_that_is_not_an_address_is_refused_or_taken_for_a_silent_robo
     failure, = harness.written["failure"]
     assert failure["fault"] == "robot_link"
     assert "resource must be a string tcp://HOST:PORT" in failure["detail"]["error"]
+
+
+def test_a_command_not_renewed_within_command_timeout_stops_the_robot_once(
+        robot, clock, caplog) -> None:
+    """A controller that hung, failed or was removed left its robot driving on its last
+    command for good: each period's reading fed the robot server's watchdog (a reviewer's
+    robot spun for 8 s and more after its controller's worker was killed)."""
+    harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400"})
+    harness.feed("command", np.array([0.0, 0.5]))
+    clock.now += 0.9
+    harness.step()                                  # within the timeout (1 s): drives on
+    assert ops(robot) == ["drive", "sensors"] and not harness.state["stale"]
+    clock.now += 0.2
+    caplog.set_level("WARNING", logger="agents.robot_driver")
+    harness.step(3)                                 # 1.1 s without a command: stopped, once
+    assert robot.requests[2:] == [("drive", {"v": 0.0, "w": 0.0}), ("sensors", {})] + [
+        ("sensors", {})] * 2
+    assert (harness.state["stale"], harness.state["stale_stops"]) == (True, 1)
+    assert list(harness.last("applied")) == [0.0, 0.0]
+    said, = [record.getMessage() for record in caplog.records]
+    assert "no command for 1 s" in said and "tcp://robot:7400 is stopped" in said
+    robot.requests.clear()
+    harness.feed("command", np.array([0.0, 0.5]))   # a new one drives it again
+    assert robot.requests == [("drive", {"v": 0.0, "w": 0.5})] and not harness.state["stale"]
+    clock.now += 1.5
+    harness.step()                                  # stopped again: logged 10 s apart at most
+    assert harness.state["stale_stops"] == 2 and len(caplog.records) == 1
+    clock.now += 10.0
+    harness.feed("command", np.array([0.0, 0.5]))
+    clock.now += 1.5
+    harness.step()
+    assert "(1 more like it since the last said)" in caplog.records[-1].getMessage()
+
+
+def test_a_command_timeout_of_0_holds_a_command_for_good(robot, clock) -> None:
+    harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400",
+                                                "command_timeout": 0})
+    harness.feed("command", np.array([0.0, 0.5]))
+    clock.now += 3600.0
+    harness.step()
+    assert ops(robot) == ["drive", "sensors"] and harness.state["stale_stops"] == 0
+    for wrong in (-1.0, None, float("inf")):
+        with pytest.raises(ValueError, match=r"command_timeout must be a number of seconds, "
+                                             r"0 or more, got .* \(0: a command holds for"):
+            harness.module.set_state({"command_timeout": wrong})

@@ -17,7 +17,7 @@ import numpy as np
 import psutil
 import pytest
 from conftest import HeldKey, alive, eventually, unused_port
-from sample_modules import Cruise
+from sample_modules import Cruise, Spin
 
 from pb3a import RuntimeFailure, RuntimeTimeout, System
 from pb3a.transport.addresses import host_of
@@ -392,6 +392,30 @@ def test_a_driver_module_drives_a_robot_and_is_re_pointed_while_running(served) 
         state = run.state("driver")
     assert math.dist(_gps(clients["r1"])[:2], left[:2]) < 0.01        # released: stopped
     assert state["failures"] == 0
+
+
+def _turning(client: ControlClient) -> bool:
+    return abs(client.call("sensors")["velocity"][2]) > 0.1
+
+
+def test_a_robot_whose_controller_is_gone_is_stopped_after_the_command_timeout(
+        served) -> None:
+    """Its driver's reading every period fed the robot server's watchdog, so a robot whose
+    controller hung, failed or was removed turned on for good (a reviewer's: still
+    turning 3 s after ``remove``, 8 s after its worker was killed)."""
+    robots, clients = served
+    system = System("spun")
+    system.add("driver", "agents.robot_driver:RobotDriver",
+               state={"resource": robots.addresses["r1"]})
+    system.add("pilot", Spin)
+    system.link("pilot.command", "driver.command")
+    with system.launch() as run:
+        eventually(lambda: _turning(clients["r1"]), what="r1 turning")
+        run.remove("pilot")
+        eventually(lambda: not _turning(clients["r1"]), timeout=10,
+                   what="r1 stopped once no command came for the driver's command_timeout")
+        state = run.state("driver")
+    assert (state["stale"], state["stale_stops"], state["failures"]) == (True, 1, 0)
 
 
 def test_the_rave_command_serves_a_world_injects_faults_and_renders(tmp_path, capsys) -> None:
