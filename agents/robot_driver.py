@@ -48,7 +48,10 @@ drives it again. The robot server's watchdog does not cover this: the driver's r
 every period feeds it, whatever the controller does. A controller must therefore write
 its command at least that often (every shipped one writes it every step or decision:
 0.1 to 0.2 s); one that writes only on change (an arbiter, teleoperation, "drive until
-told") needs ``command_timeout = 0``.
+told") needs ``command_timeout = 0``. A driver set up anew (moved, swapped, restarted:
+the one that let go stopped the robot) or re-pointed sends the command its input holds
+at its first period, unless it is older than ``command_timeout`` (``commanded_at``, in
+its state, says when it came).
 """
 
 from __future__ import annotations
@@ -97,6 +100,7 @@ class RobotDriver(Driver):
     command_timeout = 1.0        # s a command holds without a new one (0: for good)
     stale = False                # the robot was stopped: no command came for command_timeout
     stale_stops = 0              # times it was
+    commanded_at = 0.0           # (time.time()) when the last command came; 0: none yet
 
     def setup(self) -> None:
         # (a class's own, which no set_state saw; RobotDriver's rule alone: a resource of
@@ -107,13 +111,19 @@ class RobotDriver(Driver):
             raise StateRefused(wrong)
         self._read_at = 0.0      # (monotonic) when readings were last written
         self._in_force = np.zeros(2)     # the command the robot runs on now
-        self._unsent: np.ndarray | None = None   # a command the robot has not taken yet
         self._since: float | None = None         # the world's time of the last reading
         # the commands the robot ran on since then: (world time it took each, command),
         # the first the one in force at the last reading
         self._drove: list[tuple[float, np.ndarray]] = []
-        self._commanded_at: float | None = None   # (monotonic) when the last command came
+        # (monotonic) when the last command came: a driver set up anew (moved, swapped)
+        # takes it from its state, whose clock is the wall's
+        self._commanded_at: float | None = None if not self.commanded_at else \
+            time.monotonic() - max(0.0, time.time() - self.commanded_at)
         self._stops_said = _Hushed(SAY_EVERY_S)
+        # The command its input holds, sent again at the first period: the driver that
+        # let go of the robot (moved, swapped, restarted) stopped it, and a controller
+        # that writes only on change would never move it again.
+        self._unsent: np.ndarray | None = self._held()   # one the robot has not taken yet
 
     @classmethod
     def state_problems(cls, state: dict[str, Any]) -> list[str]:
@@ -134,9 +144,7 @@ class RobotDriver(Driver):
             self.silent = 0          # the old robot's silence: the new one is judged anew
         if repointed and "_read_at" in vars(self):
             self._since, self._drove = None, []  # (another robot, maybe another clock)
-            # the new robot has not taken the command in force yet
-            held = self.command.read() if self.command.has_value else None
-            self._unsent = None if held is None else self._checked(held)
+            self._unsent = self._held()  # the new robot has not taken the one in force yet
             self._serve(self._unsent, advance=0.0)
 
     def step(self) -> None:
@@ -147,7 +155,7 @@ class RobotDriver(Driver):
 
     def on_input(self, port: InputPort) -> None:
         command = self._checked(port.read())
-        self._commanded_at, self.stale = time.monotonic(), False
+        self._commanded_at, self.commanded_at, self.stale = time.monotonic(), time.time(), False
         if self.lockstep_s > 0:
             self._serve(command, advance=self.lockstep_s)
             return
@@ -169,6 +177,21 @@ class RobotDriver(Driver):
             return               # the runtime stops the driver: sent again by the next one
         except (RuntimeError, OSError) as exc:
             self._unanswered(exc)
+
+    def _held(self) -> np.ndarray | None:
+        """The command the ``command`` input holds, for a robot that has not taken it, or
+        None: it holds none, or one older than ``command_timeout``, which is not sent
+        again (the robot stands, ``stale``, as the timeout would have left it)."""
+        if not self.command.has_value:
+            return None
+        held = self._checked(self.command.read())
+        now = time.monotonic()
+        if self._commanded_at is None:
+            self._commanded_at = now        # (its age unknown: the timeout counts from now)
+        elif self.command_timeout and now - self._commanded_at > self.command_timeout:
+            self.stale = True
+            return None
+        return held
 
     def _stop_if_stale(self) -> None:
         """Stop the robot (at this period: ``_unsent``) if no command has come for

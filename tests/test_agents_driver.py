@@ -368,3 +368,26 @@ def test_a_command_timeout_of_0_holds_a_command_for_good(robot, clock) -> None:
         with pytest.raises(ValueError, match=r"command_timeout must be a number of seconds, "
                                              r"0 or more, got .* \(0: a command holds for"):
             harness.module.set_state({"command_timeout": wrong})
+
+
+def test_a_driver_set_up_anew_sends_its_held_command_again_unless_it_is_stale(
+        robot, clock) -> None:
+    """A driver moved, swapped or restarted stopped its robot as it let go (``release``)
+    and forgot the command its input still held: a controller that writes only on change
+    left the robot standing for good. One older than ``command_timeout`` is not sent (the
+    timeout would have stopped the robot)."""
+    harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400"})
+    module = harness.module
+    harness.feed("command", np.array([0.0, 0.5]))
+    for age, sent in ((0.5, True), (1.5, False)):
+        clock.now += age
+        module.teardown()                           # let go: stopped
+        module.set_state(module.get_state())        # (its state carried, as a move does)
+        module.setup()                              # the input holds the command still
+        robot.requests.clear()
+        harness.step()
+        assert robot.requests[0] == (("drive", {"v": 0.0, "w": 0.5}) if sent
+                                     else ("sensors", {}))
+        assert harness.state["stale"] is not sent
+    module.set_state({"resource": "tcp://standby:7400"})     # re-pointed: stale, not sent
+    assert ("drive", {"v": 0.0, "w": 0.5}) not in robot.requests[2:]

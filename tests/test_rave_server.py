@@ -418,6 +418,31 @@ def test_a_robot_whose_controller_is_gone_is_stopped_after_the_command_timeout(
     assert (state["stale"], state["stale_stops"], state["failures"]) == (True, 1, 0)
 
 
+@pytest.mark.parametrize("change", ["migrate", "swap"])
+def test_a_driver_moved_or_swapped_drives_its_robot_on_by_the_command_it_holds(
+        served, change) -> None:
+    """The driver let go of its robot (stopped it) as it moved or was swapped, and the
+    new one never sent the command its input still held: a controller that writes only on
+    change (here once) left the robot standing for good (a reviewer's, both ways)."""
+    robots, clients = served
+    system = System("held").node("a").node("b")
+    system.add("driver", "agents.robot_driver:RobotDriver", node="a",
+               state={"resource": robots.addresses["r1"], "command_timeout": 0})
+    system.add("pilot", Spin, node="a", state={"once": True})
+    system.link("pilot.command", "driver.command")
+    with system.launch() as run:
+        eventually(lambda: _turning(clients["r1"]), what="r1 turning")
+        if change == "migrate":
+            run.migrate("driver", to="b", timeout=10.0)
+        else:
+            run.swap("driver", "agents.robot_driver:RobotDriver", timeout=10.0)
+        # (the old driver's stop may come a little after the change returns)
+        after = clients["r1"].call("sensors")["time"] + 0.5
+        eventually(lambda: clients["r1"].call("sensors")["time"] > after, what="time passing")
+        assert _turning(clients["r1"]), f"r1 stands after the {change}"
+        assert run.state("pilot")["written"] == 1
+
+
 def test_the_rave_command_serves_a_world_injects_faults_and_renders(tmp_path, capsys) -> None:
     process = subprocess.Popen([sys.executable, "-m", "rave.cli", "start",
                                 "rave/worlds/arena.toml"], stdout=subprocess.PIPE, text=True)
