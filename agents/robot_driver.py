@@ -14,6 +14,8 @@ that does not answer ``silent_after`` requests in a row (a period's, or a comman
 sent as it came) is said once on ``failure``
 (fault ``robot_link``), as a monitor says a fault: nothing downstream of a driver
 whose robot server died would otherwise hear of it (no reading comes to be judged).
+The log says it too: at the first unanswered request, as it is said on ``failure``, and
+when the robot answers again.
 
 Against a world served in lock-step (``rave start --lockstep``), set ``lockstep_s``:
 each command then drives the robot, advances the world by ``lockstep_s`` simulated
@@ -120,6 +122,8 @@ class RobotDriver(Driver):
         self._commanded_at: float | None = None if not self.commanded_at else \
             time.monotonic() - max(0.0, time.time() - self.commanded_at)
         self._stops_said = _Hushed(SAY_EVERY_S)
+        self._silences_said = _Hushed(SAY_EVERY_S)
+        self._telling = False    # the robot's silence now was said in the log: so is its end
         # The command its input holds, sent again at the first period: the driver that
         # let go of the robot (moved, swapped, restarted) stopped it, and a controller
         # that writes only on change would never move it again.
@@ -281,7 +285,10 @@ class RobotDriver(Driver):
         except (RuntimeError, OSError) as exc:
             self._unanswered(exc)
             return
-        self.silent = 0
+        if self.silent and self._telling:
+            log.warning("%s: the robot at %s answers again, after %d unanswered requests",
+                        type(self).__name__, self.resource, self.silent)
+        self.silent, self._telling = 0, False
         sensed = {key: np.asarray(answer[key], dtype=np.float64)
                   for key in ("sonar", "odometry", "gps")}
         self._read_at = time.monotonic()
@@ -306,11 +313,24 @@ class RobotDriver(Driver):
         self.failures += 1
         self.last_error = str(exc)
         self.silent += 1
+        # Said in the log too, at its first request and as it is said on failure (a
+        # driver whose robot was never reached ran with no error and no line: only its
+        # state told), once every SAY_EVERY_S at most for a robot that comes and goes
+        if self.silent == 1 and self.silent_after > 1:
+            self._telling = self._silences_said.say(
+                f"{exc}; tried again at each period, said on failure (robot_link) after "
+                f"{self.silent_after} unanswered requests in a row")
         if self.silent == self.silent_after:          # said once, until it answers again
             self.failure.write({"fault": "robot_link", "probability": 1.0,
                                 "detail": {"resource": self.resource,
                                            "unanswered": self.silent, "error": str(exc)},
                                 "at": time.time()})
+            said = (f"{type(self).__name__}: the robot at {self.resource} has not answered "
+                    f"{self.silent} requests in a row, said on failure (robot_link): {exc}")
+            if self._telling:
+                log.warning("%s", said)
+            else:
+                self._telling = self._silences_said.say(said)
 
     def release(self, client: Any) -> None:
         # Leave the robot standing. One that did not answer at the last period is told

@@ -391,3 +391,33 @@ def test_a_driver_set_up_anew_sends_its_held_command_again_unless_it_is_stale(
         assert harness.state["stale"] is not sent
     module.set_state({"resource": "tcp://standby:7400"})     # re-pointed: stale, not sent
     assert ("drive", {"v": 0.0, "w": 0.5}) not in robot.requests[2:]
+
+
+def test_a_robot_that_does_not_answer_is_said_in_the_log_and_so_is_its_answer_again(
+        robot, clock, monkeypatch, caplog) -> None:
+    """A driver that could not reach its robot (a wrong address, the world not started,
+    killed mid-run) ran with no error and logged nothing: only its state told."""
+    caplog.set_level("WARNING", logger="agents.robot_driver")
+    harness = ModuleHarness(RobotDriver, state={"resource": "tcp://robot:7400",
+                                                "silent_after": 3})
+    down = failing(monkeypatch, RuntimeTimeout)
+    harness.step()
+    first, = [record.getMessage() for record in caplog.records]
+    assert "tcp://robot:7400 did not answer 'sensors'" in first and "after 3 " in first
+    harness.step(4)                                 # silent: said once more, at the third
+    assert len(caplog.records) == 2
+    assert "has not answered 3 requests in a row, said on failure (robot_link)" in \
+        caplog.records[1].getMessage()
+    down[0] = False
+    harness.step()
+    assert caplog.records[2].getMessage() == ("RobotDriver: the robot at tcp://robot:7400 "
+                                              "answers again, after 5 unanswered requests")
+    down[0] = True                                  # it comes and goes: 10 s apart at most
+    harness.step()
+    down[0] = False
+    harness.step()
+    assert len(caplog.records) == 3
+    clock.now += 10.0
+    down[0] = True
+    harness.step()
+    assert "(1 more like it since the last said)" in caplog.records[3].getMessage()

@@ -443,6 +443,22 @@ def test_a_driver_moved_or_swapped_drives_its_robot_on_by_the_command_it_holds(
         assert run.state("pilot")["written"] == 1
 
 
+def test_a_driver_that_cannot_reach_its_robot_says_so_in_the_log() -> None:
+    """A driver pointed where no robot server listens (the world not started, a wrong
+    port) showed as running, errors 0, and ``pb3a logs --module driver`` was empty."""
+    system = System("unreached")
+    system.add("driver", "agents.robot_driver:RobotDriver",
+               state={"resource": f"tcp://127.0.0.1:{unused_port()}", "silent_after": 2})
+    with system.launch() as run:
+        said: list[str] = []
+
+        def logged() -> bool:
+            said[:] = [entry.message for entry in run.logs(0, module="driver")]
+            return any("said on failure (robot_link)" in line for line in said)
+        eventually(logged, timeout=15, what="the driver's warnings in the log")
+    assert "did not answer 'sensors'" in said[0], said
+
+
 def test_the_rave_command_serves_a_world_injects_faults_and_renders(tmp_path, capsys) -> None:
     process = subprocess.Popen([sys.executable, "-m", "rave.cli", "start",
                                 "rave/worlds/arena.toml"], stdout=subprocess.PIPE, text=True)
