@@ -370,7 +370,10 @@ def test_a_command_that_came_late_in_a_long_step_is_not_read_as_a_motor_fault(
     server = WorldServer(world, lockstep=True)
     robots = RobotServers(server.address, [ROBOT])
     clock = ControlClient(ClusterKey.load(), server.address)
-    driver = ModuleHarness(RobotDriver, state={"resource": robots.addresses[ROBOT]})
+    # (its commands held as long as the test's steps take: wall time, which a loaded
+    # machine stretches past the command timeout, is not the lock-stepped world's)
+    driver = ModuleHarness(RobotDriver, state={"resource": robots.addresses[ROBOT],
+                                               "command_timeout": 0})
     monitors = {"driver's": FaultMonitor(model), "by arrival": FaultMonitor(model)}
     raised: dict[str, list[dict[str, Any]]] = {name: [] for name in monitors}
     stale, meant = np.array([0.0, 0.5]), np.array([0.0, -1.0])
