@@ -1069,12 +1069,7 @@ def test_a_fenced_worker_s_slow_teardown_does_not_run_beside_its_copy(
     elsewhere 0.5 s after the lease's end. A fenced worker is gone by ``GONE_BY_S``
     after that end, its teardowns cut short."""
     b, stamps = node_b, tmp_path / "steps"
-    system = System("slow-stop").node("a").node("b", address=b.address)
-    system.add("stepper", SlowToStop, node="b", restart="fresh", fallback=["a"],
-               state={"path": str(stamps), "teardown_s": 1.5})
-    with system.launch() as run:
-        eventually(lambda: stamps.exists() and stamps.read_text().count("\n") > 20,
-                   what="steps on b")
+    with _slow_to_stop_on(b, stamps, "slow-stop") as run:
         old = psutil.Process(run.stats().modules["stepper"].pid)
         executor = psutil.Process(b.executor_pid())
         executor.suspend()
@@ -1097,12 +1092,7 @@ def test_a_node_whose_executor_dies_is_lost_at_once_its_teardowns_cut_before_the
     killed then: the worker tearing its module down, which the forkserver had told to
     stop); the node is lost then, and the module's copy steps with no old step beside it."""
     b, stamps = node_b, tmp_path / "steps"
-    system = System("killed").node("a").node("b", address=b.address)
-    system.add("stepper", SlowToStop, node="b", restart="fresh", fallback=["a"],
-               state={"path": str(stamps), "teardown_s": 1.5})
-    with system.launch() as run:
-        eventually(lambda: stamps.exists() and stamps.read_text().count("\n") > 20,
-                   what="steps on b")
+    with _slow_to_stop_on(b, stamps, "killed") as run:
         old = psutil.Process(run.stats().modules["stepper"].pid)
         os.kill(b.executor_pid(), signal.SIGKILL)
         _wait_for_the_copy_on_a(run, stamps)
@@ -1114,6 +1104,19 @@ def test_a_node_whose_executor_dies_is_lost_at_once_its_teardowns_cut_before_the
     assert any("its controller says its executor was killed by SIGKILL" in failure
                for failure in failures), failures
     _assert_one_copy_at_a_time(stamps)
+
+
+@contextlib.contextmanager
+def _slow_to_stop_on(b: Daemon, stamps: Path, name: str) -> Iterator[Any]:
+    """System ``name`` running, once it has stepped: its module on node ``b`` stamps each
+    step in ``stamps`` and takes 1.5 s to tear down, and fails over to node a."""
+    system = System(name).node("a").node("b", address=b.address)
+    system.add("stepper", SlowToStop, node="b", restart="fresh", fallback=["a"],
+               state={"path": str(stamps), "teardown_s": 1.5})
+    with system.launch() as run:
+        eventually(lambda: stamps.exists() and stamps.read_text().count("\n") > 20,
+                   what="steps on b")
+        yield run
 
 
 def _gone(process: psutil.Process) -> bool:

@@ -4,6 +4,7 @@ it and can be re-pointed to another robot while running."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import signal
@@ -12,6 +13,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 
 import numpy as np
 import psutil
@@ -460,10 +462,7 @@ def test_a_driver_that_cannot_reach_its_robot_says_so_in_the_log() -> None:
 
 
 def test_the_rave_command_serves_a_world_injects_faults_and_renders(tmp_path, capsys) -> None:
-    process = subprocess.Popen([sys.executable, "-m", "rave.cli", "start",
-                                "rave/worlds/arena.toml"], stdout=subprocess.PIPE, text=True)
-    try:
-        lines = [process.stdout.readline().strip() for _ in range(3)]
+    with _rave_start("rave/worlds/arena.toml") as lines:
         assert lines[0].startswith("world arena at tcp://127.0.0.1:")
         robots = dict(line.split()[1::2] for line in lines[1:])     # name -> address
         assert set(robots) == {"r1", "r2"}
@@ -478,13 +477,6 @@ def test_the_rave_command_serves_a_world_injects_faults_and_renders(tmp_path, ca
         said = capsys.readouterr().err     # as the world says it, not at the world's address
         assert said.startswith("rave fault: robot r1 is simulated: faults are injected "
                                "into hardware robots"), said
-        process.send_signal(signal.SIGTERM)
-        assert process.wait(timeout=15) == 0
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait(5)
-        process.stdout.close()
     assert cli.main(["render", "rave/worlds/lab.toml", "-o", str(tmp_path / "lab.png")]) == 0
     assert (tmp_path / "lab.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # a bundled world by its name, as the scenarios take it (it was "[Errno 2]")
@@ -503,10 +495,7 @@ def test_the_rave_command_serves_on_the_ports_it_is_given_and_names_one_in_use(c
     base = unused_port()
     while not all(_free(base + i) for i in (-1, 1, 2)):    # (the second's world: base - 1)
         base = unused_port()
-    process = subprocess.Popen([sys.executable, "-m", "rave.cli", "start", "arena",
-                                "--port", str(base)], stdout=subprocess.PIPE, text=True)
-    try:
-        lines = [process.stdout.readline().strip() for _ in range(3)]
+    with _rave_start("arena", "--port", str(base)) as lines:
         assert lines == [f"world arena at tcp://127.0.0.1:{base}",
                          f"robot r1 at tcp://127.0.0.1:{base + 1}",
                          f"robot r2 at tcp://127.0.0.1:{base + 2}"], lines
@@ -520,6 +509,21 @@ def test_the_rave_command_serves_on_the_ports_it_is_given_and_names_one_in_use(c
         said = capsys.readouterr().err
         assert said.startswith(f"rave start: cannot listen on tcp://127.0.0.1:{base}: port "
                                f"{base} is in use"), said
+    assert cli.main(["start", "arena", "--port", "65534"]) == 1
+    assert "--port 65534 leaves no port for robot 2 of 2" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli.main(["start", "arena", "--port", "70000"])
+    assert "'70000' is not a port" in capsys.readouterr().err
+
+
+@contextlib.contextmanager
+def _rave_start(*args: str) -> Iterator[list[str]]:
+    """``rave start ARGS`` (the arena's world, or another of two robots) in a process of
+    its own: the three lines it prints, then a SIGTERM it ends on with status 0."""
+    process = subprocess.Popen([sys.executable, "-m", "rave.cli", "start", *args],
+                               stdout=subprocess.PIPE, text=True)
+    try:
+        yield [process.stdout.readline().strip() for _ in range(3)]
         process.send_signal(signal.SIGTERM)
         assert process.wait(timeout=15) == 0
     finally:
@@ -527,11 +531,6 @@ def test_the_rave_command_serves_on_the_ports_it_is_given_and_names_one_in_use(c
             process.kill()
             process.wait(5)
         process.stdout.close()
-    assert cli.main(["start", "arena", "--port", "65534"]) == 1
-    assert "--port 65534 leaves no port for robot 2 of 2" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        cli.main(["start", "arena", "--port", "70000"])
-    assert "'70000' is not a port" in capsys.readouterr().err
 
 
 def _free(port: int) -> bool:
@@ -548,23 +547,13 @@ def test_the_rave_command_on_every_interface_prints_addresses_rave_fault_takes(
     """``rave start --listen 0.0.0.0`` (to serve robots to other machines) prints this
     machine's address on its default route: it printed ``tcp://0.0.0.0:PORT``, which
     ``rave fault`` and a ``RobotDriver`` refuse as naming every interface."""
-    process = subprocess.Popen([sys.executable, "-m", "rave.cli", "start", "arena",
-                                "--listen", "0.0.0.0"], stdout=subprocess.PIPE, text=True)
-    try:
-        lines = [process.stdout.readline().strip() for _ in range(3)]
+    with _rave_start("arena", "--listen", "0.0.0.0") as lines:
         ours = {entry.address for entries in psutil.net_if_addrs().values()
                 for entry in entries}
         addresses = dict(line.split()[1::2] for line in lines)     # name -> address
         assert all(host_of(address) in ours for address in addresses.values()), lines
         assert cli.main(["fault", addresses["r2"], "sonar_dead"]) == 0, \
             capsys.readouterr().err
-        process.send_signal(signal.SIGTERM)
-        assert process.wait(timeout=15) == 0
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait(5)
-        process.stdout.close()
 
 
 def test_the_rave_command_stops_a_silent_robot_after_its_watchdog_unless_told_never(
