@@ -1929,6 +1929,26 @@ class Recorder2(Recorder):
     """``Recorder``'s next version."""
 
 
+class SlottedRecorder(Recorder):
+    """``Recorder`` that keeps its file in a slot, outside its ``__dict__``."""
+
+    __slots__ = ("_file",)
+
+
+def test_a_file_a_module_keeps_in_a_slot_is_written_out_as_the_system_closes(
+        tmp_path) -> None:
+    """The instance's attributes were dropped as it was let go, closing its files, but
+    not those its class keeps in ``__slots__``: lines buffered there were lost."""
+    path = tmp_path / "values.csv"
+    system = System("slotted")
+    system.add("src", Burst, state={"limit": 100})
+    system.add("rec", SlottedRecorder, state={"path": str(path)})
+    system.link("src.out", "rec.x")
+    with system.launch() as run:
+        eventually(lambda: run.state("rec")["lines"] == 100, what="the values written")
+    assert path.read_text().split() == [str(i) for i in range(1, 101)]
+
+
 def test_a_file_a_module_leaves_open_is_written_out_as_the_system_closes(tmp_path) -> None:
     """Its worker ended with os._exit, which finalizes nothing: every line it had
     buffered was lost (0 of 200 in a reviewer's run; a collection of the instance's

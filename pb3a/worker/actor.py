@@ -182,8 +182,18 @@ def let_go(module: Module) -> None:
     closes a file's layers in no set order, losing what they buffered (CPython's
     bpo-17852), or none at all, as the worker ends with ``os._exit``: a recorder that
     opened its file in ``setup()`` and had no ``teardown()`` lost every line it had not
-    flushed. Values a new instance took (a swap's state) live on in it."""
+    flushed. Values a new instance took (a swap's state) live on in it. Those its
+    class keeps in ``__slots__``, outside its ``__dict__``, are dropped too."""
     vars(module).clear()
+    for cls in type(module).__mro__:
+        slots = getattr(cls, "__slots__", ())
+        for slot in (slots,) if isinstance(slots, str) else slots:
+            if slot in ("__dict__", "__weakref__"):
+                continue
+            if slot.startswith("__") and not slot.endswith("__"):     # (name-mangled)
+                slot = f"_{cls.__name__.lstrip('_')}{slot}"
+            with contextlib.suppress(AttributeError):     # (never set)
+                delattr(module, slot)
 
 
 class ModuleActor:
