@@ -129,6 +129,9 @@ class LinkStats:
     latency_counts: dict[int, int] = field(default_factory=dict)   # as in InputStats
     waits: int = 0              # writes that waited (or wait now) for room on this link
     wait_s: float = 0.0         # seconds they waited
+    # its reader is silent (``ModuleStats.silent``: its worker or its node did not
+    # answer): values, pending, rate and latency are not known, shown as 0 and NaN
+    silent: bool = False
 
 
 @dataclass(frozen=True)

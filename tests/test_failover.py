@@ -473,6 +473,47 @@ def test_a_lost_node_shows_no_round_trip_and_its_real_silence(node_b, capsys) ->
     assert as_json["controller"] is False
 
 
+def test_a_silent_node_s_modules_show_silent_until_it_is_lost(node_b) -> None:
+    """Node b frozen whole for less than the loss timeout (a 1 s freeze changes nothing):
+    its module was absent from ``stats()`` and ``pb3a status`` from its second missed
+    heartbeat on (``stats().modules["ctl"]`` raised KeyError) while b showed up, and the
+    link into it showed as shm with 0 values. It shows silent, on b, as b's last report
+    had it, and its link crosses nodes still, its figures unknown ("-")."""
+    b = node_b
+    system = System("late").node("a").node("b", address=b.address)
+    system.add("driver", Counter, node="a", period=0.01)
+    system.add("ctl", Collector, node="b")
+    system.link("driver.out", "ctl.x")
+    key = "driver.out->ctl.x"
+    with system.launch() as run:
+        eventually(lambda: run.stats().links[key].values > 5, timeout=30,
+                   what="values reaching b")
+        pid = run.stats().modules["ctl"].pid
+        controller = psutil.Process(b.process.pid)
+        stopped = [controller, *controller.children(recursive=True)]
+        for process in stopped:
+            process.suspend()
+        try:
+            eventually(lambda: run._launcher.silent("b"), timeout=5, what="b silent")
+            stats = run.stats(timeout=1)
+        finally:
+            for process in reversed(stopped):
+                with contextlib.suppress(psutil.NoSuchProcess):
+                    process.resume()
+        eventually(lambda: not run.stats().modules["ctl"].silent, timeout=10,
+                   what="ctl answering again")
+        lost = _events(run, "node_lost")
+    assert not lost, lost                  # (else the freeze outlasted the loss timeout)
+    assert stats.nodes["b"].up, stats.nodes["b"]
+    ctl = stats.modules["ctl"]
+    assert ctl.silent and ctl.node == "b" and ctl.status == "running" and ctl.pid == pid, ctl
+    link = stats.links[key]
+    assert link.silent and link.transport == "zmq", link
+    table = format_table(stats)
+    assert re.search(rf"^ctl +b +{pid} +running \(silent\)", table, re.M), table
+    assert re.search(r"^driver\.out -> ctl\.x +zmq +\S+ +- +- ", table, re.M), table
+
+
 def _no_constant(name: str) -> NoReturn:
     raise AssertionError(f"{name} in JSON, which has no such number")
 
@@ -1163,9 +1204,10 @@ def test_a_module_whose_setup_raises_where_it_fails_over_is_failed_not_failed_ov
         unplugged.touch()
         os.kill(b.executor_pid(), signal.SIGKILL)
         def failed_over() -> dict | None:
-            modules = run.stats().modules      # (read during the failover too: it says so)
+            modules = run.stats().modules      # (read during the failover too: it says so;
+            # and before b is lost, its modules silent on b)
             return modules if all(name in modules and modules[name].status == "running"
-                                  for name in ("one", "two")) \
+                                  and modules[name].node == "a" for name in ("one", "two")) \
                 and not any(module.change for module in modules.values()) else None
         modules = eventually(failed_over, timeout=30, what="the failover")
         assert (modules["cam"].node, modules["cam"].status) == ("a", "failed")

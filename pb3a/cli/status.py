@@ -41,7 +41,8 @@ def format_table(stats: SystemStats) -> str:
     now (set live too), "-" for one run only on events (a period its class sets
     without a step() included), "0.02 fixed" for a fixed rate, whose status says the
     periods it skipped ("(overruns 3)"), if any; its last error, how long ago it was
-    raised."""
+    raised. A link whose reader is silent shows "-" for its values and rate, which are
+    not known."""
     rows = [("module", "node", "pid", "status", "period s", "steps", "events", "cpu s",
              "errors", "last error")]
     now = time.time()
@@ -64,8 +65,10 @@ def format_table(stats: SystemStats) -> str:
                       "waits", "latency")]
         for link in stats.links.values():
             latency = link.latency
+            # (a silent reader's values and rate are not known: it said 0)
             link_rows.append((f"{link.src} -> {link.dst}", link.transport, link.policy,
-                              str(link.values), f"{link.rate:.0f}", str(link.drops),
+                              "-" if link.silent else str(link.values),
+                              "-" if link.silent else f"{link.rate:.0f}", str(link.drops),
                               str(link.link_failures), str(link.waits),
                               "-" if math.isnan(latency) else f"{latency * 1e6:.0f} us"))
         lines += _columns(link_rows)

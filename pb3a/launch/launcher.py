@@ -525,10 +525,12 @@ class Launcher:
     def _reports(self, timeout: float,
                  specs: dict[str, FlatModule]) -> dict[str, NodeReport]:
         """Every node's report, by node, asked of all at once, within ``timeout``. A node
-        that stops answering its heartbeats meanwhile is not waited for (until it is
-        declared lost): its modules are absent. One whose report is late has its modules
-        as its last report had them, silent (no figures of their own), placed as
-        ``specs`` (a copy of the launcher's) has them."""
+        that has missed two heartbeats, or misses them meanwhile, is not asked, or not
+        waited for; it, and one whose report is late, has its modules as its last report
+        had them, silent (no figures of their own), placed as ``specs`` (a copy of the
+        launcher's) has them, until it is declared lost. (A node silent but not lost
+        left its modules out: ``stats().modules["ctl"]`` raised KeyError for a second
+        and more before a failover, and on a 1 s freeze that changed nothing else.)"""
         reports: dict[str, NodeReport] = {}
         deadline = time.monotonic() + timeout
 
@@ -542,10 +544,11 @@ class Launcher:
             except (RuntimeFailure, RuntimeTimeout) as exc:
                 log.warning("node %s did not report: %s", name, exc)
 
+        up = {name: node for name, node in list(self.nodes.items())
+              if self.health[name]["up"]}
         asked = {name: threading.Thread(target=ask, args=(name, node), daemon=True,
                                         name=f"pb3a-report-{name}")
-                 for name, node in list(self.nodes.items())
-                 if self.health[name]["up"] and not self.silent(name)}
+                 for name, node in up.items() if not self.silent(name)}
         for thread in asked.values():
             thread.start()
         for name, thread in asked.items():
@@ -553,11 +556,12 @@ class Launcher:
                 thread.join(max(0.0, min(WATCH_S, deadline - time.monotonic())))
         given = {name: reports[name] for name in asked if name in reports}
         self._last_reports.update(given)
-        for name in asked.keys() - given.keys():
-            if not self.silent(name) and name in self._last_reports:
+        for name in up.keys() - given.keys():
+            if not self.silent(name):
                 log.warning("node %s did not report within %g s", name, timeout)
-                placed = [spec for spec in specs.values() if spec.node == name]
-                given[name] = _silenced(self._last_reports[name], name, placed)
+            placed = [spec for spec in specs.values() if spec.node == name]
+            given[name] = _silenced(self._last_reports.get(name, NodeReport({}, {}, {}, [])),
+                                    name, placed)
         return given
 
     def silent(self, name: str) -> bool:
@@ -712,7 +716,9 @@ def _link_table(links: dict[str, FlatLink], modules: dict[str, ModuleStats],
     """Per link: values, drops, pending, latency, rate, transport, from the reader's node
     (drops: its ring's and, on a remote link, the values its sender did not send); the
     writes that waited for room, from the writer's; the values lost for good, from the
-    reader's node and from the failovers."""
+    reader's node and from the failovers. A silent reader's link is said ``silent``: its
+    figures are not known (it showed 0 values and a link across nodes as shm, the
+    reader's node being silent)."""
     rings = {key: used for report in reports for key, used in report.ring_bytes_used.items()}
     lost, dropped = collections.Counter(lost_values), collections.Counter()
     for report in reports:
@@ -736,7 +742,8 @@ def _link_table(links: dict[str, FlatLink], modules: dict[str, ModuleStats],
             figures.update(waits=waits.waits, wait_s=waits.wait_s)
         table[key] = LinkStats(f"{link.src}.{link.src_port}", f"{link.dst}.{link.dst_port}",
                                str(link.policy), transport, **figures,
-                               ring_bytes_used=rings.get(key, 0))
+                               ring_bytes_used=rings.get(key, 0),
+                               silent=dst is not None and dst.silent)
     return table
 
 
