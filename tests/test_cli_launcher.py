@@ -146,6 +146,50 @@ def test_a_swap_after_the_module_file_changed_runs_the_file_as_it_is_now(
         sys.modules.pop(module, None)
 
 
+# A class written into a module file after the launch (``name``), beside the rest.
+WRITTEN_LATER = """
+
+class {name}(Gain):
+    version = {version}
+"""
+
+
+def test_an_add_of_a_class_written_into_its_file_after_launch_finds_it(
+        capsys, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`pb3a add` (and `run.add`) of a class written into the module's file after launch
+    said "module ... has no class 'PoseProbe'; it has: Gain", though the file had it: the
+    add took the module as the launcher had imported it. It reloads a module whose file
+    changed since first, as a swap does, saying so."""
+    module = "pb3a_grown_gains"
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, module, raising=False)
+    source = tmp_path / f"{module}.py"
+    source.write_text(EDITED.format(version=1))
+    system = System("cli-grown").add("src", FloatSource).add("g", f"{module}:Gain")
+    system.link("src.out", "g.x")
+    try:
+        with system.launch() as run:
+            address = run.listen()
+            eventually(lambda: run.state("g")["version"] == 1, what="the first file running")
+            with source.open("a") as grown:
+                grown.write(WRITTEN_LATER.format(name="PoseProbe", version=2))
+            capsys.readouterr()
+            assert main(["add", address, "probe", f"{module}:PoseProbe"]) == 0
+            assert (f"module {module} changed since it was imported: reloaded; probe "
+                    f"({module}:PoseProbe) runs on node local") in capsys.readouterr().out
+            assert run.state("probe")["version"] == 2
+            with source.open("a") as grown:
+                grown.write(WRITTEN_LATER.format(name="Later", version=3))
+            run.add("later", f"{module}:Later")                  # the same from Python
+            assert run.events()[-1].detail["reloaded"] == module
+            assert run.state("later")["version"] == 3
+            run.add("again", f"{module}:Later")          # unchanged since: not reloaded
+            assert "reloaded" not in run.events()[-1].detail
+            assert run.state("g")["version"] == 1        # (running modules keep their code)
+    finally:
+        sys.modules.pop(module, None)
+
+
 # A program that launches an edited module (written to its working directory), prints
 # the launcher's address, and runs until its stdin closes.
 LAUNCHES_EDITED = """
@@ -347,7 +391,8 @@ def test_add_and_remove_take_a_macro_whole(capsys) -> None:
         assert main(["add", address, "c2", ref, "--node", "b", "--state", 'b={"gain": 4}',
                      "--json"]) == 0
         assert json.loads(capsys.readouterr().out) == {
-            "module": "c2", "class": ref, "modules": {"c2/a": "b", "c2/b": "b"}}
+            "module": "c2", "class": ref, "modules": {"c2/a": "b", "c2/b": "b"},
+            "reloaded": None}
         state = run.state("c2/b")
         assert state["gain"] == 4.0 and type(state["gain"]) is float
         assert main(["remove", address, "c2"]) == 0

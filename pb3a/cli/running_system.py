@@ -160,7 +160,9 @@ def _relink(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
 def _add(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
     """Each value made the type of the class's default for that field, as ``pb3a set``
     does with the current state; a class this process cannot import (served code, say)
-    is added with the values as given."""
+    is added with the values as given. The add's event says whether the class's module
+    was reloaded first (its file had changed since the launcher imported it), which the
+    line says too, as ``pb3a swap``'s does."""
     state, texts = _values(args.state)
     defaults = _class_defaults(args.cls, args.timeout) if state else {}
     wrong = _fit(args.module, state, texts, defaults)
@@ -168,15 +170,21 @@ def _add(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
         raise ValueError("; ".join(wrong) + "; nothing was added")
     system.add(args.module, args.cls, node=args.node, period=args.period,
                fixed_rate=args.fixed_rate, state=state, timeout=args.timeout)
+    added = [event for event in system.events(timeout=args.timeout)
+             if event.kind == "module_added" and (event.subject == args.module
+                                                  or event.subject.startswith(f"{args.module}/"))]
+    reloaded = added[-1].detail.get("reloaded") if added else None
+    said = f"module {reloaded} changed since it was imported: reloaded; " if reloaded else ""
     inside = {name: module.node for name, module in system.topology(
         timeout=args.timeout).modules.items() if name.startswith(f"{args.module}/")}
     if inside:                          # a macro: its modules, each where it runs
-        return (f"{args.module} ({args.cls}) runs: " + ", ".join(
+        return (f"{said}{args.module} ({args.cls}) runs: " + ", ".join(
             f"{name} on node {node}" for name, node in inside.items()),
-            {"module": args.module, "class": args.cls, "modules": inside})
+            {"module": args.module, "class": args.cls, "modules": inside,
+             "reloaded": reloaded})
     where = system.where(args.module, timeout=args.timeout)
-    return (f"{args.module} ({args.cls}) runs on node {where}",
-            {"module": args.module, "class": args.cls, "node": where})
+    return (f"{said}{args.module} ({args.cls}) runs on node {where}",
+            {"module": args.module, "class": args.cls, "node": where, "reloaded": reloaded})
 
 
 def _class_defaults(ref: str, timeout: float | None) -> dict[str, Any]:

@@ -334,7 +334,7 @@ class Operations:
         swap takes the code imported here (agents reload nothing)."""
         wait = self._call_timeout(timeout)
         deadline = time.monotonic() + wait
-        reloaded = self._reload_if_changed(name, cls, wait)
+        reloaded = self._reload_if_changed(f"swap {name}", cls, wait)
         # (the whole timeout, unless a reload took some: an import refused for hanging
         # is refused again at once only for a timeout no longer than it had)
         new_cls, unresolved = _resolved(cls, _left(deadline) if reloaded else wait)
@@ -364,19 +364,19 @@ class Operations:
                            **({"reloaded": reloaded} if reloaded else {}))
         return kept
 
-    def _reload_if_changed(self, name: str, cls: type | str, timeout: float) -> str | None:
+    def _reload_if_changed(self, doing: str, cls: type | str, timeout: float) -> str | None:
         """Reload the module of class reference ``cls`` if its file changed since it was
-        imported here (``changed_since_import``); the module reloaded, else None. One
-        that may not be reloaded (``reload_problem``: an installed package) is left, and
-        so is an agent's swap: agents reload nothing (``FOR_AGENTS``)."""
+        imported here (``changed_since_import``), before a swap or an add (``doing``, as
+        the log says it); the module reloaded, else None. One that may not be reloaded
+        (``reload_problem``: an installed package) is left, and so is an agent's call:
+        agents reload nothing (``FOR_AGENTS``)."""
         if not isinstance(cls, str) or ":" not in cls or _ASKER.get() is not None:
             return None
         module = cls.partition(":")[0]
         if not changed_since_import(module) or reload_problem(module) is not None:
             return None
         self.reload(module, timeout=timeout)
-        log.warning("swap %s: module %s changed since it was imported: reloaded",
-                    name, module)
+        log.warning("%s: module %s changed since it was imported: reloaded", doing, module)
         return module
 
     # -- links -------------------------------------------------------------------------
@@ -489,15 +489,23 @@ class Operations:
         first (name, period, fixed rate, restart, state, group, node, fallback): one
         ``ConfigError`` naming every problem, and nothing started. A module file not
         imported yet is tried in a child process first (``_resolved``), within the
-        timeout."""
+        timeout.
+
+        ``cls`` a reference whose module's file changed since it was imported here: that
+        module is reloaded first, as a swap does (``_reload_if_changed``), saying so in
+        the log and in the ``module_added`` event (``reloaded``): a class written into
+        the file after launch was said not to be in it, and an edited one ran as it was
+        before the edit."""
         wait = self._call_timeout(timeout)
         deadline = time.monotonic() + wait
-        module_cls, unresolved = _resolved(cls, wait)
+        reloaded = self._reload_if_changed(f"add {name}", cls, wait)
+        module_cls, unresolved = _resolved(cls, _left(deadline) if reloaded else wait)
+        said = {"reloaded": reloaded} if reloaded else {}
         if isinstance(module_cls, type) and issubclass(module_cls, Macro) \
                 and module_cls is not Macro:
             self._add_macro(name, module_cls, state=state, period=period,
                             fixed_rate=fixed_rate, restart=restart, group=group, node=node,
-                            fallback=fallback, deadline=deadline, wait=wait)
+                            fallback=fallback, deadline=deadline, wait=wait, said=said)
             return
         with self._held(f"add {name}", _left(deadline), lend=[name]) as left:
             launcher = self.launcher
@@ -523,11 +531,11 @@ class Operations:
                     raise
                 raise RuntimeTimeout(f"{name}'s setup did not finish within {late[1]} s; it "
                                      f"was not added: {late[2]}") from None
-        self.event_log.record("module_added", name, node=node)
+        self.event_log.record("module_added", name, node=node, **said)
 
     def _add_macro(self, name: str, macro: type[Macro], *, state: Any, period: Any,
                    fixed_rate: Any, restart: Any, group: Any, node: str | None, fallback: Any,
-                   deadline: float, wait: float) -> None:
+                   deadline: float, wait: float, said: dict[str, Any]) -> None:
         """Start a macro instance: its modules as ``name/child`` paths, on ``node`` (the
         first node by default) unless a child names its own, and the links inside it,
         expanded and checked by the compiler as a configuration's entry is, then against
@@ -536,7 +544,8 @@ class Operations:
         Links made at run time reach it through its exports (``"f2.x"``), as in a
         configuration, or join its modules' own ports (``"f2/gain.x"``); ``migrate``,
         ``remove`` and ``configuration()`` find it by its paths. ``wait``: the add's
-        timeout, which ends at ``deadline``."""
+        timeout, which ends at ``deadline``; ``said``: what its ``module_added`` events
+        add (``reloaded``)."""
         refused = _refused_imports(macro, deadline)
         with self._held(f"add {name}", _left(deadline), lend=[name]) as left:
             launcher = self.launcher
@@ -584,7 +593,8 @@ class Operations:
                     f"{late[1]} s; no module of {name} was added: {late[2]}") from None
             self.plan.exports.update(expanded.exports)
         for spec in specs:
-            self.event_log.record("module_added", spec.name, node=spec.node, macro=name)
+            self.event_log.record("module_added", spec.name, node=spec.node, macro=name,
+                                  **said)
         for link in links:
             self.event_log.record("link_added", link.key, policy=str(link.policy))
 
