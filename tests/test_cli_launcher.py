@@ -524,6 +524,30 @@ def test_every_command_changes_a_running_system_and_speaks_json(capsys) -> None:
         assert events[-1]["detail"]["destination"] == "b"
 
 
+def test_a_migrate_to_the_node_a_module_runs_on_says_nothing_moved(capsys) -> None:
+    """`pb3a migrate ADDR relay b` with relay on b already printed "relay: b -> b, paused
+    0.0 ms, 0 bytes of state, 0 links re-wired", as if it had moved. It says relay runs
+    there already and nothing moved; ``run.migrate``'s report says ``moved`` False, there
+    is no event, and state given is set where the module runs."""
+    system = System("cli-migrate-home").node("a").node("b")
+    system.add("src", Counter, node="a", period=0.002)
+    system.add("relay", Relay, node="a")
+    system.link("src.out", "relay.x")
+    with system.launch() as run:
+        address = run.listen()
+        assert main(["migrate", address, "relay", "b"]) == 0
+        assert "relay: a -> b, paused" in capsys.readouterr().out
+        assert main(["migrate", address, "relay", "b"]) == 0
+        assert capsys.readouterr().out.strip() == "relay already runs on node b; nothing moved"
+        assert main(["migrate", address, "relay", "b", "--json"]) == 0
+        said = json.loads(capsys.readouterr().out)
+        assert (said["moved"], said["source"], said["destination"]) == (False, "b", "b")
+        assert run.migrate("relay", "a").moved
+        report = run.migrate("relay", "a", state={"relay": {"setups": 7}})
+        assert not report.moved and run.state("relay")["setups"] == 7
+        assert [e.kind for e in run.events()].count("module_moved") == 2
+
+
 def test_remove_force_kills_a_module_that_does_not_answer(capsys) -> None:
     """``pb3a remove ADDR NAME`` of a module whose worker is frozen (SIGSTOP) fails
     within ``--timeout``, naming ``--force``; with ``--force`` its worker is killed and

@@ -120,7 +120,12 @@ def _fit(module: str, values: dict[str, Any], texts: list[str],
 
 
 def _migrate(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
+    """What the move did; a module that runs on the node already is said to, nothing
+    moved (it printed "ctl: b -> b, paused 0.0 ms, ...", as if it had moved)."""
     report = system.migrate(args.module, args.node, timeout=args.timeout)
+    if not report.moved:
+        return (f"{report.module} already runs on node {report.destination}; nothing moved",
+                dataclasses.asdict(report))
     return (f"{report.module}: {report.source} -> {report.destination}, paused "
             f"{report.pause_s * 1e3:.1f} ms, {report.state_bytes} bytes of state, "
             f"{report.links} link{'s' * (report.links != 1)} re-wired"), dataclasses.asdict(report)

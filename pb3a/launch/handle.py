@@ -69,7 +69,11 @@ class SystemHandle(ABC):
         (``{"brain/driver": {"resource": ...}}``: a driver that starts on the robot's
         node already pointed at that robot); a move that fails leaves it unset. With
         ``wait=False`` the move goes on in the background: a ``Pending`` whose
-        ``result()`` is the report (and the event ``module_moved`` says when).
+        ``result()`` is the report (and the event ``module_moved`` says when). A module
+        that runs on ``to`` already is left where it is, its ``state`` set there: its
+        report says ``moved`` False (source and destination ``to``, nothing paused or
+        carried), and there is no event; a macro's says ``moved`` if any of its modules
+        moved.
 
         ``timeout`` bounds the whole move, the wait for the configuration lock and every
         step after it: one that runs out raises ``RuntimeTimeout`` naming the step, the

@@ -117,6 +117,8 @@ class MigrationReport:
     prepare_s: float = 0.0    # before the pause: segments, destination workers, instances
     wait_s: float = 0.0       # then the writers' and the module's calls in progress waited
                               # out (a long step's rest), before the pause
+    moved: bool = True        # False: it ran on the destination already, and nothing moved
+                              # (no event; state on arrival set where it runs)
 
 
 class MovedLate(RuntimeTimeout):
@@ -152,7 +154,8 @@ def migrate(launcher: Launcher, names: list[str], node: str,
                          f"{'does' if len(strangers) == 1 else 'do'} not move; what moves: "
                          f"{', '.join(names)}")
     moving = [name for name in dict.fromkeys(names) if launcher.specs[name].node != node]
-    reports = {name: MigrationReport(name, node, node, 0.0, 0, 0) for name in names}
+    reports = {name: MigrationReport(name, node, node, 0.0, 0, 0, moved=False)
+               for name in names}
     if moving:
         late = _move(launcher, moving, node, state, reports, clock)
         if late is not None:

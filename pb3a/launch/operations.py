@@ -264,7 +264,8 @@ class Operations:
         longest = max(reports, key=lambda r: r.pause_s)       # its phases stand for all
         return MigrationReport(name, ",".join(sorted({r.source for r in reports})), to,
                                longest.pause_s, sum(r.state_bytes for r in reports),
-                               rewired, longest.phases, longest.prepare_s, longest.wait_s)
+                               rewired, longest.phases, longest.prepare_s, longest.wait_s,
+                               moved=bool(moved))
 
     def begin_migration(self, name: str, to: str, *,
                         state: dict[str, dict[str, Any]] | None = None,
