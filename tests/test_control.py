@@ -736,6 +736,19 @@ def test_a_client_told_of_a_gone_server_takes_no_other_server_for_it() -> None:
         server.close()
 
 
+def test_a_server_closed_as_it_notes_a_request_aside_closes_whole() -> None:
+    """The socket thread notes a request run aside, then starts its thread: a close
+    between the two joined a thread not started yet, which raised, and the close was
+    left half done (its port held; a flaky test that closed a server with a request
+    just in hand)."""
+    server = ControlServer(KEY, handler, aside={"block"})
+    noted = threading.Thread(target=lambda: None)       # (noted, never started)
+    server._asides.add(noted)
+    server.close()
+    with socket.socket() as probe:                       # its port free again
+        probe.bind(("127.0.0.1", int(server.address.rpartition(":")[2])))
+
+
 def test_a_call_waiting_as_its_server_is_replaced_fails_then_not_at_its_deadline() -> None:
     """``when_gone``: a server that closes with a call's request in hand, and another
     started at its address within the second that counts it gone (a node controller

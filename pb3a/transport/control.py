@@ -438,7 +438,10 @@ class ControlServer:
         # stopped) gets its answer out; one that goes on longer is left unanswered
         deadline = time.monotonic() + ASIDE_ANSWER_S
         for aside in list(self._asides):
-            aside.join(max(0.0, deadline - time.monotonic()))
+            # (one the socket thread has noted but not started yet is not waited for:
+            # joining it raised, and the close was left half done)
+            if aside.ident is not None:
+                aside.join(max(0.0, deadline - time.monotonic()))
         self._loop.close()                  # (after it sends the answers it was given)
         if self._unlogged:              # (its summary was due later: said now, not lost)
             self._log_unlogged()
