@@ -5,6 +5,7 @@ load read by the node's env port near the level asked)."""
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 
@@ -12,7 +13,8 @@ import pytest
 from conftest import Daemon
 
 from pb3a.cli.main import main
-from pb3a.cli.stress import summary_text
+from pb3a.cli.stress import Stress, summary_text
+from pb3a.stats import LinkStats
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -121,3 +123,23 @@ def test_the_summary_line_counts_the_failed_moves_too() -> None:
     assert "moves 4 (1 failed), cuts 0" in line, line
     summary["migrations_failed"] = 0
     assert "moves 4, cuts 0" in summary_text({"system": "two", "summary": summary})
+
+
+def test_a_link_whose_reader_goes_silent_is_counted_once_and_its_rate_is_a_gap() -> None:
+    """A silent reader's link said 0 values, which the sampling took for a counter
+    started anew: once its node answered again, its whole count came back on top of
+    the totals (150 values counted 250). Its figures are not known meanwhile: the totals
+    stand, its rate is a gap (null in the report), and the next known count goes on
+    from the last."""
+    stress = Stress.__new__(Stress)              # (the sampling alone: no system)
+    stress._links = {}
+
+    def sample(values: int, at: float, silent: bool = False) -> dict:
+        link = LinkStats("a.out", "b.x", "latest", "zmq", values=values, silent=silent)
+        return stress._link_sample("a.out->b.x", link, at)
+
+    assert sample(100, 1.0)["values"] == 100
+    silent = sample(0, 2.0, silent=True)
+    assert silent["values"] == 100 and math.isnan(silent["values_per_s"])
+    back = sample(150, 3.0)
+    assert back["values"] == 150 and back["values_per_s"] == 25.0     # (50 over 2 s)

@@ -22,6 +22,7 @@ import contextlib
 import dataclasses
 import functools
 import json
+import math
 import random
 import sys
 import time
@@ -291,6 +292,14 @@ class Stress:
                                             "link_failures": 0, "counts": {}})
         totals = last.setdefault("totals", {"values": 0, "drops": 0, "link_failures": 0,
                                             "counts": {}})
+        if link.silent:
+            # its reader's node silent: its figures are not known (said as 0, which read
+            # as a counter started anew, and the count came back whole on top of the
+            # totals once the node answered again); the next known ones count from the
+            # last, and its rate meanwhile is a gap
+            return {"values": totals["values"], "drops": totals["drops"],
+                    "link_failures": totals["link_failures"], "values_per_s": math.nan,
+                    **_percentiles({})}
         sample = {}
         for figure in ("values", "drops", "link_failures"):
             now = getattr(link, figure)
@@ -329,7 +338,8 @@ class Stress:
 
     def _progress(self, at: float, stats: SystemStats) -> None:
         latest = self.samples[-1]
-        rate = sum(link["values_per_s"] for link in latest["links"].values())
+        rate = sum(link["values_per_s"] for link in latest["links"].values()
+                   if not math.isnan(link["values_per_s"]))          # (a silent one's)
         drops = sum(link["drops"] for link in latest["links"].values())
         failures = sum(link["link_failures"] for link in latest["links"].values())
         cpus = " ".join(f"{name} {node['cpu']:.0f}%" if node["cpu"] is not None else

@@ -29,7 +29,8 @@ def plot(report: dict[str, Any], path: Path) -> bool:
     fig, axes = plt.subplots(2, 2, figsize=(12, 7), sharex=True)
     (rates, p99s), (cpus, memory) = axes
     for key in report["summary"]["links"]:
-        rates.plot(t, [s["links"].get(key, {}).get("values_per_s", math.nan) for s in samples],
+        # (a gap where the reader was silent: its rate, not known, is null in the report)
+        rates.plot(t, [_or_nan(s["links"].get(key, {}).get("values_per_s")) for s in samples],
                    label=key)
         p99s.plot(t, [_ms(s["links"].get(key, {}).get("latency_p99_s")) for s in samples],
                   label=key)
