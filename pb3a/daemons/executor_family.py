@@ -21,6 +21,8 @@ import psutil
 
 MARK = "PB3A_EXECUTOR_FAMILY"
 _SCAN_S = 0.02      # between two looks for a family's processes still alive
+_EXEC_S = 0.5       # the longest a process is taken to be in the middle of an exec
+_PF_KTHREAD = 0x00200000    # a kernel thread, in /proc/PID/stat's flags
 
 
 def new_mark() -> str:
@@ -35,20 +37,54 @@ def take_mark(mark: str) -> None:
 
 
 def members(mark: str) -> list[psutil.Process]:
-    """The live processes that carry ``mark`` (a zombie runs nothing: left out)."""
+    """The live processes that carry ``mark`` (a zombie runs nothing: left out).
+
+    One caught in the middle of an ``exec`` shows no environment for a moment (its
+    new one is not in place yet): it is looked at again until it does, ``_EXEC_S`` at
+    most, lest a process just started be missed (a module's, which would then run
+    on beside its failed-over copy)."""
     wanted = f"{MARK}={mark}".encode()
     found = []
-    for pid in psutil.pids():
-        try:
-            with open(f"/proc/{pid}/environ", "rb") as environ:
-                if wanted not in environ.read().split(b"\0"):
-                    continue
-            process = psutil.Process(pid)
-            if process.status() != psutil.STATUS_ZOMBIE:
-                found.append(process)
-        except (OSError, psutil.Error):        # gone meanwhile, or another user's
-            continue
-    return found
+    looking, deadline = psutil.pids(), time.monotonic() + _EXEC_S
+    while True:
+        unsure = []
+        for pid in looking:
+            environ = _environ(pid)
+            if environ is None:
+                continue
+            if wanted in environ.split(b"\0"):
+                with contextlib.suppress(psutil.Error):     # (gone meanwhile)
+                    process = psutil.Process(pid)
+                    if process.status() != psutil.STATUS_ZOMBIE:
+                        found.append(process)
+            elif not environ and _may_be_in_exec(pid):
+                unsure.append(pid)
+        if not unsure or time.monotonic() >= deadline:
+            return found
+        looking = unsure
+        time.sleep(_SCAN_S / 4)
+
+
+def _environ(pid: int) -> bytes | None:
+    """Process ``pid``'s environment as it was given at its ``exec``; None if it is gone
+    (or another user's)."""
+    try:
+        with open(f"/proc/{pid}/environ", "rb") as environ:
+            return environ.read()
+    except OSError:
+        return None
+
+
+def _may_be_in_exec(pid: int) -> bool:
+    """Whether process ``pid``, which shows no environment, may be in the middle of an
+    ``exec``: neither a zombie nor a kernel thread (which show none for good)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as stat:
+            fields = stat.read().rpartition(b")")[2].split()
+    except OSError:
+        return False
+    # (after the name: state, ppid, pgrp, session, tty, tpgid, flags)
+    return fields[0] not in (b"Z", b"X") and not int(fields[6]) & _PF_KTHREAD
 
 
 def end(mark: str, timeout: float) -> bool:
