@@ -74,6 +74,7 @@ from pb3a.model.module import restore_state
 from pb3a.node.executor import Executor
 from pb3a.node.forkserver_owner import ORPHAN_GRACE_S
 from pb3a.node.restarts import RESTART_INTENSITY, RestartBudget, Restarts
+from pb3a.stats import SystemStats
 from pb3a.transport.doorbell import new_bell
 from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import live_segments, segment_name
@@ -1196,6 +1197,34 @@ def test_a_frozen_worker_is_waited_for_once_not_at_every_report() -> None:
         answered = eventually(lambda: (m := run.stats().modules["frozen"]).steps and m,
                               what="the frozen worker's figures once it runs")
         assert not answered.silent and answered.pid == pid
+
+
+def test_a_worker_asked_for_a_report_as_it_stops_is_shown_by_its_last_figures() -> None:
+    """A SIGTERM to the whole process group (``timeout``, ``kill -- -PGID``) stops the
+    workers as ``pb3a run`` asks for its last table. A worker that had told its last
+    figures and ended, but not been seen to (the node's monitor busy), failed the
+    table's request at once (its pipe broken), and showed silent: "-" for its links'
+    values in that last table. The request waits for the monitor, and the figures the
+    worker told answer it."""
+    system = System("stopping-reports").node("a")
+    system.add("steady", Steady, node="a")
+    with system.launch() as run:
+        pid = eventually(lambda: (m := run.stats().modules["steady"]).steps and m.pid,
+                         what="the worker stepping")
+        pool = run._launcher.nodes["a"].workers
+        (handle,) = pool.handles.values()
+        asked: list[SystemStats] = []
+        with handle.read_lock:                   # (the monitor reads nothing of it)
+            os.kill(pid, signal.SIGTERM)
+            eventually(lambda: not psutil.pid_exists(pid), what="the worker ended")
+            asking = threading.Thread(target=lambda: asked.append(run.stats(timeout=5)))
+            asking.start()
+            eventually(lambda: any(getattr(f, "pb3a_op", "") == "stats"
+                                   for f in list(pool._futures.values())) or asked,
+                       what="the report waiting")
+        asking.join(10)
+        (last,) = [stats.modules["steady"] for stats in asked]
+        assert not last.silent and last.steps > 0, last
 
 
 def _timed(call: Callable[[], object]) -> tuple[float, object]:

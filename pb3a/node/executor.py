@@ -737,8 +737,9 @@ class Executor:
 
     # -- what workers tell ---------------------------------------------------------
     def _notice(self, handle: WorkerHandle, kind: str, args: dict[str, Any]) -> None:
-        if kind == "figures":
+        if kind == "figures":       # (its last words: it reads no request from now on)
             handle.last_figures = args
+            self.workers.answer_waiting(handle, "stats", {**args, "pid": None})
         elif kind == "checkpoint":
             record = self.modules.get(args["name"])
             if record is not None:

@@ -501,12 +501,16 @@ class WorkerPool:
         self._futures[req_id] = future
         future.pb3a_worker = handle   # type: ignore[attr-defined]
         future.pb3a_request = req_id   # type: ignore[attr-defined]
+        future.pb3a_op = op   # type: ignore[attr-defined]
         try:
             future.pb3a_outgoing = handle.send(req_id, op, args, fd)   # type: ignore[attr-defined]
         except (OSError, ValueError) as exc:
-            # Whoever pops a future completes it: the monitor may have done so already
-            # (the worker's death seen meanwhile).
-            if self._futures.pop(req_id, None) is not None:
+            # Its pipe broken, the worker is ending: the monitor fails the request once it
+            # sees it end, having read what it said before (its last figures answer a
+            # report's request: ``answer_waiting``; failed here, a report made as the
+            # worker stopped showed it silent). Unless the monitor saw that already.
+            # Whoever pops a future completes it.
+            if not handle.alive and self._futures.pop(req_id, None) is not None:
                 future.set_exception(RuntimeFailure(f"worker {handle.key!r} is gone: {exc}"))
         except Exception as exc:                 # not picklable: nothing was sent
             if self._futures.pop(req_id, None) is not None:
@@ -741,6 +745,15 @@ class WorkerPool:
         polling its pidfd now (``_close_stopped``); ``_poke`` wakes it."""
         with self._to_close_lock:
             self._to_close.append(process)
+
+    def answer_waiting(self, handle: WorkerHandle, op: str, result: Any) -> None:
+        """Answer with ``result`` every ``op`` request still waiting for ``handle``'s
+        answer, which its worker told as it stopped reading requests."""
+        for req_id, future in list(self._futures.items()):
+            if getattr(future, "pb3a_worker", None) is handle \
+                    and getattr(future, "pb3a_op", None) == op \
+                    and self._futures.pop(req_id, None) is not None:
+                future.set_result(result)
 
     def _fail_requests(self, handle: WorkerHandle, what: str) -> None:
         """Fail every request still waiting for ``handle``'s answer: its worker ``what``."""
