@@ -281,6 +281,40 @@ def test_an_agent_moves_itself_and_goes_on_where_it_was() -> None:
         assert run.state("wanderer")["asked"] is True
 
 
+def test_a_node_makes_one_bridge_for_its_remote_links_however_many_ask_at_once(
+        monkeypatch) -> None:
+    """A node makes the bridge its remote links come in by when one is first needed. A
+    report (``stats()``) that asked for it as a move opened the node's first remote
+    link made a second one: the move put the link's ring in one and followed the
+    link's sender with the other, which dropped every value from then on (an agent
+    that moved itself, as ``stats()`` was asked in a loop, got no value at its new node
+    once in three). It is made once."""
+    made: list[object] = []
+    both = threading.Barrier(2, timeout=1.0)
+
+    class Meeting:                          # (a second one made meanwhile meets it here)
+        def __init__(self, *args: object) -> None:
+            made.append(self)
+            with contextlib.suppress(threading.BrokenBarrierError):
+                both.wait()
+
+        def shutdown(self) -> None:
+            pass
+    monkeypatch.setattr("pb3a.node.executor.Bridge", Meeting)
+    executor = Executor("n1")
+    try:
+        given: list[object] = []
+        askers = [threading.Thread(target=lambda: given.append(executor.bridge))
+                  for _ in range(2)]
+        for asker in askers:
+            asker.start()
+        for asker in askers:
+            asker.join(5)
+        assert len(made) == 1 and given == made * 2
+    finally:
+        executor.shutdown(timeout=1.0)
+
+
 def test_migration_to_an_unknown_node_or_of_an_unknown_module_is_refused() -> None:
     system = _nodes(System("move-bad"), "a", "b")
     system.add("relay", Relay, node="a")

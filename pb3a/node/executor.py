@@ -93,6 +93,7 @@ class Executor:
         self.leased: Callable[[], bool] = lambda: True
         self._key: ClusterKey | None = None           # the cluster key (loaded on first use)
         self._bridge: Bridge | None = None            # remote links in (made on first use)
+        self._making = threading.Lock()               # held to make the key or the bridge
         self._last_errors: dict[str, str] = {}        # module -> its last exception, logged
         # worker key -> a report's stats request it has not answered yet (frozen, stuck):
         # not asked again, nor waited for, until it does
@@ -138,16 +139,24 @@ class Executor:
 
     @property
     def bridge(self) -> Bridge:
-        """The receiving end of remote links (made on first use)."""
-        if self._bridge is None:
-            self._bridge = Bridge(self.key, self.epoch,
-                                  follower_id(self.node, self.node_epoch))
-        return self._bridge
+        """The receiving end of remote links (made on first use, once)."""
+        # (made twice, by a report and a move opening the first remote link here, the
+        # move's ring was in one and the sender followed by the other, which dropped
+        # every value the link carried from then on)
+        with self._making:
+            if self._bridge is None:
+                self._bridge = Bridge(self._loaded_key(), self.epoch,
+                                      follower_id(self.node, self.node_epoch))
+            return self._bridge
 
     @property
     def key(self) -> ClusterKey:
         """The cluster key remote links are sealed with (loaded on first use)."""
-        if self._key is None:
+        with self._making:
+            return self._loaded_key()
+
+    def _loaded_key(self) -> ClusterKey:
+        if self._key is None:                          # (``_making`` held)
             self._key = ClusterKey.load()
         return self._key
 
