@@ -55,13 +55,18 @@ class EventLog:
             self._cond.notify_all()
         return event
 
-    def since(self, seq: int = 0, timeout: float = 0.0) -> list[Event]:
+    def since(self, seq: int = 0, timeout: float = 0.0, last: int | None = None) -> list[Event]:
         """The events after ``seq`` (oldest first), waiting up to ``timeout`` seconds for
-        one when there is none yet (None is refused: ``TypeError``)."""
+        one when there is none yet (None is refused: ``TypeError``); with ``last``, only
+        the newest ``last`` of them (``last=1``: where the log stands, read in one event,
+        not the whole log)."""
         timeout = bounded_wait(timeout, "events since")
+        if last is not None and (type(last) is not int or last < 1):
+            raise ValueError(f"events: last must be a whole number from 1, not {last!r}")
         with self._cond:
             self._cond.wait_for(lambda: self._seq > seq or self._ended, timeout)
-            return [event for event in self._events if event.seq > seq]
+            after = [event for event in self._events if event.seq > seq]
+        return after if last is None else after[-last:]
 
     def end(self) -> None:
         """No more events will come (the system stopped): every wait returns now, and

@@ -40,6 +40,8 @@ from pb3a.cli.main import INTERRUPTED, main
 from pb3a.cli.standard_output import BROKEN_PIPE
 from pb3a.cli.status import format_table
 from pb3a.errors import ConfigError
+from pb3a.events import Event
+from pb3a.launch.connection import Connection
 from pb3a.stats import ModuleStats, SystemStats
 
 REPO = Path(__file__).resolve().parent.parent
@@ -379,6 +381,57 @@ def test_a_swap_names_the_state_it_dropped(capsys, caplog) -> None:
         swapped = [e.detail for e in run.events() if e.kind == "module_swapped"]
     assert swapped[0]["kept"] == ["gain"] and swapped[0]["dropped"] == ["setups"]
     assert "swap scale: state dropped, PlainScale has no such fields: setups" in caplog.text
+
+
+def test_a_swap_says_what_its_own_swap_did_not_what_a_later_one_did(
+        capsys, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``pb3a swap`` said what the newest ``module_swapped`` event of its module held,
+    read after the swap: someone else's swap of the same module in between was said as
+    its own (here the state it dropped went unsaid). It reads the events after the
+    newest one before its call, and takes the first of its module."""
+    plain = f"{PlainScale.__module__}:PlainScale"
+    swap = Connection.swap
+
+    def then_another(self: Connection, name: str, cls: str, **kwargs: object) -> list[str]:
+        kept = swap(self, name, cls, **kwargs)
+        run.swap(name, plain)               # another's, before pb3a swap reads its own
+        return kept
+
+    monkeypatch.setattr(Connection, "swap", then_another)
+    with System("swap-own").add("scale", Scale, state={"gain": 3.0}).launch() as run:
+        assert main(["swap", run.listen(), "scale", plain]) == 0
+        assert capsys.readouterr().out.strip().endswith(
+            "state kept: gain; dropped (the class has no such fields): setups")
+        assert [e.detail["dropped"] for e in run.events() if e.kind == "module_swapped"] \
+            == [["setups"], []]
+
+
+def test_add_and_swap_read_no_event_older_than_the_newest_before_their_call(
+        capsys, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``pb3a add`` and ``pb3a swap`` read the system's whole event log (it keeps 10,000)
+    for their own event, at every call: they read the newest event before the call
+    (``events(last=1)``) and those after it."""
+    read: list[int] = []
+    events = Connection.events
+
+    def counted(self: Connection, *args: object, **kwargs: object) -> list[Event]:
+        got = events(self, *args, **kwargs)
+        read.extend(event.seq for event in got)
+        return got
+
+    monkeypatch.setattr(Connection, "events", counted)
+    ref = f"{Scale.__module__}:Scale"
+    with System("cli-reads").add("scale", Scale).launch() as run:
+        address = run.listen()
+        for _ in range(3):
+            run.swap("scale", PlainScale)
+            run.swap("scale", Scale)
+        newest = run.events()[-1].seq
+        assert newest >= 6
+        assert main(["swap", address, "scale", ref]) == 0
+        assert main(["add", address, "late", ref]) == 0
+        assert "late (" in capsys.readouterr().out
+    assert read == [newest, newest + 1, newest + 1, newest + 2]
 
 
 def test_add_and_remove_take_a_macro_whole(capsys) -> None:

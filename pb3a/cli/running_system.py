@@ -134,11 +134,11 @@ def _migrate(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
 def _swap(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
     """The swap's event says whether the class's module was reloaded first (its file had
     changed since the launcher imported it), which the line says too."""
+    before = _newest_seq(system)
     kept = system.swap(args.module, args.cls, timeout=args.timeout)
-    swapped = [event for event in system.events(timeout=args.timeout)
-               if event.kind == "module_swapped" and event.subject == args.module]
-    reloaded = swapped[-1].detail.get("reloaded") if swapped else None
-    dropped = swapped[-1].detail.get("dropped", []) if swapped else []
+    swapped = _own_event(system, before, "module_swapped", args.module)
+    reloaded = swapped.get("reloaded")
+    dropped = swapped.get("dropped", [])
     said = (f"module {reloaded} changed since it was imported: reloaded; "
             if reloaded else "")
     return (f"{said}{args.module} is now {args.cls}; state kept: "
@@ -173,12 +173,11 @@ def _add(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
     wrong = _fit(args.module, state, texts, defaults)
     if wrong:
         raise ValueError("; ".join(wrong) + "; nothing was added")
+    before = _newest_seq(system)
     system.add(args.module, args.cls, node=args.node, period=args.period,
                fixed_rate=args.fixed_rate, state=state, timeout=args.timeout)
-    added = [event for event in system.events(timeout=args.timeout)
-             if event.kind == "module_added" and (event.subject == args.module
-                                                  or event.subject.startswith(f"{args.module}/"))]
-    reloaded = added[-1].detail.get("reloaded") if added else None
+    reloaded = _own_event(system, before, "module_added", args.module,
+                          inside=True).get("reloaded")
     said = f"module {reloaded} changed since it was imported: reloaded; " if reloaded else ""
     inside = {name: module.node for name, module in system.topology(
         timeout=args.timeout).modules.items() if name.startswith(f"{args.module}/")}
@@ -190,6 +189,27 @@ def _add(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
     where = system.where(args.module, timeout=args.timeout)
     return (f"{said}{args.module} ({args.cls}) runs on node {where}",
             {"module": args.module, "class": args.cls, "node": where, "reloaded": reloaded})
+
+
+def _newest_seq(system: Connection) -> int:
+    """The number of the system's newest event (0: none yet), read in one event: a
+    change's own event is looked for after it (``_own_event``)."""
+    newest = system.events(timeout=0.0, last=1)
+    return newest[-1].seq if newest else 0
+
+
+def _own_event(system: Connection, since: int, kind: str, module: str, *,
+               inside: bool = False) -> dict[str, Any]:
+    """The detail of the first ``kind`` event of ``module`` (``inside``: or of a module
+    inside it, a macro instance's) after event ``since``, read before the change that
+    recorded it: that change's own ({} if the system no longer keeps it). The whole log
+    was read for the newest such event, which was another's when someone changed the
+    same module again between the change and the read."""
+    for event in system.events(since, timeout=0.0):
+        if event.kind == kind and (event.subject == module or (
+                inside and event.subject.startswith(f"{module}/"))):
+            return event.detail
+    return {}
 
 
 def _class_defaults(ref: str, timeout: float | None) -> dict[str, Any]:

@@ -184,8 +184,11 @@ class SystemHandle(ABC):
         as for every call)."""
         return self._request("logs", {"since": since, "module": module, "timeout": timeout})
 
-    def events(self, since: int = 0, *, timeout: float | None = 0.0) -> list[Event]:
+    def events(self, since: int = 0, *, timeout: float | None = 0.0,
+               last: int | None = None) -> list[Event]:
         """The events after sequence number ``since`` (moves, swaps, restarts, failures,
         lost nodes ...), oldest first; waits up to ``timeout`` for one if there is none
-        (0: not at all; None: the system's default, as for every call)."""
-        return self._request("events", {"since": since, "timeout": timeout})
+        (0: not at all; None: the system's default, as for every call). ``last``: only
+        the newest ``last`` of them (``events(last=1)``: the newest event, whose ``seq``
+        a program reads on from, without fetching the whole log)."""
+        return self._request("events", {"since": since, "timeout": timeout, "last": last})

@@ -825,8 +825,10 @@ class Operations:
         a change in progress shows on the modules it acts on (``ModuleStats.change``)."""
         return self.launcher.stats(self._call_timeout(timeout))
 
-    def events(self, since: int = 0, *, timeout: float | None = 0.0) -> list[Event]:
-        return self._history("events", lambda wait: self.event_log.since(since, wait), timeout)
+    def events(self, since: int = 0, *, timeout: float | None = 0.0,
+               last: int | None = None) -> list[Event]:
+        return self._history("events", lambda wait: self.event_log.since(since, wait, last),
+                             timeout)
 
     def logs(self, since: int = 0, *, module: str | None = None,
              timeout: float | None = 0.0) -> list[LogEntry]:
