@@ -67,6 +67,7 @@ import numpy as np
 from agents.limits import SECONDS, out_of_limits, whole
 from pb3a import Driver, Input, InputPort, Output, RuntimeCancelled
 from pb3a.model.module import StateRefused, reflective
+from pb3a.throttle import Throttle
 
 SILENT_STOP_S = 0.1          # how long a silent robot's stop is waited for, when let go
 SAY_EVERY_S = 10.0           # a line of one kind is logged at most this often (the rest counted)
@@ -121,8 +122,8 @@ class RobotDriver(Driver):
         # takes it from its state, whose clock is the wall's
         self._commanded_at: float | None = None if not self.commanded_at else \
             time.monotonic() - max(0.0, time.time() - self.commanded_at)
-        self._stops_said = _Hushed(SAY_EVERY_S)
-        self._silences_said = _Hushed(SAY_EVERY_S)
+        self._stops_said = Throttle(SAY_EVERY_S)
+        self._silences_said = Throttle(SAY_EVERY_S)
         self._telling = False    # the robot's silence now was said in the log: so is its end
         # The command its input holds, sent again at the first period: the driver that
         # let go of the robot (moved, swapped, restarted) stopped it, and a controller
@@ -199,16 +200,16 @@ class RobotDriver(Driver):
 
     def _stop_if_stale(self) -> None:
         """Stop the robot (at this period: ``_unsent``) if no command has come for
-        ``command_timeout`` s, once until the next comes, and say so (``_Hushed``)."""
+        ``command_timeout`` s, once until the next comes, and say so (``_say``)."""
         if (not self.command_timeout or self.stale or not self.enabled
                 or self._commanded_at is None
                 or time.monotonic() - self._commanded_at <= self.command_timeout):
             return
         self.stale, self.stale_stops = True, self.stale_stops + 1
         self._unsent = np.zeros(2)      # (sent again at the next period if not taken)
-        self._stops_said.say(f"{type(self).__name__}: no command for {self.command_timeout:g} s "
-                             f"(its controller hung, failed or gone?): the robot at "
-                             f"{self.resource} is stopped until the next one comes")
+        _say(self._stops_said, f"{type(self).__name__}: no command for "
+             f"{self.command_timeout:g} s (its controller hung, failed or gone?): the "
+             f"robot at {self.resource} is stopped until the next one comes")
 
     def _checked(self, command: np.ndarray) -> np.ndarray:
         """``command``, or a stop where it is not finite: the robot refuses it, so sent on
@@ -317,9 +318,9 @@ class RobotDriver(Driver):
         # driver whose robot was never reached ran with no error and no line: only its
         # state told), once every SAY_EVERY_S at most for a robot that comes and goes
         if self.silent == 1 and self.silent_after > 1:
-            self._telling = self._silences_said.say(
-                f"{exc}; tried again at each period, said on failure (robot_link) after "
-                f"{self.silent_after} unanswered requests in a row")
+            self._telling = _say(self._silences_said, f"{exc}; tried again at each period, "
+                                 "said on failure (robot_link) after "
+                                 f"{self.silent_after} unanswered requests in a row")
         if self.silent == self.silent_after:          # said once, until it answers again
             self.failure.write({"fault": "robot_link", "probability": 1.0,
                                 "detail": {"resource": self.resource,
@@ -330,7 +331,7 @@ class RobotDriver(Driver):
             if self._telling:
                 log.warning("%s", said)
             else:
-                self._telling = self._silences_said.say(said)
+                self._telling = _say(self._silences_said, said)
 
     def release(self, client: Any) -> None:
         # Leave the robot standing. One that did not answer at the last period is told
@@ -339,24 +340,16 @@ class RobotDriver(Driver):
         client.call("stop", min(self.timeout, SILENT_STOP_S) if self.silent else self.timeout)
 
 
-class _Hushed:
-    """Warnings of one kind, logged at most once every ``every`` seconds: those held back
-    in between are counted, and the next one logged says how many (a controller that
-    writes every 1.5 s against a 1 s timeout would log a stop every 1.5 s)."""
-
-    def __init__(self, every: float) -> None:
-        self.every, self.said_at, self.held = every, -float("inf"), 0
-
-    def say(self, message: str) -> bool:
-        """Log ``message`` unless one was logged less than ``every`` s ago; whether it was."""
-        now = time.monotonic()
-        if now - self.said_at < self.every:
-            self.held += 1
-            return False
-        more = f" ({self.held} more like it since the last said)" if self.held else ""
-        log.warning("%s%s", message, more)
-        self.said_at, self.held = now, 0
-        return True
+def _say(kind: Throttle, message: str) -> bool:
+    """Log warning ``message`` unless ``kind`` holds it back (one of its kind was logged
+    less than ``SAY_EVERY_S`` ago); whether it was. The next one logged says how many
+    were held back (a controller that writes every 1.5 s against a 1 s timeout would log
+    a stop every 1.5 s)."""
+    held = kind.let(time.monotonic())
+    if held is None:
+        return False
+    log.warning("%s%s", message, f" ({held} more like it since the last said)" if held else "")
+    return True
 
 
 def _own_problems(name: str, state: dict[str, Any]) -> list[str]:

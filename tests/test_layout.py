@@ -20,7 +20,7 @@ LAYERS: list[set[str]] = [
     {"pb3a.errors", "pb3a.log_format"},                 # the exception tree and the log
                                                         # line's format, under all
     {"pb3a.atomic_write", "pb3a.deadline", "pb3a.events", "pb3a.latencies", "pb3a.logbook",
-     "pb3a.pending", "pb3a.processes", "pb3a.stats"},
+     "pb3a.pending", "pb3a.processes", "pb3a.stats", "pb3a.throttle"},
     {"pb3a.transport"},                                 # how bytes move
     {"pb3a.model", "pb3a.loading"},                     # what users write; code by reference
     {"pb3a.config"},                                    # description -> checked plan

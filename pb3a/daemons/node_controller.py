@@ -26,6 +26,7 @@ from pb3a.daemons import executor_family
 from pb3a.daemons.node_share import UNBOUND_S, executor_main
 from pb3a.errors import RuntimeFailure, bounded_wait
 from pb3a.processes import start_resource_tracker, start_without_main, terminal_signals_held
+from pb3a.throttle import Throttle
 from pb3a.transport.auth import ClusterKey
 from pb3a.transport.control import ControlServer, UnknownOperation
 from pb3a.transport.pickling import PYTHON
@@ -114,8 +115,7 @@ class NodeController:
         self._lock = threading.Lock()
         self._closing = False               # set by close: no executor starts from then on
         self._cpu_samples: collections.deque[float] = collections.deque(maxlen=CPU_WINDOW)
-        self._refusal_logged_at = -REFUSAL_LOG_S       # when a refusal was logged last
-        self._refusals_unlogged = 0                    # the refusals since, not logged
+        self._refusals_logged = Throttle(REFUSAL_LOG_S)    # (the others counted)
         self._cpu = self._sample_cpu()
         self._sampling = threading.Event()
         self._sampler = threading.Thread(target=self._sample, name="pb3a-node-sampler",
@@ -188,12 +188,8 @@ class NodeController:
                          " MiB (its controller's --min-memory: lower it, or free memory)")
 
     def _refuse(self, why: str) -> NoReturn:
-        now = time.monotonic()
-        if now - self._refusal_logged_at < REFUSAL_LOG_S:
-            self._refusals_unlogged += 1
-        else:
-            more = self._refusals_unlogged
-            self._refusal_logged_at, self._refusals_unlogged = now, 0
+        more = self._refusals_logged.let(time.monotonic())
+        if more is not None:
             log.warning("%s%s", why, f" ({more} more refused in the last "
                         f"{REFUSAL_LOG_S:g} s, not logged)" if more else "")
         raise Refused(why)

@@ -35,6 +35,7 @@ from pb3a.model.module import StateRefused, restore_state
 from pb3a.model.ports import InputPort, Policy, WaitCounter
 from pb3a.model.state_edits import configured
 from pb3a.processes import mark_as
+from pb3a.throttle import Throttle
 from pb3a.transport import pickling
 from pb3a.transport.codec import local_copy
 from pb3a.transport.doorbell import BellPull
@@ -110,7 +111,7 @@ class Worker:
         self._paused: set[str] = set()
         self._held: dict[str, threading.Event] = {}   # paused where they wait: see op_pause
         self._set_up_on_resume: set[str] = set()     # see op_migrate_out
-        self._error_times: dict[str, tuple[float, int]] = {}
+        self._error_reports: dict[str, Throttle] = {}     # by module
         self._ready: list[Callable[..., None]] = []      # actors' dispatches, inline
         self._request_ids = itertools.count()
         self._closing = threading.Event()
@@ -635,12 +636,12 @@ class Worker:
 
     def _report_error(self, actor: ModuleActor, where: str, trace: str) -> None:
         """Tell the executor (which logs it) about an exception, at most once a second each."""
-        now = time.monotonic()
-        last, suppressed = self._error_times.get(actor.name, (0.0, 0))
-        if now - last < ERROR_REPORT_S:
-            self._error_times[actor.name] = (last, suppressed + 1)
+        reports = self._error_reports.get(actor.name)
+        if reports is None:
+            reports = self._error_reports[actor.name] = Throttle(ERROR_REPORT_S)
+        suppressed = reports.let(time.monotonic())
+        if suppressed is None:
             return
-        self._error_times[actor.name] = (now, 0)
         self.send((None, "error", {"name": actor.name, "where": where, "trace": trace,
                                    "suppressed": suppressed}))
 
