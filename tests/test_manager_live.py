@@ -153,10 +153,10 @@ class _HeldEvents:
     def __getattr__(self, name: str) -> object:
         return getattr(self._run, name)
 
-    def events(self, since: int = 0, timeout: float = 0.0) -> list:
+    def events(self, since: int = 0, timeout: float = 0.0, last: int | None = None) -> list:
         if timeout:
             self._hello.wait(10)
-        return self._run.events(since, timeout=timeout)
+        return self._run.events(since, timeout=timeout, last=last)
 
 
 def test_a_page_gets_no_structure_again_for_changes_its_hello_showed(run) -> None:
@@ -278,10 +278,10 @@ class _Failing:
             raise self._failures["stats"].pop(0)
         return self._run.stats(timeout=timeout)
 
-    def events(self, since: int = 0, timeout: float = 0.0) -> list:
+    def events(self, since: int = 0, timeout: float = 0.0, last: int | None = None) -> list:
         if timeout and self._failures["events"]:
             raise self._failures["events"].pop(0)
-        return self._run.events(since, timeout=timeout)
+        return self._run.events(since, timeout=timeout, last=last)
 
 
 class _EventsWaited:
@@ -293,10 +293,10 @@ class _EventsWaited:
     def __getattr__(self, name: str) -> object:
         return getattr(self._run, name)
 
-    def events(self, since: int = 0, timeout: float = 0.0) -> list:
+    def events(self, since: int = 0, timeout: float = 0.0, last: int | None = None) -> list:
         if timeout:
             self.waiting.set()
-        return self._run.events(since, timeout=timeout)
+        return self._run.events(since, timeout=timeout, last=last)
 
 
 def test_a_manager_s_end_is_not_held_up_by_the_feed_s_events_call(monkeypatch) -> None:

@@ -246,7 +246,8 @@ class Feed:
 
     def _recent_events(self) -> list[dict[str, Any]]:
         """The last ``RECENT_EVENTS`` events, oldest first, as the feed sends them."""
-        return [plain(asdict(event)) for event in self.session.handle.events(0)[-RECENT_EVENTS:]]
+        return [plain(asdict(event))
+                for event in self.session.handle.events(0, last=RECENT_EVENTS)]
 
     async def _send(self, socket: WebSocket, queue: asyncio.Queue[Message],
                     hello_at: tuple[int, int]) -> None:
