@@ -226,6 +226,17 @@ def test_a_launcher_with_nodes_on_its_loopback_and_on_another_host_listens_where
     assert listens_at.startswith(f"tcp://{lan.address}:"), listens_at
 
 
+def test_a_node_on_every_interface_of_a_host_with_no_route_out_gives_its_one_address(
+        lan: Lan) -> None:
+    """A controller listening on every interface prints the address of its default
+    route's interface; on a robot's LAN with no gateway it printed loopback's, which a
+    user then gave the other machines. A host with one address on a network gives
+    that one (with two, loopback's still: which one the others reach is not known)."""
+    robot = lan.host("robot")
+    assert robot.start("node", "start", "--name", "robot", "--listen", "tcp://0.0.0.0:7100",
+                       "--max-cpu", "101") == f"node robot at tcp://{robot.address}:7100"
+
+
 def test_a_host_on_two_networks_binds_on_one_address_and_advertises_another(
         lan: Lan) -> None:
     # The launcher's host and robot m are on a management network and on the lab's;
@@ -237,7 +248,8 @@ def test_a_host_on_two_networks_binds_on_one_address_and_advertises_another(
         m, r = lan.host("m"), lan.host("r")
         m_management = m.plug(management)
         # (on every interface it prints its default route's address, here loopback's:
-        # m has no default route; tcp://0.0.0.0:7100, printed before, reaches nobody)
+        # m has no default route, and two networks; tcp://0.0.0.0:7100, printed before,
+        # reaches nobody)
         assert m.start("node", "start", "--name", "m", "--listen", "tcp://0.0.0.0:7100",
                        "--max-cpu", "101") == "node m at tcp://127.0.0.1:7100"
         controller = f"tcp://{m_management}:7100"

@@ -20,6 +20,7 @@ import threading
 import time
 from typing import TYPE_CHECKING, TypeVar
 
+import psutil
 import zmq
 from zmq.utils.monitor import recv_monitor_message
 
@@ -58,12 +59,23 @@ _RESOLVED: dict[str, str] = {}  # each host name's address when ``numeric`` last
 
 
 def default_route_host() -> str:
-    """This machine's address on the interface of its default route, else loopback's
-    (no packet is sent)."""
+    """This machine's address on the interface of its default route (no packet is sent);
+    with no route out, its one address on a network if it has only one (a robot's LAN
+    with no gateway: loopback's, printed as the node's, was what a user then gave
+    other machines), else loopback's."""
     try:
         return reachable_from(f"tcp://{_ROUTED}:9")
     except OSError:                     # no route out of this machine
-        return "127.0.0.1"
+        own = network_addresses()
+        return own[0] if len(own) == 1 else "127.0.0.1"
+
+
+def network_addresses() -> list[str]:
+    """This machine's IPv4 addresses on interfaces that are up, loopback's left out."""
+    up = {name for name, stats in psutil.net_if_stats().items() if stats.isup}
+    return sorted(entry.address for name, entries in psutil.net_if_addrs().items()
+                  if name in up for entry in entries if entry.family == socket.AF_INET
+                  and not ipaddress.ip_address(entry.address).is_loopback)
 
 
 def launcher_address(text: str) -> str:
