@@ -131,8 +131,8 @@ class Failover:
         ended = launcher.remotes[node].ended
         why = f"no heartbeat for {silent_s:.1f} s" + (
             f"; its controller says its executor {ended}" if ended else "")
-        launcher.failures.add(f"node {node} lost ({why}); its modules "
-                              f"{', '.join(gone) or '(none)'} were there{landing}")
+        there_were = f"its modules {', '.join(gone)} were there" if gone else "no module was there"
+        launcher.failures.add(f"node {node} lost ({why}); {there_were}{landing}")
         launcher.events.record("node_lost", node, modules=gone, arriving=arriving,
                                silent_s=silent_s, executor=ended)
         self._failing_over[node] = lost_at

@@ -782,8 +782,10 @@ class WorkerPool:
         time.sleep(max(0.0, deadline - time.monotonic()))
         for handle in handles:
             if handle.alive and handle.process is not None:
-                log.warning("worker %s (modules %s) still tearing down as its modules may "
-                            "start elsewhere: killed", handle.key, ", ".join(handle.modules))
+                if handle.modules:            # (a spare has nothing to tear down)
+                    log.warning("worker %s (modules %s) still tearing down as its modules "
+                                "may start elsewhere: killed", handle.key,
+                                ", ".join(handle.modules))
                 with contextlib.suppress(OSError, ValueError):   # (gone meanwhile)
                     handle.process.kill()
 
