@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import pwd
 import random
@@ -10,6 +11,7 @@ import stat
 import subprocess
 import sys
 import tempfile
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +50,68 @@ def test_a_missing_home_key_is_created_private_and_then_reused(tmp_path) -> None
     assert stat.S_IMODE(path.stat().st_mode) == 0o600
     assert stat.S_IMODE(path.parent.stat().st_mode) == 0o700
     assert ClusterKey.load({}, home=tmp_path) == first
+
+
+def test_two_loaders_making_the_first_key_at_once_both_read_the_whole_key(
+        tmp_path, monkeypatch) -> None:
+    """The first made the key file, then wrote the key into it: the second, loading the
+    key in between, read the file empty and failed ("the cluster key from ... is 0
+    bytes": 68 times in 200 with two processes). Here the first waits before its write
+    until the second has read the file, or is writing a key of its own."""
+    home, fdopen, read = tmp_path, os.fdopen, ClusterKey._read
+    writing, moved, writers, results = threading.Event(), threading.Event(), [], {}
+
+    def held_write(fd: int, *args, **kwargs):
+        if threading.current_thread().name in ("first", "second"):
+            writers.append(threading.current_thread().name)
+            if len(writers) == 1:
+                writing.set()
+                moved.wait(10)
+            else:
+                moved.set()
+        return fdopen(fd, *args, **kwargs)
+
+    def reading(cls, *args, **kwargs):
+        try:
+            return read(*args, **kwargs)
+        finally:
+            moved.set()
+
+    def load(name: str) -> None:
+        try:
+            results[name] = ClusterKey.load({}, home=home)
+        except Exception as exc:
+            results[name] = exc
+
+    monkeypatch.setattr(os, "fdopen", held_write)
+    monkeypatch.setattr(ClusterKey, "_read", classmethod(reading))
+    first = threading.Thread(target=load, args=("first",), name="first")
+    second = threading.Thread(target=load, args=("second",), name="second")
+    first.start()
+    assert writing.wait(10)
+    second.start()
+    for thread in (first, second):
+        thread.join(10)
+        assert not thread.is_alive()
+    assert isinstance(results["second"], ClusterKey), results["second"]
+    assert results["first"] == results["second"]
+    assert os.listdir(home / ".pb3a") == ["cluster.key"]        # no temporary file left
+    assert stat.S_IMODE((home / ".pb3a" / "cluster.key").stat().st_mode) == 0o600
+
+
+def test_a_key_file_made_where_hard_links_cannot_be_is_written_in_place(
+        tmp_path, monkeypatch) -> None:
+    """A file system without hard links (a FAT stick the key is carried on) has the
+    key written straight into its file, as before the key was linked into place."""
+    def no_link(source, destination) -> None:
+        raise PermissionError(errno.EPERM, "Operation not permitted")
+    monkeypatch.setattr(os, "link", no_link)
+    made = ClusterKey.create(tmp_path / "cluster.key")
+    assert ClusterKey.load({"PB3A_KEY_FILE": str(tmp_path / "cluster.key")}) == made
+    assert os.listdir(tmp_path) == ["cluster.key"]
+    with pytest.raises(FileExistsError):
+        ClusterKey.create(tmp_path / "cluster.key")
+    assert os.listdir(tmp_path) == ["cluster.key"]
 
 
 def test_bad_keys_name_where_they_came_from(tmp_path) -> None:

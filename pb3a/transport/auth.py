@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import errno
 import hashlib
 import itertools
 import os
@@ -40,6 +41,7 @@ import pwd
 import secrets
 import stat
 import struct
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -74,6 +76,8 @@ MAX_BYTES = 256 * 1024 * 1024    # default bound on one message (all its frames)
 MAX_FRAMES = 64
 FRESH_S = 60.0                   # a message older (or newer) than this is refused
 _SENDERS = 4096                  # senders remembered (their derived keys and counters)
+# what link() says on a file system without hard links (FAT, some FUSE ones)
+_NO_HARD_LINKS = {errno.EPERM, errno.EOPNOTSUPP, errno.ENOTSUP, errno.ENOSYS}
 
 
 class ClusterKeyError(PB3AError, ValueError):
@@ -129,11 +133,28 @@ class ClusterKey:
     @classmethod
     def create(cls, path: Path) -> ClusterKey:
         """New key material written to ``path``, which must not exist yet
-        (``FileExistsError``), as a file only its owner can read (mode 0600)."""
+        (``FileExistsError``), as a file only its owner can read (mode 0600). The file
+        is there whole or not at all: the key is written to a temporary file beside
+        it, synced, then linked to ``path`` (made in place and written after, a process
+        loading the key meanwhile read it empty: "the cluster key ... is 0 bytes"). A
+        file system without hard links has it written in place, as it was."""
         material = secrets.token_hex(32).encode()
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        with os.fdopen(fd, "wb") as out:
-            out.write(material + b"\n")
+        fd, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)  # (0600)
+        try:
+            with os.fdopen(fd, "wb") as out:
+                out.write(material + b"\n")
+                out.flush()
+                os.fsync(out.fileno())
+            try:
+                os.link(temporary, path)        # FileExistsError: another made it first
+            except OSError as exc:
+                if exc.errno not in _NO_HARD_LINKS:
+                    raise
+                fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+                with os.fdopen(fd, "wb") as out:
+                    out.write(material + b"\n")
+        finally:
+            os.unlink(temporary)
         return cls._checked(material, str(path))
 
     @classmethod
