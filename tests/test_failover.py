@@ -46,6 +46,9 @@ from pb3a import RuntimeFailure, RuntimeTimeout, System
 from pb3a.cli.main import main
 from pb3a.cli.status import format_nodes, format_table
 from pb3a.daemons.node_controller import Limits, NodeController
+from pb3a.events import EventLog
+from pb3a.launch.failover import Failover
+from pb3a.stats import FailureLog
 from pb3a.transport.auth import ClusterKey, Rejected
 from pb3a.transport.control import ControlClient
 from pb3a.transport.replication import ACK_EVERY
@@ -1287,3 +1290,62 @@ def test_a_lost_node_whose_controller_comes_back_with_another_key_says_why_it_st
         said = [record.getMessage() for record in caplog.records
                 if "cannot rejoin" in record.getMessage()]
         assert len(said) == 1 and "another cluster key" in said[0], said
+
+
+class _Admission:
+    """A stand-in for one admission of a remote node (a ``RemoteNode``), silent since
+    ``answered_ago`` seconds."""
+
+    def __init__(self, answered_ago: float, lost: bool) -> None:
+        self.lost, self.ended, self.rtt, self.node_epoch = lost, None, 0.001, 1
+        self._answered = time.monotonic() - answered_ago
+
+    def silent_s(self) -> float:
+        return time.monotonic() - self._answered
+
+    def lose(self) -> None:
+        self.lost = True
+
+
+class _Launcher:
+    """What the watchdog reads of a launcher, with remote node r, its admission ``old``
+    silent for 30 s."""
+
+    def __init__(self, old: _Admission) -> None:
+        self.stopping, self.changed = threading.Event(), threading.Condition()
+        self.failures = FailureLog(logging.getLogger("pb3a.test"))
+        self.events, self.started = EventLog(), []
+        self.specs: dict = {}
+        self.arriving: dict = {}
+        self.nodes, self.remotes = {"r": old}, {"r": old}
+
+    def start_background(self, thread: threading.Thread) -> None:
+        self.started.append(thread.name)
+
+
+@pytest.mark.parametrize("old_lost", [True, False], ids=["its loss said", "its loss not said"])
+def test_a_node_admitted_again_as_the_watchdog_looks_is_not_lost_again(old_lost: bool) -> None:
+    """The watchdog took its list of remote nodes, then read each one's health: a rejoin
+    in between (another thread) put in the new admission and said it up, and the
+    watchdog measured the old admission's silence (lost long ago) against it: the node
+    just let in was said lost (node_lost, its env module failed over, a second rejoin).
+    Here the rejoin runs as the watchdog reads the health; with the old admission's
+    loss not said, the loss itself is what finds the node admitted anew."""
+    old, new = _Admission(30.0, lost=old_lost), _Admission(0.0, lost=False)
+    launcher = _Launcher(old)
+
+    class RejoinedAsRead(dict):
+        """Node r's health, which a rejoin changes as the watchdog first reads it."""
+
+        def __getitem__(self, key: str) -> Any:
+            if key == "up" and launcher.remotes["r"] is old:
+                with launcher.changed:
+                    launcher.nodes["r"] = launcher.remotes["r"] = new
+                    self.update(up=True, rtt=new.rtt, controller=True, epoch=2)
+            return dict.__getitem__(self, key)
+
+    launcher.health = {"r": RejoinedAsRead(up=False, rtt=math.nan, address="x", epoch=1)}
+    failover = Failover(launcher, env=None)     # type: ignore[arg-type]
+    failover._look(time.monotonic() + 10)
+    assert not new.lost and launcher.health["r"]["up"]
+    assert launcher.events.since(0) == [] and launcher.started == []

@@ -43,6 +43,7 @@ if TYPE_CHECKING:
     from pb3a.config.plan import FlatLink, FlatModule
     from pb3a.launch.env_keeper import EnvKeeper
     from pb3a.launch.launcher import Launcher
+    from pb3a.node.remote import RemoteNode
     from pb3a.stats import NodeReport
 
 log = logging.getLogger("pb3a.launcher")
@@ -90,11 +91,13 @@ class Failover:
         launcher = self.launcher
         now = time.monotonic()
         for name, node in list(launcher.remotes.items()):
+            if node.lost or launcher.remotes.get(name) is not node:
+                continue        # (lost already, or admitted anew since the list was taken)
             if launcher.health[name]["up"]:
                 launcher.health[name]["rtt"] = node.rtt
                 silent = node.silent_s()
                 if (silent > LOSS_S or node.ended) and not launcher.stopping.is_set():
-                    self._lose(name, silent)
+                    self._lose(name, node, silent)
                 elif silent > SUSPECT_S and now - self._asked.get(name, -LOSS_S) > HEARTBEAT_S:
                     self._asked[name] = now
                     threading.Thread(target=node.executor_ended, args=(HEARTBEAT_S,),
@@ -110,14 +113,19 @@ class Failover:
         return now + REJOIN_S
 
     # -- a lost node ------------------------------------------------------------------
-    def _lose(self, node: str, silent_s: float) -> None:
-        """Declare ``node`` lost: every call to it fails at once from now on; its modules
-        fail over or are dropped, with their links (``_try_fail_over``); the env modules
-        say so."""
+    def _lose(self, node: str, remote: RemoteNode, silent_s: float) -> None:
+        """Declare ``node`` lost, as ``remote``, the admission of it found silent: every
+        call to it fails at once from now on; its modules fail over or are dropped, with
+        their links (``_try_fail_over``); the env modules say so. Nothing is done if
+        ``remote`` is no longer the node's: a rejoin admitted it anew meanwhile (the
+        watchdog measured the old admission's silence against the new one's health, and
+        lost the node just let in)."""
         launcher = self.launcher
         lost_at = time.monotonic()
-        launcher.remotes[node].lose()
-        with launcher.changed:
+        with launcher.changed:              # (a rejoin admits a node under it)
+            if remote.lost or launcher.remotes.get(node) is not remote:
+                return
+            remote.lose()
             # no round trip now: its last one, shown on, was made up
             launcher.health[node].update(up=False, rtt=float("nan"))
             launcher.changed.notify_all()
@@ -128,7 +136,7 @@ class Failover:
         arriving = [name for name in there if launcher.arriving.get(name) == node]
         gone = [name for name in there if name not in arriving]
         landing = f"; a move was landing {', '.join(arriving)} there" if arriving else ""
-        ended = launcher.remotes[node].ended
+        ended = remote.ended
         why = f"no heartbeat for {silent_s:.1f} s" + (
             f"; its controller says its executor {ended}" if ended else "")
         there_were = f"its modules {', '.join(gone)} were there" if gone else "no module was there"
@@ -396,9 +404,9 @@ class Failover:
                     if launcher.stopping.is_set():
                         return
                     old.close()
-                    launcher.nodes[name] = launcher.remotes[name] = node
-                    adopted = True
-                    with launcher.changed:
+                    with launcher.changed:      # (the watchdog loses a node under it)
+                        launcher.nodes[name] = launcher.remotes[name] = node
+                        adopted = True
                         launcher.health[name].update(up=True, rtt=node.rtt, controller=True,
                                                      epoch=epoch)
                         launcher.changed.notify_all()
