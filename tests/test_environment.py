@@ -5,6 +5,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import statistics
+import threading
 
 import numpy as np
 import pytest
@@ -20,6 +21,7 @@ from pb3a import (
     ModuleNotFound,
     System,
 )
+from pb3a.node.executor import Executor
 from pb3a.testing import ModuleHarness
 
 
@@ -197,3 +199,67 @@ def test_the_env_module_tells_each_move_and_loss_once_however_many_came_before()
         assert harness.written["node_lost"] == ["d"]
     finally:
         harness.close()
+
+
+def test_the_env_keeper_goes_on_past_an_env_module_between_its_removal_and_its_start(
+        monkeypatch) -> None:
+    """A restart (or removal) of an env module drops it from its node before the
+    launcher's spec: the env keeper's pass in between failed with KeyError, which ended
+    its thread for good, and the env modules were told nothing more (the nodes' health,
+    their own processes; the remote nodes' logs were no longer merged). Here a pass of
+    the keeper runs in that window; then the module, started again, is told."""
+    system = System("env-kept")
+    system.node("a")
+    system.add("env-a", Environment, node="a")
+    window, in_window, passed = [], threading.Event(), threading.Event()
+    with system.launch() as run:
+        update, remove = run._env.update, Executor.remove_module
+
+        def watched_update() -> None:
+            """The keeper's pass, its error kept if it began in the window."""
+            if threading.current_thread().name != "pb3a-env" or not in_window.is_set():
+                return update()
+            try:
+                update()
+                window.append(None)
+            except Exception as exc:
+                window.append(exc)
+                raise
+            finally:
+                passed.set()
+
+        def removed_then_a_pass(self: Executor, name: str) -> None:
+            remove(self, name)
+            if name == "env-a":
+                in_window.set()
+                passed.wait(10)
+                in_window.clear()
+
+        monkeypatch.setattr(run._env, "update", watched_update)
+        monkeypatch.setattr(Executor, "remove_module", removed_then_a_pass)
+        eventually(lambda: run.state("env-a")["own_pids"], what="env-a told its processes")
+        run.restart("env-a")
+        assert window == [None]
+        pid = run.stats().modules["env-a"].pid          # (a worker of its own again)
+        eventually(lambda: pid in run.state("env-a")["own_pids"], timeout=15,
+                   what="env-a told its worker once restarted")
+        assert any(t.name == "pb3a-env" and t.is_alive() for t in threading.enumerate())
+
+
+def test_the_env_keeper_goes_on_after_a_pass_that_fails(monkeypatch) -> None:
+    """A pass of the env keeper that raised ended its thread for good: the env modules
+    were told nothing more, and the remote nodes' logs were no longer merged."""
+    system = System("env-kept-on")
+    system.node("a")
+    system.add("env-a", Environment, node="a")
+    with system.launch() as run:
+        update, passes = run._env.update, []
+
+        def failing_once() -> None:
+            if threading.current_thread().name == "pb3a-env":
+                passes.append(None)
+                if len(passes) == 1:
+                    raise RuntimeError("dictionary changed size during iteration")
+            update()
+        monkeypatch.setattr(run._env, "update", failing_once)
+        eventually(lambda: len(passes) > 1, what="a pass after the one that failed")

@@ -14,16 +14,19 @@ launcher's background, which its shutdown joins.
 from __future__ import annotations
 
 import contextlib
+import logging
 import threading
 from typing import TYPE_CHECKING
 
-from pb3a.errors import RuntimeFailure, RuntimeTimeout
+from pb3a.errors import ModuleNotFound, RuntimeFailure, RuntimeTimeout
 from pb3a.model.environment import env_name
 from pb3a.node.remote import HEARTBEAT_S
 
 if TYPE_CHECKING:
     from pb3a.launch.launcher import Launcher
     from pb3a.node.remote import RemoteNode
+
+log = logging.getLogger("pb3a.launcher")
 
 ENV_S = 1.0             # how often the env modules are told, and the logs merged
 ENV_TOLD = 256          # the latest moves (and losses) the env modules are given each time
@@ -46,15 +49,24 @@ class EnvKeeper:
     def _keep(self) -> None:
         """Every ``ENV_S`` until the system stops: each remote node's controller health
         and log, and the env modules' view (on a thread of its own: a node going silent
-        meanwhile must not hold up the detection of its loss)."""
+        meanwhile must not hold up the detection of its loss). A pass that fails is
+        logged, and the next one comes (it ended the thread, and the env modules were
+        told nothing more)."""
         launcher = self.launcher
         while not launcher.stopping.wait(ENV_S):
-            for name, node in list(launcher.remotes.items()):
-                if launcher.health[name]["up"] and not launcher.silent(name):
-                    launcher.health[name]["controller"] = node.controller_answers(
-                        HEARTBEAT_S)
-                    self._merge_log(name, node)
-            self.update()
+            try:
+                self._pass()
+            except Exception:
+                log.exception("keeping the env modules' view failed; it goes on")
+
+    def _pass(self) -> None:
+        """One pass of ``_keep``."""
+        launcher = self.launcher
+        for name, node in list(launcher.remotes.items()):
+            if launcher.health[name]["up"] and not launcher.silent(name):
+                launcher.health[name]["controller"] = node.controller_answers(HEARTBEAT_S)
+                self._merge_log(name, node)
+        self.update()
 
     def _merge_log(self, name: str, node: RemoteNode) -> None:
         """Take in what node ``name`` logged since the last look."""
@@ -67,7 +79,9 @@ class EnvKeeper:
     def update(self) -> None:
         """Tell every node's env module (as its state) the health of every node and its
         round-trip time to each, the node's worker processes (its own load) and the
-        latest moves and losses, each with its event's number (it tells each once)."""
+        latest moves and losses, each with its event's number (it tells each once). An
+        env module between nodes (removed, or restarted, from its node, its spec not yet
+        dropped or started again) is told at the next pass."""
         launcher = self.launcher
         events = launcher.events.since(0)
         moves = [{"seq": event.seq, "module": event.subject, **event.detail}
@@ -80,7 +94,7 @@ class EnvKeeper:
             if env not in launcher.specs or not launcher.health[name]["up"] \
                     or launcher.silent(name):
                 continue
-            with contextlib.suppress(RuntimeFailure, RuntimeTimeout):
+            with contextlib.suppress(RuntimeFailure, RuntimeTimeout, ModuleNotFound):
                 rtts = self._rtts_from(name)
                 # (a lost peer has no round-trip time: the node's last one to it is past)
                 table = {peer: {"up": health["up"], "rtt": rtts.get(peer, float("nan"))

@@ -159,7 +159,7 @@ class Operations:
                 deadline = time.monotonic() + left()        # (one deadline for all)
         try:
             return node.call_module(name, "get_state", _left(deadline))
-        except (RuntimeFailure, KeyError):
+        except (RuntimeFailure, ModuleNotFound):
             node.await_restart(name, _left(deadline))
             with self._held(f"state {name}", _left(deadline), changes=False) as still:
                 return self.launcher.call(name, "get_state", still())

@@ -27,7 +27,7 @@ import cloudpickle
 from pb3a.config.description import DEFAULT_SPARES
 from pb3a.config.plan import FlatLink, FlatModule
 from pb3a.deadline import before_answer, bounding, capped, lifted
-from pb3a.errors import ConfigError, PB3AError, RuntimeFailure, RuntimeTimeout
+from pb3a.errors import ConfigError, ModuleNotFound, PB3AError, RuntimeFailure, RuntimeTimeout
 from pb3a.loading.served import forget
 from pb3a.loading.sources import CodeSources
 from pb3a.model.module import fixed_rate_of, stepped_period
@@ -170,8 +170,13 @@ class Executor:
                     **args: Any) -> Any:
         """Send one request about module ``name`` to its worker and wait for the answer.
         One that waits for the module's lock gives up before its caller does: if its
-        caller's time runs out, it was not done, rather than done later."""
-        record = self.modules[name]
+        caller's time runs out, it was not done, rather than done later. A module not on
+        this node (removed, moved or restarted meanwhile) is ``ModuleNotFound``, here as
+        across the network (it was a bare KeyError, a RuntimeFailure from afar)."""
+        record = self.modules.get(name)
+        if record is None:
+            raise ModuleNotFound(f"module {name!r} is not on node {self.node} (removed, "
+                                 "moved or restarted meanwhile)")
         if not self.alive(record.worker):
             raise RuntimeFailure(_not_running(name, record))
         timeout = capped(timeout)
