@@ -74,8 +74,10 @@ class ModuleStats:
     status: str                 # starting | running | failed | stopped
     pid: int | None = None      # the worker process (None while it has none)
     running: bool = False       # stepping or dispatching now
-    silent: bool = False        # its worker did not answer within the report's deadline
-                                # (frozen, starved, stuck): no figures are its own
+    silent: bool = False        # its worker or its node did not answer within the
+                                # report's deadline (frozen, starved, stuck, cut off): the
+                                # figures are its node's last report's (none if its
+                                # worker alone is silent), not now's
     calling: str = ""           # the body or hook it is in now ("step", "on_input", ...)
     calling_s: float = 0.0      # for how long: a stuck call shows here
     # the change in progress that acts on it ("migrate slow to b": its node is where
@@ -130,7 +132,8 @@ class LinkStats:
     waits: int = 0              # writes that waited (or wait now) for room on this link
     wait_s: float = 0.0         # seconds they waited
     # its reader is silent (``ModuleStats.silent``: its worker or its node did not
-    # answer): values, pending, rate and latency are not known, shown as 0 and NaN
+    # answer): values, pending, rate and latency are not known now, shown as its
+    # reader's node last reported them (0 and NaN if its worker alone is silent)
     silent: bool = False
 
 

@@ -481,7 +481,9 @@ def test_a_silent_node_s_modules_show_silent_until_it_is_lost(node_b) -> None:
     its module was absent from ``stats()`` and ``pb3a status`` from its second missed
     heartbeat on (``stats().modules["ctl"]`` raised KeyError) while b showed up, and the
     link into it showed as shm with 0 values. It shows silent, on b, as b's last report
-    had it, and its link crosses nodes still, its figures unknown ("-")."""
+    had it, its figures that report's (they were zeros: 0 events, no inputs), and its
+    link crosses nodes still, its count the last known, shown unknown ("-") in the
+    table; b shows its silence ("up (silent 0.6 s)"; it showed "up")."""
     b = node_b
     system = System("late").node("a").node("b", address=b.address)
     system.add("driver", Counter, node="a", period=0.01)
@@ -491,7 +493,8 @@ def test_a_silent_node_s_modules_show_silent_until_it_is_lost(node_b) -> None:
     with system.launch() as run:
         eventually(lambda: run.stats().links[key].values > 5, timeout=30,
                    what="values reaching b")
-        pid = run.stats().modules["ctl"].pid
+        before = run.stats()
+        pid = before.modules["ctl"].pid
         controller = psutil.Process(b.process.pid)
         stopped = [controller, *controller.children(recursive=True)]
         for process in stopped:
@@ -510,11 +513,16 @@ def test_a_silent_node_s_modules_show_silent_until_it_is_lost(node_b) -> None:
     assert stats.nodes["b"].up, stats.nodes["b"]
     ctl = stats.modules["ctl"]
     assert ctl.silent and ctl.node == "b" and ctl.status == "running" and ctl.pid == pid, ctl
+    assert not ctl.running and ctl.events >= before.modules["ctl"].events > 0, ctl
+    assert ctl.inputs["x"].received >= before.links[key].values, ctl
     link = stats.links[key]
     assert link.silent and link.transport == "zmq", link
+    assert link.values >= before.links[key].values, link
     table = format_table(stats)
-    assert re.search(rf"^ctl +b +{pid} +running \(silent\)", table, re.M), table
+    assert re.search(rf"^ctl +b +{pid} +running \(silent\) +- +\d+ +[1-9]\d* ", table, re.M), \
+        table
     assert re.search(r"^driver\.out -> ctl\.x +zmq +\S+ +- +- ", table, re.M), table
+    assert re.search(r"^b +tcp://\S+ +up \(silent \d\.\d s\) +\d", table, re.M), table
 
 
 def _no_constant(name: str) -> NoReturn:

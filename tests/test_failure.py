@@ -2293,14 +2293,16 @@ def test_checkpoints_taken_while_the_executor_reads_nothing_replace_each_other()
 def test_a_node_whose_report_is_late_shows_its_modules_silent() -> None:
     """``stats(timeout=...)`` waits for each node's report within the caller's timeout;
     a node whose report is late (its executor busy, its link slow) has its modules as
-    its last report had them, silent, not dropped from the figures; one that came to it
+    its last report had them, silent, not dropped from the figures, and with that
+    report's figures (they were zeros: 0 steps, 0.0 s of CPU); one that came to it
     since that report (added, moved or failed over there) is shown too (it was left
-    out: a failover test beside two busy loops found its module missing)."""
+    out: a failover test beside two busy loops found its module missing), with none."""
     system = System("late-node").node("a").node("b")
     system.add("here", Steady, node="a")
     system.add("late", Steady, node="b")
     with system.launch() as run:
-        pid = eventually(lambda: run.stats().modules["late"].pid, what="b's report")
+        before = eventually(lambda: (m := run.stats().modules["late"]).steps > 5
+                            and m.cpu > 0 and m, what="b's report of a few steps")
         run.add("newcomer", Steady, node="b")
         node = run._launcher.nodes["b"]
         answered, report = threading.Event(), node.report
@@ -2313,8 +2315,10 @@ def test_a_node_whose_report_is_late_shows_its_modules_silent() -> None:
             answered.set()
     assert took < 1.5, f"stats took {took:.1f} s"
     late = stats.modules["late"]
-    assert (late.silent, late.pid, late.node, late.status, late.steps) == (
-        True, pid, "b", "running", 0)
+    assert (late.silent, late.running, late.pid, late.node, late.status) == (
+        True, False, before.pid, "b", "running")
+    # (b's last report, which gave ``before``, or one after it: they grow)
+    assert late.steps >= before.steps and late.cpu >= before.cpu > 0, (before, late)
     newcomer = stats.modules["newcomer"]
     assert (newcomer.silent, newcomer.pid, newcomer.node, newcomer.cls) == (
         True, None, "b", "sample_modules:Steady")

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, TextIO
 
 from pb3a.cli.standard_output import output_gone
 from pb3a.launch.running import launch
+from pb3a.node.remote import SILENT_S
 from pb3a.processes import INTERRUPTED, end_on_signals, start_resource_tracker
 
 if TYPE_CHECKING:
@@ -65,7 +66,8 @@ def format_table(stats: SystemStats) -> str:
                       "waits", "latency")]
         for link in stats.links.values():
             latency = link.latency
-            # (a silent reader's values and rate are not known: it said 0)
+            # (a silent reader's values and rate are not known now: those of its
+            # node's last report, or 0 for a worker that did not answer)
             link_rows.append((f"{link.src} -> {link.dst}", link.transport, link.policy,
                               "-" if link.silent else str(link.values),
                               "-" if link.silent else f"{link.rate:.0f}", str(link.drops),
@@ -80,12 +82,16 @@ def format_table(stats: SystemStats) -> str:
 
 
 def format_nodes(nodes: dict[str, NodeStats]) -> str:
-    """One row per node: its address, health (and epoch once it rejoined) and
-    round-trip time."""
+    """One row per node: its address, health (its epoch once it rejoined, its silence
+    once it has missed two heartbeats: "up (silent 0.9 s)", its modules then shown as
+    its last report had them; it said "up" until it was lost) and round-trip time (the
+    last measured)."""
     rows = [("node", "address", "health", "rtt")]
     refusals = []
     for name, node in nodes.items():
-        health = "LOST" if not node.up else "up" if node.epoch == 1 else f"up (epoch {node.epoch})"
+        said = [f"epoch {node.epoch}"] * (node.epoch != 1) \
+            + [f"silent {node.silent_s:.1f} s"] * (node.silent_s > SILENT_S)
+        health = "LOST" if not node.up else "up" + (f" ({', '.join(said)})" if said else "")
         if node.refused and not node.up:        # (what keeps it from rejoining)
             health += " (refuses us: see below)"
             refusals.append(f"{name}: {node.refused}")

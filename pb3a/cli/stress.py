@@ -293,10 +293,11 @@ class Stress:
         totals = last.setdefault("totals", {"values": 0, "drops": 0, "link_failures": 0,
                                             "counts": {}})
         if link.silent:
-            # its reader's node silent: its figures are not known (said as 0, which read
-            # as a counter started anew, and the count came back whole on top of the
-            # totals once the node answered again); the next known ones count from the
-            # last, and its rate meanwhile is a gap
+            # its reader silent: its figures are not known now (its node's last report's,
+            # or 0 for a worker that did not answer, which read as a counter started
+            # anew, and the count came back whole on top of the totals once it answered
+            # again); the next known ones count from the last, and its rate meanwhile
+            # is a gap
             return {"values": totals["values"], "drops": totals["drops"],
                     "link_failures": totals["link_failures"], "values_per_s": math.nan,
                     **_percentiles({})}

@@ -38,7 +38,7 @@ from pb3a.model.environment import PREFIX as ENV_PREFIX
 from pb3a.model.module import fixed_rate_of, stepped_period
 from pb3a.node.bridge import NoHandshake
 from pb3a.node.executor import REPORT_TIMEOUT, Executor
-from pb3a.node.remote import HEARTBEAT_S, LOSS_S, STOP_AT_LEAST_S, RemoteNode
+from pb3a.node.remote import HEARTBEAT_S, LOSS_S, SILENT_S, STOP_AT_LEAST_S, RemoteNode
 from pb3a.node.ring_sizes import ring_size
 from pb3a.node.workers import REQUEST_TIMEOUT
 from pb3a.stats import FailureLog, LinkStats, ModuleStats, NodeReport, NodeStats, SystemStats
@@ -527,8 +527,8 @@ class Launcher:
         """Every node's report, by node, asked of all at once, within ``timeout``. A node
         that has missed two heartbeats, or misses them meanwhile, is not asked, or not
         waited for; it, and one whose report is late, has its modules as its last report
-        had them, silent (no figures of their own), placed as ``specs`` (a copy of the
-        launcher's) has them, until it is declared lost. (A node silent but not lost
+        had them, silent, with their figures then (``_silenced``), placed as ``specs`` (a
+        copy of the launcher's) has them, until it is declared lost. (A node silent but not lost
         left its modules out: ``stats().modules["ctl"]`` raised KeyError for a second
         and more before a failover, and on a 1 s freeze that changed nothing else.)"""
         reports: dict[str, NodeReport] = {}
@@ -567,7 +567,7 @@ class Launcher:
     def silent(self, name: str) -> bool:
         """Whether remote node ``name`` missed its last two heartbeats."""
         remote = self.remotes.get(name)
-        return remote is not None and remote.silent_s() > 2 * HEARTBEAT_S
+        return remote is not None and remote.silent_s() > SILENT_S
 
     def node_table(self) -> dict[str, NodeStats]:
         """Every node's health as the heartbeats see it: a lost node's silence goes on
@@ -717,8 +717,8 @@ def _link_table(links: dict[str, FlatLink], modules: dict[str, ModuleStats],
     (drops: its ring's and, on a remote link, the values its sender did not send); the
     writes that waited for room, from the writer's; the values lost for good, from the
     reader's node and from the failovers. A silent reader's link is said ``silent``: its
-    figures are not known (it showed 0 values and a link across nodes as shm, the
-    reader's node being silent)."""
+    figures are not known now, those shown are the last its reader's node gave (it
+    showed 0 values and a link across nodes as shm, the reader's node being silent)."""
     rings = {key: used for report in reports for key, used in report.ring_bytes_used.items()}
     lost, dropped = collections.Counter(lost_values), collections.Counter()
     for report in reports:
@@ -749,9 +749,12 @@ def _link_table(links: dict[str, FlatLink], modules: dict[str, ModuleStats],
 
 def _silenced(report: NodeReport, node: str, placed: list[FlatModule]) -> NodeReport:
     """The modules ``placed`` on ``node`` as it shows them when it did not answer in
-    time: silent, no figures of their own, as its last ``report`` had them; one that
-    came since (a failover, a move) as the launcher has it, running with no process
-    known (it was left out of the figures)."""
+    time: silent, not running, with the figures its last ``report`` had (steps, events,
+    CPU, errors, inputs, outputs, waits: a silence reset them to zero, and a cut cable
+    showed a module that had handled 1511 events as one that had handled none), that
+    report's ring fill, link losses and failures with them; one that came since (a
+    failover, a move) as the launcher has it, running with no process known and no
+    figures (it was left out of the figures)."""
     modules = {}
     for spec in placed:
         entry = report.modules.get(spec.name)
@@ -759,8 +762,9 @@ def _silenced(report: NodeReport, node: str, placed: list[FlatModule]) -> NodeRe
             class_ref(spec.cls), node, "", "running", silent=True,
             period=stepped_period(spec.cls, spec.period),
             fixed_rate=fixed_rate_of(spec.cls, spec.fixed_rate),
-        ) if entry is None else ModuleStats(
-            entry.cls, entry.node, entry.worker, entry.status, entry.pid, silent=True,
-            restarts=entry.restarts, checkpoints=entry.checkpoints, period=entry.period,
-            fixed_rate=entry.fixed_rate, overruns=entry.overruns)
-    return NodeReport(modules, {}, {}, [], None, report.spare_workers)
+        ) if entry is None else dataclasses.replace(
+            entry, silent=True, running=False, calling="", calling_s=0.0, change="",
+            change_s=0.0)
+    return NodeReport(modules, dict(report.ring_bytes_used), dict(report.link_failures),
+                      list(report.failures), None, report.spare_workers,
+                      dict(report.link_drops))

@@ -59,6 +59,8 @@ PIECE = 16 * 2**20         # a snapshot carried to or from another machine goes 
 HEARTBEAT_S = 0.25         # how often the launcher's side pings the executor
 LEASE_S = 1.25             # an executor that hears no renewal this long fences itself
 LOSS_S = 2.0               # no answer for this long: the node is lost (reported within 3 s)
+SILENT_S = 2 * HEARTBEAT_S  # two heartbeats unanswered: the node is silent (not asked for
+#                             figures, its modules shown as its last report had them)
 # Every heartbeat renews the lease, but only from the newest answer the launcher heard
 # (``NodeShare.renew``): once the node's answers stop, renewals extend nothing, and the
 # lease runs out a heartbeat and a lease after its last answer, before the node is
