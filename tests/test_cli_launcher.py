@@ -568,13 +568,18 @@ def test_every_command_changes_a_running_system_and_speaks_json(capsys) -> None:
         assert main(["migrate", address, "relay", "b", "--json"]) == 0
         assert json.loads(capsys.readouterr().out)["destination"] == "b"
         assert main(["events", address]) == 0
-        kinds = [line.split()[1] for line in capsys.readouterr().out.splitlines()]
-        assert kinds == ["link_removed", "link_added", "module_added", "module_added",
-                         "module_restarted", "module_removed", "module_moved"]
+        lines = [line.split() for line in capsys.readouterr().out.splitlines()]
+        assert [kind for _, _, kind, *_ in lines] == [
+            "link_removed", "link_added", "module_added", "module_added",
+            "module_restarted", "module_removed", "module_moved"]
         assert main(["events", address, "--json"]) == 0
         events = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
         assert [e["seq"] for e in events] == list(range(1, 8))
         assert events[-1]["detail"]["destination"] == "b"
+        # each line begins with its event's local time, to the millisecond (it had none)
+        assert all(re.fullmatch(r"\d\d:\d\d:\d\d\.\d{3}", clock) for clock, *_ in lines), lines
+        assert [clock[:8] for clock, *_ in lines] == [
+            time.strftime("%H:%M:%S", time.localtime(e["time"])) for e in events]
 
 
 def test_a_migrate_to_the_node_a_module_runs_on_says_nothing_moved(capsys) -> None:

@@ -618,7 +618,7 @@ def test_a_move_that_fails_is_an_event_and_one_refused_is_not(capsys) -> None:
                                                       str(failed_later.value)]
         assert main(["events", address]) == 0
         listed = [line.split() for line in capsys.readouterr().out.splitlines()]
-        assert [(seq, kind, subject) for seq, kind, subject, *_ in listed
+        assert [(seq, kind, subject) for _, seq, kind, subject, *_ in listed
                 if kind == "migration_failed"] == [(str(e.seq), e.kind, "relay") for e in moves]
 
 

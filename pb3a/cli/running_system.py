@@ -243,9 +243,14 @@ def _nodes(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
 
 
 def _events(system: Connection, args: argparse.Namespace) -> None:
+    """``pb3a events``: one line per event, first its local time to the millisecond
+    (``12:03:04.512``: the text had none, only ``--json`` had ``time``), then its
+    number, kind, subject and detail."""
     def line(event: Event) -> str:
         detail = ", ".join(f"{k}={v}" for k, v in event.detail.items())
-        return f"{event.seq:>5} {event.kind:<16} {event.subject} {detail}".rstrip()
+        clock = f"{time.strftime('%H:%M:%S', time.localtime(event.time))}." \
+                f"{int(event.time % 1 * 1000):03d}"
+        return f"{clock} {event.seq:>5} {event.kind:<16} {event.subject} {detail}".rstrip()
     _follow(lambda seen, wait: system.events(seen, timeout=wait), line, args)
 
 
