@@ -660,6 +660,28 @@ def test_a_lapsed_worker_lease_names_both_causes_not_only_a_frozen_executor(
         "modules stop"]
 
 
+def test_a_fenced_executor_says_its_lease_to_the_last_digit(caplog) -> None:
+    """An executor that fences itself says how long its lease is: it said "(its lease is
+    1.2 s)" of a lease of 1.25 s (``LEASE_S``), which the docs give."""
+    fenced = threading.Event()
+    share = NodeShare.__new__(NodeShare)        # (only what the lease's watch reads)
+    share.node, share.stopped, share._lease_s = "b", threading.Event(), LEASE_S
+    share._ticked_at = time.monotonic()
+    share._leased_at = share._ticked_at - LEASE_S - 0.05         # (ran out just now)
+    share.executor = SimpleNamespace(fence=lambda gone_by: fenced.set())
+    watch = threading.Thread(target=share._keep_lease, daemon=True)
+    watch.start()
+    try:
+        assert fenced.wait(5), "the executor did not fence itself"
+    finally:
+        share.stopped.set()
+        watch.join(5)
+    said = [r.getMessage() for r in caplog.records if "fenced" in r.getMessage()]
+    assert len(said) == 1 and re.fullmatch(
+        r"node b: no heartbeat from the launcher for \d+\.\d s \(its lease is 1\.25 s\): "
+        r"fenced, its modules stop", said[0]), said
+
+
 def _said(caplog, logger: str) -> bool:
     """Whether ``logger`` has said anything yet."""
     return any(record.name == logger for record in caplog.records)

@@ -305,7 +305,8 @@ class NodeShare:
                 # its grants and restarts, after the watch had seen the freeze)
                 why = (f"no heartbeat from the launcher for {silent:.1f} s" if silent > lease_s
                        else f"it was frozen for {held_up:.1f} s")
-                log.error("node %s: %s (its lease is %.1f s): fenced, its modules stop",
+                # (the lease to its last digit: "%.1f" said 1.25 s was 1.2 s)
+                log.error("node %s: %s (its lease is %g s): fenced, its modules stop",
                           self.node, why, lease_s)
                 # at once (shutting down may wait for a request), its workers gone by the
                 # time the launcher may start their modules elsewhere

