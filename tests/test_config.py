@@ -920,11 +920,58 @@ def test_fallback_names_declared_nodes_in_order(tmp_path: Path) -> None:
     plan = build_plan(load_toml(write(tmp_path, nodes + TWO.replace(
         'Src"', 'Src"\nnode = "a"\nrestart = "fresh"\nfallback = ["c", "b"]'))))
     assert plan.modules["src"].fallback == ["c", "b"] and plan.modules["sink"].fallback == []
-    problems = problems_of(tmp_path, nodes + TWO.replace('Src"', 'Src"\nfallback = ["b", "d"]'))
+    problems = problems_of(tmp_path, nodes + TWO.replace(
+        'Src"', 'Src"\nrestart = "fresh"\nfallback = ["b", "d"]'))
     assert problems == ["sys.toml [modules.src]: fallback names unknown node 'd'; declared "
                         "nodes: a, b, c"]
     problems = problems_of(tmp_path, nodes + TWO.replace('Src"', 'Src"\nfallback = "b"'))
     assert problems == ["sys.toml [modules.src]: fallback must be a list of node names, got 'b'"]
+
+
+class RestartsFresh(Module):
+    """A class whose modules restart afresh unless told otherwise."""
+
+    restart = "fresh"
+
+
+class NeverRestarts(RestartsFresh):
+    """A class that says its modules go with their node."""
+
+    restart = "never"
+
+
+def test_a_fallback_of_a_module_never_restarted_is_refused_naming_the_fix(
+        tmp_path: Path) -> None:
+    """A fallback is used only by a module restarted elsewhere when its node is lost: with
+    restart "never", given or its class's, it never is (pb3a check said ok, and the module
+    went with its node, its fallback named in the module_lost event). Judged on the
+    policy the module runs with, its class's if the entry gives none."""
+    fix = ('is used only when the module is restarted elsewhere, and {}: the module goes '
+           'with its node. Give restart = "fresh" or "last-state", or remove fallback')
+    nodes = "[nodes.a]\n[nodes.b]\n"
+    problems = problems_of(tmp_path, nodes + TWO.replace(
+        'Src"', 'Src"\nnode = "b"\nfallback = ["a"]'))
+    assert problems == ['sys.toml [modules.src]: fallback = ["a"] '
+                        + fix.format('restart is "never" by default')]
+    problems = problems_of(tmp_path, nodes + TWO.replace(
+        'Src"', 'Src"\nnode = "b"\nrestart = "never"\nfallback = ["a"]'))
+    assert problems == ['sys.toml [modules.src]: fallback = ["a"] '
+                        + fix.format('restart = "never" is given')]
+    assert problems_of(tmp_path, nodes + TWO.replace(
+        'Src"', 'Src"\nnode = "b"\nrestart = "last-state"\nfallback = ["a"]')) == []
+    assert problems_of(tmp_path, nodes + TWO.replace('Src"', 'Src"\nfallback = []')) == []
+
+    def check(cls: type[Module], **options: object) -> list[str]:
+        return System("py").node("a").node("b").add("m", cls, node="b", **options).check()
+
+    only(check(Scale, fallback=["a"]), '[modules.m]: fallback = ["a"] ',
+         fix.format('restart is "never" by default'))
+    assert check(RestartsFresh, fallback=["a"]) == []
+    only(check(RestartsFresh, fallback=["a"], restart="never"),
+         fix.format('restart = "never" is given'))
+    only(check(NeverRestarts, fallback=["b", "a"]), 'fallback = ["b", "a"] ',
+         fix.format('test_config:NeverRestarts has restart = "never"'))
+    assert check(NeverRestarts, fallback=["a"], restart="fresh") == []
 
 
 def test_bad_policy(tmp_path: Path) -> None:

@@ -907,7 +907,10 @@ def test_add_refuses_what_a_configuration_may_not_say_and_starts_nothing() -> No
                                ({"group": "g", "node": "b"},
                                 "group 'g' would span nodes 'a' (src) and 'b' (probe)"),
                                ({"group": "a.b"}, "bad group name 'a.b'"),
-                               ({"state": [1]}, "state must be a table")]:
+                               ({"state": [1]}, "state must be a table"),
+                               ({"fallback": ["b"]}, 'fallback = ["b"] is used only when the '
+                                'module is restarted elsewhere, and restart is "never" by '
+                                'default')]:
             with pytest.raises(ConfigError) as caught:
                 run.add("probe", Last, **options)
             assert any(words in p for p in caught.value.problems), caught.value.problems

@@ -175,6 +175,29 @@ def fallback(value: Any, nodes: list[str]) -> list[str]:
     return []
 
 
+def fallback_used(value: Any, restart: Any, cls: type[Module] | None) -> list[str]:
+    """Fallback nodes are for a module restarted elsewhere when its node is lost: one
+    whose restart policy, ``restart`` given to it or else its class's (``cls``; None: not
+    known), is ``"never"`` goes with its node, and its fallback is never used (``pb3a
+    check`` said ok, and the failover said the module lost, naming the fallback it did
+    not try). Said only of a list of names, the policy known (a bad fallback or restart
+    is said by ``fallback`` and ``restart``)."""
+    if not value or not isinstance(value, (list, tuple)) \
+            or not all(isinstance(node, str) for node in value):
+        return []
+    policy = restart if restart is not None else getattr(cls, "restart", None)
+    if policy != "never":
+        return []
+    owner = next((klass for klass in cls.__mro__ if "restart" in vars(klass)), Module) \
+        if restart is None and cls is not None else None
+    whose = ("restart = \"never\" is given" if owner is None
+             else "restart is \"never\" by default" if owner is Module
+             else f"{class_ref(owner)} has restart = \"never\"")
+    return [f"fallback = {json.dumps(list(value))} is used only when the module is restarted "
+            f"elsewhere, and {whose}: the module goes with its node. Give restart = \"fresh\" "
+            "or \"last-state\", or remove fallback"]
+
+
 def restart(value: Any) -> list[str]:
     """``None`` (keep the class's) or one of the restart policies."""
     if value is None or value in RESTART_POLICIES:

@@ -327,6 +327,7 @@ class _Planner:
             problems += checks.period(entry.period) + checks.restart(entry.restart)
             problems += checks.stepped(child.cls, entry.period)
             problems += checks.fixed_rate(child.cls, entry.fixed_rate, entry.period)
+            problems += checks.fallback_used(entry.fallback, entry.restart, child.cls)
             child.said = checks.state(child.cls, entry.state)
             problems += child.said
             if child.cls not in self.class_problems:

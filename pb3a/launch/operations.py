@@ -935,8 +935,9 @@ def _add_problems(name: Any, cls: Any, state: Any, period: Any, restart: Any, gr
             problems += said + checks.module_class(cls) + checks.stepped(cls, period)
             if isinstance(given, dict):
                 problems += checks.defaults_refused(cls, given, said)
-    problems += checks.fixed_rate(cls if isinstance(cls, type) and issubclass(cls, Module)
-                                  else None, fixed_rate, period)
+    known = cls if isinstance(cls, type) and issubclass(cls, Module) else None
+    problems += checks.fixed_rate(known, fixed_rate, period)
+    problems += checks.fallback_used(fallback, restart, known)
     problems += checks.period(period) + checks.restart(restart)
     if node not in nodes:
         problems.append(f"no node {node!r}{checks.did_you_mean(node, nodes)}; nodes: "
