@@ -5,6 +5,7 @@ detected within 3 s and reported (env value and event) while the rest goes on.""
 from __future__ import annotations
 
 import gc
+import logging
 import math
 import os
 import re
@@ -947,20 +948,34 @@ def test_a_forkserver_hanging_in_its_preload_ends_with_its_killed_executor(
     assert not left, left
 
 
-def test_a_node_whose_controller_has_another_name_is_the_configuration_s_node() -> None:
+def test_a_node_whose_controller_has_another_name_is_the_configuration_s_node(
+        caplog) -> None:
     """A robot's controller started under another name than the configuration gives
     the node (node.env copied from robot1 unedited, PB3A_NODE=robot1 on robot2) ran its
     executor under that name, which signed what it told the launcher: the launcher
     knew no such node, or another, and refused it. A module restarted there was told
     to nobody (no module_restarted event) and its link stopped (the reader never
-    followed the restarted sender). The executor is the configuration's node."""
+    followed the restarted sender). The executor is the configuration's node, and the
+    launcher's log warns of the names, naming both and the address (two robots'
+    addresses swapped in a file ran each one's drivers on the other with no word said);
+    of a controller named as its node, nothing."""
     controller = NodeController("robot1", ClusterKey.load(), limits=Limits(101.0))
+    named = NodeController("c", ClusterKey.load(), limits=Limits(101.0))
     try:
         system = System("misnamed").node("a").node("b", address=controller.address)
+        system.node("c", address=named.address)
         system.add("tick", Counter, node="b", period=0.01, restart="fresh")
         system.add("at_a", Collector, node="a")
         system.link("tick.out", "at_a.x")
-        with system.launch() as run:
+        with caplog.at_level(logging.WARNING, logger="pb3a.launcher"), \
+                system.launch() as run:
+            said = [record.getMessage() for record in caplog.records
+                    if record.name == "pb3a.launcher" and "(its --name)" in record.getMessage()]
+            assert said == [f"node b's address {controller.address} is node controller "
+                            "'robot1' (its --name): if that machine is not node b's, fix "
+                            "[nodes.b] address (two nodes' addresses swapped?); if it is, "
+                            "start its controller with --name b (its executor runs as node b "
+                            "either way)"], said
             eventually(lambda: run.state("at_a")["received"] > 10, timeout=30,
                        what="values from b")
             os.kill(run.stats().modules["tick"].pid, signal.SIGKILL)
@@ -972,6 +987,7 @@ def test_a_node_whose_controller_has_another_name_is_the_configuration_s_node() 
                        what="values from the restarted tick")
     finally:
         controller.close()
+        named.close()
 
 
 def test_a_wrong_key_is_told_apart_from_no_answer_within_5_s(caplog) -> None:

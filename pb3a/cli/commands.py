@@ -227,7 +227,11 @@ def _daemons(commands: argparse._SubParsersAction) -> None:
     node_commands = node.add_subparsers(title="commands", metavar="COMMAND",
                                          required=True)
     start = node_commands.add_parser("start", help="run this machine's node controller")
-    start.add_argument("--name", required=True, help="the node's name in configurations")
+    start.add_argument("--name", required=True,
+                       help=("this machine's node name, as configurations name it: a label "
+                             "of the controller's log and refusals (its executors run as the "
+                             "node a configuration names; a launcher that names its address "
+                             "otherwise warns of it)"))
     start.add_argument("--listen", default="tcp://127.0.0.1:7100", metavar="ADDR",
                        help="address to listen on (default tcp://127.0.0.1:7100; port 0: any)")
     start.add_argument("--max-cpu", type=arguments.percent, default=90.0, metavar="PERCENT",

@@ -121,8 +121,11 @@ class NodeController:
         self._sampler = threading.Thread(target=self._sample, name="pb3a-node-sampler",
                                          daemon=True)
         self._sampler.start()
+        # (its ping answers its name, which a launcher compares with the node's name in
+        # its configuration: ``pb3a.node.remote._named_otherwise``)
         self._server = ControlServer(key, self._handle, host, port, name="pb3a-node",
-                                     title=f"node {name}'s controller")
+                                     title=f"node {name}'s controller",
+                                     instant={"ping": lambda args: {"node": name}})
         self.address = self._server.address
 
     # -- admission ----------------------------------------------------------------

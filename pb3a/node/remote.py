@@ -112,6 +112,22 @@ def _restarted_again(node: str, address: str, config: str) -> RuntimeFailure:
         "why it ended: once it stays up, launch again")
 
 
+def _named_otherwise(node: str, address: str, pong: Any) -> str | None:
+    """What to say when the node controller at node ``node``'s ``address`` answered its
+    ping (``pong``) with another name (its ``--name``), or None. A controller's name is
+    a label (of its log and refusals): its executors run as the node the configuration
+    names, so a mismatch is no error, but it is how two robots' addresses swapped in a
+    file look, each robot's drivers then run on the other (it ran with no word said). A
+    controller that answers no name (an older one) is not judged."""
+    named = pong.get("node") if isinstance(pong, dict) else None
+    if not isinstance(named, str) or named == node:
+        return None
+    return (f"node {node}'s address {address} is node controller {named!r} (its --name): "
+            f"if that machine is not node {node}'s, fix [nodes.{node}] address (two nodes' "
+            f"addresses swapped?); if it is, start its controller with --name {node} (its "
+            f"executor runs as node {node} either way)")
+
+
 def _unanswered(node: str, address: str) -> str:
     """What to do about a node controller that did not answer at ``address``, told by a
     plain TCP connection there: refused (nothing listens on that port there: not
@@ -239,7 +255,7 @@ class RemoteNode:
                                  name=f"pb3a-refused-{name}", daemon=True)
         watch.start()
         try:
-            starting.call("ping", CONNECT_TIMEOUT)
+            pong = starting.call("ping", CONNECT_TIMEOUT)
         except RuntimeTimeout:
             self.close()
             raise RuntimeTimeout(f"node {name}: no node controller answered at {address} "
@@ -251,6 +267,8 @@ class RemoteNode:
         finally:
             pinged.set()
             watch.join(PROBE_S)
+        if (otherwise := _named_otherwise(name, address, pong)) is not None:
+            log.warning("%s", otherwise)
         started = False
         try:
             executor, started = starting.call("start_executor", START_TIMEOUT, config=config,
