@@ -94,3 +94,29 @@ def test_a_daemon_without_a_key_refuses_to_start_and_makes_none(tmp_path) -> Non
                           env=env, capture_output=True, text=True, timeout=60, check=False)
     assert done.returncode == 0, done.stderr
     assert stat.S_IMODE(where.stat().st_mode) == 0o600          # made on first use, as before
+
+
+def test_a_command_that_connects_without_a_key_makes_none_and_says_where_to_get_it(
+        tmp_path) -> None:
+    """`pb3a status ADDR` (and every command that connects to a running system) with no
+    key set and none in ~/.pb3a made one there, said nothing of it, and was told the
+    launcher "runs with another cluster key": a key made here is one no launcher has.
+    It makes none and says where the cluster's is, at once; `pb3a run` still makes one
+    (checked above)."""
+    home = tmp_path / "home"
+    home.mkdir()
+    env = {**{k: v for k, v in os.environ.items() if k not in ("PB3A_KEY", "PB3A_KEY_FILE")},
+           "HOME": str(home), "PYTHONPATH": str(REPO)}
+    where = home / ".pb3a" / "cluster.key"
+    for command, args in (("status", ["tcp://127.0.0.1:1"]),
+                          ("set", ["tcp://127.0.0.1:1", "scale", "gain=2"])):
+        done = subprocess.run([sys.executable, "-m", "pb3a", command, *args], env=env,
+                              capture_output=True, text=True, timeout=10, check=False)
+        assert (done.returncode, done.stdout) == (1, ""), (command, done.stderr)
+        assert done.stderr == (
+            f"pb3a {command}: no cluster key: $PB3A_KEY and $PB3A_KEY_FILE are not set, and "
+            f"{where} does not exist; a running system's launcher has its cluster's key, "
+            "and one made here would be refused: copy that key file here (the launcher "
+            "machine's ~/.pb3a/cluster.key, or the file its $PB3A_KEY_FILE names), then "
+            f"set PB3A_KEY_FILE=PATH or put it at {where} (mode 0600)\n"), command
+        assert not (home / ".pb3a").exists(), command

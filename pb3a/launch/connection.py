@@ -15,7 +15,13 @@ from pb3a.errors import RuntimeFailure, RuntimeTimeout, SystemStopped, bounded_w
 from pb3a.launch.handle import SystemHandle
 from pb3a.launch.operations import DEFAULT_TIMEOUT
 from pb3a.transport.addresses import launcher_address, unknown_host
-from pb3a.transport.auth import ClusterKey
+from pb3a.transport.auth import (
+    DEFAULT_KEY_FILE,
+    KEY_ENV,
+    KEY_FILE_ENV,
+    ClusterKey,
+    ClusterKeyMissing,
+)
 from pb3a.transport.control import ControlClient, NotListening
 from pb3a.transport.pickling import PYTHON
 
@@ -29,7 +35,9 @@ def connect(address: str, *, key: ClusterKey | bytes | str | None = None,
     ``pb3a run`` prints it, or "HOST:PORT").
 
     ``key`` is the cluster key material (as ``PB3A_KEY`` holds it) or a ``ClusterKey``;
-    by default the one ``PB3A_KEY``, ``PB3A_KEY_FILE`` or ``~/.pb3a/cluster.key`` gives. Raises
+    by default the one ``PB3A_KEY``, ``PB3A_KEY_FILE`` or ``~/.pb3a/cluster.key`` gives,
+    never made here (``ClusterKeyMissing`` when there is none, saying where to get the
+    cluster's: the launcher has one, which a key made here would not be). Raises
     ``RuntimeTimeout`` when nothing answers within ``timeout`` (sooner, about 1.5 s,
     when nothing listens there: connections refused), and ``RuntimeFailure``
     when the launcher refuses the key, each saying what to check. Once connected, a
@@ -146,8 +154,23 @@ def _stopped(named: list[str], address: str, why: str) -> SystemStopped:
 
 
 def _key(key: ClusterKey | bytes | str | None) -> ClusterKey:
+    """The key to connect with: ``key``, else the one this user has (``ClusterKey.load``),
+    never one made now: a running system's launcher has a key already, and one made
+    here would be refused by it (a connecting command, ``pb3a status`` say, made
+    ``~/.pb3a/cluster.key`` on a machine that had none, said nothing of it, and was told
+    the launcher "runs with another cluster key"); ``ClusterKeyMissing`` says where to
+    get the cluster's."""
     if key is None:
-        return ClusterKey.load()
+        try:
+            return ClusterKey.load(create=False)
+        except ClusterKeyMissing:
+            path = DEFAULT_KEY_FILE.expanduser()
+            raise ClusterKeyMissing(
+                f"no cluster key: ${KEY_ENV} and ${KEY_FILE_ENV} are not set, and {path} "
+                "does not exist; a running system's launcher has its cluster's key, and "
+                "one made here would be refused: copy that key file here (the launcher "
+                f"machine's ~/.pb3a/cluster.key, or the file its ${KEY_FILE_ENV} names), "
+                f"then set {KEY_FILE_ENV}=PATH or put it at {path} (mode 0600)") from None
     if isinstance(key, ClusterKey):
         return key
     return ClusterKey.from_material(key, "connect(key=...)")
