@@ -836,7 +836,7 @@ def test_a_module_whose_node_freezes_as_it_stops_leaves_the_others_their_teardow
     teardowns unrun. A module whose node has not answered its heartbeats for as long as
     a lost node (2 s: its workers have stopped on their own by then) is not waited for
     any longer: the two tear down, in order, within the close's time, and the one on b
-    is named as not torn down."""
+    is named as unreached (its worker stops it on its own), its node unconfirmed."""
     b = node_b
     journal, hold, began = tmp_path / "journal", tmp_path / "hold", tmp_path / "began"
     system = System("frozen-as-it-stops").node("a").node("b", address=b.address)
@@ -862,7 +862,8 @@ def test_a_module_whose_node_freezes_as_it_stops_leaves_the_others_their_teardow
     assert not closing.is_alive()
     assert [line for line in lines if line.startswith("stop")] == [
         "stop second", "stop first"], lines
-    assert run.not_torn_down == ["far"]
+    assert run.not_torn_down == []
+    assert run.unreached == {"b": ["far"]} and run.unconfirmed == ["b"]
     assert took < 7.0, took
 
 

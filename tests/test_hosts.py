@@ -19,7 +19,7 @@ from pathlib import Path
 import psutil
 import pytest
 from conftest import alive, eventually
-from sample_modules import Chain, Collector, Copies, Counter, Relay, Stamped
+from sample_modules import Chain, Collector, Copies, Counter, Journal, Relay, Stamped
 
 from pb3a import RuntimeFailure, RuntimeTimeout, System
 from pb3a.transport.auth import ClusterKey
@@ -401,6 +401,31 @@ def test_a_cut_off_node_fences_itself_its_modules_fail_over_and_it_rejoins(
     assert float(stopped[old]) < copies["first_at"][1], "two copies delivered at once"
     assert copies["stale"] == 0 and rejoined.epoch == 2
     assert rejoin_s < 3.0, f"b rejoined {rejoin_s:.2f} s after the cable was back"
+
+
+def test_a_module_of_a_node_cut_off_as_the_system_stops_is_unconfirmed_not_killed(
+        lan: Lan, tmp_path: Path) -> None:
+    """The system stopped 0.5 s after node b's cable was cut (b silent, not yet lost):
+    b's module was named in ``not_torn_down``, and ``pb3a run`` said its worker was
+    killed, its teardown not run, where b fenced itself and ran the teardown (nothing
+    here could reach that worker). It is named ``unreached``, its node unconfirmed, and
+    its teardown runs on b, the cable still down."""
+    far = lan.host("b")
+    journal = tmp_path / "journal"
+    system = System("cut-as-it-stops").node("a").node("b", address=far.node("b"))
+    system.add("far", Journal, node="b", state={"path": str(journal), "label": "far"})
+    run = system.launch(timeout=30)
+    try:
+        far.cut()
+        eventually(lambda: run._launcher.silent("b"), what="b silent (two heartbeats missed)")
+        run.close(timeout=10.0)
+        eventually(lambda: "stop far" in journal.read_text(), timeout=10,
+                   what="far torn down on b, fenced")
+    finally:
+        run.close()                                  # (nothing, once closed)
+    assert run.not_torn_down == []
+    assert run.unconfirmed == ["b"]
+    assert run.unreached == {"b": ["far"]}
 
 
 def test_a_node_controller_not_reached_is_told_refused_or_unanswered(lan: Lan) -> None:

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, TextIO
 
 from pb3a.cli.standard_output import output_gone
 from pb3a.launch.running import launch
-from pb3a.node.remote import SILENT_S
+from pb3a.node.remote import ON_THEIR_OWN, SILENT_S
 from pb3a.processes import INTERRUPTED, end_on_signals, start_resource_tracker
 
 if TYPE_CHECKING:
@@ -180,13 +180,23 @@ def run_with_status(plan: Plan, seconds: float | None, out: TextIO | None = None
             show(f"pb3a: stopped; module{'s' if many else ''} {', '.join(stuck)} did not "
                  f"stop in time: {'their workers were' if many else 'its worker was'} "
                  "killed, teardown not run (see the warnings above)\n")
-        if run.unconfirmed:     # (it said "stopped cleanly" with a node's executor running)
-            show(f"pb3a: stopped; node{'s' if len(run.unconfirmed) > 1 else ''} "
-                 f"{', '.join(run.unconfirmed)} did not confirm: its executor stops "
-                 "itself when its lease runs out (about a second)\n")
-        elif not stuck:
+        # (it said "stopped cleanly" with a node's executor running; and a module of a
+        # node cut off was said killed, its teardown not run, where that node ran it)
+        for node in run.unconfirmed:
+            show(f"pb3a: stopped; {_on_their_own(node, run.unreached.get(node, []))}\n")
+        if not stuck and not run.unconfirmed:
             show("pb3a: stopped cleanly\n")
         return 0
+
+
+def _on_their_own(node: str, modules: list[str]) -> str:
+    """What becomes of remote node ``node``, whose stop was not confirmed, and of its
+    ``modules`` whose stop did not reach it."""
+    what = (f"its module {modules[0]} stops on its own" if len(modules) == 1 else
+            f"its modules {', '.join(modules)} stop on their own" if modules else
+            "its executor stops itself")
+    return (f"node {node} did not answer (cut off?): {what} {ON_THEIR_OWN} "
+            "(its log says how)")
 
 
 @contextlib.contextmanager

@@ -38,7 +38,14 @@ from pb3a.model.environment import PREFIX as ENV_PREFIX
 from pb3a.model.module import fixed_rate_of, stepped_period
 from pb3a.node.bridge import NoHandshake
 from pb3a.node.executor import REPORT_TIMEOUT, Executor
-from pb3a.node.remote import HEARTBEAT_S, LOSS_S, SILENT_S, STOP_AT_LEAST_S, RemoteNode
+from pb3a.node.remote import (
+    HEARTBEAT_S,
+    LOSS_S,
+    ON_THEIR_OWN,
+    SILENT_S,
+    STOP_AT_LEAST_S,
+    RemoteNode,
+)
 from pb3a.node.ring_sizes import ring_size
 from pb3a.node.workers import REQUEST_TIMEOUT
 from pb3a.stats import FailureLog, LinkStats, ModuleStats, NodeReport, NodeStats, SystemStats
@@ -82,6 +89,9 @@ class Launcher:
         self.lost_values: collections.Counter[str] = collections.Counter()  # per link key
         self.arriving: dict[str, str] = {}            # module -> the node a move lands it on
         self.unconfirmed: list[str] = []    # remote nodes whose stop was not confirmed
+        # remote node -> the modules there whose stop did not reach it (cut off, frozen,
+        # lost): each stops on its own as the node's lease runs out, unconfirmed
+        self.unreached: dict[str, list[str]] = {}
         # What a shutdown has done, so that one interrupted (a Ctrl-C) is finished by the
         # next: the modules it has stopped or given up on, the nodes it has shut down,
         # and the threads shutting the remote ones down
@@ -633,11 +643,7 @@ class Launcher:
                         with bounding(deadline - time.monotonic()):
                             self.node_of(name).stop_module(name, 2.0)
                     except Exception as exc:
-                        # (a module stuck in on_input was killed at close, unsaid)
-                        if name not in self._given_up:     # (a Ctrl-C came as it was said)
-                            self._given_up.append(name)
-                        log.warning("module %r was not stopped (its worker is killed): %s",
-                                    name, exc)
+                        self._not_stopped(name, exc)
                     self._settled.add(name)
             # side by side: a node that does not answer holds up no other; this machine's
             # own nodes (their processes and segments are here) are waited for
@@ -654,11 +660,35 @@ class Launcher:
             for thread in self._shutting.values():   # (what each is given past the
                                                      # deadline, and a moment to begin)
                 thread.join(max(0.0, deadline - time.monotonic()) + STOP_AT_LEAST_S + 0.25)
-        self.unconfirmed = [name for name, node in self.remotes.items() if not node.stopped]
+        # (a lost node's controller that answered killed an executor fenced already: its
+        # modules stopped on their own, unconfirmed)
+        self.unconfirmed = [name for name, node in self.remotes.items()
+                            if not node.stopped or (node.lost and name in self.unreached)]
         logging.getLogger().removeHandler(self.logbook)
         self.events.end()            # (a follower waiting for more is told there is none)
         self.logbook.end()
         self._shut_down = True
+
+    def _not_stopped(self, name: str, exc: Exception) -> None:
+        """Say why module ``name``'s stop failed (``exc``). On a remote node that did not
+        answer (lost, or silent: cut off, frozen) nothing of the launcher's side killed
+        its worker: the module stops on its own as the node's lease runs out, its
+        teardown cut short if it is long, and its node's stop is unconfirmed. (It was
+        said killed, its teardown not run, where the node's log showed it run.)
+        Elsewhere its worker is killed, its teardown not run."""
+        node = self.specs[name].node if name in self.specs else None
+        remote = self.remotes.get(node) if node is not None else None
+        if remote is not None and (remote.lost or self.silent(remote.name)):
+            if name not in self.unreached.setdefault(remote.name, []):
+                self.unreached[remote.name].append(name)
+            log.warning("module %r: its node %s did not answer its stop (%s): it stops on "
+                        "its own %s", name, remote.name,
+                        exc, ON_THEIR_OWN)
+            return
+        # (a module stuck in on_input was killed at close, unsaid)
+        if name not in self._given_up:     # (a Ctrl-C came as it was said)
+            self._given_up.append(name)
+        log.warning("module %r was not stopped (its worker is killed): %s", name, exc)
 
     @contextlib.contextmanager
     def _losing_silent_nodes(self) -> Iterator[None]:

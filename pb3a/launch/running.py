@@ -347,9 +347,18 @@ class Running(SystemHandle):
         return list(self._launcher.unconfirmed)
 
     @property
+    def unreached(self) -> dict[str, list[str]]:
+        """After ``close``: by remote node, the modules whose stop did not reach it (it did
+        not answer: cut off, frozen, lost). Nothing here killed their workers: each stops
+        on its own as its node's lease runs out, its ``teardown`` run (cut short if
+        long; the node's log says how it went), and its node is ``unconfirmed``."""
+        return {node: list(names) for node, names in self._launcher.unreached.items()}
+
+    @property
     def not_torn_down(self) -> list[str]:
         """After ``close``: the modules that did not stop in time (stuck in a body), each
-        named in a warning; their workers were killed, their ``teardown`` not run. After
+        named in a warning; their workers were killed, their ``teardown`` not run (not
+        those of a node that did not answer: ``unreached``). After
         a close that was interrupted, the modules it had not stopped too, until a close
         finishes the stop."""
         return self._launcher.not_torn_down

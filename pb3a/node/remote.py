@@ -71,6 +71,10 @@ SILENT_S = 2 * HEARTBEAT_S  # two heartbeats unanswered: the node is silent (not
 # (a fenced node's workers are gone by GONE_BY_S after the lease's end: before the
 # launcher, which declares the node lost LOSS_S after its last answer, starts them)
 assert LOSS_S - HEARTBEAT_S - LEASE_S > GONE_BY_S
+# What becomes of the modules of a node that does not answer (cut off, frozen) as the
+# system stops: said where its stop is not confirmed
+ON_THEIR_OWN = (f"within {HEARTBEAT_S + LEASE_S:g} s of its last answer (its lease), a "
+                f"teardown still running {GONE_BY_S:g} s later cut short")
 # A shutdown out of time still gives the executor this long to stop on its own (SIGTERM:
 # it stops its workers, which a kill would leave stepping until their lease ran out) ...
 STOP_GRACE_S = 0.25
