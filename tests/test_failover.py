@@ -1159,6 +1159,31 @@ def test_a_node_whose_executor_dies_is_lost_at_once_its_teardowns_cut_before_the
     _assert_one_copy_at_a_time(stamps)
 
 
+def test_a_node_whose_controller_is_stopped_says_so_and_is_lost_at_once(capfd) -> None:
+    """A node controller stopped (SIGTERM, as ``systemctl stop`` sends) with a module on
+    it looked to the launcher like a cut cable: the node was lost after 2 s (``LOSS_S``)
+    with no reason (executor None), and the controller logged nothing of its stop. It
+    logs that it stops and which executors stop with it, and answers, as it stops, that
+    each was stopped as it did: the node is lost then, saying so. (b is started here,
+    not by a fixture: its log then goes where ``capfd`` reads.)"""
+    b = Daemon("b")
+    try:
+        system = System("controller-stopped").node("a").node("b", address=b.address)
+        system.add("far", Collector, node="b", restart="fresh", fallback=["a"])
+        with system.launch() as run:
+            b.process.send_signal(signal.SIGTERM)
+            assert run._launcher.wait_health("b", up=False, timeout=10)
+            (lost,) = _events(run, "node_lost")
+        b.process.wait(10)
+    finally:
+        b.stop()
+    assert lost.detail["executor"] == (
+        "was stopped: its node controller stopped (SIGTERM)"), lost.detail
+    assert lost.detail["silent_s"] < 1.5, lost.detail             # (LOSS_S: 2 s)
+    assert "node b: stopping (SIGTERM): executors for 'controller-stopped' stop" in (
+        capfd.readouterr().err)
+
+
 @contextlib.contextmanager
 def _slow_to_stop_on(b: Daemon, stamps: Path, name: str) -> Iterator[Any]:
     """System ``name`` running, once it has stepped: its module on node ``b`` stamps each

@@ -25,15 +25,21 @@ def serve_until_signalled(command: str, listen: str,
                            start: Callable[[Any, str, int], tuple[Any, str]],
                            create_key: bool = False) -> int:
     """Start a daemon on ``listen``, print where, and run until SIGINT, SIGTERM or SIGHUP
-    (its terminal closed). The handlers come first: a signal while it starts stops it
+    (its terminal closed), then close it, naming the signal (its log says why it
+    stopped). The handlers come first: a signal while it starts stops it
     once started, closed as after any other signal (it would otherwise die there,
     unclosed). Without a cluster key it exits 2 at once, saying where it looked, unless
     ``create_key`` (it made one in ``~/.pb3a`` that no other machine had, and only their
     refusals said so, later)."""
     raise_open_files_limit()
     stop = threading.Event()
+    signalled: list[str] = []
+
+    def stopped_by(signum: int, _frame: Any) -> None:
+        signalled.append(signal.Signals(signum).name)
+        stop.set()
     for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(signum, lambda *_: stop.set())
+        signal.signal(signum, stopped_by)
     try:
         key = ClusterKey.load(create=create_key)
         host, port = bind_address(listen)
@@ -51,7 +57,7 @@ def serve_until_signalled(command: str, listen: str,
         while not stop.wait(1.0):
             pass
     finally:
-        daemon.close()
+        daemon.close(signalled[0] if signalled else "closed")
     return 0
 
 

@@ -88,5 +88,7 @@ class ModuleServer:
     def rejected(self) -> Any:
         return self._server.rejected
 
-    def close(self) -> None:
+    def close(self, why: str = "closed") -> None:
+        """Stop serving; ``why``: what stops it (a signal's name), logged."""
+        log.info("module server at %s: stopping (%s)", self.address, why)
         self._server.close()

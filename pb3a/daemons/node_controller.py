@@ -25,6 +25,7 @@ from pb3a.config import checks
 from pb3a.daemons import executor_family
 from pb3a.daemons.node_share import UNBOUND_S, executor_main
 from pb3a.errors import RuntimeFailure, bounded_wait
+from pb3a.node.remote import HEARTBEAT_S
 from pb3a.processes import start_resource_tracker, start_without_main, terminal_signals_held
 from pb3a.throttle import Throttle
 from pb3a.transport.auth import ClusterKey
@@ -44,6 +45,12 @@ SAMPLE_FAILURE_LOG_S = 60.0    # a sampler turn that fails is logged at most thi
 # A refusal is logged at most this often; the refusals not logged meanwhile are counted
 # in the next line logged (launchers that try again and again must not fill the journal)
 REFUSAL_LOG_S = 60.0
+# A controller that stops answers this long at most, once it has stopped its executors,
+# for their launchers to ask how each ended (``executor_ended``): a launcher asks once
+# its executor has missed two heartbeats, and again a heartbeat later (the executor
+# stops answering them as its stop begins). Told so, a launcher has the node lost at
+# once, its reason said; else it waited 2 s (``LOSS_S``), as for a cut cable.
+TELL_S = 4 * HEARTBEAT_S
 
 
 def how_it_ended(status: int | None) -> str:
@@ -109,10 +116,13 @@ class NodeController:
         self.limits = limits or Limits()
         self.unbound_s = UNBOUND_S          # an executor not taken by a launcher this long stops
         self._executors: dict[str, _Executor] = {}      # by configuration
-        # by configuration, the last executor that ended on its own (not stopped), with
-        # its exit status: a launcher asks how (``executor_ended``)
-        self._ended: dict[str, tuple[_Executor, int | None]] = {}
+        # by configuration, the last executor that ended on its own (not stopped by a
+        # launcher), with how: a launcher asks (``executor_ended``); those of them it has
+        # not yet been told of, stopped as this controller stops (``close``)
+        self._ended: dict[str, tuple[_Executor, str]] = {}
         self._lock = threading.Lock()
+        self._untold: set[str] = set()
+        self._told = threading.Condition(self._lock)
         self._closing = False               # set by close: no executor starts from then on
         self._cpu_samples: collections.deque[float] = collections.deque(maxlen=CPU_WINDOW)
         self._refusals_logged = Throttle(REFUSAL_LOG_S)    # (the others counted)
@@ -167,7 +177,7 @@ class NodeController:
             entry.process.close()
             with self._lock:
                 if config not in self._executors:       # (none started since)
-                    self._ended[config] = (entry, status)
+                    self._ended[config] = (entry, how_it_ended(status))
         if ended:
             reap_orphans()                # (and of its workers)
 
@@ -300,7 +310,7 @@ class NodeController:
         them, where it would wait for their lease to run out."""
         self._forget_ended()        # (one that ended since the sampler's last look)
         with self._lock:
-            entry, status = self._ended.get(config, (None, None))
+            entry, how = self._ended.get(config, (None, ""))
         if entry is None or entry.address != executor:
             return None
         if not executor_family.end(entry.mark, timeout):
@@ -308,7 +318,10 @@ class NodeController:
                         "SIGKILL for %g s", self.name, config, executor, timeout)
             return None
         reap_orphans()              # (the segments of the processes ended now)
-        return how_it_ended(status)
+        with self._told:
+            self._untold.discard(config)
+            self._told.notify_all()
+        return how
 
     def _handle(self, op: str, args: dict[str, Any]) -> Any:
         if op == "start_executor":
@@ -336,13 +349,28 @@ class NodeController:
     def rejected(self) -> Any:
         return self._server.rejected
 
-    def close(self) -> None:
+    def close(self, why: str = "closed") -> None:
         """Stop every executor (gracefully), then the controller; one that died on its
-        own is reaped too, and the segments it left removed."""
+        own is reaped too, and the segments it left removed. ``why``: what stops it (a
+        signal's name), logged with the executors that stop. Each executor's launcher
+        is told, if it asks within ``TELL_S``, that the executor was stopped as its
+        node controller stopped: the controller logged nothing, and the launcher took
+        the node for cut off, lost 2 s later with no reason."""
         with self._lock:        # (a start under way holds it: its executor is listed)
             self._closing = True
-            configs = list(self._executors)
-        for config in configs:
-            self.stop_executor(config)
+            entries = dict(self._executors)
+        if entries:
+            log.warning("node %s: stopping (%s): executors for %s stop", self.name, why,
+                        ", ".join(map(repr, entries)))
+        else:
+            log.info("node %s: stopping (%s)", self.name, why)
+        for config, entry in entries.items():
+            if self.stop_executor(config, executor=entry.address):
+                with self._lock:
+                    self._ended[config] = (entry, "was stopped: its node controller "
+                                                  f"stopped ({why})")
+                    self._untold.add(config)
+        with self._told:
+            self._told.wait_for(lambda: not self._untold, TELL_S)
         self._sampling.set()
         self._server.close()
