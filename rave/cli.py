@@ -120,7 +120,8 @@ class _Served:
     def __init__(self, world: Any) -> None:
         self.world, self.robots = world, None
 
-    def close(self) -> None:
+    def close(self, why: str = "closed") -> None:
+        """Stop serving (``why``: the signal that stops it, as every daemon is told)."""
         if self.robots is not None:
             self.robots.close()
         self.world.close()

@@ -10,7 +10,7 @@ import signal
 import sys
 import threading
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 import zmq
 
@@ -21,9 +21,16 @@ from pb3a.transport.auth import ClusterKey, ClusterKeyError, ClusterKeyMissing
 KEY_MISSING = 2         # the exit status of a daemon started with no cluster key
 
 
+class Daemon(Protocol):
+    """What ``serve_until_signalled`` serves: closed once, told what stopped it."""
+
+    def close(self, why: str) -> None:
+        """Stop serving; ``why``: the signal's name ("SIGTERM"), or "closed"."""
+
+
 def serve_until_signalled(command: str, listen: str,
-                           start: Callable[[Any, str, int], tuple[Any, str]],
-                           create_key: bool = False) -> int:
+                          start: Callable[[Any, str, int], tuple[Daemon, str]],
+                          create_key: bool = False) -> int:
     """Start a daemon on ``listen``, print where, and run until SIGINT, SIGTERM or SIGHUP
     (its terminal closed), then close it, naming the signal (its log says why it
     stopped). The handlers come first: a signal while it starts stops it
