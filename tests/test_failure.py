@@ -1179,24 +1179,29 @@ def test_a_frozen_worker_is_waited_for_once_not_at_every_report() -> None:
     was frozen (SIGSTOP, stuck): every ``stats()`` took its timeout, and the manager's
     live figures, asked twice a second, came every 5 s. A worker that has not answered
     a report's request is silent in the next at once, not asked again; once it answers
-    (let run), its figures come again."""
+    (let run), its figures come again. Meanwhile it shows the figures of its last
+    answer (it showed zeros: a module that had stepped a thousand times, none)."""
     system = System("frozen-reports").node("a")
     for name in ("frozen", "steady"):
         system.add(name, Steady, node="a")
     with system.launch() as run:
-        pid = eventually(lambda: run.stats().modules["frozen"].pid, what="a worker pid")
+        before = eventually(lambda: (m := run.stats().modules["frozen"]).steps > 5 and m,
+                            what="the module stepping")
+        pid = before.pid
         with frozen(pid):
             first = _timed(lambda: run.stats(timeout=1))
             later = [_timed(lambda: run.stats(timeout=1)) for _ in range(3)]
         for _, stats in [first, *later]:
-            assert stats.modules["frozen"].silent and stats.modules["frozen"].pid == pid
+            shown = stats.modules["frozen"]
+            assert shown.silent and shown.pid == pid and not shown.running
+            assert shown.steps >= before.steps and shown.cpu >= before.cpu, shown
             assert not stats.modules["steady"].silent and stats.modules["steady"].steps > 0
         assert first[0] < 1.5, f"the first report took {first[0]:.1f} s"
         assert max(took for took, _ in later) < 0.5, [round(took, 2) for took, _ in later]
         assert later[-1][1].modules["steady"].steps > first[1].modules["steady"].steps
-        answered = eventually(lambda: (m := run.stats().modules["frozen"]).steps and m,
+        answered = eventually(lambda: not (m := run.stats().modules["frozen"]).silent and m,
                               what="the frozen worker's figures once it runs")
-        assert not answered.silent and answered.pid == pid
+        assert answered.pid == pid and answered.steps >= before.steps
 
 
 def test_a_worker_asked_for_a_report_as_it_stops_is_shown_by_its_last_figures() -> None:

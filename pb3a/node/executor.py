@@ -693,11 +693,15 @@ class Executor:
                                                    max(0.0, deadline - time.monotonic()))
         self._unanswered = {**unanswered, **{key: future for key, future in futures.items()
                                              if not future.done()}}
+        for key, answer in reports.items():
+            asked[key].last_answer = answer
         silent = {key: handle.pid for key, handle in asked.items()
                   if key not in reports and handle.alive}
         for key, handle in list(self.workers.handles.items()):      # stopped, or stopping
             if key not in reports and handle.last_figures:
                 reports[key] = {**handle.last_figures, "pid": None}
+            elif key in silent and handle.last_answer:     # (its figures then, not zeros)
+                reports[key] = handle.last_answer
         modules = {name: self._module_stats(record, reports.get(record.worker),
                                             silent.get(record.worker),
                                             self.lives.revival(name))
@@ -718,8 +722,9 @@ class Executor:
                       revival: tuple[str, float] | None = None) -> ModuleStats:
         """A module's figures from its worker's ``report``; ``silent_pid``: its worker's
         process id if it runs but did not answer in time (``silent``: it was shown
-        with no process, as if it had none); ``revival``: its restart under way, if any
-        (``Lives.revival``), named as the change in progress."""
+        with no process, as if it had none), ``report`` its last answer then, if any
+        (a frozen worker's modules showed zeros); ``revival``: its restart under way, if
+        any (``Lives.revival``), named as the change in progress."""
         spec = record.spec
         base = {"cls": f"{spec.cls.__module__}:{spec.cls.__qualname__}", "node": spec.node,
                 "worker": record.worker, "status": record.status,
@@ -731,13 +736,15 @@ class Executor:
         figures = None if report is None else report["modules"].get(spec.name)
         if figures is None:
             return ModuleStats(**base, pid=silent_pid, silent=silent_pid is not None)
-        calling, calling_s = figures["calling"] or ("", 0.0)
+        calling, calling_s = ("", 0.0) if silent_pid is not None else \
+            figures["calling"] or ("", 0.0)
         return ModuleStats(
             **{**base, "cls": figures["class"], "period": figures["period"],
                "fixed_rate": figures["fixed_rate"]},
             overruns=figures["overruns"],
             pid=report["pid"],
-            running=figures["running"] and record.status == "running",
+            running=figures["running"] and record.status == "running" and silent_pid is None,
+            silent=silent_pid is not None,
             calling=calling, calling_s=calling_s,
             steps=figures["steps"], events=figures["events"], errors=figures["errors"],
             last_error=figures["last_error"], last_error_at=figures["last_error_at"],

@@ -242,6 +242,8 @@ class WorkerHandle:
     pid: int = 0
     # what the worker's modules had done when it stopped (its stats), told as it stopped
     last_figures: dict[str, Any] | None = None
+    # its last answer to a report (its stats), shown while it does not answer (frozen)
+    last_answer: dict[str, Any] | None = None
     # held to read the pipe and to close it: a worker stopped by another thread must
     # not have its pipe closed under the monitor reading it
     read_lock: threading.RLock = field(default_factory=threading.RLock)
@@ -390,7 +392,7 @@ class WorkerPool:
         handle.process, handle.conn, handle.pid = watched, parent, process.pid
         handle.outbox, handle.inbox, handle.head = outbox, inbox, None
         handle.alive = True
-        handle.last_figures = None
+        handle.last_figures = handle.last_answer = None
         self._poke()
 
     def ensure(self, key: str, node: str) -> WorkerHandle:
