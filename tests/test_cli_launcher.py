@@ -42,6 +42,7 @@ from pb3a.cli.status import format_table
 from pb3a.errors import ConfigError
 from pb3a.events import Event
 from pb3a.launch.connection import Connection
+from pb3a.launch.operations import Operations
 from pb3a.stats import ModuleStats, SystemStats
 
 REPO = Path(__file__).resolve().parent.parent
@@ -404,6 +405,48 @@ def test_a_swap_says_what_its_own_swap_did_not_what_a_later_one_did(
             "state kept: gain; dropped (the class has no such fields): setups")
         assert [e.detail["dropped"] for e in run.events() if e.kind == "module_swapped"] \
             == [["setups"], []]
+
+
+def test_events_add_and_swap_work_with_a_launcher_older_than_events_last(
+        capsys, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A client sent ``last`` with every ``events()``, None too, which a launcher older
+    than it refused ("unexpected keyword argument 'last'"): ``pb3a events``, ``swap``,
+    ``add`` and the manager's page failed against it. ``last`` goes only when given,
+    and ``swap`` and ``add`` read such a launcher's whole log instead."""
+    events = Operations.events
+
+    def older(self: Operations, since: int = 0, *, timeout: float | None = 0.0) -> list:
+        return events(self, since, timeout=timeout)
+
+    monkeypatch.setattr(Operations, "events", older)
+    plain = f"{PlainScale.__module__}:PlainScale"
+    with System("older").add("scale", Scale).launch() as run:
+        address = run.listen()
+        assert main(["events", address]) == 0
+        assert main(["swap", address, "scale", plain]) == 0
+        assert f"scale is now {plain}" in capsys.readouterr().out
+        with pb3a.connect(address) as connection:
+            assert [e.kind for e in connection.events()][-1] == "module_swapped"
+
+
+def test_a_swap_says_what_its_own_swap_did_not_what_one_just_before_did(
+        capsys, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Another's swap of the same module between ``pb3a swap``'s look at the newest event
+    and its own swap was said as its own (the first after that look). The one whose
+    state kept is what its swap answered is taken."""
+    plain = f"{PlainScale.__module__}:PlainScale"
+    newest = running_system._newest_seq
+
+    def then_another(system: Connection) -> int:
+        seq = newest(system)
+        run.swap("scale", Scale)                # another's, before pb3a swap's own
+        return seq
+
+    monkeypatch.setattr(running_system, "_newest_seq", then_another)
+    with System("swap-first").add("scale", Scale, state={"gain": 3.0}).launch() as run:
+        assert main(["swap", run.listen(), "scale", plain]) == 0
+        assert capsys.readouterr().out.strip().endswith(
+            "state kept: gain; dropped (the class has no such fields): setups")
 
 
 def test_add_and_swap_read_no_event_older_than_the_newest_before_their_call(

@@ -67,14 +67,16 @@ from pb3a import (
     processes,
 )
 from pb3a.cli.status import format_table
-from pb3a.config.plan import FlatModule
+from pb3a.config.plan import FlatLink, FlatModule
 from pb3a.deadline import bounding
+from pb3a.launch.launcher import _link_table, _silenced
 from pb3a.loading.sources import CodeSources
 from pb3a.model.module import restore_state
+from pb3a.model.ports import Policy
 from pb3a.node.executor import Executor
 from pb3a.node.forkserver_owner import ORPHAN_GRACE_S
 from pb3a.node.restarts import RESTART_INTENSITY, RestartBudget, Restarts
-from pb3a.stats import SystemStats
+from pb3a.stats import ModuleStats, NodeReport, SystemStats
 from pb3a.transport.doorbell import new_bell
 from pb3a.transport.ring import ShmRing
 from pb3a.transport.shm import live_segments, segment_name
@@ -1232,6 +1234,31 @@ def test_a_worker_asked_for_a_report_as_it_stops_is_shown_by_its_last_figures() 
         assert not last.silent and last.steps > 0, last
 
 
+class _RefusesToTravel:
+    def __reduce__(self) -> tuple:
+        raise ValueError("this object cannot travel")
+
+
+@pytest.mark.parametrize("value", [_RefusesToTravel(), threading.Lock()],
+                         ids=["ValueError", "TypeError"])
+def test_a_request_whose_arguments_cannot_be_pickled_fails_at_once_saying_so(
+        value: object) -> None:
+    """A value that refuses pickling with a ValueError (its own ``__reduce__``) was
+    taken for a broken pipe: the request said the worker "is gone", and, once a request
+    on a broken pipe was left for the worker's monitor, waited out its whole timeout
+    for an answer that never came, then said the module was stuck. Nothing is sent,
+    and the request fails at once, saying the arguments cannot be pickled."""
+    system = System("unpicklable").node("a")
+    system.add("steady", Steady, node="a")
+    with system.launch() as run:
+        began = time.monotonic()
+        with pytest.raises(RuntimeFailure, match="its arguments cannot be pickled"):
+            run.set_state("steady", count=value, timeout=6.0)
+        assert time.monotonic() - began < 2.0
+        assert run._launcher.nodes["a"].workers._futures == {}
+        assert run.stats().modules["steady"].running
+
+
 def _timed(call: Callable[[], object]) -> tuple[float, object]:
     started = time.monotonic()
     result = call()
@@ -2293,6 +2320,24 @@ def test_checkpoints_taken_while_the_executor_reads_nothing_replace_each_other()
         run.state("big", timeout=10)       # (everything sent before it is read)
         arrived = record.checkpoints - before
     assert arrived <= 6, f"{arrived} checkpoints arrived once the executor read again"
+
+
+def test_a_silent_node_s_last_figures_leave_out_links_read_elsewhere_since() -> None:
+    """A silent node is shown with its last report's figures, but not those of a link
+    whose reader has moved off it since: that report's 7 values lost and full ring were
+    added to the figures of the node that reads the link now (it lost none)."""
+    link = FlatLink("drv", "out", "ctl", "x", Policy.parse("queue"))
+    before = NodeReport({"ctl": ModuleStats("m:C", "b", "w1", "running")},
+                        {link.key: 65536}, {link.key: 7}, ["12:00:00 ctl failed once"])
+    now = NodeReport({"ctl": ModuleStats("m:C", "a", "w2", "running"),
+                      "drv": ModuleStats("m:D", "a", "w3", "running")},
+                     {link.key: 0}, {link.key: 0}, [])
+    silent = _silenced(before, "b", [], read=set())
+    (shown,) = _link_table({link.key: link}, dict(now.modules), [now, silent], {}).values()
+    assert (shown.ring_bytes_used, shown.link_failures) == (0, 0)
+    assert silent.failures == before.failures
+    still = _silenced(before, "b", [], read={link.key})
+    assert (still.ring_bytes_used, still.link_failures) == ({link.key: 65536}, {link.key: 7})
 
 
 def test_a_node_whose_report_is_late_shows_its_modules_silent() -> None:

@@ -18,7 +18,7 @@ from typing import Any
 import zmq
 
 from pb3a.cli.status import format_nodes, format_table
-from pb3a.errors import PB3AError, RuntimeTimeout, SystemStopped
+from pb3a.errors import PB3AError, RuntimeFailure, RuntimeTimeout, SystemStopped
 from pb3a.events import Event
 from pb3a.launch.connection import CONNECT_TIMEOUT, Connection, connect
 from pb3a.loading.references import resolve_class
@@ -136,7 +136,7 @@ def _swap(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
     changed since the launcher imported it), which the line says too."""
     before = _newest_seq(system)
     kept = system.swap(args.module, args.cls, timeout=args.timeout)
-    swapped = _own_event(system, before, "module_swapped", args.module)
+    swapped = _own_event(system, before, "module_swapped", args.module, kept=kept)
     reloaded = swapped.get("reloaded")
     dropped = swapped.get("dropped", [])
     said = (f"module {reloaded} changed since it was imported: reloaded; "
@@ -193,23 +193,30 @@ def _add(system: Connection, args: argparse.Namespace) -> tuple[str, Any]:
 
 def _newest_seq(system: Connection) -> int:
     """The number of the system's newest event (0: none yet), read in one event: a
-    change's own event is looked for after it (``_own_event``)."""
-    newest = system.events(timeout=0.0, last=1)
+    change's own event is looked for after it (``_own_event``); from the whole log of a
+    launcher older than ``events(last=...)``."""
+    try:
+        newest = system.events(timeout=0.0, last=1)
+    except RuntimeFailure:
+        newest = system.events(timeout=0.0)[-1:]
     return newest[-1].seq if newest else 0
 
 
 def _own_event(system: Connection, since: int, kind: str, module: str, *,
-               inside: bool = False) -> dict[str, Any]:
+               inside: bool = False, **said: Any) -> dict[str, Any]:
     """The detail of the first ``kind`` event of ``module`` (``inside``: or of a module
     inside it, a macro instance's) after event ``since``, read before the change that
-    recorded it: that change's own ({} if the system no longer keeps it). The whole log
-    was read for the newest such event, which was another's when someone changed the
-    same module again between the change and the read."""
-    for event in system.events(since, timeout=0.0):
-        if event.kind == kind and (event.subject == module or (
-                inside and event.subject.startswith(f"{module}/"))):
-            return event.detail
-    return {}
+    recorded it, whose detail has what the change ``said`` (a swap's ``kept``), if one
+    has: that change's own ({} if the system no longer keeps it). The whole log was read
+    for the newest such event, which was another's when someone changed the same module
+    again between the change and the read; the first after ``since`` is another's when
+    someone changed it between that read and the change."""
+    found = [event.detail for event in system.events(since, timeout=0.0)
+             if event.kind == kind and (event.subject == module or (
+                 inside and event.subject.startswith(f"{module}/")))]
+    return next((detail for detail in found
+                 if all(detail.get(key) == value for key, value in said.items())),
+                found[0] if found else {})
 
 
 def _class_defaults(ref: str, timeout: float | None) -> dict[str, Any]:

@@ -195,8 +195,8 @@ def _on_their_own(node: str, modules: list[str]) -> str:
     what = (f"its module {modules[0]} stops on its own" if len(modules) == 1 else
             f"its modules {', '.join(modules)} stop on their own" if modules else
             "its executor stops itself")
-    return (f"node {node} did not answer (cut off?): {what} {ON_THEIR_OWN} "
-            "(its log says how)")
+    return (f"node {node} did not confirm its stop (cut off, frozen, or out of time): "
+            f"{what} {ON_THEIR_OWN} (its log says how)")
 
 
 @contextlib.contextmanager

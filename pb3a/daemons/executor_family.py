@@ -23,6 +23,7 @@ MARK = "PB3A_EXECUTOR_FAMILY"
 _SCAN_S = 0.02      # between two looks for a family's processes still alive
 _EXEC_S = 0.5       # the longest a process is taken to be in the middle of an exec
 _PF_KTHREAD = 0x00200000    # a kernel thread, in /proc/PID/stat's flags
+_TICKS_PER_S = os.sysconf("SC_CLK_TCK")     # /proc/PID/stat's unit of time
 
 
 def new_mark() -> str:
@@ -36,16 +37,19 @@ def take_mark(mark: str) -> None:
     os.environ[MARK] = mark
 
 
-def members(mark: str) -> list[psutil.Process]:
+def members(mark: str, until: float | None = None) -> list[psutil.Process]:
     """The live processes that carry ``mark`` (a zombie runs nothing: left out).
 
     One caught in the middle of an ``exec`` shows no environment for a moment (its
-    new one is not in place yet): it is looked at again until it does, ``_EXEC_S`` at
-    most, lest a process just started be missed (a module's, which would then run
-    on beside its failed-over copy)."""
+    new one is not in place yet): one started less than ``_EXEC_S`` ago is looked at
+    again until it shows one, or is that old, lest a process just started be missed (a
+    module's, which would then run on beside its failed-over copy); not past ``until``
+    (``time.monotonic()``), if given. One that shows none for longer (``env -i``) is
+    no family's: every look waited for it, and the family's end outlasted the
+    launcher's question."""
     wanted = f"{MARK}={mark}".encode()
     found = []
-    looking, deadline = psutil.pids(), time.monotonic() + _EXEC_S
+    looking = psutil.pids()
     while True:
         unsure = []
         for pid in looking:
@@ -59,7 +63,7 @@ def members(mark: str) -> list[psutil.Process]:
                         found.append(process)
             elif not environ and _may_be_in_exec(pid):
                 unsure.append(pid)
-        if not unsure or time.monotonic() >= deadline:
+        if not unsure or (until is not None and time.monotonic() >= until):
             return found
         looking = unsure
         time.sleep(_SCAN_S / 4)
@@ -77,14 +81,20 @@ def _environ(pid: int) -> bytes | None:
 
 def _may_be_in_exec(pid: int) -> bool:
     """Whether process ``pid``, which shows no environment, may be in the middle of an
-    ``exec``: neither a zombie nor a kernel thread (which show none for good)."""
+    ``exec``: started less than ``_EXEC_S`` ago, and neither a zombie nor a kernel
+    thread (which show none for good)."""
     try:
         with open(f"/proc/{pid}/stat", "rb") as stat:
             fields = stat.read().rpartition(b")")[2].split()
+        with open("/proc/uptime", "rb") as uptime:
+            now = float(uptime.read().split()[0])
     except OSError:
         return False
-    # (after the name: state, ppid, pgrp, session, tty, tpgid, flags)
-    return fields[0] not in (b"Z", b"X") and not int(fields[6]) & _PF_KTHREAD
+    # (after the name: state, ppid, pgrp, session, tty, tpgid, flags; its start, in
+    # clock ticks since boot, is the 20th)
+    started = int(fields[19]) / _TICKS_PER_S
+    return fields[0] not in (b"Z", b"X") and not int(fields[6]) & _PF_KTHREAD \
+        and now - started < _EXEC_S
 
 
 def end(mark: str, timeout: float) -> bool:
@@ -93,7 +103,7 @@ def end(mark: str, timeout: float) -> bool:
     left within ``timeout`` seconds."""
     deadline = time.monotonic() + timeout
     while True:
-        alive = members(mark)
+        alive = members(mark, deadline)
         if not alive:
             return True
         for process in alive:

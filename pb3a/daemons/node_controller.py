@@ -355,7 +355,9 @@ class NodeController:
         signal's name), logged with the executors that stop. Each executor's launcher
         is told, if it asks within ``TELL_S``, that the executor was stopped as its
         node controller stopped: the controller logged nothing, and the launcher took
-        the node for cut off, lost 2 s later with no reason."""
+        the node for cut off, lost 2 s later with no reason. One that had ended on its
+        own already is said as it ended, not as stopped."""
+        self._forget_ended()
         with self._lock:        # (a start under way holds it: its executor is listed)
             self._closing = True
             entries = dict(self._executors)

@@ -191,4 +191,6 @@ class SystemHandle(ABC):
         (0: not at all; None: the system's default, as for every call). ``last``: only
         the newest ``last`` of them (``events(last=1)``: the newest event, whose ``seq``
         a program reads on from, without fetching the whole log)."""
-        return self._request("events", {"since": since, "timeout": timeout, "last": last})
+        # (``last`` only when given: a launcher older than it refuses the keyword)
+        given = {"last": last} if last is not None else {}
+        return self._request("events", {"since": since, "timeout": timeout, **given})

@@ -105,7 +105,9 @@ class Launcher:
         self.logbook = LogBook()                      # the recent log, for run.logs()
         self.handler: Any = None                      # applies agents' requests (op, args)
         self.health: dict[str, dict[str, Any]] = {}   # node -> up, rtt, address
-        self._last_reports: dict[str, NodeReport] = {}  # node -> the last it gave in time
+        # node -> the last report it gave in time, and the admission that gave it (a
+        # node admitted again shows nothing of the one before)
+        self._last_reports: dict[str, tuple[RemoteNode | None, NodeReport]] = {}
         self.changed = threading.Condition()          # notified when a node's health changes
         self.stopping = threading.Event()             # set as the shutdown begins
         # threads that act on the system on their own (the env keeper; the watchdog and
@@ -565,13 +567,18 @@ class Launcher:
             while thread.is_alive() and not self.silent(name) and time.monotonic() < deadline:
                 thread.join(max(0.0, min(WATCH_S, deadline - time.monotonic())))
         given = {name: reports[name] for name in asked if name in reports}
-        self._last_reports.update(given)
+        self._last_reports.update({name: (self.remotes.get(name), report)
+                                   for name, report in given.items()})
         for name in up.keys() - given.keys():
             if not self.silent(name):
                 log.warning("node %s did not report within %g s", name, timeout)
             placed = [spec for spec in specs.values() if spec.node == name]
-            given[name] = _silenced(self._last_reports.get(name, NodeReport({}, {}, {}, [])),
-                                    name, placed)
+            admission, last = self._last_reports.get(name, (None, None))
+            if last is None or admission is not self.remotes.get(name):
+                last = NodeReport({}, {}, {}, [])
+            read = {key for key, link in list(self.links.items())
+                    if any(link.dst == spec.name for spec in placed)}
+            given[name] = _silenced(last, name, placed, read)
         return given
 
     def silent(self, name: str) -> bool:
@@ -664,6 +671,10 @@ class Launcher:
         # modules stopped on their own, unconfirmed)
         self.unconfirmed = [name for name, node in self.remotes.items()
                             if not node.stopped or (node.lost and name in self.unreached)]
+        # (a node silent as its module's stop was sent, which answered its own stop
+        # since: that module stopped with its executor, confirmed)
+        self.unreached = {name: modules for name, modules in self.unreached.items()
+                          if name in self.unconfirmed}
         logging.getLogger().removeHandler(self.logbook)
         self.events.end()            # (a follower waiting for more is told there is none)
         self.logbook.end()
@@ -777,14 +788,16 @@ def _link_table(links: dict[str, FlatLink], modules: dict[str, ModuleStats],
     return table
 
 
-def _silenced(report: NodeReport, node: str, placed: list[FlatModule]) -> NodeReport:
+def _silenced(report: NodeReport, node: str, placed: list[FlatModule],
+              read: set[str]) -> NodeReport:
     """The modules ``placed`` on ``node`` as it shows them when it did not answer in
     time: silent, not running, with the figures its last ``report`` had (steps, events,
     CPU, errors, inputs, outputs, waits: a silence reset them to zero, and a cut cable
-    showed a module that had handled 1511 events as one that had handled none), that
-    report's ring fill, link losses and failures with them; one that came since (a
-    failover, a move) as the launcher has it, running with no process known and no
-    figures (it was left out of the figures)."""
+    showed a module that had handled 1511 events as one that had handled none), with
+    that report's failures, and the ring fill, link losses and drops of the links
+    ``read`` there still (not of one whose reader has moved since: counted twice); one
+    that came since (a failover, a move) as the launcher has it, running with no
+    process known and no figures (it was left out of the figures)."""
     modules = {}
     for spec in placed:
         entry = report.modules.get(spec.name)
@@ -795,6 +808,8 @@ def _silenced(report: NodeReport, node: str, placed: list[FlatModule]) -> NodeRe
         ) if entry is None else dataclasses.replace(
             entry, silent=True, running=False, calling="", calling_s=0.0, change="",
             change_s=0.0)
-    return NodeReport(modules, dict(report.ring_bytes_used), dict(report.link_failures),
+    def still(figures: dict[str, int]) -> dict[str, int]:
+        return {key: value for key, value in figures.items() if key in read}
+    return NodeReport(modules, still(report.ring_bytes_used), still(report.link_failures),
                       list(report.failures), None, report.spare_workers,
-                      dict(report.link_drops))
+                      still(report.link_drops))

@@ -262,7 +262,12 @@ class WorkerHandle:
         launcher's own script defines travels by value, and one the worker cannot read
         fails only its request. A ``TypeError`` or ``PicklingError`` says they cannot be
         pickled, an ``OSError`` that the pipe is closed: nothing went."""
-        body = pickling.dumps(args)
+        return self.send_pickled(req_id, op, pickling.dumps(args), fd)
+
+    def send_pickled(self, req_id: int | None, op: str, body: bytes,
+                     fd: int | None = None) -> Outgoing:
+        """``send`` with the arguments pickled already (``body``); an ``OSError`` says the
+        pipe is closed: nothing went."""
         return self.outbox.put([pickle.dumps((req_id, op, fd is not None)), body], fd)
 
     def close_pipe(self) -> None:
@@ -499,14 +504,22 @@ class WorkerPool:
         if not handle.serving:
             future.set_exception(RuntimeFailure(f"worker {handle.key!r} is not running"))
             return future
+        try:
+            body = pickling.dumps(args)
+        except Exception as exc:                 # not picklable: nothing is sent
+            future.set_exception(RuntimeFailure(
+                f"{op!r} for worker {handle.key!r}: its arguments cannot be pickled: "
+                f"{type(exc).__name__}: {exc}"))
+            return future
         req_id = next(self._ids)
         self._futures[req_id] = future
         future.pb3a_worker = handle   # type: ignore[attr-defined]
         future.pb3a_request = req_id   # type: ignore[attr-defined]
         future.pb3a_op = op   # type: ignore[attr-defined]
         try:
-            future.pb3a_outgoing = handle.send(req_id, op, args, fd)   # type: ignore[attr-defined]
-        except (OSError, ValueError) as exc:
+            future.pb3a_outgoing = handle.send_pickled(  # type: ignore[attr-defined]
+                req_id, op, body, fd)
+        except OSError as exc:
             # Its pipe broken, the worker is ending: the monitor fails the request once it
             # sees it end, having read what it said before (its last figures answer a
             # report's request: ``answer_waiting``; failed here, a report made as the
@@ -514,11 +527,6 @@ class WorkerPool:
             # Whoever pops a future completes it.
             if not handle.alive and self._futures.pop(req_id, None) is not None:
                 future.set_exception(RuntimeFailure(f"worker {handle.key!r} is gone: {exc}"))
-        except Exception as exc:                 # not picklable: nothing was sent
-            if self._futures.pop(req_id, None) is not None:
-                future.set_exception(RuntimeFailure(
-                    f"{op!r} for worker {handle.key!r}: its arguments cannot be pickled: "
-                    f"{type(exc).__name__}: {exc}"))
         return future
 
     def side_by_side(self, requests: list[WorkerRequest | None]) -> list[Any]:
