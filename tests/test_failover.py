@@ -1172,8 +1172,9 @@ def test_a_node_whose_controller_is_stopped_says_so_and_is_lost_at_once(capfd) -
         system.add("far", Collector, node="b", restart="fresh", fallback=["a"])
         with system.launch() as run:
             b.process.send_signal(signal.SIGTERM)
-            assert run._launcher.wait_health("b", up=False, timeout=10)
-            (lost,) = _events(run, "node_lost")
+            # (its health goes down first, its event is recorded a moment after)
+            (lost,) = eventually(lambda: _events(run, "node_lost"), timeout=10,
+                                 what="node b lost")
         b.process.wait(10)
     finally:
         b.stop()
