@@ -153,6 +153,23 @@ def kill_processes_naming(word: str) -> list[psutil.Process]:
 
 
 @contextlib.contextmanager
+def rave_started(*args: str, robots: int = 2) -> Iterator[list[str]]:
+    """``rave start ARGS`` in a process of its own: the lines it prints (its world's,
+    then each of its ``robots``'), then a SIGTERM it ends on with status 0."""
+    process = subprocess.Popen([sys.executable, "-m", "rave.cli", "start", *args],
+                               stdout=subprocess.PIPE, text=True)
+    try:
+        yield [process.stdout.readline().strip() for _ in range(1 + robots)]
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=15) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(5)
+        process.stdout.close()
+
+
+@contextlib.contextmanager
 def frozen(*pids: int) -> Iterator[None]:
     """The processes ``pids`` stopped (SIGSTOP: as a hung or starved one) while inside."""
     for pid in pids:

@@ -4,18 +4,16 @@ from another shell), drive, tune, swap, adapt and move the robot."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import re
 import signal
 import subprocess
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
-from conftest import eventually
+from conftest import eventually, rave_started
 
 import examples.first_robot
 from pb3a.transport.auth import ClusterKey
@@ -52,29 +50,12 @@ def _pb3a(*argv: str) -> str:
     return done.stdout.strip()
 
 
-@contextlib.contextmanager
-def _room() -> Iterator[str]:
-    """``rave start room`` in a process of its own (free ports, as a test must); robot
-    r1's address."""
-    process = subprocess.Popen([sys.executable, "-m", "rave.cli", "start", "room"],
-                               stdout=subprocess.PIPE, text=True)
-    try:
-        assert process.stdout.readline().startswith("world room at ")
-        robot = process.stdout.readline().split()
-        assert robot[:3] == ["robot", "r1", "at"], robot
-        yield robot[3]
-        process.send_signal(signal.SIGTERM)
-        assert process.wait(timeout=15) == 0
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait(5)
-        process.stdout.close()
-
-
 def test_the_tutorial_s_steps_drive_tune_swap_adapt_and_move_the_robot(
         tmp_path: Path) -> None:
-    with _room() as robot:
+    with rave_started("room", robots=1) as (world, served):    # (free ports, as a test's)
+        assert world.startswith("world room at ")
+        name, robot = served.split()[1::2]                  # robot r1 at ADDR
+        assert name == "r1", served
         system = tmp_path / "first_robot.toml"
         system.write_text(SYSTEM.read_text().replace("tcp://127.0.0.1:7101", robot))
         client = ControlClient(ClusterKey.load(), robot)

@@ -4,7 +4,6 @@ it and can be re-pointed to another robot while running."""
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
 import signal
@@ -13,12 +12,11 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
 
 import numpy as np
 import psutil
 import pytest
-from conftest import HeldKey, alive, eventually, unused_port
+from conftest import HeldKey, alive, eventually, rave_started, unused_port
 from sample_modules import Cruise, Spin
 
 from pb3a import RuntimeFailure, RuntimeTimeout, System
@@ -462,7 +460,7 @@ def test_a_driver_that_cannot_reach_its_robot_says_so_in_the_log() -> None:
 
 
 def test_the_rave_command_serves_a_world_injects_faults_and_renders(tmp_path, capsys) -> None:
-    with _rave_start("rave/worlds/arena.toml") as lines:
+    with rave_started("rave/worlds/arena.toml") as lines:
         assert lines[0].startswith("world arena at tcp://127.0.0.1:")
         robots = dict(line.split()[1::2] for line in lines[1:])     # name -> address
         assert set(robots) == {"r1", "r2"}
@@ -495,7 +493,7 @@ def test_the_rave_command_serves_on_the_ports_it_is_given_and_names_one_in_use(c
     base = unused_port()
     while not all(_free(base + i) for i in (-1, 1, 2)):    # (the second's world: base - 1)
         base = unused_port()
-    with _rave_start("arena", "--port", str(base)) as lines:
+    with rave_started("arena", "--port", str(base)) as lines:
         assert lines == [f"world arena at tcp://127.0.0.1:{base}",
                          f"robot r1 at tcp://127.0.0.1:{base + 1}",
                          f"robot r2 at tcp://127.0.0.1:{base + 2}"], lines
@@ -516,23 +514,6 @@ def test_the_rave_command_serves_on_the_ports_it_is_given_and_names_one_in_use(c
     assert "'70000' is not a port" in capsys.readouterr().err
 
 
-@contextlib.contextmanager
-def _rave_start(*args: str) -> Iterator[list[str]]:
-    """``rave start ARGS`` (the arena's world, or another of two robots) in a process of
-    its own: the three lines it prints, then a SIGTERM it ends on with status 0."""
-    process = subprocess.Popen([sys.executable, "-m", "rave.cli", "start", *args],
-                               stdout=subprocess.PIPE, text=True)
-    try:
-        yield [process.stdout.readline().strip() for _ in range(3)]
-        process.send_signal(signal.SIGTERM)
-        assert process.wait(timeout=15) == 0
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait(5)
-        process.stdout.close()
-
-
 def _free(port: int) -> bool:
     with socket.socket() as probe:
         try:
@@ -547,7 +528,7 @@ def test_the_rave_command_on_every_interface_prints_addresses_rave_fault_takes(
     """``rave start --listen 0.0.0.0`` (to serve robots to other machines) prints this
     machine's address on its default route: it printed ``tcp://0.0.0.0:PORT``, which
     ``rave fault`` and a ``RobotDriver`` refuse as naming every interface."""
-    with _rave_start("arena", "--listen", "0.0.0.0") as lines:
+    with rave_started("arena", "--listen", "0.0.0.0") as lines:
         ours = {entry.address for entries in psutil.net_if_addrs().values()
                 for entry in entries}
         addresses = dict(line.split()[1::2] for line in lines)     # name -> address
