@@ -576,8 +576,8 @@ class Launcher:
             admission, last = self._last_reports.get(name, (None, None))
             if last is None or admission is not self.remotes.get(name):
                 last = NodeReport({}, {}, {}, [])
-            read = {key for key, link in list(self.links.items())
-                    if any(link.dst == spec.name for spec in placed)}
+            names = {spec.name for spec in placed}
+            read = {key for key, link in list(self.links.items()) if link.dst in names}
             given[name] = _silenced(last, name, placed, read)
         return given
 
@@ -693,8 +693,7 @@ class Launcher:
             if name not in self.unreached.setdefault(remote.name, []):
                 self.unreached[remote.name].append(name)
             log.warning("module %r: its node %s did not answer its stop (%s): it stops on "
-                        "its own %s", name, remote.name,
-                        exc, ON_THEIR_OWN)
+                        "its own %s", name, remote.name, exc, ON_THEIR_OWN)
             return
         # (a module stuck in on_input was killed at close, unsaid)
         if name not in self._given_up:     # (a Ctrl-C came as it was said)
